@@ -1,0 +1,63 @@
+"""The ``rigctl`` command line (click). Each command lives in its own module of this package, imported on use."""
+
+from __future__ import annotations
+
+import importlib
+
+import click
+
+from rigctl import __version__
+
+#: command name -> "module:attribute" of the click command, imported only when the command runs
+COMMANDS = {
+    "acquire": "rigctl.cli.acquire:acquire",
+    "info": "rigctl.cli.info:info",
+    "ports": "rigctl.cli.ports:ports",
+    "sim": "rigctl.cli.sim:sim",
+    "encode": "rigctl.cli.encode:encode",
+    "analyze": "rigctl.cli.analyze:analyze",
+    "import-fabricslide": "rigctl.cli.fabricslide:import_fabricslide",
+    "gui": "rigctl.cli.gui:gui",
+}
+
+SHORT_HELP = {
+    "acquire": "Run an acquisition protocol on the rig and record a session file.",
+    "info": "Summarise a session file, trial by trial.",
+    "ports": "List serial ports and which rig board each looks like.",
+    "sim": "Start the simulated rig, or generate a simulated dataset.",
+    "encode": "Encode a session's trials into SA/RA spike trains.",
+    "analyze": "Run the paper's PCA + LDA analyses on a session or dataset.",
+    "import-fabricslide": "Import the FabricSlide recordings into a session file.",
+    "gui": "Start the desktop app.",
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx, name):
+        target = COMMANDS.get(name)
+        if target is None:
+            return None
+        module, attr = target.split(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except ModuleNotFoundError as exc:
+            if exc.name == module:
+                return None
+            raise
+
+    def format_commands(self, ctx, formatter):
+        rows = [(name, SHORT_HELP.get(name, "")) for name in self.list_commands(ctx)]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup)
+@click.version_option(__version__, prog_name="rigctl")
+def main():
+    """rigctl: run the tactile texture rig, record sessions, and reproduce the paper's analyses.
+
+    The simulated rig is the default wherever a rig is needed (--sim).
+    """

@@ -1,0 +1,1 @@
+"""Wire protocols and host-side clients of the rig's two boards."""

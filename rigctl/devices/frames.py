@@ -1,0 +1,169 @@
+"""Taxel-stream framing: build frames (for the simulated Uno and tests) and parse a byte stream into frames.
+
+The parser is vectorised with numpy: it finds every sync candidate in the buffer at once, checks all their CRCs in
+one pass (:func:`rigctl.devices.wire.crc16_rows`), keeps the valid non-overlapping frames, counts what it skipped
+and keeps an incomplete tail for the next chunk. Garbage, truncation and bit flips never raise and never yield a
+frame whose CRC is wrong. Layout: ``docs/wire-protocol.md`` section 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rigctl.devices import wire
+
+_SYNC0, _SYNC1 = wire.SYNC[0], wire.SYNC[1]
+
+
+def encode_frames(seq: np.ndarray, flags: np.ndarray, samples: np.ndarray) -> bytes:
+    """Build consecutive frames.
+
+    Parameters
+    ----------
+    seq : (n,) integer array, sequence numbers (taken modulo 65536).
+    flags : (n,) integer array or scalar, flags bytes (:class:`rigctl.devices.wire.FrameFlag`).
+    samples : (n, 18) integer array of ADC counts 0-1023.
+
+    Returns
+    -------
+    bytes of length ``n * 43``.
+
+    Raises
+    ------
+    ValueError if ``samples`` is not ``(n, 18)`` or holds values outside 0-1023.
+    """
+    samples = np.asarray(samples)
+    if samples.ndim != 2 or samples.shape[1] != wire.N_TAXELS:
+        raise ValueError(f"samples must be (n, {wire.N_TAXELS}), got {samples.shape}")
+    if samples.size and (samples.min() < 0 or samples.max() > wire.ADC_MAX):
+        raise ValueError(f"samples must be ADC counts 0-{wire.ADC_MAX}")
+    n = samples.shape[0]
+    out = np.zeros(n, dtype=wire.FRAME_DTYPE)
+    out["sync"] = np.frombuffer(wire.SYNC, dtype=np.uint8)
+    out["seq"] = np.asarray(seq, dtype=np.int64) & 0xFFFF
+    out["flags"] = np.broadcast_to(np.asarray(flags, dtype=np.int64) & 0xFF, (n,))
+    out["samples"] = samples
+    raw = out.view(np.uint8).reshape(n, wire.FRAME_SIZE)
+    out["crc"] = wire.crc16_rows(raw[:, wire.CRC_START : wire.OFFSET_CRC])
+    return out.tobytes()
+
+
+def encode_frame(seq: int, flags: int, samples) -> bytes:
+    """One frame (43 bytes) from a sequence number, a flags byte and 18 ADC counts; see :func:`encode_frames`."""
+    return encode_frames(np.array([seq]), np.array([flags]), np.asarray(samples).reshape(1, wire.N_TAXELS))
+
+
+@dataclass
+class Frames:
+    """A batch of parsed frames: ``seq`` (n,) uint16, ``flags`` (n,) uint8, ``samples`` (n, 18) uint16 ADC counts."""
+
+    seq: np.ndarray
+    flags: np.ndarray
+    samples: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    @classmethod
+    def empty(cls) -> "Frames":
+        return cls(
+            np.zeros(0, np.uint16), np.zeros(0, np.uint8), np.zeros((0, wire.N_TAXELS), np.uint16)
+        )
+
+
+@dataclass
+class ParserStats:
+    """Running counters of a :class:`FrameParser`."""
+
+    frames: int = 0
+    bytes_in: int = 0
+    bytes_skipped: int = 0  #: bytes that were not part of a valid frame
+    crc_errors: int = 0  #: sync candidates rejected by their CRC
+
+
+@dataclass
+class FrameParser:
+    """Incremental, vectorised taxel-frame parser. Feed it chunks of any size with :meth:`feed`."""
+
+    stats: ParserStats = field(default_factory=ParserStats)
+    _buf: bytes = b""
+
+    def feed(self, chunk: bytes) -> Frames:
+        """Parse ``chunk`` (appended to any kept tail); return the complete valid frames found, in stream order."""
+        self.stats.bytes_in += len(chunk)
+        buf = self._buf + bytes(chunk) if self._buf else bytes(chunk)
+        arr = np.frombuffer(buf, dtype=np.uint8)
+        n = arr.size
+        size = wire.FRAME_SIZE
+        last_start = n - size  # last offset at which a complete frame can start
+        if last_start < 0:
+            self._buf = buf
+            return Frames.empty()
+        head = arr[: last_start + 1]
+        cand = np.flatnonzero((head == _SYNC0) & (arr[1 : last_start + 2] == _SYNC1))
+        accepted = np.zeros(0, dtype=np.int64)
+        if cand.size:
+            rows = np.lib.stride_tricks.sliding_window_view(arr, size)[cand]
+            crc_calc = wire.crc16_rows(rows[:, wire.CRC_START : wire.OFFSET_CRC])
+            crc_recv = rows[:, wire.OFFSET_CRC].astype(np.uint16) | (rows[:, wire.OFFSET_CRC + 1].astype(np.uint16) << 8)
+            ok = crc_calc == crc_recv
+            valid = cand[ok]
+            if valid.size > 1 and np.any(np.diff(valid) < size):
+                valid = _non_overlapping(valid, size)
+            accepted = valid
+            bad = cand[~ok]
+            if bad.size:
+                if accepted.size:
+                    # a bad candidate lying inside an accepted frame is payload, not a corrupt frame
+                    idx = np.searchsorted(accepted, bad, side="right") - 1
+                    inside = (idx >= 0) & (bad < accepted[np.maximum(idx, 0)] + size)
+                    bad = bad[~inside]
+                self.stats.crc_errors += int(bad.size)
+        consumed_to = int(accepted[-1]) + size if accepted.size else 0
+        keep_from = max(consumed_to, last_start + 1)
+        self.stats.bytes_skipped += keep_from - accepted.size * size
+        self.stats.frames += int(accepted.size)
+        self._buf = buf[keep_from:]
+        if not accepted.size:
+            return Frames.empty()
+        rec = np.lib.stride_tricks.sliding_window_view(arr, size)[accepted]
+        rec = np.ascontiguousarray(rec).view(wire.FRAME_DTYPE).reshape(-1)
+        return Frames(rec["seq"].astype(np.uint16), rec["flags"].astype(np.uint8), rec["samples"].astype(np.uint16))
+
+    def reset(self) -> None:
+        """Drop any kept partial frame (e.g. after the port was reopened)."""
+        self._buf = b""
+
+
+def _non_overlapping(valid: np.ndarray, size: int) -> np.ndarray:
+    keep = []
+    end = -1
+    for pos in valid.tolist():
+        if pos >= end:
+            keep.append(pos)
+            end = pos + size
+    return np.asarray(keep, dtype=np.int64)
+
+
+@dataclass
+class SequenceTracker:
+    """Counts frames missing from the device's 16-bit sequence counter (wrap-aware)."""
+
+    last_seq: int | None = None
+    dropped: int = 0
+
+    def update(self, seq: np.ndarray) -> int:
+        """Account for the next ``(n,) uint16`` sequence numbers; return how many frames are missing before/among them."""
+        if len(seq) == 0:
+            return 0
+        seq = np.asarray(seq, dtype=np.int64)
+        prev = np.concatenate(([seq[0] - 1 if self.last_seq is None else self.last_seq], seq[:-1]))
+        gaps = int(((seq - prev - 1) & 0xFFFF).sum())
+        self.last_seq = int(seq[-1])
+        self.dropped += gaps
+        return gaps
+
+    def reset(self) -> None:
+        self.last_seq = None

@@ -1,0 +1,220 @@
+"""Wire-protocol constants of the rig's two boards, as written in ``docs/wire-protocol.md``.
+
+This module holds numbers only (frame layout, flags, commands, the Modbus register map, CRC-16); the framing code
+lives in :mod:`rigctl.devices.frames`. ``tests/test_wire_spec.py`` checks every value here, and the firmware header
+``arduino/common/rigctl_wire.h``, against the tables of the spec document.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+
+# --------------------------------------------------------------------------------------------------------------
+# Taxel stream (Uno -> host), spec section 1
+# --------------------------------------------------------------------------------------------------------------
+TAXEL_BAUD = 1_000_000
+N_TAXELS = 18
+N_TAXELS_PER_LAYER = 9
+SAMPLE_RATE_HZ = 1000
+ADC_BITS = 10
+ADC_MAX = (1 << ADC_BITS) - 1
+
+SYNC = b"\xa5\x5a"
+OFFSET_SYNC = 0
+OFFSET_SEQ = 2
+OFFSET_FLAGS = 4
+OFFSET_SAMPLES = 5
+OFFSET_CRC = OFFSET_SAMPLES + 2 * N_TAXELS  # 41
+FRAME_SIZE = OFFSET_CRC + 2  # 43
+CRC_START = OFFSET_SEQ  # the CRC covers bytes CRC_START..OFFSET_CRC-1
+
+#: numpy record type of one frame, little-endian, packed: view a ``bytes`` buffer with it.
+FRAME_DTYPE = np.dtype(
+    [("sync", "u1", (2,)), ("seq", "<u2"), ("flags", "u1"), ("samples", "<u2", (N_TAXELS,)), ("crc", "<u2")]
+)
+assert FRAME_DTYPE.itemsize == FRAME_SIZE
+
+
+class FrameFlag(enum.IntFlag):
+    """Bits of a frame's flags byte (spec table 1.2)."""
+
+    SYNC_IN = 1 << 0
+    ADC_OVERRUN = 1 << 1
+    TX_OVERRUN = 1 << 2
+    STREAMING_START = 1 << 3
+
+
+class UnoCommand(bytes, enum.Enum):
+    """Single-byte host -> Uno commands (spec table 1.3)."""
+
+    START = b"S"
+    STOP = b"P"
+    IDENTIFY = b"I"
+
+
+UNO_BANNER_PREFIX = "#RIGCTL-UNO READY"
+UNO_IDENTITY_PREFIX = "#RIGCTL-UNO"
+UNO_FIRMWARE_VERSION = (1, 0)
+
+# --------------------------------------------------------------------------------------------------------------
+# Drum controller (Mega), Modbus RTU, spec section 2
+# --------------------------------------------------------------------------------------------------------------
+DRUM_BAUD = 115200
+DRUM_DEVICE_ID = 1
+MEGA_FIRMWARE_VERSION = (1, 0)
+
+
+class HoldingRegister(enum.IntEnum):
+    """Holding register addresses (spec table 2.1); units are in the names."""
+
+    SPEED_SETPOINT_0P1MMS = 0
+    FORCE_SETPOINT_G = 1
+    COMMAND = 2
+    SPEED_PROFILE = 3
+    RAMP_START_SPEED_0P1MMS = 4
+    RAMP_END_SPEED_0P1MMS = 5
+    RAMP_DURATION_MS = 6
+    SPEED_LIMIT_0P1MMS = 7
+    FORCE_LIMIT_G = 8
+    FORCE_TOLERANCE_G = 9
+    SETTLE_TIME_MS = 10
+    WATCHDOG_MS = 11
+    LOADCELL_SCALE_X100 = 12
+    ACTUATOR_STEPS_PER_MM = 13
+
+
+#: (min, max, default) of every holding register, spec table 2.1.
+HOLDING_RANGE: dict[HoldingRegister, tuple[int, int, int]] = {
+    HoldingRegister.SPEED_SETPOINT_0P1MMS: (0, 2000, 0),
+    HoldingRegister.FORCE_SETPOINT_G: (0, 2000, 0),
+    HoldingRegister.COMMAND: (0, 8, 0),
+    HoldingRegister.SPEED_PROFILE: (0, 1, 0),
+    HoldingRegister.RAMP_START_SPEED_0P1MMS: (0, 2000, 400),
+    HoldingRegister.RAMP_END_SPEED_0P1MMS: (0, 2000, 1200),
+    HoldingRegister.RAMP_DURATION_MS: (1, 60000, 3000),
+    HoldingRegister.SPEED_LIMIT_0P1MMS: (0, 2000, 1500),
+    HoldingRegister.FORCE_LIMIT_G: (0, 2000, 1500),
+    HoldingRegister.FORCE_TOLERANCE_G: (1, 500, 15),
+    HoldingRegister.SETTLE_TIME_MS: (0, 10000, 300),
+    HoldingRegister.WATCHDOG_MS: (100, 10000, 1000),
+    HoldingRegister.LOADCELL_SCALE_X100: (1, 65535, 42000),
+    HoldingRegister.ACTUATOR_STEPS_PER_MM: (1, 65535, 400),
+}
+
+#: holding registers whose value must not exceed the value of another holding register
+SPEED_REGISTERS = (
+    HoldingRegister.SPEED_SETPOINT_0P1MMS,
+    HoldingRegister.RAMP_START_SPEED_0P1MMS,
+    HoldingRegister.RAMP_END_SPEED_0P1MMS,
+)
+
+
+class InputRegister(enum.IntEnum):
+    """Input register addresses (spec table 2.2); units are in the names."""
+
+    FORCE_G = 0
+    SPEED_0P1MMS = 1
+    DRUM_ANGLE_0P01DEG = 2
+    DRUM_REVOLUTIONS = 3
+    ACTUATOR_POSITION_0P01MM = 4
+    STATE = 5
+    FAULT_BITS = 6
+    FIRMWARE_VERSION = 7
+    HEARTBEAT = 8
+    SPEED_TARGET_0P1MMS = 9
+    LOADCELL_RAW_HI = 10
+    LOADCELL_RAW_LO = 11
+    FORCE_SETPOINT_ACTIVE_G = 12
+
+
+#: input registers holding two's-complement values
+SIGNED_INPUT_REGISTERS = frozenset(
+    {InputRegister.FORCE_G, InputRegister.SPEED_0P1MMS, InputRegister.ACTUATOR_POSITION_0P01MM}
+)
+
+N_HOLDING = len(HoldingRegister)
+N_INPUT = len(InputRegister)
+
+
+class Command(enum.IntEnum):
+    """Codes written to the COMMAND holding register (spec table 2.3)."""
+
+    NONE = 0
+    RUN = 1
+    STOP = 2
+    TARE = 3
+    HOME = 4
+    CLEAR_FAULT = 5
+    PRESS = 6
+    STOP_DRUM = 7
+    SAVE_CALIBRATION = 8
+
+
+class DrumState(enum.IntEnum):
+    """Controller states (spec table 2.4)."""
+
+    IDLE = 0
+    HOMING = 1
+    SEEKING_FORCE = 2
+    FORCE_SETTLED = 3
+    RUNNING = 4
+    FAULT = 5
+
+
+class SpeedProfile(enum.IntEnum):
+    """Values of the SPEED_PROFILE holding register."""
+
+    CONSTANT = 0
+    RAMP = 1
+
+
+class Fault(enum.IntFlag):
+    """Bits of the FAULT_BITS input register (spec table 2.5)."""
+
+    FORCE_LIMIT = 1 << 0
+    WATCHDOG = 1 << 1
+    LOADCELL_TIMEOUT = 1 << 2
+    ACTUATOR_TRAVEL = 1 << 3
+
+
+# --------------------------------------------------------------------------------------------------------------
+# CRC-16/MODBUS (used by both boards)
+# --------------------------------------------------------------------------------------------------------------
+def _crc_table() -> np.ndarray:
+    table = np.zeros(256, dtype=np.uint16)
+    for i in range(256):
+        crc = i
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        table[i] = crc
+    return table
+
+
+CRC16_TABLE = _crc_table()
+
+
+def crc16(data: bytes | bytearray | memoryview) -> int:
+    """CRC-16/MODBUS (reflected poly 0xA001, init 0xFFFF) of ``data``; returns an int 0-65535.
+
+    ``crc16(b"123456789") == 0x4B37`` (the catalogue check value).
+    """
+    crc = 0xFFFF
+    table = CRC16_TABLE
+    for byte in bytes(data):
+        crc = (crc >> 8) ^ int(table[(crc ^ byte) & 0xFF])
+    return crc
+
+
+def crc16_rows(rows: np.ndarray) -> np.ndarray:
+    """Vectorised CRC-16/MODBUS of each row of ``rows``: ``(n, m) uint8`` -> ``(n,) uint16``.
+
+    Loops over the m columns only, so parsing many frames at once costs m numpy operations.
+    """
+    rows = np.asarray(rows, dtype=np.uint8)
+    crc = np.full(rows.shape[0], 0xFFFF, dtype=np.uint16)
+    table = CRC16_TABLE
+    for j in range(rows.shape[1]):
+        crc = (crc >> 8) ^ table[(crc ^ rows[:, j]) & 0xFF]
+    return crc.astype(np.uint16)
