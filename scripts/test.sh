@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Install everything the tests need on a fresh Debian machine, build the firmware, and run the whole test suite.
+# This is the README's test command; .ci/run calls it. Extra arguments go to pytest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+DEBIAN_PACKAGES=(
+  # AVR toolchain, Arduino core and the AVR simulator (firmware build and hardware-in-the-loop tests)
+  gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev libsimavrparts1 libelf-dev pkg-config make g++
+  # independent Modbus master for tests
+  mbpoll
+  # virtual screen and the libraries Qt needs to run offscreen / under Xvfb
+  xvfb xauth libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libdbus-1-3 libfontconfig1 libxcb-cursor0
+)
+
+SUDO=""
+if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
+missing=()
+for p in "${DEBIAN_PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "== apt-get install ${missing[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+echo "== pip install -e .[test]"
+python3 -m pip install -q --disable-pip-version-check -e ".[test]"
+
+echo "== build firmware"
+make -C arduino -s all
+
+echo "== pytest"
+export QT_QPA_PLATFORM=offscreen
+python3 -m pytest -q "$@"
