@@ -1,0 +1,723 @@
+"""HDF5 session files: one file per session, one group per trial, written trial by trial (h5py).
+
+The layout is documented in ``docs/session-format.md``. The rules that make a session survive a crash:
+
+- the file is open for writing only while one trial (or, for the dataset generator, one batch) is written:
+  :meth:`SessionWriter.write_trial` opens it, writes the whole trial in one go, marks the trial ``complete`` in the
+  ``/plan`` table last, flushes and closes it; between trials the file is closed and consistent;
+- the default h5py/HDF5 file format is used (no SWMR), so a writer killed with the file closed leaves nothing
+  flagged "already open", and plain ``h5py.File(path, "r")`` opens it;
+- the ``/plan`` table holds every trial of the protocol with a status (pending / complete / failed), so an
+  interrupted session is resumed from it (:meth:`SessionWriter.open`) and no trial is recorded twice.
+
+Data flow: acquisition and the dataset generator write (:class:`SessionWriter`); encoding, analysis, the GUI and
+``rigctl info`` read (:func:`open_session`).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import enum
+import json
+import math
+import os
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping, Sequence
+
+import h5py
+import numpy as np
+
+from rigctl import __version__
+
+SCHEMA_VERSION = 1
+SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide")
+N_TAXELS = 18
+RATE_HZ = 1000.0
+
+
+class TrialStatus(enum.IntEnum):
+    """Status of a plan row (stored as ``uint8`` in ``/plan['status']``; the mapping is in the ``status_enum`` attr)."""
+
+    PENDING = 0
+    COMPLETE = 1
+    FAILED = 2
+
+
+STATUS_ENUM = {s.name.lower(): int(s) for s in TrialStatus}
+
+#: ``/plan`` row: one per planned trial, in protocol order. Strings are fixed-length ASCII (bytes in HDF5).
+PLAN_DTYPE = np.dtype(
+    [
+        ("trial_id", "<u4"),
+        ("texture", "S1"),
+        ("speed_mm_s", "<f4"),  # constant speed; for a ramp the mean surface speed over the trial
+        ("force_g", "<f4"),
+        ("duration_s", "<f4"),
+        ("profile", "S24"),  # profile name, "constant" unless the protocol names velocity profiles
+        ("ramp_start_mm_s", "<f4"),  # NaN for a constant-speed trial
+        ("ramp_end_mm_s", "<f4"),
+        ("repeat", "<u4"),
+        ("status", "u1"),
+    ]
+)
+PLAN_FIELDS = tuple(n for n in PLAN_DTYPE.names if n != "status")
+
+#: the same row with str fields, as returned by :attr:`Session.plan`
+PLAN_DTYPE_STR = np.dtype(
+    [(n, ("U1" if n == "texture" else "U24") if PLAN_DTYPE[n].kind == "S" else PLAN_DTYPE[n]) for n in PLAN_DTYPE.names]
+)
+
+
+class SessionError(RuntimeError):
+    """A session file cannot be created, opened or written as asked (wrong layout, trial already complete, ...)."""
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Trial data
+# ----------------------------------------------------------------------------------------------------------------
+def _empty(dtype) -> np.ndarray:
+    return np.zeros(0, dtype=dtype)
+
+
+@dataclass
+class TrialData:
+    """Everything recorded in one trial.
+
+    Attributes
+    ----------
+    taxels : (n, 18) uint16
+        ADC counts 0-1023, 1 kHz; channels 0-8 top layer (type I), 9-17 bottom layer (type II),
+        row-major over the 3x3 grid (``docs/wire-protocol.md`` section 1).
+    seq : (n,) uint16
+        The Uno's frame sequence numbers (gaps = dropped frames). Default: ``arange(n) % 65536``.
+    flags : (n,) uint8
+        Frame flags (:class:`rigctl.devices.wire.FrameFlag`). Default: zeros.
+    host_time_s : (n,) float64
+        Host receive time of each frame, s since the trial's first frame. Default: ``arange(n) / 1000``.
+    force_g, force_time_s : (m,) float64
+        Load-cell force trace (g) and its host times (s, same clock and origin as ``host_time_s``).
+    speed_mm_s, speed_time_s : (k,) float64
+        Measured drum surface speed trace (mm/s) and its host times (s).
+    dropped_frames : int
+        Frames missing from ``seq`` within the trial.
+    crc_errors : int
+        Frames rejected by their CRC while the trial was captured.
+    attrs : dict
+        Trial attributes (setpoints, texture, profile, started_utc, ...); JSON-able scalars and strings.
+
+    Raises
+    ------
+    ValueError
+        If ``taxels`` is not ``(n, 18)`` or a per-sample array does not have ``n`` rows.
+    """
+
+    taxels: np.ndarray
+    seq: np.ndarray | None = None
+    flags: np.ndarray | None = None
+    host_time_s: np.ndarray | None = None
+    force_g: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    force_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    speed_mm_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    speed_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    dropped_frames: int = 0
+    crc_errors: int = 0
+    attrs: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        taxels = np.asarray(self.taxels)
+        if taxels.ndim != 2 or taxels.shape[1] != N_TAXELS:
+            raise ValueError(f"taxels must be (n_samples, {N_TAXELS}), got {taxels.shape}")
+        self.taxels = taxels.astype(np.uint16, copy=False)
+        n = taxels.shape[0]
+        self.seq = (np.arange(n) % 65536).astype(np.uint16) if self.seq is None else np.asarray(self.seq, np.uint16)
+        self.flags = np.zeros(n, np.uint8) if self.flags is None else np.asarray(self.flags, np.uint8)
+        if self.host_time_s is None:
+            self.host_time_s = np.arange(n, dtype=np.float64) / RATE_HZ
+        else:
+            self.host_time_s = np.asarray(self.host_time_s, np.float64)
+        for name in ("seq", "flags", "host_time_s"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"{name} must be ({n},) like taxels, got {getattr(self, name).shape}")
+        for value, times in (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s")):
+            v = np.asarray(getattr(self, value), np.float64).reshape(-1)
+            t = np.asarray(getattr(self, times), np.float64).reshape(-1)
+            if v.shape != t.shape:
+                raise ValueError(f"{value} {v.shape} and {times} {t.shape} must have the same length")
+            setattr(self, value, v)
+            setattr(self, times, t)
+        self.dropped_frames = int(self.dropped_frames)
+        self.crc_errors = int(self.crc_errors)
+        self.attrs = dict(self.attrs)
+
+    @property
+    def n_samples(self) -> int:
+        """Number of taxel frames (rows of ``taxels``)."""
+        return int(self.taxels.shape[0])
+
+    def host_rate_hz(self) -> float:
+        """Sample rate measured on the host clock: 1 / slope of a least-squares fit of receipt time vs. frame index.
+
+        The frame index counts dropped frames (from ``seq``), so a gap does not bias the rate. Per-chunk receipt
+        jitter averages out over the fit. Returns NaN with fewer than 2 samples or no time spread.
+        """
+        n = self.n_samples
+        if n < 2:
+            return math.nan
+        steps = (np.diff(self.seq.astype(np.int64)) & 0xFFFF).astype(np.int64)
+        index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
+        t = self.host_time_s
+        index -= index.mean()
+        denom = float(np.dot(index, index))
+        if denom == 0:
+            return math.nan
+        slope = float(np.dot(index, t - t.mean())) / denom
+        return 1.0 / slope if slope > 0 else math.nan
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Plan helpers
+# ----------------------------------------------------------------------------------------------------------------
+def _row_value(row: Any, name: str, default=None):
+    if isinstance(row, Mapping):
+        return row.get(name, default)
+    if isinstance(row, np.void):
+        return row[name] if name in row.dtype.names else default
+    return getattr(row, name, default)
+
+
+def plan_array(rows: Iterable[Any]) -> np.ndarray:
+    """Build a ``/plan`` table (:data:`PLAN_DTYPE`) from planned trials.
+
+    Parameters
+    ----------
+    rows : iterable of objects with attributes (e.g. :class:`rigctl.acquisition.protocol.PlannedTrial`), mappings,
+        or rows of a structured array, each with ``trial_id, texture, speed_mm_s, force_g, duration_s`` and
+        optionally ``profile`` ("constant"), ``ramp_start_mm_s``/``ramp_end_mm_s`` (NaN), ``repeat`` (0),
+        ``status`` (pending).
+
+    Raises
+    ------
+    ValueError if a required field is missing or trial ids repeat.
+    """
+    rows = list(rows)
+    out = np.zeros(len(rows), dtype=PLAN_DTYPE)
+    for i, row in enumerate(rows):
+        for name in ("trial_id", "texture", "speed_mm_s", "force_g", "duration_s"):
+            if _row_value(row, name) is None:
+                raise ValueError(f"plan row {i} has no {name!r}")
+        tex = _row_value(row, "texture")
+        out[i]["trial_id"] = int(_row_value(row, "trial_id"))
+        out[i]["texture"] = tex.encode() if isinstance(tex, str) else tex
+        out[i]["speed_mm_s"] = float(_row_value(row, "speed_mm_s"))
+        out[i]["force_g"] = float(_row_value(row, "force_g"))
+        out[i]["duration_s"] = float(_row_value(row, "duration_s"))
+        prof = _row_value(row, "profile", "constant") or "constant"
+        out[i]["profile"] = prof.encode() if isinstance(prof, str) else prof
+        for name in ("ramp_start_mm_s", "ramp_end_mm_s"):
+            v = _row_value(row, name, None)
+            out[i][name] = math.nan if v is None else float(v)
+        out[i]["repeat"] = int(_row_value(row, "repeat", 0) or 0)
+        status = _row_value(row, "status", TrialStatus.PENDING)
+        out[i]["status"] = STATUS_ENUM[status] if isinstance(status, str) else int(status)
+    if len(np.unique(out["trial_id"])) != len(out):
+        raise ValueError("trial ids in the plan must be unique")
+    return out
+
+
+def _plan_to_str(plan: np.ndarray) -> np.ndarray:
+    out = np.zeros(plan.shape, dtype=PLAN_DTYPE_STR)
+    for name in PLAN_DTYPE.names:
+        col = plan[name]
+        out[name] = np.char.decode(col, "ascii") if col.dtype.kind == "S" else col
+    return out
+
+
+def trial_group_name(trial_id: int) -> str:
+    """``/trials/<trial_id:06d>``."""
+    return f"/trials/{int(trial_id):06d}"
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _parse_utc(text: str) -> _dt.datetime | None:
+    try:
+        return _dt.datetime.fromisoformat(text)
+    except (TypeError, ValueError):
+        return None
+
+
+def _attr_value(value: Any):
+    """Convert a Python value into something h5py stores as an attribute (dicts/lists of mixed types -> JSON)."""
+    if value is None:
+        return "null"
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, float, str, np.integer, np.floating)):
+        return value
+    if isinstance(value, enum.Enum):
+        return value.name.lower()
+    if isinstance(value, (list, tuple, np.ndarray)):
+        arr = np.asarray(value)
+        if arr.dtype.kind in "biuf":
+            return arr
+    return json.dumps(value, default=str)
+
+
+def _read_attrs(obj) -> dict:
+    out = {}
+    for k, v in obj.attrs.items():
+        if isinstance(v, bytes):
+            v = v.decode()
+        elif isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v
+    return out
+
+
+def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
+    """Open ``path`` with h5py, retrying while another process holds the HDF5 file lock (e.g. a reader)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return h5py.File(path, mode)
+        except (BlockingIOError, OSError) as exc:
+            locked = isinstance(exc, BlockingIOError) or "lock" in str(exc).lower()
+            if not locked or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Writer
+# ----------------------------------------------------------------------------------------------------------------
+class SessionWriter:
+    """Writes a session file trial by trial; the file is open only during each write.
+
+    Create a new file with :meth:`create`, or reopen an interrupted one with :meth:`open` (resume). Then
+    :meth:`write_trial` for each recorded trial (or :meth:`mark_failed`).
+
+    Parameters
+    ----------
+    path : path of an existing session file (use :meth:`create` / :meth:`open`).
+    compression : "gzip" (level 1, shuffle; readable by any HDF5 tool), "lzf" (h5py only) or None.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip"):
+        self.path = Path(path)
+        if compression not in ("gzip", "lzf", None):
+            raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+        self.compression = compression
+        with _open_h5(self.path, "r") as f:
+            _check_layout(f, self.path)
+            self.attrs = _read_attrs(f)
+            self.protocol_source = _read_text(f["protocol/source"])
+            self._plan = f["plan"][()]
+        self._created = _parse_utc(self.attrs.get("created_utc", ""))
+
+    # -- construction -------------------------------------------------------------------------------------------
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike,
+        *,
+        plan: Iterable[Any] | np.ndarray,
+        protocol_source: str = "",
+        protocol_name: str = "",
+        protocol_format: str = "toml",
+        rig_config: Mapping | None = None,
+        kind: str = "recorded",
+        calibration: Mapping | None = None,
+        attrs: Mapping | None = None,
+        overwrite: bool = False,
+        compression: str | None = "gzip",
+    ) -> "SessionWriter":
+        """Create a new session file with its root attributes, ``/protocol`` and ``/plan``; return its writer.
+
+        Parameters
+        ----------
+        path : output ``.h5`` file.
+        plan : planned trials (see :func:`plan_array`), or a :data:`PLAN_DTYPE` array; may be empty (Python-script
+            protocols append rows with :meth:`append_trial`).
+        protocol_source : the protocol file's text (a resume refuses a different source).
+        protocol_name, protocol_format : ``/protocol`` attrs; format is "toml" or "python".
+        rig_config : JSON-able mapping stored as the ``rig_config`` root attribute.
+        kind : "recorded" | "simulated-dataset" | "fabricslide".
+        calibration : optional mapping; ``taxel_min``/``taxel_max`` (18,) arrays go to ``/calibration`` datasets,
+            everything else to its attributes.
+        attrs : extra root attributes.
+        overwrite : replace an existing file (otherwise :class:`FileExistsError`).
+
+        Raises
+        ------
+        FileExistsError, ValueError (bad kind or plan).
+        """
+        path = Path(path)
+        if kind not in SESSION_KINDS:
+            raise ValueError(f"kind must be one of {SESSION_KINDS}, got {kind!r}")
+        if protocol_format not in ("toml", "python", "none"):
+            raise ValueError(f"protocol_format must be 'toml', 'python' or 'none', got {protocol_format!r}")
+        plan_arr = plan if isinstance(plan, np.ndarray) and plan.dtype == PLAN_DTYPE else plan_array(plan)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; choose another --out, resume it, or remove it")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".creating")
+        with h5py.File(tmp, "w") as f:
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["session_id"] = str(uuid.uuid4())
+            f.attrs["created_utc"] = _utc_now()
+            f.attrs["rigctl_version"] = __version__
+            f.attrs["kind"] = kind
+            f.attrs["rig_config"] = json.dumps(dict(rig_config or {}), default=str)
+            for k, v in (attrs or {}).items():
+                f.attrs[k] = _attr_value(v)
+            g = f.create_group("protocol")
+            g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
+            g.attrs["name"] = protocol_name
+            g.attrs["format"] = protocol_format
+            d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(max(1, min(len(plan_arr), 4096)),))
+            d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
+            f.create_group("trials")
+            if calibration:
+                _write_calibration(f, calibration)
+        os.replace(tmp, path)  # the session file appears complete or not at all
+        return cls(path, compression=compression)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike, *, protocol_source: str | None = None,
+             compression: str | None = "gzip") -> "SessionWriter":
+        """Reopen an interrupted session to resume it.
+
+        Parameters
+        ----------
+        protocol_source : if given, must equal the stored ``/protocol/source`` text.
+
+        Raises
+        ------
+        FileNotFoundError, SessionError (not a session file, or the protocol source differs).
+        """
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path} does not exist (nothing to resume)")
+        writer = cls(path, compression=compression)
+        if protocol_source is not None and protocol_source != writer.protocol_source:
+            raise SessionError(
+                f"{path}: the protocol differs from the one this session was started with; "
+                "resume with the same protocol file, or start a new session"
+            )
+        return writer
+
+    # -- queries ------------------------------------------------------------------------------------------------
+    @property
+    def plan(self) -> np.ndarray:
+        """The ``/plan`` table as last written by this writer (:data:`PLAN_DTYPE`, bytes fields)."""
+        return self._plan.copy()
+
+    def completed_ids(self) -> list[int]:
+        """Trial ids whose status is complete."""
+        return [int(t) for t in self._plan["trial_id"][self._plan["status"] == TrialStatus.COMPLETE]]
+
+    def pending_ids(self) -> list[int]:
+        """Trial ids not yet complete (pending or failed), in plan order."""
+        return [int(t) for t in self._plan["trial_id"][self._plan["status"] != TrialStatus.COMPLETE]]
+
+    def next_trial_id(self) -> int:
+        """One more than the largest trial id in the plan (0 for an empty plan)."""
+        return int(self._plan["trial_id"].max()) + 1 if len(self._plan) else 0
+
+    def _row_index(self, trial_id: int) -> int:
+        idx = np.flatnonzero(self._plan["trial_id"] == int(trial_id))
+        if idx.size == 0:
+            raise SessionError(f"trial {trial_id} is not in the plan of {self.path}")
+        return int(idx[0])
+
+    # -- writing ------------------------------------------------------------------------------------------------
+    def write_trial(self, trial_id: int, data: TrialData) -> None:
+        """Write one trial in one go, mark it complete in ``/plan``, flush and close the file.
+
+        Raises
+        ------
+        SessionError if the trial is not in the plan or is already complete (no trial is recorded twice).
+        OSError if the file cannot be opened for writing (e.g. a :class:`Session` of this process still has it open:
+        HDF5 refuses a second, writable opening within one process).
+        """
+        i = self._row_index(trial_id)
+        if self._plan["status"][i] == TrialStatus.COMPLETE:
+            raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+        self.write_trials([(trial_id, data)])
+
+    def write_trials(self, items: Iterable[tuple[int, TrialData]]) -> int:
+        """Write several trials during one opening of the file (flushing after each); returns how many.
+
+        For the dataset generator, where opening the file per trial would dominate. Same checks as
+        :meth:`write_trial`; the plan status of each trial is set after its data, then the file is flushed.
+        """
+        count = 0
+        with _open_h5(self.path, "r+") as f:
+            plan_ds = f["plan"]
+            for trial_id, data in items:
+                i = self._row_index(trial_id)
+                if self._plan["status"][i] == TrialStatus.COMPLETE:
+                    raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+                self._write_group(f, self._plan[i], data)
+                self._plan["status"][i] = TrialStatus.COMPLETE
+                plan_ds[i] = self._plan[i]
+                f.flush()
+                count += 1
+        return count
+
+    def append_trial(self, planned: Any, data: TrialData | None = None) -> int:
+        """Append a row to ``/plan`` (for Python-script protocols) and, if ``data`` is given, write the trial.
+
+        ``planned`` is a planned trial as in :func:`plan_array`; a ``trial_id`` of None takes :meth:`next_trial_id`.
+        Returns the trial id.
+        """
+        row = plan_array([_with_id(planned, self.next_trial_id())])[0]
+        if row["trial_id"] in self._plan["trial_id"]:
+            raise SessionError(f"trial {int(row['trial_id'])} is already in the plan of {self.path}")
+        with _open_h5(self.path, "r+") as f:
+            ds = f["plan"]
+            ds.resize((len(self._plan) + 1,))
+            ds[len(self._plan)] = row
+            f.flush()
+        self._plan = np.concatenate([self._plan, row[None]])
+        if data is not None:
+            self.write_trial(int(row["trial_id"]), data)
+        return int(row["trial_id"])
+
+    def mark_failed(self, trial_id: int, reason: str = "") -> None:
+        """Mark a trial failed in ``/plan`` (it stays eligible for a resume) and store the reason.
+
+        The reason goes to ``/trials/<id>`` attrs (``status`` = "failed", ``error``), a group without datasets.
+        """
+        i = self._row_index(trial_id)
+        if self._plan["status"][i] == TrialStatus.COMPLETE:
+            raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+        with _open_h5(self.path, "r+") as f:
+            name = trial_group_name(trial_id)
+            if name in f:
+                del f[name]
+            g = f.create_group(name)
+            g.attrs["status"] = "failed"
+            g.attrs["error"] = str(reason)
+            g.attrs["failed_utc"] = _utc_now()
+            self._plan["status"][i] = TrialStatus.FAILED
+            f["plan"][i] = self._plan[i]
+            f.flush()
+
+    def set_calibration(self, calibration: Mapping) -> None:
+        """Write (replace) the ``/calibration`` block."""
+        with _open_h5(self.path, "r+") as f:
+            _write_calibration(f, calibration)
+
+    def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:
+        name = trial_group_name(int(row["trial_id"]))
+        if name in f:  # a failed (or half-written) earlier attempt
+            del f[name]
+        g = f.create_group(name)
+        n = data.n_samples
+        comp = {}
+        if self.compression == "gzip":
+            comp = dict(compression="gzip", compression_opts=1, shuffle=True)
+        elif self.compression == "lzf":
+            comp = dict(compression="lzf", shuffle=True)
+        chunk_rows = max(1, min(n, 65536))
+        tax = g.create_dataset(
+            "taxels", data=data.taxels, chunks=(chunk_rows, N_TAXELS) if n else None, **(comp if n else {})
+        )
+        started = _parse_utc(str(data.attrs.get("started_utc", "")))
+        tax.attrs["rate_hz"] = RATE_HZ
+        tax.attrs["unit"] = "ADC counts"
+        tax.attrs["conversion"] = 1.0
+        tax.attrs["resolution"] = 1.0
+        tax.attrs["adc_bits"] = 10
+        tax.attrs["starting_time"] = (
+            (started - self._created).total_seconds() if started is not None and self._created is not None else 0.0
+        )
+        tax.attrs["starting_time_unit"] = "seconds since the session's created_utc"
+        tax.attrs["channels"] = "0-8 top layer (type I), 9-17 bottom layer (type II), row-major 3x3"
+        g.create_dataset("seq", data=data.seq)
+        g.create_dataset("flags", data=data.flags)
+        g.create_dataset("host_time_s", data=data.host_time_s).attrs["unit"] = "s"
+        for value, times, unit in (("force_g", "force_time_s", "g"), ("speed_mm_s", "speed_time_s", "mm/s")):
+            g.create_dataset(value, data=getattr(data, value)).attrs["unit"] = unit
+            g.create_dataset(times, data=getattr(data, times)).attrs["unit"] = "s"
+        for fld in PLAN_FIELDS:
+            v = row[fld]
+            g.attrs[fld] = v.decode() if isinstance(v, bytes) else v.item()
+        for k, v in data.attrs.items():
+            if k in ("status", "trial_id"):
+                continue
+            g.attrs[k] = _attr_value(v)
+        g.attrs["n_samples"] = n
+        g.attrs["dropped_frames"] = data.dropped_frames
+        g.attrs["crc_errors"] = data.crc_errors
+        g.attrs.setdefault("started_utc", "")
+        g.attrs["status"] = "complete"
+
+
+def _with_id(planned: Any, default_id: int) -> Any:
+    if _row_value(planned, "trial_id") is not None:
+        return planned
+    if isinstance(planned, Mapping):
+        return {**planned, "trial_id": default_id}
+    values = {n: _row_value(planned, n) for n in PLAN_DTYPE.names}
+    values["trial_id"] = default_id
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def _write_calibration(f: h5py.File, calibration: Mapping) -> None:
+    if "calibration" in f:
+        del f["calibration"]
+    g = f.create_group("calibration")
+    for k, v in calibration.items():
+        if k in ("taxel_min", "taxel_max"):
+            arr = np.asarray(v, dtype=np.float64)
+            if arr.shape != (N_TAXELS,):
+                raise ValueError(f"calibration {k} must have shape ({N_TAXELS},), got {arr.shape}")
+            g.create_dataset(k, data=arr).attrs["unit"] = "ADC counts"
+        else:
+            g.attrs[k] = _attr_value(v)
+
+
+def _read_text(ds) -> str:
+    v = ds[()]
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _check_layout(f: h5py.File, path: Path) -> None:
+    missing = [k for k in ("plan", "trials", "protocol") if k not in f]
+    if missing or "schema_version" not in f.attrs:
+        raise SessionError(f"{path} is not a rigctl session file (missing {missing or ['schema_version']})")
+    if int(f.attrs["schema_version"]) > SCHEMA_VERSION:
+        raise SessionError(
+            f"{path} has schema_version {int(f.attrs['schema_version'])}, newer than this rigctl ({SCHEMA_VERSION})"
+        )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Reader
+# ----------------------------------------------------------------------------------------------------------------
+class Session:
+    """A session file opened read-only (use :func:`open_session`). Context manager; :meth:`close` when done.
+
+    Attributes
+    ----------
+    path : Path
+    attrs : dict of the root attributes (``schema_version``, ``session_id``, ``created_utc``, ``kind``, ...).
+    rig_config : dict decoded from the ``rig_config`` JSON attribute.
+    plan : structured array (:data:`PLAN_DTYPE_STR`: str fields), one row per planned trial, ``status`` as
+        :class:`TrialStatus` integers.
+    protocol_source, protocol_name, protocol_format : str
+    calibration : dict or None (``taxel_min``/``taxel_max`` as (18,) float64 arrays plus the block's attributes).
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self._f = _open_h5(self.path, "r")
+        try:
+            _check_layout(self._f, self.path)
+        except Exception:
+            self._f.close()
+            raise
+        f = self._f
+        self.attrs = _read_attrs(f)
+        self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
+        self.plan = _plan_to_str(f["plan"][()])
+        self.protocol_source = _read_text(f["protocol/source"])
+        self.protocol_name = str(_read_attrs(f["protocol"]).get("name", ""))
+        self.protocol_format = str(_read_attrs(f["protocol"]).get("format", ""))
+        self.calibration = None
+        if "calibration" in f:
+            cal = _read_attrs(f["calibration"])
+            for k in f["calibration"]:
+                cal[k] = f["calibration"][k][()]
+            self.calibration = cal
+
+    @property
+    def kind(self) -> str:
+        return str(self.attrs.get("kind", ""))
+
+    def __len__(self) -> int:
+        return len(self.plan)
+
+    def completed_ids(self) -> list[int]:
+        """Trial ids whose plan status is complete (and whose group exists), in plan order."""
+        ids = self.plan["trial_id"][self.plan["status"] == TrialStatus.COMPLETE]
+        return [int(t) for t in ids if trial_group_name(int(t)) in self._f]
+
+    def failed_ids(self) -> list[int]:
+        return [int(t) for t in self.plan["trial_id"][self.plan["status"] == TrialStatus.FAILED]]
+
+    def trial_attrs(self, trial_id: int) -> dict:
+        """The attributes of ``/trials/<id>`` (setpoints, texture, status, dropped_frames, ...).
+
+        Raises KeyError if the trial has no group.
+        """
+        name = trial_group_name(trial_id)
+        if name not in self._f:
+            raise KeyError(f"trial {trial_id} has not been recorded in {self.path}")
+        return _read_attrs(self._f[name])
+
+    def trial(self, trial_id: int) -> TrialData:
+        """Read one recorded trial.
+
+        Raises
+        ------
+        KeyError if the trial was not recorded (or failed).
+        """
+        name = trial_group_name(trial_id)
+        if name not in self._f or "taxels" not in self._f[name]:
+            raise KeyError(f"trial {trial_id} has no recorded data in {self.path}")
+        g = self._f[name]
+        attrs = _read_attrs(g)
+        return TrialData(
+            taxels=g["taxels"][()],
+            seq=g["seq"][()],
+            flags=g["flags"][()],
+            host_time_s=g["host_time_s"][()],
+            force_g=g["force_g"][()],
+            force_time_s=g["force_time_s"][()],
+            speed_mm_s=g["speed_mm_s"][()],
+            speed_time_s=g["speed_time_s"][()],
+            dropped_frames=int(attrs.get("dropped_frames", 0)),
+            crc_errors=int(attrs.get("crc_errors", 0)),
+            attrs=attrs,
+        )
+
+    def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
+        """Yield :class:`TrialData` of the complete trials (or of ``ids``), in plan order."""
+        for trial_id in self.completed_ids() if ids is None else ids:
+            yield self.trial(trial_id)
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):  # pragma: no cover - best effort
+        try:
+            self._f.close()
+        except Exception:
+            pass
+
+
+def open_session(path: str | os.PathLike) -> Session:
+    """Open a session file read-only.
+
+    Raises
+    ------
+    FileNotFoundError, SessionError (not a session file or a newer schema), OSError (not HDF5).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    return Session(path)
