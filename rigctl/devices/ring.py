@@ -1,0 +1,85 @@
+"""A fixed-size, thread-safe ring buffer of taxel frames for live consumers (GUI, monitors).
+
+One writer (the :class:`rigctl.devices.taxel_stream.TaxelStream` reader thread) appends; any number of readers each
+keep their own cursor (an absolute frame count) and call :meth:`RingBuffer.read_since`.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from rigctl.devices import wire
+
+
+class RingBuffer:
+    """Ring of the last ``capacity`` frames: samples ``(capacity, 18) uint16`` ADC counts, ``seq`` uint16,
+    ``flags`` uint8 and host receive time ``float64`` s (``time.monotonic`` clock).
+
+    Parameters
+    ----------
+    capacity : int
+        Number of frames kept (e.g. 30 s x 1000 frames/s). Must be >= 1; ``ValueError`` otherwise.
+    """
+
+    def __init__(self, capacity: int):
+        capacity = int(capacity)
+        if capacity < 1:
+            raise ValueError(f"ring capacity must be >= 1 frame, got {capacity}")
+        self.capacity = capacity
+        self._samples = np.zeros((capacity, wire.N_TAXELS), np.uint16)
+        self._seq = np.zeros(capacity, np.uint16)
+        self._flags = np.zeros(capacity, np.uint8)
+        self._time = np.zeros(capacity, np.float64)
+        self._total = 0  # frames ever written
+        self._lock = threading.Lock()
+
+    @property
+    def total(self) -> int:
+        """Frames written since creation (the cursor of a reader that is up to date)."""
+        return self._total
+
+    def write(self, samples: np.ndarray, seq: np.ndarray, flags: np.ndarray, host_time_s: np.ndarray) -> None:
+        """Append n frames: ``samples (n, 18)``, ``seq (n,)``, ``flags (n,)``, ``host_time_s (n,)``."""
+        n = len(seq)
+        if n == 0:
+            return
+        if n > self.capacity:  # only the newest fit
+            cut = n - self.capacity
+            samples, seq, flags, host_time_s = samples[cut:], seq[cut:], flags[cut:], host_time_s[cut:]
+            skipped, n = cut, self.capacity
+        else:
+            skipped = 0
+        with self._lock:
+            start = (self._total + skipped) % self.capacity
+            idx = (start + np.arange(n)) % self.capacity
+            self._samples[idx] = samples
+            self._seq[idx] = seq
+            self._flags[idx] = flags
+            self._time[idx] = host_time_s
+            self._total += skipped + n
+
+    def read_since(self, cursor: int, max_frames: int | None = None):
+        """Frames written after ``cursor`` (a value returned by an earlier call, or 0).
+
+        Returns
+        -------
+        (cursor, samples, seq, host_time_s):
+            the new cursor (pass it to the next call), ``(n, 18) uint16`` ADC counts, ``(n,) uint16`` device
+            sequence numbers and ``(n,) float64`` host receive times in s. If the reader fell more than
+            ``capacity`` frames behind, the oldest frames are gone and only the last ``capacity`` are returned.
+            ``max_frames`` limits n to the newest ``max_frames`` frames.
+        """
+        with self._lock:
+            total = self._total
+            start = max(int(cursor), total - self.capacity, 0)
+            if max_frames is not None:
+                start = max(start, total - int(max_frames))
+            n = total - start
+            idx = (start + np.arange(n)) % self.capacity
+            return total, self._samples[idx].copy(), self._seq[idx].copy(), self._time[idx].copy()
+
+    def latest(self, n: int):
+        """The newest ``n`` frames (or fewer): same tuple as :meth:`read_since`."""
+        return self.read_since(0, max_frames=n)

@@ -1,0 +1,435 @@
+"""Host side of the taxel streamer (Arduino Uno): open, identify, stream, capture trials (pyserial).
+
+``docs/wire-protocol.md`` section 1; the frame parser and sequence accounting are
+:class:`rigctl.devices.frames.FrameParser` and :class:`rigctl.devices.frames.SequenceTracker`.
+
+A reader thread owns the port while it is open: it reads whatever is waiting in large chunks (never line by line,
+pyserial #216/#440), parses frames, counts sequence gaps and CRC errors, stamps each frame with a host receive time
+and fills a :class:`rigctl.devices.ring.RingBuffer` for live consumers and, between :meth:`TaxelStream.begin_capture`
+and :meth:`TaxelStream.end_capture`, a capture that keeps every frame for a trial. A vanished port (an unplugged
+USB cable) is reported (``stats.connected`` False, the ``on_error`` callback, a log warning) and reopened with
+backoff; after the reopen the stream waits for the ready banner and restarts streaming if it was streaming.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import queue
+import re
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import serial
+
+from rigctl.devices import wire
+from rigctl.devices.errors import TaxelStreamError
+from rigctl.devices.frames import FrameParser, SequenceTracker
+from rigctl.devices.ring import RingBuffer
+
+log = logging.getLogger(__name__)
+
+_LINE_RE = re.compile(rb"#RIGCTL-UNO[ -~]*\n")
+
+
+@dataclass
+class StreamStats:
+    """Counters of a :class:`TaxelStream` since it was opened."""
+
+    frames: int = 0  #: valid frames received
+    dropped: int = 0  #: frames missing from the device's sequence (plus the estimate over a reconnect)
+    crc_errors: int = 0  #: sync candidates rejected by their CRC-16
+    bytes_skipped: int = 0  #: received bytes that were not part of a valid frame
+    frames_per_s: float = 0.0  #: receive rate over the last second
+    connected: bool = False
+    reconnects: int = 0
+
+
+@dataclass
+class Capture:
+    """Every frame received between :meth:`TaxelStream.begin_capture` and :meth:`TaxelStream.end_capture`.
+
+    ``samples`` (n, 18) uint16 ADC counts, ``seq`` (n,) uint16 device sequence numbers, ``flags`` (n,) uint8
+    (:class:`rigctl.devices.wire.FrameFlag`), ``host_time_s`` (n,) float64 host receive times (``time.monotonic``,
+    s), ``dropped`` frames missing inside the capture, ``crc_errors`` corrupt frames rejected during it.
+    """
+
+    samples: np.ndarray
+    seq: np.ndarray
+    flags: np.ndarray
+    host_time_s: np.ndarray
+    dropped: int = 0
+    crc_errors: int = 0
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+
+def parse_identity(line: str) -> dict:
+    """Parse an identity/banner line ``#RIGCTL-UNO [READY] fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000``.
+
+    Returns ``{"firmware": (1, 0), "channels": 18, "rate_hz": 1000, "bits": 10, "baud": 1000000, "line": ...}``.
+    Raises :class:`TaxelStreamError` if a field is missing or malformed.
+    """
+    fields = dict(kv.split("=", 1) for kv in line.split() if "=" in kv)
+    try:
+        major, minor = fields["fw"].split(".")
+        return {
+            "firmware": (int(major), int(minor)),
+            "channels": int(fields["ch"]),
+            "rate_hz": int(fields["rate_hz"]),
+            "bits": int(fields["bits"]),
+            "baud": int(fields["baud"]),
+            "line": line.strip(),
+        }
+    except (KeyError, ValueError) as exc:
+        raise TaxelStreamError(f"malformed identity line from the taxel streamer: {line.strip()!r}") from exc
+
+
+class TaxelStream:
+    """Reader of the Uno's taxel stream on a serial port.
+
+    Parameters
+    ----------
+    port : str
+        Serial device path (e.g. ``/dev/ttyACM0`` or the simulated rig's ``taxel_port``).
+    baudrate : int
+        1,000,000 (spec section 1).
+    ring_seconds : float
+        Length of the live ring buffer, s (at 1000 frames/s).
+    banner_timeout_s : float
+        How long :meth:`open` waits for ``#RIGCTL-UNO READY`` after opening (the Uno resets on open).
+    on_error : callable(Exception) or None
+        Called from the reader thread when the port vanishes or fails.
+    reconnect : bool
+        Reopen a vanished port automatically (backoff 0.1 s doubling to 2 s).
+    read_timeout_s : float
+        Timeout of one chunk read: frames reach the ring at most this late.
+    """
+
+    def __init__(self, port: str, *, baudrate: int = wire.TAXEL_BAUD, ring_seconds: float = 30.0,
+                 banner_timeout_s: float = 3.0, on_error=None, reconnect: bool = True, read_timeout_s: float = 0.02):
+        self.port = port
+        self.baudrate = baudrate
+        self.banner_timeout_s = banner_timeout_s
+        self.on_error = on_error
+        self.reconnect = reconnect
+        self.read_timeout_s = read_timeout_s
+        self.ring = RingBuffer(max(1, int(ring_seconds * wire.SAMPLE_RATE_HZ)))
+        self.banner: dict | None = None
+        self.last_error: Exception | None = None
+        self._serial: serial.Serial | None = None
+        self._parser = FrameParser()
+        self._tracker = SequenceTracker()
+        self._lock = threading.Lock()  # guards counters, capture and state shared with the reader thread
+        self._write_lock = threading.Lock()
+        self._lines: queue.Queue[str] = queue.Queue()
+        self._text = b""
+        self._streaming = False
+        self._await_start = False
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._stats = StreamStats()
+        self._rate = collections.deque(maxlen=256)
+        self._capture: list | None = None
+        self._capture_base = (0, 0)
+        self._capture_count = 0
+        self._capture_event = threading.Condition(self._lock)
+        self._last_frame_time: float | None = None
+        self._gap_pending = False
+
+    # ------------------------------------------------------------------ context manager
+    def __enter__(self) -> "TaxelStream":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ open / close
+    def open(self) -> dict:
+        """Open the port, wait for the ready banner, start the reader thread. Returns the parsed banner.
+
+        Raises
+        ------
+        TaxelStreamError
+            The port cannot be opened, or no ``#RIGCTL-UNO READY`` line arrived within ``banner_timeout_s``.
+        """
+        if self._thread is not None:
+            return self.banner or {}
+        try:
+            ser = self._open_serial()
+            self.banner = self._wait_banner(ser)
+        except serial.SerialException as exc:
+            raise TaxelStreamError(f"cannot open the taxel streamer port {self.port}: {exc}") from exc
+        self._serial = ser
+        self._stats.connected = True
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._reader, name="taxel-reader", daemon=True)
+        self._thread.start()
+        return self.banner
+
+    def _open_serial(self) -> serial.Serial:
+        return serial.Serial(self.port, self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0)
+
+    def _wait_banner(self, ser: serial.Serial) -> dict:
+        deadline = time.monotonic() + self.banner_timeout_s
+        buf = b""
+        while time.monotonic() < deadline:
+            buf += ser.read(max(1, ser.in_waiting))
+            idx = buf.find(wire.UNO_BANNER_PREFIX.encode())
+            if idx >= 0:
+                end = buf.find(b"\n", idx)
+                if end >= 0:
+                    return parse_identity(buf[idx:end].decode("ascii", "replace"))
+            buf = buf[-256:]
+        ser.close()
+        raise TaxelStreamError(
+            f"no ready banner ({wire.UNO_BANNER_PREFIX!r}) from {self.port} within {self.banner_timeout_s:g} s: "
+            "is this the taxel streamer (Uno) running rigctl firmware at 1,000,000 baud?"
+        )
+
+    def close(self) -> None:
+        """Stop streaming (best effort), stop the reader thread and close the port."""
+        if self._thread is not None:
+            if self._streaming:
+                try:
+                    self._write(wire.UnoCommand.STOP.value)
+                except (serial.SerialException, OSError, TaxelStreamError):
+                    pass
+            self._stop.set()
+            self._thread.join(timeout=3)
+            self._thread = None
+        self._streaming = False
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            except (serial.SerialException, OSError):
+                pass
+            self._serial = None
+        self._stats.connected = False
+
+    # ------------------------------------------------------------------ commands
+    def _write(self, data: bytes) -> None:
+        with self._write_lock:
+            ser = self._serial
+            if ser is None or not self._stats.connected:
+                raise TaxelStreamError(f"taxel streamer on {self.port} is not connected")
+            ser.write(data)
+
+    def identify(self, timeout_s: float = 1.0) -> dict:
+        """Ask the Uno who it is (stops streaming first, as the spec's IDENTIFY does).
+
+        Returns ``{"firmware": (major, minor), "channels", "rate_hz", "bits", "baud", "line"}``.
+        Raises :class:`TaxelStreamError` on no answer within ``timeout_s``.
+        """
+        self._streaming = False
+        while not self._lines.empty():
+            self._lines.get_nowait()
+        self._write(wire.UnoCommand.IDENTIFY.value)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TaxelStreamError(f"no identity reply from the taxel streamer on {self.port} in {timeout_s:g} s")
+            try:
+                line = self._lines.get(timeout=left)
+            except queue.Empty:
+                continue
+            if not line.startswith(wire.UNO_BANNER_PREFIX):
+                return parse_identity(line)
+
+    def start(self) -> None:
+        """Start streaming (the device resets its sequence counter to 0)."""
+        with self._lock:
+            self._streaming = True
+            self._await_start = True
+        self._write(wire.UnoCommand.START.value)
+
+    def stop(self) -> None:
+        """Stop streaming (frames already on the wire are still parsed)."""
+        self._streaming = False
+        self._write(wire.UnoCommand.STOP.value)
+
+    @property
+    def streaming(self) -> bool:
+        return self._streaming
+
+    # ------------------------------------------------------------------ captures
+    def begin_capture(self) -> None:
+        """Start keeping every received frame (for one trial) until :meth:`end_capture`."""
+        with self._lock:
+            self._capture = []
+            self._capture_count = 0
+            self._capture_base = (self._stats.dropped, self._stats.crc_errors)
+
+    def wait_capture(self, n_frames: int, timeout_s: float) -> bool:
+        """Block until the running capture holds at least ``n_frames`` frames; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._capture_event:
+            while self._capture is not None and self._capture_count < n_frames:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._capture_event.wait(left)
+            return self._capture is not None
+
+    def end_capture(self) -> Capture:
+        """Stop the capture; return every frame received since :meth:`begin_capture` (a :class:`Capture`).
+
+        Raises :class:`TaxelStreamError` if no capture is running.
+        """
+        with self._lock:
+            parts = self._capture
+            if parts is None:
+                raise TaxelStreamError("end_capture() without begin_capture()")
+            self._capture = None
+            dropped = self._stats.dropped - self._capture_base[0]
+            crc = self._stats.crc_errors - self._capture_base[1]
+        if parts:
+            samples, seq, flags, t = (np.concatenate([p[i] for p in parts]) for i in range(4))
+        else:
+            samples = np.zeros((0, wire.N_TAXELS), np.uint16)
+            seq, flags, t = np.zeros(0, np.uint16), np.zeros(0, np.uint8), np.zeros(0, np.float64)
+        return Capture(samples, seq, flags, t, dropped=int(dropped), crc_errors=int(crc))
+
+    # ------------------------------------------------------------------ stats
+    @property
+    def stats(self) -> StreamStats:
+        """A snapshot of the counters (:class:`StreamStats`)."""
+        with self._lock:
+            s = StreamStats(**vars(self._stats))
+            if len(self._rate) >= 2:
+                (t0, n0), (t1, n1) = self._rate[0], self._rate[-1]
+                now = time.monotonic()
+                # the window reaches back about one second
+                for t, n in self._rate:
+                    if now - t <= 1.0:
+                        t0, n0 = t, n
+                        break
+                s.frames_per_s = (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
+                if now - t1 > 0.5:
+                    s.frames_per_s = 0.0
+        return s
+
+    # ------------------------------------------------------------------ reader thread
+    def _reader(self) -> None:
+        while not self._stop.is_set():
+            ser = self._serial
+            try:
+                waiting = ser.in_waiting
+                data = ser.read(max(waiting, 4096) if waiting > 4096 else 4096)
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                if self._stop.is_set():
+                    break
+                self._port_lost(exc)
+                if not self._reopen():
+                    break
+                continue
+            if data:
+                self._handle(data, time.monotonic())
+
+    def _handle(self, data: bytes, t_rx: float) -> None:
+        if not self._streaming or self._await_start:
+            self._scan_text(data)
+        frames = self._parser.feed(data)
+        ps = self._parser.stats
+        with self._lock:
+            st = self._stats
+            st.crc_errors = ps.crc_errors
+            st.bytes_skipped = ps.bytes_skipped
+            n = len(frames)
+            if n == 0:
+                return
+            seq, flags, samples = frames.seq, frames.flags, frames.samples
+            starts = np.flatnonzero(flags & wire.FrameFlag.STREAMING_START)
+            if self._await_start:
+                if not starts.size:
+                    return  # stale frames of an earlier stream
+                k = int(starts[0])
+                seq, flags, samples = seq[k:], flags[k:], samples[k:]
+                starts = starts - k
+                self._await_start = False
+            n = len(seq)
+            host_t = t_rx - (n - 1 - np.arange(n)) * (1.0 / wire.SAMPLE_RATE_HZ)
+            if self._gap_pending and self._last_frame_time is not None:
+                # frames lost while the port was gone: estimated from the time gap at 1 kHz
+                st.dropped += max(0, int(round((host_t[0] - self._last_frame_time) * wire.SAMPLE_RATE_HZ)) - 1)
+            self._gap_pending = False
+            # a STREAMING_START frame restarts the device's sequence at 0: not a gap
+            bounds = [0, *[int(k) for k in starts if k > 0], n]
+            for lo, hi in zip(bounds[:-1], bounds[1:]):
+                if flags[lo] & wire.FrameFlag.STREAMING_START:
+                    self._tracker.reset()
+                st.dropped += self._tracker.update(seq[lo:hi])
+            self._last_frame_time = float(host_t[-1])
+            st.frames += n
+            self._rate.append((t_rx, st.frames))
+            if self._capture is not None:
+                self._capture.append((samples, seq, flags, host_t))
+                self._capture_count += n
+                self._capture_event.notify_all()
+        self.ring.write(samples, seq, flags, host_t)
+
+    def _scan_text(self, data: bytes) -> None:
+        self._text = (self._text + data)[-4096:]
+        while True:
+            m = _LINE_RE.search(self._text)
+            if not m:
+                break
+            self._lines.put(m.group(0).decode("ascii", "replace").strip())
+            self._text = self._text[m.end():]
+
+    def _port_lost(self, exc: Exception) -> None:
+        self.last_error = exc
+        with self._lock:
+            self._stats.connected = False
+            self._gap_pending = True
+        log.warning("taxel streamer on %s vanished: %s", self.port, exc)
+        if self.on_error is not None:
+            try:
+                self.on_error(exc)
+            except Exception:  # a callback must not kill the reader
+                log.exception("on_error callback failed")
+        try:
+            self._serial.close()
+        except Exception:
+            pass
+
+    def _reopen(self) -> bool:
+        """Reopen the port with backoff until it works or :meth:`close` is called."""
+        if not self.reconnect:
+            return False
+        delay = 0.1
+        while not self._stop.wait(delay):
+            delay = min(delay * 2, 2.0)
+            try:
+                ser = self._open_serial()
+            except (serial.SerialException, OSError):
+                continue
+            try:
+                self.banner = self._wait_banner(ser)
+            except (TaxelStreamError, serial.SerialException, OSError) as exc:
+                log.info("reopened %s but no banner yet: %s", self.port, exc)
+                try:
+                    ser.close()
+                except Exception:
+                    pass
+                continue
+            with self._write_lock:
+                self._serial = ser
+            self._parser.reset()
+            with self._lock:
+                self._stats.connected = True
+                self._stats.reconnects += 1
+            log.warning("taxel streamer on %s reconnected", self.port)
+            if self._streaming:
+                try:
+                    self.start()
+                except (serial.SerialException, OSError, TaxelStreamError) as exc:
+                    self._port_lost(exc)
+                    continue
+            return True
+        return False

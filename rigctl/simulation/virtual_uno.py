@@ -1,0 +1,214 @@
+"""The simulated taxel streamer (Arduino Uno) on a pty: ready banner, S/P/I commands, 1 kHz frames.
+
+Implements ``docs/wire-protocol.md`` section 1 from the board's side. The board is passive: whoever owns the
+simulation clock (:class:`rigctl.simulation.rig.SimulatedRig`'s physics thread, or :meth:`VirtualUno.run_paced`
+for a standalone board) calls :meth:`VirtualUno.tick` with the samples of every elapsed millisecond, so frame k of
+a stream goes out no earlier than ``t0 + k`` ms and the long-run rate is exactly 1000 frames/s. Framing reuses
+:func:`rigctl.devices.frames.encode_frames`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from rigctl.devices import wire
+from rigctl.devices.frames import encode_frames
+from rigctl.simulation.pty import PtyEndpoint
+
+log = logging.getLogger(__name__)
+
+_INFO = "fw={}.{} ch={} rate_hz={} bits={} baud={}".format(
+    *wire.UNO_FIRMWARE_VERSION, wire.N_TAXELS, wire.SAMPLE_RATE_HZ, wire.ADC_BITS, wire.TAXEL_BAUD
+)
+BANNER = f"{wire.UNO_BANNER_PREFIX} {_INFO}\n".encode()
+IDENTITY = f"{wire.UNO_IDENTITY_PREFIX} {_INFO}\n".encode()
+
+
+class VirtualUno:
+    """Virtual Uno on a :class:`PtyEndpoint`.
+
+    Parameters
+    ----------
+    link : path or None
+        Stable path the client opens (a symlink to the pty slave).
+    reset_delay_s : float
+        Boot time after a client opens the port (the DTR reset of a real Uno) before the ready banner is sent.
+    seed : int
+        Seed of the fault-injection random generator.
+
+    Fault injection (for tests): :meth:`inject_garbage`, :meth:`corrupt_frames`, :meth:`drop_frames`.
+    """
+
+    def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0):
+        self.port = PtyEndpoint(link)
+        self.reset_delay_s = reset_delay_s
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self.streaming = False
+        self.seq = 0
+        self._first = False
+        self._booting_until: float | None = time.monotonic()  # power-up: banner right away
+        self._garbage = bytearray()
+        self._corrupt_left = 0
+        self._corrupt_bits = 1
+        self._drop_left = 0
+        self.frames_sent = 0
+        self.frames_dropped = 0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    @property
+    def path(self) -> str:
+        """The path a client opens with pyserial."""
+        return self.port.path
+
+    # ------------------------------------------------------------------ fault injection
+    def inject_garbage(self, data: bytes) -> None:
+        """Send ``data`` between the next two frames (while streaming)."""
+        with self._lock:
+            self._garbage += data
+
+    def corrupt_frames(self, n: int, bits: int = 1) -> None:
+        """Flip ``bits`` random bits (outside the sync bytes) in each of the next ``n`` frames sent."""
+        with self._lock:
+            self._corrupt_left += int(n)
+            self._corrupt_bits = int(bits)
+
+    def drop_frames(self, n: int) -> None:
+        """Do not send the next ``n`` frames (their sequence numbers are used up: the host sees a gap)."""
+        with self._lock:
+            self._drop_left += int(n)
+
+    # ------------------------------------------------------------------ unplug / replug
+    def unplug(self) -> None:
+        """The USB cable is pulled: the port vanishes, the board stops streaming."""
+        with self._lock:
+            self.port.unplug()
+            self.streaming = False
+
+    def replug(self) -> None:
+        """The cable is plugged back: the port reappears and the board boots (banner after ``reset_delay_s``)."""
+        with self._lock:
+            self.port.replug()
+            self.streaming = False
+            self._booting_until = time.monotonic() + self.reset_delay_s
+
+    # ------------------------------------------------------------------ the board's loop
+    def tick(self, samples: np.ndarray, sync_in: np.ndarray | None = None) -> None:
+        """Advance the board by ``len(samples)`` ms.
+
+        Parameters
+        ----------
+        samples : (n, 18) uint16 ADC counts 0-1023, one row per elapsed millisecond.
+        sync_in : (n,) bool, the drum index pulse seen in each millisecond (sets the SYNC_IN flag), or None.
+        """
+        with self._lock:
+            port = self.port
+            if not port.plugged:
+                return
+            now = time.monotonic()
+            if port.client_opened():  # DTR reset on open
+                self.streaming = False
+                port.discard_output()
+                self._booting_until = now + self.reset_delay_s
+            if self._booting_until is not None:
+                port.read(4096)  # the bootloader ignores what the host sends
+                if now >= self._booting_until:
+                    self._booting_until = None
+                    port.write(BANNER)
+                port.flush()
+                return
+            commands = port.read(4096)
+            n = len(samples)
+            # commands are applied at the start of this tick (the Uno checks its UART between ticks)
+            for byte in commands:
+                c = bytes([byte])
+                if c == wire.UnoCommand.START.value:
+                    self.streaming = True
+                    self.seq = 0
+                    self._first = True
+                elif c == wire.UnoCommand.STOP.value:
+                    self.streaming = False
+                elif c == wire.UnoCommand.IDENTIFY.value:
+                    self.streaming = False
+                    port.write(IDENTITY)
+            if self.streaming and n:
+                self._send_frames(samples, sync_in)
+            port.flush()
+
+    def _send_frames(self, samples, sync_in) -> None:
+        n = len(samples)
+        seq = (self.seq + np.arange(n)) & 0xFFFF
+        flags = np.zeros(n, np.uint8)
+        if sync_in is not None:
+            flags |= np.asarray(sync_in, bool).astype(np.uint8) * np.uint8(wire.FrameFlag.SYNC_IN)
+        if self._first:
+            flags[0] |= wire.FrameFlag.STREAMING_START
+            self._first = False
+        self.seq = (self.seq + n) & 0xFFFF
+        keep = np.ones(n, bool)
+        if self._drop_left:
+            k = min(self._drop_left, n)
+            keep[:k] = False
+            self._drop_left -= k
+            self.frames_dropped += k
+        samples = np.asarray(samples)[keep]
+        if not len(samples):
+            return
+        data = bytearray(encode_frames(seq[keep], flags[keep], samples))
+        if self._corrupt_left:
+            k = min(self._corrupt_left, len(samples))
+            self._corrupt_left -= k
+            for i in range(k):
+                for _ in range(self._corrupt_bits):
+                    pos = i * wire.FRAME_SIZE + int(self._rng.integers(2, wire.FRAME_SIZE))
+                    data[pos] ^= 1 << int(self._rng.integers(0, 8))
+        if self._garbage:
+            data = bytes(self._garbage) + data
+            self._garbage.clear()
+        self.port.write(bytes(data))
+        self.frames_sent += len(samples)
+
+    # ------------------------------------------------------------------ standalone pacing
+    def run_paced(self, source, *, tick_s: float = 0.003) -> None:
+        """Run the board on its own real-time clock in a thread: ``source(n) -> (samples (n,18), sync_in (n,))``.
+
+        For a board without the rig's physics thread (e.g. tests, replay). Stop with :meth:`close`.
+        """
+        if self._thread is not None:
+            raise RuntimeError("already running")
+        self._stop.clear()
+        self._thread = threading.Thread(target=paced_loop, args=(self._stop, tick_s, lambda n: self.tick(*source(n))),
+                                        name="virtual-uno", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """Stop the board's thread (if any) and close the pty."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+            self._thread = None
+        with self._lock:
+            self.port.close()
+
+
+def paced_loop(stop: threading.Event, tick_s: float, step) -> None:
+    """Call ``step(n_ms)`` every ``tick_s`` with the milliseconds elapsed since the last call (exact long-run rate:
+    millisecond k is handed out no earlier than ``t0 + k`` ms)."""
+    t0 = time.monotonic()
+    done = 0
+    while not stop.is_set():
+        due = int((time.monotonic() - t0) * 1000.0)
+        n = due - done
+        if n > 0:
+            try:
+                step(n)
+            except Exception:  # keep the clock alive; the error is logged
+                log.exception("simulation step failed")
+            done = due
+        next_t = t0 + (done + max(1, int(tick_s * 1000))) / 1000.0
+        stop.wait(max(0.0, next_t - time.monotonic()))
