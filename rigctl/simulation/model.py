@@ -1,0 +1,616 @@
+"""Physical model of the texture drum rig: drum + stepper, actuator + spring + load cell, and the 3x3x2 taxel sensor.
+
+This is the physics behind the simulated rig (the Mega's control logic - states, limits, watchdog, force PI loop -
+lives in :mod:`rigctl.simulation.virtual_mega`) and behind the dataset generator (:mod:`rigctl.simulation.dataset`).
+
+Sensor model (:class:`SensorModel`), following the paper's description of the sensor (Results; Materials and
+Methods, "Tactile Texture Dataset - Force Invariance Module"): two layers of a 3x3 grid of piezoresistive taxels at
+5 mm pitch; the top layer (type I) has a small receptive field, the bottom layer (type II) a larger and weaker one.
+For each taxel at row ``r`` (row 0 = leading edge of the drum's travel, see docs/wire-protocol.md) the surface under
+it is at plate coordinate ``x - r * pitch`` where ``x`` is the drum's surface travel. Per sample and taxel:
+
+1. ``hs = (h * g_sigma)(x - r * pitch)``: the texture height smoothed by the layer's Gaussian receptive field
+   (exact circular convolution over one period, tabulated).
+2. ``p = F / 9 * w_r * max(0, 1 + k_h * (hs - mean(h)))``: local pressure (g per taxel) rises with the contact force
+   ``F`` and the local height; ``w_r`` is the row weight from the drum's curvature (centre row pressed hardest).
+3. ``s = p / (p + p_half)``: the piezoresistive fabric's reading saturates with pressure, so doubling the force does
+   not double the signal (the non-linearity the paper's force scaling, eq. 1, undoes).
+4. ``adc = round(offset_i + gain_i * g_trial * full_scale * layer_gain * s + noise)`` clipped to 0-1023 (10 bits);
+   ``gain_i`` / ``offset_i`` are the taxel's calibration spread (fixed by ``SensorConfig.calibration_seed``),
+   ``g_trial`` a slow sensitivity drift of the fabric, ``noise`` zero-mean with ``noise_counts`` sd.
+
+Time dilation with speed comes from ``x(t) = x0 + integral of v``: a texture of spatial period ``P`` read at speed
+``v`` gives a temporal period ``P / v``.
+
+All rendering is vectorised in one numba kernel (time-outer, the 18 channels inner) and runs at well over 10^7
+samples per second per core.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import threading
+from typing import Any
+
+import numba
+import numpy as np
+
+from rigctl.devices import wire
+from rigctl.simulation.textures import TEXTURES, Texture, get_texture
+
+N_ROWS = 3
+N_COLS = 3
+N_LAYERS = 2
+N_TAXELS = wire.N_TAXELS  # 18
+ADC_MAX = wire.ADC_MAX  # 1023
+_TABLE_SIZE = 2048  # points per texture period in the smoothed-height lookup tables
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# configuration (JSON-able)
+# ----------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class DrumConfig:
+    """Drum and stepper.
+
+    Attributes
+    ----------
+    diameter_mm : float
+        Drum diameter, mm (surface speed = angular speed * diameter / 2).
+    steps_per_rev, microsteps : int
+        Stepper full steps per revolution and microstepping factor (step rate in microsteps/s).
+    max_accel_mm_s2 : float
+        Acceleration limit of the surface speed, mm/s^2 (the step generator's ramp).
+    runout_mm : float
+        Radial runout (eccentricity) of the drum, mm: a force ripple once per revolution.
+    """
+
+    diameter_mm: float = 100.0
+    steps_per_rev: int = 200
+    microsteps: int = 16
+    max_accel_mm_s2: float = 500.0
+    runout_mm: float = 0.02
+
+    @property
+    def circumference_mm(self) -> float:
+        return math.pi * self.diameter_mm
+
+    @property
+    def steps_per_mm(self) -> float:
+        """Microsteps per mm of surface travel (10.19 for the defaults)."""
+        return self.steps_per_rev * self.microsteps / self.circumference_mm
+
+
+@dataclasses.dataclass
+class SensorConfig:
+    """3x3x2 piezoresistive taxel sensor (see the module docstring for the equations).
+
+    Attributes
+    ----------
+    pitch_mm : float
+        Taxel spacing, mm (paper: 5 mm).
+    rf_sigma_top_mm, rf_sigma_bottom_mm : float
+        Gaussian receptive-field sd along the travel, mm (top = type I small, bottom = type II larger).
+    layer_gain_top, layer_gain_bottom : float
+        Relative sensitivity of the layers (bottom weaker).
+    p_half_top_g, p_half_bottom_g : float
+        Pressure per taxel (g) at which the reading reaches half of full scale (saturation constant).
+    height_gain_per_mm : float
+        Relative pressure increase per mm of (smoothed) surface height above the texture's mean height.
+    row_weights : tuple of 3 float
+        Pressure share of rows 0-2 (drum curvature: the centre row is pressed hardest).
+    full_scale_counts : float
+        Reading (ADC counts above offset) at infinite pressure and unit gain.
+    gain_spread, offset_mean_counts, offset_spread_counts : float
+        Per-taxel calibration spread: gain ~ N(1, gain_spread), offset ~ N(offset_mean, offset_spread) counts.
+    noise_counts : float
+        Sample noise sd, ADC counts (Irwin-Hall(4) approximation of a Gaussian).
+    sensitivity_drift : float
+        sd of the slow relative drift of the fabric's sensitivity (trial to trial), e.g. 0.03 = 3 %.
+    calibration_seed : int
+        Seed of the per-taxel gain/offset spread (identifies "this physical sensor").
+    """
+
+    pitch_mm: float = 5.0
+    rf_sigma_top_mm: float = 0.7
+    rf_sigma_bottom_mm: float = 2.0
+    layer_gain_top: float = 1.0
+    layer_gain_bottom: float = 0.55
+    p_half_top_g: float = 55.0
+    p_half_bottom_g: float = 80.0
+    height_gain_per_mm: float = 0.9
+    row_weights: tuple[float, float, float] = (0.8, 1.0, 0.8)
+    full_scale_counts: float = 1000.0
+    gain_spread: float = 0.08
+    offset_mean_counts: float = 40.0
+    offset_spread_counts: float = 10.0
+    noise_counts: float = 2.5
+    sensitivity_drift: float = 0.03
+    calibration_seed: int = 20240601
+
+
+@dataclasses.dataclass
+class MechanicsConfig:
+    """Actuator, contact spring and load cell.
+
+    Attributes
+    ----------
+    contact_gap_mm : float
+        Actuator travel from home to first contact of drum and sensor, mm.
+    contact_stiffness_g_per_mm : float
+        Spring between actuator and sensor contact (sensor pad + mount compliance), g per mm of travel past contact.
+    actuator_max_speed_mm_s : float
+        Actuator speed limit, mm/s (commands beyond it are clipped).
+    actuator_travel_mm : float
+        End of actuator travel, mm from home.
+    loadcell_counts_per_g : float
+        HX711 counts per gram (matches the LOADCELL_SCALE_X100 default 42000 of the register map).
+    loadcell_offset_counts : int
+        Raw HX711 reading at zero force (what TARE removes).
+    loadcell_noise_g : float
+        Load-cell reading noise sd, g.
+    texture_ripple : float
+        Relative contact-force ripple per mm of texture height under the contact line.
+    """
+
+    contact_gap_mm: float = 3.0
+    contact_stiffness_g_per_mm: float = 250.0
+    actuator_max_speed_mm_s: float = 8.0
+    actuator_travel_mm: float = 20.0
+    loadcell_counts_per_g: float = 420.0
+    loadcell_offset_counts: int = 83_000
+    loadcell_noise_g: float = 0.8
+    texture_ripple: float = 0.02
+
+
+@dataclasses.dataclass
+class RigConfig:
+    """The whole simulated rig. JSON-able: ``RigConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))``."""
+
+    drum: DrumConfig = dataclasses.field(default_factory=DrumConfig)
+    sensor: SensorConfig = dataclasses.field(default_factory=SensorConfig)
+    mechanics: MechanicsConfig = dataclasses.field(default_factory=MechanicsConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["sensor"]["row_weights"] = list(d["sensor"]["row_weights"])
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> "RigConfig":
+        """Build from :meth:`to_dict` output; missing keys take defaults.
+
+        Raises
+        ------
+        TypeError
+            On an unknown key (names the section and key).
+        """
+        d = dict(d or {})
+        parts = {}
+        for name, klass in (("drum", DrumConfig), ("sensor", SensorConfig), ("mechanics", MechanicsConfig)):
+            sub = dict(d.pop(name, None) or {})
+            known = {f.name for f in dataclasses.fields(klass)}
+            unknown = set(sub) - known
+            if unknown:
+                raise TypeError(f"unknown key(s) in rig config [{name}]: {sorted(unknown)}")
+            if "row_weights" in sub:
+                sub["row_weights"] = tuple(float(w) for w in sub["row_weights"])
+            parts[name] = klass(**sub)
+        if d:
+            raise TypeError(f"unknown section(s) in rig config: {sorted(d)}")
+        return cls(**parts)
+
+    @classmethod
+    def from_json(cls, text: str) -> "RigConfig":
+        return cls.from_dict(json.loads(text))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# sensor
+# ----------------------------------------------------------------------------------------------------------------
+@numba.njit(cache=True, nogil=True)
+def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half, layer_gain, full_scale, gain,
+                   offset, noise_sd, seed, out):  # pragma: no cover - compiled
+    n_table = tables.shape[1]
+    inv = n_table / period
+    state = np.uint64(seed) | np.uint64(1)
+    sqrt3 = math.sqrt(3.0)
+    inv16 = 1.0 / 65536.0
+    for i in range(pos.shape[0]):
+        f9 = force[i] / 9.0
+        for layer in range(2):
+            for r in range(3):
+                u = (pos[i] - r * pitch) * inv
+                k = math.floor(u)
+                frac = u - k
+                k0 = int(k) % n_table
+                k1 = k0 + 1
+                if k1 == n_table:
+                    k1 = 0
+                hs = tables[layer, k0] * (1.0 - frac) + tables[layer, k1] * frac
+                rel = 1.0 + k_h * (hs - hmean[layer])
+                if rel < 0.0:
+                    rel = 0.0
+                p = f9 * row_w[r] * rel
+                if p < 0.0:
+                    p = 0.0
+                base = full_scale * layer_gain[layer] * p / (p + p_half[layer])
+                for c in range(3):
+                    ch = layer * 9 + r * 3 + c
+                    # xorshift64 -> four 16-bit uniforms -> Irwin-Hall(4), unit variance
+                    state ^= state << np.uint64(13)
+                    state ^= state >> np.uint64(7)
+                    state ^= state << np.uint64(17)
+                    s = state
+                    acc = 0.0
+                    for _ in range(4):
+                        acc += float(s & np.uint64(0xFFFF))
+                        s >>= np.uint64(16)
+                    z = (acc * inv16 - 2.0) * sqrt3
+                    v = offset[ch] + gain[ch] * base + noise_sd * z
+                    v = math.floor(v + 0.5)
+                    if v < 0.0:
+                        v = 0.0
+                    elif v > 1023.0:
+                        v = 1023.0
+                    out[i, ch] = np.uint16(v)
+
+
+class SensorModel:
+    """The 3x3x2 taxel sensor pressed on a texture (equations in the module docstring).
+
+    Parameters
+    ----------
+    config : SensorConfig, optional
+        Defaults to ``SensorConfig()``.
+
+    Attributes
+    ----------
+    gain : (18,) float64
+        Per-taxel gain (calibration spread, seeded by ``config.calibration_seed``).
+    offset : (18,) float64
+        Per-taxel offset, ADC counts.
+    """
+
+    def __init__(self, config: SensorConfig | None = None):
+        self.config = config or SensorConfig()
+        c = self.config
+        cal = np.random.default_rng(c.calibration_seed)
+        self.gain = np.clip(cal.normal(1.0, c.gain_spread, N_TAXELS), 0.5, 1.5)
+        self.offset = np.clip(cal.normal(c.offset_mean_counts, c.offset_spread_counts, N_TAXELS), 0.0, 200.0)
+        self._row_w = np.asarray(c.row_weights, dtype=np.float64)
+        self._p_half = np.array([c.p_half_top_g, c.p_half_bottom_g])
+        self._layer_gain = np.array([c.layer_gain_top, c.layer_gain_bottom])
+        self._tables: dict[str, tuple[np.ndarray, float, np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def tables(self, texture: Texture | str) -> tuple[np.ndarray, float, np.ndarray]:
+        """Smoothed-height lookup tables of a texture for both layers.
+
+        Returns
+        -------
+        tables : (2, 2048) float64
+            Height (mm) over one period, convolved with the top / bottom receptive field (exact circular convolution).
+        period_mm : float
+            Length the table covers (1.0 for the smooth texture, whose table is zero).
+        mean_mm : (2,) float64
+            Mean height of each table (equal to the texture's mean height).
+        """
+        tex = get_texture(texture)
+        with self._lock:
+            hit = self._tables.get(tex.letter)
+            if hit is not None:
+                return hit
+        c = self.config
+        if tex.kind == "smooth":
+            result = (np.zeros((2, _TABLE_SIZE)), 1.0, np.zeros(2))
+        else:
+            period = tex.period_mm
+            # supersample the profile before smoothing so rectangular edges are resolved
+            m = 8
+            x = (np.arange(_TABLE_SIZE * m) + 0.5) / (_TABLE_SIZE * m) * period
+            h = tex.height(x)
+            spec = np.fft.rfft(h)
+            freq = np.fft.rfftfreq(h.size, d=period / h.size)  # cycles per mm
+            rows = []
+            for sigma in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm):
+                smooth = np.fft.irfft(spec * np.exp(-0.5 * (2 * np.pi * freq * sigma) ** 2), n=h.size)
+                rows.append(smooth.reshape(_TABLE_SIZE, m).mean(axis=1))
+            tables = np.ascontiguousarray(np.stack(rows))
+            result = (tables, float(period), tables.mean(axis=1))
+        with self._lock:
+            self._tables[tex.letter] = result
+        return result
+
+    def render(self, texture: Texture | str, position_mm, force_g, rng: np.random.Generator, *,
+               sensitivity: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+        """Render taxel readings.
+
+        Parameters
+        ----------
+        texture : Texture or str
+            The plate on the drum (letter A-P).
+        position_mm : (n,) array_like of float
+            Drum surface travel under the sensor's row 0 at each sample, mm (unwrapped; phase included).
+        force_g : (n,) array_like or float
+            Contact force at each sample, g (negative values are treated as 0).
+        rng : numpy.random.Generator
+            Source of the noise (one 63-bit seed is drawn per call, so a seeded generator reproduces the output).
+        sensitivity : float
+            Slow sensitivity factor of the fabric (trial-to-trial drift), 1.0 = nominal.
+        out : (n, 18) uint16 array, optional
+            Written in place if given.
+
+        Returns
+        -------
+        (n, 18) uint16
+            ADC counts 0-1023, channels 0-8 top layer, 9-17 bottom layer, row-major (docs/wire-protocol.md).
+
+        Raises
+        ------
+        ValueError
+            If ``position_mm`` is not 1-D or ``force_g`` does not broadcast to its length.
+        """
+        pos = np.ascontiguousarray(position_mm, dtype=np.float64)
+        if pos.ndim != 1:
+            raise ValueError(f"position_mm must be 1-D, got shape {pos.shape}")
+        n = pos.shape[0]
+        force = np.ascontiguousarray(np.broadcast_to(np.asarray(force_g, dtype=np.float64), (n,)))
+        if out is None:
+            out = np.empty((n, N_TAXELS), dtype=np.uint16)
+        elif out.shape != (n, N_TAXELS) or out.dtype != np.uint16:
+            raise ValueError(f"out must be ({n}, {N_TAXELS}) uint16")
+        tables, period, hmean = self.tables(texture)
+        c = self.config
+        seed = int(rng.integers(1, 2**63))
+        _render_kernel(pos, force, tables, period, hmean, float(c.pitch_mm), self._row_w, float(c.height_gain_per_mm),
+                       self._p_half, self._layer_gain, float(c.full_scale_counts), self.gain * float(sensitivity),
+                       self.offset, float(c.noise_counts), seed, out)
+        return out
+
+    def contact_height(self, texture: Texture | str, position_mm) -> np.ndarray:
+        """Smoothed (bottom-layer) texture height under the centre row minus its mean, mm: drives the load-cell ripple."""
+        tables, period, hmean = self.tables(texture)
+        x = (np.asarray(position_mm, dtype=np.float64) - self.config.pitch_mm) / period * tables.shape[1]
+        idx = np.floor(x).astype(np.int64) % tables.shape[1]
+        return tables[1, idx] - hmean[1]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# whole rig mechanics
+# ----------------------------------------------------------------------------------------------------------------
+#: Suggested force-loop gains for a PI controller on actuator velocity (``v = KP * e + KI * integral(e)``, e in g,
+#: v in mm/s, clipped to the actuator's speed limit), run every 10 ms on the load-cell reading, integrating only while
+#: ``abs(e) < FORCE_PI_INTEGRATE_BAND_G`` (conditional integration: no wind-up during the approach to contact).
+#: With the default stiffness (250 g/mm) the proportional loop gain is 5 /s; from home (3 mm gap) a 250 / 500 /
+#: 1000 g setpoint enters and stays in a +-15 g band after about 1.1 / 1.0 / 1.3 s, overshoot < 10 g
+#: (see :func:`simulate_force_loop`).
+FORCE_PI_KP_MM_S_PER_G = 0.02
+FORCE_PI_KI_MM_S_PER_G_S = 0.02
+FORCE_PI_INTEGRATE_BAND_G = 50.0
+
+
+class RigModel:
+    """Mechanics of the rig, advanced in 1 ms steps by the virtual boards. Thread-safe (one lock).
+
+    Parameters
+    ----------
+    config : RigConfig, optional
+    seed : int
+        Seeds the noise, the drum's start angle and runout phase.
+
+    Notes
+    -----
+    The drum: a commanded microstep rate (Hz, signed) becomes a target surface speed; the actual speed approaches it
+    at ``drum.max_accel_mm_s2``. The surface travel integrates the speed; an index pulse (``sync_in``) marks each
+    pass of the drum's index mark (angle 0). The actuator integrates a commanded velocity (clipped to its speed
+    limit and travel); past ``contact_gap_mm`` a spring of ``contact_stiffness_g_per_mm`` presses drum and sensor
+    together; the contact force also carries the drum's runout ripple and a small texture ripple. The load cell
+    reads that force with noise. The Mega's control logic is not here.
+    """
+
+    def __init__(self, config: RigConfig | None = None, seed: int = 0):
+        self.config = config or RigConfig()
+        self.sensor = SensorModel(self.config.sensor)
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.RLock()
+        circ = self.config.drum.circumference_mm
+        self._texture = TEXTURES["A"]
+        self._position_mm = float(self._rng.uniform(0.0, circ))  # surface travel since angle 0 of revolution 0
+        self._start_rev = math.floor(self._position_mm / circ)
+        self._speed_mm_s = 0.0
+        self._actuator_mm = 0.0
+        self._force_g = 0.0
+        self._runout_phase = float(self._rng.uniform(0.0, 2 * np.pi))
+        self._sensitivity = 1.0
+        self._time_s = 0.0
+        self._loadcell_g = 0.0
+
+    # -- properties ------------------------------------------------------------------------------------------------
+    @property
+    def contact_stiffness_g_per_mm(self) -> float:
+        """Force gained per mm of actuator travel past contact, g/mm (dF/dx of the plant; for tuning a force loop)."""
+        return self.config.mechanics.contact_stiffness_g_per_mm
+
+    @property
+    def texture(self) -> Texture:
+        with self._lock:
+            return self._texture
+
+    def set_texture(self, letter: str | Texture) -> None:
+        """Mount a texture plate (letter A-P). Raises KeyError on an unknown letter."""
+        tex = get_texture(letter)
+        self.sensor.tables(tex)  # build outside the physics step
+        with self._lock:
+            self._texture = tex
+
+    @property
+    def time_s(self) -> float:
+        """Simulated time since construction, s."""
+        with self._lock:
+            return self._time_s
+
+    @property
+    def force_g(self) -> float:
+        """Load-cell force (tared), g, with reading noise; the latest reading."""
+        with self._lock:
+            return self._loadcell_g
+
+    @property
+    def contact_force_g(self) -> float:
+        """True contact force at the end of the last step, g (no load-cell noise)."""
+        with self._lock:
+            return self._force_g
+
+    @property
+    def loadcell_raw(self) -> int:
+        """Raw HX711-like counts: ``loadcell_offset_counts + round(force_g * loadcell_counts_per_g)`` (signed 24-bit)."""
+        m = self.config.mechanics
+        with self._lock:
+            raw = m.loadcell_offset_counts + int(round(self._loadcell_g * m.loadcell_counts_per_g))
+        return max(-(1 << 23), min((1 << 23) - 1, raw))
+
+    @property
+    def drum_speed_mm_s(self) -> float:
+        """Actual drum surface speed, mm/s (signed)."""
+        with self._lock:
+            return self._speed_mm_s
+
+    @property
+    def position_mm(self) -> float:
+        """Unwrapped drum surface travel, mm."""
+        with self._lock:
+            return self._position_mm
+
+    @property
+    def angle_deg(self) -> float:
+        """Drum angle since the index mark, degrees in [0, 360)."""
+        circ = self.config.drum.circumference_mm
+        with self._lock:
+            return (self._position_mm % circ) / circ * 360.0
+
+    @property
+    def revolutions(self) -> int:
+        """Completed revolutions (index passes) since construction (negative when turned backwards)."""
+        circ = self.config.drum.circumference_mm
+        with self._lock:
+            return math.floor(self._position_mm / circ) - self._start_rev
+
+    @property
+    def actuator_mm(self) -> float:
+        """Actuator position from home, mm (positive towards the sensor)."""
+        with self._lock:
+            return self._actuator_mm
+
+    def home_actuator(self) -> None:
+        """Place the actuator at home (0 mm) immediately (the end of a HOMING move)."""
+        with self._lock:
+            self._actuator_mm = 0.0
+
+    # -- dynamics --------------------------------------------------------------------------------------------------
+    def advance(self, n_ms: int, *, drum_step_rate_hz: float, actuator_velocity_mm_s: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Advance the physics by ``n_ms`` 1 ms steps under constant commands.
+
+        Parameters
+        ----------
+        n_ms : int
+            Number of 1 ms steps (>= 0).
+        drum_step_rate_hz : float
+            Commanded stepper rate, microsteps/s (signed; surface speed = rate / ``drum.steps_per_mm``).
+        actuator_velocity_mm_s : float
+            Commanded actuator velocity, mm/s (positive towards the sensor; clipped to the speed limit).
+
+        Returns
+        -------
+        samples : (n_ms, 18) uint16
+            Taxel ADC counts, one row per ms.
+        sync_in : (n_ms,) bool
+            True in the ms in which the drum's index mark passed.
+        """
+        n = int(n_ms)
+        if n < 0:
+            raise ValueError("n_ms must be >= 0")
+        d, m = self.config.drum, self.config.mechanics
+        dt = 1e-3
+        with self._lock:
+            if n == 0:
+                return np.empty((0, N_TAXELS), np.uint16), np.zeros(0, bool)
+            k = np.arange(1, n + 1, dtype=np.float64)
+            target = float(drum_step_rate_hz) / d.steps_per_mm
+            dv = target - self._speed_mm_s
+            ramp = d.max_accel_mm_s2 * dt * k
+            speed = np.where(ramp >= abs(dv), target, self._speed_mm_s + math.copysign(1.0, dv) * ramp)
+            pos = self._position_mm + np.cumsum(speed) * dt
+            circ = d.circumference_mm
+            rev = np.floor(np.concatenate(([self._position_mm], pos)) / circ)
+            sync_in = np.diff(rev) != 0
+
+            va = float(np.clip(actuator_velocity_mm_s, -m.actuator_max_speed_mm_s, m.actuator_max_speed_mm_s))
+            act = np.clip(self._actuator_mm + va * dt * k, 0.0, m.actuator_travel_mm)
+            compression = act - m.contact_gap_mm
+            runout = d.runout_mm * np.sin(2 * np.pi * pos / circ + self._runout_phase)
+            force = m.contact_stiffness_g_per_mm * np.clip(compression + np.where(compression > 0, runout, 0.0), 0, None)
+            force *= 1.0 + m.texture_ripple * self.sensor.contact_height(self._texture, pos)
+
+            # slow sensitivity drift of the fabric: Ornstein-Uhlenbeck, tau 20 s
+            c = self.config.sensor
+            a = math.exp(-n * dt / 20.0)
+            self._sensitivity = 1.0 + a * (self._sensitivity - 1.0) + c.sensitivity_drift * math.sqrt(1 - a * a) * float(
+                self._rng.standard_normal())
+            samples = self.sensor.render(self._texture, pos, force, self._rng, sensitivity=self._sensitivity)
+
+            self._speed_mm_s = float(speed[-1])
+            self._position_mm = float(pos[-1])
+            self._actuator_mm = float(act[-1])
+            self._force_g = float(force[-1])
+            self._loadcell_g = self._force_g + m.loadcell_noise_g * float(self._rng.standard_normal())
+            self._time_s += n * dt
+            return samples, sync_in
+
+
+def simulate_force_loop(setpoint_g: float = 500.0, *, kp: float = FORCE_PI_KP_MM_S_PER_G,
+                        ki: float = FORCE_PI_KI_MM_S_PER_G_S, band_g: float = FORCE_PI_INTEGRATE_BAND_G,
+                        duration_s: float = 4.0, tolerance_g: float = 15.0,
+                        config: RigConfig | None = None, seed: int = 0, period_ms: int = 10) -> dict:
+    """Run a plain PI force loop (the kind the Mega runs) on a :class:`RigModel` from home; report its settling.
+
+    The loop, every ``period_ms``: ``e = setpoint - force_g``; the integrator ``I += e * dt`` only while
+    ``abs(e) < band_g``; ``v = clip(kp * e + ki * I, +-actuator_max_speed_mm_s)``. The drum stays at rest.
+
+    Returns
+    -------
+    dict
+        ``time_s`` (m,), ``force_g`` (m,) load-cell readings, ``settle_s`` (first time after which every reading
+        stays within ``tolerance_g``; ``nan`` if never), ``overshoot_g`` (max force - setpoint).
+    """
+    rig = RigModel(config, seed=seed)
+    vmax = rig.config.mechanics.actuator_max_speed_mm_s
+    dt = period_ms * 1e-3
+    steps = int(round(duration_s / dt))
+    integ = 0.0
+    v = 0.0
+    times = np.empty(steps)
+    forces = np.empty(steps)
+    for i in range(steps):
+        rig.advance(period_ms, drum_step_rate_hz=0.0, actuator_velocity_mm_s=v)
+        f = rig.force_g
+        times[i] = (i + 1) * dt
+        forces[i] = f
+        e = setpoint_g - f
+        if abs(e) < band_g:
+            integ += e * dt
+        v = float(np.clip(kp * e + ki * integ, -vmax, vmax))
+    outside = np.flatnonzero(np.abs(forces - setpoint_g) > tolerance_g)
+    if outside.size == 0:
+        settle = times[0]
+    elif outside[-1] == steps - 1:
+        settle = float("nan")
+    else:
+        settle = float(times[outside[-1] + 1])
+    return {"time_s": times, "force_g": forces, "settle_s": settle, "overshoot_g": float(forces.max() - setpoint_g)}

@@ -1,0 +1,155 @@
+"""The paper's 16 3D-printed textures A-P (Fig. 2B) as surface height profiles.
+
+The paper's set (Results, "Rotating Drum Apparatus and Tactile Texture Dataset"): a smooth control (A) and three
+groups of ridged textures - circular ridges (B-F), rectangular ridges (G-K) and waves (L-P) - each in five variants,
+in this order: base, double height, double space, half height, half space. "Height" is the height of the features
+(it sets the amplitude of the measured force), "space" the distance between them (it sets the period).
+
+The paper gives no dimensions; the base dimensions here are plausible for 3D-printed plates (0.4 mm nozzle):
+ridge period 6 mm (centre to centre), ridge height 0.8 mm, ridge width 1.5 mm. "Double space" doubles the period,
+"half space" halves it, the feature width staying the same (so half-space ridges keep a 1.5 mm gap).
+
+Ridges run across the drum (parallel to its axis), so the profile varies only along the direction of travel ``x``
+(surface coordinate on the plate, mm); it is the same under the three columns of the sensor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import numpy as np
+
+Kind = Literal["smooth", "circular", "rectangular", "wave"]
+
+#: the four texture groups of the paper, in label order (group index = position in this tuple)
+TEXTURE_GROUPS: tuple[str, ...] = ("smooth", "circular ridges", "rectangular ridges", "waves")
+
+#: the five variants of each ridged group, in the paper's order (Fig. 2B)
+VARIANTS: tuple[str, ...] = ("base", "double height", "double space", "half height", "half space")
+
+BASE_HEIGHT_MM = 0.8
+BASE_PERIOD_MM = 6.0
+BASE_WIDTH_MM = 1.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Texture:
+    """One texture plate.
+
+    Attributes
+    ----------
+    letter : str
+        "A" ... "P" as in the paper's Fig. 2B.
+    group : str
+        One of :data:`TEXTURE_GROUPS`.
+    variant : str
+        "smooth" for A, else one of :data:`VARIANTS`.
+    kind : {"smooth", "circular", "rectangular", "wave"}
+        Cross-section of the features: circular-segment ridges (a half ellipse of the given width and height),
+        rectangular ridges, or a cosine wave (peak-to-peak = height, crest-to-crest = period).
+    height_mm : float
+        Feature height above the plate's base surface, mm (0 for the smooth plate).
+    period_mm : float
+        Centre-to-centre feature spacing along the direction of travel, mm (``inf`` for the smooth plate).
+    width_mm : float
+        Ridge width at the base, mm (for waves: the period; for the smooth plate: 0).
+    """
+
+    letter: str
+    group: str
+    variant: str
+    kind: Kind
+    height_mm: float
+    period_mm: float
+    width_mm: float
+
+    @property
+    def group_index(self) -> int:
+        """Index of :attr:`group` in :data:`TEXTURE_GROUPS` (0 = smooth)."""
+        return TEXTURE_GROUPS.index(self.group)
+
+    @property
+    def index(self) -> int:
+        """0 for A ... 15 for P."""
+        return ord(self.letter) - ord("A")
+
+    def height(self, x_mm) -> np.ndarray:
+        """Surface height profile ``h(x)``.
+
+        Parameters
+        ----------
+        x_mm : array_like of float
+            Positions along the direction of travel on the plate, mm (any shape; the pattern is periodic, so any
+            real value is valid).
+
+        Returns
+        -------
+        numpy.ndarray of float64, same shape as ``x_mm``
+            Height above the plate's base surface, mm, in ``[0, height_mm]``.
+        """
+        x = np.asarray(x_mm, dtype=np.float64)
+        if self.kind == "smooth":
+            return np.zeros_like(x)
+        p = self.period_mm
+        if self.kind == "wave":
+            return self.height_mm * 0.5 * (1.0 + np.cos(2.0 * np.pi * x / p))
+        # distance to the nearest ridge centre (ridge centres at k * period)
+        d = np.abs(x - p * np.round(x / p))
+        half = 0.5 * self.width_mm
+        if self.kind == "rectangular":
+            return np.where(d < half, self.height_mm, 0.0)
+        # circular segment, approximated by a half ellipse of the given width and height
+        r = np.clip(1.0 - (d / half) ** 2, 0.0, None)
+        return self.height_mm * np.sqrt(r)
+
+    def to_dict(self) -> dict:
+        """JSON-able description (``period_mm`` of the smooth plate is written as ``None``)."""
+        d = dataclasses.asdict(self)
+        if not np.isfinite(d["period_mm"]):
+            d["period_mm"] = None
+        return d
+
+
+def _build() -> dict[str, Texture]:
+    textures = {"A": Texture("A", "smooth", "smooth", "smooth", 0.0, float("inf"), 0.0)}
+    groups = (("circular ridges", "circular"), ("rectangular ridges", "rectangular"), ("waves", "wave"))
+    letter = ord("B")
+    for group, kind in groups:
+        for variant in VARIANTS:
+            h, p = BASE_HEIGHT_MM, BASE_PERIOD_MM
+            if variant == "double height":
+                h *= 2
+            elif variant == "half height":
+                h /= 2
+            elif variant == "double space":
+                p *= 2
+            elif variant == "half space":
+                p /= 2
+            w = p if kind == "wave" else BASE_WIDTH_MM
+            textures[chr(letter)] = Texture(chr(letter), group, variant, kind, h, p, w)
+            letter += 1
+    return textures
+
+
+#: letter -> :class:`Texture`, "A" ... "P" in order
+TEXTURES: dict[str, Texture] = _build()
+
+#: the letters in order, "ABCDEFGHIJKLMNOP"
+LETTERS: str = "".join(TEXTURES)
+
+
+def get_texture(texture: str | Texture) -> Texture:
+    """Return the :class:`Texture` for a letter (case-insensitive) or pass a Texture through.
+
+    Raises
+    ------
+    KeyError
+        If the letter is not one of A-P (the message lists the valid letters).
+    """
+    if isinstance(texture, Texture):
+        return texture
+    key = str(texture).strip().upper()
+    if key not in TEXTURES:
+        raise KeyError(f"unknown texture {texture!r}; expected one of {LETTERS}")
+    return TEXTURES[key]
