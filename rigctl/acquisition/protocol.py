@@ -1,0 +1,490 @@
+"""Acquisition protocols: TOML files (validated, with the line at fault) and Python-script protocols.
+
+A TOML protocol names the textures, the speed/force conditions, how many trials per condition, how long a trial
+lasts (a fixed travel of the drum surface, 240 mm in the paper's dataset, or a fixed duration), the trial order and
+the settle timeouts; :meth:`Protocol.plan` expands it into one :class:`PlannedTrial` per trial. Velocity profiles
+(constant, or a linear ramp from a start to an end speed) cover the paper's real-time experiment (Fig. 4: slow,
+medium, fast, slow-to-fast, fast-to-slow). The format is documented in ``protocols/paper_dataset.toml`` and
+``docs/session-format.md``.
+
+A ``.py`` file is a Python-script protocol: it defines ``run(rig, session)`` and uses the public API
+(:class:`rigctl.acquisition.rig.Rig`, :class:`rigctl.storage.session.SessionWriter`); see
+``protocols/example_script.py``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+#: rig limits every setpoint is checked against before anything moves (mm/s, g)
+MAX_SPEED_MM_S = 150.0
+MAX_FORCE_G = 1500.0
+#: longest trial the runner accepts, and the RAMP_DURATION_MS register's limit (s)
+MAX_DURATION_S = 600.0
+MAX_RAMP_DURATION_S = 60.0
+TEXTURE_LETTERS = "ABCDEFGHIJKLMNOP"
+ORDERS = ("blocked", "interleaved", "random")
+
+
+class ProtocolError(ValueError):
+    """A protocol file is invalid. ``str(err)`` is ``"<path>:<line>: <key>: <problem>"``.
+
+    Attributes
+    ----------
+    path : str or None
+    line : int or None (1-based)
+    key : str or None (dotted key path, e.g. ``profiles[1].start_mm_s``)
+    """
+
+    def __init__(self, message: str, *, path: str | None = None, line: int | None = None, key: str | None = None):
+        self.path, self.line, self.key, self.problem = path, line, key, message
+        where = f"{path or '<protocol>'}:{line if line is not None else '?'}"
+        super().__init__(f"{where}: {key}: {message}" if key else f"{where}: {message}")
+
+
+@dataclass(frozen=True)
+class PlannedTrial:
+    """One trial of a protocol's plan (one row of a session's ``/plan`` table).
+
+    Attributes
+    ----------
+    trial_id : int (0-based, plan order)
+    texture : str, one of A-P (the paper's Fig. 2B)
+    speed_mm_s : float, drum surface speed; for a ramp, the mean speed over the trial
+    force_g : float, contact force setpoint (g)
+    duration_s : float, trial length; the runner records ``round(duration_s * 1000)`` frames
+    profile : str, the velocity profile's name ("constant" when the protocol names none)
+    ramp_start_mm_s, ramp_end_mm_s : float, NaN for a constant speed
+    repeat : int, 0-based repetition of this condition
+    """
+
+    trial_id: int
+    texture: str
+    speed_mm_s: float
+    force_g: float
+    duration_s: float
+    profile: str = "constant"
+    ramp_start_mm_s: float = math.nan
+    ramp_end_mm_s: float = math.nan
+    repeat: int = 0
+
+    @property
+    def is_ramp(self) -> bool:
+        return not (math.isnan(self.ramp_start_mm_s) or math.isnan(self.ramp_end_mm_s))
+
+    @property
+    def n_samples(self) -> int:
+        """Frames the trial records at 1 kHz."""
+        return int(round(self.duration_s * 1000))
+
+    @classmethod
+    def from_row(cls, row) -> "PlannedTrial":
+        """From a row of :attr:`rigctl.storage.session.Session.plan` or a ``/plan`` record."""
+        def s(v):
+            return v.decode() if isinstance(v, bytes) else str(v)
+
+        return cls(
+            trial_id=int(row["trial_id"]), texture=s(row["texture"]), speed_mm_s=float(row["speed_mm_s"]),
+            force_g=float(row["force_g"]), duration_s=float(row["duration_s"]), profile=s(row["profile"]),
+            ramp_start_mm_s=float(row["ramp_start_mm_s"]), ramp_end_mm_s=float(row["ramp_end_mm_s"]),
+            repeat=int(row["repeat"]),
+        )
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A named velocity profile: constant ``speed_mm_s``, or a linear ramp ``start_mm_s`` -> ``end_mm_s``."""
+
+    name: str
+    kind: str  # "constant" | "ramp"
+    speed_mm_s: float = math.nan
+    start_mm_s: float = math.nan
+    end_mm_s: float = math.nan
+
+    @property
+    def mean_speed_mm_s(self) -> float:
+        return self.speed_mm_s if self.kind == "constant" else 0.5 * (self.start_mm_s + self.end_mm_s)
+
+
+@dataclass(frozen=True)
+class Settle:
+    """How long the runner waits for the force to settle and the drum to reach speed, and the speed band."""
+
+    force_timeout_s: float = 15.0
+    speed_timeout_s: float = 10.0
+    speed_tolerance_mm_s: float = 2.0
+    #: optional controller settings written before the run (holding registers FORCE_TOLERANCE_G, SETTLE_TIME_MS)
+    force_tolerance_g: int | None = None
+    settle_time_ms: int | None = None
+
+
+@dataclass
+class Protocol:
+    """A validated TOML protocol (see :func:`load_protocol`)."""
+
+    name: str
+    source: str
+    path: str | None = None
+    description: str = ""
+    textures: tuple[str, ...] = ()
+    profiles: tuple[Profile, ...] = ()
+    forces_g: tuple[float, ...] = ()
+    trials_per_condition: int = 1
+    travel_mm: float | None = 240.0
+    duration_s: float | None = None
+    order: str = "blocked"
+    seed: int = 0
+    settle: Settle = field(default_factory=Settle)
+    format: str = "toml"
+
+    @property
+    def speeds_mm_s(self) -> tuple[float, ...]:
+        """The constant speeds of the plan (profiles of kind "constant")."""
+        return tuple(p.speed_mm_s for p in self.profiles if p.kind == "constant")
+
+    def trial_duration_s(self, profile: Profile) -> float:
+        """Trial length: ``travel_mm / mean speed`` (a ramp covers the travel at its mean speed), or ``duration_s``."""
+        if self.duration_s is not None:
+            return float(self.duration_s)
+        return float(self.travel_mm) / profile.mean_speed_mm_s
+
+    def with_seed(self, seed: int) -> "Protocol":
+        """A copy with another random-order seed."""
+        return replace(self, seed=int(seed))
+
+    def plan(self) -> list[PlannedTrial]:
+        """Expand into planned trials, in recording order.
+
+        Orders: ``blocked`` = texture by texture (one plate change per texture), then force, then speed/profile,
+        repeats consecutive; ``interleaved`` = every condition once per round, ``trials_per_condition`` rounds;
+        ``random`` = a permutation of the blocked list drawn with ``seed`` (numpy default_rng).
+        """
+        rows: list[tuple] = []
+        if self.order == "interleaved":
+            for rep in range(self.trials_per_condition):
+                for tex in self.textures:
+                    for force in self.forces_g:
+                        for prof in self.profiles:
+                            rows.append((tex, force, prof, rep))
+        else:
+            for tex in self.textures:
+                for force in self.forces_g:
+                    for prof in self.profiles:
+                        for rep in range(self.trials_per_condition):
+                            rows.append((tex, force, prof, rep))
+            if self.order == "random":
+                perm = np.random.default_rng(self.seed).permutation(len(rows))
+                rows = [rows[i] for i in perm]
+        plan = []
+        for i, (tex, force, prof, rep) in enumerate(rows):
+            ramp = prof.kind == "ramp"
+            plan.append(
+                PlannedTrial(
+                    trial_id=i, texture=tex, speed_mm_s=float(prof.mean_speed_mm_s), force_g=float(force),
+                    duration_s=self.trial_duration_s(prof), profile=prof.name,
+                    ramp_start_mm_s=prof.start_mm_s if ramp else math.nan,
+                    ramp_end_mm_s=prof.end_mm_s if ramp else math.nan, repeat=rep,
+                )
+            )
+        return plan
+
+    def estimated_duration_s(self, *, overhead_s: float = 1.5, plate_change_s: float = 3.0) -> float:
+        """Rough wall time of the whole plan: trial durations + a per-trial overhead (settling, stopping) + one
+        plate change (release, mount, press) whenever the texture changes."""
+        plan = self.plan()
+        changes = sum(1 for a, b in zip(plan, plan[1:]) if a.texture != b.texture) + 1
+        return sum(p.duration_s for p in plan) + overhead_s * len(plan) + plate_change_s * changes
+
+
+@dataclass
+class ScriptProtocol:
+    """A Python-script protocol: a ``.py`` file defining ``run(rig, session)``.
+
+    ``run`` receives an open :class:`rigctl.acquisition.rig.Rig` and a :class:`rigctl.storage.session.SessionWriter`
+    whose plan starts empty; it records trials with ``rig.record_trial(planned)`` and ``session.append_trial(planned,
+    data)``. An optional module-level ``NAME`` string names the protocol.
+    """
+
+    name: str
+    source: str
+    path: str
+    run: Callable[[Any, Any], Any]
+    description: str = ""
+    format: str = "python"
+
+    def plan(self) -> list[PlannedTrial]:
+        """A script decides its trials as it runs: the plan is empty until then."""
+        return []
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Loading
+# ----------------------------------------------------------------------------------------------------------------
+def load_protocol(path: str | Path) -> Protocol | ScriptProtocol:
+    """Load and validate a protocol file (``.toml``) or a Python-script protocol (``.py``).
+
+    Raises
+    ------
+    FileNotFoundError
+        If the file does not exist.
+    ProtocolError
+        With the file, the line and the key at fault, for a TOML syntax error, an unknown or missing key, a value
+        of the wrong type, a texture outside A-P, or a setpoint outside the rig limits (0 < speed <= 150 mm/s,
+        0 < force <= 1500 g); for a script, a syntax error or a missing ``run(rig, session)``.
+    """
+    path = Path(path)
+    source = path.read_text(encoding="utf-8")
+    if path.suffix == ".py":
+        return _load_script(path, source)
+    return parse_protocol(source, path=str(path))
+
+
+def parse_protocol(source: str, *, path: str | None = None) -> Protocol:
+    """Validate TOML protocol text; see :func:`load_protocol`."""
+    try:
+        doc = tomllib.loads(source)
+    except tomllib.TOMLDecodeError as exc:
+        m = re.search(r"line (\d+)", str(exc))
+        raise ProtocolError(f"TOML syntax error: {exc}", path=path, line=int(m.group(1)) if m else None) from None
+    return _Validator(source, path).protocol(doc)
+
+
+class _KeyLines:
+    """Finds the line of a key in TOML source (tomllib gives no positions for values).
+
+    Tracks table headers (``[settle]``, ``[[profiles]]`` with their array index) and records the first line of each
+    ``key =`` assignment under its table.
+    """
+
+    _header = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.\-\" ]+?)\s*\]\]?\s*(#.*)?$")
+    _assign = re.compile(r"^\s*([A-Za-z0-9_\-]+|\"[^\"]*\")\s*(\.\s*[A-Za-z0-9_\-]+\s*)*=")
+
+    def __init__(self, source: str):
+        self.lines: dict[tuple, int] = {}
+        table: tuple = ()
+        counts: dict[str, int] = {}
+        in_multiline = False
+        for lineno, text in enumerate(source.splitlines(), start=1):
+            if in_multiline:
+                if text.count('"""') % 2 == 1 or text.count("'''") % 2 == 1:
+                    in_multiline = False
+                continue
+            h = self._header.match(text)
+            if h:
+                name = h.group(2).strip().strip('"')
+                if h.group(1) == "[[":
+                    counts[name] = counts.get(name, -1) + 1
+                    table = (name, counts[name])
+                else:
+                    table = (name,)
+                self.lines.setdefault(table, lineno)
+                continue
+            a = self._assign.match(text)
+            if a:
+                key = a.group(1).strip('"')
+                self.lines.setdefault(table + (key,), lineno)
+                if text.count('"""') % 2 == 1 or text.count("'''") % 2 == 1:
+                    in_multiline = True
+
+    def find(self, *key) -> int | None:
+        while key:
+            if key in self.lines:
+                return self.lines[key]
+            key = key[:-1]
+        return None
+
+
+def _key_text(key: tuple) -> str:
+    out = ""
+    for k in key:
+        out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else str(k))
+    return out
+
+
+class _Validator:
+    TOP = {
+        "name", "description", "textures", "speeds_mm_s", "forces_g", "trials_per_condition", "travel_mm",
+        "duration_s", "order", "seed", "settle", "profiles",
+    }
+    SETTLE = {"force_timeout_s", "speed_timeout_s", "speed_tolerance_mm_s", "force_tolerance_g", "settle_time_ms"}
+    PROFILE = {"name", "kind", "speed_mm_s", "start_mm_s", "end_mm_s"}
+
+    def __init__(self, source: str, path: str | None):
+        self.source, self.path = source, path
+        self.lines = _KeyLines(source)
+
+    def error(self, key: tuple, message: str) -> ProtocolError:
+        return ProtocolError(message, path=self.path, line=self.lines.find(*key), key=_key_text(key))
+
+    def _number(self, key: tuple, value: Any, *, lo: float, hi: float, lo_open: bool = True, what: str = "") -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(key, f"expected a number{what}, got {value!r}")
+        v = float(value)
+        if not math.isfinite(v) or (v <= lo if lo_open else v < lo) or v > hi:
+            rel = ">" if lo_open else ">="
+            raise self.error(key, f"{value!r} is outside the rig limits ({rel} {lo:g} and <= {hi:g}{what})")
+        return v
+
+    def _int(self, key: tuple, value: Any, *, lo: int, hi: int | None = None) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(key, f"expected an integer, got {value!r}")
+        if value < lo or (hi is not None and value > hi):
+            raise self.error(key, f"{value} is out of range ({lo}..{hi if hi is not None else ''})")
+        return value
+
+    def _list(self, key: tuple, value: Any) -> list:
+        if not isinstance(value, list) or not value:
+            raise self.error(key, f"expected a non-empty list, got {value!r}")
+        return value
+
+    def _unknown(self, doc: dict, allowed: set, prefix: tuple) -> None:
+        for k in doc:
+            if k not in allowed:
+                raise self.error(prefix + (k,), f"unknown key (allowed: {', '.join(sorted(allowed))})")
+
+    def protocol(self, doc: dict) -> Protocol:
+        self._unknown(doc, self.TOP, ())
+        name = doc.get("name")
+        if not isinstance(name, str) or not name.strip():
+            raise self.error(("name",), "required: a non-empty string naming the protocol")
+        description = doc.get("description", "")
+        if not isinstance(description, str):
+            raise self.error(("description",), "expected a string")
+
+        if "textures" not in doc:
+            raise self.error(("textures",), 'required: a list of texture letters A-P, e.g. ["A", "B"]')
+        textures = []
+        for i, t in enumerate(self._list(("textures",), doc["textures"])):
+            if not isinstance(t, str) or len(t) != 1 or t.upper() not in TEXTURE_LETTERS:
+                raise self.error(("textures",), f"element {i} = {t!r} is not a texture letter A-P")
+            textures.append(t.upper())
+        if len(set(textures)) != len(textures):
+            raise self.error(("textures",), "a texture is listed twice")
+
+        if "forces_g" not in doc:
+            raise self.error(("forces_g",), "required: a list of force setpoints in g")
+        forces = tuple(
+            self._number(("forces_g",), f, lo=0, hi=MAX_FORCE_G, what=f" g, element {i}")
+            for i, f in enumerate(self._list(("forces_g",), doc["forces_g"]))
+        )
+
+        profiles: list[Profile] = []
+        keys: list[tuple] = []  # where each profile was written, for errors found later
+        if "speeds_mm_s" in doc:
+            for i, s in enumerate(self._list(("speeds_mm_s",), doc["speeds_mm_s"])):
+                v = self._number(("speeds_mm_s",), s, lo=0, hi=MAX_SPEED_MM_S, what=f" mm/s, element {i}")
+                profiles.append(Profile(name="constant", kind="constant", speed_mm_s=v))
+                keys.append(("speeds_mm_s",))
+        if "profiles" in doc:
+            named = doc["profiles"]
+            if not isinstance(named, list) or not all(isinstance(p, dict) for p in named) or not named:
+                raise self.error(("profiles",), "expected [[profiles]] tables")
+            profiles.extend(self._profile(i, p) for i, p in enumerate(named))
+            keys.extend(("profiles", i) for i in range(len(named)))
+            names = [p.name for p in profiles]
+            dup = {n for n in names if names.count(n) > 1 and n != "constant"}
+            if dup:
+                raise self.error(("profiles",), f"profile name {sorted(dup)[0]!r} is used twice")
+        if not profiles:
+            raise self.error(("speeds_mm_s",), "required: speeds_mm_s = [...] and/or [[profiles]] tables")
+
+        tpc = self._int(("trials_per_condition",), doc.get("trials_per_condition", 1), lo=1)
+
+        travel = doc.get("travel_mm")
+        duration = doc.get("duration_s")
+        if travel is not None and duration is not None:
+            raise self.error(("duration_s",), "give either travel_mm or duration_s, not both")
+        if duration is not None:
+            duration = self._number(("duration_s",), duration, lo=0, hi=MAX_DURATION_S, what=" s")
+            travel = None
+        else:
+            travel = self._number(("travel_mm",), 240.0 if travel is None else travel, lo=0, hi=1e5, what=" mm")
+
+        order = doc.get("order", "blocked")
+        if order not in ORDERS:
+            raise self.error(("order",), f"{order!r} is not one of {', '.join(ORDERS)}")
+        seed = self._int(("seed",), doc.get("seed", 0), lo=0)
+
+        settle = Settle()
+        if "settle" in doc:
+            st = doc["settle"]
+            if not isinstance(st, dict):
+                raise self.error(("settle",), "expected a [settle] table")
+            self._unknown(st, self.SETTLE, ("settle",))
+            kw = {}
+            for k in ("force_timeout_s", "speed_timeout_s"):
+                if k in st:
+                    kw[k] = self._number(("settle", k), st[k], lo=0, hi=600, what=" s")
+            if "speed_tolerance_mm_s" in st:
+                kw["speed_tolerance_mm_s"] = self._number(
+                    ("settle", "speed_tolerance_mm_s"), st["speed_tolerance_mm_s"], lo=0, hi=50, what=" mm/s")
+            if "force_tolerance_g" in st:
+                kw["force_tolerance_g"] = self._int(("settle", "force_tolerance_g"), st["force_tolerance_g"], lo=1, hi=500)
+            if "settle_time_ms" in st:
+                kw["settle_time_ms"] = self._int(("settle", "settle_time_ms"), st["settle_time_ms"], lo=0, hi=10000)
+            settle = Settle(**kw)
+
+        proto = Protocol(
+            name=name.strip(), source=self.source, path=self.path, description=description,
+            textures=tuple(textures), profiles=tuple(profiles), forces_g=forces, trials_per_condition=tpc,
+            travel_mm=travel, duration_s=duration, order=order, seed=seed, settle=settle,
+        )
+        for key, prof in zip(keys, profiles):
+            d = proto.trial_duration_s(prof)
+            if d > MAX_DURATION_S:
+                raise self.error(key, f"a trial would last {d:.1f} s, longer than {MAX_DURATION_S:g} s")
+            if prof.kind == "ramp" and d > MAX_RAMP_DURATION_S:
+                raise self.error(key, f"the ramp would last {d:.1f} s, longer than {MAX_RAMP_DURATION_S:g} s")
+        return proto
+
+    def _profile(self, i: int, p: dict) -> Profile:
+        key = ("profiles", i)
+        self._unknown(p, self.PROFILE, key)
+        name = p.get("name")
+        if not isinstance(name, str) or not name.strip():
+            raise self.error(key + ("name",), "required: a non-empty string, e.g. \"slow-to-fast\"")
+        if len(name.encode()) > 24 or not name.isascii():
+            raise self.error(key + ("name",), f"{name!r} must be ASCII, at most 24 characters")
+        kind = p.get("kind", "ramp" if "start_mm_s" in p else "constant")
+        if kind == "constant":
+            for k in ("start_mm_s", "end_mm_s"):
+                if k in p:
+                    raise self.error(key + (k,), "only a ramp profile has start/end speeds")
+            if "speed_mm_s" not in p:
+                raise self.error(key + ("speed_mm_s",), "required for a constant profile")
+            v = self._number(key + ("speed_mm_s",), p["speed_mm_s"], lo=0, hi=MAX_SPEED_MM_S, what=" mm/s")
+            return Profile(name=name, kind="constant", speed_mm_s=v)
+        if kind == "ramp":
+            if "speed_mm_s" in p:
+                raise self.error(key + ("speed_mm_s",), "a ramp profile has start_mm_s and end_mm_s, not speed_mm_s")
+            vals = {}
+            for k in ("start_mm_s", "end_mm_s"):
+                if k not in p:
+                    raise self.error(key + (k,), "required for a ramp profile")
+                vals[k] = self._number(key + (k,), p[k], lo=0, hi=MAX_SPEED_MM_S, what=" mm/s")
+            return Profile(name=name, kind="ramp", start_mm_s=vals["start_mm_s"], end_mm_s=vals["end_mm_s"])
+        raise self.error(key + ("kind",), f"{kind!r} is not 'constant' or 'ramp'")
+
+
+def _load_script(path: Path, source: str) -> ScriptProtocol:
+    try:
+        compile(source, str(path), "exec")
+    except SyntaxError as exc:
+        raise ProtocolError(f"Python syntax error: {exc.msg}", path=str(path), line=exc.lineno) from None
+    spec = importlib.util.spec_from_file_location(f"rigctl_protocol_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    run = getattr(module, "run", None)
+    if not callable(run):
+        raise ProtocolError("a Python protocol must define run(rig, session)", path=str(path), line=None, key="run")
+    name = getattr(module, "NAME", path.stem)
+    return ScriptProtocol(name=str(name), source=source, path=str(path), run=run,
+                          description=(module.__doc__ or "").strip())
