@@ -1,0 +1,363 @@
+"""Host side of the drum controller (Arduino Mega 2560): a Modbus RTU client in physical units (pymodbus).
+
+Register map and semantics: ``docs/wire-protocol.md`` section 2 (numbers in :mod:`rigctl.devices.wire`). Every
+setpoint is range-checked here, against the register's range column and the controller's current speed/force
+limits, *before* anything is sent, so an out-of-range value never moves the rig. A Modbus exception response
+becomes :class:`ModbusExceptionError` naming the register; no answer within ``timeout_s`` after ``retries`` retries
+becomes :class:`DrumTimeout`. One lock serialises every use of the pymodbus sync client (pymodbus #1394).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+from pymodbus.client import ModbusSerialClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.framer import FramerType
+from pymodbus.pdu import ExceptionResponse
+
+from rigctl.devices import wire
+from rigctl.devices.errors import (
+    DrumError,
+    DrumFault,
+    DrumTimeout,
+    ModbusExceptionError,
+    SetpointRangeError,
+)
+from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
+
+__all__ = ["DrumClient", "DrumStatus", "DrumState", "Fault", "SpeedProfile"]
+
+
+def _s16(v: int) -> int:
+    return v - 0x10000 if v & 0x8000 else v
+
+
+@dataclass(frozen=True)
+class DrumStatus:
+    """One snapshot of the input registers, in physical units (spec table 2.2)."""
+
+    force_g: float  #: measured load-cell force, g (tared)
+    speed_mm_s: float  #: actual drum surface speed, mm/s
+    speed_target_mm_s: float  #: speed the profile asks for now, mm/s
+    angle_deg: float  #: drum angle since the index mark, degrees 0-359.99
+    revolutions: int  #: completed revolutions, wraps at 65536
+    actuator_mm: float  #: actuator travel from home, mm (positive towards the sensor)
+    state: DrumState
+    faults: Fault
+    firmware: tuple[int, int]  #: (major, minor)
+    heartbeat: int  #: +1 every 10 ms, wraps at 65536
+    loadcell_raw: int  #: raw HX711 counts (signed 24-bit)
+    force_setpoint_active_g: float  #: setpoint the force loop holds now, g (0 when released)
+
+    @classmethod
+    def from_registers(cls, regs: list[int]) -> "DrumStatus":
+        """Decode the 13 input registers (signed ones per :data:`wire.SIGNED_INPUT_REGISTERS`)."""
+        raw = (regs[IR.LOADCELL_RAW_HI] << 16) | regs[IR.LOADCELL_RAW_LO]
+        if raw & 0x80000000:
+            raw -= 1 << 32
+        fw = regs[IR.FIRMWARE_VERSION]
+        return cls(
+            force_g=float(_s16(regs[IR.FORCE_G])),
+            speed_mm_s=_s16(regs[IR.SPEED_0P1MMS]) / 10.0,
+            speed_target_mm_s=regs[IR.SPEED_TARGET_0P1MMS] / 10.0,
+            angle_deg=regs[IR.DRUM_ANGLE_0P01DEG] / 100.0,
+            revolutions=regs[IR.DRUM_REVOLUTIONS],
+            actuator_mm=_s16(regs[IR.ACTUATOR_POSITION_0P01MM]) / 100.0,
+            state=DrumState(regs[IR.STATE]),
+            faults=Fault(regs[IR.FAULT_BITS]),
+            firmware=(fw >> 8, fw & 0xFF),
+            heartbeat=regs[IR.HEARTBEAT],
+            loadcell_raw=raw,
+            force_setpoint_active_g=float(regs[IR.FORCE_SETPOINT_ACTIVE_G]),
+        )
+
+
+class DrumClient:
+    """Client of the drum controller on a serial port (Modbus RTU, 8N1).
+
+    Parameters
+    ----------
+    port : str
+        Serial device (e.g. ``/dev/ttyACM0`` or the simulated rig's ``drum_port``).
+    baudrate : int
+        115200 by default (spec section 2).
+    device_id : int
+        Modbus device id, 1.
+    timeout_s : float
+        Time to wait for each answer, s.
+    retries : int
+        Retries of a request that got no answer, before :class:`DrumTimeout`.
+    poll_s : float
+        Polling period of the ``wait_*`` methods, s.
+
+    Raises (all methods)
+    --------------------
+    SetpointRangeError
+        A value outside its range (checked before sending).
+    ModbusExceptionError
+        The controller refused the request (names the register and the exception code).
+    DrumTimeout
+        No answer.
+    DrumError
+        The port cannot be opened or another I/O failure.
+    """
+
+    def __init__(self, port: str, *, baudrate: int = wire.DRUM_BAUD, device_id: int = wire.DRUM_DEVICE_ID,
+                 timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05):
+        self.port = port
+        self.device_id = device_id
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.poll_s = poll_s
+        self._lock = threading.RLock()
+        self._client = ModbusSerialClient(
+            port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8, parity="N", stopbits=1,
+            timeout=timeout_s, retries=retries, reconnect_delay=0.1, reconnect_delay_max=1.0,
+        )
+
+    # ------------------------------------------------------------------ lifecycle
+    def open(self) -> "DrumClient":
+        """Open the port. Raises :class:`DrumError` if it cannot be opened."""
+        with self._lock:
+            if not self._client.connect():
+                raise DrumError(f"cannot open the drum controller port {self.port}")
+        return self
+
+    def close(self) -> None:
+        with self._lock:
+            self._client.close()
+
+    def __enter__(self) -> "DrumClient":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ raw register access
+    def _call(self, what: str, function_code: int, register: str, shown=None, **kwargs):
+        with self._lock:
+            try:
+                result = getattr(self._client, what)(device_id=self.device_id, **kwargs)
+            except ModbusIOException as exc:
+                raise DrumTimeout(f"no answer from the drum controller on {self.port} "
+                                  f"({register}, {self.retries} retries of {self.timeout_s:g} s): {exc}") from exc
+            except (ConnectionException, ModbusException, OSError) as exc:
+                raise DrumError(f"drum controller on {self.port}: {exc}") from exc
+        if isinstance(result, ExceptionResponse) or result.isError():
+            code = getattr(result, "exception_code", 0)
+            raise ModbusExceptionError(register, function_code, int(code), shown)
+        return result
+
+    @staticmethod
+    def _name(table, address: int) -> str:
+        try:
+            return table(address).name
+        except ValueError:
+            return f"{'holding' if table is HR else 'input'} register {address}"
+
+    def read_holdings(self, start: int, count: int) -> list[int]:
+        """Read ``count`` holding registers from ``start`` (function 03); raw uint16 values."""
+        res = self._call("read_holding_registers", 3, self._name(HR, start), address=int(start), count=int(count))
+        return list(res.registers)
+
+    def read_holding(self, reg: HR | int) -> int:
+        """Read one holding register (raw uint16 in the register's unit, e.g. 0.1 mm/s)."""
+        return self.read_holdings(int(reg), 1)[0]
+
+    def read_inputs(self, start: int, count: int) -> list[int]:
+        """Read ``count`` input registers from ``start`` (function 04); raw uint16 values."""
+        res = self._call("read_input_registers", 4, self._name(IR, start), address=int(start), count=int(count))
+        return list(res.registers)
+
+    def read_input(self, reg: IR | int) -> int:
+        """Read one input register (raw uint16; see :meth:`read_status` for decoded values)."""
+        return self.read_inputs(int(reg), 1)[0]
+
+    def _check_raw(self, reg: HR, value: int) -> None:
+        low, high, _ = wire.HOLDING_RANGE[reg]
+        if not isinstance(value, int) or not low <= value <= high:
+            raise SetpointRangeError(reg.name, float(value), "(register units)", low, high)
+
+    def write_holding(self, reg: HR | int, value: int) -> None:
+        """Write one holding register (function 06) after checking the value against its range column.
+
+        Raises :class:`SetpointRangeError` (nothing sent) or :class:`ModbusExceptionError`.
+        """
+        try:
+            reg = HR(int(reg))
+        except ValueError:
+            reg = int(reg)  # unknown address: let the controller answer (exception 02)
+        else:
+            self._check_raw(reg, value)
+        self._call("write_register", 6, self._name(HR, int(reg)), value, address=int(reg), value=int(value))
+
+    def write_holdings(self, start: HR | int, values: list[int]) -> None:
+        """Write consecutive holding registers in one request (function 16), each range-checked first."""
+        for i, v in enumerate(values):
+            try:
+                reg = HR(int(start) + i)
+            except ValueError:
+                continue  # unknown address: the controller answers exception 02
+            self._check_raw(reg, v)
+        self._call("write_registers", 16, self._name(HR, int(start)), list(values), address=int(start),
+                   values=list(values))
+
+    # ------------------------------------------------------------------ setpoints in physical units
+    def limits(self) -> tuple[float, float]:
+        """The controller's current (speed limit mm/s, force limit g)."""
+        regs = self.read_holdings(HR.SPEED_LIMIT_0P1MMS, 2)
+        return regs[0] / 10.0, float(regs[1])
+
+    def _speed_raw(self, name: str, mm_s: float, limit_mm_s: float) -> int:
+        hi = min(wire.HOLDING_RANGE[HR.SPEED_SETPOINT_0P1MMS][1] / 10.0, limit_mm_s)
+        if not (0.0 <= mm_s <= hi):
+            raise SetpointRangeError(name, mm_s, "mm/s", 0.0, hi, "SPEED_LIMIT_0P1MMS" if hi == limit_mm_s else "")
+        return int(round(mm_s * 10))
+
+    def set_speed(self, mm_s: float) -> None:
+        """Drum surface speed for the CONSTANT profile, mm/s (0 - the controller's speed limit)."""
+        raw = self._speed_raw("speed", float(mm_s), self.limits()[0])
+        self.write_holding(HR.SPEED_SETPOINT_0P1MMS, raw)
+
+    def set_force(self, g: float) -> None:
+        """Contact-force setpoint, g (0 - the controller's force limit)."""
+        limit = self.limits()[1]
+        hi = min(float(wire.HOLDING_RANGE[HR.FORCE_SETPOINT_G][1]), limit)
+        if not (0.0 <= float(g) <= hi):
+            raise SetpointRangeError("force", float(g), "g", 0.0, hi, "FORCE_LIMIT_G" if hi == limit else "")
+        self.write_holding(HR.FORCE_SETPOINT_G, int(round(g)))
+
+    def set_ramp(self, start_mm_s: float, end_mm_s: float, duration_s: float) -> None:
+        """RAMP profile: linear from ``start_mm_s`` to ``end_mm_s`` over ``duration_s`` (0.001-60 s), then held.
+
+        The three registers are written in one function-16 request (all or nothing). Does not select the profile:
+        call ``set_profile(SpeedProfile.RAMP)``.
+        """
+        limit = self.limits()[0]
+        a = self._speed_raw("ramp start speed", float(start_mm_s), limit)
+        b = self._speed_raw("ramp end speed", float(end_mm_s), limit)
+        lo, hi, _ = wire.HOLDING_RANGE[HR.RAMP_DURATION_MS]
+        if not (lo / 1000.0 <= float(duration_s) <= hi / 1000.0):
+            raise SetpointRangeError("ramp duration", float(duration_s), "s", lo / 1000.0, hi / 1000.0)
+        self.write_holdings(HR.RAMP_START_SPEED_0P1MMS, [a, b, int(round(duration_s * 1000))])
+
+    def set_profile(self, profile: SpeedProfile | int) -> None:
+        """Select the speed profile: :class:`SpeedProfile` CONSTANT or RAMP."""
+        try:
+            profile = SpeedProfile(int(profile))
+        except ValueError:
+            raise SetpointRangeError("speed profile", float(profile), "(code)", 0, len(SpeedProfile) - 1) from None
+        self.write_holding(HR.SPEED_PROFILE, int(profile))
+
+    def set_limits(self, speed_mm_s: float | None = None, force_g: float | None = None) -> None:
+        """Set the speed limit (mm/s, 0-200) and/or the force limit (g, 0-2000)."""
+        if speed_mm_s is not None:
+            lo, hi, _ = wire.HOLDING_RANGE[HR.SPEED_LIMIT_0P1MMS]
+            if not lo / 10 <= float(speed_mm_s) <= hi / 10:
+                raise SetpointRangeError("speed limit", float(speed_mm_s), "mm/s", lo / 10, hi / 10)
+        if force_g is not None:
+            lo, hi, _ = wire.HOLDING_RANGE[HR.FORCE_LIMIT_G]
+            if not lo <= float(force_g) <= hi:
+                raise SetpointRangeError("force limit", float(force_g), "g", lo, hi)
+        if speed_mm_s is not None:
+            self.write_holding(HR.SPEED_LIMIT_0P1MMS, int(round(speed_mm_s * 10)))
+        if force_g is not None:
+            self.write_holding(HR.FORCE_LIMIT_G, int(round(force_g)))
+
+    def set_loadcell_scale(self, counts_per_g: float) -> None:
+        """Load-cell calibration, HX711 counts per g (0.01-655.35); SAVE_CALIBRATION keeps it in EEPROM."""
+        lo, hi, _ = wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100]
+        if not lo / 100 <= float(counts_per_g) <= hi / 100:
+            raise SetpointRangeError("load-cell scale", float(counts_per_g), "counts/g", lo / 100, hi / 100)
+        self.write_holding(HR.LOADCELL_SCALE_X100, int(round(counts_per_g * 100)))
+
+    # ------------------------------------------------------------------ commands
+    def command(self, cmd: Command) -> None:
+        """Write a command code to COMMAND (spec table 2.3)."""
+        self.write_holding(HR.COMMAND, int(Command(cmd)))
+
+    def run(self) -> None:
+        """Start the drum on the selected profile (engages the force loop first if needed)."""
+        self.command(Command.RUN)
+
+    def stop(self) -> None:
+        """Safe stop: drum to rest, actuator home, state IDLE."""
+        self.command(Command.STOP)
+
+    def stop_drum(self) -> None:
+        """Drum to rest, keep holding the force."""
+        self.command(Command.STOP_DRUM)
+
+    def press(self) -> None:
+        """Engage the force loop (SEEKING_FORCE, then FORCE_SETTLED)."""
+        self.command(Command.PRESS)
+
+    def tare(self) -> None:
+        """Zero the load cell (actuator released)."""
+        self.command(Command.TARE)
+
+    def home(self) -> None:
+        """Drive the actuator to its home switch (HOMING, then IDLE)."""
+        self.command(Command.HOME)
+
+    def clear_fault(self) -> None:
+        """Clear latched faults and leave FAULT for IDLE."""
+        self.command(Command.CLEAR_FAULT)
+
+    def save_calibration(self) -> None:
+        """Write the calibration registers to EEPROM."""
+        self.command(Command.SAVE_CALIBRATION)
+
+    # ------------------------------------------------------------------ status and waits
+    def read_status(self) -> DrumStatus:
+        """All input registers in one request, decoded (signed registers as two's complement)."""
+        return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
+
+    def _wait(self, done, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
+        deadline = time.monotonic() + timeout_s
+        status = None
+        while True:
+            status = self.read_status()
+            if status.state == DrumState.FAULT and not allow_fault:
+                raise DrumFault(status.faults, f"while waiting for {what}")
+            if done(status):
+                return status
+            if time.monotonic() >= deadline:
+                raise DrumTimeout(
+                    f"drum controller did not reach {what} within {timeout_s:g} s (state {status.state.name}, "
+                    f"force {status.force_g:g} g, speed {status.speed_mm_s:g} mm/s)")
+            time.sleep(self.poll_s)
+
+    def wait_state(self, states, timeout_s: float) -> DrumStatus:
+        """Poll until the state is one of ``states``; returns the status. DrumFault on a fault (unless FAULT is
+        awaited), DrumTimeout on timeout."""
+        states = {DrumState(s) for s in ([states] if isinstance(states, (int, DrumState)) else states)}
+        names = "/".join(sorted(s.name for s in states))
+        return self._wait(lambda s: s.state in states, timeout_s, f"state {names}", DrumState.FAULT in states)
+
+    def wait_force_settled(self, timeout_s: float) -> DrumStatus:
+        """Poll until the force loop is on target: state FORCE_SETTLED (or RUNNING with the force within
+        FORCE_TOLERANCE_G of the setpoint). DrumFault / DrumTimeout."""
+        tol = self.read_holding(HR.FORCE_TOLERANCE_G)
+
+        def done(s: DrumStatus) -> bool:
+            return s.state == DrumState.FORCE_SETTLED or (
+                s.state == DrumState.RUNNING and abs(s.force_g - s.force_setpoint_active_g) <= tol)
+
+        return self._wait(done, timeout_s, "a settled force")
+
+    def wait_speed_steady(self, timeout_s: float, tol_mm_s: float = 0.5, n_polls: int = 3) -> DrumStatus:
+        """Poll until the drum speed is within ``tol_mm_s`` of the profile's target for ``n_polls`` polls in a row
+        with the target unchanged. DrumFault / DrumTimeout."""
+        state = {"n": 0, "target": None}
+
+        def done(s: DrumStatus) -> bool:
+            ok = abs(s.speed_mm_s - s.speed_target_mm_s) <= tol_mm_s and s.speed_target_mm_s == state["target"]
+            state["n"] = state["n"] + 1 if ok else 0
+            state["target"] = s.speed_target_mm_s
+            return state["n"] >= n_polls - 1 and ok
+
+        return self._wait(done, timeout_s, f"a steady speed (+-{tol_mm_s:g} mm/s)")
