@@ -1,0 +1,66 @@
+"""``rigctl sim``: start the simulated rig and print its two port paths; ``rigctl sim dataset`` (see sim_dataset)."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+
+import click
+
+
+@click.group(invoke_without_command=True)
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
+@click.option("--texture", default="A", show_default=True, help="Texture plate mounted on the drum (A-P).")
+@click.option("--replay", "replay_dir", type=click.Path(exists=True, file_okay=False), default=None,
+              help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) instead of the model.")
+@click.option("--port-dir", type=click.Path(file_okay=False), default=None,
+              help="Directory for the port links 'drum' and 'taxel' (default: a fresh temporary directory).")
+@click.pass_context
+def sim(ctx, seed, texture, replay_dir, port_dir):
+    """Start the simulated rig: a virtual drum controller (Modbus RTU) and taxel streamer on two serial ports.
+
+    Prints the two port paths, then runs until Ctrl-C. Any client can talk to them, e.g.
+    `mbpoll -m rtu -a 1 -b 115200 -P none -t 3 -r 1 -c 13 -1 DRUM_PORT`.
+    """
+    if ctx.invoked_subcommand is not None:
+        return
+    from rigctl.simulation.rig import SimulatedRig
+    from rigctl.simulation.textures import TEXTURES
+
+    texture = texture.upper()
+    if texture not in TEXTURES:
+        raise click.BadParameter(f"unknown texture {texture!r}; choose one of {''.join(sorted(TEXTURES))}",
+                                 param_hint="--texture")
+    source = None
+    if replay_dir:
+        from rigctl.simulation.replay import FabricSlideReplay
+
+        source = FabricSlideReplay(replay_dir)
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    with SimulatedRig(seed=seed, source=source, port_dir=port_dir) as rig:
+        rig.set_texture(texture)
+        click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 115200 8N1, device id 1)")
+        click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
+        click.echo(f"texture {texture}, seed {seed}{', replaying ' + replay_dir if replay_dir else ''}. Ctrl-C stops.")
+        sys.stdout.flush()
+        try:
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            pass
+    click.echo("simulated rig stopped.")
+
+
+try:  # the SIM-MODEL engineer's dataset generator
+    from rigctl.cli.sim_dataset import dataset as _dataset
+except ModuleNotFoundError as _exc:  # pragma: no cover - only while that module is missing
+    if _exc.name != "rigctl.cli.sim_dataset":
+        raise
+else:
+    sim.add_command(_dataset, "dataset")

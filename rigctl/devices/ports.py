@@ -1,0 +1,78 @@
+"""Serial-port discovery: which port is the drum controller (Mega) and which the taxel streamer (Uno).
+
+Guesses from the USB vendor/product id (pyserial's ``serial.tools.list_ports``). Clone boards with a CH340 or
+FTDI bridge cannot be told apart by id: they are reported with ``board=None`` and the candidates in ``note``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from serial.tools import list_ports
+
+#: (vid, pid) -> (board guess, description). Arduino SA / Arduino LLC ids and the usual clone bridges.
+USB_IDS: dict[tuple[int, int], tuple[str | None, str]] = {
+    (0x2341, 0x0042): ("mega", "Arduino Mega 2560 R3"),
+    (0x2341, 0x0010): ("mega", "Arduino Mega 2560"),
+    (0x2A03, 0x0042): ("mega", "Arduino Mega 2560 R3 (arduino.org)"),
+    (0x2A03, 0x0010): ("mega", "Arduino Mega 2560 (arduino.org)"),
+    (0x2341, 0x0043): ("uno", "Arduino Uno R3"),
+    (0x2341, 0x0001): ("uno", "Arduino Uno"),
+    (0x2A03, 0x0043): ("uno", "Arduino Uno R3 (arduino.org)"),
+    (0x2341, 0x0243): ("uno", "Arduino Uno R3 (CH340 edition)"),
+    (0x2341, 0x0069): ("uno", "Arduino Uno R4 Minima"),
+    (0x1A86, 0x7523): (None, "CH340 USB-serial (clone Uno or Mega)"),
+    (0x1A86, 0x55D4): (None, "CH9102 USB-serial (clone Uno or Mega)"),
+    (0x0403, 0x6001): (None, "FTDI FT232R USB-serial (clone or older Arduino)"),
+    (0x10C4, 0xEA60): (None, "Silicon Labs CP210x USB-serial (clone)"),
+}
+
+
+@dataclass(frozen=True)
+class PortInfo:
+    """One serial port: ``device`` path, USB ``vid``/``pid`` (None if not USB), ``description``, ``board`` guess
+    ("mega" | "uno" | None), ``serial_number`` and a ``note`` on how the guess was made."""
+
+    device: str
+    vid: int | None
+    pid: int | None
+    description: str
+    board: str | None
+    serial_number: str | None = None
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["vid"] = f"{self.vid:04x}" if self.vid is not None else None
+        d["pid"] = f"{self.pid:04x}" if self.pid is not None else None
+        return d
+
+
+def guess_board(vid: int | None, pid: int | None) -> tuple[str | None, str]:
+    """(board guess, note) for a USB id: ``("mega", ...)``, ``("uno", ...)`` or ``(None, why)``."""
+    if vid is None or pid is None:
+        return None, "not a USB device"
+    hit = USB_IDS.get((vid, pid))
+    if hit is None:
+        return None, "unknown USB id"
+    board, name = hit
+    return board, name if board else name + ": open it to tell (banner or Modbus reply)"
+
+
+def find_ports(include_all: bool = False) -> list[PortInfo]:
+    """Serial ports of this machine with a board guess, Arduino boards first.
+
+    Parameters
+    ----------
+    include_all : bool
+        Also list ports without a USB id (e.g. built-in ``/dev/ttyS*``); by default only USB ports.
+    """
+    out = []
+    for p in list_ports.comports():
+        if p.vid is None and not include_all:
+            continue
+        board, note = guess_board(p.vid, p.pid)
+        out.append(PortInfo(device=p.device, vid=p.vid, pid=p.pid, description=p.description or "", board=board,
+                            serial_number=p.serial_number, note=note))
+    out.sort(key=lambda i: ({"mega": 0, "uno": 1}.get(i.board or "", 2), i.device))
+    return out

@@ -1,0 +1,145 @@
+"""The simulated rig: physical model + virtual Mega + virtual Uno on real ptys, on one real-time physics clock.
+
+A client uses exactly the code paths it uses with hardware: :class:`rigctl.devices.drum.DrumClient` on
+:attr:`SimulatedRig.drum_port` (Modbus RTU via pymodbus) and :class:`rigctl.devices.taxel_stream.TaxelStream` on
+:attr:`SimulatedRig.taxel_port` (pyserial). One thread owns the clock: every few ms it hands the elapsed
+milliseconds to the Mega (which advances :class:`rigctl.simulation.model.RigModel` under its drum and actuator
+commands, then runs its control logic) and the resulting taxel samples and index pulses to the Uno (which frames
+and sends them if streaming). Millisecond k is simulated no earlier than ``t0 + k`` ms, so the stream's long-run
+rate is exactly 1000 frames/s.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from rigctl.devices import wire
+from rigctl.simulation.model import RigConfig, RigModel
+from rigctl.simulation.virtual_mega import VirtualMega
+from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
+
+log = logging.getLogger(__name__)
+
+
+def _source_reader(source):
+    """``n -> (n, 18) uint16`` from a replay source (an object with ``read(n)``, or a callable)."""
+    if source is None:
+        return None
+    if hasattr(source, "read"):
+        return source.read
+    if callable(source):
+        return source
+    raise TypeError(f"source must have read(n) or be callable, got {type(source).__name__}")
+
+
+class SimulatedRig:
+    """The whole simulated rig (context manager).
+
+    Parameters
+    ----------
+    config : RigConfig or None
+        Rig configuration (drum, sensor, mechanics); default :class:`RigConfig`.
+    seed : int
+        Seeds the model's noise and the start angle of the drum.
+    source : object with ``read(n) -> (n, 18) uint16``, a callable, or None
+        Replay source (e.g. :class:`rigctl.simulation.replay.FabricSlideReplay`): the Uno streams its samples
+        instead of the model's sensor (the drum and force loop still run on the model).
+    port_dir : path or None
+        Directory for the two port links ``drum`` and ``taxel``; a fresh temporary directory if None.
+    tick_s : float
+        Period of the physics thread, s (frames go out in batches of about this length).
+    uno_reset_delay_s : float
+        Boot time of the virtual Uno after a client opens its port.
+
+    Attributes
+    ----------
+    drum_port, taxel_port : str
+        Paths to open (Modbus RTU 115200 8N1 device 1; taxel stream 1,000,000 baud).
+    model : RigModel
+    mega : VirtualMega
+    uno : VirtualUno
+    """
+
+    def __init__(self, config: RigConfig | None = None, *, seed: int = 0, source=None, port_dir=None,
+                 tick_s: float = 0.003, uno_reset_delay_s: float = 0.25):
+        self.config = config or RigConfig()
+        self.seed = seed
+        self._own_dir = port_dir is None
+        self.port_dir = Path(tempfile.mkdtemp(prefix="rigctl-sim-")) if port_dir is None else Path(port_dir)
+        self.port_dir.mkdir(parents=True, exist_ok=True)
+        self.tick_s = tick_s
+        self._read_source = _source_reader(source)
+        self.source = source
+        self.model = RigModel(self.config, seed=seed)
+        self.mega = VirtualMega(self.model, self.port_dir / "drum")
+        self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=seed)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.step_errors = 0
+
+    @property
+    def drum_port(self) -> str:
+        return self.mega.path
+
+    @property
+    def taxel_port(self) -> str:
+        return self.uno.path
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "SimulatedRig":
+        """Start the Modbus server and the physics thread (idempotent)."""
+        if self._thread is None:
+            self.mega.start(clock=False)
+            self._stop.clear()
+            self._thread = threading.Thread(target=paced_loop, args=(self._stop, self.tick_s, self._step),
+                                            name="sim-physics", daemon=True)
+            self._thread.start()
+        return self
+
+    def _step(self, n_ms: int) -> None:
+        samples, sync_in = self.mega.step(n_ms)
+        if self._read_source is not None:
+            samples = np.asarray(self._read_source(n_ms), dtype=np.uint16).reshape(n_ms, wire.N_TAXELS)
+        self.uno.tick(samples, sync_in)
+
+    def close(self) -> None:
+        """Stop the physics thread (joined), the Modbus server, close every pty and remove the port links."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=3)
+            self._thread = None
+        self.uno.close()
+        self.mega.close()
+        if self._own_dir:
+            shutil.rmtree(self.port_dir, ignore_errors=True)
+        else:
+            for name in ("drum", "taxel"):
+                try:
+                    (self.port_dir / name).unlink()
+                except FileNotFoundError:
+                    pass
+
+    def __enter__(self) -> "SimulatedRig":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ operator actions
+    def set_texture(self, letter: str) -> None:
+        """Mount texture plate ``letter`` (A-P) on the drum (the operator's action on the real rig)."""
+        self.model.set_texture(letter)
+
+    def unplug_taxel(self) -> None:
+        """Pull the Uno's USB cable: its port vanishes."""
+        self.uno.unplug()
+
+    def replug_taxel(self) -> None:
+        """Plug the Uno back in: the port reappears under the same path and the board boots."""
+        self.uno.replug()
