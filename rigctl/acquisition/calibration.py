@@ -1,0 +1,341 @@
+"""Rig calibration: the load cell (known mass) and the per-taxel normalisation; the rig config file that keeps both.
+
+The rig config is a JSON file (default ``$XDG_CONFIG_HOME/rigctl/rig.json``, i.e. ``~/.config/rigctl/rig.json``;
+overridden by the ``RIGCTL_CONFIG`` environment variable or an explicit path). :class:`rigctl.acquisition.rig.Rig`
+loads it and every session file gets a copy (root attribute ``rig_config``, and the taxel normalisation in the
+session's ``/calibration`` block). Layout::
+
+    {"loadcell": {"counts_per_g": 420.1, "scale_x100": 42010, "mass_g": 500.0, "zero_raw": ..., "loaded_raw": ...,
+                  "check_force_g": 499.6, "calibrated_utc": "..."},
+     "taxel_normalisation": {"taxel_min": [18 numbers], "taxel_max": [18 numbers], "n_trials": 50,
+                             "source": "calib.h5", "calibrated_utc": "..."}}
+
+Load cell: with the actuator released, TARE, read the raw HX711 counts without and with a known mass; the scale is
+``(loaded - zero) / mass`` counts per gram, written to LOADCELL_SCALE_X100 and saved to EEPROM (SAVE_CALIBRATION).
+
+Taxel normalisation (paper, Materials and Methods: "the taxel readings were normalized between 0 and 1 on a
+per-taxel basis", and for the real-time experiment "an initial dataset of 10 trials per texture was collected to get
+the minimum and maximum values for each taxel"): the minimum and maximum ADC count of each taxel over a calibration
+run's trials.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from rigctl.devices import wire
+
+N_TAXELS = wire.N_TAXELS
+
+
+class CalibrationError(RuntimeError):
+    """A calibration could not be done or gave an implausible result (the reason in words)."""
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The rig config file
+# ----------------------------------------------------------------------------------------------------------------
+def default_config_path() -> Path:
+    """``$RIGCTL_CONFIG``, else ``$XDG_CONFIG_HOME/rigctl/rig.json`` (``~/.config/rigctl/rig.json``)."""
+    env = os.environ.get("RIGCTL_CONFIG")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "rigctl" / "rig.json"
+
+
+def config_path(path: str | os.PathLike | None = None) -> Path:
+    """``path`` if given, else :func:`default_config_path`."""
+    return Path(path) if path is not None else default_config_path()
+
+
+def load_rig_config(path: str | os.PathLike | None = None) -> dict:
+    """Read the rig config file; ``{}`` if it does not exist.
+
+    Raises
+    ------
+    CalibrationError if the file exists but is not a JSON object.
+    """
+    p = config_path(path)
+    if not p.exists():
+        return {}
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"{p}:{exc.lineno}: the rig config is not valid JSON: {exc.msg}") from None
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{p}: the rig config must be a JSON object")
+    return doc
+
+
+def save_rig_config(config: dict, path: str | os.PathLike | None = None) -> Path:
+    """Write the rig config file atomically (write a temporary file, then rename); returns its path."""
+    p = config_path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    os.replace(tmp, p)
+    return p
+
+
+def update_rig_config(path: str | os.PathLike | None = None, **blocks: Any) -> dict:
+    """Replace top-level blocks (e.g. ``loadcell=...``, ``taxel_normalisation=...``) of the rig config file."""
+    cfg = load_rig_config(path)
+    cfg.update(blocks)
+    save_rig_config(cfg, path)
+    return cfg
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Load cell
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass
+class LoadCellCalibration:
+    """Result of :func:`calibrate_loadcell`.
+
+    Attributes
+    ----------
+    counts_per_g : float, HX711 counts per gram
+    scale_x100 : int, the value written to LOADCELL_SCALE_X100 (1-65535)
+    mass_g : float, the known mass used
+    zero_raw, loaded_raw : float, mean raw HX711 counts without / with the mass
+    check_force_g : float, the controller's FORCE_G reading with the mass after the new scale (should be ~mass_g)
+    noise_counts : float, sd of the raw readings without the mass
+    calibrated_utc : str
+    """
+
+    counts_per_g: float
+    scale_x100: int
+    mass_g: float
+    zero_raw: float
+    loaded_raw: float
+    check_force_g: float
+    noise_counts: float
+    calibrated_utc: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _mean_raw(drum, n: int, interval_s: float) -> tuple[float, float, float]:
+    raws, forces = [], []
+    for _ in range(n):
+        st = drum.read_status()
+        raws.append(float(st.loadcell_raw))
+        forces.append(float(st.force_g))
+        time.sleep(interval_s)
+    return float(np.mean(raws)), float(np.std(raws)), float(np.mean(forces))
+
+
+def calibrate_loadcell(
+    drum,
+    mass_g: float,
+    *,
+    place_mass: Callable[[float], Any],
+    remove_mass: Callable[[float], Any] | None = None,
+    n_readings: int = 25,
+    interval_s: float = 0.02,
+    settle_s: float = 0.3,
+    save: bool = True,
+    config_file: str | os.PathLike | None | bool = None,
+) -> LoadCellCalibration:
+    """Calibrate the load cell with a known mass and write the scale to the drum controller.
+
+    Steps: STOP (release the actuator; TARE is only allowed released), wait IDLE, TARE; mean raw HX711 counts
+    without the mass; ``place_mass(mass_g)`` (the operator puts the mass on the load cell; in simulation the
+    simulated rig adds it); mean raw counts with it; ``counts_per_g = (loaded - zero) / mass_g``;
+    ``set_loadcell_scale(counts_per_g)`` (LOADCELL_SCALE_X100) and SAVE_CALIBRATION (EEPROM) when ``save``;
+    read FORCE_G with the mass as a check; ``remove_mass(mass_g)``.
+
+    Parameters
+    ----------
+    drum : an open :class:`rigctl.devices.drum.DrumClient`
+    mass_g : known mass, g (> 0)
+    place_mass, remove_mass : callables that return once the mass is on / off the load cell
+    n_readings, interval_s : raw readings averaged for each level, and their spacing (s)
+    settle_s : wait after placing/removing the mass before reading, s
+    save : SAVE_CALIBRATION to the controller's EEPROM
+    config_file : where to store the result in the rig config (``loadcell`` block); None = default path,
+        False = do not store
+
+    Returns
+    -------
+    LoadCellCalibration
+
+    Raises
+    ------
+    ValueError (mass <= 0), CalibrationError (no response to the mass, or a scale outside 0.01-655.35 counts/g),
+    :class:`rigctl.devices.errors.DrumError` from the controller.
+    """
+    if not mass_g > 0:
+        raise ValueError(f"mass_g must be > 0, got {mass_g}")
+    drum.stop()
+    drum.wait_state([wire.DrumState.IDLE], timeout_s=30.0)
+    drum.tare()
+    time.sleep(settle_s)
+    zero, noise, _ = _mean_raw(drum, n_readings, interval_s)
+    place_mass(mass_g)
+    try:
+        time.sleep(settle_s)
+        loaded, _, _ = _mean_raw(drum, n_readings, interval_s)
+        delta = loaded - zero
+        if delta <= max(10 * noise / np.sqrt(n_readings), 1.0):
+            raise CalibrationError(
+                f"the load cell did not respond to the {mass_g:g} g mass (raw {zero:.0f} -> {loaded:.0f} counts): "
+                "is the mass on the load cell?")
+        counts_per_g = delta / mass_g
+        scale_x100 = int(round(counts_per_g * 100))
+        lo, hi = wire.HOLDING_RANGE[wire.HoldingRegister.LOADCELL_SCALE_X100][:2]
+        if not lo <= scale_x100 <= hi:
+            raise CalibrationError(f"{counts_per_g:.3f} counts/g is outside what LOADCELL_SCALE_X100 holds "
+                                   f"({lo / 100:g}-{hi / 100:g} counts/g)")
+        drum.set_loadcell_scale(counts_per_g)
+        if save:
+            drum.save_calibration()
+        time.sleep(settle_s)
+        _, _, check = _mean_raw(drum, max(5, n_readings // 2), interval_s)
+    finally:
+        if remove_mass is not None:
+            remove_mass(mass_g)
+    result = LoadCellCalibration(
+        counts_per_g=float(counts_per_g), scale_x100=scale_x100, mass_g=float(mass_g), zero_raw=zero,
+        loaded_raw=loaded, check_force_g=check, noise_counts=noise, calibrated_utc=_utc_now(),
+    )
+    if config_file is not False:
+        update_rig_config(None if config_file is None else config_file, loadcell=result.to_dict())
+    return result
+
+
+def simulated_mass(rig) -> tuple[Callable[[float], Any], Callable[[float], Any]]:
+    """``(place_mass, remove_mass)`` callables for :func:`calibrate_loadcell` on a simulated :class:`Rig`.
+
+    They put a calibration mass on the simulated load cell (``SimulatedRig.place_mass``, or the physics model's
+    ``place_mass``). Raises CalibrationError on hardware (the operator places the mass) or if the simulated rig
+    has no load-cell mass hook.
+    """
+    sim = getattr(rig, "sim", None)
+    for target in (sim, getattr(sim, "model", None)):
+        if target is not None and hasattr(target, "place_mass"):
+            return (lambda g: target.place_mass(g)), (lambda g: target.place_mass(0.0))
+    raise CalibrationError("this rig has no simulated calibration mass: place the mass by hand (prompt)")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Taxel normalisation
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass
+class TaxelNormalisation:
+    """Per-taxel minimum and maximum ADC counts of a calibration run (paper, Materials and Methods).
+
+    Attributes
+    ----------
+    taxel_min, taxel_max : (18,) float64 ADC counts
+    n_trials : int, trials the extremes were taken over
+    source : str, where they came from (a session file path, or "captures")
+    calibrated_utc : str
+    """
+
+    taxel_min: np.ndarray
+    taxel_max: np.ndarray
+    n_trials: int
+    source: str = "captures"
+    calibrated_utc: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-able dict (lists), the ``taxel_normalisation`` block of the rig config / session ``/calibration``."""
+        return {
+            "taxel_min": [float(v) for v in self.taxel_min],
+            "taxel_max": [float(v) for v in self.taxel_max],
+            "n_trials": int(self.n_trials),
+            "source": self.source,
+            "calibrated_utc": self.calibrated_utc,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TaxelNormalisation":
+        return cls(np.asarray(d["taxel_min"], float), np.asarray(d["taxel_max"], float), int(d.get("n_trials", 0)),
+                   str(d.get("source", "")), str(d.get("calibrated_utc", "")))
+
+    def apply(self, taxels: np.ndarray) -> np.ndarray:
+        """Normalise ``(..., 18)`` ADC counts to ``(..., 18)`` float32 in [0, 1] (clipped); a taxel whose range is
+        zero maps to 0."""
+        span = self.taxel_max - self.taxel_min
+        safe = np.where(span > 0, span, 1.0)
+        out = (np.asarray(taxels, np.float64) - self.taxel_min) / safe
+        out = np.where(span > 0, out, 0.0)
+        return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def taxel_normalisation(captures: Iterable[np.ndarray], *, source: str = "captures") -> TaxelNormalisation:
+    """Per-taxel min/max over calibration captures.
+
+    Parameters
+    ----------
+    captures : iterable of ``(n_i, 18)`` ADC-count arrays (one per trial)
+
+    Raises
+    ------
+    ValueError if there are no samples or an array is not ``(n, 18)``.
+    """
+    lo = np.full(N_TAXELS, np.inf)
+    hi = np.full(N_TAXELS, -np.inf)
+    n = 0
+    for cap in captures:
+        a = np.asarray(cap)
+        if a.ndim != 2 or a.shape[1] != N_TAXELS:
+            raise ValueError(f"a capture must be (n, {N_TAXELS}), got {a.shape}")
+        if not a.size:
+            continue
+        lo = np.minimum(lo, a.min(axis=0))
+        hi = np.maximum(hi, a.max(axis=0))
+        n += 1
+    if n == 0:
+        raise ValueError("no samples to normalise over")
+    return TaxelNormalisation(lo, hi, n, source, _utc_now())
+
+
+def taxel_normalisation_from_session(path: str | os.PathLike, *, store: bool = False,
+                                     config_file: str | os.PathLike | None = None) -> TaxelNormalisation:
+    """Per-taxel min/max over every complete trial of a calibration session file.
+
+    With ``store``, write it to the rig config (``taxel_normalisation`` block) so later sessions carry it.
+    Raises ValueError if the session has no complete trial.
+    """
+    from rigctl.storage.session import open_session
+
+    with open_session(path) as s:
+        norm = taxel_normalisation((t.taxels for t in s.iter_trials()), source=str(path))
+    if store:
+        update_rig_config(config_file, taxel_normalisation=norm.to_dict())
+    return norm
+
+
+def session_calibration_block(host_config: dict) -> dict | None:
+    """The ``/calibration`` block a session gets from a rig config: the taxel normalisation (arrays) plus the
+    load-cell scale as attributes; None when the config holds neither."""
+    out: dict[str, Any] = {}
+    tn = host_config.get("taxel_normalisation")
+    if tn:
+        out["taxel_min"] = np.asarray(tn["taxel_min"], float)
+        out["taxel_max"] = np.asarray(tn["taxel_max"], float)
+        out["taxel_n_trials"] = int(tn.get("n_trials", 0))
+        out["taxel_source"] = str(tn.get("source", ""))
+        out["taxel_calibrated_utc"] = str(tn.get("calibrated_utc", ""))
+    lc = host_config.get("loadcell")
+    if lc:
+        out["loadcell_counts_per_g"] = float(lc.get("counts_per_g", float("nan")))
+        out["loadcell_mass_g"] = float(lc.get("mass_g", float("nan")))
+        out["loadcell_calibrated_utc"] = str(lc.get("calibrated_utc", ""))
+    return out or None

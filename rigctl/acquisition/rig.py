@@ -1,0 +1,518 @@
+"""The rig facade: one object that owns the drum controller client, the taxel stream and (in simulation) the rig.
+
+:meth:`Rig.open` gives the same :class:`Rig` on the simulated rig (default), on the real firmware under simavr
+(``hil=True``) and on hardware (``drum_port``/``taxel_port``): in every case the host talks to the boards through
+:class:`rigctl.devices.drum.DrumClient` (pymodbus, Modbus RTU) and :class:`rigctl.devices.taxel_stream.TaxelStream`
+(pyserial) on serial ports, the same code paths.
+
+A trial (:meth:`Rig.record_trial`), as in the paper's Methods ("Tactile Texture Dataset"): set the force setpoint and
+engage the force loop (PRESS), wait until the force has settled; set the speed (or ramp profile) and RUN, wait until
+the drum runs steadily at speed; capture exactly ``duration_s * 1000`` taxel frames (counted, not timed) while
+sampling the load-cell force and drum speed at ~50 Hz (these Modbus reads also feed the controller's watchdog);
+STOP_DRUM. :meth:`Rig.safe_stop` (STOP: drum to rest, actuator backed off) always leaves the rig safe.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S, PlannedTrial, Settle
+from rigctl.devices import wire
+from rigctl.storage.session import TrialData
+
+log = logging.getLogger(__name__)
+
+#: force/speed trace sampling period during a trial, s (~50 Hz)
+STATUS_PERIOD_S = 0.02
+#: extra time a capture may take beyond the trial's duration before it counts as failed, s
+CAPTURE_MARGIN_S = 5.0
+
+
+class RigError(RuntimeError):
+    """The rig could not be opened or did not do what a trial needs (with the reason in words)."""
+
+
+class TrialAborted(RigError):
+    """A trial was stopped on request (stop event / Ctrl-C); the rig has been stopped, nothing was recorded."""
+
+
+class CaptureError(RigError):
+    """The taxel stream delivered fewer frames than a trial needs within its time (a stalled or lost stream)."""
+
+
+@dataclass
+class _Status:
+    t: float
+    force_g: float
+    speed_mm_s: float
+    state: int
+    faults: int
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def console_prompt(message: str) -> None:
+    """Default operator prompt on hardware: print ``message`` and wait for Enter on the terminal."""
+    input(f"\n>>> {message} [Enter] ")
+
+
+class Rig:
+    """An open rig: a drum controller client, a streaming taxel stream and, in simulation, the simulated rig.
+
+    Use :meth:`open`; a context manager (``with Rig.open() as rig:``) that stops the rig safely on exit.
+
+    Attributes
+    ----------
+    drum : :class:`rigctl.devices.drum.DrumClient`
+    stream : :class:`rigctl.devices.taxel_stream.TaxelStream` (streaming from :meth:`open` to :meth:`close`)
+    sim : the :class:`rigctl.simulation.rig.SimulatedRig` (or ``HilRig``), None on hardware
+    mode : "sim" | "hil" | "hardware"
+    texture : letter of the mounted plate, or None if unknown
+    settle : :class:`rigctl.acquisition.protocol.Settle`, the timeouts used by :meth:`record_trial`
+    host_config : dict, the rig config file's content (calibration), copied into each session
+    """
+
+    def __init__(self, drum, stream, *, sim=None, mode: str = "sim", prompt: Callable[[str], Any] | None = None,
+                 host_config: dict | None = None, host_config_path: str | None = None, seed: int | None = None,
+                 model_config: Any = None):
+        self.drum = drum
+        self.stream = stream
+        self.sim = sim
+        self.mode = mode
+        self.prompt = prompt
+        self.texture: str | None = None
+        self.settle = Settle()
+        self.host_config = dict(host_config or {})
+        self.host_config_path = host_config_path
+        self.seed = seed
+        self.model_config = model_config
+        self._closed = False
+        self._lock = threading.RLock()
+
+    # ------------------------------------------------------------------------------------------------- opening
+    @classmethod
+    def open(
+        cls,
+        *,
+        sim: bool = True,
+        hil: bool = False,
+        drum_port: str | None = None,
+        taxel_port: str | None = None,
+        config: Any = None,
+        seed: int = 0,
+        source: Any = None,
+        prompt: Callable[[str], Any] | None = None,
+        host_config_path: str | None = None,
+        home: bool = True,
+    ) -> "Rig":
+        """Open the rig and start the taxel stream.
+
+        Parameters
+        ----------
+        sim : use the simulated rig (default; ignored when ports are given).
+        hil : use the real firmware under simavr (:class:`rigctl.simulation.hil.HilRig`) instead of the model boards.
+        drum_port, taxel_port : serial ports of the Mega and the Uno (hardware); both or neither.
+        config : :class:`rigctl.simulation.model.RigConfig` of the simulated rig (simulation only).
+        seed : seed of the simulated rig.
+        source : optional replay source of the simulated rig (see :class:`rigctl.simulation.rig.SimulatedRig`).
+        prompt : ``prompt(message)`` that blocks until the operator has done what it asks (hardware plate changes);
+            default: a terminal prompt.
+        host_config_path : the rig config JSON file (calibration); default
+            :func:`rigctl.acquisition.calibration.default_config_path`.
+        home : HOME the actuator after opening (clears a latched fault first, e.g. the watchdog of a killed run).
+
+        Raises
+        ------
+        RigError
+            Ports half given, HIL requested but unavailable, or the boards do not answer.
+        """
+        from rigctl.acquisition import calibration  # noqa: PLC0415 (calibration imports this module)
+        from rigctl.devices.drum import DrumClient
+        from rigctl.devices.taxel_stream import TaxelStream
+
+        if (drum_port is None) != (taxel_port is None):
+            raise RigError("give both --drum-port and --taxel-port for the hardware rig (or neither for --sim)")
+        host_config = calibration.load_rig_config(host_config_path)
+        sim_rig = None
+        if drum_port is not None:
+            mode = "hardware"
+        elif hil:
+            try:
+                from rigctl.simulation.hil import HilRig
+            except ImportError as exc:
+                raise RigError(
+                    f"--hil needs rigctl.simulation.hil.HilRig (the firmware under simavr), which is not available: "
+                    f"{exc}"
+                ) from exc
+            mode = "hil"
+            sim_rig = HilRig()
+        elif sim:
+            from rigctl.simulation.rig import SimulatedRig
+
+            mode = "sim"
+            sim_rig = SimulatedRig(config, seed=seed, source=source) if source is not None else SimulatedRig(
+                config, seed=seed)
+        else:
+            raise RigError("no rig: pass sim=True, hil=True, or both drum_port and taxel_port")
+
+        drum = stream = None
+        try:
+            if sim_rig is not None:
+                sim_rig.__enter__()
+                drum_port, taxel_port = sim_rig.drum_port, sim_rig.taxel_port
+            drum = DrumClient(drum_port)
+            drum.__enter__()
+            stream = TaxelStream(taxel_port)
+            stream.open()
+            stream.start()
+        except BaseException as exc:
+            for obj in (stream, drum):
+                if obj is not None:
+                    with contextlib.suppress(Exception):
+                        obj.close() if obj is stream else obj.__exit__(None, None, None)
+            if sim_rig is not None:
+                with contextlib.suppress(Exception):
+                    sim_rig.__exit__(None, None, None)
+            if isinstance(exc, Exception) and not isinstance(exc, RigError):
+                raise RigError(f"cannot open the {mode} rig (drum {drum_port}, taxels {taxel_port}): {exc}") from exc
+            raise
+        rig = cls(drum, stream, sim=sim_rig, mode=mode, prompt=prompt, host_config=host_config,
+                  host_config_path=str(calibration.config_path(host_config_path)), seed=seed if sim_rig else None,
+                  model_config=getattr(sim_rig, "config", config))
+        try:
+            rig._prepare(home=home)
+        except BaseException:
+            rig.close()
+            raise
+        return rig
+
+    def _prepare(self, *, home: bool) -> None:
+        st = self.drum.read_status()
+        if st.state == wire.DrumState.FAULT:
+            log.warning("drum controller was in FAULT (%s); clearing it", st.faults)
+            self.drum.stop()
+            self.drum.clear_fault()
+        if home:
+            self.drum.home()
+            self.drum.wait_state([wire.DrumState.IDLE], timeout_s=30.0)
+
+    # ------------------------------------------------------------------------------------------------- context
+    def __enter__(self) -> "Rig":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the rig safely, stop the stream, close the ports and, in simulation, stop the simulated rig."""
+        if self._closed:
+            return
+        self._closed = True
+        self.safe_stop()
+        with contextlib.suppress(Exception):
+            self.stream.close()
+        with contextlib.suppress(Exception):
+            self.drum.__exit__(None, None, None)
+        if self.sim is not None:
+            with contextlib.suppress(Exception):
+                self.sim.__exit__(None, None, None)
+
+    # ------------------------------------------------------------------------------------------------- info
+    def describe(self) -> dict:
+        """The rig's configuration as a JSON-able dict (stored as a session's ``rig_config`` attribute).
+
+        Keys: mode, ports, seed, taxel_streamer (banner), drum_firmware, drum_registers (every holding register by
+        name), model (the simulated rig's RigConfig), host_config (the rig config file: calibration).
+        """
+        out: dict[str, Any] = {
+            "mode": self.mode,
+            "drum_port": getattr(self.drum, "port", None),
+            "taxel_port": getattr(self.stream, "port", None),
+            "seed": self.seed,
+            "taxel_streamer": {k: v for k, v in (self.stream.banner or {}).items()},
+            "host_config_path": self.host_config_path,
+            "host_config": self.host_config,
+        }
+        try:
+            st = self.drum.read_status()
+            out["drum_firmware"] = list(st.firmware)
+            out["drum_registers"] = {r.name: int(self.drum.read_holding(r)) for r in wire.HoldingRegister
+                                     if r != wire.HoldingRegister.COMMAND}
+        except Exception as exc:  # describing must not fail a session
+            out["drum_error"] = str(exc)
+        model = self.model_config
+        if model is not None and hasattr(model, "to_dict"):
+            out["model"] = model.to_dict()
+        return out
+
+    def taxel_normalisation(self) -> dict | None:
+        """The per-taxel normalisation block of the rig config (``taxel_min``/``taxel_max``), or None."""
+        block = self.host_config.get("taxel_normalisation")
+        return dict(block) if block else None
+
+    # ------------------------------------------------------------------------------------------------- control
+    def apply_settle(self, settle: Settle) -> None:
+        """Use ``settle``'s timeouts; write its optional controller settings (FORCE_TOLERANCE_G, SETTLE_TIME_MS)."""
+        self.settle = settle
+        if settle.force_tolerance_g is not None:
+            self.drum.write_holding(wire.HoldingRegister.FORCE_TOLERANCE_G, int(settle.force_tolerance_g))
+        if settle.settle_time_ms is not None:
+            self.drum.write_holding(wire.HoldingRegister.SETTLE_TIME_MS, int(settle.settle_time_ms))
+
+    def release(self, timeout_s: float = 20.0) -> None:
+        """STOP and wait until IDLE (drum at rest, actuator backed off): the state for changing a plate."""
+        self.drum.stop()
+        self.drum.wait_state([wire.DrumState.IDLE], timeout_s=timeout_s)
+
+    def mount_texture(self, letter: str, prompt: Callable[[str], Any] | None = None) -> None:
+        """Mount texture plate ``letter`` (A-P): release the sensor, then set it (simulation) or ask the operator.
+
+        Raises
+        ------
+        ValueError on a letter outside A-P. :class:`rigctl.devices.errors.DrumError` if the rig does not release.
+        """
+        letter = str(letter).upper()
+        if len(letter) != 1 or letter not in "ABCDEFGHIJKLMNOP":
+            raise ValueError(f"texture must be a letter A-P, got {letter!r}")
+        self.release()
+        if self.sim is not None and hasattr(self.sim, "set_texture"):
+            self.sim.set_texture(letter)
+        else:
+            (prompt or self.prompt or console_prompt)(
+                f"Mount texture plate {letter} on the drum (the sensor is released), then confirm.")
+        self.texture = letter
+
+    def safe_stop(self) -> bool:
+        """Send STOP (drum decelerates to rest, actuator backs off to home); never raises.
+
+        Returns True if the controller acknowledged it (tries 3 times).
+        """
+        for attempt in range(3):
+            try:
+                self.drum.stop()
+                return True
+            except Exception as exc:  # noqa: BLE001 - safety path: keep trying, never raise
+                log.warning("STOP attempt %d failed: %s", attempt + 1, exc)
+                time.sleep(0.1)
+        log.error("could not send STOP to the drum controller: stop the rig by hand")
+        return False
+
+    def recover(self) -> None:
+        """After a failed trial: STOP, clear a latched fault, wait for IDLE."""
+        from rigctl.devices.errors import DrumError
+
+        self.safe_stop()
+        try:
+            st = self.drum.read_status()
+            if st.state == wire.DrumState.FAULT:
+                self.drum.clear_fault()
+            self.drum.wait_state([wire.DrumState.IDLE], timeout_s=20.0)
+        except DrumError as exc:
+            log.warning("recovering the rig: %s", exc)
+
+    def _status(self) -> _Status:
+        t0 = time.monotonic()
+        st = self.drum.read_status()
+        t1 = time.monotonic()
+        return _Status(0.5 * (t0 + t1), float(st.force_g), float(st.speed_mm_s), int(st.state), int(st.faults))
+
+    def _check_fault(self, s: _Status, what: str) -> None:
+        if s.state == wire.DrumState.FAULT:
+            from rigctl.devices.errors import DrumFault
+
+            raise DrumFault(wire.Fault(s.faults), what)
+
+    # ------------------------------------------------------------------------------------------------- trials
+    def press(self, force_g: float, *, timeout_s: float | None = None) -> float:
+        """Set the force setpoint, engage the force loop and wait until the force has settled on it.
+
+        Returns the time it took, s. Raises :class:`rigctl.devices.errors.SetpointRangeError` (out of range, nothing
+        sent), :class:`rigctl.devices.errors.DrumTimeout` (not settled in time), ``DrumFault``.
+        """
+        if not 0 < force_g <= MAX_FORCE_G:
+            from rigctl.devices.errors import SetpointRangeError
+
+            raise SetpointRangeError("force", force_g, "g", 0, MAX_FORCE_G, "rig limit")
+        timeout_s = self.settle.force_timeout_s if timeout_s is None else timeout_s
+        t0 = time.monotonic()
+        st = self.drum.read_status()
+        if st.state == wire.DrumState.RUNNING:
+            self.drum.stop_drum()
+            self.drum.wait_state([wire.DrumState.FORCE_SETTLED, wire.DrumState.SEEKING_FORCE], timeout_s=10.0)
+            st = self.drum.read_status()
+        if st.state == wire.DrumState.FAULT:
+            from rigctl.devices.errors import DrumFault
+
+            raise DrumFault(wire.Fault(int(st.faults)), "before pressing")
+        self.drum.set_force(force_g)
+        if st.state not in (wire.DrumState.SEEKING_FORCE, wire.DrumState.FORCE_SETTLED):
+            self.drum.press()
+        # the controller may still report FORCE_SETTLED for the previous setpoint for one control period
+        tol = float(self.drum.read_holding(wire.HoldingRegister.FORCE_TOLERANCE_G))
+        deadline = t0 + timeout_s
+        while True:
+            self.drum.wait_force_settled(timeout_s=max(0.05, deadline - time.monotonic()))
+            st = self.drum.read_status()
+            if (st.state == wire.DrumState.FORCE_SETTLED and int(st.force_setpoint_active_g) == int(round(force_g))
+                    and abs(float(st.force_g) - force_g) <= tol):
+                return time.monotonic() - t0
+            if time.monotonic() > deadline:
+                from rigctl.devices.errors import DrumTimeout
+
+                raise DrumTimeout(f"force did not settle at {force_g:g} g within {timeout_s:g} s "
+                                  f"(state {wire.DrumState(int(st.state)).name}, force {float(st.force_g):.0f} g)")
+            time.sleep(0.02)
+
+    def record_trial(self, planned: PlannedTrial, *, stop_event: threading.Event | None = None) -> TrialData:
+        """Record one trial on the mounted plate.
+
+        Parameters
+        ----------
+        planned : the trial's setpoints (texture, speed_mm_s or ramp, force_g, duration_s).
+        stop_event : set it to abort the trial (the drum is stopped, :class:`TrialAborted` raised).
+
+        Returns
+        -------
+        TrialData
+            ``taxels`` (round(duration_s * 1000), 18) uint16 ADC counts, ``seq``, ``flags``, ``host_time_s``
+            (s since the first frame, host monotonic clock), force and speed traces at ~50 Hz on the same clock,
+            dropped frames (sequence gaps among the kept frames), CRC errors during the capture, and attrs
+            (``started_utc``, ``settle_time_s``, measured means, ``host_rate_hz``).
+
+        Raises
+        ------
+        ValueError (texture not mounted), SetpointRangeError, DrumTimeout, DrumFault, CaptureError, TrialAborted.
+        """
+        if self.texture is not None and planned.texture != self.texture:
+            raise ValueError(f"trial {planned.trial_id} is on texture {planned.texture} but {self.texture} is mounted")
+        speeds = [planned.ramp_start_mm_s, planned.ramp_end_mm_s] if planned.is_ramp else [planned.speed_mm_s]
+        for v in speeds:
+            if not 0 < v <= MAX_SPEED_MM_S:
+                from rigctl.devices.errors import SetpointRangeError
+
+                raise SetpointRangeError("speed", v, "mm/s", 0, MAX_SPEED_MM_S, "rig limit")
+        n = planned.n_samples
+        if n <= 0:
+            raise ValueError(f"trial {planned.trial_id}: duration {planned.duration_s} s gives no samples")
+        with self._lock:
+            try:
+                return self._record(planned, n, stop_event)
+            except BaseException:
+                # leave the drum at rest whatever happened (Ctrl-C, timeout, fault)
+                with contextlib.suppress(Exception):
+                    self.drum.stop_drum()
+                raise
+
+    def _record(self, planned: PlannedTrial, n: int, stop_event) -> TrialData:
+        from rigctl.devices.errors import DrumTimeout
+
+        settle = self.settle
+        settle_s = self.press(planned.force_g)
+        _abort_if(stop_event)
+        if planned.is_ramp:
+            self.drum.set_ramp(planned.ramp_start_mm_s, planned.ramp_end_mm_s, planned.duration_s)
+            self.drum.set_profile(wire.SpeedProfile.RAMP)
+        else:
+            self.drum.set_speed(planned.speed_mm_s)
+            self.drum.set_profile(wire.SpeedProfile.CONSTANT)
+        t_run = time.monotonic()
+        self.drum.run()
+        if not planned.is_ramp:
+            # a ramp is captured from RUN on: its timing starts with the command
+            try:
+                self.drum.wait_speed_steady(timeout_s=settle.speed_timeout_s, tol_mm_s=settle.speed_tolerance_mm_s)
+            except DrumTimeout as exc:
+                raise DrumTimeout(f"drum did not reach {planned.speed_mm_s:g} mm/s within "
+                                  f"{settle.speed_timeout_s:g} s: {exc}") from exc
+        spinup_s = time.monotonic() - t_run
+        _abort_if(stop_event)
+
+        statuses: list[_Status] = []
+        started_utc = _utc_now()
+        self.stream.begin_capture()
+        t_start = time.monotonic()
+        deadline = t_start + planned.duration_s + CAPTURE_MARGIN_S
+        next_poll = t_start
+        try:
+            while True:
+                now = time.monotonic()
+                if self.stream.wait_capture(n, timeout_s=max(0.0, next_poll - now)):
+                    break
+                now = time.monotonic()
+                if now >= next_poll:
+                    s = self._status()
+                    statuses.append(s)
+                    self._check_fault(s, f"during trial {planned.trial_id}")
+                    next_poll = max(next_poll + STATUS_PERIOD_S, now)
+                _abort_if(stop_event)
+                if now > deadline:
+                    got = self.stream.stats
+                    raise CaptureError(
+                        f"trial {planned.trial_id}: the taxel stream delivered too few frames within "
+                        f"{planned.duration_s + CAPTURE_MARGIN_S:g} s (stream connected={got.connected}, "
+                        f"{got.frames_per_s:.0f} frames/s)")
+            statuses.append(self._status())
+        finally:
+            cap = self.stream.end_capture()
+        self.drum.stop_drum()
+        return _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s)
+
+
+def _abort_if(stop_event) -> None:
+    if stop_event is not None and stop_event.is_set():
+        raise TrialAborted("trial aborted on request")
+
+
+def count_dropped(seq: np.ndarray, flags: np.ndarray, host_time_s: np.ndarray) -> int:
+    """Frames missing among consecutive frames: 16-bit sequence gaps (wrap-aware).
+
+    Where the stream restarted (a STREAMING_START frame, e.g. after a reconnect) the device's counter restarted,
+    so the gap is estimated from the host time instead (1 kHz).
+    """
+    if len(seq) < 2:
+        return 0
+    s = seq.astype(np.int64)
+    gaps = (s[1:] - s[:-1] - 1) & 0xFFFF
+    restart = (flags[1:] & wire.FrameFlag.STREAMING_START) != 0
+    if restart.any():
+        dt = np.diff(host_time_s)[restart]
+        gaps[restart] = np.maximum(0, np.round(dt * wire.SAMPLE_RATE_HZ).astype(np.int64) - 1)
+    return int(gaps.sum())
+
+
+def _trial_data(planned: PlannedTrial, cap, n: int, statuses: list[_Status], *, started_utc: str, settle_s: float,
+                spinup_s: float) -> TrialData:
+    if len(cap) < n:
+        raise CaptureError(f"trial {planned.trial_id}: captured {len(cap)} frames, {n} needed")
+    t0 = float(cap.host_time_s[0])
+    force_t = np.array([s.t for s in statuses]) - t0
+    force = np.array([s.force_g for s in statuses])
+    speed = np.array([s.speed_mm_s for s in statuses])
+    seq, flags, host_t = cap.seq[:n], cap.flags[:n], cap.host_time_s[:n] - t0
+    data = TrialData(
+        taxels=cap.samples[:n], seq=seq, flags=flags, host_time_s=host_t,
+        force_g=force, force_time_s=force_t, speed_mm_s=speed, speed_time_s=force_t.copy(),
+        dropped_frames=count_dropped(seq, flags, host_t), crc_errors=int(cap.crc_errors),
+    )
+    inside = (force_t >= 0) & (force_t <= host_t[-1])
+    data.attrs.update(
+        started_utc=started_utc,
+        settle_time_s=round(settle_s, 4),
+        spinup_time_s=round(spinup_s, 4),
+        force_mean_g=float(force[inside].mean()) if inside.any() else math.nan,
+        speed_mean_mm_s=float(speed[inside].mean()) if inside.any() else math.nan,
+        host_rate_hz=data.host_rate_hz(),
+        status_samples=int(len(statuses)),
+    )
+    return data

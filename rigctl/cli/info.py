@@ -1,0 +1,127 @@
+"""``rigctl info``: summarise a session file, trial by trial."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+
+from rigctl.storage.session import TrialStatus, open_session
+
+_STATUS = {int(s): s.name.lower() for s in TrialStatus}
+
+
+def session_summary(path: str | Path) -> dict:
+    """A JSON-able summary of a session file.
+
+    Returns
+    -------
+    dict with ``file``, ``size_bytes``, the root attributes (``session_id``, ``created_utc``, ``kind``,
+    ``rigctl_version``, ``schema_version``), ``protocol`` (name, format), ``trials`` (one dict per plan row:
+    trial_id, texture, profile, speed_mm_s, ramp_start_mm_s, ramp_end_mm_s, force_g, duration_s, status, samples,
+    samples_per_s = samples / duration_s (the trial's length), host_rate_hz (frames per second on the host clock,
+    least-squares), dropped_frames, crc_errors, force_mean_g, speed_mean_mm_s, error) and ``totals``.
+    """
+    path = Path(path)
+    with open_session(path) as s:
+        trials = []
+        for row in s.plan:
+            tid = int(row["trial_id"])
+            status = _STATUS.get(int(row["status"]), str(row["status"]))
+            t = {
+                "trial_id": tid, "texture": str(row["texture"]), "profile": str(row["profile"]),
+                "speed_mm_s": float(row["speed_mm_s"]), "force_g": float(row["force_g"]),
+                "duration_s": float(row["duration_s"]),
+                "ramp_start_mm_s": _num(row["ramp_start_mm_s"]), "ramp_end_mm_s": _num(row["ramp_end_mm_s"]),
+                "status": status, "samples": 0, "samples_per_s": None, "host_rate_hz": None,
+                "dropped_frames": 0, "crc_errors": 0,
+            }
+            if status in ("complete", "failed"):
+                try:
+                    a = s.trial_attrs(tid)
+                except KeyError:
+                    a = {}
+                if status == "failed":
+                    t["error"] = str(a.get("error", ""))
+                else:
+                    n = int(a.get("n_samples", 0))
+                    t["samples"] = n
+                    t["samples_per_s"] = n / t["duration_s"] if t["duration_s"] > 0 else None
+                    t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
+                    if t["host_rate_hz"] is None:
+                        t["host_rate_hz"] = _num(s.trial(tid).host_rate_hz())
+                    t["dropped_frames"] = int(a.get("dropped_frames", 0))
+                    t["crc_errors"] = int(a.get("crc_errors", 0))
+                    t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
+                    t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
+            trials.append(t)
+        done = [t for t in trials if t["status"] == "complete"]
+        totals = {
+            "trials": len(trials),
+            "complete": len(done),
+            "failed": sum(t["status"] == "failed" for t in trials),
+            "pending": sum(t["status"] == "pending" for t in trials),
+            "samples": sum(t["samples"] for t in done),
+            "recorded_s": sum(t["duration_s"] for t in done),
+            "dropped_frames": sum(t["dropped_frames"] for t in done),
+            "crc_errors": sum(t["crc_errors"] for t in done),
+        }
+        attrs = {k: s.attrs.get(k) for k in ("schema_version", "session_id", "created_utc", "kind", "rigctl_version")}
+        return {
+            "file": str(path), "size_bytes": path.stat().st_size, **attrs,
+            "protocol": {"name": s.protocol_name, "format": s.protocol_format},
+            "rig_mode": s.rig_config.get("mode"),
+            "calibration": sorted(s.calibration) if s.calibration else None,
+            "trials": trials, "totals": totals,
+        }
+
+
+def _num(v):
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return None if math.isnan(f) else f
+
+
+def _fmt(v, spec=".1f", none="-"):
+    return none if v is None else format(v, spec)
+
+
+@click.command()
+@click.argument("file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, default=False, help="Print the summary as JSON.")
+def info(file, as_json):
+    """Summarise the session FILE: per trial its setpoints, samples, samples per second, dropped frames, CRC errors
+    and status; then the totals."""
+    from rigctl.storage.session import SessionError
+
+    try:
+        summary = session_summary(file)
+    except (SessionError, OSError) as exc:
+        raise click.ClickException(f"{file}: {exc}") from None
+    if as_json:
+        click.echo(json.dumps(summary, indent=2))
+        return
+    click.echo(f"{summary['file']}  ({summary['size_bytes'] / 1e6:.2f} MB)  kind={summary['kind']}  "
+               f"protocol={summary['protocol']['name']} ({summary['protocol']['format']})  rig={summary['rig_mode']}")
+    click.echo(f"session {summary['session_id']}  created {summary['created_utc']}  rigctl {summary['rigctl_version']}"
+               f"  schema {summary['schema_version']}")
+    header = (f"{'trial':>6} {'tex':>3} {'profile':<13} {'speed':>7} {'force':>6} {'dur_s':>6} {'samples':>8} "
+              f"{'samp/s':>8} {'host_hz':>8} {'dropped':>7} {'crc':>4}  status")
+    click.echo(header)
+    for t in summary["trials"]:
+        speed = (f"{t['ramp_start_mm_s']:g}>{t['ramp_end_mm_s']:g}" if t["ramp_start_mm_s"] is not None
+                 else f"{t['speed_mm_s']:g}")
+        line = (f"{t['trial_id']:>6} {t['texture']:>3} {t['profile']:<13} {speed:>7} {t['force_g']:>6g} "
+                f"{t['duration_s']:>6.2f} {t['samples']:>8} {_fmt(t['samples_per_s']):>8} "
+                f"{_fmt(t['host_rate_hz']):>8} {t['dropped_frames']:>7} {t['crc_errors']:>4}  {t['status']}")
+        if t.get("error"):
+            line += f" ({t['error']})"
+        click.echo(line)
+    tot = summary["totals"]
+    click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete, {tot['failed']} failed, "
+               f"{tot['pending']} pending; {tot['samples']} samples over {tot['recorded_s']:.1f} s of trials; "
+               f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors")
