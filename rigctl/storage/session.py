@@ -158,23 +158,25 @@ class TrialData:
         return int(self.taxels.shape[0])
 
     def host_rate_hz(self) -> float:
-        """Sample rate measured on the host clock: 1 / slope of a least-squares fit of receipt time vs. frame index.
+        """Device sample rate measured on the host clock, frames/s.
 
-        The frame index counts dropped frames (from ``seq``), so a gap does not bias the rate. Per-chunk receipt
-        jitter averages out over the fit. Returns NaN with fewer than 2 samples or no time spread.
+        A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
+        scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
+        the last third of the trial, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames
+        (from ``seq``). Delays do not bias it, unlike a least-squares fit. NaN with fewer than 6 samples.
         """
         n = self.n_samples
-        if n < 2:
+        if n < 6:
             return math.nan
         steps = (np.diff(self.seq.astype(np.int64)) & 0xFFFF).astype(np.int64)
+        steps[steps == 0] = 1
         index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
-        t = self.host_time_s
-        index -= index.mean()
-        denom = float(np.dot(index, index))
-        if denom == 0:
-            return math.nan
-        slope = float(np.dot(index, t - t.mean())) / denom
-        return 1.0 / slope if slope > 0 else math.nan
+        lag = self.host_time_s - index / RATE_HZ  # delay + clock drift, relative to the nominal rate
+        third = n // 3
+        a = int(np.argmin(lag[:third]))
+        b = n - third + int(np.argmin(lag[n - third:]))
+        dt = float(self.host_time_s[b] - self.host_time_s[a])
+        return float(index[b] - index[a]) / dt if dt > 0 else math.nan
 
 
 # ----------------------------------------------------------------------------------------------------------------
