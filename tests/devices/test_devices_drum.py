@@ -1,0 +1,289 @@
+"""DrumClient against VirtualMega over real ptys and the real pymodbus client/server stacks."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+import serial
+
+from rigctl.devices import wire
+from rigctl.devices.drum import DrumClient, DrumStatus
+from rigctl.devices.errors import DrumFault, DrumTimeout, ModbusExceptionError, SetpointRangeError
+from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
+
+# a valid non-default value for every holding register but COMMAND (all within the default limits)
+NEW_VALUES = {
+    HR.SPEED_SETPOINT_0P1MMS: 800,
+    HR.FORCE_SETPOINT_G: 250,
+    HR.SPEED_PROFILE: 1,
+    HR.RAMP_START_SPEED_0P1MMS: 1000,
+    HR.RAMP_END_SPEED_0P1MMS: 500,
+    HR.RAMP_DURATION_MS: 6000,
+    HR.SPEED_LIMIT_0P1MMS: 1800,
+    HR.FORCE_LIMIT_G: 1200,
+    HR.FORCE_TOLERANCE_G: 20,
+    HR.SETTLE_TIME_MS: 200,
+    HR.WATCHDOG_MS: 2000,
+    HR.LOADCELL_SCALE_X100: 41000,
+    HR.ACTUATOR_STEPS_PER_MM: 800,
+}
+
+
+def test_every_holding_register_written_and_read_back(drum, mega):
+    for reg in HR:
+        assert drum.read_holding(reg) == (0 if reg == HR.COMMAND else wire.HOLDING_RANGE[reg][2]), reg.name
+    for reg, value in NEW_VALUES.items():
+        assert value != wire.HOLDING_RANGE[reg][2]
+        drum.write_holding(reg, value)
+        assert drum.read_holding(reg) == value, reg.name
+    assert drum.read_holdings(0, wire.N_HOLDING) == [0 if r == HR.COMMAND else NEW_VALUES[r] for r in HR]
+    drum.write_holding(HR.COMMAND, int(Command.NONE))
+    assert drum.read_holding(HR.COMMAND) == 0
+    # the controller's own image agrees (the server really stored them)
+    assert {r: v for r, v in mega.snapshot()["holding"].items() if r != HR.COMMAND} == NEW_VALUES
+
+
+def test_every_input_register_read(drum, mega):
+    regs = [drum.read_input(reg) for reg in IR]
+    assert len(regs) == wire.N_INPUT
+    assert regs[IR.FIRMWARE_VERSION] == 256
+    assert regs[IR.STATE] == DrumState.IDLE
+    assert regs[IR.FAULT_BITS] == 0
+    assert regs[IR.FORCE_SETPOINT_ACTIVE_G] == 0
+    assert 0 <= regs[IR.DRUM_ANGLE_0P01DEG] < 36000
+    status = drum.read_status()
+    raw = mega.model.loadcell_raw
+    assert abs(status.loadcell_raw - raw) < 50 * 420  # same reading, within 50 g of noise between the two reads
+    assert status.firmware == wire.MEGA_FIRMWARE_VERSION
+    assert abs(status.angle_deg - mega.model.angle_deg) < 0.02
+    hb0 = drum.read_input(IR.HEARTBEAT)
+    time.sleep(0.3)
+    hb1 = drum.read_input(IR.HEARTBEAT)
+    assert 20 <= (hb1 - hb0) % 65536 <= 45  # +1 per 10 ms
+
+
+def test_status_decodes_signed_registers():
+    regs = [0] * wire.N_INPUT
+    regs[IR.FORCE_G] = 0xFFF6  # -10 g
+    regs[IR.SPEED_0P1MMS] = 0xFC18  # -100.0 mm/s
+    regs[IR.ACTUATOR_POSITION_0P01MM] = 0xFF9C  # -1.00 mm
+    regs[IR.LOADCELL_RAW_HI], regs[IR.LOADCELL_RAW_LO] = 0xFFFF, 0xFFFE  # -2
+    regs[IR.FIRMWARE_VERSION] = 0x0102
+    regs[IR.FAULT_BITS] = 0b0011
+    s = DrumStatus.from_registers(regs)
+    assert (s.force_g, s.speed_mm_s, s.actuator_mm, s.loadcell_raw) == (-10, -100.0, -1.0, -2)
+    assert s.firmware == (1, 2)
+    assert s.faults == Fault.FORCE_LIMIT | Fault.WATCHDOG
+
+
+def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
+    drum.set_limits(speed_mm_s=100, force_g=800)
+    writes = len(mega.writes)
+    cases = [
+        (lambda: drum.set_speed(120), "speed", "mm/s", 100),  # above the controller's current limit
+        (lambda: drum.set_speed(-1), "speed", "mm/s", 100),
+        (lambda: drum.set_force(1000), "force", "g", 800),
+        (lambda: drum.set_ramp(40, 150, 2.0), "ramp end speed", "mm/s", 100),
+        (lambda: drum.set_ramp(40, 80, 0.0), "ramp duration", "s", 60),
+        (lambda: drum.set_ramp(40, 80, 61.0), "ramp duration", "s", 60),
+        (lambda: drum.set_limits(speed_mm_s=250), "speed limit", "mm/s", 200),
+        (lambda: drum.set_limits(force_g=2500), "force limit", "g", 2000),
+        (lambda: drum.set_loadcell_scale(0.001), "load-cell scale", "counts/g", 655.35),
+        (lambda: drum.set_profile(5), "speed profile", "(code)", 1),
+        (lambda: drum.write_holding(HR.WATCHDOG_MS, 50), "WATCHDOG_MS", "(register units)", 10000),
+    ]
+    for call, name, unit, high in cases:
+        with pytest.raises(SetpointRangeError) as info:
+            call()
+        err = info.value
+        assert (err.name, err.unit, err.high) == (name, unit, high)
+        assert name in str(err) and unit in str(err)
+    assert len(mega.writes) == writes  # the server saw no write at all
+    assert mega.snapshot()["holding"][HR.SPEED_SETPOINT_0P1MMS] == 0
+    drum.set_speed(100)  # the limit itself is allowed
+    assert drum.read_holding(HR.SPEED_SETPOINT_0P1MMS) == 1000
+
+
+def test_modbus_exceptions_become_named_errors(drum, mega):
+    with pytest.raises(ModbusExceptionError) as info:
+        drum.read_holdings(12, 5)  # runs off the table
+    assert info.value.exception_code == 2 and info.value.register == "LOADCELL_SCALE_X100"
+    assert "LOADCELL_SCALE_X100" in str(info.value) and "illegal data address" in str(info.value)
+    with pytest.raises(ModbusExceptionError) as info:
+        drum.read_input(13)
+    assert info.value.exception_code == 2 and "input register 13" in str(info.value)
+    # a write the client passes (within the range column) that the controller refuses: force above its limit,
+    # in one function-16 request together with a valid speed: nothing of it is applied
+    with pytest.raises(ModbusExceptionError) as info:
+        drum.write_holdings(HR.SPEED_SETPOINT_0P1MMS, [900, 1800])
+    assert info.value.exception_code == 3 and info.value.register == "SPEED_SETPOINT_0P1MMS"
+    assert drum.read_holdings(0, 2) == [0, 0]
+    # a command not allowed in the current state
+    drum.set_force(300)
+    drum.press()
+    with pytest.raises(ModbusExceptionError) as info:
+        drum.home()
+    assert (info.value.register, info.value.exception_code) == ("COMMAND", 3)
+    drum.stop()
+
+
+def _rtu(*payload: int) -> bytes:
+    body = bytes(payload)
+    crc = wire.crc16(body)
+    return body + bytes([crc & 0xFF, crc >> 8])
+
+
+def _exchange(port: serial.Serial, frame: bytes, n: int) -> bytes:
+    port.reset_input_buffer()
+    port.write(frame)
+    return port.read(n)
+
+
+def test_raw_requests_get_the_spec_exception_codes(mega):
+    with serial.Serial(mega.path, 115200, timeout=0.5) as port:
+        # write 2001 to SPEED_SETPOINT (range 0-2000) -> 01 86 03
+        assert _exchange(port, _rtu(1, 6, 0, 0, 0x07, 0xD1), 5) == _rtu(1, 0x86, 3)
+        # read holding 14 (no such register) -> 01 83 02
+        assert _exchange(port, _rtu(1, 3, 0, 14, 0, 1), 5) == _rtu(1, 0x83, 2)
+        # read coils: not a function of this device -> 01 81 01
+        assert _exchange(port, _rtu(1, 1, 0, 0, 0, 8), 5) == _rtu(1, 0x81, 1)
+        # a valid read: 01 03 02 <FORCE_TOLERANCE_G = 15>
+        assert _exchange(port, _rtu(1, 3, 0, 9, 0, 1), 7) == _rtu(1, 3, 2, 0, 15)
+        # corrupt CRC, or another device id: no answer at all
+        bad = bytearray(_rtu(1, 3, 0, 9, 0, 1))
+        bad[-1] ^= 0xFF
+        assert _exchange(port, bytes(bad), 7) == b""
+        assert _exchange(port, _rtu(2, 3, 0, 9, 0, 1), 7) == b""
+    assert mega.snapshot()["holding"][HR.SPEED_SETPOINT_0P1MMS] == 0
+
+
+def test_force_settles_and_drum_runs(drum, mega):
+    drum.set_force(500)
+    drum.press()
+    t0 = time.monotonic()
+    assert drum.read_status().state == DrumState.SEEKING_FORCE
+    status = drum.wait_force_settled(timeout_s=6)
+    settle_s = time.monotonic() - t0
+    assert status.state == DrumState.FORCE_SETTLED
+    assert abs(status.force_g - 500) <= 15
+    assert status.force_setpoint_active_g == 500
+    assert status.actuator_mm > 3.0  # past the contact gap
+    assert 0.3 <= settle_s <= 4.0  # the 300 ms settle time at least; a realistic approach
+    drum.set_speed(80)
+    drum.run()
+    status = drum.wait_speed_steady(timeout_s=3, tol_mm_s=0.5)
+    assert status.state == DrumState.RUNNING and abs(status.speed_mm_s - 80) <= 0.5
+    rev0, angle0 = status.revolutions, status.angle_deg
+    time.sleep(0.5)
+    status = drum.read_status()
+    travelled = ((status.revolutions - rev0) * 360 + status.angle_deg - angle0) / 360 * 100 * 3.14159265
+    assert 30 <= travelled <= 55  # ~40 mm in 0.5 s at 80 mm/s (plus the time of the reads)
+    assert abs(status.force_g - 500) <= 40  # the force loop keeps holding while the drum turns
+    drum.stop_drum()
+    status = drum.wait_state(DrumState.FORCE_SETTLED, timeout_s=3)
+    drum.stop()
+    status = drum.wait_state(DrumState.IDLE, timeout_s=1)
+    time.sleep(1.2)
+    status = drum.read_status()
+    assert status.actuator_mm <= 0.01 and abs(status.force_g) < 10 and status.speed_mm_s == 0
+
+
+def test_ramp_profile(drum, mega):
+    drum.set_ramp(40, 120, 1.0)
+    drum.set_profile(SpeedProfile.RAMP)
+    assert drum.read_holdings(HR.SPEED_PROFILE, 4) == [1, 400, 1200, 1000]
+    drum.set_force(250)
+    drum.run()  # engages the force loop itself
+    targets, times = [], []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 1.6:
+        s = drum.read_status()
+        assert s.state == DrumState.RUNNING
+        targets.append(s.speed_target_mm_s)
+        times.append(time.monotonic() - t0)
+        time.sleep(0.05)
+    assert targets[0] < 50
+    assert all(b >= a for a, b in zip(targets, targets[1:]))  # rises monotonically
+    mid = [v for v, t in zip(targets, times) if 0.4 < t < 0.6]
+    assert mid and all(60 <= v <= 100 for v in mid)  # linear: about 80 mm/s halfway
+    assert targets[-1] == 120  # then held at the end speed
+    status = drum.wait_speed_steady(timeout_s=2)
+    assert abs(status.speed_mm_s - 120) <= 0.5
+    drum.stop()
+
+
+def test_watchdog_trips_when_host_goes_silent(drum, mega):
+    drum.write_holding(HR.WATCHDOG_MS, 200)
+    time.sleep(0.5)  # idle and silent: a monitoring host never trips it
+    assert drum.read_status().state == DrumState.IDLE
+    drum.set_force(250)
+    drum.set_speed(60)
+    drum.run()
+    for _ in range(10):  # requests every 50 ms keep it fed
+        time.sleep(0.05)
+        assert drum.read_status().state == DrumState.RUNNING
+    time.sleep(0.4)  # silence longer than WATCHDOG_MS
+    status = drum.read_status()
+    assert status.state == DrumState.FAULT
+    assert status.faults == Fault.WATCHDOG
+    assert status.speed_target_mm_s == 0 and status.force_setpoint_active_g == 0
+    with pytest.raises(DrumFault) as info:
+        drum.wait_force_settled(1)
+    assert "WATCHDOG" in str(info.value) and info.value.faults == Fault.WATCHDOG
+    with pytest.raises(ModbusExceptionError):
+        drum.run()  # refused while in FAULT
+    drum.clear_fault()
+    status = drum.read_status()
+    assert status.state == DrumState.IDLE and status.faults == 0
+
+
+def test_force_limit_fault_backs_off_at_once(drum, mega):
+    drum.set_force(900)
+    drum.press()
+    drum.wait_force_settled(6)
+    drum.set_limits(force_g=600)  # measured 900 g is now above the limit
+    status = drum.wait_state(DrumState.FAULT, timeout_s=1)
+    assert status.faults & Fault.FORCE_LIMIT
+    a0 = status.actuator_mm
+    time.sleep(0.3)
+    status = drum.read_status()
+    assert status.actuator_mm < a0 - 1.0  # backing off at full speed
+    assert status.force_setpoint_active_g == 0
+    time.sleep(0.6)
+    drum.clear_fault()
+    assert drum.read_status().state == DrumState.IDLE
+
+
+def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
+    drum.home()
+    assert drum.wait_state(DrumState.IDLE, timeout_s=2).actuator_mm == 0
+    drum.tare()
+    assert abs(drum.read_status().force_g) <= 5
+    drum.set_loadcell_scale(400.0)  # a different calibration scales the measured force
+    drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, 500)
+    drum.save_calibration()
+    data = json.loads((tmp_path / "eeprom.json").read_text())
+    assert data == {"LOADCELL_SCALE_X100": 40000, "ACTUATOR_STEPS_PER_MM": 500}
+    drum.set_force(420)
+    drum.press()
+    status = drum.wait_force_settled(6)
+    # the controller believes 420 g at 400 counts/g: the true (model) force is 420 * 400 / 420 = 400 g
+    assert abs(mega.model.contact_force_g - 400) <= 20
+    drum.stop()
+
+
+def test_timeout_when_nobody_answers(tmp_path):
+    from rigctl.simulation.pty import PtyEndpoint
+
+    silent = PtyEndpoint(tmp_path / "silent")  # a port with no controller behind it
+    try:
+        with DrumClient(silent.path, timeout_s=0.1, retries=1) as client:
+            t0 = time.monotonic()
+            with pytest.raises(DrumTimeout) as info:
+                client.read_status()
+            assert time.monotonic() - t0 < 2.0
+            assert "no answer" in str(info.value)
+    finally:
+        silent.close()
