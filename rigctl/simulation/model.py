@@ -430,6 +430,7 @@ class RigModel:
         self._sensitivity = 1.0
         self._time_s = 0.0
         self._loadcell_g = 0.0
+        self._mass_on_loadcell_g = 0.0  # a calibration mass resting on the load cell (place_mass)
 
     # -- properties ------------------------------------------------------------------------------------------------
     @property
@@ -507,6 +508,12 @@ class RigModel:
         with self._lock:
             return self._actuator_mm
 
+    def place_mass(self, mass_g: float) -> None:
+        """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it); the load-cell reading adds it
+        from the next step on (the operator's action in a load-cell calibration)."""
+        with self._lock:
+            self._mass_on_loadcell_g = float(mass_g)
+
     def home_actuator(self) -> None:
         """Place the actuator at home (0 mm) immediately (the end of a HOMING move)."""
         with self._lock:
@@ -569,7 +576,8 @@ class RigModel:
             self._position_mm = float(pos[-1])
             self._actuator_mm = float(act[-1])
             self._force_g = float(force[-1])
-            self._loadcell_g = self._force_g + m.loadcell_noise_g * float(self._rng.standard_normal())
+            self._loadcell_g = (self._force_g + self._mass_on_loadcell_g
+                                + m.loadcell_noise_g * float(self._rng.standard_normal()))
             self._time_s += n * dt
             return samples, sync_in
 
