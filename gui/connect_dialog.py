@@ -1,0 +1,123 @@
+"""Connect dialog: choose the simulated rig (default), two serial ports found by VID/PID
+(:func:`rigctl.devices.ports.find_ports`), or the FabricSlide replay. The choice persists in QSettings."""
+
+from __future__ import annotations
+
+from PySide6 import QtCore, QtWidgets
+
+from gui.workers import RigSource
+
+
+def load_source(settings: QtCore.QSettings) -> RigSource:
+    """The last source chosen (the simulated rig when none was saved)."""
+    return RigSource(
+        kind=str(settings.value("source/kind", "sim")),
+        drum_port=settings.value("source/drum_port", None) or None,
+        taxel_port=settings.value("source/taxel_port", None) or None,
+        replay_dir=settings.value("source/replay_dir", None) or None,
+    )
+
+
+def save_source(settings: QtCore.QSettings, src: RigSource) -> None:
+    settings.setValue("source/kind", src.kind)
+    settings.setValue("source/drum_port", src.drum_port or "")
+    settings.setValue("source/taxel_port", src.taxel_port or "")
+    settings.setValue("source/replay_dir", src.replay_dir or "")
+
+
+def list_ports():
+    """Serial ports with their VID:PID and board guess; [] (with the reason) when the library cannot list them."""
+    try:
+        from rigctl.devices.ports import find_ports
+
+        return find_ports(), None
+    except Exception as exc:  # noqa: BLE001 - shown in the dialog
+        return [], str(exc)
+
+
+class ConnectDialog(QtWidgets.QDialog):
+    """Pick a rig source. :meth:`source` returns the choice as a :class:`gui.workers.RigSource`."""
+
+    def __init__(self, current: RigSource, parent=None):
+        super().__init__(parent)
+        self.setWindowTitle("Connect to the rig")
+        self.sim = QtWidgets.QRadioButton("Simulated rig (virtual boards on ptys, physical model)")
+        self.serial = QtWidgets.QRadioButton("Real rig on serial ports")
+        self.replay = QtWidgets.QRadioButton("FabricSlide replay (recorded real signals through the simulated rig)")
+        self.drum_port = QtWidgets.QComboBox(editable=True)
+        self.taxel_port = QtWidgets.QComboBox(editable=True)
+        self.refresh_btn = QtWidgets.QPushButton("Rescan ports")
+        self.refresh_btn.clicked.connect(self.rescan)
+        self.port_info = QtWidgets.QLabel()
+        self.port_info.setWordWrap(True)
+        self.replay_dir = QtWidgets.QLineEdit(current.replay_dir or "")
+        browse = QtWidgets.QPushButton("Browse...")
+        browse.clicked.connect(self._browse)
+
+        form = QtWidgets.QFormLayout()
+        form.addRow("Drum controller (Mega, Modbus)", self.drum_port)
+        form.addRow("Taxel streamer (Uno)", self.taxel_port)
+        form.addRow(self.refresh_btn, self.port_info)
+        ports = QtWidgets.QGroupBox()
+        ports.setLayout(form)
+        rl = QtWidgets.QHBoxLayout()
+        rl.addWidget(self.replay_dir, 1)
+        rl.addWidget(browse)
+
+        buttons = QtWidgets.QDialogButtonBox(QtWidgets.QDialogButtonBox.Ok | QtWidgets.QDialogButtonBox.Cancel)
+        buttons.accepted.connect(self.accept)
+        buttons.rejected.connect(self.reject)
+
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.addWidget(self.sim)
+        lay.addWidget(self.serial)
+        lay.addWidget(ports)
+        lay.addWidget(self.replay)
+        lay.addLayout(rl)
+        lay.addWidget(buttons)
+
+        {"serial": self.serial, "replay": self.replay}.get(current.kind, self.sim).setChecked(True)
+        self.rescan(current)
+
+    def rescan(self, current: RigSource | None = None) -> None:
+        ports, err = list_ports()
+        for box in (self.drum_port, self.taxel_port):
+            box.clear()
+        for p in ports:
+            vidpid = f"{p.vid:04X}:{p.pid:04X}" if p.vid is not None and p.pid is not None else "no VID:PID"
+            text = f"{p.device}  [{vidpid}] {p.description or ''}" + (f"  (looks like the {p.board})" if p.board else "")
+            self.drum_port.addItem(text, p.device)
+            self.taxel_port.addItem(text, p.device)
+        # preselect by board guess, then by the saved ports
+        for box, board, saved in (
+            (self.drum_port, "mega", current.drum_port if current else None),
+            (self.taxel_port, "uno", current.taxel_port if current else None),
+        ):
+            for i, p in enumerate(ports):
+                if p.board == board:
+                    box.setCurrentIndex(i)
+            if saved:
+                i = box.findData(saved)
+                if i >= 0:
+                    box.setCurrentIndex(i)
+                else:
+                    box.setEditText(saved)
+        self.port_info.setText(err or f"{len(ports)} serial port(s) found")
+
+    def _browse(self) -> None:
+        d = QtWidgets.QFileDialog.getExistingDirectory(self, "FabricSlide directory", self.replay_dir.text())
+        if d:
+            self.replay_dir.setText(d)
+
+    @staticmethod
+    def _port(box: QtWidgets.QComboBox) -> str | None:
+        data = box.currentData()
+        text = box.currentText().split()[0] if box.currentText().strip() else None
+        return data if data and box.currentText().startswith(str(data)) else text
+
+    def source(self) -> RigSource:
+        if self.serial.isChecked():
+            return RigSource("serial", drum_port=self._port(self.drum_port), taxel_port=self._port(self.taxel_port))
+        if self.replay.isChecked():
+            return RigSource("replay", replay_dir=self.replay_dir.text() or None)
+        return RigSource("sim")

@@ -1,0 +1,232 @@
+"""Rig control panel: drum speed and force setpoints within the controller's limits, run/stop/tare/home, the
+controller state and fault bits in words, and live plots of load-cell force vs setpoint and drum speed vs target.
+
+All drum calls go through :class:`gui.workers.CommandExecutor` (a worker thread); the plots are redrawn from the
+:class:`gui.workers.StatusPoller` history by a QTimer.
+"""
+
+from __future__ import annotations
+
+import pyqtgraph as pg
+from PySide6 import QtCore, QtWidgets
+
+from rigctl.devices.wire import DrumState, Fault, HoldingRegister
+
+#: what each controller state means, for the operator (docs/wire-protocol.md table 2.4)
+STATE_WORDS = {
+    DrumState.IDLE: "Idle - drum at rest, actuator released",
+    DrumState.HOMING: "Homing - actuator moving to its home switch",
+    DrumState.SEEKING_FORCE: "Seeking force - pressing towards the setpoint",
+    DrumState.FORCE_SETTLED: "Force settled - on target, drum at rest",
+    DrumState.RUNNING: "Running - drum turning, force loop holding",
+    DrumState.FAULT: "FAULT - drum stopped, actuator backed off",
+}
+#: fault bits in words (table 2.5)
+FAULT_WORDS = {
+    Fault.FORCE_LIMIT: "force limit exceeded",
+    Fault.WATCHDOG: "host watchdog expired",
+    Fault.LOADCELL_TIMEOUT: "load cell not responding",
+    Fault.ACTUATOR_TRAVEL: "actuator end of travel before reaching force",
+}
+STATE_COLOURS = {
+    DrumState.IDLE: "#555",
+    DrumState.HOMING: "#a60",
+    DrumState.SEEKING_FORCE: "#a60",
+    DrumState.FORCE_SETTLED: "#06a",
+    DrumState.RUNNING: "#080",
+    DrumState.FAULT: "#c00",
+}
+
+
+def fault_words(faults: int) -> str:
+    """The latched fault bits as a comma-separated sentence ("none" when clear)."""
+    words = [w for bit, w in FAULT_WORDS.items() if int(faults) & int(bit)]
+    return ", ".join(words) if words else "none"
+
+
+class ControlPanel(QtWidgets.QWidget):
+    """The rig control tab. Call :meth:`attach` with a connected :class:`gui.workers.RigHandle`'s workers."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        self.poller = None
+        self.commands = None
+        self.drum = None
+
+        # --- setpoints ---
+        self.speed = QtWidgets.QDoubleSpinBox(suffix=" mm/s", decimals=1, singleStep=10.0)
+        self.speed.setObjectName("speed_setpoint")
+        self.force = QtWidgets.QDoubleSpinBox(suffix=" g", decimals=0, singleStep=50.0)
+        self.force.setObjectName("force_setpoint")
+        for box in (self.speed, self.force):
+            box.setKeyboardTracking(False)
+            box.setMinimumWidth(120)
+        self.set_limits(150.0, 1500.0)
+        self.speed.setValue(80.0)
+        self.force.setValue(500.0)
+        self.limits_label = QtWidgets.QLabel()
+        self.apply_btn = QtWidgets.QPushButton("Apply setpoints")
+        self.apply_btn.clicked.connect(self.apply_setpoints)
+
+        form = QtWidgets.QFormLayout()
+        form.addRow("Drum speed", self.speed)
+        form.addRow("Contact force", self.force)
+        form.addRow("", self.limits_label)
+        form.addRow("", self.apply_btn)
+        setp = QtWidgets.QGroupBox("Setpoints")
+        setp.setLayout(form)
+
+        # --- commands ---
+        self.buttons = {}
+        grid = QtWidgets.QGridLayout()
+        for i, (name, label, tip) in enumerate(
+            [
+                ("press", "Press", "Engage the force loop: seek the force setpoint, then hold it"),
+                ("run", "Run", "Start the drum at the speed setpoint (force loop holding)"),
+                ("stop_drum", "Stop drum", "Decelerate the drum, keep holding the force"),
+                ("tare", "Tare", "Zero the load cell (actuator released)"),
+                ("home", "Home", "Drive the actuator to its home switch"),
+                ("clear_fault", "Clear fault", "Clear latched faults and return to Idle"),
+            ]
+        ):
+            b = QtWidgets.QPushButton(label)
+            b.setToolTip(tip)
+            b.setObjectName(f"btn_{name}")
+            b.clicked.connect(lambda _=False, n=name: self.command(n))
+            self.buttons[name] = b
+            grid.addWidget(b, i // 2, i % 2)
+        cmds = QtWidgets.QGroupBox("Drum")
+        cmds.setLayout(grid)
+
+        # --- state ---
+        self.state_label = QtWidgets.QLabel("not connected")
+        self.state_label.setObjectName("state_label")
+        self.state_label.setWordWrap(True)
+        self.state_label.setStyleSheet("font-size: 15px; font-weight: bold;")
+        self.fault_label = QtWidgets.QLabel("Faults: -")
+        self.fault_label.setWordWrap(True)
+        self.readout = QtWidgets.QLabel("-")
+        self.readout.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        self.message = QtWidgets.QLabel("")
+        self.message.setWordWrap(True)
+        sl = QtWidgets.QVBoxLayout()
+        for w in (self.state_label, self.fault_label, self.readout, self.message):
+            sl.addWidget(w)
+        state = QtWidgets.QGroupBox("Controller")
+        state.setLayout(sl)
+
+        left = QtWidgets.QVBoxLayout()
+        left.addWidget(setp)
+        left.addWidget(cmds)
+        left.addWidget(state)
+        left.addStretch(1)
+        leftw = QtWidgets.QWidget()
+        leftw.setLayout(left)
+        leftw.setMaximumWidth(360)
+
+        # --- plots ---
+        self.plots = pg.GraphicsLayoutWidget()
+        self.force_plot = self.plots.addPlot(row=0, col=0, title="Load-cell force vs setpoint")
+        self.force_plot.setLabel("left", "force", units="g")
+        self.force_plot.addLegend(offset=(5, 5))
+        self.force_curve = self.force_plot.plot(pen=pg.mkPen("#1f77b4", width=2), name="measured")
+        self.setpoint_curve = self.force_plot.plot(
+            pen=pg.mkPen("#d62728", width=2, style=QtCore.Qt.DashLine), name="setpoint"
+        )
+        self.speed_plot = self.plots.addPlot(row=1, col=0, title="Drum surface speed")
+        self.speed_plot.setLabel("left", "speed", units="mm/s")
+        self.speed_plot.setLabel("bottom", "time", units="s")
+        self.speed_plot.addLegend(offset=(5, 5))
+        self.speed_curve = self.speed_plot.plot(pen=pg.mkPen("#2ca02c", width=2), name="measured")
+        self.target_curve = self.speed_plot.plot(
+            pen=pg.mkPen("#ff7f0e", width=2, style=QtCore.Qt.DashLine), name="target"
+        )
+        for p in (self.force_plot, self.speed_plot):
+            p.showGrid(x=True, y=True, alpha=0.3)
+
+        lay = QtWidgets.QHBoxLayout(self)
+        lay.addWidget(leftw)
+        lay.addWidget(self.plots, 1)
+        self.set_enabled(False)
+
+    # ------------------------------------------------------------------------------------------------------
+    def set_limits(self, speed_max_mm_s: float, force_max_g: float) -> None:
+        """Spin-box ranges = the controller's limits: values outside cannot be entered."""
+        self.speed.setRange(0.0, float(speed_max_mm_s))
+        self.force.setRange(0.0, float(force_max_g))
+        if hasattr(self, "limits_label"):
+            self.limits_label.setText(f"limits: speed <= {speed_max_mm_s:g} mm/s, force <= {force_max_g:g} g")
+
+    def set_enabled(self, on: bool) -> None:
+        for w in [self.apply_btn, *self.buttons.values()]:
+            w.setEnabled(on)
+
+    def attach(self, drum, poller, commands) -> None:
+        """Bind to a connected drum (``DrumClient``), its status poller and command executor."""
+        self.drum, self.poller, self.commands = drum, poller, commands
+        try:
+            spd = drum.read_holding(HoldingRegister.SPEED_LIMIT_0P1MMS) / 10.0
+            frc = float(drum.read_holding(HoldingRegister.FORCE_LIMIT_G))
+            self.set_limits(spd, frc)
+        except Exception as exc:  # noqa: BLE001 - keep the defaults, say why
+            self.message.setText(f"could not read the controller's limits: {exc}")
+        self.set_enabled(True)
+
+    def detach(self) -> None:
+        self.drum = self.poller = self.commands = None
+        self.set_enabled(False)
+        self.state_label.setText("not connected")
+
+    # ------------------------------------------------------------------------------------------------------
+    def apply_setpoints(self) -> None:
+        if self.commands is None:
+            return
+        self.commands.submit("set speed", self.drum.set_speed, float(self.speed.value()))
+        self.commands.submit("set force", self.drum.set_force, float(self.force.value()))
+
+    def command(self, name: str) -> None:
+        if self.commands is None:
+            return
+        if name in ("run", "press"):
+            self.apply_setpoints()
+        self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
+
+    def show_result(self, ok: bool, text: str) -> None:
+        self.message.setStyleSheet("" if ok else "color: #c00;")
+        self.message.setText(text)
+
+    def refresh(self) -> None:
+        """Redraw from the poller (called by the main window's timer)."""
+        p = self.poller
+        if p is None:
+            return
+        h = p.history.snapshot()
+        if len(h):
+            t = h[:, 0] - h[-1, 0]
+            self.force_curve.setData(t, h[:, 1], skipFiniteCheck=True)
+            self.setpoint_curve.setData(t, h[:, 2], skipFiniteCheck=True)
+            self.speed_curve.setData(t, h[:, 3], skipFiniteCheck=True)
+            self.target_curve.setData(t, h[:, 4], skipFiniteCheck=True)
+            for plot in (self.force_plot, self.speed_plot):  # no setXLink (crashes with PySide6 6.12)
+                plot.setXRange(min(t[0], -5.0), 0.0, padding=0.02)
+        st = p.latest
+        if not p.ok:
+            self.state_label.setText("Drum controller not responding")
+            self.state_label.setStyleSheet("font-size: 15px; font-weight: bold; color: #c00;")
+            return
+        if st is None:
+            return
+        state = DrumState(int(st.state))
+        self.state_label.setText(STATE_WORDS.get(state, state.name))
+        self.state_label.setStyleSheet(
+            f"font-size: 15px; font-weight: bold; color: {STATE_COLOURS.get(state, '#000')};"
+        )
+        self.fault_label.setText(f"Faults: {fault_words(int(st.faults))}")
+        self.fault_label.setStyleSheet("color: #c00;" if int(st.faults) else "")
+        fw = ".".join(str(x) for x in st.firmware)
+        self.readout.setText(
+            f"force {st.force_g:7.1f} g (holding {st.force_setpoint_active_g:.0f} g)\n"
+            f"speed {st.speed_mm_s:6.1f} mm/s (target {st.speed_target_mm_s:.1f})\n"
+            f"drum {st.angle_deg:6.1f} deg, {st.revolutions} rev; actuator {st.actuator_mm:.2f} mm\n"
+            f"firmware {fw}, heartbeat {st.heartbeat}"
+        )

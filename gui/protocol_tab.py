@@ -1,0 +1,358 @@
+"""Protocol tab: open a protocol file (:func:`rigctl.acquisition.protocol.load_protocol`), show its plan, choose the
+output session file, start / pause / resume / abort a run (:func:`rigctl.acquisition.runner.run_protocol` in a
+worker thread with stop and pause events), per-trial progress and ETA, the operator prompt to mount the next
+texture plate (the simulated rig mounts it by itself), and resume an interrupted session file."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+from PySide6 import QtCore, QtWidgets
+
+from gui.workers import Job
+
+PLAN_COLUMNS = ("trial", "texture", "speed (mm/s)", "force (g)", "duration (s)", "profile", "status")
+
+
+def _fmt_s(s: float) -> str:
+    s = max(0, int(round(s)))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+class ProtocolTab(QtWidgets.QWidget):
+    """The protocol tab; ``main`` is the :class:`gui.app.MainWindow` (for the rig and the classification view)."""
+
+    def __init__(self, main, parent=None):
+        super().__init__(parent)
+        self.main = main
+        self.protocol = None
+        self.plan = []
+        self.job: Job | None = None
+        self.stop_event = threading.Event()
+        self.pause_event = threading.Event()
+        self._prompt_event = threading.Event()
+        self._prompt_text = None
+        self._done_ids: list = []
+        self._trial_started = None
+        self._run_started = None
+        self._trial_times: list[float] = []
+        self.last_output = None
+
+        self.open_btn = QtWidgets.QPushButton("Open protocol...")
+        self.open_btn.clicked.connect(self._browse_protocol)
+        self.path_label = QtWidgets.QLabel("no protocol loaded")
+        self.summary = QtWidgets.QLabel("")
+        self.summary.setWordWrap(True)
+        self.table = QtWidgets.QTableWidget(0, len(PLAN_COLUMNS))
+        self.table.setHorizontalHeaderLabels(PLAN_COLUMNS)
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        self.table.horizontalHeader().setStretchLastSection(True)
+
+        self.out_edit = QtWidgets.QLineEdit()
+        self.out_edit.setPlaceholderText("output session file (.h5)")
+        out_btn = QtWidgets.QPushButton("Choose...")
+        out_btn.clicked.connect(self._browse_output)
+        self.resume_box = QtWidgets.QCheckBox("Resume this (interrupted) session file")
+        self.resume_box.setToolTip("Skip the trials already recorded in the output file and record the rest")
+
+        self.start_btn = QtWidgets.QPushButton("Start")
+        self.pause_btn = QtWidgets.QPushButton("Pause")
+        self.resume_btn = QtWidgets.QPushButton("Resume")
+        self.abort_btn = QtWidgets.QPushButton("Abort")
+        for b, f in (
+            (self.start_btn, self.start),
+            (self.pause_btn, self.pause),
+            (self.resume_btn, self.resume),
+            (self.abort_btn, self.request_abort),
+        ):
+            b.clicked.connect(f)
+        self.trial_bar = QtWidgets.QProgressBar()
+        self.trial_bar.setFormat("trial %p%")
+        self.run_bar = QtWidgets.QProgressBar()
+        self.run_bar.setFormat("session %v/%m trials")
+        self.status = QtWidgets.QLabel("idle")
+        self.status.setObjectName("protocol_status")
+        self.status.setWordWrap(True)
+
+        self.prompt_frame = QtWidgets.QFrame()
+        self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
+        self.prompt_label = QtWidgets.QLabel()
+        self.prompt_label.setStyleSheet("font-size: 14px; font-weight: bold;")
+        self.prompt_ok = QtWidgets.QPushButton("Plate mounted - continue")
+        self.prompt_ok.clicked.connect(self._prompt_done)
+        pl = QtWidgets.QHBoxLayout(self.prompt_frame)
+        pl.addWidget(self.prompt_label, 1)
+        pl.addWidget(self.prompt_ok)
+        self.prompt_frame.hide()
+
+        top = QtWidgets.QHBoxLayout()
+        top.addWidget(self.open_btn)
+        top.addWidget(self.path_label, 1)
+        out = QtWidgets.QHBoxLayout()
+        out.addWidget(QtWidgets.QLabel("Output"))
+        out.addWidget(self.out_edit, 1)
+        out.addWidget(out_btn)
+        out.addWidget(self.resume_box)
+        ctl = QtWidgets.QHBoxLayout()
+        for b in (self.start_btn, self.pause_btn, self.resume_btn, self.abort_btn):
+            ctl.addWidget(b)
+        ctl.addWidget(self.trial_bar, 1)
+        ctl.addWidget(self.run_bar, 1)
+
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.addLayout(top)
+        lay.addWidget(self.summary)
+        lay.addWidget(self.table, 1)
+        lay.addLayout(out)
+        lay.addLayout(ctl)
+        lay.addWidget(self.prompt_frame)
+        lay.addWidget(self.status)
+        self._update_buttons()
+
+        last = self.main.settings.value("protocol/path") if hasattr(main, "settings") else None
+        if last and os.path.exists(str(last)):
+            try:
+                self.load(str(last))
+            except Exception:  # noqa: BLE001 - a stale setting is not an error
+                pass
+
+    # ------------------------------------------------------------------------------------------------------
+    def _browse_protocol(self) -> None:
+        start = str(self.main.settings.value("dirs/protocol", "protocols"))
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open protocol", start, "Protocols (*.toml *.py)")
+        if path:
+            self.load(path)
+
+    def _browse_output(self) -> None:
+        start = str(self.main.settings.value("dirs/output", ""))
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(
+            self, "Session file", start, "HDF5 session (*.h5)", options=QtWidgets.QFileDialog.DontConfirmOverwrite
+        )
+        if path:
+            self.out_edit.setText(path)
+            self.main.settings.setValue("dirs/output", os.path.dirname(path))
+            self.resume_box.setChecked(os.path.exists(path))
+
+    def load(self, path: str) -> None:
+        """Load and show a protocol file; a bad file is reported with the line at fault (``ProtocolError``)."""
+        from rigctl.acquisition.protocol import load_protocol
+
+        try:
+            self.protocol = load_protocol(path)
+            self.plan = list(self.protocol.plan())
+        except Exception as exc:  # noqa: BLE001 - ProtocolError names the line; shown, nothing lost
+            self.status.setText(f"<span style='color:#c00'>{exc}</span>")
+            return
+        self.main.settings.setValue("protocol/path", path)
+        self.main.settings.setValue("dirs/protocol", os.path.dirname(path))
+        self.path_label.setText(path)
+        self.table.setRowCount(len(self.plan))
+        for r, p in enumerate(self.plan):
+            vals = (
+                p.trial_id,
+                p.texture,
+                f"{p.speed_mm_s:g}",
+                f"{p.force_g:g}",
+                f"{p.duration_s:g}",
+                str(getattr(p, "profile", "") or "constant"),
+                "planned",
+            )
+            for c, v in enumerate(vals):
+                self.table.setItem(r, c, QtWidgets.QTableWidgetItem(str(v)))
+        self.table.resizeColumnsToContents()
+        textures = sorted({p.texture for p in self.plan})
+        speeds = sorted({p.speed_mm_s for p in self.plan})
+        forces = sorted({p.force_g for p in self.plan})
+        est = self.estimated_duration_s()
+        self.summary.setText(
+            f"<b>{getattr(self.protocol, 'name', os.path.basename(path))}</b>: {len(self.plan)} trials; "
+            f"textures {', '.join(map(str, textures))}; speeds {', '.join(f'{s:g}' for s in speeds)} mm/s; "
+            f"forces {', '.join(f'{f:g}' for f in forces)} g; estimated duration {_fmt_s(est)}"
+        )
+        if not self.out_edit.text():
+            base = os.path.splitext(os.path.basename(path))[0]
+            self.out_edit.setText(os.path.join(str(self.main.settings.value("dirs/output", os.getcwd())), base + ".h5"))
+        self.run_bar.setRange(0, len(self.plan))
+        self.run_bar.setValue(0)
+        self._update_buttons()
+
+    def estimated_duration_s(self) -> float:
+        est = getattr(self.protocol, "estimated_duration_s", None)
+        if callable(est):
+            est = est()
+        if est is None:
+            est = sum(float(p.duration_s) for p in self.plan)
+        return float(est)
+
+    # ------------------------------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self.job is not None and not self.job.done
+
+    def start(self) -> None:
+        h = self.main.handle
+        if self.protocol is None or h is None or self.running:
+            self.status.setText("load a protocol and connect the rig first" if not self.running else "already running")
+            return
+        out = self.out_edit.text().strip()
+        if not out:
+            self.status.setText("choose an output file")
+            return
+        resume = self.resume_box.isChecked() and os.path.exists(out)
+        if os.path.exists(out) and not resume:
+            self.status.setText(f"{out} exists: tick 'Resume' to continue it, or choose another file")
+            return
+        from rigctl.acquisition.runner import run_protocol
+
+        self.stop_event.clear()
+        self.pause_event.clear()
+        self._done_ids = []
+        self._trial_times = []
+        self._run_started = time.monotonic()
+        self._trial_started = time.monotonic()
+        protocol, rig, simulated = self.protocol, h.rig, h.is_simulated
+
+        def work(job: Job):
+            return run_protocol(
+                protocol,
+                out,
+                rig=rig,
+                resume=resume,
+                progress=False,
+                stop_event=self.stop_event,
+                pause_event=self.pause_event,
+                on_trial=lambda *a, **k: job.events.put(("trial", a, k)),
+                prompt=None if simulated else self._prompt,
+            )
+
+        self.job = Job(work, name="protocol")
+        self.job.start()
+        self.last_output = out
+        self.status.setText(f"recording to {out}" + (" (resuming)" if resume else ""))
+        for r in range(self.table.rowCount()):
+            self._set_status(r, "planned")
+        self._update_buttons()
+
+    def pause(self) -> None:
+        if self.running:
+            self.pause_event.set()
+            self.status.setText("pausing after the current trial...")
+            self._update_buttons()
+
+    def resume(self) -> None:
+        if self.running:
+            self.pause_event.clear()
+            self.status.setText("resumed")
+            self._update_buttons()
+
+    def request_abort(self) -> None:
+        if self.running:
+            self.stop_event.set()
+            self.pause_event.clear()
+            self._prompt_event.set()
+            self.status.setText("aborting: the rig stops safely, finished trials stay in the file")
+
+    def abort_and_wait(self, timeout_s: float = 10.0) -> None:
+        self.request_abort()
+        if self.job is not None:
+            self.job.join(timeout_s)
+
+    # operator prompt (worker thread side): show it, wait for the button (or an abort)
+    def _prompt(self, text, *args, **kwargs):
+        self._prompt_event.clear()
+        self.job.events.put(("prompt", (str(text),), {}))
+        while not self._prompt_event.wait(0.1):
+            if self.stop_event.is_set():
+                break
+        return not self.stop_event.is_set()
+
+    def _prompt_done(self) -> None:
+        self.prompt_frame.hide()
+        self._prompt_event.set()
+
+    # ------------------------------------------------------------------------------------------------------
+    def _set_status(self, row: int, text: str) -> None:
+        if 0 <= row < self.table.rowCount():
+            self.table.setItem(row, len(PLAN_COLUMNS) - 1, QtWidgets.QTableWidgetItem(text))
+
+    def _row_of(self, trial) -> int:
+        tid = getattr(trial, "trial_id", trial)
+        for r, p in enumerate(self.plan):
+            if p.trial_id == tid:
+                return r
+        return -1
+
+    def _on_trial(self, args, kwargs) -> None:
+        planned = kwargs.get("planned")
+        data = kwargs.get("trial", kwargs.get("data"))
+        for a in args:
+            if hasattr(a, "trial_id") and hasattr(a, "texture") and planned is None:
+                planned = a
+            elif hasattr(a, "taxels"):
+                data = a
+            elif isinstance(a, int) and planned is None and 0 <= a < len(self.plan):
+                planned = self.plan[a]
+        if planned is None:
+            planned = self.plan[len(self._done_ids)] if len(self._done_ids) < len(self.plan) else None
+        now = time.monotonic()
+        self._trial_times.append(now - self._trial_started)
+        self._trial_started = now
+        if planned is not None:
+            self._done_ids.append(planned.trial_id)
+            self._set_status(self._row_of(planned), "recorded")
+            if data is not None:
+                self.main.classify.on_trial(planned, data)
+
+    def refresh(self) -> None:
+        job = self.job
+        if job is None:
+            return
+        while not job.events.empty():
+            kind, a, k = job.events.get()
+            if kind == "trial":
+                self._on_trial(a, k)
+            elif kind == "prompt":
+                self.prompt_label.setText(a[0])
+                self.prompt_frame.show()
+        n_done, n = len(self._done_ids), len(self.plan)
+        self.run_bar.setValue(n_done)
+        if not job.done:
+            nxt = next((p for p in self.plan if p.trial_id not in self._done_ids), None)
+            if nxt is not None:
+                el = time.monotonic() - self._trial_started
+                self.trial_bar.setValue(int(min(99, 100 * el / max(float(nxt.duration_s), 1e-3))))
+                self._set_status(self._row_of(nxt), "paused" if self.pause_event.is_set() else "recording")
+                per = sorted(self._trial_times)[len(self._trial_times) // 2] if self._trial_times else None
+                remaining = [p for p in self.plan if p.trial_id not in self._done_ids]
+                eta = (
+                    per * len(remaining) - el
+                    if per is not None
+                    else sum(float(p.duration_s) for p in remaining) - el
+                )
+                state = "PAUSED" if self.pause_event.is_set() else f"trial {nxt.trial_id}: {nxt.texture}"
+                self.status.setText(
+                    f"{state} at {nxt.speed_mm_s:g} mm/s, {nxt.force_g:g} g - {n_done}/{n} done, ETA {_fmt_s(eta)}"
+                )
+        else:
+            self.job = None
+            self.prompt_frame.hide()
+            self.trial_bar.setValue(100 if not self.stop_event.is_set() else self.trial_bar.value())
+            if job.error:
+                self.status.setText(f"<span style='color:#c00'>run failed: {job.error}</span>")
+            elif self.stop_event.is_set():
+                self.status.setText(f"aborted after {n_done} trial(s); the file {self.last_output} is resumable")
+            else:
+                self.status.setText(f"finished: {n_done} trial(s) in {self.last_output}")
+            self._update_buttons()
+        self._update_buttons()
+
+    def _update_buttons(self) -> None:
+        running = self.running
+        self.start_btn.setEnabled(not running and self.protocol is not None)
+        self.pause_btn.setEnabled(running and not self.pause_event.is_set())
+        self.resume_btn.setEnabled(running and self.pause_event.is_set())
+        self.abort_btn.setEnabled(running)
+        self.open_btn.setEnabled(not running)

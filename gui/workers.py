@@ -1,0 +1,440 @@
+"""Worker threads of the app. The GUI never blocks on the rig, the encoder or an analysis: each runs here, in a plain
+Python thread, and publishes into fixed-size buffers or a queue that the GUI drains from a QTimer at its own pace
+(PyMoDAQ #564: a producer that emits Qt signals per sample floods the event loop and Stop stops responding).
+
+Nothing here implements rig, encoding or analysis logic: it only calls :mod:`rigctl` in the right thread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from rigctl.devices.wire import ADC_MAX, N_TAXELS, SAMPLE_RATE_HZ
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Connection
+# ----------------------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class RigSource:
+    """Where the app gets its rig from.
+
+    ``kind`` is ``"sim"`` (the simulated rig, default), ``"serial"`` (two real boards at ``drum_port`` /
+    ``taxel_port``) or ``"replay"`` (the simulated rig streaming the FabricSlide recordings in ``replay_dir``).
+    """
+
+    kind: str = "sim"
+    drum_port: str | None = None
+    taxel_port: str | None = None
+    replay_dir: str | None = None
+
+    def label(self) -> str:
+        if self.kind == "serial":
+            return f"rig on {self.drum_port} + {self.taxel_port}"
+        if self.kind == "replay":
+            return f"FabricSlide replay ({self.replay_dir})"
+        return "simulated rig"
+
+
+class RigHandle:
+    """The open rig as the GUI sees it: an acquisition :class:`rigctl.acquisition.rig.Rig` and its parts.
+
+    Attributes
+    ----------
+    rig : rigctl.acquisition.rig.Rig
+        Owns the drum client, the taxel stream and (in simulation) the simulated rig; the protocol runner uses it.
+    drum : rigctl.devices.drum.DrumClient
+    taxels : rigctl.devices.taxel_stream.TaxelStream
+    sim : rigctl.simulation.rig.SimulatedRig or None
+    """
+
+    def __init__(self, rig, source: RigSource, extra=None):
+        self.rig = rig
+        self.source = source
+        self.drum = rig.drum
+        self.taxels = rig.taxels
+        self.sim = getattr(rig, "sim", None)
+        self._extra = extra  # a SimulatedRig we started ourselves (replay), closed after the rig
+
+    @property
+    def is_simulated(self) -> bool:
+        return self.source.kind in ("sim", "replay")
+
+    def close(self) -> None:
+        try:
+            self.rig.close()
+        finally:
+            if self._extra is not None:
+                self._extra.close()
+
+
+def open_rig(source: RigSource, *, config=None) -> RigHandle:
+    """Open the rig described by ``source`` through :meth:`rigctl.acquisition.rig.Rig.open`.
+
+    Raises whatever the library raises (``DrumError``, ``OSError`` for a missing port, ``TimeoutError`` for a
+    board that never sent its banner); the caller shows it.
+    """
+    from rigctl.acquisition.rig import Rig
+
+    if source.kind == "serial":
+        rig = Rig.open(sim=False, drum_port=source.drum_port, taxel_port=source.taxel_port, config=config)
+        return RigHandle(rig, source)
+    if source.kind == "replay":
+        from rigctl.simulation.replay import FabricSlideReplay
+        from rigctl.simulation.rig import SimulatedRig
+
+        sim = SimulatedRig(config, source=FabricSlideReplay(source.replay_dir))
+        sim.__enter__()
+        try:
+            rig = Rig.open(sim=False, drum_port=sim.drum_port, taxel_port=sim.taxel_port, config=config)
+        except BaseException:
+            sim.close()
+            raise
+        return RigHandle(rig, source, extra=sim)
+    rig = Rig.open(sim=True, config=config)
+    return RigHandle(rig, source)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Fixed-size buffers
+# ----------------------------------------------------------------------------------------------------------------
+class HistoryRing:
+    """Fixed-size ring of ``n_fields`` float64 columns (e.g. time, force, setpoint). Thread-safe, no growth."""
+
+    def __init__(self, capacity: int, n_fields: int):
+        self._buf = np.full((capacity, n_fields), np.nan)
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def append(self, row) -> None:
+        with self._lock:
+            self._buf[self._n % len(self._buf)] = row
+            self._n += 1
+
+    def snapshot(self) -> np.ndarray:
+        """Rows in time order, oldest first: ``(n, n_fields)`` float64 (a copy)."""
+        with self._lock:
+            cap = len(self._buf)
+            if self._n <= cap:
+                return self._buf[: self._n].copy()
+            i = self._n % cap
+            return np.concatenate([self._buf[i:], self._buf[:i]])
+
+    def clear(self) -> None:
+        with self._lock:
+            self._n = 0
+
+
+class SpikeRing:
+    """The most recent spikes of one population (e.g. the 18 SA trains): fixed-size arrays of time and channel.
+
+    ``capacity`` spikes are kept; older ones are overwritten (the raster only shows the last few seconds).
+    """
+
+    def __init__(self, capacity: int = 40_000):
+        self.t = np.zeros(capacity)
+        self.ch = np.zeros(capacity, dtype=np.int16)
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def extend(self, t: np.ndarray, ch: np.ndarray) -> None:
+        k = len(t)
+        if k == 0:
+            return
+        cap = len(self.t)
+        with self._lock:
+            if k >= cap:
+                t, ch, k = t[-cap:], ch[-cap:], cap
+            i = self._n % cap
+            first = min(k, cap - i)
+            self.t[i : i + first] = t[:first]
+            self.ch[i : i + first] = ch[:first]
+            if first < k:
+                self.t[: k - first] = t[first:]
+                self.ch[: k - first] = ch[first:]
+            self._n += k
+
+    def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
+        """Spikes with time >= ``t0`` (s), unordered copies ``(t, channel)``."""
+        with self._lock:
+            n = min(self._n, len(self.t))
+            t, ch = self.t[:n], self.ch[:n]
+            keep = t >= t0
+            return t[keep], ch[keep]
+
+    def clear(self) -> None:
+        with self._lock:
+            self._n = 0
+
+    @property
+    def total(self) -> int:
+        return self._n
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Drum: status polling and commands
+# ----------------------------------------------------------------------------------------------------------------
+class StatusPoller(threading.Thread):
+    """Reads :meth:`DrumClient.read_status` every ``period_s`` into a :class:`HistoryRing`.
+
+    Columns of :attr:`history`: time (s since start), force (g), active force setpoint (g), speed (mm/s), speed
+    target (mm/s). A failed read marks the drum link down (``ok=False``, ``error`` set) and is retried; the poll also
+    feeds the controller's watchdog.
+    """
+
+    def __init__(self, drum, *, period_s: float = 0.05, history_s: float = 60.0):
+        super().__init__(name="drum-status", daemon=True)
+        self.drum = drum
+        self.period_s = period_s
+        self.history = HistoryRing(int(history_s / period_s) + 1, 5)
+        self.latest = None
+        self.ok = False
+        self.error: str | None = None
+        self.reads = 0
+        self.failures = 0
+        self._halt = threading.Event()
+        self._t0 = time.monotonic()
+
+    def run(self) -> None:
+        while not self._halt.is_set():
+            t = time.monotonic()
+            try:
+                st = self.drum.read_status()
+            except Exception as exc:  # noqa: BLE001 - any failure means the link is down; shown, then retried
+                self.ok = False
+                self.failures += 1
+                self.error = f"{type(exc).__name__}: {exc}"
+                self._halt.wait(0.5)
+                continue
+            self.latest = st
+            self.ok = True
+            self.error = None
+            self.reads += 1
+            self.history.append(
+                (t - self._t0, st.force_g, st.force_setpoint_active_g, st.speed_mm_s, st.speed_target_mm_s)
+            )
+            self._halt.wait(max(0.0, self.period_s - (time.monotonic() - t)))
+
+    def stop(self) -> None:
+        self._halt.set()
+
+
+class CommandExecutor:
+    """Runs drum commands one at a time in a worker thread; results land in :attr:`results` for the GUI to drain.
+
+    Each result is ``(name, ok, message)``. :meth:`emergency_stop` does not queue behind other commands: it calls
+    ``stop`` on a fresh thread at once (the client's lock serialises it with any request in flight).
+    """
+
+    def __init__(self, drum):
+        self.drum = drum
+        self.results: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._loop, name="drum-commands", daemon=True)
+        self._thread.start()
+
+    def submit(self, name: str, fn: Callable, *args) -> None:
+        self._queue.put((name, fn, args))
+
+    def emergency_stop(self) -> threading.Thread:
+        t = threading.Thread(target=self._call, args=("STOP", self.drum.stop, ()), name="drum-stop", daemon=True)
+        t.start()
+        return t
+
+    def close(self) -> None:
+        self._queue.put(None)
+
+    def _loop(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            self._call(*item)
+
+    def _call(self, name, fn, args) -> None:
+        try:
+            fn(*args)
+        except Exception as exc:  # noqa: BLE001 - reported to the operator, the app carries on
+            self.results.put((name, False, f"{name} failed: {exc}"))
+        else:
+            self.results.put((name, True, f"{name} done"))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Live taxels + streaming encoder
+# ----------------------------------------------------------------------------------------------------------------
+class TraceBuffer:
+    """The last ``seconds`` of taxel readings, decimated by ``decimate``, in fixed-size arrays.
+
+    The GUI thread calls :meth:`pull` each refresh: it reads the frames that arrived since the last call from the
+    taxel stream's ring buffer (:meth:`rigctl.devices.ring.RingBuffer.read_since`, cheap copies of a few dozen
+    frames) so a frame reaches the screen without waiting for any worker. Times are stream time (frame number in the
+    ring / 1 kHz, s).
+    """
+
+    def __init__(self, ring, *, seconds: float = 10.0, decimate: int = 4):
+        self.ring = ring
+        self.decimate = decimate
+        n = int(seconds * SAMPLE_RATE_HZ / decimate)
+        self._x = np.zeros((n, N_TAXELS), dtype=np.uint16)
+        self._t = np.zeros(n)
+        self._n = 0
+        self.cursor = ring.total  # live only: no history
+        self.n_samples = 0
+        self.current = np.zeros(N_TAXELS, dtype=np.uint16)
+        self.newest_host_time_s = float("nan")
+
+    def pull(self) -> int:
+        """Take the new frames from the ring; returns how many arrived."""
+        self.cursor, samples, _seq, host_t = self.ring.read_since(self.cursor)
+        n = len(samples)
+        if n == 0:
+            return 0
+        idx = np.arange(self.cursor - n, self.cursor)  # absolute frame numbers of the stream
+        pick = idx % self.decimate == 0
+        sub, sub_t = samples[pick], idx[pick] / SAMPLE_RATE_HZ
+        cap = len(self._x)
+        if len(sub) > cap:
+            sub, sub_t = sub[-cap:], sub_t[-cap:]
+        k = len(sub)
+        pos = (self._n + np.arange(k)) % cap
+        self._x[pos] = sub
+        self._t[pos] = sub_t
+        self._n += k
+        self.n_samples += n
+        self.current = samples[-1]
+        self.newest_host_time_s = float(host_t[-1])
+        return n
+
+    def view(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(t (n,) s, readings (n, 18) uint16)``, oldest first."""
+        cap = len(self._x)
+        if self._n <= cap:
+            return self._t[: self._n], self._x[: self._n]
+        i = self._n % cap
+        return np.concatenate([self._t[i:], self._t[:i]]), np.concatenate([self._x[i:], self._x[:i]])
+
+
+class LiveEncoder(threading.Thread):
+    """Streaming SA + RA encoding of the live taxel stream in a worker thread
+    (:class:`rigctl.encoding.izhikevich.StreamingEncoder`, paper eqs. 3-5).
+
+    Reads the taxel stream's ring buffer with its own cursor every ``poll_s`` and puts the spikes into
+    :attr:`sa` and :attr:`ra` (:class:`SpikeRing`, times in s of stream time =
+    frame number in the ring / 1 kHz, as :class:`TraceBuffer`). ``normaliser`` is a :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
+    calibration); without one the full ADC range 0-1023 is used.
+    """
+
+    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.02):
+        super().__init__(name="live-encoder", daemon=True)
+        self.taxels = taxels
+        self.poll_s = poll_s
+        if normaliser is None:  # no calibration yet: the full ADC range
+            from rigctl.encoding.normalise import TaxelRange
+
+            normaliser = TaxelRange(np.zeros(N_TAXELS), np.full(N_TAXELS, float(ADC_MAX)))
+        self.normaliser = normaliser
+        self.n_samples = 0  # frames encoded since start
+        self.sa = SpikeRing()
+        self.ra = SpikeRing()
+        self.encoder_error: str | None = None
+        self.ready = False  # the encoder's kernels are compiled and it is keeping up
+        self._halt = threading.Event()
+        self._reset_request = threading.Event()
+
+    @property
+    def stream_time_s(self) -> float:
+        return self.n_samples / SAMPLE_RATE_HZ
+
+    def stop(self, join: bool = True) -> None:
+        self._halt.set()
+        if join and self.is_alive() and threading.current_thread() is not self:
+            self.join(timeout=5)
+
+    def set_normaliser(self, taxel_range) -> None:
+        """Use a new per-taxel range (a calibration) and start the encoder afresh."""
+        self.normaliser = taxel_range
+        self._reset_request.set()
+
+    def _make_encoder(self):
+        from rigctl.encoding.izhikevich import StreamingEncoder
+
+        return StreamingEncoder(N_TAXELS, normalise=self.normaliser, fs=SAMPLE_RATE_HZ)
+
+    def run(self) -> None:
+        ring = self.taxels.ring
+        encoder = None
+        while not self._halt.is_set():
+            if encoder is None or self._reset_request.is_set():
+                self._reset_request.clear()
+                try:
+                    encoder = self._make_encoder()
+                    encoder.process(np.zeros((1, N_TAXELS), np.uint16))  # compile before going live
+                    encoder.reset()
+                except Exception as exc:  # noqa: BLE001 - shown in the live view; traces keep going
+                    self.encoder_error = f"{type(exc).__name__}: {exc}"
+                    self._halt.wait(1.0)
+                    encoder = None
+                    continue
+                cursor = start = ring.total
+                self.ready = True
+            cursor, samples, _seq, _t = ring.read_since(cursor)
+            if len(samples):
+                try:
+                    chunk = encoder.process(samples)  # raw ADC counts; the encoder normalises
+                except Exception as exc:  # noqa: BLE001
+                    self.encoder_error = f"{type(exc).__name__}: {exc}"
+                else:
+                    off = start / SAMPLE_RATE_HZ
+                    t, ch = chunk.events("sa")
+                    self.sa.extend(t + off, ch)
+                    t, ch = chunk.events("ra")
+                    self.ra.extend(t + off, ch)
+                    self.encoder_error = None
+                self.n_samples += len(samples)
+            self._halt.wait(self.poll_s)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Generic background job (encoding, analysis, protocol runs)
+# ----------------------------------------------------------------------------------------------------------------
+class Job(threading.Thread):
+    """Runs ``fn(job)`` in a thread. ``fn`` may call :meth:`progress` and check :attr:`cancel` (a threading.Event).
+
+    The GUI polls :attr:`done`, :attr:`fraction`, :attr:`message`, :attr:`result` and :attr:`error`.
+    """
+
+    def __init__(self, fn: Callable[["Job"], Any], name: str = "job"):
+        super().__init__(name=name, daemon=True)
+        self.fn = fn
+        self.cancel = threading.Event()
+        self.fraction = 0.0
+        self.message = ""
+        self.result = None
+        self.error: str | None = None
+        self.traceback: str | None = None
+        self.done = False
+        self.events: queue.SimpleQueue = queue.SimpleQueue()
+
+    def progress(self, fraction: float | None = None, message: str | None = None) -> None:
+        if fraction is not None:
+            self.fraction = float(fraction)
+        if message is not None:
+            self.message = message
+
+    def run(self) -> None:
+        try:
+            self.result = self.fn(self)
+        except BaseException as exc:  # noqa: BLE001 - reported in the GUI
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.traceback = traceback.format_exc()
+        finally:
+            self.done = True
