@@ -1,0 +1,269 @@
+"""Reports of analysis results: the paper's Table 1 layout, JSON / CSV, and Fig. 3-like plots (matplotlib, Agg).
+
+Table 1 of the paper: "Classification Accuracy with 50 PCs (%)", rows Individual Textures, Texture Groups,
+Untrained Speed and Force, Untrained Force, Untrained Speed, Trained Speed and Force; columns mu / sigma (n = 20) for
+Original, Speed Scaled, Force Scaled, Speed and Force Scaled (:data:`PAPER_TABLE1`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import numpy as np
+
+from rigctl.analysis.data import VARIANT_TITLES, VARIANTS
+from rigctl.analysis.tasks import TASK_TITLES, TaskResults
+
+__all__ = [
+    "PAPER_TABLE1",
+    "TABLE1_ROWS",
+    "table1",
+    "format_table1",
+    "to_json",
+    "to_csv",
+    "plot_curves",
+    "plot_confusions",
+    "qualitative_checks",
+]
+
+TABLE1_ROWS = ("textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed", "trained")
+
+#: the paper's Table 1: task -> variant -> (mu %, sigma %) at 50 PCs
+PAPER_TABLE1 = {
+    "textures": {"original": (91.78, 0.55), "speed_scaled": (97.76, 0.14), "force_scaled": (96.84, 0.43),
+                 "speed_force_scaled": (98.85, 0.16)},
+    "groups": {"original": (81.83, 0.53), "speed_scaled": (95.89, 0.26), "force_scaled": (92.20, 0.43),
+               "speed_force_scaled": (97.78, 0.19)},
+    "untrained_speed_force": {"original": (37.44, 1.28), "speed_scaled": (69.98, 0.87), "force_scaled": (67.01, 0.85),
+                              "speed_force_scaled": (83.15, 0.80)},
+    "untrained_force": {"original": (57.35, 0.79), "speed_scaled": (64.18, 0.55), "force_scaled": (89.38, 0.43),
+                        "speed_force_scaled": (88.73, 0.52)},
+    "untrained_speed": {"original": (36.81, 0.66), "speed_scaled": (85.52, 0.34), "force_scaled": (67.53, 0.78),
+                        "speed_force_scaled": (91.50, 0.27)},
+    "trained": {"original": (99.93, 0.04), "speed_scaled": (99.95, 0.04), "force_scaled": (99.91, 0.06),
+                "speed_force_scaled": (99.96, 0.04)},
+}
+
+
+def table1(res: TaskResults, n_pcs=50):
+    """Table 1 values from results: ``{task: {variant: (mu %, sigma %)}}`` at ``n_pcs`` (or the largest available).
+
+    Rows in Table 1 order first, then any other tasks present; missing variants are omitted.
+    """
+    out = {}
+    order = [t for t in TABLE1_ROWS if t in res.curves] + [t for t in res.curves if t not in TABLE1_ROWS]
+    for task in order:
+        out[task] = {}
+        for v in [v for v in VARIANTS if v in res.curves[task]] + [v for v in res.curves[task] if v not in VARIANTS]:
+            mu, sd = res.curves[task][v].at(n_pcs)
+            out[task][v] = (100 * mu, 100 * sd)
+    return out
+
+
+def _pcs_used(res: TaskResults, n_pcs):
+    return min([n_pcs] + [c.acc.shape[1] for by_v in res.curves.values() for c in by_v.values()])
+
+
+def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True) -> str:
+    """Plain-text Table 1 layout for ``res``.
+
+    Parameters
+    ----------
+    res : TaskResults
+    n_pcs : int
+        PC count of the table (clipped to the largest available; the title says which was used).
+    compare_paper : bool
+        Add a line with the paper's values under each row.
+    stars : bool
+        Mark scaled variants that differ from Original (Welch + Cohen's d: ``*``/``**``).
+
+    Returns
+    -------
+    str
+    """
+    used = _pcs_used(res, n_pcs)
+    tab = table1(res, used)
+    variants = [v for v in VARIANTS if any(v in row for row in tab.values())]
+    variants += sorted({v for row in tab.values() for v in row} - set(variants))
+    w0 = max([len(TASK_TITLES.get(t, t)) for t in tab] + [len("Paper")]) + 2
+    head1 = " " * w0 + "".join(f"{VARIANT_TITLES.get(v, v):^18}" for v in variants)
+    head2 = " " * w0 + "".join(f"{'mu (%)':>9}{'sd (%)':>9}" for _ in variants)
+    lines = [f"Classification accuracy with {used} PCs (%)" + (f" [asked for {n_pcs}]" if used != n_pcs else ""),
+             head1, head2]
+    for task, row in tab.items():
+        marks = {}
+        if stars:
+            for c in res.comparisons(task, used):
+                marks[c.variant] = c.stars_d
+        cells = ""
+        for v in variants:
+            if v in row:
+                mu, sd = row[v]
+                cells += f"{mu:9.2f}{sd:7.2f}{marks.get(v, ''):<2}"
+            else:
+                cells += f"{'-':>9}{'-':>9}"
+        lines.append(f"{TASK_TITLES.get(task, task):<{w0}}{cells}")
+        if compare_paper and task in PAPER_TABLE1:
+            ref = PAPER_TABLE1[task]
+            cells = "".join(f"{ref[v][0]:9.2f}{ref[v][1]:7.2f}  " if v in ref else f"{'':18}" for v in variants)
+            lines.append(f"{'  paper (50 PCs)':<{w0}}{cells}")
+    counts = res.counts
+    if counts:
+        lines.append("counts: " + json.dumps(counts, default=str))
+    for w in res.warnings:
+        lines.append("warning: " + w)
+    if stars:
+        lines.append("* p<0.05 and d>0.5, ** p<0.01 and d>1 (Welch's t-test, Cohen's d; vs Original)")
+    return "\n".join(lines)
+
+
+def qualitative_checks(res: TaskResults, n_pcs=50):
+    """The paper's qualitative result on the extrapolation cells, checked on ``res``.
+
+    Returns
+    -------
+    dict
+        check name -> bool (only checks whose tasks and variants are present):
+        ``untrained_speed_force``: SFS > SS and SFS > FS and min(SS, FS) > Original;
+        ``untrained_force``: min(FS, SFS) > max(Original, SS);
+        ``untrained_speed``: min(SS, SFS) > max(Original, FS).
+    """
+    tab = table1(res, _pcs_used(res, n_pcs))
+    out = {}
+
+    def mu(t, v):
+        return tab[t][v][0]
+
+    if "untrained_speed_force" in tab and len(tab["untrained_speed_force"]) == 4:
+        t = "untrained_speed_force"
+        out[t] = bool(mu(t, "speed_force_scaled") > max(mu(t, "speed_scaled"), mu(t, "force_scaled"))
+                      and min(mu(t, "speed_scaled"), mu(t, "force_scaled")) > mu(t, "original"))
+    if "untrained_force" in tab and len(tab["untrained_force"]) == 4:
+        t = "untrained_force"
+        out[t] = bool(min(mu(t, "force_scaled"), mu(t, "speed_force_scaled"))
+                      > max(mu(t, "original"), mu(t, "speed_scaled")))
+    if "untrained_speed" in tab and len(tab["untrained_speed"]) == 4:
+        t = "untrained_speed"
+        out[t] = bool(min(mu(t, "speed_scaled"), mu(t, "speed_force_scaled"))
+                      > max(mu(t, "original"), mu(t, "force_scaled")))
+    return out
+
+
+def to_dict(res: TaskResults, n_pcs=50, *, source=None):
+    """JSON-able dict: settings, counts, warnings, per task and variant the mean/sd curves (fractions), the table at
+    ``n_pcs`` (percent), the comparisons vs Original at ``n_pcs`` and the confusion matrices."""
+    used = _pcs_used(res, n_pcs)
+    out = {"source": source, "table_pcs": used, "settings": res.settings, "counts": res.counts,
+           "warnings": res.warnings, "tasks": {}, "qualitative": qualitative_checks(res, used)}
+    for task, by_v in res.curves.items():
+        out["tasks"][task] = {
+            "title": TASK_TITLES.get(task, task),
+            "variants": {
+                v: {"mean": c.mean.round(6).tolist(), "sd": c.sd.round(6).tolist(), "n_repeats": int(c.acc.shape[0]),
+                    "n_tested": c.n_tested, "table": dict(zip(("mu_pct", "sd_pct"), (100 * x for x in c.at(used)))),
+                    "classes": [str(k) for k in c.classes], "confusion_pcs": c.confusion_pcs,
+                    "confusion": c.confusion.tolist()}
+                for v, c in by_v.items()
+            },
+            "comparisons": [c.to_dict() for c in res.comparisons(task, used)],
+        }
+    return out
+
+
+def to_json(res: TaskResults, n_pcs=50, *, source=None) -> str:
+    """:func:`to_dict` as a JSON string."""
+    return json.dumps(to_dict(res, n_pcs, source=source), indent=1)
+
+
+def to_csv(res: TaskResults) -> str:
+    """Long-format CSV: task, variant, n_pcs, mean, sd, n_repeats, n_tested (accuracies as fractions)."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["task", "variant", "n_pcs", "mean", "sd", "n_repeats", "n_tested"])
+    for task, by_v in res.curves.items():
+        for v, c in by_v.items():
+            for n, m, s in zip(c.pcs, c.mean, c.sd):
+                w.writerow([task, v, int(n), f"{m:.6f}", f"{s:.6f}", c.acc.shape[0], c.n_tested])
+    return buf.getvalue()
+
+
+_COLOURS = {"original": "black", "force_scaled": "tab:red", "speed_scaled": "tab:blue",
+            "speed_force_scaled": "tab:green"}
+
+
+def plot_curves(res: TaskResults, path, *, tasks=None, title=None):
+    """Fig. 3-like figure: accuracy (%) vs number of PCs, mean +- sd error bars, one panel per task, to PNG.
+
+    Parameters
+    ----------
+    res : TaskResults
+    path : str or Path
+        Output image (format from the suffix, e.g. ``.png``).
+    tasks : sequence of str, optional
+        Panels (default: every task, Table 1 order first).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    tasks = tasks or ([t for t in TABLE1_ROWS if t in res.curves] + [t for t in res.curves if t not in TABLE1_ROWS])
+    n = len(tasks)
+    cols = min(n, 2 if n <= 4 else 3)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.6 * rows), squeeze=False)
+    for ax, task in zip(axes.ravel(), tasks):
+        for v, c in res.curves[task].items():
+            ax.errorbar(c.pcs, 100 * c.mean, yerr=100 * c.sd, label=VARIANT_TITLES.get(v, v),
+                        color=_COLOURS.get(v), capsize=2, lw=1.2, elinewidth=0.8)
+        chance = 100.0 / max(len(next(iter(res.curves[task].values())).classes), 1)
+        ax.axhline(chance, color="grey", ls=":", lw=0.8)
+        ax.set_title(TASK_TITLES.get(task, task), fontsize=10)
+        ax.set_xlabel("number of PCs")
+        ax.set_ylabel("accuracy (%)")
+        ax.set_ylim(0, 100)
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    axes.ravel()[0].legend(fontsize=8, loc="lower right")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_confusions(res: TaskResults, path, task, *, normalise=True):
+    """Confusion matrices of one task, one panel per variant (like Figs. S1-S4), to PNG.
+
+    Raises
+    ------
+    KeyError
+        If ``task`` is not in ``res``.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    by_v = res.curves[task]
+    fig, axes = plt.subplots(1, len(by_v), figsize=(4.2 * len(by_v), 4.0), squeeze=False)
+    for ax, (v, c) in zip(axes[0], by_v.items()):
+        cm = c.confusion.astype(float)
+        if normalise:
+            cm = 100 * cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
+        ax.imshow(cm, cmap="Blues", vmin=0, vmax=100 if normalise else None)
+        ax.set_xticks(range(len(c.classes)), [str(k)[:6] for k in c.classes], fontsize=7, rotation=90)
+        ax.set_yticks(range(len(c.classes)), [str(k)[:6] for k in c.classes], fontsize=7)
+        acc = np.trace(c.confusion) / max(c.confusion.sum(), 1)
+        ax.set_title(f"{VARIANT_TITLES.get(v, v)}\n{100 * acc:.1f}% at {c.confusion_pcs} PCs", fontsize=9)
+        ax.set_xlabel("predicted")
+        ax.set_ylabel("true")
+    fig.suptitle(TASK_TITLES.get(task, task), fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

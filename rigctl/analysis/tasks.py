@@ -1,0 +1,600 @@
+"""The paper's classification tasks (Fig. 3, Table 1, Fig. 4) on a :class:`~rigctl.analysis.data.FeatureSet`.
+
+Methods, "Tactile Texture Dataset - Statistical Analysis":
+
+* **Individual textures** (Fig. 3A) and **texture groups** (Fig. 3B): 500 trials drawn at random per texture (8000 of
+  24,000), 4-fold cross-validation (6000 train / 2000 test per fold); the accuracy of one repetition is over all
+  8000 tested trials. Both tasks use the same draws and folds, so one PCA per (repetition, fold, variant) serves
+  both label sets (PCA is unsupervised).
+* **Extrapolation** (Fig. 3C-F): train on speeds 40/60/80 mm/s x forces 250/500 g: per texture and trained cell,
+  75 trials train and 25 test; 25 test trials per texture from every untrained cell. The test set is split into the
+  four cells of Fig. 3C-F: untrained speed and force, untrained force, untrained speed, trained.
+* Every task: 20 repetitions (new random draws), accuracy for PCs 1..50 (PCA fitted once per split, nested PCs,
+  :mod:`rigctl.analysis.classify`), mean and sd per PC count, confusion matrices at the table's PC count,
+  Original vs each scaled variant with Welch + Cohen's d and the two-proportion z-test + Cohen's h.
+
+When a data set has fewer trials than the paper, the per-texture / per-cell counts are scaled down automatically
+(a :class:`UserWarning` is emitted and the counts are stored in :attr:`TaskResults.counts`).
+
+Methods, "Real-time Texture Classification - Statistical Analysis" (Fig. 4): :func:`run_realtime` on ramp-profile
+trials (velocity profiles slow / medium / fast / slow-to-fast / fast-to-slow): k = 4 cross-validation offline;
+train on 75 % of the slow and medium trials and test on the rest (trained profiles) and on the untrained profiles;
+and, given a second session, the mean-centering calibration (10 trials per texture from the new session) before
+classifying it with the model trained on the first; LDA on 25 PCs is the headline PC count.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from sklearn.metrics import confusion_matrix
+from sklearn.model_selection import StratifiedKFold
+
+from rigctl.analysis.classify import NestedLDA, fit_pca
+from rigctl.analysis.data import FeatureSet
+from rigctl.analysis.stats import Comparison
+
+__all__ = [
+    "TASK_TITLES",
+    "EXTRAPOLATION_CELLS",
+    "Curve",
+    "TaskResults",
+    "run_cv",
+    "run_extrapolation",
+    "run_realtime",
+    "run_table1",
+]
+
+#: task key -> the paper's row title (Table 1 / Fig. 3 panel)
+TASK_TITLES = {
+    "textures": "Individual Textures (Fig. 3A)",
+    "groups": "Texture Groups (Fig. 3B)",
+    "untrained_speed_force": "Untrained Speed and Force (Fig. 3C)",
+    "untrained_force": "Untrained Force (Fig. 3D)",
+    "untrained_speed": "Untrained Speed (Fig. 3E)",
+    "trained": "Trained Speed and Force (Fig. 3F)",
+    "rt_offline": "Real-time offline, k=4 CV (Fig. 4B blue)",
+    "rt_new_session": "Real-time new session, calibrated (Fig. 4B green)",
+    "rt_trained": "Real-time trained profiles (Fig. 4C blue)",
+    "rt_untrained": "Real-time untrained profiles (Fig. 4C green)",
+}
+#: extrapolation test cells: (speed trained?, force trained?) -> task key
+EXTRAPOLATION_CELLS = {
+    (False, False): "untrained_speed_force",
+    (True, False): "untrained_force",
+    (False, True): "untrained_speed",
+    (True, True): "trained",
+}
+
+
+@dataclass
+class Curve:
+    """Accuracy over PC counts for one task and one variant.
+
+    Attributes
+    ----------
+    task, variant : str
+    acc : ndarray (n_repeats, n_pcs) float64
+        Fraction correct per repetition; column ``j`` uses PCs ``1..j+1``.
+    n_tested : int
+        Test trials per repetition.
+    classes : list of str
+    confusion : ndarray (n_classes, n_classes) int64
+        Rows true, columns predicted, summed over repetitions, at :attr:`confusion_pcs` PCs.
+    confusion_pcs : int
+    """
+
+    task: str
+    variant: str
+    acc: np.ndarray
+    n_tested: int
+    classes: list
+    confusion: np.ndarray
+    confusion_pcs: int
+
+    @property
+    def pcs(self):
+        return np.arange(1, self.acc.shape[1] + 1)
+
+    @property
+    def mean(self):
+        return self.acc.mean(axis=0)
+
+    @property
+    def sd(self):
+        """Sample standard deviation over repetitions (``ddof=1``; 0 for one repetition)."""
+        return self.acc.std(axis=0, ddof=1) if self.acc.shape[0] > 1 else np.zeros(self.acc.shape[1])
+
+    def at(self, n_pcs):
+        """(mean, sd) of the accuracy with ``n_pcs`` PCs (clipped to the largest available)."""
+        j = min(int(n_pcs), self.acc.shape[1]) - 1
+        return float(self.mean[j]), float(self.sd[j])
+
+
+@dataclass
+class TaskResults:
+    """Results of one or more tasks: ``curves[task][variant] -> Curve``, plus the counts actually used."""
+
+    curves: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    def add(self, curve: Curve):
+        self.curves.setdefault(curve.task, {})[curve.variant] = curve
+
+    def merge(self, other: "TaskResults"):
+        for task, by_v in other.curves.items():
+            for c in by_v.values():
+                self.add(c)
+        self.counts.update(other.counts)
+        self.warnings.extend(other.warnings)
+        self.settings.update(other.settings)
+        return self
+
+    @property
+    def tasks(self):
+        return list(self.curves)
+
+    def comparisons(self, task, n_pcs=None, baseline="original"):
+        """Original vs each other variant for ``task``: list of :class:`~rigctl.analysis.stats.Comparison`.
+
+        Parameters
+        ----------
+        n_pcs : int or None
+            One PC count, or None for every PC count.
+        """
+        by_v = self.curves[task]
+        if baseline not in by_v:
+            return []
+        base = by_v[baseline]
+        out = []
+        for v, c in by_v.items():
+            if v == baseline:
+                continue
+            n_max = min(base.acc.shape[1], c.acc.shape[1])
+            pcs = range(1, n_max + 1) if n_pcs is None else [min(int(n_pcs), n_max)]
+            for n in pcs:
+                if base.acc.shape[0] < 2:
+                    continue
+                out.append(Comparison.of(v, n, base.acc[:, n - 1], c.acc[:, n - 1], base.n_tested, c.n_tested))
+        return out
+
+
+def _warn(res: TaskResults, msg: str):
+    res.warnings.append(msg)
+    warnings.warn(msg, UserWarning, stacklevel=3)
+
+
+def _progress(total, desc, enabled):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, disable=not enabled, unit="fit", leave=False)
+
+
+def _variants(fs: FeatureSet, variants):
+    vs = fs.variants if variants is None else list(variants)
+    missing = [v for v in vs if v not in fs.features]
+    if missing:
+        raise KeyError(f"variants not in the data: {missing} (have {fs.variants})")
+    if not vs:
+        raise ValueError("no feature variants to analyse")
+    return vs
+
+
+def _accumulate(pred, truth, classes, confusion_pcs):
+    """pred (n_pcs, n_test) -> correct counts per PC and the confusion matrix at confusion_pcs."""
+    correct = (pred == truth[None, :]).sum(axis=1)
+    j = min(confusion_pcs, pred.shape[0]) - 1
+    cm = confusion_matrix(truth, pred[j], labels=classes)
+    return correct, cm
+
+
+def run_cv(
+    fs: FeatureSet,
+    tasks=("textures", "groups"),
+    *,
+    variants=None,
+    n_pcs=50,
+    repeats=20,
+    per_texture=500,
+    k=4,
+    seed=0,
+    confusion_pcs=None,
+    progress=False,
+) -> TaskResults:
+    """Individual-texture and texture-group classification with k-fold CV (Fig. 3A-B).
+
+    Parameters
+    ----------
+    fs : FeatureSet
+    tasks : sequence of {"textures", "groups"}
+        Label sets to classify; they share draws, folds and PCA fits.
+    variants : sequence of str, optional
+        Feature variants (default: all in ``fs``).
+    n_pcs : int
+        Largest PC count (the paper: 50).
+    repeats : int
+        Repetitions, each a new random draw of ``per_texture`` trials per texture and new folds (the paper: 20).
+    per_texture : int
+        Trials drawn per texture (the paper: 500 of 1500); reduced with a warning to the smallest texture's count.
+    k : int
+        Folds (the paper: 4).
+    seed : int
+        Repetition ``r`` uses ``numpy.random.default_rng([seed, r])``: the same draws for every variant.
+    confusion_pcs : int, optional
+        PC count for the confusion matrices (default ``n_pcs``).
+    progress : bool
+        Show a tqdm bar.
+
+    Returns
+    -------
+    TaskResults
+
+    Raises
+    ------
+    ValueError
+        Unknown task, "groups" without group labels, or fewer than ``k`` trials per texture.
+    """
+    for t in tasks:
+        if t not in ("textures", "groups"):
+            raise ValueError(f"unknown CV task '{t}'")
+    if "groups" in tasks and fs.group is None:
+        raise ValueError("texture groups need a 'group' column in /trials (or textures lettered A-P)")
+    vs = _variants(fs, variants)
+    res = TaskResults()
+    textures, counts = np.unique(fs.texture, return_counts=True)
+    n_draw = int(min(per_texture, counts.min()))
+    if n_draw < k:
+        raise ValueError(f"need at least {k} trials per texture for {k}-fold CV (smallest texture has {counts.min()})")
+    if n_draw < per_texture:
+        _warn(res, f"textures/groups: only {counts.min()} trials for some texture; drawing {n_draw} per texture "
+              f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "
+              f"{per_texture * len(textures)})")
+    res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
+                        "trials_per_repeat": n_draw * len(textures)}
+    confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
+    labels = {"textures": fs.texture, "groups": fs.group}
+    classes = {t: list(np.unique(labels[t])) for t in tasks}
+    by_tex = [np.flatnonzero(fs.texture == t) for t in textures]
+    n_used = None
+    acc = {(t, v): [] for t in tasks for v in vs}
+    cms = {(t, v): 0 for t in tasks for v in vs}
+    bar = _progress(repeats * k * len(vs), "textures/groups", progress)
+    for r in range(repeats):
+        rng = np.random.default_rng([seed, r])
+        idx = np.concatenate([rng.choice(ix, n_draw, replace=False) for ix in by_tex])
+        folds = list(StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31))).split(idx, fs.texture[idx]))
+        for v in vs:
+            x = fs.features[v][idx]
+            correct = {t: [] for t in tasks}
+            for f, (tr, te) in enumerate(folds):
+                pca = fit_pca(x[tr], n_pcs, random_state=r * k + f)
+                n_here = min(n_pcs, pca.n_components_)
+                n_used = n_here if n_used is None else min(n_used, n_here)
+                z_tr = pca.transform(x[tr])
+                z_te = pca.transform(x[te])
+                for t in tasks:
+                    y = labels[t][idx]
+                    pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te, n_here)
+                    c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
+                    correct[t].append(c)
+                    cms[(t, v)] = cms[(t, v)] + cm
+                bar.update(1)
+            for t in tasks:
+                total = sum(c[:n_used] for c in correct[t])
+                acc[(t, v)].append(np.asarray(total, dtype=np.float64) / len(idx))
+    bar.close()
+    for t in tasks:
+        for v in vs:
+            a = np.vstack([row[:n_used] for row in acc[(t, v)]])
+            res.add(Curve(t, v, a, len(idx), classes[t], np.asarray(cms[(t, v)], dtype=np.int64),
+                          min(confusion_pcs, n_used)))
+    res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
+    return res
+
+
+def _cells(fs: FeatureSet):
+    return np.round(np.abs(fs.speed_mm_s), 6), np.round(fs.force_g, 6)
+
+
+def run_extrapolation(
+    fs: FeatureSet,
+    *,
+    train_speeds=(40, 60, 80),
+    train_forces=(250, 500),
+    test_speeds=None,
+    test_forces=None,
+    variants=None,
+    n_pcs=50,
+    repeats=20,
+    n_train=75,
+    n_test=25,
+    seed=0,
+    confusion_pcs=None,
+    progress=False,
+    prefix="",
+) -> TaskResults:
+    """Texture extrapolation to untrained speed-force conditions (Fig. 3C-F).
+
+    Parameters
+    ----------
+    fs : FeatureSet
+    train_speeds : sequence of float
+        Trained speeds in mm/s (matched on ``|speed|``: FabricSlide's signed directions count as one speed).
+        ``None`` = every speed.
+    train_forces : sequence of float
+        Trained forces in g; ``None`` = every force.
+    test_speeds, test_forces : sequence of float, optional
+        Restrict the untrained test cells to these (default: every condition in the data).
+    variants : sequence of str, optional
+    n_pcs, repeats, seed, confusion_pcs, progress
+        As :func:`run_cv`.
+    n_train, n_test : int
+        Per texture and trained cell: training and held-out test trials (the paper: 75 and 25); untrained cells
+        contribute ``n_test`` test trials per texture. Reduced proportionally (with a warning) when a cell has fewer
+        than ``n_train + n_test`` trials.
+    prefix : str
+        Prepended to the task keys (e.g. ``"speed_"`` for the speed-only extrapolation).
+
+    Returns
+    -------
+    TaskResults
+        Tasks ``untrained_speed_force``, ``untrained_force``, ``untrained_speed``, ``trained`` (those with test trials).
+
+    Raises
+    ------
+    ValueError
+        No trials in the trained cells, or a trained cell too small to split.
+    """
+    vs = _variants(fs, variants)
+    res = TaskResults()
+    spd, frc = _cells(fs)
+    tr_s = np.unique(spd) if train_speeds is None else np.round(np.abs(np.asarray(train_speeds, float)), 6)
+    tr_f = np.unique(frc) if train_forces is None else np.round(np.asarray(train_forces, float), 6)
+    s_in = np.isin(spd, tr_s)
+    f_in = np.isin(frc, tr_f)
+    keep = np.ones(fs.n_trials, bool)
+    if test_speeds is not None:
+        keep &= np.isin(spd, np.round(np.abs(np.asarray(test_speeds, float)), 6)) | s_in
+    if test_forces is not None:
+        keep &= np.isin(frc, np.round(np.asarray(test_forces, float), 6)) | f_in
+    trained = s_in & f_in
+    if not trained.any():
+        raise ValueError(f"no trials at the trained speeds {list(tr_s)} mm/s and forces {list(tr_f)} g")
+    textures = np.unique(fs.texture)
+    # cells: (texture, speed, force)
+    cell_key = np.char.add(np.char.add(fs.texture.astype(str), "|"),
+                           np.char.add(spd.astype(str), np.char.add("|", frc.astype(str))))
+    cells = {}
+    for i in np.flatnonzero(keep):
+        cells.setdefault(cell_key[i], []).append(i)
+    cells = {c: np.asarray(ix) for c, ix in cells.items()}
+    trained_cells = [c for c, ix in cells.items() if trained[ix[0]]]
+    test_cells = [c for c, ix in cells.items() if not trained[ix[0]]]
+    min_tr = min(len(cells[c]) for c in trained_cells)
+    a_tr, a_te = n_train, n_test
+    if min_tr < n_train + n_test:
+        a_te = max(1, int(round(min_tr * n_test / (n_train + n_test))))
+        a_tr = min_tr - a_te
+        if a_tr < 1:
+            raise ValueError(f"a trained cell has only {min_tr} trials: cannot split into train and test")
+    min_te = min((len(cells[c]) for c in test_cells), default=a_te)
+    u_te = min(a_te, min_te)
+    if (a_tr, a_te, u_te) != (n_train, n_test, n_test):
+        _warn(res, f"{prefix}extrapolation: smallest trained cell has {min_tr} trials and smallest untrained cell "
+              f"{min_te}; using {a_tr} train + {a_te} test per texture and trained cell and {u_te} test per untrained "
+              f"cell (paper: {n_train} + {n_test}, {n_test})")
+    res.counts[prefix + "extrapolation"] = {
+        "train_per_cell": a_tr, "test_per_trained_cell": a_te, "test_per_untrained_cell": u_te,
+        "trained_speeds": [float(s) for s in tr_s], "trained_forces": [float(f) for f in tr_f],
+        "n_trained_cells": len(trained_cells), "n_untrained_cells": len(test_cells), "repeats": repeats,
+    }
+    confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
+    classes = list(textures)
+    cat_of = {cell: EXTRAPOLATION_CELLS[(bool(s_in[ix[0]]), bool(f_in[ix[0]]))] for cell, ix in cells.items()}
+    cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
+    acc = {(c, v): [] for c in cats for v in vs}
+    cms = {(c, v): 0 for c in cats for v in vs}
+    n_tested = {}
+    n_used = None
+    bar = _progress(repeats * len(vs), prefix + "extrapolation", progress)
+    for r in range(repeats):
+        rng = np.random.default_rng([seed, 10_000 + r])
+        train_idx, test_idx, test_cat = [], [], []
+        for cell in sorted(cells):
+            perm = rng.permutation(cells[cell])
+            if cell in trained_cells:
+                train_idx.append(perm[:a_tr])
+                chosen = perm[a_tr : a_tr + a_te]
+            else:
+                chosen = perm[:u_te]
+            test_idx.append(chosen)
+            test_cat += [cat_of[cell]] * len(chosen)
+        train_idx = np.concatenate(train_idx)
+        test_idx = np.concatenate(test_idx)
+        test_cat = np.asarray(test_cat)
+        y_tr, y_te = fs.texture[train_idx], fs.texture[test_idx]
+        for v in vs:
+            x = fs.features[v]
+            pca = fit_pca(x[train_idx], n_pcs, random_state=r)
+            n_here = min(n_pcs, pca.n_components_)
+            n_used = n_here if n_used is None else min(n_used, n_here)
+            pred = NestedLDA().fit(pca.transform(x[train_idx]), y_tr).predict_all(pca.transform(x[test_idx]), n_here)
+            for c in cats:
+                m = test_cat == c
+                correct, cm = _accumulate(pred[:, m], y_te[m], classes, confusion_pcs)
+                acc[(c, v)].append(correct / m.sum())
+                cms[(c, v)] = cms[(c, v)] + cm
+                n_tested[c] = int(m.sum())
+            bar.update(1)
+    bar.close()
+    for c in cats:
+        for v in vs:
+            a = np.vstack([row[:n_used] for row in acc[(c, v)]])
+            res.add(Curve(prefix + c, v, a, n_tested[c], classes, np.asarray(cms[(c, v)], np.int64),
+                          min(confusion_pcs, n_used)))
+    res.counts[prefix + "extrapolation"]["tested_per_repeat"] = {prefix + c: n_tested[c] for c in cats}
+    res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
+    return res
+
+
+def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=False, **cv_kw) -> TaskResults:
+    """All six rows of Table 1 (textures, groups and the four extrapolation cells), every variant."""
+    res = run_cv(fs, ("textures", "groups") if fs.group is not None else ("textures",), variants=variants,
+                 n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress, **cv_kw)
+    return res.merge(run_extrapolation(fs, variants=variants, n_pcs=n_pcs, repeats=repeats, seed=seed,
+                                       progress=progress))
+
+
+def _project(pca, x, centre):
+    return (np.asarray(x, np.float64) - centre) @ np.asarray(pca.components_, np.float64).T
+
+
+def run_realtime(
+    fs: FeatureSet,
+    *,
+    new_session: FeatureSet | None = None,
+    train_profiles=("slow", "medium"),
+    variants=None,
+    n_pcs=50,
+    repeats=100,
+    k=4,
+    train_fraction=0.75,
+    calibration_per_texture=10,
+    headline_pcs=25,
+    seed=0,
+    progress=False,
+) -> TaskResults:
+    """The real-time analyses of Fig. 4 on ramp-profile trials (Methods, real-time Statistical Analysis).
+
+    Parameters
+    ----------
+    fs : FeatureSet
+        Training session: trials with a ``profile`` column (velocity-profile names), features of the real-time
+        encoding (SA spike rates of 100 ms windows; variants ``original`` and ``speed_scaled``).
+    new_session : FeatureSet, optional
+        A second session: the model trained on ``train_fraction`` of ``fs`` is calibrated with the mean vector of
+        ``calibration_per_texture`` trials per texture of it (spread over its profiles) and tested on the rest
+        (task ``rt_new_session``, Fig. 4B green).
+    train_profiles : sequence of str
+        Profiles trained in the extrapolation task (the paper: slow, medium).
+    variants : sequence of str, optional
+        Default: every variant of ``fs``.
+    n_pcs : int
+        Largest PC count (curves), clipped to what the training split supports.
+    repeats : int
+        Repetitions (the paper: 100 per data set).
+    k : int
+        Folds of the offline task (the paper: 4).
+    train_fraction : float
+        Fraction of the (trained-profile) trials drawn for training in the extrapolation / new-session tasks.
+    headline_pcs : int
+        PC count of the confusion matrices (the paper's real-time classifier: 25).
+
+    Returns
+    -------
+    TaskResults
+        Tasks ``rt_offline``, ``rt_trained``, ``rt_untrained`` and, with ``new_session``, ``rt_new_session``.
+
+    Raises
+    ------
+    ValueError
+        No ``profile`` column, or none of ``train_profiles`` present.
+    """
+    if fs.profile is None:
+        raise ValueError("the real-time analysis needs ramp-profile trials: /trials has no 'profile' column")
+    vs = _variants(fs, variants)
+    res = TaskResults()
+    classes = list(np.unique(fs.texture))
+    profiles = np.unique(fs.profile)
+    trained_p = [p for p in train_profiles if p in set(profiles)]
+    if not trained_p:
+        raise ValueError(f"none of the training profiles {list(train_profiles)} in the data (has {list(profiles)})")
+    in_tr = np.isin(fs.profile, trained_p)
+    res.counts["realtime"] = {"trials": fs.n_trials, "profiles": list(map(str, profiles)),
+                              "trained_profiles": trained_p, "repeats": repeats, "folds": k,
+                              "trained_profile_trials": int(in_tr.sum()),
+                              "untrained_profile_trials": int((~in_tr).sum())}
+    store = {}
+    n_used = [n_pcs]
+
+    def add(task, v, pred, truth):
+        correct, cm = _accumulate(pred, truth, classes, headline_pcs)
+        a, c, n = store.get((task, v), ([], 0, 0))
+        a.append(correct)
+        store[(task, v)] = (a, c + cm, len(truth))
+
+    bar = _progress(repeats * len(vs), "realtime", progress)
+    for r in range(repeats):
+        rng = np.random.default_rng([seed, 20_000 + r])
+        folds = list(StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31))).split(fs.texture,
+                                                                                                    fs.texture))
+        tr_idx = _stratified_fraction(np.flatnonzero(in_tr), fs.texture, train_fraction, rng)
+        held = np.setdiff1d(np.flatnonzero(in_tr), tr_idx)
+        untr = np.flatnonzero(~in_tr)
+        all_tr = _stratified_fraction(np.arange(fs.n_trials), fs.texture, train_fraction, rng)
+        if new_session is not None:
+            cal = _calibration_draw(new_session, calibration_per_texture, rng)
+            rest = np.setdiff1d(np.arange(new_session.n_trials), cal)
+        for v in vs:
+            x = fs.features[v]
+            preds, truths = [], []
+            for f, (tr, te) in enumerate(folds):
+                pca = fit_pca(x[tr], n_pcs, random_state=r * k + f)
+                n_used[0] = min(n_used[0], pca.n_components_)
+                lda = NestedLDA().fit(pca.transform(x[tr]), fs.texture[tr])
+                preds.append(lda.predict_all(pca.transform(x[te]), pca.n_components_)[: n_used[0]])
+                truths.append(fs.texture[te])
+            add("rt_offline", v, np.hstack([p[: n_used[0]] for p in preds]), np.concatenate(truths))
+            pca = fit_pca(x[tr_idx], n_pcs, random_state=r)
+            n_used[0] = min(n_used[0], pca.n_components_)
+            lda = NestedLDA().fit(pca.transform(x[tr_idx]), fs.texture[tr_idx])
+            if len(held):
+                add("rt_trained", v, lda.predict_all(pca.transform(x[held]), n_used[0]), fs.texture[held])
+            if len(untr):
+                add("rt_untrained", v, lda.predict_all(pca.transform(x[untr]), n_used[0]), fs.texture[untr])
+            if new_session is not None and v in new_session.features:
+                pca = fit_pca(x[all_tr], n_pcs, random_state=r)
+                n_used[0] = min(n_used[0], pca.n_components_)
+                lda = NestedLDA().fit(pca.transform(x[all_tr]), fs.texture[all_tr])
+                xn = new_session.features[v]
+                centre = xn[cal].astype(np.float64).mean(axis=0)  # mean-centering calibration
+                add("rt_new_session", v, lda.predict_all(_project(pca, xn[rest], centre), n_used[0]),
+                    new_session.texture[rest])
+            bar.update(1)
+    bar.close()
+    n = n_used[0]
+    for (task, v), (a, cm, n_te) in store.items():
+        acc = np.vstack([row[:n] for row in a]).astype(np.float64) / n_te
+        res.add(Curve(task, v, acc, n_te, classes, np.asarray(cm, np.int64), min(headline_pcs, n)))
+    res.settings.update({"n_pcs": n, "repeats": repeats, "seed": seed, "headline_pcs": headline_pcs})
+    return res
+
+
+def _stratified_fraction(idx, labels, fraction, rng):
+    """A random ``fraction`` of ``idx`` drawn within each label (at least one per label, at most all but one)."""
+    out = []
+    for lab in np.unique(labels[idx]):
+        ix = idx[labels[idx] == lab]
+        m = int(round(fraction * len(ix)))
+        m = min(max(m, 1), max(len(ix) - 1, 1))
+        out.append(rng.choice(ix, m, replace=False))
+    return np.sort(np.concatenate(out))
+
+
+def _calibration_draw(fs: FeatureSet, per_texture, rng):
+    """Calibration trials of a new session: ``per_texture`` per texture spread evenly over its profiles."""
+    out = []
+    for tex in np.unique(fs.texture):
+        ix = np.flatnonzero(fs.texture == tex)
+        if fs.profile is not None:
+            groups = [ix[fs.profile[ix] == p] for p in np.unique(fs.profile[ix])]
+            per = max(1, per_texture // len(groups))
+            chosen = np.concatenate([rng.permutation(g)[: min(per, len(g) - 1 if len(g) > 1 else 0)] for g in groups])
+        else:
+            chosen = rng.permutation(ix)[: min(per_texture, len(ix) - 1)]
+        out.append(chosen.astype(np.int64))
+    return np.sort(np.concatenate(out))

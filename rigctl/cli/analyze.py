@@ -1,0 +1,209 @@
+"""``rigctl analyze``: the paper's PCA + LDA analyses (Fig. 3, Table 1, Fig. 4) on an encoded file."""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import click
+
+TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all")
+
+
+def _parse_pcs(text):
+    text = str(text).strip()
+    lo, _, hi = text.partition("-")
+    try:
+        lo_i, hi_i = (1, int(lo)) if not hi else (int(lo), int(hi))
+    except ValueError:
+        raise click.BadParameter(f"expected N or 1-N, got '{text}'") from None
+    if lo_i != 1 or hi_i < 1:
+        raise click.BadParameter("PC ranges start at 1 (nested PCs 1..N), e.g. 1-50")
+    return hi_i
+
+
+def _floats(text):
+    if text is None:
+        return None
+    try:
+        return [float(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated numbers, got '{text}'") from None
+
+
+def _load(path, encode, variants):
+    from rigctl.analysis.data import NotEncodedError, load_features
+
+    try:
+        return load_features(path, variants)
+    except NotEncodedError as exc:
+        if not encode:
+            raise click.ClickException(str(exc)) from None
+    try:
+        from rigctl.encoding.pipeline import encode_session
+    except ImportError as exc:  # pragma: no cover - depends on the encoding package
+        raise click.ClickException(f"cannot encode on the fly: rigctl.encoding.pipeline unavailable ({exc})") from None
+    out = Path(tempfile.mkdtemp(prefix="rigctl-analyze-")) / (Path(path).stem + ".encoded.h5")
+    click.echo(f"encoding {path} -> {out} (rigctl encode) ...", err=True)
+    encode_session(path, out)
+    return load_features(out, variants)
+
+
+def _n_channels(fs, option):
+    if option:
+        return option
+    for key in ("n_spike_trains", "n_trains", "n_channels"):
+        if key in fs.attrs:
+            return int(fs.attrs[key])
+    if "n_taxels" in fs.attrs:
+        return 2 * int(fs.attrs["n_taxels"])
+    raise click.ClickException("--baseline remove needs the number of spike trains per trial: pass --channels N")
+
+
+@click.command("analyze")
+@click.argument("file", type=click.Path(exists=True, dir_okay=False))
+@click.option("--task", type=click.Choice(TASKS), default="all", show_default=True,
+              help="Analysis: Fig. 3A textures, 3B groups, 3C-F extrapolation, speed-only extrapolation, Fig. 4 "
+                   "real-time; 'all' = the six rows of Table 1.")
+@click.option("--pcs", default="1-50", show_default=True, help="PC counts 1-N (PCA fitted once per split).")
+@click.option("--repeats", type=click.IntRange(1), default=20, show_default=True, help="Repetitions per task.")
+@click.option("--variants", default=None, help="Comma-separated variants (default: all in the file).")
+@click.option("--per-texture", type=click.IntRange(2), default=500, show_default=True,
+              help="Trials drawn per texture for textures/groups (scaled down when the data has fewer).")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--table1", "table1_", is_flag=True, help="Print the paper's Table 1 layout (implies --task all).")
+@click.option("--table-pcs", type=click.IntRange(1), default=50, show_default=True, help="PC count of the table.")
+@click.option("--compare-paper", is_flag=True, help="Show the paper's Table 1 values beside ours.")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON on stdout.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="Fig. 3-like PNG of accuracy vs PCs.")
+@click.option("--confusion", type=click.Path(dir_okay=False), default=None,
+              help="PNG of confusion matrices (of the first untrained extrapolation cell, else the first task).")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None, help="Long-format CSV of curves.")
+@click.option("--train-speeds", default=None, help="Trained speeds, mm/s (extrapolation default 40,60,80; "
+                                                    "speed-extrapolation: required).")
+@click.option("--test-speeds", default=None, help="Untrained speeds tested (default: all others).")
+@click.option("--train-forces", default=None, help="Trained forces, g (extrapolation default 250,500).")
+@click.option("--baseline", type=click.Choice(["keep", "remove", "both"]), default="keep", show_default=True,
+              help="Per-trial, per-spike-train level removal before PCA (FabricSlide: the level alone separates "
+                   "fabrics); 'both' reports both.")
+@click.option("--channels", type=int, default=None, help="Spike trains per trial (for --baseline; default from file).")
+@click.option("--new-session", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="realtime: an encoded second session, classified after mean-centering calibration.")
+@click.option("--train-profiles", default="slow,medium", show_default=True, help="realtime: trained profiles.")
+@click.option("--save-model", type=click.Path(dir_okay=False), default=None,
+              help="Also fit a TextureClassifier on all trials (--model-variant, --model-pcs) and save it.")
+@click.option("--model-variant", default="speed_scaled", show_default=True)
+@click.option("--model-pcs", type=click.IntRange(1), default=25, show_default=True)
+@click.option("--encode", "encode_", is_flag=True, help="If FILE is a session file, encode it first.")
+@click.option("--threads", type=click.IntRange(1), default=None, help="Limit BLAS threads (busy machines).")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def analyze(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
+            confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
+            train_profiles, save_model, model_variant, model_pcs, encode_, threads, progress):
+    """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
+
+    Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
+    Welch's t-test / Cohen's d stars vs Original), or as JSON with --json.
+    """
+    from threadpoolctl import threadpool_limits
+
+    limiter = threadpool_limits(threads) if threads else None
+    try:
+        _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
+             confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
+             train_profiles, save_model, model_variant, model_pcs, encode_, progress)
+    finally:
+        if limiter is not None:
+            limiter.unregister()
+
+
+def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
+         confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
+         train_profiles, save_model, model_variant, model_pcs, encode_, progress):
+    from rigctl.analysis import report, tasks
+    from rigctl.analysis.data import remove_baseline
+
+    n_pcs = _parse_pcs(pcs)
+    vlist = [v.strip() for v in variants.split(",")] if variants else None
+    if table1_:
+        task = "all"
+    fs = _load(file, encode_, vlist)
+    if task == "speed-extrapolation" and not train_speeds:
+        raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
+
+    runs = [("", fs)]
+    if baseline in ("remove", "both"):
+        nch = _n_channels(fs, channels)
+        fs_b = fs.subset(slice(None))
+        fs_b.features = {v: remove_baseline(x, nch) for v, x in fs.features.items()}
+        runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
+
+    res_all = tasks.TaskResults()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for tag, data in runs:
+            res = tasks.TaskResults()
+            try:
+                if task in ("textures", "groups", "all"):
+                    wanted = ("textures", "groups") if task == "all" else (task,)
+                    if task == "all" and data.group is None:
+                        wanted = ("textures",)
+                    res.merge(tasks.run_cv(data, wanted, variants=vlist, n_pcs=n_pcs, repeats=repeats,
+                                           per_texture=per_texture, seed=seed, progress=progress))
+                if task in ("extrapolation", "all"):
+                    res.merge(tasks.run_extrapolation(
+                        data, train_speeds=_floats(train_speeds) or (40, 60, 80),
+                        train_forces=_floats(train_forces) or (250, 500), test_speeds=_floats(test_speeds),
+                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress))
+                if task == "speed-extrapolation":
+                    res.merge(tasks.run_extrapolation(
+                        data, train_speeds=_floats(train_speeds), train_forces=_floats(train_forces),
+                        test_speeds=_floats(test_speeds), variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed,
+                        progress=progress, prefix="speed_"))
+                if task == "realtime":
+                    other = _load(new_session, encode_, vlist) if new_session else None
+                    res.merge(tasks.run_realtime(
+                        data, new_session=other, train_profiles=[p.strip() for p in train_profiles.split(",")],
+                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress))
+            except (ValueError, KeyError) as exc:
+                raise click.ClickException(str(exc)) from None
+            for t, by_v in res.curves.items():
+                for c in by_v.values():
+                    c.task = tag + t
+                    res_all.add(c)
+            res_all.counts.update({tag + k: v for k, v in res.counts.items()})
+            res_all.warnings.extend(tag + w for w in res.warnings)
+            res_all.settings.update(res.settings)
+    del caught  # shown through res.warnings (in the table / JSON)
+
+    if save_model:
+        from rigctl.analysis.classify import TextureClassifier
+
+        if model_variant not in fs.features:
+            raise click.ClickException(f"--model-variant {model_variant} not in the file ({fs.variants})")
+        clf = TextureClassifier(n_pcs=model_pcs, max_pcs=max(model_pcs, n_pcs)).fit(fs.features[model_variant],
+                                                                                     fs.texture)
+        clf.variant = model_variant
+        clf.save(save_model)
+        click.echo(f"saved TextureClassifier ({model_variant}, {model_pcs} PCs) to {save_model}", err=True)
+
+    if csv_path:
+        Path(csv_path).write_text(report.to_csv(res_all))
+    if plot:
+        report.plot_curves(res_all, plot, title=Path(file).name)
+    if confusion:
+        keys = list(res_all.curves)
+        pick = next((k for k in keys if k.endswith("untrained_speed_force")), None) or next(
+            (k for k in keys if "untrained" in k), keys[0])
+        report.plot_confusions(res_all, confusion, pick)
+    if as_json:
+        click.echo(report.to_json(res_all, table_pcs, source=str(file)))
+    else:
+        click.echo(report.format_table1(res_all, table_pcs, compare_paper=compare_paper))
+        checks = report.qualitative_checks(res_all, table_pcs)
+        if checks:
+            click.echo("paper's qualitative result: " + ", ".join(f"{k} {'yes' if ok else 'NO'}"
+                                                                 for k, ok in checks.items()))
+    sys.stdout.flush()
