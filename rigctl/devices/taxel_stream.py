@@ -353,7 +353,16 @@ class TaxelStream:
                 starts = starts - k
                 self._await_start = False
             n = len(seq)
-            host_t = t_rx - (n - 1 - np.arange(n)) * (1.0 / wire.SAMPLE_RATE_HZ)
+            # receive time of the chunk, spread back over its frames at 1 ms (the frame period), never earlier
+            # than the previous frame: host times increase strictly
+            period = 1.0 / wire.SAMPLE_RATE_HZ
+            first = t_rx - (n - 1) * period
+            if self._last_frame_time is not None and not self._gap_pending and first <= self._last_frame_time:
+                first = self._last_frame_time + 1e-6
+                period = (t_rx - first) / (n - 1) if n > 1 else period
+            host_t = first + np.arange(n) * period
+            if n == 1:
+                host_t[0] = max(t_rx, first)
             if self._gap_pending and self._last_frame_time is not None:
                 # frames lost while the port was gone: estimated from the time gap at 1 kHz
                 st.dropped += max(0, int(round((host_t[0] - self._last_frame_time) * wire.SAMPLE_RATE_HZ)) - 1)

@@ -1,0 +1,113 @@
+"""Debian's mbpoll as an independent Modbus master against `rigctl sim` (a separate process), and the CLIs."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+from click.testing import CliRunner
+
+from rigctl.devices import wire
+from rigctl.devices.drum import DrumClient
+from rigctl.devices.ports import find_ports, guess_board
+from rigctl.devices.wire import HoldingRegister as HR, InputRegister as IR
+
+MBPOLL = shutil.which("mbpoll")
+RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
+
+
+@pytest.fixture(scope="module")
+def sim_process(tmp_path_factory):
+    port_dir = tmp_path_factory.mktemp("sim")
+    proc = subprocess.Popen([*RIGCTL, "sim", "--seed", "2", "--texture", "G", "--port-dir", str(port_dir)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ports = {}
+    deadline = time.monotonic() + 30
+    while len(ports) < 2 and time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        m = re.match(r"(drum|taxel) port:\s+(\S+)", line)
+        if m:
+            ports[m.group(1)] = m.group(2)
+    if len(ports) < 2:
+        proc.kill()
+        pytest.fail(f"rigctl sim did not print its ports: {proc.stderr.read()}")
+    yield ports
+    proc.terminate()
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert "simulated rig stopped" in out
+
+
+def mbpoll(*args) -> subprocess.CompletedProcess:
+    if MBPOLL is None:
+        pytest.fail("mbpoll is not installed (Debian package mbpoll)")
+    return subprocess.run([MBPOLL, "-m", "rtu", "-a", "1", "-b", "115200", "-P", "none", "-o", "0.5", *args],
+                          capture_output=True, text=True, timeout=20)
+
+
+def parse_registers(text: str) -> dict[int, int]:
+    """mbpoll's `[ref]: value` lines -> {reference: value} (references are 1-based: address + 1)."""
+    return {int(r): int(v) for r, v in re.findall(r"^\[(\d+)\]:\s+(-?\d+)", text, re.M)}
+
+
+def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
+    port = sim_process["drum"]
+    res = mbpoll("-t", "4", "-r", "1", "-c", str(wire.N_HOLDING), "-1", port)
+    assert res.returncode == 0, res.stderr
+    regs = parse_registers(res.stdout)
+    assert regs == {reg + 1: (0 if reg == HR.COMMAND else wire.HOLDING_RANGE[reg][2]) for reg in HR}
+    res = mbpoll("-t", "3", "-r", "1", "-c", str(wire.N_INPUT), "-1", port)
+    assert res.returncode == 0, res.stderr
+    inputs = parse_registers(res.stdout)
+    assert len(inputs) == wire.N_INPUT
+    assert inputs[IR.FIRMWARE_VERSION + 1] == 256
+    assert inputs[IR.STATE + 1] == 0
+
+
+def test_mbpoll_writes_what_drumclient_reads_and_vice_versa(sim_process):
+    port = sim_process["drum"]
+    res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "800")
+    assert res.returncode == 0 and "Written 1 references" in res.stdout, res.stderr
+    res = mbpoll("-t", "4", "-r", str(HR.RAMP_START_SPEED_0P1MMS + 1), port, "500", "900", "2500")  # function 16
+    assert res.returncode == 0, res.stderr
+    with DrumClient(port) as drum:
+        assert drum.read_holding(HR.SPEED_SETPOINT_0P1MMS) == 800
+        assert drum.read_holdings(HR.RAMP_START_SPEED_0P1MMS, 3) == [500, 900, 2500]
+        drum.set_force(321)
+    res = mbpoll("-t", "4", "-r", str(HR.FORCE_SETPOINT_G + 1), "-1", port)
+    assert parse_registers(res.stdout) == {HR.FORCE_SETPOINT_G + 1: 321}
+
+
+def test_mbpoll_sees_the_spec_exceptions(sim_process):
+    port = sim_process["drum"]
+    res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "2001")
+    assert res.returncode != 0 and "Illegal data value" in res.stderr
+    res = mbpoll("-t", "4", "-r", "15", "-1", port)  # address 14: no such register
+    assert res.returncode != 0 and "Illegal data address" in res.stderr
+    res = mbpoll("-t", "3", "-r", "13", "-c", "2", "-1", port)  # runs off the input table
+    assert res.returncode != 0 and "Illegal data address" in res.stderr
+
+
+def test_guess_board_and_ports_cli():
+    assert guess_board(0x2341, 0x0042)[0] == "mega"
+    assert guess_board(0x2341, 0x0010)[0] == "mega"
+    assert guess_board(0x2341, 0x0043)[0] == "uno"
+    assert guess_board(0x2341, 0x0001)[0] == "uno"
+    board, note = guess_board(0x1A86, 0x7523)
+    assert board is None and "CH340" in note
+    assert guess_board(None, None) == (None, "not a USB device")
+    from rigctl.cli import main
+
+    res = CliRunner().invoke(main, ["ports", "--json", "--all"])
+    assert res.exit_code == 0, res.output
+    listed = json.loads(res.output)
+    assert [p["device"] for p in listed] == [p.device for p in find_ports(include_all=True)]
+    res = CliRunner().invoke(main, ["ports"])
+    assert res.exit_code == 0

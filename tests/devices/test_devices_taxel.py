@@ -1,0 +1,125 @@
+"""TaxelStream against VirtualUno over real ptys and pyserial: banner, identify, streaming, faults, unplug."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from rigctl.devices import wire
+from rigctl.devices.errors import TaxelStreamError
+from rigctl.devices.taxel_stream import TaxelStream
+from rigctl.simulation.pty import PtyEndpoint
+
+
+def test_banner_and_identify(uno):
+    with TaxelStream(uno.path, banner_timeout_s=3) as stream:
+        assert stream.banner["firmware"] == wire.UNO_FIRMWARE_VERSION
+        assert stream.banner["line"].startswith(wire.UNO_BANNER_PREFIX)
+        ident = stream.identify()
+        assert ident == {"firmware": (1, 0), "channels": 18, "rate_hz": 1000, "bits": 10, "baud": 1_000_000,
+                         "line": "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"}
+        assert stream.stats.connected
+
+
+def test_reopen_resets_the_board_and_waits_for_the_banner(uno):
+    for _ in range(2):  # each open resets the Uno (DTR): a fresh banner every time
+        with TaxelStream(uno.path, banner_timeout_s=3) as stream:
+            stream.start()
+            assert stream.wait_capture(0, 0.1) is False  # no capture running
+            time.sleep(0.2)
+            assert stream.stats.frames > 100
+
+
+def test_no_banner_is_a_clear_error(tmp_path):
+    silent = PtyEndpoint(tmp_path / "silent")
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(TaxelStreamError, match="no ready banner"):
+            TaxelStream(silent.path, banner_timeout_s=0.3).open()
+        assert time.monotonic() - t0 < 1.5
+    finally:
+        silent.close()
+    with pytest.raises(TaxelStreamError, match="cannot open"):
+        TaxelStream(str(tmp_path / "nothing-here")).open()
+
+
+def test_three_seconds_of_streaming_lose_nothing(uno):
+    with TaxelStream(uno.path) as stream:
+        stream.start()
+        time.sleep(0.2)
+        stream.begin_capture()
+        t0 = time.monotonic()
+        assert stream.wait_capture(3000, timeout_s=5)
+        elapsed = time.monotonic() - t0
+        cap = stream.end_capture()
+        stats = stream.stats
+        cursor, live, live_seq, live_t = stream.ring.read_since(0)
+    assert cap.dropped == 0 and cap.crc_errors == 0 and stats.dropped == 0 and stats.crc_errors == 0
+    n = len(cap)
+    assert n >= 3000
+    assert 2.9 <= elapsed <= 3.1  # 1000 frames/s, paced to real time
+    assert 990 <= stats.frames_per_s <= 1010
+    assert np.all(np.diff(cap.seq.astype(np.int64)) % 65536 == 1)  # consecutive, none lost
+    # content: the board's sample k holds (k*7 + channel) % 1024, so consecutive rows differ by 7
+    diffs = (cap.samples[1:].astype(np.int64) - cap.samples[:-1].astype(np.int64)) % 1024
+    assert np.all(diffs == 7)
+    assert np.all((cap.samples.astype(np.int64) - cap.samples[:, :1]) % 1024 == np.arange(18))
+    assert np.all(np.diff(cap.host_time_s) > 0)
+    assert abs((cap.host_time_s[-1] - cap.host_time_s[0]) - (n - 1) / 1000) < 0.1
+    sync = np.flatnonzero(cap.flags & wire.FrameFlag.SYNC_IN)
+    assert len(sync) >= 5 and np.all(np.diff(sync) == 500)  # the index pulse every 500 samples
+    # the live ring holds the same frames (it got everything since start())
+    assert cursor >= n
+    p = int(np.flatnonzero(live_seq == cap.seq[0])[0])
+    assert np.array_equal(live_seq[p:p + n], cap.seq) and np.array_equal(live[p:p + n], cap.samples)
+    assert np.array_equal(live_t[p:p + n], cap.host_time_s)
+
+
+def test_faults_are_counted_and_skipped(uno):
+    with TaxelStream(uno.path) as stream:
+        stream.start()
+        time.sleep(0.2)
+        stream.begin_capture()
+        uno.drop_frames(5)
+        time.sleep(0.1)
+        uno.corrupt_frames(3, bits=2)
+        time.sleep(0.1)
+        uno.inject_garbage(b"\xa5\x5a" * 10 + bytes(range(200)))
+        time.sleep(0.2)
+        cap = stream.end_capture()
+    assert cap.dropped == 8  # 5 never sent + 3 rejected by their CRC
+    assert cap.crc_errors >= 3 + 10
+    gaps = np.diff(cap.seq.astype(np.int64)) % 65536
+    assert (gaps - 1).sum() == 8  # the sequence numbers show exactly the 8 missing frames
+    for row in cap.samples:  # every kept frame is intact
+        assert np.all((row.astype(np.int64) - row[0]) % 1024 == np.arange(18))
+
+
+def test_unplug_is_reported_and_recovered(uno):
+    errors = []
+    with TaxelStream(uno.path, on_error=errors.append) as stream:
+        stream.start()
+        time.sleep(0.3)
+        before = stream.stats.frames
+        uno.unplug()
+        t0 = time.monotonic()
+        while stream.stats.connected and time.monotonic() - t0 < 2:
+            time.sleep(0.01)
+        assert not stream.stats.connected
+        assert len(errors) == 1 and isinstance(errors[0], serial.SerialException)
+        time.sleep(0.3)
+        uno.replug()
+        t0 = time.monotonic()
+        while not (stream.stats.connected and stream.stats.frames_per_s > 900) and time.monotonic() - t0 < 5:
+            time.sleep(0.05)
+        stats = stream.stats
+        assert stats.connected and stats.reconnects == 1
+        assert stats.frames > before + 200  # streaming again without being asked
+        # the frames lost while unplugged are accounted for (estimated from the time gap)
+        assert 500 <= stats.dropped <= 2000
+        stream.stop()
+        time.sleep(0.1)
+        assert stream.identify()["channels"] == 18
