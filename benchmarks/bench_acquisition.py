@@ -1,0 +1,158 @@
+"""Acquisition benchmark: record N minutes from the simulated rig through TaxelStream (+ DrumClient polling), and
+measure the frame parser's throughput; print both side by side against their targets.
+
+The simulated rig runs as a separate process (`rigctl sim`), so the CPU figure is the acquiring host's own:
+the TaxelStream reader thread, the parser, the ring buffer, the capture and a 10 Hz drum status poll (as a trial
+recording does for its force and speed traces).
+
+Targets (issue 2): zero frames lost; < 10 % of one core for 1 kHz x 18 channels; parser >= 100x real time.
+
+Usage: python benchmarks/bench_acquisition.py [--minutes 1] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+
+def cpu_s() -> float:
+    """CPU time (user + system) of this process so far, s."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def start_sim(port_dir: str) -> tuple[subprocess.Popen, dict]:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "--texture", "G", "--port-dir", port_dir],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ports = {}
+    while len(ports) < 2:
+        line = proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"rigctl sim failed: {proc.stderr.read()}")
+        m = re.match(r"(drum|taxel) port:\s+(\S+)", line)
+        if m:
+            ports[m.group(1)] = m.group(2)
+    return proc, ports
+
+
+def bench_recording(minutes: float) -> dict:
+    from rigctl.devices.drum import DrumClient
+    from rigctl.devices.taxel_stream import TaxelStream
+
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as port_dir:
+        proc, ports = start_sim(port_dir)
+        try:
+            import psutil
+
+            sim_ps = psutil.Process(proc.pid)
+        except ImportError:  # psutil is optional here: the simulator's CPU is then not reported
+            sim_ps = None
+        try:
+            with DrumClient(ports["drum"]) as drum, TaxelStream(ports["taxel"]) as stream:
+                drum.set_force(500)
+                drum.set_speed(80)
+                drum.run()
+                drum.wait_speed_steady(timeout_s=10)
+                stream.start()
+                time.sleep(0.5)
+                duration = minutes * 60.0
+                sim_cpu0 = sum(sim_ps.cpu_times()[:2]) if sim_ps else 0.0
+                c0, t0 = cpu_s(), time.monotonic()
+                stream.begin_capture()
+                polls = 0
+                while time.monotonic() - t0 < duration:
+                    drum.read_status()  # the force/speed trace of a trial, and it feeds the watchdog
+                    polls += 1
+                    time.sleep(0.1)
+                cap = stream.end_capture()
+                c1, t1 = cpu_s(), time.monotonic()
+                sim_cpu1 = sum(sim_ps.cpu_times()[:2]) if sim_ps else 0.0
+                stats = stream.stats
+                drum.stop()
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
+    wall = t1 - t0
+    seq = cap.seq.astype(np.int64)
+    gaps = int(((np.diff(seq) - 1) % 65536).sum()) if len(seq) > 1 else 0
+    return {
+        "duration_s": wall,
+        "frames": len(cap),
+        "frames_expected": wall * 1000.0,
+        "frames_lost": int(cap.dropped),
+        "seq_gaps": gaps,
+        "crc_errors": int(cap.crc_errors),
+        "frames_per_s": len(cap) / wall,
+        "cpu_percent_host": 100.0 * (c1 - c0) / wall,
+        "cpu_percent_simulator": 100.0 * (sim_cpu1 - sim_cpu0) / wall if sim_ps else float("nan"),
+        "drum_polls": polls,
+        "stream_stats": vars(stats),
+    }
+
+
+def bench_parser(seconds: float = 60.0, chunk: int = 4096, repeats: int = 3) -> dict:
+    from rigctl.devices import wire
+    from rigctl.devices.frames import FrameParser, SequenceTracker, encode_frames
+
+    n = int(seconds * wire.SAMPLE_RATE_HZ)
+    rng = np.random.default_rng(0)
+    data = encode_frames(np.arange(n), 0, rng.integers(0, 1024, (n, wire.N_TAXELS)))
+    chunks = [data[i:i + chunk] for i in range(0, len(data), chunk)]
+    best = float("inf")
+    for _ in range(repeats):
+        parser, tracker = FrameParser(), SequenceTracker()
+        t0 = time.perf_counter()
+        got = 0
+        for c in chunks:
+            frames = parser.feed(c)
+            tracker.update(frames.seq)
+            got += len(frames)
+        best = min(best, time.perf_counter() - t0)
+        assert got == n and tracker.dropped == 0
+    return {"stream_s": seconds, "chunk_bytes": chunk, "parse_s": best, "x_real_time": seconds / best,
+            "frames_per_s": n / best}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=1.0, help="recording length, minutes (default 1)")
+    ap.add_argument("--json", action="store_true", help="print the results as JSON")
+    args = ap.parse_args(argv)
+    rec = bench_recording(args.minutes)
+    par = bench_parser()
+    par_small = bench_parser(chunk=43 * 20)  # what the reader gets per 20 ms read timeout
+    if args.json:
+        print(json.dumps({"recording": rec, "parser": par, "parser_small_chunks": par_small}, indent=2, default=str))
+    else:
+        rows = [
+            ("frames lost", f"{rec['frames_lost']} (seq gaps {rec['seq_gaps']}, CRC errors {rec['crc_errors']})",
+             "0", "ok" if rec["frames_lost"] == 0 and rec["seq_gaps"] == 0 else "FAIL"),
+            ("frames received / s", f"{rec['frames_per_s']:.2f} ({rec['frames']} in {rec['duration_s']:.1f} s)",
+             "1000 +- 1", f"{rec['frames_per_s'] / 1000:.4f}x"),
+            ("CPU of acquiring process", f"{rec['cpu_percent_host']:.2f} % of one core", "< 10 %",
+             f"{rec['cpu_percent_host'] / 10:.3f} of budget"),
+            ("(simulator process CPU)", f"{rec['cpu_percent_simulator']:.1f} % of one core", "-", "-"),
+            ("parser, 4096-byte chunks", f"{par['x_real_time']:.0f}x real time", ">= 100x",
+             f"{par['x_real_time'] / 100:.1f}x target"),
+            ("parser, 860-byte chunks (20 ms)", f"{par_small['x_real_time']:.0f}x real time", ">= 100x",
+             f"{par_small['x_real_time'] / 100:.1f}x target"),
+        ]
+        widths = [max(len(r[i]) for r in rows + [("metric", "value", "target", "ratio")]) for i in range(4)]
+        for r in [("metric", "value", "target", "ratio"), *rows]:
+            print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+    ok = rec["frames_lost"] == 0 and rec["cpu_percent_host"] < 10 and par["x_real_time"] >= 100
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
