@@ -16,6 +16,7 @@ Data flow: acquisition and the dataset generator write (:class:`SessionWriter`);
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import enum
 import json
@@ -31,6 +32,7 @@ import h5py
 import numpy as np
 
 from rigctl import __version__
+from rigctl.storage import journal
 
 SCHEMA_VERSION = 1
 SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide")
@@ -282,7 +284,11 @@ def _read_attrs(obj) -> dict:
 
 
 def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
-    """Open ``path`` with h5py, retrying while another process holds the HDF5 file lock (e.g. a reader)."""
+    """Open ``path`` with h5py, retrying while another process holds the HDF5 file lock (e.g. a writer)."""
+    try:
+        journal.recover(path, wait_s=wait_s)  # finish a commit a killed writer left half done
+    except PermissionError:
+        pass
     deadline = time.monotonic() + wait_s
     while True:
         try:
@@ -292,6 +298,23 @@ def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
             if not locked or time.monotonic() > deadline:
                 raise
             time.sleep(0.05)
+
+
+@contextlib.contextmanager
+def _writing(path: Path, *, durable: bool = True):
+    """Open ``path`` for writing through a :class:`rigctl.storage.journal.OverlayFile`: HDF5's writes stay in memory
+    and are committed (journaled) to disk only after HDF5 has closed the file cleanly; on an exception nothing
+    reaches the disk."""
+    overlay = journal.OverlayFile(path, durable=durable)
+    try:
+        f = h5py.File(overlay, "r+")
+        try:
+            yield f
+        finally:
+            f.close()
+        overlay.commit()
+    finally:
+        overlay.close()
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -307,10 +330,12 @@ class SessionWriter:
     ----------
     path : path of an existing session file (use :meth:`create` / :meth:`open`).
     compression : "gzip" (level 1, shuffle; readable by any HDF5 tool), "lzf" (h5py only) or None.
+    durable : fsync the file and the journal at each commit (survives a power cut, not only a killed process).
     """
 
-    def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip"):
+    def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip", durable: bool = True):
         self.path = Path(path)
+        self.durable = durable
         if compression not in ("gzip", "lzf", None):
             raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
         self.compression = compression
@@ -337,6 +362,7 @@ class SessionWriter:
         attrs: Mapping | None = None,
         overwrite: bool = False,
         compression: str | None = "gzip",
+        durable: bool = True,
     ) -> "SessionWriter":
         """Create a new session file with its root attributes, ``/protocol`` and ``/plan``; return its writer.
 
@@ -386,12 +412,14 @@ class SessionWriter:
             f.create_group("trials")
             if calibration:
                 _write_calibration(f, calibration)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
         os.replace(tmp, path)  # the session file appears complete or not at all
-        return cls(path, compression=compression)
+        return cls(path, compression=compression, durable=durable)
 
     @classmethod
     def open(cls, path: str | os.PathLike, *, protocol_source: str | None = None,
-             compression: str | None = "gzip") -> "SessionWriter":
+             compression: str | None = "gzip", durable: bool = True) -> "SessionWriter":
         """Reopen an interrupted session to resume it.
 
         Parameters
@@ -405,7 +433,7 @@ class SessionWriter:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"{path} does not exist (nothing to resume)")
-        writer = cls(path, compression=compression)
+        writer = cls(path, compression=compression, durable=durable)
         if protocol_source is not None and protocol_source != writer.protocol_source:
             raise SessionError(
                 f"{path}: the protocol differs from the one this session was started with; "
@@ -459,7 +487,7 @@ class SessionWriter:
         :meth:`write_trial`; the plan status of each trial is set after its data, then the file is flushed.
         """
         count = 0
-        with _open_h5(self.path, "r+") as f:
+        with _writing(self.path, durable=self.durable) as f:
             plan_ds = f["plan"]
             for trial_id, data in items:
                 i = self._row_index(trial_id)
@@ -481,7 +509,7 @@ class SessionWriter:
         row = plan_array([_with_id(planned, self.next_trial_id())])[0]
         if row["trial_id"] in self._plan["trial_id"]:
             raise SessionError(f"trial {int(row['trial_id'])} is already in the plan of {self.path}")
-        with _open_h5(self.path, "r+") as f:
+        with _writing(self.path, durable=self.durable) as f:
             ds = f["plan"]
             ds.resize((len(self._plan) + 1,))
             ds[len(self._plan)] = row
@@ -499,7 +527,7 @@ class SessionWriter:
         i = self._row_index(trial_id)
         if self._plan["status"][i] == TrialStatus.COMPLETE:
             raise SessionError(f"trial {trial_id} is already complete in {self.path}")
-        with _open_h5(self.path, "r+") as f:
+        with _writing(self.path, durable=self.durable) as f:
             name = trial_group_name(trial_id)
             if name in f:
                 del f[name]
@@ -513,7 +541,7 @@ class SessionWriter:
 
     def set_calibration(self, calibration: Mapping) -> None:
         """Write (replace) the ``/calibration`` block."""
-        with _open_h5(self.path, "r+") as f:
+        with _writing(self.path, durable=self.durable) as f:
             _write_calibration(f, calibration)
 
     def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:

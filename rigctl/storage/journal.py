@@ -1,0 +1,272 @@
+"""Crash-safe in-place updates of an HDF5 file: a copy-on-write page overlay plus a redo journal.
+
+HDF5 updates its metadata (superblock, group B-trees and heaps, object headers) in place and in no particular
+order, so a writer killed while a file is open for writing can leave it unreadable ("addr overflow", h5py #1807,
+#370), and SWMR, which orders the writes, flags the file "already open" after a crash. This module avoids both:
+
+1. :class:`OverlayFile` is the file object HDF5 writes through (h5py's ``driver="fileobj"``). Every write lands in
+   in-memory 4 KiB pages; the file on disk is not touched while HDF5 works.
+2. :meth:`OverlayFile.commit` (after HDF5 has closed the file, so the overlay holds a complete, consistent file):
+   pages past the old end of file are written first (nothing on disk refers to them yet); the pages that replace
+   existing bytes go to a journal file ``<name>.journal`` (with a checksum and a commit mark, fsynced), then
+   onto the file, then the journal is removed.
+
+A ``kill -9`` before the journal's commit mark leaves the old file intact (possibly with unreferenced bytes past its
+end, which HDF5 ignores); after it, :func:`recover` (run by every rigctl opening) replays the journal. The only
+moment a plain HDF5 reader could see a half-updated file is while the few in-place pages are written (a handful of
+``pwrite`` calls, microseconds), and the journal repairs even that.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import io
+import os
+import struct
+import time
+import zlib
+from pathlib import Path
+
+PAGE = 4096
+_MAGIC = b"RIGCTLJ1"
+_COMMIT = b"COMMITOK"
+
+
+def journal_path(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    return p.with_name(p.name + ".journal")
+
+
+class FileBusy(OSError):
+    """Another process holds the file (a writer, or a reader with the HDF5 file lock) for longer than the wait."""
+
+
+def _lock(fd: int, path, wait_s: float) -> None:
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                raise FileBusy(f"{path} is held by another process (a reader or writer) for more than {wait_s:g} s")
+            time.sleep(0.02)
+
+
+def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
+    """Finish or discard an interrupted commit of ``path``. Returns True if a committed journal was replayed.
+
+    A journal without its commit mark (the writer died before committing) is discarded: the file was not touched
+    in place. Raises :class:`FileBusy` if another process holds the file.
+    """
+    jpath = journal_path(path)
+    if not jpath.exists():
+        return False
+    fd = os.open(path, os.O_RDWR)
+    try:
+        _lock(fd, path, wait_s)
+        if not jpath.exists():  # another process recovered it meanwhile
+            return False
+        entries, new_size = _read_journal(jpath)
+        if entries is None:
+            jpath.unlink()
+            return False
+        for offset, data in entries:
+            os.pwrite(fd, data, offset)
+        os.ftruncate(fd, new_size)
+        os.fsync(fd)
+        jpath.unlink()
+        return True
+    finally:
+        os.close(fd)
+
+
+def _read_journal(jpath: Path):
+    raw = jpath.read_bytes()
+    if len(raw) < 28 or raw[:8] != _MAGIC or raw[-8:] != _COMMIT:
+        return None, 0
+    body, crc = raw[:-12], struct.unpack("<I", raw[-12:-8])[0]
+    if zlib.crc32(body) != crc:
+        return None, 0
+    new_size, count = struct.unpack_from("<QI", body, 8)
+    pos = 20
+    entries = []
+    for _ in range(count):
+        offset, length = struct.unpack_from("<QI", body, pos)
+        pos += 12
+        entries.append((offset, body[pos:pos + length]))
+        pos += length
+    return entries, new_size
+
+
+class OverlayFile(io.RawIOBase):
+    """A file object for h5py (``h5py.File(OverlayFile(path), "r+")``) that keeps every write in memory until
+    :meth:`commit`. Takes an exclusive ``flock`` on the file for its lifetime (other rigctl writers wait, HDF5
+    readers holding the file make it wait up to ``wait_s``)."""
+
+    def __init__(self, path: str | os.PathLike, *, wait_s: float = 10.0, durable: bool = True):
+        super().__init__()
+        self.path = Path(path)
+        self.durable = durable
+        recover(self.path, wait_s=wait_s)
+        self._fd = os.open(self.path, os.O_RDWR)
+        try:
+            _lock(self._fd, self.path, wait_s)
+        except BaseException:
+            os.close(self._fd)
+            raise
+        self._base_size = os.fstat(self._fd).st_size
+        self._size = self._base_size
+        self._pages: dict[int, bytearray] = {}
+        self._pos = 0
+
+    # -- io.RawIOBase ---------------------------------------------------------------------------------------------
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        if whence == 0:
+            self._pos = offset
+        elif whence == 1:
+            self._pos += offset
+        else:
+            self._pos = self._size + offset
+        return self._pos
+
+    def readinto(self, b) -> int:
+        n = max(0, min(len(b), self._size - self._pos))
+        if n == 0:
+            return 0
+        start = self._pos
+        out = memoryview(b)
+        base_n = max(0, min(n, self._base_size - start))
+        if base_n:
+            data = os.pread(self._fd, base_n, start)
+            out[: len(data)] = data
+            if len(data) < n:
+                out[len(data):n] = bytes(n - len(data))
+        else:
+            out[:n] = bytes(n)
+        for i in range(start // PAGE, (start + n - 1) // PAGE + 1):
+            page = self._pages.get(i)
+            if page is None:
+                continue
+            lo = max(start, i * PAGE)
+            hi = min(start + n, (i + 1) * PAGE)
+            out[lo - start:hi - start] = page[lo - i * PAGE:hi - i * PAGE]
+        self._pos += n
+        return n
+
+    def _page(self, i: int) -> bytearray:
+        page = self._pages.get(i)
+        if page is None:
+            page = bytearray(PAGE)
+            start = i * PAGE
+            if start < self._base_size:
+                data = os.pread(self._fd, PAGE, start)
+                page[: len(data)] = data
+            self._pages[i] = page
+        return page
+
+    def write(self, b) -> int:
+        data = memoryview(b).cast("B")
+        n = len(data)
+        pos = self._pos
+        done = 0
+        while done < n:
+            i = (pos + done) // PAGE
+            off = (pos + done) - i * PAGE
+            k = min(PAGE - off, n - done)
+            self._page(i)[off:off + k] = data[done:done + k]
+            done += k
+        self._pos += n
+        self._size = max(self._size, self._pos)
+        return n
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self._pos if size is None else int(size)
+        if size < self._size:
+            for i in [i for i in self._pages if i * PAGE >= size]:
+                del self._pages[i]
+            last = size // PAGE
+            if size % PAGE and last in self._pages:
+                self._pages[last][size % PAGE:] = bytes(PAGE - size % PAGE)
+            elif size % PAGE and size < self._base_size:
+                page = self._page(last)
+                page[size % PAGE:] = bytes(PAGE - size % PAGE)
+        self._size = size
+        return size
+
+    def flush(self) -> None:  # everything stays in memory until commit()
+        pass
+
+    # -- commit ---------------------------------------------------------------------------------------------------
+    def commit(self) -> None:
+        """Write the overlay to the file (new pages, then journal, then in-place pages), then release the file."""
+        size = self._size
+        fresh, inplace = [], []
+        for i in sorted(self._pages):
+            start = i * PAGE
+            if start >= size:
+                continue
+            data = bytes(self._pages[i][: min(PAGE, size - start)])
+            (inplace if start < self._base_size else fresh).append((start, data))
+        for start, data in _runs(fresh):
+            os.pwrite(self._fd, data, start)
+        if inplace or size < self._base_size:
+            jpath = journal_path(self.path)
+            body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
+            for start, data in inplace:
+                body += struct.pack("<QI", start, len(data)) + data
+            body += struct.pack("<I", zlib.crc32(body)) + _COMMIT
+            if self.durable:
+                os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
+            jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            try:
+                os.write(jfd, bytes(body))
+                if self.durable:
+                    os.fsync(jfd)
+            finally:
+                os.close(jfd)
+            for start, data in _runs(inplace):
+                os.pwrite(self._fd, data, start)
+            os.ftruncate(self._fd, size)
+            if self.durable:
+                os.fsync(self._fd)
+            jpath.unlink()
+        elif size != os.fstat(self._fd).st_size:
+            os.ftruncate(self._fd, size)
+        if self.durable:
+            os.fsync(self._fd)
+        self._pages.clear()
+        self._base_size = size
+
+    def close(self) -> None:
+        if not self.closed:
+            try:
+                os.close(self._fd)  # releases the flock
+            finally:
+                super().close()
+
+
+def _runs(pages):
+    """Merge page writes at consecutive offsets into larger writes."""
+    run_start, buf = None, bytearray()
+    for start, data in pages:
+        if run_start is not None and start == run_start + len(buf) and len(buf) % PAGE == 0:
+            buf += data
+            continue
+        if run_start is not None:
+            yield run_start, bytes(buf)
+        run_start, buf = start, bytearray(data)
+    if run_start is not None:
+        yield run_start, bytes(buf)
