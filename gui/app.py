@@ -25,6 +25,13 @@ REFRESH_MS = 25
 TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify")
 
 
+def configure_pyqtgraph() -> None:
+    """White plots, no antialiasing (faster software rendering under Xvfb/offscreen)."""
+    import pyqtgraph as pg
+
+    pg.setConfigOptions(antialias=False, background="w", foreground="k")
+
+
 def make_settings() -> QtCore.QSettings:
     """The app's QSettings (INI format under the user scope; tests point it at a temporary directory)."""
     return QtCore.QSettings(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, "rigctl", "gui")
@@ -132,8 +139,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.disconnect_rig()
         self.source = source
         self._save_source(self.settings, source)
-        config = self.calibration.rig_config() if hasattr(self, "calibration") else None
-        self._connect_job = Job(lambda job: open_rig(source, config=config), name="connect")
+        cfg_path = self.rig_config_path()
+        self._connect_job = Job(lambda job: open_rig(source, host_config_path=cfg_path), name="connect")
         self._connect_job.start()
         self._update_source_label("connecting...")
         self.connect_btn.setEnabled(False)
@@ -149,31 +156,38 @@ class MainWindow(QtWidgets.QMainWindow):
         self.poller = StatusPoller(h.drum)
         self.poller.start()
         self.commands = CommandExecutor(h.drum)
-        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range())
+        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig))
         self.encoder.start()
-        self.control.attach(h.drum, self.poller, self.commands)
+        self.control.attach(h.drum, self.poller, self.commands, h.rig)
+        self.calibration.attach(h)
         self.live.attach(h.taxels, self.encoder)
         self._update_source_label("connected")
         self.banner.hide()
 
     def disconnect_rig(self) -> None:
+        """Abort a run, stop the rig safely (the library's safe stop), close it, then stop the workers."""
         self.protocol.abort_and_wait()
-        for w in (self.poller, self.encoder):
-            if w is not None:
-                w.stop()  # the encoder joins its thread (never leave numba mid-call at exit)
-        if self.commands is not None:
-            self.commands.close()
         self.control.detach()
         self.live.detach()
+        self.calibration.detach()
         if self.handle is not None:
             try:
-                self.handle.close()
+                self.handle.close()  # safe stop first: the controller's watchdog never sees a silent host
             except Exception as exc:  # noqa: BLE001
                 self.statusBar().showMessage(f"closing the rig: {exc}", 5000)
+        if self.commands is not None:
+            self.commands.close()
         for w in (self.poller, self.encoder):
             if w is not None:
-                w.join(timeout=2)
+                w.stop()
+        for w in (self.poller, self.encoder):
+            if w is not None:
+                w.join(timeout=5)  # never leave a numba call running at interpreter exit
         self.handle = self.poller = self.commands = self.encoder = None
+
+    def rig_config_path(self) -> str | None:
+        """The rig config file (calibration) from QSettings ``rig/config_path``; None = the library's default."""
+        return str(self.settings.value("rig/config_path", "")) or None
 
     def _update_source_label(self, state: str) -> None:
         self.source_label.setText(f"Source: {self.source.label()} - {state}")
@@ -263,11 +277,9 @@ def write_stats(window: MainWindow, path: str) -> None:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import pyqtgraph as pg
-
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("rigctl")
-    pg.setConfigOptions(antialias=False, background="w", foreground="k")
+    configure_pyqtgraph()
     window = MainWindow(source_from_args(args))
     if args.tab:
         window.tabs.setCurrentIndex(TAB_NAMES.index(args.tab))

@@ -1,20 +1,265 @@
-"""placeholder"""
+"""Calibration tab: load-cell calibration with a known mass and per-taxel normalisation, both through
+:mod:`rigctl.acquisition.calibration` (run in a worker thread). Results go into the rig config file, which the
+acquisition copies into every session file; the taxel normalisation also feeds the live encoder at once."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pyqtgraph as pg
 from PySide6 import QtWidgets
+
+from gui.workers import Job
+from rigctl.devices.wire import ADC_MAX, N_TAXELS
 
 
 class CalibrationTab(QtWidgets.QWidget):
+    """The calibration tab; ``main`` is the :class:`gui.app.MainWindow`."""
+
     def __init__(self, main, parent=None):
         super().__init__(parent)
         self.main = main
+        self.handle = None
+        self.job: Job | None = None
+        self._mass_event = threading.Event()
 
-    def refresh(self):
-        pass
+        # --- load cell ---
+        self.mass = QtWidgets.QDoubleSpinBox(suffix=" g", decimals=1, minimum=1.0, maximum=2000.0, value=500.0)
+        self.mass.setObjectName("calibration_mass")
+        self.loadcell_btn = QtWidgets.QPushButton("Calibrate load cell")
+        self.loadcell_btn.clicked.connect(self.calibrate_loadcell)
+        self.mass_prompt = QtWidgets.QFrame()
+        self.mass_prompt.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
+        self.mass_label = QtWidgets.QLabel()
+        mass_ok = QtWidgets.QPushButton("Mass is on the load cell")
+        mass_ok.clicked.connect(self._mass_placed)
+        ml = QtWidgets.QHBoxLayout(self.mass_prompt)
+        ml.addWidget(self.mass_label, 1)
+        ml.addWidget(mass_ok)
+        self.mass_prompt.hide()
+        self.loadcell_info = QtWidgets.QLabel("-")
+        self.loadcell_info.setWordWrap(True)
+        lf = QtWidgets.QFormLayout()
+        lf.addRow("Known mass", self.mass)
+        lf.addRow("", self.loadcell_btn)
+        lf.addRow(self.mass_prompt)
+        lf.addRow("Stored", self.loadcell_info)
+        lc = QtWidgets.QGroupBox("Load cell: tare, place a known mass, compute and write the scale")
+        lc.setLayout(lf)
 
-    def rig_config(self):
-        return None
+        # --- taxel normalisation ---
+        self.norm_seconds = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=0, minimum=1, maximum=600, value=10)
+        self.norm_btn = QtWidgets.QPushButton("Record calibration run")
+        self.norm_btn.setToolTip("Capture the live stream for this long (run the drum over the textures meanwhile) "
+                                 "and take each taxel's min/max")
+        self.norm_btn.clicked.connect(self.record_normalisation)
+        self.from_session_btn = QtWidgets.QPushButton("From a session file...")
+        self.from_session_btn.clicked.connect(self.normalisation_from_session)
+        self.norm_info = QtWidgets.QLabel("-")
+        self.norm_info.setWordWrap(True)
+        self.norm_plot = pg.PlotWidget(title="Per-taxel range (ADC counts)")
+        self.norm_plot.setMinimumHeight(220)
+        self.norm_plot.setLabel("bottom", "taxel (0-8 top, 9-17 bottom)")
+        self.norm_plot.setYRange(0, ADC_MAX)
+        self.norm_bars = pg.BarGraphItem(x=np.arange(N_TAXELS), y0=np.zeros(N_TAXELS), height=np.zeros(N_TAXELS),
+                                         width=0.7, brush="#1f77b4")
+        self.norm_plot.addItem(self.norm_bars)
+        nf = QtWidgets.QFormLayout()
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(self.norm_seconds)
+        row.addWidget(self.norm_btn)
+        row.addWidget(self.from_session_btn)
+        nf.addRow("Calibration run", row)
+        nf.addRow("Stored", self.norm_info)
+        nf.addRow(self.norm_plot)
+        tn = QtWidgets.QGroupBox("Taxel normalisation: per-taxel min/max of a calibration run (paper, real-time "
+                                 "experiment)")
+        tn.setLayout(nf)
 
-    def taxel_range(self):
-        return None
+        self.progress = QtWidgets.QProgressBar()
+        self.status = QtWidgets.QLabel("")
+        self.status.setObjectName("calibration_status")
+        self.status.setWordWrap(True)
+        self.config_label = QtWidgets.QLabel("")
+        self.config_label.setWordWrap(True)
 
-    def on_trial(self, planned, data):
-        pass
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.addWidget(self.config_label)
+        lay.addWidget(lc)
+        lay.addWidget(tn, 1)
+        lay.addWidget(self.progress)
+        lay.addWidget(self.status)
+        self._enable(False)
+
+    # ------------------------------------------------------------------------------------------------------
+    def attach(self, handle) -> None:
+        self.handle = handle
+        self._enable(True)
+        self.show_config()
+
+    def detach(self) -> None:
+        self.handle = None
+        self._enable(False)
+
+    def _enable(self, on: bool) -> None:
+        busy = self.job is not None and not self.job.done
+        for b in (self.loadcell_btn, self.norm_btn):
+            b.setEnabled(on and not busy)
+
+    def _config(self) -> dict:
+        from rigctl.acquisition.calibration import load_rig_config
+
+        try:
+            return load_rig_config(self.main.rig_config_path())
+        except Exception as exc:  # noqa: BLE001 - a corrupt config is shown, not fatal
+            self.status.setText(f"rig config: {exc}")
+            return {}
+
+    def taxel_range(self, rig=None):
+        """The stored per-taxel normalisation as a :class:`rigctl.encoding.normalise.TaxelRange`, or None."""
+        from rigctl.encoding.normalise import TaxelRange
+
+        block = (rig.taxel_normalisation() if rig is not None else None) or self._config().get("taxel_normalisation")
+        if not block:
+            return None
+        return TaxelRange(np.asarray(block["taxel_min"], float), np.asarray(block["taxel_max"], float))
+
+    def show_config(self) -> None:
+        from rigctl.acquisition.calibration import config_path
+
+        cfg = self._config()
+        self.config_label.setText(f"Rig config file: <code>{config_path(self.main.rig_config_path())}</code> "
+                                  "(copied into every session file)")
+        lc = cfg.get("loadcell")
+        self.loadcell_info.setText(
+            f"{lc['counts_per_g']:.2f} counts/g from a {lc['mass_g']:g} g mass (check reading "
+            f"{lc.get('check_force_g', float('nan')):.1f} g), {lc.get('calibrated_utc', '')}"
+            if lc else "not calibrated (the controller's EEPROM scale is used)"
+        )
+        tn = cfg.get("taxel_normalisation")
+        if tn:
+            lo, hi = np.asarray(tn["taxel_min"], float), np.asarray(tn["taxel_max"], float)
+            self.norm_bars.setOpts(y0=lo, height=hi - lo)
+            self.norm_info.setText(f"{tn.get('n_trials', 0)} capture(s) from {tn.get('source', '?')}, "
+                                   f"{tn.get('calibrated_utc', '')}; span {np.min(hi - lo):.0f}-{np.max(hi - lo):.0f}"
+                                   " counts")
+        else:
+            self.norm_bars.setOpts(y0=np.zeros(N_TAXELS), height=np.zeros(N_TAXELS))
+            self.norm_info.setText("none: the live encoder uses the full ADC range 0-1023")
+
+    # ------------------------------------------------------------------------------------------------------
+    def calibrate_loadcell(self) -> None:
+        from rigctl.acquisition import calibration as cal
+
+        h = self.handle
+        if h is None or (self.job is not None and not self.job.done):
+            return
+        mass = float(self.mass.value())
+        if h.is_simulated:
+            place, remove = cal.simulated_mass(h.rig)
+        else:
+            place, remove = self._prompt_place, self._prompt_remove
+        cfg_path = self.main.rig_config_path()
+
+        def work(job):
+            job.progress(0.1, "taring and reading the empty load cell...")
+            result = cal.calibrate_loadcell(h.drum, mass, place_mass=place, remove_mass=remove,
+                                            config_file=cfg_path)
+            h.rig.host_config = cal.load_rig_config(cfg_path)  # later sessions carry it
+            return result
+
+        self._start(Job(work, name="loadcell"), "load-cell calibration")
+
+    def _prompt_place(self, mass_g):
+        self._mass_event.clear()
+        self.job.events.put(f"Place the {mass_g:g} g mass on the load cell, then confirm.")
+        self._mass_event.wait()
+
+    def _prompt_remove(self, mass_g):
+        self.job.events.put(f"Remove the {mass_g:g} g mass.")
+
+    def _mass_placed(self) -> None:
+        self.mass_prompt.hide()
+        self._mass_event.set()
+
+    def record_normalisation(self) -> None:
+        from rigctl.acquisition import calibration as cal
+
+        h = self.handle
+        if h is None or (self.job is not None and not self.job.done):
+            return
+        seconds = float(self.norm_seconds.value())
+        cfg_path = self.main.rig_config_path()
+
+        def work(job):
+            h.taxels.begin_capture()
+            t0 = time.monotonic()
+            try:
+                while time.monotonic() - t0 < seconds and not job.cancel.is_set():
+                    job.progress((time.monotonic() - t0) / seconds, "capturing the calibration run...")
+                    time.sleep(0.1)
+            finally:
+                cap = h.taxels.end_capture()
+            norm = cal.taxel_normalisation([cap.samples], source=f"live capture {seconds:g} s")
+            cal.update_rig_config(cfg_path, taxel_normalisation=norm.to_dict())
+            h.rig.host_config = cal.load_rig_config(cfg_path)
+            return norm
+
+        self._start(Job(work, name="normalisation"), "taxel normalisation")
+
+    def normalisation_from_session(self) -> None:
+        from rigctl.acquisition import calibration as cal
+
+        start = str(self.main.settings.value("dirs/output", ""))
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Calibration session", start, "Sessions (*.h5)")
+        if not path:
+            return
+        cfg_path = self.main.rig_config_path()
+        h = self.handle
+
+        def work(job):
+            norm = cal.taxel_normalisation_from_session(path, store=True, config_file=cfg_path)
+            if h is not None:
+                h.rig.host_config = cal.load_rig_config(cfg_path)
+            return norm
+
+        self._start(Job(work, name="normalisation"), "taxel normalisation")
+
+    def _start(self, job: Job, what: str) -> None:
+        self.job = job
+        self._what = what
+        self.status.setText(f"{what}: running...")
+        job.start()
+        self._enable(self.handle is not None)
+
+    def refresh(self) -> None:
+        job = self.job
+        if job is None:
+            return
+        while not job.events.empty():
+            self.mass_label.setText(job.events.get())
+            self.mass_prompt.show()
+        self.progress.setValue(int(100 * job.fraction))
+        if not job.done:
+            if job.message:
+                self.status.setText(f"{self._what}: {job.message}")
+            return
+        self.job = None
+        self.mass_prompt.hide()
+        if job.error:
+            self.status.setText(f"<span style='color:#c00'>{self._what} failed: {job.error}</span>")
+        else:
+            self.progress.setValue(100)
+            r = job.result
+            if hasattr(r, "counts_per_g"):
+                self.status.setText(f"load cell: {r.counts_per_g:.2f} counts/g written to the controller; with "
+                                    f"the {r.mass_g:g} g mass it now reads {r.check_force_g:.1f} g")
+            else:
+                self.status.setText(f"taxel normalisation stored ({r.n_trials} capture(s)); the live encoder uses "
+                                    "it from now on")
+                if self.main.encoder is not None:
+                    self.main.encoder.set_normaliser(self.taxel_range())
+        self.show_config()
+        self._enable(self.handle is not None)

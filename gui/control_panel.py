@@ -52,6 +52,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.poller = None
         self.commands = None
         self.drum = None
+        self.rig = None
 
         # --- setpoints ---
         self.speed = QtWidgets.QDoubleSpinBox(suffix=" mm/s", decimals=1, singleStep=10.0)
@@ -155,15 +156,16 @@ class ControlPanel(QtWidgets.QWidget):
         self.speed.setRange(0.0, float(speed_max_mm_s))
         self.force.setRange(0.0, float(force_max_g))
         if hasattr(self, "limits_label"):
-            self.limits_label.setText(f"limits: speed <= {speed_max_mm_s:g} mm/s, force <= {force_max_g:g} g")
+            self.limits_label.setText(f"controller limits: {speed_max_mm_s:g} mm/s, {force_max_g:g} g")
 
     def set_enabled(self, on: bool) -> None:
         for w in [self.apply_btn, *self.buttons.values()]:
             w.setEnabled(on)
 
-    def attach(self, drum, poller, commands) -> None:
-        """Bind to a connected drum (``DrumClient``), its status poller and command executor."""
-        self.drum, self.poller, self.commands = drum, poller, commands
+    def attach(self, drum, poller, commands, rig=None) -> None:
+        """Bind to a connected drum (``DrumClient``), its status poller and command executor, and the
+        :class:`rigctl.acquisition.rig.Rig` (its ``press`` waits for the force to settle)."""
+        self.drum, self.poller, self.commands, self.rig = drum, poller, commands, rig
         try:
             spd = drum.read_holding(HoldingRegister.SPEED_LIMIT_0P1MMS) / 10.0
             frc = float(drum.read_holding(HoldingRegister.FORCE_LIMIT_G))
@@ -173,7 +175,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.set_enabled(True)
 
     def detach(self) -> None:
-        self.drum = self.poller = self.commands = None
+        self.drum = self.poller = self.commands = self.rig = None
         self.set_enabled(False)
         self.state_label.setText("not connected")
 
@@ -185,10 +187,20 @@ class ControlPanel(QtWidgets.QWidget):
         self.commands.submit("set force", self.drum.set_force, float(self.force.value()))
 
     def command(self, name: str) -> None:
+        """Queue a drum command. Press and Run first apply the setpoints and press until the force has settled
+        (:meth:`rigctl.acquisition.rig.Rig.press`), so the drum never turns before the sensor is loaded."""
         if self.commands is None:
             return
         if name in ("run", "press"):
-            self.apply_setpoints()
+            speed, force = float(self.speed.value()), float(self.force.value())
+            self.commands.submit("set speed", self.drum.set_speed, speed)
+            if self.rig is not None and force > 0:
+                self.commands.submit(f"press to {force:g} g", self.rig.press, force)
+            else:
+                self.commands.submit("set force", self.drum.set_force, force)
+                self.commands.submit("press", self.drum.press)
+            if name == "press":
+                return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
 
     def show_result(self, ok: bool, text: str) -> None:

@@ -35,10 +35,14 @@ class ProtocolTab(QtWidgets.QWidget):
         self._prompt_event = threading.Event()
         self._prompt_text = None
         self._done_ids: list = []
-        self._trial_started = None
-        self._run_started = None
-        self._trial_times: list[float] = []
+        self._done_before = 0
+        self._failures: list[str] = []
+        self._current = None
+        self._paused = False
+        self._eta = None
+        self._trial_started = time.monotonic()
         self.last_output = None
+        self.last_summary = None
 
         self.open_btn = QtWidgets.QPushButton("Open protocol...")
         self.open_btn.clicked.connect(self._browse_protocol)
@@ -170,7 +174,8 @@ class ProtocolTab(QtWidgets.QWidget):
         self.summary.setText(
             f"<b>{getattr(self.protocol, 'name', os.path.basename(path))}</b>: {len(self.plan)} trials; "
             f"textures {', '.join(map(str, textures))}; speeds {', '.join(f'{s:g}' for s in speeds)} mm/s; "
-            f"forces {', '.join(f'{f:g}' for f in forces)} g; estimated duration {_fmt_s(est)}"
+            f"forces {', '.join(f'{f:g}' for f in forces)} g; estimated duration {_fmt_s(est)} of recording "
+            "(+ force settling and plate changes per trial; the ETA below uses measured trial times)"
         )
         if not self.out_edit.text():
             base = os.path.splitext(os.path.basename(path))[0]
@@ -180,12 +185,8 @@ class ProtocolTab(QtWidgets.QWidget):
         self._update_buttons()
 
     def estimated_duration_s(self) -> float:
-        est = getattr(self.protocol, "estimated_duration_s", None)
-        if callable(est):
-            est = est()
-        if est is None:
-            est = sum(float(p.duration_s) for p in self.plan)
-        return float(est)
+        """Recording time of the plan (sum of trial durations), s; settling and plate changes come on top."""
+        return float(sum(float(p.duration_s) for p in self.plan))
 
     # ------------------------------------------------------------------------------------------------------
     @property
@@ -209,11 +210,10 @@ class ProtocolTab(QtWidgets.QWidget):
 
         self.stop_event.clear()
         self.pause_event.clear()
-        self._done_ids = []
-        self._trial_times = []
-        self._run_started = time.monotonic()
-        self._trial_started = time.monotonic()
-        protocol, rig, simulated = self.protocol, h.rig, h.is_simulated
+        self._done_ids, self._failures = [], []
+        self._current, self._paused, self._eta = None, False, None
+        self._done_before = self._completed_in(out) if resume else 0
+        protocol, rig = self.protocol, h.rig
 
         def work(job: Job):
             return run_protocol(
@@ -224,17 +224,34 @@ class ProtocolTab(QtWidgets.QWidget):
                 progress=False,
                 stop_event=self.stop_event,
                 pause_event=self.pause_event,
-                on_trial=lambda *a, **k: job.events.put(("trial", a, k)),
-                prompt=None if simulated else self._prompt,
+                on_trial=lambda ev: job.events.put(("trial", ev)),
+                prompt=self._prompt,  # hardware only: the simulated rig mounts plates by itself
             )
 
         self.job = Job(work, name="protocol")
         self.job.start()
         self.last_output = out
         self.status.setText(f"recording to {out}" + (" (resuming)" if resume else ""))
+        self.resume_box.setChecked(False)
         for r in range(self.table.rowCount()):
             self._set_status(r, "planned")
+        if resume:
+            for tid in self._completed_ids(out):
+                self._set_status(self._row_of(tid), "recorded earlier")
         self._update_buttons()
+
+    @staticmethod
+    def _completed_ids(path: str) -> list:
+        from rigctl.storage.session import open_session
+
+        try:
+            with open_session(path) as s:
+                return list(s.completed_ids())
+        except Exception:  # noqa: BLE001 - the runner reports a bad file itself
+            return []
+
+    def _completed_in(self, path: str) -> int:
+        return len(self._completed_ids(path))
 
     def pause(self) -> None:
         if self.running:
@@ -263,7 +280,7 @@ class ProtocolTab(QtWidgets.QWidget):
     # operator prompt (worker thread side): show it, wait for the button (or an abort)
     def _prompt(self, text, *args, **kwargs):
         self._prompt_event.clear()
-        self.job.events.put(("prompt", (str(text),), {}))
+        self.job.events.put(("prompt", str(text)))
         while not self._prompt_event.wait(0.1):
             if self.stop_event.is_set():
                 break
@@ -279,74 +296,81 @@ class ProtocolTab(QtWidgets.QWidget):
             self.table.setItem(row, len(PLAN_COLUMNS) - 1, QtWidgets.QTableWidgetItem(text))
 
     def _row_of(self, trial) -> int:
-        tid = getattr(trial, "trial_id", trial)
+        tid = int(getattr(trial, "trial_id", trial))
         for r, p in enumerate(self.plan):
             if p.trial_id == tid:
                 return r
         return -1
 
-    def _on_trial(self, args, kwargs) -> None:
-        planned = kwargs.get("planned")
-        data = kwargs.get("trial", kwargs.get("data"))
-        for a in args:
-            if hasattr(a, "trial_id") and hasattr(a, "texture") and planned is None:
-                planned = a
-            elif hasattr(a, "taxels"):
-                data = a
-            elif isinstance(a, int) and planned is None and 0 <= a < len(self.plan):
-                planned = self.plan[a]
-        if planned is None:
-            planned = self.plan[len(self._done_ids)] if len(self._done_ids) < len(self.plan) else None
-        now = time.monotonic()
-        self._trial_times.append(now - self._trial_started)
-        self._trial_started = now
-        if planned is not None:
-            self._done_ids.append(planned.trial_id)
-            self._set_status(self._row_of(planned), "recorded")
-            if data is not None:
-                self.main.classify.on_trial(planned, data)
+    def _on_event(self, ev) -> None:
+        """A :class:`rigctl.acquisition.runner.TrialEvent` from the runner thread."""
+        self._eta = ev.eta_s
+        row = self._row_of(ev.planned) if ev.planned is not None else -1
+        if ev.kind == "start":
+            self._current = ev.planned
+            self._trial_started = time.monotonic()
+            self._set_status(row, "recording")
+        elif ev.kind == "texture":
+            self._current = ev.planned
+            self._set_status(row, f"mounting plate {ev.planned.texture}")
+        elif ev.kind == "complete":
+            self._done_ids.append(ev.planned.trial_id)
+            self._set_status(row, "recorded")
+            self._current = None
+            if ev.data is not None:
+                self.main.classify.on_trial(ev.planned, ev.data)
+        elif ev.kind == "failed":
+            self._set_status(row, "FAILED")
+            self._failures.append(ev.error)
+            self._current = None
+        elif ev.kind in ("paused", "resumed"):
+            self._paused = ev.kind == "paused"
 
     def refresh(self) -> None:
         job = self.job
         if job is None:
             return
         while not job.events.empty():
-            kind, a, k = job.events.get()
+            kind, payload = job.events.get()
             if kind == "trial":
-                self._on_trial(a, k)
+                self._on_event(payload)
             elif kind == "prompt":
-                self.prompt_label.setText(a[0])
+                self.prompt_label.setText(payload)
                 self.prompt_frame.show()
         n_done, n = len(self._done_ids), len(self.plan)
-        self.run_bar.setValue(n_done)
+        self.run_bar.setValue(n_done + self._done_before)
         if not job.done:
-            nxt = next((p for p in self.plan if p.trial_id not in self._done_ids), None)
-            if nxt is not None:
+            cur = self._current
+            if cur is not None:
                 el = time.monotonic() - self._trial_started
-                self.trial_bar.setValue(int(min(99, 100 * el / max(float(nxt.duration_s), 1e-3))))
-                self._set_status(self._row_of(nxt), "paused" if self.pause_event.is_set() else "recording")
-                per = sorted(self._trial_times)[len(self._trial_times) // 2] if self._trial_times else None
-                remaining = [p for p in self.plan if p.trial_id not in self._done_ids]
-                eta = (
-                    per * len(remaining) - el
-                    if per is not None
-                    else sum(float(p.duration_s) for p in remaining) - el
-                )
-                state = "PAUSED" if self.pause_event.is_set() else f"trial {nxt.trial_id}: {nxt.texture}"
-                self.status.setText(
-                    f"{state} at {nxt.speed_mm_s:g} mm/s, {nxt.force_g:g} g - {n_done}/{n} done, ETA {_fmt_s(eta)}"
-                )
+                self.trial_bar.setValue(int(min(100, 100 * el / max(float(cur.duration_s), 1e-3))))
+            if self.pause_event.is_set():
+                state = "PAUSED (rig released)" if self._paused else "pausing after the current trial..."
+            elif cur is not None:
+                state = f"trial {cur.trial_id}: texture {cur.texture}, {cur.speed_mm_s:g} mm/s, {cur.force_g:g} g"
+            else:
+                state = "preparing"
+            eta = "" if self._eta is None or self._eta != self._eta else f", ETA {_fmt_s(self._eta)}"
+            self.status.setText(f"{state} - {n_done + self._done_before}/{n} done{eta}")
         else:
             self.job = None
             self.prompt_frame.hide()
-            self.trial_bar.setValue(100 if not self.stop_event.is_set() else self.trial_bar.value())
+            summary = job.result
             if job.error:
                 self.status.setText(f"<span style='color:#c00'>run failed: {job.error}</span>")
-            elif self.stop_event.is_set():
-                self.status.setText(f"aborted after {n_done} trial(s); the file {self.last_output} is resumable")
-            else:
-                self.status.setText(f"finished: {n_done} trial(s) in {self.last_output}")
-            self._update_buttons()
+            elif summary is not None and summary.stopped:
+                self.status.setText(
+                    f"aborted: {summary.complete}/{summary.planned} trials in {self.last_output} "
+                    "(tick 'Resume' and Start to continue it)"
+                )
+            elif summary is not None:
+                self.trial_bar.setValue(100)
+                self.status.setText(
+                    f"finished: {summary.complete}/{summary.planned} trials in {self.last_output} "
+                    f"({summary.samples} samples, {summary.dropped_frames} dropped frames, "
+                    f"{summary.crc_errors} CRC errors, {summary.failed} failed)"
+                )
+            self.last_summary = summary
         self._update_buttons()
 
     def _update_buttons(self) -> None:

@@ -50,56 +50,46 @@ class RigHandle:
     Attributes
     ----------
     rig : rigctl.acquisition.rig.Rig
-        Owns the drum client, the taxel stream and (in simulation) the simulated rig; the protocol runner uses it.
+        Owns the drum client, the taxel stream and (in simulation) the simulated rig; the protocol runner and the
+        calibration use it.
     drum : rigctl.devices.drum.DrumClient
     taxels : rigctl.devices.taxel_stream.TaxelStream
     sim : rigctl.simulation.rig.SimulatedRig or None
     """
 
-    def __init__(self, rig, source: RigSource, extra=None):
+    def __init__(self, rig, source: RigSource):
         self.rig = rig
         self.source = source
         self.drum = rig.drum
-        self.taxels = rig.taxels
-        self.sim = getattr(rig, "sim", None)
-        self._extra = extra  # a SimulatedRig we started ourselves (replay), closed after the rig
+        self.taxels = rig.stream
+        self.sim = rig.sim
 
     @property
     def is_simulated(self) -> bool:
-        return self.source.kind in ("sim", "replay")
+        return self.sim is not None
 
     def close(self) -> None:
-        try:
-            self.rig.close()
-        finally:
-            if self._extra is not None:
-                self._extra.close()
+        self.rig.close()
 
 
-def open_rig(source: RigSource, *, config=None) -> RigHandle:
-    """Open the rig described by ``source`` through :meth:`rigctl.acquisition.rig.Rig.open`.
+def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=None, seed: int = 0) -> RigHandle:
+    """Open the rig described by ``source`` with :meth:`rigctl.acquisition.rig.Rig.open` (which homes it).
 
-    Raises whatever the library raises (``DrumError``, ``OSError`` for a missing port, ``TimeoutError`` for a
-    board that never sent its banner); the caller shows it.
+    ``host_config_path`` is the rig config file (calibration; None = the library's default path); ``prompt`` the
+    operator prompt for plate changes on hardware. Raises :class:`rigctl.acquisition.rig.RigError` (the library's
+    message names the ports) or ``OSError``.
     """
     from rigctl.acquisition.rig import Rig
 
+    kw = dict(config=config, host_config_path=host_config_path, prompt=prompt, seed=seed)
     if source.kind == "serial":
-        rig = Rig.open(sim=False, drum_port=source.drum_port, taxel_port=source.taxel_port, config=config)
-        return RigHandle(rig, source)
-    if source.kind == "replay":
+        rig = Rig.open(sim=False, drum_port=source.drum_port, taxel_port=source.taxel_port, **kw)
+    elif source.kind == "replay":
         from rigctl.simulation.replay import FabricSlideReplay
-        from rigctl.simulation.rig import SimulatedRig
 
-        sim = SimulatedRig(config, source=FabricSlideReplay(source.replay_dir))
-        sim.__enter__()
-        try:
-            rig = Rig.open(sim=False, drum_port=sim.drum_port, taxel_port=sim.taxel_port, config=config)
-        except BaseException:
-            sim.close()
-            raise
-        return RigHandle(rig, source, extra=sim)
-    rig = Rig.open(sim=True, config=config)
+        rig = Rig.open(sim=True, source=FabricSlideReplay(source.replay_dir), **kw)
+    else:
+        rig = Rig.open(sim=True, **kw)
     return RigHandle(rig, source)
 
 
@@ -354,10 +344,8 @@ class LiveEncoder(threading.Thread):
     def stream_time_s(self) -> float:
         return self.n_samples / SAMPLE_RATE_HZ
 
-    def stop(self, join: bool = True) -> None:
+    def stop(self) -> None:
         self._halt.set()
-        if join and self.is_alive() and threading.current_thread() is not self:
-            self.join(timeout=5)
 
     def set_normaliser(self, taxel_range) -> None:
         """Use a new per-taxel range (a calibration) and start the encoder afresh."""
