@@ -1,0 +1,265 @@
+"""Force invariance: input scaling coefficients found by bisection (paper eq. 1; Results and Methods, force
+invariance module).
+
+For texture T, taxel i, speed j and force k, find ``C`` such that::
+
+    | SR(Phi_SA(C R_ijk^T)) - SR(Phi_SA(R_ij,500^T)) | < eps         (1)
+
+with ``SR`` the mean spike rate (spikes / trial duration, averaged over the condition's trials) of the SA encoding
+``Phi_SA`` (eqs. 3-5, k = 100). The SA encoding is monotone in its input, so bisection applies; eps = 0.1 spikes/s;
+coefficients are capped at 5 (the paper: 62 of 4320 did not converge, all very low-activity trains, and were limited
+to 5). The 500 g reference conditions have C = 1 by definition.
+
+Bisection is vectorised: every coefficient keeps its own bracket ``[lo, hi]`` (start ``[0, c_max]``), and each step
+encodes the trials of *all* still-open coefficients in **one** kernel call with per-(trial, taxel) gains.
+
+Two groupings:
+
+- per texture (the paper's): one coefficient per (texture, taxel, speed, force);
+- label-free: one per (taxel, speed, force), pooled over textures, because the per-texture coefficients use the very
+  label the classifier is asked to predict (a deployable system does not know the texture).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rigctl.encoding.izhikevich import FS_HZ, K_SA, TONIC_SPIKING, IzhikevichParams, Ragged, as_ragged, run_izhikevich
+
+__all__ = ["ForceFit", "fit_force_coefficients", "ForceScaler", "REFERENCE_FORCE_G", "EPSILON", "C_MAX"]
+
+REFERENCE_FORCE_G = 500.0  #: the force whose SA rate is the target (Methods)
+EPSILON = 0.1  #: spikes/s tolerance of eq. (1)
+C_MAX = 5.0  #: the cap on a coefficient (Methods)
+
+
+@dataclass
+class ForceFit:
+    """Result of :func:`fit_force_coefficients`.
+
+    Attributes
+    ----------
+    coeffs : (n_groups, n_taxels) float64, C of eq. (1) (1 for reference groups).
+    converged : (n_groups, n_taxels) bool, |rate - target| < eps reached.
+    target_rate, rate : (n_groups, n_taxels) float64 spikes/s: the reference rate and the rate at ``coeffs``.
+    n_iter : bisection steps run (each one kernel call).
+    """
+
+    coeffs: np.ndarray
+    converged: np.ndarray
+    target_rate: np.ndarray
+    rate: np.ndarray
+    n_iter: int
+
+    @property
+    def n_not_converged(self) -> int:
+        return int((~self.converged).sum())
+
+    @property
+    def n_coefficients(self) -> int:
+        return int(self.converged.size)
+
+
+def _group_rates(counts, durations, group, n_groups, trial_mask=None):
+    """Mean over a group's trials of count / duration -> (n_groups, n_ch)."""
+    rates = counts / durations[:, None]
+    if trial_mask is not None:
+        rates = np.where(trial_mask[:, None], rates, 0.0)
+        w = trial_mask.astype(np.float64)
+    else:
+        w = np.ones(group.size)
+    n_ch = counts.shape[1]
+    sums = np.zeros((n_groups, n_ch))
+    np.add.at(sums, group, rates)
+    n = np.bincount(group, weights=w, minlength=n_groups)
+    return np.divide(sums, n[:, None], out=np.zeros_like(sums), where=n[:, None] > 0)
+
+
+def fit_force_coefficients(readings, group, reference, *, offset=0.0, scale=1.0, eps: float = EPSILON,
+                           c_max: float = C_MAX, k: float = K_SA, fs: float = FS_HZ, max_iter: int = 40,
+                           params: IzhikevichParams = TONIC_SPIKING) -> ForceFit:
+    """Solve eq. (1) for every (group, taxel) at once by vectorised bisection.
+
+    Parameters
+    ----------
+    readings : :class:`~rigctl.encoding.izhikevich.Ragged`, (n_trials, n_samples, n_taxels) array or list of
+        (n_i, n_taxels) trials: normalised 0-1 readings, or raw ones with ``offset``/``scale``
+        (``(x - offset) * scale`` in [0, 1]).
+    group : (n_trials,) int, the coefficient group of each trial (e.g. the index of its (texture, speed, force)).
+    reference : (n_groups,) int, the reference group of each group (the same texture/speed at 500 g);
+        ``reference[g] == g`` marks a reference group (coefficient 1).
+    eps : spikes/s tolerance. c_max : the cap (bracket is [0, c_max]). k : SA scale (100). fs : Hz.
+    max_iter : bisection steps at most (c_max / 2**40 is far below any meaningful precision).
+
+    Returns
+    -------
+    ForceFit
+
+    Raises
+    ------
+    ValueError
+        on mismatched sizes, a group without trials used as a reference, or a reference group that is itself
+        referred to another group.
+    """
+    rg = as_ragged(readings)
+    group = np.asarray(group, dtype=np.int64)
+    reference = np.asarray(reference, dtype=np.int64)
+    n_groups, n_ch = reference.size, rg.n_channels
+    if group.shape != (rg.n_trials,):
+        raise ValueError(f"group must be ({rg.n_trials},), got {group.shape}")
+    if group.size and (group.min() < 0 or group.max() >= n_groups):
+        raise ValueError("group indices out of range of reference")
+    if np.any(reference[reference] != reference):
+        raise ValueError("a reference group must be its own reference")
+    durations = rg.lengths / fs
+    if np.any(durations <= 0):
+        raise ValueError("empty trial")
+    n_per_group = np.bincount(group, minlength=n_groups)
+    is_ref = reference == np.arange(n_groups)
+    if np.any(n_per_group[reference[~is_ref]] == 0):
+        raise ValueError("some groups refer to a reference group without trials")
+
+    def rates_at(coeff_groups, trial_mask):
+        gain = coeff_groups[group]  # (n_trials, n_ch)
+        counts, _, _ = run_izhikevich(rg, k=k, gain=gain, offset=offset, scale=scale, params=params,
+                                      active=trial_mask, want_raster=False)
+        return _group_rates(counts, durations, group, n_groups, trial_mask)
+
+    ref_trials = is_ref[group]
+    target_ref = rates_at(np.ones((n_groups, n_ch)), ref_trials)
+    target = target_ref[reference]
+
+    coeffs = np.ones((n_groups, n_ch))
+    rate = target.copy()
+    done = np.repeat(is_ref[:, None], n_ch, axis=1) | (n_per_group[:, None] == 0)
+    converged = done.copy()
+    lo = np.zeros((n_groups, n_ch))
+    hi = np.full((n_groups, n_ch), float(c_max))
+    n_iter = 0
+    while not done.all() and n_iter < max_iter:
+        mid = 0.5 * (lo + hi)
+        trial_mask = ~done.all(axis=1)[group]
+        r = rates_at(np.where(done, coeffs, mid), trial_mask)
+        n_iter += 1
+        open_ = ~done
+        ok = open_ & (np.abs(r - target) < eps)
+        coeffs[open_] = mid[open_]
+        rate[open_] = r[open_]
+        converged |= ok
+        done |= ok
+        low = open_ & ~ok & (r < target)
+        lo[low] = mid[low]
+        high = open_ & ~ok & (r >= target)
+        hi[high] = mid[high]
+    # not converged: the bracket closed on a jump of the rate (or the target is out of reach below c_max).
+    return ForceFit(coeffs, converged, target, rate, n_iter)
+
+
+def _key_index(keys: np.ndarray):
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    return uniq, inv.reshape(-1)
+
+
+class ForceScaler:
+    """scikit-learn-like wrapper of eq. (1): ``fit`` finds the coefficients, ``coefficients_for`` / ``transform``
+    apply them.
+
+    Parameters
+    ----------
+    label_free : False -> one coefficient per (texture, taxel, speed, force) (the paper); True -> per
+        (taxel, speed, force), pooled over textures.
+    reference_force_g, eps, c_max, k, max_iter : see :func:`fit_force_coefficients`.
+
+    Attributes (after ``fit``)
+    --------------------------
+    keys_ : (n_groups, 3) float64 rows (texture code, speed mm/s, force g); texture code = index into
+        ``textures_`` (-1 for label-free).
+    textures_ : list of texture labels seen.
+    coeffs_, converged_ : (n_groups, n_taxels).
+    fit_ : the :class:`ForceFit`.
+    n_not_converged_ : int.
+    """
+
+    def __init__(self, *, label_free: bool = False, reference_force_g: float = REFERENCE_FORCE_G,
+                 eps: float = EPSILON, c_max: float = C_MAX, k: float = K_SA, max_iter: int = 40, fs: float = FS_HZ):
+        self.label_free = label_free
+        self.reference_force_g = reference_force_g
+        self.eps, self.c_max, self.k, self.max_iter, self.fs = eps, c_max, k, max_iter, fs
+
+    def _keys(self, texture, speed_mm_s, force_g):
+        texture = np.asarray(texture).astype(str)
+        if self.label_free:
+            tcode = np.full(texture.size, -1.0)
+        else:
+            lookup = {t: i for i, t in enumerate(self.textures_)}
+            tcode = np.array([lookup.get(t, -2) for t in texture], dtype=np.float64)
+        return np.column_stack([tcode, np.round(np.asarray(speed_mm_s, float), 3),
+                                np.round(np.asarray(force_g, float), 3)])
+
+    def fit(self, readings, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0) -> "ForceScaler":
+        """Fit the coefficients on trials with labels (one per trial).
+
+        Raises
+        ------
+        ValueError
+            if a (texture, speed) has no trial at the reference force.
+        """
+        self.textures_ = sorted(set(np.asarray(texture).astype(str).tolist()))
+        keys = self._keys(texture, speed_mm_s, force_g)
+        uniq, group = _key_index(keys)
+        ref_key = uniq.copy()
+        ref_key[:, 2] = round(self.reference_force_g, 3)
+        index = {tuple(r): i for i, r in enumerate(uniq)}
+        missing = [tuple(r) for r in ref_key if tuple(r) not in index]
+        if missing:
+            raise ValueError(f"no trials at the reference force {self.reference_force_g} g for (texture code, "
+                             f"speed) {sorted({m[:2] for m in missing})}")
+        reference = np.array([index[tuple(r)] for r in ref_key], dtype=np.int64)
+        self.fit_ = fit_force_coefficients(readings, group, reference, offset=offset, scale=scale, eps=self.eps,
+                                           c_max=self.c_max, k=self.k, fs=self.fs, max_iter=self.max_iter)
+        self.keys_ = uniq
+        self.coeffs_ = self.fit_.coeffs
+        self.converged_ = self.fit_.converged
+        self.n_not_converged_ = self.fit_.n_not_converged
+        return self
+
+    def coefficients_for(self, texture, speed_mm_s, force_g) -> np.ndarray:
+        """(n_trials, n_taxels) float64 coefficients for labelled trials; conditions not seen in ``fit`` get 1.0."""
+        keys = self._keys(texture, speed_mm_s, force_g)
+        index = {tuple(r): i for i, r in enumerate(self.keys_)}
+        rows = np.array([index.get(tuple(r), -1) for r in keys], dtype=np.int64)
+        out = np.ones((rows.size, self.coeffs_.shape[1]))
+        out[rows >= 0] = self.coeffs_[rows[rows >= 0]]
+        return out
+
+    def transform(self, readings, texture, speed_mm_s, force_g) -> list[np.ndarray]:
+        """C * R for normalised readings (list of (n_i, n_taxels) float64 arrays), the SA input of eq. (1)."""
+        rg = as_ragged(readings)
+        coeffs = self.coefficients_for(texture, speed_mm_s, force_g)
+        return [rg.trial(t) * coeffs[t] for t in range(rg.n_trials)]
+
+    def table(self) -> np.ndarray:
+        """Structured array: texture, speed_mm_s, force_g, taxel, coeff, converged (one row per coefficient)."""
+        n_g, n_ch = self.coeffs_.shape
+        dt = np.dtype([("texture", "S8"), ("speed_mm_s", "f4"), ("force_g", "f4"), ("taxel", "u2"),
+                       ("coeff", "f8"), ("converged", "?"), ("target_rate", "f8"), ("rate", "f8")])
+        out = np.zeros(n_g * n_ch, dtype=dt)
+        tex = ["*" if c < 0 else self.textures_[int(c)] for c in self.keys_[:, 0]]
+        out["texture"] = np.repeat(np.array(tex, dtype="S8"), n_ch)
+        out["speed_mm_s"] = np.repeat(self.keys_[:, 1], n_ch)
+        out["force_g"] = np.repeat(self.keys_[:, 2], n_ch)
+        out["taxel"] = np.tile(np.arange(n_ch), n_g)
+        out["coeff"] = self.coeffs_.ravel()
+        out["converged"] = self.converged_.ravel()
+        out["target_rate"] = self.fit_.target_rate.ravel()
+        out["rate"] = self.fit_.rate.ravel()
+        return out
+
+
+def fit_from_ragged(ragged: Ragged, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0,
+                    label_free: bool = False, **kw) -> ForceScaler:
+    """Convenience: ``ForceScaler(label_free=...).fit(...)``."""
+    return ForceScaler(label_free=label_free, **kw).fit(ragged, texture, speed_mm_s, force_g, offset=offset,
+                                                        scale=scale)

@@ -1,0 +1,406 @@
+"""Spiking activity encoding: Izhikevich tonic-spiking SA and RA neurons (paper eqs. 3-5, Methods; Fig. 2D).
+
+Model (eqs. 3-5), one neuron per taxel and encoding::
+
+    dv/dt = 0.04 v^2 + 5 v + 140 - u + k I          (3)
+    du/dt = a (b v - u)                              (4)
+    if v >= 30 mV: v <- c, u <- u + d                (5)
+
+Tonic spiking: a = 0.02, b = 0.2, c = -65, d = 6. SA: k = 100 on the normalised reading (0-1 per taxel, times the
+force coefficient C of eq. 1); RA: k = 3 on the 20 Hz low-passed, differentiated reading
+(:mod:`rigctl.encoding.filters`).
+
+Integration scheme (Izhikevich 2003, the model's reference code): time in ms, one step per sample (1 ms at 1 kHz);
+``v`` is advanced in two 0.5 ms Euler half-steps for numerical stability, then ``u`` one 1 ms step from the *new*
+``v``; then, if ``v >= 30``, the sample is a spike: ``v <- c``, ``u <- u + d``. A spike found at sample ``n`` of a
+trial gets the time ``n / fs`` seconds (trial start = 0). Initial state: ``v = c = -65`` mV, ``u = b * v``.
+
+Numerics: the state (v, u) is float64; the input may be float32, float64 or raw integer ADC counts (an affine
+normalisation ``(x - offset) * scale`` is applied in the kernel, so raw ``uint16`` sessions need no float copy). The
+kernel (numba) loops time-outer, channels innermost over a contiguous channel axis (vectorised with SIMD; the spike
+reset is branch-free), and runs trials in parallel (``prange``). Batch and :class:`StreamingEncoder` call the same
+kernel on the same values, so they give identical spikes.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from rigctl.encoding.filters import RAFilter, ra_input
+from rigctl.encoding.normalise import TaxelRange
+from rigctl.encoding.spikes import SpikeTrains
+
+__all__ = [
+    "IzhikevichParams",
+    "TONIC_SPIKING",
+    "K_SA",
+    "K_RA",
+    "Ragged",
+    "as_ragged",
+    "run_izhikevich",
+    "encode",
+    "encode_sa",
+    "encode_ra",
+    "encode_trials",
+    "StreamingEncoder",
+    "EncodedChunk",
+]
+
+K_SA = 100.0  #: eq. (3) input scaling for SA (Methods)
+K_RA = 3.0  #: eq. (3) input scaling for RA (Methods)
+FS_HZ = 1000.0  #: the taxel sample rate (1 kHz); one model step per sample
+
+
+@dataclass(frozen=True)
+class IzhikevichParams:
+    """Free parameters of eqs. (3)-(5); defaults: tonic spiking (Izhikevich 2004; paper Methods)."""
+
+    a: float = 0.02
+    b: float = 0.2
+    c: float = -65.0
+    d: float = 6.0
+    v_peak: float = 30.0  #: mV, spike threshold of eq. (5)
+
+
+TONIC_SPIKING = IzhikevichParams()
+
+
+# ---------------------------------------------------------------------------------------------------------- kernel
+@numba.njit(fastmath=True, inline="always", cache=True)
+def _izh_step(vv, uu, cnt, rn, write, xn, offset, g, a, b, c, d, v_peak):  # pragma: no cover
+    """One 1 ms step of eqs. (3)-(5) for every channel (contiguous, SIMD): two 0.5 ms half-steps of v, then u
+    from the new v, then the branch-free spike reset."""
+    for ch in range(vv.size):
+        i_in = (xn[ch] - offset[ch]) * g[ch]
+        v0 = vv[ch]
+        u0 = uu[ch]
+        v1 = v0 + 0.5 * (0.04 * v0 * v0 + 5.0 * v0 + 140.0 - u0 + i_in)
+        v2 = v1 + 0.5 * (0.04 * v1 * v1 + 5.0 * v1 + 140.0 - u0 + i_in)
+        u1 = u0 + a * (b * v2 - u0)
+        s = v2 >= v_peak
+        vv[ch] = c if s else v2
+        uu[ch] = u1 + d if s else u1
+        cnt[ch] += s
+        if write:
+            rn[ch] = s
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def _izh_kernel(x, starts, offset, gain, v, u, counts, raster, active, a, b, c, d, v_peak):  # pragma: no cover
+    """x (N, C) input; starts (T+1,) row starts of trials; gain (T, C) = k * scale * coeff; offset (C,);
+    v, u (T, C) float64 state (in/out); counts (T, C) int64 (added to); raster (N, C) uint8 or (0, C) to skip;
+    active (T,) bool (inactive trials skipped). Time-outer per trial, channels innermost, trials in parallel."""
+    n_trials = starts.shape[0] - 1
+    n_ch = x.shape[1]
+    write = raster.shape[0] > 0
+    for t in numba.prange(n_trials):
+        if not active[t]:
+            continue
+        vv = v[t].copy()
+        uu = u[t].copy()
+        g = gain[t].copy()
+        off = offset.copy()
+        cnt = np.zeros(n_ch, dtype=np.int64)
+        for n in range(starts[t], starts[t + 1]):
+            _izh_step(vv, uu, cnt, raster[n] if write else raster[0:0].reshape(-1), write, x[n], off, g,
+                      a, b, c, d, v_peak)
+        v[t] = vv
+        u[t] = uu
+        counts[t] += cnt
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _raster_to_times(raster, starts, index_start, n0, dt, out):  # pragma: no cover
+    """Fill flat spike times trial-major, channel-major from a (N, C) raster; index_start (T, C) row starts;
+    n0 (T,) int64 sample number of each trial's first row (0 in batch, the samples already seen when streaming)."""
+    n_trials = starts.shape[0] - 1
+    n_ch = raster.shape[1]
+    for t in numba.prange(n_trials):
+        pos = index_start[t].copy()
+        s0 = starts[t]
+        for n in range(s0, starts[t + 1]):
+            rn = raster[n]
+            for ch in range(n_ch):
+                if rn[ch]:
+                    out[pos[ch]] = (n - s0 + n0[t]) * dt
+                    pos[ch] += 1
+
+
+# ---------------------------------------------------------------------------------------------------------- input
+@dataclass(frozen=True)
+class Ragged:
+    """Trials of different lengths stored flat: ``data[starts[t]:starts[t+1]]`` is trial ``t``.
+
+    data : (n_total_samples, n_channels), any real dtype (C-contiguous); starts : (n_trials + 1,) int64.
+    """
+
+    data: np.ndarray
+    starts: np.ndarray
+
+    @property
+    def n_trials(self) -> int:
+        return self.starts.size - 1
+
+    @property
+    def n_channels(self) -> int:
+        return self.data.shape[1]
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return np.diff(self.starts)
+
+    def trial(self, t: int) -> np.ndarray:
+        return self.data[self.starts[t] : self.starts[t + 1]]
+
+    def map_trials(self, fn) -> "Ragged":
+        """Apply ``fn((n, C)) -> (n, C)`` trial by trial (e.g. the RA filter, which must restart per trial)."""
+        out = [fn(self.trial(t)) for t in range(self.n_trials)]
+        data = np.concatenate(out, axis=0) if out else np.zeros((0, self.n_channels))
+        return Ragged(np.ascontiguousarray(data), self.starts)
+
+    def select(self, trials) -> "Ragged":
+        trials = np.arange(self.n_trials)[trials]
+        return as_ragged([self.trial(t) for t in trials]) if trials.size else Ragged(self.data[:0], np.zeros(1, np.int64))
+
+
+def as_ragged(readings) -> Ragged:
+    """``(n_trials, n_samples, n_channels)`` array, ``(n_samples, n_channels)`` (one trial), a list of
+    ``(n_i, n_channels)`` arrays, or a :class:`Ragged` -> :class:`Ragged` (no copy for C-contiguous 3-D input).
+
+    Raises
+    ------
+    ValueError
+        on other shapes or mismatched channel counts.
+    """
+    if isinstance(readings, Ragged):
+        return readings
+    if isinstance(readings, np.ndarray):
+        if readings.ndim == 2:
+            readings = readings[None]
+        if readings.ndim != 3:
+            raise ValueError(f"readings must be (n_trials, n_samples, n_channels), got {readings.shape}")
+        t, s, c = readings.shape
+        data = np.ascontiguousarray(readings).reshape(t * s, c)
+        return Ragged(data, np.arange(t + 1, dtype=np.int64) * s)
+    trials = [np.asarray(r) for r in readings]
+    if not trials:
+        raise ValueError("no trials")
+    if any(r.ndim != 2 or r.shape[1] != trials[0].shape[1] for r in trials):
+        raise ValueError("every trial must be (n_samples, n_channels) with the same n_channels")
+    starts = np.zeros(len(trials) + 1, dtype=np.int64)
+    np.cumsum([r.shape[0] for r in trials], out=starts[1:])
+    return Ragged(np.ascontiguousarray(np.concatenate(trials, axis=0)), starts)
+
+
+def _kernel_dtype(x: np.ndarray) -> np.ndarray:
+    if x.dtype in (np.float32, np.float64, np.uint16, np.int16, np.int32):
+        return np.ascontiguousarray(x)
+    return np.ascontiguousarray(x, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------------------- batch
+def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, params: IzhikevichParams = TONIC_SPIKING,
+                   state=None, active=None, want_raster: bool = True):
+    """Run eqs. (3)-(5) on every channel of every trial: the low-level entry point.
+
+    Parameters
+    ----------
+    readings : :class:`Ragged` or anything :func:`as_ragged` takes; ``(n_trials, n_samples, n_channels)``.
+    k : eq. (3) input scale (100 SA, 3 RA).
+    gain : scalar, (n_channels,) or (n_trials, n_channels) extra input scale (the force coefficient C of eq. 1).
+    offset, scale : scalar or (n_channels,) affine normalisation applied first: ``I = (x - offset) * scale``.
+    state : optional ``(v, u)`` (n_trials, n_channels) float64 arrays, updated in place (streaming).
+    active : optional (n_trials,) bool; inactive trials are skipped (their counts are 0).
+    want_raster : also return the (n_total_samples, n_channels) uint8 spike raster.
+
+    Returns
+    -------
+    counts : (n_trials, n_channels) int64 spikes per train.
+    raster : (n_total_samples, n_channels) uint8 (1 = spike at that sample) or None.
+    state : (v, u) after the last sample.
+    """
+    rg = as_ragged(readings)
+    x = _kernel_dtype(rg.data)
+    n_trials, n_ch = rg.n_trials, rg.n_channels
+    offset = np.ascontiguousarray(np.broadcast_to(np.asarray(offset, np.float64), (n_ch,)))
+    scale = np.broadcast_to(np.asarray(scale, np.float64), (n_ch,))
+    g = np.asarray(gain, dtype=np.float64)
+    if g.ndim == 1 and g.size == n_ch:
+        g = g[None, :]
+    g = np.ascontiguousarray(np.broadcast_to(g, (n_trials, n_ch)) * (float(k) * scale)[None, :])
+    if state is None:
+        v = np.full((n_trials, n_ch), params.c, dtype=np.float64)
+        u = params.b * v
+    else:
+        v, u = state
+        if v.shape != (n_trials, n_ch) or u.shape != (n_trials, n_ch):
+            raise ValueError(f"state must be two ({n_trials}, {n_ch}) arrays")
+    act = np.ones(n_trials, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
+    counts = np.zeros((n_trials, n_ch), dtype=np.int64)
+    raster = np.zeros((x.shape[0] if want_raster else 0, n_ch), dtype=np.uint8)
+    _izh_kernel(x, rg.starts, offset, g, v, u, counts, raster, act, params.a, params.b, params.c, params.d,
+                params.v_peak)
+    return counts, (raster if want_raster else None), (v, u)
+
+
+def _trains_from_raster(raster, starts, counts, fs, n0=0) -> SpikeTrains:
+    n_trials = starts.size - 1
+    index = np.cumsum(counts.ravel(), dtype=np.int64)
+    index_start = (index - counts.ravel()).reshape(counts.shape)
+    out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
+    n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
+    _raster_to_times(raster, starts, np.ascontiguousarray(index_start), n0, 1.0 / fs, out)
+    return SpikeTrains(out, index, counts.shape[1])
+
+
+def encode(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, fs: float = FS_HZ,
+           params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
+    """Encode input currents into spike trains with eqs. (3)-(5) (no filtering): see :func:`run_izhikevich`.
+
+    Returns
+    -------
+    SpikeTrains of shape (n_trials, n_channels), spike times in seconds from each trial's first sample.
+    """
+    rg = as_ragged(readings)
+    counts, raster, _ = run_izhikevich(rg, k=k, gain=gain, offset=offset, scale=scale, params=params)
+    return _trains_from_raster(raster, rg.starts, counts, fs)
+
+
+def _norm_args(normalise: TaxelRange | None):
+    if normalise is None:
+        return 0.0, 1.0
+    return normalise.offset_scale()
+
+
+def encode_sa(readings, k: float = K_SA, coeff=1.0, *, normalise: TaxelRange | None = None, fs: float = FS_HZ,
+              params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
+    """SA encoding (Methods): tonic spiking, k = 100, on the (force-scaled) normalised reading.
+
+    Parameters
+    ----------
+    readings : (n_trials, n_samples, n_taxels) normalised 0-1 float readings, a list of ragged
+        (n_i, n_taxels) trials, or a :class:`Ragged`. With ``normalise`` given, raw readings (ADC counts).
+    k : eq. (3) scale, default 100.
+    coeff : force-invariance coefficient C (eq. 1): scalar, (n_taxels,) or (n_trials, n_taxels).
+    normalise : per-taxel min/max of the whole dataset; applied in the kernel.
+    fs : sample rate, Hz (one model step per sample).
+
+    Returns
+    -------
+    SpikeTrains (n_trials, n_taxels), spike times in s.
+    """
+    offset, scale = _norm_args(normalise)
+    return encode(readings, k=k, gain=coeff, offset=offset, scale=scale, fs=fs, params=params)
+
+
+def encode_ra(readings, k: float = K_RA, cutoff_hz: float = 20.0, *, normalise: TaxelRange | None = None,
+              rectify: bool = True, fs: float = FS_HZ, params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
+    """RA encoding (Methods): tonic spiking, k = 3, on the 20 Hz low-passed, differentiated reading.
+
+    The filter and derivative (units: normalised reading per second; rectified) are described in
+    :mod:`rigctl.encoding.filters`; they restart at every trial, initialised to its first sample.
+
+    Parameters
+    ----------
+    readings : as :func:`encode_sa`.
+    k : eq. (3) scale, default 3. cutoff_hz : low-pass cutoff (20 Hz).
+
+    Returns
+    -------
+    SpikeTrains (n_trials, n_taxels), spike times in s.
+    """
+    rg = as_ragged(readings)
+    offset, scale = _norm_args(normalise)
+    norm = rg.map_trials(lambda tr: ra_input((tr - offset) * scale, cutoff_hz=cutoff_hz, fs=fs, rectify=rectify))
+    return encode(norm, k=k, fs=fs, params=params)
+
+
+def encode_trials(readings, *, normalise: TaxelRange | None = None, coeff=1.0, fs: float = FS_HZ,
+                  rectify: bool = True, params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
+    """SA and RA trains side by side: (n_trials, 2 * n_taxels), SA taxels first, then RA (the paper's 36 trains)."""
+    sa = encode_sa(readings, coeff=coeff, normalise=normalise, fs=fs, params=params)
+    ra = encode_ra(readings, normalise=normalise, fs=fs, rectify=rectify, params=params)
+    return SpikeTrains.hstack([sa, ra])
+
+
+# ---------------------------------------------------------------------------------------------------------- streaming
+@dataclass(frozen=True)
+class EncodedChunk:
+    """Spikes of one streamed chunk: ``sa`` and ``ra`` are SpikeTrains of shape (1, n_taxels) with times in s
+    since the stream (trial) start; ``n_samples`` the chunk length."""
+
+    sa: SpikeTrains
+    ra: SpikeTrains
+    n_samples: int
+
+    def events(self, which: str = "sa") -> tuple[np.ndarray, np.ndarray]:
+        """``(times_s, taxel)`` flat arrays of one population, for raster plots."""
+        st = self.sa if which == "sa" else self.ra
+        return st.spike_times, st.row_ids()
+
+
+class StreamingEncoder:
+    """Stateful SA + RA encoder fed chunk by chunk (the GUI's live rasters); identical spikes to batch encoding.
+
+    Feeding a trial in any chunking gives exactly the spike times of :func:`encode_sa` / :func:`encode_ra` on the
+    whole trial: the neuron state (v, u), the RA low-pass state and the last filtered value carry over.
+
+    Parameters
+    ----------
+    n_taxels : int
+    normalise : optional :class:`TaxelRange` (then chunks are raw readings, e.g. uint16 ADC counts).
+    coeff : SA force coefficient C (scalar or (n_taxels,)).
+    k_sa, k_ra, cutoff_hz, rectify, fs, params : as the batch functions.
+    """
+
+    def __init__(self, n_taxels: int, *, normalise: TaxelRange | None = None, coeff=1.0, k_sa: float = K_SA,
+                 k_ra: float = K_RA, cutoff_hz: float = 20.0, rectify: bool = True, fs: float = FS_HZ,
+                 params: IzhikevichParams = TONIC_SPIKING):
+        self.n_taxels = n_taxels
+        self.offset, self.scale = _norm_args(normalise)
+        self.coeff = np.broadcast_to(np.asarray(coeff, np.float64), (n_taxels,)).copy()
+        self.k_sa, self.k_ra, self.fs, self.params = float(k_sa), float(k_ra), float(fs), params
+        self._ra_filter = RAFilter(n_taxels, cutoff_hz=cutoff_hz, fs=fs, rectify=rectify)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start a new trial: neuron and filter state back to rest, time back to 0."""
+        p = self.params
+        self._sa_state = (np.full((1, self.n_taxels), p.c), np.full((1, self.n_taxels), p.b * p.c))
+        self._ra_state = (np.full((1, self.n_taxels), p.c), np.full((1, self.n_taxels), p.b * p.c))
+        self._ra_filter.reset()
+        self.n_samples = 0
+
+    def process(self, chunk: np.ndarray) -> EncodedChunk:
+        """Encode ``(n, n_taxels)`` readings that follow the previous chunk.
+
+        Raises
+        ------
+        ValueError
+            if the chunk is not ``(n, n_taxels)``.
+        """
+        x = np.asarray(chunk)
+        if x.ndim != 2 or x.shape[1] != self.n_taxels:
+            raise ValueError(f"chunk must be (n, {self.n_taxels}), got {x.shape}")
+        n = x.shape[0]
+        starts = np.array([0, n], dtype=np.int64)
+        rg = Ragged(np.ascontiguousarray(x), starts)
+        n0 = self.n_samples
+        counts, raster, _ = run_izhikevich(rg, k=self.k_sa, gain=self.coeff, offset=self.offset, scale=self.scale,
+                                           params=self.params, state=self._sa_state)
+        sa = _trains_from_raster(raster, starts, counts, self.fs, n0)
+        ra_in = self._ra_filter.process((x - self.offset) * self.scale)
+        counts, raster, _ = run_izhikevich(Ragged(ra_in, starts), k=self.k_ra, params=self.params,
+                                           state=self._ra_state)
+        ra = _trains_from_raster(raster, starts, counts, self.fs, n0)
+        self.n_samples += n
+        return EncodedChunk(sa, ra, n)
+
+
+def default_threads() -> int:
+    """Threads numba uses (all cores unless NUMBA_NUM_THREADS says otherwise)."""
+    return int(os.environ.get("NUMBA_NUM_THREADS", numba.config.NUMBA_NUM_THREADS))

@@ -1,0 +1,237 @@
+"""Spike trains stored NWB-style: one flat ``spike_times`` array plus ``spike_times_index`` of row ends.
+
+The paper represents every spike train as "an ordered list of spike times" (Results, spiking activity encoding
+module; Fig. 2D). Many trains (trials x taxels x SA/RA) are kept together as one ragged array, the layout of the
+NWB ``Units`` table (``spike_times`` + ``spike_times_index``): row ``r`` holds
+``spike_times[index[r-1]:index[r]]`` (``index[-1]`` taken as 0). Rows are ordered trial-major: row
+``trial * n_trains + train``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["SpikeTrains"]
+
+
+@dataclass(frozen=True)
+class SpikeTrains:
+    """A ragged set of spike trains, ``shape = (n_trials, n_trains)`` logical rows.
+
+    Parameters
+    ----------
+    spike_times : (n_spikes,) float64, seconds from each trial's first sample (sorted within a row).
+    spike_times_index : (n_trials * n_trains,) int64, row ends into ``spike_times`` (NWB convention).
+    n_trains : int, trains per trial (e.g. 18 taxels, or 36 = 18 SA + 18 RA).
+
+    Raises
+    ------
+    ValueError
+        if the index is not non-decreasing, does not end at ``len(spike_times)``, or is not a multiple of
+        ``n_trains`` long.
+    """
+
+    spike_times: np.ndarray
+    spike_times_index: np.ndarray
+    n_trains: int
+
+    def __post_init__(self):
+        times = np.ascontiguousarray(self.spike_times, dtype=np.float64)
+        index = np.ascontiguousarray(self.spike_times_index, dtype=np.int64)
+        object.__setattr__(self, "spike_times", times)
+        object.__setattr__(self, "spike_times_index", index)
+        if times.ndim != 1 or index.ndim != 1:
+            raise ValueError("spike_times and spike_times_index must be 1-D")
+        if self.n_trains <= 0 or index.size % self.n_trains:
+            raise ValueError(f"{index.size} rows is not a multiple of n_trains={self.n_trains}")
+        if index.size and (np.any(np.diff(index) < 0) or index[0] < 0 or index[-1] != times.size):
+            raise ValueError("spike_times_index must be non-decreasing row ends ending at len(spike_times)")
+        if not index.size and times.size:
+            raise ValueError("spike times without rows")
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_counts(cls, spike_times: np.ndarray, counts: np.ndarray) -> "SpikeTrains":
+        """Build from flat times and per-row counts ``(n_trials, n_trains)`` int."""
+        counts = np.asarray(counts)
+        return cls(spike_times, np.cumsum(counts.ravel(), dtype=np.int64), counts.shape[1])
+
+    @classmethod
+    def from_lists(cls, trains: list[list[np.ndarray]]) -> "SpikeTrains":
+        """Build from nested lists ``trains[trial][train] -> (n,) seconds``."""
+        n_trains = len(trains[0]) if trains else 1
+        rows = [np.asarray(t, dtype=np.float64) for trial in trains for t in trial]
+        if any(len(trial) != n_trains for trial in trains):
+            raise ValueError("every trial needs the same number of trains")
+        counts = np.array([r.size for r in rows], dtype=np.int64).reshape(len(trains), n_trains)
+        times = np.concatenate(rows) if rows else np.zeros(0)
+        return cls.from_counts(times, counts)
+
+    @classmethod
+    def empty(cls, n_trials: int, n_trains: int) -> "SpikeTrains":
+        return cls(np.zeros(0), np.zeros(n_trials * n_trains, dtype=np.int64), n_trains)
+
+    # ------------------------------------------------------------------ shape and access
+    @property
+    def n_rows(self) -> int:
+        return self.spike_times_index.size
+
+    @property
+    def n_trials(self) -> int:
+        return self.n_rows // self.n_trains
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.n_trials, self.n_trains)
+
+    @property
+    def row_starts(self) -> np.ndarray:
+        """(n_rows,) int64 start of each row in ``spike_times``."""
+        starts = np.empty_like(self.spike_times_index)
+        if starts.size:
+            starts[0] = 0
+            starts[1:] = self.spike_times_index[:-1]
+        return starts
+
+    def counts(self) -> np.ndarray:
+        """(n_trials, n_trains) int64 spike count of every train."""
+        return np.diff(self.spike_times_index, prepend=0).reshape(self.shape)
+
+    def train(self, trial: int, train: int) -> np.ndarray:
+        """Spike times (s) of one train: a view into ``spike_times``."""
+        if not (0 <= trial < self.n_trials and 0 <= train < self.n_trains):
+            raise IndexError(f"train ({trial}, {train}) outside shape {self.shape}")
+        row = trial * self.n_trains + train
+        start = self.spike_times_index[row - 1] if row else 0
+        return self.spike_times[start : self.spike_times_index[row]]
+
+    def __getitem__(self, key):
+        if isinstance(key, tuple):
+            return self.train(*key)
+        raise TypeError("index SpikeTrains with [trial, train]; use select_trials for subsets")
+
+    def __len__(self) -> int:
+        return self.n_trials
+
+    def row_ids(self) -> np.ndarray:
+        """(n_spikes,) int64 row of every spike."""
+        return np.repeat(np.arange(self.n_rows, dtype=np.int64), np.diff(self.spike_times_index, prepend=0))
+
+    # ------------------------------------------------------------------ transforms
+    def _gather_rows(self, rows: np.ndarray, n_trains: int) -> "SpikeTrains":
+        rows = np.asarray(rows, dtype=np.int64)
+        starts = self.row_starts[rows]
+        lengths = self.spike_times_index[rows] - starts
+        ends = np.cumsum(lengths)
+        src = np.repeat(starts - (ends - lengths), lengths) + np.arange(ends[-1] if ends.size else 0)
+        return SpikeTrains(self.spike_times[src], ends, n_trains)
+
+    def select_trials(self, trials) -> "SpikeTrains":
+        """A new SpikeTrains with the given trials (int array or boolean mask), in that order."""
+        trials = np.arange(self.n_trials)[trials]
+        rows = (trials[:, None] * self.n_trains + np.arange(self.n_trains)[None, :]).ravel()
+        return self._gather_rows(rows, self.n_trains)
+
+    def select_trains(self, trains) -> "SpikeTrains":
+        """A new SpikeTrains keeping only the given train columns of every trial."""
+        trains = np.arange(self.n_trains)[trains]
+        rows = (np.arange(self.n_trials)[:, None] * self.n_trains + trains[None, :]).ravel()
+        return self._gather_rows(rows, trains.size)
+
+    def scale_times(self, factor) -> "SpikeTrains":
+        """Multiply every spike time of trial ``t`` by ``factor[t]`` (scalar or (n_trials,)); eq. (2) helper."""
+        factor = np.broadcast_to(np.asarray(factor, dtype=np.float64), (self.n_trials,))
+        per_spike = np.repeat(np.repeat(factor, self.n_trains), np.diff(self.spike_times_index, prepend=0))
+        return SpikeTrains(self.spike_times * per_spike, self.spike_times_index, self.n_trains)
+
+    def with_times(self, spike_times: np.ndarray) -> "SpikeTrains":
+        """Same rows, new spike times (same length)."""
+        return SpikeTrains(spike_times, self.spike_times_index, self.n_trains)
+
+    @staticmethod
+    def hstack(parts: list["SpikeTrains"]) -> "SpikeTrains":
+        """Join trains side by side per trial (e.g. 18 SA + 18 RA -> 36 trains); trial counts must match."""
+        n_trials = parts[0].n_trials
+        if any(p.n_trials != n_trials for p in parts):
+            raise ValueError("hstack needs the same number of trials in every part")
+        joined = SpikeTrains.vstack_rows(parts)
+        offsets = np.cumsum([0] + [p.n_rows for p in parts])
+        rows = np.concatenate(
+            [
+                (offsets[i] + np.arange(n_trials)[:, None] * p.n_trains + np.arange(p.n_trains)[None, :])
+                for i, p in enumerate(parts)
+            ],
+            axis=1,
+        ).ravel()
+        return joined._gather_rows(rows, sum(p.n_trains for p in parts))
+
+    @staticmethod
+    def vstack_rows(parts: list["SpikeTrains"]) -> "SpikeTrains":
+        """Concatenate raw rows (internal helper; trains per trial taken as 1)."""
+        times = np.concatenate([p.spike_times for p in parts])
+        offs = np.cumsum([0] + [p.spike_times.size for p in parts[:-1]])
+        index = np.concatenate([p.spike_times_index + o for p, o in zip(parts, offs)])
+        return SpikeTrains(times, index, 1)
+
+    @staticmethod
+    def concatenate(parts: list["SpikeTrains"]) -> "SpikeTrains":
+        """Concatenate trials (all parts need the same ``n_trains``)."""
+        if not parts:
+            raise ValueError("nothing to concatenate")
+        n_trains = parts[0].n_trains
+        if any(p.n_trains != n_trains for p in parts):
+            raise ValueError("concatenate needs the same n_trains in every part")
+        joined = SpikeTrains.vstack_rows(parts)
+        return SpikeTrains(joined.spike_times, joined.spike_times_index, n_trains)
+
+    @staticmethod
+    def concat_time(parts: list["SpikeTrains"]) -> "SpikeTrains":
+        """Append successive time chunks of the same trains (streaming output) row by row."""
+        shape = parts[0].shape
+        if any(p.shape != shape for p in parts):
+            raise ValueError("concat_time needs chunks of the same shape")
+        counts = sum(p.counts() for p in parts)
+        joined = SpikeTrains.vstack_rows(parts)
+        n_rows = parts[0].n_rows
+        rows = (np.arange(len(parts))[None, :] * n_rows + np.arange(n_rows)[:, None]).ravel()
+        out = joined._gather_rows(rows, 1)
+        return SpikeTrains.from_counts(out.spike_times, counts)
+
+    def window_counts(self, window_s: float, n_windows: int) -> np.ndarray:
+        """(n_trials, n_trains, n_windows) float64 spike counts in non-overlapping windows ``[w*window_s, ...)``.
+
+        Spikes at negative times or beyond ``n_windows * window_s`` are ignored.
+        """
+        rows = self.row_ids()
+        # round before flooring so that a time computed as k*window_s lands in window k despite float error
+        bins = np.floor(np.round(self.spike_times / window_s, 9)).astype(np.int64)
+        ok = (bins >= 0) & (bins < n_windows)
+        flat = np.bincount(rows[ok] * n_windows + bins[ok], minlength=self.n_rows * n_windows)
+        return flat.reshape(self.n_trials, self.n_trains, n_windows).astype(np.float64)
+
+    # ------------------------------------------------------------------ HDF5
+    def to_hdf5(self, group, *, compression: str | None = "gzip") -> None:
+        """Write ``spike_times`` (float64, s) and ``spike_times_index`` (int64 row ends) into an h5py group."""
+        group.create_dataset("spike_times", data=self.spike_times, compression=compression, chunks=True)
+        group.create_dataset("spike_times_index", data=self.spike_times_index, compression=compression, chunks=True)
+        group.attrs["n_trains"] = self.n_trains
+        group.attrs["unit"] = "s"
+        group.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
+
+    @classmethod
+    def from_hdf5(cls, group) -> "SpikeTrains":
+        """Read a group written by :meth:`to_hdf5` (or an appendable group of the same names)."""
+        return cls(group["spike_times"][()], group["spike_times_index"][()], int(group.attrs["n_trains"]))
+
+    def __eq__(self, other) -> bool:
+        return (
+            isinstance(other, SpikeTrains)
+            and self.n_trains == other.n_trains
+            and np.array_equal(self.spike_times_index, other.spike_times_index)
+            and np.array_equal(self.spike_times, other.spike_times)
+        )
+
+    def __repr__(self) -> str:
+        return f"SpikeTrains(n_trials={self.n_trials}, n_trains={self.n_trains}, n_spikes={self.spike_times.size})"
