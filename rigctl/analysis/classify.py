@@ -50,8 +50,9 @@ def fit_pca(features, n_components, *, random_state=0, svd_solver="auto"):
     random_state : int
         Seed of the randomized solver.
     svd_solver : str
-        ``"auto"`` picks ``"randomized"`` (fast, fits the leading 50 components of paper-sized matrices in well under
-        a second) when fewer than 80 % of the components are wanted, else ``"full"``.
+        ``"auto"`` picks ``"randomized"`` (fits the leading 50 components of paper-sized matrices in well under a
+        second) when fewer than 80 % of the components are wanted of a matrix larger than 500 in both dimensions,
+        else ``"full"`` (exact LAPACK SVD, faster on small matrices).
 
     Returns
     -------
@@ -70,7 +71,7 @@ def fit_pca(features, n_components, *, random_state=0, svd_solver="auto"):
     if n < 1:
         raise ValueError("need at least one principal component")
     if svd_solver == "auto":
-        svd_solver = "randomized" if n < 0.8 * min(x.shape) else "full"
+        svd_solver = "randomized" if (n < 0.8 * min(x.shape) and min(x.shape) > 500) else "full"
     return PCA(n_components=n, svd_solver=svd_solver, random_state=random_state).fit(x)
 
 

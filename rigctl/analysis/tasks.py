@@ -41,6 +41,8 @@ __all__ = [
     "EXTRAPOLATION_CELLS",
     "Curve",
     "TaskResults",
+    "cv_split",
+    "extrapolation_split",
     "run_cv",
     "run_extrapolation",
     "run_realtime",
@@ -258,15 +260,12 @@ def run_cv(
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     labels = {"textures": fs.texture, "groups": fs.group}
     classes = {t: list(np.unique(labels[t])) for t in tasks}
-    by_tex = [np.flatnonzero(fs.texture == t) for t in textures]
     n_used = None
     acc = {(t, v): [] for t in tasks for v in vs}
     cms = {(t, v): 0 for t in tasks for v in vs}
     bar = _progress(repeats * k * len(vs), "textures/groups", progress)
     for r in range(repeats):
-        rng = np.random.default_rng([seed, r])
-        idx = np.concatenate([rng.choice(ix, n_draw, replace=False) for ix in by_tex])
-        folds = list(StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31))).split(idx, fs.texture[idx]))
+        idx, folds = cv_split(fs.texture, n_draw, k, seed=seed, repeat=r)
         for v in vs:
             x = fs.features[v][idx]
             correct = {t: [] for t in tasks}
@@ -294,6 +293,32 @@ def run_cv(
                           min(confusion_pcs, n_used)))
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
     return res
+
+
+def cv_split(texture, per_texture, k, *, seed=0, repeat=0):
+    """One repetition's draw and folds for the textures / groups tasks (Methods, Statistical Analysis).
+
+    Parameters
+    ----------
+    texture : ndarray (n_trials,) str
+    per_texture : int
+        Trials drawn at random (without replacement) per texture (the paper: 500).
+    k : int
+        Folds, stratified by texture (the paper: 4).
+    seed, repeat : int
+        ``numpy.random.default_rng([seed, repeat])``.
+
+    Returns
+    -------
+    idx : ndarray (n_textures * per_texture,) int
+        Drawn trial indices.
+    folds : list of (train, test) index arrays into ``idx``.
+    """
+    rng = np.random.default_rng([seed, repeat])
+    idx = np.concatenate([rng.choice(np.flatnonzero(texture == t), per_texture, replace=False)
+                          for t in np.unique(texture)])
+    skf = StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31)))
+    return idx, list(skf.split(idx, texture[idx]))
 
 
 def _cells(fs: FeatureSet):
@@ -351,50 +376,21 @@ def run_extrapolation(
     """
     vs = _variants(fs, variants)
     res = TaskResults()
-    spd, frc = _cells(fs)
-    tr_s = np.unique(spd) if train_speeds is None else np.round(np.abs(np.asarray(train_speeds, float)), 6)
-    tr_f = np.unique(frc) if train_forces is None else np.round(np.asarray(train_forces, float), 6)
-    s_in = np.isin(spd, tr_s)
-    f_in = np.isin(frc, tr_f)
-    keep = np.ones(fs.n_trials, bool)
-    if test_speeds is not None:
-        keep &= np.isin(spd, np.round(np.abs(np.asarray(test_speeds, float)), 6)) | s_in
-    if test_forces is not None:
-        keep &= np.isin(frc, np.round(np.asarray(test_forces, float), 6)) | f_in
-    trained = s_in & f_in
-    if not trained.any():
-        raise ValueError(f"no trials at the trained speeds {list(tr_s)} mm/s and forces {list(tr_f)} g")
-    textures = np.unique(fs.texture)
-    # cells: (texture, speed, force)
-    cell_key = np.char.add(np.char.add(fs.texture.astype(str), "|"),
-                           np.char.add(spd.astype(str), np.char.add("|", frc.astype(str))))
-    cells = {}
-    for i in np.flatnonzero(keep):
-        cells.setdefault(cell_key[i], []).append(i)
-    cells = {c: np.asarray(ix) for c, ix in cells.items()}
-    trained_cells = [c for c, ix in cells.items() if trained[ix[0]]]
-    test_cells = [c for c, ix in cells.items() if not trained[ix[0]]]
-    min_tr = min(len(cells[c]) for c in trained_cells)
-    a_tr, a_te = n_train, n_test
-    if min_tr < n_train + n_test:
-        a_te = max(1, int(round(min_tr * n_test / (n_train + n_test))))
-        a_tr = min_tr - a_te
-        if a_tr < 1:
-            raise ValueError(f"a trained cell has only {min_tr} trials: cannot split into train and test")
-    min_te = min((len(cells[c]) for c in test_cells), default=a_te)
-    u_te = min(a_te, min_te)
+    cells, trained_cells, cat_of, (a_tr, a_te, u_te), info = _extrapolation_plan(
+        fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test)
     if (a_tr, a_te, u_te) != (n_train, n_test, n_test):
-        _warn(res, f"{prefix}extrapolation: smallest trained cell has {min_tr} trials and smallest untrained cell "
-              f"{min_te}; using {a_tr} train + {a_te} test per texture and trained cell and {u_te} test per untrained "
-              f"cell (paper: {n_train} + {n_test}, {n_test})")
+        _warn(res, f"{prefix}extrapolation: smallest trained cell has {info['min_trained']} trials and smallest "
+              f"untrained cell {info['min_untrained']}; using {a_tr} train + {a_te} test per texture and trained "
+              f"cell and {u_te} test per untrained cell (paper: {n_train} + {n_test}, {n_test})")
     res.counts[prefix + "extrapolation"] = {
         "train_per_cell": a_tr, "test_per_trained_cell": a_te, "test_per_untrained_cell": u_te,
-        "trained_speeds": [float(s) for s in tr_s], "trained_forces": [float(f) for f in tr_f],
-        "n_trained_cells": len(trained_cells), "n_untrained_cells": len(test_cells), "repeats": repeats,
+        "trained_speeds": info["trained_speeds"], "trained_forces": info["trained_forces"],
+        "n_trained_cells": len(trained_cells), "n_untrained_cells": len(cells) - len(trained_cells),
+        "repeats": repeats,
     }
+    textures = np.unique(fs.texture)
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = list(textures)
-    cat_of = {cell: EXTRAPOLATION_CELLS[(bool(s_in[ix[0]]), bool(f_in[ix[0]]))] for cell, ix in cells.items()}
     cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
     acc = {(c, v): [] for c in cats for v in vs}
     cms = {(c, v): 0 for c in cats for v in vs}
@@ -402,20 +398,8 @@ def run_extrapolation(
     n_used = None
     bar = _progress(repeats * len(vs), prefix + "extrapolation", progress)
     for r in range(repeats):
-        rng = np.random.default_rng([seed, 10_000 + r])
-        train_idx, test_idx, test_cat = [], [], []
-        for cell in sorted(cells):
-            perm = rng.permutation(cells[cell])
-            if cell in trained_cells:
-                train_idx.append(perm[:a_tr])
-                chosen = perm[a_tr : a_tr + a_te]
-            else:
-                chosen = perm[:u_te]
-            test_idx.append(chosen)
-            test_cat += [cat_of[cell]] * len(chosen)
-        train_idx = np.concatenate(train_idx)
-        test_idx = np.concatenate(test_idx)
-        test_cat = np.asarray(test_cat)
+        train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, a_tr, a_te, u_te,
+                                                            np.random.default_rng([seed, 10_000 + r]))
         y_tr, y_te = fs.texture[train_idx], fs.texture[test_idx]
         for v in vs:
             x = fs.features[v]
@@ -439,6 +423,77 @@ def run_extrapolation(
     res.counts[prefix + "extrapolation"]["tested_per_repeat"] = {prefix + c: n_tested[c] for c in cats}
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
     return res
+
+
+def _extrapolation_plan(fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test):
+    """Cells (texture|speed|force -> trial indices), trained cells, cell category, and the counts to draw."""
+    spd, frc = _cells(fs)
+    tr_s = np.unique(spd) if train_speeds is None else np.round(np.abs(np.asarray(train_speeds, float)), 6)
+    tr_f = np.unique(frc) if train_forces is None else np.round(np.asarray(train_forces, float), 6)
+    s_in = np.isin(spd, tr_s)
+    f_in = np.isin(frc, tr_f)
+    keep = np.ones(fs.n_trials, bool)
+    if test_speeds is not None:
+        keep &= np.isin(spd, np.round(np.abs(np.asarray(test_speeds, float)), 6)) | s_in
+    if test_forces is not None:
+        keep &= np.isin(frc, np.round(np.asarray(test_forces, float), 6)) | f_in
+    trained = s_in & f_in
+    if not trained.any():
+        raise ValueError(f"no trials at the trained speeds {list(tr_s)} mm/s and forces {list(tr_f)} g")
+    cell_key = np.char.add(np.char.add(fs.texture.astype(str), "|"),
+                           np.char.add(spd.astype(str), np.char.add("|", frc.astype(str))))
+    cells = {}
+    for i in np.flatnonzero(keep):
+        cells.setdefault(cell_key[i], []).append(i)
+    cells = {c: np.asarray(ix) for c, ix in cells.items()}
+    trained_cells = [c for c, ix in cells.items() if trained[ix[0]]]
+    test_cells = [c for c, ix in cells.items() if not trained[ix[0]]]
+    min_tr = min(len(cells[c]) for c in trained_cells)
+    a_tr, a_te = n_train, n_test
+    if min_tr < n_train + n_test:
+        a_te = max(1, int(round(min_tr * n_test / (n_train + n_test))))
+        a_tr = min_tr - a_te
+        if a_tr < 1:
+            raise ValueError(f"a trained cell has only {min_tr} trials: cannot split into train and test")
+    min_te = min((len(cells[c]) for c in test_cells), default=a_te)
+    u_te = min(a_te, min_te)
+    cat_of = {cell: EXTRAPOLATION_CELLS[(bool(s_in[ix[0]]), bool(f_in[ix[0]]))] for cell, ix in cells.items()}
+    info = {"min_trained": min_tr, "min_untrained": min_te, "trained_speeds": [float(x) for x in tr_s],
+            "trained_forces": [float(x) for x in tr_f]}
+    return cells, trained_cells, cat_of, (a_tr, a_te, u_te), info
+
+
+def _extrapolation_draw(cells, trained_cells, cat_of, n_train, n_test, n_untrained, rng):
+    """Per cell: ``n_train`` + ``n_test`` from trained cells, ``n_untrained`` test trials from the others."""
+    trained_cells = set(trained_cells)
+    train_idx, test_idx, test_cat = [], [], []
+    for cell in sorted(cells):
+        perm = rng.permutation(cells[cell])
+        if cell in trained_cells:
+            train_idx.append(perm[:n_train])
+            chosen = perm[n_train : n_train + n_test]
+        else:
+            chosen = perm[:n_untrained]
+        test_idx.append(chosen)
+        test_cat += [cat_of[cell]] * len(chosen)
+    return np.concatenate(train_idx), np.concatenate(test_idx), np.asarray(test_cat)
+
+
+def extrapolation_split(fs: FeatureSet, *, train_speeds=(40, 60, 80), train_forces=(250, 500), n_train=75,
+                        n_test=25, seed=0, repeat=0):
+    """One repetition's split of the extrapolation task, as :func:`run_extrapolation` draws it.
+
+    Returns
+    -------
+    train_idx : ndarray int
+    test_idx : ndarray int
+    test_cell : ndarray str
+        Per test trial: ``untrained_speed_force``, ``untrained_force``, ``untrained_speed`` or ``trained``.
+    """
+    cells, trained_cells, cat_of, (a_tr, a_te, u_te), _ = _extrapolation_plan(
+        fs, train_speeds, train_forces, None, None, n_train, n_test)
+    return _extrapolation_draw(cells, trained_cells, cat_of, a_tr, a_te, u_te,
+                               np.random.default_rng([seed, 10_000 + repeat]))
 
 
 def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=False, **cv_kw) -> TaskResults:

@@ -1,0 +1,119 @@
+"""Task splits follow the Methods' counts; tasks find the planted answer on synthetic features."""
+
+import numpy as np
+import pytest
+
+from rigctl.analysis.data import FeatureSet, remove_baseline
+from rigctl.analysis.synthetic import synthetic_features
+from rigctl.analysis.tasks import cv_split, extrapolation_split, run_cv, run_extrapolation, run_realtime
+
+
+def _paper_layout(per_cell=100):
+    """The paper's 16 textures x 5 speeds x 3 forces x 100 trials, with 2 dummy feature columns."""
+    tex, spd, frc = np.meshgrid(np.array(list("ABCDEFGHIJKLMNOP")), [40.0, 60, 80, 100, 120], [250.0, 500, 1000],
+                                indexing="ij")
+    rep = lambda a: np.repeat(a.ravel(), per_cell)  # noqa: E731
+    n = tex.size * per_cell
+    return FeatureSet({"original": np.zeros((n, 2), np.float32)}, rep(tex), rep(spd), rep(frc))
+
+
+def test_cv_split_matches_methods_counts():
+    fs = _paper_layout()
+    assert fs.n_trials == 24_000
+    idx, folds = cv_split(fs.texture, 500, 4, seed=1, repeat=0)
+    assert len(idx) == 8000 and len(np.unique(idx)) == 8000
+    _, per_tex = np.unique(fs.texture[idx], return_counts=True)
+    assert set(per_tex) == {500}
+    assert len(folds) == 4
+    tested = np.concatenate([te for _, te in folds])
+    assert sorted(tested) == list(range(8000))  # every drawn trial tested exactly once
+    for tr, te in folds:
+        assert (len(tr), len(te)) == (6000, 2000)
+        assert set(np.unique(fs.texture[idx[te]], return_counts=True)[1]) == {125}
+    idx2, _ = cv_split(fs.texture, 500, 4, seed=1, repeat=1)
+    assert not np.array_equal(np.sort(idx), np.sort(idx2))  # a new draw per repetition
+
+
+def test_extrapolation_split_matches_methods_counts():
+    fs = _paper_layout()
+    tr, te, cell = extrapolation_split(fs, seed=0, repeat=0)
+    assert len(tr) == 7200  # 16 x 75 x 6
+    assert not set(tr) & set(te)
+    assert set(fs.speed_mm_s[tr]) == {40, 60, 80} and set(fs.force_g[tr]) == {250, 500}
+    counts = {c: int((cell == c).sum()) for c in np.unique(cell)}
+    # 16 textures x 25 trials x [2 3 4 6] speed-force combinations (Fig. 3C-F)
+    assert counts == {"untrained_speed_force": 800, "untrained_force": 1200, "untrained_speed": 1600,
+                      "trained": 2400}
+    m = cell == "untrained_speed_force"
+    assert set(fs.speed_mm_s[te[m]]) == {100, 120} and set(fs.force_g[te[m]]) == {1000}
+    m = cell == "untrained_force"
+    assert set(fs.speed_mm_s[te[m]]) == {40, 60, 80} and set(fs.force_g[te[m]]) == {1000}
+    m = cell == "untrained_speed"
+    assert set(fs.speed_mm_s[te[m]]) == {100, 120} and set(fs.force_g[te[m]]) == {250, 500}
+
+
+@pytest.fixture(scope="module")
+def small():
+    return synthetic_features(6, n_textures=8, n_channels=6, noise=0.8, seed=2)
+
+
+def test_planted_speed_confound_loses_on_untrained_speed(small):
+    with pytest.warns(UserWarning, match="extrapolation"):
+        res = run_extrapolation(small, n_pcs=15, repeats=3, seed=0)
+    assert set(res.curves) == {"untrained_speed_force", "untrained_force", "untrained_speed", "trained"}
+    us = res.curves["untrained_speed"]
+    assert us["speed_scaled"].at(15)[0] > us["original"].at(15)[0] + 0.3
+    assert us["speed_force_scaled"].at(15)[0] > us["force_scaled"].at(15)[0] + 0.3
+    c = res.counts["extrapolation"]
+    # 6 trials per cell: 4-5 train + 1-2 test, the counts stated
+    assert c["train_per_cell"] + c["test_per_trained_cell"] <= 6
+    assert c["tested_per_repeat"]["untrained_speed"] == 8 * 4 * c["test_per_untrained_cell"]
+    comp = {x.variant: x for x in res.comparisons("untrained_speed", 15)}
+    assert comp["speed_scaled"].stars_d == "**"
+
+
+def test_cv_tasks_scale_down_and_shapes(small):
+    with pytest.warns(UserWarning, match="drawing 90 per texture"):
+        res = run_cv(small, ("textures", "groups"), n_pcs=12, repeats=2, per_texture=500)
+    assert res.counts["cv"]["per_texture"] == 90
+    for task, n_cls in (("textures", 8), ("groups", 3)):  # A smooth, B-F circular, G-H rectangular
+        c = res.curves[task]["speed_force_scaled"]
+        assert c.acc.shape == (2, 12) and c.n_tested == 720
+        assert c.confusion.shape == (n_cls, n_cls) and c.confusion.sum() == 2 * 720
+        assert np.trace(c.confusion) / c.confusion.sum() == pytest.approx(c.acc[:, -1].mean())
+    t = res.curves["textures"]
+    assert t["speed_force_scaled"].at(12)[0] > t["original"].at(12)[0]
+
+
+def test_realtime_profiles_and_calibration():
+    base = synthetic_features(8, n_textures=5, n_channels=4, speeds=(40.0, 80.0, 120.0), forces=(500.0,), seed=4,
+                              noise=0.6)
+    names = {40.0: "slow", 80.0: "medium", 120.0: "fast"}
+    fs = base.subset(np.arange(base.n_trials))
+    fs.profile = np.array([names[s] for s in fs.speed_mm_s])
+    fs.features = {k: fs.features[k] for k in ("original", "speed_scaled")}
+    other = fs.subset(np.arange(fs.n_trials))
+    other.features = {k: v + 2.0 for k, v in fs.features.items()}  # session-to-session offset
+    res = run_realtime(fs, new_session=other, n_pcs=10, repeats=2, seed=1)
+    assert set(res.curves) == {"rt_offline", "rt_trained", "rt_untrained", "rt_new_session"}
+    un = res.curves["rt_untrained"]
+    assert un["speed_scaled"].at(10)[0] > un["original"].at(10)[0] + 0.2
+    assert res.curves["rt_untrained"]["original"].n_tested == 5 * 8  # all fast trials
+    assert res.curves["rt_trained"]["original"].n_tested == 5 * 16 - 5 * 12  # the 25 % held out
+    # calibration removes the offset: the new session classifies like the offline data
+    assert res.curves["rt_new_session"]["speed_scaled"].at(10)[0] > 0.8
+    with pytest.raises(ValueError, match="profile"):
+        run_realtime(base, n_pcs=5, repeats=1)
+
+
+def test_remove_baseline_keeps_padding_and_modulation():
+    rng = np.random.default_rng(0)
+    mod = rng.standard_normal((3, 2, 5)).astype(np.float32)
+    x = mod + np.array([10.0, -3.0], np.float32)[None, :, None]
+    x[:, :, 4] = 0  # padded window
+    out = remove_baseline(x.reshape(3, -1), 2).reshape(3, 2, 5)
+    np.testing.assert_allclose(out[:, :, :4].mean(axis=2), 0, atol=1e-5)
+    np.testing.assert_array_equal(out[:, :, 4], 0)
+    np.testing.assert_allclose(out[:, :, :4], mod[:, :, :4] - mod[:, :, :4].mean(axis=2, keepdims=True), atol=1e-5)
+    with pytest.raises(ValueError):
+        remove_baseline(x.reshape(3, -1), 3)
