@@ -136,6 +136,10 @@ class SimulatedRig:
         """Mount texture plate ``letter`` (A-P) on the drum (the operator's action on the real rig)."""
         self.model.set_texture(letter)
 
+    def place_mass(self, mass_g: float) -> None:
+        """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it): see ``RigModel.place_mass``."""
+        self.model.place_mass(mass_g)
+
     def unplug_taxel(self) -> None:
         """Pull the Uno's USB cable: its port vanishes."""
         self.uno.unplug()
