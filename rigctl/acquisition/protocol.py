@@ -253,7 +253,8 @@ def parse_protocol(source: str, *, path: str | None = None) -> Protocol:
         doc = tomllib.loads(source)
     except tomllib.TOMLDecodeError as exc:
         m = re.search(r"line (\d+)", str(exc))
-        raise ProtocolError(f"TOML syntax error: {exc}", path=path, line=int(m.group(1)) if m else None) from None
+        line = int(m.group(1)) if m else (len(source.splitlines()) if "end of document" in str(exc) else None)
+        raise ProtocolError(f"TOML syntax error: {exc}", path=path, line=line) from None
     return _Validator(source, path).protocol(doc)
 
 

@@ -61,6 +61,13 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, resume, overwrite, s
         raise click.ClickException(f"{out} exists: continue it with --resume, or pass --overwrite")
     if resume and not out.exists():
         raise click.ClickException(f"{out} does not exist: nothing to resume")
+    if resume:
+        from rigctl.storage.session import SessionWriter
+
+        try:  # refuse before the rig moves
+            SessionWriter.open(out, protocol_source=proto.source)
+        except (SessionError, OSError) as exc:
+            raise click.ClickException(str(exc)) from None
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)

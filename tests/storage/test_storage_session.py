@@ -224,3 +224,40 @@ def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
 def test_plan_dtype_is_the_documented_one():
     assert PLAN_DTYPE.names == ("trial_id", "texture", "speed_mm_s", "force_g", "duration_s", "profile",
                                 "ramp_start_mm_s", "ramp_end_mm_s", "repeat", "status")
+
+
+_DIE_IN_COMMIT = textwrap.dedent(
+    """
+    import os, sys, numpy as np
+    from rigctl.storage import journal
+    from rigctl.storage.session import SessionWriter, TrialData
+    w = SessionWriter.open(sys.argv[1])
+    real_pwrite = os.pwrite
+    def pwrite(fd, data, offset):
+        # die like kill -9 at the first in-place write, right after the journal got its commit mark
+        if journal.journal_path(sys.argv[1]).exists():
+            os._exit(9)
+        return real_pwrite(fd, data, offset)
+    os.pwrite = pwrite
+    w.write_trial(1, TrialData(taxels=np.full((500, 18), 7)))
+    """
+)
+
+
+def test_a_commit_killed_after_its_journal_is_finished_on_the_next_opening(tmp_path):
+    path = tmp_path / "j.h5"
+    rng = np.random.default_rng(6)
+    w = SessionWriter.create(path, plan=_plan(3), protocol_source="src")
+    w.write_trial(0, _trial(rng))
+    proc = subprocess.run([sys.executable, "-c", _DIE_IN_COMMIT, str(path)])
+    assert proc.returncode == 9
+    jpath = path.with_name(path.name + ".journal")
+    assert jpath.exists()
+    with h5py.File(path, "r") as f:  # the file on disk is still the old, consistent one
+        assert list(f["plan"]["status"]) == [1, 0, 0] and "000001" not in f["trials"]
+    with open_session(path) as s:  # rigctl replays the committed journal
+        assert s.completed_ids() == [0, 1]
+        assert (s.trial(1).taxels == 7).all()
+    assert not jpath.exists()
+    with h5py.File(path, "r") as f:
+        assert list(f["plan"]["status"]) == [1, 1, 0]

@@ -1,0 +1,138 @@
+"""`rigctl acquire` and `rigctl info` as separate processes on the simulated rig (real ptys, real pymodbus/pyserial):
+quick_check end to end, and a kill -9 mid-session followed by --resume."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
+
+
+def _env(tmp_path):
+    env = dict(os.environ)
+    env["RIGCTL_CONFIG"] = str(tmp_path / "rig.json")  # never the user's ~/.config
+    return env
+
+
+def _info(path, env) -> dict:
+    out = subprocess.run([*RIGCTL, "info", str(path), "--json"], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)
+
+
+def test_quick_check_end_to_end(tmp_path):
+    env = _env(tmp_path)
+    out = tmp_path / "quick.h5"
+    t0 = time.monotonic()
+    run = subprocess.run([*RIGCTL, "acquire", str(REPO / "protocols" / "quick_check.toml"), "--sim", "--out", str(out)],
+                         capture_output=True, text=True, env=env, timeout=120)
+    wall = time.monotonic() - t0
+    assert run.returncode == 0, run.stderr
+    assert "trials complete: 6/6" in run.stdout and "dropped frames: 0" in run.stdout
+    assert wall < 60, f"quick_check took {wall:.1f} s"
+    info = _info(out, env)
+    assert info["totals"]["complete"] == info["totals"]["trials"] == 6
+    assert info["totals"]["dropped_frames"] == 0 and info["totals"]["crc_errors"] == 0
+    for t in info["trials"]:
+        assert t["status"] == "complete"
+        assert t["samples"] == round(t["duration_s"] * 1000)
+        assert abs(t["samples_per_s"] - 1000) <= 1
+        # the device's frame rate measured on the host clock (independent of how many frames were kept)
+        assert abs(t["host_rate_hz"] - 1000) <= 1, t
+        assert abs(t["force_mean_g"] - t["force_g"]) < 15  # the force loop held the setpoint
+        assert abs(t["speed_mean_mm_s"] - t["speed_mm_s"]) < 2
+    # the human-readable table prints the same trials
+    table = subprocess.run([*RIGCTL, "info", str(out)], capture_output=True, text=True, env=env, timeout=60)
+    assert table.returncode == 0
+    assert sum(line.endswith("  complete") for line in table.stdout.splitlines()) == 6
+    with h5py.File(out, "r") as f:  # plain h5py: contiguous sequence numbers, textures from the plan
+        for name, g in f["trials"].items():
+            seq = g["seq"][()].astype(np.int64)
+            assert ((np.diff(seq) & 0xFFFF) == 1).all()
+            assert g["taxels"].shape == (2000, 18)
+            assert g.attrs["texture"] in "ABL"
+        rig = json.loads(f.attrs["rig_config"])
+        assert rig["mode"] == "sim" and rig["drum_firmware"] == [1, 0]
+
+
+SHORT = """\
+name = "short"
+textures = ["A", "B"]
+speeds_mm_s = [120]
+forces_g = [400]
+trials_per_condition = 4
+duration_s = 0.4
+"""
+
+
+def _digest(f, tid):
+    g = f[f"trials/{tid:06d}"]
+    return hashlib.sha1(g["taxels"][()].tobytes()).hexdigest(), g.attrs["started_utc"]
+
+
+def _complete(path) -> list[int]:
+    try:
+        with h5py.File(path, "r") as f:
+            return [int(t) for t in np.flatnonzero(f["plan"]["status"][()] == 1)]
+    except (OSError, KeyError):
+        return []
+
+
+def test_kill_9_mid_session_then_resume(tmp_path):
+    env = _env(tmp_path)
+    proto = tmp_path / "short.toml"
+    proto.write_text(SHORT)
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen([*RIGCTL, "acquire", str(proto), "--out", str(out), "--quiet"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while len(_complete(out)) < 3:
+        assert proc.poll() is None, proc.stderr.read().decode()
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(0.3)  # somewhere inside the next trial
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+
+    # plain h5py opens the file, every finished trial is whole, the unfinished ones are pending
+    with h5py.File(out, "r") as f:
+        status = f["plan"]["status"][()]
+        before = {int(t): _digest(f, int(t)) for t in np.flatnonzero(status == 1)}
+        assert 3 <= len(before) < 8
+        for tid in before:
+            assert f[f"trials/{tid:06d}/taxels"].shape == (400, 18)
+        assert set(np.flatnonzero(status == 0)) == set(range(8)) - set(before)
+
+    # a different protocol is refused before the rig moves
+    other = tmp_path / "other.toml"
+    other.write_text(SHORT.replace("[400]", "[300]"))
+    refused = subprocess.run([*RIGCTL, "acquire", str(other), "--out", str(out), "--resume"], env=env,
+                             capture_output=True, text=True, timeout=60)
+    assert refused.returncode != 0 and "protocol differs" in refused.stderr
+
+    resumed = subprocess.run([*RIGCTL, "acquire", str(proto), "--out", str(out), "--resume", "--quiet"], env=env,
+                             capture_output=True, text=True, timeout=120)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "trials complete: 8/8" in resumed.stdout
+    assert f"recorded now: {8 - len(before)}" in resumed.stdout
+    with h5py.File(out, "r") as f:
+        assert list(f["plan"]["status"][()]) == [1] * 8
+        assert sorted(f["trials"]) == [f"{i:06d}" for i in range(8)]  # one group per trial, none twice
+        for tid, digest in before.items():  # trials finished before the kill were not recorded again
+            assert _digest(f, tid) == digest
+        starts = [f[f"trials/{i:06d}"].attrs["started_utc"] for i in range(8)]
+        assert starts == sorted(starts) or len(set(starts)) == 8
+    info = _info(out, env)
+    assert info["totals"]["complete"] == 8 and info["totals"]["dropped_frames"] == 0
