@@ -1,0 +1,190 @@
+/*
+ * rigctl_wire.h - the wire protocols of docs/wire-protocol.md as C constants (both boards, host tests, harness).
+ *
+ * docs/wire-protocol.md is the one specification; tests/test_wire_spec.py parses its tables and checks every
+ * RIGCTL_* constant below against them (and rigctl/devices/wire.py). Change the spec first, then this header.
+ * Naming: RIGCTL_<TABLE>_<NAME> where <TABLE> is FRAME, FLAG, UNO_CMD, HREG, IREG, CMD, STATE, FAULT.
+ */
+#ifndef RIGCTL_WIRE_H
+#define RIGCTL_WIRE_H
+
+/* ---- 1. Taxel stream (Uno -> host) ---------------------------------------------------------------------- */
+#define RIGCTL_TAXEL_BAUD            1000000UL
+#define RIGCTL_N_TAXELS              18
+#define RIGCTL_N_TAXELS_PER_LAYER    9
+#define RIGCTL_SAMPLE_RATE_HZ        1000
+#define RIGCTL_ADC_BITS              10
+#define RIGCTL_ADC_MAX               1023
+
+/* 1.1 frame layout: offset and size of each field (bytes) */
+#define RIGCTL_FRAME_SYNC0           0xA5
+#define RIGCTL_FRAME_SYNC1           0x5A
+#define RIGCTL_FRAME_SYNC_OFFSET     0
+#define RIGCTL_FRAME_SYNC_SIZE       2
+#define RIGCTL_FRAME_SEQ_OFFSET      2
+#define RIGCTL_FRAME_SEQ_SIZE        2
+#define RIGCTL_FRAME_FLAGS_OFFSET    4
+#define RIGCTL_FRAME_FLAGS_SIZE      1
+#define RIGCTL_FRAME_SAMPLES_OFFSET  5
+#define RIGCTL_FRAME_SAMPLES_SIZE    36
+#define RIGCTL_FRAME_CRC_OFFSET      41
+#define RIGCTL_FRAME_CRC_SIZE        2
+#define RIGCTL_FRAME_SIZE            43
+/* the CRC covers bytes RIGCTL_FRAME_CRC_START .. RIGCTL_FRAME_CRC_OFFSET-1 */
+#define RIGCTL_FRAME_CRC_START       2
+
+/* 1.2 flags (bit numbers; the masks are 1 << bit) */
+#define RIGCTL_FLAG_SYNC_IN_BIT          0
+#define RIGCTL_FLAG_ADC_OVERRUN_BIT      1
+#define RIGCTL_FLAG_TX_OVERRUN_BIT       2
+#define RIGCTL_FLAG_STREAMING_START_BIT  3
+#define RIGCTL_FLAG_SYNC_IN              (1u << RIGCTL_FLAG_SYNC_IN_BIT)
+#define RIGCTL_FLAG_ADC_OVERRUN          (1u << RIGCTL_FLAG_ADC_OVERRUN_BIT)
+#define RIGCTL_FLAG_TX_OVERRUN           (1u << RIGCTL_FLAG_TX_OVERRUN_BIT)
+#define RIGCTL_FLAG_STREAMING_START      (1u << RIGCTL_FLAG_STREAMING_START_BIT)
+
+/* 1.3 host -> Uno commands (single ASCII bytes) */
+#define RIGCTL_UNO_CMD_START         'S'
+#define RIGCTL_UNO_CMD_STOP          'P'
+#define RIGCTL_UNO_CMD_IDENTIFY      'I'
+
+#define RIGCTL_UNO_FW_MAJOR          1
+#define RIGCTL_UNO_FW_MINOR          0
+/* the banner and the identity reply, without the trailing "\n" */
+#define RIGCTL_UNO_BANNER   "#RIGCTL-UNO READY fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"
+#define RIGCTL_UNO_IDENTITY "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"
+
+/* ---- 2. Drum controller (Mega), Modbus RTU ------------------------------------------------------------- */
+#define RIGCTL_DRUM_BAUD             115200UL
+#define RIGCTL_DRUM_DEVICE_ID        1
+#define RIGCTL_MEGA_FW_MAJOR         1
+#define RIGCTL_MEGA_FW_MINOR         0
+#define RIGCTL_MEGA_FIRMWARE_VERSION ((RIGCTL_MEGA_FW_MAJOR << 8) | RIGCTL_MEGA_FW_MINOR)
+
+/* Modbus function codes and exception codes used by the spec */
+#define RIGCTL_MB_FC_READ_HOLDING    3
+#define RIGCTL_MB_FC_READ_INPUT      4
+#define RIGCTL_MB_FC_WRITE_SINGLE    6
+#define RIGCTL_MB_FC_WRITE_MULTIPLE  16
+#define RIGCTL_MB_EX_ILLEGAL_FUNCTION 1
+#define RIGCTL_MB_EX_ILLEGAL_ADDRESS  2
+#define RIGCTL_MB_EX_ILLEGAL_VALUE    3
+/* t3.5 silence above 19200 baud (microseconds) */
+#define RIGCTL_MB_T35_US             1750
+
+/* 2.1 holding registers: address, range (MIN/MAX) and default (DEF) */
+#define RIGCTL_HREG_SPEED_SETPOINT_0P1MMS     0
+#define RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_MIN 0
+#define RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_MAX 2000
+#define RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_DEF 0
+#define RIGCTL_HREG_FORCE_SETPOINT_G          1
+#define RIGCTL_HREG_FORCE_SETPOINT_G_MIN      0
+#define RIGCTL_HREG_FORCE_SETPOINT_G_MAX      2000
+#define RIGCTL_HREG_FORCE_SETPOINT_G_DEF      0
+#define RIGCTL_HREG_COMMAND                   2
+#define RIGCTL_HREG_COMMAND_MIN               0
+#define RIGCTL_HREG_COMMAND_MAX               8
+#define RIGCTL_HREG_COMMAND_DEF               0
+#define RIGCTL_HREG_SPEED_PROFILE             3
+#define RIGCTL_HREG_SPEED_PROFILE_MIN         0
+#define RIGCTL_HREG_SPEED_PROFILE_MAX         1
+#define RIGCTL_HREG_SPEED_PROFILE_DEF         0
+#define RIGCTL_HREG_RAMP_START_SPEED_0P1MMS     4
+#define RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_MIN 0
+#define RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_MAX 2000
+#define RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_DEF 400
+#define RIGCTL_HREG_RAMP_END_SPEED_0P1MMS       5
+#define RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_MIN   0
+#define RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_MAX   2000
+#define RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_DEF   1200
+#define RIGCTL_HREG_RAMP_DURATION_MS          6
+#define RIGCTL_HREG_RAMP_DURATION_MS_MIN      1
+#define RIGCTL_HREG_RAMP_DURATION_MS_MAX      60000
+#define RIGCTL_HREG_RAMP_DURATION_MS_DEF      3000
+#define RIGCTL_HREG_SPEED_LIMIT_0P1MMS        7
+#define RIGCTL_HREG_SPEED_LIMIT_0P1MMS_MIN    0
+#define RIGCTL_HREG_SPEED_LIMIT_0P1MMS_MAX    2000
+#define RIGCTL_HREG_SPEED_LIMIT_0P1MMS_DEF    1500
+#define RIGCTL_HREG_FORCE_LIMIT_G             8
+#define RIGCTL_HREG_FORCE_LIMIT_G_MIN         0
+#define RIGCTL_HREG_FORCE_LIMIT_G_MAX         2000
+#define RIGCTL_HREG_FORCE_LIMIT_G_DEF         1500
+#define RIGCTL_HREG_FORCE_TOLERANCE_G         9
+#define RIGCTL_HREG_FORCE_TOLERANCE_G_MIN     1
+#define RIGCTL_HREG_FORCE_TOLERANCE_G_MAX     500
+#define RIGCTL_HREG_FORCE_TOLERANCE_G_DEF     15
+#define RIGCTL_HREG_SETTLE_TIME_MS            10
+#define RIGCTL_HREG_SETTLE_TIME_MS_MIN        0
+#define RIGCTL_HREG_SETTLE_TIME_MS_MAX        10000
+#define RIGCTL_HREG_SETTLE_TIME_MS_DEF        300
+#define RIGCTL_HREG_WATCHDOG_MS               11
+#define RIGCTL_HREG_WATCHDOG_MS_MIN           100
+#define RIGCTL_HREG_WATCHDOG_MS_MAX           10000
+#define RIGCTL_HREG_WATCHDOG_MS_DEF           1000
+#define RIGCTL_HREG_LOADCELL_SCALE_X100       12
+#define RIGCTL_HREG_LOADCELL_SCALE_X100_MIN   1
+#define RIGCTL_HREG_LOADCELL_SCALE_X100_MAX   65535
+#define RIGCTL_HREG_LOADCELL_SCALE_X100_DEF   42000
+#define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM     13
+#define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MIN 1
+#define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MAX 65535
+#define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_DEF 400
+#define RIGCTL_N_HOLDING                      14
+
+/* 2.2 input registers (read only) */
+#define RIGCTL_IREG_FORCE_G                  0
+#define RIGCTL_IREG_SPEED_0P1MMS             1
+#define RIGCTL_IREG_DRUM_ANGLE_0P01DEG       2
+#define RIGCTL_IREG_DRUM_REVOLUTIONS         3
+#define RIGCTL_IREG_ACTUATOR_POSITION_0P01MM 4
+#define RIGCTL_IREG_STATE                    5
+#define RIGCTL_IREG_FAULT_BITS               6
+#define RIGCTL_IREG_FIRMWARE_VERSION         7
+#define RIGCTL_IREG_HEARTBEAT                8
+#define RIGCTL_IREG_SPEED_TARGET_0P1MMS      9
+#define RIGCTL_IREG_LOADCELL_RAW_HI          10
+#define RIGCTL_IREG_LOADCELL_RAW_LO          11
+#define RIGCTL_IREG_FORCE_SETPOINT_ACTIVE_G  12
+#define RIGCTL_N_INPUT                       13
+
+/* 2.3 commands (values written to RIGCTL_HREG_COMMAND) */
+#define RIGCTL_CMD_NONE              0
+#define RIGCTL_CMD_RUN               1
+#define RIGCTL_CMD_STOP              2
+#define RIGCTL_CMD_TARE              3
+#define RIGCTL_CMD_HOME              4
+#define RIGCTL_CMD_CLEAR_FAULT       5
+#define RIGCTL_CMD_PRESS             6
+#define RIGCTL_CMD_STOP_DRUM         7
+#define RIGCTL_CMD_SAVE_CALIBRATION  8
+
+/* SPEED_PROFILE values */
+#define RIGCTL_PROFILE_CONSTANT      0
+#define RIGCTL_PROFILE_RAMP          1
+
+/* 2.4 states */
+#define RIGCTL_STATE_IDLE            0
+#define RIGCTL_STATE_HOMING          1
+#define RIGCTL_STATE_SEEKING_FORCE   2
+#define RIGCTL_STATE_FORCE_SETTLED   3
+#define RIGCTL_STATE_RUNNING         4
+#define RIGCTL_STATE_FAULT           5
+
+/* 2.5 fault bits (bit numbers; masks are 1 << bit) */
+#define RIGCTL_FAULT_FORCE_LIMIT_BIT       0
+#define RIGCTL_FAULT_WATCHDOG_BIT          1
+#define RIGCTL_FAULT_LOADCELL_TIMEOUT_BIT  2
+#define RIGCTL_FAULT_ACTUATOR_TRAVEL_BIT   3
+#define RIGCTL_FAULT_FORCE_LIMIT           (1u << RIGCTL_FAULT_FORCE_LIMIT_BIT)
+#define RIGCTL_FAULT_WATCHDOG              (1u << RIGCTL_FAULT_WATCHDOG_BIT)
+#define RIGCTL_FAULT_LOADCELL_TIMEOUT      (1u << RIGCTL_FAULT_LOADCELL_TIMEOUT_BIT)
+#define RIGCTL_FAULT_ACTUATOR_TRAVEL       (1u << RIGCTL_FAULT_ACTUATOR_TRAVEL_BIT)
+#define RIGCTL_LOADCELL_TIMEOUT_MS         200
+
+/* 2.6 drum geometry defaults (the firmware's own values live in mega_drum/drum_config.h) */
+#define RIGCTL_DRUM_DIAMETER_MM_DEF        100
+#define RIGCTL_DRUM_STEPS_PER_REV_DEF      200
+#define RIGCTL_DRUM_MICROSTEPS_DEF         16
+#define RIGCTL_INDEX_PULSE_MS              1
+
+#endif /* RIGCTL_WIRE_H */

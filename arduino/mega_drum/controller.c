@@ -1,0 +1,352 @@
+/* controller.c - see controller.h. Register semantics: docs/wire-protocol.md 2.1-2.5. */
+#include "controller.h"
+#include "drum_config.h"
+#include "steprate.h"
+
+static const uint16_t hreg_min[RIGCTL_N_HOLDING] = {
+    RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_MIN, RIGCTL_HREG_FORCE_SETPOINT_G_MIN, RIGCTL_HREG_COMMAND_MIN,
+    RIGCTL_HREG_SPEED_PROFILE_MIN, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_MIN, RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_MIN,
+    RIGCTL_HREG_RAMP_DURATION_MS_MIN, RIGCTL_HREG_SPEED_LIMIT_0P1MMS_MIN, RIGCTL_HREG_FORCE_LIMIT_G_MIN,
+    RIGCTL_HREG_FORCE_TOLERANCE_G_MIN, RIGCTL_HREG_SETTLE_TIME_MS_MIN, RIGCTL_HREG_WATCHDOG_MS_MIN,
+    RIGCTL_HREG_LOADCELL_SCALE_X100_MIN, RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MIN};
+static const uint16_t hreg_max[RIGCTL_N_HOLDING] = {
+    RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_MAX, RIGCTL_HREG_FORCE_SETPOINT_G_MAX, RIGCTL_HREG_COMMAND_MAX,
+    RIGCTL_HREG_SPEED_PROFILE_MAX, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_MAX, RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_MAX,
+    RIGCTL_HREG_RAMP_DURATION_MS_MAX, RIGCTL_HREG_SPEED_LIMIT_0P1MMS_MAX, RIGCTL_HREG_FORCE_LIMIT_G_MAX,
+    RIGCTL_HREG_FORCE_TOLERANCE_G_MAX, RIGCTL_HREG_SETTLE_TIME_MS_MAX, RIGCTL_HREG_WATCHDOG_MS_MAX,
+    RIGCTL_HREG_LOADCELL_SCALE_X100_MAX, RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MAX};
+static const uint16_t hreg_def[RIGCTL_N_HOLDING] = {
+    RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_DEF, RIGCTL_HREG_FORCE_SETPOINT_G_DEF, RIGCTL_HREG_COMMAND_DEF,
+    RIGCTL_HREG_SPEED_PROFILE_DEF, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_DEF, RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_DEF,
+    RIGCTL_HREG_RAMP_DURATION_MS_DEF, RIGCTL_HREG_SPEED_LIMIT_0P1MMS_DEF, RIGCTL_HREG_FORCE_LIMIT_G_DEF,
+    RIGCTL_HREG_FORCE_TOLERANCE_G_DEF, RIGCTL_HREG_SETTLE_TIME_MS_DEF, RIGCTL_HREG_WATCHDOG_MS_DEF,
+    RIGCTL_HREG_LOADCELL_SCALE_X100_DEF, RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_DEF};
+
+void ctl_init(ctl_t *c, uint16_t loadcell_scale_x100, uint16_t actuator_steps_per_mm)
+{
+    uint16_t i;
+    uint8_t *p = (uint8_t *)c;
+    for (i = 0; i < sizeof(*c); i++) p[i] = 0;
+    for (i = 0; i < RIGCTL_N_HOLDING; i++) c->hreg[i] = hreg_def[i];
+    if (loadcell_scale_x100) c->hreg[RIGCTL_HREG_LOADCELL_SCALE_X100] = loadcell_scale_x100;
+    if (actuator_steps_per_mm) c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM] = actuator_steps_per_mm;
+    c->state = RIGCTL_STATE_IDLE;
+    c->tare_pending = 1; /* power-up tare with the actuator at home */
+    force_pi_init(&c->pi, FORCE_KP, FORCE_KI, ACT_MAX_SPEED_MM_S);
+}
+
+static uint8_t force_engaged(const ctl_t *c)
+{
+    return c->state == RIGCTL_STATE_SEEKING_FORCE || c->state == RIGCTL_STATE_FORCE_SETTLED ||
+           c->state == RIGCTL_STATE_RUNNING;
+}
+
+static float act_pos_mm(const ctl_t *c)
+{
+    return (float)c->act_pos_steps / (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+}
+
+float ctl_force_from_raw(const ctl_t *c, int32_t raw)
+{
+    return (float)(raw - c->tare_offset) * 100.0f / (float)c->hreg[RIGCTL_HREG_LOADCELL_SCALE_X100];
+}
+
+static void fault(ctl_t *c, uint16_t bits)
+{
+    c->faults |= bits;
+    c->state = RIGCTL_STATE_FAULT;
+    c->drum_on = 0;
+    c->run_pending = 0;
+    c->act_mode = ACT_MODE_RETRACT;
+    c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
+    force_pi_reset(&c->pi);
+}
+
+static uint8_t fault_persists(const ctl_t *c)
+{
+    if ((uint32_t)(c->now_ms - c->last_loadcell_ms) > RIGCTL_LOADCELL_TIMEOUT_MS) return 1;
+    if (c->force_gf > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) return 1;
+    return 0;
+}
+
+static void engage(ctl_t *c)
+{
+    force_pi_reset(&c->pi);
+    c->act_mode = ACT_MODE_FORCE;
+    c->state = RIGCTL_STATE_SEEKING_FORCE;
+    c->on_target = 0;
+}
+
+static void start_drum(ctl_t *c)
+{
+    c->drum_on = 1;
+    c->run_pending = 0;
+    c->run_start_ms = c->now_ms;
+    c->state = RIGCTL_STATE_RUNNING;
+}
+
+/* is command `cmd` allowed now? */
+static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
+{
+    uint8_t s = c->state;
+    switch (cmd) {
+    case RIGCTL_CMD_NONE:
+    case RIGCTL_CMD_STOP:
+    case RIGCTL_CMD_SAVE_CALIBRATION:
+        return 1;
+    case RIGCTL_CMD_RUN:
+    case RIGCTL_CMD_PRESS:
+    case RIGCTL_CMD_STOP_DRUM:
+        return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING;
+    case RIGCTL_CMD_TARE:
+    case RIGCTL_CMD_HOME:
+        return s == RIGCTL_STATE_IDLE;
+    case RIGCTL_CMD_CLEAR_FAULT:
+        return s != RIGCTL_STATE_FAULT || !fault_persists(c);
+    default:
+        return 0;
+    }
+}
+
+static void run_command(ctl_t *c, uint16_t cmd)
+{
+    switch (cmd) {
+    case RIGCTL_CMD_RUN:
+        if (c->state == RIGCTL_STATE_IDLE) {
+            engage(c);
+            c->run_pending = 1;
+        } else if (c->state == RIGCTL_STATE_SEEKING_FORCE) {
+            c->run_pending = 1;
+        } else {
+            start_drum(c); /* FORCE_SETTLED, or RUNNING: restart the profile */
+        }
+        break;
+    case RIGCTL_CMD_STOP:
+        if (c->state != RIGCTL_STATE_FAULT) {
+            c->drum_on = 0;
+            c->run_pending = 0;
+            c->act_mode = ACT_MODE_RETRACT;
+            c->state = RIGCTL_STATE_IDLE;
+        }
+        break;
+    case RIGCTL_CMD_TARE:
+        c->tare_pending = 1;
+        break;
+    case RIGCTL_CMD_HOME:
+        c->act_mode = ACT_MODE_HOMING;
+        c->state = RIGCTL_STATE_HOMING;
+        break;
+    case RIGCTL_CMD_CLEAR_FAULT:
+        c->faults = 0;
+        if (c->state == RIGCTL_STATE_FAULT) c->state = RIGCTL_STATE_IDLE;
+        break;
+    case RIGCTL_CMD_PRESS:
+        if (!force_engaged(c)) engage(c);
+        break;
+    case RIGCTL_CMD_STOP_DRUM:
+        c->run_pending = 0;
+        if (c->drum_on) {
+            c->drum_on = 0;
+            c->state = RIGCTL_STATE_SEEKING_FORCE;
+            c->on_target = 0;
+        }
+        break;
+    case RIGCTL_CMD_SAVE_CALIBRATION:
+        c->save_calibration = 1;
+        break;
+    default:
+        break;
+    }
+}
+
+uint16_t ctl_read_holding(void *ctx, uint16_t addr)
+{
+    const ctl_t *c = (const ctl_t *)ctx;
+    return addr < RIGCTL_N_HOLDING ? c->hreg[addr] : 0;
+}
+
+static uint16_t s16(float v)
+{
+    long r = (long)(v < 0 ? v - 0.5f : v + 0.5f);
+    if (r > 32767) r = 32767;
+    if (r < -32768) r = -32768;
+    return (uint16_t)(int16_t)r;
+}
+
+uint16_t ctl_read_input(void *ctx, uint16_t addr)
+{
+    const ctl_t *c = (const ctl_t *)ctx;
+    switch (addr) {
+    case RIGCTL_IREG_FORCE_G: return (uint16_t)c->force_g;
+    case RIGCTL_IREG_SPEED_0P1MMS: return s16(c->drum_actual_mm_s * 10.0f);
+    case RIGCTL_IREG_DRUM_ANGLE_0P01DEG:
+        return (uint16_t)((uint32_t)c->drum_step_in_rev * 36000UL / DRUM_USTEPS_PER_REV);
+    case RIGCTL_IREG_DRUM_REVOLUTIONS: return c->drum_revolutions;
+    case RIGCTL_IREG_ACTUATOR_POSITION_0P01MM: return s16(act_pos_mm(c) * 100.0f);
+    case RIGCTL_IREG_STATE: return c->state;
+    case RIGCTL_IREG_FAULT_BITS: return c->faults;
+    case RIGCTL_IREG_FIRMWARE_VERSION: return RIGCTL_MEGA_FIRMWARE_VERSION;
+    case RIGCTL_IREG_HEARTBEAT: return (uint16_t)(c->now_ms / 10);
+    case RIGCTL_IREG_SPEED_TARGET_0P1MMS: return c->speed_target_0p1;
+    case RIGCTL_IREG_LOADCELL_RAW_HI: return (uint16_t)((uint32_t)c->loadcell_raw >> 16);
+    case RIGCTL_IREG_LOADCELL_RAW_LO: return (uint16_t)((uint32_t)c->loadcell_raw & 0xFFFF);
+    case RIGCTL_IREG_FORCE_SETPOINT_ACTIVE_G:
+        return force_engaged(c) ? c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G] : 0;
+    default: return 0;
+    }
+}
+
+uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t *values)
+{
+    ctl_t *c = (ctl_t *)ctx;
+    uint16_t cand[RIGCTL_N_HOLDING];
+    uint16_t i, cmd = RIGCTL_CMD_NONE;
+    uint8_t cmd_written = 0;
+    if ((uint32_t)start + n > RIGCTL_N_HOLDING) return RIGCTL_MB_EX_ILLEGAL_ADDRESS;
+    for (i = 0; i < RIGCTL_N_HOLDING; i++) cand[i] = c->hreg[i];
+    for (i = 0; i < n; i++) {
+        uint16_t a = (uint16_t)(start + i);
+        if (values[i] < hreg_min[a] || values[i] > hreg_max[a]) return RIGCTL_MB_EX_ILLEGAL_VALUE;
+        cand[a] = values[i];
+        if (a == RIGCTL_HREG_COMMAND) {
+            cmd = values[i];
+            cmd_written = 1;
+        }
+    }
+    /* a setpoint written now must respect the limits as they stand after this write */
+    for (i = 0; i < n; i++) {
+        uint16_t a = (uint16_t)(start + i);
+        if ((a == RIGCTL_HREG_SPEED_SETPOINT_0P1MMS || a == RIGCTL_HREG_RAMP_START_SPEED_0P1MMS ||
+             a == RIGCTL_HREG_RAMP_END_SPEED_0P1MMS) &&
+            cand[a] > cand[RIGCTL_HREG_SPEED_LIMIT_0P1MMS])
+            return RIGCTL_MB_EX_ILLEGAL_VALUE;
+        if (a == RIGCTL_HREG_FORCE_SETPOINT_G && cand[a] > cand[RIGCTL_HREG_FORCE_LIMIT_G])
+            return RIGCTL_MB_EX_ILLEGAL_VALUE;
+    }
+    if (cmd_written && !command_allowed(c, cmd)) return RIGCTL_MB_EX_ILLEGAL_VALUE;
+    cand[RIGCTL_HREG_COMMAND] = RIGCTL_CMD_NONE; /* reads back 0 once accepted */
+    for (i = 0; i < RIGCTL_N_HOLDING; i++) c->hreg[i] = cand[i];
+    if (cmd_written) run_command(c, cmd);
+    return 0;
+}
+
+void ctl_feed_watchdog(ctl_t *c)
+{
+    c->last_request_ms = c->now_ms;
+}
+
+static float profile_target_mm_s(ctl_t *c)
+{
+    uint16_t target;
+    if (!c->drum_on) {
+        target = 0;
+    } else if (c->hreg[RIGCTL_HREG_SPEED_PROFILE] == RIGCTL_PROFILE_RAMP) {
+        uint32_t t = c->now_ms - c->run_start_ms;
+        uint32_t d = c->hreg[RIGCTL_HREG_RAMP_DURATION_MS];
+        int32_t a = c->hreg[RIGCTL_HREG_RAMP_START_SPEED_0P1MMS];
+        int32_t b = c->hreg[RIGCTL_HREG_RAMP_END_SPEED_0P1MMS];
+        if (t >= d) target = (uint16_t)b;
+        else target = (uint16_t)(a + (int32_t)(((int64_t)(b - a) * (int64_t)t) / (int64_t)d));
+    } else {
+        target = c->hreg[RIGCTL_HREG_SPEED_SETPOINT_0P1MMS];
+    }
+    if (target > c->hreg[RIGCTL_HREG_SPEED_LIMIT_0P1MMS]) target = c->hreg[RIGCTL_HREG_SPEED_LIMIT_0P1MMS];
+    c->speed_target_0p1 = target;
+    return (float)target * 0.1f;
+}
+
+void ctl_tick(ctl_t *c, uint32_t now_ms)
+{
+    float dt = (float)(uint32_t)(now_ms - c->now_ms) * 0.001f;
+    c->now_ms = now_ms;
+    if (dt > 0.1f) dt = 0.1f;
+
+    if (c->state != RIGCTL_STATE_FAULT) {
+        if ((uint32_t)(now_ms - c->last_loadcell_ms) > RIGCTL_LOADCELL_TIMEOUT_MS) {
+            fault(c, RIGCTL_FAULT_LOADCELL_TIMEOUT);
+        } else if ((force_engaged(c) || c->drum_cmd_mm_s > 0.0f) &&
+                   (uint32_t)(now_ms - c->last_request_ms) > c->hreg[RIGCTL_HREG_WATCHDOG_MS]) {
+            fault(c, RIGCTL_FAULT_WATCHDOG);
+        }
+    }
+
+    /* drum: profile target through the acceleration ramp */
+    c->drum_cmd_mm_s = steprate_ramp(c->drum_cmd_mm_s, profile_target_mm_s(c), DRUM_ACCEL_MM_S2, dt);
+
+    /* actuator */
+    switch (c->act_mode) {
+    case ACT_MODE_RETRACT:
+        if (c->act_pos_steps <= 0 || c->home_switch) {
+            c->act_vel_mm_s = 0.0f;
+            c->act_mode = ACT_MODE_HOLD;
+        } else {
+            c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
+        }
+        break;
+    case ACT_MODE_HOMING:
+        if (c->home_switch) {
+            c->act_vel_mm_s = 0.0f;
+            c->act_mode = ACT_MODE_HOLD;
+            c->zero_position = 1;
+            c->act_pos_steps = 0;
+            if (c->state == RIGCTL_STATE_HOMING) c->state = RIGCTL_STATE_IDLE;
+        } else {
+            c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
+        }
+        break;
+    case ACT_MODE_FORCE:
+        if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
+            c->act_vel_mm_s = 0.0f;
+            fault(c, RIGCTL_FAULT_ACTUATOR_TRAVEL);
+        }
+        break;
+    default:
+        c->act_vel_mm_s = 0.0f;
+        break;
+    }
+
+    /* settle detection */
+    if (force_engaged(c)) {
+        if (c->on_target) {
+            if (c->state == RIGCTL_STATE_SEEKING_FORCE &&
+                (uint32_t)(now_ms - c->on_target_since_ms) >= c->hreg[RIGCTL_HREG_SETTLE_TIME_MS]) {
+                c->state = RIGCTL_STATE_FORCE_SETTLED;
+            }
+        }
+        if (c->state == RIGCTL_STATE_FORCE_SETTLED && c->run_pending) start_drum(c);
+    }
+}
+
+void ctl_loadcell(ctl_t *c, int32_t raw)
+{
+    float f;
+    uint16_t sp = c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
+    uint8_t on;
+    c->last_loadcell_ms = c->now_ms;
+    c->loadcell_raw = raw;
+    if (c->tare_pending) {
+        c->tare_offset = raw;
+        c->tare_pending = 0;
+    }
+    f = ctl_force_from_raw(c, raw);
+    c->force_gf = f;
+    c->force_g = (int16_t)(f > 32767.0f ? 32767 : (f < -32768.0f ? -32768 : (f < 0 ? f - 0.5f : f + 0.5f)));
+    if (f > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) {
+        if (c->state != RIGCTL_STATE_FAULT || !(c->faults & RIGCTL_FAULT_FORCE_LIMIT)) {
+            fault(c, RIGCTL_FAULT_FORCE_LIMIT); /* backs the actuator off at once */
+        }
+        return;
+    }
+    if (!force_engaged(c)) return;
+    on = (f >= (float)sp - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) &&
+         (f <= (float)sp + (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
+    if (on && !c->on_target) c->on_target_since_ms = c->now_ms;
+    c->on_target = on;
+    if (c->act_mode == ACT_MODE_FORCE) {
+        c->act_vel_mm_s = force_pi_update(&c->pi, (float)sp, f, HX711_SAMPLE_PERIOD_S);
+        if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
+            c->act_vel_mm_s = 0.0f;
+            fault(c, RIGCTL_FAULT_ACTUATOR_TRAVEL);
+        }
+    }
+}

@@ -1,0 +1,77 @@
+/* controller.h - the drum controller's logic (docs/wire-protocol.md 2.1-2.6), pure and host-tested:
+ * register map with range checks, commands and states, speed profiles with the acceleration ramp, the force
+ * loop's decisions (PI, settle detection, force limit, end of travel), tare, host watchdog and heartbeat.
+ * The hardware glue (mega_drum.cpp) feeds it time, load-cell readings and step counts, and applies its outputs
+ * (drum surface speed, actuator velocity) to the step generators. */
+#ifndef CONTROLLER_H
+#define CONTROLLER_H
+#include <stdint.h>
+#include "../common/rigctl_wire.h"
+#include "force_pi.h"
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* what the actuator does */
+#define ACT_MODE_HOLD    0 /* not moving */
+#define ACT_MODE_FORCE   1 /* the force loop drives it */
+#define ACT_MODE_RETRACT 2 /* backing off to position 0 (home) at full speed */
+#define ACT_MODE_HOMING  3 /* seeking the home switch, then position := 0 */
+
+typedef struct {
+    uint16_t hreg[RIGCTL_N_HOLDING];
+    uint8_t state;
+    uint16_t faults;
+    /* time */
+    uint32_t now_ms;
+    uint32_t last_request_ms;
+    uint32_t last_loadcell_ms;
+    uint32_t run_start_ms;
+    uint32_t on_target_since_ms;
+    uint8_t on_target;
+    /* drum */
+    uint8_t drum_on;        /* profile active (RUNNING) */
+    uint8_t run_pending;    /* RUN asked while the force was not yet settled */
+    float drum_cmd_mm_s;    /* commanded surface speed after the acceleration ramp (output) */
+    float drum_actual_mm_s; /* surface speed of the step rate actually loaded (glue) */
+    uint16_t speed_target_0p1; /* profile target now */
+    uint16_t drum_step_in_rev; /* microsteps since the index mark (glue) */
+    uint16_t drum_revolutions; /* (glue) */
+    /* load cell */
+    int32_t loadcell_raw;
+    int32_t tare_offset;
+    uint8_t tare_pending;
+    int16_t force_g;
+    float force_gf;
+    /* actuator */
+    uint8_t act_mode;
+    int32_t act_pos_steps;  /* (glue) */
+    uint8_t home_switch;    /* 1 = at home (glue) */
+    float act_vel_mm_s;     /* commanded velocity (output), + towards the sensor */
+    uint8_t zero_position;  /* output: glue must set its step count to 0 */
+    force_pi_t pi;
+    uint8_t save_calibration; /* output: glue writes EEPROM and clears it */
+} ctl_t;
+
+/* power-up: defaults from the spec, calibration from EEPROM (or defaults), state IDLE */
+void ctl_init(ctl_t *c, uint16_t loadcell_scale_x100, uint16_t actuator_steps_per_mm);
+/* register access for the Modbus handler (addresses already range-checked by it) */
+uint16_t ctl_read_holding(void *ctx, uint16_t addr);
+uint16_t ctl_read_input(void *ctx, uint16_t addr);
+/* write n holding registers from start: every value is checked first (range, limits, command allowed in the
+ * current state); returns RIGCTL_MB_EX_ILLEGAL_VALUE and changes nothing if one fails, else applies them all
+ * and then runs the command, if COMMAND was written */
+uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t *values);
+/* a valid request for this device arrived (feeds the host watchdog) */
+void ctl_feed_watchdog(ctl_t *c);
+/* 1 kHz control step: profiles, ramps, watchdog, homing/retract, settle timing, faults */
+void ctl_tick(ctl_t *c, uint32_t now_ms);
+/* a new HX711 reading (signed 24-bit counts): force, tare, force limit, PI update */
+void ctl_loadcell(ctl_t *c, int32_t raw);
+/* force in g from raw counts with the current tare and scale */
+float ctl_force_from_raw(const ctl_t *c, int32_t raw);
+
+#ifdef __cplusplus
+}
+#endif
+#endif

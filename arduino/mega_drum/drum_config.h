@@ -1,0 +1,55 @@
+/* drum_config.h - the Mega drum controller's configuration: drum geometry, motion limits, force-loop gains and
+ * pins, in one place (docs/wire-protocol.md 2.6, docs/firmware.md). Geometry must match the rig config
+ * (rigctl.simulation.model.DrumConfig). */
+#ifndef DRUM_CONFIG_H
+#define DRUM_CONFIG_H
+#include "../common/rigctl_wire.h"
+
+/* ---- drum (spec 2.6): f = v * steps_per_rev * microsteps / (pi * diameter) ---- */
+#define DRUM_DIAMETER_MM       100.0f
+#define DRUM_STEPS_PER_REV     RIGCTL_DRUM_STEPS_PER_REV_DEF
+#define DRUM_MICROSTEPS        RIGCTL_DRUM_MICROSTEPS_DEF
+#define DRUM_USTEPS_PER_REV    ((uint16_t)(DRUM_STEPS_PER_REV * DRUM_MICROSTEPS))
+#define DRUM_ACCEL_MM_S2       400.0f   /* acceleration ramp of the drum's surface speed */
+
+/* ---- actuator: lead-screw stepper pressing the drum onto the sensor ---- */
+#define ACT_MAX_SPEED_MM_S     5.0f     /* force loop output clamp and back-off speed */
+#define ACT_HOME_SPEED_MM_S    3.0f     /* HOME seeks the switch at this speed */
+#define ACT_MAX_TRAVEL_MM      20.0f    /* end of travel: ACTUATOR_TRAVEL fault while seeking force */
+
+/* ---- force loop (PI on the load cell, run on each HX711 reading at 80 SPS) ----
+ * output: actuator velocity in mm/s, positive towards the sensor. With a contact stiffness of k g/mm the closed
+ * loop time constant is 1 / (k * FORCE_KP): 0.1 s at k = 200 g/mm. */
+#define FORCE_KP               0.05f    /* (mm/s) per g */
+#define FORCE_KI               0.05f    /* (mm/s) per (g s) */
+#define HX711_SAMPLE_PERIOD_S  0.0125f  /* 80 SPS (RATE pin high) */
+
+/* ---- pins (Arduino Mega 2560) ---- */
+/* drum stepper driver: STEP D11 = PB5, DIR D10 = PB4 (Timer1 compare interrupt makes the step pulses) */
+#define PIN_DRUM_STEP_PORT  PORTB
+#define PIN_DRUM_STEP_DDR   DDRB
+#define PIN_DRUM_STEP_BIT   5
+#define PIN_DRUM_DIR_BIT    4
+/* actuator stepper driver: STEP D5 = PE3, DIR D6 = PH3 (Timer3) */
+#define PIN_ACT_STEP_PORT   PORTE
+#define PIN_ACT_STEP_DDR    DDRE
+#define PIN_ACT_STEP_BIT    3
+#define PIN_ACT_DIR_PORT    PORTH
+#define PIN_ACT_DIR_DDR     DDRH
+#define PIN_ACT_DIR_BIT     3
+/* actuator home switch D7 = PH4, to GND when home (internal pull-up) */
+#define PIN_HOME_PIN        PINH
+#define PIN_HOME_PORT       PORTH
+#define PIN_HOME_BIT        4
+/* HX711: DOUT D3 = PE5 (input), SCK D4 = PG5 (output) */
+#define PIN_HX_DOUT_PIN     PINE
+#define PIN_HX_DOUT_BIT     5
+#define PIN_HX_SCK_PORT     PORTG
+#define PIN_HX_SCK_DDR      DDRG
+#define PIN_HX_SCK_BIT      5
+/* drum index pulse out D9 = PH6 -> Uno D2 (sync-in) */
+#define PIN_INDEX_PORT      PORTH
+#define PIN_INDEX_DDR       DDRH
+#define PIN_INDEX_BIT       6
+
+#endif

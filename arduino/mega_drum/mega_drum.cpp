@@ -1,0 +1,357 @@
+/*
+ * mega_drum.cpp - Arduino Mega 2560 (ATmega2560, 16 MHz) drum controller: the hardware glue around the pure
+ * logic (controller.c, modbus_slave.c, steprate.c, force_pi.c). docs/wire-protocol.md section 2.
+ *
+ *   UART0   Modbus RTU slave at 115200 8N1 (U2X), receive and transmit interrupt driven
+ *   Timer4  t3.5 frame timer: restarted by every received byte, its compare match (1.75 ms) ends the frame
+ *   Timer2  1 kHz control tick (CTC, /64, OCR2A = 249)
+ *   Timer1  drum step generator: CTC, its compare interrupt makes one STEP pulse and loads the next period,
+ *           so the acceleration ramp changes the rate only between steps
+ *   Timer3  actuator (lead-screw stepper) step generator, same scheme, counts the actuator position
+ *   HX711   bit-banged in loop() whenever DOUT goes low (80 SPS), 25 clocks (channel A, gain 128)
+ *   EEPROM  calibration (load-cell scale, actuator steps/mm) with a magic word and CRC
+ * Timer0 stays with the Arduino core (millis, unused here). HardwareSerial is not linked.
+ */
+#include <Arduino.h>
+#include <avr/eeprom.h>
+#include <avr/interrupt.h>
+#include <avr/io.h>
+#include <util/delay.h>
+
+#include "../common/crc16.h"
+#include "../common/rigctl_wire.h"
+#include "controller.h"
+#include "drum_config.h"
+#include "modbus_slave.h"
+#include "steprate.h"
+
+static ctl_t ctl;
+static mb_slave_t mb;
+
+/* ---- Modbus receive/transmit ---- */
+static uint8_t rx_buf[MB_MAX_FRAME];
+static volatile uint16_t rx_len;
+static volatile uint8_t rx_overflow;
+static volatile uint8_t frame_ready;
+static uint8_t tx_buf[MB_MAX_FRAME];
+static volatile uint16_t tx_len, tx_pos;
+
+/* ---- time ---- */
+static volatile uint32_t tick_ms;
+
+/* ---- step generators ---- */
+static volatile steptimer_t drum_next;   /* loaded at the next step */
+static volatile uint8_t drum_running_cs; /* clock select running now, 0 = stopped */
+static volatile uint16_t drum_running_ocr;
+static volatile uint16_t drum_step_in_rev;
+static volatile uint16_t drum_revs;
+static volatile uint8_t index_pending;   /* index mark passed: raise the index output */
+static volatile steptimer_t act_next;
+static volatile uint8_t act_next_dir;    /* 1 = towards the sensor */
+static volatile uint8_t act_dir;
+static volatile uint8_t act_running_cs;
+static volatile int32_t act_steps;
+
+ISR(USART0_RX_vect)
+{
+    uint8_t status = UCSR0A; /* read before UDR0: frame error / data overrun of this byte */
+    uint8_t c = UDR0;
+    if (status & ((1 << FE0) | (1 << DOR0))) rx_overflow = 1; /* damaged frame: dropped at t3.5 */
+    if (!frame_ready) {
+        if (rx_len < MB_MAX_FRAME) rx_buf[rx_len++] = c;
+        else rx_overflow = 1;
+    }
+    /* restart the t3.5 timer */
+    TCNT4 = 0;
+    TIFR4 = (1 << OCF4A);
+    TCCR4B = (1 << WGM42) | (1 << CS41) | (1 << CS40); /* CTC, /64: 4 us ticks */
+}
+
+ISR(TIMER4_COMPA_vect)
+{
+    TCCR4B = (1 << WGM42); /* stop */
+    if (rx_len > 0) {
+        if (rx_overflow) {
+            rx_len = 0;
+            rx_overflow = 0;
+        } else {
+            frame_ready = 1;
+        }
+    }
+}
+
+ISR(USART0_UDRE_vect)
+{
+    UDR0 = tx_buf[tx_pos++];
+    if (tx_pos >= tx_len) UCSR0B &= (uint8_t)~(1 << UDRIE0);
+}
+
+ISR(TIMER2_COMPA_vect)
+{
+    tick_ms++;
+}
+
+ISR(TIMER1_COMPA_vect)
+{
+    PIN_DRUM_STEP_PORT |= (1 << PIN_DRUM_STEP_BIT);
+    uint16_t s = drum_step_in_rev + 1;
+    if (s >= DRUM_USTEPS_PER_REV) {
+        s = 0;
+        drum_revs++;
+        PIN_INDEX_PORT |= (1 << PIN_INDEX_BIT);
+        index_pending = 1;
+    }
+    drum_step_in_rev = s;
+    uint8_t cs = drum_next.cs;
+    if (cs) {
+        OCR1A = drum_next.ocr;
+        drum_running_ocr = drum_next.ocr;
+    }
+    TCCR1B = (uint8_t)((1 << WGM12) | cs);
+    drum_running_cs = cs;
+    PIN_DRUM_STEP_PORT &= (uint8_t)~(1 << PIN_DRUM_STEP_BIT); /* >= 2 us pulse */
+}
+
+ISR(TIMER3_COMPA_vect)
+{
+    PIN_ACT_STEP_PORT |= (1 << PIN_ACT_STEP_BIT);
+    act_steps += act_dir ? 1 : -1;
+    uint8_t cs = act_next.cs;
+    if (cs) OCR3A = act_next.ocr;
+    TCCR3B = (uint8_t)((1 << WGM32) | cs);
+    act_running_cs = cs;
+    _delay_us(1);
+    PIN_ACT_STEP_PORT &= (uint8_t)~(1 << PIN_ACT_STEP_BIT);
+    /* direction for the next step, set well before its pulse */
+    act_dir = act_next_dir;
+    if (act_dir) PIN_ACT_DIR_PORT |= (1 << PIN_ACT_DIR_BIT);
+    else PIN_ACT_DIR_PORT &= (uint8_t)~(1 << PIN_ACT_DIR_BIT);
+}
+
+/* ---- EEPROM calibration ---- */
+struct calib_t {
+    uint16_t magic;
+    uint16_t loadcell_scale_x100;
+    uint16_t actuator_steps_per_mm;
+    uint16_t crc;
+};
+#define CALIB_MAGIC 0x5243 /* "RC" */
+static calib_t EEMEM ee_calib;
+
+static uint16_t calib_crc(const calib_t *c)
+{
+    return rigctl_crc16((const uint8_t *)c, 6);
+}
+
+static void calib_load(uint16_t *scale, uint16_t *steps)
+{
+    calib_t c;
+    eeprom_read_block(&c, &ee_calib, sizeof(c));
+    if (c.magic == CALIB_MAGIC && c.crc == calib_crc(&c) && c.loadcell_scale_x100 && c.actuator_steps_per_mm) {
+        *scale = c.loadcell_scale_x100;
+        *steps = c.actuator_steps_per_mm;
+    } else {
+        *scale = 0; /* controller defaults */
+        *steps = 0;
+    }
+}
+
+static void calib_save(void)
+{
+    calib_t c;
+    c.magic = CALIB_MAGIC;
+    c.loadcell_scale_x100 = ctl.hreg[RIGCTL_HREG_LOADCELL_SCALE_X100];
+    c.actuator_steps_per_mm = ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    c.crc = calib_crc(&c);
+    eeprom_update_block(&c, &ee_calib, sizeof(c));
+}
+
+/* ---- HX711 ---- */
+static int32_t hx711_read(void)
+{
+    uint32_t v = 0;
+    for (uint8_t i = 0; i < 25; i++) {
+        cli(); /* SCK high must stay short (< 60 us powers the HX711 down) */
+        PIN_HX_SCK_PORT |= (1 << PIN_HX_SCK_BIT);
+        _delay_us(1);
+        uint8_t bit = (PIN_HX_DOUT_PIN >> PIN_HX_DOUT_BIT) & 1;
+        PIN_HX_SCK_PORT &= (uint8_t)~(1 << PIN_HX_SCK_BIT);
+        sei();
+        if (i < 24) v = (v << 1) | bit;
+        _delay_us(1);
+    }
+    if (v & 0x800000UL) v |= 0xFF000000UL; /* sign-extend 24 -> 32 bits */
+    return (int32_t)v;
+}
+
+/* ---- applying the controller's outputs ---- */
+static void drum_apply(float v_mm_s)
+{
+    steptimer_t t;
+    steprate_timer(steprate_hz_from_mm_s(v_mm_s, DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV), F_CPU, &t);
+    cli();
+    drum_next.cs = t.cs;
+    drum_next.ocr = t.ocr;
+    if (!drum_running_cs && t.cs) { /* start from rest: first step after one period */
+        OCR1A = t.ocr;
+        drum_running_ocr = t.ocr;
+        TCNT1 = 0;
+        TIFR1 = (1 << OCF1A);
+        TCCR1B = (uint8_t)((1 << WGM12) | t.cs);
+        drum_running_cs = t.cs;
+    }
+    sei();
+}
+
+static float drum_actual_mm_s(void)
+{
+    steptimer_t t;
+    cli();
+    t.cs = drum_running_cs;
+    t.ocr = drum_running_ocr;
+    sei();
+    return steprate_mm_s_from_hz(steprate_timer_hz(&t, F_CPU), DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV);
+}
+
+static void act_apply(float v_mm_s)
+{
+    steptimer_t t;
+    uint8_t dir = v_mm_s > 0.0f;
+    float f = (v_mm_s < 0 ? -v_mm_s : v_mm_s) * (float)ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    steprate_timer(f, F_CPU, &t);
+    cli();
+    act_next.cs = t.cs;
+    act_next.ocr = t.ocr;
+    act_next_dir = dir;
+    if (!act_running_cs && t.cs) {
+        act_dir = dir;
+        if (dir) PIN_ACT_DIR_PORT |= (1 << PIN_ACT_DIR_BIT);
+        else PIN_ACT_DIR_PORT &= (uint8_t)~(1 << PIN_ACT_DIR_BIT);
+        OCR3A = t.ocr;
+        TCNT3 = 0;
+        TIFR3 = (1 << OCF3A);
+        TCCR3B = (uint8_t)((1 << WGM32) | t.cs);
+        act_running_cs = t.cs;
+    }
+    sei();
+}
+
+static void modbus_poll(void)
+{
+    uint16_t n;
+    if (!frame_ready) return;
+    uint8_t r = mb_handle(&mb, rx_buf, rx_len, tx_buf, &n);
+    if (r != MB_IGNORED) ctl_feed_watchdog(&ctl);
+    cli();
+    rx_len = 0;
+    frame_ready = 0;
+    sei();
+    if (n) {
+        while (UCSR0B & (1 << UDRIE0)) {
+        }
+        tx_len = n;
+        tx_pos = 0;
+        UCSR0B |= (1 << UDRIE0);
+    }
+}
+
+void setup(void)
+{
+    uint16_t scale, steps;
+    cli();
+    calib_load(&scale, &steps);
+    ctl_init(&ctl, scale, steps);
+    mb.device_id = RIGCTL_DRUM_DEVICE_ID;
+    mb.n_holding = RIGCTL_N_HOLDING;
+    mb.n_input = RIGCTL_N_INPUT;
+    mb.ctx = &ctl;
+    mb.read_holding = ctl_read_holding;
+    mb.read_input = ctl_read_input;
+    mb.write_holding = ctl_write_holding;
+
+    /* pins */
+    PIN_DRUM_STEP_DDR |= (1 << PIN_DRUM_STEP_BIT) | (1 << PIN_DRUM_DIR_BIT);
+    PIN_DRUM_STEP_PORT |= (1 << PIN_DRUM_DIR_BIT); /* the drum always turns forwards */
+    PIN_ACT_STEP_DDR |= (1 << PIN_ACT_STEP_BIT);
+    PIN_ACT_DIR_DDR |= (1 << PIN_ACT_DIR_BIT);
+    PIN_HOME_PORT |= (1 << PIN_HOME_BIT); /* pull-up */
+    PIN_HX_SCK_DDR |= (1 << PIN_HX_SCK_BIT);
+    PIN_INDEX_DDR |= (1 << PIN_INDEX_BIT);
+
+    /* UART0 115200 8N1, U2X: UBRR = 16 (as the Arduino core) */
+    UCSR0A = (1 << U2X0);
+    UBRR0 = 16;
+    UCSR0C = (1 << UCSZ01) | (1 << UCSZ00);
+    UCSR0B = (1 << RXEN0) | (1 << TXEN0) | (1 << RXCIE0);
+    /* Timer4: t3.5 = 1.75 ms = 437.5 ticks of 4 us */
+    TCCR4A = 0;
+    TCCR4B = (1 << WGM42);
+    OCR4A = (uint16_t)(RIGCTL_MB_T35_US / 4);
+    TIMSK4 = (1 << OCIE4A);
+    /* Timer2: 1 kHz control tick */
+    TCCR2A = (1 << WGM21);
+    TCCR2B = (1 << CS22);
+    OCR2A = 249;
+    TIMSK2 = (1 << OCIE2A);
+    /* Timer1, Timer3: step generators, stopped */
+    TCCR1A = 0;
+    TCCR1B = (1 << WGM12);
+    TIMSK1 = (1 << OCIE1A);
+    TCCR3A = 0;
+    TCCR3B = (1 << WGM32);
+    TIMSK3 = (1 << OCIE3A);
+    sei();
+}
+
+void loop(void)
+{
+    static uint32_t done_ms;
+    static uint32_t index_on_ms;
+    static uint8_t index_on;
+
+    /* receiver status poll (see uno_taxel.cpp): lets simavr's UART model deliver host bytes */
+    (void)UCSR0A;
+    modbus_poll();
+
+    uint32_t now;
+    cli();
+    now = tick_ms;
+    sei();
+    while (done_ms != now) {
+        done_ms++;
+        cli();
+        ctl.act_pos_steps = act_steps;
+        ctl.drum_step_in_rev = drum_step_in_rev;
+        ctl.drum_revolutions = drum_revs;
+        uint8_t idx = index_pending;
+        index_pending = 0;
+        sei();
+        if (idx) {
+            index_on = 1;
+            index_on_ms = done_ms;
+        } else if (index_on && done_ms - index_on_ms >= RIGCTL_INDEX_PULSE_MS) {
+            index_on = 0;
+            PIN_INDEX_PORT &= (uint8_t)~(1 << PIN_INDEX_BIT);
+        }
+        ctl.home_switch = !((PIN_HOME_PIN >> PIN_HOME_BIT) & 1);
+        ctl.drum_actual_mm_s = drum_actual_mm_s();
+        ctl_tick(&ctl, done_ms);
+        if (ctl.zero_position) {
+            cli();
+            act_steps = 0;
+            sei();
+            ctl.zero_position = 0;
+        }
+        drum_apply(ctl.drum_cmd_mm_s);
+        act_apply(ctl.act_vel_mm_s);
+    }
+
+    if (!((PIN_HX_DOUT_PIN >> PIN_HX_DOUT_BIT) & 1)) {
+        ctl_loadcell(&ctl, hx711_read());
+        act_apply(ctl.act_vel_mm_s);
+    }
+    if (ctl.save_calibration) {
+        calib_save();
+        ctl.save_calibration = 0;
+    }
+}

@@ -1,0 +1,509 @@
+/*
+ * rigctl_simavr.c - runs one rig firmware image under simavr with the host talking to it over a pty.
+ *
+ *   rigctl_simavr --board uno|mega [options] FIRMWARE.elf
+ *
+ * Common: UART0 is bridged to a pty (simavr's uart_pty); the line "PTY /dev/pts/N" on stdout names it (never
+ * the shared /tmp/simavr-uart0 symlink). The core is paced to the wall clock (nanosleep on avr->cycle) unless
+ * --no-pace. The harness exits when its stdin closes, on "quit", or when its parent dies (PR_SET_PDEATHSIG).
+ * --reset-on-open emulates the Arduino's DTR auto-reset: each open() of the pty by a host (inotify IN_OPEN)
+ * holds the core in reset for --boot-ms (the bootloader's wait) and restarts the firmware.
+ *
+ * Uno (ATmega328P): the ADC is fed with a mux-aware taxel signal. Three 74HC4051 share select lines PD4-PD6;
+ * mux m drives A<m> with taxels 6m..6m+5. Rows of 18 ADC counts come from a waveform file (raw little-endian
+ * uint16, n x 18, e.g. written by rigctl.simulation.hil from the physical model); a new row is taken at the
+ * first conversion of every scan (select 0 on A0), so frame k carries row (k0 + k) mod n, and the counts are
+ * converted to exactly the millivolts that simavr's ADC turns back into the same counts. stdin commands:
+ * "wave PATH" (load a waveform), "sync" (a 1 ms pulse on the sync-in pin D2). Timing: the sampler's probe pin
+ * (PB0) and the transmitter's (PB1) are timed on avr->cycle; "ISR ..." lines report cycles per 1 ms tick.
+ *
+ * Mega (ATmega2560): emulates the HX711 (DOUT PE5, SCK PG5; 80 SPS, 24-bit two's complement, 25th clock = gain
+ * 128) with a spring model between the lead-screw actuator (STEP PE3, DIR PH3, --act-steps-per-mm) and the
+ * load cell: force_g = k * max(0, x_mm - contact_mm) + bump; raw = offset + force_g * counts_per_g. Drives the
+ * home switch (PH4, low at x <= 0). Watches the drum STEP (PB5)/DIR (PB4) pins and the index output (PH6):
+ * "TEL ..." lines every --tel-ms of simulated time give step counts and the force; "IDX t=..." at each index
+ * pulse. stdin commands: "bump G" (an external force offset in g, e.g. to trip the force limit).
+ */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <fcntl.h>
+#include <math.h>
+#include <poll.h>
+#include <pthread.h>
+#include <signal.h>
+#include <stdatomic.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/inotify.h>
+#include <sys/prctl.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "avr_adc.h"
+#include "avr_ioport.h"
+#include "avr_uart.h"
+#include "sim_avr.h"
+#include "sim_elf.h"
+#include "sim_irq.h"
+#include "uart_pty.h"
+
+#include "../common/rigctl_wire.h"
+
+#define N_TAXELS RIGCTL_N_TAXELS
+
+static avr_t *avr;
+static uart_pty_t uart_pty;
+static int is_uno;
+
+/* ---- options ---- */
+static int opt_pace = 1;
+static int opt_reset_on_open = 0;
+static double opt_boot_ms = 200.0;
+static double opt_spring_k = 200.0;       /* g per mm */
+static double opt_contact_mm = 5.0;
+static double opt_act_steps_per_mm = 400.0;
+static double opt_counts_per_g = 420.0;    /* LOADCELL_SCALE_X100 default / 100 */
+static long opt_loadcell_offset = 8000;
+static double opt_tel_ms = 50.0;
+static double opt_max_seconds = 0.0;
+
+/* ---- stdin commands (reader thread -> main loop) ---- */
+static atomic_int quit_requested;
+static atomic_int sync_requests;
+static atomic_int bump_g_x1000;
+static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
+static uint16_t *wave;     /* n_rows x 18 ADC counts */
+static size_t wave_rows;
+
+static double now_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return ts.tv_sec + ts.tv_nsec * 1e-9;
+}
+
+static double sim_s(void)
+{
+    return (double)avr->cycle / (double)avr->frequency;
+}
+
+static int load_wave(const char *path)
+{
+    FILE *f = fopen(path, "rb");
+    if (!f) return -1;
+    fseek(f, 0, SEEK_END);
+    long size = ftell(f);
+    fseek(f, 0, SEEK_SET);
+    if (size <= 0 || size % (2 * N_TAXELS)) {
+        fclose(f);
+        return -1;
+    }
+    uint16_t *buf = malloc(size);
+    size_t got = fread(buf, 1, size, f);
+    fclose(f);
+    if ((long)got != size) {
+        free(buf);
+        return -1;
+    }
+    for (long i = 0; i < size / 2; i++) { /* file is little-endian */
+        uint8_t *b = (uint8_t *)&buf[i];
+        buf[i] = (uint16_t)(b[0] | (b[1] << 8));
+        if (buf[i] > RIGCTL_ADC_MAX) buf[i] = RIGCTL_ADC_MAX;
+    }
+    pthread_mutex_lock(&wave_lock);
+    uint16_t *old = wave;
+    wave = buf;
+    wave_rows = size / (2 * N_TAXELS);
+    pthread_mutex_unlock(&wave_lock);
+    free(old);
+    return 0;
+}
+
+static void *stdin_thread(void *arg)
+{
+    (void)arg;
+    char line[1024];
+    while (fgets(line, sizeof line, stdin)) {
+        line[strcspn(line, "\r\n")] = 0;
+        if (!strncmp(line, "wave ", 5)) {
+            if (load_wave(line + 5)) printf("ERR wave %s\n", line + 5);
+            else printf("OK wave %zu\n", wave_rows);
+        } else if (!strcmp(line, "sync")) {
+            atomic_fetch_add(&sync_requests, 1);
+        } else if (!strncmp(line, "bump ", 5)) {
+            atomic_store(&bump_g_x1000, (int)(atof(line + 5) * 1000.0));
+            printf("OK bump\n");
+        } else if (!strcmp(line, "quit")) {
+            break;
+        }
+    }
+    atomic_store(&quit_requested, 1); /* stdin closed: the host is gone */
+    return NULL;
+}
+
+/* ================================ Uno: mux-aware taxel ADC ================================ */
+static uint8_t mux_sel;          /* select lines PD4..PD6 as the pins show them */
+static uint64_t scan_count;
+static size_t scan_row;
+static avr_irq_t *adc_irq_base;
+static uint64_t probe_rise[2], probe_total[2], probe_window_sum[2], probe_window_max[2], probe_window[2];
+static uint64_t sync_off_cycle;
+static avr_irq_t *sync_pin;
+
+static void sel_pin_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    int bit = (int)(intptr_t)param;
+    if (value & 1) mux_sel |= (uint8_t)(1 << bit);
+    else mux_sel &= (uint8_t)~(1 << bit);
+}
+
+static uint16_t taxel_value(size_t row, int taxel)
+{
+    uint16_t v;
+    pthread_mutex_lock(&wave_lock);
+    if (wave && wave_rows) v = wave[(row % wave_rows) * N_TAXELS + taxel];
+    else v = (uint16_t)((row * 7 + taxel * 53) % (RIGCTL_ADC_MAX + 1)); /* default pattern */
+    pthread_mutex_unlock(&wave_lock);
+    return v;
+}
+
+static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    union {
+        avr_adc_mux_t mux;
+        uint32_t v;
+    } e = {.v = value};
+    if (e.mux.kind != ADC_MUX_SINGLE) return;
+    int src = e.mux.src;
+    if (src > 2) return;
+    if (src == 0 && mux_sel == 0) { /* first conversion of a scan: next row */
+        scan_row = scan_count++;
+    }
+    int taxel = src * 6 + (mux_sel < 6 ? mux_sel : 5);
+    uint32_t counts = taxel_value(scan_row, taxel);
+    /* simavr: counts = mV * 1023 / vref; ceil(counts * vref / 1023) maps back exactly */
+    uint32_t mv = (counts * 5000u + 1022u) / 1023u;
+    avr_raise_irq(adc_irq_base + ADC_IRQ_ADC0 + src, mv);
+}
+
+static void probe_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    int p = (int)(intptr_t)param;
+    if (value & 1) {
+        probe_rise[p] = avr->cycle;
+    } else if (probe_rise[p]) {
+        uint64_t d = avr->cycle - probe_rise[p];
+        uint64_t w = probe_rise[p] / 16000u;
+        probe_total[p] += d;
+        if (w != probe_window[p]) {
+            if (probe_window_sum[p] > probe_window_max[p]) probe_window_max[p] = probe_window_sum[p];
+            probe_window_sum[p] = 0;
+            probe_window[p] = w;
+        }
+        probe_window_sum[p] += d;
+        probe_rise[p] = 0;
+    }
+}
+
+static void uno_setup(void)
+{
+    for (int b = 4; b <= 6; b++)
+        avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), b), sel_pin_hook,
+                                (void *)(intptr_t)(b - 4));
+    adc_irq_base = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, 0);
+    avr_irq_register_notify(adc_irq_base + ADC_IRQ_OUT_TRIGGER, adc_trigger_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 0), probe_hook, (void *)0);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 1), probe_hook, (void *)1);
+    sync_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
+    avr_raise_irq(sync_pin, 0);
+}
+
+static void uno_poll(void)
+{
+    static uint64_t next_report = 16000000u;
+    if (atomic_load(&sync_requests) > 0 && !sync_off_cycle) {
+        atomic_fetch_sub(&sync_requests, 1);
+        avr_raise_irq(sync_pin, 1);
+        sync_off_cycle = avr->cycle + 16000u;
+    }
+    if (sync_off_cycle && avr->cycle >= sync_off_cycle) {
+        avr_raise_irq(sync_pin, 0);
+        sync_off_cycle = 0;
+    }
+    if (avr->cycle >= next_report) {
+        double ticks = (double)avr->cycle / 16000.0;
+        printf("ISR t=%.3f sampler_cycles_per_tick=%.1f sampler_max_per_tick=%llu tx_cycles_per_tick=%.1f "
+               "tx_max_per_tick=%llu scans=%llu\n",
+               sim_s(), probe_total[0] / ticks, (unsigned long long)probe_window_max[0], probe_total[1] / ticks,
+               (unsigned long long)probe_window_max[1], (unsigned long long)scan_count);
+        next_report += 16000000u;
+    }
+}
+
+/* ================================ Mega: HX711, actuator, drum ================================ */
+static int64_t act_steps;     /* actuator position in microsteps, + towards the sensor */
+static int act_dir;
+static int64_t drum_steps;
+static int drum_dir;
+static uint32_t index_count;
+static avr_irq_t *hx_dout, *home_pin;
+static int hx_ready, hx_bit;
+static uint32_t hx_value;
+static uint64_t hx_next_cycle;
+
+static double mega_force_g(void)
+{
+    double x = (double)act_steps / opt_act_steps_per_mm;
+    double f = x > opt_contact_mm ? opt_spring_k * (x - opt_contact_mm) : 0.0;
+    return f + atomic_load(&bump_g_x1000) / 1000.0;
+}
+
+static void update_home(void)
+{
+    avr_raise_irq(home_pin, act_steps <= 0 ? 0 : 1);
+}
+
+static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value & 1) {
+        act_steps += act_dir ? 1 : -1;
+        update_home();
+    }
+}
+
+static void act_dir_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    act_dir = value & 1;
+}
+
+static void drum_step_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value & 1) drum_steps += drum_dir ? 1 : -1;
+}
+
+static void drum_dir_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    drum_dir = value & 1;
+}
+
+static void index_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value & 1) {
+        index_count++;
+        printf("IDX t=%.6f n=%u drum_steps=%lld\n", sim_s(), index_count, (long long)drum_steps);
+    }
+}
+
+static void hx_sck_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (!(value & 1) || !hx_ready) return; /* shift on rising edges while a reading is out */
+    if (hx_bit < 24) {
+        avr_raise_irq(hx_dout, (hx_value >> (23 - hx_bit)) & 1);
+        hx_bit++;
+    } else { /* 25th clock: gain 128, DOUT high until the next conversion */
+        avr_raise_irq(hx_dout, 1);
+        hx_ready = 0;
+        hx_bit = 0;
+    }
+}
+
+static void mega_setup(void)
+{
+    hx_dout = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 5);
+    home_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 4);
+    avr_raise_irq(hx_dout, 1);
+    update_home();
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('G'), 5), hx_sck_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 3), act_step_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 3), act_dir_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 5), drum_step_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 4), drum_dir_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 6), index_hook, NULL);
+    hx_next_cycle = 200000u;
+}
+
+static void mega_poll(void)
+{
+    static uint64_t next_tel;
+    if (avr->cycle >= hx_next_cycle) { /* 80 SPS: a new conversion, DOUT low = ready */
+        hx_next_cycle += 200000u;
+        if (!hx_ready) {
+            double f = mega_force_g();
+            long raw = opt_loadcell_offset + lround(f * opt_counts_per_g);
+            if (raw > 0x7FFFFF) raw = 0x7FFFFF;
+            if (raw < -0x800000) raw = -0x800000;
+            hx_value = (uint32_t)raw & 0xFFFFFFu;
+            hx_ready = 1;
+            hx_bit = 0;
+            avr_raise_irq(hx_dout, 0);
+        }
+    }
+    if (avr->cycle >= next_tel) {
+        next_tel = avr->cycle + (uint64_t)(opt_tel_ms * 16000.0);
+        printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
+               "index=%u\n",
+               sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps,
+               act_steps / opt_act_steps_per_mm, mega_force_g(), index_count);
+    }
+}
+
+/* ================================ main loop ================================ */
+static void usage(void)
+{
+    fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] "
+                    "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
+                    "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] FIRMWARE.elf\n");
+    exit(2);
+}
+
+int main(int argc, char **argv)
+{
+    const char *board = NULL, *fw = NULL, *wave_path = NULL;
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+#define NEXT() (i + 1 < argc ? argv[++i] : (usage(), ""))
+        if (!strcmp(a, "--board")) board = NEXT();
+        else if (!strcmp(a, "--no-pace")) opt_pace = 0;
+        else if (!strcmp(a, "--reset-on-open")) opt_reset_on_open = 1;
+        else if (!strcmp(a, "--boot-ms")) opt_boot_ms = atof(NEXT());
+        else if (!strcmp(a, "--wave")) wave_path = NEXT();
+        else if (!strcmp(a, "--spring-k")) opt_spring_k = atof(NEXT());
+        else if (!strcmp(a, "--contact-mm")) opt_contact_mm = atof(NEXT());
+        else if (!strcmp(a, "--act-steps-per-mm")) opt_act_steps_per_mm = atof(NEXT());
+        else if (!strcmp(a, "--counts-per-g")) opt_counts_per_g = atof(NEXT());
+        else if (!strcmp(a, "--loadcell-offset")) opt_loadcell_offset = atol(NEXT());
+        else if (!strcmp(a, "--tel-ms")) opt_tel_ms = atof(NEXT());
+        else if (!strcmp(a, "--max-seconds")) opt_max_seconds = atof(NEXT());
+        else if (a[0] == '-') usage();
+        else fw = a;
+    }
+    if (!board || !fw) usage();
+    is_uno = !strcmp(board, "uno");
+    if (!is_uno && strcmp(board, "mega")) usage();
+
+    prctl(PR_SET_PDEATHSIG, SIGTERM);
+    if (getppid() == 1) return 1;
+    setvbuf(stdout, NULL, _IOLBF, 0);
+
+    elf_firmware_t f;
+    memset(&f, 0, sizeof f);
+    if (elf_read_firmware(fw, &f)) {
+        fprintf(stderr, "cannot read %s\n", fw);
+        return 1;
+    }
+    avr = avr_make_mcu_by_name(is_uno ? "atmega328p" : "atmega2560");
+    if (!avr) {
+        fprintf(stderr, "no simavr core\n");
+        return 1;
+    }
+    avr_init(avr);
+    avr->frequency = 16000000;
+    avr->vcc = avr->avcc = avr->aref = 5000;
+    avr_load_firmware(avr, &f);
+    avr->frequency = 16000000;
+    avr->log = LOG_ERROR;
+
+    if (wave_path && load_wave(wave_path)) {
+        fprintf(stderr, "cannot read waveform %s\n", wave_path);
+        return 1;
+    }
+    if (is_uno) uno_setup();
+    else mega_setup();
+
+    uart_pty_init(avr, &uart_pty);
+    uart_pty_connect(&uart_pty, '0');
+    {
+        /* the firmware may poll UCSR0A (text replies): no usleep per poll, which would stall the clock */
+        uint32_t flags = 0;
+        avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
+        flags &= ~AVR_UART_FLAG_POOL_SLEEP;
+        avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    }
+    const char *pty = uart_pty.port[0].slavename;
+    int ino = -1;
+    if (opt_reset_on_open) {
+        ino = inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+        if (ino < 0 || inotify_add_watch(ino, pty, IN_OPEN) < 0) {
+            fprintf(stderr, "inotify on %s: %s\n", pty, strerror(errno));
+            return 1;
+        }
+    }
+    printf("PTY %s\n", pty);
+
+    pthread_t th;
+    pthread_create(&th, NULL, stdin_thread, NULL);
+
+    double wall0 = now_s();
+    uint64_t cycle0 = avr->cycle;
+    double hold_until = 0.0; /* in reset (bootloader wait) until this wall time */
+    uint64_t next_check = 0;
+    for (;;) {
+        if (hold_until > 0.0) {
+            struct timespec ts = {0, 1000000};
+            nanosleep(&ts, NULL);
+            if (now_s() >= hold_until) {
+                hold_until = 0.0;
+                avr_reset(avr);
+                if (is_uno) {
+                    scan_count = 0;
+                    avr_raise_irq(sync_pin, 0);
+                }
+                wall0 = now_s();
+                cycle0 = avr->cycle;
+            }
+            if (atomic_load(&quit_requested)) break;
+            continue;
+        }
+        int state = avr_run(avr);
+        if (state == cpu_Done || state == cpu_Crashed) {
+            fprintf(stderr, "simavr core stopped (state %d)\n", state);
+            break;
+        }
+        if (avr->cycle < next_check) continue;
+        next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
+        if (is_uno) uno_poll();
+        else mega_poll();
+        if (atomic_load(&quit_requested)) break;
+        if (opt_max_seconds > 0 && sim_s() >= opt_max_seconds) break;
+        if (ino >= 0) {
+            char buf[4096];
+            ssize_t n = read(ino, buf, sizeof buf);
+            if (n > 0) { /* a host opened the port: DTR reset, bootloader wait */
+                hold_until = now_s() + opt_boot_ms * 1e-3;
+                printf("RESET t=%.6f\n", sim_s());
+                continue;
+            }
+        }
+        if (opt_pace) {
+            double ahead = (double)(avr->cycle - cycle0) / avr->frequency - (now_s() - wall0);
+            if (ahead > 0.001) {
+                struct timespec ts = {0, (long)(ahead * 1e9)};
+                nanosleep(&ts, NULL);
+            } else if (ahead < -0.25) { /* fell far behind (slow host): do not try to catch up in a burst */
+                wall0 = now_s();
+                cycle0 = avr->cycle;
+            }
+        }
+    }
+    printf("EXIT t=%.6f\n", sim_s());
+    fflush(stdout);
+    _exit(0); /* uart_pty_stop() can hang: the process exit tears its thread down */
+}

@@ -1,0 +1,19 @@
+/* uno_pins.h - Uno (ATmega328P) wiring of the taxel streamer; docs/firmware.md has the drawing. */
+#ifndef UNO_PINS_H
+#define UNO_PINS_H
+/* mux select lines S0, S1, S2 of all three 74HC4051 = D4, D5, D6 = PORTD bits 4..6 (written in one store) */
+#define UNO_SEL_PORT      PORTD
+#define UNO_SEL_DDR       DDRD
+#define UNO_SEL_SHIFT     4
+#define UNO_SEL_MASK      (0x07 << UNO_SEL_SHIFT)
+/* mux outputs (COM) -> A0, A1, A2 (ADC channels 0..2); A3-A5 unused */
+/* sync-in from the Mega's index output -> D2 = INT0, rising edge */
+/* timing probes for the simavr harness and a scope: D8 (PB0) high while a sampler ISR runs,
+ * D9 (PB1) high while the UART transmit ISR runs */
+#define UNO_PROBE_PORT    PORTB
+#define UNO_PROBE_DDR     DDRB
+#define UNO_PROBE_SAMPLER 0
+#define UNO_PROBE_TX      1
+/* ADC clock prescaler 32: 500 kHz ADC clock, 13 ADC clocks = 26 us per conversion, 18 conversions ~ 0.47 ms */
+#define UNO_ADC_PRESCALER_BITS ((1 << ADPS2) | (1 << ADPS0))
+#endif
