@@ -17,9 +17,11 @@ trial gets the time ``n / fs`` seconds (trial start = 0). Initial state: ``v = c
 
 Numerics: the state (v, u) is float64; the input may be float32, float64 or raw integer ADC counts (an affine
 normalisation ``(x - offset) * scale`` is applied in the kernel, so raw ``uint16`` sessions need no float copy). The
-kernel (numba) loops time-outer, channels innermost over a contiguous channel axis (vectorised with SIMD; the spike
-reset is branch-free), and runs trials in parallel (``prange``). Batch and :class:`StreamingEncoder` call the same
-kernel on the same values, so they give identical spikes.
+kernel (numba) runs blocks of 8 trials in parallel (``prange``); inside a block, time is the outer loop and the
+8 x n_channels lanes (trial-major, channel-minor, contiguous) are the SIMD axis, with a branch-free spike reset
+(18 channels alone would leave most of a 512-bit vector idle). Trials are sorted by length so a block's trials
+end together. No FMA contraction or reassociation is allowed, so every lane does the same IEEE operations:
+batch mode, :class:`StreamingEncoder` and a plain per-sample Python loop give the same spikes.
 """
 
 from __future__ import annotations
@@ -70,47 +72,90 @@ TONIC_SPIKING = IzhikevichParams()
 
 
 # ---------------------------------------------------------------------------------------------------------- kernel
-@numba.njit(fastmath=True, inline="always", cache=True)
-def _izh_step(vv, uu, cnt, rn, write, xn, offset, g, a, b, c, d, v_peak):  # pragma: no cover
-    """One 1 ms step of eqs. (3)-(5) for every channel (contiguous, SIMD): two 0.5 ms half-steps of v, then u
-    from the new v, then the branch-free spike reset."""
-    for ch in range(vv.size):
-        i_in = (xn[ch] - offset[ch]) * g[ch]
-        v0 = vv[ch]
-        u0 = uu[ch]
+#: no FMA contraction or reassociation: every lane computes exactly the same IEEE operations, so batch, streaming
+#: and a plain Python loop agree bit for bit, whatever lane a channel lands in.
+_FASTMATH = {"nnan", "ninf", "nsz"}
+#: trials interleaved per SIMD block: K trials x n_channels lanes (18 channels -> 144 lanes)
+BLOCK_TRIALS = 8
+
+
+@numba.njit(fastmath=_FASTMATH, inline="always", cache=True)
+def _izh_step(vv, uu, sb, xb, g, a, b, c, d, v_peak):  # pragma: no cover
+    """One 1 ms step of eqs. (3)-(5) on every lane (contiguous, SIMD): two 0.5 ms half-steps of v, then u from
+    the new v, then the branch-free spike reset; ``sb`` gets 1 where a lane spiked."""
+    for j in range(vv.size):
+        i_in = xb[j] * g[j]
+        v0 = vv[j]
+        u0 = uu[j]
         v1 = v0 + 0.5 * (0.04 * v0 * v0 + 5.0 * v0 + 140.0 - u0 + i_in)
         v2 = v1 + 0.5 * (0.04 * v1 * v1 + 5.0 * v1 + 140.0 - u0 + i_in)
         u1 = u0 + a * (b * v2 - u0)
         s = v2 >= v_peak
-        vv[ch] = c if s else v2
-        uu[ch] = u1 + d if s else u1
-        cnt[ch] += s
-        if write:
-            rn[ch] = s
+        vv[j] = c if s else v2
+        uu[j] = u1 + d if s else u1
+        sb[j] = s
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, nogil=True)
-def _izh_kernel(x, starts, offset, gain, v, u, counts, raster, active, a, b, c, d, v_peak):  # pragma: no cover
-    """x (N, C) input; starts (T+1,) row starts of trials; gain (T, C) = k * scale * coeff; offset (C,);
-    v, u (T, C) float64 state (in/out); counts (T, C) int64 (added to); raster (N, C) uint8 or (0, C) to skip;
-    active (T,) bool (inactive trials skipped). Time-outer per trial, channels innermost, trials in parallel."""
-    n_trials = starts.shape[0] - 1
+@numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)
+def _izh_kernel(x, starts, order, offset, gain, v, u, counts, raster, block, a, b, c, d, v_peak):  # pragma: no cover
+    """Run eqs. (3)-(5) over trials.
+
+    x (N, C) input rows; starts (T+1,) row starts of trials; order (M,) the trials to run (sorted by length, so
+    a block's trials end together); offset (C,); gain (T, C) = k * scale * coeff; v, u (T, C) float64 state
+    (in/out); counts (T, C) int64 (added to); raster (N, C) uint8 or (0, C) to skip; block = trials per SIMD
+    block. Blocks of ``block`` trials run in parallel (prange); inside a block, time is the outer loop and the
+    ``block * C`` lanes (trial-major, channel-minor) are the contiguous SIMD axis.
+    """
     n_ch = x.shape[1]
+    n_run = order.shape[0]
+    n_blocks = (n_run + block - 1) // block
     write = raster.shape[0] > 0
-    for t in numba.prange(n_trials):
-        if not active[t]:
-            continue
-        vv = v[t].copy()
-        uu = u[t].copy()
-        g = gain[t].copy()
-        off = offset.copy()
-        cnt = np.zeros(n_ch, dtype=np.int64)
-        for n in range(starts[t], starts[t + 1]):
-            _izh_step(vv, uu, cnt, raster[n] if write else raster[0:0].reshape(-1), write, x[n], off, g,
-                      a, b, c, d, v_peak)
-        v[t] = vv
-        u[t] = uu
-        counts[t] += cnt
+    for bi in numba.prange(n_blocks):
+        i0 = bi * block
+        m = min(n_run, i0 + block) - i0
+        n_lanes = m * n_ch
+        vv = np.empty(n_lanes)
+        uu = np.empty(n_lanes)
+        g = np.empty(n_lanes)
+        xb = np.empty(n_lanes)
+        sb = np.zeros(n_lanes, dtype=np.uint8)
+        cnt = np.zeros(n_lanes, dtype=np.int64)
+        n_max = 0
+        for k in range(m):
+            t = order[i0 + k]
+            n_max = max(n_max, starts[t + 1] - starts[t])
+            for ch in range(n_ch):
+                vv[k * n_ch + ch] = v[t, ch]
+                uu[k * n_ch + ch] = u[t, ch]
+                g[k * n_ch + ch] = gain[t, ch]
+        for n in range(n_max):
+            for k in range(m):
+                t = order[i0 + k]
+                row = starts[t] + n
+                if row < starts[t + 1]:
+                    for ch in range(n_ch):
+                        xb[k * n_ch + ch] = x[row, ch] - offset[ch]
+                else:  # trial over: keep the lanes running on 0 input, their output is not used
+                    for ch in range(n_ch):
+                        xb[k * n_ch + ch] = 0.0
+            _izh_step(vv, uu, sb, xb, g, a, b, c, d, v_peak)
+            for k in range(m):
+                t = order[i0 + k]
+                row = starts[t] + n
+                if row < starts[t + 1]:
+                    for ch in range(n_ch):
+                        cnt[k * n_ch + ch] += sb[k * n_ch + ch]
+                    if write:
+                        for ch in range(n_ch):
+                            raster[row, ch] = sb[k * n_ch + ch]
+                    if row == starts[t + 1] - 1:  # last sample: this is the trial's final state
+                        for ch in range(n_ch):
+                            v[t, ch] = vv[k * n_ch + ch]
+                            u[t, ch] = uu[k * n_ch + ch]
+        for k in range(m):
+            t = order[i0 + k]
+            for ch in range(n_ch):
+                counts[t, ch] += cnt[k * n_ch + ch]
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -204,7 +249,8 @@ def _kernel_dtype(x: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------------------- batch
 def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, params: IzhikevichParams = TONIC_SPIKING,
-                   state=None, active=None, want_raster: bool = True):
+                   state=None, active=None, want_raster: bool = True,
+                   block: int = BLOCK_TRIALS):
     """Run eqs. (3)-(5) on every channel of every trial: the low-level entry point.
 
     Parameters
@@ -216,6 +262,7 @@ def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, param
     state : optional ``(v, u)`` (n_trials, n_channels) float64 arrays, updated in place (streaming).
     active : optional (n_trials,) bool; inactive trials are skipped (their counts are 0).
     want_raster : also return the (n_total_samples, n_channels) uint8 spike raster.
+    block : trials interleaved per SIMD block (default 8: 144 lanes for 18 taxels).
 
     Returns
     -------
@@ -239,11 +286,14 @@ def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, param
         v, u = state
         if v.shape != (n_trials, n_ch) or u.shape != (n_trials, n_ch):
             raise ValueError(f"state must be two ({n_trials}, {n_ch}) arrays")
-    act = np.ones(n_trials, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
+    act = np.ones(n_trials, dtype=np.bool_) if active is None else np.asarray(active, dtype=np.bool_)
+    lengths = rg.lengths
+    order = np.flatnonzero(act & (lengths > 0))
+    order = order[np.argsort(lengths[order], kind="stable")]
     counts = np.zeros((n_trials, n_ch), dtype=np.int64)
     raster = np.zeros((x.shape[0] if want_raster else 0, n_ch), dtype=np.uint8)
-    _izh_kernel(x, rg.starts, offset, g, v, u, counts, raster, act, params.a, params.b, params.c, params.d,
-                params.v_peak)
+    _izh_kernel(x, rg.starts, order, offset, g, v, u, counts, raster, int(block), params.a, params.b, params.c,
+                params.d, params.v_peak)
     return counts, (raster if want_raster else None), (v, u)
 
 
