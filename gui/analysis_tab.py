@@ -1,20 +1,551 @@
-"""placeholder"""
-from PySide6 import QtWidgets
+"""Offline analysis tab: open a session or encoded file, browse its trials (raw traces and SA/RA rasters of any
+trial), encode and run the paper's analyses in a background process with progress and cancel
+(:mod:`rigctl.encoding.pipeline`, :mod:`rigctl.analysis`), plot accuracy vs PCs with error bars for the four
+variants (Fig. 3), the Table 1 grid and confusion matrices; export figures (PNG/SVG) and tables (CSV); train the
+texture classifier used by the real-time classification view."""
+
+from __future__ import annotations
+
+import os
+
+import h5py
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtWidgets
+
+from gui.workers import Job, ProcessJob
+from rigctl.devices.wire import N_TAXELS
+
+#: Fig. 3 / report colours per variant
+VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
+                   "speed_force_scaled": "#2ca02c"}
+
+
+def file_kind(path: str) -> str:
+    """"encoded" (has /features), "session" (has /plan), or "unknown"."""
+    from rigctl.analysis.data import is_encoded_file
+
+    if is_encoded_file(path):
+        return "encoded"
+    with h5py.File(path, "r") as f:
+        return "session" if "plan" in f else "unknown"
 
 
 class AnalysisTab(QtWidgets.QWidget):
+    """The offline analysis tab; ``main`` is the :class:`gui.app.MainWindow`."""
+
     def __init__(self, main, parent=None):
         super().__init__(parent)
         self.main = main
+        self.path: str | None = None
+        self.kind: str | None = None
+        self.encoded_path: str | None = None
+        self.results = None
+        self.job = None
+        self._job_kind = ""
+        self._trial_job: Job | None = None
+        self._session_range = None
 
-    def refresh(self):
-        pass
+        # ---------------- left: file, trials, actions ----------------
+        self.open_btn = QtWidgets.QPushButton("Open session / encoded file...")
+        self.open_btn.clicked.connect(self._browse)
+        self.file_label = QtWidgets.QLabel("no file")
+        self.file_label.setWordWrap(True)
+        self.trials = QtWidgets.QTableWidget(0, 5)
+        self.trials.setHorizontalHeaderLabels(["trial", "texture", "speed", "force", "status"])
+        self.trials.verticalHeader().setVisible(False)
+        self.trials.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectRows)
+        self.trials.setSelectionMode(QtWidgets.QAbstractItemView.SingleSelection)
+        self.trials.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        self.trials.itemSelectionChanged.connect(self._trial_selected)
 
-    def rig_config(self):
-        return None
+        self.repeats = QtWidgets.QSpinBox(minimum=1, maximum=100, value=5)
+        self.n_pcs = QtWidgets.QSpinBox(minimum=1, maximum=200, value=50)
+        self.per_texture = QtWidgets.QSpinBox(minimum=2, maximum=5000, value=500)
+        self.do_cv = QtWidgets.QCheckBox("Textures and groups (Fig. 3A-B)")
+        self.do_cv.setChecked(True)
+        self.do_extra = QtWidgets.QCheckBox("Speed/force extrapolation (Fig. 3C-F)")
+        self.do_extra.setChecked(True)
+        opts = QtWidgets.QFormLayout()
+        opts.addRow("Repetitions", self.repeats)
+        opts.addRow("PCs 1..", self.n_pcs)
+        opts.addRow("Trials per texture", self.per_texture)
+        opts.addRow(self.do_cv)
+        opts.addRow(self.do_extra)
+        self.encode_btn = QtWidgets.QPushButton("Encode")
+        self.encode_btn.setToolTip("Encode the session into SA/RA spike trains and features (rigctl encode)")
+        self.encode_btn.clicked.connect(self.encode)
+        self.run_btn = QtWidgets.QPushButton("Run analyses")
+        self.run_btn.clicked.connect(self.run_analyses)
+        self.cancel_btn = QtWidgets.QPushButton("Cancel")
+        self.cancel_btn.clicked.connect(self.cancel)
+        btns = QtWidgets.QHBoxLayout()
+        for b in (self.encode_btn, self.run_btn, self.cancel_btn):
+            btns.addWidget(b)
+        self.progress = QtWidgets.QProgressBar()
+        self.status = QtWidgets.QLabel("")
+        self.status.setObjectName("analysis_status")
+        self.status.setWordWrap(True)
 
-    def taxel_range(self):
-        return None
+        self.model_variant = QtWidgets.QComboBox()
+        self.model_variant.addItems(["speed_scaled", "original", "realtime_speed_scaled", "realtime_original"])
+        self.model_pcs = QtWidgets.QSpinBox(minimum=1, maximum=200, value=25)
+        self.train_btn = QtWidgets.QPushButton("Train model for the real-time view")
+        self.train_btn.clicked.connect(self.train_model)
+        mf = QtWidgets.QFormLayout()
+        mf.addRow("Features", self.model_variant)
+        mf.addRow("PCs", self.model_pcs)
+        mf.addRow(self.train_btn)
+        model_box = QtWidgets.QGroupBox("Texture classifier (PCA + LDA)")
+        model_box.setLayout(mf)
 
-    def on_trial(self, planned, data):
-        pass
+        self.export_png = QtWidgets.QPushButton("Figure PNG...")
+        self.export_svg = QtWidgets.QPushButton("Figure SVG...")
+        self.export_csv = QtWidgets.QPushButton("Tables CSV...")
+        self.export_png.clicked.connect(lambda: self.export_figure("png"))
+        self.export_svg.clicked.connect(lambda: self.export_figure("svg"))
+        self.export_csv.clicked.connect(self._export_csv_dialog)
+        ex = QtWidgets.QHBoxLayout()
+        for b in (self.export_png, self.export_svg, self.export_csv):
+            ex.addWidget(b)
+
+        left = QtWidgets.QVBoxLayout()
+        left.addWidget(self.open_btn)
+        left.addWidget(self.file_label)
+        left.addWidget(self.trials, 1)
+        og = QtWidgets.QGroupBox("Analyses")
+        ol = QtWidgets.QVBoxLayout(og)
+        ol.addLayout(opts)
+        ol.addLayout(btns)
+        ol.addWidget(self.progress)
+        ol.addWidget(self.status)
+        left.addWidget(og)
+        left.addWidget(model_box)
+        left.addLayout(ex)
+        leftw = QtWidgets.QWidget()
+        leftw.setLayout(left)
+        leftw.setMaximumWidth(420)
+
+        # ---------------- right: views ----------------
+        self.views = QtWidgets.QTabWidget()
+        # trial view
+        self.trial_gl = pg.GraphicsLayoutWidget()
+        self.trial_plot = self.trial_gl.addPlot(row=0, col=0, title="Raw taxel readings")
+        self.trial_plot.setLabel("left", "ADC counts")
+        self.trial_curves = [self.trial_plot.plot(pen=pg.mkPen(pg.intColor(k, N_TAXELS), width=1))
+                             for k in range(N_TAXELS)]
+        self.trial_rasters = {}
+        for row, (key, title, colour) in enumerate([("sa", "SA spikes", "#1f77b4"), ("ra", "RA spikes", "#d62728")],
+                                                   start=1):
+            p = self.trial_gl.addPlot(row=row, col=0, title=title)
+            p.setLabel("left", "taxel")
+            p.setYRange(-0.5, N_TAXELS - 0.5, padding=0)
+            c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), connect="pairs")
+            p.addItem(c)
+            self.trial_rasters[key] = (p, c)
+        self.trial_rasters["ra"][0].setLabel("bottom", "time in trial (s)")
+        self.views.addTab(self.trial_gl, "Trial")
+        # accuracy vs PCs
+        accw = QtWidgets.QWidget()
+        al = QtWidgets.QVBoxLayout(accw)
+        self.task_combo = QtWidgets.QComboBox()
+        self.task_combo.currentIndexChanged.connect(self._draw_curves)
+        al.addWidget(self.task_combo)
+        self.acc_plot = pg.PlotWidget(title="Accuracy vs number of PCs (mean +- sd over repetitions)")
+        self.acc_plot.setLabel("left", "accuracy (%)")
+        self.acc_plot.setLabel("bottom", "number of PCs")
+        self.acc_plot.showGrid(x=True, y=True, alpha=0.3)
+        self.acc_plot.addLegend(offset=(-10, -10))
+        al.addWidget(self.acc_plot, 1)
+        self.views.addTab(accw, "Accuracy vs PCs (Fig. 3)")
+        # Table 1
+        tw = QtWidgets.QWidget()
+        tl = QtWidgets.QVBoxLayout(tw)
+        self.table_pcs = QtWidgets.QSpinBox(minimum=1, maximum=200, value=50)
+        self.table_pcs.valueChanged.connect(self._fill_table)
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(QtWidgets.QLabel("Accuracy (%) at PCs"))
+        row.addWidget(self.table_pcs)
+        row.addStretch(1)
+        tl.addLayout(row)
+        self.table1 = QtWidgets.QTableWidget(0, 0)
+        self.table1.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        tl.addWidget(self.table1, 1)
+        self.warn_label = QtWidgets.QLabel("")
+        self.warn_label.setWordWrap(True)
+        tl.addWidget(self.warn_label)
+        self.views.addTab(tw, "Table 1")
+        # confusion
+        cw = QtWidgets.QWidget()
+        cl = QtWidgets.QVBoxLayout(cw)
+        crow = QtWidgets.QHBoxLayout()
+        self.conf_task = QtWidgets.QComboBox()
+        self.conf_variant = QtWidgets.QComboBox()
+        self.conf_task.currentIndexChanged.connect(self._draw_confusion)
+        self.conf_variant.currentIndexChanged.connect(self._draw_confusion)
+        crow.addWidget(self.conf_task)
+        crow.addWidget(self.conf_variant)
+        cl.addLayout(crow)
+        self.conf_plot = pg.PlotWidget(title="Confusion matrix (rows: true, columns: predicted; row-normalised)")
+        self.conf_plot.setAspectLocked(True)
+        self.conf_plot.invertY(True)
+        self.conf_img = pg.ImageItem(axisOrder="row-major")
+        self.conf_img.setLookupTable(pg.colormap.get("viridis").getLookupTable(nPts=256))
+        self.conf_plot.addItem(self.conf_img)
+        cl.addWidget(self.conf_plot, 1)
+        self.views.addTab(cw, "Confusion")
+
+        lay = QtWidgets.QHBoxLayout(self)
+        lay.addWidget(leftw)
+        lay.addWidget(self.views, 1)
+        self._update_buttons()
+
+    # ------------------------------------------------------------------------------------------------------
+    # file and trials
+    # ------------------------------------------------------------------------------------------------------
+    def _browse(self) -> None:
+        start = str(self.main.settings.value("dirs/analysis", self.main.settings.value("dirs/output", "")))
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open", start, "HDF5 (*.h5 *.hdf5)")
+        if path:
+            self.open(path)
+
+    def open(self, path: str) -> None:
+        """Show a session or encoded file's trials."""
+        try:
+            kind = file_kind(path)
+        except Exception as exc:  # noqa: BLE001
+            self.status.setText(f"<span style='color:#c00'>cannot open {path}: {exc}</span>")
+            return
+        if kind == "unknown":
+            self.status.setText(f"<span style='color:#c00'>{path} is neither a session nor an encoded file</span>")
+            return
+        self.main.settings.setValue("dirs/analysis", os.path.dirname(path))
+        self.path, self.kind = path, kind
+        self.encoded_path = path if kind == "encoded" else None
+        self._session_range = None
+        rows = self._trial_rows()
+        self.trials.setRowCount(len(rows))
+        for r, vals in enumerate(rows):
+            for c, v in enumerate(vals):
+                self.trials.setItem(r, c, QtWidgets.QTableWidgetItem(str(v)))
+        self.trials.resizeColumnsToContents()
+        self.file_label.setText(f"<b>{os.path.basename(path)}</b> ({kind}, {len(rows)} trials)")
+        self.status.setText("select a trial to see it; Encode / Run analyses for the paper's results")
+        self._update_buttons()
+
+    def _trial_rows(self) -> list[tuple]:
+        if self.kind == "session":
+            from rigctl.storage.session import TrialStatus, open_session
+
+            with open_session(self.path) as s:
+                plan = s.plan
+                return [(int(r["trial_id"]), _txt(r["texture"]), f"{float(r['speed_mm_s']):g}",
+                         f"{float(r['force_g']):g}", TrialStatus(int(r["status"])).name.lower()) for r in plan]
+        from rigctl.analysis.data import load_features
+
+        with h5py.File(self.path, "r") as f:
+            variant = next(iter(f["features"].keys()))
+        fs = load_features(self.path, [variant])
+        return [(int(fs.trial_id[i]), fs.texture[i], f"{fs.speed_mm_s[i]:g}", f"{fs.force_g[i]:g}", "encoded")
+                for i in range(fs.n_trials)]
+
+    def _trial_selected(self) -> None:
+        rows = self.trials.selectionModel().selectedRows()
+        if rows:
+            self.show_trial(rows[0].row())
+
+    def show_trial(self, row: int) -> None:
+        """Draw trial ``row`` of the table: raw readings (session) and SA/RA rasters (encoded in a thread for a
+        session file, read from ``/spikes`` for an encoded file)."""
+        if self.path is None or (self._trial_job is not None and not self._trial_job.done):
+            return
+        path, kind = self.path, self.kind
+        tid = int(self.trials.item(row, 0).text())
+
+        def work(job):
+            import numpy as np
+
+            if kind == "session":
+                from rigctl.encoding.izhikevich import encode_ra, encode_sa
+                from rigctl.encoding.normalise import TaxelRange
+                from rigctl.storage.session import open_session
+
+                with open_session(path) as s:
+                    trial = s.trial(tid)
+                    rng = self._session_range
+                    if rng is None:  # the session's per-taxel range (paper: over the whole dataset)
+                        rng = TaxelRange()
+                        for t in s.iter_trials():
+                            rng.update(t.taxels)
+                        self._session_range = rng
+                x = trial.taxels
+                sa = encode_sa(x[None], normalise=rng)
+                ra = encode_ra(x[None], normalise=rng)
+                return x, [(sa.train(0, k)) for k in range(N_TAXELS)], [ra.train(0, k) for k in range(N_TAXELS)]
+            from rigctl.encoding.spikes import SpikeTrains
+
+            with h5py.File(path, "r") as f:
+                ids = f["trials"]["trial_id"][()] if "trial_id" in f["trials"].dtype.names else None
+                i = int(np.flatnonzero(ids == tid)[0]) if ids is not None else row
+                grp = f["spikes"]
+                name = "original" if "original" in grp else next(iter(grp.keys()))
+                st = SpikeTrains.from_hdf5(grp[name])
+            n_tr = st.n_trains
+            half = n_tr // 2
+            return None, [st.train(i, k) for k in range(half)], [st.train(i, half + k) for k in range(half)]
+
+        self._trial_job = Job(work, name="trial")
+        self._trial_job.tid = tid
+        self._trial_job.start()
+        self.views.setCurrentIndex(0)
+
+    def _draw_trial(self, job: Job) -> None:
+        if job.error:
+            self.status.setText(f"<span style='color:#c00'>trial {job.tid}: {job.error}</span>")
+            return
+        x, sa, ra = job.result
+        if x is not None:
+            t = np.arange(len(x)) / 1000.0
+            for k, c in enumerate(self.trial_curves):
+                c.setData(t, x[:, k])
+        else:
+            for c in self.trial_curves:
+                c.setData([], [])
+        for key, trains in (("sa", sa), ("ra", ra)):
+            ts = np.concatenate(trains) if trains else np.zeros(0)
+            ch = np.concatenate([np.full(len(v), k, float) for k, v in enumerate(trains)]) if trains else ts
+            seg = np.empty((2 * len(ts), 2))
+            seg[0::2, 0] = seg[1::2, 0] = ts
+            seg[0::2, 1] = ch - 0.4
+            seg[1::2, 1] = ch + 0.4
+            self.trial_rasters[key][1].setData(seg[:, 0], seg[:, 1], connect="pairs")
+        self.trial_plot.setTitle(f"Trial {job.tid}: raw taxel readings"
+                                 + ("" if x is not None else " (not in an encoded file)"))
+        n_sa, n_ra = sum(len(v) for v in sa), sum(len(v) for v in ra)
+        self.status.setText(f"trial {job.tid}: {n_sa} SA and {n_ra} RA spikes")
+
+    # ------------------------------------------------------------------------------------------------------
+    # background work
+    # ------------------------------------------------------------------------------------------------------
+    def _busy(self) -> bool:
+        return self.job is not None and not self.job.done
+
+    def encode(self) -> None:
+        from gui.analysis_jobs import encoded_path_for
+
+        if self.kind != "session" or self._busy():
+            return
+        out = encoded_path_for(self.path)
+        self._start(ProcessJob("gui.analysis_jobs:encode", session_path=self.path, out_path=out), "encoding")
+
+    def run_analyses(self) -> None:
+        if self.path is None or self._busy():
+            return
+        self._start(ProcessJob("gui.analysis_jobs:analyse", path=self.encoded_path or self.path,
+                               cv=self.do_cv.isChecked(), extrapolation=self.do_extra.isChecked(),
+                               repeats=self.repeats.value(), n_pcs=self.n_pcs.value(),
+                               per_texture=self.per_texture.value()), "analyses")
+
+    def train_model(self) -> None:
+        path = self.encoded_path
+        if path is None or self._busy():
+            self.status.setText("encode the file first (or open an encoded file)")
+            return
+        self._start(ProcessJob("gui.analysis_jobs:train_classifier", path=path,
+                               variant=self.model_variant.currentText(), n_pcs=self.model_pcs.value()), "training")
+
+    def _start(self, job, kind: str) -> None:
+        self.job, self._job_kind = job, kind
+        self.progress.setValue(0)
+        self.status.setText(f"{kind}: starting...")
+        job.start()
+        self._update_buttons()
+
+    def cancel(self) -> None:
+        if self._busy():
+            self.job.cancel()
+            self.status.setText(f"{self._job_kind} cancelled")
+            self.job = None
+        self._update_buttons()
+
+    def refresh(self) -> None:
+        tj = self._trial_job
+        if tj is not None and tj.done:
+            self._trial_job = None
+            self._draw_trial(tj)
+        job = self.job
+        if job is None:
+            return
+        job.poll()
+        self.progress.setValue(int(100 * job.fraction))
+        if not job.done:
+            self.status.setText(f"{self._job_kind}: {job.message}")
+            return
+        self.job = None
+        if job.error:
+            self.status.setText(f"<span style='color:#c00'>{self._job_kind} failed: {job.error}</span>")
+        elif self._job_kind == "encoding":
+            self.encoded_path = job.result
+            self.status.setText(f"encoded into {job.result}")
+        elif self._job_kind == "analyses":
+            self.results, self.encoded_path = job.result
+            self.progress.setValue(100)
+            self.show_results(self.results)
+        elif self._job_kind == "training":
+            clf, lo, hi = job.result
+            self.main.classify.set_model(clf, lo, hi, source=self.encoded_path)
+            self.status.setText(f"trained a {clf.variant} PCA+LDA classifier ({clf.n_pcs} PCs, "
+                                f"{len(clf.classes_)} textures); the real-time view uses it")
+        self._update_buttons()
+
+    def _update_buttons(self) -> None:
+        busy = self._busy()
+        self.encode_btn.setEnabled(not busy and self.kind == "session")
+        self.run_btn.setEnabled(not busy and self.path is not None)
+        self.train_btn.setEnabled(not busy and self.path is not None)
+        self.cancel_btn.setEnabled(busy)
+        for b in (self.export_png, self.export_svg, self.export_csv):
+            b.setEnabled(self.results is not None)
+
+    # ------------------------------------------------------------------------------------------------------
+    # results
+    # ------------------------------------------------------------------------------------------------------
+    def show_results(self, res) -> None:
+        from rigctl.analysis.tasks import TASK_TITLES
+
+        tasks = list(res.curves)
+        for combo in (self.task_combo, self.conf_task):
+            combo.blockSignals(True)
+            combo.clear()
+            for t in tasks:
+                combo.addItem(TASK_TITLES.get(t, t), t)
+            combo.blockSignals(False)
+        variants = sorted({v for by_v in res.curves.values() for v in by_v}, key=_variant_order)
+        self.conf_variant.blockSignals(True)
+        self.conf_variant.clear()
+        self.conf_variant.addItems(variants)
+        self.conf_variant.blockSignals(False)
+        n_max = max(c.acc.shape[1] for by_v in res.curves.values() for c in by_v.values())
+        self.table_pcs.setMaximum(n_max)
+        self.table_pcs.setValue(min(self.table_pcs.value(), n_max))
+        self._draw_curves()
+        self._fill_table()
+        self._draw_confusion()
+        self.warn_label.setText("<br>".join(res.warnings))
+        self.views.setCurrentIndex(1)
+        n = sum(len(v) for v in res.curves.values())
+        self.status.setText(f"analyses done: {len(tasks)} task(s), {n} curves"
+                            + (f"; {len(res.warnings)} note(s) under Table 1" if res.warnings else ""))
+
+    def _draw_curves(self) -> None:
+        from rigctl.analysis.data import VARIANT_TITLES
+        from rigctl.analysis.tasks import TASK_TITLES
+
+        self.acc_plot.clear()
+        legend = self.acc_plot.plotItem.legend
+        if legend is not None:
+            legend.clear()
+        res, task = self.results, self.task_combo.currentData()
+        if res is None or task is None:
+            return
+        for v in sorted(res.curves[task], key=_variant_order):
+            c = res.curves[task][v]
+            colour = VARIANT_COLOURS.get(v, "#888")
+            x, m, s = c.pcs.astype(float), 100 * c.mean, 100 * c.sd
+            self.acc_plot.addItem(pg.ErrorBarItem(x=x, y=m, height=2 * s, pen=pg.mkPen(colour, width=1), beam=0.3))
+            self.acc_plot.plot(x, m, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=4, symbolBrush=colour,
+                               symbolPen=None, name=VARIANT_TITLES.get(v, v))
+        self.acc_plot.setTitle(f"{TASK_TITLES.get(task, task)}: accuracy vs PCs (mean +- sd, "
+                               f"{next(iter(res.curves[task].values())).acc.shape[0]} repetitions)")
+
+    def _fill_table(self) -> None:
+        from rigctl.analysis import report
+        from rigctl.analysis.data import VARIANT_TITLES
+        from rigctl.analysis.tasks import TASK_TITLES
+
+        res = self.results
+        if res is None:
+            return
+        grid = report.table1(res, self.table_pcs.value())
+        variants = sorted({v for row in grid.values() for v in row}, key=_variant_order)
+        self.table1.setRowCount(len(grid))
+        self.table1.setColumnCount(len(variants))
+        self.table1.setHorizontalHeaderLabels([VARIANT_TITLES.get(v, v) for v in variants])
+        self.table1.setVerticalHeaderLabels([TASK_TITLES.get(t, t) for t in grid])
+        for r, (task, row) in enumerate(grid.items()):
+            for c, v in enumerate(variants):
+                if v in row:
+                    mu, sd = row[v]
+                    self.table1.setItem(r, c, QtWidgets.QTableWidgetItem(f"{mu:.1f} +- {sd:.1f}"))
+        self.table1.resizeColumnsToContents()
+
+    def _draw_confusion(self) -> None:
+        res = self.results
+        task, v = self.conf_task.currentData(), self.conf_variant.currentText()
+        if res is None or task is None or v not in res.curves.get(task, {}):
+            self.conf_img.clear()
+            return
+        c = res.curves[task][v]
+        cm = c.confusion.astype(float)
+        cm = cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
+        self.conf_img.setImage(cm, levels=(0, 1))
+        ax = [(i + 0.5, str(lab)) for i, lab in enumerate(c.classes)]
+        self.conf_plot.getAxis("bottom").setTicks([ax])
+        self.conf_plot.getAxis("left").setTicks([ax])
+        self.conf_plot.setTitle(f"Confusion at {c.confusion_pcs} PCs: {task}, {v} (rows true, columns predicted)")
+
+    # ------------------------------------------------------------------------------------------------------
+    # export
+    # ------------------------------------------------------------------------------------------------------
+    def export_figure(self, fmt: str, path: str | None = None) -> str | None:
+        """Save the accuracy-vs-PCs figure as PNG or SVG (pyqtgraph exporters)."""
+        from pyqtgraph.exporters import ImageExporter, SVGExporter
+
+        if path is None:
+            path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export figure", "", f"{fmt.upper()} (*.{fmt})")
+            if not path:
+                return None
+        item = self.acc_plot.plotItem
+        exp = ImageExporter(item) if fmt == "png" else SVGExporter(item)
+        if fmt == "png":
+            exp.parameters()["width"] = 1600
+        exp.export(path)
+        self.status.setText(f"saved {path}")
+        return path
+
+    def _export_csv_dialog(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export tables", "", "CSV (*.csv)")
+        if path:
+            self.export_csv_to(path)
+
+    def export_csv_to(self, path: str) -> list[str]:
+        """Write the curves (long format, :func:`rigctl.analysis.report.to_csv`) to ``path`` and the Table 1 grid
+        to ``<path stem>_table1.csv``; returns both paths."""
+        import csv
+
+        from rigctl.analysis import report
+
+        with open(path, "w", newline="") as f:
+            f.write(report.to_csv(self.results))
+        grid = report.table1(self.results, self.table_pcs.value())
+        tpath = os.path.splitext(path)[0] + "_table1.csv"
+        with open(tpath, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["task", "variant", "n_pcs", "mean_percent", "sd_percent"])
+            for task, row in grid.items():
+                for v, (mu, sd) in row.items():
+                    w.writerow([task, v, self.table_pcs.value(), f"{mu:.3f}", f"{sd:.3f}"])
+        self.status.setText(f"saved {path} and {tpath}")
+        return [path, tpath]
+
+
+def _txt(v) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _variant_order(v: str) -> int:
+    order = ["original", "speed_scaled", "force_scaled", "speed_force_scaled"]
+    return order.index(v) if v in order else len(order)
+
+
+__all__ = ["AnalysisTab", "file_kind", "QtCore"]

@@ -426,3 +426,104 @@ class Job(threading.Thread):
             self.traceback = traceback.format_exc()
         finally:
             self.done = True
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Background process (encoding, analyses): cancellable for real, never holds the GUI's GIL
+# ----------------------------------------------------------------------------------------------------------------
+class _QueueText:
+    """A stderr replacement in the child process: forwards text (tqdm's progress bars) to the parent."""
+
+    def __init__(self, q):
+        self.q = q
+
+    def write(self, text):
+        if text:
+            self.q.put(("text", text))
+        return len(text)
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return False
+
+
+def _process_main(target: str, kwargs: dict, q) -> None:
+    import importlib
+    import sys
+
+    sys.stderr = _QueueText(q)
+    try:
+        module, attr = target.split(":")
+        result = getattr(importlib.import_module(module), attr)(**kwargs)
+    except BaseException as exc:  # noqa: BLE001 - sent to the GUI
+        q.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+    else:
+        q.put(("result", result))
+
+
+class ProcessJob:
+    """Runs ``module:function(**kwargs)`` in a separate process (spawned), so heavy encoding and analyses neither
+    freeze the GUI nor compete for its GIL, and :meth:`cancel` really stops them (terminate).
+
+    Progress: the library's tqdm bars write to stderr; the child forwards that text and :meth:`poll` reads the
+    newest ``desc: ... n/total`` from it. The interface mirrors :class:`Job` (``done``, ``fraction``,
+    ``message``, ``result``, ``error``).
+    """
+
+    _PROGRESS = __import__("re").compile(r"(?:^|\r|\n)\s*([^\r\n:|]*?):?\s*(\d+)%\|[^|]*\|\s*(\d+)/(\d+)")
+
+    def __init__(self, target: str, **kwargs):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self.q = ctx.Queue()
+        self.proc = ctx.Process(target=_process_main, args=(target, kwargs, self.q), daemon=True)
+        self.done = False
+        self.cancelled = False
+        self.fraction = 0.0
+        self.message = "starting a worker process..."
+        self.result = None
+        self.error: str | None = None
+        self.traceback: str | None = None
+        self._text = ""
+
+    def start(self) -> "ProcessJob":
+        self.proc.start()
+        return self
+
+    def cancel(self) -> None:
+        if not self.done:
+            self.cancelled = True
+            self.proc.terminate()
+            self.proc.join(5)
+            self.done = True
+            self.error = "cancelled"
+
+    def poll(self) -> None:
+        """Drain the child's messages (call from the GUI timer)."""
+        alive = self.proc.is_alive()  # before draining: a result sent just before exiting is still read
+        while True:
+            try:
+                item = self.q.get_nowait()
+            except queue.Empty:
+                break
+            if item[0] == "text":
+                self._text = (self._text + item[1])[-400:]
+                m = list(self._PROGRESS.finditer(self._text))
+                if m:
+                    desc, _pct, n, total = m[-1].groups()
+                    self.fraction = int(n) / max(int(total), 1)
+                    self.message = f"{desc.strip() or 'working'}: {n}/{total}"
+            elif item[0] == "result":
+                self.result = item[1]
+                self.done = True
+            elif item[0] == "error":
+                self.error, self.traceback = item[1], item[2]
+                self.done = True
+        if not self.done and not alive and self.proc.exitcode is not None:
+            self.done = True
+            self.error = self.error or f"worker process exited with code {self.proc.exitcode}"
+        if self.done:
+            self.proc.join(1)

@@ -1,0 +1,128 @@
+"""Protocol tab on the simulated rig: a short protocol records a session file; pause, resume and abort behave; an
+aborted session is resumed to completion. Calibration tab: the load cell is calibrated with a (simulated) known
+mass and the scale lands in the controller and the rig config."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+from PySide6 import QtCore
+
+from rigctl.devices.wire import HoldingRegister
+from rigctl.storage.session import open_session
+
+PROTOCOL = """
+name = "gui_test"
+description = "GUI test: two textures, short trials"
+textures = ["A", "L"]
+speeds_mm_s = [100]
+forces_g = [300]
+trials_per_condition = {n}
+duration_s = 0.3
+order = "blocked"
+
+[settle]
+force_timeout_s = 10
+speed_timeout_s = 5
+speed_tolerance_mm_s = 3
+"""
+
+
+def _wait(qapp, predicate, timeout_s):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        qapp.processEvents()
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return bool(predicate())
+
+
+def _protocol(tmp_path, n):
+    p = tmp_path / f"gui_test_{n}.toml"
+    p.write_text(PROTOCOL.format(n=n))
+    return str(p)
+
+
+def test_protocol_run_records_a_session_file(window, qapp, qtbot, tmp_path):
+    tab = window.protocol
+    window.tabs.setCurrentWidget(tab)
+    tab.load(_protocol(tmp_path, 1))
+    assert tab.table.rowCount() == 2
+    assert "2 trials" in tab.summary.text() and "textures A, L" in tab.summary.text()
+    out = tmp_path / "run.h5"
+    tab.out_edit.setText(str(out))
+    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
+    assert tab.running
+    assert _wait(qapp, lambda: tab.job is None, 60), tab.status.text()
+    assert "finished: 2/2" in tab.status.text(), tab.status.text()
+    assert [tab.table.item(r, 6).text() for r in range(2)] == ["recorded", "recorded"]
+    with open_session(out) as s:
+        assert s.completed_ids() == [0, 1]
+        tr = s.trial(1)
+        assert tr.taxels.shape == (300, 18)
+        assert s.plan["texture"][1] in (b"L", "L")
+
+
+def test_pause_resume_abort_and_resume_the_session(window, qapp, qtbot, tmp_path):
+    tab = window.protocol
+    tab.load(_protocol(tmp_path, 3))
+    out = tmp_path / "paused.h5"
+    tab.out_edit.setText(str(out))
+    tab.resume_box.setChecked(False)
+    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: len(tab._done_ids) >= 1, 60), tab.status.text()
+    qtbot.mouseClick(tab.pause_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: tab._paused, 30), tab.status.text()
+    assert "PAUSED" in tab.status.text()
+    assert tab.resume_btn.isEnabled() and not tab.pause_btn.isEnabled()
+    done = len(tab._done_ids)
+    _wait(qapp, lambda: False, 1.0)
+    assert len(tab._done_ids) == done  # nothing recorded while paused
+    qtbot.mouseClick(tab.resume_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: len(tab._done_ids) > done, 60), tab.status.text()
+    qtbot.mouseClick(tab.abort_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: tab.job is None, 30), tab.status.text()
+    assert "aborted" in tab.status.text()
+    with open_session(out) as s:
+        n_done = len(s.completed_ids())
+        assert 2 <= n_done < 6
+    # resume the interrupted file: only the missing trials are recorded
+    tab.resume_box.setChecked(True)
+    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: tab.job is None, 90), tab.status.text()
+    assert "finished: 6/6" in tab.status.text(), tab.status.text()
+    with open_session(out) as s:
+        assert s.completed_ids() == list(range(6))
+
+
+def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
+    tab = window.protocol
+    tab.load(_protocol(tmp_path, 3))
+    tab.out_edit.setText(str(tmp_path / "stopped.h5"))
+    tab.resume_box.setChecked(False)
+    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: tab._current is not None, 30)
+    t0 = time.monotonic()
+    qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: tab.job is None, 20), tab.status.text()
+    assert time.monotonic() - t0 < 15
+    assert "aborted" in tab.status.text()
+
+
+def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot, gui_home):
+    tab = window.calibration
+    window.tabs.setCurrentWidget(tab)
+    tab.mass.setValue(200.0)
+    qtbot.mouseClick(tab.loadcell_btn, QtCore.Qt.LeftButton)
+    assert _wait(qapp, lambda: tab.job is None, 60), tab.status.text()
+    assert "counts/g written" in tab.status.text(), tab.status.text()
+    cfg = json.loads(open(os.environ["RIGCTL_CONFIG"]).read())
+    lc = cfg["loadcell"]
+    assert lc["mass_g"] == 200.0
+    assert abs(lc["check_force_g"] - 200.0) < 10
+    reg = window.handle.drum.read_holding(HoldingRegister.LOADCELL_SCALE_X100)
+    assert reg == round(lc["counts_per_g"] * 100)
+    assert "200 g mass" in tab.loadcell_info.text()
