@@ -320,7 +320,7 @@ class TaxelStream:
             ser = self._serial
             try:
                 waiting = ser.in_waiting
-                data = ser.read(max(waiting, 4096) if waiting > 4096 else 4096)
+                data = ser.read(max(waiting, 4096))  # all that is waiting, or wait up to read_timeout_s
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 if self._stop.is_set():
                     break
@@ -396,6 +396,7 @@ class TaxelStream:
         with self._lock:
             self._stats.connected = False
             self._gap_pending = True
+            self._rate.clear()  # the receive rate restarts with the reconnected stream
         log.warning("taxel streamer on %s vanished: %s", self.port, exc)
         if self.on_error is not None:
             try:

@@ -18,6 +18,7 @@ whoever owns the simulation clock calls :meth:`VirtualMega.step` (the rig's phys
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import math
@@ -87,8 +88,10 @@ class VirtualMega:
     ----------
     requests : int
         Valid requests addressed to device 1 so far.
-    writes : list of (function_code, address, values)
-        Every write request that reached the register map, accepted or refused (for tests: "nothing was sent").
+    write_requests : int
+        Write requests that reached the register map, accepted or refused (for tests: "nothing was sent").
+    writes : deque of (function_code, address, values)
+        The last 1000 of them.
     """
 
     def __init__(self, model: RigModel, link=None, *, eeprom_path=None):
@@ -102,7 +105,8 @@ class VirtualMega:
         self.state = DrumState.IDLE
         self.faults = Fault(0)
         self.requests = 0
-        self.writes: list[tuple[int, int, list[int]]] = []
+        self.write_requests = 0
+        self.writes: collections.deque[tuple[int, int, list[int]]] = collections.deque(maxlen=1000)
         self._last_request = time.monotonic()
         self._heartbeat_ms = 0
         self._t_s = 0.0
@@ -259,6 +263,7 @@ class VirtualMega:
 
     def _write(self, func_code: int, address: int, values: list[int]):
         with self._lock:
+            self.write_requests += 1
             self.writes.append((func_code, address, list(values)))
             if func_code not in (6, 16):
                 return ExcCodes.ILLEGAL_FUNCTION
