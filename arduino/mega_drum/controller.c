@@ -56,7 +56,6 @@ static void fault(ctl_t *c, uint16_t bits)
     c->faults |= bits;
     c->state = RIGCTL_STATE_FAULT;
     c->drum_on = 0;
-    c->run_pending = 0;
     c->act_mode = ACT_MODE_RETRACT;
     c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
     force_pi_reset(&c->pi);
@@ -80,12 +79,11 @@ static void engage(ctl_t *c)
 static void start_drum(ctl_t *c)
 {
     c->drum_on = 1;
-    c->run_pending = 0;
     c->run_start_ms = c->now_ms;
     c->state = RIGCTL_STATE_RUNNING;
 }
 
-/* is command `cmd` allowed now? */
+/* is command `cmd` allowed now? (the same rules as rigctl.simulation.virtual_mega) */
 static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
 {
     uint8_t s = c->state;
@@ -96,13 +94,15 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
         return 1;
     case RIGCTL_CMD_RUN:
     case RIGCTL_CMD_PRESS:
-    case RIGCTL_CMD_STOP_DRUM:
         return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING;
+    case RIGCTL_CMD_STOP_DRUM:
+        return force_engaged(c);
     case RIGCTL_CMD_TARE:
-    case RIGCTL_CMD_HOME:
-        return s == RIGCTL_STATE_IDLE;
+    case RIGCTL_CMD_HOME: /* only with the actuator released (no load on the cell) */
+        return s == RIGCTL_STATE_IDLE &&
+               c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G];
     case RIGCTL_CMD_CLEAR_FAULT:
-        return s != RIGCTL_STATE_FAULT || !fault_persists(c);
+        return !fault_persists(c);
     default:
         return 0;
     }
@@ -111,23 +111,15 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
 static void run_command(ctl_t *c, uint16_t cmd)
 {
     switch (cmd) {
-    case RIGCTL_CMD_RUN:
-        if (c->state == RIGCTL_STATE_IDLE) {
-            engage(c);
-            c->run_pending = 1;
-        } else if (c->state == RIGCTL_STATE_SEEKING_FORCE) {
-            c->run_pending = 1;
-        } else {
-            start_drum(c); /* FORCE_SETTLED, or RUNNING: restart the profile */
-        }
+    case RIGCTL_CMD_RUN: /* engages the force loop if needed; the drum starts at once */
+        if (!force_engaged(c)) engage(c);
+        start_drum(c);
         break;
     case RIGCTL_CMD_STOP:
-        if (c->state != RIGCTL_STATE_FAULT) {
-            c->drum_on = 0;
-            c->run_pending = 0;
-            c->act_mode = ACT_MODE_RETRACT;
-            c->state = RIGCTL_STATE_IDLE;
-        }
+        c->drum_on = 0;
+        c->act_mode = ACT_MODE_RETRACT;
+        force_pi_reset(&c->pi);
+        if (c->state != RIGCTL_STATE_FAULT) c->state = RIGCTL_STATE_IDLE;
         break;
     case RIGCTL_CMD_TARE:
         c->tare_pending = 1;
@@ -144,12 +136,9 @@ static void run_command(ctl_t *c, uint16_t cmd)
         if (!force_engaged(c)) engage(c);
         break;
     case RIGCTL_CMD_STOP_DRUM:
-        c->run_pending = 0;
-        if (c->drum_on) {
-            c->drum_on = 0;
-            c->state = RIGCTL_STATE_SEEKING_FORCE;
-            c->on_target = 0;
-        }
+        c->drum_on = 0;
+        c->state = RIGCTL_STATE_SEEKING_FORCE;
+        c->on_target = 0;
         break;
     case RIGCTL_CMD_SAVE_CALIBRATION:
         c->save_calibration = 1;
@@ -225,6 +214,11 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
     }
     if (cmd_written && !command_allowed(c, cmd)) return RIGCTL_MB_EX_ILLEGAL_VALUE;
     cand[RIGCTL_HREG_COMMAND] = RIGCTL_CMD_NONE; /* reads back 0 once accepted */
+    if (cand[RIGCTL_HREG_FORCE_SETPOINT_G] != c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G] &&
+        (c->state == RIGCTL_STATE_SEEKING_FORCE || c->state == RIGCTL_STATE_FORCE_SETTLED)) {
+        c->state = RIGCTL_STATE_SEEKING_FORCE; /* a new setpoint must settle again */
+        c->on_target = 0;
+    }
     for (i = 0; i < RIGCTL_N_HOLDING; i++) c->hreg[i] = cand[i];
     if (cmd_written) run_command(c, cmd);
     return 0;
@@ -313,7 +307,6 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
                 c->state = RIGCTL_STATE_FORCE_SETTLED;
             }
         }
-        if (c->state == RIGCTL_STATE_FORCE_SETTLED && c->run_pending) start_drum(c);
     }
 }
 

@@ -31,7 +31,6 @@ typedef struct {
     uint8_t on_target;
     /* drum */
     uint8_t drum_on;        /* profile active (RUNNING) */
-    uint8_t run_pending;    /* RUN asked while the force was not yet settled */
     float drum_cmd_mm_s;    /* commanded surface speed after the acceleration ramp (output) */
     float drum_actual_mm_s; /* surface speed of the step rate actually loaded (glue) */
     uint16_t speed_target_0p1; /* profile target now */

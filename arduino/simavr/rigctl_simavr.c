@@ -76,6 +76,7 @@ static atomic_int bump_g_x1000;
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
 static uint16_t *wave;     /* n_rows x 18 ADC counts */
 static size_t wave_rows;
+static atomic_int wave_restart; /* a new waveform was loaded: play it from its first row */
 
 static double now_s(void)
 {
@@ -116,6 +117,7 @@ static int load_wave(const char *path)
     uint16_t *old = wave;
     wave = buf;
     wave_rows = size / (2 * N_TAXELS);
+    atomic_store(&wave_restart, 1);
     pthread_mutex_unlock(&wave_lock);
     free(old);
     return 0;
@@ -146,6 +148,7 @@ static void *stdin_thread(void *arg)
 /* ================================ Uno: mux-aware taxel ADC ================================ */
 static uint8_t mux_sel;          /* select lines PD4..PD6 as the pins show them */
 static uint64_t scan_count;
+static uint64_t scan_base;
 static size_t scan_row;
 static avr_irq_t *adc_irq_base;
 static uint64_t probe_rise[2], probe_total[2], probe_window_sum[2], probe_window_max[2], probe_window[2];
@@ -182,7 +185,8 @@ static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
     int src = e.mux.src;
     if (src > 2) return;
     if (src == 0 && mux_sel == 0) { /* first conversion of a scan: next row */
-        scan_row = scan_count++;
+        if (atomic_exchange(&wave_restart, 0)) scan_base = scan_count;
+        scan_row = scan_count++ - scan_base;
     }
     int taxel = src * 6 + (mux_sel < 6 ? mux_sel : 5);
     uint32_t counts = taxel_value(scan_row, taxel);

@@ -1,0 +1,348 @@
+// host_tests.cpp - unit tests of the firmware's pure logic, compiled with the host g++ (make host-tests).
+// Covers: CRC-16/MODBUS, the taxel frame builder and mux scan order, the Modbus RTU request handler, the
+// controller (register checks, commands, states, watchdog, force limit, profiles), the PI force loop in closed
+// loop with a spring plant, and the step-rate math. Prints one line per check group; exits 1 on any failure.
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <vector>
+
+#include "common/crc16.h"
+#include "common/rigctl_wire.h"
+#include "mega_drum/controller.h"
+#include "mega_drum/drum_config.h"
+#include "mega_drum/force_pi.h"
+#include "mega_drum/modbus_slave.h"
+#include "mega_drum/steprate.h"
+#include "uno_taxel/taxel_frame.h"
+
+static int failures = 0, checks = 0;
+#define CHECK(cond)                                                                  \
+    do {                                                                             \
+        checks++;                                                                    \
+        if (!(cond)) {                                                               \
+            failures++;                                                              \
+            std::printf("FAIL %s:%d: %s\n", __FILE__, __LINE__, #cond);              \
+        }                                                                            \
+    } while (0)
+
+static uint16_t crc_bitwise(const uint8_t *d, size_t n)
+{
+    uint16_t crc = 0xFFFF;
+    for (size_t i = 0; i < n; i++) {
+        crc ^= d[i];
+        for (int b = 0; b < 8; b++) crc = (crc & 1) ? (uint16_t)((crc >> 1) ^ 0xA001) : (uint16_t)(crc >> 1);
+    }
+    return crc;
+}
+
+static void test_crc()
+{
+    const uint8_t check[] = {'1', '2', '3', '4', '5', '6', '7', '8', '9'};
+    CHECK(rigctl_crc16(check, 9) == 0x4B37);
+    // table-driven == bitwise definition over pseudo-random buffers, and chaining
+    uint32_t x = 12345;
+    for (int n = 0; n < 300; n += 7) {
+        std::vector<uint8_t> buf(n);
+        for (auto &b : buf) b = (uint8_t)((x = x * 1103515245u + 12345u) >> 16);
+        CHECK(rigctl_crc16(buf.data(), (uint16_t)n) == crc_bitwise(buf.data(), n));
+        if (n > 3) {
+            uint16_t c = rigctl_crc16_update(RIGCTL_CRC16_INIT, buf.data(), 3);
+            CHECK(rigctl_crc16_update(c, buf.data() + 3, (uint16_t)(n - 3)) == crc_bitwise(buf.data(), n));
+        }
+    }
+    // a Modbus request from the spec's world: read 13 input registers of device 1 -> CRC bytes 0x40 0x0E? compute
+    const uint8_t req[] = {0x01, 0x04, 0x00, 0x00, 0x00, 0x0D};
+    CHECK(rigctl_crc16(req, 6) == crc_bitwise(req, 6));
+    std::printf("crc: ok\n");
+}
+
+static void test_frame()
+{
+    uint16_t s[RIGCTL_N_TAXELS];
+    for (int i = 0; i < RIGCTL_N_TAXELS; i++) s[i] = (uint16_t)(i * 57 + 3);
+    uint8_t f[RIGCTL_FRAME_SIZE];
+    std::memset(f, 0xEE, sizeof f);
+    taxel_frame_build(f, 0xBEEF, RIGCTL_FLAG_SYNC_IN | RIGCTL_FLAG_STREAMING_START, s);
+    CHECK(f[0] == 0xA5 && f[1] == 0x5A);
+    CHECK(f[2] == 0xEF && f[3] == 0xBE);
+    CHECK(f[4] == 0x09);
+    for (int i = 0; i < RIGCTL_N_TAXELS; i++) CHECK((f[5 + 2 * i] | (f[6 + 2 * i] << 8)) == s[i]);
+    uint16_t crc = crc_bitwise(f + 2, 39);
+    CHECK(f[41] == (crc & 0xFF) && f[42] == (crc >> 8));
+    // the mux scan visits every taxel exactly once; select lines change only on A0 conversions
+    int seen[RIGCTL_N_TAXELS] = {0};
+    for (int k = 0; k < RIGCTL_N_TAXELS; k++) {
+        seen[TAXEL_SCAN_TAXEL(k)]++;
+        CHECK(TAXEL_SCAN_ADC(k) < 3 && TAXEL_SCAN_SEL(k) < 6);
+        if (k > 0 && TAXEL_SCAN_ADC(k) != 0) CHECK(TAXEL_SCAN_SEL(k) == TAXEL_SCAN_SEL(k - 1));
+    }
+    for (int i = 0; i < RIGCTL_N_TAXELS; i++) CHECK(seen[i] == 1);
+    std::printf("frame: ok\n");
+}
+
+// ---- Modbus ----
+static ctl_t ctl;
+static mb_slave_t mb;
+
+static void mb_setup()
+{
+    ctl_init(&ctl, 0, 0);
+    ctl.now_ms = 1000;
+    ctl_loadcell(&ctl, 1000); // tare at power-up
+    mb.device_id = 1;
+    mb.n_holding = RIGCTL_N_HOLDING;
+    mb.n_input = RIGCTL_N_INPUT;
+    mb.ctx = &ctl;
+    mb.read_holding = ctl_read_holding;
+    mb.read_input = ctl_read_input;
+    mb.write_holding = ctl_write_holding;
+}
+
+static std::vector<uint8_t> with_crc(std::vector<uint8_t> v)
+{
+    uint16_t c = rigctl_crc16(v.data(), (uint16_t)v.size());
+    v.push_back((uint8_t)c);
+    v.push_back((uint8_t)(c >> 8));
+    return v;
+}
+
+static std::vector<uint8_t> transact(const std::vector<uint8_t> &req, uint8_t *outcome = nullptr)
+{
+    uint8_t resp[MB_MAX_FRAME];
+    uint16_t n = 0;
+    uint8_t r = mb_handle(&mb, req.data(), (uint16_t)req.size(), resp, &n);
+    if (outcome) *outcome = r;
+    std::vector<uint8_t> out(resp, resp + n);
+    if (n) CHECK(rigctl_crc16(resp, n) == 0); // CRC over frame+CRC is 0
+    return out;
+}
+
+static bool is_exception(const std::vector<uint8_t> &r, uint8_t fc, uint8_t code)
+{
+    return r.size() == 5 && r[0] == 1 && r[1] == (fc | 0x80) && r[2] == code;
+}
+
+static void test_modbus()
+{
+    mb_setup();
+    uint8_t outcome;
+    // read all holding registers: defaults of the spec
+    auto r = transact(with_crc({1, 3, 0, 0, 0, RIGCTL_N_HOLDING}), &outcome);
+    CHECK(outcome == MB_ADDRESSED);
+    CHECK(r.size() == 3 + 2 * RIGCTL_N_HOLDING + 2 && r[2] == 2 * RIGCTL_N_HOLDING);
+    CHECK(((r[3 + 2 * 12] << 8) | r[4 + 2 * 12]) == RIGCTL_HREG_LOADCELL_SCALE_X100_DEF);
+    CHECK(((r[3 + 2 * 4] << 8) | r[4 + 2 * 4]) == RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_DEF);
+    // input registers: firmware version
+    r = transact(with_crc({1, 4, 0, RIGCTL_IREG_FIRMWARE_VERSION, 0, 1}));
+    CHECK(r.size() == 7 && ((r[3] << 8) | r[4]) == RIGCTL_MEGA_FIRMWARE_VERSION);
+    // ranges running off the tables -> 02
+    CHECK(is_exception(transact(with_crc({1, 3, 0, 13, 0, 2})), 3, 2));
+    CHECK(is_exception(transact(with_crc({1, 4, 0, 13, 0, 1})), 4, 2));
+    CHECK(is_exception(transact(with_crc({1, 6, 0, 14, 0, 1})), 6, 2));
+    CHECK(is_exception(transact(with_crc({1, 3, 0, 0, 0, 0})), 3, 3)); // zero count
+    // unknown function -> 01
+    CHECK(is_exception(transact(with_crc({1, 5, 0, 0, 0xFF, 0})), 5, 1));
+    CHECK(is_exception(transact(with_crc({1, 0x2B, 0x0E, 1, 0})), 0x2B, 1));
+    // malformed length for its function -> 03, never silence
+    CHECK(is_exception(transact(with_crc({1, 3, 0, 0, 0})), 3, 3));
+    CHECK(is_exception(transact(with_crc({1, 16, 0, 0, 0, 2, 4, 0, 1})), 16, 3));
+    // bad CRC, other device: ignored
+    auto bad = with_crc({1, 3, 0, 0, 0, 1});
+    bad[6] ^= 1;
+    CHECK(transact(bad, &outcome).empty() && outcome == MB_IGNORED);
+    CHECK(transact(with_crc({2, 3, 0, 0, 0, 1}), &outcome).empty() && outcome == MB_IGNORED);
+    CHECK(transact({1, 3}, &outcome).empty() && outcome == MB_IGNORED);
+    // write single: echo, value out of range -> 03 and unchanged
+    r = transact(with_crc({1, 6, 0, 0, 0x03, 0x20})); // speed 800
+    CHECK(r.size() == 8 && r[1] == 6 && ctl.hreg[0] == 800);
+    CHECK(is_exception(transact(with_crc({1, 6, 0, 0, 0x07, 0xD1})), 6, 3)); // 2001
+    CHECK(ctl.hreg[0] == 800);
+    CHECK(is_exception(transact(with_crc({1, 6, 0, 0, 0x05, 0xDD})), 6, 3)); // 1501 > SPEED_LIMIT 1500
+    CHECK(is_exception(transact(with_crc({1, 6, 0, 9, 0, 0})), 6, 3));       // tolerance 0 < 1
+    CHECK(is_exception(transact(with_crc({1, 6, 0, 2, 0, 9})), 6, 3));       // unknown command
+    // write multiple: all or nothing
+    r = transact(with_crc({1, 16, 0, 4, 0, 2, 4, 0x01, 0x2C, 0x04, 0xB0})); // ramp 300 -> 1200
+    CHECK(r.size() == 8 && ctl.hreg[4] == 300 && ctl.hreg[5] == 1200);
+    CHECK(is_exception(transact(with_crc({1, 16, 0, 4, 0, 2, 4, 0x00, 0x64, 0x07, 0xD1})), 16, 3));
+    CHECK(ctl.hreg[4] == 300 && ctl.hreg[5] == 1200);
+    // raising the limit and the setpoint in one write is checked against the new limit
+    r = transact(with_crc({1, 16, 0, 7, 0, 1, 2, 0x07, 0xD0}));
+    CHECK(r.size() == 8 && ctl.hreg[7] == 2000);
+    // broadcast write: done, no reply
+    CHECK(transact(with_crc({0, 6, 0, 0, 0x01, 0x90}), &outcome).empty() && outcome == MB_BROADCAST);
+    CHECK(ctl.hreg[0] == 400);
+    std::printf("modbus: ok\n");
+}
+
+// ---- controller in closed loop with a spring plant (the simavr harness's model, in C++) ----
+struct Plant {
+    double x_mm = 0, k = 250, gap = 3, counts_per_g = 420, offset = 83000, extra_g = 0;
+    double force() const { return (x_mm > gap ? k * (x_mm - gap) : 0.0) + extra_g; }
+    int32_t raw() const { return (int32_t)std::lround(offset + force() * counts_per_g); }
+};
+
+static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, bool loadcell = true)
+{
+    for (int i = 0; i < ms; i++) {
+        now++;
+        if (feed && now % 100 == 0) ctl_feed_watchdog(&c);
+        c.act_pos_steps = (int32_t)std::lround(p.x_mm * c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM]);
+        c.home_switch = p.x_mm <= 0.0;
+        ctl_tick(&c, now);
+        if (c.zero_position) {
+            p.x_mm = 0;
+            c.zero_position = 0;
+        }
+        if (loadcell && now % 12 == 0) ctl_loadcell(&c, p.raw());
+        p.x_mm += c.act_vel_mm_s * 0.001;
+        if (p.x_mm < -1.0) p.x_mm = -1.0;
+    }
+}
+
+// a register write arrives as a valid Modbus request, which feeds the watchdog (mega_drum.cpp does the same)
+static bool write_reg(ctl_t &c, uint16_t a, uint16_t v)
+{
+    ctl_feed_watchdog(&c);
+    return ctl_write_holding(&c, a, 1, &v) == 0;
+}
+
+static void test_controller()
+{
+    ctl_t c;
+    Plant p;
+    uint32_t now = 0;
+    ctl_init(&c, 0, 0);
+    run_ms(c, p, now, 50);
+    CHECK(c.state == RIGCTL_STATE_IDLE && c.faults == 0);
+    CHECK(std::abs(c.force_gf) < 0.01); // tared at power-up
+    // commands refused in the wrong state
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP_DRUM));
+    CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 500));
+    CHECK(!write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1501)); // > FORCE_LIMIT_G
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+    CHECK(c.hreg[RIGCTL_HREG_COMMAND] == 0 && c.state == RIGCTL_STATE_SEEKING_FORCE);
+    CHECK(ctl_read_input(&c, RIGCTL_IREG_FORCE_SETPOINT_ACTIVE_G) == 500);
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_TARE)); // not while pressing
+    int settled_ms = -1;
+    for (int t = 0; t < 5000; t += 10) {
+        run_ms(c, p, now, 10);
+        if (c.state == RIGCTL_STATE_FORCE_SETTLED) {
+            settled_ms = t;
+            break;
+        }
+    }
+    std::printf("controller: 500 g settled after %d ms, force %.1f g, x %.3f mm\n", settled_ms, c.force_gf, p.x_mm);
+    CHECK(settled_ms > 0);
+    CHECK(std::abs(p.force() - 500) <= c.hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
+    run_ms(c, p, now, 1000);
+    CHECK(c.state == RIGCTL_STATE_FORCE_SETTLED && std::abs(p.force() - 500) < 5);
+    // RUN on the constant profile: the drum ramps up at DRUM_ACCEL_MM_S2 to the setpoint
+    CHECK(write_reg(c, RIGCTL_HREG_SPEED_SETPOINT_0P1MMS, 800));
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_RUN));
+    CHECK(c.state == RIGCTL_STATE_RUNNING);
+    run_ms(c, p, now, 100);
+    CHECK(std::abs(c.drum_cmd_mm_s - DRUM_ACCEL_MM_S2 * 0.1) < 1.0);
+    run_ms(c, p, now, 500);
+    CHECK(std::abs(c.drum_cmd_mm_s - 80.0) < 1e-3 && ctl_read_input(&c, RIGCTL_IREG_SPEED_TARGET_0P1MMS) == 800);
+    // the watchdog: no request for WATCHDOG_MS while running -> FAULT, drum stopped, actuator retracting
+    run_ms(c, p, now, c.hreg[RIGCTL_HREG_WATCHDOG_MS] + 20, /*feed=*/false);
+    CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_WATCHDOG));
+    run_ms(c, p, now, 3000, false);
+    CHECK(c.drum_cmd_mm_s == 0.0f && p.x_mm <= 0.01);
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_RUN));
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+    CHECK(c.state == RIGCTL_STATE_IDLE && c.faults == 0);
+    // an idle host that only monitors never trips the watchdog
+    run_ms(c, p, now, 3000, false);
+    CHECK(c.state == RIGCTL_STATE_IDLE);
+    // force limit: a bump over FORCE_LIMIT_G faults at the next reading and backs off at once
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+    run_ms(c, p, now, 3000);
+    CHECK(c.state == RIGCTL_STATE_FORCE_SETTLED);
+    p.extra_g = 1200;
+    run_ms(c, p, now, 13);
+    CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_FORCE_LIMIT) && c.act_vel_mm_s < 0);
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT)); // condition persists
+    p.extra_g = 0;
+    run_ms(c, p, now, 50);
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+    run_ms(c, p, now, 3000);
+    // RAMP profile: 40 -> 120 mm/s over 2 s
+    CHECK(write_reg(c, RIGCTL_HREG_SPEED_PROFILE, RIGCTL_PROFILE_RAMP));
+    uint16_t ramp[3] = {400, 1200, 2000};
+    CHECK(ctl_write_holding(&c, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS, 3, ramp) == 0);
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_RUN));
+    run_ms(c, p, now, 1000);
+    CHECK(std::abs((int)ctl_read_input(&c, RIGCTL_IREG_SPEED_TARGET_0P1MMS) - 800) <= 1);
+    run_ms(c, p, now, 1500);
+    CHECK(ctl_read_input(&c, RIGCTL_IREG_SPEED_TARGET_0P1MMS) == 1200);
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
+    run_ms(c, p, now, 3000);
+    CHECK(c.state == RIGCTL_STATE_IDLE && c.drum_cmd_mm_s == 0.0f && p.x_mm <= 0.01);
+    // load-cell timeout
+    run_ms(c, p, now, RIGCTL_LOADCELL_TIMEOUT_MS + 5, true, /*loadcell=*/false);
+    CHECK(c.state == RIGCTL_STATE_FAULT && (c.faults & RIGCTL_FAULT_LOADCELL_TIMEOUT));
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+    // HOME: seeks the switch and zeroes the position
+    run_ms(c, p, now, 20);
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+    p.x_mm = 2.0;
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME) && c.state == RIGCTL_STATE_HOMING);
+    run_ms(c, p, now, 1000);
+    CHECK(c.state == RIGCTL_STATE_IDLE && ctl_read_input(&c, RIGCTL_IREG_ACTUATOR_POSITION_0P01MM) == 0);
+    // SAVE_CALIBRATION raises the request the glue turns into an EEPROM write
+    CHECK(write_reg(c, RIGCTL_HREG_LOADCELL_SCALE_X100, 41000) && write_reg(c, RIGCTL_HREG_COMMAND, 8));
+    CHECK(c.save_calibration == 1);
+    std::printf("controller: ok\n");
+}
+
+static void test_pi()
+{
+    force_pi_t pi;
+    force_pi_init(&pi, 0.05f, 0.05f, 5.0f);
+    // saturated: output clamped, integral does not wind up
+    for (int i = 0; i < 1000; i++) CHECK(force_pi_update(&pi, 1000.0f, 0.0f, 0.0125f) == 5.0f);
+    CHECK(pi.integ == 0.0f);
+    // in the linear range: P + I
+    force_pi_reset(&pi);
+    float out = force_pi_update(&pi, 510.0f, 500.0f, 0.0125f);
+    CHECK(std::abs(out - (0.05f * 10 + 0.05f * 10 * 0.0125f)) < 1e-6);
+    std::printf("pi: ok\n");
+}
+
+static void test_steprate()
+{
+    // spec 2.6: f = v * 200 * 16 / (pi * 100)
+    for (double v = 40; v <= 120; v += 10) {
+        double expect = v * 3200.0 / (M_PI * 100.0);
+        float f = steprate_hz_from_mm_s((float)v, DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV);
+        CHECK(std::abs(f - expect) / expect < 1e-5);
+        steptimer_t t;
+        CHECK(steprate_timer(f, 16000000UL, &t) == 1);
+        double got = steprate_timer_hz(&t, 16000000UL);
+        CHECK(std::abs(got - expect) / expect < 0.005 * 0.1); // timer quantisation well inside the 0.5 % budget
+        CHECK(std::abs(steprate_mm_s_from_hz((float)got, DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV) - v) < 0.05);
+    }
+    steptimer_t t;
+    CHECK(steprate_timer(0.0f, 16000000UL, &t) == 0 && t.cs == 0);
+    CHECK(steprate_timer(0.1f, 16000000UL, &t) == 0);      // below /1024's range: stopped
+    CHECK(steprate_timer(1.0f, 16000000UL, &t) == 1 && t.cs == 4); // /256
+    CHECK(steprate_timer(2000.0f, 16000000UL, &t) == 1 && t.cs == 1 && t.ocr == 7999);
+    CHECK(steprate_ramp(0, 100, 400, 0.001f) == 0.4f);
+    CHECK(steprate_ramp(99.9f, 100, 400, 0.001f) == 100.0f);
+    CHECK(steprate_ramp(50, 0, 400, 0.001f) == 49.6f);
+    std::printf("steprate: ok\n");
+}
+
+int main()
+{
+    test_crc();
+    test_frame();
+    test_modbus();
+    test_pi();
+    test_steprate();
+    test_controller();
+    std::printf("%d checks, %d failures\n", checks, failures);
+    return failures ? 1 : 0;
+}

@@ -1,0 +1,398 @@
+"""Hardware in the loop: the rig's real firmware images running in the AVR simulator simavr.
+
+:class:`HilRig` has the interface of :class:`rigctl.simulation.rig.SimulatedRig` (context manager, ``drum_port``,
+``taxel_port``, ``set_texture``), so :class:`rigctl.devices.drum.DrumClient`, :class:`rigctl.devices.taxel_stream.
+TaxelStream` and ``Rig.open(hil=True)`` talk to it unchanged. It builds the firmware and the harness if needed
+(``make -C arduino``) and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per board:
+
+- the Mega image (drum controller, Modbus RTU) with the HX711 and actuator spring emulated in C from the rig
+  model's mechanics constants (:class:`rigctl.simulation.model.MechanicsConfig`), its drum STEP pin and index
+  output watched (``TEL``/``IDX`` lines, see :attr:`HilRig.telemetry`);
+- the Uno image (taxel streamer) with its ADC fed through the emulated multiplexers from waveforms rendered here by
+  :class:`rigctl.simulation.model.SensorModel` (one physics model, in Python): a feeder thread renders the next
+  second of taxel readings from the drum travel and contact force the Mega harness reports, twice a second
+  (``live`` mode), or a fixed waveform is played in a loop (:meth:`HilRig.play_waveform`, for exact-value tests).
+  Each index pulse of the Mega is forwarded to the Uno's sync-in pin.
+
+Both harnesses run paced to real time and exit when this object closes their stdin, or when this process dies.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import re
+import subprocess
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rigctl.devices import wire
+
+log = logging.getLogger(__name__)
+
+#: the repo's ``arduino/`` directory (firmware sources, Makefile, harness)
+ARDUINO_DIR = Path(__file__).resolve().parents[2] / "arduino"
+
+_KV = re.compile(r"(\w+)=([-+0-9.eE]+)")
+
+
+class HilError(RuntimeError):
+    """The firmware or the harness could not be built or started."""
+
+
+def build(arduino_dir: Path | str = ARDUINO_DIR) -> Path:
+    """Build both firmware images and the simavr harness (``make all harness``; incremental).
+
+    Returns
+    -------
+    Path of the build directory (``uno_taxel.elf``, ``mega_drum.elf``, ``rigctl_simavr``).
+
+    Raises
+    ------
+    HilError with make's output when the build fails (e.g. the AVR toolchain or libsimavr-dev is missing).
+    """
+    arduino_dir = Path(arduino_dir)
+    proc = subprocess.run(["make", "-s", "-C", str(arduino_dir), "all", "harness"], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise HilError(f"firmware build failed (make -C {arduino_dir} all harness):\n{proc.stdout}\n{proc.stderr}")
+    return arduino_dir / "build"
+
+
+def _parse_kv(line: str) -> dict[str, float]:
+    return {k: float(v) for k, v in _KV.findall(line)}
+
+
+@dataclass
+class Telemetry:
+    """One ``TEL`` line of the Mega harness (simulated time ``t_s``; pins and the spring model)."""
+
+    t_s: float
+    cycle: int
+    drum_steps: int
+    act_steps: int
+    act_mm: float
+    force_g: float
+    index: int
+
+
+class _Harness:
+    """One rigctl_simavr process: start, read its stdout in a thread, send stdin commands."""
+
+    def __init__(self, exe: Path, board: str, elf: Path, args: list[str], on_line):
+        self.board = board
+        self._lock = threading.Lock()
+        self.proc = subprocess.Popen([str(exe), "--board", board, *args, str(elf)], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
+        self.port = None
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                err = self.proc.stderr.read()
+                raise HilError(f"simavr harness for the {board} exited at start: {err.strip()}")
+            if line.startswith("PTY "):
+                self.port = line.split()[1]
+                break
+        if self.port is None:
+            self.close()
+            raise HilError(f"simavr harness for the {board} did not report its pty")
+        self._on_line = on_line
+        self._thread = threading.Thread(target=self._read, name=f"hil-{board}", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            try:
+                self._on_line(line.rstrip("\n"))
+            except Exception:  # a bad line must not kill the reader (the pipe would fill and stall the sim)
+                log.exception("HIL %s: cannot handle %r", self.board, line)
+
+    def send(self, text: str) -> None:
+        with self._lock:
+            if self.proc.poll() is None:
+                try:
+                    self.proc.stdin.write(text + "\n")
+                    self.proc.stdin.flush()
+                except (BrokenPipeError, ValueError):
+                    pass
+
+    def close(self) -> None:
+        try:
+            with self._lock:
+                self.proc.stdin.close()
+        except Exception:
+            pass
+        try:
+            self.proc.wait(timeout=3)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        for f in (self.proc.stdout, self.proc.stderr):
+            try:
+                f.close()
+            except Exception:
+                pass
+
+
+class HilRig:
+    """Both boards' firmware under simavr, behind the :class:`~rigctl.simulation.rig.SimulatedRig` interface.
+
+    Parameters
+    ----------
+    config : RigConfig or None
+        Rig model configuration (sensor, mechanics: contact gap and stiffness, load-cell counts per g and offset);
+        default :class:`rigctl.simulation.model.RigConfig`. The drum geometry must match the firmware's
+        ``arduino/mega_drum/drum_config.h`` (100 mm, 200 steps/rev, 16 microsteps).
+    seed : int
+        Seeds the sensor noise of the rendered taxel readings.
+    live : bool
+        Render the taxel readings from the Mega's drum travel and force (True) or play a fixed waveform (False;
+        :meth:`play_waveform`).
+    arduino_dir : path
+        The firmware tree (``arduino/``); built on start.
+    uno_boot_ms : float
+        Bootloader wait after a host opens the Uno's port (the DTR auto-reset).
+
+    Attributes
+    ----------
+    drum_port, taxel_port : str
+        ``/dev/pts/N`` of the Mega (Modbus RTU 115200 8N1, device 1) and of the Uno (1,000,000 baud).
+    telemetry : Telemetry or None
+        Latest report of the Mega harness (every 50 ms of simulated time).
+    isr : dict
+        Latest ``ISR`` report of the Uno harness: ``sampler_cycles_per_tick``, ``sampler_max_per_tick``,
+        ``tx_cycles_per_tick``, ``tx_max_per_tick`` (CPU cycles per 1 ms tick, timed on probe pins).
+    """
+
+    def __init__(self, config=None, *, seed: int = 0, live: bool = True, arduino_dir: Path | str = ARDUINO_DIR,
+                 uno_boot_ms: float = 250.0):
+        from rigctl.simulation.model import RigConfig
+
+        self.config = config or RigConfig()
+        self.seed = seed
+        self.live = live
+        self.arduino_dir = Path(arduino_dir)
+        self.uno_boot_ms = uno_boot_ms
+        self.telemetry: Telemetry | None = None
+        self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
+        self.index_pulses = 0
+        self.isr: dict[str, float] = {}
+        self._texture = "A"
+        self._mega: _Harness | None = None
+        self._uno: _Harness | None = None
+        self._tmp = Path(tempfile.mkdtemp(prefix="rigctl-hil-"))
+        self._stop = threading.Event()
+        self._feeder: threading.Thread | None = None
+        self._cond = threading.Condition()
+        self._wave_acks = 0
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def drum_port(self) -> str:
+        return self._mega.port
+
+    @property
+    def taxel_port(self) -> str:
+        return self._uno.port
+
+    @property
+    def mm_per_step(self) -> float:
+        d = self.config.drum
+        return float(np.pi * d.diameter_mm / (d.steps_per_rev * d.microsteps))
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "HilRig":
+        """Build (if needed) and start both harnesses and, in live mode, the taxel feeder thread.
+
+        Raises
+        ------
+        HilError if the build or a harness fails.
+        """
+        if self._mega is not None:
+            return self
+        build_dir = build(self.arduino_dir)
+        exe = build_dir / "rigctl_simavr"
+        m = self.config.mechanics
+        self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [
+            "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
+            "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
+        ], self._on_mega_line)
+        try:
+            self._uno = _Harness(exe, "uno", build_dir / "uno_taxel.elf",
+                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms)], self._on_uno_line)
+        except BaseException:
+            self._mega.close()
+            self._mega = None
+            raise
+        if self.live:
+            self._render_and_load()
+            self._stop.clear()
+            self._feeder = threading.Thread(target=self._feed, name="hil-feeder", daemon=True)
+            self._feeder.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the feeder and both harnesses (their processes exit when stdin closes)."""
+        self._stop.set()
+        if self._feeder is not None:
+            self._feeder.join(timeout=3)
+            self._feeder = None
+        for h in (self._uno, self._mega):
+            if h is not None:
+                h.close()
+        self._uno = self._mega = None
+        for f in self._tmp.glob("*"):
+            f.unlink(missing_ok=True)
+        try:
+            self._tmp.rmdir()
+        except OSError:
+            pass
+
+    def __enter__(self) -> "HilRig":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ operator actions and test hooks
+    def set_texture(self, letter: str) -> None:
+        """Mount texture plate ``letter`` (A-P): the taxel readings are rendered for it from now on.
+
+        Raises
+        ------
+        KeyError for an unknown letter.
+        """
+        from rigctl.simulation.textures import TEXTURES
+
+        letter = letter.upper()
+        if letter not in TEXTURES:
+            raise KeyError(f"unknown texture {letter!r} (A-P)")
+        self._texture = letter
+        if self.live and self._uno is not None:
+            self._render_and_load()
+
+    def play_waveform(self, samples: np.ndarray, timeout_s: float = 5.0) -> None:
+        """Feed the Uno's ADC from ``samples`` ((n, 18) ADC counts 0-1023) in a loop, one row per scan (1 ms).
+
+        Stops live rendering. The row after loading is the first row played.
+
+        Raises
+        ------
+        ValueError for a bad shape or values; HilError if the harness does not confirm the load.
+        """
+        samples = np.asarray(samples)
+        if samples.ndim != 2 or samples.shape[1] != wire.N_TAXELS or samples.shape[0] < 1:
+            raise ValueError(f"samples must be (n, {wire.N_TAXELS}), got {samples.shape}")
+        if samples.min() < 0 or samples.max() > wire.ADC_MAX:
+            raise ValueError(f"samples must be ADC counts 0-{wire.ADC_MAX}")
+        self.live = False
+        self._stop.set()
+        if self._feeder is not None:
+            self._feeder.join(timeout=3)
+            self._feeder = None
+        self._load(samples.astype("<u2"), timeout_s)
+
+    def bump(self, force_g: float) -> None:
+        """Add an external force of ``force_g`` g on the load cell (0 removes it), e.g. to trip FORCE_LIMIT."""
+        self._mega.send(f"bump {float(force_g)}")
+
+    def place_mass(self, mass_g: float) -> None:
+        """A calibration mass on the load cell: the same external force as :meth:`bump`."""
+        self.bump(mass_g)
+
+    def step_rate_hz(self, window_s: float = 1.0, timeout_s: float = 5.0) -> float:
+        """Drum STEP pulse rate measured on the pin over the last ``window_s`` of simulated time, steps/s.
+
+        Waits until the harness has reported that much time after the call.
+        """
+        first = self._wait_telemetry(None, timeout_s)
+        last = self._wait_telemetry(first.t_s + window_s, timeout_s + window_s * 2)
+        return (last.drum_steps - first.drum_steps) / ((last.cycle - first.cycle) / 16e6)
+
+    def _wait_telemetry(self, t_min: float | None, timeout_s: float) -> Telemetry:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            start = self.telemetry
+            while True:
+                tel = self.telemetry
+                if tel is not None and ((t_min is None and tel is not start) or (t_min is not None and tel.t_s >= t_min)):
+                    return tel
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise HilError("no telemetry from the Mega harness")
+                self._cond.wait(left)
+
+    # ------------------------------------------------------------------ harness output
+    def _on_mega_line(self, line: str) -> None:
+        if line.startswith("TEL "):
+            kv = _parse_kv(line)
+            tel = Telemetry(kv["t"], int(kv["cycle"]), int(kv["drum_steps"]), int(kv["act_steps"]), kv["act_mm"],
+                            kv["force_g"], int(kv["index"]))
+            with self._cond:
+                self.telemetry = tel
+                self.telemetry_history.append(tel)
+                self._cond.notify_all()
+        elif line.startswith("IDX "):
+            self.index_pulses += 1
+            if self._uno is not None:
+                self._uno.send("sync")  # the index output is wired to the Uno's sync-in
+
+    def _on_uno_line(self, line: str) -> None:
+        if line.startswith("ISR "):
+            self.isr = _parse_kv(line)
+        elif line.startswith("OK wave") or line.startswith("ERR wave"):
+            with self._cond:
+                self._wave_acks += 1
+                self._cond.notify_all()
+            if line.startswith("ERR"):
+                log.error("HIL Uno harness: %s", line)
+
+    # ------------------------------------------------------------------ taxel waveforms
+    def _load(self, samples: np.ndarray, timeout_s: float = 5.0) -> None:
+        path = self._tmp / "wave.u16"
+        tmp = self._tmp / "wave.u16.tmp"
+        samples.astype("<u2").tofile(tmp)
+        os.replace(tmp, path)
+        with self._cond:
+            acks = self._wave_acks
+            self._uno.send(f"wave {path}")
+            deadline = time.monotonic() + timeout_s
+            while self._wave_acks == acks:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise HilError("the Uno harness did not confirm the waveform")
+                self._cond.wait(left)
+
+    def _render_and_load(self, horizon_s: float = 1.0) -> None:
+        """Render the next ``horizon_s`` of taxel readings from the latest drum travel, speed and force."""
+        from rigctl.simulation.model import SensorModel
+
+        if not hasattr(self, "_sensor"):
+            self._sensor = SensorModel(self.config.sensor)
+            self._rng = np.random.default_rng(self.seed)
+        hist = list(self.telemetry_history)[-5:]
+        if len(hist) >= 2 and hist[-1].cycle > hist[0].cycle:
+            speed = (hist[-1].drum_steps - hist[0].drum_steps) * self.mm_per_step / ((hist[-1].cycle - hist[0].cycle) / 16e6)
+        else:
+            speed = 0.0
+        tel = hist[-1] if hist else None
+        pos0 = tel.drum_steps * self.mm_per_step if tel else 0.0
+        force = max(tel.force_g, 0.0) if tel else 0.0
+        n = int(horizon_s * 1000)
+        position = pos0 + speed * (np.arange(n) / 1000.0)
+        samples = self._sensor.render(self._texture, position, np.full(n, force), self._rng)
+        self._load(np.clip(samples, 0, wire.ADC_MAX).astype("<u2"))
+
+    def _feed(self) -> None:
+        while not self._stop.wait(0.5):
+            try:
+                self._render_and_load()
+            except Exception:
+                if not self._stop.is_set():
+                    log.exception("HIL taxel feeder")
