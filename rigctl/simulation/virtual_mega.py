@@ -321,7 +321,8 @@ class VirtualMega:
             self.state = DrumState.RUNNING
             self._run_t0 = self._t_s
         elif cmd == Command.STOP:
-            self._release(DrumState.IDLE)
+            # a latched fault stays until CLEAR_FAULT; the rig is made safe either way
+            self._release(DrumState.FAULT if self.state == DrumState.FAULT else DrumState.IDLE)
         elif cmd == Command.TARE:
             self._tare_raw = self.model.loadcell_raw
             self._update_force()

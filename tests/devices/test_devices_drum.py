@@ -234,6 +234,8 @@ def test_watchdog_trips_when_host_goes_silent(drum, mega):
     assert "WATCHDOG" in str(info.value) and info.value.faults == Fault.WATCHDOG
     with pytest.raises(ModbusExceptionError):
         drum.run()  # refused while in FAULT
+    drum.stop()
+    assert drum.read_status().state == DrumState.FAULT  # only CLEAR_FAULT leaves FAULT
     drum.clear_fault()
     status = drum.read_status()
     assert status.state == DrumState.IDLE and status.faults == 0
