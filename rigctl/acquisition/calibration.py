@@ -181,8 +181,9 @@ def calibrate_loadcell(
     """
     if not mass_g > 0:
         raise ValueError(f"mass_g must be > 0, got {mass_g}")
-    drum.stop()
-    drum.wait_state([wire.DrumState.IDLE], timeout_s=30.0)
+    from rigctl.acquisition.rig import wait_released
+
+    wait_released(drum, timeout_s=30.0)
     drum.tare()
     time.sleep(settle_s)
     zero, noise, _ = _mean_raw(drum, n_readings, interval_s)

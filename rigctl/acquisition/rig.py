@@ -171,7 +171,7 @@ class Rig:
             if sim_rig is not None:
                 sim_rig.__enter__()
                 drum_port, taxel_port = sim_rig.drum_port, sim_rig.taxel_port
-            drum = DrumClient(drum_port)
+            drum = DrumClient(drum_port, poll_s=0.02)
             drum.__enter__()
             stream = TaxelStream(taxel_port)
             stream.open()
@@ -256,6 +256,13 @@ class Rig:
             out["model"] = model.to_dict()
         return out
 
+    def reload_host_config(self) -> dict:
+        """Re-read the rig config file (e.g. after a calibration); later sessions copy the new content."""
+        from rigctl.acquisition import calibration
+
+        self.host_config = calibration.load_rig_config(self.host_config_path)
+        return self.host_config
+
     def taxel_normalisation(self) -> dict | None:
         """The per-taxel normalisation block of the rig config (``taxel_min``/``taxel_max``), or None."""
         block = self.host_config.get("taxel_normalisation")
@@ -271,9 +278,9 @@ class Rig:
             self.drum.write_holding(wire.HoldingRegister.SETTLE_TIME_MS, int(settle.settle_time_ms))
 
     def release(self, timeout_s: float = 20.0) -> None:
-        """STOP and wait until IDLE (drum at rest, actuator backed off): the state for changing a plate."""
-        self.drum.stop()
-        self.drum.wait_state([wire.DrumState.IDLE], timeout_s=timeout_s)
+        """STOP and wait until IDLE with the actuator back home (drum at rest, sensor free): the state for changing
+        a plate. Raises DrumTimeout / DrumFault."""
+        wait_released(self.drum, timeout_s=timeout_s)
 
     def mount_texture(self, letter: str, prompt: Callable[[str], Any] | None = None) -> None:
         """Mount texture plate ``letter`` (A-P): release the sensor, then set it (simulation) or ask the operator.
@@ -467,6 +474,24 @@ class Rig:
             cap = self.stream.end_capture()
         self.drum.stop_drum()
         return _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s)
+
+
+def wait_released(drum, *, timeout_s: float = 20.0, home_mm: float = 0.05) -> None:
+    """Send STOP and wait until the controller is IDLE with the actuator within ``home_mm`` of home.
+
+    STOP sets IDLE at once while the actuator is still backing off; TARE and plate changes need it home.
+    Raises :class:`rigctl.devices.errors.DrumTimeout` / ``DrumFault``.
+    """
+    from rigctl.devices.errors import DrumTimeout
+
+    drum.stop()
+    deadline = time.monotonic() + timeout_s
+    st = drum.wait_state([wire.DrumState.IDLE], timeout_s=timeout_s)
+    while st.actuator_mm > home_mm:
+        if time.monotonic() > deadline:
+            raise DrumTimeout(f"the actuator did not return home within {timeout_s:g} s ({st.actuator_mm:.2f} mm)")
+        time.sleep(0.02)
+        st = drum.read_status()
 
 
 def _abort_if(stop_event) -> None:

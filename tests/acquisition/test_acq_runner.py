@@ -1,0 +1,178 @@
+"""The runner and the calibration helpers in-process on one simulated rig (real ptys, pymodbus, pyserial):
+Ctrl-C, stop and pause events, failed trials and their resume, ramps, load-cell and taxel calibration."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+
+import h5py
+import numpy as np
+import pytest
+
+from rigctl.acquisition import calibration
+from rigctl.acquisition import rig as rig_module
+from rigctl.acquisition.protocol import parse_protocol
+from rigctl.acquisition.rig import Rig
+from rigctl.acquisition.runner import run_protocol
+from rigctl.devices.wire import DrumState, HoldingRegister
+from rigctl.simulation.model import MechanicsConfig, RigConfig
+from rigctl.storage.session import open_session
+
+TRUE_COUNTS_PER_G = 380.0  # the simulated load cell differs from the controller's default scale (420 counts/g)
+
+
+def _proto(n_per=3, textures='"A", "B"', settle="settle_time_ms = 50", duration=0.3):
+    return parse_protocol(
+        f'name = "t"\ntextures = [{textures}]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+        f"trials_per_condition = {n_per}\nduration_s = {duration}\n[settle]\n{settle}\n"
+    )
+
+
+@pytest.fixture(scope="module")
+def config_file(tmp_path_factory):
+    return tmp_path_factory.mktemp("cfg") / "rig.json"
+
+
+@pytest.fixture(scope="module")
+def rig(config_file):
+    cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=TRUE_COUNTS_PER_G))
+    with Rig.open(config=cfg, seed=3, host_config_path=config_file) as r:
+        yield r
+
+
+def _state(rig) -> DrumState:
+    return rig.drum.read_status().state
+
+
+def test_ctrl_c_mid_trial_is_a_clean_stop_then_resume(rig, tmp_path):
+    out = tmp_path / "c.h5"
+    events = []
+    fired = []
+
+    def on_trial(ev):
+        events.append((ev.kind, ev.planned.trial_id if ev.planned else None))
+        if ev.kind == "start" and ev.planned.trial_id == 2 and not fired:  # Ctrl-C 0.15 s into trial 2
+            fired.append(1)
+            threading.Timer(0.15, os.kill, (os.getpid(), signal.SIGINT)).start()
+
+    summary = run_protocol(_proto(2), out, rig=rig, progress=False, on_trial=on_trial)
+    assert summary.stopped and summary.recorded == 2 and summary.complete == 2
+    assert ("complete", 2) not in events
+    rig.drum.wait_state([DrumState.IDLE], timeout_s=15)  # STOP was sent: the rig backs off to IDLE
+    with h5py.File(out, "r") as f:
+        assert list(f["plan"]["status"]) == [1, 1, 0, 0] and sorted(f["trials"]) == ["000000", "000001"]
+    events.clear()
+    summary = run_protocol(_proto(2), out, rig=rig, progress=False, resume=True, on_trial=on_trial)
+    assert summary.complete == 4 and summary.recorded == 2 and not summary.stopped
+    assert [e[1] for e in events if e[0] == "complete"] == [2, 3]
+
+
+def test_stop_event_and_pause_event(rig, tmp_path):
+    out = tmp_path / "p.h5"
+    stop, pause = threading.Event(), threading.Event()
+    seen = []
+
+    def on_trial(ev):
+        seen.append(ev.kind)
+        if ev.kind == "complete" and ev.index == 0:
+            pause.set()
+            threading.Timer(0.5, pause.clear).start()
+        if ev.kind == "paused":
+            seen.append(_state(rig))  # paused with the sensor released: no force, no watchdog to trip
+        if ev.kind == "complete" and ev.index == 2:
+            stop.set()
+
+    summary = run_protocol(_proto(4, textures='"A"'), out, rig=rig, progress=False, stop_event=stop, pause_event=pause,
+                           on_trial=on_trial)
+    assert "paused" in seen and "resumed" in seen
+    assert seen[seen.index("paused") + 1] == DrumState.IDLE
+    assert seen.index("resumed") > seen.index("paused")
+    assert summary.stopped and summary.complete == 3 and seen.count("complete") == 3
+
+
+def test_failed_trials_are_marked_and_resumed(rig, tmp_path, monkeypatch):
+    monkeypatch.setattr(rig_module, "CAPTURE_MARGIN_S", 0.5)
+    out = tmp_path / "f.h5"
+    failures = []
+
+    def on_trial(ev):
+        if ev.kind == "start" and ev.planned.trial_id == 1:
+            rig.sim.unplug_taxel()  # the Uno's USB cable is pulled during trial 1
+        if ev.kind == "failed":
+            failures.append(ev.error)
+            rig.sim.replug_taxel()
+
+    summary = run_protocol(_proto(3, textures='"A"'), out, rig=rig, progress=False, on_trial=on_trial)
+    assert summary.failed == 1 and summary.complete == 2 and not summary.stopped
+    assert "CaptureError" in failures[0] and "trial 1" in failures[0]
+    with open_session(out) as s:
+        assert s.failed_ids() == [1] and "CaptureError" in s.trial_attrs(1)["error"]
+    summary = run_protocol(_proto(3, textures='"A"'), out, rig=rig, progress=False, resume=True)
+    assert summary.recorded == 1 and summary.complete == 3
+    with open_session(out) as s:
+        assert s.completed_ids() == [0, 1, 2] and s.trial(1).n_samples == 300
+
+
+def test_on_failure_stop(rig, tmp_path):
+    out = tmp_path / "t.h5"
+    proto = _proto(2, settle="force_timeout_s = 0.02")  # the force cannot settle that fast
+    summary = run_protocol(proto, out, rig=rig, progress=False, on_failure="stop")
+    assert summary.failed == 1 and summary.complete == 0
+    assert "DrumTimeout" in summary.failures[0]
+    with h5py.File(out, "r") as f:
+        assert list(f["plan"]["status"]) == [2, 0, 0, 0]
+    assert _state(rig) in (DrumState.IDLE, DrumState.HOMING)
+
+
+def test_ramp_trial_follows_the_profile(rig, tmp_path):
+    proto = parse_protocol(
+        'name = "ramp"\ntextures = ["L"]\nforces_g = [500]\ntravel_mm = 80\n'
+        '[[profiles]]\nname = "slow-to-fast"\nkind = "ramp"\nstart_mm_s = 40\nend_mm_s = 120\n'
+    )
+    out = tmp_path / "r.h5"
+    summary = run_protocol(proto, out, rig=rig, progress=False)
+    assert summary.complete == 1
+    with open_session(out) as s:
+        t = s.trial(0)
+        assert t.n_samples == 1000 and s.plan["profile"][0] == "slow-to-fast"
+        q = len(t.speed_mm_s) // 4
+        early, late = t.speed_mm_s[:q].mean(), t.speed_mm_s[-q:].mean()
+        assert early < 70 and late > 95, (early, late)
+        assert np.all(np.diff(t.speed_time_s) > 0)
+
+
+def test_loadcell_calibration_against_the_virtual_mega(rig, config_file):
+    place, remove = calibration.simulated_mass(rig)
+    rig.drum.set_loadcell_scale(400.0)  # a wrong scale to start from
+    result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
+                                            config_file=config_file)
+    assert abs(result.counts_per_g - TRUE_COUNTS_PER_G) / TRUE_COUNTS_PER_G < 0.01
+    assert rig.drum.read_holding(HoldingRegister.LOADCELL_SCALE_X100) == result.scale_x100
+    assert abs(result.check_force_g - 500.0) < 5  # with the new scale the controller reads the mass right
+    assert abs(rig.drum.read_status().force_g) < 5  # mass removed
+    stored = json.loads(config_file.read_text())["loadcell"]
+    assert stored["scale_x100"] == result.scale_x100
+    with pytest.raises(ValueError):
+        calibration.calibrate_loadcell(rig.drum, 0, place_mass=place)
+
+
+def test_taxel_normalisation_goes_into_the_config_and_the_next_session(rig, tmp_path, config_file):
+    calib = tmp_path / "calib.h5"
+    run_protocol(_proto(1, textures='"A", "L"', duration=0.5), calib, rig=rig, progress=False)
+    norm = calibration.taxel_normalisation_from_session(calib, store=True, config_file=config_file)
+    with h5py.File(calib, "r") as f:
+        allx = np.concatenate([g["taxels"][()] for g in f["trials"].values()])
+    np.testing.assert_array_equal(norm.taxel_min, allx.min(0))
+    np.testing.assert_array_equal(norm.taxel_max, allx.max(0))
+    scaled = norm.apply(allx)
+    assert scaled.dtype == np.float32 and scaled.min() == 0.0 and scaled.max() == 1.0
+    rig.reload_host_config()
+    out = tmp_path / "next.h5"
+    run_protocol(_proto(1, textures='"L"'), out, rig=rig, progress=False)
+    with open_session(out) as s:
+        np.testing.assert_array_equal(s.calibration["taxel_max"], norm.taxel_max)
+        assert s.calibration["taxel_n_trials"] == 2
+        assert "loadcell" in s.rig_config["host_config"]
