@@ -268,9 +268,16 @@ static double mega_force_g(void)
     return f + atomic_load(&bump_g_x1000) / 1000.0;
 }
 
+/* drive the home switch (PH4, closed = low at x <= 0). The firmware's pull-up write (PORTH bit 4) also raises
+ * this pin's irq, so the level is re-asserted whenever the pin register disagrees with the switch. */
 static void update_home(void)
 {
-    avr_raise_irq(home_pin, act_steps <= 0 ? 0 : 1);
+    uint32_t level = act_steps <= 0 ? 0 : 1;
+    avr_ioport_state_t st;
+    if (avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE('H'), &st) == 0 && ((st.pin >> 4) & 1) != level) {
+        avr_raise_irq(home_pin, !level);
+        avr_raise_irq(home_pin, level);
+    }
 }
 
 static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
@@ -347,6 +354,7 @@ static void mega_setup(void)
 static void mega_poll(void)
 {
     static uint64_t next_tel;
+    update_home();
     if (avr->cycle >= hx_next_cycle) { /* 80 SPS: a new conversion, DOUT low = ready */
         hx_next_cycle += 200000u;
         if (!hx_ready) {
