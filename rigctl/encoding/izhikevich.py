@@ -96,8 +96,7 @@ def _izh_step(vv, uu, sb, xb, g, a, b, c, d, v_peak):  # pragma: no cover
         sb[j] = s
 
 
-@numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)
-def _izh_kernel(x, starts, order, offset, gain, v, u, counts, raster, block, a, b, c, d, v_peak):  # pragma: no cover
+def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, block, a, b, c, d, v_peak):  # pragma: no cover
     """Run eqs. (3)-(5) over trials.
 
     x (N, C) input rows; starts (T+1,) row starts of trials; order (M,) the trials to run (sorted by length, so
@@ -158,8 +157,12 @@ def _izh_kernel(x, starts, order, offset, gain, v, u, counts, raster, block, a, 
                 counts[t, ch] += cnt[k * n_ch + ch]
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _raster_to_times(raster, starts, index_start, n0, dt, out):  # pragma: no cover
+_izh_kernel = numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)(_izh_kernel_py)
+#: the same kernel without the thread pool, for small calls (streaming chunks): no parallel launch overhead
+_izh_kernel_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=False, nogil=True)(_izh_kernel_py)
+
+
+def _raster_to_times_py(raster, starts, index_start, n0, dt, out):  # pragma: no cover
     """Fill flat spike times trial-major, channel-major from a (N, C) raster; index_start (T, C) row starts;
     n0 (T,) int64 sample number of each trial's first row (0 in batch, the samples already seen when streaming)."""
     n_trials = starts.shape[0] - 1
@@ -173,6 +176,10 @@ def _raster_to_times(raster, starts, index_start, n0, dt, out):  # pragma: no co
                 if rn[ch]:
                     out[pos[ch]] = (n - s0 + n0[t]) * dt
                     pos[ch] += 1
+
+
+_raster_to_times = numba.njit(parallel=True, cache=True, nogil=True)(_raster_to_times_py)
+_raster_to_times_serial = numba.njit(parallel=False, cache=False, nogil=True)(_raster_to_times_py)
 
 
 # ---------------------------------------------------------------------------------------------------------- input
@@ -292,8 +299,9 @@ def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, param
     order = order[np.argsort(lengths[order], kind="stable")]
     counts = np.zeros((n_trials, n_ch), dtype=np.int64)
     raster = np.zeros((x.shape[0] if want_raster else 0, n_ch), dtype=np.uint8)
-    _izh_kernel(x, rg.starts, order, offset, g, v, u, counts, raster, int(block), params.a, params.b, params.c,
-                params.d, params.v_peak)
+    kernel = _izh_kernel if order.size > block else _izh_kernel_serial
+    kernel(x, rg.starts, order, offset, g, v, u, counts, raster, int(block), params.a, params.b, params.c,
+           params.d, params.v_peak)
     return counts, (raster if want_raster else None), (v, u)
 
 
@@ -303,7 +311,8 @@ def _trains_from_raster(raster, starts, counts, fs, n0=0) -> SpikeTrains:
     index_start = (index - counts.ravel()).reshape(counts.shape)
     out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
     n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
-    _raster_to_times(raster, starts, np.ascontiguousarray(index_start), n0, 1.0 / fs, out)
+    fill = _raster_to_times if n_trials > BLOCK_TRIALS else _raster_to_times_serial
+    fill(raster, starts, np.ascontiguousarray(index_start), n0, 1.0 / fs, out)
     return SpikeTrains(out, index, counts.shape[1])
 
 
