@@ -156,7 +156,7 @@ class Rig:
                     f"{exc}"
                 ) from exc
             mode = "hil"
-            sim_rig = HilRig()
+            sim_rig = HilRig(config, seed=seed)
         elif sim:
             from rigctl.simulation.rig import SimulatedRig
 
