@@ -430,6 +430,7 @@ class RigModel:
         self._sensitivity = 1.0
         self._time_s = 0.0
         self._loadcell_g = 0.0
+        self._mass_g = 0.0
         self._mass_on_loadcell_g = 0.0  # a calibration mass resting on the load cell (place_mass)
 
     # -- properties ------------------------------------------------------------------------------------------------
@@ -458,7 +459,7 @@ class RigModel:
 
     @property
     def force_g(self) -> float:
-        """Load-cell force (tared), g, with reading noise; the latest reading."""
+        """Load-cell force (tared), g, with reading noise; the latest reading (contact force + any calibration mass)."""
         with self._lock:
             return self._loadcell_g
 
@@ -513,6 +514,19 @@ class RigModel:
         from the next step on (the operator's action in a load-cell calibration)."""
         with self._lock:
             self._mass_on_loadcell_g = float(mass_g)
+
+    def place_mass(self, mass_g: float) -> None:
+        """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it).
+
+        The mass adds to the load-cell reading (``force_g``, ``loadcell_raw``) from now on, not to the contact force
+        the taxels feel. Raises ValueError for a negative mass.
+        """
+        mass = float(mass_g)
+        if mass < 0 or not math.isfinite(mass):
+            raise ValueError(f"mass_g must be >= 0, got {mass_g}")
+        with self._lock:
+            self._loadcell_g += mass - self._mass_g
+            self._mass_g = mass
 
     def home_actuator(self) -> None:
         """Place the actuator at home (0 mm) immediately (the end of a HOMING move)."""
