@@ -49,9 +49,8 @@ def session_summary(path: str | Path) -> dict:
                     n = int(a.get("n_samples", 0))
                     t["samples"] = n
                     t["samples_per_s"] = n / t["duration_s"] if t["duration_s"] > 0 else None
+                    # measured when recorded; None for generated/imported sessions (their clock is synthetic)
                     t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
-                    if t["host_rate_hz"] is None:
-                        t["host_rate_hz"] = _num(s.trial(tid).host_rate_hz())
                     t["dropped_frames"] = int(a.get("dropped_frames", 0))
                     t["crc_errors"] = int(a.get("crc_errors", 0))
                     t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
