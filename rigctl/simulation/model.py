@@ -430,7 +430,6 @@ class RigModel:
         self._sensitivity = 1.0
         self._time_s = 0.0
         self._loadcell_g = 0.0
-        self._mass_g = 0.0
         self._mass_on_loadcell_g = 0.0  # a calibration mass resting on the load cell (place_mass)
 
     # -- properties ------------------------------------------------------------------------------------------------
@@ -510,12 +509,6 @@ class RigModel:
             return self._actuator_mm
 
     def place_mass(self, mass_g: float) -> None:
-        """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it); the load-cell reading adds it
-        from the next step on (the operator's action in a load-cell calibration)."""
-        with self._lock:
-            self._mass_on_loadcell_g = float(mass_g)
-
-    def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it).
 
         The mass adds to the load-cell reading (``force_g``, ``loadcell_raw``) from now on, not to the contact force
@@ -525,8 +518,8 @@ class RigModel:
         if mass < 0 or not math.isfinite(mass):
             raise ValueError(f"mass_g must be >= 0, got {mass_g}")
         with self._lock:
-            self._loadcell_g += mass - self._mass_g
-            self._mass_g = mass
+            self._loadcell_g += mass - self._mass_on_loadcell_g
+            self._mass_on_loadcell_g = mass
 
     def home_actuator(self) -> None:
         """Place the actuator at home (0 mm) immediately (the end of a HOMING move)."""
