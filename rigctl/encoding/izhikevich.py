@@ -75,6 +75,17 @@ TONIC_SPIKING = IzhikevichParams()
 #: no FMA contraction or reassociation: every lane computes exactly the same IEEE operations, so batch, streaming
 #: and a plain Python loop agree bit for bit, whatever lane a channel lands in.
 _FASTMATH = {"nnan", "ninf", "nsz"}
+def _renamed(fn, name):
+    """A copy of ``fn`` under another name, so that numba caches its serial and parallel builds in separate files
+    (numba's cache index is per function name, not per compile flags)."""
+    import types
+
+    new = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
+    new.__qualname__ = name
+    new.__module__ = fn.__module__
+    return new
+
+
 #: trials interleaved per SIMD block: K trials x n_channels lanes (18 channels -> 144 lanes)
 BLOCK_TRIALS = 8
 
@@ -159,7 +170,8 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, block, 
 
 _izh_kernel = numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)(_izh_kernel_py)
 #: the same kernel without the thread pool, for small calls (streaming chunks): no parallel launch overhead
-_izh_kernel_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=False, nogil=True)(_izh_kernel_py)
+_izh_kernel_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=True, nogil=True)(
+    _renamed(_izh_kernel_py, "_izh_kernel_serial_py"))
 
 
 def _raster_to_times_py(raster, starts, index_start, n0, dt, out):  # pragma: no cover
@@ -179,7 +191,8 @@ def _raster_to_times_py(raster, starts, index_start, n0, dt, out):  # pragma: no
 
 
 _raster_to_times = numba.njit(parallel=True, cache=True, nogil=True)(_raster_to_times_py)
-_raster_to_times_serial = numba.njit(parallel=False, cache=False, nogil=True)(_raster_to_times_py)
+_raster_to_times_serial = numba.njit(parallel=False, cache=True, nogil=True)(
+    _renamed(_raster_to_times_py, "_raster_to_times_serial_py"))
 
 
 # ---------------------------------------------------------------------------------------------------------- input
