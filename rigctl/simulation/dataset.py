@@ -247,7 +247,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     seed : int
         Dataset seed; trial ``i`` draws from ``SeedSequence([seed, i])`` (reproducible for any ``workers``).
     workers : int, optional
-        Worker processes (default: all cores); 1 renders in this process.
+        Worker processes (default: all cores, or 1 below 64 trials); 1 renders in this process.
     progress : bool
         Show a tqdm progress bar.
     config : RigConfig, optional
@@ -305,7 +305,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         done = set()
     rows = [r for r in _plan_rows(plan) if r[0] not in done]
 
-    n_workers = workers or os.cpu_count() or 1
+    if workers is None:  # small jobs: starting worker processes costs more than it saves
+        workers = 1 if len(rows) < 64 else (os.cpu_count() or 1)
+    n_workers = int(workers)
     n_workers = max(1, min(int(n_workers), len(rows) or 1))
     lo = np.full(18, np.inf)
     hi = np.full(18, -np.inf)

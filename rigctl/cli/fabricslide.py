@@ -1,0 +1,44 @@
+"""``rigctl import-fabricslide``: the FabricSlide recordings as a session file (1 kHz, 10 bits, labelled)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+#: ../shared/data/fabricslide next to the repository checkout
+DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabricslide"
+
+
+@click.command("import-fabricslide")
+@click.argument("directory", required=False, type=click.Path(file_okay=False))
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
+@click.option("--include-board", is_flag=True, help="Also import the Board10mm recordings (20 mm ridges).")
+@click.option("--pattern", default="*.csv", show_default=True, help="Glob of file names to import.")
+@click.option("--trim", type=click.FloatRange(0, 0.49), default=0.10, show_default=True,
+              help="Fraction of each trial dropped at each end (the arm's acceleration ramps).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, as_json, quiet):
+    """Import FabricSlide CSVs from DIRECTORY (default ../shared/data/fabricslide next to the repo).
+
+    Taxels are resampled to 1 kHz from the timestamps and written as 10-bit counts on channels 0-15 (16-17 absent);
+    texture = a one-character fabric code (root attribute texture_labels), speed = |velocity|, force = the arm's
+    setpoint; the signed velocity is a trial attribute.
+    """
+    from rigctl.storage.fabricslide import import_fabricslide as run
+
+    directory = Path(directory) if directory else DEFAULT_DIR
+    try:
+        summary = run(directory, out, include_board=include_board, pattern=pattern, trim=trim, overwrite=overwrite,
+                      progress=not quiet)
+    except (FileNotFoundError, FileExistsError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    if as_json:
+        click.echo(json.dumps(summary))
+    else:
+        labels = ", ".join(f"{k}={v}" for k, v in summary["labels"].items())
+        click.echo(f"{summary['n_trials']} trials, {summary['samples'] / 1000:.0f} s at 1 kHz -> {summary['path']} "
+                   f"(texture codes: {labels})")
