@@ -118,11 +118,11 @@ class SensorConfig:
     rf_sigma_bottom_mm: float = 2.0
     layer_gain_top: float = 1.0
     layer_gain_bottom: float = 0.55
-    p_half_top_g: float = 55.0
-    p_half_bottom_g: float = 80.0
+    p_half_top_g: float = 90.0
+    p_half_bottom_g: float = 130.0
     height_gain_per_mm: float = 0.9
     row_weights: tuple[float, float, float] = (0.8, 1.0, 0.8)
-    full_scale_counts: float = 1000.0
+    full_scale_counts: float = 1100.0
     gain_spread: float = 0.08
     offset_mean_counts: float = 40.0
     offset_spread_counts: float = 10.0
