@@ -361,7 +361,12 @@ class Rig:
         if st.state == wire.DrumState.FAULT:
             from rigctl.devices.errors import DrumFault
 
-            raise DrumFault(wire.Fault(int(st.faults)), "before pressing")
+            if wire.Fault(int(st.faults)) != wire.Fault.WATCHDOG:
+                raise DrumFault(wire.Fault(int(st.faults)), "before pressing")
+            # the host went quiet between trials (nothing was being recorded): the rig stopped itself safely
+            log.warning("the controller's watchdog tripped between trials; clearing it and pressing again")
+            self.drum.clear_fault()
+            st = self.drum.wait_state([wire.DrumState.IDLE], timeout_s=10.0)
         self.drum.set_force(force_g)
         if st.state not in (wire.DrumState.SEEKING_FORCE, wire.DrumState.FORCE_SETTLED):
             self.drum.press()

@@ -217,7 +217,7 @@ def run_protocol(
                 if on_failure == "stop":
                     break
                 continue
-            writer.write_trial(planned.trial_id, data)
+            _write_trial(writer, planned.trial_id, data, rig, bar)
             summary.recorded += 1
             summary.samples += data.n_samples
             summary.dropped_frames += data.dropped_frames
@@ -238,6 +238,32 @@ def run_protocol(
     summary.complete = len(writer.completed_ids())
     summary.elapsed_s = time.monotonic() - t0
     return summary
+
+
+def _write_trial(writer: SessionWriter, trial_id: int, data: TrialData, rig, bar) -> None:
+    """Write a trial; if a reader holds the file, release the rig (so the controller's watchdog cannot trip while
+    the host waits) and keep trying for up to two minutes, the trial's data kept in memory meanwhile."""
+    from rigctl.storage.journal import FileBusy
+
+    wait_s = writer.wait_s
+    writer.wait_s = 0.5  # shorter than the controller's watchdog (the force loop is still engaged)
+    try:
+        writer.write_trial(trial_id, data)
+        return
+    except FileBusy as exc:
+        msg = f"{exc}; the rig is released while waiting for the session file"
+        if bar is not None:
+            bar.write(msg)
+        rig.recover()
+    finally:
+        writer.wait_s = wait_s
+    for attempt in range(12):
+        try:
+            writer.write_trial(trial_id, data)
+            return
+        except FileBusy:
+            if attempt == 11:
+                raise
 
 
 def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig, resume: bool, overwrite: bool) -> RunSummary:

@@ -301,11 +301,11 @@ def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
 
 
 @contextlib.contextmanager
-def _writing(path: Path, *, durable: bool = True):
+def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0):
     """Open ``path`` for writing through a :class:`rigctl.storage.journal.OverlayFile`: HDF5's writes stay in memory
     and are committed (journaled) to disk only after HDF5 has closed the file cleanly; on an exception nothing
     reaches the disk."""
-    overlay = journal.OverlayFile(path, durable=durable)
+    overlay = journal.OverlayFile(path, durable=durable, wait_s=wait_s)
     try:
         f = h5py.File(overlay, "r+")
         try:
@@ -336,6 +336,8 @@ class SessionWriter:
     def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip", durable: bool = True):
         self.path = Path(path)
         self.durable = durable
+        #: how long a write waits for another process (a reader holding the HDF5 file lock) before FileBusy, s
+        self.wait_s = 10.0
         if compression not in ("gzip", "lzf", None):
             raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
         self.compression = compression
@@ -472,8 +474,8 @@ class SessionWriter:
         Raises
         ------
         SessionError if the trial is not in the plan or is already complete (no trial is recorded twice).
-        OSError if the file cannot be opened for writing (e.g. a :class:`Session` of this process still has it open:
-        HDF5 refuses a second, writable opening within one process).
+        rigctl.storage.journal.FileBusy (an OSError) if another process or a :class:`Session` holds the file open
+        for longer than :attr:`wait_s`; nothing was written then and the call can be repeated.
         """
         i = self._row_index(trial_id)
         if self._plan["status"][i] == TrialStatus.COMPLETE:
@@ -487,7 +489,7 @@ class SessionWriter:
         :meth:`write_trial`; the plan status of each trial is set after its data, then the file is flushed.
         """
         count = 0
-        with _writing(self.path, durable=self.durable) as f:
+        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
             plan_ds = f["plan"]
             for trial_id, data in items:
                 i = self._row_index(trial_id)
@@ -509,7 +511,7 @@ class SessionWriter:
         row = plan_array([_with_id(planned, self.next_trial_id())])[0]
         if row["trial_id"] in self._plan["trial_id"]:
             raise SessionError(f"trial {int(row['trial_id'])} is already in the plan of {self.path}")
-        with _writing(self.path, durable=self.durable) as f:
+        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
             ds = f["plan"]
             ds.resize((len(self._plan) + 1,))
             ds[len(self._plan)] = row
@@ -527,7 +529,7 @@ class SessionWriter:
         i = self._row_index(trial_id)
         if self._plan["status"][i] == TrialStatus.COMPLETE:
             raise SessionError(f"trial {trial_id} is already complete in {self.path}")
-        with _writing(self.path, durable=self.durable) as f:
+        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
             name = trial_group_name(trial_id)
             if name in f:
                 del f[name]
@@ -541,7 +543,7 @@ class SessionWriter:
 
     def set_calibration(self, calibration: Mapping) -> None:
         """Write (replace) the ``/calibration`` block."""
-        with _writing(self.path, durable=self.durable) as f:
+        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
             _write_calibration(f, calibration)
 
     def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:

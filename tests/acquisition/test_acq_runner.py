@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import threading
+import time
 
 import h5py
 import numpy as np
@@ -176,3 +177,34 @@ def test_taxel_normalisation_goes_into_the_config_and_the_next_session(rig, tmp_
         np.testing.assert_array_equal(s.calibration["taxel_max"], norm.taxel_max)
         assert s.calibration["taxel_n_trials"] == 2
         assert "loadcell" in s.rig_config["host_config"]
+
+
+def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_path):
+    out = tmp_path / "busy.h5"
+    readers = []
+
+    def on_trial(ev):
+        if ev.kind == "complete" and ev.index == 0:
+            # a reader (plain h5py: it holds HDF5's file lock) keeps the file open for 1.5 s, over trial 1's write
+            f = h5py.File(out, "r")
+            readers.append(f)
+            threading.Timer(1.5, f.close).start()
+
+    summary = run_protocol(_proto(3, textures='"A"'), out, rig=rig, progress=False, on_trial=on_trial)
+    assert readers and summary.complete == 3 and summary.failed == 0 and not summary.stopped
+    with open_session(out) as s:
+        assert [s.trial(i).n_samples for i in s.completed_ids()] == [300, 300, 300]
+        # while it waited for the file the rig was released: trial 2 had to press from home again
+        assert s.trial(2).attrs["settle_time_s"] > 2 * s.trial(1).attrs["settle_time_s"]
+
+
+def test_a_watchdog_trip_between_trials_is_cleared(rig, tmp_path):
+    out = tmp_path / "wd.h5"
+
+    def on_trial(ev):
+        if ev.kind == "complete" and ev.index == 0:
+            time.sleep(1.5)  # a slow callback: the host is silent with the force engaged, the watchdog trips
+            assert rig.drum.read_status().state == DrumState.FAULT
+
+    summary = run_protocol(_proto(2, textures='"A"'), out, rig=rig, progress=False, on_trial=on_trial)
+    assert summary.complete == 2 and summary.failed == 0
