@@ -498,18 +498,30 @@ class AnalysisTab(QtWidgets.QWidget):
     # export
     # ------------------------------------------------------------------------------------------------------
     def export_figure(self, fmt: str, path: str | None = None) -> str | None:
-        """Save the accuracy-vs-PCs figure as PNG or SVG (pyqtgraph exporters)."""
-        from pyqtgraph.exporters import ImageExporter, SVGExporter
+        """Save the accuracy-vs-PCs figure as PNG (pyqtgraph's exporter, 1600 px wide) or SVG (QSvgGenerator:
+        pyqtgraph 0.14's SVG exporter fails on Qt 6.11 paths)."""
+        from pyqtgraph.exporters import ImageExporter
+        from PySide6 import QtGui
+        from PySide6.QtSvg import QSvgGenerator
 
         if path is None:
             path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export figure", "", f"{fmt.upper()} (*.{fmt})")
             if not path:
                 return None
-        item = self.acc_plot.plotItem
-        exp = ImageExporter(item) if fmt == "png" else SVGExporter(item)
         if fmt == "png":
+            exp = ImageExporter(self.acc_plot.plotItem)
             exp.parameters()["width"] = 1600
-        exp.export(path)
+            exp.export(path)
+        else:
+            size = self.acc_plot.size()
+            gen = QSvgGenerator()
+            gen.setFileName(path)
+            gen.setSize(size)
+            gen.setViewBox(QtCore.QRect(0, 0, size.width(), size.height()))
+            gen.setTitle(self.acc_plot.plotItem.titleLabel.text)
+            painter = QtGui.QPainter(gen)
+            self.acc_plot.render(painter)
+            painter.end()
         self.status.setText(f"saved {path}")
         return path
 
@@ -546,6 +558,3 @@ def _txt(v) -> str:
 def _variant_order(v: str) -> int:
     order = ["original", "speed_scaled", "force_scaled", "speed_force_scaled"]
     return order.index(v) if v in order else len(order)
-
-
-__all__ = ["AnalysisTab", "file_kind", "QtCore"]

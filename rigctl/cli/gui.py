@@ -1,0 +1,40 @@
+"""``rigctl gui``: start the desktop app (PySide6 + pyqtgraph, the ``gui`` extra)."""
+
+from __future__ import annotations
+
+import click
+
+
+@click.command("gui")
+@click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega). Default: simulated rig.")
+@click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno). Default: simulated rig.")
+@click.option("--replay", type=click.Path(exists=True, file_okay=False), default=None,
+              help="Stream the FabricSlide recordings in this directory through the simulated rig.")
+@click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
+              help="Save a PNG of the main window before quitting (with --quit-after).")
+@click.option("--quit-after", type=click.FloatRange(min=0), default=None, help="Quit after this many seconds.")
+@click.option("--tab", type=click.Choice(["control", "live", "protocol", "analysis", "calibration", "classify"]),
+              default=None, help="Tab to show first.")
+@click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")
+def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run):
+    """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
+
+    With no ports it runs on the simulated rig. ``--screenshot PATH --quit-after SECONDS`` renders the main window
+    on the simulated rig and exits (docs, smoke tests).
+    """
+    if (drum_port is None) != (taxel_port is None):
+        raise click.UsageError("give both --drum-port and --taxel-port (or neither for the simulated rig)")
+    if screenshot and quit_after is None:
+        raise click.UsageError("--screenshot needs --quit-after SECONDS")
+    try:
+        from gui.app import main
+    except ImportError as exc:
+        raise click.ClickException(f"the desktop app needs the 'gui' extra (PySide6, pyqtgraph): {exc}") from None
+    argv = []
+    for flag, value in (("--drum-port", drum_port), ("--taxel-port", taxel_port), ("--replay", replay),
+                        ("--screenshot", screenshot), ("--quit-after", quit_after), ("--tab", tab)):
+        if value is not None:
+            argv += [flag, str(value)]
+    if run:
+        argv.append("--run")
+    raise SystemExit(main(argv))

@@ -1,0 +1,130 @@
+"""Analysis tab on a small generated dataset (rigctl.simulation.dataset): browse a trial (traces and rasters), run
+encoding + the paper's analyses in the background process, get the Fig. 3-like plot, Table 1 and confusion matrix,
+export PNG/SVG/CSV, cancel a run; then train a classifier and classify trials in the real-time view."""
+
+from __future__ import annotations
+
+import csv
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from PySide6 import QtCore
+
+PROTOCOL = """
+name = "gui_analysis"
+textures = ["A", "B", "G", "L"]
+speeds_mm_s = [80]
+forces_g = [500]
+trials_per_condition = 4
+duration_s = 0.5
+"""
+
+
+def _wait(qapp, predicate, timeout_s):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        qapp.processEvents()
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return bool(predicate())
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.simulation.dataset import generate_dataset
+
+    path = tmp_path_factory.mktemp("analysis") / "small.h5"
+    generate_dataset(parse_protocol(PROTOCOL), path, workers=1, progress=False)
+    return path
+
+
+def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, dataset, tmp_path):
+    tab = window.analysis
+    window.tabs.setCurrentWidget(tab)
+    tab.open(str(dataset))
+    assert tab.kind == "session"
+    assert tab.trials.rowCount() == 16
+    # browse: a trial's raw readings and its SA/RA rasters
+    tab.trials.selectRow(5)
+    assert _wait(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
+    x, y = tab.trial_curves[0].getData()
+    assert len(x) == 500
+    sx, _ = tab.trial_rasters["sa"][1].getData()
+    assert sx is not None and len(sx) > 0 and sx.max() <= 0.5
+
+    tab.do_extra.setChecked(False)
+    tab.repeats.setValue(2)
+    tab.n_pcs.setValue(6)
+    qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
+    assert tab.cancel_btn.isEnabled()
+    assert _wait(qapp, lambda: tab.results is not None or (tab.job is None and "failed" in tab.status.text()), 120), \
+        tab.status.text()
+    assert tab.results is not None, tab.status.text()
+    res = tab.results
+    assert set(res.curves) == {"textures", "groups"}
+    assert set(res.curves["textures"]) == {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}
+    # the Fig. 3-like plot: one mean curve (plus error bars) per variant
+    curves = tab.acc_plot.plotItem.listDataItems()
+    assert len(curves) == 4
+    cx, cy = curves[0].getData()
+    assert list(cx) == [1, 2, 3, 4, 5, 6]
+    assert np.all((cy >= 0) & (cy <= 100))
+    assert np.allclose(cy, 100 * res.curves[tab.task_combo.currentData()]["original"].mean)
+    # Table 1 grid and a confusion matrix
+    assert tab.table1.rowCount() == 2 and tab.table1.columnCount() == 4
+    assert "+-" in tab.table1.item(0, 0).text()
+    assert tab.conf_img.image is not None and tab.conf_img.image.shape in ((4, 4), (4, 4, 1))
+    # exports
+    png = tab.export_figure("png", str(tmp_path / "fig3.png"))
+    svg = tab.export_figure("svg", str(tmp_path / "fig3.svg"))
+    paths = tab.export_csv_to(str(tmp_path / "curves.csv"))
+    assert (tmp_path / "fig3.png").stat().st_size > 1000 and open(png, "rb").read(4) == b"\x89PNG"
+    assert "<svg" in open(svg).read(2000)
+    rows = list(csv.DictReader(open(paths[0])))
+    assert len(rows) == 2 * 4 * 6
+    t1 = list(csv.DictReader(open(paths[1])))
+    assert {r["variant"] for r in t1} == {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}
+
+
+def test_analysis_can_be_cancelled(window, qapp, qtbot):
+    tab = window.analysis
+    tab.repeats.setValue(20)
+    qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
+    job = tab.job
+    _wait(qapp, lambda: False, 1.0)
+    qtbot.mouseClick(tab.cancel_btn, QtCore.Qt.LeftButton)
+    assert tab.job is None and "cancelled" in tab.status.text()
+    assert not job.proc.is_alive()
+    assert tab.run_btn.isEnabled()
+
+
+def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbot, dataset):
+    from rigctl.storage.session import open_session
+
+    tab = window.analysis
+    assert tab.encoded_path is not None
+    tab.model_variant.setCurrentText("speed_scaled")
+    qtbot.mouseClick(tab.train_btn, QtCore.Qt.LeftButton)
+    view = window.classify
+    assert _wait(qapp, lambda: view.model is not None or (tab.job is None and "failed" in tab.status.text()), 90), \
+        tab.status.text()
+    window.tabs.setCurrentWidget(view)
+    with open_session(dataset) as s:
+        trials = [(i, s.trial(i)) for i in (0, 4, 8, 12)]
+        plan = s.plan
+    for i, data in trials:
+        planned = SimpleNamespace(trial_id=i, texture=plan["texture"][i].decode()
+                                  if isinstance(plan["texture"][i], bytes) else str(plan["texture"][i]),
+                                  speed_mm_s=float(plan["speed_mm_s"][i]))
+        view.on_trial(planned, data)
+    assert _wait(qapp, lambda: len(view.results) == 4, 120), (view.model_label.text(), view._job, len(view._pending), view._job and view._job.is_alive())
+    for k, (tid, truth, pred) in enumerate(view.results):
+        tile = view.grid.itemAt(k).widget()
+        assert tile.property("correct") == (truth == pred)
+        assert ("#2a2" in tile.styleSheet()) == (truth == pred)
+    # trained on these very trials, the classifier gets most of them right
+    assert sum(t == p for _, t, p in view.results) >= 3

@@ -1,0 +1,64 @@
+"""Live view on the simulated rig: taxel traces scroll, the heat map shows the newest readings, and the SA/RA
+rasters are drawn from the streaming encoder's spikes (one curve per population)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def _wait(qapp, predicate, timeout_s):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        qapp.processEvents()
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return bool(predicate())
+
+
+def test_live_traces_heatmap_and_rasters(window, qapp):
+    live = window.live
+    window.tabs.setCurrentWidget(live)
+    window.control.speed.setValue(100.0)
+    window.control.force.setValue(500.0)
+    window.control.command("run")  # texture under the sensor: SA and RA both fire
+    enc = window.encoder
+    assert _wait(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), live.info.text()
+    p0 = live.paints
+    assert _wait(qapp, lambda: live.paints >= p0 + 10, 10)
+    # traces: the last window of every taxel, x = seconds before now
+    x, y = live.curves[0].getData()
+    assert len(x) > 100 and x[-1] == 0.0 and x[0] >= -live.window_s - 1e-9
+    # heat map: the newest readings, top and bottom layer as 3x3
+    cur = live.buffer.current.astype(float)
+    np.testing.assert_array_equal(live.images[0].image, cur[:9].reshape(3, 3))
+    np.testing.assert_array_equal(live.images[1].image, cur[9:].reshape(3, 3))
+    # rasters: one item each, vertical ticks in pairs, taxels 0-17, inside the raster window
+    for key in ("sa", "ra"):
+        rx, ry = live.raster_curves[key].getData()
+        assert rx is not None and len(rx) > 0 and len(rx) % 2 == 0
+        assert np.all(rx[0::2] == rx[1::2])
+        assert rx.min() >= -live.raster_s - 0.05 and rx.max() <= 0.05
+        assert ry.min() >= -0.5 and ry.max() <= 17.5
+    # frame-to-screen latencies are being measured for the benchmark
+    assert live._lat_n > 0
+    window.emergency_stop()
+
+
+def test_cli_screenshot_of_the_running_app(tmp_path, gui_home):
+    """``rigctl gui --screenshot PATH --quit-after S`` renders the main window on the simulated rig and exits."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "shot.png"
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    proc = subprocess.run([sys.executable, "-c", "from rigctl.cli import main; main()", "gui", "--tab", "control", "--screenshot", str(out),
+                           "--quit-after", "6"], env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    from PySide6 import QtGui
+
+    img = QtGui.QImage(str(out))
+    assert img.width() >= 800 and img.height() >= 600
