@@ -57,11 +57,11 @@ def test_three_seconds_of_streaming_lose_nothing(uno):
         cap = stream.end_capture()
         stats = stream.stats
         cursor, live, live_seq, live_t = stream.ring.read_since(0)
-    assert cap.dropped == 0 and cap.crc_errors == 0 and stats.dropped == 0 and stats.crc_errors == 0
+    assert cap.dropped == 0 and cap.crc_errors == 0 and stats.dropped == 0 and stats.crc_errors == 0, stats
     n = len(cap)
     assert n >= 3000
-    assert 2.85 <= elapsed <= 3.3  # 1000 frames/s, paced to real time (slack for a loaded CI machine)
-    assert 970 <= stats.frames_per_s <= 1030
+    assert 2.85 <= elapsed <= 3.5, elapsed  # 1000 frames/s, paced to real time (slack for a loaded machine)
+    assert 950 <= stats.frames_per_s <= 1050, stats
     assert np.all(np.diff(cap.seq.astype(np.int64)) % 65536 == 1)  # consecutive, none lost
     # content: the board's sample k holds (k*7 + channel) % 1024, so consecutive rows differ by 7
     diffs = (cap.samples[1:].astype(np.int64) - cap.samples[:-1].astype(np.int64)) % 1024
@@ -104,6 +104,7 @@ def test_unplug_is_reported_and_recovered(uno):
         stream.start()
         time.sleep(0.3)
         before = stream.stats.frames
+        t_unplug = time.monotonic()
         uno.unplug()
         t0 = time.monotonic()
         while stream.stats.connected and time.monotonic() - t0 < 2:
@@ -112,15 +113,15 @@ def test_unplug_is_reported_and_recovered(uno):
         assert len(errors) == 1 and isinstance(errors[0], serial.SerialException)
         time.sleep(0.3)
         uno.replug()
-        t0 = time.monotonic()
+        t_replug = t0 = time.monotonic()
         while stream.stats.frames < before + 300 and time.monotonic() - t0 < 5:
             time.sleep(0.05)
         stats = stream.stats
         assert stats.connected and stats.reconnects == 1
         assert stats.frames >= before + 300  # streaming again without being asked
         assert stats.frames_per_s > 900
-        # the frames lost while unplugged are accounted for (estimated from the time gap)
-        assert 500 <= stats.dropped <= 2000
+        # the frames lost while unplugged are accounted for (estimated from the time gap of the receive times)
+        assert (t_replug - t_unplug) * 1000 - 50 <= stats.dropped <= (time.monotonic() - t_unplug) * 1000
         stream.stop()
         time.sleep(0.1)
         assert stream.identify()["channels"] == 18
