@@ -1,0 +1,154 @@
+"""render_trial (durations, traces, ramps) and generate_dataset (a readable session with the plan; reproducible for
+any number of workers); the `rigctl sim dataset` command."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.simulation.dataset import RampProfile, generate_dataset, render_trial
+from rigctl.simulation.model import RigConfig
+from rigctl.storage.session import TrialStatus, open_session
+
+PROTOCOL = """
+name = "sim-test"
+textures = ["A", "C", "L"]
+speeds_mm_s = [40, 120]
+forces_g = [250, 1000]
+trials_per_condition = 2
+travel_mm = 240
+"""
+
+
+@pytest.fixture
+def protocol_path(tmp_path):
+    p = tmp_path / "sim_test.toml"
+    p.write_text(PROTOCOL)
+    return p
+
+
+@pytest.mark.parametrize("speed,seconds", [(40, 6.0), (60, 4.0), (80, 3.0), (100, 2.4), (120, 2.0)])
+def test_trial_durations_follow_240_mm_of_travel(speed, seconds):
+    cfg = RigConfig()
+    t = render_trial("B", speed, 500, config=cfg, rng=np.random.default_rng(0))
+    assert t.n_samples == round(seconds * 1000)
+    assert t.taxels.shape == (t.n_samples, 18) and t.taxels.dtype == np.uint16
+    np.testing.assert_array_equal(t.seq, np.arange(t.n_samples) % 65536)
+    np.testing.assert_allclose(t.speed_mm_s, speed)
+    assert abs(np.mean(t.force_g) - 500) < 25
+    assert t.force_time_s[-1] < seconds and t.speed_time_s.shape == t.speed_mm_s.shape
+    # the index pulse appears once per revolution of the drum
+    circ = cfg.drum.circumference_mm
+    start = t.attrs["start_phase_mm"]
+    revs = int(np.floor((start + 240.0) / circ) - np.floor(start / circ))
+    assert int((t.flags & 1).sum()) == revs
+
+
+def test_ramp_profile_covers_the_travel():
+    prof = RampProfile(40.0, 120.0)
+    assert prof.duration_for_travel(240) == pytest.approx(3.0)
+    t = render_trial("L", 80, 500, rng=np.random.default_rng(1), profile=prof)
+    assert t.n_samples == 3000
+    assert t.speed_mm_s[0] == pytest.approx(40, abs=0.1) and t.speed_mm_s[-1] > 115
+    assert np.all(np.diff(t.speed_mm_s) >= 0)
+    # the texture's temporal frequency rises along the ramp (time contracts as the drum speeds up)
+    x = t.taxels[:, 4].astype(float)
+    early, late = x[:1000] - x[:1000].mean(), x[-1000:] - x[-1000:].mean()
+    crossings = lambda s: int(np.sum(np.diff(np.sign(s)) != 0))  # noqa: E731
+    assert crossings(late) > 1.5 * crossings(early)
+    # a ramp with a held end: 1 s ramp 40 -> 120 (80 mm), then 160 mm at 120 mm/s
+    assert RampProfile(40.0, 120.0, 1.0).duration_for_travel(240) == pytest.approx(1 + 160 / 120)
+
+
+def test_render_trial_is_seeded_and_varies_between_trials():
+    a = render_trial("D", 80, 500, rng=np.random.default_rng(7))
+    b = render_trial("D", 80, 500, rng=np.random.default_rng(7))
+    c = render_trial("D", 80, 500, rng=np.random.default_rng(8))
+    np.testing.assert_array_equal(a.taxels, b.taxels)
+    assert a.attrs["start_phase_mm"] != c.attrs["start_phase_mm"]
+    # trial-to-trial variability is there, but the texture dominates: same-texture trials are closer in their
+    # per-taxel spectra than trials of another texture
+    other = render_trial("H", 80, 500, rng=np.random.default_rng(9))
+
+    def spectrum(t):
+        return np.abs(np.fft.rfft(t.taxels[:, :9].astype(float) - t.taxels[:, :9].mean(0), axis=0))[:400].ravel()
+
+    assert np.linalg.norm(spectrum(a) - spectrum(c)) < 0.5 * np.linalg.norm(spectrum(a) - spectrum(other))
+
+
+def test_render_trial_rejects_bad_input():
+    with pytest.raises(ValueError):
+        render_trial("A", 0, 500, rng=np.random.default_rng())
+    with pytest.raises(ValueError):
+        render_trial("A", 80, -1, rng=np.random.default_rng())
+    with pytest.raises(KeyError):
+        render_trial("Z", 80, 500, rng=np.random.default_rng())
+
+
+def test_dataset_dynamic_range_suits_sa_encoding():
+    """Normalised 0-1 per taxel over a dataset (the paper's normalisation), the readings use the range."""
+    rng = np.random.default_rng(3)
+    trials = [render_trial(tex, v, f, rng=rng) for tex in "AHM" for v in (40, 120) for f in (250, 1000)]
+    x = np.concatenate([t.taxels for t in trials]).astype(float)
+    assert (x == 1023).mean() < 1e-3 and (x == 0).mean() < 1e-3  # no ADC clipping to speak of
+    norm = (x - x.min(0)) / (x.max(0) - x.min(0))
+    p5, p95 = np.percentile(norm, [5, 95], axis=0)
+    assert np.all(p95 - p5 > 0.3)  # force and texture spread the readings over the range, per taxel
+
+
+def test_generate_dataset_writes_a_readable_session(protocol_path, tmp_path):
+    out = tmp_path / "ds.h5"
+    summary = generate_dataset(protocol_path, out, seed=4, workers=1, progress=False)
+    assert summary["n_trials"] == 24 and summary["samples"] == 12 * 6000 + 12 * 2000
+    with open_session(out) as s:
+        assert s.kind == "simulated-dataset"
+        assert len(s.plan) == 24 and np.all(s.plan["status"] == TrialStatus.COMPLETE)
+        assert sorted(set(s.plan["texture"])) == ["A", "C", "L"]
+        assert RigConfig.from_dict(s.rig_config) == RigConfig()
+        for row in s.plan[::5]:
+            t = s.trial(int(row["trial_id"]))
+            assert t.n_samples == round(row["duration_s"] * 1000) == round(240 / row["speed_mm_s"] * 1000)
+            assert t.attrs["texture"] == row["texture"] and t.attrs["force_g"] == row["force_g"]
+            assert abs(t.force_g.mean() - row["force_g"]) < 0.05 * row["force_g"]
+        cal = s.calibration
+        assert cal is not None and np.all(cal["taxel_min"] < cal["taxel_max"])
+        first = s.trial(0).taxels
+    # the same seed gives the same file content; a reduced trial count is a prefix-free new plan
+    again = generate_dataset(protocol_path, tmp_path / "again.h5", seed=4, workers=1, progress=False,
+                             trials_per_condition=1)
+    assert again["n_trials"] == 12
+    with open_session(tmp_path / "again.h5") as s:
+        assert len(s.plan) == 12
+    with pytest.raises(FileExistsError):
+        generate_dataset(protocol_path, out, seed=4, workers=1, progress=False)
+    summary = generate_dataset(protocol_path, out, seed=4, workers=1, progress=False, overwrite=True)
+    with open_session(out) as s:
+        np.testing.assert_array_equal(s.trial(0).taxels, first)
+
+
+def test_generate_dataset_same_output_with_two_workers(protocol_path, tmp_path):
+    generate_dataset(protocol_path, tmp_path / "one.h5", seed=11, workers=1, progress=False,
+                     trials_per_condition=1)
+    generate_dataset(protocol_path, tmp_path / "two.h5", seed=11, workers=2, progress=False,
+                     trials_per_condition=1)
+    with open_session(tmp_path / "one.h5") as a, open_session(tmp_path / "two.h5") as b:
+        assert a.completed_ids() == b.completed_ids()
+        for tid in a.completed_ids():
+            np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
+
+
+def test_cli_sim_dataset(protocol_path, tmp_path):
+    from rigctl.cli import main
+
+    out = tmp_path / "cli.h5"
+    result = CliRunner().invoke(main, ["sim", "dataset", str(protocol_path), "--out", str(out),
+                                       "--trials-per-condition", "1", "--seed", "2", "--workers", "1", "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert "12 trials" in result.output and "real time" in result.output
+    with open_session(out) as s:
+        assert len(s.completed_ids()) == 12
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\ntextures = ["Z"]\nforces_g = [500]\nspeeds_mm_s = [80]\n')
+    result = CliRunner().invoke(main, ["sim", "dataset", str(bad), "--out", str(tmp_path / "bad.h5")])
+    assert result.exit_code != 0 and "textures" in result.output

@@ -1,0 +1,181 @@
+"""Physical invariants of the rig model: speed dilates time, force scales amplitude non-linearly, the bottom layer is
+smoother and weaker, 10-bit range, seeded reproducibility; drum, actuator, load cell and a PI force loop."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from rigctl.simulation.model import (
+    FORCE_PI_KI_MM_S_PER_G_S,
+    FORCE_PI_KP_MM_S_PER_G,
+    RigConfig,
+    RigModel,
+    SensorConfig,
+    SensorModel,
+    simulate_force_loop,
+)
+from rigctl.simulation.textures import TEXTURES
+
+TOP_CENTRE, BOTTOM_CENTRE = 4, 13
+
+
+def _trace(sensor, letter, speed, force, seed=0, travel=240.0):
+    n = int(round(travel / speed * 1000))
+    pos = 3.0 + np.arange(1, n + 1) * speed / 1000
+    return sensor.render(letter, pos, force, np.random.default_rng(seed))
+
+
+def _dominant_hz(x):
+    x = x.astype(float) - x.mean()
+    spec = np.abs(np.fft.rfft(x * np.hanning(x.size)))
+    freq = np.fft.rfftfreq(x.size, d=1e-3)
+    spec[freq < 1.0] = 0
+    return freq[np.argmax(spec)]
+
+
+def test_range_dtype_and_seeded_reproducibility():
+    sensor = SensorModel()
+    a = _trace(sensor, "M", 80, 1000, seed=1)
+    b = _trace(sensor, "M", 80, 1000, seed=1)
+    c = _trace(sensor, "M", 80, 1000, seed=2)
+    assert a.dtype == np.uint16 and a.shape == (3000, 18)
+    assert a.max() <= 1023
+    np.testing.assert_array_equal(a, b)
+    assert np.any(a != c)
+    # another sensor built from the same config has the same calibration spread
+    np.testing.assert_array_equal(SensorModel().gain, sensor.gain)
+
+
+@pytest.mark.parametrize("letter", ["B", "H", "L"])
+def test_speed_dilates_time_spatial_period_unchanged(letter):
+    sensor = SensorModel()
+    period = TEXTURES[letter].period_mm
+    f40 = _dominant_hz(_trace(sensor, letter, 40, 500)[:, TOP_CENTRE])
+    f120 = _dominant_hz(_trace(sensor, letter, 120, 500)[:, TOP_CENTRE])
+    assert f120 / f40 == pytest.approx(3.0, rel=0.05)  # temporal frequency scales with speed
+    assert 40 / f40 == pytest.approx(period, rel=0.05)  # the spatial period is the texture's, at both speeds
+    assert 120 / f120 == pytest.approx(period, rel=0.05)
+
+
+def test_force_changes_amplitude_non_linearly():
+    sensor = SensorModel()
+    off = sensor.offset[:9]
+    levels = {f: (_trace(sensor, "A", 80, f)[:, :9].mean(axis=0) - off).mean() for f in (250, 500, 1000)}
+    assert levels[250] < levels[500] < levels[1000]
+    # doubling the force does not double the signal (saturating piezoresistive response)
+    assert 1.1 < levels[500] / levels[250] < 1.85
+    assert 1.1 < levels[1000] / levels[500] < 1.85
+    # the texture modulation grows with force, sub-linearly
+    amp = {f: _trace(sensor, "H", 80, f)[:, TOP_CENTRE].astype(float).std() for f in (250, 500, 1000)}
+    assert amp[250] < amp[500] < amp[1000] < 2 * amp[500]
+
+
+def test_bottom_layer_smoother_and_weaker():
+    cfg = SensorConfig(noise_counts=0.0, gain_spread=0.0, offset_spread_counts=0.0)
+    sensor = SensorModel(cfg)
+    x = _trace(sensor, "G", 80, 500).astype(float)  # sharp-edged rectangular ridges
+    top, bottom = x[:, :9] - cfg.offset_mean_counts, x[:, 9:] - cfg.offset_mean_counts
+    assert bottom.mean() < 0.8 * top.mean()  # weaker
+    rel_mod_top = top.std(axis=0) / top.mean(axis=0)
+    rel_mod_bottom = bottom.std(axis=0) / bottom.mean(axis=0)
+    assert np.all(rel_mod_bottom < 0.5 * rel_mod_top)  # larger receptive field: the ridges are smoothed
+    # edges: the largest sample-to-sample step is much smaller on the bottom layer
+    assert np.abs(np.diff(bottom, axis=0)).max() < 0.5 * np.abs(np.diff(top, axis=0)).max()
+
+
+def test_rows_see_the_same_surface_one_pitch_apart():
+    cfg = SensorConfig(noise_counts=0.0, gain_spread=0.0, offset_spread_counts=0.0, row_weights=(1.0, 1.0, 1.0))
+    sensor = SensorModel(cfg)
+    speed = 50.0
+    x = _trace(sensor, "L", speed, 500).astype(int)
+    lag = int(round(cfg.pitch_mm / speed * 1000))  # row 1 sees what row 0 saw pitch/speed earlier
+    np.testing.assert_allclose(x[lag:, 3], x[:-lag, 0], atol=1)
+    np.testing.assert_array_equal(x[:, 0], x[:, 2])  # ridges run across the drum: columns agree
+
+
+def test_config_json_round_trip():
+    cfg = RigConfig()
+    cfg.sensor.noise_counts = 1.25
+    again = RigConfig.from_json(json.dumps(cfg.to_dict()))
+    assert again == cfg
+    with pytest.raises(TypeError, match="nope"):
+        RigConfig.from_dict({"drum": {"nope": 1}})
+
+
+def test_drum_acceleration_limit_and_index_pulse():
+    rig = RigModel(seed=3)
+    d = rig.config.drum
+    rate = 120 * d.steps_per_mm
+    rig.advance(100, drum_step_rate_hz=rate, actuator_velocity_mm_s=0)
+    assert rig.drum_speed_mm_s == pytest.approx(d.max_accel_mm_s2 * 0.1, rel=1e-6)
+    rig.advance(200, drum_step_rate_hz=rate, actuator_velocity_mm_s=0)
+    assert rig.drum_speed_mm_s == pytest.approx(120.0)
+    rev0, pos0 = rig.revolutions, rig.position_mm
+    total_sync = 0
+    for _ in range(10):
+        _, sync = rig.advance(1000, drum_step_rate_hz=rate, actuator_velocity_mm_s=0)
+        total_sync += int(sync.sum())
+    assert rig.position_mm - pos0 == pytest.approx(1200.0, rel=1e-9)
+    assert total_sync == rig.revolutions - rev0 == math.floor(rig.position_mm / d.circumference_mm) - math.floor(
+        pos0 / d.circumference_mm)
+    assert 0 <= rig.angle_deg < 360
+    assert rig.angle_deg == pytest.approx((rig.position_mm % d.circumference_mm) / d.circumference_mm * 360)
+
+
+def test_actuator_spring_and_load_cell():
+    rig = RigModel(seed=5)
+    m = rig.config.mechanics
+    samples, _ = rig.advance(200, drum_step_rate_hz=0, actuator_velocity_mm_s=2.0)  # 0.4 mm: no contact yet
+    assert rig.actuator_mm == pytest.approx(0.4)
+    assert abs(rig.force_g) < 5 and samples[:, :9].mean() < 100
+    rig.advance(2000, drum_step_rate_hz=0, actuator_velocity_mm_s=2.0)  # 4.4 mm: 1.4 mm past contact
+    expected = m.contact_stiffness_g_per_mm * (4.4 - m.contact_gap_mm)
+    assert rig.contact_force_g == pytest.approx(expected, abs=m.contact_stiffness_g_per_mm * 0.03)
+    assert rig.force_g == pytest.approx(rig.contact_force_g, abs=5 * m.loadcell_noise_g)
+    raw_g = (rig.loadcell_raw - m.loadcell_offset_counts) / m.loadcell_counts_per_g
+    assert raw_g == pytest.approx(rig.force_g, abs=0.01)
+    pressed, _ = rig.advance(50, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
+    assert pressed[:, :9].mean() > samples[:, :9].mean() + 150
+    rig.place_mass(200)
+    assert rig.force_g == pytest.approx(rig.contact_force_g + 200, abs=5 * m.loadcell_noise_g)
+    rig.advance(5, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
+    assert rig.force_g == pytest.approx(rig.contact_force_g + 200, abs=5 * m.loadcell_noise_g)
+
+
+@pytest.mark.parametrize("setpoint", [250.0, 500.0, 1000.0])
+def test_pi_force_loop_settles_in_a_realistic_time(setpoint):
+    result = simulate_force_loop(setpoint, kp=FORCE_PI_KP_MM_S_PER_G, ki=FORCE_PI_KI_MM_S_PER_G_S, duration_s=4.0)
+    assert 0.5 <= result["settle_s"] <= 2.0
+    assert abs(result["force_g"][-50:].mean() - setpoint) < 3.0
+    assert result["overshoot_g"] < 0.1 * setpoint
+
+
+def test_texture_setter_and_threaded_advance():
+    import threading
+
+    rig = RigModel(seed=9)
+    rig.set_texture("n")
+    assert rig.texture.letter == "N"
+    with pytest.raises(KeyError):
+        rig.set_texture("Z")
+    errors = []
+
+    def run():
+        try:
+            for _ in range(50):
+                rig.advance(3, drum_step_rate_hz=500, actuator_velocity_mm_s=1.0)
+        except Exception as exc:  # pragma: no cover - a failure is reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert rig.time_s == pytest.approx(3 * 50 * 3 * 1e-3)
+    assert rig.actuator_mm == pytest.approx(0.45)

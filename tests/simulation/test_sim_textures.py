@@ -1,0 +1,48 @@
+"""The paper's 16 textures (Fig. 2B): groups, variants, and distinct height profiles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rigctl.simulation.textures import LETTERS, TEXTURE_GROUPS, TEXTURES, VARIANTS, get_texture
+
+
+def test_letters_groups_and_variant_order():
+    assert LETTERS == "ABCDEFGHIJKLMNOP"
+    assert TEXTURE_GROUPS == ("smooth", "circular ridges", "rectangular ridges", "waves")
+    assert TEXTURES["A"].group == "smooth" and TEXTURES["A"].height_mm == 0
+    for first, group in (("B", "circular ridges"), ("G", "rectangular ridges"), ("L", "waves")):
+        block = [TEXTURES[chr(ord(first) + i)] for i in range(5)]
+        assert [t.group for t in block] == [group] * 5
+        assert [t.variant for t in block] == list(VARIANTS)
+        base, dh, ds, hh, hs = block
+        assert dh.height_mm == pytest.approx(2 * base.height_mm) and dh.period_mm == base.period_mm
+        assert ds.period_mm == pytest.approx(2 * base.period_mm) and ds.height_mm == base.height_mm
+        assert hh.height_mm == pytest.approx(base.height_mm / 2)
+        assert hs.period_mm == pytest.approx(base.period_mm / 2)
+        assert 0.3 <= base.height_mm <= 1.2 and 3 <= base.period_mm <= 8  # plausible printed plates
+
+
+def test_height_profiles_are_distinct_and_bounded():
+    x = np.linspace(0, 48, 4801)
+    profiles = {}
+    for letter, tex in TEXTURES.items():
+        h = tex.height(x)
+        assert h.shape == x.shape
+        assert h.min() >= 0 and h.max() <= tex.height_mm + 1e-12
+        if letter != "A":
+            assert h.max() == pytest.approx(tex.height_mm, rel=0.05)
+            # periodic with the texture's period
+            np.testing.assert_allclose(tex.height(x + tex.period_mm), h, atol=1e-9)
+        profiles[letter] = h
+    letters = list(profiles)
+    for i, a in enumerate(letters):
+        for b in letters[i + 1:]:
+            assert np.abs(profiles[a] - profiles[b]).max() > 0.1, (a, b)
+
+
+def test_get_texture_rejects_unknown():
+    assert get_texture("b") is TEXTURES["B"]
+    with pytest.raises(KeyError, match="ABCDEFGHIJKLMNOP"):
+        get_texture("Q")
