@@ -3,8 +3,7 @@
  *
  *   rigctl_simavr --board uno|mega [options] FIRMWARE.elf
  *
- * Common: UART0 is bridged to a pty (simavr's uart_pty); the line "PTY /dev/pts/N" on stdout names it (never
- * the shared /tmp/simavr-uart0 symlink). The core is paced to the wall clock (nanosleep on avr->cycle) unless
+ * Common: UART0 is bridged to a pty (our own bridge, below); the line "PTY /dev/pts/N" on stdout names it. The core is paced to the wall clock (nanosleep on avr->cycle) unless
  * --no-pace. The harness exits when its stdin closes, on "quit", or when its parent dies (PR_SET_PDEATHSIG).
  * --reset-on-open emulates the Arduino's DTR auto-reset: each open() of the pty by a host (inotify IN_OPEN)
  * holds the core in reset for --boot-ms (the bootloader's wait) and restarts the firmware.
@@ -29,6 +28,8 @@
 #include <fcntl.h>
 #include <math.h>
 #include <poll.h>
+#include <pty.h>
+#include <termios.h>
 #include <pthread.h>
 #include <signal.h>
 #include <stdatomic.h>
@@ -47,15 +48,104 @@
 #include "sim_avr.h"
 #include "sim_elf.h"
 #include "sim_irq.h"
-#include "uart_pty.h"
 
 #include "../common/rigctl_wire.h"
 
 #define N_TAXELS RIGCTL_N_TAXELS
 
 static avr_t *avr;
-static uart_pty_t uart_pty;
 static int is_uno;
+
+/* ================================ UART0 <-> pty bridge ================================
+ * Our own bridge instead of simavr's uart_pty: uart_pty keeps 512-byte buffers in a separate thread and drops
+ * bytes when that thread or the host falls behind for ~12 ms (a loaded 2-core CI machine does). Here the
+ * firmware's bytes go into a 4 MiB ring drained by non-blocking writes from the simulation thread, and host
+ * bytes are fed to the UART only while its receive FIFO has room (simavr's XON/XOFF irqs). */
+#define TX_RING_SIZE (1u << 22)
+static uint8_t *tx_ring;
+static size_t tx_head, tx_tail; /* bytes [tx_tail, tx_head) wait for the host */
+static uint64_t tx_lost;
+static int pty_master = -1, pty_slave = -1;
+static char pty_name[128];
+static int uart_xon = 1;
+static uint8_t rx_buf[4096];
+static size_t rx_len, rx_pos;
+static avr_irq_t *uart_in_irq;
+
+static void uart_out_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    size_t next = (tx_head + 1) & (TX_RING_SIZE - 1);
+    if (next == tx_tail) {
+        tx_lost++;
+        return;
+    }
+    tx_ring[tx_head] = (uint8_t)value;
+    tx_head = next;
+}
+
+static void uart_xon_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value) uart_xon = 1;
+}
+
+static void uart_xoff_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value) uart_xon = 0;
+}
+
+static int bridge_open(void)
+{
+    struct termios tio;
+    if (openpty(&pty_master, &pty_slave, pty_name, NULL, NULL) < 0) return -1;
+    tcgetattr(pty_slave, &tio);
+    cfmakeraw(&tio);
+    tcsetattr(pty_slave, TCSANOW, &tio);
+    fcntl(pty_master, F_SETFL, fcntl(pty_master, F_GETFL) | O_NONBLOCK);
+    fcntl(pty_master, F_SETFD, FD_CLOEXEC);
+    fcntl(pty_slave, F_SETFD, FD_CLOEXEC);
+    tx_ring = malloc(TX_RING_SIZE);
+    /* the firmware's UART output is binary: no stdio dump, and no usleep when it polls UCSR0A */
+    uint32_t flags = 0;
+    avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
+    flags &= ~(AVR_UART_FLAG_STDIO | AVR_UART_FLAG_POOL_SLEEP);
+    avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT), uart_out_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XON), uart_xon_hook, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XOFF), uart_xoff_hook, NULL);
+    uart_in_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
+    return tx_ring ? 0 : -1;
+}
+
+/* move bytes both ways; called from the simulation loop every 0.1 ms of simulated time */
+static void bridge_poll(void)
+{
+    while (tx_tail != tx_head) {
+        size_t n = tx_head > tx_tail ? tx_head - tx_tail : TX_RING_SIZE - tx_tail;
+        ssize_t w = write(pty_master, tx_ring + tx_tail, n);
+        if (w <= 0) break; /* EAGAIN: the host is behind; keep the bytes */
+        tx_tail = (tx_tail + (size_t)w) & (TX_RING_SIZE - 1);
+    }
+    if (rx_pos == rx_len) {
+        ssize_t r = read(pty_master, rx_buf, sizeof rx_buf);
+        rx_pos = 0;
+        rx_len = r > 0 ? (size_t)r : 0;
+    }
+    while (uart_xon && rx_pos < rx_len) avr_raise_irq(uart_in_irq, rx_buf[rx_pos++]);
+}
+
+/* a (DTR) reset: whatever the old firmware had not yet sent and host bytes in flight are dropped */
+static void bridge_reset(void)
+{
+    tx_tail = tx_head;
+    rx_pos = rx_len = 0;
+    uart_xon = 1;
+}
 
 /* ---- options ---- */
 static int opt_pace = 1;
@@ -440,16 +530,11 @@ int main(int argc, char **argv)
     if (is_uno) uno_setup();
     else mega_setup();
 
-    uart_pty_init(avr, &uart_pty);
-    uart_pty_connect(&uart_pty, '0');
-    {
-        /* the firmware may poll UCSR0A (text replies): no usleep per poll, which would stall the clock */
-        uint32_t flags = 0;
-        avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
-        flags &= ~AVR_UART_FLAG_POOL_SLEEP;
-        avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    if (bridge_open()) {
+        fprintf(stderr, "cannot create the pty: %s\n", strerror(errno));
+        return 1;
     }
-    const char *pty = uart_pty.port[0].slavename;
+    const char *pty = pty_name;
     int ino = -1;
     if (opt_reset_on_open) {
         ino = inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
@@ -474,6 +559,7 @@ int main(int argc, char **argv)
             if (now_s() >= hold_until) {
                 hold_until = 0.0;
                 avr_reset(avr);
+                bridge_reset();
                 if (is_uno) {
                     scan_count = 0;
                     avr_raise_irq(sync_pin, 0);
@@ -491,6 +577,7 @@ int main(int argc, char **argv)
         }
         if (avr->cycle < next_check) continue;
         next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
+        bridge_poll();
         if (is_uno) uno_poll();
         else mega_poll();
         if (atomic_load(&quit_requested)) break;
@@ -515,7 +602,7 @@ int main(int argc, char **argv)
             }
         }
     }
-    printf("EXIT t=%.6f\n", sim_s());
+    printf("EXIT t=%.6f lost_tx_bytes=%llu\n", sim_s(), (unsigned long long)tx_lost);
     fflush(stdout);
-    _exit(0); /* uart_pty_stop() can hang: the process exit tears its thread down */
+    _exit(0); /* the stdin reader thread may still block in fgets */
 }
