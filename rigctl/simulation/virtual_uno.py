@@ -58,6 +58,10 @@ class VirtualUno:
         self._drop_left = 0
         self.frames_sent = 0
         self.frames_dropped = 0
+        #: samples handed to :meth:`tick` so far, and their count when the last START took effect: the frame with
+        #: sequence number k of that stream carries sample ``stream_start_sample + k`` of the source
+        self.samples_ticked = 0
+        self.stream_start_sample: int | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -107,6 +111,8 @@ class VirtualUno:
         sync_in : (n,) bool, the drum index pulse seen in each millisecond (sets the SYNC_IN flag), or None.
         """
         with self._lock:
+            base = self.samples_ticked
+            self.samples_ticked += len(samples)
             port = self.port
             if not port.plugged:
                 return
@@ -128,6 +134,7 @@ class VirtualUno:
             for byte in commands:
                 c = bytes([byte])
                 if c == wire.UnoCommand.START.value:
+                    self.stream_start_sample = base
                     self.streaming = True
                     self.seq = 0
                     self._first = True
