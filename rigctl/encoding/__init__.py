@@ -1,1 +1,16 @@
-"""rigctl.encoding"""
+"""rigctl.encoding: the paper's neuromorphic encoding (numpy/numba; no device code).
+
+Modules, one job each (data flows top to bottom):
+
+- :mod:`~rigctl.encoding.normalise` - per-taxel 0-1 normalisation over the whole dataset (``TaxelRange``).
+- :mod:`~rigctl.encoding.filters` - the RA input: 20 Hz Butterworth low-pass + derivative (``ra_input``, ``RAFilter``).
+- :mod:`~rigctl.encoding.izhikevich` - eqs. (3)-(5): ``encode_sa``, ``encode_ra``, ``encode_trials``,
+  ``StreamingEncoder``, the numba kernel (``run_izhikevich``).
+- :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index, HDF5 I/O.
+- :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceScaler``).
+- :mod:`~rigctl.encoding.speed` - eq. (2): ``scale_spike_times``, ``incremental_scale`` (100 ms batches).
+- :mod:`~rigctl.encoding.features` - SR/SC in 100 ms windows (720 / 2160 features; 180 real-time).
+- :mod:`~rigctl.encoding.pipeline` - ``encode_session``: a session file -> the encoded file (Dask optional).
+
+Submodules are imported on use (numba compiles on first call; compiled kernels are cached on disk).
+"""

@@ -92,7 +92,7 @@ def test_spikes_and_features_agree(encoded):
 def test_dask_local_cluster_gives_the_same_file(session, encoded, tmp_path):
     pytest.importorskip("dask.distributed")
     out = tmp_path / "dask.h5"
-    encode_session(session, out, batch_trials=7, scheduler="local", workers=2, progress=False)
+    encode_session(session, out, batch_trials=7, scheduler="local", workers=1, progress=False)
     with h5py.File(out, "r") as a, h5py.File(encoded, "r") as b:
         for v in b["features"]:
             np.testing.assert_array_equal(a["features"][v][()], b["features"][v][()])
