@@ -1,0 +1,113 @@
+"""FabricSlide loader, 1 kHz resampling and the importer, on the real files (../shared/data/fabricslide)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.storage.fabricslide import (
+    CHANNEL_PRESENT,
+    load_fabricslide,
+    parse_name,
+    read_recording,
+    resample_to_1khz,
+    to_adc,
+)
+from rigctl.storage.session import open_session
+
+
+def _reference_resample(ts, x):
+    """Straightforward per-sample reference: for each ms, the bracketing samples and the linear formula."""
+    grid = np.arange(ts[0], ts[-1] + 1e-9, 1.0)
+    out = np.empty((grid.size, x.shape[1]))
+    j = 0
+    for i, t in enumerate(grid):
+        while j + 1 < ts.size - 1 and ts[j + 1] <= t:
+            j += 1
+        w = (t - ts[j]) / (ts[j + 1] - ts[j])
+        out[i] = x[j] * (1 - w) + x[j + 1] * w
+    return grid, out
+
+
+def test_parse_names():
+    assert parse_name("BeigeCotton_F120_V-100mmps_2.csv") == {
+        "label": "BeigeCotton", "force_setpoint": 120.0, "velocity_mm_s": -100.0, "repeat": 2}
+    assert parse_name("Board10mm_F150_V-5mmps_0.csv")["velocity_mm_s"] == -5.0
+    with pytest.raises(ValueError, match="not a FabricSlide file name"):
+        parse_name("notes.csv")
+
+
+def test_load_all_real_recordings(fabricslide_dir):
+    recs = load_fabricslide(fabricslide_dir)
+    assert len(recs) == 720
+    assert {r.label for r in recs} == {"BeigeCotton", "BrownCotton", "Canvas", "Linen"}
+    assert {r.force_setpoint for r in recs} == {120, 150, 180, 210, 250}
+    assert {r.speed_mm_s for r in recs} == {10, 20, 50, 100, 120, 150}
+    assert {r.direction for r in recs} == {-1, 1}
+    for r in recs:
+        assert r.readings.shape == (r.timestamp_ms.size, 16)
+        assert np.all(np.diff(r.timestamp_ms) > 0)  # repeated timestamps removed
+    # about 28 ms between samples, and the covered travel is about 594 mm whatever the speed
+    dt = np.median(np.concatenate([np.diff(r.timestamp_ms) for r in recs[:50]]))
+    assert 25 <= dt <= 31
+    travel = [r.speed_mm_s * (r.timestamp_ms[-1] - r.timestamp_ms[0]) / 1000 for r in recs]
+    assert 500 < np.median(travel) < 700
+    board = load_fabricslide(fabricslide_dir, include_board=True)
+    assert len(board) > 720 and board[-1].kind == "board"
+
+
+def test_repeated_timestamps_keep_the_first_sample(tmp_path):
+    header = "timestamp, proximity1, proximity2, " + ", ".join(f"channel{i}" for i in range(1, 17))
+    rows = [[0] + [0, 0] + [10] * 16, [28] + [0, 0] + [20] * 16, [28] + [0, 0] + [99] * 16,
+            [56] + [0, 0] + [40] * 16]
+    p = tmp_path / "Felt_F100_V20mmps_0.csv"
+    p.write_text(header + "\n" + "\n".join(",".join(str(v) for v in r) for r in rows) + "\n")
+    rec = read_recording(p)
+    np.testing.assert_array_equal(rec.timestamp_ms, [0, 28, 56])
+    np.testing.assert_array_equal(rec.readings[:, 0], [10, 20, 40])
+    grid, values = resample_to_1khz(rec.timestamp_ms, rec.readings)
+    assert grid.size == 57 and values[14, 0] == pytest.approx(15.0) and values[42, 0] == pytest.approx(30.0)
+
+
+def test_resampling_matches_a_per_sample_reference(fabricslide_dir):
+    rec = load_fabricslide(fabricslide_dir, pattern="Linen_F180_V50mmps_1.csv")[0]
+    grid, values = resample_to_1khz(rec.timestamp_ms, rec.readings)
+    ref_grid, ref = _reference_resample(rec.timestamp_ms, rec.readings)
+    np.testing.assert_array_equal(grid, ref_grid)
+    np.testing.assert_allclose(values, ref, rtol=0, atol=1e-9)
+    # on the original sample times the resampled values are the recorded ones
+    on_grid = (rec.timestamp_ms - rec.timestamp_ms[0]).astype(int)
+    np.testing.assert_array_equal(values[on_grid], rec.readings)
+    adc = to_adc(values)
+    assert adc.shape == (grid.size, 18) and adc.dtype == np.uint16
+    np.testing.assert_array_equal(adc[on_grid, :16], rec.readings.astype(np.uint16))
+    assert np.all(adc[:, 16:] == 0)
+
+
+def test_import_writes_a_labelled_session(fabricslide_dir, tmp_path):
+    from rigctl.cli import main
+
+    out = tmp_path / "fs.h5"
+    result = CliRunner().invoke(main, ["import-fabricslide", str(fabricslide_dir), "--out", str(out),
+                                       "--pattern", "*_F150_V*mmps_0.csv", "--trim", "0.1", "--quiet"])
+    assert result.exit_code == 0, result.output
+    with open_session(out) as s:
+        assert s.kind == "fabricslide"
+        labels = json.loads(s.attrs["texture_labels"])
+        assert labels == {"1": "BeigeCotton", "2": "BrownCotton", "3": "Canvas", "4": "Linen"}
+        np.testing.assert_array_equal(s.attrs["channel_present"], CHANNEL_PRESENT)
+        assert len(s.plan) == 4 * 12  # 4 fabrics x 12 signed velocities, repeat 0, force 150
+        assert set(s.plan["speed_mm_s"]) == {10, 20, 50, 100, 120, 150}
+        row = s.plan[5]
+        t = s.trial(int(row["trial_id"]))
+        rec = load_fabricslide(fabricslide_dir, pattern=t.attrs["source_file"].split("/")[1])[0]
+        assert labels[row["texture"]] == rec.label == t.attrs["fabric"]
+        assert row["speed_mm_s"] == abs(rec.velocity_mm_s) and t.attrs["velocity_mm_s"] == rec.velocity_mm_s
+        assert row["force_g"] == 150
+        _, values = resample_to_1khz(rec.timestamp_ms, rec.readings)
+        k = int(round(0.1 * values.shape[0]))
+        np.testing.assert_array_equal(t.taxels, to_adc(values[k:values.shape[0] - k]))
+        assert t.n_samples == round(row["duration_s"] * 1000)
