@@ -1,0 +1,262 @@
+"""The one wire specification (docs/wire-protocol.md) against both implementations: the Python constants
+(rigctl/devices/wire.py) and the firmware header (arduino/common/rigctl_wire.h), row by row.
+
+The spec's tables are parsed from the markdown (each follows a ``<!-- table: NAME -->`` marker); the header's
+``#define`` lines are parsed and evaluated here, so this test needs no compiler.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigctl.devices import wire
+
+REPO = Path(__file__).resolve().parents[1]
+SPEC = REPO / "docs" / "wire-protocol.md"
+HEADER = REPO / "arduino" / "common" / "rigctl_wire.h"
+
+
+# ------------------------------------------------------------------------------------------------ parsing
+def spec_tables(text: str) -> dict[str, list[dict[str, str]]]:
+    """``{table name: [row as {column: cell}]}`` for every ``<!-- table: NAME -->`` markdown table."""
+    tables = {}
+    for m in re.finditer(r"<!--\s*table:\s*([\w-]+)\s*-->\s*\n((?:\|.*\n?)+)", text):
+        lines = [ln.strip() for ln in m.group(2).strip().splitlines()]
+        cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines]
+        header, rows = cells[0], [r for r in cells[1:] if not set("".join(r)) <= set("-: ")]
+        tables[m.group(1)] = [dict(zip(header, r)) for r in rows]
+    return tables
+
+
+def spec_int(cell: str) -> int:
+    cell = cell.strip().strip("`")
+    return int(cell, 16) if cell.lower().startswith("0x") else int(cell.replace(",", ""))
+
+
+def header_defines(text: str) -> dict[str, object]:
+    """Evaluate the header's object-like ``#define`` macros (integers, chars, strings, shifts, references)."""
+    raw = {}
+    for m in re.finditer(r"^\s*#define\s+(\w+)\s+(.+?)\s*(?:/\*.*)?$", text, re.M):
+        raw[m.group(1)] = m.group(2)
+    values: dict[str, object] = {}
+
+    def ev(name: str):
+        if name in values:
+            return values[name]
+        expr = raw[name]
+        if expr.startswith('"'):
+            values[name] = expr.strip('"')
+            return values[name]
+        expr = re.sub(r"'(.)'", lambda m: str(ord(m.group(1))), expr)
+        expr = re.sub(r"\b(0x[0-9A-Fa-f]+|\d+)(?:UL|ul|U|u|L|l)\b", r"\1", expr)
+        expr = re.sub(r"\b[A-Z_][A-Z0-9_]*\b", lambda m: str(ev(m.group(0))) if m.group(0) in raw else m.group(0),
+                      expr)
+        values[name] = eval(expr, {"__builtins__": {}}, {})  # noqa: S307 (integer expressions of our header)
+        return values[name]
+
+    for name in raw:
+        if name.endswith("_H"):
+            continue
+        ev(name)
+    return values
+
+
+@pytest.fixture(scope="module")
+def tables():
+    return spec_tables(SPEC.read_text())
+
+
+@pytest.fixture(scope="module")
+def spec_text():
+    return SPEC.read_text()
+
+
+@pytest.fixture(scope="module")
+def h():
+    return header_defines(HEADER.read_text())
+
+
+def test_spec_has_every_table(tables):
+    assert set(tables) == {"frame", "flags", "uno-commands", "holding", "input", "commands", "states", "faults"}
+    assert all(len(rows) >= 3 for rows in tables.values())
+
+
+# ------------------------------------------------------------------------------------------------ taxel stream
+def test_frame_layout(tables, spec_text, h):
+    rows = {r["field"]: r for r in tables["frame"]}
+    assert list(rows) == ["sync", "seq", "flags", "samples", "crc"]
+    py = {"sync": wire.OFFSET_SYNC, "seq": wire.OFFSET_SEQ, "flags": wire.OFFSET_FLAGS,
+          "samples": wire.OFFSET_SAMPLES, "crc": wire.OFFSET_CRC}
+    end = 0
+    for name, r in rows.items():
+        off, size = spec_int(r["offset"]), spec_int(r["size"])
+        assert off == end, f"{name} does not follow the previous field"
+        end = off + size
+        assert py[name] == off
+        assert wire.FRAME_DTYPE.fields[name][1] == off and wire.FRAME_DTYPE.fields[name][0].itemsize == size
+        assert h[f"RIGCTL_FRAME_{name.upper()}_OFFSET"] == off
+        assert h[f"RIGCTL_FRAME_{name.upper()}_SIZE"] == size
+    size = int(re.search(r"Frame size:\s*(\d+)\s*bytes", spec_text).group(1))
+    assert end == size == wire.FRAME_SIZE == h["RIGCTL_FRAME_SIZE"] == wire.FRAME_DTYPE.itemsize
+    # sync bytes, sample count, CRC coverage
+    sync = [int(x, 16) for x in re.findall(r"0x([0-9A-Fa-f]{2})", rows["sync"]["meaning"])]
+    assert bytes(sync) == wire.SYNC == bytes([h["RIGCTL_FRAME_SYNC0"], h["RIGCTL_FRAME_SYNC1"]])
+    n = int(re.search(r"\[(\d+)\]", rows["samples"]["type"]).group(1))
+    assert n == wire.N_TAXELS == h["RIGCTL_N_TAXELS"]
+    a, b = map(int, re.search(r"bytes (\d+)\.\.(\d+)", rows["crc"]["meaning"]).groups())
+    assert a == wire.CRC_START == h["RIGCTL_FRAME_CRC_START"] and b == wire.OFFSET_CRC - 1
+    assert "0xA001" in rows["crc"]["meaning"] and "0xFFFF" in rows["crc"]["meaning"]
+    assert wire.crc16(b"123456789") == 0x4B37
+
+
+def test_stream_link_and_identity(spec_text, h):
+    assert "**1,000,000 baud**" in spec_text and wire.TAXEL_BAUD == h["RIGCTL_TAXEL_BAUD"] == 1_000_000
+    assert "**1 kHz**" in spec_text and wire.SAMPLE_RATE_HZ == h["RIGCTL_SAMPLE_RATE_HZ"] == 1000
+    assert "10-bit" in spec_text and wire.ADC_BITS == h["RIGCTL_ADC_BITS"] == 10
+    assert wire.ADC_MAX == h["RIGCTL_ADC_MAX"] == 1023
+    major, minor = map(int, re.search(r"Uno identity: firmware version (\d+)\.(\d+)", spec_text).groups())
+    assert wire.UNO_FIRMWARE_VERSION == (major, minor) == (h["RIGCTL_UNO_FW_MAJOR"], h["RIGCTL_UNO_FW_MINOR"])
+    banner = re.search(r"ready banner\s*\n?\s*`(#RIGCTL-UNO READY[^`]*)`", spec_text).group(1)
+    ident = re.search(r"reply `(#RIGCTL-UNO fw=[^`]*)`", spec_text).group(1)
+    fw = f"{major}.{minor}"
+    assert h["RIGCTL_UNO_BANNER"] == banner.replace("<major>.<minor>", fw)
+    assert h["RIGCTL_UNO_IDENTITY"] == ident.replace("<major>.<minor>", fw)
+    assert h["RIGCTL_UNO_BANNER"].startswith(wire.UNO_BANNER_PREFIX)
+    assert h["RIGCTL_UNO_IDENTITY"].startswith(wire.UNO_IDENTITY_PREFIX)
+
+
+def test_flags(tables, h):
+    rows = tables["flags"]
+    assert {r["name"] for r in rows} == {f.name for f in wire.FrameFlag}
+    for r in rows:
+        bit = spec_int(r["bit"])
+        assert wire.FrameFlag[r["name"]] == 1 << bit
+        assert h[f"RIGCTL_FLAG_{r['name']}_BIT"] == bit and h[f"RIGCTL_FLAG_{r['name']}"] == 1 << bit
+
+
+def test_uno_commands(tables, h):
+    rows = tables["uno-commands"]
+    assert {r["command"] for r in rows} == {c.name for c in wire.UnoCommand}
+    for r in rows:
+        byte = r["byte"].strip("`")
+        assert len(byte) == 1
+        assert wire.UnoCommand[r["command"]].value == byte.encode()
+        assert h[f"RIGCTL_UNO_CMD_{r['command']}"] == ord(byte)
+
+
+# ------------------------------------------------------------------------------------------------ Modbus
+def test_modbus_link(spec_text, h):
+    assert "**115200 baud 8N1**" in spec_text and wire.DRUM_BAUD == h["RIGCTL_DRUM_BAUD"] == 115200
+    assert "**device id 1**" in spec_text and wire.DRUM_DEVICE_ID == h["RIGCTL_DRUM_DEVICE_ID"] == 1
+    for fc, name in ((3, "READ_HOLDING"), (4, "READ_INPUT"), (6, "WRITE_SINGLE"), (16, "WRITE_MULTIPLE")):
+        assert f"{fc:02d} (" in spec_text and h[f"RIGCTL_MB_FC_{name}"] == fc
+    for code, name in ((1, "ILLEGAL_FUNCTION"), (2, "ILLEGAL_ADDRESS"), (3, "ILLEGAL_VALUE")):
+        assert f"{code:02d} {name.lower().replace('_', ' ')}" in spec_text.replace("data ", "")
+        assert h[f"RIGCTL_MB_EX_{name}"] == code
+    t35 = float(re.search(r"t3\.5 silence \(([\d.]+) ms", spec_text).group(1))
+    assert h["RIGCTL_MB_T35_US"] == round(t35 * 1000)
+    version = int(re.search(r"FIRMWARE_VERSION = (\d+)", spec_text).group(1))
+    assert version == h["RIGCTL_MEGA_FIRMWARE_VERSION"] == (wire.MEGA_FIRMWARE_VERSION[0] << 8) | \
+        wire.MEGA_FIRMWARE_VERSION[1]
+
+
+def test_holding_registers(tables, h):
+    rows = tables["holding"]
+    assert [r["name"] for r in rows] == [r.name for r in sorted(wire.HoldingRegister)]
+    assert len(rows) == wire.N_HOLDING == h["RIGCTL_N_HOLDING"]
+    for r in rows:
+        name, addr = r["name"], spec_int(r["address"])
+        lo, hi = map(spec_int, r["range"].split("-"))
+        default = spec_int(r["default"])
+        assert r["type"] == "uint16"
+        assert wire.HoldingRegister[name] == addr == h[f"RIGCTL_HREG_{name}"]
+        assert wire.HOLDING_RANGE[wire.HoldingRegister[name]] == (lo, hi, default)
+        assert (h[f"RIGCTL_HREG_{name}_MIN"], h[f"RIGCTL_HREG_{name}_MAX"], h[f"RIGCTL_HREG_{name}_DEF"]) == \
+            (lo, hi, default)
+        assert lo <= default <= hi
+    # SPEED_LIMIT_0P1MMS is "the highest speed accepted in any speed register": the other 0.1 mm/s registers
+    speed_regs = {r["name"] for r in rows if r["name"].endswith("_0P1MMS")} - {"SPEED_LIMIT_0P1MMS"}
+    assert {reg.name for reg in wire.SPEED_REGISTERS} == speed_regs
+
+
+def test_speed_profiles(tables, h):
+    meaning = next(r["meaning"] for r in tables["holding"] if r["name"] == "SPEED_PROFILE")
+    for value, name in re.findall(r"(\d+) = (\w+)", meaning):
+        assert wire.SpeedProfile[name] == int(value) == h[f"RIGCTL_PROFILE_{name}"]
+
+
+def test_input_registers(tables, h):
+    rows = tables["input"]
+    assert [r["name"] for r in rows] == [r.name for r in sorted(wire.InputRegister)]
+    assert len(rows) == wire.N_INPUT == h["RIGCTL_N_INPUT"]
+    for r in rows:
+        assert wire.InputRegister[r["name"]] == spec_int(r["address"]) == h[f"RIGCTL_IREG_{r['name']}"]
+    signed = {wire.InputRegister[r["name"]] for r in rows if r["type"] == "int16"}
+    assert signed == set(wire.SIGNED_INPUT_REGISTERS)
+    assert {r["type"] for r in rows} <= {"int16", "uint16"}
+
+
+@pytest.mark.parametrize("table,enum,prefix", [
+    ("commands", wire.Command, "RIGCTL_CMD_"),
+    ("states", wire.DrumState, "RIGCTL_STATE_"),
+])
+def test_codes(tables, h, table, enum, prefix):
+    rows = tables[table]
+    assert {r["name"] for r in rows} == {m.name for m in enum}
+    for r in rows:
+        code = spec_int(r["code"])
+        assert enum[r["name"]] == code == h[prefix + r["name"]]
+    # the COMMAND register's range covers exactly the command codes
+    if table == "commands":
+        assert wire.HOLDING_RANGE[wire.HoldingRegister.COMMAND][:2] == (0, max(spec_int(r["code"]) for r in rows))
+
+
+def test_faults(tables, spec_text, h):
+    rows = tables["faults"]
+    assert {r["name"] for r in rows} == {f.name for f in wire.Fault}
+    for r in rows:
+        bit = spec_int(r["bit"])
+        assert wire.Fault[r["name"]] == 1 << bit
+        assert h[f"RIGCTL_FAULT_{r['name']}_BIT"] == bit and h[f"RIGCTL_FAULT_{r['name']}"] == 1 << bit
+    timeout = int(re.search(r"no reading for (\d+) ms", spec_text).group(1))
+    assert h["RIGCTL_LOADCELL_TIMEOUT_MS"] == timeout
+
+
+def test_drum_geometry_and_index_pulse(spec_text, h):
+    m = re.search(r"default diameter (\d+) mm, stepper (\d+) full steps/rev, (\d+)\s+microsteps", spec_text)
+    assert m is not None
+    diameter, steps, micro = map(int, m.groups())
+    assert (h["RIGCTL_DRUM_DIAMETER_MM_DEF"], h["RIGCTL_DRUM_STEPS_PER_REV_DEF"], h["RIGCTL_DRUM_MICROSTEPS_DEF"]) \
+        == (diameter, steps, micro)
+    from rigctl.simulation.model import DrumConfig
+
+    d = DrumConfig()
+    assert (d.diameter_mm, d.steps_per_rev, d.microsteps) == (diameter, steps, micro)
+    pulse = int(re.search(r"raises its index output for (\d+) ms", spec_text).group(1))
+    assert h["RIGCTL_INDEX_PULSE_MS"] == pulse
+    # the firmware's own config header takes its geometry from these defaults
+    cfg = (REPO / "arduino" / "mega_drum" / "drum_config.h").read_text()
+    assert re.search(rf"#define DRUM_DIAMETER_MM\s+{diameter}(\.0)?f?\b", cfg)
+    assert "RIGCTL_DRUM_STEPS_PER_REV_DEF" in cfg and "RIGCTL_DRUM_MICROSTEPS_DEF" in cfg
+
+
+def test_header_and_python_frame_builders_agree():
+    """The header's layout constants build the same bytes as rigctl.devices.frames (no compiler needed)."""
+    from rigctl.devices.frames import encode_frame
+
+    h = header_defines(HEADER.read_text())
+    samples = np.arange(18) * 50 + 7
+    out = bytearray(h["RIGCTL_FRAME_SIZE"])
+    out[0], out[1] = h["RIGCTL_FRAME_SYNC0"], h["RIGCTL_FRAME_SYNC1"]
+    o = h["RIGCTL_FRAME_SEQ_OFFSET"]
+    out[o:o + 2] = (513).to_bytes(2, "little")
+    out[h["RIGCTL_FRAME_FLAGS_OFFSET"]] = h["RIGCTL_FLAG_SYNC_IN"] | h["RIGCTL_FLAG_STREAMING_START"]
+    o = h["RIGCTL_FRAME_SAMPLES_OFFSET"]
+    out[o:o + 36] = np.asarray(samples, "<u2").tobytes()
+    crc = wire.crc16(out[h["RIGCTL_FRAME_CRC_START"]:h["RIGCTL_FRAME_CRC_OFFSET"]])
+    out[h["RIGCTL_FRAME_CRC_OFFSET"]:] = crc.to_bytes(2, "little")
+    assert bytes(out) == encode_frame(513, 0x09, samples)
