@@ -241,6 +241,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--quit-after", type=float, metavar="SECONDS", help="quit after this many seconds")
     ap.add_argument("--tab", choices=TAB_NAMES, help="tab to show first")
     ap.add_argument("--run", action="store_true", help="press and run the drum at the setpoints once connected")
+    ap.add_argument("--texture", metavar="LETTER", help="mount this texture plate (A-P) once connected")
     ap.add_argument("--stats-out", metavar="PATH", help="write display statistics (JSON) every second (benchmarks)")
     return ap.parse_args(argv)
 
@@ -284,11 +285,14 @@ def main(argv=None) -> int:
     if args.tab:
         window.tabs.setCurrentIndex(TAB_NAMES.index(args.tab))
     window.show()
-    if args.run:
+    if args.run or args.texture:
         def _run_when_ready():
             if window.commands is None:
                 QtCore.QTimer.singleShot(200, _run_when_ready)
-            else:
+                return
+            if args.texture:
+                window.control.mount_plate(args.texture.upper())
+            if args.run:
                 window.control.command("run")
 
         QtCore.QTimer.singleShot(200, _run_when_ready)

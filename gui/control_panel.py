@@ -96,6 +96,16 @@ class ControlPanel(QtWidgets.QWidget):
             b.clicked.connect(lambda _=False, n=name: self.command(n))
             self.buttons[name] = b
             grid.addWidget(b, i // 2, i % 2)
+        self.plate = QtWidgets.QComboBox()
+        self.plate.setObjectName("plate")
+        self.plate.addItems(list("ABCDEFGHIJKLMNOP"))
+        self.plate.setToolTip("Texture plate A-P (paper Fig. 2B). Simulated rig: mounts it. Real rig: the operator "
+                              "mounts it while the sensor is released, then presses the button.")
+        self.mount_btn = QtWidgets.QPushButton("Mount plate")
+        self.mount_btn.setObjectName("btn_mount")
+        self.mount_btn.clicked.connect(self.mount_plate)
+        grid.addWidget(self.plate, 3, 0)
+        grid.addWidget(self.mount_btn, 3, 1)
         cmds = QtWidgets.QGroupBox("Drum")
         cmds.setLayout(grid)
 
@@ -159,7 +169,7 @@ class ControlPanel(QtWidgets.QWidget):
             self.limits_label.setText(f"controller limits: {speed_max_mm_s:g} mm/s, {force_max_g:g} g")
 
     def set_enabled(self, on: bool) -> None:
-        for w in [self.apply_btn, *self.buttons.values()]:
+        for w in [self.apply_btn, self.mount_btn, *self.buttons.values()]:
             w.setEnabled(on)
 
     def attach(self, drum, poller, commands, rig=None) -> None:
@@ -203,6 +213,15 @@ class ControlPanel(QtWidgets.QWidget):
                 return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
 
+    def mount_plate(self, letter: str | None = None) -> None:
+        """Release the sensor and mount texture plate ``letter`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
+        on hardware the operator has mounted it when pressing the button)."""
+        if self.commands is None or self.rig is None:
+            return
+        letter = letter or self.plate.currentText()
+        self.plate.setCurrentText(letter)
+        self.commands.submit(f"mount plate {letter}", self.rig.mount_texture, letter, lambda _msg: None)
+
     def show_result(self, ok: bool, text: str) -> None:
         self.message.setStyleSheet("" if ok else "color: #c00;")
         self.message.setText(text)
@@ -240,5 +259,6 @@ class ControlPanel(QtWidgets.QWidget):
             f"force {st.force_g:7.1f} g (holding {st.force_setpoint_active_g:.0f} g)\n"
             f"speed {st.speed_mm_s:6.1f} mm/s (target {st.speed_target_mm_s:.1f})\n"
             f"drum {st.angle_deg:6.1f} deg, {st.revolutions} rev; actuator {st.actuator_mm:.2f} mm\n"
-            f"firmware {fw}, heartbeat {st.heartbeat}"
+            f"firmware {fw}, heartbeat {st.heartbeat}\n"
+            f"plate {getattr(self.rig, 'texture', None) or 'unknown'}"
         )

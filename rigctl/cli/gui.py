@@ -16,7 +16,8 @@ import click
 @click.option("--tab", type=click.Choice(["control", "live", "protocol", "analysis", "calibration", "classify"]),
               default=None, help="Tab to show first.")
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")
-def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run):
+@click.option("--texture", default=None, help="Mount this texture plate (A-P) once connected.")
+def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run, texture):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 
     With no ports it runs on the simulated rig. ``--screenshot PATH --quit-after SECONDS`` renders the main window
@@ -32,7 +33,7 @@ def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run):
         raise click.ClickException(f"the desktop app needs the 'gui' extra (PySide6, pyqtgraph): {exc}") from None
     argv = []
     for flag, value in (("--drum-port", drum_port), ("--taxel-port", taxel_port), ("--replay", replay),
-                        ("--screenshot", screenshot), ("--quit-after", quit_after), ("--tab", tab)):
+                        ("--screenshot", screenshot), ("--quit-after", quit_after), ("--tab", tab), ("--texture", texture)):
         if value is not None:
             argv += [flag, str(value)]
     if run:

@@ -23,9 +23,10 @@ def test_live_traces_heatmap_and_rasters(window, qapp):
     window.tabs.setCurrentWidget(live)
     window.control.speed.setValue(100.0)
     window.control.force.setValue(500.0)
-    window.control.command("run")  # texture under the sensor: SA and RA both fire
+    window.control.mount_plate("L")  # a wave texture under the sensor: SA and RA both fire
+    window.control.command("run")
     enc = window.encoder
-    assert _wait(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), live.info.text()
+    assert _wait(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), (live.info.text(), window.control.message.text(), window.poller.latest)
     p0 = live.paints
     assert _wait(qapp, lambda: live.paints >= p0 + 10, 10)
     # traces: the last window of every taxel, x = seconds before now
