@@ -19,7 +19,6 @@ moment a plain HDF5 reader could see a half-updated file is while the few in-pla
 
 from __future__ import annotations
 
-import fcntl
 import io
 import os
 import struct
@@ -27,9 +26,34 @@ import time
 import zlib
 from pathlib import Path
 
+try:  # POSIX; elsewhere (Windows) rigctl writers do not lock out HDF5 readers
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
 PAGE = 4096
 _MAGIC = b"RIGCTLJ1"
 _COMMIT = b"COMMITOK"
+_O_BINARY = getattr(os, "O_BINARY", 0)
+
+
+def _pread(fd: int, n: int, offset: int) -> bytes:
+    if hasattr(os, "pread"):
+        return os.pread(fd, n, offset)
+    os.lseek(fd, offset, os.SEEK_SET)  # pragma: no cover
+    return os.read(fd, n)  # pragma: no cover
+
+
+def _pwrite(fd: int, data: bytes, offset: int) -> None:
+    view = memoryview(data)
+    while view:  # pwrite may write less than asked
+        if hasattr(os, "pwrite"):
+            n = os.pwrite(fd, view, offset)
+        else:  # pragma: no cover
+            os.lseek(fd, offset, os.SEEK_SET)
+            n = os.write(fd, view)
+        view = view[n:]
+        offset += n
 
 
 def journal_path(path: str | os.PathLike) -> Path:
@@ -42,6 +66,8 @@ class FileBusy(OSError):
 
 
 def _lock(fd: int, path, wait_s: float) -> None:
+    if fcntl is None:  # pragma: no cover
+        return
     deadline = time.monotonic() + wait_s
     while True:
         try:
@@ -62,7 +88,7 @@ def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
     jpath = journal_path(path)
     if not jpath.exists():
         return False
-    fd = os.open(path, os.O_RDWR)
+    fd = os.open(path, os.O_RDWR | _O_BINARY)
     try:
         _lock(fd, path, wait_s)
         if not jpath.exists():  # another process recovered it meanwhile
@@ -72,7 +98,7 @@ def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
             jpath.unlink()
             return False
         for offset, data in entries:
-            os.pwrite(fd, data, offset)
+            _pwrite(fd, data, offset)
         os.ftruncate(fd, new_size)
         os.fsync(fd)
         jpath.unlink()
@@ -109,7 +135,7 @@ class OverlayFile(io.RawIOBase):
         self.path = Path(path)
         self.durable = durable
         recover(self.path, wait_s=wait_s)
-        self._fd = os.open(self.path, os.O_RDWR)
+        self._fd = os.open(self.path, os.O_RDWR | _O_BINARY)
         try:
             _lock(self._fd, self.path, wait_s)
         except BaseException:
@@ -150,7 +176,7 @@ class OverlayFile(io.RawIOBase):
         out = memoryview(b)
         base_n = max(0, min(n, self._base_size - start))
         if base_n:
-            data = os.pread(self._fd, base_n, start)
+            data = _pread(self._fd, base_n, start)
             out[: len(data)] = data
             if len(data) < n:
                 out[len(data):n] = bytes(n - len(data))
@@ -172,7 +198,7 @@ class OverlayFile(io.RawIOBase):
             page = bytearray(PAGE)
             start = i * PAGE
             if start < self._base_size:
-                data = os.pread(self._fd, PAGE, start)
+                data = _pread(self._fd, PAGE, start)
                 page[: len(data)] = data
             self._pages[i] = page
         return page
@@ -221,7 +247,7 @@ class OverlayFile(io.RawIOBase):
             data = bytes(self._pages[i][: min(PAGE, size - start)])
             (inplace if start < self._base_size else fresh).append((start, data))
         for start, data in _runs(fresh):
-            os.pwrite(self._fd, data, start)
+            _pwrite(self._fd, data, start)
         if inplace or size < self._base_size:
             jpath = journal_path(self.path)
             body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
@@ -230,7 +256,7 @@ class OverlayFile(io.RawIOBase):
             body += struct.pack("<I", zlib.crc32(body)) + _COMMIT
             if self.durable:
                 os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
-            jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | _O_BINARY, 0o644)
             try:
                 os.write(jfd, bytes(body))
                 if self.durable:
@@ -238,7 +264,7 @@ class OverlayFile(io.RawIOBase):
             finally:
                 os.close(jfd)
             for start, data in _runs(inplace):
-                os.pwrite(self._fd, data, start)
+                _pwrite(self._fd, data, start)
             os.ftruncate(self._fd, size)
             if self.durable:
                 os.fsync(self._fd)

@@ -71,8 +71,11 @@ name = "short"
 textures = ["A", "B"]
 speeds_mm_s = [120]
 forces_g = [400]
-trials_per_condition = 4
+trials_per_condition = 3
 duration_s = 0.4
+
+[settle]
+settle_time_ms = 50
 """
 
 
@@ -97,7 +100,7 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     proc = subprocess.Popen([*RIGCTL, "acquire", str(proto), "--out", str(out), "--quiet"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
-    while len(_complete(out)) < 3:
+    while len(_complete(out)) < 2:
         assert proc.poll() is None, proc.stderr.read().decode()
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -110,10 +113,10 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     with h5py.File(out, "r") as f:
         status = f["plan"]["status"][()]
         before = {int(t): _digest(f, int(t)) for t in np.flatnonzero(status == 1)}
-        assert 3 <= len(before) < 8
+        assert 2 <= len(before) < 6
         for tid in before:
             assert f[f"trials/{tid:06d}/taxels"].shape == (400, 18)
-        assert set(np.flatnonzero(status == 0)) == set(range(8)) - set(before)
+        assert set(np.flatnonzero(status == 0)) == set(range(6)) - set(before)
 
     # a different protocol is refused before the rig moves
     other = tmp_path / "other.toml"
@@ -125,14 +128,14 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     resumed = subprocess.run([*RIGCTL, "acquire", str(proto), "--out", str(out), "--resume", "--quiet"], env=env,
                              capture_output=True, text=True, timeout=120)
     assert resumed.returncode == 0, resumed.stderr
-    assert "trials complete: 8/8" in resumed.stdout
-    assert f"recorded now: {8 - len(before)}" in resumed.stdout
+    assert "trials complete: 6/6" in resumed.stdout
+    assert f"recorded now: {6 - len(before)}" in resumed.stdout
     with h5py.File(out, "r") as f:
-        assert list(f["plan"]["status"][()]) == [1] * 8
-        assert sorted(f["trials"]) == [f"{i:06d}" for i in range(8)]  # one group per trial, none twice
+        assert list(f["plan"]["status"][()]) == [1] * 6
+        assert sorted(f["trials"]) == [f"{i:06d}" for i in range(6)]  # one group per trial, none twice
         for tid, digest in before.items():  # trials finished before the kill were not recorded again
             assert _digest(f, tid) == digest
-        starts = [f[f"trials/{i:06d}"].attrs["started_utc"] for i in range(8)]
-        assert starts == sorted(starts) or len(set(starts)) == 8
+        starts = [f[f"trials/{i:06d}"].attrs["started_utc"] for i in range(6)]
+        assert starts == sorted(starts)  # recorded once each, in plan order across the two runs
     info = _info(out, env)
-    assert info["totals"]["complete"] == 8 and info["totals"]["dropped_frames"] == 0
+    assert info["totals"]["complete"] == 6 and info["totals"]["dropped_frames"] == 0
