@@ -572,9 +572,10 @@ class SessionWriter:
         )
         tax.attrs["starting_time_unit"] = "seconds since the session's created_utc"
         tax.attrs["channels"] = "0-8 top layer (type I), 9-17 bottom layer (type II), row-major 3x3"
-        g.create_dataset("seq", data=data.seq)
-        g.create_dataset("flags", data=data.flags)
-        g.create_dataset("host_time_s", data=data.host_time_s).attrs["unit"] = "s"
+        per_sample = dict(chunks=(chunk_rows,), **comp) if n else {}
+        g.create_dataset("seq", data=data.seq, **per_sample)
+        g.create_dataset("flags", data=data.flags, **per_sample)
+        g.create_dataset("host_time_s", data=data.host_time_s, **per_sample).attrs["unit"] = "s"
         for value, times, unit in (("force_g", "force_time_s", "g"), ("speed_mm_s", "speed_time_s", "mm/s")):
             g.create_dataset(value, data=getattr(data, value)).attrs["unit"] = unit
             g.create_dataset(times, data=getattr(data, times)).attrs["unit"] = "s"
