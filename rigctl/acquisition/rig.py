@@ -6,8 +6,9 @@
 (pyserial) on serial ports, the same code paths.
 
 A trial (:meth:`Rig.record_trial`), as in the paper's Methods ("Tactile Texture Dataset"): set the force setpoint and
-engage the force loop (PRESS), wait until the force has settled; set the speed (or ramp profile) and RUN, wait until
-the drum runs steadily at speed; capture exactly ``duration_s * 1000`` taxel frames (counted, not timed) while
+engage the force loop (PRESS), wait until the force has settled; set the speed and RUN, wait until the drum runs
+steadily at speed (for a ramp: at its start speed, then switch to the RAMP profile and RUN again, which starts the
+ramp); capture exactly ``duration_s * 1000`` taxel frames (counted, not timed) while
 sampling the load-cell force and drum speed at ~50 Hz (these Modbus reads also feed the controller's watchdog);
 STOP_DRUM. :meth:`Rig.safe_stop` (STOP: drum to rest, actuator backed off) always leaves the rig safe.
 """
@@ -432,21 +433,22 @@ class Rig:
         settle = self.settle
         settle_s = self.press(planned.force_g)
         _abort_if(stop_event)
-        if planned.is_ramp:
-            self.drum.set_ramp(planned.ramp_start_mm_s, planned.ramp_end_mm_s, planned.duration_s)
-            self.drum.set_profile(wire.SpeedProfile.RAMP)
-        else:
-            self.drum.set_speed(planned.speed_mm_s)
-            self.drum.set_profile(wire.SpeedProfile.CONSTANT)
+        # spin up at a constant speed (a ramp's start speed) and wait until the drum runs steadily there
+        first_speed = planned.ramp_start_mm_s if planned.is_ramp else planned.speed_mm_s
+        self.drum.set_speed(first_speed)
+        self.drum.set_profile(wire.SpeedProfile.CONSTANT)
         t_run = time.monotonic()
         self.drum.run()
-        if not planned.is_ramp:
-            # a ramp is captured from RUN on: its timing starts with the command
-            try:
-                self.drum.wait_speed_steady(timeout_s=settle.speed_timeout_s, tol_mm_s=settle.speed_tolerance_mm_s)
-            except DrumTimeout as exc:
-                raise DrumTimeout(f"drum did not reach {planned.speed_mm_s:g} mm/s within "
-                                  f"{settle.speed_timeout_s:g} s: {exc}") from exc
+        try:
+            self.drum.wait_speed_steady(timeout_s=settle.speed_timeout_s, tol_mm_s=settle.speed_tolerance_mm_s)
+        except DrumTimeout as exc:
+            raise DrumTimeout(f"drum did not reach {first_speed:g} mm/s within "
+                              f"{settle.speed_timeout_s:g} s: {exc}") from exc
+        if planned.is_ramp:
+            # then start the ramp: RUN restarts the profile's clock, and the capture starts with it
+            self.drum.set_ramp(planned.ramp_start_mm_s, planned.ramp_end_mm_s, planned.duration_s)
+            self.drum.set_profile(wire.SpeedProfile.RAMP)
+            self.drum.run()
         spinup_s = time.monotonic() - t_run
         _abort_if(stop_event)
 
