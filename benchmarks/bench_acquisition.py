@@ -92,7 +92,8 @@ def bench_recording(minutes: float) -> dict:
         "frames_lost": int(cap.dropped),
         "seq_gaps": gaps,
         "crc_errors": int(cap.crc_errors),
-        "frames_per_s": len(cap) / wall,
+        # rate over the span of the frames' own receive times (capture start/end latencies excluded)
+        "frames_per_s": (len(cap) - 1) / (cap.host_time_s[-1] - cap.host_time_s[0]) if len(cap) > 1 else 0.0,
         "cpu_percent_host": 100.0 * (c1 - c0) / wall,
         "cpu_percent_simulator": 100.0 * (sim_cpu1 - sim_cpu0) / wall if sim_ps else float("nan"),
         "drum_polls": polls,
