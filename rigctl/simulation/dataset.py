@@ -217,6 +217,12 @@ def _plan_rows(plan: Iterable[Any]) -> list[tuple]:
     return rows
 
 
+def _durable_kw(fn, durable: bool) -> dict:
+    import inspect
+
+    return {"durable": durable} if "durable" in inspect.signature(fn).parameters else {}
+
+
 def _batched(it: Iterator, max_trials: int, max_s: float) -> Iterator[list]:
     """Group an iterator into lists of at most ``max_trials`` items, or what arrived within ``max_s`` seconds."""
     batch: list = []
@@ -233,7 +239,8 @@ def _batched(it: Iterator, max_trials: int, max_s: float) -> Iterator[list]:
 
 def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_condition: int | None = None,
                      seed: int = 0, workers: int | None = None, progress: bool = True, config: RigConfig | None = None,
-                     compression: str | None = None, overwrite: bool = False, resume: bool = False) -> dict:
+                     compression: str | None = None, overwrite: bool = False, resume: bool = False,
+                     durable: bool = False) -> dict:
     """Render a whole protocol into a session file, straight from the model (>= 1000x real time).
 
     Parameters
@@ -258,6 +265,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         Replace an existing file.
     resume : bool
         Continue an existing file of the same protocol: render only the trials not yet complete.
+    durable : bool
+        fsync at each batch commit (:class:`SessionWriter`'s ``durable``). Off by default: a generated dataset is
+        reproducible, and a killed run loses at most the batch in progress (``resume=True`` continues it).
 
     Returns
     -------
@@ -288,7 +298,8 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     plan = protocol.plan()
 
     if resume and out_path.exists():
-        writer = SessionWriter.open(out_path, protocol_source=protocol.source, compression=compression)
+        writer = SessionWriter.open(out_path, protocol_source=protocol.source, compression=compression,
+                                    **_durable_kw(SessionWriter.open, durable))
         stored = writer.plan
         if len(stored) != len(plan):
             raise ValueError(f"{out_path} holds a plan of {len(stored)} trials, this protocol has {len(plan)}; "
@@ -301,7 +312,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             protocol_format="toml", rig_config=cfg.to_dict(), kind="simulated-dataset",
             attrs={"dataset_seed": int(seed), "generator": "rigctl.simulation.dataset.generate_dataset",
                    "trials_per_condition": int(protocol.trials_per_condition)},
-            overwrite=overwrite, compression=compression)
+            overwrite=overwrite, compression=compression, **_durable_kw(SessionWriter.create, durable))
         done = set()
     rows = [r for r in _plan_rows(plan) if r[0] not in done]
 
