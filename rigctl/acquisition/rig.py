@@ -34,7 +34,9 @@ log = logging.getLogger(__name__)
 
 #: force/speed trace sampling period during a trial, s (~50 Hz)
 STATUS_PERIOD_S = 0.02
-#: extra time a capture may take beyond the trial's duration before it counts as failed, s
+#: a capture fails when no taxel frame has arrived for this long (a stalled or unplugged stream), s
+CAPTURE_STALL_S = 2.0
+#: and in any case when it takes longer than 3 x the trial's duration + this margin, s
 CAPTURE_MARGIN_S = 5.0
 
 
@@ -456,8 +458,9 @@ class Rig:
         started_utc = _utc_now()
         self.stream.begin_capture()
         t_start = time.monotonic()
-        deadline = t_start + planned.duration_s + CAPTURE_MARGIN_S
+        deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
         next_poll = t_start
+        frames_seen, t_frame = self.stream.stats.frames, t_start
         try:
             while True:
                 now = time.monotonic()
@@ -470,12 +473,15 @@ class Rig:
                     self._check_fault(s, f"during trial {planned.trial_id}")
                     next_poll = max(next_poll + STATUS_PERIOD_S, now)
                 _abort_if(stop_event)
-                if now > deadline:
-                    got = self.stream.stats
+                got = self.stream.stats
+                if got.frames != frames_seen:
+                    frames_seen, t_frame = got.frames, now
+                if now - t_frame > CAPTURE_STALL_S or now > deadline:
+                    why = (f"no frame for {now - t_frame:.1f} s" if now - t_frame > CAPTURE_STALL_S
+                           else f"too few frames within {now - t_start:.1f} s")
                     raise CaptureError(
-                        f"trial {planned.trial_id}: the taxel stream delivered too few frames within "
-                        f"{planned.duration_s + CAPTURE_MARGIN_S:g} s (stream connected={got.connected}, "
-                        f"{got.frames_per_s:.0f} frames/s)")
+                        f"trial {planned.trial_id}: the taxel stream stalled: {why} (stream connected="
+                        f"{got.connected}, {got.frames_per_s:.0f} frames/s)")
             statuses.append(self._status())
         finally:
             cap = self.stream.end_capture()

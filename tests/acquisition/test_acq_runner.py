@@ -95,7 +95,7 @@ def test_stop_event_and_pause_event(rig, tmp_path):
 
 
 def test_failed_trials_are_marked_and_resumed(rig, tmp_path, monkeypatch):
-    monkeypatch.setattr(rig_module, "CAPTURE_MARGIN_S", 0.5)
+    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 0.5)
     out = tmp_path / "f.h5"
     failures = []
 
