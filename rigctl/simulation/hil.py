@@ -107,11 +107,14 @@ class _Harness:
         self._thread.start()
 
     def _read(self) -> None:
-        for line in self.proc.stdout:
-            try:
-                self._on_line(line.rstrip("\n"))
-            except Exception:  # a bad line must not kill the reader (the pipe would fill and stall the sim)
-                log.exception("HIL %s: cannot handle %r", self.board, line)
+        try:
+            for line in self.proc.stdout:
+                try:
+                    self._on_line(line.rstrip("\n"))
+                except Exception:  # a bad line must not kill the reader (the pipe would fill and stall the sim)
+                    log.exception("HIL %s: cannot handle %r", self.board, line)
+        except (ValueError, OSError):  # stdout closed by close()
+            pass
 
     def send(self, text: str) -> None:
         with self._lock:
@@ -133,6 +136,7 @@ class _Harness:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
+        self._thread.join(timeout=2)  # the reader ends at EOF once the process is gone
         for f in (self.proc.stdout, self.proc.stderr):
             try:
                 f.close()
