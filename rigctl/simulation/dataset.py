@@ -353,13 +353,18 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         if bar is not None:
             bar.close()
 
-    # per-taxel min/max over the whole file (the paper's normalisation, Materials and Methods) when it is complete
-    if not writer.pending_ids() and stats["n_trials"]:
-        if done:  # resumed: the earlier part's extremes are not known here; leave the block to the reader
-            pass
-        else:
-            writer.set_calibration({"taxel_min": lo, "taxel_max": hi, "source": "min/max over all trials",
-                                    "unit": "ADC counts"})
+    # per-taxel min/max over the whole file (the paper's normalisation, Materials and Methods) once it is complete
+    if not writer.pending_ids() and (stats["n_trials"] or done):
+        if done:  # resumed: add the extremes of the trials written by the earlier run
+            from rigctl.storage.session import open_session
+
+            with open_session(out_path) as s:
+                for tid in done:
+                    x = s.trial(tid).taxels
+                    np.minimum(lo, x.min(axis=0), out=lo)
+                    np.maximum(hi, x.max(axis=0), out=hi)
+        writer.set_calibration({"taxel_min": lo, "taxel_max": hi, "source": "min/max over all trials",
+                                "unit": "ADC counts"})
     wall = time.perf_counter() - t_start
     seconds = stats["samples"] / RATE_HZ
     return {"path": str(out_path), "n_trials": stats["n_trials"], "samples": stats["samples"],

@@ -152,3 +152,29 @@ def test_cli_sim_dataset(protocol_path, tmp_path):
     bad.write_text('name = "x"\ntextures = ["Z"]\nforces_g = [500]\nspeeds_mm_s = [80]\n')
     result = CliRunner().invoke(main, ["sim", "dataset", str(bad), "--out", str(tmp_path / "bad.h5")])
     assert result.exit_code != 0 and "textures" in result.output
+
+
+def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_path, tmp_path):
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.simulation.dataset import _init_worker, _render_planned
+    from rigctl.storage.session import SessionWriter
+
+    fresh = tmp_path / "fresh.h5"
+    generate_dataset(protocol_path, fresh, seed=6, workers=1, progress=False)
+    # an interrupted run: the plan is there, 5 trials were written
+    proto = load_protocol(protocol_path)
+    part = tmp_path / "part.h5"
+    writer = SessionWriter.create(part, plan=proto.plan(), protocol_source=proto.source, protocol_name=proto.name,
+                                  kind="simulated-dataset", attrs={"dataset_seed": 6}, compression=None)
+    _init_worker(RigConfig().to_dict(), 6)
+    rows = [(p.trial_id, p.texture, p.speed_mm_s, p.force_g, p.duration_s, p.ramp_start_mm_s, p.ramp_end_mm_s)
+            for p in proto.plan()[:5]]
+    writer.write_trials(_render_planned(r) for r in rows)
+    summary = generate_dataset(protocol_path, part, seed=999, workers=1, progress=False, resume=True)
+    assert summary["n_trials"] == 24 - 5  # the stored dataset seed (6) wins over the argument
+    with open_session(fresh) as a, open_session(part) as b:
+        assert a.completed_ids() == b.completed_ids() == list(range(24))
+        for tid in range(24):
+            np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
+        np.testing.assert_array_equal(a.calibration["taxel_min"], b.calibration["taxel_min"])
+        np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
