@@ -29,7 +29,8 @@ import pickle
 from pathlib import Path
 
 import numpy as np
-from scipy.linalg import cholesky, solve_triangular
+from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dpotrf
 from sklearn.decomposition import PCA
 
 __all__ = ["fit_pca", "NestedLDA", "nested_pc_predictions", "TextureClassifier"]
@@ -88,7 +89,9 @@ class NestedLDA:
     classes_ : ndarray (n_classes,)
     priors_ : ndarray (n_classes,) float64
     n_features_in_ : int
-        Number of inputs (PC scores) it was fitted on; predictions are available for 1..n_features_in_ of them.
+        Number of leading inputs usable (predictions for 1..n_features_in_ of them): the inputs given, limited to
+        ``n_trials - n_classes`` (the rank of the within-class scatter) and to the leading block whose covariance is
+        positive definite.
     means_ : ndarray (n_classes, n_features_in_) float64
     chol_ : ndarray (n_features_in_, n_features_in_) float64
         Lower Cholesky factor of the pooled within-class covariance (divided by ``n_trials``, as scikit-learn's
@@ -124,7 +127,7 @@ class NestedLDA:
         ValueError
             Fewer than two classes, or fewer trials than classes + 1.
         numpy.linalg.LinAlgError
-            The within-class covariance is singular (e.g. a constant input column).
+            The first input has zero within-class variance.
         """
         z = np.asarray(scores, dtype=np.float64)
         y = np.asarray(labels)
@@ -142,13 +145,24 @@ class NestedLDA:
         means /= counts[:, None]
         self.means_ = means
         centred = z - means[yi]
-        cov = centred.T @ centred / n
-        self.chol_ = cholesky(cov, lower=True)
+        # the within-class scatter has rank <= n - k: only that many leading inputs can be used
+        d = min(z.shape[1], n - k)
+        cov = centred[:, :d].T @ centred[:, :d] / n
+        chol, info = dpotrf(cov, lower=1, clean=1)
+        if info > 0:  # leading minor `info` not positive definite: keep the (info - 1) inputs before it
+            d = info - 1
+            if d < 1:
+                raise np.linalg.LinAlgError("the within-class covariance of the first input is zero")
+            chol = chol[:d, :d]
+        elif info < 0:  # pragma: no cover - LAPACK argument error
+            raise np.linalg.LinAlgError(f"dpotrf failed (info={info})")
+        self.chol_ = np.tril(chol)
+        self.means_ = means[:, :d]
         # whitened class means: rows are L^-1 mu_k
-        self._means_w = solve_triangular(self.chol_, means.T, lower=True).T
+        self._means_w = solve_triangular(self.chol_, self.means_.T, lower=True).T
         self._half_norm = 0.5 * np.cumsum(self._means_w**2, axis=1)  # (k, d)
         self._log_prior = np.log(self.priors_)
-        self.n_features_in_ = z.shape[1]
+        self.n_features_in_ = d
         return self
 
     def decision_all(self, scores, n_max=None):
@@ -165,7 +179,7 @@ class NestedLDA:
         ndarray, shape (n_max, n_trials, n_classes) float64
             ``out[n - 1]`` is the decision function using the first ``n`` inputs.
         """
-        n_max = self.n_features_in_ if n_max is None else int(n_max)
+        n_max = self.n_features_in_ if n_max is None else min(int(n_max), self.n_features_in_)
         z = np.asarray(scores, dtype=np.float64)[:, : self.n_features_in_]
         zw = solve_triangular(self.chol_, z.T, lower=True).T  # (n, d) whitened
         mw = self._means_w[:, :n_max]
@@ -188,9 +202,9 @@ class NestedLDA:
 
         Returns
         -------
-        ndarray, shape (n_max, n_trials), dtype of ``classes_``
+        ndarray, shape (min(n_max, n_features_in_), n_trials), dtype of ``classes_``
         """
-        n_max = self.n_features_in_ if n_max is None else int(n_max)
+        n_max = self.n_features_in_ if n_max is None else min(int(n_max), self.n_features_in_)
         z = np.asarray(scores)
         idx = np.empty((n_max, z.shape[0]), dtype=np.intp)
         for s in range(0, z.shape[0], chunk):

@@ -26,8 +26,11 @@ __all__ = [
     "FeatureSet",
     "NotEncodedError",
     "load_features",
+    "list_variants",
     "is_encoded_file",
+    "REALTIME_VARIANTS",
     "remove_baseline",
+    "default_variants",
 ]
 
 #: the four feature variants of the paper, in Table 1's column order
@@ -38,7 +41,13 @@ VARIANT_TITLES = {
     "speed_scaled": "Speed Scaled",
     "force_scaled": "Force Scaled",
     "speed_force_scaled": "Speed and Force Scaled",
+    "force_scaled_label_free": "Force Scaled (label-free)",
+    "speed_force_scaled_label_free": "Speed+Force Scaled (label-free)",
+    "realtime_original": "Original (real-time)",
+    "realtime_speed_scaled": "Speed Scaled (real-time)",
 }
+#: the real-time features of the encoding pipeline (9 top-layer SA trains x 20 windows, Methods real-time)
+REALTIME_VARIANTS: tuple[str, ...] = ("realtime_original", "realtime_speed_scaled")
 #: the paper's texture groups by letter (Fig. 2B): A smooth; B-F circular ridges; G-K rectangular ridges; L-P waves.
 #: Used only when ``/trials`` carries no ``group`` column.
 PAPER_GROUPS = {
@@ -102,6 +111,8 @@ class FeatureSet:
             self.group = np.array([PAPER_GROUPS[t] for t in self.texture])
         if self.group is not None:
             self.group = _text(self.group)
+            if not np.any(self.group != ""):  # no group labels (e.g. FabricSlide fabrics)
+                self.group = None
         if self.profile is not None:
             self.profile = _text(self.profile)
         self.trial_id = np.arange(n, dtype=np.int64) if self.trial_id is None else np.asarray(self.trial_id)
@@ -134,6 +145,25 @@ class FeatureSet:
             self.source,
             dict(self.attrs),
         )
+
+
+def list_variants(path) -> list[str]:
+    """Feature variants stored under ``/features`` of an encoded file (empty if none)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return list(f["features"]) if "features" in f else []
+
+
+def default_variants(available, task="table1") -> list[str]:
+    """Variants analysed when none are asked for: the real-time ones for ``task="realtime"`` (else original /
+    speed_scaled), otherwise the paper's four (Table 1 order), else everything available."""
+    available = list(available)
+    if task == "realtime":
+        rt = [v for v in REALTIME_VARIANTS if v in available]
+        return rt or [v for v in ("original", "speed_scaled") if v in available] or available
+    main = [v for v in VARIANTS if v in available]
+    return main or available
 
 
 def is_encoded_file(path) -> bool:
@@ -208,6 +238,9 @@ def load_features(path, variants=None) -> FeatureSet:
             raise KeyError(f"{path} has no /trials labels table")
         cols = _read_trials(f["trials"])
         attrs = {k: (v.item() if hasattr(v, "item") and np.ndim(v) == 0 else v) for k, v in f.attrs.items()}
+        # spike trains per trial of each variant (for remove_baseline), from /spikes/<variant> attrs
+        attrs["n_trains"] = {v: int(f["spikes"][v].attrs["n_trains"]) for v in names
+                             if "spikes" in f and v in f["spikes"] and "n_trains" in f["spikes"][v].attrs}
     if "texture" not in cols:
         raise KeyError(f"/trials of {path} has no 'texture' column (has: {', '.join(cols)})")
     n = len(cols["texture"])

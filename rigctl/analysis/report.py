@@ -88,8 +88,9 @@ def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True
     variants = [v for v in VARIANTS if any(v in row for row in tab.values())]
     variants += sorted({v for row in tab.values() for v in row} - set(variants))
     w0 = max([len(TASK_TITLES.get(t, t)) for t in tab] + [len("Paper")]) + 2
-    head1 = " " * w0 + "".join(f"{VARIANT_TITLES.get(v, v):^18}" for v in variants)
-    head2 = " " * w0 + "".join(f"{'mu (%)':>9}{'sd (%)':>9}" for _ in variants)
+    wid = {v: max(18, len(VARIANT_TITLES.get(v, v)) + 2) for v in variants}
+    head1 = " " * w0 + "".join(f"{VARIANT_TITLES.get(v, v):^{wid[v]}}" for v in variants)
+    head2 = " " * w0 + "".join(f"{'mu (%)':>{wid[v] - 9}}{'sd (%)':>9}" for v in variants)
     lines = [f"Classification accuracy with {used} PCs (%)" + (f" [asked for {n_pcs}]" if used != n_pcs else ""),
              head1, head2]
     for task, row in tab.items():
@@ -101,13 +102,14 @@ def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True
         for v in variants:
             if v in row:
                 mu, sd = row[v]
-                cells += f"{mu:9.2f}{sd:7.2f}{marks.get(v, ''):<2}"
+                cells += f"{mu:{wid[v] - 9}.2f}{sd:7.2f}{marks.get(v, ''):<2}"
             else:
-                cells += f"{'-':>9}{'-':>9}"
+                cells += f"{'-':>{wid[v] - 9}}{'-':>9}"
         lines.append(f"{TASK_TITLES.get(task, task):<{w0}}{cells}")
         if compare_paper and task in PAPER_TABLE1:
             ref = PAPER_TABLE1[task]
-            cells = "".join(f"{ref[v][0]:9.2f}{ref[v][1]:7.2f}  " if v in ref else f"{'':18}" for v in variants)
+            cells = "".join(f"{ref[v][0]:{wid[v] - 9}.2f}{ref[v][1]:7.2f}  " if v in ref else " " * wid[v]
+                            for v in variants)
             lines.append(f"{'  paper (50 PCs)':<{w0}}{cells}")
     counts = res.counts
     if counts:

@@ -33,7 +33,7 @@ from sklearn.metrics import confusion_matrix
 from sklearn.model_selection import StratifiedKFold
 
 from rigctl.analysis.classify import NestedLDA, fit_pca
-from rigctl.analysis.data import FeatureSet
+from rigctl.analysis.data import FeatureSet, default_variants
 from rigctl.analysis.stats import Comparison
 
 __all__ = [
@@ -149,6 +149,8 @@ class TaskResults:
             One PC count, or None for every PC count.
         """
         by_v = self.curves[task]
+        if baseline not in by_v:  # real-time variants: compare against realtime_original
+            baseline = "realtime_" + baseline
         if baseline not in by_v:
             return []
         base = by_v[baseline]
@@ -176,8 +178,8 @@ def _progress(total, desc, enabled):
     return tqdm(total=total, desc=desc, disable=not enabled, unit="fit", leave=False)
 
 
-def _variants(fs: FeatureSet, variants):
-    vs = fs.variants if variants is None else list(variants)
+def _variants(fs: FeatureSet, variants, task="table1"):
+    vs = default_variants(fs.variants, task) if variants is None else list(variants)
     missing = [v for v in vs if v not in fs.features]
     if missing:
         raise KeyError(f"variants not in the data: {missing} (have {fs.variants})")
@@ -272,12 +274,12 @@ def run_cv(
             for f, (tr, te) in enumerate(folds):
                 pca = fit_pca(x[tr], n_pcs, random_state=r * k + f)
                 n_here = min(n_pcs, pca.n_components_)
-                n_used = n_here if n_used is None else min(n_used, n_here)
                 z_tr = pca.transform(x[tr])
                 z_te = pca.transform(x[te])
                 for t in tasks:
                     y = labels[t][idx]
                     pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te, n_here)
+                    n_used = len(pred) if n_used is None else min(n_used, len(pred))
                     c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
                     correct[t].append(c)
                     cms[(t, v)] = cms[(t, v)] + cm
@@ -405,8 +407,8 @@ def run_extrapolation(
             x = fs.features[v]
             pca = fit_pca(x[train_idx], n_pcs, random_state=r)
             n_here = min(n_pcs, pca.n_components_)
-            n_used = n_here if n_used is None else min(n_used, n_here)
             pred = NestedLDA().fit(pca.transform(x[train_idx]), y_tr).predict_all(pca.transform(x[test_idx]), n_here)
+            n_used = len(pred) if n_used is None else min(n_used, len(pred))
             for c in cats:
                 m = test_cat == c
                 correct, cm = _accumulate(pred[:, m], y_te[m], classes, confusion_pcs)
@@ -537,7 +539,7 @@ def run_realtime(
     train_profiles : sequence of str
         Profiles trained in the extrapolation task (the paper: slow, medium).
     variants : sequence of str, optional
-        Default: every variant of ``fs``.
+        Default: ``realtime_original`` / ``realtime_speed_scaled`` if present, else ``original`` / ``speed_scaled``.
     n_pcs : int
         Largest PC count (curves), clipped to what the training split supports.
     repeats : int
@@ -561,7 +563,7 @@ def run_realtime(
     """
     if fs.profile is None:
         raise ValueError("the real-time analysis needs ramp-profile trials: /trials has no 'profile' column")
-    vs = _variants(fs, variants)
+    vs = _variants(fs, variants, "realtime")
     res = TaskResults()
     classes = list(np.unique(fs.texture))
     profiles = np.unique(fs.profile)
@@ -577,6 +579,7 @@ def run_realtime(
     n_used = [n_pcs]
 
     def add(task, v, pred, truth):
+        n_used[0] = min(n_used[0], len(pred))
         correct, cm = _accumulate(pred, truth, classes, headline_pcs)
         a, c, n = store.get((task, v), ([], 0, 0))
         a.append(correct)
@@ -599,33 +602,31 @@ def run_realtime(
             preds, truths = [], []
             for f, (tr, te) in enumerate(folds):
                 pca = fit_pca(x[tr], n_pcs, random_state=r * k + f)
-                n_used[0] = min(n_used[0], pca.n_components_)
                 lda = NestedLDA().fit(pca.transform(x[tr]), fs.texture[tr])
-                preds.append(lda.predict_all(pca.transform(x[te]), pca.n_components_)[: n_used[0]])
+                preds.append(lda.predict_all(pca.transform(x[te]), pca.n_components_))
                 truths.append(fs.texture[te])
-            add("rt_offline", v, np.hstack([p[: n_used[0]] for p in preds]), np.concatenate(truths))
+            n_min = min(len(p) for p in preds)
+            add("rt_offline", v, np.hstack([p[:n_min] for p in preds]), np.concatenate(truths))
             pca = fit_pca(x[tr_idx], n_pcs, random_state=r)
-            n_used[0] = min(n_used[0], pca.n_components_)
             lda = NestedLDA().fit(pca.transform(x[tr_idx]), fs.texture[tr_idx])
             if len(held):
-                add("rt_trained", v, lda.predict_all(pca.transform(x[held]), n_used[0]), fs.texture[held])
+                add("rt_trained", v, lda.predict_all(pca.transform(x[held]), n_pcs), fs.texture[held])
             if len(untr):
-                add("rt_untrained", v, lda.predict_all(pca.transform(x[untr]), n_used[0]), fs.texture[untr])
+                add("rt_untrained", v, lda.predict_all(pca.transform(x[untr]), n_pcs), fs.texture[untr])
             if new_session is not None and v in new_session.features:
                 pca = fit_pca(x[all_tr], n_pcs, random_state=r)
-                n_used[0] = min(n_used[0], pca.n_components_)
                 lda = NestedLDA().fit(pca.transform(x[all_tr]), fs.texture[all_tr])
                 xn = new_session.features[v]
                 centre = xn[cal].astype(np.float64).mean(axis=0)  # mean-centering calibration
-                add("rt_new_session", v, lda.predict_all(_project(pca, xn[rest], centre), n_used[0]),
+                add("rt_new_session", v, lda.predict_all(_project(pca, xn[rest], centre), n_pcs),
                     new_session.texture[rest])
             bar.update(1)
     bar.close()
-    n = n_used[0]
     for (task, v), (a, cm, n_te) in store.items():
+        n = min(len(row) for row in a)  # PCs usable in this task (e.g. 30 training trials -> at most 25)
         acc = np.vstack([row[:n] for row in a]).astype(np.float64) / n_te
         res.add(Curve(task, v, acc, n_te, classes, np.asarray(cm, np.int64), min(headline_pcs, n)))
-    res.settings.update({"n_pcs": n, "repeats": repeats, "seed": seed, "headline_pcs": headline_pcs})
+    res.settings.update({"n_pcs": n_used[0], "repeats": repeats, "seed": seed, "headline_pcs": headline_pcs})
     return res
 
 

@@ -33,10 +33,12 @@ def _floats(text):
         raise click.BadParameter(f"expected comma-separated numbers, got '{text}'") from None
 
 
-def _load(path, encode, variants):
-    from rigctl.analysis.data import NotEncodedError, load_features
+def _load(path, encode, variants, task="table1"):
+    from rigctl.analysis.data import NotEncodedError, default_variants, list_variants, load_features
 
     try:
+        if variants is None and list_variants(path):
+            variants = default_variants(list_variants(path), task)
         return load_features(path, variants)
     except NotEncodedError as exc:
         if not encode:
@@ -48,17 +50,20 @@ def _load(path, encode, variants):
     out = Path(tempfile.mkdtemp(prefix="rigctl-analyze-")) / (Path(path).stem + ".encoded.h5")
     click.echo(f"encoding {path} -> {out} (rigctl encode) ...", err=True)
     encode_session(path, out)
-    return load_features(out, variants)
+    return load_features(out, variants or default_variants(list_variants(out), task))
 
 
-def _n_channels(fs, option):
+def _n_channels(fs, variant, option):
     if option:
         return option
-    for key in ("n_spike_trains", "n_trains", "n_channels"):
-        if key in fs.attrs:
-            return int(fs.attrs[key])
+    per_variant = fs.attrs.get("n_trains")
+    if isinstance(per_variant, dict) and variant in per_variant:
+        return per_variant[variant]
+    if "n_spike_trains" in fs.attrs:
+        return int(fs.attrs["n_spike_trains"])
     if "n_taxels" in fs.attrs:
-        return 2 * int(fs.attrs["n_taxels"])
+        n = int(fs.attrs["n_taxels"])
+        return n // 2 if variant.startswith("realtime") else 2 * n
     raise click.ClickException("--baseline remove needs the number of spike trains per trial: pass --channels N")
 
 
@@ -129,15 +134,14 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
     vlist = [v.strip() for v in variants.split(",")] if variants else None
     if table1_:
         task = "all"
-    fs = _load(file, encode_, vlist)
+    fs = _load(file, encode_, vlist, task)
     if task == "speed-extrapolation" and not train_speeds:
         raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
 
     runs = [("", fs)]
     if baseline in ("remove", "both"):
-        nch = _n_channels(fs, channels)
         fs_b = fs.subset(slice(None))
-        fs_b.features = {v: remove_baseline(x, nch) for v, x in fs.features.items()}
+        fs_b.features = {v: remove_baseline(x, _n_channels(fs, v, channels)) for v, x in fs.features.items()}
         runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
 
     res_all = tasks.TaskResults()
@@ -163,7 +167,7 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
                         test_speeds=_floats(test_speeds), variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed,
                         progress=progress, prefix="speed_"))
                 if task == "realtime":
-                    other = _load(new_session, encode_, vlist) if new_session else None
+                    other = _load(new_session, encode_, fs.variants, task) if new_session else None
                     res.merge(tasks.run_realtime(
                         data, new_session=other, train_profiles=[p.strip() for p in train_profiles.split(",")],
                         variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress))

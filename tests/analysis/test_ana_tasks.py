@@ -91,17 +91,17 @@ def test_realtime_profiles_and_calibration():
     names = {40.0: "slow", 80.0: "medium", 120.0: "fast"}
     fs = base.subset(np.arange(base.n_trials))
     fs.profile = np.array([names[s] for s in fs.speed_mm_s])
-    fs.features = {k: fs.features[k] for k in ("original", "speed_scaled")}
+    fs.features = {"realtime_" + k: fs.features[k] for k in ("original", "speed_scaled")}
     other = fs.subset(np.arange(fs.n_trials))
     other.features = {k: v + 2.0 for k, v in fs.features.items()}  # session-to-session offset
     res = run_realtime(fs, new_session=other, n_pcs=10, repeats=2, seed=1)
     assert set(res.curves) == {"rt_offline", "rt_trained", "rt_untrained", "rt_new_session"}
     un = res.curves["rt_untrained"]
-    assert un["speed_scaled"].at(10)[0] > un["original"].at(10)[0] + 0.2
-    assert res.curves["rt_untrained"]["original"].n_tested == 5 * 8  # all fast trials
-    assert res.curves["rt_trained"]["original"].n_tested == 5 * 16 - 5 * 12  # the 25 % held out
+    assert un["realtime_speed_scaled"].at(10)[0] > un["realtime_original"].at(10)[0] + 0.2
+    assert res.curves["rt_untrained"]["realtime_original"].n_tested == 5 * 8  # all fast trials
+    assert res.curves["rt_trained"]["realtime_original"].n_tested == 5 * 16 - 5 * 12  # the 25 % held out
     # calibration removes the offset: the new session classifies like the offline data
-    assert res.curves["rt_new_session"]["speed_scaled"].at(10)[0] > 0.8
+    assert res.curves["rt_new_session"]["realtime_speed_scaled"].at(10)[0] > 0.8
     with pytest.raises(ValueError, match="profile"):
         run_realtime(base, n_pcs=5, repeats=1)
 
