@@ -135,7 +135,13 @@ def test_generate_dataset_same_output_with_two_workers(protocol_path, tmp_path):
     with open_session(tmp_path / "one.h5") as a, open_session(tmp_path / "two.h5") as b:
         assert a.completed_ids() == b.completed_ids()
         for tid in a.completed_ids():
-            np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
+            ta, tb = a.trial(tid), b.trial(tid)
+            np.testing.assert_array_equal(ta.taxels, tb.taxels)
+            np.testing.assert_array_equal(ta.force_g, tb.force_g)
+            assert ta.attrs.keys() == tb.attrs.keys()
+            assert ta.attrs["texture"] == tb.attrs["texture"] and ta.attrs["start_phase_mm"] == tb.attrs["start_phase_mm"]
+        np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
+    assert not (tmp_path / "two.h5.shards").exists()
 
 
 def test_cli_sim_dataset(protocol_path, tmp_path):
