@@ -215,5 +215,6 @@ def test_modbus_round_trip_time(hil_rig):
             d.read_status()
         rtt = (time.perf_counter() - t0) / n
     print(f"Modbus round trip (read 13 input registers, pymodbus <-> firmware under simavr): {rtt * 1e3:.1f} ms")
-    # the wire alone: request 8 B + t3.5 + reply 31 B at 115200 baud ~ 5 ms; allow the host's scheduling
-    assert 0.004 < rtt < 0.05
+    # simavr times every byte from UBRR: no round trip beats the wire (request 8 B + t3.5 + reply 31 B at 115200
+    # baud, 11 bit times a byte in simavr = 5.5 ms). Upper bounds are benchmarks/bench_firmware_hil.py's business.
+    assert rtt > 0.005
