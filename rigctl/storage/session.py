@@ -469,7 +469,7 @@ class SessionWriter:
 
     # -- writing ------------------------------------------------------------------------------------------------
     def write_trial(self, trial_id: int, data: TrialData) -> None:
-        """Write one trial in one go, mark it complete in ``/plan``, flush and close the file.
+        """Write one trial in one go, mark it complete in ``/plan``, commit it to disk (journaled) and close the file.
 
         Raises
         ------
@@ -483,10 +483,11 @@ class SessionWriter:
         self.write_trials([(trial_id, data)])
 
     def write_trials(self, items: Iterable[tuple[int, TrialData]]) -> int:
-        """Write several trials during one opening of the file (flushing after each); returns how many.
+        """Write several trials during one opening of the file; returns how many.
 
         For the dataset generator, where opening the file per trial would dominate. Same checks as
-        :meth:`write_trial`; the plan status of each trial is set after its data, then the file is flushed.
+        :meth:`write_trial`. The batch reaches the disk in one journaled commit when the last trial is written: a
+        crash before that loses the whole batch (the file stays as it was), never part of a trial.
         """
         count = 0
         with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
@@ -498,7 +499,6 @@ class SessionWriter:
                 self._write_group(f, self._plan[i], data)
                 self._plan["status"][i] = TrialStatus.COMPLETE
                 plan_ds[i] = self._plan[i]
-                f.flush()
                 count += 1
         return count
 
