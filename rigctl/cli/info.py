@@ -99,8 +99,10 @@ def info(file, as_json):
 
     try:
         summary = session_summary(file)
-    except (SessionError, OSError) as exc:
-        raise click.ClickException(f"{file}: {exc}") from None
+    except SessionError as exc:
+        raise click.ClickException(str(exc)) from None
+    except OSError as exc:
+        raise click.ClickException(f"{file} is not a readable HDF5 session file ({exc})") from None
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
