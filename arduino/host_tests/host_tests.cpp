@@ -90,13 +90,8 @@ static void mb_setup()
     ctl_init(&ctl, 0, 0);
     ctl.now_ms = 1000;
     ctl_loadcell(&ctl, 1000); // tare at power-up
-    mb.device_id = 1;
-    mb.n_holding = RIGCTL_N_HOLDING;
-    mb.n_input = RIGCTL_N_INPUT;
-    mb.ctx = &ctl;
-    mb.read_holding = ctl_read_holding;
-    mb.read_input = ctl_read_input;
-    mb.write_holding = ctl_write_holding;
+    ctl_bind_modbus(&ctl, &mb);
+    CHECK(mb.device_id == 1);
 }
 
 static std::vector<uint8_t> with_crc(std::vector<uint8_t> v)

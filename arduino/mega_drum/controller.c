@@ -224,6 +224,17 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
     return 0;
 }
 
+void ctl_bind_modbus(ctl_t *c, mb_slave_t *mb)
+{
+    mb->device_id = RIGCTL_DRUM_DEVICE_ID;
+    mb->n_holding = RIGCTL_N_HOLDING;
+    mb->n_input = RIGCTL_N_INPUT;
+    mb->ctx = c;
+    mb->read_holding = ctl_read_holding;
+    mb->read_input = ctl_read_input;
+    mb->write_holding = ctl_write_holding;
+}
+
 void ctl_feed_watchdog(ctl_t *c)
 {
     c->last_request_ms = c->now_ms;

@@ -8,6 +8,7 @@
 #include <stdint.h>
 #include "../common/rigctl_wire.h"
 #include "force_pi.h"
+#include "modbus_slave.h"
 #ifdef __cplusplus
 extern "C" {
 #endif
@@ -61,6 +62,8 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr);
  * current state); returns RIGCTL_MB_EX_ILLEGAL_VALUE and changes nothing if one fails, else applies them all
  * and then runs the command, if COMMAND was written */
 uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t *values);
+/* point a Modbus slave at this controller's register map (device id 1, both tables) */
+void ctl_bind_modbus(ctl_t *c, mb_slave_t *mb);
 /* a valid request for this device arrived (feeds the host watchdog) */
 void ctl_feed_watchdog(ctl_t *c);
 /* 1 kHz control step: profiles, ramps, watchdog, homing/retract, settle timing, faults */

@@ -261,13 +261,7 @@ void setup(void)
     cli();
     calib_load(&scale, &steps);
     ctl_init(&ctl, scale, steps);
-    mb.device_id = RIGCTL_DRUM_DEVICE_ID;
-    mb.n_holding = RIGCTL_N_HOLDING;
-    mb.n_input = RIGCTL_N_INPUT;
-    mb.ctx = &ctl;
-    mb.read_holding = ctl_read_holding;
-    mb.read_input = ctl_read_input;
-    mb.write_holding = ctl_write_holding;
+    ctl_bind_modbus(&ctl, &mb);
 
     /* pins */
     PIN_DRUM_STEP_DDR |= (1 << PIN_DRUM_STEP_BIT) | (1 << PIN_DRUM_DIR_BIT);
