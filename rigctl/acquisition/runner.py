@@ -103,7 +103,7 @@ def _emit(cb, event: TrialEvent) -> None:
 def _wait_while_paused(rig, pause_event, stop_event, on_trial, index, total, t0) -> None:
     if pause_event is None or not pause_event.is_set():
         return
-    rig.release()
+    rig.recover()  # STOP (clearing any fault): no force on the sensor while paused
     _emit(on_trial, TrialEvent("paused", None, index, total, elapsed_s=time.monotonic() - t0))
     while pause_event.is_set():
         if stop_event is not None and stop_event.is_set():
