@@ -47,6 +47,6 @@ def encode(session, out, scheduler, workers, batch, variants, no_spikes, quiet):
             if name in f:
                 a = f[name].attrs
                 click.echo(f"  {name}: {a['n_not_converged']} of {a['n_coefficients']} not converged "
-                           f"(capped at {f[name]['coeff'].max():.3g})")
+                           f"(largest coefficient {f[name]['coeff'].max():.3g}, cap 5)")
             elif f"{name}_note" in f.attrs:
                 click.echo(f"  {name}: {f.attrs[f'{name}_note']}")
