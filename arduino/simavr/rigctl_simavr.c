@@ -21,7 +21,8 @@
  * load cell: force_g = k * max(0, x_mm - contact_mm) + bump; raw = offset + force_g * counts_per_g. Drives the
  * home switch (PH4, low at x <= 0). Watches the drum STEP (PB5)/DIR (PB4) pins and the index output (PH6):
  * "TEL ..." lines every --tel-ms of simulated time give step counts and the force; "IDX t=..." at each index
- * pulse. stdin commands: "bump G" (an external force offset in g, e.g. to trip the force limit).
+ * pulse. stdin commands: "bump G" (an external force offset in g, e.g. to trip the force limit), "reset" (the
+ * reset button: the firmware restarts, its EEPROM is kept).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -161,6 +162,7 @@ static double opt_max_seconds = 0.0;
 
 /* ---- stdin commands (reader thread -> main loop) ---- */
 static atomic_int quit_requested;
+static atomic_int reset_requested;
 static atomic_int sync_requests;
 static atomic_int bump_g_x1000;
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
@@ -227,6 +229,8 @@ static void *stdin_thread(void *arg)
         } else if (!strncmp(line, "bump ", 5)) {
             atomic_store(&bump_g_x1000, (int)(atof(line + 5) * 1000.0));
             printf("OK bump\n");
+        } else if (!strcmp(line, "reset")) { /* power cycle / reset button: RAM cleared, EEPROM kept */
+            atomic_store(&reset_requested, 1);
         } else if (!strcmp(line, "quit")) {
             break;
         }
@@ -581,6 +585,11 @@ int main(int argc, char **argv)
         if (is_uno) uno_poll();
         else mega_poll();
         if (atomic_load(&quit_requested)) break;
+        if (atomic_exchange(&reset_requested, 0)) {
+            avr_reset(avr);
+            bridge_reset();
+            printf("RESET t=%.6f\n", sim_s());
+        }
         if (opt_max_seconds > 0 && sim_s() >= opt_max_seconds) break;
         if (ino >= 0) {
             char buf[4096];

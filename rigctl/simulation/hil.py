@@ -306,6 +306,10 @@ class HilRig:
         """Add an external force of ``force_g`` g on the load cell (0 removes it), e.g. to trip FORCE_LIMIT."""
         self._mega.send(f"bump {float(force_g)}")
 
+    def reset_mega(self) -> None:
+        """Press the Mega's reset button: the firmware restarts (RAM cleared, EEPROM calibration kept)."""
+        self._mega.send("reset")
+
     def place_mass(self, mass_g: float) -> None:
         """A calibration mass on the load cell: the same external force as :meth:`bump`."""
         self.bump(mass_g)

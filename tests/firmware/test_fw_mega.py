@@ -218,3 +218,49 @@ def test_modbus_round_trip_time(hil_rig):
     # simavr times every byte from UBRR: no round trip beats the wire (request 8 B + t3.5 + reply 31 B at 115200
     # baud, 11 bit times a byte in simavr = 5.5 ms). Upper bounds are benchmarks/bench_firmware_hil.py's business.
     assert rtt > 0.005
+
+
+def test_calibration_survives_a_reset_only_when_saved(hil_rig):
+    with DrumClient(hil_rig.drum_port) as d:
+        d.write_holding(HR.LOADCELL_SCALE_X100, 41234)
+        d.write_holding(HR.ACTUATOR_STEPS_PER_MM, 401)
+        d.save_calibration()
+        d.write_holding(HR.LOADCELL_SCALE_X100, 40000)  # changed but not saved
+        hb = d.read_status().heartbeat
+        hil_rig.reset_mega()
+        deadline = time.monotonic() + 5
+        while True:  # the controller restarts: heartbeat back near 0, defaults in RAM, calibration from EEPROM
+            try:
+                st = d.read_status()
+                if st.heartbeat < hb:
+                    break
+            except Exception:
+                pass
+            assert time.monotonic() < deadline, "no restart seen"
+            time.sleep(0.05)
+        assert d.read_holding(HR.LOADCELL_SCALE_X100) == 41234
+        assert d.read_holding(HR.ACTUATOR_STEPS_PER_MM) == 401
+        assert d.read_holding(HR.SETTLE_TIME_MS) == wire.HOLDING_RANGE[HR.SETTLE_TIME_MS][2]
+        # back to the spec's defaults, saved, for the other tests
+        d.write_holding(HR.LOADCELL_SCALE_X100, wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100][2])
+        d.write_holding(HR.ACTUATOR_STEPS_PER_MM, wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2])
+        d.save_calibration()
+
+
+def test_ramp_profile_follows_the_ramp(hil_rig, drum):
+    drum.set_force(0)
+    drum.set_ramp(40, 120, 2.0)
+    drum.set_profile(wire.SpeedProfile.RAMP)
+    drum.run()
+    t0 = time.monotonic()
+    seen = []
+    while time.monotonic() - t0 < 2.6:
+        st = drum.read_status()
+        seen.append((st.speed_target_mm_s, st.speed_mm_s))
+        time.sleep(0.1)
+    drum.set_profile(wire.SpeedProfile.CONSTANT)
+    targets = [t for t, _ in seen]
+    assert targets[0] < 60 and targets[-1] == pytest.approx(120)
+    assert all(b >= a for a, b in zip(targets, targets[1:]))  # a monotonic ramp
+    assert any(60 < t < 100 for t in targets)  # passing through the middle
+    assert seen[-1][1] == pytest.approx(120, abs=0.5)  # the step rate follows
