@@ -30,7 +30,11 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     """
     from rigctl.storage.fabricslide import import_fabricslide as run
 
-    directory = Path(directory) if directory else DEFAULT_DIR
+    if directory:
+        directory = Path(directory)
+    else:  # next to the repo checkout; for an installed (non-editable) package, next to the working directory
+        candidates = [DEFAULT_DIR, Path.cwd().parent / "shared" / "data" / "fabricslide"]
+        directory = next((c for c in candidates if c.is_dir()), DEFAULT_DIR)
     try:
         summary = run(directory, out, include_board=include_board, pattern=pattern, trim=trim, overwrite=overwrite,
                       progress=not quiet)
