@@ -183,9 +183,11 @@ def main(argv=None) -> int:
         else:
             print("Brian2:", res["brian2"])
         ok1 = res["ours_counts_steps_per_s"] >= 1e9
-        print(f"target >= 1e9 neuron-steps/s: {'met' if ok1 else 'NOT met'}"
-              + (f"; target >= 20x Brian2: {'met' if ref_b and res['ours_counts_steps_per_s'] >= 20 * ref_b else 'NOT met'}"
-                 if ref_b else ""))
+        line = f"target >= 1e9 neuron-steps/s (wall): {'met' if ok1 else 'NOT met'}"
+        if ref_b:
+            ok2 = res["ours_counts_steps_per_s"] >= 20 * ref_b
+            line += f"; target >= 20x Brian2 (wall): {'met' if ok2 else 'NOT met'}"
+        print(line)
     else:
         print(json.dumps(res, indent=2))
     return 0

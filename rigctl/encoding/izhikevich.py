@@ -229,7 +229,9 @@ class Ragged:
 
     def select(self, trials) -> "Ragged":
         trials = np.arange(self.n_trials)[trials]
-        return as_ragged([self.trial(t) for t in trials]) if trials.size else Ragged(self.data[:0], np.zeros(1, np.int64))
+        if not trials.size:
+            return Ragged(self.data[:0], np.zeros(1, np.int64))
+        return as_ragged([self.trial(t) for t in trials])
 
 
 def as_ragged(readings) -> Ragged:
