@@ -10,6 +10,7 @@ and a status bar with both boards' link status. One QTimer pulls from the worker
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import sys
@@ -153,7 +154,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.banner.show_message(f"Could not open the {self.source.label()}: {job.error}", error=True)
             return
         h = self.handle = job.result
-        self.poller = StatusPoller(h.drum)
+        self.poller = StatusPoller(h.drum, period_s=0.1)
         self.poller.start()
         self.commands = CommandExecutor(h.drum)
         self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig))
@@ -162,6 +163,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.calibration.attach(h)
         self.live.attach(h.taxels, self.encoder)
         self._update_source_label("connected")
+        # everything long-lived exists now: move it out of the cyclic GC's reach, so full collections (which
+        # otherwise traverse every Qt wrapper and pyqtgraph item, ~150 ms) do not stall the display
+        gc.collect()
+        gc.freeze()
         self.banner.hide()
 
     def disconnect_rig(self) -> None:
@@ -242,7 +247,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--tab", choices=TAB_NAMES, help="tab to show first")
     ap.add_argument("--run", action="store_true", help="press and run the drum at the setpoints once connected")
     ap.add_argument("--texture", metavar="LETTER", help="mount this texture plate (A-P) once connected")
-    ap.add_argument("--stats-out", metavar="PATH", help="write display statistics (JSON) every second (benchmarks)")
+    ap.add_argument("--stats-out", metavar="PATH", help="append display statistics (JSON lines) every second "
+                    "(benchmarks/bench_gui.py)")
     return ap.parse_args(argv)
 
 
@@ -256,30 +262,36 @@ def source_from_args(args) -> RigSource | None:
     return RigSource("sim")
 
 
-def write_stats(window: MainWindow, path: str) -> None:
-    """Display statistics for benchmarks: paint times and frame-to-screen latencies of the live view."""
+def write_stats(window: MainWindow, path: str, state: dict) -> None:
+    """Append one JSON line of display statistics (benchmarks): cumulative paints of the live view and the
+    frame-to-screen latencies (s) measured since the previous line."""
     lv = window.live
-    n = min(lv._lat_n, len(lv.latencies_s))
-    stats = {
+    n = lv._lat_n
+    start = max(state.get("lat_n", 0), n - len(lv.latencies_s))
+    idx = np.arange(start, n) % len(lv.latencies_s)
+    state["lat_n"] = n
+    enc = window.encoder
+    line = {
         "time": time.monotonic(),
         "paints": lv.paints,
-        "latency_samples": n,
-        "latency_s": lv.latencies_s[:n][np.isfinite(lv.latencies_s[:n])].tolist(),
-        "samples": lv.buffer.n_samples if lv.buffer else 0,
-        "sa_spikes": window.encoder.sa.total if window.encoder else 0,
-        "ra_spikes": window.encoder.ra.total if window.encoder else 0,
-        "encoder_error": window.encoder.encoder_error if window.encoder else None,
+        "latency_s": [round(float(v), 6) for v in lv.latencies_s[idx]],
+        "frames": lv.buffer.n_samples if lv.buffer else 0,
+        "sa_spikes": enc.sa.total if enc else 0,
+        "ra_spikes": enc.ra.total if enc else 0,
+        "encoder_error": enc.encoder_error if enc else None,
+        "connected": window.handle is not None,
     }
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(stats, f)
-    os.replace(tmp, path)
+    with open(path, "a") as f:
+        f.write(json.dumps(line) + "\n")
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("rigctl")
+    # the GUI thread shares the GIL with the stream reader, the encoder and the drum poll: hand it back sooner
+    # than the default 5 ms so a paint is not kept waiting behind a worker
+    sys.setswitchinterval(0.001)
     configure_pyqtgraph()
     window = MainWindow(source_from_args(args))
     if args.tab:
@@ -297,8 +309,9 @@ def main(argv=None) -> int:
 
         QtCore.QTimer.singleShot(200, _run_when_ready)
     if args.stats_out:
+        stats_state: dict = {}
         st = QtCore.QTimer(window)
-        st.timeout.connect(lambda: write_stats(window, args.stats_out))
+        st.timeout.connect(lambda: write_stats(window, args.stats_out, stats_state))
         st.start(1000)
     if args.quit_after is not None:
         def _finish():

@@ -149,7 +149,7 @@ class LiveView(QtWidgets.QWidget):
 
     def attach(self, taxels, encoder) -> None:
         """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes."""
-        self.buffer = TraceBuffer(taxels.ring, seconds=10.0)
+        self.buffer = TraceBuffer(taxels.ring, seconds=10.0, decimate=5)  # 200 Hz on screen
         self.encoder = encoder
 
     def detach(self) -> None:

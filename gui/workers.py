@@ -323,7 +323,7 @@ class LiveEncoder(threading.Thread):
     calibration); without one the full ADC range 0-1023 is used.
     """
 
-    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.02):
+    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.04):
         super().__init__(name="live-encoder", daemon=True)
         self.taxels = taxels
         self.poll_s = poll_s
