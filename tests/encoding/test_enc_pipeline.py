@@ -89,10 +89,12 @@ def test_spikes_and_features_agree(encoded):
             np.testing.assert_array_equal(fs.train(t, j), orig.train(t, j))
 
 
-def test_dask_local_cluster_gives_the_same_file(session, encoded, tmp_path):
-    pytest.importorskip("dask.distributed")
+def test_dask_cluster_by_address_gives_the_same_file(session, encoded, tmp_path):
+    distributed = pytest.importorskip("dask.distributed")
     out = tmp_path / "dask.h5"
-    encode_session(session, out, batch_trials=7, scheduler="local", workers=1, progress=False)
+    # a separate scheduler + worker process, reached by its address as a remote cluster would be
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+        encode_session(session, out, batch_trials=7, scheduler=c.scheduler_address, progress=False)
     with h5py.File(out, "r") as a, h5py.File(encoded, "r") as b:
         for v in b["features"]:
             np.testing.assert_array_equal(a["features"][v][()], b["features"][v][()])
