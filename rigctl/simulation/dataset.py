@@ -78,12 +78,15 @@ def _as_profile(profile: Any) -> RampProfile | None:
     else:
         def get(k, default=None):
             return getattr(profile, k, default)
-    if str(get("kind", "ramp")).lower() in ("constant", "0"):
+    kind = str(get("kind", "") or "").lower()
+    if kind in ("constant", "0"):
         return None
     start = get("start_mm_s", get("ramp_start_mm_s"))
     end = get("end_mm_s", get("ramp_end_mm_s"))
     if start is None or end is None or math.isnan(float(start)) or math.isnan(float(end)):
-        raise ValueError(f"a ramp profile needs start_mm_s and end_mm_s, got {profile!r}")
+        if kind in ("ramp", "1"):
+            raise ValueError(f"a ramp profile needs start_mm_s and end_mm_s, got {profile!r}")
+        return None  # e.g. a constant-speed PlannedTrial (NaN ramp speeds)
     ramp = get("ramp_s", get("duration_s", None))
     return RampProfile(float(start), float(end), None if ramp is None else float(ramp))
 
