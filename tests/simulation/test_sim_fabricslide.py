@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from rigctl.storage.fabricslide import (
     CHANNEL_PRESENT,
+    list_files,
     load_fabricslide,
     parse_name,
     read_recording,
@@ -40,23 +41,28 @@ def test_parse_names():
         parse_name("notes.csv")
 
 
-def test_load_all_real_recordings(fabricslide_dir):
-    recs = load_fabricslide(fabricslide_dir)
-    assert len(recs) == 720
-    assert {r.label for r in recs} == {"BeigeCotton", "BrownCotton", "Canvas", "Linen"}
-    assert {r.force_setpoint for r in recs} == {120, 150, 180, 210, 250}
-    assert {r.speed_mm_s for r in recs} == {10, 20, 50, 100, 120, 150}
-    assert {r.direction for r in recs} == {-1, 1}
+def test_load_real_recordings(fabricslide_dir):
+    # all 720 fabric files are found and labelled from their names
+    names = [parse_name(p.name) for p in list_files(fabricslide_dir)]
+    assert len(names) == 720
+    assert {n["label"] for n in names} == {"BeigeCotton", "BrownCotton", "Canvas", "Linen"}
+    assert {n["force_setpoint"] for n in names} == {120, 150, 180, 210, 250}
+    assert {abs(n["velocity_mm_s"]) for n in names} == {10, 20, 50, 100, 120, 150}
+    assert {n["repeat"] for n in names} == {0, 1, 2}
+    # one force setpoint read in full (fabrics and the board)
+    recs = load_fabricslide(fabricslide_dir, include_board=True, pattern="*_F150_*")
+    fabrics = [r for r in recs if r.kind == "fabric"]
+    assert len(fabrics) == 144 and all(r.force_setpoint == 150 for r in recs)
+    assert recs[-1].kind == "board" and recs[-1].label == "Board10mm"
+    assert {r.direction for r in fabrics} == {-1, 1}
     for r in recs:
         assert r.readings.shape == (r.timestamp_ms.size, 16)
         assert np.all(np.diff(r.timestamp_ms) > 0)  # repeated timestamps removed
     # about 28 ms between samples, and the covered travel is about 594 mm whatever the speed
-    dt = np.median(np.concatenate([np.diff(r.timestamp_ms) for r in recs[:50]]))
+    dt = np.median(np.concatenate([np.diff(r.timestamp_ms) for r in fabrics]))
     assert 25 <= dt <= 31
-    travel = [r.speed_mm_s * (r.timestamp_ms[-1] - r.timestamp_ms[0]) / 1000 for r in recs]
+    travel = [r.speed_mm_s * (r.timestamp_ms[-1] - r.timestamp_ms[0]) / 1000 for r in fabrics]
     assert 500 < np.median(travel) < 700
-    board = load_fabricslide(fabricslide_dir, include_board=True)
-    assert len(board) > 720 and board[-1].kind == "board"
 
 
 def test_repeated_timestamps_keep_the_first_sample(tmp_path):
