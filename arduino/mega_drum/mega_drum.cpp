@@ -185,6 +185,39 @@ static int32_t hx711_read(void)
 }
 
 /* ---- applying the controller's outputs ---- */
+/* A 16-bit step timer in CTC mode (Timer1 or Timer3). */
+struct step_timer_regs {
+    volatile uint16_t *ocr;
+    volatile uint16_t *tcnt;
+    volatile uint8_t *tccrb;
+    volatile uint8_t *tifr;
+    uint8_t wgm;  /* the CTC bit of TCCRnB */
+    uint8_t ocf;  /* the compare flag bit of TIFRn */
+};
+static const step_timer_regs drum_timer = {&OCR1A, &TCNT1, &TCCR1B, &TIFR1, (1 << WGM12), (1 << OCF1A)};
+static const step_timer_regs act_timer = {&OCR3A, &TCNT3, &TCCR3B, &TIFR3, (1 << WGM32), (1 << OCF3A)};
+
+/* Retime a running (or stopped) step timer at once, so the rate follows the 1 kHz ramp instead of waiting out a
+ * long period (at the start of a ramp the first period would be hundreds of ms). Call with interrupts off.
+ * Same prescaler: the new period applies to the step in progress (if it has already run longer, the step comes on
+ * the next timer tick). Other prescaler, or starting from rest: the period restarts now. Stopping is left to the
+ * compare interrupt (cs = 0 in `next`), so a step in progress is finished. */
+static void step_timer_retime(const step_timer_regs *r, volatile uint8_t *running_cs, const steptimer_t *t)
+{
+    if (!t->cs) return;
+    if (*running_cs == t->cs) {
+        uint16_t now = *r->tcnt;
+        *r->ocr = t->ocr;
+        if (now >= t->ocr) *r->tcnt = t->ocr ? (uint16_t)(t->ocr - 1) : 0;
+    } else {
+        *r->ocr = t->ocr;
+        *r->tcnt = 0;
+        *r->tifr = r->ocf;
+        *r->tccrb = (uint8_t)(r->wgm | t->cs);
+        *running_cs = t->cs;
+    }
+}
+
 static void drum_apply(float v_mm_s)
 {
     steptimer_t t;
@@ -192,13 +225,9 @@ static void drum_apply(float v_mm_s)
     cli();
     drum_next.cs = t.cs;
     drum_next.ocr = t.ocr;
-    if (!drum_running_cs && t.cs) { /* start from rest: first step after one period */
-        OCR1A = t.ocr;
+    if (t.cs && (t.cs != drum_running_cs || t.ocr != drum_running_ocr)) {
+        step_timer_retime(&drum_timer, &drum_running_cs, &t);
         drum_running_ocr = t.ocr;
-        TCNT1 = 0;
-        TIFR1 = (1 << OCF1A);
-        TCCR1B = (uint8_t)((1 << WGM12) | t.cs);
-        drum_running_cs = t.cs;
     }
     sei();
 }
@@ -223,16 +252,12 @@ static void act_apply(float v_mm_s)
     act_next.cs = t.cs;
     act_next.ocr = t.ocr;
     act_next_dir = dir;
-    if (!act_running_cs && t.cs) {
+    if (t.cs && !act_running_cs) { /* from rest: set the direction before the first step */
         act_dir = dir;
         if (dir) PIN_ACT_DIR_PORT |= (1 << PIN_ACT_DIR_BIT);
         else PIN_ACT_DIR_PORT &= (uint8_t)~(1 << PIN_ACT_DIR_BIT);
-        OCR3A = t.ocr;
-        TCNT3 = 0;
-        TIFR3 = (1 << OCF3A);
-        TCCR3B = (uint8_t)((1 << WGM32) | t.cs);
-        act_running_cs = t.cs;
     }
+    if (t.cs && dir == act_dir) step_timer_retime(&act_timer, &act_running_cs, &t);
     sei();
 }
 
