@@ -13,7 +13,8 @@
  * uint16, n x 18, e.g. written by rigctl.simulation.hil from the physical model); a new row is taken at the
  * first conversion of every scan (select 0 on A0), so frame k carries row (k0 + k) mod n, and the counts are
  * converted to exactly the millivolts that simavr's ADC turns back into the same counts. stdin commands:
- * "wave PATH" (load a waveform), "sync" (a 1 ms pulse on the sync-in pin D2). Timing: the sampler's probe pin
+ * "wave PATH" (load a waveform), "scan?" (reply "SCAN n=<scans so far> start=<scan of the waveform's row 0>"),
+ * "sync" (a 1 ms pulse on the sync-in pin D2). Timing: the sampler's probe pin
  * (PB0) and the transmitter's (PB1) are timed on avr->cycle; "ISR ..." lines report cycles per 1 ms tick.
  *
  * Mega (ATmega2560): emulates the HX711 (DOUT PE5, SCK PG5; 80 SPS, 24-bit two's complement, 25th clock = gain
@@ -168,7 +169,10 @@ static atomic_int bump_g_x1000;
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
 static uint16_t *wave;     /* n_rows x 18 ADC counts */
 static size_t wave_rows;
-static atomic_int wave_restart; /* a new waveform was loaded: play it from its first row */
+static uint16_t *wave_pending; /* loaded by the stdin thread, swapped in at the start of the next scan */
+static size_t wave_pending_rows;
+static uint64_t scan_count;       /* Uno: ADC scans so far (one per 1 ms tick) */
+static uint64_t scan_base;        /* scan_count when the playing waveform started (row 0) */
 
 static double now_s(void)
 {
@@ -206,10 +210,9 @@ static int load_wave(const char *path)
         if (buf[i] > RIGCTL_ADC_MAX) buf[i] = RIGCTL_ADC_MAX;
     }
     pthread_mutex_lock(&wave_lock);
-    uint16_t *old = wave;
-    wave = buf;
-    wave_rows = size / (2 * N_TAXELS);
-    atomic_store(&wave_restart, 1);
+    uint16_t *old = wave_pending;
+    wave_pending = buf;
+    wave_pending_rows = size / (2 * N_TAXELS);
     pthread_mutex_unlock(&wave_lock);
     free(old);
     return 0;
@@ -224,6 +227,8 @@ static void *stdin_thread(void *arg)
         if (!strncmp(line, "wave ", 5)) {
             if (load_wave(line + 5)) printf("ERR wave %s\n", line + 5);
             else printf("OK wave %zu\n", wave_rows);
+        } else if (!strcmp(line, "scan?")) { /* which row of the waveform plays now */
+            printf("SCAN n=%llu start=%llu\n", (unsigned long long)scan_count, (unsigned long long)scan_base);
         } else if (!strcmp(line, "sync")) {
             atomic_fetch_add(&sync_requests, 1);
         } else if (!strncmp(line, "bump ", 5)) {
@@ -241,8 +246,6 @@ static void *stdin_thread(void *arg)
 
 /* ================================ Uno: mux-aware taxel ADC ================================ */
 static uint8_t mux_sel;          /* select lines PD4..PD6 as the pins show them */
-static uint64_t scan_count;
-static uint64_t scan_base;
 static size_t scan_row;
 static avr_irq_t *adc_irq_base;
 static uint64_t probe_rise[2], probe_total[2], probe_window_sum[2], probe_window_max[2], probe_window[2];
@@ -278,8 +281,18 @@ static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
     if (e.mux.kind != ADC_MUX_SINGLE) return;
     int src = e.mux.src;
     if (src > 2) return;
-    if (src == 0 && mux_sel == 0) { /* first conversion of a scan: next row */
-        if (atomic_exchange(&wave_restart, 0)) scan_base = scan_count;
+    if (src == 0 && mux_sel == 0) { /* first conversion of a scan: next row; a new waveform starts here */
+        uint16_t *old = NULL;
+        pthread_mutex_lock(&wave_lock);
+        if (wave_pending) {
+            old = wave;
+            wave = wave_pending;
+            wave_rows = wave_pending_rows;
+            wave_pending = NULL;
+            scan_base = scan_count;
+        }
+        pthread_mutex_unlock(&wave_lock);
+        free(old);
         scan_row = scan_count++ - scan_base;
     }
     int taxel = src * 6 + (mux_sel < 6 ? mux_sel : 5);
@@ -527,7 +540,11 @@ int main(int argc, char **argv)
     avr->frequency = 16000000;
     avr->log = LOG_ERROR;
 
-    if (wave_path && load_wave(wave_path)) {
+    if (wave_path && load_wave(wave_path) == 0) {
+        wave = wave_pending;
+        wave_rows = wave_pending_rows;
+        wave_pending = NULL;
+    } else if (wave_path) {
         fprintf(stderr, "cannot read waveform %s\n", wave_path);
         return 1;
     }

@@ -79,6 +79,7 @@ class Telemetry:
     act_mm: float
     force_g: float
     index: int
+    received: float = 0.0  #: host time.monotonic() when the line arrived
 
 
 class _Harness:
@@ -195,6 +196,10 @@ class HilRig:
         self._feeder: threading.Thread | None = None
         self._cond = threading.Condition()
         self._wave_acks = 0
+        self._render_lock = threading.Lock()
+        self._scan_reply: tuple[int, int] | None = None
+        self._wave_pos: np.ndarray | None = None  # drum travel (mm) of each row of the waveform playing now
+        self._wave_force = 0.0  # contact force (g) the waveform playing now ends at
 
     # ------------------------------------------------------------------ properties
     @property
@@ -296,6 +301,7 @@ class HilRig:
         if samples.min() < 0 or samples.max() > wire.ADC_MAX:
             raise ValueError(f"samples must be ADC counts 0-{wire.ADC_MAX}")
         self.live = False
+        self._wave_pos = None
         self._stop.set()
         if self._feeder is not None:
             self._feeder.join(timeout=3)
@@ -341,7 +347,7 @@ class HilRig:
         if line.startswith("TEL "):
             kv = _parse_kv(line)
             tel = Telemetry(kv["t"], int(kv["cycle"]), int(kv["drum_steps"]), int(kv["act_steps"]), kv["act_mm"],
-                            kv["force_g"], int(kv["index"]))
+                            kv["force_g"], int(kv["index"]), time.monotonic())
             with self._cond:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
@@ -354,6 +360,11 @@ class HilRig:
     def _on_uno_line(self, line: str) -> None:
         if line.startswith("ISR "):
             self.isr = _parse_kv(line)
+        elif line.startswith("SCAN "):
+            kv = _parse_kv(line)
+            with self._cond:
+                self._scan_reply = (int(kv["n"]), int(kv["start"]))
+                self._cond.notify_all()
         elif line.startswith("OK wave") or line.startswith("ERR wave"):
             with self._cond:
                 self._wave_acks += 1
@@ -377,8 +388,32 @@ class HilRig:
                     raise HilError("the Uno harness did not confirm the waveform")
                 self._cond.wait(left)
 
-    def _render_and_load(self, horizon_s: float = 1.0) -> None:
-        """Render the next ``horizon_s`` of taxel readings from the latest drum travel, speed and force."""
+    def _playing_row(self, timeout_s: float = 1.0) -> int | None:
+        """Row of the current waveform the Uno harness plays now (None if unknown)."""
+        with self._cond:
+            self._scan_reply = None
+            self._uno.send("scan?")
+            deadline = time.monotonic() + timeout_s
+            while self._scan_reply is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+            n, start = self._scan_reply
+        return n - start
+
+    def _render_and_load(self, horizon_s: float = 1.0, load_latency_s: float = 0.005) -> None:
+        """Render the next ``horizon_s`` of taxel readings from the latest drum travel, speed and force.
+
+        The new waveform continues the drum travel and the force of the one playing now (the row playing is asked
+        from the harness: no jump in the texture's phase or amplitude at the swap) and converges linearly to the
+        travel and force the Mega harness
+        reports, extrapolated to the swap (report age plus ``load_latency_s``), within 0.5 s.
+        """
+        with self._render_lock:
+            self._render_and_load_locked(horizon_s, load_latency_s)
+
+    def _render_and_load_locked(self, horizon_s: float, load_latency_s: float) -> None:
         from rigctl.simulation.model import SensorModel
 
         if not hasattr(self, "_sensor"):
@@ -390,12 +425,26 @@ class HilRig:
         else:
             speed = 0.0
         tel = hist[-1] if hist else None
-        pos0 = tel.drum_steps * self.mm_per_step if tel else 0.0
+        target = tel.drum_steps * self.mm_per_step if tel else 0.0
+        if tel is not None:
+            target += speed * (time.monotonic() - tel.received + load_latency_s)
+        start = target
+        if self._wave_pos is not None:
+            row = self._playing_row()
+            if row is not None:
+                row += int(round(load_latency_s * 1000))
+                if 0 <= row < len(self._wave_pos) and abs(self._wave_pos[row] - target) < 50.0:
+                    start = float(self._wave_pos[row])
         force = max(tel.force_g, 0.0) if tel else 0.0
+        force0 = self._wave_force if self._wave_pos is not None else force
         n = int(horizon_s * 1000)
-        position = pos0 + speed * (np.arange(n) / 1000.0)
-        samples = self._sensor.render(self._texture, position, np.full(n, force), self._rng)
+        t = np.arange(n) / 1000.0
+        blend = np.clip(t / 0.5, 0.0, 1.0)
+        position = start + speed * t + (target - start) * blend
+        samples = self._sensor.render(self._texture, position, force0 + (force - force0) * blend, self._rng)
         self._load(np.clip(samples, 0, wire.ADC_MAX).astype("<u2"))
+        self._wave_pos = position
+        self._wave_force = force
 
     def _feed(self) -> None:
         while not self._stop.wait(0.5):
