@@ -191,7 +191,9 @@ def to_csv(res: TaskResults) -> str:
     return buf.getvalue()
 
 
-_COLOURS = {"original": "black", "force_scaled": "tab:red", "speed_scaled": "tab:blue",
+_COLOURS = {"original": "black", "force_scaled": "tab:red", "speed_scaled": "tab:blue", "realtime_original": "black",
+            "realtime_speed_scaled": "tab:blue", "force_scaled_label_free": "tab:orange",
+            "speed_force_scaled_label_free": "tab:olive",
             "speed_force_scaled": "tab:green"}
 
 
