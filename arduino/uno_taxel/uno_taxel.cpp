@@ -16,6 +16,7 @@
 #include <Arduino.h>
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <avr/pgmspace.h>
 
 #include "../common/rigctl_wire.h"
 #include "taxel_frame.h"
@@ -156,11 +157,15 @@ ISR(USART_RX_vect)
 
 static uint8_t text_buf[96];
 
-/* send a text line through the transmit interrupt (the stream must be stopped); returns when it is out */
-static void send_line(const char *s)
+static const char banner_P[] PROGMEM = RIGCTL_UNO_BANNER;
+static const char identity_P[] PROGMEM = RIGCTL_UNO_IDENTITY;
+
+/* send a text line (in flash) through the transmit interrupt (the stream must be stopped); returns when it is out */
+static void send_line_P(const char *s)
 {
     uint8_t n = 0;
-    while (*s && n < sizeof(text_buf) - 1) text_buf[n++] = (uint8_t)*s++;
+    char c;
+    while ((c = (char)pgm_read_byte(s++)) != 0 && n < sizeof(text_buf) - 1) text_buf[n++] = (uint8_t)c;
     text_buf[n++] = '\n';
     while (tx_busy) {
     }
@@ -209,7 +214,7 @@ void setup(void)
     TIFR1 = (1 << OCF1A);
     TIMSK1 = (1 << OCIE1A);
     sei();
-    send_line(RIGCTL_UNO_BANNER);
+    send_line_P(banner_P);
 }
 
 void loop(void)
@@ -232,7 +237,7 @@ void loop(void)
             streaming = 0;
         } else if (c == RIGCTL_UNO_CMD_IDENTIFY) {
             stop_and_drain();
-            send_line(RIGCTL_UNO_IDENTITY);
+            send_line_P(identity_P);
         }
     }
 }
