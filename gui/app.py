@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import os
 import sys
 import time
 
@@ -241,7 +240,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="rigctl gui", description="The rigctl desktop app.")
     ap.add_argument("--drum-port", help="serial port of the drum controller (Mega)")
     ap.add_argument("--taxel-port", help="serial port of the taxel streamer (Uno)")
-    ap.add_argument("--replay", metavar="DIR", help="stream the FabricSlide recordings in DIR through the simulated rig")
+    ap.add_argument("--replay", metavar="DIR",
+                    help="stream the FabricSlide recordings in DIR through the simulated rig")
     ap.add_argument("--screenshot", metavar="PATH", help="save a PNG of the main window before quitting")
     ap.add_argument("--quit-after", type=float, metavar="SECONDS", help="quit after this many seconds")
     ap.add_argument("--tab", choices=TAB_NAMES, help="tab to show first")

@@ -53,6 +53,7 @@ class ClassifyView(QtWidgets.QWidget):
         self.latest.setStyleSheet("font-size: 64px; font-weight: bold; border: 2px solid #ccc;")
         self.grid = QtWidgets.QGridLayout()
         self.grid.setSpacing(4)
+        self.grid.setAlignment(QtCore.Qt.AlignTop | QtCore.Qt.AlignLeft)
         gw = QtWidgets.QWidget()
         gw.setLayout(self.grid)
         scroll = QtWidgets.QScrollArea()

@@ -85,7 +85,9 @@ class ConnectDialog(QtWidgets.QDialog):
             box.clear()
         for p in ports:
             vidpid = f"{p.vid:04X}:{p.pid:04X}" if p.vid is not None and p.pid is not None else "no VID:PID"
-            text = f"{p.device}  [{vidpid}] {p.description or ''}" + (f"  (looks like the {p.board})" if p.board else "")
+            text = f"{p.device}  [{vidpid}] {p.description or ''}"
+            if p.board:
+                text += f"  (looks like the {p.board})"
             self.drum_port.addItem(text, p.device)
             self.taxel_port.addItem(text, p.device)
         # preselect by board guess, then by the saved ports

@@ -84,7 +84,8 @@ class LiveView(QtWidgets.QWidget):
         # traces: top layer and bottom layer
         self.trace_plots = []
         self.curves = []
-        for row, (name, first) in enumerate([("Top layer (type I) taxels 0-8", 0), ("Bottom layer (type II) taxels 9-17", 9)]):
+        layers = ["Top layer (type I) taxels 0-8", "Bottom layer (type II) taxels 9-17"]
+        for row, name in enumerate(layers):
             p = self.gl.addPlot(row=row, col=0, title=name)
             p.setLabel("left", "ADC counts")
             p.setYRange(0, ADC_MAX, padding=0.02)
@@ -104,23 +105,23 @@ class LiveView(QtWidgets.QWidget):
         hm = self.gl.addLayout(row=0, col=1, rowspan=2)
         self.images = []
         cmap = pg.colormap.get("viridis")
-        for r, name in enumerate(["Top 3x3", "Bottom 3x3"]):
-            vb = hm.addViewBox(row=r, col=0, lockAspect=True, enableMouse=False, invertY=True)
+        for r, name in enumerate(["Top 3x3 (type I) now", "Bottom 3x3 (type II) now"]):
+            hm.addLabel(name, row=2 * r, col=0, size="9pt")
+            vb = hm.addViewBox(row=2 * r + 1, col=0, lockAspect=True, enableMouse=False, invertY=True)
             img = pg.ImageItem(np.zeros((3, 3)), axisOrder="row-major")
             img.setLookupTable(cmap.getLookupTable(nPts=256))
             img.setLevels((0, ADC_MAX))
             vb.addItem(img)
-            label = pg.TextItem(name, color="w", anchor=(0, 1))
-            label.setPos(0, 0)
-            vb.addItem(label)
             self.images.append(img)
+        hm.addLabel("colour: 0-1023 ADC counts (viridis)", row=4, col=0, size="8pt")
         hm.layout.setColumnFixedWidth(0, 170)
 
         # rasters
         self.raster_plots = {}
         self.raster_curves = {}
         for row, (key, title, colour) in enumerate(
-            [("sa", "SA spike raster (18 trains)", "#1f77b4"), ("ra", "RA spike raster (18 trains)", "#d62728")], start=2
+            [("sa", "SA spike raster (18 trains)", "#1f77b4"), ("ra", "RA spike raster (18 trains)", "#d62728")],
+            start=2,
         ):
             p = self.gl.addPlot(row=row, col=0, colspan=2, title=title)
             p.setYRange(-0.5, N_TAXELS - 0.5, padding=0)

@@ -9,7 +9,7 @@ import os
 import threading
 import time
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtWidgets
 
 from gui.workers import Job
 
@@ -53,7 +53,7 @@ class ProtocolTab(QtWidgets.QWidget):
         self.table.setHorizontalHeaderLabels(PLAN_COLUMNS)
         self.table.verticalHeader().setVisible(False)
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
-        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.Stretch)
 
         self.out_edit = QtWidgets.QLineEdit()
         self.out_edit.setPlaceholderText("output session file (.h5)")
@@ -166,7 +166,6 @@ class ProtocolTab(QtWidgets.QWidget):
             )
             for c, v in enumerate(vals):
                 self.table.setItem(r, c, QtWidgets.QTableWidgetItem(str(v)))
-        self.table.resizeColumnsToContents()
         textures = sorted({p.texture for p in self.plan})
         speeds = sorted({p.speed_mm_s for p in self.plan})
         forces = sorted({p.force_g for p in self.plan})

@@ -26,8 +26,9 @@ class LinkStatus(QtWidgets.QWidget):
         lay = QtWidgets.QHBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
         lay.addWidget(self.drum)
-        lay.addWidget(QtWidgets.QLabel("|"))
+        lay.addSpacing(24)
         lay.addWidget(self.taxel)
+        lay.addStretch(1)
         self._state = {"drum": None, "taxel": None}
         self._last = (time.monotonic(), 0)
 

@@ -319,7 +319,8 @@ class LiveEncoder(threading.Thread):
 
     Reads the taxel stream's ring buffer with its own cursor every ``poll_s`` and puts the spikes into
     :attr:`sa` and :attr:`ra` (:class:`SpikeRing`, times in s of stream time =
-    frame number in the ring / 1 kHz, as :class:`TraceBuffer`). ``normaliser`` is a :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
+    frame number in the ring / 1 kHz, as :class:`TraceBuffer`). ``normaliser`` is a
+    :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
     calibration); without one the full ADC range 0-1023 is used.
     """
 

@@ -33,7 +33,8 @@ def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run, texture
         raise click.ClickException(f"the desktop app needs the 'gui' extra (PySide6, pyqtgraph): {exc}") from None
     argv = []
     for flag, value in (("--drum-port", drum_port), ("--taxel-port", taxel_port), ("--replay", replay),
-                        ("--screenshot", screenshot), ("--quit-after", quit_after), ("--tab", tab), ("--texture", texture)):
+                        ("--screenshot", screenshot), ("--quit-after", quit_after), ("--tab", tab),
+                        ("--texture", texture)):
         if value is not None:
             argv += [flag, str(value)]
     if run:

@@ -121,7 +121,7 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
                                   if isinstance(plan["texture"][i], bytes) else str(plan["texture"][i]),
                                   speed_mm_s=float(plan["speed_mm_s"][i]))
         view.on_trial(planned, data)
-    assert _wait(qapp, lambda: len(view.results) == 4, 120), (view.model_label.text(), view._job, len(view._pending), view._job and view._job.is_alive())
+    assert _wait(qapp, lambda: len(view.results) == 4, 120), (view.model_label.text(), len(view._pending))
     for k, (tid, truth, pred) in enumerate(view.results):
         tile = view.grid.itemAt(k).widget()
         assert tile.property("correct") == (truth == pred)

@@ -26,7 +26,8 @@ def test_live_traces_heatmap_and_rasters(window, qapp):
     window.control.mount_plate("L")  # a wave texture under the sensor: SA and RA both fire
     window.control.command("run")
     enc = window.encoder
-    assert _wait(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), (live.info.text(), window.control.message.text(), window.poller.latest)
+    assert _wait(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), (
+        live.info.text(), window.control.message.text(), window.poller.latest)
     p0 = live.paints
     assert _wait(qapp, lambda: live.paints >= p0 + 10, 10)
     # traces: the last window of every taxel, x = seconds before now
@@ -55,9 +56,11 @@ def test_cli_screenshot_of_the_running_app(tmp_path, gui_home):
     import sys
 
     out = tmp_path / "shot.png"
-    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
-    proc = subprocess.run([sys.executable, "-c", "from rigctl.cli import main; main()", "gui", "--tab", "control", "--screenshot", str(out),
-                           "--quit-after", "6"], env=env, capture_output=True, text=True, timeout=60)
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_CONFIG_HOME=str(tmp_path / "config"),
+               RIGCTL_CONFIG=str(tmp_path / "rig.json"))  # fresh QSettings: default window size
+    cmd = [sys.executable, "-c", "from rigctl.cli import main; main()", "gui", "--tab", "control",
+           "--screenshot", str(out), "--quit-after", "6"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr[-2000:]
     from PySide6 import QtGui
 

@@ -1,0 +1,141 @@
+"""Take the documentation screenshots from the real app: ``python -m gui.screenshots docs/screenshots``.
+
+Run it under an X server (``xvfb-run -a -s "-screen 0 1600x1000x24" python -m gui.screenshots docs/screenshots``).
+It opens the main window on the simulated rig and drives each tab the way an experimenter would (mount a plate and
+run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
+with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
+analysis_table1.png, calibration.png, classify.png.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+import time
+
+from PySide6 import QtWidgets
+
+QUICK = """
+name = "screenshot_demo"
+description = "four textures, two speeds, short trials"
+textures = ["A", "B", "G", "L"]
+speeds_mm_s = [60, 120]
+forces_g = [500]
+trials_per_condition = 2
+duration_s = 1.0
+"""
+
+DATASET = """
+name = "screenshot_dataset"
+textures = ["A", "B", "C", "G", "H", "L", "M", "N"]
+speeds_mm_s = [40, 80, 120]
+forces_g = [250, 500, 1000]
+trials_per_condition = 3
+duration_s = 1.0
+"""
+
+
+def main(out_dir: str) -> int:
+    os.makedirs(out_dir, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix="rigctl-shots-")
+    os.environ.setdefault("RIGCTL_CONFIG", os.path.join(tmp, "rig.json"))
+    from PySide6 import QtCore
+
+    QtCore.QSettings.setPath(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, os.path.join(tmp, "settings"))
+    app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
+    from gui.app import MainWindow, configure_pyqtgraph
+    from gui.workers import RigSource
+
+    configure_pyqtgraph()
+    w = MainWindow(RigSource("sim"))
+    w.resize(1400, 900)
+    w.show()
+
+    def wait(pred, timeout_s):
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            app.processEvents()
+            if pred():
+                return True
+            time.sleep(0.01)
+        return pred()
+
+    def shot(name):
+        for _ in range(5):
+            app.processEvents()
+            time.sleep(0.05)
+        path = os.path.join(out_dir, name)
+        w.grab().save(path)
+        print("saved", path)
+
+    assert wait(lambda: w.handle is not None, 60), w.banner.label.text()
+    # calibration first (the drum must be released for TARE)
+    w.tabs.setCurrentWidget(w.calibration)
+    w.calibration.mass.setValue(500)
+    w.calibration.calibrate_loadcell()
+    wait(lambda: w.calibration.job is None, 60)
+    # rig control: wave plate L at 80 mm/s, 500 g
+    w.tabs.setCurrentWidget(w.control)
+    w.control.speed.setValue(80)
+    w.control.force.setValue(500)
+    w.control.mount_plate("G")
+    w.control.command("run")
+    wait(lambda: False, 12)
+    shot("control.png")
+    # calibration: a 5 s taxel normalisation capture while the drum runs
+    w.tabs.setCurrentWidget(w.calibration)
+    w.calibration.norm_seconds.setValue(5)
+    w.calibration.record_normalisation()
+    wait(lambda: w.calibration.job is None, 30)
+    shot("calibration.png")
+    # live view
+    w.tabs.setCurrentWidget(w.live)
+    wait(lambda: False, 6)
+    shot("live.png")
+    w.emergency_stop()
+    # analysis on a small generated dataset (also trains the model for the real-time view)
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.simulation.dataset import generate_dataset
+
+    ds = os.path.join(tmp, "dataset.h5")
+    generate_dataset(parse_protocol(DATASET), ds, workers=1, progress=False)
+    a = w.analysis
+    w.tabs.setCurrentWidget(a)
+    a.open(ds)
+    a.repeats.setValue(3)
+    a.n_pcs.setValue(30)
+    a.run_analyses()
+    wait(lambda: a.job is None, 600)
+    a.trials.selectRow(40)
+    wait(lambda: a._trial_job is None, 60)
+    a.views.setCurrentIndex(1)
+    shot("analysis.png")
+    a.views.setCurrentIndex(2)
+    shot("analysis_table1.png")
+    a.views.setCurrentIndex(0)
+    shot("analysis_trial.png")
+    a.model_variant.setCurrentText("speed_scaled")
+    a.train_model()
+    wait(lambda: a.job is None, 300)
+    # protocol: record a short protocol; the real-time view classifies each finished trial
+    p = w.protocol
+    proto = os.path.join(tmp, "screenshot_demo.toml")
+    with open(proto, "w") as f:
+        f.write(QUICK)
+    w.tabs.setCurrentWidget(p)
+    p.load(proto)
+    p.out_edit.setText(os.path.join(tmp, "demo.h5"))
+    p.start()
+    wait(lambda: len(p._done_ids) >= 5, 300)
+    shot("protocol.png")
+    wait(lambda: p.job is None, 300)
+    w.tabs.setCurrentWidget(w.classify)
+    wait(lambda: not w.classify._pending and w.classify._job is None, 120)
+    shot("classify.png")
+    w.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else "docs/screenshots"))
