@@ -121,6 +121,9 @@ def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True
     return "\n".join(lines)
 
 
+_FOUR = {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}
+
+
 def qualitative_checks(res: TaskResults, n_pcs=50):
     """The paper's qualitative result on the extrapolation cells, checked on ``res``.
 
@@ -138,15 +141,15 @@ def qualitative_checks(res: TaskResults, n_pcs=50):
     def mu(t, v):
         return tab[t][v][0]
 
-    if "untrained_speed_force" in tab and len(tab["untrained_speed_force"]) == 4:
+    if "untrained_speed_force" in tab and _FOUR <= set(tab["untrained_speed_force"]):
         t = "untrained_speed_force"
         out[t] = bool(mu(t, "speed_force_scaled") > max(mu(t, "speed_scaled"), mu(t, "force_scaled"))
                       and min(mu(t, "speed_scaled"), mu(t, "force_scaled")) > mu(t, "original"))
-    if "untrained_force" in tab and len(tab["untrained_force"]) == 4:
+    if "untrained_force" in tab and _FOUR <= set(tab["untrained_force"]):
         t = "untrained_force"
         out[t] = bool(min(mu(t, "force_scaled"), mu(t, "speed_force_scaled"))
                       > max(mu(t, "original"), mu(t, "speed_scaled")))
-    if "untrained_speed" in tab and len(tab["untrained_speed"]) == 4:
+    if "untrained_speed" in tab and _FOUR <= set(tab["untrained_speed"]):
         t = "untrained_speed"
         out[t] = bool(min(mu(t, "speed_scaled"), mu(t, "speed_force_scaled"))
                       > max(mu(t, "original"), mu(t, "force_scaled")))
