@@ -202,7 +202,13 @@ def test_malformed_requests_get_exceptions_never_a_hang(hil_rig):
         assert _transact(ser, bytes(bad), expect=0) == b""
         assert _transact(ser, _frame(7, 3, 0, 0, 0, 1), expect=0) == b""
         assert _transact(ser, bytes(range(0, 250, 3)), expect=0) == b""
-        resp = _transact(ser, _frame(1, 4, 0, int(IR.FIRMWARE_VERSION), 0, 1), expect=7)
+        # the device recovers: the next valid request is answered (a second try is allowed, as a master would
+        # retry: on a loaded host the simulated line may still be busy with the noise when it is sent, and Modbus
+        # then rightly sees one long garbage frame)
+        for _attempt in range(2):
+            resp = _transact(ser, _frame(1, 4, 0, int(IR.FIRMWARE_VERSION), 0, 1), expect=7)
+            if resp:
+                break
         assert resp == _frame(1, 4, 2, 1, 0)
 
 
