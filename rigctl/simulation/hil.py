@@ -10,7 +10,7 @@ TaxelStream` and ``Rig.open(hil=True)`` talk to it unchanged. It builds the firm
   output watched (``TEL``/``IDX`` lines, see :attr:`HilRig.telemetry`);
 - the Uno image (taxel streamer) with its ADC fed through the emulated multiplexers from waveforms rendered here by
   :class:`rigctl.simulation.model.SensorModel` (one physics model, in Python): a feeder thread renders the next
-  second of taxel readings from the drum travel and contact force the Mega harness reports, twice a second
+  two seconds of taxel readings from the drum travel and contact force the Mega harness reports, twice a second
   (``live`` mode), or a fixed waveform is played in a loop (:meth:`HilRig.play_waveform`, for exact-value tests).
   Each index pulse of the Mega is forwarded to the Uno's sync-in pin.
 
@@ -388,7 +388,7 @@ class HilRig:
                     raise HilError("the Uno harness did not confirm the waveform")
                 self._cond.wait(left)
 
-    def _playing_row(self, timeout_s: float = 1.0) -> int | None:
+    def _playing_row(self, timeout_s: float = 2.0) -> int | None:
         """Row of the current waveform the Uno harness plays now (None if unknown)."""
         with self._cond:
             self._scan_reply = None
@@ -402,7 +402,7 @@ class HilRig:
             n, start = self._scan_reply
         return n - start
 
-    def _render_and_load(self, horizon_s: float = 1.0, load_latency_s: float = 0.005) -> None:
+    def _render_and_load(self, horizon_s: float = 2.0, load_latency_s: float = 0.005) -> None:
         """Render the next ``horizon_s`` of taxel readings from the latest drum travel, speed and force.
 
         The new waveform continues the drum travel and the force of the one playing now (the row playing is asked
