@@ -10,7 +10,7 @@ DEBIAN_PACKAGES=(
   # independent Modbus master for tests
   mbpoll
   # virtual screen and the libraries Qt needs to run offscreen / under Xvfb
-  xvfb xauth libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libdbus-1-3 libfontconfig1 libxcb-cursor0
+  xvfb xauth libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libdbus-1-3 libfontconfig1 libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1
 )
 
 SUDO=""
