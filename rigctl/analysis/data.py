@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigctl.texture_set import GROUP_OF
+
 __all__ = [
     "VARIANTS",
     "VARIANT_TITLES",
@@ -50,12 +52,8 @@ VARIANT_TITLES = {
 REALTIME_VARIANTS: tuple[str, ...] = ("realtime_original", "realtime_speed_scaled")
 #: the paper's texture groups by letter (Fig. 2B): A smooth; B-F circular ridges; G-K rectangular ridges; L-P waves.
 #: Used only when ``/trials`` carries no ``group`` column.
-PAPER_GROUPS = {
-    **{"A": "smooth"},
-    **{c: "circular ridges" for c in "BCDEF"},
-    **{c: "rectangular ridges" for c in "GHIJK"},
-    **{c: "waves" for c in "LMNOP"},
-}
+#: letter -> texture group of the paper (Fig. 2B)
+PAPER_GROUPS = GROUP_OF
 
 
 class NotEncodedError(ValueError):

@@ -58,6 +58,8 @@ from rigctl.encoding.spikes import SpikeTrains
 from rigctl.encoding.speed import (REALTIME_REFERENCE_SPEED_MM_S, REFERENCE_SPEED_MM_S, WINDOW_S,
                                    incremental_scale, speed_coefficient, window_speeds)
 
+from rigctl.texture_set import texture_group  # re-exported
+
 __all__ = ["MAIN_VARIANTS", "ALL_VARIANTS", "EncodeParams", "encode_session", "encode_batch", "texture_group",
            "read_encoded"]
 
@@ -65,21 +67,6 @@ MAIN_VARIANTS = ("original", "speed_scaled", "force_scaled", "speed_force_scaled
 LABEL_FREE_VARIANTS = ("force_scaled_label_free", "speed_force_scaled_label_free")
 REALTIME_VARIANTS = ("realtime_original", "realtime_speed_scaled")
 ALL_VARIANTS = MAIN_VARIANTS + LABEL_FREE_VARIANTS + REALTIME_VARIANTS
-
-#: the paper's texture groups (Fig. 2B): A smooth; B-F circular ridges; G-K rectangular ridges; L-P waves
-_GROUP_OF_RANGE = (("A", "A", "smooth"), ("B", "F", "circular ridges"), ("G", "K", "rectangular ridges"),
-                   ("L", "P", "waves"))
-
-
-def texture_group(texture: str) -> str:
-    """The paper's group of a texture letter (Fig. 2B), ``""`` for labels outside A-P (e.g. FabricSlide)."""
-    t = str(texture).strip().upper()
-    if len(t) == 1:
-        for lo, hi, name in _GROUP_OF_RANGE:
-            if lo <= t <= hi:
-                return name
-    return ""
-
 
 @dataclass
 class EncodeParams:
