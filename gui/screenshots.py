@@ -16,6 +16,8 @@ import time
 
 from PySide6 import QtWidgets
 
+from gui.events import wait_for
+
 QUICK = """
 name = "screenshot_demo"
 description = "four textures, two speeds, short trials"
@@ -53,13 +55,7 @@ def main(out_dir: str) -> int:
     w.show()
 
     def wait(pred, timeout_s):
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            app.processEvents()
-            if pred():
-                return True
-            time.sleep(0.01)
-        return pred()
+        return wait_for(app, pred, timeout_s)
 
     def shot(name):
         for _ in range(5):

@@ -10,6 +10,8 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import pytest  # noqa: E402
 
+from gui.events import wait_for  # noqa: E402
+
 
 @pytest.fixture(scope="session")
 def gui_home(tmp_path_factory):
@@ -44,16 +46,3 @@ def window(qapp, gui_home):
     del w
     gc.collect()
     qapp.processEvents()
-
-
-def wait_for(qapp, predicate, timeout_s: float) -> bool:
-    """Run the Qt event loop until ``predicate()`` is true or ``timeout_s`` passes; returns the last value."""
-    import time
-
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        qapp.processEvents()
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())

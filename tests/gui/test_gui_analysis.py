@@ -5,12 +5,13 @@ export PNG/SVG/CSV, cancel a run; then train a classifier and classify trials in
 from __future__ import annotations
 
 import csv
-import time
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from PySide6 import QtCore
+
+from gui.events import wait_for
 
 PROTOCOL = """
 name = "gui_analysis"
@@ -20,16 +21,6 @@ forces_g = [500]
 trials_per_condition = 4
 duration_s = 0.5
 """
-
-
-def _wait(qapp, predicate, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        qapp.processEvents()
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +41,7 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert tab.trials.rowCount() == 16
     # browse: a trial's raw readings and its SA/RA rasters
     tab.trials.selectRow(5)
-    assert _wait(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
+    assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
     x, y = tab.trial_curves[0].getData()
     assert len(x) == 500
     sx, _ = tab.trial_rasters["sa"][1].getData()
@@ -61,7 +52,7 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     tab.n_pcs.setValue(6)
     qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
     assert tab.cancel_btn.isEnabled()
-    assert _wait(qapp, lambda: tab.results is not None or (tab.job is None and "failed" in tab.status.text()), 120), \
+    assert wait_for(qapp, lambda: tab.results is not None or (tab.job is None and "failed" in tab.status.text()), 120), \
         tab.status.text()
     assert tab.results is not None, tab.status.text()
     res = tab.results
@@ -95,7 +86,7 @@ def test_analysis_can_be_cancelled(window, qapp, qtbot):
     tab.repeats.setValue(20)
     qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
     job = tab.job
-    _wait(qapp, lambda: False, 1.0)
+    wait_for(qapp, lambda: False, 1.0)
     qtbot.mouseClick(tab.cancel_btn, QtCore.Qt.LeftButton)
     assert tab.job is None and "cancelled" in tab.status.text()
     assert not job.proc.is_alive()
@@ -110,7 +101,7 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
     tab.model_variant.setCurrentText("speed_scaled")
     qtbot.mouseClick(tab.train_btn, QtCore.Qt.LeftButton)
     view = window.classify
-    assert _wait(qapp, lambda: view.model is not None or (tab.job is None and "failed" in tab.status.text()), 90), \
+    assert wait_for(qapp, lambda: view.model is not None or (tab.job is None and "failed" in tab.status.text()), 90), \
         tab.status.text()
     window.tabs.setCurrentWidget(view)
     with open_session(dataset) as s:
@@ -121,7 +112,7 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
                                   if isinstance(plan["texture"][i], bytes) else str(plan["texture"][i]),
                                   speed_mm_s=float(plan["speed_mm_s"][i]))
         view.on_trial(planned, data)
-    assert _wait(qapp, lambda: len(view.results) == 4, 120), (view.model_label.text(), len(view._pending))
+    assert wait_for(qapp, lambda: len(view.results) == 4, 120), (view.model_label.text(), len(view._pending))
     for k, (tid, truth, pred) in enumerate(view.results):
         tile = view.grid.itemAt(k).widget()
         assert tile.property("correct") == (truth == pred)

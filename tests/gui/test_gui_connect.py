@@ -3,19 +3,8 @@ persists in QSettings, and the FabricSlide replay streams recorded signals into 
 
 from __future__ import annotations
 
-import time
 
-from PySide6 import QtCore
-
-
-def _wait(qapp, predicate, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        qapp.processEvents()
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
+from gui.events import wait_for
 
 
 def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_path):
@@ -53,13 +42,13 @@ def test_fabricslide_replay_source_feeds_the_live_view(window, qapp, fabricslide
     from gui.workers import RigSource
 
     window.connect_source(RigSource("replay", replay_dir=str(fabricslide_dir)))
-    assert _wait(qapp, lambda: window.handle is not None or "Could not" in window.banner.label.text(), 90), \
+    assert wait_for(qapp, lambda: window.handle is not None or "Could not" in window.banner.label.text(), 90), \
         window.banner.label.text()
     assert window.handle is not None, window.banner.label.text()
     assert "FabricSlide replay" in window.source_label.text()
     window.tabs.setCurrentWidget(window.live)
-    assert _wait(qapp, lambda: window.live.buffer is not None and window.live.buffer.n_samples > 1000, 20)
+    assert wait_for(qapp, lambda: window.live.buffer is not None and window.live.buffer.n_samples > 1000, 20)
     x = window.live.buffer.view()[1]
     assert x.std(axis=0).max() > 0  # recorded signals, not a constant
     window.connect_source(RigSource("sim"))
-    assert _wait(qapp, lambda: window.handle is not None, 60)
+    assert wait_for(qapp, lambda: window.handle is not None, 60)

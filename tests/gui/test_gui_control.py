@@ -3,22 +3,12 @@ big STOP stops the drum, and a taxel-board disconnect is shown and recovered."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from PySide6 import QtCore
 
 from rigctl.devices.wire import DrumState, HoldingRegister
 
-
-def _wait(qapp, predicate, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        qapp.processEvents()
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
+from gui.events import wait_for
 
 
 def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbot):
@@ -28,21 +18,21 @@ def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbo
     panel.force.setValue(420)
     qtbot.mouseClick(panel.apply_btn, QtCore.Qt.LeftButton)
     drum = window.handle.drum
-    assert _wait(qapp, lambda: drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 725
+    assert wait_for(qapp, lambda: drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 725
                  and drum.read_holding(HoldingRegister.FORCE_SETPOINT_G) == 420, 5)
 
     qtbot.mouseClick(panel.buttons["run"], QtCore.Qt.LeftButton)
     poller = window.poller
-    assert _wait(qapp, lambda: poller.latest is not None and poller.latest.state == DrumState.RUNNING
+    assert wait_for(qapp, lambda: poller.latest is not None and poller.latest.state == DrumState.RUNNING
                  and abs(poller.latest.speed_mm_s - 72.5) < 1.0, 20), poller.latest
     # the panel shows the state in words and the plots hold the history
-    assert _wait(qapp, lambda: panel.state_label.text().startswith("Running"), 2)
-    assert _wait(qapp, lambda: panel.speed_curve.getData()[1] is not None
+    assert wait_for(qapp, lambda: panel.state_label.text().startswith("Running"), 2)
+    assert wait_for(qapp, lambda: panel.speed_curve.getData()[1] is not None
                  and abs(panel.speed_curve.getData()[1][-1] - 72.5) < 1.5, 2)
     assert abs(poller.latest.force_g - 420) < 30
 
     qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: poller.latest.state == DrumState.IDLE and abs(poller.latest.speed_mm_s) < 0.5, 20)
+    assert wait_for(qapp, lambda: poller.latest.state == DrumState.IDLE and abs(poller.latest.speed_mm_s) < 0.5, 20)
     assert poller.latest.force_setpoint_active_g == 0
 
 
@@ -53,18 +43,18 @@ def test_out_of_range_setpoint_is_refused(window, qapp, qtbot):
     assert panel.speed.maximum() == pytest.approx(limit)
     panel.speed.setValue(50.0)
     qtbot.mouseClick(panel.apply_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 500, 5)
+    assert wait_for(qapp, lambda: drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 500, 5)
     # typing a speed above the controller's limit: the spin box does not take it
     panel.speed.selectAll()
     qtbot.keyClicks(panel.speed.lineEdit(), f"{limit * 3:.0f}")
     qtbot.keyClick(panel.speed.lineEdit(), QtCore.Qt.Key_Return)
     assert panel.speed.value() <= limit
     qtbot.mouseClick(panel.apply_btn, QtCore.Qt.LeftButton)
-    _wait(qapp, lambda: False, 0.5)
+    wait_for(qapp, lambda: False, 0.5)
     assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) <= limit * 10
     # and the library refuses it before anything is sent, reported in the panel
     window.commands.submit("set speed", drum.set_speed, limit * 3)
-    assert _wait(qapp, lambda: "failed" in panel.message.text(), 5), panel.message.text()
+    assert wait_for(qapp, lambda: "failed" in panel.message.text(), 5), panel.message.text()
 
 
 def test_taxel_board_disconnect_is_shown_and_recovered(window, qapp):
@@ -74,14 +64,14 @@ def test_taxel_board_disconnect_is_shown_and_recovered(window, qapp):
     reconnects = stats.reconnects
     sim.unplug_taxel()
     try:
-        assert _wait(qapp, lambda: "DISCONNECTED" in window.links.taxel.text(), 10), window.links.taxel.text()
+        assert wait_for(qapp, lambda: "DISCONNECTED" in window.links.taxel.text(), 10), window.links.taxel.text()
         assert window.banner.isVisible()
         assert "disconnected" in window.banner.label.text()
     finally:
         sim.replug_taxel()
-    assert _wait(qapp, lambda: window.links.taxel.text().startswith("Taxels: connected"), 15), window.links.taxel.text()
+    assert wait_for(qapp, lambda: window.links.taxel.text().startswith("Taxels: connected"), 15), window.links.taxel.text()
     assert "reconnected" in window.banner.label.text()
     assert window.handle.taxels.stats.reconnects > reconnects
     # frames flow again into the live view's ring
     n = window.handle.taxels.ring.total
-    assert _wait(qapp, lambda: window.handle.taxels.ring.total > n + 200, 5)
+    assert wait_for(qapp, lambda: window.handle.taxels.ring.total > n + 200, 5)

@@ -3,19 +3,9 @@ rasters are drawn from the streaming encoder's spikes (one curve per population)
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
-
-def _wait(qapp, predicate, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        qapp.processEvents()
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
+from gui.events import wait_for
 
 
 def test_live_traces_heatmap_and_rasters(window, qapp):
@@ -26,10 +16,10 @@ def test_live_traces_heatmap_and_rasters(window, qapp):
     window.control.mount_plate("L")  # a wave texture under the sensor: SA and RA both fire
     window.control.command("run")
     enc = window.encoder
-    assert _wait(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), (
+    assert wait_for(qapp, lambda: enc.ready and enc.sa.total > 100 and enc.ra.total > 10, 60), (
         live.info.text(), window.control.message.text(), window.poller.latest)
     p0 = live.paints
-    assert _wait(qapp, lambda: live.paints >= p0 + 10, 10)
+    assert wait_for(qapp, lambda: live.paints >= p0 + 10, 10)
     # traces: the last window of every taxel, x = seconds before now
     x, y = live.curves[0].getData()
     assert len(x) > 100 and x[-1] == 0.0 and x[0] >= -live.window_s - 1e-9

@@ -13,6 +13,8 @@ from PySide6 import QtCore
 from rigctl.devices.wire import HoldingRegister
 from rigctl.storage.session import open_session
 
+from gui.events import wait_for
+
 PROTOCOL = """
 name = "gui_test"
 description = "GUI test: two textures, short trials"
@@ -28,16 +30,6 @@ force_timeout_s = 10
 speed_timeout_s = 5
 speed_tolerance_mm_s = 3
 """
-
-
-def _wait(qapp, predicate, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        qapp.processEvents()
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return bool(predicate())
 
 
 def _protocol(tmp_path, n):
@@ -56,7 +48,7 @@ def test_protocol_run_records_a_session_file(window, qapp, qtbot, tmp_path):
     tab.out_edit.setText(str(out))
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
     assert tab.running
-    assert _wait(qapp, lambda: tab.job is None, 60), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 60), tab.status.text()
     assert "finished: 2/2" in tab.status.text(), tab.status.text()
     assert [tab.table.item(r, 6).text() for r in range(2)] == ["recorded", "recorded"]
     with open_session(out) as s:
@@ -73,18 +65,18 @@ def test_pause_resume_abort_and_resume_the_session(window, qapp, qtbot, tmp_path
     tab.out_edit.setText(str(out))
     tab.resume_box.setChecked(False)
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: len(tab._done_ids) >= 1, 60), tab.status.text()
+    assert wait_for(qapp, lambda: len(tab._done_ids) >= 1, 60), tab.status.text()
     qtbot.mouseClick(tab.pause_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: tab._paused, 30), tab.status.text()
+    assert wait_for(qapp, lambda: tab._paused, 30), tab.status.text()
     assert "PAUSED" in tab.status.text()
     assert tab.resume_btn.isEnabled() and not tab.pause_btn.isEnabled()
     done = len(tab._done_ids)
-    _wait(qapp, lambda: False, 1.0)
+    wait_for(qapp, lambda: False, 1.0)
     assert len(tab._done_ids) == done  # nothing recorded while paused
     qtbot.mouseClick(tab.resume_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: len(tab._done_ids) > done, 60), tab.status.text()
+    assert wait_for(qapp, lambda: len(tab._done_ids) > done, 60), tab.status.text()
     qtbot.mouseClick(tab.abort_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: tab.job is None, 30), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
     assert "aborted" in tab.status.text()
     with open_session(out) as s:
         n_done = len(s.completed_ids())
@@ -92,7 +84,7 @@ def test_pause_resume_abort_and_resume_the_session(window, qapp, qtbot, tmp_path
     # resume the interrupted file: only the missing trials are recorded
     tab.resume_box.setChecked(True)
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: tab.job is None, 90), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 90), tab.status.text()
     assert "finished: 6/6" in tab.status.text(), tab.status.text()
     with open_session(out) as s:
         assert s.completed_ids() == list(range(6))
@@ -104,10 +96,10 @@ def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
     tab.out_edit.setText(str(tmp_path / "stopped.h5"))
     tab.resume_box.setChecked(False)
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: tab._current is not None, 30)
+    assert wait_for(qapp, lambda: tab._current is not None, 30)
     t0 = time.monotonic()
     qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: tab.job is None, 20), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 20), tab.status.text()
     assert time.monotonic() - t0 < 15
     assert "aborted" in tab.status.text()
 
@@ -117,7 +109,7 @@ def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot, gui_home):
     window.tabs.setCurrentWidget(tab)
     tab.mass.setValue(200.0)
     qtbot.mouseClick(tab.loadcell_btn, QtCore.Qt.LeftButton)
-    assert _wait(qapp, lambda: tab.job is None, 60), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 60), tab.status.text()
     assert "counts/g written" in tab.status.text(), tab.status.text()
     cfg = json.loads(open(os.environ["RIGCTL_CONFIG"]).read())
     lc = cfg["loadcell"]
