@@ -10,7 +10,10 @@ engage the force loop (PRESS), wait until the force has settled; set the speed a
 steadily at speed (for a ramp: at its start speed, then switch to the RAMP profile and RUN again, which starts the
 ramp); capture exactly ``duration_s * 1000`` taxel frames (counted, not timed) while
 sampling the load-cell force and drum speed at ~50 Hz (these Modbus reads also feed the controller's watchdog);
-STOP_DRUM. :meth:`Rig.safe_stop` (STOP: drum to rest, actuator backed off) always leaves the rig safe.
+STOP_DRUM. A constant-speed trial starts at the drum's index mark: the capture keeps the frames from the first one
+flagged SYNC_IN (the Mega's index pulse, latched by the Uno, docs/wire-protocol.md 2.6) on, so every trial of a
+texture starts at the same place on the plate (phase-aligned, up to the 1 ms latch and the index repeatability);
+the paper's 100 ms-window features are time series along the plate and need that alignment. :meth:`Rig.safe_stop` (STOP: drum to rest, actuator backed off) always leaves the rig safe.
 """
 
 from __future__ import annotations
@@ -38,6 +41,13 @@ STATUS_PERIOD_S = 0.02
 CAPTURE_STALL_S = 2.0
 #: and in any case when it takes longer than 3 x the trial's duration + this margin, s
 CAPTURE_MARGIN_S = 5.0
+#: drum circumference, mm (default rig geometry, docs/wire-protocol.md 2.6: 100 mm diameter); sets how long a
+#: constant-speed trial may wait for the index pulse
+DRUM_CIRCUMFERENCE_MM = math.pi * 100.0
+#: the index pulse must arrive within this many drum revolutions (at the trial speed) after the capture starts
+INDEX_TIMEOUT_REVS = 1.25
+#: extra frames captured beyond the expected index position + the trial's frames (status-read latency, jitter)
+INDEX_MARGIN_FRAMES = 150
 
 
 class RigError(RuntimeError):
@@ -403,7 +413,19 @@ class Rig:
             ``taxels`` (round(duration_s * 1000), 18) uint16 ADC counts, ``seq``, ``flags``, ``host_time_s``
             (s since the first frame, host monotonic clock), force and speed traces at ~50 Hz on the same clock,
             dropped frames (sequence gaps among the kept frames), CRC errors during the capture, and attrs
-            (``started_utc``, ``settle_time_s``, measured means, ``host_rate_hz``).
+            (``started_utc``, ``settle_time_s``, measured means, ``host_rate_hz``, ``aligned_to_index``,
+            ``index_wait_frames``).
+
+        Notes
+        -----
+        Index alignment (constant-speed trials): once the drum runs steadily, the capture starts and the drum angle
+        is read to predict when the index mark passes; the capture runs until that point + ``duration_s * 1000``
+        frames + :data:`INDEX_MARGIN_FRAMES`. The frames before the first one flagged
+        ``wire.FrameFlag.SYNC_IN`` are dropped and exactly ``duration_s * 1000`` frames from it on are kept
+        (``aligned_to_index=True``, ``index_wait_frames`` = frames dropped). No index pulse within
+        :data:`INDEX_TIMEOUT_REVS` revolutions at the trial speed (7.9 s x 1.25 at 40 mm/s on the 314 mm drum)
+        raises :class:`CaptureError`. Ramp trials start with the ramp instead (``aligned_to_index=False``): the
+        ramp profile's clock starts with RUN.
 
         Raises
         ------
@@ -459,12 +481,23 @@ class Rig:
         self.stream.begin_capture()
         t_start = time.monotonic()
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
+        align = not planned.is_ramp
+        n_capture = n
+        if align:
+            # predict the index pulse from the drum angle; capture up to it + the trial + a margin
+            rev_s = DRUM_CIRCUMFERENCE_MM / planned.speed_mm_s
+            st = self.drum.read_status()
+            t_read = time.monotonic()
+            to_index_s = (360.0 - float(st.angle_deg)) % 360.0 / 360.0 * rev_s
+            n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * wire.SAMPLE_RATE_HZ)) + INDEX_MARGIN_FRAMES
+            n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * wire.SAMPLE_RATE_HZ)))
+            deadline += INDEX_TIMEOUT_REVS * rev_s
         next_poll = t_start
         frames_seen, t_frame = self.stream.stats.frames, t_start
         try:
             while True:
                 now = time.monotonic()
-                if self.stream.wait_capture(n, timeout_s=max(0.0, next_poll - now)):
+                if self.stream.wait_capture(n_capture, timeout_s=max(0.0, next_poll - now)):
                     break
                 now = time.monotonic()
                 if now >= next_poll:
@@ -486,7 +519,21 @@ class Rig:
         finally:
             cap = self.stream.end_capture()
         self.drum.stop_drum()
-        return _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s)
+        k = 0
+        if align:
+            sync = np.flatnonzero(cap.flags & wire.FrameFlag.SYNC_IN)
+            if sync.size == 0:
+                raise CaptureError(f"trial {planned.trial_id}: no drum index pulse (SYNC_IN) in {len(cap)} frames "
+                                   f"({len(cap) / wire.SAMPLE_RATE_HZ:.1f} s at {planned.speed_mm_s:g} mm/s)")
+            k = int(sync[0])
+            if len(cap) - k < n:
+                raise CaptureError(f"trial {planned.trial_id}: the index pulse came {k} frames into the capture, "
+                                   f"only {len(cap) - k} of {n} frames follow it")
+            cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
+                            dropped=cap.dropped, crc_errors=cap.crc_errors)
+        data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s)
+        data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k)
+        return data
 
 
 def wait_released(drum, *, timeout_s: float = 20.0, home_mm: float = 0.05) -> None:
