@@ -7,10 +7,15 @@ at 1 kHz, the load-cell force trace and the drum speed trace as polled over Modb
 file with the same layout as a recorded session (:class:`rigctl.storage.session.SessionWriter`, kind
 ``"simulated-dataset"``), on all cores, streaming trial by trial.
 
-Trial-to-trial variability (so that classification is not trivial; the texture stays the dominant cause of
-differences): the drum's start angle (texture phase, uniform over a revolution), the runout phase, a static force
-error (sd 1 % of the setpoint) plus a slow force-loop residual (sd 0.5 %, tau 0.2 s), the drum's runout ripple, the
-fabric's sensitivity drift (``SensorConfig.sensitivity_drift``) and the sample noise. Each trial's random stream is
+Each trial starts at the drum's index mark, as a recorded trial does (:meth:`rigctl.acquisition.rig.Rig.record_trial`
+starts its capture at the first taxel frame flagged SYNC_IN), so the trials of one texture are phase-aligned up to
+a small jitter. Trial-to-trial variability (so that classification is not trivial; the texture stays the dominant
+cause of differences): the start position jitter (:data:`START_JITTER_MM`: the index pulse is latched into the next
+1 ms frame, plus the index sensor's repeatability and the plate's mounting), a static speed error and a slow speed
+wobble of the stepper drive (:data:`SPEED_ERROR`, :data:`SPEED_WOBBLE`), a static force error (sd 1 % of the
+setpoint) plus a slow force-loop residual (sd 0.5 %, tau 0.2 s), the drum's runout ripple (its phase is fixed to
+the drum: :data:`RUNOUT_PHASE_RAD`), the fabric's sensitivity drift (``SensorConfig.sensitivity_drift``) and the
+sample noise. Each trial's random stream is
 seeded from ``(seed, trial_id)``, so a dataset is reproducible whatever the number of workers or the order.
 """
 
@@ -39,6 +44,18 @@ POLL_RATE_HZ = 50.0
 RATE_HZ = 1000.0
 #: most trials per shard file written by one worker task (multi-worker generation)
 SHARD_TRIALS = 64
+#: sd of the plate position at the first sample around the index mark, mm: the index sensor's repeatability and the
+#: plate's mounting (the 1 ms frame latch adds a uniform 0..v*1 ms on top)
+START_JITTER_MM = 0.2
+#: sd of the static relative speed error of a trial: the stepper's step rate is crystal-timed, so what varies from
+#: trial to trial is tiny (a constant drum-diameter error would be the same in every trial and is not modelled)
+SPEED_ERROR = 0.0005
+#: sd of the slow relative speed wobble (tau :data:`SPEED_WOBBLE_TAU_S`): the coupling's compliance under the
+#: load torque of the ridges (microstepping ripple is at kHz rates and averages out within a millisecond)
+SPEED_WOBBLE = 0.001
+SPEED_WOBBLE_TAU_S = 0.3
+#: phase of the drum's runout relative to its index mark, rad (a property of the drum, the same in every trial)
+RUNOUT_PHASE_RAD = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,7 +124,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     config : RigConfig, optional
         Rig model (defaults to ``RigConfig()``).
     rng : numpy.random.Generator
-        All randomness of the trial (phase, force error, drift, noise) comes from it.
+        All randomness of the trial (start jitter, speed and force errors, drift, noise) comes from it.
     duration_s : float, optional
         Trial length; default: the time to cover 240 mm (6/4/3/2.4/2 s at 40/60/80/100/120 mm/s).
     profile : RampProfile, mapping or object with ``start_mm_s``/``end_mm_s`` (optional ``ramp_s``), optional
@@ -121,8 +138,9 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         ``taxels`` (n, 18) uint16 with n = round(duration_s * 1000); ``seq`` 0..n-1; ``flags`` with SYNC_IN set
         where the drum's index mark passed; ``host_time_s`` = n / 1000; ``force_g``/``force_time_s`` and
         ``speed_mm_s``/``speed_time_s`` at 50 Hz, quantised like the Mega's input registers (1 g, 0.1 mm/s);
-        ``attrs``: ``start_phase_mm`` (drum surface position at the first sample), ``sensitivity`` (the trial's
-        fabric sensitivity factor), ``source="simulated"``. The setpoints travel in the session's plan row.
+        ``attrs``: ``start_phase_mm`` (drum surface position at the first sample relative to the index mark: the
+        start jitter), ``aligned_to_index`` (True), ``sensitivity`` (the trial's fabric sensitivity factor),
+        ``source="simulated"``. The setpoints travel in the session's plan row.
 
     Raises
     ------
@@ -151,26 +169,34 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         speed = np.full(n, float(speed_mm_s))
     else:
         speed = prof.speed(t, duration_s)
-    phase = rng.uniform(0.0, circ)
-    # surface travel under row 0 at each sample (the speed of sample k moves the drum during (k-1, k] ms)
-    pos = phase + np.cumsum(speed) * dt
+    # stepper speed error: static + slow wobble (Ornstein-Uhlenbeck)
+    aw = math.exp(-dt / SPEED_WOBBLE_TAU_S)
+    wobble = lfilter([math.sqrt(1 - aw * aw)], [1.0, -aw], rng.standard_normal(n)) * SPEED_WOBBLE
+    speed = speed * (1.0 + SPEED_ERROR * rng.standard_normal() + wobble)
+    # start at the index mark: the first frame is the one flagged SYNC_IN, latched up to 1 ms after the mark
+    # passed; the plate under row 0 is then at the index position + the jitter of index sensor and mounting
+    latch = float(speed[0]) * dt * rng.uniform(0.0, 1.0)
+    # drum travel since the index mark (the speed of sample k moves the drum during (k-1, k] ms)
+    travel = latch + np.cumsum(speed) * dt
+    phase = latch + START_JITTER_MM * rng.standard_normal()
+    pos = travel + (phase - latch)  # plate coordinate under row 0
 
     # contact force: setpoint with a static error, a slow force-loop residual, the drum's runout ripple, and the
     # texture ripple under the contact line
     static = 1.0 + 0.01 * rng.standard_normal()
     a = math.exp(-dt / 0.2)
     ou = lfilter([math.sqrt(1 - a * a)], [1.0, -a], rng.standard_normal(n)) * 0.005
-    runout_phase = rng.uniform(0.0, 2 * np.pi)
-    runout = mech.contact_stiffness_g_per_mm * drum.runout_mm * np.sin(2 * np.pi * pos / circ + runout_phase)
+    runout = mech.contact_stiffness_g_per_mm * drum.runout_mm * np.sin(2 * np.pi * pos / circ + RUNOUT_PHASE_RAD)
     force = force_g * (static + ou) + runout
-    force *= 1.0 + mech.texture_ripple * sensor.contact_height(tex, pos)
+    force *= 1.0 + mech.texture_ripple * sensor.contact_height(tex, np.mod(pos, circ))
     np.maximum(force, 0.0, out=force)
 
     sensitivity = 1.0 + cfg.sensor.sensitivity_drift * rng.standard_normal()
-    taxels = sensor.render(tex, pos, force, rng, sensitivity=sensitivity)
+    taxels = sensor.render(tex, pos, force, rng, sensitivity=sensitivity, wrap_mm=circ)
 
-    rev = np.floor(np.concatenate(([phase], pos)) / circ)
-    flags = (np.diff(rev) != 0).astype(np.uint8)  # FrameFlag.SYNC_IN = bit 0
+    rev = np.floor(np.concatenate(([latch], travel)) / circ)
+    flags = (np.diff(rev) != 0).astype(np.uint8)  # FrameFlag.SYNC_IN = bit 0 (later passes of the index mark)
+    flags[0] = 1  # the capture starts at the index frame
 
     step = int(round(RATE_HZ / POLL_RATE_HZ))
     idx = np.arange(0, n, step)
@@ -180,6 +206,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     # trial's attributes; here only what the plan does not hold
     attrs = {
         "start_phase_mm": float(phase),
+        "aligned_to_index": True,
         "sensitivity": float(sensitivity),
         "source": "simulated",
     }

@@ -7,12 +7,20 @@ Sensor model (:class:`SensorModel`), following the paper's description of the se
 Methods, "Tactile Texture Dataset - Force Invariance Module"): two layers of a 3x3 grid of piezoresistive taxels at
 5 mm pitch; the top layer (type I) has a small receptive field, the bottom layer (type II) a larger and weaker one.
 For each taxel at row ``r`` (row 0 = leading edge of the drum's travel, see docs/wire-protocol.md) the surface under
-it is at plate coordinate ``x - r * pitch`` where ``x`` is the drum's surface travel. Per sample and taxel:
+it is at plate coordinate ``(x - r * pitch) mod C`` where ``x`` is the drum's surface travel since the index mark
+and ``C`` the drum circumference (the plate is fixed on the drum). Per sample and taxel:
 
-1. ``hs = (h * g_sigma)(x - r * pitch)``: the texture height smoothed by the layer's Gaussian receptive field
-   (exact circular convolution over one period, tabulated).
-2. ``p = F / 9 * w_r * max(0, 1 + k_h * (hs - mean(h)))``: local pressure (g per taxel) rises with the contact force
-   ``F`` and the local height; ``w_r`` is the row weight from the drum's curvature (centre row pressed hardest).
+1. Contact (:meth:`SensorModel.tables`): the pad (a linear "Winkler" spring layer whose surface is smoothed by its
+   thickness, ``pad_sigma_mm``) is pressed onto the plate; a flat plate would be indented by
+   ``delta = indentation_ref_mm * F / indentation_ref_force_g``; on a textured plate the indentation of the ridge
+   tops ``delta0`` follows from the force balance ``mean(max(0, delta0 - depth(x))) = delta`` and the local pressure
+   is ``~ max(0, delta0 - depth(x))`` (``depth`` = how far the smoothed plate surface lies below its crests). So
+   low ridges or high forces let the pad reach the plate floor (shallow modulation), tall ridges or low forces
+   concentrate the force on the crests (deep modulation, pressure ~0 in the gaps). The pressure profile divided by
+   its mean (``shape``, mean 1), smoothed by the layer's Gaussian receptive field, is tabulated per texture and
+   force.
+2. ``p = F / 9 * w_r * shape_layer(x - r * pitch)``: local pressure (g per taxel); ``w_r`` is the row weight from
+   the drum's curvature (centre row pressed hardest).
 3. ``s = p / (p + p_half)``: the piezoresistive fabric's reading saturates with pressure, so doubling the force does
    not double the signal (the non-linearity the paper's force scaling, eq. 1, undoes).
 4. ``adc = round(offset_i + gain_i * g_trial * full_scale * layer_gain * s + noise)`` clipped to 0-1023 (10 bits);
@@ -96,19 +104,39 @@ class SensorConfig:
     layer_gain_top, layer_gain_bottom : float
         Relative sensitivity of the layers (bottom weaker).
     p_half_top_g, p_half_bottom_g : float
-        Pressure per taxel (g) at which the reading reaches half of full scale (saturation constant).
+        Pressure per taxel (g) at which the reading reaches half of full scale (saturation constant): 50 / 80 g,
+        near the mean taxel load at 500 g (55 g), so the smooth plate reads 35-70 % of full scale over 250-1000 g
+        (doubling the force raises the reading by 1.3-1.6 x, not 2 x) and the pressure peaks on ridge crests
+        (several times the mean) saturate - the non-linearity that eq. 1's force scaling has to undo.
     height_gain_per_mm : float
-        Relative pressure increase per mm of (smoothed) surface height above the texture's mean height.
+        Unused since the contact model (kept so that rig configs stored in older session files still load).
+    pad_sigma_mm : float
+        Smoothing of the pad surface by its own thickness, mm (Gaussian sd, 0.6 mm): the ~1.5 mm fabric +
+        silicone pad cannot follow steps narrower than about its thickness, so rectangular ridges present sloped
+        flanks.
+    indentation_ref_mm, indentation_ref_force_g : float
+        Pad indentation on a flat plate at the reference force (linear pad spring): 0.3 mm at 1000 g over the
+        15 x 15 mm sensor (0.044 N/mm^2 for 0.3 mm: a Winkler modulus of ~0.15 N/mm^3, a soft fabric/silicone
+        skin). Ridges 0.5-2 mm high are then taller
+        than the indentation: at 250 g (0.075 mm) the pad touches only the crests, at 1000 g it reaches part of the
+        flanks of half-height ridges, so the force changes the contact width (the shape of the pressure modulation)
+        as well as its level, non-linearly. (A softer pad, 0.6 mm at 1000 g, lets most plates bottom out at
+        1000 g and made the textures less separable in the paper's analysis.)
     row_weights : tuple of 3 float
         Pressure share of rows 0-2 (drum curvature: the centre row is pressed hardest).
     full_scale_counts : float
-        Reading (ADC counts above offset) at infinite pressure and unit gain.
+        Reading (ADC counts above offset) at infinite pressure and unit gain: 880, so the highest crest pressures
+        (1000 g on 2 mm ridges, reading ~95 % of full scale) of the most sensitive taxel stay below 1023 (the
+        readout's divider is chosen for the range, no clipping).
     gain_spread, offset_mean_counts, offset_spread_counts : float
         Per-taxel calibration spread: gain ~ N(1, gain_spread), offset ~ N(offset_mean, offset_spread) counts.
     noise_counts : float
         Sample noise sd, ADC counts (Irwin-Hall(4) approximation of a Gaussian).
     sensitivity_drift : float
-        sd of the slow relative drift of the fabric's sensitivity (trial to trial), e.g. 0.03 = 3 %.
+        sd of the slow relative drift of the fabric's sensitivity, e.g. 0.01 = 1 % (an Ornstein-Uhlenbeck process,
+        tau 20 s, in :class:`RigModel`; drawn independently per trial in the dataset generator). 1 %: the trials of
+        one condition are recorded back to back within well under a minute, so their sensitivities differ by a
+        fraction of the long-term drift.
     calibration_seed : int
         Seed of the per-taxel gain/offset spread (identifies "this physical sensor").
     """
@@ -118,16 +146,19 @@ class SensorConfig:
     rf_sigma_bottom_mm: float = 2.0
     layer_gain_top: float = 1.0
     layer_gain_bottom: float = 0.55
-    p_half_top_g: float = 90.0
-    p_half_bottom_g: float = 130.0
+    p_half_top_g: float = 50.0
+    p_half_bottom_g: float = 80.0
     height_gain_per_mm: float = 0.9
+    pad_sigma_mm: float = 0.6
+    indentation_ref_mm: float = 0.3
+    indentation_ref_force_g: float = 1000.0
     row_weights: tuple[float, float, float] = (0.8, 1.0, 0.8)
-    full_scale_counts: float = 1100.0
+    full_scale_counts: float = 880.0
     gain_spread: float = 0.08
     offset_mean_counts: float = 40.0
     offset_spread_counts: float = 10.0
     noise_counts: float = 2.5
-    sensitivity_drift: float = 0.03
+    sensitivity_drift: float = 0.01
     calibration_seed: int = 20240601
 
 
@@ -215,7 +246,7 @@ class RigConfig:
 # ----------------------------------------------------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
 def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half, layer_gain, full_scale, gain,
-                   offset, noise_sd, seed, out):  # pragma: no cover - compiled
+                   offset, noise_sd, seed, wrap, out):  # pragma: no cover - compiled
     n_table = tables.shape[1]
     inv = n_table / period
     state = np.uint64(seed) | np.uint64(1)
@@ -225,7 +256,10 @@ def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half,
         f9 = force[i] / 9.0
         for layer in range(2):
             for r in range(3):
-                u = (pos[i] - r * pitch) * inv
+                xr = pos[i] - r * pitch
+                if wrap > 0.0:
+                    xr = xr % wrap  # plate coordinate: the plate is fixed on the drum, its pattern repeats per turn
+                u = xr * inv
                 k = math.floor(u)
                 frac = u - k
                 k0 = int(k) % n_table
@@ -261,6 +295,22 @@ def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half,
                     out[i, ch] = np.uint16(v)
 
 
+def _profile(tex: Texture) -> np.ndarray:
+    """Height profile over one period, supersampled (8 x the table size) so rectangular edges are resolved."""
+    m = 8
+    x = (np.arange(_TABLE_SIZE * m) + 0.5) / (_TABLE_SIZE * m) * tex.period_mm
+    return tex.height(x)
+
+
+def _smooth(h: np.ndarray, period: float, sigma: float, reduce: bool = True) -> np.ndarray:
+    """Exact circular convolution of one period of a supersampled profile with a Gaussian of sd ``sigma`` (mm);
+    ``reduce``: average down to the table size."""
+    spec = np.fft.rfft(h)
+    freq = np.fft.rfftfreq(h.size, d=period / h.size)  # cycles per mm
+    out = np.fft.irfft(spec * np.exp(-0.5 * (2 * np.pi * freq * sigma) ** 2), n=h.size)
+    return out.reshape(_TABLE_SIZE, -1).mean(axis=1) if reduce else out
+
+
 class SensorModel:
     """The 3x3x2 taxel sensor pressed on a texture (equations in the module docstring).
 
@@ -289,7 +339,7 @@ class SensorModel:
         self._tables: dict[str, tuple[np.ndarray, float, np.ndarray]] = {}
         self._lock = threading.Lock()
 
-    def tables(self, texture: Texture | str) -> tuple[np.ndarray, float, np.ndarray]:
+    def height_tables(self, texture: Texture | str) -> tuple[np.ndarray, float, np.ndarray]:
         """Smoothed-height lookup tables of a texture for both layers.
 
         Returns
@@ -302,33 +352,89 @@ class SensorModel:
             Mean height of each table (equal to the texture's mean height).
         """
         tex = get_texture(texture)
+        key = ("h", tex.letter)
         with self._lock:
-            hit = self._tables.get(tex.letter)
+            hit = self._tables.get(key)
             if hit is not None:
                 return hit
         c = self.config
         if tex.kind == "smooth":
             result = (np.zeros((2, _TABLE_SIZE)), 1.0, np.zeros(2))
         else:
-            period = tex.period_mm
-            # supersample the profile before smoothing so rectangular edges are resolved
-            m = 8
-            x = (np.arange(_TABLE_SIZE * m) + 0.5) / (_TABLE_SIZE * m) * period
-            h = tex.height(x)
-            spec = np.fft.rfft(h)
-            freq = np.fft.rfftfreq(h.size, d=period / h.size)  # cycles per mm
-            rows = []
-            for sigma in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm):
-                smooth = np.fft.irfft(spec * np.exp(-0.5 * (2 * np.pi * freq * sigma) ** 2), n=h.size)
-                rows.append(smooth.reshape(_TABLE_SIZE, m).mean(axis=1))
-            tables = np.ascontiguousarray(np.stack(rows))
-            result = (tables, float(period), tables.mean(axis=1))
+            h = _profile(tex)
+            tables = np.ascontiguousarray(np.stack([_smooth(h, tex.period_mm, s)
+                                                    for s in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm)]))
+            result = (tables, float(tex.period_mm), tables.mean(axis=1))
         with self._lock:
-            self._tables[tex.letter] = result
+            self._tables[key] = result
+        return result
+
+    def indentation_mm(self, force_g) -> np.ndarray:
+        """Nominal pad indentation on a flat plate, mm: ``delta_ref * F / F_ref`` (linear pad spring), float64."""
+        c = self.config
+        return np.asarray(force_g, dtype=np.float64) * (c.indentation_ref_mm / c.indentation_ref_force_g)
+
+    def tables(self, texture: Texture | str, force_g: float = 500.0) -> tuple[np.ndarray, float, np.ndarray]:
+        """Contact-pressure shape tables of a texture at a contact force, for both layers.
+
+        Contact model (Winkler pad): the pad surface, smoothed by its own thickness (``pad_sigma_mm``), is pressed
+        onto the plate until its ridges are indented by ``delta0``; the local pressure is proportional to the local
+        indentation ``max(0, delta0 - (hmax - h_pad(x)))``. ``delta0`` is solved from the force balance (mean
+        indentation over a period = the flat-plate indentation :meth:`indentation_mm` of the force). The pressure
+        profile divided by its mean (the *shape*, mean 1) is smoothed by each layer's receptive field. So the
+        ridge height sets the depth of the pressure modulation (pad bottoming out in the gaps or not), the spacing
+        its period, and the force changes both the level and (through the contact width) the shape, non-linearly.
+
+        Parameters
+        ----------
+        texture : Texture or str
+        force_g : float
+            Contact force, g; quantised to 2 % steps (log scale, >= 10 g) for the cache.
+
+        Returns
+        -------
+        tables : (2, 2048) float64
+            Pressure / mean pressure over one period, for the top / bottom layer (1.0 everywhere on the smooth plate).
+        period_mm : float
+            Length the table covers (1.0 for the smooth texture).
+        mean : (2,) float64
+            ``[1, 1]``, the mean of each shape table.
+        """
+        tex = get_texture(texture)
+        f = max(float(force_g), 10.0) if math.isfinite(float(force_g)) else 500.0
+        fq = round(math.log(f) / math.log(1.02))
+        key = ("p", tex.letter, fq)
+        with self._lock:
+            hit = self._tables.get(key)
+            if hit is not None:
+                return hit
+        c = self.config
+        if tex.kind == "smooth":
+            result = (np.ones((2, _TABLE_SIZE)), 1.0, np.ones(2))
+        else:
+            delta_nom = float(self.indentation_mm(1.02 ** fq))
+            h = _profile(tex)
+            pad = _smooth(h, tex.period_mm, c.pad_sigma_mm, reduce=False)
+            depth = pad.max() - pad  # >= 0: how far below the pad's first contact each point is
+            # force balance: mean(max(0, delta0 - depth)) = delta_nom (monotone in delta0: bisection)
+            lo, hi = 0.0, delta_nom + float(depth.max())
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                if np.maximum(0.0, mid - depth).mean() < delta_nom:
+                    lo = mid
+                else:
+                    hi = mid
+            shape = np.maximum(0.0, 0.5 * (lo + hi) - depth)
+            shape /= shape.mean()
+            tables = np.ascontiguousarray(np.stack([_smooth(shape, tex.period_mm, s)
+                                                    for s in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm)]))
+            result = (tables, float(tex.period_mm), np.ones(2))
+        with self._lock:
+            self._tables[key] = result
         return result
 
     def render(self, texture: Texture | str, position_mm, force_g, rng: np.random.Generator, *,
-               sensitivity: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+               sensitivity: float = 1.0, out: np.ndarray | None = None, wrap_mm: float | None = None) -> np.ndarray:
         """Render taxel readings.
 
         Parameters
@@ -345,6 +451,10 @@ class SensorModel:
             Slow sensitivity factor of the fabric (trial-to-trial drift), 1.0 = nominal.
         out : (n, 18) uint16 array, optional
             Written in place if given.
+        wrap_mm : float, optional
+            Drum circumference, mm: the surface under each taxel row is at plate coordinate
+            ``(position - row * pitch) mod wrap_mm`` (the plate is fixed on the drum, so the pattern is the same at
+            each pass of the index mark; position 0 = the index mark). None: no wrap (an endless plate).
 
         Returns
         -------
@@ -365,17 +475,20 @@ class SensorModel:
             out = np.empty((n, N_TAXELS), dtype=np.uint16)
         elif out.shape != (n, N_TAXELS) or out.dtype != np.uint16:
             raise ValueError(f"out must be ({n}, {N_TAXELS}) uint16")
-        tables, period, hmean = self.tables(texture)
+        # the contact shape at the chunk's mean force (the force varies by a few % within a trial or a 1 ms step
+        # chunk; the level follows the per-sample force exactly, the shape is that of the mean force)
+        tables, period, ones = self.tables(texture, float(force.mean()) if n else 500.0)
         c = self.config
         seed = int(rng.integers(1, 2**63))
-        _render_kernel(pos, force, tables, period, hmean, float(c.pitch_mm), self._row_w, float(c.height_gain_per_mm),
+        # kernel: rel = 1 + k * (table - mean) with k = 1 and mean = 1 gives rel = shape
+        _render_kernel(pos, force, tables, period, ones, float(c.pitch_mm), self._row_w, 1.0,
                        self._p_half, self._layer_gain, float(c.full_scale_counts), self.gain * float(sensitivity),
-                       self.offset, float(c.noise_counts), seed, out)
+                       self.offset, float(c.noise_counts), seed, float(wrap_mm or 0.0), out)
         return out
 
     def contact_height(self, texture: Texture | str, position_mm) -> np.ndarray:
         """Smoothed (bottom-layer) texture height under the centre row minus its mean, mm: drives the load-cell ripple."""
-        tables, period, hmean = self.tables(texture)
+        tables, period, hmean = self.height_tables(texture)
         x = (np.asarray(position_mm, dtype=np.float64) - self.config.pitch_mm) / period * tables.shape[1]
         idx = np.floor(x).astype(np.int64) % tables.shape[1]
         return tables[1, idx] - hmean[1]
@@ -570,14 +683,15 @@ class RigModel:
             compression = act - m.contact_gap_mm
             runout = d.runout_mm * np.sin(2 * np.pi * pos / circ + self._runout_phase)
             force = m.contact_stiffness_g_per_mm * np.clip(compression + np.where(compression > 0, runout, 0.0), 0, None)
-            force *= 1.0 + m.texture_ripple * self.sensor.contact_height(self._texture, pos)
+            force *= 1.0 + m.texture_ripple * self.sensor.contact_height(self._texture, np.mod(pos, circ))
 
             # slow sensitivity drift of the fabric: Ornstein-Uhlenbeck, tau 20 s
             c = self.config.sensor
             a = math.exp(-n * dt / 20.0)
             self._sensitivity = 1.0 + a * (self._sensitivity - 1.0) + c.sensitivity_drift * math.sqrt(1 - a * a) * float(
                 self._rng.standard_normal())
-            samples = self.sensor.render(self._texture, pos, force, self._rng, sensitivity=self._sensitivity)
+            samples = self.sensor.render(self._texture, pos, force, self._rng, sensitivity=self._sensitivity,
+                                         wrap_mm=circ)
 
             self._speed_mm_s = float(speed[-1])
             self._position_mm = float(pos[-1])

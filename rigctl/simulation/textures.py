@@ -5,9 +5,16 @@ groups of ridged textures - circular ridges (B-F), rectangular ridges (G-K) and 
 in this order: base, double height, double space, half height, half space. "Height" is the height of the features
 (it sets the amplitude of the measured force), "space" the distance between them (it sets the period).
 
-The paper gives no dimensions; the base dimensions here are plausible for 3D-printed plates (0.4 mm nozzle):
-ridge period 6 mm (centre to centre), ridge height 0.8 mm, ridge width 1.5 mm. "Double space" doubles the period,
-"half space" halves it, the feature width staying the same (so half-space ridges keep a 1.5 mm gap).
+The paper gives no dimensions; the base dimensions here are chosen for the paper's features (SA spike rate and RA
+spike count in 100 ms windows, Methods "Feature Extraction") and plausible for 3D-printed plates (0.4 mm nozzle):
+ridge period 15 mm (centre to centre), ridge height 1.0 mm, ridge width 5 mm. A 100 ms window covers 4-12 mm of
+surface at 40-120 mm/s (12 mm after speed scaling to 120 mm/s), so a period of 15 mm (7.5 mm half space, 30 mm
+double space) is comparable to or longer than a window and survives the window averaging, while the period does
+not divide 12 mm (a 12 mm period would average out exactly in every speed-scaled window). The heights
+(0.5 / 1.0 / 2.0 mm) bracket the pad's indentation (0.125-0.5 mm at 250-1000 g, :class:`rigctl.simulation.model.
+SensorConfig`), so the height sets whether the pad bottoms out between the ridges, i.e. the depth of the pressure
+modulation. "Double space" doubles the period, "half space" halves it, the feature width staying the same (so
+half-space ridges keep a 2.5 mm gap).
 
 Ridges run across the drum (parallel to its axis), so the profile varies only along the direction of travel ``x``
 (surface coordinate on the plate, mm); it is the same under the three columns of the sensor.
@@ -28,9 +35,9 @@ TEXTURE_GROUPS: tuple[str, ...] = ("smooth", "circular ridges", "rectangular rid
 #: the five variants of each ridged group, in the paper's order (Fig. 2B)
 VARIANTS: tuple[str, ...] = ("base", "double height", "double space", "half height", "half space")
 
-BASE_HEIGHT_MM = 0.8
-BASE_PERIOD_MM = 6.0
-BASE_WIDTH_MM = 1.5
+BASE_HEIGHT_MM = 1.0  #: mm, ridge / wave height of the base variant
+BASE_PERIOD_MM = 15.0  #: mm, centre-to-centre spacing of the base variant
+BASE_WIDTH_MM = 5.0  #: mm, ridge width at the base (circular and rectangular ridges)
 
 
 @dataclasses.dataclass(frozen=True)

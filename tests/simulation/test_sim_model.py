@@ -82,7 +82,13 @@ def test_bottom_layer_smoother_and_weaker():
     assert bottom.mean() < 0.8 * top.mean()  # weaker
     rel_mod_top = top.std(axis=0) / top.mean(axis=0)
     rel_mod_bottom = bottom.std(axis=0) / bottom.mean(axis=0)
-    assert np.all(rel_mod_bottom < 0.5 * rel_mod_top)  # larger receptive field: the ridges are smoothed
+    assert np.all(rel_mod_bottom < 0.8 * rel_mod_top)  # larger receptive field: the ridges are smoothed
+    # the more so the finer the spacing (half-space rectangular ridges, K)
+    xk = _trace(sensor, "K", 80, 500).astype(float) - cfg.offset_mean_counts
+    rel_k_top = xk[:, :9].std(axis=0) / xk[:, :9].mean(axis=0)
+    rel_k_bottom = xk[:, 9:].std(axis=0) / xk[:, 9:].mean(axis=0)
+    assert np.all(rel_k_bottom < 0.5 * rel_k_top)
+    assert np.all(rel_k_bottom / rel_k_top < rel_mod_bottom / rel_mod_top)
     # edges: the largest sample-to-sample step is much smaller on the bottom layer
     assert np.abs(np.diff(bottom, axis=0)).max() < 0.5 * np.abs(np.diff(top, axis=0)).max()
 
@@ -179,3 +185,31 @@ def test_texture_setter_and_threaded_advance():
     assert not errors
     assert rig.time_s == pytest.approx(3 * 50 * 3 * 1e-3)
     assert rig.actuator_mm == pytest.approx(0.45)
+
+
+def test_ridges_modulate_the_reading_deeply_and_force_changes_the_contact():
+    """Contact model: the pad rests on the crests, so a ridged plate's reading swings by more than its mean (the
+    paper's Fig. 2C raster of texture L is strongly modulated), the smooth plate's not at all; the plate sets the
+    mean level at a given force; more force presses the pad towards the floor of low ridges (shallower relative
+    modulation), and the tabulated contact shape keeps its mean (force balance)."""
+    cfg = SensorConfig(noise_counts=0.0, gain_spread=0.0, offset_spread_counts=0.0)
+    sensor = SensorModel(cfg)
+
+    def top(letter, force):
+        return _trace(sensor, letter, 80, force)[:, TOP_CENTRE].astype(float) - cfg.offset_mean_counts
+
+    flat = top("A", 500)
+    assert np.ptp(flat) < 0.05 * flat.mean()
+    means = {}
+    for letter in "BGL":
+        x = top(letter, 500)
+        assert np.ptp(x) > x.mean(), letter
+        means[letter] = x.mean()
+    assert all(abs(m - flat.mean()) > 0.1 * flat.mean() for m in means.values())
+    rel = {f: top("E", f).std() / top("E", f).mean() for f in (250, 1000)}  # half-height circular ridges
+    assert rel[1000] < 0.7 * rel[250]
+    for letter in "BHMK":
+        for force in (250.0, 1000.0):
+            tables, _, mean = sensor.tables(letter, force)
+            np.testing.assert_allclose(tables.mean(axis=1), 1.0, rtol=1e-6)
+            np.testing.assert_allclose(mean, 1.0)

@@ -21,7 +21,9 @@ def test_letters_groups_and_variant_order():
         assert ds.period_mm == pytest.approx(2 * base.period_mm) and ds.height_mm == base.height_mm
         assert hh.height_mm == pytest.approx(base.height_mm / 2)
         assert hs.period_mm == pytest.approx(base.period_mm / 2)
-        assert 0.3 <= base.height_mm <= 1.2 and 3 <= base.period_mm <= 8  # plausible printed plates
+        assert 0.3 <= base.height_mm <= 1.5 and 8 <= base.period_mm <= 20  # plausible printed plates
+        if group != "waves":  # half-space ridges still leave a gap between them
+            assert hs.period_mm > hs.width_mm
 
 
 def test_height_profiles_are_distinct_and_bounded():
@@ -46,3 +48,14 @@ def test_get_texture_rejects_unknown():
     assert get_texture("b") is TEXTURES["B"]
     with pytest.raises(KeyError, match="ABCDEFGHIJKLMNOP"):
         get_texture("Q")
+
+
+def test_spacing_is_comparable_to_the_feature_window():
+    """The paper's features average 100 ms windows: 4-12 mm of surface at 40-120 mm/s, 12 mm after speed scaling to
+    120 mm/s. The spacings span that scale (so the ridges are not averaged away in every window), and no period
+    is a divisor of 12 mm (a whole number of periods per scaled window would average out exactly)."""
+    periods = sorted({t.period_mm for t in TEXTURES.values() if t.letter != "A"})
+    assert periods[0] >= 4.0 and periods[-1] >= 2 * 12.0
+    for p in periods:
+        assert abs(12.0 / p - round(12.0 / p)) > 0.1, p
+
