@@ -54,6 +54,12 @@ class Capture:
     ``samples`` (n, 18) uint16 ADC counts, ``seq`` (n,) uint16 device sequence numbers, ``flags`` (n,) uint8
     (:class:`rigctl.devices.wire.FrameFlag`), ``host_time_s`` (n,) float64 host receive times (``time.monotonic``,
     s), ``dropped`` frames missing inside the capture, ``crc_errors`` corrupt frames rejected during it.
+
+    ``dropped`` counts the sequence gaps between frames of the capture and, if the port vanished while the capture
+    was running, the frames lost until the restarted stream's first frame (or until :meth:`TaxelStream.end_capture`
+    if it had not arrived yet), estimated at 1 kHz from the receive times. A restart of streaming (START resets the
+    sequence to 0) is not a gap, and the frames lost over a disconnection that happened before
+    :meth:`TaxelStream.begin_capture` belong to that reconnect (``StreamStats.dropped``), not to the capture.
     """
 
     samples: np.ndarray
@@ -134,8 +140,10 @@ class TaxelStream:
         self._stats = StreamStats()
         self._rate = collections.deque(maxlen=256)
         self._capture: list | None = None
-        self._capture_base = (0, 0)
+        self._capture_crc_base = 0
+        self._capture_dropped = 0
         self._capture_count = 0
+        self._loss_in_capture = False  # the pending reconnect gap happened while the running capture was open
         self._capture_event = threading.Condition(self._lock)
         self._last_frame_time: float | None = None
         self._gap_pending = False
@@ -159,6 +167,9 @@ class TaxelStream:
         """
         if self._thread is not None:
             return self.banner or {}
+        # compile/load the numba CRC kernel now, not on the reader's first chunk: that first call takes 1-4 s
+        # (longer on a loaded machine, a clean clone compiles) and would hold the stream back behind real time
+        wire.crc16_rows(np.zeros((1, 2), np.uint8))
         try:
             ser = self._open_serial()
             self.banner = self._wait_banner(ser)
@@ -263,7 +274,11 @@ class TaxelStream:
         with self._lock:
             self._capture = []
             self._capture_count = 0
-            self._capture_base = (self._stats.dropped, self._stats.crc_errors)
+            self._capture_dropped = 0
+            self._capture_crc_base = self._stats.crc_errors
+            # a disconnection that is already under way (or whose restarted stream has not delivered its first
+            # frame yet) is not inside this capture: its lost frames belong to the reconnect
+            self._loss_in_capture = False
 
     def wait_capture(self, n_frames: int, timeout_s: float) -> bool:
         """Block until the running capture holds at least ``n_frames`` frames; False on timeout."""
@@ -286,8 +301,13 @@ class TaxelStream:
             if parts is None:
                 raise TaxelStreamError("end_capture() without begin_capture()")
             self._capture = None
-            dropped = self._stats.dropped - self._capture_base[0]
-            crc = self._stats.crc_errors - self._capture_base[1]
+            dropped = self._capture_dropped
+            if self._gap_pending and self._loss_in_capture and self._last_frame_time is not None:
+                # the port vanished during the capture and the stream has not come back yet: the frames due
+                # until now are lost
+                dropped += max(0, int((time.monotonic() - self._last_frame_time) * wire.SAMPLE_RATE_HZ))
+            self._loss_in_capture = False
+            crc = self._stats.crc_errors - self._capture_crc_base
         if parts:
             samples, seq, flags, t = (np.concatenate([p[i] for p in parts]) for i in range(4))
         else:
@@ -363,16 +383,25 @@ class TaxelStream:
             host_t = first + np.arange(n) * period
             if n == 1:
                 host_t[0] = max(t_rx, first)
+            capturing = self._capture is not None
             if self._gap_pending and self._last_frame_time is not None:
-                # frames lost while the port was gone: estimated from the time gap at 1 kHz
-                st.dropped += max(0, int(round((host_t[0] - self._last_frame_time) * wire.SAMPLE_RATE_HZ)) - 1)
+                # frames lost while the port was gone: estimated from the time gap at 1 kHz. They count in a
+                # capture only if it was running when the port vanished
+                lost = max(0, int(round((host_t[0] - self._last_frame_time) * wire.SAMPLE_RATE_HZ)) - 1)
+                st.dropped += lost
+                if capturing and self._loss_in_capture:
+                    self._capture_dropped += lost
             self._gap_pending = False
+            self._loss_in_capture = False
             # a STREAMING_START frame restarts the device's sequence at 0: not a gap
             bounds = [0, *[int(k) for k in starts if k > 0], n]
             for lo, hi in zip(bounds[:-1], bounds[1:]):
                 if flags[lo] & wire.FrameFlag.STREAMING_START:
                     self._tracker.reset()
-                st.dropped += self._tracker.update(seq[lo:hi])
+                gaps = self._tracker.update(seq[lo:hi])
+                st.dropped += gaps
+                if capturing:
+                    self._capture_dropped += gaps
             self._last_frame_time = float(host_t[-1])
             st.frames += n
             self._rate.append((t_rx, st.frames))
@@ -395,6 +424,8 @@ class TaxelStream:
         self.last_error = exc
         with self._lock:
             self._stats.connected = False
+            if not self._gap_pending:  # a failed restart after a reopen is still the same disconnection
+                self._loss_in_capture = self._capture is not None
             self._gap_pending = True
             self._rate.clear()  # the receive rate restarts with the reconnected stream
         log.warning("taxel streamer on %s vanished: %s", self.port, exc)

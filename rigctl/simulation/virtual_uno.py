@@ -44,6 +44,9 @@ class VirtualUno:
     """
 
     def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0):
+        # compile/load the numba CRC kernel of the framing now, not in the first tick of a stream: that first call
+        # takes 1-4 s, during which the board's clock thread (the simulated rig's physics) would stand still
+        encode_frames(np.zeros(1), 0, np.zeros((1, wire.N_TAXELS)))
         self.port = PtyEndpoint(link)
         self.reset_delay_s = reset_delay_s
         self._rng = np.random.default_rng(seed)
