@@ -12,9 +12,19 @@ order, so a writer killed while a file is open for writing can leave it unreadab
    onto the file, then the journal is removed.
 
 A ``kill -9`` before the journal's commit mark leaves the old file intact (possibly with unreferenced bytes past its
-end, which HDF5 ignores); after it, :func:`recover` (run by every rigctl opening) replays the journal. The only
-moment a plain HDF5 reader could see a half-updated file is while the few in-place pages are written (a handful of
-``pwrite`` calls, microseconds), and the journal repairs even that.
+end, which HDF5 ignores); after it, :func:`recover` (run by every rigctl opening) replays the journal.
+
+What a *plain* HDF5 reader sees: the old file, or the new one, except after a kill that lands while the in-place
+pages are being written (after the commit mark, before the last in-place ``pwrite`` returns). Then the file on disk
+is half old, half new (e.g. a group's local heap from one version and its symbol table from the other: h5py raises
+``bad heap free list``), and only the replay makes it consistent again. This window cannot be closed with in-place
+updates: HDF5 rewrites live metadata (superblock, group heaps and B-trees, the ``/plan`` chunk) in place, and a
+SIGKILL can stop a process between two ``pwrite`` calls, or even inside one between two pages. It is kept short
+(the writes are prepared before the first one; ``/plan`` is chunked so a status change rewrites about one page, so
+a commit writes about 6 pages in place), and the file carries the evidence: a committed ``<name>.journal`` next to
+it. So the contract is: after a kill, open the file once with rigctl (``open_session``, ``rigctl info``,
+``SessionWriter.open``, or :func:`recover`), then any HDF5 reader; without a ``<name>.journal`` next to the file,
+plain HDF5 readers need nothing.
 """
 
 from __future__ import annotations
@@ -263,7 +273,8 @@ class OverlayFile(io.RawIOBase):
                     os.fsync(jfd)
             finally:
                 os.close(jfd)
-            for start, data in _runs(inplace):
+            runs = list(_runs(inplace))  # built before the first in-place write: the torn window is syscalls only
+            for start, data in runs:
                 _pwrite(self._fd, data, start)
             os.ftruncate(self._fd, size)
             if self.durable:

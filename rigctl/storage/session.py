@@ -65,6 +65,9 @@ PLAN_DTYPE = np.dtype(
         ("status", "u1"),
     ]
 )
+#: rows per ``/plan`` chunk: a status update rewrites one chunk in place (64 x 67 B, about one 4 KiB page), not the
+#: whole table, which keeps a commit's in-place writes (``rigctl.storage.journal``) short
+PLAN_CHUNK_ROWS = 64
 PLAN_FIELDS = tuple(n for n in PLAN_DTYPE.names if n != "status")
 
 #: the same row with str fields, as returned by :attr:`Session.plan`
@@ -409,7 +412,7 @@ class SessionWriter:
             g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
             g.attrs["name"] = protocol_name
             g.attrs["format"] = protocol_format
-            d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(max(1, min(len(plan_arr), 4096)),))
+            d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
             d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
             f.create_group("trials")
             if calibration:
