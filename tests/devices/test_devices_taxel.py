@@ -182,7 +182,8 @@ def test_capture_ended_while_unplugged_reports_the_frames_due(uno):
         cap = stream.end_capture()
         t_end = time.monotonic()
         uno.replug()
-    assert (0.2 - 0.05) * 1000 <= cap.dropped <= (t_end - t_unplug) * 1000 + 50
+    # the last frame was received at most a few reads before the unplug (a loaded host reads late)
+    assert (0.2 - 0.05) * 1000 <= cap.dropped <= (t_end - t_unplug) * 1000 + 250
 
 
 def test_capture_begun_while_unplugged_has_no_drops(uno):
