@@ -13,7 +13,7 @@
  * uint16, n x 18, e.g. written by rigctl.simulation.hil from the physical model); a new row is taken at the
  * first conversion of every scan (select 0 on A0), so frame k carries row (k0 + k) mod n, and the counts are
  * converted to exactly the millivolts that simavr's ADC turns back into the same counts. stdin commands:
- * "wave PATH" (load a waveform), "scan?" (reply "SCAN n=<scans so far> start=<scan of the waveform's row 0>"),
+ * "wave PATH [BASE]" (load a waveform; row 0 = scan BASE if given, else the scan it starts at), "scan?" (reply "SCAN n=<scans so far> start=<scan of the waveform's row 0>"),
  * "sync" (a 1 ms pulse on the sync-in pin D2). Timing: the sampler's probe pin
  * (PB0) and the transmitter's (PB1) are timed on avr->cycle; "ISR ..." lines report cycles per 1 ms tick.
  *
@@ -171,6 +171,7 @@ static uint16_t *wave;     /* n_rows x 18 ADC counts */
 static size_t wave_rows;
 static uint16_t *wave_pending; /* loaded by the stdin thread, swapped in at the start of the next scan */
 static size_t wave_pending_rows;
+static long long wave_pending_base = -1; /* scan number of the pending waveform's row 0 (-1: the scan it starts at) */
 static uint64_t scan_count;       /* Uno: ADC scans so far (one per 1 ms tick) */
 static uint64_t scan_base;        /* scan_count when the playing waveform started (row 0) */
 
@@ -186,7 +187,7 @@ static double sim_s(void)
     return (double)avr->cycle / (double)avr->frequency;
 }
 
-static int load_wave(const char *path)
+static int load_wave(const char *path, long long base)
 {
     FILE *f = fopen(path, "rb");
     if (!f) return -1;
@@ -213,6 +214,7 @@ static int load_wave(const char *path)
     uint16_t *old = wave_pending;
     wave_pending = buf;
     wave_pending_rows = size / (2 * N_TAXELS);
+    wave_pending_base = base;
     pthread_mutex_unlock(&wave_lock);
     free(old);
     return 0;
@@ -225,7 +227,15 @@ static void *stdin_thread(void *arg)
     while (fgets(line, sizeof line, stdin)) {
         line[strcspn(line, "\r\n")] = 0;
         if (!strncmp(line, "wave ", 5)) {
-            if (load_wave(line + 5)) printf("ERR wave %s\n", line + 5);
+            /* "wave PATH [BASE]": BASE = the scan number row 0 stands for (rows already due are skipped at the
+             * swap, so the waveform stays in phase however late it arrives) */
+            long long base = -1;
+            char *sp = strchr(line + 5, ' ');
+            if (sp) {
+                *sp = 0;
+                base = atoll(sp + 1);
+            }
+            if (load_wave(line + 5, base)) printf("ERR wave %s\n", line + 5);
             else printf("OK wave %zu\n", wave_rows);
         } else if (!strcmp(line, "scan?")) { /* which row of the waveform plays now */
             printf("SCAN n=%llu start=%llu\n", (unsigned long long)scan_count, (unsigned long long)scan_base);
@@ -289,7 +299,8 @@ static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
             wave = wave_pending;
             wave_rows = wave_pending_rows;
             wave_pending = NULL;
-            scan_base = scan_count;
+            scan_base = (wave_pending_base >= 0 && (uint64_t)wave_pending_base <= scan_count)
+                            ? (uint64_t)wave_pending_base : scan_count;
         }
         pthread_mutex_unlock(&wave_lock);
         free(old);
@@ -540,7 +551,7 @@ int main(int argc, char **argv)
     avr->frequency = 16000000;
     avr->log = LOG_ERROR;
 
-    if (wave_path && load_wave(wave_path) == 0) {
+    if (wave_path && load_wave(wave_path, -1) == 0) {
         wave = wave_pending;
         wave_rows = wave_pending_rows;
         wave_pending = NULL;

@@ -373,14 +373,14 @@ class HilRig:
                 log.error("HIL Uno harness: %s", line)
 
     # ------------------------------------------------------------------ taxel waveforms
-    def _load(self, samples: np.ndarray, timeout_s: float = 5.0) -> None:
+    def _load(self, samples: np.ndarray, timeout_s: float = 5.0, base: int | None = None) -> None:
         path = self._tmp / "wave.u16"
         tmp = self._tmp / "wave.u16.tmp"
         samples.astype("<u2").tofile(tmp)
         os.replace(tmp, path)
         with self._cond:
             acks = self._wave_acks
-            self._uno.send(f"wave {path}")
+            self._uno.send(f"wave {path}" if base is None else f"wave {path} {int(base)}")
             deadline = time.monotonic() + timeout_s
             while self._wave_acks == acks:
                 left = deadline - time.monotonic()
@@ -390,6 +390,11 @@ class HilRig:
 
     def _playing_row(self, timeout_s: float = 2.0) -> int | None:
         """Row of the current waveform the Uno harness plays now (None if unknown)."""
+        scan = self._scan(timeout_s)
+        return None if scan is None else scan[0] - scan[1]
+
+    def _scan(self, timeout_s: float = 2.0) -> tuple[int, int] | None:
+        """(scans so far, scan of the playing waveform's row 0) from the Uno harness (None if no reply)."""
         with self._cond:
             self._scan_reply = None
             self._uno.send("scan?")
@@ -399,8 +404,7 @@ class HilRig:
                 if left <= 0:
                     return None
                 self._cond.wait(left)
-            n, start = self._scan_reply
-        return n - start
+            return self._scan_reply
 
     def _render_and_load(self, horizon_s: float = 2.0, load_latency_s: float = 0.005) -> None:
         """Render the next ``horizon_s`` of taxel readings from the latest drum travel, speed and force.
@@ -428,22 +432,45 @@ class HilRig:
         target = tel.drum_steps * self.mm_per_step if tel else 0.0
         if tel is not None:
             target += speed * (time.monotonic() - tel.received + load_latency_s)
-        start = target
-        if self._wave_pos is not None:
-            row = self._playing_row()
-            if row is not None:
-                row += int(round(load_latency_s * 1000))
-                if 0 <= row < len(self._wave_pos) and abs(self._wave_pos[row] - target) < 50.0:
-                    start = float(self._wave_pos[row])
         force = max(tel.force_g, 0.0) if tel else 0.0
-        force0 = self._wave_force if self._wave_pos is not None else force
         n = int(horizon_s * 1000)
         t = np.arange(n) / 1000.0
-        blend = np.clip(t / 0.5, 0.0, 1.0)
-        position = start + speed * t + (target - start) * blend
-        samples = self._sensor.render(self._texture, position, force0 + (force - force0) * blend, self._rng)
-        self._load(np.clip(samples, 0, wire.ADC_MAX).astype("<u2"))
+        # the new waveform's target trajectory: the reported travel and force
+        new_pos = target + speed * t
+        new_force = np.full(n, force)
+        base = None
+        scan = self._scan() if self._wave_pos is not None else None
+        old_pos, old_force = new_pos, new_force
+        if scan is not None:
+            # row 0 of the new waveform stands for scan n (the harness skips the rows already due when it swaps,
+            # so the swap keeps the phase however long the render and the load take); it first continues the
+            # waveform playing now (its travel and force, row for row, extrapolated past its end), then converges
+            # to the target between 0.25 s and 0.75 s: a swap within 0.25 s of the query (render + load) is seamless
+            row = scan[0] - scan[1]
+            if 0 <= row < len(self._wave_pos) and abs(self._wave_pos[row] - target) < 50.0:
+                base = scan[0]
+                k = row + np.arange(n)
+                last = len(self._wave_pos) - 1
+                slope = (self._wave_pos[-1] - self._wave_pos[-2]) if last >= 1 else 0.0
+                old_pos = np.where(k <= last, self._wave_pos[np.minimum(k, last)],
+                                   self._wave_pos[last] + slope * (k - last))
+                old_force = self._wave_forces[np.minimum(k, last)]
+        blend = np.clip((t - 0.25) / 0.5, 0.0, 1.0)
+        position = old_pos + (new_pos - old_pos) * blend
+        forces = old_force + (new_force - old_force) * blend
+        # the model's contact shape is that of a render call's mean force (non-linear in the force): render in
+        # 25 ms chunks while the force changes, so each chunk's shape follows its force
+        samples = np.empty((n, wire.N_TAXELS), dtype=np.uint16)
+        edges = [0]
+        while edges[-1] < n:
+            a0 = edges[-1]
+            steady = np.ptp(forces[a0:]) < 1e-3 * max(1.0, abs(forces[a0]))
+            edges.append(n if steady else min(n, a0 + 25))
+        for a0, b0 in zip(edges[:-1], edges[1:]):
+            self._sensor.render(self._texture, position[a0:b0], forces[a0:b0], self._rng, out=samples[a0:b0])
+        self._load(np.clip(samples, 0, wire.ADC_MAX).astype("<u2"), base=base)
         self._wave_pos = position
+        self._wave_forces = forces
         self._wave_force = force
 
     def _feed(self) -> None:

@@ -30,6 +30,31 @@ def test_live_taxel_signal_follows_the_drum_without_seams(hil_rig):
         drum.stop()
     x = cap.samples.astype(float)
     assert x.std(axis=0).mean() > 20  # the ridges pass under the taxels
-    steps = np.abs(np.diff(x, axis=0)).max(axis=1)
+    worst, step = _worst_step(x)
+    # the model's own largest 1 ms step for this motion (steep ridge edges + noise), ~30 counts: a seam (a jump
+    # of the texture's phase or shape at a waveform swap) is a step well beyond it
+    own = _worst_step(_model_signal(rig, speed_mm_s=40.0, force_g=500.0))[1]
+    assert 10 < own < 60
+    assert step < 1.5 * own, f"a seam of {step:.0f} counts (model's own max step {own:.0f}) at sample {worst} of {len(x)}"
+
+
+def _worst_step(x: np.ndarray) -> tuple[int, float]:
+    steps = np.abs(np.diff(np.asarray(x, dtype=float), axis=0)).max(axis=1)
     worst = int(np.argmax(steps))
-    assert steps[worst] < 60, f"a seam of {steps[worst]:.0f} counts at sample {worst} of {len(x)}"
+    return worst, float(steps[worst])
+
+
+def _model_signal(rig, speed_mm_s: float, force_g: float, seconds: float = 10.0) -> np.ndarray:
+    from rigctl.simulation.model import SensorModel
+
+    position = np.arange(int(seconds * 1000)) / 1000.0 * speed_mm_s
+    return SensorModel(rig.config.sensor).render("B", position, force_g, np.random.default_rng(1))
+
+
+def test_seam_check_detects_a_phase_jump(hil_rig):
+    """The seam check fails on the model's own signal with a 1 mm phase jump spliced in (a seam)."""
+    x = _model_signal(hil_rig, 40.0, 500.0, seconds=3.0).astype(float)
+    own = _worst_step(_model_signal(hil_rig, 40.0, 500.0))[1]
+    assert _worst_step(x)[1] < 1.5 * own
+    y = np.concatenate([x[:1500], x[1525:]])  # 25 ms = 1 mm of travel missing
+    assert _worst_step(y)[1] >= 1.5 * own
