@@ -20,7 +20,10 @@ normalisation ``(x - offset) * scale`` is applied in the kernel, so raw ``uint16
 kernel (numba) runs blocks of 8 trials in parallel (``prange``); inside a block, time is the outer loop and the
 8 x n_channels lanes (trial-major, channel-minor, contiguous) are the SIMD axis, with a branch-free spike reset
 (18 channels alone would leave most of a 512-bit vector idle). Trials are sorted by length so a block's trials
-end together. No FMA contraction or reassociation is allowed, so every lane does the same IEEE operations:
+end together. For spike times (:func:`encode`, :class:`StreamingEncoder`) the kernel keeps the last 64 steps' spikes
+in a small block buffer and appends their sample numbers to per-train int32 slots, branch-free (no (N, C) raster;
+a train that outgrows its ~250 Hz slot bound makes the call fall back to the raster).
+No FMA contraction or reassociation is allowed, so every lane does the same IEEE operations:
 batch mode, :class:`StreamingEncoder` and a plain per-sample Python loop give the same spikes.
 """
 
@@ -86,6 +89,9 @@ def _renamed(fn, name):
     return new
 
 
+#: steps buffered per block before their spikes are appended to the trains' sample-number slots
+_SPK_ROWS = 64
+
 #: trials interleaved per SIMD block: K trials x n_channels lanes (18 channels -> 144 lanes)
 BLOCK_TRIALS = 8
 
@@ -107,12 +113,16 @@ def _izh_step(vv, uu, sb, xb, g, a, b, c, d, v_peak):  # pragma: no cover
         sb[j] = s
 
 
-def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, block, a, b, c, d, v_peak):  # pragma: no cover
+def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, spk, block,  # pragma: no cover
+                   a, b, c, d, v_peak):
     """Run eqs. (3)-(5) over trials.
 
     x (N, C) input rows; starts (T+1,) row starts of trials; order (M,) the trials to run (sorted by length, so
     a block's trials end together); offset (C,); gain (T, C) = k * scale * coeff; v, u (T, C) float64 state
-    (in/out); counts (T, C) int64 (added to); raster (N, C) uint8 or (0, C) to skip; block = trials per SIMD
+    (in/out); counts (T, C) int64 (added to); raster (N, C) uint8 or (0, C) to skip; spk (T * C, cap) int32 or
+    (0, 1) to skip: the sample numbers (from the trial start) of each train's first ``cap - 1`` spikes, written
+    directly, branch-free (row ``t * C + ch``; ``counts`` says how many, ``>= cap`` = overflow; the last slot is
+    scratch); block = trials per SIMD
     block. Blocks of ``block`` trials run in parallel (prange); inside a block, time is the outer loop and the
     ``block * C`` lanes (trial-major, channel-minor) are the contiguous SIMD axis.
     """
@@ -120,6 +130,8 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, block, 
     n_run = order.shape[0]
     n_blocks = (n_run + block - 1) // block
     write = raster.shape[0] > 0
+    write_spk = spk.shape[0] > 0
+    cap = spk.shape[1]
     for bi in numba.prange(n_blocks):
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
@@ -130,6 +142,7 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, block, 
         xb = np.empty(n_lanes)
         sb = np.zeros(n_lanes, dtype=np.uint8)
         cnt = np.zeros(n_lanes, dtype=np.int64)
+        rb = np.empty((_SPK_ROWS if write_spk else 0, n_lanes), dtype=np.uint8)  # the last steps' spikes
         n_max = 0
         for k in range(m):
             t = order[i0 + k]
@@ -149,12 +162,30 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, block, 
                     for ch in range(n_ch):
                         xb[k * n_ch + ch] = 0.0
             _izh_step(vv, uu, sb, xb, g, a, b, c, d, v_peak)
+            if write_spk:  # buffer _SPK_ROWS steps (L1-resident), then append them train by train, branch-free
+                nb = n % _SPK_ROWS
+                for j in range(n_lanes):
+                    rb[nb, j] = sb[j]
+                if nb == _SPK_ROWS - 1 or n == n_max - 1:
+                    base = n - nb
+                    for k in range(m):
+                        t = order[i0 + k]
+                        lim = min(nb + 1, starts[t + 1] - starts[t] - base)
+                        for ch in range(n_ch):
+                            j = k * n_ch + ch
+                            r = t * n_ch + ch
+                            cj = cnt[j]
+                            for i in range(lim):
+                                spk[r, min(cj, cap - 1)] = base + i
+                                cj += rb[i, j]
+                            cnt[j] = cj
             for k in range(m):
                 t = order[i0 + k]
                 row = starts[t] + n
                 if row < starts[t + 1]:
-                    for ch in range(n_ch):
-                        cnt[k * n_ch + ch] += sb[k * n_ch + ch]
+                    if not write_spk:
+                        for ch in range(n_ch):
+                            cnt[k * n_ch + ch] += sb[k * n_ch + ch]
                     if write:
                         for ch in range(n_ch):
                             raster[row, ch] = sb[k * n_ch + ch]
@@ -292,6 +323,15 @@ def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, param
     raster : (n_total_samples, n_channels) uint8 (1 = spike at that sample) or None.
     state : (v, u) after the last sample.
     """
+    counts, raster, state, _ = _run(readings, k=k, gain=gain, offset=offset, scale=scale, params=params, state=state,
+                                    active=active, want_raster=want_raster, spike_cap=0, block=block)
+    return counts, raster, state
+
+
+def _run(readings, *, k, gain, offset, scale, params, state, active, want_raster, spike_cap, block=BLOCK_TRIALS):
+    """:func:`run_izhikevich`, plus (``spike_cap > 0``) the (n_trials * n_channels, spike_cap) int32 sample numbers
+    of each train's first ``spike_cap - 1`` spikes, written by the kernel (a train with more spikes overflows: its
+    ``counts`` is ``>= spike_cap``). Returns ``counts, raster, state, spk``."""
     rg = as_ragged(readings)
     x = _kernel_dtype(rg.data)
     n_trials, n_ch = rg.n_trials, rg.n_channels
@@ -315,9 +355,60 @@ def run_izhikevich(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, param
     counts = np.zeros((n_trials, n_ch), dtype=np.int64)
     raster = np.zeros((x.shape[0] if want_raster else 0, n_ch), dtype=np.uint8)
     kernel = _izh_kernel if order.size > block else _izh_kernel_serial
-    kernel(x, rg.starts, order, offset, g, v, u, counts, raster, int(block), params.a, params.b, params.c,
+    spk = np.empty((n_trials * n_ch, spike_cap) if spike_cap > 0 else (0, 1), dtype=np.int32)
+    kernel(x, rg.starts, order, offset, g, v, u, counts, raster, spk, int(block), params.a, params.b, params.c,
            params.d, params.v_peak)
-    return counts, (raster if want_raster else None), (v, u)
+    return counts, (raster if want_raster else None), (v, u), spk
+
+
+def _times_from_spk_py(spk, index_start, counts, n0, dt, out):  # pragma: no cover
+    """Flat spike times from the kernel's per-train sample numbers: row r = t * C + ch of ``spk`` holds
+    ``counts[t, ch]`` sample numbers; time = (sample + n0[t]) * dt, written from ``index_start[t, ch]``."""
+    n_trials, n_ch = counts.shape
+    for t in numba.prange(n_trials):
+        for ch in range(n_ch):
+            r = t * n_ch + ch
+            p0 = index_start[t, ch]
+            for i in range(counts[t, ch]):
+                out[p0 + i] = (np.int64(spk[r, i]) + n0[t]) * dt
+
+
+_times_from_spk = numba.njit(parallel=True, cache=True, nogil=True)(_times_from_spk_py)
+_times_from_spk_serial = numba.njit(parallel=False, cache=True, nogil=True)(
+    _renamed(_times_from_spk_py, "_times_from_spk_serial_py"))
+
+
+def _spike_cap(n_max: int) -> int:
+    """Spike slots per train: exact (one spike per sample at most) for short trials, else a 250 Hz bound at 1 kHz
+    (tonic spiking at k = 100 on a reading of 1.0 fires at ~250 Hz; more spikes fall back to the raster path).
+    The int32 slots are allocated uninitialised, so only the pages actually written are touched."""
+    return n_max + 1 if n_max <= 1024 else n_max // 4 + 16
+
+
+def _encode_trains(rg: Ragged, *, k, gain=1.0, offset=0.0, scale=1.0, fs=FS_HZ, params=TONIC_SPIKING, state=None,
+                   n0=0) -> SpikeTrains:
+    """Run the kernel and build the NWB-style trains directly from the spike sample numbers it writes (no raster).
+    ``state`` is updated in place as in :func:`run_izhikevich`; ``n0`` is added to every sample number."""
+    n_trials = rg.n_trials
+    n_max = int(rg.lengths.max()) if n_trials else 0
+    cap = _spike_cap(n_max)
+    saved = None if state is None else (state[0].copy(), state[1].copy())
+    counts, _, _, spk = _run(rg, k=k, gain=gain, offset=offset, scale=scale, params=params, state=state,
+                             active=None, want_raster=False, spike_cap=cap)
+    if counts.size and int(counts.max()) >= cap:  # a train overflowed its slots: redo it with the raster
+        if saved is not None:
+            state[0][...], state[1][...] = saved
+        counts, raster, _, _ = _run(rg, k=k, gain=gain, offset=offset, scale=scale, params=params, state=state,
+                                    active=None, want_raster=True, spike_cap=0)
+        return _trains_from_raster(raster, rg.starts, counts, fs, n0)
+    flat = counts.ravel()
+    index = np.cumsum(flat, dtype=np.int64)
+    index_start = (index - flat).reshape(counts.shape)
+    out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
+    n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
+    fill = _times_from_spk if n_trials > BLOCK_TRIALS else _times_from_spk_serial
+    fill(spk, index_start, counts, n0, 1.0 / fs, out)
+    return SpikeTrains(out, index, counts.shape[1])
 
 
 def _trains_from_raster(raster, starts, counts, fs, n0=0) -> SpikeTrains:
@@ -339,9 +430,7 @@ def encode(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, fs: float = F
     -------
     SpikeTrains of shape (n_trials, n_channels), spike times in seconds from each trial's first sample.
     """
-    rg = as_ragged(readings)
-    counts, raster, _ = run_izhikevich(rg, k=k, gain=gain, offset=offset, scale=scale, params=params)
-    return _trains_from_raster(raster, rg.starts, counts, fs)
+    return _encode_trains(as_ragged(readings), k=k, gain=gain, offset=offset, scale=scale, fs=fs, params=params)
 
 
 def _norm_args(normalise: TaxelRange | None):
@@ -464,13 +553,11 @@ class StreamingEncoder:
         starts = np.array([0, n], dtype=np.int64)
         rg = Ragged(np.ascontiguousarray(x), starts)
         n0 = self.n_samples
-        counts, raster, _ = run_izhikevich(rg, k=self.k_sa, gain=self.coeff, offset=self.offset, scale=self.scale,
-                                           params=self.params, state=self._sa_state)
-        sa = _trains_from_raster(raster, starts, counts, self.fs, n0)
+        sa = _encode_trains(rg, k=self.k_sa, gain=self.coeff, offset=self.offset, scale=self.scale, fs=self.fs,
+                            params=self.params, state=self._sa_state, n0=n0)
         ra_in = self._ra_filter.process((x - self.offset) * self.scale)
-        counts, raster, _ = run_izhikevich(Ragged(ra_in, starts), k=self.k_ra, params=self.params,
-                                           state=self._ra_state)
-        ra = _trains_from_raster(raster, starts, counts, self.fs, n0)
+        ra = _encode_trains(Ragged(np.ascontiguousarray(ra_in), starts), k=self.k_ra, fs=self.fs, params=self.params,
+                            state=self._ra_state, n0=n0)
         self.n_samples += n
         return EncodedChunk(sa, ra, n)
 

@@ -179,3 +179,27 @@ def test_bad_input_is_refused():
         as_ragged([np.zeros((3, 4)), np.zeros((3, 5))])
     with pytest.raises(ValueError):
         StreamingEncoder(18).process(np.zeros((5, 17)))
+
+
+@pytest.mark.parametrize("level", [0.4, 3.0])
+def test_spike_times_equal_raster_times_including_slot_overflow(level):
+    """Spike times come from sample numbers the kernel writes into per-train slots (a ~250 Hz bound on trials longer
+    than 1024 samples). Level 3.0 fires far above that bound (the slots overflow and the raster path takes over,
+    the streaming state restored first): times must equal those read off the spike raster, batch and streaming."""
+    rng = np.random.default_rng(5)
+    x = level * rng.uniform(0.5, 1.0, size=(10, 2000, 4))
+    sa = encode_sa(x)
+    counts, raster, _ = run_izhikevich(x, k=100.0)
+    assert np.array_equal(sa.spike_times_index, np.cumsum(counts.ravel()))
+    trial, n, ch = np.nonzero(raster.reshape(10, 2000, 4))
+    order = np.lexsort((n, ch, trial))  # trial-major, channel-major, time-sorted, as the NWB rows
+    assert np.array_equal(sa.spike_times, n[order] * (1.0 / 1000.0))  # sample number x dt
+    if level > 1:
+        assert counts.max() > 2000 // 4  # the slot bound was really exceeded
+    enc = StreamingEncoder(4)
+    parts = [enc.process(x[0, i : i + 1500]).sa for i in (0, 1500)]
+    for row in range(4):
+        got = np.concatenate([p.spike_times[(p.spike_times_index[row - 1] if row else 0) : p.spike_times_index[row]]
+                              for p in parts])
+        want = sa.spike_times[(sa.spike_times_index[row - 1] if row else 0) : sa.spike_times_index[row]]
+        assert np.array_equal(got, want)
