@@ -454,6 +454,19 @@ static void hx_sck_hook(avr_irq_t *irq, uint32_t value, void *param)
     }
 }
 
+/* after a reset of the MCU: the reading being shifted out is abandoned (DOUT high until the next conversion), and
+ * the pins the harness drives are driven again (avr_reset clears the port state) */
+static void mega_after_reset(void)
+{
+    if (!hx_dout) return;
+    hx_ready = 0;
+    hx_bit = 0;
+    avr_raise_irq(hx_dout, 0); /* the irq keeps its last value across avr_reset: toggle so the port sees it */
+    avr_raise_irq(hx_dout, 1);
+    hx_next_cycle = avr->cycle + 200000u;
+    update_home();
+}
+
 static void mega_setup(void)
 {
     hx_dout = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 5);
@@ -616,6 +629,7 @@ int main(int argc, char **argv)
         if (atomic_exchange(&reset_requested, 0)) {
             avr_reset(avr);
             bridge_reset();
+            mega_after_reset();
             printf("RESET t=%.6f\n", sim_s());
         }
         if (opt_max_seconds > 0 && sim_s() >= opt_max_seconds) break;

@@ -244,6 +244,9 @@ def test_calibration_survives_a_reset_only_when_saved(hil_rig):
                 pass
             assert time.monotonic() < deadline, "no restart seen"
             time.sleep(0.05)
+        time.sleep(0.3)  # longer than the load-cell timeout: a reset mid HX711 read must come up clean
+        st = d.read_status()
+        assert (st.state, st.faults) == (State.IDLE, Fault(0))
         assert d.read_holding(HR.LOADCELL_SCALE_X100) == 41234
         assert d.read_holding(HR.ACTUATOR_STEPS_PER_MM) == 401
         assert d.read_holding(HR.SETTLE_TIME_MS) == wire.HOLDING_RANGE[HR.SETTLE_TIME_MS][2]
