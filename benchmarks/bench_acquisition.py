@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import resource
-import subprocess
 import sys
 import tempfile
 import time
 
 import numpy as np
+
+from rigctl.cli.sim import start_sim_process
 
 
 def cpu_s() -> float:
@@ -30,27 +30,12 @@ def cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def start_sim(port_dir: str) -> tuple[subprocess.Popen, dict]:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "--texture", "G", "--port-dir", port_dir],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ports = {}
-    while len(ports) < 2:
-        line = proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"rigctl sim failed: {proc.stderr.read()}")
-        m = re.match(r"(drum|taxel) port:\s+(\S+)", line)
-        if m:
-            ports[m.group(1)] = m.group(2)
-    return proc, ports
-
-
 def bench_recording(minutes: float) -> dict:
     from rigctl.devices.drum import DrumClient
     from rigctl.devices.taxel_stream import TaxelStream
 
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as port_dir:
-        proc, ports = start_sim(port_dir)
+        proc, ports = start_sim_process(port_dir, texture="G")
         try:
             import psutil
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -31,22 +30,9 @@ import time
 
 import numpy as np
 
+from rigctl.cli.sim import start_sim_process
+
 WARMUP_S = 30.0
-
-
-def start_sim(port_dir: str, texture: str) -> tuple[subprocess.Popen, dict]:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "--texture", texture, "--port-dir",
-         port_dir], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ports = {}
-    while len(ports) < 2:
-        line = proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"rigctl sim failed: {proc.stderr.read()}")
-        m = re.match(r"(drum|taxel) port:\s+(\S+)", line)
-        if m:
-            ports[m.group(1)] = m.group(2)
-    return proc, ports
 
 
 def start_xvfb() -> tuple[subprocess.Popen, str]:
@@ -69,7 +55,7 @@ def run(minutes: float, screenshot: str | None) -> dict:
 
     duration = minutes * 60.0
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-gui-") as tmp:
-        sim, ports = start_sim(os.path.join(tmp, "ports"), "G")
+        sim, ports = start_sim_process(os.path.join(tmp, "ports"), texture="G")
         xvfb, display = start_xvfb()
         stats_path = os.path.join(tmp, "stats.jsonl")
         env = dict(os.environ, DISPLAY=display, QT_QPA_PLATFORM="xcb", RIGCTL_CONFIG=os.path.join(tmp, "rig.json"),

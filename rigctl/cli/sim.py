@@ -2,11 +2,37 @@
 
 from __future__ import annotations
 
+import re
 import signal
+import subprocess
 import sys
 import threading
 
 import click
+
+#: the lines ``rigctl sim`` prints for its two ports
+PORT_LINE = re.compile(r"(drum|taxel) port:\s+(\S+)")
+
+
+def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tuple[subprocess.Popen, dict[str, str]]:
+    """Run ``rigctl sim`` in a separate process and wait until it has printed its two ports.
+
+    Returns the process (stdout/stderr piped, text) and ``{"drum": path, "taxel": path}``. Raises RuntimeError with
+    the simulator's stderr if it exits before printing both ports. The caller terminates the process.
+    """
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "--seed", str(seed), "--texture", texture,
+         "--port-dir", str(port_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ports: dict[str, str] = {}
+    while len(ports) < 2:
+        line = proc.stdout.readline()
+        if not line:
+            proc.kill()
+            raise RuntimeError(f"rigctl sim did not print its ports: {proc.stderr.read()}")
+        m = PORT_LINE.match(line)
+        if m:
+            ports[m.group(1)] = m.group(2)
+    return proc, ports
 
 
 @click.group(invoke_without_command=True)

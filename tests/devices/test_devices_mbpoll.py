@@ -7,11 +7,11 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 
 import pytest
 from click.testing import CliRunner
 
+from rigctl.cli.sim import start_sim_process
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.ports import find_ports, guess_board
@@ -24,20 +24,10 @@ RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
 @pytest.fixture(scope="module")
 def sim_process(tmp_path_factory):
     port_dir = tmp_path_factory.mktemp("sim")
-    proc = subprocess.Popen([*RIGCTL, "sim", "--seed", "2", "--texture", "G", "--port-dir", str(port_dir)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ports = {}
-    deadline = time.monotonic() + 30
-    while len(ports) < 2 and time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        m = re.match(r"(drum|taxel) port:\s+(\S+)", line)
-        if m:
-            ports[m.group(1)] = m.group(2)
-    if len(ports) < 2:
-        proc.kill()
-        pytest.fail(f"rigctl sim did not print its ports: {proc.stderr.read()}")
+    try:
+        proc, ports = start_sim_process(str(port_dir), texture="G", seed=2)
+    except RuntimeError as exc:
+        pytest.fail(str(exc))
     yield ports
     proc.terminate()
     out, err = proc.communicate(timeout=10)
