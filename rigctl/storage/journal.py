@@ -1,4 +1,4 @@
-"""Crash-safe in-place updates of an HDF5 file: a copy-on-write page overlay plus a redo journal.
+"""Crash-safe in-place updates of an HDF5 file: a copy-on-write page overlay, a redo journal, a detached applier.
 
 HDF5 updates its metadata (superblock, group B-trees and heaps, object headers) in place and in no particular
 order, so a writer killed while a file is open for writing can leave it unreadable ("addr overflow", h5py #1807,
@@ -8,23 +8,22 @@ order, so a writer killed while a file is open for writing can leave it unreadab
    in-memory 4 KiB pages; the file on disk is not touched while HDF5 works.
 2. :meth:`OverlayFile.commit` (after HDF5 has closed the file, so the overlay holds a complete, consistent file):
    pages past the old end of file are written first (nothing on disk refers to them yet); the pages that replace
-   existing bytes go to a journal file ``<name>.journal`` (with a checksum and a commit mark, fsynced), then
-   onto the file, then the journal is removed.
+   existing bytes go to a journal file ``<name>.journal`` (with a checksum and a commit mark; fsynced when durable).
+3. :func:`apply_journal` writes those pages onto the file from a short-lived helper process started in its own
+   session, which inherits the locked file descriptor; the writer waits for it. The helper deletes the journal.
 
-A ``kill -9`` before the journal's commit mark leaves the old file intact (possibly with unreferenced bytes past its
-end, which HDF5 ignores); after it, :func:`recover` (run by every rigctl opening) replays the journal.
+What a plain HDF5 reader (h5py, HDFView, h5dump) sees after a ``kill -9`` of the writing process at any moment:
 
-What a *plain* HDF5 reader sees: the old file, or the new one, except after a kill that lands while the in-place
-pages are being written (after the commit mark, before the last in-place ``pwrite`` returns). Then the file on disk
-is half old, half new (e.g. a group's local heap from one version and its symbol table from the other: h5py raises
-``bad heap free list``), and only the replay makes it consistent again. This window cannot be closed with in-place
-updates: HDF5 rewrites live metadata (superblock, group heaps and B-trees, the ``/plan`` chunk) in place, and a
-SIGKILL can stop a process between two ``pwrite`` calls, or even inside one between two pages. It is kept short
-(the writes are prepared before the first one; ``/plan`` is chunked so a status change rewrites about one page, so
-a commit writes about 6 pages in place), and the file carries the evidence: a committed ``<name>.journal`` next to
-it. So the contract is: after a kill, open the file once with rigctl (``open_session``, ``rigctl info``,
-``SessionWriter.open``, or :func:`recover`), then any HDF5 reader; without a ``<name>.journal`` next to the file,
-plain HDF5 readers need nothing.
+- before the journal's commit mark: the old file (plus unreferenced bytes past its end, which HDF5 ignores);
+- after it, before the helper started: the old file, and a committed journal that the next rigctl opening
+  (:func:`recover`, run by every rigctl reader and writer) replays;
+- after the helper started: the helper is not killed with the writer (another session; a Ctrl-C does not reach it
+  either), so it finishes within milliseconds and the file is the new version.
+
+The file is therefore never half old, half new after a kill of the writer. Only killing the helper itself during
+its few milliseconds (or a power cut during the in-place writes) leaves a torn file; the committed journal is then
+still next to it, and :func:`recover` replays it (with ``durable`` commits, fsync orders the writes so the journal
+is complete on disk before the first in-place write).
 """
 
 from __future__ import annotations
@@ -32,6 +31,8 @@ from __future__ import annotations
 import io
 import os
 import struct
+import subprocess
+import sys
 import time
 import zlib
 from pathlib import Path
@@ -66,6 +67,12 @@ def _pwrite(fd: int, data: bytes, offset: int) -> None:
         offset += n
 
 
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
 def journal_path(path: str | os.PathLike) -> Path:
     p = Path(path)
     return p.with_name(p.name + ".journal")
@@ -93,7 +100,8 @@ def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
     """Finish or discard an interrupted commit of ``path``. Returns True if a committed journal was replayed.
 
     A journal without its commit mark (the writer died before committing) is discarded: the file was not touched
-    in place. Raises :class:`FileBusy` if another process holds the file.
+    in place. A committed one is replayed by a detached helper process (:func:`apply_journal`), like a commit.
+    Raises :class:`FileBusy` if another process holds the file.
     """
     jpath = journal_path(path)
     if not jpath.exists():
@@ -103,18 +111,65 @@ def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
         _lock(fd, path, wait_s)
         if not jpath.exists():  # another process recovered it meanwhile
             return False
-        entries, new_size = _read_journal(jpath)
-        if entries is None:
+        if _read_journal(jpath)[0] is None:
             jpath.unlink()
             return False
-        for offset, data in entries:
-            _pwrite(fd, data, offset)
-        os.ftruncate(fd, new_size)
-        os.fsync(fd)
-        jpath.unlink()
+        apply_journal(fd, jpath, durable=True)
         return True
     finally:
         os.close(fd)
+
+
+#: test hook: seconds the helper waits before each in-place write (widens the window a kill test aims at)
+_TEST_WRITE_DELAY_S = 0.0
+
+
+def _replay(fd: int, jpath: Path, durable: bool, delay_s: float = 0.0) -> None:
+    """Write a committed journal's pages onto ``fd``, truncate to the journal's size, then delete the journal."""
+    entries, new_size = _read_journal(jpath)
+    if entries is None:  # not committed (or already replayed and removed by another process)
+        return
+    for offset, data in entries:
+        if delay_s:
+            time.sleep(delay_s)
+        _pwrite(fd, data, offset)
+    if os.fstat(fd).st_size != new_size:
+        os.ftruncate(fd, new_size)
+    if durable:
+        os.fsync(fd)
+    jpath.unlink()
+
+
+def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) -> None:
+    """Apply a committed journal to the open, locked file ``fd``, in a detached helper process.
+
+    The in-place writes of a commit are the only moment at which the file on disk is neither the old nor the new
+    version. They are made by a short-lived helper (``python -I -S journal.py --apply FD JOURNAL``) that inherits
+    the locked descriptor and runs in its own session: a ``kill -9`` of the writing process (or of its process
+    group, or a Ctrl-C) cannot stop it half way, so plain HDF5 readers never see a torn file after such a kill.
+    This process waits for the helper. If the helper cannot be started or fails, the journal is applied here.
+    Killing the helper itself (or a power cut) leaves the committed journal, which :func:`recover` replays.
+    """
+    jpath = Path(jpath)
+    cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--apply", str(fd), str(jpath),
+           "1" if durable else "0", repr(float(_TEST_WRITE_DELAY_S))]
+    rc = None
+    try:
+        proc = subprocess.Popen(cmd, pass_fds=(fd,), start_new_session=True, stdin=subprocess.DEVNULL,
+                                stdout=subprocess.DEVNULL, close_fds=True)
+    except OSError:  # pragma: no cover - no subprocesses here (e.g. a restricted platform)
+        proc = None
+    if proc is not None:
+        interrupted = None
+        while rc is None:  # a Ctrl-C must not abandon the commit: wait for the helper, then re-raise
+            try:
+                rc = proc.wait()
+            except KeyboardInterrupt as exc:
+                interrupted = exc
+        if interrupted is not None and rc == 0:
+            raise interrupted
+    if rc != 0 and jpath.exists():
+        _replay(fd, jpath, durable, _TEST_WRITE_DELAY_S)
 
 
 def _read_journal(jpath: Path):
@@ -268,18 +323,12 @@ class OverlayFile(io.RawIOBase):
                 os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
             jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | _O_BINARY, 0o644)
             try:
-                os.write(jfd, bytes(body))
+                _write_all(jfd, bytes(body))
                 if self.durable:
                     os.fsync(jfd)
             finally:
                 os.close(jfd)
-            runs = list(_runs(inplace))  # built before the first in-place write: the torn window is syscalls only
-            for start, data in runs:
-                _pwrite(self._fd, data, start)
-            os.ftruncate(self._fd, size)
-            if self.durable:
-                os.fsync(self._fd)
-            jpath.unlink()
+            apply_journal(self._fd, jpath, durable=self.durable)  # the in-place writes, by a detached helper
         elif size != os.fstat(self._fd).st_size:
             os.ftruncate(self._fd, size)
         if self.durable:
@@ -307,3 +356,17 @@ def _runs(pages):
         run_start, buf = start, bytearray(data)
     if run_start is not None:
         yield run_start, bytes(buf)
+
+
+def _main(argv: list[str]) -> int:
+    """``journal.py --apply FD JOURNAL DURABLE DELAY``: the helper of :func:`apply_journal` (stdlib only)."""
+    if len(argv) != 5 or argv[0] != "--apply":
+        print("usage: journal.py --apply FD JOURNAL DURABLE(0|1) DELAY_S", file=sys.stderr)
+        return 2
+    fd, jpath, durable, delay = int(argv[1]), Path(argv[2]), argv[3] == "1", float(argv[4])
+    _replay(fd, jpath, durable, delay)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

@@ -183,12 +183,41 @@ _WRITER_CHILD = textwrap.dedent(
 )
 
 
+def _wait_unlocked(path, timeout_s=20.0):
+    """Wait until no process holds ``path``'s lock (a commit helper finishing after its writer was killed)."""
+    import fcntl
+
+    deadline = time.monotonic() + timeout_s
+    with open(path, "rb") as fh:
+        while True:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+                return
+            except BlockingIOError:
+                assert time.monotonic() < deadline, f"{path} still locked after {timeout_s} s"
+                time.sleep(0.01)
+
+
+def _check_plain(path, n_samples):
+    """Read every complete trial with plain h5py (no rigctl code runs first); return the complete ids."""
+    with h5py.File(path, "r") as f:
+        status = f["plan"]["status"][()]
+        done = np.flatnonzero(status == TrialStatus.COMPLETE)
+        for tid in done:
+            g = f[f"trials/{tid:06d}"]
+            tax = g["taxels"][()]
+            assert tax.shape == (n_samples, 18)
+            assert tax.min() >= tid % 1024 and tax.max() <= tid % 1024 + 1
+            assert g["force_g"][0] == tid
+    return done
+
+
 def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
-    """A child writes trials back to back (the file is open most of the time); kill -9 it at random moments,
-    several times: every trial marked complete is intact, read with plain h5py, and the next writer resumes exactly
-    the trials that are not complete. The documented contract (docs/session-format.md, "Crash safety"): without a
-    ``<name>.journal`` next to the file plain h5py reads it as it is; a kill during a commit's in-place writes leaves
-    a committed journal, and one rigctl opening replays it before any other reader."""
+    """A child writes trials back to back (the file is open most of the time); kill -9 its whole process group at
+    random moments, many times: each time, plain h5py (no rigctl opening first) reads every trial marked complete
+    intact, nothing finished is lost, and the next writer resumes exactly the trials that are not complete
+    (docs/session-format.md, "Crash safety")."""
     from rigctl.storage import journal
 
     path = tmp_path / "crash.h5"
@@ -198,36 +227,80 @@ def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
     rng = np.random.default_rng(5)
     completed_before = 0
     kills = 0
-    for round_ in range(6):
+    for round_ in range(12):
         proc = subprocess.Popen([sys.executable, "-c", _WRITER_CHILD, str(path), str(round_)],
-                                stdout=subprocess.PIPE, text=True)
+                                stdout=subprocess.PIPE, text=True, start_new_session=True)
         assert proc.stdout.readline().strip() == "ready"
         time.sleep(rng.uniform(0.05, 0.4))
         if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
+            os.killpg(proc.pid, signal.SIGKILL)
             kills += 1
         proc.wait()
-        if jpath.exists() and journal._read_journal(jpath)[0] is not None:  # killed inside a commit
-            with open_session(path) as s:  # the documented rigctl opening replays it
-                assert not jpath.exists()
-                assert len(s.completed_ids()) >= completed_before
-        with h5py.File(path, "r") as f:  # plain h5py
-            status = f["plan"]["status"][()]
-            done = np.flatnonzero(status == TrialStatus.COMPLETE)
-            for tid in done:
-                g = f[f"trials/{tid:06d}"]
-                tax = g["taxels"][()]
-                assert tax.shape == (3000, 18)
-                assert tax.min() >= tid % 1024 and tax.max() <= tid % 1024 + 1
-                assert g["force_g"][0] == tid
+        _wait_unlocked(path)
+        done = _check_plain(path, 3000)
         assert len(done) >= completed_before  # nothing finished was lost
+        if jpath.exists():  # killed after the journal's commit mark, before its helper started: the old file
+            with open_session(path) as s:  # the next rigctl opening replays it
+                assert not jpath.exists()
+                assert len(s.completed_ids()) in (len(done), len(done) + 1)
+            done = _check_plain(path, 3000)
         completed_before = len(done)
         if completed_before == n_trials:
             break
-    assert kills == 6
+    assert kills == 12
     assert 0 < completed_before
     w = SessionWriter.open(path, protocol_source="src")
     assert sorted(w.completed_ids() + w.pending_ids()) == list(range(n_trials))
+
+
+_SLOW_COMMIT = textwrap.dedent(
+    """
+    import sys, numpy as np
+    from rigctl.storage import journal
+    from rigctl.storage.session import SessionWriter, TrialData
+    journal._TEST_WRITE_DELAY_S = 0.1  # each in-place write waits 0.1 s: a wide window to kill the writer in
+    if sys.argv[2] == "in-process":  # the negative control: the in-place writes made by the writer itself
+        journal.apply_journal = lambda fd, jpath, durable=True: journal._replay(fd, jpath, durable, 0.1)
+    w = SessionWriter.open(sys.argv[1])
+    w.write_trial(1, TrialData(taxels=np.full((500, 18), 1), force_g=[1], force_time_s=[0.0]))
+    """
+)
+
+
+@pytest.mark.parametrize("writes", ["detached", "in-process"])
+def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
+    """The in-place writes of a commit (the only time the file on disk is neither version) are made by a detached
+    helper: kill -9 the writer's process group in the middle of them (slowed down to 0.1 s per page), and the file
+    is the new version for plain h5py, with no journal left. The negative control makes the same writes in the
+    writer's own process: the same kill then leaves them unfinished (a committed journal, a file on disk that is
+    not the new version)."""
+    from rigctl.storage import journal
+
+    path = tmp_path / "slow.h5"
+    jpath = journal.journal_path(path)
+    w = SessionWriter.create(path, plan=_plan(3), protocol_source="src", compression=None)
+    w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_COMMIT, str(path), writes], start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not (jpath.exists() and journal._read_journal(jpath)[0] is not None):
+        assert proc.poll() is None and time.monotonic() < deadline, "the writer never committed"
+        time.sleep(0.005)
+    n_writes = len(journal._read_journal(jpath)[0])
+    assert n_writes >= 3  # several pages are rewritten in place: the kill lands among them
+    time.sleep(0.25)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    _wait_unlocked(path)
+    if writes == "detached":
+        assert not jpath.exists()
+        assert list(_check_plain(path, 500)) == [0, 1]  # plain h5py, no rigctl opening first
+    else:
+        assert journal._read_journal(jpath)[0] is not None  # the writes were cut short
+        torn = path.read_bytes()
+        with open_session(path) as s:  # rigctl's replay repairs it
+            assert s.completed_ids() == [0, 1]
+        assert path.read_bytes() != torn
+        assert list(_check_plain(path, 500)) == [0, 1]
 
 
 def test_plan_dtype_is_the_documented_one():
@@ -241,13 +314,8 @@ _DIE_IN_COMMIT = textwrap.dedent(
     from rigctl.storage import journal
     from rigctl.storage.session import SessionWriter, TrialData
     w = SessionWriter.open(sys.argv[1])
-    real_pwrite = os.pwrite
-    def pwrite(fd, data, offset):
-        # die like kill -9 at the first in-place write, right after the journal got its commit mark
-        if journal.journal_path(sys.argv[1]).exists():
-            os._exit(9)
-        return real_pwrite(fd, data, offset)
-    os.pwrite = pwrite
+    # die like kill -9 right after the journal got its commit mark, before the in-place writes start
+    journal.apply_journal = lambda *args, **kw: os._exit(9)
     w.write_trial(1, TrialData(taxels=np.full((500, 18), 7)))
     """
 )
