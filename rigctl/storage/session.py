@@ -32,9 +32,9 @@ import h5py
 import numpy as np
 
 from rigctl import __version__
-from rigctl.storage import journal
+from rigctl.storage import h5objects, journal
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide")
 N_TAXELS = 18
 RATE_HZ = 1000.0
@@ -69,6 +69,15 @@ PLAN_DTYPE = np.dtype(
 #: whole table, which keeps a commit's in-place writes (``rigctl.storage.journal``) short
 PLAN_CHUNK_ROWS = 64
 PLAN_FIELDS = tuple(n for n in PLAN_DTYPE.names if n != "status")
+
+#: attributes of ``/trials``: what every trial's ``taxels`` hold (NWB TimeSeries terms), stored once per session
+TAXELS_DESCRIPTION = {
+    "taxels_channels": "0-8 top layer (type I), 9-17 bottom layer (type II), row-major 3x3, row 0 leading edge",
+    "taxels_unit": "ADC counts",
+    "taxels_conversion": 1.0,
+    "taxels_resolution": 1.0,
+    "taxels_starting_time_unit": "seconds since the session's created_utc",
+}
 
 #: the same row with str fields, as returned by :attr:`Session.plan`
 PLAN_DTYPE_STR = np.dtype(
@@ -414,11 +423,15 @@ class SessionWriter:
             g.attrs["format"] = protocol_format
             d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
             d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
-            f.create_group("trials")
+            trials = f.create_group("trials")
+            trials.attrs.update(TAXELS_DESCRIPTION)
             if calibration:
                 _write_calibration(f, calibration)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        stale = journal.journal_path(path)
+        if stale.exists():  # a journal of the file being replaced must never be replayed onto the new one
+            stale.unlink()
         os.replace(tmp, path)  # the session file appears complete or not at all
         return cls(path, compression=compression, durable=durable)
 
@@ -493,16 +506,24 @@ class SessionWriter:
         crash before that loses the whole batch (the file stays as it was), never part of a trial.
         """
         count = 0
-        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
-            plan_ds = f["plan"]
-            for trial_id, data in items:
-                i = self._row_index(trial_id)
-                if self._plan["status"][i] == TrialStatus.COMPLETE:
-                    raise SessionError(f"trial {trial_id} is already complete in {self.path}")
-                self._write_group(f, self._plan[i], data)
-                self._plan["status"][i] = TrialStatus.COMPLETE
-                plan_ds[i] = self._plan[i]
-                count += 1
+        before = self._plan["status"].copy()
+        try:
+            with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+                written = []
+                for trial_id, data in items:
+                    i = self._row_index(trial_id)
+                    if self._plan["status"][i] == TrialStatus.COMPLETE:
+                        raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+                    self._write_group(f, self._plan[i], data)
+                    self._plan["status"][i] = TrialStatus.COMPLETE
+                    written.append(i)
+                    count += 1
+                if written:  # the plan rows last, in one write of the span they cover
+                    lo, hi = min(written), max(written) + 1
+                    f["plan"][lo:hi] = self._plan[lo:hi]
+        except BaseException:
+            self._plan["status"] = before  # nothing of the batch reached the file
+            raise
         return count
 
     def copy_trials(self, source: str | os.PathLike, trial_ids: Iterable[int]) -> int:
@@ -581,50 +602,35 @@ class SessionWriter:
             _write_calibration(f, calibration)
 
     def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:
+        # h5objects: the same objects as h5py's high-level API, without its per-object Python overhead (the
+        # dataset generator writes tens of thousands of trials)
         name = trial_group_name(int(row["trial_id"]))
         if name in f:  # a failed (or half-written) earlier attempt
             del f[name]
-        g = f.create_group(name)
+        g = h5objects.create_group(f["trials"], name.rsplit("/", 1)[1])
         n = data.n_samples
-        comp = {}
-        if self.compression == "gzip":
-            comp = dict(compression="gzip", compression_opts=1, shuffle=True)
-        elif self.compression == "lzf":
-            comp = dict(compression="lzf", shuffle=True)
         chunk_rows = max(1, min(n, 65536))
-        tax = g.create_dataset(
-            "taxels", data=data.taxels, chunks=(chunk_rows, N_TAXELS) if n else None, **(comp if n else {})
-        )
+        comp = self.compression if n else None
+        tax = h5objects.create_dataset(g, "taxels", data.taxels, chunks=(chunk_rows, N_TAXELS), compression=comp)
         started = _parse_utc(str(data.attrs.get("started_utc", "")))
-        tax.attrs["rate_hz"] = RATE_HZ
-        tax.attrs["unit"] = "ADC counts"
-        tax.attrs["conversion"] = 1.0
-        tax.attrs["resolution"] = 1.0
-        tax.attrs["adc_bits"] = 10
-        tax.attrs["starting_time"] = (
-            (started - self._created).total_seconds() if started is not None and self._created is not None else 0.0
-        )
-        tax.attrs["starting_time_unit"] = "seconds since the session's created_utc"
-        tax.attrs["channels"] = "0-8 top layer (type I), 9-17 bottom layer (type II), row-major 3x3"
-        per_sample = dict(chunks=(chunk_rows,), **comp) if n else {}
-        g.create_dataset("seq", data=data.seq, **per_sample)
-        g.create_dataset("flags", data=data.flags, **per_sample)
-        g.create_dataset("host_time_s", data=data.host_time_s, **per_sample).attrs["unit"] = "s"
-        for value, times, unit in (("force_g", "force_time_s", "g"), ("speed_mm_s", "speed_time_s", "mm/s")):
-            g.create_dataset(value, data=getattr(data, value)).attrs["unit"] = unit
-            g.create_dataset(times, data=getattr(data, times)).attrs["unit"] = "s"
+        starting_time = (started - self._created).total_seconds() if started and self._created else 0.0
+        h5objects.set_attrs(tax, {"rate_hz": RATE_HZ, "unit": "ADC counts", "adc_bits": 10,
+                                  "starting_time": starting_time})
+        for key in ("seq", "flags", "host_time_s"):
+            h5objects.create_dataset(g, key, getattr(data, key), chunks=(chunk_rows,), compression=comp)
+        for key in ("force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+            h5objects.create_dataset(g, key, getattr(data, key))
+        attrs = {}
         for fld in PLAN_FIELDS:
             v = row[fld]
-            g.attrs[fld] = v.decode() if isinstance(v, bytes) else v.item()
+            attrs[fld] = v.decode() if isinstance(v, bytes) else v.item()
         for k, v in data.attrs.items():
-            if k in ("status", "trial_id"):
-                continue
-            g.attrs[k] = _attr_value(v)
-        g.attrs["n_samples"] = n
-        g.attrs["dropped_frames"] = data.dropped_frames
-        g.attrs["crc_errors"] = data.crc_errors
-        g.attrs.setdefault("started_utc", "")
-        g.attrs["status"] = "complete"
+            if k not in ("status", "trial_id"):
+                attrs[k] = _attr_value(v)
+        attrs.update(n_samples=n, dropped_frames=data.dropped_frames, crc_errors=data.crc_errors)
+        attrs.setdefault("started_utc", "")
+        attrs["status"] = "complete"
+        h5objects.set_attrs(g, attrs)
 
 
 def _with_id(planned: Any, default_id: int) -> Any:

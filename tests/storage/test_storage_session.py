@@ -17,6 +17,7 @@ import pytest
 
 from rigctl.storage.session import (
     PLAN_DTYPE,
+    SCHEMA_VERSION,
     SessionError,
     SessionWriter,
     TrialData,
@@ -57,7 +58,7 @@ def test_round_trip_every_array_and_attribute(tmp_path):
     for tid, data in trials.items():
         w.write_trial(tid, data)
     with open_session(path) as s:
-        assert s.attrs["schema_version"] == 1 and s.attrs["kind"] == "recorded"
+        assert s.attrs["schema_version"] == SCHEMA_VERSION and s.attrs["kind"] == "recorded"
         assert len(s.attrs["session_id"]) == 36
         assert s.rig_config == {"mode": "sim", "seed": 3}
         assert s.protocol_source == "name = 'x'\n" and s.protocol_name == "x" and s.protocol_format == "toml"
@@ -84,6 +85,10 @@ def test_round_trip_every_array_and_attribute(tmp_path):
         assert tax.shape == (2000, 18) and tax.dtype == np.uint16
         assert tax.attrs["rate_hz"] == 1000 and tax.attrs["unit"] == "ADC counts"
         assert tax.attrs["starting_time"] > 0  # seconds from created_utc to the trial's start
+        assert f["trials"].attrs["taxels_channels"].startswith("0-8 top layer (type I)")
+        g = f["trials/000003"]
+        assert g.attrs["texture"] == "B" and g.attrs["status"] == "complete" and g.attrs["n_samples"] == 1500
+        assert g.attrs["speed_mm_s"] == np.float32(100.0) and g.attrs["dropped_frames"] == 3
         assert json.loads(f["plan"].attrs["status_enum"]) == {"pending": 0, "complete": 1, "failed": 2}
         assert list(f["plan"]["status"]) == [0, 1, 0, 1]
 
@@ -338,3 +343,17 @@ def test_a_commit_killed_after_its_journal_is_finished_on_the_next_opening(tmp_p
     assert not jpath.exists()
     with h5py.File(path, "r") as f:
         assert list(f["plan"]["status"]) == [1, 1, 0]
+
+
+def test_overwriting_a_file_drops_the_old_files_journal(tmp_path):
+    """A committed journal left by a killed writer belongs to the old file: creating a new session over it
+    (``overwrite=True``) must not replay it onto the new one."""
+    path = tmp_path / "o.h5"
+    SessionWriter.create(path, plan=_plan(3), protocol_source="old")
+    assert subprocess.run([sys.executable, "-c", _DIE_IN_COMMIT, str(path)]).returncode == 9
+    assert path.with_name(path.name + ".journal").exists()
+    w = SessionWriter.create(path, plan=_plan(2), protocol_source="new", overwrite=True)
+    w.write_trial(0, TrialData(taxels=np.full((100, 18), 3)))
+    with open_session(path) as s:
+        assert s.protocol_source == "new" and s.completed_ids() == [0] and len(s.plan) == 2
+        assert (s.trial(0).taxels == 3).all()
