@@ -25,7 +25,6 @@ import dataclasses
 import math
 import multiprocessing as mp
 import os
-import shutil
 import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
@@ -35,15 +34,15 @@ from scipy.signal import lfilter
 
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import Texture, get_texture
-from rigctl.storage.session import SessionWriter, TrialData, plan_array
+from rigctl.storage.session import SessionWriter, TrialData
 
 #: travel of the drum surface in one trial of the paper's dataset, mm (6/4/3/2.4/2 s at 40-120 mm/s)
 TRIAL_TRAVEL_MM = 240.0
 #: rate at which the force and speed traces are sampled, like the runner polling the Mega's input registers
 POLL_RATE_HZ = 50.0
 RATE_HZ = 1000.0
-#: most trials per shard file written by one worker task (multi-worker generation)
-SHARD_TRIALS = 64
+#: trials a worker renders per task (multi-worker generation): fewer round trips, still a smooth progress bar
+WORKER_CHUNK = 8
 #: sd of the plate position at the first sample around the index mark, mm: the index sensor's repeatability and the
 #: plate's mounting (the 1 ms frame latch adds a uniform 0..v*1 ms on top)
 START_JITTER_MM = 0.2
@@ -239,28 +238,6 @@ def _render_planned(row: tuple) -> tuple[int, TrialData]:
     return int(trial_id), data
 
 
-def _render_shard(task: tuple) -> tuple[str, list[int], np.ndarray, np.ndarray, int]:
-    """Worker: render a block of trials into a shard session file (same layout, through SessionWriter)."""
-    shard_path, plan_rows, rows, compression = task
-    writer = SessionWriter.create(shard_path, plan=plan_rows, kind="simulated-dataset", compression=compression,
-                                  overwrite=True, **_durable_kw(SessionWriter.create, False))
-    lo = np.full(18, np.inf)
-    hi = np.full(18, -np.inf)
-    samples = 0
-
-    def items():
-        nonlocal samples
-        for row in rows:
-            tid, data = _render_planned(row)
-            np.minimum(lo, data.taxels.min(axis=0), out=lo)
-            np.maximum(hi, data.taxels.max(axis=0), out=hi)
-            samples += data.n_samples
-            yield tid, data
-
-    writer.write_trials(items())
-    return shard_path, [r[0] for r in rows], lo, hi, samples
-
-
 def _plan_rows(plan: Iterable[Any]) -> list[tuple]:
     rows = []
     for p in plan:
@@ -309,10 +286,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     seed : int
         Dataset seed; trial ``i`` draws from ``SeedSequence([seed, i])`` (reproducible for any ``workers``).
     workers : int, optional
-        Worker processes (default: all cores, or 1 below 64 trials); 1 renders and writes in this process. With
-        more, each worker renders blocks of up to :data:`SHARD_TRIALS` trials into shard session files
-        (``<out>.shards/``, removed at the end) and this process copies their trial groups into the output
-        (:meth:`SessionWriter.copy_trials`), so writing runs in parallel too.
+        Worker processes that render trials (default: all cores, or 1 below 64 trials); with 1, this process
+        renders and writes. With more, the workers render in blocks of :data:`WORKER_CHUNK` trials while this
+        process writes what they return, in plan order.
     progress : bool
         Show a tqdm progress bar.
     config : RigConfig, optional
@@ -404,33 +380,10 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             _init_worker(cfg.to_dict(), seed)
             consume(map(_render_planned, rows), bar)
         else:
-            # workers render AND write shards (session files holding a block of the plan) in parallel; this
-            # process only copies their trial groups into the output (HDF5 object copy), so writing scales too
-            shard_dir = out_path.with_name(out_path.name + ".shards")
-            shutil.rmtree(shard_dir, ignore_errors=True)
-            shard_dir.mkdir(parents=True)
-            plan_arr = plan_array(plan)
-            index = {int(t): i for i, t in enumerate(plan_arr["trial_id"])}
-            block = max(1, min(SHARD_TRIALS, math.ceil(len(rows) / (4 * n_workers))))
-            tasks = []
-            for k in range(0, len(rows), block):
-                part = rows[k:k + block]
-                tasks.append((str(shard_dir / f"shard_{k:07d}.h5"), plan_arr[[index[r[0]] for r in part]], part,
-                              compression))
+            # the workers render (the model), this process writes: both run at once; imap keeps the plan order
             ctx = mp.get_context("spawn")
-            try:
-                with ctx.Pool(n_workers, initializer=_init_worker, initargs=(cfg.to_dict(), seed)) as pool:
-                    for shard, ids, s_lo, s_hi, samples in pool.imap_unordered(_render_shard, tasks):
-                        writer.copy_trials(shard, ids)
-                        os.unlink(shard)
-                        np.minimum(lo, s_lo, out=lo)
-                        np.maximum(hi, s_hi, out=hi)
-                        stats["n_trials"] += len(ids)
-                        stats["samples"] += samples
-                        if bar is not None:
-                            bar.update(len(ids))
-            finally:
-                shutil.rmtree(shard_dir, ignore_errors=True)
+            with ctx.Pool(n_workers, initializer=_init_worker, initargs=(cfg.to_dict(), seed)) as pool:
+                consume(pool.imap(_render_planned, rows, chunksize=WORKER_CHUNK), bar)
     finally:
         if bar is not None:
             bar.close()

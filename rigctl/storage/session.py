@@ -526,37 +526,6 @@ class SessionWriter:
             raise
         return count
 
-    def copy_trials(self, source: str | os.PathLike, trial_ids: Iterable[int]) -> int:
-        """Copy complete trials from another session file of this layout in one opening of this file.
-
-        For the dataset generator: worker processes write shards (session files with a part of the plan) in
-        parallel, and the writing process only copies their trial groups (HDF5 object copy, no per-attribute
-        Python work) and marks the trials complete in ``/plan``. The groups are copied as they are (same datasets
-        and attributes as :meth:`write_trial` wrote in the shard). Returns how many trials were copied.
-
-        Raises
-        ------
-        SessionError if a trial is not in this plan, is already complete here, or is not complete in ``source``.
-        """
-        count = 0
-        with _open_h5(Path(source), "r", wait_s=self.wait_s) as src, \
-                _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
-            plan_ds = f["plan"]
-            for trial_id in trial_ids:
-                i = self._row_index(trial_id)
-                if self._plan["status"][i] == TrialStatus.COMPLETE:
-                    raise SessionError(f"trial {trial_id} is already complete in {self.path}")
-                name = trial_group_name(trial_id)
-                if name not in src or src[name].attrs.get("status") != "complete":
-                    raise SessionError(f"trial {trial_id} is not complete in {source}")
-                if name in f:
-                    del f[name]
-                src.copy(src[name], f["trials"], name=name.rsplit("/", 1)[1])
-                self._plan["status"][i] = TrialStatus.COMPLETE
-                plan_ds[i] = self._plan[i]
-                count += 1
-        return count
-
     def append_trial(self, planned: Any, data: TrialData | None = None) -> int:
         """Append a row to ``/plan`` (for Python-script protocols) and, if ``data`` is given, write the trial.
 
