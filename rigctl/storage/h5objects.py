@@ -28,8 +28,18 @@ def _tids(dtype: np.dtype) -> tuple:
     return tids
 
 
-def set_attrs(obj: h5py.HLObject, attrs: Mapping[str, Any]) -> None:
-    """Create the attributes ``attrs`` on a new object (group or dataset) that has none of these names yet.
+def _lowlevel(obj):
+    return obj.id if isinstance(obj, h5py.HLObject) else obj
+
+
+class _HasId:
+    def __init__(self, oid):
+        self.id = oid
+
+
+def set_attrs(obj, attrs: Mapping[str, Any]) -> None:
+    """Create the attributes ``attrs`` on a new object (group or dataset, high-level or its low-level id) that
+    has none of these names yet.
 
     Python ``str`` -> variable-length UTF-8 string, ``bool``/``np.bool_`` -> h5py's boolean enum, ``int`` ->
     int64, ``float`` -> float64, numpy scalars -> their dtype: the types h5py's ``obj.attrs[name] = value`` stores.
@@ -39,48 +49,75 @@ def set_attrs(obj: h5py.HLObject, attrs: Mapping[str, Any]) -> None:
     ------
     OSError (from HDF5: "attribute already exists") if an attribute of that name exists already.
     """
-    oid = obj.id
+    oid = _lowlevel(obj)
     for name, value in attrs.items():
         if isinstance(value, str):
             arr = np.array(value, dtype=_STR)
         elif isinstance(value, (bool, np.bool_, int, float, np.integer, np.floating)):
             arr = np.asarray(value)
         else:
-            obj.attrs[name] = value
+            h5py.AttributeManager(_HasId(oid))[name] = value  # what h5py's obj.attrs[name] = value does
             continue
         ftype, mtype = _tids(arr.dtype)
         attr = h5a.create(oid, name.encode(), ftype, _SCALAR)
         attr.write(arr, mtype=mtype)
 
 
-def create_group(parent: h5py.Group, name: str) -> h5py.Group:
-    """Create the group ``name`` (one path component) in ``parent`` and return it."""
-    return h5py.Group(h5g.create(parent.id, name.encode()))
+def create_group(parent, name: str) -> h5g.GroupID:
+    """Create the group ``name`` (one path component) in ``parent`` (``h5py.Group`` or its low-level id); returns
+    the new group's low-level id (``h5py.Group(gid)`` for the high-level API)."""
+    return h5g.create(_lowlevel(parent), name.encode())
 
 
-def create_dataset(group: h5py.Group, name: str, data: np.ndarray, *, chunks: tuple | None = None,
-                   compression: str | None = None) -> h5py.Dataset:
+_DCPLS: dict[tuple, Any] = {}
+
+
+def _dcpl(chunks: tuple | None, compression: str | None):
+    key = (chunks, compression)
+    dcpl = _DCPLS.get(key)
+    if dcpl is None:
+        if compression not in ("gzip", "lzf", None):
+            raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+        dcpl = h5p.create(h5p.DATASET_CREATE)
+        dcpl.set_obj_track_times(False)
+        if chunks is not None:
+            dcpl.set_chunk(chunks)
+            if compression is not None:
+                dcpl.set_shuffle()
+                if compression == "gzip":
+                    dcpl.set_deflate(1)
+                else:
+                    dcpl.set_filter(h5z.FILTER_LZF, h5z.FLAG_OPTIONAL)
+        if len(_DCPLS) > 256:
+            _DCPLS.clear()
+        _DCPLS[key] = dcpl
+    return dcpl
+
+
+def create_dataset(group, name: str, data: np.ndarray, *, chunks: tuple | None = None,
+                   compression: str | None = None) -> h5d.DatasetID:
     """Create dataset ``name`` in ``group`` holding ``data`` (any shape, a numeric dtype), written at once.
 
-    ``chunks`` (a chunk shape) is required for ``compression`` ("gzip": level 1 with shuffle; "lzf": with shuffle);
-    an empty ``data`` is stored contiguous and uncompressed. No timestamps are stored (as h5py's default).
+    ``group`` is an ``h5py.Group`` or its low-level id. ``chunks`` (a chunk shape) is required for
+    ``compression`` ("gzip": level 1 with shuffle; "lzf": with shuffle); an empty ``data`` is stored contiguous
+    and uncompressed. No timestamps are stored (as h5py's default). Returns the low-level dataset id (wrap it in
+    ``h5py.Dataset`` for the high-level API; :func:`set_attrs` takes it as it is).
+
+    Raises
+    ------
+    ValueError for an unknown compression.
     """
     data = np.ascontiguousarray(data)
-    dcpl = h5p.create(h5p.DATASET_CREATE)
-    dcpl.set_obj_track_times(False)
     if data.size and chunks is not None:
-        dcpl.set_chunk(tuple(int(c) for c in chunks))
-        if compression == "gzip":
-            dcpl.set_shuffle()
-            dcpl.set_deflate(1)
-        elif compression == "lzf":
-            dcpl.set_shuffle()
-            dcpl.set_filter(h5z.FILTER_LZF, h5z.FLAG_OPTIONAL)
-        elif compression is not None:
+        dcpl = _dcpl(tuple(int(c) for c in chunks), compression)
+    else:
+        dcpl = _dcpl(None, None)
+        if compression not in ("gzip", "lzf", None):
             raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
     space = h5s.create_simple(data.shape)
     ftype, mtype = _tids(data.dtype)
-    dsid = h5d.create(group.id, name.encode(), ftype, space, dcpl=dcpl)
+    gid = _lowlevel(group)
+    dsid = h5d.create(gid, name.encode(), ftype, space, dcpl=dcpl)
     if data.size:
         dsid.write(h5s.ALL, h5s.ALL, data, mtype=mtype)
-    return h5py.Dataset(dsid)
+    return dsid

@@ -574,9 +574,11 @@ class SessionWriter:
         # h5objects: the same objects as h5py's high-level API, without its per-object Python overhead (the
         # dataset generator writes tens of thousands of trials)
         name = trial_group_name(int(row["trial_id"]))
-        if name in f:  # a failed (or half-written) earlier attempt
+        trials = f["trials"].id
+        short = name.rsplit("/", 1)[1]
+        if trials.links.exists(short.encode()):  # a failed (or half-written) earlier attempt
             del f[name]
-        g = h5objects.create_group(f["trials"], name.rsplit("/", 1)[1])
+        g = h5objects.create_group(trials, short)
         n = data.n_samples
         chunk_rows = max(1, min(n, 65536))
         comp = self.compression if n else None

@@ -15,10 +15,11 @@ VALUES = {
 }
 
 
-def test_attributes_read_back_like_the_high_level_ones(tmp_path):
+@pytest.mark.parametrize("level", ["high", "low"])
+def test_attributes_read_back_like_the_high_level_ones(tmp_path, level):
     with h5py.File(tmp_path / "a.h5", "w") as f:
         fast, ref = f.create_group("fast"), f.create_group("ref")
-        h5objects.set_attrs(fast, VALUES)
+        h5objects.set_attrs(fast if level == "high" else fast.id, VALUES)
         for k, v in VALUES.items():
             ref.attrs[k] = v
     with h5py.File(tmp_path / "a.h5", "r") as f:
@@ -51,7 +52,7 @@ def test_datasets_hold_the_data_with_the_asked_filters(tmp_path, compression):
         for name, arr in data.items():
             chunks = (100,) + arr.shape[1:]
             ds = h5objects.create_dataset(g, name, arr, chunks=chunks, compression=compression)
-            assert ds.name == f"/trial/{name}"
+            assert h5py.Dataset(ds).name == f"/trial/{name}"
     with h5py.File(tmp_path / "d.h5", "r") as f:
         for name, arr in data.items():
             ds = f["trial"][name]
