@@ -157,7 +157,7 @@ def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) ->
     try:
         proc = subprocess.Popen(cmd, pass_fds=(fd,), start_new_session=True, stdin=subprocess.DEVNULL,
                                 stdout=subprocess.DEVNULL, close_fds=True)
-    except OSError:  # pragma: no cover - no subprocesses here (e.g. a restricted platform)
+    except (OSError, TypeError, ValueError):  # pragma: no cover - no interpreter to start (embedded Python)
         proc = None
     if proc is not None:
         interrupted = None
