@@ -17,9 +17,11 @@ and the path disappears until ``replug()``.
 from __future__ import annotations
 
 import errno
+import fcntl
 import logging
 import os
 import select
+import struct
 import termios
 import threading
 import tty
@@ -29,6 +31,16 @@ log = logging.getLogger(__name__)
 
 #: line speed the endpoint parks the slave at between client opens; any client open sets its own speed
 _SENTINEL_SPEED = termios.B50
+
+
+def _unread(fd: int | None) -> int:
+    """Bytes waiting in the input queue of the tty behind ``fd`` (TIOCINQ); 0 for a closed fd."""
+    if fd is None:
+        return 0
+    try:
+        return struct.unpack("i", fcntl.ioctl(fd, termios.TIOCINQ, b"\0\0\0\0"))[0]
+    except OSError:
+        return 0
 
 
 class PtyEndpoint:
@@ -146,6 +158,18 @@ class PtyEndpoint:
                 raise
             del self._pending[:n]
 
+    def unread_from_client(self) -> int:
+        """Bytes the client wrote that nobody has read from the master side yet."""
+        return _unread(self.master_fd)
+
+    def unread_by_board(self) -> int:
+        """Bytes written to the client side of this pty (queued or in the pty) that its client has not read yet.
+
+        For the board end of a :class:`PtyBridge`, whose "client" is the board's server (e.g. pymodbus)."""
+        with self._lock:
+            queued = len(self._pending)
+        return queued + _unread(self._slave_fd)
+
     def read(self, size: int = 4096) -> bytes:
         """Bytes the client wrote (non-blocking; ``b""`` if none or unplugged)."""
         fd = self.master_fd
@@ -196,11 +220,16 @@ class PtyBridge:
     ----------
     client_link : path or None
         Stable symlink for the client side. ``unplug()``/``replug()`` act on the client side.
+
+    The copy thread is a Python thread and can be starved (GIL, a loaded CPU) for hundreds of ms, which a USB cable
+    never is: :meth:`bytes_to_board` tells the board bytes that the client has sent but the board's server has not
+    read yet, wherever they wait on the way.
     """
 
     def __init__(self, client_link: str | os.PathLike | None = None):
         self.board = PtyEndpoint(None)
         self.client = PtyEndpoint(client_link)
+        self._copy_lock = threading.Lock()  # held while client bytes are in this thread's hands (read, not written)
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=self._run, name="pty-bridge", daemon=True)
@@ -232,11 +261,20 @@ class PtyBridge:
                     os.read(self._wake_r, 64)
                     continue
                 end, other = ends[fd]
-                data = end.read(65536)
-                if data:
-                    other.write(data)
+                with self._copy_lock:
+                    data = end.read(65536)
+                    if data:
+                        other.write(data)
             self.board.flush()
             self.client.flush()
+
+    def bytes_to_board(self) -> int:
+        """Bytes the client has written that the board's server has not read yet (in the client pty, in this thread's
+        hands, queued for the board or in the board pty). Checked upstream first, so bytes moving on meanwhile are
+        still counted once they get there."""
+        with self._copy_lock:
+            n = self.client.unread_from_client()
+        return n + self.board.unread_by_board()
 
     def _wake(self) -> None:
         try:

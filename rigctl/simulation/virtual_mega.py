@@ -13,6 +13,15 @@ on one end of a :class:`rigctl.simulation.pty.PtyBridge`; the client opens :attr
 :class:`rigctl.simulation.model.RigModel` (drum step rate and actuator velocity in, load cell and drum state out);
 whoever owns the simulation clock calls :meth:`VirtualMega.step` (the rig's physics thread), or
 :meth:`VirtualMega.start` runs its own real-time control loop.
+
+The host-silence watchdog is checked in the Modbus server's own thread (its asyncio loop), as the firmware checks it
+in the same main loop that handles frames (``arduino/mega_drum/mega_drum.cpp``: a frame is handled, and feeds the
+watchdog, within about a millisecond of its last byte; ``ctl_tick`` never sees a request that has arrived but is not
+handled). A Python thread, unlike the Mega, can be starved for hundreds of ms on a loaded machine (GIL, CPU), so
+the check also refuses to call the host silent while request bytes wait anywhere between the client's port and the
+server (:meth:`rigctl.simulation.pty.PtyBridge.bytes_to_board`): the silence the watchdog measures is the host's,
+not the simulator's. (The price under such starvation: a host that really was silent for just over the timeout
+and then spoke again before the simulator got to check may go unnoticed.)
 """
 
 from __future__ import annotations
@@ -50,6 +59,8 @@ _TRUE_ACTUATOR_STEPS_PER_MM = wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2]
 _ENGAGED = (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING)
 _CALIBRATION = (HR.LOADCELL_SCALE_X100, HR.ACTUATOR_STEPS_PER_MM)
 LOADCELL_TIMEOUT_MS = 200
+#: period of the watchdog check in the Modbus server's loop, s
+WATCHDOG_CHECK_S = 0.01
 
 
 def _u16(x: float) -> int:
@@ -161,8 +172,12 @@ class VirtualMega:
                     errors.append(exc)
                     ready.set()
                     return
+                watchdog = asyncio.ensure_future(self._watchdog_loop())
                 ready.set()
-                await self._server.serving
+                try:
+                    await self._server.serving
+                finally:
+                    watchdog.cancel()
 
             loop.run_until_complete(main())
             loop.close()
@@ -225,6 +240,41 @@ class VirtualMega:
                 self.requests += 1
                 self._last_request = time.monotonic()  # any valid request feeds the watchdog
         return pdu
+
+    async def _watchdog_loop(self) -> None:
+        while True:
+            await asyncio.sleep(WATCHDOG_CHECK_S)
+            try:
+                self.check_watchdog()
+            except Exception:  # noqa: BLE001 - keep checking; the error is logged
+                log.exception("watchdog check failed")
+
+    def _watchdog_due(self) -> bool:
+        h = self.holding
+        if self.state == DrumState.FAULT:
+            return False
+        turning = abs(self.model.drum_speed_mm_s) > 0.05 or self._speed_target > 0
+        if not (self.state in _ENGAGED or turning):
+            return False  # a host that only monitors never trips it
+        return time.monotonic() - self._last_request > h[HR.WATCHDOG_MS] / 1000.0
+
+    def check_watchdog(self) -> bool:
+        """Trip the host-silence watchdog (spec 2.5) if it is due; returns True if it tripped.
+
+        Called every :data:`WATCHDOG_CHECK_S` from the Modbus server's loop, so a request the server has read is
+        always handled (and has fed the watchdog) before the check. Not due while request bytes that the server has
+        not read yet are on their way (the host spoke; the firmware would have handled them by now).
+        """
+        with self._lock:
+            if not self._watchdog_due():
+                return False
+        if self.bridge.bytes_to_board():
+            return False
+        with self._lock:
+            if not self._watchdog_due():
+                return False
+            self._fault(Fault.WATCHDOG)
+            return True
 
     def _read(self, func_code: int, address: int, count: int):
         with self._lock:
@@ -412,13 +462,9 @@ class VirtualMega:
                 self._loadcell_silent_ms += n_ms
             f = self._force_g
             engaged = self.state in _ENGAGED
-            drum_turning = abs(m.drum_speed_mm_s) > 0.05 or self._speed_target > 0
-            # --- faults
+            # --- faults (the host watchdog: check_watchdog, in the Modbus server's loop)
             if f > h[HR.FORCE_LIMIT_G] and self.state != DrumState.FAULT:
                 self._fault(Fault.FORCE_LIMIT)
-            elif (engaged or drum_turning) and self.state != DrumState.FAULT and \
-                    time.monotonic() - self._last_request > h[HR.WATCHDOG_MS] / 1000.0:
-                self._fault(Fault.WATCHDOG)
             elif self._loadcell_silent_ms >= LOADCELL_TIMEOUT_MS and self.state != DrumState.FAULT:
                 self._fault(Fault.LOADCELL_TIMEOUT)
             elif engaged and m.actuator_mm >= mech.actuator_travel_mm - 1e-3 and \
