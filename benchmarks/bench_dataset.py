@@ -1,7 +1,8 @@
 """Dataset generator benchmark: `generate_dataset` on a reduced paper protocol, real-time factor side by side.
 
 Runs ``protocols/paper_dataset.toml`` (16 textures x 5 speeds x 3 forces) with a reduced number of trials per
-condition, for 1 worker and for all cores, and prints per run: simulated trial seconds, wall time, the real-time
+condition, rendering in the writing process (0 workers), with the default (cores - 1 render processes) and with one
+per core, and prints per run: simulated trial seconds, wall time, the real-time
 factor (trial seconds / wall seconds; target >= 1000x), CPU seconds of the writing process and of the workers, bytes
 per trial, and the extrapolation to the paper's 24,000 trials (wall time and file size). The machine's load average
 is printed too: on a shared machine the wall-clock numbers fall with the load, the CPU seconds per trial do not.
@@ -73,7 +74,9 @@ def main() -> None:
     args = ap.parse_args()
     out_dir = Path(args.out_dir or tempfile.mkdtemp(prefix="bench_dataset_"))
     cores = os.cpu_count() or 1
-    configs = [(1, None), (cores, None), (cores, "lzf")]
+    default = max(1, cores - 1)  # generate_dataset's default: the writer keeps a core of its own
+    configs = [(0, None), (default, None), (cores, None), (default, "lzf")]
+    configs = list(dict.fromkeys(configs))
     print(f"paper_dataset.toml, {args.trials_per_condition} trials per condition ({240 * args.trials_per_condition} "
           f"trials), {cores} cores, load average {os.getloadavg()[0]:.1f}")
     print(f"{'workers':>7} {'compr':>5} {'trial_s':>8} {'wall_s':>7} {'RTF':>7} {'RTF/1000':>8} {'parent_cpu':>10} "
@@ -98,7 +101,7 @@ def main() -> None:
 
 
 def _idle_wall(r: dict, cores: int) -> float:
-    usable = min(cores, r["workers"] + (1 if r["workers"] > 1 else 0))
+    usable = min(cores, r["workers"] + 1)
     return max(r["parent_cpu_s"], (r["parent_cpu_s"] + r["workers_cpu_s"]) / usable)
 
 

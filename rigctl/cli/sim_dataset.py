@@ -14,7 +14,8 @@ import click
               help="Override the protocol's trials per condition (e.g. 10 for a reduced paper dataset).")
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Dataset seed (trial i draws from SeedSequence([seed, i]); any --workers gives the same file).")
-@click.option("--workers", type=click.IntRange(min=1), default=None, help="Worker processes (default: all cores).")
+@click.option("--workers", type=click.IntRange(min=0), default=None,
+              help="Processes rendering trials while this one writes (default: cores - 1; 0: render here too).")
 @click.option("--compression", type=click.Choice(["none", "lzf", "gzip"]), default="none", show_default=True,
               help="HDF5 compression of the taxels (none is fastest; the full paper dataset is then ~3 GB).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")

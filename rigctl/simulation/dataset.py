@@ -34,6 +34,7 @@ from scipy.signal import lfilter
 
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import Texture, get_texture
+from rigctl.simulation.trial_slots import TrialSlots, init_worker_slots
 from rigctl.storage.session import SessionWriter, TrialData
 
 #: travel of the drum surface in one trial of the paper's dataset, mm (6/4/3/2.4/2 s at 40-120 mm/s)
@@ -255,20 +256,6 @@ def _durable_kw(fn, durable: bool) -> dict:
     return {"durable": durable} if "durable" in inspect.signature(fn).parameters else {}
 
 
-def _batched(it: Iterator, max_trials: int, max_s: float) -> Iterator[list]:
-    """Group an iterator into lists of at most ``max_trials`` items, or what arrived within ``max_s`` seconds."""
-    batch: list = []
-    t0 = time.monotonic()
-    for item in it:
-        batch.append(item)
-        if len(batch) >= max_trials or time.monotonic() - t0 > max_s:
-            yield batch
-            batch = []
-            t0 = time.monotonic()
-    if batch:
-        yield batch
-
-
 def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_condition: int | None = None,
                      seed: int = 0, workers: int | None = None, progress: bool = True, config: RigConfig | None = None,
                      compression: str | None = None, overwrite: bool = False, resume: bool = False,
@@ -286,9 +273,10 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     seed : int
         Dataset seed; trial ``i`` draws from ``SeedSequence([seed, i])`` (reproducible for any ``workers``).
     workers : int, optional
-        Worker processes that render trials (default: all cores, or 1 below 64 trials); with 1, this process
-        renders and writes. With more, the workers render in blocks of :data:`WORKER_CHUNK` trials while this
-        process writes what they return, in plan order.
+        Worker processes that render trials while this process writes what they return, in plan order (blocks of
+        :data:`WORKER_CHUNK` trials, passed through shared memory: :mod:`rigctl.simulation.trial_slots`); 0 renders and writes in this process. Default: one per core but one (the
+        writer needs a core of its own: it is the slower half), or 0 below 64 trials (starting a worker costs
+        about 1.5 s).
     progress : bool
         Show a tqdm progress bar.
     config : RigConfig, optional
@@ -351,16 +339,24 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     rows = [r for r in _plan_rows(plan) if r[0] not in done]
 
     if workers is None:  # small jobs: starting worker processes costs more than it saves
-        workers = 1 if len(rows) < 64 else (os.cpu_count() or 1)
-    n_workers = int(workers)
-    n_workers = max(1, min(int(n_workers), len(rows) or 1))
+        workers = 0 if len(rows) < 64 else max(1, (os.cpu_count() or 1) - 1)
+    if int(workers) < 0:
+        raise ValueError(f"workers must be >= 0, got {workers}")
+    n_workers = min(int(workers), len(rows))
     lo = np.full(18, np.inf)
     hi = np.full(18, -np.inf)
     stats = {"n_trials": 0, "samples": 0}
 
     def consume(results: Iterator[tuple[int, TrialData]], bar) -> None:
-        def tap(batch):
-            for tid, data in batch:
+        """Write the trials as they come, committing every 256 trials or 2 s (a crash loses one batch). The
+        trials stream through write_trials one at a time: a worker's slot is reused once its trial is written."""
+        it = iter(results)
+        exhausted = False
+
+        def batch():
+            nonlocal exhausted
+            t0 = time.monotonic()
+            for count, (tid, data) in enumerate(it, 1):
                 np.minimum(lo, data.taxels.min(axis=0), out=lo)
                 np.maximum(hi, data.taxels.max(axis=0), out=hi)
                 stats["n_trials"] += 1
@@ -368,22 +364,29 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
                 if bar is not None:
                     bar.update(1)
                 yield tid, data
-        for batch in _batched(results, 256, 2.0):
-            writer.write_trials(tap(batch))
+                if count >= 256 or time.monotonic() - t0 > 2.0:
+                    return
+            exhausted = True
+
+        while not exhausted:
+            writer.write_trials(batch())
 
     bar = None
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(rows), unit="trial", desc=f"dataset {out_path.name}")
     try:
-        if n_workers == 1:
+        if n_workers == 0:
             _init_worker(cfg.to_dict(), seed)
             consume(map(_render_planned, rows), bar)
         else:
-            # the workers render (the model), this process writes: both run at once; imap keeps the plan order
+            # the workers render (the model) into shared-memory slots, this process writes: both run at once
+            max_samples = max(int(round(r[4] * RATE_HZ)) for r in rows) + 2
             ctx = mp.get_context("spawn")
-            with ctx.Pool(n_workers, initializer=_init_worker, initargs=(cfg.to_dict(), seed)) as pool:
-                consume(pool.imap(_render_planned, rows, chunksize=WORKER_CHUNK), bar)
+            with TrialSlots(max_samples, n_blocks=3 * n_workers, block=WORKER_CHUNK) as slots, \
+                    ctx.Pool(n_workers, initializer=init_worker_slots,
+                             initargs=(*slots.initargs, _render_planned, _init_worker, (cfg.to_dict(), seed))) as pool:
+                consume(slots.results(pool, rows), bar)
     finally:
         if bar is not None:
             bar.close()

@@ -30,7 +30,7 @@ def session(tmp_path_factory):
     proto = d / "enc_test.toml"
     proto.write_text(PROTOCOL)
     path = d / "session.h5"
-    generate_dataset(proto, path, seed=3, workers=1, progress=False)
+    generate_dataset(proto, path, seed=3, workers=0, progress=False)
     return path
 
 

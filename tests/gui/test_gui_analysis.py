@@ -29,7 +29,7 @@ def dataset(tmp_path_factory):
     from rigctl.simulation.dataset import generate_dataset
 
     path = tmp_path_factory.mktemp("analysis") / "small.h5"
-    generate_dataset(parse_protocol(PROTOCOL), path, workers=1, progress=False)
+    generate_dataset(parse_protocol(PROTOCOL), path, workers=0, progress=False)
     return path
 
 

@@ -126,7 +126,7 @@ def test_dataset_dynamic_range_suits_sa_encoding():
 
 def test_generate_dataset_writes_a_readable_session(protocol_path, tmp_path):
     out = tmp_path / "ds.h5"
-    summary = generate_dataset(protocol_path, out, seed=4, workers=1, progress=False)
+    summary = generate_dataset(protocol_path, out, seed=4, workers=0, progress=False)
     assert summary["n_trials"] == 24 and summary["samples"] == 12 * 6000 + 12 * 2000
     with open_session(out) as s:
         assert s.kind == "simulated-dataset"
@@ -142,20 +142,20 @@ def test_generate_dataset_writes_a_readable_session(protocol_path, tmp_path):
         assert cal is not None and np.all(cal["taxel_min"] < cal["taxel_max"])
         first = s.trial(0).taxels
     # the same seed gives the same file content; a reduced trial count is a prefix-free new plan
-    again = generate_dataset(protocol_path, tmp_path / "again.h5", seed=4, workers=1, progress=False,
+    again = generate_dataset(protocol_path, tmp_path / "again.h5", seed=4, workers=0, progress=False,
                              trials_per_condition=1)
     assert again["n_trials"] == 12
     with open_session(tmp_path / "again.h5") as s:
         assert len(s.plan) == 12
     with pytest.raises(FileExistsError):
-        generate_dataset(protocol_path, out, seed=4, workers=1, progress=False)
-    summary = generate_dataset(protocol_path, out, seed=4, workers=1, progress=False, overwrite=True)
+        generate_dataset(protocol_path, out, seed=4, workers=0, progress=False)
+    summary = generate_dataset(protocol_path, out, seed=4, workers=0, progress=False, overwrite=True)
     with open_session(out) as s:
         np.testing.assert_array_equal(s.trial(0).taxels, first)
 
 
 def test_generate_dataset_same_output_with_two_workers(protocol_path, tmp_path):
-    generate_dataset(protocol_path, tmp_path / "one.h5", seed=11, workers=1, progress=False,
+    generate_dataset(protocol_path, tmp_path / "one.h5", seed=11, workers=0, progress=False,
                      trials_per_condition=1)
     generate_dataset(protocol_path, tmp_path / "two.h5", seed=11, workers=2, progress=False,
                      trials_per_condition=1)
@@ -192,7 +192,7 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
     from rigctl.storage.session import SessionWriter
 
     fresh = tmp_path / "fresh.h5"
-    generate_dataset(protocol_path, fresh, seed=6, workers=1, progress=False)
+    generate_dataset(protocol_path, fresh, seed=6, workers=0, progress=False)
     # an interrupted run: the plan is there, 5 trials were written
     proto = load_protocol(protocol_path)
     part = tmp_path / "part.h5"
@@ -202,7 +202,7 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
     rows = [(p.trial_id, p.texture, p.speed_mm_s, p.force_g, p.duration_s, p.ramp_start_mm_s, p.ramp_end_mm_s)
             for p in proto.plan()[:5]]
     writer.write_trials(_render_planned(r) for r in rows)
-    summary = generate_dataset(protocol_path, part, seed=999, workers=1, progress=False, resume=True)
+    summary = generate_dataset(protocol_path, part, seed=999, workers=0, progress=False, resume=True)
     assert summary["n_trials"] == 24 - 5  # the stored dataset seed (6) wins over the argument
     with open_session(fresh) as a, open_session(part) as b:
         assert a.completed_ids() == b.completed_ids() == list(range(24))
