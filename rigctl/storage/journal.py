@@ -208,7 +208,9 @@ class OverlayFile(io.RawIOBase):
             raise
         self._base_size = os.fstat(self._fd).st_size
         self._size = self._base_size
-        self._pages: dict[int, bytearray] = {}
+        self._pages: dict[int, bytearray] = {}  # pages of the bytes below _base_size (what is on disk)
+        self._tail = bytearray()  # the bytes from _base_size on (all new): one buffer, no per-page work
+        self._zero_from = self._base_size  # after a truncation below _base_size: disk bytes from here read as 0
         self._pos = 0
 
     # -- io.RawIOBase ---------------------------------------------------------------------------------------------
@@ -237,23 +239,27 @@ class OverlayFile(io.RawIOBase):
         n = max(0, min(len(b), self._size - self._pos))
         if n == 0:
             return 0
-        start = self._pos
-        out = memoryview(b)
-        base_n = max(0, min(n, self._base_size - start))
-        if base_n:
-            data = _pread(self._fd, base_n, start)
+        start, end, base = self._pos, self._pos + n, self._base_size
+        out = memoryview(b).cast("B")
+        if start < base:  # the part on disk, with the pages written over it
+            hi = min(end, base)
+            data = _pread(self._fd, max(0, min(hi, self._zero_from) - start), start)
             out[: len(data)] = data
-            if len(data) < n:
-                out[len(data):n] = bytes(n - len(data))
-        else:
-            out[:n] = bytes(n)
-        for i in range(start // PAGE, (start + n - 1) // PAGE + 1):
-            page = self._pages.get(i)
-            if page is None:
-                continue
-            lo = max(start, i * PAGE)
-            hi = min(start + n, (i + 1) * PAGE)
-            out[lo - start:hi - start] = page[lo - i * PAGE:hi - i * PAGE]
+            if len(data) < hi - start:
+                out[len(data):hi - start] = bytes(hi - start - len(data))
+            for i in range(start // PAGE, (hi - 1) // PAGE + 1):
+                page = self._pages.get(i)
+                if page is None:
+                    continue
+                lo, up = max(start, i * PAGE), min(hi, (i + 1) * PAGE)
+                out[lo - start:up - start] = page[lo - i * PAGE:up - i * PAGE]
+        if end > base:  # the new part
+            lo = max(start, base)
+            t0, t1 = lo - base, end - base
+            have = max(0, min(t1, len(self._tail)) - t0)
+            out[lo - start:lo - start + have] = self._tail[t0:t0 + have]
+            if have < t1 - t0:
+                out[lo - start + have:n] = bytes(t1 - t0 - have)
         self._pos += n
         return n
 
@@ -261,39 +267,44 @@ class OverlayFile(io.RawIOBase):
         page = self._pages.get(i)
         if page is None:
             page = bytearray(PAGE)
-            start = i * PAGE
-            if start < self._base_size:
-                data = _pread(self._fd, PAGE, start)
-                page[: len(data)] = data
+            data = _pread(self._fd, max(0, min(PAGE, self._zero_from - i * PAGE)), i * PAGE)
+            page[: len(data)] = data
             self._pages[i] = page
         return page
 
     def write(self, b) -> int:
         data = memoryview(b).cast("B")
         n = len(data)
-        pos = self._pos
+        pos, base = self._pos, self._base_size
         done = 0
-        while done < n:
+        while done < n and pos + done < base:  # over bytes on disk: into their pages
             i = (pos + done) // PAGE
             off = (pos + done) - i * PAGE
-            k = min(PAGE - off, n - done)
+            k = min(PAGE - off, n - done, base - (pos + done))
             self._page(i)[off:off + k] = data[done:done + k]
             done += k
+        if done < n:  # new bytes: into the tail buffer
+            t0 = pos + done - base
+            if t0 > len(self._tail):
+                self._tail.extend(bytes(t0 - len(self._tail)))
+            self._tail[t0:t0 + n - done] = data[done:]
         self._pos += n
         self._size = max(self._size, self._pos)
         return n
 
     def truncate(self, size: int | None = None) -> int:
         size = self._pos if size is None else int(size)
-        if size < self._size:
+        base = self._base_size
+        if size < base:
+            self._tail.clear()
             for i in [i for i in self._pages if i * PAGE >= size]:
                 del self._pages[i]
-            last = size // PAGE
-            if size % PAGE and last in self._pages:
-                self._pages[last][size % PAGE:] = bytes(PAGE - size % PAGE)
-            elif size % PAGE and size < self._base_size:
-                page = self._page(last)
+            if size % PAGE:
+                page = self._page(size // PAGE)
                 page[size % PAGE:] = bytes(PAGE - size % PAGE)
+            self._zero_from = min(self._zero_from, size)
+        elif size - base < len(self._tail):
+            del self._tail[size - base:]
         self._size = size
         return size
 
@@ -303,15 +314,21 @@ class OverlayFile(io.RawIOBase):
     # -- commit ---------------------------------------------------------------------------------------------------
     def commit(self) -> None:
         """Write the overlay to the file (new pages, then journal, then in-place pages), then release the file."""
-        size = self._size
-        fresh, inplace = [], []
+        size, base = self._size, self._base_size
+        if self._zero_from < min(size, base):  # bytes cut off by a truncation, then regrown: zeros over the old
+            for i in range(self._zero_from // PAGE, (min(size, base) - 1) // PAGE + 1):
+                self._page(i)
+        inplace = []
         for i in sorted(self._pages):
             start = i * PAGE
-            if start >= size:
-                continue
-            data = memoryview(self._pages[i])[: min(PAGE, size - start)]
-            (inplace if start < self._base_size else fresh).append((start, data))
-        _write_runs(self._fd, fresh)
+            stop = min(start + PAGE, size, base)
+            if stop > start:
+                inplace.append((start, memoryview(self._pages[i])[: stop - start]))
+        if size > base:  # new bytes first: nothing on disk refers to them yet
+            tail = memoryview(self._tail)
+            _pwrite(self._fd, tail[: size - base], base)
+            if len(tail) < size - base:
+                _pwrite(self._fd, bytes(size - base - len(tail)), base + len(tail))
         if inplace or size < self._base_size:
             jpath = journal_path(self.path)
             body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
@@ -333,7 +350,8 @@ class OverlayFile(io.RawIOBase):
         if self.durable:
             os.fsync(self._fd)
         self._pages.clear()
-        self._base_size = size
+        self._tail = bytearray()
+        self._base_size = self._zero_from = size
 
     def close(self) -> None:
         if not self.closed:
@@ -341,30 +359,6 @@ class OverlayFile(io.RawIOBase):
                 os.close(self._fd)  # releases the flock
             finally:
                 super().close()
-
-
-def _write_runs(fd: int, pages) -> None:
-    """Write ``(offset, data)`` pages, those at consecutive offsets in one ``pwritev`` each (no copies)."""
-    if not hasattr(os, "pwritev"):  # pragma: no cover
-        for start, data in pages:
-            _pwrite(fd, data, start)
-        return
-    max_iov = min(os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") else 1024, 1024)
-    k = 0
-    while k < len(pages):
-        start, first = pages[k]
-        run = [first]
-        end = start + len(first)
-        k += 1
-        while k < len(pages) and pages[k][0] == end and len(run[-1]) == PAGE and len(run) < max_iov:
-            run.append(pages[k][1])
-            end += len(pages[k][1])
-            k += 1
-        written = os.pwritev(fd, run, start)
-        if written < end - start:  # short write: finish the rest byte-wise
-            rest = b"".join(bytes(v) for v in run)[written:]
-            _pwrite(fd, rest, start + written)
-
 
 
 def _main(argv: list[str]) -> int:
