@@ -165,10 +165,10 @@ class PtyEndpoint:
     def unread_by_board(self) -> int:
         """Bytes written to the client side of this pty (queued or in the pty) that its client has not read yet.
 
-        For the board end of a :class:`PtyBridge`, whose "client" is the board's server (e.g. pymodbus)."""
-        with self._lock:
-            queued = len(self._pending)
-        return queued + _unread(self._slave_fd)
+        For the board end of a :class:`PtyBridge`, whose "client" is the board's server (e.g. pymodbus). Lock-free
+        (a starved writer holding the lock must not stall the caller): a flush writes bytes into the pty before it
+        drops them from the queue, and the queue is looked at first, so bytes on the move are never missed."""
+        return len(self._pending) + _unread(self._slave_fd)
 
     def read(self, size: int = 4096) -> bytes:
         """Bytes the client wrote (non-blocking; ``b""`` if none or unplugged)."""
@@ -229,7 +229,7 @@ class PtyBridge:
     def __init__(self, client_link: str | os.PathLike | None = None):
         self.board = PtyEndpoint(None)
         self.client = PtyEndpoint(client_link)
-        self._copy_lock = threading.Lock()  # held while client bytes are in this thread's hands (read, not written)
+        self._copying = False  # client bytes in this thread's hands (about to be read, or read and not yet written)
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=self._run, name="pty-bridge", daemon=True)
@@ -261,19 +261,22 @@ class PtyBridge:
                     os.read(self._wake_r, 64)
                     continue
                 end, other = ends[fd]
-                with self._copy_lock:
+                self._copying = end is self.client
+                try:
                     data = end.read(65536)
                     if data:
                         other.write(data)
+                finally:
+                    self._copying = False
             self.board.flush()
             self.client.flush()
 
     def bytes_to_board(self) -> int:
-        """Bytes the client has written that the board's server has not read yet (in the client pty, in this thread's
-        hands, queued for the board or in the board pty). Checked upstream first, so bytes moving on meanwhile are
-        still counted once they get there."""
-        with self._copy_lock:
-            n = self.client.unread_from_client()
+        """Bytes the client has written that the board's server has not read yet (in the client pty, in the copy
+        thread's hands (counted as 1), queued for the board or in the board pty). Lock-free, and looked at upstream
+        first, so bytes that move on meanwhile are counted where they get to."""
+        n = self.client.unread_from_client()
+        n += 1 if self._copying else 0
         return n + self.board.unread_by_board()
 
     def _wake(self) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import time
 
 import pytest
@@ -241,11 +242,23 @@ def test_watchdog_trips_when_host_goes_silent(drum, mega):
     assert status.state == DrumState.IDLE and status.faults == 0
 
 
-def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega):
-    """A flake under heavy CPU load: the virtual Mega's Modbus thread got no CPU for longer than WATCHDOG_MS while
-    the host kept polling on time, and the simulator called the host silent (WATCHDOG, the trial lost). The firmware
-    handles a request within about a millisecond of its arrival, so that host was never silent. Here the server's
-    loop really stalls (blocked, as a starved thread is) while the host polls over the real ptys and pymodbus."""
+def _stall(mega, where: str, seconds: float) -> None:
+    """Really stall one of the virtual Mega's threads for ``seconds`` (as a starved thread stalls), from now on:
+    the Modbus server's loop (blocked), or the pty copy thread (blocked mid-copy on the board port's lock)."""
+    if where == "server":
+        mega._loop.call_soon_threadsafe(time.sleep, seconds)
+        return
+    lock = mega.bridge.board._lock
+    lock.acquire()
+    threading.Timer(seconds, lock.release).start()
+
+
+@pytest.mark.parametrize("where", ["server", "bridge"])
+def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
+    """A flake under heavy CPU load: the virtual Mega's Modbus thread or pty copy thread got no CPU for longer than
+    WATCHDOG_MS while the host kept polling on time, and the simulator called the host silent (WATCHDOG, the trial
+    lost). The firmware handles a request within about a millisecond of its arrival, so that host was never silent.
+    Here one of those threads really stalls while the host polls over the real ptys and pymodbus."""
     stall_s = 1.6  # > WATCHDOG_MS (1000 ms)
     with DrumClient(mega.path, timeout_s=stall_s + 2.0, retries=0, poll_s=0.02) as drum:  # one request at a time
         drum.set_force(250)
@@ -253,7 +266,7 @@ def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega):
         drum.run()
         drum.wait_state([DrumState.RUNNING], timeout_s=5)
         requests = mega.requests
-        mega._loop.call_soon_threadsafe(time.sleep, stall_s)
+        _stall(mega, where, stall_s)
         t0 = time.monotonic()
         latencies = []
         while time.monotonic() - t0 < stall_s + 0.5:
@@ -265,8 +278,8 @@ def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega):
         assert max(latencies) > 1.0  # a request waited out the stall: the simulator was starved that long
         assert mega.requests - requests == len(latencies)
         assert mega.snapshot()["faults"] == 0
-        # and silence is still silence, wherever the simulator's threads are
-        mega._loop.call_soon_threadsafe(time.sleep, 0.3)
+        # and silence is still silence, whatever the simulator's threads do meanwhile
+        _stall(mega, where, 0.3)
         time.sleep(1.5)
         status = drum.read_status()
         assert status.state == DrumState.FAULT and status.faults == Fault.WATCHDOG
