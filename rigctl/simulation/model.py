@@ -413,18 +413,8 @@ class SensorModel:
             result = (np.ones((2, _TABLE_SIZE)), 1.0, np.ones(2))
         else:
             delta_nom = float(self.indentation_mm(1.02 ** fq))
-            h = _profile(tex)
-            pad = _smooth(h, tex.period_mm, c.pad_sigma_mm, reduce=False)
-            depth = pad.max() - pad  # >= 0: how far below the pad's first contact each point is
-            # force balance: mean(max(0, delta0 - depth)) = delta_nom (monotone in delta0: bisection)
-            lo, hi = 0.0, delta_nom + float(depth.max())
-            for _ in range(60):
-                mid = 0.5 * (lo + hi)
-                if np.maximum(0.0, mid - depth).mean() < delta_nom:
-                    lo = mid
-                else:
-                    hi = mid
-            shape = np.maximum(0.0, 0.5 * (lo + hi) - depth)
+            depth, delta0_of = self._contact_depth(tex)
+            shape = np.maximum(0.0, delta0_of(delta_nom) - depth)
             shape /= shape.mean()
             tables = np.ascontiguousarray(np.stack([_smooth(shape, tex.period_mm, s)
                                                     for s in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm)]))
@@ -432,6 +422,31 @@ class SensorModel:
         with self._lock:
             self._tables[key] = result
         return result
+
+    def _contact_depth(self, tex: Texture):
+        """The pad's depth below its first contact over one period of ``tex`` (mm, supersampled), and the solver of
+        the force balance ``mean(max(0, delta0 - depth)) = delta`` for ``delta0`` (exact: the left side is
+        piecewise linear and increasing in ``delta0``, so with the depths sorted it is one ``searchsorted``).
+        Cached per texture: the tables of every force step of a press share it."""
+        key = ("depth", tex.letter)
+        with self._lock:
+            hit = self._tables.get(key)
+        if hit is not None:
+            return hit
+        pad = _smooth(_profile(tex), tex.period_mm, self.config.pad_sigma_mm, reduce=False)
+        depth = pad.max() - pad  # >= 0: how far below the pad's first contact each point is
+        s = np.sort(depth)
+        cs = np.cumsum(s)
+        n = s.size
+        below = (np.arange(n) * s - np.concatenate(([0.0], cs[:-1]))) / n  # the mean at delta0 = s[k]
+
+        def delta0_of(delta: float) -> float:
+            k = int(np.searchsorted(below, delta, side="right"))  # depths <= delta0 (>= 1 for delta > 0)
+            return float((delta * n + cs[k - 1]) / k)
+
+        with self._lock:
+            self._tables[key] = (depth, delta0_of)
+        return depth, delta0_of
 
     def render(self, texture: Texture | str, position_mm, force_g, rng: np.random.Generator, *,
                sensitivity: float = 1.0, out: np.ndarray | None = None, wrap_mm: float | None = None) -> np.ndarray:

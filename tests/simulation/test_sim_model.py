@@ -213,3 +213,22 @@ def test_ridges_modulate_the_reading_deeply_and_force_changes_the_contact():
             tables, _, mean = sensor.tables(letter, force)
             np.testing.assert_allclose(tables.mean(axis=1), 1.0, rtol=1e-6)
             np.testing.assert_allclose(mean, 1.0)
+
+
+@pytest.mark.parametrize("letter", ["C", "H", "M", "K"])
+def test_contact_force_balance_is_solved_exactly(letter):
+    """The pad indentation delta0 of a texture's contact tables satisfies the force balance of the module docstring,
+    mean(max(0, delta0 - depth)) = flat-plate indentation, to rounding, and agrees with a 60-step bisection."""
+    from rigctl.simulation.textures import get_texture
+
+    model = SensorModel()
+    depth, delta0_of = model._contact_depth(get_texture(letter))
+    for force in (10.0, 250.0, 500.0, 1000.0, 5000.0):
+        delta = float(model.indentation_mm(force))
+        d0 = delta0_of(delta)
+        assert abs(np.maximum(0.0, d0 - depth).mean() - delta) <= 1e-9 * delta
+        lo, hi = 0.0, delta + float(depth.max())
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.maximum(0.0, mid - depth).mean() < delta else (lo, mid)
+        assert d0 == pytest.approx(0.5 * (lo + hi), rel=1e-9, abs=1e-12)
