@@ -78,6 +78,11 @@ def journal_path(path: str | os.PathLike) -> Path:
     return p.with_name(p.name + ".journal")
 
 
+class CommittedInterrupt(KeyboardInterrupt):
+    """A Ctrl-C (SIGINT) arrived during a commit's in-place writes: the commit was finished first, then this is
+    raised (a KeyboardInterrupt, so callers that stop on Ctrl-C do; the data written is on disk)."""
+
+
 class FileBusy(OSError):
     """Another process holds the file (a writer, or a reader with the HDF5 file lock) for longer than the wait."""
 
@@ -147,29 +152,31 @@ def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) ->
     version. They are made by a short-lived helper (``python -I -S journal.py --apply FD JOURNAL``) that inherits
     the locked descriptor and runs in its own session: a ``kill -9`` of the writing process (or of its process
     group, or a Ctrl-C) cannot stop it half way, so plain HDF5 readers never see a torn file after such a kill.
-    This process waits for the helper. If the helper cannot be started or fails, the journal is applied here.
+    This process waits for the helper. If the helper cannot be started or fails, the journal is applied here. A
+    Ctrl-C while waiting is held until the journal is applied, then raised as :class:`CommittedInterrupt`.
     Killing the helper itself (or a power cut) leaves the committed journal, which :func:`recover` replays.
     """
     jpath = Path(jpath)
     cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--apply", str(fd), str(jpath),
            "1" if durable else "0", repr(float(_TEST_WRITE_DELAY_S))]
-    rc = None
-    try:
-        proc = subprocess.Popen(cmd, pass_fds=(fd,), start_new_session=True, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, close_fds=True)
-    except (OSError, TypeError, ValueError):  # pragma: no cover - no interpreter to start (embedded Python)
-        proc = None
+    proc = interrupted = None
+    if sys.executable and not getattr(sys, "frozen", False):  # a frozen app's executable is not Python
+        try:
+            proc = subprocess.Popen(cmd, pass_fds=(fd,), start_new_session=True, stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.DEVNULL, close_fds=True)
+        except (OSError, ValueError):  # pragma: no cover - cannot start processes (or pass fds) here
+            proc = None
     if proc is not None:
-        interrupted = None
-        while rc is None:  # a Ctrl-C must not abandon the commit: wait for the helper, then re-raise
+        while True:  # a Ctrl-C must not abandon the commit: wait for the helper, then re-raise
             try:
-                rc = proc.wait()
+                proc.wait()
+                break
             except KeyboardInterrupt as exc:
                 interrupted = exc
-        if interrupted is not None and rc == 0:
-            raise interrupted
     if jpath.exists():  # the helper could not start or did not finish: apply it here
         _replay(fd, jpath, durable, _TEST_WRITE_DELAY_S)
+    if interrupted is not None:
+        raise CommittedInterrupt("interrupted while committing; the commit was completed first") from interrupted
 
 
 def _read_journal(jpath: Path):

@@ -521,6 +521,8 @@ class SessionWriter:
                 if written:  # the plan rows last, in one write of the span they cover
                     lo, hi = min(written), max(written) + 1
                     f["plan"][lo:hi] = self._plan[lo:hi]
+        except journal.CommittedInterrupt:
+            raise  # a Ctrl-C during the commit, which was completed first: the batch is on disk
         except BaseException:
             self._plan["status"] = before  # nothing of the batch reached the file
             raise

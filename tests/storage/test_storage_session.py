@@ -357,3 +357,41 @@ def test_overwriting_a_file_drops_the_old_files_journal(tmp_path):
     with open_session(path) as s:
         assert s.protocol_source == "new" and s.completed_ids() == [0] and len(s.plan) == 2
         assert (s.trial(0).taxels == 3).all()
+
+
+_CTRL_C_IN_COMMIT = textwrap.dedent(
+    """
+    import sys, numpy as np
+    from rigctl.storage import journal
+    from rigctl.storage.session import SessionWriter, TrialData
+    journal._TEST_WRITE_DELAY_S = 0.1
+    w = SessionWriter.open(sys.argv[1])
+    try:
+        w.write_trial(1, TrialData(taxels=np.full((500, 18), 1), force_g=[1], force_time_s=[0.0]))
+        print("no interrupt")
+    except KeyboardInterrupt as exc:
+        print(type(exc).__name__, w.completed_ids(), flush=True)
+    """
+)
+
+
+def test_ctrl_c_during_a_commit_finishes_it_first(tmp_path):
+    """SIGINT while the in-place writes run: the writer waits for them, then raises CommittedInterrupt (a
+    KeyboardInterrupt), and its view of the plan agrees with the file (the trial is complete in both)."""
+    from rigctl.storage import journal
+
+    path = tmp_path / "c.h5"
+    jpath = journal.journal_path(path)
+    w = SessionWriter.create(path, plan=_plan(3), protocol_source="src", compression=None)
+    w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
+    proc = subprocess.Popen([sys.executable, "-c", _CTRL_C_IN_COMMIT, str(path)], stdout=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (jpath.exists() and journal._read_journal(jpath)[0] is not None):
+        assert proc.poll() is None and time.monotonic() < deadline, "the writer never committed"
+        time.sleep(0.005)
+    time.sleep(0.15)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert out.strip() == "CommittedInterrupt [0, 1]"
+    assert not jpath.exists()
+    assert list(_check_plain(path, 500)) == [0, 1]
