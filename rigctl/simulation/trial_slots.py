@@ -14,6 +14,7 @@ Flow: :class:`TrialSlots` owns the file; :func:`init_worker_slots` (a pool initi
 from __future__ import annotations
 
 import collections
+import glob
 import os
 import tempfile
 from typing import Callable, Iterator, Sequence
@@ -70,6 +71,26 @@ def render_into_slots(task: tuple[Sequence[int], Sequence[tuple]]) -> list[tuple
     return out
 
 
+def remove_stale_slot_files(directory: str | None = None) -> list[str]:
+    """Delete slot files left by generator processes that no longer run (killed with SIGKILL, which leaves no
+    chance to clean up); the creating process id is in the name. Returns the deleted paths."""
+    directory = directory or tempfile.gettempdir()
+    removed = []
+    for path in glob.glob(os.path.join(directory, "rigctl-trials-*-*.slots")):
+        try:
+            pid = int(os.path.basename(path).split("-")[2])
+            os.kill(pid, 0)  # raises if no such process
+        except ProcessLookupError:
+            try:
+                os.unlink(path)
+                removed.append(path)
+            except FileNotFoundError:
+                pass
+        except (ValueError, IndexError, PermissionError):  # not ours, or another user's live process
+            continue
+    return removed
+
+
 class TrialSlots:
     """A memory-mapped file of ``n_blocks`` x ``block`` slots of ``slot_samples`` samples each.
 
@@ -87,7 +108,8 @@ class TrialSlots:
         self.slot_samples = max(1, int(slot_samples))
         self.n_blocks, self.block = int(n_blocks), int(block)
         n_slots = self.n_blocks * self.block
-        fd, self.path = tempfile.mkstemp(prefix="rigctl-trials-", suffix=".slots", dir=directory)
+        remove_stale_slot_files(directory)
+        fd, self.path = tempfile.mkstemp(prefix=f"rigctl-trials-{os.getpid()}-", suffix=".slots", dir=directory)
         try:
             os.ftruncate(fd, n_slots * self.slot_samples * SAMPLE_BYTES)
         finally:

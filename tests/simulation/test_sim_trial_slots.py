@@ -39,3 +39,21 @@ def test_worker_trials_arrive_unchanged_in_plan_order(tmp_path):
                 got.append(tid)
     assert got == [r[0] for r in rows]  # plan order, every trial once
     assert not os.path.exists(path)
+
+
+def test_slot_files_of_dead_generators_are_removed(tmp_path):
+    import subprocess
+    import sys
+
+    from rigctl.simulation.trial_slots import remove_stale_slot_files
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = tmp_path / f"rigctl-trials-{int(dead.stdout)}-abc.slots"
+    live = tmp_path / f"rigctl-trials-{os.getpid()}-def.slots"
+    other = tmp_path / "rigctl-trials-notapid-x.slots"
+    for p in (stale, live, other):
+        p.write_bytes(b"x")
+    with TrialSlots(10, n_blocks=1, block=1, directory=str(tmp_path)) as slots:
+        assert os.path.basename(slots.path).startswith(f"rigctl-trials-{os.getpid()}-")
+        assert not stale.exists() and live.exists() and other.exists()
+    assert remove_stale_slot_files(str(tmp_path)) == []
