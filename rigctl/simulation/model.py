@@ -336,7 +336,7 @@ class SensorModel:
         self._row_w = np.asarray(c.row_weights, dtype=np.float64)
         self._p_half = np.array([c.p_half_top_g, c.p_half_bottom_g])
         self._layer_gain = np.array([c.layer_gain_top, c.layer_gain_bottom])
-        self._tables: dict[str, tuple[np.ndarray, float, np.ndarray]] = {}
+        self._tables: dict[tuple, tuple] = {}  # height, contact-shape and contact-depth tables by texture (, force)
         self._lock = threading.Lock()
 
     def height_tables(self, texture: Texture | str) -> tuple[np.ndarray, float, np.ndarray]:
@@ -352,22 +352,30 @@ class SensorModel:
             Mean height of each table (equal to the texture's mean height).
         """
         tex = get_texture(texture)
-        key = ("h", tex.letter)
+
+        def build():
+            if tex.kind == "smooth":
+                return np.zeros((2, _TABLE_SIZE)), 1.0, np.zeros(2)
+            tables = self._layer_tables(_profile(tex), tex.period_mm)
+            return tables, float(tex.period_mm), tables.mean(axis=1)
+
+        return self._cached(("h", tex.letter), build)
+
+    def _cached(self, key: tuple, build):
+        """``self._tables[key]``, built with ``build()`` (outside the lock) on the first call."""
         with self._lock:
             hit = self._tables.get(key)
-            if hit is not None:
-                return hit
+        if hit is None:
+            hit = build()
+            with self._lock:
+                self._tables[key] = hit
+        return hit
+
+    def _layer_tables(self, profile: np.ndarray, period_mm: float) -> np.ndarray:
+        """(2, 2048): a supersampled one-period profile smoothed by the top and the bottom receptive field."""
         c = self.config
-        if tex.kind == "smooth":
-            result = (np.zeros((2, _TABLE_SIZE)), 1.0, np.zeros(2))
-        else:
-            h = _profile(tex)
-            tables = np.ascontiguousarray(np.stack([_smooth(h, tex.period_mm, s)
-                                                    for s in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm)]))
-            result = (tables, float(tex.period_mm), tables.mean(axis=1))
-        with self._lock:
-            self._tables[key] = result
-        return result
+        return np.ascontiguousarray(np.stack([_smooth(profile, period_mm, s)
+                                              for s in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm)]))
 
     def indentation_mm(self, force_g) -> np.ndarray:
         """Nominal pad indentation on a flat plate, mm: ``delta_ref * F / F_ref`` (linear pad spring), float64."""
@@ -403,50 +411,37 @@ class SensorModel:
         tex = get_texture(texture)
         f = max(float(force_g), 10.0) if math.isfinite(float(force_g)) else 500.0
         fq = round(math.log(f) / math.log(1.02))
-        key = ("p", tex.letter, fq)
-        with self._lock:
-            hit = self._tables.get(key)
-            if hit is not None:
-                return hit
-        c = self.config
-        if tex.kind == "smooth":
-            result = (np.ones((2, _TABLE_SIZE)), 1.0, np.ones(2))
-        else:
-            delta_nom = float(self.indentation_mm(1.02 ** fq))
+
+        def build():
+            if tex.kind == "smooth":
+                return np.ones((2, _TABLE_SIZE)), 1.0, np.ones(2)
             depth, delta0_of = self._contact_depth(tex)
-            shape = np.maximum(0.0, delta0_of(delta_nom) - depth)
+            shape = np.maximum(0.0, delta0_of(float(self.indentation_mm(1.02 ** fq))) - depth)
             shape /= shape.mean()
-            tables = np.ascontiguousarray(np.stack([_smooth(shape, tex.period_mm, s)
-                                                    for s in (c.rf_sigma_top_mm, c.rf_sigma_bottom_mm)]))
-            result = (tables, float(tex.period_mm), np.ones(2))
-        with self._lock:
-            self._tables[key] = result
-        return result
+            return self._layer_tables(shape, tex.period_mm), float(tex.period_mm), np.ones(2)
+
+        return self._cached(("p", tex.letter, fq), build)
 
     def _contact_depth(self, tex: Texture):
         """The pad's depth below its first contact over one period of ``tex`` (mm, supersampled), and the solver of
         the force balance ``mean(max(0, delta0 - depth)) = delta`` for ``delta0`` (exact: the left side is
         piecewise linear and increasing in ``delta0``, so with the depths sorted it is one ``searchsorted``).
         Cached per texture: the tables of every force step of a press share it."""
-        key = ("depth", tex.letter)
-        with self._lock:
-            hit = self._tables.get(key)
-        if hit is not None:
-            return hit
-        pad = _smooth(_profile(tex), tex.period_mm, self.config.pad_sigma_mm, reduce=False)
-        depth = pad.max() - pad  # >= 0: how far below the pad's first contact each point is
-        s = np.sort(depth)
-        cs = np.cumsum(s)
-        n = s.size
-        below = (np.arange(n) * s - np.concatenate(([0.0], cs[:-1]))) / n  # the mean at delta0 = s[k]
+        def build():
+            pad = _smooth(_profile(tex), tex.period_mm, self.config.pad_sigma_mm, reduce=False)
+            depth = pad.max() - pad  # >= 0: how far below the pad's first contact each point is
+            s = np.sort(depth)
+            cs = np.cumsum(s)
+            n = s.size
+            below = (np.arange(n) * s - np.concatenate(([0.0], cs[:-1]))) / n  # the mean at delta0 = s[k]
 
-        def delta0_of(delta: float) -> float:
-            k = int(np.searchsorted(below, delta, side="right"))  # depths <= delta0 (>= 1 for delta > 0)
-            return float((delta * n + cs[k - 1]) / k)
+            def delta0_of(delta: float) -> float:
+                k = int(np.searchsorted(below, delta, side="right"))  # depths <= delta0 (>= 1 for delta > 0)
+                return float((delta * n + cs[k - 1]) / k)
 
-        with self._lock:
-            self._tables[key] = (depth, delta0_of)
-        return depth, delta0_of
+            return depth, delta0_of
+
+        return self._cached(("depth", tex.letter), build)
 
     def render(self, texture: Texture | str, position_mm, force_g, rng: np.random.Generator, *,
                sensitivity: float = 1.0, out: np.ndarray | None = None, wrap_mm: float | None = None) -> np.ndarray:
