@@ -76,8 +76,6 @@ def _dcpl(chunks: tuple | None, compression: str | None):
     key = (chunks, compression)
     dcpl = _DCPLS.get(key)
     if dcpl is None:
-        if compression not in ("gzip", "lzf", None):
-            raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
         dcpl = h5p.create(h5p.DATASET_CREATE)
         dcpl.set_obj_track_times(False)
         if chunks is not None:
@@ -107,17 +105,14 @@ def create_dataset(group, name: str, data: np.ndarray, *, chunks: tuple | None =
     ------
     ValueError for an unknown compression.
     """
+    if compression not in ("gzip", "lzf", None):
+        raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
     data = np.ascontiguousarray(data)
-    if data.size and chunks is not None:
-        dcpl = _dcpl(tuple(int(c) for c in chunks), compression)
-    else:
-        dcpl = _dcpl(None, None)
-        if compression not in ("gzip", "lzf", None):
-            raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+    chunked = data.size and chunks is not None
+    dcpl = _dcpl(tuple(int(c) for c in chunks), compression) if chunked else _dcpl(None, None)
     space = h5s.create_simple(data.shape)
     ftype, mtype = _tids(data.dtype)
-    gid = _lowlevel(group)
-    dsid = h5d.create(gid, name.encode(), ftype, space, dcpl=dcpl)
+    dsid = h5d.create(_lowlevel(group), name.encode(), ftype, space, dcpl=dcpl)
     if data.size:
         dsid.write(h5s.ALL, h5s.ALL, data, mtype=mtype)
     return dsid

@@ -67,12 +67,6 @@ def _pwrite(fd: int, data: bytes, offset: int) -> None:
         offset += n
 
 
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
-
-
 def journal_path(path: str | os.PathLike) -> Path:
     p = Path(path)
     return p.with_name(p.name + ".journal")
@@ -320,7 +314,7 @@ class OverlayFile(io.RawIOBase):
 
     # -- commit ---------------------------------------------------------------------------------------------------
     def commit(self) -> None:
-        """Write the overlay to the file (new pages, then journal, then in-place pages), then release the file."""
+        """Write the overlay to the file (new bytes, then the journal, then the in-place pages by a helper)."""
         size, base = self._size, self._base_size
         if self._zero_from < min(size, base):  # bytes cut off by a truncation, then regrown: zeros over the old
             for i in range(self._zero_from // PAGE, (min(size, base) - 1) // PAGE + 1):
@@ -336,7 +330,7 @@ class OverlayFile(io.RawIOBase):
             _pwrite(self._fd, tail[: size - base], base)
             if len(tail) < size - base:
                 _pwrite(self._fd, bytes(size - base - len(tail)), base + len(tail))
-        if inplace or size < self._base_size:
+        if inplace or size < base:
             jpath = journal_path(self.path)
             body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
             for start, data in inplace:
@@ -346,16 +340,18 @@ class OverlayFile(io.RawIOBase):
                 os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
             jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | _O_BINARY, 0o644)
             try:
-                _write_all(jfd, bytes(body))
+                _pwrite(jfd, bytes(body), 0)
                 if self.durable:
                     os.fsync(jfd)
             finally:
                 os.close(jfd)
-            apply_journal(self._fd, jpath, durable=self.durable)  # the in-place writes, by a detached helper
-        elif size != os.fstat(self._fd).st_size:
-            os.ftruncate(self._fd, size)
-        if self.durable:
-            os.fsync(self._fd)
+            # the in-place writes, by a detached helper (which truncates and, if durable, fsyncs)
+            apply_journal(self._fd, jpath, durable=self.durable)
+        else:
+            if size != os.fstat(self._fd).st_size:
+                os.ftruncate(self._fd, size)
+            if self.durable:
+                os.fsync(self._fd)
         self._pages.clear()
         self._tail = bytearray()
         self._base_size = self._zero_from = size

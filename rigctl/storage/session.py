@@ -505,11 +505,10 @@ class SessionWriter:
         :meth:`write_trial`. The batch reaches the disk in one journaled commit when the last trial is written: a
         crash before that loses the whole batch (the file stays as it was), never part of a trial.
         """
-        count = 0
         before = self._plan["status"].copy()
+        written = []
         try:
             with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
-                written = []
                 for trial_id, data in items:
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
@@ -517,7 +516,6 @@ class SessionWriter:
                     self._write_group(f, self._plan[i], data)
                     self._plan["status"][i] = TrialStatus.COMPLETE
                     written.append(i)
-                    count += 1
                 if written:  # the plan rows last, in one write of the span they cover
                     lo, hi = min(written), max(written) + 1
                     f["plan"][lo:hi] = self._plan[lo:hi]
@@ -526,7 +524,7 @@ class SessionWriter:
         except BaseException:
             self._plan["status"] = before  # nothing of the batch reached the file
             raise
-        return count
+        return len(written)
 
     def append_trial(self, planned: Any, data: TrialData | None = None) -> int:
         """Append a row to ``/plan`` (for Python-script protocols) and, if ``data`` is given, write the trial.
