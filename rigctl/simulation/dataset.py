@@ -250,12 +250,6 @@ def _plan_rows(plan: Iterable[Any]) -> list[tuple]:
     return rows
 
 
-def _durable_kw(fn, durable: bool) -> dict:
-    import inspect
-
-    return {"durable": durable} if "durable" in inspect.signature(fn).parameters else {}
-
-
 def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_condition: int | None = None,
                      seed: int = 0, workers: int | None = None, progress: bool = True, config: RigConfig | None = None,
                      compression: str | None = None, overwrite: bool = False, resume: bool = False,
@@ -274,9 +268,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         Dataset seed; trial ``i`` draws from ``SeedSequence([seed, i])`` (reproducible for any ``workers``).
     workers : int, optional
         Worker processes that render trials while this process writes what they return, in plan order (blocks of
-        :data:`WORKER_CHUNK` trials, passed through shared memory: :mod:`rigctl.simulation.trial_slots`); 0 renders and writes in this process. Default: one per core but one (the
-        writer needs a core of its own: it is the slower half), or 0 below 64 trials (starting a worker costs
-        about 1.5 s).
+        :data:`WORKER_CHUNK` trials, passed through shared memory: :mod:`rigctl.simulation.trial_slots`); 0
+        renders and writes in this process. Default: one per core but one (the writer needs a core of its own:
+        it is the slower half), or 0 below 64 trials (starting a worker costs about 1.5 s).
     progress : bool
         Show a tqdm progress bar.
     config : RigConfig, optional
@@ -321,7 +315,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
 
     if resume and out_path.exists():
         writer = SessionWriter.open(out_path, protocol_source=protocol.source, compression=compression,
-                                    **_durable_kw(SessionWriter.open, durable))
+                                    durable=durable)
         stored = writer.plan
         if len(stored) != len(plan):
             raise ValueError(f"{out_path} holds a plan of {len(stored)} trials, this protocol has {len(plan)}; "
@@ -334,7 +328,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             protocol_format="toml", rig_config=cfg.to_dict(), kind="simulated-dataset",
             attrs={"dataset_seed": int(seed), "generator": "rigctl.simulation.dataset.generate_dataset",
                    "trials_per_condition": int(protocol.trials_per_condition)},
-            overwrite=overwrite, compression=compression, **_durable_kw(SessionWriter.create, durable))
+            overwrite=overwrite, compression=compression, durable=durable)
         done = set()
     rows = [r for r in _plan_rows(plan) if r[0] not in done]
 
