@@ -28,6 +28,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigctl.core.trial import PlannedTrial  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
+
 #: rig limits every setpoint is checked against before anything moves (mm/s, g)
 MAX_SPEED_MM_S = 150.0
 MAX_FORCE_G = 1500.0
@@ -52,55 +54,6 @@ class ProtocolError(ValueError):
         self.path, self.line, self.key, self.problem = path, line, key, message
         where = f"{path or '<protocol>'}:{line if line is not None else '?'}"
         super().__init__(f"{where}: {key}: {message}" if key else f"{where}: {message}")
-
-
-@dataclass(frozen=True)
-class PlannedTrial:
-    """One trial of a protocol's plan (one row of a session's ``/plan`` table).
-
-    Attributes
-    ----------
-    trial_id : int (0-based, plan order)
-    texture : str, one of A-P (the paper's Fig. 2B)
-    speed_mm_s : float, drum surface speed; for a ramp, the mean speed over the trial
-    force_g : float, contact force setpoint (g)
-    duration_s : float, trial length; the runner records ``round(duration_s * 1000)`` frames
-    profile : str, the velocity profile's name ("constant" when the protocol names none)
-    ramp_start_mm_s, ramp_end_mm_s : float, NaN for a constant speed
-    repeat : int, 0-based repetition of this condition
-    """
-
-    trial_id: int
-    texture: str
-    speed_mm_s: float
-    force_g: float
-    duration_s: float
-    profile: str = "constant"
-    ramp_start_mm_s: float = math.nan
-    ramp_end_mm_s: float = math.nan
-    repeat: int = 0
-
-    @property
-    def is_ramp(self) -> bool:
-        return not (math.isnan(self.ramp_start_mm_s) or math.isnan(self.ramp_end_mm_s))
-
-    @property
-    def n_samples(self) -> int:
-        """Frames the trial records at 1 kHz."""
-        return int(round(self.duration_s * 1000))
-
-    @classmethod
-    def from_row(cls, row) -> "PlannedTrial":
-        """From a row of :attr:`rigctl.storage.session.Session.plan` or a ``/plan`` record."""
-        def s(v):
-            return v.decode() if isinstance(v, bytes) else str(v)
-
-        return cls(
-            trial_id=int(row["trial_id"]), texture=s(row["texture"]), speed_mm_s=float(row["speed_mm_s"]),
-            force_g=float(row["force_g"]), duration_s=float(row["duration_s"]), profile=s(row["profile"]),
-            ramp_start_mm_s=float(row["ramp_start_mm_s"]), ramp_end_mm_s=float(row["ramp_end_mm_s"]),
-            repeat=int(row["repeat"]),
-        )
 
 
 @dataclass(frozen=True)

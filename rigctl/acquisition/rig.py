@@ -439,7 +439,7 @@ class Rig:
                 from rigctl.devices.errors import SetpointRangeError
 
                 raise SetpointRangeError("speed", v, "mm/s", 0, MAX_SPEED_MM_S, "rig limit")
-        n = planned.n_samples
+        n = planned.samples_at(self.stream.layout.sample_rate_hz if hasattr(self.stream, "layout") else 1000.0)
         if n <= 0:
             raise ValueError(f"trial {planned.trial_id}: duration {planned.duration_s} s gives no samples")
         with self._lock:

@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 
 from rigctl import __version__
+from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.storage import h5objects, journal
 
 SCHEMA_VERSION = 2
@@ -92,107 +93,6 @@ class SessionError(RuntimeError):
 # ----------------------------------------------------------------------------------------------------------------
 # Trial data
 # ----------------------------------------------------------------------------------------------------------------
-def _empty(dtype) -> np.ndarray:
-    return np.zeros(0, dtype=dtype)
-
-
-@dataclass
-class TrialData:
-    """Everything recorded in one trial.
-
-    Attributes
-    ----------
-    taxels : (n, 18) uint16
-        ADC counts 0-1023, 1 kHz; channels 0-8 top layer (type I), 9-17 bottom layer (type II),
-        row-major over the 3x3 grid (``docs/wire-protocol.md`` section 1).
-    seq : (n,) uint16
-        The Uno's frame sequence numbers (gaps = dropped frames). Default: ``arange(n) % 65536``.
-    flags : (n,) uint8
-        Frame flags (:class:`rigctl.devices.wire.FrameFlag`). Default: zeros.
-    host_time_s : (n,) float64
-        Host receive time of each frame, s since the trial's first frame. Default: ``arange(n) / 1000``.
-    force_g, force_time_s : (m,) float64
-        Load-cell force trace (g) and its host times (s, same clock and origin as ``host_time_s``).
-    speed_mm_s, speed_time_s : (k,) float64
-        Measured drum surface speed trace (mm/s) and its host times (s).
-    dropped_frames : int
-        Frames missing from ``seq`` within the trial.
-    crc_errors : int
-        Frames rejected by their CRC while the trial was captured.
-    attrs : dict
-        Trial attributes (setpoints, texture, profile, started_utc, ...); JSON-able scalars and strings.
-
-    Raises
-    ------
-    ValueError
-        If ``taxels`` is not ``(n, 18)`` or a per-sample array does not have ``n`` rows.
-    """
-
-    taxels: np.ndarray
-    seq: np.ndarray | None = None
-    flags: np.ndarray | None = None
-    host_time_s: np.ndarray | None = None
-    force_g: np.ndarray = field(default_factory=lambda: _empty(np.float64))
-    force_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
-    speed_mm_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
-    speed_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
-    dropped_frames: int = 0
-    crc_errors: int = 0
-    attrs: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        taxels = np.asarray(self.taxels)
-        if taxels.ndim != 2 or taxels.shape[1] != N_TAXELS:
-            raise ValueError(f"taxels must be (n_samples, {N_TAXELS}), got {taxels.shape}")
-        self.taxels = taxels.astype(np.uint16, copy=False)
-        n = taxels.shape[0]
-        self.seq = (np.arange(n) % 65536).astype(np.uint16) if self.seq is None else np.asarray(self.seq, np.uint16)
-        self.flags = np.zeros(n, np.uint8) if self.flags is None else np.asarray(self.flags, np.uint8)
-        if self.host_time_s is None:
-            self.host_time_s = np.arange(n, dtype=np.float64) / RATE_HZ
-        else:
-            self.host_time_s = np.asarray(self.host_time_s, np.float64)
-        for name in ("seq", "flags", "host_time_s"):
-            if getattr(self, name).shape != (n,):
-                raise ValueError(f"{name} must be ({n},) like taxels, got {getattr(self, name).shape}")
-        for value, times in (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s")):
-            v = np.asarray(getattr(self, value), np.float64).reshape(-1)
-            t = np.asarray(getattr(self, times), np.float64).reshape(-1)
-            if v.shape != t.shape:
-                raise ValueError(f"{value} {v.shape} and {times} {t.shape} must have the same length")
-            setattr(self, value, v)
-            setattr(self, times, t)
-        self.dropped_frames = int(self.dropped_frames)
-        self.crc_errors = int(self.crc_errors)
-        self.attrs = dict(self.attrs)
-
-    @property
-    def n_samples(self) -> int:
-        """Number of taxel frames (rows of ``taxels``)."""
-        return int(self.taxels.shape[0])
-
-    def host_rate_hz(self) -> float:
-        """Device sample rate measured on the host clock, frames/s.
-
-        A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
-        scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
-        the last third of the trial, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames
-        (from ``seq``). Delays do not bias it, unlike a least-squares fit. NaN with fewer than 6 samples.
-        """
-        n = self.n_samples
-        if n < 6:
-            return math.nan
-        steps = (np.diff(self.seq.astype(np.int64)) & 0xFFFF).astype(np.int64)
-        steps[steps == 0] = 1
-        index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
-        lag = self.host_time_s - index / RATE_HZ  # delay + clock drift, relative to the nominal rate
-        third = n // 3
-        a = int(np.argmin(lag[:third]))
-        b = n - third + int(np.argmin(lag[n - third:]))
-        dt = float(self.host_time_s[b] - self.host_time_s[a])
-        return float(index[b] - index[a]) / dt if dt > 0 else math.nan
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # Plan helpers
 # ----------------------------------------------------------------------------------------------------------------

@@ -1,0 +1,192 @@
+"""Trial records shared by every layer: what a protocol plans (:class:`PlannedTrial`) and what a trial recorded
+(:class:`TrialData`). Imports nothing else of rigctl's but :mod:`rigctl.core.sensor`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
+
+__all__ = ["PlannedTrial", "TrialData"]
+
+
+@dataclass(frozen=True)
+class PlannedTrial:
+    """One trial of a protocol's plan (one row of a session's ``/plan`` table).
+
+    Attributes
+    ----------
+    trial_id : int (0-based, plan order)
+    texture : str, a label of the session's texture set (the paper's A-P by default; any length)
+    speed_mm_s : float, drum surface speed, mm/s; for a ramp, the mean speed over the trial; NaN when unknown
+        (imported recordings)
+    force_g : float, contact force setpoint, g; NaN when unknown
+    duration_s : float, trial length, s; the runner records ``samples_at(rate_hz)`` frames
+    profile : str, the velocity profile's name ("constant" when the protocol names none)
+    ramp_start_mm_s, ramp_end_mm_s : float, mm/s, NaN for a constant speed
+    repeat : int, 0-based repetition of this condition
+    """
+
+    trial_id: int
+    texture: str
+    speed_mm_s: float
+    force_g: float
+    duration_s: float
+    profile: str = "constant"
+    ramp_start_mm_s: float = math.nan
+    ramp_end_mm_s: float = math.nan
+    repeat: int = 0
+
+    @property
+    def is_ramp(self) -> bool:
+        return not (math.isnan(self.ramp_start_mm_s) or math.isnan(self.ramp_end_mm_s))
+
+    def samples_at(self, rate_hz: float) -> int:
+        """Frames the trial records at ``rate_hz`` (Hz): ``round(duration_s * rate_hz)``."""
+        return int(round(self.duration_s * float(rate_hz)))
+
+    @classmethod
+    def from_row(cls, row: Any) -> "PlannedTrial":
+        """From a row of a session's plan (``rigctl.storage`` ``Session.plan``) or a ``/plan`` record."""
+        def s(v: Any) -> str:
+            return v.decode() if isinstance(v, bytes) else str(v)
+
+        return cls(
+            trial_id=int(row["trial_id"]), texture=s(row["texture"]), speed_mm_s=float(row["speed_mm_s"]),
+            force_g=float(row["force_g"]), duration_s=float(row["duration_s"]), profile=s(row["profile"]),
+            ramp_start_mm_s=float(row["ramp_start_mm_s"]), ramp_end_mm_s=float(row["ramp_end_mm_s"]),
+            repeat=int(row["repeat"]),
+        )
+
+
+def _empty(dtype: Any) -> np.ndarray:
+    return np.zeros(0, dtype=dtype)
+
+
+@dataclass
+class TrialData:
+    """Everything recorded in one trial.
+
+    Attributes
+    ----------
+    taxels : (n_samples, n_channels) uint16
+        ADC counts (0 .. 2**adc_bits - 1) at ``layout.sample_rate_hz``, channels in ``layout`` order (the paper's
+        sensor: 0-8 top layer, type I; 9-17 bottom layer, type II; row-major 3x3).
+    layout : :class:`rigctl.core.sensor.SensorLayout`
+        The sensor the readings come from (default :data:`rigctl.core.sensor.PAPER_SENSOR`); its channel count must
+        match ``taxels``.
+    seq : (n,) uint16
+        The board's frame sequence numbers (gaps = dropped frames). Default: ``arange(n) % 65536``.
+    flags : (n,) uint8
+        Frame flags (``rigctl.devices.wire.FrameFlag``). Default: zeros.
+    host_time_s : (n,) float64
+        Host receive time of each frame, s since the trial's first frame. Default: ``arange(n) / sample_rate_hz``.
+    force_g, force_time_s : (m,) float64
+        Load-cell force trace (g) and its host times (s, same clock and origin as ``host_time_s``).
+    speed_mm_s, speed_time_s : (k,) float64
+        Measured drum surface speed trace (mm/s) and its host times (s).
+    dropped_frames : int
+        Frames missing from ``seq`` within the trial.
+    crc_errors : int
+        Frames rejected by their CRC while the trial was captured.
+    attrs : dict
+        Trial attributes (setpoints, texture, profile, started_utc, ...); JSON-able scalars and strings.
+
+    Raises
+    ------
+    rigctl.core.sensor.LayoutError (a ValueError)
+        If ``taxels`` is not ``(n, layout.n_channels)``, holds values above ``layout.adc_max`` or non-integer values.
+    ValueError
+        If a per-sample array does not have ``n`` rows, or a trace and its times differ in length.
+    """
+
+    taxels: np.ndarray
+    seq: np.ndarray | None = None
+    flags: np.ndarray | None = None
+    host_time_s: np.ndarray | None = None
+    force_g: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    force_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    speed_mm_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    speed_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    dropped_frames: int = 0
+    crc_errors: int = 0
+    attrs: dict = field(default_factory=dict)
+    layout: SensorLayout = PAPER_SENSOR
+
+    def __post_init__(self) -> None:
+        taxels = self.layout.check_readings(self.taxels)
+        if taxels.dtype.kind == "f":
+            if taxels.size and not np.all(np.isfinite(taxels) & (taxels == np.round(taxels))):
+                raise LayoutError("taxels must be integer ADC counts; got non-integer floats (scale volts to "
+                                  "counts first, e.g. `rigctl import --volts-ref`)")
+        if taxels.size and taxels.dtype != np.uint16:
+            lo, hi = taxels.min(), taxels.max()
+            if lo < 0 or hi > self.layout.adc_max:
+                raise LayoutError(f"taxels must be ADC counts 0..{self.layout.adc_max} ({self.layout.adc_bits}-bit), "
+                                  f"got {lo}..{hi}")
+        elif taxels.size and int(taxels.max()) > self.layout.adc_max:
+            raise LayoutError(f"taxels must be ADC counts 0..{self.layout.adc_max} ({self.layout.adc_bits}-bit), got "
+                              f"a maximum of {int(taxels.max())}")
+        self.taxels = taxels.astype(np.uint16, copy=False)
+        n = taxels.shape[0]
+        self.seq = (np.arange(n) % 65536).astype(np.uint16) if self.seq is None else np.asarray(self.seq, np.uint16)
+        self.flags = np.zeros(n, np.uint8) if self.flags is None else np.asarray(self.flags, np.uint8)
+        if self.host_time_s is None:
+            self.host_time_s = np.arange(n, dtype=np.float64) / self.layout.sample_rate_hz
+        else:
+            self.host_time_s = np.asarray(self.host_time_s, np.float64)
+        for name in ("seq", "flags", "host_time_s"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"{name} must be ({n},) like taxels, got {getattr(self, name).shape}")
+        for value, times in (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s")):
+            v = np.asarray(getattr(self, value), np.float64).reshape(-1)
+            t = np.asarray(getattr(self, times), np.float64).reshape(-1)
+            if v.shape != t.shape:
+                raise ValueError(f"{value} {v.shape} and {times} {t.shape} must have the same length")
+            setattr(self, value, v)
+            setattr(self, times, t)
+        self.dropped_frames = int(self.dropped_frames)
+        self.crc_errors = int(self.crc_errors)
+        self.attrs = dict(self.attrs)
+
+    @property
+    def n_samples(self) -> int:
+        """Number of taxel frames (rows of ``taxels``)."""
+        return int(self.taxels.shape[0])
+
+    @property
+    def rate_hz(self) -> float:
+        """Nominal sample rate, Hz (``layout.sample_rate_hz``)."""
+        return self.layout.sample_rate_hz
+
+    @property
+    def duration_s(self) -> float:
+        """``n_samples / rate_hz``, s."""
+        return self.n_samples / self.layout.sample_rate_hz
+
+    def host_rate_hz(self) -> float:
+        """Device sample rate measured on the host clock, frames/s.
+
+        A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
+        scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
+        the last third of the trial, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames
+        (from ``seq``). Delays do not bias it, unlike a least-squares fit. NaN with fewer than 6 samples.
+        """
+        n = self.n_samples
+        if n < 6:
+            return math.nan
+        assert self.seq is not None and self.host_time_s is not None
+        steps = (np.diff(self.seq.astype(np.int64)) & 0xFFFF).astype(np.int64)
+        steps[steps == 0] = 1
+        index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
+        lag = self.host_time_s - index / self.layout.sample_rate_hz  # delay + drift, relative to the nominal rate
+        third = n // 3
+        a = int(np.argmin(lag[:third]))
+        b = n - third + int(np.argmin(lag[n - third:]))
+        dt = float(self.host_time_s[b] - self.host_time_s[a])
+        return float(index[b] - index[a]) / dt if dt > 0 else math.nan
