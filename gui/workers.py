@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.devices.wire import ADC_MAX, N_TAXELS, SAMPLE_RATE_HZ
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -267,19 +267,22 @@ class TraceBuffer:
     The GUI thread calls :meth:`pull` each refresh: it reads the frames that arrived since the last call from the
     taxel stream's ring buffer (:meth:`rigctl.devices.ring.RingBuffer.read_since`, cheap copies of a few dozen
     frames) so a frame reaches the screen without waiting for any worker. Times are stream time (frame number in the
-    ring / 1 kHz, s).
+    ring / ``layout.sample_rate_hz``, s); readings are ``(n, layout.n_channels)`` (``layout``: the stream's sensor,
+    default the paper's 3x3x2 at 1 kHz).
     """
 
-    def __init__(self, ring, *, seconds: float = 10.0, decimate: int = 4):
+    def __init__(self, ring, *, seconds: float = 10.0, decimate: int = 4, layout: SensorLayout | None = None):
         self.ring = ring
-        self.decimate = decimate
-        n = int(seconds * SAMPLE_RATE_HZ / decimate)
-        self._x = np.zeros((n, N_TAXELS), dtype=np.uint16)
+        self.layout = layout or PAPER_SENSOR
+        self.rate_hz = self.layout.sample_rate_hz
+        self.decimate = max(1, int(decimate))
+        n = max(1, int(seconds * self.rate_hz / self.decimate))
+        self._x = np.zeros((n, self.layout.n_channels), dtype=np.uint16)
         self._t = np.zeros(n)
         self._n = 0
         self.cursor = ring.total  # live only: no history
         self.n_samples = 0
-        self.current = np.zeros(N_TAXELS, dtype=np.uint16)
+        self.current = np.zeros(self.layout.n_channels, dtype=np.uint16)
         self.newest_host_time_s = float("nan")
 
     def pull(self) -> int:
@@ -290,7 +293,7 @@ class TraceBuffer:
             return 0
         idx = np.arange(self.cursor - n, self.cursor)  # absolute frame numbers of the stream
         pick = idx % self.decimate == 0
-        sub, sub_t = samples[pick], idx[pick] / SAMPLE_RATE_HZ
+        sub, sub_t = samples[pick], idx[pick] / self.rate_hz
         cap = len(self._x)
         if len(sub) > cap:
             sub, sub_t = sub[-cap:], sub_t[-cap:]
@@ -305,7 +308,7 @@ class TraceBuffer:
         return n
 
     def view(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(t (n,) s, readings (n, 18) uint16)``, oldest first."""
+        """``(t (n,) s, readings (n, n_channels) uint16)``, oldest first."""
         cap = len(self._x)
         if self._n <= cap:
             return self._t[: self._n], self._x[: self._n]
@@ -319,20 +322,18 @@ class LiveEncoder(threading.Thread):
 
     Reads the taxel stream's ring buffer with its own cursor every ``poll_s`` and puts the spikes into
     :attr:`sa` and :attr:`ra` (:class:`SpikeRing`, times in s of stream time =
-    frame number in the ring / 1 kHz, as :class:`TraceBuffer`). ``normaliser`` is a
-    :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
-    calibration); without one the full ADC range 0-1023 is used.
+    frame number in the ring / ``layout.sample_rate_hz``, as :class:`TraceBuffer`; one model step per sample).
+    ``layout`` is the stream's sensor (default ``taxels.layout``, else the paper's 3x3x2 at 1 kHz): one SA and one RA
+    train per channel. ``normaliser`` is a :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
+    calibration); without one the full ADC range 0-``layout.adc_max`` is used.
     """
 
-    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.04):
+    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.04, layout: SensorLayout | None = None):
         super().__init__(name="live-encoder", daemon=True)
         self.taxels = taxels
+        self.layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
         self.poll_s = poll_s
-        if normaliser is None:  # no calibration yet: the full ADC range
-            from rigctl.encoding.normalise import TaxelRange
-
-            normaliser = TaxelRange(np.zeros(N_TAXELS), np.full(N_TAXELS, float(ADC_MAX)))
-        self.normaliser = normaliser
+        self.normaliser = normaliser or self.full_range()
         self.n_samples = 0  # frames encoded since start
         self.sa = SpikeRing()
         self.ra = SpikeRing()
@@ -341,22 +342,29 @@ class LiveEncoder(threading.Thread):
         self._halt = threading.Event()
         self._reset_request = threading.Event()
 
+    def full_range(self):
+        """The full ADC range of every channel (no calibration yet)."""
+        from rigctl.encoding.normalise import TaxelRange
+
+        n = self.layout.n_channels
+        return TaxelRange(np.zeros(n), np.full(n, float(self.layout.adc_max)))
+
     @property
     def stream_time_s(self) -> float:
-        return self.n_samples / SAMPLE_RATE_HZ
+        return self.n_samples / self.layout.sample_rate_hz
 
     def stop(self) -> None:
         self._halt.set()
 
     def set_normaliser(self, taxel_range) -> None:
         """Use a new per-taxel range (a calibration) and start the encoder afresh."""
-        self.normaliser = taxel_range
+        self.normaliser = taxel_range or self.full_range()
         self._reset_request.set()
 
     def _make_encoder(self):
         from rigctl.encoding.izhikevich import StreamingEncoder
 
-        return StreamingEncoder(N_TAXELS, normalise=self.normaliser, fs=SAMPLE_RATE_HZ)
+        return StreamingEncoder(self.layout.n_channels, normalise=self.normaliser, fs=self.layout.sample_rate_hz)
 
     def run(self) -> None:
         ring = self.taxels.ring
@@ -366,7 +374,7 @@ class LiveEncoder(threading.Thread):
                 self._reset_request.clear()
                 try:
                     encoder = self._make_encoder()
-                    encoder.process(np.zeros((1, N_TAXELS), np.uint16))  # compile before going live
+                    encoder.process(np.zeros((1, self.layout.n_channels), np.uint16))  # compile before going live
                     encoder.reset()
                 except Exception as exc:  # noqa: BLE001 - shown in the live view; traces keep going
                     self.encoder_error = f"{type(exc).__name__}: {exc}"
@@ -382,7 +390,7 @@ class LiveEncoder(threading.Thread):
                 except Exception as exc:  # noqa: BLE001
                     self.encoder_error = f"{type(exc).__name__}: {exc}"
                 else:
-                    off = start / SAMPLE_RATE_HZ
+                    off = start / self.layout.sample_rate_hz
                     t, ch = chunk.events("sa")
                     self.sa.extend(t + off, ch)
                     t, ch = chunk.events("ra")
