@@ -1,0 +1,579 @@
+"""Encoded files: the one writer and the one reader of what ``rigctl encode`` produces (HDF5, h5py).
+
+An encoded file holds, for every encoded trial of a session, the spiking features of each variant, optionally the
+SA/RA spike trains, the per-taxel normalisation and the force coefficients (paper eqs. 1-5; Fig. 1B). It is written
+by :func:`rigctl.encoding.pipeline.encode_session` through :class:`EncodedWriter` and read by the analyses, the
+GUI and ``rigctl`` commands through :func:`open_encoded` (nobody else opens it with h5py).
+
+Layout (schema :data:`ENCODED_SCHEMA_VERSION` = 2)::
+
+    /trials                  compound table, one row per trial: trial_id u4, texture (variable-length UTF-8),
+                             group (variable-length UTF-8, "" when the texture set has none), speed_mm_s f4 (NaN
+                             when unknown), force_g f4 (NaN when unknown), profile (VL UTF-8), duration_s f4,
+                             n_samples u4 (samples at the session's own rate)
+    /features/<variant>      (n_trials, n_features) float32 (feature layout: rigctl.encoding.features)
+    /spikes/<variant>/       spike_times (s, float64) + spike_times_index (int64 row ends), NWB-style ragged;
+                             row = trial * n_trains + train; attrs n_trains, unit, trains
+    /force_coefficients      table (texture, speed_mm_s, force_g, taxel, coeff, converged, target_rate, rate)
+    /force_coefficients_label_free
+    /normalisation/          taxel_min, taxel_max (ADC counts, as the model saw them)
+    attrs: schema_version (2), kind ("rigctl encoded"), sensor_layout (JSON, rigctl.core.sensor.SensorLayout),
+           texture_set (JSON, rigctl.core.textures.TextureSet), parameters (JSON, EncodeParams), variants (JSON
+           list), n_trials, n_taxels, input_rate_hz, model_rate_hz, resampled (bool), resampling (text),
+           skipped_variants (JSON), source_session, encode_seconds, ...
+
+Schema 1 (files written before the schema was versioned, no ``schema_version`` attribute) still opens: the layout
+is inferred from the taxel count (the paper's 3x3x2 for 18 channels) at the rate in ``parameters`` (1 kHz), the
+texture set from the labels (with the stored groups), ``texture``/``group``/``profile`` were fixed-length bytes.
+
+The variant registry (:data:`VARIANTS`) is the one list of feature variants of rigctl: names, the paper's titles
+(Table 1, Fig. 3) and what each variant scales.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import h5py
+import numpy as np
+
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
+
+__all__ = [
+    "ENCODED_SCHEMA_VERSION", "ENCODED_KIND", "VariantInfo", "VARIANTS", "VARIANT_TITLES", "MAIN_VARIANTS",
+    "LABEL_FREE_VARIANTS", "REALTIME_VARIANTS", "ALL_VARIANTS", "variant_info", "EncodedWriter", "EncodedFile",
+    "open_encoded", "is_encoded_file", "NotEncodedError", "TRIAL_COLUMNS",
+]
+
+#: schema of the files :class:`EncodedWriter` writes; files without the attribute are schema 1
+ENCODED_SCHEMA_VERSION = 2
+#: the ``kind`` attribute of an encoded file
+ENCODED_KIND = "rigctl encoded"
+
+
+# ------------------------------------------------------------------------------------------------- variant registry
+@dataclass(frozen=True)
+class VariantInfo:
+    """One feature variant of the encoding (paper Table 1 columns, plus rigctl's label-free and real-time ones).
+
+    Attributes
+    ----------
+    name : str, the key under ``/features`` (``"speed_force_scaled"``).
+    title : str, the paper's name (``"Speed and Force Scaled"``).
+    speed_scaled : spike times scaled by the trial's speed (eq. 2): needs a finite, positive speed per trial.
+    force_scaled : SA input scaled by force coefficients (eq. 1).
+    label_free : force coefficients pooled over textures (not using the texture label).
+    realtime : the real-time system's features (top-layer SA trains only, 20 windows; Methods, real-time).
+    """
+
+    name: str
+    title: str
+    speed_scaled: bool = False
+    force_scaled: bool = False
+    label_free: bool = False
+    realtime: bool = False
+
+    @property
+    def main(self) -> bool:
+        """One of the paper's four Table 1 variants."""
+        return not (self.label_free or self.realtime)
+
+
+_REGISTRY = (
+    VariantInfo("original", "Original"),
+    VariantInfo("speed_scaled", "Speed Scaled", speed_scaled=True),
+    VariantInfo("force_scaled", "Force Scaled", force_scaled=True),
+    VariantInfo("speed_force_scaled", "Speed and Force Scaled", speed_scaled=True, force_scaled=True),
+    VariantInfo("force_scaled_label_free", "Force Scaled (label-free)", force_scaled=True, label_free=True),
+    VariantInfo("speed_force_scaled_label_free", "Speed and Force Scaled (label-free)", speed_scaled=True,
+                force_scaled=True, label_free=True),
+    VariantInfo("realtime_original", "Original (real-time)", realtime=True),
+    VariantInfo("realtime_speed_scaled", "Speed Scaled (real-time)", speed_scaled=True, realtime=True),
+)
+#: name -> :class:`VariantInfo`, in Table 1 order, then label-free, then real-time
+VARIANTS: dict[str, VariantInfo] = {v.name: v for v in _REGISTRY}
+#: name -> the paper's title
+VARIANT_TITLES: dict[str, str] = {v.name: v.title for v in _REGISTRY}
+#: the paper's four variants, Table 1 column order
+MAIN_VARIANTS: tuple[str, ...] = tuple(v.name for v in _REGISTRY if v.main)
+LABEL_FREE_VARIANTS: tuple[str, ...] = tuple(v.name for v in _REGISTRY if v.label_free)
+REALTIME_VARIANTS: tuple[str, ...] = tuple(v.name for v in _REGISTRY if v.realtime)
+ALL_VARIANTS: tuple[str, ...] = tuple(VARIANTS)
+
+
+def variant_info(name: str) -> VariantInfo:
+    """The registry entry of a variant. Raises KeyError naming the known variants."""
+    try:
+        return VARIANTS[name]
+    except KeyError:
+        raise KeyError(f"unknown variant {name!r}; choose from {', '.join(ALL_VARIANTS)}") from None
+
+
+def _variant_order(names: Iterable[str]) -> tuple[str, ...]:
+    names = list(names)
+    return tuple([v for v in ALL_VARIANTS if v in names] + [v for v in names if v not in VARIANTS])
+
+
+# ------------------------------------------------------------------------------------------------- helpers
+class NotEncodedError(ValueError):
+    """The file is not an encoded file (a session file with raw readings, or another HDF5 file, or not HDF5):
+    run ``rigctl encode`` on a session first."""
+
+
+#: columns of :attr:`EncodedFile.trials` (and of the ``/trials`` table)
+TRIAL_COLUMNS = ("trial_id", "texture", "group", "speed_mm_s", "force_g", "profile", "duration_s", "n_samples")
+
+_STR = h5py.string_dtype("utf-8")
+_TRIALS_DTYPE = np.dtype([("trial_id", "<u4"), ("texture", _STR), ("group", _STR), ("speed_mm_s", "<f4"),
+                          ("force_g", "<f4"), ("profile", _STR), ("duration_s", "<f4"), ("n_samples", "<u4")])
+
+
+def _text(values) -> np.ndarray:
+    """Bytes / object / str array -> numpy str array (UTF-8 decoded)."""
+    a = np.asarray(values)
+    if a.dtype.kind in "SO":
+        return np.array([v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in a.ravel()],
+                        dtype=str).reshape(a.shape)
+    return a.astype(str)
+
+
+def _attr_value(v: Any) -> Any:
+    if isinstance(v, bytes):
+        return v.decode("utf-8", "replace")
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _jsonable(v: Any) -> Any:
+    """An attribute value h5py can store: dicts/lists/tuples/None as JSON text, numpy scalars as Python."""
+    if isinstance(v, (dict, list, tuple)) or v is None:
+        return json.dumps(v, default=_json_default)
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    raise TypeError(f"{type(o).__name__} is not JSON-able")
+
+
+def is_encoded_file(path) -> bool:
+    """True if ``path`` is an HDF5 file with a ``/features`` group (an encoded file of any schema)."""
+    try:
+        with h5py.File(path, "r") as f:
+            return "features" in f
+    except (OSError, ValueError):
+        return False
+
+
+# ------------------------------------------------------------------------------------------------- writer
+class EncodedWriter:
+    """Writes one encoded file (the layout in the module docstring), under ``<name>.part`` until :meth:`close`
+    renames it into place; a writer left by an exception (context manager) removes the part file.
+
+    Parameters
+    ----------
+    path : the encoded .h5 to write.
+    layout : the session's :class:`SensorLayout` (stored as JSON; its rate is the *input* rate of the encoding).
+    textures : the session's :class:`TextureSet` (stored as JSON; gives each trial's group).
+    trials : mapping with the columns of :data:`TRIAL_COLUMNS` (``group`` optional: taken from ``textures``),
+        one entry per trial, in the row order of every feature matrix and spike table.
+    parameters : JSON-able encoding parameters (``EncodeParams`` as a dict).
+    overwrite : replace an existing ``path`` (default False: FileExistsError).
+    attrs : more root attributes (dicts and lists stored as JSON).
+
+    Raises
+    ------
+    FileExistsError when ``path`` exists and ``overwrite`` is False; ValueError for trial columns of unequal length
+    or without ``trial_id`` / ``texture``; rigctl.core.textures.TextureSetError for a label not in ``textures``.
+    """
+
+    def __init__(self, path, *, layout: SensorLayout, textures: TextureSet, trials: Mapping[str, Any],
+                 parameters: Mapping[str, Any] | None = None, overwrite: bool = False,
+                 attrs: Mapping[str, Any] | None = None):
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists (pass overwrite=True / --overwrite to replace it)")
+        self.part = self.path.with_name(self.path.name + ".part")
+        self.layout = layout
+        self.textures = textures
+        table = self._trials_table(trials, textures)
+        self.n_trials = int(table.size)
+        self._f = h5py.File(self.part, "w")
+        self._features: dict[str, h5py.Dataset] = {}
+        self._spikes: dict[str, h5py.Group] = {}
+        try:
+            self._f.create_dataset("trials", data=table)
+            a = self._f.attrs
+            a["schema_version"] = ENCODED_SCHEMA_VERSION
+            a["kind"] = ENCODED_KIND
+            a["sensor_layout"] = layout.to_json()
+            a["texture_set"] = textures.to_json()
+            a["parameters"] = json.dumps(dict(parameters or {}), default=_json_default)
+            a["n_trials"] = self.n_trials
+            a["n_taxels"] = layout.n_channels
+            self._f.create_group("features")
+            self._f.create_group("spikes")
+            self.set_attrs(**dict(attrs or {}))
+        except BaseException:
+            self.abort()
+            raise
+
+    @staticmethod
+    def _trials_table(trials: Mapping[str, Any], textures: TextureSet) -> np.ndarray:
+        if "trial_id" not in trials or "texture" not in trials:
+            raise ValueError("trials need at least 'trial_id' and 'texture' columns")
+        n = len(trials["trial_id"])
+        bad = [k for k, v in trials.items() if len(v) != n]
+        if bad:
+            raise ValueError(f"trial columns {bad} do not have {n} entries like trial_id")
+        out = np.zeros(n, dtype=_TRIALS_DTYPE)
+        texture = _text(trials["texture"])
+        out["trial_id"] = np.asarray(trials["trial_id"])
+        out["texture"] = np.array(texture, dtype=object)
+        if "group" in trials:
+            group = _text(trials["group"])
+        else:
+            group = np.array([textures.group_of(t) or "" for t in texture], dtype=str)
+        out["group"] = np.array(group, dtype=object)
+        out["profile"] = np.array(_text(trials.get("profile", np.full(n, "constant"))), dtype=object)
+        for k in ("speed_mm_s", "force_g", "duration_s"):
+            out[k] = np.asarray(trials.get(k, np.full(n, np.nan)), np.float64)
+        out["n_samples"] = np.asarray(trials.get("n_samples", np.zeros(n)))
+        return out
+
+    # -- content -------------------------------------------------------------------------------------------------
+    def set_attrs(self, **attrs: Any) -> None:
+        """Root attributes (dicts, lists and None stored as JSON text)."""
+        for k, v in attrs.items():
+            self._f.attrs[k] = _jsonable(v)
+
+    def write_normalisation(self, taxel_min, taxel_max, *, source: str = "") -> None:
+        """``/normalisation/taxel_min`` and ``taxel_max``: (n_taxels,) float64, the per-taxel range (ADC counts)."""
+        g = self._f.require_group("normalisation")
+        g.create_dataset("taxel_min", data=np.asarray(taxel_min, np.float64))
+        g.create_dataset("taxel_max", data=np.asarray(taxel_max, np.float64))
+        if source:
+            g.attrs["source"] = source
+
+    def write_force_coefficients(self, table: np.ndarray, *, label_free: bool = False, **attrs: Any) -> None:
+        """The force coefficient table (eq. 1) and its fit statistics (``n_not_converged``, ``n_coefficients``,
+        ``n_iter``, ``n_fit_trials``; also copied to root attributes ``<name>_<stat>``)."""
+        name = "force_coefficients_label_free" if label_free else "force_coefficients"
+        ds = self._f.create_dataset(name, data=table)
+        for k, v in attrs.items():
+            ds.attrs[k] = _jsonable(v)
+            if k in ("n_not_converged", "n_coefficients"):
+                self._f.attrs[f"{name}_{k}"] = _jsonable(v)
+
+    def note_force_coefficients(self, note: str, *, label_free: bool = False) -> None:
+        """Why there is no coefficient table (root attribute ``<name>_note``)."""
+        name = "force_coefficients_label_free" if label_free else "force_coefficients"
+        self._f.attrs[f"{name}_note"] = str(note)
+
+    def write_features(self, variant: str, start: int, rows) -> None:
+        """Rows ``start .. start + len(rows) - 1`` of ``/features/<variant>`` ((n_trials, n_features) float32; made
+        on the first call). Raises ValueError for a feature count that differs from earlier rows."""
+        rows = np.asarray(rows, np.float32)
+        ds = self._features.get(variant)
+        if ds is None:
+            ds = self._f["features"].create_dataset(
+                variant, shape=(self.n_trials, rows.shape[1]), dtype="f4",
+                chunks=(max(1, min(256, self.n_trials)), max(1, rows.shape[1])))
+            ds.attrs["title"] = VARIANTS[variant].title if variant in VARIANTS else variant
+            self._features[variant] = ds
+        if rows.shape[1] != ds.shape[1]:
+            raise ValueError(f"{variant}: {rows.shape[1]} features, earlier rows had {ds.shape[1]}")
+        ds[start:start + rows.shape[0]] = rows
+
+    def add_spikes(self, variant: str, n_trains: int, trains: str = "") -> None:
+        """Make ``/spikes/<variant>`` (appendable) for trains of ``n_trains`` per trial; ``trains`` says what they
+        are (e.g. ``"SA taxels 0..n-1 then RA taxels 0..n-1"``)."""
+        g = self._f["spikes"].create_group(variant)
+        g.create_dataset("spike_times", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 16,),
+                         compression="gzip", compression_opts=1)
+        g.create_dataset("spike_times_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1 << 14,),
+                         compression="gzip", compression_opts=1)
+        g.attrs["n_trains"] = int(n_trains)
+        g.attrs["unit"] = "s"
+        g.attrs["trains"] = trains
+        g.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
+        self._spikes[variant] = g
+
+    def append_spikes(self, variant: str, trains) -> None:
+        """Append the next trials' trains (anything with ``spike_times``, ``spike_times_index`` (row ends) and
+        ``n_trains``, e.g. :class:`rigctl.encoding.spikes.SpikeTrains`), in trial order.
+
+        Raises KeyError if :meth:`add_spikes` was not called for ``variant``; ValueError for another train count.
+        """
+        g = self._spikes[variant]
+        if int(trains.n_trains) != int(g.attrs["n_trains"]):
+            raise ValueError(f"{variant}: {trains.n_trains} trains per trial, the file has {g.attrs['n_trains']}")
+        times, index = g["spike_times"], g["spike_times_index"]
+        base = times.shape[0]
+        st = np.asarray(trains.spike_times, np.float64)
+        times.resize((base + st.size,))
+        times[base:] = st
+        m = index.shape[0]
+        idx = np.asarray(trains.spike_times_index, np.int64)
+        index.resize((m + idx.size,))
+        index[m:] = idx + base
+
+    # -- finish --------------------------------------------------------------------------------------------------
+    def close(self) -> Path:
+        """Close and rename the part file to ``path``; returns ``path``."""
+        if self._f:
+            self._f.close()
+        os.replace(self.part, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Close and delete the part file (nothing is written to ``path``)."""
+        try:
+            if self._f:
+                self._f.close()
+        finally:
+            self.part.unlink(missing_ok=True)
+
+    def __enter__(self) -> "EncodedWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# ------------------------------------------------------------------------------------------------- reader
+class EncodedFile:
+    """An open encoded file (read-only). Use :func:`open_encoded`; a context manager (closes the file).
+
+    Attributes
+    ----------
+    path : Path
+    attrs : dict of the root attributes (bytes decoded, numpy scalars as Python; JSON text left as text).
+    schema_version : int (1 for files written before the schema was versioned).
+    layout : :class:`SensorLayout` of the encoded session (rate = the session's sample rate).
+    textures : :class:`TextureSet` of the encoded session.
+    variants : tuple of the variants under ``/features`` (registry order, then others).
+    spike_variants : tuple of the variants whose spike trains are stored.
+    n_trials : int
+    """
+
+    def __init__(self, path, h5: h5py.File):
+        self.path = Path(path)
+        self._f = h5
+        self.attrs: dict[str, Any] = {k: _attr_value(v) for k, v in h5.attrs.items()}
+        self.schema_version = int(self.attrs.get("schema_version", 1))
+        self.variants: tuple[str, ...] = _variant_order(h5["features"])
+        self.spike_variants: tuple[str, ...] = _variant_order(h5["spikes"]) if "spikes" in h5 else ()
+        self._trials: dict[str, np.ndarray] | None = None
+        self.parameters: dict = self._json_attr("parameters", {})
+        self.layout = self._read_layout()
+        self.textures = self._read_textures()
+
+    def _json_attr(self, name: str, default: Any) -> Any:
+        raw = self.attrs.get(name)
+        if raw is None:
+            return default
+        try:
+            return json.loads(raw)
+        except (TypeError, ValueError):
+            return default
+
+    def _read_layout(self) -> SensorLayout:
+        if "sensor_layout" in self.attrs:
+            return SensorLayout.from_json(self.attrs["sensor_layout"])
+        # schema 1: the old pipeline assumed the paper's rig (1 kHz; 18 taxels = 3x3x2)
+        n = int(self.attrs.get("n_taxels", 0) or 0)
+        if not n and "normalisation" in self._f:
+            n = int(self._f["normalisation"]["taxel_min"].shape[0])
+        rate = float(self.parameters.get("fs_hz", 1000.0) or 1000.0)
+        return SensorLayout.for_channels(n or 18, sample_rate_hz=rate)
+
+    def _read_textures(self) -> TextureSet:
+        if "texture_set" in self.attrs:
+            return TextureSet.from_json(self.attrs["texture_set"])
+        cols = self.trials
+        labels = cols["texture"]
+        groups: dict[str, list[str]] = {}
+        for t, g in zip(labels, cols["group"]):
+            if g and t not in groups.setdefault(g, []):
+                groups[g].append(t)
+        ts = texture_set_from_labels(labels)
+        if ts is PAPER_TEXTURES or not groups:
+            return ts  # the paper's A-P (with its groups and geometry), or no groups stored
+        if all(g for g in cols["group"]):
+            return texture_set_from_labels(labels, groups=groups)
+        return ts  # some textures without a group: keep the set ungrouped
+
+    # -- content -------------------------------------------------------------------------------------------------
+    @property
+    def n_trials(self) -> int:
+        return int(len(self.trials["trial_id"]))
+
+    @property
+    def trials(self) -> dict[str, np.ndarray]:
+        """Per-trial labels, one array per column of :data:`TRIAL_COLUMNS`: ``trial_id`` int64, ``texture``,
+        ``group`` (``""`` when none), ``profile`` str arrays, ``speed_mm_s``, ``force_g`` (NaN when unknown),
+        ``duration_s`` float64 (s), ``n_samples`` int64 (samples at the session's rate). Read once, cached."""
+        if self._trials is None:
+            self._trials = self._read_trials()
+        return self._trials
+
+    def _read_trials(self) -> dict[str, np.ndarray]:
+        if "trials" not in self._f:
+            raise NotEncodedError(f"{self.path} has no /trials table")
+        obj = self._f["trials"]
+        if isinstance(obj, h5py.Group):  # some schema-1 writers: a group of column datasets
+            raw = {k: obj[k][()] for k in obj if isinstance(obj[k], h5py.Dataset)}
+        else:
+            data = obj[()]
+            if data.dtype.names is None:
+                raise NotEncodedError(f"{self.path}: /trials is neither a table nor a group of columns")
+            raw = {k: data[k] for k in data.dtype.names}
+        if "texture" not in raw:
+            raise NotEncodedError(f"{self.path}: /trials has no 'texture' column (has: {', '.join(raw)})")
+        n = len(raw["texture"])
+        cols: dict[str, np.ndarray] = {
+            "trial_id": np.asarray(raw.get("trial_id", np.arange(n)), np.int64),
+            "texture": _text(raw["texture"]),
+            "group": _text(raw["group"]) if "group" in raw else np.full(n, "", dtype=str),
+            "speed_mm_s": np.asarray(raw.get("speed_mm_s", np.full(n, np.nan)), np.float64),
+            "force_g": np.asarray(raw.get("force_g", np.full(n, np.nan)), np.float64),
+            "profile": _text(raw["profile"]) if "profile" in raw else np.full(n, "constant"),
+            "duration_s": np.asarray(raw.get("duration_s", np.full(n, np.nan)), np.float64),
+            "n_samples": np.asarray(raw.get("n_samples", np.zeros(n)), np.int64),
+        }
+        for k, v in raw.items():  # extra columns pass through
+            if k not in cols:
+                cols[k] = _text(v) if np.asarray(v).dtype.kind in "SO" else np.asarray(v)
+        return cols
+
+    def features(self, variant: str) -> np.ndarray:
+        """``(n_trials, n_features)`` float32 features of a variant (rows in :attr:`trials` order).
+
+        Raises KeyError naming the stored variants."""
+        if variant not in self._f["features"]:
+            raise KeyError(f"variant {variant!r} not in {self.path} (has: {', '.join(self.variants) or 'none'})")
+        return np.asarray(self._f["features"][variant][()], dtype=np.float32)
+
+    def n_trains(self, variant: str) -> int:
+        """Spike trains per trial behind a variant's features: from ``/spikes/<variant>`` if stored, else from the
+        layout (SA + RA per taxel; the real-time variants: the real-time taxels of ``parameters``)."""
+        if "spikes" in self._f and variant in self._f["spikes"]:
+            return int(self._f["spikes"][variant].attrs["n_trains"])
+        if variant in REALTIME_VARIANTS:
+            taxels = self.parameters.get("realtime_taxels")
+            return len(taxels) if taxels else len(self.layout.layer_channels(0))
+        return 2 * self.layout.n_channels
+
+    def spikes(self, variant: str):
+        """Spike trains of a variant as :class:`rigctl.encoding.spikes.SpikeTrains` (``spike_times`` s,
+        ``spike_times_index`` row ends, ``n_trains``; shape (n_trials, n_trains)).
+
+        Raises KeyError if the file has no spike trains for ``variant`` (encoded with ``--no-spikes``, or a variant
+        whose trains are not stored)."""
+        from rigctl.encoding.spikes import SpikeTrains
+
+        if variant not in self.spike_variants:
+            raise KeyError(f"no spike trains of {variant!r} in {self.path} "
+                           f"(stored: {', '.join(self.spike_variants) or 'none'})")
+        g = self._f["spikes"][variant]
+        return SpikeTrains(g["spike_times"][()], g["spike_times_index"][()], int(g.attrs["n_trains"]))
+
+    def spike_trains_description(self, variant: str) -> str:
+        """What the trains of a variant are (``"SA taxels 0..n-1 then RA taxels 0..n-1"``), "" if not stored."""
+        if variant not in self.spike_variants:
+            return ""
+        return str(_attr_value(self._f["spikes"][variant].attrs.get("trains", "")))
+
+    @property
+    def normalisation(self) -> dict[str, np.ndarray]:
+        """``{"taxel_min": (n_taxels,), "taxel_max": (n_taxels,)}`` float64 ADC counts: the per-taxel range the
+        encoding normalised with (needed to encode new trials the same way)."""
+        g = self._f["normalisation"]
+        return {"taxel_min": np.asarray(g["taxel_min"][()], np.float64),
+                "taxel_max": np.asarray(g["taxel_max"][()], np.float64)}
+
+    def force_coefficients(self, *, label_free: bool = False) -> np.ndarray | None:
+        """The eq. (1) coefficient table (structured array), or None when it was not fitted (see
+        ``attrs["force_coefficients_note"]``)."""
+        name = "force_coefficients_label_free" if label_free else "force_coefficients"
+        return self._f[name][()] if name in self._f else None
+
+    def force_fit_stats(self, *, label_free: bool = False) -> dict:
+        """Attributes of the coefficient table (``n_not_converged``, ``n_coefficients``, ...); {} when none."""
+        name = "force_coefficients_label_free" if label_free else "force_coefficients"
+        return {k: _attr_value(v) for k, v in self._f[name].attrs.items()} if name in self._f else {}
+
+    @property
+    def resampling(self) -> dict:
+        """``{"input_rate_hz", "model_rate_hz", "resampled"}``: the rate of the session, the model's step rate, and
+        whether the readings were resampled before encoding (schema 1: 1 kHz, 1 kHz, False)."""
+        rate = self.layout.sample_rate_hz
+        return {"input_rate_hz": float(self.attrs.get("input_rate_hz", rate)),
+                "model_rate_hz": float(self.attrs.get("model_rate_hz", self.parameters.get("fs_hz", rate))),
+                "resampled": bool(self.attrs.get("resampled", False))}
+
+    # -- lifetime ------------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "EncodedFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (f"EncodedFile({str(self.path)!r}, schema {self.schema_version}, {self.layout.shape_text} @ "
+                f"{self.layout.sample_rate_hz:g} Hz, variants {list(self.variants)})")
+
+
+def open_encoded(path) -> EncodedFile:
+    """Open an encoded file for reading (any schema; see the module docstring).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    NotEncodedError (a ValueError)
+        Not HDF5, or no ``/features`` (e.g. a session file: the message says to run ``rigctl encode``), or no
+        ``/trials``, or a schema newer than this rigctl reads.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise NotEncodedError(f"{path} is not an HDF5 file ({exc})") from None
+    try:
+        if "features" not in f:
+            kind = "a session file (raw taxel readings)" if ("plan" in f or "trials" in f) else "not an encoded file"
+            raise NotEncodedError(f"{path} is {kind}: it has no /features; run `rigctl encode {path}` first")
+        version = int(_attr_value(f.attrs.get("schema_version", 1)))
+        if version > ENCODED_SCHEMA_VERSION:
+            raise NotEncodedError(f"{path} is an encoded file of schema {version}; this rigctl reads up to "
+                                  f"{ENCODED_SCHEMA_VERSION} (upgrade rigctl)")
+        return EncodedFile(path, f)
+    except BaseException:
+        f.close()
+        raise
