@@ -75,6 +75,18 @@ class DrumStatus:
         )
 
 
+class _WallClock:
+    """The host's clock: ``time.monotonic`` and ``time.sleep`` (s)."""
+
+    @staticmethod
+    def now() -> float:
+        return time.monotonic()
+
+    @staticmethod
+    def sleep(s: float) -> None:
+        time.sleep(s)
+
+
 class DrumClient:
     """Client of the drum controller on a serial port (Modbus RTU, 8N1).
 
@@ -92,6 +104,14 @@ class DrumClient:
         Retries of a request that got no answer, before :class:`DrumTimeout`.
     poll_s : float
         Polling period of the ``wait_*`` methods, s.
+    transport : object or None
+        The Modbus master to use instead of a pymodbus serial client on ``port``: anything with pymodbus'
+        ``connect()``, ``close()``, ``read_holding_registers``, ``read_input_registers``, ``write_register``,
+        ``write_registers`` (keyword ``device_id``) returning responses with ``registers`` / ``isError()``. The
+        in-process backend (:mod:`rigctl.simulation.inprocess`) passes one that calls the controller logic directly.
+    clock : object or None
+        ``now() -> s`` and ``sleep(s)`` used by the ``wait_*`` polls (default: ``time.monotonic`` / ``time.sleep``);
+        the in-process backend passes its simulated clock, so a wait advances simulated time, not wall time.
 
     Raises (all methods)
     --------------------
@@ -106,14 +126,15 @@ class DrumClient:
     """
 
     def __init__(self, port: str, *, baudrate: int = wire.DRUM_BAUD, device_id: int = wire.DRUM_DEVICE_ID,
-                 timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05):
+                 timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05, transport=None, clock=None):
         self.port = port
         self.device_id = device_id
         self.timeout_s = timeout_s
         self.retries = retries
         self.poll_s = poll_s
         self._lock = threading.RLock()
-        self._client = ModbusSerialClient(
+        self._clock = clock or _WallClock()
+        self._client = transport if transport is not None else ModbusSerialClient(
             port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8, parity="N", stopbits=1,
             timeout=timeout_s, retries=retries, reconnect_delay=0.1, reconnect_delay_max=1.0,
         )
@@ -317,7 +338,8 @@ class DrumClient:
         return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
 
     def _wait(self, done, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
-        deadline = time.monotonic() + timeout_s
+        clock = self._clock
+        deadline = clock.now() + timeout_s
         status = None
         while True:
             status = self.read_status()
@@ -325,11 +347,11 @@ class DrumClient:
                 raise DrumFault(status.faults, f"while waiting for {what}")
             if done(status):
                 return status
-            if time.monotonic() >= deadline:
+            if clock.now() >= deadline:
                 raise DrumTimeout(
                     f"drum controller did not reach {what} within {timeout_s:g} s (state {status.state.name}, "
                     f"force {status.force_g:g} g, speed {status.speed_mm_s:g} mm/s)")
-            time.sleep(self.poll_s)
+            clock.sleep(self.poll_s)
 
     def wait_state(self, states, timeout_s: float) -> DrumStatus:
         """Poll until the state is one of ``states``; returns the status. DrumFault on a fault (unless FAULT is
