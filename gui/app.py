@@ -37,6 +37,14 @@ def make_settings() -> QtCore.QSettings:
     return QtCore.QSettings(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, "rigctl", "gui")
 
 
+def sensor_layout(handle):
+    """The :class:`rigctl.core.sensor.SensorLayout` of an open rig: its taxel stream's (from the board's identify
+    reply), else the rig's, else the paper's 3x3x2 at 1 kHz."""
+    from rigctl.core.sensor import PAPER_SENSOR
+
+    return (getattr(handle.taxels, "layout", None) or getattr(handle.rig, "layout", None) or PAPER_SENSOR)
+
+
 class MainWindow(QtWidgets.QMainWindow):
     """The rigctl main window. ``source=None`` reads the last source from QSettings (simulated rig by default)."""
 
@@ -156,11 +164,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.poller = StatusPoller(h.drum, period_s=0.1)
         self.poller.start()
         self.commands = CommandExecutor(h.drum)
-        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig))
+        layout = sensor_layout(h)
+        self.calibration.attach(h, layout)
+        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig, layout), layout=layout)
         self.encoder.start()
         self.control.attach(h.drum, self.poller, self.commands, h.rig)
-        self.calibration.attach(h)
-        self.live.attach(h.taxels, self.encoder)
+        self.live.attach(h.taxels, self.encoder, layout)
         self._update_source_label("connected")
         # everything long-lived exists now: move it out of the cyclic GC's reach, so full collections (which
         # otherwise traverse every Qt wrapper and pyqtgraph item, ~150 ms) do not stall the display
@@ -246,7 +255,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--quit-after", type=float, metavar="SECONDS", help="quit after this many seconds")
     ap.add_argument("--tab", choices=TAB_NAMES, help="tab to show first")
     ap.add_argument("--run", action="store_true", help="press and run the drum at the setpoints once connected")
-    ap.add_argument("--texture", metavar="LETTER", help="mount this texture plate (A-P) once connected")
+    ap.add_argument("--texture", metavar="LABEL", help="mount this texture plate (a label of the rig's texture set, "
+                    "A-P on the paper's rig) once connected")
     ap.add_argument("--stats-out", metavar="PATH", help="append display statistics (JSON lines) every second "
                     "(benchmarks/bench_gui.py)")
     return ap.parse_args(argv)
@@ -303,7 +313,7 @@ def main(argv=None) -> int:
                 QtCore.QTimer.singleShot(200, _run_when_ready)
                 return
             if args.texture:
-                window.control.mount_plate(args.texture.upper())
+                window.control.mount_plate(args.texture)
             if args.run:
                 window.control.command("run")
 

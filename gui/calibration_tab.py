@@ -1,6 +1,10 @@
 """Calibration tab: load-cell calibration with a known mass and per-taxel normalisation, both through
 :mod:`rigctl.acquisition.calibration` (run in a worker thread). Results go into the rig config file, which the
-acquisition copies into every session file; the taxel normalisation also feeds the live encoder at once."""
+acquisition copies into every session file; the taxel normalisation also feeds the live encoder at once.
+
+The normalisation has one min/max per taxel of the connected sensor (``layout.n_channels`` of the stream's
+:class:`rigctl.core.sensor.SensorLayout`, default the paper's 18); a stored normalisation for another channel count
+is shown as not matching and not used."""
 
 from __future__ import annotations
 
@@ -12,7 +16,18 @@ import pyqtgraph as pg
 from PySide6 import QtWidgets
 
 from gui.workers import Job
-from rigctl.devices.wire import ADC_MAX, N_TAXELS
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+
+
+def axis_layers(layout: SensorLayout) -> str:
+    """The taxel spans of the layers for an axis label: ``"0-8 top, 9-17 bottom"`` for the paper's sensor,
+    ``"0-8"`` for a single unnamed layer."""
+    parts = []
+    for i, la in enumerate(layout.layers):
+        ch = layout.layer_channels(i)
+        span = f"{ch.start}-{ch.stop - 1}" if len(ch) > 1 else f"{ch.start}"
+        parts.append(span if la.name in ("", "taxels") else f"{span} {la.name}")
+    return ", ".join(parts)
 
 
 class CalibrationTab(QtWidgets.QWidget):
@@ -22,6 +37,7 @@ class CalibrationTab(QtWidgets.QWidget):
         super().__init__(parent)
         self.main = main
         self.handle = None
+        self.layout: SensorLayout = PAPER_SENSOR
         self.job: Job | None = None
         self._mass_event = threading.Event()
 
@@ -61,11 +77,10 @@ class CalibrationTab(QtWidgets.QWidget):
         self.norm_info.setWordWrap(True)
         self.norm_plot = pg.PlotWidget(title="Per-taxel range (ADC counts)")
         self.norm_plot.setMinimumHeight(220)
-        self.norm_plot.setLabel("bottom", "taxel (0-8 top, 9-17 bottom)")
-        self.norm_plot.setYRange(0, ADC_MAX)
-        self.norm_bars = pg.BarGraphItem(x=np.arange(N_TAXELS), y0=np.zeros(N_TAXELS), height=np.zeros(N_TAXELS),
-                                         width=0.7, brush="#1f77b4")
+        self.norm_bars = pg.BarGraphItem(x=np.arange(1), y0=np.zeros(1), height=np.zeros(1), width=0.7,
+                                         brush="#1f77b4")
         self.norm_plot.addItem(self.norm_bars)
+        self.set_layout(PAPER_SENSOR)
         nf = QtWidgets.QFormLayout()
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.norm_seconds)
@@ -94,8 +109,18 @@ class CalibrationTab(QtWidgets.QWidget):
         self._enable(False)
 
     # ------------------------------------------------------------------------------------------------------
-    def attach(self, handle) -> None:
+    def set_layout(self, layout: SensorLayout) -> None:
+        """Show the per-taxel range of ``layout.n_channels`` taxels on 0-``layout.adc_max`` counts."""
+        self.layout = layout
+        n = layout.n_channels
+        self.norm_plot.setLabel("bottom", f"taxel ({axis_layers(layout)})")
+        self.norm_plot.setYRange(0, layout.adc_max)
+        self.norm_bars.setOpts(x=np.arange(n), y0=np.zeros(n), height=np.zeros(n))
+
+    def attach(self, handle, layout: SensorLayout | None = None) -> None:
+        """Bind to an open rig; ``layout`` defaults to the taxel stream's (the paper's sensor without one)."""
         self.handle = handle
+        self.set_layout(layout or getattr(handle.taxels, "layout", None) or PAPER_SENSOR)
         self._enable(True)
         self.show_config()
 
@@ -117,12 +142,14 @@ class CalibrationTab(QtWidgets.QWidget):
             self.status.setText(f"rig config: {exc}")
             return {}
 
-    def taxel_range(self, rig=None):
-        """The stored per-taxel normalisation as a :class:`rigctl.encoding.normalise.TaxelRange`, or None."""
+    def taxel_range(self, rig=None, layout: SensorLayout | None = None):
+        """The stored per-taxel normalisation as a :class:`rigctl.encoding.normalise.TaxelRange`, or None (none
+        stored, or stored for another channel count than ``layout``'s, default this tab's layout)."""
         from rigctl.encoding.normalise import TaxelRange
 
+        layout = layout or self.layout
         block = (rig.taxel_normalisation() if rig is not None else None) or self._config().get("taxel_normalisation")
-        if not block:
+        if not block or len(block["taxel_min"]) != layout.n_channels:
             return None
         return TaxelRange(np.asarray(block["taxel_min"], float), np.asarray(block["taxel_max"], float))
 
@@ -139,15 +166,20 @@ class CalibrationTab(QtWidgets.QWidget):
             if lc else "not calibrated (the controller's EEPROM scale is used)"
         )
         tn = cfg.get("taxel_normalisation")
-        if tn:
+        n = self.layout.n_channels
+        if tn and len(tn["taxel_min"]) != n:
+            self.norm_bars.setOpts(y0=np.zeros(n), height=np.zeros(n))
+            self.norm_info.setText(f"stored for {len(tn['taxel_min'])} taxels, but this sensor has {n}: not used; "
+                                   f"the live encoder uses the full ADC range 0-{self.layout.adc_max}")
+        elif tn:
             lo, hi = np.asarray(tn["taxel_min"], float), np.asarray(tn["taxel_max"], float)
             self.norm_bars.setOpts(y0=lo, height=hi - lo)
             self.norm_info.setText(f"{tn.get('n_trials', 0)} capture(s) from {tn.get('source', '?')}, "
                                    f"{tn.get('calibrated_utc', '')}; span {np.min(hi - lo):.0f}-{np.max(hi - lo):.0f}"
                                    " counts")
         else:
-            self.norm_bars.setOpts(y0=np.zeros(N_TAXELS), height=np.zeros(N_TAXELS))
-            self.norm_info.setText("none: the live encoder uses the full ADC range 0-1023")
+            self.norm_bars.setOpts(y0=np.zeros(n), height=np.zeros(n))
+            self.norm_info.setText(f"none: the live encoder uses the full ADC range 0-{self.layout.adc_max}")
 
     # ------------------------------------------------------------------------------------------------------
     def calibrate_loadcell(self) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
 
 #: what each controller state means, for the operator (docs/wire-protocol.md table 2.4)
@@ -98,9 +99,8 @@ class ControlPanel(QtWidgets.QWidget):
             grid.addWidget(b, i // 2, i % 2)
         self.plate = QtWidgets.QComboBox()
         self.plate.setObjectName("plate")
-        self.plate.addItems(list("ABCDEFGHIJKLMNOP"))
-        self.plate.setToolTip("Texture plate A-P (paper Fig. 2B). Simulated rig: mounts it. Real rig: the operator "
-                              "mounts it while the sensor is released, then presses the button.")
+        self.textures = None
+        self.set_textures(PAPER_TEXTURES)
         self.mount_btn = QtWidgets.QPushButton("Mount plate")
         self.mount_btn.setObjectName("btn_mount")
         self.mount_btn.clicked.connect(self.mount_plate)
@@ -168,6 +168,26 @@ class ControlPanel(QtWidgets.QWidget):
         if hasattr(self, "limits_label"):
             self.limits_label.setText(f"controller limits: {speed_max_mm_s:g} mm/s, {force_max_g:g} g")
 
+    def set_textures(self, textures: TextureSet | None) -> None:
+        """Offer the plates of ``textures`` (the rig's texture set; the paper's A-P by default). ``None`` (a rig
+        whose operator mounts any plate): the plate box takes any label typed in."""
+        self.textures = textures
+        current = self.plate.currentText()
+        self.plate.clear()
+        self.plate.setEditable(textures is None)
+        if textures is None:
+            self.plate.setToolTip("Texture plate: type its label. The operator mounts it while the sensor is "
+                                  "released, then presses the button.")
+            self.plate.setEditText(current)
+            return
+        self.plate.addItems(list(textures.labels))
+        if current in textures.labels:
+            self.plate.setCurrentText(current)
+        which = ("A-P (paper Fig. 2B)" if textures == PAPER_TEXTURES
+                 else f"of the set {textures.name!r}" if textures.name else "of the rig's texture set")
+        self.plate.setToolTip(f"Texture plate {which}. Simulated rig: mounts it. Real rig: the operator "
+                              "mounts it while the sensor is released, then presses the button.")
+
     def set_enabled(self, on: bool) -> None:
         for w in [self.apply_btn, self.mount_btn, *self.buttons.values()]:
             w.setEnabled(on)
@@ -176,6 +196,7 @@ class ControlPanel(QtWidgets.QWidget):
         """Bind to a connected drum (``DrumClient``), its status poller and command executor, and the
         :class:`rigctl.acquisition.rig.Rig` (its ``press`` waits for the force to settle)."""
         self.drum, self.poller, self.commands, self.rig = drum, poller, commands, rig
+        self.set_textures(getattr(rig, "textures", PAPER_TEXTURES) if rig is not None else PAPER_TEXTURES)
         try:
             spd = drum.read_holding(HoldingRegister.SPEED_LIMIT_0P1MMS) / 10.0
             frc = float(drum.read_holding(HoldingRegister.FORCE_LIMIT_G))
@@ -213,14 +234,21 @@ class ControlPanel(QtWidgets.QWidget):
                 return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
 
-    def mount_plate(self, letter: str | None = None) -> None:
-        """Release the sensor and mount texture plate ``letter`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
-        on hardware the operator has mounted it when pressing the button)."""
+    def mount_plate(self, label: str | None = None) -> None:
+        """Release the sensor and mount texture plate ``label`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
+        on hardware the operator has mounted it when pressing the button). The label is taken in the set's spelling
+        (``"l"`` -> ``"L"``); a label the set does not have is refused in the panel's message line."""
         if self.commands is None or self.rig is None:
             return
-        letter = letter or self.plate.currentText()
-        self.plate.setCurrentText(letter)
-        self.commands.submit(f"mount plate {letter}", self.rig.mount_texture, letter, lambda _msg: None)
+        label = label or self.plate.currentText()
+        if self.textures is not None:
+            try:
+                label = self.textures.resolve(label)
+            except TextureSetError as exc:
+                self.show_result(False, str(exc))
+                return
+        self.plate.setCurrentText(label)
+        self.commands.submit(f"mount plate {label}", self.rig.mount_texture, label, lambda _msg: None)
 
     def show_result(self, ok: bool, text: str) -> None:
         self.message.setStyleSheet("" if ok else "color: #c00;")

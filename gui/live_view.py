@@ -1,5 +1,10 @@
-"""Live view: the 18 taxel traces (scrolling, last N seconds), a 3x3 top/bottom heat map of the current readings,
-and the live SA and RA spike rasters of all 36 spike trains from the streaming encoder.
+"""Live view: the taxel traces (scrolling, last N seconds) and a heat map of the current readings, one of each per
+layer of the sensor, and the live SA and RA spike rasters (one train per taxel each) from the streaming encoder.
+
+Everything follows the stream's :class:`rigctl.core.sensor.SensorLayout` (``TaxelStream.layout``; default the paper's
+3x3x2 at 1 kHz, 10-bit): the number of trace plots and heat maps (one per layer, each heat map the layer's rows x
+cols grid), the raster rows (``layout.n_channels`` trains per population), the time axes (``sample_rate_hz``) and
+the count ranges (``adc_max``).
 
 Everything is drawn from fixed-size buffers filled from the taxel stream's ring buffer (never the file):
 :class:`gui.workers.TraceBuffer` (pulled in the GUI thread, so a frame reaches the screen without waiting for a
@@ -18,10 +23,37 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from gui.workers import TraceBuffer
-from rigctl.devices.wire import ADC_MAX, N_TAXELS, N_TAXELS_PER_LAYER
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 #: most spikes drawn per population and refresh; beyond that the newest are kept (decimation)
 MAX_DRAWN_SPIKES = 12_000
+#: trace samples per second on screen (the stream is decimated to about this)
+SCREEN_RATE_HZ = 200.0
+
+
+def layer_titles(layout: SensorLayout, i: int) -> tuple[str, str]:
+    """``(trace title, heat-map title)`` of layer ``i``, e.g. ``("Top layer (type I) taxels 0-8",
+    "Top 3x3 (type I) now")`` for the paper's sensor, ``("Taxels 0-8 (type I)", "3x3 taxels (type I) now")`` for a
+    single unnamed layer."""
+    la = layout.layers[i]
+    ch = layout.layer_channels(i)
+    span = f"{ch.start}-{ch.stop - 1}" if len(ch) > 1 else f"{ch.start}"
+    rec = f" ({la.receptor})" if la.receptor else ""
+    grid = f"{la.rows}x{la.cols}"
+    if la.name in ("", "taxels"):
+        return f"Taxels {span}{rec}", f"{grid} taxels{rec} now"
+    name = la.name[:1].upper() + la.name[1:]
+    return f"{name} layer{rec} taxels {span}", f"{name} {grid}{rec} now"
+
+
+def raster_ticks(layout: SensorLayout) -> list[tuple[int, str]]:
+    """Left-axis ticks of a raster: every 3rd taxel for the paper's 18 (about six ticks for any count); the channel
+    names when the layout has its own and they fit (<= 20 channels)."""
+    n = layout.n_channels
+    if layout.channel_names is not None and n <= 20:
+        return list(enumerate(layout.channel_names))
+    step = max(1, int(round(n / 6)))
+    return [(i, str(i)) for i in range(0, n, step)]
 
 
 def raster_segments(t: np.ndarray, ch: np.ndarray, out: np.ndarray, *, height: float = 0.8) -> int:
@@ -52,12 +84,15 @@ class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
 
 
 class LiveView(QtWidgets.QWidget):
-    """The live tab. Call :meth:`attach` with the taxel stream and a running :class:`gui.workers.LiveEncoder`."""
+    """The live tab. Call :meth:`attach` with the taxel stream and a running :class:`gui.workers.LiveEncoder`; the
+    plots are rebuilt for the stream's layout (``layout`` is the one shown before anything is attached)."""
 
-    def __init__(self, parent=None, *, window_s: float = 5.0, raster_s: float = 2.0):
+    def __init__(self, parent=None, *, window_s: float = 5.0, raster_s: float = 2.0,
+                 layout: SensorLayout = PAPER_SENSOR):
         super().__init__(parent)
         self.encoder = None
         self.buffer = None
+        self.layout = None
         self.window_s = window_s
         self.raster_s = raster_s
         self._seg = {k: np.zeros((2 * MAX_DRAWN_SPIKES, 2)) for k in ("sa", "ra")}
@@ -71,76 +106,93 @@ class LiveView(QtWidgets.QWidget):
         self.window_box = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=1, minimum=1.0, maximum=10.0, value=window_s)
         self.window_box.valueChanged.connect(self.set_window)
         self.info = QtWidgets.QLabel("")
+        self.sensor_label = QtWidgets.QLabel("")
         bar = QtWidgets.QHBoxLayout()
         bar.addWidget(QtWidgets.QLabel("Trace window"))
         bar.addWidget(self.window_box)
+        bar.addWidget(self.sensor_label)
         bar.addStretch(1)
         bar.addWidget(self.info)
 
         self.gl = TimedGraphicsLayout()
         self.gl.painted.connect(self._on_painted)
         self.gl.ci.layout.setSpacing(4)
+        self.set_layout(layout)
 
-        # traces: top layer and bottom layer
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.addLayout(bar)
+        lay.addWidget(self.gl, 1)
+
+    def set_layout(self, layout: SensorLayout) -> None:
+        """Build the plots for ``layout``: per layer a trace plot (one curve per taxel) and a rows x cols heat map,
+        and an SA and an RA raster of ``layout.n_channels`` rows. Nothing is rebuilt when the layout is unchanged."""
+        if layout == self.layout:
+            return
+        self.layout = layout
+        self.gl.clear()
+        self.sensor_label.setText(f"  sensor {layout.shape_text}, {layout.n_channels} taxels, "
+                                  f"{layout.sample_rate_hz:g} Hz, {layout.adc_bits}-bit")
+        self.sensor_label.setToolTip(layout.describe())
+        n_layers, adc_max, labels = layout.n_layers, layout.adc_max, layout.channel_labels()
+
+        # traces: one plot per layer
         self.trace_plots = []
         self.curves = []
-        layers = ["Top layer (type I) taxels 0-8", "Bottom layer (type II) taxels 9-17"]
-        for row, name in enumerate(layers):
-            p = self.gl.addPlot(row=row, col=0, title=name)
+        for i in range(n_layers):
+            p = self.gl.addPlot(row=i, col=0, title=layer_titles(layout, i)[0])
             p.setLabel("left", "ADC counts")
-            p.setYRange(0, ADC_MAX, padding=0.02)
-            p.setXRange(-window_s, 0, padding=0)
+            p.setYRange(0, adc_max, padding=0.02)
+            p.setXRange(-self.window_s, 0, padding=0)
             p.setMouseEnabled(x=False, y=True)
             p.hideButtons()
             p.disableAutoRange()
-            for k in range(N_TAXELS_PER_LAYER):
-                c = pg.PlotCurveItem(pen=pg.mkPen(pg.intColor(k, N_TAXELS_PER_LAYER), width=1), skipFiniteCheck=True)
+            chans = layout.layer_channels(i)
+            for k, ch in enumerate(chans):
+                c = pg.PlotCurveItem(pen=pg.mkPen(pg.intColor(k, len(chans)), width=1), skipFiniteCheck=True,
+                                     name=labels[ch])
                 p.addItem(c)
                 self.curves.append(c)
             self.trace_plots.append(p)
         # no setXLink: with PySide6 6.12 + pyqtgraph 0.14 a linked-view update crashes the interpreter
         # ("deallocating None" in ViewBox.linkedViewChanged); each plot's x range is set explicitly instead
 
-        # heat maps
-        hm = self.gl.addLayout(row=0, col=1, rowspan=2)
+        # heat maps: one per layer, its rows x cols grid
+        hm = self.gl.addLayout(row=0, col=1, rowspan=n_layers)
         self.images = []
         cmap = pg.colormap.get("viridis")
-        for r, name in enumerate(["Top 3x3 (type I) now", "Bottom 3x3 (type II) now"]):
-            hm.addLabel(name, row=2 * r, col=0, size="9pt")
-            vb = hm.addViewBox(row=2 * r + 1, col=0, lockAspect=True, enableMouse=False, invertY=True)
-            img = pg.ImageItem(np.zeros((3, 3)), axisOrder="row-major")
+        for i, la in enumerate(layout.layers):
+            hm.addLabel(layer_titles(layout, i)[1], row=2 * i, col=0, size="9pt")
+            vb = hm.addViewBox(row=2 * i + 1, col=0, lockAspect=True, enableMouse=False, invertY=True)
+            img = pg.ImageItem(np.zeros((la.rows, la.cols)), axisOrder="row-major")
             img.setLookupTable(cmap.getLookupTable(nPts=256))
-            img.setLevels((0, ADC_MAX))
+            img.setLevels((0, adc_max))
             vb.addItem(img)
             self.images.append(img)
-        hm.addLabel("colour: 0-1023 ADC counts (viridis)", row=4, col=0, size="8pt")
+        hm.addLabel(f"colour: 0-{adc_max} ADC counts (viridis)", row=2 * n_layers, col=0, size="8pt")
         hm.layout.setColumnFixedWidth(0, 170)
 
-        # rasters
+        # rasters: one row per taxel
+        n = layout.n_channels
         self.raster_plots = {}
         self.raster_curves = {}
         for row, (key, title, colour) in enumerate(
-            [("sa", "SA spike raster (18 trains)", "#1f77b4"), ("ra", "RA spike raster (18 trains)", "#d62728")],
-            start=2,
+            [("sa", f"SA spike raster ({n} trains)", "#1f77b4"), ("ra", f"RA spike raster ({n} trains)", "#d62728")],
+            start=n_layers,
         ):
             p = self.gl.addPlot(row=row, col=0, colspan=2, title=title)
-            p.setYRange(-0.5, N_TAXELS - 0.5, padding=0)
-            p.setXRange(-raster_s, 0, padding=0)
+            p.setYRange(-0.5, n - 0.5, padding=0)
+            p.setXRange(-self.raster_s, 0, padding=0)
             p.setMouseEnabled(x=False, y=False)
             p.disableAutoRange()
             p.hideButtons()
             p.setLabel("left", "taxel")
-            p.getAxis("left").setTicks([[(i, str(i)) for i in range(0, N_TAXELS, 3)]])
+            p.getAxis("left").setTicks([raster_ticks(layout)])
             c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), connect="pairs", skipFiniteCheck=True)
             p.addItem(c)
             self.raster_plots[key] = p
             self.raster_curves[key] = c
         self.raster_plots["ra"].setLabel("bottom", "time before now (s)")
-        self.trace_plots[1].setLabel("bottom", "time before now (s)")
-
-        lay = QtWidgets.QVBoxLayout(self)
-        lay.addLayout(bar)
-        lay.addWidget(self.gl, 1)
+        self.trace_plots[-1].setLabel("bottom", "time before now (s)")
 
     def set_window(self, seconds: float) -> None:
         """Show the last ``seconds`` (1-10 s) of the taxel traces."""
@@ -148,9 +200,13 @@ class LiveView(QtWidgets.QWidget):
         for p in self.trace_plots:
             p.setXRange(-self.window_s, 0, padding=0)
 
-    def attach(self, taxels, encoder) -> None:
-        """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes."""
-        self.buffer = TraceBuffer(taxels.ring, seconds=10.0, decimate=5)  # 200 Hz on screen
+    def attach(self, taxels, encoder, layout: SensorLayout | None = None) -> None:
+        """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes, with the
+        plots built for ``layout`` (default the stream's ``layout``; the paper's sensor for a stream without one)."""
+        layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
+        self.set_layout(layout)
+        decimate = max(1, int(round(layout.sample_rate_hz / SCREEN_RATE_HZ)))  # 1 kHz: every 5th frame
+        self.buffer = TraceBuffer(taxels.ring, seconds=10.0, decimate=decimate, layout=layout)
         self.encoder = encoder
 
     def detach(self) -> None:
@@ -174,8 +230,9 @@ class LiveView(QtWidgets.QWidget):
         for k, c in enumerate(self.curves):
             c.setData(t, x[:, k], skipFiniteCheck=True)
         cur = buf.current.astype(float)
-        self.images[0].setImage(cur[:9].reshape(3, 3), autoLevels=False)
-        self.images[1].setImage(cur[9:].reshape(3, 3), autoLevels=False)
+        for i, (img, la) in enumerate(zip(self.images, self.layout.layers)):
+            ch = self.layout.layer_channels(i)
+            img.setImage(cur[ch.start:ch.stop].reshape(la.rows, la.cols), autoLevels=False)
         t0 = now - self.raster_s
         for key, ring in (("sa", enc.sa), ("ra", enc.ra)) if enc is not None else ():
             st, sc = ring.since(t0)

@@ -1,0 +1,281 @@
+"""The live view, the calibration tab and the control panel follow the sensor description (SensorLayout) and the
+rig's texture set: a 3x3 single-layer sensor at 100 Hz, a 4x4 single layer (16 taxels) and the paper's 3x3x2 at
+1 kHz, fed with frames directly through the widgets' update path (no rig), plus the real streaming encoder on a
+9-channel 100 Hz stream."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from gui.events import wait_for
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout, parse_layout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+
+FINGER_100HZ = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="finger 3x3 @ 100 Hz")
+GRID_4X4 = parse_layout("4x4", sample_rate_hz=500.0, adc_bits=12)
+
+
+class FrameRing:
+    """The part of :class:`rigctl.devices.ring.RingBuffer` the GUI reads (``total``, ``read_since``), for any
+    channel count; frames are appended by the test."""
+
+    def __init__(self, n_channels: int, capacity: int = 100_000):
+        self.samples = np.zeros((capacity, n_channels), np.uint16)
+        self.host_t = np.zeros(capacity)
+        self.total = 0
+        self._lock = threading.Lock()
+
+    def write(self, samples: np.ndarray) -> None:
+        with self._lock:
+            n = len(samples)
+            self.samples[self.total : self.total + n] = samples
+            self.host_t[self.total : self.total + n] = np.arange(n) * 1e-3
+            self.total += n
+
+    def read_since(self, cursor: int, max_frames=None):
+        with self._lock:
+            total = self.total
+            s = slice(int(cursor), total)
+            n = total - int(cursor)
+            return total, self.samples[s].copy(), np.arange(n, dtype=np.uint16), self.host_t[s].copy()
+
+
+class FakeStream:
+    """A taxel source as the GUI sees it: ``ring`` and ``layout``."""
+
+    def __init__(self, layout: SensorLayout):
+        self.layout = layout
+        self.ring = FrameRing(layout.n_channels)
+
+
+def frames(layout: SensorLayout, seconds: float, seed: int = 0) -> np.ndarray:
+    """``(n, n_channels)`` uint16 readings: a slow ramp per channel (channel k at level ~ k) plus noise."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * layout.sample_rate_hz)
+    base = np.linspace(0.1, 0.9, layout.n_channels) * layout.adc_max
+    wave = 0.05 * layout.adc_max * np.sin(2 * np.pi * 2.0 * np.arange(n) / layout.sample_rate_hz)[:, None]
+    x = base[None, :] + wave + rng.normal(0, 2, (n, layout.n_channels))
+    return np.clip(np.rint(x), 0, layout.adc_max).astype(np.uint16)
+
+
+class FakeEncoder:
+    """The part of :class:`gui.workers.LiveEncoder` the live view reads: SA/RA spike rings, ready, error."""
+
+    def __init__(self, n_channels: int, now_s: float):
+        from gui.workers import SpikeRing
+
+        self.sa, self.ra = SpikeRing(), SpikeRing()
+        ch = np.arange(n_channels, dtype=np.int16)
+        for ring, dt in ((self.sa, 0.1), (self.ra, 0.3)):
+            t = now_s - dt - 0.01 * ch
+            ring.extend(t, ch)
+        self.ready, self.encoder_error = True, None
+
+
+@pytest.fixture
+def live_view(qapp):
+    from gui.app import configure_pyqtgraph
+    from gui.live_view import LiveView
+
+    configure_pyqtgraph()
+    views = []
+
+    def make(layout=None):
+        v = LiveView() if layout is None else LiveView(layout=layout)
+        v.resize(1400, 800)
+        v.show()
+        qapp.processEvents()
+        views.append(v)
+        return v
+
+    yield make
+    for v in views:
+        v.close()
+        v.deleteLater()
+    qapp.processEvents()
+
+
+def _feed_and_refresh(qapp, view, layout, seconds=3.0):
+    stream = FakeStream(layout)
+    x = frames(layout, seconds)
+    now_s = (len(x) - 1) / layout.sample_rate_hz
+    enc = FakeEncoder(layout.n_channels, now_s)
+    view.attach(stream, enc)
+    stream.ring.write(x)
+    assert view.refresh()
+    qapp.processEvents()
+    return x, enc
+
+
+@pytest.mark.parametrize("layout", [FINGER_100HZ, GRID_4X4, PAPER_SENSOR], ids=["3x3@100Hz", "4x4@500Hz", "paper"])
+def test_live_view_follows_the_layout(live_view, qapp, layout):
+    view = live_view()
+    x, _ = _feed_and_refresh(qapp, view, layout)
+    n = layout.n_channels
+    assert view.layout == layout
+    # one trace plot and one heat map per layer, one curve per taxel
+    assert len(view.trace_plots) == layout.n_layers
+    assert len(view.images) == layout.n_layers
+    assert len(view.curves) == n
+    # heat maps: the newest frame, each layer as its rows x cols grid
+    for i, la in enumerate(layout.layers):
+        ch = layout.layer_channels(i)
+        np.testing.assert_array_equal(view.images[i].image, x[-1, ch.start : ch.stop].reshape(la.rows, la.cols))
+        assert tuple(view.images[i].levels) == (0, layout.adc_max)
+    # traces: every taxel's readings, x = seconds before now at the layout's rate (decimated to ~200 Hz on screen)
+    dec = view.buffer.decimate
+    assert dec == max(1, round(layout.sample_rate_hz / 200))
+    for k, c in enumerate(view.curves):
+        tx, ty = c.getData()
+        assert tx[-1] <= 0.0 and tx[0] >= -view.window_s - 1e-9
+        np.testing.assert_allclose(np.diff(tx), dec / layout.sample_rate_hz, rtol=1e-9)
+        np.testing.assert_array_equal(ty, x[::dec][-len(ty):, k])  # frames 0, dec, 2 dec, ... of the stream
+    # the window holds the last window_s seconds: 3 s fed, 5 s window -> all of it
+    assert len(view.curves[0].getData()[0]) == len(x[::dec])
+    for p in view.trace_plots:
+        assert p.viewRange()[1][1] == pytest.approx(layout.adc_max, rel=0.05)
+    # rasters: n rows, one tick pair per spike on channels 0..n-1
+    for key in ("sa", "ra"):
+        p = view.raster_plots[key]
+        assert p.viewRange()[1] == pytest.approx([-0.5, n - 0.5])
+        assert f"({n} trains)" in p.titleLabel.text
+        rx, ry = view.raster_curves[key].getData()
+        assert len(rx) == 2 * n
+        assert sorted(set(np.round((ry[0::2] + ry[1::2]) / 2).astype(int))) == list(range(n))
+    assert f"{n} taxels" in view.sensor_label.text()
+
+
+def test_default_live_view_is_the_papers(live_view, qapp):
+    """The paper's rig looks as before: two layers of 3x3, 18 trains, 0-1023 counts, ticks every 3rd taxel."""
+    view = live_view()
+    assert view.layout == PAPER_SENSOR
+    assert [p.titleLabel.text for p in view.trace_plots] == [
+        "Top layer (type I) taxels 0-8", "Bottom layer (type II) taxels 9-17"]
+    assert [p.titleLabel.text for p in view.raster_plots.values()] == [
+        "SA spike raster (18 trains)", "RA spike raster (18 trains)"]
+    assert [img.image.shape for img in view.images] == [(3, 3), (3, 3)]
+    ticks = view.raster_plots["sa"].getAxis("left")._tickLevels[0]
+    assert [t for t, _ in ticks] == [0, 3, 6, 9, 12, 15]
+    from gui.live_view import layer_titles
+
+    assert [layer_titles(PAPER_SENSOR, i)[1] for i in range(2)] == ["Top 3x3 (type I) now", "Bottom 3x3 (type II) now"]
+
+
+def test_live_view_rebuilds_for_a_new_rig(live_view, qapp):
+    """Connecting to another sensor rebuilds the plots; going back gives the paper's view again."""
+    view = live_view()
+    _feed_and_refresh(qapp, view, FINGER_100HZ)
+    assert len(view.images) == 1 and len(view.curves) == 9
+    _feed_and_refresh(qapp, view, PAPER_SENSOR)
+    assert len(view.images) == 2 and len(view.curves) == 18
+    two_4x4 = parse_layout("4x4x2")
+    _feed_and_refresh(qapp, view, two_4x4)
+    assert [img.image.shape for img in view.images] == [(4, 4), (4, 4)] and len(view.curves) == 32
+
+
+def test_live_encoder_on_a_9_channel_100hz_stream(qapp):
+    """The real streaming encoder on a 9-taxel stream at 100 Hz: 9 SA and 9 RA trains, times in s at 100 Hz."""
+    from gui.workers import LiveEncoder
+
+    stream = FakeStream(FINGER_100HZ)
+    enc = LiveEncoder(stream, poll_s=0.01)
+    assert enc.layout == FINGER_100HZ
+    assert enc.normaliser.n_taxels == 9 and float(enc.normaliser.maximum.max()) == FINGER_100HZ.adc_max
+    enc.start()
+    try:
+        assert wait_for(qapp, lambda: enc.ready or enc.encoder_error, 120), enc.encoder_error
+        assert enc.encoder_error is None
+        x = np.zeros((400, 9), np.uint16)
+        x[100:] = np.linspace(200, 900, 9).astype(np.uint16)  # a step at 1 s: SA fires on, RA on the onset
+        stream.ring.write(x)
+        assert wait_for(qapp, lambda: enc.n_samples >= 400 and enc.sa.total > 0 and enc.ra.total > 0, 30), (
+            enc.n_samples, enc.sa.total, enc.ra.total, enc.encoder_error)
+        assert enc.stream_time_s == pytest.approx(4.0)
+        for ring in (enc.sa, enc.ra):
+            t, ch = ring.since(-1.0)
+            assert ch.min() >= 0 and ch.max() <= 8
+            assert t.min() >= 1.0 - 1e-9 and t.max() <= 4.0  # after the step, within the 4 s fed at 100 Hz
+        assert set(enc.ra.since(-1.0)[1]) == set(range(9))
+    finally:
+        enc.stop()
+        enc.join(10)
+
+
+class _Main:
+    """What the calibration tab asks of the main window."""
+
+    def __init__(self, cfg_path):
+        self.cfg_path = str(cfg_path)
+        self.encoder = None
+
+    def rig_config_path(self):
+        return self.cfg_path
+
+
+def test_calibration_tab_per_taxel_normalisation_follows_the_layout(qapp, tmp_path):
+    from gui.calibration_tab import CalibrationTab
+    from rigctl.acquisition.calibration import update_rig_config
+
+    cfg = tmp_path / "rig.json"
+    tab = CalibrationTab(_Main(cfg))
+    # default: the paper's 18 taxels
+    assert len(tab.norm_bars.opts["x"]) == 18
+    assert tab.norm_plot.getAxis("bottom").labelText == "taxel (0-8 top, 9-17 bottom)"
+    tab.set_layout(FINGER_100HZ)
+    tab.show_config()
+    assert len(tab.norm_bars.opts["x"]) == 9
+    assert tab.norm_plot.getAxis("bottom").labelText == "taxel (0-8)"
+    assert "full ADC range 0-1023" in tab.norm_info.text()
+    # a 9-taxel normalisation is shown and used for the 9-taxel sensor
+    lo, hi = np.arange(9) * 10.0, 500 + np.arange(9) * 20.0
+    update_rig_config(cfg, taxel_normalisation={"taxel_min": lo.tolist(), "taxel_max": hi.tolist(),
+                                                "n_trials": 1, "source": "test"})
+    tab.show_config()
+    np.testing.assert_array_equal(tab.norm_bars.opts["height"], hi - lo)
+    rng = tab.taxel_range()
+    assert rng is not None and rng.n_taxels == 9
+    # ... and refused for the paper's 18-taxel sensor (not used by the live encoder)
+    tab.set_layout(PAPER_SENSOR)
+    tab.show_config()
+    assert tab.taxel_range() is None
+    assert "stored for 9 taxels, but this sensor has 18" in tab.norm_info.text()
+    assert len(tab.norm_bars.opts["height"]) == 18
+    tab.set_layout(GRID_4X4)
+    tab.show_config()
+    assert len(tab.norm_bars.opts["x"]) == 16 and "0-4095" in tab.norm_info.text()
+    tab.deleteLater()
+
+
+def test_control_panel_offers_the_rigs_texture_set(qapp):
+    from gui.control_panel import ControlPanel
+
+    panel = ControlPanel()
+    assert [panel.plate.itemText(i) for i in range(panel.plate.count())] == list(PAPER_TEXTURES.labels)
+
+    class Commands:
+        def __init__(self):
+            self.sent = []
+
+        def submit(self, name, fn, *args):
+            self.sent.append((name, args[0]))
+
+    class Rig:
+        textures = TextureSet([f"{a}{b}{n}" for a, b, n in zip("HBCDEFGHIJKLMNOPQRSTUVWXYZ", "B" * 26, range(26))],
+                              name="lab26")
+
+        def mount_texture(self, label, prompt):  # pragma: no cover - not called (queued only)
+            pass
+
+    panel.commands, panel.rig = Commands(), Rig()
+    panel.set_textures(Rig.textures)
+    assert panel.plate.count() == 26 and panel.plate.itemText(0) == "HB0"
+    panel.mount_plate("hb0")  # the set's spelling
+    assert panel.commands.sent == [("mount plate HB0", "HB0")]
+    panel.mount_plate("ZZ")
+    assert len(panel.commands.sent) == 1 and "not in the texture set" in panel.message.text()
+    panel.set_textures(None)  # hardware: any label
+    assert panel.plate.isEditable()
+    panel.deleteLater()
