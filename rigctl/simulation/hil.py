@@ -1,8 +1,8 @@
 """Hardware in the loop: the rig's real firmware images running in the AVR simulator simavr.
 
 :class:`HilRig` has the interface of :class:`rigctl.simulation.rig.SimulatedRig` (context manager, ``drum_port``,
-``taxel_port``, ``set_texture``), so :class:`rigctl.devices.drum.DrumClient`, :class:`rigctl.devices.taxel_stream.
-TaxelStream` and ``Rig.open(hil=True)`` talk to it unchanged. It builds the firmware and the harness if needed
+``taxel_port``, ``set_texture``, ``place_mass``), so :class:`rigctl.devices.drum.DrumClient`,
+:class:`rigctl.devices.taxel_stream.TaxelStream` and ``rigctl.rigs.open_rig("hil")`` talk to it unchanged. It builds the firmware and the harness if needed
 (``make -C arduino``) and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per board:
 
 - the Mega image (drum controller, Modbus RTU) with the HX711 and actuator spring emulated in C from the rig
@@ -270,19 +270,17 @@ class HilRig:
         self.close()
 
     # ------------------------------------------------------------------ operator actions and test hooks
-    def set_texture(self, letter: str) -> None:
-        """Mount texture plate ``letter`` (A-P): the taxel readings are rendered for it from now on.
+    def set_texture(self, letter, textures=None) -> None:
+        """Mount a texture plate: a label of ``textures`` (default the paper's A-P) or a
+        :class:`rigctl.simulation.textures.Texture`; the taxel readings are rendered for it from now on.
 
         Raises
         ------
-        KeyError for an unknown letter.
+        KeyError for a label outside the set.
         """
-        from rigctl.simulation.textures import TEXTURES
+        from rigctl.simulation.textures import get_texture
 
-        letter = letter.upper()
-        if letter not in TEXTURES:
-            raise KeyError(f"unknown texture {letter!r} (A-P)")
-        self._texture = letter
+        self._texture = get_texture(letter, textures)
         if self.live and self._uno is not None:
             self._render_and_load()
 

@@ -46,6 +46,7 @@ import numba
 import numpy as np
 
 from rigctl.devices import wire
+from rigctl.core.textures import TextureSet
 from rigctl.simulation.textures import TEXTURES, Texture, get_texture
 
 N_ROWS = 3
@@ -359,7 +360,7 @@ class SensorModel:
             tables = self._layer_tables(_profile(tex), tex.period_mm)
             return tables, float(tex.period_mm), tables.mean(axis=1)
 
-        return self._cached(("h", tex.letter), build)
+        return self._cached(("h", tex), build)
 
     def _cached(self, key: tuple, build):
         """``self._tables[key]``, built with ``build()`` (outside the lock) on the first call."""
@@ -420,7 +421,7 @@ class SensorModel:
             shape /= shape.mean()
             return self._layer_tables(shape, tex.period_mm), float(tex.period_mm), np.ones(2)
 
-        return self._cached(("p", tex.letter, fq), build)
+        return self._cached(("p", tex, fq), build)
 
     def _contact_depth(self, tex: Texture):
         """The pad's depth below its first contact over one period of ``tex`` (mm, supersampled), and the solver of
@@ -441,7 +442,7 @@ class SensorModel:
 
             return depth, delta0_of
 
-        return self._cached(("depth", tex.letter), build)
+        return self._cached(("depth", tex), build)
 
     def render(self, texture: Texture | str, position_mm, force_g, rng: np.random.Generator, *,
                sensitivity: float = 1.0, out: np.ndarray | None = None, wrap_mm: float | None = None) -> np.ndarray:
@@ -450,7 +451,7 @@ class SensorModel:
         Parameters
         ----------
         texture : Texture or str
-            The plate on the drum (letter A-P).
+            The plate on the drum (a Texture, or a label of the paper's A-P set).
         position_mm : (n,) array_like of float
             Drum surface travel under the sensor's row 0 at each sample, mm (unwrapped; phase included).
         force_g : (n,) array_like or float
@@ -566,9 +567,10 @@ class RigModel:
         with self._lock:
             return self._texture
 
-    def set_texture(self, letter: str | Texture) -> None:
-        """Mount a texture plate (letter A-P). Raises KeyError on an unknown letter."""
-        tex = get_texture(letter)
+    def set_texture(self, letter: str | Texture, textures: TextureSet | None = None) -> None:
+        """Mount a texture plate: a label of ``textures`` (default: the paper's A-P) or a :class:`Texture`
+        (:func:`rigctl.simulation.textures.get_texture`). Raises KeyError on a label outside the set."""
+        tex = get_texture(letter, textures)
         self.sensor.tables(tex)  # build outside the physics step
         with self._lock:
             self._texture = tex

@@ -18,14 +18,25 @@ half-space ridges keep a 2.5 mm gap).
 
 Ridges run across the drum (parallel to its axis), so the profile varies only along the direction of travel ``x``
 (surface coordinate on the plate, mm); it is the same under the three columns of the sensor.
+
+Any texture set (:class:`rigctl.core.textures.TextureSet`) renders too: :func:`get_texture` takes a label and the
+set it belongs to. The geometry comes from the set (``kind``, ``height_mm``, ``period_mm``, ``width_mm``); keys the
+set leaves out are derived deterministically from the label (:func:`derived_geometry`: the SHA-256 of the UTF-8
+label picks the kind among circular / rectangular / wave, the height among 0.5 / 1 / 2 mm and the period among
+7.5 / 10 / 15 / 20 / 30 mm, ridge width 5 mm capped at 0.6 x the period), so a label always renders the same plate,
+in every process, and different labels almost always render different plates.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+import hashlib
+import math
+from typing import Any, Literal, Mapping
 
 import numpy as np
+
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 
 Kind = Literal["smooth", "circular", "rectangular", "wave"]
 
@@ -47,11 +58,11 @@ class Texture:
     Attributes
     ----------
     letter : str
-        "A" ... "P" as in the paper's Fig. 2B.
+        The texture's label: "A" ... "P" as in the paper's Fig. 2B, or any label of a texture set ("HB3", "Linen").
     group : str
-        One of :data:`TEXTURE_GROUPS`.
+        One of :data:`TEXTURE_GROUPS` for the paper's plates; the set's group (or "") for others.
     variant : str
-        "smooth" for A, else one of :data:`VARIANTS`.
+        "smooth" for A, else one of :data:`VARIANTS`; "" when the set names none.
     kind : {"smooth", "circular", "rectangular", "wave"}
         Cross-section of the features: circular-segment ridges (a half ellipse of the given width and height),
         rectangular ridges, or a cosine wave (peak-to-peak = height, crest-to-crest = period).
@@ -72,14 +83,19 @@ class Texture:
     width_mm: float
 
     @property
+    def label(self) -> str:
+        """The texture's label (same as :attr:`letter`)."""
+        return self.letter
+
+    @property
     def group_index(self) -> int:
-        """Index of :attr:`group` in :data:`TEXTURE_GROUPS` (0 = smooth)."""
-        return TEXTURE_GROUPS.index(self.group)
+        """Index of :attr:`group` in :data:`TEXTURE_GROUPS` (0 = smooth); -1 for a group outside the paper's."""
+        return TEXTURE_GROUPS.index(self.group) if self.group in TEXTURE_GROUPS else -1
 
     @property
     def index(self) -> int:
-        """0 for A ... 15 for P."""
-        return ord(self.letter) - ord("A")
+        """Position in the paper's set: 0 for A ... 15 for P; -1 for a texture outside it."""
+        return PAPER_TEXTURES.code(self.letter) if self.letter in PAPER_TEXTURES else -1
 
     def height(self, x_mm) -> np.ndarray:
         """Surface height profile ``h(x)``.
@@ -146,17 +162,75 @@ TEXTURES: dict[str, Texture] = _build()
 LETTERS: str = "".join(TEXTURES)
 
 
-def get_texture(texture: str | Texture) -> Texture:
-    """Return the :class:`Texture` for a letter (case-insensitive) or pass a Texture through.
+#: kinds, heights (mm) and periods (mm) :func:`derived_geometry` chooses from
+_DERIVED_KINDS: tuple[Kind, ...] = ("circular", "rectangular", "wave")
+_DERIVED_HEIGHTS_MM = (0.5, 1.0, 2.0)
+_DERIVED_PERIODS_MM = (7.5, 10.0, 15.0, 20.0, 30.0)
+
+
+def derived_geometry(label: str) -> dict:
+    """A deterministic geometry for a texture the set gives none for: ``{"kind", "height_mm", "period_mm",
+    "width_mm"}`` (mm) from the SHA-256 of the UTF-8 ``label`` (see the module docstring). Same label, same plate."""
+    h = hashlib.sha256(str(label).encode("utf-8")).digest()
+    kind = _DERIVED_KINDS[h[0] % len(_DERIVED_KINDS)]
+    height = _DERIVED_HEIGHTS_MM[h[1] % len(_DERIVED_HEIGHTS_MM)]
+    period = _DERIVED_PERIODS_MM[h[2] % len(_DERIVED_PERIODS_MM)]
+    width = period if kind == "wave" else min(BASE_WIDTH_MM, 0.6 * period)
+    return {"kind": kind, "height_mm": height, "period_mm": period, "width_mm": width}
+
+
+def texture_from_spec(label: str, group: str | None, geometry: Mapping[str, Any]) -> Texture:
+    """A :class:`Texture` from a texture set's entry: its geometry, missing keys from :func:`derived_geometry`.
+
+    Raises ValueError for a geometry that cannot be rendered (unknown kind, non-positive period or width, negative
+    height).
+    """
+    geo = dict(geometry or {})
+    if "kind" not in geo:
+        derived = derived_geometry(label)
+        geo = {**derived, **{k: v for k, v in geo.items() if v is not None}}
+    kind = str(geo["kind"])
+    if kind == "smooth":
+        return Texture(label, group or "", str(geo.get("variant", "smooth")), "smooth", 0.0, float("inf"), 0.0)
+    if kind not in _DERIVED_KINDS:
+        raise ValueError(f"texture {label!r}: cannot render geometry kind {kind!r}")
+    fill = derived_geometry(label)
+    height = float(geo["height_mm"] if geo.get("height_mm") is not None else fill["height_mm"])
+    period = float(geo["period_mm"] if geo.get("period_mm") is not None else fill["period_mm"])
+    if geo.get("width_mm") is not None:
+        width = float(geo["width_mm"])
+    else:
+        width = period if kind == "wave" else min(BASE_WIDTH_MM, 0.6 * period)
+    if not (height >= 0 and math.isfinite(period) and period > 0 and width > 0):
+        raise ValueError(f"texture {label!r}: geometry must have height >= 0, period > 0 and width > 0 (mm), got "
+                         f"{height}, {period}, {width}")
+    return Texture(label, group or "", str(geo.get("variant", "")), kind, height, period, width)  # type: ignore[arg-type]
+
+
+def get_texture(texture: str | Texture, textures: TextureSet | None = None) -> Texture:
+    """The :class:`Texture` to render for a label (or pass a Texture through).
+
+    Parameters
+    ----------
+    texture : a label, or a :class:`Texture`.
+    textures : the texture set the label belongs to; None = the paper's A-P (labels case-insensitive).
+        For the paper's set (or None) the plates are :data:`TEXTURES`; for another set the geometry is the set's,
+        completed by :func:`derived_geometry` for what it leaves out.
 
     Raises
     ------
     KeyError
-        If the letter is not one of A-P (the message lists the valid letters).
+        If the label is not in the set (the message lists the set's labels), or its geometry cannot be rendered.
     """
     if isinstance(texture, Texture):
         return texture
-    key = str(texture).strip().upper()
-    if key not in TEXTURES:
-        raise KeyError(f"unknown texture {texture!r}; expected one of {LETTERS}")
-    return TEXTURES[key]
+    if textures is None or textures is PAPER_TEXTURES:
+        key = str(texture).strip().upper()
+        if key not in TEXTURES:
+            raise KeyError(f"unknown texture {texture!r}; expected one of {LETTERS}")
+        return TEXTURES[key]
+    try:
+        spec = textures.spec(str(texture))
+        return texture_from_spec(spec.label, spec.group, spec.geometry)
+    except ValueError as exc:  # TextureSetError (not in the set) or unrenderable geometry
+        raise KeyError(str(exc)) from None
