@@ -1,15 +1,14 @@
-"""Feature sets for the analyses: read the encoded file written by :mod:`rigctl.encoding.pipeline`.
+"""Feature sets for the analyses, read through :mod:`rigctl.storage.encoded` (the one reader of encoded files).
 
-Encoded-file layout used here (docs/architecture.md, ``rigctl.encoding.pipeline.encode_session``):
+An encoded file (``rigctl encode`` output; format and variant registry in :mod:`rigctl.storage.encoded`) holds, per
+variant, a ``(n_trials, n_features)`` float32 matrix of spiking features, the per-trial labels (texture, group,
+speed, force, profile), the sensor layout (:class:`rigctl.core.SensorLayout`) and the texture set
+(:class:`rigctl.core.TextureSet`). :func:`load_features` turns it into a :class:`FeatureSet`, which carries the
+layout (the spike-train count per trial: SA/RA x the layout's channels) and the texture set (stable texture codes and
+the groups of the groups task; data whose set has no groups is refused by that task).
 
-* ``/features/<variant>``: ``(n_trials, n_features)`` float32, variants ``original``, ``speed_scaled``,
-  ``force_scaled``, ``speed_force_scaled`` (720 features when speed scaled, 2160 otherwise, for 18 taxels);
-* ``/trials``: per-trial labels, either a compound dataset or a group of equal-length column datasets, with at least
-  ``texture`` and ``speed_mm_s`` / ``force_g``; ``trial_id``, ``group`` and ``profile`` (velocity-profile name of
-  ramp trials, for the real-time analysis) are used when present.
-
-A *session* file (raw taxel readings, docs/session-format.md) has no ``/features`` group: :func:`load_features`
-raises :class:`NotEncodedError` naming the command to run (``rigctl encode``).
+A *session* file (raw taxel readings, docs/session-format.md) is not an encoded file: :func:`load_features` raises
+:class:`NotEncodedError` naming the command to run (``rigctl encode``).
 """
 
 from __future__ import annotations
@@ -19,45 +18,43 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.texture_set import GROUP_OF
+from rigctl.core import SensorLayout, TextureSet, TextureSetError, texture_set_from_labels
+from rigctl.storage import encoded as _encoded
 
 __all__ = [
     "VARIANTS",
     "VARIANT_TITLES",
-    "PAPER_GROUPS",
     "FeatureSet",
     "NotEncodedError",
+    "GroupsError",
     "load_features",
     "list_variants",
     "is_encoded_file",
     "REALTIME_VARIANTS",
     "remove_baseline",
     "default_variants",
+    "variant_title",
+    "n_spike_trains",
 ]
 
-#: the four feature variants of the paper, in Table 1's column order
-VARIANTS: tuple[str, ...] = ("original", "speed_scaled", "force_scaled", "speed_force_scaled")
-#: the paper's names for them (Table 1 / Fig. 3 legends)
-VARIANT_TITLES = {
-    "original": "Original",
-    "speed_scaled": "Speed Scaled",
-    "force_scaled": "Force Scaled",
-    "speed_force_scaled": "Speed and Force Scaled",
-    "force_scaled_label_free": "Force Scaled (label-free)",
-    "speed_force_scaled_label_free": "Speed+Force Scaled (label-free)",
-    "realtime_original": "Original (real-time)",
-    "realtime_speed_scaled": "Speed Scaled (real-time)",
-}
-#: the real-time features of the encoding pipeline (9 top-layer SA trains x 20 windows, Methods real-time)
-REALTIME_VARIANTS: tuple[str, ...] = ("realtime_original", "realtime_speed_scaled")
-#: the paper's texture groups by letter (Fig. 2B): A smooth; B-F circular ridges; G-K rectangular ridges; L-P waves.
-#: Used only when ``/trials`` carries no ``group`` column.
-#: letter -> texture group of the paper (Fig. 2B)
-PAPER_GROUPS = GROUP_OF
+
+#: the paper's four feature variants, in Table 1's column order (the registry of rigctl.storage.encoded)
+VARIANTS: tuple[str, ...] = tuple(_encoded.MAIN_VARIANTS)
+#: variant -> the paper's name for it (Table 1 / Fig. 3 legends), from the same registry
+VARIANT_TITLES: dict[str, str] = _encoded.VARIANT_TITLES
+#: the real-time variants of the registry (top-layer SA trains, Methods real-time)
+REALTIME_VARIANTS: tuple[str, ...] = tuple(_encoded.REALTIME_VARIANTS)
+
+NotEncodedError = _encoded.NotEncodedError
 
 
-class NotEncodedError(ValueError):
-    """The file is a session file (raw readings) or something else without ``/features``: run ``rigctl encode``."""
+class GroupsError(ValueError):
+    """The groups task was asked for on data whose texture set defines no groups."""
+
+
+def variant_title(name: str) -> str:
+    """The paper's name of a variant (``"speed_scaled"`` -> ``"Speed Scaled"``); the name itself if unregistered."""
+    return VARIANT_TITLES.get(name, name)
 
 
 def _text(values):
@@ -66,28 +63,51 @@ def _text(values):
         return np.array([v.decode() if isinstance(v, bytes) else str(v) for v in a.ravel()], dtype=object).reshape(
             a.shape
         ).astype(str)
-    return a
+    return a.astype(str) if a.dtype.kind != "U" else a
+
+
+def n_spike_trains(variant: str, layout: SensorLayout) -> int:
+    """Spike trains per trial of a variant for a sensor: SA and RA per channel (``2 * layout.n_channels``: 36 for the
+    paper's 18 taxels), or the top layer's SA trains for the real-time variants (9 for the paper's sensor; Methods,
+    real-time)."""
+    if variant in REALTIME_VARIANTS or variant.startswith("realtime"):
+        return len(layout.layer_channels(0))
+    return 2 * layout.n_channels
 
 
 @dataclass
 class FeatureSet:
-    """Feature matrices of several variants over the same trials, plus the trial labels.
+    """Feature matrices of several variants over the same trials, plus the trial labels, sensor and texture set.
 
     Attributes
     ----------
     features : dict[str, ndarray]
-        variant -> ``(n_trials, n_features)`` float32 (spike rates in spikes/s and spike counts per 100 ms window).
+        variant -> ``(n_trials, n_features)`` float32 (spike rates in spikes/s and spike counts per window);
+        ``n_features = n_spike_trains(variant, layout) * n_windows``, train-major.
     texture : ndarray (n_trials,) str
     speed_mm_s : ndarray (n_trials,) float64
-        Drum surface speed in mm/s (nominal; ramp trials: mean speed).
+        Drum surface speed in mm/s (nominal; ramp trials: mean speed); NaN when unknown.
     force_g : ndarray (n_trials,) float64
-        Force setpoint in g.
+        Force setpoint in g; NaN when unknown.
     group : ndarray (n_trials,) str or None
+        Texture group per trial, from the texture set's groups; None when the set defines none (the groups task
+        then refuses the data).
     profile : ndarray (n_trials,) str or None
         Velocity-profile name for ramp trials (real-time analysis), else None.
     trial_id : ndarray (n_trials,) int64
     source : str
         Where it came from (file path or "synthetic").
+    attrs : dict, the encoded file's attributes.
+    layout : SensorLayout or None
+        The sensor the features were encoded from (channel count -> spike trains per trial); None if unknown.
+    textures : TextureSet
+        The texture set (codes = positions in the set; groups). Default: the set of the distinct labels
+        (:func:`rigctl.core.texture_set_from_labels`), with groups from ``group`` when given.
+
+    Raises
+    ------
+    ValueError
+        Arrays of different lengths, or a label not in ``textures``.
     """
 
     features: dict
@@ -99,18 +119,37 @@ class FeatureSet:
     trial_id: np.ndarray | None = None
     source: str = "memory"
     attrs: dict = field(default_factory=dict)
+    layout: SensorLayout | None = None
+    textures: TextureSet | None = None
 
     def __post_init__(self):
         self.texture = _text(self.texture)
         n = len(self.texture)
         self.speed_mm_s = np.asarray(self.speed_mm_s, dtype=np.float64)
         self.force_g = np.asarray(self.force_g, dtype=np.float64)
-        if self.group is None and len(self.texture) and set(np.unique(self.texture)) <= set(PAPER_GROUPS):
-            self.group = np.array([PAPER_GROUPS[t] for t in self.texture])
         if self.group is not None:
             self.group = _text(self.group)
             if not np.any(self.group != ""):  # no group labels (e.g. FabricSlide fabrics)
                 self.group = None
+        if self.textures is None:
+            if self.group is not None:  # groups given per trial, no set: make the set from them
+                pairs = dict(zip(self.texture.tolist(), self.group.tolist()))
+                groups: dict = {}
+                for lab in sorted(pairs):
+                    groups.setdefault(pairs[lab], []).append(lab)
+                self.textures = texture_set_from_labels(pairs, groups=groups) if all(groups) else \
+                    texture_set_from_labels(pairs)
+            else:
+                self.textures = texture_set_from_labels(self.texture.tolist())
+        missing = sorted(set(self.texture.tolist()) - set(self.textures.labels))
+        if missing:
+            raise ValueError(f"textures {missing[:10]} are not in the texture set {self.textures!r}")
+        # the groups come from the set (one source of truth); a set without groups -> no groups task
+        if self.textures.has_groups:
+            of = {s.label: s.group for s in self.textures}
+            self.group = np.array([of[t] for t in self.texture.tolist()], dtype=str)
+        else:
+            self.group = None
         if self.profile is not None:
             self.profile = _text(self.profile)
         self.trial_id = np.arange(n, dtype=np.int64) if self.trial_id is None else np.asarray(self.trial_id)
@@ -130,8 +169,55 @@ class FeatureSet:
         """Variants present, in Table 1 order first, then any others."""
         return [v for v in VARIANTS if v in self.features] + [v for v in self.features if v not in VARIANTS]
 
+    @property
+    def texture_code(self) -> np.ndarray:
+        """(n_trials,) int64 texture codes: positions in the texture set (stable across imports)."""
+        code = {lab: i for i, lab in enumerate(self.textures.labels)}
+        return np.array([code[t] for t in self.texture.tolist()], dtype=np.int64)
+
+    @property
+    def texture_classes(self) -> list[str]:
+        """Texture labels present, in the set's order (the order of confusion-matrix rows)."""
+        present = set(self.texture.tolist())
+        return [lab for lab in self.textures.labels if lab in present]
+
+    @property
+    def group_classes(self) -> list[str]:
+        """Groups present, in the set's order. Raises :class:`GroupsError` when the set has no groups."""
+        self.require_groups()
+        present = set(self.group.tolist())
+        return [g for g in self.textures.groups if g in present]
+
+    def require_groups(self) -> None:
+        """Raise :class:`GroupsError` (one line, naming the set) unless every texture of the set has a group."""
+        if self.group is None:
+            name = self.textures.name or "of this file"
+            raise GroupsError(
+                f"the texture set {name!r} ({len(self.textures)} textures: "
+                f"{', '.join(self.textures.labels[:8])}{' ...' if len(self.textures) > 8 else ''}) defines no "
+                "texture groups, so the groups task has nothing to classify; give the set groups (a protocol's "
+                "[texture_set] groups, or `rigctl import --mapping` with groups) or run --task textures")
+
+    def n_spike_trains(self, variant: str) -> int:
+        """Spike trains per trial of ``variant``: from the file's ``n_trains`` when recorded, else from the layout
+        (:func:`n_spike_trains`). Raises ValueError when neither is known."""
+        per_variant = self.attrs.get("n_trains")
+        if isinstance(per_variant, dict) and variant in per_variant:
+            return int(per_variant[variant])
+        if self.layout is not None:
+            return n_spike_trains(variant, self.layout)
+        raise ValueError(f"the number of spike trains of '{variant}' is unknown (no sensor layout): pass it "
+                         "explicitly (rigctl analyze --channels N)")
+
+    def without_baseline(self, n_trains: int | None = None) -> "FeatureSet":
+        """A copy with :func:`remove_baseline` applied to every variant (spike trains from the layout, or
+        ``n_trains`` for every variant)."""
+        out = self.subset(slice(None))
+        out.features = {v: remove_baseline(x, n_trains or self.n_spike_trains(v)) for v, x in self.features.items()}
+        return out
+
     def subset(self, index) -> "FeatureSet":
-        """A FeatureSet of the selected trials (copies)."""
+        """A FeatureSet of the selected trials (copies); same layout and texture set."""
         return FeatureSet(
             {k: v[index] for k, v in self.features.items()},
             self.texture[index],
@@ -142,15 +228,18 @@ class FeatureSet:
             self.trial_id[index],
             self.source,
             dict(self.attrs),
+            self.layout,
+            self.textures,
         )
 
 
 def list_variants(path) -> list[str]:
-    """Feature variants stored under ``/features`` of an encoded file (empty if none)."""
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return list(f["features"]) if "features" in f else []
+    """Feature variants stored in an encoded file (empty if it is not one)."""
+    try:
+        with _encoded.open_encoded(path) as ef:
+            return list(ef.variants)
+    except (_encoded.NotEncodedError, OSError):
+        return []
 
 
 def default_variants(available, task="table1") -> list[str]:
@@ -165,95 +254,78 @@ def default_variants(available, task="table1") -> list[str]:
 
 
 def is_encoded_file(path) -> bool:
-    """True if ``path`` is an HDF5 file with a ``/features`` group (an encoded file)."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            return "features" in f
-    except OSError:
-        return False
-
-
-def _read_trials(obj):
-    """Columns of ``/trials`` as a dict of arrays (compound dataset or group of datasets)."""
-    import h5py
-
-    if isinstance(obj, h5py.Group):
-        return {k: obj[k][()] for k in obj if isinstance(obj[k], h5py.Dataset)}
-    data = obj[()]
-    if data.dtype.names is None:
-        raise ValueError("/trials is neither a compound dataset nor a group of columns")
-    return {k: data[k] for k in data.dtype.names}
+    """True if ``path`` is an encoded file (:func:`rigctl.storage.encoded.is_encoded_file`)."""
+    return bool(_encoded.is_encoded_file(path))
 
 
 def load_features(path, variants=None) -> FeatureSet:
-    """Read an encoded file into memory.
+    """Read an encoded file into memory (through :func:`rigctl.storage.encoded.open_encoded`).
 
     Parameters
     ----------
     path : str or Path
-        Encoded HDF5 file (``rigctl encode`` output).
+        Encoded HDF5 file (``rigctl encode`` output; unversioned old files too).
     variants : sequence of str, optional
-        Variants to read (default: all under ``/features``).
+        Variants to read (default: all in the file).
 
     Returns
     -------
-    FeatureSet
+    FeatureSet with the file's sensor layout and texture set.
 
     Raises
     ------
     FileNotFoundError
         No such file.
     NotEncodedError
-        The file has no ``/features`` group (e.g. a session file: run ``rigctl encode SESSION`` first).
+        Not an encoded file (e.g. a session file: run ``rigctl encode SESSION`` first).
     KeyError
-        A requested variant or a required ``/trials`` column (``texture``) is missing.
+        A requested variant or the ``texture`` column is missing.
     """
-    import h5py
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(path)
     try:
-        f = h5py.File(path, "r")
+        ef_cm = _encoded.open_encoded(path)
+        ef = ef_cm.__enter__()
+    except _encoded.NotEncodedError as exc:
+        raise NotEncodedError(f"{exc} (or pass --encode to encode it on the fly)") from None
     except OSError as exc:
         raise NotEncodedError(f"{path} is not an HDF5 file ({exc})") from exc
-    with f:
-        if "features" not in f:
-            kind = "a session file (raw taxel readings)" if ("trials" in f or "plan" in f) else "not an encoded file"
-            raise NotEncodedError(
-                f"{path} is {kind}: it has no /features. Run `rigctl encode {path}` first "
-                "(or pass --encode to encode it on the fly)."
-            )
-        names = list(f["features"]) if variants is None else list(variants)
+    try:
+        have = list(ef.variants)
+        names = have if variants is None else list(variants)
         feats = {}
         for v in names:
-            if v not in f["features"]:
-                raise KeyError(f"variant '{v}' not in {path} (has: {', '.join(f['features'])})")
-            feats[v] = np.asarray(f["features"][v][()], dtype=np.float32)
-        if "trials" not in f:
-            raise KeyError(f"{path} has no /trials labels table")
-        cols = _read_trials(f["trials"])
-        attrs = {k: (v.item() if hasattr(v, "item") and np.ndim(v) == 0 else v) for k, v in f.attrs.items()}
-        # spike trains per trial of each variant (for remove_baseline), from /spikes/<variant> attrs
-        attrs["n_trains"] = {v: int(f["spikes"][v].attrs["n_trains"]) for v in names
-                             if "spikes" in f and v in f["spikes"] and "n_trains" in f["spikes"][v].attrs}
+            if v not in have:
+                raise KeyError(f"variant '{v}' not in {path} (has: {', '.join(have)})")
+            feats[v] = np.asarray(ef.features(v), dtype=np.float32)
+        cols = dict(ef.trials)
+        attrs = dict(ef.attrs)
+        attrs["n_trains"] = {v: int(ef.n_trains(v)) for v in names}  # spike trains per trial (remove_baseline)
+        layout = ef.layout
+        textures = ef.textures
+    finally:
+        ef_cm.__exit__(None, None, None)
     if "texture" not in cols:
-        raise KeyError(f"/trials of {path} has no 'texture' column (has: {', '.join(cols)})")
+        raise KeyError(f"the trials of {path} have no 'texture' column (has: {', '.join(cols)})")
     n = len(cols["texture"])
     nan = np.full(n, np.nan)
-    return FeatureSet(
-        feats,
-        cols["texture"],
-        cols.get("speed_mm_s", nan),
-        cols.get("force_g", nan),
-        cols.get("group"),
-        cols.get("profile"),
-        cols.get("trial_id"),
-        str(path),
-        attrs,
-    )
+    try:
+        return FeatureSet(
+            feats,
+            cols["texture"],
+            cols.get("speed_mm_s", nan),
+            cols.get("force_g", nan),
+            None,  # groups come from the file's texture set
+            cols.get("profile"),
+            cols.get("trial_id"),
+            str(path),
+            attrs,
+            layout,
+            textures,
+        )
+    except TextureSetError as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def remove_baseline(features, n_channels):
@@ -269,7 +341,8 @@ def remove_baseline(features, n_channels):
         Channel-major layout (all windows of spike train 0, then of train 1, ...), as written by
         ``rigctl.encoding.features.spike_features``.
     n_channels : int
-        Number of spike trains per trial (36 for 18 taxels x SA/RA).
+        Number of spike trains per trial (``2 * layout.n_channels``: SA and RA per taxel, 36 for the paper's
+        sensor; :meth:`FeatureSet.n_spike_trains` gives it for a variant).
 
     Returns
     -------

@@ -10,8 +10,9 @@ known. Each texture has, per spike train, a spatial pattern ``a (1 + sin(2 pi x 
 * ``force_scaled``: like ``original`` with force gain 1;
 * ``speed_force_scaled``: both.
 
-Noise is Gaussian with sd ``noise`` (relative to the pattern amplitude). Shapes follow the paper: 36 spike trains x
-60 windows = 2160 features (unscaled), 36 x 20 = 720 (speed scaled).
+Noise is Gaussian with sd ``noise`` (relative to the pattern amplitude). Shapes follow the sensor layout: SA and RA
+per taxel, so the paper's 3x3x2 sensor gives 36 spike trains x 60 windows = 2160 features (unscaled) and 36 x 20 =
+720 (speed scaled); a 3x3 single-layer sensor gives 18 trains.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from rigctl.analysis.data import FeatureSet
+from rigctl.core import PAPER_SENSOR, SensorLayout
 
 __all__ = ["synthetic_features", "random_features"]
 
@@ -30,7 +32,8 @@ def synthetic_features(
     trials_per_condition=10,
     *,
     n_textures=16,
-    n_channels=36,
+    n_channels=None,
+    layout: SensorLayout | None = None,
     speeds=PAPER_SPEEDS,
     forces=PAPER_FORCES,
     reference_speed=120.0,
@@ -48,8 +51,11 @@ def synthetic_features(
         Trials per (texture, speed, force) cell (the paper: 100).
     n_textures : int
         Textures, lettered from "A" (groups follow the paper's lettering when 16).
-    n_channels : int
-        Spike trains per trial (36 = 18 taxels x SA/RA).
+    n_channels : int, optional
+        Spike trains per trial (even: SA and RA per taxel). Default ``2 * layout.n_channels``.
+    layout : SensorLayout, optional
+        The sensor (default: the paper's 3x3x2, or ``SensorLayout.for_channels(n_channels // 2)`` when only
+        ``n_channels`` is given); stored on the FeatureSet.
     speeds : sequence of float
         mm/s. forces : sequence of float, g.
     reference_speed : float
@@ -70,6 +76,14 @@ def synthetic_features(
         float32 features; ``original``/``force_scaled`` have ``n_channels * 60`` columns (for the paper's speeds),
         the speed-scaled ones ``n_channels * 20``.
     """
+    if layout is None:
+        layout = PAPER_SENSOR if n_channels in (None, 2 * PAPER_SENSOR.n_channels) else \
+            SensorLayout.for_channels(max(1, int(n_channels) // 2))
+    if n_channels is None:
+        n_channels = 2 * layout.n_channels
+    if n_channels != 2 * layout.n_channels:
+        raise ValueError(f"n_channels={n_channels} spike trains do not match the {layout.shape_text} sensor "
+                         f"(2 x {layout.n_channels} SA/RA trains)")
     rng = np.random.default_rng(seed)
     letters = [chr(ord("A") + i) for i in range(n_textures)]
     # texture amplitude = a common per-channel profile x a texture height: force gain moves one texture's amplitude
@@ -109,7 +123,7 @@ def synthetic_features(
         "speed_force_scaled": render(ref, w_ref, ones, full),
     }
     return FeatureSet(feats, np.array(letters)[tex], spd, frc, source="synthetic",
-                      attrs={"trials_per_condition": trials_per_condition})
+                      attrs={"trials_per_condition": trials_per_condition}, layout=layout)
 
 
 def random_features(n_trials=24_000, n_features=(2160, 720, 2160, 720), *, n_textures=16, seed=0) -> FeatureSet:
@@ -141,4 +155,4 @@ def random_features(n_trials=24_000, n_features=(2160, 720, 2160, 720), *, n_tex
         feats[name] = x
     letters = np.array([chr(ord("A") + i) for i in range(n_textures)])
     return FeatureSet(feats, letters[tex], np.repeat(spd.ravel(), per), np.repeat(frc.ravel(), per),
-                      source="random")
+                      source="random", layout=PAPER_SENSOR)

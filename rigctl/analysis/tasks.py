@@ -239,14 +239,16 @@ def run_cv(
 
     Raises
     ------
+    GroupsError (a ValueError)
+        "groups" asked for on data whose texture set defines no groups (the paper's groups are never assumed).
     ValueError
-        Unknown task, "groups" without group labels, or fewer than ``k`` trials per texture.
+        Unknown task, or fewer than ``k`` trials per texture.
     """
     for t in tasks:
         if t not in ("textures", "groups"):
             raise ValueError(f"unknown CV task '{t}'")
-    if "groups" in tasks and fs.group is None:
-        raise ValueError("texture groups need a 'group' column in /trials (or textures lettered A-P)")
+    if "groups" in tasks:
+        fs.require_groups()  # GroupsError: the file's texture set defines no groups
     vs = _variants(fs, variants)
     res = TaskResults()
     textures, counts = np.unique(fs.texture, return_counts=True)
@@ -261,7 +263,7 @@ def run_cv(
                         "trials_per_repeat": n_draw * len(textures)}
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     labels = {"textures": fs.texture, "groups": fs.group}
-    classes = {t: list(np.unique(labels[t])) for t in tasks}
+    classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
     n_used = None
     acc = {(t, v): [] for t in tasks for v in vs}
     cms = {(t, v): 0 for t in tasks for v in vs}
@@ -390,9 +392,8 @@ def run_extrapolation(
         "n_trained_cells": len(trained_cells), "n_untrained_cells": len(cells) - len(trained_cells),
         "repeats": repeats,
     }
-    textures = np.unique(fs.texture)
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
-    classes = list(textures)
+    classes = fs.texture_classes  # the texture set's order (stable codes)
     cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
     acc = {(c, v): [] for c in cats for v in vs}
     cms = {(c, v): 0 for c in cats for v in vs}
@@ -565,7 +566,7 @@ def run_realtime(
         raise ValueError("the real-time analysis needs ramp-profile trials: /trials has no 'profile' column")
     vs = _variants(fs, variants, "realtime")
     res = TaskResults()
-    classes = list(np.unique(fs.texture))
+    classes = fs.texture_classes
     profiles = np.unique(fs.profile)
     trained_p = [p for p in train_profiles if p in set(profiles)]
     if not trained_p:

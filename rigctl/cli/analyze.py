@@ -54,17 +54,13 @@ def _load(path, encode, variants, task="table1"):
 
 
 def _n_channels(fs, variant, option):
+    """Spike trains per trial of ``variant``: --channels, else from the file's sensor layout (SA/RA x channels)."""
     if option:
         return option
-    per_variant = fs.attrs.get("n_trains")
-    if isinstance(per_variant, dict) and variant in per_variant:
-        return per_variant[variant]
-    if "n_spike_trains" in fs.attrs:
-        return int(fs.attrs["n_spike_trains"])
-    if "n_taxels" in fs.attrs:
-        n = int(fs.attrs["n_taxels"])
-        return n // 2 if variant.startswith("realtime") else 2 * n
-    raise click.ClickException("--baseline remove needs the number of spike trains per trial: pass --channels N")
+    try:
+        return fs.n_spike_trains(variant)
+    except ValueError as exc:
+        raise click.ClickException(f"--baseline remove: {exc}") from None
 
 
 @click.command("analyze")
@@ -93,7 +89,8 @@ def _n_channels(fs, variant, option):
 @click.option("--baseline", type=click.Choice(["keep", "remove", "both"]), default="keep", show_default=True,
               help="Per-trial, per-spike-train level removal before PCA (FabricSlide: the level alone separates "
                    "fabrics); 'both' reports both.")
-@click.option("--channels", type=int, default=None, help="Spike trains per trial (for --baseline; default from file).")
+@click.option("--channels", type=int, default=None,
+              help="Spike trains per trial (for --baseline; default from the file's sensor layout: SA/RA x taxels).")
 @click.option("--new-session", type=click.Path(exists=True, dir_okay=False), default=None,
               help="realtime: an encoded second session, classified after mean-centering calibration.")
 @click.option("--train-profiles", default="slow,medium", show_default=True, help="realtime: trained profiles.")
@@ -141,7 +138,10 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
     runs = [("", fs)]
     if baseline in ("remove", "both"):
         fs_b = fs.subset(slice(None))
-        fs_b.features = {v: remove_baseline(x, _n_channels(fs, v, channels)) for v, x in fs.features.items()}
+        try:
+            fs_b.features = {v: remove_baseline(x, _n_channels(fs, v, channels)) for v, x in fs.features.items()}
+        except ValueError as exc:
+            raise click.ClickException(f"--baseline remove: {exc}") from None
         runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
 
     res_all = tasks.TaskResults()
@@ -154,6 +154,8 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
                     wanted = ("textures", "groups") if task == "all" else (task,)
                     if task == "all" and data.group is None:
                         wanted = ("textures",)
+                        res.warnings.append(f"groups task skipped: the texture set {data.textures.name!r} defines "
+                                            "no texture groups")
                     res.merge(tasks.run_cv(data, wanted, variants=vlist, n_pcs=n_pcs, repeats=repeats,
                                            per_texture=per_texture, seed=seed, progress=progress))
                 if task in ("extrapolation", "all"):

@@ -25,7 +25,7 @@ def encoded(tmp_path_factory):
         t["speed_mm_s"] = fs.speed_mm_s
         t["force_g"] = fs.force_g
         f["trials"] = t
-        f.attrs["n_spike_trains"] = 4
+        f.attrs["n_taxels"] = 2  # an unversioned (schema 1) file, as the old pipeline wrote it: 2 taxels x SA/RA
     return path
 
 
