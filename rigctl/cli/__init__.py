@@ -16,6 +16,7 @@ COMMANDS = {
     "sim": "rigctl.cli.sim:sim",
     "encode": "rigctl.cli.encode:encode",
     "analyze": "rigctl.cli.analyze:analyze",
+    "import": "rigctl.cli.import_recordings:import_recordings",
     "import-fabricslide": "rigctl.cli.fabricslide:import_fabricslide",
     "gui": "rigctl.cli.gui:gui",
 }
@@ -27,6 +28,7 @@ SHORT_HELP = {
     "sim": "Start the simulated rig, or generate a simulated dataset.",
     "encode": "Encode a session's trials into SA/RA spike trains.",
     "analyze": "Run the paper's PCA + LDA analyses on a session or dataset.",
+    "import": "Import recordings of any sensor (CSV, NPY/NPZ, MAT, NWB) into a session file.",
     "import-fabricslide": "Import the FabricSlide recordings into a session file.",
     "gui": "Start the desktop app.",
 }

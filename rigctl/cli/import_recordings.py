@@ -1,0 +1,56 @@
+"""``rigctl import``: recordings of any sensor (CSV, NPY/NPZ, MATLAB .mat, NWB) as a session file."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+
+@click.command("import")
+@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
+@click.option("--rate", "rate_hz", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Sample rate of the recordings, Hz (required unless the mapping or an NWB file gives it).")
+@click.option("--channels", type=click.IntRange(min=1), default=None, help="Taxel channels per sample.")
+@click.option("--layout", default=None, metavar="ROWSxCOLSxLAYERS",
+              help="Taxel grid, e.g. 3x3x1 (default: from the channel count; 18 -> the paper's 3x3x2).")
+@click.option("--label-pattern", default=None, metavar="PATTERN",
+              help="File-name pattern naming texture, speed_mm_s, force_g, repeat, e.g. "
+                   "'{texture}__V{speed_mm_s}__{rep}.csv'.")
+@click.option("--texture", default=None, help="Texture label of the files no pattern or mapping labels.")
+@click.option("--resample", "resample_hz", type=click.FloatRange(min=0, min_open=True), default=None,
+              metavar="HZ", help="Resample to this rate (scipy.signal.resample_poly); recorded in the session.")
+@click.option("--segment", "segment_spec", default=None, metavar="METHOD",
+              help="Cut continuous recordings into trials: fixed:SECONDS[:HOP_S], "
+                   "threshold:LEVEL[:MIN_S[:SMOOTH_S]] or cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]].")
+@click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="TOML mapping giving any of these values, per-file labels and the texture set.")
+@click.option("--volts-ref", type=click.FloatRange(min=0, min_open=True), default=None, metavar="V",
+              help="The recordings are volts with this ADC reference (default: they are counts).")
+@click.option("--bits", "adc_bits", type=click.IntRange(1, 16), default=None,
+              help="ADC resolution of the stored counts [default: 10].")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
+                      mapping, volts_ref, adc_bits, overwrite, as_json):
+    """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
+
+    A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
+    in order: read, resample (--resample), scale to ADC counts (--volts-ref), segment (--segment), label
+    (--label-pattern, --texture, mapping); each is recorded in the session's attributes.
+    """
+    from rigctl.storage.importers import RecordingImportError, import_recordings as run
+
+    try:
+        summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
+                      texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, mapping=mapping,
+                      volts_ref=volts_ref, adc_bits=adc_bits, overwrite=overwrite)
+    except (RecordingImportError, FileExistsError, FileNotFoundError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from None
+    if as_json:
+        click.echo(json.dumps({k: v for k, v in summary.items() if k != "steps"}))
+    else:
+        click.echo(f"{summary['n_trials']} trials, {summary['n_channels']} channels at {summary['rate_hz']:g} Hz, "
+                   f"{summary['samples'] / summary['rate_hz']:.1f} s -> {summary['path']} "
+                   f"(textures: {', '.join(summary['textures'])})")
