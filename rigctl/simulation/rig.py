@@ -132,9 +132,10 @@ class SimulatedRig:
         self.close()
 
     # ------------------------------------------------------------------ operator actions
-    def set_texture(self, letter: str) -> None:
-        """Mount texture plate ``letter`` (A-P) on the drum (the operator's action on the real rig)."""
-        self.model.set_texture(letter)
+    def set_texture(self, letter: str, textures=None) -> None:
+        """Mount texture plate ``letter`` (a label of ``textures``, default the paper's A-P) on the drum (the
+        operator's action on the real rig)."""
+        self.model.set_texture(letter, textures)
 
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it): see ``RigModel.place_mass``."""
