@@ -31,7 +31,7 @@ def make_trial(rng: np.random.Generator, duration_s: float = 3.0) -> TrialData:
     t = np.arange(n) / 1000.0
     # a texture-like signal: periodic ridges plus noise, 10-bit
     base = 500 + 120 * np.sin(2 * np.pi * 80 / 5.0 * t)[:, None] * rng.uniform(0.5, 1, 18)[None, :]
-    taxels = np.clip(base + rng.normal(0, 4, (n, 18)), 0, 1023)
+    taxels = np.rint(np.clip(base + rng.normal(0, 4, (n, 18)), 0, 1023))  # integer counts
     m = int(duration_s * 50)
     return TrialData(taxels=taxels, force_g=rng.normal(500, 2, m), force_time_s=np.arange(m) / 50,
                      speed_mm_s=np.full(m, 80.0), speed_time_s=np.arange(m) / 50,

@@ -10,8 +10,15 @@ The layout is documented in ``docs/session-format.md``. The rules that make a se
 - the ``/plan`` table holds every trial of the protocol with a status (pending / complete / failed), so an
   interrupted session is resumed from it (:meth:`SessionWriter.open`) and no trial is recorded twice.
 
-Data flow: acquisition and the dataset generator write (:class:`SessionWriter`); encoding, analysis, the GUI and
-``rigctl info`` read (:func:`open_session`).
+Every session stores the sensor that recorded it (root attribute ``sensor_layout``: a
+:class:`rigctl.core.sensor.SensorLayout` as JSON; it fixes the channel count, the rate and the ADC resolution of
+every trial) and its texture set (``texture_set``: a :class:`rigctl.core.textures.TextureSet` as JSON; the plan's
+labels are variable-length UTF-8 strings of that set, never truncated; codes are positions in the set). Files of
+schema 1 and 2 (written before both attributes existed) open as the paper's sensor with the texture set of their
+plan's labels (``docs/session-format.md``, "Older files").
+
+Data flow: acquisition, the dataset generator and the importers write (:class:`SessionWriter`); encoding, analysis,
+the GUI and ``rigctl info`` read (:func:`open_session`).
 """
 
 from __future__ import annotations
@@ -32,13 +39,18 @@ import h5py
 import numpy as np
 
 from rigctl import __version__
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.storage import h5objects, journal
 
-SCHEMA_VERSION = 2
-SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide")
-N_TAXELS = 18
-RATE_HZ = 1000.0
+#: 3: root attributes ``sensor_layout`` and ``texture_set``, ``/plan`` texture as variable-length UTF-8
+SCHEMA_VERSION = 3
+SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide", "imported")
+#: variable-length UTF-8 string (h5py's ``string_dtype``): ``/plan`` texture labels of any length
+VLEN_UTF8 = h5py.string_dtype("utf-8")
+#: largest ``taxels`` chunk, bytes (one chunk holds up to 65,536 samples of every channel, fewer for wide sensors)
+TAXEL_CHUNK_BYTES = 4 << 20
 
 
 class TrialStatus(enum.IntEnum):
@@ -51,11 +63,12 @@ class TrialStatus(enum.IntEnum):
 
 STATUS_ENUM = {s.name.lower(): int(s) for s in TrialStatus}
 
-#: ``/plan`` row: one per planned trial, in protocol order. Strings are fixed-length ASCII (bytes in HDF5).
+#: ``/plan`` row: one per planned trial, in protocol order. ``texture`` is a variable-length UTF-8 string (any
+#: label of the session's texture set), ``profile`` fixed-length ASCII (bytes in HDF5).
 PLAN_DTYPE = np.dtype(
     [
         ("trial_id", "<u4"),
-        ("texture", "S1"),
+        ("texture", VLEN_UTF8),
         ("speed_mm_s", "<f4"),  # constant speed; for a ramp the mean surface speed over the trial
         ("force_g", "<f4"),
         ("duration_s", "<f4"),
@@ -66,24 +79,31 @@ PLAN_DTYPE = np.dtype(
         ("status", "u1"),
     ]
 )
-#: rows per ``/plan`` chunk: a status update rewrites one chunk in place (64 x 67 B, about one 4 KiB page), not the
+#: rows per ``/plan`` chunk: a status update rewrites one chunk in place (64 rows of ~70 B, about one 4 KiB page), not the
 #: whole table, which keeps a commit's in-place writes (``rigctl.storage.journal``) short
 PLAN_CHUNK_ROWS = 64
 PLAN_FIELDS = tuple(n for n in PLAN_DTYPE.names if n != "status")
 
-#: attributes of ``/trials``: what every trial's ``taxels`` hold (NWB TimeSeries terms), stored once per session
-TAXELS_DESCRIPTION = {
-    "taxels_channels": "0-8 top layer (type I), 9-17 bottom layer (type II), row-major 3x3, row 0 leading edge",
-    "taxels_unit": "ADC counts",
-    "taxels_conversion": 1.0,
-    "taxels_resolution": 1.0,
-    "taxels_starting_time_unit": "seconds since the session's created_utc",
-}
 
-#: the same row with str fields, as returned by :attr:`Session.plan`
-PLAN_DTYPE_STR = np.dtype(
-    [(n, ("U1" if n == "texture" else "U24") if PLAN_DTYPE[n].kind == "S" else PLAN_DTYPE[n]) for n in PLAN_DTYPE.names]
-)
+
+def taxels_description(layout: SensorLayout) -> dict:
+    """Attributes of ``/trials``: what every trial's ``taxels`` hold (NWB TimeSeries terms), stored once per session.
+
+    ``taxels_channels`` is ``layout.describe()`` (e.g. "0-8 top (type I), 9-17 bottom (type II); row-major 3x3, row
+    0 leading edge; 1000 Hz, 10-bit"), ``taxels_channel_names`` one name per channel (``layout.channel_labels()``),
+    ``taxels_unit`` "ADC counts", ``taxels_conversion`` and ``taxels_resolution`` 1.0 (one count),
+    ``taxels_rate_hz`` and ``taxels_adc_bits`` from the layout.
+    """
+    return {
+        "taxels_channels": layout.describe(),
+        "taxels_channel_names": np.array(layout.channel_labels(), dtype=VLEN_UTF8),
+        "taxels_unit": "ADC counts",
+        "taxels_conversion": 1.0,
+        "taxels_resolution": 1.0,
+        "taxels_rate_hz": float(layout.sample_rate_hz),
+        "taxels_adc_bits": int(layout.adc_bits),
+        "taxels_starting_time_unit": "seconds since the session's created_utc",
+    }
 
 
 class SessionError(RuntimeError):
@@ -126,7 +146,7 @@ def plan_array(rows: Iterable[Any]) -> np.ndarray:
                 raise ValueError(f"plan row {i} has no {name!r}")
         tex = _row_value(row, "texture")
         out[i]["trial_id"] = int(_row_value(row, "trial_id"))
-        out[i]["texture"] = tex.encode() if isinstance(tex, str) else tex
+        out[i]["texture"] = _text(tex)
         out[i]["speed_mm_s"] = float(_row_value(row, "speed_mm_s"))
         out[i]["force_g"] = float(_row_value(row, "force_g"))
         out[i]["duration_s"] = float(_row_value(row, "duration_s"))
@@ -143,12 +163,45 @@ def plan_array(rows: Iterable[Any]) -> np.ndarray:
     return out
 
 
+def _text(v: Any) -> str:
+    """A plan string field as str (bytes from HDF5 are UTF-8; numpy str scalars become plain str)."""
+    return v.decode("utf-8") if isinstance(v, bytes) else str(v)
+
+
 def _plan_to_str(plan: np.ndarray) -> np.ndarray:
-    out = np.zeros(plan.shape, dtype=PLAN_DTYPE_STR)
-    for name in PLAN_DTYPE.names:
+    """The ``/plan`` table (:data:`PLAN_DTYPE`, or the fixed-length ``S1`` texture of schema 1/2) with numpy str
+    fields: ``texture`` as ``U<longest label>``, ``profile`` as ``U24``."""
+    cols, fields = {}, []
+    for name in plan.dtype.names:
         col = plan[name]
-        out[name] = np.char.decode(col, "ascii") if col.dtype.kind == "S" else col
+        if col.dtype.kind in "SO":
+            text = [_text(v) for v in col.tolist()]
+            width = max([len(t) for t in text], default=1) or 1
+            cols[name] = text
+            fields.append((name, f"U{max(width, col.dtype.itemsize if col.dtype.kind == 'S' else 1)}"))
+        else:
+            cols[name] = col
+            fields.append((name, col.dtype))
+    out = np.zeros(plan.shape, dtype=fields)
+    for name, col in cols.items():
+        out[name] = col
     return out
+
+
+def _check_plan_textures(plan: np.ndarray, textures: TextureSet) -> None:
+    """Put every plan label in the set's spelling (:meth:`TextureSet.resolve`), in place.
+
+    Raises
+    ------
+    TextureSetError for a label that is not in the set (the message names the set's labels).
+    """
+    known: dict[str, str] = {}
+    for i, v in enumerate(plan["texture"].tolist()):
+        label = _text(v)
+        if label not in known:
+            known[label] = textures.resolve(label)
+        if known[label] != label or not isinstance(v, str):
+            plan["texture"][i] = known[label]
 
 
 def trial_group_name(trial_id: int) -> str:
@@ -243,6 +296,17 @@ class SessionWriter:
     path : path of an existing session file (use :meth:`create` / :meth:`open`).
     compression : "gzip" (level 1, shuffle; readable by any HDF5 tool), "lzf" (h5py only) or None.
     durable : fsync the file and the journal at each commit (survives a power cut, not only a killed process).
+
+    Attributes
+    ----------
+    layout : :class:`rigctl.core.sensor.SensorLayout`, the session's sensor (every trial written must match its
+        channel count and rate).
+    textures : :class:`rigctl.core.textures.TextureSet`, the session's texture set (every plan label is in it).
+
+    Raises
+    ------
+    SessionError if the file is not a session, has a newer schema, or is a schema-1/2 import with absent channels
+    (``channel_present``: read it with :func:`open_session`; it cannot be appended to).
     """
 
     def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip", durable: bool = True):
@@ -254,10 +318,18 @@ class SessionWriter:
             raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
         self.compression = compression
         with _open_h5(self.path, "r") as f:
-            _check_layout(f, self.path)
+            _check_file(f, self.path)
             self.attrs = _read_attrs(f)
             self.protocol_source = _read_text(f["protocol/source"])
             self._plan = f["plan"][()]
+            try:
+                self.layout, present = _file_layout(f, self.attrs)
+                self.textures = _file_textures(self.attrs, self._plan)
+            except ValueError as exc:  # LayoutError, TextureSetError
+                raise SessionError(f"{self.path}: {exc}") from exc
+            if present is not None:
+                raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with absent "
+                                   "channels (channel_present); it can be read, not appended to: import it again")
         self._created = _parse_utc(self.attrs.get("created_utc", ""))
 
     # -- construction -------------------------------------------------------------------------------------------
@@ -267,6 +339,8 @@ class SessionWriter:
         path: str | os.PathLike,
         *,
         plan: Iterable[Any] | np.ndarray,
+        layout: SensorLayout = PAPER_SENSOR,
+        textures: TextureSet | Mapping | None = None,
         protocol_source: str = "",
         protocol_name: str = "",
         protocol_format: str = "toml",
@@ -285,25 +359,44 @@ class SessionWriter:
         path : output ``.h5`` file.
         plan : planned trials (see :func:`plan_array`), or a :data:`PLAN_DTYPE` array; may be empty (Python-script
             protocols append rows with :meth:`append_trial`).
+        layout : the sensor (:class:`rigctl.core.sensor.SensorLayout`; default the paper's 3x3x2 @ 1 kHz, 10-bit),
+            stored as the ``sensor_layout`` root attribute; every trial must match its channel count and rate.
+        textures : the texture set (:class:`rigctl.core.textures.TextureSet`, or its ``to_dict`` form), stored as
+            the ``texture_set`` root attribute. None: ``texture_set_from_labels`` of the plan's labels (the paper's
+            A-P set when all are A-P; for an empty plan the paper's set). Plan labels are stored in the set's
+            spelling (:meth:`TextureSet.resolve`).
         protocol_source : the protocol file's text (a resume refuses a different source).
         protocol_name, protocol_format : ``/protocol`` attrs; format is "toml" or "python".
         rig_config : JSON-able mapping stored as the ``rig_config`` root attribute.
         kind : "recorded" | "simulated-dataset" | "fabricslide".
-        calibration : optional mapping; ``taxel_min``/``taxel_max`` (18,) arrays go to ``/calibration`` datasets,
-            everything else to its attributes.
+        calibration : optional mapping; ``taxel_min``/``taxel_max`` ``(layout.n_channels,)`` arrays go to
+            ``/calibration`` datasets, everything else to its attributes.
         attrs : extra root attributes.
         overwrite : replace an existing file (otherwise :class:`FileExistsError`).
 
         Raises
         ------
-        FileExistsError, ValueError (bad kind or plan).
+        FileExistsError, ValueError (bad kind, plan or calibration shape), TypeError (layout not a SensorLayout),
+        rigctl.core.textures.TextureSetError (a plan label not in ``textures``). Nothing is created on any of them.
         """
         path = Path(path)
         if kind not in SESSION_KINDS:
             raise ValueError(f"kind must be one of {SESSION_KINDS}, got {kind!r}")
         if protocol_format not in ("toml", "python", "none"):
             raise ValueError(f"protocol_format must be 'toml', 'python' or 'none', got {protocol_format!r}")
-        plan_arr = plan if isinstance(plan, np.ndarray) and plan.dtype == PLAN_DTYPE else plan_array(plan)
+        if not isinstance(layout, SensorLayout):
+            raise TypeError(f"layout must be a rigctl.core.sensor.SensorLayout, got {type(layout).__name__}")
+        plan_arr = plan.copy() if isinstance(plan, np.ndarray) and plan.dtype == PLAN_DTYPE else plan_array(plan)
+        if textures is None:
+            labels = [_text(t) for t in plan_arr["texture"].tolist()]
+            textures = texture_set_from_labels(labels) if labels else PAPER_TEXTURES
+        elif isinstance(textures, Mapping):
+            textures = TextureSet.from_dict(textures)
+        elif not isinstance(textures, TextureSet):
+            raise TypeError(f"textures must be a rigctl.core.textures.TextureSet, got {type(textures).__name__}")
+        _check_plan_textures(plan_arr, textures)
+        if calibration:
+            _calibration_arrays(calibration, layout.n_channels)  # refuse a wrong shape before creating anything
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; choose another --out, resume it, or remove it")
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -315,7 +408,11 @@ class SessionWriter:
             f.attrs["rigctl_version"] = __version__
             f.attrs["kind"] = kind
             f.attrs["rig_config"] = json.dumps(dict(rig_config or {}), default=str)
+            f.attrs["sensor_layout"] = layout.to_json()
+            f.attrs["texture_set"] = textures.to_json()
             for k, v in (attrs or {}).items():
+                if k in ("sensor_layout", "texture_set"):
+                    raise ValueError(f"{k} is set by the layout/textures arguments, not by attrs")
                 f.attrs[k] = _attr_value(v)
             g = f.create_group("protocol")
             g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
@@ -324,9 +421,9 @@ class SessionWriter:
             d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
             d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
             trials = f.create_group("trials")
-            trials.attrs.update(TAXELS_DESCRIPTION)
+            trials.attrs.update(taxels_description(layout))
             if calibration:
-                _write_calibration(f, calibration)
+                _write_calibration(f, calibration, layout.n_channels)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         stale = journal.journal_path(path)
@@ -362,8 +459,8 @@ class SessionWriter:
     # -- queries ------------------------------------------------------------------------------------------------
     @property
     def plan(self) -> np.ndarray:
-        """The ``/plan`` table as last written by this writer (:data:`PLAN_DTYPE`, bytes fields)."""
-        return self._plan.copy()
+        """The ``/plan`` table as last written by this writer, with numpy str fields (as :attr:`Session.plan`)."""
+        return _plan_to_str(self._plan)
 
     def completed_ids(self) -> list[int]:
         """Trial ids whose status is complete."""
@@ -389,7 +486,8 @@ class SessionWriter:
 
         Raises
         ------
-        SessionError if the trial is not in the plan or is already complete (no trial is recorded twice).
+        SessionError if the trial is not in the plan or is already complete (no trial is recorded twice), or if
+        ``data.layout`` differs from the session's :attr:`layout` in channel count or sample rate.
         rigctl.storage.journal.FileBusy (an OSError) if another process or a :class:`Session` holds the file open
         for longer than :attr:`wait_s`; nothing was written then and the call can be repeated.
         """
@@ -413,12 +511,13 @@ class SessionWriter:
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
                         raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+                    self._check_trial_layout(trial_id, data)
                     self._write_group(f, self._plan[i], data)
                     self._plan["status"][i] = TrialStatus.COMPLETE
                     written.append(i)
-                if written:  # the plan rows last, in one write of the span they cover
-                    lo, hi = min(written), max(written) + 1
-                    f["plan"][lo:hi] = self._plan[lo:hi]
+                if written:  # the plan's statuses last, in one write of the span they cover (only the status
+                    lo, hi = min(written), max(written) + 1  # field: the labels' heap objects stay as they are)
+                    f["plan"][lo:hi, "status"] = self._plan["status"][lo:hi]
         except journal.CommittedInterrupt:
             raise  # a Ctrl-C during the commit, which was completed first: the batch is on disk
         except BaseException:
@@ -432,15 +531,24 @@ class SessionWriter:
         ``planned`` is a planned trial as in :func:`plan_array`; a ``trial_id`` of None takes :meth:`next_trial_id`.
         Returns the trial id.
         """
-        row = plan_array([_with_id(planned, self.next_trial_id())])[0]
-        if row["trial_id"] in self._plan["trial_id"]:
-            raise SessionError(f"trial {int(row['trial_id'])} is already in the plan of {self.path}")
+        row = plan_array([_with_id(planned, self.next_trial_id())])
+        _check_plan_textures(row, self.textures)  # TextureSetError for a label outside the session's set
+        if row["trial_id"][0] in self._plan["trial_id"]:
+            raise SessionError(f"trial {int(row['trial_id'][0])} is already in the plan of {self.path}")
+        if self._plan.dtype != PLAN_DTYPE:  # a schema-1/2 file: fixed-length labels
+            width = self._plan.dtype["texture"].itemsize
+            if len(row["texture"][0].encode()) > width:
+                raise SessionError(f"{self.path} (schema {self.attrs.get('schema_version')}) stores texture labels of "
+                                   f"at most {width} byte(s); {row['texture'][0]!r} does not fit")
+            row = np.array([tuple(_text(v).encode() if isinstance(v, str) else v for v in row[0].tolist())],
+                           dtype=self._plan.dtype)
         with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
             ds = f["plan"]
             ds.resize((len(self._plan) + 1,))
-            ds[len(self._plan)] = row
+            ds[len(self._plan)] = row[0]
             f.flush()
-        self._plan = np.concatenate([self._plan, row[None]])
+        self._plan = np.concatenate([self._plan, row])
+        row = row[0]
         if data is not None:
             self.write_trial(int(row["trial_id"]), data)
         return int(row["trial_id"])
@@ -462,13 +570,25 @@ class SessionWriter:
             g.attrs["error"] = str(reason)
             g.attrs["failed_utc"] = _utc_now()
             self._plan["status"][i] = TrialStatus.FAILED
-            f["plan"][i] = self._plan[i]
+            f["plan"][i:i + 1, "status"] = self._plan["status"][i:i + 1]
             f.flush()
 
     def set_calibration(self, calibration: Mapping) -> None:
-        """Write (replace) the ``/calibration`` block."""
+        """Write (replace) the ``/calibration`` block.
+
+        Raises ValueError if ``taxel_min``/``taxel_max`` are not ``(layout.n_channels,)``.
+        """
+        _calibration_arrays(calibration, self.layout.n_channels)
         with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
-            _write_calibration(f, calibration)
+            _write_calibration(f, calibration, self.layout.n_channels)
+
+    def _check_trial_layout(self, trial_id: int, data: TrialData) -> None:
+        mine, theirs = self.layout, data.layout
+        if theirs.n_channels != mine.n_channels or theirs.sample_rate_hz != mine.sample_rate_hz:
+            raise SessionError(
+                f"trial {trial_id}: its sensor ({theirs.shape_text}, {theirs.n_channels} channels at "
+                f"{theirs.sample_rate_hz:g} Hz) differs from the session's ({mine.shape_text}, {mine.n_channels} "
+                f"channels at {mine.sample_rate_hz:g} Hz) in {self.path}")
 
     def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:
         # h5objects: the same objects as h5py's high-level API, without its per-object Python overhead (the
@@ -480,12 +600,14 @@ class SessionWriter:
             del f[name]
         g = h5objects.create_group(trials, short)
         n = data.n_samples
-        chunk_rows = max(1, min(n, 65536))
+        layout = self.layout
+        n_ch = layout.n_channels
+        chunk_rows = max(1, min(n, 65536, TAXEL_CHUNK_BYTES // (2 * n_ch)))
         comp = self.compression if n else None
-        tax = h5objects.create_dataset(g, "taxels", data.taxels, chunks=(chunk_rows, N_TAXELS), compression=comp)
+        tax = h5objects.create_dataset(g, "taxels", data.taxels, chunks=(chunk_rows, n_ch), compression=comp)
         started = _parse_utc(str(data.attrs.get("started_utc", "")))
         starting_time = (started - self._created).total_seconds() if started and self._created else 0.0
-        h5objects.set_attrs(tax, {"rate_hz": RATE_HZ, "unit": "ADC counts", "adc_bits": 10,
+        h5objects.set_attrs(tax, {"rate_hz": layout.sample_rate_hz, "unit": "ADC counts", "adc_bits": layout.adc_bits,
                                   "starting_time": starting_time})
         for key in ("seq", "flags", "host_time_s"):
             h5objects.create_dataset(g, key, getattr(data, key), chunks=(chunk_rows,), compression=comp)
@@ -494,7 +616,7 @@ class SessionWriter:
         attrs = {}
         for fld in PLAN_FIELDS:
             v = row[fld]
-            attrs[fld] = v.decode() if isinstance(v, bytes) else v.item()
+            attrs[fld] = _text(v) if isinstance(v, (bytes, str)) else v.item()
         for k, v in data.attrs.items():
             if k not in ("status", "trial_id"):
                 attrs[k] = _attr_value(v)
@@ -514,16 +636,27 @@ def _with_id(planned: Any, default_id: int) -> Any:
     return {k: v for k, v in values.items() if v is not None}
 
 
-def _write_calibration(f: h5py.File, calibration: Mapping) -> None:
+def _calibration_arrays(calibration: Mapping, n_channels: int) -> dict:
+    """``taxel_min``/``taxel_max`` of ``calibration`` as float64 arrays. Raises ValueError unless ``(n_channels,)``."""
+    out = {}
+    for k in ("taxel_min", "taxel_max"):
+        if k in calibration:
+            arr = np.asarray(calibration[k], dtype=np.float64)
+            if arr.shape != (n_channels,):
+                raise ValueError(f"calibration {k} must have shape ({n_channels},) (one value per channel of the "
+                                 f"session's sensor), got {arr.shape}")
+            out[k] = arr
+    return out
+
+
+def _write_calibration(f: h5py.File, calibration: Mapping, n_channels: int) -> None:
+    arrays = _calibration_arrays(calibration, n_channels)
     if "calibration" in f:
         del f["calibration"]
     g = f.create_group("calibration")
     for k, v in calibration.items():
-        if k in ("taxel_min", "taxel_max"):
-            arr = np.asarray(v, dtype=np.float64)
-            if arr.shape != (N_TAXELS,):
-                raise ValueError(f"calibration {k} must have shape ({N_TAXELS},), got {arr.shape}")
-            g.create_dataset(k, data=arr).attrs["unit"] = "ADC counts"
+        if k in arrays:
+            g.create_dataset(k, data=arrays[k]).attrs["unit"] = "ADC counts"
         else:
             g.attrs[k] = _attr_value(v)
 
@@ -533,7 +666,7 @@ def _read_text(ds) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
 
-def _check_layout(f: h5py.File, path: Path) -> None:
+def _check_file(f: h5py.File, path: Path) -> None:
     missing = [k for k in ("plan", "trials", "protocol") if k not in f]
     if missing or "schema_version" not in f.attrs:
         raise SessionError(f"{path} is not a rigctl session file (missing {missing or ['schema_version']})")
@@ -541,6 +674,48 @@ def _check_layout(f: h5py.File, path: Path) -> None:
         raise SessionError(
             f"{path} has schema_version {int(f.attrs['schema_version'])}, newer than this rigctl ({SCHEMA_VERSION})"
         )
+
+
+def _legacy_layout(attrs: Mapping, present: np.ndarray) -> SensorLayout:
+    """The sensor of a schema-1/2 file whose ``channel_present`` marks only some of its 18 columns as real (the
+    FabricSlide import: 16 of 18): one row of the present channels, named ``channel<k+1>`` after their column
+    (FabricSlide's ``channel1`` ... ``channel16``), 1 kHz, 10-bit (those files were always resampled to that)."""
+    idx = np.flatnonzero(present)
+    fabricslide = str(attrs.get("kind", "")) == "fabricslide"
+    return SensorLayout.grid(
+        1, len(idx), 1, sample_rate_hz=PAPER_SENSOR.sample_rate_hz, adc_bits=PAPER_SENSOR.adc_bits,
+        layer_names=("taxels",), receptors=("",), channel_names=[f"channel{int(k) + 1}" for k in idx],
+        name=(f"FabricSlide CPM-Finger ({len(idx)} taxels)" if fabricslide
+              else f"{len(idx)} present channels of {len(present)}"))
+
+
+def _file_layout(f: h5py.File, attrs: Mapping) -> tuple[SensorLayout, np.ndarray | None]:
+    """``(layout, present)``: the file's sensor and, for a schema-1/2 file with absent channels, the indices of the
+    stored columns that are real (else None).
+
+    Schema 3: the ``sensor_layout`` attribute. Schema 1/2: the paper's sensor (all those files hold 18 columns at
+    1 kHz, 10-bit), unless a ``channel_present`` root attribute marks some of the 18 columns absent (FabricSlide
+    imports): then :func:`_legacy_layout` of the present ones, and readers drop the absent columns.
+    """
+    text = attrs.get("sensor_layout")
+    if text:
+        return SensorLayout.from_json(text), None
+    present = attrs.get("channel_present")
+    if present is not None:
+        present = np.asarray(present).astype(bool).reshape(-1)
+        if present.size == PAPER_SENSOR.n_channels and present.any() and not present.all():
+            return _legacy_layout(attrs, present), np.flatnonzero(present)
+    return PAPER_SENSOR, None
+
+
+def _file_textures(attrs: Mapping, plan: np.ndarray) -> TextureSet:
+    """Schema 3: the ``texture_set`` attribute; schema 1/2: ``texture_set_from_labels`` of the plan's labels (the
+    paper's A-P set when all are A-P or the plan is empty)."""
+    text = attrs.get("texture_set")
+    if text:
+        return TextureSet.from_json(text)
+    labels = [t for t in (_text(v) for v in plan["texture"].tolist()) if t.strip()]
+    return texture_set_from_labels(labels) if labels else PAPER_TEXTURES
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -554,24 +729,39 @@ class Session:
     path : Path
     attrs : dict of the root attributes (``schema_version``, ``session_id``, ``created_utc``, ``kind``, ...).
     rig_config : dict decoded from the ``rig_config`` JSON attribute.
-    plan : structured array (:data:`PLAN_DTYPE_STR`: str fields), one row per planned trial, ``status`` as
-        :class:`TrialStatus` integers.
+    layout : :class:`rigctl.core.sensor.SensorLayout`, the sensor of every trial (``sensor_layout`` attribute; the
+        paper's 3x3x2 @ 1 kHz for schema 1/2 files, see :func:`_file_layout` for their imports).
+    textures : :class:`rigctl.core.textures.TextureSet` (``texture_set`` attribute; for schema 1/2 files the set of
+        the plan's labels).
+    plan : structured array with numpy str fields (``texture`` ``U<longest label>``, ``profile`` ``U24``), the other
+        fields as :data:`PLAN_DTYPE`; one row per planned trial, ``status`` as :class:`TrialStatus` integers.
     protocol_source, protocol_name, protocol_format : str
-    calibration : dict or None (``taxel_min``/``taxel_max`` as (18,) float64 arrays plus the block's attributes).
+    calibration : dict or None (``taxel_min``/``taxel_max`` as ``(layout.n_channels,)`` float64 arrays plus the
+        block's attributes).
+
+    Raises
+    ------
+    SessionError (not a session file, a newer schema, a malformed ``sensor_layout`` / ``texture_set``).
     """
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self._f = _open_h5(self.path, "r")
         try:
-            _check_layout(self._f, self.path)
+            _check_file(self._f, self.path)
+            f = self._f
+            self.attrs = _read_attrs(f)
+            raw_plan = f["plan"][()]
+            try:
+                self.layout, self._present = _file_layout(f, self.attrs)
+                self.textures = _file_textures(self.attrs, raw_plan)
+            except ValueError as exc:  # LayoutError, TextureSetError
+                raise SessionError(f"{self.path}: {exc}") from exc
         except Exception:
             self._f.close()
             raise
-        f = self._f
-        self.attrs = _read_attrs(f)
         self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
-        self.plan = _plan_to_str(f["plan"][()])
+        self.plan = _plan_to_str(raw_plan)
         self.protocol_source = _read_text(f["protocol/source"])
         self.protocol_name = str(_read_attrs(f["protocol"]).get("name", ""))
         self.protocol_format = str(_read_attrs(f["protocol"]).get("format", ""))
@@ -580,6 +770,8 @@ class Session:
             cal = _read_attrs(f["calibration"])
             for k in f["calibration"]:
                 cal[k] = f["calibration"][k][()]
+                if self._present is not None and k in ("taxel_min", "taxel_max"):
+                    cal[k] = cal[k][self._present]
             self.calibration = cal
 
     @property
@@ -608,7 +800,8 @@ class Session:
         return _read_attrs(self._f[name])
 
     def trial(self, trial_id: int) -> TrialData:
-        """Read one recorded trial.
+        """Read one recorded trial: a :class:`TrialData` with the session's :attr:`layout` (``taxels``
+        ``(n, layout.n_channels)`` uint16 at ``layout.sample_rate_hz``).
 
         Raises
         ------
@@ -619,8 +812,11 @@ class Session:
             raise KeyError(f"trial {trial_id} has no recorded data in {self.path}")
         g = self._f[name]
         attrs = _read_attrs(g)
+        taxels = g["taxels"][()]
+        if self._present is not None:  # a schema-1/2 import: only the real columns
+            taxels = taxels[:, self._present]
         return TrialData(
-            taxels=g["taxels"][()],
+            taxels=taxels,
             seq=g["seq"][()],
             flags=g["flags"][()],
             host_time_s=g["host_time_s"][()],
@@ -631,6 +827,7 @@ class Session:
             dropped_frames=int(attrs.get("dropped_frames", 0)),
             crc_errors=int(attrs.get("crc_errors", 0)),
             attrs=attrs,
+            layout=self.layout,
         )
 
     def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:

@@ -15,6 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
+from rigctl.core import PAPER_SENSOR, PAPER_TEXTURES, SensorLayout, TextureSet
 from rigctl.storage.session import (
     PLAN_DTYPE,
     SCHEMA_VERSION,
@@ -85,7 +86,10 @@ def test_round_trip_every_array_and_attribute(tmp_path):
         assert tax.shape == (2000, 18) and tax.dtype == np.uint16
         assert tax.attrs["rate_hz"] == 1000 and tax.attrs["unit"] == "ADC counts"
         assert tax.attrs["starting_time"] > 0  # seconds from created_utc to the trial's start
-        assert f["trials"].attrs["taxels_channels"].startswith("0-8 top layer (type I)")
+        assert f["trials"].attrs["taxels_channels"].startswith("0-8 top (type I), 9-17 bottom (type II)")
+        assert SensorLayout.from_json(f.attrs["sensor_layout"]) == PAPER_SENSOR
+        assert TextureSet.from_json(f.attrs["texture_set"]) == PAPER_TEXTURES
+        assert list(f["plan"]["texture"]) == [b"A", b"B", b"A", b"B"]  # variable-length UTF-8
         g = f["trials/000003"]
         assert g.attrs["texture"] == "B" and g.attrs["status"] == "complete" and g.attrs["n_samples"] == 1500
         assert g.attrs["speed_mm_s"] == np.float32(100.0) and g.attrs["dropped_frames"] == 3
