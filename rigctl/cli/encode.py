@@ -6,47 +6,71 @@ from pathlib import Path
 
 import click
 
+from rigctl.storage.encoded import ALL_VARIANTS
+
 
 @click.command("encode")
 @click.argument("session", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Encoded file to write (default: SESSION with suffix .encoded.h5).")
+@click.option("--overwrite", is_flag=True, help="Replace the output file if it exists.")
 @click.option("--scheduler", default=None,
               help="Dask scheduler address (tcp://host:8786), or 'local' for a local cluster; default: this "
                    "process, numba on all cores.")
 @click.option("--workers", type=int, default=None, help="Worker processes for --scheduler local.")
 @click.option("--batch", "batch", type=click.IntRange(min=1), default=256, show_default=True,
               help="Trials per batch.")
-@click.option("--variant", "variants", multiple=True,
-              help="Variant to compute (repeatable); default: all.")
+@click.option("--variant", "variants", multiple=True, type=click.Choice(ALL_VARIANTS),
+              help="Variant to compute (repeatable); default: all (speed-scaled ones are skipped, with a warning, "
+                   "when some trials have no speed).")
+@click.option("--window-ms", type=click.FloatRange(min=0, min_open=True), default=100.0, show_default=True,
+              help="Feature window length, ms.")
+@click.option("--windows-unscaled", type=click.IntRange(min=1), default=None,
+              help="Windows per spike train of the unscaled variants (original, force_scaled); default: enough "
+                   "for the longest trial in the session.")
+@click.option("--windows-scaled", type=click.IntRange(min=1), default=20, show_default=True,
+              help="Windows per spike train of the speed-scaled variants (20 = 2 s at the 120 mm/s reference).")
 @click.option("--no-spikes", is_flag=True, help="Do not store spike trains, only features.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def encode(session, out, scheduler, workers, batch, variants, no_spikes, quiet):
+def encode(session, out, overwrite, scheduler, workers, batch, variants, window_ms, windows_unscaled,
+           windows_scaled, no_spikes, quiet):
     """Encode SESSION: per-taxel normalisation, force coefficients (eq. 1), Izhikevich SA/RA encoding (eqs. 3-5),
     speed scaling (eq. 2) and SR/SC features for the variants original, speed_scaled, force_scaled,
-    speed_force_scaled (+ label-free force and real-time variants)."""
-    import h5py
+    speed_force_scaled (+ label-free force and real-time variants). The session's sensor layout gives the channel
+    count; a session not recorded at 1 kHz is resampled to the model's 1 ms step first (reported, and recorded in
+    the encoded file)."""
+    from rigctl.encoding.pipeline import EncodeParams, encode_session
+    from rigctl.storage.encoded import MAIN_VARIANTS, open_encoded
+    from rigctl.storage.session import SessionError
 
-    from rigctl.encoding.pipeline import ALL_VARIANTS, MAIN_VARIANTS, encode_session
-
-    bad = [v for v in variants if v not in ALL_VARIANTS]
-    if bad:
-        raise click.BadParameter(f"unknown {bad}; choose from {', '.join(ALL_VARIANTS)}", param_hint="--variant")
     out = out or session.with_suffix(".encoded.h5")
+    if out.exists() and not overwrite:
+        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
     try:
-        path = encode_session(session, out, variants=variants or ALL_VARIANTS, batch_trials=batch,
+        params = EncodeParams(window_s=window_ms / 1000.0, n_windows_unscaled=windows_unscaled,
+                              n_windows_scaled=windows_scaled)
+        path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,
                               scheduler=scheduler, workers=workers, progress=not quiet,
-                              store_spikes=() if no_spikes else MAIN_VARIANTS)
-    except (ValueError, KeyError, OSError) as exc:
-        raise click.ClickException(str(exc)) from exc
-    with h5py.File(path, "r") as f:
-        click.echo(f"wrote {path}: {f.attrs['n_trials']} trials in {f.attrs['encode_seconds']:.1f} s")
-        for v in f["features"]:
-            click.echo(f"  /features/{v}: {f['features'][v].shape}")
-        for name in ("force_coefficients", "force_coefficients_label_free"):
-            if name in f:
-                a = f[name].attrs
-                click.echo(f"  {name}: {a['n_not_converged']} of {a['n_coefficients']} not converged "
-                           f"(largest coefficient {f[name]['coeff'].max():.3g}, cap 5)")
-            elif f"{name}_note" in f.attrs:
-                click.echo(f"  {name}: {f.attrs[f'{name}_note']}")
+                              store_spikes=() if no_spikes else MAIN_VARIANTS, params=params, overwrite=overwrite)
+    except (ValueError, KeyError, OSError, SessionError) as exc:
+        msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+        raise click.ClickException(" ".join(msg.split())) from None
+    with open_encoded(path) as f:
+        a = f.attrs
+        click.echo(f"wrote {path}: {f.n_trials} trials, {f.layout.n_channels} taxels "
+                   f"({f.layout.shape_text}) in {a.get('encode_seconds', 0.0):.1f} s")
+        click.echo(f"  rate: {a.get('resampling', 'not recorded')}")
+        click.echo(f"  unscaled windows: {a.get('n_windows_unscaled_note', '')}")
+        for v in f.variants:
+            click.echo(f"  /features/{v}: {f.feature_shape(v)}")
+        for v, reason in f.skipped_variants.items():
+            click.echo(f"  skipped {v}: {reason}")
+        for lf in (False, True):
+            name = "force_coefficients_label_free" if lf else "force_coefficients"
+            table = f.force_coefficients(label_free=lf)
+            if table is not None:
+                st = f.force_fit_stats(label_free=lf)
+                click.echo(f"  {name}: {st.get('n_not_converged')} of {st.get('n_coefficients')} not converged "
+                           f"(largest coefficient {table['coeff'].max():.3g}, cap 5)")
+            elif f"{name}_note" in a:
+                click.echo(f"  {name}: {a[f'{name}_note']}")

@@ -9,8 +9,10 @@ Modules, one job each (data flows top to bottom):
 - :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index, HDF5 I/O.
 - :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceScaler``).
 - :mod:`~rigctl.encoding.speed` - eq. (2): ``scale_spike_times``, ``incremental_scale`` (100 ms batches).
-- :mod:`~rigctl.encoding.features` - SR/SC in 100 ms windows (720 / 2160 features; 180 real-time).
-- :mod:`~rigctl.encoding.pipeline` - ``encode_session``: a session file -> the encoded file (Dask optional).
+- :mod:`~rigctl.encoding.features` - SR/SC in 100 ms windows (720 / 2160 features for 18 taxels; 180 real-time).
+- :mod:`~rigctl.encoding.rate` - the explicit resampling of readings not at the model's 1 kHz (1 ms steps).
+- :mod:`~rigctl.encoding.pipeline` - ``encode_session``: a session file -> the encoded file (Dask optional), written
+  and read through :mod:`rigctl.storage.encoded` (which also holds the variant registry).
 
 Submodules are imported on use (numba compiles on first call; compiled kernels are cached on disk).
 """

@@ -1,8 +1,9 @@
 """Spiking features: SA spike rate (SR) and RA spike count (SC) in non-overlapping 100 ms windows (Methods,
 feature extraction).
 
-Drum dataset: 36 trains per trial (18 SA then 18 RA). Speed-scaled trials are 2 s long (the reference speed's
-trial length) -> 20 windows -> 720 features; unscaled trials are 2-6 s -> 60 windows, zero-padded -> 2160. The SA
+Drum dataset: 36 trains per trial (18 SA then 18 RA; ``2 x n_channels`` for other sensors). Speed-scaled trials are
+2 s long (the reference speed's trial length) -> 20 windows -> 720 features; unscaled trials are 2-6 s -> 60
+windows, zero-padded -> 2160 (the pipeline's default covers the longest trial of each file). The SA
 spike rate of a speed-scaled trial is multiplied by the eq. (2) coefficient ``j / 120``: contracting a trial by
 ``j / 120`` raises its spike rate by ``120 / j``, and this brings it back ("the SR must be normalized by the speed
 scaling coefficient as well to make the SR of the windows match between different trial speeds").
@@ -26,7 +27,8 @@ __all__ = ["N_WINDOWS_SCALED", "N_WINDOWS_UNSCALED", "N_WINDOWS_REALTIME", "spik
            "realtime_features_unscaled"]
 
 N_WINDOWS_SCALED = 20  #: 2 s at the reference speed
-N_WINDOWS_UNSCALED = 60  #: 6 s, the longest trial (40 mm/s)
+#: the paper's dataset: 6 s, its longest trial (40 mm/s); the pipeline's default covers each file's longest trial
+N_WINDOWS_UNSCALED = 60
 N_WINDOWS_REALTIME = 20
 
 

@@ -157,6 +157,13 @@ def fit_force_coefficients(readings, group, reference, *, offset=0.0, scale=1.0,
     return ForceFit(coeffs, converged, target, rate, n_iter)
 
 
+def _condition(values) -> np.ndarray:
+    """A speed or force as a grouping key: rounded to 1e-3; unknown (NaN) values become -inf, one condition of
+    their own (NaN would not equal itself, so every such trial would be a group without a reference)."""
+    v = np.round(np.asarray(values, float), 3)
+    return np.where(np.isnan(v), -np.inf, v)
+
+
 def _key_index(keys: np.ndarray):
     uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     return uniq, inv.reshape(-1)
@@ -195,8 +202,7 @@ class ForceScaler:
         else:
             lookup = {t: i for i, t in enumerate(self.textures_)}
             tcode = np.array([lookup.get(t, -2) for t in texture], dtype=np.float64)
-        return np.column_stack([tcode, np.round(np.asarray(speed_mm_s, float), 3),
-                                np.round(np.asarray(force_g, float), 3)])
+        return np.column_stack([tcode, _condition(speed_mm_s), _condition(force_g)])
 
     def fit(self, readings, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0) -> "ForceScaler":
         """Fit the coefficients on trials with labels (one per trial).
@@ -241,15 +247,16 @@ class ForceScaler:
         return [rg.trial(t) * coeffs[t] for t in range(rg.n_trials)]
 
     def table(self) -> np.ndarray:
-        """Structured array: texture, speed_mm_s, force_g, taxel, coeff, converged (one row per coefficient)."""
+        """Structured array, one row per coefficient: texture (str, ``"*"`` for label-free), speed_mm_s, force_g
+        (NaN: unknown), taxel, coeff, converged, target_rate, rate (spikes/s)."""
         n_g, n_ch = self.coeffs_.shape
-        dt = np.dtype([("texture", "S8"), ("speed_mm_s", "f4"), ("force_g", "f4"), ("taxel", "u2"),
-                       ("coeff", "f8"), ("converged", "?"), ("target_rate", "f8"), ("rate", "f8")])
-        out = np.zeros(n_g * n_ch, dtype=dt)
         tex = ["*" if c < 0 else self.textures_[int(c)] for c in self.keys_[:, 0]]
-        out["texture"] = np.repeat(np.array(tex, dtype="S8"), n_ch)
-        out["speed_mm_s"] = np.repeat(self.keys_[:, 1], n_ch)
-        out["force_g"] = np.repeat(self.keys_[:, 2], n_ch)
+        dt = np.dtype([("texture", f"U{max([1] + [len(t) for t in tex])}"), ("speed_mm_s", "f4"), ("force_g", "f4"),
+                       ("taxel", "u2"), ("coeff", "f8"), ("converged", "?"), ("target_rate", "f8"), ("rate", "f8")])
+        out = np.zeros(n_g * n_ch, dtype=dt)
+        out["texture"] = np.repeat(np.array(tex, dtype=str), n_ch)
+        out["speed_mm_s"] = np.repeat(np.where(np.isinf(self.keys_[:, 1]), np.nan, self.keys_[:, 1]), n_ch)
+        out["force_g"] = np.repeat(np.where(np.isinf(self.keys_[:, 2]), np.nan, self.keys_[:, 2]), n_ch)
         out["taxel"] = np.tile(np.arange(n_ch), n_g)
         out["coeff"] = self.coeffs_.ravel()
         out["converged"] = self.converged_.ravel()

@@ -57,7 +57,8 @@ __all__ = [
 
 K_SA = 100.0  #: eq. (3) input scaling for SA (Methods)
 K_RA = 3.0  #: eq. (3) input scaling for RA (Methods)
-FS_HZ = 1000.0  #: the taxel sample rate (1 kHz); one model step per sample
+#: the model's step rate, Hz: one 1 ms step per input sample (other rates are resampled: rigctl.encoding.rate)
+FS_HZ = 1000.0
 
 
 @dataclass(frozen=True)
@@ -450,7 +451,8 @@ def encode_sa(readings, k: float = K_SA, coeff=1.0, *, normalise: TaxelRange | N
     k : eq. (3) scale, default 100.
     coeff : force-invariance coefficient C (eq. 1): scalar, (n_taxels,) or (n_trials, n_taxels).
     normalise : per-taxel min/max of the whole dataset; applied in the kernel.
-    fs : sample rate, Hz (one model step per sample).
+    fs : the input's rate, Hz, used for the spike times (one 1 ms model step per sample: readings at another rate
+        must be resampled to 1 kHz first, :mod:`rigctl.encoding.rate`).
 
     Returns
     -------

@@ -3,14 +3,37 @@
 The paper's pipeline (Fig. 1B; Methods): per-taxel 0-1 normalisation over the whole dataset -> force invariance
 (eq. 1, input scaling of SA) -> spiking activity encoding (eqs. 3-5) -> speed invariance (eq. 2) -> SR/SC features.
 
+The data drive every shape: the session's sensor layout (:class:`rigctl.core.sensor.SensorLayout`) gives the channel
+count (SA and RA trains per taxel: ``2 x n_channels`` trains, ``2 x n_channels x n_windows`` features), its sample
+rate the time base, its texture set (:class:`rigctl.core.textures.TextureSet`) each trial's group.
+
+**Rate.** The Izhikevich model steps in 1 ms (:data:`rigctl.encoding.rate.MODEL_RATE_HZ`, one step per sample at
+the paper's 1 kHz). A session at another rate is resampled to 1 kHz first (:mod:`rigctl.encoding.rate`,
+``scipy.signal.resample_poly``), as an explicit, logged step recorded in the encoded file (``input_rate_hz``,
+``model_rate_hz``, ``resampled``, ``resampling`` attributes); at 1 kHz the readings go to the kernel unchanged.
+Spike times are in seconds of the recording either way (a 1 s trial at 100 Hz has spikes within 1 s).
+
+**Windows.** Window length (``window_s``, default 100 ms) and counts are :class:`EncodeParams`: speed-scaled
+variants use ``n_windows_scaled`` (default 20, i.e. 2 s at the reference speed, the paper's), unscaled ones
+``n_windows_unscaled`` (default: enough windows for the longest trial of the file, ``ceil(longest / window_s)``;
+60 for the paper's dataset, whose longest trials are 6 s), the real-time ones ``n_windows_realtime`` (20).
+
+**Speed.** Only the speed-scaled variants (eq. 2: ``speed_scaled``, ``speed_force_scaled``,
+``speed_force_scaled_label_free``, ``realtime_speed_scaled``) need each trial's speed; a trial whose speed is NaN
+(e.g. an imported recording) is fine for the others. Asked for explicitly (``variants=[...]``, ``rigctl encode
+--variant``), a speed-scaled variant with trials lacking a speed is an error naming the trials; with the default
+(all variants), those variants are skipped with a warning and listed in the file's ``skipped_variants`` attribute.
+(``realtime_speed_scaled`` uses a trial's measured speed trace when it has one, its speed label otherwise.)
+
 Passes over the session (trials are read in batches; a paper-sized dataset, 24,000 trials of 2-6 s x 18 taxels,
 is 3 GB as uint16 and 12 GB as float64, so nothing float64 is held for more than a batch):
 
-1. **Range pass:** per-taxel min/max over every trial (:class:`~rigctl.encoding.normalise.TaxelRange`); the raw
-   ``uint16`` readings are kept in memory for the force fit, as long as they fit ``fit_memory_bytes`` (default
-   4 GB, i.e. the paper-sized dataset). If they do not, an even subsample of trials per condition is kept instead
-   (each coefficient then comes from fewer trials; the count used is stored in the attributes). The kernel
-   normalises ``uint16`` counts on the fly, so the fit never makes a float copy.
+1. **Range pass:** per-taxel min/max over every trial (of the model input, i.e. after resampling if any:
+   :class:`~rigctl.encoding.normalise.TaxelRange`); the model input is kept in memory for the force fit, as long
+   as it fits ``fit_memory_bytes`` (default 4 GB, i.e. the paper-sized dataset as uint16). If it does not, an even
+   subsample of trials per condition is kept instead (each coefficient then comes from fewer trials; the count used
+   is stored in the attributes). The kernel normalises ``uint16`` counts on the fly, so the fit never makes a float
+   copy of 1 kHz sessions.
 2. **Force fit** (once, all coefficients together): per (texture, taxel, speed, force) and label-free per
    (taxel, speed, force). A session without a 500 g reference for some (texture, speed) gets coefficients 1 and
    an attribute saying so.
@@ -20,59 +43,69 @@ is 3 GB as uint16 and 12 GB as float64, so nothing float64 is held for more than
    themselves (so it must be on a path they can see) and return features and spike trains; this process writes
    them in trial order.
 
-Output file (HDF5)::
-
-    /trials                  table: trial_id, texture, group, speed_mm_s, force_g, profile, duration_s, n_samples
-    /features/<variant>      (n_trials, n_features) float32
-    /spikes/<variant>/       spike_times (s) + spike_times_index (row ends), NWB-style; row = trial*36 + train
-    /force_coefficients      table (texture, speed_mm_s, force_g, taxel, coeff, converged, target_rate, rate)
-    /force_coefficients_label_free
-    /normalisation/          taxel_min, taxel_max (ADC counts)
-    attrs: parameters (JSON), n_not_converged, n_coefficients, source session, ...
-
-Variants: ``original`` (2160 features), ``speed_scaled`` (720), ``force_scaled`` (2160), ``speed_force_scaled``
-(720), the label-free force variants ``force_scaled_label_free`` / ``speed_force_scaled_label_free``, and the
-real-time features (9 top-layer SA trains x 20 windows = 180) ``realtime_original`` / ``realtime_speed_scaled``.
+The output is written by :class:`rigctl.storage.encoded.EncodedWriter` (layout and schema there) and read with
+:func:`rigctl.storage.encoded.open_encoded`. Variants and their names: :data:`rigctl.storage.encoded.VARIANTS`.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, N_WINDOWS_UNSCALED, realtime_features,
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.textures import TextureSet, texture_set_from_labels
+from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, realtime_features,
                                       realtime_features_unscaled, spike_features)
 from rigctl.encoding.filters import ra_input
 from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler
-from rigctl.encoding.izhikevich import FS_HZ, K_RA, K_SA, Ragged, _trains_from_raster, as_ragged, run_izhikevich
+from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _trains_from_raster, as_ragged, run_izhikevich
 from rigctl.encoding.normalise import TaxelRange
+from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
 from rigctl.encoding.speed import (REALTIME_REFERENCE_SPEED_MM_S, REFERENCE_SPEED_MM_S, WINDOW_S,
                                    incremental_scale, speed_coefficient, window_speeds)
+from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, REALTIME_VARIANTS, VARIANTS, EncodedWriter
 
-from rigctl.texture_set import texture_group  # re-exported
+__all__ = ["EncodeParams", "encode_session", "encode_batch", "SpeedMissingError", "windows_for"]
 
-__all__ = ["MAIN_VARIANTS", "ALL_VARIANTS", "EncodeParams", "encode_session", "encode_batch", "texture_group",
-           "read_encoded"]
+log = logging.getLogger(__name__)
 
-MAIN_VARIANTS = ("original", "speed_scaled", "force_scaled", "speed_force_scaled")
-LABEL_FREE_VARIANTS = ("force_scaled_label_free", "speed_force_scaled_label_free")
-REALTIME_VARIANTS = ("realtime_original", "realtime_speed_scaled")
-ALL_VARIANTS = MAIN_VARIANTS + LABEL_FREE_VARIANTS + REALTIME_VARIANTS
+
+class SpeedMissingError(ValueError):
+    """A speed-scaled variant was asked for, but some trials have no speed (NaN or <= 0 mm/s)."""
+
 
 @dataclass
 class EncodeParams:
-    """Parameters of an encoding run (stored as JSON in the output's ``parameters`` attribute)."""
+    """Parameters of an encoding run (stored as JSON in the output's ``parameters`` attribute).
 
-    fs_hz: float = FS_HZ
+    Attributes (units in the names; defaults: the paper's Methods)
+    ----------------------------------------------------------------
+    fs_hz : the model's step rate, Hz (1 kHz: 1 ms Izhikevich steps); readings at another rate are resampled to it.
+    input_rate_hz : the session's sample rate, Hz (None: taken from the session's layout by :func:`encode_session`).
+    k_sa, k_ra : eq. (3) input scales (100, 3). cutoff_hz : RA low-pass (20 Hz). rectify_ra : rectify the RA input.
+    reference_speed_mm_s : eq. (2) reference (120 mm/s); realtime_reference_speed_mm_s : real-time one (100 mm/s).
+    reference_force_g, epsilon, c_max : eq. (1) (500 g, 0.1 spikes/s, 5).
+    window_s : feature window length, s (0.1 = 100 ms).
+    n_windows_scaled : windows of the speed-scaled variants (20 = 2 s at the reference speed).
+    n_windows_unscaled : windows of the unscaled variants; None = enough for the longest trial of the file
+        (:func:`windows_for`; 60 for the paper's dataset).
+    n_windows_realtime : windows of the real-time variants (20).
+    realtime_taxels : channels of the real-time variants; None = the sensor's first (top) layer (0-8 on the paper's
+        sensor).
+    izhikevich : eqs. (3)-(5) tonic-spiking constants.
+    """
+
+    fs_hz: float = MODEL_RATE_HZ
+    input_rate_hz: float | None = None
     k_sa: float = K_SA
     k_ra: float = K_RA
     cutoff_hz: float = 20.0
@@ -84,10 +117,23 @@ class EncodeParams:
     c_max: float = C_MAX
     window_s: float = WINDOW_S
     n_windows_scaled: int = N_WINDOWS_SCALED
-    n_windows_unscaled: int = N_WINDOWS_UNSCALED
+    n_windows_unscaled: int | None = None
     n_windows_realtime: int = N_WINDOWS_REALTIME
-    realtime_taxels: list = field(default_factory=lambda: list(range(9)))
+    realtime_taxels: list | None = None
     izhikevich: dict = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.window_s) and self.window_s > 0):
+            raise ValueError(f"window_s must be > 0 s, got {self.window_s!r}")
+        for name in ("n_windows_scaled", "n_windows_realtime") + (
+                ("n_windows_unscaled",) if self.n_windows_unscaled is not None else ()):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
+
+
+def windows_for(duration_s: float, window_s: float = WINDOW_S) -> int:
+    """Windows of ``window_s`` covering ``duration_s`` (s): ``ceil(duration_s / window_s)``, at least 1."""
+    return max(1, int(math.ceil(round(float(duration_s) / float(window_s), 9))))
 
 
 # ---------------------------------------------------------------------------------------------------------- batch work
@@ -103,6 +149,14 @@ def _sa_ra(rg: Ragged, offset, scale, sa_gains: list[np.ndarray], p: EncodeParam
     return out, _trains_from_raster(raster, ra_in.starts, counts, p.fs_hz)
 
 
+def _realtime_taxels(p: EncodeParams, n_ch: int, layout: SensorLayout | None = None) -> list[int]:
+    if p.realtime_taxels is not None:
+        return [int(t) for t in p.realtime_taxels if int(t) < n_ch] or list(range(n_ch))
+    if layout is not None and layout.n_channels == n_ch:
+        return list(layout.layer_channels(0))
+    return list(range(min(9, n_ch)))  # the paper's top layer
+
+
 def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_label_free=None,
                  window_speed=None, variants=ALL_VARIANTS, params: EncodeParams | None = None,
                  store_spikes=MAIN_VARIANTS) -> tuple[dict, dict]:
@@ -110,25 +164,39 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
 
     Parameters
     ----------
-    rg : Ragged raw readings (n_trials trials of (n_i, n_ch)), e.g. uint16 ADC counts.
+    rg : Ragged model input (n_trials trials of (n_i, n_ch)) at ``params.fs_hz`` (the model's 1 ms step; resample
+        other rates first, :mod:`rigctl.encoding.rate`), e.g. uint16 ADC counts.
     offset, scale : (n_ch,) normalisation ``(x - offset) * scale`` -> [0, 1].
-    speed_mm_s : (n_trials,) trial speed (setpoint) for eq. (2).
+    speed_mm_s : (n_trials,) trial speed (setpoint) for eq. (2), mm/s; may be NaN when no speed-scaled variant is
+        asked for (and for ``realtime_speed_scaled`` when ``window_speed`` is given).
     coeffs, coeffs_label_free : (n_trials, n_ch) force coefficients (eq. 1) or None (-> 1).
     window_speed : list of (n_windows,) mm/s per trial (real-time variant) or None (-> constant speed_mm_s).
-    variants : names from :data:`ALL_VARIANTS`.
+    variants : names from :data:`rigctl.storage.encoded.ALL_VARIANTS`.
     store_spikes : variants whose spike trains are returned.
+    params : :class:`EncodeParams`; ``n_windows_unscaled`` None means the longest trial of this batch.
 
     Returns
     -------
     features : {variant: (n_trials, n_features) float32}
-    spikes : {variant: SpikeTrains (n_trials, 2 n_ch)}
+    spikes : {variant: SpikeTrains (n_trials, 2 n_ch)} (real-time variants: (n_trials, n_realtime_taxels))
+
+    Raises
+    ------
+    ValueError for an unknown variant, or a speed that is not positive and finite for a speed-scaled variant.
     """
     p = params or EncodeParams()
     n, n_ch = rg.n_trials, rg.n_channels
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        raise ValueError(f"unknown variants {bad}; choose from {ALL_VARIANTS}")
+    info = [VARIANTS[v] for v in variants]
+    n_unscaled = p.n_windows_unscaled
+    if n_unscaled is None:
+        n_unscaled = windows_for(rg.lengths.max(initial=1) / p.fs_hz, p.window_s)
     speed = np.asarray(speed_mm_s, np.float64)
     ones = np.ones((n, n_ch))
-    need_force = any(v.startswith(("force", "speed_force")) and not v.endswith("label_free") for v in variants)
-    need_lf = any(v.endswith("label_free") for v in variants)
+    need_force = any(i.force_scaled and not i.label_free for i in info)
+    need_lf = any(i.label_free for i in info)
     gain_list = [ones]
     if need_force:
         gain_list.append(ones if coeffs is None else coeffs)
@@ -140,61 +208,57 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
         sa_by["force"] = sas[1]
     if need_lf:
         sa_by["lf"] = sas[-1]
-    coef = speed_coefficient(speed, p.reference_speed_mm_s)
-    ra_scaled = ra.scale_times(coef) if any(v.startswith("speed") for v in variants) else None
+    coef = ra_scaled = None
+    if any(i.speed_scaled and not i.realtime for i in info):
+        coef = speed_coefficient(speed, p.reference_speed_mm_s)
+        ra_scaled = ra.scale_times(coef)
     feats, spikes = {}, {}
-    table = {
-        "original": ("none", False), "speed_scaled": ("none", True), "force_scaled": ("force", False),
-        "speed_force_scaled": ("force", True), "force_scaled_label_free": ("lf", False),
-        "speed_force_scaled_label_free": ("lf", True),
-    }
-    for v in variants:
-        if v in table:
-            which, scaled = table[v]
-            sa = sa_by[which]
-            if scaled:
+    for v, i in zip(variants, info):
+        if not i.realtime:
+            sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
+            if i.speed_scaled:
                 sa_v, ra_v = sa.scale_times(coef), ra_scaled
                 feats[v] = spike_features(sa_v, ra_v, n_windows=p.n_windows_scaled, window_s=p.window_s,
                                           sr_factor=coef)
             else:
                 sa_v, ra_v = sa, ra
-                feats[v] = spike_features(sa_v, ra_v, n_windows=p.n_windows_unscaled, window_s=p.window_s)
+                feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s)
             if v in store_spikes:
                 spikes[v] = SpikeTrains.hstack([sa_v, ra_v])
-        elif v in REALTIME_VARIANTS:
-            taxels = [t for t in p.realtime_taxels if t < n_ch] or list(range(n_ch))
-            sa9 = sa_by["none"].select_trains(taxels)
-            if v == "realtime_original":
-                feats[v] = realtime_features_unscaled(sa9, rg.lengths / p.fs_hz, n_windows=p.n_windows_realtime,
+        else:
+            sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
+            if not i.speed_scaled:
+                feats[v] = realtime_features_unscaled(sa_rt, rg.lengths / p.fs_hz, n_windows=p.n_windows_realtime,
                                                       window_s=p.window_s)
             else:
                 ws = window_speed
                 if ws is None:
-                    ws = [np.full(max(1, math.ceil(round(L / p.fs_hz / p.window_s, 9))), s)
-                          for L, s in zip(rg.lengths, speed)]
-                scaled, edges = incremental_scale(sa9, ws, p.realtime_reference_speed_mm_s, p.window_s)
+                    speed_coefficient(speed)  # the same check (positive, finite) as the other speed variants
+                    ws = [np.full(windows_for(L / p.fs_hz, p.window_s), s) for L, s in zip(rg.lengths, speed)]
+                scaled, edges = incremental_scale(sa_rt, ws, p.realtime_reference_speed_mm_s, p.window_s)
                 feats[v] = realtime_features(scaled, edges, n_windows=p.n_windows_realtime, window_s=p.window_s)
             if v in store_spikes:
-                spikes[v] = sa9
-        else:
-            raise ValueError(f"unknown variant {v!r}; choose from {ALL_VARIANTS}")
+                spikes[v] = sa_rt
     return feats, spikes
 
 
-def _read_batch(session_path, ids, labels_speed, want_window_speed, window_s):
+def _read_batch(session_path, ids, labels_speed, want_window_speed, window_s, conv: RateConversion):
+    """Model input (resampled if ``conv`` says so) of the trials ``ids`` and, if asked, each trial's window
+    speeds (its measured speed trace, else its speed label)."""
     from rigctl.storage.session import open_session
 
     arrays, wspeeds = [], []
     with open_session(session_path) as s:
         for i, tid in enumerate(ids):
             tr = s.trial(int(tid))
-            arrays.append(np.asarray(tr.taxels))
+            x = np.asarray(tr.taxels)
+            arrays.append(conv.apply(x))
             if want_window_speed:
-                dur = tr.taxels.shape[0] / FS_HZ
+                dur = x.shape[0] / conv.input_rate_hz
                 if tr.speed_mm_s.size:
                     wspeeds.append(window_speeds(tr.speed_time_s, tr.speed_mm_s, dur, window_s))
                 else:
-                    wspeeds.append(np.full(max(1, math.ceil(round(dur / window_s, 9))), labels_speed[i]))
+                    wspeeds.append(np.full(windows_for(dur, window_s), labels_speed[i]))
     return as_ragged(arrays), (wspeeds if want_window_speed else None)
 
 
@@ -206,7 +270,9 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
 
         numba.set_num_threads(min(int(n_threads), numba.config.NUMBA_NUM_THREADS))
     want_ws = "realtime_speed_scaled" in variants
-    rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s)
+    conv = rate_conversion(params.input_rate_hz, params.fs_hz) if params.input_rate_hz else \
+        RateConversion(params.fs_hz, params.fs_hz)
+    rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s, conv)
     return encode_batch(rg, offset=offset, scale=scale, speed_mm_s=speed, coeffs=coeffs,
                         coeffs_label_free=coeffs_lf, window_speed=ws, variants=variants, params=params,
                         store_spikes=store_spikes)
@@ -222,28 +288,26 @@ def _labels(session, ids):
     def col(name, default):
         return rows[name] if name in names else np.full(len(ids), default)
 
+    def text(values):
+        return np.array([v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in np.asarray(values)],
+                        dtype=str)
+
     return {
         "trial_id": np.asarray(ids, dtype=np.uint32),
-        "texture": np.asarray(col("texture", ""), dtype=str),
+        "texture": text(col("texture", "")),
         "speed_mm_s": np.asarray(col("speed_mm_s", np.nan), dtype=np.float64),
         "force_g": np.asarray(col("force_g", np.nan), dtype=np.float64),
-        "profile": np.asarray(col("profile", "constant"), dtype=str),
+        "profile": text(col("profile", "constant")),
     }
 
 
-def _trials_table(labels, n_samples, fs):
-    dt = np.dtype([("trial_id", "u4"), ("texture", "S8"), ("group", "S24"), ("speed_mm_s", "f4"),
-                   ("force_g", "f4"), ("profile", "S24"), ("duration_s", "f4"), ("n_samples", "u4")])
-    out = np.zeros(len(labels["trial_id"]), dtype=dt)
-    out["trial_id"] = labels["trial_id"]
-    out["texture"] = np.char.encode(labels["texture"].astype(str), "utf-8")
-    out["group"] = np.array([texture_group(t) for t in labels["texture"]], dtype="S24")
-    out["speed_mm_s"] = labels["speed_mm_s"]
-    out["force_g"] = labels["force_g"]
-    out["profile"] = np.char.encode(labels["profile"].astype(str), "utf-8")
-    out["n_samples"] = n_samples
-    out["duration_s"] = n_samples / fs
-    return out
+def _session_layout(session) -> SensorLayout:
+    return getattr(session, "layout", None) or PAPER_SENSOR
+
+
+def _session_textures(session, labels) -> TextureSet:
+    ts = getattr(session, "textures", None)
+    return ts if ts is not None else texture_set_from_labels(labels)
 
 
 def _fit_subsample(keys, nbytes, budget):
@@ -273,6 +337,36 @@ def _fit_forces(fit_rg, labels_fit, offset, scale, p: EncodeParams, label_free: 
     return scaler, ""
 
 
+def _trial_list(ids) -> str:
+    ids = [int(t) for t in ids]
+    shown = ", ".join(str(t) for t in ids[:10])
+    return shown + (f" (+{len(ids) - 10} more)" if len(ids) > 10 else "")
+
+
+def _check_speeds(variants, explicit, labels, has_trace) -> tuple[tuple[str, ...], dict]:
+    """Drop (default variants) or refuse (explicit ones) the speed-scaled variants when some trials have no speed.
+    Returns the variants to encode and {skipped variant: reason}."""
+    speed = labels["speed_mm_s"]
+    no_speed = ~(np.isfinite(speed) & (speed > 0))
+    keep, skipped = [], {}
+    for v in variants:
+        info = VARIANTS[v]
+        missing = no_speed & ~has_trace if info.realtime else no_speed
+        if not info.speed_scaled or not missing.any():
+            keep.append(v)
+            continue
+        bad = labels["trial_id"][missing]
+        reason = (f"{v} scales spike times by each trial's speed (eq. 2), but {bad.size} of {speed.size} trials have "
+                  f"no speed (NaN or <= 0 mm/s): trials {_trial_list(bad)}")
+        if explicit:
+            raise SpeedMissingError(reason + "; encode without the speed-scaled variants (e.g. --variant original "
+                                    "--variant force_scaled) or record the trials' speeds")
+        skipped[v] = reason
+        warnings.warn(f"skipping {reason}", stacklevel=3)
+        log.warning("skipping %s", reason)
+    return tuple(keep), skipped
+
+
 def _client(scheduler, workers):
     from dask.distributed import Client, LocalCluster
 
@@ -283,25 +377,29 @@ def _client(scheduler, workers):
     return Client(scheduler), None
 
 
-def encode_session(session_path, out_path, *, variants=ALL_VARIANTS, batch_trials: int = 256,
+def encode_session(session_path, out_path, *, variants=None, batch_trials: int = 256,
                    scheduler: str | None = None, workers: int | None = None, progress: bool = True,
                    trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 4e9,
-                   params: EncodeParams | None = None) -> Path:
-    """Encode a session file (``rigctl.storage.session``) into an encoded file (layout: module docstring).
+                   params: EncodeParams | None = None, overwrite: bool = True) -> Path:
+    """Encode a session file (``rigctl.storage.session``) into an encoded file (:mod:`rigctl.storage.encoded`).
 
     Parameters
     ----------
     session_path : path of a session .h5 (complete trials are encoded, in plan order).
-    out_path : the encoded .h5 to write (replaced; written under ``<name>.part`` and renamed when done).
-    variants : subset of :data:`ALL_VARIANTS`.
-    batch_trials : trials per batch (memory: about batch_trials x 6 s x 18 x 30 bytes).
+    out_path : the encoded .h5 to write (written under ``<name>.part`` and renamed when done).
+    variants : subset of :data:`rigctl.storage.encoded.ALL_VARIANTS`; None = all of them, except speed-scaled ones
+        when some trials have no speed (skipped with a warning; see the module docstring).
+    batch_trials : trials per batch (memory: about batch_trials x 6 s x n_channels x 30 bytes at 1 kHz).
     scheduler : None -> this process (numba, all cores); ``"local"`` -> a local Dask cluster of ``workers``
         processes; an address ``"tcp://host:8786"`` -> that Dask cluster (workers must see ``session_path``).
     workers : worker processes for ``scheduler="local"`` (default: cores).
     progress : tqdm progress bars on stderr.
     trial_ids : optional subset of trial ids.
     store_spikes : variants whose spike trains are written under /spikes.
-    fit_memory_bytes : memory allowed for the raw readings kept for the force fit (see module docstring).
+    fit_memory_bytes : memory allowed for the readings kept for the force fit (see module docstring).
+    params : :class:`EncodeParams` (window length and counts, model constants); ``input_rate_hz`` is set from the
+        session's layout, ``n_windows_unscaled`` None from the longest trial.
+    overwrite : replace an existing ``out_path`` (False: FileExistsError).
 
     Returns
     -------
@@ -309,53 +407,87 @@ def encode_session(session_path, out_path, *, variants=ALL_VARIANTS, batch_trial
 
     Raises
     ------
-    FileNotFoundError / SessionError from :func:`rigctl.storage.session.open_session`; ValueError for unknown
-    variants or a session without complete trials.
+    FileNotFoundError / SessionError from :func:`rigctl.storage.session.open_session`; FileExistsError (see
+    ``overwrite``); :class:`SpeedMissingError` (a ValueError) when an explicitly asked speed-scaled variant meets
+    trials without a speed; ValueError for unknown variants, a session without complete trials, or a sample rate
+    that cannot be resampled to the model's.
     """
     from tqdm.auto import tqdm
 
     from rigctl.storage.session import open_session
 
-    p = params or EncodeParams()
-    variants = tuple(variants)
-    bad = [v for v in variants if v not in ALL_VARIANTS]
+    p = replace(params) if params is not None else EncodeParams()
+    explicit = variants is not None
+    variants = tuple(ALL_VARIANTS if variants is None else variants)
+    bad = [v for v in variants if v not in VARIANTS]
     if bad:
-        raise ValueError(f"unknown variants {bad}; choose from {ALL_VARIANTS}")
-    store_spikes = tuple(v for v in store_spikes if v in variants)
+        raise ValueError(f"unknown variants {bad}; choose from {', '.join(ALL_VARIANTS)}")
     session_path, out_path = Path(session_path), Path(out_path)
+    if out_path.exists() and not overwrite:
+        raise FileExistsError(f"{out_path} exists (use --overwrite to replace it)")
     t_start = time.time()
 
-    # ---- pass 1: labels, per-taxel range, raw readings for the force fit
+    # ---- pass 1: labels, per-taxel range, model input for the force fit
     with open_session(session_path) as s:
+        layout = _session_layout(s)
         ids = s.completed_ids() if trial_ids is None else [int(t) for t in trial_ids]
         if not ids:
             raise ValueError(f"{session_path} has no complete trials")
         labels = _labels(s, ids)
+        textures = _session_textures(s, labels["texture"])
+        conv = rate_conversion(layout.sample_rate_hz, p.fs_hz)
+        p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
+        log.info("rate: %s", conv.describe())
+        if progress and conv.resampled:
+            print(f"resampling: {conv.describe()}", flush=True)
         keys = np.array([f"{t}|{v:.3f}|{f:.3f}" for t, v, f in zip(labels["texture"], labels["speed_mm_s"],
                                                                      labels["force_g"])])
         plan_dur = {int(r["trial_id"]): float(r["duration_s"]) for r in s.plan} if "duration_s" in s.plan.dtype.names \
             else {}
-        est = np.array([plan_dur.get(t, 6.0) * p.fs_hz * 18 * 2 for t in ids])
+        item = 2 if not conv.resampled else 8  # bytes per kept value: uint16 counts, or float64 after resampling
+        est = np.array([plan_dur.get(t, 6.0) * conv.model_rate_hz * layout.n_channels * item for t in ids])
         keep = set(_fit_subsample(keys, est, fit_memory_bytes).tolist())
         rng_ = TaxelRange()
         fit_arrays, fit_idx, n_samples = [], [], np.zeros(len(ids), dtype=np.int64)
+        has_trace = np.zeros(len(ids), dtype=bool)
         for i, tid in enumerate(tqdm(ids, desc="range pass", unit="trial", disable=not progress)):
-            x = np.asarray(s.trial(tid).taxels)
-            n_samples[i] = x.shape[0]
+            tr = s.trial(tid)
+            raw = np.asarray(tr.taxels)
+            if raw.ndim != 2 or raw.shape[1] != layout.n_channels:
+                raise ValueError(f"trial {tid} has readings of shape {raw.shape}; the session's sensor has "
+                                 f"{layout.n_channels} channels ({layout.describe()})")
+            n_samples[i] = raw.shape[0]
+            has_trace[i] = tr.speed_mm_s.size > 0
+            x = conv.apply(raw)
             rng_.update(x)
             if i in keep:
                 fit_arrays.append(x)
                 fit_idx.append(i)
     if np.any(n_samples == 0):
-        raise ValueError("a complete trial has no samples")
+        raise ValueError("a complete trial has no samples: trials "
+                         f"{_trial_list(np.asarray(ids)[n_samples == 0])}")
+    variants, skipped = _check_speeds(variants, explicit, labels, has_trace)
+    if not variants:
+        raise SpeedMissingError("nothing to encode: " + "; ".join(skipped.values()))
+    store_spikes = tuple(v for v in store_spikes if v in variants)
     offset, scale = rng_.offset_scale()
+    duration_s = n_samples / conv.input_rate_hz
+    longest_s = float(duration_s.max())
+    windows_note = f"set ({p.n_windows_unscaled})"
+    if p.n_windows_unscaled is None:
+        p.n_windows_unscaled = windows_for(longest_s, p.window_s)
+        windows_note = (f"{p.n_windows_unscaled} windows of {p.window_s * 1000:g} ms cover the longest trial "
+                        f"({longest_s:.3f} s)")
+    if p.realtime_taxels is None:
+        p.realtime_taxels = _realtime_taxels(p, layout.n_channels, layout)
+    log.info("unscaled windows: %s", windows_note)
 
     # ---- force coefficients (once, for the whole dataset)
     fit_rg = as_ragged(fit_arrays)
     del fit_arrays
     fit_idx = np.asarray(fit_idx)
     labels_fit = {k: v[fit_idx] for k, v in labels.items()}
-    need_force = any("force" in v for v in variants)
+    need_force = any(VARIANTS[v].force_scaled for v in variants)
     scaler = scaler_lf = None
     fit_note = fit_note_lf = "not requested"
     if need_force:
@@ -370,109 +502,76 @@ def encode_session(session_path, out_path, *, variants=ALL_VARIANTS, batch_trial
 
     # ---- pass 2: encode in batches
     batches = [np.arange(i, min(i + batch_trials, len(ids))) for i in range(0, len(ids), batch_trials)]
-    part = out_path.with_name(out_path.name + ".part")
     n_ch = int(offset.size)
+    trials = {**labels, "group": np.array([textures.group_of(t) or "" for t in labels["texture"]], dtype=str),
+              "duration_s": duration_s, "n_samples": n_samples}
     client = cluster = None
+    writer = EncodedWriter(out_path, layout=layout, textures=textures, trials=trials, parameters=asdict(p),
+                           overwrite=overwrite, attrs={
+                               "input_rate_hz": conv.input_rate_hz, "model_rate_hz": conv.model_rate_hz,
+                               "resampled": conv.resampled, "resampling": conv.describe(),
+                               "n_windows_unscaled_note": windows_note, "skipped_variants": skipped,
+                               "source_session": str(session_path), "variants": list(variants)})
     try:
-        with h5py.File(part, "w") as out:
-            out.create_dataset("trials", data=_trials_table(labels, n_samples, p.fs_hz))
-            norm = out.create_group("normalisation")
-            norm.create_dataset("taxel_min", data=rng_.minimum)
-            norm.create_dataset("taxel_max", data=rng_.maximum)
-            norm.attrs["source"] = "whole dataset (per-taxel min/max over every encoded trial)"
-            for name, sc, note in (("force_coefficients", scaler, fit_note),
-                                   ("force_coefficients_label_free", scaler_lf, fit_note_lf)):
-                if sc is not None:
-                    ds = out.create_dataset(name, data=sc.table())
-                    ds.attrs["n_not_converged"] = sc.n_not_converged_
-                    ds.attrs["n_coefficients"] = sc.fit_.n_coefficients
-                    ds.attrs["n_iter"] = sc.fit_.n_iter
-                    ds.attrs["n_fit_trials"] = int(fit_idx.size)
-                    out.attrs[f"{name}_n_not_converged"] = sc.n_not_converged_
-                    out.attrs[f"{name}_n_coefficients"] = sc.fit_.n_coefficients
-                else:
-                    out.attrs[f"{name}_note"] = note
-            feat_ds, spk = {}, {}
-            fgrp = out.create_group("features")
-            sgrp = out.create_group("spikes")
-            for v in store_spikes:
-                g = sgrp.create_group(v)
-                n_tr = len(p.realtime_taxels) if v in REALTIME_VARIANTS else 2 * n_ch
-                g.create_dataset("spike_times", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 16,),
-                                 compression="gzip", compression_opts=1)
-                g.create_dataset("spike_times_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1 << 14,),
-                                 compression="gzip", compression_opts=1)
-                g.attrs["n_trains"] = n_tr
-                g.attrs["unit"] = "s"
-                g.attrs["trains"] = "SA taxels 0..n-1 then RA taxels 0..n-1" if v not in REALTIME_VARIANTS \
-                    else "SA, real-time taxels"
-                spk[v] = g
-            pos = 0
-
-            def write(batch, result):
-                nonlocal pos
-                feats, spikes = result
-                for v, f in feats.items():
-                    if v not in feat_ds:
-                        feat_ds[v] = fgrp.create_dataset(v, shape=(len(ids), f.shape[1]), dtype="f4",
-                                                         chunks=(min(256, len(ids)), f.shape[1]))
-                    feat_ds[v][batch[0] : batch[-1] + 1] = f
-                for v, st in spikes.items():
-                    g = spk[v]
-                    base = g["spike_times"].shape[0]
-                    n_new = st.spike_times.size
-                    g["spike_times"].resize((base + n_new,))
-                    g["spike_times"][base:] = st.spike_times
-                    m = g["spike_times_index"].shape[0]
-                    g["spike_times_index"].resize((m + st.n_rows,))
-                    g["spike_times_index"][m:] = st.spike_times_index + base
-                pos += len(batch)
-
-            args = [(str(session_path), [ids[i] for i in b], labels["speed_mm_s"][b],
-                     None if coeffs is None else coeffs[b], None if coeffs_lf is None else coeffs_lf[b],
-                     offset, scale, variants, store_spikes, p) for b in batches]
-            bar = tqdm(total=len(ids), desc="encoding", unit="trial", disable=not progress)
-            if scheduler is None:
-                for b, a in zip(batches, args):
-                    write(b, _batch_task(*a))
-                    bar.update(len(b))
+        writer.write_normalisation(rng_.minimum, rng_.maximum,
+                                   source="whole dataset (per-taxel min/max over every encoded trial, of the model "
+                                          "input)")
+        for lf, sc, note in ((False, scaler, fit_note), (True, scaler_lf, fit_note_lf)):
+            if sc is not None:
+                writer.write_force_coefficients(sc.table(), label_free=lf, n_not_converged=sc.n_not_converged_,
+                                                n_coefficients=sc.fit_.n_coefficients, n_iter=sc.fit_.n_iter,
+                                                n_fit_trials=int(fit_idx.size))
             else:
-                from dask.distributed import as_completed
+                writer.note_force_coefficients(note, label_free=lf)
+        for v in store_spikes:
+            if v in REALTIME_VARIANTS:
+                writer.add_spikes(v, len(p.realtime_taxels), f"SA, real-time taxels {p.realtime_taxels}")
+            else:
+                writer.add_spikes(v, 2 * n_ch, "SA taxels 0..n-1 then RA taxels 0..n-1")
 
-                client, cluster = _client(scheduler, workers)
-                futures = [client.submit(_batch_task, *a, n_threads=1, pure=False) for a in args]
-                index_of = {f.key: i for i, f in enumerate(futures)}
-                done, next_i = {}, 0
-                for fut in as_completed(futures):
-                    done[index_of[fut.key]] = fut.result()
-                    fut.release()
-                    while next_i in done:  # spikes are appended in trial order
-                        write(batches[next_i], done.pop(next_i))
-                        bar.update(len(batches[next_i]))
-                        next_i += 1
-            bar.close()
-            out.attrs["parameters"] = json.dumps(asdict(p))
-            out.attrs["source_session"] = str(session_path)
-            out.attrs["variants"] = json.dumps(list(variants))
-            out.attrs["n_trials"] = len(ids)
-            out.attrs["n_taxels"] = n_ch
-            out.attrs["feature_layout"] = ("train-major: [SA_0 windows, ..., SA_n-1, RA_0, ..., RA_n-1]; SR spikes/s "
-                                           "(speed-scaled: x speed/120), SC counts; 100 ms windows")
-            out.attrs["encode_seconds"] = time.time() - t_start
-            out.attrs["scheduler"] = str(scheduler)
+        def write(batch, result):
+            feats, spikes = result
+            for v, f in feats.items():
+                writer.write_features(v, int(batch[0]), f)
+            for v, st in spikes.items():
+                writer.append_spikes(v, st)
+
+        args = [(str(session_path), [ids[i] for i in b], labels["speed_mm_s"][b],
+                 None if coeffs is None else coeffs[b], None if coeffs_lf is None else coeffs_lf[b],
+                 offset, scale, variants, store_spikes, p) for b in batches]
+        bar = tqdm(total=len(ids), desc="encoding", unit="trial", disable=not progress)
+        if scheduler is None:
+            for b, a in zip(batches, args):
+                write(b, _batch_task(*a))
+                bar.update(len(b))
+        else:
+            from dask.distributed import as_completed
+
+            client, cluster = _client(scheduler, workers)
+            futures = [client.submit(_batch_task, *a, n_threads=1, pure=False) for a in args]
+            index_of = {f.key: i for i, f in enumerate(futures)}
+            done, next_i = {}, 0
+            for fut in as_completed(futures):
+                done[index_of[fut.key]] = fut.result()
+                fut.release()
+                while next_i in done:  # spikes are appended in trial order
+                    write(batches[next_i], done.pop(next_i))
+                    bar.update(len(batches[next_i]))
+                    next_i += 1
+        bar.close()
+        writer.set_attrs(
+            parameters=json.dumps(asdict(p)),
+            feature_layout=(f"train-major: [SA_0 windows, ..., SA_n-1, RA_0, ..., RA_n-1] for n = {n_ch} taxels; "
+                            f"SR spikes/s (speed-scaled: x speed/{p.reference_speed_mm_s:g}), SC counts; "
+                            f"{p.window_s * 1000:g} ms windows: {p.n_windows_unscaled} unscaled, "
+                            f"{p.n_windows_scaled} speed-scaled, {p.n_windows_realtime} real-time"),
+            encode_seconds=time.time() - t_start, scheduler=str(scheduler))
     except BaseException:
-        part.unlink(missing_ok=True)
+        writer.abort()
         raise
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()
-    os.replace(part, out_path)
-    return out_path
-
-
-def read_encoded(path, variant: str = "speed_force_scaled") -> tuple[np.ndarray, np.ndarray]:
-    """``(features (n_trials, n_features) float32, trials table)`` of an encoded file."""
-    with h5py.File(path, "r") as f:
-        return f["features"][variant][()], f["trials"][()]
+    return writer.close()

@@ -172,6 +172,30 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"{type(o).__name__} is not JSON-able")
 
 
+def _h5_table(table: np.ndarray) -> np.ndarray:
+    """A structured array HDF5 can store: str (``U``) fields become variable-length UTF-8 (never truncated)."""
+    table = np.asarray(table)
+    if table.dtype.names is None or not any(table.dtype[k].kind in "UO" for k in table.dtype.names):
+        return table
+    dt = np.dtype([(k, _STR if table.dtype[k].kind in "UO" else table.dtype[k]) for k in table.dtype.names])
+    out = np.zeros(table.shape, dtype=dt)
+    for k in table.dtype.names:
+        out[k] = np.array(table[k].astype(str), dtype=object) if table.dtype[k].kind in "UO" else table[k]
+    return out
+
+
+def _str_table(table: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_h5_table` for reading: bytes / object fields become numpy str fields."""
+    if table.dtype.names is None or not any(table.dtype[k].kind in "SO" for k in table.dtype.names):
+        return table
+    cols = {k: (_text(table[k]) if table.dtype[k].kind in "SO" else table[k]) for k in table.dtype.names}
+    dt = np.dtype([(k, cols[k].dtype) for k in table.dtype.names])
+    out = np.zeros(table.shape, dtype=dt)
+    for k, v in cols.items():
+        out[k] = v
+    return out
+
+
 def is_encoded_file(path) -> bool:
     """True if ``path`` is an HDF5 file with a ``/features`` group (an encoded file of any schema)."""
     try:
@@ -275,7 +299,7 @@ class EncodedWriter:
         """The force coefficient table (eq. 1) and its fit statistics (``n_not_converged``, ``n_coefficients``,
         ``n_iter``, ``n_fit_trials``; also copied to root attributes ``<name>_<stat>``)."""
         name = "force_coefficients_label_free" if label_free else "force_coefficients"
-        ds = self._f.create_dataset(name, data=table)
+        ds = self._f.create_dataset(name, data=_h5_table(table))
         for k, v in attrs.items():
             ds.attrs[k] = _jsonable(v)
             if k in ("n_not_converged", "n_coefficients"):
@@ -474,6 +498,17 @@ class EncodedFile:
             raise KeyError(f"variant {variant!r} not in {self.path} (has: {', '.join(self.variants) or 'none'})")
         return np.asarray(self._f["features"][variant][()], dtype=np.float32)
 
+    def feature_shape(self, variant: str) -> tuple[int, int]:
+        """``(n_trials, n_features)`` of a variant without reading it. Raises KeyError as :meth:`features`."""
+        if variant not in self._f["features"]:
+            raise KeyError(f"variant {variant!r} not in {self.path} (has: {', '.join(self.variants) or 'none'})")
+        return tuple(int(n) for n in self._f["features"][variant].shape)
+
+    @property
+    def skipped_variants(self) -> dict[str, str]:
+        """Variants the encoding skipped (speed-scaled ones, when trials had no speed): {variant: reason}."""
+        return dict(self._json_attr("skipped_variants", {}) or {})
+
     def n_trains(self, variant: str) -> int:
         """Spike trains per trial behind a variant's features: from ``/spikes/<variant>`` if stored, else from the
         layout (SA + RA per taxel; the real-time variants: the real-time taxels of ``parameters``)."""
@@ -513,10 +548,11 @@ class EncodedFile:
                 "taxel_max": np.asarray(g["taxel_max"][()], np.float64)}
 
     def force_coefficients(self, *, label_free: bool = False) -> np.ndarray | None:
-        """The eq. (1) coefficient table (structured array), or None when it was not fitted (see
+        """The eq. (1) coefficient table (structured array: texture str (``"*"`` label-free), speed_mm_s, force_g,
+        taxel, coeff, converged, target_rate, rate), or None when it was not fitted (see
         ``attrs["force_coefficients_note"]``)."""
         name = "force_coefficients_label_free" if label_free else "force_coefficients"
-        return self._f[name][()] if name in self._f else None
+        return _str_table(self._f[name][()]) if name in self._f else None
 
     def force_fit_stats(self, *, label_free: bool = False) -> dict:
         """Attributes of the coefficient table (``n_not_converged``, ``n_coefficients``, ...); {} when none."""
