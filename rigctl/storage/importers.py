@@ -22,7 +22,7 @@ Steps, each explicit and recorded in the session's root attributes (``import_ste
    ``threshold:LEVEL[:MIN_S[:SMOOTH_S]]`` (activity = max over channels of ``|counts - channel median|``,
    moving-averaged over SMOOTH_S (0.05 s); runs above LEVEL counts lasting at least MIN_S (0.2 s) are trials),
    ``cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]]`` (the period from the autocorrelation peak of the channel-mean
-   signal; trials of N periods, default 1).
+   signal: the shortest lag whose peak reaches 90 % of the highest; trials of N periods, default 1).
 5. **Label**: ``texture``, ``speed_mm_s``, ``force_g``, ``repeat`` from the file name by ``--label-pattern``
    (``{texture}__V{speed_mm_s}__{rep}.csv``; aliases ``label``, ``speed``, ``force``, ``rep``; other fields become
    trial attributes), from the mapping's ``[files."NAME"]`` tables, ``[defaults]`` or ``--texture``. Missing speed
@@ -424,7 +424,12 @@ def _cycle_period(x: np.ndarray, rate_hz: float, min_p: float | None, max_p: flo
         lo = int(neg[0]) + 1
     if hi <= lo + 1:
         raise RecordingImportError("cycles: the recording is too short for the period range")
-    return lo + int(np.argmax(ac[lo:hi]))
+    seg = ac[lo:hi]
+    # the shortest lag whose local peak reaches 90 % of the highest: multiples of the period peak as high
+    peaks = np.flatnonzero((seg[1:-1] >= seg[:-2]) & (seg[1:-1] >= seg[2:])) + 1
+    best = float(seg.max())
+    good = peaks[seg[peaks] >= 0.9 * best] if peaks.size else np.array([int(np.argmax(seg))])
+    return lo + int(good[0] if good.size else np.argmax(seg))
 
 
 def segment(counts: np.ndarray, rate_hz: float, spec: dict | None) -> tuple[list[tuple[int, int]], dict]:
