@@ -21,8 +21,6 @@ run's trials.
 
 from __future__ import annotations
 
-import datetime as _dt
-import json
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -32,71 +30,17 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from rigctl.devices import wire
-
-N_TAXELS = wire.N_TAXELS
-
-
-class CalibrationError(RuntimeError):
-    """A calibration could not be done or gave an implausible result (the reason in words)."""
-
-
-def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# The rig config file
-# ----------------------------------------------------------------------------------------------------------------
-def default_config_path() -> Path:
-    """``$RIGCTL_CONFIG``, else ``$XDG_CONFIG_HOME/rigctl/rig.json`` (``~/.config/rigctl/rig.json``)."""
-    env = os.environ.get("RIGCTL_CONFIG")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
-    return Path(base) / "rigctl" / "rig.json"
-
-
-def config_path(path: str | os.PathLike | None = None) -> Path:
-    """``path`` if given, else :func:`default_config_path`."""
-    return Path(path) if path is not None else default_config_path()
-
-
-def load_rig_config(path: str | os.PathLike | None = None) -> dict:
-    """Read the rig config file; ``{}`` if it does not exist.
-
-    Raises
-    ------
-    CalibrationError if the file exists but is not a JSON object.
-    """
-    p = config_path(path)
-    if not p.exists():
-        return {}
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{p}:{exc.lineno}: the rig config is not valid JSON: {exc.msg}") from None
-    if not isinstance(doc, dict):
-        raise CalibrationError(f"{p}: the rig config must be a JSON object")
-    return doc
-
-
-def save_rig_config(config: dict, path: str | os.PathLike | None = None) -> Path:
-    """Write the rig config file atomically (write a temporary file, then rename); returns its path."""
-    p = config_path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(tmp, p)
-    return p
-
-
-def update_rig_config(path: str | os.PathLike | None = None, **blocks: Any) -> dict:
-    """Replace top-level blocks (e.g. ``loadcell=...``, ``taxel_normalisation=...``) of the rig config file."""
-    cfg = load_rig_config(path)
-    cfg.update(blocks)
-    save_rig_config(cfg, path)
-    return cfg
-
+from rigctl.acquisition.motion import wait_released
+from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the config file API callers know from here)
+    CalibrationError,
+    _utc_now,
+    config_path,
+    default_config_path,
+    load_rig_config,
+    save_rig_config,
+    update_rig_config,
+)
+from rigctl.core.interfaces import MassPlacer
 
 # ----------------------------------------------------------------------------------------------------------------
 # Load cell
@@ -161,7 +105,8 @@ def calibrate_loadcell(
 
     Parameters
     ----------
-    drum : an open :class:`rigctl.devices.drum.DrumClient`
+    drum : an open :class:`rigctl.core.interfaces.DrumController` (plus ``set_loadcell_scale`` and
+        ``save_calibration``, as :class:`rigctl.devices.drum.DrumClient` has them)
     mass_g : known mass, g (> 0)
     place_mass, remove_mass : callables that return once the mass is on / off the load cell
     n_readings, interval_s : raw readings averaged for each level, and their spacing (s)
@@ -181,8 +126,6 @@ def calibrate_loadcell(
     """
     if not mass_g > 0:
         raise ValueError(f"mass_g must be > 0, got {mass_g}")
-    from rigctl.acquisition.rig import wait_released
-
     wait_released(drum, timeout_s=30.0)
     drum.tare()
     time.sleep(settle_s)
@@ -220,17 +163,17 @@ def calibrate_loadcell(
 
 
 def simulated_mass(rig) -> tuple[Callable[[float], Any], Callable[[float], Any]]:
-    """``(place_mass, remove_mass)`` callables for :func:`calibrate_loadcell` on a simulated :class:`Rig`.
+    """``(place_mass, remove_mass)`` callables for :func:`calibrate_loadcell` on a simulated rig.
 
-    They put a calibration mass on the simulated load cell (``SimulatedRig.place_mass``, or the physics model's
-    ``place_mass``). Raises CalibrationError on hardware (the operator places the mass) or if the simulated rig
-    has no load-cell mass hook.
+    They rest a calibration mass on the simulated load cell through the rig's backend, when it is a
+    :class:`rigctl.core.interfaces.MassPlacer` (the simulated, HIL and in-process backends). Raises
+    CalibrationError on hardware (the operator places the mass: use a prompt).
     """
-    sim = getattr(rig, "sim", None)
-    for target in (sim, getattr(sim, "model", None)):
-        if target is not None and hasattr(target, "place_mass"):
-            return (lambda g: target.place_mass(g)), (lambda g: target.place_mass(0.0))
-    raise CalibrationError("this rig has no simulated calibration mass: place the mass by hand (prompt)")
+    backend = rig.backend
+    if not isinstance(backend, MassPlacer):
+        raise CalibrationError(f"this rig ({rig.mode}) has no simulated calibration mass: place the mass by hand "
+                               "(prompt)")
+    return (lambda g: backend.place_mass(g)), (lambda g: backend.place_mass(0.0))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -242,7 +185,7 @@ class TaxelNormalisation:
 
     Attributes
     ----------
-    taxel_min, taxel_max : (18,) float64 ADC counts
+    taxel_min, taxel_max : (n_channels,) float64 ADC counts
     n_trials : int, trials the extremes were taken over
     source : str, where they came from (a session file path, or "captures")
     calibrated_utc : str
@@ -270,7 +213,7 @@ class TaxelNormalisation:
                    str(d.get("source", "")), str(d.get("calibrated_utc", "")))
 
     def apply(self, taxels: np.ndarray) -> np.ndarray:
-        """Normalise ``(..., 18)`` ADC counts to ``(..., 18)`` float32 in [0, 1] (clipped); a taxel whose range is
+        """Normalise ``(..., n_channels)`` ADC counts to ``(..., n_channels)`` float32 in [0, 1] (clipped); a taxel whose range is
         zero maps to 0."""
         span = self.taxel_max - self.taxel_min
         safe = np.where(span > 0, span, 1.0)
@@ -284,19 +227,21 @@ def taxel_normalisation(captures: Iterable[np.ndarray], *, source: str = "captur
 
     Parameters
     ----------
-    captures : iterable of ``(n_i, 18)`` ADC-count arrays (one per trial)
+    captures : iterable of ``(n_i, n_channels)`` ADC-count arrays (one per trial; any channel count, the same in
+        every capture: the first one decides)
 
     Raises
     ------
-    ValueError if there are no samples or an array is not ``(n, 18)``.
+    ValueError if there are no samples or an array is not ``(n, n_channels)``.
     """
-    lo = np.full(N_TAXELS, np.inf)
-    hi = np.full(N_TAXELS, -np.inf)
+    lo = hi = None
     n = 0
     for cap in captures:
         a = np.asarray(cap)
-        if a.ndim != 2 or a.shape[1] != N_TAXELS:
-            raise ValueError(f"a capture must be (n, {N_TAXELS}), got {a.shape}")
+        if lo is None and a.ndim == 2:
+            lo, hi = np.full(a.shape[1], np.inf), np.full(a.shape[1], -np.inf)
+        if a.ndim != 2 or a.shape[1] != len(lo):
+            raise ValueError(f"a capture must be (n, {len(lo) if lo is not None else 'channels'}), got {a.shape}")
         if not a.size:
             continue
         lo = np.minimum(lo, a.min(axis=0))

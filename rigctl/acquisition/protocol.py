@@ -1,6 +1,7 @@
 """Acquisition protocols: TOML files (validated, with the line at fault) and Python-script protocols.
 
-A TOML protocol names the textures, the speed/force conditions, how many trials per condition, how long a trial
+A TOML protocol names the textures (labels of its texture set: the paper's A-P by default, or a ``[texture_set]``
+the file declares, with optional groups and geometry), the speed/force conditions, how many trials per condition, how long a trial
 lasts (a fixed travel of the drum surface, 240 mm in the paper's dataset, or a fixed duration), the trial order and
 the settle timeouts; :meth:`Protocol.plan` expands it into one :class:`PlannedTrial` per trial. Velocity profiles
 (constant, or a linear ramp from a start to an end speed) cover the paper's real-time experiment (Fig. 4: slow,
@@ -28,6 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigctl.core.textures import GEOMETRY_KEYS, PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.core.trial import PlannedTrial  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 
 #: rig limits every setpoint is checked against before anything moves (mm/s, g)
@@ -36,7 +38,8 @@ MAX_FORCE_G = 1500.0
 #: longest trial the runner accepts, and the RAMP_DURATION_MS register's limit (s)
 MAX_DURATION_S = 600.0
 MAX_RAMP_DURATION_S = 60.0
-TEXTURE_LETTERS = "ABCDEFGHIJKLMNOP"
+#: the paper's plate labels (the default texture set, :data:`rigctl.core.textures.PAPER_TEXTURES`)
+TEXTURE_LETTERS = "".join(PAPER_TEXTURES.labels)
 ORDERS = ("blocked", "interleaved", "random")
 
 
@@ -85,13 +88,19 @@ class Settle:
 
 @dataclass
 class Protocol:
-    """A validated TOML protocol (see :func:`load_protocol`)."""
+    """A validated TOML protocol (see :func:`load_protocol`).
+
+    ``textures`` are the labels the plan records, in order; ``texture_set`` (a
+    :class:`rigctl.core.textures.TextureSet`) the set they belong to, stored in the session: the file's
+    ``[texture_set]``, or the paper's A-P set (:data:`rigctl.core.textures.PAPER_TEXTURES`).
+    """
 
     name: str
     source: str
     path: str | None = None
     description: str = ""
     textures: tuple[str, ...] = ()
+    texture_set: TextureSet = field(default_factory=lambda: PAPER_TEXTURES)
     profiles: tuple[Profile, ...] = ()
     forces_g: tuple[float, ...] = ()
     trials_per_condition: int = 1
@@ -194,7 +203,8 @@ def load_protocol(path: str | Path) -> Protocol | ScriptProtocol:
         If the file does not exist.
     ProtocolError
         With the file, the line and the key at fault, for a TOML syntax error, an unknown or missing key, a value
-        of the wrong type, a texture outside A-P, or a setpoint outside the rig limits (0 < speed <= 150 mm/s,
+        of the wrong type, a texture outside the protocol's texture set (A-P unless it declares a
+        ``[texture_set]``), a malformed ``[texture_set]``, or a setpoint outside the rig limits (0 < speed <= 150 mm/s,
         0 < force <= 1500 g); for a script, a syntax error or a missing ``run(rig, session)``.
     """
     path = Path(path)
@@ -270,8 +280,9 @@ def _key_text(key: tuple) -> str:
 class _Validator:
     TOP = {
         "name", "description", "textures", "speeds_mm_s", "forces_g", "trials_per_condition", "travel_mm",
-        "duration_s", "order", "seed", "settle", "profiles",
+        "duration_s", "order", "seed", "settle", "profiles", "texture_set",
     }
+    TEXTURE_SET = {"name", "textures", "groups", "geometry"}
     SETTLE = {"force_timeout_s", "speed_timeout_s", "speed_tolerance_mm_s", "force_tolerance_g", "settle_time_ms"}
     PROFILE = {"name", "kind", "speed_mm_s", "start_mm_s", "end_mm_s"}
 
@@ -317,13 +328,22 @@ class _Validator:
         if not isinstance(description, str):
             raise self.error(("description",), "expected a string")
 
+        texture_set = self._texture_set(doc["texture_set"]) if "texture_set" in doc else PAPER_TEXTURES
         if "textures" not in doc:
-            raise self.error(("textures",), 'required: a list of texture letters A-P, e.g. ["A", "B"]')
+            raise self.error(("textures",), 'required: a list of texture labels, e.g. ["A", "B"] (the paper\'s A-P, '
+                                            'or labels of a [texture_set])')
         textures = []
         for i, t in enumerate(self._list(("textures",), doc["textures"])):
-            if not isinstance(t, str) or len(t) != 1 or t.upper() not in TEXTURE_LETTERS:
-                raise self.error(("textures",), f"element {i} = {t!r} is not a texture letter A-P")
-            textures.append(t.upper())
+            if not isinstance(t, str):
+                raise self.error(("textures",), f"element {i} = {t!r} is not a texture label (a string)")
+            try:
+                textures.append(texture_set.resolve(t))
+            except TextureSetError:
+                hint = ("" if "texture_set" in doc else
+                        "; declare a [texture_set] (name, textures, groups) for labels outside the paper's A-P")
+                shown = ", ".join(texture_set.labels[:20]) + (" ..." if len(texture_set) > 20 else "")
+                raise self.error(("textures",), f"element {i} = {t!r} is not a texture of the set "
+                                                f"{texture_set.name!r} ({shown}){hint}") from None
         if len(set(textures)) != len(textures):
             raise self.error(("textures",), "a texture is listed twice")
 
@@ -392,7 +412,7 @@ class _Validator:
 
         proto = Protocol(
             name=name.strip(), source=self.source, path=self.path, description=description,
-            textures=tuple(textures), profiles=tuple(profiles), forces_g=forces, trials_per_condition=tpc,
+            textures=tuple(textures), texture_set=texture_set, profiles=tuple(profiles), forces_g=forces, trials_per_condition=tpc,
             travel_mm=travel, duration_s=duration, order=order, seed=seed, settle=settle,
         )
         for key, prof in zip(keys, profiles):
@@ -402,6 +422,47 @@ class _Validator:
             if prof.kind == "ramp" and d > MAX_RAMP_DURATION_S:
                 raise self.error(key, f"the ramp would last {d:.1f} s, longer than {MAX_RAMP_DURATION_S:g} s")
         return proto
+
+    def _texture_set(self, ts: Any) -> TextureSet:
+        key = ("texture_set",)
+        if not isinstance(ts, dict):
+            raise self.error(key, "expected a [texture_set] table (name, textures, groups, geometry)")
+        self._unknown(ts, self.TEXTURE_SET, key)
+        name = ts.get("name", "")
+        if not isinstance(name, str):
+            raise self.error(key + ("name",), "expected a string")
+        if "textures" not in ts:
+            raise self.error(key + ("textures",), 'required: the set\'s labels in order, e.g. ["Linen", "HB3"]')
+        labels = self._list(key + ("textures",), ts["textures"])
+        for i, t in enumerate(labels):
+            if not isinstance(t, str) or not t.strip():
+                raise self.error(key + ("textures",), f"element {i} = {t!r} is not a non-empty label")
+        groups = ts.get("groups")
+        if groups is not None:
+            if not isinstance(groups, dict) or not all(isinstance(v, list) for v in groups.values()):
+                raise self.error(key + ("groups",), 'expected a table of label lists, e.g. {woven = ["Linen"]}')
+            for g, members in groups.items():
+                stray = [m for m in members if m not in labels]
+                if stray:
+                    raise self.error(key + ("groups",), f"group {g!r} names {stray[0]!r}, which is not in textures")
+        geometry = ts.get("geometry")
+        if geometry is not None:
+            if not isinstance(geometry, dict):
+                raise self.error(key + ("geometry",), "expected a table {label = {kind = ..., period_mm = ...}}")
+            for label, geo in geometry.items():
+                gkey = key + ("geometry", label)
+                if label not in labels:
+                    raise self.error(gkey, f"{label!r} is not in textures")
+                if not isinstance(geo, dict):
+                    raise self.error(gkey, "expected a table of kind, height_mm, period_mm, width_mm")
+                self._unknown(geo, set(GEOMETRY_KEYS), gkey)
+                for k in ("height_mm", "period_mm", "width_mm"):
+                    if k in geo:
+                        self._number(gkey + (k,), geo[k], lo=0, hi=1e4, lo_open=k != "height_mm", what=" mm")
+        try:
+            return TextureSet.from_dict({"name": name, "textures": labels, "groups": groups, "geometry": geometry})
+        except TextureSetError as exc:
+            raise self.error(key, str(exc)) from None
 
     def _profile(self, i: int, p: dict) -> Profile:
         key = ("profiles", i)

@@ -1,14 +1,17 @@
-"""The rig facade: one object that owns the drum controller client, the taxel stream and (in simulation) the rig.
+"""The rig facade: one object that owns a drum controller, a taxel source and the backend they come from.
 
-:meth:`Rig.open` gives the same :class:`Rig` on the simulated rig (default), on the real firmware under simavr
-(``hil=True``) and on hardware (``drum_port``/``taxel_port``): in every case the host talks to the boards through
-:class:`rigctl.devices.drum.DrumClient` (pymodbus, Modbus RTU) and :class:`rigctl.devices.taxel_stream.TaxelStream`
-(pyserial) on serial ports, the same code paths.
+:class:`Rig` is written against the typed seams of :mod:`rigctl.core.interfaces` (:class:`DrumController`,
+:class:`TaxelSource`, :class:`PlateMounter`, :class:`RigBackend`), never against a concrete backend; it is opened by
+the composition root, :func:`rigctl.rigs.open_rig` (``kind`` "sim" | "hil" | "hardware" | "replay" | "inprocess"),
+or by :meth:`Rig.connect` on any backend. On the simulated, HIL and hardware backends the host talks to the boards
+through :class:`rigctl.devices.drum.DrumClient` (pymodbus, Modbus RTU) and
+:class:`rigctl.devices.taxel_stream.TaxelStream` (pyserial) on serial ports, the same code paths; the in-process
+backend calls the same controller logic directly on a simulated clock (fast unit tests).
 
 A trial (:meth:`Rig.record_trial`), as in the paper's Methods ("Tactile Texture Dataset"): set the force setpoint and
 engage the force loop (PRESS), wait until the force has settled; set the speed and RUN, wait until the drum runs
 steadily at speed (for a ramp: at its start speed, then switch to the RAMP profile and RUN again, which starts the
-ramp); capture exactly ``duration_s * 1000`` taxel frames (counted, not timed) while
+ramp); capture exactly ``duration_s * rate`` taxel frames (``rate`` = the taxel source's layout) (counted, not timed) while
 sampling the load-cell force and drum speed at ~50 Hz (these Modbus reads also feed the controller's watchdog);
 STOP_DRUM. A constant-speed trial starts at the drum's index mark: the capture keeps the frames from the first one
 flagged SYNC_IN (the Mega's index pulse, latched by the Uno, docs/wire-protocol.md 2.6) on, so every trial of a
@@ -29,9 +32,14 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigctl.acquisition.motion import wait_released
 from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S, PlannedTrial, Settle
+from rigctl.acquisition.rigconfig import config_path, load_rig_config
+from rigctl.core.interfaces import DrumController, RigBackend, TaxelSource
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.core.trial import TrialData
 from rigctl.devices import wire
-from rigctl.storage.session import TrialData
 
 log = logging.getLogger(__name__)
 
@@ -75,134 +83,94 @@ def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
-def console_prompt(message: str) -> None:
-    """Default operator prompt on hardware: print ``message`` and wait for Enter on the terminal."""
-    input(f"\n>>> {message} [Enter] ")
+def _ports(backend) -> dict:
+    try:
+        d = backend.describe()
+    except Exception:  # noqa: BLE001 - only for an error message
+        return {}
+    return {k.replace("_port", ""): v for k, v in d.items() if k.endswith("_port") and v}
+
+
 
 
 class Rig:
-    """An open rig: a drum controller client, a streaming taxel stream and, in simulation, the simulated rig.
+    """An open rig: a drum controller, a streaming taxel source and the backend they come from.
 
-    Use :meth:`open`; a context manager (``with Rig.open() as rig:``) that stops the rig safely on exit.
+    Open one with :func:`rigctl.rigs.open_rig` (or :meth:`connect` on a backend); a context manager
+    (``with open_rig("sim") as rig:``) that stops the rig safely on exit and stops the backend.
 
     Attributes
     ----------
-    drum : :class:`rigctl.devices.drum.DrumClient`
-    stream : :class:`rigctl.devices.taxel_stream.TaxelStream` (streaming from :meth:`open` to :meth:`close`)
-    sim : the :class:`rigctl.simulation.rig.SimulatedRig` (or ``HilRig``), None on hardware
-    mode : "sim" | "hil" | "hardware"
-    texture : letter of the mounted plate, or None if unknown
+    drum : :class:`rigctl.core.interfaces.DrumController`
+    stream : :class:`rigctl.core.interfaces.TaxelSource` (streaming from :meth:`connect` to :meth:`close`)
+    backend : :class:`rigctl.core.interfaces.RigBackend` (the simulated rig's backend exposes it as ``.sim``)
+    mode : "sim" | "hil" | "hardware" | "replay" | "inprocess" (the backend's)
+    texture : label of the mounted plate, or None if unknown
     settle : :class:`rigctl.acquisition.protocol.Settle`, the timeouts used by :meth:`record_trial`
     host_config : dict, the rig config file's content (calibration), copied into each session
     """
 
-    def __init__(self, drum, stream, *, sim=None, mode: str = "sim", prompt: Callable[[str], Any] | None = None,
-                 host_config: dict | None = None, host_config_path: str | None = None, seed: int | None = None,
-                 model_config: Any = None):
+    def __init__(self, backend: RigBackend, drum: DrumController, stream: TaxelSource, *,
+                 prompt: Callable[[str], Any] | None = None, host_config: dict | None = None,
+                 host_config_path: str | None = None):
+        self.backend = backend
         self.drum = drum
         self.stream = stream
-        self.sim = sim
-        self.mode = mode
+        self.mode = str(backend.mode)
         self.prompt = prompt
         self.texture: str | None = None
         self.settle = Settle()
         self.host_config = dict(host_config or {})
         self.host_config_path = host_config_path
-        self.seed = seed
-        self.model_config = model_config
+        self._textures: TextureSet = backend.textures or PAPER_TEXTURES
         self._closed = False
         self._lock = threading.RLock()
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
-    def open(
-        cls,
-        *,
-        sim: bool = True,
-        hil: bool = False,
-        drum_port: str | None = None,
-        taxel_port: str | None = None,
-        config: Any = None,
-        seed: int = 0,
-        source: Any = None,
-        prompt: Callable[[str], Any] | None = None,
-        host_config_path: str | None = None,
-        home: bool = True,
-    ) -> "Rig":
-        """Open the rig and start the taxel stream.
+    def connect(cls, backend: RigBackend, *, prompt: Callable[[str], Any] | None = None,
+                host_config_path: str | None = None, home: bool = True) -> "Rig":
+        """Start ``backend``, open its drum controller and taxel source, start streaming, home the actuator.
 
         Parameters
         ----------
-        sim : use the simulated rig (default; ignored when ports are given).
-        hil : use the real firmware under simavr (:class:`rigctl.simulation.hil.HilRig`) instead of the model boards.
-        drum_port, taxel_port : serial ports of the Mega and the Uno (hardware); both or neither.
-        config : :class:`rigctl.simulation.model.RigConfig` of the simulated rig (simulation only).
-        seed : seed of the simulated rig.
-        source : optional replay source of the simulated rig (see :class:`rigctl.simulation.rig.SimulatedRig`).
-        prompt : ``prompt(message)`` that blocks until the operator has done what it asks (hardware plate changes);
-            default: a terminal prompt.
+        backend : a :class:`rigctl.core.interfaces.RigBackend` (not yet entered; the rig stops it on close).
+        prompt : ``prompt(message)`` that blocks until the operator has done what it asks (hardware plate changes).
         host_config_path : the rig config JSON file (calibration); default
-            :func:`rigctl.acquisition.calibration.default_config_path`.
+            :func:`rigctl.acquisition.rigconfig.default_config_path`.
         home : HOME the actuator after opening (clears a latched fault first, e.g. the watchdog of a killed run).
 
         Raises
         ------
         RigError
-            Ports half given, HIL requested but unavailable, or the boards do not answer.
+            The backend cannot start or the boards do not answer (the message names the backend and its ports).
         """
-        from rigctl.acquisition import calibration  # noqa: PLC0415 (calibration imports this module)
-        from rigctl.devices.drum import DrumClient
-        from rigctl.devices.taxel_stream import TaxelStream
-
-        if (drum_port is None) != (taxel_port is None):
-            raise RigError("give both --drum-port and --taxel-port for the hardware rig (or neither for --sim)")
-        host_config = calibration.load_rig_config(host_config_path)
-        sim_rig = None
-        if drum_port is not None:
-            mode = "hardware"
-        elif hil:
-            try:
-                from rigctl.simulation.hil import HilRig
-            except ImportError as exc:
-                raise RigError(
-                    f"--hil needs rigctl.simulation.hil.HilRig (the firmware under simavr), which is not available: "
-                    f"{exc}"
-                ) from exc
-            mode = "hil"
-            sim_rig = HilRig(config, seed=seed)
-        elif sim:
-            from rigctl.simulation.rig import SimulatedRig
-
-            mode = "sim"
-            sim_rig = SimulatedRig(config, seed=seed, source=source) if source is not None else SimulatedRig(
-                config, seed=seed)
-        else:
-            raise RigError("no rig: pass sim=True, hil=True, or both drum_port and taxel_port")
-
+        host_config = load_rig_config(host_config_path)
         drum = stream = None
+        entered = False
         try:
-            if sim_rig is not None:
-                sim_rig.__enter__()
-                drum_port, taxel_port = sim_rig.drum_port, sim_rig.taxel_port
-            drum = DrumClient(drum_port, poll_s=0.02)
+            backend.__enter__()
+            entered = True
+            drum = backend.drum()
             drum.__enter__()
-            stream = TaxelStream(taxel_port)
+            stream = backend.taxels()
             stream.open()
             stream.start()
         except BaseException as exc:
             for obj in (stream, drum):
                 if obj is not None:
                     with contextlib.suppress(Exception):
-                        obj.close() if obj is stream else obj.__exit__(None, None, None)
-            if sim_rig is not None:
+                        obj.close()
+            if entered:
                 with contextlib.suppress(Exception):
-                    sim_rig.__exit__(None, None, None)
+                    backend.__exit__(None, None, None)
             if isinstance(exc, Exception) and not isinstance(exc, RigError):
-                raise RigError(f"cannot open the {mode} rig (drum {drum_port}, taxels {taxel_port}): {exc}") from exc
+                where = ", ".join(f"{k} {v}" for k, v in _ports(backend).items())
+                raise RigError(f"cannot open the {backend.mode} rig{' (' + where + ')' if where else ''}: "
+                               f"{exc}") from exc
             raise
-        rig = cls(drum, stream, sim=sim_rig, mode=mode, prompt=prompt, host_config=host_config,
-                  host_config_path=str(calibration.config_path(host_config_path)), seed=seed if sim_rig else None,
-                  model_config=getattr(sim_rig, "config", config))
+        rig = cls(backend, drum, stream, prompt=prompt, host_config=host_config,
+                  host_config_path=str(config_path(host_config_path)))
         try:
             rig._prepare(home=home)
         except BaseException:
@@ -220,6 +188,26 @@ class Rig:
             self.drum.home()
             self.drum.wait_state([wire.DrumState.IDLE], timeout_s=30.0)
 
+    # ------------------------------------------------------------------------------------------------- sensor, textures
+    @property
+    def layout(self) -> SensorLayout:
+        """The sensor the taxel source streams (its identify reply): channels, grid, rate, ADC bits."""
+        # TaxelStream gains ``layout`` with issue 9 (H5); until then the wire spec's sensor is the paper's
+        layout = getattr(self.stream, "layout", None)
+        return layout if isinstance(layout, SensorLayout) else PAPER_SENSOR
+
+    @property
+    def textures(self) -> TextureSet:
+        """The texture set plates are mounted from (the backend's, default the paper's A-P; a protocol run sets
+        its own: :func:`rigctl.acquisition.runner.run_protocol`)."""
+        return self._textures
+
+    @textures.setter
+    def textures(self, textures: TextureSet) -> None:
+        if not isinstance(textures, TextureSet):
+            raise TypeError(f"textures must be a rigctl.core.TextureSet, got {type(textures).__name__}")
+        self._textures = textures
+
     # ------------------------------------------------------------------------------------------------- context
     def __enter__(self) -> "Rig":
         return self
@@ -228,7 +216,7 @@ class Rig:
         self.close()
 
     def close(self) -> None:
-        """Stop the rig safely, stop the stream, close the ports and, in simulation, stop the simulated rig."""
+        """Stop the rig safely, stop the stream, close the drum controller and stop the backend."""
         if self._closed:
             return
         self._closed = True
@@ -236,27 +224,27 @@ class Rig:
         with contextlib.suppress(Exception):
             self.stream.close()
         with contextlib.suppress(Exception):
-            self.drum.__exit__(None, None, None)
-        if self.sim is not None:
-            with contextlib.suppress(Exception):
-                self.sim.__exit__(None, None, None)
+            self.drum.close()
+        with contextlib.suppress(Exception):
+            self.backend.__exit__(None, None, None)
 
     # ------------------------------------------------------------------------------------------------- info
     def describe(self) -> dict:
         """The rig's configuration as a JSON-able dict (stored as a session's ``rig_config`` attribute).
 
-        Keys: mode, ports, seed, taxel_streamer (banner), drum_firmware, drum_registers (every holding register by
-        name), model (the simulated rig's RigConfig), host_config (the rig config file: calibration).
+        Keys: the backend's (mode, drum_port, taxel_port, seed, model: the simulated rig's RigConfig, ...),
+        sensor_layout (the taxel source's layout), texture_set (the rig's), taxel_streamer (banner), drum_firmware,
+        drum_registers (every holding register by name), host_config (the rig config file: calibration).
         """
-        out: dict[str, Any] = {
-            "mode": self.mode,
-            "drum_port": getattr(self.drum, "port", None),
-            "taxel_port": getattr(self.stream, "port", None),
-            "seed": self.seed,
-            "taxel_streamer": {k: v for k, v in (self.stream.banner or {}).items()},
+        out: dict[str, Any] = {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": None}
+        out.update(self.backend.describe())
+        out.update({
+            "sensor_layout": self.layout.to_dict(),
+            "texture_set": self.textures.to_dict(),
+            "taxel_streamer": {k: v for k, v in (getattr(self.stream, "banner", None) or {}).items()},
             "host_config_path": self.host_config_path,
             "host_config": self.host_config,
-        }
+        })
         try:
             st = self.drum.read_status()
             out["drum_firmware"] = list(st.firmware)
@@ -264,16 +252,11 @@ class Rig:
                                      if r != wire.HoldingRegister.COMMAND}
         except Exception as exc:  # describing must not fail a session
             out["drum_error"] = str(exc)
-        model = self.model_config
-        if model is not None and hasattr(model, "to_dict"):
-            out["model"] = model.to_dict()
         return out
 
     def reload_host_config(self) -> dict:
         """Re-read the rig config file (e.g. after a calibration); later sessions copy the new content."""
-        from rigctl.acquisition import calibration
-
-        self.host_config = calibration.load_rig_config(self.host_config_path)
+        self.host_config = load_rig_config(self.host_config_path)
         return self.host_config
 
     def taxel_normalisation(self) -> dict | None:
@@ -295,23 +278,20 @@ class Rig:
         a plate. Raises DrumTimeout / DrumFault."""
         wait_released(self.drum, timeout_s=timeout_s)
 
-    def mount_texture(self, letter: str, prompt: Callable[[str], Any] | None = None) -> None:
-        """Mount texture plate ``letter`` (A-P): release the sensor, then set it (simulation) or ask the operator.
+    def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
+        """Mount texture plate ``label`` (any label of :attr:`textures`): release the sensor, then the backend's
+        :class:`rigctl.core.interfaces.PlateMounter` puts it on (simulation: renders the set's geometry; hardware:
+        asks the operator, with ``prompt`` or the rig's).
 
         Raises
         ------
-        ValueError on a letter outside A-P. :class:`rigctl.devices.errors.DrumError` if the rig does not release.
+        ValueError (:class:`rigctl.core.textures.TextureSetError`) on a label outside the rig's texture set.
+        :class:`rigctl.devices.errors.DrumError` if the rig does not release.
         """
-        letter = str(letter).upper()
-        if len(letter) != 1 or letter not in "ABCDEFGHIJKLMNOP":
-            raise ValueError(f"texture must be a letter A-P, got {letter!r}")
+        label = self.textures.resolve(str(label))
         self.release()
-        if self.sim is not None and hasattr(self.sim, "set_texture"):
-            self.sim.set_texture(letter)
-        else:
-            (prompt or self.prompt or console_prompt)(
-                f"Mount texture plate {letter} on the drum (the sensor is released), then confirm.")
-        self.texture = letter
+        self.backend.mounter.mount(label, self.textures, prompt=prompt or self.prompt)
+        self.texture = label
 
     def safe_stop(self) -> bool:
         """Send STOP (drum decelerates to rest, actuator backs off to home); never raises.
@@ -342,9 +322,10 @@ class Rig:
             log.warning("recovering the rig: %s", exc)
 
     def _status(self) -> _Status:
-        t0 = time.monotonic()
+        clock = self.drum.clock  # the clock of the taxel source's host times (simulated in-process)
+        t0 = clock.now()
         st = self.drum.read_status()
-        t1 = time.monotonic()
+        t1 = clock.now()
         return _Status(0.5 * (t0 + t1), float(st.force_g), float(st.speed_mm_s), int(st.state), int(st.faults))
 
     def _check_fault(self, s: _Status, what: str) -> None:
@@ -410,7 +391,7 @@ class Rig:
         Returns
         -------
         TrialData
-            ``taxels`` (round(duration_s * 1000), 18) uint16 ADC counts, ``seq``, ``flags``, ``host_time_s``
+            ``taxels`` (round(duration_s * rate), n_channels) uint16 ADC counts (:attr:`layout`), ``seq``, ``flags``, ``host_time_s``
             (s since the first frame, host monotonic clock), force and speed traces at ~50 Hz on the same clock,
             dropped frames (sequence gaps among the kept frames), CRC errors during the capture, and attrs
             (``started_utc``, ``settle_time_s``, measured means, ``host_rate_hz``, ``aligned_to_index``,
@@ -419,9 +400,9 @@ class Rig:
         Notes
         -----
         Index alignment (constant-speed trials): once the drum runs steadily, the capture starts and the drum angle
-        is read to predict when the index mark passes; the capture runs until that point + ``duration_s * 1000``
+        is read to predict when the index mark passes; the capture runs until that point + ``duration_s * rate``
         frames + :data:`INDEX_MARGIN_FRAMES`. The frames before the first one flagged
-        ``wire.FrameFlag.SYNC_IN`` are dropped and exactly ``duration_s * 1000`` frames from it on are kept
+        ``wire.FrameFlag.SYNC_IN`` are dropped and exactly ``duration_s * rate`` frames from it on are kept
         (``aligned_to_index=True``, ``index_wait_frames`` = frames dropped). No index pulse within
         :data:`INDEX_TIMEOUT_REVS` revolutions at the trial speed (7.9 s x 1.25 at 40 mm/s on the 314 mm drum)
         raises :class:`CaptureError`. Ramp trials start with the ramp instead (``aligned_to_index=False``): the
@@ -439,7 +420,7 @@ class Rig:
                 from rigctl.devices.errors import SetpointRangeError
 
                 raise SetpointRangeError("speed", v, "mm/s", 0, MAX_SPEED_MM_S, "rig limit")
-        n = planned.samples_at(self.stream.layout.sample_rate_hz if hasattr(self.stream, "layout") else 1000.0)
+        n = planned.samples_at(self.layout.sample_rate_hz)
         if n <= 0:
             raise ValueError(f"trial {planned.trial_id}: duration {planned.duration_s} s gives no samples")
         with self._lock:
@@ -455,6 +436,8 @@ class Rig:
         from rigctl.devices.errors import DrumTimeout
 
         settle = self.settle
+        layout = self.layout
+        rate = layout.sample_rate_hz
         settle_s = self.press(planned.force_g)
         _abort_if(stop_event)
         # spin up at a constant speed (a ramp's start speed) and wait until the drum runs steadily there
@@ -489,8 +472,8 @@ class Rig:
             st = self.drum.read_status()
             t_read = time.monotonic()
             to_index_s = (360.0 - float(st.angle_deg)) % 360.0 / 360.0 * rev_s
-            n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * wire.SAMPLE_RATE_HZ)) + INDEX_MARGIN_FRAMES
-            n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * wire.SAMPLE_RATE_HZ)))
+            n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * rate)) + INDEX_MARGIN_FRAMES
+            n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate)))
             deadline += INDEX_TIMEOUT_REVS * rev_s
         next_poll = t_start
         frames_seen, t_frame = self.stream.stats.frames, t_start
@@ -524,34 +507,17 @@ class Rig:
             sync = np.flatnonzero(cap.flags & wire.FrameFlag.SYNC_IN)
             if sync.size == 0:
                 raise CaptureError(f"trial {planned.trial_id}: no drum index pulse (SYNC_IN) in {len(cap)} frames "
-                                   f"({len(cap) / wire.SAMPLE_RATE_HZ:.1f} s at {planned.speed_mm_s:g} mm/s)")
+                                   f"({len(cap) / rate:.1f} s at {planned.speed_mm_s:g} mm/s)")
             k = int(sync[0])
             if len(cap) - k < n:
                 raise CaptureError(f"trial {planned.trial_id}: the index pulse came {k} frames into the capture, "
                                    f"only {len(cap) - k} of {n} frames follow it")
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)
-        data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s)
+        data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
+                           layout=layout)
         data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k)
         return data
-
-
-def wait_released(drum, *, timeout_s: float = 20.0, home_mm: float = 0.05) -> None:
-    """Send STOP and wait until the controller is IDLE with the actuator within ``home_mm`` of home.
-
-    STOP sets IDLE at once while the actuator is still backing off; TARE and plate changes need it home.
-    Raises :class:`rigctl.devices.errors.DrumTimeout` / ``DrumFault``.
-    """
-    from rigctl.devices.errors import DrumTimeout
-
-    drum.stop()
-    deadline = time.monotonic() + timeout_s
-    st = drum.wait_state([wire.DrumState.IDLE], timeout_s=timeout_s)
-    while st.actuator_mm > home_mm:
-        if time.monotonic() > deadline:
-            raise DrumTimeout(f"the actuator did not return home within {timeout_s:g} s ({st.actuator_mm:.2f} mm)")
-        time.sleep(0.02)
-        st = drum.read_status()
 
 
 def _abort_if(stop_event) -> None:
@@ -559,11 +525,12 @@ def _abort_if(stop_event) -> None:
         raise TrialAborted("trial aborted on request")
 
 
-def count_dropped(seq: np.ndarray, flags: np.ndarray, host_time_s: np.ndarray) -> int:
+def count_dropped(seq: np.ndarray, flags: np.ndarray, host_time_s: np.ndarray,
+                  rate_hz: float = PAPER_SENSOR.sample_rate_hz) -> int:
     """Frames missing among consecutive frames: 16-bit sequence gaps (wrap-aware).
 
     Where the stream restarted (a STREAMING_START frame, e.g. after a reconnect) the device's counter restarted,
-    so the gap is estimated from the host time instead (1 kHz).
+    so the gap is estimated from the host time instead (at ``rate_hz``, the sensor's frame rate).
     """
     if len(seq) < 2:
         return 0
@@ -572,12 +539,12 @@ def count_dropped(seq: np.ndarray, flags: np.ndarray, host_time_s: np.ndarray) -
     restart = (flags[1:] & wire.FrameFlag.STREAMING_START) != 0
     if restart.any():
         dt = np.diff(host_time_s)[restart]
-        gaps[restart] = np.maximum(0, np.round(dt * wire.SAMPLE_RATE_HZ).astype(np.int64) - 1)
+        gaps[restart] = np.maximum(0, np.round(dt * float(rate_hz)).astype(np.int64) - 1)
     return int(gaps.sum())
 
 
 def _trial_data(planned: PlannedTrial, cap, n: int, statuses: list[_Status], *, started_utc: str, settle_s: float,
-                spinup_s: float) -> TrialData:
+                spinup_s: float, layout: SensorLayout) -> TrialData:
     if len(cap) < n:
         raise CaptureError(f"trial {planned.trial_id}: captured {len(cap)} frames, {n} needed")
     t0 = float(cap.host_time_s[0])
@@ -588,7 +555,8 @@ def _trial_data(planned: PlannedTrial, cap, n: int, statuses: list[_Status], *, 
     data = TrialData(
         taxels=cap.samples[:n], seq=seq, flags=flags, host_time_s=host_t,
         force_g=force, force_time_s=force_t, speed_mm_s=speed, speed_time_s=force_t.copy(),
-        dropped_frames=count_dropped(seq, flags, host_t), crc_errors=int(cap.crc_errors),
+        dropped_frames=count_dropped(seq, flags, host_t, layout.sample_rate_hz), crc_errors=int(cap.crc_errors),
+        layout=layout,
     )
     inside = (force_t >= 0) & (force_t <= host_t[-1])
     data.attrs.update(

@@ -28,8 +28,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from rigctl.acquisition.calibration import session_calibration_block
-from rigctl.acquisition.protocol import PlannedTrial, Protocol, ScriptProtocol
-from rigctl.storage.session import SessionError, SessionWriter, TrialData, TrialStatus
+from rigctl.acquisition.protocol import Protocol, ScriptProtocol
+from rigctl.acquisition.rig import Rig, TrialAborted
+from rigctl.core.trial import PlannedTrial, TrialData
+from rigctl.storage.session import SessionError, SessionWriter, TrialStatus
 
 
 @dataclass
@@ -100,7 +102,7 @@ def _emit(cb, event: TrialEvent) -> None:
         cb(event)
 
 
-def _wait_while_paused(rig, pause_event, stop_event, on_trial, index, total, t0) -> None:
+def _wait_while_paused(rig: Rig, pause_event, stop_event, on_trial, index, total, t0) -> None:
     if pause_event is None or not pause_event.is_set():
         return
     rig.recover()  # STOP (clearing any fault): no force on the sensor while paused
@@ -116,7 +118,7 @@ def run_protocol(
     protocol: Protocol | ScriptProtocol,
     out_path: str | Path,
     *,
-    rig,
+    rig: Rig,
     resume: bool = False,
     progress: bool = True,
     stop_event: threading.Event | None = None,
@@ -132,7 +134,8 @@ def run_protocol(
     ----------
     protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`).
     out_path : session file (``.h5``); must not exist unless ``resume`` or ``overwrite``.
-    rig : an open :class:`rigctl.acquisition.rig.Rig`.
+    rig : an open :class:`rigctl.acquisition.rig.Rig` (:func:`rigctl.rigs.open_rig`). Its texture set becomes the
+        protocol's (:attr:`Protocol.texture_set`), which the session stores with the taxel source's layout.
     resume : continue the existing file from its plan.
     progress : show a tqdm progress bar on stderr (False: print nothing).
     stop_event, pause_event : run control (see the module docstring).
@@ -158,11 +161,13 @@ def run_protocol(
         return _run_script(protocol, out_path, rig=rig, resume=resume, overwrite=overwrite)
 
     rig.apply_settle(protocol.settle)
+    rig.textures = protocol.texture_set
     if resume:
         writer = SessionWriter.open(out_path, protocol_source=protocol.source)
     else:
         writer = SessionWriter.create(
-            out_path, plan=protocol.plan(), protocol_source=protocol.source, protocol_name=protocol.name,
+            out_path, plan=protocol.plan(), layout=rig.layout, textures=protocol.texture_set,
+            protocol_source=protocol.source, protocol_name=protocol.name,
             protocol_format="toml", rig_config=rig.describe(), kind="recorded",
             calibration=session_calibration_block(rig.host_config), overwrite=overwrite,
         )
@@ -199,8 +204,6 @@ def run_protocol(
                                         f"{planned.speed_mm_s:g} mm/s {planned.force_g:g} g", refresh=True)
                 data = rig.record_trial(planned, stop_event=stop_event)
             except Exception as exc:  # noqa: BLE001 - a failed trial is recorded as failed, the run goes on
-                from rigctl.acquisition.rig import TrialAborted
-
                 if isinstance(exc, TrialAborted):
                     summary.stopped = True
                     break
@@ -240,7 +243,7 @@ def run_protocol(
     return summary
 
 
-def _write_trial(writer: SessionWriter, trial_id: int, data: TrialData, rig, bar) -> None:
+def _write_trial(writer: SessionWriter, trial_id: int, data: TrialData, rig: Rig, bar) -> None:
     """Write a trial; if a reader holds the file, release the rig (so the controller's watchdog cannot trip while
     the host waits) and keep trying for up to two minutes, the trial's data kept in memory meanwhile."""
     from rigctl.storage.journal import FileBusy
@@ -266,13 +269,13 @@ def _write_trial(writer: SessionWriter, trial_id: int, data: TrialData, rig, bar
                 raise
 
 
-def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig, resume: bool, overwrite: bool) -> RunSummary:
+def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: bool, overwrite: bool) -> RunSummary:
     """Run a Python-script protocol: ``protocol.run(rig, session)`` with a fresh session writer (empty plan)."""
     if resume:
         raise SessionError(f"{protocol.path}: a Python-script protocol cannot be resumed by the runner "
                            "(the script decides its trials); start a new session file")
     writer = SessionWriter.create(
-        out_path, plan=[], protocol_source=protocol.source, protocol_name=protocol.name, protocol_format="python",
+        out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source, protocol_name=protocol.name, protocol_format="python",
         rig_config=rig.describe(), kind="recorded", calibration=session_calibration_block(rig.host_config),
         overwrite=overwrite,
     )

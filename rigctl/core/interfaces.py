@@ -9,6 +9,7 @@ these, never against a concrete backend. Implementations:
   in-process simulated source.
 - :class:`PlateMounter`: how a texture plate gets on the drum: the simulated rig sets it, the HIL rig swaps the
   waveform, on hardware an operator is asked.
+- :class:`MassPlacer` (optional): a backend that rests a calibration mass on the load cell (simulation).
 - :class:`RigBackend`: what opens the boards (simulated rig on ptys, firmware under simavr, serial hardware,
   replay, in-process); only the composition root ``rigctl.rigs`` knows them all.
 
@@ -23,7 +24,7 @@ from typing import Any, Callable, Iterable, Protocol, runtime_checkable
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 
-__all__ = ["DrumController", "TaxelSource", "PlateMounter", "RigBackend"]
+__all__ = ["DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "Prompt"]
 
 
 @runtime_checkable
@@ -32,7 +33,11 @@ class DrumController(Protocol):
 
     Setters raise ``rigctl.devices.errors.SetpointRangeError`` (a ValueError) before anything is sent when a value is
     outside the controller's range; communication failures raise ``DrumError`` subclasses (``DrumTimeout``, ...).
+    ``clock`` (``now() -> s``, ``sleep(s)``) is the host clock its waits run on and the taxel source's
+    ``host_time_s`` uses: the wall clock (``time.monotonic``), or the in-process backend's simulated clock.
     """
+
+    clock: Any
 
     def set_speed(self, mm_s: float) -> None: ...
     def set_force(self, g: float) -> None: ...
@@ -49,6 +54,7 @@ class DrumController(Protocol):
     def read_holding(self, reg: Any) -> int: ...
     def write_holding(self, reg: Any, value: int) -> None: ...
     def wait_state(self, states: Iterable[Any], timeout_s: float) -> Any: ...
+    def wait_released(self, timeout_s: float, home_mm: float = ...) -> Any: ...
     def wait_force_settled(self, timeout_s: float) -> Any: ...
     def wait_speed_steady(self, timeout_s: float, tol_mm_s: float = ..., n_polls: int = ...) -> Any: ...
     def close(self) -> None: ...
@@ -76,9 +82,22 @@ class TaxelSource(Protocol):
 
 @runtime_checkable
 class PlateMounter(Protocol):
-    """Puts a texture plate on the drum. Called with the sensor released; returns when the plate is on."""
+    """Puts a texture plate on the drum. Called with the sensor released; returns when the plate is on.
 
-    def mount(self, texture: str) -> None: ...
+    ``label`` is a label of ``textures`` (the set the session records): a simulated mounter renders the set's
+    geometry for it, an operator mounter asks for the plate by name (with ``prompt`` if given, else its own).
+    Raises KeyError / ValueError for a label it cannot mount.
+    """
+
+    def mount(self, label: str, textures: TextureSet, prompt: Callable[[str], Any] | None = None) -> None: ...
+
+
+@runtime_checkable
+class MassPlacer(Protocol):
+    """Optional: a backend that can rest a calibration mass on the load cell (the simulated rigs); used by the
+    load-cell calibration instead of asking an operator. ``place_mass(0)`` removes it."""
+
+    def place_mass(self, mass_g: float) -> None: ...
 
 
 @runtime_checkable
@@ -87,8 +106,10 @@ class RigBackend(Protocol):
 
     ``__enter__`` starts the backend (virtual boards, simavr, nothing on hardware), ``__exit__`` stops it.
     ``drum()`` and ``taxels()`` return new clients of the two boards; ``mounter`` mounts plates; ``mode`` is
-    "sim" | "hil" | "hardware" | "replay" | "inprocess"; ``textures`` is the texture set the backend can mount
-    (None: any label, an operator mounts it).
+    "sim" | "hil" | "hardware" | "replay" | "inprocess"; ``textures`` is the texture set the backend mounts by
+    default (the rig's :attr:`Rig.textures` until a protocol brings its own); ``describe()`` a JSON-able dict
+    (mode, ports, seed, the simulated model's configuration) for the session's ``rig_config``. Backends that can
+    place a calibration mass also implement :class:`MassPlacer`.
     """
 
     mode: str
@@ -100,7 +121,7 @@ class RigBackend(Protocol):
     @property
     def mounter(self) -> PlateMounter: ...
     @property
-    def textures(self) -> TextureSet | None: ...
+    def textures(self) -> TextureSet: ...
     def describe(self) -> dict: ...
 
 

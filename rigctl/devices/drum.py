@@ -133,7 +133,7 @@ class DrumClient:
         self.retries = retries
         self.poll_s = poll_s
         self._lock = threading.RLock()
-        self._clock = clock or _WallClock()
+        self.clock = clock or _WallClock()
         self._client = transport if transport is not None else ModbusSerialClient(
             port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8, parity="N", stopbits=1,
             timeout=timeout_s, retries=retries, reconnect_delay=0.1, reconnect_delay_max=1.0,
@@ -338,7 +338,7 @@ class DrumClient:
         return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
 
     def _wait(self, done, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
-        clock = self._clock
+        clock = self.clock
         deadline = clock.now() + timeout_s
         status = None
         while True:
@@ -359,6 +359,12 @@ class DrumClient:
         states = {DrumState(s) for s in ([states] if isinstance(states, (int, DrumState)) else states)}
         names = "/".join(sorted(s.name for s in states))
         return self._wait(lambda s: s.state in states, timeout_s, f"state {names}", DrumState.FAULT in states)
+
+    def wait_released(self, timeout_s: float, home_mm: float = 0.05) -> DrumStatus:
+        """Poll until IDLE with the actuator within ``home_mm`` of home (after STOP: the sensor is free).
+        DrumFault / DrumTimeout."""
+        return self._wait(lambda s: s.state == DrumState.IDLE and s.actuator_mm <= home_mm, timeout_s,
+                          f"IDLE with the actuator home (within {home_mm:g} mm)")
 
     def wait_force_settled(self, timeout_s: float) -> DrumStatus:
         """Poll until the force loop is on target: state FORCE_SETTLED (or RUNNING with the force within

@@ -1,0 +1,124 @@
+"""The composition root: the one module that knows every rig backend.
+
+:func:`open_rig` builds a :class:`rigctl.core.interfaces.RigBackend` of the kind asked for and opens a
+:class:`rigctl.acquisition.rig.Rig` on it. The CLI (``rigctl acquire``, ``rigctl gui``), the GUI and the tests open
+rigs here; nothing else imports the backends together (``rigctl.acquisition`` never imports ``rigctl.simulation``).
+
+Kinds:
+
+- ``"sim"``: the simulated rig (:class:`rigctl.simulation.rig.SimulatedRig`: physical model, virtual Mega and Uno
+  on real ptys, real-time physics clock); options ``config`` (RigConfig), ``seed``.
+- ``"replay"``: the simulated rig streaming recorded taxel signals instead of the model's sensor; option
+  ``source``: a replay source object (with ``read(n)``), or a path: a directory of FabricSlide CSV files
+  (:class:`rigctl.simulation.replay.FabricSlideReplay`) or a session file (the replay module's session source).
+- ``"hil"``: the rig's firmware images under simavr (:class:`rigctl.simulation.hil.HilRig`); ``config``, ``seed``.
+- ``"hardware"``: the real boards on ``drum_port`` and ``taxel_port`` (:class:`rigctl.devices.backend.SerialBackend`);
+  plates mounted by the operator (``prompt``).
+- ``"inprocess"``: the model and the controller logic in this process, on a simulated clock, no ptys
+  (:class:`rigctl.simulation.inprocess.InProcessBackend`; fast unit tests of the runner and calibration).
+
+Common options: ``prompt`` (operator prompt), ``host_config_path`` (the rig config file), ``home`` (HOME the
+actuator after opening), ``textures`` (the rig's default texture set).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Callable
+
+from rigctl.acquisition.rig import Rig, RigError
+from rigctl.core.interfaces import RigBackend
+from rigctl.core.textures import TextureSet
+
+__all__ = ["KINDS", "open_rig", "make_backend", "replay_source"]
+
+#: the backends :func:`open_rig` knows
+KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
+
+
+def replay_source(source: Any) -> Any:
+    """A replay source for the simulated rig: an object with ``read(n)`` as is; a directory -> the FabricSlide
+    replay; a file -> the replay module's session source. Raises RigError when the path cannot be replayed."""
+    if hasattr(source, "read") or callable(source):
+        return source
+    path = Path(os.fspath(source))
+    from rigctl.simulation import replay
+
+    if path.is_dir():
+        return replay.FabricSlideReplay(path)
+    if path.is_file():
+        for name in ("SessionReplay", "session_replay", "open_replay"):
+            make = getattr(replay, name, None)
+            if make is not None:
+                return make(path)
+        raise RigError(f"cannot replay {path}: this rigctl replays FabricSlide directories only")
+    raise RigError(f"cannot replay {path}: no such file or directory")
+
+
+def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source: Any = None,
+                 drum_port: str | None = None, taxel_port: str | None = None,
+                 prompt: Callable[[str], Any] | None = None, textures: TextureSet | None = None,
+                 **options: Any) -> RigBackend:
+    """The backend of ``kind`` (not started). Raises RigError for an unknown kind or missing options."""
+    if kind == "hardware":
+        if not drum_port or not taxel_port:
+            raise RigError("the hardware rig needs both drum_port and taxel_port (--drum-port, --taxel-port)")
+        from rigctl.devices.backend import SerialBackend
+
+        return SerialBackend(drum_port, taxel_port, prompt=prompt, textures=textures)
+    if drum_port or taxel_port:
+        raise RigError(f"drum_port/taxel_port select the hardware rig, not {kind!r}")
+    if kind in ("sim", "replay"):
+        from rigctl.simulation.backend import PtyRigBackend
+        from rigctl.simulation.rig import SimulatedRig
+
+        if kind == "replay":
+            if source is None:
+                raise RigError("the replay rig needs a source (a session file, a FabricSlide directory, or a source)")
+            sim = SimulatedRig(config, seed=seed, source=replay_source(source), **options)
+        else:
+            if source is not None:
+                raise RigError("a replay source selects kind='replay'")
+            sim = SimulatedRig(config, seed=seed, **options)
+        return PtyRigBackend(sim, mode=kind, seed=seed, textures=textures)
+    if kind == "hil":
+        try:
+            from rigctl.simulation.hil import HilRig
+        except ImportError as exc:
+            raise RigError(f"the HIL rig needs rigctl.simulation.hil (the firmware under simavr): {exc}") from exc
+        from rigctl.simulation.backend import PtyRigBackend
+
+        return PtyRigBackend(HilRig(config, seed=seed, **options), mode="hil", seed=seed, textures=textures)
+    if kind == "inprocess":
+        from rigctl.simulation.inprocess import InProcessBackend
+
+        return InProcessBackend(config, seed=seed, textures=textures, **options)
+    raise RigError(f"unknown rig kind {kind!r}; choose one of {', '.join(KINDS)}")
+
+
+def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
+             host_config_path: str | os.PathLike | None = None, home: bool = True, **options: Any) -> Rig:
+    """Open a rig of ``kind`` ("sim" | "hil" | "hardware" | "replay" | "inprocess") and start its taxel stream.
+
+    Parameters
+    ----------
+    kind : the backend (see the module docstring).
+    prompt : operator prompt for plate changes on hardware (default: a terminal prompt).
+    host_config_path : the rig config file (calibration; default ``$RIGCTL_CONFIG`` or ``~/.config/rigctl/rig.json``).
+    home : HOME the actuator after opening.
+    **options : the backend's options: ``config``, ``seed``, ``source`` (replay), ``drum_port``/``taxel_port``
+        (hardware), ``textures`` (the rig's default texture set), and backend-specific keywords.
+
+    Returns
+    -------
+    Rig, open and streaming (a context manager: ``with open_rig("inprocess") as rig: ...``).
+
+    Raises
+    ------
+    RigError
+        Unknown kind, missing options, or the backend could not be started / the boards do not answer.
+    """
+    backend = make_backend(kind, prompt=prompt, **options)
+    return Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
+                       else str(host_config_path), home=home)

@@ -1,0 +1,86 @@
+"""Backends of the simulated rigs on real ptys: the model boards (``sim``, ``replay``) and the firmware under simavr
+(``hil``). Each implements :class:`rigctl.core.interfaces.RigBackend` (and :class:`MassPlacer`): the host opens the
+same :class:`rigctl.devices.drum.DrumClient` and :class:`rigctl.devices.taxel_stream.TaxelStream` as on hardware,
+on the ports the virtual boards open; plates are mounted by setting the model's texture (rendered from the texture
+set's geometry, :func:`rigctl.simulation.textures.get_texture`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.devices.backend import PortBackend
+
+__all__ = ["SimMounter", "PtyRigBackend"]
+
+
+class SimMounter:
+    """:class:`rigctl.core.interfaces.PlateMounter` of a simulated rig: ``sim.set_texture(label, textures)``."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def mount(self, label: str, textures: TextureSet, prompt: Callable[[str], Any] | None = None) -> None:
+        self.sim.set_texture(textures.resolve(label), textures)
+
+
+class PtyRigBackend(PortBackend):
+    """A simulated rig on ptys (:class:`rigctl.simulation.rig.SimulatedRig` or :class:`rigctl.simulation.hil.HilRig`)
+    as a :class:`rigctl.core.interfaces.RigBackend`.
+
+    Parameters
+    ----------
+    sim : the simulated rig, not yet started (started by ``__enter__``, stopped by ``__exit__``).
+    mode : "sim" | "replay" | "hil".
+    seed : the seed it was built with (for the session's ``rig_config``).
+
+    Attributes
+    ----------
+    sim : the simulated rig (tests pull its cables: ``rig.backend.sim.unplug_taxel()``).
+    """
+
+    def __init__(self, sim, *, mode: str = "sim", seed: int | None = None, textures: TextureSet | None = None):
+        self.sim = sim
+        self.mode = mode
+        self.seed = seed
+        self._mounter = SimMounter(sim)
+        self._textures = textures or PAPER_TEXTURES
+
+    @property
+    def drum_port(self) -> str:
+        return self.sim.drum_port
+
+    @property
+    def taxel_port(self) -> str:
+        return self.sim.taxel_port
+
+    def __enter__(self) -> "PtyRigBackend":
+        self.sim.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.sim.__exit__(None, None, None)
+
+    @property
+    def mounter(self) -> SimMounter:
+        return self._mounter
+
+    @property
+    def textures(self) -> TextureSet:
+        return self._textures
+
+    def place_mass(self, mass_g: float) -> None:
+        """Rest a calibration mass on the simulated load cell (0 removes it)."""
+        self.sim.place_mass(mass_g)
+
+    def describe(self) -> dict:
+        out: dict[str, Any] = {"mode": self.mode, "drum_port": self.drum_port, "taxel_port": self.taxel_port,
+                               "seed": self.seed}
+        config = getattr(self.sim, "config", None)
+        if config is not None and hasattr(config, "to_dict"):
+            out["model"] = config.to_dict()
+        source = getattr(self.sim, "source", None)
+        if source is not None:
+            out["replay_source"] = type(source).__name__
+        return out

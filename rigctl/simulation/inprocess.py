@@ -1,0 +1,296 @@
+"""The in-process backend: the simulated rig without ptys, threads or real-time pacing, for fast unit tests.
+
+The drum controller is the firmware logic of :class:`rigctl.simulation.controller.MegaController` (the same class
+the virtual Mega serves on a pty) driving :class:`rigctl.simulation.model.RigModel`; the host talks to it through
+the ordinary :class:`rigctl.devices.drum.DrumClient` (every range check and wait of the real client) whose Modbus
+transport calls the controller directly. The taxel source (:class:`InProcessTaxels`) frames the model's samples
+as the Uno would (sequence numbers, SYNC_IN at the drum's index pulse, STREAMING_START on the first frame).
+
+Time is simulated and advances only when the host acts: each Modbus request takes :attr:`InProcessEngine.request_ms`
+of bus time (2 ms: a status read at 115200 baud), a ``wait_*`` poll of the drum client sleeps on the simulated
+clock, and :meth:`InProcessTaxels.wait_capture` runs the simulation until the frames are there (up to its timeout,
+in simulated time). A whole trial takes a fraction of its duration in wall time; the results (force settling,
+index alignment, trial frames) are the model's, not a mock's. The host-silence watchdog is not simulated (the host
+cannot be silent on a clock that only moves when it speaks).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any, Callable
+
+import numpy as np
+from pymodbus.pdu import ExceptionResponse
+
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.devices import wire
+from rigctl.devices.drum import DrumClient
+from rigctl.devices.taxel_stream import Capture, StreamStats
+from rigctl.simulation.controller import MegaController
+from rigctl.simulation.model import RigConfig, RigModel
+
+__all__ = ["InProcessEngine", "InProcessTaxels", "InProcessBackend", "SimulatedClock"]
+
+
+class SimulatedClock:
+    """The engine's clock for :class:`DrumClient`: ``now()`` is simulated time (s), ``sleep(s)`` advances it."""
+
+    def __init__(self, engine: "InProcessEngine"):
+        self.engine = engine
+
+    def now(self) -> float:
+        return self.engine.time_s
+
+    def sleep(self, s: float) -> None:
+        self.engine.advance(max(1, int(round(s * 1000.0))))
+
+
+class InProcessEngine:
+    """The rig's physics and controller on a simulated millisecond clock.
+
+    Parameters
+    ----------
+    config : RigConfig or None; seed : int (model noise, drum start angle).
+    request_ms : simulated bus time of one Modbus request, ms.
+
+    Attributes
+    ----------
+    model : RigModel; controller : MegaController; time_s : simulated time, s.
+    """
+
+    def __init__(self, config: RigConfig | None = None, *, seed: int = 0, request_ms: int = 2):
+        self.config = config or RigConfig()
+        self.model = RigModel(self.config, seed=seed)
+        self.controller = MegaController(self.model)
+        self.request_ms = int(request_ms)
+        self._t_ms = 0
+        self._lock = threading.RLock()
+        self._listeners: list[Callable[[np.ndarray, np.ndarray, int], Any]] = []
+
+    @property
+    def time_s(self) -> float:
+        with self._lock:
+            return self._t_ms / 1000.0
+
+    def listen(self, fn: Callable[[np.ndarray, np.ndarray, int], Any]) -> None:
+        """``fn(samples (n, 18) uint16, sync_in (n,) bool, t0_ms)`` after every advance (the taxel source)."""
+        self._listeners.append(fn)
+
+    def advance(self, n_ms: int) -> None:
+        """Run the rig ``n_ms`` simulated milliseconds (physics + controller), then feed the listeners."""
+        n_ms = int(n_ms)
+        if n_ms <= 0:
+            return
+        with self._lock:
+            samples, sync = self.controller.step(n_ms)
+            t0 = self._t_ms
+            self._t_ms += n_ms
+            for fn in self._listeners:
+                fn(samples, sync, t0)
+
+
+class _Response:
+    def __init__(self, registers=None):
+        self.registers = list(registers or [])
+
+    @staticmethod
+    def isError() -> bool:
+        return False
+
+
+class _Transport:
+    """pymodbus-client-shaped transport that calls :class:`MegaController` directly (one bus time per request)."""
+
+    def __init__(self, engine: InProcessEngine):
+        self.engine = engine
+
+    def connect(self) -> bool:
+        return True
+
+    def close(self) -> None:
+        pass
+
+    def _request(self, fc: int, call):
+        eng = self.engine
+        with eng._lock:
+            eng.advance(eng.request_ms)
+            eng.controller.note_request()
+            result = call()
+        if result is None:
+            return _Response()
+        if isinstance(result, list):
+            return _Response(result)
+        return ExceptionResponse(fc, int(result))
+
+    def read_holding_registers(self, address: int, *, count: int = 1, device_id: int = 1):
+        return self._request(3, lambda: self.engine.controller.read_registers(3, address, count))
+
+    def read_input_registers(self, address: int, *, count: int = 1, device_id: int = 1):
+        return self._request(4, lambda: self.engine.controller.read_registers(4, address, count))
+
+    def write_register(self, address: int, value: int, *, device_id: int = 1):
+        return self._request(6, lambda: self.engine.controller.write_registers(6, address, [int(value)]))
+
+    def write_registers(self, address: int, values: list[int], *, device_id: int = 1):
+        return self._request(16, lambda: self.engine.controller.write_registers(16, address, [int(v) for v in values]))
+
+
+class InProcessTaxels:
+    """:class:`rigctl.core.interfaces.TaxelSource` on the engine: the model's samples framed as the Uno frames them.
+
+    ``host_time_s`` of a capture is the simulated clock (s), the clock of the drum client's status times.
+    """
+
+    def __init__(self, engine: InProcessEngine, layout: SensorLayout = PAPER_SENSOR):
+        self.engine = engine
+        self.port = "in-process"
+        self._layout = layout
+        self.banner: dict | None = None
+        self._lock = threading.Lock()
+        self._streaming = False
+        self._first = False
+        self._seq = 0
+        self._frames = 0
+        self._capture: list | None = None
+        self._capture_count = 0
+        engine.listen(self._feed)
+
+    @property
+    def layout(self) -> SensorLayout:
+        return self._layout
+
+    @property
+    def stats(self) -> StreamStats:
+        with self._lock:
+            return StreamStats(frames=self._frames, frames_per_s=self._layout.sample_rate_hz if self._streaming
+                               else 0.0, connected=True)
+
+    def open(self) -> dict:
+        lay = self._layout
+        self.banner = {"firmware": wire.UNO_FIRMWARE_VERSION,
+                       "channels": lay.n_channels, "ch": lay.n_channels, "rate_hz": lay.sample_rate_hz,
+                       "bits": lay.adc_bits, "baud": 0, "line": "in-process taxel source"}
+        return self.banner
+
+    def start(self) -> None:
+        with self._lock:
+            self._streaming = True
+            self._first = True
+            self._seq = 0
+
+    def stop(self) -> None:
+        with self._lock:
+            self._streaming = False
+
+    def close(self) -> None:
+        self.stop()
+
+    def _feed(self, samples: np.ndarray, sync: np.ndarray, t0_ms: int) -> None:
+        with self._lock:
+            if not self._streaming:
+                return
+            n = len(samples)
+            seq = ((self._seq + np.arange(n)) % 65536).astype(np.uint16)
+            self._seq = (self._seq + n) % 65536
+            flags = np.where(sync, int(wire.FrameFlag.SYNC_IN), 0).astype(np.uint8)
+            if self._first and n:
+                flags[0] |= int(wire.FrameFlag.STREAMING_START)
+                self._first = False
+            self._frames += n
+            if self._capture is not None:
+                t = (t0_ms + 1 + np.arange(n)) / 1000.0
+                self._capture.append((np.array(samples, np.uint16), seq, flags, t))
+                self._capture_count += n
+
+    def begin_capture(self) -> None:
+        with self._lock:
+            self._capture = []
+            self._capture_count = 0
+
+    def wait_capture(self, n_frames: int, timeout_s: float) -> bool:
+        """Run the simulation until the capture holds ``n_frames`` frames or ``timeout_s`` simulated s passed."""
+        left_ms = int(round(max(0.0, timeout_s) * 1000.0))
+        while True:
+            with self._lock:
+                if self._capture is None:
+                    return False
+                need = n_frames - self._capture_count
+            if need <= 0:
+                return True
+            if left_ms <= 0:
+                return False
+            step = min(need, left_ms)
+            self.engine.advance(step)
+            left_ms -= step
+
+    def end_capture(self) -> Capture:
+        with self._lock:
+            parts, self._capture = self._capture, None
+        if not parts:
+            n = self._layout.n_channels
+            return Capture(np.zeros((0, n), np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.uint8),
+                           np.zeros(0, np.float64))
+        samples, seq, flags, t = (np.concatenate([p[i] for p in parts]) for i in range(4))
+        return Capture(samples, seq, flags, t)
+
+
+class _Mounter:
+    def __init__(self, engine: InProcessEngine):
+        self.engine = engine
+
+    def mount(self, label: str, textures: TextureSet, prompt=None) -> None:
+        self.engine.model.set_texture(textures.resolve(label), textures)
+
+
+class InProcessBackend:
+    """:class:`rigctl.core.interfaces.RigBackend` (and ``MassPlacer``) of the in-process simulated rig.
+
+    ``rigctl.rigs.open_rig("inprocess", config=..., seed=...)``. Attributes: ``engine`` (:class:`InProcessEngine`),
+    ``model``, ``controller``.
+    """
+
+    mode = "inprocess"
+
+    def __init__(self, config: RigConfig | None = None, *, seed: int = 0, request_ms: int = 2,
+                 textures: TextureSet | None = None):
+        self.engine = InProcessEngine(config, seed=seed, request_ms=request_ms)
+        self.seed = seed
+        self._textures = textures or PAPER_TEXTURES
+        self._mounter = _Mounter(self.engine)
+
+    @property
+    def model(self) -> RigModel:
+        return self.engine.model
+
+    @property
+    def controller(self) -> MegaController:
+        return self.engine.controller
+
+    def __enter__(self) -> "InProcessBackend":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def drum(self) -> DrumClient:
+        return DrumClient("in-process", transport=_Transport(self.engine), clock=SimulatedClock(self.engine),
+                          poll_s=0.02)
+
+    def taxels(self) -> InProcessTaxels:
+        return InProcessTaxels(self.engine)
+
+    @property
+    def mounter(self) -> _Mounter:
+        return self._mounter
+
+    @property
+    def textures(self) -> TextureSet:
+        return self._textures
+
+    def place_mass(self, mass_g: float) -> None:
+        self.engine.model.place_mass(mass_g)
+
+    def describe(self) -> dict:
+        return {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": self.seed,
+                "model": self.engine.config.to_dict()}
