@@ -1,11 +1,12 @@
 """Simulated datasets: trials rendered straight from the physical model, no real-time pacing.
 
 :func:`render_trial` produces one trial as the acquisition runner would record it on the simulated rig (taxel frames
-at 1 kHz, the load-cell force trace and the drum speed trace as polled over Modbus, the setpoints as attributes);
+at the model sensor's rate, :func:`model_layout`: the paper's 3x3x2 at 1 kHz; the load-cell force trace and the drum speed trace as polled over Modbus, the setpoints as attributes);
 :func:`generate_dataset` renders a whole protocol (e.g. ``protocols/paper_dataset.toml``: the paper's 16 textures x
 5 speeds x 3 forces x 100 trials, Materials and Methods "Tactile Texture Dataset - Data Collection") into a session
 file with the same layout as a recorded session (:class:`rigctl.storage.session.SessionWriter`, kind
-``"simulated-dataset"``), on all cores, streaming trial by trial.
+``"simulated-dataset"``; the session stores the model's sensor and the protocol's texture set, whose labels and
+geometry the model renders), on all cores, streaming trial by trial.
 
 Each trial starts at the drum's index mark, as a recorded trial does (:meth:`rigctl.acquisition.rig.Rig.record_trial`
 starts its capture at the first taxel frame flagged SYNC_IN), so the trials of one texture are phase-aligned up to
@@ -32,16 +33,18 @@ from typing import Any, Iterable, Iterator, Mapping
 import numpy as np
 from scipy.signal import lfilter
 
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.core.trial import TrialData
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import Texture, get_texture
 from rigctl.simulation.trial_slots import TrialSlots, init_worker_slots
-from rigctl.storage.session import SessionWriter, TrialData
+from rigctl.storage.session import SessionWriter
 
 #: travel of the drum surface in one trial of the paper's dataset, mm (6/4/3/2.4/2 s at 40-120 mm/s)
 TRIAL_TRAVEL_MM = 240.0
 #: rate at which the force and speed traces are sampled, like the runner polling the Mega's input registers
 POLL_RATE_HZ = 50.0
-RATE_HZ = 1000.0
 #: trials a worker renders per task (multi-worker generation): fewer round trips, still a smooth progress bar
 WORKER_CHUNK = 8
 #: sd of the plate position at the first sample around the index mark, mm: the index sensor's repeatability and the
@@ -56,6 +59,25 @@ SPEED_WOBBLE = 0.001
 SPEED_WOBBLE_TAU_S = 0.3
 #: phase of the drum's runout relative to its index mark, rad (a property of the drum, the same in every trial)
 RUNOUT_PHASE_RAD = 1.0
+
+
+def model_layout(config: RigConfig | None = None, sensor: SensorModel | None = None) -> SensorLayout:
+    """The sensor the model renders: the model's own ``layout`` when it declares one (``sensor.layout`` or
+    ``config.sensor.layout``), else the paper's 3x3x2 at 1 kHz, 10-bit (:data:`rigctl.core.sensor.PAPER_SENSOR`)."""
+    for obj in (sensor, (config or RigConfig()).sensor):
+        layout = getattr(obj, "layout", None)
+        if isinstance(layout, SensorLayout):
+            return layout
+    return PAPER_SENSOR
+
+
+def _as_texture_set(textures: TextureSet | Mapping | None) -> TextureSet | None:
+    """A TextureSet from a set, its ``to_dict`` form (what worker processes receive) or None; the paper's set is
+    returned as :data:`PAPER_TEXTURES` itself (the renderer's built-in plates)."""
+    if textures is None:
+        return None
+    ts = textures if isinstance(textures, TextureSet) else TextureSet.from_dict(textures)
+    return PAPER_TEXTURES if ts == PAPER_TEXTURES else ts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,13 +132,13 @@ def _as_profile(profile: Any) -> RampProfile | None:
 
 def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, config: RigConfig | None = None,
                  rng: np.random.Generator, duration_s: float | None = None, profile: Any = None,
-                 sensor: SensorModel | None = None) -> TrialData:
+                 sensor: SensorModel | None = None, textures: TextureSet | None = None) -> TrialData:
     """Render one trial from the physical model (no real-time pacing).
 
     Parameters
     ----------
     texture : Texture or str
-        Plate on the drum (A-P).
+        Plate on the drum: a label of ``textures`` (the paper's A-P by default).
     speed_mm_s : float
         Constant drum surface speed, mm/s (ignored when ``profile`` is a ramp).
     force_g : float
@@ -131,12 +153,16 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         A speed ramp (the paper's slow-to-fast / fast-to-slow real-time experiment); None = constant speed.
     sensor : SensorModel, optional
         Reuse a sensor model (its lookup tables) across trials; must be built from ``config.sensor``.
+    textures : TextureSet, optional
+        The set ``texture`` belongs to; its geometry is rendered (:func:`rigctl.simulation.textures.get_texture`).
+        None: the paper's A-P plates.
 
     Returns
     -------
     TrialData
-        ``taxels`` (n, 18) uint16 with n = round(duration_s * 1000); ``seq`` 0..n-1; ``flags`` with SYNC_IN set
-        where the drum's index mark passed; ``host_time_s`` = n / 1000; ``force_g``/``force_time_s`` and
+        With the model's sensor (:func:`model_layout`, rate R: 1 kHz for the paper's): ``taxels``
+        (n, layout.n_channels) uint16 with n = round(duration_s * R); ``seq`` 0..n-1; ``flags`` with SYNC_IN set
+        where the drum's index mark passed; ``host_time_s`` = arange(n) / R; ``force_g``/``force_time_s`` and
         ``speed_mm_s``/``speed_time_s`` at 50 Hz, quantised like the Mega's input registers (1 g, 0.1 mm/s);
         ``attrs``: ``start_phase_mm`` (drum surface position at the first sample relative to the index mark: the
         start jitter), ``aligned_to_index`` (True), ``sensitivity`` (the trial's fabric sensitivity factor),
@@ -148,7 +174,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         On a non-positive speed, force or duration, or an unknown texture (KeyError).
     """
     cfg = config or RigConfig()
-    tex = get_texture(texture)
+    tex = get_texture(texture, _as_texture_set(textures))
     prof = _as_profile(profile)
     if prof is None and not speed_mm_s > 0:
         raise ValueError(f"speed_mm_s must be > 0, got {speed_mm_s}")
@@ -158,11 +184,13 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         duration_s = TRIAL_TRAVEL_MM / speed_mm_s if prof is None else prof.duration_for_travel(TRIAL_TRAVEL_MM)
     if not duration_s > 0:
         raise ValueError(f"duration_s must be > 0, got {duration_s}")
-    n = int(round(duration_s * RATE_HZ))
     sensor = sensor or SensorModel(cfg.sensor)
+    layout = model_layout(cfg, sensor)
+    rate_hz = layout.sample_rate_hz
+    n = int(round(duration_s * rate_hz))
     drum, mech = cfg.drum, cfg.mechanics
     circ = drum.circumference_mm
-    dt = 1.0 / RATE_HZ
+    dt = 1.0 / rate_hz
 
     t = np.arange(n) * dt
     if prof is None:
@@ -198,7 +226,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     flags = (np.diff(rev) != 0).astype(np.uint8)  # FrameFlag.SYNC_IN = bit 0 (later passes of the index mark)
     flags[0] = 1  # the capture starts at the index frame
 
-    step = int(round(RATE_HZ / POLL_RATE_HZ))
+    step = max(1, int(round(rate_hz / POLL_RATE_HZ)))
     idx = np.arange(0, n, step)
     force_trace = np.round(force[idx] + mech.loadcell_noise_g * rng.standard_normal(idx.size))
     speed_trace = np.round(speed[idx] * 10.0) / 10.0
@@ -212,7 +240,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     }
     return TrialData(taxels=taxels, seq=(np.arange(n) % 65536).astype(np.uint16), flags=flags,
                      host_time_s=t.copy(), force_g=force_trace, force_time_s=t[idx].copy(),
-                     speed_mm_s=speed_trace, speed_time_s=t[idx].copy(), attrs=attrs)
+                     speed_mm_s=speed_trace, speed_time_s=t[idx].copy(), attrs=attrs, layout=layout)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -221,11 +249,12 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(config_dict: dict, seed: int) -> None:
+def _init_worker(config_dict: dict, seed: int, textures: dict | None = None) -> None:
     cfg = RigConfig.from_dict(config_dict)
     _WORKER["config"] = cfg
     _WORKER["sensor"] = SensorModel(cfg.sensor)
     _WORKER["seed"] = int(seed)
+    _WORKER["textures"] = _as_texture_set(textures)
 
 
 def _render_planned(row: tuple) -> tuple[int, TrialData]:
@@ -235,7 +264,7 @@ def _render_planned(row: tuple) -> tuple[int, TrialData]:
     if not (math.isnan(ramp_start) or math.isnan(ramp_end)):
         profile = RampProfile(ramp_start, ramp_end, None)
     data = render_trial(texture, speed, force, config=_WORKER["config"], rng=rng, duration_s=duration,
-                        profile=profile, sensor=_WORKER["sensor"])
+                        profile=profile, sensor=_WORKER["sensor"], textures=_WORKER.get("textures"))
     return int(trial_id), data
 
 
@@ -261,7 +290,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     protocol : Protocol or path
         A TOML protocol (:func:`rigctl.acquisition.protocol.load_protocol`), e.g. ``protocols/paper_dataset.toml``.
     out_path : path
-        Session file to write (layout: ``docs/session-format.md``; kind ``"simulated-dataset"``).
+        Session file to write (layout: ``docs/session-format.md``; kind ``"simulated-dataset"``), with the
+        model's sensor (:func:`model_layout`) and the protocol's texture set (``protocol.texture_set``; the
+        plan's labels when the protocol has none).
     trials_per_condition : int, optional
         Override the protocol's trials per condition (e.g. 10 for a reduced paper dataset).
     seed : int
@@ -310,6 +341,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             raise ValueError("trials_per_condition must be >= 1")
         protocol = dataclasses.replace(protocol, trials_per_condition=int(trials_per_condition))
     cfg = config or RigConfig()
+    layout = model_layout(cfg)
+    rate_hz = layout.sample_rate_hz
+    texture_set = getattr(protocol, "texture_set", None)
     out_path = Path(out_path)
     plan = protocol.plan()
 
@@ -325,11 +359,13 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     else:
         writer = SessionWriter.create(
             out_path, plan=plan, protocol_source=protocol.source, protocol_name=protocol.name,
-            protocol_format="toml", rig_config=cfg.to_dict(), kind="simulated-dataset",
+            layout=layout, textures=texture_set, protocol_format="toml", rig_config=cfg.to_dict(),
+            kind="simulated-dataset",
             attrs={"dataset_seed": int(seed), "generator": "rigctl.simulation.dataset.generate_dataset",
                    "trials_per_condition": int(protocol.trials_per_condition)},
             overwrite=overwrite, compression=compression, durable=durable)
         done = set()
+    textures_arg = writer.textures.to_dict()  # what the workers render (the session's set)
     rows = [r for r in _plan_rows(plan) if r[0] not in done]
 
     if workers is None:  # small jobs: starting worker processes costs more than it saves
@@ -337,8 +373,8 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     if int(workers) < 0:
         raise ValueError(f"workers must be >= 0, got {workers}")
     n_workers = min(int(workers), len(rows))
-    lo = np.full(18, np.inf)
-    hi = np.full(18, -np.inf)
+    lo = np.full(layout.n_channels, np.inf)
+    hi = np.full(layout.n_channels, -np.inf)
     stats = {"n_trials": 0, "samples": 0}
 
     def consume(results: Iterator[tuple[int, TrialData]], bar) -> None:
@@ -371,15 +407,16 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         bar = tqdm(total=len(rows), unit="trial", desc=f"dataset {out_path.name}")
     try:
         if n_workers == 0:
-            _init_worker(cfg.to_dict(), seed)
+            _init_worker(cfg.to_dict(), seed, textures_arg)
             consume(map(_render_planned, rows), bar)
         else:
             # the workers render (the model) into shared-memory slots, this process writes: both run at once
-            max_samples = max(int(round(r[4] * RATE_HZ)) for r in rows) + 2
+            max_samples = max(int(round(r[4] * rate_hz)) for r in rows) + 2
             ctx = mp.get_context("spawn")
-            with TrialSlots(max_samples, n_blocks=3 * n_workers, block=WORKER_CHUNK) as slots, \
+            with TrialSlots(max_samples, n_blocks=3 * n_workers, block=WORKER_CHUNK, layout=layout) as slots, \
                     ctx.Pool(n_workers, initializer=init_worker_slots,
-                             initargs=(*slots.initargs, _render_planned, _init_worker, (cfg.to_dict(), seed))) as pool:
+                             initargs=(*slots.initargs, _render_planned, _init_worker,
+                                       (cfg.to_dict(), seed, textures_arg))) as pool:
                 consume(slots.results(pool, rows), bar)
     finally:
         if bar is not None:
@@ -398,7 +435,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         writer.set_calibration({"taxel_min": lo, "taxel_max": hi, "source": "min/max over all trials",
                                 "unit": "ADC counts"})
     wall = time.perf_counter() - t_start
-    seconds = stats["samples"] / RATE_HZ
+    seconds = stats["samples"] / rate_hz
     return {"path": str(out_path), "n_trials": stats["n_trials"], "samples": stats["samples"],
             "trial_seconds": seconds, "wall_s": wall, "realtime_factor": seconds / wall if wall > 0 else math.inf,
             "bytes": out_path.stat().st_size, "workers": n_workers}

@@ -6,6 +6,8 @@ workers write the per-sample arrays into slots of one memory-mapped file (in ``/
 only the slot number and the small parts (force and speed traces, attributes). The writer reads the arrays in
 place and hands the slot back once the trial is written.
 
+A slot's size follows the sensor: ``slot_samples x`` :func:`sample_bytes` ``(layout.n_channels)``.
+
 Flow: :class:`TrialSlots` owns the file; :func:`init_worker_slots` (a pool initializer) maps it in a worker;
 :func:`render_into_slots` (the worker task) renders a block of plan rows into a block of slots;
 :meth:`TrialSlots.results` keeps the workers busy with blocks and yields ``(trial_id, TrialData)`` in plan order.
@@ -21,45 +23,59 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
-from rigctl.storage.session import N_TAXELS, TrialData
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.trial import TrialData
 
-#: bytes per sample in a slot: taxels (18 x uint16), seq (uint16), flags (uint8), host time (float64)
-SAMPLE_BYTES = 2 * N_TAXELS + 2 + 1 + 8
 _STATE: dict = {}
 
 
-def _views(mm: np.ndarray, slot: int, slot_samples: int, n: int):
-    base = slot * slot_samples * SAMPLE_BYTES
+def sample_bytes(n_channels: int) -> int:
+    """Bytes per sample in a slot: taxels (``n_channels`` x uint16), seq (uint16), flags (uint8), host time
+    (float64); 47 for the paper's 18 taxels."""
+    return 2 * int(n_channels) + 2 + 1 + 8
+
+
+def _views(mm: np.ndarray, slot: int, slot_samples: int, n: int, n_channels: int):
+    base = slot * slot_samples * sample_bytes(n_channels)
     cut = [base]
-    for width in (2 * N_TAXELS, 8, 2, 1):  # taxels, host time, seq, flags (8-byte alignment first)
+    for width in (2 * n_channels, 8, 2, 1):  # taxels, host time, seq, flags (8-byte alignment first)
         cut.append(cut[-1] + width * slot_samples)
-    taxels = mm[cut[0]:cut[0] + 2 * N_TAXELS * n].view(np.uint16).reshape(n, N_TAXELS)
+    taxels = mm[cut[0]:cut[0] + 2 * n_channels * n].view(np.uint16).reshape(n, n_channels)
     host = mm[cut[1]:cut[1] + 8 * n].view(np.float64)
     seq = mm[cut[2]:cut[2] + 2 * n].view(np.uint16)
     flags = mm[cut[3]:cut[3] + n]
     return taxels, seq, flags, host
 
 
-def init_worker_slots(path: str, n_slots: int, slot_samples: int, render: Callable, init: Callable,
-                      init_args: tuple) -> None:
-    """Pool initializer: map the slot file, remember the render function, run the model's own initializer."""
-    _STATE.update(mm=np.memmap(path, dtype=np.uint8, mode="r+", shape=(n_slots * slot_samples * SAMPLE_BYTES,)),
-                  slot_samples=slot_samples, render=render)
+def init_worker_slots(path: str, n_slots: int, slot_samples: int, n_channels: int, render: Callable,
+                      init: Callable, init_args: tuple) -> None:
+    """Pool initializer: map the slot file, remember the render function, run the model's own initializer.
+    ``path, n_slots, slot_samples, n_channels`` are :attr:`TrialSlots.initargs`."""
+    size = n_slots * slot_samples * sample_bytes(n_channels)
+    _STATE.update(mm=np.memmap(path, dtype=np.uint8, mode="r+", shape=(size,)), slot_samples=slot_samples,
+                  n_channels=int(n_channels), render=render)
     init(*init_args)
 
 
 def render_into_slots(task: tuple[Sequence[int], Sequence[tuple]]) -> list[tuple]:
     """Worker task: render plan rows into slots; returns per trial ``(trial_id, slot, n, small)``, where
-    ``small`` holds the traces and attributes, or ``(trial_id, None, 0, data)`` for a trial too long for a slot."""
+    ``small`` holds the traces and attributes, or ``(trial_id, None, 0, data)`` for a trial too long for a slot.
+
+    Raises ValueError if a rendered trial's channel count is not the slots' (the sensor of :class:`TrialSlots`).
+    """
     slots, rows = task
     out = []
+    n_ch = _STATE["n_channels"]
     for slot, row in zip(slots, rows):
         trial_id, data = _STATE["render"](row)
+        if data.layout.n_channels != n_ch:
+            raise ValueError(f"trial {trial_id} was rendered with {data.layout.n_channels} channels; the slots hold "
+                             f"{n_ch} (TrialSlots(layout=...) must be the model's sensor)")
         n = data.n_samples
         if n > _STATE["slot_samples"]:
             out.append((trial_id, None, 0, data))
             continue
-        taxels, seq, flags, host = _views(_STATE["mm"], slot, _STATE["slot_samples"], n)
+        taxels, seq, flags, host = _views(_STATE["mm"], slot, _STATE["slot_samples"], n, n_ch)
         taxels[...] = data.taxels
         seq[...] = data.seq
         flags[...] = data.flags
@@ -100,22 +116,27 @@ class TrialSlots:
     n_blocks, block : blocks in flight and plan rows per block (one worker task).
     directory : where the file lives (default ``/dev/shm`` if it exists, else the temp directory); it is
         deleted by :meth:`close`.
+    layout : the sensor the trials come from (default the paper's 3x3x2): a slot holds ``layout.n_channels``
+        taxels per sample, and the trials :meth:`results` yields carry this layout.
     """
 
-    def __init__(self, slot_samples: int, n_blocks: int, block: int, directory: str | None = None):
+    def __init__(self, slot_samples: int, n_blocks: int, block: int, directory: str | None = None, *,
+                 layout: SensorLayout = PAPER_SENSOR):
         if directory is None:
             directory = "/dev/shm" if os.path.isdir("/dev/shm") else None
+        self.layout = layout
+        self.n_channels = layout.n_channels
         self.slot_samples = max(1, int(slot_samples))
         self.n_blocks, self.block = int(n_blocks), int(block)
         n_slots = self.n_blocks * self.block
         remove_stale_slot_files(directory)
         fd, self.path = tempfile.mkstemp(prefix=f"rigctl-trials-{os.getpid()}-", suffix=".slots", dir=directory)
         try:
-            os.ftruncate(fd, n_slots * self.slot_samples * SAMPLE_BYTES)
+            os.ftruncate(fd, n_slots * self.slot_samples * sample_bytes(self.n_channels))
         finally:
             os.close(fd)
         self._mm = np.memmap(self.path, dtype=np.uint8, mode="r+")
-        self.initargs = (self.path, n_slots, self.slot_samples)
+        self.initargs = (self.path, n_slots, self.slot_samples, self.n_channels)
 
     def results(self, pool, rows: Sequence[tuple]) -> Iterator[tuple[int, TrialData]]:
         """Render ``rows`` on ``pool`` (initialised with :func:`init_worker_slots`); yield ``(trial_id, TrialData)``
@@ -143,8 +164,9 @@ class TrialSlots:
                 if slot is None:
                     yield trial_id, small
                     continue
-                taxels, seq, flags, host = _views(self._mm, slot, self.slot_samples, n)
-                yield trial_id, TrialData(taxels=taxels, seq=seq, flags=flags, host_time_s=host, **small)
+                taxels, seq, flags, host = _views(self._mm, slot, self.slot_samples, n, self.n_channels)
+                yield trial_id, TrialData(taxels=taxels, seq=seq, flags=flags, host_time_s=host, layout=self.layout,
+                                          **small)
             free.append(b)  # the caller has written every trial of the block
             submit()
 
