@@ -41,6 +41,8 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
         warnings.simplefilter("ignore")  # they are kept in res.warnings
         if cv:
             wanted = ("textures", "groups") if fs.group is not None else ("textures",)
+            if fs.group is None:
+                res.warnings.append(f"groups skipped: the texture set {fs.textures.name!r} defines no texture groups")
             try:
                 res.merge(tasks.run_cv(fs, wanted, variants=variants, n_pcs=n_pcs, repeats=repeats,
                                        per_texture=per_texture, seed=seed, progress=True))
@@ -61,17 +63,17 @@ def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25):
     Returns ``(classifier, taxel_min, taxel_max)``: the normalisation the file was encoded with, needed to encode
     new trials the same way for the real-time view.
     """
-    import h5py
     import numpy as np
 
     from rigctl.analysis.classify import TextureClassifier
     from rigctl.analysis.data import load_features
+    from rigctl.storage.encoded import open_encoded
 
     fs = load_features(path, [variant])
     clf = TextureClassifier(n_pcs=n_pcs, max_pcs=max(n_pcs, 1)).fit(fs.features[variant], fs.texture)
     clf.n_pcs = min(clf.n_pcs, clf.n_components_)  # a small data set has fewer PCs than asked for
     clf.variant = variant
-    with h5py.File(path, "r") as f:
-        lo = np.asarray(f["normalisation"]["taxel_min"][()], float)
-        hi = np.asarray(f["normalisation"]["taxel_max"][()], float)
-    return clf, lo, hi
+    with open_encoded(path) as ef:
+        norm = ef.normalisation
+    lo, hi = (norm["taxel_min"], norm["taxel_max"]) if isinstance(norm, dict) else (norm.taxel_min, norm.taxel_max)
+    return clf, np.asarray(lo, float), np.asarray(hi, float)

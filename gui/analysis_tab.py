@@ -1,5 +1,5 @@
-"""Offline analysis tab: open a session or encoded file, browse its trials (raw traces and SA/RA rasters of any
-trial), encode and run the paper's analyses in a background process with progress and cancel
+"""Offline analysis tab: open a session or encoded file, browse its trials (raw traces, a heat map per taxel layer
+and SA/RA rasters of any trial, shaped by the file's sensor layout: any channel count, layers and rate), encode and run the paper's analyses in a background process with progress and cancel
 (:mod:`rigctl.encoding.pipeline`, :mod:`rigctl.analysis`), plot accuracy vs PCs with error bars for the four
 variants (Fig. 3), the Table 1 grid and confusion matrices; export figures (PNG/SVG) and tables (CSV); train the
 texture classifier used by the real-time classification view."""
@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import os
 
-import h5py
 import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from gui.workers import Job, ProcessJob
-from rigctl.devices.wire import N_TAXELS
+from rigctl.core import PAPER_SENSOR, SensorLayout
 
 #: Fig. 3 / report colours per variant
 VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
@@ -22,13 +21,31 @@ VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scal
 
 
 def file_kind(path: str) -> str:
-    """"encoded" (has /features), "session" (has /plan), or "unknown"."""
-    from rigctl.analysis.data import is_encoded_file
+    """"encoded" (an encoded file, :mod:`rigctl.storage.encoded`), "session" (a session file,
+    :mod:`rigctl.storage.session`), or "unknown"."""
+    from rigctl.storage.encoded import is_encoded_file
+    from rigctl.storage.session import open_session
 
     if is_encoded_file(path):
         return "encoded"
-    with h5py.File(path, "r") as f:
-        return "session" if "plan" in f else "unknown"
+    try:
+        with open_session(path):
+            return "session"
+    except Exception:  # noqa: BLE001 - anything that is not a session
+        return "unknown"
+
+
+def _spike_trains(obj):
+    """:class:`rigctl.encoding.spikes.SpikeTrains` from what :meth:`EncodedFile.spikes` returns."""
+    from rigctl.encoding.spikes import SpikeTrains
+
+    if isinstance(obj, SpikeTrains):
+        return obj
+    if isinstance(obj, dict):
+        return SpikeTrains(obj["spike_times"], obj["spike_times_index"], int(obj["n_trains"]))
+    if hasattr(obj, "spike_times"):
+        return SpikeTrains(obj.spike_times, obj.spike_times_index, int(obj.n_trains))
+    return SpikeTrains(*obj)
 
 
 class AnalysisTab(QtWidgets.QWidget):
@@ -45,6 +62,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self._job_kind = ""
         self._trial_job: Job | None = None
         self._session_range = None
+        self.layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
 
         # ---------------- left: file, trials, actions ----------------
         self.open_btn = QtWidgets.QPushButton("Open session / encoded file...")
@@ -128,23 +146,29 @@ class AnalysisTab(QtWidgets.QWidget):
 
         # ---------------- right: views ----------------
         self.views = QtWidgets.QTabWidget()
-        # trial view
+        # trial view: raw traces and SA/RA rasters (left), one heat map per taxel layer (right)
+        trialw = QtWidgets.QWidget()
+        tlay = QtWidgets.QHBoxLayout(trialw)
         self.trial_gl = pg.GraphicsLayoutWidget()
         self.trial_plot = self.trial_gl.addPlot(row=0, col=0, title="Raw taxel readings")
         self.trial_plot.setLabel("left", "ADC counts")
-        self.trial_curves = [self.trial_plot.plot(pen=pg.mkPen(pg.intColor(k, N_TAXELS), width=1))
-                             for k in range(N_TAXELS)]
+        self.trial_curves: list = []
         self.trial_rasters = {}
         for row, (key, title, colour) in enumerate([("sa", "SA spikes", "#1f77b4"), ("ra", "RA spikes", "#d62728")],
                                                    start=1):
             p = self.trial_gl.addPlot(row=row, col=0, title=title)
             p.setLabel("left", "taxel")
-            p.setYRange(-0.5, N_TAXELS - 0.5, padding=0)
             c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), connect="pairs")
             p.addItem(c)
             self.trial_rasters[key] = (p, c)
         self.trial_rasters["ra"][0].setLabel("bottom", "time in trial (s)")
-        self.views.addTab(self.trial_gl, "Trial")
+        self.heat_gl = pg.GraphicsLayoutWidget()
+        self.heat_gl.setMaximumWidth(260)
+        self.heat_plots: list = []  # (PlotItem, ImageItem) per layer
+        tlay.addWidget(self.trial_gl, 1)
+        tlay.addWidget(self.heat_gl)
+        self.views.addTab(trialw, "Trial")
+        self._build_trial_view(PAPER_SENSOR)
         # accuracy vs PCs
         accw = QtWidgets.QWidget()
         al = QtWidgets.QVBoxLayout(accw)
@@ -203,6 +227,31 @@ class AnalysisTab(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------------------------
     # file and trials
     # ------------------------------------------------------------------------------------------------------
+    def _build_trial_view(self, layout: SensorLayout) -> None:
+        """One trace per channel, raster rows per channel and a heat map per layer (rows x cols) of ``layout``."""
+        self.layout = layout
+        n = layout.n_channels
+        for c in self.trial_curves:
+            self.trial_plot.removeItem(c)
+        self.trial_curves = [self.trial_plot.plot(pen=pg.mkPen(pg.intColor(k, max(n, 2)), width=1))
+                             for k in range(n)]
+        for p, _ in self.trial_rasters.values():
+            p.setYRange(-0.5, n - 0.5, padding=0)
+        self.trial_plot.setLabel("bottom", f"time in trial (s), {layout.sample_rate_hz:g} Hz")
+        self.heat_gl.clear()
+        self.heat_plots = []
+        lut = pg.colormap.get("viridis").getLookupTable(nPts=256)
+        for i, la in enumerate(layout.layers):
+            p = self.heat_gl.addPlot(row=i, col=0, title=f"{la.name} ({la.receptor})" if la.receptor else la.name)
+            p.setAspectLocked(True)
+            p.invertY(True)
+            p.hideAxis("bottom")
+            p.hideAxis("left")
+            img = pg.ImageItem(axisOrder="row-major")
+            img.setLookupTable(lut)
+            p.addItem(img)
+            self.heat_plots.append((p, img))
+
     def _browse(self) -> None:
         start = str(self.main.settings.value("dirs/analysis", self.main.settings.value("dirs/output", "")))
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open", start, "HDF5 (*.h5 *.hdf5)")
@@ -223,31 +272,38 @@ class AnalysisTab(QtWidgets.QWidget):
         self.path, self.kind = path, kind
         self.encoded_path = path if kind == "encoded" else None
         self._session_range = None
-        rows = self._trial_rows()
+        rows, layout = self._trial_rows()
+        self._build_trial_view(layout)
         self.trials.setRowCount(len(rows))
         for r, vals in enumerate(rows):
             for c, v in enumerate(vals):
                 self.trials.setItem(r, c, QtWidgets.QTableWidgetItem(str(v)))
         self.trials.resizeColumnsToContents()
-        self.file_label.setText(f"<b>{os.path.basename(path)}</b> ({kind}, {len(rows)} trials)")
+        self.file_label.setText(f"<b>{os.path.basename(path)}</b> ({kind}, {len(rows)} trials; sensor "
+                                f"{layout.shape_text}, {layout.n_channels} taxels, {layout.sample_rate_hz:g} Hz)")
         self.status.setText("select a trial to see it; Encode / Run analyses for the paper's results")
         self._update_buttons()
 
-    def _trial_rows(self) -> list[tuple]:
+    def _trial_rows(self) -> tuple[list[tuple], SensorLayout]:
+        """Table rows (trial, texture, speed, force, status) and the file's sensor layout."""
         if self.kind == "session":
             from rigctl.storage.session import TrialStatus, open_session
 
             with open_session(self.path) as s:
                 plan = s.plan
-                return [(int(r["trial_id"]), _txt(r["texture"]), f"{float(r['speed_mm_s']):g}",
+                rows = [(int(r["trial_id"]), _txt(r["texture"]), f"{float(r['speed_mm_s']):g}",
                          f"{float(r['force_g']):g}", TrialStatus(int(r["status"])).name.lower()) for r in plan]
-        from rigctl.analysis.data import load_features
+                return rows, s.layout
+        from rigctl.storage.encoded import open_encoded
 
-        with h5py.File(self.path, "r") as f:
-            variant = next(iter(f["features"].keys()))
-        fs = load_features(self.path, [variant])
-        return [(int(fs.trial_id[i]), fs.texture[i], f"{fs.speed_mm_s[i]:g}", f"{fs.force_g[i]:g}", "encoded")
-                for i in range(fs.n_trials)]
+        with open_encoded(self.path) as ef:
+            cols, layout = ef.trials, ef.layout
+        n = len(cols["texture"])
+        ids = cols.get("trial_id", np.arange(n))
+        nan = np.full(n, np.nan)
+        spd, frc = cols.get("speed_mm_s", nan), cols.get("force_g", nan)
+        return [(int(ids[i]), _txt(cols["texture"][i]), f"{float(spd[i]):g}", f"{float(frc[i]):g}", "encoded")
+                for i in range(n)], layout
 
     def _trial_selected(self) -> None:
         rows = self.trials.selectionModel().selectedRows()
@@ -279,17 +335,21 @@ class AnalysisTab(QtWidgets.QWidget):
                             rng.update(t.taxels)
                         self._session_range = rng
                 x = trial.taxels
-                sa = encode_sa(x[None], normalise=rng)
-                ra = encode_ra(x[None], normalise=rng)
-                return x, [(sa.train(0, k)) for k in range(N_TAXELS)], [ra.train(0, k) for k in range(N_TAXELS)]
-            from rigctl.encoding.spikes import SpikeTrains
+                fs_hz = trial.layout.sample_rate_hz  # one model step per sample, at the session's rate
+                sa = encode_sa(x[None], normalise=rng, fs=fs_hz)
+                ra = encode_ra(x[None], normalise=rng, fs=fs_hz)
+                n_ch = x.shape[1]
+                return x, [sa.train(0, k) for k in range(n_ch)], [ra.train(0, k) for k in range(n_ch)]
+            from rigctl.storage.encoded import open_encoded
 
-            with h5py.File(path, "r") as f:
-                ids = f["trials"]["trial_id"][()] if "trial_id" in f["trials"].dtype.names else None
+            with open_encoded(path) as ef:
+                cols = ef.trials
+                ids = np.asarray(cols["trial_id"]) if "trial_id" in cols else None
                 i = int(np.flatnonzero(ids == tid)[0]) if ids is not None else row
-                grp = f["spikes"]
-                name = "original" if "original" in grp else next(iter(grp.keys()))
-                st = SpikeTrains.from_hdf5(grp[name])
+                have = list(ef.variants)
+                name = "original" if "original" in have else next(
+                    (v for v in have if not v.startswith("realtime")), have[0])
+                st = _spike_trains(ef.spikes(name))
             n_tr = st.n_trains
             half = n_tr // 2
             return None, [st.train(i, k) for k in range(half)], [st.train(i, half + k) for k in range(half)]
@@ -304,13 +364,25 @@ class AnalysisTab(QtWidgets.QWidget):
             self.status.setText(f"<span style='color:#c00'>trial {job.tid}: {job.error}</span>")
             return
         x, sa, ra = job.result
+        layout = self.layout
         if x is not None:
-            t = np.arange(len(x)) / 1000.0
+            t = np.arange(len(x)) / layout.sample_rate_hz
             for k, c in enumerate(self.trial_curves):
                 c.setData(t, x[:, k])
+            mean = np.asarray(x, float).mean(axis=0)
+            for li, (la, (_, img)) in enumerate(zip(layout.layers, self.heat_plots)):
+                ch = layout.layer_channels(li)
+                img.setImage(mean[ch.start:ch.stop].reshape(la.rows, la.cols), levels=(0, layout.adc_max))
         else:
             for c in self.trial_curves:
                 c.setData([], [])
+            # an encoded file has no readings: the heat maps show each taxel's SA spike count
+            counts = np.array([len(v) for v in sa], float)
+            if len(counts) == layout.n_channels:
+                for li, (la, (_, img)) in enumerate(zip(layout.layers, self.heat_plots)):
+                    ch = layout.layer_channels(li)
+                    img.setImage(counts[ch.start:ch.stop].reshape(la.rows, la.cols),
+                                 levels=(0, max(1.0, counts.max())))
         for key, trains in (("sa", sa), ("ra", ra)):
             ts = np.concatenate(trains) if trains else np.zeros(0)
             ch = np.concatenate([np.full(len(v), k, float) for k, v in enumerate(trains)]) if trains else ts
@@ -438,7 +510,7 @@ class AnalysisTab(QtWidgets.QWidget):
                             + (f"; {len(res.warnings)} note(s) under Table 1" if res.warnings else ""))
 
     def _draw_curves(self) -> None:
-        from rigctl.analysis.data import VARIANT_TITLES
+        from rigctl.analysis.data import variant_title
         from rigctl.analysis.tasks import TASK_TITLES
 
         self.acc_plot.clear()
@@ -454,13 +526,13 @@ class AnalysisTab(QtWidgets.QWidget):
             x, m, s = c.pcs.astype(float), 100 * c.mean, 100 * c.sd
             self.acc_plot.addItem(pg.ErrorBarItem(x=x, y=m, height=2 * s, pen=pg.mkPen(colour, width=1), beam=0.3))
             self.acc_plot.plot(x, m, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=4, symbolBrush=colour,
-                               symbolPen=None, name=VARIANT_TITLES.get(v, v))
+                               symbolPen=None, name=variant_title(v))
         self.acc_plot.setTitle(f"{TASK_TITLES.get(task, task)}: accuracy vs PCs (mean +- sd, "
                                f"{next(iter(res.curves[task].values())).acc.shape[0]} repetitions)")
 
     def _fill_table(self) -> None:
         from rigctl.analysis import report
-        from rigctl.analysis.data import VARIANT_TITLES
+        from rigctl.analysis.data import variant_title
         from rigctl.analysis.tasks import TASK_TITLES
 
         res = self.results
@@ -470,7 +542,7 @@ class AnalysisTab(QtWidgets.QWidget):
         variants = sorted({v for row in grid.values() for v in row}, key=_variant_order)
         self.table1.setRowCount(len(grid))
         self.table1.setColumnCount(len(variants))
-        self.table1.setHorizontalHeaderLabels([VARIANT_TITLES.get(v, v) for v in variants])
+        self.table1.setHorizontalHeaderLabels([variant_title(v) for v in variants])
         self.table1.setVerticalHeaderLabels([TASK_TITLES.get(t, t) for t in grid])
         for r, (task, row) in enumerate(grid.items()):
             for c, v in enumerate(variants):
@@ -556,5 +628,7 @@ def _txt(v) -> str:
 
 
 def _variant_order(v: str) -> int:
-    order = ["original", "speed_scaled", "force_scaled", "speed_force_scaled"]
+    from rigctl.analysis.data import VARIANTS
+
+    order = list(VARIANTS)
     return order.index(v) if v in order else len(order)

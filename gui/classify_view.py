@@ -16,12 +16,19 @@ MAX_TILES = 60
 
 
 def classify_trial(clf, taxel_min, taxel_max, taxels: np.ndarray, speed_mm_s: float) -> str:
-    """Predicted texture of one trial: encode ``taxels`` ``(n, 18)`` uint16 with the training normalisation and
-    speed (eq. 2) into ``clf.variant`` features, then :meth:`TextureClassifier.predict`."""
+    """Predicted texture of one trial: encode ``taxels`` ``(n_samples, n_channels)`` counts (any channel count: the
+    training file's sensor; ``taxel_min``/``taxel_max`` are ``(n_channels,)``) with the training normalisation and
+    speed (eq. 2) into ``clf.variant`` features, then :meth:`TextureClassifier.predict`.
+
+    Raises ValueError when the trial's channel count differs from the training normalisation's."""
     from rigctl.encoding.izhikevich import as_ragged
     from rigctl.encoding.normalise import TaxelRange
     from rigctl.encoding.pipeline import encode_batch
 
+    taxels = np.asarray(taxels)
+    if taxels.ndim != 2 or taxels.shape[1] != np.asarray(taxel_min).size:
+        raise ValueError(f"trial readings {taxels.shape} do not match the classifier's {np.asarray(taxel_min).size} "
+                         "taxels (trained on another sensor)")
     offset, scale = TaxelRange(np.asarray(taxel_min, float), np.asarray(taxel_max, float)).offset_scale()
     feats, _ = encode_batch(as_ragged([np.asarray(taxels)]), offset=offset, scale=scale,
                             speed_mm_s=[float(speed_mm_s)], variants=[clf.variant], store_spikes=())

@@ -119,3 +119,106 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
         assert ("#2a2" in tile.styleSheet()) == (truth == pred)
     # trained on these very trials, the classifier gets most of them right
     assert sum(t == p for _, t, p in view.results) >= 3
+
+
+@pytest.fixture
+def lone_tab(qapp, gui_home):
+    """The analysis tab on its own (no rig needed to browse and analyse files), shown offscreen."""
+    from PySide6 import QtCore as _QtCore
+
+    from gui.analysis_tab import AnalysisTab
+
+    main = SimpleNamespace(settings=_QtCore.QSettings(), classify=None)
+    tab = AnalysisTab(main)
+    tab.resize(1200, 800)
+    tab.show()
+    timer = _QtCore.QTimer()
+    timer.timeout.connect(tab.refresh)  # as the main window's refresh timer does
+    timer.start(50)
+    yield tab
+    timer.stop()
+    tab.cancel()
+    tab.close()
+    tab.deleteLater()
+    qapp.processEvents()
+
+
+def _layout_session(path, layout, labels, *, per_texture=4, duration_s=1.0, seed=0):
+    """A session of ``layout`` (any channel count and rate) with texture-specific sinusoids, written through
+    SessionWriter; textures without groups."""
+    from rigctl.core import PlannedTrial, TextureSet, TrialData
+    from rigctl.storage.session import SessionWriter
+
+    textures = TextureSet(labels, name="lab fabrics")
+    rng = np.random.default_rng(seed)
+    plan = [PlannedTrial(i, t, 40.0 + 20 * (i % 2), 500.0, duration_s)
+            for i, t in enumerate(t for t in labels for _ in range(per_texture))]
+    n = int(round(duration_s * layout.sample_rate_hz))
+    w = SessionWriter.create(path, plan=plan, layout=layout, textures=textures)
+    t = np.arange(n) / layout.sample_rate_hz
+    for p in plan:
+        k = textures.code(p.texture)
+        x = 500 + 200 * np.sin(2 * np.pi * (1 + k) * t[:, None] + np.arange(layout.n_channels)[None, :])
+        x += rng.normal(0, 10, x.shape)
+        w.write_trial(p.trial_id, TrialData(np.clip(np.round(x), 0, layout.adc_max).astype(np.uint16), layout=layout))
+    return path
+
+
+def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot, tmp_path):
+    from rigctl.core import SensorLayout
+
+    layout = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="lab finger 3x3")
+    path = _layout_session(tmp_path / "finger.h5", layout, ["Linen", "Denim", "Felt", "Silk"])
+    tab = lone_tab
+    tab.open(str(path))
+    assert tab.kind == "session" and tab.trials.rowCount() == 16
+    assert tab.layout.n_channels == 9 and "9 taxels" in tab.file_label.text()
+    assert len(tab.trial_curves) == 9 and len(tab.heat_plots) == 1
+    assert tab.trial_rasters["sa"][0].viewRange()[1] == pytest.approx([-0.5, 8.5])
+    tab.trials.selectRow(5)
+    assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
+    x, y = tab.trial_curves[8].getData()
+    assert len(x) == 100 and x[-1] == pytest.approx(0.99)  # 1 s at the session's 100 Hz, not 0.1 s at 1 kHz
+    assert tab.heat_plots[0][1].image.shape == (3, 3)
+    _, sy = tab.trial_rasters["sa"][1].getData()
+    assert sy is not None and len(sy) > 0 and sy.max() <= 8.5  # raster rows = the 9 taxels
+    # encode in the background process, then the analyses: textures only (the set has no groups), with a note
+    tab.do_cv.setChecked(True)
+    tab.do_extra.setChecked(False)
+    tab.repeats.setValue(2)
+    tab.n_pcs.setValue(4)
+    tab.per_texture.setValue(4)
+    tab.results = None
+    qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
+    assert wait_for(qapp, lambda: tab.results is not None or (tab.job is None and "failed" in tab.status.text()), 180), \
+        tab.status.text()
+    assert tab.results is not None, tab.status.text()
+    assert set(tab.results.curves) == {"textures"}
+    assert any("defines no texture groups" in w for w in tab.results.warnings)
+    assert tab.results.curves["textures"]["original"].classes == ["Linen", "Denim", "Felt", "Silk"]
+    # the encoded file: its layout again, rasters from its stored spike trains (9 SA + 9 RA)
+    enc = tab.encoded_path
+    tab.open(enc)
+    assert tab.kind == "encoded" and len(tab.trial_curves) == 9 and len(tab.heat_plots) == 1
+    tab.trials.selectRow(2)
+    assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
+    _, sy = tab.trial_rasters["ra"][1].getData()
+    assert sy is not None and len(sy) > 0 and sy.max() <= 8.5
+    assert tab.heat_plots[0][1].image.shape == (3, 3)
+
+
+def test_analysis_tab_heat_maps_per_layer_of_a_sixteen_channel_session(lone_tab, qapp, tmp_path):
+    from rigctl.core import SensorLayout
+
+    layout = SensorLayout.grid(2, 4, 2, sample_rate_hz=500.0, name="2x4x2")  # 16 channels in two layers
+    path = _layout_session(tmp_path / "two_layers.h5", layout, ["HB3", "Linen"], per_texture=2, duration_s=0.4)
+    tab = lone_tab
+    tab.open(str(path))
+    assert tab.layout.n_channels == 16 and len(tab.trial_curves) == 16 and len(tab.heat_plots) == 2
+    assert [p.titleLabel.text for p, _ in tab.heat_plots] == ["top (type I)", "bottom (type II)"]
+    tab.trials.selectRow(1)
+    assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
+    x, _ = tab.trial_curves[15].getData()
+    assert len(x) == 200 and x[-1] == pytest.approx(199 / 500)
+    assert [img.image.shape for _, img in tab.heat_plots] == [(2, 4), (2, 4)]
+    assert tab.trial_rasters["sa"][0].viewRange()[1] == pytest.approx([-0.5, 15.5])
