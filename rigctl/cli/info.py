@@ -19,7 +19,10 @@ def session_summary(path: str | Path) -> dict:
     Returns
     -------
     dict with ``file``, ``size_bytes``, the root attributes (``session_id``, ``created_utc``, ``kind``,
-    ``rigctl_version``, ``schema_version``), ``protocol`` (name, format), ``trials`` (one dict per plan row:
+    ``rigctl_version``, ``schema_version``), ``protocol`` (name, format), ``sensor`` (``name``, ``shape``,
+    ``n_channels``, ``sample_rate_hz``, ``adc_bits``, ``description`` = ``layout.describe()``, ``layout`` = its
+    ``to_dict()``), ``texture_set`` (``name``, ``count``, ``labels``, ``groups``: group -> labels, empty when the
+    set has none), ``trials`` (one dict per plan row:
     trial_id, texture, profile, speed_mm_s, ramp_start_mm_s, ramp_end_mm_s, force_g, duration_s, status, samples,
     samples_per_s = samples / duration_s (the trial's length), host_rate_hz (frames per second on the host clock,
     least-squares), dropped_frames, crc_errors, force_mean_g, speed_mean_mm_s, error) and ``totals``.
@@ -71,10 +74,23 @@ def session_summary(path: str | Path) -> dict:
         return {
             "file": str(path), "size_bytes": path.stat().st_size, **attrs,
             "protocol": {"name": s.protocol_name, "format": s.protocol_format},
+            "sensor": _sensor_summary(s.layout),
+            "texture_set": _textures_summary(s.textures),
             "rig_mode": s.rig_config.get("mode"),
             "calibration": sorted(s.calibration) if s.calibration else None,
             "trials": trials, "totals": totals,
         }
+
+
+def _sensor_summary(layout) -> dict:
+    return {"name": layout.name, "shape": layout.shape_text, "n_channels": layout.n_channels,
+            "sample_rate_hz": layout.sample_rate_hz, "adc_bits": layout.adc_bits, "description": layout.describe(),
+            "layout": layout.to_dict()}
+
+
+def _textures_summary(textures) -> dict:
+    groups = {g: [t.label for t in textures if t.group == g] for g in textures.groups}
+    return {"name": textures.name, "count": len(textures), "labels": list(textures.labels), "groups": groups}
 
 
 def _num(v):
@@ -110,13 +126,19 @@ def info(file, as_json):
                f"protocol={summary['protocol']['name']} ({summary['protocol']['format']})  rig={summary['rig_mode']}")
     click.echo(f"session {summary['session_id']}  created {summary['created_utc']}  rigctl {summary['rigctl_version']}"
                f"  schema {summary['schema_version']}")
-    header = (f"{'trial':>6} {'tex':>3} {'profile':<13} {'speed':>7} {'force':>6} {'dur_s':>6} {'samples':>8} "
+    sensor, tset = summary["sensor"], summary["texture_set"]
+    click.echo(f"sensor {sensor['name'] or sensor['shape']}: {sensor['n_channels']} channels, {sensor['description']}")
+    groups = "; ".join(f"{g}: {' '.join(labels)}" for g, labels in tset["groups"].items()) or "no groups"
+    click.echo(f"textures {tset['name'] or '(unnamed)'}: {tset['count']} ({' '.join(tset['labels'][:30])}"
+               f"{' ...' if tset['count'] > 30 else ''}); {groups}")
+    tw = max([3] + [len(t["texture"]) for t in summary["trials"]])
+    header = (f"{'trial':>6} {'tex':>{tw}} {'profile':<13} {'speed':>7} {'force':>6} {'dur_s':>6} {'samples':>8} "
               f"{'samp/s':>8} {'host_hz':>8} {'dropped':>7} {'crc':>4}  status")
     click.echo(header)
     for t in summary["trials"]:
         speed = (f"{t['ramp_start_mm_s']:g}>{t['ramp_end_mm_s']:g}" if t["ramp_start_mm_s"] is not None
                  else f"{t['speed_mm_s']:g}")
-        line = (f"{t['trial_id']:>6} {t['texture']:>3} {t['profile']:<13} {speed:>7} {t['force_g']:>6g} "
+        line = (f"{t['trial_id']:>6} {t['texture']:>{tw}} {t['profile']:<13} {speed:>7} {t['force_g']:>6g} "
                 f"{t['duration_s']:>6.2f} {t['samples']:>8} {_fmt(t['samples_per_s']):>8} "
                 f"{_fmt(t['host_rate_hz']):>8} {t['dropped_frames']:>7} {t['crc_errors']:>4}  {t['status']}")
         if t.get("error"):
