@@ -60,8 +60,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
-from rigctl.core.textures import TextureSet, texture_set_from_labels
+from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, realtime_features,
                                       realtime_features_unscaled, spike_features)
 from rigctl.encoding.filters import ra_input
@@ -301,15 +300,6 @@ def _labels(session, ids):
     }
 
 
-def _session_layout(session) -> SensorLayout:
-    return getattr(session, "layout", None) or PAPER_SENSOR
-
-
-def _session_textures(session, labels) -> TextureSet:
-    ts = getattr(session, "textures", None)
-    return ts if ts is not None else texture_set_from_labels(labels)
-
-
 def _fit_subsample(keys, nbytes, budget):
     """Indices of trials kept for the force fit: all if they fit ``budget`` bytes, else an even subsample per
     condition."""
@@ -429,12 +419,11 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
 
     # ---- pass 1: labels, per-taxel range, model input for the force fit
     with open_session(session_path) as s:
-        layout = _session_layout(s)
+        layout, textures = s.layout, s.textures
         ids = s.completed_ids() if trial_ids is None else [int(t) for t in trial_ids]
         if not ids:
             raise ValueError(f"{session_path} has no complete trials")
         labels = _labels(s, ids)
-        textures = _session_textures(s, labels["texture"])
         conv = rate_conversion(layout.sample_rate_hz, p.fs_hz)
         p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
         log.info("rate: %s", conv.describe())

@@ -1,15 +1,14 @@
-"""encode_session on a small simulated session: file layout, consistency of spikes and features, Dask == local,
-and the `rigctl encode` command."""
+"""encode_session on a small simulated session (the paper's 3x3x2 sensor at 1 kHz): file layout, consistency of
+spikes and features, the paper's numerics (no resampling at 1 kHz), Dask == local, and the `rigctl encode` command."""
 
 from __future__ import annotations
 
-import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rigctl.encoding.pipeline import MAIN_VARIANTS, encode_session
-from rigctl.encoding.spikes import SpikeTrains
+from rigctl.encoding.pipeline import encode_session
+from rigctl.storage.encoded import ENCODED_SCHEMA_VERSION, MAIN_VARIANTS, open_encoded
 
 PROTOCOL = """
 name = "enc_test"
@@ -42,51 +41,99 @@ def encoded(session, tmp_path_factory):
 
 
 def test_layout_and_shapes(encoded):
-    with h5py.File(encoded, "r") as f:
-        trials = f["trials"][()]
-        assert trials.size == 24
-        assert set(trials["texture"]) == {b"A", b"L"}
-        assert set(trials["group"]) == {b"smooth", b"waves"}
+    with open_encoded(encoded) as f:
+        assert f.schema_version == ENCODED_SCHEMA_VERSION
+        assert f.layout.n_channels == 18 and f.layout.sample_rate_hz == 1000.0
+        assert f.textures.labels == tuple("ABCDEFGHIJKLMNOP")  # the paper's set: A and L are in it
+        assert f.resampling == {"input_rate_hz": 1000.0, "model_rate_hz": 1000.0, "resampled": False}
+        trials = f.trials
+        assert trials["trial_id"].size == 24
+        assert set(trials["texture"]) == {"A", "L"}
+        assert set(trials["group"]) == {"smooth", "waves"}
         assert set(trials["speed_mm_s"]) == {60.0, 120.0}
-        assert f["features/original"].shape == (24, 2160)
-        assert f["features/force_scaled"].shape == (24, 2160)
-        assert f["features/speed_scaled"].shape == (24, 720)
-        assert f["features/speed_force_scaled"].shape == (24, 720)
-        assert f["features/realtime_speed_scaled"].shape == (24, 180)
-        assert f["features/original"].dtype == np.float32
-        fc = f["force_coefficients"]
+        # 60 mm of travel: 1 s at 60 mm/s is the longest trial -> 10 windows of 100 ms per train (not a fixed 60)
+        np.testing.assert_allclose(trials["duration_s"].max(), 1.0)
+        assert f.parameters["n_windows_unscaled"] == 10
+        assert f.feature_shape("original") == (24, 36 * 10)
+        assert f.feature_shape("force_scaled") == (24, 36 * 10)
+        assert f.feature_shape("speed_scaled") == (24, 720)
+        assert f.feature_shape("speed_force_scaled") == (24, 720)
+        assert f.feature_shape("realtime_speed_scaled") == (24, 180)
+        assert f.features("original").dtype == np.float32
+        fc = f.force_coefficients()
+        st = f.force_fit_stats()
         # 2 textures x 2 speeds x 3 forces x 18 taxels; the 500 g ones are 1
-        assert fc.shape == (216,) and fc.attrs["n_coefficients"] == 216
+        assert fc.shape == (216,) and st["n_coefficients"] == 216
+        assert set(fc["texture"]) == {"A", "L"}
         ref = fc["force_g"] == 500
         np.testing.assert_allclose(fc["coeff"][ref], 1.0)
         assert np.all(fc["coeff"] <= 5.0) and np.all(fc["coeff"] >= 0)
-        assert 0 <= fc.attrs["n_not_converged"] <= 216
-        assert f["force_coefficients_label_free"].shape == (108,)
+        assert 0 <= st["n_not_converged"] <= 216
+        assert f.force_coefficients(label_free=True).shape == (108,)
         # lighter touch needs a larger coefficient than heavier touch (on average over converged taxels)
         ok = fc["converged"]
         assert fc["coeff"][ok & (fc["force_g"] == 250)].mean() > fc["coeff"][ok & (fc["force_g"] == 1000)].mean()
-        assert f["normalisation/taxel_max"].shape == (18,)
+        assert f.normalisation["taxel_max"].shape == (18,)
 
 
 def test_spikes_and_features_agree(encoded):
-    with h5py.File(encoded, "r") as f:
+    with open_encoded(encoded) as f:
         for v in MAIN_VARIANTS:
-            st = SpikeTrains.from_hdf5(f["spikes"][v])
+            st = f.spikes(v)
             assert st.shape == (24, 36)
-            feats = f["features"][v][()]
+            feats = f.features(v)
             n_win = feats.shape[1] // 36
             counts = st.window_counts(0.1, n_win)
             ra_feats = feats.reshape(24, 36, n_win)[:, 18:, :]
             np.testing.assert_allclose(ra_feats, counts[:, 18:, :])  # RA columns are spike counts
-        trials = f["trials"][()]
-        orig = SpikeTrains.from_hdf5(f["spikes/original"])
-        scaled = SpikeTrains.from_hdf5(f["spikes/speed_scaled"])
+        trials = f.trials
+        orig = f.spikes("original")
+        scaled = f.spikes("speed_scaled")
         t = int(np.flatnonzero(trials["speed_mm_s"] == 60)[0])
         np.testing.assert_allclose(scaled.train(t, 0), orig.train(t, 0) * 0.5)
         # force scaling changes only SA trains
-        fs = SpikeTrains.from_hdf5(f["spikes/force_scaled"])
+        fs = f.spikes("force_scaled")
         for j in range(18, 36):
             np.testing.assert_array_equal(fs.train(t, j), orig.train(t, j))
+
+
+def test_paper_rig_numerics_unchanged(session, encoded):
+    """At the paper's 1 kHz nothing is resampled: the pipeline's Original features are those of the batch encoder
+    (encode_sa / encode_ra on the raw counts, the dataset's per-taxel range) in 100 ms windows."""
+    from rigctl.encoding.features import spike_features
+    from rigctl.encoding.izhikevich import encode_ra, encode_sa
+    from rigctl.encoding.normalise import TaxelRange
+    from rigctl.storage.session import open_session
+
+    with open_session(session) as s:
+        readings = [np.asarray(s.trial(t).taxels) for t in s.completed_ids()]
+    rng = TaxelRange()
+    for x in readings:
+        rng.update(x)
+    sa = encode_sa(readings, normalise=rng)
+    ra = encode_ra(readings, normalise=rng)
+    with open_encoded(encoded) as f:
+        np.testing.assert_array_equal(f.normalisation["taxel_min"], rng.minimum)
+        np.testing.assert_array_equal(f.spikes("original").spike_times[: sa.spike_times.size // 2].size > 0, True)
+        expected = spike_features(sa, ra, n_windows=10)
+        np.testing.assert_array_equal(f.features("original"), expected)
+        st = f.spikes("original")
+        np.testing.assert_array_equal(st.select_trains(range(18)).spike_times, sa.spike_times)
+
+
+def test_window_parameters(session, tmp_path):
+    from rigctl.encoding.pipeline import EncodeParams
+
+    out = tmp_path / "w.h5"
+    encode_session(session, out, variants=["original", "speed_scaled"], progress=False, store_spikes=(),
+                   params=EncodeParams(window_s=0.05, n_windows_unscaled=60, n_windows_scaled=30))
+    with open_encoded(out) as f:
+        assert f.feature_shape("original") == (24, 36 * 60)  # 60 windows of 50 ms, asked for
+        assert f.feature_shape("speed_scaled") == (24, 36 * 30)
+        assert f.parameters["window_s"] == 0.05
+        assert f.spike_variants == ()
+        x = f.features("original").reshape(24, 36, 60)
+        assert x[:, :, :20].any() and not x[:, :, 20:].any()  # 1 s trials fill 20 windows of 50 ms
 
 
 def test_dask_cluster_by_address_gives_the_same_file(session, encoded, tmp_path):
@@ -95,10 +142,11 @@ def test_dask_cluster_by_address_gives_the_same_file(session, encoded, tmp_path)
     # a separate scheduler + worker process, reached by its address as a remote cluster would be
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as c:
         encode_session(session, out, batch_trials=7, scheduler=c.scheduler_address, progress=False)
-    with h5py.File(out, "r") as a, h5py.File(encoded, "r") as b:
-        for v in b["features"]:
-            np.testing.assert_array_equal(a["features"][v][()], b["features"][v][()])
-        np.testing.assert_array_equal(a["spikes/original/spike_times"][()], b["spikes/original/spike_times"][()])
+    with open_encoded(out) as a, open_encoded(encoded) as b:
+        assert a.variants == b.variants
+        for v in b.variants:
+            np.testing.assert_array_equal(a.features(v), b.features(v))
+        assert a.spikes("original") == b.spikes("original")
 
 
 def test_cli_encode(session, tmp_path):
@@ -106,10 +154,20 @@ def test_cli_encode(session, tmp_path):
 
     out = tmp_path / "cli.h5"
     res = CliRunner().invoke(main, ["encode", str(session), "--out", str(out), "--batch", "8", "--quiet",
-                                    "--variant", "original", "--variant", "speed_scaled"])
+                                    "--variant", "original", "--variant", "speed_scaled", "--window-ms", "200",
+                                    "--windows-scaled", "10"])
     assert res.exit_code == 0, res.output
-    assert "24 trials" in res.output
-    with h5py.File(out, "r") as f:
-        assert set(f["features"]) == {"original", "speed_scaled"}
+    assert "24 trials" in res.output and "18 taxels" in res.output
+    with open_encoded(out) as f:
+        assert set(f.variants) == {"original", "speed_scaled"}
+        assert f.feature_shape("original") == (24, 36 * 5)  # 1 s in 200 ms windows
+        assert f.feature_shape("speed_scaled") == (24, 36 * 10)
+    again = CliRunner().invoke(main, ["encode", str(session), "--out", str(out), "--quiet"])
+    assert again.exit_code != 0 and "--overwrite" in again.output and "Traceback" not in again.output
+    res = CliRunner().invoke(main, ["encode", str(session), "--out", str(out), "--quiet", "--overwrite",
+                                    "--variant", "original", "--windows-unscaled", "3"])
+    assert res.exit_code == 0, res.output
+    with open_encoded(out) as f:
+        assert f.variants == ("original",) and f.feature_shape("original") == (24, 36 * 3)
     bad = CliRunner().invoke(main, ["encode", str(session), "--variant", "nope"])
     assert bad.exit_code != 0 and "nope" in bad.output
