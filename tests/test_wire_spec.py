@@ -260,3 +260,26 @@ def test_header_and_python_frame_builders_agree():
     crc = wire.crc16(out[h["RIGCTL_FRAME_CRC_START"]:h["RIGCTL_FRAME_CRC_OFFSET"]])
     out[h["RIGCTL_FRAME_CRC_OFFSET"]:] = crc.to_bytes(2, "little")
     assert bytes(out) == encode_frame(513, 0x09, samples)
+
+
+def test_frame_size_for_any_channel_count(spec_text, h):
+    """Section 1.4: the channel count comes from the banner; frame size 7 + 2*ch, CRC over bytes 2..4+2*ch. The
+    firmware's 18 channels are the same formula, and the host reads a banner with a layout as the spec says."""
+    m = re.search(r"Frame size for ch channels: (\d+) \+ (\d+) \* ch bytes", spec_text)
+    assert m is not None
+    base, per = map(int, m.groups())
+    a, b = map(int, re.search(r"the CRC covers\s+bytes (\d+) \.\. (\d+) \+ (\d+) \* ch", spec_text).groups()[:2])
+    assert (base, per, a, b) == (wire.FRAME_OVERHEAD, 2, wire.CRC_START, wire.OFFSET_SAMPLES - 1)
+    assert base + per * h["RIGCTL_N_TAXELS"] == h["RIGCTL_FRAME_SIZE"] == wire.FRAME_SIZE
+    for ch in (1, 9, 16, 18, 64):
+        assert wire.frame_size(ch) == base + per * ch == wire.frame_dtype(ch).itemsize
+        assert wire.offset_crc(ch) == wire.frame_size(ch) - 2 == b + per * ch + 1
+    from rigctl.devices.taxel_stream import layout_from_banner, parse_identity
+
+    line = re.search(r"Example banner of a 9-taxel board at 100 Hz: `([^`]*)`", spec_text.replace("\n", " "))
+    banner = parse_identity(line.group(1))
+    layout = layout_from_banner(banner)
+    assert (banner["ch"], layout.n_channels, layout.sample_rate_hz, layout.adc_bits, layout.shape_text) == \
+        (9, 9, 100.0, 10, "3x3x1")
+    paper = layout_from_banner(parse_identity(h["RIGCTL_UNO_BANNER"]))
+    assert (paper.n_channels, paper.sample_rate_hz, paper.adc_bits, paper.shape_text) == (18, 1000.0, 10, "3x3x2")

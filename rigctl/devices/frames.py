@@ -17,47 +17,51 @@ from rigctl.devices import wire
 _SYNC0, _SYNC1 = wire.SYNC[0], wire.SYNC[1]
 
 
-def encode_frames(seq: np.ndarray, flags: np.ndarray, samples: np.ndarray) -> bytes:
+def encode_frames(seq: np.ndarray, flags: np.ndarray, samples: np.ndarray, *, adc_max: int = wire.ADC_MAX) -> bytes:
     """Build consecutive frames.
 
     Parameters
     ----------
     seq : (n,) integer array, sequence numbers (taken modulo 65536).
     flags : (n,) integer array or scalar, flags bytes (:class:`rigctl.devices.wire.FrameFlag`).
-    samples : (n, 18) integer array of ADC counts 0-1023.
+    samples : (n, ch) integer array of ADC counts 0..adc_max; ``ch`` is the link's channel count (18 on the Uno).
+    adc_max : largest count the link carries (``2**bits - 1``, 1023 for the Uno's 10 bits).
 
     Returns
     -------
-    bytes of length ``n * 43``.
+    bytes of length ``n * (7 + 2 * ch)`` (43 per frame for 18 channels).
 
     Raises
     ------
-    ValueError if ``samples`` is not ``(n, 18)`` or holds values outside 0-1023.
+    ValueError if ``samples`` is not 2-D with at least one channel, or holds values outside 0..adc_max.
     """
     samples = np.asarray(samples)
-    if samples.ndim != 2 or samples.shape[1] != wire.N_TAXELS:
-        raise ValueError(f"samples must be (n, {wire.N_TAXELS}), got {samples.shape}")
-    if samples.size and (samples.min() < 0 or samples.max() > wire.ADC_MAX):
-        raise ValueError(f"samples must be ADC counts 0-{wire.ADC_MAX}")
-    n = samples.shape[0]
-    out = np.zeros(n, dtype=wire.FRAME_DTYPE)
+    if samples.ndim != 2 or samples.shape[1] < 1:
+        raise ValueError(f"samples must be (n, channels), got {samples.shape}")
+    if samples.size and (samples.min() < 0 or samples.max() > adc_max):
+        raise ValueError(f"samples must be ADC counts 0-{adc_max}")
+    n, ch = samples.shape
+    size = wire.frame_size(ch)
+    out = np.zeros(n, dtype=wire.frame_dtype(ch))
     out["sync"] = np.frombuffer(wire.SYNC, dtype=np.uint8)
     out["seq"] = np.asarray(seq, dtype=np.int64) & 0xFFFF
     out["flags"] = np.broadcast_to(np.asarray(flags, dtype=np.int64) & 0xFF, (n,))
     out["samples"] = samples
-    raw = out.view(np.uint8).reshape(n, wire.FRAME_SIZE)
-    out["crc"] = wire.crc16_rows(raw[:, wire.CRC_START : wire.OFFSET_CRC])
+    raw = out.view(np.uint8).reshape(n, size)
+    out["crc"] = wire.crc16_rows(raw[:, wire.CRC_START : size - 2])
     return out.tobytes()
 
 
 def encode_frame(seq: int, flags: int, samples) -> bytes:
-    """One frame (43 bytes) from a sequence number, a flags byte and 18 ADC counts; see :func:`encode_frames`."""
-    return encode_frames(np.array([seq]), np.array([flags]), np.asarray(samples).reshape(1, wire.N_TAXELS))
+    """One frame (43 bytes for 18 channels) from a sequence number, a flags byte and one sample per channel; see
+    :func:`encode_frames`."""
+    samples = np.asarray(samples).reshape(1, -1)
+    return encode_frames(np.array([seq]), np.array([flags]), samples)
 
 
 @dataclass
 class Frames:
-    """A batch of parsed frames: ``seq`` (n,) uint16, ``flags`` (n,) uint8, ``samples`` (n, 18) uint16 ADC counts."""
+    """A batch of parsed frames: ``seq`` (n,) uint16, ``flags`` (n,) uint8, ``samples`` (n, ch) uint16 ADC counts."""
 
     seq: np.ndarray
     flags: np.ndarray
@@ -67,9 +71,9 @@ class Frames:
         return len(self.seq)
 
     @classmethod
-    def empty(cls) -> "Frames":
+    def empty(cls, n_channels: int = wire.N_TAXELS) -> "Frames":
         return cls(
-            np.zeros(0, np.uint16), np.zeros(0, np.uint8), np.zeros((0, wire.N_TAXELS), np.uint16)
+            np.zeros(0, np.uint16), np.zeros(0, np.uint8), np.zeros((0, int(n_channels)), np.uint16)
         )
 
 
@@ -85,10 +89,20 @@ class ParserStats:
 
 @dataclass
 class FrameParser:
-    """Incremental, vectorised taxel-frame parser. Feed it chunks of any size with :meth:`feed`."""
+    """Incremental, vectorised taxel-frame parser. Feed it chunks of any size with :meth:`feed`.
+
+    ``n_channels`` is the link's channel count (the ``ch`` of the board's banner; 18 for the Uno): frames are
+    ``7 + 2 * n_channels`` bytes. Raises ValueError for fewer than one channel.
+    """
 
     stats: ParserStats = field(default_factory=ParserStats)
     _buf: bytes = b""
+    n_channels: int = wire.N_TAXELS
+
+    def __post_init__(self) -> None:
+        self.n_channels = int(self.n_channels)
+        self._size = wire.frame_size(self.n_channels)
+        self._dtype = wire.frame_dtype(self.n_channels)
 
     def feed(self, chunk: bytes) -> Frames:
         """Parse ``chunk`` (appended to any kept tail); return the complete valid frames found, in stream order."""
@@ -96,18 +110,19 @@ class FrameParser:
         buf = self._buf + bytes(chunk) if self._buf else bytes(chunk)
         arr = np.frombuffer(buf, dtype=np.uint8)
         n = arr.size
-        size = wire.FRAME_SIZE
+        size = self._size
         last_start = n - size  # last offset at which a complete frame can start
         if last_start < 0:
             self._buf = buf
-            return Frames.empty()
+            return Frames.empty(self.n_channels)
         head = arr[: last_start + 1]
         cand = np.flatnonzero((head == _SYNC0) & (arr[1 : last_start + 2] == _SYNC1))
         accepted = np.zeros(0, dtype=np.int64)
         if cand.size:
             rows = np.lib.stride_tricks.sliding_window_view(arr, size)[cand]
-            crc_calc = wire.crc16_rows(rows[:, wire.CRC_START : wire.OFFSET_CRC])
-            crc_recv = rows[:, wire.OFFSET_CRC].astype(np.uint16) | (rows[:, wire.OFFSET_CRC + 1].astype(np.uint16) << 8)
+            off_crc = size - 2
+            crc_calc = wire.crc16_rows(rows[:, wire.CRC_START : off_crc])
+            crc_recv = rows[:, off_crc].astype(np.uint16) | (rows[:, off_crc + 1].astype(np.uint16) << 8)
             ok = crc_calc == crc_recv
             valid = cand[ok]
             if valid.size > 1 and np.any(np.diff(valid) < size):
@@ -127,9 +142,9 @@ class FrameParser:
         self.stats.frames += int(accepted.size)
         self._buf = buf[keep_from:]
         if not accepted.size:
-            return Frames.empty()
+            return Frames.empty(self.n_channels)
         rec = np.lib.stride_tricks.sliding_window_view(arr, size)[accepted]
-        rec = np.ascontiguousarray(rec).view(wire.FRAME_DTYPE).reshape(-1)
+        rec = np.ascontiguousarray(rec).view(self._dtype).reshape(-1)
         return Frames(rec["seq"].astype(np.uint16), rec["flags"].astype(np.uint8), rec["samples"].astype(np.uint16))
 
     def reset(self) -> None:

@@ -14,21 +14,26 @@ from rigctl.devices import wire
 
 
 class RingBuffer:
-    """Ring of the last ``capacity`` frames: samples ``(capacity, 18) uint16`` ADC counts, ``seq`` uint16,
+    """Ring of the last ``capacity`` frames: samples ``(capacity, n_channels) uint16`` ADC counts, ``seq`` uint16,
     ``flags`` uint8 and host receive time ``float64`` s (``time.monotonic`` clock).
 
     Parameters
     ----------
     capacity : int
         Number of frames kept (e.g. 30 s x 1000 frames/s). Must be >= 1; ``ValueError`` otherwise.
+    n_channels : int
+        Channels per frame (the stream's ``layout.n_channels``; 18 for the paper's sensor). >= 1.
     """
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, n_channels: int = wire.N_TAXELS):
         capacity = int(capacity)
         if capacity < 1:
             raise ValueError(f"ring capacity must be >= 1 frame, got {capacity}")
+        if int(n_channels) < 1:
+            raise ValueError(f"ring frames need at least one channel, got {n_channels}")
         self.capacity = capacity
-        self._samples = np.zeros((capacity, wire.N_TAXELS), np.uint16)
+        self.n_channels = int(n_channels)
+        self._samples = np.zeros((capacity, self.n_channels), np.uint16)
         self._seq = np.zeros(capacity, np.uint16)
         self._flags = np.zeros(capacity, np.uint8)
         self._time = np.zeros(capacity, np.float64)
@@ -41,7 +46,7 @@ class RingBuffer:
         return self._total
 
     def write(self, samples: np.ndarray, seq: np.ndarray, flags: np.ndarray, host_time_s: np.ndarray) -> None:
-        """Append n frames: ``samples (n, 18)``, ``seq (n,)``, ``flags (n,)``, ``host_time_s (n,)``."""
+        """Append n frames: ``samples (n, n_channels)``, ``seq (n,)``, ``flags (n,)``, ``host_time_s (n,)``."""
         n = len(seq)
         if n == 0:
             return
@@ -66,7 +71,7 @@ class RingBuffer:
         Returns
         -------
         (cursor, samples, seq, host_time_s):
-            the new cursor (pass it to the next call), ``(n, 18) uint16`` ADC counts, ``(n,) uint16`` device
+            the new cursor (pass it to the next call), ``(n, n_channels) uint16`` ADC counts, ``(n,) uint16`` device
             sequence numbers and ``(n,) float64`` host receive times in s. If the reader fell more than
             ``capacity`` frames behind, the oldest frames are gone and only the last ``capacity`` are returned.
             ``max_frames`` limits n to the newest ``max_frames`` frames.

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
+from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
@@ -51,13 +52,13 @@ class StreamStats:
 class Capture:
     """Every frame received between :meth:`TaxelStream.begin_capture` and :meth:`TaxelStream.end_capture`.
 
-    ``samples`` (n, 18) uint16 ADC counts, ``seq`` (n,) uint16 device sequence numbers, ``flags`` (n,) uint8
+    ``samples`` (n, layout.n_channels) uint16 ADC counts, ``seq`` (n,) uint16 device sequence numbers, ``flags`` (n,) uint8
     (:class:`rigctl.devices.wire.FrameFlag`), ``host_time_s`` (n,) float64 host receive times (``time.monotonic``,
     s), ``dropped`` frames missing inside the capture, ``crc_errors`` corrupt frames rejected during it.
 
     ``dropped`` counts the sequence gaps between frames of the capture and, if the port vanished while the capture
     was running, the frames lost until the restarted stream's first frame (or until :meth:`TaxelStream.end_capture`
-    if it had not arrived yet), estimated at 1 kHz from the receive times. A restart of streaming (START resets the
+    if it had not arrived yet), estimated at the link's rate from the receive times. A restart of streaming (START resets the
     sequence to 0) is not a gap, and the frames lost over a disconnection that happened before
     :meth:`TaxelStream.begin_capture` belong to that reconnect (``StreamStats.dropped``), not to the capture.
     """
@@ -73,25 +74,50 @@ class Capture:
         return len(self.seq)
 
 
-def parse_identity(line: str) -> dict:
-    """Parse an identity/banner line ``#RIGCTL-UNO [READY] fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000``.
+def _number(text: str) -> int | float:
+    value = float(text)
+    return int(value) if value.is_integer() else value
 
-    Returns ``{"firmware": (1, 0), "channels": 18, "rate_hz": 1000, "bits": 10, "baud": 1000000, "line": ...}``.
+
+def parse_identity(line: str) -> dict:
+    """Parse an identity/banner line ``#RIGCTL-UNO [READY] fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000
+    [layout=3x3x2]`` (spec section 1.3: ``ch``, ``rate_hz`` and ``bits`` describe the link; ``layout`` is optional).
+
+    Returns ``{"firmware": (1, 0), "channels": 18, "ch": 18, "rate_hz": 1000, "bits": 10, "baud": 1000000,
+    "layout": "3x3x2" or None, "line": ...}`` (``rate_hz`` an int when whole, else a float).
     Raises :class:`TaxelStreamError` if a field is missing or malformed.
     """
     fields = dict(kv.split("=", 1) for kv in line.split() if "=" in kv)
     try:
         major, minor = fields["fw"].split(".")
+        ch = int(fields["ch"])
+        rate = _number(fields["rate_hz"])
+        if ch < 1 or not rate > 0:
+            raise ValueError("ch and rate_hz must be positive")
         return {
             "firmware": (int(major), int(minor)),
-            "channels": int(fields["ch"]),
-            "rate_hz": int(fields["rate_hz"]),
+            "channels": ch,
+            "ch": ch,
+            "rate_hz": rate,
             "bits": int(fields["bits"]),
             "baud": int(fields["baud"]),
+            "layout": fields.get("layout"),
             "line": line.strip(),
         }
     except (KeyError, ValueError) as exc:
         raise TaxelStreamError(f"malformed identity line from the taxel streamer: {line.strip()!r}") from exc
+
+
+def layout_from_banner(banner: dict) -> SensorLayout:
+    """The :class:`SensorLayout` a banner / identify reply announces (``SensorLayout.from_identify``).
+
+    Raises :class:`TaxelStreamError` when its ``layout`` disagrees with ``ch`` or is malformed.
+    """
+    try:
+        return SensorLayout.from_identify({k: banner[k] for k in ("ch", "rate_hz", "bits", "layout")
+                                           if banner.get(k) is not None})
+    except LayoutError as exc:
+        raise TaxelStreamError(f"taxel streamer banner {banner.get('line', '')!r}: {exc}") from exc
 
 
 class TaxelStream:
@@ -104,7 +130,7 @@ class TaxelStream:
     baudrate : int
         1,000,000 (spec section 1).
     ring_seconds : float
-        Length of the live ring buffer, s (at 1000 frames/s).
+        Length of the live ring buffer, s (at the link's rate, from the banner).
     banner_timeout_s : float
         How long :meth:`open` waits for ``#RIGCTL-UNO READY`` after opening (the Uno resets on open).
     on_error : callable(Exception) or None
@@ -123,7 +149,9 @@ class TaxelStream:
         self.on_error = on_error
         self.reconnect = reconnect
         self.read_timeout_s = read_timeout_s
-        self.ring = RingBuffer(max(1, int(ring_seconds * wire.SAMPLE_RATE_HZ)))
+        self.ring_seconds = ring_seconds
+        self._layout: SensorLayout = PAPER_SENSOR
+        self.ring = RingBuffer(max(1, int(ring_seconds * PAPER_SENSOR.sample_rate_hz)), PAPER_SENSOR.n_channels)
         self.banner: dict | None = None
         self.last_error: Exception | None = None
         self._serial: serial.Serial | None = None
@@ -156,6 +184,26 @@ class TaxelStream:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    # ------------------------------------------------------------------ layout
+    @property
+    def layout(self) -> SensorLayout:
+        """The sensor the link carries, from the board's banner (``ch``, ``rate_hz``, ``bits``, ``layout``); the
+        paper's 3x3x2 at 1 kHz before :meth:`open`. Frames are ``7 + 2 * layout.n_channels`` bytes."""
+        return self._layout
+
+    def _apply_layout(self, banner: dict) -> None:
+        layout = layout_from_banner(banner)
+        if layout == self._layout and self._parser.n_channels == layout.n_channels:
+            return
+        if self._thread is not None and layout.n_channels != self._layout.n_channels:
+            log.warning("taxel streamer on %s now reports %d channels (was %d)", self.port, layout.n_channels,
+                        self._layout.n_channels)
+        self._layout = layout
+        self._parser = FrameParser(n_channels=layout.n_channels)
+        capacity = max(1, int(self.ring_seconds * layout.sample_rate_hz))
+        if self.ring.n_channels != layout.n_channels or self.ring.capacity != capacity:
+            self.ring = RingBuffer(capacity, layout.n_channels)
+
     # ------------------------------------------------------------------ open / close
     def open(self) -> dict:
         """Open the port, wait for the ready banner, start the reader thread. Returns the parsed banner.
@@ -175,6 +223,11 @@ class TaxelStream:
             self.banner = self._wait_banner(ser)
         except serial.SerialException as exc:
             raise TaxelStreamError(f"cannot open the taxel streamer port {self.port}: {exc}") from exc
+        try:
+            self._apply_layout(self.banner)
+        except TaxelStreamError:
+            ser.close()
+            raise
         self._serial = ser
         self._stats.connected = True
         self._stop.clear()
@@ -233,7 +286,7 @@ class TaxelStream:
     def identify(self, timeout_s: float = 1.0) -> dict:
         """Ask the Uno who it is (stops streaming first, as the spec's IDENTIFY does).
 
-        Returns ``{"firmware": (major, minor), "channels", "rate_hz", "bits", "baud", "line"}``.
+        Returns ``{"firmware": (major, minor), "channels", "ch", "rate_hz", "bits", "baud", "layout", "line"}``.
         Raises :class:`TaxelStreamError` on no answer within ``timeout_s``.
         """
         self._streaming = False
@@ -305,13 +358,13 @@ class TaxelStream:
             if self._gap_pending and self._loss_in_capture and self._last_frame_time is not None:
                 # the port vanished during the capture and the stream has not come back yet: the frames due
                 # until now are lost
-                dropped += max(0, int((time.monotonic() - self._last_frame_time) * wire.SAMPLE_RATE_HZ))
+                dropped += max(0, int((time.monotonic() - self._last_frame_time) * self._layout.sample_rate_hz))
             self._loss_in_capture = False
             crc = self._stats.crc_errors - self._capture_crc_base
         if parts:
             samples, seq, flags, t = (np.concatenate([p[i] for p in parts]) for i in range(4))
         else:
-            samples = np.zeros((0, wire.N_TAXELS), np.uint16)
+            samples = np.zeros((0, self._layout.n_channels), np.uint16)
             seq, flags, t = np.zeros(0, np.uint16), np.zeros(0, np.uint8), np.zeros(0, np.float64)
         return Capture(samples, seq, flags, t, dropped=int(dropped), crc_errors=int(crc))
 
@@ -373,9 +426,10 @@ class TaxelStream:
                 starts = starts - k
                 self._await_start = False
             n = len(seq)
-            # receive time of the chunk, spread back over its frames at 1 ms (the frame period), never earlier
+            # receive time of the chunk, spread back over its frames at the frame period, never earlier
             # than the previous frame: host times increase strictly
-            period = 1.0 / wire.SAMPLE_RATE_HZ
+            rate = self._layout.sample_rate_hz
+            period = 1.0 / rate
             first = t_rx - (n - 1) * period
             if self._last_frame_time is not None and not self._gap_pending and first <= self._last_frame_time:
                 first = self._last_frame_time + 1e-6
@@ -385,9 +439,9 @@ class TaxelStream:
                 host_t[0] = max(t_rx, first)
             capturing = self._capture is not None
             if self._gap_pending and self._last_frame_time is not None:
-                # frames lost while the port was gone: estimated from the time gap at 1 kHz. They count in a
-                # capture only if it was running when the port vanished
-                lost = max(0, int(round((host_t[0] - self._last_frame_time) * wire.SAMPLE_RATE_HZ)) - 1)
+                # frames lost while the port was gone: estimated from the time gap at the link's rate. They count in
+                # a capture only if it was running when the port vanished
+                lost = max(0, int(round((host_t[0] - self._last_frame_time) * rate)) - 1)
                 st.dropped += lost
                 if capturing and self._loss_in_capture:
                     self._capture_dropped += lost
@@ -454,6 +508,15 @@ class TaxelStream:
                 self.banner = self._wait_banner(ser)
             except (TaxelStreamError, serial.SerialException, OSError) as exc:
                 log.info("reopened %s but no banner yet: %s", self.port, exc)
+                try:
+                    ser.close()
+                except Exception:
+                    pass
+                continue
+            try:
+                self._apply_layout(self.banner)
+            except TaxelStreamError as exc:
+                log.warning("%s", exc)
                 try:
                     ser.close()
                 except Exception:

@@ -16,6 +16,7 @@ import numpy as np
 # Taxel stream (Uno -> host), spec section 1
 # --------------------------------------------------------------------------------------------------------------
 TAXEL_BAUD = 1_000_000
+#: the Uno firmware's channel count, rate and resolution (the host reads a link's own from its banner)
 N_TAXELS = 18
 N_TAXELS_PER_LAYER = 9
 SAMPLE_RATE_HZ = 1000
@@ -31,11 +32,46 @@ OFFSET_CRC = OFFSET_SAMPLES + 2 * N_TAXELS  # 41
 FRAME_SIZE = OFFSET_CRC + 2  # 43
 CRC_START = OFFSET_SEQ  # the CRC covers bytes CRC_START..OFFSET_CRC-1
 
+#: bytes of a frame that are not samples (sync 2, seq 2, flags 1, crc 2)
+FRAME_OVERHEAD = OFFSET_SAMPLES + 2
+
+
+def frame_size(n_channels: int = N_TAXELS) -> int:
+    """Bytes of a frame carrying ``n_channels`` samples: ``7 + 2 * n_channels`` (43 for the Uno's 18).
+
+    The channel count of a link comes from the board's banner / identify reply (``ch=``, spec section 1.3); the
+    layout of a frame is the same for every count (spec table 1.1 with ``samples`` = ``uint16[ch]``).
+    Raises ValueError for fewer than 1 channel.
+    """
+    n = int(n_channels)
+    if n < 1:
+        raise ValueError(f"a frame carries at least one channel, got {n_channels}")
+    return FRAME_OVERHEAD + 2 * n
+
+
+def offset_crc(n_channels: int = N_TAXELS) -> int:
+    """Offset of the CRC in a frame of ``n_channels`` samples: ``5 + 2 * n_channels`` (41 for 18)."""
+    return frame_size(n_channels) - 2
+
+
+_FRAME_DTYPES: dict[int, np.dtype] = {}
+
+
+def frame_dtype(n_channels: int = N_TAXELS) -> np.dtype:
+    """numpy record type of one frame of ``n_channels`` samples, little-endian, packed (cached)."""
+    n = int(n_channels)
+    dt = _FRAME_DTYPES.get(n)
+    if dt is None:
+        frame_size(n)
+        dt = np.dtype([("sync", "u1", (2,)), ("seq", "<u2"), ("flags", "u1"), ("samples", "<u2", (n,)),
+                       ("crc", "<u2")])
+        _FRAME_DTYPES[n] = dt
+    return dt
+
+
 #: numpy record type of one frame, little-endian, packed: view a ``bytes`` buffer with it.
-FRAME_DTYPE = np.dtype(
-    [("sync", "u1", (2,)), ("seq", "<u2"), ("flags", "u1"), ("samples", "<u2", (N_TAXELS,)), ("crc", "<u2")]
-)
-assert FRAME_DTYPE.itemsize == FRAME_SIZE
+FRAME_DTYPE = frame_dtype(N_TAXELS)
+assert FRAME_DTYPE.itemsize == FRAME_SIZE == frame_size(N_TAXELS)
 
 
 class FrameFlag(enum.IntFlag):

@@ -1,9 +1,12 @@
-"""The simulated taxel streamer (Arduino Uno) on a pty: ready banner, S/P/I commands, 1 kHz frames.
+"""The simulated taxel streamer (Arduino Uno) on a pty: ready banner, S/P/I commands, frames at the sensor's rate.
 
-Implements ``docs/wire-protocol.md`` section 1 from the board's side. The board is passive: whoever owns the
-simulation clock (:class:`rigctl.simulation.rig.SimulatedRig`'s physics thread, or :meth:`VirtualUno.run_paced`
-for a standalone board) calls :meth:`VirtualUno.tick` with the samples of every elapsed millisecond, so frame k of
-a stream goes out no earlier than ``t0 + k`` ms and the long-run rate is exactly 1000 frames/s. Framing reuses
+Implements ``docs/wire-protocol.md`` section 1 from the board's side, for any sensor: ``VirtualUno(layout=...)``
+announces the layout's channel count, rate and bits in its banner and identify reply (``ch=``, ``rate_hz=``,
+``bits=``, ``layout=RxCxL``) and sends frames of ``7 + 2 * ch`` bytes; the default is the Uno firmware's 18 channels
+at 1 kHz, 10 bits, with the firmware's exact banner. The board is passive: whoever owns the simulation clock
+(:class:`rigctl.simulation.rig.SimulatedRig`'s physics thread, or :meth:`VirtualUno.run_paced` for a standalone
+board) calls :meth:`VirtualUno.tick` with the samples of every elapsed sample period, so frame k of a stream goes
+out no earlier than ``t0 + k / rate`` and the long-run rate is exactly the layout's rate. Framing reuses
 :func:`rigctl.devices.frames.encode_frames`.
 """
 
@@ -15,15 +18,25 @@ import time
 
 import numpy as np
 
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.devices import wire
 from rigctl.devices.frames import encode_frames
 from rigctl.simulation.pty import PtyEndpoint
 
 log = logging.getLogger(__name__)
 
-_INFO = "fw={}.{} ch={} rate_hz={} bits={} baud={}".format(
-    *wire.UNO_FIRMWARE_VERSION, wire.N_TAXELS, wire.SAMPLE_RATE_HZ, wire.ADC_BITS, wire.TAXEL_BAUD
-)
+def board_info(layout: SensorLayout = PAPER_SENSOR) -> str:
+    """The fields of the banner / identify reply for a board streaming ``layout``:
+    ``fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000`` for the paper's sensor (the firmware's text, spec section
+    1.3), with ``layout=RxCxL`` appended for any other sensor whose layers share one grid."""
+    text = "fw={}.{} ch={} rate_hz={:g} bits={} baud={}".format(
+        *wire.UNO_FIRMWARE_VERSION, layout.n_channels, layout.sample_rate_hz, layout.adc_bits, wire.TAXEL_BAUD)
+    if layout.layers != PAPER_SENSOR.layers and "+" not in layout.shape_text:
+        text += f" layout={layout.shape_text}"
+    return text
+
+
+_INFO = board_info(PAPER_SENSOR)
 BANNER = f"{wire.UNO_BANNER_PREFIX} {_INFO}\n".encode()
 IDENTITY = f"{wire.UNO_IDENTITY_PREFIX} {_INFO}\n".encode()
 
@@ -39,14 +52,22 @@ class VirtualUno:
         Boot time after a client opens the port (the DTR reset of a real Uno) before the ready banner is sent.
     seed : int
         Seed of the fault-injection random generator.
+    layout : SensorLayout or None
+        The sensor streamed (channel count, rate, bits), announced in the banner; default the paper's 3x3x2 at
+        1 kHz, 10 bits (the Uno firmware).
 
     Fault injection (for tests): :meth:`inject_garbage`, :meth:`corrupt_frames`, :meth:`drop_frames`.
     """
 
-    def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0):
+    def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0, layout: SensorLayout | None = None):
+        self.layout = layout or PAPER_SENSOR
+        info = board_info(self.layout)
+        self.banner = f"{wire.UNO_BANNER_PREFIX} {info}\n".encode()
+        self.identity = f"{wire.UNO_IDENTITY_PREFIX} {info}\n".encode()
+        self.frame_size = wire.frame_size(self.layout.n_channels)
         # compile/load the numba CRC kernel of the framing now, not in the first tick of a stream: that first call
         # takes 1-4 s, during which the board's clock thread (the simulated rig's physics) would stand still
-        encode_frames(np.zeros(1), 0, np.zeros((1, wire.N_TAXELS)))
+        encode_frames(np.zeros(1), 0, np.zeros((1, self.layout.n_channels)))
         self.port = PtyEndpoint(link)
         self.reset_delay_s = reset_delay_s
         self._rng = np.random.default_rng(seed)
@@ -106,12 +127,12 @@ class VirtualUno:
 
     # ------------------------------------------------------------------ the board's loop
     def tick(self, samples: np.ndarray, sync_in: np.ndarray | None = None) -> None:
-        """Advance the board by ``len(samples)`` ms.
+        """Advance the board by ``len(samples)`` sample periods (ms at 1 kHz).
 
         Parameters
         ----------
-        samples : (n, 18) uint16 ADC counts 0-1023, one row per elapsed millisecond.
-        sync_in : (n,) bool, the drum index pulse seen in each millisecond (sets the SYNC_IN flag), or None.
+        samples : (n, layout.n_channels) uint16 ADC counts 0..layout.adc_max, one row per elapsed sample period.
+        sync_in : (n,) bool, the drum index pulse seen in each period (sets the SYNC_IN flag), or None.
         """
         with self._lock:
             base = self.samples_ticked
@@ -128,7 +149,7 @@ class VirtualUno:
                 port.read(4096)  # the bootloader ignores what the host sends
                 if now >= self._booting_until:
                     self._booting_until = None
-                    port.write(BANNER)
+                    port.write(self.banner)
                 port.flush()
                 return
             commands = port.read(4096)
@@ -145,7 +166,7 @@ class VirtualUno:
                     self.streaming = False
                 elif c == wire.UnoCommand.IDENTIFY.value:
                     self.streaming = False
-                    port.write(IDENTITY)
+                    port.write(self.identity)
             if self.streaming and n:
                 self._send_frames(samples, sync_in)
             port.flush()
@@ -169,13 +190,13 @@ class VirtualUno:
         samples = np.asarray(samples)[keep]
         if not len(samples):
             return
-        data = bytearray(encode_frames(seq[keep], flags[keep], samples))
+        data = bytearray(encode_frames(seq[keep], flags[keep], samples, adc_max=self.layout.adc_max))
         if self._corrupt_left:
             k = min(self._corrupt_left, len(samples))
             self._corrupt_left -= k
             for i in range(k):
                 for _ in range(self._corrupt_bits):
-                    pos = i * wire.FRAME_SIZE + int(self._rng.integers(2, wire.FRAME_SIZE))
+                    pos = i * self.frame_size + int(self._rng.integers(2, self.frame_size))
                     data[pos] ^= 1 << int(self._rng.integers(0, 8))
         if self._garbage:
             data = bytes(self._garbage) + data
@@ -185,7 +206,8 @@ class VirtualUno:
 
     # ------------------------------------------------------------------ standalone pacing
     def run_paced(self, source, *, tick_s: float = 0.003) -> None:
-        """Run the board on its own real-time clock in a thread: ``source(n) -> (samples (n,18), sync_in (n,))``.
+        """Run the board on its own real-time clock in a thread at ``layout.sample_rate_hz``:
+        ``source(n) -> (samples (n, ch), sync_in (n,) or None)`` with n the sample periods elapsed.
 
         For a board without the rig's physics thread (e.g. tests, replay). Stop with :meth:`close`.
         """
@@ -193,7 +215,8 @@ class VirtualUno:
             raise RuntimeError("already running")
         self._stop.clear()
         self._thread = threading.Thread(target=paced_loop, args=(self._stop, tick_s, lambda n: self.tick(*source(n))),
-                                        name="virtual-uno", daemon=True)
+                                        kwargs={"rate_hz": self.layout.sample_rate_hz}, name="virtual-uno",
+                                        daemon=True)
         self._thread.start()
 
     def close(self) -> None:
@@ -206,13 +229,16 @@ class VirtualUno:
             self.port.close()
 
 
-def paced_loop(stop: threading.Event, tick_s: float, step) -> None:
-    """Call ``step(n_ms)`` every ``tick_s`` with the milliseconds elapsed since the last call (exact long-run rate:
-    millisecond k is handed out no earlier than ``t0 + k`` ms)."""
+def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1000.0) -> None:
+    """Call ``step(n)`` about every ``tick_s`` with the periods of ``rate_hz`` elapsed since the last call (the
+    milliseconds at the default 1 kHz). Exact long-run rate: period k is handed out no earlier than
+    ``t0 + k / rate_hz``."""
+    rate = float(rate_hz)
     t0 = time.monotonic()
     done = 0
+    ahead = max(1, int(tick_s * rate))
     while not stop.is_set():
-        due = int((time.monotonic() - t0) * 1000.0)
+        due = int((time.monotonic() - t0) * rate)
         n = due - done
         if n > 0:
             try:
@@ -220,5 +246,5 @@ def paced_loop(stop: threading.Event, tick_s: float, step) -> None:
             except Exception:  # keep the clock alive; the error is logged
                 log.exception("simulation step failed")
             done = due
-        next_t = t0 + (done + max(1, int(tick_s * 1000))) / 1000.0
+        next_t = t0 + (done + ahead) / rate
         stop.wait(max(0.0, next_t - time.monotonic()))

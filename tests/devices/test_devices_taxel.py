@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import serial
 
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout, parse_layout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelStreamError
 from rigctl.devices.taxel_stream import TaxelStream
@@ -21,8 +22,11 @@ def test_banner_and_identify(uno):
     with TaxelStream(uno.path, banner_timeout_s=3) as stream:
         assert stream.banner["firmware"] == wire.UNO_FIRMWARE_VERSION
         assert stream.banner["line"].startswith(wire.UNO_BANNER_PREFIX)
+        assert stream.layout == PAPER_SENSOR  # the firmware's banner names 18 channels at 1 kHz, 10 bits
+        assert stream.ring.n_channels == 18
         ident = stream.identify()
-        assert ident == {"firmware": (1, 0), "channels": 18, "rate_hz": 1000, "bits": 10, "baud": 1_000_000,
+        assert ident == {"firmware": (1, 0), "channels": 18, "ch": 18, "rate_hz": 1000, "bits": 10,
+                         "baud": 1_000_000, "layout": None,
                          "line": "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"}
         assert stream.stats.connected
 
@@ -247,3 +251,49 @@ def test_capture_begun_after_the_reconnect_before_the_restart_has_no_drops(tmp_p
     assert cap.dropped == 0  # ... not for the capture that began after the reconnect
     assert cap.seq[0] == 0 and cap.flags[0] & wire.FrameFlag.STREAMING_START
     assert np.all(np.diff(cap.seq.astype(np.int64)) == 1)
+
+
+class LayoutSource:
+    """Deterministic samples of any channel count: sample k, channel c holds ``(k * 7 + c) % (adc_max + 1)``."""
+
+    def __init__(self, layout):
+        self.layout, self.k = layout, 0
+
+    def __call__(self, n):
+        k = self.k + np.arange(n)
+        self.k += n
+        ch = np.arange(self.layout.n_channels)
+        return ((k[:, None] * 7 + ch[None, :]) % (self.layout.adc_max + 1)).astype(np.uint16), None
+
+
+@pytest.mark.parametrize("layout", [
+    parse_layout("3x3x1", sample_rate_hz=100.0, adc_bits=10),
+    SensorLayout.grid(1, 16, 1, sample_rate_hz=250.0, adc_bits=12),
+    parse_layout("4x4x2", sample_rate_hz=1000.0, adc_bits=16),
+], ids=["9ch-100Hz", "16ch-250Hz-12bit", "32ch-1kHz-16bit"])
+def test_any_layout_over_a_real_pty(tmp_path, layout):
+    """The banner announces the layout; the host frames 7 + 2*ch bytes and captures (n, ch) at the layout's rate."""
+    board = VirtualUno(tmp_path / "taxel", reset_delay_s=0.1, layout=layout)
+    source = LayoutSource(layout)
+    board.run_paced(source)
+    try:
+        with TaxelStream(board.path, banner_timeout_s=3) as stream:
+            assert stream.banner["ch"] == layout.n_channels and stream.banner["bits"] == layout.adc_bits
+            assert stream.layout.n_channels == layout.n_channels
+            assert stream.layout.sample_rate_hz == layout.sample_rate_hz
+            assert stream.layout.shape_text == layout.shape_text and stream.layout.adc_bits == layout.adc_bits
+            stream.start()
+            stream.begin_capture()
+            want = int(layout.sample_rate_hz * 0.6)
+            assert stream.wait_capture(want, timeout_s=10)
+            cap = stream.end_capture()
+            _, ring_samples, _, _ = stream.ring.latest(10)
+    finally:
+        board.close()
+    assert cap.samples.shape[1] == layout.n_channels and ring_samples.shape[1] == layout.n_channels
+    assert cap.dropped == 0 and cap.crc_errors == 0
+    assert np.all(np.diff(cap.seq.astype(np.int64)) == 1)
+    k = board.stream_start_sample + cap.seq.astype(np.int64)
+    expected = (k[:, None] * 7 + np.arange(layout.n_channels)[None, :]) % (layout.adc_max + 1)
+    np.testing.assert_array_equal(cap.samples, expected)
+    assert np.all(np.diff(cap.host_time_s) > 0)
