@@ -114,7 +114,6 @@ def test_paper_rig_numerics_unchanged(session, encoded):
     ra = encode_ra(readings, normalise=rng)
     with open_encoded(encoded) as f:
         np.testing.assert_array_equal(f.normalisation["taxel_min"], rng.minimum)
-        np.testing.assert_array_equal(f.spikes("original").spike_times[: sa.spike_times.size // 2].size > 0, True)
         expected = spike_features(sa, ra, n_windows=10)
         np.testing.assert_array_equal(f.features("original"), expected)
         st = f.spikes("original")
