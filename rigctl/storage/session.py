@@ -699,7 +699,8 @@ def _file_layout(f: h5py.File, attrs: Mapping) -> tuple[SensorLayout, np.ndarray
     """
     text = attrs.get("sensor_layout")
     if text:
-        return SensorLayout.from_json(text), None
+        layout = SensorLayout.from_json(text)
+        return (PAPER_SENSOR if layout == PAPER_SENSOR else layout), None
     present = attrs.get("channel_present")
     if present is not None:
         present = np.asarray(present).astype(bool).reshape(-1)
@@ -710,10 +711,12 @@ def _file_layout(f: h5py.File, attrs: Mapping) -> tuple[SensorLayout, np.ndarray
 
 def _file_textures(attrs: Mapping, plan: np.ndarray) -> TextureSet:
     """Schema 3: the ``texture_set`` attribute; schema 1/2: ``texture_set_from_labels`` of the plan's labels (the
-    paper's A-P set when all are A-P or the plan is empty)."""
+    paper's A-P set when all are A-P or the plan is empty). The paper's set is returned as :data:`PAPER_TEXTURES`
+    itself (as the paper's sensor as :data:`PAPER_SENSOR`), so identity checks downstream hold."""
     text = attrs.get("texture_set")
     if text:
-        return TextureSet.from_json(text)
+        textures = TextureSet.from_json(text)
+        return PAPER_TEXTURES if textures == PAPER_TEXTURES else textures
     labels = [t for t in (_text(v) for v in plan["texture"].tolist()) if t.strip()]
     return texture_set_from_labels(labels) if labels else PAPER_TEXTURES
 

@@ -210,3 +210,53 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
             np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
         np.testing.assert_array_equal(a.calibration["taxel_min"], b.calibration["taxel_min"])
         np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
+
+
+CUSTOM = """
+name = "custom-set"
+textures = ["HB3", "Linen", "ridge-15"]
+speeds_mm_s = [80]
+forces_g = [500]
+trials_per_condition = 2
+travel_mm = 80
+
+[texture_set]
+name = "lab"
+textures = ["Linen", "HB3", "ridge-15", "unused"]
+
+[texture_set.groups]
+woven = ["Linen"]
+printed = ["HB3", "ridge-15", "unused"]
+
+[texture_set.geometry.ridge-15]
+kind = "rectangular"
+period_mm = 15.0
+height_mm = 1.0
+width_mm = 5.0
+"""
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_generate_dataset_stores_the_sensor_and_the_protocols_texture_set(tmp_path, workers):
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.core import PAPER_SENSOR
+
+    path = tmp_path / "custom.toml"
+    path.write_text(CUSTOM)
+    proto = load_protocol(path)
+    out = tmp_path / "custom.h5"
+    generate_dataset(proto, out, seed=3, workers=workers, progress=False)
+    with open_session(out) as s:
+        assert s.layout is PAPER_SENSOR
+        assert s.textures == proto.texture_set and s.textures.name == "lab"
+        assert s.textures.labels == ("Linen", "HB3", "ridge-15", "unused") and s.textures.code("HB3") == 1
+        assert s.textures.group_of("Linen") == "woven"
+        assert sorted(set(s.plan["texture"])) == ["HB3", "Linen", "ridge-15"]
+        trials = {str(r["texture"]): s.trial(int(r["trial_id"])) for r in s.plan}
+        assert all(t.layout is PAPER_SENSOR and t.taxels.shape == (1000, 18) for t in trials.values())
+        # each label is rendered with its own geometry (the set's for ridge-15, one derived from the label else)
+        assert len({t.taxels.tobytes() for t in trials.values()}) == 3
+        row = s.plan[s.plan["texture"] == "ridge-15"][-1]
+        again = render_trial("ridge-15", 80.0, 500.0, rng=np.random.default_rng(
+            np.random.SeedSequence([3, int(row["trial_id"])])), duration_s=1.0, textures=proto.texture_set)
+        np.testing.assert_array_equal(trials["ridge-15"].taxels, again.taxels)

@@ -8,8 +8,9 @@ import multiprocessing as mp
 import os
 
 import numpy as np
+import pytest
 
-from rigctl.simulation import dataset
+from rigctl.simulation import dataset, trial_slots
 from rigctl.simulation.model import RigConfig
 from rigctl.simulation.trial_slots import TrialSlots, init_worker_slots
 
@@ -57,3 +58,49 @@ def test_slot_files_of_dead_generators_are_removed(tmp_path):
         assert os.path.basename(slots.path).startswith(f"rigctl-trials-{os.getpid()}-")
         assert not stale.exists() and live.exists() and other.exists()
     assert remove_stale_slot_files(str(tmp_path)) == []
+
+
+class _InlinePool:
+    """A pool that runs each task at once in this process (the slot file is the same mapping either way)."""
+
+    class _Done:
+        def __init__(self, value):
+            self.value = value
+
+        def get(self):
+            return self.value
+
+    def apply_async(self, fn, args):
+        return self._Done(fn(*args))
+
+
+def test_slots_follow_the_layout_nine_channels_at_100_hz(tmp_path):
+    from rigctl.core import SensorLayout, TrialData
+    from rigctl.simulation.trial_slots import render_into_slots, sample_bytes
+
+    layout = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0)
+    rng = np.random.default_rng(0)
+    made = {}
+
+    def render(row):
+        tid, n = row
+        made[tid] = TrialData(taxels=rng.integers(0, 1024, (n, 9)), layout=layout, attrs={"k": tid})
+        return tid, made[tid]
+
+    rows = [(i, 40 + 7 * i) for i in range(7)]  # trial 6 (82 samples) is longer than a slot: the pipe path
+    with TrialSlots(80, n_blocks=2, block=2, directory=str(tmp_path), layout=layout) as slots:
+        assert sample_bytes(9) == 29 and os.path.getsize(slots.path) == 2 * 2 * 80 * 29
+        init_worker_slots(*slots.initargs, render, lambda: None, ())
+        got = []
+        for tid, data in slots.results(_InlinePool(), rows):
+            assert data.layout == layout and data.rate_hz == 100.0 and data.taxels.shape == (40 + 7 * tid, 9)
+            np.testing.assert_array_equal(data.taxels, made[tid].taxels)
+            np.testing.assert_array_equal(data.host_time_s, np.arange(data.n_samples) / 100.0)
+            assert data.attrs == {"k": tid}
+            got.append(tid)
+        assert got == list(range(7))
+        # a model rendering another channel count than the slots hold is an error, not a garbled trial
+        init_worker_slots(*slots.initargs, lambda row: (0, TrialData(taxels=np.zeros((5, 18)))), lambda: None, ())
+        with pytest.raises(ValueError, match="18 channels; the slots hold 9"):
+            render_into_slots(([0], [(0, 5)]))
+        trial_slots._STATE.clear()  # this process's mapping of the slot file
