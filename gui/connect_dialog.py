@@ -43,7 +43,8 @@ class ConnectDialog(QtWidgets.QDialog):
         self.setWindowTitle("Connect to the rig")
         self.sim = QtWidgets.QRadioButton("Simulated rig (virtual boards on ptys, physical model)")
         self.serial = QtWidgets.QRadioButton("Real rig on serial ports")
-        self.replay = QtWidgets.QRadioButton("FabricSlide replay (recorded real signals through the simulated rig)")
+        self.replay = QtWidgets.QRadioButton("Replay (a recorded session file or FabricSlide directory through the "
+                                             "simulated rig)")
         self.drum_port = QtWidgets.QComboBox(editable=True)
         self.taxel_port = QtWidgets.QComboBox(editable=True)
         self.refresh_btn = QtWidgets.QPushButton("Rescan ports")

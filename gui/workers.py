@@ -52,44 +52,46 @@ class RigHandle:
     rig : rigctl.acquisition.rig.Rig
         Owns the drum client, the taxel stream and (in simulation) the simulated rig; the protocol runner and the
         calibration use it.
-    drum : rigctl.devices.drum.DrumClient
-    taxels : rigctl.devices.taxel_stream.TaxelStream
-    sim : rigctl.simulation.rig.SimulatedRig or None
+    drum : rigctl.core.interfaces.DrumController (a DrumClient)
+    taxels : rigctl.core.interfaces.TaxelSource (a TaxelStream)
+    sim : the simulated rig behind the ports (``rig.backend.sim``: SimulatedRig / HilRig), or None
     """
 
     def __init__(self, rig, source: RigSource):
+        from rigctl.core.interfaces import MassPlacer
+
         self.rig = rig
         self.source = source
         self.drum = rig.drum
         self.taxels = rig.stream
-        self.sim = rig.sim
+        self.sim = getattr(rig.backend, "sim", None)
+        self._places_mass = isinstance(rig.backend, MassPlacer)
 
     @property
     def is_simulated(self) -> bool:
-        return self.sim is not None
+        """True when the rig can place a calibration mass itself (simulated backends)."""
+        return self._places_mass
 
     def close(self) -> None:
         self.rig.close()
 
 
 def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=None, seed: int = 0) -> RigHandle:
-    """Open the rig described by ``source`` with :meth:`rigctl.acquisition.rig.Rig.open` (which homes it).
+    """Open the rig described by ``source`` with :func:`rigctl.rigs.open_rig` (which homes it).
 
     ``host_config_path`` is the rig config file (calibration; None = the library's default path); ``prompt`` the
     operator prompt for plate changes on hardware. Raises :class:`rigctl.acquisition.rig.RigError` (the library's
     message names the ports) or ``OSError``.
     """
-    from rigctl.acquisition.rig import Rig
+    from rigctl.rigs import open_rig as _open_rig
 
-    kw = dict(config=config, host_config_path=host_config_path, prompt=prompt, seed=seed)
+    kw = dict(host_config_path=host_config_path, prompt=prompt)
     if source.kind == "serial":
-        rig = Rig.open(sim=False, drum_port=source.drum_port, taxel_port=source.taxel_port, **kw)
+        rig = _open_rig("hardware", drum_port=source.drum_port, taxel_port=source.taxel_port, **kw)
     elif source.kind == "replay":
-        from rigctl.simulation.replay import FabricSlideReplay
-
-        rig = Rig.open(sim=True, source=FabricSlideReplay(source.replay_dir), **kw)
+        rig = _open_rig("replay", source=source.replay_dir, config=config, seed=seed, **kw)
     else:
-        rig = Rig.open(sim=True, **kw)
+        rig = _open_rig("sim", config=config, seed=seed, **kw)
     return RigHandle(rig, source)
 
 

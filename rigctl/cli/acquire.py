@@ -39,8 +39,9 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, resume, overwrite, s
     continue later with --resume. Exit status: 0 when every planned trial is complete, 1 otherwise.
     """
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
-    from rigctl.acquisition.rig import Rig, RigError
+    from rigctl.acquisition.rig import RigError
     from rigctl.acquisition.runner import run_protocol
+    from rigctl.rigs import open_rig
     from rigctl.storage.session import SessionError
 
     if (drum_port is None) != (taxel_port is None):
@@ -72,15 +73,17 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, resume, overwrite, s
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     try:
-        rig = Rig.open(sim=drum_port is None and not hil, hil=hil, drum_port=drum_port, taxel_port=taxel_port,
-                       seed=0 if seed is None else seed, host_config_path=config_path)
+        if drum_port is not None:
+            rig = open_rig("hardware", drum_port=drum_port, taxel_port=taxel_port, host_config_path=config_path)
+        else:
+            rig = open_rig("hil" if hil else "sim", seed=0 if seed is None else seed, host_config_path=config_path)
     except RigError as exc:
         raise click.ClickException(str(exc)) from None
     with rig:
         try:
             summary = run_protocol(proto, out, rig=rig, resume=resume, progress=not quiet,
                                    on_failure=on_failure, overwrite=overwrite)
-        except (SessionError, FileExistsError, FileNotFoundError) as exc:
+        except (SessionError, FileExistsError, FileNotFoundError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
     for line in summary.lines():
         click.echo(line)

@@ -8,15 +8,17 @@ import click
 @click.command("gui")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega). Default: simulated rig.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno). Default: simulated rig.")
-@click.option("--replay", type=click.Path(exists=True, file_okay=False), default=None,
-              help="Stream the FabricSlide recordings in this directory through the simulated rig.")
+@click.option("--replay", type=click.Path(exists=True), default=None,
+              help="Stream a recorded session file (or the FabricSlide recordings in a directory) through the "
+                   "simulated rig.")
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Save a PNG of the main window before quitting (with --quit-after).")
 @click.option("--quit-after", type=click.FloatRange(min=0), default=None, help="Quit after this many seconds.")
 @click.option("--tab", type=click.Choice(["control", "live", "protocol", "analysis", "calibration", "classify"]),
               default=None, help="Tab to show first.")
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")
-@click.option("--texture", default=None, help="Mount this texture plate (A-P) once connected.")
+@click.option("--texture", default=None, help="Mount this texture plate (a label of the rig's set, A-P by default) "
+                                              "once connected.")
 def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run, texture):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 

@@ -38,8 +38,9 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
 @click.group(invoke_without_command=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
 @click.option("--texture", default="A", show_default=True, help="Texture plate mounted on the drum (A-P).")
-@click.option("--replay", "replay_dir", type=click.Path(exists=True, file_okay=False), default=None,
-              help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) instead of the model.")
+@click.option("--replay", "replay_dir", type=click.Path(exists=True), default=None,
+              help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) or session file "
+                   "instead of the model.")
 @click.option("--port-dir", type=click.Path(file_okay=False), default=None,
               help="Directory for the port links 'drum' and 'taxel' (default: a fresh temporary directory).")
 @click.pass_context
@@ -60,9 +61,13 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
                                  param_hint="--texture")
     source = None
     if replay_dir:
-        from rigctl.simulation.replay import FabricSlideReplay
+        from rigctl.acquisition.rig import RigError
+        from rigctl.rigs import replay_source
 
-        source = FabricSlideReplay(replay_dir)
+        try:
+            source = replay_source(replay_dir)
+        except (RigError, OSError, ValueError) as exc:
+            raise click.ClickException(str(exc)) from None
     stop = threading.Event()
 
     def on_signal(signum, frame):

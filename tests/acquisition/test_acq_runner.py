@@ -16,9 +16,9 @@ import pytest
 from rigctl.acquisition import calibration
 from rigctl.acquisition import rig as rig_module
 from rigctl.acquisition.protocol import parse_protocol
-from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import run_protocol
 from rigctl.devices.wire import DrumState, HoldingRegister
+from rigctl.rigs import open_rig
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 from rigctl.storage.session import open_session
 
@@ -40,7 +40,7 @@ def config_file(tmp_path_factory):
 @pytest.fixture(scope="module")
 def rig(config_file):
     cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=TRUE_COUNTS_PER_G))
-    with Rig.open(config=cfg, seed=3, host_config_path=config_file) as r:
+    with open_rig("sim", config=cfg, seed=3, host_config_path=config_file) as r:
         yield r
 
 
@@ -101,10 +101,10 @@ def test_failed_trials_are_marked_and_resumed(rig, tmp_path, monkeypatch):
 
     def on_trial(ev):
         if ev.kind == "start" and ev.planned.trial_id == 1:
-            rig.sim.unplug_taxel()  # the Uno's USB cable is pulled during trial 1
+            rig.backend.sim.unplug_taxel()  # the Uno's USB cable is pulled during trial 1
         if ev.kind == "failed":
             failures.append(ev.error)
-            rig.sim.replug_taxel()
+            rig.backend.sim.replug_taxel()
 
     summary = run_protocol(_proto(3, textures='"A"'), out, rig=rig, progress=False, on_trial=on_trial)
     assert summary.failed == 1 and summary.complete == 2 and not summary.stopped

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from rigctl.acquisition.protocol import PlannedTrial
-from rigctl.acquisition.rig import Rig
 from rigctl.devices import wire
 from rigctl.simulation.dataset import render_trial
+from rigctl.rigs import open_rig
 from rigctl.simulation.model import RigConfig
 
 
@@ -21,7 +21,7 @@ def _windows(taxels, taxel=4, window=100):
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     cfg_path = tmp_path_factory.mktemp("cfg") / "rig.json"
-    with Rig.open(config=RigConfig(), seed=11, host_config_path=cfg_path) as rig:
+    with open_rig("sim", config=RigConfig(), seed=11, host_config_path=cfg_path) as rig:
         rig.mount_texture("L")
         trials = [rig.record_trial(PlannedTrial(i, "L", 120.0, 500.0, 1.0)) for i in range(2)]
     return trials
