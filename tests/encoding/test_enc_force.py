@@ -78,7 +78,29 @@ def test_force_scaler_per_texture_and_label_free():
     c_lf = lf.coefficients_for(["Z"], [80], [1000])
     assert np.all(c_lf < 1.0)
     table = per_tex.table()
-    assert table.size == 12 and set(table["texture"]) == {b"A", b"B"}
+    assert table.size == 12 and set(table["texture"]) == {"A", "B"}
+
+
+def test_unknown_speed_is_one_condition_and_labels_are_kept_whole():
+    """A NaN speed (imported recordings) groups with the other NaN-speed trials of its texture and force and finds
+    its 500 g reference among them; long labels survive into the coefficient table."""
+    n = 800
+    tex, spd, frc, data = [], [], [], []
+    for speed in (np.nan, 50.0):
+        for f, fg in ((250, 0.5), (500, 1.0)):
+            for _ in range(2):
+                tex.append("Herringbone-3")
+                spd.append(speed)
+                frc.append(f)
+                data.append(np.full((n, 2), 0.4 * fg * (1.0 if np.isnan(speed) else 0.8)))
+    sc = ForceScaler().fit(np.stack(data), tex, spd, frc)
+    assert sc.coeffs_.shape == (4, 2)  # (NaN, 250), (NaN, 500), (50, 250), (50, 500)
+    c = sc.coefficients_for(["Herringbone-3", "Herringbone-3"], [np.nan, np.nan], [250, 500])
+    assert np.all(np.abs(c[0] - 2.0) < 0.2)
+    np.testing.assert_allclose(c[1], 1.0)
+    table = sc.table()
+    assert set(table["texture"]) == {"Herringbone-3"}
+    assert np.isnan(table["speed_mm_s"]).sum() == 4 and (table["speed_mm_s"] == 50).sum() == 4
 
 
 def test_missing_reference_force_is_an_error():
