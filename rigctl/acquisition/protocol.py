@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from rigctl.core.textures import GEOMETRY_KEYS, PAPER_TEXTURES, TextureSet, TextureSetError
+from rigctl.core.textures import GEOMETRY_KEYS, KINDS as TEXTURE_KINDS, PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.core.trial import PlannedTrial  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 
 #: rig limits every setpoint is checked against before anything moves (mm/s, g)
@@ -252,7 +252,7 @@ class _KeyLines:
                     counts[name] = counts.get(name, -1) + 1
                     table = (name, counts[name])
                 else:
-                    table = (name,)
+                    table = tuple(part.strip().strip('"') for part in name.split("."))  # [texture_set.geometry]
                 self.lines.setdefault(table, lineno)
                 continue
             a = self._assign.match(text)
@@ -456,6 +456,8 @@ class _Validator:
                 if not isinstance(geo, dict):
                     raise self.error(gkey, "expected a table of kind, height_mm, period_mm, width_mm")
                 self._unknown(geo, set(GEOMETRY_KEYS), gkey)
+                if "kind" in geo and geo["kind"] not in TEXTURE_KINDS:
+                    raise self.error(gkey + ("kind",), f"{geo['kind']!r} is not one of {', '.join(TEXTURE_KINDS)}")
                 for k in ("height_mm", "period_mm", "width_mm"):
                     if k in geo:
                         self._number(gkey + (k,), geo[k], lo=0, hi=1e4, lo_open=k != "height_mm", what=" mm")
