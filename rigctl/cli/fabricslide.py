@@ -1,4 +1,5 @@
-"""``rigctl import-fabricslide``: the FabricSlide recordings as a session file (1 kHz, 10 bits, labelled)."""
+"""``rigctl import-fabricslide``: the FabricSlide preset of ``rigctl import`` (16 channels at 1 kHz, 10 bits,
+fabrics and board in one labelled session file)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabrics
 @click.command("import-fabricslide")
 @click.argument("directory", required=False, type=click.Path(file_okay=False))
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
-@click.option("--include-board", is_flag=True, help="Also import the Board10mm recordings (20 mm ridges).")
+@click.option("--include-board/--no-board", default=True, show_default=True,
+              help="Also import the Board10mm recordings (20 mm ridges) into the same file.")
 @click.option("--pattern", default="*.csv", show_default=True, help="Glob of file names to import.")
 @click.option("--trim", type=click.FloatRange(0, 0.49), default=0.10, show_default=True,
               help="Fraction of each trial dropped at each end (the arm's acceleration ramps).")
@@ -24,9 +26,9 @@ DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabrics
 def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, as_json, quiet):
     """Import FabricSlide CSVs from DIRECTORY (default ../shared/data/fabricslide next to the repo).
 
-    Taxels are resampled to 1 kHz from the timestamps and written as 10-bit counts on channels 0-15 (16-17 absent);
-    texture = a one-character fabric code (root attribute texture_labels), speed = |velocity|, force = the arm's
-    setpoint; the signed velocity is a trial attribute.
+    The 16 taxels are resampled to 1 kHz from the timestamps and written as 16 channels of 10-bit counts (layout
+    1x16); texture = the fabric's name (texture set: fabrics + Board10mm, groups fabric/board), speed = |velocity|,
+    force = the arm's setpoint; the signed velocity is a trial attribute.
     """
     from rigctl.storage.fabricslide import import_fabricslide as run
 
@@ -43,6 +45,5 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     if as_json:
         click.echo(json.dumps(summary))
     else:
-        labels = ", ".join(f"{k}={v}" for k, v in summary["labels"].items())
-        click.echo(f"{summary['n_trials']} trials, {summary['samples'] / 1000:.0f} s at 1 kHz -> {summary['path']} "
-                   f"(texture codes: {labels})")
+        click.echo(f"{summary['n_trials']} trials, 16 channels, {summary['samples'] / 1000:.0f} s at 1 kHz -> "
+                   f"{summary['path']} (textures: {', '.join(summary['labels'])})")

@@ -1,16 +1,22 @@
-"""Replay sources: the simulated Uno streams recorded signals instead of the physical model.
+"""Replay sources: the simulated taxel board streams recorded signals instead of the physical model.
 
-:class:`FabricSlideReplay` streams the FabricSlide recordings (``../shared/data/fabricslide``, see
-:mod:`rigctl.storage.fabricslide`): each recording resampled onto a 1 ms grid from its timestamps (linear
-interpolation, the first sample of a repeated timestamp kept), its 16 taxels on channels 0-15, channels 16-17 at a
-constant level, mapped to 10 bits with ``adc = clip(rint(counts * scale + offset), 0, 1023)`` (scale 1, offset 0 by
-default), one recording after the other in file-name order, looping forever.
+Every source has a ``layout`` (:class:`rigctl.core.sensor.SensorLayout`: channel count, rate, bits), which the
+simulated rig gives its virtual Uno (``VirtualUno(layout=...)``): the board announces it in its banner and streams
+frames of that channel count at that rate, so the host captures exactly the source's samples.
 
-:meth:`FabricSlideReplay.expected_samples` gives the exact samples the stream starts with, computed independently of
-the streaming state, so a test can prove that what the host recorded equals the replayed source sample for sample.
+- :class:`SessionReplay` streams ANY session file (a recorded, simulated or imported one, e.g. from
+  ``rigctl import``) at its own rate and layout. It follows the plates the protocol mounts: on :meth:`mount` of
+  texture X the stream continues with the session's next trial of texture X, then the following ones of X, in
+  plan order, looping over X's trials. Before any mount it plays every complete trial in plan order, looping.
+- :class:`FabricSlideReplay` streams the FabricSlide CSV folder (``../shared/data/fabricslide``; a preset: each
+  recording resampled onto a 1 ms grid from its timestamps, 16 channels, 10 bits, :mod:`rigctl.storage.fabricslide`),
+  one recording after the other in file-name order, looping forever.
 
-Used by :class:`rigctl.simulation.rig.SimulatedRig` (``source=FabricSlideReplay(dir)``), which pulls
-``read(n) -> (n, 18) uint16`` once per physics tick.
+``expected_samples(n, start)`` gives the exact samples of the unmounted stream, computed independently of the
+streaming state, so a test can prove that what the host recorded equals the source sample for sample.
+
+Used by :class:`rigctl.simulation.rig.SimulatedRig` (``source=...``), which pulls ``read(n) -> (n, ch) uint16``
+as the simulated clock advances by n sample periods.
 """
 
 from __future__ import annotations
@@ -21,95 +27,49 @@ from typing import Iterator
 
 import numpy as np
 
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.textures import TextureSet, TextureSetError
 from rigctl.storage.fabricslide import (
-    CHANNEL_PRESENT,
     DEFAULT_OFFSET,
     DEFAULT_SCALE,
-    FILL_COUNTS,
-    Recording,
+    FABRICSLIDE_SENSOR,
+    fabricslide_textures,
     list_files,
+    parse_name,
     read_recording,
     recording_adc,
 )
 
-N_TAXELS = 18
+__all__ = ["SessionReplay", "FabricSlideReplay"]
 
 
-class FabricSlideReplay:
-    """A looping taxel source streaming FabricSlide recordings at 1 kHz. Thread-safe.
+class _BlockReplay:
+    """A looping stream of consecutive blocks ``(m, ch) uint16``; subclasses give the blocks. Thread-safe."""
 
-    Parameters
-    ----------
-    directory : path
-        The FabricSlide subset (``fabric/`` and optionally ``board/``).
-    include_board : bool
-        Also replay the Board10mm recordings (after the fabrics).
-    pattern : str
-        Glob of file names to replay (e.g. ``"Canvas_F120_*"``); default all.
-    scale, offset : float
-        The linear 10-bit map ``adc = clip(rint(counts * scale + offset), 0, 1023)``.
-    fill : int
-        ADC counts on the absent channels 16 and 17.
-    loop : bool
-        Start again at the first recording after the last one (otherwise :meth:`read` raises EOFError at the end).
+    layout: SensorLayout
 
-    Attributes
-    ----------
-    files : list of Path
-        The replayed files, in order.
-    channel_present : (18,) bool
-        True for channels 0-15.
-
-    Raises
-    ------
-    FileNotFoundError
-        If the directory has no ``fabric/`` folder or no file matches ``pattern``.
-    """
-
-    def __init__(self, directory: str | Path, *, include_board: bool = False, pattern: str = "*.csv",
-                 scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET, fill: int = FILL_COUNTS,
-                 loop: bool = True):
-        self.directory = Path(directory)
-        self.files = list_files(self.directory, include_board=include_board, pattern=pattern)
-        if not self.files:
-            raise FileNotFoundError(f"no FabricSlide files matching {pattern!r} under {self.directory}")
-        self.scale, self.offset, self.fill, self.loop = float(scale), float(offset), int(fill), bool(loop)
-        self.channel_present = CHANNEL_PRESENT.copy()
+    def __init__(self, loop: bool):
+        self.loop = bool(loop)
         self._lock = threading.Lock()
         self._blocks = self._iter_blocks()
-        self._block = np.empty((0, N_TAXELS), np.uint16)
+        self._block = np.empty((0, self.layout.n_channels), np.uint16)
         self._pos = 0
+        #: samples handed out by :meth:`read` since construction / :meth:`rewind`
         self.samples_served = 0
-        self.current_file: Path | None = None
 
-    # -- the stream ----------------------------------------------------------------------------------------------
-    def _adc(self, rec: Recording) -> np.ndarray:
-        return recording_adc(rec, scale=self.scale, offset=self.offset, fill=self.fill)
+    def _iter_blocks(self, *, track: bool = True) -> Iterator[np.ndarray]:  # pragma: no cover - abstract
+        raise NotImplementedError
 
-    def _iter_blocks(self, *, track: bool = True) -> Iterator[np.ndarray]:
-        while True:
-            for path in self.files:
-                if track:
-                    self.current_file = path
-                yield self._adc(read_recording(path))
-            if not self.loop:
-                return
+    def _eof(self) -> str:
+        return "end of the replayed recordings (loop=False)"
 
     def read(self, n: int) -> np.ndarray:
-        """The next ``n`` samples of the stream.
+        """The next ``n`` samples of the stream: ``(n, layout.n_channels) uint16`` ADC counts.
 
-        Returns
-        -------
-        (n, 18) uint16
-            ADC counts; channels 16-17 = ``fill``.
-
-        Raises
-        ------
-        EOFError
-            With ``loop=False``, when the last recording is exhausted (the samples up to the end are lost).
+        Raises EOFError with ``loop=False`` when the recordings are exhausted (the samples up to the end are lost).
         """
         n = int(n)
-        out = np.empty((n, N_TAXELS), dtype=np.uint16)
+        out = np.empty((n, self.layout.n_channels), dtype=np.uint16)
         with self._lock:
             filled = 0
             while filled < n:
@@ -117,7 +77,7 @@ class FabricSlideReplay:
                     try:
                         self._block = next(self._blocks)
                     except StopIteration:
-                        raise EOFError("end of the FabricSlide recordings (loop=False)") from None
+                        raise EOFError(self._eof()) from None
                     self._pos = 0
                     continue
                 k = min(n - filled, self._block.shape[0] - self._pos)
@@ -134,26 +94,25 @@ class FabricSlideReplay:
         return self.read(n)
 
     def rewind(self) -> None:
-        """Start the stream again at the first sample of the first recording."""
+        """Start the stream again at its first sample (the unmounted order)."""
         with self._lock:
-            self._blocks = self._iter_blocks()
-            self._block = np.empty((0, N_TAXELS), np.uint16)
-            self._pos = 0
+            self._restart()
             self.samples_served = 0
 
-    # -- ground truth --------------------------------------------------------------------------------------------
-    def expected_samples(self, n: int, start: int = 0) -> np.ndarray:
-        """Samples ``start`` ... ``start + n - 1`` of the stream, computed afresh (independent of :meth:`read`).
+    def _restart(self) -> None:
+        self._blocks = self._iter_blocks()
+        self._block = np.empty((0, self.layout.n_channels), np.uint16)
+        self._pos = 0
 
-        Returns
-        -------
-        (n, 18) uint16
-            Exactly what :meth:`read` returns for those stream positions (after :meth:`rewind` or construction).
-        """
+    def expected_samples(self, n: int, start: int = 0) -> np.ndarray:
+        """Samples ``start`` ... ``start + n - 1`` of the unmounted stream, computed afresh (independent of
+        :meth:`read`): exactly what :meth:`read` returns for those positions after construction or :meth:`rewind`
+        when nothing is mounted. ``(n, layout.n_channels) uint16``."""
         n, start = int(n), int(start)
-        out = np.empty((n, N_TAXELS), dtype=np.uint16)
-        filled = 0
-        skip = start
+        out = np.empty((n, self.layout.n_channels), dtype=np.uint16)
+        filled, skip = 0, start
+        if n == 0:
+            return out
         for block in self._iter_blocks(track=False):
             if skip >= block.shape[0]:
                 skip -= block.shape[0]
@@ -166,6 +125,187 @@ class FabricSlideReplay:
                 return out
         raise EOFError(f"the recordings hold fewer than {start + n} samples (loop=False)")
 
+
+class SessionReplay(_BlockReplay):
+    """Streams the complete trials of a session file at the session's own rate and layout, following mounts.
+
+    Parameters
+    ----------
+    path : a session file (any schema ``rigctl.storage.session.open_session`` opens: recorded, simulated,
+        imported).
+    loop : start again after the last trial (otherwise :meth:`read` raises EOFError at the end).
+
+    Attributes
+    ----------
+    layout : SensorLayout, the session's sensor (its channel count, rate and bits go on the wire).
+    textures : TextureSet, the session's texture set.
+    trial_ids : list of int, the complete trials in plan order.
+    mounted : str or None, the texture last mounted.
+    mounts : list of ``(stream_sample, texture)``: where in the stream (``samples_served`` at the mount) each mount
+        took effect; the stream from there is the texture's next trials (:meth:`texture_samples`).
+    current_trial : int or None, the trial being streamed.
+
+    Raises
+    ------
+    FileNotFoundError, rigctl.storage.session.SessionError (not a session), ValueError (no complete trial).
+    """
+
+    def __init__(self, path: str | Path, *, loop: bool = True):
+        from rigctl.storage.session import open_session
+
+        self.path = Path(path)
+        with open_session(self.path) as s:
+            self.layout = s.layout
+            self.textures: TextureSet = s.textures
+            done = set(s.completed_ids())
+            plan = s.plan
+            self.trial_ids = [int(t) for t in plan["trial_id"] if int(t) in done]
+            labels = {int(t): str(x.decode() if isinstance(x, bytes) else x)
+                      for t, x in zip(plan["trial_id"], plan["texture"])}
+        if not self.trial_ids:
+            raise ValueError(f"{self.path}: no complete trial to replay")
+        self.trial_texture = {t: labels[t] for t in self.trial_ids}
+        self.by_texture: dict[str, list[int]] = {}
+        for t in self.trial_ids:
+            self.by_texture.setdefault(self.trial_texture[t], []).append(t)
+        self._next_of: dict[str, int] = {}  # texture -> index of its next trial (persists across mounts)
+        self._cache: dict[int, np.ndarray] = {}
+        self.mounted: str | None = None
+        self.mounts: list[tuple[int, str]] = []
+        self.current_trial: int | None = None
+        super().__init__(loop)
+
+    def _eof(self) -> str:
+        return f"end of the trials of {self.path.name} (loop=False)"
+
+    def trial_samples(self, trial_id: int) -> np.ndarray:
+        """The taxels of one trial, ``(n, ch) uint16`` (read once, then cached)."""
+        out = self._cache.get(trial_id)
+        if out is None:
+            from rigctl.storage.session import open_session
+
+            with open_session(self.path) as s:
+                out = np.ascontiguousarray(s.trial(int(trial_id)).taxels, dtype=np.uint16)
+            self._cache[trial_id] = out
+        return out
+
+    def _iter_blocks(self, *, track: bool = True) -> Iterator[np.ndarray]:
+        while True:
+            for t in self.trial_ids:
+                if track:
+                    self.current_trial = t
+                yield self.trial_samples(t)
+            if not self.loop:
+                return
+
+    def _iter_texture(self, texture: str) -> Iterator[np.ndarray]:
+        ids = self.by_texture[texture]
+        while True:
+            i = self._next_of.get(texture, 0)
+            if i >= len(ids):
+                if not self.loop:
+                    return
+                i = 0
+            self._next_of[texture] = i + 1
+            self.current_trial = ids[i]
+            yield self.trial_samples(ids[i])
+
+    def mount(self, texture: str) -> None:
+        """The protocol mounted plate ``texture``: from the next sample on, stream its next trial (and then the
+        following trials of that texture, looping). A label the session has no trial of raises KeyError."""
+        label = texture
+        if label not in self.by_texture:
+            try:
+                label = self.textures.resolve(texture)
+            except TextureSetError:
+                pass
+        if label not in self.by_texture:
+            raise KeyError(f"{self.path.name} has no trial of texture {texture!r} (it has: "
+                           f"{', '.join(self.by_texture)})")
+        with self._lock:
+            self.mounted = label
+            self.mounts.append((self.samples_served, label))
+            self._blocks = self._iter_texture(label)
+            self._block = np.empty((0, self.layout.n_channels), np.uint16)
+            self._pos = 0
+
+    def unmount(self) -> None:
+        """Back to every trial in plan order (from the first)."""
+        with self._lock:
+            self.mounted = None
+            self._restart()
+
+    def texture_samples(self, texture: str, n: int, *, first: int = 0) -> np.ndarray:
+        """``n`` samples of texture ``texture``'s trials concatenated in plan order, looping, from its trial index
+        ``first``: what the stream holds after a mount (computed afresh). ``(n, ch) uint16``."""
+        ids = self.by_texture[texture]
+        out = np.empty((int(n), self.layout.n_channels), np.uint16)
+        filled, i = 0, int(first)
+        while filled < n:
+            block = self.trial_samples(ids[i % len(ids)])
+            k = min(n - filled, block.shape[0])
+            out[filled:filled + k] = block[:k]
+            filled += k
+            i += 1
+        return out
+
+
+class FabricSlideReplay(_BlockReplay):
+    """A looping taxel source streaming FabricSlide recordings at 1 kHz, 16 channels (the preset). Thread-safe.
+
+    Parameters
+    ----------
+    directory : path
+        The FabricSlide subset (``fabric/`` and optionally ``board/``).
+    include_board : bool
+        Also replay the Board10mm recordings (after the fabrics).
+    pattern : str
+        Glob of file names to replay (e.g. ``"Canvas_F120_*"``); default all.
+    scale, offset : float
+        The linear 10-bit map ``adc = clip(rint(counts * scale + offset), 0, 1023)``.
+    loop : bool
+        Start again at the first recording after the last one (otherwise :meth:`read` raises EOFError at the end).
+
+    Attributes
+    ----------
+    layout : :data:`rigctl.storage.fabricslide.FABRICSLIDE_SENSOR` (16 channels, 1 kHz, 10 bits)
+    textures : the FabricSlide texture set
+    files : list of Path, the replayed files, in order.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the directory has no ``fabric/`` folder or no file matches ``pattern``.
+    """
+
+    layout = FABRICSLIDE_SENSOR
+
+    def __init__(self, directory: str | Path, *, include_board: bool = False, pattern: str = "*.csv",
+                 scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET, loop: bool = True):
+        self.directory = Path(directory)
+        self.files = list_files(self.directory, include_board=include_board, pattern=pattern)
+        if not self.files:
+            raise FileNotFoundError(f"no FabricSlide files matching {pattern!r} under {self.directory}")
+        self.textures = fabricslide_textures(parse_name(p.name)["label"] for p in self.files)
+        self.scale, self.offset = float(scale), float(offset)
+        self.current_file: Path | None = None
+        super().__init__(loop)
+
+    def _eof(self) -> str:
+        return "end of the FabricSlide recordings (loop=False)"
+
+    def _adc(self, path: Path) -> np.ndarray:
+        return recording_adc(read_recording(path), scale=self.scale, offset=self.offset)
+
+    def _iter_blocks(self, *, track: bool = True) -> Iterator[np.ndarray]:
+        while True:
+            for path in self.files:
+                if track:
+                    self.current_file = path
+                yield self._adc(path)
+            if not self.loop:
+                return
+
     def recording_lengths(self) -> list[int]:
         """Samples of each file at 1 kHz (in replay order)."""
-        return [self._adc(read_recording(p)).shape[0] for p in self.files]
+        return [self._adc(p).shape[0] for p in self.files]

@@ -7,6 +7,12 @@ milliseconds to the Mega (which advances :class:`rigctl.simulation.model.RigMode
 commands, then runs its control logic) and the resulting taxel samples and index pulses to the Uno (which frames
 and sends them if streaming). Millisecond k is simulated no earlier than ``t0 + k`` ms, so the stream's long-run
 rate is exactly 1000 frames/s.
+
+With a replay source (``source=``, e.g. :class:`rigctl.simulation.replay.SessionReplay` of any session file) the
+Uno streams the source's samples at the source's own layout and rate (``source.layout``: the board's banner
+announces it, frames carry its channel count, and sample j goes out no earlier than ``t0 + j / rate``); the drum
+and the force loop still run on the model. Mounting a plate (:meth:`SimulatedRig.set_texture`) tells a source that
+follows plates (``source.mount(label)``) which texture's recordings to stream next.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.devices import wire
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.simulation.model import RigConfig, RigModel
 from rigctl.simulation.virtual_mega import VirtualMega
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
@@ -28,7 +34,7 @@ log = logging.getLogger(__name__)
 
 
 def _source_reader(source):
-    """``n -> (n, 18) uint16`` from a replay source (an object with ``read(n)``, or a callable)."""
+    """``n -> (n, ch) uint16`` from a replay source (an object with ``read(n)``, or a callable)."""
     if source is None:
         return None
     if hasattr(source, "read"):
@@ -47,9 +53,10 @@ class SimulatedRig:
         Rig configuration (drum, sensor, mechanics); default :class:`RigConfig`.
     seed : int
         Seeds the model's noise and the start angle of the drum.
-    source : object with ``read(n) -> (n, 18) uint16``, a callable, or None
-        Replay source (e.g. :class:`rigctl.simulation.replay.FabricSlideReplay`): the Uno streams its samples
-        instead of the model's sensor (the drum and force loop still run on the model).
+    source : object with ``read(n) -> (n, ch) uint16`` and ``layout`` (a SensorLayout), a callable, or None
+        Replay source (:class:`rigctl.simulation.replay.SessionReplay`, ``FabricSlideReplay``): the Uno streams
+        its samples at ``source.layout``'s channel count and rate (a source without ``layout``: the paper's 18
+        channels at 1 kHz) instead of the model's sensor (the drum and force loop still run on the model).
     port_dir : path or None
         Directory for the two port links ``drum`` and ``taxel``; a fresh temporary directory if None.
     tick_s : float
@@ -76,9 +83,17 @@ class SimulatedRig:
         self.tick_s = tick_s
         self._read_source = _source_reader(source)
         self.source = source
+        layout = getattr(source, "layout", None) if source is not None else None
+        if layout is not None and not isinstance(layout, SensorLayout):
+            raise TypeError(f"source.layout must be a SensorLayout, got {type(layout).__name__}")
+        #: the sensor the taxel board streams (the source's, else the paper's 3x3x2 at 1 kHz)
+        self.layout: SensorLayout = layout or PAPER_SENSOR
+        self._ms_total = 0
+        self._samples_total = 0
         self.model = RigModel(self.config, seed=seed)
         self.mega = VirtualMega(self.model, self.port_dir / "drum")
-        self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=seed)
+        self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=seed,
+                              layout=self.layout)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.step_errors = 0
@@ -104,8 +119,26 @@ class SimulatedRig:
 
     def _step(self, n_ms: int) -> None:
         samples, sync_in = self.mega.step(n_ms)
-        if self._read_source is not None:
-            samples = np.asarray(self._read_source(n_ms), dtype=np.uint16).reshape(n_ms, wire.N_TAXELS)
+        if self._read_source is None:
+            self.uno.tick(samples, sync_in)
+            return
+        ch = self.layout.n_channels
+        rate = self.layout.sample_rate_hz
+        if rate == 1000.0:  # one sample per simulated millisecond, the index pulse of each
+            n = n_ms
+        else:  # the source's own rate: sample j is due at t0 + j / rate
+            self._ms_total += n_ms
+            due = int(self._ms_total * rate / 1000.0)
+            n = due - self._samples_total
+            self._samples_total = due
+            if sync_in is not None and n:
+                pulse = bool(np.any(sync_in))
+                sync_in = np.zeros(n, bool)
+                sync_in[-1] = pulse  # an index pulse in this step marks the step's last sample
+        if n <= 0:
+            self.uno.tick(np.zeros((0, ch), np.uint16), None)
+            return
+        samples = np.asarray(self._read_source(n), dtype=np.uint16).reshape(n, ch)
         self.uno.tick(samples, sync_in)
 
     def close(self) -> None:
@@ -133,8 +166,20 @@ class SimulatedRig:
 
     # ------------------------------------------------------------------ operator actions
     def set_texture(self, letter: str, textures=None) -> None:
-        """Mount texture plate ``letter`` (a label of ``textures``, default the paper's A-P) on the drum (the
-        operator's action on the real rig)."""
+        """Mount texture plate ``letter`` (a label of ``textures``, default the paper's A-P, or of the replay
+        source's texture set) on the drum (the operator's action on the real rig).
+
+        A replay source that follows plates (``mount``) streams that texture's recordings next; a label it has
+        no recording of is logged and the source keeps streaming what it streamed."""
+        mount = getattr(self.source, "mount", None)
+        if mount is not None:
+            try:
+                mount(letter)
+            except KeyError as exc:
+                log.warning("replay: %s; streaming on", exc)
+        own = getattr(self.source, "textures", None)
+        if textures is None and own is not None and letter in own.labels:
+            textures = own  # the model renders the replayed set's plate (the drum's force loop sees it)
         self.model.set_texture(letter, textures)
 
     def place_mass(self, mass_g: float) -> None:

@@ -1,4 +1,4 @@
-"""FabricSlide recordings (real tactile data, MIT licence): loading, resampling to 1 kHz, 10-bit mapping, import.
+"""FabricSlide recordings (real tactile data, MIT licence): loading, resampling to 1 kHz, 10-bit counts, import.
 
 Source: Wang et al. (2022), "Fabric Classification Using a Finger-Shaped Tactile Sensor via Robotic Sliding",
 Front. Neurorobot. 16:808222 (repository wngfra/FabricSlide); the subset lives in ``../shared/data/fabricslide``
@@ -6,10 +6,10 @@ Front. Neurorobot. 16:808222 (repository wngfra/FabricSlide); the subset lives i
 ``board/Board10mm_F<force>_V<velocity>mmps_0.csv``; columns ``timestamp`` (ms, ~28 ms apart), ``proximity1``,
 ``proximity2`` (ignored), ``channel1`` ... ``channel16`` (bias-subtracted capacitance counts).
 
-How the 16 taxels sit in the rig's 18-channel layout (docs/wire-protocol.md): FabricSlide ``channel1`` ...
-``channel16`` -> channels 0-15 in order; channels 16-17 carry the constant :data:`FILL_COUNTS` and are marked absent
-(``channel_present`` attribute, 16 x True + 2 x False). The CPM-Finger's taxels are not a 3x3x2 grid, so the
-top/bottom-layer meaning of channels 0-17 does not apply to this data.
+The FabricSlide preset of ``rigctl import`` (:func:`import_fabricslide`, command ``rigctl import-fabricslide``):
+the 16 taxels as 16 channels (:data:`FABRICSLIDE_SENSOR`, channel k = ``channel<k+1>``; the CPM-Finger's taxels are
+not a regular grid, so the layout is one row of 16; no padding), the fabrics and the Board10mm recordings in one
+file with their texture set (:data:`FABRICSLIDE_TEXTURES`: groups ``fabric`` and ``board``).
 
 10-bit map (deterministic, linear, documented in the session attributes): ``adc = clip(rint(counts * scale +
 offset), 0, 1023)`` with ``scale = 1``, ``offset = 0`` by default: the recorded values are integer counts between
@@ -27,13 +27,25 @@ from typing import Iterable
 
 import numpy as np
 
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.textures import TextureSet
+
 N_CHANNELS = 16
-N_TAXELS = 18
-FILL_COUNTS = 0
-#: ``channel_present`` attribute of imported sessions and replays: channels 0-15 real, 16-17 absent
-CHANNEL_PRESENT = np.array([True] * N_CHANNELS + [False] * (N_TAXELS - N_CHANNELS))
 DEFAULT_SCALE = 1.0
 DEFAULT_OFFSET = 0.0
+RATE_HZ = 1000.0
+FABRICS = ("BeigeCotton", "BrownCotton", "Canvas", "Linen")
+BOARDS = ("Board10mm",)
+
+#: the CPM-Finger as rigctl sees it after the import: 16 taxels in one row (not a regular grid; the source gives no
+#: pitch, the 5 mm default is not a measurement), resampled to 1 kHz, 10-bit counts
+FABRICSLIDE_SENSOR = SensorLayout.grid(
+    1, N_CHANNELS, 1, sample_rate_hz=RATE_HZ, adc_bits=10, layer_names=("taxels",), receptors=("",),
+    channel_names=[f"channel{k + 1}" for k in range(N_CHANNELS)], name="FabricSlide CPM-Finger (16 taxels)")
+
+#: the four fabrics and the ridged board, grouped; codes are positions in this set (stable for every import)
+FABRICSLIDE_TEXTURES = TextureSet.from_dict({"name": "FabricSlide", "textures": [*FABRICS, *BOARDS],
+                                             "groups": {"fabric": list(FABRICS), "board": list(BOARDS)}})
 
 _NAME = re.compile(r"^(?P<label>[A-Za-z0-9]+)_F(?P<force>\d+)_V(?P<vel>[-+]?\d+(?:\.\d+)?)mmps_(?P<rep>\d+)\.csv$")
 
@@ -198,22 +210,17 @@ def resample_to_1khz(timestamp_ms: np.ndarray, readings: np.ndarray) -> tuple[np
     return grid, out
 
 
-def to_adc(values: np.ndarray, *, scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET,
-           fill: int = FILL_COUNTS) -> np.ndarray:
-    """Map (m, 16) counts to the rig's (m, 18) 10-bit layout: ``clip(rint(v * scale + offset), 0, 1023)``.
-
-    Channels 0-15 = FabricSlide channel1-16; channels 16-17 = ``fill`` (absent, see :data:`CHANNEL_PRESENT`).
+def to_adc(values: np.ndarray, *, scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET) -> np.ndarray:
+    """Map (m, 16) counts to 10-bit ADC counts: ``clip(rint(v * scale + offset), 0, 1023)``.
 
     Returns
     -------
-    (m, 18) uint16
+    (m, 16) uint16, channel k = FabricSlide ``channel<k+1>``.
     """
     v = np.asarray(values, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != N_CHANNELS:
         raise ValueError(f"values must be (m, {N_CHANNELS}), got {v.shape}")
-    out = np.full((v.shape[0], N_TAXELS), int(fill), dtype=np.uint16)
-    out[:, :N_CHANNELS] = np.clip(np.rint(v * scale + offset), 0, 1023).astype(np.uint16)
-    return out
+    return np.clip(np.rint(v * scale + offset), 0, FABRICSLIDE_SENSOR.adc_max).astype(np.uint16)
 
 
 def _n_samples(rec: Recording, trim: float) -> int:
@@ -222,8 +229,8 @@ def _n_samples(rec: Recording, trim: float) -> int:
 
 
 def recording_adc(rec: Recording, *, scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET,
-                  fill: int = FILL_COUNTS, trim: float = 0.0) -> np.ndarray:
-    """A recording resampled to 1 kHz and mapped to 10 bits: ``(m, 18) uint16``.
+                  trim: float = 0.0) -> np.ndarray:
+    """A recording resampled to 1 kHz and mapped to 10 bits: ``(m, 16) uint16``.
 
     ``trim`` drops that fraction of the resampled samples at each end (the arm's acceleration ramps; the
     FabricSlide README suggests 0.10-0.15).
@@ -234,38 +241,51 @@ def recording_adc(rec: Recording, *, scale: float = DEFAULT_SCALE, offset: float
             raise ValueError("trim must be in [0, 0.5)")
         k = int(round(trim * values.shape[0]))
         values = values[k:values.shape[0] - k]
-    return to_adc(values, scale=scale, offset=offset, fill=fill)
+    return to_adc(values, scale=scale, offset=offset)
 
 
-def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_board: bool = False,
+def fabricslide_textures(labels: Iterable[str]) -> TextureSet:
+    """:data:`FABRICSLIDE_TEXTURES`, with any label it does not know appended (sorted) to the ``fabric`` group."""
+    extra = sorted(set(labels) - set(FABRICSLIDE_TEXTURES.labels))
+    if not extra:
+        return FABRICSLIDE_TEXTURES
+    fabrics = [lab for lab in (*FABRICS, *extra) if not lab.lower().startswith("board")]
+    boards = [*BOARDS, *(lab for lab in extra if lab.lower().startswith("board"))]
+    return TextureSet.from_dict({"name": "FabricSlide", "textures": [*fabrics, *boards],
+                                 "groups": {"fabric": fabrics, "board": boards}})
+
+
+def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_board: bool = True,
                        pattern: str = "*.csv", trim: float = 0.10, scale: float = DEFAULT_SCALE,
                        offset: float = DEFAULT_OFFSET, overwrite: bool = False, progress: bool = True) -> dict:
-    """Write the FabricSlide recordings as a session file (kind ``"fabricslide"``), taxels at 1 kHz, 10 bits.
+    """The FabricSlide preset of ``rigctl import``: the recordings as one session file (kind ``"fabricslide"``),
+    16 channels at 1 kHz, 10 bits (:data:`FABRICSLIDE_SENSOR`), fabrics and board together.
 
-    Labels (in the ``/plan`` table, so every analysis runs on this data): ``texture`` = a one-character code of
-    the fabric (``"1"`` ... in sorted label order, fabrics before the board: BeigeCotton 1, BrownCotton 2, Canvas 3,
-    Linen 4, Board10mm 5; the root attribute ``texture_labels`` maps codes to names and
-    every trial has a ``fabric`` attribute); ``speed_mm_s`` = ``abs(velocity)``; ``force_g`` = the arm's force
-    setpoint (not grams: attribute ``force_unit``); ``duration_s`` = samples / 1000 after trimming; ``repeat``.
-    Trial attributes: ``fabric``, ``velocity_mm_s`` (signed), ``direction`` (+1/-1), ``source_file``,
-    ``channel_present``, ``trim_fraction``. The speed trace holds the nominal speed at 10 Hz; there is no
-    load-cell trace. The mapping and the channel layout are root attributes too (``adc_map``, ``channel_present``).
+    Labels (in the ``/plan`` table): ``texture`` = the fabric's name (``BeigeCotton`` ... or ``Board10mm``) from
+    the texture set :data:`FABRICSLIDE_TEXTURES` (groups ``fabric``/``board``, codes fixed by the set);
+    ``speed_mm_s`` = ``abs(velocity)``; ``force_g`` = the arm's force setpoint (not grams: attribute
+    ``force_unit``); ``duration_s`` = samples / 1000 after trimming; ``repeat``. Trial attributes: ``fabric``,
+    ``velocity_mm_s`` (signed), ``direction`` (+1/-1), ``source_file``, ``trim_fraction``. The speed trace holds the
+    nominal speed at 10 Hz; there is no load-cell trace. Steps (linear resampling from the timestamps, the 10-bit
+    map, the trim) are root attributes (``adc_map``, ``resampling``, ``import_steps``).
 
     Returns
     -------
-    dict with ``path``, ``n_trials``, ``samples``, ``labels`` (code -> name).
+    dict with ``path``, ``n_trials``, ``samples``, ``labels`` (the texture labels present), ``textures``.
+
+    Raises
+    ------
+    FileNotFoundError (no files), FileExistsError (``out_path`` exists without ``overwrite``).
     """
-    from rigctl.storage.session import SessionWriter, TrialData
+    from rigctl.core.trial import TrialData
+    from rigctl.storage.importers import _check_paths, write_session
 
     files = list_files(directory, include_board=include_board, pattern=pattern)
     if not files:
         raise FileNotFoundError(f"no FabricSlide files matching {pattern!r} under {directory}")
+    _check_paths(files, Path(out_path), overwrite)
     names = [parse_name(p.name) for p in files]
-    # fabrics first, then boards, each sorted: a fabric keeps its code whether or not the board is included
-    labels = sorted({n["label"] for n in names}, key=lambda lab: (lab.lower().startswith("board"), lab))
-    if len(labels) > 9:
-        raise ValueError(f"at most 9 distinct labels fit the one-character texture code, got {len(labels)}")
-    code = {lab: str(i + 1) for i, lab in enumerate(labels)}
+    textures = fabricslide_textures(n["label"] for n in names)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -274,22 +294,16 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     for i, path in enumerate(files):
         rec = read_recording(path)
         recs.append(rec)
-        plan.append({"trial_id": i, "texture": code[rec.label], "speed_mm_s": rec.speed_mm_s,
-                     "force_g": rec.force_setpoint, "duration_s": _n_samples(rec, trim) / 1000.0,
+        plan.append({"trial_id": i, "texture": rec.label, "speed_mm_s": rec.speed_mm_s,
+                     "force_g": rec.force_setpoint, "duration_s": _n_samples(rec, trim) / RATE_HZ,
                      "profile": "constant", "repeat": rec.repeat})
         if bar is not None:
             bar.update(1)
     adc_map = {"formula": "adc = clip(rint(counts * scale + offset), 0, 1023)", "scale": scale, "offset": offset,
-               "fill_channels_16_17": FILL_COUNTS, "resampling": "linear interpolation onto a 1 ms grid from the "
-               "first timestamp; repeated timestamps: first sample kept", "trim_fraction_each_end": trim}
-    writer = SessionWriter.create(
-        out_path, plan=plan, protocol_source="", protocol_name="fabricslide-import", protocol_format="none",
-        rig_config={"source": "FabricSlide (wngfra/FabricSlide, MIT licence)", "directory": str(directory),
-                    "sensor": "CPM-Finger capacitive, 16 taxels", "adc_map": adc_map},
-        kind="fabricslide", overwrite=overwrite,
-        attrs={"texture_labels": json.dumps({v: k for k, v in code.items()}), "channel_present": CHANNEL_PRESENT,
-               "adc_map": json.dumps(adc_map), "force_unit": "FabricSlide arm force-loop setpoint (not grams)",
-               "channel_map": "channels 0-15 = FabricSlide channel1-16; channels 16-17 absent (constant fill)"})
+               "resampling": "linear interpolation onto a 1 ms grid from the first timestamp; repeated timestamps: "
+               "first sample kept", "trim_fraction_each_end": trim}
+    resampling = {"method": "linear interpolation (numpy.interp) from the timestamps", "from_hz": "irregular (~35.7)",
+                  "to_hz": RATE_HZ}
     samples = 0
 
     def items():
@@ -297,23 +311,33 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
         for i, rec in enumerate(recs):
             adc = recording_adc(rec, scale=scale, offset=offset, trim=trim)
             n = adc.shape[0]
-            t = np.arange(0, n, 100) / 1000.0
+            t = np.arange(0, n, 100) / RATE_HZ
             samples += n
             if bar is not None:
                 bar.update(1)
             yield i, TrialData(
-                taxels=adc, speed_mm_s=np.full(t.size, rec.speed_mm_s), speed_time_s=t,
+                taxels=adc, speed_mm_s=np.full(t.size, rec.speed_mm_s), speed_time_s=t, layout=FABRICSLIDE_SENSOR,
                 attrs={"fabric": rec.label, "velocity_mm_s": rec.velocity_mm_s, "direction": rec.direction,
-                       "source_file": f"{rec.kind}/{rec.path.name}", "channel_present": CHANNEL_PRESENT,
-                       "trim_fraction": trim, "source": "fabricslide"})
+                       "source_file": f"{rec.kind}/{rec.path.name}", "trim_fraction": trim, "source": "fabricslide"})
 
     try:
-        writer.write_trials(items())
+        write_session(
+            out_path, plan, items(), layout=FABRICSLIDE_SENSOR, textures=textures, kind="fabricslide",
+            protocol_name="fabricslide-import", overwrite=overwrite,
+            rig_config={"source": "FabricSlide (wngfra/FabricSlide, MIT licence)", "directory": str(directory),
+                        "sensor": "CPM-Finger capacitive, 16 taxels", "adc_map": adc_map},
+            attrs={"adc_map": json.dumps(adc_map), "resampling": json.dumps(resampling),
+                   "segmentation": json.dumps({"method": "none (one file = one trial)"}),
+                   "import_steps": json.dumps({"preset": "fabricslide", "adc_map": adc_map,
+                                               "resampling": resampling, "files": len(files)}),
+                   "force_unit": "FabricSlide arm force-loop setpoint (not grams)",
+                   "channel_map": "channel k = FabricSlide channel<k+1> (16 channels)"})
     finally:
         if bar is not None:
             bar.close()
-    return {"path": str(out_path), "n_trials": len(recs), "samples": samples,
-            "labels": {v: k for k, v in code.items()}}
+    present = sorted({p["texture"] for p in plan}, key=textures.code)
+    return {"path": str(out_path), "n_trials": len(recs), "samples": samples, "labels": present,
+            "textures": list(textures.labels)}
 
 
 def iter_adc_blocks(recordings: Iterable[Recording], **kw) -> Iterable[np.ndarray]:

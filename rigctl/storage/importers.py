@@ -76,7 +76,7 @@ from rigctl.core.trial import TrialData
 __all__ = [
     "RecordingImportError", "ImportedTrial", "FORMATS", "read_recording_file", "parse_label_pattern",
     "labels_from_name", "resample", "to_counts", "segment", "parse_segment", "load_mapping", "import_recordings",
-    "write_imported_session",
+    "write_imported_session", "write_session",
 ]
 
 #: extension -> format name
@@ -517,8 +517,6 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
     Returns ``{"path", "n_trials", "samples", "rate_hz", "n_channels", "textures"}``.
     Raises FileExistsError (``out`` exists, no ``overwrite``), RecordingImportError (no trials).
     """
-    from rigctl.storage.session import SessionWriter
-
     if not trials:
         raise RecordingImportError("nothing to import: no trials (check the files and --segment)")
     counters: dict[tuple, int] = {}
@@ -536,9 +534,6 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
                      "repeat": int(rep)})
     if textures is None:
         textures = texture_set_from_labels(p["texture"] for p in plan)
-    writer = SessionWriter.create(out, plan=plan, layout=layout, textures=textures, protocol_name=protocol_name,
-                                  protocol_format="none", rig_config=dict(rig_config or {}), kind=kind,
-                                  overwrite=overwrite, attrs=dict(attrs or {}))
     samples = 0
 
     def items():
@@ -547,9 +542,24 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
             samples += t.counts.shape[0]
             yield i, TrialData(taxels=t.counts, layout=layout, attrs=dict(t.attrs))
 
-    writer.write_trials(items())
+    write_session(out, plan, items(), layout=layout, textures=textures, kind=kind, attrs=attrs,
+                  rig_config=rig_config, protocol_name=protocol_name, overwrite=overwrite)
     return {"path": str(out), "n_trials": len(trials), "samples": samples, "rate_hz": layout.sample_rate_hz,
             "n_channels": layout.n_channels, "textures": list(textures.labels)}
+
+
+def write_session(out: str | os.PathLike, plan: Sequence[Mapping], items: Iterable[tuple[int, TrialData]], *,
+                  layout: SensorLayout, textures: TextureSet, kind: str = "recorded", attrs: Mapping | None = None,
+                  rig_config: Mapping | None = None, protocol_name: str = "import", overwrite: bool = False) -> None:
+    """Create the session (``SessionWriter.create(out, plan=, layout=, textures=, ...)``) and write ``items``
+    (``(trial_id, TrialData)`` pairs, produced lazily: a large import never holds every trial in memory) in one
+    opening of the file. Raises FileExistsError when ``out`` exists without ``overwrite``."""
+    from rigctl.storage.session import SessionWriter
+
+    writer = SessionWriter.create(out, plan=plan, layout=layout, textures=textures, protocol_name=protocol_name,
+                                  protocol_format="none", rig_config=dict(rig_config or {}), kind=kind,
+                                  overwrite=overwrite, attrs=dict(attrs or {}))
+    writer.write_trials(items)
 
 
 def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike, *, rate_hz: float | None = None,

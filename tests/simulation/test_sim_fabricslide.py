@@ -9,7 +9,8 @@ import pytest
 from click.testing import CliRunner
 
 from rigctl.storage.fabricslide import (
-    CHANNEL_PRESENT,
+    FABRICSLIDE_SENSOR,
+    FABRICSLIDE_TEXTURES,
     list_files,
     load_fabricslide,
     parse_name,
@@ -88,12 +89,12 @@ def test_resampling_matches_a_per_sample_reference(fabricslide_dir):
     on_grid = (rec.timestamp_ms - rec.timestamp_ms[0]).astype(int)
     np.testing.assert_array_equal(values[on_grid], rec.readings)
     adc = to_adc(values)
-    assert adc.shape == (grid.size, 18) and adc.dtype == np.uint16
-    np.testing.assert_array_equal(adc[on_grid, :16], rec.readings.astype(np.uint16))
-    assert np.all(adc[:, 16:] == 0)
+    assert adc.shape == (grid.size, 16) and adc.dtype == np.uint16  # 16 channels as 16 channels: no padding
+    np.testing.assert_array_equal(adc[on_grid], rec.readings.astype(np.uint16))
 
 
-def test_import_writes_a_labelled_session(fabricslide_dir, tmp_path):
+def test_import_writes_fabrics_and_board_in_one_session(fabricslide_dir, tmp_path):
+    """The FabricSlide preset: 16 channels as 16, fabrics and the board in one file with their texture set."""
     from rigctl.cli import main
 
     out = tmp_path / "fs.h5"
@@ -102,18 +103,30 @@ def test_import_writes_a_labelled_session(fabricslide_dir, tmp_path):
     assert result.exit_code == 0, result.output
     with open_session(out) as s:
         assert s.kind == "fabricslide"
-        labels = json.loads(s.attrs["texture_labels"])
-        assert labels == {"1": "BeigeCotton", "2": "BrownCotton", "3": "Canvas", "4": "Linen"}
-        np.testing.assert_array_equal(s.attrs["channel_present"], CHANNEL_PRESENT)
-        assert len(s.plan) == 4 * 12  # 4 fabrics x 12 signed velocities, repeat 0, force 150
-        assert set(s.plan["speed_mm_s"]) == {10, 20, 50, 100, 120, 150}
-        row = s.plan[5]
-        t = s.trial(int(row["trial_id"]))
-        rec = load_fabricslide(fabricslide_dir, pattern=t.attrs["source_file"].split("/")[1])[0]
-        assert labels[row["texture"]] == rec.label == t.attrs["fabric"]
-        assert row["speed_mm_s"] == abs(rec.velocity_mm_s) and t.attrs["velocity_mm_s"] == rec.velocity_mm_s
-        assert row["force_g"] == 150
-        _, values = resample_to_1khz(rec.timestamp_ms, rec.readings)
-        k = int(round(0.1 * values.shape[0]))
-        np.testing.assert_array_equal(t.taxels, to_adc(values[k:values.shape[0] - k]))
-        assert t.n_samples == round(row["duration_s"] * 1000)
+        assert s.layout == FABRICSLIDE_SENSOR and s.layout.n_channels == 16 and s.layout.sample_rate_hz == 1000
+        assert s.textures.labels == FABRICSLIDE_TEXTURES.labels == (
+            "BeigeCotton", "BrownCotton", "Canvas", "Linen", "Board10mm")
+        assert s.textures.group_of("Linen") == "fabric" and s.textures.group_of("Board10mm") == "board"
+        fabrics = s.plan[s.plan["texture"] != "Board10mm"]
+        boards = s.plan[s.plan["texture"] == "Board10mm"]
+        assert len(fabrics) == 4 * 12  # 4 fabrics x 12 signed velocities, repeat 0, force 150
+        assert len(boards) == 4  # the board at -5, -10, -20, -30 mm/s
+        assert set(fabrics["speed_mm_s"]) == {10, 20, 50, 100, 120, 150}
+        assert set(boards["speed_mm_s"]) == {5, 10, 20, 30}
+        assert json.loads(s.attrs["resampling"])["to_hz"] == 1000
+        for row in (s.plan[5], boards[0]):
+            t = s.trial(int(row["trial_id"]))
+            assert t.taxels.shape[1] == 16 and t.layout == FABRICSLIDE_SENSOR
+            kind, name = t.attrs["source_file"].split("/")
+            rec = read_recording(fabricslide_dir / kind / name)
+            assert row["texture"] == rec.label == t.attrs["fabric"]
+            assert row["speed_mm_s"] == abs(rec.velocity_mm_s) and t.attrs["velocity_mm_s"] == rec.velocity_mm_s
+            assert row["force_g"] == 150
+            _, values = resample_to_1khz(rec.timestamp_ms, rec.readings)
+            k = int(round(0.1 * values.shape[0]))
+            np.testing.assert_array_equal(t.taxels, to_adc(values[k:values.shape[0] - k]))
+            assert t.n_samples == round(row["duration_s"] * 1000)
+    # the same output again is refused without --overwrite
+    again = CliRunner().invoke(main, ["import-fabricslide", str(fabricslide_dir), "--out", str(out),
+                                      "--pattern", "Linen_F150_V10mmps_0.csv", "--quiet"])
+    assert again.exit_code != 0 and "--overwrite" in again.output and "Traceback" not in again.output
