@@ -1,6 +1,6 @@
 """The main window and the application entry point.
 
-``python -m gui.app [--drum-port P --taxel-port P] [--replay DIR] [--screenshot PATH --quit-after S] [--tab NAME]``
+``python -m gui.app [--drum-port P --taxel-port P] [--replay PATH] [--screenshot PATH --quit-after S] [--tab NAME]``
 (also ``rigctl gui``). With no ports the app starts on the simulated rig.
 
 The window holds a big STOP button that is always visible, a non-modal banner for disconnects, one tab per panel
@@ -249,8 +249,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="rigctl gui", description="The rigctl desktop app.")
     ap.add_argument("--drum-port", help="serial port of the drum controller (Mega)")
     ap.add_argument("--taxel-port", help="serial port of the taxel streamer (Uno)")
-    ap.add_argument("--replay", metavar="DIR",
-                    help="stream the FabricSlide recordings in DIR through the simulated rig")
+    ap.add_argument("--replay", metavar="PATH",
+                    help="stream recorded taxel signals through the simulated rig: a session file (at its own rate "
+                    "and sensor layout) or a FabricSlide directory")
     ap.add_argument("--screenshot", metavar="PATH", help="save a PNG of the main window before quitting")
     ap.add_argument("--quit-after", type=float, metavar="SECONDS", help="quit after this many seconds")
     ap.add_argument("--tab", choices=TAB_NAMES, help="tab to show first")
