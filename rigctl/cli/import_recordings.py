@@ -8,7 +8,7 @@ import click
 
 
 @click.command("import")
-@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("files", nargs=-1, required=True, type=click.Path())
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
 @click.option("--rate", "rate_hz", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Sample rate of the recordings, Hz (required unless the mapping or an NWB file gives it).")
@@ -30,10 +30,12 @@ import click
               help="The recordings are volts with this ADC reference (default: they are counts).")
 @click.option("--bits", "adc_bits", type=click.IntRange(1, 16), default=None,
               help="ADC resolution of the stored counts [default: 10].")
+@click.option("--preset", type=click.Choice(["fabricslide"]), default=None,
+              help="A known dataset: FILES is its folder (fabricslide = rigctl import-fabricslide's defaults).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      mapping, volts_ref, adc_bits, overwrite, as_json):
+                      mapping, volts_ref, adc_bits, preset, overwrite, as_json):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
@@ -42,6 +44,19 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     """
     from rigctl.storage.importers import RecordingImportError, import_recordings as run
 
+    if preset == "fabricslide":
+        from rigctl.storage.fabricslide import import_fabricslide
+
+        if len(files) != 1:
+            raise click.UsageError("--preset fabricslide takes one FILES argument: the FabricSlide folder")
+        try:
+            summary = import_fabricslide(files[0], out, overwrite=overwrite, progress=False)
+        except (FileNotFoundError, FileExistsError, ValueError) as exc:
+            raise click.ClickException(str(exc)) from None
+        click.echo(json.dumps(summary) if as_json else
+                   f"{summary['n_trials']} trials, 16 channels at 1000 Hz -> {summary['path']} "
+                   f"(textures: {', '.join(summary['labels'])})")
+        return
     try:
         summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
                       texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, mapping=mapping,

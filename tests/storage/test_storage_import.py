@@ -263,3 +263,30 @@ def test_volts_with_a_reference(tmp_path):
     with open_session(out) as s:
         np.testing.assert_array_equal(s.trial(0).taxels, counts)
         assert json.loads(s.attrs["import_steps"])["value_scale"]["unit"] == "volts"
+
+
+def test_fabricslide_preset_fabrics_and_board_in_one_16_channel_file(fabricslide_dir, tmp_path):
+    """The FabricSlide preset (real files, read in place): 16 channels as 16 at 1 kHz, fabrics and board in one
+    session with the FabricSlide texture set; the same via `rigctl import --preset fabricslide` is refused for two
+    folders, and the output is not overwritten."""
+    from rigctl.storage.fabricslide import (FABRICSLIDE_SENSOR, import_fabricslide, read_recording,
+                                            resample_to_1khz, to_adc)
+
+    out = tmp_path / "fs.h5"
+    summary = import_fabricslide(fabricslide_dir, out, pattern="*_F150_V-20mmps_0.csv", trim=0.0, progress=False)
+    assert summary["labels"] == ["BeigeCotton", "BrownCotton", "Canvas", "Linen", "Board10mm"]
+    with open_session(out) as s:
+        assert s.layout == FABRICSLIDE_SENSOR and s.layout.n_channels == 16
+        assert list(s.plan["texture"]) == ["BeigeCotton", "BrownCotton", "Canvas", "Linen", "Board10mm"]
+        assert [s.textures.group_of(t) for t in s.plan["texture"]] == ["fabric"] * 4 + ["board"]
+        assert [s.textures.code(t) for t in s.plan["texture"]] == [0, 1, 2, 3, 4]
+        for row in s.plan:
+            t = s.trial(int(row["trial_id"]))
+            kind, name = t.attrs["source_file"].split("/")
+            rec = read_recording(fabricslide_dir / kind / name)
+            np.testing.assert_array_equal(t.taxels, to_adc(resample_to_1khz(rec.timestamp_ms, rec.readings)[1]))
+    r = run(fabricslide_dir, fabricslide_dir, "--preset", "fabricslide", "--out", tmp_path / "x.h5")
+    assert r.exit_code != 0 and "one FILES argument" in r.output
+    before = out.stat().st_mtime_ns
+    r = run(fabricslide_dir, "--preset", "fabricslide", "--out", out)
+    assert r.exit_code != 0 and "--overwrite" in r.output and out.stat().st_mtime_ns == before
