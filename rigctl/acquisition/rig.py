@@ -241,7 +241,7 @@ class Rig:
         out.update({
             "sensor_layout": self.layout.to_dict(),
             "texture_set": self.textures.to_dict(),
-            "taxel_streamer": {k: v for k, v in (getattr(self.stream, "banner", None) or {}).items()},
+            "taxel_streamer": {k: v for k, v in (self.stream.banner or {}).items()},
             "host_config_path": self.host_config_path,
             "host_config": self.host_config,
         })

@@ -64,8 +64,11 @@ class DrumController(Protocol):
 class TaxelSource(Protocol):
     """A stream of taxel frames: open, start/stop, captures of whole trials, a ring buffer for live views.
 
-    ``layout`` is the sensor the frames come from (the board's identify reply decides it).
+    ``layout`` is the sensor the frames come from (the board's identify reply decides it); ``banner`` the parsed
+    identify reply (None before :meth:`open`).
     """
+
+    banner: dict | None
 
     @property
     def layout(self) -> SensorLayout: ...

@@ -168,6 +168,13 @@ def test_texture_setter_and_threaded_advance():
     assert rig.texture.letter == "N"
     with pytest.raises(KeyError):
         rig.set_texture("Z")
+    from rigctl.core import TextureSet
+
+    rig.set_texture("Z", TextureSet(["Z", "Velvet-7"]))  # any label of a set (geometry derived from the label)
+    assert rig.texture.label == "Z"
+    rig.set_texture("Velvet-7", TextureSet(["Z", "Velvet-7"]))
+    assert rig.texture.label == "Velvet-7"
+    rig.set_texture("N")
     errors = []
 
     def run():

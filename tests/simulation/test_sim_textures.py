@@ -59,3 +59,27 @@ def test_spacing_is_comparable_to_the_feature_window():
     for p in periods:
         assert abs(12.0 / p - round(12.0 / p)) > 0.1, p
 
+
+
+def test_any_texture_set_renders():
+    from rigctl.core import TextureSet, TextureSpec
+    from rigctl.simulation.textures import derived_geometry
+
+    ts = TextureSet([TextureSpec("Linen", "woven", {"kind": "wave", "height_mm": 0.5, "period_mm": 12.0}),
+                     TextureSpec("HB3", "knit", {"period_mm": 8.0}), "Velvet"], name="lab")
+    linen = get_texture("Linen", ts)
+    assert (linen.label, linen.kind, linen.height_mm, linen.period_mm, linen.width_mm) == ("Linen", "wave", 0.5,
+                                                                                           12.0, 12.0)
+    hb3 = get_texture("hb3", ts)  # case-insensitive when unique; the kind and height come from the label
+    assert hb3.label == "HB3" and hb3.period_mm == 8.0 and hb3.kind == derived_geometry("HB3")["kind"]
+    velvet = get_texture("Velvet", ts)
+    geo = derived_geometry("Velvet")
+    assert (velvet.kind, velvet.height_mm, velvet.period_mm) == (geo["kind"], geo["height_mm"], geo["period_mm"])
+    assert derived_geometry("Velvet") == geo  # deterministic
+    assert velvet.index == -1 and get_texture("B").index == 1
+    x = np.linspace(0, 60, 601)
+    assert velvet.height(x).max() == pytest.approx(velvet.height_mm, rel=0.05)
+    with pytest.raises(KeyError):
+        get_texture("Silk", ts)
+    with pytest.raises(KeyError):
+        get_texture("Linen")  # not one of the paper's plates
