@@ -9,8 +9,9 @@ Kinds:
 - ``"sim"``: the simulated rig (:class:`rigctl.simulation.rig.SimulatedRig`: physical model, virtual Mega and Uno
   on real ptys, real-time physics clock); options ``config`` (RigConfig), ``seed``.
 - ``"replay"``: the simulated rig streaming recorded taxel signals instead of the model's sensor; option
-  ``source``: a replay source object (with ``read(n)``), or a path: a directory of FabricSlide CSV files
-  (:class:`rigctl.simulation.replay.FabricSlideReplay`) or a session file (the replay module's session source).
+  ``source``: a replay source object (with ``read(n)``), or a path: a session file
+  (:class:`rigctl.simulation.replay.SessionReplay`: its own layout, rate and texture set, following the plates
+  mounted) or a directory of FabricSlide CSV files (:class:`rigctl.simulation.replay.FabricSlideReplay`).
 - ``"hil"``: the rig's firmware images under simavr (:class:`rigctl.simulation.hil.HilRig`); ``config``, ``seed``.
 - ``"hardware"``: the real boards on ``drum_port`` and ``taxel_port`` (:class:`rigctl.devices.backend.SerialBackend`);
   plates mounted by the operator (``prompt``).
@@ -76,7 +77,9 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
         if kind == "replay":
             if source is None:
                 raise RigError("the replay rig needs a source (a session file, a FabricSlide directory, or a source)")
-            sim = SimulatedRig(config, seed=seed, source=replay_source(source), **options)
+            src = replay_source(source)
+            textures = textures or getattr(src, "textures", None)  # a session replays with its own texture set
+            sim = SimulatedRig(config, seed=seed, source=src, **options)
         else:
             if source is not None:
                 raise RigError("a replay source selects kind='replay'")

@@ -192,9 +192,7 @@ class Rig:
     @property
     def layout(self) -> SensorLayout:
         """The sensor the taxel source streams (its identify reply): channels, grid, rate, ADC bits."""
-        # TaxelStream gains ``layout`` with issue 9 (H5); until then the wire spec's sensor is the paper's
-        layout = getattr(self.stream, "layout", None)
-        return layout if isinstance(layout, SensorLayout) else PAPER_SENSOR
+        return self.stream.layout
 
     @property
     def textures(self) -> TextureSet:

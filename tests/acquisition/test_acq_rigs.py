@@ -1,0 +1,49 @@
+"""The composition root rigctl.rigs.open_rig: refusals in one line, and a replay rig opened on a session file
+recorded in-process: the rig takes the session's texture set and sensor layout and records trials from it."""
+
+from __future__ import annotations
+
+import pytest
+
+from rigctl.acquisition.protocol import parse_protocol
+from rigctl.acquisition.rig import RigError
+from rigctl.acquisition.runner import run_protocol
+from rigctl.core import PlannedTrial, RigBackend
+from rigctl.rigs import KINDS, make_backend, open_rig
+from rigctl.storage.session import open_session
+
+
+@pytest.mark.parametrize("kind,options,words", [
+    ("moon", {}, "unknown rig kind"),
+    ("hardware", {"drum_port": "/dev/null"}, "needs both drum_port and taxel_port"),
+    ("sim", {"drum_port": "/dev/a", "taxel_port": "/dev/b"}, "select the hardware rig"),
+    ("replay", {}, "needs a source"),
+    ("replay", {"source": "/no/such/file.h5"}, "no such file"),
+])
+def test_open_rig_refusals(kind, options, words):
+    with pytest.raises(RigError, match=words):
+        open_rig(kind, **options)
+
+
+def test_every_kind_builds_a_backend(tmp_path):
+    for kind in ("sim", "hardware", "inprocess"):
+        opts = {"drum_port": "/dev/x", "taxel_port": "/dev/y"} if kind == "hardware" else {}
+        backend = make_backend(kind, **opts)
+        assert isinstance(backend, RigBackend) and backend.mode == kind
+    assert set(KINDS) == {"sim", "hil", "hardware", "replay", "inprocess"}
+
+
+def test_replay_rig_on_a_session_file(tmp_path):
+    proto = parse_protocol('name = "src"\ntextures = ["Linen-1", "Tweed-22"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+                           'duration_s = 0.3\n[settle]\nsettle_time_ms = 50\n'
+                           '[texture_set]\ntextures = ["Linen-1", "Tweed-22"]\n')
+    src = tmp_path / "src.h5"
+    with open_rig("inprocess", seed=1, host_config_path=tmp_path / "rig.json") as rig:
+        assert run_protocol(proto, src, rig=rig, progress=False).ok
+    with open_session(src) as s:
+        layout, textures = s.layout, s.textures
+    with open_rig("replay", source=src, host_config_path=tmp_path / "rig.json") as rig:
+        assert rig.mode == "replay" and rig.textures == textures and rig.layout == layout
+        rig.mount_texture("Tweed-22")
+        data = rig.record_trial(PlannedTrial(0, "Tweed-22", 120.0, 300.0, 0.2))
+    assert data.taxels.shape == (200, layout.n_channels)
