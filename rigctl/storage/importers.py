@@ -6,9 +6,10 @@
 Steps, each explicit and recorded in the session's root attributes (``import_steps``, JSON):
 
 1. **Read** (format from the extension): ``.csv`` (one column per channel; a header row is detected and skipped;
-   ``columns`` / ``time_column`` in the mapping pick columns by name or 0-based index), ``.npy`` / ``.npz``
+   ``columns`` / ``time_column`` in the mapping pick columns by name or 0-based index; a header column named
+   ``time``/``timestamp``/``t`` is not a channel), ``.npy`` / ``.npz``
    (a ``(n_samples, n_channels)`` array, or ``(n_trials, n_samples, n_channels)`` for stacked trials; in an NPZ the
-   array named by ``variable`` or the only / largest one), MATLAB ``.mat`` (``scipy.io.loadmat``; v7.3 files through
+   array named by ``variable`` or the only / largest one; a scalar ``rate_hz`` in it gives the rate), MATLAB ``.mat`` (``scipy.io.loadmat``; v7.3 files through
    h5py, transposed back from MATLAB's column-major order), NWB (``.nwb``, a ``TimeSeries`` read with pynwb; its
    ``rate`` is used when no rate is given). Arrays are turned to ``(n_samples, n_channels)`` (a ``(channels, n)``
    array is transposed when the channel count says so, or when it has more columns than rows).
@@ -129,6 +130,9 @@ def _as_blocks(arr: np.ndarray, channels: int | None, where: str) -> list[np.nda
     return [_orient(arr, channels, where)]
 
 
+_TIME_NAME = re.compile(r"^(time|timestamp|timestamps|t|time_s|time_ms|seconds)$", re.I)
+
+
 def _sniff_delimiter(line: str) -> str | None:
     for d in (",", ";", "\t"):
         if d in line:
@@ -166,6 +170,8 @@ def _read_csv(path: Path, channels: int | None, columns: Sequence | None, time_c
         keep = [index(c) for c in columns]
     else:
         skip = {index(time_column)} if time_column is not None else set()
+        if time_column is None and header is not None:  # a time column named as such is not a taxel
+            skip |= {i for i, name in enumerate(header) if _TIME_NAME.match(name)}
         keep = [i for i in range(data.shape[1]) if i not in skip]
     out = data[:, keep]
     if channels is not None and out.shape[1] != channels:
@@ -258,7 +264,7 @@ def read_recording_file(path: str | os.PathLike, *, channels: int | None = None,
     if fmt is None:
         raise RecordingImportError(f"{path}: unknown format {path.suffix!r} (known: {', '.join(sorted(FORMATS))})")
     if not path.is_file():
-        raise RecordingImportError(f"{path}: no such file")
+        raise RecordingImportError(f"{path}: {'a folder, not a recording file' if path.is_dir() else 'no such file'}")
     rate = None
     meta: dict = {"format": fmt}
     if fmt == "csv":

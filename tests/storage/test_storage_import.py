@@ -111,6 +111,11 @@ def test_csv_without_header_and_v73_mat(tmp_path):
     blocks, rate, meta = read_recording_file(p)
     assert rate is None and meta["format"] == "csv"
     np.testing.assert_array_equal(blocks[0], data)
+    # a header with a time column: the time is not a channel; semicolons work too
+    q = tmp_path / "timed.csv"
+    q.write_text("time;a;b\n" + "\n".join(f"{i / 100};{r[0]};{r[1]}" for i, r in enumerate(data)) + "\n")
+    blocks, _, _ = read_recording_file(q)
+    np.testing.assert_array_equal(blocks[0], data[:, :2])
     # MATLAB v7.3 is HDF5 with a 512-byte MATLAB header; MATLAB writes arrays column-major (h5py sees (c, n))
     mat = tmp_path / "v73.mat"
     with h5py.File(mat, "w", userblock_size=512) as f:
