@@ -193,6 +193,10 @@ class LiveView(QtWidgets.QWidget):
             self.raster_curves[key] = c
         self.raster_plots["ra"].setLabel("bottom", "time before now (s)")
         self.trace_plots[-1].setLabel("bottom", "time before now (s)")
+        # the traces get at least as much height as the two rasters (a single layer: twice a raster's)
+        grid = self.gl.ci.layout
+        for row in range(n_layers + 2):
+            grid.setRowStretchFactor(row, 2 if n_layers == 1 and row == 0 else 1)
 
     def set_window(self, seconds: float) -> None:
         """Show the last ``seconds`` (1-10 s) of the taxel traces."""

@@ -1,0 +1,95 @@
+"""The whole app on the simulated rig replaying a non-default sensor: recordings of a 3x3 single-layer sensor at 100 Hz
+(generated CSVs, imported with ``rigctl import``) streamed through the simulated taxel board. The live view shows
+one 3x3 heat map, 9 traces at 100 Hz and 9-row rasters; the plate list is the session's texture set, and mounting a
+plate in the control panel replays that texture's recordings (its own frequency on screen)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gui.events import wait_for
+
+RATE_HZ = 100
+#: texture -> the sine frequency of its recordings (Hz)
+TEXTURES = {"Denim": 3.0, "Silk": 0.75}
+
+
+@pytest.fixture(scope="module")
+def finger_session(tmp_path_factory):
+    """A session file of 9 channels at 100 Hz, textures Denim and Silk, 8 s per trial (rigctl import from CSV)."""
+    d = tmp_path_factory.mktemp("finger")
+    rng = np.random.default_rng(3)
+    t = np.arange(8 * RATE_HZ) / RATE_HZ
+    for tex, f0 in TEXTURES.items():
+        for rep in range(2):
+            x = (np.linspace(250, 650, 9)[None, :] + 150 * np.sin(2 * np.pi * f0 * t[:, None] + 0.5 * np.arange(9))
+                 + rng.normal(0, 4, (len(t), 9)))
+            np.savetxt(d / f"{tex}__V40__{rep}.csv", np.rint(x).astype(int), fmt="%d", delimiter=",")
+    out = d / "finger.h5"
+    files = sorted(str(p) for p in d.glob("*.csv"))
+    cmd = [sys.executable, "-c", "from rigctl.cli import main; main()", "import", *files, "--rate", str(RATE_HZ),
+           "--layout", "3x3x1", "--label-pattern", "{texture}__V{speed_mm_s}__{rep}.csv", "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return out
+
+
+def _dominant_hz(x: np.ndarray, rate_hz: float) -> float:
+    x = x.astype(float) - x.mean()
+    f = np.fft.rfftfreq(len(x), 1.0 / rate_hz)
+    return float(f[np.argmax(np.abs(np.fft.rfft(x)))])
+
+
+def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session):
+    from gui.app import MainWindow, configure_pyqtgraph
+    from gui.workers import RigSource
+    from rigctl.devices.wire import DrumState
+
+    configure_pyqtgraph()
+    w = MainWindow(RigSource("replay", replay_dir=str(finger_session)))
+    w.resize(1400, 900)
+    w.show()
+    try:
+        assert wait_for(qapp, lambda: w.handle is not None or "Could not" in w.banner.label.text(), 90), \
+            w.banner.label.text()
+        assert w.handle is not None, w.banner.label.text()
+        live, panel = w.live, w.control
+        # the plots follow the stream's layout
+        assert (live.layout.n_channels, live.layout.sample_rate_hz) == (9, 100.0)
+        assert len(live.images) == 1 and live.images[0].image.shape == (3, 3)
+        assert len(live.curves) == 9 and len(live.trace_plots) == 1
+        assert "(9 trains)" in live.raster_plots["sa"].titleLabel.text
+        assert w.encoder.layout.n_channels == 9
+        assert len(w.calibration.norm_bars.opts["x"]) == 9
+        # the plate list is the session's texture set; mounting Silk replays Silk's recordings
+        assert [panel.plate.itemText(i) for i in range(panel.plate.count())] == sorted(TEXTURES)
+        w.tabs.setCurrentWidget(live)
+        panel.speed.setValue(40.0)
+        panel.force.setValue(500.0)
+        panel.mount_plate("silk")
+        panel.command("run")
+        assert wait_for(qapp, lambda: w.poller.latest is not None and w.poller.latest.state == DrumState.RUNNING
+                        and getattr(w.handle.rig, "texture", None) == "Silk", 60), (panel.message.text(),
+                                                                                  w.poller.latest)
+        n0 = live.buffer.n_samples if live.buffer else 0
+        assert wait_for(qapp, lambda: live.buffer.n_samples > n0 + 500, 30), live.info.text()
+        assert live.buffer.decimate == 1
+        t, x = live.buffer.view()
+        t, x = t[-400:], x[-400:]
+        np.testing.assert_allclose(np.diff(t), 1.0 / RATE_HZ, rtol=1e-9)
+        assert _dominant_hz(x[:, 0], RATE_HZ) == pytest.approx(TEXTURES["Silk"], abs=0.3)
+        np.testing.assert_array_equal(live.images[0].image, live.buffer.current.astype(float).reshape(3, 3))
+        # the streaming encoder: spikes on the 9 trains only
+        enc = w.encoder
+        assert wait_for(qapp, lambda: enc.ready and enc.sa.total > 0, 60), (enc.encoder_error, live.info.text())
+        assert enc.sa.since(-1e9)[1].max() <= 8
+        w.emergency_stop()
+    finally:
+        w.close()
+        w.deleteLater()
+        qapp.processEvents()
