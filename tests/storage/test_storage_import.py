@@ -295,3 +295,20 @@ def test_fabricslide_preset_fabrics_and_board_in_one_16_channel_file(fabricslide
     before = out.stat().st_mtime_ns
     r = run(fabricslide_dir, "--preset", "fabricslide", "--out", out)
     assert r.exit_code != 0 and "--overwrite" in r.output and out.stat().st_mtime_ns == before
+
+
+def test_npz_stacked_trials_with_their_rate(tmp_path):
+    """An NPZ holding (n_trials, n_samples, n_channels) and its rate: one trial per slice, repeats numbered."""
+    stack = np.stack([recording(i, n=200) for i in range(4)])
+    p = tmp_path / "wool__V25__0.npz"
+    np.savez(p, taxels=stack, rate_hz=np.float64(RATE), labels=np.arange(4))
+    out = tmp_path / "s.h5"
+    r = run(p, "--label-pattern", PATTERN, "--out", out)
+    assert r.exit_code == 0, r.output
+    with open_session(out) as s:
+        assert s.layout.sample_rate_hz == RATE and len(s.plan) == 4
+        assert list(s.plan["repeat"]) == [0, 1, 2, 3] and set(s.plan["texture"]) == {"wool"}
+        for i in range(4):
+            t = s.trial(i)
+            assert t.attrs["source_block"] == i
+            np.testing.assert_array_equal(t.taxels, stack[i])
