@@ -427,11 +427,27 @@ def encode(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, fs: float = F
            params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
     """Encode input currents into spike trains with eqs. (3)-(5) (no filtering): see :func:`run_izhikevich`.
 
+    ``fs`` is the readings' rate, Hz: at another rate than the model's 1 kHz (1 ms steps) each trial is resampled
+    to 1 kHz first (:mod:`rigctl.encoding.rate`, ``scipy.signal.resample_poly``).
+
     Returns
     -------
     SpikeTrains of shape (n_trials, n_channels), spike times in seconds from each trial's first sample.
     """
-    return _encode_trains(as_ragged(readings), k=k, gain=gain, offset=offset, scale=scale, fs=fs, params=params)
+    rg, fs = _at_model_rate(as_ragged(readings), fs)
+    return _encode_trains(rg, k=k, gain=gain, offset=offset, scale=scale, fs=fs, params=params)
+
+
+def _at_model_rate(rg: Ragged, fs: float) -> tuple[Ragged, float]:
+    """Trials at ``fs`` Hz -> trials at the model's rate and that rate (no copy at :data:`FS_HZ`)."""
+    if float(fs) == FS_HZ:
+        return rg, FS_HZ
+    from rigctl.encoding.rate import rate_conversion
+
+    conv = rate_conversion(fs, FS_HZ)
+    if not conv.resampled or not rg.n_trials:
+        return rg, conv.model_rate_hz
+    return as_ragged([conv.apply(rg.trial(t)) for t in range(rg.n_trials)]), conv.model_rate_hz
 
 
 def _norm_args(normalise: TaxelRange | None):
@@ -451,8 +467,8 @@ def encode_sa(readings, k: float = K_SA, coeff=1.0, *, normalise: TaxelRange | N
     k : eq. (3) scale, default 100.
     coeff : force-invariance coefficient C (eq. 1): scalar, (n_taxels,) or (n_trials, n_taxels).
     normalise : per-taxel min/max of the whole dataset; applied in the kernel.
-    fs : the input's rate, Hz, used for the spike times (one 1 ms model step per sample: readings at another rate
-        must be resampled to 1 kHz first, :mod:`rigctl.encoding.rate`).
+    fs : the readings' rate, Hz; the model steps in 1 ms, so readings at another rate are resampled to 1 kHz first
+        (:mod:`rigctl.encoding.rate`); spike times are in s of the recording either way.
 
     Returns
     -------
@@ -473,12 +489,13 @@ def encode_ra(readings, k: float = K_RA, cutoff_hz: float = 20.0, *, normalise: 
     ----------
     readings : as :func:`encode_sa`.
     k : eq. (3) scale, default 3. cutoff_hz : low-pass cutoff (20 Hz).
+    fs : the readings' rate, Hz (resampled to the model's 1 kHz first when different; the filter runs at 1 kHz).
 
     Returns
     -------
     SpikeTrains (n_trials, n_taxels), spike times in s.
     """
-    rg = as_ragged(readings)
+    rg, fs = _at_model_rate(as_ragged(readings), fs)
     offset, scale = _norm_args(normalise)
     norm = rg.map_trials(lambda tr: ra_input((tr - offset) * scale, cutoff_hz=cutoff_hz, fs=fs, rectify=rectify))
     return encode(norm, k=k, fs=fs, params=params)
@@ -496,7 +513,7 @@ def encode_trials(readings, *, normalise: TaxelRange | None = None, coeff=1.0, f
 @dataclass(frozen=True)
 class EncodedChunk:
     """Spikes of one streamed chunk: ``sa`` and ``ra`` are SpikeTrains of shape (1, n_taxels) with times in s
-    since the stream (trial) start; ``n_samples`` the chunk length."""
+    since the stream (trial) start; ``n_samples`` the chunk length (readings fed in)."""
 
     sa: SpikeTrains
     ra: SpikeTrains
@@ -514,12 +531,18 @@ class StreamingEncoder:
     Feeding a trial in any chunking gives exactly the spike times of :func:`encode_sa` / :func:`encode_ra` on the
     whole trial: the neuron state (v, u), the RA low-pass state and the last filtered value carry over.
 
+    A stream at another rate than the model's 1 kHz (``fs``) is resampled chunk by chunk
+    (:class:`rigctl.encoding.rate.StreamResampler`): spike times stay in s of the stream, but come ``10 * max(up,
+    down) / up`` input samples late (100 ms for a 100 Hz stream), and the first 100 ms and the trial's end differ
+    slightly from the batch encoding, which resamples whole trials with look-ahead.
+
     Parameters
     ----------
     n_taxels : int
     normalise : optional :class:`TaxelRange` (then chunks are raw readings, e.g. uint16 ADC counts).
     coeff : SA force coefficient C (scalar or (n_taxels,)).
-    k_sa, k_ra, cutoff_hz, rectify, fs, params : as the batch functions.
+    k_sa, k_ra, cutoff_hz, rectify, params : as the batch functions.
+    fs : the stream's sample rate, Hz (default 1 kHz, the model's rate: no resampling).
     """
 
     def __init__(self, n_taxels: int, *, normalise: TaxelRange | None = None, coeff=1.0, k_sa: float = K_SA,
@@ -528,6 +551,15 @@ class StreamingEncoder:
         self.n_taxels = n_taxels
         self.offset, self.scale = _norm_args(normalise)
         self.coeff = np.broadcast_to(np.asarray(coeff, np.float64), (n_taxels,)).copy()
+        self.input_fs = float(fs)
+        self._resampler = None
+        if self.input_fs != FS_HZ:
+            from rigctl.encoding.rate import StreamResampler, rate_conversion
+
+            conv = rate_conversion(self.input_fs, FS_HZ)
+            fs = conv.model_rate_hz
+            if conv.resampled:
+                self._resampler = StreamResampler(conv, n_taxels)
         self.k_sa, self.k_ra, self.fs, self.params = float(k_sa), float(k_ra), float(fs), params
         self._ra_filter = RAFilter(n_taxels, cutoff_hz=cutoff_hz, fs=fs, rectify=rectify)
         self.reset()
@@ -538,7 +570,9 @@ class StreamingEncoder:
         self._sa_state = (np.full((1, self.n_taxels), p.c), np.full((1, self.n_taxels), p.b * p.c))
         self._ra_state = (np.full((1, self.n_taxels), p.c), np.full((1, self.n_taxels), p.b * p.c))
         self._ra_filter.reset()
-        self.n_samples = 0
+        if self._resampler is not None:
+            self._resampler.reset()
+        self.n_samples = 0  # model steps (samples at the model's rate) so far
 
     def process(self, chunk: np.ndarray) -> EncodedChunk:
         """Encode ``(n, n_taxels)`` readings that follow the previous chunk.
@@ -551,6 +585,9 @@ class StreamingEncoder:
         x = np.asarray(chunk)
         if x.ndim != 2 or x.shape[1] != self.n_taxels:
             raise ValueError(f"chunk must be (n, {self.n_taxels}), got {x.shape}")
+        n_in = x.shape[0]
+        if self._resampler is not None:
+            x = self._resampler.process(x)
         n = x.shape[0]
         starts = np.array([0, n], dtype=np.int64)
         rg = Ragged(np.ascontiguousarray(x), starts)
@@ -561,7 +598,7 @@ class StreamingEncoder:
         ra = _encode_trains(Ragged(np.ascontiguousarray(ra_in), starts), k=self.k_ra, fs=self.fs, params=self.params,
                             state=self._ra_state, n0=n0)
         self.n_samples += n
-        return EncodedChunk(sa, ra, n)
+        return EncodedChunk(sa, ra, n_in)
 
 
 def default_threads() -> int:

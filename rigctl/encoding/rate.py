@@ -13,6 +13,12 @@ At :data:`MODEL_RATE_HZ` (the paper's rig) nothing is resampled: the readings re
 counts, no copy), so the paper's numerics are untouched.
 
 The encoded file records the step (``input_rate_hz``, ``model_rate_hz``, ``resampled``, ``resampling``).
+
+Streams (the live view) are resampled chunk by chunk by :class:`StreamResampler`: the same low-pass FIR as
+``resample_poly`` (Kaiser window, beta 5, ``2 * 10 * max(up, down) + 1`` taps), run causally with its state carried
+over; its output is aligned in time with the input (the filter's delay is dropped at the start), so it lags the
+stream by ``10 * max(up, down) / up`` input samples (100 ms for a 100 Hz stream) and does not equal the batch
+resampling at the trial's ends (no look-ahead, no line padding at the end).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import numpy as np
 
 from rigctl.encoding.izhikevich import FS_HZ
 
-__all__ = ["MODEL_RATE_HZ", "RateConversion", "rate_conversion"]
+__all__ = ["MODEL_RATE_HZ", "RateConversion", "rate_conversion", "StreamResampler", "at_model_rate"]
 
 #: the model's step rate, Hz: one Izhikevich step per ms
 MODEL_RATE_HZ: float = FS_HZ
@@ -106,3 +112,64 @@ def rate_conversion(input_rate_hz: float, model_rate_hz: float = MODEL_RATE_HZ, 
     if up < 1 or abs(eff - rmod) > 1e-3 * rmod:
         raise ValueError(f"cannot resample {rin:g} Hz to {rmod:g} Hz with factors up to {max_factor}")
     return RateConversion(rin, eff if abs(eff - rmod) > 1e-9 * rmod else rmod, up, down)
+
+
+def at_model_rate(trials, rate_hz: float, model_rate_hz: float = MODEL_RATE_HZ):
+    """``(list of (n_i', n_channels) arrays, model rate)``: each ``(n_i, n_channels)`` trial resampled from
+    ``rate_hz`` to the model's rate (unchanged at the model's rate). Raises ValueError as :func:`rate_conversion`."""
+    conv = rate_conversion(rate_hz, model_rate_hz)
+    return [conv.apply(t) for t in trials], conv.model_rate_hz
+
+
+class StreamResampler:
+    """Chunk-by-chunk resampling of a stream to the model's rate (see the module docstring).
+
+    Parameters
+    ----------
+    conv : the :class:`RateConversion` (``rate_conversion(stream_rate_hz)``).
+    n_channels : channels of the stream.
+
+    ``process((n, n_channels))`` returns the model-rate samples that are complete so far, float64; over a stream
+    their count approaches ``n_total * up / down`` minus the filter's delay. :meth:`reset` starts a new stream.
+    """
+
+    def __init__(self, conv: RateConversion, n_channels: int):
+        from scipy.signal import firwin
+
+        self.conv = conv
+        self.n_channels = int(n_channels)
+        up, down = conv.up, conv.down
+        self.half_len = 10 * max(up, down)
+        self.h = firwin(2 * self.half_len + 1, 1.0 / max(up, down), window=("kaiser", 5.0)) * up
+        self.reset()
+
+    def reset(self) -> None:
+        self._zi = None
+        self._n_up = 0  # upsampled samples filtered so far
+
+    def process(self, chunk) -> np.ndarray:
+        """``(n, n_channels)`` readings -> ``(m, n_channels)`` float64 model-rate samples (m may be 0)."""
+        from scipy.signal import lfilter
+
+        x = np.asarray(chunk, dtype=np.float64)
+        if x.ndim != 2 or x.shape[1] != self.n_channels:
+            raise ValueError(f"chunk must be (n, {self.n_channels}), got {x.shape}")
+        if not self.conv.resampled:
+            return x
+        up, down = self.conv.up, self.conv.down
+        if x.shape[0] == 0:
+            return np.zeros((0, self.n_channels))
+        if self._zi is None:  # a stream that was at its first reading forever: no start-up ramp from 0
+            self._zi = np.zeros((self.h.size - 1, self.n_channels))
+            n_prime = -(-(self.h.size - 1) // up)
+            prime = np.zeros((n_prime * up, self.n_channels))
+            prime[::up] = x[0]
+            _, self._zi = lfilter(self.h, 1.0, prime, axis=0, zi=self._zi)
+        stuffed = np.zeros((x.shape[0] * up, self.n_channels))
+        stuffed[::up] = x
+        y, self._zi = lfilter(self.h, 1.0, stuffed, axis=0, zi=self._zi)
+        # model sample m is the filter output at upsampled index m * down + half_len (the linear-phase delay)
+        g = self._n_up + np.arange(y.shape[0])
+        keep = (g >= self.half_len) & ((g - self.half_len) % down == 0)
+        self._n_up += y.shape[0]
+        return y[keep]

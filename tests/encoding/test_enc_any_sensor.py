@@ -169,3 +169,41 @@ def test_rate_conversion():
     assert (down.up, down.down) == (1, 2) and down.apply(np.zeros((100, 2))).shape == (50, 2)
     with pytest.raises(ValueError):
         rate_conversion(0.0)
+
+
+def test_batch_and_streaming_encoders_use_the_rate():
+    """encode_sa / encode_ra at fs=100 resample to the model's 1 kHz (as the pipeline does); the streaming encoder
+    at fs=100 resamples chunk by chunk: the same model input away from the stream's start, spike times in s of the
+    stream."""
+    from rigctl.encoding.izhikevich import StreamingEncoder, encode_ra, encode_sa
+    from rigctl.encoding.normalise import TaxelRange
+    from rigctl.encoding.rate import StreamResampler
+    from rigctl.encoding.spikes import SpikeTrains
+
+    x = _readings(0, "Linen", 500.0, 3.0)
+    rng = TaxelRange().update(x)
+    conv = rate_conversion(RATE_HZ)
+    sa = encode_sa([x], normalise=rng, fs=RATE_HZ)
+    assert sa == encode_sa([conv.apply(x)], normalise=rng)  # the same as resampling first, then 1 kHz
+    ra = encode_ra([x], normalise=rng, fs=RATE_HZ)
+    assert ra == encode_ra([conv.apply(x)], normalise=rng)
+    assert 2.5 < sa.spike_times.max() < 3.0 and 2.5 < ra.spike_times.max() < 3.0  # 3 s, not 0.3 s
+
+    res = StreamResampler(conv, LAYOUT.n_channels)
+    y = np.concatenate([res.process(x[i:i + 7]) for i in range(0, x.shape[0], 7)])
+    batch = conv.apply(x)
+    assert 0 < batch.shape[0] - y.shape[0] <= 100  # the filter's delay (10 input samples) is still in the pipe
+    np.testing.assert_allclose(y[200:], batch[200:y.shape[0]], rtol=0, atol=1e-9)
+
+    enc = StreamingEncoder(LAYOUT.n_channels, normalise=rng, fs=RATE_HZ)
+    chunks = [enc.process(x[i:i + 4]) for i in range(0, x.shape[0], 4)]
+    assert sum(c.n_samples for c in chunks) == x.shape[0] and enc.n_samples == y.shape[0]
+    live = SpikeTrains.concat_time([c.sa for c in chunks])
+    assert 2.5 < live.spike_times.max() < 3.0
+    # the neurons see the same input after the first 100 ms (the stream's last 100 ms are still in the filter):
+    # spike counts over 0.2-2.8 s agree closely
+    def counts(st):
+        return np.array([np.count_nonzero((st.train(0, j) >= 0.2) & (st.train(0, j) < 2.8))
+                         for j in range(st.n_trains)])
+
+    np.testing.assert_allclose(counts(live), counts(sa), rtol=0.03)
