@@ -121,6 +121,14 @@ class EncodeParams:
     realtime_taxels: list | None = None
     izhikevich: dict = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
 
+    @classmethod
+    def from_dict(cls, d) -> "EncodeParams":
+        """The parameters an encoded file was made with (``open_encoded(path).parameters``); unknown keys are
+        ignored, missing ones take the defaults. Use them to encode new trials the same way (:func:`encode_batch`:
+        same windows, taxels and constants, so the features match the file's columns)."""
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in dict(d or {}).items() if k in known})
+
     def __post_init__(self) -> None:
         if not (math.isfinite(self.window_s) and self.window_s > 0):
             raise ValueError(f"window_s must be > 0 s, got {self.window_s!r}")
@@ -158,13 +166,19 @@ def _realtime_taxels(p: EncodeParams, n_ch: int, layout: SensorLayout | None = N
 
 def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_label_free=None,
                  window_speed=None, variants=ALL_VARIANTS, params: EncodeParams | None = None,
-                 store_spikes=MAIN_VARIANTS) -> tuple[dict, dict]:
+                 store_spikes=MAIN_VARIANTS, rate_hz: float | None = None) -> tuple[dict, dict]:
     """Encode a batch of trials into every requested variant.
+
+    To encode new trials like an encoded file (e.g. live classification), pass
+    ``params=EncodeParams.from_dict(open_encoded(path).parameters)`` (same windows, so the same feature columns) and
+    the trials' ``rate_hz``.
 
     Parameters
     ----------
-    rg : Ragged model input (n_trials trials of (n_i, n_ch)) at ``params.fs_hz`` (the model's 1 ms step; resample
-        other rates first, :mod:`rigctl.encoding.rate`), e.g. uint16 ADC counts.
+    rg : Ragged readings (n_trials trials of (n_i, n_ch)), e.g. uint16 ADC counts, at ``rate_hz``; anything
+        :func:`rigctl.encoding.izhikevich.as_ragged` takes.
+    rate_hz : the readings' rate, Hz; None = already at the model's rate ``params.fs_hz`` (1 kHz). Other rates are
+        resampled to it first (:mod:`rigctl.encoding.rate`).
     offset, scale : (n_ch,) normalisation ``(x - offset) * scale`` -> [0, 1].
     speed_mm_s : (n_trials,) trial speed (setpoint) for eq. (2), mm/s; may be NaN when no speed-scaled variant is
         asked for (and for ``realtime_speed_scaled`` when ``window_speed`` is given).
@@ -184,6 +198,11 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
     ValueError for an unknown variant, or a speed that is not positive and finite for a speed-scaled variant.
     """
     p = params or EncodeParams()
+    rg = as_ragged(rg)
+    if rate_hz is not None:
+        conv = rate_conversion(rate_hz, p.fs_hz)
+        if conv.resampled:
+            rg = as_ragged([conv.apply(rg.trial(t)) for t in range(rg.n_trials)])
     n, n_ch = rg.n_trials, rg.n_channels
     bad = [v for v in variants if v not in VARIANTS]
     if bad:

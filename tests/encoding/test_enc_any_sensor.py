@@ -207,3 +207,23 @@ def test_batch_and_streaming_encoders_use_the_rate():
                          for j in range(st.n_trains)])
 
     np.testing.assert_allclose(counts(live), counts(sa), rtol=0.03)
+
+
+def test_encode_batch_like_the_file(session, encoded):
+    """A new trial encoded with the file's parameters and rate gets the file's feature columns (live
+    classification), and the file's own trials reproduce their rows."""
+    from rigctl.encoding.normalise import TaxelRange
+    from rigctl.encoding.pipeline import EncodeParams, encode_batch
+    from rigctl.storage.session import open_session
+
+    with open_encoded(encoded) as f:
+        params = EncodeParams.from_dict(f.parameters)
+        norm = f.normalisation
+        rows = f.features("original")
+    offset, scale = TaxelRange(norm["taxel_min"], norm["taxel_max"]).offset_scale()
+    with open_session(session) as s:
+        short = np.asarray(s.trial(0).taxels)  # 1 s, at 100 Hz
+    feats, _ = encode_batch([short], offset=offset, scale=scale, speed_mm_s=[np.nan], variants=["original"],
+                            params=params, store_spikes=(), rate_hz=RATE_HZ)
+    assert feats["original"].shape == (1, rows.shape[1])  # 25 windows, as the file, not 10
+    np.testing.assert_array_equal(feats["original"][0], rows[0])
