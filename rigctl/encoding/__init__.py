@@ -6,7 +6,8 @@ Modules, one job each (data flows top to bottom):
 - :mod:`~rigctl.encoding.filters` - the RA input: 20 Hz Butterworth low-pass + derivative (``ra_input``, ``RAFilter``).
 - :mod:`~rigctl.encoding.izhikevich` - eqs. (3)-(5): ``encode_sa``, ``encode_ra``, ``encode_trials``,
   ``StreamingEncoder``, the numba kernel (``run_izhikevich``).
-- :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index, HDF5 I/O.
+- :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index (stored by
+  :mod:`rigctl.storage.encoded`).
 - :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceScaler``).
 - :mod:`~rigctl.encoding.speed` - eq. (2): ``scale_spike_times``, ``incremental_scale`` (100 ms batches).
 - :mod:`~rigctl.encoding.features` - SR/SC in 100 ms windows (720 / 2160 features for 18 taxels; 180 real-time).

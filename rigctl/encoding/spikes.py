@@ -2,7 +2,8 @@
 
 The paper represents every spike train as "an ordered list of spike times" (Results, spiking activity encoding
 module; Fig. 2D). Many trains (trials x taxels x SA/RA) are kept together as one ragged array, the layout of the
-NWB ``Units`` table (``spike_times`` + ``spike_times_index``): row ``r`` holds
+NWB ``Units`` table (``spike_times`` + ``spike_times_index``; stored so in encoded files by
+:mod:`rigctl.storage.encoded`): row ``r`` holds
 ``spike_times[index[r-1]:index[r]]`` (``index[-1]`` taken as 0). Rows are ordered trial-major: row
 ``trial * n_trains + train``.
 """
@@ -210,20 +211,6 @@ class SpikeTrains:
         ok = (bins >= 0) & (bins < n_windows)
         flat = np.bincount(rows[ok] * n_windows + bins[ok], minlength=self.n_rows * n_windows)
         return flat.reshape(self.n_trials, self.n_trains, n_windows).astype(np.float64)
-
-    # ------------------------------------------------------------------ HDF5
-    def to_hdf5(self, group, *, compression: str | None = "gzip") -> None:
-        """Write ``spike_times`` (float64, s) and ``spike_times_index`` (int64 row ends) into an h5py group."""
-        group.create_dataset("spike_times", data=self.spike_times, compression=compression, chunks=True)
-        group.create_dataset("spike_times_index", data=self.spike_times_index, compression=compression, chunks=True)
-        group.attrs["n_trains"] = self.n_trains
-        group.attrs["unit"] = "s"
-        group.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
-
-    @classmethod
-    def from_hdf5(cls, group) -> "SpikeTrains":
-        """Read a group written by :meth:`to_hdf5` (or an appendable group of the same names)."""
-        return cls(group["spike_times"][()], group["spike_times_index"][()], int(group.attrs["n_trains"]))
 
     def __eq__(self, other) -> bool:
         return (

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import h5py
 import numpy as np
 import pytest
 
@@ -99,15 +98,22 @@ def test_window_speeds_from_a_drum_trace():
     np.testing.assert_allclose(w, 40 + 32 * (np.arange(25) * 0.1 + 0.05), rtol=1e-6)
 
 
-def test_spike_trains_hdf5_round_trip_and_layout(tmp_path):
+def test_spike_trains_encoded_file_round_trip_and_layout(tmp_path):
+    from rigctl.core.sensor import SensorLayout
+    from rigctl.core.textures import texture_set_from_labels
+    from rigctl.storage.encoded import EncodedWriter, open_encoded
+
     st = SpikeTrains.from_lists([[[0.1, 0.2], [], [0.3]], [[0.4], [0.5, 0.6, 0.7], []]])
     assert st.shape == (2, 3)
     np.testing.assert_array_equal(st.spike_times_index, [2, 2, 3, 4, 7, 7])  # NWB row ends
-    with h5py.File(tmp_path / "s.h5", "w") as f:
-        st.to_hdf5(f.create_group("spikes"))
-    with h5py.File(tmp_path / "s.h5", "r") as f:
-        back = SpikeTrains.from_hdf5(f["spikes"])
-    assert back == st
+    with EncodedWriter(tmp_path / "s.h5", layout=SensorLayout.grid(1, 3), textures=texture_set_from_labels("A"),
+                       trials={"trial_id": [0, 1], "texture": ["A", "A"]}) as w:
+        w.add_spikes("original", 3)
+        w.append_spikes("original", st.select_trials([0]))
+        w.append_spikes("original", st.select_trials([1]))
+        w.write_features("original", 0, np.zeros((2, 1)))
+    with open_encoded(tmp_path / "s.h5") as f:
+        assert f.spikes("original") == st
     both = SpikeTrains.hstack([st, st.select_trains([2])])
     assert both.shape == (2, 4)
     np.testing.assert_array_equal(both.train(1, 1), [0.5, 0.6, 0.7])
