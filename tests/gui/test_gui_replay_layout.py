@@ -45,13 +45,17 @@ def _dominant_hz(x: np.ndarray, rate_hz: float) -> float:
     return float(f[np.argmax(np.abs(np.fft.rfft(x)))])
 
 
-def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session):
+def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session, tmp_path):
     from gui.app import MainWindow, configure_pyqtgraph
     from gui.workers import RigSource
     from rigctl.devices.wire import DrumState
 
     configure_pyqtgraph()
-    w = MainWindow(RigSource("replay", replay_dir=str(finger_session)))
+    source = RigSource("replay", replay_dir=str(finger_session))
+    w = MainWindow(source, autoconnect=False)
+    cfg = str(tmp_path / "rig9.json")  # this rig's calibration, not the other GUI tests' 18-taxel one
+    w.rig_config_path = lambda: cfg
+    w.connect_source(source)
     w.resize(1400, 900)
     w.show()
     try:
@@ -88,6 +92,15 @@ def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session)
         enc = w.encoder
         assert wait_for(qapp, lambda: enc.ready and enc.sa.total > 0, 60), (enc.encoder_error, live.info.text())
         assert enc.sa.since(-1e9)[1].max() <= 8
+        # taxel normalisation: a 1 s calibration run of the 9 taxels, shown and fed to the live encoder
+        cal = w.calibration
+        cal.norm_seconds.setValue(1)
+        cal.record_normalisation()
+        assert wait_for(qapp, lambda: cal.job is None, 30), cal.status.text()
+        assert "stored" in cal.status.text(), cal.status.text()
+        heights = cal.norm_bars.opts["height"]
+        assert len(heights) == 9 and np.all(heights > 100)  # the recorded sines span ~300 counts
+        assert enc.normaliser.n_taxels == 9 and np.all(enc.normaliser.maximum - enc.normaliser.minimum > 100)
         w.emergency_stop()
     finally:
         w.close()
