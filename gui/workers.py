@@ -40,7 +40,8 @@ class RigSource:
         if self.kind == "serial":
             return f"rig on {self.drum_port} + {self.taxel_port}"
         if self.kind == "replay":
-            return f"FabricSlide replay ({self.replay_dir})"
+            what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
+            return f"{what} ({self.replay_dir})"
         return "simulated rig"
 
 
