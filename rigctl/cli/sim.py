@@ -37,7 +37,9 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
 
 @click.group(invoke_without_command=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
-@click.option("--texture", default="A", show_default=True, help="Texture plate mounted on the drum (A-P).")
+@click.option("--texture", default=None,
+              help="Texture plate mounted on the drum: a label of the paper's A-P (default A), or of the replayed "
+                   "session's texture set (default its first).")
 @click.option("--replay", "replay_dir", type=click.Path(exists=True), default=None,
               help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) or session file "
                    "instead of the model.")
@@ -52,13 +54,9 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
     """
     if ctx.invoked_subcommand is not None:
         return
+    from rigctl.core.textures import PAPER_TEXTURES, TextureSetError
     from rigctl.simulation.rig import SimulatedRig
-    from rigctl.simulation.textures import TEXTURES
 
-    texture = texture.upper()
-    if texture not in TEXTURES:
-        raise click.BadParameter(f"unknown texture {texture!r}; choose one of {''.join(sorted(TEXTURES))}",
-                                 param_hint="--texture")
     source = None
     if replay_dir:
         from rigctl.acquisition.rig import RigError
@@ -68,6 +66,11 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
             source = replay_source(replay_dir)
         except (RigError, OSError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
+    textures = getattr(source, "textures", None) or PAPER_TEXTURES
+    try:
+        texture = textures.resolve(texture) if texture is not None else textures.labels[0]
+    except TextureSetError as exc:
+        raise click.BadParameter(str(exc), param_hint="--texture") from None
     stop = threading.Event()
 
     def on_signal(signum, frame):
@@ -75,7 +78,7 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
 
     signal.signal(signal.SIGTERM, on_signal)
     with SimulatedRig(seed=seed, source=source, port_dir=port_dir) as rig:
-        rig.set_texture(texture)
+        rig.set_texture(texture, textures)
         click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 115200 8N1, device id 1)")
         click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
         click.echo(f"texture {texture}, seed {seed}{', replaying ' + replay_dir if replay_dir else ''}. Ctrl-C stops.")
