@@ -368,7 +368,7 @@ class SessionWriter:
         protocol_source : the protocol file's text (a resume refuses a different source).
         protocol_name, protocol_format : ``/protocol`` attrs; format is "toml" or "python".
         rig_config : JSON-able mapping stored as the ``rig_config`` root attribute.
-        kind : "recorded" | "simulated-dataset" | "fabricslide".
+        kind : "recorded" | "simulated-dataset" | "fabricslide" | "imported" (``rigctl import``).
         calibration : optional mapping; ``taxel_min``/``taxel_max`` ``(layout.n_channels,)`` arrays go to
             ``/calibration`` datasets, everything else to its attributes.
         attrs : extra root attributes.
@@ -395,6 +395,9 @@ class SessionWriter:
         elif not isinstance(textures, TextureSet):
             raise TypeError(f"textures must be a rigctl.core.textures.TextureSet, got {type(textures).__name__}")
         _check_plan_textures(plan_arr, textures)
+        reserved = sorted({"sensor_layout", "texture_set", "schema_version"} & set(attrs or {}))
+        if reserved:
+            raise ValueError(f"attrs must not set {reserved}: the layout/textures arguments and rigctl set them")
         if calibration:
             _calibration_arrays(calibration, layout.n_channels)  # refuse a wrong shape before creating anything
         if path.exists() and not overwrite:
@@ -411,8 +414,6 @@ class SessionWriter:
             f.attrs["sensor_layout"] = layout.to_json()
             f.attrs["texture_set"] = textures.to_json()
             for k, v in (attrs or {}).items():
-                if k in ("sensor_layout", "texture_set"):
-                    raise ValueError(f"{k} is set by the layout/textures arguments, not by attrs")
                 f.attrs[k] = _attr_value(v)
             g = f.create_group("protocol")
             g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))

@@ -274,3 +274,12 @@ def test_rigctl_info_shows_the_sensor_and_the_texture_set(tmp_path):
     assert d["texture_set"]["count"] == 26 and d["texture_set"]["name"] == "lab"
     assert d["texture_set"]["groups"] == {"woven": LABELS_26[:13], "printed": LABELS_26[13:]}
     assert d["trials"][9]["texture"] == "x" * 40 and d["trials"][9]["samples"] == 30
+
+
+def test_reserved_attrs_and_a_wrong_layout_type_are_refused_without_a_file(tmp_path):
+    path = tmp_path / "r.h5"
+    with pytest.raises(ValueError, match="sensor_layout"):
+        SessionWriter.create(path, plan=_plan(["A"], 1), attrs={"sensor_layout": "{}"})
+    with pytest.raises(TypeError, match="SensorLayout"):
+        SessionWriter.create(path, plan=_plan(["A"], 1), layout="3x3x2")
+    assert list(tmp_path.iterdir()) == []
