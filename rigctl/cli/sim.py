@@ -39,7 +39,7 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
 @click.option("--texture", default=None,
               help="Texture plate mounted on the drum: a label of the paper's A-P (default A), or of the replayed "
-                   "session's texture set (default its first).")
+                   "session's texture set (default: none mounted, the session streams in plan order).")
 @click.option("--replay", "replay_dir", type=click.Path(exists=True), default=None,
               help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) or session file "
                    "instead of the model.")
@@ -68,7 +68,10 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
             raise click.ClickException(str(exc)) from None
     textures = getattr(source, "textures", None) or PAPER_TEXTURES
     try:
-        texture = textures.resolve(texture) if texture is not None else textures.labels[0]
+        if texture is not None:
+            texture = textures.resolve(texture)
+        elif source is None:
+            texture = "A"
     except TextureSetError as exc:
         raise click.BadParameter(str(exc), param_hint="--texture") from None
     stop = threading.Event()
@@ -78,10 +81,11 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
 
     signal.signal(signal.SIGTERM, on_signal)
     with SimulatedRig(seed=seed, source=source, port_dir=port_dir) as rig:
-        rig.set_texture(texture, textures)
+        if texture is not None:
+            rig.set_texture(texture, textures)
         click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 115200 8N1, device id 1)")
         click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
-        click.echo(f"texture {texture}, seed {seed}{', replaying ' + replay_dir if replay_dir else ''}. Ctrl-C stops.")
+        click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{', replaying ' + replay_dir if replay_dir else ''}. Ctrl-C stops.")
         sys.stdout.flush()
         try:
             while not stop.wait(0.5):
