@@ -46,6 +46,17 @@ def layer_titles(layout: SensorLayout, i: int) -> tuple[str, str]:
     return f"{name} layer{rec} taxels {span}", f"{name} {grid}{rec} now"
 
 
+def heatmap_aspect(rows: int, cols: int, *, max_elongation: float = 4.0) -> float:
+    """The heat map's locked aspect ratio (pyqtgraph's ``xScale / yScale``): square taxels (1.0) unless the grid is
+    longer than ``max_elongation`` : 1, whose taxels are stretched so the map is at most that elongated (a 1 x 16 row
+    shows as a 4 : 1 strip instead of a 16 : 1 line)."""
+    if cols > max_elongation * rows:
+        return max_elongation * rows / cols
+    if rows > max_elongation * cols:
+        return rows / (max_elongation * cols)
+    return 1.0
+
+
 def raster_ticks(layout: SensorLayout) -> list[tuple[int, str]]:
     """Left-axis ticks of a raster: every 3rd taxel for the paper's 18 (about six ticks for any count); the channel
     names when the layout has its own and they fit (<= 20 channels)."""
@@ -163,6 +174,7 @@ class LiveView(QtWidgets.QWidget):
         for i, la in enumerate(layout.layers):
             hm.addLabel(layer_titles(layout, i)[1], row=2 * i, col=0, size="9pt")
             vb = hm.addViewBox(row=2 * i + 1, col=0, lockAspect=True, enableMouse=False, invertY=True)
+            vb.setAspectLocked(True, ratio=heatmap_aspect(la.rows, la.cols))
             img = pg.ImageItem(np.zeros((la.rows, la.cols)), axisOrder="row-major")
             img.setLookupTable(cmap.getLookupTable(nPts=256))
             img.setLevels((0, adc_max))

@@ -281,3 +281,19 @@ def test_control_panel_offers_the_rigs_texture_set(qapp):
     panel.set_textures(None)  # hardware: any label
     assert panel.plate.isEditable()
     panel.deleteLater()
+
+
+def test_heat_map_of_a_row_of_taxels_is_a_strip_not_a_line(live_view, qapp):
+    """Square taxels for grids up to 4:1 (the paper's 3x3 unchanged); a 1x16 row (FabricSlide) is shown 4:1."""
+    from gui.live_view import heatmap_aspect
+
+    assert heatmap_aspect(3, 3) == 1.0 and heatmap_aspect(2, 8) == 1.0
+    assert heatmap_aspect(1, 16) == pytest.approx(0.25) and heatmap_aspect(16, 1) == pytest.approx(4.0)
+    view = live_view(parse_layout("1x16"))
+    vb = view.images[0].getViewBox()
+    assert vb.state["aspectLocked"] == pytest.approx(0.25)
+    qapp.processEvents()
+    rect = view.images[0].sceneBoundingRect()  # on screen
+    assert rect.width() / rect.height() == pytest.approx(4.0, rel=0.05)
+    view = live_view()
+    assert [img.getViewBox().state["aspectLocked"] for img in view.images] == [1.0, 1.0]
