@@ -6,6 +6,9 @@ the TaxelStream reader thread, the parser, the ring buffer, the capture and a 10
 recording does for its force and speed traces).
 
 Targets (issue 2): zero frames lost; < 10 % of one core for 1 kHz x 18 channels; parser >= 100x real time.
+Also (issue 9): the in-process backend (``rigctl.rigs.open_rig("inprocess")``, no ptys, simulated clock) runs a
+protocol faster than real time (simulated seconds per wall second; no target, it is what makes the runner's unit
+tests fast).
 
 Usage: python benchmarks/bench_acquisition.py [--minutes 1] [--json]
 """
@@ -109,6 +112,24 @@ def bench_parser(seconds: float = 60.0, chunk: int = 4096, repeats: int = 3) -> 
             "frames_per_s": n / best}
 
 
+def bench_inprocess(n_trials: int = 8, duration_s: float = 1.0) -> dict:
+    """A protocol of ``n_trials`` trials of ``duration_s`` on the in-process backend: wall vs simulated time."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.acquisition.runner import run_protocol
+    from rigctl.rigs import open_rig
+
+    proto = parse_protocol(f'name = "bench"\ntextures = ["A", "L"]\nspeeds_mm_s = [60, 120]\nforces_g = [300]\n'
+                           f'trials_per_condition = {max(1, n_trials // 4)}\nduration_s = {duration_s}\n'
+                           '[settle]\nsettle_time_ms = 50\n')
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as d:
+        with open_rig("inprocess", seed=1, host_config_path=f"{d}/rig.json") as rig:
+            sim0, t0 = rig.backend.engine.time_s, time.perf_counter()
+            summary = run_protocol(proto, f"{d}/s.h5", rig=rig, progress=False)
+            wall, sim = time.perf_counter() - t0, rig.backend.engine.time_s - sim0
+    assert summary.ok
+    return {"trials": summary.recorded, "wall_s": wall, "simulated_s": sim, "x_real_time": sim / wall}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=1.0, help="recording length, minutes (default 1)")
@@ -117,8 +138,10 @@ def main(argv=None) -> int:
     rec = bench_recording(args.minutes)
     par = bench_parser()
     par_small = bench_parser(chunk=43 * 20)  # what the reader gets per 20 ms read timeout
+    inproc = bench_inprocess()
     if args.json:
-        print(json.dumps({"recording": rec, "parser": par, "parser_small_chunks": par_small}, indent=2, default=str))
+        print(json.dumps({"recording": rec, "parser": par, "parser_small_chunks": par_small, "inprocess": inproc},
+                         indent=2, default=str))
     else:
         rows = [
             ("frames lost", f"{rec['frames_lost']} (seq gaps {rec['seq_gaps']}, CRC errors {rec['crc_errors']})",
@@ -132,6 +155,8 @@ def main(argv=None) -> int:
              f"{par['x_real_time'] / 100:.1f}x target"),
             ("parser, 860-byte chunks (20 ms)", f"{par_small['x_real_time']:.0f}x real time", ">= 100x",
              f"{par_small['x_real_time'] / 100:.1f}x target"),
+            ("in-process protocol", f"{inproc['trials']} trials: {inproc['simulated_s']:.1f} simulated s in "
+             f"{inproc['wall_s']:.1f} s", "-", f"{inproc['x_real_time']:.1f}x real time"),
         ]
         widths = [max(len(r[i]) for r in rows + [("metric", "value", "target", "ratio")]) for i in range(4)]
         for r in [("metric", "value", "target", "ratio"), *rows]:
