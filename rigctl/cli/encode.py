@@ -9,6 +9,18 @@ import click
 from rigctl.storage.encoded import ALL_VARIANTS
 
 
+def _windows_scaled(ctx, param, value):
+    if str(value).strip().lower() in ("longest", "whole", "all"):
+        return None
+    try:
+        n = int(value)
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is neither a count nor 'longest'") from None
+    if n < 1:
+        raise click.BadParameter(f"{n} is not >= 1")
+    return n
+
+
 @click.command("encode")
 @click.argument("session", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -28,8 +40,9 @@ from rigctl.storage.encoded import ALL_VARIANTS
 @click.option("--windows-unscaled", type=click.IntRange(min=1), default=None,
               help="Windows per spike train of the unscaled variants (original, force_scaled); default: enough "
                    "for the longest trial in the session.")
-@click.option("--windows-scaled", type=click.IntRange(min=1), default=20, show_default=True,
-              help="Windows per spike train of the speed-scaled variants (20 = 2 s at the 120 mm/s reference).")
+@click.option("--windows-scaled", default="20", show_default=True, callback=_windows_scaled,
+              help="Windows per spike train of the speed-scaled variants (20 = 2 s at the 120 mm/s reference, the "
+                   "paper's), or 'longest': enough for the longest trial in scaled time (whole trials).")
 @click.option("--no-spikes", is_flag=True, help="Do not store spike trains, only features.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def encode(session, out, overwrite, scheduler, workers, batch, variants, window_ms, windows_unscaled,
@@ -46,12 +59,19 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     out = out or session.with_suffix(".encoded.h5")
     if out.exists() and not overwrite:
         raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
+    import warnings
+
     try:
         params = EncodeParams(window_s=window_ms / 1000.0, n_windows_unscaled=windows_unscaled,
                               n_windows_scaled=windows_scaled)
-        path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,
-                              scheduler=scheduler, workers=workers, progress=not quiet,
-                              store_spikes=() if no_spikes else MAIN_VARIANTS, params=params, overwrite=overwrite)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,
+                                  scheduler=scheduler, workers=workers, progress=not quiet,
+                                  store_spikes=() if no_spikes else MAIN_VARIANTS, params=params,
+                                  overwrite=overwrite)
+        for w in caught:  # one line each, not Python's file:line form
+            click.echo(f"warning: {w.message}", err=True)
     except (ValueError, KeyError, OSError, SessionError) as exc:
         msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
         raise click.ClickException(" ".join(msg.split())) from None
@@ -60,11 +80,11 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
         click.echo(f"wrote {path}: {f.n_trials} trials, {f.layout.n_channels} taxels "
                    f"({f.layout.shape_text}) in {a.get('encode_seconds', 0.0):.1f} s")
         click.echo(f"  rate: {a.get('resampling', 'not recorded')}")
-        click.echo(f"  unscaled windows: {a.get('n_windows_unscaled_note', '')}")
+        click.echo(f"  windows: {a.get('windows_note', '')}")
         for v in f.variants:
             click.echo(f"  /features/{v}: {f.feature_shape(v)}")
-        for v, reason in f.skipped_variants.items():
-            click.echo(f"  skipped {v}: {reason}")
+        if f.skipped_variants:
+            click.echo(f"  skipped (see the warnings): {', '.join(f.skipped_variants)}")
         for lf in (False, True):
             name = "force_coefficients_label_free" if lf else "force_coefficients"
             table = f.force_coefficients(label_free=lf)

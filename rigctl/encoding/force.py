@@ -220,8 +220,14 @@ class ForceScaler:
         index = {tuple(r): i for i, r in enumerate(uniq)}
         missing = [tuple(r) for r in ref_key if tuple(r) not in index]
         if missing:
-            raise ValueError(f"no trials at the reference force {self.reference_force_g} g for (texture code, "
-                             f"speed) {sorted({m[:2] for m in missing})}")
+            def name(m):
+                tex = "all textures" if m[0] < 0 else self.textures_[int(m[0])]
+                return f"{tex} at {'unknown speed' if np.isinf(m[1]) else f'{m[1]:g} mm/s'}"
+
+            conds = [name(m) for m in sorted({m[:2] for m in missing})]
+            shown = ", ".join(conds[:6]) + (f" (+{len(conds) - 6} more)" if len(conds) > 6 else "")
+            raise ValueError(f"no trials at the reference force {self.reference_force_g:g} g for {len(conds)} "
+                             f"(texture, speed) conditions: {shown}")
         reference = np.array([index[tuple(r)] for r in ref_key], dtype=np.int64)
         self.fit_ = fit_force_coefficients(readings, group, reference, offset=offset, scale=scale, eps=self.eps,
                                            c_max=self.c_max, k=self.k, fs=self.fs, max_iter=self.max_iter)

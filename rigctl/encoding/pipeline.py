@@ -14,7 +14,8 @@ the paper's 1 kHz). A session at another rate is resampled to 1 kHz first (:mod:
 Spike times are in seconds of the recording either way (a 1 s trial at 100 Hz has spikes within 1 s).
 
 **Windows.** Window length (``window_s``, default 100 ms) and counts are :class:`EncodeParams`: speed-scaled
-variants use ``n_windows_scaled`` (default 20, i.e. 2 s at the reference speed, the paper's), unscaled ones
+variants use ``n_windows_scaled`` (default 20, i.e. 2 s at the reference speed, the paper's; None = the longest
+trial in scaled time, whole trials), unscaled ones
 ``n_windows_unscaled`` (default: enough windows for the longest trial of the file, ``ceil(longest / window_s)``;
 60 for the paper's dataset, whose longest trials are 6 s), the real-time ones ``n_windows_realtime`` (20).
 
@@ -94,7 +95,8 @@ class EncodeParams:
     reference_speed_mm_s : eq. (2) reference (120 mm/s); realtime_reference_speed_mm_s : real-time one (100 mm/s).
     reference_force_g, epsilon, c_max : eq. (1) (500 g, 0.1 spikes/s, 5).
     window_s : feature window length, s (0.1 = 100 ms).
-    n_windows_scaled : windows of the speed-scaled variants (20 = 2 s at the reference speed).
+    n_windows_scaled : windows of the speed-scaled variants (20 = 2 s at the reference speed, the paper's); None =
+        enough for the longest trial in scaled time (``duration x speed / reference``: whole trials).
     n_windows_unscaled : windows of the unscaled variants; None = enough for the longest trial of the file
         (:func:`windows_for`; 60 for the paper's dataset).
     n_windows_realtime : windows of the real-time variants (20).
@@ -115,7 +117,7 @@ class EncodeParams:
     epsilon: float = EPSILON
     c_max: float = C_MAX
     window_s: float = WINDOW_S
-    n_windows_scaled: int = N_WINDOWS_SCALED
+    n_windows_scaled: int | None = N_WINDOWS_SCALED
     n_windows_unscaled: int | None = None
     n_windows_realtime: int = N_WINDOWS_REALTIME
     realtime_taxels: list | None = None
@@ -132,9 +134,8 @@ class EncodeParams:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.window_s) and self.window_s > 0):
             raise ValueError(f"window_s must be > 0 s, got {self.window_s!r}")
-        for name in ("n_windows_scaled", "n_windows_realtime") + (
-                ("n_windows_unscaled",) if self.n_windows_unscaled is not None else ()):
-            if int(getattr(self, name)) < 1:
+        for name in ("n_windows_scaled", "n_windows_realtime", "n_windows_unscaled"):
+            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
 
 
@@ -211,6 +212,7 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
     n_unscaled = p.n_windows_unscaled
     if n_unscaled is None:
         n_unscaled = windows_for(rg.lengths.max(initial=1) / p.fs_hz, p.window_s)
+    n_scaled = p.n_windows_scaled
     speed = np.asarray(speed_mm_s, np.float64)
     ones = np.ones((n, n_ch))
     need_force = any(i.force_scaled and not i.label_free for i in info)
@@ -230,14 +232,15 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
     if any(i.speed_scaled and not i.realtime for i in info):
         coef = speed_coefficient(speed, p.reference_speed_mm_s)
         ra_scaled = ra.scale_times(coef)
+        if n_scaled is None:
+            n_scaled = windows_for(float(np.max(rg.lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
     feats, spikes = {}, {}
     for v, i in zip(variants, info):
         if not i.realtime:
             sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
             if i.speed_scaled:
                 sa_v, ra_v = sa.scale_times(coef), ra_scaled
-                feats[v] = spike_features(sa_v, ra_v, n_windows=p.n_windows_scaled, window_s=p.window_s,
-                                          sr_factor=coef)
+                feats[v] = spike_features(sa_v, ra_v, n_windows=n_scaled, window_s=p.window_s, sr_factor=coef)
             else:
                 sa_v, ra_v = sa, ra
                 feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s)
@@ -372,7 +375,6 @@ def _check_speeds(variants, explicit, labels, has_trace) -> tuple[tuple[str, ...
                                     "--variant force_scaled) or record the trials' speeds")
         skipped[v] = reason
         warnings.warn(f"skipping {reason}", stacklevel=3)
-        log.warning("skipping %s", reason)
     return tuple(keep), skipped
 
 
@@ -481,14 +483,21 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     offset, scale = rng_.offset_scale()
     duration_s = n_samples / conv.input_rate_hz
     longest_s = float(duration_s.max())
-    windows_note = f"set ({p.n_windows_unscaled})"
+    windows_note = f"{p.n_windows_unscaled} unscaled windows of {p.window_s * 1000:g} ms (as asked)"
     if p.n_windows_unscaled is None:
         p.n_windows_unscaled = windows_for(longest_s, p.window_s)
-        windows_note = (f"{p.n_windows_unscaled} windows of {p.window_s * 1000:g} ms cover the longest trial "
+        windows_note = (f"{p.n_windows_unscaled} unscaled windows of {p.window_s * 1000:g} ms cover the longest trial "
                         f"({longest_s:.3f} s)")
+    if p.n_windows_scaled is None:
+        speed = labels["speed_mm_s"]
+        ok = np.isfinite(speed) & (speed > 0)
+        scaled_s = float(np.max(duration_s[ok] * speed[ok] / p.reference_speed_mm_s, initial=0.0))
+        p.n_windows_scaled = windows_for(scaled_s, p.window_s)
+        windows_note += (f"; {p.n_windows_scaled} speed-scaled windows cover the longest trial in scaled time "
+                         f"({scaled_s:.3f} s at {p.reference_speed_mm_s:g} mm/s)")
     if p.realtime_taxels is None:
         p.realtime_taxels = _realtime_taxels(p, layout.n_channels, layout)
-    log.info("unscaled windows: %s", windows_note)
+    log.info("windows: %s", windows_note)
 
     # ---- force coefficients (once, for the whole dataset)
     fit_rg = as_ragged(fit_arrays)
@@ -518,7 +527,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                            overwrite=overwrite, attrs={
                                "input_rate_hz": conv.input_rate_hz, "model_rate_hz": conv.model_rate_hz,
                                "resampled": conv.resampled, "resampling": conv.describe(),
-                               "n_windows_unscaled_note": windows_note, "skipped_variants": skipped,
+                               "windows_note": windows_note, "skipped_variants": skipped,
                                "source_session": str(session_path), "variants": list(variants)})
     try:
         writer.write_normalisation(rng_.minimum, rng_.maximum,

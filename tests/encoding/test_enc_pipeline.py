@@ -168,5 +168,14 @@ def test_cli_encode(session, tmp_path):
     assert res.exit_code == 0, res.output
     with open_encoded(out) as f:
         assert f.variants == ("original",) and f.feature_shape("original") == (24, 36 * 3)
+    # whole trials in scaled time: 60 mm at either speed is 0.5 s at the 120 mm/s reference -> 5 windows
+    res = CliRunner().invoke(main, ["encode", str(session), "--out", str(out), "--quiet", "--overwrite",
+                                    "--variant", "speed_scaled", "--windows-scaled", "longest"])
+    assert res.exit_code == 0, res.output
+    with open_encoded(out) as f:
+        assert f.feature_shape("speed_scaled") == (24, 36 * 5) and f.parameters["n_windows_scaled"] == 5
+        assert "scaled time" in f.attrs["windows_note"]
+    bad = CliRunner().invoke(main, ["encode", str(session), "--out", str(out), "--windows-scaled", "many"])
+    assert bad.exit_code != 0 and "many" in bad.output
     bad = CliRunner().invoke(main, ["encode", str(session), "--variant", "nope"])
     assert bad.exit_code != 0 and "nope" in bad.output
