@@ -37,7 +37,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 
 import h5py
 import numpy as np
@@ -48,7 +48,7 @@ from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_la
 __all__ = [
     "ENCODED_SCHEMA_VERSION", "ENCODED_KIND", "VariantInfo", "VARIANTS", "VARIANT_TITLES", "MAIN_VARIANTS",
     "LABEL_FREE_VARIANTS", "REALTIME_VARIANTS", "ALL_VARIANTS", "variant_info", "EncodedWriter", "EncodedFile",
-    "open_encoded", "is_encoded_file", "NotEncodedError", "TRIAL_COLUMNS",
+    "open_encoded", "is_encoded_file", "NotEncodedError", "TRIAL_COLUMNS", "SpikeArrays",
 ]
 
 #: schema of the files :class:`EncodedWriter` writes; files without the attribute are schema 1
@@ -121,6 +121,20 @@ def _variant_order(names: Iterable[str]) -> tuple[str, ...]:
 
 
 # ------------------------------------------------------------------------------------------------- helpers
+class SpikeArrays(NamedTuple):
+    """Stored spike trains, NWB ragged layout (the fields of :class:`rigctl.encoding.spikes.SpikeTrains`, which
+    storage does not import: ``SpikeTrains(*arrays)``).
+
+    spike_times : (n_spikes,) float64, s from each trial's first sample.
+    spike_times_index : (n_trials * n_trains,) int64 row ends; row ``r = trial * n_trains + train``.
+    n_trains : int, trains per trial.
+    """
+
+    spike_times: np.ndarray
+    spike_times_index: np.ndarray
+    n_trains: int
+
+
 class NotEncodedError(ValueError):
     """The file is not an encoded file (a session file with raw readings, or another HDF5 file, or not HDF5):
     run ``rigctl encode`` on a session first."""
@@ -519,19 +533,18 @@ class EncodedFile:
             return len(taxels) if taxels else len(self.layout.layer_channels(0))
         return 2 * self.layout.n_channels
 
-    def spikes(self, variant: str):
-        """Spike trains of a variant as :class:`rigctl.encoding.spikes.SpikeTrains` (``spike_times`` s,
-        ``spike_times_index`` row ends, ``n_trains``; shape (n_trials, n_trains)).
+    def spikes(self, variant: str) -> SpikeArrays:
+        """Spike trains of a variant: :class:`SpikeArrays` (``spike_times`` s, ``spike_times_index`` row ends,
+        ``n_trains``), NWB-style; ``rigctl.encoding.spikes.SpikeTrains(*f.spikes(v))`` gives the trains' methods.
 
         Raises KeyError if the file has no spike trains for ``variant`` (encoded with ``--no-spikes``, or a variant
         whose trains are not stored)."""
-        from rigctl.encoding.spikes import SpikeTrains
-
         if variant not in self.spike_variants:
             raise KeyError(f"no spike trains of {variant!r} in {self.path} "
                            f"(stored: {', '.join(self.spike_variants) or 'none'})")
         g = self._f["spikes"][variant]
-        return SpikeTrains(g["spike_times"][()], g["spike_times_index"][()], int(g.attrs["n_trains"]))
+        return SpikeArrays(np.asarray(g["spike_times"][()], np.float64),
+                           np.asarray(g["spike_times_index"][()], np.int64), int(g.attrs["n_trains"]))
 
     def spike_trains_description(self, variant: str) -> str:
         """What the trains of a variant are (``"SA taxels 0..n-1 then RA taxels 0..n-1"``), "" if not stored."""

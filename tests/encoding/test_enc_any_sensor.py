@@ -22,6 +22,7 @@ from rigctl.core.textures import TextureSet
 from rigctl.core.trial import TrialData
 from rigctl.encoding.pipeline import SpeedMissingError, encode_session
 from rigctl.encoding.rate import rate_conversion
+from rigctl.encoding.spikes import SpikeTrains
 from rigctl.storage.encoded import open_encoded
 from rigctl.storage.session import SessionWriter
 
@@ -84,7 +85,7 @@ def test_nine_channels_at_100_hz(encoded):
         assert f.feature_shape("force_scaled") == (n, 18 * 25)
         assert f.feature_shape("realtime_original") == (n, 9 * 20)  # the single layer's 9 SA trains
         assert f.normalisation["taxel_min"].shape == (9,)
-        st = f.spikes("original")
+        st = SpikeTrains(*f.spikes("original"))
         assert st.shape == (n, 18)
         for i, (_tex, _v, _f, dur) in enumerate(PLAN):
             times = np.concatenate([st.train(i, j) for j in range(18)])
@@ -178,7 +179,6 @@ def test_batch_and_streaming_encoders_use_the_rate():
     from rigctl.encoding.izhikevich import StreamingEncoder, encode_ra, encode_sa
     from rigctl.encoding.normalise import TaxelRange
     from rigctl.encoding.rate import StreamResampler
-    from rigctl.encoding.spikes import SpikeTrains
 
     x = _readings(0, "Linen", 500.0, 3.0)
     rng = TaxelRange().update(x)

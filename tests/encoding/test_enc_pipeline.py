@@ -8,6 +8,7 @@ import pytest
 from click.testing import CliRunner
 
 from rigctl.encoding.pipeline import encode_session
+from rigctl.encoding.spikes import SpikeTrains
 from rigctl.storage.encoded import ENCODED_SCHEMA_VERSION, MAIN_VARIANTS, open_encoded
 
 PROTOCOL = """
@@ -79,7 +80,7 @@ def test_layout_and_shapes(encoded):
 def test_spikes_and_features_agree(encoded):
     with open_encoded(encoded) as f:
         for v in MAIN_VARIANTS:
-            st = f.spikes(v)
+            st = SpikeTrains(*f.spikes(v))
             assert st.shape == (24, 36)
             feats = f.features(v)
             n_win = feats.shape[1] // 36
@@ -87,12 +88,12 @@ def test_spikes_and_features_agree(encoded):
             ra_feats = feats.reshape(24, 36, n_win)[:, 18:, :]
             np.testing.assert_allclose(ra_feats, counts[:, 18:, :])  # RA columns are spike counts
         trials = f.trials
-        orig = f.spikes("original")
-        scaled = f.spikes("speed_scaled")
+        orig = SpikeTrains(*f.spikes("original"))
+        scaled = SpikeTrains(*f.spikes("speed_scaled"))
         t = int(np.flatnonzero(trials["speed_mm_s"] == 60)[0])
         np.testing.assert_allclose(scaled.train(t, 0), orig.train(t, 0) * 0.5)
         # force scaling changes only SA trains
-        fs = f.spikes("force_scaled")
+        fs = SpikeTrains(*f.spikes("force_scaled"))
         for j in range(18, 36):
             np.testing.assert_array_equal(fs.train(t, j), orig.train(t, j))
 
@@ -116,7 +117,7 @@ def test_paper_rig_numerics_unchanged(session, encoded):
         np.testing.assert_array_equal(f.normalisation["taxel_min"], rng.minimum)
         expected = spike_features(sa, ra, n_windows=10)
         np.testing.assert_array_equal(f.features("original"), expected)
-        st = f.spikes("original")
+        st = SpikeTrains(*f.spikes("original"))
         np.testing.assert_array_equal(st.select_trains(range(18)).spike_times, sa.spike_times)
 
 
@@ -145,7 +146,7 @@ def test_dask_cluster_by_address_gives_the_same_file(session, encoded, tmp_path)
         assert a.variants == b.variants
         for v in b.variants:
             np.testing.assert_array_equal(a.features(v), b.features(v))
-        assert a.spikes("original") == b.spikes("original")
+        assert SpikeTrains(*a.spikes("original")) == SpikeTrains(*b.spikes("original"))
 
 
 def test_cli_encode(session, tmp_path):

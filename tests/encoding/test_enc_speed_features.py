@@ -113,7 +113,7 @@ def test_spike_trains_encoded_file_round_trip_and_layout(tmp_path):
         w.append_spikes("original", st.select_trials([1]))
         w.write_features("original", 0, np.zeros((2, 1)))
     with open_encoded(tmp_path / "s.h5") as f:
-        assert f.spikes("original") == st
+        assert SpikeTrains(*f.spikes("original")) == st
     both = SpikeTrains.hstack([st, st.select_trains([2])])
     assert both.shape == (2, 4)
     np.testing.assert_array_equal(both.train(1, 1), [0.5, 0.6, 0.7])

@@ -74,7 +74,9 @@ def test_round_trip(tmp_path):
         np.testing.assert_array_equal(tr["n_samples"], _trials()["n_samples"])
         np.testing.assert_array_equal(f.features("original"), feats)
         assert f.feature_shape("original") == (5, 256)
-        assert f.spikes("original") == SpikeTrains.concatenate(sp)
+        arrays = f.spikes("original")  # storage hands out plain arrays (it does not import the encoder)
+        assert arrays.n_trains == 32 and arrays.spike_times.dtype == np.float64
+        assert SpikeTrains(*arrays) == SpikeTrains.concatenate(sp)
         assert f.spike_trains_description("original") == "SA then RA"
         assert f.n_trains("original") == 32
         np.testing.assert_array_equal(f.normalisation["taxel_max"], np.full(16, 4095.0))
@@ -166,7 +168,7 @@ def test_old_unversioned_file_opens(tmp_path):
         assert list(f.trials["texture"]) == labels and f.trials["texture"].dtype.kind == "U"
         assert list(f.trials["group"]) == ["smooth", "circular ridges", "waves", "waves"]
         assert f.features("original").shape == (4, 2160)
-        assert f.spikes("original") == st
+        assert SpikeTrains(*f.spikes("original")) == st
         assert list(f.force_coefficients()["texture"]) == ["A", "A"]
         assert f.n_trains("speed_scaled") == 36  # not stored: from the layout (SA + RA per taxel)
         assert f.skipped_variants == {}
