@@ -16,11 +16,12 @@ Layout (schema :data:`ENCODED_SCHEMA_VERSION` = 2)::
                              row = trial * n_trains + train; attrs n_trains, unit, trains
     /force_coefficients      table (texture, speed_mm_s, force_g, taxel, coeff, converged, target_rate, rate)
     /force_coefficients_label_free
-    /normalisation/          taxel_min, taxel_max (ADC counts, as the model saw them)
+    /normalisation/          taxel_min, taxel_max (ADC counts of the model input: after resampling, if any)
     attrs: schema_version (2), kind ("rigctl encoded"), sensor_layout (JSON, rigctl.core.sensor.SensorLayout),
            texture_set (JSON, rigctl.core.textures.TextureSet), parameters (JSON, EncodeParams), variants (JSON
            list), n_trials, n_taxels, input_rate_hz, model_rate_hz, resampled (bool), resampling (text),
-           skipped_variants (JSON), source_session, encode_seconds, ...
+           windows_note (text), skipped_variants (JSON {variant: reason}), feature_layout (text),
+           source_session, encode_seconds, force_coefficients*_note / _n_not_converged / _n_coefficients
 
 Schema 1 (files written before the schema was versioned, no ``schema_version`` attribute) still opens: the layout
 is inferred from the taxel count (the paper's 3x3x2 for 18 channels) at the rate in ``parameters`` (1 kHz), the
@@ -37,7 +38,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, NamedTuple, Sequence
+from typing import Any, Iterable, Mapping, NamedTuple
 
 import h5py
 import numpy as np
