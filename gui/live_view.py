@@ -168,6 +168,8 @@ class LiveView(QtWidgets.QWidget):
         # ("deallocating None" in ViewBox.linkedViewChanged); each plot's x range is set explicitly instead
 
         # heat maps: one per layer, its rows x cols grid
+        self._layer_slices = [(layout.layer_channels(i).start, layout.layer_channels(i).stop, (la.rows, la.cols))
+                              for i, la in enumerate(layout.layers)]
         hm = self.gl.addLayout(row=0, col=1, rowspan=n_layers)
         self.images = []
         cmap = pg.colormap.get("viridis")
@@ -246,9 +248,8 @@ class LiveView(QtWidgets.QWidget):
         for k, c in enumerate(self.curves):
             c.setData(t, x[:, k], skipFiniteCheck=True)
         cur = buf.current.astype(float)
-        for i, (img, la) in enumerate(zip(self.images, self.layout.layers)):
-            ch = self.layout.layer_channels(i)
-            img.setImage(cur[ch.start:ch.stop].reshape(la.rows, la.cols), autoLevels=False)
+        for img, (start, stop, shape) in zip(self.images, self._layer_slices):
+            img.setImage(cur[start:stop].reshape(shape), autoLevels=False)
         t0 = now - self.raster_s
         for key, ring in (("sa", enc.sa), ("ra", enc.ra)) if enc is not None else ():
             st, sc = ring.since(t0)
