@@ -180,6 +180,10 @@ class LiveView(QtWidgets.QWidget):
             img = pg.ImageItem(np.zeros((la.rows, la.cols)), axisOrder="row-major")
             img.setLookupTable(cmap.getLookupTable(nPts=256))
             img.setLevels((0, adc_max))
+            ch0 = layout.layer_channels(i).start
+            img.setToolTip("\n".join(  # which taxel is where: channel number and name, row by row
+                "   ".join(f"{ch0 + r * la.cols + c}: {labels[ch0 + r * la.cols + c]}" for c in range(la.cols))
+                for r in range(la.rows)))
             vb.addItem(img)
             self.images.append(img)
         hm.addLabel(f"colour: 0-{adc_max} ADC counts (viridis)", row=2 * n_layers, col=0, size="8pt")

@@ -297,3 +297,18 @@ def test_heat_map_of_a_row_of_taxels_is_a_strip_not_a_line(live_view, qapp):
     assert rect.width() / rect.height() == pytest.approx(4.0, rel=0.05)
     view = live_view()
     assert [img.getViewBox().state["aspectLocked"] for img in view.images] == [1.0, 1.0]
+
+
+def test_channel_names_label_the_rasters_and_heat_maps(live_view, qapp):
+    """A layout with its own channel names: the raster rows are named, and each heat map's tooltip maps grid
+    positions to channels; without names, the rasters keep numbered ticks."""
+    names = [f"pad{k}" for k in range(4)]
+    layout = SensorLayout.grid(2, 2, 1, channel_names=names)
+    view = live_view(layout)
+    ticks = view.raster_plots["ra"].getAxis("left")._tickLevels[0]
+    assert ticks == list(enumerate(names))
+    assert view.images[0].toolTip().splitlines() == ["0: pad0   1: pad1", "2: pad2   3: pad3"]
+    assert [c.name() for c in view.curves] == names
+    view = live_view(FINGER_100HZ)
+    assert view.images[0].toolTip().splitlines()[2] == "6: taxels r2c0   7: taxels r2c1   8: taxels r2c2"
+    assert [t for t, _ in view.raster_plots["sa"].getAxis("left")._tickLevels[0]] == [0, 2, 4, 6, 8]
