@@ -59,8 +59,8 @@ def test_round_trip(tmp_path):
     assert path.exists() and not w.part.exists()
     assert is_encoded_file(path)
     with h5py.File(path, "r") as raw:  # labels are variable-length UTF-8 in the file, never fixed-width
-        for table, col in (("trials", "texture"), ("trials", "group"), ("force_coefficients", "texture")):
-            info = h5py.check_string_dtype(raw[table].dtype[col])
+        for name, col in (("trials", "texture"), ("trials", "group"), ("force_coefficients", "texture")):
+            info = h5py.check_string_dtype(raw[name].dtype[col])
             assert info is not None and info.length is None and info.encoding == "utf-8"
     with open_encoded(path) as f:
         assert f.schema_version == ENCODED_SCHEMA_VERSION == 2
