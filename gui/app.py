@@ -235,6 +235,27 @@ class MainWindow(QtWidgets.QMainWindow):
             self.classify.refresh()
         if self._tick % 20 == 0:
             self.links.update_from(self.poller, self.handle.taxels if self.handle else None)
+            self.follow_sensor()
+
+    def follow_sensor(self) -> bool:
+        """Rebuild the live view, its encoder and the calibration tab when the taxel board now reports another
+        sensor than they were built for (another board plugged in: the stream has a new layout and ring buffer).
+        Returns True when they were rebuilt."""
+        h, enc = self.handle, self.encoder
+        if h is None or enc is None:
+            return False
+        layout = sensor_layout(h)
+        buf = self.live.buffer
+        if layout == enc.layout and (buf is None or buf.ring is h.taxels.ring):
+            return False
+        enc.stop()  # its thread ends at its next poll; it reads the old ring only
+        self.calibration.attach(h, layout)
+        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig, layout), layout=layout)
+        self.encoder.start()
+        self.live.attach(h.taxels, self.encoder, layout)
+        self.banner.show_message(f"The taxel board now reports another sensor: {layout.describe()}. The live view "
+                                 "and calibration follow it.", error=False, hide_after_s=10)
+        return True
 
     def closeEvent(self, ev):  # noqa: N802 - Qt override
         self.settings.setValue("ui/geometry", self.saveGeometry())

@@ -312,3 +312,47 @@ def test_channel_names_label_the_rasters_and_heat_maps(live_view, qapp):
     view = live_view(FINGER_100HZ)
     assert view.images[0].toolTip().splitlines()[2] == "6: taxels r2c0   7: taxels r2c1   8: taxels r2c2"
     assert [t for t, _ in view.raster_plots["sa"].getAxis("left")._tickLevels[0]] == [0, 2, 4, 6, 8]
+
+
+def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_path):
+    """Another taxel board on the link (the stream's layout and ring change): the live view, its encoder and the
+    calibration tab are rebuilt for it; nothing is rebuilt while the sensor stays the same."""
+    from gui.app import MainWindow, configure_pyqtgraph
+    from gui.workers import LiveEncoder
+
+    class Rig:
+        layout = None
+        textures = PAPER_TEXTURES
+
+        def taxel_normalisation(self):
+            return None
+
+    class Handle:
+        def __init__(self, stream):
+            self.taxels, self.rig = stream, Rig()
+
+        def close(self):
+            pass
+
+    configure_pyqtgraph()
+    w = MainWindow(autoconnect=False)
+    w.rig_config_path = lambda: str(tmp_path / "rig.json")
+    stream = FakeStream(PAPER_SENSOR)
+    w.handle = Handle(stream)
+    w.encoder = LiveEncoder(stream, layout=PAPER_SENSOR)  # not started: only its layout is read
+    w.live.attach(stream, w.encoder)
+    w.calibration.attach(w.handle)
+    try:
+        assert not w.follow_sensor()
+        first = w.encoder
+        stream.layout, stream.ring = FINGER_100HZ, FrameRing(9)  # a 3x3 board at 100 Hz now
+        assert w.follow_sensor()
+        assert w.encoder is not first and w.encoder.layout == FINGER_100HZ
+        assert len(w.live.images) == 1 and len(w.live.curves) == 9 and w.live.buffer.ring is stream.ring
+        assert len(w.calibration.norm_bars.opts["x"]) == 9
+        assert "3x3" in w.banner.label.text() or "0-8" in w.banner.label.text()
+        assert not w.follow_sensor()
+    finally:
+        w.close()
+        w.deleteLater()
+        qapp.processEvents()
