@@ -4,14 +4,17 @@ The acquisition layer (``rigctl.acquisition``: the ``Rig`` facade, the trial run
 these, never against a concrete backend. Implementations:
 
 - :class:`DrumController`: ``rigctl.devices.drum.DrumClient`` (Modbus RTU to the Mega: real board, the virtual Mega,
-  or the firmware under simavr) and the in-process simulated controller (``rigctl.simulation``) for fast tests.
-- :class:`TaxelSource`: ``rigctl.devices.taxel_stream.TaxelStream`` (pyserial, the Uno's frames) and the
-  in-process simulated source.
-- :class:`PlateMounter`: how a texture plate gets on the drum: the simulated rig sets it, the HIL rig swaps the
-  waveform, on hardware an operator is asked.
+  or the firmware under simavr; the in-process backend gives it a transport that calls the controller logic,
+  ``rigctl.simulation.controller.MegaController``, directly, and a simulated clock).
+- :class:`TaxelSource`: ``rigctl.devices.taxel_stream.TaxelStream`` (pyserial, the Uno's frames) and
+  ``rigctl.simulation.inprocess.InProcessTaxels``.
+- :class:`PlateMounter`: how a texture plate gets on the drum: the simulated rigs render the set's geometry
+  (``rigctl.simulation.backend.SimMounter``), on hardware an operator is asked
+  (``rigctl.devices.backend.OperatorMounter``).
 - :class:`MassPlacer` (optional): a backend that rests a calibration mass on the load cell (simulation).
-- :class:`RigBackend`: what opens the boards (simulated rig on ptys, firmware under simavr, serial hardware,
-  replay, in-process); only the composition root ``rigctl.rigs`` knows them all.
+- :class:`RigBackend`: what opens the boards: ``rigctl.simulation.backend.PtyRigBackend`` (simulated rig on ptys,
+  replay, firmware under simavr), ``rigctl.devices.backend.SerialBackend`` (hardware),
+  ``rigctl.simulation.inprocess.InProcessBackend``; only the composition root ``rigctl.rigs`` knows them all.
 
 Bluesky's ``protocols.py`` is the model (duck typing, no inheritance chains). Imports nothing else of rigctl's but
 :mod:`rigctl.core.sensor` and :mod:`rigctl.core.textures`.
