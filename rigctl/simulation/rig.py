@@ -90,6 +90,7 @@ class SimulatedRig:
         self.layout: SensorLayout = layout or PAPER_SENSOR
         self._ms_total = 0
         self._samples_total = 0
+        self._pulse_pending = False  # an index pulse in a step with no sample due goes on the next sample
         self.model = RigModel(self.config, seed=seed)
         self.mega = VirtualMega(self.model, self.port_dir / "drum")
         self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=seed,
@@ -131,10 +132,12 @@ class SimulatedRig:
             due = int(self._ms_total * rate / 1000.0)
             n = due - self._samples_total
             self._samples_total = due
-            if sync_in is not None and n:
-                pulse = bool(np.any(sync_in))
+            self._pulse_pending |= sync_in is not None and bool(np.any(sync_in))
+            sync_in = None
+            if n > 0 and self._pulse_pending:  # an index pulse since the last sample marks this step's last one
                 sync_in = np.zeros(n, bool)
-                sync_in[-1] = pulse  # an index pulse in this step marks the step's last sample
+                sync_in[-1] = True
+                self._pulse_pending = False
         if n <= 0:
             self.uno.tick(np.zeros((0, ch), np.uint16), None)
             return
