@@ -19,6 +19,27 @@ RATE_HZ = 100
 TEXTURES = {"Denim": 3.0, "Silk": 0.75}
 
 
+PROTOCOL = """
+name = "finger_replay"
+description = "two plates of the replayed finger session"
+textures = ["Silk", "Denim"]
+speeds_mm_s = [40]
+forces_g = [300]
+trials_per_condition = 1
+duration_s = 1.5
+order = "blocked"
+
+[texture_set]
+name = "finger"
+textures = ["Denim", "Silk"]
+
+[settle]
+force_timeout_s = 10
+speed_timeout_s = 5
+speed_tolerance_mm_s = 3
+"""
+
+
 @pytest.fixture(scope="module")
 def finger_session(tmp_path_factory):
     """A session file of 9 channels at 100 Hz, textures Denim and Silk, 8 s per trial (rigctl import from CSV)."""
@@ -103,6 +124,28 @@ def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session,
         assert len(heights) == 9 and np.all(heights > 100)  # the recorded sines span ~300 counts
         assert enc.normaliser.n_taxels == 9 and np.all(enc.normaliser.maximum - enc.normaliser.minimum > 100)
         w.emergency_stop()
+        # the Protocol tab records the replayed sensor: a session of 9 channels at 100 Hz, the plates' own labels
+        proto = tmp_path / "finger_protocol.toml"
+        proto.write_text(PROTOCOL)
+        tab = w.protocol
+        w.tabs.setCurrentWidget(tab)
+        tab.load(str(proto))
+        assert tab.table.rowCount() == 2, tab.summary.text()
+        out = tmp_path / "recorded.h5"
+        tab.out_edit.setText(str(out))
+        tab.resume_box.setChecked(False)
+        tab.start()
+        assert wait_for(qapp, lambda: tab.job is None, 120), tab.status.text()
+        assert "finished: 2/2" in tab.status.text(), tab.status.text()
+        from rigctl.storage.session import open_session
+
+        with open_session(out) as s:
+            assert (s.layout.n_channels, s.layout.sample_rate_hz) == (9, 100.0)
+            assert list(s.plan["texture"]) == ["Silk", "Denim"]
+            for i, tex in enumerate(("Silk", "Denim")):
+                tr = s.trial(i)
+                assert tr.taxels.shape == (150, 9)  # 1.5 s at 100 Hz
+                assert _dominant_hz(tr.taxels[:, 0], RATE_HZ) == pytest.approx(TEXTURES[tex], abs=0.7)
     finally:
         w.close()
         w.deleteLater()
