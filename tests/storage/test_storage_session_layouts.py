@@ -233,6 +233,8 @@ def test_a_schema_2_fabricslide_import_opens_with_its_16_present_channels(tmp_pa
         assert s.layout.n_channels == 16 and s.layout.sample_rate_hz == 1000.0 and s.layout.adc_bits == 10
         assert s.layout.channel_labels() == tuple(f"channel{k}" for k in range(1, 17))
         assert "FabricSlide" in s.layout.name
+        from rigctl.storage.fabricslide import FABRICSLIDE_SENSOR
+        assert s.layout == FABRICSLIDE_SENSOR  # the sensor a new FabricSlide import stores
         t = s.trial(0)
         assert t.layout == s.layout and t.taxels.shape == (300, 16)
         np.testing.assert_array_equal(t.taxels, taxels[:, :16])  # the absent (constant fill) columns dropped
