@@ -42,7 +42,8 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
         if cv:
             wanted = ("textures", "groups") if fs.group is not None else ("textures",)
             if fs.group is None:
-                res.warnings.append(f"groups skipped: the texture set {fs.textures.name!r} defines no texture groups")
+                res.warnings.append(f"groups skipped: the texture set {fs.textures.name or ''!r} defines no texture "
+                                    "groups")
             try:
                 res.merge(tasks.run_cv(fs, wanted, variants=variants, n_pcs=n_pcs, repeats=repeats,
                                        per_texture=per_texture, seed=seed, progress=True))

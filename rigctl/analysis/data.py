@@ -191,9 +191,9 @@ class FeatureSet:
     def require_groups(self) -> None:
         """Raise :class:`GroupsError` (one line, naming the set) unless every texture of the set has a group."""
         if self.group is None:
-            name = self.textures.name or "of this file"
+            which = f"the texture set {self.textures.name!r}" if self.textures.name else "the file's texture set"
             raise GroupsError(
-                f"the texture set {name!r} ({len(self.textures)} textures: "
+                f"{which} ({len(self.textures)} textures: "
                 f"{', '.join(self.textures.labels[:8])}{' ...' if len(self.textures) > 8 else ''}) defines no "
                 "texture groups, so the groups task has nothing to classify; give the set groups (a protocol's "
                 "[texture_set] groups, or `rigctl import --mapping` with groups) or run --task textures")

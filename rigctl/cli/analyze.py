@@ -155,7 +155,8 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
                     if task == "all" and data.group is None:
                         wanted = ("textures",)
                         res.warnings.append(f"groups task skipped: the texture set {data.textures.name!r} defines "
-                                            "no texture groups")
+                                            "no texture groups" if data.textures.name else
+                                            "groups task skipped: the file's texture set defines no texture groups")
                     res.merge(tasks.run_cv(data, wanted, variants=vlist, n_pcs=n_pcs, repeats=repeats,
                                            per_texture=per_texture, seed=seed, progress=progress))
                 if task in ("extrapolation", "all"):
