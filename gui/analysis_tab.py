@@ -106,7 +106,10 @@ class AnalysisTab(QtWidgets.QWidget):
         self.status.setWordWrap(True)
 
         self.model_variant = QtWidgets.QComboBox()
-        self.model_variant.addItems(["speed_scaled", "original", "realtime_speed_scaled", "realtime_original"])
+        from rigctl.storage.encoded import MAIN_VARIANTS, REALTIME_VARIANTS
+
+        # the variant registry's names (rigctl.storage.encoded), the paper's default model variant first
+        self.model_variant.addItems(sorted(MAIN_VARIANTS + REALTIME_VARIANTS, key=lambda v: v != "speed_scaled"))
         self.model_pcs = QtWidgets.QSpinBox(minimum=1, maximum=200, value=25)
         self.train_btn = QtWidgets.QPushButton("Train model for the real-time view")
         self.train_btn.clicked.connect(self.train_model)
