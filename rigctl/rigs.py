@@ -49,11 +49,7 @@ def replay_source(source: Any) -> Any:
     if path.is_dir():
         return replay.FabricSlideReplay(path)
     if path.is_file():
-        for name in ("SessionReplay", "session_replay", "open_replay"):
-            make = getattr(replay, name, None)
-            if make is not None:
-                return make(path)
-        raise RigError(f"cannot replay {path}: this rigctl replays FabricSlide directories only")
+        return replay.SessionReplay(path)
     raise RigError(f"cannot replay {path}: no such file or directory")
 
 

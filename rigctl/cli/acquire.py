@@ -21,6 +21,9 @@ def _sigterm_as_interrupt(signum, frame):
 @click.option("--hil", is_flag=True, default=False, help="Use the real firmware under simavr (hardware in the loop).")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
+@click.option("--replay", "replay", type=click.Path(exists=True, path_type=Path), default=None,
+              help="Simulated rig whose taxel board streams this recording (a session file, at its own layout and "
+                   "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model.")
 @click.option("--resume", is_flag=True, default=False,
               help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice).")
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
@@ -31,7 +34,7 @@ def _sigterm_as_interrupt(signum, frame):
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Rig config JSON (calibration); default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json.")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
-def acquire(protocol, out, sim, hil, drum_port, taxel_port, resume, overwrite, seed, on_failure, config_path,
+def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure, config_path,
             quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
@@ -50,6 +53,10 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, resume, overwrite, s
         raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil")
     if sim and hil:
         raise click.UsageError("choose one of --sim and --hil")
+    if replay is not None and (hil or drum_port is not None):
+        raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--drum-port")
+    if replay is not None and Path(out).resolve() == Path(replay).resolve():
+        raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
     try:
@@ -75,6 +82,8 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, resume, overwrite, s
     try:
         if drum_port is not None:
             rig = open_rig("hardware", drum_port=drum_port, taxel_port=taxel_port, host_config_path=config_path)
+        elif replay is not None:
+            rig = open_rig("replay", source=replay, seed=0 if seed is None else seed, host_config_path=config_path)
         else:
             rig = open_rig("hil" if hil else "sim", seed=0 if seed is None else seed, host_config_path=config_path)
     except RigError as exc:

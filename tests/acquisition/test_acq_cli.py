@@ -139,3 +139,44 @@ def test_kill_9_mid_session_then_resume(tmp_path):
         assert starts == sorted(starts)  # recorded once each, in plan order across the two runs
     info = _info(out, env)
     assert info["totals"]["complete"] == 6 and info["totals"]["dropped_frames"] == 0
+
+
+def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
+    """`rigctl acquire --replay`: a 9-taxel 100 Hz session with its own labels streams through the simulated taxel
+    board; the protocol mounts two of its textures and the new session keeps the sensor, the rate and the labels,
+    and each recorded trial is a stretch of the mounted texture's recording."""
+    from rigctl.core import SensorLayout, TextureSet, TrialData
+    from rigctl.storage.session import SessionWriter, open_session
+
+    layout = SensorLayout.grid(3, 3, 1, sample_rate_hz=100)
+    textures = TextureSet.from_dict({"name": "lab", "textures": ["Linen weave", "HB3"]})
+    rng = np.random.default_rng(3)
+    source = {"Linen weave": rng.integers(0, 400, (400, 9)), "HB3": rng.integers(600, 1024, (400, 9))}
+    src = tmp_path / "lab.h5"
+    plan = [{"trial_id": i, "texture": t, "speed_mm_s": 40.0, "force_g": float("nan"), "duration_s": 4.0}
+            for i, t in enumerate(source)]
+    w = SessionWriter.create(src, plan=plan, layout=layout, textures=textures, protocol_format="none")
+    w.write_trials([(i, TrialData(x, layout=layout)) for i, x in enumerate(source.values())])
+    proto = tmp_path / "p.toml"
+    proto.write_text('name = "replay"\ntextures = ["HB3", "Linen weave"]\nspeeds_mm_s = [120]\nforces_g = [500]\n'
+                     'trials_per_condition = 1\nduration_s = 0.5\n\n[texture_set]\nname = "lab"\n'
+                     'textures = ["Linen weave", "HB3"]\n')
+    env = _env(tmp_path)
+    out = tmp_path / "replayed.h5"
+    same = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(src)],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert same.returncode == 2 and "is the recording being replayed" in same.stderr
+    run = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(out), "--quiet"],
+                         capture_output=True, text=True, env=env, timeout=180)
+    assert run.returncode == 0, run.stderr
+    with open_session(out) as s:
+        assert s.layout.n_channels == 9 and s.layout.sample_rate_hz == 100.0
+        assert list(s.plan["texture"]) == ["HB3", "Linen weave"]
+        for tid in s.completed_ids():
+            t = s.trial(tid)
+            assert t.taxels.shape == (50, 9)
+            rec = source[str(s.plan["texture"][tid])]
+            # the recorded stretch occurs in the mounted texture's recording (looped), sample for sample
+            loop = np.concatenate([rec, rec]).astype(np.uint16)
+            hits = [k for k in range(len(rec)) if np.array_equal(loop[k:k + 50], t.taxels)]
+            assert hits, f"trial {tid} ({s.plan['texture'][tid]}) is not a stretch of its texture's recording"
