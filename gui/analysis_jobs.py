@@ -62,7 +62,8 @@ def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25):
     """Fit a :class:`rigctl.analysis.classify.TextureClassifier` on every trial of an encoded file.
 
     Returns ``(classifier, taxel_min, taxel_max)``: the normalisation the file was encoded with, needed to encode
-    new trials the same way for the real-time view.
+    new trials the same way for the real-time view. The classifier also carries ``encode_params`` (the file's
+    encoding parameters: windows, taxels, constants) and ``layout`` (the file's sensor).
     """
     import numpy as np
 
@@ -76,5 +77,8 @@ def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25):
     clf.variant = variant
     with open_encoded(path) as ef:
         norm = ef.normalisation
+        # encode live trials exactly as the file was (same windows, taxels, constants -> same feature columns)
+        clf.encode_params = dict(ef.parameters)
+        clf.layout = ef.layout
     lo, hi = (norm["taxel_min"], norm["taxel_max"]) if isinstance(norm, dict) else (norm.taxel_min, norm.taxel_max)
     return clf, np.asarray(lo, float), np.asarray(hi, float)

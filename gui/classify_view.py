@@ -15,23 +15,30 @@ from gui.workers import Job
 MAX_TILES = 60
 
 
-def classify_trial(clf, taxel_min, taxel_max, taxels: np.ndarray, speed_mm_s: float) -> str:
+def classify_trial(clf, taxel_min, taxel_max, taxels: np.ndarray, speed_mm_s: float,
+                   rate_hz: float | None = None) -> str:
     """Predicted texture of one trial: encode ``taxels`` ``(n_samples, n_channels)`` counts (any channel count: the
-    training file's sensor; ``taxel_min``/``taxel_max`` are ``(n_channels,)``) with the training normalisation and
-    speed (eq. 2) into ``clf.variant`` features, then :meth:`TextureClassifier.predict`.
+    training file's sensor; ``taxel_min``/``taxel_max`` are ``(n_channels,)``) at ``rate_hz`` (None: the training
+    file's rate) with the training normalisation, the training file's encoding parameters (``clf.encode_params``:
+    windows, taxels, constants, so the feature columns match) and the trial's speed (eq. 2) into ``clf.variant``
+    features, then :meth:`TextureClassifier.predict`.
 
     Raises ValueError when the trial's channel count differs from the training normalisation's."""
     from rigctl.encoding.izhikevich import as_ragged
     from rigctl.encoding.normalise import TaxelRange
-    from rigctl.encoding.pipeline import encode_batch
+    from rigctl.encoding.pipeline import EncodeParams, encode_batch
 
     taxels = np.asarray(taxels)
     if taxels.ndim != 2 or taxels.shape[1] != np.asarray(taxel_min).size:
         raise ValueError(f"trial readings {taxels.shape} do not match the classifier's {np.asarray(taxel_min).size} "
                          "taxels (trained on another sensor)")
+    params = EncodeParams.from_dict(getattr(clf, "encode_params", None))
+    layout = getattr(clf, "layout", None)
+    if rate_hz is None and layout is not None:
+        rate_hz = layout.sample_rate_hz
     offset, scale = TaxelRange(np.asarray(taxel_min, float), np.asarray(taxel_max, float)).offset_scale()
-    feats, _ = encode_batch(as_ragged([np.asarray(taxels)]), offset=offset, scale=scale,
-                            speed_mm_s=[float(speed_mm_s)], variants=[clf.variant], store_spikes=())
+    feats, _ = encode_batch(as_ragged([taxels]), offset=offset, scale=scale, speed_mm_s=[float(speed_mm_s)],
+                            variants=[clf.variant], store_spikes=(), params=params, rate_hz=rate_hz)
     return str(clf.predict(feats[clf.variant])[0])
 
 
@@ -112,7 +119,8 @@ class ClassifyView(QtWidgets.QWidget):
         if self._job is None and self._pending:
             planned, data = self._pending.popleft()
             clf, (lo, hi) = self.model, self._norm
-            job = Job(lambda j: classify_trial(clf, lo, hi, data.taxels, planned.speed_mm_s), name="classify")
+            rate = getattr(getattr(data, "layout", None), "sample_rate_hz", None)
+            job = Job(lambda j: classify_trial(clf, lo, hi, data.taxels, planned.speed_mm_s, rate), name="classify")
             job.planned = planned
             self._job = job
             job.start()

@@ -205,6 +205,24 @@ def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot
     _, sy = tab.trial_rasters["ra"][1].getData()
     assert sy is not None and len(sy) > 0 and sy.max() <= 8.5
     assert tab.heat_plots[0][1].image.shape == (3, 3)
+    # the real-time view's classifier on this sensor: trials encoded like the file (its windows, its 100 Hz rate)
+    from gui.analysis_jobs import train_classifier
+    from gui.classify_view import classify_trial
+    from rigctl.storage.encoded import open_encoded
+    from rigctl.storage.session import open_session
+
+    for variant in ("original", "speed_scaled"):
+        clf, lo, hi = train_classifier(enc, variant, 4)
+        assert lo.shape == (9,) and clf.layout.n_channels == 9
+        with open_encoded(enc) as ef:
+            stored = list(clf.predict(ef.features(variant)))  # rows in trial order 0..15
+        with open_session(path) as s:
+            live = [classify_trial(clf, lo, hi, s.trial(i).taxels, float(s.plan["speed_mm_s"][i])) for i in range(16)]
+        # live trials are encoded exactly like the file (same 100 Hz -> 1 kHz step, windows, normalisation)
+        assert live == stored, variant
+        assert sum(p == t for p, t in zip(live, np.repeat(["Linen", "Denim", "Felt", "Silk"], 4))) >= 8
+        with pytest.raises(ValueError, match="another sensor"):
+            classify_trial(clf, lo, hi, np.zeros((100, 18), np.uint16), 40.0)
 
 
 def test_analysis_tab_heat_maps_per_layer_of_a_sixteen_channel_session(lone_tab, qapp, tmp_path):
