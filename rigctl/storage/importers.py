@@ -476,11 +476,22 @@ def load_mapping(path: str | os.PathLike | None) -> dict:
 
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            doc = tomllib.load(fh)
     except FileNotFoundError:
         raise RecordingImportError(f"mapping {path}: no such file") from None
     except tomllib.TOMLDecodeError as exc:
         raise RecordingImportError(f"mapping {path}: not valid TOML ({exc})") from None
+    unknown = sorted(set(doc) - set(MAPPING_KEYS))
+    if unknown:
+        raise RecordingImportError(f"mapping {path}: unknown key(s) {', '.join(unknown)}; the keys are "
+                                   f"{', '.join(MAPPING_KEYS)}")
+    return doc
+
+
+#: keys a TOML mapping may hold (module docstring)
+MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
+                "label_pattern", "resample_hz", "segment", "variable", "columns", "time_column", "defaults", "files",
+                "texture_set")
 
 
 def _resolve_layout(n_channels: int, rate_hz: float, *, channels: int | None, layout: str | None,

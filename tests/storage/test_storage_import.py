@@ -179,6 +179,15 @@ def test_mapping_gives_labels_layout_and_texture_set(tmp_path):
         assert s.plan["force_g"][0] == 30 and s.plan["speed_mm_s"][1] == 15
 
 
+def test_mapping_with_an_unknown_key_is_refused_by_name(tmp_path):
+    a = write(tmp_path / "run1.npy", recording(0), "npy")
+    mp = tmp_path / "map.toml"
+    mp.write_text('rate = 100\n[defaults]\ntexture = "silk"\n')  # "rate" instead of "rate_hz"
+    r = run(a, "--mapping", mp, "--out", tmp_path / "s.h5")
+    assert r.exit_code != 0 and "unknown key(s) rate;" in r.output and "rate_hz" in r.output
+    assert not (tmp_path / "s.h5").exists()
+
+
 def continuous(seconds_rest=(1.0, 0.7, 1.2, 0.8), seconds_on=(1.5, 2.0, 1.0)) -> tuple[np.ndarray, list]:
     """Rest at a constant level with bursts of texture signal in between; returns data and the bursts' ranges."""
     parts, bursts, pos = [], [], 0
