@@ -709,7 +709,7 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
              "resampling": json.dumps(steps["resampling"] or {"method": "none"}),
              "segmentation": json.dumps(steps["segmentation"] or {"method": "none"}),
              "label_pattern": label_pattern or ""}
-    summary = write_imported_session(out, trials, layout=sl, textures=textures, kind="recorded", attrs=attrs,
+    summary = write_imported_session(out, trials, layout=sl, textures=textures, kind="imported", attrs=attrs,
                                      rig_config={"source": "rigctl import", "sensor": sl.to_dict()},
                                      protocol_name="import", overwrite=overwrite)
     summary["steps"] = steps
