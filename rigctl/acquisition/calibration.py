@@ -21,6 +21,7 @@ run's trials.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -40,6 +41,8 @@ from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the confi
     update_rig_config,
 )
 from rigctl.core.interfaces import MassPlacer
+
+log = logging.getLogger(__name__)
 
 # ----------------------------------------------------------------------------------------------------------------
 # Load cell
@@ -267,11 +270,20 @@ def taxel_normalisation_from_session(path: str | os.PathLike, *, store: bool = F
     return norm
 
 
-def session_calibration_block(host_config: dict) -> dict | None:
+def session_calibration_block(host_config: dict, n_channels: int | None = None) -> dict | None:
     """The ``/calibration`` block a session gets from a rig config: the taxel normalisation (arrays) plus the
-    load-cell scale as attributes; None when the config holds neither."""
+    load-cell scale as attributes; None when the config holds neither.
+
+    ``n_channels``: the session's taxel count (``rig.layout.n_channels``); a taxel normalisation made for another
+    sensor (another channel count) is left out, with a warning, rather than failing the session.
+    """
     out: dict[str, Any] = {}
     tn = host_config.get("taxel_normalisation")
+    if tn and n_channels is not None and np.asarray(tn.get("taxel_min", ())).size != n_channels:
+        log.warning("the rig config's taxel normalisation has %d taxels but the sensor has %d: not copied into the "
+                    "session (calibrate the taxels of this sensor)", np.asarray(tn.get("taxel_min", ())).size,
+                    n_channels)
+        tn = None
     if tn:
         out["taxel_min"] = np.asarray(tn["taxel_min"], float)
         out["taxel_max"] = np.asarray(tn["taxel_max"], float)

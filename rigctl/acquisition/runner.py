@@ -169,7 +169,7 @@ def run_protocol(
             out_path, plan=protocol.plan(), layout=rig.layout, textures=protocol.texture_set,
             protocol_source=protocol.source, protocol_name=protocol.name,
             protocol_format="toml", rig_config=rig.describe(), kind="recorded",
-            calibration=session_calibration_block(rig.host_config), overwrite=overwrite,
+            calibration=session_calibration_block(rig.host_config, rig.layout.n_channels), overwrite=overwrite,
         )
     plan = [PlannedTrial.from_row(r) for r in writer.plan]
     todo = [p for p, st in zip(plan, writer.plan["status"]) if st != TrialStatus.COMPLETE]
@@ -276,7 +276,7 @@ def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: b
                            "(the script decides its trials); start a new session file")
     writer = SessionWriter.create(
         out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source, protocol_name=protocol.name, protocol_format="python",
-        rig_config=rig.describe(), kind="recorded", calibration=session_calibration_block(rig.host_config),
+        rig_config=rig.describe(), kind="recorded", calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
         overwrite=overwrite,
     )
     summary = RunSummary(path=out_path)

@@ -180,3 +180,19 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
             loop = np.concatenate([rec, rec]).astype(np.uint16)
             hits = [k for k in range(len(rec)) if np.array_equal(loop[k:k + 50], t.taxels)]
             assert hits, f"trial {tid} ({s.plan['texture'][tid]}) is not a stretch of its texture's recording"
+
+
+def test_a_calibration_for_another_sensor_is_not_copied_into_the_session(tmp_path, caplog):
+    """The rig config holds an 18-taxel normalisation; a session of a 9-taxel sensor gets none (and a warning)
+    instead of a failed session, and an 18-taxel session still gets it."""
+    import logging
+
+    from rigctl.acquisition.calibration import session_calibration_block
+
+    cfg = {"taxel_normalisation": {"taxel_min": [100.0] * 18, "taxel_max": [900.0] * 18, "n_trials": 3},
+           "loadcell": {"counts_per_g": 420.0, "mass_g": 500.0}}
+    with caplog.at_level(logging.WARNING):
+        nine = session_calibration_block(cfg, 9)
+    assert "taxel_min" not in nine and nine["loadcell_counts_per_g"] == 420.0
+    assert "has 18 taxels but the sensor has 9" in caplog.text
+    assert session_calibration_block(cfg, 18)["taxel_min"].shape == (18,)
