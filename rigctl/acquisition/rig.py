@@ -459,8 +459,11 @@ class Rig:
 
         statuses: list[_Status] = []
         started_utc = _utc_now()
+        # the capture is paced on the drum client's clock, the clock of the frames' host times and the status
+        # times (wall time on a real link; simulated time in-process, where a wait advances the simulation)
+        clock = self.drum.clock
         self.stream.begin_capture()
-        t_start = time.monotonic()
+        t_start = clock.now()
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
         align = not planned.is_ramp
         n_capture = n
@@ -468,7 +471,7 @@ class Rig:
             # predict the index pulse from the drum angle; capture up to it + the trial + a margin
             rev_s = DRUM_CIRCUMFERENCE_MM / planned.speed_mm_s
             st = self.drum.read_status()
-            t_read = time.monotonic()
+            t_read = clock.now()
             to_index_s = (360.0 - float(st.angle_deg)) % 360.0 / 360.0 * rev_s
             n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * rate)) + INDEX_MARGIN_FRAMES
             n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate)))
@@ -477,10 +480,10 @@ class Rig:
         frames_seen, t_frame = self.stream.stats.frames, t_start
         try:
             while True:
-                now = time.monotonic()
+                now = clock.now()
                 if self.stream.wait_capture(n_capture, timeout_s=max(0.0, next_poll - now)):
                     break
-                now = time.monotonic()
+                now = clock.now()
                 if now >= next_poll:
                     s = self._status()
                     statuses.append(s)

@@ -16,6 +16,7 @@ cannot be silent on a clock that only moves when it speaks).
 
 from __future__ import annotations
 
+import math
 import threading
 from typing import Any, Callable
 
@@ -210,7 +211,9 @@ class InProcessTaxels:
 
     def wait_capture(self, n_frames: int, timeout_s: float) -> bool:
         """Run the simulation until the capture holds ``n_frames`` frames or ``timeout_s`` simulated s passed."""
-        left_ms = int(round(max(0.0, timeout_s) * 1000.0))
+        # any positive wait advances at least 1 ms: a caller polling until its clock reaches a deadline a fraction
+        # of a millisecond away must see the clock move, or it would spin forever
+        left_ms = int(math.ceil(timeout_s * 1000.0)) if timeout_s > 0 else 0
         while True:
             with self._lock:
                 if self._capture is None:
