@@ -428,21 +428,33 @@ def run_extrapolation(
     return res
 
 
+def _isin(values, wanted):
+    """``np.isin`` where a NaN label (no speed or no force recorded, e.g. imported recordings) matches a NaN."""
+    wanted = np.asarray(wanted, float)
+    return np.isin(values, wanted) | (np.isnan(values) & bool(np.isnan(wanted).any()))
+
+
+def _fmt_values(values) -> str:
+    return ", ".join("none" if np.isnan(v) else f"{float(v):g}" for v in np.asarray(values, float)) or "none"
+
+
 def _extrapolation_plan(fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test):
     """Cells (texture|speed|force -> trial indices), trained cells, cell category, and the counts to draw."""
     spd, frc = _cells(fs)
     tr_s = np.unique(spd) if train_speeds is None else np.round(np.abs(np.asarray(train_speeds, float)), 6)
     tr_f = np.unique(frc) if train_forces is None else np.round(np.asarray(train_forces, float), 6)
-    s_in = np.isin(spd, tr_s)
-    f_in = np.isin(frc, tr_f)
+    s_in = _isin(spd, tr_s)
+    f_in = _isin(frc, tr_f)
     keep = np.ones(fs.n_trials, bool)
     if test_speeds is not None:
-        keep &= np.isin(spd, np.round(np.abs(np.asarray(test_speeds, float)), 6)) | s_in
+        keep &= _isin(spd, np.round(np.abs(np.asarray(test_speeds, float)), 6)) | s_in
     if test_forces is not None:
-        keep &= np.isin(frc, np.round(np.asarray(test_forces, float), 6)) | f_in
+        keep &= _isin(frc, np.round(np.asarray(test_forces, float), 6)) | f_in
     trained = s_in & f_in
     if not trained.any():
-        raise ValueError(f"no trials at the trained speeds {list(tr_s)} mm/s and forces {list(tr_f)} g")
+        raise ValueError(f"no trials at the trained speeds {_fmt_values(tr_s)} mm/s and forces "
+                         f"{_fmt_values(tr_f)} g (the file has speeds {_fmt_values(np.unique(spd))} mm/s, forces "
+                         f"{_fmt_values(np.unique(frc))} g)")
     cell_key = np.char.add(np.char.add(fs.texture.astype(str), "|"),
                            np.char.add(spd.astype(str), np.char.add("|", frc.astype(str))))
     cells = {}

@@ -127,3 +127,14 @@ def test_paper_defaults_unchanged():
     assert fs.layout is PAPER_SENSOR and fs.n_spike_trains("original") == 36
     assert fs.features["original"].shape[1] == 2160 and fs.features["speed_scaled"].shape[1] == 720
     assert fs.textures is PAPER_TEXTURES and fs.group_classes == list(PAPER_TEXTURES.groups)
+
+
+def test_speed_extrapolation_without_force_labels(tmp_path):
+    """Imported recordings often have speeds but no force (NaN): the trials of one speed form one cell, not none."""
+    fs = synthetic_features(6, n_textures=4, layout=FINGER, speeds=(20.0, 40.0, 80.0), forces=(500.0,), seed=7)
+    fs = FeatureSet(fs.features, fs.texture, fs.speed_mm_s, np.full(fs.n_trials, np.nan), layout=FINGER)
+    res = run_extrapolation(fs, train_speeds=(20, 40), train_forces=None, test_speeds=(80,), n_pcs=5, repeats=1,
+                            n_train=4, n_test=2, variants=["original"])
+    assert res.counts["extrapolation"]["tested_per_repeat"]["untrained_speed"] == 4 * 2  # 4 textures x 2 trials
+    with pytest.raises(ValueError, match=r"speeds 10 mm/s and forces none g \(the file has speeds 20, 40, 80"):
+        run_extrapolation(fs, train_speeds=(10,), train_forces=None, n_pcs=5, repeats=1)
