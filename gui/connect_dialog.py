@@ -52,8 +52,12 @@ class ConnectDialog(QtWidgets.QDialog):
         self.port_info = QtWidgets.QLabel()
         self.port_info.setWordWrap(True)
         self.replay_dir = QtWidgets.QLineEdit(current.replay_dir or "")
-        browse = QtWidgets.QPushButton("Browse...")
+        browse = QtWidgets.QPushButton("Folder...")
+        browse.setToolTip("a FabricSlide directory")
         browse.clicked.connect(self._browse)
+        browse_file = QtWidgets.QPushButton("Session file...")
+        browse_file.setToolTip("a session file (.h5) of any sensor: rigctl acquire or rigctl import output")
+        browse_file.clicked.connect(self._browse_file)
 
         form = QtWidgets.QFormLayout()
         form.addRow("Drum controller (Mega, Modbus)", self.drum_port)
@@ -64,6 +68,7 @@ class ConnectDialog(QtWidgets.QDialog):
         rl = QtWidgets.QHBoxLayout()
         rl.addWidget(self.replay_dir, 1)
         rl.addWidget(browse)
+        rl.addWidget(browse_file)
 
         buttons = QtWidgets.QDialogButtonBox(QtWidgets.QDialogButtonBox.Ok | QtWidgets.QDialogButtonBox.Cancel)
         buttons.accepted.connect(self.accept)
@@ -111,6 +116,12 @@ class ConnectDialog(QtWidgets.QDialog):
         d = QtWidgets.QFileDialog.getExistingDirectory(self, "FabricSlide directory", self.replay_dir.text())
         if d:
             self.replay_dir.setText(d)
+
+    def _browse_file(self) -> None:
+        f, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Session file to replay", self.replay_dir.text(),
+                                                     "Session files (*.h5 *.hdf5);;All files (*)")
+        if f:
+            self.replay_dir.setText(f)
 
     @staticmethod
     def _port(box: QtWidgets.QComboBox) -> str | None:

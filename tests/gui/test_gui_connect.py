@@ -52,3 +52,26 @@ def test_fabricslide_replay_source_feeds_the_live_view(window, qapp, fabricslide
     assert x.std(axis=0).max() > 0  # recorded signals, not a constant
     window.connect_source(RigSource("sim"))
     assert wait_for(qapp, lambda: window.handle is not None, 60)
+
+
+def test_connect_dialog_picks_a_session_file_to_replay(qapp, gui_home, tmp_path, monkeypatch):
+    """A session file of any sensor can be chosen for replay (not only a FabricSlide folder)."""
+    from PySide6 import QtWidgets
+
+    from gui.connect_dialog import ConnectDialog
+    from gui.workers import RigSource
+
+    session = tmp_path / "finger9.h5"
+    session.write_bytes(b"")
+    asked = {}
+
+    def fake_open(parent, caption, folder, filters):
+        asked.update(caption=caption, filters=filters)
+        return str(session), filters.split(";;")[0]
+
+    monkeypatch.setattr(QtWidgets.QFileDialog, "getOpenFileName", staticmethod(fake_open))
+    dlg = ConnectDialog(RigSource("sim"))
+    buttons = {b.text(): b for b in dlg.findChildren(QtWidgets.QPushButton)}
+    buttons["Session file..."].click()
+    dlg.replay.setChecked(True)
+    assert "*.h5" in asked["filters"] and dlg.source() == RigSource("replay", replay_dir=str(session))
