@@ -151,9 +151,6 @@ class TextureSet:
         """Stable integer code: the texture's position in the set. Raises TextureSetError for an unknown label."""
         return self._index[self.resolve(label)]
 
-    def codes(self, labels: Iterable[str]) -> list[int]:
-        return [self.code(t) for t in labels]
-
     def group_of(self, label: str) -> str | None:
         """The texture's group, or None when it has none. Raises TextureSetError for an unknown label."""
         return self.spec(label).group
