@@ -322,11 +322,7 @@ class SessionWriter:
             self.attrs = _read_attrs(f)
             self.protocol_source = _read_text(f["protocol/source"])
             self._plan = f["plan"][()]
-            try:
-                self.layout, present = _file_layout(f, self.attrs)
-                self.textures = _file_textures(self.attrs, self._plan)
-            except ValueError as exc:  # LayoutError, TextureSetError
-                raise SessionError(f"{self.path}: {exc}") from exc
+            self.layout, present, self.textures = _file_sensor(self.attrs, self._plan, self.path)
             if present is not None:
                 raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with absent "
                                    "channels (channel_present); it can be read, not appended to: import it again")
@@ -690,7 +686,7 @@ def _legacy_layout(attrs: Mapping, present: np.ndarray) -> SensorLayout:
               else f"{len(idx)} present channels of {len(present)}"))
 
 
-def _file_layout(f: h5py.File, attrs: Mapping) -> tuple[SensorLayout, np.ndarray | None]:
+def _file_layout(attrs: Mapping) -> tuple[SensorLayout, np.ndarray | None]:
     """``(layout, present)``: the file's sensor and, for a schema-1/2 file with absent channels, the indices of the
     stored columns that are real (else None).
 
@@ -720,6 +716,17 @@ def _file_textures(attrs: Mapping, plan: np.ndarray) -> TextureSet:
         return PAPER_TEXTURES if textures == PAPER_TEXTURES else textures
     labels = [t for t in (_text(v) for v in plan["texture"].tolist()) if t.strip()]
     return texture_set_from_labels(labels) if labels else PAPER_TEXTURES
+
+
+def _file_sensor(attrs: Mapping, plan: np.ndarray, path: Path
+                 ) -> tuple[SensorLayout, np.ndarray | None, TextureSet]:
+    """``(layout, present, textures)`` of a session file (:func:`_file_layout`, :func:`_file_textures`), for the
+    reader and the writer alike. Raises SessionError for a malformed ``sensor_layout`` / ``texture_set``."""
+    try:
+        layout, present = _file_layout(attrs)
+        return layout, present, _file_textures(attrs, plan)
+    except ValueError as exc:  # LayoutError, TextureSetError
+        raise SessionError(f"{path}: {exc}") from exc
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -756,11 +763,7 @@ class Session:
             f = self._f
             self.attrs = _read_attrs(f)
             raw_plan = f["plan"][()]
-            try:
-                self.layout, self._present = _file_layout(f, self.attrs)
-                self.textures = _file_textures(self.attrs, raw_plan)
-            except ValueError as exc:  # LayoutError, TextureSetError
-                raise SessionError(f"{self.path}: {exc}") from exc
+            self.layout, self._present, self.textures = _file_sensor(self.attrs, raw_plan, self.path)
         except Exception:
             self._f.close()
             raise
