@@ -438,13 +438,12 @@ def encode(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, fs: float = F
     return _encode_trains(rg, k=k, gain=gain, offset=offset, scale=scale, fs=fs, params=params)
 
 
-def _at_model_rate(rg: Ragged, fs: float) -> tuple[Ragged, float]:
-    """Trials at ``fs`` Hz -> trials at the model's rate and that rate (no copy at :data:`FS_HZ`)."""
-    if float(fs) == FS_HZ:
-        return rg, FS_HZ
+def _at_model_rate(rg: Ragged, fs: float, model_fs: float = FS_HZ) -> tuple[Ragged, float]:
+    """Trials at ``fs`` Hz -> trials at the model's rate ``model_fs`` and that rate (no copy when equal). Raises
+    ValueError as :func:`rigctl.encoding.rate.rate_conversion`."""
     from rigctl.encoding.rate import rate_conversion
 
-    conv = rate_conversion(fs, FS_HZ)
+    conv = rate_conversion(fs, model_fs)
     if not conv.resampled or not rg.n_trials:
         return rg, conv.model_rate_hz
     return as_ragged([conv.apply(rg.trial(t)) for t in range(rg.n_trials)]), conv.model_rate_hz

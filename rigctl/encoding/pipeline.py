@@ -66,7 +66,8 @@ from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, real
                                       realtime_features_unscaled, spike_features)
 from rigctl.encoding.filters import ra_input
 from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler
-from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _trains_from_raster, as_ragged, run_izhikevich
+from rigctl.encoding.izhikevich import (K_RA, K_SA, Ragged, _at_model_rate, _trains_from_raster, as_ragged,
+                                        run_izhikevich)
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
@@ -201,9 +202,7 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
     p = params or EncodeParams()
     rg = as_ragged(rg)
     if rate_hz is not None:
-        conv = rate_conversion(rate_hz, p.fs_hz)
-        if conv.resampled:
-            rg = as_ragged([conv.apply(rg.trial(t)) for t in range(rg.n_trials)])
+        rg, _ = _at_model_rate(rg, rate_hz, p.fs_hz)
     n, n_ch = rg.n_trials, rg.n_channels
     bad = [v for v in variants if v not in VARIANTS]
     if bad:

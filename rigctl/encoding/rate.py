@@ -31,7 +31,7 @@ import numpy as np
 
 from rigctl.encoding.izhikevich import FS_HZ
 
-__all__ = ["MODEL_RATE_HZ", "RateConversion", "rate_conversion", "StreamResampler", "at_model_rate"]
+__all__ = ["MODEL_RATE_HZ", "RateConversion", "rate_conversion", "StreamResampler"]
 
 #: the model's step rate, Hz: one Izhikevich step per ms
 MODEL_RATE_HZ: float = FS_HZ
@@ -112,13 +112,6 @@ def rate_conversion(input_rate_hz: float, model_rate_hz: float = MODEL_RATE_HZ, 
     if up < 1 or abs(eff - rmod) > 1e-3 * rmod:
         raise ValueError(f"cannot resample {rin:g} Hz to {rmod:g} Hz with factors up to {max_factor}")
     return RateConversion(rin, eff if abs(eff - rmod) > 1e-9 * rmod else rmod, up, down)
-
-
-def at_model_rate(trials, rate_hz: float, model_rate_hz: float = MODEL_RATE_HZ):
-    """``(list of (n_i', n_channels) arrays, model rate)``: each ``(n_i, n_channels)`` trial resampled from
-    ``rate_hz`` to the model's rate (unchanged at the model's rate). Raises ValueError as :func:`rate_conversion`."""
-    conv = rate_conversion(rate_hz, model_rate_hz)
-    return [conv.apply(t) for t in trials], conv.model_rate_hz
 
 
 class StreamResampler:
