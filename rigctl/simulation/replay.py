@@ -51,9 +51,7 @@ class _BlockReplay:
     def __init__(self, loop: bool):
         self.loop = bool(loop)
         self._lock = threading.Lock()
-        self._blocks = self._iter_blocks()
-        self._block = np.empty((0, self.layout.n_channels), np.uint16)
-        self._pos = 0
+        self._restart()
         #: samples handed out by :meth:`read` since construction / :meth:`rewind`
         self.samples_served = 0
 
@@ -99,8 +97,9 @@ class _BlockReplay:
             self._restart()
             self.samples_served = 0
 
-    def _restart(self) -> None:
-        self._blocks = self._iter_blocks()
+    def _restart(self, blocks: Iterator[np.ndarray] | None = None) -> None:
+        """Stream ``blocks`` (default the unmounted order) from their first sample on."""
+        self._blocks = self._iter_blocks() if blocks is None else blocks
         self._block = np.empty((0, self.layout.n_channels), np.uint16)
         self._pos = 0
 
@@ -225,9 +224,7 @@ class SessionReplay(_BlockReplay):
         with self._lock:
             self.mounted = label
             self.mounts.append((self.samples_served, label))
-            self._blocks = self._iter_texture(label)
-            self._block = np.empty((0, self.layout.n_channels), np.uint16)
-            self._pos = 0
+            self._restart(self._iter_texture(label))
 
     def unmount(self) -> None:
         """Back to every trial in plan order (from the first)."""
