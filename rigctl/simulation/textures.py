@@ -185,16 +185,15 @@ def texture_from_spec(label: str, group: str | None, geometry: Mapping[str, Any]
     Raises ValueError for a geometry that cannot be rendered (unknown kind, non-positive period or width, negative
     height).
     """
+    fill = derived_geometry(label)
     geo = dict(geometry or {})
     if "kind" not in geo:
-        derived = derived_geometry(label)
-        geo = {**derived, **{k: v for k, v in geo.items() if v is not None}}
+        geo = {**fill, **{k: v for k, v in geo.items() if v is not None}}
     kind = str(geo["kind"])
     if kind == "smooth":
         return Texture(label, group or "", str(geo.get("variant", "smooth")), "smooth", 0.0, float("inf"), 0.0)
     if kind not in _DERIVED_KINDS:
         raise ValueError(f"texture {label!r}: cannot render geometry kind {kind!r}")
-    fill = derived_geometry(label)
     height = float(geo["height_mm"] if geo.get("height_mm") is not None else fill["height_mm"])
     period = float(geo["period_mm"] if geo.get("period_mm") is not None else fill["period_mm"])
     if geo.get("width_mm") is not None:
