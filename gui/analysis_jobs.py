@@ -65,8 +65,6 @@ def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25):
     new trials the same way for the real-time view. The classifier also carries ``encode_params`` (the file's
     encoding parameters: windows, taxels, constants) and ``layout`` (the file's sensor).
     """
-    import numpy as np
-
     from rigctl.analysis.classify import TextureClassifier
     from rigctl.analysis.data import load_features
     from rigctl.storage.encoded import open_encoded
@@ -80,5 +78,4 @@ def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25):
         # encode live trials exactly as the file was (same windows, taxels, constants -> same feature columns)
         clf.encode_params = dict(ef.parameters)
         clf.layout = ef.layout
-    lo, hi = (norm["taxel_min"], norm["taxel_max"]) if isinstance(norm, dict) else (norm.taxel_min, norm.taxel_max)
-    return clf, np.asarray(lo, float), np.asarray(hi, float)
+    return clf, norm["taxel_min"], norm["taxel_max"]  # float64 ADC counts

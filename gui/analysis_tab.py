@@ -35,19 +35,6 @@ def file_kind(path: str) -> str:
         return "unknown"
 
 
-def _spike_trains(obj):
-    """:class:`rigctl.encoding.spikes.SpikeTrains` from what :meth:`EncodedFile.spikes` returns."""
-    from rigctl.encoding.spikes import SpikeTrains
-
-    if isinstance(obj, SpikeTrains):
-        return obj
-    if isinstance(obj, dict):
-        return SpikeTrains(obj["spike_times"], obj["spike_times_index"], int(obj["n_trains"]))
-    if hasattr(obj, "spike_times"):
-        return SpikeTrains(obj.spike_times, obj.spike_times_index, int(obj.n_trains))
-    return SpikeTrains(*obj)
-
-
 class AnalysisTab(QtWidgets.QWidget):
     """The offline analysis tab; ``main`` is the :class:`gui.app.MainWindow`."""
 
@@ -299,14 +286,10 @@ class AnalysisTab(QtWidgets.QWidget):
                 return rows, s.layout
         from rigctl.storage.encoded import open_encoded
 
-        with open_encoded(self.path) as ef:
+        with open_encoded(self.path) as ef:  # every column of rigctl.storage.encoded.TRIAL_COLUMNS is there
             cols, layout = ef.trials, ef.layout
-        n = len(cols["texture"])
-        ids = cols.get("trial_id", np.arange(n))
-        nan = np.full(n, np.nan)
-        spd, frc = cols.get("speed_mm_s", nan), cols.get("force_g", nan)
-        return [(int(ids[i]), _txt(cols["texture"][i]), f"{float(spd[i]):g}", f"{float(frc[i]):g}", "encoded")
-                for i in range(n)], layout
+        return [(int(tid), tex, f"{spd:g}", f"{frc:g}", "encoded") for tid, tex, spd, frc in
+                zip(cols["trial_id"], cols["texture"], cols["speed_mm_s"], cols["force_g"])], layout
 
     def _trial_selected(self) -> None:
         rows = self.trials.selectionModel().selectedRows()
@@ -345,14 +328,14 @@ class AnalysisTab(QtWidgets.QWidget):
                 return x, [sa.train(0, k) for k in range(n_ch)], [ra.train(0, k) for k in range(n_ch)]
             from rigctl.storage.encoded import open_encoded
 
+            from rigctl.encoding.spikes import SpikeTrains
+
             with open_encoded(path) as ef:
-                cols = ef.trials
-                ids = np.asarray(cols["trial_id"]) if "trial_id" in cols else None
-                i = int(np.flatnonzero(ids == tid)[0]) if ids is not None else row
+                i = int(np.flatnonzero(ef.trials["trial_id"] == tid)[0])
                 have = list(ef.variants)
                 name = "original" if "original" in have else next(
                     (v for v in have if not v.startswith("realtime")), have[0])
-                st = _spike_trains(ef.spikes(name))
+                st = SpikeTrains(*ef.spikes(name))
             n_tr = st.n_trains
             half = n_tr // 2
             return None, [st.train(i, k) for k in range(half)], [st.train(i, half + k) for k in range(half)]
