@@ -53,16 +53,6 @@ def _load(path, encode, variants, task="table1"):
     return load_features(out, variants or default_variants(list_variants(out), task))
 
 
-def _n_channels(fs, variant, option):
-    """Spike trains per trial of ``variant``: --channels, else from the file's sensor layout (SA/RA x channels)."""
-    if option:
-        return option
-    try:
-        return fs.n_spike_trains(variant)
-    except ValueError as exc:
-        raise click.ClickException(f"--baseline remove: {exc}") from None
-
-
 @click.command("analyze")
 @click.argument("file", type=click.Path(exists=True, dir_okay=False))
 @click.option("--task", type=click.Choice(TASKS), default="all", show_default=True,
@@ -125,7 +115,6 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
          confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
          train_profiles, save_model, model_variant, model_pcs, encode_, progress):
     from rigctl.analysis import report, tasks
-    from rigctl.analysis.data import remove_baseline
 
     n_pcs = _parse_pcs(pcs)
     vlist = [v.strip() for v in variants.split(",")] if variants else None
@@ -137,9 +126,8 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
 
     runs = [("", fs)]
     if baseline in ("remove", "both"):
-        fs_b = fs.subset(slice(None))
-        try:
-            fs_b.features = {v: remove_baseline(x, _n_channels(fs, v, channels)) for v, x in fs.features.items()}
+        try:  # spike trains per trial: --channels, else from the file's sensor layout (SA/RA x channels)
+            fs_b = fs.without_baseline(channels)
         except ValueError as exc:
             raise click.ClickException(f"--baseline remove: {exc}") from None
         runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
