@@ -277,21 +277,20 @@ def load_features(path, variants=None) -> FeatureSet:
     FileNotFoundError
         No such file.
     NotEncodedError
-        Not an encoded file (e.g. a session file: run ``rigctl encode SESSION`` first).
+        Not an encoded file (e.g. a session file: run ``rigctl encode SESSION`` first), or no ``texture`` column.
     KeyError
-        A requested variant or the ``texture`` column is missing.
+        A requested variant is missing.
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(path)
     try:
-        ef_cm = _encoded.open_encoded(path)
-        ef = ef_cm.__enter__()
+        ef = _encoded.open_encoded(path)
     except _encoded.NotEncodedError as exc:
         raise NotEncodedError(f"{exc} (or pass --encode to encode it on the fly)") from None
     except OSError as exc:
         raise NotEncodedError(f"{path} is not an HDF5 file ({exc})") from exc
-    try:
+    with ef:
         have = list(ef.variants)
         names = have if variants is None else list(variants)
         feats = {}
@@ -304,21 +303,15 @@ def load_features(path, variants=None) -> FeatureSet:
         attrs["n_trains"] = {v: int(ef.n_trains(v)) for v in names}  # spike trains per trial (remove_baseline)
         layout = ef.layout
         textures = ef.textures
-    finally:
-        ef_cm.__exit__(None, None, None)
-    if "texture" not in cols:
-        raise KeyError(f"the trials of {path} have no 'texture' column (has: {', '.join(cols)})")
-    n = len(cols["texture"])
-    nan = np.full(n, np.nan)
-    try:
+    try:  # every column of rigctl.storage.encoded.TRIAL_COLUMNS is there (NaN speed / force when unknown)
         return FeatureSet(
             feats,
             cols["texture"],
-            cols.get("speed_mm_s", nan),
-            cols.get("force_g", nan),
+            cols["speed_mm_s"],
+            cols["force_g"],
             None,  # groups come from the file's texture set
-            cols.get("profile"),
-            cols.get("trial_id"),
+            cols["profile"],
+            cols["trial_id"],
             str(path),
             attrs,
             layout,
