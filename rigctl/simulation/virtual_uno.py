@@ -25,6 +25,7 @@ from rigctl.simulation.pty import PtyEndpoint
 
 log = logging.getLogger(__name__)
 
+
 def board_info(layout: SensorLayout = PAPER_SENSOR) -> str:
     """The fields of the banner / identify reply for a board streaming ``layout``:
     ``fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000`` for the paper's sensor (the firmware's text, spec section
@@ -34,11 +35,6 @@ def board_info(layout: SensorLayout = PAPER_SENSOR) -> str:
     if layout.layers != PAPER_SENSOR.layers and "+" not in layout.shape_text:
         text += f" layout={layout.shape_text}"
     return text
-
-
-_INFO = board_info(PAPER_SENSOR)
-BANNER = f"{wire.UNO_BANNER_PREFIX} {_INFO}\n".encode()
-IDENTITY = f"{wire.UNO_IDENTITY_PREFIX} {_INFO}\n".encode()
 
 
 class VirtualUno:
