@@ -68,22 +68,14 @@ class SerialBackend(PortBackend):
                  textures: TextureSet | None = None):
         self.drum_port = str(drum_port)
         self.taxel_port = str(taxel_port)
-        self._mounter = OperatorMounter(prompt)
-        self._textures = textures or PAPER_TEXTURES
+        self.mounter = OperatorMounter(prompt)
+        self.textures = textures or PAPER_TEXTURES
 
     def __enter__(self) -> "SerialBackend":
         return self
 
     def __exit__(self, *exc) -> None:
         pass
-
-    @property
-    def mounter(self) -> OperatorMounter:
-        return self._mounter
-
-    @property
-    def textures(self) -> TextureSet:
-        return self._textures
 
     def describe(self) -> dict:
         return {"mode": self.mode, "drum_port": self.drum_port, "taxel_port": self.taxel_port, "seed": None}

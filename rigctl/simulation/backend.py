@@ -16,7 +16,8 @@ __all__ = ["SimMounter", "PtyRigBackend"]
 
 
 class SimMounter:
-    """:class:`rigctl.core.interfaces.PlateMounter` of a simulated rig: ``sim.set_texture(label, textures)``."""
+    """:class:`rigctl.core.interfaces.PlateMounter` of a simulated rig (or the in-process model):
+    ``sim.set_texture(label, textures)``."""
 
     def __init__(self, sim):
         self.sim = sim
@@ -44,8 +45,8 @@ class PtyRigBackend(PortBackend):
         self.sim = sim
         self.mode = mode
         self.seed = seed
-        self._mounter = SimMounter(sim)
-        self._textures = textures or PAPER_TEXTURES
+        self.mounter = SimMounter(sim)
+        self.textures = textures or PAPER_TEXTURES
 
     @property
     def drum_port(self) -> str:
@@ -61,14 +62,6 @@ class PtyRigBackend(PortBackend):
 
     def __exit__(self, *exc) -> None:
         self.sim.__exit__(None, None, None)
-
-    @property
-    def mounter(self) -> SimMounter:
-        return self._mounter
-
-    @property
-    def textures(self) -> TextureSet:
-        return self._textures
 
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass on the simulated load cell (0 removes it)."""

@@ -28,6 +28,7 @@ from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import Capture, StreamStats
+from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigConfig, RigModel
 
@@ -238,14 +239,6 @@ class InProcessTaxels:
         return Capture(samples, seq, flags, t)
 
 
-class _Mounter:
-    def __init__(self, engine: InProcessEngine):
-        self.engine = engine
-
-    def mount(self, label: str, textures: TextureSet, prompt=None) -> None:
-        self.engine.model.set_texture(textures.resolve(label), textures)
-
-
 class InProcessBackend:
     """:class:`rigctl.core.interfaces.RigBackend` (and ``MassPlacer``) of the in-process simulated rig.
 
@@ -259,8 +252,8 @@ class InProcessBackend:
                  textures: TextureSet | None = None):
         self.engine = InProcessEngine(config, seed=seed, request_ms=request_ms)
         self.seed = seed
-        self._textures = textures or PAPER_TEXTURES
-        self._mounter = _Mounter(self.engine)
+        self.textures = textures or PAPER_TEXTURES
+        self.mounter = SimMounter(self.engine.model)
 
     @property
     def model(self) -> RigModel:
@@ -282,14 +275,6 @@ class InProcessBackend:
 
     def taxels(self) -> InProcessTaxels:
         return InProcessTaxels(self.engine)
-
-    @property
-    def mounter(self) -> _Mounter:
-        return self._mounter
-
-    @property
-    def textures(self) -> TextureSet:
-        return self._textures
 
     def place_mass(self, mass_g: float) -> None:
         self.engine.model.place_mass(mass_g)
