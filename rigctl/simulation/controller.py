@@ -45,8 +45,6 @@ _TRUE_ACTUATOR_STEPS_PER_MM = wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2]
 _ENGAGED = (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING)
 _CALIBRATION = (HR.LOADCELL_SCALE_X100, HR.ACTUATOR_STEPS_PER_MM)
 LOADCELL_TIMEOUT_MS = 200
-#: period of the watchdog check in the Modbus server's loop, s
-WATCHDOG_CHECK_S = 0.01
 
 
 def _u16(x: float) -> int:

@@ -37,7 +37,7 @@ from pymodbus.server import ModbusSerialServer
 
 from rigctl.devices import wire
 from rigctl.devices.wire import Fault
-from rigctl.simulation.controller import LOADCELL_TIMEOUT_MS, MegaController  # noqa: F401 (re-exported)
+from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
 from rigctl.simulation.pty import PtyBridge
 from rigctl.simulation.virtual_uno import paced_loop
