@@ -80,12 +80,9 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     try:
-        if drum_port is not None:
-            rig = open_rig("hardware", drum_port=drum_port, taxel_port=taxel_port, host_config_path=config_path)
-        elif replay is not None:
-            rig = open_rig("replay", source=replay, seed=0 if seed is None else seed, host_config_path=config_path)
-        else:
-            rig = open_rig("hil" if hil else "sim", seed=0 if seed is None else seed, host_config_path=config_path)
+        kind = "hardware" if drum_port is not None else "replay" if replay is not None else "hil" if hil else "sim"
+        rig = open_rig(kind, drum_port=drum_port, taxel_port=taxel_port, source=replay,
+                       seed=0 if seed is None else seed, host_config_path=config_path)
     except RigError as exc:
         raise click.ClickException(str(exc)) from None
     with rig:
