@@ -332,9 +332,12 @@ class AnalysisTab(QtWidgets.QWidget):
 
             with open_encoded(path) as ef:
                 i = int(np.flatnonzero(ef.trials["trial_id"] == tid)[0])
-                have = list(ef.variants)
-                name = "original" if "original" in have else next(
-                    (v for v in have if not v.startswith("realtime")), have[0])
+                # SA + RA trains of a variant whose spikes are stored (the real-time variants hold SA only)
+                have = [v for v in ef.spike_variants if not v.startswith("realtime")]
+                if not have:
+                    raise ValueError(f"{os.path.basename(path)} stores no SA/RA spike trains (encoded with --no-spikes?): "
+                                     "open its session file to see this trial's spikes")
+                name = "original" if "original" in have else have[0]
                 st = SpikeTrains(*ef.spikes(name))
             n_tr = st.n_trains
             half = n_tr // 2

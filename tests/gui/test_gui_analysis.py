@@ -240,3 +240,20 @@ def test_analysis_tab_heat_maps_per_layer_of_a_sixteen_channel_session(lone_tab,
     assert len(x) == 200 and x[-1] == pytest.approx(199 / 500)
     assert [img.image.shape for _, img in tab.heat_plots] == [(2, 4), (2, 4)]
     assert tab.trial_rasters["sa"][0].viewRange()[1] == pytest.approx([-0.5, 15.5])
+
+
+def test_an_encoded_file_without_spike_trains_says_so_when_a_trial_is_shown(lone_tab, qapp, tmp_path):
+    """`rigctl encode --no-spikes` output: selecting a trial shows why no rasters can be drawn (it raised KeyError
+    when the variants with features were taken for variants with stored spikes)."""
+    from rigctl.core import SensorLayout
+    from rigctl.encoding.pipeline import encode_session
+
+    layout = SensorLayout.grid(2, 2, 1, sample_rate_hz=1000.0)
+    path = _layout_session(tmp_path / "s.h5", layout, ["HB3", "Linen"], per_texture=2, duration_s=0.3)
+    enc = encode_session(path, tmp_path / "s.enc.h5", variants=("original",), store_spikes=(), progress=False)
+    tab = lone_tab
+    tab.open(str(enc))
+    assert tab.kind == "encoded"
+    tab.trials.selectRow(1)
+    assert wait_for(qapp, lambda: tab._trial_job is None and "trial" in tab.status.text(), 60), tab.status.text()
+    assert "stores no SA/RA spike trains" in tab.status.text() and "--no-spikes" in tab.status.text()
