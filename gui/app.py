@@ -164,12 +164,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.poller = StatusPoller(h.drum, period_s=0.1)
         self.poller.start()
         self.commands = CommandExecutor(h.drum)
-        layout = sensor_layout(h)
-        self.calibration.attach(h, layout)
-        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig, layout), layout=layout)
-        self.encoder.start()
+        self._attach_sensor(h, sensor_layout(h))
         self.control.attach(h.drum, self.poller, self.commands, h.rig)
-        self.live.attach(h.taxels, self.encoder, layout)
         self._update_source_label("connected")
         # everything long-lived exists now: move it out of the cyclic GC's reach, so full collections (which
         # otherwise traverse every Qt wrapper and pyqtgraph item, ~150 ms) do not stall the display
@@ -249,13 +245,18 @@ class MainWindow(QtWidgets.QMainWindow):
         if layout == enc.layout and (buf is None or buf.ring is h.taxels.ring):
             return False
         enc.stop()  # its thread ends at its next poll; it reads the old ring only
+        self._attach_sensor(h, layout)
+        self.banner.show_message(f"The taxel board now reports another sensor: {layout.describe()}. The live view "
+                                 "and calibration follow it.", error=False, hide_after_s=10)
+        return True
+
+    def _attach_sensor(self, h, layout) -> None:
+        """Build the sensor side for ``layout``: the calibration tab, a started live encoder (with the stored
+        normalisation when it fits the layout) and the live view."""
         self.calibration.attach(h, layout)
         self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig, layout), layout=layout)
         self.encoder.start()
         self.live.attach(h.taxels, self.encoder, layout)
-        self.banner.show_message(f"The taxel board now reports another sensor: {layout.describe()}. The live view "
-                                 "and calibration follow it.", error=False, hide_after_s=10)
-        return True
 
     def closeEvent(self, ev):  # noqa: N802 - Qt override
         self.settings.setValue("ui/geometry", self.saveGeometry())

@@ -196,7 +196,7 @@ class ControlPanel(QtWidgets.QWidget):
         """Bind to a connected drum (``DrumClient``), its status poller and command executor, and the
         :class:`rigctl.acquisition.rig.Rig` (its ``press`` waits for the force to settle)."""
         self.drum, self.poller, self.commands, self.rig = drum, poller, commands, rig
-        self.set_textures(getattr(rig, "textures", PAPER_TEXTURES) if rig is not None else PAPER_TEXTURES)
+        self.set_textures(getattr(rig, "textures", PAPER_TEXTURES))
         try:
             spd = drum.read_holding(HoldingRegister.SPEED_LIMIT_0P1MMS) / 10.0
             frc = float(drum.read_holding(HoldingRegister.FORCE_LIMIT_G))
