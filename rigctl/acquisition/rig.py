@@ -273,8 +273,24 @@ class Rig:
 
     def release(self, timeout_s: float = 20.0) -> None:
         """STOP and wait until IDLE with the actuator back home (drum at rest, sensor free): the state for changing
-        a plate. Raises DrumTimeout / DrumFault."""
-        wait_released(self.drum, timeout_s=timeout_s)
+        a plate.
+
+        A latched WATCHDOG fault (the host was busy or starved between trials, e.g. a slow disk, while the force
+        loop was still engaged) is no reason to fail: the controller has already done what a release asks (drum
+        stopped, actuator backed off), so it is logged, cleared and the release completes. Any other fault is
+        raised. Raises DrumTimeout / DrumFault.
+        """
+        from rigctl.devices.errors import DrumFault
+
+        try:
+            wait_released(self.drum, timeout_s=timeout_s)
+        except DrumFault as exc:
+            if exc.faults != wire.Fault.WATCHDOG:
+                raise
+            log.warning("the controller's watchdog tripped while the host was busy between trials (the rig stopped "
+                        "itself safely); clearing it")
+            self.drum.clear_fault()
+            wait_released(self.drum, timeout_s=timeout_s)
 
     def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
         """Mount texture plate ``label`` (any label of :attr:`textures`): release the sensor, then the backend's

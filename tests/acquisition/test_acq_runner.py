@@ -208,7 +208,9 @@ def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_pat
         assert [s.trial(i).n_samples for i in s.completed_ids()] == [300, 300, 300]
 
 
-def test_a_watchdog_trip_between_trials_is_cleared(rig, tmp_path):
+@pytest.mark.parametrize("textures", ['"A"', '"A", "B"'], ids=["same-plate", "before-a-plate-change"])
+def test_a_watchdog_trip_between_trials_is_cleared(rig, tmp_path, textures):
+    # same plate: the next press finds the fault; plate change: the release before mounting B finds it
     out = tmp_path / "wd.h5"
 
     def on_trial(ev):
@@ -216,5 +218,6 @@ def test_a_watchdog_trip_between_trials_is_cleared(rig, tmp_path):
             time.sleep(1.5)  # a slow callback: the host is silent with the force engaged, the watchdog trips
             assert rig.drum.read_status().state == DrumState.FAULT
 
-    summary = run_protocol(_proto(2, textures='"A"'), out, rig=rig, progress=False, on_trial=on_trial)
-    assert summary.complete == 2 and summary.failed == 0
+    n_per = 2 if textures == '"A"' else 1
+    summary = run_protocol(_proto(n_per, textures=textures), out, rig=rig, progress=False, on_trial=on_trial)
+    assert summary.complete == 2 and summary.failed == 0, summary.failures
