@@ -4,22 +4,123 @@ A JSON file (default ``$XDG_CONFIG_HOME/rigctl/rig.json``, i.e. ``~/.config/rigc
 ``RIGCTL_CONFIG`` environment variable or an explicit path) with the ``loadcell`` and ``taxel_normalisation`` blocks
 of :mod:`rigctl.acquisition.calibration`. Shared by the rig facade (:mod:`rigctl.acquisition.rig`, which copies it
 into every session) and the calibration, which import this module, not each other.
+
+The schema (:data:`SCHEMA`, checked by :func:`validate_rig_config` on every load and save): a JSON object with the
+optional blocks
+
+- ``loadcell``: ``counts_per_g`` (required, a number > 0), ``scale_x100`` (an integer 1-65535), ``mass_g`` (> 0),
+  ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts`` (numbers), ``calibrated_utc`` (text);
+- ``taxel_normalisation``: ``taxel_min``, ``taxel_max`` (required, lists of ADC counts, one per taxel, of the same
+  non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text).
+
+Numbers are finite (JSON ``NaN``/``Infinity`` are refused) and never ``true``/``false``. Any other key is refused, by
+name (a misspelt key would otherwise be ignored without a word).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CalibrationError", "default_config_path", "config_path", "load_rig_config", "save_rig_config",
-           "update_rig_config"]
+__all__ = ["CalibrationError", "RigConfigError", "SCHEMA", "default_config_path", "config_path", "load_rig_config",
+           "save_rig_config", "update_rig_config", "validate_rig_config"]
 
 
 class CalibrationError(RuntimeError):
     """A calibration could not be done or gave an implausible result (the reason in words)."""
+
+
+class RigConfigError(CalibrationError):
+    """The rig config file is not valid JSON or does not follow :data:`SCHEMA`; the message names the file and the
+    key at fault (e.g. ``rig.json: loadcell.counts_per_g: expected a number > 0, got "420"``)."""
+
+
+#: block -> key -> (kind, required); kinds: "number", "positive", "count" (int >= 0), "register" (int 1-65535),
+#: "text", "counts" (a non-empty list of numbers)
+SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
+    "loadcell": {
+        "counts_per_g": ("positive", True), "scale_x100": ("register", False), "mass_g": ("positive", False),
+        "zero_raw": ("number", False), "loaded_raw": ("number", False), "check_force_g": ("number", False),
+        "noise_counts": ("number", False), "calibrated_utc": ("text", False),
+    },
+    "taxel_normalisation": {
+        "taxel_min": ("counts", True), "taxel_max": ("counts", True), "n_trials": ("count", False),
+        "source": ("text", False), "calibrated_utc": ("text", False),
+    },
+}
+
+_EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
+             "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers"}
+
+
+def _shown(value: Any) -> str:
+    """A short JSON rendering of a value for a message (never a Python or numpy repr)."""
+    try:
+        text = json.dumps(value, allow_nan=True, default=str)
+    except (TypeError, ValueError, RecursionError):
+        text = type(value).__name__
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_value(kind: str, v: Any) -> bool:
+    if kind == "number":
+        return _is_number(v)
+    if kind == "positive":
+        return _is_number(v) and v > 0
+    if kind == "count":
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+    if kind == "register":
+        return isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 65535
+    if kind == "text":
+        return isinstance(v, str)
+    if kind == "counts":
+        return isinstance(v, list) and len(v) > 0 and all(_is_number(x) for x in v)
+    raise AssertionError(kind)
+
+
+def validate_rig_config(doc: Any, where: str = "rig config") -> dict:
+    """Check a rig config document against :data:`SCHEMA`; returns it unchanged.
+
+    Raises
+    ------
+    RigConfigError naming ``where`` and the key at fault (an unknown key, a missing required key, a value of the
+    wrong type or range, taxel lists of different lengths or with a minimum above its maximum).
+    """
+    if not isinstance(doc, dict):
+        raise RigConfigError(f"{where}: the rig config must be a JSON object, got {_shown(doc)}")
+    for block, value in doc.items():
+        if block not in SCHEMA:
+            raise RigConfigError(f"{where}: unknown key {_shown(block)}; the rig config has "
+                                 f"{' and '.join(SCHEMA)}")
+        keys = SCHEMA[block]
+        if not isinstance(value, dict):
+            raise RigConfigError(f"{where}: {block}: expected an object, got {_shown(value)}")
+        for key, v in value.items():
+            if key not in keys:
+                raise RigConfigError(f"{where}: {block}: unknown key {_shown(key)} (known: {', '.join(keys)})")
+            kind, _ = keys[key]
+            if not _check_value(kind, v):
+                raise RigConfigError(f"{where}: {block}.{key}: expected {_EXPECTED[kind]}, got {_shown(v)}")
+        missing = [k for k, (_, required) in keys.items() if required and k not in value]
+        if missing:
+            raise RigConfigError(f"{where}: {block}: missing {', '.join(missing)}")
+        if block == "taxel_normalisation":
+            lo, hi = value["taxel_min"], value["taxel_max"]
+            if len(lo) != len(hi):
+                raise RigConfigError(f"{where}: {block}: taxel_min has {len(lo)} taxels but taxel_max {len(hi)}")
+            bad = [i for i, (a, b) in enumerate(zip(lo, hi)) if a > b]
+            if bad:
+                raise RigConfigError(f"{where}: {block}: taxel {bad[0]}: taxel_min {lo[bad[0]]:g} is above "
+                                     f"taxel_max {hi[bad[0]]:g}")
+    return doc
 
 
 def _utc_now() -> str:
@@ -45,23 +146,31 @@ def load_rig_config(path: str | os.PathLike | None = None) -> dict:
 
     Raises
     ------
-    CalibrationError if the file exists but is not a JSON object.
+    RigConfigError (a CalibrationError) if the file cannot be read, is not valid JSON or does not follow
+    :data:`SCHEMA` (the message names the key at fault).
     """
     p = config_path(path)
     if not p.exists():
         return {}
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RigConfigError(f"{p}: cannot read the rig config ({exc})") from None
+    try:
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{p}:{exc.lineno}: the rig config is not valid JSON: {exc.msg}") from None
-    if not isinstance(doc, dict):
-        raise CalibrationError(f"{p}: the rig config must be a JSON object")
-    return doc
+        raise RigConfigError(f"{p}:{exc.lineno}: the rig config is not valid JSON: {exc.msg}") from None
+    except RecursionError:
+        raise RigConfigError(f"{p}: the rig config is nested too deeply") from None
+    return validate_rig_config(doc, str(p))
 
 
 def save_rig_config(config: dict, path: str | os.PathLike | None = None) -> Path:
-    """Write the rig config file atomically (write a temporary file, then rename); returns its path."""
+    """Write the rig config file atomically (write a temporary file, then rename); returns its path.
+
+    Raises RigConfigError (nothing written) if ``config`` does not follow :data:`SCHEMA`."""
     p = config_path(path)
+    validate_rig_config(config, str(p))
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(p.name + ".tmp")
     tmp.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n", encoding="utf-8")
