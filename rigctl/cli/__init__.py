@@ -50,6 +50,20 @@ class LazyGroup(click.Group):
                 return None
             raise
 
+    def invoke(self, ctx):
+        """Run the command; an exception that escapes it becomes one line (:mod:`rigctl.cli.errors`) unless
+        ``--debug``."""
+        try:
+            return super().invoke(ctx)
+        except (click.ClickException, click.exceptions.Exit, click.Abort):
+            raise
+        except Exception as exc:
+            if ctx.params.get("debug"):
+                raise
+            from rigctl.cli.errors import as_click_error
+
+            raise as_click_error(exc) from exc
+
     def format_commands(self, ctx, formatter):
         rows = [(name, SHORT_HELP.get(name, "")) for name in self.list_commands(ctx)]
         with formatter.section("Commands"):
@@ -58,8 +72,11 @@ class LazyGroup(click.Group):
 
 @click.group(cls=LazyGroup)
 @click.version_option(__version__, prog_name="rigctl")
-def main():
+@click.option("--debug", is_flag=True, default=False, envvar="RIGCTL_DEBUG",
+              help="Show the full traceback of an error (also RIGCTL_DEBUG=1).")
+def main(debug):
     """rigctl: run the tactile texture rig, record sessions, and reproduce the paper's analyses.
 
-    The simulated rig is the default wherever a rig is needed (--sim).
+    The simulated rig is the default wherever a rig is needed (--sim). An error is reported as one line; --debug
+    shows its traceback.
     """
