@@ -81,6 +81,107 @@ class FileBusy(OSError):
     """Another process holds the file (a writer, or a reader with the HDF5 file lock) for longer than the wait."""
 
 
+def lock_path(path: str | os.PathLike) -> Path:
+    """``<name>.lock``: the file a session writer holds locked for its whole life (:class:`WriterLock`)."""
+    p = Path(path)
+    return p.with_name(p.name + ".lock")
+
+
+class WriterLockHeld(FileBusy):
+    """Another writer (another process, or another writer object in this process) holds the writer lock of the
+    file. ``pid`` is the holder's process id as it wrote it into the lock file (None if unknown)."""
+
+    def __init__(self, message: str, pid: int | None = None):
+        super().__init__(message)
+        self.pid = pid
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        text = _pread(fd, 32, 0).decode("ascii", "replace").strip()
+        return int(text) if text.isdigit() else None
+    except OSError:
+        return None
+
+
+class WriterLock:
+    """An exclusive ``flock`` on ``<name>.lock`` next to ``path``, held until :meth:`release` (or the process ends).
+
+    One writer per file: a second :class:`WriterLock` of the same file, in another process or in this one (flock
+    locks belong to an open file, not to a process), raises :class:`WriterLockHeld` at once, naming the holder's
+    pid. The lock file is a sidecar, not the data file, because HDF5 readers take their own (shared) flock on the
+    data file and must keep opening it between the writer's commits. The kernel drops the lock when the holder
+    dies (``kill -9`` included); a lock file left by a killed writer is empty of meaning and is simply locked again
+    by the next writer. :meth:`release` deletes the file (while still holding the lock; a writer that locked the
+    deleted file meanwhile notices and locks the new one).
+
+    Raises
+    ------
+    WriterLockHeld (a :class:`FileBusy`, an OSError) if another writer holds it; OSError if the lock file cannot be
+    created (a read-only folder, ...).
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.lock_path = lock_path(self.path)
+        self._fd: int | None = None
+        if fcntl is None:  # pragma: no cover - no flock here: no lock
+            return
+        for _ in range(100):  # retried only if the lock file is deleted under us by a releasing writer
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | _O_BINARY | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = _read_pid(fd)
+                os.close(fd)
+                who = ("another writer in this process" if pid == os.getpid() else
+                       f"another process (pid {pid})" if pid else "another process")
+                raise WriterLockHeld(f"{self.path} is being written by {who}: one writer per session file; "
+                                     "wait for it to finish (or stop it) and try again", pid) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:
+                same = os.path.samestat(os.fstat(fd), os.stat(self.lock_path))
+            except FileNotFoundError:
+                same = False
+            if not same:  # we locked a lock file its releasing holder had just deleted: lock the current one
+                os.close(fd)
+                continue
+            self._fd = fd
+            try:  # the holder's pid, for the message a second writer gets (best effort: the disk may be full)
+                os.ftruncate(fd, 0)
+                _pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            except OSError:
+                pass
+            return
+        raise FileBusy(f"{self.lock_path} keeps being replaced; cannot lock {self.path}")  # pragma: no cover
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def release(self) -> None:
+        """Delete the lock file and drop the lock (idempotent)."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            try:
+                self.lock_path.unlink()
+            except OSError:
+                pass
+            fcntl.flock(fd, fcntl.LOCK_UN)  # also drops it for a forked child that shares the descriptor
+        finally:
+            os.close(fd)
+
+    def __del__(self):  # pragma: no cover - best effort when the owner was not closed
+        try:
+            self.release()
+        except Exception:
+            pass
+
+
 def _lock(fd: int, path, wait_s: float) -> None:
     if fcntl is None:  # pragma: no cover
         return
@@ -325,26 +426,31 @@ class OverlayFile(io.RawIOBase):
             stop = min(start + PAGE, size, base)
             if stop > start:
                 inplace.append((start, memoryview(self._pages[i])[: stop - start]))
-        if size > base:  # new bytes first: nothing on disk refers to them yet
-            tail = memoryview(self._tail)
-            _pwrite(self._fd, tail[: size - base], base)
-            if len(tail) < size - base:
-                _pwrite(self._fd, bytes(size - base - len(tail)), base + len(tail))
-        if inplace or size < base:
-            jpath = journal_path(self.path)
-            body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
-            for start, data in inplace:
-                body += struct.pack("<QI", start, len(data)) + data
-            body += struct.pack("<I", zlib.crc32(body)) + _COMMIT
-            if self.durable:
-                os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
-            jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | _O_BINARY, 0o644)
-            try:
-                _pwrite(jfd, bytes(body), 0)
+        jpath = journal_path(self.path)
+        try:
+            if size > base:  # new bytes first: nothing on disk refers to them yet
+                tail = memoryview(self._tail)
+                _pwrite(self._fd, tail[: size - base], base)
+                if len(tail) < size - base:
+                    _pwrite(self._fd, bytes(size - base - len(tail)), base + len(tail))
+            if inplace or size < base:
+                body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
+                for start, data in inplace:
+                    body += struct.pack("<QI", start, len(data)) + data
+                body += struct.pack("<I", zlib.crc32(body)) + _COMMIT
                 if self.durable:
-                    os.fsync(jfd)
-            finally:
-                os.close(jfd)
+                    os.fsync(self._fd)  # the fresh pages are on disk before the journal can point at them
+                jfd = os.open(jpath, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | _O_BINARY, 0o644)
+                try:
+                    _pwrite(jfd, bytes(body), 0)
+                    if self.durable:
+                        os.fsync(jfd)
+                finally:
+                    os.close(jfd)
+        except OSError:  # e.g. ENOSPC: nothing refers to the new bytes and the journal has no commit mark yet,
+            self._undo_partial_commit(jpath, base)  # so the file is the old one: give the space back
+            raise
+        if inplace or size < base:
             # the in-place writes, by a detached helper (which truncates and, if durable, fsyncs)
             apply_journal(self._fd, jpath, durable=self.durable)
         else:
@@ -355,6 +461,15 @@ class OverlayFile(io.RawIOBase):
         self._pages.clear()
         self._tail = bytearray()
         self._base_size = self._zero_from = size
+
+    def _undo_partial_commit(self, jpath: Path, base: int) -> None:
+        """After a failed write before the journal's commit mark: drop the uncommitted journal and the bytes written
+        past the old end of the file (best effort; both are ignored by readers anyway)."""
+        for undo in (lambda: jpath.unlink(missing_ok=True), lambda: os.ftruncate(self._fd, base)):
+            try:
+                undo()
+            except OSError:
+                pass
 
     def close(self) -> None:
         if not self.closed:

@@ -26,7 +26,10 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import enum
+import errno
+import io
 import json
+import logging
 import math
 import os
 import time
@@ -51,6 +54,8 @@ SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide", "imported")
 VLEN_UTF8 = h5py.string_dtype("utf-8")
 #: largest ``taxels`` chunk, bytes (one chunk holds up to 65,536 samples of every channel, fewer for wide sensors)
 TAXEL_CHUNK_BYTES = 4 << 20
+
+log = logging.getLogger(__name__)
 
 
 class TrialStatus(enum.IntEnum):
@@ -107,7 +112,51 @@ def taxels_description(layout: SensorLayout) -> dict:
 
 
 class SessionError(RuntimeError):
-    """A session file cannot be created, opened or written as asked (wrong layout, trial already complete, ...)."""
+    """A session file cannot be created, opened or written as asked (wrong layout, trial already complete, ...), or
+    what it holds is malformed (the message names the file, the trial and what is wrong)."""
+
+
+class SessionLocked(SessionError):
+    """Another writer holds the session file (one :class:`SessionWriter` per file at a time, across processes and
+    within one). ``pid`` is the holder's process id when known."""
+
+    def __init__(self, message: str, pid: int | None = None):
+        super().__init__(message)
+        self.pid = pid
+
+
+class SessionWriteError(SessionError):
+    """The disk refused a write (no space left, a read-only file system, ...). Nothing of the write in progress
+    reached the file; every trial written before is intact. ``errno`` is the OS error number, ``intact`` the ids
+    of the complete trials."""
+
+    def __init__(self, message: str, errno_: int | None = None, intact: Sequence[int] = ()):
+        super().__init__(message)
+        self.errno = errno_
+        self.intact = list(intact)
+
+
+def _id_ranges(ids: Sequence[int]) -> str:
+    """``[0, 1, 2, 3, 4, 7]`` -> ``"0-4, 7"``."""
+    ids = sorted(int(i) for i in ids)
+    parts, start = [], None
+    for k, i in enumerate(ids):
+        if start is None:
+            start = i
+        if k + 1 == len(ids) or ids[k + 1] != i + 1:
+            parts.append(f"{start}" if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(parts)
+
+
+def _os_error_text(exc: OSError) -> str:
+    if exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1)):
+        return "no space left on device"
+    if exc.errno == errno.EROFS:
+        return "read-only file system"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return "permission denied"
+    return exc.strerror or str(exc)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -249,7 +298,13 @@ def _read_attrs(obj) -> dict:
 
 
 def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
-    """Open ``path`` with h5py, retrying while another process holds the HDF5 file lock (e.g. a writer)."""
+    """Open ``path`` with h5py, retrying while another process holds the HDF5 file lock (e.g. a writer).
+
+    Raises
+    ------
+    FileNotFoundError; rigctl.storage.journal.FileBusy (an OSError) if the file stays locked for ``wait_s``;
+    SessionError if HDF5 cannot open it (not HDF5, truncated, damaged).
+    """
     try:
         journal.recover(path, wait_s=wait_s)  # finish a commit a killed writer left half done
     except PermissionError:
@@ -258,11 +313,25 @@ def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
     while True:
         try:
             return h5py.File(path, mode)
-        except (BlockingIOError, OSError) as exc:
+        except FileNotFoundError:
+            raise
+        except (OSError, ValueError, RuntimeError) as exc:
             locked = isinstance(exc, BlockingIOError) or "lock" in str(exc).lower()
-            if not locked or time.monotonic() > deadline:
-                raise
-            time.sleep(0.05)
+            if locked and time.monotonic() <= deadline:
+                time.sleep(0.05)
+                continue
+            if locked:
+                raise journal.FileBusy(f"{path} is held by another process (a writer, or a reader with the HDF5 "
+                                       f"file lock) for more than {wait_s:g} s") from None
+            if not path.exists():
+                raise FileNotFoundError(f"{path} does not exist") from None
+            raise SessionError(f"{path} is not a readable HDF5 file ({_one_line(exc)})") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line, without HDF5's long parenthesised details."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 160 else text[:157] + "..."
 
 
 @contextlib.contextmanager
@@ -282,6 +351,75 @@ def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0):
         overlay.close()
 
 
+def _writer_lock(path: Path) -> journal.WriterLock:
+    """The writer lock of ``path`` (:class:`rigctl.storage.journal.WriterLock`). Raises SessionLocked if another
+    writer holds it, SessionWriteError if the lock file cannot be made."""
+    try:
+        return journal.WriterLock(path)
+    except journal.WriterLockHeld as exc:
+        raise SessionLocked(str(exc), exc.pid) from None
+    except OSError as exc:
+        raise SessionWriteError(f"cannot write {path}: {_os_error_text(exc)} (making its lock file "
+                                f"{journal.lock_path(path).name}); choose a writable place", exc.errno) from None
+
+
+def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: TextureSet, protocol_source: str,
+                    protocol_name: str, protocol_format: str, rig_config: Mapping | None, kind: str,
+                    calibration: Mapping | None, attrs: Mapping | None) -> bytes:
+    """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``),
+    built by HDF5 in memory: HDF5 never writes to a disk that may be full (at a few KiB free it can crash there)."""
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["session_id"] = str(uuid.uuid4())
+        f.attrs["created_utc"] = _utc_now()
+        f.attrs["rigctl_version"] = __version__
+        f.attrs["kind"] = kind
+        f.attrs["rig_config"] = json.dumps(dict(rig_config or {}), default=str)
+        f.attrs["sensor_layout"] = layout.to_json()
+        f.attrs["texture_set"] = textures.to_json()
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = _attr_value(v)
+        g = f.create_group("protocol")
+        g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
+        g.attrs["name"] = protocol_name
+        g.attrs["format"] = protocol_format
+        d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
+        d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
+        trials = f.create_group("trials")
+        trials.attrs.update(taxels_description(layout))
+        if calibration:
+            _write_calibration(f, calibration, layout.n_channels)
+    return buf.getvalue()
+
+
+def _write_new_file(path: Path, image: bytes) -> None:
+    """Write ``image`` to ``<name>.creating``, fsync it and rename it to ``path`` (which appears complete or not at
+    all). A journal of a file being replaced is deleted first (it must never be replayed onto the new one).
+
+    Raises SessionWriteError (nothing left behind) if the disk refuses the bytes (no space, read-only).
+    """
+    tmp = path.with_name(path.name + ".creating")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0), 0o644)
+        try:
+            journal._pwrite(fd, image, 0)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        journal.journal_path(path).unlink(missing_ok=True)
+        os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        free = ""
+        with contextlib.suppress(OSError):
+            st = os.statvfs(path.parent)
+            free = f", {st.f_bavail * st.f_frsize / 1024:.0f} KiB free"
+        raise SessionWriteError(f"{_os_error_text(exc)} creating {path} ({len(image) / 1024:.0f} KiB needed{free}): "
+                                "nothing was written; free space or choose another --out", exc.errno) from None
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Writer
 # ----------------------------------------------------------------------------------------------------------------
@@ -289,7 +427,11 @@ class SessionWriter:
     """Writes a session file trial by trial; the file is open only during each write.
 
     Create a new file with :meth:`create`, or reopen an interrupted one with :meth:`open` (resume). Then
-    :meth:`write_trial` for each recorded trial (or :meth:`mark_failed`).
+    :meth:`write_trial` for each recorded trial (or :meth:`mark_failed`), and :meth:`close` (or use it as a context
+    manager). From creation/opening to :meth:`close` the writer holds the file's writer lock (an exclusive
+    ``flock`` on ``<name>.lock``, :class:`rigctl.storage.journal.WriterLock`): a second writer of the same file, in
+    another process or in this one, is refused with :class:`SessionLocked`. HDF5 readers are not locked out between
+    writes. The lock dies with the process; a writer that is garbage-collected without :meth:`close` releases it.
 
     Parameters
     ----------
@@ -305,28 +447,86 @@ class SessionWriter:
 
     Raises
     ------
-    SessionError if the file is not a session, has a newer schema, or is a schema-1/2 import with absent channels
-    (``channel_present``: read it with :func:`open_session`; it cannot be appended to).
+    SessionLocked if another writer holds the file; SessionError if the file is not a session (or is malformed:
+    see :func:`open_session`), has a newer schema, or is a schema-1/2 import with absent channels
+    (``channel_present``: read it with :func:`open_session`; it cannot be appended to); SessionWriteError if the
+    lock file cannot be made (a read-only folder).
     """
 
-    def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip", durable: bool = True):
+    def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip", durable: bool = True,
+                 _lock: journal.WriterLock | None = None):
+        self._lock = _lock
         self.path = Path(path)
         self.durable = durable
         #: how long a write waits for another process (a reader holding the HDF5 file lock) before FileBusy, s
         self.wait_s = 10.0
-        if compression not in ("gzip", "lzf", None):
-            raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
-        self.compression = compression
-        with _open_h5(self.path, "r") as f:
-            _check_file(f, self.path)
-            self.attrs = _read_attrs(f)
-            self.protocol_source = _read_text(f["protocol/source"])
-            self._plan = f["plan"][()]
-            self.layout, present, self.textures = _file_sensor(self.attrs, self._plan, self.path)
-            if present is not None:
-                raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with absent "
-                                   "channels (channel_present); it can be read, not appended to: import it again")
+        try:
+            if compression not in ("gzip", "lzf", None):
+                raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+            self.compression = compression
+            if self._lock is None:
+                self._lock = _writer_lock(self.path)
+            with _open_h5(self.path, "r") as f:
+                contents = _read_session_header(f, self.path)
+                self.attrs = contents.attrs
+                self.protocol_source = contents.protocol_source
+                self._plan = contents.raw_plan
+                self.layout, present, self.textures = contents.layout, contents.present, contents.textures
+                if present is not None:
+                    raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with "
+                                       "absent channels (channel_present); it can be read, not appended to: import "
+                                       "it again")
+                for i, why in contents.unrecorded.items():  # marked complete, no recording: a resume records it
+                    self._plan["status"][i] = TrialStatus.PENDING
+                    log.warning("%s", why)
+        except BaseException:
+            self.close()
+            raise
         self._created = _parse_utc(self.attrs.get("created_utc", ""))
+
+    # -- lifetime -----------------------------------------------------------------------------------------------
+    @property
+    def closed(self) -> bool:
+        """True after :meth:`close`: the writer lock is released and nothing more can be written."""
+        return self._lock is None or not self._lock.held
+
+    def close(self) -> None:
+        """Release the writer lock (idempotent). Every write is on disk already; nothing else happens."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):  # pragma: no cover - best effort for writers nobody closed
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    @contextlib.contextmanager
+    def _commit(self, action: str):
+        """:func:`_writing` of this writer's file, with the disk's refusals (no space, read-only) turned into a
+        :class:`SessionWriteError` that says what is intact and what to do. ``action`` names the write."""
+        if self.closed:
+            raise SessionError(f"{self.path}: this SessionWriter is closed (open it again to write)")
+        try:
+            with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+                yield f
+        except journal.FileBusy:
+            raise
+        except OSError as exc:
+            done = self.completed_ids()
+            intact = (f"trials {_id_ranges(done)} are intact" if done else "no trial was complete before")
+            what = _os_error_text(exc)
+            hint = ("free space and --resume" if what == "no space left on device" else
+                    "make it writable (or copy it to a writable place) and --resume")
+            raise SessionWriteError(f"{what} writing {self.path} ({action}): nothing of it was written; {intact}; "
+                                    f"{hint}", exc.errno, done) from None
 
     # -- construction -------------------------------------------------------------------------------------------
     @classmethod
@@ -398,36 +598,22 @@ class SessionWriter:
             _calibration_arrays(calibration, layout.n_channels)  # refuse a wrong shape before creating anything
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; choose another --out, resume it, or remove it")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".creating")
-        with h5py.File(tmp, "w") as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["session_id"] = str(uuid.uuid4())
-            f.attrs["created_utc"] = _utc_now()
-            f.attrs["rigctl_version"] = __version__
-            f.attrs["kind"] = kind
-            f.attrs["rig_config"] = json.dumps(dict(rig_config or {}), default=str)
-            f.attrs["sensor_layout"] = layout.to_json()
-            f.attrs["texture_set"] = textures.to_json()
-            for k, v in (attrs or {}).items():
-                f.attrs[k] = _attr_value(v)
-            g = f.create_group("protocol")
-            g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
-            g.attrs["name"] = protocol_name
-            g.attrs["format"] = protocol_format
-            d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
-            d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
-            trials = f.create_group("trials")
-            trials.attrs.update(taxels_description(layout))
-            if calibration:
-                _write_calibration(f, calibration, layout.n_channels)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        stale = journal.journal_path(path)
-        if stale.exists():  # a journal of the file being replaced must never be replayed onto the new one
-            stale.unlink()
-        os.replace(tmp, path)  # the session file appears complete or not at all
-        return cls(path, compression=compression, durable=durable)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SessionWriteError(f"cannot create {path}: {_os_error_text(exc)} making its folder "
+                                    f"({path.parent}); choose another --out", exc.errno) from None
+        lock = _writer_lock(path)  # before anything is written: a file another writer holds is never replaced
+        try:
+            image = _new_file_image(
+                plan_arr, layout=layout, textures=textures, protocol_source=protocol_source,
+                protocol_name=protocol_name, protocol_format=protocol_format, rig_config=rig_config, kind=kind,
+                calibration=calibration, attrs=attrs)
+            _write_new_file(path, image)
+            return cls(path, compression=compression, durable=durable, _lock=lock)
+        except BaseException:
+            lock.release()
+            raise
 
     @classmethod
     def open(cls, path: str | os.PathLike, *, protocol_source: str | None = None,
@@ -440,13 +626,15 @@ class SessionWriter:
 
         Raises
         ------
-        FileNotFoundError, SessionError (not a session file, or the protocol source differs).
+        FileNotFoundError, SessionLocked (another writer holds the file), SessionError (not a session file, or the
+        protocol source differs).
         """
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"{path} does not exist (nothing to resume)")
         writer = cls(path, compression=compression, durable=durable)
         if protocol_source is not None and protocol_source != writer.protocol_source:
+            writer.close()
             raise SessionError(
                 f"{path}: the protocol differs from the one this session was started with; "
                 "resume with the same protocol file, or start a new session"
@@ -483,8 +671,11 @@ class SessionWriter:
 
         Raises
         ------
-        SessionError if the trial is not in the plan or is already complete (no trial is recorded twice), or if
-        ``data.layout`` differs from the session's :attr:`layout` in channel count or sample rate.
+        SessionError if the trial is not in the plan or is already complete (in this writer's plan or in the file's:
+        no trial is recorded twice, a complete recording is never replaced), if ``data.layout`` differs from the
+        session's :attr:`layout` in channel count or sample rate, or if the writer is closed.
+        SessionWriteError (a SessionError) if the disk refuses the write (no space left, read-only): nothing of
+        this trial was written, every trial written before is intact (the message names them).
         rigctl.storage.journal.FileBusy (an OSError) if another process or a :class:`Session` holds the file open
         for longer than :attr:`wait_s`; nothing was written then and the call can be repeated.
         """
@@ -503,7 +694,9 @@ class SessionWriter:
         before = self._plan["status"].copy()
         written = []
         try:
-            with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+            with self._commit("writing trials") as f:
+                self._adopt_file_status(f)
+                before = self._plan["status"].copy()
                 for trial_id, data in items:
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
@@ -539,8 +732,11 @@ class SessionWriter:
                                    f"at most {width} byte(s); {row['texture'][0]!r} does not fit")
             row = np.array([tuple(_text(v).encode() if isinstance(v, str) else v for v in row[0].tolist())],
                            dtype=self._plan.dtype)
-        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+        with self._commit("appending a plan row") as f:
             ds = f["plan"]
+            if ds.shape != (len(self._plan),):
+                raise SessionError(f"the plan of {self.path} has {ds.shape[0]} rows, this writer knows "
+                                   f"{len(self._plan)}: another writer changed it; open the file again")
             ds.resize((len(self._plan) + 1,))
             ds[len(self._plan)] = row[0]
             f.flush()
@@ -558,17 +754,21 @@ class SessionWriter:
         i = self._row_index(trial_id)
         if self._plan["status"][i] == TrialStatus.COMPLETE:
             raise SessionError(f"trial {trial_id} is already complete in {self.path}")
-        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+        with self._commit(f"marking trial {trial_id} failed") as f:
+            self._adopt_file_status(f)
+            if self._plan["status"][i] == TrialStatus.COMPLETE:
+                raise SessionError(f"trial {trial_id} is already complete in {self.path}")
             name = trial_group_name(trial_id)
             if name in f:
+                self._refuse_complete_group(f[name], trial_id)
                 del f[name]
             g = f.create_group(name)
             g.attrs["status"] = "failed"
             g.attrs["error"] = str(reason)
             g.attrs["failed_utc"] = _utc_now()
-            self._plan["status"][i] = TrialStatus.FAILED
-            f["plan"][i:i + 1, "status"] = self._plan["status"][i:i + 1]
+            f["plan"][i:i + 1, "status"] = np.array([TrialStatus.FAILED], dtype=self._plan.dtype["status"])
             f.flush()
+        self._plan["status"][i] = TrialStatus.FAILED
 
     def set_calibration(self, calibration: Mapping) -> None:
         """Write (replace) the ``/calibration`` block.
@@ -576,8 +776,33 @@ class SessionWriter:
         Raises ValueError if ``taxel_min``/``taxel_max`` are not ``(layout.n_channels,)``.
         """
         _calibration_arrays(calibration, self.layout.n_channels)
-        with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+        with self._commit("writing the calibration") as f:
             _write_calibration(f, calibration, self.layout.n_channels)
+
+    def _adopt_file_status(self, f: h5py.File) -> None:
+        """Take the file's ``/plan`` statuses, not only this writer's memory, as the truth about what is complete: a
+        trial the file holds complete (with its recording) is complete here too, so it is refused, never recorded
+        twice. Raises SessionError if the file's plan is not the one this writer read (rows or ids differ)."""
+        try:
+            rows = f["plan"].fields(["trial_id", "status"])[()]
+        except (KeyError, ValueError, OSError) as exc:
+            raise SessionError(f"{self.path}: cannot read /plan ({_one_line(exc)})") from None
+        if rows.shape != self._plan.shape or not np.array_equal(rows["trial_id"], self._plan["trial_id"]):
+            raise SessionError(f"the plan of {self.path} is not the one this writer read (another writer changed "
+                               "it); open the file again")
+        newly = np.flatnonzero((rows["status"] == TrialStatus.COMPLETE) & (self._plan["status"] != TrialStatus.COMPLETE))
+        if newly.size:
+            trials = f["trials"]
+            for i in newly:
+                name = f"{int(self._plan['trial_id'][i]):06d}"
+                if name in trials and _group_status(trials[name]) == "complete":
+                    self._plan["status"][i] = TrialStatus.COMPLETE
+
+    def _refuse_complete_group(self, group: h5py.Group, trial_id: int) -> None:
+        """A trial's group is replaced only when it holds no complete recording (a failed attempt)."""
+        if _group_status(group) == "complete":
+            raise SessionError(f"trial {trial_id}: {self.path} already holds a complete recording of it; refusing "
+                               "to overwrite it (no trial is recorded twice)")
 
     def _check_trial_layout(self, trial_id: int, data: TrialData) -> None:
         mine, theirs = self.layout, data.layout
@@ -593,7 +818,8 @@ class SessionWriter:
         name = trial_group_name(int(row["trial_id"]))
         trials = f["trials"].id
         short = name.rsplit("/", 1)[1]
-        if trials.links.exists(short.encode()):  # a failed (or half-written) earlier attempt
+        if trials.links.exists(short.encode()):  # a failed earlier attempt (never a complete recording)
+            self._refuse_complete_group(f[name], int(row["trial_id"]))
             del f[name]
         g = h5objects.create_group(trials, short)
         n = data.n_samples
@@ -663,14 +889,115 @@ def _read_text(ds) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
 
+#: the errors h5py, numpy and json raise on a malformed file (what :func:`_reading` turns into SessionError)
+_READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, AttributeError, RuntimeError, OverflowError)
+
+
+@contextlib.contextmanager
+def _reading(path: Path, what: str):
+    """Turn what h5py/numpy/json raise on a malformed file while reading ``what`` into one SessionError naming the
+    file and ``what`` (SessionError and FileBusy pass through)."""
+    try:
+        yield
+    except (SessionError, journal.FileBusy):
+        raise
+    except _READ_ERRORS as exc:
+        raise SessionError(f"{path}: cannot read {what} ({type(exc).__name__}: {_one_line(exc)}); the file is "
+                           "damaged or not written by rigctl") from None
+
+
+def _group_status(group) -> str:
+    """The ``status`` attribute of a trial group as str ("" when absent or unreadable)."""
+    try:
+        v = group.attrs.get("status", "")
+    except _READ_ERRORS:
+        return ""
+    return v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
+
+
 def _check_file(f: h5py.File, path: Path) -> None:
     missing = [k for k in ("plan", "trials", "protocol") if k not in f]
     if missing or "schema_version" not in f.attrs:
         raise SessionError(f"{path} is not a rigctl session file (missing {missing or ['schema_version']})")
-    if int(f.attrs["schema_version"]) > SCHEMA_VERSION:
-        raise SessionError(
-            f"{path} has schema_version {int(f.attrs['schema_version'])}, newer than this rigctl ({SCHEMA_VERSION})"
-        )
+    with _reading(path, "the schema_version attribute"):
+        version = int(np.asarray(f.attrs["schema_version"]).reshape(-1)[0])
+    if version > SCHEMA_VERSION:
+        raise SessionError(f"{path} has schema_version {version}, newer than this rigctl ({SCHEMA_VERSION})")
+    for name, kind in (("plan", h5py.Dataset), ("trials", h5py.Group), ("protocol", h5py.Group)):
+        if not isinstance(f.get(name), kind):
+            raise SessionError(f"{path}: /{name} is not an HDF5 {kind.__name__.lower()}; not a rigctl session file")
+
+
+#: ``/plan`` fields every reader relies on (schema 1-3)
+_PLAN_REQUIRED = ("trial_id", "texture", "speed_mm_s", "force_g", "duration_s", "status")
+
+
+def _check_plan(plan: np.ndarray, path: Path) -> None:
+    """Refuse a ``/plan`` that cannot be read unambiguously: not a table of one row per trial, a required field
+    missing, a trial id listed twice, a status outside ``status_enum``. Raises SessionError naming the problem."""
+    names = plan.dtype.names or ()
+    missing = [k for k in _PLAN_REQUIRED if k not in names]
+    if plan.ndim != 1 or missing:
+        raise SessionError(f"{path}: /plan is not a plan table ({'missing ' + ', '.join(missing) if missing else f'{plan.ndim}-d'})")
+    for k in ("trial_id", "status"):
+        if plan.dtype[k].kind not in "iu":
+            raise SessionError(f"{path}: /plan field {k!r} is {plan.dtype[k]}, not an integer")
+    ids = plan["trial_id"].astype(np.int64)
+    if ids.size and ids.min() < 0:
+        raise SessionError(f"{path}: /plan holds a negative trial id ({int(ids.min())})")
+    uniq, counts = np.unique(ids, return_counts=True)
+    if uniq.size != ids.size:
+        dup = uniq[counts > 1]
+        raise SessionError(f"{path}: /plan lists trial {int(dup[0])} {int(counts[counts > 1][0])} times"
+                           f"{f' (and {dup.size - 1} more ids twice or more)' if dup.size > 1 else ''}; a trial id "
+                           "must be unique (the file is damaged or was edited): refusing to read it")
+    bad = ~np.isin(plan["status"], [int(st) for st in TrialStatus])
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise SessionError(f"{path}: /plan gives trial {int(ids[i])} the unknown status {int(plan['status'][i])} "
+                           f"(known: {STATUS_ENUM})")
+
+
+@dataclass
+class _Header:
+    """What :func:`_read_session_header` reads: everything but the trials."""
+
+    attrs: dict
+    protocol_source: str
+    raw_plan: np.ndarray
+    layout: SensorLayout
+    present: np.ndarray | None
+    textures: TextureSet
+    #: plan row index -> warning, for rows marked complete whose ``/trials/<id>`` group does not exist
+    unrecorded: dict
+
+
+def _read_session_header(f: h5py.File, path: Path) -> _Header:
+    """Read and check a session's root attributes, ``/protocol/source`` and ``/plan`` (for the reader and the
+    writer alike), and find the plan rows marked complete that have no recording.
+
+    Raises SessionError for anything malformed (:func:`_check_file`, :func:`_check_plan`, unreadable attributes,
+    a malformed ``sensor_layout`` / ``texture_set``).
+    """
+    _check_file(f, path)
+    with _reading(path, "the root attributes"):
+        attrs = _read_attrs(f)
+    with _reading(path, "/protocol/source"):
+        source = _read_text(f["protocol/source"])
+    with _reading(path, "/plan"):
+        raw_plan = f["plan"][()]
+    _check_plan(raw_plan, path)
+    with _reading(path, "the sensor layout / texture set"):
+        layout, present, textures = _file_sensor(attrs, raw_plan, path)
+    with _reading(path, "the /trials group"):
+        recorded = set(f["trials"].keys())
+    unrecorded = {}
+    for i in np.flatnonzero(raw_plan["status"] == TrialStatus.COMPLETE):
+        tid = int(raw_plan["trial_id"][i])
+        if f"{tid:06d}" not in recorded:
+            unrecorded[int(i)] = (f"{path}: trial {tid} is marked complete in /plan but has no recording "
+                                  f"(/trials/{tid:06d} is missing); it is treated as pending (a --resume records it)")
+    return _Header(attrs, source, raw_plan, layout, present, textures, unrecorded)
 
 
 def _legacy_layout(attrs: Mapping, present: np.ndarray) -> SensorLayout:
@@ -749,37 +1076,81 @@ class Session:
     protocol_source, protocol_name, protocol_format : str
     calibration : dict or None (``taxel_min``/``taxel_max`` as ``(layout.n_channels,)`` float64 arrays plus the
         block's attributes).
+    problems : list of str, what was found wrong but read around (each also logged as a warning, one line naming
+        the file and the trial): a trial marked complete in ``/plan`` without its recording is shown ``pending``
+        in :attr:`plan` (a resume records it), a damaged trial skipped by :meth:`iter_trials`.
+
+    What is checked, and what happens when it is wrong (a user never gets silently wrong data):
+
+    - the file as a whole (opening refuses it with SessionError): not HDF5 or truncated, not a session, a newer
+      schema, a ``/plan`` that is not a table of unique trial ids with known statuses, unreadable attributes, a
+      malformed ``sensor_layout`` / ``texture_set``, a calibration of another channel count;
+    - one trial (reading it raises SessionError naming it; :meth:`iter_trials` skips it with a warning):
+      ``taxels`` not ``(n, channels)`` integers, values above ``2**adc_bits - 1``, ``seq`` / ``flags`` /
+      ``host_time_s`` not ``(n,)``, a trace and its times of different lengths, an ``n_samples`` attribute that
+      disagrees with the data.
 
     Raises
     ------
-    SessionError (not a session file, a newer schema, a malformed ``sensor_layout`` / ``texture_set``).
+    SessionError (see above), rigctl.storage.journal.FileBusy (a writer holds the HDF5 lock for long).
     """
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self._f = _open_h5(self.path, "r")
+        self.problems: list[str] = []
+        self._checked: dict[int, int] = {}  # trial id -> its sample count, for trials whose recording passed
         try:
-            _check_file(self._f, self.path)
             f = self._f
-            self.attrs = _read_attrs(f)
-            raw_plan = f["plan"][()]
-            self.layout, self._present, self.textures = _file_sensor(self.attrs, raw_plan, self.path)
-        except Exception:
+            header = _read_session_header(f, self.path)
+            self.attrs = header.attrs
+            self.layout, self._present, self.textures = header.layout, header.present, header.textures
+            raw_plan = header.raw_plan
+            for i, why in header.unrecorded.items():
+                raw_plan["status"][i] = TrialStatus.PENDING
+                self._problem(why)
+            self.plan = _plan_to_str(raw_plan)
+            self._complete = set(self.completed_ids())
+            self.protocol_source = header.protocol_source
+            try:
+                self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
+                if not isinstance(self.rig_config, dict):
+                    raise ValueError("not a JSON object")
+            except (TypeError, ValueError) as exc:
+                self.rig_config = {}
+                self._problem(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)}); "
+                              "ignored")
+            with _reading(self.path, "the /protocol attributes"):
+                pattrs = _read_attrs(f["protocol"])
+            self.protocol_name = str(pattrs.get("name", ""))
+            self.protocol_format = str(pattrs.get("format", ""))
+            self.calibration = self._read_calibration()
+        except BaseException:
             self._f.close()
             raise
-        self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
-        self.plan = _plan_to_str(raw_plan)
-        self.protocol_source = _read_text(f["protocol/source"])
-        self.protocol_name = str(_read_attrs(f["protocol"]).get("name", ""))
-        self.protocol_format = str(_read_attrs(f["protocol"]).get("format", ""))
-        self.calibration = None
-        if "calibration" in f:
+
+    def _problem(self, message: str) -> None:
+        self.problems.append(message)
+        log.warning("%s", message)
+
+    def _read_calibration(self) -> dict | None:
+        f = self._f
+        if "calibration" not in f:
+            return None
+        with _reading(self.path, "/calibration"):
             cal = _read_attrs(f["calibration"])
+            n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
             for k in f["calibration"]:
                 cal[k] = f["calibration"][k][()]
-                if self._present is not None and k in ("taxel_min", "taxel_max"):
-                    cal[k] = cal[k][self._present]
-            self.calibration = cal
+                if k in ("taxel_min", "taxel_max"):
+                    arr = np.asarray(cal[k])
+                    if arr.shape != (n_stored,) or arr.dtype.kind not in "iuf":
+                        raise SessionError(f"{self.path}: /calibration/{k} is {arr.dtype} {arr.shape}, not "
+                                           f"({n_stored},) numbers (one per channel of the sensor)")
+                    cal[k] = arr.astype(np.float64)
+                    if self._present is not None:
+                        cal[k] = cal[k][self._present]
+        return cal
 
     @property
     def kind(self) -> str:
@@ -791,56 +1162,138 @@ class Session:
     def completed_ids(self) -> list[int]:
         """Trial ids whose plan status is complete (and whose group exists), in plan order."""
         ids = self.plan["trial_id"][self.plan["status"] == TrialStatus.COMPLETE]
-        return [int(t) for t in ids if trial_group_name(int(t)) in self._f]
+        return [int(t) for t in ids]
 
     def failed_ids(self) -> list[int]:
         return [int(t) for t in self.plan["trial_id"][self.plan["status"] == TrialStatus.FAILED]]
 
-    def trial_attrs(self, trial_id: int) -> dict:
-        """The attributes of ``/trials/<id>`` (setpoints, texture, status, dropped_frames, ...).
-
-        Raises KeyError if the trial has no group.
-        """
+    def _group(self, trial_id: int):
         name = trial_group_name(trial_id)
-        if name not in self._f:
-            raise KeyError(f"trial {trial_id} has not been recorded in {self.path}")
-        return _read_attrs(self._f[name])
+        with _reading(self.path, f"trial {trial_id} ({name})"):
+            g = self._f.get(name)
+            if g is not None and not isinstance(g, h5py.Group):
+                raise SessionError(f"{self.path}: trial {trial_id}: {name} is not a group; the file is damaged")
+            return g
 
-    def trial(self, trial_id: int) -> TrialData:
-        """Read one recorded trial: a :class:`TrialData` with the session's :attr:`layout` (``taxels``
-        ``(n, layout.n_channels)`` uint16 at ``layout.sample_rate_hz``).
+    def _damaged(self, trial_id: int, what: str) -> SessionError:
+        return SessionError(f"{self.path}: trial {trial_id} is damaged: {what}; its data are not used")
+
+    def _check_recording(self, trial_id: int, g, attrs: Mapping) -> int:
+        """Check a recorded trial's datasets against each other and the sensor without reading them (shapes, types,
+        ``n_samples``); returns the sample count. Raises SessionError naming the trial and the problem."""
+        if trial_id in self._checked:
+            return self._checked[trial_id]
+        n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
+        with _reading(self.path, f"trial {trial_id}"):
+            ds = {}
+            for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s",
+                      "speed_time_s"):
+                d = g.get(k)
+                if not isinstance(d, h5py.Dataset):
+                    raise self._damaged(trial_id, f"{k} is missing" if d is None else f"{k} is not a dataset")
+                ds[k] = d
+            tax = ds["taxels"]
+            if tax.ndim != 2 or tax.shape[1] != n_stored:
+                raise self._damaged(trial_id, f"taxels are {tax.shape}, not (samples, {n_stored}) for the sensor "
+                                              f"{self.layout.shape_text}")
+            if tax.dtype.kind not in "iu":
+                raise self._damaged(trial_id, f"taxels are {tax.dtype}, not integer ADC counts (uint16)")
+            n = int(tax.shape[0])
+            for k in ("seq", "flags", "host_time_s"):
+                if ds[k].shape != (n,):
+                    raise self._damaged(trial_id, f"{k} is {ds[k].shape}, not ({n},) like taxels")
+            for k in ("seq", "flags"):
+                if ds[k].dtype.kind not in "iu":
+                    raise self._damaged(trial_id, f"{k} is {ds[k].dtype}, not integers")
+            for v, t in (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s")):
+                if ds[v].ndim != 1 or ds[v].shape != ds[t].shape:
+                    raise self._damaged(trial_id, f"{v} {ds[v].shape} and {t} {ds[t].shape} are not one trace")
+            for k in ("host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+                if ds[k].dtype.kind not in "iuf":
+                    raise self._damaged(trial_id, f"{k} is {ds[k].dtype}, not numbers")
+            if "n_samples" in attrs:
+                try:
+                    said = int(attrs["n_samples"])
+                except (TypeError, ValueError):
+                    said = None
+                if said != n:
+                    raise self._damaged(trial_id, f"its n_samples attribute says {attrs['n_samples']!r}, its taxels "
+                                                  f"hold {n} samples")
+            for k in ("dropped_frames", "crc_errors"):
+                try:
+                    ok = int(attrs.get(k, 0)) >= 0
+                except (TypeError, ValueError):
+                    ok = False
+                if not ok:
+                    raise self._damaged(trial_id, f"its {k} attribute is {attrs.get(k)!r}, not a count")
+        self._checked[trial_id] = n
+        return n
+
+    def trial_attrs(self, trial_id: int) -> dict:
+        """The attributes of ``/trials/<id>`` (setpoints, texture, status, n_samples, dropped_frames, ...).
 
         Raises
         ------
-        KeyError if the trial was not recorded (or failed).
+        KeyError if the trial has no group; SessionError if it holds a recording that is damaged (see the class
+        docstring: shapes, types, an ``n_samples`` that disagrees with the data).
         """
-        name = trial_group_name(trial_id)
-        if name not in self._f or "taxels" not in self._f[name]:
+        g = self._group(trial_id)
+        if g is None:
+            raise KeyError(f"trial {trial_id} has not been recorded in {self.path}")
+        with _reading(self.path, f"the attributes of trial {trial_id}"):
+            attrs = _read_attrs(g)
+        with _reading(self.path, f"trial {trial_id}"):
+            has_data = "taxels" in g
+        if has_data or attrs.get("status") == "complete" or int(trial_id) in self._complete:
+            self._check_recording(trial_id, g, attrs)
+        return attrs
+
+    def trial(self, trial_id: int) -> TrialData:
+        """Read one recorded trial: a :class:`TrialData` with the session's :attr:`layout` (``taxels``
+        ``(n, layout.n_channels)`` uint16 ADC counts at ``layout.sample_rate_hz``).
+
+        Raises
+        ------
+        KeyError if the trial was not recorded (or failed); SessionError naming the trial if its recording is
+        damaged (see the class docstring).
+        """
+        g = self._group(trial_id)
+        with _reading(self.path, f"trial {trial_id}"):
+            has_data = g is not None and "taxels" in g
+        if not has_data:
+            if int(trial_id) in self._complete:
+                raise self._damaged(trial_id, "it is marked complete but holds no taxels")
             raise KeyError(f"trial {trial_id} has no recorded data in {self.path}")
-        g = self._f[name]
-        attrs = _read_attrs(g)
-        taxels = g["taxels"][()]
+        with _reading(self.path, f"the attributes of trial {trial_id}"):
+            attrs = _read_attrs(g)
+        self._check_recording(trial_id, g, attrs)
+        with _reading(self.path, f"the data of trial {trial_id}"):
+            arrays = {k: g[k][()] for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s",
+                                            "speed_mm_s", "speed_time_s")}
+        taxels = arrays.pop("taxels")
         if self._present is not None:  # a schema-1/2 import: only the real columns
             taxels = taxels[:, self._present]
-        return TrialData(
-            taxels=taxels,
-            seq=g["seq"][()],
-            flags=g["flags"][()],
-            host_time_s=g["host_time_s"][()],
-            force_g=g["force_g"][()],
-            force_time_s=g["force_time_s"][()],
-            speed_mm_s=g["speed_mm_s"][()],
-            speed_time_s=g["speed_time_s"][()],
-            dropped_frames=int(attrs.get("dropped_frames", 0)),
-            crc_errors=int(attrs.get("crc_errors", 0)),
-            attrs=attrs,
-            layout=self.layout,
-        )
+        if taxels.size:
+            lo, hi = int(taxels.min()), int(taxels.max())
+            if lo < 0 or hi > self.layout.adc_max:
+                bad = np.flatnonzero(((taxels < 0) | (taxels > self.layout.adc_max)).any(axis=1))
+                raise self._damaged(trial_id, f"taxels hold {hi if hi > self.layout.adc_max else lo} (sample "
+                                              f"{int(bad[0])}), outside the sensor's {self.layout.adc_bits}-bit "
+                                              f"range 0..{self.layout.adc_max}")
+        try:
+            return TrialData(taxels=taxels, **arrays, dropped_frames=int(attrs.get("dropped_frames", 0)),
+                             crc_errors=int(attrs.get("crc_errors", 0)), attrs=attrs, layout=self.layout)
+        except (TypeError, ValueError) as exc:  # what the checks above did not foresee
+            raise self._damaged(trial_id, _one_line(exc)) from None
 
     def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
-        """Yield :class:`TrialData` of the complete trials (or of ``ids``), in plan order."""
+        """Yield :class:`TrialData` of the complete trials (or of ``ids``), in plan order. A damaged trial is
+        skipped with a warning naming it (also added to :attr:`problems`)."""
         for trial_id in self.completed_ids() if ids is None else ids:
-            yield self.trial(trial_id)
+            try:
+                yield self.trial(trial_id)
+            except SessionError as exc:
+                self._problem(f"{exc} (skipped)")
 
     def close(self) -> None:
         self._f.close()
@@ -859,11 +1312,12 @@ class Session:
 
 
 def open_session(path: str | os.PathLike) -> Session:
-    """Open a session file read-only.
+    """Open a session file read-only (:class:`Session`, which says what it checks).
 
     Raises
     ------
-    FileNotFoundError, SessionError (not a session file or a newer schema), OSError (not HDF5).
+    FileNotFoundError; SessionError (not HDF5, not a session file, a newer schema, a malformed plan or header);
+    rigctl.storage.journal.FileBusy (an OSError: a writer holds the file for long).
     """
     path = Path(path)
     if not path.exists():

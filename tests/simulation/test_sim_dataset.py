@@ -202,6 +202,7 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
     rows = [(p.trial_id, p.texture, p.speed_mm_s, p.force_g, p.duration_s, p.ramp_start_mm_s, p.ramp_end_mm_s)
             for p in proto.plan()[:5]]
     writer.write_trials(_render_planned(r) for r in rows)
+    writer.close()  # one writer per session file: the resume opens its own
     summary = generate_dataset(protocol_path, part, seed=999, workers=0, progress=False, resume=True)
     assert summary["n_trials"] == 24 - 5  # the stored dataset seed (6) wins over the argument
     with open_session(fresh) as a, open_session(part) as b:

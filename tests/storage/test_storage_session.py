@@ -20,6 +20,7 @@ from rigctl.storage.session import (
     PLAN_DTYPE,
     SCHEMA_VERSION,
     SessionError,
+    SessionLocked,
     SessionWriter,
     TrialData,
     TrialStatus,
@@ -114,8 +115,12 @@ def test_plan_status_failed_then_rewritten_and_no_trial_twice(tmp_path):
     with pytest.raises(SessionError, match="already complete"):
         w.mark_failed(0, "late")
     # resume: same source accepted, another refused, statuses come from the file
+    with pytest.raises(SessionLocked, match="another writer in this process"):  # w still holds the file
+        SessionWriter.open(path, protocol_source="src")
+    w.close()
     w2 = SessionWriter.open(path, protocol_source="src")
     assert w2.completed_ids() == [0, 2] and w2.pending_ids() == [1]
+    w2.close()
     with pytest.raises(SessionError, match="protocol differs"):
         SessionWriter.open(path, protocol_source="src changed")
     with pytest.raises(FileExistsError):
@@ -289,6 +294,7 @@ def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
     jpath = journal.journal_path(path)
     w = SessionWriter.create(path, plan=_plan(3), protocol_source="src", compression=None)
     w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
+    w.close()  # one writer per file: the child writes next
     proc = subprocess.Popen([sys.executable, "-c", _SLOW_COMMIT, str(path), writes], start_new_session=True)
     deadline = time.monotonic() + 60
     while not (jpath.exists() and journal._read_journal(jpath)[0] is not None):
@@ -335,6 +341,7 @@ def test_a_commit_killed_after_its_journal_is_finished_on_the_next_opening(tmp_p
     rng = np.random.default_rng(6)
     w = SessionWriter.create(path, plan=_plan(3), protocol_source="src")
     w.write_trial(0, _trial(rng))
+    w.close()  # one writer per file: the child writes next
     proc = subprocess.run([sys.executable, "-c", _DIE_IN_COMMIT, str(path)])
     assert proc.returncode == 9
     jpath = path.with_name(path.name + ".journal")
@@ -388,6 +395,7 @@ def test_ctrl_c_during_a_commit_finishes_it_first(tmp_path):
     jpath = journal.journal_path(path)
     w = SessionWriter.create(path, plan=_plan(3), protocol_source="src", compression=None)
     w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
+    w.close()  # one writer per file: the child writes next
     proc = subprocess.Popen([sys.executable, "-c", _CTRL_C_IN_COMMIT, str(path)], stdout=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while not (jpath.exists() and journal._read_journal(jpath)[0] is not None):

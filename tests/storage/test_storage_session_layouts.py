@@ -209,10 +209,12 @@ def test_a_schema_2_file_opens_as_the_paper_sensor_and_can_be_resumed(tmp_path):
     assert w.layout is PAPER_SENSOR and w.pending_ids() == [1, 2]
     w.write_trial(1, TrialData(taxels=np.full((100, 18), 5)))
     w.append_trial(dict(trial_id=None, texture="C", speed_mm_s=80, force_g=500, duration_s=0.1))
+    w.close()
     w2 = SessionWriter(path, compression=None)
     w2.textures = TextureSet(list(w2.textures.labels) + ["HB3"])  # even a set that has it
     with pytest.raises(SessionError, match="at most 1 byte"):  # the old fixed-length column cannot hold it
         w2.append_trial(dict(trial_id=None, texture="HB3", speed_mm_s=1, force_g=1, duration_s=1))
+    w2.close()
     with open_session(path) as s:
         assert s.completed_ids() == [0, 1] and list(s.plan["texture"]) == ["B", "L", "P", "C"]
         assert (s.trial(1).taxels == 5).all()
