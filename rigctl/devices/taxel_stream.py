@@ -9,6 +9,13 @@ and fills a :class:`rigctl.devices.ring.RingBuffer` for live consumers and, betw
 and :meth:`TaxelStream.end_capture`, a capture that keeps every frame for a trial. A vanished port (an unplugged
 USB cable) is reported (``stats.connected`` False, the ``on_error`` callback, a log warning) and reopened with
 backoff; after the reopen the stream waits for the ready banner and restarts streaming if it was streaming.
+
+After :meth:`TaxelStream.start` the reader waits for the first frame of the new stream: the frame flagged
+STREAMING_START, or, if that frame was lost on the wire, the first frame whose sequence number shows the restart (a
+number the new stream can have reached since START was sent, and not the continuation of the earlier stream's
+sequence); the frames the new stream lost before it are counted as dropped. Frames of the earlier stream still on
+the way are discarded and counted (``stats.stale_frames``). If no frame of the new stream arrives within
+``start_timeout_s`` (the START byte itself was lost), START is sent again (``stats.start_retries``).
 """
 
 from __future__ import annotations
@@ -33,6 +40,8 @@ from rigctl.devices.ring import RingBuffer
 log = logging.getLogger(__name__)
 
 _LINE_RE = re.compile(rb"#RIGCTL-UNO[ -~]*\n")
+#: a stream whose last frame came longer ago than this has no frames left on the way when START is sent, s
+_QUIET_S = 0.5
 
 
 @dataclass
@@ -46,6 +55,8 @@ class StreamStats:
     frames_per_s: float = 0.0  #: receive rate over the last second
     connected: bool = False
     reconnects: int = 0
+    stale_frames: int = 0  #: valid frames of an earlier stream received after START was sent (discarded)
+    start_retries: int = 0  #: START sent again because the new stream did not begin within ``start_timeout_s``
 
 
 @dataclass
@@ -139,16 +150,20 @@ class TaxelStream:
         Reopen a vanished port automatically (backoff 0.1 s doubling to 2 s).
     read_timeout_s : float
         Timeout of one chunk read: frames reach the ring at most this late.
+    start_timeout_s : float
+        After :meth:`start`, how long to wait for the first frame of the new stream before sending START again, s.
     """
 
     def __init__(self, port: str, *, baudrate: int = wire.TAXEL_BAUD, ring_seconds: float = 30.0,
-                 banner_timeout_s: float = 3.0, on_error=None, reconnect: bool = True, read_timeout_s: float = 0.02):
+                 banner_timeout_s: float = 3.0, on_error=None, reconnect: bool = True, read_timeout_s: float = 0.02,
+                 start_timeout_s: float = 1.0):
         self.port = port
         self.baudrate = baudrate
         self.banner_timeout_s = banner_timeout_s
         self.on_error = on_error
         self.reconnect = reconnect
         self.read_timeout_s = read_timeout_s
+        self.start_timeout_s = start_timeout_s
         self.ring_seconds = ring_seconds
         self._layout: SensorLayout = PAPER_SENSOR
         self.ring = RingBuffer(max(1, int(ring_seconds * PAPER_SENSOR.sample_rate_hz)), PAPER_SENSOR.n_channels)
@@ -163,6 +178,10 @@ class TaxelStream:
         self._text = b""
         self._streaming = False
         self._await_start = False
+        self._t_start_sent = 0.0  # when START was last sent (time.monotonic)
+        self._stale_possible = False  # frames of an earlier stream may still be on their way after START
+        self._old_seq: int | None = None  # while awaiting the new stream: the earlier stream's last sequence number
+        self._old_time = 0.0  # ... and when it was received
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._stats = StreamStats()
@@ -306,11 +325,39 @@ class TaxelStream:
                 return parse_identity(line)
 
     def start(self) -> None:
-        """Start streaming (the device resets its sequence counter to 0)."""
+        """Start streaming (the device resets its sequence counter to 0).
+
+        The frames of the new stream are counted from its first frame (sequence number 0, flagged STREAMING_START);
+        if frames at its start are lost on the wire the stream is still recognised (by its restarted sequence
+        numbers) and the lost ones are counted as dropped. Raises :class:`TaxelStreamError` if the port is not
+        connected."""
+        self._start(board_reset=False)
+
+    def _start(self, *, board_reset: bool) -> None:
+        """Send START; ``board_reset``: the board has just booted (a reopened port), no earlier frames can follow."""
         with self._lock:
+            now = time.monotonic()
+            recent = self._last_frame_time is not None and now - self._last_frame_time < _QUIET_S
+            self._stale_possible = not board_reset and (self._streaming or recent)
+            self._old_seq, self._old_time = self._tracker.last_seq, self._last_frame_time or now
             self._streaming = True
             self._await_start = True
+            self._t_start_sent = now
         self._write(wire.UnoCommand.START.value)
+
+    def _retry_start(self) -> None:
+        """Send START again: the new stream has not begun within ``start_timeout_s`` (the START byte was lost)."""
+        with self._lock:
+            if not (self._streaming and self._await_start and self._stats.connected):
+                return
+            self._t_start_sent = time.monotonic()
+            self._stats.start_retries += 1
+        log.warning("taxel streamer on %s: no frame of the new stream %.1f s after START; sending START again",
+                    self.port, self.start_timeout_s)
+        try:
+            self._write(wire.UnoCommand.START.value)
+        except (serial.SerialException, OSError, TaxelStreamError) as exc:
+            log.info("START retry failed: %s", exc)  # a vanished port is noticed (and reopened) by the reader
 
     def stop(self) -> None:
         """Stop streaming (frames already on the wire are still parsed)."""
@@ -403,6 +450,9 @@ class TaxelStream:
                 continue
             if data:
                 self._handle(data, time.monotonic())
+            if self._await_start and self._streaming and \
+                    time.monotonic() - self._t_start_sent > self.start_timeout_s:
+                self._retry_start()
 
     def _handle(self, data: bytes, t_rx: float) -> None:
         if not self._streaming or self._await_start:
@@ -417,14 +467,18 @@ class TaxelStream:
             if n == 0:
                 return
             seq, flags, samples = frames.seq, frames.flags, frames.samples
-            starts = np.flatnonzero(flags & wire.FrameFlag.STREAMING_START)
+            lost_at_start = 0
             if self._await_start:
-                if not starts.size:
-                    return  # stale frames of an earlier stream
-                k = int(starts[0])
+                k = self._new_stream_start(seq, flags, t_rx)
+                st.stale_frames += n if k is None else k
+                if k is None:
+                    return  # frames of an earlier stream still on their way
+                # the new stream's frames before this one (sequence numbers 0 .. seq[k] - 1) were lost on the wire
+                lost_at_start = 0 if flags[k] & wire.FrameFlag.STREAMING_START else int(seq[k])
                 seq, flags, samples = seq[k:], flags[k:], samples[k:]
-                starts = starts - k
                 self._await_start = False
+                self._tracker.reset()
+            starts = np.flatnonzero(flags & wire.FrameFlag.STREAMING_START)
             n = len(seq)
             # receive time of the chunk, spread back over its frames at the frame period, never earlier
             # than the previous frame: host times increase strictly
@@ -442,11 +496,15 @@ class TaxelStream:
                 # frames lost while the port was gone: estimated from the time gap at the link's rate. They count in
                 # a capture only if it was running when the port vanished
                 lost = max(0, int(round((host_t[0] - self._last_frame_time) * rate)) - 1)
+                lost_at_start = 0  # lost frames at the restarted stream's start lie inside that time gap
                 st.dropped += lost
                 if capturing and self._loss_in_capture:
                     self._capture_dropped += lost
             self._gap_pending = False
             self._loss_in_capture = False
+            st.dropped += lost_at_start
+            if capturing:
+                self._capture_dropped += lost_at_start
             # a STREAMING_START frame restarts the device's sequence at 0: not a gap
             bounds = [0, *[int(k) for k in starts if k > 0], n]
             for lo, hi in zip(bounds[:-1], bounds[1:]):
@@ -464,6 +522,29 @@ class TaxelStream:
                 self._capture_count += n
                 self._capture_event.notify_all()
         self.ring.write(samples, seq, flags, host_t)
+
+    def _new_stream_start(self, seq: np.ndarray, flags: np.ndarray, t_rx: float) -> int | None:
+        """Index of the first frame of the stream START began, or None if all are frames of an earlier stream.
+
+        The frame flagged STREAMING_START; else the first frame whose sequence number the new stream can have reached
+        since START was sent (at the link's rate, with slack) and that does not continue the earlier stream's
+        sequence (only possible while frames of that stream may still be on their way). Called under the lock."""
+        rate = self._layout.sample_rate_hz
+        slack = 2 + 0.02 * rate
+        bound = (t_rx - self._t_start_sent) * rate + slack
+        for i in range(len(seq)):
+            if flags[i] & wire.FrameFlag.STREAMING_START:
+                return i
+            s = int(seq[i])
+            old = self._old_seq
+            if self._stale_possible and old is not None:
+                ahead = (s - old) & 0xFFFF
+                if 0 < ahead <= (t_rx - self._old_time) * rate + slack:
+                    self._old_seq, self._old_time = s, t_rx  # the earlier stream goes on
+                    continue
+            if s <= bound:
+                return i
+        return None
 
     def _scan_text(self, data: bytes) -> None:
         self._text = (self._text + data)[-4096:]
@@ -531,7 +612,7 @@ class TaxelStream:
             log.warning("taxel streamer on %s reconnected", self.port)
             if self._streaming:
                 try:
-                    self.start()
+                    self._start(board_reset=True)
                 except (serial.SerialException, OSError, TaxelStreamError) as exc:
                     self._port_lost(exc)
                     continue
