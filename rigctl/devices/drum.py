@@ -5,17 +5,30 @@ setpoint is range-checked here, against the register's range column and the cont
 limits, *before* anything is sent, so an out-of-range value never moves the rig. A Modbus exception response
 becomes :class:`ModbusExceptionError` naming the register; no answer within ``timeout_s`` after ``retries`` retries
 becomes :class:`DrumTimeout`. One lock serialises every use of the pymodbus sync client (pymodbus #1394).
+
+Every response is matched to its request. Modbus RTU has no transaction id (pymodbus gives every RTU request id 0
+and takes the first complete frame as the answer, pymodbus PR #2636), so a response that arrives after its request
+timed out would be taken as the answer to the next one. Here a response must have the request's function code (or
+its exception code), a read the requested number of registers, a function-6 write the echo of its address and
+value, a function-16 write the echo of its address and count; anything else is discarded and counted
+(:attr:`DrumClient.stale_responses`) and the request retried. After a timeout or a discarded response the link is
+*unsettled*: before the next request the client sends a fence, a read of the input registers with a register count
+no request still unanswered has, and discards everything that arrives before the fence's answer. A serial link
+keeps the order of the bytes and the controller answers in order, so once the fence is answered no answer to an
+earlier request can follow, and a later response of the right shape is the answer to the request just sent.
+pymodbus is used with ``retries=0``: the retries are the client's own, so every retry goes through the fence.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
 
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.framer import FramerType
+from pymodbus.framer import FramerRTU, FramerType
 from pymodbus.pdu import ExceptionResponse
 
 from rigctl.devices import wire
@@ -29,6 +42,8 @@ from rigctl.devices.errors import (
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
 __all__ = ["DrumClient", "DrumStatus", "DrumState", "Fault", "SpeedProfile"]
+
+log = logging.getLogger(__name__)
 
 
 def _s16(v: int) -> int:
@@ -54,7 +69,15 @@ class DrumStatus:
 
     @classmethod
     def from_registers(cls, regs: list[int]) -> "DrumStatus":
-        """Decode the 13 input registers (signed ones per :data:`wire.SIGNED_INPUT_REGISTERS`)."""
+        """Decode the 13 input registers (signed ones per :data:`wire.SIGNED_INPUT_REGISTERS`).
+
+        Raises :class:`DrumError` if there are not 13 registers or STATE holds no known state."""
+        if len(regs) != wire.N_INPUT:
+            raise DrumError(f"drum status needs the {wire.N_INPUT} input registers, got {len(regs)}")
+        try:
+            DrumState(regs[IR.STATE])
+        except ValueError:
+            raise DrumError(f"drum controller reports an unknown state {regs[IR.STATE]}") from None
         raw = (regs[IR.LOADCELL_RAW_HI] << 16) | regs[IR.LOADCELL_RAW_LO]
         if raw & 0x80000000:
             raw -= 1 << 32
@@ -73,6 +96,53 @@ class DrumStatus:
             loadcell_raw=raw,
             force_setpoint_active_g=float(regs[IR.FORCE_SETPOINT_ACTIVE_G]),
         )
+
+
+@dataclass(frozen=True)
+class _Expect:
+    """The shape of the response a request must get (spec section 2): function code, register count of a read,
+    echoed address and value (function 6) or address and count (function 16) of a write."""
+
+    function_code: int
+    count: int | None = None  #: registers a read returns; registers a function-16 write echoes
+    address: int | None = None  #: echoed by writes
+    value: int | None = None  #: echoed by a function-6 write
+
+    def mismatch(self, response) -> str | None:
+        """None if ``response`` answers a request of this shape, else what is wrong with it. Fields a response does
+        not carry (an in-process transport's responses) are not checked."""
+        fc = getattr(response, "function_code", None)
+        if fc is not None:
+            fc = int(fc)
+            if fc & 0x80:
+                return None if fc & 0x7F == self.function_code else f"an exception response to function {fc & 0x7F}"
+            if fc != self.function_code:
+                return f"a response to function {fc}"
+        elif isinstance(response, ExceptionResponse) or response.isError():
+            return None
+        regs = getattr(response, "registers", None)
+        if self.function_code in (3, 4):
+            if regs is None or len(regs) != self.count:
+                return f"{len(regs or [])} registers instead of {self.count}"
+            return None
+        address = getattr(response, "address", None)
+        if address is None or fc is None:
+            return None
+        if int(address) != self.address:
+            return f"the echo of address {address} instead of {self.address}"
+        if self.function_code == 6 and (not regs or int(regs[0]) != self.value):
+            return f"the echo of value {regs[0] if regs else None} instead of {self.value}"
+        if self.function_code == 16 and int(getattr(response, "count", -1)) != self.count:
+            return f"the echo of {getattr(response, 'count', None)} registers instead of {self.count}"
+        return None
+
+    @property
+    def is_write(self) -> bool:
+        return self.function_code in (6, 16)
+
+
+#: register counts of the fence (a read of the input registers from 0), one that no unanswered request has
+_FENCE_COUNTS = tuple(range(2, wire.N_INPUT))
 
 
 class _WallClock:
@@ -113,6 +183,16 @@ class DrumClient:
         ``now() -> s`` and ``sleep(s)`` used by the ``wait_*`` polls (default: ``time.monotonic`` / ``time.sleep``);
         the in-process backend passes its simulated clock, so a wait advances simulated time, not wall time.
 
+    Attributes
+    ----------
+    stale_responses : int
+        Responses discarded because they did not answer the request they arrived for (late answers to earlier
+        requests, answers to fences already given up, frames in the input before a request was sent).
+    timeouts : int
+        Requests (fences included) that got no answer within ``timeout_s``.
+    fences : int
+        Fences sent to settle the link after a timeout or a discarded response.
+
     Raises (all methods)
     --------------------
     SetpointRangeError
@@ -134,9 +214,16 @@ class DrumClient:
         self.poll_s = poll_s
         self._lock = threading.RLock()
         self.clock = clock or _WallClock()
+        self.stale_responses = 0
+        self.timeouts = 0
+        self.fences = 0
+        self._unsettled = False  # answers to earlier requests may still arrive: fence before the next request
+        self._fence_used: list[int] = []  # fence counts sent since the link was last settled
+        self._rx = b""  # the bytes of the last response pymodbus decoded (its trace_packet hook)
         self._client = transport if transport is not None else ModbusSerialClient(
             port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8, parity="N", stopbits=1,
-            timeout=timeout_s, retries=retries, reconnect_delay=0.1, reconnect_delay_max=1.0,
+            timeout=timeout_s, retries=0, reconnect_delay=0.1, reconnect_delay_max=1.0,
+            trace_packet=self._trace_packet,
         )
 
     # ------------------------------------------------------------------ lifecycle
@@ -158,19 +245,159 @@ class DrumClient:
         self.close()
 
     # ------------------------------------------------------------------ raw register access
-    def _call(self, what: str, function_code: int, register: str, shown=None, **kwargs):
+    def _call(self, what: str, expect: _Expect, register: str, shown=None, **kwargs):
+        """Send one request (``what``: the pymodbus method) and return its matched response; see the module doc.
+
+        Raises DrumTimeout (no matching answer after ``retries`` retries), ModbusExceptionError, DrumError."""
         with self._lock:
-            try:
-                result = getattr(self._client, what)(device_id=self.device_id, **kwargs)
-            except ModbusIOException as exc:
-                raise DrumTimeout(f"no answer from the drum controller on {self.port} "
-                                  f"({register}, {self.retries} retries of {self.timeout_s:g} s): {exc}") from exc
-            except (ConnectionException, ModbusException, OSError) as exc:
-                raise DrumError(f"drum controller on {self.port}: {exc}") from exc
+            result, sent = None, False
+            for _attempt in range(self.retries + 1):
+                pending = expect if sent else None  # this request may have been carried out already
+                try:
+                    echo = self._flush_input(pending)
+                    if self._unsettled:
+                        settled, fence_echo = self._fence(pending)
+                        echo = fence_echo or echo
+                        if not settled and echo is None:
+                            continue  # the fence got no answer: this attempt is used up
+                    if echo is not None:  # the write's own echo came late: it was carried out
+                        result = echo
+                        break
+                    result = self._exchange(what, expect, kwargs)
+                    sent = True
+                except (ConnectionException, ModbusException, OSError) as exc:
+                    raise DrumError(f"drum controller on {self.port}: {exc}") from exc
+                if result is not None:
+                    break
+            if result is None:
+                raise DrumTimeout(
+                    f"no answer from the drum controller on {self.port} ({register}: {self.retries} retries of "
+                    f"{self.timeout_s:g} s; {self.timeouts} timeouts, {self.stale_responses} stale responses "
+                    "discarded so far): is the controller powered and on this port?")
         if isinstance(result, ExceptionResponse) or result.isError():
             code = getattr(result, "exception_code", 0)
-            raise ModbusExceptionError(register, function_code, int(code), shown)
+            raise ModbusExceptionError(register, expect.function_code, int(code), shown)
         return result
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if not sending:
+            self._rx = bytes(data)
+        return data
+
+    def _exchange(self, what: str, expect: _Expect, kwargs):
+        """One request and its response: the response, or None (timeout, or a response that does not match; the
+        link is then unsettled)."""
+        self._rx = b""
+        try:
+            response = getattr(self._client, what)(device_id=self.device_id, **kwargs)
+        except ModbusIOException:
+            self.timeouts += 1
+            self._unsettled = True
+            return None
+        frames = self._frames(self._rx) or [response]
+        # on a settled link nothing but the answer to this request can arrive, and it arrives last
+        if len(frames) > 1:
+            self._discard(frames[:-1], f"before the answer to function {expect.function_code}")
+        problem = expect.mismatch(frames[-1])
+        if problem is None:
+            return frames[-1]
+        self._discard(frames[-1:], f"{problem}, in answer to function {expect.function_code}")
+        self._unsettled = True
+        return None
+
+    def _discard(self, frames: list, why: str) -> None:
+        self.stale_responses += len(frames)
+        log.warning("drum controller on %s: discarded %d stale response(s): %s", self.port, len(frames), why)
+
+    def _frames(self, data: bytes) -> list:
+        """The Modbus RTU responses (pymodbus PDUs) of this device in ``data``, in order; bytes that are not part of
+        a valid frame are skipped. Empty for a transport without pymodbus' RTU framer."""
+        framer = getattr(self._client, "framer", None)
+        if not isinstance(framer, FramerRTU) or not data:
+            return []
+        decoder = framer.decoder
+        out, p, n = [], 0, len(data)
+        while p + FramerRTU.MIN_SIZE <= n:
+            size = 0
+            if data[p] == self.device_id:
+                try:
+                    pdu_class = decoder.lookupPduClass(data[p:])
+                    size = pdu_class.calculateRtuFrameSize(data[p:]) if pdu_class else 0
+                except Exception:  # noqa: BLE001 - no frame starts here
+                    size = 0
+            if size and p + size <= n and FramerRTU.check_CRC(
+                    data[p:p + size - 2], int.from_bytes(data[p + size - 2:p + size], "big")):
+                pdu = decoder.decode(data[p + 1:p + size - 2])
+                if pdu is not None:
+                    pdu.dev_id = data[p]
+                    out.append(pdu)
+                    p += size
+                    continue
+            p += 1
+        return out
+
+    def _flush_input(self, pending: _Expect | None):
+        """Discard what waits in the input before a request is sent (responses in it are counted, and unsettle the
+        link). Returns the echo of the write ``pending`` if it is there (it was carried out), else None."""
+        sock = getattr(self._client, "socket", None)
+        waiting = sock.in_waiting if sock is not None else 0
+        if not waiting:
+            return None
+        frames = self._frames(sock.read(waiting))
+        _, echo = self._sort_out(frames, pending)
+        return echo
+
+    def _sort_out(self, frames: list, pending: _Expect | None, fence: _Expect | None = None):
+        """Responses that arrived unasked: ``(fence answered, echo)``. The fence's answer settles the link (frames
+        after it are discarded); the echo of the write ``pending`` means it was carried out; every other frame is
+        discarded and counted, and unsettles the link."""
+        echo = None
+        for i, pdu in enumerate(frames):
+            if isinstance(pdu, ExceptionResponse):
+                pass
+            elif fence is not None and fence.mismatch(pdu) is None:
+                if i + 1 < len(frames):
+                    self._discard(frames[i + 1:], "after the fence's answer")
+                return True, echo
+            elif pending is not None and pending.is_write and pending.mismatch(pdu) is None:
+                echo = pdu
+                continue
+            self._discard([pdu], "a late answer to an earlier request")
+            self._unsettled = True
+        return False, echo
+
+    def _fence(self, pending: _Expect | None):
+        """Settle the link: read ``k`` input registers from 0 (``k`` a count no unanswered fence or request has)
+        and discard every response before the answer. Returns ``(settled, echo)``: whether the answer came within
+        ``timeout_s``, and the echo of the write ``pending`` if it arrived meanwhile."""
+        self.fences += 1
+        busy = set(self._fence_used) | ({pending.count} if pending is not None and pending.function_code == 4
+                                        else set())
+        count = next((c for c in _FENCE_COUNTS if c not in busy), None)
+        if count is None:  # every count is taken by a fence nobody answered: reuse the oldest
+            count = self._fence_used.pop(0)
+        self._fence_used.append(count)
+        fence = _Expect(4, count=count)
+        self._rx = b""
+        try:
+            self._client.read_input_registers(0, count=count, device_id=self.device_id)
+        except ModbusIOException:
+            self.timeouts += 1
+            return False, None
+        frames = self._frames(self._rx)
+        echo = None
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            settled, got = self._sort_out(frames, pending, fence)
+            echo = got or echo
+            if settled:
+                self._unsettled = False
+                self._fence_used.clear()
+                return True, echo
+            if time.monotonic() >= deadline:
+                self.timeouts += 1
+                return False, echo
+            frames = self._frames(self._client.recv(None))
 
     @staticmethod
     def _name(table, address: int) -> str:
@@ -181,7 +408,8 @@ class DrumClient:
 
     def read_holdings(self, start: int, count: int) -> list[int]:
         """Read ``count`` holding registers from ``start`` (function 03); raw uint16 values."""
-        res = self._call("read_holding_registers", 3, self._name(HR, start), address=int(start), count=int(count))
+        res = self._call("read_holding_registers", _Expect(3, count=int(count)), self._name(HR, start),
+                         address=int(start), count=int(count))
         return list(res.registers)
 
     def read_holding(self, reg: HR | int) -> int:
@@ -190,7 +418,8 @@ class DrumClient:
 
     def read_inputs(self, start: int, count: int) -> list[int]:
         """Read ``count`` input registers from ``start`` (function 04); raw uint16 values."""
-        res = self._call("read_input_registers", 4, self._name(IR, start), address=int(start), count=int(count))
+        res = self._call("read_input_registers", _Expect(4, count=int(count)), self._name(IR, start),
+                         address=int(start), count=int(count))
         return list(res.registers)
 
     def read_input(self, reg: IR | int) -> int:
@@ -213,7 +442,8 @@ class DrumClient:
             reg = int(reg)  # unknown address: let the controller answer (exception 02)
         else:
             self._check_raw(reg, value)
-        self._call("write_register", 6, self._name(HR, int(reg)), value, address=int(reg), value=int(value))
+        self._call("write_register", _Expect(6, address=int(reg), value=int(value)), self._name(HR, int(reg)), value,
+                   address=int(reg), value=int(value))
 
     def write_holdings(self, start: HR | int, values: list[int]) -> None:
         """Write consecutive holding registers in one request (function 16), each range-checked first."""
@@ -223,8 +453,8 @@ class DrumClient:
             except ValueError:
                 continue  # unknown address: the controller answers exception 02
             self._check_raw(reg, v)
-        self._call("write_registers", 16, self._name(HR, int(start)), list(values), address=int(start),
-                   values=list(values))
+        self._call("write_registers", _Expect(16, count=len(values), address=int(start)), self._name(HR, int(start)),
+                   list(values), address=int(start), values=list(values))
 
     # ------------------------------------------------------------------ setpoints in physical units
     def limits(self) -> tuple[float, float]:
