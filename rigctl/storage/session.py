@@ -514,12 +514,14 @@ class SessionWriter:
         :class:`SessionWriteError` that says what is intact and what to do. ``action`` names the write."""
         if self.closed:
             raise SessionError(f"{self.path}: this SessionWriter is closed (open it again to write)")
+        before = self._plan["status"].copy()
         try:
             with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
                 yield f
         except journal.FileBusy:
             raise
         except OSError as exc:
+            self._plan["status"] = before  # nothing of this write reached the file
             done = self.completed_ids()
             intact = (f"trials {_id_ranges(done)} are intact" if done else "no trial was complete before")
             what = _os_error_text(exc)
@@ -980,13 +982,13 @@ def _read_session_header(f: h5py.File, path: Path) -> _Header:
     a malformed ``sensor_layout`` / ``texture_set``).
     """
     _check_file(f, path)
+    with _reading(path, "/plan"):
+        raw_plan = f["plan"][()]
+    _check_plan(raw_plan, path)
     with _reading(path, "the root attributes"):
         attrs = _read_attrs(f)
     with _reading(path, "/protocol/source"):
         source = _read_text(f["protocol/source"])
-    with _reading(path, "/plan"):
-        raw_plan = f["plan"][()]
-    _check_plan(raw_plan, path)
     with _reading(path, "the sensor layout / texture set"):
         layout, present, textures = _file_sensor(attrs, raw_plan, path)
     with _reading(path, "the /trials group"):
