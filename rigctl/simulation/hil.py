@@ -163,6 +163,9 @@ class HilRig:
         The firmware tree (``arduino/``); built on start.
     uno_boot_ms : float
         Bootloader wait after a host opens the Uno's port (the DTR auto-reset).
+    with_uno : bool
+        Run the Uno too (default). False runs the Mega alone (no taxel port, no feeder): half the CPU for tests
+        of the drum controller only.
 
     Attributes
     ----------
@@ -176,7 +179,7 @@ class HilRig:
     """
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, arduino_dir: Path | str = ARDUINO_DIR,
-                 uno_boot_ms: float = 250.0):
+                 uno_boot_ms: float = 250.0, with_uno: bool = True):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -184,6 +187,7 @@ class HilRig:
         self.live = live
         self.arduino_dir = Path(arduino_dir)
         self.uno_boot_ms = uno_boot_ms
+        self.with_uno = with_uno
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         self.index_pulses = 0
@@ -208,6 +212,9 @@ class HilRig:
 
     @property
     def taxel_port(self) -> str:
+        """The Uno's port. Raises HilError if this rig runs the Mega alone (``with_uno=False``)."""
+        if not self.with_uno:
+            raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxel port")
         return self._uno.port
 
     @property
@@ -232,6 +239,8 @@ class HilRig:
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
         ], self._on_mega_line)
+        if not self.with_uno:
+            return self
         try:
             self._uno = _Harness(exe, "uno", build_dir / "uno_taxel.elf",
                                  ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms)], self._on_uno_line)
@@ -293,6 +302,8 @@ class HilRig:
         ------
         ValueError for a bad shape or values; HilError if the harness does not confirm the load.
         """
+        if not self.with_uno:
+            raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxel stream to feed")
         samples = np.asarray(samples)
         if samples.ndim != 2 or samples.shape[1] != wire.N_TAXELS or samples.shape[0] < 1:
             raise ValueError(f"samples must be (n, {wire.N_TAXELS}), got {samples.shape}")

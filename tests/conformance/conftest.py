@@ -1,0 +1,159 @@
+"""Fixtures of the drum-controller conformance suite: the same tests against both drum controllers we ship.
+
+Backends (the ``controller`` fixture, one instance per test module, parametrized):
+
+- ``sim``: the virtual Mega (:class:`rigctl.simulation.virtual_mega.VirtualMega`, pymodbus' RTU server on a real
+  pty) inside the simulated rig (:class:`rigctl.simulation.rig.SimulatedRig`, real-time physics clock);
+- ``hil``: the Mega firmware image (``arduino/mega_drum``) under simavr (:class:`rigctl.simulation.hil.HilRig`, the
+  Mega alone: the Uno is not needed and would double the CPU), marked ``hil``.
+
+Both are driven through the host's :class:`rigctl.devices.drum.DrumClient` on the real pymodbus serial client;
+``modbus`` is that same pymodbus client, for requests the DrumClient refuses to send (out-of-range values), so the
+controller's own refusal is what is tested.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import pytest
+from pymodbus.client import ModbusSerialClient
+from pymodbus.framer import FramerType
+
+from rigctl.devices import wire
+from rigctl.devices.drum import DrumClient
+from rigctl.devices.errors import DrumError, ModbusExceptionError
+from rigctl.devices.wire import DrumState, HoldingRegister as HR
+
+#: generous per-request timeout: simavr and the virtual Mega share a loaded 2-core machine with other jobs
+TIMEOUT_S = 1.0
+
+
+@dataclass
+class Controller:
+    """One drum controller under test, as the suite sees it.
+
+    Attributes
+    ----------
+    name : "sim" or "hil"
+    port : the Modbus RTU port (115200 8N1, device id 1)
+    place_mass : ``g -> None``, an external force of ``g`` g on the load cell (0 removes it)
+    actuator_mm : ``() -> mm``, where the actuator physically is (the physics model, or the harness's step count)
+    power_up_holding, power_up_inputs : the 14 holding and 13 input registers read right after power-up, before any
+        test wrote anything
+    """
+
+    name: str
+    port: str
+    place_mass: Callable[[float], None]
+    actuator_mm: Callable[[], float]
+    power_up_holding: list[int] = field(default_factory=list)
+    power_up_inputs: list[int] = field(default_factory=list)
+    rig: Any = None
+
+
+def _open_client(port: str) -> tuple[DrumClient, ModbusSerialClient]:
+    modbus = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=wire.DRUM_BAUD, bytesize=8, parity="N",
+                                stopbits=1, timeout=TIMEOUT_S, retries=2)
+    drum = DrumClient(port, timeout_s=TIMEOUT_S, retries=2, poll_s=0.02, transport=modbus).open()
+    return drum, modbus
+
+
+def _read_power_up(ctl: Controller) -> None:
+    drum, _ = _open_client(ctl.port)
+    try:
+        deadline = time.monotonic() + 10.0
+        while True:  # the firmware boots and tares its load cell on the first HX711 reading
+            try:
+                ctl.power_up_inputs = drum.read_inputs(0, wire.N_INPUT)
+                break
+            except DrumError:
+                if time.monotonic() > deadline:
+                    raise
+        ctl.power_up_holding = drum.read_holdings(0, wire.N_HOLDING)
+    finally:
+        drum.close()
+
+
+def _start_sim():
+    from rigctl.simulation.rig import SimulatedRig
+
+    rig = SimulatedRig(seed=3).start()
+    model = rig.model
+    return rig, Controller("sim", rig.drum_port, rig.place_mass, lambda: model.actuator_mm, rig=rig)
+
+
+def _start_hil():
+    from rigctl.simulation import hil
+
+    try:
+        hil.build()
+    except hil.HilError as exc:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(str(exc))
+        pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")
+    rig = hil.HilRig(live=False, with_uno=False).start()
+
+    def actuator_mm() -> float:
+        return rig._wait_telemetry(None, 5.0).act_mm  # the next report: the harness's actuator step count
+
+    return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm, rig=rig)
+
+
+@pytest.fixture(scope="module", params=["sim", pytest.param("hil", marks=pytest.mark.hil)])
+def controller(request):
+    """A freshly powered-up drum controller of each backend, shared by one test module."""
+    rig, ctl = (_start_sim if request.param == "sim" else _start_hil)()
+    try:
+        _read_power_up(ctl)
+        yield ctl
+    finally:
+        rig.close()
+
+
+def restore(drum: DrumClient, ctl: Controller) -> None:
+    """Bring the controller back to a clean IDLE: no external force, stopped, fault cleared, the spec's default in
+    every holding register (calibration too, not saved), actuator home, drum at rest. Raises if it cannot."""
+    ctl.place_mass(0)
+    drum.stop()
+    deadline = time.monotonic() + 5.0
+    while drum.read_status().state == DrumState.FAULT:
+        try:
+            drum.clear_fault()  # refused while the load cell still reads the removed force (next reading: 12.5 ms)
+        except ModbusExceptionError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+    defaults = [wire.HOLDING_RANGE[r][2] for r in HR]
+    drum.write_holdings(0, defaults)
+    drum.wait_released(timeout_s=15.0)
+    deadline = time.monotonic() + 10.0
+    while abs(drum.read_status().speed_mm_s) > 0:  # the drum decelerates to rest
+        assert time.monotonic() < deadline, "the drum does not come to rest"
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def link(controller):
+    """(DrumClient, its pymodbus client) on ``controller``, which is left IDLE with default registers afterwards."""
+    drum, modbus = _open_client(controller.port)
+    try:
+        yield drum, modbus
+        restore(drum, controller)
+    finally:
+        drum.close()
+
+
+@pytest.fixture
+def drum(link) -> DrumClient:
+    """The host's DrumClient on the controller under test."""
+    return link[0]
+
+
+@pytest.fixture
+def modbus(link) -> ModbusSerialClient:
+    """The pymodbus client under ``drum`` (same connection): sends what the DrumClient would refuse to send."""
+    return link[1]

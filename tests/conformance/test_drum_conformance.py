@@ -1,0 +1,507 @@
+"""One conformance suite for the drum controller (docs/wire-protocol.md section 2), run against the virtual Mega
+(``sim``) and the Mega firmware under simavr (``hil``) through the host's DrumClient on the real pymodbus stack.
+
+Every assertion is on behaviour the spec defines (or, where the spec is silent, on the rules docs/firmware.md
+states for both controllers: TARE and HOME only in IDLE with no load on the cell). Durations are measured on the
+controller's own clock (HEARTBEAT, +1 every 10 ms), never on the host's, so a loaded machine slows a test down but
+cannot fail it; where the two controllers legitimately differ (acceleration, actuator speed, the physics behind the
+load cell) the test asserts the spec's tolerance, not either's numbers.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+
+import pytest
+
+from rigctl.devices import wire
+from rigctl.devices.drum import DrumClient, DrumStatus
+from rigctl.devices.errors import ModbusExceptionError
+from rigctl.devices.wire import Command, DrumState as S, Fault, HoldingRegister as HR, InputRegister as IR
+
+ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 1, 2, 3
+DEFAULT = {reg: rng[2] for reg, rng in wire.HOLDING_RANGE.items()}
+#: a drum at rest reads below this speed, mm/s (one count of SPEED_0P1MMS)
+AT_REST_MM_S = 0.1
+#: drum diameter, mm (spec 2.6, the default geometry of both controllers)
+DRUM_DIAMETER_MM = 100.0
+#: actuator "at home": released, within this of position 0, mm
+HOME_MM = 0.05
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+@contextmanager
+def refused(code: int = ILLEGAL_VALUE):
+    """The request inside must come back as Modbus exception ``code``."""
+    with pytest.raises(ModbusExceptionError) as info:
+        yield info
+    assert info.value.exception_code == code, str(info.value)
+
+
+def raw_refusal(response) -> int:
+    """Exception code of a raw pymodbus response (fails the test if the request was accepted)."""
+    assert response.isError(), f"accepted: {response}"
+    return int(response.exception_code)
+
+
+def poll(drum: DrumClient, done, timeout_s: float, what: str) -> DrumStatus:
+    """Read the status until ``done(status)``; fails with the last status after ``timeout_s`` (host time: only a
+    deadline, generous enough for a loaded machine)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        st = drum.read_status()
+        if done(st):
+            return st
+        assert time.monotonic() < deadline, f"no {what} within {timeout_s} s: {st}"
+        time.sleep(0.02)
+
+
+def released(drum: DrumClient, ctl, timeout_s: float = 10.0) -> DrumStatus:
+    """Wait until the drum is at rest and the actuator home, by its register and physically; returns the status."""
+    st = poll(drum, lambda s: abs(s.speed_mm_s) < AT_REST_MM_S and s.actuator_mm <= HOME_MM, timeout_s,
+              "drum at rest with the actuator home")
+    deadline = time.monotonic() + timeout_s
+    while ctl.actuator_mm() > HOME_MM:
+        assert time.monotonic() < deadline, f"the actuator is physically at {ctl.actuator_mm():.2f} mm"
+        time.sleep(0.05)
+    return st
+
+
+def silent(drum: DrumClient, ms: float) -> None:
+    """The host says nothing for ``ms`` of controller time (at least that long on the host's clock, which is
+    never slower than the controller's: both controllers are paced to real time and only ever fall behind)."""
+    time.sleep(ms / 1000.0)
+
+
+def holding(drum: DrumClient) -> list[int]:
+    return drum.read_holdings(0, wire.N_HOLDING)
+
+
+def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
+    """Drive the controller from IDLE into ``state`` with ordinary commands; returns the status in it."""
+    if state == S.IDLE:
+        return poll(drum, lambda s: s.state == S.IDLE, 5, "IDLE")
+    if state == S.HOMING:
+        # the actuator must be away from home for HOMING to last; HOME needs no load on the cell (< 2 x
+        # FORCE_TOLERANCE_G): a wide tolerance lets it follow a STOP at once, while the actuator is still out
+        drum.write_holding(HR.FORCE_TOLERANCE_G, 500)
+        drum.set_force(1000)
+        drum.press()
+        poll(drum, lambda s: s.actuator_mm > 6.0, 10, "the actuator pressing")
+        drum.stop()
+        drum.home()
+        return poll(drum, lambda s: s.state == S.HOMING, 2, "HOMING")
+    if state == S.SEEKING_FORCE:
+        drum.write_holding(HR.SETTLE_TIME_MS, 10000)  # cannot settle during the test
+        drum.set_force(200)
+        drum.press()
+        return poll(drum, lambda s: s.state == S.SEEKING_FORCE and s.actuator_mm > 0.5, 5,
+                    "SEEKING_FORCE with the actuator out")
+    if state == S.FORCE_SETTLED:
+        drum.set_force(200)
+        drum.press()
+        return drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
+    if state == S.RUNNING:
+        drum.set_force(200)
+        drum.set_speed(60)
+        drum.run()
+        return poll(drum, lambda s: s.state == S.RUNNING and s.speed_mm_s > 10 and s.actuator_mm > 0.5, 5,
+                    "RUNNING, drum turning, actuator out")
+    if state == S.FAULT:  # the watchdog, with the drum turning and the force loop engaged
+        bring_to(drum, ctl, S.RUNNING)
+        drum.write_holding(HR.WATCHDOG_MS, 100)
+        silent(drum, 400)
+        return poll(drum, lambda s: s.state == S.FAULT, 2, "FAULT")
+    raise ValueError(state)
+
+
+# ------------------------------------------------------------------------------------------------ identity
+def test_identity_and_power_up_defaults(controller, drum):
+    """Power-up: every holding register at the spec's default, firmware 1.0, IDLE, no faults, nothing engaged."""
+    assert controller.power_up_holding == [DEFAULT[r] for r in HR]
+    st = DrumStatus.from_registers(controller.power_up_inputs)
+    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 0)
+    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 256
+    assert (st.state, st.faults) == (S.IDLE, Fault(0))
+    assert st.speed_mm_s == st.speed_target_mm_s == st.force_setpoint_active_g == 0
+    assert abs(st.force_g) <= DEFAULT[HR.FORCE_TOLERANCE_G]  # tared at power-up with the actuator home
+    assert 0 <= controller.power_up_inputs[IR.DRUM_ANGLE_0P01DEG] < 36000
+    # HEARTBEAT: +1 every 10 ms of the controller's time; it never runs ahead of the host's clock
+    t0, hb0 = time.monotonic(), drum.read_input(IR.HEARTBEAT)
+    st = poll(drum, lambda s: (s.heartbeat - hb0) % 65536 >= 20, 10, "200 ms of heartbeat")
+    elapsed_ms = (time.monotonic() - t0) * 1000
+    assert (st.heartbeat - hb0) % 65536 <= elapsed_ms / 10 + 2
+
+
+def test_every_holding_register_written_and_read_back(drum):
+    new = {HR.SPEED_SETPOINT_0P1MMS: 800, HR.FORCE_SETPOINT_G: 250, HR.SPEED_PROFILE: 1,
+           HR.RAMP_START_SPEED_0P1MMS: 1000, HR.RAMP_END_SPEED_0P1MMS: 500, HR.RAMP_DURATION_MS: 6000,
+           HR.SPEED_LIMIT_0P1MMS: 1800, HR.FORCE_LIMIT_G: 1200, HR.FORCE_TOLERANCE_G: 20, HR.SETTLE_TIME_MS: 200,
+           HR.WATCHDOG_MS: 2000, HR.LOADCELL_SCALE_X100: 41000, HR.ACTUATOR_STEPS_PER_MM: 800}
+    for reg, value in new.items():  # function 06, one by one
+        assert value != DEFAULT[reg]
+        drum.write_holding(reg, value)
+        assert drum.read_holding(reg) == value, reg.name
+    expected = [new.get(r, 0) for r in HR]  # COMMAND reads back 0
+    assert holding(drum) == expected
+    drum.write_holding(HR.COMMAND, int(Command.NONE))  # accepted, changes nothing
+    assert holding(drum) == expected
+    drum.write_holdings(0, [DEFAULT[r] for r in HR])  # function 16, the whole table in one request
+    assert holding(drum) == [DEFAULT[r] for r in HR]
+    assert drum.read_status().state == S.IDLE
+
+
+# ------------------------------------------------------------------------------------------------ refusals
+def test_out_of_range_values_are_refused_and_change_nothing(drum, modbus):
+    """Exception 03 for a value outside the range column (through pymodbus directly: the DrumClient would refuse to
+    send it), for each register, with function 06 and inside a function-16 write; nothing changes."""
+    before = holding(drum)
+    for reg, (low, high, _) in wire.HOLDING_RANGE.items():
+        bad = [v for v in (low - 1, high + 1) if 0 <= v <= 0xFFFF]
+        for value in bad:
+            code = raw_refusal(modbus.write_register(int(reg), value, device_id=wire.DRUM_DEVICE_ID))
+            assert code == ILLEGAL_VALUE, (reg.name, value)
+            # a function-16 write whose last value is bad changes none of the good ones before it
+            values = [DEFAULT[r] + (1 if r not in (HR.COMMAND, reg) and DEFAULT[r] < wire.HOLDING_RANGE[r][1]
+                                    else 0) for r in HR][:int(reg)] + [value]
+            code = raw_refusal(modbus.write_registers(0, values, device_id=wire.DRUM_DEVICE_ID))
+            assert code == ILLEGAL_VALUE, (reg.name, value)
+    assert len(Command) == wire.HOLDING_RANGE[HR.COMMAND][1] + 1  # 9 is the first unknown command code
+    assert holding(drum) == before
+    assert drum.read_status().state == S.IDLE
+
+
+def test_illegal_addresses_and_functions(drum, modbus):
+    before = holding(drum)
+    with refused(ILLEGAL_ADDRESS):
+        drum.read_holding(wire.N_HOLDING)
+    with refused(ILLEGAL_ADDRESS):
+        drum.read_holdings(wire.N_HOLDING - 2, 5)  # a range running off the table
+    with refused(ILLEGAL_ADDRESS):
+        drum.read_input(wire.N_INPUT)
+    with refused(ILLEGAL_ADDRESS):
+        drum.read_inputs(10, 4)
+    with refused(ILLEGAL_ADDRESS):
+        drum.write_holding(wire.N_HOLDING, 0)
+    with refused(ILLEGAL_ADDRESS):
+        drum.write_holdings(HR.ACTUATOR_STEPS_PER_MM, [400, 1])
+    assert raw_refusal(modbus.read_coils(0, count=8, device_id=wire.DRUM_DEVICE_ID)) == ILLEGAL_FUNCTION
+    assert raw_refusal(modbus.write_coil(0, True, device_id=wire.DRUM_DEVICE_ID)) == ILLEGAL_FUNCTION
+    assert holding(drum) == before
+    assert drum.read_input(IR.FIRMWARE_VERSION) == 256  # still answering
+
+
+def test_setpoint_limits(drum):
+    """Speed setpoints (constant and ramp) must be <= SPEED_LIMIT_0P1MMS, the force setpoint <= FORCE_LIMIT_G:
+    exception 03 above, accepted at the limit; a function-16 write with one setpoint over its limit changes nothing."""
+    for limit_reg, regs, limit in ((HR.SPEED_LIMIT_0P1MMS, wire.SPEED_REGISTERS, DEFAULT[HR.SPEED_LIMIT_0P1MMS]),
+                                   (HR.FORCE_LIMIT_G, (HR.FORCE_SETPOINT_G,), DEFAULT[HR.FORCE_LIMIT_G])):
+        for new_limit in (limit, 800):
+            drum.write_holding(limit_reg, new_limit)
+            for reg in regs:
+                with refused():
+                    drum.write_holding(reg, new_limit + 1)
+                drum.write_holding(reg, new_limit)
+                assert drum.read_holding(reg) == new_limit
+                drum.write_holding(reg, DEFAULT[reg] if DEFAULT[reg] <= new_limit else 0)
+    before = holding(drum)
+    with refused():
+        drum.write_holdings(HR.SPEED_SETPOINT_0P1MMS, [700, 801])  # speed fine, force over the limit
+    with refused():
+        drum.write_holdings(HR.RAMP_START_SPEED_0P1MMS, [801, 700])  # ramp start over the speed limit
+    assert holding(drum) == before
+
+
+# ------------------------------------------------------------------------------------------------ commands
+def test_press_settles_and_a_new_setpoint_settles_again(drum, controller):
+    settle_ms = DEFAULT[HR.SETTLE_TIME_MS]
+    tol = DEFAULT[HR.FORCE_TOLERANCE_G]
+    drum.set_force(400)
+    hb0 = drum.read_input(IR.HEARTBEAT)
+    drum.press()
+    st = drum.read_status()
+    assert st.state == S.SEEKING_FORCE and st.force_setpoint_active_g == 400
+    st = drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
+    assert abs(st.force_g - 400) <= tol and st.force_setpoint_active_g == 400
+    assert (st.heartbeat - hb0) % 65536 * 10 >= settle_ms - 10  # on target for SETTLE_TIME_MS first
+    assert controller.actuator_mm() > 0.5 and st.actuator_mm > 0.5
+    drum.press()  # already engaged: nothing changes
+    assert drum.read_status().state == S.FORCE_SETTLED
+    drum.set_force(250)  # a new setpoint must settle again
+    assert drum.read_status().state == S.SEEKING_FORCE
+    st = drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
+    assert abs(st.force_g - 250) <= tol and st.force_setpoint_active_g == 250
+    drum.stop()
+    st = drum.read_status()
+    assert st.state == S.IDLE and st.force_setpoint_active_g == 0
+    st = released(drum, controller)
+    assert abs(st.force_g) <= tol
+
+
+def test_run_stop_drum_and_stop(drum, controller):
+    """From FORCE_SETTLED: RUN turns the drum at the setpoint (the angle advances at that speed on the controller's
+    clock) while the force is held; STOP_DRUM brings the drum to rest holding the force (FORCE_SETTLED only with the
+    drum at rest); STOP releases everything."""
+    tol = DEFAULT[HR.FORCE_TOLERANCE_G]
+    drum.set_force(300)
+    drum.set_speed(80)
+    drum.press()
+    drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
+    drum.run()
+    assert drum.read_status().state == S.RUNNING
+    st = drum.wait_speed_steady(timeout_s=10, tol_mm_s=0.5)
+    assert st.state == S.RUNNING and st.speed_target_mm_s == 80 and abs(st.speed_mm_s - 80) <= 0.5
+    a = drum.read_status()
+    time.sleep(0.5)
+    b = drum.read_status()
+    turns = (b.revolutions - a.revolutions) % 65536 + (b.angle_deg - a.angle_deg) / 360
+    travel_mm = turns * math.pi * DRUM_DIAMETER_MM
+    dt_s = (b.heartbeat - a.heartbeat) % 65536 / 100
+    assert dt_s > 0.2 and abs(travel_mm - 80 * dt_s) <= 0.02 * 80 * dt_s + 1.6  # 2 % + two heartbeats
+    st = drum.wait_force_settled(timeout_s=10)  # the force loop holds while the drum turns
+    assert abs(st.force_g - 300) <= tol
+    drum.write_holding(HR.SETTLE_TIME_MS, 0)  # on target at once: only the drum's coming to rest can hold it off
+    drum.stop_drum()
+    seen = [drum.read_status()]
+    assert seen[0].state in (S.SEEKING_FORCE, S.FORCE_SETTLED)
+    while seen[-1].state != S.FORCE_SETTLED or abs(seen[-1].speed_mm_s) >= AT_REST_MM_S:
+        seen.append(drum.read_status())
+        assert len(seen) < 1000, seen[-1]
+    assert all(s.state in (S.SEEKING_FORCE, S.FORCE_SETTLED) and s.force_setpoint_active_g == 300 for s in seen)
+    assert seen[-1].speed_target_mm_s == 0
+    assert all(abs(s.speed_mm_s) < AT_REST_MM_S for s in seen if s.state == S.FORCE_SETTLED), \
+        "FORCE_SETTLED while the drum still turned"
+    drum.stop()
+    assert drum.read_status().state == S.IDLE
+    st = released(drum, controller)
+    assert st.state == S.IDLE and st.force_setpoint_active_g == 0 and abs(st.force_g) <= tol
+
+
+def test_run_from_idle_engages_the_force_loop_itself(drum, controller):
+    drum.set_force(250)
+    drum.set_speed(50)
+    drum.run()
+    st = drum.read_status()
+    assert st.state == S.RUNNING and st.force_setpoint_active_g == 250
+    poll(drum, lambda s: s.speed_target_mm_s == 50, 2, "the speed target (from the next control step)")
+    st = drum.wait_force_settled(timeout_s=10)
+    assert st.state == S.RUNNING and abs(st.force_g - 250) <= DEFAULT[HR.FORCE_TOLERANCE_G]
+    drum.stop()
+    assert released(drum, controller).state == S.IDLE
+
+
+def test_ramp_profile_is_linear_in_controller_time(drum):
+    """RAMP: SPEED_TARGET goes linearly from RAMP_START to RAMP_END over RAMP_DURATION_MS from RUN (measured on
+    HEARTBEAT), then holds RAMP_END; the drum follows."""
+    drum.set_ramp(40, 120, 1.0)
+    drum.set_profile(wire.SpeedProfile.RAMP)
+    assert drum.read_holdings(HR.SPEED_PROFILE, 4) == [1, 400, 1200, 1000]
+    hb_before = drum.read_input(IR.HEARTBEAT)
+    drum.run()
+    hb_after = drum.read_input(IR.HEARTBEAT)
+    seen = []
+    while not seen or seen[-1].speed_target_mm_s < 120 or len(seen) < 5:
+        seen.append(drum.read_status())
+        assert seen[-1].state == S.RUNNING
+        assert len(seen) < 500
+        time.sleep(0.03)
+    assert len({s.speed_target_mm_s for s in seen}) >= 4  # we saw the ramp, not just its end
+    for s in seen:
+        # RUN took effect between the two heartbeats read around it; each heartbeat is 10 ms of controller time
+        t_late = ((s.heartbeat - hb_before) % 65536 + 1) * 10
+        t_early = ((s.heartbeat - hb_after) % 65536 - 1) * 10
+        lo = 40 + 80 * min(1.0, max(0.0, t_early / 1000))
+        hi = 40 + 80 * min(1.0, max(0.0, t_late / 1000))
+        assert lo - 0.15 <= s.speed_target_mm_s <= hi + 0.15, (s.heartbeat, hb_before, hb_after, s.speed_target_mm_s)
+    st = drum.wait_speed_steady(timeout_s=5)
+    assert st.speed_target_mm_s == 120 and abs(st.speed_mm_s - 120) <= 0.5
+
+
+def test_tare_and_the_load_cell_scale(drum, controller):
+    """TARE with the actuator released zeroes FORCE_G at the present load; FORCE_G = (raw - tare) * 100 /
+    LOADCELL_SCALE_X100 (HX711 counts per g x 100) from the raw reading in LOADCELL_RAW_HI/LO."""
+
+    def force_near(target: float) -> DrumStatus:
+        return poll(drum, lambda s: abs(s.force_g - target) <= 3, 5, f"FORCE_G near {target} g")
+
+    force_near(0)
+    controller.place_mass(20)  # a small load (under 2 x FORCE_TOLERANCE_G) that TARE accepts
+    force_near(20)
+    drum.tare()
+    force_near(0)
+    controller.place_mass(0)
+    force_near(-20)
+    drum.tare()
+    zero = force_near(0)
+    controller.place_mass(300)
+    for scale in (DEFAULT[HR.LOADCELL_SCALE_X100], DEFAULT[HR.LOADCELL_SCALE_X100] // 2):
+        drum.write_holding(HR.LOADCELL_SCALE_X100, scale)
+        st = force_near(300 * DEFAULT[HR.LOADCELL_SCALE_X100] / scale)
+        # within 2 % + 3 g: the reading noise of the load cell (the simulated one has some)
+        assert abs(st.force_g - (st.loadcell_raw - zero.loadcell_raw) * 100 / scale) <= 0.02 * st.force_g + 3
+    assert drum.read_status().state == S.IDLE
+
+
+# states, the commands refused in each (exception 03, nothing changes), and the state STOP leaves
+REFUSED = {
+    S.IDLE: [Command.STOP_DRUM],  # firmware.md: STOP_DRUM only with the force loop engaged
+    S.HOMING: [Command.RUN, Command.PRESS, Command.STOP_DRUM, Command.TARE, Command.HOME],
+    S.SEEKING_FORCE: [Command.TARE, Command.HOME],  # spec: TARE only when released
+    S.FORCE_SETTLED: [Command.TARE, Command.HOME],
+    S.RUNNING: [Command.TARE, Command.HOME],
+    S.FAULT: [Command.RUN, Command.PRESS, Command.STOP_DRUM, Command.TARE, Command.HOME],  # CLEAR_FAULT to leave
+}
+
+
+@pytest.mark.parametrize("state", list(REFUSED), ids=[s.name for s in REFUSED])
+def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller, state):
+    """In every state: the commands not allowed there are refused with exception 03 and change nothing; STOP is
+    always accepted: the drum comes to rest, the actuator backs off home, the state becomes IDLE (a latched FAULT
+    stays FAULT until CLEAR_FAULT)."""
+    bring_to(drum, controller, state)
+    regs = holding(drum)
+    # HOMING ends by itself once the actuator is home
+    unchanged = {state, S.IDLE} if state == S.HOMING else {state}
+    for cmd in REFUSED[state]:
+        with refused():
+            drum.command(cmd)
+        st = drum.read_status()
+        assert st.state in unchanged, f"{cmd.name} changed {state.name} to {st.state.name}"
+    assert holding(drum) == regs
+    drum.stop()
+    after = S.FAULT if state == S.FAULT else S.IDLE
+    st = drum.read_status()
+    assert st.state == after and st.force_setpoint_active_g == 0
+    poll(drum, lambda s: s.speed_target_mm_s == 0, 2, "the speed target at 0 (from the next control step)")
+    st = released(drum, controller)
+    assert st.state == after
+    if state == S.FAULT:
+        drum.clear_fault()
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.IDLE, Fault(0))
+
+
+def test_home_drives_the_actuator_home(drum, controller):
+    st = bring_to(drum, controller, S.HOMING)
+    assert st.actuator_mm > 0.5
+    st = drum.wait_state(S.IDLE, timeout_s=10)
+    assert st.actuator_mm == 0 and controller.actuator_mm() <= HOME_MM
+
+
+def test_clear_fault_outside_fault_and_none_change_nothing(drum):
+    regs, st0 = holding(drum), drum.read_status()
+    drum.clear_fault()
+    drum.command(Command.NONE)
+    st = drum.read_status()
+    assert holding(drum) == regs and (st.state, st.faults) == (st0.state, st0.faults) == (S.IDLE, Fault(0))
+
+
+# ------------------------------------------------------------------------------------------------ watchdog
+@pytest.mark.parametrize("engaged", ["drum turning", "force loop holding"])
+def test_watchdog_a_silent_host_trips_it_and_the_fault_latches(drum, controller, engaged):
+    """Spec 2.5: no request for WATCHDOG_MS while the drum turns or the force loop is engaged: the drum stops, the
+    actuator backs off home, WATCHDOG latches, state FAULT; only CLEAR_FAULT leaves it."""
+    wd_ms = 300
+    drum.write_holding(HR.WATCHDOG_MS, wd_ms)
+    if engaged == "drum turning":
+        bring_to(drum, controller, S.RUNNING)
+    else:
+        bring_to(drum, controller, S.FORCE_SETTLED)
+    silent(drum, 3 * wd_ms)
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.FAULT, Fault.WATCHDOG)
+    assert st.speed_target_mm_s == 0 and st.force_setpoint_active_g == 0
+    st = released(drum, controller)
+    assert (st.state, st.faults) == (S.FAULT, Fault.WATCHDOG)
+    silent(drum, 2 * wd_ms)  # latched: still there, whatever the host does meanwhile
+    with refused():
+        drum.run()
+    drum.stop()  # accepted, and still FAULT
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.FAULT, Fault.WATCHDOG)
+    drum.clear_fault()
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.IDLE, Fault(0))
+
+
+def test_watchdog_a_polling_host_keeps_it_fed(drum, controller):
+    """Any valid request feeds it (reads included): a host polling well inside WATCHDOG_MS keeps the drum running
+    for several timeouts."""
+    wd_ms = DEFAULT[HR.WATCHDOG_MS]
+    bring_to(drum, controller, S.RUNNING)
+    hb0 = drum.read_input(IR.HEARTBEAT)
+    while True:
+        st = drum.read_status()
+        assert (st.state, st.faults) == (S.RUNNING, Fault(0))
+        if (st.heartbeat - hb0) % 65536 * 10 > 2.5 * wd_ms:
+            break
+        time.sleep(0.05)
+
+
+def test_watchdog_an_idle_host_that_only_monitors_never_trips_it(drum):
+    drum.write_holding(HR.WATCHDOG_MS, wire.HOLDING_RANGE[HR.WATCHDOG_MS][0])
+    silent(drum, 500)
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.IDLE, Fault(0))
+
+
+# ------------------------------------------------------------------------------------------------ faults
+def test_force_limit_faults_backs_off_and_clears_only_when_gone(drum, controller):
+    """A measured force above FORCE_LIMIT_G: FORCE_LIMIT latches, state FAULT, the actuator backs off at once;
+    CLEAR_FAULT is refused while the force is still over the limit."""
+    drum.set_force(400)
+    drum.press()
+    drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
+    x0 = controller.actuator_mm()
+    controller.place_mass(DEFAULT[HR.FORCE_LIMIT_G] + 100)  # an external push that stays
+    st = poll(drum, lambda s: s.state == S.FAULT, 5, "FAULT")
+    assert st.faults == Fault.FORCE_LIMIT and st.force_setpoint_active_g == 0
+    deadline = time.monotonic() + 5
+    while controller.actuator_mm() > x0 - 0.5:  # backing off
+        assert time.monotonic() < deadline, "the actuator does not back off"
+        time.sleep(0.02)
+    with refused():
+        drum.clear_fault()
+    assert drum.read_status().state == S.FAULT
+    controller.place_mass(0)
+    st = poll(drum, lambda s: s.force_g < DEFAULT[HR.FORCE_LIMIT_G], 5, "the force back under the limit")
+    drum.clear_fault()
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.IDLE, Fault(0))
+
+
+def test_force_limit_latches_during_another_fault(drum, controller):
+    """FAULT_BITS are latched faults: a force over FORCE_LIMIT_G while the rig is already in FAULT (watchdog) adds
+    FORCE_LIMIT to the bits."""
+    bring_to(drum, controller, S.FAULT)
+    controller.place_mass(DEFAULT[HR.FORCE_LIMIT_G] + 100)
+    poll(drum, lambda s: s.force_g > DEFAULT[HR.FORCE_LIMIT_G], 5, "the force over the limit")
+    time.sleep(0.1)
+    st = drum.read_status()
+    assert st.state == S.FAULT and st.faults == Fault.WATCHDOG | Fault.FORCE_LIMIT
+
+
+def test_actuator_travel_faults_at_the_end_of_travel(drum, controller):
+    """ACTUATOR_TRAVEL: the actuator reaches its end of travel without reaching the force setpoint: FAULT, the
+    actuator backs off. The end of travel is where the controller's own position (ACTUATOR_POSITION, steps over
+    ACTUATOR_STEPS_PER_MM) puts it: with the lead-screw calibration at a quarter of the true one the controller
+    believes it travels 4x as far as it does, and meets its end of travel before the contact gives the setpoint."""
+    tol = DEFAULT[HR.FORCE_TOLERANCE_G]
+    drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, DEFAULT[HR.ACTUATOR_STEPS_PER_MM] // 4)
+    drum.set_force(1000)
+    drum.press()
+    seen = [drum.read_status()]
+    while seen[-1].state != S.FAULT:
+        assert seen[-1].state == S.SEEKING_FORCE and len(seen) < 2000, seen[-1]
+        time.sleep(0.02)
+        seen.append(drum.read_status())
+    st = seen[-1]
+    assert st.faults == Fault.ACTUATOR_TRAVEL and st.force_setpoint_active_g == 0
+    assert max(s.force_g for s in seen) < 1000 - tol
+    drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, DEFAULT[HR.ACTUATOR_STEPS_PER_MM])  # backs off 4x faster
+    st = released(drum, controller)
+    assert (st.state, st.faults) == (S.FAULT, Fault.ACTUATOR_TRAVEL)
+    drum.clear_fault()
+    assert drum.read_status().state == S.IDLE
