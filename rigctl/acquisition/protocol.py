@@ -3,7 +3,9 @@
 A TOML protocol names the textures (labels of its texture set: the paper's A-P by default, or a ``[texture_set]``
 the file declares, with optional groups and geometry), the speed/force conditions, how many trials per condition, how long a trial
 lasts (a fixed travel of the drum surface, 240 mm in the paper's dataset, or a fixed duration), the trial order and
-the settle timeouts; :meth:`Protocol.plan` expands it into one :class:`PlannedTrial` per trial. Velocity profiles
+the settle timeouts, and the trial quality policy: ``max_dropped_frames`` (default 0: a trial may lose no frame) and
+``retries`` (default 2: a trial that fails or loses more frames than that is recorded again up to twice, then marked
+failed; :func:`rigctl.acquisition.runner.run_protocol`); :meth:`Protocol.plan` expands it into one :class:`PlannedTrial` per trial. Velocity profiles
 (constant, or a linear ramp from a start to an end speed) cover the paper's real-time experiment (Fig. 4: slow,
 medium, fast, slow-to-fast, fast-to-slow). The format is documented in ``protocols/paper_dataset.toml`` and
 ``docs/session-format.md``.
@@ -38,6 +40,10 @@ MAX_FORCE_G = 1500.0
 #: longest trial the runner accepts, and the RAMP_DURATION_MS register's limit (s)
 MAX_DURATION_S = 600.0
 MAX_RAMP_DURATION_S = 60.0
+#: most trials one plan may hold (the paper's dataset: 24,000), so a typo cannot plan billions
+MAX_PLAN_TRIALS = 1_000_000
+#: most re-recordings of one trial the ``retries`` key may ask for
+MAX_RETRIES = 10
 #: the paper's plate labels (the default texture set, :data:`rigctl.core.textures.PAPER_TEXTURES`)
 TEXTURE_LETTERS = "".join(PAPER_TEXTURES.labels)
 ORDERS = ("blocked", "interleaved", "random")
@@ -109,6 +115,11 @@ class Protocol:
     order: str = "blocked"
     seed: int = 0
     settle: Settle = field(default_factory=Settle)
+    #: frames a kept trial may have lost (sequence gaps among its frames, ``TrialData.dropped_frames``); a trial
+    #: that lost more is recorded again (``retries``), then marked failed, never stored as complete
+    max_dropped_frames: int = 0
+    #: how many times a failed trial (lost frames, a lost stream, a timeout, a fault) is recorded again at once
+    retries: int = 2
     format: str = "toml"
 
     @property
@@ -280,7 +291,7 @@ def _key_text(key: tuple) -> str:
 class _Validator:
     TOP = {
         "name", "description", "textures", "speeds_mm_s", "forces_g", "trials_per_condition", "travel_mm",
-        "duration_s", "order", "seed", "settle", "profiles", "texture_set",
+        "duration_s", "order", "seed", "settle", "profiles", "texture_set", "max_dropped_frames", "retries",
     }
     TEXTURE_SET = {"name", "textures", "groups", "geometry"}
     SETTLE = {"force_timeout_s", "speed_timeout_s", "speed_tolerance_mm_s", "force_tolerance_g", "settle_time_ms"}
@@ -390,6 +401,12 @@ class _Validator:
         if order not in ORDERS:
             raise self.error(("order",), f"{order!r} is not one of {', '.join(ORDERS)}")
         seed = self._int(("seed",), doc.get("seed", 0), lo=0)
+        max_dropped = self._int(("max_dropped_frames",), doc.get("max_dropped_frames", 0), lo=0)
+        retries = self._int(("retries",), doc.get("retries", 2), lo=0, hi=MAX_RETRIES)
+        n_trials = len(textures) * len(forces) * len(profiles) * tpc
+        if n_trials > MAX_PLAN_TRIALS:
+            raise self.error(("trials_per_condition",), f"the plan would hold {n_trials} trials, more than "
+                                                        f"{MAX_PLAN_TRIALS}")
 
         settle = Settle()
         if "settle" in doc:
@@ -414,6 +431,7 @@ class _Validator:
             name=name.strip(), source=self.source, path=self.path, description=description,
             textures=tuple(textures), texture_set=texture_set, profiles=tuple(profiles), forces_g=forces, trials_per_condition=tpc,
             travel_mm=travel, duration_s=duration, order=order, seed=seed, settle=settle,
+            max_dropped_frames=max_dropped, retries=retries,
         )
         for key, prof in zip(keys, profiles):
             d = proto.trial_duration_s(prof)

@@ -16,7 +16,11 @@ sampling the load-cell force and drum speed at ~50 Hz (these Modbus reads also f
 STOP_DRUM. A constant-speed trial starts at the drum's index mark: the capture keeps the frames from the first one
 flagged SYNC_IN (the Mega's index pulse, latched by the Uno, docs/wire-protocol.md 2.6) on, so every trial of a
 texture starts at the same place on the plate (phase-aligned, up to the 1 ms latch and the index repeatability);
-the paper's 100 ms-window features are time series along the plate and need that alignment. :meth:`Rig.safe_stop` (STOP: drum to rest, actuator backed off) always leaves the rig safe.
+the paper's 100 ms-window features are time series along the plate and need that alignment. A lost index frame
+costs at most that frame: the index is placed in the sequence gap where the drum angle predicts it
+(:func:`locate_index`). :meth:`Rig.safe_stop` (STOP: drum to rest, actuator backed off) always leaves the rig safe;
+:meth:`Rig.recover` after a failed trial also restarts a taxel stream that delivers nothing and says whether both
+links work (:meth:`Rig.check_links`).
 """
 
 from __future__ import annotations
@@ -56,6 +60,14 @@ DRUM_CIRCUMFERENCE_MM = math.pi * 100.0
 INDEX_TIMEOUT_REVS = 1.25
 #: extra frames captured beyond the expected index position + the trial's frames (status-read latency, jitter)
 INDEX_MARGIN_FRAMES = 150
+#: a lost index frame is placed in a sequence gap of at most this many frames (the trial then starts at most this
+#: many frames after the index mark) ...
+INDEX_GAP_MAX_FRAMES = 5
+#: ... lying within this time of the index pulse predicted from the drum angle, s (status-read latency, the frames'
+#: receive-time jitter; a whole revolution is seconds)
+INDEX_PREDICTION_TOLERANCE_S = 0.25
+#: :meth:`Rig.check_links` waits this long for a taxel frame, s
+LINK_CHECK_S = 1.0
 
 
 class RigError(RuntimeError):
@@ -125,6 +137,8 @@ class Rig:
         self._textures: TextureSet = backend.textures or PAPER_TEXTURES
         self._closed = False
         self._lock = threading.RLock()
+        #: frames the last trial's capture received (None before the first, or once the stream is known to work)
+        self.last_capture_frames: int | None = None
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
@@ -322,8 +336,15 @@ class Rig:
         log.error("could not send STOP to the drum controller: stop the rig by hand")
         return False
 
-    def recover(self) -> None:
-        """After a failed trial: STOP, clear a latched fault, wait for IDLE."""
+    def recover(self) -> str | None:
+        """After a failed trial: STOP, clear a latched fault, wait for IDLE, and make sure the taxel stream delivers
+        frames (restarting it when the last capture or the check saw none: a START the board never got leaves it
+        silent until the next START). Never raises a device error.
+
+        Returns
+        -------
+        None when both links work again, else the link problem in words (see :meth:`check_links`).
+        """
         from rigctl.devices.errors import DrumError
 
         self.safe_stop()
@@ -334,6 +355,56 @@ class Rig:
             self.drum.wait_state([wire.DrumState.IDLE], timeout_s=20.0)
         except DrumError as exc:
             log.warning("recovering the rig: %s", exc)
+        return self.check_links(restart=True)
+
+    def check_links(self, *, restart: bool = True, timeout_s: float | None = None) -> str | None:
+        """Check both links: the drum controller answers a status read, and taxel frames arrive.
+
+        With ``restart``, a taxel stream that is connected but silent (or whose last capture received nothing) is
+        restarted (STOP, START) and checked again. Waits at most ``timeout_s`` (:data:`LINK_CHECK_S`) for a frame
+        per check, on the drum client's clock. Never raises a device error.
+
+        Returns
+        -------
+        None if both work, else what does not, e.g. ``"the drum controller does not answer (...)"`` or ``"no taxel
+        frame for 1.0 s (stream disconnected, 2 reconnects)"``.
+        """
+        from rigctl.devices.errors import DrumError, TaxelStreamError
+
+        timeout_s = LINK_CHECK_S if timeout_s is None else float(timeout_s)
+        frames0 = self.stream.stats.frames
+        try:
+            self.drum.read_status()
+        except DrumError as exc:
+            return f"the drum controller does not answer ({exc})"
+        silent = restart and self.last_capture_frames == 0  # restart at once, no need to wait and see
+        if not silent and self._frames_arrive(frames0, timeout_s):
+            self.last_capture_frames = None
+            return None
+        if restart and self.stream.stats.connected:
+            log.warning("the taxel stream delivers no frames: restarting it")
+            try:
+                with contextlib.suppress(TaxelStreamError):
+                    self.stream.stop()
+                frames0 = self.stream.stats.frames
+                self.stream.start()
+            except Exception as exc:  # noqa: BLE001 - reported as the link problem
+                return f"the taxel stream cannot be restarted ({exc})"
+            if self._frames_arrive(frames0, timeout_s):
+                self.last_capture_frames = None
+                return None
+        st = self.stream.stats
+        return (f"no taxel frame for {timeout_s:.1f} s (stream "
+                f"{'connected' if st.connected else 'disconnected'}, {st.reconnects} reconnects)")
+
+    def _frames_arrive(self, frames0: int, timeout_s: float) -> bool:
+        clock = self.drum.clock
+        deadline = clock.now() + timeout_s
+        while self.stream.stats.frames == frames0:
+            if clock.now() >= deadline:
+                return False
+            clock.sleep(0.02)
+        return True
 
     def _status(self) -> _Status:
         clock = self.drum.clock  # the clock of the taxel source's host times (simulated in-process)
@@ -409,7 +480,8 @@ class Rig:
             (s since the first frame, host monotonic clock), force and speed traces at ~50 Hz on the same clock,
             dropped frames (sequence gaps among the kept frames), CRC errors during the capture, and attrs
             (``started_utc``, ``settle_time_s``, measured means, ``host_rate_hz``, ``aligned_to_index``,
-            ``index_wait_frames``).
+            ``index_wait_frames``, ``index_frame_lost``: 0, or the length of the sequence gap the lost index frame
+            was placed in).
 
         Notes
         -----
@@ -417,9 +489,11 @@ class Rig:
         is read to predict when the index mark passes; the capture runs until that point + ``duration_s * rate``
         frames + :data:`INDEX_MARGIN_FRAMES`. The frames before the first one flagged
         ``wire.FrameFlag.SYNC_IN`` are dropped and exactly ``duration_s * rate`` frames from it on are kept
-        (``aligned_to_index=True``, ``index_wait_frames`` = frames dropped). No index pulse within
-        :data:`INDEX_TIMEOUT_REVS` revolutions at the trial speed (7.9 s x 1.25 at 40 mm/s on the 314 mm drum)
-        raises :class:`CaptureError`. Ramp trials start with the ramp instead (``aligned_to_index=False``): the
+        (``aligned_to_index=True``, ``index_wait_frames`` = frames dropped). When the index frame itself was lost
+        on the link, the trial starts right after the short sequence gap where the drum angle predicts the index
+        (:func:`locate_index`): a lost index frame costs that frame, not the trial. No index pulse (and no such
+        gap) within :data:`INDEX_TIMEOUT_REVS` revolutions at the trial speed (7.9 s x 1.25 at 40 mm/s on the
+        314 mm drum) raises :class:`CaptureError`. Ramp trials start with the ramp instead (``aligned_to_index=False``): the
         ramp profile's clock starts with RUN.
 
         Raises
@@ -483,12 +557,14 @@ class Rig:
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
         align = not planned.is_ramp
         n_capture = n
+        t_index = math.nan  # when the index pulse is predicted, on the clock of the frames' host times
         if align:
             # predict the index pulse from the drum angle; capture up to it + the trial + a margin
             rev_s = DRUM_CIRCUMFERENCE_MM / planned.speed_mm_s
             st = self.drum.read_status()
             t_read = clock.now()
             to_index_s = (360.0 - float(st.angle_deg)) % 360.0 / 360.0 * rev_s
+            t_index = t_read + to_index_s
             n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * rate)) + INDEX_MARGIN_FRAMES
             n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate)))
             deadline += INDEX_TIMEOUT_REVS * rev_s
@@ -518,23 +594,77 @@ class Rig:
             statuses.append(self._status())
         finally:
             cap = self.stream.end_capture()
+            self.last_capture_frames = len(cap)
         self.drum.stop_drum()
-        k = 0
+        k = lost = 0
         if align:
-            sync = np.flatnonzero(cap.flags & wire.FrameFlag.SYNC_IN)
-            if sync.size == 0:
-                raise CaptureError(f"trial {planned.trial_id}: no drum index pulse (SYNC_IN) in {len(cap)} frames "
-                                   f"({len(cap) / rate:.1f} s at {planned.speed_mm_s:g} mm/s)")
-            k = int(sync[0])
-            if len(cap) - k < n:
-                raise CaptureError(f"trial {planned.trial_id}: the index pulse came {k} frames into the capture, "
-                                   f"only {len(cap) - k} of {n} frames follow it")
+            try:
+                k, lost = locate_index(cap, n, t_index)
+            except CaptureError as exc:
+                raise CaptureError(f"trial {planned.trial_id}: {exc} ({len(cap) / rate:.1f} s at "
+                                   f"{planned.speed_mm_s:g} mm/s)") from None
+            if lost:
+                log.warning("trial %d: the index frame was lost; the trial starts after the %d-frame gap where the "
+                            "drum angle predicts the index", planned.trial_id, lost)
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)
         data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
                            layout=layout)
-        data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k)
+        data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
         return data
+
+
+def locate_index(cap, n: int, t_index: float) -> tuple[int, int]:
+    """Where a constant-speed trial starts in its capture: at the drum's index mark.
+
+    Parameters
+    ----------
+    cap : the capture (``seq``, ``flags``, ``host_time_s`` (s), ``len(cap)`` frames).
+    n : frames the trial keeps from its start.
+    t_index : when the drum angle predicts the index pulse, s, on the clock of ``cap.host_time_s`` (NaN: unknown).
+
+    Returns
+    -------
+    (k, lost)
+        ``k``: the trial's first frame in the capture. ``lost`` = 0: frame ``k`` is the first frame flagged
+        ``SYNC_IN`` with ``n`` frames after it. Otherwise the index frame was lost on the link: the index is placed
+        in the sequence gap of ``lost`` <= :data:`INDEX_GAP_MAX_FRAMES` frames nearest to ``t_index`` (within
+        :data:`INDEX_PREDICTION_TOLERANCE_S`, before any later ``SYNC_IN`` frame, with ``n`` frames after it), and
+        ``k`` is the first frame after that gap: the trial starts at most ``lost`` frames after the index mark
+        (exactly 1 frame after it when the index frame alone was lost) and loses no frame of its own. A restart of
+        the stream (``STREAMING_START``) is not such a gap.
+
+    Raises
+    ------
+    CaptureError
+        No usable index frame and no gap that explains it (the trial is then recorded again by the runner's retry
+        policy: the next attempt waits for the next index pulse).
+    """
+    n_cap = len(cap)
+    sync = np.flatnonzero(cap.flags & wire.FrameFlag.SYNC_IN)
+    usable = sync[n_cap - sync >= n]
+    if usable.size:
+        return int(usable[0]), 0
+    if n_cap > 1 and math.isfinite(t_index):
+        seq = cap.seq.astype(np.int64)
+        gap = (seq[1:] - seq[:-1] - 1) & 0xFFFF
+        after = np.arange(1, n_cap)  # the frame after each gap
+        t = np.asarray(cap.host_time_s, dtype=np.float64)
+        before_t, after_t = t[:-1], t[1:]
+        dist = np.maximum(0.0, np.maximum(before_t - t_index, t_index - after_t))
+        ok = ((gap > 0) & (gap <= INDEX_GAP_MAX_FRAMES) & (n_cap - after >= n)
+              & ((cap.flags[1:] & wire.FrameFlag.STREAMING_START) == 0)
+              & (dist <= INDEX_PREDICTION_TOLERANCE_S))
+        if sync.size:
+            ok &= after <= sync[0]
+        if ok.any():
+            i = int(np.flatnonzero(ok)[np.argmin(dist[ok])])
+            return int(after[i]), int(gap[i])
+    if sync.size:
+        k = int(sync[0])
+        raise CaptureError(f"the index pulse came {k} frames into the capture, only {n_cap - k} of {n} frames "
+                           "follow it")
+    raise CaptureError(f"no drum index pulse (SYNC_IN) in {n_cap} frames, and no short gap where it was predicted")
 
 
 def _abort_if(stop_event) -> None:

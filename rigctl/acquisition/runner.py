@@ -7,20 +7,41 @@ duration, stop the drum; write the trial to the session file in one go (:meth:`S
 Run control, for the CLI and the GUI alike:
 
 - progress: a tqdm bar with ETA (``progress=True``), or nothing printed at all (``progress=False``, callbacks only);
-- ``on_trial(event)``: a :class:`TrialEvent` when each trial starts and ends (complete / failed);
-- ``stop_event`` (set it) or Ctrl-C (KeyboardInterrupt): clean stop: the trial in progress is discarded, the rig is
-  left safe (STOP), every finished trial stays in the file, and the run can be resumed;
+- ``on_trial(event)``: a :class:`TrialEvent` when each trial starts and ends (complete / failed), when an attempt is
+  recorded again (retry) and while a write waits for the session file (waiting);
+- ``stop_event`` (set it), Ctrl-C (KeyboardInterrupt) or SIGTERM (handled like Ctrl-C while the run lasts, when it
+  runs in the main thread; the previous handlers are restored afterwards): clean stop: the trial in progress is
+  discarded, the rig is left safe (STOP: drum stopped, actuator backed off), every finished trial stays in the
+  file, and the run can be resumed. A trial being written is written first (the signal is held until then; a second
+  one stops at once);
 - ``pause_event``: while it is set the runner waits between trials with the rig released (no force applied, so the
   controller's watchdog cannot trip); clear it to continue;
 - ``resume=True``: continue an interrupted session file from its ``/plan`` (refused if the protocol source differs);
-  complete trials are never recorded again, failed and pending ones are;
-- a trial that fails (timeout, fault, lost stream) is marked failed in the plan; the run continues
-  (``on_failure="continue"``) or stops (``"stop"``).
+  complete trials are never recorded again, failed and pending ones are.
+
+Trial quality (the protocol's ``max_dropped_frames`` and ``retries``): a trial that lost more frames than
+``max_dropped_frames`` (sequence gaps among its kept frames, ``TrialData.dropped_frames``) is never stored as
+complete. It is recorded again at once, like a trial that failed (timeout, fault, lost stream; after
+:meth:`Rig.recover`), up to ``retries`` times; then it is marked failed in the plan with the reason, and the run
+continues (``on_failure="continue"``) or stops (``"stop"``). A trial kept with some losses (``max_dropped_frames`` >
+0) carries its ``dropped_frames``; the summary counts such trials (``lossy``).
+
+A lost link ends the run after a bounded time, not trial by trial: when a failed attempt leaves a link down (the
+drum controller does not answer, or no taxel frame arrives: :meth:`Rig.recover`), the runner waits for it to come
+back (a vanished port is reopened by its client) and goes on; after :data:`LINK_LOSS_ATTEMPTS` attempts in a row
+failing with a link down, or :data:`LINK_LOSS_S` seconds of waiting since the first of them, it stops (``stopped``,
+``link_lost`` says why): finished trials intact, the session resumable.
+
+A reader holding the session file never costs a recorded trial: the trial is kept in memory, the rig released and
+the write retried, reporting, for as long as the file is held.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -29,9 +50,27 @@ from typing import Any, Callable
 
 from rigctl.acquisition.calibration import session_calibration_block
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
-from rigctl.acquisition.rig import Rig, TrialAborted
+from rigctl.acquisition.rig import CaptureError, Rig, TrialAborted
 from rigctl.core.trial import PlannedTrial, TrialData
 from rigctl.storage.session import SessionError, SessionWriter, TrialStatus
+
+log = logging.getLogger(__name__)
+
+#: a lost link ends the run after this many trial attempts in a row that failed and left a link down ...
+LINK_LOSS_ATTEMPTS = 3
+#: ... or once a link has been down this long since the first of them, s
+LINK_LOSS_S = 60.0
+#: how often the runner checks whether a lost link is back, s
+LINK_POLL_S = 0.5
+#: a trial's first write waits this long for the session file (less than the controller's watchdog: the force loop
+#: is still engaged), s
+FIRST_WRITE_WAIT_S = 0.5
+#: then, with the rig released, each further write attempt waits this long, reporting in between, until written, s
+WRITE_RETRY_S = 10.0
+
+
+class LostFramesError(CaptureError):
+    """A recorded trial lost more frames than the protocol's ``max_dropped_frames`` allows."""
 
 
 @dataclass
@@ -40,14 +79,17 @@ class TrialEvent:
 
     Attributes
     ----------
-    kind : "start" | "complete" | "failed" | "texture" (a plate is being mounted) | "paused" | "resumed"
+    kind : "start" | "complete" | "failed" | "retry" (an attempt failed, the trial is recorded again) | "waiting"
+        (the session file is held by another process; the trial is kept until written) | "texture" (a plate is
+        being mounted) | "paused" | "resumed"
     planned : the trial (None for "paused"/"resumed")
     index : 0-based position among the trials this run records
     total : how many trials this run records
     data : the recorded TrialData ("complete" only)
-    error : the failure in words ("failed" only)
+    error : the failure in words ("failed", "retry"; "waiting": what holds the write)
     elapsed_s : wall time since the run started
     eta_s : estimated wall time left (NaN before the first trial ends)
+    attempt : 1 for a trial's first recording, 2 for its first retry, ...
     """
 
     kind: str
@@ -58,6 +100,7 @@ class TrialEvent:
     error: str = ""
     elapsed_s: float = 0.0
     eta_s: float = math.nan
+    attempt: int = 1
 
 
 @dataclass
@@ -65,8 +108,10 @@ class RunSummary:
     """Outcome of :func:`run_protocol`.
 
     ``planned`` trials in the file's plan, ``complete`` (in the file, including earlier runs), ``recorded`` (by this
-    run), ``failed`` (this run), ``samples``/``dropped_frames``/``crc_errors`` (this run), ``stopped`` (interrupted
-    by stop_event or Ctrl-C), ``elapsed_s``, ``path``.
+    run), ``failed`` (this run), ``retried`` (attempts recorded again, this run), ``lossy`` (trials kept with lost
+    frames, within the protocol's ``max_dropped_frames``), ``samples``/``dropped_frames``/``crc_errors`` (this
+    run's kept trials), ``stopped`` (interrupted by stop_event, Ctrl-C, SIGTERM or a lost link), ``link_lost`` (why
+    a lost link ended the run, else ""), ``elapsed_s``, ``path``, ``failures`` (one line per failed trial).
     """
 
     path: Path
@@ -74,10 +119,13 @@ class RunSummary:
     complete: int = 0
     recorded: int = 0
     failed: int = 0
+    retried: int = 0
+    lossy: int = 0
     samples: int = 0
     dropped_frames: int = 0
     crc_errors: int = 0
     stopped: bool = False
+    link_lost: str = ""
     elapsed_s: float = 0.0
     failures: list[str] = field(default_factory=list)
 
@@ -86,12 +134,16 @@ class RunSummary:
         return not self.stopped and self.failed == 0 and self.complete == self.planned
 
     def lines(self) -> list[str]:
-        state = "stopped early (resume with --resume)" if self.stopped else "finished"
+        if self.link_lost:
+            state = f"stopped: link lost: {self.link_lost} (resume with --resume once the rig answers again)"
+        else:
+            state = "stopped early (resume with --resume)" if self.stopped else "finished"
         out = [
             f"session {self.path}: {state} in {self.elapsed_s:.1f} s",
             f"  trials complete: {self.complete}/{self.planned} (recorded now: {self.recorded}, failed now: "
-            f"{self.failed})",
-            f"  samples: {self.samples}  dropped frames: {self.dropped_frames}  CRC errors: {self.crc_errors}",
+            f"{self.failed}, attempts recorded again: {self.retried})",
+            f"  samples: {self.samples}  dropped frames: {self.dropped_frames} (in {self.lossy} kept trials)  "
+            f"CRC errors: {self.crc_errors}",
         ]
         out += [f"  failed: {f}" for f in self.failures]
         return out
@@ -100,6 +152,62 @@ class RunSummary:
 def _emit(cb, event: TrialEvent) -> None:
     if cb is not None:
         cb(event)
+
+
+class _Interrupts:
+    """Ctrl-C (SIGINT) and SIGTERM during a run raise KeyboardInterrupt (a clean stop); held while the session file
+    is written (:meth:`held`: the first signal then waits for :meth:`raise_pending`, a second one raises at once).
+
+    Installed only in the main thread (the only one that may set signal handlers); SIGINT only while Python's
+    default handler is in place, neither signal where it is ignored. The previous handlers are restored on exit.
+    """
+
+    def __init__(self):
+        self._previous: dict[int, Any] = {}
+        self._holding = 0
+        self.pending: int | None = None
+
+    def __enter__(self) -> "_Interrupts":
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            prev = signal.getsignal(sig)
+            if prev is None or prev is signal.SIG_IGN or (sig == signal.SIGINT and prev is not signal.default_int_handler):
+                continue
+            try:
+                signal.signal(sig, self._handle)
+            except ValueError:  # not the main interpreter
+                continue
+            self._previous[sig] = prev
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, prev in self._previous.items():
+            signal.signal(sig, prev)
+        self._previous.clear()
+
+    def _handle(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if self._holding and self.pending is None:
+            self.pending = signum
+            log.warning("%s: stopping once the trial being written is in the session file (again to stop at once, "
+                        "losing it)", name)
+            return
+        raise KeyboardInterrupt(name)
+
+    @contextlib.contextmanager
+    def held(self):
+        self._holding += 1
+        try:
+            yield
+        finally:
+            self._holding -= 1
+
+    def raise_pending(self) -> None:
+        if self.pending is not None:
+            name = signal.Signals(self.pending).name
+            self.pending = None
+            raise KeyboardInterrupt(name)
 
 
 def _wait_while_paused(rig: Rig, pause_event, stop_event, on_trial, index, total, t0) -> None:
@@ -132,7 +240,8 @@ def run_protocol(
 
     Parameters
     ----------
-    protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`).
+    protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`); its ``max_dropped_frames``
+        and ``retries`` set the trial quality policy (module docstring).
     out_path : session file (``.h5``); must not exist unless ``resume`` or ``overwrite``.
     rig : an open :class:`rigctl.acquisition.rig.Rig` (:func:`rigctl.rigs.open_rig`). Its texture set becomes the
         protocol's (:attr:`Protocol.texture_set`), which the session stores with the taxel source's layout.
@@ -141,7 +250,7 @@ def run_protocol(
     stop_event, pause_event : run control (see the module docstring).
     on_trial : callback receiving :class:`TrialEvent` s (called from the thread running this function).
     prompt : operator prompt for plate changes on hardware (default: the rig's).
-    on_failure : "continue" or "stop" after a failed trial.
+    on_failure : "continue" or "stop" after a trial failed (its retries used up).
     overwrite : replace an existing ``out_path`` (not with ``resume``).
 
     Returns
@@ -152,121 +261,225 @@ def run_protocol(
     ------
     FileExistsError (out_path exists, no resume/overwrite), FileNotFoundError (resume without a file),
     SessionError (resume with a different protocol), ValueError (bad on_failure).
-    KeyboardInterrupt is caught: the run stops cleanly and the summary says ``stopped``.
+    KeyboardInterrupt (Ctrl-C) and SIGTERM are caught: the run stops cleanly and the summary says ``stopped``.
     """
     if on_failure not in ("continue", "stop"):
         raise ValueError(f"on_failure must be 'continue' or 'stop', got {on_failure!r}")
     out_path = Path(out_path)
-    if isinstance(protocol, ScriptProtocol):
-        return _run_script(protocol, out_path, rig=rig, resume=resume, overwrite=overwrite)
+    with _Interrupts() as interrupts:
+        if isinstance(protocol, ScriptProtocol):
+            return _run_script(protocol, out_path, rig=rig, resume=resume, overwrite=overwrite)
+        rig.apply_settle(protocol.settle)
+        rig.textures = protocol.texture_set
+        if resume:
+            writer = SessionWriter.open(out_path, protocol_source=protocol.source)
+        else:
+            writer = SessionWriter.create(
+                out_path, plan=protocol.plan(), layout=rig.layout, textures=protocol.texture_set,
+                protocol_source=protocol.source, protocol_name=protocol.name,
+                protocol_format="toml", rig_config=rig.describe(), kind="recorded",
+                calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
+                overwrite=overwrite,
+            )
+        run = _Run(protocol, writer, out_path, rig, interrupts=interrupts, progress=progress, stop_event=stop_event,
+                   on_trial=on_trial, prompt=prompt, on_failure=on_failure)
+        return run.run(pause_event)
 
-    rig.apply_settle(protocol.settle)
-    rig.textures = protocol.texture_set
-    if resume:
-        writer = SessionWriter.open(out_path, protocol_source=protocol.source)
-    else:
-        writer = SessionWriter.create(
-            out_path, plan=protocol.plan(), layout=rig.layout, textures=protocol.texture_set,
-            protocol_source=protocol.source, protocol_name=protocol.name,
-            protocol_format="toml", rig_config=rig.describe(), kind="recorded",
-            calibration=session_calibration_block(rig.host_config, rig.layout.n_channels), overwrite=overwrite,
-        )
-    plan = [PlannedTrial.from_row(r) for r in writer.plan]
-    todo = [p for p, st in zip(plan, writer.plan["status"]) if st != TrialStatus.COMPLETE]
-    summary = RunSummary(path=out_path, planned=len(plan))
-    total = len(todo)
-    t0 = time.monotonic()
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        done_before = len(plan) - total
-        bar = tqdm(total=len(plan), initial=done_before, unit="trial", desc=protocol.name, dynamic_ncols=True)
-    durations: list[float] = []
-    try:
-        for index, planned in enumerate(todo):
-            if stop_event is not None and stop_event.is_set():
-                summary.stopped = True
-                break
-            _wait_while_paused(rig, pause_event, stop_event, on_trial, index, total, t0)
-            if stop_event is not None and stop_event.is_set():
-                summary.stopped = True
-                break
-            eta = (sum(durations) / len(durations)) * (total - index) if durations else math.nan
-            t_trial = time.monotonic()
-            try:
-                if rig.texture != planned.texture:
-                    _emit(on_trial, TrialEvent("texture", planned, index, total, elapsed_s=t_trial - t0, eta_s=eta))
-                    rig.mount_texture(planned.texture, prompt=prompt)
-                _emit(on_trial, TrialEvent("start", planned, index, total, elapsed_s=t_trial - t0, eta_s=eta))
-                if bar is not None:
-                    bar.set_postfix_str(f"{planned.texture} {planned.profile if planned.is_ramp else ''}"
-                                        f"{planned.speed_mm_s:g} mm/s {planned.force_g:g} g", refresh=True)
-                data = rig.record_trial(planned, stop_event=stop_event)
-            except Exception as exc:  # noqa: BLE001 - a failed trial is recorded as failed, the run goes on
-                if isinstance(exc, TrialAborted):
+class _Run:
+    """One run of a TOML protocol's plan (:func:`run_protocol`): the trial loop, retries, link watch, writes."""
+
+    def __init__(self, protocol: Protocol, writer: SessionWriter, out_path: Path, rig: Rig, *, interrupts: _Interrupts,
+                 progress: bool, stop_event, on_trial, prompt, on_failure: str):
+        self.protocol, self.writer, self.rig, self.interrupts = protocol, writer, rig, interrupts
+        self.progress, self.stop_event, self.on_trial, self.prompt = progress, stop_event, on_trial, prompt
+        self.on_failure = on_failure
+        self.plan = [PlannedTrial.from_row(r) for r in writer.plan]
+        self.todo = [p for p, st in zip(self.plan, writer.plan["status"]) if st != TrialStatus.COMPLETE]
+        self.summary = RunSummary(path=out_path, planned=len(self.plan))
+        self.total = len(self.todo)
+        self.t0 = time.monotonic()
+        self.bar = None
+        self.durations: list[float] = []
+        self.link_failures = 0  # attempts in a row that failed and left a link down
+        self.link_down_since: float | None = None
+
+    def _stopping(self) -> bool:
+        return self.stop_event is not None and self.stop_event.is_set()
+
+    def _elapsed(self) -> float:
+        return time.monotonic() - self.t0
+
+    def _eta(self, left: int) -> float:
+        return (sum(self.durations) / len(self.durations)) * left if self.durations else math.nan
+
+    def _report(self, message: str) -> None:
+        if self.bar is not None:
+            self.bar.write(message)
+        else:
+            log.warning("%s", message)
+
+    def _event(self, kind: str, planned, index: int, **kw) -> None:
+        _emit(self.on_trial, TrialEvent(kind, planned, index, self.total, elapsed_s=self._elapsed(), **kw))
+
+    def run(self, pause_event) -> RunSummary:
+        summary = self.summary
+        if self.progress:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=len(self.plan), initial=len(self.plan) - self.total, unit="trial",
+                            desc=self.protocol.name, dynamic_ncols=True)
+        try:
+            for index, planned in enumerate(self.todo):
+                if self._stopping():
                     summary.stopped = True
                     break
-                reason = f"trial {planned.trial_id} ({planned.texture}, {planned.speed_mm_s:g} mm/s, " \
-                         f"{planned.force_g:g} g): {type(exc).__name__}: {exc}"
-                writer.mark_failed(planned.trial_id, f"{type(exc).__name__}: {exc}")
+                _wait_while_paused(self.rig, pause_event, self.stop_event, self.on_trial, index, self.total,
+                                   self.t0)
+                if self._stopping():
+                    summary.stopped = True
+                    break
+                go_on = self._trial(index, planned)
+                self.interrupts.raise_pending()
+                if not go_on:
+                    break
+        except KeyboardInterrupt:
+            summary.stopped = True
+        finally:
+            self.rig.safe_stop()
+            if self.bar is not None:
+                self.bar.close()
+            summary.complete = len(self.writer.completed_ids())
+            self.writer.close()
+        summary.elapsed_s = self._elapsed()
+        return summary
+
+    def _trial(self, index: int, planned: PlannedTrial) -> bool:
+        """Record one trial, with its retries; False when the run must stop."""
+        rig, summary = self.rig, self.summary
+        where = (f"trial {planned.trial_id} ({planned.texture}, {planned.speed_mm_s:g} mm/s, "
+                 f"{planned.force_g:g} g)")
+        attempt = 0
+        t_trial = time.monotonic()
+        while True:
+            attempt += 1
+            eta = self._eta(self.total - index)
+            try:
+                if rig.texture != planned.texture:
+                    self._event("texture", planned, index, eta_s=eta, attempt=attempt)
+                    rig.mount_texture(planned.texture, prompt=self.prompt)
+                self._event("start", planned, index, eta_s=eta, attempt=attempt)
+                if self.bar is not None:
+                    self.bar.set_postfix_str(f"{planned.texture} {planned.profile if planned.is_ramp else ''}"
+                                             f"{planned.speed_mm_s:g} mm/s {planned.force_g:g} g", refresh=True)
+                data = rig.record_trial(planned, stop_event=self.stop_event)
+                limit = self.protocol.max_dropped_frames
+                if data.dropped_frames > limit:
+                    raise LostFramesError(f"{data.dropped_frames} frames lost on the taxel link ({data.crc_errors} "
+                                          f"CRC errors), more than max_dropped_frames = {limit}")
+            except TrialAborted:
+                self.summary.stopped = True
+                return False
+            except Exception as exc:  # noqa: BLE001 - a failed attempt is retried or recorded as failed
+                error = f"{type(exc).__name__}: {exc}"
+                lost = self._after_failure()
+                if (attempt <= self.protocol.retries and not lost and not self._stopping()
+                        and not isinstance(exc, ValueError)):
+                    summary.retried += 1
+                    self._event("retry", planned, index, error=error, eta_s=eta, attempt=attempt)
+                    self._report(f"RETRY {where}, attempt {attempt} failed: {error}")
+                    continue
+                if attempt > 1:
+                    error += f" (after {attempt} attempts)"
+                reason = f"{where}: {error}"
+                self._write(f"marking trial {planned.trial_id} failed",
+                            lambda: self.writer.mark_failed(planned.trial_id, error), planned, index)
                 summary.failed += 1
                 summary.failures.append(reason)
-                _emit(on_trial, TrialEvent("failed", planned, index, total, error=reason,
-                                           elapsed_s=time.monotonic() - t0, eta_s=eta))
-                rig.recover()
-                if bar is not None:
-                    bar.write(f"FAILED {reason}")
-                if on_failure == "stop":
-                    break
-                continue
-            _write_trial(writer, planned.trial_id, data, rig, bar)
-            summary.recorded += 1
-            summary.samples += data.n_samples
-            summary.dropped_frames += data.dropped_frames
-            summary.crc_errors += data.crc_errors
-            durations.append(time.monotonic() - t_trial)
-            left = total - index - 1
-            eta = (sum(durations) / len(durations)) * left
-            _emit(on_trial, TrialEvent("complete", planned, index, total, data=data,
-                                       elapsed_s=time.monotonic() - t0, eta_s=eta))
-            if bar is not None:
-                bar.update(1)
-    except KeyboardInterrupt:
-        summary.stopped = True
-    finally:
-        rig.safe_stop()
-        if bar is not None:
-            bar.close()
-    summary.complete = len(writer.completed_ids())
-    summary.elapsed_s = time.monotonic() - t0
-    return summary
+                self._event("failed", planned, index, error=reason, eta_s=eta, attempt=attempt)
+                self._report(f"FAILED {reason}")
+                if lost:
+                    summary.stopped = True
+                    summary.link_lost = lost
+                    self._report(f"STOPPED: link lost: {lost}; every finished trial is in {self.summary.path}, "
+                                 "resume with --resume once the rig answers again")
+                    return False
+                return self.on_failure != "stop"
+            break
+        self.link_failures, self.link_down_since = 0, None
+        data.attrs["attempts"] = attempt
+        self._write(f"writing trial {planned.trial_id}", lambda: self.writer.write_trial(planned.trial_id, data),
+                    planned, index)
+        summary.recorded += 1
+        summary.samples += data.n_samples
+        summary.dropped_frames += data.dropped_frames
+        summary.crc_errors += data.crc_errors
+        if data.dropped_frames:
+            summary.lossy += 1
+            log.warning("%s kept with %d lost frames (max_dropped_frames = %d)", where, data.dropped_frames,
+                        self.protocol.max_dropped_frames)
+        self.durations.append(time.monotonic() - t_trial)
+        self._event("complete", planned, index, data=data, eta_s=self._eta(self.total - index - 1),
+                    attempt=attempt)
+        if self.bar is not None:
+            self.bar.update(1)
+        return True
 
+    def _after_failure(self) -> str:
+        """After a failed attempt: recover the rig; if a link stays down, wait (bounded) for it to come back.
 
-def _write_trial(writer: SessionWriter, trial_id: int, data: TrialData, rig: Rig, bar) -> None:
-    """Write a trial; if a reader holds the file, release the rig (so the controller's watchdog cannot trip while
-    the host waits) and keep trying for up to two minutes, the trial's data kept in memory meanwhile."""
-    from rigctl.storage.journal import FileBusy
+        Returns "" to go on, else why the run must end (the link is lost).
+        """
+        problem = self.rig.recover()
+        if problem is None:
+            self.link_failures, self.link_down_since = 0, None
+            return ""
+        now = time.monotonic()
+        self.link_failures += 1
+        if self.link_down_since is None:
+            self.link_down_since = now
+        if self.link_failures >= LINK_LOSS_ATTEMPTS:
+            return f"{problem}; {self.link_failures} attempts in a row failed with a link down"
+        deadline = self.link_down_since + LINK_LOSS_S
+        self._report(f"link down: {problem}; waiting up to {max(0.0, deadline - now):.0f} s for it to come back")
+        while not self._stopping():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return f"{problem}; down for {time.monotonic() - self.link_down_since:.0f} s"
+            time.sleep(min(LINK_POLL_S, left))
+            problem = self.rig.check_links() or ""
+            if not problem:
+                self._report(f"link back after {time.monotonic() - self.link_down_since:.1f} s")
+                return ""
+        return ""
 
-    wait_s = writer.wait_s
-    writer.wait_s = 0.5  # shorter than the controller's watchdog (the force loop is still engaged)
-    try:
-        writer.write_trial(trial_id, data)
-        return
-    except FileBusy as exc:
-        msg = f"{exc}; the rig is released while waiting for the session file"
-        if bar is not None:
-            bar.write(msg)
-        rig.recover()
-    finally:
-        writer.wait_s = wait_s
-    for attempt in range(12):
+    def _write(self, what: str, write: Callable[[], None], planned: PlannedTrial, index: int) -> None:
+        """Run a session-file write; while another process (a reader) holds the file, keep the trial in memory,
+        release the rig (so the controller's watchdog cannot trip) and keep trying, reporting, until it is written.
+        Ctrl-C/SIGTERM are held during the write (a second one stops at once)."""
+        from rigctl.storage.journal import FileBusy
+
+        writer = self.writer
+        wait_s = writer.wait_s
+        writer.wait_s = FIRST_WRITE_WAIT_S
+        t_busy: float | None = None
         try:
-            writer.write_trial(trial_id, data)
-            return
-        except FileBusy:
-            if attempt == 11:
-                raise
+            while True:
+                try:
+                    with self.interrupts.held():
+                        write()
+                    return
+                except FileBusy as exc:
+                    if t_busy is None:
+                        t_busy = time.monotonic()
+                        self.rig.recover()
+                        writer.wait_s = WRITE_RETRY_S
+                    msg = (f"{what}: {exc}; held for {time.monotonic() - t_busy:.0f} s, the rig is released and the "
+                           "trial kept in memory until the file is free")
+                    self._report(msg)
+                    self._event("waiting", planned, index, error=msg)
+        finally:
+            writer.wait_s = wait_s
 
 
 def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: bool, overwrite: bool) -> RunSummary:
@@ -287,6 +500,7 @@ def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: b
         summary.stopped = True
     finally:
         rig.safe_stop()
+        writer.close()
     from rigctl.storage.session import open_session
 
     with open_session(out_path) as s:

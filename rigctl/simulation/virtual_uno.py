@@ -52,7 +52,8 @@ class VirtualUno:
         The sensor streamed (channel count, rate, bits), announced in the banner; default the paper's 3x3x2 at
         1 kHz, 10 bits (the Uno firmware).
 
-    Fault injection (for tests): :meth:`inject_garbage`, :meth:`corrupt_frames`, :meth:`drop_frames`.
+    Fault injection (for tests): :meth:`inject_garbage`, :meth:`corrupt_frames`, :meth:`drop_frames`,
+    :meth:`drop_sync_frames`.
     """
 
     def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0, layout: SensorLayout | None = None):
@@ -76,6 +77,7 @@ class VirtualUno:
         self._corrupt_left = 0
         self._corrupt_bits = 1
         self._drop_left = 0
+        self._drop_sync_left = 0
         self.frames_sent = 0
         self.frames_dropped = 0
         #: samples handed to :meth:`tick` so far, and their count when the last START took effect: the frame with
@@ -106,6 +108,11 @@ class VirtualUno:
         """Do not send the next ``n`` frames (their sequence numbers are used up: the host sees a gap)."""
         with self._lock:
             self._drop_left += int(n)
+
+    def drop_sync_frames(self, n: int = 1) -> None:
+        """Do not send the next ``n`` frames flagged SYNC_IN (the drum's index pulse); a gap where each was."""
+        with self._lock:
+            self._drop_sync_left += int(n)
 
     # ------------------------------------------------------------------ unplug / replug
     def unplug(self) -> None:
@@ -183,6 +190,11 @@ class VirtualUno:
             keep[:k] = False
             self._drop_left -= k
             self.frames_dropped += k
+        if self._drop_sync_left:
+            idx = np.flatnonzero(keep & ((flags & wire.FrameFlag.SYNC_IN) != 0))[:self._drop_sync_left]
+            keep[idx] = False
+            self._drop_sync_left -= len(idx)
+            self.frames_dropped += len(idx)
         samples = np.asarray(samples)[keep]
         if not len(samples):
             return

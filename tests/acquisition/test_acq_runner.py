@@ -25,10 +25,10 @@ from rigctl.storage.session import open_session
 TRUE_COUNTS_PER_G = 380.0  # the simulated load cell differs from the controller's default scale (420 counts/g)
 
 
-def _proto(n_per=3, textures='"A", "B"', settle="settle_time_ms = 50", duration=0.3):
+def _proto(n_per=3, textures='"A", "B"', settle="settle_time_ms = 50", duration=0.3, extra=""):
     return parse_protocol(
         f'name = "t"\ntextures = [{textures}]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
-        f"trials_per_condition = {n_per}\nduration_s = {duration}\n[settle]\n{settle}\n"
+        f"trials_per_condition = {n_per}\nduration_s = {duration}\n{extra}\n[settle]\n{settle}\n"
     )
 
 
@@ -98,20 +98,30 @@ def test_failed_trials_are_marked_and_resumed(rig, tmp_path, monkeypatch):
     monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 0.5)
     out = tmp_path / "f.h5"
     failures = []
+    record = rig.record_trial
+
+    def record_and_replug(planned, **kw):
+        try:
+            return record(planned, **kw)
+        except Exception:
+            rig.backend.sim.replug_taxel()  # plugged back as the trial fails
+            raise
 
     def on_trial(ev):
         if ev.kind == "start" and ev.planned.trial_id == 1:
             rig.backend.sim.unplug_taxel()  # the Uno's USB cable is pulled during trial 1
         if ev.kind == "failed":
             failures.append(ev.error)
-            rig.backend.sim.replug_taxel()
 
-    summary = run_protocol(_proto(3, textures='"A"'), out, rig=rig, progress=False, on_trial=on_trial)
+    monkeypatch.setattr(rig, "record_trial", record_and_replug)
+    # no retries: the failed trial is marked failed and left for the resume
+    proto = _proto(3, textures='"A"', extra="retries = 0")
+    summary = run_protocol(proto, out, rig=rig, progress=False, on_trial=on_trial)
     assert summary.failed == 1 and summary.complete == 2 and not summary.stopped
     assert "CaptureError" in failures[0] and "trial 1" in failures[0]
     with open_session(out) as s:
         assert s.failed_ids() == [1] and "CaptureError" in s.trial_attrs(1)["error"]
-    summary = run_protocol(_proto(3, textures='"A"'), out, rig=rig, progress=False, resume=True)
+    summary = run_protocol(proto, out, rig=rig, progress=False, resume=True)
     assert summary.recorded == 1 and summary.complete == 3
     with open_session(out) as s:
         assert s.completed_ids() == [0, 1, 2] and s.trial(1).n_samples == 300
