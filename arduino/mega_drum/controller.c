@@ -310,10 +310,11 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         break;
     }
 
-    /* settle detection */
+    /* settle detection: FORCE_SETTLED is "force on target, drum at rest" (spec 2.4): after STOP_DRUM the drum
+     * may still be decelerating when the force has been on target for SETTLE_TIME_MS */
     if (force_engaged(c)) {
         if (c->on_target) {
-            if (c->state == RIGCTL_STATE_SEEKING_FORCE &&
+            if (c->state == RIGCTL_STATE_SEEKING_FORCE && c->drum_cmd_mm_s <= 0.0f && c->drum_actual_mm_s <= 0.0f &&
                 (uint32_t)(now_ms - c->on_target_since_ms) >= c->hreg[RIGCTL_HREG_SETTLE_TIME_MS]) {
                 c->state = RIGCTL_STATE_FORCE_SETTLED;
             }

@@ -144,6 +144,11 @@ class MegaController:
             return False  # a host that only monitors never trips it
         return time.monotonic() - self._last_request > h[HR.WATCHDOG_MS] / 1000.0
 
+    def _actuator_position_mm(self) -> float:
+        """Where the controller believes the actuator is, mm: its step count over ACTUATOR_STEPS_PER_MM (the
+        firmware knows no other position; the true one differs when that calibration is wrong)."""
+        return self.model.actuator_mm * _TRUE_ACTUATOR_STEPS_PER_MM / self.holding[HR.ACTUATOR_STEPS_PER_MM]
+
 
     def _read(self, func_code: int, address: int, count: int):
         with self._lock:
@@ -163,7 +168,7 @@ class MegaController:
     def _input_registers(self) -> list[int]:
         m = self.model
         raw = m.loadcell_raw & 0xFFFFFFFF
-        act_mm = m.actuator_mm * _TRUE_ACTUATOR_STEPS_PER_MM / self.holding[HR.ACTUATOR_STEPS_PER_MM]
+        act_mm = self._actuator_position_mm()
         regs = [0] * wire.N_INPUT
         regs[IR.FORCE_G] = _u16(max(-32768, min(32767, self._force_g)))
         regs[IR.SPEED_0P1MMS] = _u16(m.drum_speed_mm_s * 10)
@@ -332,11 +337,11 @@ class MegaController:
             f = self._force_g
             engaged = self.state in _ENGAGED
             # --- faults (the host watchdog: check_watchdog, in the Modbus server's loop)
-            if f > h[HR.FORCE_LIMIT_G] and self.state != DrumState.FAULT:
-                self._fault(Fault.FORCE_LIMIT)
+            if f > h[HR.FORCE_LIMIT_G] and not (self.state == DrumState.FAULT and Fault.FORCE_LIMIT in self.faults):
+                self._fault(Fault.FORCE_LIMIT)  # latches in any state, also beside another fault (spec 2.5)
             elif self._loadcell_silent_ms >= LOADCELL_TIMEOUT_MS and self.state != DrumState.FAULT:
                 self._fault(Fault.LOADCELL_TIMEOUT)
-            elif engaged and m.actuator_mm >= mech.actuator_travel_mm - 1e-3 and \
+            elif engaged and self._actuator_position_mm() >= mech.actuator_travel_mm - 1e-3 and \
                     f < h[HR.FORCE_SETPOINT_G] - h[HR.FORCE_TOLERANCE_G]:
                 self._fault(Fault.ACTUATOR_TRAVEL)
             engaged = self.state in _ENGAGED
