@@ -10,7 +10,9 @@
   hold a direction for a while and release what was held in order (:meth:`FaultProxy.stall`), cut the link (the
   host's port vanishes: its pty is closed and the path removed, as an unplugged USB device) and restore it
   (:meth:`FaultProxy.cut`, :meth:`FaultProxy.restore`);
-- at scheduled times: :meth:`FaultProxy.schedule` runs any of these in the proxy's thread after a delay;
+- at scheduled times or on traffic: :meth:`FaultProxy.schedule` runs any of these in the proxy's thread after a
+  delay, :meth:`FaultProxy.after_bytes` once so many more bytes have been received in a direction (e.g. "release
+  the held response once the host has sent its next request");
 
 and it counts exactly what it did (:meth:`FaultProxy.stats`: bytes received, forwarded, dropped, flipped,
 inserted, lost while cut, per direction; cuts and restores).
@@ -152,6 +154,7 @@ class FaultProxy:
         self._cuts = self._restores = 0
         self._cut = False
         self._timers: list = []  # heap of (due, n, fn, args)
+        self._triggers: list = []  # (direction, received count that fires it, fn, args)
         self._timer_ids = itertools.count()
         self._lock = threading.RLock()
         self._board_fd: int | None = None
@@ -282,6 +285,13 @@ class FaultProxy:
             self._restores += 1
         self._wake()
 
+    def release(self, direction: str | None = None) -> None:
+        """End a stall of ``direction`` (both if None) now: what was held goes out, in order."""
+        with self._lock:
+            for d in DIRECTIONS if direction is None else (_check_direction(direction),):
+                self._stall_until[d] = 0.0
+        self._wake()
+
     @property
     def is_cut(self) -> bool:
         return self._cut
@@ -292,6 +302,23 @@ class FaultProxy:
         with self._lock:
             heapq.heappush(self._timers, (time.monotonic() + float(after_s), next(self._timer_ids), action, args))
         self._wake()
+
+    def after_bytes(self, direction: str, n: int, action, *args) -> None:
+        """Run ``action(*args)`` in the proxy's thread once ``n`` more bytes have been received in ``direction``
+        (before those bytes are forwarded), e.g. ``proxy.after_bytes("to_board", 8, proxy.release)``."""
+        with self._lock:
+            d = _check_direction(direction)
+            self._triggers.append((d, self._counts[d].received + int(n), action, args))
+
+    def _fire_triggers(self) -> None:
+        with self._lock:
+            due = [t for t in self._triggers if self._counts[t[0]].received >= t[1]]
+            self._triggers = [t for t in self._triggers if t not in due]
+        for _, _, fn, args in due:
+            try:
+                fn(*args)
+            except Exception:  # a triggered action must not kill the proxy
+                log.exception("triggered fault %r failed", fn)
 
     # ------------------------------------------------------------------ counters
     def stats(self) -> ProxyStats:
@@ -471,6 +498,8 @@ class FaultProxy:
                         self._open_board()
                 except OSError:
                     pass
+            if self._triggers:
+                self._fire_triggers()
             wait = self._run_timers(time.monotonic())
             with self._lock:
                 wait = min(wait, self._release(time.monotonic()))
