@@ -338,6 +338,12 @@ class HilRig:
         last = self._wait_telemetry(first.t_s + window_s, timeout_s + window_s * 2)
         return (last.drum_steps - first.drum_steps) / ((last.cycle - first.cycle) / 16e6)
 
+    def next_telemetry(self, timeout_s: float = 5.0) -> Telemetry:
+        """The Mega harness's next report after the call (pins and spring now, not up to 50 ms ago).
+
+        Raises HilError if none comes within ``timeout_s``."""
+        return self._wait_telemetry(None, timeout_s)
+
     def _wait_telemetry(self, t_min: float | None, timeout_s: float) -> Telemetry:
         deadline = time.monotonic() + timeout_s
         with self._cond:

@@ -42,6 +42,8 @@ class Controller:
     port : the Modbus RTU port (115200 8N1, device id 1)
     place_mass : ``g -> None``, an external force of ``g`` g on the load cell (0 removes it)
     actuator_mm : ``() -> mm``, where the actuator physically is (the physics model, or the harness's step count)
+    load_g : ``() -> g``, the force physically on the load cell (the model's reading, or the harness's spring)
+    drum_travel_mm : ``() -> mm``, the drum's surface travel so far (the model, or the STEP pulses on the pin)
     power_up_holding, power_up_inputs : the 14 holding and 13 input registers read right after power-up, before any
         test wrote anything
     """
@@ -50,6 +52,8 @@ class Controller:
     port: str
     place_mass: Callable[[float], None]
     actuator_mm: Callable[[], float]
+    load_g: Callable[[], float]
+    drum_travel_mm: Callable[[], float]
     power_up_holding: list[int] = field(default_factory=list)
     power_up_inputs: list[int] = field(default_factory=list)
     rig: Any = None
@@ -83,7 +87,8 @@ def _start_sim():
 
     rig = SimulatedRig(seed=3).start()
     model = rig.model
-    return rig, Controller("sim", rig.drum_port, rig.place_mass, lambda: model.actuator_mm, rig=rig)
+    return rig, Controller("sim", rig.drum_port, rig.place_mass, actuator_mm=lambda: model.actuator_mm,
+                           load_g=lambda: model.force_g, drum_travel_mm=lambda: model.position_mm, rig=rig)
 
 
 def _start_hil():
@@ -96,11 +101,9 @@ def _start_hil():
             pytest.fail(str(exc))
         pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")
     rig = hil.HilRig(live=False, with_uno=False).start()
-
-    def actuator_mm() -> float:
-        return rig._wait_telemetry(None, 5.0).act_mm  # the next report: the harness's actuator step count
-
-    return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm, rig=rig)
+    return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm=lambda: rig.next_telemetry().act_mm,
+                           load_g=lambda: rig.next_telemetry().force_g,
+                           drum_travel_mm=lambda: rig.next_telemetry().drum_steps * rig.mm_per_step, rig=rig)
 
 
 @pytest.fixture(scope="module", params=["sim", pytest.param("hil", marks=pytest.mark.hil)])

@@ -227,6 +227,7 @@ def test_press_settles_and_a_new_setpoint_settles_again(drum, controller):
     assert abs(st.force_g - 400) <= tol and st.force_setpoint_active_g == 400
     assert (st.heartbeat - hb0) % 65536 * 10 >= settle_ms - 10  # on target for SETTLE_TIME_MS first
     assert controller.actuator_mm() > 0.5 and st.actuator_mm > 0.5
+    assert abs(controller.load_g() - 400) <= tol  # the force really on the load cell, not only the register
     drum.press()  # already engaged: nothing changes
     assert drum.read_status().state == S.FORCE_SETTLED
     drum.set_force(250)  # a new setpoint must settle again
@@ -404,18 +405,17 @@ def test_watchdog_a_silent_host_trips_it_and_the_fault_latches(drum, controller,
     """Spec 2.5: no request for WATCHDOG_MS while the drum turns or the force loop is engaged: the drum stops, the
     actuator backs off home, WATCHDOG latches, state FAULT; only CLEAR_FAULT leaves it."""
     wd_ms = 300
+    bring_to(drum, controller, S.RUNNING if engaged == "drum turning" else S.FORCE_SETTLED)
     drum.write_holding(HR.WATCHDOG_MS, wd_ms)
-    if engaged == "drum turning":
-        bring_to(drum, controller, S.RUNNING)
-    else:
-        bring_to(drum, controller, S.FORCE_SETTLED)
     silent(drum, 3 * wd_ms)
     st = drum.read_status()
     assert (st.state, st.faults) == (S.FAULT, Fault.WATCHDOG)
     assert st.speed_target_mm_s == 0 and st.force_setpoint_active_g == 0
     st = released(drum, controller)
     assert (st.state, st.faults) == (S.FAULT, Fault.WATCHDOG)
-    silent(drum, 2 * wd_ms)  # latched: still there, whatever the host does meanwhile
+    travel = controller.drum_travel_mm()
+    silent(drum, 2 * wd_ms)  # latched: still there, whatever the host does meanwhile; the drum really stands still
+    assert controller.drum_travel_mm() == pytest.approx(travel, abs=0.01)
     with refused():
         drum.run()
     drum.stop()  # accepted, and still FAULT
