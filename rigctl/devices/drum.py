@@ -292,7 +292,7 @@ class DrumClient:
             response = getattr(self._client, what)(device_id=self.device_id, **kwargs)
         except ModbusIOException:
             self.timeouts += 1
-            self._unsettled = True
+            self._unsettled = self._on_link  # an answer may still come (not from an in-process transport)
             return None
         frames = self._frames(self._rx) or [response]
         # on a settled link nothing but the answer to this request can arrive, and it arrives last
@@ -302,20 +302,24 @@ class DrumClient:
         if problem is None:
             return frames[-1]
         self._discard(frames[-1:], f"{problem}, in answer to function {expect.function_code}")
-        self._unsettled = True
+        self._unsettled = self._on_link
         return None
 
     def _discard(self, frames: list, why: str) -> None:
         self.stale_responses += len(frames)
         log.warning("drum controller on %s: discarded %d stale response(s): %s", self.port, len(frames), why)
 
+    @property
+    def _on_link(self) -> bool:
+        """Requests go over a serial link (pymodbus' RTU client), where an answer can come late."""
+        return isinstance(getattr(self._client, "framer", None), FramerRTU)
+
     def _frames(self, data: bytes) -> list:
         """The Modbus RTU responses (pymodbus PDUs) of this device in ``data``, in order; bytes that are not part of
         a valid frame are skipped. Empty for a transport without pymodbus' RTU framer."""
-        framer = getattr(self._client, "framer", None)
-        if not isinstance(framer, FramerRTU) or not data:
+        if not self._on_link or not data:
             return []
-        decoder = framer.decoder
+        decoder = self._client.framer.decoder
         out, p, n = [], 0, len(data)
         while p + FramerRTU.MIN_SIZE <= n:
             size = 0
