@@ -270,3 +270,59 @@ def test_status_of_a_wrong_register_count_is_a_clear_error():
     regs[wire.InputRegister.STATE] = 99
     with pytest.raises(DrumError, match="unknown state 99"):
         DrumStatus.from_registers(regs)
+
+
+# ------------------------------------------------------------------------------------------------------ the proxy
+def _read_all(host, board, n=None, idle_reads=3):
+    """Read from a pyserial port until ``n`` bytes came, or (n None) until ``idle_reads`` reads in a row are empty,
+    pushing the board's queued bytes into its pty meanwhile."""
+    out, empty = b"", 0
+    deadline = time.monotonic() + 20
+    while (len(out) < n) if n is not None else (empty < idle_reads or board.flush()):
+        assert time.monotonic() < deadline, f"only {len(out)} bytes arrived"
+        board.flush()
+        chunk = host.read(65536)
+        out += chunk
+        empty = 0 if chunk else empty + 1
+    return out
+
+
+def test_the_proxy_forwards_both_ways_and_counts_exactly_what_it_did(tmp_path):
+    import serial
+
+    from rigctl.simulation.pty import PtyEndpoint
+
+    board = PtyEndpoint(tmp_path / "board")
+    payload = np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes()
+    try:
+        with FaultProxy(board.path, tmp_path / "host", seed=3) as proxy, \
+                serial.Serial(proxy.path, 1_000_000, timeout=0.05) as host:
+            _wait(board.client_opened, what="the host's open to reach the board")  # the board's DTR reset
+            host.write(b"hello board")
+            got = b""
+            while len(got) < 11:
+                _wait(lambda: board.unread_from_client() > 0, what="the host's bytes")
+                got += board.read()
+            assert got == b"hello board"
+            # clean: the bytes arrive unchanged
+            board.write(payload[:20_000])
+            assert _read_all(host, board, 20_000) == payload[:20_000]
+            # mangled: what arrives is exactly what the counters say
+            proxy.set_rates(TO_HOST, FaultRates(flip=1e-3, drop=1e-3, insert=1e-3, garbage=1e-4, garbage_max=32))
+            board.write(payload[20_000:])
+            mangled = _read_all(host, board)
+            _wait(lambda: proxy.stats().to_host.received == len(payload) and not proxy.held(), what="everything")
+            mangled += _read_all(host, board)
+            c = proxy.stats().to_host
+            assert c.forwarded == 20_000 + len(mangled) == c.received - c.dropped + c.inserted
+            assert c.flipped > 0 and c.dropped > 0 and c.inserted > c.garbage_bursts > 0
+            assert len(mangled) != len(payload) - 20_000 or mangled != payload[20_000:]
+            to_board = proxy.stats().to_board
+            assert to_board.received == to_board.forwarded == 11
+            # cut: the host's port vanishes; restore: it is back under the same path
+            proxy.cut()
+            assert not (tmp_path / "host").exists() and proxy.stats().cuts == 1 and not proxy.stats().connected
+            proxy.restore()
+            assert (tmp_path / "host").exists() and proxy.stats().restores == 1
+    finally:
+        board.close()
