@@ -31,8 +31,10 @@ import asyncio
 import logging
 import threading
 
+from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
 from pymodbus.framer import FramerType
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusSerialServer
 
 from rigctl.devices import wire
@@ -46,6 +48,48 @@ log = logging.getLogger(__name__)
 
 #: period of the watchdog check in the Modbus server's loop, s
 WATCHDOG_CHECK_S = 0.01
+
+
+class _Refusal(ModbusPDU):
+    """A request refused with a Modbus exception before it reaches the register map (see :class:`_SpecDecoder`)."""
+
+    def __init__(self, function_code: int, exception_code: int):
+        super().__init__()
+        self.function_code = function_code
+        self.refusal = exception_code
+
+    def decode(self, data: bytes) -> None:  # pragma: no cover - built by _SpecDecoder, never decoded
+        pass
+
+    async def update_datastore(self, context) -> ModbusPDU:
+        return ExceptionResponse(self.function_code, self.refusal)
+
+
+#: the function codes of the spec (section 2): read holding, read input, write single, write multiple
+_FUNCTIONS = (3, 4, 6, 16)
+
+
+class _SpecDecoder(DecodePDU):
+    """pymodbus' request decoder held to the spec, as the firmware's ``modbus_slave.c``: a function pymodbus knows
+    but the spec does not (07 read exception status, 43 device identification...) gets exception 01 instead of
+    pymodbus' own answer; a request whose length does not fit its function (a function-16 byte count that does not
+    match its register count, a read of 0 or more than 125 registers) gets exception 03. pymodbus' decoder raised
+    on the function-16 case and kept the frame in its receive buffer: the server answered nothing ever after."""
+
+    def decode(self, frame: bytes) -> ModbusPDU | None:
+        fc, body = frame[0], frame[1:]
+        if fc not in _FUNCTIONS:
+            return _Refusal(fc, ExcCodes.ILLEGAL_FUNCTION)
+        count = int.from_bytes(body[2:4], "big") if len(body) >= 4 else 0
+        if fc in (3, 4):
+            bad = len(body) != 4 or not 1 <= count <= 125
+        elif fc == 6:
+            bad = len(body) != 4
+        else:
+            bad = len(body) < 5 or not 1 <= count <= 123 or body[4] != 2 * count or len(body) != 5 + body[4]
+        if bad:
+            return _Refusal(fc, ExcCodes.ILLEGAL_VALUE)
+        return super().decode(frame)
 
 
 class _MegaContext(ModbusBaseDeviceContext):
@@ -117,7 +161,9 @@ class VirtualMega(MegaController):
                         ModbusServerContext(devices={wire.DRUM_DEVICE_ID: _MegaContext(self)}, single=False),
                         framer=FramerType.RTU, port=self.bridge.board_path, baudrate=wire.DRUM_BAUD, bytesize=8,
                         parity="N", stopbits=1, ignore_missing_devices=True, trace_pdu=self._trace_pdu,
+                        broadcast_enable=True,  # device id 0: writes executed, no reply (as the firmware)
                     )
+                    self._server.decoder = _SpecDecoder(True)  # before serving: each connection's framer takes it
                     await self._server.serve_forever(background=True)
                 except BaseException as exc:  # reported to start()
                     errors.append(exc)

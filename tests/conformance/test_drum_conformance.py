@@ -15,6 +15,7 @@ import time
 from contextlib import contextmanager
 
 import pytest
+import serial
 
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient, DrumStatus
@@ -505,3 +506,74 @@ def test_actuator_travel_faults_at_the_end_of_travel(drum, controller):
     assert (st.state, st.faults) == (S.FAULT, Fault.ACTUATOR_TRAVEL)
     drum.clear_fault()
     assert drum.read_status().state == S.IDLE
+
+
+# ------------------------------------------------------------------------------------------------ raw frames
+def _frame(*pdu: int) -> bytes:
+    return bytes(pdu) + wire.crc16(bytes(pdu)).to_bytes(2, "little")
+
+
+@contextmanager
+def raw_port(drum: DrumClient):
+    """The controller's port as plain bytes (the DrumClient's own connection closed meanwhile, then reopened)."""
+    drum.close()
+    try:
+        with serial.Serial(drum.port, wire.DRUM_BAUD, timeout=0.05) as port:
+            yield port
+    finally:
+        drum.open()
+
+
+def _transact(port, request: bytes, expect: int = 0) -> bytes:
+    """Send ``request``; the reply (``expect`` bytes, 1 s at most), or whatever came within 0.3 s (``expect=0``)."""
+    port.reset_input_buffer()
+    port.write(request)
+    out = b""
+    deadline = time.monotonic() + (1.0 if expect else 0.3)
+    while time.monotonic() < deadline and (not expect or len(out) < expect):
+        out += port.read(max(1, port.in_waiting))
+    return out
+
+
+def test_bad_crc_and_other_devices_get_no_reply(drum):
+    with raw_port(drum) as port:
+        good = _frame(1, 3, 0, int(HR.FORCE_TOLERANCE_G), 0, 1)
+        assert _transact(port, good, 7) == _frame(1, 3, 2, 0, DEFAULT[HR.FORCE_TOLERANCE_G])
+        assert _transact(port, good[:-1] + bytes([good[-1] ^ 0xFF])) == b""
+        assert _transact(port, _frame(7, 3, 0, int(HR.FORCE_TOLERANCE_G), 0, 1)) == b""
+        assert _transact(port, _frame(7, 6, 0, int(HR.SPEED_SETPOINT_0P1MMS), 0, 5)) == b""
+        assert _transact(port, good, 7) == _frame(1, 3, 2, 0, DEFAULT[HR.FORCE_TOLERANCE_G])
+    assert drum.read_holding(HR.SPEED_SETPOINT_0P1MMS) == 0  # the other device's write was not applied
+
+
+def test_broadcast_writes_are_applied_without_a_reply(drum):
+    """Device id 0 (Modbus broadcast): a write is executed and never answered (docs/firmware.md)."""
+    with raw_port(drum) as port:
+        assert _transact(port, _frame(0, 6, 0, int(HR.SPEED_SETPOINT_0P1MMS), 0, 5)) == b""
+    assert drum.read_holding(HR.SPEED_SETPOINT_0P1MMS) == 5
+
+
+def test_functions_outside_the_spec_are_illegal_function(drum):
+    """Spec 2: function codes 03, 04, 06, 16; any other gets exception 01 (illegal function)."""
+    with raw_port(drum) as port:
+        # read coils, write single coil, read exception status, read device identification
+        for pdu in ((1, 0, 0, 0, 8), (5, 0, 0, 0xFF, 0), (7,), (0x2B, 0x0E, 0x01, 0x00)):
+            reply = _transact(port, _frame(1, *pdu), 5)
+            assert reply == _frame(1, pdu[0] | 0x80, ILLEGAL_FUNCTION), (pdu, reply.hex())
+
+
+def test_a_malformed_request_is_refused_and_the_controller_answers_on(drum):
+    """Requests whose length does not fit their function (valid CRC): a function-16 byte count that does not match
+    its register count, a read of 0 or of more than 125 registers, get exception 03 (docs/firmware.md), change
+    nothing, and the controller goes on answering."""
+    with raw_port(drum) as port:
+        before = _transact(port, _frame(1, 3, 0, 0, 0, 2), 9)
+        for pdu in ((16, 0, 0, 0, 2, 3, 0, 1, 0), (4, 0, 0, 0, 0), (3, 0, 0, 0, 126)):
+            reply = _transact(port, _frame(1, *pdu), 5)
+            assert reply == _frame(1, pdu[0] | 0x80, ILLEGAL_VALUE), (pdu, reply.hex())
+        after = b""
+        for _attempt in range(3):  # a master retries
+            after = _transact(port, _frame(1, 3, 0, 0, 0, 2), 9)
+            if after:
+                break
+        assert after == before != b""
