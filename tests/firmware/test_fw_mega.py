@@ -114,30 +114,13 @@ def _transact(ser: serial.Serial, req: bytes, expect: int = 5, timeout_s: float 
 
 
 def test_malformed_requests_get_exceptions_never_a_hang(hil_rig):
+    """What only the firmware can do (it frames requests by t3.5 silence, the virtual Mega's pymodbus server by
+    length): a truncated request with a valid CRC gets exception 03, and line noise is survived. Functions, CRC,
+    other devices, broadcast and length errors of whole frames: tests/conformance, for both controllers."""
     with serial.Serial(hil_rig.drum_port, 115200, timeout=0.2) as ser:
         before = _transact(ser, _frame(1, 3, 0, 0, 0, 2), expect=9)
         assert len(before) == 9 and before[:3] == bytes([1, 3, 4])
-        cases = [
-            (_frame(1, 0x07), 0x87, 1),                            # unknown function
-            (_frame(1, 0x2B, 0x0E, 0x01, 0x00), 0xAB, 1),          # unsupported function
-            (_frame(1, 3, 0, 99, 0, 1), 0x83, 2),                  # register outside the table
-            (_frame(1, 3, 0, 10, 0, 10), 0x83, 2),                 # range running off the table
-            (_frame(1, 4, 0, 0, 0, 0), 0x84, 3),                   # zero registers
-            (_frame(1, 3, 0, 0, 0), 0x83, 3),                      # truncated request, valid CRC
-            (_frame(1, 6, 0, 2, 0, 99), 0x86, 3),                  # unknown command
-            (_frame(1, 16, 0, 0, 0, 2, 3, 0, 1, 0), 0x90, 3),      # byte count does not match
-            (_frame(1, 16, 0, 0, 0, 2, 4, 0, 1, 0x07, 0xD1), 0x90, 3),  # second value out of range
-        ]
-        for req, fc, code in cases:
-            resp = _transact(ser, req)
-            assert resp == _frame(1, fc, code), (req.hex(), resp.hex())
-        # nothing changed by the refused multi-register write
-        assert _transact(ser, _frame(1, 3, 0, 0, 0, 2), expect=9) == before
-        # bad CRC, other device, line noise: no reply; the next valid request is answered at once
-        bad = bytearray(_frame(1, 3, 0, 0, 0, 1))
-        bad[-1] ^= 0xFF
-        assert _transact(ser, bytes(bad), expect=0) == b""
-        assert _transact(ser, _frame(7, 3, 0, 0, 0, 1), expect=0) == b""
+        assert _transact(ser, _frame(1, 3, 0, 0, 0)) == _frame(1, 0x83, 3)  # truncated request, valid CRC
         assert _transact(ser, bytes(range(0, 250, 3)), expect=0) == b""
         # the device recovers: the next valid request is answered (a second try is allowed, as a master would
         # retry: on a loaded host the simulated line may still be busy with the noise when it is sent, and Modbus
@@ -147,6 +130,7 @@ def test_malformed_requests_get_exceptions_never_a_hang(hil_rig):
             if resp:
                 break
         assert resp == _frame(1, 4, 2, 1, 0)
+        assert _transact(ser, _frame(1, 3, 0, 0, 0, 2), expect=9) == before
 
 
 def test_modbus_round_trip_time(hil_rig):
