@@ -359,8 +359,8 @@ REFUSED = {
 
 @pytest.mark.parametrize("state", list(REFUSED), ids=[s.name for s in REFUSED])
 def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller, state):
-    """In every state: the commands not allowed there are refused with exception 03 and change nothing; STOP is
-    always accepted: the drum comes to rest, the actuator backs off home, the state becomes IDLE (a latched FAULT
+    """In every state: the commands not allowed there are refused with exception 03 and change nothing (the
+    always-allowed ones are accepted and change nothing either); STOP is always accepted: the drum comes to rest, the actuator backs off home, the state becomes IDLE (a latched FAULT
     stays FAULT until CLEAR_FAULT)."""
     bring_to(drum, controller, state)
     regs = holding(drum)
@@ -369,6 +369,11 @@ def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller
     for cmd in REFUSED[state]:
         with refused():
             drum.command(cmd)
+        st = drum.read_status()
+        assert st.state in unchanged, f"{cmd.name} changed {state.name} to {st.state.name}"
+    # accepted in every state, changing nothing: NONE, SAVE_CALIBRATION, CLEAR_FAULT with no fault latched
+    for cmd in [Command.NONE, Command.SAVE_CALIBRATION] + ([Command.CLEAR_FAULT] if state != S.FAULT else []):
+        drum.command(cmd)
         st = drum.read_status()
         assert st.state in unchanged, f"{cmd.name} changed {state.name} to {st.state.name}"
     assert holding(drum) == regs
