@@ -63,9 +63,11 @@ INDEX_MARGIN_FRAMES = 150
 #: a lost index frame is placed in a sequence gap of at most this many frames (the trial then starts at most this
 #: many frames after the index mark) ...
 INDEX_GAP_MAX_FRAMES = 5
-#: ... lying within this time of the index pulse predicted from the drum angle, s (status-read latency, the frames'
-#: receive-time jitter; a whole revolution is seconds)
+#: ... lying within this time of the index pulse predicted from the drum angle, s, or this fraction of a revolution if
+#: longer (status-read latency, the frames' receive-time jitter, a simulator starved on a loaded host: mostly a few
+#: ms, up to ~0.4 s seen; a revolution is 2.1-7.9 s at 150-40 mm/s)
 INDEX_PREDICTION_TOLERANCE_S = 0.25
+INDEX_PREDICTION_TOLERANCE_REVS = 0.1
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0
 
@@ -377,7 +379,9 @@ class Rig:
             self.drum.read_status()
         except DrumError as exc:
             return f"the drum controller does not answer ({exc})"
-        silent = restart and self.last_capture_frames == 0  # restart at once, no need to wait and see
+        # a connected stream whose last capture got nothing is restarted at once; a disconnected one is waited for
+        # (its client reopens the port and restarts streaming when the port comes back)
+        silent = restart and self.last_capture_frames == 0 and self.stream.stats.connected
         if not silent and self._frames_arrive(frames0, timeout_s):
             self.last_capture_frames = None
             return None
@@ -558,6 +562,7 @@ class Rig:
         align = not planned.is_ramp
         n_capture = n
         t_index = math.nan  # when the index pulse is predicted, on the clock of the frames' host times
+        tolerance_s = INDEX_PREDICTION_TOLERANCE_S
         if align:
             # predict the index pulse from the drum angle; capture up to it + the trial + a margin
             rev_s = DRUM_CIRCUMFERENCE_MM / planned.speed_mm_s
@@ -565,6 +570,7 @@ class Rig:
             t_read = clock.now()
             to_index_s = (360.0 - float(st.angle_deg)) % 360.0 / 360.0 * rev_s
             t_index = t_read + to_index_s
+            tolerance_s = max(tolerance_s, INDEX_PREDICTION_TOLERANCE_REVS * rev_s)
             n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * rate)) + INDEX_MARGIN_FRAMES
             n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate)))
             deadline += INDEX_TIMEOUT_REVS * rev_s
@@ -599,7 +605,7 @@ class Rig:
         k = lost = 0
         if align:
             try:
-                k, lost = locate_index(cap, n, t_index)
+                k, lost = locate_index(cap, n, t_index, tolerance_s=tolerance_s)
             except CaptureError as exc:
                 raise CaptureError(f"trial {planned.trial_id}: {exc} ({len(cap) / rate:.1f} s at "
                                    f"{planned.speed_mm_s:g} mm/s)") from None
@@ -614,7 +620,8 @@ class Rig:
         return data
 
 
-def locate_index(cap, n: int, t_index: float) -> tuple[int, int]:
+def locate_index(cap, n: int, t_index: float, *,
+                 tolerance_s: float = INDEX_PREDICTION_TOLERANCE_S) -> tuple[int, int]:
     """Where a constant-speed trial starts in its capture: at the drum's index mark.
 
     Parameters
@@ -622,6 +629,7 @@ def locate_index(cap, n: int, t_index: float) -> tuple[int, int]:
     cap : the capture (``seq``, ``flags``, ``host_time_s`` (s), ``len(cap)`` frames).
     n : frames the trial keeps from its start.
     t_index : when the drum angle predicts the index pulse, s, on the clock of ``cap.host_time_s`` (NaN: unknown).
+    tolerance_s : how far from ``t_index`` a gap may lie to hold the lost index frame, s.
 
     Returns
     -------
@@ -629,7 +637,7 @@ def locate_index(cap, n: int, t_index: float) -> tuple[int, int]:
         ``k``: the trial's first frame in the capture. ``lost`` = 0: frame ``k`` is the first frame flagged
         ``SYNC_IN`` with ``n`` frames after it. Otherwise the index frame was lost on the link: the index is placed
         in the sequence gap of ``lost`` <= :data:`INDEX_GAP_MAX_FRAMES` frames nearest to ``t_index`` (within
-        :data:`INDEX_PREDICTION_TOLERANCE_S`, before any later ``SYNC_IN`` frame, with ``n`` frames after it), and
+        ``tolerance_s``, before any later ``SYNC_IN`` frame, with ``n`` frames after it), and
         ``k`` is the first frame after that gap: the trial starts at most ``lost`` frames after the index mark
         (exactly 1 frame after it when the index frame alone was lost) and loses no frame of its own. A restart of
         the stream (``STREAMING_START``) is not such a gap.
@@ -654,7 +662,7 @@ def locate_index(cap, n: int, t_index: float) -> tuple[int, int]:
         dist = np.maximum(0.0, np.maximum(before_t - t_index, t_index - after_t))
         ok = ((gap > 0) & (gap <= INDEX_GAP_MAX_FRAMES) & (n_cap - after >= n)
               & ((cap.flags[1:] & wire.FrameFlag.STREAMING_START) == 0)
-              & (dist <= INDEX_PREDICTION_TOLERANCE_S))
+              & (dist <= tolerance_s))
         if sync.size:
             ok &= after <= sync[0]
         if ok.any():

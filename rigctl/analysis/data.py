@@ -13,6 +13,7 @@ A *session* file (raw taxel readings, docs/session-format.md) is not an encoded 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,6 +21,8 @@ import numpy as np
 
 from rigctl.core import SensorLayout, TextureSet, TextureSetError, texture_set_from_labels
 from rigctl.storage import encoded as _encoded
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "VARIANTS",
@@ -303,6 +306,14 @@ def load_features(path, variants=None) -> FeatureSet:
         attrs["n_trains"] = {v: int(ef.n_trains(v)) for v in names}  # spike trains per trial (remove_baseline)
         layout = ef.layout
         textures = ef.textures
+    lossy = attrs.get("lossy_trials")
+    if isinstance(lossy, str):  # JSON text
+        import json
+
+        lossy = json.loads(lossy)
+    if lossy:
+        log.warning("%s: %d trials were recorded with lost frames (%s in all; ids in attrs['lossy_trials'])", path,
+                    len(lossy), attrs.get("lost_frames", "?"))
     try:  # every column of rigctl.storage.encoded.TRIAL_COLUMNS is there (NaN speed / force when unknown)
         return FeatureSet(
             feats,

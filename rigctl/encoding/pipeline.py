@@ -459,6 +459,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         rng_ = TaxelRange()
         fit_arrays, fit_idx, n_samples = [], [], np.zeros(len(ids), dtype=np.int64)
         has_trace = np.zeros(len(ids), dtype=bool)
+        lossy: dict[int, int] = {}  # trial id -> frames it lost on the taxel link (kept within the protocol's limit)
         for i, tid in enumerate(tqdm(ids, desc="range pass", unit="trial", disable=not progress)):
             tr = s.trial(tid)
             raw = np.asarray(tr.taxels)
@@ -467,11 +468,19 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                  f"{layout.n_channels} channels ({layout.describe()})")
             n_samples[i] = raw.shape[0]
             has_trace[i] = tr.speed_mm_s.size > 0
+            if tr.dropped_frames:
+                lossy[int(tid)] = int(tr.dropped_frames)
             x = conv.apply(raw)
             rng_.update(x)
             if i in keep:
                 fit_arrays.append(x)
                 fit_idx.append(i)
+    if lossy:  # failed trials are not complete, so never encoded; kept ones with holes are flagged
+        note = (f"{len(lossy)} of {len(ids)} trials were recorded with lost frames ({sum(lossy.values())} frames; "
+                f"trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials attribute")
+        log.warning("%s", note)
+        if progress:
+            print(note, flush=True)
     if np.any(n_samples == 0):
         raise ValueError("a complete trial has no samples: trials "
                          f"{_trial_list(np.asarray(ids)[n_samples == 0])}")
@@ -527,7 +536,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                "input_rate_hz": conv.input_rate_hz, "model_rate_hz": conv.model_rate_hz,
                                "resampled": conv.resampled, "resampling": conv.describe(),
                                "windows_note": windows_note, "skipped_variants": skipped,
-                               "source_session": str(session_path), "variants": list(variants)})
+                               "source_session": str(session_path), "variants": list(variants),
+                               "lossy_trials": sorted(lossy), "lost_frames": int(sum(lossy.values()))})
     try:
         writer.write_normalisation(rng_.minimum, rng_.maximum,
                                    source="whole dataset (per-taxel min/max over every encoded trial, of the model "

@@ -1,0 +1,350 @@
+"""The runner under faults: trials with holes are recorded again or marked failed (never kept as complete), a lost
+index frame costs only that frame, a silent taxel stream is restarted, a lost link ends the run in bounded time,
+SIGTERM stops cleanly (a trial being written is written first), a reader holding the file costs no trial.
+
+Most run on the in-process rig (rigctl.rigs.open_rig("inprocess")); the board-side faults (an index frame the Uno
+never sends, a board that stops streaming, an unplugged Uno) on the simulated rig on real ptys."""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+
+import h5py
+import numpy as np
+import pytest
+
+from rigctl.acquisition import rig as rig_module
+from rigctl.acquisition import runner as runner_module
+from rigctl.acquisition.protocol import parse_protocol
+from rigctl.acquisition.runner import run_protocol
+from rigctl.devices.wire import DrumState, FrameFlag
+from rigctl.rigs import open_rig
+from rigctl.storage.session import SessionWriter, open_session
+
+
+def _proto(n_per=3, extra="", speeds="120", duration=0.3):
+    return parse_protocol(
+        f'name = "faults"\ntextures = ["A"]\nspeeds_mm_s = [{speeds}]\nforces_g = [300]\n'
+        f"trials_per_condition = {n_per}\nduration_s = {duration}\n{extra}\n[settle]\nsettle_time_ms = 50\n")
+
+
+@pytest.fixture
+def rig(tmp_path):
+    with open_rig("inprocess", seed=7, host_config_path=tmp_path / "rig.json") as r:
+        yield r
+
+
+def _lose_frames(rig, monkeypatch, which):
+    """The frames ``which(capture_no, capture)`` names never reach the host (a lossy link): removed from the
+    trial's capture, their sequence numbers missing. Returns the captures' sequence numbers as received."""
+    end = rig.stream.end_capture
+    seen = []
+
+    def end_capture():
+        cap = end()
+        drop = np.asarray(which(len(seen), cap), dtype=int)
+        keep = np.ones(len(cap), bool)
+        keep[drop] = False
+        seen.append(cap.seq[keep])
+        return type(cap)(cap.samples[keep], cap.seq[keep], cap.flags[keep], cap.host_time_s[keep],
+                         dropped=cap.dropped + int((~keep).sum()), crc_errors=cap.crc_errors)
+
+    monkeypatch.setattr(rig.stream, "end_capture", end_capture)
+    return seen
+
+
+def _inside_trial(cap, first, count):
+    """``count`` frames from ``first`` frames after the capture's index frame (inside the trial's kept frames)."""
+    k = int(np.flatnonzero(cap.flags & FrameFlag.SYNC_IN)[0])
+    return np.arange(k + first, k + first + count)
+
+
+def _events(store):
+    def on_trial(ev):
+        store.append(ev)
+    return on_trial
+
+
+# ------------------------------------------------------------------------------------------------ trials with holes
+def test_a_trial_that_lost_frames_is_recorded_again(rig, tmp_path, monkeypatch):
+    # the second capture (trial 1's first attempt) loses 3 frames in the middle of the trial
+    _lose_frames(rig, monkeypatch, lambda i, cap: _inside_trial(cap, 100, 3) if i == 1 else [])
+    events = []
+    summary = run_protocol(_proto(3), tmp_path / "s.h5", rig=rig, progress=False, on_trial=_events(events))
+    assert summary.complete == 3 and summary.failed == 0 and summary.retried == 1 and summary.dropped_frames == 0
+    retry = [e for e in events if e.kind == "retry"]
+    assert len(retry) == 1 and retry[0].planned.trial_id == 1
+    assert "LostFramesError" in retry[0].error and "3 frames lost" in retry[0].error
+    with open_session(tmp_path / "s.h5") as s:
+        assert [s.trial(t).dropped_frames for t in range(3)] == [0, 0, 0]
+        assert [int(s.trial_attrs(t)["attempts"]) for t in range(3)] == [1, 2, 1]
+        assert np.all(np.diff(s.trial(1).seq.astype(int)) == 1)
+
+
+def test_a_trial_that_keeps_losing_frames_is_marked_failed_never_complete(rig, tmp_path, monkeypatch):
+    # every attempt of trial 1 (captures 1 and 2, retries = 1) loses a frame
+    _lose_frames(rig, monkeypatch, lambda i, cap: _inside_trial(cap, 50, 1) if i in (1, 2) else [])
+    proto = _proto(3, extra="retries = 1")
+    out = tmp_path / "s.h5"
+    summary = run_protocol(proto, out, rig=rig, progress=False)
+    assert summary.failed == 1 and summary.complete == 2 and summary.retried == 1 and not summary.stopped
+    assert "LostFramesError" in summary.failures[0] and "after 2 attempts" in summary.failures[0]
+    with h5py.File(out, "r") as f:
+        assert list(f["plan"]["status"]) == [1, 2, 1]
+        assert "taxels" not in f["trials/000001"] and "1 frames lost" in f["trials/000001"].attrs["error"]
+    monkeypatch.undo()  # a clean link again: the resume records it
+    summary = run_protocol(proto, out, rig=rig, progress=False, resume=True)
+    assert summary.recorded == 1 and summary.complete == 3
+    with open_session(out) as s:
+        assert s.trial(1).dropped_frames == 0 and s.trial(1).n_samples == 300
+
+
+def test_losses_within_the_protocols_limit_are_kept_counted_and_flagged_by_encode(rig, tmp_path, monkeypatch, caplog):
+    from rigctl.encoding.pipeline import encode_session
+    from rigctl.storage.encoded import open_encoded
+
+    _lose_frames(rig, monkeypatch, lambda i, cap: _inside_trial(cap, 100, 3) if i == 1 else [])
+    out = tmp_path / "s.h5"
+    summary = run_protocol(_proto(3, extra="max_dropped_frames = 5"), out, rig=rig, progress=False)
+    assert summary.complete == 3 and summary.retried == 0 and summary.lossy == 1 and summary.dropped_frames == 3
+    with open_session(out) as s:
+        assert [s.trial(t).dropped_frames for t in range(3)] == [0, 3, 0]
+    enc = tmp_path / "e.h5"
+    encode_session(out, enc, variants=["original"], store_spikes=(), progress=False)
+    with open_encoded(enc) as ef:
+        assert ef.attrs["lossy_trials"] == "[1]" and ef.attrs["lost_frames"] == 3
+    assert any("recorded with lost frames" in r.getMessage() for r in caplog.records)
+
+
+# ------------------------------------------------------------------------------------------------ the index frame
+def test_a_lost_index_frame_costs_that_frame(rig, tmp_path, monkeypatch):
+    lost_seq = []
+
+    def lose_index(i, cap):
+        if i != 1:
+            return []
+        k = np.flatnonzero(cap.flags & FrameFlag.SYNC_IN)[:1]
+        lost_seq.extend(cap.seq[k].tolist())
+        return k
+
+    _lose_frames(rig, monkeypatch, lose_index)
+    events = []
+    summary = run_protocol(_proto(3), tmp_path / "s.h5", rig=rig, progress=False, on_trial=_events(events))
+    assert summary.complete == 3 and summary.retried == 0 and summary.failed == 0
+    with open_session(tmp_path / "s.h5") as s:
+        t1 = s.trial(1)
+        assert s.trial_attrs(1)["index_frame_lost"] == 1 and s.trial_attrs(0)["index_frame_lost"] == 0
+        assert int(t1.seq[0]) == (lost_seq[0] + 1) & 0xFFFF  # the frame after the lost index frame
+        assert t1.dropped_frames == 0 and t1.n_samples == 300 and s.trial_attrs(1)["aligned_to_index"]
+
+
+def test_locate_index_uses_only_a_short_gap_near_the_prediction():
+    from rigctl.devices.taxel_stream import Capture
+
+    def cap(seq, sync=()):
+        seq = np.asarray(seq, np.uint16)
+        flags = np.zeros(len(seq), np.uint8)
+        flags[list(sync)] = FrameFlag.SYNC_IN
+        return Capture(np.zeros((len(seq), 18), np.uint16), seq, flags, np.arange(len(seq)) / 1000.0)
+
+    seq = np.r_[0:500, 501:1000]  # frame 500 lost; the frame after the gap is at position 500, t = 0.5 s
+    assert rig_module.locate_index(cap(seq, sync=[200]), 300, 0.5) == (200, 0)  # a received index wins
+    assert rig_module.locate_index(cap(seq), 300, 0.52) == (500, 1)
+    with pytest.raises(rig_module.CaptureError, match="no drum index pulse"):
+        rig_module.locate_index(cap(seq), 300, 0.9)  # predicted far from the gap
+    with pytest.raises(rig_module.CaptureError):
+        rig_module.locate_index(cap(seq), 600, 0.5)  # too few frames follow the gap
+    long_gap = np.r_[0:500, 520:1000]
+    with pytest.raises(rig_module.CaptureError):
+        rig_module.locate_index(cap(long_gap), 300, 0.5)  # 20 lost frames: where the index was is unknown
+
+
+# ------------------------------------------------------------------------------------------------ lost links
+def _cut_drum_link(rig, link):
+    """The Mega's cable is pulled: every Modbus request of the in-process drum client fails as on a vanished port
+    (EIO; ``link.undo()`` plugs it back)."""
+    def dead(*a, **kw):
+        raise OSError(errno.EIO, "Input/output error")
+
+    link.setattr(rig.drum._client, "_request", dead)
+
+
+@pytest.fixture
+def link():
+    mp = pytest.MonkeyPatch()
+    yield mp
+    mp.undo()
+
+
+def test_a_lost_drum_link_ends_the_run_after_a_bounded_wait_and_it_resumes(rig, tmp_path, monkeypatch, link):
+    monkeypatch.setattr(runner_module, "LINK_LOSS_S", 1.0)
+    monkeypatch.setattr(runner_module, "LINK_POLL_S", 0.05)
+    out = tmp_path / "s.h5"
+    proto = _proto(5)
+    events = []
+
+    def on_trial(ev):
+        events.append(ev)
+        if ev.kind == "complete" and ev.planned.trial_id == 1:
+            _cut_drum_link(rig, link)  # the Mega's cable is pulled for good
+
+    summary = run_protocol(proto, out, rig=rig, progress=False, on_trial=on_trial)
+    assert summary.stopped and "the drum controller does not answer" in summary.link_lost
+    assert summary.complete == 2 and summary.failed == 1 and summary.retried == 0
+    # one attempt on the dead link, not the remaining four trials with their retries
+    assert [e.planned.trial_id for e in events if e.kind == "start"] == [0, 1, 2]
+    assert "link lost" in summary.lines()[0]
+    with h5py.File(out, "r") as f:
+        assert list(f["plan"]["status"]) == [1, 1, 2, 0, 0]
+    link.undo()  # the cable is back
+    summary = run_protocol(proto, out, rig=rig, progress=False, resume=True)
+    assert summary.ok and summary.recorded == 3 and summary.complete == 5
+
+
+def test_a_flapping_link_ends_the_run_after_three_attempts_in_a_row(rig, tmp_path, monkeypatch, link):
+    monkeypatch.setattr(runner_module, "LINK_POLL_S", 0.05)
+    recover = rig.recover
+    starts = []
+
+    def recover_then_replug():
+        problem = recover()  # sees the link down ...
+        link.undo()  # ... which is back by the runner's next check
+        return problem
+
+    def on_trial(ev):
+        if ev.kind == "start" and ev.planned.trial_id == 1:
+            starts.append(ev.attempt)
+            _cut_drum_link(rig, link)  # and lost again as soon as the trial starts
+
+    monkeypatch.setattr(rig, "recover", recover_then_replug)
+    summary = run_protocol(_proto(3, extra="retries = 5"), tmp_path / "s.h5", rig=rig, progress=False,
+                           on_trial=on_trial)
+    assert starts == [1, 2, 3]
+    assert summary.stopped and "3 attempts in a row" in summary.link_lost
+    assert summary.complete == 1 and summary.failed == 1 and summary.retried == 2
+
+
+# ------------------------------------------------------------------------------------------------ exits
+def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_path):
+    calls = []
+
+    def previous(signum, frame):
+        calls.append(signum)
+
+    old = signal.signal(signal.SIGTERM, previous)
+    try:
+        def on_trial(ev):
+            if ev.kind == "start" and ev.planned.trial_id == 2:
+                os.kill(os.getpid(), signal.SIGTERM)  # e.g. systemctl stop, during trial 2
+
+        out = tmp_path / "s.h5"
+        summary = run_protocol(_proto(4), out, rig=rig, progress=False, on_trial=on_trial)
+        assert signal.getsignal(signal.SIGTERM) is previous
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert calls == [] and summary.stopped and summary.complete == 2 and not summary.link_lost
+    rig.drum.wait_state([DrumState.IDLE], timeout_s=15)  # STOP was sent: drum at rest, actuator backed off
+    with h5py.File(out, "r") as f:
+        assert list(f["plan"]["status"]) == [1, 1, 0, 0]
+    summary = run_protocol(_proto(4), out, rig=rig, progress=False, resume=True)
+    assert summary.ok and summary.recorded == 2
+
+
+def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path, monkeypatch):
+    write = SessionWriter.write_trial
+
+    def write_trial(self, trial_id, data):
+        if trial_id == 1:
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives while trial 1 is being written
+        return write(self, trial_id, data)
+
+    monkeypatch.setattr(SessionWriter, "write_trial", write_trial)
+    out = tmp_path / "s.h5"
+    summary = run_protocol(_proto(4), out, rig=rig, progress=False)
+    assert summary.stopped and summary.complete == 2 and summary.recorded == 2
+    with open_session(out) as s:
+        assert s.completed_ids() == [0, 1] and s.trial(1).n_samples == 300
+
+
+def test_a_reader_holding_the_file_for_long_costs_no_trial(rig, tmp_path, monkeypatch):
+    # each write attempt waits 0.05 s instead of 10 s: 30 attempts stand for 5 minutes of a reader holding the file
+    monkeypatch.setattr(runner_module, "FIRST_WRITE_WAIT_S", 0.05)
+    monkeypatch.setattr(runner_module, "WRITE_RETRY_S", 0.05)
+    out = tmp_path / "s.h5"
+    held = {}
+    waiting = []
+
+    def on_trial(ev):
+        if ev.kind == "complete" and ev.planned.trial_id == 0:
+            held["f"] = h5py.File(out, "r")  # a reader (plain h5py holds HDF5's file lock) before trial 1 is written
+        if ev.kind == "waiting":
+            waiting.append(ev.error)
+            if len(waiting) == 30:
+                held.pop("f").close()
+
+    summary = run_protocol(_proto(3), out, rig=rig, progress=False, on_trial=on_trial)
+    assert len(waiting) == 30 and "trial kept in memory" in waiting[0]
+    assert summary.complete == 3 and summary.failed == 0 and not summary.stopped
+    with open_session(out) as s:
+        assert [s.trial(t).n_samples for t in s.completed_ids()] == [300, 300, 300]
+
+
+# ------------------------------------------------------------------------------------------------ on the board
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    with open_rig("sim", seed=11, host_config_path=tmp_path_factory.mktemp("cfg") / "rig.json") as r:
+        yield r
+
+
+def test_an_index_frame_the_board_never_sent(sim, monkeypatch):
+    uno = sim.backend.sim.uno
+    begin = sim.stream.begin_capture
+
+    def begin_capture():
+        begin()
+        uno.drop_sync_frames(1)  # the index frame of this trial is lost on the link
+
+    monkeypatch.setattr(sim.stream, "begin_capture", begin_capture)
+    sim.mount_texture("A")
+    dropped = uno.frames_dropped
+    data = sim.record_trial(_proto(1).plan()[0])
+    assert uno.frames_dropped == dropped + 1
+    assert data.attrs["index_frame_lost"] == 1 and data.attrs["aligned_to_index"]
+    assert data.n_samples == 300 and data.dropped_frames == 0
+    assert not np.any(data.flags & FrameFlag.SYNC_IN)
+    sim.release()
+
+
+def test_recover_restarts_a_taxel_stream_that_went_silent(sim, tmp_path, monkeypatch):
+    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 0.5)
+    events = []
+
+    def on_trial(ev):
+        events.append(ev)
+        if ev.kind == "start" and ev.planned.trial_id == 1 and ev.attempt == 1:
+            sim.backend.sim.uno.streaming = False  # the board stops streaming; the host is not told
+
+    summary = run_protocol(_proto(2), tmp_path / "s.h5", rig=sim, progress=False, on_trial=on_trial)
+    retry = [e for e in events if e.kind == "retry"]
+    assert len(retry) == 1 and "CaptureError" in retry[0].error and "stalled" in retry[0].error
+    assert summary.complete == 2 and summary.failed == 0 and summary.retried == 1
+
+
+def test_an_unplugged_taxel_board_ends_the_run_after_a_bounded_wait(sim, tmp_path, monkeypatch):
+    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 0.5)
+    monkeypatch.setattr(runner_module, "LINK_LOSS_S", 2.0)
+    board = sim.backend.sim
+
+    def on_trial(ev):
+        if ev.kind == "start" and ev.planned.trial_id == 1:
+            board.unplug_taxel()  # the Uno's cable is pulled for good
+
+    try:
+        summary = run_protocol(_proto(4), tmp_path / "s.h5", rig=sim, progress=False, on_trial=on_trial)
+    finally:
+        board.replug_taxel()
+    assert summary.stopped and "no taxel frame" in summary.link_lost and "disconnected" in summary.link_lost
+    assert summary.complete == 1 and summary.failed == 1 and summary.retried == 0
+    assert sim.check_links(timeout_s=20.0) is None  # plugged back: the stream reconnects and delivers again
