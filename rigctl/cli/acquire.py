@@ -2,15 +2,86 @@
 
 from __future__ import annotations
 
+import contextlib
+import datetime as _dt
+import logging
+import re
 import signal
 import sys
 from pathlib import Path
+from typing import Any, Callable
 
 import click
+
+from rigctl.cli.outputs import UsageProblem, check_output
+
+#: --plates choices (see the option's help)
+PLATE_POLICIES = ("prompt", "auto", "skip")
 
 
 def _sigterm_as_interrupt(signum, frame):
     raise KeyboardInterrupt
+
+
+def plate_prompt(policy: str, *, hardware: bool, stdin_is_tty: bool,
+                 echo: Callable[[str], Any] | None = None) -> Callable[[str], Any] | None:
+    """The operator prompt ``prompt(message)`` of a ``--plates`` policy, handed to ``open_rig`` (and through it to
+    the hardware backend's plate mounter and :meth:`rigctl.acquisition.rig.Rig.mount_texture`).
+
+    - ``"prompt"``: None, i.e. the backend's terminal prompt (Enter confirms each plate change). On hardware without
+      a terminal on stdin nobody could answer (every trial would fail): refused here, before the rig moves.
+    - ``"auto"``: print the plate change (time-stamped, on stderr) and carry on without waiting.
+    - ``"skip"``: carry on without a word: the trials run on whatever plate is mounted.
+
+    On the simulated rigs the plates are mounted by the simulation and the policy changes nothing.
+
+    Raises
+    ------
+    UsageProblem (exit 2) for ``"prompt"`` on hardware when stdin is not a terminal.
+    """
+    if policy not in PLATE_POLICIES:
+        raise ValueError(f"plate policy must be one of {', '.join(PLATE_POLICIES)}, got {policy}")
+    if policy == "prompt":
+        if hardware and not stdin_is_tty:
+            raise UsageProblem("plate changes are confirmed on the terminal, but stdin is not a terminal: run it in "
+                               "a terminal, or pass --plates auto (announce each plate, do not wait) or --plates skip")
+        return None
+    if policy == "skip":
+        return lambda message: None
+    say = echo or (lambda text: click.echo(text, err=True))
+
+    def announce(message: str) -> None:
+        what = re.sub(r",? then confirm\.?$", ".", str(message).strip())  # nobody confirms: it does not wait
+        say(f"[{_dt.datetime.now():%H:%M:%S}] plate change (--plates auto, not waiting): {what}")
+
+    return announce
+
+
+#: loggers held back while the rig opens: the rig facade's, and pymodbus' (it logs each retry of a silent port)
+_HELD_LOGGERS = ("rigctl.acquisition.rig", "pymodbus.logging")
+
+
+@contextlib.contextmanager
+def _held_rig_warnings():
+    """Hold back the log records of :data:`_HELD_LOGGERS` while the rig opens (yields the list they go to).
+
+    A drum port that answers nothing fails the opening; pymodbus' retry messages and the three "STOP attempt
+    failed" warnings of the clean-up that follows would only repeat that error. The caller re-emits them when the
+    opening succeeds."""
+    loggers = [logging.getLogger(name) for name in _HELD_LOGGERS]
+    held: list[logging.LogRecord] = []
+
+    def hold(record: logging.LogRecord) -> bool:
+        held.append(record)
+        return False
+
+    for logger in loggers:
+        logger.addFilter(hold)
+    try:
+        yield held
+    finally:
+        for logger in loggers:
+            logger.removeFilter(hold)
 
 
 @click.command()
@@ -31,19 +102,29 @@ def _sigterm_as_interrupt(signum, frame):
               help="Seed of the simulated rig, and of a protocol's random trial order.")
 @click.option("--on-failure", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
               help="What to do after a failed trial (timeout, fault).")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Rig config JSON (calibration); default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json.")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Rig config JSON (calibration); default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json (used when "
+                   "it exists).")
+@click.option("--plates", type=click.Choice(PLATE_POLICIES), default="prompt", show_default=True,
+              help="Plate changes on hardware: prompt = ask on the terminal and wait for Enter (refused when stdin "
+                   "is not a terminal); auto = print 'plate change: mount texture plate X' with the time and carry "
+                   "on without waiting (a plate changer, or an operator following the printed schedule); skip = "
+                   "never ask: every trial runs on the plate already mounted and is labelled with the plan's texture "
+                   "(one-texture protocols, dry runs). The simulated rigs mount their plates themselves.")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure, config_path,
-            quiet):
+            plates, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
-    continue later with --resume. Exit status: 0 when every planned trial is complete, 1 otherwise.
+    continue later with --resume. Exit status: 0 when every planned trial is complete, 1 otherwise; 2 for a usage
+    error (refused before the rig moves).
     """
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rig import RigError
+    from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.acquisition.runner import run_protocol
+    from rigctl.devices.errors import DrumError, TaxelStreamError
     from rigctl.rigs import open_rig
     from rigctl.storage.session import SessionError
 
@@ -59,16 +140,31 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
         raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
+    if resume and not out.exists():
+        raise click.ClickException(f"{out} does not exist: nothing to resume")
+    check_output(out, overwrite=overwrite or resume, inputs=(protocol, replay, config_path),
+                 overwrite_hint="continue it with --resume, or pass --overwrite")
+    hardware = drum_port is not None
+    prompt = plate_prompt(plates, hardware=hardware, stdin_is_tty=sys.stdin.isatty())
+    try:  # the rig config is read again when the rig opens; a bad one is refused here, before anything starts
+        load_rig_config(config_path)
+    except CalibrationError as exc:
+        if config_path is not None:
+            raise click.BadParameter(str(exc), param_hint="--config") from None
+        raise click.ClickException(f"{exc} (fix it, or give another file with --config)") from None
     try:
         proto = load_protocol(protocol)
     except ProtocolError as exc:
         raise click.ClickException(str(exc)) from None
     if seed is not None and isinstance(proto, Protocol):
         proto = proto.with_seed(seed)
-    if out.exists() and not (resume or overwrite):
-        raise click.ClickException(f"{out} exists: continue it with --resume, or pass --overwrite")
-    if resume and not out.exists():
-        raise click.ClickException(f"{out} does not exist: nothing to resume")
+    if hardware and plates == "skip":
+        with contextlib.suppress(Exception):  # a note only; the runner reports a plan it cannot build
+            labels = sorted({str(t.texture) for t in proto.plan()})
+            if len(labels) > 1:
+                click.echo(f"note: --plates skip: the plan's {len(labels)} textures ({', '.join(labels[:8])}"
+                           f"{' ...' if len(labels) > 8 else ''}) are all recorded on the plate already mounted, "
+                           "each trial labelled with the plan's texture", err=True)
     if resume:
         from rigctl.storage.session import SessionWriter
 
@@ -79,12 +175,21 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    try:
-        kind = "hardware" if drum_port is not None else "replay" if replay is not None else "hil" if hil else "sim"
-        rig = open_rig(kind, drum_port=drum_port, taxel_port=taxel_port, source=replay,
-                       seed=0 if seed is None else seed, host_config_path=config_path)
-    except RigError as exc:
-        raise click.ClickException(str(exc)) from None
+    kind = "hardware" if hardware else "replay" if replay is not None else "hil" if hil else "sim"
+    with _held_rig_warnings() as held:
+        try:
+            rig = open_rig(kind, drum_port=drum_port, taxel_port=taxel_port, source=replay, prompt=prompt,
+                           seed=0 if seed is None else seed, host_config_path=config_path)
+        except (RigError, TaxelStreamError, OSError, ValueError) as exc:
+            raise click.ClickException(" ".join(str(exc).split())) from None
+        except DrumError as exc:  # the port opened but no drum controller answered there
+            stop = ("; STOP was not acknowledged either: if the drum may be moving, stop it by hand"
+                    if any("could not send STOP" in r.getMessage() for r in held) else "")
+            hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if hardware else ""
+            raise click.ClickException(f"cannot open the {kind} rig: {' '.join(str(exc).split())}{hint}{stop}") \
+                from None
+    for record in held:  # the opening succeeded: what it logged is news
+        logging.getLogger(record.name).handle(record)
     with rig:
         try:
             summary = run_protocol(proto, out, rig=rig, resume=resume, progress=not quiet,
