@@ -190,8 +190,8 @@ class _Interrupts:
         name = signal.Signals(signum).name
         if self._holding and self.pending is None:
             self.pending = signum
-            log.warning("%s: stopping once the trial being written is in the session file (again to stop at once, "
-                        "losing it)", name)
+            log.warning("%s: stopping once the session file is written (again to stop at once, losing the trial "
+                        "being written)", name)
             return
         raise KeyboardInterrupt(name)
 
@@ -346,11 +346,13 @@ class _Run:
         except KeyboardInterrupt:
             summary.stopped = True
         finally:
-            self.rig.safe_stop()
-            if self.bar is not None:
-                self.bar.close()
-            summary.complete = len(self.writer.completed_ids())
-            self.writer.close()
+            with self.interrupts.held():  # a signal now cannot cut the clean-up short: the run ends anyway
+                self.rig.safe_stop()
+                if self.bar is not None:
+                    self.bar.close()
+                summary.complete = len(self.writer.completed_ids())
+                self.writer.close()
+            self.interrupts.pending = None
         summary.elapsed_s = self._elapsed()
         return summary
 
