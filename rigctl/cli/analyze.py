@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, same_file
+
 TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all")
 
 
@@ -33,6 +35,19 @@ def _floats(text):
         raise click.BadParameter(f"expected comma-separated numbers, got '{text}'") from None
 
 
+def _check_variants(path, variants):
+    """Refuse variants the file does not have (a session file to encode: variants the encoder does not know)."""
+    if not variants:
+        return
+    from rigctl.analysis.data import list_variants
+    from rigctl.storage.encoded import ALL_VARIANTS
+
+    have = list_variants(path) or list(ALL_VARIANTS)
+    bad = [v for v in variants if v not in have]
+    if bad:
+        raise UsageProblem(f"--variants: {', '.join(bad)} not in {path}; choose from {', '.join(have)}")
+
+
 def _load(path, encode, variants, task="table1"):
     from rigctl.analysis.data import NotEncodedError, default_variants, list_variants, load_features
 
@@ -47,10 +62,35 @@ def _load(path, encode, variants, task="table1"):
         from rigctl.encoding.pipeline import encode_session
     except ImportError as exc:  # pragma: no cover - depends on the encoding package
         raise click.ClickException(f"cannot encode on the fly: rigctl.encoding.pipeline unavailable ({exc})") from None
-    out = Path(tempfile.mkdtemp(prefix="rigctl-analyze-")) / (Path(path).stem + ".encoded.h5")
-    click.echo(f"encoding {path} -> {out} (rigctl encode) ...", err=True)
-    encode_session(path, out)
-    return load_features(out, variants or default_variants(list_variants(out), task))
+    with tempfile.TemporaryDirectory(prefix="rigctl-analyze-") as tmp:  # the features are read into memory
+        out = Path(tmp) / (Path(path).stem + ".encoded.h5")
+        click.echo(f"encoding {path} on the fly (rigctl encode) ...", err=True)
+        encode_session(path, out)
+        return load_features(out, variants or default_variants(list_variants(out), task))
+
+
+def _check_pcs(fs, n_pcs, explicit):
+    """PC counts 1..n_pcs must fit the data: at most one PC per trial and per feature."""
+    n_features = min(f.shape[1] for f in fs.features.values())
+    allowed = min(n_features, fs.n_trials)
+    if explicit and n_pcs > allowed:
+        raise UsageProblem(f"--pcs 1-{n_pcs}: the data allows 1-{allowed} ({fs.n_trials} trials, {n_features} "
+                           "features per trial)")
+
+
+def _check_outputs(file, new_session, overwrite, **outputs):
+    """Refuse every output (option -> path) before the analysis runs: existing without --overwrite, an input,
+    two outputs on one file, an image format matplotlib does not write."""
+    given = {opt: path for opt, path in outputs.items() if path}
+    images = image_suffixes() if given.get("--plot") or given.get("--confusion") else None
+    seen = []
+    for opt, path in given.items():
+        check_output(path, option=opt, overwrite=overwrite, inputs=(file, new_session),
+                     suffixes=images if opt in ("--plot", "--confusion") else None)
+        for other_opt, other in seen:
+            if same_file(path, other):
+                raise UsageProblem(f"{opt} and {other_opt} both name {path}: give each its own file")
+        seen.append((opt, path))
 
 
 @click.command("analyze")
@@ -68,10 +108,12 @@ def _load(path, encode, variants, task="table1"):
 @click.option("--table-pcs", type=click.IntRange(1), default=50, show_default=True, help="PC count of the table.")
 @click.option("--compare-paper", is_flag=True, help="Show the paper's Table 1 values beside ours.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON on stdout.")
-@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="Fig. 3-like PNG of accuracy vs PCs.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="Fig. 3-like plot of accuracy vs PCs (format from the extension: .png, .pdf, .svg, ...).")
 @click.option("--confusion", type=click.Path(dir_okay=False), default=None,
               help="PNG of confusion matrices (of the first untrained extrapolation cell, else the first task).")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None, help="Long-format CSV of curves.")
+@click.option("--overwrite", is_flag=True, help="Replace existing --csv/--plot/--confusion/--save-model files.")
 @click.option("--train-speeds", default=None, help="Trained speeds, mm/s (extrapolation default 40,60,80; "
                                                     "speed-extrapolation: required).")
 @click.option("--test-speeds", default=None, help="Untrained speeds tested (default: all others).")
@@ -91,8 +133,9 @@ def _load(path, encode, variants, task="table1"):
 @click.option("--encode", "encode_", is_flag=True, help="If FILE is a session file, encode it first.")
 @click.option("--threads", type=click.IntRange(1), default=None, help="Limit BLAS threads (busy machines).")
 @click.option("--progress/--no-progress", default=True, show_default=True)
-def analyze(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
-            confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
+@click.pass_context
+def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
+            plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
             train_profiles, save_model, model_variant, model_pcs, encode_, threads, progress):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
@@ -101,11 +144,14 @@ def analyze(file, task, pcs, repeats, variants, per_texture, seed, table1_, tabl
     """
     from threadpoolctl import threadpool_limits
 
+    _check_outputs(file, new_session, overwrite, **{"--csv": csv_path, "--plot": plot, "--confusion": confusion,
+                                                     "--save-model": save_model})
+    explicit_pcs = ctx.get_parameter_source("pcs") is not click.core.ParameterSource.DEFAULT
     limiter = threadpool_limits(threads) if threads else None
     try:
         _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
              confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-             train_profiles, save_model, model_variant, model_pcs, encode_, progress)
+             train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs)
     finally:
         if limiter is not None:
             limiter.unregister()
@@ -113,14 +159,16 @@ def analyze(file, task, pcs, repeats, variants, per_texture, seed, table1_, tabl
 
 def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
          confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-         train_profiles, save_model, model_variant, model_pcs, encode_, progress):
+         train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs=False):
     from rigctl.analysis import report, tasks
 
     n_pcs = _parse_pcs(pcs)
-    vlist = [v.strip() for v in variants.split(",")] if variants else None
+    vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
     if table1_:
         task = "all"
+    _check_variants(file, vlist)
     fs = _load(file, encode_, vlist, task)
+    _check_pcs(fs, n_pcs, explicit_pcs)
     if task == "speed-extrapolation" and not train_speeds:
         raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
 
@@ -181,18 +229,22 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
         clf = TextureClassifier(n_pcs=model_pcs, max_pcs=max(model_pcs, n_pcs)).fit(fs.features[model_variant],
                                                                                      fs.texture)
         clf.variant = model_variant
-        clf.save(save_model)
+        with replacing(save_model) as tmp:
+            clf.save(tmp)
         click.echo(f"saved TextureClassifier ({model_variant}, {model_pcs} PCs) to {save_model}", err=True)
 
     if csv_path:
-        Path(csv_path).write_text(report.to_csv(res_all))
+        with replacing(csv_path) as tmp:
+            tmp.write_text(report.to_csv(res_all))
     if plot:
-        report.plot_curves(res_all, plot, title=Path(file).name)
+        with replacing(plot) as tmp:
+            report.plot_curves(res_all, tmp, title=Path(file).name)
     if confusion:
         keys = list(res_all.curves)
         pick = next((k for k in keys if k.endswith("untrained_speed_force")), None) or next(
             (k for k in keys if "untrained" in k), keys[0])
-        report.plot_confusions(res_all, confusion, pick)
+        with replacing(confusion) as tmp:
+            report.plot_confusions(res_all, tmp, pick)
     if as_json:
         click.echo(report.to_json(res_all, table_pcs, source=str(file)))
     else:

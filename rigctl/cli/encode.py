@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.storage.encoded import ALL_VARIANTS
 
 
@@ -56,9 +57,17 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     from rigctl.storage.encoded import MAIN_VARIANTS, open_encoded
     from rigctl.storage.session import SessionError
 
-    out = out or session.with_suffix(".encoded.h5")
-    if out.exists() and not overwrite:
-        raise click.ClickException(f"{out} exists; pass --overwrite to replace it")
+    out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,))
+    if scheduler is not None:
+        import importlib.util
+
+        try:
+            found = importlib.util.find_spec("dask.distributed") is not None
+        except ModuleNotFoundError:  # dask itself is missing
+            found = False
+        if not found:
+            raise UsageProblem("--scheduler needs Dask (dask.distributed), which is not installed: "
+                               "pip install 'rigctl[dask]', or drop --scheduler to encode in this process")
     import warnings
 
     try:
