@@ -8,6 +8,8 @@ from pathlib import Path
 
 import click
 
+from rigctl.cli.outputs import check_output
+
 #: ../shared/data/fabricslide next to the repository checkout
 DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabricslide"
 
@@ -32,6 +34,7 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     """
     from rigctl.storage.fabricslide import import_fabricslide as run
 
+    check_output(out, overwrite=overwrite)
     if directory:
         directory = Path(directory)
     else:  # next to the repo checkout; for an installed (non-editable) package, next to the working directory

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import click
 
+from rigctl.cli.outputs import check_output
+
+#: image formats the window grab is saved in (Qt's image writers, by extension)
+SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+
 
 @click.command("gui")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega). Default: simulated rig.")
@@ -13,13 +18,14 @@ import click
                    "simulated rig.")
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Save a PNG of the main window before quitting (with --quit-after).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --screenshot file.")
 @click.option("--quit-after", type=click.FloatRange(min=0), default=None, help="Quit after this many seconds.")
 @click.option("--tab", type=click.Choice(["control", "live", "protocol", "analysis", "calibration", "classify"]),
               default=None, help="Tab to show first.")
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")
 @click.option("--texture", default=None, help="Mount this texture plate (a label of the rig's set, A-P by default) "
                                               "once connected.")
-def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run, texture):
+def gui(drum_port, taxel_port, replay, screenshot, overwrite, quit_after, tab, run, texture):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 
     With no ports it runs on the simulated rig. ``--screenshot PATH --quit-after SECONDS`` renders the main window
@@ -29,6 +35,9 @@ def gui(drum_port, taxel_port, replay, screenshot, quit_after, tab, run, texture
         raise click.UsageError("give both --drum-port and --taxel-port (or neither for the simulated rig)")
     if screenshot and quit_after is None:
         raise click.UsageError("--screenshot needs --quit-after SECONDS")
+    if screenshot:
+        check_output(screenshot, option="--screenshot", overwrite=overwrite, inputs=(replay,),
+                     suffixes=SCREENSHOT_SUFFIXES)
     try:
         from gui.app import main
     except ImportError as exc:

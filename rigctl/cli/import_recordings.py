@@ -6,6 +6,8 @@ import json
 
 import click
 
+from rigctl.cli.outputs import check_output
+
 
 @click.command("import")
 @click.argument("files", nargs=-1, required=True, type=click.Path())
@@ -44,6 +46,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     """
     from rigctl.storage.importers import RecordingImportError, import_recordings as run
 
+    check_output(out, overwrite=overwrite, inputs=(*files, mapping))
     if preset == "fabricslide":
         from rigctl.storage.fabricslide import import_fabricslide
 

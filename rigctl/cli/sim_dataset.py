@@ -6,6 +6,8 @@ import json
 
 import click
 
+from rigctl.cli.outputs import check_output
+
 
 @click.command("dataset")
 @click.argument("protocol", type=click.Path(exists=True, dir_okay=False))
@@ -30,6 +32,10 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, ove
     from rigctl.acquisition.protocol import ProtocolError
     from rigctl.simulation.dataset import generate_dataset
 
+    if resume and overwrite:
+        raise click.UsageError("--resume and --overwrite exclude each other")
+    check_output(out, overwrite=overwrite or resume, inputs=(protocol,),
+                 overwrite_hint="continue it with --resume, or pass --overwrite")
     try:
         summary = generate_dataset(protocol, out, trials_per_condition=trials_per_condition, seed=seed,
                                    workers=workers, progress=not quiet,
