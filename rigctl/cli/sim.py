@@ -44,7 +44,8 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
               help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) or session file "
                    "instead of the model.")
 @click.option("--port-dir", type=click.Path(file_okay=False), default=None,
-              help="Directory for the port links 'drum' and 'taxel' (default: a fresh temporary directory).")
+              help="Directory for the port links 'drum' and 'taxel' (default: a fresh temporary directory); one "
+                   "running simulated rig per directory.")
 @click.pass_context
 def sim(ctx, seed, texture, replay_dir, port_dir):
     """Start the simulated rig: a virtual drum controller (Modbus RTU) and taxel streamer on two serial ports.
@@ -55,6 +56,7 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
     if ctx.invoked_subcommand is not None:
         return
     from rigctl.core.textures import PAPER_TEXTURES, TextureSetError
+    from rigctl.simulation.pty import PortDirBusy
     from rigctl.simulation.rig import SimulatedRig
 
     source = None
@@ -80,7 +82,14 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
         stop.set()
 
     signal.signal(signal.SIGTERM, on_signal)
-    with SimulatedRig(seed=seed, source=source, port_dir=port_dir) as rig:
+    try:
+        rig = SimulatedRig(seed=seed, source=source, port_dir=port_dir)
+    except PortDirBusy as exc:
+        raise click.ClickException(str(exc)) from None
+    except OSError as exc:
+        raise click.BadParameter(f"cannot use {port_dir} for the port links ({exc.strerror or exc})",
+                                 param_hint="--port-dir") from None
+    with rig:
         if texture is not None:
             rig.set_texture(texture, textures)
         click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 115200 8N1, device id 1)")

@@ -12,6 +12,10 @@ Two building blocks:
 ``unplug()`` closes the board side: the client's next read fails the way an unplugged USB serial device fails under
 pyserial (``SerialException``: "device reports readiness to read but returned no data" / "read failed: [Errno 5]"),
 and the path disappears until ``replug()``.
+
+The folder the port links live in is a :class:`PortDir`: one live process owns it (an ``flock`` on a lock file in
+it), so a second simulated rig cannot take over (and on exit delete) the links of a running one; the temporary
+folders (``rigctl-sim-<pid>-*``) of processes that died without cleaning up are removed when the next one starts.
 """
 
 from __future__ import annotations
@@ -20,8 +24,11 @@ import errno
 import fcntl
 import logging
 import os
+import re
 import select
+import shutil
 import struct
+import tempfile
 import termios
 import threading
 import tty
@@ -304,3 +311,153 @@ class PtyBridge:
                 os.close(fd)
             except OSError:
                 pass
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The folder of the port links
+# ---------------------------------------------------------------------------------------------------------------------
+#: lock file a live simulated rig holds (flock) in its port folder; it contains the owner's pid
+LOCK_NAME = ".rigctl-sim.lock"
+#: temporary port folders are ``<tmp>/rigctl-sim-<pid>-<random>``
+TEMP_PREFIX = "rigctl-sim-"
+_TEMP_NAME = re.compile(r"^rigctl-sim-(\d+)-")
+
+
+class PortDirBusy(RuntimeError):
+    """The port folder is owned by another live simulated rig (the message names the folder and its pid)."""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, another user's
+        return True
+    return True
+
+
+def _try_lock(path: Path, *, create: bool) -> int | None:
+    """An fd holding an exclusive flock on ``path`` (the file at that path now, not an unlinked one), or None if
+    another process holds it (or, without ``create``, there is no such file)."""
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | (os.O_CREAT if create else 0), 0o644)
+        except FileNotFoundError:
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            return None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd
+        os.close(fd)  # the owner removed the file meanwhile: lock the one there now
+        if not create:
+            return None
+
+
+def _owner(path: Path) -> str:
+    try:
+        return path.read_text().strip() or "?"
+    except OSError:
+        return "?"
+
+
+def _dead_links_only(d: Path) -> bool:
+    """True if ``d`` holds only symlinks whose targets are gone (at least one)."""
+    try:
+        entries = list(d.iterdir())
+    except OSError:
+        return False
+    return bool(entries) and all(e.is_symlink() and not e.exists() for e in entries)
+
+
+def remove_stale_port_dirs(tmp_dir: str | os.PathLike | None = None) -> list[Path]:
+    """Remove the temporary port folders (``rigctl-sim-<pid>-*``) of simulated rigs that died without cleaning up
+    (killed: their pid is gone and nobody holds the folder's lock), and those of older versions (``rigctl-sim-*``
+    without a pid) whose port links all point at ptys that are gone. Returns the folders removed.
+
+    Folders of live processes are left alone; so is anything that does not look like a port folder."""
+    removed = []
+    base = Path(tmp_dir or tempfile.gettempdir())
+    try:
+        entries = list(base.glob(TEMP_PREFIX + "*"))
+    except OSError:
+        return removed
+    for d in entries:
+        m = _TEMP_NAME.match(d.name)
+        if not d.is_dir() or d.is_symlink():
+            continue
+        if m is None:  # a folder of an older rigctl (no pid in its name, no lock): stale once its ptys are gone
+            if _dead_links_only(d):
+                shutil.rmtree(d, ignore_errors=True)
+                removed.append(d)
+            continue
+        if _alive(int(m.group(1))):
+            continue
+        fd = _try_lock(d / LOCK_NAME, create=False)
+        if fd is None and (d / LOCK_NAME).exists():
+            continue  # held: alive after all (another pid namespace)
+        try:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+            log.info("removed the port folder %s of a simulated rig that is gone (pid %s)", d, m.group(1))
+        finally:
+            if fd is not None:
+                os.close(fd)
+    return removed
+
+
+class PortDir:
+    """The folder of a simulated rig's port links, owned by this process while it runs.
+
+    Parameters
+    ----------
+    path : folder or None
+        A folder to use (created if missing; the links in it are removed on :meth:`release`, the folder is kept),
+        or None: a fresh temporary folder ``rigctl-sim-<pid>-*`` (removed on :meth:`release`). Either way the
+        temporary folders of dead simulated rigs are removed first (:func:`remove_stale_port_dirs`).
+
+    Raises
+    ------
+    PortDirBusy if another live process owns ``path``; OSError if the folder cannot be made or written.
+    """
+
+    def __init__(self, path: str | os.PathLike | None = None):
+        self.temporary = path is None
+        remove_stale_port_dirs()
+        if self.temporary:
+            self.path = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}{os.getpid()}-"))
+        else:
+            self.path = Path(path)
+            self.path.mkdir(parents=True, exist_ok=True)
+        lock = self.path / LOCK_NAME
+        fd = _try_lock(lock, create=True)
+        if fd is None:
+            raise PortDirBusy(f"{self.path} holds the ports of another running simulated rig (pid {_owner(lock)}): "
+                              "choose another --port-dir, or stop that one")
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd: int | None = fd
+
+    def release(self, links: tuple[str, ...] = ()) -> None:
+        """Give the folder up: a temporary one is removed; in a given one the ``links`` and the lock file are."""
+        if self._fd is None:
+            return
+        try:
+            if self.temporary:
+                shutil.rmtree(self.path, ignore_errors=True)
+            else:
+                for name in (*links, LOCK_NAME):
+                    try:
+                        (self.path / name).unlink()
+                    except FileNotFoundError:
+                        pass
+        finally:
+            os.close(self._fd)
+            self._fd = None

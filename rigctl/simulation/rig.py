@@ -18,8 +18,6 @@ follows plates (``source.mount(label)``) which texture's recordings to stream ne
 from __future__ import annotations
 
 import logging
-import shutil
-import tempfile
 import threading
 from pathlib import Path
 
@@ -27,6 +25,7 @@ import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.simulation.model import RigConfig, RigModel
+from rigctl.simulation.pty import PortDir
 from rigctl.simulation.virtual_mega import VirtualMega
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
@@ -58,7 +57,10 @@ class SimulatedRig:
         its samples at ``source.layout``'s channel count and rate (a source without ``layout``: the paper's 18
         channels at 1 kHz) instead of the model's sensor (the drum and force loop still run on the model).
     port_dir : path or None
-        Directory for the two port links ``drum`` and ``taxel``; a fresh temporary directory if None.
+        Directory for the two port links ``drum`` and ``taxel``, owned by this rig until :meth:`close` (a
+        :class:`rigctl.simulation.pty.PortDir`: another live simulated rig's folder raises
+        :class:`rigctl.simulation.pty.PortDirBusy`); a fresh temporary directory if None (the temporary directories of
+        simulated rigs that were killed are removed first).
     tick_s : float
         Period of the physics thread, s (frames go out in batches of about this length).
     uno_reset_delay_s : float
@@ -77,10 +79,19 @@ class SimulatedRig:
                  tick_s: float = 0.003, uno_reset_delay_s: float = 0.25):
         self.config = config or RigConfig()
         self.seed = seed
-        self._own_dir = port_dir is None
-        self.port_dir = Path(tempfile.mkdtemp(prefix="rigctl-sim-")) if port_dir is None else Path(port_dir)
-        self.port_dir.mkdir(parents=True, exist_ok=True)
+        self._port_dir = PortDir(port_dir)
+        self.port_dir = self._port_dir.path
+        try:
+            self._build(source, uno_reset_delay_s)
+        except BaseException:
+            self._port_dir.release(("drum", "taxel"))
+            raise
         self.tick_s = tick_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.step_errors = 0
+
+    def _build(self, source, uno_reset_delay_s: float) -> None:
         self._read_source = _source_reader(source)
         self.source = source
         layout = getattr(source, "layout", None) if source is not None else None
@@ -91,13 +102,10 @@ class SimulatedRig:
         self._ms_total = 0
         self._samples_total = 0
         self._pulse_pending = False  # an index pulse in a step with no sample due goes on the next sample
-        self.model = RigModel(self.config, seed=seed)
+        self.model = RigModel(self.config, seed=self.seed)
         self.mega = VirtualMega(self.model, self.port_dir / "drum")
-        self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=seed,
+        self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=self.seed,
                               layout=self.layout)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.step_errors = 0
 
     @property
     def drum_port(self) -> str:
@@ -150,16 +158,11 @@ class SimulatedRig:
         if self._thread is not None:
             self._thread.join(timeout=3)
             self._thread = None
-        self.uno.close()
-        self.mega.close()
-        if self._own_dir:
-            shutil.rmtree(self.port_dir, ignore_errors=True)
-        else:
-            for name in ("drum", "taxel"):
-                try:
-                    (self.port_dir / name).unlink()
-                except FileNotFoundError:
-                    pass
+        try:
+            self.uno.close()
+            self.mega.close()
+        finally:
+            self._port_dir.release(("drum", "taxel"))
 
     def __enter__(self) -> "SimulatedRig":
         return self.start()
