@@ -227,23 +227,29 @@ def test_a_flapping_link_ends_the_run_after_three_attempts_in_a_row(rig, tmp_pat
 
 
 # ------------------------------------------------------------------------------------------------ exits
-def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_path):
+@pytest.fixture
+def sigterm_before():
+    """A SIGTERM handler installed before the run (recording the signals it gets, instead of ending pytest)."""
     calls = []
 
     def previous(signum, frame):
         calls.append(signum)
 
     old = signal.signal(signal.SIGTERM, previous)
-    try:
-        def on_trial(ev):
-            if ev.kind == "start" and ev.planned.trial_id == 2:
-                os.kill(os.getpid(), signal.SIGTERM)  # e.g. systemctl stop, during trial 2
+    yield previous, calls
+    signal.signal(signal.SIGTERM, old)
 
-        out = tmp_path / "s.h5"
-        summary = run_protocol(_proto(4), out, rig=rig, progress=False, on_trial=on_trial)
-        assert signal.getsignal(signal.SIGTERM) is previous
-    finally:
-        signal.signal(signal.SIGTERM, old)
+
+def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_path, sigterm_before):
+    previous, calls = sigterm_before
+
+    def on_trial(ev):
+        if ev.kind == "start" and ev.planned.trial_id == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # e.g. systemctl stop, during trial 2
+
+    out = tmp_path / "s.h5"
+    summary = run_protocol(_proto(4), out, rig=rig, progress=False, on_trial=on_trial)
+    assert signal.getsignal(signal.SIGTERM) is previous
     assert calls == [] and summary.stopped and summary.complete == 2 and not summary.link_lost
     rig.drum.wait_state([DrumState.IDLE], timeout_s=15)  # STOP was sent: drum at rest, actuator backed off
     with h5py.File(out, "r") as f:
@@ -252,7 +258,7 @@ def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_pa
     assert summary.ok and summary.recorded == 2
 
 
-def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path, monkeypatch):
+def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path, monkeypatch, sigterm_before):
     write = SessionWriter.write_trial
 
     def write_trial(self, trial_id, data):
@@ -263,7 +269,7 @@ def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path,
     monkeypatch.setattr(SessionWriter, "write_trial", write_trial)
     out = tmp_path / "s.h5"
     summary = run_protocol(_proto(4), out, rig=rig, progress=False)
-    assert summary.stopped and summary.complete == 2 and summary.recorded == 2
+    assert sigterm_before[1] == [] and summary.stopped and summary.complete == 2 and summary.recorded == 2
     with open_session(out) as s:
         assert s.completed_ids() == [0, 1] and s.trial(1).n_samples == 300
 
