@@ -69,7 +69,8 @@ def check_output(path: str | os.PathLike, *, option: str = "--out", overwrite: b
         raise UsageProblem(f"{option} {p} is a folder: give a file name")
     for inp in inputs:
         if inp is not None and same_file(p, inp):
-            raise UsageProblem(f"{option} {p} is also an input ({inp}): choose another output file")
+            alias = f" ({inp})" if str(inp) != str(p) else ""
+            raise UsageProblem(f"{option} {p} is one of the input files{alias}: choose another output file")
     if suffixes is not None:
         suffixes = tuple(suffixes)
         if p.suffix.lower() not in suffixes:
