@@ -90,7 +90,7 @@ def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
         drum.write_holding(HR.FORCE_TOLERANCE_G, 500)
         drum.set_force(1000)
         drum.press()
-        poll(drum, lambda s: s.actuator_mm > 6.0, 10, "the actuator pressing")
+        poll(drum, lambda s: s.actuator_mm > 4.5, 10, "the actuator pressing")
         drum.stop()
         drum.home()
         return poll(drum, lambda s: s.state == S.HOMING, 2, "HOMING")
@@ -101,6 +101,7 @@ def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
         return poll(drum, lambda s: s.state == S.SEEKING_FORCE and s.actuator_mm > 0.5, 5,
                     "SEEKING_FORCE with the actuator out")
     if state == S.FORCE_SETTLED:
+        drum.write_holding(HR.SETTLE_TIME_MS, 100)
         drum.set_force(200)
         drum.press()
         return drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
@@ -433,17 +434,44 @@ def test_watchdog_a_silent_host_trips_it_and_the_fault_latches(drum, controller,
 
 
 def test_watchdog_a_polling_host_keeps_it_fed(drum, controller):
-    """Any valid request feeds it (reads included): a host polling well inside WATCHDOG_MS keeps the drum running
-    for several timeouts."""
+    """Every valid request addressed to the controller feeds it, reads and refused requests included: a host that
+    only reads, or only sends requests refused with an exception, keeps the drum running for longer than
+    WATCHDOG_MS of the controller's time."""
     wd_ms = DEFAULT[HR.WATCHDOG_MS]
     bring_to(drum, controller, S.RUNNING)
     hb0 = drum.read_input(IR.HEARTBEAT)
-    while True:
+    while True:  # reads only
         st = drum.read_status()
         assert (st.state, st.faults) == (S.RUNNING, Fault(0))
-        if (st.heartbeat - hb0) % 65536 * 10 > 2.5 * wd_ms:
+        if (st.heartbeat - hb0) % 65536 * 10 > 1.2 * wd_ms:
             break
         time.sleep(0.05)
+    for _span in range(5):  # refused requests only, for spans of 1.2 x WATCHDOG_MS of host time
+        hb0 = st.heartbeat
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.2 * wd_ms / 1000:
+            with refused(ILLEGAL_ADDRESS):
+                drum.read_input(wire.N_INPUT)
+            time.sleep(0.05)
+        st = drum.read_status()
+        assert (st.state, st.faults) == (S.RUNNING, Fault(0))
+        if (st.heartbeat - hb0) % 65536 * 10 > wd_ms:
+            break  # the controller's own clock saw more than WATCHDOG_MS of refused requests only
+    else:
+        pytest.fail("the controller's clock never advanced WATCHDOG_MS in 1.2 x WATCHDOG_MS")
+
+
+def test_watchdog_requests_to_another_device_do_not_feed_it(drum, controller):
+    """Only requests addressed to this device (id 1) feed it: a host talking to device 7 is silent for it."""
+    wd_ms = 300
+    bring_to(drum, controller, S.RUNNING)
+    drum.write_holding(HR.WATCHDOG_MS, wd_ms)
+    with raw_port(drum) as port:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 3 * wd_ms / 1000:
+            assert _transact(port, _frame(7, 4, 0, 0, 0, wire.N_INPUT)) == b""  # 0.3 s each, no answer
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.FAULT, Fault.WATCHDOG)
 
 
 def test_watchdog_an_idle_host_that_only_monitors_never_trips_it(drum):
