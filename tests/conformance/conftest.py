@@ -7,9 +7,9 @@ Backends (the ``controller`` fixture, one instance per test module, parametrized
 - ``hil``: the Mega firmware image (``arduino/mega_drum``) under simavr (:class:`rigctl.simulation.hil.HilRig`, the
   Mega alone: the Uno is not needed and would double the CPU), marked ``hil``.
 
-Both are driven through the host's :class:`rigctl.devices.drum.DrumClient` on the real pymodbus serial client;
-``modbus`` is that same pymodbus client, for requests the DrumClient refuses to send (out-of-range values), so the
-controller's own refusal is what is tested.
+Both are driven through the host's :class:`rigctl.devices.drum.DrumClient` on the real pymodbus serial client
+(fixture ``drum``); the tests reach past it (a plain pymodbus master, raw bytes) only for requests the DrumClient
+refuses to send, so that the controller's own refusal is what is tested.
 """
 
 from __future__ import annotations
@@ -20,9 +20,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import pytest
-from pymodbus.client import ModbusSerialClient
-from pymodbus.framer import FramerType
-
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.errors import DrumError, ModbusExceptionError
@@ -59,15 +56,12 @@ class Controller:
     rig: Any = None
 
 
-def _open_client(port: str) -> tuple[DrumClient, ModbusSerialClient]:
-    modbus = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=wire.DRUM_BAUD, bytesize=8, parity="N",
-                                stopbits=1, timeout=TIMEOUT_S, retries=2)
-    drum = DrumClient(port, timeout_s=TIMEOUT_S, retries=2, poll_s=0.02, transport=modbus).open()
-    return drum, modbus
+def _open_client(port: str) -> DrumClient:
+    return DrumClient(port, timeout_s=TIMEOUT_S, retries=2, poll_s=0.02).open()
 
 
 def _read_power_up(ctl: Controller) -> None:
-    drum, _ = _open_client(ctl.port)
+    drum = _open_client(ctl.port)
     try:
         deadline = time.monotonic() + 10.0
         while True:  # the firmware boots and tares its load cell on the first HX711 reading
@@ -140,23 +134,11 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
 
 
 @pytest.fixture
-def link(controller):
-    """(DrumClient, its pymodbus client) on ``controller``, which is left IDLE with default registers afterwards."""
-    drum, modbus = _open_client(controller.port)
+def drum(controller) -> DrumClient:
+    """The host's DrumClient on ``controller``, which is left IDLE with default registers afterwards."""
+    client = _open_client(controller.port)
     try:
-        yield drum, modbus
-        restore(drum, controller)
+        yield client
+        restore(client, controller)
     finally:
-        drum.close()
-
-
-@pytest.fixture
-def drum(link) -> DrumClient:
-    """The host's DrumClient on the controller under test."""
-    return link[0]
-
-
-@pytest.fixture
-def modbus(link) -> ModbusSerialClient:
-    """The pymodbus client under ``drum`` (same connection): sends what the DrumClient would refuse to send."""
-    return link[1]
+        client.close()
