@@ -582,7 +582,8 @@ def run_realtime(
     profiles = np.unique(fs.profile)
     trained_p = [p for p in train_profiles if p in set(profiles)]
     if not trained_p:
-        raise ValueError(f"none of the training profiles {list(train_profiles)} in the data (has {list(profiles)})")
+        raise ValueError(f"none of the training profiles {', '.join(map(str, train_profiles))} in the data (has "
+                         f"{', '.join(map(str, profiles))})")
     in_tr = np.isin(fs.profile, trained_p)
     res.counts["realtime"] = {"trials": fs.n_trials, "profiles": list(map(str, profiles)),
                               "trained_profiles": trained_p, "repeats": repeats, "folds": k,

@@ -55,7 +55,12 @@ class LazyGroup(click.Group):
         ``--debug``."""
         try:
             return super().invoke(ctx)
-        except (click.ClickException, click.exceptions.Exit, click.Abort):
+        except click.ClickException as exc:
+            from rigctl.cli.errors import plain_numbers
+
+            exc.message = plain_numbers(exc.message)
+            raise
+        except (click.exceptions.Exit, click.Abort):
             raise
         except Exception as exc:
             if ctx.params.get("debug"):

@@ -14,16 +14,27 @@
 from __future__ import annotations
 
 import os
+import re
 import traceback
 
 import click
 
-__all__ = ["as_click_error", "is_rigctl_error", "one_line"]
+__all__ = ["as_click_error", "is_rigctl_error", "one_line", "plain_numbers"]
+
+#: the repr of a numpy scalar (numpy >= 2): np.float64(1.5), np.int64(3), np.str_('A'), np.True_
+_NUMPY_REPR = re.compile(r"\bnp\.(?:float|int|uint|complex|longdouble|str_|bytes_)\w*\(([^()]*)\)|\bnp\.(True|False)_")
+
+
+def plain_numbers(text: str) -> str:
+    """``text`` with numpy scalar reprs (``np.float64(1.5)``) shown as their values (``1.5``): a message from
+    code that formatted a numpy value with ``!r`` or inside a list still reads as plain numbers."""
+    return _NUMPY_REPR.sub(lambda m: m.group(1) if m.group(1) is not None else m.group(2), text)
 
 
 def one_line(text: object) -> str:
-    """``text`` on one line (runs of whitespace, newlines included, become one space)."""
-    return " ".join(str(text).split())
+    """``text`` on one line (runs of whitespace, newlines included, become one space), numpy reprs as plain
+    values."""
+    return plain_numbers(" ".join(str(text).split()))
 
 
 def is_rigctl_error(exc: BaseException) -> bool:

@@ -94,11 +94,11 @@ class SensorLayout:
         object.__setattr__(self, "layers", layers)
         rate = float(self.sample_rate_hz)
         if not (math.isfinite(rate) and rate > 0):
-            raise LayoutError(f"sample_rate_hz must be > 0, got {self.sample_rate_hz!r}")
+            raise LayoutError(f"sample_rate_hz must be > 0, got {self.sample_rate_hz}")
         object.__setattr__(self, "sample_rate_hz", rate)
         bits = int(self.adc_bits)
         if not 1 <= bits <= 16:
-            raise LayoutError(f"adc_bits must be 1-16, got {self.adc_bits!r}")
+            raise LayoutError(f"adc_bits must be 1-16, got {self.adc_bits}")
         object.__setattr__(self, "adc_bits", bits)
         object.__setattr__(self, "pitch_mm", float(self.pitch_mm))
         if self.channel_names is not None:

@@ -142,7 +142,7 @@ class TextureSet:
         if len(folded) == 1:
             return folded[0]
         shown = ", ".join(self.labels[:30]) + (" ..." if len(self) > 30 else "")
-        raise TextureSetError(f"texture {label!r} is not in the texture set {self.name or ''!r} ({shown})")
+        raise TextureSetError(f"texture '{label}' is not in the texture set {self.name or ''!r} ({shown})")
 
     def spec(self, label: str) -> TextureSpec:
         return self.textures[self._index[self.resolve(label)]]

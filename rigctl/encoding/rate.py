@@ -103,7 +103,7 @@ def rate_conversion(input_rate_hz: float, model_rate_hz: float = MODEL_RATE_HZ, 
     """
     rin, rmod = float(input_rate_hz), float(model_rate_hz)
     if not (math.isfinite(rin) and rin > 0 and math.isfinite(rmod) and rmod > 0):
-        raise ValueError(f"sample rates must be positive and finite, got {input_rate_hz!r} -> {model_rate_hz!r}")
+        raise ValueError(f"sample rates must be positive and finite, got {rin:g} -> {rmod:g} Hz")
     if rin == rmod:
         return RateConversion(rin, rmod)
     ratio = Fraction(rmod / rin).limit_denominator(max_factor)

@@ -219,7 +219,7 @@ class SessionReplay(_BlockReplay):
             except TextureSetError:
                 pass
         if label not in self.by_texture:
-            raise KeyError(f"{self.path.name} has no trial of texture {texture!r} (it has: "
+            raise KeyError(f"{self.path.name} has no trial of texture '{texture}' (it has: "
                            f"{', '.join(self.by_texture)})")
         with self._lock:
             self.mounted = label
