@@ -55,10 +55,10 @@ class LazyGroup(click.Group):
         ``--debug``."""
         try:
             return super().invoke(ctx)
-        except click.ClickException as exc:
-            from rigctl.cli.errors import plain_numbers
+        except click.ClickException as exc:  # one line, values not numpy reprs, whoever built the message
+            from rigctl.cli.errors import one_line
 
-            exc.message = plain_numbers(exc.message)
+            exc.message = one_line(exc.message)
             raise
         except (click.exceptions.Exit, click.Abort):
             raise
