@@ -476,8 +476,8 @@ class _Run:
                         t_busy = time.monotonic()
                         self.rig.recover()
                         writer.wait_s = WRITE_RETRY_S
-                    msg = (f"{what}: {exc}; held for {time.monotonic() - t_busy:.0f} s, the rig is released and the "
-                           "trial kept in memory until the file is free")
+                    msg = (f"{what}: {exc}; held for {time.monotonic() - t_busy:.0f} s: the rig is released, the "
+                           "data kept in memory until the file is free")
                     self._report(msg)
                     self._event("waiting", planned, index, error=msg)
         finally:

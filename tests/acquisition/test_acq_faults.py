@@ -291,7 +291,7 @@ def test_a_reader_holding_the_file_for_long_costs_no_trial(rig, tmp_path, monkey
                 held.pop("f").close()
 
     summary = run_protocol(_proto(3), out, rig=rig, progress=False, on_trial=on_trial)
-    assert len(waiting) == 30 and "trial kept in memory" in waiting[0]
+    assert len(waiting) == 30 and "kept in memory" in waiting[0]
     assert summary.complete == 3 and summary.failed == 0 and not summary.stopped
     with open_session(out) as s:
         assert [s.trial(t).n_samples for t in s.completed_ids()] == [300, 300, 300]
