@@ -16,7 +16,9 @@ value, a function-16 write the echo of its address and count; anything else is d
 no request still unanswered has, and discards everything that arrives before the fence's answer. A serial link
 keeps the order of the bytes and the controller answers in order, so once the fence is answered no answer to an
 earlier request can follow, and a later response of the right shape is the answer to the request just sent.
-pymodbus is used with ``retries=0``: the retries are the client's own, so every retry goes through the fence.
+pymodbus is used with ``retries=0``: the retries are the client's own, so every retry goes through the fence. A port
+that fails (a pulled USB cable) is closed and opened afresh by the next attempt, so the client works again once the
+port is back; until then every request is a :class:`DrumError` naming the port.
 """
 
 from __future__ import annotations
@@ -251,7 +253,7 @@ class DrumClient:
         Raises DrumTimeout (no matching answer after ``retries`` retries), ModbusExceptionError, DrumError."""
         with self._lock:
             result, sent = None, False
-            for _attempt in range(self.retries + 1):
+            for attempt in range(self.retries + 1):
                 pending = expect if sent else None  # this request may have been carried out already
                 try:
                     echo = self._flush_input(pending)
@@ -265,7 +267,14 @@ class DrumClient:
                         break
                     result = self._exchange(what, expect, kwargs)
                     sent = True
-                except (ConnectionException, ModbusException, OSError) as exc:
+                except (ConnectionException, OSError) as exc:
+                    # the port failed (vanished, unplugged): close it, so that the next attempt (or call) opens it
+                    # afresh once it is back
+                    self._client.close()
+                    if attempt == self.retries:
+                        raise DrumError(f"drum controller on {self.port}: {exc}") from exc
+                    continue
+                except ModbusException as exc:
                     raise DrumError(f"drum controller on {self.port}: {exc}") from exc
                 if result is not None:
                     break

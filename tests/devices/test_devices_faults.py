@@ -267,6 +267,17 @@ def test_no_wrong_value_on_a_noisy_link(drum_via_proxy, drum_proxy):
     assert drum.read_status().state == DrumState.IDLE  # the link settles again
 
 
+def test_a_cut_modbus_link_is_a_clear_error_and_the_client_reopens_it(drum_via_proxy, drum_proxy):
+    drum = drum_via_proxy
+    drum_proxy.cut()  # the Mega's USB cable is pulled
+    with pytest.raises(DrumError, match=str(drum_proxy.path)):
+        drum.read_holding(HR.FORCE_TOLERANCE_G)
+    drum_proxy.restore()  # ... and plugged back: the next request opens the port again
+    assert drum.read_holding(HR.FORCE_TOLERANCE_G) == 15
+    drum.write_holding(HR.SETTLE_TIME_MS, 500)
+    assert drum.read_holding(HR.SETTLE_TIME_MS) == 500
+
+
 def test_status_of_a_wrong_register_count_is_a_clear_error():
     with pytest.raises(DrumError, match="13 input registers"):
         DrumStatus.from_registers([777])
