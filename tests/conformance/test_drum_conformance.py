@@ -539,12 +539,17 @@ def test_force_limit_latches_during_another_fault(drum, controller):
 def test_actuator_travel_faults_at_the_end_of_travel(drum, controller):
     """ACTUATOR_TRAVEL: the actuator reaches its end of travel without reaching the force setpoint: FAULT, the
     actuator backs off. The end of travel is where the controller's own position (ACTUATOR_POSITION, steps over
-    ACTUATOR_STEPS_PER_MM) puts it: with the lead-screw calibration at a quarter of the true one the controller
-    believes it travels 4x as far as it does, and meets its end of travel before the contact gives the setpoint."""
+    ACTUATOR_STEPS_PER_MM) puts it: with the lead-screw calibration cut to a quarter while pressing, the controller
+    believes it is 4x as far out as it is, and meets its end of travel before the contact gives a higher setpoint."""
     tol = DEFAULT[HR.FORCE_TOLERANCE_G]
-    drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, DEFAULT[HR.ACTUATOR_STEPS_PER_MM] // 4)
-    drum.set_force(1000)
+    drum.set_force(250)
     drum.press()
+    drum.wait_state(S.FORCE_SETTLED, timeout_s=10)
+    before = drum.read_status().actuator_mm
+    drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, DEFAULT[HR.ACTUATOR_STEPS_PER_MM] // 4)
+    st = drum.read_status()
+    assert st.actuator_mm == pytest.approx(4 * before, abs=0.1) and st.state == S.FORCE_SETTLED
+    drum.set_force(1000)
     seen = [drum.read_status()]
     while seen[-1].state != S.FAULT:
         assert seen[-1].state == S.SEEKING_FORCE and len(seen) < 2000, seen[-1]
