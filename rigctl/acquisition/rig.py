@@ -66,7 +66,7 @@ INDEX_GAP_MAX_FRAMES = 5
 #: ... lying within this time of the index pulse predicted from the drum angle, s, or this fraction of a revolution if
 #: longer (status-read latency, the frames' receive-time jitter, a simulator starved on a loaded host: mostly a few
 #: ms, up to ~0.4 s seen; a revolution is 2.1-7.9 s at 150-40 mm/s)
-INDEX_PREDICTION_TOLERANCE_S = 0.25
+INDEX_PREDICTION_TOLERANCE_S = 0.5
 INDEX_PREDICTION_TOLERANCE_REVS = 0.1
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0

@@ -152,8 +152,9 @@ def test_locate_index_uses_only_a_short_gap_near_the_prediction():
     seq = np.r_[0:500, 501:1000]  # frame 500 lost; the frame after the gap is at position 500, t = 0.5 s
     assert rig_module.locate_index(cap(seq, sync=[200]), 300, 0.5) == (200, 0)  # a received index wins
     assert rig_module.locate_index(cap(seq), 300, 0.52) == (500, 1)
+    assert rig_module.locate_index(cap(seq), 300, 0.9, tolerance_s=0.5) == (500, 1)
     with pytest.raises(rig_module.CaptureError, match="no drum index pulse"):
-        rig_module.locate_index(cap(seq), 300, 0.9)  # predicted far from the gap
+        rig_module.locate_index(cap(seq), 300, 0.9, tolerance_s=0.1)  # predicted far from the gap
     with pytest.raises(rig_module.CaptureError):
         rig_module.locate_index(cap(seq), 600, 0.5)  # too few frames follow the gap
     long_gap = np.r_[0:500, 520:1000]
@@ -324,7 +325,7 @@ def test_an_index_frame_the_board_never_sent(sim, monkeypatch):
 
 
 def test_recover_restarts_a_taxel_stream_that_went_silent(sim, tmp_path, monkeypatch):
-    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 0.5)
+    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 1.0)
     events = []
 
     def on_trial(ev):
@@ -333,13 +334,14 @@ def test_recover_restarts_a_taxel_stream_that_went_silent(sim, tmp_path, monkeyp
             sim.backend.sim.uno.streaming = False  # the board stops streaming; the host is not told
 
     summary = run_protocol(_proto(2), tmp_path / "s.h5", rig=sim, progress=False, on_trial=on_trial)
-    retry = [e for e in events if e.kind == "retry"]
-    assert len(retry) == 1 and "CaptureError" in retry[0].error and "stalled" in retry[0].error
-    assert summary.complete == 2 and summary.failed == 0 and summary.retried == 1
+    retry = [e for e in events if e.kind == "retry" and e.planned.trial_id == 1]
+    assert retry and "CaptureError" in retry[0].error and "no frame for" in retry[0].error
+    # without the restart every attempt would find the stream silent, and the trial would fail
+    assert summary.complete == 2 and summary.failed == 0
 
 
 def test_an_unplugged_taxel_board_ends_the_run_after_a_bounded_wait(sim, tmp_path, monkeypatch):
-    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 0.5)
+    monkeypatch.setattr(rig_module, "CAPTURE_STALL_S", 1.0)
     monkeypatch.setattr(runner_module, "LINK_LOSS_S", 2.0)
     board = sim.backend.sim
 
@@ -352,5 +354,6 @@ def test_an_unplugged_taxel_board_ends_the_run_after_a_bounded_wait(sim, tmp_pat
     finally:
         board.replug_taxel()
     assert summary.stopped and "no taxel frame" in summary.link_lost and "disconnected" in summary.link_lost
-    assert summary.complete == 1 and summary.failed == 1 and summary.retried == 0
+    assert summary.complete == 1 and summary.failed == 1  # trial 1, on its first attempt: no retries on a lost link
+    assert summary.failures[0].startswith("trial 1 ") and "attempts" not in summary.failures[0]
     assert sim.check_links(timeout_s=20.0) is None  # plugged back: the stream reconnects and delivers again
