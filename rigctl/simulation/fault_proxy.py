@@ -96,7 +96,8 @@ class DirectionCounts:
     """What the proxy did to one direction, in bytes.
 
     Once nothing is held (:meth:`FaultProxy.wait_idle`):
-    ``forwarded + lost_while_cut == received - dropped + inserted``. ``flipped`` bytes are among the forwarded ones.
+    ``forwarded + lost_while_cut + overflowed == received - dropped + inserted``. ``flipped`` bytes are among the
+    forwarded ones.
     """
 
     received: int = 0  #: bytes read from the sending side
@@ -106,6 +107,7 @@ class DirectionCounts:
     inserted: int = 0  #: extra bytes forwarded (random inserts, garbage bursts, :meth:`FaultProxy.inject`)
     garbage_bursts: int = 0  #: random garbage bursts inserted (their bytes are in ``inserted``)
     lost_while_cut: int = 0  #: bytes for the host discarded because the link was cut
+    overflowed: int = 0  #: bytes the receiver did not take (a host that stopped reading; a board port gone)
 
 
 @dataclass
@@ -272,6 +274,9 @@ class FaultProxy:
             lost = sum(len(b) for _, b in self._queues[TO_HOST])
             self._counts[TO_HOST].lost_while_cut += lost
             self._queues[TO_HOST].clear()
+            unsent = len(self.host._pending)  # handed to the host's pty queue but not in the pty yet: lost too
+            self._counts[TO_HOST].forwarded -= unsent
+            self._counts[TO_HOST].lost_while_cut += unsent
             self.host.unplug()
         self._wake()
 
@@ -417,7 +422,7 @@ class FaultProxy:
                     taken = self.host.write(data)
                     self._counts[d].forwarded += taken
                     if taken < len(data):  # the host's pty queue overflowed (the host does not read)
-                        self._counts[d].lost_while_cut += len(data) - taken
+                        self._counts[d].overflowed += len(data) - taken
                 else:
                     self._write_board(data)
             if q:
@@ -439,8 +444,8 @@ class FaultProxy:
                 select.select([], [fd], [], 0.01)
             except OSError:
                 break
-        if view:  # the board is gone: what it could not take is lost
-            self._counts[TO_BOARD].dropped += len(view)
+        if view:  # the board is gone or does not read: what it could not take is lost
+            self._counts[TO_BOARD].overflowed += len(view)
 
     def _run_timers(self, now: float) -> float:
         wait = 0.01
