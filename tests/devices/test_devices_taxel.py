@@ -297,3 +297,28 @@ def test_any_layout_over_a_real_pty(tmp_path, layout):
     expected = (k[:, None] * 7 + np.arange(layout.n_channels)[None, :]) % (layout.adc_max + 1)
     np.testing.assert_array_equal(cap.samples, expected)
     assert np.all(np.diff(cap.host_time_s) > 0)
+
+
+def test_issue_10_repro_a_lost_start_frame_on_the_simulated_rig():
+    """Issue 10's reproduction: SimulatedRig, TaxelStream(port).open(), the board loses the STREAMING_START frame,
+    start(): the stream is recorded, and the one lost frame is counted (it used to show 0 frames, 0 dropped)."""
+    from rigctl.simulation.rig import SimulatedRig
+
+    with SimulatedRig() as sim:
+        stream = TaxelStream(sim.taxel_port, start_timeout_s=60.0)  # no START retry: the sequence must do it
+        stream.open()
+        try:
+            sim.uno.drop_frames(1)
+            stream.start()
+            t0 = time.monotonic()
+            while sim.uno.frames_sent < 1000 and time.monotonic() - t0 < 10:
+                time.sleep(0.02)
+            stream.stop()
+            t0 = time.monotonic()
+            while stream.stats.frames + stream.stats.dropped < sim.uno.frames_sent + 1 and time.monotonic() - t0 < 5:
+                time.sleep(0.02)
+            stats = stream.stats
+        finally:
+            stream.close()
+    assert sim.uno.frames_sent >= 1000 and sim.uno.frames_dropped == 1
+    assert stats.dropped == 1 and stats.frames == sim.uno.frames_sent and stats.connected
