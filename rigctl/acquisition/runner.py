@@ -79,14 +79,14 @@ class TrialEvent:
 
     Attributes
     ----------
-    kind : "start" | "complete" | "failed" | "retry" (an attempt failed, the trial is recorded again) | "waiting"
-        (the session file is held by another process; the trial is kept until written) | "texture" (a plate is
-        being mounted) | "paused" | "resumed"
+    kind : "start" | "complete" | "failed" | "retry" (an attempt failed, the trial is recorded again) | "link_down"
+        (a failed attempt left a link down; the runner waits for it) | "waiting" (the session file is held by another
+        process; the trial is kept until written) | "texture" (a plate is being mounted) | "paused" | "resumed"
     planned : the trial (None for "paused"/"resumed")
     index : 0-based position among the trials this run records
     total : how many trials this run records
     data : the recorded TrialData ("complete" only)
-    error : the failure in words ("failed", "retry"; "waiting": what holds the write)
+    error : the failure in words ("failed", "retry"; "link_down": the link problem; "waiting": what holds the write)
     elapsed_s : wall time since the run started
     eta_s : estimated wall time left (NaN before the first trial ends)
     attempt : 1 for a trial's first recording, 2 for its first retry, ...
@@ -384,7 +384,7 @@ class _Run:
                 return False
             except Exception as exc:  # noqa: BLE001 - a failed attempt is retried or recorded as failed
                 error = f"{type(exc).__name__}: {exc}"
-                lost = self._after_failure()
+                lost = self._after_failure(planned, index)
                 if (attempt <= self.protocol.retries and not lost and not self._stopping()
                         and not isinstance(exc, ValueError)):
                     summary.retried += 1
@@ -427,7 +427,7 @@ class _Run:
             self.bar.update(1)
         return True
 
-    def _after_failure(self) -> str:
+    def _after_failure(self, planned: PlannedTrial, index: int) -> str:
         """After a failed attempt: recover the rig; if a link stays down, wait (bounded) for it to come back.
 
         Returns "" to go on, else why the run must end (the link is lost).
@@ -444,6 +444,7 @@ class _Run:
             return f"{problem}; {self.link_failures} attempts in a row failed with a link down"
         deadline = self.link_down_since + LINK_LOSS_S
         self._report(f"link down: {problem}; waiting up to {max(0.0, deadline - now):.0f} s for it to come back")
+        self._event("link_down", planned, index, error=problem)
         while not self._stopping():
             left = deadline - time.monotonic()
             if left <= 0:

@@ -1,9 +1,9 @@
 """The runner under faults: trials with holes are recorded again or marked failed (never kept as complete), a lost
-index frame costs only that frame, a silent taxel stream is restarted, a lost link ends the run in bounded time,
-SIGTERM stops cleanly (a trial being written is written first), a reader holding the file costs no trial.
+index frame costs only that frame, a silent taxel stream is restarted, a lost link ends the run in bounded time (and
+a link that comes back lets it go on), SIGTERM stops cleanly (a trial being written is written first), a reader holding the file costs no trial.
 
 Most run on the in-process rig (rigctl.rigs.open_rig("inprocess")); the board-side faults (an index frame the Uno
-never sends, a board that stops streaming, an unplugged Uno) on the simulated rig on real ptys."""
+never sends, a board that stops streaming, an unplugged Uno, an unplugged Mega) on the simulated rig on real ptys."""
 
 from __future__ import annotations
 
@@ -357,3 +357,23 @@ def test_an_unplugged_taxel_board_ends_the_run_after_a_bounded_wait(sim, tmp_pat
     assert summary.complete == 1 and summary.failed == 1  # trial 1, on its first attempt: no retries on a lost link
     assert summary.failures[0].startswith("trial 1 ") and "attempts" not in summary.failures[0]
     assert sim.check_links(timeout_s=20.0) is None  # plugged back: the stream reconnects and delivers again
+
+
+def test_a_drum_link_that_comes_back_lets_the_run_go_on(sim, tmp_path):
+    bridge = sim.backend.sim.mega.bridge  # the Mega's USB link (a pty)
+    kinds = []
+
+    def on_trial(ev):
+        kinds.append(ev.kind)
+        if ev.kind == "complete" and ev.planned.trial_id == 0:
+            bridge.unplug()  # the Mega's cable is pulled between trials ...
+        if ev.kind == "link_down":
+            assert "the drum controller does not answer" in ev.error
+            bridge.replug()  # ... and plugged back while the runner waits for it
+
+    try:
+        summary = run_protocol(_proto(3), tmp_path / "s.h5", rig=sim, progress=False, on_trial=on_trial)
+    finally:
+        bridge.replug()  # (a no-op when plugged)
+    assert kinds.count("link_down") == 1 and "retry" in kinds
+    assert summary.ok and summary.complete == 3 and summary.failed == 0 and not summary.link_lost
