@@ -29,17 +29,20 @@ def _wait(cond, timeout_s=10.0, what="condition"):
 
 
 def _settle(stream, proxy, uno):
-    """Stop the stream and wait until every frame the board sent has reached the host and been parsed."""
+    """Stop the stream and wait until every frame the board sent has reached the host and been parsed (recorded or
+    counted), or at most 10 s: the test's own assertions then say what is missing."""
     stream.stop()
     _wait(lambda: not uno.streaming, what="the board to stop")
     proxy.wait_idle()
+    deadline = time.monotonic() + 10
 
-    def quiet():
-        before = stream.stats
-        time.sleep(0.1)
-        return stream.stats.frames == before.frames and not proxy.held()
+    def accounted():
+        st = stream.stats
+        return st.frames + st.dropped + st.stale_frames >= uno.frames_sent + uno.frames_dropped
 
-    _wait(quiet, what="the host to parse the last frames")
+    while not accounted() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.1)  # anything left over (an over-count) shows too
 
 
 def _expected_samples(uno, seq):
@@ -108,7 +111,7 @@ def test_a_lost_start_frame_costs_only_that_frame(uno, taxel_proxy, where):
         _settle(stream, proxy, uno)
         cap = stream.end_capture()
         stats = stream.stats
-    assert len(cap) == stats.frames and stats.frames >= 500  # the stream is recorded
+    assert len(cap) == stats.frames and stats.frames >= 450  # the stream is recorded
     assert cap.seq[0] == 1 and np.all(np.diff(cap.seq.astype(np.int64)) == 1)
     assert cap.dropped == stats.dropped == 1  # frame 0, counted
     assert stats.frames + stats.dropped == uno.frames_sent + uno.frames_dropped  # nothing else lost
