@@ -150,7 +150,7 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
         load_rig_config(config_path)
     except CalibrationError as exc:
         if config_path is not None:
-            raise click.BadParameter(str(exc), param_hint="--config") from None
+            raise UsageProblem(f"--config {exc}") from None
         raise click.ClickException(f"{exc} (fix it, or give another file with --config)") from None
     try:
         proto = load_protocol(protocol)
