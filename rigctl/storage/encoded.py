@@ -33,6 +33,7 @@ The variant registry (:data:`VARIANTS`) is the one list of feature variants of r
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -138,7 +139,30 @@ class SpikeArrays(NamedTuple):
 
 class NotEncodedError(ValueError):
     """The file is not an encoded file (a session file with raw readings, or another HDF5 file, or not HDF5):
-    run ``rigctl encode`` on a session first."""
+    run ``rigctl encode`` on a session first; or it is one whose contents are malformed (truncated, damaged,
+    tables and arrays of the wrong shape or type): the message names the file, the object and what is wrong."""
+
+
+#: what h5py, numpy and json raise on a malformed file (turned into NotEncodedError by :func:`_reading`)
+_READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, AttributeError, RuntimeError, OverflowError)
+
+
+@contextlib.contextmanager
+def _reading(path, what: str):
+    """Turn the errors of reading ``what`` from a malformed file into one NotEncodedError naming file and object."""
+    try:
+        yield
+    except NotEncodedError:
+        raise
+    except _READ_ERRORS as exc:
+        text = " ".join(str(exc).split())
+        text = text if len(text) <= 160 else text[:157] + "..."
+        raise NotEncodedError(f"{path}: cannot read {what} ({type(exc).__name__}: {text}); the encoded file is "
+                              "damaged or not written by rigctl (encode the session again)") from None
+
+
+def _damaged(path, what: str) -> NotEncodedError:
+    return NotEncodedError(f"{path} is damaged: {what} (encode the session again)")
 
 
 #: columns of :attr:`EncodedFile.trials` (and of the ``/trials`` table)
@@ -418,14 +442,41 @@ class EncodedFile:
     def __init__(self, path, h5: h5py.File):
         self.path = Path(path)
         self._f = h5
-        self.attrs: dict[str, Any] = {k: _attr_value(v) for k, v in h5.attrs.items()}
-        self.schema_version = int(self.attrs.get("schema_version", 1))
-        self.variants: tuple[str, ...] = _variant_order(h5["features"])
-        self.spike_variants: tuple[str, ...] = _variant_order(h5["spikes"]) if "spikes" in h5 else ()
+        with _reading(self.path, "the root attributes"):
+            self.attrs: dict[str, Any] = {k: _attr_value(v) for k, v in h5.attrs.items()}
+            self.schema_version = int(self.attrs.get("schema_version", 1))
+        with _reading(self.path, "/features and /spikes"):
+            for name in ("features", "spikes"):
+                if name in h5 and not isinstance(h5[name], h5py.Group):
+                    raise _damaged(self.path, f"/{name} is not a group")
+            self.variants: tuple[str, ...] = _variant_order(h5["features"])
+            self.spike_variants: tuple[str, ...] = _variant_order(h5["spikes"]) if "spikes" in h5 else ()
         self._trials: dict[str, np.ndarray] | None = None
         self.parameters: dict = self._json_attr("parameters", {})
-        self.layout = self._read_layout()
-        self.textures = self._read_textures()
+        if not isinstance(self.parameters, dict):
+            raise _damaged(self.path, "the parameters attribute is not a JSON object")
+        with _reading(self.path, "the sensor layout"):
+            self.layout = self._read_layout()
+        with _reading(self.path, "the texture set"):
+            self.textures = self._read_textures()
+        self._check_trials()
+
+    def _check_trials(self) -> None:
+        """Refuse a ``/trials`` table that cannot be matched to the feature rows: columns of unequal length, a
+        trial id listed twice, a label outside the texture set, negative sample counts."""
+        cols = self.trials
+        n = len(cols["trial_id"])
+        bad = [k for k, v in cols.items() if np.ndim(v) != 1 or len(v) != n]
+        if bad:
+            raise _damaged(self.path, f"/trials columns {bad} do not have {n} entries like trial_id")
+        ids, counts = np.unique(cols["trial_id"], return_counts=True)
+        if ids.size != n:
+            raise _damaged(self.path, f"/trials lists trial {int(ids[counts > 1][0])} {int(counts.max())} times")
+        unknown = sorted(set(cols["texture"].tolist()) - set(self.textures.labels))
+        if unknown:
+            raise _damaged(self.path, f"/trials holds texture labels outside its texture set: {unknown[:5]}")
+        if n and cols["n_samples"].min() < 0:
+            raise _damaged(self.path, "/trials holds a negative n_samples")
 
     def _json_attr(self, name: str, default: Any) -> Any:
         raw = self.attrs.get(name)
@@ -434,7 +485,7 @@ class EncodedFile:
         try:
             return json.loads(raw)
         except (TypeError, ValueError):
-            return default
+            raise _damaged(self.path, f"its {name} attribute is not JSON") from None
 
     def _read_layout(self) -> SensorLayout:
         if "sensor_layout" in self.attrs:
@@ -477,6 +528,10 @@ class EncodedFile:
         return self._trials
 
     def _read_trials(self) -> dict[str, np.ndarray]:
+        with _reading(self.path, "/trials"):
+            return self._read_trials_table()
+
+    def _read_trials_table(self) -> dict[str, np.ndarray]:
         if "trials" not in self._f:
             raise NotEncodedError(f"{self.path} has no /trials table")
         obj = self._f["trials"]
@@ -484,7 +539,7 @@ class EncodedFile:
             raw = {k: obj[k][()] for k in obj if isinstance(obj[k], h5py.Dataset)}
         else:
             data = obj[()]
-            if data.dtype.names is None:
+            if data.dtype.names is None or data.ndim != 1:
                 raise NotEncodedError(f"{self.path}: /trials is neither a table nor a group of columns")
             raw = {k: data[k] for k in data.dtype.names}
         if "texture" not in raw:
@@ -505,19 +560,30 @@ class EncodedFile:
                 cols[k] = _text(v) if np.asarray(v).dtype.kind in "SO" else np.asarray(v)
         return cols
 
+    def _features_dataset(self, variant: str) -> h5py.Dataset:
+        if variant not in self.variants:
+            raise KeyError(f"variant {variant!r} not in {self.path} (has: {', '.join(self.variants) or 'none'})")
+        with _reading(self.path, f"/features/{variant}"):
+            ds = self._f["features"][variant]
+            if not isinstance(ds, h5py.Dataset) or ds.ndim != 2 or ds.dtype.kind not in "iuf":
+                what = f"{ds.dtype} {ds.shape}" if isinstance(ds, h5py.Dataset) else "a group"
+                raise _damaged(self.path, f"/features/{variant} is {what}, not (trials, features) numbers")
+            if ds.shape[0] != self.n_trials:
+                raise _damaged(self.path, f"/features/{variant} has {ds.shape[0]} rows for {self.n_trials} trials")
+            return ds
+
     def features(self, variant: str) -> np.ndarray:
         """``(n_trials, n_features)`` float32 features of a variant (rows in :attr:`trials` order).
 
-        Raises KeyError naming the stored variants."""
-        if variant not in self._f["features"]:
-            raise KeyError(f"variant {variant!r} not in {self.path} (has: {', '.join(self.variants) or 'none'})")
-        return np.asarray(self._f["features"][variant][()], dtype=np.float32)
+        Raises KeyError naming the stored variants; NotEncodedError if the stored array is not
+        ``(n_trials, n_features)`` numbers (or cannot be read)."""
+        ds = self._features_dataset(variant)
+        with _reading(self.path, f"/features/{variant}"):
+            return np.asarray(ds[()], dtype=np.float32)
 
     def feature_shape(self, variant: str) -> tuple[int, int]:
-        """``(n_trials, n_features)`` of a variant without reading it. Raises KeyError as :meth:`features`."""
-        if variant not in self._f["features"]:
-            raise KeyError(f"variant {variant!r} not in {self.path} (has: {', '.join(self.variants) or 'none'})")
-        return tuple(int(n) for n in self._f["features"][variant].shape)
+        """``(n_trials, n_features)`` of a variant without reading it. Raises as :meth:`features`."""
+        return tuple(int(n) for n in self._features_dataset(variant).shape)
 
     @property
     def skipped_variants(self) -> dict[str, str]:
@@ -527,12 +593,19 @@ class EncodedFile:
     def n_trains(self, variant: str) -> int:
         """Spike trains per trial behind a variant's features: from ``/spikes/<variant>`` if stored, else from the
         layout (SA + RA per taxel; the real-time variants: the real-time taxels of ``parameters``)."""
-        if "spikes" in self._f and variant in self._f["spikes"]:
-            return int(self._f["spikes"][variant].attrs["n_trains"])
+        if variant in self.spike_variants:
+            return self._n_trains_stored(variant)
         if variant in REALTIME_VARIANTS:
             taxels = self.parameters.get("realtime_taxels")
             return len(taxels) if taxels else len(self.layout.layer_channels(0))
         return 2 * self.layout.n_channels
+
+    def _n_trains_stored(self, variant: str) -> int:
+        with _reading(self.path, f"/spikes/{variant}"):
+            n = int(np.asarray(self._f["spikes"][variant].attrs["n_trains"]).reshape(-1)[0])
+        if n < 1:
+            raise _damaged(self.path, f"/spikes/{variant} says {n} trains per trial")
+        return n
 
     def spikes(self, variant: str) -> SpikeArrays:
         """Spike trains of a variant: :class:`SpikeArrays` (``spike_times`` s, ``spike_times_index`` row ends,
@@ -543,9 +616,22 @@ class EncodedFile:
         if variant not in self.spike_variants:
             raise KeyError(f"no spike trains of {variant!r} in {self.path} "
                            f"(stored: {', '.join(self.spike_variants) or 'none'})")
-        g = self._f["spikes"][variant]
-        return SpikeArrays(np.asarray(g["spike_times"][()], np.float64),
-                           np.asarray(g["spike_times_index"][()], np.int64), int(g.attrs["n_trains"]))
+        n_trains = self._n_trains_stored(variant)
+        with _reading(self.path, f"/spikes/{variant}"):
+            g = self._f["spikes"][variant]
+            times, index = g["spike_times"], g["spike_times_index"]
+            if times.ndim != 1 or index.ndim != 1 or times.dtype.kind != "f" or index.dtype.kind not in "iu":
+                raise _damaged(self.path, f"/spikes/{variant}: spike_times {times.dtype} {times.shape} and "
+                                          f"spike_times_index {index.dtype} {index.shape} are not 1-d times and row ends")
+            times = np.asarray(times[()], np.float64)
+            index = np.asarray(index[()], np.int64)
+        if index.size != self.n_trials * n_trains:
+            raise _damaged(self.path, f"/spikes/{variant} has {index.size} trains, not {self.n_trials} trials x "
+                                      f"{n_trains}")
+        if index.size and (index[0] < 0 or np.any(np.diff(index) < 0) or index[-1] > times.size):
+            raise _damaged(self.path, f"/spikes/{variant}: spike_times_index is not row ends into spike_times "
+                                      f"({times.size} spikes)")
+        return SpikeArrays(times, index, n_trains)
 
     def spike_trains_description(self, variant: str) -> str:
         """What the trains of a variant are (``"SA taxels 0..n-1 then RA taxels 0..n-1"``), "" if not stored."""
@@ -557,30 +643,46 @@ class EncodedFile:
     def normalisation(self) -> dict[str, np.ndarray]:
         """``{"taxel_min": (n_taxels,), "taxel_max": (n_taxels,)}`` float64 ADC counts: the per-taxel range the
         encoding normalised with (needed to encode new trials the same way)."""
-        g = self._f["normalisation"]
-        return {"taxel_min": np.asarray(g["taxel_min"][()], np.float64),
-                "taxel_max": np.asarray(g["taxel_max"][()], np.float64)}
+        out = {}
+        with _reading(self.path, "/normalisation"):
+            if "normalisation" not in self._f:
+                raise _damaged(self.path, "it has no /normalisation")
+            for k in ("taxel_min", "taxel_max"):
+                arr = np.asarray(self._f["normalisation"][k][()])
+                if arr.shape != (self.layout.n_channels,) or arr.dtype.kind not in "iuf":
+                    raise _damaged(self.path, f"/normalisation/{k} is {arr.dtype} {arr.shape}, not "
+                                              f"({self.layout.n_channels},) numbers")
+                out[k] = arr.astype(np.float64)
+        return out
 
     def force_coefficients(self, *, label_free: bool = False) -> np.ndarray | None:
         """The eq. (1) coefficient table (structured array: texture str (``"*"`` label-free), speed_mm_s, force_g,
         taxel, coeff, converged, target_rate, rate), or None when it was not fitted (see
         ``attrs["force_coefficients_note"]``)."""
         name = "force_coefficients_label_free" if label_free else "force_coefficients"
-        return _str_table(self._f[name][()]) if name in self._f else None
+        with _reading(self.path, f"/{name}"):
+            if name not in self._f:
+                return None
+            table = self._f[name][()]
+            if table.dtype.names is None or table.ndim != 1:
+                raise _damaged(self.path, f"/{name} is not a table")
+            return _str_table(table)
 
     def force_fit_stats(self, *, label_free: bool = False) -> dict:
         """Attributes of the coefficient table (``n_not_converged``, ``n_coefficients``, ...); {} when none."""
         name = "force_coefficients_label_free" if label_free else "force_coefficients"
-        return {k: _attr_value(v) for k, v in self._f[name].attrs.items()} if name in self._f else {}
+        with _reading(self.path, f"/{name}"):
+            return {k: _attr_value(v) for k, v in self._f[name].attrs.items()} if name in self._f else {}
 
     @property
     def resampling(self) -> dict:
         """``{"input_rate_hz", "model_rate_hz", "resampled"}``: the rate of the session, the model's step rate, and
         whether the readings were resampled before encoding (schema 1: 1 kHz, 1 kHz, False)."""
         rate = self.layout.sample_rate_hz
-        return {"input_rate_hz": float(self.attrs.get("input_rate_hz", rate)),
-                "model_rate_hz": float(self.attrs.get("model_rate_hz", self.parameters.get("fs_hz", rate))),
-                "resampled": bool(self.attrs.get("resampled", False))}
+        with _reading(self.path, "the rate attributes"):
+            return {"input_rate_hz": float(self.attrs.get("input_rate_hz", rate)),
+                    "model_rate_hz": float(self.attrs.get("model_rate_hz", self.parameters.get("fs_hz", rate))),
+                    "resampled": bool(self.attrs.get("resampled", False))}
 
     # -- lifetime ------------------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -606,20 +708,26 @@ def open_encoded(path) -> EncodedFile:
         No such file.
     NotEncodedError (a ValueError)
         Not HDF5, or no ``/features`` (e.g. a session file: the message says to run ``rigctl encode``), or no
-        ``/trials``, or a schema newer than this rigctl reads.
+        ``/trials``, or a schema newer than this rigctl reads, or malformed contents (truncated, damaged, a
+        ``/trials`` table with repeated ids or unknown labels, a layout or texture set that does not parse).
+        :meth:`EncodedFile.features`, :meth:`~EncodedFile.spikes` and :meth:`~EncodedFile.normalisation` check
+        their arrays' shapes and types against ``/trials`` and the layout when read, and raise it too.
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file")
     try:
         f = h5py.File(path, "r")
-    except OSError as exc:
-        raise NotEncodedError(f"{path} is not an HDF5 file ({exc})") from None
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise NotEncodedError(f"{path} is not an HDF5 file ({' '.join(str(exc).split())[:160]})") from None
     try:
-        if "features" not in f:
-            kind = "a session file (raw taxel readings)" if ("plan" in f or "trials" in f) else "not an encoded file"
+        with _reading(path, "the file's top level"):
+            has_features = "features" in f
+            session_like = "plan" in f or "trials" in f
+            version = int(np.asarray(_attr_value(f.attrs.get("schema_version", 1))).reshape(-1)[0])
+        if not has_features:
+            kind = "a session file (raw taxel readings)" if session_like else "not an encoded file"
             raise NotEncodedError(f"{path} is {kind}: it has no /features; run `rigctl encode {path}` first")
-        version = int(_attr_value(f.attrs.get("schema_version", 1)))
         if version > ENCODED_SCHEMA_VERSION:
             raise NotEncodedError(f"{path} is an encoded file of schema {version}; this rigctl reads up to "
                                   f"{ENCODED_SCHEMA_VERSION} (upgrade rigctl)")

@@ -316,7 +316,7 @@ def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
         except FileNotFoundError:
             raise
         except (OSError, ValueError, RuntimeError) as exc:
-            locked = isinstance(exc, BlockingIOError) or "lock" in str(exc).lower()
+            locked = isinstance(exc, BlockingIOError) or "unable to lock file" in str(exc).lower()
             if locked and time.monotonic() <= deadline:
                 time.sleep(0.05)
                 continue
@@ -466,7 +466,7 @@ class SessionWriter:
             self.compression = compression
             if self._lock is None:
                 self._lock = _writer_lock(self.path)
-            with _open_h5(self.path, "r") as f:
+            with _open_h5(self.path, "r") as f, _reading(self.path, "the session header"):
                 contents = _read_session_header(f, self.path)
                 self.attrs = contents.attrs
                 self.protocol_source = contents.protocol_source
@@ -918,15 +918,23 @@ def _group_status(group) -> str:
 
 
 def _check_file(f: h5py.File, path: Path) -> None:
-    missing = [k for k in ("plan", "trials", "protocol") if k not in f]
-    if missing or "schema_version" not in f.attrs:
+    with _reading(path, "the file's top level"):
+        missing = [k for k in ("plan", "trials", "protocol") if k not in f]
+        has_version = "schema_version" in f.attrs
+    _check_top(f, path, missing, has_version)
+
+
+def _check_top(f: h5py.File, path: Path, missing: list, has_version: bool) -> None:
+    if missing or not has_version:
         raise SessionError(f"{path} is not a rigctl session file (missing {missing or ['schema_version']})")
     with _reading(path, "the schema_version attribute"):
         version = int(np.asarray(f.attrs["schema_version"]).reshape(-1)[0])
     if version > SCHEMA_VERSION:
         raise SessionError(f"{path} has schema_version {version}, newer than this rigctl ({SCHEMA_VERSION})")
     for name, kind in (("plan", h5py.Dataset), ("trials", h5py.Group), ("protocol", h5py.Group)):
-        if not isinstance(f.get(name), kind):
+        with _reading(path, f"/{name}"):
+            ok = isinstance(f.get(name), kind)
+        if not ok:
             raise SessionError(f"{path}: /{name} is not an HDF5 {kind.__name__.lower()}; not a rigctl session file")
 
 
@@ -1103,33 +1111,38 @@ class Session:
         self.problems: list[str] = []
         self._checked: dict[int, int] = {}  # trial id -> its sample count, for trials whose recording passed
         try:
-            f = self._f
-            header = _read_session_header(f, self.path)
-            self.attrs = header.attrs
-            self.layout, self._present, self.textures = header.layout, header.present, header.textures
-            raw_plan = header.raw_plan
-            for i, why in header.unrecorded.items():
-                raw_plan["status"][i] = TrialStatus.PENDING
-                self._problem(why)
-            self.plan = _plan_to_str(raw_plan)
-            self._complete = set(self.completed_ids())
-            self.protocol_source = header.protocol_source
-            try:
-                self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
-                if not isinstance(self.rig_config, dict):
-                    raise ValueError("not a JSON object")
-            except (TypeError, ValueError) as exc:
-                self.rig_config = {}
-                self._problem(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)}); "
-                              "ignored")
-            with _reading(self.path, "the /protocol attributes"):
-                pattrs = _read_attrs(f["protocol"])
-            self.protocol_name = str(pattrs.get("name", ""))
-            self.protocol_format = str(pattrs.get("format", ""))
-            self.calibration = self._read_calibration()
+            with _reading(self.path, "the session header"):  # what the checks below did not foresee
+                self._read_header()
         except BaseException:
             self._f.close()
             raise
+
+    def _read_header(self) -> None:
+        """The header (:func:`_read_session_header`) as attributes; the plan with unrecorded trials pending."""
+        f = self._f
+        header = _read_session_header(f, self.path)
+        self.attrs = header.attrs
+        self.layout, self._present, self.textures = header.layout, header.present, header.textures
+        raw_plan = header.raw_plan
+        for i, why in header.unrecorded.items():
+            raw_plan["status"][i] = TrialStatus.PENDING
+            self._problem(why)
+        self.plan = _plan_to_str(raw_plan)
+        self._complete = set(self.completed_ids())
+        self.protocol_source = header.protocol_source
+        try:
+            self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
+            if not isinstance(self.rig_config, dict):
+                raise ValueError("not a JSON object")
+        except (TypeError, ValueError) as exc:
+            self.rig_config = {}
+            self._problem(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)}); "
+                          "ignored")
+        with _reading(self.path, "the /protocol attributes"):
+            pattrs = _read_attrs(f["protocol"])
+        self.protocol_name = str(pattrs.get("name", ""))
+        self.protocol_format = str(pattrs.get("format", ""))
+        self.calibration = self._read_calibration()
 
     def _problem(self, message: str) -> None:
         self.problems.append(message)
@@ -1241,6 +1254,8 @@ class Session:
         """
         g = self._group(trial_id)
         if g is None:
+            if int(trial_id) in self._complete:  # listed under /trials at opening, yet it does not open
+                raise self._damaged(trial_id, "its group cannot be opened")
             raise KeyError(f"trial {trial_id} has not been recorded in {self.path}")
         with _reading(self.path, f"the attributes of trial {trial_id}"):
             attrs = _read_attrs(g)
