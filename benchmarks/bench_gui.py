@@ -60,7 +60,7 @@ def run(minutes: float, screenshot: str | None) -> dict:
         stats_path = os.path.join(tmp, "stats.jsonl")
         env = dict(os.environ, DISPLAY=display, QT_QPA_PLATFORM="xcb", RIGCTL_CONFIG=os.path.join(tmp, "rig.json"),
                    XDG_CONFIG_HOME=os.path.join(tmp, "config"))
-        cmd = [sys.executable, "-m", "gui.app", "--drum-port", ports["drum"], "--taxel-port", ports["taxel"],
+        cmd = [sys.executable, "-m", "rigctl_gui.app", "--drum-port", ports["drum"], "--taxel-port", ports["taxel"],
                "--tab", "live", "--run", "--stats-out", stats_path, "--quit-after", str(duration + WARMUP_S + 15)]
         if screenshot:
             cmd += ["--screenshot", screenshot]

@@ -1,4 +1,4 @@
-"""What the analysis tab runs in its worker process (:class:`gui.workers.ProcessJob`): plain calls into
+"""What the analysis tab runs in its worker process (:class:`rigctl_gui.workers.ProcessJob`): plain calls into
 :mod:`rigctl.encoding.pipeline` and :mod:`rigctl.analysis`, in the order ``rigctl encode`` / ``rigctl analyze``
 use them. No Qt here (the child process never imports it)."""
 

@@ -12,7 +12,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from gui.workers import Job, ProcessJob
+from rigctl_gui.workers import Job, ProcessJob
 from rigctl.core import PAPER_SENSOR, SensorLayout
 
 #: Fig. 3 / report colours per variant
@@ -36,7 +36,7 @@ def file_kind(path: str) -> str:
 
 
 class AnalysisTab(QtWidgets.QWidget):
-    """The offline analysis tab; ``main`` is the :class:`gui.app.MainWindow`."""
+    """The offline analysis tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
     def __init__(self, main, parent=None):
         super().__init__(parent)
@@ -392,17 +392,17 @@ class AnalysisTab(QtWidgets.QWidget):
         return self.job is not None and not self.job.done
 
     def encode(self) -> None:
-        from gui.analysis_jobs import encoded_path_for
+        from rigctl_gui.analysis_jobs import encoded_path_for
 
         if self.kind != "session" or self._busy():
             return
         out = encoded_path_for(self.path)
-        self._start(ProcessJob("gui.analysis_jobs:encode", session_path=self.path, out_path=out), "encoding")
+        self._start(ProcessJob("rigctl_gui.analysis_jobs:encode", session_path=self.path, out_path=out), "encoding")
 
     def run_analyses(self) -> None:
         if self.path is None or self._busy():
             return
-        self._start(ProcessJob("gui.analysis_jobs:analyse", path=self.encoded_path or self.path,
+        self._start(ProcessJob("rigctl_gui.analysis_jobs:analyse", path=self.encoded_path or self.path,
                                cv=self.do_cv.isChecked(), extrapolation=self.do_extra.isChecked(),
                                repeats=self.repeats.value(), n_pcs=self.n_pcs.value(),
                                per_texture=self.per_texture.value()), "analyses")
@@ -412,7 +412,7 @@ class AnalysisTab(QtWidgets.QWidget):
         if path is None or self._busy():
             self.status.setText("encode the file first (or open an encoded file)")
             return
-        self._start(ProcessJob("gui.analysis_jobs:train_classifier", path=path,
+        self._start(ProcessJob("rigctl_gui.analysis_jobs:train_classifier", path=path,
                                variant=self.model_variant.currentText(), n_pcs=self.model_pcs.value()), "training")
 
     def _start(self, job, kind: str) -> None:

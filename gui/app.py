@@ -1,6 +1,6 @@
 """The main window and the application entry point.
 
-``python -m gui.app [--drum-port P --taxel-port P] [--replay PATH] [--screenshot PATH --quit-after S] [--tab NAME]``
+``python -m rigctl_gui.app [--drum-port P --taxel-port P] [--replay PATH] [--screenshot PATH --quit-after S] [--tab NAME]``
 (also ``rigctl gui``). With no ports the app starts on the simulated rig.
 
 The window holds a big STOP button that is always visible, a non-modal banner for disconnects, one tab per panel
@@ -18,7 +18,7 @@ import time
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
+from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
 
 #: the app's refresh period (ms): 25 ms = 40 Hz, so the live view keeps >= 30 frames/s with slack
 REFRESH_MS = 25
@@ -50,14 +50,14 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def __init__(self, source: RigSource | None = None, *, autoconnect: bool = True):
         super().__init__()
-        from gui.analysis_tab import AnalysisTab
-        from gui.calibration_tab import CalibrationTab
-        from gui.classify_view import ClassifyView
-        from gui.connect_dialog import ConnectDialog, load_source, save_source
-        from gui.control_panel import ControlPanel
-        from gui.live_view import LiveView
-        from gui.protocol_tab import ProtocolTab
-        from gui.status_bar import Banner, LinkStatus
+        from rigctl_gui.analysis_tab import AnalysisTab
+        from rigctl_gui.calibration_tab import CalibrationTab
+        from rigctl_gui.classify_view import ClassifyView
+        from rigctl_gui.connect_dialog import ConnectDialog, load_source, save_source
+        from rigctl_gui.control_panel import ControlPanel
+        from rigctl_gui.live_view import LiveView
+        from rigctl_gui.protocol_tab import ProtocolTab
+        from rigctl_gui.status_bar import Banner, LinkStatus
 
         self._ConnectDialog, self._save_source = ConnectDialog, save_source
         self.settings = make_settings()

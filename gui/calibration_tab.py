@@ -15,7 +15,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtWidgets
 
-from gui.workers import Job
+from rigctl_gui.workers import Job
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 
@@ -31,7 +31,7 @@ def axis_layers(layout: SensorLayout) -> str:
 
 
 class CalibrationTab(QtWidgets.QWidget):
-    """The calibration tab; ``main`` is the :class:`gui.app.MainWindow`."""
+    """The calibration tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
     def __init__(self, main, parent=None):
         super().__init__(parent)

@@ -10,7 +10,7 @@ import collections
 import numpy as np
 from PySide6 import QtCore, QtWidgets
 
-from gui.workers import Job
+from rigctl_gui.workers import Job
 
 MAX_TILES = 60
 
@@ -43,7 +43,7 @@ def classify_trial(clf, taxel_min, taxel_max, taxels: np.ndarray, speed_mm_s: fl
 
 
 class ClassifyView(QtWidgets.QWidget):
-    """The real-time classification tab; ``main`` is the :class:`gui.app.MainWindow`."""
+    """The real-time classification tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
     def __init__(self, main, parent=None):
         super().__init__(parent)

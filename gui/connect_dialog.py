@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from PySide6 import QtCore, QtWidgets
 
-from gui.workers import RigSource
+from rigctl_gui.workers import RigSource
 
 
 def load_source(settings: QtCore.QSettings) -> RigSource:
@@ -36,7 +36,7 @@ def list_ports():
 
 
 class ConnectDialog(QtWidgets.QDialog):
-    """Pick a rig source. :meth:`source` returns the choice as a :class:`gui.workers.RigSource`."""
+    """Pick a rig source. :meth:`source` returns the choice as a :class:`rigctl_gui.workers.RigSource`."""
 
     def __init__(self, current: RigSource, parent=None):
         super().__init__(parent)

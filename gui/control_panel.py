@@ -1,8 +1,8 @@
 """Rig control panel: drum speed and force setpoints within the controller's limits, run/stop/tare/home, the
 controller state and fault bits in words, and live plots of load-cell force vs setpoint and drum speed vs target.
 
-All drum calls go through :class:`gui.workers.CommandExecutor` (a worker thread); the plots are redrawn from the
-:class:`gui.workers.StatusPoller` history by a QTimer.
+All drum calls go through :class:`rigctl_gui.workers.CommandExecutor` (a worker thread); the plots are redrawn from the
+:class:`rigctl_gui.workers.StatusPoller` history by a QTimer.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def fault_words(faults: int) -> str:
 
 
 class ControlPanel(QtWidgets.QWidget):
-    """The rig control tab. Call :meth:`attach` with a connected :class:`gui.workers.RigHandle`'s workers."""
+    """The rig control tab. Call :meth:`attach` with a connected :class:`rigctl_gui.workers.RigHandle`'s workers."""
 
     def __init__(self, parent=None):
         super().__init__(parent)

@@ -7,8 +7,8 @@ cols grid), the raster rows (``layout.n_channels`` trains per population), the t
 the count ranges (``adc_max``).
 
 Everything is drawn from fixed-size buffers filled from the taxel stream's ring buffer (never the file):
-:class:`gui.workers.TraceBuffer` (pulled in the GUI thread, so a frame reaches the screen without waiting for a
-worker) and the spike rings of :class:`gui.workers.LiveEncoder` (a worker thread), by :meth:`LiveView.refresh`,
+:class:`rigctl_gui.workers.TraceBuffer` (pulled in the GUI thread, so a frame reaches the screen without waiting for a
+worker) and the spike rings of :class:`rigctl_gui.workers.LiveEncoder` (a worker thread), by :meth:`LiveView.refresh`,
 called from the main window's QTimer at >= 30 Hz. Each
 raster population is ONE curve with ``connect='pairs'`` (one short vertical tick per spike), so redrawing costs one
 item per population however many spikes there are (pyqtgraph #1039/#1737/#2158).
@@ -22,7 +22,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from gui.workers import TraceBuffer
+from rigctl_gui.workers import TraceBuffer
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 #: most spikes drawn per population and refresh; beyond that the newest are kept (decimation)
@@ -95,7 +95,7 @@ class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
 
 
 class LiveView(QtWidgets.QWidget):
-    """The live tab. Call :meth:`attach` with the taxel stream and a running :class:`gui.workers.LiveEncoder`; the
+    """The live tab. Call :meth:`attach` with the taxel stream and a running :class:`rigctl_gui.workers.LiveEncoder`; the
     plots are rebuilt for the stream's layout (``layout`` is the one shown before anything is attached)."""
 
     def __init__(self, parent=None, *, window_s: float = 5.0, raster_s: float = 2.0,

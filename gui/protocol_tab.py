@@ -11,7 +11,7 @@ import time
 
 from PySide6 import QtWidgets
 
-from gui.workers import Job
+from rigctl_gui.workers import Job
 
 PLAN_COLUMNS = ("trial", "texture", "speed (mm/s)", "force (g)", "duration (s)", "profile", "status")
 
@@ -22,7 +22,7 @@ def _fmt_s(s: float) -> str:
 
 
 class ProtocolTab(QtWidgets.QWidget):
-    """The protocol tab; ``main`` is the :class:`gui.app.MainWindow` (for the rig and the classification view)."""
+    """The protocol tab; ``main`` is the :class:`rigctl_gui.app.MainWindow` (for the rig and the classification view)."""
 
     def __init__(self, main, parent=None):
         super().__init__(parent)

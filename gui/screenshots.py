@@ -1,10 +1,10 @@
-"""Take the documentation screenshots from the real app: ``python -m gui.screenshots docs/screenshots``.
+"""Take the documentation screenshots from the real app: ``python -m rigctl_gui.screenshots docs/screenshots``.
 
-Run it under an X server (``xvfb-run -a -s "-screen 0 1600x1000x24" python -m gui.screenshots docs/screenshots``).
+Run it under an X server (``xvfb-run -a -s "-screen 0 1600x1000x24" python -m rigctl_gui.screenshots docs/screenshots``).
 It opens the main window on the simulated rig and drives each tab the way an experimenter would (mount a plate and
 run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
-analysis_table1.png, calibration.png, classify.png. ``python -m gui.screenshots OUT_DIR live calibration`` takes only
+analysis_table1.png, calibration.png, classify.png. ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
 the rig-side shots (control.png, calibration.png, live.png: about 40 s instead of several minutes).
 """
 
@@ -17,7 +17,7 @@ import time
 
 from PySide6 import QtWidgets
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 QUICK = """
 name = "screenshot_demo"
@@ -49,8 +49,8 @@ def main(out_dir: str, only: list[str] | None = None) -> int:
 
     QtCore.QSettings.setPath(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, os.path.join(tmp, "settings"))
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
-    from gui.app import MainWindow, configure_pyqtgraph
-    from gui.workers import RigSource
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph
+    from rigctl_gui.workers import RigSource
 
     configure_pyqtgraph()
     w = MainWindow(RigSource("sim"))

@@ -40,7 +40,7 @@ _PROBE = textwrap.dedent("""
 """)
 
 #: layer -> (modules of it not checked, forbidden modules)
-_ALL_RIGCTL = ["PySide6", "pyqtgraph", "gui"]
+_ALL_RIGCTL = ["PySide6", "pyqtgraph", "rigctl_gui"]
 RULES: dict[str, tuple[list[str], list[str]]] = {
     "rigctl.core": ([], ["rigctl.devices", "rigctl.simulation", "rigctl.acquisition", "rigctl.storage",
                          "rigctl.encoding", "rigctl.analysis", "rigctl.cli", "rigctl.rigs", "rigctl.texture_set"]

@@ -39,7 +39,7 @@ def gui(drum_port, taxel_port, replay, screenshot, overwrite, quit_after, tab, r
         check_output(screenshot, option="--screenshot", overwrite=overwrite, inputs=(replay,),
                      suffixes=SCREENSHOT_SUFFIXES)
     try:
-        from gui.app import main
+        from rigctl_gui.app import main
     except ImportError as exc:
         raise click.ClickException(f"the desktop app needs the 'gui' extra (PySide6, pyqtgraph): {exc}") from None
     argv = []

@@ -10,7 +10,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import pytest  # noqa: E402
 
-from gui.events import wait_for  # noqa: E402
+from rigctl_gui.events import wait_for  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -27,8 +27,8 @@ def gui_home(tmp_path_factory):
 @pytest.fixture(scope="module")
 def window(qapp, gui_home):
     """The main window connected to a fresh simulated rig (module-scoped); closed (rig stopped) afterwards."""
-    from gui.app import MainWindow, configure_pyqtgraph
-    from gui.workers import RigSource
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph
+    from rigctl_gui.workers import RigSource
 
     configure_pyqtgraph()
     w = MainWindow(RigSource("sim"))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PySide6 import QtCore
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 PROTOCOL = """
 name = "gui_analysis"
@@ -126,7 +126,7 @@ def lone_tab(qapp, gui_home):
     """The analysis tab on its own (no rig needed to browse and analyse files), shown offscreen."""
     from PySide6 import QtCore as _QtCore
 
-    from gui.analysis_tab import AnalysisTab
+    from rigctl_gui.analysis_tab import AnalysisTab
 
     main = SimpleNamespace(settings=_QtCore.QSettings(), classify=None)
     tab = AnalysisTab(main)
@@ -206,8 +206,8 @@ def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot
     assert sy is not None and len(sy) > 0 and sy.max() <= 8.5
     assert tab.heat_plots[0][1].image.shape == (3, 3)
     # the real-time view's classifier on this sensor: trials encoded like the file (its windows, its 100 Hz rate)
-    from gui.analysis_jobs import train_classifier
-    from gui.classify_view import classify_trial
+    from rigctl_gui.analysis_jobs import train_classifier
+    from rigctl_gui.classify_view import classify_trial
     from rigctl.storage.encoded import open_encoded
     from rigctl.storage.session import open_session
 

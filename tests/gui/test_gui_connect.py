@@ -4,13 +4,13 @@ persists in QSettings, and the FabricSlide replay streams recorded signals into 
 from __future__ import annotations
 
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 
 def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_path):
-    from gui.app import make_settings
-    from gui.connect_dialog import ConnectDialog, load_source, save_source
-    from gui.workers import RigSource
+    from rigctl_gui.app import make_settings
+    from rigctl_gui.connect_dialog import ConnectDialog, load_source, save_source
+    from rigctl_gui.workers import RigSource
     from rigctl.devices.ports import find_ports
     from rigctl.simulation.rig import SimulatedRig
 
@@ -39,7 +39,7 @@ def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_
 
 
 def test_fabricslide_replay_source_feeds_the_live_view(window, qapp, fabricslide_dir):
-    from gui.workers import RigSource
+    from rigctl_gui.workers import RigSource
 
     window.connect_source(RigSource("replay", replay_dir=str(fabricslide_dir)))
     assert wait_for(qapp, lambda: window.handle is not None or "Could not" in window.banner.label.text(), 90), \
@@ -58,8 +58,8 @@ def test_connect_dialog_picks_a_session_file_to_replay(qapp, gui_home, tmp_path,
     """A session file of any sensor can be chosen for replay (not only a FabricSlide folder)."""
     from PySide6 import QtWidgets
 
-    from gui.connect_dialog import ConnectDialog
-    from gui.workers import RigSource
+    from rigctl_gui.connect_dialog import ConnectDialog
+    from rigctl_gui.workers import RigSource
 
     session = tmp_path / "finger9.h5"
     session.write_bytes(b"")

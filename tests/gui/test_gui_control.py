@@ -8,7 +8,7 @@ from PySide6 import QtCore
 
 from rigctl.devices.wire import DrumState, HoldingRegister
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 
 def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbot):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 from rigctl.core.sensor import SensorLayout
 
 FINGER_100HZ = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="finger 3x3")
@@ -42,9 +42,9 @@ def finger_board(tmp_path):
 
 
 def test_live_view_on_a_streamed_9_channel_100hz_sensor(qapp, finger_board):
-    from gui.app import configure_pyqtgraph
-    from gui.live_view import LiveView
-    from gui.workers import LiveEncoder
+    from rigctl_gui.app import configure_pyqtgraph
+    from rigctl_gui.live_view import LiveView
+    from rigctl_gui.workers import LiveEncoder
     from rigctl.devices.taxel_stream import TaxelStream
 
     configure_pyqtgraph()

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout, parse_layout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 
@@ -65,7 +65,7 @@ class FakeEncoder:
     """The part of :class:`gui.workers.LiveEncoder` the live view reads: SA/RA spike rings, ready, error."""
 
     def __init__(self, n_channels: int, now_s: float):
-        from gui.workers import SpikeRing
+        from rigctl_gui.workers import SpikeRing
 
         self.sa, self.ra = SpikeRing(), SpikeRing()
         ch = np.arange(n_channels, dtype=np.int16)
@@ -77,8 +77,8 @@ class FakeEncoder:
 
 @pytest.fixture
 def live_view(qapp):
-    from gui.app import configure_pyqtgraph
-    from gui.live_view import LiveView
+    from rigctl_gui.app import configure_pyqtgraph
+    from rigctl_gui.live_view import LiveView
 
     configure_pyqtgraph()
     views = []
@@ -159,7 +159,7 @@ def test_default_live_view_is_the_papers(live_view, qapp):
     assert [img.image.shape for img in view.images] == [(3, 3), (3, 3)]
     ticks = view.raster_plots["sa"].getAxis("left")._tickLevels[0]
     assert [t for t, _ in ticks] == [0, 3, 6, 9, 12, 15]
-    from gui.live_view import layer_titles
+    from rigctl_gui.live_view import layer_titles
 
     assert [layer_titles(PAPER_SENSOR, i)[1] for i in range(2)] == ["Top 3x3 (type I) now", "Bottom 3x3 (type II) now"]
 
@@ -178,7 +178,7 @@ def test_live_view_rebuilds_for_a_new_rig(live_view, qapp):
 
 def test_live_encoder_on_a_9_channel_100hz_stream(qapp):
     """The real streaming encoder on a 9-taxel stream at 100 Hz: 9 SA and 9 RA trains, times in s at 100 Hz."""
-    from gui.workers import LiveEncoder
+    from rigctl_gui.workers import LiveEncoder
 
     stream = FakeStream(FINGER_100HZ)
     enc = LiveEncoder(stream, poll_s=0.01)
@@ -218,7 +218,7 @@ class _Main:
 
 
 def test_calibration_tab_per_taxel_normalisation_follows_the_layout(qapp, tmp_path):
-    from gui.calibration_tab import CalibrationTab
+    from rigctl_gui.calibration_tab import CalibrationTab
     from rigctl.acquisition.calibration import update_rig_config
 
     cfg = tmp_path / "rig.json"
@@ -252,7 +252,7 @@ def test_calibration_tab_per_taxel_normalisation_follows_the_layout(qapp, tmp_pa
 
 
 def test_control_panel_offers_the_rigs_texture_set(qapp):
-    from gui.control_panel import ControlPanel
+    from rigctl_gui.control_panel import ControlPanel
 
     panel = ControlPanel()
     assert [panel.plate.itemText(i) for i in range(panel.plate.count())] == list(PAPER_TEXTURES.labels)
@@ -285,7 +285,7 @@ def test_control_panel_offers_the_rigs_texture_set(qapp):
 
 def test_heat_map_of_a_row_of_taxels_is_a_strip_not_a_line(live_view, qapp):
     """Square taxels for grids up to 4:1 (the paper's 3x3 unchanged); a 1x16 row (FabricSlide) is shown 4:1."""
-    from gui.live_view import heatmap_aspect
+    from rigctl_gui.live_view import heatmap_aspect
 
     assert heatmap_aspect(3, 3) == 1.0 and heatmap_aspect(2, 8) == 1.0
     assert heatmap_aspect(1, 16) == pytest.approx(0.25) and heatmap_aspect(16, 1) == pytest.approx(4.0)
@@ -317,8 +317,8 @@ def test_channel_names_label_the_rasters_and_heat_maps(live_view, qapp):
 def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_path):
     """Another taxel board on the link (the stream's layout and ring change): the live view, its encoder and the
     calibration tab are rebuilt for it; nothing is rebuilt while the sensor stays the same."""
-    from gui.app import MainWindow, configure_pyqtgraph
-    from gui.workers import LiveEncoder
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph
+    from rigctl_gui.workers import LiveEncoder
 
     class Rig:
         layout = None

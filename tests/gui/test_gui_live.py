@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 
 def test_live_traces_heatmap_and_rasters(window, qapp):

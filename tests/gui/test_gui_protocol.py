@@ -13,7 +13,7 @@ from PySide6 import QtCore
 from rigctl.devices.wire import HoldingRegister
 from rigctl.storage.session import open_session
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 PROTOCOL = """
 name = "gui_test"

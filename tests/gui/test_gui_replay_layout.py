@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from gui.events import wait_for
+from rigctl_gui.events import wait_for
 
 RATE_HZ = 100
 #: texture -> the sine frequency of its recordings (Hz)
@@ -67,8 +67,8 @@ def _dominant_hz(x: np.ndarray, rate_hz: float) -> float:
 
 
 def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session, tmp_path):
-    from gui.app import MainWindow, configure_pyqtgraph
-    from gui.workers import RigSource
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph
+    from rigctl_gui.workers import RigSource
     from rigctl.devices.wire import DrumState
 
     configure_pyqtgraph()
