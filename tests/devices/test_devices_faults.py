@@ -344,3 +344,29 @@ def test_the_proxy_forwards_both_ways_and_counts_exactly_what_it_did(tmp_path):
             assert (tmp_path / "host").exists() and proxy.stats().restores == 1
     finally:
         board.close()
+
+
+def test_a_timeout_on_a_direct_transport_is_retried_without_a_fence():
+    """A transport that calls the controller directly (the in-process rig) cannot deliver an answer late, so a
+    timeout there is retried at once (no fence read over a serial link it does not have)."""
+    from pymodbus.exceptions import ModbusIOException
+    from pymodbus.pdu.register_message import ReadHoldingRegistersResponse
+
+    class Flaky:
+        calls = 0
+
+        def connect(self):
+            return True
+
+        def close(self):
+            pass
+
+        def read_holding_registers(self, address, *, count=1, device_id=1):
+            Flaky.calls += 1
+            if Flaky.calls == 1:
+                raise ModbusIOException("no answer")
+            return ReadHoldingRegistersResponse(registers=[address + i for i in range(count)])
+
+    client = DrumClient("direct", transport=Flaky(), retries=2).open()
+    assert client.read_holdings(7, 2) == [7, 8]
+    assert (Flaky.calls, client.timeouts, client.fences) == (2, 1, 0)
