@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -25,7 +26,9 @@ __all__ = [
     "to_csv",
     "plot_curves",
     "plot_confusions",
-    "qualitative_checks",
+    "paper_ordering",
+    "format_ordering",
+    "OrderingPair",
 ]
 
 TABLE1_ROWS = ("textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed", "trained")
@@ -121,39 +124,70 @@ def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True
     return "\n".join(lines)
 
 
-_FOUR = {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}
+#: paper values closer than this (percentage points) set no ordering to check
+ORDERING_MARGIN_PCT = 3.0
 
 
-def qualitative_checks(res: TaskResults, n_pcs=50):
-    """The paper's qualitative result on the extrapolation cells, checked on ``res``.
+@dataclass(frozen=True)
+class OrderingPair:
+    """One pair of variants in a Table 1 row whose paper values differ by more than the margin.
+
+    ``paper_diff`` and ``our_diff`` are ``mu(first) - mu(second)`` in percentage points (paper at 50 PCs, ours at the
+    table's PC count); ``holds`` is whether they have the same sign."""
+
+    first: str
+    second: str
+    paper_diff: float
+    our_diff: float
+
+    @property
+    def holds(self) -> bool:
+        return self.paper_diff * self.our_diff > 0
+
+    def describe(self) -> str:
+        """``"Force Scaled > Original (paper +10.4, here -3.1)"``, in the paper's direction."""
+        hi, lo = (self.first, self.second) if self.paper_diff > 0 else (self.second, self.first)
+        sign = 1 if self.paper_diff > 0 else -1
+        return (f"{VARIANT_TITLES.get(hi, hi)} > {VARIANT_TITLES.get(lo, lo)} "
+                f"(paper {sign * self.paper_diff:+.1f}, here {sign * self.our_diff:+.1f})")
+
+
+def paper_ordering(res: TaskResults, n_pcs=50, *, margin=ORDERING_MARGIN_PCT) -> dict[str, list[OrderingPair]]:
+    """Whether each Table 1 row orders the variants as the paper's does.
+
+    Every pair of variants present in a row whose paper values (:data:`PAPER_TABLE1`) differ by more than ``margin``
+    percentage points must differ the same way here. Rows with a prefix (e.g. ``baseline_removed:``) are not the
+    paper's and are skipped.
 
     Returns
     -------
     dict
-        check name -> bool (only checks whose tasks and variants are present):
-        ``untrained_speed_force``: SFS > SS and SFS > FS and min(SS, FS) > Original;
-        ``untrained_force``: min(FS, SFS) > max(Original, SS);
-        ``untrained_speed``: min(SS, SFS) > max(Original, FS).
+        task -> the pairs checked (:class:`OrderingPair`; ``all(p.holds for p in pairs)`` is the row's verdict);
+        rows with no pair to check are left out.
     """
     tab = table1(res, _pcs_used(res, n_pcs))
-    out = {}
-
-    def mu(t, v):
-        return tab[t][v][0]
-
-    if "untrained_speed_force" in tab and _FOUR <= set(tab["untrained_speed_force"]):
-        t = "untrained_speed_force"
-        out[t] = bool(mu(t, "speed_force_scaled") > max(mu(t, "speed_scaled"), mu(t, "force_scaled"))
-                      and min(mu(t, "speed_scaled"), mu(t, "force_scaled")) > mu(t, "original"))
-    if "untrained_force" in tab and _FOUR <= set(tab["untrained_force"]):
-        t = "untrained_force"
-        out[t] = bool(min(mu(t, "force_scaled"), mu(t, "speed_force_scaled"))
-                      > max(mu(t, "original"), mu(t, "speed_scaled")))
-    if "untrained_speed" in tab and _FOUR <= set(tab["untrained_speed"]):
-        t = "untrained_speed"
-        out[t] = bool(min(mu(t, "speed_scaled"), mu(t, "speed_force_scaled"))
-                      > max(mu(t, "original"), mu(t, "force_scaled")))
+    out: dict[str, list[OrderingPair]] = {}
+    for task, row in tab.items():
+        ref = PAPER_TABLE1.get(task)
+        if ref is None:
+            continue
+        present = [v for v in VARIANTS if v in row and v in ref]
+        pairs = [OrderingPair(a, b, ref[a][0] - ref[b][0], row[a][0] - row[b][0])
+                 for i, a in enumerate(present) for b in present[i + 1:] if abs(ref[a][0] - ref[b][0]) > margin]
+        if pairs:
+            out[task] = pairs
     return out
+
+
+def format_ordering(res: TaskResults, n_pcs=50) -> str:
+    """One line per Table 1 row: whether the paper's ordering of the variants holds, and the pairs that break it."""
+    lines = []
+    for task, pairs in paper_ordering(res, n_pcs).items():
+        broken = [p for p in pairs if not p.holds]
+        verdict = (f"holds ({len(pairs)} pairs)" if not broken else
+                   f"NOT held: {len(broken)} of {len(pairs)} pairs reversed: " + "; ".join(p.describe() for p in broken))
+        lines.append(f"paper's ordering, {TASK_TITLES.get(task, task)}: {verdict}")
+    return "\n".join(lines)
 
 
 def to_dict(res: TaskResults, n_pcs=50, *, source=None):
@@ -161,7 +195,11 @@ def to_dict(res: TaskResults, n_pcs=50, *, source=None):
     ``n_pcs`` (percent), the comparisons vs Original at ``n_pcs`` and the confusion matrices."""
     used = _pcs_used(res, n_pcs)
     out = {"source": source, "table_pcs": used, "settings": res.settings, "counts": res.counts,
-           "warnings": res.warnings, "tasks": {}, "qualitative": qualitative_checks(res, used)}
+           "warnings": res.warnings, "tasks": {}, "ordering": {
+               t: {"holds": all(p.holds for p in pairs),
+                   "pairs": [{"first": p.first, "second": p.second, "paper_diff_pct": p.paper_diff,
+                              "our_diff_pct": p.our_diff, "holds": p.holds} for p in pairs]}
+               for t, pairs in paper_ordering(res, used).items()}}
     for task, by_v in res.curves.items():
         out["tasks"][task] = {
             "title": TASK_TITLES.get(task, task),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 import tempfile
 import warnings
@@ -11,7 +12,7 @@ import click
 
 from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, same_file
 
-TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all")
+TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all", "variance")
 
 
 def _parse_pcs(text):
@@ -67,6 +68,15 @@ def _load(path, encode, variants, task="table1"):
         click.echo(f"encoding {path} on the fly (rigctl encode) ...", err=True)
         encode_session(path, out)
         return load_features(out, variants or default_variants(list_variants(out), task))
+
+
+def _variance(fs, variants):
+    from rigctl.analysis.variance import decompose_all
+
+    try:
+        return decompose_all(fs, variants)
+    except (ValueError, KeyError) as exc:
+        raise click.ClickException(f"--variance: {exc}") from None
 
 
 def _check_pcs(fs, n_pcs, explicit):
@@ -132,11 +142,14 @@ def _check_outputs(file, new_session, overwrite, **outputs):
 @click.option("--model-pcs", type=click.IntRange(1), default=25, show_default=True)
 @click.option("--encode", "encode_", is_flag=True, help="If FILE is a session file, encode it first.")
 @click.option("--threads", type=click.IntRange(1), default=None, help="Limit BLAS threads (busy machines).")
+@click.option("--variance", is_flag=True,
+              help="Also print where the feature variance lies (texture, condition, interaction, residual; per "
+                   "variant). --task variance prints only that.")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @click.pass_context
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-            train_profiles, save_model, model_variant, model_pcs, encode_, threads, progress):
+            train_profiles, save_model, model_variant, model_pcs, encode_, threads, progress, variance):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
     Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
@@ -151,7 +164,8 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
     try:
         _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
              confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-             train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs)
+             train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs,
+             variance=variance or task == "variance")
     finally:
         if limiter is not None:
             limiter.unregister()
@@ -159,7 +173,8 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
 
 def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
          confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-         train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs=False):
+         train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs=False,
+         variance=False):
     from rigctl.analysis import report, tasks
 
     n_pcs = _parse_pcs(pcs)
@@ -169,6 +184,17 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
     _check_variants(file, vlist)
     fs = _load(file, encode_, vlist, task)
     _check_pcs(fs, n_pcs, explicit_pcs)
+    from rigctl.analysis.variance import format_variance
+
+    shares = _variance(fs, vlist) if variance else None
+    if task == "variance":
+        if as_json:
+            click.echo(json.dumps({"source": str(file), "variance": [r.as_dict() for r in shares]}, indent=1))
+        else:
+            click.echo(format_variance(shares))
+        return
+    if shares is not None and not as_json:
+        click.echo(format_variance(shares) + "\n")
     if task == "speed-extrapolation" and not train_speeds:
         raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
 
@@ -246,11 +272,15 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
         with replacing(confusion) as tmp:
             report.plot_confusions(res_all, tmp, pick)
     if as_json:
-        click.echo(report.to_json(res_all, table_pcs, source=str(file)))
+        if shares is None:
+            click.echo(report.to_json(res_all, table_pcs, source=str(file)))
+        else:
+            out = report.to_dict(res_all, table_pcs, source=str(file))
+            out["variance"] = [r.as_dict() for r in shares]
+            click.echo(json.dumps(out, indent=1, default=float))
     else:
         click.echo(report.format_table1(res_all, table_pcs, compare_paper=compare_paper))
-        checks = report.qualitative_checks(res_all, table_pcs)
-        if checks:
-            click.echo("paper's qualitative result: " + ", ".join(f"{k} {'yes' if ok else 'NO'}"
-                                                                 for k, ok in checks.items()))
+        ordering = report.format_ordering(res_all, table_pcs)
+        if ordering:
+            click.echo(ordering)
     sys.stdout.flush()

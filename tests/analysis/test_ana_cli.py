@@ -45,7 +45,7 @@ def test_json_output_shape(encoded, tmp_path):
             assert 0 <= v["table"]["mu_pct"] <= 100
         assert {c["variant"] for c in task["comparisons"]} == {"speed_scaled", "force_scaled", "speed_force_scaled"}
     assert out["counts"]["cv"]["per_texture"] == 75
-    assert set(out["qualitative"]) == {"untrained_speed_force", "untrained_force", "untrained_speed"}
+    assert set(out["ordering"]) == {"textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed"}
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     assert len(csv.read_text().splitlines()) == 1 + 6 * 4 * 8
 
