@@ -74,6 +74,12 @@ class TaxelStreamError(Exception):
     """The taxel streamer (Uno) could not be opened, did not send its banner, or answered nonsense."""
 
 
+class TaxelLinkLost(TaxelStreamError):
+    """The taxel streamer's port vanished or failed while open (cable pulled, board reset, I/O error): what
+    :class:`rigctl.devices.taxel_stream.TaxelStream` reports to ``on_error`` and keeps in ``last_error``, whatever the
+    operating system or pyserial raised (that error is ``__cause__``)."""
+
+
 def describe_faults(faults: int) -> str:
     """Names of the set fault bits in words, e.g. ``"FORCE_LIMIT (measured force exceeded FORCE_LIMIT_G)"``."""
     words = {

@@ -33,7 +33,7 @@ import serial
 
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 from rigctl.devices import wire
-from rigctl.devices.errors import TaxelStreamError
+from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
 from rigctl.devices.ring import RingBuffer
 
@@ -144,8 +144,9 @@ class TaxelStream:
         Length of the live ring buffer, s (at the link's rate, from the banner).
     banner_timeout_s : float
         How long :meth:`open` waits for ``#RIGCTL-UNO READY`` after opening (the Uno resets on open).
-    on_error : callable(Exception) or None
-        Called from the reader thread when the port vanishes or fails.
+    on_error : callable(TaxelLinkLost) or None
+        Called from the reader thread when the port vanishes or fails, with a
+        :class:`~rigctl.devices.errors.TaxelLinkLost` (the OS or pyserial error as its ``__cause__``).
     reconnect : bool
         Reopen a vanished port automatically (backoff 0.1 s doubling to 2 s).
     read_timeout_s : float
@@ -555,7 +556,11 @@ class TaxelStream:
             self._lines.put(m.group(0).decode("ascii", "replace").strip())
             self._text = self._text[m.end():]
 
-    def _port_lost(self, exc: Exception) -> None:
+    def _port_lost(self, cause: Exception) -> None:
+        exc = cause
+        if not isinstance(cause, TaxelLinkLost):
+            exc = TaxelLinkLost(f"taxel streamer on {self.port} vanished: {cause}")
+            exc.__cause__ = cause
         self.last_error = exc
         with self._lock:
             self._stats.connected = False
@@ -563,7 +568,7 @@ class TaxelStream:
                 self._loss_in_capture = self._capture is not None
             self._gap_pending = True
             self._rate.clear()  # the receive rate restarts with the reconnected stream
-        log.warning("taxel streamer on %s vanished: %s", self.port, exc)
+        log.warning("%s", exc)
         if self.on_error is not None:
             try:
                 self.on_error(exc)
