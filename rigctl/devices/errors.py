@@ -33,7 +33,7 @@ class ModbusExceptionError(DrumError):
         self.exception_code = exception_code
         self.value = value
         name = self.EXCEPTION_NAMES.get(exception_code, "unknown exception")
-        what = f" writing {value!r}" if value is not None else ""
+        what = f" writing {value}" if value is not None else ""  # str: a numpy value reads as its number
         super().__init__(
             f"Modbus exception {exception_code} ({name}) from the drum controller on register {register}"
             f"{what} (function {function_code})"
