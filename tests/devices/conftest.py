@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from rigctl.devices.drum import DrumClient
+from rigctl.simulation.counting import CountingSource
 from rigctl.simulation.model import RigModel
 from rigctl.simulation.virtual_mega import VirtualMega
 from rigctl.simulation.virtual_uno import VirtualUno
@@ -24,19 +24,6 @@ def drum(mega):
     """A DrumClient connected to the ``mega`` fixture."""
     with DrumClient(mega.path, timeout_s=0.5, retries=2, poll_s=0.02) as client:
         yield client
-
-
-class CountingSource:
-    """Deterministic taxel samples: sample k (counted from the board's start) holds ``(k * 7 + channel) % 1024``."""
-
-    def __init__(self):
-        self.k = 0
-
-    def __call__(self, n):
-        k = self.k + np.arange(n)
-        self.k += n
-        samples = ((k[:, None] * 7 + np.arange(18)[None, :]) % 1024).astype(np.uint16)
-        return samples, (k % 500) == 0
 
 
 @pytest.fixture

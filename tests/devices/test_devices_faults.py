@@ -18,6 +18,7 @@ from rigctl.devices.drum import DrumClient, DrumStatus
 from rigctl.devices.errors import DrumError, DrumTimeout
 from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.devices.wire import Command, DrumState, HoldingRegister as HR
+from rigctl.simulation.counting import counting_samples
 from rigctl.simulation.fault_proxy import TO_BOARD, TO_HOST, FaultProxy, FaultRates
 
 
@@ -46,9 +47,8 @@ def _settle(stream, proxy, uno):
 
 
 def _expected_samples(uno, seq):
-    """The counting source's samples for the frames of the stream started last (tests/devices/conftest.py)."""
-    k = uno.stream_start_sample + seq.astype(np.int64)
-    return ((k[:, None] * 7 + np.arange(18)[None, :]) % 1024).astype(np.uint16)
+    """The counting source's samples for the frames of the stream started last (rigctl.simulation.counting)."""
+    return counting_samples(uno.stream_start_sample + seq.astype(np.int64))
 
 
 @pytest.fixture

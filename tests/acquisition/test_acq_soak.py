@@ -1,0 +1,24 @@
+"""The soak benchmark (benchmarks/bench_soak.py) for half a minute: faults on both links and kill -9 cycles, with
+every must-be-0 figure at 0 (the benchmark's own runs go for an hour)."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_soak.py"
+
+
+@pytest.mark.slow
+def test_a_short_soak_loses_nothing(tmp_path):
+    spec = importlib.util.spec_from_file_location("bench_soak", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = bench.run(0.5, seed=3, work=tmp_path)
+    assert out["failures"] == [], out
+    taxel, modbus, kill = out["taxel"], out["modbus"], out["kill"]
+    # the faults really happened and were survived
+    assert taxel["segments"] >= 1 and taxel["frames_sent"] > 5000 and taxel["crc_errors"] > 0
+    assert taxel["frames_recorded"] + taxel["frames_counted_lost"] + taxel["stale_frames"] >= taxel["frames_sent"]
+    assert modbus["answered"] > 100 and modbus["bytes_mangled"] > 0 and modbus["works_at_the_end"]
+    assert kill["kills"] >= 1 and kill["sessions_completed"] >= 1
