@@ -19,6 +19,7 @@ COMMANDS = {
     "import": "rigctl.cli.import_recordings:import_recordings",
     "import-fabricslide": "rigctl.cli.fabricslide:import_fabricslide",
     "gui": "rigctl.cli.gui:gui",
+    "export": "rigctl.cli.export:export",
 }
 
 SHORT_HELP = {
@@ -31,6 +32,7 @@ SHORT_HELP = {
     "import": "Import recordings of any sensor (CSV, NPY/NPZ, MAT, NWB) into a session file.",
     "import-fabricslide": "Import the FabricSlide recordings into a session file.",
     "gui": "Start the desktop app.",
+    "export": "Export a session (and its spike trains) as NWB.",
 }
 
 

@@ -232,6 +232,8 @@ def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | Non
             if variable not in series:
                 raise RecordingImportError(f"{path}: no TimeSeries {variable!r} (has: {', '.join(sorted(series))})")
             ts = series[variable]
+        elif "taxels" in series:  # a file rigctl exported (rigctl.storage.nwb)
+            ts = series["taxels"]
         elif series:
             ts = series[sorted(series)[0]]
         else:
@@ -241,7 +243,30 @@ def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | Non
         if rate is None and ts.timestamps is not None and len(ts.timestamps) > 1:
             rate = 1.0 / float(np.median(np.diff(np.asarray(ts.timestamps[()]))))
         meta = {"timeseries": ts.name, "unit": ts.unit, "conversion": float(ts.conversion)}
+        if rate and nwb.trials is not None and ts.name == "taxels":
+            meta["trials"] = _nwb_trials(nwb.trials.to_dataframe(), float(ts.starting_time or 0.0), float(rate),
+                                         data.shape[0])
+        device = nwb.devices.get("taxel_sensor") if nwb.devices else None
+        if device is not None and ts.name == "taxels":
+            try:
+                meta["sensor"] = json.loads(device.description)
+            except (TypeError, ValueError):
+                pass
     return data, (float(rate) if rate else None), meta
+
+
+def _nwb_trials(table, start_s: float, rate: float, n: int) -> list[dict] | None:
+    """The trials of an NWB trials table as sample ranges of the TimeSeries with their labels, or None when the rows
+    do not fall inside the series."""
+    out = []
+    for _, row in table.iterrows():
+        a = int(round((float(row["start_time"]) - start_s) * rate))
+        b = int(round((float(row["stop_time"]) - start_s) * rate))
+        if not 0 <= a < b <= n:
+            return None
+        labels = {k: row[k] for k in ("texture", "speed_mm_s", "force_g") if k in row.index}
+        out.append({"start": a, "stop": b, "labels": labels})
+    return out or None
 
 
 def read_recording_file(path: str | os.PathLike, *, channels: int | None = None, variable: str | None = None,
@@ -286,6 +311,10 @@ def read_recording_file(path: str | os.PathLike, *, channels: int | None = None,
         arr, rate, nwb_meta = _read_nwb(path, variable)
         meta.update(nwb_meta)
     blocks = _as_blocks(np.asarray(arr, dtype=np.float64), channels, str(path))
+    nwb_trials = meta.pop("trials", None)
+    if nwb_trials and len(blocks) == 1:  # an NWB trials table: one block per trial, labelled
+        blocks = [blocks[0][t["start"]:t["stop"]] for t in nwb_trials]
+        meta["block_labels"] = [t["labels"] for t in nwb_trials]
     for b in blocks:
         if b.shape[0] < 1:
             raise RecordingImportError(f"{path}: no samples")
@@ -642,6 +671,7 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
     out_rate = None
     n_ch = None
     n_clipped = 0
+    sensor_from_file = None  # an NWB file's own sensor description (rigctl exports it)
     for path in files:
         blocks, file_rate, meta = read_recording_file(path, channels=channels, variable=m.get("variable"),
                                                       columns=m.get("columns"), time_column=m.get("time_column"))
@@ -658,6 +688,12 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
             if key in per_file:
                 labels.update({_FIELD_ALIASES.get(k, k): v for k, v in per_file[key].items()})
         labels = {_FIELD_ALIASES.get(k, k): v for k, v in labels.items()}
+        block_labels = meta.pop("block_labels", None)
+        file_sensor = meta.pop("sensor", None)
+        if file_sensor is not None and sensor_from_file is None:
+            sensor_from_file = file_sensor
+        if block_labels and not labels.get("texture"):
+            labels["texture"] = "?"  # each block has its own (below)
         if not labels.get("texture"):
             raise RecordingImportError(f"{path}: no texture label: give --label-pattern, --texture or a mapping")
         labels["texture"] = str(labels["texture"])
@@ -687,6 +723,8 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
                                                             if "period_s" in seg_rec else {})})
             for si, (a, b) in enumerate(bounds):
                 lab = dict(labels)
+                if block_labels:
+                    lab.update({k: (str(v) if k == "texture" else float(v)) for k, v in block_labels[bi].items()})
                 if len(bounds) > 1 or len(blocks) > 1:
                     lab.pop("repeat", None)  # numbered per condition
                 attrs = {"source_file": path.name, "source_format": meta["format"], "source_rate_hz": src_rate,
@@ -697,7 +735,14 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
                     attrs.update({"segment_index": si, "segment_start_s": a / rate, "segment_stop_s": b / rate})
                 trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab, attrs))
     assert out_rate is not None and n_ch is not None
-    sl = _resolve_layout(n_ch, out_rate, channels=channels, layout=layout, sensor=m.get("sensor"), adc_bits=adc_bits)
+    file_layout = None
+    if sensor_from_file is not None and m.get("sensor") is None and layout is None and channels in (None, n_ch):
+        try:
+            file_layout = SensorLayout.from_dict(sensor_from_file).with_rate(out_rate)
+        except (TypeError, ValueError, KeyError):
+            file_layout = None
+    sl = file_layout if file_layout is not None and file_layout.n_channels == n_ch else _resolve_layout(
+        n_ch, out_rate, channels=channels, layout=layout, sensor=m.get("sensor"), adc_bits=adc_bits)
     steps["value_scale"] = ({"unit": "volts", "volts_ref": float(volts_ref), "formula": "rint(v / volts_ref * adc_max)"}
                             if volts_ref is not None else
                             {"unit": "counts", "scale": scale, "offset": offset, "formula": "rint(x * scale + offset)"})

@@ -1,0 +1,57 @@
+"""``rigctl export``: a session (and its encoded spike trains) in another format; ``rigctl export nwb``."""
+
+from __future__ import annotations
+
+import click
+
+from rigctl.cli.outputs import UsageProblem, check_output, replacing
+
+
+@click.group("export")
+def export():
+    """Write a session in a format other tools read (NWB)."""
+
+
+@export.command("nwb")
+@click.argument("session", type=click.Path(exists=True, dir_okay=False))
+@click.option("--encoded", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="The session's encoded file (rigctl encode): its spike trains become the NWB Units table.")
+@click.option("--variants", default=None,
+              help="Comma-separated variants whose spike trains are exported (default: the stored ones in real time, "
+                   "not speed-scaled).")
+@click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="The NWB file to write (.nwb).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def nwb(session, encoded, variants, out, overwrite, progress):
+    """Export SESSION as an NWB file: taxel readings (TimeSeries), drum and load-cell traces, the trials table, the
+    sensor and rig description, and with --encoded the SA/RA spike trains as a Units table (docs/nwb.md)."""
+    from rigctl.storage.encoded import NotEncodedError
+    from rigctl.storage.nwb import NwbExportError, export_nwb
+    from rigctl.storage.session import SessionError
+
+    check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",))
+    vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(unit="trial", desc="export nwb", leave=False)
+
+    def on_trial(done, total):
+        if bar is not None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+    try:
+        with replacing(out) as tmp:
+            summary = export_nwb(session, tmp, encoded_path=encoded, variants=vlist, progress=on_trial)
+    except (NwbExportError, SessionError, NotEncodedError) as exc:
+        raise click.ClickException(str(exc)) from None
+    except KeyError as exc:
+        raise UsageProblem(str(exc.args[0] if exc.args else exc)) from None
+    finally:
+        if bar is not None:
+            bar.close()
+    units = ", ".join(f"{v}: {n} units, {summary.spikes[v]} spikes" for v, n in summary.units.items())
+    click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_samples} samples x {summary.n_channels} taxels "
+               f"at {summary.rate_hz:g} Hz" + (f"; {units}" if units else ""))

@@ -1,0 +1,342 @@
+"""NWB export of a session (and its encoded spike trains) with pynwb: the format neuroscience labs exchange data in.
+
+:func:`export_nwb` writes one NWB 2 file holding
+
+- ``acquisition/taxels``: a :class:`pynwb.TimeSeries` of every recorded trial's taxel readings, back to back,
+  ``(n_samples, n_channels)`` uint16 ADC counts at the sensor's rate (``rate``; ``conversion = 1 / adc_max``, so
+  ``data * conversion`` is the fraction of the ADC's full scale, ``unit`` says so). Session time is *recorded* time:
+  trial ``k`` starts where trial ``k - 1`` ended (the dead time between trials, plate changes and settling, is left
+  out; each trial's wall-clock start is the trials table's ``started_utc``). Frames the board sent but the host lost
+  are missing, not filled (the trials table's ``dropped_frames`` counts them);
+- ``acquisition/load_cell_force`` (g) and ``acquisition/drum_speed`` (mm/s): the drum controller's traces with
+  timestamps on the same session time;
+- the **trials table**: one row per recorded trial (start/stop time in session time; ``trial_id``, ``texture``,
+  ``group``, ``speed_mm_s`` and ``force_g`` setpoints, ``profile``, ``duration_s``, ``status``, ``n_samples``,
+  ``dropped_frames``, ``crc_errors``, ``started_utc``, measured ``force_mean_g`` and ``speed_mean_mm_s``);
+- ``processing/misc/plan``: the whole plan (every planned trial with its status: complete, pending, failed);
+- **devices** ``taxel_sensor`` (the :class:`rigctl.core.sensor.SensorLayout` as JSON in its description: layers,
+  receptor types, pitch, rate, ADC bits, channel names) and ``drum_rig`` (the rig configuration JSON); the texture
+  set as JSON in ``processing/misc``'s description;
+- with an encoded file: the **Units table**, one unit per spiking neuron of each exported variant (SA and RA per
+  taxel; paper eqs. 3-5), its spike times over the whole session (each trial's spikes shifted by the trial's start),
+  and columns ``variant``, ``receptor`` (SA/RA), ``taxel``, ``taxel_label``, ``layer``, ``receptor_type``,
+  ``time_base`` ("session" or, for speed-scaled variants, "speed-scaled": eq. 2 scales spike times by the trial's
+  speed, so such times are trial start + scaled time, not the moment of the spike).
+
+The file is written by pynwb and checked with the NWB inspector in the tests. :func:`read_nwb_summary` reads the
+parts back (the round trip test and ``rigctl info``-like use).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from rigctl.storage import encoded as _encoded
+from rigctl.storage.session import TrialStatus, open_session
+
+__all__ = ["NwbExportError", "NwbSummary", "export_nwb", "read_nwb_summary", "default_spike_variants"]
+
+
+class NwbExportError(ValueError):
+    """The export cannot be made as asked (no recorded trial, an encoded file of other trials, an unknown variant)."""
+
+
+@dataclass
+class NwbSummary:
+    """What an NWB file exported by rigctl holds (:func:`export_nwb` returns it; :func:`read_nwb_summary` reads it).
+
+    ``n_samples`` taxel samples over ``n_trials`` trials of ``n_channels`` channels at ``rate_hz``; ``units`` spike
+    trains per variant; ``spikes`` spike counts per variant."""
+
+    path: Path
+    n_trials: int = 0
+    n_samples: int = 0
+    n_channels: int = 0
+    rate_hz: float = 0.0
+    units: dict[str, int] = field(default_factory=dict)
+    spikes: dict[str, int] = field(default_factory=dict)
+
+
+def default_spike_variants(enc) -> list[str]:
+    """The variants exported as units when none are asked for: the stored ones whose spike times are in real time
+    (not speed-scaled)."""
+    return [v for v in enc.spike_variants if not (v in _encoded.VARIANTS and _encoded.VARIANTS[v].speed_scaled)]
+
+
+class _TaxelChunks:
+    """hdmf data iterator over the trials' taxel readings (one chunk per trial: the session is never all in memory)."""
+
+    def __init__(self, session, ids: Sequence[int], n_samples: Sequence[int], n_channels: int):
+        self._session, self._ids, self._n, self._ch = session, list(ids), list(n_samples), int(n_channels)
+        self._i, self._at = 0, 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        from hdmf.data_utils import DataChunk
+
+        if self._i >= len(self._ids):
+            raise StopIteration
+        data = self._session.trial(self._ids[self._i]).taxels.astype(np.uint16, copy=False)
+        sel = np.s_[self._at:self._at + data.shape[0], :]
+        self._at += data.shape[0]
+        self._i += 1
+        return DataChunk(data=data, selection=sel)
+
+    def recommended_chunk_shape(self):
+        return (min(max(sum(self._n), 1), 10_000), self._ch)
+
+    def recommended_data_shape(self):
+        return (sum(self._n), self._ch)
+
+    @property
+    def dtype(self):
+        return np.dtype(np.uint16)
+
+    @property
+    def maxshape(self):
+        return (sum(self._n), self._ch)
+
+
+def _register_iterator() -> type:
+    from hdmf.data_utils import AbstractDataChunkIterator
+
+    return type("TaxelChunks", (_TaxelChunks, AbstractDataChunkIterator), {})
+
+
+def _start_time(text: Any) -> _dt.datetime:
+    try:
+        t = _dt.datetime.fromisoformat(str(text))
+    except ValueError:
+        t = _dt.datetime.now(_dt.timezone.utc)
+    return t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)
+
+
+def _train_columns(layout, n_trains: int) -> list[tuple[str, int, str, str, str]]:
+    """(receptor, taxel, taxel label, layer, receptor type) per train: SA taxels then RA taxels (the encoder's order),
+    or SA of the first layer for the real-time variants."""
+    labels = layout.channel_labels()
+    layer_of = [layout.channel_position(c)[0] for c in range(layout.n_channels)]
+    chans = list(range(layout.n_channels))
+    if n_trains == 2 * layout.n_channels:
+        pairs = [("SA", c) for c in chans] + [("RA", c) for c in chans]
+    else:  # real-time variants: SA trains of the first layer's taxels
+        pairs = [("SA", c) for c in chans[:n_trains]]
+    return [(rec, c, labels[c], layout.layers[layer_of[c]].name, layout.layers[layer_of[c]].receptor)
+            for rec, c in pairs]
+
+
+def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, encoded_path=None,
+               variants: Sequence[str] | None = None,
+               progress: Callable[[int, int], None] | None = None) -> NwbSummary:
+    """Write the session (and the spike trains of an encoded file of it) as an NWB file (module doc).
+
+    Parameters
+    ----------
+    session_path : a rigctl session file (``rigctl acquire`` / ``import`` / ``sim dataset`` output).
+    out_path : the NWB file to write (must not exist: the CLI checks it and writes through a temporary file).
+    encoded_path : optional ``rigctl encode`` output of that session: its spike trains become the Units table.
+    variants : the variants whose spike trains are exported (default :func:`default_spike_variants`).
+    progress : optional ``progress(done, total)`` called per trial written.
+
+    Returns
+    -------
+    NwbSummary
+
+    Raises
+    ------
+    NwbExportError
+        No recorded trial; an encoded file whose trials are not the session's; a variant without stored trains.
+    rigctl.storage.session.SessionError, rigctl.storage.encoded.NotEncodedError
+        Unreadable inputs.
+    """
+    from hdmf.common import DynamicTable, VectorData
+    from pynwb import NWBHDF5IO, NWBFile, TimeSeries
+    from pynwb.base import ProcessingModule
+    from pynwb.file import Subject
+    from pynwb.misc import Units
+
+    out_path = Path(out_path)
+    with open_session(session_path) as s:
+        layout, textures = s.layout, s.textures
+        ids = s.completed_ids()
+        if not ids:
+            raise NwbExportError(f"{session_path} has no recorded trial to export")
+        rate = float(layout.sample_rate_hz)
+        attrs = [s.trial_attrs(t) for t in ids]
+        n = [int(a.get("n_samples", 0)) for a in attrs]
+        first = s.trial(ids[0])  # traces may start before the first frame (settling): session time starts there
+        lead = max(0.0, -min([0.0] + [float(t.min()) for t in (first.force_time_s, first.speed_time_s) if t.size]))
+        starts = lead + np.concatenate([[0], np.cumsum(n)[:-1]]) / rate
+        stops = starts + np.asarray(n) / rate
+        nwb = NWBFile(
+            session_description=f"rigctl session: protocol {s.protocol_name or '?'} on "
+                                f"{s.rig_config.get('mode', 'a rig') if isinstance(s.rig_config, dict) else 'a rig'}",
+            identifier=str(s.attrs.get("session_id") or out_path.stem),
+            session_start_time=_start_time(s.attrs.get("created_utc", "")),
+            experiment_description="Tactile texture drum rig: taxel readings, drum speed and load-cell force per "
+                                   "trial (rigctl; Invariant neuromorphic representations of tactile stimuli ...)",
+            source_script="rigctl export nwb", source_script_file_name="rigctl",
+            keywords=["touch", "tactile sensor", "texture", "taxel", "neuromorphic", "Izhikevich"],
+            institution=str(s.rig_config.get("institution", "unknown")) if isinstance(s.rig_config, dict)
+            else "unknown",
+            experimenter=[str(s.rig_config.get("experimenter", "rigctl"))] if isinstance(s.rig_config, dict)
+            else ["rigctl"],
+        )
+        # NWB expects a subject: here the "subject" touched is an artificial sensor, no animal
+        nwb.subject = Subject(subject_id=layout.name or "taxel_sensor", species="none (artificial tactile sensor)",
+                              description="artificial tactile sensor on a texture drum rig: " + layout.describe(),
+                              sex="U", age="P0D")
+        sensor = nwb.create_device(name="taxel_sensor", description=layout.to_json())
+        nwb.create_device(name="drum_rig", description=json.dumps(s.rig_config, default=str))
+        chunks = _register_iterator()(s, ids, n, layout.n_channels)
+        nwb.add_acquisition(TimeSeries(
+            name="taxels", data=chunks, unit="fraction of the ADC full scale", conversion=1.0 / layout.adc_max,
+            resolution=1.0 / layout.adc_max, rate=rate, starting_time=float(lead),
+            description=f"taxel readings, ({sum(n)}, {layout.n_channels}) uint16 ADC counts "
+                        f"({layout.adc_bits}-bit) of the sensor {sensor.name}; channels "
+                        f"{', '.join(layout.channel_labels())}; trials back to back (recorded time)",
+            comments=layout.describe()))
+        force_t, force, speed_t, speed, means = [], [], [], [], []
+        for k, t in enumerate(ids):
+            tr = s.trial(t)
+            force_t.append(starts[k] + tr.force_time_s)
+            force.append(tr.force_g)
+            speed_t.append(starts[k] + tr.speed_time_s)
+            speed.append(tr.speed_mm_s)
+            means.append((float(np.mean(tr.force_g)) if tr.force_g.size else np.nan,
+                          float(np.mean(tr.speed_mm_s)) if tr.speed_mm_s.size else np.nan))
+            if progress is not None:
+                progress(k + 1, len(ids))
+        for name, unit, t_parts, v_parts, what in (
+                ("load_cell_force", "g", force_t, force, "load-cell force"),
+                ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")):
+            ts = np.concatenate(t_parts) if t_parts else np.zeros(0)
+            vs = np.concatenate(v_parts) if v_parts else np.zeros(0)
+            order = np.argsort(ts, kind="stable")
+            nwb.add_acquisition(TimeSeries(name=name, data=vs[order], timestamps=ts[order], unit=unit,
+                                           description=f"{what} of each trial, on the taxels' session time"))
+
+        plan = s.plan
+        by_id = {int(r["trial_id"]): r for r in plan}
+        columns = {
+            "trial_id": ("rigctl trial id", np.asarray(ids, np.int64)),
+            "texture": ("texture plate label", [str(by_id[t]["texture"]) for t in ids]),
+            "group": ("texture group (the texture set's groups; '' when none)",
+                      [textures.group_of(str(by_id[t]["texture"])) or "" for t in ids]),
+            "speed_mm_s": ("drum surface speed setpoint, mm/s (ramp: mean)",
+                           np.asarray([by_id[t]["speed_mm_s"] for t in ids], np.float64)),
+            "force_g": ("force setpoint, g", np.asarray([by_id[t]["force_g"] for t in ids], np.float64)),
+            "profile": ("velocity profile", [str(by_id[t]["profile"]) for t in ids]),
+            "duration_s": ("planned duration, s", np.asarray([by_id[t]["duration_s"] for t in ids], np.float64)),
+            "status": ("trial status", [TrialStatus(int(by_id[t]["status"])).name.lower() for t in ids]),
+            "n_samples": ("taxel samples recorded", np.asarray(n, np.int64)),
+            "dropped_frames": ("frames lost on the taxel link within the trial (counted, not filled)",
+                               np.asarray([int(a.get("dropped_frames", 0)) for a in attrs], np.int64)),
+            "crc_errors": ("frames rejected by their CRC while the trial was captured",
+                           np.asarray([int(a.get("crc_errors", 0)) for a in attrs], np.int64)),
+            "started_utc": ("wall-clock start of the trial (UTC, ISO 8601)",
+                            [str(a.get("started_utc", "")) for a in attrs]),
+            "force_mean_g": ("mean measured force, g", np.asarray([m[0] for m in means], np.float64)),
+            "speed_mean_mm_s": ("mean measured surface speed, mm/s", np.asarray([m[1] for m in means], np.float64)),
+        }
+        for name, (desc, _) in columns.items():
+            nwb.add_trial_column(name=name, description=desc)
+        for k in range(len(ids)):
+            nwb.add_trial(start_time=float(starts[k]), stop_time=float(stops[k]),
+                          **{name: values[k] for name, (_, values) in columns.items()})
+
+        module = ProcessingModule(name="misc", description="rigctl metadata; texture set: " + textures.to_json())
+        nwb.add_processing_module(module)
+        module.add(DynamicTable(name="plan", description="every planned trial of the protocol, with its status",
+                                columns=[
+                                    VectorData(name="trial_id", description="rigctl trial id",
+                                               data=np.asarray(plan["trial_id"], np.int64)),
+                                    VectorData(name="texture", description="texture plate label",
+                                               data=[str(x) for x in plan["texture"]]),
+                                    VectorData(name="speed_mm_s", description="speed setpoint, mm/s",
+                                               data=np.asarray(plan["speed_mm_s"], np.float64)),
+                                    VectorData(name="force_g", description="force setpoint, g",
+                                               data=np.asarray(plan["force_g"], np.float64)),
+                                    VectorData(name="status", description="complete, pending or failed",
+                                               data=[TrialStatus(int(x)).name.lower() for x in plan["status"]]),
+                                ]))
+
+        summary = NwbSummary(out_path, n_trials=len(ids), n_samples=int(sum(n)), n_channels=layout.n_channels,
+                             rate_hz=rate)
+        if encoded_path is not None:
+            nwb.units = Units(name="units", resolution=1.0 / rate,
+                              description="SA/RA spike trains of the Izhikevich encoding (paper eqs. 3-5), one unit "
+                                          "per neuron of each exported variant, spike times in session time")
+            _add_units(nwb, encoded_path, ids, starts, layout, variants, summary)
+        with NWBHDF5IO(str(out_path), "w") as io:
+            io.write(nwb)
+    return summary
+
+
+def _add_units(nwb, encoded_path, ids, starts, layout, variants, summary: NwbSummary) -> None:
+    with _encoded.open_encoded(encoded_path) as enc:
+        enc_ids = np.asarray(enc.trials["trial_id"], np.int64)
+        row_of = {int(t): i for i, t in enumerate(enc_ids)}
+        missing = [t for t in ids if t not in row_of]
+        if missing:
+            raise NwbExportError(f"{encoded_path} is not an encoding of this session: trials {missing[:5]} of the "
+                                 "session are not in it")
+        chosen = list(variants) if variants else default_spike_variants(enc)
+        for v in chosen:
+            if v not in enc.spike_variants:
+                raise NwbExportError(f"{encoded_path} holds no spike trains of {v!r} (stored: "
+                                     f"{', '.join(enc.spike_variants) or 'none'}; encode without --no-spikes)")
+        for name, desc in (("variant", "encoding variant (paper Table 1 column)"),
+                           ("receptor", "SA (k=100 on the reading) or RA (k=3 on the 20 Hz low-passed derivative)"),
+                           ("taxel", "channel index in the sensor description"),
+                           ("taxel_label", "channel name"), ("layer", "sensor layer"),
+                           ("receptor_type", "the layer's receptor type"),
+                           ("time_base", "'session', or 'speed-scaled': trial start + spike time scaled by eq. 2")):
+            nwb.add_unit_column(name=name, description=desc)
+        for v in chosen:
+            times, index, n_trains = enc.spikes(v)
+            scaled = v in _encoded.VARIANTS and _encoded.VARIANTS[v].speed_scaled
+            cols = _train_columns(layout, n_trains)
+            ends = index.reshape(-1, n_trains)
+            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)
+            total = 0
+            for j, (rec, c, label, layer, rtype) in enumerate(cols):
+                parts = [starts[k] + times[begins[row_of[t], j]:ends[row_of[t], j]] for k, t in enumerate(ids)]
+                st = np.concatenate(parts) if parts else np.zeros(0)
+                total += st.size
+                nwb.add_unit(spike_times=st, variant=v, receptor=rec, taxel=c, taxel_label=label, layer=layer,
+                             receptor_type=rtype, time_base="speed-scaled" if scaled else "session")
+            summary.units[v] = len(cols)
+            summary.spikes[v] = total
+
+
+def read_nwb_summary(path: str | os.PathLike) -> tuple[NwbSummary, dict[str, np.ndarray]]:
+    """Read an exported file back with pynwb: its :class:`NwbSummary` and the arrays ``taxels`` (all samples),
+    ``trial_id``, ``start_time``, ``stop_time`` (the trials table)."""
+    from pynwb import NWBHDF5IO
+
+    with NWBHDF5IO(str(path), "r") as io:
+        nwb = io.read()
+        ts = nwb.acquisition["taxels"]
+        taxels = np.asarray(ts.data[()])
+        trials = nwb.trials.to_dataframe()
+        summary = NwbSummary(Path(path), n_trials=len(trials), n_samples=taxels.shape[0],
+                             n_channels=taxels.shape[1], rate_hz=float(ts.rate))
+        if nwb.units is not None:
+            units = nwb.units.to_dataframe()
+            for v, g in units.groupby("variant"):
+                summary.units[str(v)] = len(g)
+                summary.spikes[str(v)] = int(sum(len(x) for x in g["spike_times"]))
+        arrays = {"taxels": taxels, "trial_id": trials["trial_id"].to_numpy(),
+                  "start_time": trials["start_time"].to_numpy(), "stop_time": trials["stop_time"].to_numpy()}
+    return summary, arrays
+

@@ -1,0 +1,165 @@
+"""NWB export (rigctl.storage.nwb, `rigctl export nwb`): a recorded quick_check session and an encoded simulated
+dataset written with pynwb, checked by the NWB inspector (no critical issue), read back with pynwb (samples, trials
+and spike counts equal to the session and encoded files), imported back by `rigctl import`, and the CLI's refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.core import PAPER_SENSOR
+from rigctl.encoding.pipeline import encode_session
+from rigctl.storage.encoded import open_encoded
+from rigctl.storage.nwb import export_nwb, read_nwb_summary
+from rigctl.storage.session import open_session
+
+PROTOCOL = """
+name = "nwb_test"
+textures = ["A", "L"]
+speeds_mm_s = [60, 120]
+forces_g = [250, 1000]
+trials_per_condition = 2
+duration_s = 0.6
+"""
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """quick_check recorded on the in-process simulated rig (the real runner, the real session writer)."""
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.acquisition.runner import run_protocol
+    from rigctl.rigs import open_rig
+    from pathlib import Path
+
+    d = tmp_path_factory.mktemp("nwb_rec")
+    proto = load_protocol(Path(__file__).resolve().parents[2] / "protocols" / "quick_check.toml")
+    with open_rig("inprocess", seed=2, host_config_path=d / "rig.json") as rig:
+        run_protocol(proto, d / "quick.h5", rig=rig, progress=False)
+    return d / "quick.h5"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from rigctl.simulation.dataset import generate_dataset
+
+    d = tmp_path_factory.mktemp("nwb_ds")
+    (d / "p.toml").write_text(PROTOCOL)
+    generate_dataset(d / "p.toml", d / "ds.h5", seed=4, workers=0, progress=False)
+    encode_session(d / "ds.h5", d / "ds.enc.h5", progress=False)
+    return d / "ds.h5", d / "ds.enc.h5"
+
+
+def _inspect(path):
+    from nwbinspector import inspect_nwbfile
+    from nwbinspector import Importance
+
+    messages = list(inspect_nwbfile(nwbfile_path=str(path)))
+    critical = [m for m in messages if m.importance in (Importance.CRITICAL, Importance.PYNWB_VALIDATION,
+                                                         Importance.ERROR)]
+    return critical, messages
+
+
+def test_a_recorded_session_round_trips(recorded, tmp_path):
+    out = tmp_path / "quick.nwb"
+    summary = export_nwb(recorded, out)
+    critical, _ = _inspect(out)
+    assert critical == []
+    back, arrays = read_nwb_summary(out)
+    with open_session(recorded) as s:
+        ids = s.completed_ids()
+        taxels = np.concatenate([s.trial(t).taxels for t in ids])
+        layout = s.layout
+    assert (back.n_trials, back.n_samples, back.n_channels, back.rate_hz) == (
+        len(ids), taxels.shape[0], layout.n_channels, layout.sample_rate_hz) == (
+        summary.n_trials, summary.n_samples, summary.n_channels, summary.rate_hz)
+    np.testing.assert_array_equal(arrays["taxels"], taxels)
+    np.testing.assert_array_equal(arrays["trial_id"], ids)
+    with open_session(recorded) as s:
+        per_trial = [s.trial(t).taxels.shape[0] / layout.sample_rate_hz for t in ids]
+    np.testing.assert_allclose(arrays["stop_time"] - arrays["start_time"], per_trial)
+    np.testing.assert_allclose(arrays["start_time"][1:], arrays["stop_time"][:-1])  # back to back
+
+
+def test_the_nwb_file_holds_the_sensor_trials_and_traces(recorded, tmp_path):
+    from pynwb import NWBHDF5IO
+
+    out = tmp_path / "quick.nwb"
+    export_nwb(recorded, out)
+    with open_session(recorded) as s, NWBHDF5IO(str(out), "r") as io:
+        nwb = io.read()
+        ts = nwb.acquisition["taxels"]
+        assert ts.rate == s.layout.sample_rate_hz and ts.conversion == pytest.approx(1 / s.layout.adc_max)
+        assert nwb.devices["taxel_sensor"].description == s.layout.to_json()
+        trials = nwb.trials.to_dataframe()
+        plan = {int(r["trial_id"]): r for r in s.plan}
+        for _, row in trials.iterrows():
+            p = plan[int(row["trial_id"])]
+            assert row["texture"] == p["texture"] and row["status"] == "complete"
+            assert row["force_g"] == pytest.approx(p["force_g"]) and row["speed_mm_s"] == pytest.approx(p["speed_mm_s"])
+            assert row["dropped_frames"] == s.trial_attrs(int(row["trial_id"]))["dropped_frames"]
+            assert abs(row["force_mean_g"] - p["force_g"]) < 30  # the load-cell trace went in
+        force = nwb.acquisition["load_cell_force"]
+        n_force = sum(s.trial(t).force_g.size for t in s.completed_ids())
+        assert force.unit == "g" and len(force.data) == n_force and np.all(np.diff(force.timestamps[()]) >= 0)
+        assert len(nwb.processing["misc"]["plan"]) == len(s.plan)
+
+
+def test_an_encoded_dataset_exports_its_spike_trains_as_units(dataset, tmp_path):
+    session, encoded = dataset
+    out = tmp_path / "ds.nwb"
+    summary = export_nwb(session, out, encoded_path=encoded, variants=["original", "speed_scaled"])
+    critical, _ = _inspect(out)
+    assert critical == []
+    back, _ = read_nwb_summary(out)
+    with open_encoded(encoded) as e:
+        for v in ("original", "speed_scaled"):
+            times, index, n_trains = e.spikes(v)
+            assert back.units[v] == summary.units[v] == n_trains == 2 * e.layout.n_channels
+            assert back.spikes[v] == summary.spikes[v] == times.size  # every spike of every trial
+    from pynwb import NWBHDF5IO
+
+    with NWBHDF5IO(str(out), "r") as io:
+        units = io.read().units.to_dataframe()
+    sa = units[(units["variant"] == "original") & (units["receptor"] == "SA")]
+    assert list(sa["taxel"]) == list(range(18))
+    assert list(sa["receptor_type"]) == [la.receptor for la in PAPER_SENSOR.layers for _ in range(la.n_channels)]
+    assert set(units.loc[units["variant"] == "speed_scaled", "time_base"]) == {"speed-scaled"}
+
+
+def test_an_exported_file_imports_back(recorded, tmp_path):
+    """`rigctl import` reads a file rigctl exported: one trial per row of its trials table, with its labels, at
+    its rate and with its sensor description."""
+    out = tmp_path / "quick.nwb"
+    export_nwb(recorded, out)
+    back = tmp_path / "back.h5"
+    r = CliRunner().invoke(main, ["import", str(out), "--out", str(back)])
+    assert r.exit_code == 0, r.output
+    with open_session(back) as b, open_session(recorded) as s:
+        assert b.layout == s.layout
+        assert len(b.completed_ids()) == len(s.completed_ids())
+        for tb, ts in zip(b.completed_ids(), s.completed_ids()):
+            np.testing.assert_array_equal(b.trial(tb).taxels, s.trial(ts).taxels)
+        pb = [(str(r["texture"]), float(r["speed_mm_s"]), float(r["force_g"])) for r in b.plan]
+        ps = [(str(r["texture"]), float(r["speed_mm_s"]), float(r["force_g"])) for r in s.plan
+              if int(r["trial_id"]) in s.completed_ids()]
+        assert pb == ps
+
+
+def test_the_command_refuses_what_it_must(recorded, tmp_path):
+    out = tmp_path / "q.nwb"
+    run = CliRunner().invoke
+    r = run(main, ["export", "nwb", str(recorded), "--out", str(out), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "6 trials" in r.stdout
+    before = out.read_bytes()
+    r = run(main, ["export", "nwb", str(recorded), "--out", str(out), "--no-progress"])
+    assert r.exit_code == 2 and "exists" in r.output and out.read_bytes() == before
+    r = run(main, ["export", "nwb", str(recorded), "--out", str(recorded), "--no-progress"])
+    assert r.exit_code == 2 and "input" in r.output
+    r = run(main, ["export", "nwb", str(recorded), "--out", str(tmp_path / "x.h5"), "--no-progress"])
+    assert r.exit_code == 2 and ".nwb" in r.output and not (tmp_path / "x.h5").exists()
+    r = run(main, ["export", "nwb", str(recorded), "--encoded", str(recorded), "--out", str(tmp_path / "y.nwb"),
+                   "--no-progress"])
+    assert r.exit_code == 1 and "Error:" in r.output and not (tmp_path / "y.nwb").exists()
