@@ -606,7 +606,11 @@ int main(int argc, char **argv)
                 avr_reset(avr);
                 bridge_reset();
                 if (is_uno) {
+                    /* scans count from the reset, and the playing waveform restarts at row 0 with them: a
+                     * scan_base left from before the reset would make scan_count - scan_base wrap around 2^64,
+                     * and the rows jump (615 -> 0 for 1000 rows) once the count passes the old base */
                     scan_count = 0;
+                    scan_base = 0;
                     avr_raise_irq(sync_pin, 0);
                 }
                 wall0 = now_s();

@@ -310,12 +310,15 @@ class HilRig:
         if samples.min() < 0 or samples.max() > wire.ADC_MAX:
             raise ValueError(f"samples must be ADC counts 0-{wire.ADC_MAX}")
         self.live = False
-        self._wave_pos = None
         self._stop.set()
         if self._feeder is not None:
             self._feeder.join(timeout=3)
             self._feeder = None
-        self._load(samples.astype("<u2"), timeout_s)
+        # a live render already under way (a starved machine) finishes its load first and none follows: no live
+        # waveform (and no ack of one) can land after this one
+        with self._render_lock:
+            self._wave_pos = None
+            self._load(samples.astype("<u2"), timeout_s)
 
     def bump(self, force_g: float) -> None:
         """Add an external force of ``force_g`` g on the load cell (0 removes it), e.g. to trip FORCE_LIMIT."""
@@ -430,6 +433,8 @@ class HilRig:
         reports, extrapolated to the swap (report age plus ``load_latency_s``), within 0.5 s.
         """
         with self._render_lock:
+            if self._stop.is_set() or not self.live:  # play_waveform took over while this render waited
+                return
             self._render_and_load_locked(horizon_s, load_latency_s)
 
     def _render_and_load_locked(self, horizon_s: float, load_latency_s: float) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 
 import pytest
 
@@ -31,3 +32,25 @@ def hil_rig(fw_build):
     """A running HilRig for one test module (live taxel rendering)."""
     with hil.HilRig() as rig:
         yield rig
+
+
+def _wait_frames(stream, n: int, *, stall_s: float = 10.0) -> bool:
+    """Wait until the capture holds ``n`` frames while frames keep coming: simavr is paced to the wall clock but
+    falls behind on a starved machine, so a fixed deadline measures the machine, not the firmware. Gives up (False)
+    only when no frame arrived for ``stall_s``."""
+    last, last_t = -1, None
+
+    while not stream.wait_capture(n, timeout_s=0.5):
+        frames = stream.stats.frames
+        now = time.monotonic()
+        if frames != last:
+            last, last_t = frames, now
+        elif now - last_t > stall_s:
+            return False
+    return True
+
+
+@pytest.fixture
+def wait_frames():
+    """:func:`_wait_frames`: wait for a capture's frames while simavr keeps delivering them."""
+    return _wait_frames

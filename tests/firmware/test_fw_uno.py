@@ -13,12 +13,18 @@ from rigctl.devices.taxel_stream import TaxelStream
 pytestmark = pytest.mark.hil
 
 
-def test_banner_identify_and_ten_seconds_of_exact_frames(hil_rig):
+def test_banner_identify_and_ten_seconds_of_exact_frames(hil_rig, wait_frames):
     rng = np.random.default_rng(7)
     wave = rng.integers(0, wire.ADC_MAX + 1, size=(1000, wire.N_TAXELS), dtype=np.uint16)
     wave[0] = 0
     wave[1] = wire.ADC_MAX  # both ends of the ADC range
     hil_rig.play_waveform(wave)
+    # let the waveform play 1.5 s before the port opens (and resets the Uno): the harness once kept the waveform's
+    # start scan across that reset, so the rows jumped (615 -> 0) when the new scan count passed it, mid-capture
+    t0 = time.monotonic()
+    while (hil_rig._scan() or (0, 0))[0] < 1500:
+        assert time.monotonic() - t0 < 60, "the harness does not scan"
+        time.sleep(0.1)
     with TaxelStream(hil_rig.taxel_port) as stream:
         assert stream.banner["firmware"] == wire.UNO_FIRMWARE_VERSION
         ident = stream.identify()
@@ -27,7 +33,7 @@ def test_banner_identify_and_ten_seconds_of_exact_frames(hil_rig):
         stream.start()
         stream.begin_capture()
         n = 10_000
-        assert stream.wait_capture(n, timeout_s=25.0), f"only {stream.stats.frames} frames"
+        assert wait_frames(stream, n), f"only {stream.stats.frames} frames"
         cap = stream.end_capture()
         stream.stop()
     assert cap.crc_errors == 0 and cap.dropped == 0
@@ -44,13 +50,13 @@ def test_banner_identify_and_ten_seconds_of_exact_frames(hil_rig):
     assert cap.host_time_s[n - 1] - cap.host_time_s[0] > 9.0
 
 
-def test_sync_in_pulse_sets_the_flag_once(hil_rig):
+def test_sync_in_pulse_sets_the_flag_once(hil_rig, wait_frames):
     with TaxelStream(hil_rig.taxel_port) as stream:
         stream.start()
         stream.begin_capture()
-        assert stream.wait_capture(200, timeout_s=5.0)
+        assert wait_frames(stream, 200)
         hil_rig._uno.send("sync")  # a 1 ms pulse on D2, as the Mega's index output gives
-        assert stream.wait_capture(600, timeout_s=5.0)
+        assert wait_frames(stream, 600)
         cap = stream.end_capture()
     sync = (cap.flags & wire.FrameFlag.SYNC_IN) != 0
     assert sync.sum() == 1
