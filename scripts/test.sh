@@ -25,7 +25,23 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
-echo "== pip install -e .[test]"
+# a virtual environment of its own (Debian 12 refuses pip outside one, PEP 668), unless one is active already
+if [ -z "${VIRTUAL_ENV:-}" ]; then
+  VENV="${RIGCTL_VENV:-.venv}"
+  if [ ! -x "$VENV/bin/python3" ]; then
+    echo "== python3 -m venv $VENV"
+    if ! python3 -m venv "$VENV" 2>/dev/null; then  # Debian's python3 needs python3-venv for ensurepip
+      rm -rf "$VENV"
+      $SUDO apt-get update -qq
+      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends python3-venv >/dev/null
+      python3 -m venv "$VENV"
+    fi
+  fi
+  # shellcheck disable=SC1091
+  . "$VENV/bin/activate"
+fi
+
+echo "== pip install -e .[test] (into $VIRTUAL_ENV)"
 python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 
 echo "== build firmware"

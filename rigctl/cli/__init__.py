@@ -20,6 +20,7 @@ COMMANDS = {
     "import-fabricslide": "rigctl.cli.fabricslide:import_fabricslide",
     "gui": "rigctl.cli.gui:gui",
     "export": "rigctl.cli.export:export",
+    "protocols": "rigctl.cli.protocols:protocols",
 }
 
 SHORT_HELP = {
@@ -33,6 +34,7 @@ SHORT_HELP = {
     "import-fabricslide": "Import the FabricSlide recordings into a session file.",
     "gui": "Start the desktop app.",
     "export": "Export a session (and its spike trains) as NWB.",
+    "protocols": "List the built-in protocols (run one by name).",
 }
 
 

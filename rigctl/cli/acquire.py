@@ -14,6 +14,7 @@ from typing import Any, Callable
 import click
 
 from rigctl.cli.outputs import UsageProblem, check_output
+from rigctl.cli.protocols import PROTOCOL
 
 #: --plates choices (see the option's help)
 PLATE_POLICIES = ("prompt", "auto", "skip")
@@ -85,7 +86,7 @@ def _held_rig_warnings():
 
 
 @click.command()
-@click.argument("protocol", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Session file to write (HDF5, .h5).")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Use the simulated rig (the default).")

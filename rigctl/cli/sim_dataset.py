@@ -7,10 +7,11 @@ import json
 import click
 
 from rigctl.cli.outputs import check_output
+from rigctl.cli.protocols import PROTOCOL
 
 
 @click.command("dataset")
-@click.argument("protocol", type=click.Path(exists=True, dir_okay=False))
+@click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
 @click.option("--trials-per-condition", type=click.IntRange(min=1), default=None,
               help="Override the protocol's trials per condition (e.g. 10 for a reduced paper dataset).")

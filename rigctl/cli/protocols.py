@@ -1,0 +1,40 @@
+"""``rigctl protocols``: the built-in protocols, and the click type that takes a protocol path or a built-in name."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+class ProtocolArg(click.ParamType):
+    """A protocol file, or the name of a built-in protocol (``quick_check``): converts to the file's Path."""
+
+    name = "protocol"
+
+    def convert(self, value, param, ctx):
+        from rigctl.acquisition.builtin import find_protocol
+
+        if isinstance(value, Path) and value.is_file():
+            return value
+        try:
+            return find_protocol(value)
+        except FileNotFoundError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+PROTOCOL = ProtocolArg()
+
+
+@click.command("protocols")
+@click.option("--path", "show_path", is_flag=True, help="Show where each file is.")
+def protocols(show_path):
+    """List the built-in protocols (run one by name: ``rigctl acquire quick_check --sim --out q.h5``)."""
+    from rigctl.acquisition.builtin import builtin_protocols, summary
+
+    items = builtin_protocols()
+    if not items:
+        raise click.ClickException("no built-in protocols found in this installation")
+    width = max(len(n) for n in items) + 2
+    for name, path in items.items():
+        click.echo(f"{name:<{width}}{summary(path)}" + (f"  [{path}]" if show_path else ""))
