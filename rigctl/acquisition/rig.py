@@ -560,7 +560,7 @@ class Rig:
         t_start = clock.now()
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
         align = not planned.is_ramp
-        n_capture = n
+        n_capture = n_limit = n
         t_index = math.nan  # when the index pulse is predicted, on the clock of the frames' host times
         tolerance_s = INDEX_PREDICTION_TOLERANCE_S
         if align:
@@ -572,7 +572,8 @@ class Rig:
             t_index = t_read + to_index_s
             tolerance_s = max(tolerance_s, INDEX_PREDICTION_TOLERANCE_REVS * rev_s)
             n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * rate)) + INDEX_MARGIN_FRAMES
-            n_capture = min(n_capture, n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate)))
+            n_limit = n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate))
+            n_capture = min(n_capture, n_limit)
             deadline += INDEX_TIMEOUT_REVS * rev_s
         next_poll = t_start
         frames_seen, t_frame = self.stream.stats.frames, t_start
@@ -580,7 +581,17 @@ class Rig:
             while True:
                 now = clock.now()
                 if self.stream.wait_capture(n_capture, timeout_s=max(0.0, next_poll - now)):
-                    break
+                    if not align:
+                        break
+                    # the index pulse came later in the capture than the drum angle predicted (the boards' clocks
+                    # run apart: two simulated boards on a starved machine, or drift): capture the trial after it
+                    # (not seen yet: a little more, up to the limit; a lost index frame is placed afterwards)
+                    k_seen = self.stream.capture_flag_index(int(wire.FrameFlag.SYNC_IN))
+                    want = k_seen + n if k_seen is not None else n_capture + INDEX_MARGIN_FRAMES
+                    if want <= n_capture or n_capture >= n_limit:
+                        break
+                    n_capture = min(want, n_limit)
+                    continue
                 now = clock.now()
                 if now >= next_poll:
                     s = self._status()

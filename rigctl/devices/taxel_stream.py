@@ -59,6 +59,18 @@ class StreamStats:
     start_retries: int = 0  #: START sent again because the new stream did not begin within ``start_timeout_s``
 
 
+def first_flagged(parts, mask: int) -> int | None:
+    """Position of the first frame with a bit of ``mask`` in its flags, over capture parts ``(samples, seq, flags,
+    host_time_s)`` in order; None if there is none."""
+    at = 0
+    for part in parts:
+        hit = np.flatnonzero(part[2] & mask)
+        if hit.size:
+            return at + int(hit[0])
+        at += len(part[2])
+    return None
+
+
 @dataclass
 class Capture:
     """Every frame received between :meth:`TaxelStream.begin_capture` and :meth:`TaxelStream.end_capture`.
@@ -391,6 +403,13 @@ class TaxelStream:
                     return False
                 self._capture_event.wait(left)
             return self._capture is not None
+
+    def capture_flag_index(self, mask: int) -> int | None:
+        """Position, in the running capture, of the first frame whose flags have a bit of ``mask`` (e.g.
+        ``FrameFlag.SYNC_IN``, the index pulse); None if none has arrived yet or no capture runs."""
+        with self._lock:
+            parts = list(self._capture or ())
+        return first_flagged(parts, mask)
 
     def end_capture(self) -> Capture:
         """Stop the capture; return every frame received since :meth:`begin_capture` (a :class:`Capture`).

@@ -27,7 +27,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
-from rigctl.devices.taxel_stream import Capture, StreamStats
+from rigctl.devices.taxel_stream import Capture, StreamStats, first_flagged
 from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigConfig, RigModel
@@ -227,6 +227,12 @@ class InProcessTaxels:
             step = min(need, left_ms)
             self.engine.advance(step)
             left_ms -= step
+
+    def capture_flag_index(self, mask: int) -> int | None:
+        """Position of the first frame of the running capture with a bit of ``mask`` in its flags (None: none yet)."""
+        with self._lock:
+            parts = list(self._capture or ())
+        return first_flagged(parts, mask)
 
     def end_capture(self) -> Capture:
         with self._lock:
