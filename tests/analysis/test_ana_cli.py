@@ -12,21 +12,10 @@ from rigctl.cli import main
 
 
 @pytest.fixture(scope="module")
-def encoded(tmp_path_factory):
+def encoded(tmp_path_factory, write_schema1):
     fs = synthetic_features(5, n_textures=6, n_channels=4, noise=0.8, seed=5)
-    path = tmp_path_factory.mktemp("ana") / "enc.h5"
-    with h5py.File(path, "w") as f:
-        for k, v in fs.features.items():
-            f[f"features/{k}"] = v
-        t = np.zeros(fs.n_trials, dtype=[("trial_id", "<i8"), ("texture", "S2"), ("speed_mm_s", "<f8"),
-                                         ("force_g", "<f8")])
-        t["trial_id"] = np.arange(fs.n_trials)
-        t["texture"] = fs.texture.astype("S2")
-        t["speed_mm_s"] = fs.speed_mm_s
-        t["force_g"] = fs.force_g
-        f["trials"] = t
-        f.attrs["n_taxels"] = 2  # an unversioned (schema 1) file, as the old pipeline wrote it: 2 taxels x SA/RA
-    return path
+    # an unversioned (schema 1) file, as the old pipeline wrote it: 2 taxels x SA/RA
+    return write_schema1(fs, tmp_path_factory.mktemp("ana") / "enc.h5", 2)
 
 
 def test_json_output_shape(encoded, tmp_path):

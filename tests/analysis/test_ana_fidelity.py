@@ -101,22 +101,11 @@ def test_the_papers_ordering_is_checked_pair_by_pair():
         assert report.to_dict(res, 5)["ordering"]["untrained_force"]["holds"] is holds
 
 
-def test_analyze_prints_the_variance_and_the_ordering(tmp_path):
+def test_analyze_prints_the_variance_and_the_ordering(tmp_path, write_schema1):
     from rigctl.analysis.synthetic import synthetic_features
-    import h5py
 
     fs = synthetic_features(4, n_textures=4, n_channels=4, noise=0.8, seed=3)
-    path = tmp_path / "enc.h5"
-    with h5py.File(path, "w") as f:
-        for k, v in fs.features.items():
-            f[f"features/{k}"] = v
-        t = np.zeros(fs.n_trials, dtype=[("trial_id", "<i8"), ("texture", "S2"), ("speed_mm_s", "<f8"),
-                                         ("force_g", "<f8")])
-        t["trial_id"] = np.arange(fs.n_trials)
-        t["texture"] = fs.texture.astype("S2")
-        t["speed_mm_s"], t["force_g"] = fs.speed_mm_s, fs.force_g
-        f["trials"] = t
-        f.attrs["n_taxels"] = 2
+    path = write_schema1(fs, tmp_path / "enc.h5", 2)
     r = CliRunner().invoke(main, ["analyze", str(path), "--task", "variance", "--json"])
     assert r.exit_code == 0, r.output
     rows = json.loads(r.stdout)["variance"]
