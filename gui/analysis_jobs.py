@@ -8,11 +8,12 @@ import warnings
 from pathlib import Path
 
 
-def encode(session_path: str, out_path: str) -> str:
-    """Encode a session file into an encoded file (:func:`rigctl.encoding.pipeline.encode_session`)."""
+def encode(session_path: str, out_path: str, progress=None) -> str:
+    """Encode a session file into an encoded file (:func:`rigctl.encoding.pipeline.encode_session`); ``progress``
+    receives its :class:`rigctl.core.progress.ProgressEvent` s."""
     from rigctl.encoding.pipeline import encode_session
 
-    return str(encode_session(session_path, out_path, progress=True))
+    return str(encode_session(session_path, out_path, progress=progress))
 
 
 def encoded_path_for(session_path: str) -> str:
@@ -22,9 +23,10 @@ def encoded_path_for(session_path: str) -> str:
 
 
 def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: int = 5, n_pcs: int = 50,
-            per_texture: int = 500, seed: int = 0, variants=None):
+            per_texture: int = 500, seed: int = 0, variants=None, progress=None):
     """The paper's analyses on an encoded file (a session file is encoded first, beside it).
 
+    ``progress`` receives the :class:`rigctl.core.progress.ProgressEvent` s of the encoding and the analyses.
     Returns ``(TaskResults, encoded_path)``. Tasks the data cannot support (e.g. extrapolation without the
     trained speeds/forces) are skipped and the reason is added to ``TaskResults.warnings``.
     """
@@ -34,7 +36,7 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
     try:
         fs = load_features(path, variants)
     except NotEncodedError:
-        path = encode(path, encoded_path_for(path))
+        path = encode(path, encoded_path_for(path), progress)
         fs = load_features(path, variants)
     res = tasks.TaskResults()
     with warnings.catch_warnings():
@@ -46,13 +48,13 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
                                     "groups")
             try:
                 res.merge(tasks.run_cv(fs, wanted, variants=variants, n_pcs=n_pcs, repeats=repeats,
-                                       per_texture=per_texture, seed=seed, progress=True))
+                                       per_texture=per_texture, seed=seed, progress=progress))
             except (ValueError, KeyError) as exc:
                 res.warnings.append(f"textures/groups skipped: {exc}")
         if extrapolation:
             try:
                 res.merge(tasks.run_extrapolation(fs, variants=variants, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                                                  progress=True))
+                                                  progress=progress))
             except (ValueError, KeyError) as exc:
                 res.warnings.append(f"extrapolation skipped: {exc}")
     return res, str(path)

@@ -443,32 +443,34 @@ class Job(threading.Thread):
 # ----------------------------------------------------------------------------------------------------------------
 # Background process (encoding, analyses): cancellable for real, never holds the GUI's GIL
 # ----------------------------------------------------------------------------------------------------------------
-class _QueueText:
-    """A stderr replacement in the child process: forwards text (tqdm's progress bars) to the parent."""
+class _ForwardProgress:
+    """The ``progress`` callback in the child process: sends the library's
+    :class:`rigctl.core.progress.ProgressEvent` s to the parent, at most one per stage every ``min_interval_s``
+    (the first and last of a stage and every message always go)."""
 
-    def __init__(self, q):
-        self.q = q
+    def __init__(self, q, min_interval_s: float = 0.1):
+        self.q, self.min_interval_s = q, min_interval_s
+        self._last: dict[str, float] = {}
 
-    def write(self, text):
-        if text:
-            self.q.put(("text", text))
-        return len(text)
-
-    def flush(self):
-        pass
-
-    def isatty(self):
-        return False
+    def __call__(self, event) -> None:
+        now = time.monotonic()
+        last = self._last.get(event.stage)
+        edge = event.total is None or event.message or event.done in (0, event.total)
+        if edge or last is None or now - last >= self.min_interval_s:
+            self._last[event.stage] = now
+            self.q.put(("progress", event))
 
 
 def _process_main(target: str, kwargs: dict, q) -> None:
     import importlib
-    import sys
+    import inspect
 
-    sys.stderr = _QueueText(q)
     try:
         module, attr = target.split(":")
-        result = getattr(importlib.import_module(module), attr)(**kwargs)
+        fn = getattr(importlib.import_module(module), attr)
+        if "progress" in inspect.signature(fn).parameters:
+            kwargs = {**kwargs, "progress": _ForwardProgress(q)}
+        result = fn(**kwargs)
     except BaseException as exc:  # noqa: BLE001 - sent to the GUI
         q.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
     else:
@@ -479,12 +481,11 @@ class ProcessJob:
     """Runs ``module:function(**kwargs)`` in a separate process (spawned), so heavy encoding and analyses neither
     freeze the GUI nor compete for its GIL, and :meth:`cancel` really stops them (terminate).
 
-    Progress: the library's tqdm bars write to stderr; the child forwards that text and :meth:`poll` reads the
-    newest ``desc: ... n/total`` from it. The interface mirrors :class:`Job` (``done``, ``fraction``,
-    ``message``, ``result``, ``error``).
+    Progress: a function that takes a ``progress`` argument gets a callback that sends the library's
+    :class:`rigctl.core.progress.ProgressEvent` s to this process; :meth:`poll` turns the newest into
+    :attr:`fraction` and :attr:`message` (:attr:`events` keeps every one received). The interface mirrors
+    :class:`Job` (``done``, ``fraction``, ``message``, ``result``, ``error``).
     """
-
-    _PROGRESS = __import__("re").compile(r"(?:^|\r|\n)\s*([^\r\n:|]*?):?\s*(\d+)%\|[^|]*\|\s*(\d+)/(\d+)")
 
     def __init__(self, target: str, **kwargs):
         import multiprocessing as mp
@@ -499,7 +500,7 @@ class ProcessJob:
         self.result = None
         self.error: str | None = None
         self.traceback: str | None = None
-        self._text = ""
+        self.events: list = []  # the ProgressEvents received, in order
 
     def start(self) -> "ProcessJob":
         self.proc.start()
@@ -521,13 +522,8 @@ class ProcessJob:
                 item = self.q.get_nowait()
             except queue.Empty:
                 break
-            if item[0] == "text":
-                self._text = (self._text + item[1])[-400:]
-                m = list(self._PROGRESS.finditer(self._text))
-                if m:
-                    desc, _pct, n, total = m[-1].groups()
-                    self.fraction = int(n) / max(int(total), 1)
-                    self.message = f"{desc.strip() or 'working'}: {n}/{total}"
+            if item[0] == "progress":
+                self._on_progress(item[1])
             elif item[0] == "result":
                 self.result = item[1]
                 self.done = True
@@ -539,3 +535,11 @@ class ProcessJob:
             self.error = self.error or f"worker process exited with code {self.proc.exitcode}"
         if self.done:
             self.proc.join(1)
+
+    def _on_progress(self, event) -> None:
+        self.events.append(event)
+        if event.total is None:
+            self.message = event.message
+            return
+        self.fraction = event.fraction
+        self.message = f"{event.stage}: {event.done}/{event.total}" + (f" ({event.message})" if event.message else "")

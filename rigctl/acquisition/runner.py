@@ -6,7 +6,9 @@ duration, stop the drum; write the trial to the session file in one go (:meth:`S
 
 Run control, for the CLI and the GUI alike:
 
-- progress: a tqdm bar with ETA (``progress=True``), or nothing printed at all (``progress=False``, callbacks only);
+- ``progress``: a callback receiving :class:`rigctl.core.progress.ProgressEvent` s (stage = the protocol's name,
+  done/total = complete trials of the plan; a message per trial started and per retry, failure or link note);
+  None prints nothing (notes go to the log). The CLI draws them as a tqdm bar;
 - ``on_trial(event)``: a :class:`TrialEvent` when each trial starts and ends (complete / failed), when an attempt is
   recorded again (retry) and while a write waits for the session file (waiting);
 - ``stop_event`` (set it), Ctrl-C (KeyboardInterrupt) or SIGTERM (handled like Ctrl-C while the run lasts, when it
@@ -51,6 +53,7 @@ from typing import Any, Callable
 from rigctl.acquisition.calibration import session_calibration_block
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
 from rigctl.acquisition.rig import CaptureError, Rig, TrialAborted
+from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.trial import PlannedTrial, TrialData
 from rigctl.storage.session import SessionError, SessionWriter, TrialStatus
 
@@ -228,7 +231,7 @@ def run_protocol(
     *,
     rig: Rig,
     resume: bool = False,
-    progress: bool = True,
+    progress: ProgressCallback | None = None,
     stop_event: threading.Event | None = None,
     pause_event: threading.Event | None = None,
     on_trial: Callable[[TrialEvent], Any] | None = None,
@@ -246,7 +249,7 @@ def run_protocol(
     rig : an open :class:`rigctl.acquisition.rig.Rig` (:func:`rigctl.rigs.open_rig`). Its texture set becomes the
         protocol's (:attr:`Protocol.texture_set`), which the session stores with the taxel source's layout.
     resume : continue the existing file from its plan.
-    progress : show a tqdm progress bar on stderr (False: print nothing).
+    progress : callback receiving :class:`~rigctl.core.progress.ProgressEvent` s (module docstring); None: none.
     stop_event, pause_event : run control (see the module docstring).
     on_trial : callback receiving :class:`TrialEvent` s (called from the thread running this function).
     prompt : operator prompt for plate changes on hardware (default: the rig's).
@@ -290,7 +293,7 @@ class _Run:
     """One run of a TOML protocol's plan (:func:`run_protocol`): the trial loop, retries, link watch, writes."""
 
     def __init__(self, protocol: Protocol, writer: SessionWriter, out_path: Path, rig: Rig, *, interrupts: _Interrupts,
-                 progress: bool, stop_event, on_trial, prompt, on_failure: str):
+                 progress: ProgressCallback | None, stop_event, on_trial, prompt, on_failure: str):
         self.protocol, self.writer, self.rig, self.interrupts = protocol, writer, rig, interrupts
         self.progress, self.stop_event, self.on_trial, self.prompt = progress, stop_event, on_trial, prompt
         self.on_failure = on_failure
@@ -315,7 +318,7 @@ class _Run:
 
     def _report(self, message: str) -> None:
         if self.bar is not None:
-            self.bar.write(message)
+            self.bar.note(message)
         else:
             log.warning("%s", message)
 
@@ -325,10 +328,7 @@ class _Run:
     def run(self, pause_event) -> RunSummary:
         summary = self.summary
         if self.progress:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=len(self.plan), initial=len(self.plan) - self.total, unit="trial",
-                            desc=self.protocol.name, dynamic_ncols=True)
+            self.bar = Stage(self.progress, self.protocol.name, len(self.plan), done=len(self.plan) - self.total)
         try:
             for index, planned in enumerate(self.todo):
                 if self._stopping():
@@ -348,8 +348,6 @@ class _Run:
         finally:
             with self.interrupts.held():  # a signal now cannot cut the clean-up short: the run ends anyway
                 self.rig.safe_stop()
-                if self.bar is not None:
-                    self.bar.close()
                 summary.complete = len(self.writer.completed_ids())
                 self.writer.close()
             self.interrupts.pending = None
@@ -372,8 +370,8 @@ class _Run:
                     rig.mount_texture(planned.texture, prompt=self.prompt)
                 self._event("start", planned, index, eta_s=eta, attempt=attempt)
                 if self.bar is not None:
-                    self.bar.set_postfix_str(f"{planned.texture} {planned.profile if planned.is_ramp else ''}"
-                                             f"{planned.speed_mm_s:g} mm/s {planned.force_g:g} g", refresh=True)
+                    self.bar.advance(0, f"{planned.texture} {planned.profile + ' ' if planned.is_ramp else ''}"
+                                        f"{planned.speed_mm_s:g} mm/s {planned.force_g:g} g")
                 data = rig.record_trial(planned, stop_event=self.stop_event)
                 limit = self.protocol.max_dropped_frames
                 if data.dropped_frames > limit:
@@ -424,7 +422,7 @@ class _Run:
         self._event("complete", planned, index, data=data, eta_s=self._eta(self.total - index - 1),
                     attempt=attempt)
         if self.bar is not None:
-            self.bar.update(1)
+            self.bar.advance(1)
         return True
 
     def _after_failure(self, planned: PlannedTrial, index: int) -> str:

@@ -35,6 +35,7 @@ from sklearn.model_selection import StratifiedKFold
 from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
 from rigctl.analysis.stats import Comparison
+from rigctl.core.progress import Stage
 
 __all__ = [
     "TASK_TITLES",
@@ -172,12 +173,6 @@ def _warn(res: TaskResults, msg: str):
     warnings.warn(msg, UserWarning, stacklevel=3)
 
 
-def _progress(total, desc, enabled):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, disable=not enabled, unit="fit", leave=False)
-
-
 def _variants(fs: FeatureSet, variants, task="table1"):
     vs = default_variants(fs.variants, task) if variants is None else list(variants)
     missing = [v for v in vs if v not in fs.features]
@@ -207,7 +202,7 @@ def run_cv(
     k=4,
     seed=0,
     confusion_pcs=None,
-    progress=False,
+    progress=None,
 ) -> TaskResults:
     """Individual-texture and texture-group classification with k-fold CV (Fig. 3A-B).
 
@@ -230,8 +225,8 @@ def run_cv(
         Repetition ``r`` uses ``numpy.random.default_rng([seed, r])``: the same draws for every variant.
     confusion_pcs : int, optional
         PC count for the confusion matrices (default ``n_pcs``).
-    progress : bool
-        Show a tqdm bar.
+    progress : callable, optional
+        Receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"textures/groups"``, done/total = PCA fits).
 
     Returns
     -------
@@ -267,7 +262,7 @@ def run_cv(
     n_used = None
     acc = {(t, v): [] for t in tasks for v in vs}
     cms = {(t, v): 0 for t in tasks for v in vs}
-    bar = _progress(repeats * k * len(vs), "textures/groups", progress)
+    bar = Stage(progress, "textures/groups", repeats * k * len(vs), unit="fit")
     for r in range(repeats):
         idx, folds = cv_split(fs.texture, n_draw, k, seed=seed, repeat=r)
         for v in vs:
@@ -285,11 +280,10 @@ def run_cv(
                     c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
                     correct[t].append(c)
                     cms[(t, v)] = cms[(t, v)] + cm
-                bar.update(1)
+                bar.advance(1)
             for t in tasks:
                 total = sum(c[:n_used] for c in correct[t])
                 acc[(t, v)].append(np.asarray(total, dtype=np.float64) / len(idx))
-    bar.close()
     for t in tasks:
         for v in vs:
             a = np.vstack([row[:n_used] for row in acc[(t, v)]])
@@ -343,7 +337,7 @@ def run_extrapolation(
     n_test=25,
     seed=0,
     confusion_pcs=None,
-    progress=False,
+    progress=None,
     prefix="",
 ) -> TaskResults:
     """Texture extrapolation to untrained speed-force conditions (Fig. 3C-F).
@@ -399,7 +393,7 @@ def run_extrapolation(
     cms = {(c, v): 0 for c in cats for v in vs}
     n_tested = {}
     n_used = None
-    bar = _progress(repeats * len(vs), prefix + "extrapolation", progress)
+    bar = Stage(progress, prefix + "extrapolation", repeats * len(vs), unit="fit")
     for r in range(repeats):
         train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, a_tr, a_te, u_te,
                                                             np.random.default_rng([seed, 10_000 + r]))
@@ -416,8 +410,7 @@ def run_extrapolation(
                 acc[(c, v)].append(correct / m.sum())
                 cms[(c, v)] = cms[(c, v)] + cm
                 n_tested[c] = int(m.sum())
-            bar.update(1)
-    bar.close()
+            bar.advance(1)
     for c in cats:
         for v in vs:
             a = np.vstack([row[:n_used] for row in acc[(c, v)]])
@@ -511,7 +504,7 @@ def extrapolation_split(fs: FeatureSet, *, train_speeds=(40, 60, 80), train_forc
                                np.random.default_rng([seed, 10_000 + repeat]))
 
 
-def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=False, **cv_kw) -> TaskResults:
+def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=None, **cv_kw) -> TaskResults:
     """All six rows of Table 1 (textures, groups and the four extrapolation cells), every variant."""
     res = run_cv(fs, ("textures", "groups") if fs.group is not None else ("textures",), variants=variants,
                  n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress, **cv_kw)
@@ -536,7 +529,7 @@ def run_realtime(
     calibration_per_texture=10,
     headline_pcs=25,
     seed=0,
-    progress=False,
+    progress=None,
 ) -> TaskResults:
     """The real-time analyses of Fig. 4 on ramp-profile trials (Methods, real-time Statistical Analysis).
 
@@ -599,7 +592,7 @@ def run_realtime(
         a.append(correct)
         store[(task, v)] = (a, c + cm, len(truth))
 
-    bar = _progress(repeats * len(vs), "realtime", progress)
+    bar = Stage(progress, "realtime", repeats * len(vs), unit="fit")
     for r in range(repeats):
         rng = np.random.default_rng([seed, 20_000 + r])
         folds = list(StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31))).split(fs.texture,
@@ -634,8 +627,7 @@ def run_realtime(
                 centre = xn[cal].astype(np.float64).mean(axis=0)  # mean-centering calibration
                 add("rt_new_session", v, lda.predict_all(_project(pca, xn[rest], centre), n_pcs),
                     new_session.texture[rest])
-            bar.update(1)
-    bar.close()
+            bar.advance(1)
     for (task, v), (a, cm, n_te) in store.items():
         n = min(len(row) for row in a)  # PCs usable in this task (e.g. 30 training trials -> at most 25)
         acc = np.vstack([row[:n] for row in a]).astype(np.float64) / n_te

@@ -14,6 +14,7 @@ from typing import Any, Callable
 import click
 
 from rigctl.cli.outputs import UsageProblem, check_output
+from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
 
 #: --plates choices (see the option's help)
@@ -191,9 +192,9 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
                 from None
     for record in held:  # the opening succeeded: what it logged is news
         logging.getLogger(record.name).handle(record)
-    with rig:
+    with rig, bars(not quiet) as progress:
         try:
-            summary = run_protocol(proto, out, rig=rig, resume=resume, progress=not quiet,
+            summary = run_protocol(proto, out, rig=rig, resume=resume, progress=progress,
                                    on_failure=on_failure, overwrite=overwrite)
         except (SessionError, FileExistsError, FileNotFoundError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None

@@ -11,6 +11,7 @@ from pathlib import Path
 import click
 
 from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, same_file
+from rigctl.cli.progress import bars
 
 TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all", "variance")
 
@@ -49,7 +50,7 @@ def _check_variants(path, variants):
         raise UsageProblem(f"--variants: {', '.join(bad)} not in {path}; choose from {', '.join(have)}")
 
 
-def _load(path, encode, variants, task="table1"):
+def _load(path, encode, variants, task="table1", progress=False):
     from rigctl.analysis.data import NotEncodedError, default_variants, list_variants, load_features
 
     try:
@@ -66,7 +67,8 @@ def _load(path, encode, variants, task="table1"):
     with tempfile.TemporaryDirectory(prefix="rigctl-analyze-") as tmp:  # the features are read into memory
         out = Path(tmp) / (Path(path).stem + ".encoded.h5")
         click.echo(f"encoding {path} on the fly (rigctl encode) ...", err=True)
-        encode_session(path, out)
+        with bars(progress) as bar:
+            encode_session(path, out, progress=bar)
         return load_features(out, variants or default_variants(list_variants(out), task))
 
 
@@ -182,7 +184,7 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
     if table1_:
         task = "all"
     _check_variants(file, vlist)
-    fs = _load(file, encode_, vlist, task)
+    fs = _load(file, encode_, vlist, task, progress)
     _check_pcs(fs, n_pcs, explicit_pcs)
     from rigctl.analysis.variance import format_variance
 
@@ -207,7 +209,7 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
         runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
 
     res_all = tasks.TaskResults()
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, bars(progress, leave=False) as bar:
         warnings.simplefilter("always")
         for tag, data in runs:
             res = tasks.TaskResults()
@@ -220,22 +222,22 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
                                             "no texture groups" if data.textures.name else
                                             "groups task skipped: the file's texture set defines no texture groups")
                     res.merge(tasks.run_cv(data, wanted, variants=vlist, n_pcs=n_pcs, repeats=repeats,
-                                           per_texture=per_texture, seed=seed, progress=progress))
+                                           per_texture=per_texture, seed=seed, progress=bar))
                 if task in ("extrapolation", "all"):
                     res.merge(tasks.run_extrapolation(
                         data, train_speeds=_floats(train_speeds) or (40, 60, 80),
                         train_forces=_floats(train_forces) or (250, 500), test_speeds=_floats(test_speeds),
-                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress))
+                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=bar))
                 if task == "speed-extrapolation":
                     res.merge(tasks.run_extrapolation(
                         data, train_speeds=_floats(train_speeds), train_forces=_floats(train_forces),
                         test_speeds=_floats(test_speeds), variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                        progress=progress, prefix="speed_"))
+                        progress=bar, prefix="speed_"))
                 if task == "realtime":
                     other = _load(new_session, encode_, fs.variants, task) if new_session else None
                     res.merge(tasks.run_realtime(
                         data, new_session=other, train_profiles=[p.strip() for p in train_profiles.split(",")],
-                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress))
+                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=bar))
             except (ValueError, KeyError) as exc:
                 raise click.ClickException(str(exc)) from None
             for t, by_v in res.curves.items():

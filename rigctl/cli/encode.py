@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rigctl.cli.outputs import UsageProblem, check_output
+from rigctl.cli.progress import bars
 from rigctl.storage.encoded import ALL_VARIANTS
 
 
@@ -73,10 +74,10 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     try:
         params = EncodeParams(window_s=window_ms / 1000.0, n_windows_unscaled=windows_unscaled,
                               n_windows_scaled=windows_scaled)
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True) as caught, bars(not quiet) as progress:
             warnings.simplefilter("always")
             path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,
-                                  scheduler=scheduler, workers=workers, progress=not quiet,
+                                  scheduler=scheduler, workers=workers, progress=progress,
                                   store_spikes=() if no_spikes else MAIN_VARIANTS, params=params,
                                   overwrite=overwrite)
         for w in caught:  # one line each, not Python's file:line form

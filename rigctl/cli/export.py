@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from rigctl.cli.outputs import UsageProblem, check_output, replacing
+from rigctl.cli.progress import bars
 
 
 @click.group("export")
@@ -31,27 +32,13 @@ def nwb(session, encoded, variants, out, overwrite, progress):
 
     check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",))
     vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(unit="trial", desc="export nwb", leave=False)
-
-    def on_trial(done, total):
-        if bar is not None:
-            bar.total = total
-            bar.update(done - bar.n)
-
     try:
-        with replacing(out) as tmp:
-            summary = export_nwb(session, tmp, encoded_path=encoded, variants=vlist, progress=on_trial)
+        with replacing(out) as tmp, bars(progress, leave=False) as on_event:
+            summary = export_nwb(session, tmp, encoded_path=encoded, variants=vlist, progress=on_event)
     except (NwbExportError, SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
     except KeyError as exc:
         raise UsageProblem(str(exc.args[0] if exc.args else exc)) from None
-    finally:
-        if bar is not None:
-            bar.close()
     units = ", ".join(f"{v}: {n} units, {summary.spikes[v]} spikes" for v, n in summary.units.items())
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_samples} samples x {summary.n_channels} taxels "
                f"at {summary.rate_hz:g} Hz" + (f"; {units}" if units else ""))

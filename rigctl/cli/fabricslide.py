@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from rigctl.cli.outputs import check_output
+from rigctl.cli.progress import bars
 
 #: ../shared/data/fabricslide next to the repository checkout
 DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabricslide"
@@ -41,8 +42,9 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
         candidates = [DEFAULT_DIR, Path.cwd().parent / "shared" / "data" / "fabricslide"]
         directory = next((c for c in candidates if c.is_dir()), DEFAULT_DIR)
     try:
-        summary = run(directory, out, include_board=include_board, pattern=pattern, trim=trim, overwrite=overwrite,
-                      progress=not quiet)
+        with bars(not quiet) as progress:
+            summary = run(directory, out, include_board=include_board, pattern=pattern, trim=trim,
+                          overwrite=overwrite, progress=progress)
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     if as_json:

@@ -7,6 +7,7 @@ import json
 import click
 
 from rigctl.cli.outputs import check_output
+from rigctl.cli.progress import bars
 
 
 @click.command("import")
@@ -36,8 +37,9 @@ from rigctl.cli.outputs import check_output
               help="A known dataset: FILES is its folder (fabricslide = rigctl import-fabricslide's defaults).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      mapping, volts_ref, adc_bits, preset, overwrite, as_json):
+                      mapping, volts_ref, adc_bits, preset, overwrite, as_json, quiet):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
@@ -53,7 +55,8 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         if len(files) != 1:
             raise click.UsageError("--preset fabricslide takes one FILES argument: the FabricSlide folder")
         try:
-            summary = import_fabricslide(files[0], out, overwrite=overwrite, progress=False)
+            with bars(not quiet and not as_json) as progress:
+                summary = import_fabricslide(files[0], out, overwrite=overwrite, progress=progress)
         except (FileNotFoundError, FileExistsError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
         click.echo(json.dumps(summary) if as_json else
@@ -61,9 +64,10 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
                    f"(textures: {', '.join(summary['labels'])})")
         return
     try:
-        summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
-                      texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, mapping=mapping,
-                      volts_ref=volts_ref, adc_bits=adc_bits, overwrite=overwrite)
+        with bars(not quiet and not as_json) as progress:
+            summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
+                          texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, mapping=mapping,
+                          volts_ref=volts_ref, adc_bits=adc_bits, overwrite=overwrite, progress=progress)
     except (RecordingImportError, FileExistsError, FileNotFoundError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     if as_json:

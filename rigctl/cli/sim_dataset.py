@@ -7,6 +7,7 @@ import json
 import click
 
 from rigctl.cli.outputs import check_output
+from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
 
 
@@ -38,10 +39,11 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, ove
     check_output(out, overwrite=overwrite or resume, inputs=(protocol,),
                  overwrite_hint="continue it with --resume, or pass --overwrite")
     try:
-        summary = generate_dataset(protocol, out, trials_per_condition=trials_per_condition, seed=seed,
-                                   workers=workers, progress=not quiet,
-                                   compression=None if compression == "none" else compression,
-                                   overwrite=overwrite, resume=resume)
+        with bars(not quiet) as progress:
+            summary = generate_dataset(protocol, out, trials_per_condition=trials_per_condition, seed=seed,
+                                       workers=workers, progress=progress,
+                                       compression=None if compression == "none" else compression,
+                                       overwrite=overwrite, resume=resume)
     except ProtocolError as exc:
         raise click.ClickException(str(exc)) from None
     except (FileExistsError, TypeError, ValueError) as exc:

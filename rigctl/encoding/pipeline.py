@@ -61,6 +61,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigctl.core.progress import ProgressCallback, Stage
+from rigctl.core.progress import note as progress_note
 from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, realtime_features,
                                       realtime_features_unscaled, spike_features)
@@ -388,7 +390,8 @@ def _client(scheduler, workers):
 
 
 def encode_session(session_path, out_path, *, variants=None, batch_trials: int = 256,
-                   scheduler: str | None = None, workers: int | None = None, progress: bool = True,
+                   scheduler: str | None = None, workers: int | None = None,
+                   progress: ProgressCallback | None = None,
                    trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 4e9,
                    params: EncodeParams | None = None, overwrite: bool = True) -> Path:
     """Encode a session file (``rigctl.storage.session``) into an encoded file (:mod:`rigctl.storage.encoded`).
@@ -403,7 +406,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     scheduler : None -> this process (numba, all cores); ``"local"`` -> a local Dask cluster of ``workers``
         processes; an address ``"tcp://host:8786"`` -> that Dask cluster (workers must see ``session_path``).
     workers : worker processes for ``scheduler="local"`` (default: cores).
-    progress : tqdm progress bars on stderr.
+    progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stages ``"range pass"`` and
+        ``"encoding"`` (done/total = trials), and notes (resampling, lossy trials, the force fit).
     trial_ids : optional subset of trial ids.
     store_spikes : variants whose spike trains are written under /spikes.
     fit_memory_bytes : memory allowed for the readings kept for the force fit (see module docstring).
@@ -422,8 +426,6 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     trials without a speed; ValueError for unknown variants, a session without complete trials, or a sample rate
     that cannot be resampled to the model's.
     """
-    from tqdm.auto import tqdm
-
     from rigctl.storage.session import open_session
 
     p = replace(params) if params is not None else EncodeParams()
@@ -447,8 +449,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         conv = rate_conversion(layout.sample_rate_hz, p.fs_hz)
         p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
         log.info("rate: %s", conv.describe())
-        if progress and conv.resampled:
-            print(f"resampling: {conv.describe()}", flush=True)
+        if conv.resampled:
+            progress_note(progress, "range pass", f"resampling: {conv.describe()}")
         keys = np.array([f"{t}|{v:.3f}|{f:.3f}" for t, v, f in zip(labels["texture"], labels["speed_mm_s"],
                                                                      labels["force_g"])])
         plan_dur = {int(r["trial_id"]): float(r["duration_s"]) for r in s.plan} if "duration_s" in s.plan.dtype.names \
@@ -460,7 +462,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         fit_arrays, fit_idx, n_samples = [], [], np.zeros(len(ids), dtype=np.int64)
         has_trace = np.zeros(len(ids), dtype=bool)
         lossy: dict[int, int] = {}  # trial id -> frames it lost on the taxel link (kept within the protocol's limit)
-        for i, tid in enumerate(tqdm(ids, desc="range pass", unit="trial", disable=not progress)):
+        bar = Stage(progress, "range pass", len(ids))
+        for i, tid in enumerate(ids):
             tr = s.trial(tid)
             raw = np.asarray(tr.taxels)
             if raw.ndim != 2 or raw.shape[1] != layout.n_channels:
@@ -475,12 +478,13 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
             if i in keep:
                 fit_arrays.append(x)
                 fit_idx.append(i)
+            bar.advance(1)
     if lossy:  # failed trials are not complete, so never encoded; kept ones with holes are flagged
-        note = (f"{len(lossy)} of {len(ids)} trials were recorded with lost frames ({sum(lossy.values())} frames; "
-                f"trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials attribute")
-        log.warning("%s", note)
-        if progress:
-            print(note, flush=True)
+        lossy_note = (f"{len(lossy)} of {len(ids)} trials were recorded with lost frames ({sum(lossy.values())} "
+                      f"frames; trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials "
+                      "attribute")
+        log.warning("%s", lossy_note)
+        progress_note(progress, "range pass", lossy_note)
     if np.any(n_samples == 0):
         raise ValueError("a complete trial has no samples: trials "
                          f"{_trial_list(np.asarray(ids)[n_samples == 0])}")
@@ -516,8 +520,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     scaler = scaler_lf = None
     fit_note = fit_note_lf = "not requested"
     if need_force:
-        if progress:
-            print(f"fitting force coefficients on {fit_rg.n_trials} trials ...", flush=True)
+        progress_note(progress, "force fit", f"fitting force coefficients on {fit_rg.n_trials} trials ...")
         scaler, fit_note = _fit_forces(fit_rg, labels_fit, offset, scale, p, label_free=False)
         scaler_lf, fit_note_lf = _fit_forces(fit_rg, labels_fit, offset, scale, p, label_free=True)
     del fit_rg
@@ -565,11 +568,11 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         args = [(str(session_path), [ids[i] for i in b], labels["speed_mm_s"][b],
                  None if coeffs is None else coeffs[b], None if coeffs_lf is None else coeffs_lf[b],
                  offset, scale, variants, store_spikes, p) for b in batches]
-        bar = tqdm(total=len(ids), desc="encoding", unit="trial", disable=not progress)
+        bar = Stage(progress, "encoding", len(ids))
         if scheduler is None:
             for b, a in zip(batches, args):
                 write(b, _batch_task(*a))
-                bar.update(len(b))
+                bar.advance(len(b))
         else:
             from dask.distributed import as_completed
 
@@ -582,9 +585,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                 fut.release()
                 while next_i in done:  # spikes are appended in trial order
                     write(batches[next_i], done.pop(next_i))
-                    bar.update(len(batches[next_i]))
+                    bar.advance(len(batches[next_i]))
                     next_i += 1
-        bar.close()
         writer.set_attrs(
             parameters=json.dumps(asdict(p)),
             feature_layout=(f"train-major: [SA_0 windows, ..., SA_n-1, RA_0, ..., RA_n-1] for n = {n_ch} taxels; "

@@ -33,6 +33,7 @@ from typing import Any, Iterable, Iterator, Mapping
 import numpy as np
 from scipy.signal import lfilter
 
+from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData
@@ -280,7 +281,7 @@ def _plan_rows(plan: Iterable[Any]) -> list[tuple]:
 
 
 def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_condition: int | None = None,
-                     seed: int = 0, workers: int | None = None, progress: bool = True, config: RigConfig | None = None,
+                     seed: int = 0, workers: int | None = None, progress: ProgressCallback | None = None, config: RigConfig | None = None,
                      compression: str | None = None, overwrite: bool = False, resume: bool = False,
                      durable: bool = False) -> dict:
     """Render a whole protocol into a session file, straight from the model (>= 1000x real time).
@@ -302,8 +303,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         :data:`WORKER_CHUNK` trials, passed through shared memory: :mod:`rigctl.simulation.trial_slots`); 0
         renders and writes in this process. Default: one per core but one (the writer needs a core of its own:
         it is the slower half), or 0 below 64 trials (starting a worker costs about 1.5 s).
-    progress : bool
-        Show a tqdm progress bar.
+    progress : callable, optional
+        Receives :class:`rigctl.core.progress.ProgressEvent` s: stage ``"dataset <file name>"``, done/total = trials
+        written in this run (the CLI draws a tqdm bar from them).
     config : RigConfig, optional
         Rig model; stored as the session's ``rig_config``.
     compression : {None, "lzf", "gzip"}
@@ -391,8 +393,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
                 np.maximum(hi, data.taxels.max(axis=0), out=hi)
                 stats["n_trials"] += 1
                 stats["samples"] += data.n_samples
-                if bar is not None:
-                    bar.update(1)
+                bar.advance(1)
                 yield tid, data
                 if count >= 256 or time.monotonic() - t0 > 2.0:
                     return
@@ -401,26 +402,19 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         while not exhausted:
             writer.write_trials(batch())
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(rows), unit="trial", desc=f"dataset {out_path.name}")
-    try:
-        if n_workers == 0:
-            _init_worker(cfg.to_dict(), seed, textures_arg)
-            consume(map(_render_planned, rows), bar)
-        else:
-            # the workers render (the model) into shared-memory slots, this process writes: both run at once
-            max_samples = max(int(round(r[4] * rate_hz)) for r in rows) + 2
-            ctx = mp.get_context("spawn")
-            with TrialSlots(max_samples, n_blocks=3 * n_workers, block=WORKER_CHUNK, layout=layout) as slots, \
-                    ctx.Pool(n_workers, initializer=init_worker_slots,
-                             initargs=(*slots.initargs, _render_planned, _init_worker,
-                                       (cfg.to_dict(), seed, textures_arg))) as pool:
-                consume(slots.results(pool, rows), bar)
-    finally:
-        if bar is not None:
-            bar.close()
+    bar = Stage(progress, f"dataset {out_path.name}", len(rows))
+    if n_workers == 0:
+        _init_worker(cfg.to_dict(), seed, textures_arg)
+        consume(map(_render_planned, rows), bar)
+    else:
+        # the workers render (the model) into shared-memory slots, this process writes: both run at once
+        max_samples = max(int(round(r[4] * rate_hz)) for r in rows) + 2
+        ctx = mp.get_context("spawn")
+        with TrialSlots(max_samples, n_blocks=3 * n_workers, block=WORKER_CHUNK, layout=layout) as slots, \
+                ctx.Pool(n_workers, initializer=init_worker_slots,
+                         initargs=(*slots.initargs, _render_planned, _init_worker,
+                                   (cfg.to_dict(), seed, textures_arg))) as pool:
+            consume(slots.results(pool, rows), bar)
 
     # per-taxel min/max over the whole file (the paper's normalisation, Materials and Methods) once it is complete
     if not writer.pending_ids() and (stats["n_trials"] or done):

@@ -27,6 +27,7 @@ from typing import Iterable
 
 import numpy as np
 
+from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 
@@ -257,7 +258,8 @@ def fabricslide_textures(labels: Iterable[str]) -> TextureSet:
 
 def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_board: bool = True,
                        pattern: str = "*.csv", trim: float = 0.10, scale: float = DEFAULT_SCALE,
-                       offset: float = DEFAULT_OFFSET, overwrite: bool = False, progress: bool = True) -> dict:
+                       offset: float = DEFAULT_OFFSET, overwrite: bool = False,
+                       progress: ProgressCallback | None = None) -> dict:
     """The FabricSlide preset of ``rigctl import``: the recordings as one session file (kind ``"fabricslide"``),
     16 channels at 1 kHz, 10 bits (:data:`FABRICSLIDE_SENSOR`), fabrics and board together.
 
@@ -268,6 +270,9 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     ``velocity_mm_s`` (signed), ``direction`` (+1/-1), ``source_file``, ``trim_fraction``. The speed trace holds the
     nominal speed at 10 Hz; there is no load-cell trace. Steps (linear resampling from the timestamps, the 10-bit
     map, the trim) are root attributes (``adc_map``, ``resampling``, ``import_steps``).
+
+    ``progress`` receives :class:`rigctl.core.progress.ProgressEvent` s: stage ``"FabricSlide import"``, done/total =
+    files read then trials written (2 per file).
 
     Returns
     -------
@@ -286,10 +291,7 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     _check_paths(files, Path(out_path), overwrite)
     names = [parse_name(p.name) for p in files]
     textures = fabricslide_textures(n["label"] for n in names)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=2 * len(files), unit="file", desc="FabricSlide import")
+    bar = Stage(progress, "FabricSlide import", 2 * len(files), unit="file")
     recs, plan = [], []
     for i, path in enumerate(files):
         rec = read_recording(path)
@@ -297,8 +299,7 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
         plan.append({"trial_id": i, "texture": rec.label, "speed_mm_s": rec.speed_mm_s,
                      "force_g": rec.force_setpoint, "duration_s": _n_samples(rec, trim) / RATE_HZ,
                      "profile": "constant", "repeat": rec.repeat})
-        if bar is not None:
-            bar.update(1)
+        bar.advance(1)
     adc_map = {"formula": "adc = clip(rint(counts * scale + offset), 0, 1023)", "scale": scale, "offset": offset,
                "resampling": "linear interpolation onto a 1 ms grid from the first timestamp; repeated timestamps: "
                "first sample kept", "trim_fraction_each_end": trim}
@@ -313,28 +314,23 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
             n = adc.shape[0]
             t = np.arange(0, n, 100) / RATE_HZ
             samples += n
-            if bar is not None:
-                bar.update(1)
+            bar.advance(1)
             yield i, TrialData(
                 taxels=adc, speed_mm_s=np.full(t.size, rec.speed_mm_s), speed_time_s=t, layout=FABRICSLIDE_SENSOR,
                 attrs={"fabric": rec.label, "velocity_mm_s": rec.velocity_mm_s, "direction": rec.direction,
                        "source_file": f"{rec.kind}/{rec.path.name}", "trim_fraction": trim, "source": "fabricslide"})
 
-    try:
-        write_session(
-            out_path, plan, items(), layout=FABRICSLIDE_SENSOR, textures=textures, kind="fabricslide",
-            protocol_name="fabricslide-import", overwrite=overwrite,
-            rig_config={"source": "FabricSlide (wngfra/FabricSlide, MIT licence)", "directory": str(directory),
-                        "sensor": "CPM-Finger capacitive, 16 taxels", "adc_map": adc_map},
-            attrs={"adc_map": json.dumps(adc_map), "resampling": json.dumps(resampling),
-                   "segmentation": json.dumps({"method": "none (one file = one trial)"}),
-                   "import_steps": json.dumps({"preset": "fabricslide", "adc_map": adc_map,
-                                               "resampling": resampling, "files": len(files)}),
-                   "force_unit": "FabricSlide arm force-loop setpoint (not grams)",
-                   "channel_map": "channel k = FabricSlide channel<k+1> (16 channels)"})
-    finally:
-        if bar is not None:
-            bar.close()
+    write_session(
+        out_path, plan, items(), layout=FABRICSLIDE_SENSOR, textures=textures, kind="fabricslide",
+        protocol_name="fabricslide-import", overwrite=overwrite,
+        rig_config={"source": "FabricSlide (wngfra/FabricSlide, MIT licence)", "directory": str(directory),
+                    "sensor": "CPM-Finger capacitive, 16 taxels", "adc_map": adc_map},
+        attrs={"adc_map": json.dumps(adc_map), "resampling": json.dumps(resampling),
+               "segmentation": json.dumps({"method": "none (one file = one trial)"}),
+               "import_steps": json.dumps({"preset": "fabricslide", "adc_map": adc_map,
+                                           "resampling": resampling, "files": len(files)}),
+               "force_unit": "FabricSlide arm force-loop setpoint (not grams)",
+               "channel_map": "channel k = FabricSlide channel<k+1> (16 channels)"})
     present = sorted({p["texture"] for p in plan}, key=textures.code)
     return {"path": str(out_path), "n_trials": len(recs), "samples": samples, "labels": present,
             "textures": list(textures.labels)}

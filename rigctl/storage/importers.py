@@ -70,6 +70,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import LayoutError, SensorLayout, parse_layout
 from rigctl.core.textures import TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData
@@ -556,9 +557,11 @@ def _check_paths(inputs: Iterable[Path], out: Path, overwrite: bool) -> None:
 def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTrial], *, layout: SensorLayout,
                            textures: TextureSet | None = None, kind: str = "recorded", attrs: Mapping | None = None,
                            rig_config: Mapping | None = None, protocol_name: str = "import",
-                           overwrite: bool = False) -> dict:
+                           overwrite: bool = False, progress: ProgressCallback | None = None) -> dict:
     """Write ``trials`` as a session file (plan in input order) through ``SessionWriter.create(..., layout=,
     textures=)``. Repeats missing from the labels are numbered per (texture, speed, force) condition.
+
+    ``progress`` receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"writing trials"``).
 
     Returns ``{"path", "n_trials", "samples", "rate_hz", "n_channels", "textures"}``.
     Raises FileExistsError (``out`` exists, no ``overwrite``), RecordingImportError (no trials).
@@ -581,12 +584,14 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
     if textures is None:
         textures = texture_set_from_labels(p["texture"] for p in plan)
     samples = 0
+    bar = Stage(progress, "writing trials", len(trials))
 
     def items():
         nonlocal samples
         for i, t in enumerate(trials):
             samples += t.counts.shape[0]
             yield i, TrialData(taxels=t.counts, layout=layout, attrs=dict(t.attrs))
+            bar.advance(1)
 
     write_session(out, plan, items(), layout=layout, textures=textures, kind=kind, attrs=attrs,
                   rig_config=rig_config, protocol_name=protocol_name, overwrite=overwrite)
@@ -612,7 +617,8 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
                       channels: int | None = None, layout: str | None = None, label_pattern: str | None = None,
                       texture: str | None = None, resample_hz: float | None = None, segment_spec: str | None = None,
                       mapping: str | os.PathLike | Mapping | None = None, volts_ref: float | None = None,
-                      adc_bits: int | None = None, overwrite: bool = False) -> dict:
+                      adc_bits: int | None = None, overwrite: bool = False,
+                      progress: ProgressCallback | None = None) -> dict:
     """Import recordings (CSV, NPY/NPZ, MAT, NWB) into a session file; the steps are in the module docstring.
 
     Parameters
@@ -630,6 +636,8 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
     mapping : TOML mapping path (or an already-loaded dict).
     volts_ref : the inputs are volts with this reference (V) -> counts at ``adc_bits``.
     adc_bits : ADC resolution of the stored counts (default 10).
+    progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stage ``"reading recordings"``
+        (done/total = files), then ``"writing trials"`` (done/total = trials).
 
     Returns
     -------
@@ -672,6 +680,7 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
     n_ch = None
     n_clipped = 0
     sensor_from_file = None  # an NWB file's own sensor description (rigctl exports it)
+    bar = Stage(progress, "reading recordings", len(files), unit="file")
     for path in files:
         blocks, file_rate, meta = read_recording_file(path, channels=channels, variable=m.get("variable"),
                                                       columns=m.get("columns"), time_column=m.get("time_column"))
@@ -734,6 +743,7 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
                 if seg is not None:
                     attrs.update({"segment_index": si, "segment_start_s": a / rate, "segment_stop_s": b / rate})
                 trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab, attrs))
+        bar.advance(1)
     assert out_rate is not None and n_ch is not None
     file_layout = None
     if sensor_from_file is not None and m.get("sensor") is None and layout is None and channels in (None, n_ch):
@@ -756,6 +766,6 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
              "label_pattern": label_pattern or ""}
     summary = write_imported_session(out, trials, layout=sl, textures=textures, kind="imported", attrs=attrs,
                                      rig_config={"source": "rigctl import", "sensor": sl.to_dict()},
-                                     protocol_name="import", overwrite=overwrite)
+                                     protocol_name="import", overwrite=overwrite, progress=progress)
     summary["steps"] = steps
     return summary

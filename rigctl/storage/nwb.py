@@ -34,10 +34,11 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
+from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage import encoded as _encoded
 from rigctl.storage.session import TrialStatus, open_session
 
@@ -136,7 +137,7 @@ def _train_columns(layout, n_trains: int) -> list[tuple[str, int, str, str, str]
 
 def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, encoded_path=None,
                variants: Sequence[str] | None = None,
-               progress: Callable[[int, int], None] | None = None) -> NwbSummary:
+               progress: ProgressCallback | None = None) -> NwbSummary:
     """Write the session (and the spike trains of an encoded file of it) as an NWB file (module doc).
 
     Parameters
@@ -145,7 +146,8 @@ def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     out_path : the NWB file to write (must not exist: the CLI checks it and writes through a temporary file).
     encoded_path : optional ``rigctl encode`` output of that session: its spike trains become the Units table.
     variants : the variants whose spike trains are exported (default :func:`default_spike_variants`).
-    progress : optional ``progress(done, total)`` called per trial written.
+    progress : optional callback receiving :class:`rigctl.core.progress.ProgressEvent` s (stage ``"export nwb"``,
+        done/total = trials read).
 
     Returns
     -------
@@ -206,6 +208,7 @@ def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, 
                         f"{', '.join(layout.channel_labels())}; trials back to back (recorded time)",
             comments=layout.describe()))
         force_t, force, speed_t, speed, means = [], [], [], [], []
+        bar = Stage(progress, "export nwb", len(ids))
         for k, t in enumerate(ids):
             tr = s.trial(t)
             force_t.append(starts[k] + tr.force_time_s)
@@ -214,8 +217,7 @@ def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, 
             speed.append(tr.speed_mm_s)
             means.append((float(np.mean(tr.force_g)) if tr.force_g.size else np.nan,
                           float(np.mean(tr.speed_mm_s)) if tr.speed_mm_s.size else np.nan))
-            if progress is not None:
-                progress(k + 1, len(ids))
+            bar.advance(1)
         for name, unit, t_parts, v_parts, what in (
                 ("load_cell_force", "g", force_t, force, "load-cell force"),
                 ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")):

@@ -39,8 +39,13 @@ def test_a_protocol_recorded_inprocess(rig, tmp_path):
     proto = parse_protocol('name = "inproc"\ntextures = ["A", "L"]\nspeeds_mm_s = [60, 120]\nforces_g = [300]\n'
                            'trials_per_condition = 2\nduration_s = 0.5\n[settle]\nsettle_time_ms = 50\n')
     out = tmp_path / "s.h5"
-    summary = run_protocol(proto, out, rig=rig, progress=False)
+    events = []
+    summary = run_protocol(proto, out, rig=rig, progress=events.append)
     assert summary.ok and summary.recorded == 8 and summary.dropped_frames == 0
+    # progress events: the protocol's stage, a message as each trial starts (done unchanged), then its count
+    assert {e.stage for e in events} == {"inproc"} and {e.total for e in events} == {8}
+    assert [e.done for e in events] == [0] + [n for k in range(8) for n in (k, k + 1)]
+    assert events[1].message == "A 60 mm/s 300 g"
     with open_session(out) as s:
         assert [str(t) for t in s.plan["texture"]] == ["A"] * 4 + ["L"] * 4
         assert s.layout == PAPER_SENSOR

@@ -52,9 +52,18 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     tab.n_pcs.setValue(6)
     qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
     assert tab.cancel_btn.isEnabled()
+    job = tab.job
     assert wait_for(qapp, lambda: tab.results is not None or (tab.job is None and "failed" in tab.status.text()), 120), \
         tab.status.text()
     assert tab.results is not None, tab.status.text()
+    # the progress bar followed the library's progress events (no text parsed): encoding, then the CV fits
+    stages = [e.stage for e in job.events if e.total is not None]
+    assert list(dict.fromkeys(stages)) == ["range pass", "encoding", "textures/groups"]
+    for stage in ("range pass", "encoding", "textures/groups"):
+        counted = [e for e in job.events if e.stage == stage and e.total is not None]
+        counts = [e.done for e in counted]
+        assert counts[0] == 0 and counts == sorted(counts) and counts[-1] == counted[0].total
+    assert job.fraction == 1.0 and job.message == "textures/groups: 32/32"  # 2 repeats x 4 folds x 4 variants
     res = tab.results
     assert set(res.curves) == {"textures", "groups"}
     assert set(res.curves["textures"]) == {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}

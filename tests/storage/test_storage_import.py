@@ -287,7 +287,12 @@ def test_fabricslide_preset_fabrics_and_board_in_one_16_channel_file(fabricslide
                                             resample_to_1khz, to_adc)
 
     out = tmp_path / "fs.h5"
-    summary = import_fabricslide(fabricslide_dir, out, pattern="*_F150_V-20mmps_0.csv", trim=0.0, progress=False)
+    events = []
+    summary = import_fabricslide(fabricslide_dir, out, pattern="*_F150_V-20mmps_0.csv", trim=0.0,
+                                 progress=events.append)
+    # progress events: 5 files read, then 5 trials written
+    assert [(e.stage, e.done, e.total, e.unit) for e in events] == [("FabricSlide import", k, 10, "file")
+                                                                    for k in range(11)]
     assert summary["labels"] == ["BeigeCotton", "BrownCotton", "Canvas", "Linen", "Board10mm"]
     with open_session(out) as s:
         assert s.layout == FABRICSLIDE_SENSOR and s.layout.n_channels == 16

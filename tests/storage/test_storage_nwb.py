@@ -63,7 +63,10 @@ def _inspect(path):
 
 def test_a_recorded_session_round_trips(recorded, tmp_path):
     out = tmp_path / "quick.nwb"
-    summary = export_nwb(recorded, out)
+    events = []
+    summary = export_nwb(recorded, out, progress=events.append)
+    assert [e.done for e in events] == list(range(summary.n_trials + 1))  # progress events, one per trial
+    assert {(e.stage, e.total) for e in events} == {("export nwb", summary.n_trials)}
     critical, _ = _inspect(out)
     assert critical == []
     back, arrays = read_nwb_summary(out)

@@ -1,0 +1,57 @@
+"""tqdm bars on stderr from the library's progress events (:mod:`rigctl.core.progress`): the command line's one
+adapter, handed as ``progress=`` to the long functions it calls."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+
+from rigctl.core.progress import ProgressEvent
+
+__all__ = ["TqdmProgress", "bars"]
+
+
+class TqdmProgress:
+    """A ``progress`` callback drawing one tqdm bar per stage (the previous stage's bar closes when a new stage
+    starts); a message without a count is written above the bars. Use as a context manager (closes the last bar)."""
+
+    def __init__(self, *, leave: bool = True):
+        self.leave = leave
+        self._bar = None
+        self._stage: str | None = None
+
+    def __call__(self, event: ProgressEvent) -> None:
+        from tqdm import tqdm
+
+        if event.total is None:
+            if event.message:
+                tqdm.write(event.message, file=sys.stderr)
+            return
+        if self._bar is None or event.stage != self._stage:
+            self.close()
+            self._stage = event.stage
+            self._bar = tqdm(total=event.total, initial=event.done, desc=event.stage, unit=event.unit,
+                             leave=self.leave)
+        if self._bar.total != event.total:
+            self._bar.total = event.total
+        self._bar.n = event.done
+        if event.message:
+            self._bar.set_postfix_str(event.message, refresh=False)
+        self._bar.refresh()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        self._bar, self._stage = None, None
+
+    def __enter__(self) -> "TqdmProgress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def bars(enabled: bool = True, **kw):
+    """``with bars(enabled) as progress:`` -> a :class:`TqdmProgress` when ``enabled`` (the command's ``--progress``
+    / not ``--quiet``), else None (no bars); the last bar is closed on leaving the block."""
+    return TqdmProgress(**kw) if enabled else contextlib.nullcontext(None)
