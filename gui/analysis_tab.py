@@ -242,11 +242,11 @@ class AnalysisTab(QtWidgets.QWidget):
             p.addItem(img)
             self.heat_plots.append((p, img))
 
-    def _browse(self) -> None:
+    def _browse(self):
+        from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
+
         start = str(self.main.settings.value("dirs/analysis", self.main.settings.value("dirs/output", "")))
-        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open", start, "HDF5 (*.h5 *.hdf5)")
-        if path:
-            self.open(path)
+        return choose_path(self, "open", "Open", start, "HDF5 (*.h5 *.hdf5)", self.open)
 
     def open(self, path: str) -> None:
         """Show a session or encoded file's trials."""

@@ -3,8 +3,12 @@
 ``python -m rigctl_gui.app [--drum-port P --taxel-port P] [--replay PATH] [--screenshot PATH --quit-after S] [--tab NAME]``
 (also ``rigctl gui``). With no ports the app starts on the simulated rig.
 
-The window holds a big STOP button that is always visible, a non-modal banner for disconnects, one tab per panel
-and a status bar with both boards' link status. One QTimer pulls from the worker threads at the GUI's own pace.
+The window holds a big STOP button that is always visible and never blocked (every dialog is non-modal, Esc is STOP
+in the window and in every dialog: :mod:`rigctl_gui.dialogs`), one banner per board and for faults and errors, the
+run strip (a protocol run's state and operator prompt, seen from every tab), one tab per panel, the event log
+(the app's messages and the library's logging records) and a status bar with both boards' link status. One QTimer
+pulls from the worker threads at the GUI's own pace. While a protocol run owns the rig (running or paused) manual
+motion, calibration and Connect are disabled.
 """
 
 from __future__ import annotations
@@ -12,17 +16,28 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import logging
+import os
 import sys
+import threading
 import time
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rigctl_gui.connect_dialog import source_problem
+from rigctl_gui.dialogs import ask, show_dialog
+from rigctl_gui.messages import EventLog, ExceptionGuard
 from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
 
 #: the app's refresh period (ms): 25 ms = 40 Hz, so the live view keeps >= 30 frames/s with slack
 REFRESH_MS = 25
 TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify")
+#: the live plots are marked stale when no taxel frame has arrived for this long, s
+STALE_AFTER_S = 1.0
+#: why the manual controls are disabled while a protocol run owns the rig
+RUN_LOCK_REASON = ("a protocol run owns the rig (running or paused). Abort it on the Protocol tab, or press STOP, "
+                   "to get the manual controls back")
 
 
 def configure_pyqtgraph() -> None:
@@ -45,6 +60,23 @@ def sensor_layout(handle):
     return (getattr(handle.taxels, "layout", None) or getattr(handle.rig, "layout", None) or PAPER_SENSOR)
 
 
+def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = None):
+    """Open ``source`` and home the actuator, unless the drum controller reports a latched fault: that one is left
+    latched for the operator to see and clear (Clear fault), never cleared behind their back. Returns the
+    :class:`rigctl_gui.workers.RigHandle`; raises what :func:`rigctl_gui.workers.open_rig` raises."""
+    from rigctl.devices.wire import DrumState
+
+    h = open_rig(source, host_config_path=host_config_path, home=False)
+    try:
+        if int(h.drum.read_status().state) != DrumState.FAULT:
+            h.drum.home()
+            h.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+    except BaseException:
+        h.close()
+        raise
+    return h
+
+
 class MainWindow(QtWidgets.QMainWindow):
     """The rigctl main window. ``source=None`` reads the last source from QSettings (simulated rig by default)."""
 
@@ -57,7 +89,7 @@ class MainWindow(QtWidgets.QMainWindow):
         from rigctl_gui.control_panel import ControlPanel
         from rigctl_gui.live_view import LiveView
         from rigctl_gui.protocol_tab import ProtocolTab
-        from rigctl_gui.status_bar import Banner, LinkStatus
+        from rigctl_gui.status_bar import Banners, LinkStatus
 
         self._ConnectDialog, self._save_source = ConnectDialog, save_source
         self.settings = make_settings()
@@ -67,16 +99,32 @@ class MainWindow(QtWidgets.QMainWindow):
         self.commands = None
         self.encoder = None
         self._connect_job = None
+        self._connect_dialog = None
+        self._close_confirmed = False
+        self._run_lock: str | None = None
+        self._faults = 0
+        self._stop_results = []
         self.setWindowTitle("rigctl - tactile texture rig")
+
+        # --- messages first: everything below may report into them ---
+        self.events = EventLog()
+        self.events.attach_logging("rigctl")
+        self.banners = Banners()
+        self.banner = self.banners["app"]  # the app's own errors (connect failures, unexpected errors)
+        self.events.problem.connect(self._on_problem)
+        self.guard = ExceptionGuard(self.events, lambda text: self.banner.show_message(text, error=True)).install()
 
         # --- top bar: source, connect, STOP ---
         self.source_label = QtWidgets.QLabel()
+        self.source_label.setTextFormat(QtCore.Qt.PlainText)
         self.source_label.setStyleSheet("font-weight: bold;")
         self.connect_btn = QtWidgets.QPushButton("Connect...")
+        self.connect_btn.setToolTip("Choose the rig: the simulated rig, two serial ports, or a replay")
         self.connect_btn.clicked.connect(self.choose_source)
         self.stop_btn = QtWidgets.QPushButton("STOP")
         self.stop_btn.setObjectName("big_stop")
-        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc)")
+        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc, "
+                                 "also in every dialog)")
         self.stop_btn.setMinimumSize(160, 48)
         self.stop_btn.setStyleSheet(
             "QPushButton { background: #d00; color: white; font-size: 20px; font-weight: bold; border-radius: 6px; }"
@@ -89,9 +137,9 @@ class MainWindow(QtWidgets.QMainWindow):
         top.addWidget(self.source_label, 1)
         top.addWidget(self.stop_btn)
 
-        self.banner = Banner()
         self.tabs = QtWidgets.QTabWidget()
         self.control = ControlPanel()
+        self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
         self.live = LiveView()
         self.protocol = ProtocolTab(self)
         self.analysis = AnalysisTab(self)
@@ -107,23 +155,45 @@ class MainWindow(QtWidgets.QMainWindow):
         ):
             self.tabs.addTab(w, name)
         self.tabs.setCurrentIndex(int(self.settings.value("ui/tab", 0)))
+        # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
+        self.stale_label = QtWidgets.QLabel(self.live)
+        self.stale_label.setObjectName("stale_marker")
+        self.stale_label.setTextFormat(QtCore.Qt.PlainText)
+        self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
+        self.stale_label.hide()
 
         central = QtWidgets.QWidget()
         lay = QtWidgets.QVBoxLayout(central)
+        lay.setContentsMargins(6, 4, 6, 2)
+        lay.setSpacing(3)
         lay.addLayout(top)
-        lay.addWidget(self.banner)
+        lay.addWidget(self.banners)
+        lay.addWidget(self.protocol.run_strip)
         lay.addWidget(self.tabs, 1)
         self.setCentralWidget(central)
 
+        self.log_dock = QtWidgets.QDockWidget("Event log", self)
+        self.log_dock.setObjectName("event_log_dock")
+        self.log_dock.setWidget(self.events)
+        self.log_dock.setFeatures(QtWidgets.QDockWidget.DockWidgetClosable | QtWidgets.QDockWidget.DockWidgetMovable
+                                  | QtWidgets.QDockWidget.DockWidgetFloatable)
+        self.addDockWidget(QtCore.Qt.BottomDockWidgetArea, self.log_dock)
+        self.resizeDocks([self.log_dock], [110], QtCore.Qt.Vertical)
+
         self.links = LinkStatus()
-        self.links.link_changed.connect(self.banner.on_link_changed)
-        self.statusBar().addPermanentWidget(self.links, 1)
+        self.links.link_changed.connect(self.banners.on_link_changed)
+        self.links.link_changed.connect(self._on_link_changed)
+        self.statusBar().addPermanentWidget(self.links)  # no stretch: the temporary messages keep their room
+        self._build_menus()
 
         geom = self.settings.value("ui/geometry")
         if geom is not None:
             self.restoreGeometry(geom)
         else:
             self.resize(1400, 900)
+        state = self.settings.value("ui/state")
+        if state is not None:
+            self.restoreState(state)
 
         self._tick = 0
         self.timer = QtCore.QTimer(self)
@@ -135,22 +205,165 @@ class MainWindow(QtWidgets.QMainWindow):
             self.connect_source(self.source)
 
     # ------------------------------------------------------------------------------------------------------
+    # menus
+    # ------------------------------------------------------------------------------------------------------
+    def _build_menus(self) -> None:
+        """File, Rig, Run, View, Help. An action that mirrors a button is enabled exactly when the button is
+        (:meth:`_sync_actions`), so the interlock covers the menus too."""
+        mb = self.menuBar()
+        self._mirrored: list[tuple[QtGui.QAction, QtWidgets.QAbstractButton]] = []
+        K = QtGui.QKeySequence
+
+        def act(menu, text, slot, shortcut=None, button=None, tip=""):
+            a = menu.addAction(text)
+            a.triggered.connect(lambda _=False: slot())
+            if shortcut is not None:
+                a.setShortcut(K(shortcut))
+            if tip:
+                a.setStatusTip(tip)
+            if button is not None:
+                self._mirrored.append((a, button))
+            return a
+
+        m = mb.addMenu("&File")
+        act(m, "&Open protocol...", self._open_protocol, K.Open, self.protocol.open_btn)
+        act(m, "Open session for &analysis...", self._open_analysis, "Ctrl+Shift+O")
+        act(m, "Choose &output session file...", self.protocol._browse_output, "Ctrl+Shift+S")
+        m.addSeparator()
+        act(m, "&Quit", self.close, K.Quit)
+
+        m = mb.addMenu("&Rig")
+        self.act_connect = act(m, "&Connect...", self.choose_source, "Ctrl+K", self.connect_btn)
+        act(m, "STOP (safe stop)", self.emergency_stop, tip="Esc anywhere, also in dialogs")
+        m.addSeparator()
+        b = self.control.buttons
+        act(m, "&Press", lambda: self.control.command("press"), "Ctrl+P", b["press"])
+        act(m, "R&un drum", lambda: self.control.command("run"), "Ctrl+Shift+R", b["run"])
+        act(m, "Stop &drum", lambda: self.control.command("stop_drum"), "Ctrl+.", b["stop_drum"])
+        act(m, "&Tare", lambda: self.control.command("tare"), None, b["tare"])
+        act(m, "&Home", lambda: self.control.command("home"), None, b["home"])
+        act(m, "Clear &fault", lambda: self.control.command("clear_fault"), None, b["clear_fault"])
+        act(m, "&Mount plate", self.control.mount_plate, "Ctrl+M", self.control.mount_btn)
+
+        m = mb.addMenu("R&un")
+        p = self.protocol
+        act(m, "&Start protocol", p.start, "Ctrl+R", p.start_btn)
+        act(m, "&Pause", p.pause, "Ctrl+Shift+P", p.pause_btn)
+        act(m, "Res&ume", p.resume, "Ctrl+Shift+U", p.resume_btn)
+        act(m, "&Abort", p.request_abort, "Ctrl+Shift+A", p.abort_btn)
+
+        m = mb.addMenu("&View")
+        for i in range(self.tabs.count()):
+            act(m, self.tabs.tabText(i), lambda i=i: self.tabs.setCurrentIndex(i), f"Ctrl+{i + 1}")
+        m.addSeparator()
+        log_act = self.log_dock.toggleViewAction()
+        log_act.setShortcut(K("Ctrl+L"))
+        m.addAction(log_act)
+        act(m, "&Full screen", lambda: self.showNormal() if self.isFullScreen() else self.showFullScreen(),
+            K.FullScreen)
+
+        m = mb.addMenu("&Help")
+        act(m, "&Keyboard shortcuts", self._show_shortcuts, K.HelpContents)
+        act(m, "&About rigctl", self._show_about)
+
+    def _open_protocol(self) -> None:
+        self.tabs.setCurrentWidget(self.protocol)
+        self.protocol._browse_protocol()
+
+    def _open_analysis(self) -> None:
+        self.tabs.setCurrentWidget(self.analysis)
+        btn = getattr(self.analysis, "open_btn", None)
+        if btn is not None:
+            btn.click()
+
+    def _sync_actions(self) -> None:
+        for a, b in self._mirrored:
+            if a.isEnabled() != b.isEnabled():
+                a.setEnabled(b.isEnabled())
+            if a.toolTip() != b.toolTip():
+                a.setToolTip(b.toolTip())
+
+    def _show_shortcuts(self) -> None:
+        lines = ["Esc: STOP (safe stop), in the window and in every dialog"]
+        for menu in self.menuBar().findChildren(QtWidgets.QMenu):
+            for a in menu.actions():
+                if not a.shortcut().isEmpty():
+                    lines.append(f"{a.shortcut().toString(QtGui.QKeySequence.NativeText)}: {a.text().replace('&', '')}")
+        box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Information, "Keyboard shortcuts", "\n".join(lines),
+                                    QtWidgets.QMessageBox.Close, self)
+        box.setTextFormat(QtCore.Qt.PlainText)
+        show_dialog(box)
+
+    def _show_about(self) -> None:
+        import rigctl
+
+        box = QtWidgets.QMessageBox(
+            QtWidgets.QMessageBox.Information, "About rigctl",
+            f"rigctl {getattr(rigctl, '__version__', '')}: control, recording and neuromorphic analysis for a "
+            "tactile texture drum rig.\nThe app's guide: docs/gui.md.", QtWidgets.QMessageBox.Close, self)
+        box.setTextFormat(QtCore.Qt.PlainText)
+        show_dialog(box)
+
+    # ------------------------------------------------------------------------------------------------------
+    # messages
+    # ------------------------------------------------------------------------------------------------------
+    def notify(self, text: str, *, level: int = logging.INFO, source: str = "app", timeout_s: float = 8.0) -> None:
+        """Tell the operator: the event log always, the status bar for a few seconds, and the error banner (seen
+        from every tab) for errors."""
+        self.events.add(level, source, text)
+        self.statusBar().showMessage(text, int(timeout_s * 1000))
+
+    def _on_problem(self, level: int, source: str, text: str) -> None:
+        """Errors (the library's included) go to the error banner, seen from every tab."""
+        if level >= logging.ERROR and not text.startswith("unexpected error"):
+            self.banner.show_message(f"{source}: {text}" if source not in ("app",) else text, error=True)
+
+    def _on_link_changed(self, board: str, connected: bool) -> None:
+        from rigctl_gui.status_bar import BOARD_NAMES
+
+        self.events.add(logging.INFO if connected else logging.WARNING, "link",
+                        f"{BOARD_NAMES[board]} {'reconnected' if connected else 'lost'}")
+        self._update_source_label(None)
+
+    # ------------------------------------------------------------------------------------------------------
     # connection
     # ------------------------------------------------------------------------------------------------------
-    def choose_source(self) -> None:
-        dlg = self._ConnectDialog(self.source, self)
-        if dlg.exec() == QtWidgets.QDialog.Accepted:
+    def choose_source(self) -> QtWidgets.QDialog | None:
+        """Show the (non-modal) Connect dialog; accepting it connects to the chosen source."""
+        if self._run_lock:
+            self.notify(f"Connect is disabled: {self._run_lock}", level=logging.WARNING)
+            return None
+        if self._connect_dialog is not None:
+            self._connect_dialog.raise_()
+            self._connect_dialog.activateWindow()
+            return self._connect_dialog
+        dlg = self._connect_dialog = self._ConnectDialog(self.source, self)
+
+        def accepted():
+            if self._run_lock:  # a run started while the dialog was open: the run keeps the rig
+                self.notify(f"not connected to another rig: {self._run_lock}", level=logging.WARNING)
+                return
             self.connect_source(dlg.source())
+
+        dlg.destroyed.connect(lambda *_: setattr(self, "_connect_dialog", None))
+        dlg.finished.connect(lambda *_: setattr(self, "_connect_dialog", None))
+        return show_dialog(dlg, accepted)
 
     def connect_source(self, source: RigSource) -> None:
         """Open ``source`` in a worker thread (the boards take ~2 s to boot); :meth:`refresh` finishes the job."""
+        problem = source_problem(source)
+        if problem:
+            self.banner.show_message(f"Could not open the {source.label()}: {problem}", error=True)
+            self.events.add(logging.ERROR, "connect", problem)
+            return
         self.disconnect_rig()
         self.source = source
         self._save_source(self.settings, source)
         cfg_path = self.rig_config_path()
-        self._connect_job = Job(lambda job: open_rig(source, host_config_path=cfg_path), name="connect")
+        self._connect_job = Job(lambda job: open_rig_keeping_faults(source, cfg_path), name="connect")
         self._connect_job.start()
         self._update_source_label("connecting...")
+        self.events.add(logging.INFO, "connect", f"opening the {source.label()}")
         self.connect_btn.setEnabled(False)
 
     def _finish_connect(self) -> None:
@@ -159,6 +372,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if job.error:
             self._update_source_label("not connected")
             self.banner.show_message(f"Could not open the {self.source.label()}: {job.error}", error=True)
+            self.events.add(logging.ERROR, "connect", f"could not open the {self.source.label()}: {job.error}")
             return
         h = self.handle = job.result
         self.poller = StatusPoller(h.drum, period_s=0.1)
@@ -167,6 +381,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._attach_sensor(h, sensor_layout(h))
         self.control.attach(h.drum, self.poller, self.commands, h.rig)
         self._update_source_label("connected")
+        self.events.add(logging.INFO, "connect", f"connected to the {self.source.label()}")
         # everything long-lived exists now: move it out of the cyclic GC's reach, so full collections (which
         # otherwise traverse every Qt wrapper and pyqtgraph item, ~150 ms) do not stall the display
         gc.collect()
@@ -183,7 +398,7 @@ class MainWindow(QtWidgets.QMainWindow):
             try:
                 self.handle.close()  # safe stop first: the controller's watchdog never sees a silent host
             except Exception as exc:  # noqa: BLE001
-                self.statusBar().showMessage(f"closing the rig: {exc}", 5000)
+                self.notify(f"closing the rig: {exc}", level=logging.ERROR, source="connect")
         if self.commands is not None:
             self.commands.close()
         for w in (self.poller, self.encoder):
@@ -193,21 +408,50 @@ class MainWindow(QtWidgets.QMainWindow):
             if w is not None:
                 w.join(timeout=5)  # never leave a numba call running at interpreter exit
         self.handle = self.poller = self.commands = self.encoder = None
+        self._faults = 0
+        self.banners["fault"].hide()
+        for board in ("drum", "taxel"):
+            self.banners[board].hide()
 
     def rig_config_path(self) -> str | None:
         """The rig config file (calibration) from QSettings ``rig/config_path``; None = the library's default."""
         return str(self.settings.value("rig/config_path", "")) or None
 
-    def _update_source_label(self, state: str) -> None:
+    def _update_source_label(self, state: str | None) -> None:
+        """``state``: "connecting...", "not connected", "connected"; None = from the boards' links now."""
+        if state is None or (state == "connected" and self.handle is not None):
+            st = self.links.state
+            down = [n for n, b in (("drum controller", "drum"), ("taxel board", "taxel")) if st.get(b) is False]
+            state = f"connected, {' and '.join(down)} not responding" if down else "connected"
+        self._source_state = state
         self.source_label.setText(f"Source: {self.source.label()} - {state}")
 
     # ------------------------------------------------------------------------------------------------------
     def emergency_stop(self) -> None:
-        """STOP: abort a protocol run (its stop event) and send the safe-stop command at once, off the GUI thread."""
+        """STOP: abort a protocol run (its stop event) and send the library's safe stop at once on a fresh thread
+        (never queued behind other commands; it tries 3 times). Its outcome is shown in the window: a STOP that
+        cannot reach the controller raises the error banner."""
         self.protocol.request_abort()
-        if self.commands is not None:
-            self.commands.emergency_stop()
-        self.statusBar().showMessage("STOP sent", 3000)
+        h = self.handle
+        if h is None:
+            self.notify("STOP: no rig connected", level=logging.WARNING, source="STOP")
+            return
+        results = self._stop_results
+
+        def work():
+            results.append(h.rig.safe_stop())
+
+        threading.Thread(target=work, name="drum-stop", daemon=True).start()
+        self.notify("STOP sent: drum to rest, actuator backing off", level=logging.WARNING, source="STOP")
+
+    def _drain_stop_results(self) -> None:
+        while self._stop_results:
+            if self._stop_results.pop(0):
+                self.statusBar().showMessage("STOP acknowledged by the drum controller", 5000)
+            else:
+                text = "could not send STOP to the drum controller: stop the rig by hand"
+                self.events.add(logging.CRITICAL, "STOP", text)
+                self.banner.show_message(f"STOP FAILED: {text}.", error=True)
 
     def refresh(self) -> None:
         """One tick of the GUI's own clock: pull from the workers, redraw what is visible."""
@@ -216,9 +460,10 @@ class MainWindow(QtWidgets.QMainWindow):
             self._finish_connect()
         if self.commands is not None:
             while not self.commands.results.empty():
-                _name, ok, text = self.commands.results.get()
+                name, ok, text = self.commands.results.get()
                 self.control.show_result(ok, text)
-                self.statusBar().showMessage(text, 4000)
+                self.notify(text, level=logging.INFO if ok else logging.ERROR, source="rig control")
+        self._drain_stop_results()
         current = self.tabs.currentWidget()
         if current is self.live:
             self.live.refresh()
@@ -229,9 +474,83 @@ class MainWindow(QtWidgets.QMainWindow):
             self.analysis.refresh()
             self.calibration.refresh()
             self.classify.refresh()
+            self.events.drain()
+            self.guard.drain()
+            self._apply_run_lock()
+            self._sync_actions()
+            self._check_faults()
         if self._tick % 20 == 0:
             self.links.update_from(self.poller, self.handle.taxels if self.handle else None)
+            self._update_stale(current)
             self.follow_sensor()
+
+    # ------------------------------------------------------------------------------------------------------
+    # the run owns the rig; faults; stale plots
+    # ------------------------------------------------------------------------------------------------------
+    def _apply_run_lock(self) -> None:
+        """While a protocol run owns the rig (running or paused): manual motion, calibration and Connect disabled,
+        their tooltips saying why. Re-applied every tick (another panel may re-enable its buttons)."""
+        reason = RUN_LOCK_REASON if self.protocol.running else None
+        changed = reason != self._run_lock
+        self._run_lock = reason
+        self.control.set_run_lock(reason)
+        cal = self.calibration
+        for b in (self.connect_btn, cal.loadcell_btn, cal.norm_btn, cal.from_session_btn):
+            if b.property("normal_tip") is None:
+                b.setProperty("normal_tip", b.toolTip())
+            if reason:
+                b.setEnabled(False)
+                b.setToolTip(f"Disabled: {reason}")
+            elif changed:
+                b.setToolTip(b.property("normal_tip"))
+        if changed and not reason:
+            self.connect_btn.setEnabled(self._connect_job is None)
+            cal.from_session_btn.setEnabled(True)
+            cal._enable(cal.handle is not None)
+
+    def _check_faults(self) -> None:
+        """A latched controller fault raises the fault banner with its meaning; only Clear fault (the operator)
+        clears it on the controller, and the banner goes when the controller reports it clear."""
+        from rigctl_gui.control_panel import fault_meaning, fault_words
+
+        st = self.poller.latest if self.poller is not None and self.poller.ok else None
+        if st is None:
+            return
+        faults = int(st.faults)
+        if faults == self._faults:
+            return
+        self._faults = faults
+        if faults:
+            text = (f"Drum controller FAULT (latched): {fault_words(faults)}. {fault_meaning(faults)} The drum is "
+                    "stopped. Fix the cause, then press Clear fault on the Rig control tab.")
+            self.banners["fault"].show_message(text, error=True)
+            self.events.add(logging.ERROR, "drum controller", text)
+        else:
+            self.banners["fault"].hide()
+            self.events.add(logging.INFO, "drum controller", "faults cleared")
+
+    def _update_stale(self, current) -> None:
+        """Mark the live view stale when its plots stopped moving (no taxel frame for :data:`STALE_AFTER_S`)."""
+        taxels = self.handle.taxels if self.handle is not None else None
+        stale = None
+        if taxels is not None and current is self.live:
+            ring = taxels.ring
+            total = ring.total
+            now = time.monotonic()
+            last = getattr(self, "_last_frames", None)
+            if last is None or last[0] != total or last[2] is not ring:
+                self._last_frames = (total, now, ring)
+            elif now - last[1] >= STALE_AFTER_S:
+                stale = (f"STALE: no taxel frame for {now - last[1]:.0f} s - the plots are frozen "
+                         f"({'taxel board disconnected' if not taxels.stats.connected else 'stream silent'})")
+        if stale:
+            self.stale_label.setText(stale)
+            self.stale_label.adjustSize()
+            self.stale_label.move(max(0, (self.live.width() - self.stale_label.width()) // 2), 40)
+            self.stale_label.raise_()
+            self.stale_label.show()
+        else:
+            self.stale_label.hide()
 
     def follow_sensor(self) -> bool:
         """Rebuild the live view, its encoder and the calibration tab when the taxel board now reports another
@@ -259,11 +578,28 @@ class MainWindow(QtWidgets.QMainWindow):
         self.live.attach(h.taxels, self.encoder, layout)
 
     def closeEvent(self, ev):  # noqa: N802 - Qt override
+        if self.protocol.running and not self._close_confirmed:
+            # the run owns the rig: ask first (non-modal, STOP stays usable), then stop it safely and close
+            ev.ignore()
+            self._close_question = ask(
+                self, "A protocol is running",
+                f"The protocol {self.protocol.protocol_name()} is running. Closing the window aborts it: the rig "
+                "stops safely and the finished trials stay in the session file (resume it later).",
+                "Abort the run and close", "Keep running", self._close_after_abort)
+            return
         self.settings.setValue("ui/geometry", self.saveGeometry())
+        self.settings.setValue("ui/state", self.saveState())
         self.settings.setValue("ui/tab", self.tabs.currentIndex())
         self.timer.stop()
         self.disconnect_rig()
+        self.events.detach_logging("rigctl")
+        self.guard.uninstall()
         super().closeEvent(ev)
+
+    def _close_after_abort(self) -> None:
+        self._close_confirmed = True
+        self.protocol.request_abort()
+        self.close()
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -271,6 +607,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="rigctl gui", description="The rigctl desktop app.")
     ap.add_argument("--drum-port", help="serial port of the drum controller (Mega)")
     ap.add_argument("--taxel-port", help="serial port of the taxel streamer (Uno)")
+    ap.add_argument("--sim", action="store_true", help="the simulated rig (default: the source last chosen in the "
+                    "Connect dialog, the simulated rig the first time)")
     ap.add_argument("--replay", metavar="PATH",
                     help="stream recorded taxel signals through the simulated rig: a session file (at its own rate "
                     "and sensor layout) or a FabricSlide directory")
@@ -292,7 +630,9 @@ def source_from_args(args) -> RigSource | None:
         return RigSource("serial", drum_port=args.drum_port, taxel_port=args.taxel_port)
     if args.replay:
         return RigSource("replay", replay_dir=args.replay)
-    return RigSource("sim")
+    if args.sim:
+        return RigSource("sim")
+    return None  # the source last chosen in the Connect dialog (QSettings)
 
 
 def write_stats(window: MainWindow, path: str, state: dict) -> None:
@@ -322,6 +662,11 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     app.setApplicationName("rigctl")
+    # the console keeps the library's warnings (the window's event log shows them too, from INFO up)
+    console = logging.StreamHandler()
+    console.setLevel(logging.WARNING)
+    console.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    logging.getLogger().addHandler(console)
     # the GUI thread shares the GIL with the stream reader, the encoder and the drum poll: hand it back sooner
     # than the default 5 ms so a paint is not kept waiting behind a worker
     sys.setswitchinterval(0.001)

@@ -241,13 +241,16 @@ class CalibrationTab(QtWidgets.QWidget):
 
         self._start(Job(work, name="normalisation"), "taxel normalisation")
 
-    def normalisation_from_session(self) -> None:
-        from rigctl.acquisition import calibration as cal
+    def normalisation_from_session(self):
+        from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
 
         start = str(self.main.settings.value("dirs/output", ""))
-        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Calibration session", start, "Sessions (*.h5)")
-        if not path:
-            return
+        return choose_path(self, "open", "Calibration session", start, "Sessions (*.h5)",
+                           self.normalisation_from_file)
+
+    def normalisation_from_file(self, path: str) -> None:
+        from rigctl.acquisition import calibration as cal
+
         cfg_path = self.main.rig_config_path()
         h = self.handle
 

@@ -1,10 +1,15 @@
 """Connect dialog: choose the simulated rig (default), two serial ports found by VID/PID
-(:func:`rigctl.devices.ports.find_ports`), or the FabricSlide replay. The choice persists in QSettings."""
+(:func:`rigctl.devices.ports.find_ports`), or a replay (a session file or a FabricSlide folder). The choice persists
+in QSettings and is the source the app opens at its next start. The dialog is non-modal (STOP stays usable,
+:func:`rigctl_gui.dialogs.show_dialog`) and refuses OK, saying why, for a source that cannot be opened."""
 
 from __future__ import annotations
 
+import os
+
 from PySide6 import QtCore, QtWidgets
 
+from rigctl_gui.dialogs import choose_path
 from rigctl_gui.workers import RigSource
 
 
@@ -23,6 +28,18 @@ def save_source(settings: QtCore.QSettings, src: RigSource) -> None:
     settings.setValue("source/drum_port", src.drum_port or "")
     settings.setValue("source/taxel_port", src.taxel_port or "")
     settings.setValue("source/replay_dir", src.replay_dir or "")
+
+
+def source_problem(source: RigSource) -> str | None:
+    """Why ``source`` cannot be opened, found before trying (None when it may be)."""
+    if source.kind == "replay":
+        if not source.replay_dir:
+            return "choose a session file or a FabricSlide folder to replay (Connect...)"
+        if not os.path.exists(source.replay_dir):
+            return f"the replay source {source.replay_dir} does not exist (Connect... to choose another)"
+    if source.kind == "serial" and not (source.drum_port and source.taxel_port):
+        return "choose both serial ports: the drum controller's and the taxel board's (Connect...)"
+    return None
 
 
 def list_ports():
@@ -70,6 +87,12 @@ class ConnectDialog(QtWidgets.QDialog):
         rl.addWidget(browse)
         rl.addWidget(browse_file)
 
+        self.problem = QtWidgets.QLabel("")
+        self.problem.setObjectName("connect_problem")
+        self.problem.setTextFormat(QtCore.Qt.PlainText)
+        self.problem.setWordWrap(True)
+        self.problem.setStyleSheet("color: #c00; font-weight: bold;")
+        self.problem.hide()
         buttons = QtWidgets.QDialogButtonBox(QtWidgets.QDialogButtonBox.Ok | QtWidgets.QDialogButtonBox.Cancel)
         buttons.accepted.connect(self.accept)
         buttons.rejected.connect(self.reject)
@@ -80,6 +103,7 @@ class ConnectDialog(QtWidgets.QDialog):
         lay.addWidget(ports)
         lay.addWidget(self.replay)
         lay.addLayout(rl)
+        lay.addWidget(self.problem)
         lay.addWidget(buttons)
 
         {"serial": self.serial, "replay": self.replay}.get(current.kind, self.sim).setChecked(True)
@@ -112,16 +136,25 @@ class ConnectDialog(QtWidgets.QDialog):
                     box.setEditText(saved)
         self.port_info.setText(err or f"{len(ports)} serial port(s) found")
 
-    def _browse(self) -> None:
-        d = QtWidgets.QFileDialog.getExistingDirectory(self, "FabricSlide directory", self.replay_dir.text())
-        if d:
-            self.replay_dir.setText(d)
+    def _browse(self) -> QtWidgets.QFileDialog:
+        return choose_path(self, "dir", "FabricSlide directory", self.replay_dir.text(), "", self._replay_chosen)
 
-    def _browse_file(self) -> None:
-        f, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Session file to replay", self.replay_dir.text(),
-                                                     "Session files (*.h5 *.hdf5);;All files (*)")
-        if f:
-            self.replay_dir.setText(f)
+    def _browse_file(self) -> QtWidgets.QFileDialog:
+        return choose_path(self, "open", "Session file to replay", self.replay_dir.text(),
+                           "Session files (*.h5 *.hdf5);;All files (*)", self._replay_chosen)
+
+    def _replay_chosen(self, path: str) -> None:
+        self.replay_dir.setText(path)
+        self.replay.setChecked(True)
+
+    def accept(self) -> None:
+        """OK: refused (the reason shown in the dialog) when the chosen source cannot be opened."""
+        problem = source_problem(self.source())
+        if problem:
+            self.problem.setText(problem)
+            self.problem.show()
+            return
+        super().accept()
 
     @staticmethod
     def _port(box: QtWidgets.QComboBox) -> str | None:

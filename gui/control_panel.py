@@ -10,6 +10,7 @@ from __future__ import annotations
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
 
@@ -29,6 +30,16 @@ FAULT_WORDS = {
     Fault.LOADCELL_TIMEOUT: "load cell not responding",
     Fault.ACTUATOR_TRAVEL: "actuator end of travel before reaching force",
 }
+#: what each fault bit means and what to do about it (docs/wire-protocol.md table 2.5)
+FAULT_MEANINGS = {
+    Fault.FORCE_LIMIT: "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. "
+                       "Check the plate and the sensor, then lower the force setpoint.",
+    Fault.WATCHDOG: "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force "
+                    "loop held, and stopped (a crashed or killed program, a pulled USB cable).",
+    Fault.LOADCELL_TIMEOUT: "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring.",
+    Fault.ACTUATOR_TRAVEL: "the actuator reached its end of travel without reaching the force setpoint: no plate, "
+                           "or the sensor is too far away.",
+}
 STATE_COLOURS = {
     DrumState.IDLE: "#555",
     DrumState.HOMING: "#a60",
@@ -45,8 +56,27 @@ def fault_words(faults: int) -> str:
     return ", ".join(words) if words else "none"
 
 
+def fault_meaning(faults: int) -> str:
+    """Each latched fault bit with its meaning, one sentence each ("" when clear)."""
+    return " ".join(f"{FAULT_WORDS[bit].capitalize()}: {text}" for bit, text in FAULT_MEANINGS.items()
+                    if int(faults) & int(bit))
+
+
+def setpoint_problem(name: str, value: float, unit: str, hi: float, hi_source: str) -> str | None:
+    """Why a manual ``value`` cannot be sent (None when it can): the protocol range is ``> 0`` and at most ``hi``
+    (the lower of the rig's protocol limit and the controller's hard limit, named by ``hi_source``)."""
+    if not value > 0:
+        return f"{name} {value:g} {unit} refused: it must be above 0 {unit} (Stop drum / STOP to stop)"
+    if value > hi:
+        return f"{name} {value:g} {unit} refused: above the {hi_source} of {hi:g} {unit}"
+    return None
+
+
 class ControlPanel(QtWidgets.QWidget):
     """The rig control tab. Call :meth:`attach` with a connected :class:`rigctl_gui.workers.RigHandle`'s workers."""
+
+    #: a manual setpoint was refused (the reason in words), for the window's event log
+    refused = QtCore.Signal(str)
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -56,17 +86,28 @@ class ControlPanel(QtWidgets.QWidget):
         self.rig = None
 
         # --- setpoints ---
-        self.speed = QtWidgets.QDoubleSpinBox(suffix=" mm/s", decimals=1, singleStep=10.0)
+        # the boxes take any number typed (a value above the limits is shown as typed and refused visibly, never
+        # cut to its first digits by the box's validator)
+        self.speed = QtWidgets.QDoubleSpinBox(suffix=" mm/s", decimals=1, singleStep=10.0, maximum=99999.0)
         self.speed.setObjectName("speed_setpoint")
-        self.force = QtWidgets.QDoubleSpinBox(suffix=" g", decimals=0, singleStep=50.0)
+        self.force = QtWidgets.QDoubleSpinBox(suffix=" g", decimals=0, singleStep=50.0, maximum=99999.0)
         self.force.setObjectName("force_setpoint")
+        self.limits_label = QtWidgets.QLabel()
+        self.limits_label.setObjectName("setpoint_limits")
+        self.limits_label.setWordWrap(True)
+        self.setpoint_error = QtWidgets.QLabel("")
+        self.setpoint_error.setObjectName("setpoint_error")
+        self.setpoint_error.setWordWrap(True)
+        self.setpoint_error.setStyleSheet("color: #c00; font-weight: bold;")
+        self.setpoint_error.hide()
+        self.limits = (MAX_SPEED_MM_S, MAX_FORCE_G)  # the controller's (speed mm/s, force g), read at attach
         for box in (self.speed, self.force):
             box.setKeyboardTracking(False)
             box.setMinimumWidth(120)
-        self.set_limits(150.0, 1500.0)
+            box.valueChanged.connect(self.check_setpoints)
+        self.set_limits(MAX_SPEED_MM_S, MAX_FORCE_G)
         self.speed.setValue(80.0)
         self.force.setValue(500.0)
-        self.limits_label = QtWidgets.QLabel()
         self.apply_btn = QtWidgets.QPushButton("Apply setpoints")
         self.apply_btn.clicked.connect(self.apply_setpoints)
 
@@ -74,6 +115,7 @@ class ControlPanel(QtWidgets.QWidget):
         form.addRow("Drum speed", self.speed)
         form.addRow("Contact force", self.force)
         form.addRow("", self.limits_label)
+        form.addRow("", self.setpoint_error)
         form.addRow("", self.apply_btn)
         setp = QtWidgets.QGroupBox("Setpoints")
         setp.setLayout(form)
@@ -122,6 +164,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.message.setWordWrap(True)
         sl = QtWidgets.QVBoxLayout()
         for w in (self.state_label, self.fault_label, self.readout, self.message):
+            w.setTextFormat(QtCore.Qt.PlainText)  # device errors are shown whole ('<' included)
             sl.addWidget(w)
         state = QtWidgets.QGroupBox("Controller")
         state.setLayout(sl)
@@ -133,7 +176,9 @@ class ControlPanel(QtWidgets.QWidget):
         left.addStretch(1)
         leftw = QtWidgets.QWidget()
         leftw.setLayout(left)
-        leftw.setMaximumWidth(360)
+        leftw.setFixedWidth(340)  # never changes width as the state text wraps (clicks would miss)
+        self._locked_by: str | None = None
+        self._connected = False
 
         # --- plots ---
         self.plots = pg.GraphicsLayoutWidget()
@@ -162,11 +207,51 @@ class ControlPanel(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------------
     def set_limits(self, speed_max_mm_s: float, force_max_g: float) -> None:
-        """Spin-box ranges = the controller's limits: values outside cannot be entered."""
-        self.speed.setRange(0.0, float(speed_max_mm_s))
-        self.force.setRange(0.0, float(force_max_g))
-        if hasattr(self, "limits_label"):
-            self.limits_label.setText(f"controller limits: {speed_max_mm_s:g} mm/s, {force_max_g:g} g")
+        """The controller's hard limits (its SPEED_LIMIT / FORCE_LIMIT registers). A setpoint is accepted when it is
+        above 0 and within both the rig's protocol range and these limits; others are refused with a message."""
+        self.limits = (float(speed_max_mm_s), float(force_max_g))
+        self.limits_label.setText(
+            f"accepted: speed > 0 to {self.accepted_max('speed'):g} mm/s, force > 0 to "
+            f"{self.accepted_max('force'):g} g\n(protocol range > 0 to {MAX_SPEED_MM_S:g} mm/s, > 0 to "
+            f"{MAX_FORCE_G:g} g; controller hard limits {speed_max_mm_s:g} mm/s, {force_max_g:g} g)")
+        self.check_setpoints()
+
+    def accepted_max(self, which: str) -> float:
+        """The highest ``"speed"`` (mm/s) or ``"force"`` (g) setpoint accepted: the lower of both limits."""
+        return min(MAX_SPEED_MM_S, self.limits[0]) if which == "speed" else min(MAX_FORCE_G, self.limits[1])
+
+    def setpoint_problems(self) -> list[str]:
+        """Why the setpoints in the boxes cannot be sent (empty when they can)."""
+        out = []
+        for which, box, unit, i, proto in (("speed", self.speed, "mm/s", 0, MAX_SPEED_MM_S),
+                                           ("force", self.force, "g", 1, MAX_FORCE_G)):
+            hi = self.accepted_max(which)
+            src = "controller's hard limit" if self.limits[i] < proto else "rig's protocol range"
+            p = setpoint_problem(which, float(box.value()), unit, hi, src)
+            if p:
+                out.append(p)
+        return out
+
+    def check_setpoints(self) -> bool:
+        """Mark an out-of-range box red and say why under the boxes; True when both can be sent."""
+        if not hasattr(self, "limits"):
+            return True
+        problems = self.setpoint_problems()
+        for which, box in (("speed", self.speed), ("force", self.force)):
+            bad = any(p.startswith(which) for p in problems)
+            box.setStyleSheet("QDoubleSpinBox { border: 2px solid #c00; background: #fee; }" if bad else "")
+        self.setpoint_error.setText("\n".join(problems))
+        self.setpoint_error.setVisible(bool(problems))
+        return not problems
+
+    def _refuse_setpoints(self) -> bool:
+        """True (and the reason shown in the panel and reported) when the setpoints cannot be sent."""
+        if self.check_setpoints():
+            return False
+        text = "; ".join(self.setpoint_problems()) + ": nothing sent"
+        self.show_result(False, text)
+        self.refused.emit(text)
+        return True
 
     def set_textures(self, textures: TextureSet | None) -> None:
         """Offer the plates of ``textures`` (the rig's texture set; the paper's A-P by default). ``None`` (a rig
@@ -188,9 +273,27 @@ class ControlPanel(QtWidgets.QWidget):
         self.plate.setToolTip(f"Texture plate {which}. Simulated rig: mounts it. Real rig: the operator "
                               "mounts it while the sensor is released, then presses the button.")
 
+    def _controls(self) -> list:
+        return [self.apply_btn, self.mount_btn, self.plate, *self.buttons.values()]
+
     def set_enabled(self, on: bool) -> None:
-        for w in [self.apply_btn, self.mount_btn, *self.buttons.values()]:
-            w.setEnabled(on)
+        self._connected = on
+        for w in self._controls():
+            w.setEnabled(on and self._locked_by is None)
+
+    def set_run_lock(self, reason: str | None) -> None:
+        """While a protocol run owns the rig (running or paused) every manual command is disabled, its tooltip
+        saying why (``reason``); ``None`` gives them back."""
+        if reason == self._locked_by:
+            return
+        self._locked_by = reason
+        for w in self._controls():
+            tip = w.property("normal_tip")
+            if tip is None:
+                tip = w.toolTip()
+                w.setProperty("normal_tip", tip)
+            w.setToolTip(f"Disabled: {reason}" if reason else tip)
+        self.set_enabled(self._connected)
 
     def attach(self, drum, poller, commands, rig=None) -> None:
         """Bind to a connected drum (``DrumClient``), its status poller and command executor, and the
@@ -211,8 +314,15 @@ class ControlPanel(QtWidgets.QWidget):
         self.state_label.setText("not connected")
 
     # ------------------------------------------------------------------------------------------------------
+    def _refused_by_run(self) -> bool:
+        """True (and said in the panel) while a protocol run owns the rig (a shortcut may race the disabling)."""
+        if self._locked_by is None:
+            return False
+        self.show_result(False, f"refused: {self._locked_by}")
+        return True
+
     def apply_setpoints(self) -> None:
-        if self.commands is None:
+        if self.commands is None or self._refused_by_run() or self._refuse_setpoints():
             return
         self.commands.submit("set speed", self.drum.set_speed, float(self.speed.value()))
         self.commands.submit("set force", self.drum.set_force, float(self.force.value()))
@@ -220,9 +330,11 @@ class ControlPanel(QtWidgets.QWidget):
     def command(self, name: str) -> None:
         """Queue a drum command. Press and Run first apply the setpoints and press until the force has settled
         (:meth:`rigctl.acquisition.rig.Rig.press`), so the drum never turns before the sensor is loaded."""
-        if self.commands is None:
+        if self.commands is None or self._refused_by_run():
             return
         if name in ("run", "press"):
+            if self._refuse_setpoints():
+                return
             speed, force = float(self.speed.value()), float(self.force.value())
             self.commands.submit("set speed", self.drum.set_speed, speed)
             if self.rig is not None and force > 0:
@@ -238,7 +350,7 @@ class ControlPanel(QtWidgets.QWidget):
         """Release the sensor and mount texture plate ``label`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
         on hardware the operator has mounted it when pressing the button). The label is taken in the set's spelling
         (``"l"`` -> ``"L"``); a label the set does not have is refused in the panel's message line."""
-        if self.commands is None or self.rig is None:
+        if self.commands is None or self.rig is None or self._refused_by_run():
             return
         label = label or self.plate.currentText()
         if self.textures is not None:
@@ -249,6 +361,16 @@ class ControlPanel(QtWidgets.QWidget):
                 return
         self.plate.setCurrentText(label)
         self.commands.submit(f"mount plate {label}", self.rig.mount_texture, label, lambda _msg: None)
+
+    def _mark_stale(self, stale: bool) -> None:
+        """Say on the plots that they are frozen while the drum controller does not answer."""
+        if stale == getattr(self, "_stale", False):
+            return
+        self._stale = stale
+        suffix = " - STALE: drum controller not responding" if stale else ""
+        colour = "#c00" if stale else None
+        self.force_plot.setTitle("Load-cell force vs setpoint" + suffix, color=colour)
+        self.speed_plot.setTitle("Drum surface speed" + suffix, color=colour)
 
     def show_result(self, ok: bool, text: str) -> None:
         self.message.setStyleSheet("" if ok else "color: #c00;")
@@ -269,6 +391,7 @@ class ControlPanel(QtWidgets.QWidget):
             for plot in (self.force_plot, self.speed_plot):  # no setXLink (crashes with PySide6 6.12)
                 plot.setXRange(min(t[0], -5.0), 0.0, padding=0.02)
         st = p.latest
+        self._mark_stale(not p.ok)
         if not p.ok:
             self.state_label.setText("Drum controller not responding")
             self.state_label.setStyleSheet("font-size: 15px; font-weight: bold; color: #c00;")
@@ -280,8 +403,16 @@ class ControlPanel(QtWidgets.QWidget):
         self.state_label.setStyleSheet(
             f"font-size: 15px; font-weight: bold; color: {STATE_COLOURS.get(state, '#000')};"
         )
-        self.fault_label.setText(f"Faults: {fault_words(int(st.faults))}")
-        self.fault_label.setStyleSheet("color: #c00;" if int(st.faults) else "")
+        faults = int(st.faults)
+        if faults:
+            self.fault_label.setText(f"Latched faults: {fault_words(faults)}. {fault_meaning(faults)} The fault "
+                                     "stays until you press Clear fault.")
+            self.fault_label.setStyleSheet("color: #c00; font-weight: bold;")
+        else:
+            self.fault_label.setText("Faults: none")
+            self.fault_label.setStyleSheet("")
+        self.buttons["clear_fault"].setStyleSheet("QPushButton { background: #fdd; color: #900; font-weight: bold; }"
+                                                  if faults else "")
         fw = ".".join(str(x) for x in st.firmware)
         self.readout.setText(
             f"force {st.force_g:7.1f} g (holding {st.force_setpoint_active_g:.0f} g)\n"

@@ -5,12 +5,15 @@ texture plate (the simulated rig mounts it by itself), and resume an interrupted
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
 
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
+from rigctl_gui.dialogs import choose_path
+from rigctl_gui.messages import set_plain
 from rigctl_gui.workers import Job
 
 PLAN_COLUMNS = ("trial", "texture", "speed (mm/s)", "force (g)", "duration (s)", "profile", "status")
@@ -79,8 +82,18 @@ class ProtocolTab(QtWidgets.QWidget):
         self.run_bar.setFormat("session %v/%m trials")
         self.status = QtWidgets.QLabel("idle")
         self.status.setObjectName("protocol_status")
+        self.status.setTextFormat(QtCore.Qt.PlainText)  # errors shown whole, '<' included
         self.status.setWordWrap(True)
 
+        # the run strip: the run's state and the operator prompt, shown by the main window above the tabs so they
+        # are seen from every tab
+        self.run_strip = QtWidgets.QFrame()
+        self.run_strip.setObjectName("run_strip")
+        self.run_strip.setStyleSheet("QFrame#run_strip { background: #eef; border: 1px solid #88a; }")
+        self.run_label = QtWidgets.QLabel()
+        self.run_label.setObjectName("run_state")
+        self.run_label.setTextFormat(QtCore.Qt.PlainText)
+        self.run_label.setStyleSheet("font-weight: bold;")
         self.prompt_frame = QtWidgets.QFrame()
         self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
         self.prompt_label = QtWidgets.QLabel()
@@ -91,6 +104,11 @@ class ProtocolTab(QtWidgets.QWidget):
         pl.addWidget(self.prompt_label, 1)
         pl.addWidget(self.prompt_ok)
         self.prompt_frame.hide()
+        rs = QtWidgets.QVBoxLayout(self.run_strip)
+        rs.setContentsMargins(6, 2, 6, 2)
+        rs.addWidget(self.run_label)
+        rs.addWidget(self.prompt_frame)
+        self.run_strip.hide()
 
         top = QtWidgets.QHBoxLayout()
         top.addWidget(self.open_btn)
@@ -112,7 +130,6 @@ class ProtocolTab(QtWidgets.QWidget):
         lay.addWidget(self.table, 1)
         lay.addLayout(out)
         lay.addLayout(ctl)
-        lay.addWidget(self.prompt_frame)
         lay.addWidget(self.status)
         self._update_buttons()
 
@@ -124,32 +141,45 @@ class ProtocolTab(QtWidgets.QWidget):
                 pass
 
     # ------------------------------------------------------------------------------------------------------
-    def _browse_protocol(self) -> None:
+    def _browse_protocol(self) -> QtWidgets.QFileDialog:
+        """The (non-modal) file dialog to open a protocol; :meth:`load` takes the chosen file."""
         start = str(self.main.settings.value("dirs/protocol", "protocols"))
-        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open protocol", start, "Protocols (*.toml *.py)")
-        if path:
-            self.load(path)
+        return choose_path(self, "open", "Open protocol", start, "Protocols (*.toml *.py)", self.load)
 
-    def _browse_output(self) -> None:
+    def _browse_output(self) -> QtWidgets.QFileDialog:
+        """The (non-modal) file dialog to choose the output session file (an existing one is resumed, never
+        overwritten: Start refuses it unless 'Resume' is ticked)."""
         start = str(self.main.settings.value("dirs/output", ""))
-        path, _ = QtWidgets.QFileDialog.getSaveFileName(
-            self, "Session file", start, "HDF5 session (*.h5)", options=QtWidgets.QFileDialog.DontConfirmOverwrite
-        )
-        if path:
-            self.out_edit.setText(path)
-            self.main.settings.setValue("dirs/output", os.path.dirname(path))
-            self.resume_box.setChecked(os.path.exists(path))
+        return choose_path(self, "save", "Session file", start, "HDF5 session (*.h5)", self._output_chosen,
+                           confirm_overwrite=False)
+
+    def _output_chosen(self, path: str) -> None:
+        self.out_edit.setText(path)
+        self.main.settings.setValue("dirs/output", os.path.dirname(path))
+        self.resume_box.setChecked(os.path.exists(path))
 
     def load(self, path: str) -> None:
         """Load and show a protocol file; a bad file is reported with the line at fault (``ProtocolError``)."""
         from rigctl.acquisition.protocol import load_protocol
 
-        try:
-            self.protocol = load_protocol(path)
-            self.plan = list(self.protocol.plan())
-        except Exception as exc:  # noqa: BLE001 - ProtocolError names the line; shown, nothing lost
-            self.status.setText(f"<span style='color:#c00'>{exc}</span>")
+        if self.running:
+            set_plain(self.status, "a protocol is running: abort it before loading another", error=True)
             return
+        try:
+            protocol = load_protocol(path)
+            plan = list(protocol.plan())
+        except Exception as exc:  # noqa: BLE001 - ProtocolError names the line; shown, nothing lost
+            # the previous protocol is unloaded: Start must never run it into the new file name
+            self.protocol, self.plan = None, []
+            self.table.setRowCount(0)
+            self.summary.setText("")
+            self.path_label.setText(f"{path}: not loaded")
+            set_plain(self.status, f"could not load {path}: {exc}", error=True)
+            self._notify(logging.ERROR, f"could not load the protocol {path}: {exc}")
+            self._update_buttons()
+            return
+        self.protocol, self.plan = protocol, plan
+        set_plain(self.status, "idle")
         self.main.settings.setValue("protocol/path", path)
         self.main.settings.setValue("dirs/protocol", os.path.dirname(path))
         self.path_label.setText(path)
@@ -192,18 +222,28 @@ class ProtocolTab(QtWidgets.QWidget):
     def running(self) -> bool:
         return self.job is not None and not self.job.done
 
+    def _notify(self, level: int, text: str) -> None:
+        notify = getattr(self.main, "notify", None)
+        if notify is not None:
+            notify(text, level=level, source="protocol")
+
     def start(self) -> None:
         h = self.main.handle
         if self.protocol is None or h is None or self.running:
-            self.status.setText("load a protocol and connect the rig first" if not self.running else "already running")
+            set_plain(self.status, "load a protocol and connect the rig first" if not self.running
+                      else "already running", error=True)
+            return
+        cal = getattr(self.main, "calibration", None)
+        if cal is not None and cal.job is not None and not cal.job.done:
+            set_plain(self.status, "a calibration is running: start the protocol when it has finished", error=True)
             return
         out = self.out_edit.text().strip()
         if not out:
-            self.status.setText("choose an output file")
+            set_plain(self.status, "choose an output file", error=True)
             return
         resume = self.resume_box.isChecked() and os.path.exists(out)
         if os.path.exists(out) and not resume:
-            self.status.setText(f"{out} exists: tick 'Resume' to continue it, or choose another file")
+            set_plain(self.status, f"{out} exists: tick 'Resume' to continue it, or choose another file", error=True)
             return
         from rigctl.acquisition.runner import run_protocol
 
@@ -230,7 +270,9 @@ class ProtocolTab(QtWidgets.QWidget):
         self.job = Job(work, name="protocol")
         self.job.start()
         self.last_output = out
-        self.status.setText(f"recording to {out}" + (" (resuming)" if resume else ""))
+        set_plain(self.status, f"recording to {out}" + (" (resuming)" if resume else ""))
+        self._notify(logging.INFO, f"protocol {self.protocol_name()} started, recording to {out}"
+                     + (" (resuming)" if resume else ""))
         self.resume_box.setChecked(False)
         for r in range(self.table.rowCount()):
             self._set_status(r, "planned")
@@ -252,24 +294,29 @@ class ProtocolTab(QtWidgets.QWidget):
     def _completed_in(self, path: str) -> int:
         return len(self._completed_ids(path))
 
+    def protocol_name(self) -> str:
+        return str(getattr(self.protocol, "name", "") or "protocol")
+
     def pause(self) -> None:
         if self.running:
             self.pause_event.set()
-            self.status.setText("pausing after the current trial...")
+            set_plain(self.status, "pausing after the current trial...")
             self._update_buttons()
 
     def resume(self) -> None:
         if self.running:
             self.pause_event.clear()
-            self.status.setText("resumed")
+            set_plain(self.status, "resumed")
             self._update_buttons()
 
     def request_abort(self) -> None:
-        if self.running:
+        if self.running and not self.stop_event.is_set():
             self.stop_event.set()
             self.pause_event.clear()
             self._prompt_event.set()
-            self.status.setText("aborting: the rig stops safely, finished trials stay in the file")
+            set_plain(self.status, "aborting: the rig stops safely, finished trials stay in the file")
+            self._notify(logging.WARNING, "protocol run aborted: the rig stops safely, finished trials stay in "
+                         "the file")
 
     def abort_and_wait(self, timeout_s: float = 10.0) -> None:
         self.request_abort()
@@ -290,9 +337,18 @@ class ProtocolTab(QtWidgets.QWidget):
         self._prompt_event.set()
 
     # ------------------------------------------------------------------------------------------------------
-    def _set_status(self, row: int, text: str) -> None:
+    def _set_status(self, row: int, text: str, tip: str = "") -> None:
         if 0 <= row < self.table.rowCount():
-            self.table.setItem(row, len(PLAN_COLUMNS) - 1, QtWidgets.QTableWidgetItem(text))
+            item = QtWidgets.QTableWidgetItem(text)
+            if tip:
+                item.setToolTip(tip)
+            if text.startswith("FAILED"):
+                item.setForeground(QtCore.Qt.red)
+            self.table.setItem(row, len(PLAN_COLUMNS) - 1, item)
+
+    def row_status(self, row: int) -> str:
+        item = self.table.item(row, len(PLAN_COLUMNS) - 1)
+        return item.text() if item is not None else ""
 
     def _row_of(self, trial) -> int:
         tid = int(getattr(trial, "trial_id", trial))
@@ -319,9 +375,15 @@ class ProtocolTab(QtWidgets.QWidget):
             if ev.data is not None:
                 self.main.classify.on_trial(ev.planned, ev.data)
         elif ev.kind == "failed":
-            self._set_status(row, "FAILED")
+            self._set_status(row, f"FAILED: {ev.error}", ev.error)
             self._failures.append(ev.error)
             self._current = None
+            self._notify(logging.ERROR, f"trial {ev.planned.trial_id} failed: {ev.error}")
+        elif ev.kind == "retry":
+            self._set_status(row, f"recording again (attempt {ev.attempt + 1}): {ev.error}", ev.error)
+            self._notify(logging.WARNING, f"trial {ev.planned.trial_id} is recorded again: {ev.error}")
+        elif ev.kind == "link_down":
+            self._notify(logging.ERROR, f"the run waits for a lost link: {ev.error}")
         elif ev.kind in ("paused", "resumed"):
             self._paused = ev.kind == "paused"
 
@@ -336,13 +398,17 @@ class ProtocolTab(QtWidgets.QWidget):
             elif kind == "prompt":
                 self.prompt_label.setText(payload)
                 self.prompt_frame.show()
+                self._notify(logging.WARNING, f"operator: {payload}")
         n_done, n = len(self._done_ids), len(self.plan)
         self.run_bar.setValue(n_done + self._done_before)
         if not job.done:
             cur = self._current
             if cur is not None:
+                # the trial's time includes settling before the recording: the bar never claims 100 % before the
+                # trial is recorded
                 el = time.monotonic() - self._trial_started
-                self.trial_bar.setValue(int(min(100, 100 * el / max(float(cur.duration_s), 1e-3))))
+                self.trial_bar.setValue(int(min(95, 100 * el / max(float(cur.duration_s), 1e-3))))
+                self.trial_bar.setFormat(f"trial {cur.trial_id}: {el:.1f} s (settling, then {cur.duration_s:g} s)")
             if self.pause_event.is_set():
                 state = "PAUSED (rig released)" if self._paused else "pausing after the current trial..."
             elif cur is not None:
@@ -350,25 +416,36 @@ class ProtocolTab(QtWidgets.QWidget):
             else:
                 state = "preparing"
             eta = "" if self._eta is None or self._eta != self._eta else f", ETA {_fmt_s(self._eta)}"
-            self.status.setText(f"{state} - {n_done + self._done_before}/{n} done{eta}")
+            text = f"{state} - {n_done + self._done_before}/{n} done{eta}"
+            set_plain(self.status, text)
+            self.run_label.setText(f"Protocol {self.protocol_name()}: {text}")
+            self.run_strip.show()
         else:
             self.job = None
             self.prompt_frame.hide()
+            self.run_strip.hide()
+            self.trial_bar.setFormat("trial %p%")
+            for r in range(self.table.rowCount()):  # a trial cut short by the abort is not "recording" any more
+                if self.row_status(r).startswith(("recording", "mounting")):
+                    self._set_status(r, "aborted (not recorded)")
             summary = job.result
+            level = logging.INFO
             if job.error:
-                self.status.setText(f"<span style='color:#c00'>run failed: {job.error}</span>")
+                text, level = f"run failed: {job.error}", logging.ERROR
             elif summary is not None and summary.stopped:
-                self.status.setText(
-                    f"aborted: {summary.complete}/{summary.planned} trials in {self.last_output} "
-                    "(tick 'Resume' and Start to continue it)"
-                )
+                text, level = (f"aborted: {summary.complete}/{summary.planned} trials in {self.last_output} "
+                               "(tick 'Resume' and Start to continue it)"
+                               + (f"; {summary.link_lost}" if summary.link_lost else "")), logging.WARNING
             elif summary is not None:
                 self.trial_bar.setValue(100)
-                self.status.setText(
-                    f"finished: {summary.complete}/{summary.planned} trials in {self.last_output} "
-                    f"({summary.samples} samples, {summary.dropped_frames} dropped frames, "
-                    f"{summary.crc_errors} CRC errors, {summary.failed} failed)"
-                )
+                text = (f"finished: {summary.complete}/{summary.planned} trials in {self.last_output} "
+                        f"({summary.samples} samples, {summary.dropped_frames} dropped frames, "
+                        f"{summary.crc_errors} CRC errors, {summary.failed} failed)")
+                level = logging.WARNING if summary.failed else logging.INFO
+            else:
+                text = "run ended"
+            set_plain(self.status, text, error=level >= logging.ERROR)
+            self._notify(level, f"protocol {self.protocol_name()} {text}")
             self.last_summary = summary
         self._update_buttons()
 

@@ -77,8 +77,10 @@ class RigHandle:
         self.rig.close()
 
 
-def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=None, seed: int = 0) -> RigHandle:
-    """Open the rig described by ``source`` with :func:`rigctl.rigs.open_rig` (which homes it).
+def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=None, seed: int = 0,
+             home: bool = True) -> RigHandle:
+    """Open the rig described by ``source`` with :func:`rigctl.rigs.open_rig` (which homes it unless ``home`` is
+    False; then a latched controller fault is left latched).
 
     ``host_config_path`` is the rig config file (calibration; None = the library's default path); ``prompt`` the
     operator prompt for plate changes on hardware. Raises :class:`rigctl.acquisition.rig.RigError` (the library's
@@ -86,7 +88,7 @@ def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=No
     """
     from rigctl.rigs import open_rig as _open_rig
 
-    kw = dict(host_config_path=host_config_path, prompt=prompt)
+    kw = dict(host_config_path=host_config_path, prompt=prompt, home=home)
     if source.kind == "serial":
         rig = _open_rig("hardware", drum_port=source.drum_port, taxel_port=source.taxel_port, **kw)
     elif source.kind == "replay":

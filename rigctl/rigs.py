@@ -105,7 +105,7 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     kind : the backend (see the module docstring).
     prompt : operator prompt for plate changes on hardware (default: a terminal prompt).
     host_config_path : the rig config file (calibration; default ``$RIGCTL_CONFIG`` or ``~/.config/rigctl/rig.json``).
-    home : HOME the actuator after opening.
+    home : HOME the actuator after opening (clearing a latched fault first); False leaves a fault latched.
     **options : the backend's options: ``config``, ``seed``, ``source`` (replay), ``drum_port``/``taxel_port``
         (hardware), ``textures`` (the rig's default texture set), and backend-specific keywords.
 

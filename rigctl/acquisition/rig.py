@@ -155,6 +155,7 @@ class Rig:
         host_config_path : the rig config JSON file (calibration); default
             :func:`rigctl.acquisition.rigconfig.default_config_path`.
         home : HOME the actuator after opening (clears a latched fault first, e.g. the watchdog of a killed run).
+            False: neither; a latched fault stays latched (logged) for the caller to show and the operator to clear.
 
         Raises
         ------
@@ -197,6 +198,9 @@ class Rig:
     def _prepare(self, *, home: bool) -> None:
         st = self.drum.read_status()
         if st.state == wire.DrumState.FAULT:
+            if not home:
+                log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
+                return
             log.warning("drum controller was in FAULT (%s); clearing it", st.faults)
             self.drum.stop()
             self.drum.clear_fault()

@@ -13,6 +13,8 @@ SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 @click.command("gui")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega). Default: simulated rig.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno). Default: simulated rig.")
+@click.option("--sim", is_flag=True, help="The simulated rig (default: the source last chosen in the app's Connect "
+                                        "dialog; the simulated rig the first time).")
 @click.option("--replay", type=click.Path(exists=True), default=None,
               help="Stream a recorded session file (or the FabricSlide recordings in a directory) through the "
                    "simulated rig.")
@@ -25,10 +27,11 @@ SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")
 @click.option("--texture", default=None, help="Mount this texture plate (a label of the rig's set, A-P by default) "
                                               "once connected.")
-def gui(drum_port, taxel_port, replay, screenshot, overwrite, quit_after, tab, run, texture):
+def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, tab, run, texture):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 
-    With no ports it runs on the simulated rig. ``--screenshot PATH --quit-after SECONDS`` renders the main window
+    With no source option it opens the source last chosen in its Connect dialog (the simulated rig the first time;
+    ``--sim`` forces it). ``--screenshot PATH --quit-after SECONDS`` renders the main window
     on the simulated rig and exits (docs, smoke tests).
     """
     if (drum_port is None) != (taxel_port is None):
@@ -50,4 +53,6 @@ def gui(drum_port, taxel_port, replay, screenshot, overwrite, quit_after, tab, r
             argv += [flag, str(value)]
     if run:
         argv.append("--run")
+    if sim:
+        argv.append("--sim")
     raise SystemExit(main(argv))

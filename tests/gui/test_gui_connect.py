@@ -54,8 +54,9 @@ def test_fabricslide_replay_source_feeds_the_live_view(window, qapp, fabricslide
     assert wait_for(qapp, lambda: window.handle is not None, 60)
 
 
-def test_connect_dialog_picks_a_session_file_to_replay(qapp, gui_home, tmp_path, monkeypatch):
-    """A session file of any sensor can be chosen for replay (not only a FabricSlide folder)."""
+def test_connect_dialog_picks_a_session_file_to_replay(qapp, gui_home, tmp_path):
+    """A session file of any sensor can be chosen for replay (not only a FabricSlide folder), in a non-modal file
+    dialog; OK is refused, saying why, while the replay source is empty."""
     from PySide6 import QtWidgets
 
     from rigctl_gui.connect_dialog import ConnectDialog
@@ -63,15 +64,16 @@ def test_connect_dialog_picks_a_session_file_to_replay(qapp, gui_home, tmp_path,
 
     session = tmp_path / "finger9.h5"
     session.write_bytes(b"")
-    asked = {}
-
-    def fake_open(parent, caption, folder, filters):
-        asked.update(caption=caption, filters=filters)
-        return str(session), filters.split(";;")[0]
-
-    monkeypatch.setattr(QtWidgets.QFileDialog, "getOpenFileName", staticmethod(fake_open))
     dlg = ConnectDialog(RigSource("sim"))
-    buttons = {b.text(): b for b in dlg.findChildren(QtWidgets.QPushButton)}
-    buttons["Session file..."].click()
     dlg.replay.setChecked(True)
-    assert "*.h5" in asked["filters"] and dlg.source() == RigSource("replay", replay_dir=str(session))
+    dlg.accept()
+    assert dlg.result() != QtWidgets.QDialog.Accepted and "choose a session file" in dlg.problem.text()
+    fd = dlg._browse_file()
+    assert fd.isVisible() and not fd.isModal() and QtWidgets.QApplication.activeModalWidget() is None
+    assert "*.h5" in fd.nameFilters()[0]
+    fd.selectFile(str(session))
+    fd.accept()
+    assert dlg.source() == RigSource("replay", replay_dir=str(session))
+    dlg.accept()
+    assert dlg.result() == QtWidgets.QDialog.Accepted
+    qapp.processEvents()  # the file dialog (deleted on close) goes while its parent lives
