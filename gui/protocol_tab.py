@@ -260,7 +260,7 @@ class ProtocolTab(QtWidgets.QWidget):
                 out,
                 rig=rig,
                 resume=resume,
-                progress=False,
+                progress=None,
                 stop_event=self.stop_event,
                 pause_event=self.pause_event,
                 on_trial=lambda ev: job.events.put(("trial", ev)),
