@@ -1,17 +1,26 @@
-"""Live view: the taxel traces (scrolling, last N seconds) and a heat map of the current readings, one of each per
-layer of the sensor, and the live SA and RA spike rasters (one train per taxel each) from the streaming encoder.
+"""Live view: the taxel traces of the last N seconds, one plot per layer of the sensor, with the live SA and RA spike
+rasters (one train per taxel each) from the streaming encoder on the SAME time axis below them, and a heat map of the
+current readings per layer beside them.
 
 Everything follows the stream's :class:`rigctl.core.sensor.SensorLayout` (``TaxelStream.layout``; default the paper's
 3x3x2 at 1 kHz, 10-bit): the number of trace plots and heat maps (one per layer, each heat map the layer's rows x
-cols grid), the raster rows (``layout.n_channels`` trains per population), the time axes (``sample_rate_hz``) and
-the count ranges (``adc_max``).
+cols grid with its taxel numbers), the raster rows (``layout.n_channels`` trains per population), the time axes
+(``sample_rate_hz``) and the count ranges (``adc_max``).
+
+One time axis: the trace plots and both rasters are stacked in one column of one layout, with left axes of one fixed
+width, so their data areas have the same pixel geometry; one window (``Time window``, 0.5-10 s) sets all their x
+ranges to ``(-window, 0)`` s before now (they are linked by this one setter: the mouse never pans them). A spike
+sits exactly above or below the trace sample it came from.
+
+Drawing costs do not grow with the data (issue 12): each trace is decimated to the data area's pixel width (min and
+max per pixel column, so peaks survive, :func:`peak_decimate`); each raster population is ONE image at the data
+area's pixel size (:func:`raster_image`: spikes binned per pixel column and taxel row), so every spike in the
+window is drawn whatever the rate (no spike budget) at the cost of one small image.
 
 Everything is drawn from fixed-size buffers filled from the taxel stream's ring buffer (never the file):
 :class:`rigctl_gui.workers.TraceBuffer` (pulled in the GUI thread, so a frame reaches the screen without waiting for a
 worker) and the spike rings of :class:`rigctl_gui.workers.LiveEncoder` (a worker thread), by :meth:`LiveView.refresh`,
-called from the main window's QTimer at >= 30 Hz. Each
-raster population is ONE curve with ``connect='pairs'`` (one short vertical tick per spike), so redrawing costs one
-item per population however many spikes there are (pyqtgraph #1039/#1737/#2158).
+called from the main window's QTimer at >= 30 Hz.
 """
 
 from __future__ import annotations
@@ -20,15 +29,23 @@ import time
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
-from rigctl_gui.workers import TraceBuffer
+from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
-#: most spikes drawn per population and refresh; beyond that the newest are kept (decimation)
-MAX_DRAWN_SPIKES = 12_000
-#: trace samples per second on screen (the stream is decimated to about this)
-SCREEN_RATE_HZ = 200.0
+#: the time window's range (s): traces and rasters show the last WINDOW_RANGE_S seconds
+WINDOW_RANGE_S = (0.5, LIVE_WINDOW_MAX_S)
+#: width of every time plot's left axis (px): the same for all, so their data areas line up
+AXIS_WIDTH_PX = 62
+#: raster colours per population (matplotlib's C0 / C3)
+RASTER_COLOURS = {"sa": "#1f77b4", "ra": "#d62728"}
+#: fraction of a raster row a spike tick covers (the rest is the gap to the next taxel)
+TICK_HEIGHT = 0.8
+#: auto-ranged y axes never span fewer ADC counts than this fraction of full scale (noise is not blown up)
+MIN_AUTO_SPAN = 0.02
+#: the info line is updated every this many refreshes (a label's text change costs a relayout)
+INFO_EVERY = 10
 
 
 def layer_titles(layout: SensorLayout, i: int) -> tuple[str, str]:
@@ -44,6 +61,22 @@ def layer_titles(layout: SensorLayout, i: int) -> tuple[str, str]:
         return f"Taxels {span}{rec}", f"{grid} taxels{rec} now"
     name = la.name[:1].upper() + la.name[1:]
     return f"{name} layer{rec} taxels {span}", f"{name} {grid}{rec} now"
+
+
+def trace_colours(n: int) -> list[QtGui.QColor]:
+    """The pen colour of each of a layer's ``n`` traces (the legend uses the same)."""
+    return [pg.intColor(k, max(n, 2), maxValue=210) for k in range(n)]
+
+
+def legend_html(layout: SensorLayout, i: int, max_entries: int = 24) -> str:
+    """The colour legend of layer ``i``'s traces: each taxel number in its trace's colour (the heat map shows where
+    each number sits); a layer of more than ``max_entries`` taxels gets the first and last only."""
+    ch = layout.layer_channels(i)
+    cols = trace_colours(len(ch))
+    entries = [f"<span style='color:{c.name()}'>&#9632;{k}</span>" for k, c in zip(ch, cols)]
+    if len(entries) > max_entries:
+        entries = entries[:2] + ["..."] + entries[-2:]
+    return "&nbsp;".join(entries)
 
 
 def heatmap_aspect(rows: int, cols: int, *, max_elongation: float = 4.0) -> float:
@@ -67,21 +100,79 @@ def raster_ticks(layout: SensorLayout) -> list[tuple[int, str]]:
     return [(i, str(i)) for i in range(0, n, step)]
 
 
-def raster_segments(t: np.ndarray, ch: np.ndarray, out: np.ndarray, *, height: float = 0.8) -> int:
-    """Fill ``out[:2n]`` (``(2*cap, 2)`` float64, x/y) with one vertical segment per spike; returns ``2n``.
+def peak_decimate(t: np.ndarray, x: np.ndarray, width_px: int, first_index: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Traces decimated to a plot's pixel width, peaks kept.
 
-    Spike ``i`` at time ``t[i]`` (s) on train ``ch[i]`` becomes the pair ``(t, ch - h/2), (t, ch + h/2)``.
+    ``t`` (n,) s and ``x`` (n, k) readings; ``first_index`` is the absolute sample number of ``t[0]`` (bins are
+    aligned to it, so a scrolling trace does not shimmer). With at most ``width_px`` samples nothing changes;
+    otherwise samples are binned ``step = ceil(n / width_px)`` at a time and each bin becomes two points (its
+    minimum at the bin's first time and its maximum at its last time, so the newest sample's time is always the
+    last point's): at most ``2 * width_px`` points, plus the oldest and the newest partial bins as they are. Returns
+    ``(t, x)`` (x of ``x``'s dtype).
     """
-    cap = len(out) // 2
-    if len(t) > cap:  # decimate: keep the newest
-        order = np.argsort(t)[-cap:]
-        t, ch = t[order], ch[order]
     n = len(t)
-    out[0 : 2 * n : 2, 0] = t
-    out[1 : 2 * n : 2, 0] = t
-    out[0 : 2 * n : 2, 1] = ch - height / 2
-    out[1 : 2 * n : 2, 1] = ch + height / 2
-    return 2 * n
+    step = -(-n // max(int(width_px), 1))
+    if step < 2:
+        return t, x
+    skip = (-int(first_index)) % step
+    m = (n - skip) // step
+    end = skip + m * step
+    blocks = x[skip:end].reshape(m, step, x.shape[1])
+    out_x = np.empty((2 * m + skip + n - end, x.shape[1]), x.dtype)
+    out_t = np.empty(len(out_x))
+    out_x[:skip], out_t[:skip] = x[:skip], t[:skip]
+    mid = slice(skip, skip + 2 * m)
+    out_x[mid][0::2] = blocks.min(axis=1)
+    out_x[mid][1::2] = blocks.max(axis=1)
+    out_t[mid][0::2] = t[skip:end:step]
+    out_t[mid][1::2] = t[skip + step - 1:end:step]
+    out_x[skip + 2 * m:], out_t[skip + 2 * m:] = x[end:], t[end:]
+    return out_t, out_x
+
+
+def raster_image(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
+                 height_px: int, *, tick: float = TICK_HEIGHT) -> np.ndarray:
+    """A spike raster as a ``(height_px, width_px)`` uint8 image at the data area's pixel size.
+
+    ``t`` (s, times before now: ``-window_s <= t <= 0``) and ``ch`` (train number 0 .. n_channels - 1) are the
+    spikes; column ``j`` is the time bin ``[-window_s + j w, -window_s + (j + 1) w)`` with ``w = window_s /
+    width_px`` (the newest spike, t = 0, goes into the last column), image row ``r`` (row 0 = bottom = y -0.5) is
+    taxel ``round(y_r)`` where ``y_r`` is the row's centre, or a gap between taxels when ``|y_r - taxel| > tick / 2``.
+    Pixel value: spikes in that bin (clipped to 2: one spike, more than one). Spikes outside the window are ignored.
+    """
+    w, h = max(int(width_px), 1), max(int(height_px), 1)
+    t = np.asarray(t, float)
+    ch = np.asarray(ch, np.int64)
+    col = np.floor((t + window_s) * (w / window_s)).astype(np.int64)
+    col[t == 0] = w - 1
+    ok = (col >= 0) & (col < w) & (ch >= 0) & (ch < n_channels)
+    counts = np.bincount(ch[ok] * w + col[ok], minlength=n_channels * w).reshape(n_channels, w)
+    counts = np.minimum(counts, 2).astype(np.uint8)
+    y = -0.5 + (np.arange(h) + 0.5) * (n_channels / h)  # centre of each pixel row, in taxel units
+    row_ch = np.clip(np.rint(y), 0, n_channels - 1).astype(np.int64)
+    rows = np.vstack([counts, np.zeros((1, w), np.uint8)])  # the last row: a blank gap
+    row_ch[np.abs(y - row_ch) > tick / 2] = n_channels
+    return rows[row_ch]
+
+
+def auto_y_range(lo: float, hi: float, current: tuple[float, float] | None, adc_max: float,
+                 *, min_span: float = MIN_AUTO_SPAN) -> tuple[float, float] | None:
+    """The auto-ranged y range of a trace plot whose visible data span ``lo``-``hi`` ADC counts, or None to keep
+    ``current``: a new range (10 % margin, at least ``min_span * adc_max`` wide, inside 0-``adc_max``, rounded
+    outward to 1/100 of full scale) only when the data leave the current range or fill less than a third of it, so
+    the axis does not twitch with every frame."""
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return None
+    if current is not None:
+        c0, c1 = current
+        if lo >= c0 and hi <= c1 and (hi - lo) >= (c1 - c0) / 3:
+            return None
+    span = max(hi - lo, min_span * adc_max)
+    mid = (lo + hi) / 2
+    a, b = mid - 0.6 * span, mid + 0.6 * span
+    q = max(adc_max / 100.0, 1.0)
+    a, b = max(0.0, np.floor(a / q) * q), min(float(adc_max), np.ceil(b / q) * q)
+    return (a, b) if b > a else (0.0, float(adc_max))
 
 
 class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
@@ -96,31 +187,42 @@ class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
 
 class LiveView(QtWidgets.QWidget):
     """The live tab. Call :meth:`attach` with the taxel stream and a running :class:`rigctl_gui.workers.LiveEncoder`; the
-    plots are rebuilt for the stream's layout (``layout`` is the one shown before anything is attached)."""
+    plots are rebuilt for the stream's layout (``layout`` is the one shown before anything is attached).
 
-    def __init__(self, parent=None, *, window_s: float = 5.0, raster_s: float = 2.0,
+    ``window_s``: the time window of the traces and the rasters (s); ``auto_range``: y axes of the traces follow the
+    data (else 0-``adc_max``)."""
+
+    def __init__(self, parent=None, *, window_s: float = 2.0, auto_range: bool = True,
                  layout: SensorLayout = PAPER_SENSOR):
         super().__init__(parent)
         self.encoder = None
         self.buffer = None
         self.layout = None
-        self.window_s = window_s
-        self.raster_s = raster_s
-        self._seg = {k: np.zeros((2 * MAX_DRAWN_SPIKES, 2)) for k in ("sa", "ra")}
+        self.window_s = float(window_s)
+        #: the spikes drawn by the last refresh per population: ``(t (s before now), taxel)`` (tests, tooltips)
+        self.drawn: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         #: host receive time (time.monotonic) of the newest frame drawn in the last refresh, awaiting its paint
         self._pending_host_t = None
         self.latencies_s = np.full(4096, np.nan)  # frame-to-screen latency of recent paints (ring)
         self._lat_n = 0
         self.paint_times = np.full(512, np.nan)
         self._paint_n = 0
+        self._refresh_n = 0
 
-        self.window_box = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=1, minimum=1.0, maximum=10.0, value=window_s)
+        self.window_box = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=1, minimum=WINDOW_RANGE_S[0],
+                                                   maximum=WINDOW_RANGE_S[1], singleStep=0.5, value=self.window_s)
+        self.window_box.setToolTip("The last this many seconds, for the traces and the spike rasters alike")
         self.window_box.valueChanged.connect(self.set_window)
+        self.auto_box = QtWidgets.QCheckBox("Auto-range y")
+        self.auto_box.setToolTip("Trace y axes follow the readings in the window (else the full ADC range)")
+        self.auto_box.setChecked(auto_range)
+        self.auto_box.toggled.connect(self.set_auto_range)
         self.info = QtWidgets.QLabel("")
         self.sensor_label = QtWidgets.QLabel("")
         bar = QtWidgets.QHBoxLayout()
-        bar.addWidget(QtWidgets.QLabel("Trace window"))
+        bar.addWidget(QtWidgets.QLabel("Time window"))
         bar.addWidget(self.window_box)
+        bar.addWidget(self.auto_box)
         bar.addWidget(self.sensor_label)
         bar.addStretch(1)
         bar.addWidget(self.info)
@@ -134,9 +236,20 @@ class LiveView(QtWidgets.QWidget):
         lay.addLayout(bar)
         lay.addWidget(self.gl, 1)
 
+    @property
+    def raster_s(self) -> float:
+        """The rasters' window (s): the same as the traces' (one time axis)."""
+        return self.window_s
+
+    @property
+    def time_plots(self) -> list:
+        """Every plot on the shared time axis: the trace plots, then the SA and RA rasters."""
+        return [*self.trace_plots, *self.raster_plots.values()]
+
     def set_layout(self, layout: SensorLayout) -> None:
-        """Build the plots for ``layout``: per layer a trace plot (one curve per taxel) and a rows x cols heat map,
-        and an SA and an RA raster of ``layout.n_channels`` rows. Nothing is rebuilt when the layout is unchanged."""
+        """Build the plots for ``layout``: per layer a trace plot (one curve per taxel, a colour legend) and a rows
+        x cols heat map (taxel numbers, one colour bar), and an SA and an RA raster of ``layout.n_channels`` rows.
+        Nothing is rebuilt when the layout is unchanged."""
         if layout == self.layout:
             return
         self.layout = layout
@@ -145,94 +258,133 @@ class LiveView(QtWidgets.QWidget):
                                   f"{layout.sample_rate_hz:g} Hz, {layout.adc_bits}-bit")
         self.sensor_label.setToolTip(layout.describe())
         n_layers, adc_max, labels = layout.n_layers, layout.adc_max, layout.channel_labels()
+        self._y_ranges: list[tuple[float, float] | None] = [None] * n_layers
 
-        # traces: one plot per layer
-        self.trace_plots = []
-        self.curves = []
-        for i in range(n_layers):
-            p = self.gl.addPlot(row=i, col=0, title=layer_titles(layout, i)[0])
-            p.setLabel("left", "ADC counts")
-            p.setYRange(0, adc_max, padding=0.02)
-            p.setXRange(-self.window_s, 0, padding=0)
-            p.setMouseEnabled(x=False, y=True)
+        def time_plot(row: int, title: str):
+            p = self.gl.addPlot(row=row, col=0, title=title)
+            p.setMouseEnabled(x=False, y=False)
+            p.setMenuEnabled(False)
             p.hideButtons()
             p.disableAutoRange()
-            chans = layout.layer_channels(i)
-            for k, ch in enumerate(chans):
-                c = pg.PlotCurveItem(pen=pg.mkPen(pg.intColor(k, len(chans)), width=1), skipFiniteCheck=True,
-                                     name=labels[ch])
+            p.setXRange(-self.window_s, 0, padding=0)
+            p.getAxis("left").setWidth(AXIS_WIDTH_PX)
+            return p
+
+        # traces: one plot per layer, a colour legend of its taxels in the title
+        self.trace_plots = []
+        self.curves = []
+        self._layer_channels = [layout.layer_channels(i) for i in range(n_layers)]
+        for i, chans in enumerate(self._layer_channels):
+            p = time_plot(i, f"{layer_titles(layout, i)[0]}&nbsp;&nbsp;&nbsp;{legend_html(layout, i)}")
+            p.setLabel("left", "ADC counts")
+            p.setYRange(0, adc_max, padding=0)
+            for ch, colour in zip(chans, trace_colours(len(chans))):
+                c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), skipFiniteCheck=True, name=labels[ch])
                 p.addItem(c)
                 self.curves.append(c)
             self.trace_plots.append(p)
-        # no setXLink: with PySide6 6.12 + pyqtgraph 0.14 a linked-view update crashes the interpreter
-        # ("deallocating None" in ViewBox.linkedViewChanged); each plot's x range is set explicitly instead
 
-        # heat maps: one per layer, its rows x cols grid
-        self._layer_slices = [(layout.layer_channels(i).start, layout.layer_channels(i).stop, (la.rows, la.cols))
-                              for i, la in enumerate(layout.layers)]
-        hm = self.gl.addLayout(row=0, col=1, rowspan=n_layers)
+        # rasters: one row per taxel, one image per population, on the traces' time axis
+        n = layout.n_channels
+        self.raster_plots = {}
+        self.raster_images = {}
+        for row, (key, title) in enumerate(
+            [("sa", f"SA spike raster ({n} trains)"), ("ra", f"RA spike raster ({n} trains)")], start=n_layers,
+        ):
+            p = time_plot(row, title)
+            p.setYRange(-0.5, n - 0.5, padding=0)
+            p.setLabel("left", "taxel")
+            p.getAxis("left").setTicks([raster_ticks(layout)])
+            img = pg.ImageItem(axisOrder="row-major")
+            colour = QtGui.QColor(RASTER_COLOURS[key])
+            lut = np.array([[255, 255, 255, 0], [*colour.getRgb()[:3], 255], [*colour.darker(170).getRgb()[:3], 255]],
+                           np.uint8)
+            img.setLookupTable(lut)
+            img.setLevels((0, 2))
+            img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, n))
+            p.addItem(img)
+            self.raster_plots[key] = p
+            self.raster_images[key] = img
+            self.drawn[key] = (np.zeros(0), np.zeros(0, np.int16))
+        self.raster_plots["ra"].setLabel("bottom", "time before now (s)")
+
+        # heat maps: one per layer beside its traces (its rows x cols grid, taxel numbers in the cells), one colour
+        # bar for all
         self.images = []
+        self.taxel_labels = []
         cmap = pg.colormap.get("viridis")
+        lut = cmap.getLookupTable(nPts=256)
+        font = QtGui.QFont()
+        font.setPointSize(7)
         for i, la in enumerate(layout.layers):
-            hm.addLabel(layer_titles(layout, i)[1], row=2 * i, col=0, size="9pt")
-            vb = hm.addViewBox(row=2 * i + 1, col=0, lockAspect=True, enableMouse=False, invertY=True)
+            cell = self.gl.addLayout(row=i, col=1)
+            cell.addLabel(layer_titles(layout, i)[1], row=0, col=0, size="9pt")
+            cell.layout.setRowFixedHeight(0, 20)
+            vb = cell.addViewBox(row=1, col=0, lockAspect=True, enableMouse=False, invertY=True, enableMenu=False)
             vb.setAspectLocked(True, ratio=heatmap_aspect(la.rows, la.cols))
             img = pg.ImageItem(np.zeros((la.rows, la.cols)), axisOrder="row-major")
-            img.setLookupTable(cmap.getLookupTable(nPts=256))
+            img.setLookupTable(lut)
             img.setLevels((0, adc_max))
-            ch0 = layout.layer_channels(i).start
+            ch0 = self._layer_channels[i].start
             img.setToolTip("\n".join(  # which taxel is where: channel number and name, row by row
                 "   ".join(f"{ch0 + r * la.cols + c}: {labels[ch0 + r * la.cols + c]}" for c in range(la.cols))
                 for r in range(la.rows)))
             vb.addItem(img)
+            if la.n_channels <= 64:  # the taxel numbers, top left in each cell, on a pale box (any colour under it)
+                for r in range(la.rows):
+                    for c in range(la.cols):
+                        t = pg.TextItem(str(ch0 + r * la.cols + c), color="k", fill=pg.mkBrush(255, 255, 255, 190),
+                                        anchor=(0, 0))
+                        t.setFont(font)
+                        t.setPos(c + 0.03, r + 0.03)
+                        vb.addItem(t)
+                        self.taxel_labels.append(t)
             self.images.append(img)
-        hm.addLabel(f"colour: 0-{adc_max} ADC counts (viridis)", row=2 * n_layers, col=0, size="8pt")
-        hm.layout.setColumnFixedWidth(0, 170)
-
-        # rasters: one row per taxel
-        n = layout.n_channels
-        self.raster_plots = {}
-        self.raster_curves = {}
-        for row, (key, title, colour) in enumerate(
-            [("sa", f"SA spike raster ({n} trains)", "#1f77b4"), ("ra", f"RA spike raster ({n} trains)", "#d62728")],
-            start=n_layers,
-        ):
-            p = self.gl.addPlot(row=row, col=0, colspan=2, title=title)
-            p.setYRange(-0.5, n - 0.5, padding=0)
-            p.setXRange(-self.raster_s, 0, padding=0)
-            p.setMouseEnabled(x=False, y=False)
-            p.disableAutoRange()
-            p.hideButtons()
-            p.setLabel("left", "taxel")
-            p.getAxis("left").setTicks([raster_ticks(layout)])
-            c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), connect="pairs", skipFiniteCheck=True)
-            p.addItem(c)
-            self.raster_plots[key] = p
-            self.raster_curves[key] = c
-        self.raster_plots["ra"].setLabel("bottom", "time before now (s)")
-        self.trace_plots[-1].setLabel("bottom", "time before now (s)")
-        # the traces get at least as much height as the two rasters (a single layer: twice a raster's)
+        bar = pg.ColorBarItem(values=(0, adc_max), colorMap=cmap, interactive=False, colorMapMenu=False, width=12,
+                              label="ADC counts")
+        self.gl.addItem(bar, row=0, col=2, rowspan=n_layers)
+        self.colour_bar = bar
         grid = self.gl.ci.layout
+        grid.setColumnFixedWidth(1, 150)
+        grid.setColumnFixedWidth(2, 75)
+        # the traces get at least as much height as the two rasters (a single layer: twice a raster's)
         for row in range(n_layers + 2):
             grid.setRowStretchFactor(row, 2 if n_layers == 1 and row == 0 else 1)
 
     def set_window(self, seconds: float) -> None:
-        """Show the last ``seconds`` (1-10 s) of the taxel traces."""
-        self.window_s = float(seconds)
-        for p in self.trace_plots:
+        """Show the last ``seconds`` (0.5-10 s) in the traces and the rasters alike (one time axis)."""
+        self.window_s = float(np.clip(seconds, *WINDOW_RANGE_S))
+        for p in self.time_plots:
             p.setXRange(-self.window_s, 0, padding=0)
+        for img in self.raster_images.values():
+            img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, self.layout.n_channels))
+        if self.window_box.value() != self.window_s:
+            self.window_box.setValue(self.window_s)
+
+    def set_auto_range(self, on: bool) -> None:
+        """Trace y axes follow the data in the window (``on``) or show the full ADC range."""
+        if self.auto_box.isChecked() != bool(on):
+            self.auto_box.setChecked(bool(on))
+        self._y_ranges = [None] * len(self.trace_plots)
+        if not on:
+            for p in self.trace_plots:
+                p.setYRange(0, self.layout.adc_max, padding=0)
 
     def attach(self, taxels, encoder, layout: SensorLayout | None = None) -> None:
         """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes, with the
         plots built for ``layout`` (default the stream's ``layout``; the paper's sensor for a stream without one)."""
         layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
         self.set_layout(layout)
-        decimate = max(1, int(round(layout.sample_rate_hz / SCREEN_RATE_HZ)))  # 1 kHz: every 5th frame
-        self.buffer = TraceBuffer(taxels.ring, seconds=10.0, decimate=decimate, layout=layout)
+        # every frame of the longest window is kept; drawing decimates to the pixel width
+        self.buffer = TraceBuffer(taxels.ring, seconds=WINDOW_RANGE_S[1], decimate=1, layout=layout)
         self.encoder = encoder
 
     def detach(self) -> None:
         self.encoder = self.buffer = None
+
+    def data_width_px(self) -> int:
+        """Pixel width of the time plots' data area (the same for all of them)."""
+        return max(int(round(self.trace_plots[0].vb.width())), 1)
 
     # ------------------------------------------------------------------------------------------------------
     def refresh(self) -> bool:
@@ -244,29 +396,41 @@ class LiveView(QtWidgets.QWidget):
             return False
         t, x = buf.view()
         now = t[-1]
-        keep = t >= now - self.window_s
-        t, x = t[keep], x[keep]
-        # x = time before now: the axes never change, so pyqtgraph reuses their drawing (the axis repaint with
-        # moving ticks was 60 % of the paint time)
-        t = t - now
+        first = int(np.searchsorted(t, now - self.window_s - 1e-9))
+        t, x = t[first:], x[first:]
+        width = self.data_width_px()
+        # x = time before now: the axes never change, so pyqtgraph reuses their drawing
+        t, x = peak_decimate(t - now, x, width, first_index=int(round(t[0] * buf.rate_hz)))
         for k, c in enumerate(self.curves):
             c.setData(t, x[:, k], skipFiniteCheck=True)
+        if self.auto_box.isChecked():
+            for i, (p, chans) in enumerate(zip(self.trace_plots, self._layer_channels)):
+                part = x[:, chans.start:chans.stop]
+                r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self.layout.adc_max)
+                if r is not None:
+                    self._y_ranges[i] = r
+                    p.setYRange(*r, padding=0)
         cur = buf.current.astype(float)
-        for img, (start, stop, shape) in zip(self.images, self._layer_slices):
-            img.setImage(cur[start:stop].reshape(shape), autoLevels=False)
-        t0 = now - self.raster_s
-        for key, ring in (("sa", enc.sa), ("ra", enc.ra)) if enc is not None else ():
-            st, sc = ring.since(t0)
-            n = raster_segments(st - now, sc.astype(float), self._seg[key])
-            seg = self._seg[key][:n]
-            self.raster_curves[key].setData(seg[:, 0], seg[:, 1], connect="pairs", skipFiniteCheck=True)
+        for img, chans, la in zip(self.images, self._layer_channels, self.layout.layers):
+            img.setImage(cur[chans.start:chans.stop].reshape(la.rows, la.cols), autoLevels=False)
         if enc is not None:
-            err = enc.encoder_error
-            state = "" if enc.ready else " (encoder starting: compiling kernels)"
-            self.info.setText(
-                f"{buf.n_samples} frames shown, SA {enc.sa.total} / RA {enc.ra.total} spikes{state}"
-                + (f" - encoder: {err}" if err else "")
-            )
+            n = self.layout.n_channels
+            height = max(int(round(self.raster_plots["sa"].vb.height())), 1)
+            for key, ring in (("sa", enc.sa), ("ra", enc.ra)):
+                st, sc = ring.since(now - self.window_s)
+                st = st - now
+                self.drawn[key] = (st, sc)
+                img = self.raster_images[key]
+                img.setImage(raster_image(st, sc, n, self.window_s, width, height), autoLevels=False)
+                img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, n))
+            if self._refresh_n % INFO_EVERY == 0:
+                err = enc.encoder_error
+                state = "" if enc.ready else " (encoder starting: compiling kernels)"
+                self.info.setText(
+                    f"{buf.n_samples} frames shown, SA {enc.sa.total} / RA {enc.ra.total} spikes{state}"
+                    + (f" - encoder: {err}" if err else "")
+                )
+        self._refresh_n += 1
         self._pending_host_t = buf.newest_host_time_s
         return True
 

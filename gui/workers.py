@@ -321,6 +321,17 @@ class TraceBuffer:
         return np.concatenate([self._t[i:], self._t[:i]]), np.concatenate([self._x[i:], self._x[:i]])
 
 
+#: the longest window the live view shows (s); the spike rings hold at least this much at the model's top rate
+LIVE_WINDOW_MAX_S = 10.0
+
+
+def spike_capacity(layout: SensorLayout, seconds: float = LIVE_WINDOW_MAX_S, max_rate_hz: float = 1000.0) -> int:
+    """Spikes one population can produce in ``seconds``: ``layout.n_channels`` trains at ``max_rate_hz`` (one spike
+    per 1 ms model step, the streaming encoder's ceiling), so a :class:`SpikeRing` of this size never drops a spike
+    of the last ``seconds``."""
+    return int(np.ceil(seconds * max_rate_hz * layout.n_channels))
+
+
 class LiveEncoder(threading.Thread):
     """Streaming SA + RA encoding of the live taxel stream in a worker thread
     (:class:`rigctl.encoding.izhikevich.StreamingEncoder`, paper eqs. 3-5).
@@ -340,8 +351,11 @@ class LiveEncoder(threading.Thread):
         self.poll_s = poll_s
         self.normaliser = normaliser or self.full_range()
         self.n_samples = 0  # frames encoded since start
-        self.sa = SpikeRing()
-        self.ra = SpikeRing()
+        # room for every spike of the live view's longest window even if every train fired at every model step
+        # (1 ms): the raster never loses its oldest spikes to the ring's size
+        cap = spike_capacity(self.layout)
+        self.sa = SpikeRing(cap)
+        self.ra = SpikeRing(cap)
         self.encoder_error: str | None = None
         self.ready = False  # the encoder's kernels are compiled and it is keeping up
         self._halt = threading.Event()

@@ -79,9 +79,10 @@ def test_live_view_on_a_streamed_9_channel_100hz_sensor(qapp, finger_board):
             assert enc.encoder_error is None
             view.refresh()
             for key in ("sa", "ra"):
-                _rx, ry = view.raster_curves[key].getData()
-                if ry is not None and len(ry):
-                    assert ry.min() >= -0.5 and ry.max() <= 8.5
+                _st, drawn_ch = view.drawn[key]
+                if len(drawn_ch):
+                    assert drawn_ch.min() >= 0 and drawn_ch.max() <= 8
+                    assert view.raster_images[key].image.shape[0] > 0
                 _t, ch = getattr(enc, key).since(-1e9)
                 assert ch.max() <= 8
         finally:

@@ -113,6 +113,7 @@ def _feed_and_refresh(qapp, view, layout, seconds=3.0):
 @pytest.mark.parametrize("layout", [FINGER_100HZ, GRID_4X4, PAPER_SENSOR], ids=["3x3@100Hz", "4x4@500Hz", "paper"])
 def test_live_view_follows_the_layout(live_view, qapp, layout):
     view = live_view()
+    view.set_window(0.5)
     x, _ = _feed_and_refresh(qapp, view, layout)
     n = layout.n_channels
     assert view.layout == layout
@@ -125,26 +126,39 @@ def test_live_view_follows_the_layout(live_view, qapp, layout):
         ch = layout.layer_channels(i)
         np.testing.assert_array_equal(view.images[i].image, x[-1, ch.start : ch.stop].reshape(la.rows, la.cols))
         assert tuple(view.images[i].levels) == (0, layout.adc_max)
-    # traces: every taxel's readings, x = seconds before now at the layout's rate (decimated to ~200 Hz on screen)
-    dec = view.buffer.decimate
-    assert dec == max(1, round(layout.sample_rate_hz / 200))
+    # traces: every frame of the last window_s seconds (0.5 s of the 3 s fed; fewer samples than pixels: no
+    # decimation), x = seconds before now at the layout's rate
+    assert view.buffer.decimate == 1
+    in_window = int(round(view.window_s * layout.sample_rate_hz)) + 1
+    assert in_window <= view.data_width_px()
     for k, c in enumerate(view.curves):
         tx, ty = c.getData()
-        assert tx[-1] <= 0.0 and tx[0] >= -view.window_s - 1e-9
-        np.testing.assert_allclose(np.diff(tx), dec / layout.sample_rate_hz, rtol=1e-9)
-        np.testing.assert_array_equal(ty, x[::dec][-len(ty):, k])  # frames 0, dec, 2 dec, ... of the stream
-    # the window holds the last window_s seconds: 3 s fed, 5 s window -> all of it
-    assert len(view.curves[0].getData()[0]) == len(x[::dec])
+        assert tx[-1] == 0.0 and tx[0] >= -view.window_s - 1e-9
+        np.testing.assert_allclose(np.diff(tx), 1 / layout.sample_rate_hz, rtol=1e-9)
+        np.testing.assert_array_equal(ty, x[-in_window:, k])
+    # auto-ranged y: each layer's readings inside its plot's y range, which is no wider than needed (+ margins)
+    for p, chans in zip(view.trace_plots, view._layer_channels):
+        lo, hi = x[-in_window:, chans.start:chans.stop].min(), x[-in_window:, chans.start:chans.stop].max()
+        y0, y1 = p.viewRange()[1]
+        assert y0 <= lo and hi <= y1 and (y1 - y0) <= 1.3 * (hi - lo) + 0.03 * layout.adc_max
+    view.set_auto_range(False)
     for p in view.trace_plots:
-        assert p.viewRange()[1][1] == pytest.approx(layout.adc_max, rel=0.05)
-    # rasters: n rows, one tick pair per spike on channels 0..n-1
+        assert p.viewRange()[1] == pytest.approx([0, layout.adc_max])
+    view.set_auto_range(True)
+    # rasters: n rows, every spike drawn in its taxel's row and its time's pixel column
     for key in ("sa", "ra"):
         p = view.raster_plots[key]
         assert p.viewRange()[1] == pytest.approx([-0.5, n - 0.5])
         assert f"({n} trains)" in p.titleLabel.text
-        rx, ry = view.raster_curves[key].getData()
-        assert len(rx) == 2 * n
-        assert sorted(set(np.round((ry[0::2] + ry[1::2]) / 2).astype(int))) == list(range(n))
+        st, sc = view.drawn[key]
+        assert sorted(sc) == list(range(n))
+        img = view.raster_images[key].image
+        h, w = img.shape
+        for t, ch in zip(st, sc):
+            col = int((t + view.window_s) / view.window_s * w)
+            rows = np.flatnonzero(img[:, col])  # row 0 = bottom (taxel 0)
+            assert len(rows) and np.all(np.abs((rows + 0.5) * n / h - 0.5 - ch) <= 0.41), (key, ch, rows)
+        assert np.count_nonzero(img.any(axis=0)) == n  # nothing else lit
     assert f"{n} taxels" in view.sensor_label.text()
 
 
@@ -152,7 +166,7 @@ def test_default_live_view_is_the_papers(live_view, qapp):
     """The paper's rig looks as before: two layers of 3x3, 18 trains, 0-1023 counts, ticks every 3rd taxel."""
     view = live_view()
     assert view.layout == PAPER_SENSOR
-    assert [p.titleLabel.text for p in view.trace_plots] == [
+    assert [p.titleLabel.text.split("&nbsp;")[0] for p in view.trace_plots] == [
         "Top layer (type I) taxels 0-8", "Bottom layer (type II) taxels 9-17"]
     assert [p.titleLabel.text for p in view.raster_plots.values()] == [
         "SA spike raster (18 trains)", "RA spike raster (18 trains)"]
@@ -356,3 +370,105 @@ def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_
         w.close()
         w.deleteLater()
         qapp.processEvents()
+
+
+def test_traces_and_rasters_share_one_time_axis(live_view, qapp):
+    """Traces and rasters: the same x range, the same data-area pixels (a spike sits above or below its trace
+    sample), and one window setting moves them all."""
+    from PySide6 import QtCore
+
+    view = live_view()
+    _, enc = _feed_and_refresh(qapp, view, PAPER_SENSOR)
+
+    def pixel_span(p):  # scene x of t = -window and t = 0 in a plot's data area
+        vb = p.getViewBox()
+        return (vb.mapViewToScene(QtCore.QPointF(-view.window_s, 0)).x(),
+                vb.mapViewToScene(QtCore.QPointF(0.0, 0)).x())
+
+    for window in (2.0, 5.0):
+        view.set_window(window)
+        qapp.processEvents()
+        plots = view.time_plots
+        assert len(plots) == 4  # two trace plots (layers), SA and RA
+        for p in plots:
+            assert p.viewRange()[0] == pytest.approx([-window, 0.0])
+        spans = [pixel_span(p) for p in plots]
+        assert spans[0][1] - spans[0][0] > 600  # a real width on a 1400 px window
+        for s in spans[1:]:
+            assert s == pytest.approx(spans[0], abs=0.5)
+        # the raster images cover exactly the data area, so pixel column j of the image is the same screen column
+        # as the traces' time -window + (j + 0.5) * window / width
+        for img in view.raster_images.values():
+            r = img.mapRectToScene(img.boundingRect())
+            assert (r.left(), r.right()) == pytest.approx(spans[0], abs=0.5)
+    assert view.window_box.value() == 5.0
+
+
+def test_raster_draws_every_spike_at_high_rates(live_view, qapp):
+    """No spike budget: 18 trains at 400 spikes/s over a 10 s window (72,000 spikes per population) are all drawn,
+    the oldest second as well as the newest."""
+    from rigctl_gui.workers import SpikeRing, spike_capacity
+
+    view = live_view()
+    view.set_window(10.0)
+    stream = FakeStream(PAPER_SENSOR)
+    x = frames(PAPER_SENSOR, 11.0)
+    now = (len(x) - 1) / PAPER_SENSOR.sample_rate_hz
+    enc = FakeEncoder(18, now)
+    enc.sa = SpikeRing(spike_capacity(PAPER_SENSOR))
+    t = np.arange(now - 10.0 + 1e-3, now, 1 / 400.0)
+    for ch in range(18):
+        enc.sa.extend(t + ch * 1e-4, np.full(len(t), ch, np.int16))
+    view.attach(stream, enc)
+    stream.ring.write(x)
+    assert view.refresh()
+    st, sc = view.drawn["sa"]
+    assert len(st) == 18 * len(t) > 70_000
+    img = view.raster_images["sa"].image
+    h, w = img.shape
+    lit = img.any(axis=0)
+    assert lit[: w // 10].mean() > 0.9 and lit[-w // 10:].mean() > 0.9  # the left (oldest) part is not blank
+    for ch in (0, 17):  # each taxel's row is lit across the window
+        row = int((ch + 0.5) / 18 * h)
+        assert img[row].astype(bool).mean() > 0.9
+
+
+def test_legend_colour_bar_and_taxel_numbers(live_view, qapp):
+    """Each trace plot's title carries its taxels' numbers in their traces' colours; the heat maps share a colour
+    bar over 0-adc_max and show every taxel's number in its cell."""
+    view = live_view()
+    for p, chans in zip(view.trace_plots, view._layer_channels):
+        title = p.titleLabel.text
+        for k, ch in enumerate(chans):
+            colour = view.curves[ch].opts["pen"].color().name()
+            assert f"color:{colour}'>&#9632;{ch}<" in title
+    assert view.colour_bar.values == (0, 1023)
+    assert sorted(int(t.textItem.toPlainText()) for t in view.taxel_labels) == list(range(18))
+    for t in view.taxel_labels:  # each number inside its own cell of its layer's map
+        ch = int(t.textItem.toPlainText())
+        layer, r, c = PAPER_SENSOR.channel_position(ch)
+        assert t.getViewBox() is view.images[layer].getViewBox()
+        assert (int(t.pos().x()), int(t.pos().y())) == (c, r)
+
+
+def test_peak_decimation_keeps_the_extremes():
+    from rigctl_gui.live_view import peak_decimate
+
+    rng = np.random.default_rng(1)
+    n, width = 10_000, 700
+    t = np.arange(n) / 1000.0
+    x = rng.integers(0, 1024, (n, 3)).astype(np.uint16)
+    x[4321, 1] = 1023
+    x[777, 2] = 0
+    dt, dx = peak_decimate(t, x, width, first_index=13)
+    assert len(dt) <= 2 * width + 2 * (-(-n // width))
+    assert dx.max(axis=0).tolist() == x.max(axis=0).tolist() and dx.min(axis=0).tolist() == x.min(axis=0).tolist()
+    assert dt[-1] == t[-1]  # the newest sample's time is always the last point's
+    assert np.all(np.diff(dt) >= 0)
+    # bins start at absolute sample numbers that are multiples of the step: scrolling does not shimmer
+    step = -(-n // width)
+    idx = np.round(dt * 1000).astype(int) + 13  # absolute sample numbers
+    # a bin is a (min, max) pair at its first and last samples' times
+    assert np.mean(np.isin(idx % step, [0, step - 1])) > 0.97
+    dt2, dx2 = peak_decimate(t[:700], x[:700], width)
+    assert len(dt2) == 700  # at most a sample per pixel: unchanged
