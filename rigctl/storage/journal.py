@@ -220,18 +220,32 @@ def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
         os.close(fd)
 
 
-#: test hook: seconds the helper waits before each in-place write (widens the window a kill test aims at)
+#: test hooks: seconds the helper waits before each in-place write, and a gate (a path): the helper makes the first
+#: in-place write, creates ``<gate>.reached`` and waits until the file ``<gate>`` exists (at most
+#: :data:`_TEST_GATE_MAX_S`) before the others, so a test acts in the middle of the in-place writes, however loaded
+#: the machine
 _TEST_WRITE_DELAY_S = 0.0
+_TEST_WRITE_GATE = ""
+_TEST_GATE_MAX_S = 300.0
 
 
-def _replay(fd: int, jpath: Path, durable: bool, delay_s: float = 0.0) -> None:
+def _wait_at_gate(gate: str) -> None:
+    Path(gate + ".reached").touch()
+    deadline = time.monotonic() + _TEST_GATE_MAX_S
+    while not os.path.exists(gate) and time.monotonic() < deadline:
+        time.sleep(0.005)
+
+
+def _replay(fd: int, jpath: Path, durable: bool, delay_s: float = 0.0, gate: str = "") -> None:
     """Write a committed journal's pages onto ``fd``, truncate to the journal's size, then delete the journal."""
     entries, new_size = _read_journal(jpath)
     if entries is None:  # not committed (or already replayed and removed by another process)
         return
-    for offset, data in entries:
+    for i, (offset, data) in enumerate(entries):
         if delay_s:
             time.sleep(delay_s)
+        if gate and i == 1:
+            _wait_at_gate(gate)
         _pwrite(fd, data, offset)
     if os.fstat(fd).st_size != new_size:
         os.ftruncate(fd, new_size)
@@ -253,7 +267,7 @@ def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) ->
     """
     jpath = Path(jpath)
     cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--apply", str(fd), str(jpath),
-           "1" if durable else "0", repr(float(_TEST_WRITE_DELAY_S))]
+           "1" if durable else "0", repr(float(_TEST_WRITE_DELAY_S)), _TEST_WRITE_GATE]
     proc = interrupted = None
     if sys.executable and not getattr(sys, "frozen", False):  # a frozen app's executable is not Python
         try:
@@ -269,7 +283,7 @@ def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) ->
             except KeyboardInterrupt as exc:
                 interrupted = exc
     if jpath.exists():  # the helper could not start or did not finish: apply it here
-        _replay(fd, jpath, durable, _TEST_WRITE_DELAY_S)
+        _replay(fd, jpath, durable, _TEST_WRITE_DELAY_S, _TEST_WRITE_GATE)
     if interrupted is not None:
         raise CommittedInterrupt("interrupted while committing; the commit was completed first") from interrupted
 
@@ -480,11 +494,12 @@ class OverlayFile(io.RawIOBase):
 
 
 def _main(argv: list[str]) -> int:
-    """``journal.py --apply FD JOURNAL DURABLE DELAY_S``: the helper of :func:`apply_journal` (stdlib only)."""
-    if len(argv) != 5 or argv[0] != "--apply":
-        print("usage: journal.py --apply FD JOURNAL DURABLE(0|1) DELAY_S", file=sys.stderr)
+    """``journal.py --apply FD JOURNAL DURABLE DELAY_S [GATE]``: the helper of :func:`apply_journal` (stdlib
+    only)."""
+    if len(argv) not in (5, 6) or argv[0] != "--apply":
+        print("usage: journal.py --apply FD JOURNAL DURABLE(0|1) DELAY_S [GATE]", file=sys.stderr)
         return 2
-    _replay(int(argv[1]), Path(argv[2]), argv[3] == "1", float(argv[4]))
+    _replay(int(argv[1]), Path(argv[2]), argv[3] == "1", float(argv[4]), argv[5] if len(argv) == 6 else "")
     return 0
 
 

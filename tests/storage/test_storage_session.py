@@ -267,14 +267,24 @@ def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
     assert sorted(w.completed_ids() + w.pending_ids()) == list(range(n_trials))
 
 
+def _wait_at_gate(proc, gate, timeout_s=120):
+    """Wait until the in-place writes of a commit (the journal is committed) stop at the test gate
+    (``journal._TEST_WRITE_GATE``: after the first page). The timeout only bounds a hang."""
+    deadline = time.monotonic() + timeout_s
+    while not gate.with_name(gate.name + ".reached").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, "the writer never reached its in-place writes"
+        time.sleep(0.005)
+
+
 _SLOW_COMMIT = textwrap.dedent(
     """
     import sys, numpy as np
     from rigctl.storage import journal
     from rigctl.storage.session import SessionWriter, TrialData
-    journal._TEST_WRITE_DELAY_S = 0.1  # each in-place write waits 0.1 s: a wide window to kill the writer in
+    journal._TEST_WRITE_GATE = sys.argv[3]  # the in-place writes wait after the first one until the test opens it
     if sys.argv[2] == "in-process":  # the negative control: the in-place writes made by the writer itself
-        journal.apply_journal = lambda fd, jpath, durable=True: journal._replay(fd, jpath, durable, 0.1)
+        journal.apply_journal = lambda fd, jpath, durable=True: journal._replay(fd, jpath, durable,
+                                                                                gate=sys.argv[3])
     w = SessionWriter.open(sys.argv[1])
     w.write_trial(1, TrialData(taxels=np.full((500, 18), 1), force_g=[1], force_time_s=[0.0]))
     """
@@ -284,10 +294,10 @@ _SLOW_COMMIT = textwrap.dedent(
 @pytest.mark.parametrize("writes", ["detached", "in-process"])
 def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
     """The in-place writes of a commit (the only time the file on disk is neither version) are made by a detached
-    helper: kill -9 the writer's process group in the middle of them (slowed down to 0.1 s per page), and the file
-    is the new version for plain h5py, with no journal left. The negative control makes the same writes in the
-    writer's own process: the same kill then leaves them unfinished (a committed journal, a file on disk that is
-    not the new version)."""
+    helper: kill -9 the writer's process group in the middle of them (held after the first page until the kill),
+    and the file is the new version for plain h5py, with no journal left. The negative control makes the same
+    writes in the writer's own process: the same kill then leaves them unfinished (a committed journal, a file on
+    disk that is not the new version)."""
     from rigctl.storage import journal
 
     path = tmp_path / "slow.h5"
@@ -295,16 +305,15 @@ def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
     w = SessionWriter.create(path, plan=_plan(3), protocol_source="src", compression=None)
     w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
     w.close()  # one writer per file: the child writes next
-    proc = subprocess.Popen([sys.executable, "-c", _SLOW_COMMIT, str(path), writes], start_new_session=True)
-    deadline = time.monotonic() + 60
-    while not (jpath.exists() and journal._read_journal(jpath)[0] is not None):
-        assert proc.poll() is None and time.monotonic() < deadline, "the writer never committed"
-        time.sleep(0.005)
+    gate = tmp_path / "gate"
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_COMMIT, str(path), writes, str(gate)],
+                            start_new_session=True)
+    _wait_at_gate(proc, gate)
     n_writes = len(journal._read_journal(jpath)[0])
-    assert n_writes >= 3  # several pages are rewritten in place: the kill lands among them
-    time.sleep(0.25)
+    assert n_writes >= 3  # several pages are rewritten in place: the kill lands among them (after the first)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
+    gate.touch()  # a detached helper goes on
     _wait_unlocked(path)
     if writes == "detached":
         assert not jpath.exists()
@@ -375,7 +384,7 @@ _CTRL_C_IN_COMMIT = textwrap.dedent(
     import sys, numpy as np
     from rigctl.storage import journal
     from rigctl.storage.session import SessionWriter, TrialData
-    journal._TEST_WRITE_DELAY_S = 0.1
+    journal._TEST_WRITE_GATE = sys.argv[2]  # the in-place writes wait after the first one until the test opens it
     w = SessionWriter.open(sys.argv[1])
     try:
         w.write_trial(1, TrialData(taxels=np.full((500, 18), 1), force_g=[1], force_time_s=[0.0]))
@@ -396,13 +405,12 @@ def test_ctrl_c_during_a_commit_finishes_it_first(tmp_path):
     w = SessionWriter.create(path, plan=_plan(3), protocol_source="src", compression=None)
     w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
     w.close()  # one writer per file: the child writes next
-    proc = subprocess.Popen([sys.executable, "-c", _CTRL_C_IN_COMMIT, str(path)], stdout=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while not (jpath.exists() and journal._read_journal(jpath)[0] is not None):
-        assert proc.poll() is None and time.monotonic() < deadline, "the writer never committed"
-        time.sleep(0.005)
-    time.sleep(0.15)
+    gate = tmp_path / "gate"
+    proc = subprocess.Popen([sys.executable, "-c", _CTRL_C_IN_COMMIT, str(path), str(gate)], stdout=subprocess.PIPE,
+                            text=True)
+    _wait_at_gate(proc, gate)  # the journal is committed and the in-place writes have begun
     proc.send_signal(signal.SIGINT)
+    gate.touch()
     out, _ = proc.communicate(timeout=60)
     assert out.strip() == "CommittedInterrupt [0, 1]"
     assert not jpath.exists()
