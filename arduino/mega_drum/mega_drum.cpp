@@ -356,7 +356,14 @@ void loop(void)
         ctl.drum_actual_mm_s = drum_actual_mm_s();
         ctl_tick(&ctl, done_ms);
         if (ctl.zero_position) {
+            /* home found: the actuator stops at the switch at once (its step timer stopped with the zero, in one
+             * critical section: a step left to the next compare interrupt, or one that came between the zero and
+             * act_apply(0), would leave ACTUATOR_POSITION at -1 or -2 steps after HOME) */
             cli();
+            act_next.cs = 0;
+            TCCR3B = (1 << WGM32);
+            TIFR3 = (1 << OCF3A);
+            act_running_cs = 0;
             act_steps = 0;
             sei();
             ctl.zero_position = 0;
