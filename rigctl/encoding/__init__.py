@@ -5,7 +5,9 @@ Modules, one job each (data flows top to bottom):
 - :mod:`~rigctl.encoding.normalise` - per-taxel 0-1 normalisation over the whole dataset (``TaxelRange``).
 - :mod:`~rigctl.encoding.filters` - the RA input: 20 Hz Butterworth low-pass + derivative (``ra_input``, ``RAFilter``).
 - :mod:`~rigctl.encoding.izhikevich` - eqs. (3)-(5): ``encode_sa``, ``encode_ra``, ``encode_trials``,
-  ``StreamingEncoder``, the numba kernel (``run_izhikevich``).
+  ``StreamingEncoder``, the float64 kernel (``run_izhikevich``).
+- :mod:`~rigctl.encoding.fused` - the fused kernel: raw counts -> normalisation, SA and RA (filter included) ->
+  spike times in one pass, float32 (``run_fused``); used by the pipeline, the streaming encoder and eq. (1).
 - :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index (stored by
   :mod:`rigctl.storage.encoded`).
 - :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceScaler``).

@@ -26,9 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.encoding.izhikevich import FS_HZ, K_SA, TONIC_SPIKING, IzhikevichParams, Ragged, as_ragged, run_izhikevich
+from rigctl.encoding.fused import run_fused
+from rigctl.encoding.izhikevich import FS_HZ, K_SA, TONIC_SPIKING, IzhikevichParams, Ragged, as_ragged
 
-__all__ = ["ForceFit", "fit_force_coefficients", "ForceScaler", "REFERENCE_FORCE_G", "EPSILON", "C_MAX"]
+__all__ = ["ForceFit", "fit_force_coefficients", "fit_force_groupings", "fit_scalers", "ForceScaler", "REFERENCE_FORCE_G", "EPSILON", "C_MAX"]
 
 REFERENCE_FORCE_G = 500.0  #: the force whose SA rate is the target (Methods)
 EPSILON = 0.1  #: spikes/s tolerance of eq. (1)
@@ -79,7 +80,7 @@ def _group_rates(counts, durations, group, n_groups, trial_mask=None):
 
 def fit_force_coefficients(readings, group, reference, *, offset=0.0, scale=1.0, eps: float = EPSILON,
                            c_max: float = C_MAX, k: float = K_SA, fs: float = FS_HZ, max_iter: int = 40,
-                           params: IzhikevichParams = TONIC_SPIKING) -> ForceFit:
+                           params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32) -> ForceFit:
     """Solve eq. (1) for every (group, taxel) at once by vectorised bisection.
 
     Parameters
@@ -92,6 +93,7 @@ def fit_force_coefficients(readings, group, reference, *, offset=0.0, scale=1.0,
         ``reference[g] == g`` marks a reference group (coefficient 1).
     eps : spikes/s tolerance. c_max : the cap (bracket is [0, c_max]). k : SA scale (100). fs : Hz.
     max_iter : bisection steps at most (c_max / 2**40 is far below any meaningful precision).
+    dtype : the SA kernel's state (:mod:`rigctl.encoding.fused`; float32 default).
 
     Returns
     -------
@@ -103,58 +105,92 @@ def fit_force_coefficients(readings, group, reference, *, offset=0.0, scale=1.0,
         on mismatched sizes, a group without trials used as a reference, or a reference group that is itself
         referred to another group.
     """
-    rg = as_ragged(readings)
+    return fit_force_groupings(readings, [(group, reference)], offset=offset, scale=scale, eps=eps, c_max=c_max,
+                               k=k, fs=fs, max_iter=max_iter, params=params, dtype=dtype)[0]
+
+
+def _check_grouping(group, reference, n_trials: int) -> tuple[np.ndarray, np.ndarray]:
     group = np.asarray(group, dtype=np.int64)
     reference = np.asarray(reference, dtype=np.int64)
-    n_groups, n_ch = reference.size, rg.n_channels
-    if group.shape != (rg.n_trials,):
-        raise ValueError(f"group must be ({rg.n_trials},), got {group.shape}")
+    n_groups = reference.size
+    if group.shape != (n_trials,):
+        raise ValueError(f"group must be ({n_trials},), got {group.shape}")
     if group.size and (group.min() < 0 or group.max() >= n_groups):
         raise ValueError("group indices out of range of reference")
     if np.any(reference[reference] != reference):
         raise ValueError("a reference group must be its own reference")
-    durations = rg.lengths / fs
-    if np.any(durations <= 0):
-        raise ValueError("empty trial")
     n_per_group = np.bincount(group, minlength=n_groups)
     is_ref = reference == np.arange(n_groups)
     if np.any(n_per_group[reference[~is_ref]] == 0):
         raise ValueError("some groups refer to a reference group without trials")
+    return group, reference
 
-    def rates_at(coeff_groups, trial_mask):
-        gain = coeff_groups[group]  # (n_trials, n_ch)
-        counts, _, _ = run_izhikevich(rg, k=k, gain=gain, offset=offset, scale=scale, params=params,
-                                      active=trial_mask, want_raster=False)
-        return _group_rates(counts, durations, group, n_groups, trial_mask)
 
-    ref_trials = is_ref[group]
-    target_ref = rates_at(np.ones((n_groups, n_ch)), ref_trials)
-    target = target_ref[reference]
+def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: float = EPSILON, c_max: float = C_MAX,
+                        k: float = K_SA, fs: float = FS_HZ, max_iter: int = 40,
+                        params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32) -> list[ForceFit]:
+    """:func:`fit_force_coefficients` for several groupings of the same trials at once (e.g. per texture and
+    label-free): each bisection step is **one** pass of the fused SA kernel over the trials still open in any
+    grouping, one SA population per grouping, so the readings are read once per step for all coefficients.
 
-    coeffs = np.ones((n_groups, n_ch))
-    rate = target.copy()
-    done = np.repeat(is_ref[:, None], n_ch, axis=1) | (n_per_group[:, None] == 0)
-    converged = done.copy()
-    lo = np.zeros((n_groups, n_ch))
-    hi = np.full((n_groups, n_ch), float(c_max))
+    Parameters
+    ----------
+    groupings : list of ``(group, reference)`` pairs as in :func:`fit_force_coefficients`.
+    Others as :func:`fit_force_coefficients`.
+
+    Returns
+    -------
+    list of ForceFit, one per grouping.
+    """
+    rg = as_ragged(readings)
+    n_ch = rg.n_channels
+    groups = [_check_grouping(g, r, rg.n_trials) for g, r in groupings]
+    durations = rg.lengths / fs
+    if np.any(durations <= 0):
+        raise ValueError("empty trial")
+    izh = (params.a, params.b, params.c, params.d, params.v_peak)
+
+    def rates_at(coeff_groups: list[np.ndarray], masks: list[np.ndarray], groups: list) -> list[np.ndarray]:
+        active = np.logical_or.reduce(masks)
+        gains = [cg[g] for cg, (g, _) in zip(coeff_groups, groups)]  # (n_trials, n_ch) each
+        counts = run_fused(rg.data, rg.starts, offset=offset, scale=scale, sa_gains=gains, k_sa=k, ra=False, fs=fs,
+                           izhikevich=izh, dtype=dtype, want_times=False, active=active).counts
+        return [_group_rates(counts[i], durations, g, r.size, m) for i, ((g, r), m) in enumerate(zip(groups, masks))]
+
+    is_ref = [r == np.arange(r.size) for _, r in groups]
+    targets = rates_at([np.ones((r.size, n_ch)) for _, r in groups], [ir[g] for ir, (g, _) in zip(is_ref, groups)],
+                       groups)
+    state = []
+    for (g, r), ir, tr in zip(groups, is_ref, targets):
+        n_per_group = np.bincount(g, minlength=r.size)
+        done = np.repeat(ir[:, None], n_ch, axis=1) | (n_per_group[:, None] == 0)
+        target = tr[r]
+        state.append({"n_iter": 0, "coeffs": np.ones((r.size, n_ch)), "rate": target.copy(), "target": target, "done": done,
+                      "converged": done.copy(), "lo": np.zeros((r.size, n_ch)),
+                      "hi": np.full((r.size, n_ch), float(c_max))})
     n_iter = 0
-    while not done.all() and n_iter < max_iter:
-        mid = 0.5 * (lo + hi)
-        trial_mask = ~done.all(axis=1)[group]
-        r = rates_at(np.where(done, coeffs, mid), trial_mask)
+    while not all(st["done"].all() for st in state) and n_iter < max_iter:
+        run = [i for i, st in enumerate(state) if not st["done"].all()]  # groupings still open: one population each
+        mids = [0.5 * (state[i]["lo"] + state[i]["hi"]) for i in run]
+        masks = [~state[i]["done"].all(axis=1)[groups[i][0]] for i in run]
+        rs = rates_at([np.where(state[i]["done"], state[i]["coeffs"], mid) for i, mid in zip(run, mids)], masks,
+                      [groups[i] for i in run])
         n_iter += 1
-        open_ = ~done
-        ok = open_ & (np.abs(r - target) < eps)
-        coeffs[open_] = mid[open_]
-        rate[open_] = r[open_]
-        converged |= ok
-        done |= ok
-        low = open_ & ~ok & (r < target)
-        lo[low] = mid[low]
-        high = open_ & ~ok & (r >= target)
-        hi[high] = mid[high]
+        for i, mid, r in zip(run, mids, rs):
+            st = state[i]
+            st["n_iter"] += 1
+            open_ = ~st["done"]
+            ok = open_ & (np.abs(r - st["target"]) < eps)
+            st["coeffs"][open_] = mid[open_]
+            st["rate"][open_] = r[open_]
+            st["converged"] |= ok
+            st["done"] |= ok
+            low = open_ & ~ok & (r < st["target"])
+            st["lo"][low] = mid[low]
+            high = open_ & ~ok & (r >= st["target"])
+            st["hi"][high] = mid[high]
     # not converged: the bracket closed on a jump of the rate (or the target is out of reach below c_max).
-    return ForceFit(coeffs, converged, target, rate, n_iter)
+    return [ForceFit(st["coeffs"], st["converged"], st["target"], st["rate"], st["n_iter"]) for st in state]
 
 
 def _condition(values) -> np.ndarray:
@@ -212,6 +248,14 @@ class ForceScaler:
         ValueError
             if a (texture, speed) has no trial at the reference force.
         """
+        group, reference = self._grouping(texture, speed_mm_s, force_g)
+        fit = fit_force_coefficients(readings, group, reference, offset=offset, scale=scale, eps=self.eps,
+                                     c_max=self.c_max, k=self.k, fs=self.fs, max_iter=self.max_iter)
+        return self._adopt(fit)
+
+    def _grouping(self, texture, speed_mm_s, force_g) -> tuple[np.ndarray, np.ndarray]:
+        """(group (n_trials,), reference (n_groups,)) of labelled trials; sets ``textures_`` and ``keys_``.
+        Raises ValueError as :meth:`fit`."""
         self.textures_ = sorted(set(np.asarray(texture).astype(str).tolist()))
         keys = self._keys(texture, speed_mm_s, force_g)
         uniq, group = _key_index(keys)
@@ -228,13 +272,14 @@ class ForceScaler:
             shown = ", ".join(conds[:6]) + (f" (+{len(conds) - 6} more)" if len(conds) > 6 else "")
             raise ValueError(f"no trials at the reference force {self.reference_force_g:g} g for {len(conds)} "
                              f"(texture, speed) conditions: {shown}")
-        reference = np.array([index[tuple(r)] for r in ref_key], dtype=np.int64)
-        self.fit_ = fit_force_coefficients(readings, group, reference, offset=offset, scale=scale, eps=self.eps,
-                                           c_max=self.c_max, k=self.k, fs=self.fs, max_iter=self.max_iter)
         self.keys_ = uniq
-        self.coeffs_ = self.fit_.coeffs
-        self.converged_ = self.fit_.converged
-        self.n_not_converged_ = self.fit_.n_not_converged
+        return group, np.array([index[tuple(r)] for r in ref_key], dtype=np.int64)
+
+    def _adopt(self, fit: ForceFit) -> "ForceScaler":
+        self.fit_ = fit
+        self.coeffs_ = fit.coeffs
+        self.converged_ = fit.converged
+        self.n_not_converged_ = fit.n_not_converged
         return self
 
     def coefficients_for(self, texture, speed_mm_s, force_g) -> np.ndarray:
@@ -276,3 +321,31 @@ def fit_from_ragged(ragged: Ragged, texture, speed_mm_s, force_g, *, offset=0.0,
     """Convenience: ``ForceScaler(label_free=...).fit(...)``."""
     return ForceScaler(label_free=label_free, **kw).fit(ragged, texture, speed_mm_s, force_g, offset=offset,
                                                         scale=scale)
+
+
+def fit_scalers(scalers: list[ForceScaler], readings, texture, speed_mm_s, force_g, *, offset=0.0,
+                scale=1.0) -> list[str]:
+    """Fit several :class:`ForceScaler` s (e.g. per texture and label-free) on the same trials at once: one kernel
+    pass per bisection step for all of them (:func:`fit_force_groupings`). Each scaler must share ``eps``, ``c_max``,
+    ``k``, ``fs`` and ``max_iter`` with the first.
+
+    Returns
+    -------
+    list of str, one per scaler: "" if fitted, else why not (the ValueError of :meth:`ForceScaler.fit`: no trials
+    at the reference force); such a scaler is left unfitted.
+    """
+    errors, groupings, fitted = [], [], []
+    for sc in scalers:
+        try:
+            groupings.append(sc._grouping(texture, speed_mm_s, force_g))
+            fitted.append(sc)
+            errors.append("")
+        except ValueError as exc:
+            errors.append(str(exc))
+    if fitted:
+        s0 = fitted[0]
+        fits = fit_force_groupings(readings, groupings, offset=offset, scale=scale, eps=s0.eps, c_max=s0.c_max,
+                                   k=s0.k, fs=s0.fs, max_iter=s0.max_iter)
+        for sc, fit in zip(fitted, fits):
+            sc._adopt(fit)
+    return errors

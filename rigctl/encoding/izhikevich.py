@@ -15,16 +15,13 @@ Integration scheme (Izhikevich 2003, the model's reference code): time in ms, on
 ``v``; then, if ``v >= 30``, the sample is a spike: ``v <- c``, ``u <- u + d``. A spike found at sample ``n`` of a
 trial gets the time ``n / fs`` seconds (trial start = 0). Initial state: ``v = c = -65`` mV, ``u = b * v``.
 
-Numerics: the state (v, u) is float64; the input may be float32, float64 or raw integer ADC counts (an affine
-normalisation ``(x - offset) * scale`` is applied in the kernel, so raw ``uint16`` sessions need no float copy). The
-kernel (numba) runs blocks of 8 trials in parallel (``prange``); inside a block, time is the outer loop and the
-8 x n_channels lanes (trial-major, channel-minor, contiguous) are the SIMD axis, with a branch-free spike reset
-(18 channels alone would leave most of a 512-bit vector idle). Trials are sorted by length so a block's trials
-end together. For spike times (:func:`encode`, :class:`StreamingEncoder`) the kernel keeps the last 64 steps' spikes
-in a small block buffer and appends their sample numbers to per-train int32 slots, branch-free (no (N, C) raster;
-a train that outgrows its ~250 Hz slot bound makes the call fall back to the raster).
-No FMA contraction or reassociation is allowed, so every lane does the same IEEE operations:
-batch mode, :class:`StreamingEncoder` and a plain per-sample Python loop give the same spikes.
+Two kernels. :func:`encode_sa`, :func:`encode_ra`, :func:`encode_trials` and :class:`StreamingEncoder` run the
+fused kernel (:mod:`rigctl.encoding.fused`: raw counts in, normalisation, SA and the RA filter in the same pass,
+float32 SA state by default, within the model's own rounding sensitivity); ``dtype=np.float64`` gives the float64
+reference. :func:`run_izhikevich` / :func:`encode` are the float64 kernel on a given input current (no RA filter).
+Neither allows FMA contraction or reassociation, so every lane does the same IEEE operations: batch encoding,
+:class:`StreamingEncoder` and the pipeline give the same spikes, and the float64 kernels follow a plain per-sample
+Python loop.
 """
 
 from __future__ import annotations
@@ -35,7 +32,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from rigctl.encoding.filters import RAFilter, ra_input
+from rigctl.encoding.filters import lowpass_coefficients
+from rigctl.encoding.fused import FusedResult, FusedState, run_fused
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.spikes import SpikeTrains
 
@@ -455,9 +453,21 @@ def _norm_args(normalise: TaxelRange | None):
     return normalise.offset_scale()
 
 
+def _fused(rg: Ragged, *, normalise: TaxelRange | None, sa_coeffs: tuple, k_sa: float, ra: bool, k_ra: float,
+           cutoff_hz: float, rectify: bool, fs: float, params: IzhikevichParams, dtype,
+           state: FusedState | None = None, n0: int = 0) -> FusedResult:
+    offset, scale = _norm_args(normalise)
+    return run_fused(rg.data, rg.starts, offset=offset, scale=scale, sa_gains=sa_coeffs, k_sa=k_sa, ra=ra, k_ra=k_ra,
+                     cutoff_hz=cutoff_hz, rectify=rectify, fs=fs,
+                     izhikevich=(params.a, params.b, params.c, params.d, params.v_peak), dtype=dtype, state=state,
+                     n0=n0)
+
+
 def encode_sa(readings, k: float = K_SA, coeff=1.0, *, normalise: TaxelRange | None = None, fs: float = FS_HZ,
-              params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
+              params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32) -> SpikeTrains:
     """SA encoding (Methods): tonic spiking, k = 100, on the (force-scaled) normalised reading.
+
+    Runs the fused kernel (:mod:`rigctl.encoding.fused`: normalisation in the kernel, float32 state by default).
 
     Parameters
     ----------
@@ -468,44 +478,53 @@ def encode_sa(readings, k: float = K_SA, coeff=1.0, *, normalise: TaxelRange | N
     normalise : per-taxel min/max of the whole dataset; applied in the kernel.
     fs : the readings' rate, Hz; the model steps in 1 ms, so readings at another rate are resampled to 1 kHz first
         (:mod:`rigctl.encoding.rate`); spike times are in s of the recording either way.
-
-    Returns
-    -------
-    SpikeTrains (n_trials, n_taxels), spike times in s.
-    """
-    offset, scale = _norm_args(normalise)
-    return encode(readings, k=k, gain=coeff, offset=offset, scale=scale, fs=fs, params=params)
-
-
-def encode_ra(readings, k: float = K_RA, cutoff_hz: float = 20.0, *, normalise: TaxelRange | None = None,
-              rectify: bool = True, fs: float = FS_HZ, params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
-    """RA encoding (Methods): tonic spiking, k = 3, on the 20 Hz low-passed, differentiated reading.
-
-    The filter and derivative (units: normalised reading per second; rectified) are described in
-    :mod:`rigctl.encoding.filters`; they restart at every trial, initialised to its first sample.
-
-    Parameters
-    ----------
-    readings : as :func:`encode_sa`.
-    k : eq. (3) scale, default 3. cutoff_hz : low-pass cutoff (20 Hz).
-    fs : the readings' rate, Hz (resampled to the model's 1 kHz first when different; the filter runs at 1 kHz).
+    dtype : the kernel's state, np.float32 (default) or np.float64.
 
     Returns
     -------
     SpikeTrains (n_trials, n_taxels), spike times in s.
     """
     rg, fs = _at_model_rate(as_ragged(readings), fs)
-    offset, scale = _norm_args(normalise)
-    norm = rg.map_trials(lambda tr: ra_input((tr - offset) * scale, cutoff_hz=cutoff_hz, fs=fs, rectify=rectify))
-    return encode(norm, k=k, fs=fs, params=params)
+    return _fused(rg, normalise=normalise, sa_coeffs=(coeff,), k_sa=k, ra=False, k_ra=K_RA, cutoff_hz=20.0,
+                  rectify=True, fs=fs, params=params, dtype=dtype).sa[0]
+
+
+def encode_ra(readings, k: float = K_RA, cutoff_hz: float = 20.0, *, normalise: TaxelRange | None = None,
+              rectify: bool = True, fs: float = FS_HZ, params: IzhikevichParams = TONIC_SPIKING,
+              dtype=np.float32) -> SpikeTrains:
+    """RA encoding (Methods): tonic spiking, k = 3, on the 20 Hz low-passed, differentiated reading.
+
+    The filter and derivative (units: normalised reading per second; rectified) are described in
+    :mod:`rigctl.encoding.filters`; they restart at every trial, initialised to its first sample. The fused kernel
+    (:mod:`rigctl.encoding.fused`) runs them sample by sample beside the neuron (no filtered copy of the trial).
+
+    Parameters
+    ----------
+    readings : as :func:`encode_sa`.
+    k : eq. (3) scale, default 3. cutoff_hz : low-pass cutoff (20 Hz).
+    fs : the readings' rate, Hz (resampled to the model's 1 kHz first when different; the filter runs at 1 kHz).
+    dtype : the kernel's state, np.float32 (default) or np.float64.
+
+    Returns
+    -------
+    SpikeTrains (n_trials, n_taxels), spike times in s.
+    """
+    rg, fs = _at_model_rate(as_ragged(readings), fs)
+    res = _fused(rg, normalise=normalise, sa_coeffs=(), k_sa=K_SA, ra=True, k_ra=k, cutoff_hz=cutoff_hz,
+                 rectify=rectify, fs=fs, params=params, dtype=dtype)
+    assert res.ra is not None
+    return res.ra
 
 
 def encode_trials(readings, *, normalise: TaxelRange | None = None, coeff=1.0, fs: float = FS_HZ,
-                  rectify: bool = True, params: IzhikevichParams = TONIC_SPIKING) -> SpikeTrains:
-    """SA and RA trains side by side: (n_trials, 2 * n_taxels), SA taxels first, then RA (the paper's 36 trains)."""
-    sa = encode_sa(readings, coeff=coeff, normalise=normalise, fs=fs, params=params)
-    ra = encode_ra(readings, normalise=normalise, fs=fs, rectify=rectify, params=params)
-    return SpikeTrains.hstack([sa, ra])
+                  rectify: bool = True, params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32) -> SpikeTrains:
+    """SA and RA trains side by side: (n_trials, 2 * n_taxels), SA taxels first, then RA (the paper's 36 trains);
+    one pass of the fused kernel."""
+    rg, fs = _at_model_rate(as_ragged(readings), fs)
+    res = _fused(rg, normalise=normalise, sa_coeffs=(coeff,), k_sa=K_SA, ra=True, k_ra=K_RA, cutoff_hz=20.0,
+                 rectify=rectify, fs=fs, params=params, dtype=dtype)
+    assert res.ra is not None
+    return SpikeTrains.hstack([res.sa[0], res.ra])
 
 
 # ---------------------------------------------------------------------------------------------------------- streaming
@@ -546,11 +565,14 @@ class StreamingEncoder:
 
     def __init__(self, n_taxels: int, *, normalise: TaxelRange | None = None, coeff=1.0, k_sa: float = K_SA,
                  k_ra: float = K_RA, cutoff_hz: float = 20.0, rectify: bool = True, fs: float = FS_HZ,
-                 params: IzhikevichParams = TONIC_SPIKING):
+                 params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32):
         self.n_taxels = n_taxels
+        self.normalise = normalise
         self.offset, self.scale = _norm_args(normalise)
         self.coeff = np.broadcast_to(np.asarray(coeff, np.float64), (n_taxels,)).copy()
         self.input_fs = float(fs)
+        self.dtype = np.dtype(dtype)
+        self.ra_dtype = np.dtype(np.float64)  # the fused kernel's RA path (rigctl.encoding.fused)
         self._resampler = None
         if self.input_fs != FS_HZ:
             from rigctl.encoding.rate import StreamResampler, rate_conversion
@@ -560,15 +582,14 @@ class StreamingEncoder:
             if conv.resampled:
                 self._resampler = StreamResampler(conv, n_taxels)
         self.k_sa, self.k_ra, self.fs, self.params = float(k_sa), float(k_ra), float(fs), params
-        self._ra_filter = RAFilter(n_taxels, cutoff_hz=cutoff_hz, fs=fs, rectify=rectify)
+        self.cutoff_hz, self.rectify = float(cutoff_hz), bool(rectify)
+        lowpass_coefficients(self.cutoff_hz, self.fs)  # a bad cutoff fails here, not at the first chunk
         self.reset()
 
     def reset(self) -> None:
         """Start a new trial: neuron and filter state back to rest, time back to 0."""
         p = self.params
-        self._sa_state = (np.full((1, self.n_taxels), p.c), np.full((1, self.n_taxels), p.b * p.c))
-        self._ra_state = (np.full((1, self.n_taxels), p.c), np.full((1, self.n_taxels), p.b * p.c))
-        self._ra_filter.reset()
+        self._state = FusedState.rest(1, 1, self.n_taxels, c=p.c, b=p.b, dtype=self.dtype, ra_dtype=self.ra_dtype)
         if self._resampler is not None:
             self._resampler.reset()
         self.n_samples = 0  # model steps (samples at the model's rate) so far
@@ -588,16 +609,13 @@ class StreamingEncoder:
         if self._resampler is not None:
             x = self._resampler.process(x)
         n = x.shape[0]
-        starts = np.array([0, n], dtype=np.int64)
-        rg = Ragged(np.ascontiguousarray(x), starts)
-        n0 = self.n_samples
-        sa = _encode_trains(rg, k=self.k_sa, gain=self.coeff, offset=self.offset, scale=self.scale, fs=self.fs,
-                            params=self.params, state=self._sa_state, n0=n0)
-        ra_in = self._ra_filter.process((x - self.offset) * self.scale)
-        ra = _encode_trains(Ragged(np.ascontiguousarray(ra_in), starts), k=self.k_ra, fs=self.fs, params=self.params,
-                            state=self._ra_state, n0=n0)
+        rg = Ragged(np.ascontiguousarray(x), np.array([0, n], dtype=np.int64))
+        res = _fused(rg, normalise=self.normalise, sa_coeffs=(self.coeff,), k_sa=self.k_sa, ra=True, k_ra=self.k_ra,
+                     cutoff_hz=self.cutoff_hz, rectify=self.rectify, fs=self.fs, params=self.params,
+                     dtype=self.dtype, state=self._state, n0=self.n_samples)
+        assert res.ra is not None
         self.n_samples += n
-        return EncodedChunk(sa, ra, n_in)
+        return EncodedChunk(res.sa[0], res.ra, n_in)
 
 
 def default_threads() -> int:

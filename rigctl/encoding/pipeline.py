@@ -66,10 +66,9 @@ from rigctl.core.progress import note as progress_note
 from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, realtime_features,
                                       realtime_features_unscaled, spike_features)
-from rigctl.encoding.filters import ra_input
-from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler
-from rigctl.encoding.izhikevich import (K_RA, K_SA, Ragged, _at_model_rate, _trains_from_raster, as_ragged,
-                                        run_izhikevich)
+from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler, fit_scalers
+from rigctl.encoding.fused import run_fused
+from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
@@ -106,6 +105,8 @@ class EncodeParams:
     realtime_taxels : channels of the real-time variants; None = the sensor's first (top) layer (0-8 on the paper's
         sensor).
     izhikevich : eqs. (3)-(5) tonic-spiking constants.
+    kernel_dtype : the fused kernel's state, "float32" (default: within the model's own rounding sensitivity,
+        :mod:`rigctl.encoding.fused`) or "float64".
     """
 
     fs_hz: float = MODEL_RATE_HZ
@@ -125,6 +126,7 @@ class EncodeParams:
     n_windows_realtime: int = N_WINDOWS_REALTIME
     realtime_taxels: list | None = None
     izhikevich: dict = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
+    kernel_dtype: str = "float32"
 
     @classmethod
     def from_dict(cls, d) -> "EncodeParams":
@@ -135,6 +137,8 @@ class EncodeParams:
         return cls(**{k: v for k, v in dict(d or {}).items() if k in known})
 
     def __post_init__(self) -> None:
+        if self.kernel_dtype not in ("float32", "float64"):
+            raise ValueError(f"kernel_dtype must be 'float32' or 'float64', got {self.kernel_dtype!r}")
         if not (math.isfinite(self.window_s) and self.window_s > 0):
             raise ValueError(f"window_s must be > 0 s, got {self.window_s!r}")
         for name in ("n_windows_scaled", "n_windows_realtime", "n_windows_unscaled"):
@@ -149,15 +153,13 @@ def windows_for(duration_s: float, window_s: float = WINDOW_S) -> int:
 
 # ---------------------------------------------------------------------------------------------------------- batch work
 def _sa_ra(rg: Ragged, offset, scale, sa_gains: list[np.ndarray], p: EncodeParams):
-    """SA trains for each gain matrix in ``sa_gains`` and the RA trains, (n_trials, n_ch) each."""
-    out = []
-    for gains in sa_gains:
-        counts, raster, _ = run_izhikevich(rg, k=p.k_sa, gain=gains, offset=offset, scale=scale)
-        out.append(_trains_from_raster(raster, rg.starts, counts, p.fs_hz))
-    ra_in = rg.map_trials(lambda tr: ra_input((tr - offset) * scale, cutoff_hz=p.cutoff_hz, fs=p.fs_hz,
-                                              rectify=p.rectify_ra))
-    counts, raster, _ = run_izhikevich(ra_in, k=p.k_ra)
-    return out, _trains_from_raster(raster, ra_in.starts, counts, p.fs_hz)
+    """SA trains for each gain matrix in ``sa_gains`` and the RA trains, (n_trials, n_ch) each: one pass of the
+    fused kernel over the raw readings (:mod:`rigctl.encoding.fused`)."""
+    izh = p.izhikevich
+    res = run_fused(rg.data, rg.starts, offset=offset, scale=scale, sa_gains=sa_gains, k_sa=p.k_sa, ra=True,
+                    k_ra=p.k_ra, cutoff_hz=p.cutoff_hz, rectify=p.rectify_ra, fs=p.fs_hz,
+                    izhikevich=(izh["a"], izh["b"], izh["c"], izh["d"], izh["v_peak"]), dtype=np.dtype(p.kernel_dtype))
+    return list(res.sa), res.ra
 
 
 def _realtime_taxels(p: EncodeParams, n_ch: int, layout: SensorLayout | None = None) -> list[int]:
@@ -338,16 +340,19 @@ def _fit_subsample(keys, nbytes, budget):
     return np.sort(np.concatenate(keep))
 
 
-def _fit_forces(fit_rg, labels_fit, offset, scale, p: EncodeParams, label_free: bool):
-    scaler = ForceScaler(label_free=label_free, reference_force_g=p.reference_force_g, eps=p.epsilon,
-                         c_max=p.c_max, k=p.k_sa, fs=p.fs_hz)
-    try:
-        scaler.fit(fit_rg, labels_fit["texture"], labels_fit["speed_mm_s"], labels_fit["force_g"], offset=offset,
-                   scale=scale)
-    except ValueError as exc:
-        warnings.warn(f"force coefficients not fitted ({exc}); using C = 1", stacklevel=3)
-        return None, str(exc)
-    return scaler, ""
+def _fit_forces(fit_rg, labels_fit, offset, scale, p: EncodeParams):
+    """Both groupings of eq. (1) (per texture, label-free) in one bisection (one kernel pass per step for both).
+    Returns [(scaler or None, note)] for per texture, then label-free."""
+    scalers = [ForceScaler(label_free=lf, reference_force_g=p.reference_force_g, eps=p.epsilon, c_max=p.c_max,
+                           k=p.k_sa, fs=p.fs_hz) for lf in (False, True)]
+    errors = fit_scalers(scalers, fit_rg, labels_fit["texture"], labels_fit["speed_mm_s"], labels_fit["force_g"],
+                         offset=offset, scale=scale)
+    out = []
+    for sc, err in zip(scalers, errors):
+        if err:
+            warnings.warn(f"force coefficients not fitted ({err}); using C = 1", stacklevel=3)
+        out.append((None if err else sc, err))
+    return out
 
 
 def _trial_list(ids) -> str:
@@ -521,8 +526,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     fit_note = fit_note_lf = "not requested"
     if need_force:
         progress_note(progress, "force fit", f"fitting force coefficients on {fit_rg.n_trials} trials ...")
-        scaler, fit_note = _fit_forces(fit_rg, labels_fit, offset, scale, p, label_free=False)
-        scaler_lf, fit_note_lf = _fit_forces(fit_rg, labels_fit, offset, scale, p, label_free=True)
+        (scaler, fit_note), (scaler_lf, fit_note_lf) = _fit_forces(fit_rg, labels_fit, offset, scale, p)
     del fit_rg
     coeffs = scaler.coefficients_for(labels["texture"], labels["speed_mm_s"], labels["force_g"]) if scaler else None
     coeffs_lf = (scaler_lf.coefficients_for(labels["texture"], labels["speed_mm_s"], labels["force_g"])

@@ -46,7 +46,7 @@ def smooth_signals(rng, n_trials, n_samples, n_ch):
 def test_sa_counts_match_reference_loop():
     rng = np.random.default_rng(1)
     x = smooth_signals(rng, 3, 1500, 6)
-    trains = encode_sa(x)
+    trains = encode_sa(x, dtype=np.float64)  # the float32 default: tests/encoding/test_enc_fused.py
     assert trains.shape == (3, 6)
     got = trains.counts()
     assert got.sum() > 100  # the test input really drives the neurons
@@ -59,7 +59,7 @@ def test_sa_counts_match_reference_loop():
 def test_ra_counts_match_reference_on_filtered_derivative():
     rng = np.random.default_rng(2)
     x = smooth_signals(rng, 2, 2000, 4)
-    trains = encode_ra(x)
+    trains = encode_ra(x, dtype=np.float64)
     for t in range(2):
         # independent RA input: scipy filtfilt-free causal Butterworth, steady-state start, derivative per second
         b, a = signal.butter(2, 20, fs=1000)
@@ -188,7 +188,7 @@ def test_spike_times_equal_raster_times_including_slot_overflow(level):
     the streaming state restored first): times must equal those read off the spike raster, batch and streaming."""
     rng = np.random.default_rng(5)
     x = level * rng.uniform(0.5, 1.0, size=(10, 2000, 4))
-    sa = encode_sa(x)
+    sa = encode_sa(x, dtype=np.float64)  # the fused kernel in float64 does the float64 kernel's operations
     counts, raster, _ = run_izhikevich(x, k=100.0)
     assert np.array_equal(sa.spike_times_index, np.cumsum(counts.ravel()))
     trial, n, ch = np.nonzero(raster.reshape(10, 2000, 4))
@@ -196,7 +196,7 @@ def test_spike_times_equal_raster_times_including_slot_overflow(level):
     assert np.array_equal(sa.spike_times, n[order] * (1.0 / 1000.0))  # sample number x dt
     if level > 1:
         assert counts.max() > 2000 // 4  # the slot bound was really exceeded
-    enc = StreamingEncoder(4)
+    enc = StreamingEncoder(4, dtype=np.float64)
     parts = [enc.process(x[0, i : i + 1500]).sa for i in (0, 1500)]
     for row in range(4):
         got = np.concatenate([p.spike_times[(p.spike_times_index[row - 1] if row else 0) : p.spike_times_index[row]]
