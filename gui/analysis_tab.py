@@ -12,6 +12,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from rigctl_gui.widgets import side_panel
 from rigctl_gui.workers import Job, ProcessJob
 from rigctl.core import PAPER_SENSOR, SensorLayout
 
@@ -130,9 +131,8 @@ class AnalysisTab(QtWidgets.QWidget):
         left.addWidget(og)
         left.addWidget(model_box)
         left.addLayout(ex)
-        leftw = QtWidgets.QWidget()
-        leftw.setLayout(left)
-        leftw.setMaximumWidth(420)
+        self.trials.setMinimumHeight(170)  # several rows even in a short window (the panel scrolls instead)
+        leftw = side_panel(left, 400)
 
         # ---------------- right: views ----------------
         self.views = QtWidgets.QTabWidget()

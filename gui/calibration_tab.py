@@ -76,7 +76,7 @@ class CalibrationTab(QtWidgets.QWidget):
         self.norm_info = QtWidgets.QLabel("-")
         self.norm_info.setWordWrap(True)
         self.norm_plot = pg.PlotWidget(title="Per-taxel range (ADC counts)")
-        self.norm_plot.setMinimumHeight(220)
+        self.norm_plot.setMinimumHeight(140)  # the window stays usable at 1024x686
         self.norm_bars = pg.BarGraphItem(x=np.arange(1), y0=np.zeros(1), height=np.zeros(1), width=0.7,
                                          brush="#1f77b4")
         self.norm_plot.addItem(self.norm_bars)

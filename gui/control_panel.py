@@ -14,6 +14,8 @@ from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
 
+from rigctl_gui.widgets import side_panel
+
 #: what each controller state means, for the operator (docs/wire-protocol.md table 2.4)
 STATE_WORDS = {
     DrumState.IDLE: "Idle - drum at rest, actuator released",
@@ -174,9 +176,7 @@ class ControlPanel(QtWidgets.QWidget):
         left.addWidget(cmds)
         left.addWidget(state)
         left.addStretch(1)
-        leftw = QtWidgets.QWidget()
-        leftw.setLayout(left)
-        leftw.setFixedWidth(340)  # never changes width as the state text wraps (clicks would miss)
+        leftw = side_panel(left, 350)  # fixed width, scrolls when the window is short
         self._locked_by: str | None = None
         self._connected = False
 
@@ -211,9 +211,12 @@ class ControlPanel(QtWidgets.QWidget):
         above 0 and within both the rig's protocol range and these limits; others are refused with a message."""
         self.limits = (float(speed_max_mm_s), float(force_max_g))
         self.limits_label.setText(
-            f"accepted: speed > 0 to {self.accepted_max('speed'):g} mm/s, force > 0 to "
-            f"{self.accepted_max('force'):g} g\n(protocol range > 0 to {MAX_SPEED_MM_S:g} mm/s, > 0 to "
-            f"{MAX_FORCE_G:g} g; controller hard limits {speed_max_mm_s:g} mm/s, {force_max_g:g} g)")
+            f"protocol range > 0 to {MAX_SPEED_MM_S:g} mm/s, > 0 to {MAX_FORCE_G:g} g\n"
+            f"controller hard limits {speed_max_mm_s:g} mm/s, {force_max_g:g} g")
+        self.limits_label.setToolTip(
+            f"Accepted: speed above 0 and at most {self.accepted_max('speed'):g} mm/s, force above 0 and at most "
+            f"{self.accepted_max('force'):g} g (the lower of the rig's protocol range and the controller's "
+            "SPEED_LIMIT / FORCE_LIMIT registers). Anything else is refused and nothing is sent.")
         self.check_setpoints()
 
     def accepted_max(self, which: str) -> float:

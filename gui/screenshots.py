@@ -5,7 +5,8 @@ It opens the main window on the simulated rig and drives each tab the way an exp
 run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
 analysis_table1.png, calibration.png, classify.png. ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
-the rig-side shots (control.png, calibration.png, live.png: about 40 s instead of several minutes).
+the rig-side shots (control.png, calibration.png, live.png: about 40 s instead of several minutes); ``--size 1280x800``
+sets the window's size (default 1400x900).
 """
 
 from __future__ import annotations
@@ -39,9 +40,10 @@ duration_s = 1.0
 """
 
 
-def main(out_dir: str, only: list[str] | None = None) -> int:
+def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1400, 900)) -> int:
     """Save the screenshots into ``out_dir``; ``only`` = a subset of the shot names (without ``.png``; the
-    rig-side ones control, calibration, live need no dataset) or None for all."""
+    rig-side ones control, calibration, live need no dataset) or None for all; ``size`` = the window's
+    (width, height) in pixels."""
     os.makedirs(out_dir, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix="rigctl-shots-")
     os.environ.setdefault("RIGCTL_CONFIG", os.path.join(tmp, "rig.json"))
@@ -54,7 +56,7 @@ def main(out_dir: str, only: list[str] | None = None) -> int:
 
     configure_pyqtgraph()
     w = MainWindow(RigSource("sim"))
-    w.resize(1400, 900)
+    w.resize(*size)
     w.show()
 
     def wait(pred, timeout_s):
@@ -141,5 +143,15 @@ def main(out_dir: str, only: list[str] | None = None) -> int:
     return 0
 
 
+def _cli(argv: list[str]) -> int:
+    """``OUT_DIR [NAME ...] [--size WxH]``."""
+    size = (1400, 900)
+    if "--size" in argv:
+        i = argv.index("--size")
+        size = tuple(int(v) for v in argv[i + 1].lower().split("x"))
+        argv = argv[:i] + argv[i + 2:]
+    return main(argv[0] if argv else "docs/screenshots", argv[1:] or None, size=size)
+
+
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else "docs/screenshots", sys.argv[2:] or None))
+    sys.exit(_cli(sys.argv[1:]))

@@ -53,7 +53,7 @@ def test_out_of_range_and_zero_setpoints_are_refused_visibly(window, qapp, qtbot
     limit = drum.read_holding(HoldingRegister.SPEED_LIMIT_0P1MMS) / 10.0
     flimit = drum.read_holding(HoldingRegister.FORCE_LIMIT_G)
     text = panel.limits_label.text()
-    assert f"controller hard limits {limit:g} mm/s, {flimit:g} g" in text and "protocol range > 0 to 150" in text
+    assert f"controller hard limits {limit:g} mm/s, {flimit:g} g" in text and "protocol range > 0 to 150 mm/s" in text
     panel.speed.setValue(50.0)
     panel.force.setValue(300.0)
     qtbot.mouseClick(panel.apply_btn, QtCore.Qt.LeftButton)
@@ -298,6 +298,27 @@ def test_every_message_reaches_the_window(window, qapp, qtbot, tmp_path, monkeyp
     assert wait_for(qapp, lambda: tab.job is None, 60), tab.status.text()
     assert tab.row_status(0).startswith("FAILED: ") and "the <test> made trial 0 fail" in tab.row_status(0)
     assert "trial 0 failed" in window.events.text()
+
+
+def test_the_window_is_usable_at_1024x686(window, qapp):
+    """Every tab fits a 1024x686 window; the left panels keep their width whatever their texts say; the analysis
+    trial list keeps several rows."""
+    assert window.minimumSizeHint().width() <= 1024 and window.minimumSizeHint().height() <= 686
+    window.resize(1024, 686)
+    window.tabs.setCurrentWidget(window.control)
+    qapp.processEvents()
+    left = window.control.layout().itemAt(0).widget()
+    width = left.width()
+    window.control.state_label.setText("a long state text " * 20)
+    window.control.message.setText("a long command result " * 20)
+    qapp.processEvents()
+    assert left.width() == width
+    window.tabs.setCurrentWidget(window.analysis)
+    qapp.processEvents()
+    rows = window.analysis.trials.verticalHeader().defaultSectionSize()
+    assert window.analysis.trials.viewport().height() >= 4 * rows
+    window.resize(1400, 900)
+    window.control.message.setText("")
 
 
 @pytest.mark.qt_no_exception_capture  # the app's own guard is what is tested
