@@ -34,6 +34,8 @@ from sklearn.model_selection import StratifiedKFold
 
 from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
+from rigctl.analysis.parallel import connected, map_repeats
+from rigctl.analysis.splitpca import split_scores
 from rigctl.analysis.stats import Comparison
 from rigctl.core.progress import Stage
 
@@ -203,6 +205,9 @@ def run_cv(
     seed=0,
     confusion_pcs=None,
     progress=None,
+    n_jobs=None,
+    scheduler=None,
+    workers=None,
 ) -> TaskResults:
     """Individual-texture and texture-group classification with k-fold CV (Fig. 3A-B).
 
@@ -226,7 +231,12 @@ def run_cv(
     confusion_pcs : int, optional
         PC count for the confusion matrices (default ``n_pcs``).
     progress : callable, optional
-        Receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"textures/groups"``, done/total = PCA fits).
+        Receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"textures/groups"``, done/total = PCA fits,
+        reported per finished repetition).
+    n_jobs, scheduler, workers
+        Where the repetitions run (:func:`rigctl.analysis.parallel.map_repeats`): ``n_jobs`` at a time in this
+        process (default: one per core), or on the Dask cluster at ``scheduler`` (an address, or ``"local"`` with
+        ``workers`` processes). The results do not depend on it.
 
     Returns
     -------
@@ -257,40 +267,39 @@ def run_cv(
     res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
                         "trials_per_repeat": n_draw * len(textures)}
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
-    labels = {"textures": fs.texture, "groups": fs.group}
     classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
-    n_used = None
-    acc = {(t, v): [] for t in tasks for v in vs}
-    cms = {(t, v): 0 for t in tasks for v in vs}
+    shared = {"features": {v: fs.features[v] for v in vs}, "texture": fs.texture,
+              "labels": {t: (fs.texture if t == "textures" else fs.group) for t in tasks}, "classes": classes,
+              "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs}
     bar = Stage(progress, "textures/groups", repeats * k * len(vs), unit="fit")
-    for r in range(repeats):
-        idx, folds = cv_split(fs.texture, n_draw, k, seed=seed, repeat=r)
-        for v in vs:
-            x = fs.features[v][idx]
-            correct = {t: [] for t in tasks}
-            for f, (tr, te) in enumerate(folds):
-                pca = fit_pca(x[tr], n_pcs, random_state=r * k + f)
-                n_here = min(n_pcs, pca.n_components_)
-                z_tr = pca.transform(x[tr])
-                z_te = pca.transform(x[te])
-                for t in tasks:
-                    y = labels[t][idx]
-                    pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te, n_here)
-                    n_used = len(pred) if n_used is None else min(n_used, len(pred))
-                    c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
-                    correct[t].append(c)
-                    cms[(t, v)] = cms[(t, v)] + cm
-                bar.advance(1)
-            for t in tasks:
-                total = sum(c[:n_used] for c in correct[t])
-                acc[(t, v)].append(np.asarray(total, dtype=np.float64) / len(idx))
+    reps = map_repeats(_cv_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler, workers=workers,
+                       on_done=lambda: bar.advance(k * len(vs)))
+    n_used = min(len(c) for rep in reps for folds, _ in rep.values() for c in folds)
+    n_drawn = n_draw * len(textures)
     for t in tasks:
         for v in vs:
-            a = np.vstack([row[:n_used] for row in acc[(t, v)]])
-            res.add(Curve(t, v, a, len(idx), classes[t], np.asarray(cms[(t, v)], dtype=np.int64),
+            a = np.vstack([np.sum([c[:n_used] for c in rep[(t, v)][0]], axis=0) / n_drawn for rep in reps])
+            cm = np.sum([rep[(t, v)][1] for rep in reps], axis=0)
+            res.add(Curve(t, v, a.astype(np.float64), n_drawn, classes[t], cm.astype(np.int64),
                           min(confusion_pcs, n_used)))
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
     return res
+
+
+def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs):
+    """Repetition ``r`` of :func:`run_cv`: ``{(task, variant): ([correct per PC count, per fold], confusion)}``."""
+    idx, folds = cv_split(texture, n_draw, k, seed=seed, repeat=r)
+    correct, cms = {}, {}
+    for v, x in features.items():
+        scores = split_scores(x[idx], folds, n_pcs, random_states=[r * k + f for f in range(k)], kfold=True)
+        for (tr, te), (z_tr, z_te) in zip(folds, scores):
+            for t, y_all in labels.items():
+                y = y_all[idx]
+                pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te)
+                c, cm = _accumulate(pred, y[te], classes[t], confusion_pcs)
+                correct.setdefault((t, v), []).append(c)
+                cms[(t, v)] = cms.get((t, v), 0) + cm
+    return {key: (correct[key], cms[key]) for key in correct}
 
 
 def cv_split(texture, per_texture, k, *, seed=0, repeat=0):
@@ -339,6 +348,9 @@ def run_extrapolation(
     confusion_pcs=None,
     progress=None,
     prefix="",
+    n_jobs=None,
+    scheduler=None,
+    workers=None,
 ) -> TaskResults:
     """Texture extrapolation to untrained speed-force conditions (Fig. 3C-F).
 
@@ -353,7 +365,7 @@ def run_extrapolation(
     test_speeds, test_forces : sequence of float, optional
         Restrict the untrained test cells to these (default: every condition in the data).
     variants : sequence of str, optional
-    n_pcs, repeats, seed, confusion_pcs, progress
+    n_pcs, repeats, seed, confusion_pcs, progress, n_jobs, scheduler, workers
         As :func:`run_cv`.
     n_train, n_test : int
         Per texture and trained cell: training and held-out test trials (the paper: 75 and 25); untrained cells
@@ -389,36 +401,42 @@ def run_extrapolation(
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = fs.texture_classes  # the texture set's order (stable codes)
     cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
-    acc = {(c, v): [] for c in cats for v in vs}
-    cms = {(c, v): 0 for c in cats for v in vs}
-    n_tested = {}
-    n_used = None
+    shared = {"features": {v: fs.features[v] for v in vs}, "texture": fs.texture, "classes": classes,
+              "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
+              "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs}
     bar = Stage(progress, prefix + "extrapolation", repeats * len(vs), unit="fit")
-    for r in range(repeats):
-        train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, a_tr, a_te, u_te,
-                                                            np.random.default_rng([seed, 10_000 + r]))
-        y_tr, y_te = fs.texture[train_idx], fs.texture[test_idx]
-        for v in vs:
-            x = fs.features[v]
-            pca = fit_pca(x[train_idx], n_pcs, random_state=r)
-            n_here = min(n_pcs, pca.n_components_)
-            pred = NestedLDA().fit(pca.transform(x[train_idx]), y_tr).predict_all(pca.transform(x[test_idx]), n_here)
-            n_used = len(pred) if n_used is None else min(n_used, len(pred))
-            for c in cats:
-                m = test_cat == c
-                correct, cm = _accumulate(pred[:, m], y_te[m], classes, confusion_pcs)
-                acc[(c, v)].append(correct / m.sum())
-                cms[(c, v)] = cms[(c, v)] + cm
-                n_tested[c] = int(m.sum())
-            bar.advance(1)
+    reps = map_repeats(_extrapolation_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler,
+                       workers=workers, on_done=lambda: bar.advance(len(vs)))
+    n_used = min(len(acc) for rep in reps for acc, _, _ in rep.values())
+    n_tested = {c: reps[0][(c, vs[0])][2] for c in cats}
     for c in cats:
         for v in vs:
-            a = np.vstack([row[:n_used] for row in acc[(c, v)]])
-            res.add(Curve(prefix + c, v, a, n_tested[c], classes, np.asarray(cms[(c, v)], np.int64),
-                          min(confusion_pcs, n_used)))
+            a = np.vstack([rep[(c, v)][0][:n_used] for rep in reps])
+            cm = np.sum([rep[(c, v)][1] for rep in reps], axis=0)
+            res.add(Curve(prefix + c, v, a, n_tested[c], classes, cm.astype(np.int64), min(confusion_pcs, n_used)))
     res.counts[prefix + "extrapolation"]["tested_per_repeat"] = {prefix + c: n_tested[c] for c in cats}
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
     return res
+
+
+def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells, cat_of, counts, cats, n_pcs, seed,
+                          confusion_pcs):
+    """Repetition ``r`` of :func:`run_extrapolation`: ``{(cell, variant): (accuracy per PC count, confusion,
+    test trials)}``."""
+    train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, *counts,
+                                                        np.random.default_rng([seed, 10_000 + r]))
+    y_tr, y_te = texture[train_idx], texture[test_idx]
+    rows = np.concatenate([train_idx, test_idx])
+    split = [(np.arange(len(train_idx)), np.arange(len(train_idx), len(rows)))]
+    out = {}
+    for v, x in features.items():
+        (z_tr, z_te), = split_scores(x[rows], split, n_pcs, random_states=[r])
+        pred = NestedLDA().fit(z_tr, y_tr).predict_all(z_te)
+        for c in cats:
+            m = test_cat == c
+            correct, cm = _accumulate(pred[:, m], y_te[m], classes, confusion_pcs)
+            out[(c, v)] = (correct / m.sum(), cm, int(m.sum()))
+    return out
 
 
 def _isin(values, wanted):
@@ -504,12 +522,19 @@ def extrapolation_split(fs: FeatureSet, *, train_speeds=(40, 60, 80), train_forc
                                np.random.default_rng([seed, 10_000 + repeat]))
 
 
-def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=None, **cv_kw) -> TaskResults:
-    """All six rows of Table 1 (textures, groups and the four extrapolation cells), every variant."""
-    res = run_cv(fs, ("textures", "groups") if fs.group is not None else ("textures",), variants=variants,
-                 n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress, **cv_kw)
-    return res.merge(run_extrapolation(fs, variants=variants, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                                       progress=progress))
+def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=None, n_jobs=None,
+               scheduler=None, workers=None, **cv_kw) -> TaskResults:
+    """All six rows of Table 1 (textures, groups and the four extrapolation cells), every variant.
+
+    ``n_jobs``, ``scheduler`` (a Dask address, ``"local"`` or a client) and ``workers``: where the repetitions run,
+    as :func:`run_cv`; one Dask client serves both tasks.
+    """
+    with connected(scheduler, workers) as client:
+        par = {"n_jobs": n_jobs, "scheduler": client}
+        res = run_cv(fs, ("textures", "groups") if fs.group is not None else ("textures",), variants=variants,
+                     n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress, **par, **cv_kw)
+        return res.merge(run_extrapolation(fs, variants=variants, n_pcs=n_pcs, repeats=repeats, seed=seed,
+                                           progress=progress, **par))
 
 
 def _project(pca, x, centre):

@@ -90,6 +90,15 @@ def _check_pcs(fs, n_pcs, explicit):
                            "features per trial)")
 
 
+def _has_dask():
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec("dask.distributed") is not None
+    except ModuleNotFoundError:  # dask itself is missing
+        return False
+
+
 def _check_outputs(file, new_session, overwrite, **outputs):
     """Refuse every output (option -> path) before the analysis runs: existing without --overwrite, an input,
     two outputs on one file, an image format matplotlib does not write."""
@@ -143,7 +152,14 @@ def _check_outputs(file, new_session, overwrite, **outputs):
 @click.option("--model-variant", default="speed_scaled", show_default=True)
 @click.option("--model-pcs", type=click.IntRange(1), default=25, show_default=True)
 @click.option("--encode", "encode_", is_flag=True, help="If FILE is a session file, encode it first.")
-@click.option("--threads", type=click.IntRange(1), default=None, help="Limit BLAS threads (busy machines).")
+@click.option("--threads", type=click.IntRange(1), default=None,
+              help="Limit BLAS threads and repetitions at a time to N (busy machines).")
+@click.option("--jobs", type=click.IntRange(1), default=None,
+              help="Repetitions run side by side in this process (default: one per core, at most --threads).")
+@click.option("--scheduler", default=None,
+              help="Run the repetitions on a Dask cluster: scheduler address (tcp://host:8786), or 'local' for a "
+                   "local cluster of --workers processes.")
+@click.option("--workers", type=click.IntRange(1), default=None, help="Worker processes for --scheduler local.")
 @click.option("--variance", is_flag=True,
               help="Also print where the feature variance lies (texture, condition, interaction, residual; per "
                    "variant). --task variance prints only that.")
@@ -151,7 +167,8 @@ def _check_outputs(file, new_session, overwrite, **outputs):
 @click.pass_context
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-            train_profiles, save_model, model_variant, model_pcs, encode_, threads, progress, variance):
+            train_profiles, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
+            variance):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
     Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
@@ -162,12 +179,17 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
     _check_outputs(file, new_session, overwrite, **{"--csv": csv_path, "--plot": plot, "--confusion": confusion,
                                                      "--save-model": save_model})
     explicit_pcs = ctx.get_parameter_source("pcs") is not click.core.ParameterSource.DEFAULT
+    if scheduler is not None and not _has_dask():
+        raise UsageProblem("--scheduler needs Dask (dask.distributed), which is not installed: "
+                           "pip install 'rigctl[dask]', or drop --scheduler to run in this process")
     limiter = threadpool_limits(threads) if threads else None
+    par = {"n_jobs": min(jobs, threads) if jobs and threads else (jobs or threads), "scheduler": scheduler,
+           "workers": workers}
     try:
         _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
              confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
              train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs,
-             variance=variance or task == "variance")
+             variance=variance or task == "variance", par=par)
     finally:
         if limiter is not None:
             limiter.unregister()
@@ -176,7 +198,7 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
 def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
          confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
          train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs=False,
-         variance=False):
+         variance=False, par=None):
     from rigctl.analysis import report, tasks
 
     n_pcs = _parse_pcs(pcs)
@@ -208,8 +230,13 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
             raise click.ClickException(f"--baseline remove: {exc}") from None
         runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
 
+    from rigctl.analysis.parallel import connected
+
+    par = dict(par or {})
     res_all = tasks.TaskResults()
-    with warnings.catch_warnings(record=True) as caught, bars(progress, leave=False) as bar:
+    with warnings.catch_warnings(record=True) as caught, bars(progress, leave=False) as bar, \
+            connected(par.pop("scheduler", None), par.pop("workers", None)) as client:
+        par["scheduler"] = client
         warnings.simplefilter("always")
         for tag, data in runs:
             res = tasks.TaskResults()
@@ -222,17 +249,17 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
                                             "no texture groups" if data.textures.name else
                                             "groups task skipped: the file's texture set defines no texture groups")
                     res.merge(tasks.run_cv(data, wanted, variants=vlist, n_pcs=n_pcs, repeats=repeats,
-                                           per_texture=per_texture, seed=seed, progress=bar))
+                                           per_texture=per_texture, seed=seed, progress=bar, **par))
                 if task in ("extrapolation", "all"):
                     res.merge(tasks.run_extrapolation(
                         data, train_speeds=_floats(train_speeds) or (40, 60, 80),
                         train_forces=_floats(train_forces) or (250, 500), test_speeds=_floats(test_speeds),
-                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=bar))
+                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=bar, **par))
                 if task == "speed-extrapolation":
                     res.merge(tasks.run_extrapolation(
                         data, train_speeds=_floats(train_speeds), train_forces=_floats(train_forces),
                         test_speeds=_floats(test_speeds), variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                        progress=bar, prefix="speed_"))
+                        progress=bar, prefix="speed_", **par))
                 if task == "realtime":
                     other = _load(new_session, encode_, fs.variants, task) if new_session else None
                     res.merge(tasks.run_realtime(

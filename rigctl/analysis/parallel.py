@@ -1,0 +1,109 @@
+"""Run the repetitions of an analysis on all cores, or on a Dask cluster.
+
+Each repetition of a Table 1 task (a new random draw, its folds, one PCA per fold and variant) is independent of the
+others, so :func:`map_repeats` runs them side by side: in threads of this process (NumPy's BLAS releases the GIL;
+BLAS is limited to one thread per repetition meanwhile, so the cores are not oversubscribed), or as tasks on a Dask
+cluster (``scheduler`` = an address such as ``tcp://host:8786``, or ``"local"`` for a local cluster of processes),
+with the feature matrices sent to every worker once. Results come back in repetition order, so the outcome does not
+depend on where or how many at a time they ran.
+"""
+
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+
+__all__ = ["dask_client", "connected", "map_repeats"]
+
+
+def dask_client(scheduler, workers=None):
+    """A ``dask.distributed.Client`` for ``scheduler`` (an address, or ``"local"``: a local cluster of ``workers``
+    single-threaded processes, default one per core) and the cluster it started (None for an address).
+
+    Raises
+    ------
+    ImportError
+        Dask's distributed scheduler is not installed (``pip install 'rigctl[dask]'``).
+    """
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler == "local":
+        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        return Client(cluster), cluster
+    return Client(scheduler), None
+
+
+@contextmanager
+def connected(scheduler, workers=None):
+    """Context: a Dask client for ``scheduler`` (an address or ``"local"``: connected here, closed on exit with the
+    local cluster), ``scheduler`` itself if it is already a client (left open), or None if ``scheduler`` is None."""
+    if scheduler is None or not isinstance(scheduler, str):
+        yield scheduler
+        return
+    client, cluster = dask_client(scheduler, workers)
+    try:
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def map_repeats(fn, repeats, shared, *, n_jobs=None, scheduler=None, workers=None, on_done=None):
+    """``[fn(r, **shared) for r in range(repeats)]``, computed in parallel.
+
+    Parameters
+    ----------
+    fn : callable
+        A module-level function ``fn(repeat, **shared)`` (pickled to Dask workers).
+    repeats : int
+    shared : dict
+        Keyword arguments common to every repetition (the feature matrices: sent to each Dask worker once).
+    n_jobs : int, optional
+        Repetitions at a time in this process (default: one per core; 1 = sequential, BLAS on every core).
+    scheduler : str or dask.distributed.Client, optional
+        Dask scheduler address, ``"local"``, or a connected client (left open); when given, ``n_jobs`` is ignored.
+    workers : int, optional
+        Worker processes of ``scheduler="local"``.
+    on_done : callable, optional
+        Called with no argument after each finished repetition (progress bars).
+
+    Returns
+    -------
+    list
+        The repetitions' results, in repetition order.
+    """
+    tick = on_done or (lambda: None)
+    if scheduler is not None:
+        from dask.distributed import as_completed
+
+        with connected(scheduler, workers) as client:
+            # one future for the whole dict, under a fresh key (a dict scattered as is would be keyed by its field
+            # names, shared with - and released by - the previous task's data)
+            shared_f = client.scatter([shared], broadcast=True, hash=False)[0]
+            futures = [client.submit(_call, fn, r, shared_f, pure=False) for r in range(repeats)]
+            for _ in as_completed(futures):
+                tick()
+            return client.gather(futures)
+    n_jobs = min(repeats, n_jobs or os.cpu_count() or 1)
+    if n_jobs <= 1:
+        out = []
+        for r in range(repeats):
+            out.append(fn(r, **shared))
+            tick()
+        return out
+    from joblib import Parallel, delayed
+    from threadpoolctl import threadpool_limits
+
+    out = []
+    with threadpool_limits(1):
+        for res in Parallel(n_jobs=n_jobs, prefer="threads", return_as="generator")(
+                delayed(fn)(r, **shared) for r in range(repeats)):
+            out.append(res)
+            tick()
+    return out
+
+
+def _call(fn, r, shared):
+    return fn(r, **shared)

@@ -1,0 +1,105 @@
+"""The fast Table 1 path (shared Gram blocks, subspace iteration, repetitions in parallel) gives the accuracies of the
+straightforward scikit-learn PCA(n) + LinearDiscriminantAnalysis refit for every PC count, wherever it runs."""
+
+import numpy as np
+import pytest
+from sklearn.decomposition import PCA
+from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+from threadpoolctl import threadpool_limits
+
+from rigctl.analysis.splitpca import GramBlocks
+from rigctl.analysis.synthetic import synthetic_features
+from rigctl.analysis.tasks import cv_split, extrapolation_split, run_cv, run_extrapolation, run_table1
+
+N_PCS = 8
+#: test trials whose prediction may differ (on the decision boundary: float32 Gram + 7 subspace iterations vs a
+#: float64 SVD, as scikit-learn's own randomized PCA differs from its exact one)
+FLIPS = 2
+
+
+def _straightforward(x, y, tr, te, n_pcs=N_PCS):
+    """Correct test predictions per PC count 1..n_pcs: a PCA and an LDA fitted for every count."""
+    out = []
+    for n in range(1, n_pcs + 1):
+        pca = PCA(n, svd_solver="full").fit(x[tr])
+        lda = LinearDiscriminantAnalysis().fit(pca.transform(x[tr]), y[tr])
+        out.append(int(np.sum(lda.predict(pca.transform(x[te])) == y[te])))
+    return np.array(out)
+
+
+@pytest.fixture(autouse=True)
+def _one_blas_thread():
+    """Tiny matrices: a threaded BLAS only waits for its other threads on a busy machine (10x slower)."""
+    with threadpool_limits(1):
+        yield
+
+
+@pytest.fixture(scope="module")
+def fs():
+    # 8 textures x 15 conditions x 8 trials; 2 spike trains: 120 features unscaled, 40 speed scaled (fewer features
+    # than training trials: the covariance path, with the subspace iteration for 120 and the exact solver for 40)
+    return synthetic_features(8, n_textures=8, n_channels=2, noise=1.5, seed=3)
+
+
+def test_cv_accuracies_equal_sklearn_refit_per_pc(fs):
+    res = run_cv(fs, ("textures",), n_pcs=N_PCS, repeats=1, per_texture=60, n_jobs=1)
+    for v in ("original", "speed_scaled"):
+        acc = res.curves["textures"][v].acc
+        for r in range(1):
+            idx, folds = cv_split(fs.texture, 60, 4, seed=0, repeat=r)
+            x, y = fs.features[v][idx], fs.texture[idx]
+            want = sum(_straightforward(x, y, tr, te) for tr, te in folds) / len(idx)
+            assert np.abs(acc[r] - want).max() <= FLIPS / len(idx) + 1e-12, (v, r, acc[r], want)
+            assert acc[r, -1] > 2 / 8  # the planted textures are found (chance 1/8)
+
+
+def test_extrapolation_accuracies_equal_sklearn_refit_per_pc(fs):
+    res = run_extrapolation(fs, n_pcs=N_PCS, repeats=1, n_train=6, n_test=2, n_jobs=1)
+    tr, te, cell = extrapolation_split(fs, n_train=6, n_test=2, seed=0, repeat=0)
+    rows = np.concatenate([tr, te])
+    for v in ("original", "speed_scaled"):
+        x, y = fs.features[v][rows], fs.texture[rows]
+        assert len(tr) >= x.shape[1]  # the covariance path
+        for c in np.unique(cell):
+            m = np.flatnonzero(cell == c) + len(tr)
+            want = _straightforward(x, y, np.arange(len(tr)), m) / len(m)
+            assert np.abs(res.curves[c][v].acc[0] - want).max() <= FLIPS / len(m) + 1e-12, (v, c)
+
+
+def test_gram_block_pca_matches_sklearn():
+    rng = np.random.default_rng(0)
+    scale = np.concatenate([np.geomspace(20, 2, 12), np.full(138, 0.5)])  # 12 distinct leading axes
+    x = (rng.standard_normal((600, 150)) * scale + 5).astype(np.float32)
+    blocks = np.array_split(rng.permutation(600), 3)
+    gb = GramBlocks(x, blocks)
+    rows = np.concatenate(blocks[1:])
+    for use, want_rows in (([1, 2], rows), ([0], blocks[0])):
+        p = gb.pca(use, 12)
+        ref = PCA(12, svd_solver="full").fit(x[want_rows])
+        np.testing.assert_allclose(p.mean_, ref.mean_, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(p.explained_variance_, ref.explained_variance_, rtol=1e-3)
+        cos = np.abs(np.sum(p.components_ * ref.components_, axis=1))  # same axes up to sign
+        assert cos.min() > 0.999
+        np.testing.assert_allclose(np.abs(p.transform(x[:5])), np.abs(ref.transform(x[:5])), rtol=1e-3, atol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore:extrapolation. smallest trained cell")
+def test_repetitions_in_threads_and_on_dask_give_the_same_table(fs):
+    distributed = pytest.importorskip("dask.distributed")
+    kw = {"variants": ["original"], "n_pcs": N_PCS, "repeats": 2, "per_texture": 40}
+
+    def run(**where):
+        res = run_table1(fs, **{**kw, **where})
+        return {t: c["original"].acc for t, c in res.curves.items()}, res
+
+    one, res = run(n_jobs=1)
+    assert set(one) == {"textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed",
+                        "trained"}
+    assert all(a.shape == (2, N_PCS) for a in one.values())
+    threads, _ = run(n_jobs=2)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
+        on_dask, _ = run(scheduler=cluster.scheduler_address)
+    for t in one:
+        np.testing.assert_array_equal(threads[t], one[t])
+        np.testing.assert_array_equal(on_dask[t], one[t])
