@@ -49,6 +49,8 @@ class AnalysisTab(QtWidgets.QWidget):
         self.job = None
         self._job_kind = ""
         self._trial_job: Job | None = None
+        self._wanted_tid: int | None = None  # the selected trial: the plot follows it (rapid browsing)
+        self.shown_tid: int | None = None  # the trial the plots show
         self._session_range = None
         self.layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
 
@@ -140,6 +142,12 @@ class AnalysisTab(QtWidgets.QWidget):
         trialw = QtWidgets.QWidget()
         tlay = QtWidgets.QHBoxLayout(trialw)
         self.trial_gl = pg.GraphicsLayoutWidget()
+        self.trial_busy = QtWidgets.QProgressBar()  # indeterminate while a trial is read and encoded
+        self.trial_busy.setRange(0, 0)
+        self.trial_busy.setMaximumHeight(14)
+        self.trial_busy.setTextVisible(False)
+        self.trial_busy_label = QtWidgets.QLabel("")
+        self.trial_busy_label.setObjectName("trial_busy")
         self.trial_plot = self.trial_gl.addPlot(row=0, col=0, title="Raw taxel readings")
         self.trial_plot.setLabel("left", "ADC counts")
         self.trial_curves: list = []
@@ -155,8 +163,15 @@ class AnalysisTab(QtWidgets.QWidget):
         self.heat_gl = pg.GraphicsLayoutWidget()
         self.heat_gl.setMaximumWidth(260)
         self.heat_plots: list = []  # (PlotItem, ImageItem) per layer
-        tlay.addWidget(self.trial_gl, 1)
+        tleft = QtWidgets.QVBoxLayout()
+        busy_row = QtWidgets.QHBoxLayout()
+        busy_row.addWidget(self.trial_busy_label)
+        busy_row.addWidget(self.trial_busy, 1)
+        tleft.addLayout(busy_row)
+        tleft.addWidget(self.trial_gl, 1)
+        tlay.addLayout(tleft, 1)
         tlay.addWidget(self.heat_gl)
+        self._set_trial_busy(None)
         self.views.addTab(trialw, "Trial")
         self._build_trial_view(PAPER_SENSOR)
         # accuracy vs PCs
@@ -206,6 +221,12 @@ class AnalysisTab(QtWidgets.QWidget):
         self.conf_img = pg.ImageItem(axisOrder="row-major")
         self.conf_img.setLookupTable(pg.colormap.get("viridis").getLookupTable(nPts=256))
         self.conf_plot.addItem(self.conf_img)
+        self.conf_bar = pg.ColorBarItem(values=(0, 1), colorMap=pg.colormap.get("viridis"), interactive=False,
+                                        colorMapMenu=False, width=14, label="fraction of the true class")
+        self.conf_bar.setImageItem(self.conf_img, insert_in=self.conf_plot.plotItem)
+        self.conf_plot.setLabel("left", "true")
+        self.conf_plot.setLabel("bottom", "predicted")
+        self.conf_counts: list = []  # a TextItem per cell: the trial count
         cl.addWidget(self.conf_plot, 1)
         self.views.addTab(cw, "Confusion")
 
@@ -262,6 +283,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.path, self.kind = path, kind
         self.encoded_path = path if kind == "encoded" else None
         self._session_range = None
+        self._wanted_tid = self.shown_tid = None
         rows, layout = self._trial_rows()
         self._build_trial_view(layout)
         self.trials.setRowCount(len(rows))
@@ -298,11 +320,20 @@ class AnalysisTab(QtWidgets.QWidget):
 
     def show_trial(self, row: int) -> None:
         """Draw trial ``row`` of the table: raw readings (session) and SA/RA rasters (encoded in a thread for a
-        session file, read from ``/spikes`` for an encoded file)."""
-        if self.path is None or (self._trial_job is not None and not self._trial_job.done):
+        session file, read from ``/spikes`` for an encoded file).
+
+        The plot always ends on the selected trial: while one trial is being read, a newer selection is remembered
+        and read next (the trials browsed past in between are skipped), and a finished trial that is no longer
+        selected is not drawn."""
+        if self.path is None or self.trials.item(row, 0) is None:
             return
+        self._wanted_tid = int(self.trials.item(row, 0).text())
+        if self._trial_job is None:
+            self._start_trial_job(self._wanted_tid)
+
+    def _start_trial_job(self, tid: int) -> None:
         path, kind = self.path, self.kind
-        tid = int(self.trials.item(row, 0).text())
+        first = self._session_range is None and kind == "session"
 
         def work(job):
             import numpy as np
@@ -345,13 +376,36 @@ class AnalysisTab(QtWidgets.QWidget):
 
         self._trial_job = Job(work, name="trial")
         self._trial_job.tid = tid
+        self._trial_job.path = path
         self._trial_job.start()
+        self._set_trial_busy(f"trial {tid}: reading and encoding"
+                             + (" (the first trial also takes each taxel's range over the whole session and "
+                                "compiles the encoder: a few seconds)" if first else "") + "...")
         self.views.setCurrentIndex(0)
+
+    def _set_trial_busy(self, text: str | None) -> None:
+        """Show (``text``) or hide (None) the trial view's busy indicator."""
+        self.trial_busy_label.setText(text or "")
+        self.trial_busy.setVisible(text is not None)
+        self.trial_busy_label.setVisible(text is not None)
+
+    def _trial_finished(self, job: Job) -> None:
+        """A trial job ended: draw it if it is still the selected trial of the open file, else read the selected
+        one."""
+        self._trial_job = None
+        if job.path == self.path and job.tid == self._wanted_tid:
+            self._set_trial_busy(None)
+            self._draw_trial(job)
+        elif self._wanted_tid is not None:
+            self._start_trial_job(self._wanted_tid)
+        else:
+            self._set_trial_busy(None)
 
     def _draw_trial(self, job: Job) -> None:
         if job.error:
-            self.status.setText(f"<span style='color:#c00'>trial {job.tid}: {job.error}</span>")
+            self.status.setText(f"<span style='color:#c00'>trial {job.tid}: {_html(job.error)}</span>")
             return
+        self.shown_tid = job.tid
         x, sa, ra = job.result
         layout = self.layout
         if x is not None:
@@ -417,7 +471,7 @@ class AnalysisTab(QtWidgets.QWidget):
 
     def _start(self, job, kind: str) -> None:
         self.job, self._job_kind = job, kind
-        self.progress.setValue(0)
+        self.progress.setRange(0, 0)  # busy from the first moment (spawning the worker takes seconds)
         self.status.setText(f"{kind}: starting...")
         job.start()
         self._update_buttons()
@@ -427,37 +481,70 @@ class AnalysisTab(QtWidgets.QWidget):
             self.job.cancel()
             self.status.setText(f"{self._job_kind} cancelled")
             self.job = None
+        self.progress.setRange(0, 100)
+        self.progress.setValue(0)
         self._update_buttons()
 
     def refresh(self) -> None:
+        """Pull the trial job and the background job (the main window's timer calls this). Whatever a finished job
+        brings, the outcome is shown in the tab and the panel is never left busy: an error while showing a result
+        is reported in the status line, not raised into the event loop."""
         tj = self._trial_job
         if tj is not None and tj.done:
-            self._trial_job = None
-            self._draw_trial(tj)
+            try:
+                self._trial_finished(tj)
+            except Exception as exc:  # noqa: BLE001 - shown in the window; the tab stays usable
+                self._set_trial_busy(None)
+                self._error(f"trial {tj.tid} could not be shown", exc)
         job = self.job
         if job is None:
             return
         job.poll()
-        self.progress.setValue(int(100 * job.fraction))
+        self._show_progress(job)
         if not job.done:
-            self.status.setText(f"{self._job_kind}: {job.message}")
+            self.status.setText(f"{self._job_kind}: {_html(job.message)}")
             return
         self.job = None
+        try:
+            self._finish_job(job)
+        except Exception as exc:  # noqa: BLE001 - shown in the window; the tab stays usable
+            self._error(f"{self._job_kind}: the result could not be shown", exc)
+        finally:
+            self.progress.setRange(0, 100)
+            self._update_buttons()
+
+    def _show_progress(self, job) -> None:
+        """A busy bar that moves: indeterminate until the job reports a fraction (model training reports none)."""
+        if job.fraction > 0:
+            self.progress.setRange(0, 100)
+            self.progress.setValue(int(100 * job.fraction))
+        else:
+            self.progress.setRange(0, 0)
+
+    def _error(self, what: str, exc: BaseException) -> None:
+        import logging
+
+        logging.getLogger(__name__).error("%s", what, exc_info=exc)
+        self.status.setText(f"<span style='color:#c00'>{_html(what)}: {_html(f'{type(exc).__name__}: {exc}')}</span>")
+
+    def _finish_job(self, job) -> None:
         if job.error:
-            self.status.setText(f"<span style='color:#c00'>{self._job_kind} failed: {job.error}</span>")
+            self.status.setText(f"<span style='color:#c00'>{self._job_kind} failed: {_html(job.error)}</span>")
         elif self._job_kind == "encoding":
             self.encoded_path = job.result
-            self.status.setText(f"encoded into {job.result}")
+            self.status.setText(f"encoded into {_html(job.result)}")
         elif self._job_kind == "analyses":
-            self.results, self.encoded_path = job.result
+            results, self.encoded_path = job.result
+            self.progress.setRange(0, 100)
             self.progress.setValue(100)
-            self.show_results(self.results)
+            self.show_results(results)
         elif self._job_kind == "training":
             clf, lo, hi = job.result
             self.main.classify.set_model(clf, lo, hi, source=self.encoded_path)
+            self.progress.setRange(0, 100)
+            self.progress.setValue(100)
             self.status.setText(f"trained a {clf.variant} PCA+LDA classifier ({clf.n_pcs} PCs, "
                                 f"{len(clf.classes_)} textures); the real-time view uses it")
-        self._update_buttons()
 
     def _update_buttons(self) -> None:
         busy = self._busy()
@@ -472,19 +559,30 @@ class AnalysisTab(QtWidgets.QWidget):
     # results
     # ------------------------------------------------------------------------------------------------------
     def show_results(self, res) -> None:
+        """Show analysis results (:class:`rigctl.analysis.tasks.TaskResults`); results without a single curve (a
+        file too small for any task, e.g. one trial) leave the previous results and say why in the status line."""
         from rigctl.analysis.tasks import TASK_TITLES
 
-        tasks = list(res.curves)
+        tasks = [t for t, by_v in res.curves.items() if by_v]
+        if not tasks:
+            why = "; ".join(res.warnings) or "the tasks produced no results"
+            self.status.setText(f"<span style='color:#c00'>no analysis could run on "
+                                f"{_html(os.path.basename(str(self.encoded_path or self.path)))}: {_html(why)}</span>")
+            return
+        self.results = res
         for combo in (self.task_combo, self.conf_task):
             combo.blockSignals(True)
             combo.clear()
             for t in tasks:
                 combo.addItem(TASK_TITLES.get(t, t), t)
             combo.blockSignals(False)
+        from rigctl.analysis.data import variant_title
+
         variants = sorted({v for by_v in res.curves.values() for v in by_v}, key=_variant_order)
         self.conf_variant.blockSignals(True)
         self.conf_variant.clear()
-        self.conf_variant.addItems(variants)
+        for v in variants:  # the paper's names shown, the registry's kept as data
+            self.conf_variant.addItem(variant_title(v), v)
         self.conf_variant.blockSignals(False)
         n_max = max(c.acc.shape[1] for by_v in res.curves.values() for c in by_v.values())
         self.table_pcs.setMaximum(n_max)
@@ -541,34 +639,61 @@ class AnalysisTab(QtWidgets.QWidget):
         self.table1.resizeColumnsToContents()
 
     def _draw_confusion(self) -> None:
+        """The confusion matrix of the chosen task and variant: colour = fraction of the true class (row-normalised,
+        with a colour bar), each cell's trial count written in it, the paper's names for task and variant."""
+        from rigctl.analysis.data import variant_title
+        from rigctl.analysis.tasks import TASK_TITLES
+
+        for t in self.conf_counts:
+            self.conf_plot.removeItem(t)
+        self.conf_counts = []
         res = self.results
-        task, v = self.conf_task.currentData(), self.conf_variant.currentText()
+        task, v = self.conf_task.currentData(), self.conf_variant.currentData()
         if res is None or task is None or v not in res.curves.get(task, {}):
             self.conf_img.clear()
             return
         c = res.curves[task][v]
-        cm = c.confusion.astype(float)
-        cm = cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
+        counts = np.asarray(c.confusion)
+        cm = counts.astype(float) / np.maximum(counts.sum(axis=1, keepdims=True), 1)
         self.conf_img.setImage(cm, levels=(0, 1))
         ax = [(i + 0.5, str(lab)) for i, lab in enumerate(c.classes)]
         self.conf_plot.getAxis("bottom").setTicks([ax])
         self.conf_plot.getAxis("left").setTicks([ax])
-        self.conf_plot.setTitle(f"Confusion at {c.confusion_pcs} PCs: {task}, {v} (rows true, columns predicted)")
+        if len(c.classes) <= 30:  # beyond that the numbers no longer fit their cells
+            for (r, k), n in np.ndenumerate(counts):
+                t = pg.TextItem(str(int(n)), color="k" if cm[r, k] > 0.6 else "w", anchor=(0.5, 0.5))
+                t.setPos(k + 0.5, r + 0.5)
+                self.conf_plot.addItem(t)
+                self.conf_counts.append(t)
+        self.conf_plot.setTitle(f"Confusion at {c.confusion_pcs} PCs: {TASK_TITLES.get(task, task)}, "
+                                f"{variant_title(v)} (rows true, columns predicted; trials summed over "
+                                f"{c.acc.shape[0]} repetitions)")
 
     # ------------------------------------------------------------------------------------------------------
     # export
     # ------------------------------------------------------------------------------------------------------
     def export_figure(self, fmt: str, path: str | None = None) -> str | None:
         """Save the accuracy-vs-PCs figure as PNG (pyqtgraph's exporter, 1600 px wide) or SVG (QSvgGenerator:
-        pyqtgraph 0.14's SVG exporter fails on Qt 6.11 paths)."""
+        pyqtgraph 0.14's SVG exporter fails on Qt 6.11 paths).
+
+        A path without an extension gets ``.png`` / ``.svg`` (:func:`export_path`); another extension, or an
+        existing file the added extension would replace, is refused with a message. Returns the path written, or
+        None (refused, cancelled, or the file could not be written: the status line says which)."""
         from pyqtgraph.exporters import ImageExporter
         from PySide6 import QtGui
         from PySide6.QtSvg import QSvgGenerator
 
-        if path is None:
-            path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export figure", "", f"{fmt.upper()} (*.{fmt})")
-            if not path:
-                return None
+        if path is None:  # ask (non-modal: STOP stays usable); the export runs when a name is chosen
+            from rigctl_gui.dialogs import choose_path
+
+            choose_path(self, "save", "Export figure", self._export_dir(), f"{fmt.upper()} (*.{fmt})",
+                        lambda chosen: self.export_figure(fmt, chosen))
+            return None
+        try:
+            path = export_path(path, fmt)
+        except ValueError as exc:
+            self.status.setText(f"<span style='color:#c00'>not saved: {_html(exc)}</span>")
+            return None
         if fmt == "png":
             exp = ImageExporter(self.acc_plot.plotItem)
             exp.parameters()["width"] = 1600
@@ -583,13 +708,19 @@ class AnalysisTab(QtWidgets.QWidget):
             painter = QtGui.QPainter(gen)
             self.acc_plot.render(painter)
             painter.end()
-        self.status.setText(f"saved {path}")
+        if not os.path.isfile(path) or os.path.getsize(path) == 0:
+            self.status.setText(f"<span style='color:#c00'>could not write {_html(path)}</span>")
+            return None
+        self.status.setText(f"saved {_html(path)}")
         return path
 
+    def _export_dir(self) -> str:
+        return os.path.dirname(self.encoded_path or self.path or "") or ""
+
     def _export_csv_dialog(self) -> None:
-        path, _ = QtWidgets.QFileDialog.getSaveFileName(self, "Export tables", "", "CSV (*.csv)")
-        if path:
-            self.export_csv_to(path)
+        from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
+
+        choose_path(self, "save", "Export tables", self._export_dir(), "CSV (*.csv)", self.export_csv_to)
 
     def export_csv_to(self, path: str) -> list[str]:
         """Write the curves (long format, :func:`rigctl.analysis.report.to_csv`) to ``path`` and the Table 1 grid
@@ -598,6 +729,11 @@ class AnalysisTab(QtWidgets.QWidget):
 
         from rigctl.analysis import report
 
+        try:
+            path = export_path(path, "csv")
+        except ValueError as exc:
+            self.status.setText(f"<span style='color:#c00'>not saved: {_html(exc)}</span>")
+            return []
         with open(path, "w", newline="") as f:
             f.write(report.to_csv(self.results))
         grid = report.table1(self.results, self.table_pcs.value())
@@ -610,6 +746,30 @@ class AnalysisTab(QtWidgets.QWidget):
                     w.writerow([task, v, self.table_pcs.value(), f"{mu:.3f}", f"{sd:.3f}"])
         self.status.setText(f"saved {path} and {tpath}")
         return [path, tpath]
+
+
+def export_path(path: str, fmt: str) -> str:
+    """The file an export of format ``fmt`` ("png", "svg", "csv") writes for the chosen ``path``: ``path`` itself
+    when it ends in ``.fmt`` (any case), ``path + ".fmt"`` when it has no extension.
+
+    Raises ValueError (the message says why) for another extension (``fig.jpg`` is not written as PNG) and when the
+    added extension names a file that exists (the user chose ``fig``, not to replace ``fig.png``)."""
+    root, ext = os.path.splitext(path)
+    if ext.lower() == f".{fmt}":
+        return path
+    if ext:
+        raise ValueError(f"{os.path.basename(path)} does not end in .{fmt}: choose a .{fmt} file name")
+    out = f"{path}.{fmt}"
+    if os.path.exists(out):
+        raise ValueError(f"{os.path.basename(out)} already exists: choose it by name to replace it")
+    return out
+
+
+def _html(text) -> str:
+    """``text`` safe inside a rich-text label (a ``<`` in an error would cut it short)."""
+    import html
+
+    return html.escape(str(text), quote=False)
 
 
 def _txt(v) -> str:

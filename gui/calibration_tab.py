@@ -73,6 +73,13 @@ class CalibrationTab(QtWidgets.QWidget):
         self.norm_btn.clicked.connect(self.record_normalisation)
         self.from_session_btn = QtWidgets.QPushButton("From a session file...")
         self.from_session_btn.clicked.connect(self.normalisation_from_session)
+        self.undo_btn = QtWidgets.QPushButton("Undo")
+        self.undo_btn.setToolTip("Go back to the previous taxel normalisation (again: redo)")
+        self.undo_btn.clicked.connect(self.undo_normalisation)
+        self.reset_btn = QtWidgets.QPushButton("Reset")
+        self.reset_btn.setToolTip("No taxel normalisation: the live encoder uses the full ADC range (Undo brings "
+                                  "the current one back)")
+        self.reset_btn.clicked.connect(self.reset_normalisation)
         self.norm_info = QtWidgets.QLabel("-")
         self.norm_info.setWordWrap(True)
         self.norm_plot = pg.PlotWidget(title="Per-taxel range (ADC counts)")
@@ -86,6 +93,8 @@ class CalibrationTab(QtWidgets.QWidget):
         row.addWidget(self.norm_seconds)
         row.addWidget(self.norm_btn)
         row.addWidget(self.from_session_btn)
+        row.addWidget(self.undo_btn)
+        row.addWidget(self.reset_btn)
         nf.addRow("Calibration run", row)
         nf.addRow("Stored", self.norm_info)
         nf.addRow(self.norm_plot)
@@ -132,6 +141,24 @@ class CalibrationTab(QtWidgets.QWidget):
         busy = self.job is not None and not self.job.done
         for b in (self.loadcell_btn, self.norm_btn):
             b.setEnabled(on and not busy)
+        self._sync_undo()
+
+    def _run_owns_rig(self) -> bool:
+        protocol = getattr(self.main, "protocol", None)
+        return bool(getattr(protocol, "running", False))
+
+    def _sync_undo(self) -> None:
+        """Undo / Reset: enabled when there is something to go back to, no calibration is running and no protocol
+        run owns the rig (a session's calibration must not change under it)."""
+        busy = self.job is not None and not self.job.done
+        locked = self._run_owns_rig()
+        cur, prev = getattr(self, "_stored", (False, False))
+        self.undo_btn.setEnabled(not busy and not locked and (cur or prev))
+        self.reset_btn.setEnabled(not busy and not locked and cur)
+        for b in (self.undo_btn, self.reset_btn):
+            if b.property("normal_tip") is None:
+                b.setProperty("normal_tip", b.toolTip())
+            b.setToolTip("Disabled while a protocol run owns the rig" if locked else b.property("normal_tip"))
 
     def _config(self) -> dict:
         from rigctl.acquisition.calibration import load_rig_config
@@ -180,6 +207,12 @@ class CalibrationTab(QtWidgets.QWidget):
         else:
             self.norm_bars.setOpts(y0=np.zeros(n), height=np.zeros(n))
             self.norm_info.setText(f"none: the live encoder uses the full ADC range 0-{self.layout.adc_max}")
+        prev = cfg.get("taxel_normalisation_previous")
+        if prev:
+            self.norm_info.setText(self.norm_info.text() + f"<br>previous (Undo): {prev.get('source', '?')}, "
+                                   f"{prev.get('calibrated_utc', '')}")
+        self._stored = (bool(tn), bool(prev))
+        self._enable(self.handle is not None)
 
     # ------------------------------------------------------------------------------------------------------
     def calibrate_loadcell(self) -> None:
@@ -224,6 +257,7 @@ class CalibrationTab(QtWidgets.QWidget):
             return
         seconds = float(self.norm_seconds.value())
         cfg_path = self.main.rig_config_path()
+        layout = self.layout
 
         def work(job):
             h.taxels.begin_capture()
@@ -235,9 +269,7 @@ class CalibrationTab(QtWidgets.QWidget):
             finally:
                 cap = h.taxels.end_capture()
             norm = cal.taxel_normalisation([cap.samples], source=f"live capture {seconds:g} s")
-            cal.update_rig_config(cfg_path, taxel_normalisation=norm.to_dict())
-            h.rig.host_config = cal.load_rig_config(cfg_path)
-            return norm
+            return self._store_checked(norm, h, cfg_path, layout)
 
         self._start(Job(work, name="normalisation"), "taxel normalisation")
 
@@ -253,14 +285,60 @@ class CalibrationTab(QtWidgets.QWidget):
 
         cfg_path = self.main.rig_config_path()
         h = self.handle
+        layout = self.layout
 
         def work(job):
-            norm = cal.taxel_normalisation_from_session(path, store=True, config_file=cfg_path)
-            if h is not None:
-                h.rig.host_config = cal.load_rig_config(cfg_path)
-            return norm
+            norm = cal.taxel_normalisation_from_session(path)
+            return self._store_checked(norm, h, cfg_path, layout)
 
         self._start(Job(work, name="normalisation"), "taxel normalisation")
+
+    @staticmethod
+    def _store_checked(norm, handle, cfg_path, layout: SensorLayout):
+        """Store a taxel normalisation (worker thread) unless its span is implausibly small
+        (:func:`rigctl.acquisition.calibration.check_taxel_span` raises: the previous one stays in use); the one it
+        replaces is kept for Undo. Returns ``norm`` with ``low_taxels`` (taxels of a small span, reported)."""
+        from rigctl.acquisition import calibration as cal
+
+        norm.low_taxels = cal.check_taxel_span(norm, layout.adc_max)
+        cal.store_taxel_normalisation(norm, cfg_path)
+        if handle is not None:
+            handle.rig.host_config = cal.load_rig_config(cfg_path)
+        return norm
+
+    def undo_normalisation(self) -> None:
+        """Back to the previous taxel normalisation (a second Undo redoes); the live encoder follows at once."""
+        from rigctl.acquisition import calibration as cal
+
+        self._change_config(cal.undo_taxel_normalisation, "taxel normalisation: back to the previous one")
+
+    def reset_normalisation(self) -> None:
+        """No taxel normalisation (full ADC range); Undo brings it back; the live encoder follows at once."""
+        from rigctl.acquisition import calibration as cal
+
+        self._change_config(cal.reset_taxel_normalisation,
+                            f"taxel normalisation reset: the live encoder uses the full ADC range "
+                            f"0-{self.layout.adc_max}")
+
+    def _change_config(self, fn, done: str) -> None:
+        if (self.job is not None and not self.job.done) or self._run_owns_rig():
+            return
+        cfg_path = self.main.rig_config_path()
+        try:
+            cfg = fn(cfg_path)
+        except Exception as exc:  # noqa: BLE001 - shown; the stored calibration is unchanged
+            self.status.setText(f"<span style='color:#c00'>{type(exc).__name__}: {exc}</span>")
+            return
+        if self.handle is not None:
+            self.handle.rig.host_config = cfg
+        self.status.setText(done)
+        self._apply_to_encoder()
+        self.show_config()
+
+    def _apply_to_encoder(self) -> None:
+        enc = getattr(self.main, "encoder", None)
+        if enc is not None:
+            enc.set_normaliser(self.taxel_range())
 
     def _start(self, job: Job, what: str) -> None:
         self.job = job
@@ -270,6 +348,7 @@ class CalibrationTab(QtWidgets.QWidget):
         self._enable(self.handle is not None)
 
     def refresh(self) -> None:
+        self._sync_undo()
         job = self.job
         if job is None:
             return
@@ -292,9 +371,10 @@ class CalibrationTab(QtWidgets.QWidget):
                 self.status.setText(f"load cell: {r.counts_per_g:.2f} counts/g written to the controller; with "
                                     f"the {r.mass_g:g} g mass it now reads {r.check_force_g:.1f} g")
             else:
+                low = getattr(r, "low_taxels", [])
                 self.status.setText(f"taxel normalisation stored ({r.n_trials} capture(s)); the live encoder uses "
-                                    "it from now on")
-                if self.main.encoder is not None:
-                    self.main.encoder.set_normaliser(self.taxel_range())
+                                    "it from now on (Undo goes back)"
+                                    + (f"; taxels {', '.join(map(str, low))} barely moved: check them" if low else ""))
+                self._apply_to_encoder()
         self.show_config()
         self._enable(self.handle is not None)

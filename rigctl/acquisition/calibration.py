@@ -270,6 +270,73 @@ def taxel_normalisation_from_session(path: str | os.PathLike, *, store: bool = F
     return norm
 
 
+#: a taxel calibration run is refused when its median taxel spans less than this fraction of the ADC range (the drum
+#: idle under a pressed or released sensor spans 15-17 counts of 1023: noise, which the encoder would turn into spikes)
+MIN_TAXEL_SPAN_FRACTION = 0.05
+
+
+def check_taxel_span(norm: TaxelNormalisation, adc_max: int, *,
+                     min_fraction: float = MIN_TAXEL_SPAN_FRACTION) -> list[int]:
+    """Refuse an implausible calibration run: one that did not press the sensor over textures.
+
+    ``norm``'s per-taxel span (max - min, ADC counts) is compared with ``min_fraction * adc_max`` (51 counts for a
+    10-bit sensor at the default 5 %). Returns the taxels below it (a few dead or untouched taxels are reported,
+    not refused).
+
+    Raises
+    ------
+    CalibrationError when the median taxel is below it (the message gives the spans and what was expected).
+    """
+    span = np.asarray(norm.taxel_max, float) - np.asarray(norm.taxel_min, float)
+    need = min_fraction * float(adc_max)
+    low = [int(i) for i in np.flatnonzero(span < need)]
+    if float(np.median(span)) < need:
+        raise CalibrationError(
+            f"the calibration run spans only {span.min():.0f}-{span.max():.0f} ADC counts per taxel (median "
+            f"{np.median(span):.0f}); at least {need:.0f} ({100 * min_fraction:g} % of 0-{adc_max}) is expected when "
+            "the drum turns the textures under the pressed sensor: was the drum idle? Not stored")
+    return low
+
+
+def store_taxel_normalisation(norm: TaxelNormalisation, config_file: str | os.PathLike | None = None) -> dict:
+    """Write ``norm`` as the rig config's ``taxel_normalisation``; the one it replaces (if any) is kept as
+    ``taxel_normalisation_previous`` for :func:`undo_taxel_normalisation`. Returns the new config."""
+    cfg = load_rig_config(config_file)
+    if cfg.get("taxel_normalisation"):
+        cfg["taxel_normalisation_previous"] = cfg["taxel_normalisation"]
+    cfg["taxel_normalisation"] = norm.to_dict()
+    save_rig_config(cfg, config_file)
+    return cfg
+
+
+def undo_taxel_normalisation(config_file: str | os.PathLike | None = None) -> dict:
+    """Swap the rig config's taxel normalisation with the previous one (a second undo redoes); with no previous
+    one the current is removed and kept as previous (the full ADC range is used). Returns the new config.
+
+    Raises CalibrationError when there is neither a current nor a previous normalisation."""
+    cfg = load_rig_config(config_file)
+    cur, prev = cfg.pop("taxel_normalisation", None), cfg.pop("taxel_normalisation_previous", None)
+    if cur is None and prev is None:
+        raise CalibrationError("no taxel normalisation to undo")
+    if prev is not None:
+        cfg["taxel_normalisation"] = prev
+    if cur is not None:
+        cfg["taxel_normalisation_previous"] = cur
+    save_rig_config(cfg, config_file)
+    return cfg
+
+
+def reset_taxel_normalisation(config_file: str | os.PathLike | None = None) -> dict:
+    """Remove the rig config's taxel normalisation (the live encoder then uses the full ADC range), keeping it as
+    ``taxel_normalisation_previous`` so :func:`undo_taxel_normalisation` brings it back. Returns the new config."""
+    cfg = load_rig_config(config_file)
+    cur = cfg.pop("taxel_normalisation", None)
+    if cur is not None:
+        cfg["taxel_normalisation_previous"] = cur
+    save_rig_config(cfg, config_file)
+    return cfg
+
+
 def session_calibration_block(host_config: dict, n_channels: int | None = None) -> dict | None:
     """The ``/calibration`` block a session gets from a rig config: the taxel normalisation (arrays) plus the
     load-cell scale as attributes; None when the config holds neither.

@@ -11,7 +11,8 @@ optional blocks
 - ``loadcell``: ``counts_per_g`` (required, a number > 0), ``scale_x100`` (an integer 1-65535), ``mass_g`` (> 0),
   ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts`` (numbers), ``calibrated_utc`` (text);
 - ``taxel_normalisation``: ``taxel_min``, ``taxel_max`` (required, lists of ADC counts, one per taxel, of the same
-  non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text).
+  non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text);
+- ``taxel_normalisation_previous``: the taxel normalisation the current one replaced (the same keys), kept for undo.
 
 Numbers are finite (JSON ``NaN``/``Infinity`` are refused) and never ``true``/``false``. Any other key is refused, by
 name (a misspelt key would otherwise be ignored without a word).
@@ -52,6 +53,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
         "source": ("text", False), "calibrated_utc": ("text", False),
     },
 }
+SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
              "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers"}
@@ -112,7 +114,7 @@ def validate_rig_config(doc: Any, where: str = "rig config") -> dict:
         missing = [k for k, (_, required) in keys.items() if required and k not in value]
         if missing:
             raise RigConfigError(f"{where}: {block}: missing {', '.join(missing)}")
-        if block == "taxel_normalisation":
+        if block in ("taxel_normalisation", "taxel_normalisation_previous"):
             lo, hi = value["taxel_min"], value["taxel_max"]
             if len(lo) != len(hi):
                 raise RigConfigError(f"{where}: {block}: taxel_min has {len(lo)} taxels but taxel_max {len(hi)}")

@@ -240,3 +240,28 @@ def test_a_watchdog_trip_between_trials_is_cleared(rig, tmp_path, textures):
     n_per = 2 if textures == '"A"' else 1
     summary = run_protocol(_proto(n_per, textures=textures), out, rig=rig, progress=False, on_trial=on_trial)
     assert summary.complete == 2 and summary.failed == 0, summary.failures
+
+
+def test_a_calibration_run_of_noise_is_refused_and_the_previous_one_kept(tmp_path):
+    """check_taxel_span refuses a run whose taxels span noise (the idle drum: ~16 of 1023 counts), reports single
+    dead taxels without refusing; store / undo / reset keep the replaced normalisation for going back."""
+    from rigctl.acquisition.rigconfig import CalibrationError
+
+    rng = np.random.default_rng(0)
+    idle = 300 + rng.integers(0, 17, (2000, 18))
+    with pytest.raises(CalibrationError, match="spans only"):
+        calibration.check_taxel_span(calibration.taxel_normalisation([idle]), 1023)
+    run = 50 + rng.integers(0, 700, (2000, 18))
+    run[:, 4] = idle[:, 4]  # one taxel that barely moved
+    good = calibration.taxel_normalisation([run], source="run")
+    assert calibration.check_taxel_span(good, 1023) == [4]
+    cfg = tmp_path / "rig.json"
+    first = calibration.TaxelNormalisation(np.zeros(18), np.full(18, 900.0), 1, "first")
+    calibration.store_taxel_normalisation(first, cfg)
+    calibration.store_taxel_normalisation(good, cfg)
+    doc = calibration.load_rig_config(cfg)
+    assert doc["taxel_normalisation"]["source"] == "run" and doc["taxel_normalisation_previous"]["source"] == "first"
+    assert calibration.undo_taxel_normalisation(cfg)["taxel_normalisation"]["source"] == "first"
+    assert calibration.undo_taxel_normalisation(cfg)["taxel_normalisation"]["source"] == "run"  # redo
+    doc = calibration.reset_taxel_normalisation(cfg)
+    assert "taxel_normalisation" not in doc and doc["taxel_normalisation_previous"]["source"] == "run"

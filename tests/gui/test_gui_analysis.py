@@ -39,8 +39,9 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     tab.open(str(dataset))
     assert tab.kind == "session"
     assert tab.trials.rowCount() == 16
-    # browse: a trial's raw readings and its SA/RA rasters
+    # browse: a trial's raw readings and its SA/RA rasters; busy meanwhile (the first trial takes seconds)
     tab.trials.selectRow(5)
+    assert tab.trial_busy.isVisible() and "first trial" in tab.trial_busy_label.text()
     assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
     x, y = tab.trial_curves[0].getData()
     assert len(x) == 500
@@ -78,16 +79,53 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert tab.table1.rowCount() == 2 and tab.table1.columnCount() == 4
     assert "+-" in tab.table1.item(0, 0).text()
     assert tab.conf_img.image is not None and tab.conf_img.image.shape in ((4, 4), (4, 4, 1))
+    # ... with the paper's names, a colour bar and each cell's trial count
+    assert [tab.conf_variant.itemText(i) for i in range(4)] == ["Original", "Speed Scaled", "Force Scaled",
+                                                                 "Speed and Force Scaled"]
+    assert tab.conf_variant.currentData() == "original" and "Original" in tab.conf_plot.plotItem.titleLabel.text
+    assert tab.conf_bar.values == (0, 1)
+    cm = res.curves[tab.conf_task.currentData()]["original"].confusion
+    assert sorted(int(t.textItem.toPlainText()) for t in tab.conf_counts) == sorted(cm.ravel().tolist())
     # exports
     png = tab.export_figure("png", str(tmp_path / "fig3.png"))
     svg = tab.export_figure("svg", str(tmp_path / "fig3.svg"))
     paths = tab.export_csv_to(str(tmp_path / "curves.csv"))
     assert (tmp_path / "fig3.png").stat().st_size > 1000 and open(png, "rb").read(4) == b"\x89PNG"
     assert "<svg" in open(svg).read(2000)
+    # a name without an extension gets it; another extension, or replacing a file the user did not name, is refused
+    assert tab.export_figure("png", str(tmp_path / "fig3b")) == str(tmp_path / "fig3b.png")
+    assert open(tmp_path / "fig3b.png", "rb").read(4) == b"\x89PNG" and "saved" in tab.status.text()
+    assert tab.export_figure("png", str(tmp_path / "fig3")) is None and "already exists" in tab.status.text()
+    assert tab.export_figure("png", str(tmp_path / "fig3.jpg")) is None and ".png" in tab.status.text()
+    assert not (tmp_path / "fig3.jpg").exists()
+    assert tab.export_figure("svg", str(tmp_path / "fig3c")).endswith("fig3c.svg")
     rows = list(csv.DictReader(open(paths[0])))
     assert len(rows) == 2 * 4 * 6
     t1 = list(csv.DictReader(open(paths[1])))
     assert {r["variant"] for r in t1} == {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}
+
+
+def test_rapid_browsing_ends_on_the_selected_trial(window, qapp, qtbot, dataset):
+    """Down every 40 ms through the trial list: the plot ends on the selected trial, never on one browsed past."""
+    from rigctl.storage.session import open_session
+
+    tab = window.analysis
+    window.tabs.setCurrentWidget(tab)
+    tab.trials.selectRow(0)
+    tab.trials.setFocus()
+    for _ in range(11):
+        qtbot.keyClick(tab.trials, QtCore.Qt.Key_Down)
+        wait_for(qapp, lambda: False, 0.04)
+    row = tab.trials.selectionModel().selectedRows()[0].row()
+    assert row == 11
+    tid = int(tab.trials.item(row, 0).text())
+    assert wait_for(qapp, lambda: tab._trial_job is None and tab.shown_tid == tid, 60), (tab.shown_tid, tid)
+    wait_for(qapp, lambda: False, 0.3)  # nothing else lands afterwards
+    assert tab.shown_tid == tid and f"Trial {tid}:" in tab.trial_plot.titleLabel.text
+    assert not tab.trial_busy.isVisible()
+    with open_session(dataset) as s:
+        x = s.trial(tid).taxels
+    np.testing.assert_array_equal(tab.trial_curves[3].getData()[1], x[:, 3])
 
 
 def test_analysis_can_be_cancelled(window, qapp, qtbot):
@@ -109,6 +147,7 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
     assert tab.encoded_path is not None
     tab.model_variant.setCurrentText("speed_scaled")
     qtbot.mouseClick(tab.train_btn, QtCore.Qt.LeftButton)
+    assert tab.progress.maximum() == 0  # busy (indeterminate) until the job reports progress
     view = window.classify
     assert wait_for(qapp, lambda: view.model is not None or (tab.job is None and "failed" in tab.status.text()), 90), \
         tab.status.text()
@@ -266,3 +305,22 @@ def test_an_encoded_file_without_spike_trains_says_so_when_a_trial_is_shown(lone
     tab.trials.selectRow(1)
     assert wait_for(qapp, lambda: tab._trial_job is None and "trial" in tab.status.text(), 60), tab.status.text()
     assert "stores no SA/RA spike trains" in tab.status.text() and "--no-spikes" in tab.status.text()
+
+
+def test_one_trial_session_analysis_says_why_in_the_window(lone_tab, qapp, qtbot, tmp_path):
+    """Run analyses on a 1-trial session: a clear message in the tab (no exception into the event loop) and the
+    panel is usable again."""
+    from rigctl.core import SensorLayout
+
+    layout = SensorLayout.grid(3, 3, 1, sample_rate_hz=200.0)
+    path = _layout_session(tmp_path / "one.h5", layout, ["Linen"], per_texture=1, duration_s=0.5)
+    tab = lone_tab
+    tab.open(str(path))
+    tab.do_extra.setChecked(False)
+    qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
+    assert tab.progress.maximum() == 0  # busy from the first moment
+    assert wait_for(qapp, lambda: tab.job is None, 120), tab.status.text()
+    text = tab.status.text()
+    assert "no analysis could run" in text and "one.encoded.h5" in text, text
+    assert tab.results is None
+    assert tab.run_btn.isEnabled() and not tab.cancel_btn.isEnabled() and tab.progress.maximum() == 100

@@ -118,3 +118,41 @@ def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot, gui_home):
     reg = window.handle.drum.read_holding(HoldingRegister.LOADCELL_SCALE_X100)
     assert reg == round(lc["counts_per_g"] * 100)
     assert "200 g mass" in tab.loadcell_info.text()
+
+
+def test_taxel_calibration_of_an_idle_drum_is_refused_and_undo_restores_the_previous(window, qapp, qtbot, gui_home):
+    """A calibration run with the drum idle (taxels span ~16 counts: noise) is refused and changes nothing; Undo
+    and Reset move between the stored normalisations, and the live encoder follows each."""
+    import numpy as np
+
+    from rigctl.acquisition import calibration as cal
+
+    tab = window.calibration
+    window.tabs.setCurrentWidget(tab)
+    cfg_path = os.environ["RIGCTL_CONFIG"]
+    old = cal.TaxelNormalisation(np.full(18, 100.0), np.full(18, 700.0), 3, "older run", "2026-01-01T00:00:00")
+    cur = cal.TaxelNormalisation(np.full(18, 150.0), np.full(18, 650.0), 5, "last run", "2026-01-02T00:00:00")
+    cal.store_taxel_normalisation(old, cfg_path)
+    cal.store_taxel_normalisation(cur, cfg_path)
+    tab.show_config()
+    before = json.loads(open(cfg_path).read())
+    tab.norm_seconds.setValue(1)
+    qtbot.mouseClick(tab.norm_btn, QtCore.Qt.LeftButton)
+    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
+    assert "spans only" in tab.status.text() and "Not stored" in tab.status.text(), tab.status.text()
+    assert json.loads(open(cfg_path).read()) == before  # the calibration in use is unchanged
+    # Undo: the older run is back, in the config and in the live encoder
+    assert tab.undo_btn.isEnabled()
+    qtbot.mouseClick(tab.undo_btn, QtCore.Qt.LeftButton)
+    cfg = json.loads(open(cfg_path).read())
+    assert cfg["taxel_normalisation"]["source"] == "older run"
+    assert cfg["taxel_normalisation_previous"]["source"] == "last run"
+    assert window.encoder.normaliser.maximum.tolist() == [700.0] * 18
+    assert "older run" in tab.norm_info.text()
+    # Reset: the full ADC range; Undo brings the older run back
+    qtbot.mouseClick(tab.reset_btn, QtCore.Qt.LeftButton)
+    assert "taxel_normalisation" not in json.loads(open(cfg_path).read())
+    assert window.encoder.normaliser.maximum.tolist() == [1023.0] * 18
+    qtbot.mouseClick(tab.undo_btn, QtCore.Qt.LeftButton)
+    assert json.loads(open(cfg_path).read())["taxel_normalisation"]["source"] == "older run"
+    qtbot.mouseClick(tab.reset_btn, QtCore.Qt.LeftButton)  # leave the full range for the tests after this one
