@@ -26,18 +26,21 @@ def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbo
     panel.force.setValue(420)
     qtbot.mouseClick(panel.apply_btn, QtCore.Qt.LeftButton)
     drum = window.handle.drum
+    # deadlines here only bound a hang: the GUI, its poller and the simulated rig share a loaded machine
     assert wait_for(qapp, lambda: drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 725
-                 and drum.read_holding(HoldingRegister.FORCE_SETPOINT_G) == 420, 5)
+                 and drum.read_holding(HoldingRegister.FORCE_SETPOINT_G) == 420, 30)
 
     qtbot.mouseClick(panel.buttons["run"], QtCore.Qt.LeftButton)
     poller = window.poller
     assert wait_for(qapp, lambda: poller.latest is not None and poller.latest.state == DrumState.RUNNING
-                 and abs(poller.latest.speed_mm_s - 72.5) < 1.0, 20), poller.latest
+                 and abs(poller.latest.speed_mm_s - 72.5) < 1.0, 30), poller.latest
     # the panel shows the state in words and the plots hold the history
-    assert wait_for(qapp, lambda: panel.state_label.text().startswith("Running"), 2)
+    assert wait_for(qapp, lambda: panel.state_label.text().startswith("Running"), 30)
     assert wait_for(qapp, lambda: panel.speed_curve.getData()[1] is not None
-                 and abs(panel.speed_curve.getData()[1][-1] - 72.5) < 1.5, 2)
-    assert abs(poller.latest.force_g - 420) < 30
+                 and abs(panel.speed_curve.getData()[1][-1] - 72.5) < 1.5, 30)
+    # the force loop holds the setpoint while the drum turns (it may settle after the speed: polled, not read once)
+    assert wait_for(qapp, lambda: poller.latest.state == DrumState.RUNNING
+                    and abs(poller.latest.force_g - 420) < 30, 30), poller.latest
 
     qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: poller.latest.state == DrumState.IDLE and abs(poller.latest.speed_mm_s) < 0.5, 20)
