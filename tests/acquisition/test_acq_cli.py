@@ -34,13 +34,12 @@ def _info(path, env) -> dict:
 def test_quick_check_end_to_end(tmp_path):
     env = _env(tmp_path)
     out = tmp_path / "quick.h5"
-    t0 = time.monotonic()
+    # no wall-clock target here (the simulated rig runs in real time, so a loaded machine only stretches the run;
+    # speed targets belong in benchmarks/, e.g. bench_acquisition.py): the timeout only bounds a hang
     run = subprocess.run([*RIGCTL, "acquire", str(REPO / "protocols" / "quick_check.toml"), "--sim", "--out", str(out)],
-                         capture_output=True, text=True, env=env, timeout=120)
-    wall = time.monotonic() - t0
+                         capture_output=True, text=True, env=env, timeout=600)
     assert run.returncode == 0, run.stderr
     assert "trials complete: 6/6" in run.stdout and "dropped frames: 0" in run.stdout
-    assert wall < 60, f"quick_check took {wall:.1f} s"
     info = _info(out, env)
     assert info["totals"]["complete"] == info["totals"]["trials"] == 6
     assert info["totals"]["dropped_frames"] == 0 and info["totals"]["crc_errors"] == 0
