@@ -82,6 +82,20 @@ class Telemetry:
     received: float = 0.0  #: host time.monotonic() when the line arrived
 
 
+class _MegaClock:
+    """:attr:`HilRig.clock`."""
+
+    def __init__(self, rig: "HilRig"):
+        self._rig = rig
+
+    def now(self) -> float:
+        return self._rig.next_telemetry().t_s
+
+    @staticmethod
+    def sleep(s: float) -> None:
+        time.sleep(s)
+
+
 class _Harness:
     """One rigctl_simavr process: start, read its stdout in a thread, send stdin commands."""
 
@@ -216,6 +230,13 @@ class HilRig:
         if not self.with_uno:
             raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxel port")
         return self._uno.port
+
+    @property
+    def clock(self) -> "_MegaClock":
+        """The Mega's simulated time as a :class:`rigctl.devices.drum.DrumClient` clock (``now()``: s of simulated
+        time from the harness's telemetry; ``sleep(s)``: host time): waits and deadlines in the firmware's own time,
+        which falls behind real time on a starved machine. ``now()`` raises HilError when the harness stops."""
+        return _MegaClock(self)
 
     @property
     def mm_per_step(self) -> float:

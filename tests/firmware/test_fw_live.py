@@ -16,7 +16,8 @@ def test_live_taxel_signal_follows_the_drum_without_seams(hil_rig):
     """Live mode: the readings are rendered from the Mega's drum travel and force; waveform swaps (every 0.5 s)
     continue the texture's phase and amplitude, so the stream has no seams."""
     rig = hil_rig
-    with DrumClient(rig.drum_port) as drum, TaxelStream(rig.taxel_port) as stream:
+    # the drum's waits on the Mega's simulated clock (simavr runs slower than real time on a starved machine)
+    with DrumClient(rig.drum_port, clock=rig.clock) as drum, TaxelStream(rig.taxel_port) as stream:
         rig.set_texture("B")  # circular ridges
         drum.set_force(500)
         drum.set_speed(40)
