@@ -60,24 +60,24 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
     return res, str(path)
 
 
-def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25):
-    """Fit a :class:`rigctl.analysis.classify.TextureClassifier` on every trial of an encoded file.
+def model_path_for(encoded_path: str, variant: str) -> str:
+    """Where the tab saves the model it trains: ``<name>.<variant>.skops`` beside the encoded file."""
+    p = Path(encoded_path)
+    return str(p.with_name(f"{p.name.removesuffix('.h5').removesuffix('.encoded')}.{variant}.skops"))
 
-    Returns ``(classifier, taxel_min, taxel_max)``: the normalisation the file was encoded with, needed to encode
-    new trials the same way for the real-time view. The classifier also carries ``encode_params`` (the file's
-    encoding parameters: windows, taxels, constants) and ``layout`` (the file's sensor).
-    """
-    from rigctl.analysis.classify import TextureClassifier
-    from rigctl.analysis.data import load_features
-    from rigctl.storage.encoded import open_encoded
 
-    fs = load_features(path, [variant])
-    clf = TextureClassifier(n_pcs=n_pcs, max_pcs=max(n_pcs, 1)).fit(fs.features[variant], fs.texture)
-    clf.n_pcs = min(clf.n_pcs, clf.n_components_)  # a small data set has fewer PCs than asked for
-    clf.variant = variant
-    with open_encoded(path) as ef:
-        norm = ef.normalisation
-        # encode live trials exactly as the file was (same windows, taxels, constants -> same feature columns)
-        clf.encode_params = dict(ef.parameters)
-        clf.layout = ef.layout
-    return clf, norm["taxel_min"], norm["taxel_max"]  # float64 ADC counts
+def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25, out_path: str | None = None) -> str:
+    """Fit the raw-trials-to-label pipeline (:func:`rigctl.analysis.model.texture_pipeline`: normalise, encode,
+    features, PCA + LDA) on every trial of the session an encoded file was made from, encoding as the file did
+    (its parameters), and save it as a model file (:func:`rigctl.storage.model_file.save_model`, the format of
+    ``rigctl analyze --save-model``). Returns the model file's path (default :func:`model_path_for`)."""
+    from rigctl.analysis.model import session_of, texture_pipeline, trials_of_session
+    from rigctl.storage.model_file import save_model
+
+    session, params = session_of(path)
+    trials, texture = trials_of_session(session)
+    model = texture_pipeline(variant, n_pcs, params=params).fit(trials, texture)
+    out = out_path or model_path_for(path, variant)
+    save_model(model, out, info={"variant": variant, "n_pcs": int(model[-1].n_pcs_), "session": str(session),
+                                 "analysed": str(path), "textures": [str(c) for c in model.classes_]})
+    return out

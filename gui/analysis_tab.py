@@ -539,12 +539,12 @@ class AnalysisTab(QtWidgets.QWidget):
             self.progress.setValue(100)
             self.show_results(results)
         elif self._job_kind == "training":
-            clf, lo, hi = job.result
-            self.main.classify.set_model(clf, lo, hi, source=self.encoded_path)
+            self.main.classify.load_model(job.result)
+            clf = self.main.classify.model[-1]
             self.progress.setRange(0, 100)
             self.progress.setValue(100)
-            self.status.setText(f"trained a {clf.variant} PCA+LDA classifier ({clf.n_pcs} PCs, "
-                                f"{len(clf.classes_)} textures); the real-time view uses it")
+            self.status.setText(f"trained a {clf.variant} PCA+LDA pipeline ({clf.n_pcs_} PCs, {len(clf.classes_)} "
+                                f"textures), saved to {_html(job.result)}; the real-time view uses it")
 
     def _update_buttons(self) -> None:
         busy = self._busy()

@@ -1,13 +1,14 @@
-"""Real-time classification view (paper Fig. 4A): with a texture classifier trained in the analysis tab
-(:class:`rigctl.analysis.classify.TextureClassifier`), every trial the protocol runner finishes is encoded the way
-the training file was (:func:`rigctl.encoding.pipeline.encode_batch`) and classified; each trial becomes a tile with
-the predicted texture, green when it matches the ground truth and red when not."""
+"""Real-time classification view (paper Fig. 4A): with a model file (``rigctl analyze --save-model``, or trained in
+the analysis tab: a scikit-learn pipeline from raw trials to the texture label, :mod:`rigctl.analysis.model`), every
+trial the protocol runner finishes is classified by the model's ``predict`` (it normalises, encodes and classifies
+as it was trained); each trial becomes a tile with the predicted texture, green when it matches the ground truth and
+red when not."""
 
 from __future__ import annotations
 
 import collections
-
-import numpy as np
+import dataclasses
+import math
 from PySide6 import QtCore, QtWidgets
 
 from rigctl_gui.workers import Job
@@ -15,31 +16,20 @@ from rigctl_gui.workers import Job
 MAX_TILES = 60
 
 
-def classify_trial(clf, taxel_min, taxel_max, taxels: np.ndarray, speed_mm_s: float,
-                   rate_hz: float | None = None) -> str:
-    """Predicted texture of one trial: encode ``taxels`` ``(n_samples, n_channels)`` counts (any channel count: the
-    training file's sensor; ``taxel_min``/``taxel_max`` are ``(n_channels,)``) at ``rate_hz`` (None: the training
-    file's rate) with the training normalisation, the training file's encoding parameters (``clf.encode_params``:
-    windows, taxels, constants, so the feature columns match) and the trial's speed (eq. 2) into ``clf.variant``
-    features, then :meth:`TextureClassifier.predict`.
+def trial_record(data, planned):
+    """A finished trial as the model's input: the recorded :class:`rigctl.core.trial.TrialData` with the planned
+    speed and force setpoints in its attributes, and without its texture (the answer the model is asked for)."""
+    attrs = {k: v for k, v in data.attrs.items() if k != "texture"}
+    attrs.update(speed_mm_s=float(planned.speed_mm_s), force_g=float(getattr(planned, "force_g", math.nan)))
+    return dataclasses.replace(data, attrs=attrs)
 
-    Raises ValueError when the trial's channel count differs from the training normalisation's."""
-    from rigctl.encoding.izhikevich import as_ragged
-    from rigctl.encoding.normalise import TaxelRange
-    from rigctl.encoding.pipeline import EncodeParams, encode_batch
 
-    taxels = np.asarray(taxels)
-    if taxels.ndim != 2 or taxels.shape[1] != np.asarray(taxel_min).size:
-        raise ValueError(f"trial readings {taxels.shape} do not match the classifier's {np.asarray(taxel_min).size} "
-                         "taxels (trained on another sensor)")
-    params = EncodeParams.from_dict(getattr(clf, "encode_params", None))
-    layout = getattr(clf, "layout", None)
-    if rate_hz is None and layout is not None:
-        rate_hz = layout.sample_rate_hz
-    offset, scale = TaxelRange(np.asarray(taxel_min, float), np.asarray(taxel_max, float)).offset_scale()
-    feats, _ = encode_batch(as_ragged([taxels]), offset=offset, scale=scale, speed_mm_s=[float(speed_mm_s)],
-                            variants=[clf.variant], store_spikes=(), params=params, rate_hz=rate_hz)
-    return str(clf.predict(feats[clf.variant])[0])
+def classify_trial(model, data, planned) -> str:
+    """Predicted texture of one finished trial: ``model`` (a loaded model file, raw trials -> label:
+    :func:`rigctl.storage.model_file.load_model`) predicts on :func:`trial_record` ``(data, planned)``.
+
+    Raises ValueError when the trial's sensor differs from the one the model was trained on."""
+    return str(model.predict([trial_record(data, planned)])[0])
 
 
 class ClassifyView(QtWidgets.QWidget):
@@ -49,13 +39,14 @@ class ClassifyView(QtWidgets.QWidget):
         super().__init__(parent)
         self.main = main
         self.model = None
-        self._norm = None
+        self.model_path: str | None = None
         self._pending: collections.deque = collections.deque()
         self._job: Job | None = None
         self.results: list[tuple[int, str, str]] = []  # (trial_id, truth, predicted)
 
         self.model_label = QtWidgets.QLabel("No model: train one in the Analysis tab (Train model for the real-time "
-                                            "view), then run a protocol.")
+                                            "view) or load a model file (rigctl analyze --save-model), then run a "
+                                            "protocol.")
         self.model_label.setWordWrap(True)
         self.score = QtWidgets.QLabel("")
         self.score.setObjectName("classify_score")
@@ -75,6 +66,8 @@ class ClassifyView(QtWidgets.QWidget):
         scroll.setWidget(gw)
         clear = QtWidgets.QPushButton("Clear")
         clear.clicked.connect(self.clear)
+        load = QtWidgets.QPushButton("Load model...")
+        load.clicked.connect(self._choose_model)
 
         lay = QtWidgets.QVBoxLayout(self)
         lay.addWidget(self.model_label)
@@ -82,16 +75,31 @@ class ClassifyView(QtWidgets.QWidget):
         top.addWidget(self.latest, 1)
         top.addWidget(self.score, 2)
         top.addWidget(clear)
+        top.addWidget(load)
         lay.addLayout(top)
         lay.addWidget(QtWidgets.QLabel("Finished trials (newest last): predicted texture; green = correct, red = "
                                        "wrong, the true texture below"))
         lay.addWidget(scroll, 1)
 
-    def set_model(self, clf, taxel_min, taxel_max, *, source: str | None = None) -> None:
-        self.model = clf
-        self._norm = (np.asarray(taxel_min, float), np.asarray(taxel_max, float))
-        self.model_label.setText(f"Model: PCA + LDA on <b>{clf.variant}</b> features, {clf.n_pcs} PCs, textures "
-                                 f"{', '.join(map(str, clf.classes_))}" + (f" (from {source})" if source else ""))
+    def load_model(self, path: str) -> None:
+        """Use the model file ``path`` for the trials to come. Raises :class:`rigctl.storage.model_file.ModelFileError`
+        (not a model file, other library versions) or OSError."""
+        from rigctl.storage.model_file import load_model
+
+        model = load_model(path)
+        clf = model[-1]
+        self.model, self.model_path = model, str(path)
+        self.model_label.setText(f"Model: {' -> '.join(model.named_steps)}; PCA + LDA on <b>{clf.variant}</b> "
+                                 f"features, {clf.n_pcs_} PCs, textures {', '.join(map(str, clf.classes_))} "
+                                 f"(from {path})")
+
+    def _choose_model(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Model file", "", "Model files (*.skops)")
+        if path:
+            try:
+                self.load_model(path)
+            except (OSError, ValueError) as exc:
+                self.model_label.setText(f"<span style='color:#c00'>cannot load {path}: {exc}</span>")
 
     def clear(self) -> None:
         self.results.clear()
@@ -118,9 +126,8 @@ class ClassifyView(QtWidgets.QWidget):
                 self._add(int(planned.trial_id), str(planned.texture), job.result)
         if self._job is None and self._pending:
             planned, data = self._pending.popleft()
-            clf, (lo, hi) = self.model, self._norm
-            rate = getattr(getattr(data, "layout", None), "sample_rate_hz", None)
-            job = Job(lambda j: classify_trial(clf, lo, hi, data.taxels, planned.speed_mm_s, rate), name="classify")
+            model = self.model
+            job = Job(lambda j: classify_trial(model, data, planned), name="classify")
             job.planned = planned
             self._job = job
             job.start()

@@ -18,25 +18,25 @@ discriminant analysis (LDA) on the first ``n`` principal components (PCs) of the
   so all 50 LDA fits share one computation (:class:`NestedLDA`). ``tests/analysis/test_ana_classify.py`` checks the
   predictions against one scikit-learn ``LinearDiscriminantAnalysis`` fit per PC count.
 
-:class:`TextureClassifier` bundles both for one data set (fit / predict / save / load), and is what the GUI's
-real-time view uses (with the mean-centering calibration of the real-time experiment, Methods "Real-time Texture
-Classification - Protocol").
+:class:`TextureClassifier` bundles both as a scikit-learn classifier (``BaseEstimator`` + ``ClassifierMixin``: it
+clones, and passes scikit-learn's estimator checks), the last step of the raw-trials-to-label pipeline that
+``rigctl analyze --save-model`` writes and the GUI's real-time view loads (:mod:`rigctl.analysis.model`), with the
+mean-centering calibration of the real-time experiment (Methods "Real-time Texture Classification - Protocol").
 """
 
 from __future__ import annotations
 
-import pickle
-from pathlib import Path
+from collections.abc import Mapping
 
 import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.linalg.lapack import dpotrf
+from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.decomposition import PCA
+from sklearn.utils.multiclass import check_classification_targets
+from sklearn.utils.validation import check_is_fitted, validate_data
 
 __all__ = ["fit_pca", "NestedLDA", "nested_pc_predictions", "TextureClassifier"]
-
-#: file-format tag of :meth:`TextureClassifier.save`
-_MODEL_FORMAT = "rigctl.TextureClassifier/1"
 
 
 def fit_pca(features, n_components, *, random_state=0, svd_solver="auto"):
@@ -242,14 +242,19 @@ def nested_pc_predictions(train_features, train_labels, test_features, n_pcs, *,
     return lda.predict_all(z_test, n_used), pca
 
 
-class TextureClassifier:
-    """PCA + LDA texture classifier on spiking features (a fitted pipeline for the GUI's real-time view).
+class TextureClassifier(ClassifierMixin, BaseEstimator):
+    """PCA + LDA texture classifier on spiking features: the last step of the raw-trials-to-label pipeline
+    (:func:`rigctl.analysis.model.texture_pipeline`) and the GUI's real-time classifier (Fig. 4).
 
     Parameters
     ----------
+    variant : str or None
+        The feature variant it classifies (e.g. ``"speed_scaled"``). ``fit`` / ``predict`` take a feature matrix,
+        or a mapping ``{variant: matrix}`` (e.g. :attr:`rigctl.analysis.data.FeatureSet.features`) from which this
+        variant is used (None: a matrix is required).
     n_pcs : int
-        Number of PCs used by :meth:`predict` by default (the real-time experiment: 25). PCA keeps
-        ``max(n_pcs, max_pcs)`` components so other counts can be asked for without refitting.
+        PCs used by :meth:`predict` (the real-time experiment: 25); clipped to what the training data supports
+        (``n_pcs_``). PCA keeps ``max(n_pcs, max_pcs)`` components so :meth:`predict_all` can ask for others.
     max_pcs : int
         Largest PC count available to :meth:`predict_all`.
     random_state : int
@@ -261,28 +266,36 @@ class TextureClassifier:
     center_ : ndarray (n_features,) float64
         Mean vector subtracted before projecting (the PCA mean after :meth:`fit`; replaced by :meth:`calibrate`).
     classes_ : ndarray
+    n_pcs_ : int, the PC count :meth:`predict` uses (``min(n_pcs, n_components_)``).
+    n_features_in_ : int
 
     Examples
     --------
-    >>> clf = TextureClassifier(n_pcs=25).fit(train_x, train_y)       # doctest: +SKIP
-    >>> clf.calibrate(calibration_x)   # mean-centering calibration    # doctest: +SKIP
-    >>> clf.predict(live_x)                                           # doctest: +SKIP
+    >>> clf = TextureClassifier("speed_scaled", n_pcs=25).fit(train_x, train_y)   # doctest: +SKIP
+    >>> clf.calibrate(calibration_x)   # mean-centering calibration                 # doctest: +SKIP
+    >>> clf.predict(live_x)                                                        # doctest: +SKIP
     """
 
-    def __init__(self, n_pcs=25, max_pcs=50, random_state=0):
+    def __init__(self, variant=None, n_pcs=25, max_pcs=50, random_state=0):
+        self.variant = variant
         self.n_pcs = n_pcs
         self.max_pcs = max_pcs
         self.random_state = random_state
 
-    def fit(self, features, labels, n_pcs=None):
+    def _select(self, features):
+        if isinstance(features, Mapping) and not hasattr(features, "shape"):  # not a sparse dok matrix
+            if self.variant is None or self.variant not in features:
+                raise KeyError(f"variant {self.variant!r} not among the features given ({', '.join(features)})")
+            return features[self.variant]
+        return features
+
+    def fit(self, X, y):
         """Fit PCA (once, ``max(n_pcs, max_pcs)`` components) and the nested LDA.
 
         Parameters
         ----------
-        features : array_like, shape (n_trials, n_features)
-        labels : array_like, shape (n_trials,)
-        n_pcs : int, optional
-            Overrides the default PC count used by :meth:`predict`.
+        X : array_like, shape (n_trials, n_features), or a mapping {variant: array} (see ``variant``)
+        y : array_like, shape (n_trials,)
 
         Returns
         -------
@@ -291,19 +304,19 @@ class TextureClassifier:
         Raises
         ------
         ValueError
-            Mismatched shapes or fewer than two classes.
+            Mismatched shapes, non-finite features, or fewer than two classes.
         """
-        x = np.asarray(features)
-        y = np.asarray(labels)
-        if x.ndim != 2 or y.shape != (x.shape[0],):
-            raise ValueError(f"features must be (n, d) and labels (n,), got {x.shape} and {y.shape}")
-        if n_pcs is not None:
-            self.n_pcs = int(n_pcs)
-        self.pca_ = fit_pca(x, max(self.n_pcs, self.max_pcs), random_state=self.random_state)
+        x, y = validate_data(self, self._select(X), y, dtype=[np.float64, np.float32])
+        check_classification_targets(y)
+        if np.unique(y).size < 2:
+            raise ValueError("TextureClassifier needs at least two classes (textures) to fit; got 1 class")
+        if x.shape[0] < 3:
+            raise ValueError(f"TextureClassifier needs at least 3 trials, got {x.shape[0]}")
+        self.pca_ = fit_pca(x, max(int(self.n_pcs), int(self.max_pcs)), random_state=self.random_state)
         self.center_ = np.asarray(self.pca_.mean_, dtype=np.float64).copy()
         self.lda_ = NestedLDA().fit(self._project(x), y)
         self.classes_ = self.lda_.classes_
-        self.n_features_in_ = x.shape[1]
+        self.n_pcs_ = max(1, min(int(self.n_pcs), self.lda_.n_features_in_))
         return self
 
     @property
@@ -317,6 +330,10 @@ class TextureClassifier:
             x = x[None, :]
         return (x - self.center_) @ np.asarray(self.pca_.components_, dtype=np.float64).T
 
+    def _check(self, features):
+        check_is_fitted(self, "lda_")
+        return validate_data(self, self._select(features), reset=False, dtype=[np.float64, np.float32])
+
     def calibrate(self, features):
         """Mean-centering calibration: centre new data on the mean of calibration trials (Methods, real-time protocol).
 
@@ -329,7 +346,7 @@ class TextureClassifier:
         -------
         self
         """
-        x = np.asarray(features, dtype=np.float64)
+        x = np.asarray(self._select(features), dtype=np.float64)
         if x.ndim != 2 or x.shape[1] != self.n_features_in_:
             raise ValueError(f"calibration features must be (n, {self.n_features_in_}), got {x.shape}")
         self.center_ = x.mean(axis=0)
@@ -340,60 +357,51 @@ class TextureClassifier:
         self.center_ = np.asarray(self.pca_.mean_, dtype=np.float64).copy()
         return self
 
-    def transform(self, features, n_pcs=None):
-        """PC scores, shape ``(n_trials, n_pcs)`` float64 (a 1-D vector is treated as one trial)."""
-        n = self.n_pcs if n_pcs is None else int(n_pcs)
-        return self._project(features)[:, :n]
+    def _n(self, n_pcs):
+        n = self.n_pcs_ if n_pcs is None else int(n_pcs)
+        if not 1 <= n <= self.n_components_:
+            raise ValueError(f"n_pcs must be in 1..{self.n_components_}, got {n}")
+        return n
 
-    def predict(self, features, n_pcs=None):
-        """Predicted texture labels, shape ``(n_trials,)``, using ``n_pcs`` PCs (default: ``self.n_pcs``).
+    def pc_scores(self, X, n_pcs=None):
+        """PC scores, shape ``(n_trials, n_pcs)`` float64."""
+        x = self._check(X)
+        return self._project(x)[:, : self._n(n_pcs)]
+
+    def predict(self, X, n_pcs=None):
+        """Predicted texture labels, shape ``(n_trials,)``, using ``n_pcs`` PCs (default: ``n_pcs_``).
 
         Raises
         ------
         ValueError
-            If ``n_pcs`` exceeds the fitted number of components.
+            If ``n_pcs`` exceeds the fitted number of components, or the features do not match the training's.
         """
-        n = self.n_pcs if n_pcs is None else int(n_pcs)
-        if not 1 <= n <= self.n_components_:
-            raise ValueError(f"n_pcs must be in 1..{self.n_components_}, got {n}")
-        return self.lda_.predict_all(self._project(features), n)[n - 1]
+        x = self._check(X)
+        n = self._n(n_pcs)
+        return self.lda_.predict_all(self._project(x), n)[n - 1]
 
-    def predict_all(self, features, n_max=None):
+    def predict_all(self, X, n_max=None):
         """Predictions for PCs 1..n_max: shape ``(n_max, n_trials)``."""
-        return self.lda_.predict_all(self._project(features), n_max)
+        return self.lda_.predict_all(self._project(self._check(X)), n_max)
 
-    def decision_function(self, features, n_pcs=None):
-        """LDA discriminants, shape ``(n_trials, n_classes)`` float64 (larger = more likely)."""
-        n = self.n_pcs if n_pcs is None else int(n_pcs)
-        return self.lda_.decision_all(self._project(features), n)[n - 1]
+    def _decisions(self, X, n_pcs):
+        x = self._check(X)
+        n = self._n(n_pcs)
+        return self.lda_.decision_all(self._project(x), n)[n - 1]
 
-    def predict_proba(self, features, n_pcs=None):
+    def decision_function(self, X, n_pcs=None):
+        """LDA discriminants, shape ``(n_trials, n_classes)`` float64 (larger = more likely); for two classes
+        ``(n_trials,)``, positive for ``classes_[1]`` (scikit-learn's convention)."""
+        d = self._decisions(X, n_pcs)
+        return d[:, 1] - d[:, 0] if d.shape[1] == 2 else d
+
+    def predict_proba(self, X, n_pcs=None):
         """Posterior class probabilities (softmax of the discriminants), shape ``(n_trials, n_classes)``."""
-        d = self.decision_function(features, n_pcs)
+        d = self._decisions(X, n_pcs)
         d = d - d.max(axis=1, keepdims=True)
         p = np.exp(d)
         return p / p.sum(axis=1, keepdims=True)
 
-    def score(self, features, labels, n_pcs=None):
+    def score(self, X, y, sample_weight=None, n_pcs=None):
         """Accuracy (fraction correct, float)."""
-        return float(np.mean(self.predict(features, n_pcs) == np.asarray(labels)))
-
-    def save(self, path):
-        """Pickle the fitted classifier to ``path`` (a tagged dict; only load files you trust)."""
-        with open(Path(path), "wb") as fh:
-            pickle.dump({"format": _MODEL_FORMAT, "model": self}, fh, protocol=pickle.HIGHEST_PROTOCOL)
-
-    @classmethod
-    def load(cls, path):
-        """Load a classifier written by :meth:`save`.
-
-        Raises
-        ------
-        ValueError
-            If the file is not a saved ``TextureClassifier``.
-        """
-        with open(Path(path), "rb") as fh:
-            obj = pickle.load(fh)
-        if not isinstance(obj, dict) or obj.get("format") != _MODEL_FORMAT or not isinstance(obj.get("model"), cls):
-            raise ValueError(f"{path} is not a saved rigctl TextureClassifier")
-        return obj["model"]
+        return float(np.average(self.predict(X, n_pcs) == np.asarray(y), weights=sample_weight))

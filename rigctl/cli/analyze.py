@@ -114,6 +114,51 @@ def _check_outputs(file, new_session, overwrite, **outputs):
         seen.append((opt, path))
 
 
+
+def _session_and_params(file):
+    from rigctl.analysis.model import session_of
+
+    try:
+        return session_of(file)
+    except FileNotFoundError as exc:
+        raise click.ClickException(f"{exc} (with --encode)") from None
+
+
+def _save_model(path, session, params, variant, n_pcs, max_pcs, *, source):
+    from rigctl.analysis.model import texture_pipeline, trials_of_session
+    from rigctl.storage.encoded import ALL_VARIANTS
+    from rigctl.storage.model_file import save_model
+
+    if variant not in ALL_VARIANTS:
+        raise click.ClickException(f"--model-variant {variant}: not a variant ({', '.join(ALL_VARIANTS)})")
+    trials, texture = trials_of_session(session)
+    try:
+        model = texture_pipeline(variant, n_pcs, max_pcs=max_pcs, params=params).fit(trials, texture)
+    except ValueError as exc:
+        raise click.ClickException(f"--save-model: {exc}") from None
+    with replacing(path) as tmp:
+        save_model(model, tmp, info={"variant": variant, "n_pcs": int(model[-1].n_pcs_), "session": str(session),
+                                     "analysed": str(source), "textures": [str(c) for c in model.classes_]})
+    click.echo(f"saved the {variant} pipeline ({model[-1].n_pcs_} PCs, {len(trials)} trials) to {path}", err=True)
+
+
+def _force_leak(session, params, variant, *, repeats, seed, n_pcs):
+    from rigctl.analysis.model import force_leak, trials_of_session
+
+    trials, texture = trials_of_session(session)
+    try:
+        return force_leak(trials, texture, variant=variant, n_pcs=n_pcs, repeats=repeats, seed=seed, params=params)
+    except (ValueError, KeyError) as exc:
+        raise click.ClickException(f"--force-leak {variant}: {exc}") from None
+
+
+def _format_leak(leak) -> str:
+    return (f"\nForce coefficients (eq. 1) of {leak['variant']}, {leak['n_pcs']} PCs, {leak['folds']}-fold CV x "
+            f"{leak['repeats']}:\n"
+            f"  fitted on all trials (the paper; test labels leak in): {100 * leak['fitted_on_all']:.1f} %\n"
+            f"  fitted per fold (training trials only):                {100 * leak['per_fold']:.1f} %\n"
+            f"  leak: {100 * leak['leak']:+.1f} points")
+
 @click.command("analyze")
 @click.argument("file", type=click.Path(exists=True, dir_okay=False))
 @click.option("--task", type=click.Choice(TASKS), default="all", show_default=True,
@@ -148,8 +193,14 @@ def _check_outputs(file, new_session, overwrite, **outputs):
               help="realtime: an encoded second session, classified after mean-centering calibration.")
 @click.option("--train-profiles", default="slow,medium", show_default=True, help="realtime: trained profiles.")
 @click.option("--save-model", type=click.Path(dir_okay=False), default=None,
-              help="Also fit a TextureClassifier on all trials (--model-variant, --model-pcs) and save it.")
-@click.option("--model-variant", default="speed_scaled", show_default=True)
+              help="Also fit the raw-trials-to-label pipeline (--model-variant, --model-pcs) on every trial of the "
+                   "session and save it (.skops; the GUI's real-time view loads it).")
+@click.option("--force-leak", "force_leak_", default=None, metavar="VARIANT",
+              help="Also report a force-scaled VARIANT (e.g. speed_force_scaled) with its label-dependent force "
+                   "coefficients fitted on all trials (the paper) and within each CV fold, and the difference "
+                   "(re-encodes the session per fold).")
+@click.option("--model-variant", default="speed_scaled", show_default=True,
+              help="Feature variant of the saved model (its pipeline: normalise, [force,] encode, features, PCA+LDA).")
 @click.option("--model-pcs", type=click.IntRange(1), default=25, show_default=True)
 @click.option("--encode", "encode_", is_flag=True, help="If FILE is a session file, encode it first.")
 @click.option("--threads", type=click.IntRange(1), default=None,
@@ -168,7 +219,7 @@ def _check_outputs(file, new_session, overwrite, **outputs):
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
             train_profiles, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
-            variance):
+            variance, force_leak_):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
     Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
@@ -189,7 +240,7 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
         _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
              confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
              train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs,
-             variance=variance or task == "variance", par=par)
+             variance=variance or task == "variance", par=par, force_leak_=force_leak_)
     finally:
         if limiter is not None:
             limiter.unregister()
@@ -198,7 +249,7 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
 def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
          confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
          train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs=False,
-         variance=False, par=None):
+         variance=False, par=None, force_leak_=None):
     from rigctl.analysis import report, tasks
 
     n_pcs = _parse_pcs(pcs)
@@ -276,17 +327,14 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
             res_all.settings.update(res.settings)
     del caught  # shown through res.warnings (in the table / JSON)
 
+    leak = None
+    if force_leak_ or save_model:
+        session, params = _session_and_params(file)
+    if force_leak_:
+        leak = _force_leak(session, params, force_leak_, repeats=min(repeats, 5), seed=seed,
+                           n_pcs=min(table_pcs, n_pcs))
     if save_model:
-        from rigctl.analysis.classify import TextureClassifier
-
-        if model_variant not in fs.features:
-            raise click.ClickException(f"--model-variant {model_variant} not in the file ({fs.variants})")
-        clf = TextureClassifier(n_pcs=model_pcs, max_pcs=max(model_pcs, n_pcs)).fit(fs.features[model_variant],
-                                                                                     fs.texture)
-        clf.variant = model_variant
-        with replacing(save_model) as tmp:
-            clf.save(tmp)
-        click.echo(f"saved TextureClassifier ({model_variant}, {model_pcs} PCs) to {save_model}", err=True)
+        _save_model(save_model, session, params, model_variant, model_pcs, max(model_pcs, n_pcs), source=file)
 
     if csv_path:
         with replacing(csv_path) as tmp:
@@ -301,15 +349,20 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
         with replacing(confusion) as tmp:
             report.plot_confusions(res_all, tmp, pick)
     if as_json:
-        if shares is None:
+        if shares is None and leak is None:
             click.echo(report.to_json(res_all, table_pcs, source=str(file)))
         else:
             out = report.to_dict(res_all, table_pcs, source=str(file))
-            out["variance"] = [r.as_dict() for r in shares]
+            if shares is not None:
+                out["variance"] = [r.as_dict() for r in shares]
+            if leak is not None:
+                out["force_leak"] = leak
             click.echo(json.dumps(out, indent=1, default=float))
     else:
         click.echo(report.format_table1(res_all, table_pcs, compare_paper=compare_paper))
         ordering = report.format_ordering(res_all, table_pcs)
         if ordering:
             click.echo(ordering)
+        if leak is not None:
+            click.echo(_format_leak(leak))
     sys.stdout.flush()

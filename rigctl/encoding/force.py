@@ -25,6 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.validation import check_is_fitted
 
 from rigctl.encoding.fused import run_fused
 from rigctl.encoding.izhikevich import FS_HZ, K_SA, TONIC_SPIKING, IzhikevichParams, Ragged, as_ragged
@@ -205,15 +207,19 @@ def _key_index(keys: np.ndarray):
     return uniq, inv.reshape(-1)
 
 
-class ForceScaler:
-    """scikit-learn-like wrapper of eq. (1): ``fit`` finds the coefficients, ``coefficients_for`` / ``transform``
-    apply them.
+class ForceScaler(TransformerMixin, BaseEstimator):
+    """Eq. (1) as a scikit-learn transformer: ``fit`` finds the coefficients, ``transform`` gives each trial its
+    coefficients (the SA input gains).
+
+    ``X`` is a :class:`rigctl.encoding.batch.TrialBatch` (or raw trials: a list of
+    :class:`rigctl.core.trial.TrialData`), whose records carry each trial's speed and force (the condition) and the
+    normalisation (a :class:`rigctl.encoding.estimators.TaxelNormaliser` before this step); ``y`` the texture labels.
 
     Parameters
     ----------
     label_free : False -> one coefficient per (texture, taxel, speed, force) (the paper); True -> per
-        (taxel, speed, force), pooled over textures.
-    reference_force_g, eps, c_max, k, max_iter : see :func:`fit_force_coefficients`.
+        (taxel, speed, force), pooled over textures (``y`` unused).
+    reference_force_g, eps, c_max, k, max_iter, fs : see :func:`fit_force_coefficients`.
 
     Attributes (after ``fit``)
     --------------------------
@@ -223,25 +229,72 @@ class ForceScaler:
     coeffs_, converged_ : (n_groups, n_taxels).
     fit_ : the :class:`ForceFit`.
     n_not_converged_ : int.
+
+    Notes
+    -----
+    Per texture, :meth:`transform` must know each trial's texture: it uses the labels the trials carry
+    (``TrialBatch.texture``, from the records' ``attrs["texture"]``), as the paper did, which is a leak: the
+    coefficients depend on the label the classifier is asked for. Trials without a label, or of a condition not
+    seen in ``fit``, get C = 1. The label-free coefficients need no label.
     """
 
     def __init__(self, *, label_free: bool = False, reference_force_g: float = REFERENCE_FORCE_G,
                  eps: float = EPSILON, c_max: float = C_MAX, k: float = K_SA, max_iter: int = 40, fs: float = FS_HZ):
         self.label_free = label_free
         self.reference_force_g = reference_force_g
-        self.eps, self.c_max, self.k, self.max_iter, self.fs = eps, c_max, k, max_iter, fs
+        self.eps = eps
+        self.c_max = c_max
+        self.k = k
+        self.max_iter = max_iter
+        self.fs = fs
 
     def _keys(self, texture, speed_mm_s, force_g):
-        texture = np.asarray(texture).astype(str)
-        if self.label_free:
-            tcode = np.full(texture.size, -1.0)
+        speed = np.asarray(speed_mm_s, float).reshape(-1)
+        if self.label_free or texture is None:
+            tcode = np.full(speed.size, -1.0 if self.label_free else -2.0)
         else:
+            texture = np.asarray(texture).astype(str)
             lookup = {t: i for i, t in enumerate(self.textures_)}
             tcode = np.array([lookup.get(t, -2) for t in texture], dtype=np.float64)
-        return np.column_stack([tcode, _condition(speed_mm_s), _condition(force_g)])
+        return np.column_stack([tcode, _condition(speed), _condition(force_g)])
 
-    def fit(self, readings, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0) -> "ForceScaler":
-        """Fit the coefficients on trials with labels (one per trial).
+    def fit(self, X, y=None) -> "ForceScaler":
+        """Fit the coefficients on trials ``X`` (records with speed and force) labelled ``y`` (textures).
+
+        Parameters
+        ----------
+        X : TrialBatch or list of TrialData (:func:`rigctl.encoding.batch.as_trial_batch`).
+        y : (n_trials,) texture labels; None: the labels the trials carry (needed unless ``label_free``).
+
+        Raises
+        ------
+        ValueError
+            if a (texture, speed) has no trial at the reference force, or no texture labels (per texture).
+        """
+        from rigctl.encoding.batch import as_trial_batch
+
+        b = as_trial_batch(X)
+        texture = b.texture if y is None else np.asarray(y).astype(str)
+        if texture is None:
+            if not self.label_free:
+                raise ValueError("per-texture force coefficients need the texture labels: fit(X, y)")
+            texture = np.full(b.n_trials, "*")
+        return self.fit_labels(b.readings, texture, b.speed_mm_s, b.force_g, offset=b.offset, scale=b.scale)
+
+    def transform(self, X):
+        """``X`` (a TrialBatch or raw trials) with ``gains`` = each trial's coefficients, ``(n_trials, n_taxels)``
+        float64 (C of eq. 1: the SA input scale of :class:`rigctl.encoding.estimators.SpikeEncoder`)."""
+        import dataclasses
+
+        from rigctl.encoding.batch import as_trial_batch
+
+        check_is_fitted(self, "coeffs_")
+        b = as_trial_batch(X)
+        return dataclasses.replace(b, gains=self.coefficients_for(b.texture, b.speed_mm_s, b.force_g))
+
+    def fit_labels(self, readings, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0) -> "ForceScaler":
+        """Fit on readings and one label per trial (texture, speed mm/s, force g): what :meth:`fit` and
+        :func:`rigctl.encoding.pipeline.encode_session` call.
 
         Raises
         ------
@@ -283,19 +336,14 @@ class ForceScaler:
         return self
 
     def coefficients_for(self, texture, speed_mm_s, force_g) -> np.ndarray:
-        """(n_trials, n_taxels) float64 coefficients for labelled trials; conditions not seen in ``fit`` get 1.0."""
+        """(n_trials, n_taxels) float64 coefficients for labelled trials; conditions not seen in ``fit`` (and, per
+        texture, trials whose ``texture`` is None) get 1.0."""
         keys = self._keys(texture, speed_mm_s, force_g)
         index = {tuple(r): i for i, r in enumerate(self.keys_)}
         rows = np.array([index.get(tuple(r), -1) for r in keys], dtype=np.int64)
         out = np.ones((rows.size, self.coeffs_.shape[1]))
         out[rows >= 0] = self.coeffs_[rows[rows >= 0]]
         return out
-
-    def transform(self, readings, texture, speed_mm_s, force_g) -> list[np.ndarray]:
-        """C * R for normalised readings (list of (n_i, n_taxels) float64 arrays), the SA input of eq. (1)."""
-        rg = as_ragged(readings)
-        coeffs = self.coefficients_for(texture, speed_mm_s, force_g)
-        return [rg.trial(t) * coeffs[t] for t in range(rg.n_trials)]
 
     def table(self) -> np.ndarray:
         """Structured array, one row per coefficient: texture (str, ``"*"`` for label-free), speed_mm_s, force_g
@@ -318,9 +366,9 @@ class ForceScaler:
 
 def fit_from_ragged(ragged: Ragged, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0,
                     label_free: bool = False, **kw) -> ForceScaler:
-    """Convenience: ``ForceScaler(label_free=...).fit(...)``."""
-    return ForceScaler(label_free=label_free, **kw).fit(ragged, texture, speed_mm_s, force_g, offset=offset,
-                                                        scale=scale)
+    """Convenience: ``ForceScaler(label_free=...).fit_labels(...)``."""
+    return ForceScaler(label_free=label_free, **kw).fit_labels(ragged, texture, speed_mm_s, force_g, offset=offset,
+                                                               scale=scale)
 
 
 def fit_scalers(scalers: list[ForceScaler], readings, texture, speed_mm_s, force_g, *, offset=0.0,

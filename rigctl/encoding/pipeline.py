@@ -76,7 +76,7 @@ from rigctl.encoding.speed import (REALTIME_REFERENCE_SPEED_MM_S, REFERENCE_SPEE
                                    incremental_scale, speed_coefficient, window_speeds)
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, REALTIME_VARIANTS, VARIANTS, EncodedWriter
 
-__all__ = ["EncodeParams", "encode_session", "encode_batch", "SpeedMissingError", "windows_for"]
+__all__ = ["EncodeParams", "encode_session", "encode_batch", "trains_to_features", "SpeedMissingError", "windows_for"]
 
 log = logging.getLogger(__name__)
 
@@ -212,10 +212,6 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
     if bad:
         raise ValueError(f"unknown variants {bad}; choose from {ALL_VARIANTS}")
     info = [VARIANTS[v] for v in variants]
-    n_unscaled = p.n_windows_unscaled
-    if n_unscaled is None:
-        n_unscaled = windows_for(rg.lengths.max(initial=1) / p.fs_hz, p.window_s)
-    n_scaled = p.n_windows_scaled
     speed = np.asarray(speed_mm_s, np.float64)
     ones = np.ones((n, n_ch))
     need_force = any(i.force_scaled and not i.label_free for i in info)
@@ -231,12 +227,42 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
         sa_by["force"] = sas[1]
     if need_lf:
         sa_by["lf"] = sas[-1]
+    return trains_to_features(sa_by, ra, rg.lengths, speed, variants=variants, params=p, window_speed=window_speed,
+                              store_spikes=store_spikes)
+
+
+def trains_to_features(sa_by: dict, ra: SpikeTrains, lengths, speed_mm_s, *, variants, params: EncodeParams,
+                       window_speed=None, store_spikes=()) -> tuple[dict, dict]:
+    """Speed scaling (eq. 2) and SR/SC features of already encoded trains, for each variant (the second half of
+    :func:`encode_batch`; :class:`rigctl.encoding.estimators.FeatureExtractor` calls it on its own).
+
+    Parameters
+    ----------
+    sa_by : {"none": SA trains with C = 1, "force": with the per-texture coefficients, "lf": with the label-free
+        ones} (n_trials, n_ch) :class:`SpikeTrains`; only the keys the variants use are needed.
+    ra : RA trains (n_trials, n_ch). lengths : (n_trials,) samples per trial at ``params.fs_hz``.
+    speed_mm_s : (n_trials,) mm/s (eq. 2). window_speed, store_spikes : as :func:`encode_batch`.
+    params : windows and constants; ``n_windows_unscaled`` / ``n_windows_scaled`` None = the longest trial here.
+
+    Returns
+    -------
+    (features {variant: (n_trials, n_features) float32}, spikes {variant: SpikeTrains})
+    """
+    p = params
+    info = [VARIANTS[v] for v in variants]
+    lengths = np.asarray(lengths)
+    speed = np.asarray(speed_mm_s, np.float64)
+    n_ch = ra.n_trains
+    n_unscaled = p.n_windows_unscaled
+    if n_unscaled is None:
+        n_unscaled = windows_for(lengths.max(initial=1) / p.fs_hz, p.window_s)
+    n_scaled = p.n_windows_scaled
     coef = ra_scaled = None
     if any(i.speed_scaled and not i.realtime for i in info):
         coef = speed_coefficient(speed, p.reference_speed_mm_s)
         ra_scaled = ra.scale_times(coef)
         if n_scaled is None:
-            n_scaled = windows_for(float(np.max(rg.lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
+            n_scaled = windows_for(float(np.max(lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
     feats, spikes = {}, {}
     for v, i in zip(variants, info):
         if not i.realtime:
@@ -252,13 +278,13 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
         else:
             sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
             if not i.speed_scaled:
-                feats[v] = realtime_features_unscaled(sa_rt, rg.lengths / p.fs_hz, n_windows=p.n_windows_realtime,
+                feats[v] = realtime_features_unscaled(sa_rt, lengths / p.fs_hz, n_windows=p.n_windows_realtime,
                                                       window_s=p.window_s)
             else:
                 ws = window_speed
                 if ws is None:
                     speed_coefficient(speed)  # the same check (positive, finite) as the other speed variants
-                    ws = [np.full(windows_for(L / p.fs_hz, p.window_s), s) for L, s in zip(rg.lengths, speed)]
+                    ws = [np.full(windows_for(L / p.fs_hz, p.window_s), s) for L, s in zip(lengths, speed)]
                 scaled, edges = incremental_scale(sa_rt, ws, p.realtime_reference_speed_mm_s, p.window_s)
                 feats[v] = realtime_features(scaled, edges, n_windows=p.n_windows_realtime, window_s=p.window_s)
             if v in store_spikes:

@@ -6,6 +6,7 @@ from sklearn.decomposition import PCA
 from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
 
 from rigctl.analysis.classify import NestedLDA, TextureClassifier, fit_pca, nested_pc_predictions
+from rigctl.storage.model_file import ModelFileError, load_model, save_model
 
 
 def _data(n=900, d=60, k=6, seed=0, sep=0.4):
@@ -72,9 +73,9 @@ def test_texture_classifier_roundtrip_and_calibration(tmp_path):
     clf = TextureClassifier(n_pcs=20).fit(x[:600], y[:600])
     base = clf.score(x[600:], y[600:])
     assert base > 0.8
-    path = tmp_path / "model.pkl"
-    clf.save(path)
-    back = TextureClassifier.load(path)
+    path = tmp_path / "model.skops"
+    save_model(clf, path)
+    back = load_model(path)
     np.testing.assert_array_equal(back.predict(x[600:]), clf.predict(x[600:]))
     # a session offset (sensor drift) breaks the classifier; mean-centering calibration restores it
     shift = np.linspace(-12, 12, x.shape[1]).astype(np.float32)
@@ -96,11 +97,9 @@ def test_texture_classifier_errors(tmp_path):
         clf.predict(x, n_pcs=11)
     with pytest.raises(ValueError):
         clf.calibrate(x[:, :5])
-    bad = tmp_path / "bad.pkl"
-    import pickle
-
-    bad.write_bytes(pickle.dumps({"format": "something else"}))
-    with pytest.raises(ValueError):
-        TextureClassifier.load(bad)
+    bad = tmp_path / "bad.skops"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ModelFileError, match="not a rigctl model file"):
+        load_model(bad)
     with pytest.raises(ValueError):
         NestedLDA().fit(np.zeros((5, 2)), np.zeros(5))  # one class

@@ -68,12 +68,12 @@ def test_force_scaler_per_texture_and_label_free():
                 frc.append(f)
                 data.append(np.full((n, 2), 0.4 * gain * fg))
     x = np.stack(data)
-    per_tex = ForceScaler().fit(x, tex, spd, frc)
+    per_tex = ForceScaler().fit_labels(x, tex, spd, frc)
     assert per_tex.coeffs_.shape == (6, 2)
     c = per_tex.coefficients_for(["A", "B", "A"], [80, 80, 80], [250, 250, 500])
     assert np.all(np.abs(c[0] - 2.0) < 0.2) and np.all(np.abs(c[1] - 2.0) < 0.2)
     np.testing.assert_allclose(c[2], 1.0)
-    lf = ForceScaler(label_free=True).fit(x, tex, spd, frc)
+    lf = ForceScaler(label_free=True).fit_labels(x, tex, spd, frc)
     assert lf.coeffs_.shape == (3, 2)  # (taxel, speed, force) only
     c_lf = lf.coefficients_for(["Z"], [80], [1000])
     assert np.all(c_lf < 1.0)
@@ -93,7 +93,7 @@ def test_unknown_speed_is_one_condition_and_labels_are_kept_whole():
                 spd.append(speed)
                 frc.append(f)
                 data.append(np.full((n, 2), 0.4 * fg * (1.0 if np.isnan(speed) else 0.8)))
-    sc = ForceScaler().fit(np.stack(data), tex, spd, frc)
+    sc = ForceScaler().fit_labels(np.stack(data), tex, spd, frc)
     assert sc.coeffs_.shape == (4, 2)  # (NaN, 250), (NaN, 500), (50, 250), (50, 500)
     c = sc.coefficients_for(["Herringbone-3", "Herringbone-3"], [np.nan, np.nan], [250, 500])
     assert np.all(np.abs(c[0] - 2.0) < 0.2)
@@ -106,4 +106,4 @@ def test_unknown_speed_is_one_condition_and_labels_are_kept_whole():
 def test_missing_reference_force_is_an_error():
     x = np.full((2, 100, 2), 0.3)
     with pytest.raises(ValueError, match="reference force"):
-        ForceScaler().fit(x, ["A", "A"], [80, 80], [250, 1000])
+        ForceScaler().fit_labels(x, ["A", "A"], [80, 80], [250, 1000])

@@ -253,24 +253,31 @@ def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot
     _, sy = tab.trial_rasters["ra"][1].getData()
     assert sy is not None and len(sy) > 0 and sy.max() <= 8.5
     assert tab.heat_plots[0][1].image.shape == (3, 3)
-    # the real-time view's classifier on this sensor: trials encoded like the file (its windows, its 100 Hz rate)
+    # the real-time view's model on this sensor: a pipeline from raw trials (its windows, its 100 Hz rate)
     from rigctl_gui.analysis_jobs import train_classifier
     from rigctl_gui.classify_view import classify_trial
+    from rigctl.analysis.model import trials_of_session
+    from rigctl.core import TrialData
     from rigctl.storage.encoded import open_encoded
+    from rigctl.storage.model_file import load_model
     from rigctl.storage.session import open_session
 
+    trials, _ = trials_of_session(path)
     for variant in ("original", "speed_scaled"):
-        clf, lo, hi = train_classifier(enc, variant, 4)
-        assert lo.shape == (9,) and clf.layout.n_channels == 9
+        model = load_model(train_classifier(enc, variant, 4, out_path=str(tmp_path / f"{variant}.skops")))
         with open_encoded(enc) as ef:
-            stored = list(clf.predict(ef.features(variant)))  # rows in trial order 0..15
+            stored_x = ef.features(variant)  # rows in trial order 0..15
+        # raw trials through the pipeline's encoding steps give the encoded file's features (same 100 Hz -> 1 kHz
+        # step, windows, normalisation)
+        np.testing.assert_allclose(model[:-1].transform(trials), stored_x, rtol=1e-5, atol=1e-4)
+        stored = list(model[-1].predict(stored_x))
         with open_session(path) as s:
-            live = [classify_trial(clf, lo, hi, s.trial(i).taxels, float(s.plan["speed_mm_s"][i])) for i in range(16)]
-        # live trials are encoded exactly like the file (same 100 Hz -> 1 kHz step, windows, normalisation)
+            live = [classify_trial(model, s.trial(i), SimpleNamespace(speed_mm_s=float(s.plan["speed_mm_s"][i])))
+                    for i in range(16)]
         assert live == stored, variant
         assert sum(p == t for p, t in zip(live, np.repeat(["Linen", "Denim", "Felt", "Silk"], 4))) >= 8
         with pytest.raises(ValueError, match="another sensor"):
-            classify_trial(clf, lo, hi, np.zeros((100, 18), np.uint16), 40.0)
+            classify_trial(model, TrialData(np.zeros((100, 18), np.uint16)), SimpleNamespace(speed_mm_s=40.0))
 
 
 def test_analysis_tab_heat_maps_per_layer_of_a_sixteen_channel_session(lone_tab, qapp, tmp_path):

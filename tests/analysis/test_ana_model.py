@@ -1,0 +1,135 @@
+"""scikit-learn conventions: the classifier passes scikit-learn's estimator checks; the encoding steps clone and pass
+the checks that apply to transformers of raw trials; the raw-trials-to-label pipeline round-trips through a model
+file (`rigctl analyze --save-model`) that alone classifies new trials in the GUI's real-time view; the force leak is
+reported (coefficients fitted on all trials vs per fold)."""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from sklearn.base import clone
+from sklearn.utils import estimator_checks as ec
+from sklearn.utils.estimator_checks import parametrize_with_checks
+
+from rigctl.analysis.classify import TextureClassifier
+from rigctl.analysis.model import texture_pipeline, trials_of_session
+from rigctl.encoding.estimators import FeatureExtractor, ForceScaler, SpikeEncoder, TaxelNormaliser
+from rigctl.storage.model_file import ModelFileError, load_model, save_model
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # the real-time view, in a real Qt window offscreen
+
+PROTOCOL = """
+name = "model"
+textures = ["A", "L"]
+speeds_mm_s = [80]
+forces_g = [250, 500]
+trials_per_condition = 4
+duration_s = 0.3
+"""
+
+
+@parametrize_with_checks([TextureClassifier()])
+def test_texture_classifier_passes_the_estimator_checks(estimator, check):
+    check(estimator)
+
+
+#: scikit-learn's checks that take no data. Every other check feeds 2-D numeric arrays, which these steps refuse by
+#: design (their input is a list of raw trials, ragged: trials of different lengths), so they are not run; the
+#: behaviour they check (fit/transform, clone, refitting) is checked on trials below.
+DATA_FREE_CHECKS = [ec.check_estimator_cloneable, ec.check_estimator_repr, ec.check_no_attributes_set_in_init,
+                    ec.check_get_params_invariance, ec.check_set_params, ec.check_parameters_default_constructible,
+                    ec.check_do_not_raise_errors_in_init_or_set_params]
+STEPS = [TaxelNormaliser(), ForceScaler(label_free=True), SpikeEncoder({"k_sa": 90.0}), FeatureExtractor("original")]
+
+
+@pytest.mark.parametrize("check", DATA_FREE_CHECKS, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("step", STEPS, ids=lambda s: type(s).__name__)
+def test_encoding_steps_pass_the_checks_that_apply(step, check):
+    check(type(step).__name__, step)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.simulation.dataset import generate_dataset
+
+    path = tmp_path_factory.mktemp("model") / "s.h5"
+    generate_dataset(parse_protocol(PROTOCOL), path, workers=0, seed=2)
+    return path
+
+
+def test_pipeline_clones_fits_refits_and_round_trips(session, tmp_path):
+    trials, texture = trials_of_session(session)
+    pipe = texture_pipeline("speed_force_scaled", 3)
+    assert [n for n, _ in pipe.steps] == ["normalise", "force", "encode", "features", "classify"]
+    fitted = clone(pipe).fit(trials, texture)
+    assert fitted[-1].n_pcs_ == 3 and list(fitted.classes_) == ["A", "L"]
+    twin = clone(pipe)  # unfitted, same parameters
+    assert twin.get_params(deep=True).keys() == pipe.get_params(deep=True).keys() and not hasattr(twin[-1], "lda_")
+    assert (fitted.predict(trials) == texture).mean() > 0.8
+    # the force step is fit(X, y): condition labels from the trials, textures from y
+    force = fitted.named_steps["force"]
+    assert {tuple(k[1:]) for k in force.keys_} == {(80.0, 250.0), (80.0, 500.0)} and force.textures_ == ["A", "L"]
+    # saved and loaded: the same predictions, versions recorded
+    path = save_model(fitted, tmp_path / "m.skops", info={"variant": "speed_force_scaled"})
+    back = load_model(path)
+    np.testing.assert_array_equal(back.predict(trials), fitted.predict(trials))
+    # a file made with another scikit-learn is refused with a clear error (and loads when asked to)
+    old = tmp_path / "old.skops"
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(old, "w") as dst:
+        for item in src.infolist():
+            data = src.read(item)
+            if item.filename == "rigctl_model.json":
+                meta = json.loads(data)
+                meta["versions"]["scikit-learn"] = "0.24.2"
+                data = json.dumps(meta).encode()
+            dst.writestr(item, data)
+    with pytest.raises(ModelFileError, match=r"made with scikit-learn 0.24.2 \(running"):
+        load_model(old)
+    assert load_model(old, check_versions=False)[-1].n_pcs_ == 3
+    # a file holding a type outside rigctl / scikit-learn / numpy / scipy is refused by name
+    odd = save_model({"where": __import__("fractions").Fraction(1, 3)}, tmp_path / "odd.skops")
+    with pytest.raises(ModelFileError, match="fractions.Fraction"):
+        load_model(odd)
+
+
+def test_saved_model_alone_classifies_new_trials_in_the_realtime_view(session, tmp_path, qapp):
+    """`rigctl analyze --save-model` writes the pipeline; the real-time view loads only that file and classifies
+    finished trials (the trials' textures are not given to the model); --force-leak reports both fits."""
+    from rigctl.cli import main
+    from rigctl.storage.session import open_session
+    from rigctl_gui.classify_view import ClassifyView
+    from rigctl_gui.events import wait_for
+
+    model = tmp_path / "m.skops"
+    r = CliRunner().invoke(main, ["analyze", str(session), "--encode", "--task", "textures", "--repeats", "1",
+                                  "--pcs", "1-3", "--per-texture", "4", "--json", "--no-progress",
+                                  "--save-model", str(model), "--model-pcs", "3",
+                                  "--force-leak", "speed_force_scaled"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    leak = out["force_leak"]
+    assert leak["variant"] == "speed_force_scaled" and leak["folds"] == 4
+    assert 0 <= leak["per_fold"] <= 1 and leak["leak"] == pytest.approx(leak["fitted_on_all"] - leak["per_fold"])
+    view = ClassifyView(SimpleNamespace())
+    view.load_model(str(model))
+    assert "speed_scaled" in view.model_label.text()
+    with open_session(session) as s:
+        records = [(s.plan[i], s.trial(i)) for i in range(0, 16, 2)]
+    for row, data in records:
+        view.on_trial(SimpleNamespace(trial_id=int(row["trial_id"]), texture=str(row["texture"]),
+                                      speed_mm_s=float(row["speed_mm_s"]), force_g=float(row["force_g"])), data)
+
+    def step():
+        view.refresh()
+        return len(view.results) == len(records)
+
+    assert wait_for(qapp, step, 60), view.model_label.text()
+    assert sum(t == p for _, t, p in view.results) >= 6
+    assert [tid for tid, _, _ in view.results] == list(range(0, 16, 2))
