@@ -11,12 +11,12 @@ import click
 from rigctl.cli.outputs import check_output
 from rigctl.cli.progress import bars
 
-#: ../shared/data/fabricslide next to the repository checkout
-DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabricslide"
+#: the environment variable naming the FabricSlide folder when DIRECTORY is not given
+ENV_DIR = "RIGCTL_FABRICSLIDE"
 
 
 @click.command("import-fabricslide")
-@click.argument("directory", required=False, type=click.Path(file_okay=False))
+@click.argument("directory", required=False, envvar=ENV_DIR, type=click.Path(file_okay=False))
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
 @click.option("--include-board/--no-board", default=True, show_default=True,
               help="Also import the Board10mm recordings (20 mm ridges) into the same file.")
@@ -27,7 +27,8 @@ DEFAULT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "fabrics
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, as_json, quiet):
-    """Import FabricSlide CSVs from DIRECTORY (default ../shared/data/fabricslide next to the repo).
+    """Import FabricSlide CSVs from DIRECTORY (the folder holding fabric/ and board/, e.g.
+    ../shared/data/fabricslide beside a checkout; default $RIGCTL_FABRICSLIDE).
 
     The 16 taxels are resampled to 1 kHz from the timestamps and written as 16 channels of 10-bit counts (layout
     1x16); texture = the fabric's name (texture set: fabrics + Board10mm, groups fabric/board), speed = |velocity|,
@@ -35,12 +36,11 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     """
     from rigctl.storage.fabricslide import import_fabricslide as run
 
+    if not directory:
+        raise click.UsageError(f"give the FabricSlide folder (fabric/ and board/ of github.com/wngfra/FabricSlide): "
+                               f"rigctl import-fabricslide DIRECTORY --out {out}, or set {ENV_DIR}")
     check_output(out, overwrite=overwrite)
-    if directory:
-        directory = Path(directory)
-    else:  # next to the repo checkout; for an installed (non-editable) package, next to the working directory
-        candidates = [DEFAULT_DIR, Path.cwd().parent / "shared" / "data" / "fabricslide"]
-        directory = next((c for c in candidates if c.is_dir()), DEFAULT_DIR)
+    directory = Path(directory)
     try:
         with bars(not quiet) as progress:
             summary = run(directory, out, include_board=include_board, pattern=pattern, trim=trim,

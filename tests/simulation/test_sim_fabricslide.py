@@ -130,3 +130,23 @@ def test_import_writes_fabrics_and_board_in_one_session(fabricslide_dir, tmp_pat
     again = CliRunner().invoke(main, ["import-fabricslide", str(fabricslide_dir), "--out", str(out),
                                       "--pattern", "Linen_F150_V10mmps_0.csv", "--quiet"])
     assert again.exit_code != 0 and "--overwrite" in again.output and "Traceback" not in again.output
+
+
+def test_the_folder_is_given_or_named_by_the_environment(fabricslide_dir, tmp_path, monkeypatch):
+    """No default inside the installation: DIRECTORY, else $RIGCTL_FABRICSLIDE, else a one-line usage error."""
+    from rigctl.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("RIGCTL_FABRICSLIDE", raising=False)
+    missing = CliRunner().invoke(main, ["import-fabricslide", "--out", "a.h5", "--quiet"])
+    assert missing.exit_code == 2 and "RIGCTL_FABRICSLIDE" in missing.output and "DIRECTORY" in missing.output
+    assert not (tmp_path / "a.h5").exists()
+    monkeypatch.setenv("RIGCTL_FABRICSLIDE", str(fabricslide_dir))
+    named = CliRunner().invoke(main, ["import-fabricslide", "--out", "b.h5", "--pattern", "Linen_F150_V10mmps_0.csv",
+                                      "--no-board", "--quiet"])
+    assert named.exit_code == 0, named.output
+    with open_session(tmp_path / "b.h5") as s:
+        assert [t.decode() if isinstance(t, bytes) else t for t in s.plan["texture"]] == ["Linen"]
+    monkeypatch.setenv("RIGCTL_FABRICSLIDE", str(tmp_path / "nowhere"))
+    wrong = CliRunner().invoke(main, ["import-fabricslide", "--out", "c.h5", "--quiet"])
+    assert wrong.exit_code == 1 and "nowhere" in wrong.output and "Traceback" not in wrong.output
