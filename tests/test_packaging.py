@@ -1,15 +1,21 @@
-"""The package outside the repo: the wheel holds every package, the built-in protocols, py.typed and the licence (no
-top-level ``gui``), and the installed wheel (not the editable checkout) runs the main commands from an empty folder,
-with the protocols found by name."""
+"""The package outside the repo: the wheel holds every package, the built-in protocols, the firmware sources, py.typed
+and the licence (no top-level ``gui``), and the wheel installed (not editable) into a fresh virtual environment runs
+the main commands from an empty folder: the protocols found by name, and ``--hil`` building the firmware from the
+sources installed with it into the user cache folder."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
+import site
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,8 +41,9 @@ def test_protocols_are_listed_and_found_by_name(tmp_path):
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory):
     d = tmp_path_factory.mktemp("wheel")
-    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", str(REPO), "-w", str(d)],
-                         capture_output=True, text=True, timeout=600)
+    # the build requirements come from the test extra (no isolated build environment to download per run)
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(REPO),
+                          "-w", str(d)], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     (whl,) = d.glob("rigctl-*.whl")
     return whl
@@ -51,36 +58,132 @@ def test_the_wheel_holds_every_package_and_the_data(wheel):
     for f in (REPO / "protocols").iterdir():
         if f.suffix in (".toml", ".py"):
             assert f"rigctl/protocols/{f.name}" in names
+    # every firmware source of the repo's arduino/ (both boards, common headers, Makefile, harness), no build output
+    firmware = {f"rigctl/arduino/{p.relative_to(REPO / 'arduino').as_posix()}" for p in (REPO / "arduino").rglob("*")
+                if p.is_file() and "build" not in p.relative_to(REPO / "arduino").parts and p.name != ".gitignore"}
+    assert {"rigctl/arduino/Makefile", "rigctl/arduino/common/rigctl_wire.h",
+            "rigctl/arduino/simavr/rigctl_simavr.c"} <= firmware
+    assert firmware == {n for n in names if n.startswith("rigctl/arduino/")}
     assert {"rigctl/py.typed", "rigctl_gui/py.typed", "rigctl/__main__.py"} <= set(names)
     assert any(n.endswith("LICENSE") for n in names)
 
 
-@pytest.mark.slow
-def test_the_installed_wheel_runs_from_an_empty_folder(wheel, tmp_path):
-    """The wheel installed (not editable) into its own folder, put first on the path, with the dependencies of the
-    environment running the tests; every command from an empty folder, the protocol by name."""
-    site = tmp_path / "site"
-    out = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site),
-                          str(wheel)], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    work = tmp_path / "empty"
-    work.mkdir()
-    env = dict(os.environ, PYTHONPATH=str(site), RIGCTL_CONFIG=str(tmp_path / "rig.json"))
+class Venv:
+    """A fresh virtual environment with the wheel installed (not editable), the dependencies seen from the
+    environment running the tests, and an empty working folder; :meth:`rigctl` runs its console script there."""
 
-    def rigctl(*args, timeout=300):
-        r = subprocess.run([sys.executable, "-m", "rigctl", *args], capture_output=True, text=True, cwd=work,
-                           env=env, timeout=timeout)
-        assert r.returncode == 0, (args, r.stderr[-2000:])
+    def __init__(self, root: Path, wheel: Path, cache: Path):
+        self.root = root / "venv"
+        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(self.root)], check=True, timeout=120)
+        self.python = self.root / "bin" / "python"
+        out = subprocess.run([sys.executable, "-m", "pip", "--python", str(self.python), "install", "-q",
+                              "--no-deps", "--no-index", str(wheel)], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        # after the install (pip sees only the new environment): the test environment's packages, behind its own
+        purelib = Path(self.py("import sysconfig; print(sysconfig.get_path('purelib'))"))
+        assert purelib.is_relative_to(self.root)
+        (purelib / "_test_environment.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+        self.work = root / "empty"
+        self.work.mkdir()
+        self.env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "RIGCTL_FIRMWARE_BUILD")}
+        self.env.update(VIRTUAL_ENV=str(self.root), PATH=f"{self.root / 'bin'}{os.pathsep}{os.environ['PATH']}",
+                        RIGCTL_CONFIG=str(root / "rig.json"), XDG_CACHE_HOME=str(cache))
+
+    def py(self, code: str) -> str:
+        r = subprocess.run([str(self.python), "-c", code], capture_output=True, text=True, cwd=getattr(
+            self, "work", None), env=getattr(self, "env", None), timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return r.stdout.strip()
+
+    def rigctl(self, *args, timeout=300) -> str:
+        r = subprocess.run([str(self.root / "bin" / "rigctl"), *args], capture_output=True, text=True, cwd=self.work,
+                           env=self.env, timeout=timeout)
+        assert r.returncode == 0, (args, r.stdout[-1000:], r.stderr[-2000:])
         return r.stdout
 
-    where = subprocess.run([sys.executable, "-c", "import rigctl; print(rigctl.__file__)"], capture_output=True,
-                           text=True, cwd=work, env=env).stdout.strip()
-    assert Path(where).is_relative_to(site), where  # the installed wheel, not the checkout
-    assert "trials complete: 6/6" in rigctl("acquire", "quick_check", "--sim", "--out", "q.h5")
-    assert "complete" in rigctl("info", "q.h5")
-    rigctl("sim", "dataset", "quick_check", "--trials-per-condition", "6", "--out", "d.h5")
-    rigctl("encode", "d.h5", "--out", "d.enc.h5")
-    assert "Individual Textures" in rigctl("analyze", "d.enc.h5", "--task", "textures", "--repeats", "2",
-                                           "--pcs", "1-3", "--no-progress")
-    rigctl("export", "nwb", "q.h5", "--out", "q.nwb", "--no-progress")
-    assert sorted(p.name for p in work.iterdir()) == ["d.enc.h5", "d.h5", "q.h5", "q.nwb"]
+
+@pytest.fixture(scope="module")
+def venv(wheel, tmp_path_factory, request):
+    # the firmware cache persists between local runs (the Arduino core is not rebuilt); make still rebuilds every
+    # source of the fresh install, whose files are newer than any earlier build
+    cache = request.config.cache.mkdir("rigctl-wheel-test-xdg-cache")
+    v = Venv(tmp_path_factory.mktemp("installed"), wheel, cache)
+    where = json.loads(v.py("import json, rigctl, rigctl_gui, rigctl.firmware as f; "
+                            "print(json.dumps([rigctl.__file__, rigctl_gui.__file__, str(f.sources())]))"))
+    for path in where:  # the installed wheel, not the checkout
+        assert Path(path).is_relative_to(v.root), where
+    v.sources = Path(where[2])
+    return v
+
+
+@pytest.fixture(scope="module")
+def sim_session(venv):
+    """``rigctl acquire quick_check --sim`` from the installed wheel (the protocol found by name)."""
+    assert "trials complete: 6/6" in venv.rigctl("acquire", "quick_check", "--sim", "--out", "q.h5")
+    return venv.work / "q.h5"
+
+
+@pytest.mark.slow
+def test_the_installed_wheel_runs_from_an_empty_folder(venv, sim_session):
+    """info, a tiny simulated dataset, encode, analyze and the NWB export, all from the installed wheel."""
+    assert "complete" in venv.rigctl("info", "q.h5")
+    venv.rigctl("sim", "dataset", "quick_check", "--trials-per-condition", "6", "--out", "d.h5")
+    venv.rigctl("encode", "d.h5", "--out", "d.enc.h5")
+    assert "Individual Textures" in venv.rigctl("analyze", "d.enc.h5", "--task", "textures", "--repeats", "2",
+                                                "--pcs", "1-3", "--no-progress")
+    venv.rigctl("export", "nwb", "q.h5", "--out", "q.nwb", "--no-progress")
+    assert {"d.enc.h5", "d.h5", "q.h5", "q.nwb"} <= {p.name for p in venv.work.iterdir()}
+
+
+def _layout(path) -> dict[str, tuple]:
+    """``{dataset path: (dtype, trailing shape)}`` of trial 0 plus the root's attributes and datasets."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        out["attrs"] = tuple(sorted(f.attrs))
+        out["plan"] = (str(f["plan"].dtype),)
+        for name, ds in f["trials"][sorted(f["trials"])[0]].items():
+            out[name] = (str(ds.dtype), ds.shape[1:])
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.hil
+def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_session):
+    """``rigctl firmware`` and ``rigctl acquire quick_check --hil`` from the installed wheel: both build from the
+    sources installed with it into the user cache folder (the harness's debug info names the folder it was compiled
+    in), and the recorded session looks like the one from the Python simulated rig."""
+    for tool in ("make", "avr-gcc", "pkg-config"):
+        if shutil.which(tool) is None:
+            msg = f"{tool} is not installed (scripts/test.sh installs the Debian toolchain)"
+            if os.environ.get("CI", "").lower() == "true":
+                pytest.fail(msg)
+            pytest.skip(msg)
+    from rigctl.storage.session import open_session
+
+    version, digest = venv.py("import rigctl, rigctl.firmware as f; print(rigctl.__version__, f.source_digest())"
+                              ).split()
+    build = Path(venv.env["XDG_CACHE_HOME"]) / "rigctl" / "firmware" / f"{version}-{digest[:16]}"
+    printed = venv.rigctl("firmware")
+    assert f"build:   {build}" in printed and f"flash:w:{build / 'mega_drum.hex'}" in printed
+    venv.rigctl("acquire", "quick_check", "--hil", "--out", "hil.h5", "--quiet", timeout=900)
+    compiled_in = str(venv.sources).encode()
+    for product in ("rigctl_simavr", "mega/src/mega_drum/controller.c.o", "uno/src/uno_taxel/taxel_frame.c.o"):
+        assert compiled_in in (build / product).read_bytes(), product
+
+    hil = venv.work / "hil.h5"
+    with open_session(hil) as s:
+        plan = s.plan
+        assert len(plan) == 6 and sorted(s.completed_ids()) == list(range(6))
+        assert json.loads(s.attrs["rig_config"])["mode"] == "hil"
+        trials = [s.trial(i) for i in range(6)]
+    stds = {}
+    for i, t in enumerate(trials):
+        n = int(round(float(plan["duration_s"][i]) * 1000))
+        assert t.taxels.shape == (n, 18) and t.dropped_frames == 0 and t.crc_errors == 0
+        assert np.all(np.diff(t.seq.astype(np.int64)) % 65536 == 1)
+        assert abs(np.median(t.force_g) - 500) < 15 and abs(np.median(t.speed_mm_s) - 120) < 1
+        letter = plan["texture"][i].decode() if isinstance(plan["texture"][i], bytes) else plan["texture"][i]
+        stds.setdefault(letter, []).append(t.taxels.astype(float).std(axis=0).mean())
+    # the taxel readings follow the mounted plate: smooth A is quieter than ridged B and waves L
+    assert max(stds["A"]) < 0.5 * min(stds["B"] + stds["L"])
+    assert _layout(hil) == _layout(sim_session)

@@ -21,6 +21,7 @@ COMMANDS = {
     "gui": "rigctl.cli.gui:gui",
     "export": "rigctl.cli.export:export",
     "protocols": "rigctl.cli.protocols:protocols",
+    "firmware": "rigctl.cli.firmware:firmware",
 }
 
 SHORT_HELP = {
@@ -35,6 +36,7 @@ SHORT_HELP = {
     "gui": "Start the desktop app.",
     "export": "Export a session (and its spike trains) as NWB.",
     "protocols": "List the built-in protocols (run one by name).",
+    "firmware": "Build the boards' firmware images from the installed sources (for flashing).",
 }
 
 

@@ -3,7 +3,8 @@
 :class:`HilRig` has the interface of :class:`rigctl.simulation.rig.SimulatedRig` (context manager, ``drum_port``,
 ``taxel_port``, ``set_texture``, ``place_mass``), so :class:`rigctl.devices.drum.DrumClient`,
 :class:`rigctl.devices.taxel_stream.TaxelStream` and ``rigctl.rigs.open_rig("hil")`` talk to it unchanged. It builds the firmware and the harness if needed
-(``make -C arduino``) and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per board:
+from the sources shipped in the package (:func:`rigctl.firmware.build`: ``rigctl/arduino``, the repo's ``arduino/``)
+and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per board:
 
 - the Mega image (drum controller, Modbus RTU) with the HX711 and actuator spring emulated in C from the rig
   model's mechanics constants (:class:`rigctl.simulation.model.MechanicsConfig`), its drum STEP pin and index
@@ -32,36 +33,16 @@ from pathlib import Path
 
 import numpy as np
 
+from rigctl import firmware
 from rigctl.devices import wire
 
 log = logging.getLogger(__name__)
-
-#: the repo's ``arduino/`` directory (firmware sources, Makefile, harness)
-ARDUINO_DIR = Path(__file__).resolve().parents[2] / "arduino"
 
 _KV = re.compile(r"(\w+)=([-+0-9.eE]+)")
 
 
 class HilError(RuntimeError):
     """The firmware or the harness could not be built or started."""
-
-
-def build(arduino_dir: Path | str = ARDUINO_DIR) -> Path:
-    """Build both firmware images and the simavr harness (``make all harness``; incremental).
-
-    Returns
-    -------
-    Path of the build directory (``uno_taxel.elf``, ``mega_drum.elf``, ``rigctl_simavr``).
-
-    Raises
-    ------
-    HilError with make's output when the build fails (e.g. the AVR toolchain or libsimavr-dev is missing).
-    """
-    arduino_dir = Path(arduino_dir)
-    proc = subprocess.run(["make", "-s", "-C", str(arduino_dir), "all", "harness"], capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise HilError(f"firmware build failed (make -C {arduino_dir} all harness):\n{proc.stdout}\n{proc.stderr}")
-    return arduino_dir / "build"
 
 
 def _parse_kv(line: str) -> dict[str, float]:
@@ -173,8 +154,9 @@ class HilRig:
     live : bool
         Render the taxel readings from the Mega's drum travel and force (True) or play a fixed waveform (False;
         :meth:`play_waveform`).
-    arduino_dir : path
-        The firmware tree (``arduino/``); built on start.
+    firmware_sources : path, optional
+        The firmware source folder (default :func:`rigctl.firmware.sources`, the installed package's); built on
+        start into :func:`rigctl.firmware.build_dir`.
     uno_boot_ms : float
         Bootloader wait after a host opens the Uno's port (the DTR auto-reset).
     with_uno : bool
@@ -192,14 +174,14 @@ class HilRig:
         ``tx_cycles_per_tick``, ``tx_max_per_tick`` (CPU cycles per 1 ms tick, timed on probe pins).
     """
 
-    def __init__(self, config=None, *, seed: int = 0, live: bool = True, arduino_dir: Path | str = ARDUINO_DIR,
+    def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
         self.seed = seed
         self.live = live
-        self.arduino_dir = Path(arduino_dir)
+        self.firmware_sources = Path(firmware_sources) if firmware_sources is not None else firmware.sources()
         self.uno_boot_ms = uno_boot_ms
         self.with_uno = with_uno
         self.telemetry: Telemetry | None = None
@@ -253,7 +235,10 @@ class HilRig:
         """
         if self._mega is not None:
             return self
-        build_dir = build(self.arduino_dir)
+        try:
+            build_dir = firmware.build(self.firmware_sources)
+        except firmware.FirmwareBuildError as exc:
+            raise HilError(str(exc)) from None
         exe = build_dir / "rigctl_simavr"
         m = self.config.mechanics
         self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [

@@ -104,11 +104,12 @@ def _start_sim():
 
 
 def _start_hil():
+    from rigctl import firmware
     from rigctl.simulation import hil
 
     try:
-        hil.build()
-    except hil.HilError as exc:
+        firmware.build()
+    except firmware.FirmwareBuildError as exc:
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(str(exc))
         pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")

@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+from rigctl import firmware
 from rigctl.simulation import hil
 
 
@@ -21,10 +22,11 @@ def _need(tool: str) -> None:
 
 @pytest.fixture(scope="session")
 def fw_build():
-    """Build both images, the harness and nothing else; returns the build directory."""
+    """Build both images and the harness from the package's sources (:func:`rigctl.firmware.build`); returns the
+    build directory."""
     for tool in ("make", "avr-gcc", "pkg-config"):
         _need(tool)
-    return hil.build()
+    return firmware.build()
 
 
 @pytest.fixture(scope="module")

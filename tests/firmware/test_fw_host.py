@@ -8,11 +8,11 @@ import subprocess
 
 import pytest
 
-from rigctl.simulation.hil import ARDUINO_DIR
+from rigctl import firmware
 
 
 def test_host_unit_tests_pass(fw_build):
-    proc = subprocess.run(["make", "-s", "-C", str(ARDUINO_DIR), "host-tests"], capture_output=True, text=True,
+    proc = subprocess.run(["make", "-s", "-C", str(firmware.sources()), f"BUILD={fw_build}", "host-tests"], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     m = re.search(r"(\d+) checks, (\d+) failures", proc.stdout)

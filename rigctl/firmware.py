@@ -1,0 +1,130 @@
+"""The rig's firmware, shipped inside the package: both boards' sources, the common headers, the Makefile and the
+simavr harness live in ``rigctl/arduino`` (the repo's ``arduino/`` links there), and :func:`build` compiles them
+wherever rigctl is installed.
+
+Where the build goes (:func:`build_dir`):
+
+- in a checkout (an editable install: the repo's ``arduino`` link points at the sources) ``arduino/build``, the
+  folder ``make -C arduino`` fills, as docs/firmware.md describes;
+- in an installed package, a user cache folder ``$XDG_CACHE_HOME/rigctl/firmware/<version>-<digest>`` (default
+  ``~/.cache``), the digest being that of the installed sources: changed sources build into a new folder, and
+  ``make`` rebuilds what is older than its sources within one;
+- ``$RIGCTL_FIRMWARE_BUILD``, if set, overrides both.
+
+The build needs Debian's AVR toolchain and Arduino core (``gcc-avr avr-libc binutils-avr arduino-core-avr make``) and,
+for the harness, ``simavr libsimavr-dev libelf-dev pkg-config``.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import os
+import subprocess
+from importlib import resources
+from pathlib import Path
+
+from rigctl import __version__
+
+__all__ = ["FirmwareBuildError", "build", "build_dir", "cache_root", "source_digest", "sources"]
+
+#: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
+_SOURCE_SUFFIXES = (".c", ".h", ".cpp")
+_SOURCE_NAMES = ("Makefile",)
+
+
+class FirmwareBuildError(RuntimeError):
+    """``make`` failed (the message holds its output), e.g. because the AVR toolchain or libsimavr-dev is missing."""
+
+
+def sources() -> Path:
+    """The firmware source folder inside the installed package (``Makefile``, ``common/``, ``uno_taxel/``,
+    ``mega_drum/``, ``simavr/``, ``host_tests/``)."""
+    return Path(str(resources.files("rigctl") / "arduino"))
+
+
+def _source_files(src: Path) -> list[Path]:
+    return sorted(p for p in src.rglob("*") if p.is_file() and "build" not in p.relative_to(src).parts
+                  and (p.suffix in _SOURCE_SUFFIXES or p.name in _SOURCE_NAMES))
+
+
+def source_digest(src: Path | str | None = None) -> str:
+    """SHA-256 (hex) of the firmware sources: every source file's path relative to ``src`` and its bytes.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``src`` holds no Makefile (not a firmware source folder).
+    """
+    src = Path(src) if src is not None else sources()
+    if not (src / "Makefile").is_file():
+        raise FileNotFoundError(f"{src} is not the rig's firmware source folder (no Makefile)")
+    h = hashlib.sha256()
+    for p in _source_files(src):
+        h.update(p.relative_to(src).as_posix().encode() + b"\0")
+        h.update(p.read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def cache_root() -> Path:
+    """``$XDG_CACHE_HOME/rigctl/firmware`` (default ``~/.cache/rigctl/firmware``): the builds of installed sources."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "rigctl" / "firmware"
+
+
+def _in_checkout(src: Path) -> bool:
+    """True for the sources of a repo checkout (its ``arduino`` link, beside the ``rigctl`` package, points here)."""
+    link = src.parent.parent / "arduino"
+    return link.is_dir() and link.resolve() == src.resolve()
+
+
+def build_dir(src: Path | str | None = None) -> Path:
+    """Where :func:`build` puts the images and the harness for the sources ``src`` (default :func:`sources`); see
+    the module docstring. Only computes the path."""
+    override = os.environ.get("RIGCTL_FIRMWARE_BUILD")
+    if override:
+        return Path(override)
+    src = Path(src) if src is not None else sources()
+    if _in_checkout(src):
+        return src / "build"
+    return cache_root() / f"{__version__}-{source_digest(src)[:16]}"
+
+
+def build(src: Path | str | None = None, out: Path | str | None = None, *,
+          targets: tuple[str, ...] = ("all", "harness")) -> Path:
+    """Build the firmware with ``make`` (incremental): both images (``all``: ``uno_taxel.{elf,hex}``,
+    ``mega_drum.{elf,hex}``) and the simavr harness (``harness``: ``rigctl_simavr``) by default.
+
+    Parameters
+    ----------
+    src : path, optional
+        The source folder (default :func:`sources`, the installed package's); only read.
+    out : path, optional
+        The build folder (default :func:`build_dir` of ``src``). Concurrent builds into one folder wait for each
+        other (a lock file in it).
+    targets : tuple of str
+        Makefile targets.
+
+    Returns
+    -------
+    Path of the build folder.
+
+    Raises
+    ------
+    FirmwareBuildError
+        ``make`` failed; the message holds its output.
+    """
+    src = Path(src) if src is not None else sources()
+    out = Path(out) if out is not None else build_dir(src)
+    out.mkdir(parents=True, exist_ok=True)
+    cmd = ["make", "-s", "-C", str(src), f"BUILD={out.resolve()}", *targets]
+    with open(out / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+        except FileNotFoundError as exc:  # no make at all
+            raise FirmwareBuildError(f"firmware build failed: {exc} (install make and the AVR toolchain)") from None
+    if proc.returncode != 0:
+        raise FirmwareBuildError(f"firmware build failed ({' '.join(cmd)}):\n{proc.stdout}\n{proc.stderr}")
+    return out
