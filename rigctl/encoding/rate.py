@@ -117,13 +117,15 @@ def rate_conversion(input_rate_hz: float, model_rate_hz: float = MODEL_RATE_HZ, 
 class StreamResampler:
     """Chunk-by-chunk resampling of a stream to the model's rate (see the module docstring).
 
-    Parameters
-    ----------
-    conv : the :class:`RateConversion` (``rate_conversion(stream_rate_hz)``).
-    n_channels : channels of the stream.
-
     ``process((n, n_channels))`` returns the model-rate samples that are complete so far, float64; over a stream
     their count approaches ``n_total * up / down`` minus the filter's delay. :meth:`reset` starts a new stream.
+
+    Parameters
+    ----------
+    conv : RateConversion
+        The conversion (``rate_conversion(stream_rate_hz)``).
+    n_channels : int
+        Channels of the stream.
     """
 
     def __init__(self, conv: RateConversion, n_channels: int):

@@ -141,7 +141,10 @@ class FaultProxy:
     seed : int
         Seed of the random generator.
 
-    Raises ``OSError`` if the board's port cannot be opened.
+    Raises
+    ------
+    OSError
+        The board's port cannot be opened.
     """
 
     def __init__(self, board_path, link, *, to_host: FaultRates | None = None, to_board: FaultRates | None = None,

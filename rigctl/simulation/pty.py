@@ -228,6 +228,8 @@ class PtyBridge:
     client_link : path or None
         Stable symlink for the client side. ``unplug()``/``replug()`` act on the client side.
 
+    Notes
+    -----
     The copy thread is a Python thread and can be starved (GIL, a loaded CPU) for hundreds of ms, which a USB cable
     never is: :meth:`bytes_to_board` tells the board bytes that the client has sent but the board's server has not
     read yet, wherever they wait on the way.

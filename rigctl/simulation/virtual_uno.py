@@ -52,6 +52,8 @@ class VirtualUno:
         The sensor streamed (channel count, rate, bits), announced in the banner; default the paper's 3x3x2 at
         1 kHz, 10 bits (the Uno firmware).
 
+    Notes
+    -----
     Fault injection (for tests): :meth:`inject_garbage`, :meth:`corrupt_frames`, :meth:`drop_frames`,
     :meth:`drop_sync_frames`.
     """

@@ -1090,6 +1090,8 @@ class Session:
         the file and the trial): a trial marked complete in ``/plan`` without its recording is shown ``pending``
         in :attr:`plan` (a resume records it), a damaged trial skipped by :meth:`iter_trials`.
 
+    Notes
+    -----
     What is checked, and what happens when it is wrong (a user never gets silently wrong data):
 
     - the file as a whole (opening refuses it with SessionError): not HDF5 or truncated, not a session, a newer
