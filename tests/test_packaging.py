@@ -165,7 +165,7 @@ def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_
     build = Path(venv.env["XDG_CACHE_HOME"]) / "rigctl" / "firmware" / f"{version}-{digest[:16]}"
     printed = venv.rigctl("firmware")
     assert f"build:   {build}" in printed and f"flash:w:{build / 'mega_drum.hex'}" in printed
-    venv.rigctl("acquire", "quick_check", "--hil", "--out", "hil.h5", "--quiet", timeout=900)
+    venv.rigctl("acquire", "quick_check", "--hil", "--out", "hil.h5", "--quiet", timeout=240)
     compiled_in = str(venv.sources).encode()
     for product in ("rigctl_simavr", "mega/src/mega_drum/controller.c.o", "uno/src/uno_taxel/taxel_frame.c.o"):
         assert compiled_in in (build / product).read_bytes(), product
