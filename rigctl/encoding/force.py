@@ -137,8 +137,8 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
 
     Parameters
     ----------
-    groupings : list of ``(group, reference)`` pairs as in :func:`fit_force_coefficients`.
-    Others as :func:`fit_force_coefficients`.
+    groupings : list of (group, reference) pairs
+        Each as in :func:`fit_force_coefficients`. The other parameters are those of :func:`fit_force_coefficients`.
 
     Returns
     -------
