@@ -313,9 +313,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.events.add(level, source, text)
         self.statusBar().showMessage(text, int(timeout_s * 1000))
 
+    #: sources whose errors have their own banner (faults, links) or are shown by the exception guard
+    OWN_BANNER = ("drum controller", "link")
+
     def _on_problem(self, level: int, source: str, text: str) -> None:
         """Errors (the library's included) go to the error banner, seen from every tab."""
-        if level >= logging.ERROR and not text.startswith("unexpected error"):
+        if level >= logging.ERROR and source not in self.OWN_BANNER and not text.startswith("unexpected error"):
             self.banner.show_message(f"{source}: {text}" if source not in ("app",) else text, error=True)
 
     def _on_link_changed(self, board: str, connected: bool) -> None:
@@ -511,7 +514,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _check_faults(self) -> None:
         """A latched controller fault raises the fault banner with its meaning; only Clear fault (the operator)
         clears it on the controller, and the banner goes when the controller reports it clear."""
-        from rigctl_gui.control_panel import fault_meaning, fault_words
+        from rigctl_gui.control_panel import fault_meaning
 
         st = self.poller.latest if self.poller is not None and self.poller.ok else None
         if st is None:
@@ -521,8 +524,8 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         self._faults = faults
         if faults:
-            text = (f"Drum controller FAULT (latched): {fault_words(faults)}. {fault_meaning(faults)} The drum is "
-                    "stopped. Fix the cause, then press Clear fault on the Rig control tab.")
+            text = (f"Drum controller FAULT (latched). {fault_meaning(faults)} The drum is stopped. Fix the cause, "
+                    "then press Clear fault on the Rig control tab.")
             self.banners["fault"].show_message(text, error=True)
             self.events.add(logging.ERROR, "drum controller", text)
         else:
@@ -546,7 +549,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if stale:
             self.stale_label.setText(stale)
             self.stale_label.adjustSize()
-            self.stale_label.move(max(0, (self.live.width() - self.stale_label.width()) // 2), 40)
+            self.stale_label.move(max(0, (self.live.width() - self.stale_label.width()) // 2),
+                                  max(0, (self.live.height() - self.stale_label.height()) // 2))
             self.stale_label.raise_()
             self.stale_label.show()
         else:

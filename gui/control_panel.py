@@ -52,25 +52,21 @@ STATE_COLOURS = {
 }
 
 
-def fault_words(faults: int) -> str:
-    """The latched fault bits as a comma-separated sentence ("none" when clear)."""
-    words = [w for bit, w in FAULT_WORDS.items() if int(faults) & int(bit)]
-    return ", ".join(words) if words else "none"
-
-
 def fault_meaning(faults: int) -> str:
     """Each latched fault bit with its meaning, one sentence each ("" when clear)."""
     return " ".join(f"{FAULT_WORDS[bit].capitalize()}: {text}" for bit, text in FAULT_MEANINGS.items()
                     if int(faults) & int(bit))
 
 
-def setpoint_problem(name: str, value: float, unit: str, hi: float, hi_source: str) -> str | None:
-    """Why a manual ``value`` cannot be sent (None when it can): the protocol range is ``> 0`` and at most ``hi``
-    (the lower of the rig's protocol limit and the controller's hard limit, named by ``hi_source``)."""
+def setpoint_problem(name: str, value: float, unit: str, hi: float, hi_source: str) -> tuple[str, str] | None:
+    """Why a manual ``value`` cannot be sent, as (a short line for under the box, the full sentence), or None when
+    it can: the protocol range is ``> 0`` and at most ``hi`` (the lower of the rig's protocol limit and the
+    controller's hard limit, named by ``hi_source``)."""
+    head = f"{name} {value:g} {unit} refused"
     if not value > 0:
-        return f"{name} {value:g} {unit} refused: it must be above 0 {unit} (Stop drum / STOP to stop)"
+        return f"{head}: must be > 0", f"{head}: it must be above 0 {unit} (Stop drum / STOP to stop)"
     if value > hi:
-        return f"{name} {value:g} {unit} refused: above the {hi_source} of {hi:g} {unit}"
+        return f"{head}: max {hi:g} {unit}", f"{head}: above the {hi_source} of {hi:g} {unit}"
     return None
 
 
@@ -96,10 +92,9 @@ class ControlPanel(QtWidgets.QWidget):
         self.force.setObjectName("force_setpoint")
         self.limits_label = QtWidgets.QLabel()
         self.limits_label.setObjectName("setpoint_limits")
-        self.limits_label.setWordWrap(True)
         self.setpoint_error = QtWidgets.QLabel("")
         self.setpoint_error.setObjectName("setpoint_error")
-        self.setpoint_error.setWordWrap(True)
+        # short lines without word wrap: a wrapped label in a form is squeezed in a short window
         self.setpoint_error.setStyleSheet("color: #c00; font-weight: bold;")
         self.setpoint_error.hide()
         self.limits = (MAX_SPEED_MM_S, MAX_FORCE_G)  # the controller's (speed mm/s, force g), read at attach
@@ -116,8 +111,8 @@ class ControlPanel(QtWidgets.QWidget):
         form = QtWidgets.QFormLayout()
         form.addRow("Drum speed", self.speed)
         form.addRow("Contact force", self.force)
-        form.addRow("", self.limits_label)
-        form.addRow("", self.setpoint_error)
+        form.addRow(self.limits_label)
+        form.addRow(self.setpoint_error)
         form.addRow("", self.apply_btn)
         setp = QtWidgets.QGroupBox("Setpoints")
         setp.setLayout(form)
@@ -223,8 +218,8 @@ class ControlPanel(QtWidgets.QWidget):
         """The highest ``"speed"`` (mm/s) or ``"force"`` (g) setpoint accepted: the lower of both limits."""
         return min(MAX_SPEED_MM_S, self.limits[0]) if which == "speed" else min(MAX_FORCE_G, self.limits[1])
 
-    def setpoint_problems(self) -> list[str]:
-        """Why the setpoints in the boxes cannot be sent (empty when they can)."""
+    def setpoint_problems(self) -> list[tuple[str, str]]:
+        """Why the setpoints in the boxes cannot be sent, (short, full) per box (empty when they can)."""
         out = []
         for which, box, unit, i, proto in (("speed", self.speed, "mm/s", 0, MAX_SPEED_MM_S),
                                            ("force", self.force, "g", 1, MAX_FORCE_G)):
@@ -241,9 +236,10 @@ class ControlPanel(QtWidgets.QWidget):
             return True
         problems = self.setpoint_problems()
         for which, box in (("speed", self.speed), ("force", self.force)):
-            bad = any(p.startswith(which) for p in problems)
-            box.setStyleSheet("QDoubleSpinBox { border: 2px solid #c00; background: #fee; }" if bad else "")
-        self.setpoint_error.setText("\n".join(problems))
+            bad = any(p[0].startswith(which) for p in problems)
+            box.lineEdit().setStyleSheet("background: #fcc; color: #900; font-weight: bold;" if bad else "")
+        self.setpoint_error.setText("\n".join(short for short, _ in problems))
+        self.setpoint_error.setToolTip("\n".join(full for _, full in problems))
         self.setpoint_error.setVisible(bool(problems))
         return not problems
 
@@ -251,7 +247,7 @@ class ControlPanel(QtWidgets.QWidget):
         """True (and the reason shown in the panel and reported) when the setpoints cannot be sent."""
         if self.check_setpoints():
             return False
-        text = "; ".join(self.setpoint_problems()) + ": nothing sent"
+        text = "; ".join(full for _, full in self.setpoint_problems()) + ": nothing sent"
         self.show_result(False, text)
         self.refused.emit(text)
         return True
@@ -408,8 +404,8 @@ class ControlPanel(QtWidgets.QWidget):
         )
         faults = int(st.faults)
         if faults:
-            self.fault_label.setText(f"Latched faults: {fault_words(faults)}. {fault_meaning(faults)} The fault "
-                                     "stays until you press Clear fault.")
+            self.fault_label.setText(f"Latched faults: {fault_meaning(faults)} The fault stays until you press "
+                                     "Clear fault.")
             self.fault_label.setStyleSheet("color: #c00; font-weight: bold;")
         else:
             self.fault_label.setText("Faults: none")

@@ -228,9 +228,11 @@ def test_a_latched_fault_is_shown_with_its_meaning_and_cleared_only_by_the_opera
     try:
         banner = window.banners["fault"]
         assert wait_for(qapp, lambda: banner.isVisible(), 10)
-        assert "load cell not responding" in banner.label.text() and "HX711" in banner.label.text()
+        text = banner.label.text()
+        assert "Load cell not responding: the load cell amplifier (HX711)" in text and "latched" in text
+        assert not window.banner.isVisible() or "FAULT" not in window.banner.label.text()  # said once
         assert "Clear fault" in banner.label.text()
-        assert wait_for(qapp, lambda: "Latched faults: load cell" in window.control.fault_label.text(), 2)
+        assert wait_for(qapp, lambda: "Latched faults: Load cell" in window.control.fault_label.text(), 2)
     finally:
         mega.set_loadcell_alive(True)
     wait_for(qapp, lambda: False, 1.0)  # nothing clears it by itself
