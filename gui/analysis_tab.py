@@ -12,6 +12,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
 from rigctl_gui.widgets import side_panel
 from rigctl_gui.workers import Job, ProcessJob
 from rigctl.core import PAPER_SENSOR, SensorLayout
@@ -274,10 +275,11 @@ class AnalysisTab(QtWidgets.QWidget):
         try:
             kind = file_kind(path)
         except Exception as exc:  # noqa: BLE001
-            self.status.setText(f"<span style='color:#c00'>cannot open {path}: {exc}</span>")
+            self.status.setText(f"<span style='color:#c00'>cannot open {_html(path)}: {_html(exc)}</span>")
             return
         if kind == "unknown":
-            self.status.setText(f"<span style='color:#c00'>{path} is neither a session nor an encoded file</span>")
+            self.status.setText(f"<span style='color:#c00'>{_html(path)} is neither a session nor an encoded "
+                                "file</span>")
             return
         self.main.settings.setValue("dirs/analysis", os.path.dirname(path))
         self.path, self.kind = path, kind
@@ -763,13 +765,6 @@ def export_path(path: str, fmt: str) -> str:
     if os.path.exists(out):
         raise ValueError(f"{os.path.basename(out)} already exists: choose it by name to replace it")
     return out
-
-
-def _html(text) -> str:
-    """``text`` safe inside a rich-text label (a ``<`` in an error would cut it short)."""
-    import html
-
-    return html.escape(str(text), quote=False)
 
 
 def _txt(v) -> str:

@@ -15,6 +15,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtWidgets
 
+from rigctl_gui.messages import escaped
 from rigctl_gui.workers import Job
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
@@ -327,7 +328,7 @@ class CalibrationTab(QtWidgets.QWidget):
         try:
             cfg = fn(cfg_path)
         except Exception as exc:  # noqa: BLE001 - shown; the stored calibration is unchanged
-            self.status.setText(f"<span style='color:#c00'>{type(exc).__name__}: {exc}</span>")
+            self.status.setText(f"<span style='color:#c00'>{escaped(f'{type(exc).__name__}: {exc}')}</span>")
             return
         if self.handle is not None:
             self.handle.rig.host_config = cfg
@@ -363,7 +364,7 @@ class CalibrationTab(QtWidgets.QWidget):
         self.job = None
         self.mass_prompt.hide()
         if job.error:
-            self.status.setText(f"<span style='color:#c00'>{self._what} failed: {job.error}</span>")
+            self.status.setText(f"<span style='color:#c00'>{self._what} failed: {escaped(job.error)}</span>")
         else:
             self.progress.setValue(100)
             r = job.result
