@@ -137,6 +137,9 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
 
     Parameters
     ----------
+    readings : Ragged, array or list
+        As in :func:`fit_force_coefficients`, or a list of :class:`~rigctl.encoding.izhikevich.Ragged` blocks
+        (trials in block order, as the pipeline reads them; no concatenated copy is made).
     groupings : list of (group, reference) pairs
         Each as in :func:`fit_force_coefficients`. The other parameters are those of :func:`fit_force_coefficients`.
 
@@ -144,10 +147,17 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
     -------
     list of ForceFit, one per grouping.
     """
-    rg = as_ragged(readings)
-    n_ch = rg.n_channels
-    groups = [_check_grouping(g, r, rg.n_trials) for g, r in groupings]
-    durations = rg.lengths / fs
+    if isinstance(readings, (list, tuple)) and readings and all(isinstance(r, Ragged) for r in readings):
+        blocks = list(readings)  # trials read in blocks (the pipeline's batches): used where they are
+    else:
+        blocks = [as_ragged(readings)]
+    n_ch = blocks[0].n_channels
+    if any(b.n_channels != n_ch for b in blocks):
+        raise ValueError("every block of trials must have the same channels")
+    lengths = np.concatenate([b.lengths for b in blocks])
+    bounds = np.cumsum([0] + [b.n_trials for b in blocks])
+    groups = [_check_grouping(g, r, lengths.size) for g, r in groupings]
+    durations = lengths / fs
     if np.any(durations <= 0):
         raise ValueError("empty trial")
     izh = (params.a, params.b, params.c, params.d, params.v_peak)
@@ -155,8 +165,10 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
     def rates_at(coeff_groups: list[np.ndarray], masks: list[np.ndarray], groups: list) -> list[np.ndarray]:
         active = np.logical_or.reduce(masks)
         gains = [cg[g] for cg, (g, _) in zip(coeff_groups, groups)]  # (n_trials, n_ch) each
-        counts = run_fused(rg.data, rg.starts, offset=offset, scale=scale, sa_gains=gains, k_sa=k, ra=False, fs=fs,
-                           izhikevich=izh, dtype=dtype, want_times=False, active=active).counts
+        counts = np.concatenate([
+            run_fused(b.data, b.starts, offset=offset, scale=scale, sa_gains=[g[t0:t1] for g in gains], k_sa=k,
+                      ra=False, fs=fs, izhikevich=izh, dtype=dtype, want_times=False, active=active[t0:t1]).counts
+            for b, t0, t1 in zip(blocks, bounds[:-1], bounds[1:])], axis=1)
         return [_group_rates(counts[i], durations, g, r.size, m) for i, ((g, r), m) in enumerate(zip(groups, masks))]
 
     is_ref = [r == np.arange(r.size) for _, r in groups]

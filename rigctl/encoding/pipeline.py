@@ -292,24 +292,34 @@ def trains_to_features(sa_by: dict, ra: SpikeTrains, lengths, speed_mm_s, *, var
     return feats, spikes
 
 
+def _model_input(blk, ids, labels_speed, want_window_speed, window_s, conv: RateConversion):
+    """A :class:`rigctl.storage.session.TaxelBlock` -> the model input (a Ragged of the raw counts, or resampled
+    trials if ``conv`` says so) and, if asked, each trial's window speeds (its measured speed trace, else its speed
+    label)."""
+    lengths = np.diff(blk.starts)
+    if conv.resampled:
+        rg = as_ragged([conv.apply(blk.data[blk.starts[i]:blk.starts[i + 1]]) for i in range(len(ids))])
+    else:
+        rg = Ragged(blk.data, blk.starts)
+    wspeeds = None
+    if want_window_speed:
+        wspeeds = []
+        for i in range(len(ids)):
+            dur = lengths[i] / conv.input_rate_hz
+            t, v = blk.speed_traces[i]
+            wspeeds.append(window_speeds(t, v, dur, window_s) if v.size else
+                           np.full(windows_for(dur, window_s), labels_speed[i]))
+    return rg, wspeeds
+
+
 def _read_batch(session_path, ids, labels_speed, want_window_speed, window_s, conv: RateConversion):
-    """Model input (resampled if ``conv`` says so) of the trials ``ids`` and, if asked, each trial's window
-    speeds (its measured speed trace, else its speed label)."""
+    """Model input of the trials ``ids`` read in one block (:meth:`rigctl.storage.session.Session.read_taxels`)
+    and, if asked, their window speeds (:func:`_model_input`)."""
     from rigctl.storage.session import open_session
 
-    arrays, wspeeds = [], []
     with open_session(session_path) as s:
-        for i, tid in enumerate(ids):
-            tr = s.trial(int(tid))
-            x = np.asarray(tr.taxels)
-            arrays.append(conv.apply(x))
-            if want_window_speed:
-                dur = x.shape[0] / conv.input_rate_hz
-                if tr.speed_mm_s.size:
-                    wspeeds.append(window_speeds(tr.speed_time_s, tr.speed_mm_s, dur, window_s))
-                else:
-                    wspeeds.append(np.full(windows_for(dur, window_s), labels_speed[i]))
-    return as_ragged(arrays), (wspeeds if want_window_speed else None)
+        blk = s.read_taxels([int(t) for t in ids], traces=want_window_speed)
+    return _model_input(blk, ids, labels_speed, want_window_speed, window_s, conv)
 
 
 def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params,
@@ -323,6 +333,11 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
     conv = rate_conversion(params.input_rate_hz, params.fs_hz) if params.input_rate_hz else \
         RateConversion(params.fs_hz, params.fs_hz)
     rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s, conv)
+    return _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params)
+
+
+def _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params):
+    """Encode and featurise a batch already read (the model input ``rg`` and window speeds ``ws``)."""
     return encode_batch(rg, offset=offset, scale=scale, speed_mm_s=speed, coeffs=coeffs,
                         coeffs_label_free=coeffs_lf, window_speed=ws, variants=variants, params=params,
                         store_spikes=store_spikes)
@@ -490,26 +505,38 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         est = np.array([plan_dur.get(t, 6.0) * conv.model_rate_hz * layout.n_channels * item for t in ids])
         keep = set(_fit_subsample(keys, est, fit_memory_bytes).tolist())
         rng_ = TaxelRange()
-        fit_arrays, fit_idx, n_samples = [], [], np.zeros(len(ids), dtype=np.int64)
+        # the trials are read once, in blocks of batch_trials (the encode pass's batches); the blocks are kept for
+        # the force fit and the encode pass when they fit fit_memory_bytes, else the fit keeps its subsample and
+        # the encode pass reads each batch again
+        keep_all = len(keep) == len(ids)
+        want_ws = "realtime_speed_scaled" in variants
+        batches = [np.arange(i, min(i + batch_trials, len(ids))) for i in range(0, len(ids), batch_trials)]
+        kept: list = []  # (Ragged, window speeds) per batch when keep_all
+        fit_blocks, fit_idx, n_samples = [], [], np.zeros(len(ids), dtype=np.int64)
         has_trace = np.zeros(len(ids), dtype=bool)
         lossy: dict[int, int] = {}  # trial id -> frames it lost on the taxel link (kept within the protocol's limit)
         bar = Stage(progress, "range pass", len(ids))
-        for i, tid in enumerate(ids):
-            tr = s.trial(tid)
-            raw = np.asarray(tr.taxels)
-            if raw.ndim != 2 or raw.shape[1] != layout.n_channels:
-                raise ValueError(f"trial {tid} has readings of shape {raw.shape}; the session's sensor has "
-                                 f"{layout.n_channels} channels ({layout.describe()})")
-            n_samples[i] = raw.shape[0]
-            has_trace[i] = tr.speed_mm_s.size > 0
-            if tr.dropped_frames:
-                lossy[int(tid)] = int(tr.dropped_frames)
-            x = conv.apply(raw)
-            rng_.update(x)
-            if i in keep:
-                fit_arrays.append(x)
-                fit_idx.append(i)
-            bar.advance(1)
+        for b in batches:
+            b_ids = [ids[i] for i in b]
+            blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
+            n_samples[b] = np.diff(blk.starts)
+            has_trace[b] = blk.has_speed_trace
+            for tid, n_lost in zip(b_ids, blk.dropped_frames):
+                if n_lost:
+                    lossy[int(tid)] = int(n_lost)
+            rg, ws = _model_input(blk, b_ids, labels["speed_mm_s"][b], want_ws and keep_all, p.window_s, conv)
+            del blk
+            rng_.update(rg.data)
+            if keep_all:
+                kept.append((rg, ws))
+                fit_blocks.append(rg)
+                fit_idx.extend(b.tolist())
+            else:
+                sel = [j for j, i in enumerate(b) if i in keep]
+                if sel:
+                    fit_blocks.append(rg.select(sel))
+                    fit_idx.extend(b[sel].tolist())
+            bar.advance(len(b))
     if lossy:  # failed trials are not complete, so never encoded; kept ones with holes are flagged
         lossy_note = (f"{len(lossy)} of {len(ids)} trials were recorded with lost frames ({sum(lossy.values())} "
                       f"frames; trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials "
@@ -543,15 +570,15 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     log.info("windows: %s", windows_note)
 
     # ---- force coefficients (once, for the whole dataset)
-    fit_rg = as_ragged(fit_arrays)
-    del fit_arrays
+    fit_rg = fit_blocks
+    del fit_blocks
     fit_idx = np.asarray(fit_idx)
     labels_fit = {k: v[fit_idx] for k, v in labels.items()}
     need_force = any(VARIANTS[v].force_scaled for v in variants)
     scaler = scaler_lf = None
     fit_note = fit_note_lf = "not requested"
     if need_force:
-        progress_note(progress, "force fit", f"fitting force coefficients on {fit_rg.n_trials} trials ...")
+        progress_note(progress, "force fit", f"fitting force coefficients on {fit_idx.size} trials ...")
         (scaler, fit_note), (scaler_lf, fit_note_lf) = _fit_forces(fit_rg, labels_fit, offset, scale, p)
     del fit_rg
     coeffs = scaler.coefficients_for(labels["texture"], labels["speed_mm_s"], labels["force_g"]) if scaler else None
@@ -559,7 +586,6 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                  if scaler_lf else None)
 
     # ---- pass 2: encode in batches
-    batches = [np.arange(i, min(i + batch_trials, len(ids))) for i in range(0, len(ids), batch_trials)]
     n_ch = int(offset.size)
     trials = {**labels, "group": np.array([textures.group_of(t) or "" for t in labels["texture"]], dtype=str),
               "duration_s": duration_s, "n_samples": n_samples}
@@ -600,8 +626,13 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                  offset, scale, variants, store_spikes, p) for b in batches]
         bar = Stage(progress, "encoding", len(ids))
         if scheduler is None:
-            for b, a in zip(batches, args):
-                write(b, _batch_task(*a))
+            for bi, (b, a) in enumerate(zip(batches, args)):
+                if keep_all:  # read in the range pass
+                    rg, ws = kept[bi]
+                    kept[bi] = None  # freed as soon as encoded
+                    write(b, _encode_read(rg, ws, *a[2:]))
+                else:
+                    write(b, _batch_task(*a))
                 bar.advance(len(b))
         else:
             from dask.distributed import as_completed

@@ -40,6 +40,7 @@ from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import h5py
 import numpy as np
+from h5py import h5a, h5d, h5g, h5s
 
 from rigctl import __version__
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
@@ -1069,6 +1070,23 @@ def _file_sensor(attrs: Mapping, plan: np.ndarray, path: Path
 # ----------------------------------------------------------------------------------------------------------------
 # Reader
 # ----------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TaxelBlock:
+    """Taxels of many trials read at once (:meth:`Session.read_taxels`).
+
+    data : (n_total_samples, n_channels) uint16 ADC counts, trial after trial (``data[starts[i]:starts[i+1]]``);
+    starts : (n_trials + 1,) int64; dropped_frames : (n_trials,) int64 frames lost on the taxel link;
+    has_speed_trace : (n_trials,) bool; speed_traces : list of ``(time_s, speed_mm_s)`` float64 arrays per trial,
+    or None when not asked for.
+    """
+
+    data: np.ndarray
+    starts: np.ndarray
+    dropped_frames: np.ndarray
+    has_speed_trace: np.ndarray
+    speed_traces: list | None = None
+
+
 class Session:
     """A session file opened read-only (use :func:`open_session`). Context manager; :meth:`close` when done.
 
@@ -1304,6 +1322,92 @@ class Session:
                              crc_errors=int(attrs.get("crc_errors", 0)), attrs=attrs, layout=self.layout)
         except (TypeError, ValueError) as exc:  # what the checks above did not foresee
             raise self._damaged(trial_id, _one_line(exc)) from None
+
+    def read_taxels(self, ids: Sequence[int], *, traces: bool = False) -> TaxelBlock:
+        """Read the taxels of many complete trials at once into one flat array (the encoder's read path).
+
+        Only what an encoder needs, through h5py's low-level API: per trial one group and one dataset open and one
+        read straight into its rows of a preallocated array (no :class:`TrialData`, no attribute dictionaries,
+        no copies); the shape, type and ADC-range checks of :meth:`trial` are made on the block.
+
+        Parameters
+        ----------
+        ids : trial ids (recorded trials), in the order wanted.
+        traces : also read each trial's measured speed trace (``speed_time_s``, ``speed_mm_s``).
+
+        Returns
+        -------
+        :class:`TaxelBlock`: ``data`` (n_total_samples, n_channels) uint16 ADC counts, trial after trial;
+        ``starts`` (n_trials + 1,) int64 row starts; ``dropped_frames`` (n_trials,) int64; ``has_speed_trace``
+        (n_trials,) bool; ``speed_traces`` (list of (time_s, mm_s) or None).
+
+        Raises
+        ------
+        KeyError if a trial has no recorded data; SessionError naming the trial if its taxels are damaged
+        (shape, type, values outside the sensor's ADC range).
+        """
+        n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
+        fid = self._f.id
+        dsets, lengths = [], np.zeros(len(ids), dtype=np.int64)
+        dropped = np.zeros(len(ids), dtype=np.int64)
+        has_trace = np.zeros(len(ids), dtype=bool)
+        speed_traces: list | None = [] if traces else None
+        missing = None
+        with _reading(self.path, "trials' taxels"):
+            tg = h5g.open(fid, b"/trials") if fid.links.exists(b"trials") else None
+            for i, tid in enumerate(ids):
+                name = trial_group_name(tid).rpartition("/")[2].encode()
+                gid = h5g.open(tg, name) if tg is not None and tg.links.exists(name) else None
+                if gid is None or not gid.links.exists(b"taxels"):
+                    if int(tid) in self._complete:
+                        raise self._damaged(int(tid), "it is marked complete but holds no taxels")
+                    missing = int(tid)
+                    break
+                ds = h5d.open(gid, b"taxels")
+                shape = ds.shape
+                if len(shape) != 2 or shape[1] != n_stored or ds.dtype.kind not in "iu":
+                    raise self._damaged(int(tid), f"taxels are {shape} {ds.dtype}, not (samples, {n_stored}) "
+                                                  f"integer ADC counts for the sensor {self.layout.shape_text}")
+                lengths[i] = shape[0]
+                dsets.append(ds)
+                if h5a.exists(gid, b"dropped_frames"):
+                    a = h5a.open(gid, b"dropped_frames")
+                    buf = np.zeros((), dtype=a.dtype)
+                    a.read(buf)
+                    dropped[i] = int(buf)
+                if gid.links.exists(b"speed_mm_s"):
+                    sp = h5d.open(gid, b"speed_mm_s")
+                    has_trace[i] = sp.shape[0] > 0
+                    if traces:
+                        st = h5d.open(gid, b"speed_time_s")
+                        v = np.empty(sp.shape, dtype=np.float64)
+                        t = np.empty(st.shape, dtype=np.float64)
+                        if v.size:
+                            sp.read(h5s.ALL, h5s.ALL, v)
+                        if t.size:
+                            st.read(h5s.ALL, h5s.ALL, t)
+                        speed_traces.append((t, v))
+                elif traces:
+                    speed_traces.append((np.zeros(0), np.zeros(0)))
+        if missing is not None:
+            raise KeyError(f"trial {missing} has no recorded data in {self.path}")
+        with _reading(self.path, "trials' taxels"):
+            starts = np.zeros(len(ids) + 1, dtype=np.int64)
+            np.cumsum(lengths, out=starts[1:])
+            data = np.empty((int(starts[-1]), n_stored), dtype=np.uint16)
+            for i, ds in enumerate(dsets):
+                if lengths[i]:
+                    ds.read(h5s.ALL, h5s.ALL, data[starts[i]:starts[i + 1]])
+        if self._present is not None:  # a schema-1/2 import: only the real columns
+            data = np.ascontiguousarray(data[:, self._present])
+        if data.size:
+            hi = int(data.max())
+            if hi > self.layout.adc_max:
+                row = int(np.flatnonzero((data > self.layout.adc_max).any(axis=1))[0])
+                t = int(np.searchsorted(starts, row, side="right") - 1)
+                raise self._damaged(int(ids[t]), f"taxels hold {hi} (sample {row - starts[t]}), outside the "
+                                                 f"sensor's {self.layout.adc_bits}-bit range 0..{self.layout.adc_max}")
+        return TaxelBlock(data, starts, dropped, has_trace, speed_traces)
 
     def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
         """Yield :class:`TrialData` of the complete trials (or of ``ids``), in plan order. A damaged trial is

@@ -136,6 +136,19 @@ def test_window_parameters(session, tmp_path):
         assert x[:, :, :20].any() and not x[:, :, 20:].any()  # 1 s trials fill 20 windows of 50 ms
 
 
+def test_trials_read_again_when_they_do_not_fit_memory(session, encoded, tmp_path):
+    """Trials are read once and kept when they fit ``fit_memory_bytes``; when not, the force fit uses a subsample
+    per condition and the encode pass reads each batch again: the same features where the fit does not enter."""
+    out = tmp_path / "small.h5"
+    encode_session(session, out, variants=["original", "force_scaled"], fit_memory_bytes=1, batch_trials=7,
+                   store_spikes=("original",), progress=False)
+    with open_encoded(out) as a, open_encoded(encoded) as b:
+        assert a.force_fit_stats()["n_fit_trials"] == 12  # one trial of each of the 12 conditions
+        assert b.force_fit_stats()["n_fit_trials"] == 24
+        np.testing.assert_array_equal(a.features("original"), b.features("original"))
+        assert SpikeTrains(*a.spikes("original")) == SpikeTrains(*b.spikes("original"))
+
+
 def test_dask_cluster_by_address_gives_the_same_file(session, encoded, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     out = tmp_path / "dask.h5"

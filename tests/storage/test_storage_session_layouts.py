@@ -203,6 +203,7 @@ def test_a_schema_2_file_opens_as_the_paper_sensor_and_can_be_resumed(tmp_path):
         t = s.trial(0)
         assert t.layout is PAPER_SENSOR and t.rate_hz == 1000.0
         np.testing.assert_array_equal(t.taxels, taxels)
+        np.testing.assert_array_equal(s.read_taxels([0]).data, taxels)  # the encoder's read path too
         assert s.calibration["taxel_min"].shape == (18,)
     # resuming an interrupted schema-2 session with this rigctl: same sensor, labels still fit
     w = SessionWriter.open(path, protocol_source="name = 'old'")
@@ -240,10 +241,42 @@ def test_a_schema_2_fabricslide_import_opens_with_its_16_present_channels(tmp_pa
         t = s.trial(0)
         assert t.layout == s.layout and t.taxels.shape == (300, 16)
         np.testing.assert_array_equal(t.taxels, taxels[:, :16])  # the absent (constant fill) columns dropped
+        np.testing.assert_array_equal(s.read_taxels([0]).data, taxels[:, :16])
         np.testing.assert_array_equal(s.calibration["taxel_max"], np.arange(16.0) + 900)
         assert s.textures.labels == ("1", "4")
     with pytest.raises(SessionError, match="channel_present"):
         SessionWriter.open(path)
+
+
+def test_block_reads_equal_trial_reads(tmp_path):
+    """Session.read_taxels (the encoder's read path: one flat array, no TrialData) gives what trial() gives."""
+    rng = np.random.default_rng(3)
+    path = tmp_path / "s.h5"
+    with SessionWriter.create(path, plan=_plan(["a", "b"], 5), layout=NINE_100,
+                              textures=texture_set_from_labels(["a", "b"])) as w:
+        for i, n in enumerate([40, 0, 75, 3, 60]):
+            if i == 1:
+                continue
+            t = _trial(rng, NINE_100, n)
+            t = TrialData(taxels=t.taxels, layout=NINE_100, dropped_frames=i, speed_mm_s=np.arange(i, dtype=float),
+                          speed_time_s=np.arange(i) * 0.1)
+            w.write_trial(i, t)
+    with open_session(path) as s:
+        ids = [4, 0, 3, 2]
+        blk = s.read_taxels(ids, traces=True)
+        assert blk.data.dtype == np.uint16 and blk.data.shape == (178, 9)
+        for k, tid in enumerate(ids):
+            tr = s.trial(tid)
+            np.testing.assert_array_equal(blk.data[blk.starts[k]:blk.starts[k + 1]], tr.taxels)
+            assert blk.dropped_frames[k] == tr.dropped_frames and blk.has_speed_trace[k] == (tid > 0)
+            np.testing.assert_array_equal(blk.speed_traces[k][1], tr.speed_mm_s)
+            np.testing.assert_array_equal(blk.speed_traces[k][0], tr.speed_time_s)
+        with pytest.raises(KeyError):
+            s.read_taxels([1])
+    with h5py.File(path, "r+") as f:  # a value outside the 12-bit range: the trial is named
+        f["/trials/000003/taxels"][1, 2] = 5000
+    with open_session(path) as s, pytest.raises(SessionError, match="trial 3 is damaged"):
+        s.read_taxels([0, 3])
 
 
 def test_a_newer_schema_is_refused(tmp_path):
