@@ -179,7 +179,8 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
         n_per_group = np.bincount(g, minlength=r.size)
         done = np.repeat(ir[:, None], n_ch, axis=1) | (n_per_group[:, None] == 0)
         target = tr[r]
-        state.append({"n_iter": 0, "coeffs": np.ones((r.size, n_ch)), "rate": target.copy(), "target": target, "done": done,
+        state.append({"n_iter": 0, "coeffs": np.ones((r.size, n_ch)), "rate": target.copy(), "target": target,
+                      "done": done,
                       "converged": done.copy(), "lo": np.zeros((r.size, n_ch)),
                       "hi": np.full((r.size, n_ch), float(c_max))})
     n_iter = 0

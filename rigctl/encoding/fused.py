@@ -301,8 +301,9 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
               sa_gains: Sequence[Any] = (1.0,), k_sa: float = 100.0, ra: bool = True, k_ra: float = 3.0,
               cutoff_hz: float = 20.0, rectify: bool = True, fs: float = 1000.0,
               izhikevich: tuple[float, float, float, float, float] = (0.02, 0.2, -65.0, 6.0, 30.0),
-              dtype: Any = np.float32, ra_dtype: Any = np.float64, want_times: bool = True, state: FusedState | None = None,
-              n0: Any = 0, active: np.ndarray | None = None, block: int = BLOCK_TRIALS) -> FusedResult:
+              dtype: Any = np.float32, ra_dtype: Any = np.float64, want_times: bool = True,
+              state: FusedState | None = None, n0: Any = 0, active: np.ndarray | None = None,
+              block: int = BLOCK_TRIALS) -> FusedResult:
     """Encode trials stored flat with the fused kernel (see the module docstring).
 
     Parameters
@@ -328,11 +329,13 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
 
     Returns
     -------
-    FusedResult (spike times in s from each trial's first sample: ``(sample + n0) / fs``).
+    FusedResult
+        Spike times in s from each trial's first sample: ``(sample + n0) / fs``.
 
     Raises
     ------
-    ValueError on mismatched shapes or a cutoff outside (0, fs/2).
+    ValueError
+        On mismatched shapes or a cutoff outside (0, fs/2).
     """
     dt, rdt = np.dtype(dtype), np.dtype(ra_dtype)
     if dt not in (np.float32, np.float64) or rdt not in (np.float32, np.float64):

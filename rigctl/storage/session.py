@@ -1332,14 +1332,17 @@ class Session:
 
         Parameters
         ----------
-        ids : trial ids (recorded trials), in the order wanted.
-        traces : also read each trial's measured speed trace (``speed_time_s``, ``speed_mm_s``).
+        ids : sequence of int
+            Trial ids (recorded trials), in the order wanted.
+        traces : bool
+            Also read each trial's measured speed trace (``speed_time_s``, ``speed_mm_s``).
 
         Returns
         -------
-        :class:`TaxelBlock`: ``data`` (n_total_samples, n_channels) uint16 ADC counts, trial after trial;
-        ``starts`` (n_trials + 1,) int64 row starts; ``dropped_frames`` (n_trials,) int64; ``has_speed_trace``
-        (n_trials,) bool; ``speed_traces`` (list of (time_s, mm_s) or None).
+        TaxelBlock
+            ``data`` (n_total_samples, n_channels) uint16 ADC counts, trial after trial; ``starts``
+            (n_trials + 1,) int64 row starts; ``dropped_frames`` (n_trials,) int64; ``has_speed_trace`` (n_trials,)
+            bool; ``speed_traces`` (list of (time_s, mm_s) or None).
 
         Raises
         ------
