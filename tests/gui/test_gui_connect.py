@@ -77,3 +77,16 @@ def test_connect_dialog_picks_a_session_file_to_replay(qapp, gui_home, tmp_path)
     dlg.accept()
     assert dlg.result() == QtWidgets.QDialog.Accepted
     qapp.processEvents()  # the file dialog (deleted on close) goes while its parent lives
+
+
+def test_the_app_opens_the_source_chosen_last_unless_told_otherwise():
+    """No source option: the one saved by the Connect dialog (MainWindow(None) loads it); --sim, --replay and the
+    ports choose."""
+    from rigctl_gui.app import parse_args, source_from_args
+    from rigctl_gui.workers import RigSource
+
+    assert source_from_args(parse_args([])) is None
+    assert source_from_args(parse_args(["--sim"])) == RigSource("sim")
+    assert source_from_args(parse_args(["--replay", "x.h5"])) == RigSource("replay", replay_dir="x.h5")
+    assert source_from_args(parse_args(["--drum-port", "a", "--taxel-port", "b"])) == \
+        RigSource("serial", drum_port="a", taxel_port="b")

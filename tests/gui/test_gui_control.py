@@ -342,7 +342,7 @@ def test_an_unexpected_exception_is_shown_in_the_window(window, qapp):
     assert window.timer.isActive()  # the app carries on
 
 
-def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp):
+def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot):
     sim = window.handle.sim
     window.tabs.setCurrentWidget(window.control)
     drum_banner, taxel_banner = window.banners["drum"], window.banners["taxel"]
@@ -355,6 +355,12 @@ def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp):
         assert "drum controller not responding" in window.source_label.text(), window.source_label.text()
         assert wait_for(qapp, lambda: "STALE" in window.control.force_plot.titleLabel.text, 2), \
             window.control.force_plot.titleLabel.text
+        # a STOP that cannot reach the controller says so in the window, on any tab
+        window.tabs.setCurrentWidget(window.live)
+        qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
+        assert wait_for(qapp, lambda: "STOP FAILED" in window.banner.label.text(), 20), window.banner.label.text()
+        assert window.banner.isVisible() and "stop the rig by hand" in window.banner.label.text()
+        window.tabs.setCurrentWidget(window.control)
         # the taxel board's cable too, while the drum's is out: each board keeps its own banner
         sim.unplug_taxel()
         window.tabs.setCurrentWidget(window.live)
