@@ -68,6 +68,7 @@ def main():
         threadpool_limits(args.threads)
     from rigctl.analysis.synthetic import random_features
     from rigctl.analysis.tasks import run_table1
+    from rigctl.cli.progress import TqdmProgress
 
     print(f"cores: {os.cpu_count()}, BLAS: {[(i['internal_api'], i['num_threads']) for i in threadpool_info()]}, "
           f"load average at start: {os.getloadavg()}")
@@ -82,9 +83,9 @@ def main():
     t_gen = time.perf_counter() - t0
     print(f"features: {', '.join(f'{k} {v.shape}' for k, v in fs.features.items())} (made in {t_gen:.1f} s)")
     t0, c0 = time.perf_counter(), time.process_time()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), TqdmProgress(leave=False) as bar:
         warnings.simplefilter("ignore")
-        res = run_table1(fs, n_pcs=args.pcs, repeats=args.repeats, progress=True)
+        res = run_table1(fs, n_pcs=args.pcs, repeats=args.repeats, progress=bar)
     t, cpu = time.perf_counter() - t0, time.process_time() - c0
     n_fits = args.repeats * 4 * (4 + 1)  # per variant: 4 CV folds (shared by A and B) + 1 extrapolation split
     print(f"Table 1: {len(res.curves)} tasks x {len(fs.features)} variants x {res.settings['n_pcs']} PCs x "

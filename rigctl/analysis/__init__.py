@@ -4,6 +4,7 @@ Modules: ``data`` (read an encoded file through :mod:`rigctl.storage.encoded`: `
 sensor layout and texture set, ``load_features``), ``classify`` (PCA fitted once per
 split, nested-PC LDA, ``TextureClassifier`` for the GUI's real-time view), ``tasks`` (textures, groups,
 extrapolation, speed extrapolation, real-time), ``stats`` (Welch + Cohen's d, two-proportion z + Cohen's h),
-``report`` (Table 1 text, JSON/CSV, Fig. 3-like PNGs), ``synthetic`` (feature sets with planted confounds).
+``report`` (Table 1 text, JSON/CSV, Fig. 3-like PNGs), ``model`` (the raw-trials-to-label scikit-learn pipeline,
+the force-leak measurement), ``synthetic`` (feature sets with planted confounds).
 No device, serial or simulation imports.
 """

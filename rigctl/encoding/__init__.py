@@ -14,6 +14,9 @@ Modules, one job each (data flows top to bottom):
 - :mod:`~rigctl.encoding.speed` - eq. (2): ``scale_spike_times``, ``incremental_scale`` (100 ms batches).
 - :mod:`~rigctl.encoding.features` - SR/SC in 100 ms windows (720 / 2160 features for 18 taxels; 180 real-time).
 - :mod:`~rigctl.encoding.rate` - the explicit resampling of readings not at the model's 1 kHz (1 ms steps).
+- :mod:`~rigctl.encoding.estimators` - the same steps as scikit-learn transformers on raw trials
+  (``TaxelNormaliser``, ``ForceScaler``, ``SpikeEncoder``, ``FeatureExtractor``), passing a
+  :class:`~rigctl.encoding.batch.TrialBatch` on.
 - :mod:`~rigctl.encoding.pipeline` - ``encode_session``: a session file -> the encoded file (Dask optional), written
   and read through :mod:`rigctl.storage.encoded` (which also holds the variant registry).
 
