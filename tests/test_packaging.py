@@ -74,8 +74,13 @@ class Venv:
 
     def __init__(self, root: Path, wheel: Path, cache: Path):
         self.root = root / "venv"
-        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(self.root)], check=True, timeout=120)
         self.python = self.root / "bin" / "python"
+        self.work = root / "empty"
+        self.work.mkdir()
+        self.env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "RIGCTL_FIRMWARE_BUILD")}
+        self.env.update(VIRTUAL_ENV=str(self.root), PATH=f"{self.root / 'bin'}{os.pathsep}{os.environ['PATH']}",
+                        RIGCTL_CONFIG=str(root / "rig.json"), XDG_CACHE_HOME=str(cache))
+        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(self.root)], check=True, timeout=120)
         out = subprocess.run([sys.executable, "-m", "pip", "--python", str(self.python), "install", "-q",
                               "--no-deps", "--no-index", str(wheel)], capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
@@ -83,15 +88,10 @@ class Venv:
         purelib = Path(self.py("import sysconfig; print(sysconfig.get_path('purelib'))"))
         assert purelib.is_relative_to(self.root)
         (purelib / "_test_environment.pth").write_text("\n".join(site.getsitepackages()) + "\n")
-        self.work = root / "empty"
-        self.work.mkdir()
-        self.env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "RIGCTL_FIRMWARE_BUILD")}
-        self.env.update(VIRTUAL_ENV=str(self.root), PATH=f"{self.root / 'bin'}{os.pathsep}{os.environ['PATH']}",
-                        RIGCTL_CONFIG=str(root / "rig.json"), XDG_CACHE_HOME=str(cache))
 
     def py(self, code: str) -> str:
-        r = subprocess.run([str(self.python), "-c", code], capture_output=True, text=True, cwd=getattr(
-            self, "work", None), env=getattr(self, "env", None), timeout=120)
+        r = subprocess.run([str(self.python), "-c", code], capture_output=True, text=True, cwd=self.work,
+                           env=self.env, timeout=120)
         assert r.returncode == 0, r.stderr[-2000:]
         return r.stdout.strip()
 
@@ -106,7 +106,8 @@ class Venv:
 def venv(wheel, tmp_path_factory, request):
     # the firmware cache persists between local runs (the Arduino core is not rebuilt); make still rebuilds every
     # source of the fresh install, whose files are newer than any earlier build
-    cache = request.config.cache.mkdir("rigctl-wheel-test-xdg-cache")
+    cache = (request.config.cache.mkdir("rigctl-wheel-test-xdg-cache") if getattr(request.config, "cache", None)
+             else tmp_path_factory.mktemp("xdg-cache"))  # -p no:cacheprovider
     v = Venv(tmp_path_factory.mktemp("installed"), wheel, cache)
     where = json.loads(v.py("import json, rigctl, rigctl_gui, rigctl.firmware as f; "
                             "print(json.dumps([rigctl.__file__, rigctl_gui.__file__, str(f.sources())]))"))
