@@ -278,9 +278,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _sync_actions(self) -> None:
         for a, b in self._mirrored:
-            if a.isEnabled() != b.isEnabled():
-                a.setEnabled(b.isEnabled())
-            if a.toolTip() != b.toolTip():
+            on = b.isEnabled()
+            if a.isEnabled() != on:  # (the tooltip changes with it: the reason a control is disabled)
+                a.setEnabled(on)
                 a.setToolTip(b.toolTip())
 
     def _show_shortcuts(self) -> None:
