@@ -105,6 +105,8 @@ class FeatureExtractor(TransformerMixin, BaseEstimator):
     ----------
     variant : a name of :data:`rigctl.storage.encoded.VARIANTS` (``"speed_scaled"``: SA/RA x taxels x 20 windows
         x SR/SC); the force-scaled ones expect the SA trains to carry the force gains (a ForceScaler step before).
+        ``realtime_speed_scaled`` scales each window by the trial's speed setpoint (``encode_session`` uses the
+        measured speed trace when a trial has one).
     params : dict or EncodeParams, optional: windows (``window_s``, ``n_windows_*``) and constants. Window counts
         left None are taken from the longest training trial in :meth:`fit` (``params_``), so new trials always give
         the training's columns.

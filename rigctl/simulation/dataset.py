@@ -281,7 +281,8 @@ def _plan_rows(plan: Iterable[Any]) -> list[tuple]:
 
 
 def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_condition: int | None = None,
-                     seed: int = 0, workers: int | None = None, progress: ProgressCallback | None = None, config: RigConfig | None = None,
+                     seed: int = 0, workers: int | None = None, progress: ProgressCallback | None = None,
+                     config: RigConfig | None = None,
                      compression: str | None = None, overwrite: bool = False, resume: bool = False,
                      durable: bool = False) -> dict:
     """Render a whole protocol into a session file, straight from the model (>= 1000x real time).

@@ -106,5 +106,6 @@ def test_no_text_parsing_of_progress_is_left():
     source = Path(workers.__file__).read_text()
     assert "re.compile" not in source and "_QueueText" not in source and "sys.stderr" not in source
     root = Path(__file__).resolve().parents[2] / "rigctl"
-    users = sorted(str(p.relative_to(root)) for p in root.rglob("*.py") if "from tqdm" in p.read_text() or "import tqdm" in p.read_text())
+    users = sorted(str(p.relative_to(root)) for p in root.rglob("*.py")
+                   if "from tqdm" in p.read_text() or "import tqdm" in p.read_text())
     assert users == ["cli/progress.py"]  # tqdm only in the CLI's adapter
