@@ -479,7 +479,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.classify.refresh()
             self.events.drain()
             self.guard.drain()
-            self._apply_run_lock()
+            self.apply_run_lock()
             self._sync_actions()
             self._check_faults()
         if self._tick % 20 == 0:
@@ -490,7 +490,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # ------------------------------------------------------------------------------------------------------
     # the run owns the rig; faults; stale plots
     # ------------------------------------------------------------------------------------------------------
-    def _apply_run_lock(self) -> None:
+    def apply_run_lock(self) -> None:
         """While a protocol run owns the rig (running or paused): manual motion, calibration and Connect disabled,
         their tooltips saying why. Re-applied every tick (another panel may re-enable its buttons)."""
         reason = RUN_LOCK_REASON if self.protocol.running else None

@@ -269,6 +269,9 @@ class ProtocolTab(QtWidgets.QWidget):
 
         self.job = Job(work, name="protocol")
         self.job.start()
+        lock = getattr(self.main, "apply_run_lock", None)
+        if lock is not None:
+            lock()  # the run owns the rig from now on: the manual controls go at once, not at the next tick
         self.last_output = out
         set_plain(self.status, f"recording to {out}" + (" (resuming)" if resume else ""))
         self._notify(logging.INFO, f"protocol {self.protocol_name()} started, recording to {out}"

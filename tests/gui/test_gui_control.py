@@ -194,17 +194,23 @@ def test_setpoints_are_not_sent_while_a_run_owns_the_rig_and_the_menus_follow(wi
     window.tabs.setCurrentWidget(window.control)
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
     assert tab.running
-    wait_for(qapp, lambda: False, 0.3)
     manual = [*window.control.buttons.values(), window.control.apply_btn, window.control.mount_btn,
               window.calibration.loadcell_btn, window.calibration.norm_btn, window.calibration.from_session_btn,
               window.connect_btn]
     for b in manual:
         assert not b.isEnabled() and "protocol run owns the rig" in b.toolTip(), b.text()
     menu = {a.text().replace("&", ""): a for m in window.menuBar().findChildren(QtWidgets.QMenu) for a in m.actions()}
+    assert wait_for(qapp, lambda: not menu["Run drum"].isEnabled(), 2)  # (mirrored at the next tick)
     assert not menu["Run drum"].isEnabled() and not menu["Connect..."].isEnabled()
     assert menu["Abort"].isEnabled() and menu["STOP (safe stop)"].isEnabled()
-    # the run's state is seen from any tab (the run strip above the tabs)
+    # the run's state and the operator's prompt are seen from any tab (the run strip above the tabs)
     assert window.protocol.run_strip.isVisible() and "Protocol safety" in window.protocol.run_label.text()
+    tab.job.events.put(("prompt", "Mount texture plate L"))  # what the runner asks on hardware
+    assert wait_for(qapp, lambda: tab.prompt_frame.isVisible(), 2)
+    assert tab.prompt_label.text() == "Mount texture plate L" and "operator: Mount texture plate L" in \
+        window.events.text()
+    qtbot.mouseClick(tab.prompt_ok, QtCore.Qt.LeftButton)
+    assert not tab.prompt_frame.isVisible()
     # paused: the rig is released, and still owned by the run
     qtbot.mouseClick(tab.pause_btn, QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: tab._paused, 30), tab.status.text()
