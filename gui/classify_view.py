@@ -93,13 +93,18 @@ class ClassifyView(QtWidgets.QWidget):
                                  f"features, {clf.n_pcs_} PCs, textures {', '.join(map(str, clf.classes_))} "
                                  f"(from {path})")
 
-    def _choose_model(self) -> None:
-        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Model file", "", "Model files (*.skops)")
-        if path:
-            try:
-                self.load_model(path)
-            except (OSError, ValueError) as exc:
-                self.model_label.setText(f"<span style='color:#c00'>cannot load {path}: {exc}</span>")
+    def _choose_model(self):
+        from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
+
+        return choose_path(self, "open", "Model file", "", "Model files (*.skops)", self._model_chosen)
+
+    def _model_chosen(self, path: str) -> None:
+        from rigctl_gui.messages import escaped
+
+        try:
+            self.load_model(path)
+        except (OSError, ValueError) as exc:
+            self.model_label.setText(f"<span style='color:#c00'>cannot load {escaped(path)}: {escaped(exc)}</span>")
 
     def clear(self) -> None:
         self.results.clear()

@@ -132,21 +132,21 @@ def _dialog_openers(window, tmp_path):
     def connect_file():
         return window.choose_source()._browse_file()
 
-    def calibration_file():
-        window.calibration.from_session_btn.click()
-        return next(d for d in open_dialogs() if isinstance(d, QtWidgets.QFileDialog))
-
-    def analysis_file():
-        window.analysis.open_btn.click()
-        return next(d for d in open_dialogs() if isinstance(d, QtWidgets.QFileDialog))
+    def new_file_dialog(click):
+        def opener():
+            click()
+            return next(d for d in open_dialogs() if isinstance(d, QtWidgets.QFileDialog))
+        return opener
 
     return {
         "open protocol": window.protocol._browse_protocol,
         "output file": window.protocol._browse_output,
         "connect": window.choose_source,
         "connect: session file": connect_file,
-        "calibration: session file": calibration_file,
-        "analysis: open": analysis_file,
+        "calibration: session file": new_file_dialog(window.calibration.from_session_btn.click),
+        "analysis: open": new_file_dialog(window.analysis.open_btn.click),
+        "analysis: export tables": new_file_dialog(window.analysis._export_csv_dialog),
+        "classification: model file": window.classify._choose_model,
     }
 
 
