@@ -71,13 +71,12 @@ def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25, 
     features, PCA + LDA) on every trial of the session an encoded file was made from, encoding as the file did
     (its parameters), and save it as a model file (:func:`rigctl.storage.model_file.save_model`, the format of
     ``rigctl analyze --save-model``). Returns the model file's path (default :func:`model_path_for`)."""
-    from rigctl.analysis.model import session_of, texture_pipeline, trials_of_session
+    from rigctl.analysis.model import model_info, session_of, texture_pipeline, trials_of_session
     from rigctl.storage.model_file import save_model
 
     session, params = session_of(path)
     trials, texture = trials_of_session(session)
     model = texture_pipeline(variant, n_pcs, params=params).fit(trials, texture)
     out = out_path or model_path_for(path, variant)
-    save_model(model, out, info={"variant": variant, "n_pcs": int(model[-1].n_pcs_), "session": str(session),
-                                 "analysed": str(path), "textures": [str(c) for c in model.classes_]})
+    save_model(model, out, info=model_info(model, session=session, analysed=path))
     return out

@@ -18,7 +18,7 @@ from sklearn.pipeline import Pipeline
 from rigctl.analysis.classify import TextureClassifier
 from rigctl.encoding.estimators import FeatureExtractor, ForceScaler, SpikeEncoder, TaxelNormaliser
 
-__all__ = ["texture_pipeline", "trials_of_session", "session_of", "force_leak"]
+__all__ = ["texture_pipeline", "model_info", "trials_of_session", "session_of", "force_leak"]
 
 
 def texture_pipeline(variant: str = "speed_scaled", n_pcs: int = 25, *, max_pcs: int | None = None, params=None,
@@ -50,6 +50,16 @@ def texture_pipeline(variant: str = "speed_scaled", n_pcs: int = 25, *, max_pcs:
               ("classify", TextureClassifier(variant, n_pcs=n_pcs, max_pcs=max_pcs or n_pcs,
                                              random_state=random_state))]
     return Pipeline(steps)
+
+
+def model_info(model: Pipeline, *, session, analysed) -> dict:
+    """What a model file records about a fitted :func:`texture_pipeline` (JSON-able): variant, PCs used, textures,
+    the session it was fitted on (absolute path) and the file analysed."""
+    from pathlib import Path
+
+    clf = model[-1]
+    return {"variant": clf.variant, "n_pcs": int(clf.n_pcs_), "textures": [str(c) for c in clf.classes_],
+            "session": str(Path(session).resolve()), "analysed": str(analysed)}
 
 
 def session_of(path):

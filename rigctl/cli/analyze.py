@@ -125,7 +125,7 @@ def _session_and_params(file):
 
 
 def _save_model(path, session, params, variant, n_pcs, max_pcs, *, source):
-    from rigctl.analysis.model import texture_pipeline, trials_of_session
+    from rigctl.analysis.model import model_info, texture_pipeline, trials_of_session
     from rigctl.storage.encoded import ALL_VARIANTS
     from rigctl.storage.model_file import save_model
 
@@ -137,8 +137,7 @@ def _save_model(path, session, params, variant, n_pcs, max_pcs, *, source):
     except ValueError as exc:
         raise click.ClickException(f"--save-model: {exc}") from None
     with replacing(path) as tmp:
-        save_model(model, tmp, info={"variant": variant, "n_pcs": int(model[-1].n_pcs_), "session": str(session),
-                                     "analysed": str(source), "textures": [str(c) for c in model.classes_]})
+        save_model(model, tmp, info=model_info(model, session=session, analysed=source))
     click.echo(f"saved the {variant} pipeline ({model[-1].n_pcs_} PCs, {len(trials)} trials) to {path}", err=True)
 
 
