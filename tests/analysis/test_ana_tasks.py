@@ -94,8 +94,11 @@ def test_realtime_profiles_and_calibration():
     fs.features = {"realtime_" + k: fs.features[k] for k in ("original", "speed_scaled")}
     other = fs.subset(np.arange(fs.n_trials))
     other.features = {k: v + 2.0 for k, v in fs.features.items()}  # session-to-session offset
-    res = run_realtime(fs, new_session=other, n_pcs=10, repeats=2, seed=1)
+    events = []
+    res = run_realtime(fs, new_session=other, n_pcs=10, repeats=2, seed=1, progress=events.append)
     assert set(res.curves) == {"rt_offline", "rt_trained", "rt_untrained", "rt_new_session"}
+    # progress events: one per repetition and variant
+    assert [(e.stage, e.done, e.total) for e in events] == [("realtime", k, 4) for k in range(5)]
     un = res.curves["rt_untrained"]
     assert un["realtime_speed_scaled"].at(10)[0] > un["realtime_original"].at(10)[0] + 0.2
     assert res.curves["rt_untrained"]["realtime_original"].n_tested == 5 * 8  # all fast trials
