@@ -46,6 +46,9 @@ TICK_HEIGHT = 0.8
 MIN_AUTO_SPAN = 0.02
 #: the info line is updated every this many refreshes (a label's text change costs a relayout)
 INFO_EVERY = 10
+#: the heat maps are updated every this many refreshes (10 Hz at the app's 40 Hz: a "now" map needs no more, and
+#: each update repaints the maps and their taxel numbers)
+HEATMAP_EVERY = 4
 
 
 def layer_titles(layout: SensorLayout, i: int) -> tuple[str, str]:
@@ -105,13 +108,15 @@ def peak_decimate(t: np.ndarray, x: np.ndarray, width_px: int, first_index: int 
 
     ``t`` (n,) s and ``x`` (n, k) readings; ``first_index`` is the absolute sample number of ``t[0]`` (bins are
     aligned to it, so a scrolling trace does not shimmer). With at most ``width_px`` samples nothing changes;
-    otherwise samples are binned ``step = ceil(n / width_px)`` at a time and each bin becomes two points (its
-    minimum at the bin's first time and its maximum at its last time, so the newest sample's time is always the
-    last point's): at most ``2 * width_px`` points, plus the oldest and the newest partial bins as they are. Returns
-    ``(t, x)`` (x of ``x``'s dtype).
+    otherwise samples are binned ``step = ceil(n / (width_px / 2))`` at a time (a bin per two pixel columns) and
+    each bin becomes two points (its minimum at the bin's first time and its maximum at its last time, so the newest
+    sample's time is always the last point's): at most ``width_px`` points, plus the oldest and the newest partial
+    bins as they are. Returns ``(t, x)`` (x of ``x``'s dtype).
     """
     n = len(t)
-    step = -(-n // max(int(width_px), 1))
+    if n <= width_px:
+        return t, x
+    step = -(-n // max(int(width_px) // 2, 1))
     if step < 2:
         return t, x
     skip = (-int(first_index)) % step
@@ -175,6 +180,41 @@ def auto_y_range(lo: float, hi: float, current: tuple[float, float] | None, adc_
     return (a, b) if b > a else (0.0, float(adc_max))
 
 
+class RasterItem(pg.GraphicsObject):
+    """A spike raster image (:func:`raster_image`) drawn into a rectangle of its plot: an opaque 32-bit image from a
+    small palette (Qt blits that several times faster than pyqtgraph's ImageItem's 24-bit or alpha images), row 0
+    at the rectangle's top in data coordinates (y = -0.5: the bottom taxel). ``image`` is the last array shown."""
+
+    def __init__(self, palette: list[QtGui.QColor]):
+        super().__init__()
+        self._palette = np.array([c.rgb() for c in palette], np.uint32)  # 0xffRRGGBB
+        self._rect = QtCore.QRectF(0, 0, 1, 1)
+        self._qimage = None
+        self._pixels = None
+        self.image = None
+
+    def setRect(self, rect: QtCore.QRectF) -> None:  # noqa: N802 - Qt style
+        if rect != self._rect:
+            self.prepareGeometryChange()
+            self._rect = QtCore.QRectF(rect)
+            self.update()
+
+    def setImage(self, counts: np.ndarray) -> None:  # noqa: N802 - Qt style
+        """Show ``(height, width)`` uint8 spike counts (0, 1, 2+ -> the palette's colours)."""
+        self.image = counts
+        self._pixels = np.ascontiguousarray(self._palette[np.minimum(counts, len(self._palette) - 1)])
+        h, w = counts.shape
+        self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format_RGB32)
+        self.update()
+
+    def boundingRect(self) -> QtCore.QRectF:  # noqa: N802 - Qt override
+        return QtCore.QRectF(self._rect)
+
+    def paint(self, p, *args) -> None:
+        if self._qimage is not None:
+            p.drawImage(self._rect, self._qimage)
+
+
 class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
     """A GraphicsLayoutWidget that records when each paint finished (for the frame-to-screen latency)."""
 
@@ -208,6 +248,8 @@ class LiveView(QtWidgets.QWidget):
         self.paint_times = np.full(512, np.nan)
         self._paint_n = 0
         self._refresh_n = 0
+        #: the readings (one frame, ADC counts) the heat maps show
+        self.heatmap_frame = None
 
         self.window_box = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=1, minimum=WINDOW_RANGE_S[0],
                                                    maximum=WINDOW_RANGE_S[1], singleStep=0.5, value=self.window_s)
@@ -295,12 +337,8 @@ class LiveView(QtWidgets.QWidget):
             p.setYRange(-0.5, n - 0.5, padding=0)
             p.setLabel("left", "taxel")
             p.getAxis("left").setTicks([raster_ticks(layout)])
-            img = pg.ImageItem(axisOrder="row-major")
             colour = QtGui.QColor(RASTER_COLOURS[key])
-            lut = np.array([[255, 255, 255, 0], [*colour.getRgb()[:3], 255], [*colour.darker(170).getRgb()[:3], 255]],
-                           np.uint8)
-            img.setLookupTable(lut)
-            img.setLevels((0, 2))
+            img = RasterItem([QtGui.QColor("white"), colour, colour.darker(170)])
             img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, n))
             p.addItem(img)
             self.raster_plots[key] = p
@@ -330,12 +368,16 @@ class LiveView(QtWidgets.QWidget):
                 "   ".join(f"{ch0 + r * la.cols + c}: {labels[ch0 + r * la.cols + c]}" for c in range(la.cols))
                 for r in range(la.rows)))
             vb.addItem(img)
+            # a fixed range: no auto-range pass (and relayout of the numbers) each time the image changes
+            vb.disableAutoRange()
+            vb.setRange(xRange=(0, la.cols), yRange=(0, la.rows), padding=0)
             if la.n_channels <= 64:  # the taxel numbers, top left in each cell, on a pale box (any colour under it)
                 for r in range(la.rows):
                     for c in range(la.cols):
                         t = pg.TextItem(str(ch0 + r * la.cols + c), color="k", fill=pg.mkBrush(255, 255, 255, 190),
                                         anchor=(0, 0))
                         t.setFont(font)
+                        t.textItem.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)  # drawn once
                         t.setPos(c + 0.03, r + 0.03)
                         vb.addItem(t)
                         self.taxel_labels.append(t)
@@ -378,6 +420,7 @@ class LiveView(QtWidgets.QWidget):
         # every frame of the longest window is kept; drawing decimates to the pixel width
         self.buffer = TraceBuffer(taxels.ring, seconds=WINDOW_RANGE_S[1], decimate=1, layout=layout)
         self.encoder = encoder
+        self._refresh_n = 0  # the first refresh draws everything
 
     def detach(self) -> None:
         self.encoder = self.buffer = None
@@ -410,9 +453,10 @@ class LiveView(QtWidgets.QWidget):
                 if r is not None:
                     self._y_ranges[i] = r
                     p.setYRange(*r, padding=0)
-        cur = buf.current.astype(float)
-        for img, chans, la in zip(self.images, self._layer_channels, self.layout.layers):
-            img.setImage(cur[chans.start:chans.stop].reshape(la.rows, la.cols), autoLevels=False)
+        if self._refresh_n % HEATMAP_EVERY == 0:
+            self.heatmap_frame = cur = buf.current.copy()
+            for img, chans, la in zip(self.images, self._layer_channels, self.layout.layers):
+                img.setImage(cur[chans.start:chans.stop].reshape(la.rows, la.cols).astype(float), autoLevels=False)
         if enc is not None:
             n = self.layout.n_channels
             height = max(int(round(self.raster_plots["sa"].vb.height())), 1)
@@ -420,9 +464,7 @@ class LiveView(QtWidgets.QWidget):
                 st, sc = ring.since(now - self.window_s)
                 st = st - now
                 self.drawn[key] = (st, sc)
-                img = self.raster_images[key]
-                img.setImage(raster_image(st, sc, n, self.window_s, width, height), autoLevels=False)
-                img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, n))
+                self.raster_images[key].setImage(raster_image(st, sc, n, self.window_s, width, height))
             if self._refresh_n % INFO_EVERY == 0:
                 err = enc.encoder_error
                 state = "" if enc.ready else " (encoder starting: compiling kernels)"

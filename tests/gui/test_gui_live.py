@@ -23,8 +23,8 @@ def test_live_traces_heatmap_and_rasters(window, qapp):
     # traces: the last window of every taxel, x = seconds before now
     x, y = live.curves[0].getData()
     assert len(x) > 100 and x[-1] == 0.0 and x[0] >= -live.window_s - 1e-9
-    # heat map: the newest readings, top and bottom layer as 3x3
-    cur = live.buffer.current.astype(float)
+    # heat map: the newest readings at its last update (10 Hz), top and bottom layer as 3x3
+    cur = live.heatmap_frame.astype(float)
     np.testing.assert_array_equal(live.images[0].image, cur[:9].reshape(3, 3))
     np.testing.assert_array_equal(live.images[1].image, cur[9:].reshape(3, 3))
     # rasters: one image each on the traces' time axis, every spike of the window drawn, taxels 0-17
