@@ -111,6 +111,8 @@ def test_rapid_browsing_ends_on_the_selected_trial(window, qapp, qtbot, dataset)
 
     tab = window.analysis
     window.tabs.setCurrentWidget(tab)
+    if tab.path != str(dataset):
+        tab.open(str(dataset))
     tab.trials.selectRow(0)
     tab.trials.setFocus()
     for _ in range(11):
