@@ -1,19 +1,29 @@
-"""Encoder benchmark: the same input through our numba encoder, a per-sample Python loop and Brian2, side by side.
+"""Encoder benchmark: one input through the fused float32 kernel, the float64 reference, the per-sample Python loop
+and Brian2 (default runtime target and cpp_standalone), side by side, spike-count agreement beside the speeds.
 
-Input: ``--trials`` trials x ``--seconds`` s at 1 kHz x 18 taxels of texture-like normalised readings (float64),
-SA encoding (tonic spiking, k = 100; paper eqs. 3-5). A neuron-step = one neuron advanced by one 1 ms sample.
+Input: ``--trials`` trials x ``--seconds`` s at 1 kHz x 18 taxels of texture-like readings as raw 10-bit uint16 ADC
+counts (the pipeline's input); the normalised copy ``(raw - min) / (max - min)`` (float64) feeds the float64
+reference, the Python loop and Brian2, so every implementation sees the same input. SA encoding (tonic spiking,
+k = 100; paper eqs. 3-5); the SA+RA row runs both populations (2 neurons per taxel). A neuron-step = one neuron
+advanced by one 1 ms sample.
 
-- ours: ``run_izhikevich`` (counts only) and ``encode_sa`` (spike times, NWB layout) on all cores (2 here);
-  best of ``--repeats`` runs after a warm-up (compilation excluded; the numba cache makes it a one-off anyway);
-- per-sample loop: plain Python, one neuron and sample at a time (on a slice; its rate is per neuron-step);
-- Brian2: ``brian2_izhikevich.py`` run with benchmarks/.venv-brian2/bin/python (``bash benchmarks/brian2_venv.sh``
-  makes it) or this Python if it imports brian2; Brian2's default runtime target (cython when it compiles); Euler
-  at dt = 0.5 ms; compile time reported separately.
+- fused float32 (rigctl.encoding.fused.run_fused): from the raw uint16 counts, normalisation in the kernel, counts
+  only / NWB spike times; all cores; best of ``--repeats`` after a warm-up (compilation excluded, numba caches it);
+- float64 reference: the same kernel in float64 on the normalised input (what the band is measured against), and
+  the previous float64 kernel (``run_izhikevich``);
+- per-sample loop: plain Python, one neuron and sample at a time, float64 (on a slice; a rate per neuron-step);
+- Brian2 (benchmarks/.venv-brian2, ``bash benchmarks/brian2_venv.sh``): Euler at dt = 0.5 ms (its nearest scheme),
+  default runtime target and cpp_standalone (one thread; compile time reported apart).
 
-Targets (issue 3): >= 1e9 neuron-steps/s on 2 cores, >= 20x Brian2. The spike counts of the three are compared
-(mean rate per neuron) so that the speed figures are for the same work.
+Agreement: per train with >= 20 reference spikes, |count - reference| / reference (median, p99, max), next to the
+model's own sensitivity: the float64 reference against itself on the input nudged by 1 ulp.
 
-Usage: python benchmarks/bench_encoder.py [--trials 128] [--seconds 6] [--repeats 5] [--no-brian2] [--json]
+Targets (issue 12): fused SA spike times from raw uint16 >= 2e9 neuron-steps/s; >= 100x Brian2's default target;
+>= 10x Brian2 cpp_standalone. On a shared machine the wall figures fall with other load (the load average is
+printed); per CPU-second figures do not (much).
+
+Usage: python benchmarks/bench_encoder.py [--trials 128] [--seconds 6] [--repeats 5] [--no-brian2]
+       [--no-standalone] [--json]
 """
 
 from __future__ import annotations
@@ -32,26 +42,27 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from rigctl.encoding.izhikevich import encode_sa, run_izhikevich  # noqa: E402
+from rigctl.encoding.fused import run_fused  # noqa: E402
+from rigctl.encoding.izhikevich import as_ragged, run_izhikevich  # noqa: E402
 
 
-def make_input(n_trials: int, n_samples: int, n_ch: int = 18, seed: int = 0) -> np.ndarray:
+def make_raw(n_trials: int, n_samples: int, n_ch: int = 18, seed: int = 0) -> np.ndarray:
+    """(n_trials, n_samples, n_ch) uint16 10-bit ADC counts, texture-like (slow sinusoids + noise)."""
     rng = np.random.default_rng(seed)
     t = np.arange(n_samples)[None, :, None] / 1000.0
     f = rng.uniform(2, 20, size=(n_trials, 1, n_ch))
     base = rng.uniform(0.1, 0.6, size=(n_trials, 1, n_ch))
     x = base + 0.3 * np.sin(2 * np.pi * f * t) + 0.02 * rng.standard_normal((n_trials, n_samples, n_ch))
-    return np.clip(x, 0.0, 1.0)
+    return np.round(100 + 800 * np.clip(x, 0.0, 1.0)).astype(np.uint16)
 
 
 def python_loop(x2d: np.ndarray, k: float = 100.0) -> np.ndarray:
-    """Per-sample reference: (n_samples, n_neurons) -> spike counts."""
+    """Per-sample reference: (n_samples, n_neurons) normalised float64 -> spike counts."""
     a, b, c, d = 0.02, 0.2, -65.0, 6.0
     counts = np.zeros(x2d.shape[1], dtype=int)
     for j in range(x2d.shape[1]):
         v, u = c, b * c
-        col = x2d[:, j].tolist()
-        for i_in in col:
+        for i_in in x2d[:, j].tolist():
             i_in *= k
             v = v + 0.5 * (0.04 * v * v + 5 * v + 140 - u + i_in)
             v = v + 0.5 * (0.04 * v * v + 5 * v + 140 - u + i_in)
@@ -63,33 +74,53 @@ def python_loop(x2d: np.ndarray, k: float = 100.0) -> np.ndarray:
     return counts
 
 
-def best_rate(fn, steps: int, repeats: int) -> tuple[float, float, float]:
-    """(best wall rate, median wall rate, rate per CPU-second of this process) in neuron-steps/s.
-
-    On a shared machine the wall-clock rate drops with other load; steps per CPU-second does not (much), and times
-    the core count it estimates what the cores give when they are free.
-    """
-    fn()  # warm-up (compile / cache load)
-    times, cpu = [], []
+def timed(fn, steps: int, repeats: int) -> dict:
+    """Best and median wall rate and the rate per CPU-second (neuron-steps/s); the last result."""
+    out = fn()  # warm-up (compile / cache load)
+    walls, cpus = [], []
     for _ in range(repeats):
-        c0 = time.process_time()
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return steps / min(times), steps / float(np.median(times)), steps / float(np.median(cpu))
+        c0, t0 = time.process_time(), time.perf_counter()
+        out = fn()
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    return {"best": steps / min(walls), "median": steps / float(np.median(walls)),
+            "per_cpu_s": steps / float(np.median(cpus)), "result": out}
+
+
+def agreement(counts: np.ndarray, ref: np.ndarray, min_count: int = 20) -> dict:
+    """|counts - ref| / ref over the trains with at least ``min_count`` reference spikes."""
+    c, r = np.asarray(counts).ravel(), np.asarray(ref).ravel()
+    m = r >= min_count
+    rel = np.abs(c[m] - r[m]) / r[m]
+    return {"n_trains": int(m.sum()), "median": float(np.median(rel)), "p99": float(np.quantile(rel, 0.99)),
+            "max": float(rel.max()), "exact": float(np.mean(c == r)), "mean_rate_ratio": float(c.sum() / r.sum())}
 
 
 def brian2_python() -> str | None:
-    venv = HERE / ".venv-brian2" / "bin" / "python"
-    if venv.exists():
-        return str(venv)
+    for venv in sorted(HERE.glob(".venv*")):
+        py = venv / "bin" / "python"
+        if py.exists() and subprocess.run([str(py), "-c", "import brian2"], capture_output=True).returncode == 0:
+            return str(py)
     try:
         import brian2  # noqa: F401
 
         return sys.executable
     except ImportError:
         return None
+
+
+def run_brian2(py: str, xn2d: np.ndarray, target: str) -> dict:
+    with tempfile.TemporaryDirectory() as d:
+        inp, out = Path(d) / "x.npy", Path(d) / "out.json"
+        np.save(inp, xn2d)
+        p = subprocess.run([py, str(HERE / "brian2_izhikevich.py"), str(inp), str(out), target],
+                           capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=""), cwd=d)
+        if p.returncode != 0:
+            return {"error": p.stderr[-800:]}
+        b = json.loads(out.read_text())
+    b["steps_per_s"] = b["neuron_steps"] / b["run_s"]
+    b["steps_per_cpu_s"] = b["neuron_steps"] / b["run_cpu_s"]
+    return b
 
 
 def main(argv=None) -> int:
@@ -99,97 +130,97 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--loop-neurons", type=int, default=4)
     ap.add_argument("--no-brian2", action="store_true")
+    ap.add_argument("--no-standalone", action="store_true", help="skip Brian2 cpp_standalone (a long compile)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
 
     n_samples = int(args.seconds * 1000)
-    x = make_input(args.trials, n_samples)
-    steps = x.size
-    res = {"trials": args.trials, "samples": n_samples, "neurons": args.trials * 18, "neuron_steps": steps,
-           "cores": os.cpu_count(), "load_avg": os.getloadavg()[0]}
-
-    best, med, per_cpu = best_rate(lambda: run_izhikevich(x, k=100.0, want_raster=False), steps, args.repeats)
-    res["ours_counts_steps_per_s"], res["ours_counts_steps_per_s_median"] = best, med
-    res["ours_counts_steps_per_cpu_s"] = per_cpu
-    best, med, per_cpu = best_rate(lambda: encode_sa(x), steps, args.repeats)
-    res["ours_spike_times_steps_per_s"], res["ours_spike_times_steps_per_s_median"] = best, med
-    res["ours_spike_times_steps_per_cpu_s"] = per_cpu
-    ours_counts = run_izhikevich(x, k=100.0, want_raster=False)[0].reshape(-1)
-    res["ours_mean_rate_hz"] = float(ours_counts.mean() / args.seconds)
-
+    raw = make_raw(args.trials, n_samples)
+    lo = raw.reshape(-1, 18).min(axis=0).astype(np.float64)
+    hi = raw.reshape(-1, 18).max(axis=0).astype(np.float64)
+    off, scl = lo, 1.0 / (hi - lo)
+    xn = (raw - off) * scl  # the same input, normalised, float64
+    rg, rgn = as_ragged(raw), as_ragged(xn)
+    steps = raw.size
+    res: dict = {"trials": args.trials, "samples": n_samples, "taxels": 18, "neuron_steps_sa": steps,
+                 "cores": os.cpu_count(), "load_avg_start": os.getloadavg()}
+    fused = dict(offset=off, scale=scl)
+    rows = {
+        "fused float32, SA counts (raw uint16)":
+            timed(lambda: run_fused(rg.data, rg.starts, ra=False, want_times=False, **fused).counts[0], steps,
+                  args.repeats),
+        "fused float32, SA spike times NWB (raw uint16)":
+            timed(lambda: run_fused(rg.data, rg.starts, ra=False, **fused).sa[0].counts(), steps, args.repeats),
+        "fused float32, SA+RA spike times NWB (raw uint16)":
+            timed(lambda: run_fused(rg.data, rg.starts, **fused).sa[0].counts(), 2 * steps, args.repeats),
+        "float64 reference, SA spike times (fused kernel)":
+            timed(lambda: run_fused(rgn.data, rgn.starts, ra=False, dtype=np.float64).sa[0].counts(), steps,
+                  args.repeats),
+        "previous float64 kernel, SA counts":
+            timed(lambda: run_izhikevich(rgn, k=100.0, want_raster=False)[0], steps, args.repeats),
+    }
+    ref = rows["float64 reference, SA spike times (fused kernel)"]["result"]
+    nudged = run_fused(np.nextafter(rgn.data, np.inf), rgn.starts, ra=False, dtype=np.float64,
+                       want_times=False).counts[0]
+    res["band_1ulp"] = agreement(nudged, ref)
+    for name, r in rows.items():
+        r["agreement"] = agreement(r.pop("result"), ref)
     # per-sample loop on a slice of the same input (trial 0, first loop_neurons taxels)
-    sl = x[0][:, : args.loop_neurons]
-    t0, c0 = time.perf_counter(), time.process_time()
+    sl = xn[0][:, : args.loop_neurons]
+    c0, t0 = time.process_time(), time.perf_counter()
     loop_counts = python_loop(sl)
-    res["loop_steps_per_s"] = sl.size / (time.perf_counter() - t0)
-    res["loop_steps_per_cpu_s"] = sl.size / (time.process_time() - c0)
-    res["loop_counts_equal_ours"] = bool(np.array_equal(loop_counts, ours_counts[: args.loop_neurons]))
-
+    rows["per-sample Python loop (float64)"] = {
+        "best": sl.size / (time.perf_counter() - t0), "per_cpu_s": sl.size / (time.process_time() - c0),
+        "agreement": {"exact": float(np.mean(loop_counts == ref[0, : args.loop_neurons])),
+                      "n_trains": args.loop_neurons}}
     py = None if args.no_brian2 else brian2_python()
     if py is None:
         res["brian2"] = "not run (bash benchmarks/brian2_venv.sh makes benchmarks/.venv-brian2)"
     else:
-        with tempfile.TemporaryDirectory() as d:
-            inp = Path(d) / "x.npy"
-            out = Path(d) / "out.json"
-            # neurons = trials x taxels, in the same order as ours
-            np.save(inp, np.ascontiguousarray(x.transpose(1, 0, 2).reshape(n_samples, -1)))
-            env = dict(os.environ, PYTHONPATH="")
-            p = subprocess.run([py, str(HERE / "brian2_izhikevich.py"), str(inp), str(out)], capture_output=True,
-                               text=True, env=env, cwd=d)
-            if p.returncode != 0:
-                res["brian2"] = "failed: " + p.stderr[-800:]
-            else:
-                b = json.loads(out.read_text())
-                res["brian2_version"] = b["brian2_version"]
-                res["brian2_target"] = b["target"]
-                res["brian2_compile_s"] = b["compile_s"]
-                res["brian2_steps_per_s"] = b["neuron_steps"] / b["run_s"]
-                res["brian2_steps_per_cpu_s"] = b["neuron_steps"] / b["run_cpu_s"]
-                res["brian2_mean_rate_hz"] = float(np.mean(b["spike_counts"]) / args.seconds)
+        xn2d = np.ascontiguousarray(xn.transpose(1, 0, 2).reshape(n_samples, -1))  # neurons: trial-major, taxel
+        for target in ("runtime",) + (() if args.no_standalone else ("cpp_standalone",)):
+            b = run_brian2(py, xn2d, target)
+            if "error" in b:
+                res[f"brian2_{target}"] = b["error"]
+                continue
+            rows[f"Brian2 {b['brian2_version']} {target}"] = {
+                "best": b["steps_per_s"], "per_cpu_s": b["steps_per_cpu_s"], "compile_s": b["compile_s"],
+                "agreement": agreement(np.asarray(b["spike_counts"]).reshape(args.trials, 18), ref)}
+    res["rows"] = rows
+    res["load_avg_end"] = os.getloadavg()
 
-    if not args.json:
-        print(f"input: {args.trials} trials x {n_samples} samples x 18 taxels = {steps:.3g} neuron-steps "
-              f"({res['cores']} cores, load average {res['load_avg']:.1f})")
-        print(f"{'implementation':38s} {'neuron-steps/s':>15s} {'vs Brian2':>10s} {'vs loop':>9s}")
-        ref_b = res.get("brian2_steps_per_s")
-        rows = [("ours, counts (best)", res["ours_counts_steps_per_s"]),
-                ("ours, counts (median)", res["ours_counts_steps_per_s_median"]),
-                ("ours, spike times NWB (best)", res["ours_spike_times_steps_per_s"]),
-                ("ours, spike times NWB (median)", res["ours_spike_times_steps_per_s_median"]),
-                ("per-sample Python loop", res["loop_steps_per_s"])]
-        if ref_b:
-            rows.append((f"Brian2 {res['brian2_version']} ({res['brian2_target']})", ref_b))
-        for name, r in rows:
-            vb = f"{r / ref_b:9.1f}x" if ref_b else "       -"
-            print(f"{name:38s} {r:15.3g} {vb:>10s} {r / res['loop_steps_per_s']:8.0f}x")
-        print("per CPU-second (insensitive to other load on a shared machine; x cores = capacity):")
-        cpu_rows = [("ours, counts", res["ours_counts_steps_per_cpu_s"]),
-                    ("ours, spike times NWB", res["ours_spike_times_steps_per_cpu_s"]),
-                    ("per-sample Python loop", res["loop_steps_per_cpu_s"])]
-        ref_bc = res.get("brian2_steps_per_cpu_s")
-        if ref_bc:
-            cpu_rows.append(("Brian2", ref_bc))
-        for name, r in cpu_rows:
-            vb = f"{r / ref_bc:9.1f}x" if ref_bc else "       -"
-            print(f"  {name:36s} {r:15.3g} {vb:>10s} {r / res['loop_steps_per_cpu_s']:8.0f}x")
-        print(f"  ours, counts x {res['cores']} cores: {res['ours_counts_steps_per_cpu_s'] * res['cores']:.3g} "
-              "neuron-steps/s when the cores are free")
-        print(f"mean SA rate: ours {res['ours_mean_rate_hz']:.1f} Hz"
-              + (f", Brian2 {res['brian2_mean_rate_hz']:.1f} Hz" if ref_b else "")
-              + f"; loop counts == ours: {res['loop_counts_equal_ours']}")
-        if ref_b:
-            print(f"Brian2 compile (first run) {res['brian2_compile_s']:.1f} s")
-        else:
-            print("Brian2:", res["brian2"])
-        ok1 = res["ours_counts_steps_per_s"] >= 1e9
-        line = f"target >= 1e9 neuron-steps/s (wall): {'met' if ok1 else 'NOT met'}"
-        if ref_b:
-            ok2 = res["ours_counts_steps_per_s"] >= 20 * ref_b
-            line += f"; target >= 20x Brian2 (wall): {'met' if ok2 else 'NOT met'}"
-        print(line)
-    else:
-        print(json.dumps(res, indent=2))
+    key = "fused float32, SA spike times NWB (raw uint16)"
+    ours = rows[key]["best"]
+    targets = {"fused SA spike times from raw uint16 >= 2e9 neuron-steps/s": (ours / 2e9, ours >= 2e9)}
+    for name, r in rows.items():
+        if name.startswith("Brian2") and name.endswith("runtime"):
+            targets[">= 100x Brian2 default target"] = (ours / r["best"] / 100, ours >= 100 * r["best"])
+        if name.startswith("Brian2") and name.endswith("cpp_standalone"):
+            targets[">= 10x Brian2 cpp_standalone"] = (ours / r["best"] / 10, ours >= 10 * r["best"])
+    res["targets"] = {k: {"ratio_to_target": v[0], "met": v[1]} for k, v in targets.items()}
+    if args.json:
+        print(json.dumps(res, indent=2, default=float))
+        return 0
+    print(f"input: {args.trials} trials x {n_samples} samples x 18 taxels = {steps:.3g} SA neuron-steps "
+          f"({res['cores']} cores, load average {res['load_avg_start'][0]:.1f} at start, "
+          f"{res['load_avg_end'][0]:.1f} at end)")
+    print(f"{'implementation':50s} {'steps/s':>9s} {'per CPU-s':>9s} {'x ours':>7s}   SA counts vs float64 ref "
+          "(trains >= 20 spikes)")
+    for name, r in rows.items():
+        a = r["agreement"]
+        agr = (f"median {a['median']:.2%} p99 {a['p99']:.2%} max {a['max']:.2%} exact {a['exact']:.0%}"
+               if "median" in a else f"exact {a['exact']:.0%} of {a['n_trains']} trains")
+        extra = f" (compile {r['compile_s']:.0f} s)" if "compile_s" in r else ""
+        print(f"{name:50s} {r['best']:9.3g} {r['per_cpu_s']:9.3g} {ours / r['best']:6.1f}x   {agr}{extra}")
+    b1 = res["band_1ulp"]
+    print(f"{'model sensitivity: float64 ref, input + 1 ulp':50s} {'':9s} {'':9s} {'':7s}   median {b1['median']:.2%} "
+          f"p99 {b1['p99']:.2%} max {b1['max']:.2%} exact {b1['exact']:.0%}")
+    for k in ("brian2", "brian2_runtime", "brian2_cpp_standalone"):
+        if k in res:
+            print(f"{k}: {res[k]}")
+    print("targets (wall, best of repeats; ratio >= 1 = met):")
+    for k, v in res["targets"].items():
+        print(f"  {k}: {v['ratio_to_target']:.2f} ({'met' if v['met'] else 'NOT met'})")
     return 0
 
 
