@@ -204,6 +204,11 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
             st["lo"][low] = mid[low]
             high = open_ & ~ok & (r >= st["target"])
             st["hi"][high] = mid[high]
+            # once the kernel's gains at lo and hi (k C in its dtype) are equal or adjacent numbers, every further
+            # midpoint rounds to one of them: an input already run, so the rate can no longer come within eps
+            # (a jump of the rate): stop the coefficient, not converged, as max_iter would leave it
+            g_lo, g_hi = (k * st["lo"]).astype(dtype), (k * st["hi"]).astype(dtype)
+            st["done"] |= open_ & ~ok & (np.nextafter(g_lo, np.inf) >= g_hi)
     # not converged: the bracket closed on a jump of the rate (or the target is out of reach below c_max).
     return [ForceFit(st["coeffs"], st["converged"], st["target"], st["rate"], st["n_iter"]) for st in state]
 
