@@ -226,6 +226,26 @@ def test_a_schema_2_file_opens_as_the_paper_sensor_and_can_be_resumed(tmp_path):
         assert s.layout is PAPER_SENSOR and s.textures.labels == ("1", "2") and not s.textures.has_groups
 
 
+def test_a_schema_2_file_encodes_like_its_trials(tmp_path):
+    """An old (schema 2) session goes through the encoder's block read path: the features are those of its trial
+    read the TrialData way and encoded by the batch encoder."""
+    from rigctl.encoding.features import spike_features
+    from rigctl.encoding.izhikevich import encode_ra, encode_sa
+    from rigctl.encoding.normalise import TaxelRange
+    from rigctl.encoding.pipeline import encode_session
+    from rigctl.storage.encoded import open_encoded
+
+    path = tmp_path / "old.h5"
+    _write_schema2(path, ["B"], n_samples=600)
+    with open_session(path) as s:
+        x = s.trial(0).taxels
+    rng_ = TaxelRange().update(x)
+    want = spike_features(encode_sa(x, normalise=rng_), encode_ra(x, normalise=rng_), n_windows=6)
+    out = encode_session(path, tmp_path / "old.enc.h5", variants=["original"], store_spikes=(), progress=None)
+    with open_encoded(out) as f:
+        np.testing.assert_array_equal(f.features("original"), want)
+
+
 def test_a_schema_2_fabricslide_import_opens_with_its_16_present_channels(tmp_path):
     path = tmp_path / "fs.h5"
     present = np.array([True] * 16 + [False] * 2)
