@@ -181,7 +181,8 @@ class TrialData:
         if n < 6:
             return math.nan
         assert self.seq is not None and self.host_time_s is not None
-        steps = (np.diff(self.seq.astype(np.int64)) & 0xFFFF).astype(np.int64)
+        seq = np.asarray(self.seq, dtype=np.int64)
+        steps = ((seq[1:] - seq[:-1]) & 0xFFFF).astype(np.int64)
         steps[steps == 0] = 1
         index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
         lag = self.host_time_s - index / self.layout.sample_rate_hz  # delay + drift, relative to the nominal rate

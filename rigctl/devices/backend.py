@@ -7,7 +7,8 @@ ports their virtual boards open.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices.drum import DrumClient
@@ -24,7 +25,7 @@ def console_prompt(message: str) -> None:
 class OperatorMounter:
     """:class:`rigctl.core.interfaces.PlateMounter` for hardware: asks the operator to mount the plate by label."""
 
-    def __init__(self, prompt: Callable[[str], Any] | None = None):
+    def __init__(self, prompt: Callable[[str], Any] | None = None) -> None:
         self.prompt = prompt
 
     def mount(self, label: str, textures: TextureSet, prompt: Callable[[str], Any] | None = None) -> None:
@@ -65,7 +66,7 @@ class SerialBackend(PortBackend):
     mode = "hardware"
 
     def __init__(self, drum_port: str, taxel_port: str, *, prompt: Callable[[str], Any] | None = None,
-                 textures: TextureSet | None = None):
+                 textures: TextureSet | None = None) -> None:
         self.drum_port = str(drum_port)
         self.taxel_port = str(taxel_port)
         self.mounter = OperatorMounter(prompt)
@@ -74,8 +75,8 @@ class SerialBackend(PortBackend):
     def __enter__(self) -> "SerialBackend":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         pass
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {"mode": self.mode, "drum_port": self.drum_port, "taxel_port": self.taxel_port, "seed": None}

@@ -27,6 +27,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -110,7 +111,7 @@ class _Expect:
     address: int | None = None  #: echoed by writes
     value: int | None = None  #: echoed by a function-6 write
 
-    def mismatch(self, response) -> str | None:
+    def mismatch(self, response: Any) -> str | None:
         """None if ``response`` answers a request of this shape, else what is wrong with it. Fields a response does
         not carry (an in-process transport's responses) are not checked."""
         fc = getattr(response, "function_code", None)
@@ -208,7 +209,8 @@ class DrumClient:
     """
 
     def __init__(self, port: str, *, baudrate: int = wire.DRUM_BAUD, device_id: int = wire.DRUM_DEVICE_ID,
-                 timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05, transport=None, clock=None):
+                 timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05, transport: Any = None,
+                 clock: Any = None) -> None:
         self.port = port
         self.device_id = device_id
         self.timeout_s = timeout_s
@@ -243,11 +245,11 @@ class DrumClient:
     def __enter__(self) -> "DrumClient":
         return self.open()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ raw register access
-    def _call(self, what: str, expect: _Expect, register: str, shown=None, **kwargs):
+    def _call(self, what: str, expect: _Expect, register: str, shown: Any = None, **kwargs: Any) -> Any:
         """Send one request (``what``: the pymodbus method) and return its matched response; see the module doc.
 
         Raises DrumTimeout (no matching answer after ``retries`` retries), ModbusExceptionError, DrumError."""
@@ -293,7 +295,7 @@ class DrumClient:
             self._rx = bytes(data)
         return data
 
-    def _exchange(self, what: str, expect: _Expect, kwargs):
+    def _exchange(self, what: str, expect: _Expect, kwargs: Any) -> Any:
         """One request and its response: the response, or None (timeout, or a response that does not match; the
         link is then unsettled)."""
         self._rx = b""
@@ -314,7 +316,7 @@ class DrumClient:
         self._unsettled = self._on_link
         return None
 
-    def _discard(self, frames: list, why: str) -> None:
+    def _discard(self, frames: list[Any], why: str) -> None:
         self.stale_responses += len(frames)
         log.warning("drum controller on %s: discarded %d stale response(s): %s", self.port, len(frames), why)
 
@@ -323,7 +325,7 @@ class DrumClient:
         """Requests go over a serial link (pymodbus' RTU client), where an answer can come late."""
         return isinstance(getattr(self._client, "framer", None), FramerRTU)
 
-    def _frames(self, data: bytes) -> list:
+    def _frames(self, data: bytes) -> list[Any]:
         """The Modbus RTU responses (pymodbus PDUs) of this device in ``data``, in order; bytes that are not part of
         a valid frame are skipped. Empty for a transport without pymodbus' RTU framer."""
         if not self._on_link or not data:
@@ -349,18 +351,19 @@ class DrumClient:
             p += 1
         return out
 
-    def _flush_input(self, pending: _Expect | None):
+    def _flush_input(self, pending: _Expect | None) -> Any:
         """Discard what waits in the input before a request is sent (responses in it are counted, and unsettle the
         link). Returns the echo of the write ``pending`` if it is there (it was carried out), else None."""
         sock = getattr(self._client, "socket", None)
         waiting = sock.in_waiting if sock is not None else 0
         if not waiting:
             return None
-        frames = self._frames(sock.read(waiting))
+        frames = self._frames(sock.read(waiting))  # type: ignore[union-attr]  # waiting > 0: a socket
         _, echo = self._sort_out(frames, pending)
         return echo
 
-    def _sort_out(self, frames: list, pending: _Expect | None, fence: _Expect | None = None):
+    def _sort_out(self, frames: list[Any], pending: _Expect | None,
+                  fence: _Expect | None = None) -> tuple[bool, Any]:
         """Responses that arrived unasked: ``(fence answered, echo)``. The fence's answer settles the link (frames
         after it are discarded); the echo of the write ``pending`` means it was carried out; every other frame is
         discarded and counted, and unsettles the link."""
@@ -379,7 +382,7 @@ class DrumClient:
             self._unsettled = True
         return False, echo
 
-    def _fence(self, pending: _Expect | None):
+    def _fence(self, pending: _Expect | None) -> tuple[bool, Any]:
         """Settle the link: read ``k`` input registers from 0 (``k`` a count no unanswered fence or request has)
         and discard every response before the answer. Returns ``(settled, echo)``: whether the answer came within
         ``timeout_s``, and the echo of the write ``pending`` if it arrived meanwhile."""
@@ -417,9 +420,9 @@ class DrumClient:
             frames = self._frames(self._client.recv(None))
 
     @staticmethod
-    def _name(table, address: int) -> str:
+    def _name(table: Any, address: int) -> str:
         try:
-            return table(address).name
+            return str(table(address).name)
         except ValueError:
             return f"{'holding' if table is HR else 'input'} register {address}"
 
@@ -584,7 +587,7 @@ class DrumClient:
         """All input registers in one request, decoded (signed registers as two's complement)."""
         return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
 
-    def _wait(self, done, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
+    def _wait(self, done: Any, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
         clock = self.clock
         deadline = clock.now() + timeout_s
         status = None
@@ -600,7 +603,7 @@ class DrumClient:
                     f"force {status.force_g:g} g, speed {status.speed_mm_s:g} mm/s)")
             clock.sleep(self.poll_s)
 
-    def wait_state(self, states, timeout_s: float) -> DrumStatus:
+    def wait_state(self, states: Any, timeout_s: float) -> DrumStatus:
         """Poll until the state is one of ``states``; returns the status. DrumFault on a fault (unless FAULT is
         awaited), DrumTimeout on timeout."""
         states = {DrumState(s) for s in ([states] if isinstance(states, (int, DrumState)) else states)}
@@ -627,7 +630,7 @@ class DrumClient:
     def wait_speed_steady(self, timeout_s: float, tol_mm_s: float = 0.5, n_polls: int = 3) -> DrumStatus:
         """Poll until the drum speed is within ``tol_mm_s`` of the profile's target for ``n_polls`` polls in a row
         with the target unchanged. DrumFault / DrumTimeout."""
-        state = {"n": 0, "target": None}
+        state: dict[str, Any] = {"n": 0, "target": None}
 
         def done(s: DrumStatus) -> bool:
             ok = abs(s.speed_mm_s - s.speed_target_mm_s) <= tol_mm_s and s.speed_target_mm_s == state["target"]

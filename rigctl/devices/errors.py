@@ -5,6 +5,8 @@ Every error says what went wrong in the rig's own terms: which register, which v
 
 from __future__ import annotations
 
+from typing import Any
+
 from rigctl.devices import wire
 
 
@@ -27,7 +29,7 @@ class ModbusExceptionError(DrumError):
 
     EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "device failure"}
 
-    def __init__(self, register: str, function_code: int, exception_code: int, value=None):
+    def __init__(self, register: str, function_code: int, exception_code: int, value: Any = None) -> None:
         self.register = register
         self.function_code = function_code
         self.exception_code = exception_code
@@ -47,7 +49,7 @@ class DrumTimeout(DrumError):
 class DrumFault(DrumError):
     """The drum controller latched a fault (state FAULT); ``faults`` holds the :class:`wire.Fault` bits."""
 
-    def __init__(self, faults: wire.Fault, message: str = ""):
+    def __init__(self, faults: wire.Fault, message: str = "") -> None:
         self.faults = wire.Fault(int(faults))
         names = describe_faults(self.faults)
         super().__init__((message + ": " if message else "") + f"drum controller fault: {names}")
@@ -64,7 +66,7 @@ class SetpointRangeError(ValueError):
     low, high : float  the allowed closed range, in ``unit``
     """
 
-    def __init__(self, name: str, value: float, unit: str, low: float, high: float, reason: str = ""):
+    def __init__(self, name: str, value: float, unit: str, low: float, high: float, reason: str = "") -> None:
         self.name, self.value, self.unit, self.low, self.high = name, value, unit, low, high
         extra = f" ({reason})" if reason else ""
         super().__init__(f"{name} {value:g} {unit} is outside the allowed range {low:g}-{high:g} {unit}{extra}")

@@ -9,6 +9,7 @@ frame whose CRC is wrong. Layout: ``docs/wire-protocol.md`` section 1.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +53,7 @@ def encode_frames(seq: np.ndarray, flags: np.ndarray, samples: np.ndarray, *, ad
     return out.tobytes()
 
 
-def encode_frame(seq: int, flags: int, samples) -> bytes:
+def encode_frame(seq: int, flags: int, samples: Any) -> bytes:
     """One frame (43 bytes for 18 channels) from a sequence number, a flags byte and one sample per channel; see
     :func:`encode_frames`."""
     samples = np.asarray(samples).reshape(1, -1)
@@ -143,8 +144,8 @@ class FrameParser:
         self._buf = buf[keep_from:]
         if not accepted.size:
             return Frames.empty(self.n_channels)
-        rec = np.lib.stride_tricks.sliding_window_view(arr, size)[accepted]
-        rec = np.ascontiguousarray(rec).view(self._dtype).reshape(-1)
+        windows = np.lib.stride_tricks.sliding_window_view(arr, size)[accepted]
+        rec: Any = np.ascontiguousarray(windows).view(self._dtype).reshape(-1)  # records: fields by name
         return Frames(rec["seq"].astype(np.uint16), rec["flags"].astype(np.uint8), rec["samples"].astype(np.uint16))
 
     def reset(self) -> None:

@@ -7,6 +7,7 @@ FTDI bridge cannot be told apart by id: they are reported with ``board=None`` an
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 from serial.tools import list_ports
 
@@ -41,7 +42,7 @@ class PortInfo:
     serial_number: str | None = None
     note: str = ""
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["vid"] = f"{self.vid:04x}" if self.vid is not None else None
         d["pid"] = f"{self.pid:04x}" if self.pid is not None else None

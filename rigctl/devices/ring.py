@@ -25,7 +25,7 @@ class RingBuffer:
         Channels per frame (the stream's ``layout.n_channels``; 18 for the paper's sensor). >= 1.
     """
 
-    def __init__(self, capacity: int, n_channels: int = wire.N_TAXELS):
+    def __init__(self, capacity: int, n_channels: int = wire.N_TAXELS) -> None:
         capacity = int(capacity)
         if capacity < 1:
             raise ValueError(f"ring capacity must be >= 1 frame, got {capacity}")
@@ -65,7 +65,7 @@ class RingBuffer:
             self._time[idx] = host_time_s
             self._total += skipped + n
 
-    def read_since(self, cursor: int, max_frames: int | None = None):
+    def read_since(self, cursor: int, max_frames: int | None = None) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """Frames written after ``cursor`` (a value returned by an earlier call, or 0).
 
         Returns
@@ -85,6 +85,6 @@ class RingBuffer:
             idx = (start + np.arange(n)) % self.capacity
             return total, self._samples[idx].copy(), self._seq[idx].copy(), self._time[idx].copy()
 
-    def latest(self, n: int):
+    def latest(self, n: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """The newest ``n`` frames (or fewer): same tuple as :meth:`read_since`."""
         return self.read_since(0, max_frames=n)

@@ -27,6 +27,7 @@ import re
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import serial
@@ -59,7 +60,7 @@ class StreamStats:
     start_retries: int = 0  #: START sent again because the new stream did not begin within ``start_timeout_s``
 
 
-def first_flagged(parts, mask: int) -> int | None:
+def first_flagged(parts: Any, mask: int) -> int | None:
     """Position of the first frame with a bit of ``mask`` in its flags, over capture parts ``(samples, seq, flags,
     host_time_s)`` in order; None if there is none."""
     at = 0
@@ -102,7 +103,7 @@ def _number(text: str) -> int | float:
     return int(value) if value.is_integer() else value
 
 
-def parse_identity(line: str) -> dict:
+def parse_identity(line: str) -> dict[str, Any]:
     """Parse an identity/banner line ``#RIGCTL-UNO [READY] fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000
     [layout=3x3x2]`` (spec section 1.3: ``ch``, ``rate_hz`` and ``bits`` describe the link; ``layout`` is optional).
 
@@ -131,7 +132,7 @@ def parse_identity(line: str) -> dict:
         raise TaxelStreamError(f"malformed identity line from the taxel streamer: {line.strip()!r}") from exc
 
 
-def layout_from_banner(banner: dict) -> SensorLayout:
+def layout_from_banner(banner: dict[str, Any]) -> SensorLayout:
     """The :class:`SensorLayout` a banner / identify reply announces (``SensorLayout.from_identify``).
 
     Raises :class:`TaxelStreamError` when its ``layout`` disagrees with ``ch`` or is malformed.
@@ -168,8 +169,8 @@ class TaxelStream:
     """
 
     def __init__(self, port: str, *, baudrate: int = wire.TAXEL_BAUD, ring_seconds: float = 30.0,
-                 banner_timeout_s: float = 3.0, on_error=None, reconnect: bool = True, read_timeout_s: float = 0.02,
-                 start_timeout_s: float = 1.0):
+                 banner_timeout_s: float = 3.0, on_error: Any = None, reconnect: bool = True, read_timeout_s: float = 0.02,
+                 start_timeout_s: float = 1.0) -> None:
         self.port = port
         self.baudrate = baudrate
         self.banner_timeout_s = banner_timeout_s
@@ -180,7 +181,7 @@ class TaxelStream:
         self.ring_seconds = ring_seconds
         self._layout: SensorLayout = PAPER_SENSOR
         self.ring = RingBuffer(max(1, int(ring_seconds * PAPER_SENSOR.sample_rate_hz)), PAPER_SENSOR.n_channels)
-        self.banner: dict | None = None
+        self.banner: dict[str, Any] | None = None
         self.last_error: Exception | None = None
         self._serial: serial.Serial | None = None
         self._parser = FrameParser()
@@ -198,8 +199,8 @@ class TaxelStream:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._stats = StreamStats()
-        self._rate = collections.deque(maxlen=256)
-        self._capture: list | None = None
+        self._rate: collections.deque[Any] = collections.deque(maxlen=256)
+        self._capture: list[Any] | None = None
         self._capture_crc_base = 0
         self._capture_dropped = 0
         self._capture_count = 0
@@ -213,7 +214,7 @@ class TaxelStream:
         self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ layout
@@ -223,7 +224,7 @@ class TaxelStream:
         paper's 3x3x2 at 1 kHz before :meth:`open`. Frames are ``7 + 2 * layout.n_channels`` bytes."""
         return self._layout
 
-    def _apply_layout(self, banner: dict) -> None:
+    def _apply_layout(self, banner: dict[str, Any]) -> None:
         layout = layout_from_banner(banner)
         if layout == self._layout and self._parser.n_channels == layout.n_channels:
             return
@@ -237,7 +238,7 @@ class TaxelStream:
             self.ring = RingBuffer(capacity, layout.n_channels)
 
     # ------------------------------------------------------------------ open / close
-    def open(self) -> dict:
+    def open(self) -> dict[str, Any]:
         """Open the port, wait for the ready banner, start the reader thread. Returns the parsed banner.
 
         Raises
@@ -270,7 +271,7 @@ class TaxelStream:
     def _open_serial(self) -> serial.Serial:
         return serial.Serial(self.port, self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0)
 
-    def _wait_banner(self, ser: serial.Serial) -> dict:
+    def _wait_banner(self, ser: serial.Serial) -> dict[str, Any]:
         deadline = time.monotonic() + self.banner_timeout_s
         buf = b""
         while time.monotonic() < deadline:
@@ -315,7 +316,7 @@ class TaxelStream:
                 raise TaxelStreamError(f"taxel streamer on {self.port} is not connected")
             ser.write(data)
 
-    def identify(self, timeout_s: float = 1.0) -> dict:
+    def identify(self, timeout_s: float = 1.0) -> dict[str, Any]:
         """Ask the Uno who it is (stops streaming first, as the spec's IDENTIFY does).
 
         Returns ``{"firmware": (major, minor), "channels", "ch", "rate_hz", "bits", "baud", "layout", "line"}``.
@@ -459,8 +460,9 @@ class TaxelStream:
         while not self._stop.is_set():
             ser = self._serial
             try:
-                waiting = ser.in_waiting
-                data = ser.read(max(waiting, 4096))  # all that is waiting, or wait up to read_timeout_s
+                # a port closed meanwhile (None) raises AttributeError, handled as a lost link below
+                waiting = ser.in_waiting  # type: ignore[union-attr]
+                data = ser.read(max(waiting, 4096))  # type: ignore[union-attr]  # all that is waiting, or wait up to read_timeout_s
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 if self._stop.is_set():
                     break
@@ -594,7 +596,7 @@ class TaxelStream:
             except Exception:  # a callback must not kill the reader
                 log.exception("on_error callback failed")
         try:
-            self._serial.close()
+            self._serial.close()  # type: ignore[union-attr]  # None: nothing to close (handled)
         except Exception:
             pass
 

@@ -8,6 +8,7 @@ lives in :mod:`rigctl.devices.frames`. ``tests/test_wire_spec.py`` checks every 
 from __future__ import annotations
 
 import enum
+from typing import Any
 
 import numba
 import numpy as np
@@ -57,7 +58,7 @@ def offset_crc(n_channels: int = N_TAXELS) -> int:
 _FRAME_DTYPES: dict[int, np.dtype] = {}
 
 
-def frame_dtype(n_channels: int = N_TAXELS) -> np.dtype:
+def frame_dtype(n_channels: int = N_TAXELS) -> np.dtype[Any]:
     """numpy record type of one frame of ``n_channels`` samples, little-endian, packed (cached)."""
     n = int(n_channels)
     dt = _FRAME_DTYPES.get(n)
@@ -252,11 +253,11 @@ def crc16_rows(rows: np.ndarray) -> np.ndarray:
     rows = np.ascontiguousarray(rows, dtype=np.uint8)
     if rows.ndim != 2:
         raise ValueError(f"rows must be 2-D (n, m) uint8, got shape {rows.shape}")
-    return _crc16_rows_kernel(rows, CRC16_TABLE)
+    return np.asarray(_crc16_rows_kernel(rows, CRC16_TABLE))
 
 
 @numba.njit(cache=True, nogil=True)
-def _crc16_rows_kernel(rows, table):  # pragma: no cover - compiled
+def _crc16_rows_kernel(rows: Any, table: Any) -> Any:  # pragma: no cover - compiled
     n, m = rows.shape
     out = np.empty(n, dtype=np.uint16)
     for i in range(n):

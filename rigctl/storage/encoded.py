@@ -37,9 +37,10 @@ import contextlib
 import json
 import math
 import os
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import h5py
 import numpy as np
@@ -148,7 +149,7 @@ _READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, AttributeE
 
 
 @contextlib.contextmanager
-def _reading(path, what: str):
+def _reading(path: object, what: str) -> Iterator[None]:
     """Turn the errors of reading ``what`` from a malformed file into one NotEncodedError naming file and object."""
     try:
         yield
@@ -161,7 +162,7 @@ def _reading(path, what: str):
                               "damaged or not written by rigctl (encode the session again)") from None
 
 
-def _damaged(path, what: str) -> NotEncodedError:
+def _damaged(path: object, what: str) -> NotEncodedError:
     return NotEncodedError(f"{path} is damaged: {what} (encode the session again)")
 
 
@@ -173,7 +174,7 @@ _TRIALS_DTYPE = np.dtype([("trial_id", "<u4"), ("texture", _STR), ("group", _STR
                           ("force_g", "<f4"), ("profile", _STR), ("duration_s", "<f4"), ("n_samples", "<u4")])
 
 
-def _text(values) -> np.ndarray:
+def _text(values: Iterable[str]) -> np.ndarray[Any, Any]:
     """Bytes / object / str array -> numpy str array (UTF-8 decoded)."""
     a = np.asarray(values)
     if a.dtype.kind in "SO":
@@ -235,7 +236,7 @@ def _str_table(table: np.ndarray) -> np.ndarray:
     return out
 
 
-def is_encoded_file(path) -> bool:
+def is_encoded_file(path: str | os.PathLike[str]) -> bool:
     """True if ``path`` is an HDF5 file with a ``/features`` group (an encoded file of any schema)."""
     try:
         with h5py.File(path, "r") as f:
@@ -266,9 +267,9 @@ class EncodedWriter:
     or without ``trial_id`` / ``texture``; rigctl.core.textures.TextureSetError for a label not in ``textures``.
     """
 
-    def __init__(self, path, *, layout: SensorLayout, textures: TextureSet, trials: Mapping[str, Any],
-                 parameters: Mapping[str, Any] | None = None, overwrite: bool = False,
-                 attrs: Mapping[str, Any] | None = None):
+    def __init__(self, path: str | os.PathLike[str], *, layout: SensorLayout, textures: TextureSet,
+                 trials: Mapping[str, Any], parameters: Mapping[str, Any] | None = None, overwrite: bool = False,
+                 attrs: Mapping[str, Any] | None = None) -> None:
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists (pass overwrite=True / --overwrite to replace it)")
@@ -326,7 +327,7 @@ class EncodedWriter:
         for k, v in attrs.items():
             self._f.attrs[k] = _jsonable(v)
 
-    def write_normalisation(self, taxel_min, taxel_max, *, source: str = "") -> None:
+    def write_normalisation(self, taxel_min: Any, taxel_max: Any, *, source: str = "") -> None:
         """``/normalisation/taxel_min`` and ``taxel_max``: (n_taxels,) float64, the per-taxel range (ADC counts)."""
         g = self._f.require_group("normalisation")
         g.create_dataset("taxel_min", data=np.asarray(taxel_min, np.float64))
@@ -349,7 +350,7 @@ class EncodedWriter:
         name = "force_coefficients_label_free" if label_free else "force_coefficients"
         self._f.attrs[f"{name}_note"] = str(note)
 
-    def write_features(self, variant: str, start: int, rows) -> None:
+    def write_features(self, variant: str, start: int, rows: Any) -> None:
         """Rows ``start .. start + len(rows) - 1`` of ``/features/<variant>`` ((n_trials, n_features) float32; made
         on the first call). Raises ValueError for a feature count that differs from earlier rows."""
         rows = np.asarray(rows, np.float32)
@@ -378,7 +379,7 @@ class EncodedWriter:
         g.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
         self._spikes[variant] = g
 
-    def append_spikes(self, variant: str, trains) -> None:
+    def append_spikes(self, variant: str, trains: Any) -> None:
         """Append the next trials' trains (anything with ``spike_times``, ``spike_times_index`` (row ends) and
         ``n_trains``, e.g. :class:`rigctl.encoding.spikes.SpikeTrains`), in trial order.
 
@@ -416,7 +417,7 @@ class EncodedWriter:
     def __enter__(self) -> "EncodedWriter":
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
         if exc_type is None:
             self.close()
         else:
@@ -439,7 +440,7 @@ class EncodedFile:
     n_trials : int
     """
 
-    def __init__(self, path, h5: h5py.File):
+    def __init__(self, path: str | os.PathLike[str], h5: h5py.File) -> None:
         self.path = Path(path)
         self._f = h5
         with _reading(self.path, "the root attributes"):
@@ -452,7 +453,7 @@ class EncodedFile:
             self.variants: tuple[str, ...] = _variant_order(h5["features"])
             self.spike_variants: tuple[str, ...] = _variant_order(h5["spikes"]) if "spikes" in h5 else ()
         self._trials: dict[str, np.ndarray] | None = None
-        self.parameters: dict = self._json_attr("parameters", {})
+        self.parameters: dict[str, Any] = self._json_attr("parameters", {})
         if not isinstance(self.parameters, dict):
             raise _damaged(self.path, "the parameters attribute is not a JSON object")
         with _reading(self.path, "the sensor layout"):
@@ -583,7 +584,7 @@ class EncodedFile:
 
     def feature_shape(self, variant: str) -> tuple[int, int]:
         """``(n_trials, n_features)`` of a variant without reading it. Raises as :meth:`features`."""
-        return tuple(int(n) for n in self._features_dataset(variant).shape)
+        return cast(tuple[int, int], tuple(int(n) for n in self._features_dataset(variant).shape))
 
     @property
     def skipped_variants(self) -> dict[str, str]:
@@ -668,14 +669,14 @@ class EncodedFile:
                 raise _damaged(self.path, f"/{name} is not a table")
             return _str_table(table)
 
-    def force_fit_stats(self, *, label_free: bool = False) -> dict:
+    def force_fit_stats(self, *, label_free: bool = False) -> dict[str, Any]:
         """Attributes of the coefficient table (``n_not_converged``, ``n_coefficients``, ...); {} when none."""
         name = "force_coefficients_label_free" if label_free else "force_coefficients"
         with _reading(self.path, f"/{name}"):
             return {k: _attr_value(v) for k, v in self._f[name].attrs.items()} if name in self._f else {}
 
     @property
-    def resampling(self) -> dict:
+    def resampling(self) -> dict[str, Any]:
         """``{"input_rate_hz", "model_rate_hz", "resampled"}``: the rate of the session, the model's step rate, and
         whether the readings were resampled before encoding (schema 1: 1 kHz, 1 kHz, False)."""
         rate = self.layout.sample_rate_hz
@@ -691,7 +692,7 @@ class EncodedFile:
     def __enter__(self) -> "EncodedFile":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def __repr__(self) -> str:
@@ -699,7 +700,7 @@ class EncodedFile:
                 f"{self.layout.sample_rate_hz:g} Hz, variants {list(self.variants)})")
 
 
-def open_encoded(path) -> EncodedFile:
+def open_encoded(path: str | os.PathLike[str]) -> EncodedFile:
     """Open an encoded file for reading (any schema; see the module docstring).
 
     Raises

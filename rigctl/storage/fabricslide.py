@@ -22,8 +22,9 @@ import dataclasses
 import json
 import math
 import re
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable
+from typing import Any
 
 import numpy as np
 
@@ -92,7 +93,7 @@ class Recording:
         return 1 if self.velocity_mm_s >= 0 else -1
 
 
-def parse_name(name: str) -> dict:
+def parse_name(name: str) -> dict[str, Any]:
     """Labels from a FabricSlide file name.
 
     Returns
@@ -259,7 +260,7 @@ def fabricslide_textures(labels: Iterable[str]) -> TextureSet:
 def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_board: bool = True,
                        pattern: str = "*.csv", trim: float = 0.10, scale: float = DEFAULT_SCALE,
                        offset: float = DEFAULT_OFFSET, overwrite: bool = False,
-                       progress: ProgressCallback | None = None) -> dict:
+                       progress: ProgressCallback | None = None) -> dict[str, Any]:
     """The FabricSlide preset of ``rigctl import``: the recordings as one session file (kind ``"fabricslide"``),
     16 channels at 1 kHz, 10 bits (:data:`FABRICSLIDE_SENSOR`), fabrics and board together.
 
@@ -292,7 +293,8 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
     names = [parse_name(p.name) for p in files]
     textures = fabricslide_textures(n["label"] for n in names)
     bar = Stage(progress, "FabricSlide import", 2 * len(files), unit="file")
-    recs, plan = [], []
+    recs: list[Any] = []
+    plan: list[dict[str, Any]] = []
     for i, path in enumerate(files):
         rec = read_recording(path)
         recs.append(rec)
@@ -307,7 +309,7 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
                   "to_hz": RATE_HZ}
     samples = 0
 
-    def items():
+    def items() -> Iterator[Any]:
         nonlocal samples
         for i, rec in enumerate(recs):
             adc = recording_adc(rec, scale=scale, offset=offset, trim=trim)
@@ -336,7 +338,7 @@ def import_fabricslide(directory: str | Path, out_path: str | Path, *, include_b
             "textures": list(textures.labels)}
 
 
-def iter_adc_blocks(recordings: Iterable[Recording], **kw) -> Iterable[np.ndarray]:
+def iter_adc_blocks(recordings: Iterable[Recording], **kw: Any) -> Iterable[np.ndarray]:
     """``recording_adc`` of each recording in turn (for replay)."""
     for rec in recordings:
         yield recording_adc(rec, **kw)

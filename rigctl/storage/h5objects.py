@@ -9,7 +9,8 @@ once. Values of other kinds fall back to the high-level API.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import h5py
 import numpy as np
@@ -17,10 +18,10 @@ from h5py import h5a, h5d, h5g, h5p, h5s, h5t, h5z
 
 _SCALAR = h5s.create(h5s.SCALAR)
 _STR = h5py.string_dtype("utf-8")
-_TIDS: dict[np.dtype, tuple] = {}
+_TIDS: dict[np.dtype[Any], tuple[Any, Any]] = {}
 
 
-def _tids(dtype: np.dtype) -> tuple:
+def _tids(dtype: np.dtype[Any]) -> tuple[Any, Any]:
     """(file type, memory type) for ``dtype``, as h5py's attribute code picks them (logical / bit-for-bit)."""
     tids = _TIDS.get(dtype)
     if tids is None:
@@ -28,16 +29,16 @@ def _tids(dtype: np.dtype) -> tuple:
     return tids
 
 
-def _lowlevel(obj):
+def _lowlevel(obj: Any) -> Any:
     return obj.id if isinstance(obj, h5py.HLObject) else obj
 
 
 class _HasId:
-    def __init__(self, oid):
+    def __init__(self, oid: Any) -> None:
         self.id = oid
 
 
-def set_attrs(obj, attrs: Mapping[str, Any]) -> None:
+def set_attrs(obj: Any, attrs: Mapping[str, Any]) -> None:
     """Create the attributes ``attrs`` on a new object (group or dataset, high-level or its low-level id) that
     has none of these names yet.
 
@@ -63,16 +64,16 @@ def set_attrs(obj, attrs: Mapping[str, Any]) -> None:
         attr.write(arr, mtype=mtype)
 
 
-def create_group(parent, name: str) -> h5g.GroupID:
+def create_group(parent: Any, name: str) -> h5g.GroupID:
     """Create the group ``name`` (one path component) in ``parent`` (``h5py.Group`` or its low-level id); returns
     the new group's low-level id (``h5py.Group(gid)`` for the high-level API)."""
     return h5g.create(_lowlevel(parent), name.encode())
 
 
-_DCPLS: dict[tuple, Any] = {}
+_DCPLS: dict[tuple[Any, ...], Any] = {}
 
 
-def _dcpl(chunks: tuple | None, compression: str | None):
+def _dcpl(chunks: tuple[int, ...] | None, compression: str | None) -> Any:
     key = (chunks, compression)
     dcpl = _DCPLS.get(key)
     if dcpl is None:
@@ -92,7 +93,7 @@ def _dcpl(chunks: tuple | None, compression: str | None):
     return dcpl
 
 
-def create_dataset(group, name: str, data: np.ndarray, *, chunks: tuple | None = None,
+def create_dataset(group: Any, name: str, data: np.ndarray[Any, Any], *, chunks: tuple[int, ...] | None = None,
                    compression: str | None = None) -> h5d.DatasetID:
     """Create dataset ``name`` in ``group`` holding ``data`` (any shape, a numeric dtype), written at once.
 
@@ -108,8 +109,8 @@ def create_dataset(group, name: str, data: np.ndarray, *, chunks: tuple | None =
     if compression not in ("gzip", "lzf", None):
         raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
     data = np.ascontiguousarray(data)
-    chunked = data.size and chunks is not None
-    dcpl = _dcpl(tuple(int(c) for c in chunks), compression) if chunked else _dcpl(None, None)
+    dcpl = (_dcpl(tuple(int(c) for c in chunks), compression) if data.size and chunks is not None
+            else _dcpl(None, None))
     space = h5s.create_simple(data.shape)
     ftype, mtype = _tids(data.dtype)
     dsid = h5d.create(_lowlevel(group), name.encode(), ftype, space, dcpl=dcpl)

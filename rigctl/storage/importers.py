@@ -9,10 +9,11 @@ Steps, each explicit and recorded in the session's root attributes (``import_ste
    ``columns`` / ``time_column`` in the mapping pick columns by name or 0-based index; a header column named
    ``time``/``timestamp``/``t`` is not a channel), ``.npy`` / ``.npz``
    (a ``(n_samples, n_channels)`` array, or ``(n_trials, n_samples, n_channels)`` for stacked trials; in an NPZ the
-   array named by ``variable`` or the only / largest one; a scalar ``rate_hz`` in it gives the rate), MATLAB ``.mat`` (``scipy.io.loadmat``; v7.3 files through
-   h5py, transposed back from MATLAB's column-major order), NWB (``.nwb``, a ``TimeSeries`` read with pynwb; its
-   ``rate`` is used when no rate is given). Arrays are turned to ``(n_samples, n_channels)`` (a ``(channels, n)``
-   array is transposed when the channel count says so, or when it has more columns than rows).
+   array named by ``variable`` or the only / largest one; a scalar ``rate_hz`` in it gives the rate), MATLAB ``.mat``
+   (``scipy.io.loadmat``; v7.3 files through h5py, transposed back from MATLAB's column-major order), NWB
+   (``.nwb``, a ``TimeSeries`` read with pynwb; its ``rate`` is used when no rate is given). Arrays are turned to
+   ``(n_samples, n_channels)`` (a ``(channels, n)`` array is transposed when the channel count says so, or when it
+   has more columns than rows).
 2. **Resample** (optional, ``--resample HZ``): ``scipy.signal.resample_poly`` (polyphase FIR, Kaiser window,
    ``padtype="line"``) by the rational factor ``up/down`` closest to ``resample_hz / rate_hz``.
 3. **Scale** to ADC counts at the layout's bits: counts as given (``x * scale + offset``, rounded; mapping keys
@@ -63,10 +64,11 @@ import json
 import math
 import os
 import re
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -101,8 +103,8 @@ class ImportedTrial:
     ``labels`` (texture, speed_mm_s, force_g, repeat; repeat may be None) and trial ``attrs``."""
 
     counts: np.ndarray
-    labels: dict
-    attrs: dict = field(default_factory=dict)
+    labels: dict[str, Any]
+    attrs: dict[str, Any] = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------------------------------- reading
@@ -141,7 +143,7 @@ def _sniff_delimiter(line: str) -> str | None:
     return None
 
 
-def _read_csv(path: Path, channels: int | None, columns: Sequence | None, time_column: Any) -> np.ndarray:
+def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, time_column: Any) -> np.ndarray:
     with open(path, encoding="utf-8-sig") as fh:
         first = fh.readline()
     delim = _sniff_delimiter(first)
@@ -206,7 +208,7 @@ def _read_mat(path: Path, variable: str | None) -> np.ndarray:
         import h5py
 
         with h5py.File(path, "r") as f:
-            found = {}
+            found: dict[str, Any] = {}
             f.visititems(lambda name, obj: found.__setitem__(name, obj) if isinstance(obj, h5py.Dataset) else None)
             arrays = {k: v[()] for k, v in found.items() if not k.startswith("#")}
         arr = _pick(arrays, variable, str(path))
@@ -217,7 +219,7 @@ def _read_mat(path: Path, variable: str | None) -> np.ndarray:
         raise RecordingImportError(f"{path}: not a MATLAB file ({exc})") from None
 
 
-def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | None, dict]:
+def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | None, dict[str, Any]]:
     try:
         from pynwb import NWBHDF5IO, TimeSeries
     except ImportError as exc:  # pragma: no cover - pynwb is a dependency
@@ -256,7 +258,7 @@ def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | Non
     return data, (float(rate) if rate else None), meta
 
 
-def _nwb_trials(table, start_s: float, rate: float, n: int) -> list[dict] | None:
+def _nwb_trials(table: Any, start_s: float, rate: float, n: int) -> list[dict[str, Any]] | None:
     """The trials of an NWB trials table as sample ranges of the TimeSeries with their labels, or None when the rows
     do not fall inside the series."""
     out = []
@@ -270,16 +272,16 @@ def _nwb_trials(table, start_s: float, rate: float, n: int) -> list[dict] | None
     return out or None
 
 
-def read_recording_file(path: str | os.PathLike, *, channels: int | None = None, variable: str | None = None,
-                        columns: Sequence | None = None, time_column: Any = None
-                        ) -> tuple[list[np.ndarray], float | None, dict]:
+def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = None, variable: str | None = None,
+                        columns: Sequence[Any] | None = None, time_column: Any = None
+                        ) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
     """Read one recording file.
 
     Returns
     -------
     blocks : list of (n_samples, n_channels) float64 arrays (one per stacked trial; usually one)
     rate_hz : float or None, the rate the file itself states (NWB), else None
-    meta : dict, format details for the session's attributes
+    meta : dict[str, Any], format details for the session's attributes
 
     Raises
     ------
@@ -292,7 +294,7 @@ def read_recording_file(path: str | os.PathLike, *, channels: int | None = None,
     if not path.is_file():
         raise RecordingImportError(f"{path}: {'a folder, not a recording file' if path.is_dir() else 'no such file'}")
     rate = None
-    meta: dict = {"format": fmt}
+    meta: dict[str, Any] = {"format": fmt}
     if fmt == "csv":
         arr = _read_csv(path, channels, columns, time_column)
     elif fmt == "npy":
@@ -325,7 +327,7 @@ def read_recording_file(path: str | os.PathLike, *, channels: int | None = None,
 
 
 # ----------------------------------------------------------------------------------------------------- labels
-def parse_label_pattern(pattern: str) -> re.Pattern:
+def parse_label_pattern(pattern: str) -> re.Pattern[str]:
     """Compile ``{texture}__V{speed_mm_s}__{rep}.csv`` into a regular expression with named groups.
 
     Numeric fields (speed, force, repeat) match signed decimals; other fields match the shortest text. Literal
@@ -349,7 +351,7 @@ def parse_label_pattern(pattern: str) -> re.Pattern:
     return re.compile("^" + "".join(out) + "$")
 
 
-def labels_from_name(name: str, pattern: str | re.Pattern) -> dict:
+def labels_from_name(name: str, pattern: str | re.Pattern[str]) -> dict[str, Any]:
     """Labels of a file name (the base name, or the stem if the pattern has no extension).
 
     Returns ``{"texture": str, "speed_mm_s": float, "force_g": float, "repeat": int, <other fields>: str}`` with
@@ -361,7 +363,7 @@ def labels_from_name(name: str, pattern: str | re.Pattern) -> dict:
     if not m:
         shown = pattern if isinstance(pattern, str) else pattern.pattern
         raise RecordingImportError(f"file name {base!r} does not match the label pattern {shown!r}")
-    out: dict = {}
+    out: dict[str, Any] = {}
     for key, value in m.groupdict().items():
         col = _FIELD_ALIASES.get(key, key)
         if col == "repeat":
@@ -374,7 +376,7 @@ def labels_from_name(name: str, pattern: str | re.Pattern) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------------- processing
-def resample(x: np.ndarray, rate_hz: float, resample_hz: float) -> tuple[np.ndarray, dict]:
+def resample(x: np.ndarray, rate_hz: float, resample_hz: float) -> tuple[np.ndarray, dict[str, Any]]:
     """Resample ``(n, c)`` readings from ``rate_hz`` to ``resample_hz`` with ``scipy.signal.resample_poly``.
 
     Returns the resampled float64 array (``ceil(n * up / down)`` rows) and the step's record
@@ -418,7 +420,7 @@ def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, s
     return np.clip(y, 0, adc_max).astype(np.uint16), n_bad
 
 
-def parse_segment(spec: str | None) -> dict | None:
+def parse_segment(spec: str | None) -> dict[str, Any] | None:
     """``fixed:S[:HOP]`` | ``threshold:LEVEL[:MIN_S[:SMOOTH_S]]`` | ``cycles[:N[:MIN_P[:MAX_P]]]`` -> dict.
     Raises RecordingImportError on anything else."""
     if not spec:
@@ -468,7 +470,8 @@ def _cycle_period(x: np.ndarray, rate_hz: float, min_p: float | None, max_p: flo
     return lo + int(good[0] if good.size else np.argmax(seg))
 
 
-def segment(counts: np.ndarray, rate_hz: float, spec: dict | None) -> tuple[list[tuple[int, int]], dict]:
+def segment(counts: np.ndarray, rate_hz: float, spec: dict[str, Any] | None
+            ) -> tuple[list[tuple[int, int]], dict[str, Any]]:
     """Cut a continuous ``(n, c)`` recording into trials; returns ``[(start, stop), ...]`` sample ranges and the
     step's record (``period_s`` for cycles). ``spec`` None: the whole recording is one trial."""
     n = counts.shape[0]
@@ -498,7 +501,7 @@ def segment(counts: np.ndarray, rate_hz: float, spec: dict | None) -> tuple[list
 
 
 # ----------------------------------------------------------------------------------------------------- mapping
-def load_mapping(path: str | os.PathLike | None) -> dict:
+def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
     """Read a TOML mapping (see the module docstring). Raises RecordingImportError on a missing or bad file."""
     if path is None:
         return {}
@@ -525,7 +528,7 @@ MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_re
 
 
 def _resolve_layout(n_channels: int, rate_hz: float, *, channels: int | None, layout: str | None,
-                    sensor: Mapping | None, adc_bits: int) -> SensorLayout:
+                    sensor: Mapping[str, Any] | None, adc_bits: int) -> SensorLayout:
     try:
         if sensor:
             out = SensorLayout.from_dict({**dict(sensor), "sample_rate_hz": rate_hz,
@@ -554,10 +557,10 @@ def _check_paths(inputs: Iterable[Path], out: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{out} exists; choose another --out or pass --overwrite")
 
 
-def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTrial], *, layout: SensorLayout,
-                           textures: TextureSet | None = None, kind: str = "recorded", attrs: Mapping | None = None,
-                           rig_config: Mapping | None = None, protocol_name: str = "import",
-                           overwrite: bool = False, progress: ProgressCallback | None = None) -> dict:
+def write_imported_session(out: str | os.PathLike[str], trials: Sequence[ImportedTrial], *, layout: SensorLayout,
+                           textures: TextureSet | None = None, kind: str = "recorded", attrs: Mapping[str, Any] | None = None,
+                           rig_config: Mapping[str, Any] | None = None, protocol_name: str = "import",
+                           overwrite: bool = False, progress: ProgressCallback | None = None) -> dict[str, Any]:
     """Write ``trials`` as a session file (plan in input order) through ``SessionWriter.create(..., layout=,
     textures=)``. Repeats missing from the labels are numbered per (texture, speed, force) condition.
 
@@ -568,7 +571,7 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
     """
     if not trials:
         raise RecordingImportError("nothing to import: no trials (check the files and --segment)")
-    counters: dict[tuple, int] = {}
+    counters: dict[tuple[Any, ...], int] = {}
     plan = []
     for i, t in enumerate(trials):
         lab = t.labels
@@ -586,7 +589,7 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
     samples = 0
     bar = Stage(progress, "writing trials", len(trials))
 
-    def items():
+    def items() -> Iterator[Any]:
         nonlocal samples
         for i, t in enumerate(trials):
             samples += t.counts.shape[0]
@@ -599,9 +602,9 @@ def write_imported_session(out: str | os.PathLike, trials: Sequence[ImportedTria
             "n_channels": layout.n_channels, "textures": list(textures.labels)}
 
 
-def write_session(out: str | os.PathLike, plan: Sequence[Mapping], items: Iterable[tuple[int, TrialData]], *,
-                  layout: SensorLayout, textures: TextureSet, kind: str = "recorded", attrs: Mapping | None = None,
-                  rig_config: Mapping | None = None, protocol_name: str = "import", overwrite: bool = False) -> None:
+def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]], items: Iterable[tuple[int, TrialData]], *,
+                  layout: SensorLayout, textures: TextureSet, kind: str = "recorded", attrs: Mapping[str, Any] | None = None,
+                  rig_config: Mapping[str, Any] | None = None, protocol_name: str = "import", overwrite: bool = False) -> None:
     """Create the session (``SessionWriter.create(out, plan=, layout=, textures=, ...)``) and write ``items``
     (``(trial_id, TrialData)`` pairs, produced lazily: a large import never holds every trial in memory) in one
     opening of the file. Raises FileExistsError when ``out`` exists without ``overwrite``."""
@@ -613,12 +616,13 @@ def write_session(out: str | os.PathLike, plan: Sequence[Mapping], items: Iterab
     writer.write_trials(items)
 
 
-def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike, *, rate_hz: float | None = None,
+def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
+                      rate_hz: float | None = None,
                       channels: int | None = None, layout: str | None = None, label_pattern: str | None = None,
                       texture: str | None = None, resample_hz: float | None = None, segment_spec: str | None = None,
-                      mapping: str | os.PathLike | Mapping | None = None, volts_ref: float | None = None,
+                      mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None, volts_ref: float | None = None,
                       adc_bits: int | None = None, overwrite: bool = False,
-                      progress: ProgressCallback | None = None) -> dict:
+                      progress: ProgressCallback | None = None) -> dict[str, Any]:
     """Import recordings (CSV, NPY/NPZ, MAT, NWB) into a session file; the steps are in the module docstring.
 
     Parameters
@@ -648,11 +652,11 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
     RecordingImportError (a ValueError) with one line for the user; FileExistsError for an existing ``out``.
     """
     m = dict(mapping) if isinstance(mapping, Mapping) else load_mapping(mapping)
-    files = [Path(f) for f in files]
-    if not files:
+    paths = [Path(f) for f in files]
+    if not paths:
         raise RecordingImportError("no input files")
     out = Path(out)
-    _check_paths(files, out, overwrite)
+    _check_paths(paths, out, overwrite)
     rate_hz = rate_hz if rate_hz is not None else m.get("rate_hz")
     channels = channels if channels is not None else m.get("channels")
     layout = layout or m.get("layout")
@@ -675,13 +679,13 @@ def import_recordings(files: Sequence[str | os.PathLike], out: str | os.PathLike
         defaults["texture"] = texture
 
     trials: list[ImportedTrial] = []
-    steps: dict = {"read": [], "resampling": None, "value_scale": None, "segmentation": None}
+    steps: dict[str, Any] = {"read": [], "resampling": None, "value_scale": None, "segmentation": None}
     out_rate = None
     n_ch = None
     n_clipped = 0
     sensor_from_file = None  # an NWB file's own sensor description (rigctl exports it)
-    bar = Stage(progress, "reading recordings", len(files), unit="file")
-    for path in files:
+    bar = Stage(progress, "reading recordings", len(paths), unit="file")
+    for path in paths:
         blocks, file_rate, meta = read_recording_file(path, channels=channels, variable=m.get("variable"),
                                                       columns=m.get("columns"), time_column=m.get("time_column"))
         src_rate = float(rate_hz) if rate_hz is not None else file_rate

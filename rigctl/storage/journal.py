@@ -35,12 +35,14 @@ import subprocess
 import sys
 import time
 import zlib
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 try:  # POSIX; elsewhere (Windows) rigctl writers do not lock out HDF5 readers
     import fcntl
 except ImportError:  # pragma: no cover
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]
 
 PAGE = 4096
 _MAGIC = b"RIGCTLJ1"
@@ -55,7 +57,7 @@ def _pread(fd: int, n: int, offset: int) -> bytes:
     return os.read(fd, n)  # pragma: no cover
 
 
-def _pwrite(fd: int, data: bytes, offset: int) -> None:
+def _pwrite(fd: int, data: bytes | memoryview, offset: int) -> None:
     view = memoryview(data)
     while view:  # pwrite may write less than asked
         if hasattr(os, "pwrite"):
@@ -67,7 +69,7 @@ def _pwrite(fd: int, data: bytes, offset: int) -> None:
         offset += n
 
 
-def journal_path(path: str | os.PathLike) -> Path:
+def journal_path(path: str | os.PathLike[str]) -> Path:
     p = Path(path)
     return p.with_name(p.name + ".journal")
 
@@ -81,7 +83,7 @@ class FileBusy(OSError):
     """Another process holds the file (a writer, or a reader with the HDF5 file lock) for longer than the wait."""
 
 
-def lock_path(path: str | os.PathLike) -> Path:
+def lock_path(path: str | os.PathLike[str]) -> Path:
     """``<name>.lock``: the file a session writer holds locked for its whole life (:class:`WriterLock`)."""
     p = Path(path)
     return p.with_name(p.name + ".lock")
@@ -91,7 +93,7 @@ class WriterLockHeld(FileBusy):
     """Another writer (another process, or another writer object in this process) holds the writer lock of the
     file. ``pid`` is the holder's process id as it wrote it into the lock file (None if unknown)."""
 
-    def __init__(self, message: str, pid: int | None = None):
+    def __init__(self, message: str, pid: int | None = None) -> None:
         super().__init__(message)
         self.pid = pid
 
@@ -121,7 +123,7 @@ class WriterLock:
     created (a read-only folder, ...).
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.lock_path = lock_path(self.path)
         self._fd: int | None = None
@@ -175,14 +177,14 @@ class WriterLock:
         finally:
             os.close(fd)
 
-    def __del__(self):  # pragma: no cover - best effort when the owner was not closed
+    def __del__(self) -> None:  # pragma: no cover - best effort when the owner was not closed
         try:
             self.release()
         except Exception:
             pass
 
 
-def _lock(fd: int, path, wait_s: float) -> None:
+def _lock(fd: int, path: object, wait_s: float) -> None:
     if fcntl is None:  # pragma: no cover
         return
     deadline = time.monotonic() + wait_s
@@ -192,11 +194,12 @@ def _lock(fd: int, path, wait_s: float) -> None:
             return
         except BlockingIOError:
             if time.monotonic() > deadline:
-                raise FileBusy(f"{path} is held by another process (a reader or writer) for more than {wait_s:g} s")
+                raise FileBusy(f"{path} is held by another process (a reader or writer) for more than {wait_s:g} s"
+                               ) from None
             time.sleep(0.02)
 
 
-def recover(path: str | os.PathLike, *, wait_s: float = 10.0) -> bool:
+def recover(path: str | os.PathLike[str], *, wait_s: float = 10.0) -> bool:
     """Finish or discard an interrupted commit of ``path``. Returns True if a committed journal was replayed.
 
     A journal without its commit mark (the writer died before committing) is discarded: the file was not touched
@@ -254,7 +257,7 @@ def _replay(fd: int, jpath: Path, durable: bool, delay_s: float = 0.0, gate: str
     jpath.unlink()
 
 
-def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) -> None:
+def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = True) -> None:
     """Apply a committed journal to the open, locked file ``fd``, in a detached helper process.
 
     The in-place writes of a commit are the only moment at which the file on disk is neither the old nor the new
@@ -288,7 +291,7 @@ def apply_journal(fd: int, jpath: str | os.PathLike, *, durable: bool = True) ->
         raise CommittedInterrupt("interrupted while committing; the commit was completed first") from interrupted
 
 
-def _read_journal(jpath: Path):
+def _read_journal(jpath: Path) -> tuple[list[tuple[int, bytes]] | None, int]:
     raw = jpath.read_bytes()
     if len(raw) < 28 or raw[:8] != _MAGIC or raw[-8:] != _COMMIT:
         return None, 0
@@ -311,7 +314,7 @@ class OverlayFile(io.RawIOBase):
     :meth:`commit`. Takes an exclusive ``flock`` on the file for its lifetime (other rigctl writers wait, HDF5
     readers holding the file make it wait up to ``wait_s``)."""
 
-    def __init__(self, path: str | os.PathLike, *, wait_s: float = 10.0, durable: bool = True):
+    def __init__(self, path: str | os.PathLike[str], *, wait_s: float = 10.0, durable: bool = True) -> None:
         super().__init__()
         self.path = Path(path)
         self.durable = durable
@@ -351,7 +354,7 @@ class OverlayFile(io.RawIOBase):
             self._pos = self._size + offset
         return self._pos
 
-    def readinto(self, b) -> int:
+    def readinto(self, b: Any) -> int:
         n = max(0, min(len(b), self._size - self._pos))
         if n == 0:
             return 0
@@ -388,7 +391,7 @@ class OverlayFile(io.RawIOBase):
             self._pages[i] = page
         return page
 
-    def write(self, b) -> int:
+    def write(self, b: Any) -> int:
         data = memoryview(b).cast("B")
         n = len(data)
         pos, base = self._pos, self._base_size
@@ -479,7 +482,9 @@ class OverlayFile(io.RawIOBase):
     def _undo_partial_commit(self, jpath: Path, base: int) -> None:
         """After a failed write before the journal's commit mark: drop the uncommitted journal and the bytes written
         past the old end of the file (best effort; both are ignored by readers anyway)."""
-        for undo in (lambda: jpath.unlink(missing_ok=True), lambda: os.ftruncate(self._fd, base)):
+        undos: tuple[Callable[[], None], ...] = (lambda: jpath.unlink(missing_ok=True),
+                                                 lambda: os.ftruncate(self._fd, base))
+        for undo in undos:
             try:
                 undo()
             except OSError:

@@ -32,9 +32,10 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class NwbSummary:
     spikes: dict[str, int] = field(default_factory=dict)
 
 
-def default_spike_variants(enc) -> list[str]:
+def default_spike_variants(enc: Any) -> list[str]:
     """The variants exported as units when none are asked for: the stored ones whose spike times are in real time
     (not speed-scaled)."""
     return [v for v in enc.spike_variants if not (v in _encoded.VARIANTS and _encoded.VARIANTS[v].speed_scaled)]
@@ -74,14 +75,14 @@ def default_spike_variants(enc) -> list[str]:
 class _TaxelChunks:
     """hdmf data iterator over the trials' taxel readings (one chunk per trial: the session is never all in memory)."""
 
-    def __init__(self, session, ids: Sequence[int], n_samples: Sequence[int], n_channels: int):
+    def __init__(self, session: Any, ids: Sequence[int], n_samples: Sequence[int], n_channels: int) -> None:
         self._session, self._ids, self._n, self._ch = session, list(ids), list(n_samples), int(n_channels)
         self._i, self._at = 0, 0
 
-    def __iter__(self):
+    def __iter__(self) -> Any:
         return self
 
-    def __next__(self):
+    def __next__(self) -> Any:
         from hdmf.data_utils import DataChunk
 
         if self._i >= len(self._ids):
@@ -92,22 +93,22 @@ class _TaxelChunks:
         self._i += 1
         return DataChunk(data=data, selection=sel)
 
-    def recommended_chunk_shape(self):
+    def recommended_chunk_shape(self) -> tuple[int, int]:
         return (min(max(sum(self._n), 1), 10_000), self._ch)
 
-    def recommended_data_shape(self):
+    def recommended_data_shape(self) -> tuple[int, int]:
         return (sum(self._n), self._ch)
 
     @property
-    def dtype(self):
+    def dtype(self) -> np.dtype[Any]:
         return np.dtype(np.uint16)
 
     @property
-    def maxshape(self):
+    def maxshape(self) -> tuple[int, int]:
         return (sum(self._n), self._ch)
 
 
-def _register_iterator() -> type:
+def _register_iterator() -> type[Any]:
     from hdmf.data_utils import AbstractDataChunkIterator
 
     return type("TaxelChunks", (_TaxelChunks, AbstractDataChunkIterator), {})
@@ -117,11 +118,11 @@ def _start_time(text: Any) -> _dt.datetime:
     try:
         t = _dt.datetime.fromisoformat(str(text))
     except ValueError:
-        t = _dt.datetime.now(_dt.timezone.utc)
-    return t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)
+        t = _dt.datetime.now(_dt.UTC)
+    return t if t.tzinfo else t.replace(tzinfo=_dt.UTC)
 
 
-def _train_columns(layout, n_trains: int) -> list[tuple[str, int, str, str, str]]:
+def _train_columns(layout: Any, n_trains: int) -> list[tuple[str, int, str, str, str]]:
     """(receptor, taxel, taxel label, layer, receptor type) per train: SA taxels then RA taxels (the encoder's order),
     or SA of the first layer for the real-time variants."""
     labels = layout.channel_labels()
@@ -135,7 +136,7 @@ def _train_columns(layout, n_trains: int) -> list[tuple[str, int, str, str, str]
             for rec, c in pairs]
 
 
-def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, encoded_path=None,
+def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike[str], *, encoded_path: Any = None,
                variants: Sequence[str] | None = None,
                progress: ProgressCallback | None = None) -> NwbSummary:
     """Write the session (and the spike trains of an encoded file of it) as an NWB file (module doc).
@@ -229,7 +230,7 @@ def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, 
 
         plan = s.plan
         by_id = {int(r["trial_id"]): r for r in plan}
-        columns = {
+        columns: dict[str, tuple[str, Any]] = {
             "trial_id": ("rigctl trial id", np.asarray(ids, np.int64)),
             "texture": ("texture plate label", [str(by_id[t]["texture"]) for t in ids]),
             "group": ("texture group (the texture set's groups; '' when none)",
@@ -284,7 +285,7 @@ def export_nwb(session_path: str | os.PathLike, out_path: str | os.PathLike, *, 
     return summary
 
 
-def _add_units(nwb, encoded_path, ids, starts, layout, variants, summary: NwbSummary) -> None:
+def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, variants: Any, summary: NwbSummary) -> None:
     with _encoded.open_encoded(encoded_path) as enc:
         enc_ids = np.asarray(enc.trials["trial_id"], np.int64)
         row_of = {int(t): i for i, t in enumerate(enc_ids)}
@@ -321,7 +322,7 @@ def _add_units(nwb, encoded_path, ids, starts, layout, variants, summary: NwbSum
             summary.spikes[v] = total
 
 
-def read_nwb_summary(path: str | os.PathLike) -> tuple[NwbSummary, dict[str, np.ndarray]]:
+def read_nwb_summary(path: str | os.PathLike[str]) -> tuple[NwbSummary, dict[str, np.ndarray]]:
     """Read an exported file back with pynwb: its :class:`NwbSummary` and the arrays ``taxels`` (all samples),
     ``trial_id``, ``start_time``, ``stop_time`` (the trials table)."""
     from pynwb import NWBHDF5IO

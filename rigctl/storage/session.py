@@ -34,9 +34,10 @@ import math
 import os
 import time
 import uuid
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any
 
 import h5py
 import numpy as np
@@ -44,7 +45,7 @@ from h5py import h5a, h5d, h5g, h5s
 
 from rigctl import __version__
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
-from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError, texture_set_from_labels
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.storage import h5objects, journal
 
@@ -88,11 +89,11 @@ PLAN_DTYPE = np.dtype(
 #: rows per ``/plan`` chunk: a status update rewrites one chunk in place (64 rows of ~70 B, about one 4 KiB page), not the
 #: whole table, which keeps a commit's in-place writes (``rigctl.storage.journal``) short
 PLAN_CHUNK_ROWS = 64
-PLAN_FIELDS = tuple(n for n in PLAN_DTYPE.names if n != "status")
+PLAN_FIELDS = tuple(n for n in PLAN_DTYPE.names or () if n != "status")
 
 
 
-def taxels_description(layout: SensorLayout) -> dict:
+def taxels_description(layout: SensorLayout) -> dict[str, Any]:
     """Attributes of ``/trials``: what every trial's ``taxels`` hold (NWB TimeSeries terms), stored once per session.
 
     ``taxels_channels`` is ``layout.describe()`` (e.g. "0-8 top (type I), 9-17 bottom (type II); row-major 3x3, row
@@ -121,7 +122,7 @@ class SessionLocked(SessionError):
     """Another writer holds the session file (one :class:`SessionWriter` per file at a time, across processes and
     within one). ``pid`` is the holder's process id when known."""
 
-    def __init__(self, message: str, pid: int | None = None):
+    def __init__(self, message: str, pid: int | None = None) -> None:
         super().__init__(message)
         self.pid = pid
 
@@ -131,7 +132,7 @@ class SessionWriteError(SessionError):
     reached the file; every trial written before is intact. ``errno`` is the OS error number, ``intact`` the ids
     of the complete trials."""
 
-    def __init__(self, message: str, errno_: int | None = None, intact: Sequence[int] = ()):
+    def __init__(self, message: str, errno_: int | None = None, intact: Sequence[int] = ()) -> None:
         super().__init__(message)
         self.errno = errno_
         self.intact = list(intact)
@@ -166,11 +167,11 @@ def _os_error_text(exc: OSError) -> str:
 # ----------------------------------------------------------------------------------------------------------------
 # Plan helpers
 # ----------------------------------------------------------------------------------------------------------------
-def _row_value(row: Any, name: str, default=None):
+def _row_value(row: Any, name: str, default: Any = None) -> Any:
     if isinstance(row, Mapping):
         return row.get(name, default)
     if isinstance(row, np.void):
-        return row[name] if name in row.dtype.names else default
+        return row[name] if name in (row.dtype.names or ()) else default
     return getattr(row, name, default)
 
 
@@ -221,8 +222,9 @@ def _text(v: Any) -> str:
 def _plan_to_str(plan: np.ndarray) -> np.ndarray:
     """The ``/plan`` table (:data:`PLAN_DTYPE`, or the fixed-length ``S1`` texture of schema 1/2) with numpy str
     fields: ``texture`` as ``U<longest label>``, ``profile`` as ``U24``."""
-    cols, fields = {}, []
-    for name in plan.dtype.names:
+    cols: dict[str, Any] = {}
+    fields: list[tuple[str, Any]] = []
+    for name in plan.dtype.names or ():
         col = plan[name]
         if col.dtype.kind in "SO":
             text = [_text(v) for v in col.tolist()]
@@ -260,7 +262,7 @@ def trial_group_name(trial_id: int) -> str:
 
 
 def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
 
 
 def _parse_utc(text: str) -> _dt.datetime | None:
@@ -270,7 +272,7 @@ def _parse_utc(text: str) -> _dt.datetime | None:
         return None
 
 
-def _attr_value(value: Any):
+def _attr_value(value: Any) -> Any:
     """Convert a Python value into something h5py stores as an attribute (dicts/lists of mixed types -> JSON)."""
     if value is None:
         return "null"
@@ -287,7 +289,7 @@ def _attr_value(value: Any):
     return json.dumps(value, default=str)
 
 
-def _read_attrs(obj) -> dict:
+def _read_attrs(obj: Any) -> dict[str, Any]:
     out = {}
     for k, v in obj.attrs.items():
         if isinstance(v, bytes):
@@ -336,7 +338,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 @contextlib.contextmanager
-def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0):
+def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0) -> Iterator[h5py.File]:
     """Open ``path`` for writing through a :class:`rigctl.storage.journal.OverlayFile`: HDF5's writes stay in memory
     and are committed (journaled) to disk only after HDF5 has closed the file cleanly; on an exception nothing
     reaches the disk."""
@@ -365,8 +367,8 @@ def _writer_lock(path: Path) -> journal.WriterLock:
 
 
 def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: TextureSet, protocol_source: str,
-                    protocol_name: str, protocol_format: str, rig_config: Mapping | None, kind: str,
-                    calibration: Mapping | None, attrs: Mapping | None) -> bytes:
+                    protocol_name: str, protocol_format: str, rig_config: Mapping[str, Any] | None, kind: str,
+                    calibration: Mapping[str, Any] | None, attrs: Mapping[str, Any] | None) -> bytes:
     """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``),
     built by HDF5 in memory: HDF5 never writes to a disk that may be full (at a few KiB free it can crash there)."""
     buf = io.BytesIO()
@@ -454,8 +456,8 @@ class SessionWriter:
     lock file cannot be made (a read-only folder).
     """
 
-    def __init__(self, path: str | os.PathLike, *, compression: str | None = "gzip", durable: bool = True,
-                 _lock: journal.WriterLock | None = None):
+    def __init__(self, path: str | os.PathLike[str], *, compression: str | None = "gzip", durable: bool = True,
+                 _lock: journal.WriterLock | None = None) -> None:
         self._lock = _lock
         self.path = Path(path)
         self.durable = durable
@@ -500,17 +502,17 @@ class SessionWriter:
     def __enter__(self) -> "SessionWriter":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def __del__(self):  # pragma: no cover - best effort for writers nobody closed
+    def __del__(self) -> None:  # pragma: no cover - best effort for writers nobody closed
         try:
             self.close()
         except Exception:
             pass
 
     @contextlib.contextmanager
-    def _commit(self, action: str):
+    def _commit(self, action: str) -> Iterator[h5py.File]:
         """:func:`_writing` of this writer's file, with the disk's refusals (no space, read-only) turned into a
         :class:`SessionWriteError` that says what is intact and what to do. ``action`` names the write."""
         if self.closed:
@@ -535,18 +537,18 @@ class SessionWriter:
     @classmethod
     def create(
         cls,
-        path: str | os.PathLike,
+        path: str | os.PathLike[str],
         *,
         plan: Iterable[Any] | np.ndarray,
         layout: SensorLayout = PAPER_SENSOR,
-        textures: TextureSet | Mapping | None = None,
+        textures: TextureSet | Mapping[str, Any] | None = None,
         protocol_source: str = "",
         protocol_name: str = "",
         protocol_format: str = "toml",
-        rig_config: Mapping | None = None,
+        rig_config: Mapping[str, Any] | None = None,
         kind: str = "recorded",
-        calibration: Mapping | None = None,
-        attrs: Mapping | None = None,
+        calibration: Mapping[str, Any] | None = None,
+        attrs: Mapping[str, Any] | None = None,
         overwrite: bool = False,
         compression: str | None = "gzip",
         durable: bool = True,
@@ -619,7 +621,7 @@ class SessionWriter:
             raise
 
     @classmethod
-    def open(cls, path: str | os.PathLike, *, protocol_source: str | None = None,
+    def open(cls, path: str | os.PathLike[str], *, protocol_source: str | None = None,
              compression: str | None = "gzip", durable: bool = True) -> "SessionWriter":
         """Reopen an interrupted session to resume it.
 
@@ -773,7 +775,7 @@ class SessionWriter:
             f.flush()
         self._plan["status"][i] = TrialStatus.FAILED
 
-    def set_calibration(self, calibration: Mapping) -> None:
+    def set_calibration(self, calibration: Mapping[str, Any]) -> None:
         """Write (replace) the ``/calibration`` block.
 
         Raises ValueError if ``taxel_min``/``taxel_max`` are not ``(layout.n_channels,)``.
@@ -857,12 +859,12 @@ def _with_id(planned: Any, default_id: int) -> Any:
         return planned
     if isinstance(planned, Mapping):
         return {**planned, "trial_id": default_id}
-    values = {n: _row_value(planned, n) for n in PLAN_DTYPE.names}
+    values = {n: _row_value(planned, n) for n in PLAN_DTYPE.names or ()}
     values["trial_id"] = default_id
     return {k: v for k, v in values.items() if v is not None}
 
 
-def _calibration_arrays(calibration: Mapping, n_channels: int) -> dict:
+def _calibration_arrays(calibration: Mapping[str, Any], n_channels: int) -> dict[str, Any]:
     """``taxel_min``/``taxel_max`` of ``calibration`` as float64 arrays. Raises ValueError unless ``(n_channels,)``."""
     out = {}
     for k in ("taxel_min", "taxel_max"):
@@ -875,7 +877,7 @@ def _calibration_arrays(calibration: Mapping, n_channels: int) -> dict:
     return out
 
 
-def _write_calibration(f: h5py.File, calibration: Mapping, n_channels: int) -> None:
+def _write_calibration(f: h5py.File, calibration: Mapping[str, Any], n_channels: int) -> None:
     arrays = _calibration_arrays(calibration, n_channels)
     if "calibration" in f:
         del f["calibration"]
@@ -887,7 +889,7 @@ def _write_calibration(f: h5py.File, calibration: Mapping, n_channels: int) -> N
             g.attrs[k] = _attr_value(v)
 
 
-def _read_text(ds) -> str:
+def _read_text(ds: Any) -> str:
     v = ds[()]
     return v.decode() if isinstance(v, bytes) else str(v)
 
@@ -897,7 +899,7 @@ _READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, AttributeE
 
 
 @contextlib.contextmanager
-def _reading(path: Path, what: str):
+def _reading(path: Path, what: str) -> Iterator[None]:
     """Turn what h5py/numpy/json raise on a malformed file while reading ``what`` into one SessionError naming the
     file and ``what`` (SessionError and FileBusy pass through)."""
     try:
@@ -909,7 +911,7 @@ def _reading(path: Path, what: str):
                            "damaged or not written by rigctl") from None
 
 
-def _group_status(group) -> str:
+def _group_status(group: Any) -> str:
     """The ``status`` attribute of a trial group as str ("" when absent or unreadable)."""
     try:
         v = group.attrs.get("status", "")
@@ -925,7 +927,7 @@ def _check_file(f: h5py.File, path: Path) -> None:
     _check_top(f, path, missing, has_version)
 
 
-def _check_top(f: h5py.File, path: Path, missing: list, has_version: bool) -> None:
+def _check_top(f: h5py.File, path: Path, missing: list[Any], has_version: bool) -> None:
     if missing or not has_version:
         raise SessionError(f"{path} is not a rigctl session file (missing {missing or ['schema_version']})")
     with _reading(path, "the schema_version attribute"):
@@ -973,14 +975,14 @@ def _check_plan(plan: np.ndarray, path: Path) -> None:
 class _Header:
     """What :func:`_read_session_header` reads: everything but the trials."""
 
-    attrs: dict
+    attrs: dict[str, Any]
     protocol_source: str
     raw_plan: np.ndarray
     layout: SensorLayout
     present: np.ndarray | None
     textures: TextureSet
     #: plan row index -> warning, for rows marked complete whose ``/trials/<id>`` group does not exist
-    unrecorded: dict
+    unrecorded: dict[int, str]
 
 
 def _read_session_header(f: h5py.File, path: Path) -> _Header:
@@ -1011,7 +1013,7 @@ def _read_session_header(f: h5py.File, path: Path) -> _Header:
     return _Header(attrs, source, raw_plan, layout, present, textures, unrecorded)
 
 
-def _legacy_layout(attrs: Mapping, present: np.ndarray) -> SensorLayout:
+def _legacy_layout(attrs: Mapping[str, Any], present: np.ndarray) -> SensorLayout:
     """The sensor of a schema-1/2 file whose ``channel_present`` marks only some of its 18 columns as real (the
     FabricSlide import: 16 of 18): one row of the present channels, named ``channel<k+1>`` after their column
     (FabricSlide's ``channel1`` ... ``channel16``), 1 kHz, 10-bit (those files were always resampled to that)."""
@@ -1024,7 +1026,7 @@ def _legacy_layout(attrs: Mapping, present: np.ndarray) -> SensorLayout:
               else f"{len(idx)} present channels of {len(present)}"))
 
 
-def _file_layout(attrs: Mapping) -> tuple[SensorLayout, np.ndarray | None]:
+def _file_layout(attrs: Mapping[str, Any]) -> tuple[SensorLayout, np.ndarray | None]:
     """``(layout, present)``: the file's sensor and, for a schema-1/2 file with absent channels, the indices of the
     stored columns that are real (else None).
 
@@ -1044,7 +1046,7 @@ def _file_layout(attrs: Mapping) -> tuple[SensorLayout, np.ndarray | None]:
     return PAPER_SENSOR, None
 
 
-def _file_textures(attrs: Mapping, plan: np.ndarray) -> TextureSet:
+def _file_textures(attrs: Mapping[str, Any], plan: np.ndarray) -> TextureSet:
     """Schema 3: the ``texture_set`` attribute; schema 1/2: ``texture_set_from_labels`` of the plan's labels (the
     paper's A-P set when all are A-P or the plan is empty). The paper's set is returned as :data:`PAPER_TEXTURES`
     itself (as the paper's sensor as :data:`PAPER_SENSOR`), so identity checks downstream hold."""
@@ -1056,7 +1058,7 @@ def _file_textures(attrs: Mapping, plan: np.ndarray) -> TextureSet:
     return texture_set_from_labels(labels) if labels else PAPER_TEXTURES
 
 
-def _file_sensor(attrs: Mapping, plan: np.ndarray, path: Path
+def _file_sensor(attrs: Mapping[str, Any], plan: np.ndarray, path: Path
                  ) -> tuple[SensorLayout, np.ndarray | None, TextureSet]:
     """``(layout, present, textures)`` of a session file (:func:`_file_layout`, :func:`_file_textures`), for the
     reader and the writer alike. Raises SessionError for a malformed ``sensor_layout`` / ``texture_set``."""
@@ -1125,7 +1127,7 @@ class Session:
     SessionError (see above), rigctl.storage.journal.FileBusy (a writer holds the HDF5 lock for long).
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._f = _open_h5(self.path, "r")
         self.problems: list[str] = []
@@ -1168,7 +1170,7 @@ class Session:
         self.problems.append(message)
         log.warning("%s", message)
 
-    def _read_calibration(self) -> dict | None:
+    def _read_calibration(self) -> dict[str, Any] | None:
         f = self._f
         if "calibration" not in f:
             return None
@@ -1202,7 +1204,7 @@ class Session:
     def failed_ids(self) -> list[int]:
         return [int(t) for t in self.plan["trial_id"][self.plan["status"] == TrialStatus.FAILED]]
 
-    def _group(self, trial_id: int):
+    def _group(self, trial_id: int) -> h5py.Group | None:
         name = trial_group_name(trial_id)
         with _reading(self.path, f"trial {trial_id} ({name})"):
             g = self._f.get(name)
@@ -1213,7 +1215,7 @@ class Session:
     def _damaged(self, trial_id: int, what: str) -> SessionError:
         return SessionError(f"{self.path}: trial {trial_id} is damaged: {what}; its data are not used")
 
-    def _check_recording(self, trial_id: int, g, attrs: Mapping) -> int:
+    def _check_recording(self, trial_id: int, g: Any, attrs: Mapping[str, Any]) -> int:
         """Check a recorded trial's datasets against each other and the sensor without reading them (shapes, types,
         ``n_samples``); returns the sample count. Raises SessionError naming the trial and the problem."""
         if trial_id in self._checked:
@@ -1264,7 +1266,7 @@ class Session:
         self._checked[trial_id] = n
         return n
 
-    def trial_attrs(self, trial_id: int) -> dict:
+    def trial_attrs(self, trial_id: int) -> dict[str, Any]:
         """The attributes of ``/trials/<id>`` (setpoints, texture, status, n_samples, dropped_frames, ...).
 
         Raises
@@ -1305,6 +1307,7 @@ class Session:
             attrs = _read_attrs(g)
         self._check_recording(trial_id, g, attrs)
         with _reading(self.path, f"the data of trial {trial_id}"):
+            assert g is not None  # has_data above
             arrays = {k: g[k][()] for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s",
                                             "speed_mm_s", "speed_time_s")}
         taxels = arrays.pop("taxels")
@@ -1427,17 +1430,17 @@ class Session:
     def __enter__(self) -> "Session":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def __del__(self):  # pragma: no cover - best effort
+    def __del__(self) -> None:  # pragma: no cover - best effort
         try:
             self._f.close()
         except Exception:
             pass
 
 
-def open_session(path: str | os.PathLike) -> Session:
+def open_session(path: str | os.PathLike[str]) -> Session:
     """Open a session file read-only (:class:`Session`, which says what it checks).
 
     Raises
