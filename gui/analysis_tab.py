@@ -1,5 +1,6 @@
 """Offline analysis tab: open a session or encoded file, browse its trials (raw traces, a heat map per taxel layer
-and SA/RA rasters of any trial, shaped by the file's sensor layout: any channel count, layers and rate), encode and run the paper's analyses in a background process with progress and cancel
+and SA/RA rasters of any trial, shaped by the file's sensor layout: any channel count, layers and rate), encode
+and run the paper's analyses in a background process with progress and cancel
 (:mod:`rigctl.encoding.pipeline`, :mod:`rigctl.analysis`), plot accuracy vs PCs with error bars for the four
 variants (Fig. 3), the Table 1 grid and confusion matrices; export figures (PNG/SVG) and tables (CSV); train the
 texture classifier used by the real-time classification view."""
@@ -12,10 +13,10 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from rigctl.core import PAPER_SENSOR, SensorLayout
 from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
 from rigctl_gui.widgets import side_panel
 from rigctl_gui.workers import Job, ProcessJob
-from rigctl.core import PAPER_SENSOR, SensorLayout
 
 #: Fig. 3 / report colours per variant
 VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
@@ -359,9 +360,8 @@ class AnalysisTab(QtWidgets.QWidget):
                 ra = encode_ra(x[None], normalise=rng, fs=fs_hz)
                 n_ch = x.shape[1]
                 return x, [sa.train(0, k) for k in range(n_ch)], [ra.train(0, k) for k in range(n_ch)]
-            from rigctl.storage.encoded import open_encoded
-
             from rigctl.encoding.spikes import SpikeTrains
+            from rigctl.storage.encoded import open_encoded
 
             with open_encoded(path) as ef:
                 i = int(np.flatnonzero(ef.trials["trial_id"] == tid)[0])
@@ -633,7 +633,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.table1.setColumnCount(len(variants))
         self.table1.setHorizontalHeaderLabels([variant_title(v) for v in variants])
         self.table1.setVerticalHeaderLabels([TASK_TITLES.get(t, t) for t in grid])
-        for r, (task, row) in enumerate(grid.items()):
+        for r, (_task, row) in enumerate(grid.items()):
             for c, v in enumerate(variants):
                 if v in row:
                     mu, sd = row[v]

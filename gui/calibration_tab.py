@@ -15,9 +15,9 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtWidgets
 
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui.messages import escaped
 from rigctl_gui.workers import Job
-from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 
 def axis_layers(layout: SensorLayout) -> str:

@@ -13,7 +13,6 @@ from PySide6 import QtCore, QtWidgets
 from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
-
 from rigctl_gui.widgets import side_panel
 
 #: what each controller state means, for the operator (docs/wire-protocol.md table 2.4)

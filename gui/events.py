@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 
 def wait_for(app, predicate: Callable[[], bool], timeout_s: float) -> bool:

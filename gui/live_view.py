@@ -31,8 +31,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 
 #: the time window's range (s): traces and rasters show the last WINDOW_RANGE_S seconds
 WINDOW_RANGE_S = (0.5, LIVE_WINDOW_MAX_S)

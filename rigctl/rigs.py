@@ -25,8 +25,9 @@ actuator after opening), ``textures`` (the rig's default texture set).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from rigctl.acquisition.rig import Rig, RigError
 from rigctl.core.interfaces import RigBackend

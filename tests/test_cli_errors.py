@@ -18,8 +18,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rigctl.cli import main
 
@@ -219,8 +218,9 @@ def test_replay_of_an_empty_folder(tmp_path, cfg_env, data):
 
 def test_numpy_values_read_as_plain_numbers(data):
     """A message built from numpy values (here the profiles of the file) names them as text."""
-    from rigctl.cli.errors import plain_numbers
     import numpy as np
+
+    from rigctl.cli.errors import plain_numbers
 
     line = refused(1, "analyze", data["encoded"], "--task", "realtime", "--train-profiles", "nope",
                    words=("nope", "has constant"))
@@ -450,8 +450,8 @@ def test_plate_policy_unattended_hardware_run(data, tmp_path, monkeypatch):
 def test_plate_prompt_callables():
     from rigctl.cli.acquire import plate_prompt
     from rigctl.cli.outputs import UsageProblem
-    from rigctl.devices.backend import OperatorMounter
     from rigctl.core.textures import PAPER_TEXTURES
+    from rigctl.devices.backend import OperatorMounter
 
     with pytest.raises(UsageProblem, match="stdin is not a terminal"):
         plate_prompt("prompt", hardware=True, stdin_is_tty=False)

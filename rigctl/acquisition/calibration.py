@@ -24,12 +24,12 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import numpy as np
 
-from rigctl.devices import wire
 from rigctl.acquisition.motion import wait_released
 from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the config file API callers know from here)
     CalibrationError,
@@ -41,6 +41,7 @@ from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the confi
     update_rig_config,
 )
 from rigctl.core.interfaces import MassPlacer
+from rigctl.devices import wire
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,8 @@ the file declares, with optional groups and geometry), the speed/force condition
 lasts (a fixed travel of the drum surface, 240 mm in the paper's dataset, or a fixed duration), the trial order and
 the settle timeouts, and the trial quality policy: ``max_dropped_frames`` (default 0: a trial may lose no frame) and
 ``retries`` (default 2: a trial that fails or loses more frames than that is recorded again up to twice, then marked
-failed; :func:`rigctl.acquisition.runner.run_protocol`); :meth:`Protocol.plan` expands it into one :class:`PlannedTrial` per trial. Velocity profiles
+failed; :func:`rigctl.acquisition.runner.run_protocol`); :meth:`Protocol.plan` expands it into one
+:class:`PlannedTrial` per trial. Velocity profiles
 (constant, or a linear ramp from a start to an end speed) cover the paper's real-time experiment (Fig. 4: slow,
 medium, fast, slow-to-fast, fast-to-slow). The format is documented in ``protocols/paper_dataset.toml`` and
 ``docs/session-format.md``.
@@ -25,9 +26,10 @@ try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
     import tomli as tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

@@ -126,7 +126,7 @@ def validate_rig_config(doc: Any, where: str = "rig config") -> dict:
 
 
 def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def default_config_path() -> Path:

@@ -46,9 +46,10 @@ import math
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from rigctl.acquisition.calibration import session_calibration_block
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
@@ -489,7 +490,8 @@ def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: b
         raise SessionError(f"{protocol.path}: a Python-script protocol cannot be resumed by the runner "
                            "(the script decides its trials); start a new session file")
     writer = SessionWriter.create(
-        out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source, protocol_name=protocol.name, protocol_format="python",
+        out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source,
+        protocol_name=protocol.name, protocol_format="python",
         rig_config=rig.describe(), kind="recorded", calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
         overwrite=overwrite,
     )

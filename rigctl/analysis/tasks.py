@@ -131,7 +131,7 @@ class TaskResults:
         self.curves.setdefault(curve.task, {})[curve.variant] = curve
 
     def merge(self, other: "TaskResults"):
-        for task, by_v in other.curves.items():
+        for by_v in other.curves.values():
             for c in by_v.values():
                 self.add(c)
         self.counts.update(other.counts)

@@ -94,7 +94,8 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
             rig.set_texture(texture, textures)
         click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 115200 8N1, device id 1)")
         click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
-        click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{', replaying ' + replay_dir if replay_dir else ''}. Ctrl-C stops.")
+        replaying = ", replaying " + replay_dir if replay_dir else ""
+        click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{replaying}. Ctrl-C stops.")
         sys.stdout.flush()
         try:
             while not stop.wait(0.5):

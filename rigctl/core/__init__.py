@@ -11,8 +11,14 @@
 
 from rigctl.core.interfaces import DrumController, MassPlacer, PlateMounter, RigBackend, TaxelSource
 from rigctl.core.sensor import PAPER_FINGER, PAPER_SENSOR, LayoutError, SensorLayout, TaxelLayer, parse_layout
-from rigctl.core.textures import (PAPER_GROUPS, PAPER_TEXTURES, TextureSet, TextureSetError, TextureSpec,
-                                  texture_set_from_labels)
+from rigctl.core.textures import (
+                                  PAPER_GROUPS,
+                                  PAPER_TEXTURES,
+                                  TextureSet,
+                                  TextureSetError,
+                                  TextureSpec,
+                                  texture_set_from_labels,
+)
 from rigctl.core.trial import PlannedTrial, TrialData
 
 __all__ = [

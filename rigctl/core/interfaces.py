@@ -22,7 +22,8 @@ Bluesky's ``protocols.py`` is the model (duck typing, no inheritance chains). Im
 
 from __future__ import annotations
 
-from typing import Any, Callable, Iterable, Protocol, runtime_checkable
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol, runtime_checkable
 
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 __all__ = ["TextureSpec", "TextureSet", "TextureSetError", "PAPER_TEXTURES", "PAPER_GROUPS", "PAPER_VARIANTS",
            "texture_set_from_labels"]

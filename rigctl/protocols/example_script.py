@@ -5,7 +5,8 @@ Run it like a TOML protocol:
     rigctl acquire protocols/example_script.py --out sweep.h5
 
 A script protocol defines ``run(rig, session)``. ``rig`` is an open :class:`rigctl.acquisition.rig.Rig` (from
-:func:`rigctl.rigs.open_rig`; simulated by default), ``session`` a :class:`rigctl.storage.session.SessionWriter` whose plan starts empty. Each trial is
+:func:`rigctl.rigs.open_rig`; simulated by default), ``session`` a :class:`rigctl.storage.session.SessionWriter`
+whose plan starts empty. Each trial is
 planned, recorded and appended in one step, so an interrupted script keeps every finished trial.
 
 This one sweeps the contact force upwards in 100 g steps on the wave texture L at 100 mm/s until the mean taxel

@@ -7,7 +7,8 @@ set's geometry, :func:`rigctl.simulation.textures.get_texture`).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices.backend import PortBackend

@@ -1,7 +1,8 @@
 """Simulated datasets: trials rendered straight from the physical model, no real-time pacing.
 
 :func:`render_trial` produces one trial as the acquisition runner would record it on the simulated rig (taxel frames
-at the model sensor's rate, :func:`model_layout`: the paper's 3x3x2 at 1 kHz; the load-cell force trace and the drum speed trace as polled over Modbus, the setpoints as attributes);
+at the model sensor's rate, :func:`model_layout`: the paper's 3x3x2 at 1 kHz; the load-cell force trace and the
+drum speed trace as polled over Modbus, the setpoints as attributes);
 :func:`generate_dataset` renders a whole protocol (e.g. ``protocols/paper_dataset.toml``: the paper's 16 textures x
 5 speeds x 3 forces x 100 trials, Materials and Methods "Tactile Texture Dataset - Data Collection") into a session
 file with the same layout as a recorded session (:class:`rigctl.storage.session.SessionWriter`, kind
@@ -27,8 +28,9 @@ import math
 import multiprocessing as mp
 import os
 import time
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 from scipy.signal import lfilter

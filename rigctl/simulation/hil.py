@@ -2,7 +2,8 @@
 
 :class:`HilRig` has the interface of :class:`rigctl.simulation.rig.SimulatedRig` (context manager, ``drum_port``,
 ``taxel_port``, ``set_texture``, ``place_mass``), so :class:`rigctl.devices.drum.DrumClient`,
-:class:`rigctl.devices.taxel_stream.TaxelStream` and ``rigctl.rigs.open_rig("hil")`` talk to it unchanged. It builds the firmware and the harness if needed
+:class:`rigctl.devices.taxel_stream.TaxelStream` and ``rigctl.rigs.open_rig("hil")`` talk to it unchanged. It
+builds the firmware and the harness if needed
 from the sources shipped in the package (:func:`rigctl.firmware.build`: ``rigctl/arduino``, the repo's ``arduino/``)
 and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per board:
 

@@ -45,8 +45,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from rigctl.devices import wire
 from rigctl.core.textures import TextureSet
+from rigctl.devices import wire
 from rigctl.simulation.textures import TEXTURES, Texture, get_texture
 
 N_ROWS = 3

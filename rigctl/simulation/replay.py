@@ -22,8 +22,8 @@ as the simulated clock advances by n sample periods.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 

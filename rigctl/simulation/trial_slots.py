@@ -19,7 +19,7 @@ import collections
 import glob
 import os
 import tempfile
-from typing import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 

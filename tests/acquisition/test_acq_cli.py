@@ -56,7 +56,7 @@ def test_quick_check_end_to_end(tmp_path):
     assert table.returncode == 0
     assert sum(line.endswith("  complete") for line in table.stdout.splitlines()) == 6
     with h5py.File(out, "r") as f:  # plain h5py: contiguous sequence numbers, textures from the plan
-        for name, g in f["trials"].items():
+        for g in f["trials"].values():
             seq = g["seq"][()].astype(np.int64)
             assert ((np.diff(seq) & 0xFFFF) == 1).all()
             assert g["taxels"].shape == (2000, 18)

@@ -1,6 +1,7 @@
 """The runner under faults: trials with holes are recorded again or marked failed (never kept as complete), a lost
 index frame costs only that frame, a silent taxel stream is restarted, a lost link ends the run in bounded time (and
-a link that comes back lets it go on), SIGTERM stops cleanly (a trial being written is written first), a reader holding the file costs no trial.
+a link that comes back lets it go on), SIGTERM stops cleanly (a trial being written is written first), a reader
+holding the file costs no trial.
 
 Most run on the in-process rig (rigctl.rigs.open_rig("inprocess")); the board-side faults (an index frame the Uno
 never sends, a board that stops streaming, an unplugged Uno, an unplugged Mega) on the simulated rig on real ptys."""
@@ -15,8 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl.acquisition import rig as rig_module
-from rigctl.acquisition import runner as runner_module
+from rigctl.acquisition import rig as rig_module, runner as runner_module
 from rigctl.acquisition.protocol import parse_protocol
 from rigctl.acquisition.runner import run_protocol
 from rigctl.devices.wire import DrumState, FrameFlag

@@ -8,8 +8,7 @@ import math
 import re
 from pathlib import Path
 
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rigctl.acquisition.protocol import Protocol, ProtocolError, parse_protocol
 

@@ -13,8 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl.acquisition import calibration
-from rigctl.acquisition import rig as rig_module
+from rigctl.acquisition import calibration, rig as rig_module
 from rigctl.acquisition.protocol import parse_protocol
 from rigctl.acquisition.runner import run_protocol
 from rigctl.devices.wire import DrumState, HoldingRegister

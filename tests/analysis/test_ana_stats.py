@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats as st
 
-from rigctl.analysis.stats import (Comparison, cohens_d, cohens_h, stars_d, stars_h, two_proportion_z,
-                                   welch_test)
+from rigctl.analysis.stats import Comparison, cohens_d, cohens_h, stars_d, stars_h, two_proportion_z, welch_test
 
 
 def test_welch_matches_scipy():

@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import pytest
+
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.errors import DrumError, ModbusExceptionError

@@ -383,8 +383,8 @@ REFUSED = {
 @pytest.mark.parametrize("state", list(REFUSED), ids=[s.name for s in REFUSED])
 def test_each_state_refuses_what_it_must_and_stop_makes_it_safe(drum, controller, state):
     """In every state: the commands not allowed there are refused with exception 03 and change nothing (the
-    always-allowed ones are accepted and change nothing either); STOP is always accepted: the drum comes to rest, the actuator backs off home, the state becomes IDLE (a latched FAULT
-    stays FAULT until CLEAR_FAULT)."""
+    always-allowed ones are accepted and change nothing either); STOP is always accepted: the drum comes to rest,
+    the actuator backs off home, the state becomes IDLE (a latched FAULT stays FAULT until CLEAR_FAULT)."""
     bring_to(drum, controller, state)
     regs = holding(drum)
     # HOMING ends by itself once the actuator is home

@@ -185,7 +185,7 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     assert data == {"LOADCELL_SCALE_X100": 40000, "ACTUATOR_STEPS_PER_MM": 500}
     drum.set_force(420)
     drum.press()
-    status = drum.wait_force_settled(6)
+    drum.wait_force_settled(6)
     # the controller believes 420 g at 400 counts/g: the true (model) force is 420 * 400 / 420 = 400 g
     assert abs(mega.model.contact_force_g - 400) <= 20
     drum.stop()

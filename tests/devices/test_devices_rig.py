@@ -9,8 +9,8 @@ import numpy as np
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import TaxelStream
-from rigctl.simulation.rig import SimulatedRig
 from rigctl.devices.wire import DrumState
+from rigctl.simulation.rig import SimulatedRig
 
 
 def _capture(stream: TaxelStream, n: int, drum: DrumClient | None = None):

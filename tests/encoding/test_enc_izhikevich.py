@@ -7,8 +7,7 @@ import pytest
 from scipy import signal
 
 from rigctl.encoding.filters import RAFilter, ra_input
-from rigctl.encoding.izhikevich import (StreamingEncoder, as_ragged, encode_ra, encode_sa, encode_trials,
-                                        run_izhikevich)
+from rigctl.encoding.izhikevich import StreamingEncoder, as_ragged, encode_ra, encode_sa, encode_trials, run_izhikevich
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.spikes import SpikeTrains
 

@@ -7,8 +7,8 @@ import pytest
 
 from rigctl.encoding.features import realtime_features, realtime_features_unscaled, spike_features
 from rigctl.encoding.izhikevich import encode_ra, encode_sa
-from rigctl.encoding.spikes import SpikeTrains
 from rigctl.encoding.speed import incremental_scale, scale_spike_times, speed_coefficient, window_speeds
+from rigctl.encoding.spikes import SpikeTrains
 
 
 def spatial_signal(position_mm: np.ndarray, n_ch: int = 18) -> np.ndarray:

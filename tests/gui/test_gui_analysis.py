@@ -163,7 +163,7 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
                                   speed_mm_s=float(plan["speed_mm_s"][i]))
         view.on_trial(planned, data)
     assert wait_for(qapp, lambda: len(view.results) == 4, 120), (view.model_label.text(), len(view._pending))
-    for k, (tid, truth, pred) in enumerate(view.results):
+    for k, (_tid, truth, pred) in enumerate(view.results):
         tile = view.grid.itemAt(k).widget()
         assert tile.property("correct") == (truth == pred)
         assert ("#2a2" in tile.styleSheet()) == (truth == pred)
@@ -256,13 +256,13 @@ def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot
     assert sy is not None and len(sy) > 0 and sy.max() <= 8.5
     assert tab.heat_plots[0][1].image.shape == (3, 3)
     # the real-time view's model on this sensor: a pipeline from raw trials (its windows, its 100 Hz rate)
-    from rigctl_gui.analysis_jobs import train_classifier
-    from rigctl_gui.classify_view import classify_trial
     from rigctl.analysis.model import trials_of_session
     from rigctl.core import TrialData
     from rigctl.storage.encoded import open_encoded
     from rigctl.storage.model_file import load_model
     from rigctl.storage.session import open_session
+    from rigctl_gui.analysis_jobs import train_classifier
+    from rigctl_gui.classify_view import classify_trial
 
     trials, _ = trials_of_session(path)
     for variant in ("original", "speed_scaled"):

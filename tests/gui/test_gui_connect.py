@@ -3,16 +3,15 @@ persists in QSettings, and the FabricSlide replay streams recorded signals into 
 
 from __future__ import annotations
 
-
 from rigctl_gui.events import wait_for
 
 
 def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_path):
+    from rigctl.devices.ports import find_ports
+    from rigctl.simulation.rig import SimulatedRig
     from rigctl_gui.app import make_settings
     from rigctl_gui.connect_dialog import ConnectDialog, load_source, save_source
     from rigctl_gui.workers import RigSource
-    from rigctl.devices.ports import find_ports
-    from rigctl.simulation.rig import SimulatedRig
 
     with SimulatedRig() as sim:
         dlg = ConnectDialog(RigSource("serial", drum_port=sim.drum_port, taxel_port=sim.taxel_port))

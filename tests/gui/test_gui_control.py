@@ -15,9 +15,9 @@ import pytest
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
-
 from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
+
 
 def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbot):
     panel = window.control
@@ -252,7 +252,6 @@ def test_a_latched_fault_is_shown_with_its_meaning_and_cleared_only_by_the_opera
 def test_a_controller_in_fault_at_connect_is_left_latched(qapp):
     """The app opens the rig without clearing a latched fault (the library clears it only when homing)."""
     from rigctl.simulation.rig import SimulatedRig
-
     from rigctl_gui.app import open_rig_keeping_faults
     from rigctl_gui.workers import RigSource
 

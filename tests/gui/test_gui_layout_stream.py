@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl_gui.events import wait_for
 from rigctl.core.sensor import SensorLayout
+from rigctl_gui.events import wait_for
 
 FINGER_100HZ = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="finger 3x3")
 STEP = 37  # channel c of frame k reads (k * 3 + c * STEP) % 1024
@@ -42,10 +42,10 @@ def finger_board(tmp_path):
 
 
 def test_live_view_on_a_streamed_9_channel_100hz_sensor(qapp, finger_board):
+    from rigctl.devices.taxel_stream import TaxelStream
     from rigctl_gui.app import configure_pyqtgraph
     from rigctl_gui.live_view import LiveView
     from rigctl_gui.workers import LiveEncoder
-    from rigctl.devices.taxel_stream import TaxelStream
 
     configure_pyqtgraph()
     view = LiveView()

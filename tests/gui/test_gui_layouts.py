@@ -10,9 +10,9 @@ import threading
 import numpy as np
 import pytest
 
-from rigctl_gui.events import wait_for
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout, parse_layout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl_gui.events import wait_for
 
 FINGER_100HZ = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="finger 3x3 @ 100 Hz")
 GRID_4X4 = parse_layout("4x4", sample_rate_hz=500.0, adc_bits=12)
@@ -232,8 +232,8 @@ class _Main:
 
 
 def test_calibration_tab_per_taxel_normalisation_follows_the_layout(qapp, tmp_path):
-    from rigctl_gui.calibration_tab import CalibrationTab
     from rigctl.acquisition.calibration import update_rig_config
+    from rigctl_gui.calibration_tab import CalibrationTab
 
     cfg = tmp_path / "rig.json"
     tab = CalibrationTab(_Main(cfg))
@@ -439,7 +439,7 @@ def test_legend_colour_bar_and_taxel_numbers(live_view, qapp):
     view = live_view()
     for p, chans in zip(view.trace_plots, view._layer_channels):
         title = p.titleLabel.text
-        for k, ch in enumerate(chans):
+        for ch in chans:
             colour = view.curves[ch].opts["pen"].color().name()
             assert f"color:{colour}'>&#9632;{ch}<" in title
     assert view.colour_bar.values == (0, 1023)

@@ -12,7 +12,6 @@ from PySide6 import QtCore
 
 from rigctl.devices.wire import HoldingRegister
 from rigctl.storage.session import open_session
-
 from rigctl_gui.events import wait_for
 
 PROTOCOL = """

@@ -5,7 +5,6 @@ plate in the control panel replays that texture's recordings (its own frequency 
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
@@ -67,9 +66,9 @@ def _dominant_hz(x: np.ndarray, rate_hz: float) -> float:
 
 
 def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session, tmp_path):
+    from rigctl.devices.wire import DrumState
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
     from rigctl_gui.workers import RigSource
-    from rigctl.devices.wire import DrumState
 
     configure_pyqtgraph()
     source = RigSource("replay", replay_dir=str(finger_session))

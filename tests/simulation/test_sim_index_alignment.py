@@ -8,8 +8,8 @@ import pytest
 
 from rigctl.acquisition.protocol import PlannedTrial
 from rigctl.devices import wire
-from rigctl.simulation.dataset import render_trial
 from rigctl.rigs import open_rig
+from rigctl.simulation.dataset import render_trial
 from rigctl.simulation.model import RigConfig
 
 

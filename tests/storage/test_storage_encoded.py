@@ -12,9 +12,19 @@ import pytest
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.encoding.spikes import SpikeTrains
-from rigctl.storage.encoded import (ALL_VARIANTS, ENCODED_SCHEMA_VERSION, MAIN_VARIANTS, REALTIME_VARIANTS,
-                                    VARIANT_TITLES, VARIANTS, EncodedWriter, NotEncodedError, is_encoded_file,
-                                    open_encoded, variant_info)
+from rigctl.storage.encoded import (
+    ALL_VARIANTS,
+    ENCODED_SCHEMA_VERSION,
+    MAIN_VARIANTS,
+    REALTIME_VARIANTS,
+    VARIANT_TITLES,
+    VARIANTS,
+    EncodedWriter,
+    NotEncodedError,
+    is_encoded_file,
+    open_encoded,
+    variant_info,
+)
 
 LAYOUT = SensorLayout.grid(4, 4, 1, sample_rate_hz=250.0, adc_bits=12, name="lab 4x4")
 TEXTURES = TextureSet.from_dict({"name": "26 fabrics", "textures": [f"Fabric-{c}{c}{c}" for c in "ABCDEF"],

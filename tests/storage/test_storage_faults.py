@@ -5,7 +5,6 @@ readers that validate what they read and say what is wrong in one line, a full d
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import subprocess

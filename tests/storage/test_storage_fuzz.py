@@ -13,15 +13,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import uuid
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rigctl.core import PAPER_SENSOR, PAPER_TEXTURES
 from rigctl.storage.encoded import EncodedWriter, NotEncodedError, open_encoded
@@ -107,7 +105,7 @@ def _read_encoded(path: Path) -> str:
             assert sp.spike_times_index.size == f.n_trials * sp.n_trains
             f.spike_trains_description(v)
         if "normalisation" in f._f:
-            f.normalisation
+            _ = f.normalisation
         for lf in (False, True):
             f.force_coefficients(label_free=lf)
             f.force_fit_stats(label_free=lf)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import math
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import h5py
 import numpy as np
@@ -15,8 +15,7 @@ from click.testing import CliRunner
 from scipy.signal import resample_poly
 
 from rigctl.cli import main
-from rigctl.storage.importers import (RecordingImportError, labels_from_name, parse_segment, read_recording_file,
-                                      segment)
+from rigctl.storage.importers import RecordingImportError, labels_from_name, parse_segment, read_recording_file, segment
 from rigctl.storage.session import open_session
 
 RATE = 100.0
@@ -120,7 +119,7 @@ def test_csv_without_header_and_v73_mat(tmp_path):
     mat = tmp_path / "v73.mat"
     with h5py.File(mat, "w", userblock_size=512) as f:
         f.create_dataset("taxels", data=data.T.astype(np.float64))
-    head = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: " + datetime.now(timezone.utc).strftime(
+    head = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: " + datetime.now(UTC).strftime(
         "%a %b %d %H:%M:%S %Y").encode() + b" HDF5 schema 1.00 ."
     with open(mat, "r+b") as fh:
         fh.write(head.ljust(116, b" ") + b"\0" * 8 + b"\x00\x02" + b"IM")
@@ -135,7 +134,7 @@ def test_nwb_timeseries(tmp_path):
 
     data = recording(2)
     nwb = NWBFile(session_description="generated taxels", identifier="rigctl-test",
-                  session_start_time=datetime(2026, 1, 1, tzinfo=timezone.utc))
+                  session_start_time=datetime(2026, 1, 1, tzinfo=UTC))
     nwb.add_acquisition(TimeSeries(name="taxels", data=data.astype(np.float64), unit="counts", rate=RATE))
     p = tmp_path / "silk__V30__0.nwb"
     with NWBHDF5IO(str(p), "w") as io:
@@ -283,8 +282,13 @@ def test_fabricslide_preset_fabrics_and_board_in_one_16_channel_file(fabricslide
     """The FabricSlide preset (real files, read in place): 16 channels as 16 at 1 kHz, fabrics and board in one
     session with the FabricSlide texture set; the same via `rigctl import --preset fabricslide` is refused for two
     folders, and the output is not overwritten."""
-    from rigctl.storage.fabricslide import (FABRICSLIDE_SENSOR, import_fabricslide, read_recording,
-                                            resample_to_1khz, to_adc)
+    from rigctl.storage.fabricslide import (
+        FABRICSLIDE_SENSOR,
+        import_fabricslide,
+        read_recording,
+        resample_to_1khz,
+        to_adc,
+    )
 
     out = tmp_path / "fs.h5"
     events = []

@@ -28,10 +28,11 @@ duration_s = 0.6
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """quick_check recorded on the in-process simulated rig (the real runner, the real session writer)."""
+    from pathlib import Path
+
     from rigctl.acquisition.protocol import load_protocol
     from rigctl.acquisition.runner import run_protocol
     from rigctl.rigs import open_rig
-    from pathlib import Path
 
     d = tmp_path_factory.mktemp("nwb_rec")
     proto = load_protocol(Path(__file__).resolve().parents[2] / "protocols" / "quick_check.toml")
@@ -52,8 +53,7 @@ def dataset(tmp_path_factory):
 
 
 def _inspect(path):
-    from nwbinspector import inspect_nwbfile
-    from nwbinspector import Importance
+    from nwbinspector import Importance, inspect_nwbfile
 
     messages = list(inspect_nwbfile(nwbfile_path=str(path)))
     critical = [m for m in messages if m.importance in (Importance.CRITICAL, Importance.PYNWB_VALIDATION,

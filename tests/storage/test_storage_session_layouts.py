@@ -11,8 +11,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rigctl.core import (PAPER_SENSOR, PAPER_TEXTURES, SensorLayout, TextureSet, TextureSetError, TrialData,
-                         texture_set_from_labels)
+from rigctl.core import (
+    PAPER_SENSOR,
+    PAPER_TEXTURES,
+    SensorLayout,
+    TextureSet,
+    TextureSetError,
+    TrialData,
+    texture_set_from_labels,
+)
 from rigctl.storage.session import SCHEMA_VERSION, SessionError, SessionWriter, TrialStatus, open_session
 
 NINE_100 = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, adc_bits=12, pitch_mm=4.0, name="finger 3x3 @ 100 Hz")
