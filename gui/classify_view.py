@@ -9,6 +9,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+
 from PySide6 import QtCore, QtWidgets
 
 from rigctl_gui.workers import Job

@@ -33,8 +33,8 @@ def model_versions() -> dict[str, str]:
     """The versions a model file records: rigctl, scikit-learn, numpy, scipy, skops."""
     import numpy
     import scipy
-    import skops
     import sklearn
+    import skops
 
     from rigctl import __version__
 
@@ -42,7 +42,7 @@ def model_versions() -> dict[str, str]:
             "scipy": scipy.__version__, "skops": skops.__version__}
 
 
-def save_model(model: Any, path: str | os.PathLike, *, info: dict | None = None) -> Path:
+def save_model(model: Any, path: str | os.PathLike[str], *, info: dict[str, Any] | None = None) -> Path:
     """Write ``model`` (e.g. a fitted :class:`sklearn.pipeline.Pipeline`) to ``path`` with skops, plus a
     ``rigctl_model.json`` entry: format, library versions, ``info`` (JSON-able: variant, PCs, training file...)."""
     import skops.io as sio
@@ -57,7 +57,7 @@ def save_model(model: Any, path: str | os.PathLike, *, info: dict | None = None)
     return path
 
 
-def read_model_info(path: str | os.PathLike) -> dict:
+def read_model_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The metadata of a model file: ``{"format", "versions", "info"}``.
 
     Raises
@@ -72,10 +72,10 @@ def read_model_info(path: str | os.PathLike) -> dict:
         raise ModelFileError(f"{path} is not a rigctl model file (rigctl analyze --save-model): {exc}") from None
     if meta.get("format") != MODEL_FORMAT:
         raise ModelFileError(f"{path}: model format {meta.get('format')!r}, this rigctl reads {MODEL_FORMAT}")
-    return meta
+    return dict(meta)
 
 
-def load_model(path: str | os.PathLike, *, check_versions: bool = True) -> Any:
+def load_model(path: str | os.PathLike[str], *, check_versions: bool = True) -> Any:
     """Read a model written by :func:`save_model`.
 
     Raises
