@@ -47,6 +47,12 @@ python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 echo "== build firmware"
 make -C arduino -s all
 
+echo "== ruff check (rules and per-file ignores in pyproject.toml)"
+python3 -m ruff check --no-cache .
+
+echo "== mypy (settings in pyproject.toml; cache in .mypy_cache)"
+python3 -m mypy
+
 echo "== pytest"
 export QT_QPA_PLATFORM=offscreen
 python3 -m pytest -q "$@"

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.encoding.spikes import SpikeTrains
 from rigctl.encoding.speed import WINDOW_S
+from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["N_WINDOWS_SCALED", "N_WINDOWS_UNSCALED", "N_WINDOWS_REALTIME", "spike_features", "realtime_features",
            "realtime_features_unscaled"]

@@ -23,6 +23,7 @@ Two groupings:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
@@ -31,7 +32,8 @@ from sklearn.utils.validation import check_is_fitted
 from rigctl.encoding.fused import run_fused
 from rigctl.encoding.izhikevich import FS_HZ, K_SA, TONIC_SPIKING, IzhikevichParams, Ragged, as_ragged
 
-__all__ = ["ForceFit", "fit_force_coefficients", "fit_force_groupings", "fit_scalers", "ForceScaler", "REFERENCE_FORCE_G", "EPSILON", "C_MAX"]
+__all__ = ["ForceFit", "fit_force_coefficients", "fit_force_groupings", "fit_scalers", "ForceScaler",
+           "REFERENCE_FORCE_G", "EPSILON", "C_MAX"]
 
 REFERENCE_FORCE_G = 500.0  #: the force whose SA rate is the target (Methods)
 EPSILON = 0.1  #: spikes/s tolerance of eq. (1)
@@ -162,7 +164,7 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
         raise ValueError("empty trial")
     izh = (params.a, params.b, params.c, params.d, params.v_peak)
 
-    def rates_at(coeff_groups: list[np.ndarray], masks: list[np.ndarray], groups: list) -> list[np.ndarray]:
+    def rates_at(coeff_groups: list[np.ndarray], masks: list[np.ndarray], groups: list[Any]) -> list[np.ndarray]:
         active = np.logical_or.reduce(masks)
         gains = [cg[g] for cg, (g, _) in zip(coeff_groups, groups)]  # (n_trials, n_ch) each
         counts = np.concatenate([

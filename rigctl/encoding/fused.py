@@ -31,8 +31,9 @@ state carried over) give bit-identical spikes.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numba
 import numpy as np
@@ -179,7 +180,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                             mm = msk[p, j]
                             w = wp[p, j]
                             while mm:
-                                spk[p, t * n_ch + ch, min(w, cap - 1)] = base + trailing_zeros(mm)
+                                spk[p, t * n_ch + ch, min(w, cap - 1)] = base + trailing_zeros(mm)  # type: ignore[call-arg]
                                 w += 1
                                 mm = mm & (mm - np.uint32(1))
                             wp[p, j] = w

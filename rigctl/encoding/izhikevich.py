@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -453,7 +454,7 @@ def _norm_args(normalise: TaxelRange | None):
     return normalise.offset_scale()
 
 
-def _fused(rg: Ragged, *, normalise: TaxelRange | None, sa_coeffs: tuple, k_sa: float, ra: bool, k_ra: float,
+def _fused(rg: Ragged, *, normalise: TaxelRange | None, sa_coeffs: tuple[Any, ...], k_sa: float, ra: bool, k_ra: float,
            cutoff_hz: float, rectify: bool, fs: float, params: IzhikevichParams, dtype,
            state: FusedState | None = None, n0: int = 0) -> FusedResult:
     offset, scale = _norm_args(normalise)
@@ -620,4 +621,4 @@ class StreamingEncoder:
 
 def default_threads() -> int:
     """Threads numba uses (all cores unless NUMBA_NUM_THREADS says otherwise)."""
-    return int(os.environ.get("NUMBA_NUM_THREADS", numba.config.NUMBA_NUM_THREADS))
+    return int(os.environ.get("NUMBA_NUM_THREADS", numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined,arg-type]

@@ -9,6 +9,7 @@ applies on the fly, so raw ``uint16`` ADC counts never need a float copy.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +50,7 @@ class TaxelRange:
             if lo.shape != self.minimum.shape:
                 raise ValueError(f"{lo.size} taxels, expected {self.minimum.size}")
             self.minimum = np.minimum(self.minimum, lo)
-            self.maximum = np.maximum(self.maximum, hi)
+            self.maximum = np.maximum(self.maximum, hi)  # type: ignore[arg-type]  # set by the first update
         self.n_samples += x.shape[0]
         return self
 
@@ -78,9 +79,10 @@ class TaxelRange:
         offset, scale = self.offset_scale()
         return ((np.asarray(readings, dtype=np.float64) - offset) * scale).astype(dtype)
 
-    def to_dict(self) -> dict:
-        return {"minimum": self.minimum.tolist(), "maximum": self.maximum.tolist(), "n_samples": self.n_samples}
+    def to_dict(self) -> dict[str, Any]:
+        return {"minimum": self.minimum.tolist(), "maximum": self.maximum.tolist(),  # type: ignore[union-attr]
+                "n_samples": self.n_samples}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TaxelRange":
+    def from_dict(cls, d: dict[str, Any]) -> "TaxelRange":
         return cls(np.asarray(d["minimum"], float), np.asarray(d["maximum"], float), int(d.get("n_samples", 0)))

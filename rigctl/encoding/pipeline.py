@@ -58,22 +58,33 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from rigctl.core.progress import ProgressCallback, Stage
-from rigctl.core.progress import note as progress_note
+from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
 from rigctl.core.sensor import SensorLayout
-from rigctl.encoding.features import (N_WINDOWS_REALTIME, N_WINDOWS_SCALED, realtime_features,
-                                      realtime_features_unscaled, spike_features)
+from rigctl.encoding.features import (
+    N_WINDOWS_REALTIME,
+    N_WINDOWS_SCALED,
+    realtime_features,
+    realtime_features_unscaled,
+    spike_features,
+)
 from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler, fit_scalers
 from rigctl.encoding.fused import run_fused
 from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
+from rigctl.encoding.speed import (
+    REALTIME_REFERENCE_SPEED_MM_S,
+    REFERENCE_SPEED_MM_S,
+    WINDOW_S,
+    incremental_scale,
+    speed_coefficient,
+    window_speeds,
+)
 from rigctl.encoding.spikes import SpikeTrains
-from rigctl.encoding.speed import (REALTIME_REFERENCE_SPEED_MM_S, REFERENCE_SPEED_MM_S, WINDOW_S,
-                                   incremental_scale, speed_coefficient, window_speeds)
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, REALTIME_VARIANTS, VARIANTS, EncodedWriter
 
 __all__ = ["EncodeParams", "encode_session", "encode_batch", "trains_to_features", "SpeedMissingError", "windows_for"]
@@ -124,8 +135,8 @@ class EncodeParams:
     n_windows_scaled: int | None = N_WINDOWS_SCALED
     n_windows_unscaled: int | None = None
     n_windows_realtime: int = N_WINDOWS_REALTIME
-    realtime_taxels: list | None = None
-    izhikevich: dict = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
+    realtime_taxels: list[Any] | None = None
+    izhikevich: dict[str, Any] = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
     kernel_dtype: str = "float32"
 
     @classmethod
@@ -172,7 +183,7 @@ def _realtime_taxels(p: EncodeParams, n_ch: int, layout: SensorLayout | None = N
 
 def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_label_free=None,
                  window_speed=None, variants=ALL_VARIANTS, params: EncodeParams | None = None,
-                 store_spikes=MAIN_VARIANTS, rate_hz: float | None = None) -> tuple[dict, dict]:
+                 store_spikes=MAIN_VARIANTS, rate_hz: float | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """Encode a batch of trials into every requested variant.
 
     To encode new trials like an encoded file (e.g. live classification), pass
@@ -231,8 +242,8 @@ def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_l
                               store_spikes=store_spikes)
 
 
-def trains_to_features(sa_by: dict, ra: SpikeTrains, lengths, speed_mm_s, *, variants, params: EncodeParams,
-                       window_speed=None, store_spikes=()) -> tuple[dict, dict]:
+def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm_s, *, variants, params: EncodeParams,
+                       window_speed=None, store_spikes=()) -> tuple[dict[str, Any], dict[str, Any]]:
     """Speed scaling (eq. 2) and SR/SC features of already encoded trains, for each variant (the second half of
     :func:`encode_batch`; :class:`rigctl.encoding.estimators.FeatureExtractor` calls it on its own).
 
@@ -269,12 +280,13 @@ def trains_to_features(sa_by: dict, ra: SpikeTrains, lengths, speed_mm_s, *, var
             sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
             if i.speed_scaled:
                 sa_v, ra_v = sa.scale_times(coef), ra_scaled
-                feats[v] = spike_features(sa_v, ra_v, n_windows=n_scaled, window_s=p.window_s, sr_factor=coef)
+                feats[v] = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled
+                                          window_s=p.window_s, sr_factor=coef)
             else:
                 sa_v, ra_v = sa, ra
                 feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s)
             if v in store_spikes:
-                spikes[v] = SpikeTrains.hstack([sa_v, ra_v])
+                spikes[v] = SpikeTrains.hstack([sa_v, ra_v])  # type: ignore[list-item]  # both set for a stored variant
         else:
             sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
             if not i.speed_scaled:
@@ -328,7 +340,7 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
     if n_threads:
         import numba
 
-        numba.set_num_threads(min(int(n_threads), numba.config.NUMBA_NUM_THREADS))
+        numba.set_num_threads(min(int(n_threads), numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     want_ws = "realtime_speed_scaled" in variants
     conv = rate_conversion(params.input_rate_hz, params.fs_hz) if params.input_rate_hz else \
         RateConversion(params.fs_hz, params.fs_hz)
@@ -402,7 +414,7 @@ def _trial_list(ids) -> str:
     return shown + (f" (+{len(ids) - 10} more)" if len(ids) > 10 else "")
 
 
-def _check_speeds(variants, explicit, labels, has_trace) -> tuple[tuple[str, ...], dict]:
+def _check_speeds(variants, explicit, labels, has_trace) -> tuple[tuple[str, ...], dict[str, Any]]:
     """Drop (default variants) or refuse (explicit ones) the speed-scaled variants when some trials have no speed.
     Returns the variants to encode and {skipped variant: reason}."""
     speed = labels["speed_mm_s"]
@@ -499,7 +511,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
             progress_note(progress, "range pass", f"resampling: {conv.describe()}")
         keys = np.array([f"{t}|{v:.3f}|{f:.3f}" for t, v, f in zip(labels["texture"], labels["speed_mm_s"],
                                                                      labels["force_g"])])
-        plan_dur = {int(r["trial_id"]): float(r["duration_s"]) for r in s.plan} if "duration_s" in s.plan.dtype.names \
+        plan_dur = {int(r["trial_id"]): float(r["duration_s"]) for r in s.plan} if "duration_s" in (s.plan.dtype.names or ()) \
             else {}
         item = 2 if not conv.resampled else 8  # bytes per kept value: uint16 counts, or float64 after resampling
         est = np.array([plan_dur.get(t, 6.0) * conv.model_rate_hz * layout.n_channels * item for t in ids])
@@ -511,8 +523,10 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         keep_all = len(keep) == len(ids)
         want_ws = "realtime_speed_scaled" in variants
         batches = [np.arange(i, min(i + batch_trials, len(ids))) for i in range(0, len(ids), batch_trials)]
-        kept: list = []  # (Ragged, window speeds) per batch when keep_all
-        fit_blocks, fit_idx, n_samples = [], [], np.zeros(len(ids), dtype=np.int64)
+        kept: list[Any] = []  # (Ragged, window speeds) per batch when keep_all
+        fit_blocks: list[Any] = []
+        fit_idx: Any = []
+        n_samples = np.zeros(len(ids), dtype=np.int64)
         has_trace = np.zeros(len(ids), dtype=bool)
         lossy: dict[int, int] = {}  # trial id -> frames it lost on the taxel link (kept within the protocol's limit)
         bar = Stage(progress, "range pass", len(ids))

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from fractions import Fraction
+from typing import Any
 
 import numpy as np
 
@@ -83,7 +84,7 @@ class RateConversion:
         return (f"{self.input_rate_hz:g} Hz -> {self.model_rate_hz:g} Hz with scipy.signal.resample_poly "
                 f"(up {self.up}, down {self.down}, padtype 'line') before the model's 1 ms steps")
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"input_rate_hz": self.input_rate_hz, "model_rate_hz": self.model_rate_hz, "up": self.up,
                 "down": self.down, "resampled": self.resampled}
 
@@ -139,7 +140,7 @@ class StreamResampler:
         self.reset()
 
     def reset(self) -> None:
-        self._zi = None
+        self._zi: np.ndarray | None = None
         self._n_up = 0  # upsampled samples filtered so far
 
     def process(self, chunk) -> np.ndarray:

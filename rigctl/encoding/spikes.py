@@ -198,7 +198,7 @@ class SpikeTrains:
         n_rows = parts[0].n_rows
         rows = (np.arange(len(parts))[None, :] * n_rows + np.arange(n_rows)[:, None]).ravel()
         out = joined._gather_rows(rows, 1)
-        return SpikeTrains.from_counts(out.spike_times, counts)
+        return SpikeTrains.from_counts(out.spike_times, counts)  # type: ignore[arg-type]  # an array here
 
     def window_counts(self, window_s: float, n_windows: int) -> np.ndarray:
         """(n_trials, n_trains, n_windows) float64 spike counts in non-overlapping windows ``[w*window_s, ...)``.

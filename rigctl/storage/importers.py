@@ -281,7 +281,7 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     -------
     blocks : list of (n_samples, n_channels) float64 arrays (one per stacked trial; usually one)
     rate_hz : float or None, the rate the file itself states (NWB), else None
-    meta : dict[str, Any], format details for the session's attributes
+    meta : dict, format details for the session's attributes
 
     Raises
     ------

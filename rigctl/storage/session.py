@@ -1086,7 +1086,7 @@ class TaxelBlock:
     starts: np.ndarray
     dropped_frames: np.ndarray
     has_speed_trace: np.ndarray
-    speed_traces: list | None = None
+    speed_traces: list[Any] | None = None
 
 
 class Session:
@@ -1357,7 +1357,7 @@ class Session:
         dsets, lengths = [], np.zeros(len(ids), dtype=np.int64)
         dropped = np.zeros(len(ids), dtype=np.int64)
         has_trace = np.zeros(len(ids), dtype=bool)
-        speed_traces: list | None = [] if traces else None
+        speed_traces: list[Any] | None = [] if traces else None
         missing = None
         with _reading(self.path, "trials' taxels"):
             tg = h5g.open(fid, b"/trials") if fid.links.exists(b"trials") else None
@@ -1392,9 +1392,9 @@ class Session:
                             sp.read(h5s.ALL, h5s.ALL, v)
                         if t.size:
                             st.read(h5s.ALL, h5s.ALL, t)
-                        speed_traces.append((t, v))
+                        speed_traces.append((t, v))  # type: ignore[union-attr]  # a list with traces
                 elif traces:
-                    speed_traces.append((np.zeros(0), np.zeros(0)))
+                    speed_traces.append((np.zeros(0), np.zeros(0)))  # type: ignore[union-attr]
         if missing is not None:
             raise KeyError(f"trial {missing} has no recorded data in {self.path}")
         with _reading(self.path, "trials' taxels"):
@@ -1410,8 +1410,8 @@ class Session:
             hi = int(data.max())
             if hi > self.layout.adc_max:
                 row = int(np.flatnonzero((data > self.layout.adc_max).any(axis=1))[0])
-                t = int(np.searchsorted(starts, row, side="right") - 1)
-                raise self._damaged(int(ids[t]), f"taxels hold {hi} (sample {row - starts[t]}), outside the "
+                k = int(np.searchsorted(starts, row, side="right") - 1)
+                raise self._damaged(int(ids[k]), f"taxels hold {hi} (sample {row - starts[k]}), outside the "
                                                  f"sensor's {self.layout.adc_bits}-bit range 0..{self.layout.adc_max}")
         return TaxelBlock(data, starts, dropped, has_trace, speed_traces)
 
