@@ -163,7 +163,7 @@ def main(argv=None) -> int:
     nudged = run_fused(np.nextafter(rgn.data, np.inf), rgn.starts, ra=False, dtype=np.float64,
                        want_times=False).counts[0]
     res["band_1ulp"] = agreement(nudged, ref)
-    for name, r in rows.items():
+    for r in rows.values():
         r["agreement"] = agreement(r.pop("result"), ref)
     # per-sample loop on a slice of the same input (trial 0, first loop_neurons taxels)
     sl = xn[0][:, : args.loop_neurons]

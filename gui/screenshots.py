@@ -4,7 +4,8 @@ Run it under an X server (``xvfb-run -a -s "-screen 0 1600x1000x24" python -m ri
 It opens the main window on the simulated rig and drives each tab the way an experimenter would (mount a plate and
 run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
-analysis_table1.png, analysis_confusion.png, calibration.png, classify.png. ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
+analysis_table1.png, analysis_confusion.png, calibration.png, classify.png.
+``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
 the rig-side shots (control.png, calibration.png, live.png: about 40 s instead of several minutes); ``--size 1280x800``
 sets the window's size (default 1400x900).
 """
