@@ -266,8 +266,10 @@ class LiveView(QtWidgets.QWidget):
         bar.addWidget(self.window_box)
         bar.addWidget(self.auto_box)
         bar.addWidget(self.sensor_label)
-        bar.addStretch(1)
-        bar.addWidget(self.info)
+        # the info line takes the room left and never widens the window (an encoder error can be long)
+        self.info.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.info.setAlignment(QtCore.Qt.AlignRight | QtCore.Qt.AlignVCenter)
+        bar.addWidget(self.info, 1)
 
         self.gl = TimedGraphicsLayout()
         self.gl.painted.connect(self._on_painted)

@@ -314,6 +314,8 @@ def test_the_window_is_usable_at_1024x686(window, qapp):
     """Every tab fits a 1024x686 window; the left panels keep their width whatever their texts say; the analysis
     trial list keeps several rows."""
     assert window.minimumSizeHint().width() <= 1024 and window.minimumSizeHint().height() <= 686
+    window.live.info.setText("a long encoder error " * 30)  # a status line never widens the window
+    assert window.minimumSizeHint().width() <= 1024
     window.resize(1024, 686)
     window.tabs.setCurrentWidget(window.control)
     qapp.processEvents()
