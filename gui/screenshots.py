@@ -7,7 +7,8 @@ with the trained model), saving one PNG per tab: control.png, live.png, protocol
 analysis_table1.png, analysis_confusion.png, calibration.png, classify.png.
 ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
 the rig-side shots (control.png, calibration.png, live.png: about 40 s instead of several minutes); ``--size 1280x800``
-sets the window's size (default 1400x900).
+sets the window's size (default 1400x900); more ``--size`` options take every shot at each size in the same session
+(the first size's PNGs in OUT_DIR, the others' in OUT_DIR/WxH/).
 """
 
 from __future__ import annotations
@@ -41,9 +42,11 @@ duration_s = 1.0
 """
 
 
-def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1400, 900)) -> int:
+def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1400, 900),
+         more_sizes: list[tuple[int, int]] = ()) -> int:
     """Save the screenshots into ``out_dir``; ``only`` = a subset of the shot names (without ``.png``; the
     rig-side ones control, calibration, live need no dataset) or None for all; ``size`` = the window's
+    (width, height) in pixels; ``more_sizes``: each shot is also taken at these sizes, into ``out_dir/WxH/``
     (width, height) in pixels."""
     os.makedirs(out_dir, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix="rigctl-shots-")
@@ -66,12 +69,17 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     def shot(name):
         if only and name[:-4] not in only:
             return
-        for _ in range(5):
-            app.processEvents()
-            time.sleep(0.05)
-        path = os.path.join(out_dir, name)
-        w.grab().save(path)
-        print("saved", path)
+        for i, (wd, ht) in enumerate([size, *more_sizes]):
+            w.resize(wd, ht)
+            for _ in range(8 if i or more_sizes else 5):  # a resized window redraws first
+                app.processEvents()
+                time.sleep(0.05)
+            folder = out_dir if i == 0 else os.path.join(out_dir, f"{wd}x{ht}")
+            os.makedirs(folder, exist_ok=True)
+            path = os.path.join(folder, name)
+            w.grab().save(path)
+            print("saved", path, f"({w.width()}x{w.height()})")
+        w.resize(*size)
 
     assert wait(lambda: w.handle is not None, 60), w.banner.label.text()
     # calibration first (the drum must be released for TARE)
@@ -147,13 +155,14 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
 
 
 def _cli(argv: list[str]) -> int:
-    """``OUT_DIR [NAME ...] [--size WxH]``."""
-    size = (1400, 900)
-    if "--size" in argv:
+    """``OUT_DIR [NAME ...] [--size WxH ...]``."""
+    sizes = []
+    while "--size" in argv:
         i = argv.index("--size")
-        size = tuple(int(v) for v in argv[i + 1].lower().split("x"))
+        sizes.append(tuple(int(v) for v in argv[i + 1].lower().split("x")))
         argv = argv[:i] + argv[i + 2:]
-    return main(argv[0] if argv else "docs/screenshots", argv[1:] or None, size=size)
+    sizes = sizes or [(1400, 900)]
+    return main(argv[0] if argv else "docs/screenshots", argv[1:] or None, size=sizes[0], more_sizes=sizes[1:])
 
 
 if __name__ == "__main__":
