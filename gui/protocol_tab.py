@@ -367,7 +367,7 @@ class ProtocolTab(QtWidgets.QWidget):
         if ev.kind == "start":
             self._current = ev.planned
             self._trial_started = time.monotonic()
-            self._set_status(row, "recording")
+            self._set_status(row, "settling, then recording")
         elif ev.kind == "texture":
             self._current = ev.planned
             self._set_status(row, f"mounting plate {ev.planned.texture}")
@@ -429,7 +429,7 @@ class ProtocolTab(QtWidgets.QWidget):
             self.run_strip.hide()
             self.trial_bar.setFormat("trial %p%")
             for r in range(self.table.rowCount()):  # a trial cut short by the abort is not "recording" any more
-                if self.row_status(r).startswith(("recording", "mounting")):
+                if self.row_status(r).startswith(("settling", "recording", "mounting")):
                     self._set_status(r, "aborted (not recorded)")
             summary = job.result
             level = logging.INFO

@@ -101,6 +101,9 @@ def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
     assert wait_for(qapp, lambda: tab.job is None, 20), tab.status.text()
     assert time.monotonic() - t0 < 15
     assert "aborted" in tab.status.text()
+    statuses = [tab.row_status(r) for r in range(tab.table.rowCount())]
+    assert "aborted (not recorded)" in statuses, statuses  # the trial cut short says so
+    assert not any(st.startswith(("settling", "recording", "mounting")) for st in statuses), statuses
 
 
 def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot, gui_home):
