@@ -86,8 +86,9 @@ class GramBlocks:
         if any(b.size == 0 for b in self.blocks):
             raise ValueError("empty row block")
         rows = np.concatenate(self.blocks)
-        self.centre = x[rows].mean(axis=0, dtype=np.float64)
-        self.xc = (x - self.centre).astype(np.float32, copy=False)
+        self.centre = (x if rows.size == x.shape[0] else x[rows]).mean(axis=0, dtype=np.float64)
+        self.xc = x.astype(np.float32, copy=True)  # (no float64 temporary of the whole matrix)
+        self.xc -= self.centre.astype(np.float32)
         self._grams = []
         self._sums = []
         for b in self.blocks:
@@ -198,9 +199,11 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False):
         gb = GramBlocks(x, [te for _, te in splits])
         for f, ((tr, te), rs) in enumerate(zip(splits, random_states)):
             pca = gb.pca([g for g in range(len(splits)) if g != f], n_components, random_state=rs)
-            yield pca.transform_centred(gb.xc[tr]), pca.transform_centred(gb.xc[te])
+            z = pca.transform_centred(gb.xc)  # every row once (no copies of the training rows)
+            yield z[tr], z[te]
         return
     for (tr, te), rs in zip(splits, random_states):
         gb = GramBlocks(x, [tr])
         pca = gb.pca([0], n_components, random_state=rs)
-        yield pca.transform_centred(gb.xc[tr]), pca.transform_centred(gb.xc[te])
+        z = pca.transform_centred(gb.xc)
+        yield z[tr], z[te]

@@ -1,0 +1,138 @@
+"""The whole paper from nothing, stage by stage: ``rigctl sim dataset`` -> ``rigctl encode`` -> ``rigctl analyze --table1``.
+
+Runs the three commands as a user would (each its own process, default options: all cores) on the paper's protocol
+(``protocols/paper_dataset.toml``: 16 textures x 5 speeds x 3 forces x 100 trials = 24,000 trials), or on a stated
+fraction of it (``--fraction 0.1``: 10 trials per condition), and prints per stage: wall and CPU seconds (the stage's
+process and its children), peak resident memory of the process tree, trials/s, MB/s (of the file the stage writes, or
+reads for the analysis), neuron-steps/s for the encoder (samples x taxels x SA/RA, the paper's 3e9), and the
+machine's load average. Target (issue 12): the whole paper in < 5 min on 2 cores; with a fraction, the linear
+extrapolation of the trial-bound stages (simulation, encoding) to 24,000 trials is printed beside it (the analysis is
+full size from 1/3 on: its textures/groups draws are 500 per texture).
+
+    python benchmarks/bench_paper.py --fraction 0.1          # 2,400 trials
+    python benchmarks/bench_paper.py                          # the paper: 24,000 trials (~3 GB of session)
+    python benchmarks/bench_paper.py --keep DIR               # keep the files in DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PAPER_TRIALS = 24_000
+TARGET_S = 300.0
+
+
+def _tree_rss(proc) -> int:
+    try:
+        procs = [proc] + proc.children(recursive=True)
+    except Exception:  # the process ended
+        return 0
+    total = 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except Exception:
+            pass
+    return total
+
+
+def run_stage(args: list[str]) -> dict:
+    """Run ``python -m rigctl ARGS``; wall, CPU (process + children), peak tree RSS."""
+    import psutil
+
+    before = os.times()
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "rigctl", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    peak = [0]
+    ps = psutil.Process(proc.pid)
+
+    def watch():
+        while proc.poll() is None:
+            peak[0] = max(peak[0], _tree_rss(ps))
+            time.sleep(0.1)
+
+    th = threading.Thread(target=watch, daemon=True)
+    th.start()
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    th.join()
+    after = os.times()
+    cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
+    if proc.returncode != 0:
+        raise SystemExit(f"rigctl {' '.join(args)} failed ({proc.returncode}):\n{err[-3000:]}")
+    return {"wall": wall, "cpu": cpu, "rss": peak[0], "out": out, "load": os.getloadavg()[0]}
+
+
+def session_size(path: Path) -> tuple[int, int, int]:
+    """(trials, samples summed over trials, taxels) of a session file."""
+    from rigctl.storage.session import open_session
+
+    with open_session(path) as s:
+        ids = s.completed_ids()
+        samples = sum(int(s.trial_attrs(i)["n_samples"]) for i in ids)
+        return len(ids), samples, s.layout.n_channels
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--fraction", type=float, default=1.0, help="of the paper's 100 trials per condition")
+    ap.add_argument("--repeats", type=int, default=20, help="Table 1 repetitions (the paper: 20)")
+    ap.add_argument("--keep", default=None, help="folder to keep the files in (default: a temporary one)")
+    args = ap.parse_args()
+    tpc = max(1, round(100 * args.fraction))
+    n_expected = 240 * tpc
+    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_paper_"))
+    work.mkdir(parents=True, exist_ok=True)
+    session, encoded = work / "paper.h5", work / "paper.encoded.h5"
+    print(f"the paper from nothing: {tpc} trials per condition ({n_expected} trials, {n_expected / PAPER_TRIALS:.3g} "
+          f"of the paper), {os.cpu_count()} cores, load average at start {os.getloadavg()}", flush=True)
+    stages = []
+    try:
+        st = run_stage(["sim", "dataset", str(REPO / "protocols" / "paper_dataset.toml"), "--out", str(session),
+                        "--trials-per-condition", str(tpc), "--overwrite", "--quiet"])
+        n, samples, taxels = session_size(session)
+        st.update(name="sim dataset", trials=n, mb=session.stat().st_size / 1e6, mb_what="written")
+        stages.append(st)
+        _print(st)
+        st = run_stage(["encode", str(session), "--out", str(encoded), "--overwrite", "--quiet"])
+        st.update(name="encode", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
+                  neuron_steps=samples * taxels * 2)
+        stages.append(st)
+        _print(st)
+        st = run_stage(["analyze", str(encoded), "--table1", "--repeats", str(args.repeats), "--no-progress"])
+        st.update(name="analyze --table1", trials=n, mb=encoded.stat().st_size / 1e6, mb_what="read")
+        stages.append(st)
+        _print(st)
+        print(st["out"])
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    total = sum(s["wall"] for s in stages)
+    scale = PAPER_TRIALS / n
+    # simulation and encoding scale with the trials; the analysis draws 500 per texture from 1/3 of the paper on
+    full = sum(s["wall"] * (scale if s["name"] != "analyze --table1" else min(scale, 3.0)) for s in stages)
+    print(f"total: {total:.1f} s wall, {sum(s['cpu'] for s in stages):.1f} CPU-s for {n} trials "
+          f"({total / TARGET_S:.2f} of the 5 min target" + (")" if n == PAPER_TRIALS else
+          f"; extrapolated to {PAPER_TRIALS} trials: ~{full:.0f} s = {full / TARGET_S:.2f} of the target, the "
+          "analysis scaled by at most 3x)") + f"; load average now {os.getloadavg()}")
+
+
+def _print(st: dict) -> None:
+    extra = f", {st['neuron_steps'] / st['wall']:.3g} neuron-steps/s" if "neuron_steps" in st else ""
+    print(f"{st['name']:>17}: {st['wall']:7.1f} s wall, {st['cpu']:7.1f} CPU-s, peak RSS {st['rss'] / 1e9:.2f} GB, "
+          f"{st['trials'] / st['wall']:8.1f} trials/s, {st['mb'] / st['wall']:7.1f} MB/s {st['mb_what']} "
+          f"({st['mb']:.0f} MB){extra}; load average {st['load']:.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
