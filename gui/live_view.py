@@ -46,6 +46,9 @@ TICK_HEIGHT = 0.8
 MIN_AUTO_SPAN = 0.02
 #: the info line is updated every this many refreshes (a label's text change costs a relayout)
 INFO_EVERY = 10
+#: taxel numbers are written in the heat-map cells only when a cell is at least this wide on screen (px); smaller
+#: cells keep their colour visible (the map's tooltip still maps positions to taxels)
+MIN_LABELLED_CELL_PX = 22
 #: the heat maps are updated every this many refreshes (10 Hz at the app's 40 Hz: a "now" map needs no more, and
 #: each update repaints the maps and their taxel numbers)
 HEATMAP_EVERY = 4
@@ -394,6 +397,24 @@ class LiveView(QtWidgets.QWidget):
         # the traces get at least as much height as the two rasters (a single layer: twice a raster's)
         for row in range(n_layers + 2):
             grid.setRowStretchFactor(row, 2 if n_layers == 1 and row == 0 else 1)
+
+    def resizeEvent(self, ev):  # noqa: N802 - Qt override
+        super().resizeEvent(ev)
+        QtCore.QTimer.singleShot(0, self.fit_taxel_labels)  # once the layout has settled
+
+    def fit_taxel_labels(self) -> None:
+        """Show the taxel numbers in the heat maps when the cells are large enough to keep their colour visible
+        (:data:`MIN_LABELLED_CELL_PX`)."""
+        if not self.images:
+            return
+        cells = []
+        for img in self.images:
+            r = img.mapRectToScene(img.boundingRect())
+            rows, cols = img.image.shape[:2]
+            cells.append(min(r.width() / cols, r.height() / rows))
+        show = min(cells) >= MIN_LABELLED_CELL_PX
+        for t in self.taxel_labels:
+            t.setVisible(show)
 
     def set_window(self, seconds: float) -> None:
         """Show the last ``seconds`` (0.5-10 s) in the traces and the rasters alike (one time axis)."""

@@ -443,6 +443,8 @@ def test_legend_colour_bar_and_taxel_numbers(live_view, qapp):
             colour = view.curves[ch].opts["pen"].color().name()
             assert f"color:{colour}'>&#9632;{ch}<" in title
     assert view.colour_bar.values == (0, 1023)
+    view.fit_taxel_labels()
+    assert all(t.isVisible() for t in view.taxel_labels)  # 1400 x 800: cells of ~40 px
     assert sorted(int(t.textItem.toPlainText()) for t in view.taxel_labels) == list(range(18))
     for t in view.taxel_labels:  # each number inside its own cell of its layer's map
         ch = int(t.textItem.toPlainText())
