@@ -74,7 +74,7 @@ def one_repetition_side_by_side(fs, n_pcs, r=0):
     cpu = {}
     for name in acc:
         c0 = time.process_time()
-        for v, x in fs.features.items():
+        for x in fs.features.values():
             for sub, splits, kfold in ((idx, folds, True), (rows, ext, False)):
                 xs, y = x[sub], fs.texture[sub]
                 if name == "sklearn":
