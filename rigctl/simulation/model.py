@@ -10,22 +10,28 @@ For each taxel at row ``r`` (row 0 = leading edge of the drum's travel, see docs
 it is at plate coordinate ``(x - r * pitch) mod C`` where ``x`` is the drum's surface travel since the index mark
 and ``C`` the drum circumference (the plate is fixed on the drum). Per sample and taxel:
 
-1. Contact (:meth:`SensorModel.tables`): the pad (a linear "Winkler" spring layer whose surface is smoothed by its
-   thickness, ``pad_sigma_mm``) is pressed onto the plate; a flat plate would be indented by
-   ``delta = indentation_ref_mm * F / indentation_ref_force_g``; on a textured plate the indentation of the ridge
-   tops ``delta0`` follows from the force balance ``mean(max(0, delta0 - depth(x))) = delta`` and the local pressure
-   is ``~ max(0, delta0 - depth(x))`` (``depth`` = how far the smoothed plate surface lies below its crests). So
-   low ridges or high forces let the pad reach the plate floor (shallow modulation), tall ridges or low forces
-   concentrate the force on the crests (deep modulation, pressure ~0 in the gaps). The pressure profile divided by
-   its mean (``shape``, mean 1), smoothed by the layer's Gaussian receptive field, is tabulated per texture and
-   force.
-2. ``p = F / 9 * w_r * shape_layer(x - r * pitch)``: local pressure (g per taxel); ``w_r`` is the row weight from
-   the drum's curvature (centre row pressed hardest).
-3. ``s = p / (p + p_half)``: the piezoresistive fabric's reading saturates with pressure, so doubling the force does
-   not double the signal (the non-linearity the paper's force scaling, eq. 1, undoes).
-4. ``adc = round(offset_i + gain_i * g_trial * full_scale * layer_gain * s + noise)`` clipped to 0-1023 (10 bits);
-   ``gain_i`` / ``offset_i`` are the taxel's calibration spread (fixed by ``SensorConfig.calibration_seed``),
-   ``g_trial`` a slow sensitivity drift of the fabric, ``noise`` zero-mean with ``noise_counts`` sd.
+1. Contact shape (:meth:`SensorModel.tables`, at the reference force ``reference_force_g``): the pad (a linear
+   "Winkler" spring layer whose surface is smoothed by its thickness, ``pad_sigma_mm``) is pressed onto the plate;
+   a flat plate would be indented by ``delta = indentation_ref_mm * F / indentation_ref_force_g``; on a textured
+   plate the indentation of the ridge tops ``delta0`` follows from the force balance ``mean(max(0, delta0 -
+   depth(x))) = delta`` and the local pressure is ``~ max(0, delta0 - depth(x))``. The pressure profile divided by
+   its mean (``shape``, mean 1), smoothed by the layer's Gaussian receptive field, is the texture's signature.
+   **The shape is force-invariant**, and the modulation depth grows a little faster than the level
+   (``depth_level_exponent``): that is what the real FabricSlide recordings show (scripts/fit_fabricslide.py:
+   across force setpoints the texture amplitude grows as level^1.2-1.5 and the spectrum keeps its shape;
+   docs/results.md, "Sensor model fitted to FabricSlide"). An earlier model let the contact width change with force; the force coefficients (which
+   equalise the mean SA rate) cannot undo a change of shape, which made every texture x condition cell a cluster
+   of its own (issue 13).
+2. Level: ``L = full_scale * layer_gain * eff_T(F) * S(p)`` with ``p = F / 9 * w_r`` the row's mean pressure
+   (``w_r`` the row weight from the drum's curvature), ``S(p) = p / (p + p_half)`` the piezoresistive fabric's
+   saturation (doubling the force does not double the signal: the non-linearity that eq. 1's force scaling undoes),
+   and ``eff_T(F)`` (:meth:`SensorModel.contact_efficiency`) the plate's mean reading relative to a flat plate's:
+   force concentrated on ridge crests saturates the fabric there, so ridged plates read lower on average.
+3. ``adc = round(offset_i + gain_i * g_trial * L * (1 + m(F) * (shape(x - r * pitch) - 1)) + noise)`` clipped to
+   0-1023 (10 bits); ``m(F)`` = :meth:`SensorModel.depth_factor`; ``gain_i`` / ``offset_i`` are the taxel's
+   calibration spread (FabricSlide's per-taxel spread, fixed by ``SensorConfig.calibration_seed``), ``g_trial`` a
+   slow sensitivity drift of the fabric, ``noise`` low-pass (AR(1), corner ``noise_corner_hz``) with
+   ``noise_counts`` sd, scaled from FabricSlide's noise floor.
 
 Time dilation with speed comes from ``x(t) = x0 + integral of v``: a texture of spatial period ``P`` read at speed
 ``v`` gives a temporal period ``P / v``.
@@ -118,26 +124,50 @@ class SensorConfig:
     indentation_ref_mm, indentation_ref_force_g : float
         Pad indentation on a flat plate at the reference force (linear pad spring): 0.3 mm at 1000 g over the
         15 x 15 mm sensor (0.044 N/mm^2 for 0.3 mm: a Winkler modulus of ~0.15 N/mm^3, a soft fabric/silicone
-        skin). Ridges 0.5-2 mm high are then taller
-        than the indentation: at 250 g (0.075 mm) the pad touches only the crests, at 1000 g it reaches part of the
-        flanks of half-height ridges, so the force changes the contact width (the shape of the pressure modulation)
-        as well as its level, non-linearly. (A softer pad, 0.6 mm at 1000 g, lets most plates bottom out at
-        1000 g and made the textures less separable in the paper's analysis.)
+        skin). Ridges 0.5-2 mm high are then taller than the indentation at the reference force (0.15 mm at
+        500 g): the pad rests on the crests and the pressure is concentrated there, deeply modulated (the paper's
+        Fig. 2C raster of texture L at 500 g swings the SA rate over the whole window). Only the reference force's
+        contact shape is rendered (see ``depth_level_exponent``).
     row_weights : tuple of 3 float
         Pressure share of rows 0-2 (drum curvature: the centre row is pressed hardest).
     full_scale_counts : float
-        Reading (ADC counts above offset) at infinite pressure and unit gain: 880, so the highest crest pressures
-        (1000 g on 2 mm ridges, reading ~95 % of full scale) of the most sensitive taxel stay below 1023 (the
-        readout's divider is chosen for the range, no clipping).
+        Reading (ADC counts above offset) at infinite pressure and unit gain: 550, so that the most sensitive taxel
+        of the spread below (gain ~1.9) reads ~700 counts on the flat plate at 1000 g and only ridge crests of tall
+        or sparse plates at 500-1000 g reach the 10-bit ceiling (1023; paper: "10-bit resolution"); a typical taxel
+        reads ~260 counts above offset at 500 g.
     gain_spread, offset_mean_counts, offset_spread_counts : float
-        Per-taxel calibration spread: gain ~ N(1, gain_spread), offset ~ N(offset_mean, offset_spread) counts.
+        Per-taxel calibration spread: gain ~ N(1, gain_spread) (clipped to 0.25-2), offset ~ N(offset_mean,
+        offset_spread) counts (clipped to 0-250). Source: FabricSlide (scripts/fit_fabricslide.py), where each
+        taxel's level follows ``a_i + b_i F`` (R^2 0.96) with gain CV sd(b)/mean(b) = 0.43 across its 16 taxels;
+        the row weights above already give a CV of 0.09, so gain_spread = sqrt(0.43^2 - 0.09^2) = 0.42. Such a
+        spread leaves a few weakly loaded taxels whose SA trains at 250 g are near the Izhikevich threshold: the
+        paper's 62 of 4,320 force coefficients that did not converge below the cap of 5 (Methods) come from such
+        low-activity trains, and the encoder reports how many do here.
     noise_counts : float
-        Sample noise sd, ADC counts (Irwin-Hall(4) approximation of a Gaussian).
+        Sd of the sample noise, ADC counts (Irwin-Hall(4) approximation of a Gaussian, low-pass filtered, see
+        ``noise_corner_hz``). Source: FabricSlide's noise floor (least textured recording, 8-16 Hz): 0.094 counts^2/Hz
+        at a mid-force level of 182 counts; scaled to this sensor's mid-force level (~260 counts above offset) it is
+        0.19 counts^2/Hz, which an AR(1) noise of corner 27 Hz carries with sd sqrt(S0 * pi * fc / 2) = 2.9 counts.
+    noise_corner_hz : float
+        Corner of the noise's first-order low-pass, Hz (0 = white at 1 kHz). Source: FabricSlide's floor is nearly
+        flat up to its 17.9 Hz Nyquist limit (density 4-8 Hz / 8-16 Hz = 1.14), which a first-order spectrum
+        ``1 / (1 + (f / fc)^2)`` gives for fc = 27 Hz; above 18 Hz nothing is measured, and the encoder's RA path
+        (20 Hz low-pass) sees only this band.
     sensitivity_drift : float
         sd of the slow relative drift of the fabric's sensitivity, e.g. 0.01 = 1 % (an Ornstein-Uhlenbeck process,
         tau 20 s, in :class:`RigModel`; drawn independently per trial in the dataset generator). 1 %: the trials of
         one condition are recorded back to back within well under a minute, so their sensitivities differ by a
         fraction of the long-term drift.
+    reference_force_g : float
+        Force whose contact shape is rendered at every force, g (the paper's middle force, 500 g).
+    depth_level_exponent : float
+        The relative modulation depth grows with the level: depth ~ (S(F) / S(F_ref)) ** exponent, S the
+        saturating response of the centre row (so the amplitude ~ level ** (1 + exponent)). Source: FabricSlide
+        (scripts/fit_fabricslide.py), over the force setpoints 120-180 (210-250 carry the arm's ~2.2 Hz force-loop
+        oscillation): amplitude ~ level^beta with beta = 1.19 (Canvas) and 1.54 (Linen), the two fabrics whose
+        texture stands well above the noise; mean 1.37, so 0.37. The spectrum keeps its shape (tilt -0.2 per log
+        level per log frequency, within what the loop's harmonics explain): the force changes the depth, not the
+        shape.
     calibration_seed : int
         Seed of the per-taxel gain/offset spread (identifies "this physical sensor").
     """
@@ -154,12 +184,15 @@ class SensorConfig:
     indentation_ref_mm: float = 0.3
     indentation_ref_force_g: float = 1000.0
     row_weights: tuple[float, float, float] = (0.8, 1.0, 0.8)
-    full_scale_counts: float = 880.0
-    gain_spread: float = 0.08
-    offset_mean_counts: float = 40.0
-    offset_spread_counts: float = 10.0
-    noise_counts: float = 2.5
+    full_scale_counts: float = 550.0
+    gain_spread: float = 0.42
+    offset_mean_counts: float = 60.0
+    offset_spread_counts: float = 30.0
+    noise_counts: float = 3.0
+    noise_corner_hz: float = 27.0
     sensitivity_drift: float = 0.01
+    reference_force_g: float = 500.0
+    depth_level_exponent: float = 0.37
     calibration_seed: int = 20240601
 
 
@@ -246,13 +279,26 @@ class RigConfig:
 # sensor
 # ----------------------------------------------------------------------------------------------------------------
 @numba.njit(cache=True, nogil=True)
-def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half, layer_gain, full_scale, gain,
-                   offset, noise_sd, seed, wrap, out):  # pragma: no cover - compiled
+def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half, layer_gain, full_scale, gain,
+                   offset, noise_sd, noise_a, seed, wrap, out):  # pragma: no cover - compiled
     n_table = tables.shape[1]
     inv = n_table / period
     state = np.uint64(seed) | np.uint64(1)
     sqrt3 = math.sqrt(3.0)
     inv16 = 1.0 / 65536.0
+    noise = np.zeros(out.shape[1])
+    drive = math.sqrt(max(0.0, 1.0 - noise_a * noise_a))
+    # start the low-pass noise in its stationary state
+    for ch in range(out.shape[1]):
+        state ^= state << np.uint64(13)
+        state ^= state >> np.uint64(7)
+        state ^= state << np.uint64(17)
+        s = state
+        acc = 0.0
+        for _ in range(4):
+            acc += float(s & np.uint64(0xFFFF))
+            s >>= np.uint64(16)
+        noise[ch] = (acc * inv16 - 2.0) * sqrt3
     for i in range(pos.shape[0]):
         f9 = force[i] / 9.0
         for layer in range(2):
@@ -268,16 +314,18 @@ def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half,
                 if k1 == n_table:
                     k1 = 0
                 hs = tables[layer, k0] * (1.0 - frac) + tables[layer, k1] * frac
-                rel = 1.0 + k_h * (hs - hmean[layer])
+                rel = 1.0 + depth * (hs - 1.0)
                 if rel < 0.0:
                     rel = 0.0
-                p = f9 * row_w[r] * rel
+                p = f9 * row_w[r]
                 if p < 0.0:
                     p = 0.0
-                base = full_scale * layer_gain[layer] * p / (p + p_half[layer])
+                # level: saturating response to the mean taxel pressure, times the plate's contact efficiency;
+                # modulation: the force-invariant contact shape (FabricSlide: depth proportional to the level)
+                base = full_scale * layer_gain[layer] * eff[layer, r] * p / (p + p_half[layer]) * rel
                 for c in range(3):
                     ch = layer * 9 + r * 3 + c
-                    # xorshift64 -> four 16-bit uniforms -> Irwin-Hall(4), unit variance
+                    # xorshift64 -> four 16-bit uniforms -> Irwin-Hall(4), unit variance; AR(1) low-pass
                     state ^= state << np.uint64(13)
                     state ^= state >> np.uint64(7)
                     state ^= state << np.uint64(17)
@@ -287,7 +335,8 @@ def _render_kernel(pos, force, tables, period, hmean, pitch, row_w, k_h, p_half,
                         acc += float(s & np.uint64(0xFFFF))
                         s >>= np.uint64(16)
                     z = (acc * inv16 - 2.0) * sqrt3
-                    v = offset[ch] + gain[ch] * base + noise_sd * z
+                    noise[ch] = noise_a * noise[ch] + drive * z
+                    v = offset[ch] + gain[ch] * base + noise_sd * noise[ch]
                     v = math.floor(v + 0.5)
                     if v < 0.0:
                         v = 0.0
@@ -332,11 +381,13 @@ class SensorModel:
         self.config = config or SensorConfig()
         c = self.config
         cal = np.random.default_rng(c.calibration_seed)
-        self.gain = np.clip(cal.normal(1.0, c.gain_spread, N_TAXELS), 0.5, 1.5)
-        self.offset = np.clip(cal.normal(c.offset_mean_counts, c.offset_spread_counts, N_TAXELS), 0.0, 200.0)
+        self.gain = np.clip(cal.normal(1.0, c.gain_spread, N_TAXELS), 0.25, 2.0)
+        self.offset = np.clip(cal.normal(c.offset_mean_counts, c.offset_spread_counts, N_TAXELS), 0.0, 250.0)
         self._row_w = np.asarray(c.row_weights, dtype=np.float64)
         self._p_half = np.array([c.p_half_top_g, c.p_half_bottom_g])
         self._layer_gain = np.array([c.layer_gain_top, c.layer_gain_bottom])
+        # AR(1) coefficient of the low-pass sensor noise at the 1 kHz render rate
+        self._noise_a = math.exp(-2.0 * math.pi * c.noise_corner_hz / 1000.0) if c.noise_corner_hz > 0 else 0.0
         self._tables: dict[tuple, tuple] = {}  # height, contact-shape and contact-depth tables by texture (, force)
         self._lock = threading.Lock()
 
@@ -486,16 +537,57 @@ class SensorModel:
             out = np.empty((n, N_TAXELS), dtype=np.uint16)
         elif out.shape != (n, N_TAXELS) or out.dtype != np.uint16:
             raise ValueError(f"out must be ({n}, {N_TAXELS}) uint16")
-        # the contact shape at the chunk's mean force (the force varies by a few % within a trial or a 1 ms step
-        # chunk; the level follows the per-sample force exactly, the shape is that of the mean force)
-        tables, period, ones = self.tables(texture, float(force.mean()) if n else 500.0)
         c = self.config
+        f_mean = float(force.mean()) if n else c.reference_force_g
+        # the contact shape is that of the reference force (force-invariant, FabricSlide); the force sets the
+        # level (per sample, saturating) and the plate's contact efficiency (at the chunk's mean force)
+        tables, period, _ = self.tables(texture, c.reference_force_g)
+        eff = self.contact_efficiency(texture, f_mean)
         seed = int(rng.integers(1, 2**63))
-        # kernel: rel = 1 + k * (table - mean) with k = 1 and mean = 1 gives rel = shape
-        _render_kernel(pos, force, tables, period, ones, float(c.pitch_mm), self._row_w, 1.0,
-                       self._p_half, self._layer_gain, float(c.full_scale_counts), self.gain * float(sensitivity),
-                       self.offset, float(c.noise_counts), seed, float(wrap_mm or 0.0), out)
+        _render_kernel(pos, force, tables, period, float(self.depth_factor(f_mean)), eff, float(c.pitch_mm),
+                       self._row_w, self._p_half, self._layer_gain, float(c.full_scale_counts),
+                       self.gain * float(sensitivity), self.offset, float(c.noise_counts), self._noise_a, seed,
+                       float(wrap_mm or 0.0), out)
         return out
+
+    def depth_factor(self, force_g: float) -> float:
+        """Relative modulation depth at ``force_g`` against the reference force: ``(S(F) / S(F_ref)) **
+        depth_level_exponent`` with ``S(F) = p / (p + p_half_top)``, ``p = F / 9`` (FabricSlide: amplitude ~
+        level^1.37)."""
+        c = self.config
+        f = max(float(force_g), 1e-3) if math.isfinite(float(force_g)) else c.reference_force_g
+
+        def sat(force):
+            p = force / 9.0
+            return p / (p + c.p_half_top_g)
+
+        return (sat(f) / sat(c.reference_force_g)) ** c.depth_level_exponent
+
+    def contact_efficiency(self, texture: Texture | str, force_g: float) -> np.ndarray:
+        """The plate's mean reading relative to a flat plate's at the same force, per layer and row: (2, 3) float64.
+
+        ``mean_x S(p * shape(x)) / S(p)`` with ``S(p) = p / (p + p_half)`` the saturating response and ``p = F / 9 *
+        w_r`` the row's mean pressure: the force concentrated on ridge crests saturates the fabric there, so a
+        ridged plate reads lower on average than the flat one, the more so the taller and sparser its ridges and the
+        higher the force. 1.0 for the smooth plate. Cached per texture and force (2 % steps).
+        """
+        tex = get_texture(texture)
+        f = max(float(force_g), 10.0) if math.isfinite(float(force_g)) else 500.0
+        fq = round(math.log(f) / math.log(1.02))
+
+        def build():
+            if tex.kind == "smooth":
+                return np.ones((2, N_ROWS))
+            tables, _, _ = self.tables(tex, self.config.reference_force_g)
+            p = 1.02 ** fq / 9.0 * self._row_w  # (3,)
+            eff = np.empty((2, N_ROWS))
+            for layer in range(2):
+                ph = self._p_half[layer]
+                sat = p[:, None] * tables[layer][None, :]
+                eff[layer] = (sat / (sat + ph)).mean(axis=1) / (p / (p + ph))
+            return eff
+
+        return self._cached(("eff", tex, fq), build)
 
     def contact_height(self, texture: Texture | str, position_mm) -> np.ndarray:
         """Smoothed (bottom-layer) texture height under the centre row minus its mean, mm: drives the load-cell ripple."""

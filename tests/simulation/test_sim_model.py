@@ -194,11 +194,11 @@ def test_texture_setter_and_threaded_advance():
     assert rig.actuator_mm == pytest.approx(0.45)
 
 
-def test_ridges_modulate_the_reading_deeply_and_force_changes_the_contact():
+def test_ridges_modulate_the_reading_deeply_and_force_keeps_the_shape():
     """Contact model: the pad rests on the crests, so a ridged plate's reading swings by more than its mean (the
     paper's Fig. 2C raster of texture L is strongly modulated), the smooth plate's not at all; the plate sets the
-    mean level at a given force; more force presses the pad towards the floor of low ridges (shallower relative
-    modulation), and the tabulated contact shape keeps its mean (force balance)."""
+    mean level at a given force (crest saturation); the force scales the modulation with the level and keeps its
+    shape (FabricSlide: amplitude ~ level^1.37, no spectral tilt), and the tabulated contact shape keeps its mean."""
     cfg = SensorConfig(noise_counts=0.0, gain_spread=0.0, offset_spread_counts=0.0)
     sensor = SensorModel(cfg)
 
@@ -213,8 +213,15 @@ def test_ridges_modulate_the_reading_deeply_and_force_changes_the_contact():
         assert np.ptp(x) > x.mean(), letter
         means[letter] = x.mean()
     assert all(abs(m - flat.mean()) > 0.1 * flat.mean() for m in means.values())
-    rel = {f: top("E", f).std() / top("E", f).mean() for f in (250, 1000)}  # half-height circular ridges
-    assert rel[1000] < 0.7 * rel[250]
+    e = {f: top("E", f) for f in (250, 1000)}  # half-height circular ridges: no clipping at either force
+    assert e[1000].mean() > 1.2 * e[250].mean()
+    rel = {f: x.std() / x.mean() for f, x in e.items()}
+    grow = sensor.depth_factor(1000) / sensor.depth_factor(250)  # FabricSlide: depth ~ level^0.37
+    assert 1.1 < grow < 1.5
+    assert rel[1000] / rel[250] == pytest.approx(grow, rel=0.05)
+    # same shape: the deviations from the mean, divided by the depth, coincide
+    np.testing.assert_allclose((e[1000] / e[1000].mean() - 1) / rel[1000], (e[250] / e[250].mean() - 1) / rel[250],
+                               atol=0.1)
     for letter in "BHMK":
         for force in (250.0, 1000.0):
             tables, _, mean = sensor.tables(letter, force)
