@@ -330,68 +330,90 @@ def model_responses(forces=(250.0, 500.0, 1000.0), speeds=(40.0, 60.0, 80.0, 100
         out["level"][F] = float(x.mean())
         out["amp"][F] = float(x.std(axis=0).mean())
         fr, p = welch(x - x.mean(0), fs=1000.0, nperseg=2048, axis=0)
-        out["spectrum"][F] = (fr, p.mean(axis=1) / p.mean(axis=1).sum())
+        out["spectrum"][F] = (fr, p.mean(axis=1))
     for v in speeds:
         out["amp_speed"][v] = float(render(500.0, v).std(axis=0).mean())
     return out
 
 
 def figure(res: dict, meas: dict, path: Path) -> None:
+    """Three panels: force response (level and relative depth), speed response, spectral shape versus force."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     mod = model_responses()
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4.2))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.6))
     # (a) level and relative depth vs force, normalised at the middle force
     Fm = np.array(sorted(res["level_per_setpoint"]))
     lm = np.array([res["level_per_setpoint"][F] for F in Fm])
+    mid = int(np.argmin(np.abs(Fm - CLEAN_MAX_SETPOINT)))
+    ax[0].plot(Fm / Fm[mid], lm / lm[mid], "o-", color="C0", label="FabricSlide level (all fabrics)")
+    Fc = Fm[Fm <= CLEAN_MAX_SETPOINT]
+    for i, lab in enumerate(res["textured_fabrics"]):
+        d = np.array(res["rel_depth_fabric"][lab])
+        ax[0].plot(Fc / Fm[mid], d / d[-1], "s-", color=f"C{i + 1}", label=f"FabricSlide relative depth, {lab}")
     dm = np.array([res["rel_depth_per_setpoint"][F] for F in Fm])
-    mid = len(Fm) // 2
-    ax[0].plot(Fm / Fm[mid], lm / lm[mid], "o-", color="C0", label="FabricSlide level")
-    ax[0].plot(Fm / Fm[mid], dm / dm[mid], "s-", color="C1", label="FabricSlide relative depth (amp/level)")
+    ax[0].plot(Fm / Fm[mid], dm / dm[mid], "x:", color="grey",
+               label="FabricSlide relative depth, pooled\n(setpoints > 180: force-loop oscillation)")
     Fs = np.array(sorted(mod["level"]))
     ls = np.array([mod["level"][F] for F in Fs])
     ds = np.array([mod["amp"][F] / mod["level"][F] for F in Fs])
     ax[0].plot(Fs / 500.0, ls / mod["level"][500.0], "o--", color="C0", alpha=0.6, label="model level (texture L)")
-    ax[0].plot(Fs / 500.0, ds / (mod["amp"][500.0] / mod["level"][500.0]), "s--", color="C1", alpha=0.6,
-               label="model relative depth")
+    ax[0].plot(Fs / 500.0, ds / (mod["amp"][500.0] / mod["level"][500.0]), "s--", color="C3", alpha=0.8,
+               label="model relative depth (texture L)")
     ax[0].set_xscale("log", base=2)
     ax[0].set_yscale("log", base=2)
-    ax[0].set_xlabel("force / middle force (FabricSlide setpoint 180; model 500 g)")
+    ax[0].set_xlabel("force / middle force (FabricSlide: setpoint / 180; model: F / 500 g)")
     ax[0].set_ylabel("relative to the middle force")
-    ax[0].set_title(f"force response (FabricSlide beta = {res['force_beta']:.2f})")
-    ax[0].legend(fontsize=7)
-    # (b) relative modulation vs speed
+    ax[0].set_title(f"force response: amplitude ~ level^{res['force_beta_textured']:.2f} (Canvas, Linen)",
+                    fontsize=10)
+    ax[0].legend(fontsize=6.5)
+    # (b) relative modulation vs speed: the ridged board (clean: one 20 mm period) and the model
+    if "board_amp" in res:
+        vb = np.array(sorted(res["board_amp"]))
+        ab = np.array([res["board_amp"][v] for v in vb])
+        ax[1].plot(vb, ab / np.exp(np.mean(np.log(ab))), "o-", label="FabricSlide Board10mm (20 mm ridges)")
     vm = np.array(sorted(res["amp_per_speed"]))
     am = np.array([res["amp_per_speed"][v] for v in vm])
-    ax[1].plot(vm, am / np.exp(np.mean(np.log(am))), "o-", label="FabricSlide (fabrics, 10-150 mm/s)")
+    ax[1].plot(vm, am / np.exp(np.mean(np.log(am))), "x:", color="grey",
+               label="FabricSlide fabrics, 4-16 Hz band\n(the fabric's spatial spectrum moves through the band)")
     vs = np.array(sorted(mod["amp_speed"]))
     asim = np.array([mod["amp_speed"][v] for v in vs])
-    ax[1].plot(vs, asim / np.exp(np.mean(np.log(asim))), "s--", label="model (texture L, 500 g)")
+    ax[1].plot(vs, asim / np.exp(np.mean(np.log(asim))), "s--", color="C3", label="model (texture L, 500 g)")
     ax[1].set_xscale("log")
     ax[1].set_ylim(0.5, 1.5)
     ax[1].set_xlabel("speed, mm/s")
-    ax[1].set_ylabel("modulation amplitude / geometric mean")
-    ax[1].set_title(f"speed response (FabricSlide alpha = {res['speed_alpha']:+.3f})")
-    ax[1].legend(fontsize=7)
-    # (c) normalised spectra at three forces: FabricSlide (Linen, 50 mm/s) and the model (L, 80 mm/s)
+    ax[1].set_ylabel("modulation amplitude / level, over its geometric mean")
+    ax[1].set_title(f"speed response: board alpha = {res['board_alpha'][0]:+.3f} +- {res['board_alpha'][1]:.3f}",
+                    fontsize=10)
+    ax[1].legend(fontsize=6.5)
+    # (c) spectral shape vs force: power at each frequency at the high force over the low force, normalised
     f = meas["freq"]
-    for i, F in enumerate((120.0, 180.0, 250.0)):
-        m = (meas["fabric"] == "Linen") & (meas["force"] == F) & (meas["speed"] == 50.0)
-        p = meas["psd"][m].mean(axis=(0, 2))
-        band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1])
-        ax[2].semilogy(f[band], p[band] / p[band].sum(), "-", color=f"C{i}", label=f"Linen 50 mm/s F{F:g}")
-    for i, F in enumerate(sorted(mod["spectrum"])):
-        fr, p = mod["spectrum"][F]
-        band = (fr >= BAND_HZ[0]) & (fr <= BAND_HZ[1])
-        ax[2].semilogy(fr[band], p[band] / p[band].sum(), "--", color=f"C{i}", alpha=0.7,
-                       label=f"model L 80 mm/s {F:g} g")
+    band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1])
+    Flo, Fhi = Fm[0], Fc[-1]
+    for i, lab in enumerate(res["textured_fabrics"]):
+        for v, style in ((10.0, "-"), (150.0, "--")):
+            lo = meas["psd"][(meas["fabric"] == lab) & (meas["force"] == Flo) & (meas["speed"] == v)].mean(axis=(0, 2))
+            hi = meas["psd"][(meas["fabric"] == lab) & (meas["force"] == Fhi) & (meas["speed"] == v)].mean(axis=(0, 2))
+            r = hi[band] / lo[band]
+            ax[2].plot(f[band], r / np.exp(np.mean(np.log(r))), style, color=f"C{i + 1}",
+                       label=f"FabricSlide {lab} {v:g} mm/s: F{Fhi:g} / F{Flo:g}")
+    fr, plo = mod["spectrum"][250.0]
+    _, phi = mod["spectrum"][1000.0]
+    sig = plo > 1e-3 * plo.max()  # the texture's harmonics
+    r = phi[sig] / plo[sig]
+    ax[2].plot(fr[sig], r / np.exp(np.mean(np.log(r))), "s", color="C3",
+               label="model L 80 mm/s: 1000 g / 250 g (harmonics)")
+    ax[2].set_xlim(0, 40)
+    ax[2].set_yscale("log", base=2)
+    ax[2].set_ylim(0.25, 4)
+    ax[2].axhline(1.0, color="k", lw=0.5)
     ax[2].set_xlabel("frequency, Hz")
-    ax[2].set_ylabel("normalised power (4-16 Hz)")
-    ax[2].set_title(f"spectral shape vs force (tilt {res['spectrum_tilt']:+.3f})")
-    ax[2].legend(fontsize=6)
+    ax[2].set_ylabel("power ratio high / low force (normalised)")
+    ax[2].set_title(f"spectral shape vs force: tilt {res['spectrum_tilt']:+.2f} (flat = same shape)", fontsize=10)
+    ax[2].legend(fontsize=6.5)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

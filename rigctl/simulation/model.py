@@ -131,23 +131,24 @@ class SensorConfig:
     row_weights : tuple of 3 float
         Pressure share of rows 0-2 (drum curvature: the centre row is pressed hardest).
     full_scale_counts : float
-        Reading (ADC counts above offset) at infinite pressure and unit gain: 550, so that the most sensitive taxel
-        of the spread below (gain ~1.9) reads ~700 counts on the flat plate at 1000 g and only ridge crests of tall
-        or sparse plates at 500-1000 g reach the 10-bit ceiling (1023; paper: "10-bit resolution"); a typical taxel
-        reads ~260 counts above offset at 500 g.
+        Reading (ADC counts above offset) at infinite pressure and unit gain: 420, so that the most sensitive taxel
+        of the spread below (gain ~1.9) reads ~540 counts on the flat plate at 1000 g and its ridge crests on tall
+        or sparse plates stay just below the 10-bit ceiling (1023; paper: "10-bit resolution"); a typical taxel
+        reads ~200 (top layer) / ~90 (bottom layer) counts above offset on the flat plate at 500 g.
     gain_spread, offset_mean_counts, offset_spread_counts : float
         Per-taxel calibration spread: gain ~ N(1, gain_spread) (clipped to 0.25-2), offset ~ N(offset_mean,
         offset_spread) counts (clipped to 0-250). Source: FabricSlide (scripts/fit_fabricslide.py), where each
         taxel's level follows ``a_i + b_i F`` (R^2 0.96) with gain CV sd(b)/mean(b) = 0.43 across its 16 taxels;
-        the row weights above already give a CV of 0.09, so gain_spread = sqrt(0.43^2 - 0.09^2) = 0.42. Such a
+        the row weights above already give a CV of 0.11, so gain_spread = sqrt(0.43^2 - 0.11^2) = 0.42. Such a
         spread leaves a few weakly loaded taxels whose SA trains at 250 g are near the Izhikevich threshold: the
         paper's 62 of 4,320 force coefficients that did not converge below the cap of 5 (Methods) come from such
         low-activity trains, and the encoder reports how many do here.
     noise_counts : float
         Sd of the sample noise, ADC counts (Irwin-Hall(4) approximation of a Gaussian, low-pass filtered, see
-        ``noise_corner_hz``). Source: FabricSlide's noise floor (least textured recording, 8-16 Hz): 0.094 counts^2/Hz
-        at a mid-force level of 182 counts; scaled to this sensor's mid-force level (~260 counts above offset) it is
-        0.19 counts^2/Hz, which an AR(1) noise of corner 27 Hz carries with sd sqrt(S0 * pi * fc / 2) = 2.9 counts.
+        ``noise_corner_hz``). Source: FabricSlide's noise floor (least textured recording, 8-16 Hz): 0.094
+        counts^2/Hz at a mean level of 182 counts (middle setpoint); scaled to this sensor's mean level at 500 g
+        (146 counts above offset, both layers) it is 0.061 counts^2/Hz, which a first-order noise of corner 27 Hz
+        carries with sd sqrt(S0 * pi * fc / 2) = 1.6 counts.
     noise_corner_hz : float
         Corner of the noise's first-order low-pass, Hz (0 = white at 1 kHz). Source: FabricSlide's floor is nearly
         flat up to its 17.9 Hz Nyquist limit (density 4-8 Hz / 8-16 Hz = 1.14), which a first-order spectrum
@@ -184,11 +185,11 @@ class SensorConfig:
     indentation_ref_mm: float = 0.3
     indentation_ref_force_g: float = 1000.0
     row_weights: tuple[float, float, float] = (0.8, 1.0, 0.8)
-    full_scale_counts: float = 550.0
+    full_scale_counts: float = 420.0
     gain_spread: float = 0.42
     offset_mean_counts: float = 60.0
     offset_spread_counts: float = 30.0
-    noise_counts: float = 3.0
+    noise_counts: float = 1.6
     noise_corner_hz: float = 27.0
     sensitivity_drift: float = 0.01
     reference_force_g: float = 500.0
