@@ -26,7 +26,9 @@ Fits (printed):
 4. speed response: ``log A = c(fabric, force, taxel) + alpha * log speed`` (0: pure time dilation, no sensor
    low-pass in 10-150 mm/s);
 5. across taxels within a recording: ``log A`` vs ``log level`` (a per-taxel gain scales level and modulation
-   alike when the slope is ~1).
+   alike when the slope is ~1);
+6. each fabric's per-taxel level pattern (log level minus its mean over the taxels): its spread between fabrics
+   (within each speed x force condition), its stability across conditions, and its trial-to-trial spread.
 
 The figure compares these measured responses with the simulated sensor's (:class:`rigctl.simulation.model.
 SensorModel`, rendered on the base wave texture L at the paper's forces and speeds): level and relative modulation
@@ -211,6 +213,24 @@ def fit(meas: dict) -> dict:
     for v in np.unique(speed):
         m = ((speed == v) & (force <= CLEAN_MAX_SETPOINT))[:, None] & ok
         out["amp_per_speed"][float(v)] = float(np.exp(np.mean(log_rel[m])))
+    # 6. each fabric's per-taxel level pattern (log level minus its mean over the taxels): spread between fabrics
+    # (per condition, around the mean over fabrics) and within a fabric (trial to trial), stability across conditions
+    patt = np.log(level) - np.log(level).mean(axis=1, keepdims=True)
+    between, within, effects = [], [], []
+    fabrics = np.unique(fab)
+    for F in np.unique(force):
+        for v in np.unique(speed):
+            m = (force == F) & (speed == v)
+            means = np.array([patt[m & (fab == a)].mean(axis=0) for a in fabrics])
+            effects.append(means - means.mean(axis=0))
+            for a in fabrics:
+                q = patt[m & (fab == a)]
+                within.append(q - q.mean(axis=0))
+    eff = np.array(effects)
+    out["plate_level_spread"] = float(eff.std())
+    out["contact_level_spread"] = float(np.concatenate(within).std())
+    cc = [np.corrcoef(eff[i].ravel(), eff[j].ravel())[0, 1] for i in range(len(eff)) for j in range(i + 1, len(eff))]
+    out["pattern_stability"] = float(np.mean(cc))
     # 5. across taxels within a recording
     g5 = [np.broadcast_to(np.arange(n)[:, None], (n, nt))[sel]]
     out["taxel_beta"] = _slope(*_within(g5, np.log(level[sel]), np.log(amp[sel])))[0]
@@ -292,6 +312,10 @@ def _print(res: dict) -> None:
     print(f"  speed response: amplitude ~ speed^alpha, alpha = {res['speed_alpha']:+.3f} +- {res['speed_alpha_se']:.3f}")
     print("    relative depth per speed: " + ", ".join(f"{k:g}: {v:.4f}" for k, v in res["amp_per_speed"].items()))
     print(f"  across taxels of one recording: amplitude ~ level^{res['taxel_beta']:.2f}")
+    print(f"  per-taxel level pattern (log level minus its taxel mean): between fabrics sd "
+          f"{res['plate_level_spread']:.3f}, stable across the speed x force conditions (mean correlation "
+          f"{res['pattern_stability']:.2f}); trial to trial within a fabric and condition sd "
+          f"{res['contact_level_spread']:.3f}")
     print("  force response per fabric (mean excess power, setpoints <= %g): beta " % CLEAN_MAX_SETPOINT + ", ".join(
         f"{k} {v:.2f}" for k, v in res["force_beta_fabric"].items()) + f"; mean {res['force_beta_pooled']:.2f}; textured fabrics ({', '.join(res['textured_fabrics'])}): "
           f"{res['force_beta_textured']:.2f} -> model depth_level_exponent = beta - 1 = "
@@ -441,6 +465,8 @@ def main(argv=None) -> int:
     print(f"  noise_counts = sqrt(S0 * pi * fc / 2) = {mp['noise_counts']:.1f} (S0 = floor x (model mid level "
           f"{mp['model_mid_level']:.0f} / FabricSlide mid level)^2 = {mp['noise_density_model']:.3f} counts^2/Hz)")
     print(f"  depth_level_exponent = {mp['depth_level_exponent']:.2f}")
+    print(f"  plate_level_spread = {res['plate_level_spread']:.3f}, contact_level_spread = "
+          f"{res['contact_level_spread']:.3f}")
     if not args.no_figure:
         figure(res, meas, Path(args.figure))
     return 0

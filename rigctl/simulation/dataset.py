@@ -16,7 +16,8 @@ cause of differences): the start position jitter (:data:`START_JITTER_MM`: the i
 1 ms frame, plus the index sensor's repeatability and the plate's mounting), a static speed error and a slow speed
 wobble of the stepper drive (:data:`SPEED_ERROR`, :data:`SPEED_WOBBLE`), a static force error (sd 1 % of the
 setpoint) plus a slow force-loop residual (sd 0.5 %, tau 0.2 s), the drum's runout ripple (its phase is fixed to
-the drum: :data:`RUNOUT_PHASE_RAD`), the fabric's sensitivity drift (``SensorConfig.sensitivity_drift``) and the
+the drum: :data:`RUNOUT_PHASE_RAD`), the fabric's sensitivity drift (``SensorConfig.sensitivity_drift``), the
+per-taxel contact jitter of each press (``SensorConfig.contact_level_spread``) and the
 sample noise. Each trial's random stream is
 seeded from ``(seed, trial_id)``, so a dataset is reproducible whatever the number of workers or the order.
 """
@@ -223,7 +224,9 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     np.maximum(force, 0.0, out=force)
 
     sensitivity = 1.0 + cfg.sensor.sensitivity_drift * rng.standard_normal()
-    taxels = sensor.render(tex, pos, force, rng, sensitivity=sensitivity, wrap_mm=circ)
+    # re-pressing the sensor at each trial loads each taxel a little differently (SensorConfig.contact_level_spread)
+    contact = np.exp(cfg.sensor.contact_level_spread * rng.standard_normal(sensor.gain.size))
+    taxels = sensor.render(tex, pos, force, rng, sensitivity=sensitivity * contact, wrap_mm=circ)
 
     rev = np.floor(np.concatenate(([latch], travel)) / circ)
     flags = (np.diff(rev) != 0).astype(np.uint8)  # FrameFlag.SYNC_IN = bit 0 (later passes of the index mark)

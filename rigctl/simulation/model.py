@@ -43,6 +43,7 @@ samples per second per core.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import threading
@@ -159,6 +160,17 @@ class SensorConfig:
         tau 20 s, in :class:`RigModel`; drawn independently per trial in the dataset generator). 1 %: the trials of
         one condition are recorded back to back within well under a minute, so their sensitivities differ by a
         fraction of the long-term drift.
+    plate_level_spread : float
+        Sd of a plate's static per-taxel level pattern (relative): each plate, mounted on the drum on its own, loads
+        the 18 taxels a little differently (thickness, flatness, mounting), the same at every speed and force
+        (:meth:`SensorModel.plate_pattern`, seeded by the plate's label and ``calibration_seed``). Source:
+        FabricSlide, where each fabric's per-taxel level pattern (log trial mean minus its mean over the taxels)
+        departs from the mean pattern with sd 0.026, a pattern stable across the 30 speed x force conditions
+        (correlation 0.73), so that the 16 per-taxel means alone classify the fabrics (its README: ~99 %).
+    contact_level_spread : float
+        Sd of the per-trial, per-taxel level jitter (relative) from re-pressing the sensor at each trial (the
+        dataset generator draws it per trial). Source: FabricSlide, the same pattern within one fabric and condition
+        varies from trial to trial with sd 0.028.
     reference_force_g : float
         Force whose contact shape is rendered at every force, g (the paper's middle force, 500 g).
     depth_level_exponent : float
@@ -192,6 +204,8 @@ class SensorConfig:
     noise_counts: float = 1.6
     noise_corner_hz: float = 27.0
     sensitivity_drift: float = 0.01
+    plate_level_spread: float = 0.026
+    contact_level_spread: float = 0.028
     reference_force_g: float = 500.0
     depth_level_exponent: float = 0.37
     calibration_seed: int = 20240601
@@ -497,7 +511,7 @@ class SensorModel:
         return self._cached(("depth", tex), build)
 
     def render(self, texture: Texture | str, position_mm, force_g, rng: np.random.Generator, *,
-               sensitivity: float = 1.0, out: np.ndarray | None = None, wrap_mm: float | None = None) -> np.ndarray:
+               sensitivity: float | np.ndarray = 1.0, out: np.ndarray | None = None, wrap_mm: float | None = None) -> np.ndarray:
         """Render taxel readings.
 
         Parameters
@@ -510,8 +524,9 @@ class SensorModel:
             Contact force at each sample, g (negative values are treated as 0).
         rng : numpy.random.Generator
             Source of the noise (one 63-bit seed is drawn per call, so a seeded generator reproduces the output).
-        sensitivity : float
-            Slow sensitivity factor of the fabric (trial-to-trial drift), 1.0 = nominal.
+        sensitivity : float or (18,) array of float
+            Sensitivity factor of the fabric (the trial-to-trial drift, and per taxel the contact jitter), 1.0 =
+            nominal.
         out : (n, 18) uint16 array, optional
             Written in place if given.
         wrap_mm : float, optional
@@ -547,9 +562,25 @@ class SensorModel:
         seed = int(rng.integers(1, 2**63))
         _render_kernel(pos, force, tables, period, float(self.depth_factor(f_mean)), eff, float(c.pitch_mm),
                        self._row_w, self._p_half, self._layer_gain, float(c.full_scale_counts),
-                       self.gain * float(sensitivity), self.offset, float(c.noise_counts), self._noise_a, seed,
+                       self.gain * self.plate_pattern(texture) * np.asarray(sensitivity, dtype=np.float64),
+                       self.offset, float(c.noise_counts), self._noise_a, seed,
                        float(wrap_mm or 0.0), out)
         return out
+
+    def plate_pattern(self, texture: Texture | str) -> np.ndarray:
+        """The plate's static per-taxel level factors, (18,) float64, ``exp(N(0, plate_level_spread))`` seeded by
+        the plate's label and ``calibration_seed`` (the same plate always loads the taxels the same way)."""
+        tex = get_texture(texture)
+
+        def build():
+            c = self.config
+            if c.plate_level_spread <= 0:
+                return np.ones(N_TAXELS)
+            key = int.from_bytes(hashlib.sha256(tex.label.encode("utf-8")).digest()[:8], "little")
+            rng = np.random.default_rng([c.calibration_seed, key])
+            return np.exp(rng.normal(0.0, c.plate_level_spread, N_TAXELS))
+
+        return self._cached(("plate", tex.label), build)
 
     def depth_factor(self, force_g: float) -> float:
         """Relative modulation depth at ``force_g`` against the reference force: ``(S(F) / S(F_ref)) **

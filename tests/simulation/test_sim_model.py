@@ -246,3 +246,21 @@ def test_contact_force_balance_is_solved_exactly(letter):
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if np.maximum(0.0, mid - depth).mean() < delta else (lo, mid)
         assert d0 == pytest.approx(0.5 * (lo + hi), rel=1e-9, abs=1e-12)
+
+
+def test_plate_pattern_is_static_per_plate_and_contact_efficiency_below_one():
+    """Each plate loads the taxels in its own static pattern (FabricSlide: sd 0.026 between fabrics), the same in
+    every sensor model built from the same config; ridged plates read lower on average than the flat one (crest
+    saturation), the more so at higher force for sparse ridges."""
+    a, b = SensorModel(), SensorModel()
+    np.testing.assert_array_equal(a.plate_pattern("B"), b.plate_pattern("B"))
+    pats = np.log(np.array([a.plate_pattern(t) for t in TEXTURES]))
+    assert pats.shape == (16, 18)
+    assert 0.015 < pats.std() < 0.04
+    assert np.abs(np.corrcoef(pats)[np.triu_indices(16, 1)]).mean() < 0.4  # plates differ
+    assert not np.allclose(a.plate_pattern("A"), SensorModel(SensorConfig(calibration_seed=1)).plate_pattern("A"))
+    assert np.all(SensorModel(SensorConfig(plate_level_spread=0.0)).plate_pattern("C") == 1.0)
+    np.testing.assert_allclose(a.contact_efficiency("A", 500), 1.0)
+    for letter in "BDGL":
+        e250, e1000 = a.contact_efficiency(letter, 250), a.contact_efficiency(letter, 1000)
+        assert np.all(e250 < 1.0) and np.all(e1000 <= e250 + 1e-9), letter
