@@ -403,6 +403,7 @@ class SensorModel:
         self._layer_gain = np.array([c.layer_gain_top, c.layer_gain_bottom])
         # AR(1) coefficient of the low-pass sensor noise at the 1 kHz render rate
         self._noise_a = math.exp(-2.0 * math.pi * c.noise_corner_hz / 1000.0) if c.noise_corner_hz > 0 else 0.0
+        self._last: tuple | None = None  # (texture, force step, tables, period, eff, depth, gain) of the last render
         self._tables: dict[tuple, tuple] = {}  # height, contact-shape and contact-depth tables by texture (, force)
         self._lock = threading.Lock()
 
@@ -556,15 +557,21 @@ class SensorModel:
         c = self.config
         f_mean = float(force.mean()) if n else c.reference_force_g
         # the contact shape is that of the reference force (force-invariant, FabricSlide); the force sets the
-        # level (per sample, saturating) and the plate's contact efficiency (at the chunk's mean force)
-        tables, period, _ = self.tables(texture, c.reference_force_g)
-        eff = self.contact_efficiency(texture, f_mean)
+        # level (per sample, saturating), the plate's contact efficiency and the depth (at the chunk's mean force).
+        # The live rig renders 1 ms at a time: the last texture and force step's tables are kept at hand.
+        fq = round(math.log(max(f_mean, 10.0)) / math.log(1.02)) if math.isfinite(f_mean) else 0
+        last = self._last
+        if last is None or last[0] is not texture or last[1] != fq:
+            tables, period, _ = self.tables(texture, c.reference_force_g)
+            last = (texture, fq, tables, period, self.contact_efficiency(texture, f_mean),
+                    float(self.depth_factor(f_mean)), self.gain * self.plate_pattern(texture))
+            self._last = last
+        _, _, tables, period, eff, depth, gain = last
         seed = int(rng.integers(1, 2**63))
-        _render_kernel(pos, force, tables, period, float(self.depth_factor(f_mean)), eff, float(c.pitch_mm),
-                       self._row_w, self._p_half, self._layer_gain, float(c.full_scale_counts),
-                       self.gain * self.plate_pattern(texture) * np.asarray(sensitivity, dtype=np.float64),
-                       self.offset, float(c.noise_counts), self._noise_a, seed,
-                       float(wrap_mm or 0.0), out)
+        _render_kernel(pos, force, tables, period, depth, eff, float(c.pitch_mm), self._row_w, self._p_half,
+                       self._layer_gain, float(c.full_scale_counts),
+                       gain * sensitivity if np.ndim(sensitivity) else gain * float(sensitivity),
+                       self.offset, float(c.noise_counts), self._noise_a, seed, float(wrap_mm or 0.0), out)
         return out
 
     def plate_pattern(self, texture: Texture | str) -> np.ndarray:
