@@ -94,7 +94,8 @@ def test_bottom_layer_smoother_and_weaker():
 
 
 def test_rows_see_the_same_surface_one_pitch_apart():
-    cfg = SensorConfig(noise_counts=0.0, gain_spread=0.0, offset_spread_counts=0.0, row_weights=(1.0, 1.0, 1.0))
+    cfg = SensorConfig(noise_counts=0.0, gain_spread=0.0, offset_spread_counts=0.0, plate_level_spread=0.0,
+                       row_weights=(1.0, 1.0, 1.0))
     sensor = SensorModel(cfg)
     speed = 50.0
     x = _trace(sensor, "L", speed, 500).astype(int)
