@@ -559,12 +559,13 @@ class SensorModel:
         # the contact shape is that of the reference force (force-invariant, FabricSlide); the force sets the
         # level (per sample, saturating), the plate's contact efficiency and the depth (at the chunk's mean force).
         # The live rig renders 1 ms at a time: the last texture and force step's tables are kept at hand.
-        fq = round(math.log(max(f_mean, 10.0)) / math.log(1.02)) if math.isfinite(f_mean) else 0
+        fq = round(math.log(max(f_mean if math.isfinite(f_mean) else c.reference_force_g, 10.0)) / math.log(1.02))
         last = self._last
         if last is None or last[0] is not texture or last[1] != fq:
             tables, period, _ = self.tables(texture, c.reference_force_g)
+            # both at the force step (2 %), so the output depends on the inputs only, not on earlier calls
             last = (texture, fq, tables, period, self.contact_efficiency(texture, f_mean),
-                    float(self.depth_factor(f_mean)), self.gain * self.plate_pattern(texture))
+                    float(self.depth_factor(1.02 ** fq)), self.gain * self.plate_pattern(texture))
             self._last = last
         _, _, tables, period, eff, depth, gain = last
         seed = int(rng.integers(1, 2**63))
