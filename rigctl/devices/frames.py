@@ -104,6 +104,7 @@ class FrameParser:
         self.n_channels = int(self.n_channels)
         self._size = wire.frame_size(self.n_channels)
         self._dtype = wire.frame_dtype(self.n_channels)
+        self._offsets = np.arange(self._size)[None, :]  # byte offsets within a frame (one fancy index per chunk)
 
     def feed(self, chunk: bytes) -> Frames:
         """Parse ``chunk`` (appended to any kept tail); return the complete valid frames found, in stream order."""
@@ -120,7 +121,7 @@ class FrameParser:
         cand = np.flatnonzero((head == _SYNC0) & (arr[1 : last_start + 2] == _SYNC1))
         accepted = np.zeros(0, dtype=np.int64)
         if cand.size:
-            rows = np.lib.stride_tricks.sliding_window_view(arr, size)[cand]
+            rows = arr[cand[:, None] + self._offsets]  # (candidates, frame size) bytes
             off_crc = size - 2
             crc_calc = wire.crc16_rows(rows[:, wire.CRC_START : off_crc])
             crc_recv = rows[:, off_crc].astype(np.uint16) | (rows[:, off_crc + 1].astype(np.uint16) << 8)
@@ -144,8 +145,8 @@ class FrameParser:
         self._buf = buf[keep_from:]
         if not accepted.size:
             return Frames.empty(self.n_channels)
-        windows = np.lib.stride_tricks.sliding_window_view(arr, size)[accepted]
-        rec: Any = np.ascontiguousarray(windows).view(self._dtype).reshape(-1)  # records: fields by name
+        windows = arr[accepted[:, None] + self._offsets]  # (frames, frame size) bytes, contiguous
+        rec: Any = windows.view(self._dtype).reshape(-1)  # records: fields by name
         return Frames(rec["seq"].astype(np.uint16), rec["flags"].astype(np.uint8), rec["samples"].astype(np.uint16))
 
     def reset(self) -> None:

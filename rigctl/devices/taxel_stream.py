@@ -45,6 +45,10 @@ _LINE_RE = re.compile(rb"#RIGCTL-UNO[ -~]*\n")
 _QUIET_S = 0.5
 
 
+#: the STREAMING_START flag bit as a plain int (an IntFlag member costs an enum lookup per use, per chunk)
+_STREAMING_START = int(wire.FrameFlag.STREAMING_START)
+
+
 @dataclass
 class StreamStats:
     """Counters of a :class:`TaxelStream` since it was opened."""
@@ -461,8 +465,13 @@ class TaxelStream:
             ser = self._serial
             try:
                 # a port closed meanwhile (None) raises AttributeError, handled as a lost link below
+                # all that is waiting; when nothing is, block until the first byte (or read_timeout_s). Then the next
+                # chunk gathers for read_timeout_s: one wake-up per chunk, not one per burst the link delivers
+                # (pyserial's read(n) wakes on every burst until it has n bytes: ~1000 wake-ups/s at 1 kHz)
                 waiting = ser.in_waiting  # type: ignore[union-attr]
-                data = ser.read(max(waiting, 4096))  # type: ignore[union-attr]  # all that is waiting, or wait up to read_timeout_s
+                data = ser.read(waiting or 1)  # type: ignore[union-attr]
+                if data and not waiting:
+                    data += ser.read(ser.in_waiting)  # type: ignore[union-attr]
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 if self._stop.is_set():
                     break
@@ -475,6 +484,8 @@ class TaxelStream:
             if self._await_start and self._streaming and \
                     time.monotonic() - self._t_start_sent > self.start_timeout_s:
                 self._retry_start()
+            if data:
+                self._stop.wait(self.read_timeout_s)
 
     def _handle(self, data: bytes, t_rx: float) -> None:
         if not self._streaming or self._await_start:
@@ -496,11 +507,11 @@ class TaxelStream:
                 if k is None:
                     return  # frames of an earlier stream still on their way
                 # the new stream's frames before this one (sequence numbers 0 .. seq[k] - 1) were lost on the wire
-                lost_at_start = 0 if flags[k] & wire.FrameFlag.STREAMING_START else int(seq[k])
+                lost_at_start = 0 if flags[k] & _STREAMING_START else int(seq[k])
                 seq, flags, samples = seq[k:], flags[k:], samples[k:]
                 self._await_start = False
                 self._tracker.reset()
-            starts = np.flatnonzero(flags & wire.FrameFlag.STREAMING_START)
+            starts = np.flatnonzero(flags & _STREAMING_START)
             n = len(seq)
             # receive time of the chunk, spread back over its frames at the frame period, never earlier
             # than the previous frame: host times increase strictly
@@ -530,7 +541,7 @@ class TaxelStream:
             # a STREAMING_START frame restarts the device's sequence at 0: not a gap
             bounds = [0, *[int(k) for k in starts if k > 0], n]
             for lo, hi in zip(bounds[:-1], bounds[1:]):
-                if flags[lo] & wire.FrameFlag.STREAMING_START:
+                if flags[lo] & _STREAMING_START:
                     self._tracker.reset()
                 gaps = self._tracker.update(seq[lo:hi])
                 st.dropped += gaps
@@ -555,7 +566,7 @@ class TaxelStream:
         slack = 2 + 0.02 * rate
         bound = (t_rx - self._t_start_sent) * rate + slack
         for i in range(len(seq)):
-            if flags[i] & wire.FrameFlag.STREAMING_START:
+            if flags[i] & _STREAMING_START:
                 return i
             s = int(seq[i])
             old = self._old_seq
