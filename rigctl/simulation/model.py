@@ -19,7 +19,8 @@ and ``C`` the drum circumference (the plate is fixed on the drum). Per sample an
    **The shape is force-invariant**, and the modulation depth grows a little faster than the level
    (``depth_level_exponent``): that is what the real FabricSlide recordings show (scripts/fit_fabricslide.py:
    across force setpoints the texture amplitude grows as level^1.2-1.5 and the spectrum keeps its shape;
-   docs/results.md, "Sensor model fitted to FabricSlide"). An earlier model let the contact width change with force; the force coefficients (which
+   docs/results.md, "Sensor model fitted to FabricSlide"). An earlier model let the contact width change with force;
+   the force coefficients (which
    equalise the mean SA rate) cannot undo a change of shape, which made every texture x condition cell a cluster
    of its own (issue 13).
 2. Level: ``L = full_scale * layer_gain * eff_T(F) * S(p)`` with ``p = F / 9 * w_r`` the row's mean pressure
