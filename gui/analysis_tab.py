@@ -150,6 +150,8 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trial_busy.setTextVisible(False)
         self.trial_busy_label = QtWidgets.QLabel("")
         self.trial_busy_label.setObjectName("trial_busy")
+        # wrapped: unwrapped, the first trial's long note asked for ~850 px and grew a 1280 px window to ~1490 px
+        self.trial_busy_label.setWordWrap(True)
         self.trial_plot = self.trial_gl.addPlot(row=0, col=0, title="Raw taxel readings")
         self.trial_plot.setLabel("left", "ADC counts")
         self.trial_curves: list = []
@@ -167,7 +169,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.heat_plots: list = []  # (PlotItem, ImageItem) per layer
         tleft = QtWidgets.QVBoxLayout()
         busy_row = QtWidgets.QHBoxLayout()
-        busy_row.addWidget(self.trial_busy_label)
+        busy_row.addWidget(self.trial_busy_label, 3)
         busy_row.addWidget(self.trial_busy, 1)
         tleft.addLayout(busy_row)
         tleft.addWidget(self.trial_gl, 1)
