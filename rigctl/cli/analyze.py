@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, same_file
+from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, require_dask, same_file
 from rigctl.cli.progress import bars
 
 TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all", "variance")
@@ -88,15 +88,6 @@ def _check_pcs(fs, n_pcs, explicit):
     if explicit and n_pcs > allowed:
         raise UsageProblem(f"--pcs 1-{n_pcs}: the data allows 1-{allowed} ({fs.n_trials} trials, {n_features} "
                            "features per trial)")
-
-
-def _has_dask():
-    import importlib.util
-
-    try:
-        return importlib.util.find_spec("dask.distributed") is not None
-    except ModuleNotFoundError:  # dask itself is missing
-        return False
 
 
 def _check_outputs(file, new_session, overwrite, **outputs):
@@ -229,9 +220,7 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
     _check_outputs(file, new_session, overwrite, **{"--csv": csv_path, "--plot": plot, "--confusion": confusion,
                                                      "--save-model": save_model})
     explicit_pcs = ctx.get_parameter_source("pcs") is not click.core.ParameterSource.DEFAULT
-    if scheduler is not None and not _has_dask():
-        raise UsageProblem("--scheduler needs Dask (dask.distributed), which is not installed: "
-                           "pip install 'rigctl[dask]', or drop --scheduler to run in this process")
+    require_dask(scheduler, otherwise="run in this process")
     limiter = threadpool_limits(threads) if threads else None
     par = {"n_jobs": min(jobs, threads) if jobs and threads else (jobs or threads), "scheduler": scheduler,
            "workers": workers}

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from rigctl.cli.outputs import UsageProblem, check_output
+from rigctl.cli.outputs import check_output, require_dask
 from rigctl.cli.progress import bars
 from rigctl.storage.encoded import ALL_VARIANTS
 
@@ -59,16 +59,7 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     from rigctl.storage.session import SessionError
 
     out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,))
-    if scheduler is not None:
-        import importlib.util
-
-        try:
-            found = importlib.util.find_spec("dask.distributed") is not None
-        except ModuleNotFoundError:  # dask itself is missing
-            found = False
-        if not found:
-            raise UsageProblem("--scheduler needs Dask (dask.distributed), which is not installed: "
-                               "pip install 'rigctl[dask]', or drop --scheduler to encode in this process")
+    require_dask(scheduler, otherwise="encode in this process")
     import warnings
 
     try:

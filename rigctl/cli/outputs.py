@@ -111,3 +111,19 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def require_dask(scheduler: object, *, otherwise: str) -> None:
+    """Refuse ``--scheduler`` up front (:class:`UsageProblem`, exit 2) when Dask's distributed scheduler is not
+    installed; ``otherwise`` ends the message (what to do instead, e.g. "encode in this process"). None passes."""
+    if scheduler is None:
+        return
+    import importlib.util
+
+    try:
+        found = importlib.util.find_spec("dask.distributed") is not None
+    except ModuleNotFoundError:  # dask itself is missing
+        found = False
+    if not found:
+        raise UsageProblem("--scheduler needs Dask (dask.distributed), which is not installed: "
+                           f"pip install 'rigctl[dask]', or drop --scheduler to {otherwise}")
