@@ -15,7 +15,9 @@ sits exactly above or below the trace sample it came from.
 Drawing costs do not grow with the data (issue 12): each trace is decimated to the data area's pixel width (min and
 max per pixel column, so peaks survive, :func:`peak_decimate`); each raster population is ONE image at the data
 area's pixel size (:func:`raster_image`: spikes binned per pixel column and taxel row), so every spike in the
-window is drawn whatever the rate (no spike budget) at the cost of one small image.
+window is drawn whatever the rate (no spike budget) at the cost of one small image; each layer's traces are ONE item
+(:class:`TracesItem`: a polyline per taxel, no per-curve bounds or signals), only the window is copied out of the
+trace buffer, and the axes and titles are cached pixmaps (the data areas under them scroll every frame).
 
 Everything is drawn from fixed-size buffers filled from the taxel stream's ring buffer (never the file):
 :class:`rigctl_gui.workers.TraceBuffer` (pulled in the GUI thread, so a frame reaches the screen without waiting for a
@@ -205,7 +207,7 @@ class RasterItem(pg.GraphicsObject):
     def setImage(self, counts: np.ndarray) -> None:  # noqa: N802 - Qt style
         """Show ``(height, width)`` uint8 spike counts (0, 1, 2+ -> the palette's colours)."""
         self.image = counts
-        self._pixels = np.ascontiguousarray(self._palette[np.minimum(counts, len(self._palette) - 1)])
+        self._pixels = self._palette.take(counts, mode="clip")  # counts past the palette get its last colour
         h, w = counts.shape
         self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format_RGB32)
         self.update()
@@ -216,6 +218,57 @@ class RasterItem(pg.GraphicsObject):
     def paint(self, p, *args) -> None:
         if self._qimage is not None:
             p.drawImage(self._rect, self._qimage)
+
+
+class TraceCurve:
+    """One taxel's trace inside a :class:`TracesItem`: ``getData()`` (what is drawn: ``(t (n,) s, readings (n,))``),
+    ``name()`` (the channel label) and ``opts["pen"]`` (the legend's colour), as pyqtgraph's curves have them."""
+
+    def __init__(self, item: TracesItem, k: int, pen: QtGui.QPen, name: str):
+        self._item, self._k, self._name = item, k, name
+        self.opts = {"pen": pen, "name": name}
+
+    def getData(self) -> tuple[np.ndarray, np.ndarray]:  # noqa: N802 - pyqtgraph style
+        return self._item.t, self._item.x[:, self._k]
+
+    def name(self) -> str:
+        return self._name
+
+
+class TracesItem(pg.GraphicsObject):
+    """All the traces of one plot (one layer's taxels) in one item: each a polyline of the (decimated) readings in
+    its own 1-px cosmetic pen, no antialiasing. One item instead of a pyqtgraph curve per taxel: no per-curve data
+    bounds, signals and path building each frame (issue 12); the bounding rect is the plot's view (the item is
+    redrawn whole every frame anyway, since the traces scroll). ``curves``: a :class:`TraceCurve` per taxel."""
+
+    def __init__(self, pens: list[QtGui.QPen], names: list[str]):
+        super().__init__()
+        self._pens = pens
+        self.curves = [TraceCurve(self, k, pen, name) for k, (pen, name) in enumerate(zip(pens, names))]
+        self.t = np.zeros(0)
+        self.x = np.zeros((0, len(pens)))
+        self._polys: list[QtGui.QPolygonF] = []
+        self._rect = QtCore.QRectF()
+
+    def setData(self, t: np.ndarray, x: np.ndarray) -> None:  # noqa: N802 - pyqtgraph style
+        """Draw ``t`` (n,) s against each column of ``x`` (n, k) readings."""
+        self.t, self.x = t, x
+        self._polys = [pg.functions.arrayToQPolygonF(t, x[:, k]) for k in range(x.shape[1])]
+        vb = self.getViewBox()
+        rect = vb.viewRect() if vb is not None else QtCore.QRectF()
+        if rect != self._rect:
+            self.prepareGeometryChange()
+            self._rect = rect
+        self.update()
+
+    def boundingRect(self) -> QtCore.QRectF:  # noqa: N802 - Qt override
+        return QtCore.QRectF(self._rect)
+
+    def paint(self, p, *args) -> None:
+        p.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing, False)
+        for pen, poly in zip(self._pens, self._polys):
+            p.setPen(pen)
+            p.drawPolyline(poly)
 
 
 class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
@@ -315,20 +368,27 @@ class LiveView(QtWidgets.QWidget):
             p.disableAutoRange()
             p.setXRange(-self.window_s, 0, padding=0)
             p.getAxis("left").setWidth(AXIS_WIDTH_PX)
+            # axes and titles are drawn once into pixmaps and blitted while the data under them scroll (their ticks
+            # reach into the data area, so each frame's repaint of it would otherwise redraw their text)
+            for name in ("left", "bottom"):
+                p.getAxis(name).setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
+            p.titleLabel.item.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
             return p
 
         # traces: one plot per layer, a colour legend of its taxels in the title
         self.trace_plots = []
+        self.trace_items = []
         self.curves = []
         self._layer_channels = [layout.layer_channels(i) for i in range(n_layers)]
         for i, chans in enumerate(self._layer_channels):
             p = time_plot(i, f"{layer_titles(layout, i)[0]}&nbsp;&nbsp;&nbsp;{legend_html(layout, i)}")
             p.setLabel("left", "ADC counts")
             p.setYRange(0, adc_max, padding=0)
-            for ch, colour in zip(chans, trace_colours(len(chans))):
-                c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), skipFiniteCheck=True, name=labels[ch])
-                p.addItem(c)
-                self.curves.append(c)
+            item = TracesItem([pg.mkPen(colour, width=1) for colour in trace_colours(len(chans))],
+                              [labels[ch] for ch in chans])
+            p.addItem(item)
+            self.trace_items.append(item)
+            self.curves.extend(item.curves)
             self.trace_plots.append(p)
 
         # rasters: one row per taxel, one image per population, on the traces' time axis
@@ -460,22 +520,23 @@ class LiveView(QtWidgets.QWidget):
             return False
         if buf.pull() == 0:
             return False
-        t, x = buf.view()
+        # only the window (and one sample before it) is copied out of the buffer
+        t, x = buf.view(last=int(np.ceil(self.window_s * buf.rate_hz)) + 2)
         now = t[-1]
         first = int(np.searchsorted(t, now - self.window_s - 1e-9))
         t, x = t[first:], x[first:]
         width = self.data_width_px()
         # x = time before now: the axes never change, so pyqtgraph reuses their drawing
         t, x = peak_decimate(t - now, x, width, first_index=int(round(t[0] * buf.rate_hz)))
-        for k, c in enumerate(self.curves):
-            c.setData(t, x[:, k], skipFiniteCheck=True)
-        if self.auto_box.isChecked():
-            for i, (p, chans) in enumerate(zip(self.trace_plots, self._layer_channels)):
-                part = x[:, chans.start:chans.stop]
+        auto = self.auto_box.isChecked()
+        for i, (p, item, chans) in enumerate(zip(self.trace_plots, self.trace_items, self._layer_channels)):
+            part = x[:, chans.start:chans.stop]
+            if auto:  # the y range first, so the traces are drawn in the view they will be shown in
                 r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self.layout.adc_max)
                 if r is not None:
                     self._y_ranges[i] = r
                     p.setYRange(*r, padding=0)
+            item.setData(t, part)
         if self._refresh_n % HEATMAP_EVERY == 0:
             self.heatmap_frame = cur = buf.current.copy()
             for img, chans, la in zip(self.images, self._layer_channels, self.layout.layers):

@@ -312,13 +312,16 @@ class TraceBuffer:
         self.newest_host_time_s = float(host_t[-1])
         return n
 
-    def view(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(t (n,) s, readings (n, n_channels) uint16)``, oldest first."""
+    def view(self, last: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(t (n,) s, readings (n, n_channels) uint16)``, oldest first: everything held, or only the newest
+        ``last`` samples (a live view copies just its window, not the whole buffer, each frame)."""
         cap = len(self._x)
-        if self._n <= cap:
-            return self._t[: self._n], self._x[: self._n]
-        i = self._n % cap
-        return np.concatenate([self._t[i:], self._t[:i]]), np.concatenate([self._x[i:], self._x[:i]])
+        n = min(self._n, cap) if last is None else min(self._n, cap, max(int(last), 0))
+        end = self._n % cap if self._n > cap else self._n
+        start = end - n
+        if start >= 0:
+            return self._t[start:end], self._x[start:end]
+        return np.concatenate([self._t[start:], self._t[:end]]), np.concatenate([self._x[start:], self._x[:end]])
 
 
 #: the longest window the live view shows (s); the spike rings hold at least this much at the model's top rate
