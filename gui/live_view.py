@@ -140,15 +140,18 @@ def peak_decimate(t: np.ndarray, x: np.ndarray, width_px: int, first_index: int 
     return out_t, out_x
 
 
-def raster_image(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
-                 height_px: int, *, tick: float = TICK_HEIGHT) -> np.ndarray:
-    """A spike raster as a ``(height_px, width_px)`` uint8 image at the data area's pixel size.
+def raster_rows(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
+                height_px: int, *, tick: float = TICK_HEIGHT) -> tuple[np.ndarray, np.ndarray]:
+    """A spike raster at the data area's pixel size as ``(rows, row_of_pixel)``: the ``(height_px, width_px)`` uint8
+    image is ``rows[row_of_pixel]`` (:func:`raster_image`), kept apart so colouring costs one row per taxel.
 
     ``t`` (s, times before now: ``-window_s <= t <= 0``) and ``ch`` (train number 0 .. n_channels - 1) are the
     spikes; column ``j`` is the time bin ``[-window_s + j w, -window_s + (j + 1) w)`` with ``w = window_s /
-    width_px`` (the newest spike, t = 0, goes into the last column), image row ``r`` (row 0 = bottom = y -0.5) is
-    taxel ``round(y_r)`` where ``y_r`` is the row's centre, or a gap between taxels when ``|y_r - taxel| > tick / 2``.
-    Pixel value: spikes in that bin (clipped to 2: one spike, more than one). Spikes outside the window are ignored.
+    width_px`` (the newest spike, t = 0, goes into the last column). ``rows`` is ``(n_channels + 1, width_px)``: the
+    spikes per bin of each taxel (clipped to 2: one spike, more than one), then a blank row (the gap between
+    taxels); ``row_of_pixel`` (height_px,) maps image row ``r`` (row 0 = bottom = y -0.5) to taxel ``round(y_r)``
+    where ``y_r`` is the row's centre, or to the blank row when ``|y_r - taxel| > tick / 2``. Spikes outside the
+    window are ignored.
     """
     w, h = max(int(width_px), 1), max(int(height_px), 1)
     t = np.asarray(t, float)
@@ -156,12 +159,19 @@ def raster_image(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float
     col = np.floor((t + window_s) * (w / window_s)).astype(np.int64)
     col[t == 0] = w - 1
     ok = (col >= 0) & (col < w) & (ch >= 0) & (ch < n_channels)
-    counts = np.bincount(ch[ok] * w + col[ok], minlength=n_channels * w).reshape(n_channels, w)
-    counts = np.minimum(counts, 2).astype(np.uint8)
+    counts = np.bincount(ch[ok] * w + col[ok], minlength=(n_channels + 1) * w).reshape(n_channels + 1, w)
+    rows = np.minimum(counts, 2).astype(np.uint8)  # the last row (no channel n_channels): the blank gap
     y = -0.5 + (np.arange(h) + 0.5) * (n_channels / h)  # centre of each pixel row, in taxel units
     row_ch = np.clip(np.rint(y), 0, n_channels - 1).astype(np.int64)
-    rows = np.vstack([counts, np.zeros((1, w), np.uint8)])  # the last row: a blank gap
     row_ch[np.abs(y - row_ch) > tick / 2] = n_channels
+    return rows, row_ch
+
+
+def raster_image(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
+                 height_px: int, *, tick: float = TICK_HEIGHT) -> np.ndarray:
+    """A spike raster as a ``(height_px, width_px)`` uint8 image at the data area's pixel size (pixel value: spikes
+    in that time bin and taxel row, clipped to 2; 0 between taxels): :func:`raster_rows` expanded."""
+    rows, row_ch = raster_rows(t, ch, n_channels, window_s, width_px, height_px, tick=tick)
     return rows[row_ch]
 
 
@@ -204,10 +214,14 @@ class RasterItem(pg.GraphicsObject):
             self._rect = QtCore.QRectF(rect)
             self.update()
 
-    def setImage(self, counts: np.ndarray) -> None:  # noqa: N802 - Qt style
-        """Show ``(height, width)`` uint8 spike counts (0, 1, 2+ -> the palette's colours)."""
+    def setImage(self, counts: np.ndarray, row_of_pixel: np.ndarray | None = None) -> None:  # noqa: N802 - Qt style
+        """Show ``(height, width)`` uint8 spike counts (0, 1, 2+ -> the palette's colours), or, with
+        ``row_of_pixel``, the image ``counts[row_of_pixel]`` (:func:`raster_rows`: coloured per row, then expanded)."""
+        colours = self._palette.take(counts, mode="clip")  # counts past the palette get its last colour
+        if row_of_pixel is not None:
+            counts, colours = counts[row_of_pixel], colours[row_of_pixel]
         self.image = counts
-        self._pixels = self._palette.take(counts, mode="clip")  # counts past the palette get its last colour
+        self._pixels = colours
         h, w = counts.shape
         self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format_RGB32)
         self.update()
@@ -247,13 +261,23 @@ class TracesItem(pg.GraphicsObject):
         self.curves = [TraceCurve(self, k, pen, name) for k, (pen, name) in enumerate(zip(pens, names))]
         self.t = np.zeros(0)
         self.x = np.zeros((0, len(pens)))
-        self._polys: list[QtGui.QPolygonF] = []
+        self._polys: list[QtGui.QPolygonF] = []  # one per taxel, reused from frame to frame
+        self._points: list[np.ndarray] = []  # (capacity, 2) views of the polygons' points
+        self._capacity = 0
         self._rect = QtCore.QRectF()
 
     def setData(self, t: np.ndarray, x: np.ndarray) -> None:  # noqa: N802 - pyqtgraph style
         """Draw ``t`` (n,) s against each column of ``x`` (n, k) readings."""
         self.t, self.x = t, x
-        self._polys = [pg.functions.arrayToQPolygonF(t, x[:, k]) for k in range(x.shape[1])]
+        n = len(t)
+        if n > self._capacity or not self._polys:  # room for a few more points than now (lengths vary a little)
+            self._capacity = n + 64
+            self._polys = [pg.functions.create_qpolygonf(self._capacity) for _ in range(x.shape[1])]
+            self._points = [pg.functions.ndarray_from_qpolygonf(poly) for poly in self._polys]
+        for k, pts in enumerate(self._points):
+            pts[:n, 0] = t
+            pts[:n, 1] = x[:, k]
+            pts[n:] = pts[n - 1] if n else 0.0  # the unused tail repeats the last point: nothing more is drawn
         vb = self.getViewBox()
         rect = vb.viewRect() if vb is not None else QtCore.QRectF()
         if rect != self._rect:
@@ -265,6 +289,8 @@ class TracesItem(pg.GraphicsObject):
         return QtCore.QRectF(self._rect)
 
     def paint(self, p, *args) -> None:
+        if len(self.t) == 0:
+            return
         p.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing, False)
         for pen, poly in zip(self._pens, self._polys):
             p.setPen(pen)
@@ -548,7 +574,7 @@ class LiveView(QtWidgets.QWidget):
                 st, sc = ring.since(now - self.window_s)
                 st = st - now
                 self.drawn[key] = (st, sc)
-                self.raster_images[key].setImage(raster_image(st, sc, n, self.window_s, width, height))
+                self.raster_images[key].setImage(*raster_rows(st, sc, n, self.window_s, width, height))
             if self._refresh_n % INFO_EVERY == 0:
                 err = enc.encoder_error
                 state = "" if enc.ready else " (encoder starting: compiling kernels)"
