@@ -51,7 +51,7 @@ INFO_EVERY = 10
 #: taxel numbers are written in the heat-map cells only when a cell is at least this wide on screen (px); smaller
 #: cells keep their colour visible (the map's tooltip still maps positions to taxels)
 MIN_LABELLED_CELL_PX = 22
-#: the heat maps are updated every this many refreshes (10 Hz at the app's 40 Hz: a "now" map needs no more, and
+#: the heat maps are updated every this many refreshes (8 Hz at the app's 33 Hz: a "now" map needs no more, and
 #: each update repaints the maps and their taxel numbers)
 HEATMAP_EVERY = 4
 
