@@ -465,13 +465,19 @@ class TaxelStream:
             ser = self._serial
             try:
                 # a port closed meanwhile (None) raises AttributeError, handled as a lost link below
-                # all that is waiting; when nothing is, block until the first byte (or read_timeout_s). Then the next
-                # chunk gathers for read_timeout_s: one wake-up per chunk, not one per burst the link delivers
-                # (pyserial's read(n) wakes on every burst until it has n bytes: ~1000 wake-ups/s at 1 kHz)
+                # all that is waiting, then the next burst the link delivers (block until its first byte, at most
+                # read_timeout_s): the chunk is stamped as that burst arrives, so its newest frame's host time is
+                # fresh. Stamped at the reader's wake-up instead, every chunk's frames carry the time they sat in the
+                # buffer (up to the sender's burst interval: ms, more on a loaded machine), and the least-delayed
+                # frames host_rate_hz measures from would vary by as much. Then the next chunk gathers for
+                # read_timeout_s: two wake-ups per chunk, not one per burst (pyserial's read(n) wakes on every burst
+                # until it has n bytes: ~1000 wake-ups/s at 1 kHz)
                 waiting = ser.in_waiting  # type: ignore[union-attr]
-                data = ser.read(waiting or 1)  # type: ignore[union-attr]
-                if data and not waiting:
-                    data += ser.read(ser.in_waiting)  # type: ignore[union-attr]
+                data = ser.read(waiting) if waiting else b""  # type: ignore[union-attr]
+                fresh = ser.read(1)  # type: ignore[union-attr]
+                if fresh:
+                    fresh += ser.read(ser.in_waiting)  # type: ignore[union-attr]
+                data += fresh
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 if self._stop.is_set():
                     break

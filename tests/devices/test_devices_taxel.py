@@ -14,6 +14,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout, parse_layout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.taxel_stream import TaxelStream
+from rigctl.simulation.counting import CountingSource
 from rigctl.simulation.pty import PtyEndpoint
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
@@ -83,6 +84,41 @@ def test_three_seconds_of_streaming_lose_nothing(uno):
     p = int(np.flatnonzero(live_seq == cap.seq[0])[0])
     assert np.array_equal(live_seq[p:p + n], cap.seq) and np.array_equal(live[p:p + n], cap.samples)
     assert np.array_equal(live_t[p:p + n], cap.host_time_s)
+
+
+def test_frames_are_stamped_as_their_burst_arrives(tmp_path):
+    """A board that writes a burst every 40 ms (a starved board's ticks) to a reader that gathers a chunk every 50
+    ms: the reader stamps a chunk when a fresh burst arrives, not when it happens to wake up, so a chunk's newest
+    frame is late by the wake-up latency only, not by the time it sat in the buffer (0-40 ms here, which would move
+    the least-delayed frames host_rate_hz measures from)."""
+    board = VirtualUno(tmp_path / "taxel", reset_delay_s=0.05)
+    source = CountingSource()
+    written = []  # (host time just after the write, sequence number of the board's next frame)
+
+    def step(n):
+        board.tick(*source(n))
+        written.append((time.monotonic(), board.seq))
+
+    stop = threading.Event()
+    ticker = threading.Thread(target=paced_loop, args=(stop, 0.04, step), daemon=True)
+    ticker.start()
+    try:
+        with TaxelStream(board.path, read_timeout_s=0.05) as stream:
+            stream.start()
+            time.sleep(0.1)
+            stream.begin_capture()
+            assert stream.wait_capture(1000, timeout_s=5)
+            cap = stream.end_capture()
+    finally:
+        stop.set()
+        ticker.join()
+        board.close()
+    t_w, next_seq = np.array(written).T
+    seq = cap.seq.astype(np.int64)
+    burst = np.searchsorted(next_seq, seq, side="right")  # the write that carried each frame
+    # delay of each frame after its due time (frame k of a burst written at W is due at W - (last - k) ms)
+    late_ms = (cap.host_time_s - (t_w[burst] - (next_seq[burst] - 1 - seq) / 1000)) * 1e3
+    assert np.median(late_ms) < 10, np.percentile(late_ms, [10, 50, 90])
 
 
 def test_faults_are_counted_and_skipped(uno):
