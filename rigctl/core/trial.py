@@ -175,7 +175,10 @@ class TrialData:
         A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
         scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
         the last third of the trial, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames
-        (from ``seq``). Delays do not bias it, unlike a least-squares fit. NaN with fewer than 6 samples.
+        (from ``seq``). Delays do not bias it, unlike a least-squares fit, as long as each third holds frames
+        stamped with the least delay: the taxel reader stamps a chunk as a fresh burst arrives
+        (``rigctl.devices.taxel_stream``), not after its frames sat in the port's buffer for an arbitrary time.
+        NaN with fewer than 6 samples.
         """
         n = self.n_samples
         if n < 6:
