@@ -12,7 +12,7 @@ import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 
-__all__ = ["PlannedTrial", "TrialData"]
+__all__ = ["PlannedTrial", "TrialData", "lower_envelope_rate_hz"]
 
 
 @dataclass(frozen=True)
@@ -170,27 +170,43 @@ class TrialData:
         return self.n_samples / self.layout.sample_rate_hz
 
     def host_rate_hz(self) -> float:
-        """Device sample rate measured on the host clock, frames/s.
-
-        A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
-        scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
-        the last third of the trial, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames
-        (from ``seq``). Delays do not bias it, unlike a least-squares fit, as long as each third holds frames
-        stamped with the least delay: the taxel reader stamps a chunk as a fresh burst arrives
-        (``rigctl.devices.taxel_stream``), not after its frames sat in the port's buffer for an arbitrary time.
-        NaN with fewer than 6 samples.
-        """
-        n = self.n_samples
-        if n < 6:
-            return math.nan
+        """Device sample rate measured on the host clock over this trial's frames, frames/s
+        (:func:`lower_envelope_rate_hz` of ``seq`` and ``host_time_s`` at ``layout.sample_rate_hz``); NaN with fewer
+        than 6 samples."""
         assert self.seq is not None and self.host_time_s is not None
-        seq = np.asarray(self.seq, dtype=np.int64)
-        steps = ((seq[1:] - seq[:-1]) & 0xFFFF).astype(np.int64)
-        steps[steps == 0] = 1
-        index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
-        lag = self.host_time_s - index / self.layout.sample_rate_hz  # delay + drift, relative to the nominal rate
-        third = n // 3
-        a = int(np.argmin(lag[:third]))
-        b = n - third + int(np.argmin(lag[n - third:]))
-        dt = float(self.host_time_s[b] - self.host_time_s[a])
-        return float(index[b] - index[a]) / dt if dt > 0 else math.nan
+        return lower_envelope_rate_hz(self.seq, self.host_time_s, self.layout.sample_rate_hz)
+
+
+def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: float) -> float:
+    """A device's frame rate measured on the host clock, frames/s.
+
+    Parameters
+    ----------
+    seq : (n,) uint16, the device's frame sequence numbers (gaps = dropped frames; wrap at 65536)
+    host_time_s : (n,) float64, host receive times, s (any origin)
+    rate_hz : float, the nominal frame rate, Hz (the lag of each frame is taken against it; any value near the
+        true rate gives the same result)
+
+    A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
+    scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
+    the last third, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames (from ``seq``).
+    Delays do not bias it, unlike a least-squares fit, as long as each third holds frames stamped with the least
+    delay: the taxel reader stamps a chunk as a fresh burst arrives (``rigctl.devices.taxel_stream``), and the
+    runner measures over the stream's history up to a trial's end, not the trial alone, so a stretch of a loaded
+    host's late deliveries (seen: 0.2-0.3 s reader stalls over most of a 2 s trial) is a small part of either
+    third. NaN with fewer than 6 frames.
+    """
+    n = len(seq)
+    if n < 6:
+        return math.nan
+    s = np.asarray(seq, dtype=np.int64)
+    t = np.asarray(host_time_s, dtype=np.float64)
+    steps = ((s[1:] - s[:-1]) & 0xFFFF).astype(np.int64)
+    steps[steps == 0] = 1
+    index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
+    lag = t - index / float(rate_hz)  # delay + drift, relative to the nominal rate
+    third = n // 3
+    a = int(np.argmin(lag[:third]))
+    b = n - third + int(np.argmin(lag[n - third:]))
+    dt = float(t[b] - t[a])
+    return float(index[b] - index[a]) / dt if dt > 0 else math.nan

@@ -19,6 +19,7 @@ import pytest
 from rigctl.acquisition import rig as rig_module, runner as runner_module
 from rigctl.acquisition.protocol import parse_protocol
 from rigctl.acquisition.runner import run_protocol
+from rigctl.core.trial import TrialData
 from rigctl.devices.wire import DrumState, FrameFlag
 from rigctl.rigs import open_rig
 from rigctl.storage.session import SessionWriter, open_session
@@ -163,6 +164,31 @@ def test_locate_index_uses_only_a_short_gap_near_the_prediction():
 
 
 # ------------------------------------------------------------------------------------------------ lost links
+
+def test_host_rate_over_the_streams_history_ignores_a_loaded_hosts_stalls():
+    """The delay profile seen on a loaded machine: the reader stalls for 0.25 s at a time over most of a 2 s trial,
+    each stall's backlog drains in a few chunks, and between stalls the least delay is ~8 ms. The trial's own lower
+    envelope is off by Hz; over the stream's history (back to the device's last restart) it is not."""
+    rng = np.random.default_rng(3)
+    true_rate = 1000.3
+    n_hist, n_trial = 8000, 2000
+    k = np.arange(n_hist)
+    chunk = k // 20  # the reader gets ~20 frames at a time, each chunk stamped 0-3 ms after its newest frame
+    delay = rng.uniform(0, 3e-3, chunk.max() + 1)[chunk]
+    in_stalls = (k >= n_hist - n_trial) & (k < n_hist - n_trial + 1300)
+    phase = (k - (n_hist - n_trial)) % 300
+    stalled = np.where(phase < 250, 0.25 - phase * 1e-3 + 8e-3, 8e-3 + delay)  # backlog drained, then 8 ms+
+    delay = np.where(in_stalls, np.maximum(delay, stalled), delay)
+    t = 5.0 + k / true_rate + delay
+    seq = (40000 + k) & 0xFFFF  # wraps at 65536 inside the history
+    # an earlier stream (the device restarted its counter), on another time line: not part of the history
+    old_seq, old_t = np.arange(30000, 30500), 4.0 + np.arange(500) / 990.0
+    trial = TrialData(taxels=np.zeros((n_trial, 18)), seq=seq[-n_trial:], host_time_s=t[-n_trial:] - t[-n_trial])
+    assert abs(trial.host_rate_hz() - true_rate) > 1  # the trial alone: biased by the stalls
+    all_seq, all_t = np.concatenate([old_seq, seq]), np.concatenate([old_t, t])
+    assert abs(rig_module.history_rate_hz(all_seq, all_t, 1000, min_frames=n_trial) - true_rate) < 0.2
+    assert np.isnan(rig_module.history_rate_hz(all_seq, all_t, 1000, min_frames=n_hist + 1))
+
 def _cut_drum_link(rig, link):
     """The Mega's cable is pulled: every Modbus request of the in-process drum client fails as on a vanished port
     (EIO; ``link.undo()`` plugs it back)."""
