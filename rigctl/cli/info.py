@@ -25,8 +25,8 @@ def session_summary(path: str | Path) -> dict:
     set has none), ``trials`` (one dict per plan row:
     trial_id, texture, profile, speed_mm_s, ramp_start_mm_s, ramp_end_mm_s, force_g, duration_s, status, samples,
     samples_per_s = samples / duration_s (the trial's length), host_rate_hz (frames per second on the host clock,
-    lower-envelope estimate over the stream up to the trial's end), dropped_frames, crc_errors, force_mean_g, speed_mean_mm_s,
-    error) and ``totals``.
+    lower-envelope estimate over the stream up to the trial's end), dropped_frames, crc_errors, force_mean_g,
+    speed_mean_mm_s, error) and ``totals``.
     """
     path = Path(path)
     with open_session(path) as s:
