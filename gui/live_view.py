@@ -219,9 +219,11 @@ class RasterItem(pg.GraphicsObject):
         ``row_of_pixel``, the image ``counts[row_of_pixel]`` (:func:`raster_rows`: coloured per row, then expanded)."""
         colours = self._palette.take(counts, mode="clip")  # counts past the palette get its last colour
         if row_of_pixel is not None:
-            counts, colours = counts[row_of_pixel], colours[row_of_pixel]
+            counts, colours = counts.take(row_of_pixel, axis=0), colours.take(row_of_pixel[::-1], axis=0)
+        else:
+            colours = np.ascontiguousarray(colours[::-1])
         self.image = counts
-        self._pixels = colours
+        self._pixels = colours  # top row first (screen order): blitted as it is
         h, w = counts.shape
         self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format_RGB32)
         self.update()
@@ -230,8 +232,26 @@ class RasterItem(pg.GraphicsObject):
         return QtCore.QRectF(self._rect)
 
     def paint(self, p, *args) -> None:
-        if self._qimage is not None:
-            p.drawImage(self._rect, self._qimage)
+        img = self._qimage
+        if img is None:
+            return
+        tr = p.transform()
+        dev = tr.mapRect(self._rect)
+        if (tr.type().value <= QtGui.QTransform.TransformationType.TxScale.value and abs(dev.width() - img.width()) < 1
+                and abs(dev.height() - img.height()) < 1):
+            # the image is at the data area's pixel size: blit it unscaled (a scaled draw costs several times more)
+            p.save()
+            p.resetTransform()
+            p.drawImage(QtCore.QPointF(round(dev.left()), round(dev.top())), img)
+            p.restore()
+            return
+        # any other size (an export, a resize before the next refresh): scaled, flipped to data y (row 0 = y -0.5)
+        p.save()
+        r = self._rect
+        p.translate(0, r.top() + r.bottom())
+        p.scale(1, -1)
+        p.drawImage(r, img)
+        p.restore()
 
 
 class TraceCurve:
