@@ -16,7 +16,8 @@ and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per b
   (``live`` mode), or a fixed waveform is played in a loop (:meth:`HilRig.play_waveform`, for exact-value tests).
   Each index pulse of the Mega is forwarded to the Uno's sync-in pin.
 
-Both harnesses run paced to real time and exit when this object closes their stdin, or when this process dies.
+Both harnesses run paced to real time, in lock step with each other on simulated time (``--clock-lock``), and exit
+when this object closes their stdin, or when this process dies.
 """
 
 from __future__ import annotations
@@ -40,6 +41,16 @@ from rigctl.devices import wire
 log = logging.getLogger(__name__)
 
 _KV = re.compile(r"(\w+)=([-+0-9.eE]+)")
+
+
+#: live rendering: rows (ms of the Uno's simulated time) of a new waveform that continue the playing one before
+#: converging to the drum's reported travel and force, and rows of the force's convergence
+_BLEND_START = 250
+_BLEND_ROWS = 500
+#: live rendering: largest change of the texture's speed under the taxels while the travel converges (fraction)
+_MAX_CORRECTION = 0.2
+#: live rendering: drum speed (mm per ms) below which the travel's correction is limited as at this speed
+_MIN_SPEED = 0.01
 
 
 class HilError(RuntimeError):
@@ -242,15 +253,18 @@ class HilRig:
             raise HilError(str(exc)) from None
         exe = build_dir / "rigctl_simavr"
         m = self.config.mechanics
+        # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
+        # rate: the drum travel rendered for the Uno would play too fast or too slow)
+        lock = ["--clock-lock", str(self._tmp / "clock")] if self.with_uno else []
         self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
-        ], self._on_mega_line)
+            *lock], self._on_mega_line)
         if not self.with_uno:
             return self
         try:
             self._uno = _Harness(exe, "uno", build_dir / "uno_taxel.elf",
-                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms)], self._on_uno_line)
+                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms), *lock], self._on_uno_line)
         except BaseException:
             self._mega.close()
             self._mega = None
@@ -431,60 +445,85 @@ class HilRig:
                 self._cond.wait(left)
             return self._scan_reply
 
-    def _render_and_load(self, horizon_s: float = 2.0, load_latency_s: float = 0.005) -> None:
+    def _render_and_load(self, horizon_s: float = 2.0) -> None:
         """Render the next ``horizon_s`` of taxel readings from the latest drum travel, speed and force.
 
         The new waveform continues the drum travel and the force of the one playing now (the row playing is asked
-        from the harness: no jump in the texture's phase or amplitude at the swap) and converges linearly to the
-        travel and force the Mega harness
-        reports, extrapolated to the swap (report age plus ``load_latency_s``), within 0.5 s.
+        from the harness: no jump in the texture's phase or amplitude at the swap) and converges to the travel and
+        force the Mega harness reports (:meth:`_drum_now`). Both boards' simulators fall behind real time on a
+        starved machine (to a fifth of it and less), each at its own pace, so every prediction is made on the
+        Mega's simulated time, and the travel converges no faster than :data:`_MAX_CORRECTION` of the drum's speed:
+        a correction changes the texture's speed under the taxels by that fraction at most, never its phase.
         """
         with self._render_lock:
             if self._stop.is_set() or not self.live:  # play_waveform took over while this render waited
                 return
-            self._render_and_load_locked(horizon_s, load_latency_s)
+            self._render_and_load_locked(horizon_s)
 
-    def _render_and_load_locked(self, horizon_s: float, load_latency_s: float) -> None:
+    def _drum_now(self, at: float) -> tuple[float, float, float]:
+        """(travel mm, speed mm per ms of simulated time, contact force g) of the drum at host time ``at``.
+
+        From the Mega harness's reports: the speed over the last 0.2 s of its simulated time (step counts over
+        cycle counts), the travel extrapolated from the latest report by the simulated time elapsed since it arrived:
+        the host time since then times the rate at which the Mega's simulated time has advanced per host second
+        over the last second of reports (below 1 on a starved machine; a host-time extrapolation overshoots
+        there by several mm at 40 mm/s)."""
+        hist = list(self.telemetry_history)[-21:]
+        if not hist:
+            return 0.0, 0.0, 0.0
+        tel = hist[-1]
+        recent = hist[-5:]
+        speed = 0.0
+        if len(recent) >= 2 and recent[-1].cycle > recent[0].cycle:
+            speed = ((recent[-1].drum_steps - recent[0].drum_steps) * self.mm_per_step
+                     / ((recent[-1].cycle - recent[0].cycle) / 16e3))
+        rate = 1.0  # simulated s per host s
+        if len(hist) >= 2 and hist[-1].received > hist[0].received:
+            rate = np.clip((hist[-1].t_s - hist[0].t_s) / (hist[-1].received - hist[0].received), 0.0, 1.0)
+        elapsed_ms = max(0.0, at - tel.received) * rate * 1e3
+        return tel.drum_steps * self.mm_per_step + speed * elapsed_ms, speed, max(tel.force_g, 0.0)
+
+    def _render_and_load_locked(self, horizon_s: float) -> None:
         from rigctl.simulation.model import SensorModel
 
         if not hasattr(self, "_sensor"):
             self._sensor = SensorModel(self.config.sensor)
             self._rng = np.random.default_rng(self.seed)
-        hist = list(self.telemetry_history)[-5:]
-        if len(hist) >= 2 and hist[-1].cycle > hist[0].cycle:
-            speed = (hist[-1].drum_steps - hist[0].drum_steps) * self.mm_per_step / ((hist[-1].cycle - hist[0].cycle) / 16e6)
-        else:
-            speed = 0.0
-        tel = hist[-1] if hist else None
-        target = tel.drum_steps * self.mm_per_step if tel else 0.0
-        if tel is not None:
-            target += speed * (time.monotonic() - tel.received + load_latency_s)
-        force = max(tel.force_g, 0.0) if tel else 0.0
         n = int(horizon_s * 1000)
-        t = np.arange(n) / 1000.0
-        # the new waveform's target trajectory: the reported travel and force
-        new_pos = target + speed * t
+        k = np.arange(n)  # rows = scans = ms of the Uno's simulated time
+        scan = self._scan() if self._wave_pos is not None else None
+        target, speed, force = self._drum_now(time.monotonic())
+        # the new waveform's target trajectory: the reported travel (at the scan just asked) and force
+        new_pos = target + speed * k
         new_force = np.full(n, force)
         base = None
-        scan = self._scan() if self._wave_pos is not None else None
         old_pos, old_force = new_pos, new_force
         if scan is not None:
             # row 0 of the new waveform stands for scan n (the harness skips the rows already due when it swaps,
             # so the swap keeps the phase however long the render and the load take); it first continues the
             # waveform playing now (its travel and force, row for row, extrapolated past its end), then converges
-            # to the target between 0.25 s and 0.75 s: a swap within 0.25 s of the query (render + load) is seamless
+            # to the target from _BLEND_START rows on: a swap within that many scans of the query is seamless
             row = scan[0] - scan[1]
             if 0 <= row < len(self._wave_pos) and abs(self._wave_pos[row] - target) < 50.0:
                 base = scan[0]
-                k = row + np.arange(n)
+                kk = row + k
                 last = len(self._wave_pos) - 1
-                slope = (self._wave_pos[-1] - self._wave_pos[-2]) if last >= 1 else 0.0
-                old_pos = np.where(k <= last, self._wave_pos[np.minimum(k, last)],
-                                   self._wave_pos[last] + slope * (k - last))
-                old_force = self._wave_forces[np.minimum(k, last)]
-        blend = np.clip((t - 0.25) / 0.5, 0.0, 1.0)
-        position = old_pos + (new_pos - old_pos) * blend
-        forces = old_force + (new_force - old_force) * blend
+                tail = (self._wave_pos[-1] - self._wave_pos[-2]) if last >= 1 else 0.0
+                old_pos = np.where(kk <= last, self._wave_pos[np.minimum(kk, last)],
+                                   self._wave_pos[last] + tail * (kk - last))
+                old_force = self._wave_forces[np.minimum(kk, last)]
+        # from row _BLEND_START on, the travel moves at the drum's speed plus a correction that closes the gap to
+        # the target within _BLEND_ROWS rows, but changes the texture's speed under the taxels by at most
+        # _MAX_CORRECTION (a faster correction steepens the signal's edges like a seam would; the drum stopped: by
+        # that fraction of _MIN_SPEED); the force converges linearly over _BLEND_ROWS rows
+        c0 = min(_BLEND_START, n - 1)
+        gap = new_pos[c0] - old_pos[c0]
+        limit = _MAX_CORRECTION * max(abs(speed), _MIN_SPEED)
+        slope = float(np.clip(gap / _BLEND_ROWS, -limit, limit))
+        after = np.maximum(k - c0, 0)
+        corrected = old_pos[c0] + speed * after + slope * np.minimum(after, abs(gap / slope) if slope else 0.0)
+        position = np.where(k < c0, old_pos, corrected)
+        forces = old_force + (new_force - old_force) * np.clip((k - c0) / _BLEND_ROWS, 0.0, 1.0)
         # the model's contact shape is that of a render call's mean force (non-linear in the force): render in
         # 25 ms chunks while the force changes, so each chunk's shape follows its force
         samples = np.empty((n, wire.N_TAXELS), dtype=np.uint16)

@@ -4,7 +4,8 @@
  *   rigctl_simavr --board uno|mega [options] FIRMWARE.elf
  *
  * Common: UART0 is bridged to a pty (our own bridge, below); the line "PTY /dev/pts/N" on stdout names it. The core is paced to the wall clock (nanosleep on avr->cycle) unless
- * --no-pace. The harness exits when its stdin closes, on "quit", or when its parent dies (PR_SET_PDEATHSIG).
+ * --no-pace; --clock-lock FILE also keeps it in lock step with the other board's harness (see "clock lock" below).
+ * The harness exits when its stdin closes, on "quit", or when its parent dies (PR_SET_PDEATHSIG).
  * --reset-on-open emulates the Arduino's DTR auto-reset: each open() of the pty by a host (inotify IN_OPEN)
  * holds the core in reset for --boot-ms (the bootloader's wait) and restarts the firmware.
  *
@@ -40,6 +41,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/inotify.h>
+#include <sys/mman.h>
 #include <sys/prctl.h>
 #include <time.h>
 #include <unistd.h>
@@ -160,6 +162,7 @@ static double opt_counts_per_g = 420.0;    /* LOADCELL_SCALE_X100 default / 100 
 static long opt_loadcell_offset = 8000;
 static double opt_tel_ms = 50.0;
 static double opt_max_seconds = 0.0;
+static const char *opt_clock_lock = NULL;
 
 /* ---- stdin commands (reader thread -> main loop) ---- */
 static atomic_int quit_requested;
@@ -508,12 +511,72 @@ static void mega_poll(void)
     }
 }
 
+/* ================================ clock lock ================================ */
+/* --clock-lock FILE: two harnesses (one per board) given the same file run in lock step on simulated time: each
+ * publishes its simulated time (its own slot: mega 0, uno 1; ns, monotonic across resets, a hold in reset counts
+ * at wall-clock pace) and waits while it is more than LOCK_LEAD_S ahead of the other's. Each is paced to the wall
+ * clock, but on a starved host they fall behind it at different rates (the Uno streams and samples more per ms):
+ * locked, a ms of the Uno's time is a ms of the Mega's, so what the host renders from the Mega's drum travel plays
+ * at the drum's speed. A partner that has not published yet, or whose time has not moved for LOCK_STALE_S of wall
+ * time (stopped, exited), is not waited for. */
+#define LOCK_LEAD_S 0.002
+#define LOCK_STALE_S 0.5
+static _Atomic uint64_t *lock_slots;
+static int lock_self;
+static double lock_time_s;       /* this core's simulated time for the lock */
+static uint64_t lock_cycle;      /* avr->cycle at the last update */
+static uint64_t lock_other_ns;   /* the partner's last published time ... */
+static double lock_other_wall;   /* ... and when it last changed (wall) */
+
+static void clock_lock_open(const char *path, int slot)
+{
+    int fd = open(path, O_RDWR | O_CREAT, 0600);
+    if (fd < 0 || ftruncate(fd, 2 * sizeof(uint64_t)) < 0) {
+        fprintf(stderr, "cannot open the clock-lock file %s: %s\n", path, strerror(errno));
+        exit(2);
+    }
+    void *m = mmap(NULL, 2 * sizeof(uint64_t), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    close(fd);
+    if (m == MAP_FAILED) {
+        fprintf(stderr, "cannot map the clock-lock file %s: %s\n", path, strerror(errno));
+        exit(2);
+    }
+    lock_slots = m;
+    lock_self = slot;
+    lock_other_wall = now_s();
+}
+
+static void clock_lock_publish(double extra_s)
+{
+    uint64_t c = avr->cycle;
+    lock_time_s += (c >= lock_cycle ? c - lock_cycle : c) / (double)avr->frequency + extra_s; /* c < last: reset */
+    lock_cycle = c;
+    atomic_store(&lock_slots[lock_self], (uint64_t)(lock_time_s * 1e9) + 1); /* 0 = not started */
+}
+
+static void clock_lock_wait(void)
+{
+    for (;;) {
+        uint64_t other = atomic_load(&lock_slots[!lock_self]);
+        double t = now_s();
+        if (other != lock_other_ns) {
+            lock_other_ns = other;
+            lock_other_wall = t;
+        }
+        if (other == 0 || lock_time_s <= (other - 1) * 1e-9 + LOCK_LEAD_S || t - lock_other_wall > LOCK_STALE_S
+            || atomic_load(&quit_requested))
+            return;
+        struct timespec ts = {0, 100000};
+        nanosleep(&ts, NULL);
+    }
+}
+
 /* ================================ main loop ================================ */
 static void usage(void)
 {
     fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
-                    "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] FIRMWARE.elf\n");
+                    "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] FIRMWARE.elf\n");
     exit(2);
 }
 
@@ -535,6 +598,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--loadcell-offset")) opt_loadcell_offset = atol(NEXT());
         else if (!strcmp(a, "--tel-ms")) opt_tel_ms = atof(NEXT());
         else if (!strcmp(a, "--max-seconds")) opt_max_seconds = atof(NEXT());
+        else if (!strcmp(a, "--clock-lock")) opt_clock_lock = NEXT();
         else if (a[0] == '-') usage();
         else fw = a;
     }
@@ -593,6 +657,10 @@ int main(int argc, char **argv)
     pthread_t th;
     pthread_create(&th, NULL, stdin_thread, NULL);
 
+    if (opt_clock_lock) {
+        clock_lock_open(opt_clock_lock, is_uno);
+        lock_cycle = avr->cycle;
+    }
     double wall0 = now_s();
     uint64_t cycle0 = avr->cycle;
     double hold_until = 0.0; /* in reset (bootloader wait) until this wall time */
@@ -600,7 +668,9 @@ int main(int argc, char **argv)
     for (;;) {
         if (hold_until > 0.0) {
             struct timespec ts = {0, 1000000};
+            double held = now_s();
             nanosleep(&ts, NULL);
+            if (lock_slots) clock_lock_publish(now_s() - held); /* the bootloader's wait passes at wall pace */
             if (now_s() >= hold_until) {
                 hold_until = 0.0;
                 avr_reset(avr);
@@ -645,6 +715,10 @@ int main(int argc, char **argv)
                 printf("RESET t=%.6f\n", sim_s());
                 continue;
             }
+        }
+        if (lock_slots) {
+            clock_lock_publish(0.0);
+            clock_lock_wait();
         }
         if (opt_pace) {
             double ahead = (double)(avr->cycle - cycle0) / avr->frequency - (now_s() - wall0);
