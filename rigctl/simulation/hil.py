@@ -356,10 +356,11 @@ class HilRig:
     def step_rate_hz(self, window_s: float = 1.0, timeout_s: float = 5.0) -> float:
         """Drum STEP pulse rate measured on the pin over the last ``window_s`` of simulated time, steps/s.
 
-        Waits until the harness has reported that much time after the call.
+        Waits until the harness has reported that much time after the call, however long it takes while reports
+        keep coming (simavr falls behind real time on a starved machine); HilError if none comes for ``timeout_s``.
         """
         first = self._wait_telemetry(None, timeout_s)
-        last = self._wait_telemetry(first.t_s + window_s, timeout_s + window_s * 2)
+        last = self._wait_telemetry(first.t_s + window_s, timeout_s)
         return (last.drum_steps - first.drum_steps) / ((last.cycle - first.cycle) / 16e6)
 
     def next_telemetry(self, timeout_s: float = 5.0) -> Telemetry:
@@ -369,13 +370,18 @@ class HilRig:
         return self._wait_telemetry(None, timeout_s)
 
     def _wait_telemetry(self, t_min: float | None, timeout_s: float) -> Telemetry:
+        """The next report (``t_min`` None) or the first at simulated time ``t_min`` or later; HilError if no report
+        comes for ``timeout_s`` of host time."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            start = self.telemetry
+            start = seen = self.telemetry
             while True:
                 tel = self.telemetry
                 if tel is not None and ((t_min is None and tel is not start) or (t_min is not None and tel.t_s >= t_min)):
                     return tel
+                if tel is not seen:  # reports keep coming: the harness runs, however slowly
+                    seen = tel
+                    deadline = time.monotonic() + timeout_s
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise HilError("no telemetry from the Mega harness")
