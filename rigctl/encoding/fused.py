@@ -12,18 +12,24 @@ One numba kernel reads each sample of a trial once and, per taxel, in the same t
    ``k_RA * d``) -- exactly :mod:`rigctl.encoding.filters` + :mod:`rigctl.encoding.izhikevich`, but without the
    float64 copy of the filtered trial;
 4. records spikes branch-free (``v >= 30``: ``v <- c``, ``u <- u + d`` by selects, no branch) as bits of a per-lane
-   32-step mask; every 32 steps the set bits are turned into sample numbers appended to the train's slots (the
-   work is proportional to the spikes, not to the samples; no ``(n_samples, n_channels)`` raster exists).
+   32-step mask; at the end of each 32-step word the mask gives the count (popcount) and is stored as one word of
+   the train's spike bitmap (1 bit per sample: no ``(n_samples, n_channels)`` raster, no per-spike work in the
+   step loop); a second pass turns the set bits into NWB spike times (work proportional to the spikes).
 
-Layout: time is the outer loop; the lanes are ``block`` trials x n_channels (trial-major, channel-minor,
-contiguous: the SIMD axis); blocks of trials run in parallel (``prange``); trials are sorted by length so a block's
-trials end together.
+Layout: time is the outer loop, in chunks of at most 32 steps (never across a bitmap word or a trial's end); the
+lanes are ``block`` trials x n_channels (trial-major, channel-minor, contiguous: the SIMD axis). Per chunk a pre-pass
+gathers and normalises the block's readings into a (32, lanes) buffer, then each population steps every lane through
+the chunk in one contiguous loop. Blocks of trials run in parallel (``prange``); trials are sorted by length so a
+block's trials end together.
 
 **Precision.** The state (v, u, filter) is float32 by default: half the bytes of float64, twice the SIMD lanes. The
 model itself is sensitive to rounding: the same float64 per-sample loop fed the input nudged by one ulp changes a
 train's SA count by a median 0.5 %, p99 3.4 %, max 6.6 % on real FabricSlide trials (issue 12); the float32 kernel
 stays inside that band against the float64 reference (``tests/encoding/test_enc_fused.py``;
-``benchmarks/bench_encoder.py`` prints the agreement beside the speed). ``dtype=np.float64`` runs the same kernel
+``benchmarks/bench_encoder.py`` prints the agreement beside the speed). In float32 the step is the same model with
+its constants folded (``v + h (q v^2 + f v + e - u + I) = v (h q v + 1 + h f) + h (e - u + I)``, the input term
+shared by both half-steps: 11 operations instead of 21); float64 keeps the paper's expressions as written, so the
+float64 kernel is the per-sample reference bit for bit. ``dtype=np.float64`` runs the same kernel
 in double precision. No FMA contraction or reassociation is allowed, so every lane does the same IEEE operations
 whatever its position: the batch encoding and :class:`~rigctl.encoding.izhikevich.StreamingEncoder` (chunk by chunk,
 state carried over) give bit-identical spikes.
@@ -37,7 +43,9 @@ from typing import Any
 
 import numba
 import numpy as np
+from numba import types
 from numba.cpython.unsafe.numbers import trailing_zeros
+from numba.extending import overload
 
 from rigctl.encoding.filters import lowpass_coefficients
 from rigctl.encoding.spikes import SpikeTrains
@@ -51,85 +59,118 @@ BLOCK_TRIALS = 8
 _FASTMATH = {"nnan", "ninf", "nsz"}
 
 
-@numba.njit(fastmath=_FASTMATH, inline="always", cache=True)
-def _step(vv, uu, pv, cnt, msk, act, p, j, i_in, sh, a, b, c, d, v_peak, kc):  # pragma: no cover - compiled by numba
-    """One 1 ms step of eqs. (3)-(5) on lane ``j`` (state row ``pv``, count/mask row ``p``): two 0.5 ms half-steps
-    of v, u from the new v, the branch-free reset; a spike of a live lane is counted and set as bit ``sh`` of the
-    lane's mask."""
-    v0 = vv[pv, j]
-    u0 = uu[pv, j]
-    h, q, f, e = kc[0], kc[1], kc[2], kc[3]  # 0.5, 0.04, 5, 140 in the state's dtype (a literal is float64)
-    v1 = v0 + h * (q * v0 * v0 + f * v0 + e - u0 + i_in)
-    v2 = v1 + h * (q * v1 * v1 + f * v1 + e - u0 + i_in)
-    u1 = u0 + a * (b * v2 - u0)
-    s = v2 >= v_peak
-    vv[pv, j] = c if s else v2
-    uu[pv, j] = u1 + d if s else u1
-    sv = np.uint32(s) & np.uint32(act[j])
-    cnt[p, j] += np.int32(sv)
-    msk[p, j] = msk[p, j] | (sv << sh)
+def _sa_step(v0, u0, i_in, kc):  # pragma: no cover - replaced by the overload below inside numba
+    """v2 and u1 of one 1 ms step (two 0.5 ms half-steps of v, u from the new v; eqs. 3-4), before the reset."""
+    raise NotImplementedError
+
+
+@overload(_sa_step, inline="always", jit_options={"fastmath": _FASTMATH})
+def _sa_step_impl(v0, u0, i_in, kc):  # pragma: no cover - compiled by numba
+    """float64: the paper's expressions as written (the reference: the per-sample loop's operations, bit for bit).
+    float32: the same model, rearranged with the half-step constants folded (kc[4:9] = h q, 1 + h f, h e, 1 - a, a b)
+    and the input term shared by both half-steps: 11 operations instead of 21. The rearrangement only moves float32
+    rounding, which stays inside the model's own sensitivity band (module docstring)."""
+    if v0 == types.float32:
+        def fast(v0, u0, i_in, kc):
+            w = kc[6] + kc[0] * (i_in - u0)  # h (e - u + I)
+            v1 = v0 * (kc[4] * v0 + kc[5]) + w
+            v2 = v1 * (kc[4] * v1 + kc[5]) + w
+            return v2, kc[7] * u0 + kc[8] * v2
+        return fast
+
+    def exact(v0, u0, i_in, kc):
+        h, q, f, e, a, b = kc[0], kc[1], kc[2], kc[3], kc[9], kc[10]
+        v1 = v0 + h * (q * v0 * v0 + f * v0 + e - u0 + i_in)
+        v2 = v1 + h * (q * v1 * v1 + f * v1 + e - u0 + i_in)
+        return v2, u0 + a * (b * v2 - u0)
+    return exact
+
+
+@numba.njit(inline="always", cache=True)
+def _popcount(m):  # pragma: no cover - compiled by numba
+    """Set bits of a uint32 (SWAR)."""
+    m = m - ((m >> np.uint32(1)) & np.uint32(0x55555555))
+    m = (m & np.uint32(0x33333333)) + ((m >> np.uint32(2)) & np.uint32(0x33333333))
+    m = (m + (m >> np.uint32(4))) & np.uint32(0x0F0F0F0F)
+    return np.int32(((m * np.uint32(0x01010101)) >> np.uint32(24)) & np.uint32(0xFF))  # (numba widens the product)
+
+
+def _constants_py(dtype_of, a, b):  # pragma: no cover - compiled by numba
+    """kc (11,) in the dtype of ``dtype_of``: h, q, f, e, h q, 1 + h f, h e, 1 - a, a b, a, b (see _sa_step)."""
+    kc = np.empty(11, dtype=dtype_of.dtype)
+    h, q, f, e = 0.5, 0.04, 5.0, 140.0
+    kc[0], kc[1], kc[2], kc[3] = h, q, f, e
+    kc[4], kc[5], kc[6], kc[7], kc[8] = h * q, 1.0 + h * f, h * e, 1.0 - a, a * b
+    kc[9], kc[10] = a, b
+    return kc
+
+
+_constants = numba.njit(inline="always", cache=True)(_constants_py)
+
+#: steps per chunk: one bit each in a lane's uint32 spike mask
+_WORD = 32
 
 
 def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_ra, rectify, izr, v, u, filt, fresh,
-              counts, spk, block, a, b, c, d, v_peak):  # pragma: no cover - compiled by numba
+              counts, bits, block, a, b, c, d, v_peak):  # pragma: no cover - compiled by numba
     """Run the fused encoder over the trials ``order`` (see the module docstring).
 
-    x (N, C) raw input rows (uint16 counts or float); starts (T+1,) int64 row starts; order (M,) trials to run;
-    off, scl (C,) normalisation; gains (P_sa, T, C) SA input scale (k_SA * C); ra: run the RA population (index
-    P_sa of counts and spk); off_r, scl_r (C,) the normalisation, k_ra, bq (7,) b0, b1, b2, a1, a2, zi0, zi1 of the
-    low-pass, fs_ra (Hz) derivative scale and izr (5,) a, b, c, d, v_peak in the RA path's dtype; rectify;
-    v, u (P_sa, T, C) SA neuron state (in/out); filt (5, T, C) the RA path's z1, z2, last filtered value, v, u
-    (in/out); fresh (T,) uint8: start the filter at this trial's first sample (cleared); counts (P, T, C) int64
-    (added to); spk (P, T * C, cap) int32 slots for the sample numbers of each train's spikes (row t * C + ch, from 0
-    in this call), or (P, 0, 1) for counts only; block trials per SIMD block. The SA arrays share the SA dtype
-    (``off``'s), the RA ones the RA dtype (``filt``'s)."""
+    x (N, C) raw input rows (uint16 counts or float); starts (T+1,) int64 row starts; order (M,) trials to run,
+    sorted by length; off, scl (C,) normalisation; gains (P_sa, T, C) SA input scale (k_SA * C); ra: run the RA
+    population (index P_sa of counts and bits); off_r, scl_r (C,) the normalisation, k_ra, bq (7,) b0, b1, b2, a1,
+    a2, zi0, zi1 of the low-pass, fs_ra (Hz) derivative scale and izr (5,) a, b, c, d, v_peak in the RA path's dtype;
+    rectify; v, u (P_sa, T, C) SA neuron state (in/out); filt (5, T, C) the RA path's z1, z2, last filtered value, v,
+    u (in/out); fresh (T,) uint8: start the filter at this trial's first sample (cleared); counts (P, T, C) int64
+    (added to); bits (P, T * C, W) uint32 spike bitmaps (row t * C + ch; bit i of word w = a spike at sample
+    32 w + i of this call; words past a trial's end are not written), or (P, 0, 1) for counts only; block trials
+    per SIMD block. The SA arrays share the SA dtype (``off``'s), the RA ones the RA dtype (``filt``'s).
+
+    Per block, time runs in chunks of at most 32 steps that never cross a 32-step word or a trial's end: a pre-pass
+    normalises the chunk's readings into (32, lanes) buffers, then each population steps all lanes for the chunk
+    (contiguous SIMD loops, spikes as mask bits); at a word's end the masks give the counts (popcount) and the
+    bitmap words; at a trial's end its state is saved."""
     n_ch = x.shape[1]
     n_sa = gains.shape[0]
     n_pop = n_sa + (1 if ra else 0)
     n_run = order.shape[0]
     n_blocks = (n_run + block - 1) // block
-    want_spk = spk.shape[1] > 0
-    cap = spk.shape[2]
-    kc = np.empty(5, dtype=off.dtype)
-    kc[0], kc[1], kc[2], kc[3], kc[4] = 0.5, 0.04, 5.0, 140.0, 0.0
-    kr = np.empty(5, dtype=filt.dtype)
-    kr[0], kr[1], kr[2], kr[3], kr[4] = 0.5, 0.04, 5.0, 140.0, 0.0
-    zero = kr[4]
-    ar, br, cr, dr, vpr = izr[0], izr[1], izr[2], izr[3], izr[4]
+    want_bits = bits.shape[1] > 0
+    kc = _constants(off, a, b)
+    kr = _constants(filt, izr[0], izr[1])
+    zero = kr[0] - kr[0]
+    cr, dr, vpr = izr[2], izr[3], izr[4]
     b0, b1, b2, a1, a2, zi0, zi1 = bq[0], bq[1], bq[2], bq[3], bq[4], bq[5], bq[6]
     for bi in numba.prange(n_blocks):
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
         n_l = m * n_ch
-        xb = np.empty(n_l, dtype=off.dtype)
-        act = np.zeros(n_l, dtype=np.uint8)
+        xb = np.empty(_WORD * n_l, dtype=off.dtype)
+        xr = np.empty(_WORD * n_l if ra else 1, dtype=filt.dtype)
         vv = np.empty((n_sa, n_l), dtype=off.dtype)
         uu = np.empty((n_sa, n_l), dtype=off.dtype)
         gg = np.empty((n_sa, n_l), dtype=off.dtype)
-        xr = np.empty(n_l, dtype=filt.dtype)
-        vr = np.empty((1, n_l), dtype=filt.dtype)
-        ur = np.empty((1, n_l), dtype=filt.dtype)
+        vr = np.empty(n_l, dtype=filt.dtype)
+        ur = np.empty(n_l, dtype=filt.dtype)
         z1 = np.empty(n_l, dtype=filt.dtype)
         z2 = np.empty(n_l, dtype=filt.dtype)
         yl = np.empty(n_l, dtype=filt.dtype)
-        cnt = np.zeros((n_pop, n_l), dtype=np.int32)  # the lane width of float32: keeps the step one SIMD loop
-        wp = np.zeros((n_pop, n_l), dtype=np.int64)
+        cnt = np.zeros((n_pop, n_l), dtype=np.int32)
         msk = np.zeros((n_pop, n_l), dtype=np.uint32)
-        n_max = 0
+        lens = np.empty(m, dtype=np.int64)
         for k in range(m):
             t = order[i0 + k]
-            n_max = max(n_max, starts[t + 1] - starts[t])
+            lens[k] = starts[t + 1] - starts[t]
             for ch in range(n_ch):
                 j = k * n_ch + ch
                 for p in range(n_sa):
                     vv[p, j] = v[p, t, ch]
                     uu[p, j] = u[p, t, ch]
                     gg[p, j] = gains[p, t, ch]
-                vr[0, j] = filt[3, t, ch]
-                ur[0, j] = filt[4, t, ch]
+                vr[j] = filt[3, t, ch]
+                ur[j] = filt[4, t, ch]
                 if fresh[t]:  # the filter's steady state for the first sample (scipy's lfilter_zi * x[0])
-                    xr[j] = x[starts[t], ch]
-                    x0 = (xr[j] - off_r[ch]) * scl_r[ch]
+                    yl[j] = x[starts[t], ch]  # (converted to the RA dtype)
+                    x0 = (yl[j] - off_r[ch]) * scl_r[ch]
                     z1[j] = zi0 * x0
                     z2[j] = zi1 * x0
                     yl[j] = b0 * x0 + z1[j]  # what the first step computes: its derivative is exactly 0
@@ -138,56 +179,56 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                     z2[j] = filt[1, t, ch]
                     yl[j] = filt[2, t, ch]
             fresh[t] = 0
-        for n in range(n_max):
-            for k in range(m):
+        n_max = lens[m - 1]
+        kk = 0  # the shortest trial still running
+        n = 0
+        while n < n_max:
+            while lens[kk] <= n:
+                kk += 1
+            sh0 = n & (_WORD - 1)
+            mc = min(_WORD - sh0, lens[kk] - n)
+            for k in range(m):  # pre-pass: the chunk's normalised readings (an ended trial's lanes: its first row)
                 t = order[i0 + k]
-                row = starts[t] + n
-                live = row < starts[t + 1]
-                if not live:  # trial over: its lanes run on its first row; nothing of them is recorded
-                    row = starts[t]
-                for ch in range(n_ch):
-                    j = k * n_ch + ch
-                    xb[j] = x[row, ch]
-                    xb[j] = (xb[j] - off[ch]) * scl[ch]
-                    act[j] = live
-                if ra:
+                for i in range(mc):
+                    row = starts[t] + n + i if n + i < lens[k] else starts[t]
+                    q = i * n_l + k * n_ch  # xb, xr: (chunk step, lane) flat
                     for ch in range(n_ch):
-                        j = k * n_ch + ch
-                        xr[j] = x[row, ch]
-                        xr[j] = (xr[j] - off_r[ch]) * scl_r[ch]
-            sh = np.uint32(n & 31)
-            for p in range(n_sa):
-                for j in range(n_l):
-                    _step(vv, uu, p, cnt, msk, act, p, j, xb[j] * gg[p, j], sh, a, b, c, d, v_peak, kc)
-            if ra:
-                for j in range(n_l):
-                    xn = xr[j]
-                    y = b0 * xn + z1[j]
-                    z1[j] = b1 * xn - a1 * y + z2[j]
-                    z2[j] = b2 * xn - a2 * y
-                    dd = (y - yl[j]) * fs_ra
-                    yl[j] = y
-                    if rectify:
-                        dd = max(dd, zero)
-                    _step(vr, ur, 0, cnt, msk, act, n_sa, j, k_ra * dd, sh, ar, br, cr, dr, vpr, kr)
-            if want_spk and (sh == 31 or n == n_max - 1):  # turn the mask bits into sample numbers
-                base = n - (n & 31)
-                for p in range(n_pop):
-                    for k in range(m):
-                        t = order[i0 + k]
+                        xb[q + ch] = x[row, ch]  # (converted to the SA dtype)
+                        xb[q + ch] = (xb[q + ch] - off[ch]) * scl[ch]
+                    if ra:
                         for ch in range(n_ch):
-                            j = k * n_ch + ch
-                            mm = msk[p, j]
-                            w = wp[p, j]
-                            while mm:
-                                spk[p, t * n_ch + ch, min(w, cap - 1)] = base + trailing_zeros(mm)  # type: ignore[call-arg]
-                                w += 1
-                                mm = mm & (mm - np.uint32(1))
-                            wp[p, j] = w
-                            msk[p, j] = 0
-            for k in range(m):
-                t = order[i0 + k]
-                if starts[t] + n == starts[t + 1] - 1:  # last sample: this is the trial's final state
+                            xr[q + ch] = x[row, ch]
+                            xr[q + ch] = (xr[q + ch] - off_r[ch]) * scl_r[ch]
+            for p in range(n_sa):
+                for i in range(mc):
+                    sh = np.uint32(sh0 + i)
+                    for j in range(n_l):
+                        v2, u1 = _sa_step(vv[p, j], uu[p, j], xb[i * n_l + j] * gg[p, j], kc)
+                        s = v2 >= v_peak
+                        vv[p, j] = c if s else v2
+                        uu[p, j] = u1 + d if s else u1
+                        msk[p, j] = msk[p, j] | (np.uint32(s) << sh)
+            if ra:
+                for i in range(mc):
+                    sh = np.uint32(sh0 + i)
+                    for j in range(n_l):
+                        xn = xr[i * n_l + j]
+                        y = b0 * xn + z1[j]
+                        z1[j] = b1 * xn - a1 * y + z2[j]
+                        z2[j] = b2 * xn - a2 * y
+                        dd = (y - yl[j]) * fs_ra
+                        yl[j] = y
+                        if rectify:
+                            dd = max(dd, zero)
+                        v2, u1 = _sa_step(vr[j], ur[j], k_ra * dd, kr)
+                        s = v2 >= vpr
+                        vr[j] = cr if s else v2
+                        ur[j] = u1 + dr if s else u1
+                        msk[n_sa, j] = msk[n_sa, j] | (np.uint32(s) << sh)
+            n += mc
+            for k in range(kk, m):  # trials ending here: their final state
+                if lens[k] == n:
+                    t = order[i0 + k]
                     for ch in range(n_ch):
                         j = k * n_ch + ch
                         for p in range(n_sa):
@@ -196,8 +237,22 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                         filt[0, t, ch] = z1[j]
                         filt[1, t, ch] = z2[j]
                         filt[2, t, ch] = yl[j]
-                        filt[3, t, ch] = vr[0, j]
-                        filt[4, t, ch] = ur[0, j]
+                        filt[3, t, ch] = vr[j]
+                        filt[4, t, ch] = ur[j]
+            if (n & (_WORD - 1)) == 0 or n == n_max:  # a word is complete: counts and bitmap words
+                w = (n - 1) // _WORD
+                for k in range(m):
+                    t = order[i0 + k]
+                    left = lens[k] - w * _WORD  # this trial's samples in the word (<= 0: ended before it)
+                    valid = np.uint32(0) if left <= 0 else np.uint32(0xFFFFFFFF) >> np.uint32(_WORD - min(left, _WORD))
+                    for p in range(n_pop):
+                        for ch in range(n_ch):
+                            j = k * n_ch + ch
+                            mm = msk[p, j] & valid
+                            cnt[p, j] += _popcount(mm)
+                            if want_bits and left > 0:
+                                bits[p, t * n_ch + ch, w] = mm
+                            msk[p, j] = 0
         for k in range(m):
             t = order[i0 + k]
             for ch in range(n_ch):
@@ -221,9 +276,9 @@ _fused_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=True, nogil
     _renamed(_fused_py, "_fused_serial_py"))
 
 
-def _times_py(spk, counts, n0, dt, out):  # pragma: no cover - compiled by numba
-    """Flat spike times, trial-major then train: row r = t * C + ch of ``spk`` holds ``counts[t, ch]`` sample
-    numbers; time = (sample + n0[t]) * dt."""
+def _times_py(bits, counts, lens, n0, dt, out):  # pragma: no cover - compiled by numba
+    """Flat spike times, trial-major then train, from the spike bitmaps: row r = t * C + ch of ``bits`` holds the
+    words of a trial of ``lens[t]`` samples; time = (sample + n0[t]) * dt."""
     n_trials, n_ch = counts.shape
     starts = np.empty(n_trials + 1, dtype=np.int64)
     starts[0] = 0
@@ -234,11 +289,18 @@ def _times_py(spk, counts, n0, dt, out):  # pragma: no cover - compiled by numba
         starts[t + 1] = starts[t] + s
     for t in numba.prange(n_trials):
         pos = starts[t]
+        n_words = (lens[t] + _WORD - 1) // _WORD
         for ch in range(n_ch):
+            if counts[t, ch] == 0:
+                continue
             r = t * n_ch + ch
-            for i in range(counts[t, ch]):
-                out[pos] = (np.int64(spk[r, i]) + n0[t]) * dt
-                pos += 1
+            for w in range(n_words):
+                mm = bits[r, w]
+                base = np.int64(w * _WORD) + n0[t]
+                while mm:
+                    out[pos] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
+                    pos += 1
+                    mm = mm & (mm - np.uint32(1))
 
 
 _times = numba.njit(parallel=True, cache=True, nogil=True)(_times_py)
@@ -366,18 +428,17 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
     if ra:
         bb, aa, zi = lowpass_coefficients(float(cutoff_hz), float(fs))
         bq[:] = [bb[0], bb[1], bb[2], aa[1], aa[2], zi[0], zi[1]]
-    lengths = np.diff(starts)
+    lengths = np.ascontiguousarray(np.diff(starts))
     act = np.ones(n_trials, dtype=bool) if active is None else np.asarray(active, dtype=bool)
     order = np.flatnonzero(act & (lengths > 0))
     order = order[np.argsort(lengths[order], kind="stable")]
     counts = np.zeros((n_pop, n_trials, n_ch), dtype=np.int64)
-    n_max = int(lengths.max(initial=0))
-    # one slot per sample at most: never overflows; np.empty leaves the untouched pages unallocated
-    spk = np.empty((n_pop, n_trials * n_ch if want_times else 0, n_max + 1 if want_times else 1), dtype=np.int32)
+    n_words = (int(lengths.max(initial=0)) + _WORD - 1) // _WORD
+    bits = np.empty((n_pop, n_trials * n_ch if want_times else 0, max(n_words, 1)), dtype=np.uint32)
     kernel = _fused if order.size > block else _fused_serial
     kernel(x, starts, order, off, scl, gains, bool(ra), off64.astype(rdt), scl64.astype(rdt), rdt.type(k_ra), bq,
            rdt.type(fs), bool(rectify), np.array([a, b, c, d, v_peak], dtype=rdt), state.v, state.u, state.filt,
-           state.fresh, counts, spk, int(block), dt.type(a), dt.type(b), dt.type(c), dt.type(d), dt.type(v_peak))
+           state.fresh, counts, bits, int(block), dt.type(a), dt.type(b), dt.type(c), dt.type(d), dt.type(v_peak))
     if not want_times:
         return FusedResult((), None, counts)
     n0a = np.ascontiguousarray(np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)))
@@ -386,6 +447,6 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
     for p in range(n_pop):
         cp = np.ascontiguousarray(counts[p])
         out = np.empty(int(cp.sum()), dtype=np.float64)
-        fill(spk[p], cp, n0a, 1.0 / float(fs), out)
+        fill(bits[p], cp, lengths, n0a, 1.0 / float(fs), out)
         trains.append(SpikeTrains.from_counts(out, cp))
     return FusedResult(tuple(trains[:n_sa]), trains[n_sa] if ra else None, counts)

@@ -105,9 +105,14 @@ def test_raw_counts_with_normalisation_equal_normalised_floats():
     rng = np.random.default_rng(4)
     raw = rng.integers(100, 900, size=(3, 800, 18)).astype(np.uint16)
     rng_ = TaxelRange().update(raw)
-    a = encode_trials(raw, normalise=rng_)
-    b = encode_trials(rng_.normalise(raw, dtype=np.float64))
-    assert np.array_equal(a.counts(), b.counts())
+    # float64: the kernel's normalisation does numpy's operations, so the spikes are the same bit for bit
+    a = encode_trials(raw, normalise=rng_, dtype=np.float64)
+    b = encode_trials(rng_.normalise(raw, dtype=np.float64), dtype=np.float64)
+    assert a == b and a.counts().sum() > 1000
+    # float32 (the default): the normalised reading is rounded once in the kernel, once before; that moves counts
+    # only within the model's own rounding sensitivity (issue 12's band, max 6.6 %; tests/encoding/test_enc_fused.py)
+    a, b = encode_trials(raw, normalise=rng_).counts(), encode_trials(rng_.normalise(raw, dtype=np.float64)).counts()
+    assert np.all(np.abs(a - b) <= np.maximum(0.066 * b, 1))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
