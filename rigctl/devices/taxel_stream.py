@@ -490,7 +490,12 @@ class TaxelStream:
             if self._await_start and self._streaming and \
                     time.monotonic() - self._t_start_sent > self.start_timeout_s:
                 self._retry_start()
-            if data:
+            # a chunk of more than two read periods of frames: the reader is behind (a stall on a loaded host);
+            # read on at once, or the backlog drains at one tty buffer (4 KiB) per period, barely faster than the
+            # stream, and delays every frame for seconds
+            behind = len(data) > 2 * self.read_timeout_s * self._layout.sample_rate_hz * \
+                wire.frame_size(self._layout.n_channels)
+            if data and not behind:
                 self._stop.wait(self.read_timeout_s)
 
     def _handle(self, data: bytes, t_rx: float) -> None:
