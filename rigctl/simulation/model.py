@@ -294,27 +294,32 @@ class RigConfig:
 # ----------------------------------------------------------------------------------------------------------------
 # sensor
 # ----------------------------------------------------------------------------------------------------------------
+@numba.njit(cache=True, nogil=True, inline="always")
+def _irwin_hall(state):  # pragma: no cover - compiled
+    """One sample noise draw: advance the xorshift64 ``state`` (uint64), split it into four 16-bit uniforms and sum
+    them (Irwin-Hall(4), centred and scaled to unit variance): (new state, draw)."""
+    state ^= state << np.uint64(13)
+    state ^= state >> np.uint64(7)
+    state ^= state << np.uint64(17)
+    s = state
+    acc = 0.0
+    for _ in range(4):
+        acc += float(s & np.uint64(0xFFFF))
+        s >>= np.uint64(16)
+    return state, (acc * (1.0 / 65536.0) - 2.0) * math.sqrt(3.0)
+
+
 @numba.njit(cache=True, nogil=True)
 def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half, layer_gain, full_scale, gain,
                    offset, noise_sd, noise_a, seed, wrap, out):  # pragma: no cover - compiled
     n_table = tables.shape[1]
     inv = n_table / period
     state = np.uint64(seed) | np.uint64(1)
-    sqrt3 = math.sqrt(3.0)
-    inv16 = 1.0 / 65536.0
     noise = np.zeros(out.shape[1])
     drive = math.sqrt(max(0.0, 1.0 - noise_a * noise_a))
     # start the low-pass noise in its stationary state
     for ch in range(out.shape[1]):
-        state ^= state << np.uint64(13)
-        state ^= state >> np.uint64(7)
-        state ^= state << np.uint64(17)
-        s = state
-        acc = 0.0
-        for _ in range(4):
-            acc += float(s & np.uint64(0xFFFF))
-            s >>= np.uint64(16)
-        noise[ch] = (acc * inv16 - 2.0) * sqrt3
+        state, noise[ch] = _irwin_hall(state)
     for i in range(pos.shape[0]):
         f9 = force[i] / 9.0
         for layer in range(2):
@@ -341,16 +346,7 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
                 base = full_scale * layer_gain[layer] * eff[layer, r] * p / (p + p_half[layer]) * rel
                 for c in range(3):
                     ch = layer * 9 + r * 3 + c
-                    # xorshift64 -> four 16-bit uniforms -> Irwin-Hall(4), unit variance; AR(1) low-pass
-                    state ^= state << np.uint64(13)
-                    state ^= state >> np.uint64(7)
-                    state ^= state << np.uint64(17)
-                    s = state
-                    acc = 0.0
-                    for _ in range(4):
-                        acc += float(s & np.uint64(0xFFFF))
-                        s >>= np.uint64(16)
-                    z = (acc * inv16 - 2.0) * sqrt3
+                    state, z = _irwin_hall(state)  # AR(1) low-pass of unit-variance draws
                     noise[ch] = noise_a * noise[ch] + drive * z
                     v = offset[ch] + gain[ch] * base + noise_sd * noise[ch]
                     v = math.floor(v + 0.5)
