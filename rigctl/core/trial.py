@@ -180,13 +180,6 @@ class TrialData:
 def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: float) -> float:
     """A device's frame rate measured on the host clock, frames/s.
 
-    Parameters
-    ----------
-    seq : (n,) uint16, the device's frame sequence numbers (gaps = dropped frames; wrap at 65536)
-    host_time_s : (n,) float64, host receive times, s (any origin)
-    rate_hz : float, the nominal frame rate, Hz (the lag of each frame is taken against it; any value near the
-        true rate gives the same result)
-
     A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
     scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
     the last third, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames (from ``seq``).
@@ -194,7 +187,19 @@ def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: fl
     delay: the taxel reader stamps a chunk as a fresh burst arrives (``rigctl.devices.taxel_stream``), and the
     runner measures over the stream's history up to a trial's end, not the trial alone, so a stretch of a loaded
     host's late deliveries (seen: 0.2-0.3 s reader stalls over most of a 2 s trial) is a small part of either
-    third. NaN with fewer than 6 frames.
+    third.
+
+    Parameters
+    ----------
+    seq : (n,) uint16, the device's frame sequence numbers (gaps = dropped frames; wrap at 65536)
+    host_time_s : (n,) float64, host receive times, s (any origin)
+    rate_hz : float, the nominal frame rate, Hz (the lag of each frame is taken against it; any value near the
+        true rate gives the same result)
+
+    Returns
+    -------
+    float
+        frames/s; NaN with fewer than 6 frames.
     """
     n = len(seq)
     if n < 6:

@@ -53,7 +53,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, replace
@@ -62,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.core.cluster import dask_client
 from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
 from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.features import (
@@ -437,16 +437,6 @@ def _check_speeds(variants, explicit, labels, has_trace) -> tuple[tuple[str, ...
     return tuple(keep), skipped
 
 
-def _client(scheduler, workers):
-    from dask.distributed import Client, LocalCluster
-
-    if scheduler == "local":
-        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
-        return Client(cluster), cluster
-    return Client(scheduler), None
-
-
 def encode_session(session_path, out_path, *, variants=None, batch_trials: int = 256,
                    scheduler: str | None = None, workers: int | None = None,
                    progress: ProgressCallback | None = None,
@@ -651,7 +641,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         else:
             from dask.distributed import as_completed
 
-            client, cluster = _client(scheduler, workers)
+            client, cluster = dask_client(scheduler, workers)
             futures = [client.submit(_batch_task, *a, n_threads=1, pure=False) for a in args]
             index_of = {f.key: i for i, f in enumerate(futures)}
             done, next_i = {}, 0
