@@ -126,12 +126,15 @@ def test_faults_are_counted_and_skipped(uno):
         stream.start()
         time.sleep(0.2)
         stream.begin_capture()
+        # each fault lands between frames of the capture: frames received before it (else, on a starved host, the
+        # capture's first frame can already be past the gap) and after it (so that it has been counted)
+        assert stream.wait_capture(20, timeout_s=10)
         uno.drop_frames(5)
-        time.sleep(0.1)
+        assert stream.wait_capture(120, timeout_s=10)
         uno.corrupt_frames(3, bits=2)
-        time.sleep(0.1)
+        assert stream.wait_capture(220, timeout_s=10)
         uno.inject_garbage(b"\xa5\x5a" * 10 + bytes(range(200)))
-        time.sleep(0.2)
+        assert stream.wait_capture(420, timeout_s=10)
         cap = stream.end_capture()
     assert cap.dropped == 8  # 5 never sent + 3 rejected by their CRC
     assert cap.crc_errors >= 3 + 10
