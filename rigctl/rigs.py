@@ -33,10 +33,27 @@ from rigctl.acquisition.rig import Rig, RigError
 from rigctl.core.interfaces import RigBackend
 from rigctl.core.textures import TextureSet
 
-__all__ = ["KINDS", "open_rig", "make_backend", "replay_source"]
+__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "drum_answer_timeout_s", "open_rig", "make_backend", "replay_source"]
 
 #: the backends :func:`open_rig` knows
 KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
+
+#: how long the host's :class:`rigctl.devices.drum.DrumClient` waits for each Modbus answer, s, per backend. A real
+#: Mega answers within milliseconds: 0.5 s, well inside the controller's default 1 s watchdog, so that a lost
+#: request is retried before the watchdog trips. The simulated boards share the host's CPU: on a loaded 2-core
+#: machine the virtual Mega (a thread of this process) answers up to seconds late, and the firmware under simavr runs
+#: at 0.1-0.4 of real time (issue 10's loaded runs); their ptys lose nothing, so a longer wait costs only the time to
+#: notice a board that is gone. The in-process backend calls the controller directly (no answer to wait for).
+ANSWER_TIMEOUT_S = {"hardware": 0.5, "sim": 2.0, "replay": 2.0, "hil": 2.0}
+
+
+def drum_answer_timeout_s(kind: str) -> float:
+    """The DrumClient answer timeout for a rig of ``kind``, s (:data:`ANSWER_TIMEOUT_S`). Raises RigError for a kind
+    whose drum client does not wait for answers or an unknown kind."""
+    try:
+        return ANSWER_TIMEOUT_S[kind]
+    except KeyError:
+        raise RigError(f"no drum answer timeout for rig kind {kind!r}; one of {', '.join(ANSWER_TIMEOUT_S)}") from None
 
 
 def replay_source(source: Any) -> Any:
@@ -64,7 +81,8 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
             raise RigError("the hardware rig needs both drum_port and taxel_port (--drum-port, --taxel-port)")
         from rigctl.devices.backend import SerialBackend
 
-        return SerialBackend(drum_port, taxel_port, prompt=prompt, textures=textures)
+        return SerialBackend(drum_port, taxel_port, prompt=prompt, textures=textures,
+                             drum_timeout_s=ANSWER_TIMEOUT_S[kind])
     if drum_port or taxel_port:
         raise RigError(f"drum_port/taxel_port select the hardware rig, not {kind!r}")
     if kind in ("sim", "replay"):
@@ -81,7 +99,7 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
             if source is not None:
                 raise RigError("a replay source selects kind='replay'")
             sim = SimulatedRig(config, seed=seed, **options)
-        return PtyRigBackend(sim, mode=kind, seed=seed, textures=textures)
+        return PtyRigBackend(sim, mode=kind, seed=seed, textures=textures, drum_timeout_s=ANSWER_TIMEOUT_S[kind])
     if kind == "hil":
         try:
             from rigctl.simulation.hil import HilRig
@@ -89,7 +107,8 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
             raise RigError(f"the HIL rig needs rigctl.simulation.hil (the firmware under simavr): {exc}") from exc
         from rigctl.simulation.backend import PtyRigBackend
 
-        return PtyRigBackend(HilRig(config, seed=seed, **options), mode="hil", seed=seed, textures=textures)
+        return PtyRigBackend(HilRig(config, seed=seed, **options), mode="hil", seed=seed, textures=textures,
+                             drum_timeout_s=ANSWER_TIMEOUT_S[kind])
     if kind == "inprocess":
         from rigctl.simulation.inprocess import InProcessBackend
 

@@ -37,16 +37,19 @@ class OperatorMounter:
 class PortBackend:
     """A backend whose two boards are on serial ports: new :class:`DrumClient` / :class:`TaxelStream` clients.
 
-    Subclasses set :attr:`drum_port` / :attr:`taxel_port` (may be properties that exist once started).
+    Subclasses set :attr:`drum_port` / :attr:`taxel_port` (may be properties that exist once started) and
+    :attr:`drum_timeout_s` (the answer timeout of the drum client, s; chosen per backend by the composition root,
+    :data:`rigctl.rigs.ANSWER_TIMEOUT_S`).
     """
 
     mode = "hardware"
     drum_port: str
     taxel_port: str
+    drum_timeout_s: float = 0.5
 
     def drum(self) -> DrumClient:
-        """A new Modbus RTU client of the drum controller (not yet opened)."""
-        return DrumClient(self.drum_port, poll_s=0.02)
+        """A new Modbus RTU client of the drum controller (not yet opened), answer timeout :attr:`drum_timeout_s`."""
+        return DrumClient(self.drum_port, timeout_s=self.drum_timeout_s, poll_s=0.02)
 
     def taxels(self) -> TaxelStream:
         """A new taxel stream reader (not yet opened)."""
@@ -61,12 +64,14 @@ class SerialBackend(PortBackend):
     drum_port, taxel_port : serial device paths (``rigctl ports`` lists the candidates).
     prompt : operator prompt for plate changes (default :func:`console_prompt`).
     textures : the texture set of the lab's plates (default the paper's A-P); a protocol brings its own.
+    drum_timeout_s : the drum client's answer timeout, s (default 0.5: inside the controller's 1 s watchdog).
     """
 
     mode = "hardware"
 
     def __init__(self, drum_port: str, taxel_port: str, *, prompt: Callable[[str], Any] | None = None,
-                 textures: TextureSet | None = None) -> None:
+                 textures: TextureSet | None = None, drum_timeout_s: float = 0.5) -> None:
+        self.drum_timeout_s = drum_timeout_s
         self.drum_port = str(drum_port)
         self.taxel_port = str(taxel_port)
         self.mounter = OperatorMounter(prompt)

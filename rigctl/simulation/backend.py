@@ -36,14 +36,18 @@ class PtyRigBackend(PortBackend):
     sim : the simulated rig, not yet started (started by ``__enter__``, stopped by ``__exit__``).
     mode : "sim" | "replay" | "hil".
     seed : the seed it was built with (for the session's ``rig_config``).
+    drum_timeout_s : the drum client's answer timeout, s (:data:`rigctl.rigs.ANSWER_TIMEOUT_S`; the simulated boards
+        share the host's CPU and answer late on a loaded machine).
 
     Attributes
     ----------
     sim : the simulated rig (tests pull its cables: ``rig.backend.sim.unplug_taxel()``).
     """
 
-    def __init__(self, sim, *, mode: str = "sim", seed: int | None = None, textures: TextureSet | None = None):
+    def __init__(self, sim, *, mode: str = "sim", seed: int | None = None, textures: TextureSet | None = None,
+                 drum_timeout_s: float):
         self.sim = sim
+        self.drum_timeout_s = drum_timeout_s
         self.mode = mode
         self.seed = seed
         self.mounter = SimMounter(sim)

@@ -26,9 +26,7 @@ from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.errors import DrumError, ModbusExceptionError
 from rigctl.devices.wire import DrumState, HoldingRegister as HR
-
-#: generous per-request timeout: simavr and the virtual Mega share a loaded 2-core machine with other jobs
-TIMEOUT_S = 1.0
+from rigctl.rigs import drum_answer_timeout_s
 
 
 @dataclass
@@ -76,12 +74,15 @@ class ControllerClock:
         time.sleep(s)
 
 
-def _open_client(port: str, clock: ControllerClock | None = None) -> DrumClient:
-    return DrumClient(port, timeout_s=TIMEOUT_S, retries=2, poll_s=0.02, clock=clock).open()
+def _open_client(ctl: Controller, clock: ControllerClock | None = None) -> DrumClient:
+    """The host's DrumClient on ``ctl``, with the answer timeout ``open_rig`` gives a rig of its kind (simavr and the
+    virtual Mega share a loaded 2-core machine with other jobs)."""
+    return DrumClient(ctl.port, timeout_s=drum_answer_timeout_s(ctl.name), retries=2, poll_s=0.02,
+                      clock=clock).open()
 
 
 def _read_power_up(ctl: Controller) -> None:
-    drum = _open_client(ctl.port)
+    drum = _open_client(ctl)
     try:
         deadline = ctl.clock_s() + 10.0
         while True:  # the firmware boots and tares its load cell on the first HX711 reading
@@ -165,7 +166,7 @@ QUIET_WATCHDOG_MS = wire.HOLDING_RANGE[HR.WATCHDOG_MS][1]
 def drum(controller) -> DrumClient:
     """The host's DrumClient on ``controller`` (WATCHDOG_MS at :data:`QUIET_WATCHDOG_MS`), which is left IDLE with
     default registers afterwards."""
-    client = _open_client(controller.port, ControllerClock(controller.clock_s))
+    client = _open_client(controller, ControllerClock(controller.clock_s))
     try:
         client.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)
         yield client

@@ -465,9 +465,9 @@ def test_watchdog_a_polling_host_keeps_it_fed(drum, controller):
     """Every valid request addressed to the controller feeds it, reads and refused requests included: a host that
     only reads, or only sends requests refused with an exception, keeps the drum running for longer than
     WATCHDOG_MS of the controller's time."""
-    # longer than the default 1 s: on a starved host one answer can come after the client's 1 s timeout
-    # (conftest.TIMEOUT_S), and that request's retry must still land within WATCHDOG_MS of the last one it saw
-    wd_ms = 2500
+    # longer than the default 1 s: on a starved host one answer can come after the client's answer timeout, and that
+    # request's retry must still land within WATCHDOG_MS of the last request the controller saw
+    wd_ms = round(2.5 * drum.timeout_s * 1000)
     drum.write_holding(HR.WATCHDOG_MS, wd_ms)
     bring_to(drum, controller, S.RUNNING)
     hb0 = drum.read_input(IR.HEARTBEAT)

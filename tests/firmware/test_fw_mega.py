@@ -18,6 +18,7 @@ import serial
 
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
+from rigctl.rigs import drum_answer_timeout_s
 
 pytestmark = pytest.mark.hil
 
@@ -25,15 +26,10 @@ HR, IR = wire.HoldingRegister, wire.InputRegister
 State, Fault = wire.DrumState, wire.Fault
 
 
-#: the answer timeout for the firmware under simavr: on a starved host the simulated boards run at 0.1-0.4 of real
-#: time (and in lock step with each other), so an answer takes several times longer in host time than the 0.5 s
-#: meant for a real board
-HIL_TIMEOUT_S = 2.0
-
-
 def hil_drum(rig) -> DrumClient:
-    """A DrumClient for the Mega under simavr (answer timeout :data:`HIL_TIMEOUT_S`)."""
-    return DrumClient(rig.drum_port, timeout_s=HIL_TIMEOUT_S)
+    """A DrumClient for the Mega under simavr, with the answer timeout ``open_rig("hil")`` gives it (on a starved
+    host the firmware runs at 0.1-0.4 of real time)."""
+    return DrumClient(rig.drum_port, timeout_s=drum_answer_timeout_s("hil"))
 
 
 def expected_step_rate(v_mm_s: float) -> float:
