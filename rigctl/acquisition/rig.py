@@ -633,7 +633,7 @@ class Rig:
         ring = getattr(self.stream, "ring", None)  # a live stream's recent frames (the in-process one has none)
         host_rate = math.nan
         if ring is not None and len(cap) >= n:
-            _, _, ring_seq, ring_t = ring.read_since(0)
+            _, ring_seq, ring_t = ring.timing_since(0)
             upto = ring_t <= cap.host_time_s[n - 1]
             host_rate = history_rate_hz(ring_seq[upto], ring_t[upto], rate, min_frames=n)
         data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,

@@ -65,6 +65,14 @@ class RingBuffer:
             self._time[idx] = host_time_s
             self._total += skipped + n
 
+    def _window(self, cursor: int, max_frames: int | None) -> tuple[int, np.ndarray]:
+        """(total, ring indices of the frames after ``cursor``, oldest first); call with the lock held."""
+        total = self._total
+        start = max(int(cursor), total - self.capacity, 0)
+        if max_frames is not None:
+            start = max(start, total - int(max_frames))
+        return total, (start + np.arange(total - start)) % self.capacity
+
     def read_since(self, cursor: int, max_frames: int | None = None) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """Frames written after ``cursor`` (a value returned by an earlier call, or 0).
 
@@ -77,13 +85,15 @@ class RingBuffer:
             ``max_frames`` limits n to the newest ``max_frames`` frames.
         """
         with self._lock:
-            total = self._total
-            start = max(int(cursor), total - self.capacity, 0)
-            if max_frames is not None:
-                start = max(start, total - int(max_frames))
-            n = total - start
-            idx = (start + np.arange(n)) % self.capacity
+            total, idx = self._window(cursor, max_frames)
             return total, self._samples[idx].copy(), self._seq[idx].copy(), self._time[idx].copy()
+
+    def timing_since(self, cursor: int, max_frames: int | None = None) -> tuple[int, np.ndarray, np.ndarray]:
+        """:meth:`read_since` without the samples: ``(cursor, seq (n,) uint16, host_time_s (n,) float64)`` (a rate
+        estimate over the ring's history needs no ADC counts)."""
+        with self._lock:
+            total, idx = self._window(cursor, max_frames)
+            return total, self._seq[idx].copy(), self._time[idx].copy()
 
     def latest(self, n: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
         """The newest ``n`` frames (or fewer): same tuple as :meth:`read_since`."""
