@@ -85,7 +85,7 @@ from rigctl.encoding.speed import (
     window_speeds,
 )
 from rigctl.encoding.spikes import SpikeTrains
-from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, REALTIME_VARIANTS, VARIANTS, EncodedWriter
+from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS, EncodedWriter
 
 __all__ = ["EncodeParams", "encode_session", "encode_batch", "trains_to_features", "SpeedMissingError", "windows_for"]
 
@@ -378,6 +378,35 @@ def _labels(session, ids):
     }
 
 
+def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> dict[str, Any]:
+    """Make the ``/spikes`` tables of ``store_spikes`` (bases before their speed-scaled twins) in the encoded file
+    and return, per variant, ``speeds (n,) mm/s -> time_scale`` for :meth:`EncodedWriter.append_spikes`.
+
+    Spike times are stored as ticks of the model step (``1 / fs``) times a per-trial scale: 1, or eq. 2's speed /
+    reference for the speed-scaled variants, which share their unscaled base's ticks when it is stored too. The
+    real-time speed-scaled variant (100 ms batches of their own scale) keeps float64 times."""
+    tick_s = 1.0 / float(p.fs_hz)  # the fused kernel's time step (run_fused: time = sample * (1 / fs))
+    scale: dict[str, Any] = {}
+    stored = set(store_spikes)
+    for v in store_spikes:
+        info = VARIANTS[v]
+        if info.realtime:
+            n_trains, trains = len(p.realtime_taxels), f"SA, real-time taxels {p.realtime_taxels}"
+        else:
+            n_trains, trains = 2 * n_ch, "SA taxels 0..n-1 then RA taxels 0..n-1"
+        if info.realtime and info.speed_scaled:
+            writer.add_spikes(v, n_trains, trains)
+            scale[v] = lambda speed: None
+            continue
+        base = next((b for b, i in VARIANTS.items() if not i.speed_scaled and (i.force_scaled, i.label_free,
+                     i.realtime) == (info.force_scaled, info.label_free, info.realtime)), None)
+        writer.add_spikes(v, n_trains, trains, tick_s=tick_s,
+                          ticks_from=base if info.speed_scaled and base in stored else None)
+        scale[v] = ((lambda speed: speed_coefficient(speed, p.reference_speed_mm_s)) if info.speed_scaled
+                    else (lambda speed: None))
+    return scale
+
+
 def _fit_subsample(keys, nbytes, budget):
     """Indices of trials kept for the force fit: all if they fit ``budget`` bytes, else an even subsample per
     condition."""
@@ -553,7 +582,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     variants, skipped = _check_speeds(variants, explicit, labels, has_trace)
     if not variants:
         raise SpeedMissingError("nothing to encode: " + "; ".join(skipped.values()))
-    store_spikes = tuple(v for v in store_spikes if v in variants)
+    # bases before their speed-scaled twins (which may share their ticks: _add_spike_tables)
+    store_spikes = tuple(sorted((v for v in store_spikes if v in variants), key=lambda v: VARIANTS[v].speed_scaled))
     offset, scale = rng_.offset_scale()
     duration_s = n_samples / conv.input_rate_hz
     longest_s = float(duration_s.max())
@@ -612,18 +642,14 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                                 n_fit_trials=int(fit_idx.size))
             else:
                 writer.note_force_coefficients(note, label_free=lf)
-        for v in store_spikes:
-            if v in REALTIME_VARIANTS:
-                writer.add_spikes(v, len(p.realtime_taxels), f"SA, real-time taxels {p.realtime_taxels}")
-            else:
-                writer.add_spikes(v, 2 * n_ch, "SA taxels 0..n-1 then RA taxels 0..n-1")
+        spike_scale = _add_spike_tables(writer, store_spikes, n_ch, p)
 
         def write(batch, result):
             feats, spikes = result
             for v, f in feats.items():
                 writer.write_features(v, int(batch[0]), f)
-            for v, st in spikes.items():
-                writer.append_spikes(v, st)
+            for v in store_spikes:  # bases before their speed-scaled twins
+                writer.append_spikes(v, spikes[v], spike_scale[v](labels["speed_mm_s"][batch]))
 
         args = [(str(session_path), [ids[i] for i in b], labels["speed_mm_s"][b],
                  None if coeffs is None else coeffs[b], None if coeffs_lf is None else coeffs_lf[b],

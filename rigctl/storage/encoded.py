@@ -5,23 +5,32 @@ SA/RA spike trains, the per-taxel normalisation and the force coefficients (pape
 by :func:`rigctl.encoding.pipeline.encode_session` through :class:`EncodedWriter` and read by the analyses, the
 GUI and ``rigctl`` commands through :func:`open_encoded` (nobody else opens it with h5py).
 
-Layout (schema :data:`ENCODED_SCHEMA_VERSION` = 2)::
+Layout (schema :data:`ENCODED_SCHEMA_VERSION` = 3)::
 
     /trials                  compound table, one row per trial: trial_id u4, texture (variable-length UTF-8),
                              group (variable-length UTF-8, "" when the texture set has none), speed_mm_s f4 (NaN
                              when unknown), force_g f4 (NaN when unknown), profile (VL UTF-8), duration_s f4,
                              n_samples u4 (samples at the session's own rate)
     /features/<variant>      (n_trials, n_features) float32 (feature layout: rigctl.encoding.features)
-    /spikes/<variant>/       spike_times (s, float64) + spike_times_index (int64 row ends), NWB-style ragged;
-                             row = trial * n_trains + train; attrs n_trains, unit, trains
+    /spikes/<variant>/       NWB-style ragged trains, row = trial * n_trains + train; attrs n_trains, unit, trains;
+                             either ticks: spike_ticks (uint32 model steps) + spike_times_index (int64 row ends) +
+                             time_scale ((n_trials,) float64), attr tick_s (s, 1 / model rate): time (s) =
+                             ticks * tick_s * time_scale[trial] (1, or eq. 2's speed / reference); a speed-scaled
+                             variant whose unscaled base is stored keeps only its time_scale and names the base in
+                             attr ticks_from; or float64 times: spike_times (s) + spike_times_index (times off a tick
+                             grid: the real-time variant's piecewise scaling)
     /force_coefficients      table (texture, speed_mm_s, force_g, taxel, coeff, converged, target_rate, rate)
     /force_coefficients_label_free
     /normalisation/          taxel_min, taxel_max (ADC counts of the model input: after resampling, if any)
-    attrs: schema_version (2), kind ("rigctl encoded"), sensor_layout (JSON, rigctl.core.sensor.SensorLayout),
+    attrs: schema_version (3), kind ("rigctl encoded"), sensor_layout (JSON, rigctl.core.sensor.SensorLayout),
            texture_set (JSON, rigctl.core.textures.TextureSet), parameters (JSON, EncodeParams), variants (JSON
            list), n_trials, n_taxels, input_rate_hz, model_rate_hz, resampled (bool), resampling (text),
            windows_note (text), skipped_variants (JSON {variant: reason}), feature_layout (text),
            source_session, encode_seconds, force_coefficients*_note / _n_not_converged / _n_coefficients
+
+Schema 2 stored every variant's spike trains as gzip-compressed float64 ``spike_times`` (4 x 8 bytes a spike for
+the paper's variants, written at ~80 MB per CPU-second); it still opens, as the same :class:`SpikeArrays`. Schema 3
+stores 4 bytes a spike, once for a variant and its speed-scaled twin, uncompressed.
 
 Schema 1 (files written before the schema was versioned, no ``schema_version`` attribute) still opens: the layout
 is inferred from the taxel count (the paper's 3x3x2 for 18 channels) at the rate in ``parameters`` (1 kHz), the
@@ -55,7 +64,7 @@ __all__ = [
 ]
 
 #: schema of the files :class:`EncodedWriter` writes; files without the attribute are schema 1
-ENCODED_SCHEMA_VERSION = 2
+ENCODED_SCHEMA_VERSION = 3
 #: the ``kind`` attribute of an encoded file
 ENCODED_KIND = "rigctl encoded"
 
@@ -281,6 +290,7 @@ class EncodedWriter:
         self._f = h5py.File(self.part, "w")
         self._features: dict[str, h5py.Dataset] = {}
         self._spikes: dict[str, h5py.Group] = {}
+        self._batch_spikes: dict[str, int] = {}  # spikes of the last appended batch, per variant with ticks
         try:
             self._f.create_dataset("trials", data=table)
             a = self._f.attrs
@@ -365,38 +375,102 @@ class EncodedWriter:
             raise ValueError(f"{variant}: {rows.shape[1]} features, earlier rows had {ds.shape[1]}")
         ds[start:start + rows.shape[0]] = rows
 
-    def add_spikes(self, variant: str, n_trains: int, trains: str = "") -> None:
+    def add_spikes(self, variant: str, n_trains: int, trains: str = "", *, tick_s: float | None = None,
+                   ticks_from: str | None = None) -> None:
         """Make ``/spikes/<variant>`` (appendable) for trains of ``n_trains`` per trial; ``trains`` says what they
-        are (e.g. ``"SA taxels 0..n-1 then RA taxels 0..n-1"``)."""
+        are (e.g. ``"SA taxels 0..n-1 then RA taxels 0..n-1"``).
+
+        Parameters
+        ----------
+        tick_s : None -> spike times stored as float64 s (any times, e.g. the real-time variant's piecewise
+            scaling); a float (the model's step, ``1 / fs`` s) -> the compact tick layout: uint32 sample ticks,
+            time = ticks x ``tick_s`` x the trial's ``time_scale`` (1, or eq. 2's speed / reference), read back
+            bit-identical to the encoder's times.
+        ticks_from : a variant already added with ticks (same ``n_trains``) whose ticks and row ends this one
+            shares, storing only its per-trial ``time_scale`` (a speed-scaled variant and its unscaled base).
+
+        Raises
+        ------
+        ValueError for a ``ticks_from`` variant that is not stored with ticks or has another train count.
+        """
+        if ticks_from is not None:
+            base = self._spikes.get(ticks_from)
+            if base is None or "spike_ticks" not in base:
+                raise ValueError(f"{variant}: ticks_from={ticks_from!r} is not a variant stored with ticks")
+            if int(base.attrs["n_trains"]) != int(n_trains):
+                raise ValueError(f"{variant}: {n_trains} trains per trial, {ticks_from} has {base.attrs['n_trains']}")
+            tick_s = float(base.attrs["tick_s"])
         g = self._f["spikes"].create_group(variant)
-        g.create_dataset("spike_times", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 16,),
-                         compression="gzip", compression_opts=1)
-        g.create_dataset("spike_times_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1 << 14,),
-                         compression="gzip", compression_opts=1)
         g.attrs["n_trains"] = int(n_trains)
         g.attrs["unit"] = "s"
         g.attrs["trains"] = trains
-        g.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
+        if tick_s is None:
+            g.create_dataset("spike_times", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 16,),
+                             compression="gzip", compression_opts=1)
+            g.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
+        else:
+            if not (math.isfinite(tick_s) and tick_s > 0):
+                raise ValueError(f"{variant}: tick_s must be a positive time step, got {tick_s}")
+            g.attrs["tick_s"] = float(tick_s)
+            g.create_dataset("time_scale", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 14,))
+            if ticks_from is not None:
+                g.attrs["ticks_from"] = ticks_from
+            else:  # uncompressed: 4 bytes a spike, written at memory speed
+                g.create_dataset("spike_ticks", shape=(0,), maxshape=(None,), dtype="u4", chunks=(1 << 18,))
+            g.attrs["layout"] = ("NWB ragged in ticks: row r = spike_ticks[index[r-1]:index[r]], "
+                                 "r = trial*n_trains+train; time (s) = ticks * tick_s * time_scale[trial]"
+                                 + (f"; ticks and index are {ticks_from}'s" if ticks_from else ""))
+        if ticks_from is None:
+            g.create_dataset("spike_times_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1 << 14,),
+                             compression="gzip", compression_opts=1)
         self._spikes[variant] = g
 
-    def append_spikes(self, variant: str, trains: Any) -> None:
+    @staticmethod
+    def _append(ds: h5py.Dataset, values: np.ndarray) -> int:
+        base = ds.shape[0]
+        ds.resize((base + values.size,))
+        ds[base:] = values
+        return base
+
+    def append_spikes(self, variant: str, trains: Any, time_scale: Any = None) -> None:
         """Append the next trials' trains (anything with ``spike_times``, ``spike_times_index`` (row ends) and
         ``n_trains``, e.g. :class:`rigctl.encoding.spikes.SpikeTrains`), in trial order.
 
-        Raises KeyError if :meth:`add_spikes` was not called for ``variant``; ValueError for another train count.
+        ``time_scale`` : scalar or (n_trials,) the factor the trials' times carry beyond ``ticks x tick_s`` (eq. 2's
+        speed / reference for a speed-scaled variant; default 1); used by variants stored with ticks.
+
+        Raises KeyError if :meth:`add_spikes` was not called for ``variant``; ValueError for another train count,
+        times off the tick grid, or a ``ticks_from`` variant whose spikes are not its base's (counts differ).
         """
         g = self._spikes[variant]
-        if int(trains.n_trains) != int(g.attrs["n_trains"]):
-            raise ValueError(f"{variant}: {trains.n_trains} trains per trial, the file has {g.attrs['n_trains']}")
-        times, index = g["spike_times"], g["spike_times_index"]
-        base = times.shape[0]
-        st = np.asarray(trains.spike_times, np.float64)
-        times.resize((base + st.size,))
-        times[base:] = st
-        m = index.shape[0]
+        n_trains = int(g.attrs["n_trains"])
+        if int(trains.n_trains) != n_trains:
+            raise ValueError(f"{variant}: {trains.n_trains} trains per trial, the file has {n_trains}")
         idx = np.asarray(trains.spike_times_index, np.int64)
-        index.resize((m + idx.size,))
-        index[m:] = idx + base
+        st = np.asarray(trains.spike_times, np.float64)
+        if "spike_times" in g:  # float64 times
+            base = self._append(g["spike_times"], st)
+            self._append(g["spike_times_index"], idx + base)
+            return
+        n_trials = idx.size // n_trains
+        scale = np.broadcast_to(np.asarray(1.0 if time_scale is None else time_scale, np.float64), (n_trials,))
+        ticks_from = g.attrs.get("ticks_from")
+        if ticks_from is not None:  # the base's ticks and rows: only the scale is this variant's
+            if self._batch_spikes.get(str(ticks_from)) != st.size:
+                raise ValueError(f"{variant}: {st.size} spikes in this batch, {ticks_from} had "
+                                 f"{self._batch_spikes.get(str(ticks_from))}: not the same trains")
+            self._append(g["time_scale"], np.ascontiguousarray(scale))
+            return
+        tick_s = float(g.attrs["tick_s"])
+        per_spike = np.repeat(scale, np.diff(idx[n_trains - 1::n_trains], prepend=0)) if st.size else scale[:0]
+        ticks = np.rint(st / (per_spike * tick_s))
+        if st.size and (ticks.min() < 0 or ticks.max() > np.iinfo(np.uint32).max
+                        or not np.allclose(ticks * tick_s * per_spike, st, rtol=1e-12, atol=0.0)):
+            raise ValueError(f"{variant}: spike times are not multiples of tick_s = {tick_s:g} s x time_scale")
+        base = self._append(g["spike_ticks"], ticks.astype(np.uint32))
+        self._append(g["spike_times_index"], idx + base)
+        self._append(g["time_scale"], np.ascontiguousarray(scale))
+        self._batch_spikes[variant] = st.size
 
     # -- finish --------------------------------------------------------------------------------------------------
     def close(self) -> Path:
@@ -620,18 +694,40 @@ class EncodedFile:
         n_trains = self._n_trains_stored(variant)
         with _reading(self.path, f"/spikes/{variant}"):
             g = self._f["spikes"][variant]
-            times, index = g["spike_times"], g["spike_times_index"]
-            if times.ndim != 1 or index.ndim != 1 or times.dtype.kind != "f" or index.dtype.kind not in "iu":
-                raise _damaged(self.path, f"/spikes/{variant}: spike_times {times.dtype} {times.shape} and "
-                                          f"spike_times_index {index.dtype} {index.shape} are not 1-d times and row ends")
-            times = np.asarray(times[()], np.float64)
-            index = np.asarray(index[()], np.int64)
+            if "spike_times" in g:  # float64 s (schema 2, and variants whose times are not on a tick grid)
+                times, index = g["spike_times"], g["spike_times_index"]
+                if times.ndim != 1 or index.ndim != 1 or times.dtype.kind != "f" or index.dtype.kind not in "iu":
+                    raise _damaged(self.path, f"/spikes/{variant}: spike_times {times.dtype} {times.shape} and "
+                                              f"spike_times_index {index.dtype} {index.shape} are not 1-d times and "
+                                              "row ends")
+                times = np.asarray(times[()], np.float64)
+                index = np.asarray(index[()], np.int64)
+                scale = None
+            else:  # ticks (schema 3), possibly another variant's
+                src_name = _attr_value(g.attrs.get("ticks_from", variant))
+                src = self._f["spikes"][str(src_name)]
+                ticks, index, scale = src["spike_ticks"], src["spike_times_index"], g["time_scale"]
+                if (ticks.ndim != 1 or index.ndim != 1 or scale.ndim != 1 or ticks.dtype.kind != "u"
+                        or index.dtype.kind not in "iu" or scale.dtype.kind != "f"):
+                    raise _damaged(self.path, f"/spikes/{variant}: spike_ticks {ticks.dtype} {ticks.shape}, "
+                                              f"spike_times_index {index.dtype} {index.shape} and time_scale "
+                                              f"{scale.dtype} {scale.shape} are not 1-d ticks, row ends and scales")
+                tick_s = float(np.asarray(_attr_value(g.attrs["tick_s"])).reshape(-1)[0])
+                times = ticks[()].astype(np.float64) * tick_s  # the encoder's own operations: bit-identical
+                index = np.asarray(index[()], np.int64)
+                scale = np.asarray(scale[()], np.float64)
         if index.size != self.n_trials * n_trains:
             raise _damaged(self.path, f"/spikes/{variant} has {index.size} trains, not {self.n_trials} trials x "
                                       f"{n_trains}")
         if index.size and (index[0] < 0 or np.any(np.diff(index) < 0) or index[-1] > times.size):
             raise _damaged(self.path, f"/spikes/{variant}: spike_times_index is not row ends into spike_times "
                                       f"({times.size} spikes)")
+        if scale is not None:
+            if scale.size != self.n_trials:
+                raise _damaged(self.path, f"/spikes/{variant} has {scale.size} time scales, not {self.n_trials}")
+            if np.any(scale != 1.0):
+                ends = index[n_trains - 1::n_trains] if index.size else index
+                times *= np.repeat(scale, np.diff(ends, prepend=0))
         return SpikeArrays(times, index, n_trains)
 
     def spike_trains_description(self, variant: str) -> str:

@@ -92,6 +92,8 @@ def test_spikes_and_features_agree(encoded):
         scaled = SpikeTrains(*f.spikes("speed_scaled"))
         t = int(np.flatnonzero(trials["speed_mm_s"] == 60)[0])
         np.testing.assert_allclose(scaled.train(t, 0), orig.train(t, 0) * 0.5)
+        # eq. 2 exactly as the encoder applies it, although the file keeps only the ticks of the unscaled trains
+        assert scaled == orig.scale_times(trials["speed_mm_s"].astype(np.float64) / 120.0)
         # force scaling changes only SA trains
         fs = SpikeTrains(*f.spikes("force_scaled"))
         for j in range(18, 36):

@@ -73,7 +73,7 @@ def test_round_trip(tmp_path):
             info = h5py.check_string_dtype(raw[name].dtype[col])
             assert info is not None and info.length is None and info.encoding == "utf-8"
     with open_encoded(path) as f:
-        assert f.schema_version == ENCODED_SCHEMA_VERSION == 2
+        assert f.schema_version == ENCODED_SCHEMA_VERSION == 3
         assert f.attrs["kind"] == "rigctl encoded"
         assert f.layout == LAYOUT and f.textures == TEXTURES
         assert f.textures.group_of("Fabric-EEE") == "twill"
@@ -106,6 +106,77 @@ def test_round_trip(tmp_path):
             f.features("speed_scaled")
         with pytest.raises(KeyError, match="no spike trains"):
             f.spikes("force_scaled")
+
+
+def _tick_trains(rng, n_trials, n_trains, dt=1e-3):
+    """Trains as the fused encoder makes them: times = sample * dt."""
+    return SpikeTrains.from_lists([[np.unique(rng.integers(0, 3000, rng.integers(0, 8))) * dt
+                                    for _ in range(n_trains)] for _ in range(n_trials)])
+
+
+def test_spike_ticks_round_trip_bit_identical_and_shared_by_the_speed_scaled_twin(tmp_path):
+    rng = np.random.default_rng(1)
+    path = tmp_path / "e.h5"
+    parts = [_tick_trains(rng, 3, 4), _tick_trains(rng, 2, 4)]
+    coef = [np.array([0.5, 1.0 / 3.0, 1.25]), np.array([0.7, 2.0 / 3.0])]  # eq. 2: speed / reference
+    with EncodedWriter(path, layout=LAYOUT, textures=TEXTURES, trials=_trials()) as w:
+        w.add_spikes("original", 4, tick_s=1e-3)
+        w.add_spikes("speed_scaled", 4, ticks_from="original")
+        w.add_spikes("force_scaled", 4, tick_s=1e-3)
+        w.add_spikes("speed_force_scaled", 4, tick_s=1e-3)  # its base is not stored: ticks of its own
+        w.add_spikes("realtime_speed_scaled", 4)  # float64 times
+        for part, c in zip(parts, coef):
+            w.append_spikes("original", part)
+            w.append_spikes("speed_scaled", part.scale_times(c), c)
+            w.append_spikes("force_scaled", part)
+            w.append_spikes("speed_force_scaled", part.scale_times(c), c)
+            w.append_spikes("realtime_speed_scaled", part.scale_times(c))
+    whole, c_all = SpikeTrains.concatenate(parts), np.concatenate(coef)
+    with h5py.File(path, "r") as raw:
+        assert raw["spikes/original/spike_ticks"].dtype == np.uint32
+        assert "spike_ticks" not in raw["spikes/speed_scaled"] and raw["spikes/speed_scaled"].attrs["ticks_from"]
+        assert raw["spikes/realtime_speed_scaled/spike_times"].dtype == np.float64
+    with open_encoded(path) as f:
+        assert SpikeTrains(*f.spikes("original")) == whole  # == compares times exactly
+        assert SpikeTrains(*f.spikes("force_scaled")) == whole
+        for v in ("speed_scaled", "speed_force_scaled", "realtime_speed_scaled"):
+            assert SpikeTrains(*f.spikes(v)) == whole.scale_times(c_all), v
+
+
+def test_spike_ticks_refusals(tmp_path):
+    rng = np.random.default_rng(2)
+    with EncodedWriter(tmp_path / "e.h5", layout=LAYOUT, textures=TEXTURES, trials=_trials()) as w:
+        with pytest.raises(ValueError, match="not a variant stored with ticks"):
+            w.add_spikes("speed_scaled", 4, ticks_from="original")
+        w.add_spikes("original", 4, tick_s=1e-3)
+        with pytest.raises(ValueError, match="trains per trial"):
+            w.add_spikes("speed_scaled", 6, ticks_from="original")
+        w.add_spikes("speed_scaled", 4, ticks_from="original")
+        on_grid = _tick_trains(rng, 2, 4)
+        assert on_grid.spike_times.size
+        off_grid = on_grid.with_times(on_grid.spike_times + 2.5e-4)
+        with pytest.raises(ValueError, match="not multiples of tick_s"):
+            w.append_spikes("original", off_grid)
+        w.append_spikes("original", _tick_trains(np.random.default_rng(3), 2, 4))
+        with pytest.raises(ValueError, match="not the same trains"):
+            w.append_spikes("speed_scaled", _tick_trains(np.random.default_rng(4), 2, 4), 0.5)
+
+
+def test_schema_2_float_spike_times_still_open(tmp_path):
+    """Schema 2 wrote every variant's times as gzip float64 ``spike_times``: such a file reads as before."""
+    rng = np.random.default_rng(5)
+    path = tmp_path / "e.h5"
+    st = _trains(rng, 5, 6)
+    with EncodedWriter(path, layout=LAYOUT, textures=TEXTURES, trials=_trials()) as w:
+        w.write_features("original", 0, np.zeros((5, 12), np.float32))
+        w.add_spikes("original", 6)  # no tick_s: the schema-2 layout
+        w.append_spikes("original", st)
+    with h5py.File(path, "r+") as raw:
+        raw.attrs["schema_version"] = 2
+        assert set(raw["spikes/original"]) == {"spike_times", "spike_times_index"}
+    with open_encoded(path) as f:
+        assert f.schema_version == 2
+        assert SpikeTrains(*f.spikes("original")) == st
 
 
 def test_writer_refusals(tmp_path):
