@@ -391,7 +391,8 @@ def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> dict[
     for v in store_spikes:
         info = VARIANTS[v]
         if info.realtime:
-            n_trains, trains = len(p.realtime_taxels), f"SA, real-time taxels {p.realtime_taxels}"
+            taxels = p.realtime_taxels or []  # set by encode_session before the tables are made
+            n_trains, trains = len(taxels), f"SA, real-time taxels {taxels}"
         else:
             n_trains, trains = 2 * n_ch, "SA taxels 0..n-1 then RA taxels 0..n-1"
         if info.realtime and info.speed_scaled:

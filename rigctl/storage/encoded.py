@@ -427,7 +427,8 @@ class EncodedWriter:
 
     @staticmethod
     def _append(ds: h5py.Dataset, values: np.ndarray) -> int:
-        base = ds.shape[0]
+        """Append ``values`` to the 1-d resizable ``ds``; returns the row where they start."""
+        base = int(ds.shape[0])
         ds.resize((base + values.size,))
         ds[base:] = values
         return base
