@@ -12,9 +12,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 __all__ = ["SpikeTrains"]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _window_counts(times, ends, window_s, n_windows, out):  # pragma: no cover - compiled by numba
+    """out[r, w] += spikes of row r (``times[ends[r-1]:ends[r]]``) in window w = floor(round(t / window_s, 9)),
+    numpy's round (x * 1e9, rint, / 1e9) so a time k * window_s lands in window k despite float error."""
+    for r in numba.prange(ends.size):
+        start = ends[r - 1] if r > 0 else 0
+        for i in range(start, ends[r]):
+            b = np.floor(np.rint(times[i] / window_s * 1e9) / 1e9)
+            if b >= 0 and b < n_windows:
+                out[r, int(b)] += 1.0
 
 
 @dataclass(frozen=True)
@@ -205,12 +218,9 @@ class SpikeTrains:
 
         Spikes at negative times or beyond ``n_windows * window_s`` are ignored.
         """
-        rows = self.row_ids()
-        # round before flooring so that a time computed as k*window_s lands in window k despite float error
-        bins = np.floor(np.round(self.spike_times / window_s, 9)).astype(np.int64)
-        ok = (bins >= 0) & (bins < n_windows)
-        flat = np.bincount(rows[ok] * n_windows + bins[ok], minlength=self.n_rows * n_windows)
-        return flat.reshape(self.n_trials, self.n_trains, n_windows).astype(np.float64)
+        out = np.zeros((self.n_rows, int(n_windows)), dtype=np.float64)
+        _window_counts(self.spike_times, self.spike_times_index, float(window_s), int(n_windows), out)
+        return out.reshape(self.n_trials, self.n_trains, int(n_windows))
 
     def __eq__(self, other) -> bool:
         return (

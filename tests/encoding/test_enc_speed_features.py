@@ -122,3 +122,29 @@ def test_spike_trains_encoded_file_round_trip_and_layout(tmp_path):
     np.testing.assert_array_equal(st.select_trials([1]).train(0, 1), [0.5, 0.6, 0.7])
     with pytest.raises(ValueError):
         SpikeTrains(np.zeros(3), np.array([1, 2]), 1)
+
+
+def test_window_counts_bin_each_spike_by_its_window():
+    """The compiled binning against a per-spike loop: times k * window_s (computed, with float error) land in window
+    k, times before 0 or past the last window are ignored, empty rows give zeros."""
+    rng = np.random.default_rng(11)
+    window_s, n_windows = 0.1, 30
+    lists = []
+    for _ in range(40):
+        row = []
+        for _ in range(6):
+            k = rng.integers(-3, 40, rng.integers(0, 25))
+            t = np.concatenate([k * window_s, k * 0.001 * rng.choice([1.0, 0.5, 1 / 3]), [3 * 0.1]])
+            row.append(np.sort(t) if rng.random() > 0.1 else np.zeros(0))
+        lists.append(row)
+    st = SpikeTrains.from_lists(lists)
+    got = st.window_counts(window_s, n_windows)
+    want = np.zeros((40, 6, n_windows))
+    for i, row in enumerate(lists):
+        for j, times in enumerate(row):
+            for t in times:
+                w = int(np.floor(round(t / window_s, 9)))
+                if 0 <= w < n_windows:
+                    want[i, j, w] += 1
+    np.testing.assert_array_equal(got, want)
+    assert got[:, :, 3].sum() >= sum(1 for row in lists for times in row if times.size)  # 0.3 s: window 3, not 2
