@@ -373,10 +373,10 @@ class AnalysisTab(QtWidgets.QWidget):
                     raise ValueError(f"{os.path.basename(path)} stores no SA/RA spike trains (encoded with --no-spikes?): "
                                      "open its session file to see this trial's spikes")
                 name = "original" if "original" in have else have[0]
-                st = SpikeTrains(*ef.spikes(name))
+                st = SpikeTrains(*ef.spikes(name, trials=slice(i, i + 1)))  # this trial's rows only
             n_tr = st.n_trains
             half = n_tr // 2
-            return None, [st.train(i, k) for k in range(half)], [st.train(i, half + k) for k in range(half)]
+            return None, [st.train(0, k) for k in range(half)], [st.train(0, half + k) for k in range(half)]
 
         self._trial_job = Job(work, name="trial")
         self._trial_job.tid = tid

@@ -683,52 +683,66 @@ class EncodedFile:
             raise _damaged(self.path, f"/spikes/{variant} says {n} trains per trial")
         return n
 
-    def spikes(self, variant: str) -> SpikeArrays:
+    def spikes(self, variant: str, trials: slice | None = None) -> SpikeArrays:
         """Spike trains of a variant: :class:`SpikeArrays` (``spike_times`` s, ``spike_times_index`` row ends,
         ``n_trains``), NWB-style; ``rigctl.encoding.spikes.SpikeTrains(*f.spikes(v))`` gives the trains' methods.
 
+        ``trials`` : a slice of trial rows (step 1) to read only those (e.g. ``slice(i, i + 1)``: one trial of a
+        paper-size file without reading its ~10^8 spikes); None = every trial.
+
         Raises KeyError if the file has no spike trains for ``variant`` (encoded with ``--no-spikes``, or a variant
-        whose trains are not stored)."""
+        whose trains are not stored); ValueError for a slice with a step; NotEncodedError for damaged tables."""
         if variant not in self.spike_variants:
             raise KeyError(f"no spike trains of {variant!r} in {self.path} "
                            f"(stored: {', '.join(self.spike_variants) or 'none'})")
+        t0, t1, step = (trials if trials is not None else slice(None)).indices(self.n_trials)
+        if step != 1:
+            raise ValueError(f"spikes(trials=...) takes a slice of consecutive trials, not step {step}")
+        t1 = max(t0, t1)
         n_trains = self._n_trains_stored(variant)
+        r0, r1 = t0 * n_trains, t1 * n_trains
         with _reading(self.path, f"/spikes/{variant}"):
             g = self._f["spikes"][variant]
+            scale_ds = tick_s = None
             if "spike_times" in g:  # float64 s (schema 2, and variants whose times are not on a tick grid)
-                times, index = g["spike_times"], g["spike_times_index"]
-                if times.ndim != 1 or index.ndim != 1 or times.dtype.kind != "f" or index.dtype.kind not in "iu":
-                    raise _damaged(self.path, f"/spikes/{variant}: spike_times {times.dtype} {times.shape} and "
-                                              f"spike_times_index {index.dtype} {index.shape} are not 1-d times and "
-                                              "row ends")
-                times = np.asarray(times[()], np.float64)
-                index = np.asarray(index[()], np.int64)
-                scale = None
+                times_ds, index_ds = g["spike_times"], g["spike_times_index"]
+                ok = times_ds.dtype.kind == "f"
+                what = f"spike_times {times_ds.dtype} {times_ds.shape}"
             else:  # ticks (schema 3), possibly another variant's
-                src_name = _attr_value(g.attrs.get("ticks_from", variant))
-                src = self._f["spikes"][str(src_name)]
-                ticks, index, scale = src["spike_ticks"], src["spike_times_index"], g["time_scale"]
-                if (ticks.ndim != 1 or index.ndim != 1 or scale.ndim != 1 or ticks.dtype.kind != "u"
-                        or index.dtype.kind not in "iu" or scale.dtype.kind != "f"):
-                    raise _damaged(self.path, f"/spikes/{variant}: spike_ticks {ticks.dtype} {ticks.shape}, "
-                                              f"spike_times_index {index.dtype} {index.shape} and time_scale "
-                                              f"{scale.dtype} {scale.shape} are not 1-d ticks, row ends and scales")
+                src = self._f["spikes"][str(_attr_value(g.attrs.get("ticks_from", variant)))]
+                times_ds, index_ds, scale_ds = src["spike_ticks"], src["spike_times_index"], g["time_scale"]
                 tick_s = float(np.asarray(_attr_value(g.attrs["tick_s"])).reshape(-1)[0])
-                times = ticks[()].astype(np.float64) * tick_s  # the encoder's own operations: bit-identical
-                index = np.asarray(index[()], np.int64)
-                scale = np.asarray(scale[()], np.float64)
-        if index.size != self.n_trials * n_trains:
-            raise _damaged(self.path, f"/spikes/{variant} has {index.size} trains, not {self.n_trials} trials x "
-                                      f"{n_trains}")
-        if index.size and (index[0] < 0 or np.any(np.diff(index) < 0) or index[-1] > times.size):
-            raise _damaged(self.path, f"/spikes/{variant}: spike_times_index is not row ends into spike_times "
-                                      f"({times.size} spikes)")
-        if scale is not None:
-            if scale.size != self.n_trials:
-                raise _damaged(self.path, f"/spikes/{variant} has {scale.size} time scales, not {self.n_trials}")
-            if np.any(scale != 1.0):
-                ends = index[n_trains - 1::n_trains] if index.size else index
-                times *= np.repeat(scale, np.diff(ends, prepend=0))
+                ok = times_ds.dtype.kind == "u" and scale_ds.ndim == 1 and scale_ds.dtype.kind == "f"
+                what = f"spike_ticks {times_ds.dtype} {times_ds.shape}, time_scale {scale_ds.dtype} {scale_ds.shape}"
+            if not ok or times_ds.ndim != 1 or index_ds.ndim != 1 or index_ds.dtype.kind not in "iu":
+                raise _damaged(self.path, f"/spikes/{variant}: {what} and spike_times_index {index_ds.dtype} "
+                                          f"{index_ds.shape} are not 1-d spike times and row ends")
+            if index_ds.shape[0] != self.n_trials * n_trains:
+                raise _damaged(self.path, f"/spikes/{variant} has {index_ds.shape[0]} trains, not {self.n_trials} "
+                                          f"trials x {n_trains}")
+            index = np.asarray(index_ds[max(r0 - 1, 0):r1], np.int64)  # with the row end before the first row
+            s0 = int(index[0]) if r0 > 0 else 0
+            index = index[1:] if r0 > 0 else index
+            s1 = int(index[-1]) if index.size else s0
+            n_stored = int(times_ds.shape[0])
+            if s0 < 0 or (index.size and (index[0] < s0 or np.any(np.diff(index) < 0))) or s1 > n_stored:
+                raise _damaged(self.path, f"/spikes/{variant}: spike_times_index is not row ends into spike_times "
+                                          f"({n_stored} spikes)")
+            raw = times_ds[s0:s1]
+            scale = None
+            if scale_ds is not None:
+                if scale_ds.shape[0] != self.n_trials:
+                    raise _damaged(self.path, f"/spikes/{variant} has {scale_ds.shape[0]} time scales, not "
+                                              f"{self.n_trials}")
+                scale = np.asarray(scale_ds[t0:t1], np.float64)
+        if tick_s is None:
+            times = np.asarray(raw, np.float64)
+        else:
+            times = raw.astype(np.float64) * tick_s  # the encoder's own operations: bit-identical times
+        index = index - s0
+        if scale is not None and np.any(scale != 1.0):
+            ends = index[n_trains - 1::n_trains]
+            times *= np.repeat(scale, np.diff(ends, prepend=0))
         return SpikeArrays(times, index, n_trains)
 
     def spike_trains_description(self, variant: str) -> str:

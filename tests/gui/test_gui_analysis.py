@@ -286,6 +286,13 @@ def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot
     assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()
     _, sy = tab.trial_rasters["ra"][1].getData()
     assert sy is not None and len(sy) > 0 and sy.max() <= 8.5
+    from rigctl.encoding.spikes import SpikeTrains
+    from rigctl.storage.encoded import open_encoded as _open
+
+    with _open(enc) as ef:  # the raster holds this trial's stored RA spikes (read alone, not the whole table)
+        row = int(np.flatnonzero(ef.trials["trial_id"] == tab.shown_tid)[0])
+        stored = SpikeTrains(*ef.spikes("original"))
+    assert len(sy) == 2 * sum(stored.train(row, 9 + k).size for k in range(9))  # a tick (two points) a spike
     assert tab.heat_plots[0][1].image.shape == (3, 3)
     # the real-time view's model on this sensor: a pipeline from raw trials (its windows, its 100 Hz rate)
     from rigctl.analysis.model import trials_of_session

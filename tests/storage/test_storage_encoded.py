@@ -141,6 +141,13 @@ def test_spike_ticks_round_trip_bit_identical_and_shared_by_the_speed_scaled_twi
         assert SpikeTrains(*f.spikes("force_scaled")) == whole
         for v in ("speed_scaled", "speed_force_scaled", "realtime_speed_scaled"):
             assert SpikeTrains(*f.spikes(v)) == whole.scale_times(c_all), v
+        for v in ("original", "speed_scaled", "realtime_speed_scaled"):  # a slice of trials reads only its rows
+            full = SpikeTrains(*f.spikes(v))
+            for sl in (slice(0, 1), slice(2, 4), slice(4, 5), slice(3, 3), slice(1, None)):
+                rows = range(*sl.indices(5))
+                assert SpikeTrains(*f.spikes(v, trials=sl)) == full.select_trials(list(rows)), (v, sl)
+        with pytest.raises(ValueError, match="step"):
+            f.spikes("original", trials=slice(0, 4, 2))
 
 
 def test_spike_ticks_refusals(tmp_path):
