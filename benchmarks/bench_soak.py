@@ -175,16 +175,21 @@ def modbus_soak(stop_at: float, seed: int, work: Path, out: dict) -> None:
         proxy.set_rates(TO_BOARD, MODBUS_NOISE)
         next_spell = time.monotonic() + rng.uniform(5, 20)
         next_cut = time.monotonic() + rng.uniform(30, 90)
+        last_scheduled = 0.0  # when the last scheduled proxy action (end of a late spell, a restore) fires
         while time.monotonic() < stop_at:
             now = time.monotonic()
             if now > next_spell:
                 proxy.set_rates(TO_HOST, MODBUS_LATE)
-                proxy.schedule(rng.uniform(0.5, 2.0), proxy.set_rates, TO_HOST, MODBUS_NOISE)
+                after = rng.uniform(0.5, 2.0)
+                proxy.schedule(after, proxy.set_rates, TO_HOST, MODBUS_NOISE)
+                last_scheduled = max(last_scheduled, now + after)
                 f["late_spells"] += 1
                 next_spell = now + rng.uniform(5, 20)
             if now > next_cut:
                 proxy.cut()
-                proxy.schedule(rng.uniform(0.5, 3.0), proxy.restore)
+                after = rng.uniform(0.5, 3.0)
+                proxy.schedule(after, proxy.restore)
+                last_scheduled = max(last_scheduled, now + after)
                 next_cut = now + rng.uniform(30, 90)
                 f["link_cuts_survived"] += 1  # counted back below if the client never works again
             f["requests"] += 1
@@ -212,14 +217,22 @@ def modbus_soak(stop_at: float, seed: int, work: Path, out: dict) -> None:
                 f["failed_requests"] += 1
                 pending_failure = True
                 time.sleep(0.1)  # as a host would before trying again (a cut port fails at once)
+        # a clean link at the end: once every scheduled action has fired (a late spell's end set after this would
+        # bring the noise back), no faults, the link restored, nothing held in the proxy
+        while time.monotonic() < last_scheduled + 0.1:
+            time.sleep(0.05)
         proxy.set_rates(TO_HOST, FaultRates())
         proxy.set_rates(TO_BOARD, FaultRates())
         if not proxy.stats().connected:
             proxy.restore()
-        try:  # the client works on a clean link at the end
-            ok = drum.read_holding(HR.FORCE_TOLERANCE_G) == 15
-        except DrumError:
-            ok = False
+        proxy.wait_idle()
+        ok, deadline = False, time.monotonic() + 10.0
+        while time.monotonic() < deadline:  # the client works again: the first answer it gets is right
+            try:
+                ok = drum.read_holding(HR.FORCE_TOLERANCE_G) == 15
+                break
+            except DrumError:  # (a loaded host: an answer later than the client's timeout) try again, as a host
+                time.sleep(0.2)
         if pending_failure and ok:
             f["failures_recovered"] += 1
         if not ok:
