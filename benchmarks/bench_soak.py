@@ -202,14 +202,19 @@ def modbus_soak(stop_at: float, seed: int, work: Path, out: dict) -> None:
                     except DrumError:
                         scratch_values = scratch_values | {value}  # carried out or not: either value is right
                         raise
+                    asked = scratch
                     got, allowed = drum.read_holding(scratch), scratch_values
                     scratch_values = {got} if got in allowed else scratch_values
                 else:
-                    reg = rng.choice(list(fixed))
+                    reg = asked = rng.choice(list(fixed))
                     got, allowed = drum.read_holding(reg), {fixed[reg]}
                 f["answered"] += 1
                 if got not in allowed:
                     f["wrong_values"] += 1
+                    out.setdefault("wrong_value_details", []).append({  # what a developer needs to find the cause
+                        "t_s": round(time.monotonic() - stop_at, 3), "register": int(asked), "got": got,
+                        "allowed": sorted(allowed), "rx": drum._rx.hex(), "timeouts": drum.timeouts,
+                        "stale": drum.stale_responses, "fences": drum.fences})
                 if pending_failure:
                     f["failures_recovered"] += 1
                     pending_failure = False

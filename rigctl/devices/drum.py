@@ -305,7 +305,15 @@ class DrumClient:
             self.timeouts += 1
             self._unsettled = self._on_link  # an answer may still come (not from an in-process transport)
             return None
-        frames = self._frames(self._rx) or [response]
+        frames = self._frames(self._rx)
+        if not frames:
+            if self._on_link:  # pymodbus' RTU decoder accepts a CRC match over a longer span than the function's
+                # frame size ("garbage after frame"): with garbage inside an answer that is a wrong value, 1 in
+                # ~4,000 corrupted answers; only frames of their exact size count
+                self._discard([response], f"not an RTU frame of its size, in answer to function {expect.function_code}")
+                self._unsettled = True
+                return None
+            frames = [response]  # a direct transport (no bytes)
         # on a settled link nothing but the answer to this request can arrive, and it arrives last
         if len(frames) > 1:
             self._discard(frames[:-1], f"before the answer to function {expect.function_code}")

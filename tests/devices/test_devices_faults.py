@@ -236,6 +236,22 @@ def test_a_dropped_response_is_retried(drum_via_proxy, drum_proxy):
     assert drum.read_holding(HR.SETTLE_TIME_MS) == 450
 
 
+def test_a_crc_match_over_garbage_is_not_an_answer(drum_via_proxy, drum_proxy):
+    """Found by the soak benchmark (seed 4): a garbage burst inside an answer, and pymodbus' RTU decoder accepts a
+    frame whose CRC matches over a longer span than the function's frame size (it allows "garbage after frame"), so
+    the read returned 0x8821 = 34849 for a register holding 149. The client takes only frames of their exact size."""
+    from pymodbus.framer import FramerRTU
+
+    drum = drum_via_proxy
+    body = bytes.fromhex("0103028821ab9db7a7b2361f708f")  # FC 3, 2 bytes: 0x8821, then the burst's bytes
+    crafted = body + FramerRTU.compute_CRC(body).to_bytes(2, "big")  # the CRC matches over the whole span
+    assert not FramerRTU.check_CRC(body[:5], int.from_bytes(body[5:7], "big"))  # not a frame of the read's size
+    drum_proxy.drop_next(7, TO_HOST)  # the controller's own answer to the next read is lost ...
+    drum_proxy.after_bytes(TO_BOARD, 8, drum_proxy.inject, crafted, TO_HOST)  # ... and the crafted bytes come
+    assert drum.read_holding(HR.SETTLE_TIME_MS) == 300  # not 34849: the read is retried and gets its answer
+    assert drum.stale_responses >= 1
+
+
 def test_no_wrong_value_on_a_noisy_link(drum_via_proxy, drum_proxy):
     """Random bit flips, lost and inserted bytes in both directions and answers held back past the timeout now and
     then: every read that returns gives the register's own value (distinct per register, so an answer taken for
