@@ -378,16 +378,13 @@ def _labels(session, ids):
     }
 
 
-def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> dict[str, Any]:
-    """Make the ``/spikes`` tables of ``store_spikes`` (bases before their speed-scaled twins) in the encoded file
-    and return, per variant, ``speeds (n,) mm/s -> time_scale`` for :meth:`EncodedWriter.append_spikes`.
+def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> None:
+    """Make the ``/spikes`` tables of ``store_spikes`` (bases before their speed-scaled twins) in the encoded file.
 
-    Spike times are stored as ticks of the model step (``1 / fs``) times a per-trial scale: 1, or eq. 2's speed /
-    reference for the speed-scaled variants, which share their unscaled base's ticks when it is stored too. The
-    real-time speed-scaled variant (100 ms batches of their own scale) keeps float64 times."""
+    Spike times are stored as ticks of the model step (``1 / fs``) times a per-trial scale (:func:`_time_scale`):
+    1, or eq. 2's speed / reference for the speed-scaled variants, which share their unscaled base's ticks when it is
+    stored too. The real-time speed-scaled variant (100 ms batches of their own scale) keeps float64 times."""
     tick_s = 1.0 / float(p.fs_hz)  # the fused kernel's time step (run_fused: time = sample * (1 / fs))
-    scale: dict[str, Any] = {}
-    stored = set(store_spikes)
     for v in store_spikes:
         info = VARIANTS[v]
         if info.realtime:
@@ -397,15 +394,18 @@ def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> dict[
             n_trains, trains = 2 * n_ch, "SA taxels 0..n-1 then RA taxels 0..n-1"
         if info.realtime and info.speed_scaled:
             writer.add_spikes(v, n_trains, trains)
-            scale[v] = lambda speed: None
             continue
         base = next((b for b, i in VARIANTS.items() if not i.speed_scaled and (i.force_scaled, i.label_free,
                      i.realtime) == (info.force_scaled, info.label_free, info.realtime)), None)
         writer.add_spikes(v, n_trains, trains, tick_s=tick_s,
-                          ticks_from=base if info.speed_scaled and base in stored else None)
-        scale[v] = ((lambda speed: speed_coefficient(speed, p.reference_speed_mm_s)) if info.speed_scaled
-                    else (lambda speed: None))
-    return scale
+                          ticks_from=base if info.speed_scaled and base in store_spikes else None)
+
+
+def _time_scale(variant: str, speed_mm_s, p: EncodeParams):
+    """The per-trial factor a stored variant's times carry beyond ``ticks x tick_s`` (:func:`_add_spike_tables`):
+    eq. 2's speed / reference for the speed-scaled variants, None (1) otherwise."""
+    info = VARIANTS[variant]
+    return speed_coefficient(speed_mm_s, p.reference_speed_mm_s) if info.speed_scaled and not info.realtime else None
 
 
 def _fit_subsample(keys, nbytes, budget):
@@ -643,14 +643,14 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                                 n_fit_trials=int(fit_idx.size))
             else:
                 writer.note_force_coefficients(note, label_free=lf)
-        spike_scale = _add_spike_tables(writer, store_spikes, n_ch, p)
+        _add_spike_tables(writer, store_spikes, n_ch, p)
 
         def write(batch, result):
             feats, spikes = result
             for v, f in feats.items():
                 writer.write_features(v, int(batch[0]), f)
             for v in store_spikes:  # bases before their speed-scaled twins
-                writer.append_spikes(v, spikes[v], spike_scale[v](labels["speed_mm_s"][batch]))
+                writer.append_spikes(v, spikes[v], _time_scale(v, labels["speed_mm_s"][batch], p))
 
         args = [(str(session_path), [ids[i] for i in b], labels["speed_mm_s"][b],
                  None if coeffs is None else coeffs[b], None if coeffs_lf is None else coeffs_lf[b],

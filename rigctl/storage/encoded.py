@@ -254,6 +254,11 @@ def is_encoded_file(path: str | os.PathLike[str]) -> bool:
         return False
 
 
+def _per_spike(scale: np.ndarray, index: np.ndarray, n_trains: int) -> np.ndarray:
+    """Each spike's trial factor: ``scale`` (n_trials,) repeated by the trials' spike counts (row ends ``index``)."""
+    return np.repeat(scale, np.diff(index[n_trains - 1::n_trains], prepend=0))
+
+
 # ------------------------------------------------------------------------------------------------- writer
 class EncodedWriter:
     """Writes one encoded file (the layout in the module docstring), under ``<name>.part`` until :meth:`close`
@@ -463,7 +468,7 @@ class EncodedWriter:
             self._append(g["time_scale"], np.ascontiguousarray(scale))
             return
         tick_s = float(g.attrs["tick_s"])
-        per_spike = np.repeat(scale, np.diff(idx[n_trains - 1::n_trains], prepend=0)) if st.size else scale[:0]
+        per_spike = _per_spike(scale, idx, n_trains)
         ticks = np.rint(st / (per_spike * tick_s))
         if st.size and (ticks.min() < 0 or ticks.max() > np.iinfo(np.uint32).max
                         or not np.allclose(ticks * tick_s * per_spike, st, rtol=1e-12, atol=0.0)):
@@ -741,8 +746,7 @@ class EncodedFile:
             times = raw.astype(np.float64) * tick_s  # the encoder's own operations: bit-identical times
         index = index - s0
         if scale is not None and np.any(scale != 1.0):
-            ends = index[n_trains - 1::n_trains]
-            times *= np.repeat(scale, np.diff(ends, prepend=0))
+            times *= _per_spike(scale, index, n_trains)
         return SpikeArrays(times, index, n_trains)
 
     def spike_trains_description(self, variant: str) -> str:
