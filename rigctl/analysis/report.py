@@ -29,6 +29,9 @@ __all__ = [
     "paper_ordering",
     "format_ordering",
     "OrderingPair",
+    "prediction_collapse",
+    "format_collapse",
+    "Collapse",
 ]
 
 TABLE1_ROWS = ("textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed", "trained")
@@ -190,6 +193,69 @@ def format_ordering(res: TaskResults, n_pcs=50) -> str:
     return "\n".join(lines)
 
 
+#: the extrapolation rows, whose test conditions the classifier never saw
+EXTRAPOLATION_ROWS = ("untrained_speed_force", "untrained_force", "untrained_speed")
+
+
+@dataclass(frozen=True)
+class Collapse:
+    """How far a classifier piles its predictions on one class (from a confusion matrix).
+
+    ``top_class`` is the most-predicted class, ``top_share`` its share of all predictions (0-1) and ``even_share``
+    1 / n_classes, the share of every class when the test set is balanced and the predictions follow it."""
+
+    top_class: str
+    top_share: float
+    even_share: float
+
+    @property
+    def ratio(self) -> float:
+        """``top_share / even_share``: 1 = no class favoured; 16 = every trial on one of 16 classes."""
+        return self.top_share / self.even_share if self.even_share else float("nan")
+
+
+def prediction_collapse(res: TaskResults, tasks=EXTRAPOLATION_ROWS) -> dict[str, dict[str, Collapse]]:
+    """Per task and variant, the class the classifier predicts most and its share (the confusion matrix at its PC
+    count, summed over repetitions).
+
+    A classifier that meets test data off its training manifold (e.g. the unscaled windows of an untrained speed,
+    whose modulation lands in other windows) tends to put most trials on one or two classes, typically the least
+    modulated plate; a high share names that failure, which the accuracy alone does not (issue 13).
+
+    Returns
+    -------
+    dict
+        task -> variant -> :class:`Collapse`; tasks not in ``res`` are left out.
+    """
+    out: dict[str, dict[str, Collapse]] = {}
+    for task in tasks:
+        by_v = res.curves.get(task)
+        if not by_v:
+            continue
+        out[task] = {}
+        for v, c in by_v.items():
+            predicted = np.asarray(c.confusion).sum(axis=0)
+            total = predicted.sum()
+            if total == 0:
+                continue
+            k = int(np.argmax(predicted))
+            out[task][v] = Collapse(str(c.classes[k]), float(predicted[k] / total), 1.0 / len(c.classes))
+    return out
+
+
+def format_collapse(res: TaskResults) -> str:
+    """One line per extrapolation row: each variant's most-predicted class and its share of the test trials."""
+    lines = []
+    for task, by_v in prediction_collapse(res).items():
+        if not by_v:
+            continue
+        even = next(iter(by_v.values())).even_share
+        cells = "; ".join(f"{VARIANT_TITLES.get(v, v)} {100 * c.top_share:.0f} % ({c.top_class})"
+                          for v, c in by_v.items())
+        lines.append(f"most-predicted class, {TASK_TITLES.get(task, task)} (even: {100 * even:.0f} %): {cells}")
+    return "\n".join(lines)
+
+
 def to_dict(res: TaskResults, n_pcs=50, *, source=None):
     """JSON-able dict: settings, counts, warnings, per task and variant the mean/sd curves (fractions), the table at
     ``n_pcs`` (percent), the comparisons vs Original at ``n_pcs`` and the confusion matrices."""
@@ -199,7 +265,9 @@ def to_dict(res: TaskResults, n_pcs=50, *, source=None):
                t: {"holds": all(p.holds for p in pairs),
                    "pairs": [{"first": p.first, "second": p.second, "paper_diff_pct": p.paper_diff,
                               "our_diff_pct": p.our_diff, "holds": p.holds} for p in pairs]}
-               for t, pairs in paper_ordering(res, used).items()}}
+               for t, pairs in paper_ordering(res, used).items()},
+           "collapse": {t: {v: {"top_class": c.top_class, "top_share": c.top_share, "even_share": c.even_share}
+                            for v, c in by_v.items()} for t, by_v in prediction_collapse(res).items()}}
     for task, by_v in res.curves.items():
         out["tasks"][task] = {
             "title": TASK_TITLES.get(task, task),

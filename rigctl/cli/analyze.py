@@ -351,6 +351,9 @@ def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_p
         ordering = report.format_ordering(res_all, table_pcs)
         if ordering:
             click.echo(ordering)
+        collapse = report.format_collapse(res_all)
+        if collapse:
+            click.echo(collapse)
         if leak is not None:
             click.echo(_format_leak(leak))
     sys.stdout.flush()

@@ -118,3 +118,26 @@ def test_analyze_prints_the_variance_and_the_ordering(tmp_path, write_schema1):
     assert r.exit_code == 0, r.output
     assert r.stdout.startswith("Feature variance (% of the total sum of squares;")
     assert "paper's ordering, Individual Textures (Fig. 3A): " in r.stdout
+
+
+def test_prediction_collapse_names_the_class_the_predictions_pile_on():
+    """An extrapolation row whose classifier puts most test trials on one texture (what the simulated rig's
+    unscaled variants do at untrained speeds, issue 13) is named with that texture and its share; an even spread
+    reads as the even share, and rows the paper trains on are not reported."""
+    classes = ["A", "B", "C", "D"]
+    piled = np.array([[5, 0, 0, 0], [4, 1, 0, 0], [3, 0, 2, 0], [5, 0, 0, 0]])  # truth rows, predicted columns
+    even = np.diag([5, 5, 5, 5])
+    res = TaskResults()
+    for task, v, cm in (("untrained_speed", "original", piled), ("untrained_speed", "force_scaled", even),
+                        ("textures", "original", piled)):
+        res.add(Curve(task=task, variant=v, acc=np.full((2, 3), 0.5), n_tested=20, classes=classes,
+                      confusion=cm, confusion_pcs=3))
+    got = report.prediction_collapse(res)
+    assert set(got) == {"untrained_speed"}
+    c = got["untrained_speed"]["original"]
+    assert (c.top_class, c.top_share, c.even_share) == ("A", 17 / 20, 0.25) and c.ratio == pytest.approx(3.4)
+    assert got["untrained_speed"]["force_scaled"].top_share == pytest.approx(0.25)
+    text = report.format_collapse(res)
+    assert text == ("most-predicted class, Untrained Speed (Fig. 3E) (even: 25 %): Original 85 % (A); "
+                    "Force Scaled 25 % (A)")
+    assert report.to_dict(res, 3)["collapse"]["untrained_speed"]["original"]["top_class"] == "A"
