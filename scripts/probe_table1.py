@@ -42,6 +42,9 @@ Levers (each one change to the fitted model, nothing tuned to the table):
     speed-invariant per-taxel levels: random phase, the soft pad, plates whose per-taxel level patterns differ 4 x
     more (``plate_level_spread`` 0.1 instead of FabricSlide's 0.026) and the 10 % drift. Only with it does Force
     Scaled beat Original at untrained speeds (the paper's +30 points), and then nearly every cell is near 100 %.
+``level-signature-fabricslide``
+    the same combination with FabricSlide's plate level spread (0.026): the pooled unscaled rows fall far below
+    the paper's.
 
 Output files go to ``--out-dir`` (``<lever>.h5``, ``<lever>.enc.h5``, ``<lever>.json``); an existing file there is
 refused unless ``--overwrite``.
@@ -64,7 +67,8 @@ REPO = Path(__file__).resolve().parents[1]
 PROTOCOL = REPO / "protocols" / "paper_dataset.toml"
 VARIANTS = ("original", "speed_scaled", "force_scaled", "speed_force_scaled")
 ROWS = ("textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed", "trained")
-LEVERS = ("model", "soft-pad", "fine-plates", "random-phase", "drift", "strong-plates", "level-signature")
+LEVERS = ("model", "soft-pad", "fine-plates", "random-phase", "drift", "strong-plates", "level-signature",
+          "level-signature-fabricslide")
 TRAINED_SPEEDS, TRAINED_FORCES = (40.0, 60.0, 80.0), (250.0, 500.0)
 
 
@@ -122,6 +126,9 @@ def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
     elif lever == "fine-plates":
         protocol = _fine_plates_protocol(out_dir)
     elif lever == "random-phase":
+        workers, ctx = 0, _start_jitter(1000.0)
+    elif lever == "level-signature-fabricslide":
+        cfg.sensor = dataclasses.replace(cfg.sensor, indentation_ref_mm=1.0, sensitivity_drift=0.1)
         workers, ctx = 0, _start_jitter(1000.0)
     with ctx:
         generate_dataset(str(protocol), out, trials_per_condition=tpc, seed=seed, config=cfg, workers=workers,
