@@ -13,6 +13,8 @@ rows with untrained speeds:
 - **collapse**: the share of the untrained-speed test trials that the classifier puts on its single most-chosen
   texture (``rigctl analyze`` prints it as "most-predicted class"; 1/16 = 6 % for an even spread; the model's
   unscaled variants put most of them on one or two plates);
+- **first 20 windows**: PCA (50) + LDA on the unscaled variants' first 20 windows only, which every trial fills
+  (no zero padding), on the untrained-speed trials: the share on the most-predicted plate and the accuracy;
 - **trial means**: LDA on each trial's 36 per-train means (SA rate, and RA count per mm of travel) over its own
   windows, trained on the trained cells and tested on the untrained ones: how much speed-invariant texture
   information the trials carry, whatever the windowed features make of it.
@@ -136,7 +138,9 @@ def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
 
 
 def trial_mean_lda(enc: Path) -> dict:
-    """Accuracy (%) of LDA on per-trial train means (trained cells -> untrained cells), per unscaled variant."""
+    """Diagnostics of the unscaled variants: LDA on per-trial train means (trained cells -> untrained cells, %), and
+    PCA + LDA on the first 20 windows only (``first20``: accuracy and the top class's share on untrained speeds)."""
+    from sklearn.decomposition import PCA
     from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
 
     with h5py.File(enc, "r") as f:
@@ -156,6 +160,13 @@ def trial_mean_lda(enc: Path) -> dict:
             ok = LinearDiscriminantAnalysis().fit(m[trained], label[trained]).predict(m) == label
             out[var] = {"untrained_speed": 100 * ok[us & ~uf].mean(), "untrained_force": 100 * ok[~us & uf].mean(),
                         "untrained_speed_force": 100 * ok[us & uf].mean()}
+            w20 = x[:, :, :20].reshape(len(tr), -1).astype(np.float64)
+            pca = PCA(50, random_state=0).fit(w20[trained])
+            pred = LinearDiscriminantAnalysis().fit(pca.transform(w20[trained]), label[trained]).predict(
+                pca.transform(w20[us & ~uf]))
+            _, counts = np.unique(pred, return_counts=True)
+            out[var]["first20"] = {"accuracy": 100 * (pred == label[us & ~uf]).mean(),
+                                   "top_share": 100 * counts.max() / counts.sum()}
     return out
 
 
@@ -202,8 +213,12 @@ def main(argv=None) -> int:
                 collapse = "  collapse " + " / ".join(f"{s:3.0f}%" for s in shares)
             print(f"  {task['title'][:36]:36s} {cells}  {held}{collapse}")
         tm = report["trial_means"]
+        keys = ("untrained_speed", "untrained_force", "untrained_speed_force")
         print("  trial means (LDA, original / force_scaled): " + "; ".join(
-            f"{k.replace('_', ' ')} {tm['original'][k]:.0f} / {tm['force_scaled'][k]:.0f}" for k in tm["original"]))
+            f"{k.replace('_', ' ')} {tm['original'][k]:.0f} / {tm['force_scaled'][k]:.0f}" for k in keys))
+        print("  first 20 windows, untrained speed (original / force_scaled): accuracy "
+              f"{tm['original']['first20']['accuracy']:.0f} / {tm['force_scaled']['first20']['accuracy']:.0f}, "
+              f"top class {tm['original']['first20']['top_share']:.0f} / {tm['force_scaled']['first20']['top_share']:.0f} %")
     return 0
 
 
