@@ -54,7 +54,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self._wanted_tid: int | None = None  # the selected trial: the plot follows it (rapid browsing)
         self.shown_tid: int | None = None  # the trial the plots show
         self._session_range = None
-        self.layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
+        self.sensor_layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
 
         # ---------------- left: file, trials, actions ----------------
         self.open_btn = QtWidgets.QPushButton("Open session / encoded file...")
@@ -244,7 +244,7 @@ class AnalysisTab(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------------------------
     def _build_trial_view(self, layout: SensorLayout) -> None:
         """One trace per channel, raster rows per channel and a heat map per layer (rows x cols) of ``layout``."""
-        self.layout = layout
+        self.sensor_layout = layout
         n = layout.n_channels
         for c in self.trial_curves:
             self.trial_plot.removeItem(c)
@@ -411,7 +411,7 @@ class AnalysisTab(QtWidgets.QWidget):
             return
         self.shown_tid = job.tid
         x, sa, ra = job.result
-        layout = self.layout
+        layout = self.sensor_layout
         if x is not None:
             t = np.arange(len(x)) / layout.sample_rate_hz
             for k, c in enumerate(self.trial_curves):

@@ -38,7 +38,7 @@ class CalibrationTab(QtWidgets.QWidget):
         super().__init__(parent)
         self.main = main
         self.handle = None
-        self.layout: SensorLayout = PAPER_SENSOR
+        self.sensor_layout: SensorLayout = PAPER_SENSOR
         self.job: Job | None = None
         self._mass_event = threading.Event()
 
@@ -121,7 +121,7 @@ class CalibrationTab(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------------------------
     def set_layout(self, layout: SensorLayout) -> None:
         """Show the per-taxel range of ``layout.n_channels`` taxels on 0-``layout.adc_max`` counts."""
-        self.layout = layout
+        self.sensor_layout = layout
         n = layout.n_channels
         self.norm_plot.setLabel("bottom", f"taxel ({axis_layers(layout)})")
         self.norm_plot.setYRange(0, layout.adc_max)
@@ -175,7 +175,7 @@ class CalibrationTab(QtWidgets.QWidget):
         stored, or stored for another channel count than ``layout``'s, default this tab's layout)."""
         from rigctl.encoding.normalise import TaxelRange
 
-        layout = layout or self.layout
+        layout = layout or self.sensor_layout
         block = (rig.taxel_normalisation() if rig is not None else None) or self._config().get("taxel_normalisation")
         if not block or len(block["taxel_min"]) != layout.n_channels:
             return None
@@ -194,11 +194,11 @@ class CalibrationTab(QtWidgets.QWidget):
             if lc else "not calibrated (the controller's EEPROM scale is used)"
         )
         tn = cfg.get("taxel_normalisation")
-        n = self.layout.n_channels
+        n = self.sensor_layout.n_channels
         if tn and len(tn["taxel_min"]) != n:
             self.norm_bars.setOpts(y0=np.zeros(n), height=np.zeros(n))
             self.norm_info.setText(f"stored for {len(tn['taxel_min'])} taxels, but this sensor has {n}: not used; "
-                                   f"the live encoder uses the full ADC range 0-{self.layout.adc_max}")
+                                   f"the live encoder uses the full ADC range 0-{self.sensor_layout.adc_max}")
         elif tn:
             lo, hi = np.asarray(tn["taxel_min"], float), np.asarray(tn["taxel_max"], float)
             self.norm_bars.setOpts(y0=lo, height=hi - lo)
@@ -207,7 +207,7 @@ class CalibrationTab(QtWidgets.QWidget):
                                    " counts")
         else:
             self.norm_bars.setOpts(y0=np.zeros(n), height=np.zeros(n))
-            self.norm_info.setText(f"none: the live encoder uses the full ADC range 0-{self.layout.adc_max}")
+            self.norm_info.setText(f"none: the live encoder uses the full ADC range 0-{self.sensor_layout.adc_max}")
         prev = cfg.get("taxel_normalisation_previous")
         if prev:
             self.norm_info.setText(self.norm_info.text() + f"<br>previous (Undo): {prev.get('source', '?')}, "
@@ -258,7 +258,7 @@ class CalibrationTab(QtWidgets.QWidget):
             return
         seconds = float(self.norm_seconds.value())
         cfg_path = self.main.rig_config_path()
-        layout = self.layout
+        layout = self.sensor_layout
 
         def work(job):
             h.taxels.begin_capture()
@@ -286,7 +286,7 @@ class CalibrationTab(QtWidgets.QWidget):
 
         cfg_path = self.main.rig_config_path()
         h = self.handle
-        layout = self.layout
+        layout = self.sensor_layout
 
         def work(job):
             norm = cal.taxel_normalisation_from_session(path)
@@ -319,7 +319,7 @@ class CalibrationTab(QtWidgets.QWidget):
 
         self._change_config(cal.reset_taxel_normalisation,
                             f"taxel normalisation reset: the live encoder uses the full ADC range "
-                            f"0-{self.layout.adc_max}")
+                            f"0-{self.sensor_layout.adc_max}")
 
     def _change_config(self, fn, done: str) -> None:
         if (self.job is not None and not self.job.done) or self._run_owns_rig():

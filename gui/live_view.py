@@ -339,7 +339,7 @@ class LiveView(QtWidgets.QWidget):
         super().__init__(parent)
         self.encoder = None
         self.buffer = None
-        self.layout = None
+        self.sensor_layout = None
         self.window_s = float(window_s)
         #: the spikes drawn by the last refresh per population: ``(t (s before now), taxel)`` (tests, tooltips)
         self.drawn: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -396,9 +396,9 @@ class LiveView(QtWidgets.QWidget):
         """Build the plots for ``layout``: per layer a trace plot (one curve per taxel, a colour legend) and a rows
         x cols heat map (taxel numbers, one colour bar), and an SA and an RA raster of ``layout.n_channels`` rows.
         Nothing is rebuilt when the layout is unchanged."""
-        if layout == self.layout:
+        if layout == self.sensor_layout:
             return
-        self.layout = layout
+        self.sensor_layout = layout
         self.gl.clear()
         self.sensor_label.setText(f"  sensor {layout.shape_text}, {layout.n_channels} taxels, "
                                   f"{layout.sample_rate_hz:g} Hz, {layout.adc_bits}-bit")
@@ -528,7 +528,7 @@ class LiveView(QtWidgets.QWidget):
         for p in self.time_plots:
             p.setXRange(-self.window_s, 0, padding=0)
         for img in self.raster_images.values():
-            img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, self.layout.n_channels))
+            img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, self.sensor_layout.n_channels))
         if self.window_box.value() != self.window_s:
             self.window_box.setValue(self.window_s)
 
@@ -539,7 +539,7 @@ class LiveView(QtWidgets.QWidget):
         self._y_ranges = [None] * len(self.trace_plots)
         if not on:
             for p in self.trace_plots:
-                p.setYRange(0, self.layout.adc_max, padding=0)
+                p.setYRange(0, self.sensor_layout.adc_max, padding=0)
 
     def attach(self, taxels, encoder, layout: SensorLayout | None = None) -> None:
         """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes, with the
@@ -578,17 +578,17 @@ class LiveView(QtWidgets.QWidget):
         for i, (p, item, chans) in enumerate(zip(self.trace_plots, self.trace_items, self._layer_channels)):
             part = x[:, chans.start:chans.stop]
             if auto:  # the y range first, so the traces are drawn in the view they will be shown in
-                r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self.layout.adc_max)
+                r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self.sensor_layout.adc_max)
                 if r is not None:
                     self._y_ranges[i] = r
                     p.setYRange(*r, padding=0)
             item.setData(t, part)
         if self._refresh_n % HEATMAP_EVERY == 0:
             self.heatmap_frame = cur = buf.current.copy()
-            for img, chans, la in zip(self.images, self._layer_channels, self.layout.layers):
+            for img, chans, la in zip(self.images, self._layer_channels, self.sensor_layout.layers):
                 img.setImage(cur[chans.start:chans.stop].reshape(la.rows, la.cols).astype(float), autoLevels=False)
         if enc is not None:
-            n = self.layout.n_channels
+            n = self.sensor_layout.n_channels
             height = max(int(round(self.raster_plots["sa"].vb.height())), 1)
             for key, ring in (("sa", enc.sa), ("ra", enc.ra)):
                 st, sc = ring.since(now - self.window_s)

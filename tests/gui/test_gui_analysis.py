@@ -254,7 +254,7 @@ def test_analysis_tab_follows_a_nine_channel_100hz_session(lone_tab, qapp, qtbot
     tab = lone_tab
     tab.open(str(path))
     assert tab.kind == "session" and tab.trials.rowCount() == 16
-    assert tab.layout.n_channels == 9 and "9 taxels" in tab.file_label.text()
+    assert tab.sensor_layout.n_channels == 9 and "9 taxels" in tab.file_label.text()
     assert len(tab.trial_curves) == 9 and len(tab.heat_plots) == 1
     assert tab.trial_rasters["sa"][0].viewRange()[1] == pytest.approx([-0.5, 8.5])
     tab.trials.selectRow(5)
@@ -328,7 +328,7 @@ def test_analysis_tab_heat_maps_per_layer_of_a_sixteen_channel_session(lone_tab,
     path = _layout_session(tmp_path / "two_layers.h5", layout, ["HB3", "Linen"], per_texture=2, duration_s=0.4)
     tab = lone_tab
     tab.open(str(path))
-    assert tab.layout.n_channels == 16 and len(tab.trial_curves) == 16 and len(tab.heat_plots) == 2
+    assert tab.sensor_layout.n_channels == 16 and len(tab.trial_curves) == 16 and len(tab.heat_plots) == 2
     assert [p.titleLabel.text for p, _ in tab.heat_plots] == ["top (type I)", "bottom (type II)"]
     tab.trials.selectRow(1)
     assert wait_for(qapp, lambda: tab._trial_job is None and "SA" in tab.status.text(), 60), tab.status.text()

@@ -116,7 +116,7 @@ def test_live_view_follows_the_layout(live_view, qapp, layout):
     view.set_window(0.5)
     x, _ = _feed_and_refresh(qapp, view, layout)
     n = layout.n_channels
-    assert view.layout == layout
+    assert view.sensor_layout == layout
     # one trace plot and one heat map per layer, one curve per taxel
     assert len(view.trace_plots) == layout.n_layers
     assert len(view.images) == layout.n_layers
@@ -165,7 +165,7 @@ def test_live_view_follows_the_layout(live_view, qapp, layout):
 def test_default_live_view_is_the_papers(live_view, qapp):
     """The paper's rig looks as before: two layers of 3x3, 18 trains, 0-1023 counts, ticks every 3rd taxel."""
     view = live_view()
-    assert view.layout == PAPER_SENSOR
+    assert view.sensor_layout == PAPER_SENSOR
     assert [p.titleLabel.text.split("&nbsp;")[0] for p in view.trace_plots] == [
         "Top layer (type I) taxels 0-8", "Bottom layer (type II) taxels 9-17"]
     assert [p.titleLabel.text for p in view.raster_plots.values()] == [

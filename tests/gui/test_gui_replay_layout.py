@@ -85,7 +85,7 @@ def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session,
         assert "session replay" in w.source_label.text()
         live, panel = w.live, w.control
         # the plots follow the stream's layout
-        assert (live.layout.n_channels, live.layout.sample_rate_hz) == (9, 100.0)
+        assert (live.sensor_layout.n_channels, live.sensor_layout.sample_rate_hz) == (9, 100.0)
         assert len(live.images) == 1 and live.images[0].image.shape == (3, 3)
         assert len(live.curves) == 9 and len(live.trace_plots) == 1
         assert "(9 trains)" in live.raster_plots["sa"].titleLabel.text
