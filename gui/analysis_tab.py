@@ -219,7 +219,12 @@ class AnalysisTab(QtWidgets.QWidget):
         crow.addWidget(self.conf_task)
         crow.addWidget(self.conf_variant)
         cl.addLayout(crow)
-        self.conf_plot = pg.PlotWidget(title="Confusion matrix (rows: true, columns: predicted; row-normalised)")
+        # the long description lives in a wrapping label: a plot title wider than the view pushes the colour bar
+        # out of the widget (pyqtgraph's title sets the minimum width of the plot's column)
+        self.conf_info = QtWidgets.QLabel("rows: true, columns: predicted; row-normalised")
+        self.conf_info.setWordWrap(True)
+        cl.addWidget(self.conf_info)
+        self.conf_plot = pg.PlotWidget(title="Confusion matrix")
         self.conf_plot.setAspectLocked(True)
         self.conf_plot.invertY(True)
         self.conf_img = pg.ImageItem(axisOrder="row-major")
@@ -669,9 +674,14 @@ class AnalysisTab(QtWidgets.QWidget):
                 t.setPos(k + 0.5, r + 0.5)
                 self.conf_plot.addItem(t)
                 self.conf_counts.append(t)
-        self.conf_plot.setTitle(f"Confusion at {c.confusion_pcs} PCs: {TASK_TITLES.get(task, task)}, "
-                                f"{variant_title(v)} (rows true, columns predicted; trials summed over "
-                                f"{c.acc.shape[0]} repetitions)")
+        predicted = counts.sum(axis=0)
+        top = int(np.argmax(predicted))
+        # a classifier off its training manifold piles its predictions on one class (report.prediction_collapse)
+        pile = (f"most predicted: {c.classes[top]}, {100 * predicted[top] / max(predicted.sum(), 1):.0f} % of "
+                f"the test trials (even: {100 / len(c.classes):.0f} %)")
+        self.conf_plot.setTitle(f"{TASK_TITLES.get(task, task)}, {variant_title(v)}")
+        self.conf_info.setText(f"Confusion at {c.confusion_pcs} PCs (rows true, columns predicted; colour: fraction "
+                               f"of the true class; trials summed over {c.acc.shape[0]} repetitions); {pile}")
 
     # ------------------------------------------------------------------------------------------------------
     # export

@@ -86,6 +86,16 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert tab.conf_bar.values == (0, 1)
     cm = res.curves[tab.conf_task.currentData()]["original"].confusion
     assert sorted(int(t.textItem.toPlainText()) for t in tab.conf_counts) == sorted(cm.ravel().tolist())
+    # ... and names the class the predictions pile on (the most-predicted column), as the CLI's report does
+    top = int(np.argmax(cm.sum(axis=0)))
+    assert (f"most predicted: {res.curves[tab.conf_task.currentData()]['original'].classes[top]}, "
+            f"{100 * cm.sum(axis=0)[top] / cm.sum():.0f} % of the test trials (even: 25 %)"
+            in tab.conf_info.text())
+    # the colour bar is inside the widget (a long plot title used to push it out of view)
+    tab.resize(1200, 800)
+    qapp.processEvents()
+    bar = tab.conf_bar.mapRectToScene(tab.conf_bar.boundingRect())
+    assert bar.width() > 10 and bar.right() <= tab.conf_plot.sceneRect().right() + 1
     # exports
     png = tab.export_figure("png", str(tmp_path / "fig3.png"))
     svg = tab.export_figure("svg", str(tmp_path / "fig3.svg"))
