@@ -48,8 +48,8 @@ Levers (each one change to the fitted model, nothing tuned to the table):
     the same combination with FabricSlide's plate level spread (0.026): the pooled unscaled rows fall far below
     the paper's.
 
-Output files go to ``--out-dir`` (``<lever>.h5``, ``<lever>.enc.h5``, ``<lever>.json``); an existing file there is
-refused unless ``--overwrite``.
+Output files go to ``--out-dir`` (``<lever>.h5``, ``<lever>.enc.h5``, ``<lever>.json``, and ``fine-plates.toml``);
+an existing file there is refused, before anything is rendered, unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -111,6 +111,8 @@ def _start_jitter(mm: float):
 
 
 def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
+    """Render the paper's protocol with one lever applied into the session file ``out`` (``tpc`` trials per
+    condition, dataset ``seed``); ``fine-plates`` also writes its protocol, ``out_dir/fine-plates.toml``."""
     from rigctl.simulation.dataset import generate_dataset
     from rigctl.simulation.model import RigConfig
 
@@ -182,6 +184,8 @@ def main(argv=None) -> int:
     levers = a.lever or list(LEVERS)
     a.out_dir.mkdir(parents=True, exist_ok=True)
     planned = [a.out_dir / f"{lv}{ext}" for lv in levers for ext in (".h5", ".enc.h5", ".json")]
+    if "fine-plates" in levers:
+        planned.append(a.out_dir / "fine-plates.toml")
     existing = [p for p in planned if p.exists()]
     if existing and not a.overwrite:
         print(f"refusing to overwrite {', '.join(map(str, existing))} (use --overwrite)", file=sys.stderr)
