@@ -30,8 +30,9 @@ Levers (each one change to the fitted model, nothing tuned to the table):
     every ridged plate's spacing x 0.4 (base 6 mm, half space 3 mm, double space 12 mm; ridge width capped at
     0.6 x the spacing): each 100 ms window averages over one or more periods at every speed.
 ``random-phase``
-    each trial starts at a random drum angle instead of at the index mark (start jitter 1 m, i.e. uniform over
-    the drum): the windows' modulation is no longer phase-locked to the trial start.
+    each trial starts at an arbitrary drum angle instead of at the index mark (``DrumConfig.start_at_index`` False,
+    ``rigctl sim dataset --start-at any-angle``): the windows' modulation is no longer phase-locked to the trial
+    start.
 ``drift``
     the fabric's sensitivity drifts by 10 % (sd) from trial to trial instead of 1 % (``sensitivity_drift``): a
     condition's trials recorded over hours rather than within a minute.
@@ -55,7 +56,6 @@ an existing file there is refused, before anything is rendered, unless ``--overw
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import json
 import subprocess
@@ -97,26 +97,13 @@ def _fine_plates_protocol(out_dir: Path, scale: float = 0.4) -> Path:
     return path
 
 
-@contextlib.contextmanager
-def _start_jitter(mm: float):
-    """Temporarily set the dataset generator's start jitter (renders in this process: ``workers=0``)."""
-    from rigctl.simulation import dataset
-
-    old = dataset.START_JITTER_MM
-    dataset.START_JITTER_MM = mm
-    try:
-        yield
-    finally:
-        dataset.START_JITTER_MM = old
-
-
 def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
     """Render the paper's protocol with one lever applied into the session file ``out`` (``tpc`` trials per
     condition, dataset ``seed``); ``fine-plates`` also writes its protocol, ``out_dir/fine-plates.toml``."""
     from rigctl.simulation.dataset import generate_dataset
     from rigctl.simulation.model import RigConfig
 
-    cfg, protocol, workers, ctx = RigConfig(), PROTOCOL, None, contextlib.nullcontext()
+    cfg, protocol = RigConfig(), PROTOCOL
     if lever == "soft-pad":
         cfg.sensor = dataclasses.replace(cfg.sensor, indentation_ref_mm=1.0)
     elif lever == "drift":
@@ -126,17 +113,15 @@ def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
     elif lever == "level-signature":
         cfg.sensor = dataclasses.replace(cfg.sensor, indentation_ref_mm=1.0, plate_level_spread=0.1,
                                          sensitivity_drift=0.1)
-        workers, ctx = 0, _start_jitter(1000.0)
+        cfg.drum.start_at_index = False
     elif lever == "fine-plates":
         protocol = _fine_plates_protocol(out_dir)
     elif lever == "random-phase":
-        workers, ctx = 0, _start_jitter(1000.0)
+        cfg.drum.start_at_index = False
     elif lever == "level-signature-fabricslide":
         cfg.sensor = dataclasses.replace(cfg.sensor, indentation_ref_mm=1.0, sensitivity_drift=0.1)
-        workers, ctx = 0, _start_jitter(1000.0)
-    with ctx:
-        generate_dataset(str(protocol), out, trials_per_condition=tpc, seed=seed, config=cfg, workers=workers,
-                         overwrite=True)
+        cfg.drum.start_at_index = False
+    generate_dataset(str(protocol), out, trials_per_condition=tpc, seed=seed, config=cfg, overwrite=True)
 
 
 def trial_mean_lda(enc: Path) -> dict:

@@ -22,26 +22,34 @@ from rigctl.cli.protocols import PROTOCOL
               help="Processes rendering trials while this one writes (default: cores - 1; 0: render here too).")
 @click.option("--compression", type=click.Choice(["none", "lzf", "gzip"]), default="none", show_default=True,
               help="HDF5 compression of the taxels (none is fastest; the full paper dataset is then ~3 GB).")
+@click.option("--start-at", "start_at", type=click.Choice(["index", "any-angle"]), default="index", show_default=True,
+              help="Where each trial starts on the drum: at its index mark (trials of a texture phase-aligned, as "
+                   "rigctl's rig records) or at an arbitrary angle (a rig whose recorder gets no index signal). "
+                   "A resumed file keeps the model it was started with.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted output file (renders only missing trials).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def dataset(protocol, out, trials_per_condition, seed, workers, compression, overwrite, resume, as_json, quiet):
+def dataset(protocol, out, trials_per_condition, seed, workers, compression, start_at, overwrite, resume, as_json,
+            quiet):
     """Generate a simulated dataset from PROTOCOL (e.g. protocols/paper_dataset.toml) without real-time pacing.
 
     Writes the same session layout as `rigctl acquire` (kind "simulated-dataset"), trial by trial, on all cores.
     """
     from rigctl.acquisition.protocol import ProtocolError
     from rigctl.simulation.dataset import generate_dataset
+    from rigctl.simulation.model import RigConfig
 
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
     check_output(out, overwrite=overwrite or resume, inputs=(protocol,),
                  overwrite_hint="continue it with --resume, or pass --overwrite")
+    config = RigConfig()
+    config.drum.start_at_index = start_at == "index"
     try:
         with bars(not quiet) as progress:
             summary = generate_dataset(protocol, out, trials_per_condition=trials_per_condition, seed=seed,
-                                       workers=workers, progress=progress,
+                                       workers=workers, progress=progress, config=config,
                                        compression=None if compression == "none" else compression,
                                        overwrite=overwrite, resume=resume)
     except ProtocolError as exc:

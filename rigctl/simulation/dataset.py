@@ -11,9 +11,10 @@ geometry the model renders), on all cores, streaming trial by trial.
 
 Each trial starts at the drum's index mark, as a recorded trial does (:meth:`rigctl.acquisition.rig.Rig.record_trial`
 starts its capture at the first taxel frame flagged SYNC_IN), so the trials of one texture are phase-aligned up to
-a small jitter. Trial-to-trial variability (so that classification is not trivial; the texture stays the dominant
-cause of differences): the start position jitter (:data:`START_JITTER_MM`: the index pulse is latched into the next
-1 ms frame, plus the index sensor's repeatability and the plate's mounting), a static speed error and a slow speed
+a small jitter; ``DrumConfig.start_at_index = False`` starts them at an arbitrary drum angle instead (a rig whose
+recorder has no index signal). Trial-to-trial variability (so that classification is not trivial; the texture stays
+the dominant cause of differences): the start position jitter (``DrumConfig.start_jitter_mm``: the index pulse is
+latched into the next 1 ms frame, plus the index sensor's repeatability and the plate's mounting), a static speed error and a slow speed
 wobble of the stepper drive (:data:`SPEED_ERROR`, :data:`SPEED_WOBBLE`), a static force error (sd 1 % of the
 setpoint) plus a slow force-loop residual (sd 0.5 %, tau 0.2 s), the drum's runout ripple (its phase is fixed to
 the drum: :data:`RUNOUT_PHASE_RAD`), the fabric's sensitivity drift (``SensorConfig.sensitivity_drift``), the
@@ -25,6 +26,7 @@ seeded from ``(seed, trial_id)``, so a dataset is reproducible whatever the numb
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import multiprocessing as mp
 import os
@@ -51,9 +53,6 @@ TRIAL_TRAVEL_MM = 240.0
 POLL_RATE_HZ = 50.0
 #: trials a worker renders per task (multi-worker generation): fewer round trips, still a smooth progress bar
 WORKER_CHUNK = 8
-#: sd of the plate position at the first sample around the index mark, mm: the index sensor's repeatability and the
-#: plate's mounting (the 1 ms frame latch adds a uniform 0..v*1 ms on top)
-START_JITTER_MM = 0.2
 #: sd of the static relative speed error of a trial: the stepper's step rate is crystal-timed, so what varies from
 #: trial to trial is tiny (a constant drum-diameter error would be the same in every trial and is not modelled)
 SPEED_ERROR = 0.0005
@@ -169,7 +168,8 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         where the drum's index mark passed; ``host_time_s`` = arange(n) / R; ``force_g``/``force_time_s`` and
         ``speed_mm_s``/``speed_time_s`` at 50 Hz, quantised like the Mega's input registers (1 g, 0.1 mm/s);
         ``attrs``: ``start_phase_mm`` (drum surface position at the first sample relative to the index mark: the
-        start jitter), ``aligned_to_index`` (True), ``sensitivity`` (the trial's fabric sensitivity factor),
+        start jitter; with ``DrumConfig.start_at_index`` False the drum angle at the first sample, 0..circumference),
+        ``aligned_to_index`` (``DrumConfig.start_at_index``), ``sensitivity`` (the trial's fabric sensitivity factor),
         ``source="simulated"``. The setpoints travel in the session's plan row.
 
     Raises
@@ -205,12 +205,16 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     aw = math.exp(-dt / SPEED_WOBBLE_TAU_S)
     wobble = lfilter([math.sqrt(1 - aw * aw)], [1.0, -aw], rng.standard_normal(n)) * SPEED_WOBBLE
     speed = speed * (1.0 + SPEED_ERROR * rng.standard_normal() + wobble)
-    # start at the index mark: the first frame is the one flagged SYNC_IN, latched up to 1 ms after the mark
-    # passed; the plate under row 0 is then at the index position + the jitter of index sensor and mounting
-    latch = float(speed[0]) * dt * rng.uniform(0.0, 1.0)
+    if drum.start_at_index:
+        # start at the index mark: the first frame is the one flagged SYNC_IN, latched up to 1 ms after the mark
+        # passed; the plate under row 0 is then at the index position + the jitter of index sensor and mounting
+        latch = float(speed[0]) * dt * rng.uniform(0.0, 1.0)
+        phase = latch + drum.start_jitter_mm * rng.standard_normal()
+    else:
+        # the recorder starts at an arbitrary drum angle: no index frame first (DrumConfig.start_at_index)
+        latch = phase = float(rng.uniform(0.0, circ))
     # drum travel since the index mark (the speed of sample k moves the drum during (k-1, k] ms)
     travel = latch + np.cumsum(speed) * dt
-    phase = latch + START_JITTER_MM * rng.standard_normal()
     pos = travel + (phase - latch)  # plate coordinate under row 0
 
     # contact force: setpoint with a static error, a slow force-loop residual, the drum's runout ripple, and the
@@ -230,7 +234,8 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
 
     rev = np.floor(np.concatenate(([latch], travel)) / circ)
     flags = (np.diff(rev) != 0).astype(np.uint8)  # FrameFlag.SYNC_IN = bit 0 (later passes of the index mark)
-    flags[0] = 1  # the capture starts at the index frame
+    if drum.start_at_index:
+        flags[0] = 1  # the capture starts at the index frame
 
     step = max(1, int(round(rate_hz / POLL_RATE_HZ)))
     idx = np.arange(0, n, step)
@@ -240,7 +245,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     # trial's attributes; here only what the plan does not hold
     attrs = {
         "start_phase_mm": float(phase),
-        "aligned_to_index": True,
+        "aligned_to_index": bool(drum.start_at_index),
         "sensitivity": float(sensitivity),
         "source": "simulated",
     }
@@ -313,13 +318,15 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         Receives :class:`rigctl.core.progress.ProgressEvent` s: stage ``"dataset <file name>"``, done/total = trials
         written in this run (the CLI draws a tqdm bar from them).
     config : RigConfig, optional
-        Rig model; stored as the session's ``rig_config``.
+        Rig model; stored as the session's ``rig_config``. On ``resume`` the stored one is used (like the stored
+        dataset seed), so the missing trials come from the model that rendered the others.
     compression : {None, "lzf", "gzip"}
         HDF5 compression of the taxels (None: fastest; the paper-sized set is then ~3 GB).
     overwrite : bool
         Replace an existing file.
     resume : bool
-        Continue an existing file of the same protocol: render only the trials not yet complete.
+        Continue an existing file of the same protocol: render only the trials not yet complete, with the file's
+        dataset seed and rig model.
     durable : bool
         fsync at each batch commit (:class:`SessionWriter`'s ``durable``). Off by default: a generated dataset is
         reproducible, and a killed run loses at most the batch in progress (``resume=True`` continues it).
@@ -363,6 +370,12 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             raise ValueError(f"{out_path} holds a plan of {len(stored)} trials, this protocol has {len(plan)}; "
                              "pass the same --trials-per-condition")
         seed = int(writer.attrs.get("dataset_seed", seed))
+        # the stored model wins too: the missing trials are rendered like the ones already written
+        stored_cfg = json.loads(writer.attrs.get("rig_config", "{}") or "{}")
+        if stored_cfg:
+            cfg = RigConfig.from_dict(stored_cfg)
+            layout = model_layout(cfg)
+            rate_hz = layout.sample_rate_hz
         done = set(writer.completed_ids())
     else:
         writer = SessionWriter.create(

@@ -82,6 +82,15 @@ class DrumConfig:
         Acceleration limit of the surface speed, mm/s^2 (the step generator's ramp).
     runout_mm : float
         Radial runout (eccentricity) of the drum, mm: a force ripple once per revolution.
+    start_at_index : bool
+        Whether a simulated dataset's trials start at the drum's index mark (True, the default: the first frame is
+        the one flagged SYNC_IN, as :meth:`rigctl.acquisition.rig.Rig.record_trial` records, so the trials of one
+        texture are phase-aligned) or at an arbitrary drum angle (False: the plate position at the first sample is
+        uniform over the circumference, as on a rig whose recorder gets no index signal; the paper describes none).
+        Issue 13: which of the two a rig does decides what its unscaled windows carry (docs/results.md, 1c).
+    start_jitter_mm : float
+        Sd of the plate position at a trial's first sample around the index mark, mm (``start_at_index``): the
+        index sensor's repeatability and the plate's mounting; the 1 ms frame latch adds a uniform 0..v*1 ms.
     """
 
     diameter_mm: float = 100.0
@@ -89,6 +98,8 @@ class DrumConfig:
     microsteps: int = 16
     max_accel_mm_s2: float = 500.0
     runout_mm: float = 0.02
+    start_at_index: bool = True
+    start_jitter_mm: float = 0.2
 
     @property
     def circumference_mm(self) -> float:

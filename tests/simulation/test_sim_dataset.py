@@ -104,6 +104,28 @@ def test_trials_of_a_texture_are_phase_aligned():
     assert np.abs(a - b).mean() < 0.2 * np.abs(a - s).mean()
 
 
+def test_trials_can_start_at_any_drum_angle():
+    """DrumConfig.start_at_index = False: a recorder without an index signal starts each trial at an arbitrary drum
+    angle; the first frame is no index frame, the later index passes are still flagged, the start angles spread over
+    the circumference, and the default (index start) is untouched by the option."""
+    cfg = RigConfig()
+    cfg.drum.start_at_index = False
+    circ = cfg.drum.circumference_mm
+    phases = []
+    for i in range(16):
+        t = render_trial("L", 120, 500, config=cfg, rng=np.random.default_rng(i))
+        phase = t.attrs["start_phase_mm"]
+        assert t.attrs["aligned_to_index"] is False and 0.0 <= phase < circ
+        # 240 mm of travel crosses the index mark once exactly when the start is within 240 mm before it
+        crossings = int((t.flags & 1).sum())
+        assert crossings == (1 if phase + 240.0 * np.mean(t.speed_mm_s) / 120 >= circ else 0), (phase, crossings)
+        assert not (t.flags[0] & 1) or phase < 1e-6
+        phases.append(phase)
+    assert np.std(phases) > 0.2 * circ  # uniform over 314 mm: sd ~ 91 mm
+    aligned = render_trial("L", 120, 500, config=RigConfig(), rng=np.random.default_rng(0))
+    assert aligned.attrs["aligned_to_index"] is True and aligned.flags[0] & 1
+
+
 def test_render_trial_rejects_bad_input():
     with pytest.raises(ValueError):
         render_trial("A", 0, 500, rng=np.random.default_rng())
@@ -211,6 +233,47 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
             np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
         np.testing.assert_array_equal(a.calibration["taxel_min"], b.calibration["taxel_min"])
         np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
+
+
+def test_cli_start_at_any_angle_and_a_resume_keeps_the_stored_model(protocol_path, tmp_path):
+    """`--start-at any-angle` is stored in the session's rig config and its trials are not index-aligned; a resume
+    renders the missing trials with the stored model, whatever model it is given, so the file equals a fresh one."""
+    import json
+
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.cli import main
+    from rigctl.simulation.dataset import _init_worker, _render_planned
+    from rigctl.storage.session import SessionWriter
+
+    fresh = tmp_path / "any.h5"
+    result = CliRunner().invoke(main, ["sim", "dataset", str(protocol_path), "--out", str(fresh), "--seed", "6",
+                                       "--workers", "0", "--start-at", "any-angle", "--quiet"])
+    assert result.exit_code == 0, result.output
+    with open_session(fresh) as s:
+        assert s.rig_config["drum"]["start_at_index"] is False
+        assert not any(s.trial(t).attrs["aligned_to_index"] for t in s.completed_ids())
+    # an interrupted any-angle run, resumed by a command that does not repeat the option
+    cfg = RigConfig()
+    cfg.drum.start_at_index = False
+    proto = load_protocol(protocol_path)
+    part = tmp_path / "part.h5"
+    writer = SessionWriter.create(part, plan=proto.plan(), protocol_source=proto.source, protocol_name=proto.name,
+                                  kind="simulated-dataset", attrs={"dataset_seed": 6}, compression=None,
+                                  rig_config=cfg.to_dict())
+    _init_worker(cfg.to_dict(), 6)
+    rows = [(p.trial_id, p.texture, p.speed_mm_s, p.force_g, p.duration_s, p.ramp_start_mm_s, p.ramp_end_mm_s)
+            for p in proto.plan()[:5]]
+    writer.write_trials(_render_planned(r) for r in rows)
+    writer.close()
+    result = CliRunner().invoke(main, ["sim", "dataset", str(protocol_path), "--out", str(part), "--resume",
+                                       "--workers", "0", "--quiet", "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["n_trials"] == 24 - 5
+    with open_session(fresh) as a, open_session(part) as b:
+        assert a.completed_ids() == b.completed_ids() == list(range(24))
+        for tid in range(24):
+            np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
+            assert b.trial(tid).attrs["aligned_to_index"] is False
 
 
 CUSTOM = """
