@@ -650,6 +650,7 @@ class AnalysisTab(QtWidgets.QWidget):
     def _draw_confusion(self) -> None:
         """The confusion matrix of the chosen task and variant: colour = fraction of the true class (row-normalised,
         with a colour bar), each cell's trial count written in it, the paper's names for task and variant."""
+        from rigctl.analysis import report
         from rigctl.analysis.data import variant_title
         from rigctl.analysis.tasks import TASK_TITLES
 
@@ -674,14 +675,13 @@ class AnalysisTab(QtWidgets.QWidget):
                 t.setPos(k + 0.5, r + 0.5)
                 self.conf_plot.addItem(t)
                 self.conf_counts.append(t)
-        predicted = counts.sum(axis=0)
-        top = int(np.argmax(predicted))
-        # a classifier off its training manifold piles its predictions on one class (report.prediction_collapse)
-        pile = (f"most predicted: {c.classes[top]}, {100 * predicted[top] / max(predicted.sum(), 1):.0f} % of "
-                f"the test trials (even: {100 / len(c.classes):.0f} %)")
+        # a classifier off its training manifold piles its predictions on one class
+        pile = report.prediction_collapse(res, tasks=(task,)).get(task, {}).get(v)
+        pile_text = ("no test trials" if pile is None else f"most predicted: {pile.top_class}, "
+                     f"{100 * pile.top_share:.0f} % of the test trials (even: {100 * pile.even_share:.0f} %)")
         self.conf_plot.setTitle(f"{TASK_TITLES.get(task, task)}, {variant_title(v)}")
         self.conf_info.setText(f"Confusion at {c.confusion_pcs} PCs (rows true, columns predicted; colour: fraction "
-                               f"of the true class; trials summed over {c.acc.shape[0]} repetitions); {pile}")
+                               f"of the true class; trials summed over {c.acc.shape[0]} repetitions); {pile_text}")
 
     # ------------------------------------------------------------------------------------------------------
     # export

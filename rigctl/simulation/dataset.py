@@ -26,7 +26,6 @@ seeded from ``(seed, trial_id)``, so a dataset is reproducible whatever the numb
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import multiprocessing as mp
 import os
@@ -371,7 +370,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
                              "pass the same --trials-per-condition")
         seed = int(writer.attrs.get("dataset_seed", seed))
         # the stored model wins too: the missing trials are rendered like the ones already written
-        stored_cfg = json.loads(writer.attrs.get("rig_config", "{}") or "{}")
+        stored_cfg = writer.rig_config
         if stored_cfg:
             cfg = RigConfig.from_dict(stored_cfg)
             layout = model_layout(cfg)

@@ -426,6 +426,15 @@ def _write_new_file(path: Path, image: bytes) -> None:
 # ----------------------------------------------------------------------------------------------------------------
 # Writer
 # ----------------------------------------------------------------------------------------------------------------
+def _decode_rig_config(attrs: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``rig_config`` root attribute (JSON) as a dict, ``{}`` when absent. Raises ValueError (or TypeError) when
+    it is not a JSON object."""
+    cfg = json.loads(attrs.get("rig_config", "{}") or "{}")
+    if not isinstance(cfg, dict):
+        raise ValueError("not a JSON object")
+    return cfg
+
+
 class SessionWriter:
     """Writes a session file trial by trial; the file is open only during each write.
 
@@ -651,6 +660,16 @@ class SessionWriter:
     def plan(self) -> np.ndarray:
         """The ``/plan`` table as last written by this writer, with numpy str fields (as :attr:`Session.plan`)."""
         return _plan_to_str(self._plan)
+
+    @property
+    def rig_config(self) -> dict[str, Any]:
+        """The session's ``rig_config`` (as :attr:`Session.rig_config`; ``{}`` when none was stored). Raises
+        :class:`SessionError` when the attribute is not a JSON object."""
+        try:
+            return _decode_rig_config(self.attrs)
+        except (TypeError, ValueError) as exc:
+            raise SessionError(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)})") \
+                from None
 
     def completed_ids(self) -> list[int]:
         """Trial ids whose status is complete."""
@@ -1153,9 +1172,7 @@ class Session:
         self._complete = set(self.completed_ids())
         self.protocol_source = header.protocol_source
         try:
-            self.rig_config = json.loads(self.attrs.get("rig_config", "{}") or "{}")
-            if not isinstance(self.rig_config, dict):
-                raise ValueError("not a JSON object")
+            self.rig_config = _decode_rig_config(self.attrs)
         except (TypeError, ValueError) as exc:
             self.rig_config = {}
             self._problem(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)}); "
