@@ -6,7 +6,7 @@ Rules (docs/architecture.md): ``rigctl.core`` imports nothing else of rigctl's; 
 the simulator, the acquisition, the encoder, the analysis or Qt; encoding and analysis never touch serial ports,
 Modbus, the devices, the simulator, the acquisition, Qt or the GUI; acquisition never imports the simulator (only
 the composition root ``rigctl.rigs`` knows every backend); devices never import the simulator, the acquisition or
-storage; and nothing in rigctl but ``rigctl.cli.gui`` pulls in Qt, pyqtgraph or the ``gui`` package.
+storage; nothing below the CLI imports the operator layer (``rigctl.operations``); and nothing in rigctl but ``rigctl.cli.gui`` pulls in Qt, pyqtgraph or the ``gui`` package.
 """
 
 from __future__ import annotations
@@ -41,18 +41,21 @@ _PROBE = textwrap.dedent("""
 
 #: layer -> (modules of it not checked, forbidden modules)
 _ALL_RIGCTL = ["PySide6", "pyqtgraph", "rigctl_gui"]
+#: the operator service layer sits above every library layer: only the CLI and the GUI import it
+_ABOVE = ["rigctl.operations"]
 RULES: dict[str, tuple[list[str], list[str]]] = {
     "rigctl.core": ([], ["rigctl.devices", "rigctl.simulation", "rigctl.acquisition", "rigctl.storage",
                          "rigctl.encoding", "rigctl.analysis", "rigctl.cli", "rigctl.rigs", "rigctl.texture_set"]
-                    + _ALL_RIGCTL),
+                    + _ALL_RIGCTL + _ABOVE),
     "rigctl.storage": ([], ["serial", "pymodbus", "rigctl.devices", "rigctl.simulation", "rigctl.acquisition",
-                            "rigctl.encoding", "rigctl.analysis"] + _ALL_RIGCTL),
+                            "rigctl.encoding", "rigctl.analysis"] + _ALL_RIGCTL + _ABOVE),
     "rigctl.encoding": ([], ["serial", "pymodbus", "rigctl.devices", "rigctl.simulation", "rigctl.acquisition"]
-                        + _ALL_RIGCTL),
+                        + _ALL_RIGCTL + _ABOVE),
     "rigctl.analysis": ([], ["serial", "pymodbus", "rigctl.devices", "rigctl.simulation", "rigctl.acquisition"]
-                        + _ALL_RIGCTL),
-    "rigctl.acquisition": ([], ["rigctl.simulation"] + _ALL_RIGCTL),
-    "rigctl.devices": ([], ["rigctl.simulation", "rigctl.acquisition", "rigctl.storage"] + _ALL_RIGCTL),
+                        + _ALL_RIGCTL + _ABOVE),
+    "rigctl.acquisition": ([], ["rigctl.simulation"] + _ALL_RIGCTL + _ABOVE),
+    "rigctl.devices": ([], ["rigctl.simulation", "rigctl.acquisition", "rigctl.storage"] + _ALL_RIGCTL + _ABOVE),
+    "rigctl.simulation": ([], _ALL_RIGCTL + _ABOVE),
     "rigctl": (["rigctl.cli.gui"], _ALL_RIGCTL),
 }
 

@@ -232,15 +232,18 @@ def test_drum_geometry_and_index_pulse(spec_text, h):
     diameter, steps, micro = map(int, m.groups())
     assert (h["RIGCTL_DRUM_DIAMETER_MM_DEF"], h["RIGCTL_DRUM_STEPS_PER_REV_DEF"], h["RIGCTL_DRUM_MICROSTEPS_DEF"]) \
         == (diameter, steps, micro)
+    from rigctl.core import drum
     from rigctl.simulation.model import DrumConfig
 
+    # the host's one home of the geometry (rigctl.core.drum) and the simulated rig's defaults
+    assert (drum.DRUM_DIAMETER_MM, drum.DRUM_STEPS_PER_REV, drum.DRUM_MICROSTEPS) == (diameter, steps, micro)
     d = DrumConfig()
     assert (d.diameter_mm, d.steps_per_rev, d.microsteps) == (diameter, steps, micro)
     pulse = int(re.search(r"raises its index output for (\d+) ms", spec_text).group(1))
     assert h["RIGCTL_INDEX_PULSE_MS"] == pulse
     # the firmware's own config header takes its geometry from these defaults
     cfg = (REPO / "arduino" / "mega_drum" / "drum_config.h").read_text()
-    assert re.search(rf"#define DRUM_DIAMETER_MM\s+{diameter}(\.0)?f?\b", cfg)
+    assert re.search(r"#define DRUM_DIAMETER_MM\s+\(\(float\)RIGCTL_DRUM_DIAMETER_MM_DEF\)", cfg)
     assert "RIGCTL_DRUM_STEPS_PER_REV_DEF" in cfg and "RIGCTL_DRUM_MICROSTEPS_DEF" in cfg
 
 

@@ -40,8 +40,8 @@ from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the confi
     save_rig_config,
     update_rig_config,
 )
-from rigctl.core.interfaces import MassPlacer
-from rigctl.devices import wire
+from rigctl.core.drum import SetpointRangeError
+from rigctl.core.interfaces import DrumController, MassPlacer
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ def _mean_raw(drum, n: int, interval_s: float) -> tuple[float, float, float]:
 
 
 def calibrate_loadcell(
-    drum,
+    drum: DrumController,
     mass_g: float,
     *,
     place_mass: Callable[[float], Any],
@@ -108,8 +108,7 @@ def calibrate_loadcell(
 
     Parameters
     ----------
-    drum : an open :class:`rigctl.core.interfaces.DrumController` (plus ``set_loadcell_scale`` and
-        ``save_calibration``, as :class:`rigctl.devices.drum.DrumClient` has them)
+    drum : an open :class:`rigctl.core.interfaces.DrumController`
     mass_g : known mass, g (> 0)
     place_mass, remove_mass : callables that return once the mass is on / off the load cell
     n_readings, interval_s : raw readings averaged for each level, and their spacing (s)
@@ -144,11 +143,11 @@ def calibrate_loadcell(
                 "is the mass on the load cell?")
         counts_per_g = delta / mass_g
         scale_x100 = int(round(counts_per_g * 100))
-        lo, hi = wire.HOLDING_RANGE[wire.HoldingRegister.LOADCELL_SCALE_X100][:2]
-        if not lo <= scale_x100 <= hi:
-            raise CalibrationError(f"{counts_per_g:.3f} counts/g is outside what LOADCELL_SCALE_X100 holds "
-                                   f"({lo / 100:g}-{hi / 100:g} counts/g)")
-        drum.set_loadcell_scale(counts_per_g)
+        try:
+            drum.set_loadcell_scale(counts_per_g)
+        except SetpointRangeError as exc:
+            raise CalibrationError(f"{counts_per_g:.3f} counts/g is outside what the controller's load-cell scale "
+                                   f"holds ({exc.low:g}-{exc.high:g} counts/g)") from None
         if save:
             drum.save_calibration()
         time.sleep(settle_s)

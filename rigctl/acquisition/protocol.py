@@ -33,12 +33,11 @@ from typing import Any
 
 import numpy as np
 
+# the rig's protocol range every setpoint is checked against (mm/s, g): one home, rigctl.core.drum
+from rigctl.core.drum import MAX_FORCE_G as MAX_FORCE_G, MAX_SPEED_MM_S as MAX_SPEED_MM_S
 from rigctl.core.textures import GEOMETRY_KEYS, KINDS as TEXTURE_KINDS, PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.core.trial import PlannedTrial  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 
-#: rig limits every setpoint is checked against before anything moves (mm/s, g)
-MAX_SPEED_MM_S = 150.0
-MAX_FORCE_G = 1500.0
 #: longest trial the runner accepts, and the RAMP_DURATION_MS register's limit (s)
 MAX_DURATION_S = 600.0
 MAX_RAMP_DURATION_S = 60.0

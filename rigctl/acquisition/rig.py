@@ -38,8 +38,18 @@ from typing import Any
 import numpy as np
 
 from rigctl.acquisition.motion import wait_released
-from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S, PlannedTrial, Settle
+from rigctl.acquisition.protocol import PlannedTrial, Settle
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
+from rigctl.core.drum import (
+    DRUM_CIRCUMFERENCE_MM,
+    PROTOCOL_LIMITS,
+    DrumError,
+    DrumFault,
+    DrumState,
+    DrumTimeout,
+    Fault,
+    SpeedProfile,
+)
 from rigctl.core.interfaces import DrumController, RigBackend, TaxelSource
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
@@ -54,9 +64,6 @@ STATUS_PERIOD_S = 0.02
 CAPTURE_STALL_S = 2.0
 #: and in any case when it takes longer than 3 x the trial's duration + this margin, s
 CAPTURE_MARGIN_S = 5.0
-#: drum circumference, mm (default rig geometry, docs/wire-protocol.md 2.6: 100 mm diameter); sets how long a
-#: constant-speed trial may wait for the index pulse
-DRUM_CIRCUMFERENCE_MM = math.pi * 100.0
 #: the index pulse must arrive within this many drum revolutions (at the trial speed) after the capture starts
 INDEX_TIMEOUT_REVS = 1.25
 #: extra frames captured beyond the expected index position + the trial's frames (status-read latency, jitter)
@@ -79,6 +86,21 @@ class RigError(RuntimeError):
 
 class TrialAborted(RigError):
     """A trial was stopped on request (stop event / Ctrl-C); the rig has been stopped, nothing was recorded."""
+
+
+class RigOpenError(RigError, DrumError):
+    """The boards opened but the drum controller failed while the rig was being prepared (status read, HOME): a
+    :class:`rigctl.core.drum.DrumError` (``__cause__``) that also says whether the clean-up's STOP was acknowledged.
+
+    Attributes
+    ----------
+    mode : the rig's backend ("sim", "hardware", ...)
+    stop_acknowledged : bool, False when the controller did not acknowledge STOP either (the drum may be moving)
+    """
+
+    def __init__(self, mode: str, cause: BaseException, *, stop_acknowledged: bool) -> None:
+        self.mode, self.stop_acknowledged = mode, stop_acknowledged
+        super().__init__(f"cannot open the {mode} rig: {' '.join(str(cause).split())}")
 
 
 class CaptureError(RigError):
@@ -142,6 +164,8 @@ class Rig:
         self._lock = threading.RLock()
         #: frames the last trial's capture received (None before the first, or once the stream is known to work)
         self.last_capture_frames: int | None = None
+        #: whether the controller acknowledged the STOP of :meth:`close` (None while open)
+        self.stop_acknowledged: bool | None = None
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
@@ -191,14 +215,16 @@ class Rig:
                   host_config_path=str(config_path(host_config_path)))
         try:
             rig._prepare(home=home)
-        except BaseException:
+        except BaseException as exc:
             rig.close()
+            if isinstance(exc, DrumError):
+                raise RigOpenError(rig.mode, exc, stop_acknowledged=bool(rig.stop_acknowledged)) from exc
             raise
         return rig
 
     def _prepare(self, *, home: bool) -> None:
         st = self.drum.read_status()
-        if st.state == wire.DrumState.FAULT:
+        if st.state == DrumState.FAULT:
             if not home:
                 log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
                 return
@@ -207,7 +233,7 @@ class Rig:
             self.drum.clear_fault()
         if home:
             self.drum.home()
-            self.drum.wait_state([wire.DrumState.IDLE], timeout_s=30.0)
+            self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
 
     # ------------------------------------------------------------------------------------------------- sensor, textures
     @property
@@ -239,7 +265,7 @@ class Rig:
         if self._closed:
             return
         self._closed = True
-        self.safe_stop()
+        self.stop_acknowledged = self.safe_stop()
         with contextlib.suppress(Exception):
             self.stream.close()
         with contextlib.suppress(Exception):
@@ -267,8 +293,7 @@ class Rig:
         try:
             st = self.drum.read_status()
             out["drum_firmware"] = list(st.firmware)
-            out["drum_registers"] = {r.name: int(self.drum.read_holding(r)) for r in wire.HoldingRegister
-                                     if r != wire.HoldingRegister.COMMAND}
+            out["drum_registers"] = self.drum.settings()
         except Exception as exc:  # describing must not fail a session
             out["drum_error"] = str(exc)
         return out
@@ -287,10 +312,8 @@ class Rig:
     def apply_settle(self, settle: Settle) -> None:
         """Use ``settle``'s timeouts; write its optional controller settings (FORCE_TOLERANCE_G, SETTLE_TIME_MS)."""
         self.settle = settle
-        if settle.force_tolerance_g is not None:
-            self.drum.write_holding(wire.HoldingRegister.FORCE_TOLERANCE_G, int(settle.force_tolerance_g))
-        if settle.settle_time_ms is not None:
-            self.drum.write_holding(wire.HoldingRegister.SETTLE_TIME_MS, int(settle.settle_time_ms))
+        if settle.force_tolerance_g is not None or settle.settle_time_ms is not None:
+            self.drum.set_settle_band(force_tolerance_g=settle.force_tolerance_g, settle_time_ms=settle.settle_time_ms)
 
     def release(self, timeout_s: float = 20.0) -> None:
         """STOP and wait until IDLE with the actuator back home (drum at rest, sensor free): the state for changing
@@ -301,12 +324,10 @@ class Rig:
         stopped, actuator backed off), so it is logged, cleared and the release completes. Any other fault is
         raised. Raises DrumTimeout / DrumFault.
         """
-        from rigctl.devices.errors import DrumFault
-
         try:
             wait_released(self.drum, timeout_s=timeout_s)
         except DrumFault as exc:
-            if exc.faults != wire.Fault.WATCHDOG:
+            if exc.faults != Fault.WATCHDOG:
                 raise
             log.warning("the controller's watchdog tripped while the host was busy between trials (the rig stopped "
                         "itself safely); clearing it")
@@ -352,14 +373,12 @@ class Rig:
         -------
         None when both links work again, else the link problem in words (see :meth:`check_links`).
         """
-        from rigctl.devices.errors import DrumError
-
         self.safe_stop()
         try:
             st = self.drum.read_status()
-            if st.state == wire.DrumState.FAULT:
+            if st.state == DrumState.FAULT:
                 self.drum.clear_fault()
-            self.drum.wait_state([wire.DrumState.IDLE], timeout_s=20.0)
+            self.drum.wait_state([DrumState.IDLE], timeout_s=20.0)
         except DrumError as exc:
             log.warning("recovering the rig: %s", exc)
         return self.check_links(restart=True)
@@ -376,7 +395,7 @@ class Rig:
         None if both work, else what does not, e.g. ``"the drum controller does not answer (...)"`` or ``"no taxel
         frame for 1.0 s (stream disconnected, 2 reconnects)"``.
         """
-        from rigctl.devices.errors import DrumError, TaxelStreamError
+        from rigctl.devices.errors import TaxelStreamError
 
         timeout_s = LINK_CHECK_S if timeout_s is None else float(timeout_s)
         frames0 = self.stream.stats.frames
@@ -423,10 +442,8 @@ class Rig:
         return _Status(0.5 * (t0 + t1), float(st.force_g), float(st.speed_mm_s), int(st.state), int(st.faults))
 
     def _check_fault(self, s: _Status, what: str) -> None:
-        if s.state == wire.DrumState.FAULT:
-            from rigctl.devices.errors import DrumFault
-
-            raise DrumFault(wire.Fault(s.faults), what)
+        if s.state == DrumState.FAULT:
+            raise DrumFault(Fault(s.faults), what)
 
     # ------------------------------------------------------------------------------------------------- trials
     def press(self, force_g: float, *, timeout_s: float | None = None) -> float:
@@ -435,43 +452,36 @@ class Rig:
         Returns the time it took, s. Raises :class:`rigctl.devices.errors.SetpointRangeError` (out of range, nothing
         sent), :class:`rigctl.devices.errors.DrumTimeout` (not settled in time), ``DrumFault``.
         """
-        if not 0 < force_g <= MAX_FORCE_G:
-            from rigctl.devices.errors import SetpointRangeError
-
-            raise SetpointRangeError("force", force_g, "g", 0, MAX_FORCE_G, "rig limit")
+        force_g = PROTOCOL_LIMITS.force_range().check(force_g)
         timeout_s = self.settle.force_timeout_s if timeout_s is None else timeout_s
         t0 = time.monotonic()
         st = self.drum.read_status()
-        if st.state == wire.DrumState.RUNNING:
+        if st.state == DrumState.RUNNING:
             self.drum.stop_drum()
-            self.drum.wait_state([wire.DrumState.FORCE_SETTLED, wire.DrumState.SEEKING_FORCE], timeout_s=10.0)
+            self.drum.wait_state([DrumState.FORCE_SETTLED, DrumState.SEEKING_FORCE], timeout_s=10.0)
             st = self.drum.read_status()
-        if st.state == wire.DrumState.FAULT:
-            from rigctl.devices.errors import DrumFault
-
-            if wire.Fault(int(st.faults)) != wire.Fault.WATCHDOG:
-                raise DrumFault(wire.Fault(int(st.faults)), "before pressing")
+        if st.state == DrumState.FAULT:
+            if Fault(int(st.faults)) != Fault.WATCHDOG:
+                raise DrumFault(Fault(int(st.faults)), "before pressing")
             # the host went quiet between trials (nothing was being recorded): the rig stopped itself safely
             log.warning("the controller's watchdog tripped between trials; clearing it and pressing again")
             self.drum.clear_fault()
-            st = self.drum.wait_state([wire.DrumState.IDLE], timeout_s=10.0)
+            st = self.drum.wait_state([DrumState.IDLE], timeout_s=10.0)
         self.drum.set_force(force_g)
-        if st.state not in (wire.DrumState.SEEKING_FORCE, wire.DrumState.FORCE_SETTLED):
+        if st.state not in (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED):
             self.drum.press()
         # the controller may still report FORCE_SETTLED for the previous setpoint for one control period
-        tol = float(self.drum.read_holding(wire.HoldingRegister.FORCE_TOLERANCE_G))
+        tol = self.drum.settle_band().force_tolerance_g
         deadline = t0 + timeout_s
         while True:
             self.drum.wait_force_settled(timeout_s=max(0.05, deadline - time.monotonic()))
             st = self.drum.read_status()
-            if (st.state == wire.DrumState.FORCE_SETTLED and int(st.force_setpoint_active_g) == int(round(force_g))
+            if (st.state == DrumState.FORCE_SETTLED and int(st.force_setpoint_active_g) == int(round(force_g))
                     and abs(float(st.force_g) - force_g) <= tol):
                 return time.monotonic() - t0
             if time.monotonic() > deadline:
-                from rigctl.devices.errors import DrumTimeout
-
                 raise DrumTimeout(f"force did not settle at {force_g:g} g within {timeout_s:g} s "
-                                  f"(state {wire.DrumState(int(st.state)).name}, force {float(st.force_g):.0f} g)")
+                                  f"(state {DrumState(int(st.state)).name}, force {float(st.force_g):.0f} g)")
             time.sleep(0.02)
 
     def record_trial(self, planned: PlannedTrial, *, stop_event: threading.Event | None = None) -> TrialData:
@@ -513,10 +523,7 @@ class Rig:
             raise ValueError(f"trial {planned.trial_id} is on texture {planned.texture} but {self.texture} is mounted")
         speeds = [planned.ramp_start_mm_s, planned.ramp_end_mm_s] if planned.is_ramp else [planned.speed_mm_s]
         for v in speeds:
-            if not 0 < v <= MAX_SPEED_MM_S:
-                from rigctl.devices.errors import SetpointRangeError
-
-                raise SetpointRangeError("speed", v, "mm/s", 0, MAX_SPEED_MM_S, "rig limit")
+            PROTOCOL_LIMITS.speed_range().check(v)
         n = planned.samples_at(self.layout.sample_rate_hz)
         if n <= 0:
             raise ValueError(f"trial {planned.trial_id}: duration {planned.duration_s} s gives no samples")
@@ -530,8 +537,6 @@ class Rig:
                 raise
 
     def _record(self, planned: PlannedTrial, n: int, stop_event) -> TrialData:
-        from rigctl.devices.errors import DrumTimeout
-
         settle = self.settle
         layout = self.layout
         rate = layout.sample_rate_hz
@@ -540,7 +545,7 @@ class Rig:
         # spin up at a constant speed (a ramp's start speed) and wait until the drum runs steadily there
         first_speed = planned.ramp_start_mm_s if planned.is_ramp else planned.speed_mm_s
         self.drum.set_speed(first_speed)
-        self.drum.set_profile(wire.SpeedProfile.CONSTANT)
+        self.drum.set_profile(SpeedProfile.CONSTANT)
         t_run = time.monotonic()
         self.drum.run()
         try:
@@ -551,7 +556,7 @@ class Rig:
         if planned.is_ramp:
             # then start the ramp: RUN restarts the profile's clock, and the capture starts with it
             self.drum.set_ramp(planned.ramp_start_mm_s, planned.ramp_end_mm_s, planned.duration_s)
-            self.drum.set_profile(wire.SpeedProfile.RAMP)
+            self.drum.set_profile(SpeedProfile.RAMP)
             self.drum.run()
         spinup_s = time.monotonic() - t_run
         _abort_if(stop_event)

@@ -124,11 +124,11 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
     error (refused before the rig moves).
     """
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
-    from rigctl.acquisition.rig import RigError
+    from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.acquisition.runner import run_protocol
     from rigctl.devices.errors import DrumError, TaxelStreamError
-    from rigctl.rigs import open_rig
+    from rigctl.operations import RigSource, open_control
     from rigctl.storage.session import SessionError
 
     if (drum_port is None) != (taxel_port is None):
@@ -178,22 +178,24 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    kind = "hardware" if hardware else "replay" if replay is not None else "hil" if hil else "sim"
+    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay)
     with _held_rig_warnings() as held:
         try:
-            rig = open_rig(kind, drum_port=drum_port, taxel_port=taxel_port, source=replay, prompt=prompt,
-                           seed=0 if seed is None else seed, host_config_path=config_path)
+            control = open_control(source, prompt=prompt, seed=0 if seed is None else seed,
+                                   host_config_path=config_path)
+        except RigOpenError as exc:  # the port opened but the drum controller failed there
+            stop = ("" if exc.stop_acknowledged
+                    else "; STOP was not acknowledged either: if the drum may be moving, stop it by hand")
+            hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if hardware else ""
+            raise click.ClickException(f"{exc}{hint}{stop}") from None
         except (RigError, TaxelStreamError, OSError, ValueError) as exc:
             raise click.ClickException(" ".join(str(exc).split())) from None
-        except DrumError as exc:  # the port opened but no drum controller answered there
-            stop = ("; STOP was not acknowledged either: if the drum may be moving, stop it by hand"
-                    if any("could not send STOP" in r.getMessage() for r in held) else "")
-            hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if hardware else ""
-            raise click.ClickException(f"cannot open the {kind} rig: {' '.join(str(exc).split())}{hint}{stop}") \
-                from None
+        except DrumError as exc:  # HOME failed
+            raise click.ClickException(f"cannot open the {source.kind} rig: {' '.join(str(exc).split())}") from None
     for record in held:  # the opening succeeded: what it logged is news
         logging.getLogger(record.name).handle(record)
-    with rig, bars(not quiet) as progress:
+    rig = control.rig
+    with control, bars(not quiet) as progress:
         try:
             summary = run_protocol(proto, out, rig=rig, resume=resume, progress=progress,
                                    on_failure=on_failure, overwrite=overwrite)

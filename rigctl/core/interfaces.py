@@ -17,7 +17,8 @@ these, never against a concrete backend. Implementations:
   ``rigctl.simulation.inprocess.InProcessBackend``; only the composition root ``rigctl.rigs`` knows them all.
 
 Bluesky's ``protocols.py`` is the model (duck typing, no inheritance chains). Imports nothing else of rigctl's but
-:mod:`rigctl.core.sensor` and :mod:`rigctl.core.textures`.
+:mod:`rigctl.core.drum` (the drum controller's typed values), :mod:`rigctl.core.sensor` and
+:mod:`rigctl.core.textures`.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol, runtime_checkable
 
+from rigctl.core.drum import Clock, DrumLimits, DrumState, DrumStatus, SettleBand, SpeedProfile
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 
@@ -33,35 +35,125 @@ __all__ = ["DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBa
 
 @runtime_checkable
 class DrumController(Protocol):
-    """The drum controller (Mega): speed and force setpoints in physical units, commands, status.
+    """The drum controller (Mega) in the rig's terms: speed and force setpoints in mm/s and g, commands, a typed
+    status (:class:`rigctl.core.drum.DrumStatus`), its limits (:class:`rigctl.core.drum.DrumLimits`) and settle band;
+    no registers (those stay inside ``rigctl.devices``).
 
-    Setters raise ``rigctl.devices.errors.SetpointRangeError`` (a ValueError) before anything is sent when a value is
-    outside the controller's range; communication failures raise ``DrumError`` subclasses (``DrumTimeout``, ...).
-    ``clock`` (``now() -> s``, ``sleep(s)``) is the host clock its waits run on and the taxel source's
-    ``host_time_s`` uses: the wall clock (``time.monotonic``), or the in-process backend's simulated clock.
+    Errors (all :mod:`rigctl.core.drum`): setters raise :class:`SetpointRangeError` (a ValueError) before anything
+    is sent when a value is outside the controller's range; every call raises :class:`DrumError` when the
+    controller does not answer or refuses (:class:`DrumTimeout`: no answer / not reached in time; a Modbus client
+    adds ``ModbusExceptionError``); the waits raise :class:`DrumFault` when the controller latches a fault.
+    ``clock`` (:class:`rigctl.core.drum.Clock`) is the host clock the waits run on and the taxel source's
+    ``host_time_s`` uses: the wall clock, or the in-process backend's simulated clock.
+    A context manager: ``__enter__`` opens the link (DrumError if it cannot), ``__exit__`` closes it.
     """
 
-    clock: Any
+    clock: Clock
 
-    def set_speed(self, mm_s: float) -> None: ...
-    def set_force(self, g: float) -> None: ...
-    def set_ramp(self, start_mm_s: float, end_mm_s: float, duration_s: float) -> None: ...
-    def set_profile(self, profile: Any) -> None: ...
-    def run(self) -> None: ...
-    def stop(self) -> None: ...
-    def stop_drum(self) -> None: ...
-    def press(self) -> None: ...
-    def tare(self) -> None: ...
-    def home(self) -> None: ...
-    def clear_fault(self) -> None: ...
-    def read_status(self) -> Any: ...
-    def read_holding(self, reg: Any) -> int: ...
-    def write_holding(self, reg: Any, value: int) -> None: ...
-    def wait_state(self, states: Iterable[Any], timeout_s: float) -> Any: ...
-    def wait_released(self, timeout_s: float, home_mm: float = ...) -> Any: ...
-    def wait_force_settled(self, timeout_s: float) -> Any: ...
-    def wait_speed_steady(self, timeout_s: float, tol_mm_s: float = ..., n_polls: int = ...) -> Any: ...
-    def close(self) -> None: ...
+    def __enter__(self) -> Any:
+        """Open the link to the controller; returns the controller. DrumError if it cannot be opened."""
+        ...
+
+    def __exit__(self, *exc: object) -> Any:
+        """Close the link (:meth:`close`)."""
+        ...
+
+    def close(self) -> None:
+        """Close the link; the controller keeps running on its own (its watchdog stops a drum left turning)."""
+        ...
+
+    # setpoints
+    def set_speed(self, mm_s: float) -> None:
+        """Drum surface speed for the CONSTANT profile, mm/s (0 to the controller's speed limit)."""
+        ...
+
+    def set_force(self, g: float) -> None:
+        """Contact-force setpoint the force loop holds, g (0 to the controller's force limit)."""
+        ...
+
+    def set_ramp(self, start_mm_s: float, end_mm_s: float, duration_s: float) -> None:
+        """RAMP profile: linear from ``start_mm_s`` to ``end_mm_s`` (mm/s) over ``duration_s`` (0.001-60 s), then
+        held; all three or none are set. Does not select the profile (:meth:`set_profile`)."""
+        ...
+
+    def set_profile(self, profile: SpeedProfile) -> None:
+        """Select the speed profile the next RUN follows: CONSTANT or RAMP."""
+        ...
+
+    def limits(self) -> DrumLimits:
+        """The controller's hard limits: speed, mm/s, and force, g (its SPEED_LIMIT / FORCE_LIMIT)."""
+        ...
+
+    def settle_band(self) -> SettleBand:
+        """When the force loop counts as on target: force tolerance, g, held for settle time, ms."""
+        ...
+
+    def set_settle_band(self, *, force_tolerance_g: float | None = None, settle_time_ms: int | None = None) -> None:
+        """Set the force tolerance (g, 1-500) and / or the settle time (ms, 0-10000); None keeps a value."""
+        ...
+
+    # commands
+    def run(self) -> None:
+        """Start the drum on the selected profile (the force loop keeps holding; PRESS first if it is not)."""
+        ...
+
+    def stop(self) -> None:
+        """Safe stop: drum decelerates to rest, actuator backs off home, state IDLE. Allowed in every state."""
+        ...
+
+    def stop_drum(self) -> None:
+        """Decelerate the drum to rest, keep holding the force (FORCE_SETTLED)."""
+        ...
+
+    def press(self) -> None:
+        """Engage the force loop: seek the force setpoint (SEEKING_FORCE), then hold it (FORCE_SETTLED)."""
+        ...
+
+    def tare(self) -> None:
+        """Zero the load cell; only with the actuator released (IDLE)."""
+        ...
+
+    def home(self) -> None:
+        """Drive the actuator to its home switch and zero its position (HOMING, then IDLE)."""
+        ...
+
+    def clear_fault(self) -> None:
+        """Clear the latched faults and leave FAULT for IDLE; refused while the fault condition persists."""
+        ...
+
+    def set_loadcell_scale(self, counts_per_g: float) -> None:
+        """Load-cell calibration: HX711 counts per g (0.01-655.35); :meth:`save_calibration` keeps it."""
+        ...
+
+    def save_calibration(self) -> None:
+        """Write the calibration (load-cell scale, actuator steps per mm) to the controller's EEPROM."""
+        ...
+
+    # status
+    def read_status(self) -> DrumStatus:
+        """The controller's state now: force, speed, angle, actuator position, state, faults, firmware."""
+        ...
+
+    def settings(self) -> dict[str, int]:
+        """The controller's settings by name, raw (for the record: a session's ``rig_config``)."""
+        ...
+
+    # waits (poll on ``clock``; DrumTimeout when not reached within timeout_s, DrumFault on a fault)
+    def wait_state(self, states: Iterable[DrumState], timeout_s: float) -> DrumStatus:
+        """Until the state is one of ``states`` (FAULT among them: a fault ends the wait instead of raising)."""
+        ...
+
+    def wait_released(self, timeout_s: float, home_mm: float = ...) -> DrumStatus:
+        """Until IDLE with the actuator within ``home_mm`` (mm) of home: the sensor is free."""
+        ...
+
+    def wait_force_settled(self, timeout_s: float) -> DrumStatus:
+        """Until the force loop is on target (FORCE_SETTLED, or RUNNING within the settle band)."""
+        ...
+
+    def wait_speed_steady(self, timeout_s: float, tol_mm_s: float = ..., n_polls: int = ...) -> DrumStatus:
+        """Until the drum speed is within ``tol_mm_s`` (mm/s) of the profile's target for ``n_polls`` polls."""
+        ...
 
 
 @runtime_checkable

@@ -34,6 +34,8 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.framer import FramerRTU, FramerType
 from pymodbus.pdu import ExceptionResponse
 
+from rigctl.core import drum as core_drum
+from rigctl.core.drum import DrumLimits, SettleBand
 from rigctl.devices import wire
 from rigctl.devices.errors import (
     DrumError,
@@ -44,7 +46,7 @@ from rigctl.devices.errors import (
 )
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
-__all__ = ["DrumClient", "DrumStatus", "DrumState", "Fault", "SpeedProfile"]
+__all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "SpeedProfile"]
 
 log = logging.getLogger(__name__)
 
@@ -54,21 +56,10 @@ def _s16(v: int) -> int:
 
 
 @dataclass(frozen=True)
-class DrumStatus:
-    """One snapshot of the input registers, in physical units (spec table 2.2)."""
-
-    force_g: float  #: measured load-cell force, g (tared)
-    speed_mm_s: float  #: actual drum surface speed, mm/s
-    speed_target_mm_s: float  #: speed the profile asks for now, mm/s
-    angle_deg: float  #: drum angle since the index mark, degrees 0-359.99
-    revolutions: int  #: completed revolutions, wraps at 65536
-    actuator_mm: float  #: actuator travel from home, mm (positive towards the sensor)
-    state: DrumState
-    faults: Fault
-    firmware: tuple[int, int]  #: (major, minor)
-    heartbeat: int  #: +1 every 10 ms, wraps at 65536
-    loadcell_raw: int  #: raw HX711 counts (signed 24-bit)
-    force_setpoint_active_g: float  #: setpoint the force loop holds now, g (0 when released)
+class DrumStatus(core_drum.DrumStatus):
+    """:class:`rigctl.core.drum.DrumStatus` (the controller's state in physical units), decoded from the input
+    registers (spec table 2.2). New input registers: a field with a default in the core class, its decoding in
+    :meth:`from_registers`."""
 
     @classmethod
     def from_registers(cls, regs: list[int]) -> "DrumStatus":
@@ -485,10 +476,36 @@ class DrumClient:
                    list(values), address=int(start), values=list(values))
 
     # ------------------------------------------------------------------ setpoints in physical units
-    def limits(self) -> tuple[float, float]:
-        """The controller's current (speed limit mm/s, force limit g)."""
+    def limits(self) -> DrumLimits:
+        """The controller's current hard limits (SPEED_LIMIT_0P1MMS, FORCE_LIMIT_G): mm/s, g."""
         regs = self.read_holdings(HR.SPEED_LIMIT_0P1MMS, 2)
-        return regs[0] / 10.0, float(regs[1])
+        return DrumLimits(speed_mm_s=regs[0] / 10.0, force_g=float(regs[1]))
+
+    def settle_band(self) -> SettleBand:
+        """When the force loop counts as on target (FORCE_TOLERANCE_G, SETTLE_TIME_MS): g, ms."""
+        regs = self.read_holdings(HR.FORCE_TOLERANCE_G, 2)
+        return SettleBand(force_tolerance_g=float(regs[0]), settle_time_ms=int(regs[1]))
+
+    def set_settle_band(self, *, force_tolerance_g: float | None = None, settle_time_ms: int | None = None) -> None:
+        """Set the settle band: force tolerance, g (1-500), and/or time on target, ms (0-10000). None keeps one.
+
+        Raises :class:`SetpointRangeError` (nothing sent)."""
+        for reg, value in ((HR.FORCE_TOLERANCE_G, force_tolerance_g), (HR.SETTLE_TIME_MS, settle_time_ms)):
+            if value is not None:
+                lo, hi, _ = wire.HOLDING_RANGE[reg]
+                if not lo <= float(value) <= hi:
+                    raise SetpointRangeError(reg.name, float(value), "g" if reg == HR.FORCE_TOLERANCE_G else "ms",
+                                             lo, hi)
+        if force_tolerance_g is not None:
+            self.write_holding(HR.FORCE_TOLERANCE_G, int(round(force_tolerance_g)))
+        if settle_time_ms is not None:
+            self.write_holding(HR.SETTLE_TIME_MS, int(settle_time_ms))
+
+    def settings(self) -> dict[str, int]:
+        """Every holding register but COMMAND by name, raw (the controller's settings, recorded in a session's
+        ``rig_config``)."""
+        regs = self.read_holdings(0, wire.N_HOLDING)
+        return {r.name: int(regs[int(r)]) for r in HR if r != HR.COMMAND}
 
     def _speed_raw(self, name: str, mm_s: float, limit_mm_s: float) -> int:
         hi = min(wire.HOLDING_RANGE[HR.SPEED_SETPOINT_0P1MMS][1] / 10.0, limit_mm_s)
@@ -498,12 +515,12 @@ class DrumClient:
 
     def set_speed(self, mm_s: float) -> None:
         """Drum surface speed for the CONSTANT profile, mm/s (0 - the controller's speed limit)."""
-        raw = self._speed_raw("speed", float(mm_s), self.limits()[0])
+        raw = self._speed_raw("speed", float(mm_s), self.limits().speed_mm_s)
         self.write_holding(HR.SPEED_SETPOINT_0P1MMS, raw)
 
     def set_force(self, g: float) -> None:
         """Contact-force setpoint, g (0 - the controller's force limit)."""
-        limit = self.limits()[1]
+        limit = self.limits().force_g
         hi = min(float(wire.HOLDING_RANGE[HR.FORCE_SETPOINT_G][1]), limit)
         if not (0.0 <= float(g) <= hi):
             raise SetpointRangeError("force", float(g), "g", 0.0, hi, "FORCE_LIMIT_G" if hi == limit else "")
@@ -515,7 +532,7 @@ class DrumClient:
         The three registers are written in one function-16 request (all or nothing). Does not select the profile:
         call ``set_profile(SpeedProfile.RAMP)``.
         """
-        limit = self.limits()[0]
+        limit = self.limits().speed_mm_s
         a = self._speed_raw("ramp start speed", float(start_mm_s), limit)
         b = self._speed_raw("ramp end speed", float(end_mm_s), limit)
         lo, hi, _ = wire.HOLDING_RANGE[HR.RAMP_DURATION_MS]
@@ -627,7 +644,7 @@ class DrumClient:
     def wait_force_settled(self, timeout_s: float) -> DrumStatus:
         """Poll until the force loop is on target: state FORCE_SETTLED (or RUNNING with the force within
         FORCE_TOLERANCE_G of the setpoint). DrumFault / DrumTimeout."""
-        tol = self.read_holding(HR.FORCE_TOLERANCE_G)
+        tol = self.settle_band().force_tolerance_g
 
         def done(s: DrumStatus) -> bool:
             return s.state == DrumState.FORCE_SETTLED or (

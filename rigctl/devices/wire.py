@@ -13,15 +13,20 @@ from typing import Any
 import numba
 import numpy as np
 
+# the controller's states, fault bits and speed profiles are shared by every layer: they live in rigctl.core.drum
+# (the numbers of spec tables 2.4 and 2.5, checked here by tests/test_wire_spec.py); re-exported as the spec's names
+from rigctl.core.drum import DrumState as DrumState, Fault as Fault, SpeedProfile as SpeedProfile
+from rigctl.core.sensor import PAPER_SENSOR
+
 # --------------------------------------------------------------------------------------------------------------
 # Taxel stream (Uno -> host), spec section 1
 # --------------------------------------------------------------------------------------------------------------
 TAXEL_BAUD = 1_000_000
 #: the Uno firmware's channel count, rate and resolution (the host reads a link's own from its banner)
-N_TAXELS = 18
-N_TAXELS_PER_LAYER = 9
-SAMPLE_RATE_HZ = 1000
-ADC_BITS = 10
+N_TAXELS = PAPER_SENSOR.n_channels  # 18: the Uno firmware streams the paper's sensor
+N_TAXELS_PER_LAYER = len(PAPER_SENSOR.layer_channels(0))  # 9
+SAMPLE_RATE_HZ = int(PAPER_SENSOR.sample_rate_hz)  # 1000
+ADC_BITS = PAPER_SENSOR.adc_bits  # 10
 ADC_MAX = (1 << ADC_BITS) - 1
 
 SYNC = b"\xa5\x5a"
@@ -188,33 +193,6 @@ class Command(enum.IntEnum):
     PRESS = 6
     STOP_DRUM = 7
     SAVE_CALIBRATION = 8
-
-
-class DrumState(enum.IntEnum):
-    """Controller states (spec table 2.4)."""
-
-    IDLE = 0
-    HOMING = 1
-    SEEKING_FORCE = 2
-    FORCE_SETTLED = 3
-    RUNNING = 4
-    FAULT = 5
-
-
-class SpeedProfile(enum.IntEnum):
-    """Values of the SPEED_PROFILE holding register."""
-
-    CONSTANT = 0
-    RAMP = 1
-
-
-class Fault(enum.IntFlag):
-    """Bits of the FAULT_BITS input register (spec table 2.5)."""
-
-    FORCE_LIMIT = 1 << 0
-    WATCHDOG = 1 << 1
-    LOADCELL_TIMEOUT = 1 << 2
-    ACTUATOR_TRAVEL = 1 << 3
 
 
 # --------------------------------------------------------------------------------------------------------------

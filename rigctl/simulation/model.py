@@ -53,14 +53,17 @@ from typing import Any
 import numba
 import numpy as np
 
+from rigctl.core.drum import DRUM_DIAMETER_MM, DRUM_MICROSTEPS, DRUM_STEPS_PER_REV
+from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.textures import TextureSet
 from rigctl.devices import wire
 from rigctl.simulation.textures import TEXTURES, Texture, get_texture
 
-N_ROWS = 3
-N_COLS = 3
-N_LAYERS = 2
-N_TAXELS = wire.N_TAXELS  # 18
+#: the model renders the paper's sensor (3x3 taxels, 2 layers: 18 channels), from its SensorLayout
+N_ROWS = PAPER_SENSOR.layers[0].rows
+N_COLS = PAPER_SENSOR.layers[0].cols
+N_LAYERS = len(PAPER_SENSOR.layers)
+N_TAXELS = PAPER_SENSOR.n_channels
 ADC_MAX = wire.ADC_MAX  # 1023
 _TABLE_SIZE = 2048  # points per texture period in the smoothed-height lookup tables
 
@@ -93,9 +96,9 @@ class DrumConfig:
         index sensor's repeatability and the plate's mounting; the 1 ms frame latch adds a uniform 0..v*1 ms.
     """
 
-    diameter_mm: float = 100.0
-    steps_per_rev: int = 200
-    microsteps: int = 16
+    diameter_mm: float = DRUM_DIAMETER_MM
+    steps_per_rev: int = DRUM_STEPS_PER_REV
+    microsteps: int = DRUM_MICROSTEPS
     max_accel_mm_s2: float = 500.0
     runout_mm: float = 0.02
     start_at_index: bool = True

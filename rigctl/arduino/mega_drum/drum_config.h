@@ -6,7 +6,7 @@
 #include "../common/rigctl_wire.h"
 
 /* ---- drum (spec 2.6): f = v * steps_per_rev * microsteps / (pi * diameter) ---- */
-#define DRUM_DIAMETER_MM       100.0f
+#define DRUM_DIAMETER_MM       ((float)RIGCTL_DRUM_DIAMETER_MM_DEF)
 #define DRUM_STEPS_PER_REV     RIGCTL_DRUM_STEPS_PER_REV_DEF
 #define DRUM_MICROSTEPS        RIGCTL_DRUM_MICROSTEPS_DEF
 #define DRUM_USTEPS_PER_REV    ((uint16_t)(DRUM_STEPS_PER_REV * DRUM_MICROSTEPS))

@@ -1,0 +1,323 @@
+"""The drum controller in the rig's terms: states, faults, status, limits, setpoints, geometry and errors.
+
+Every layer shares these (the device client decodes registers into them, the acquisition layer and the operator
+layer decide with them, the CLI and the GUI show them), so they live in :mod:`rigctl.core` and import nothing else
+of rigctl's. The numbers of the state codes and fault bits are the wire spec's (``docs/wire-protocol.md`` tables
+2.4 and 2.5); ``rigctl.devices.wire`` re-exports these enums and ``tests/test_wire_spec.py`` checks them against the
+spec and the firmware header.
+
+Adding to the controller (a register, a status field, a state, a fault bit):
+
+- a state or fault bit: a member of :class:`DrumState` / :class:`Fault` here, with its words in
+  :data:`STATE_TEXT` / :data:`FAULT_TEXT` (and :data:`FAULT_ADVICE`); the spec's table and the header first.
+- a status field: a field *with a default* at the end of :class:`DrumStatus` (units in its name, a ``#:`` comment
+  saying what it is), decoded in ``rigctl.devices.drum.DrumStatus.from_registers``; a default keeps every other
+  backend and test that builds a status valid.
+
+Limits (the one home): the rig's protocol range (:data:`MAX_SPEED_MM_S`, :data:`MAX_FORCE_G`: what any protocol,
+manual setpoint or script may ask for) and the controller's own SPEED_LIMIT / FORCE_LIMIT registers
+(:class:`DrumLimits`, read from the controller). A setpoint is accepted when it lies in both:
+:meth:`DrumLimits.speed_range` / :meth:`DrumLimits.force_range` give that range as a :class:`SetpointRange` with
+its unit and the name of the limit that binds (as ophyd-async's signal metadata carries limits with the value),
+and :meth:`SetpointRange.check` raises :class:`SetpointRangeError` before anything is sent.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+__all__ = [
+    "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "SetpointRange",
+    "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
+    "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM",
+    "STATE_TEXT", "FAULT_TEXT", "FAULT_ADVICE", "describe_state", "describe_faults", "fault_advice",
+    "DrumError", "DrumTimeout", "DrumFault", "SetpointRangeError", "Clock",
+]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# states, faults, profiles (spec tables 2.4, 2.5; SPEED_PROFILE values)
+# ----------------------------------------------------------------------------------------------------------------
+class DrumState(enum.IntEnum):
+    """Controller states (spec table 2.4)."""
+
+    IDLE = 0
+    HOMING = 1
+    SEEKING_FORCE = 2
+    FORCE_SETTLED = 3
+    RUNNING = 4
+    FAULT = 5
+
+
+class Fault(enum.IntFlag):
+    """Latched fault bits (spec table 2.5)."""
+
+    FORCE_LIMIT = 1 << 0
+    WATCHDOG = 1 << 1
+    LOADCELL_TIMEOUT = 1 << 2
+    ACTUATOR_TRAVEL = 1 << 3
+
+
+class SpeedProfile(enum.IntEnum):
+    """The drum's speed profiles (values of the SPEED_PROFILE holding register)."""
+
+    CONSTANT = 0
+    RAMP = 1
+
+
+#: what each state means, for the operator (spec table 2.4)
+STATE_TEXT: dict[DrumState, str] = {
+    DrumState.IDLE: "Idle - drum at rest, actuator released",
+    DrumState.HOMING: "Homing - actuator moving to its home switch",
+    DrumState.SEEKING_FORCE: "Seeking force - pressing towards the setpoint",
+    DrumState.FORCE_SETTLED: "Force settled - on target, drum at rest",
+    DrumState.RUNNING: "Running - drum turning, force loop holding",
+    DrumState.FAULT: "FAULT - drum stopped, actuator backed off",
+}
+#: each fault bit in a few words (spec table 2.5)
+FAULT_TEXT: dict[Fault, str] = {
+    Fault.FORCE_LIMIT: "measured force exceeded FORCE_LIMIT_G",
+    Fault.WATCHDOG: "host went silent for longer than WATCHDOG_MS",
+    Fault.LOADCELL_TIMEOUT: "the load cell gave no reading for 200 ms",
+    Fault.ACTUATOR_TRAVEL: "actuator reached its end of travel without reaching the force setpoint",
+}
+#: what each fault bit means and what to do about it (spec table 2.5)
+FAULT_ADVICE: dict[Fault, str] = {
+    Fault.FORCE_LIMIT: "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. "
+                       "Check the plate and the sensor, then lower the force setpoint.",
+    Fault.WATCHDOG: "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force "
+                    "loop held, and stopped (a crashed or killed program, a pulled USB cable).",
+    Fault.LOADCELL_TIMEOUT: "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring.",
+    Fault.ACTUATOR_TRAVEL: "the actuator reached its end of travel without reaching the force setpoint: no plate, "
+                           "or the sensor is too far away.",
+}
+
+
+def describe_state(state: int) -> str:
+    """The state in words (:data:`STATE_TEXT`); an unknown code as ``"state <n>"``."""
+    try:
+        s = DrumState(int(state))
+    except ValueError:
+        return f"state {int(state)}"
+    return STATE_TEXT.get(s, s.name)
+
+
+def _bits(faults: int) -> list[Fault]:
+    return [bit for bit in Fault if int(faults) & int(bit)]
+
+
+def describe_faults(faults: int) -> str:
+    """The set fault bits by name with their words, e.g. ``"FORCE_LIMIT (measured force exceeded FORCE_LIMIT_G)"``;
+    ``"none"`` when clear. Unknown bits are named by number."""
+    parts = [f"{bit.name} ({FAULT_TEXT[bit]})" if bit in FAULT_TEXT else str(bit.name) for bit in _bits(faults)]
+    known = sum(int(b) for b in Fault)
+    if int(faults) & ~known:
+        parts.append(f"unknown fault bits 0x{int(faults) & ~known:x}")
+    return ", ".join(parts) if parts else "none"
+
+
+def fault_advice(faults: int) -> str:
+    """Each latched fault bit with its meaning and what to do, one sentence each (``""`` when clear)."""
+    return " ".join(f"{FAULT_TEXT[bit].capitalize()}: {FAULT_ADVICE[bit]}" for bit in _bits(faults)
+                    if bit in FAULT_ADVICE)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# status
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DrumStatus:
+    """One snapshot of the controller's state, in physical units (spec table 2.2).
+
+    Fields added later (new input registers) come with a default, so that any backend building a status keeps
+    working (see the module docstring).
+    """
+
+    force_g: float  #: measured load-cell force, g (tared)
+    speed_mm_s: float  #: actual drum surface speed, mm/s
+    speed_target_mm_s: float  #: speed the profile asks for now, mm/s
+    angle_deg: float  #: drum angle since the index mark, degrees 0-359.99
+    revolutions: int  #: completed revolutions, wraps at 65536
+    actuator_mm: float  #: actuator travel from home, mm (positive towards the sensor)
+    state: DrumState  #: the controller state
+    faults: Fault  #: latched fault bits (cleared by CLEAR_FAULT)
+    firmware: tuple[int, int]  #: (major, minor)
+    heartbeat: int  #: +1 every 10 ms, wraps at 65536
+    loadcell_raw: int  #: raw HX711 counts (signed 24-bit)
+    force_setpoint_active_g: float  #: setpoint the force loop holds now, g (0 when released)
+
+    @property
+    def faulted(self) -> bool:
+        """The controller is in FAULT (a fault latched; drum stopped, actuator backed off)."""
+        return self.state == DrumState.FAULT
+
+    def describe(self) -> str:
+        """The state in words, and the latched faults if any (one line)."""
+        text = describe_state(self.state)
+        return f"{text}; faults: {describe_faults(self.faults)}" if int(self.faults) else text
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# limits and setpoints
+# ----------------------------------------------------------------------------------------------------------------
+#: the rig's protocol range: every speed / force setpoint (protocol, manual, script) is checked against it before
+#: anything moves, mm/s and g. The controller's own limits (SPEED_LIMIT, FORCE_LIMIT registers, :class:`DrumLimits`)
+#: may be lower.
+MAX_SPEED_MM_S = 150.0
+MAX_FORCE_G = 1500.0
+
+
+class SetpointRangeError(ValueError):
+    """A setpoint outside its allowed range was refused before anything was sent to the rig.
+
+    Attributes
+    ----------
+    name : str     what was set (e.g. ``"speed"``)
+    value : float  the refused value, in ``unit``
+    unit : str     e.g. ``"mm/s"``, ``"g"``
+    low, high : float  the allowed range, in ``unit``
+    reason : str   which limit binds (e.g. ``"rig limit"``, ``"SPEED_LIMIT_0P1MMS"``), may be empty
+    """
+
+    def __init__(self, name: str, value: float, unit: str, low: float, high: float, reason: str = "") -> None:
+        self.name, self.value, self.unit, self.low, self.high, self.reason = name, value, unit, low, high, reason
+        extra = f" ({reason})" if reason else ""
+        super().__init__(f"{name} {value:g} {unit} is outside the allowed range {low:g}-{high:g} {unit}{extra}")
+
+
+@dataclass(frozen=True)
+class SetpointRange:
+    """The values a setpoint may take, with its unit and the limit that sets the top.
+
+    ``low < value <= high`` when ``low_exclusive`` (a trial's speed and force: 0 moves nothing), else
+    ``low <= value <= high``. ``source`` names the binding upper limit ("rig's protocol range" or "controller's
+    hard limit").
+    """
+
+    name: str
+    unit: str
+    low: float
+    high: float
+    source: str = ""
+    low_exclusive: bool = True
+
+    def contains(self, value: float) -> bool:
+        """True when ``value`` may be sent (NaN never)."""
+        v = float(value)
+        if math.isnan(v):
+            return False
+        return (v > self.low if self.low_exclusive else v >= self.low) and v <= self.high
+
+    def problem(self, value: float) -> str | None:
+        """Why ``value`` is refused, one line (None when accepted)."""
+        if self.contains(value):
+            return None
+        v = float(value)
+        if not (v > self.low if self.low_exclusive else v >= self.low):
+            return f"{self.name} {v:g} {self.unit}: must be {'above' if self.low_exclusive else 'at least'} " \
+                   f"{self.low:g} {self.unit}"
+        return f"{self.name} {v:g} {self.unit}: above the {self.source or 'limit'} of {self.high:g} {self.unit}"
+
+    def check(self, value: float) -> float:
+        """Return ``float(value)``; raise :class:`SetpointRangeError` when it is outside the range."""
+        if not self.contains(value):
+            raise SetpointRangeError(self.name, float(value), self.unit, self.low, self.high, self.source)
+        return float(value)
+
+
+@dataclass(frozen=True)
+class DrumLimits:
+    """The controller's hard limits (its SPEED_LIMIT and FORCE_LIMIT registers), mm/s and g.
+
+    The accepted setpoint ranges are the lower of these and the rig's protocol range (:data:`MAX_SPEED_MM_S`,
+    :data:`MAX_FORCE_G`): :meth:`speed_range`, :meth:`force_range`.
+    """
+
+    speed_mm_s: float
+    force_g: float
+
+    def speed_range(self) -> SetpointRange:
+        """Accepted trial / manual speeds: above 0, at most the lower of both limits, mm/s."""
+        return _range("speed", "mm/s", MAX_SPEED_MM_S, float(self.speed_mm_s))
+
+    def force_range(self) -> SetpointRange:
+        """Accepted force setpoints: above 0, at most the lower of both limits, g."""
+        return _range("force", "g", MAX_FORCE_G, float(self.force_g))
+
+    def check(self, *, speed_mm_s: float | None = None, force_g: float | None = None) -> None:
+        """Raise :class:`SetpointRangeError` for the first of the given setpoints outside its range."""
+        if speed_mm_s is not None:
+            self.speed_range().check(speed_mm_s)
+        if force_g is not None:
+            self.force_range().check(force_g)
+
+    def problems(self, *, speed_mm_s: float | None = None, force_g: float | None = None) -> list[str]:
+        """Why the given setpoints are refused, one line each (empty when both are accepted)."""
+        out = []
+        if speed_mm_s is not None and (p := self.speed_range().problem(speed_mm_s)):
+            out.append(p)
+        if force_g is not None and (p := self.force_range().problem(force_g)):
+            out.append(p)
+        return out
+
+
+def _range(name: str, unit: str, protocol_max: float, controller_max: float) -> SetpointRange:
+    if controller_max < protocol_max:
+        return SetpointRange(name, unit, 0.0, controller_max, "controller's hard limit")
+    return SetpointRange(name, unit, 0.0, protocol_max, "rig's protocol range")
+
+
+#: the rig's protocol range alone (a controller whose limits are at least as wide): what protocols are checked
+#: against before a rig is open
+PROTOCOL_LIMITS = DrumLimits(MAX_SPEED_MM_S, MAX_FORCE_G)
+
+
+@dataclass(frozen=True)
+class SettleBand:
+    """When the force loop counts as on target: ``abs(force - setpoint) <= force_tolerance_g`` for
+    ``settle_time_ms`` (the FORCE_TOLERANCE_G and SETTLE_TIME_MS registers)."""
+
+    force_tolerance_g: float
+    settle_time_ms: int
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# geometry (spec 2.6; the firmware header's RIGCTL_DRUM_*_DEF, checked by tests/test_wire_spec.py)
+# ----------------------------------------------------------------------------------------------------------------
+#: drum diameter, mm; stepper full steps per revolution; microsteps per full step (spec 2.6)
+DRUM_DIAMETER_MM = 100.0
+DRUM_STEPS_PER_REV = 200
+DRUM_MICROSTEPS = 16
+#: drum circumference, mm (pi x diameter): one revolution of the plate
+DRUM_CIRCUMFERENCE_MM = math.pi * DRUM_DIAMETER_MM
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# errors of any drum controller (the Modbus client adds ModbusExceptionError in rigctl.devices.errors)
+# ----------------------------------------------------------------------------------------------------------------
+class DrumError(Exception):
+    """Base class of the drum controller's errors (I/O failure, exception response, timeout, fault)."""
+
+
+class DrumTimeout(DrumError):
+    """The drum controller did not answer, or did not reach the awaited state in time."""
+
+
+class DrumFault(DrumError):
+    """The drum controller latched a fault (state FAULT); ``faults`` holds the :class:`Fault` bits."""
+
+    def __init__(self, faults: int, message: str = "") -> None:
+        self.faults = Fault(int(faults))
+        super().__init__((message + ": " if message else "") + f"drum controller fault: {describe_faults(faults)}")
+
+
+@runtime_checkable
+class Clock(Protocol):
+    """The host clock a controller's waits run on: ``now()`` in s (monotonic), ``sleep(s)``. The wall clock
+    (``time.monotonic``), or the in-process backend's simulated clock (a sleep advances the simulation)."""
+
+    def now(self) -> float: ...
+    def sleep(self, s: float) -> None: ...

@@ -1,0 +1,22 @@
+"""rigctl.operations: the operator service layer, what the CLI and the GUI both call (and nothing below imports).
+
+One package of small modules, each one job an operator does:
+
+- :class:`RigSource` (``_source``): where a rig comes from (a kind of :data:`rigctl.rigs.KINDS`, its ports or
+  recording); :func:`open_control` opens it as a :class:`RigControl` (``_control``): setpoints checked against the
+  controller's limits, run at a speed and force (press -> settle -> run), stop, tare, home, clear a fault, mount a
+  plate, status; :class:`Home` says what opening does with a latched fault.
+- :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
+
+The values they speak in (:class:`rigctl.core.drum.DrumStatus`, :class:`rigctl.core.drum.DrumLimits`, states,
+faults, errors) are :mod:`rigctl.core.drum`'s, shared by every layer.
+"""
+
+from rigctl.operations._control import Home, RigControl, RunStarted, open_control
+from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
+from rigctl.operations._source import KINDS, RigSource
+
+__all__ = [
+    "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
+    "SetpointRefusal", "setpoint_refusals",
+]

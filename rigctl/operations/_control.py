@@ -1,0 +1,237 @@
+"""An open rig as the operator drives it: :class:`RigControl` and :func:`open_control`.
+
+What the CLI and the GUI both do with a rig, once: open it (homing it, or leaving a latched fault for the operator
+to see), check manual setpoints against the controller's limits, run the drum at a speed and force (press, wait for
+the force to settle, then run, so the drum never turns before the sensor is loaded), stop, tare, home, clear a
+fault, mount a plate, read the status. Every call blocks until the controller has done it (the GUI runs them in its
+command thread); errors are the library's (:mod:`rigctl.core.drum`: ``SetpointRangeError`` before anything is
+sent, ``DrumError`` / ``DrumTimeout`` / ``DrumFault`` from the controller).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from rigctl.acquisition.rig import Rig
+from rigctl.core.drum import DrumLimits, DrumState, DrumStatus, SetpointRangeError
+from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.textures import TextureSet
+from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
+from rigctl.operations._source import RigSource
+from rigctl.rigs import open_rig
+
+__all__ = ["Home", "RigControl", "RunStarted", "open_control"]
+
+log = logging.getLogger(__name__)
+
+#: how long HOME may take when a rig is opened, s
+HOME_TIMEOUT_S = 30.0
+
+
+class Home(enum.Enum):
+    """What :func:`open_control` does with the actuator once the rig is open."""
+
+    ALWAYS = "always"  #: clear a latched fault (e.g. the watchdog of a killed run), then HOME
+    UNLESS_FAULTED = "unless_faulted"  #: HOME, unless a fault is latched: that one is left for the operator to see
+    NEVER = "never"  #: leave the controller as it is
+
+
+@dataclass(frozen=True)
+class RunStarted:
+    """What :meth:`RigControl.run_at` did: the drum runs at ``speed_mm_s`` with the force loop holding ``force_g``;
+    the force settled after ``settle_s`` s."""
+
+    speed_mm_s: float
+    force_g: float
+    settle_s: float
+
+
+def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALWAYS, config: Any = None,
+                 seed: int = 0, host_config_path: str | os.PathLike | None = None,
+                 prompt: Callable[[str], Any] | None = None, **options: Any) -> "RigControl":
+    """Open the rig ``source`` names (default: the simulated rig) and start its taxel stream.
+
+    Parameters
+    ----------
+    source : the rig (:class:`RigSource`: kind, ports or recording).
+    home : :class:`Home` (or its value): HOME always (clearing a latched fault first), unless a fault is latched
+        (the GUI: a fault is never cleared behind the operator's back), or never.
+    config, seed : the simulated rig's model configuration and seed (simulated kinds).
+    host_config_path : the rig config file (calibration); None: the library's default.
+    prompt : operator prompt for plate changes on hardware.
+    **options : further options of :func:`rigctl.rigs.open_rig` (e.g. ``textures``).
+
+    Returns
+    -------
+    RigControl (a context manager; closing it stops the rig safely).
+
+    Raises
+    ------
+    rigctl.acquisition.rig.RigError
+        The backend cannot start or the boards do not answer (:class:`rigctl.acquisition.rig.RigOpenError`, also a
+        ``DrumError``, when the controller failed while the rig was prepared; it says whether STOP was acknowledged).
+    rigctl.core.drum.DrumError
+        HOME failed or timed out (the rig is closed).
+    """
+    source = source or RigSource()
+    home = Home(home)
+    opts = source.open_options()
+    kind = opts.pop("kind")
+    if kind != "hardware":
+        opts.update(config=config, seed=seed)
+    rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path, home=home is Home.ALWAYS,
+                   **opts, **options)
+    control = RigControl(rig, source)
+    if home is Home.UNLESS_FAULTED:
+        try:
+            control.home_unless_faulted()
+        except BaseException:
+            control.close()
+            raise
+    return control
+
+
+class RigControl:
+    """An open rig, driven as an operator does (see the module docstring). Open one with :func:`open_control`.
+
+    Attributes
+    ----------
+    rig : :class:`rigctl.acquisition.rig.Rig` (the protocol runner and the calibration use it)
+    source : the :class:`RigSource` it was opened from
+    """
+
+    def __init__(self, rig: Rig, source: RigSource | None = None) -> None:
+        self.rig = rig
+        self.source = source or RigSource(rig.mode if rig.mode != "hardware" else "hardware")
+
+    # ------------------------------------------------------------------------------------------------- parts
+    @property
+    def drum(self) -> DrumController:
+        return self.rig.drum
+
+    @property
+    def taxels(self) -> TaxelSource:
+        return self.rig.stream
+
+    @property
+    def layout(self) -> SensorLayout:
+        """The sensor the taxel stream delivers (its identify reply)."""
+        return self.rig.layout
+
+    @property
+    def textures(self) -> TextureSet:
+        """The texture set plates are mounted from."""
+        return self.rig.textures
+
+    @property
+    def mode(self) -> str:
+        return self.rig.mode
+
+    @property
+    def sim(self) -> Any:
+        """The simulated rig behind the ports (SimulatedRig / HilRig), or None (hardware, in-process)."""
+        return getattr(self.rig.backend, "sim", None)
+
+    @property
+    def places_mass(self) -> bool:
+        """True when the rig rests a calibration mass itself (the simulated backends)."""
+        return isinstance(self.rig.backend, MassPlacer)
+
+    # ------------------------------------------------------------------------------------------------- life
+    def close(self) -> None:
+        """Stop the rig safely and close it (never raises a device error)."""
+        self.rig.close()
+
+    def __enter__(self) -> "RigControl":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def home_unless_faulted(self) -> DrumStatus:
+        """HOME and wait for IDLE, unless the controller reports a latched fault: that one is left latched (logged)
+        for the operator to see and clear. Returns the status. DrumError / DrumTimeout."""
+        st = self.drum.read_status()
+        if st.faulted:
+            log.warning("drum controller is in FAULT (%s): left latched for the operator", st.describe())
+            return st
+        self.drum.home()
+        return self.drum.wait_state([DrumState.IDLE], timeout_s=HOME_TIMEOUT_S)
+
+    # ------------------------------------------------------------------------------------------------- setpoints
+    def limits(self) -> DrumLimits:
+        """The controller's hard limits (read from it). DrumError."""
+        return self.drum.limits()
+
+    def refusals(self, *, speed_mm_s: float | None = None, force_g: float | None = None,
+                 limits: DrumLimits | None = None) -> list[SetpointRefusal]:
+        """Why the given manual setpoints cannot be sent (empty when they can), under ``limits`` (default: read from
+        the controller)."""
+        return setpoint_refusals(limits or self.limits(), speed_mm_s=speed_mm_s, force_g=force_g)
+
+    def _check(self, *, speed_mm_s: float | None = None, force_g: float | None = None) -> None:
+        limits = self.limits()
+        bad = setpoint_refusals(limits, speed_mm_s=speed_mm_s, force_g=force_g)
+        if bad:
+            rng = limits.speed_range() if bad[0].name == "speed" else limits.force_range()
+            raise SetpointRangeError(bad[0].name, bad[0].value, bad[0].unit, rng.low, rng.high, rng.source)
+
+    def apply_setpoints(self, speed_mm_s: float, force_g: float) -> None:
+        """Send both setpoints (mm/s, g) once both are accepted; nothing is sent otherwise (SetpointRangeError)."""
+        self._check(speed_mm_s=speed_mm_s, force_g=force_g)
+        self.drum.set_speed(float(speed_mm_s))
+        self.drum.set_force(float(force_g))
+
+    def press(self, force_g: float) -> float:
+        """Press to ``force_g`` (g) and wait until the force has settled (:meth:`rigctl.acquisition.rig.Rig.press`);
+        returns the time it took, s. SetpointRangeError (nothing sent), DrumTimeout, DrumFault."""
+        self._check(force_g=force_g)
+        return self.rig.press(float(force_g))
+
+    def run_at(self, speed_mm_s: float, force_g: float) -> RunStarted:
+        """Run the drum at ``speed_mm_s`` (mm/s) with the force loop holding ``force_g`` (g): both checked first,
+        then the speed set, PRESS until the force has settled, RUN. The drum never turns before the sensor is
+        loaded. SetpointRangeError (nothing sent), DrumTimeout (the force did not settle), DrumFault."""
+        self._check(speed_mm_s=speed_mm_s, force_g=force_g)
+        self.drum.set_speed(float(speed_mm_s))
+        settle_s = self.rig.press(float(force_g))
+        self.drum.run()
+        return RunStarted(float(speed_mm_s), float(force_g), settle_s)
+
+    # ------------------------------------------------------------------------------------------------- commands
+    def stop(self) -> bool:
+        """STOP (drum to rest, actuator home); never raises. True when the controller acknowledged it."""
+        return self.rig.safe_stop()
+
+    def stop_drum(self) -> None:
+        """Drum to rest, the force loop keeps holding."""
+        self.drum.stop_drum()
+
+    def tare(self) -> None:
+        """Zero the load cell (actuator released)."""
+        self.drum.tare()
+
+    def home(self) -> None:
+        """Drive the actuator to its home switch."""
+        self.drum.home()
+
+    def clear_fault(self) -> None:
+        """Clear the latched faults (refused by the controller while the condition persists)."""
+        self.drum.clear_fault()
+
+    def mount_plate(self, label: str, prompt: Callable[[str], Any] | None = None) -> str:
+        """Release the sensor and mount plate ``label`` (taken in the set's spelling, ``"l"`` -> ``"L"``); returns
+        the label mounted. ValueError (TextureSetError) for a label outside the rig's set, DrumError."""
+        label = self.textures.resolve(str(label))
+        self.rig.mount_texture(label, prompt)
+        return label
+
+    def status(self) -> DrumStatus:
+        """The controller's status now. DrumError."""
+        return self.drum.read_status()

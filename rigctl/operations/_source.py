@@ -1,0 +1,81 @@
+"""Where a rig comes from: :class:`RigSource` (a rig kind of :data:`rigctl.rigs.KINDS` and its ports or recording).
+
+The CLI builds one from its flags, the GUI from its connect dialog and settings; both open it with
+:func:`rigctl.operations.open_control`. The kinds are the composition root's (:data:`rigctl.rigs.KINDS`), the one
+list of rig backends.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from rigctl.rigs import KINDS
+
+__all__ = ["RigSource", "KINDS", "LEGACY_KINDS"]
+
+#: names earlier versions used for a kind (the GUI's saved settings said "serial" for the hardware rig)
+LEGACY_KINDS = {"serial": "hardware"}
+
+
+@dataclasses.dataclass
+class RigSource:
+    """A rig to open.
+
+    Attributes
+    ----------
+    kind : one of :data:`rigctl.rigs.KINDS`: "sim" (default), "hardware" (two real boards at ``drum_port`` /
+        ``taxel_port``), "replay" (the simulated rig streaming the recording at ``replay_dir``: a session file or a
+        FabricSlide folder), "hil" (the firmware under simavr), "inprocess" (the fast in-process rig). "serial" is
+        taken as "hardware".
+    drum_port, taxel_port : serial ports of the Mega and the Uno (hardware only)
+    replay_dir : the recording a replay rig streams
+
+    Raises
+    ------
+    ValueError
+        An unknown kind.
+    """
+
+    kind: str = "sim"
+    drum_port: str | None = None
+    taxel_port: str | None = None
+    replay_dir: str | None = None
+
+    def __post_init__(self) -> None:
+        self.kind = LEGACY_KINDS.get(self.kind, self.kind)
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown rig kind {self.kind!r}; choose one of {', '.join(KINDS)}")
+
+    @classmethod
+    def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
+                   replay: str | Path | None = None) -> "RigSource":
+        """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` -> "hil",
+        else "sim" (the flags' consistency is the CLI's to check)."""
+        if drum_port is not None or taxel_port is not None:
+            return cls("hardware", drum_port=drum_port, taxel_port=taxel_port)
+        if replay is not None:
+            return cls("replay", replay_dir=str(replay))
+        return cls("hil" if hil else "sim")
+
+    @property
+    def is_hardware(self) -> bool:
+        return self.kind == "hardware"
+
+    def label(self) -> str:
+        """The source in a few words, e.g. ``"rig on /dev/ttyACM0 + /dev/ttyACM1"``, ``"simulated rig"``."""
+        if self.kind == "hardware":
+            return f"rig on {self.drum_port} + {self.taxel_port}"
+        if self.kind == "replay":
+            what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
+            return f"{what} ({self.replay_dir})"
+        return {"hil": "firmware under simavr", "inprocess": "in-process simulated rig"}.get(self.kind,
+                                                                                           "simulated rig")
+
+    def open_options(self) -> dict:
+        """The keyword arguments of :func:`rigctl.rigs.open_rig` this source selects (kind included)."""
+        if self.kind == "hardware":
+            return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port}
+        if self.kind == "replay":
+            return {"kind": "replay", "source": self.replay_dir}
+        return {"kind": self.kind}

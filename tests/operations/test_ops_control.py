@@ -1,0 +1,104 @@
+"""The operator layer (rigctl.operations) on the in-process rig (controller logic + physical model in this process,
+simulated clock): opening with each home policy, the setpoint policy against the controller's own limits, run at a
+speed and force (the drum never turns before the force has settled), stop, plates, and the typed status."""
+
+from __future__ import annotations
+
+import pytest
+
+from rigctl.core.drum import MAX_FORCE_G, MAX_SPEED_MM_S, DrumLimits, DrumState, Fault, SetpointRangeError
+from rigctl.devices.wire import HoldingRegister
+from rigctl.operations import Home, RigSource, open_control, setpoint_refusals
+
+
+@pytest.fixture
+def control(tmp_path):
+    with open_control(RigSource("inprocess"), seed=3, host_config_path=tmp_path / "rig.json") as c:
+        yield c
+
+
+def test_rig_sources_use_the_composition_roots_kinds():
+    assert RigSource("serial", drum_port="a", taxel_port="b") == RigSource("hardware", drum_port="a", taxel_port="b")
+    assert RigSource.from_flags(drum_port="a", taxel_port="b").kind == "hardware"
+    assert RigSource.from_flags(replay="x.h5").open_options() == {"kind": "replay", "source": "x.h5"}
+    assert RigSource.from_flags(hil=True).kind == "hil" and RigSource.from_flags().kind == "sim"
+    with pytest.raises(ValueError, match="unknown rig kind 'usb'"):
+        RigSource("usb")
+
+
+def test_refusals_name_the_binding_limit():
+    wide = DrumLimits(speed_mm_s=200.0, force_g=2000.0)
+    (r,) = setpoint_refusals(wide, speed_mm_s=151.0)
+    assert r.short == "speed 151 mm/s refused: max 150 mm/s"
+    assert r.full == "speed 151 mm/s refused: above the rig's protocol range of 150 mm/s"
+    narrow = DrumLimits(speed_mm_s=90.0, force_g=800.0)
+    assert [x.full for x in setpoint_refusals(narrow, speed_mm_s=95.0, force_g=900.0)] == [
+        "speed 95 mm/s refused: above the controller's hard limit of 90 mm/s",
+        "force 900 g refused: above the controller's hard limit of 800 g"]
+    (z,) = setpoint_refusals(narrow, force_g=0.0)
+    assert z.full.startswith("force 0 g refused: it must be above 0 g")
+    assert setpoint_refusals(narrow, speed_mm_s=90.0, force_g=800.0) == []
+    assert setpoint_refusals(wide, speed_mm_s=float("nan"))  # NaN is never sent
+    assert wide.speed_range().high == MAX_SPEED_MM_S and wide.force_range().high == MAX_FORCE_G
+
+
+def test_run_at_presses_to_a_settled_force_before_the_drum_turns(control):
+    assert isinstance(control.status().state, DrumState) and control.status().state == DrumState.IDLE
+    started = control.run_at(70.0, 300.0)
+    assert started.settle_s > 0
+    st = control.drum.wait_speed_steady(timeout_s=20.0, tol_mm_s=1.0)
+    assert st.state == DrumState.RUNNING and abs(st.speed_mm_s - 70.0) <= 1.0
+    assert abs(st.force_g - 300.0) < 30 and st.force_setpoint_active_g == 300
+    assert control.stop() is True
+    st = control.drum.wait_released(timeout_s=20.0)
+    assert st.state == DrumState.IDLE and st.force_setpoint_active_g == 0
+
+
+def test_setpoints_outside_the_controllers_limits_send_nothing(control):
+    drum = control.drum
+    drum.set_limits(speed_mm_s=90.0)  # the controller's own limit, below the protocol range
+    assert control.limits() == DrumLimits(speed_mm_s=90.0, force_g=1500.0)
+    before = drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS)
+    with pytest.raises(SetpointRangeError, match="controller's hard limit"):
+        control.run_at(100.0, 300.0)
+    with pytest.raises(SetpointRangeError):
+        control.apply_setpoints(50.0, 0.0)
+    assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == before
+    assert control.status().state == DrumState.IDLE  # nothing pressed, nothing turned
+    control.apply_setpoints(80.0, 400.0)
+    assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 800
+    assert drum.read_holding(HoldingRegister.FORCE_SETPOINT_G) == 400
+
+
+def test_mount_plate_takes_the_sets_spelling(control):
+    assert control.mount_plate("l") == "L" and control.rig.texture == "L"
+    with pytest.raises(ValueError):
+        control.mount_plate("not a plate")
+
+
+def _fault(control) -> None:
+    """Latch a fault on the controller: hold 300 g, then lower its force limit below the measured force
+    (FORCE_LIMIT: the actuator backs off at once)."""
+    control.press(300.0)
+    control.drum.set_limits(force_g=100.0)
+    control.drum.wait_state([DrumState.FAULT], timeout_s=5.0)
+    control.drum.set_limits(force_g=1500.0)
+
+
+def test_home_unless_faulted_leaves_a_latched_fault_for_the_operator(control):
+    _fault(control)
+    st = control.home_unless_faulted()
+    assert st.faulted and st.faults & Fault.FORCE_LIMIT and "FORCE_LIMIT" in st.describe()
+    assert control.status().state == DrumState.FAULT  # not cleared behind the operator's back
+    control.clear_fault()
+    control.drum.wait_released(timeout_s=10.0)  # HOME is refused until the actuator has backed off
+    st = control.home_unless_faulted()
+    assert st.state == DrumState.IDLE and not st.faulted
+
+
+def test_open_with_each_home_policy(tmp_path):
+    with open_control(RigSource("inprocess"), home=Home.NEVER, host_config_path=tmp_path / "r.json") as c:
+        assert c.mode == "inprocess" and c.places_mass and c.sim is None
+        assert c.layout.n_channels == 18
+    with open_control(RigSource("inprocess"), home="unless_faulted", host_config_path=tmp_path / "r.json") as c:
+        assert c.status().state == DrumState.IDLE
