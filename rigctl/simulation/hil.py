@@ -174,6 +174,10 @@ class HilRig:
     with_uno : bool
         Run the Uno too (default). False runs the Mega alone (no taxel port, no feeder): half the CPU for tests
         of the drum controller only.
+    taxel_ohm : float
+        Source impedance of every taxel, Ohm (default 47 kOhm, docs/firmware.md "Multiplexer settling"): the Uno
+        harness charges each 74HC4051 common node and the ADC's sample-and-hold capacitor through it, so a firmware
+        that converts before the node settles reads part of the previous input. :meth:`set_taxel_ohm` changes one.
 
     Attributes
     ----------
@@ -184,10 +188,14 @@ class HilRig:
     isr : dict
         Latest ``ISR`` report of the Uno harness: ``sampler_cycles_per_tick``, ``sampler_max_per_tick``,
         ``tx_cycles_per_tick``, ``tx_max_per_tick`` (CPU cycles per 1 ms tick, timed on probe pins).
+    mux : dict
+        Latest ``MUX`` report of the Uno harness (every simulated second): ``settle_err_window_lsb`` (largest
+        difference, in LSB, between the voltage a conversion sampled and the settled value of the taxel it converted,
+        over the last second), ``settle_err_max_lsb`` (since start), ``conversions``.
     """
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
-                 uno_boot_ms: float = 250.0, with_uno: bool = True):
+                 uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -196,6 +204,8 @@ class HilRig:
         self.firmware_sources = Path(firmware_sources) if firmware_sources is not None else firmware.sources()
         self.uno_boot_ms = uno_boot_ms
         self.with_uno = with_uno
+        self.taxel_ohm = float(taxel_ohm)
+        self.mux: dict[str, float] = {}
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         self.index_pulses = 0
@@ -208,6 +218,7 @@ class HilRig:
         self._feeder: threading.Thread | None = None
         self._cond = threading.Condition()
         self._wave_acks = 0
+        self._ohm_acks = 0
         self._render_lock = threading.Lock()
         self._scan_reply: tuple[int, int] | None = None
         self._wave_pos: np.ndarray | None = None  # drum travel (mm) of each row of the waveform playing now
@@ -264,7 +275,8 @@ class HilRig:
             return self
         try:
             self._uno = _Harness(exe, "uno", build_dir / "uno_taxel.elf",
-                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms), *lock], self._on_uno_line)
+                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms),
+                                  "--taxel-ohm", str(self.taxel_ohm), *lock], self._on_uno_line)
         except BaseException:
             self._mega.close()
             self._mega = None
@@ -341,6 +353,23 @@ class HilRig:
             self._wave_pos = None
             self._load(samples.astype("<u2"), timeout_s)
 
+    def set_taxel_ohm(self, ohm: float, taxel: int | None = None, timeout_s: float = 5.0) -> None:
+        """Set the source impedance (Ohm) of one taxel (0-17), or of every taxel (``taxel`` None), e.g. a
+        high-impedance taxel whose reading lags behind its neighbours'.
+
+        Raises ValueError for a bad taxel or a negative impedance; HilError if the harness does not confirm."""
+        if taxel is not None and not 0 <= taxel < wire.N_TAXELS:
+            raise ValueError(f"taxel must be 0-{wire.N_TAXELS - 1}, got {taxel}")
+        if not ohm >= 0:
+            raise ValueError(f"source impedance must be >= 0 Ohm, got {ohm}")
+        if not self.with_uno:
+            raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxels")
+        with self._cond:
+            acks = self._ohm_acks
+            self._uno.send(f"taxel_ohm {-1 if taxel is None else int(taxel)} {float(ohm)}")
+            if not self._cond.wait_for(lambda: self._ohm_acks != acks, timeout_s):
+                raise HilError("the Uno harness did not confirm the source impedance")
+
     def bump(self, force_g: float) -> None:
         """Add an external force of ``force_g`` g on the load cell (0 removes it), e.g. to trip FORCE_LIMIT."""
         self._mega.send(f"bump {float(force_g)}")
@@ -405,6 +434,12 @@ class HilRig:
     def _on_uno_line(self, line: str) -> None:
         if line.startswith("ISR "):
             self.isr = _parse_kv(line)
+        elif line.startswith("MUX "):
+            self.mux = _parse_kv(line)
+        elif line.startswith("OK taxel_ohm") or line.startswith("ERR taxel_ohm"):
+            with self._cond:
+                self._ohm_acks += 1
+                self._cond.notify_all()
         elif line.startswith("SCAN "):
             kv = _parse_kv(line)
             with self._cond:

@@ -178,6 +178,8 @@ static long long wave_pending_base = -1; /* scan number of the pending waveform'
 static uint64_t scan_count;       /* Uno: ADC scans so far (one per 1 ms tick) */
 static uint64_t scan_base;        /* scan_count when the playing waveform started (row 0) */
 
+static int mux_set_taxel_ohm(const char *args);
+
 static double now_s(void)
 {
     struct timespec ts;
@@ -242,6 +244,9 @@ static void *stdin_thread(void *arg)
             else printf("OK wave %zu\n", wave_rows);
         } else if (!strcmp(line, "scan?")) { /* which row of the waveform plays now */
             printf("SCAN n=%llu start=%llu\n", (unsigned long long)scan_count, (unsigned long long)scan_base);
+        } else if (!strncmp(line, "taxel_ohm ", 10)) {
+            if (mux_set_taxel_ohm(line + 10)) printf("ERR taxel_ohm\n");
+            else printf("OK taxel_ohm\n");
         } else if (!strcmp(line, "sync")) {
             atomic_fetch_add(&sync_requests, 1);
         } else if (!strncmp(line, "bump ", 5)) {
@@ -260,6 +265,7 @@ static void *stdin_thread(void *arg)
 /* ================================ Uno: mux-aware taxel ADC ================================ */
 static uint8_t mux_sel;          /* select lines PD4..PD6 as the pins show them */
 static size_t scan_row;
+static void mux_before_select(void);
 static avr_irq_t *adc_irq_base;
 static uint64_t probe_rise[2], probe_total[2], probe_window_sum[2], probe_window_max[2], probe_window[2];
 static uint64_t sync_off_cycle;
@@ -269,6 +275,7 @@ static void sel_pin_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     int bit = (int)(intptr_t)param;
+    mux_before_select();
     if (value & 1) mux_sel |= (uint8_t)(1 << bit);
     else mux_sel &= (uint8_t)~(1 << bit);
 }
@@ -283,6 +290,193 @@ static uint16_t taxel_value(size_t row, int taxel)
     return v;
 }
 
+/* ================================ Uno: multiplexer settling (RC model) ================================
+ * Each 74HC4051 common node is a capacitor (--mux-c-pf, 25 pF: NXP/TI 74HC4051 datasheets, C_S common) that charges
+ * through the selected taxel's source impedance (--taxel-ohm, per taxel with stdin "taxel_ohm I OHM") plus the
+ * switch's on-resistance (--mux-ron-ohm, 180 Ohm: the datasheets give ~70-180 Ohm at 4.5 V). The ATmega328P's
+ * sample-and-hold capacitor (--sh-c-pf, 14 pF: ATmega328P datasheet, "Analog Input Circuitry") is connected to the
+ * input ADMUX selects (from the ADMUX write, or from the end of a running conversion: the datasheet's ADMUX update
+ * rule) and shares its charge with that node when it moves; the node then relaxes with it. The conversion samples
+ * 1.5 ADC clocks after ADSC (13.5 for the first after ADEN), and that voltage is what simavr's ADC converts. Unused
+ * inputs (Y6, Y7) float. Source voltages are the waveform's counts at the centre of their code ((c + 0.5) LSB), so
+ * an injected value comes back exact exactly when the settling error stays below 0.5 LSB; voltages go to simavr in
+ * units of 0.1 mV (AVCC given as 50000). The taxels' source values change once per scan, when its last conversion
+ * has been started (the row swap below). "MUX ..." lines report the largest settling error (sampled voltage minus
+ * the settled value of the taxel being converted, in LSB) per second of simulated time. */
+#define MUX_N 3
+#define ADC_UNITS_PER_MV 10.0 /* ADC injection units (0.1 mV) */
+#define M328_ADCSRA 0x7A      /* ATmega328P data-space addresses */
+#define M328_ADMUX 0x7C
+static double opt_taxel_ohm = 47000.0;
+static double opt_mux_ron_ohm = 180.0;
+static double opt_mux_c_pf = 25.0;
+static double opt_sh_c_pf = 14.0;
+static _Atomic double taxel_ohm[N_TAXELS]; /* set by the stdin thread too */
+static double node_mv[MUX_N];        /* voltage of each mux common node */
+static uint64_t node_cycle[MUX_N];   /* when node_mv was last brought up to date */
+static int sh_ch = 0;                /* ADC input the sample-and-hold capacitor is connected to (ADMUX, 0 at reset) */
+static int sh_pending = -1;          /* ADMUX written during a conversion: the input it connects at conv_end */
+static uint64_t adc_conv_end;        /* cycle the running conversion ends */
+static int adc_first_conv = 1;       /* the first conversion after reset takes 25 ADC clocks, samples at 13.5 */
+static double mux_err_max_lsb, mux_err_window_lsb;
+static uint64_t mux_conversions;
+
+static double lsb_mv(void)
+{
+    return 5000.0 / 1023.0;
+}
+
+static double taxel_source_mv(size_t row, int taxel)
+{
+    return (taxel_value(row, taxel) + 0.5) * lsb_mv();
+}
+
+/* the taxel mux m connects now (-1: Y6/Y7, unconnected) */
+static int mux_taxel(int m)
+{
+    return mux_sel < 6 ? m * 6 + mux_sel : -1;
+}
+
+static double mux_tau_s(int m, int taxel)
+{
+    double c_pf = opt_mux_c_pf + (sh_ch == m ? opt_sh_c_pf : 0.0);
+    return (taxel_ohm[taxel] + opt_mux_ron_ohm) * c_pf * 1e-12;
+}
+
+/* voltage of node m after dt_s more seconds with the present selection (no state change) */
+static double mux_node_after(int m, double dt_s)
+{
+    int taxel = mux_taxel(m);
+    if (taxel < 0 || dt_s <= 0.0) return node_mv[m];
+    double target = taxel_source_mv(scan_row, taxel);
+    double tau = mux_tau_s(m, taxel);
+    if (tau <= 0.0) return target;
+    return target + (node_mv[m] - target) * exp(-dt_s / tau);
+}
+
+static void mux_nodes_to(uint64_t cycle)
+{
+    for (int m = 0; m < MUX_N; m++) {
+        if (cycle > node_cycle[m]) {
+            node_mv[m] = mux_node_after(m, (double)(cycle - node_cycle[m]) / avr->frequency);
+            node_cycle[m] = cycle;
+        }
+    }
+}
+
+/* the sample-and-hold capacitor moves to input ch: charge sharing with that node */
+static void mux_sh_connect(int ch)
+{
+    if (ch == sh_ch) return;
+    double v_sh = (sh_ch >= 0 && sh_ch < MUX_N) ? node_mv[sh_ch] : node_mv[0];
+    if (ch >= 0 && ch < MUX_N)
+        node_mv[ch] = (opt_mux_c_pf * node_mv[ch] + opt_sh_c_pf * v_sh) / (opt_mux_c_pf + opt_sh_c_pf);
+    sh_ch = ch;
+}
+
+/* bring every node up to `cycle`, applying an ADMUX change that took effect on the way */
+static void mux_advance(uint64_t cycle)
+{
+    if (sh_pending >= 0 && adc_conv_end <= cycle) {
+        mux_nodes_to(adc_conv_end);
+        mux_sh_connect(sh_pending);
+        sh_pending = -1;
+    }
+    mux_nodes_to(cycle);
+}
+
+/* select lines about to change (sel_pin_hook) */
+static void mux_before_select(void)
+{
+    mux_advance(avr->cycle);
+}
+
+static void admux_write_hook(struct avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)param;
+    mux_advance(a->cycle);
+    int ch = v & 0x0F;
+    if (a->cycle < adc_conv_end) sh_pending = ch; /* takes effect when the running conversion completes */
+    else mux_sh_connect(ch);
+    avr_core_watch_write(a, addr, v);
+}
+
+/* ADSC: the voltage the conversion samples on input src, in ADC injection units */
+static uint32_t mux_sample(int src, int taxel)
+{
+    uint64_t now = avr->cycle;
+    mux_advance(now);
+    mux_sh_connect(src);
+    uint8_t ps = avr->data[M328_ADCSRA] & 7;
+    uint32_t adc_clk = ps ? (1u << ps) : 2u;
+    double t_sample_s = (adc_first_conv ? 13.5 : 1.5) * adc_clk / avr->frequency;
+    adc_conv_end = now + (uint64_t)(adc_first_conv ? 25 : 13) * adc_clk;
+    adc_first_conv = 0;
+    double v = mux_node_after(src, t_sample_s);
+    double err = fabs(v - taxel_source_mv(scan_row, taxel)) / lsb_mv();
+    if (err > mux_err_window_lsb) mux_err_window_lsb = err;
+    mux_conversions++;
+    double units = v * ADC_UNITS_PER_MV;
+    if (units < 0.0) units = 0.0;
+    if (units > 65535.0) units = 65535.0;
+    return (uint32_t)lround(units);
+}
+
+static void mux_after_reset(void)
+{
+    sh_ch = 0;
+    sh_pending = -1;
+    adc_conv_end = 0;
+    adc_first_conv = 1;
+    for (int m = 0; m < MUX_N; m++) node_cycle[m] = avr->cycle; /* the analog nodes keep their charge */
+}
+
+static void mux_setup(void)
+{
+    for (int t = 0; t < N_TAXELS; t++) taxel_ohm[t] = opt_taxel_ohm;
+    avr->avcc = (uint32_t)(5000 * ADC_UNITS_PER_MV); /* simavr: counts = value * 1023 / avcc */
+    avr_register_io_write(avr, M328_ADMUX, admux_write_hook, NULL);
+}
+
+static void mux_report(void)
+{
+    if (mux_err_window_lsb > mux_err_max_lsb) mux_err_max_lsb = mux_err_window_lsb;
+    printf("MUX t=%.3f settle_err_max_lsb=%.4f settle_err_window_lsb=%.4f conversions=%llu\n", sim_s(),
+           mux_err_max_lsb, mux_err_window_lsb, (unsigned long long)mux_conversions);
+    mux_err_window_lsb = 0.0;
+}
+
+/* stdin "taxel_ohm I OHM" (I = -1: every taxel) */
+static int mux_set_taxel_ohm(const char *args)
+{
+    int taxel;
+    double ohm;
+    if (sscanf(args, "%d %lf", &taxel, &ohm) != 2 || ohm < 0.0 || taxel < -1 || taxel >= N_TAXELS) return -1;
+    for (int t = 0; t < N_TAXELS; t++)
+        if (taxel < 0 || t == taxel) taxel_ohm[t] = ohm;
+    return 0;
+}
+
+/* the waveform's next row becomes the taxels' source values (a new waveform starts here); scan_count counts
+ * the scans completed, scan_row is the row the next scan converts */
+static void uno_next_row(void)
+{
+    uint16_t *old = NULL;
+    pthread_mutex_lock(&wave_lock);
+    if (wave_pending) {
+        old = wave;
+        wave = wave_pending;
+        wave_rows = wave_pending_rows;
+        wave_pending = NULL;
+        scan_base = (wave_pending_base >= 0 && (uint64_t)wave_pending_base <= scan_count + 1)
+                        ? (uint64_t)wave_pending_base : scan_count + 1;
+    }
+    pthread_mutex_unlock(&wave_lock);
+    free(old);
+    mux_advance(avr->cycle); /* the nodes charged towards the old row until now */
+    scan_row = ++scan_count - scan_base;
+}
+
 static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
@@ -294,26 +488,9 @@ static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
     if (e.mux.kind != ADC_MUX_SINGLE) return;
     int src = e.mux.src;
     if (src > 2) return;
-    if (src == 0 && mux_sel == 0) { /* first conversion of a scan: next row; a new waveform starts here */
-        uint16_t *old = NULL;
-        pthread_mutex_lock(&wave_lock);
-        if (wave_pending) {
-            old = wave;
-            wave = wave_pending;
-            wave_rows = wave_pending_rows;
-            wave_pending = NULL;
-            scan_base = (wave_pending_base >= 0 && (uint64_t)wave_pending_base <= scan_count)
-                            ? (uint64_t)wave_pending_base : scan_count;
-        }
-        pthread_mutex_unlock(&wave_lock);
-        free(old);
-        scan_row = scan_count++ - scan_base;
-    }
     int taxel = src * 6 + (mux_sel < 6 ? mux_sel : 5);
-    uint32_t counts = taxel_value(scan_row, taxel);
-    /* simavr: counts = mV * 1023 / vref; ceil(counts * vref / 1023) maps back exactly */
-    uint32_t mv = (counts * 5000u + 1022u) / 1023u;
-    avr_raise_irq(adc_irq_base + ADC_IRQ_ADC0 + src, mv);
+    avr_raise_irq(adc_irq_base + ADC_IRQ_ADC0 + src, mux_sample(src, taxel));
+    if (src == 2 && mux_sel == 5) uno_next_row(); /* the scan's last conversion: the taxels move on to the next row */
 }
 
 static void probe_hook(avr_irq_t *irq, uint32_t value, void *param)
@@ -347,6 +524,7 @@ static void uno_setup(void)
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 1), probe_hook, (void *)1);
     sync_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
     avr_raise_irq(sync_pin, 0);
+    mux_setup();
 }
 
 static void uno_poll(void)
@@ -367,6 +545,7 @@ static void uno_poll(void)
                "tx_max_per_tick=%llu scans=%llu\n",
                sim_s(), probe_total[0] / ticks, (unsigned long long)probe_window_max[0], probe_total[1] / ticks,
                (unsigned long long)probe_window_max[1], (unsigned long long)scan_count);
+        mux_report();
         next_report += 16000000u;
     }
 }
@@ -576,7 +755,8 @@ static void usage(void)
 {
     fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
-                    "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] FIRMWARE.elf\n");
+                    "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
+                    "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] FIRMWARE.elf\n");
     exit(2);
 }
 
@@ -599,6 +779,10 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--tel-ms")) opt_tel_ms = atof(NEXT());
         else if (!strcmp(a, "--max-seconds")) opt_max_seconds = atof(NEXT());
         else if (!strcmp(a, "--clock-lock")) opt_clock_lock = NEXT();
+        else if (!strcmp(a, "--taxel-ohm")) opt_taxel_ohm = atof(NEXT());
+        else if (!strcmp(a, "--mux-ron-ohm")) opt_mux_ron_ohm = atof(NEXT());
+        else if (!strcmp(a, "--mux-c-pf")) opt_mux_c_pf = atof(NEXT());
+        else if (!strcmp(a, "--sh-c-pf")) opt_sh_c_pf = atof(NEXT());
         else if (a[0] == '-') usage();
         else fw = a;
     }
@@ -681,6 +865,8 @@ int main(int argc, char **argv)
                      * and the rows jump (615 -> 0 for 1000 rows) once the count passes the old base */
                     scan_count = 0;
                     scan_base = 0;
+                    scan_row = 0;
+                    mux_after_reset();
                     avr_raise_irq(sync_pin, 0);
                 }
                 wall0 = now_s();
@@ -703,7 +889,8 @@ int main(int argc, char **argv)
         if (atomic_exchange(&reset_requested, 0)) {
             avr_reset(avr);
             bridge_reset();
-            mega_after_reset();
+            if (is_uno) mux_after_reset();
+            else mega_after_reset();
             printf("RESET t=%.6f\n", sim_s());
         }
         if (opt_max_seconds > 0 && sim_s() >= opt_max_seconds) break;

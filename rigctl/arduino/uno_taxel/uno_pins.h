@@ -16,4 +16,10 @@
 #define UNO_PROBE_TX      1
 /* ADC clock prescaler 32: 500 kHz ADC clock, 13 ADC clocks = 26 us per conversion, 18 conversions ~ 0.47 ms */
 #define UNO_ADC_PRESCALER_BITS ((1 << ADPS2) | (1 << ADPS0))
+/* Timer1 at clk/8 (0.5 us per count): TOP of the 1 kHz tick, and the settling time between selecting an input and
+ * starting its conversion: 28 counts = 14 us, + 3 us of sampling = 9 tau at 47 kOhm source impedance (tau =
+ * 47 kOhm x (25 pF 74HC4051 COM + 14 pF sample-and-hold) = 1.8 us): <0.1 LSB of a full-scale step remains.
+ * Scan: 18 x (26 us conversion + 14 us + ~4 us of interrupt entry) ~ 0.8 ms of the 1 ms tick (docs/firmware.md) */
+#define UNO_TICK_TOP       1999
+#define UNO_SETTLE_COUNTS  28
 #endif

@@ -1,10 +1,11 @@
 /*
  * uno_taxel.cpp - Arduino Uno (ATmega328P, 16 MHz) taxel streamer, docs/wire-protocol.md section 1.
  *
- * Timer1 (CTC, /64, OCR1A = 249) interrupts at exactly 1 kHz. Each tick:
+ * Timer1 (CTC, /8, OCR1A = 1999) interrupts at exactly 1 kHz. Each tick:
  *   - takes the previous tick's completed scan (or flags ADC_OVERRUN and repeats it if the scan is unfinished),
- *   - starts the next scan: 18 conversions driven by the ADC-complete interrupt, walking the three 74HC4051
- *     multiplexers (select lines D4-D6, outputs on A0-A2, taxel_frame.h has the order),
+ *   - starts the next scan: 18 conversions walking the three 74HC4051 multiplexers (select lines D4-D6, outputs
+ *     on A0-A2, taxel_frame.h has the order); each ADC-complete interrupt stores its result and selects the next
+ *     input, whose conversion the Timer1 compare-B interrupt starts after a settling time (adc_select below),
  *   - when streaming, builds the frame (seq, flags, samples, CRC-16) into the free one of two frame buffers and
  *     queues it; the UART data-register-empty interrupt sends the bytes at 1,000,000 baud (U2X), so nothing
  *     ever busy-waits on the UART while sampling. A tick that finds both buffers taken drops its frame and
@@ -27,6 +28,8 @@ static volatile uint16_t adc_bank[2][RIGCTL_N_TAXELS]; /* scan in progress write
 static volatile uint8_t adc_write_bank;                 /* bank the running scan writes */
 static volatile uint8_t adc_ready_bank = 1;            /* bank of the last completed scan */
 static volatile uint8_t adc_k;                          /* next conversion of the scan, 0..18 */
+static volatile uint8_t adc_in, adc_sel; /* its analog input and select value: TAXEL_SCAN_ADC/SEL(adc_k), counted
+                                          * (a division by 3 costs ~80 cycles per conversion on the AVR) */
 static volatile uint8_t adc_busy;                       /* a scan is running */
 
 /* ---- stream state ----
@@ -48,30 +51,68 @@ static volatile uint16_t seq;
 static volatile uint8_t rx_ring[16];
 static volatile uint8_t rx_head, rx_tail;
 
-static inline void adc_start(uint8_t k)
+/* Input selection and conversion start are separate: after the select lines and ADMUX change, the multiplexer's
+ * common node (~25 pF) and the ADC's sample-and-hold capacitor (14 pF) charge through the taxel's own source
+ * impedance (tau = 47 kOhm x 39 pF = 1.8 us), so a conversion started at once samples (1.5 ADC clocks = 3 us later)
+ * ~20 % of the previous input (docs/firmware.md, "Multiplexer settling"). Each conversion therefore starts
+ * UNO_SETTLE_COUNTS of Timer1 (14 us) after its input was selected, from the Timer1 compare-B interrupt; the
+ * first input of the next scan is selected when a scan ends, and settles until the tick. */
+static inline void adc_select(uint8_t adc, uint8_t sel)
 {
-    if (TAXEL_SCAN_ADC(k) == 0) {
-        UNO_SEL_PORT = (uint8_t)((UNO_SEL_PORT & ~UNO_SEL_MASK) | (TAXEL_SCAN_SEL(k) << UNO_SEL_SHIFT));
+    if (adc == 0) {
+        UNO_SEL_PORT = (uint8_t)((UNO_SEL_PORT & ~UNO_SEL_MASK) | (sel << UNO_SEL_SHIFT));
     }
-    ADMUX = (uint8_t)((1 << REFS0) | TAXEL_SCAN_ADC(k));
+    ADMUX = (uint8_t)((1 << REFS0) | adc);
+}
+
+static inline void adc_convert(void)
+{
     ADCSRA = (uint8_t)((1 << ADEN) | (1 << ADSC) | (1 << ADIE) | UNO_ADC_PRESCALER_BITS);
+}
+
+/* start the selected conversion UNO_SETTLE_COUNTS from now (Timer1 compare B, modulo the tick) */
+static inline void adc_convert_after_settling(void)
+{
+    uint16_t at = (uint16_t)(TCNT1 + UNO_SETTLE_COUNTS);
+    if (at > UNO_TICK_TOP) at = (uint16_t)(at - (UNO_TICK_TOP + 1));
+    OCR1B = at;
+    TIFR1 = (1 << OCF1B);
+    TIMSK1 |= (1 << OCIE1B);
 }
 
 ISR(ADC_vect)
 {
     UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER);
     uint8_t k = adc_k;
+    uint8_t in = adc_in, sel = adc_sel;
     uint8_t w = adc_write_bank;
-    adc_bank[w][TAXEL_SCAN_TAXEL(k)] = ADC; /* ADCL then ADCH */
+    adc_bank[w][in * TAXEL_PER_MUX + sel] = ADC; /* TAXEL_SCAN_TAXEL(k); ADCL then ADCH */
     k++;
+    if (++in == TAXEL_N_MUX) {
+        in = 0;
+        sel++;
+    }
     if (k < RIGCTL_N_TAXELS) {
         adc_k = k;
-        adc_start(k);
+        adc_in = in;
+        adc_sel = sel;
+        adc_select(in, sel);
+        adc_convert_after_settling();
     } else {
         adc_ready_bank = w;
         adc_write_bank = (uint8_t)(w ^ 1);
         adc_busy = 0;
+        adc_in = adc_sel = 0;
+        adc_select(0, 0); /* the next scan's first input settles until the tick */
     }
+    UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+}
+
+ISR(TIMER1_COMPB_vect)
+{
+    UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER);
+    TIMSK1 &= (uint8_t)~(1 << OCIE1B);
+    adc_convert();
     UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
 }
 
@@ -89,7 +130,7 @@ ISR(TIMER1_COMPA_vect)
     } else {
         adc_busy = 1;
         adc_k = 0;
-        adc_start(0);
+        adc_convert(); /* input 0 was selected when the last scan ended */
     }
     if (streaming) {
         if (sync_latched) {
@@ -201,16 +242,18 @@ void setup(void)
     /* analog inputs A0-A2: digital input buffers off */
     DIDR0 = (1 << ADC0D) | (1 << ADC1D) | (1 << ADC2D);
     ADCSRA = (uint8_t)((1 << ADEN) | UNO_ADC_PRESCALER_BITS);
+    adc_select(0, 0);
     /* sync-in D2 (INT0): input, rising edge */
     DDRD &= (uint8_t)~(1 << PD2);
     EICRA = (1 << ISC01) | (1 << ISC00);
     EIFR = (1 << INTF0);
     EIMSK = (1 << INT0);
-    /* Timer1: CTC on OCR1A, clk/64 -> 250 kHz, OCR1A = 249 -> exactly 1000 Hz */
+    /* Timer1: CTC on OCR1A, clk/8 -> 2 MHz (0.5 us per count), OCR1A = 1999 -> exactly 1000 Hz; compare B times
+     * each conversion's settling */
     TCCR1A = 0;
-    TCCR1B = (1 << WGM12) | (1 << CS11) | (1 << CS10);
+    TCCR1B = (1 << WGM12) | (1 << CS11);
     TCNT1 = 0;
-    OCR1A = 249;
+    OCR1A = UNO_TICK_TOP;
     TIFR1 = (1 << OCF1A);
     TIMSK1 = (1 << OCIE1A);
     sei();
