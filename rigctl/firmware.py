@@ -20,13 +20,14 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import os
+import re
 import subprocess
 from importlib import resources
 from pathlib import Path
 
 from rigctl import __version__
 
-__all__ = ["FirmwareBuildError", "build", "build_dir", "cache_root", "source_digest", "sources"]
+__all__ = ["FirmwareBuildError", "build", "build_dir", "cache_root", "source_digest", "source_versions", "sources"]
 
 #: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
 _SOURCE_SUFFIXES = (".c", ".h", ".cpp")
@@ -65,6 +66,30 @@ def source_digest(src: Path | str | None = None) -> str:
         h.update(p.read_bytes())
         h.update(b"\0")
     return h.hexdigest()
+
+
+def source_versions(src: Path | str | None = None) -> dict[str, tuple[int, int]]:
+    """The firmware versions the sources declare (``common/rigctl_wire.h``: ``RIGCTL_MEGA_FW_MAJOR`` / ``_MINOR``,
+    ``RIGCTL_UNO_FW_...``): ``{"mega": (major, minor), "uno": (major, minor)}``; what a board flashed from them
+    reports (docs/wire-protocol.md 1.3 and 2.5).
+
+    Raises
+    ------
+    FileNotFoundError / ValueError
+        No ``common/rigctl_wire.h`` in ``src``, or it lacks one of the four defines.
+    """
+    src = Path(src) if src is not None else sources()
+    text = (src / "common" / "rigctl_wire.h").read_text()
+    out = {}
+    for board in ("mega", "uno"):
+        parts = []
+        for part in ("MAJOR", "MINOR"):
+            m = re.search(rf"^#define\s+RIGCTL_{board.upper()}_FW_{part}\s+(\d+)", text, re.MULTILINE)
+            if m is None:
+                raise ValueError(f"{src / 'common' / 'rigctl_wire.h'} has no RIGCTL_{board.upper()}_FW_{part}")
+            parts.append(int(m.group(1)))
+        out[board] = (parts[0], parts[1])
+    return out
 
 
 def cache_root() -> Path:

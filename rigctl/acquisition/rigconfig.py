@@ -12,7 +12,11 @@ optional blocks
   ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts`` (numbers), ``calibrated_utc`` (text);
 - ``taxel_normalisation``: ``taxel_min``, ``taxel_max`` (required, lists of ADC counts, one per taxel, of the same
   non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text);
-- ``taxel_normalisation_previous``: the taxel normalisation the current one replaced (the same keys), kept for undo.
+- ``taxel_normalisation_previous``: the taxel normalisation the current one replaced (the same keys), kept for undo;
+- ``doctor``: the last ``rigctl doctor`` report per rig kind (``hardware``, ``sim``, ``hil``, ``replay``,
+  ``inprocess``): ``checked_utc`` and ``rig`` (text), ``ok`` (true/false), ``checks`` (a list of objects with
+  ``name``, ``status`` ("pass", "fail" or "skip"), ``summary``, optional ``fix`` (text) and ``values`` (an object of
+  numbers, text, true/false, null or lists of them)) (:mod:`rigctl.acquisition.doctor`).
 
 Numbers are finite (JSON ``NaN``/``Infinity`` are refused) and never ``true``/``false``. Any other key is refused, by
 name (a misspelt key would otherwise be ignored without a word).
@@ -54,9 +58,15 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     },
 }
 SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
+SCHEMA["doctor"] = {kind: ("report", False) for kind in ("hardware", "sim", "hil", "replay", "inprocess")}
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
-             "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers"}
+             "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers",
+             "report": "a doctor report (checked_utc, rig, ok, checks)"}
+
+#: a doctor report's keys -> kind; each check's keys -> kind (``values`` checked by _is_plain_value)
+_REPORT_KEYS = {"checked_utc": "text", "rig": "text", "ok": "bool", "checks": "list"}
+_CHECK_KEYS = {"name": "text", "status": "status", "summary": "text", "fix": "text", "values": "values"}
 
 
 def _shown(value: Any) -> str:
@@ -85,7 +95,33 @@ def _check_value(kind: str, v: Any) -> bool:
         return isinstance(v, str)
     if kind == "counts":
         return isinstance(v, list) and len(v) > 0 and all(_is_number(x) for x in v)
+    if kind == "report":
+        return _is_report(v)
     raise AssertionError(kind)
+
+
+def _is_plain_value(v: Any, depth: int = 0) -> bool:
+    """A finite number, text, true/false, null, or a list of them (nested lists at most 2 deep)."""
+    if v is None or isinstance(v, (str, bool)) or _is_number(v):
+        return True
+    return isinstance(v, list) and depth < 2 and all(_is_plain_value(x, depth + 1) for x in v)
+
+
+def _is_check(c: Any) -> bool:
+    if not isinstance(c, dict) or set(c) - set(_CHECK_KEYS) or not {"name", "status", "summary"} <= set(c):
+        return False
+    if c["status"] not in ("pass", "fail", "skip"):
+        return False
+    if not all(isinstance(c[k], str) for k in ("name", "summary", "fix") if k in c):
+        return False
+    values = c.get("values", {})
+    return isinstance(values, dict) and all(isinstance(k, str) and _is_plain_value(x) for k, x in values.items())
+
+
+def _is_report(v: Any) -> bool:
+    return (isinstance(v, dict) and set(v) == set(_REPORT_KEYS) and isinstance(v["checked_utc"], str)
+            and isinstance(v["rig"], str) and isinstance(v["ok"], bool) and isinstance(v["checks"], list)
+            and all(_is_check(c) for c in v["checks"]))
 
 
 def validate_rig_config(doc: Any, where: str = "rig config") -> dict:

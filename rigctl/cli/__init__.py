@@ -22,6 +22,7 @@ COMMANDS = {
     "export": "rigctl.cli.export:export",
     "protocols": "rigctl.cli.protocols:protocols",
     "firmware": "rigctl.cli.firmware:firmware",
+    "doctor": "rigctl.cli.doctor:doctor",
 }
 
 SHORT_HELP = {
@@ -37,6 +38,7 @@ SHORT_HELP = {
     "export": "Export a session (and its spike trains) as NWB.",
     "protocols": "List the built-in protocols (run one by name).",
     "firmware": "Build the boards' firmware images from the installed sources (for flashing).",
+    "doctor": "Bring-up checks on the rig: one line each, pass/fail/skip and the fix.",
 }
 
 

@@ -1,0 +1,251 @@
+"""The doctor's framework: a check is a small function ``check(ctx) -> CheckResult``; :func:`run_doctor` runs them in
+order on one :class:`DoctorContext` (which opens the rig when the first check needs it) and returns a dated
+:class:`DoctorReport`.
+
+A check reports ``pass``, ``fail`` (with the fix, in words) or ``skip`` (with why its data is not available: a
+register this firmware does not have, a simulated board without a USB serial number, ...). A check never passes on
+data it could not get: it raises :class:`Skip` instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import math
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from rigctl.acquisition.rig import Rig
+from rigctl.devices.drum import _WallClock
+
+__all__ = ["CheckResult", "Check", "DoctorContext", "DoctorReport", "Skip", "STATUSES", "run_doctor"]
+
+#: what a check can report
+STATUSES = ("pass", "fail", "skip")
+
+
+class Skip(Exception):
+    """Raised by a check whose data is not available; the message says why (becomes ``skip: <why>``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckResult:
+    """One check's outcome.
+
+    Attributes
+    ----------
+    name : the check's name (``port-permissions``, ``loadcell-polarity``, ...)
+    status : "pass" | "fail" | "skip"
+    summary : one line: what was measured (with units) or why it was skipped
+    fix : what to do about a failure (empty for pass and skip)
+    values : the measured numbers (JSON scalars or lists), units in the keys
+    """
+
+    name: str
+    status: str
+    summary: str
+    fix: str = ""
+    values: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.status not in STATUSES:
+            raise ValueError(f"check status must be one of {STATUSES}, got {self.status!r}")
+
+    def line(self) -> str:
+        """``PASS name: summary`` (``-> fix: ...`` on a failure), one line."""
+        text = f"{self.status.upper():4}  {self.name}: {self.summary}"
+        return f"{text} -> fix: {self.fix}" if self.fix else text
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": self.name, "status": self.status, "summary": self.summary}
+        if self.fix:
+            d["fix"] = self.fix
+        if self.values:
+            d["values"] = {k: _plain(v) for k, v in self.values.items()}
+        return d
+
+
+def _plain(v: Any) -> Any:
+    """A JSON value of the rig config's kinds: numpy scalars as Python numbers, NaN/inf as null, tuples as lists."""
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if hasattr(v, "item") and not isinstance(v, (str, bytes)):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def passed(name: str, summary: str, **values: Any) -> CheckResult:
+    return CheckResult(name, "pass", summary, values=values)
+
+
+def failed(name: str, summary: str, fix: str, **values: Any) -> CheckResult:
+    return CheckResult(name, "fail", summary, fix=fix, values=values)
+
+
+@dataclasses.dataclass(frozen=True)
+class Check:
+    """A named check: ``fn(ctx)`` returns a :class:`CheckResult` or raises :class:`Skip`; ``moves`` marks checks
+    that move the drum or the actuator (run after the passive ones; the rig is stopped safely after each)."""
+
+    name: str
+    fn: Callable[["DoctorContext"], CheckResult]
+    moves: bool = False
+    title: str = ""
+
+
+class DoctorContext:
+    """What the checks share: the rig kind, its ports, the rig (opened on first use by ``opener``), the rig config
+    path and measurements cached for several checks (e.g. one capture at rest for the noise floor, crosstalk and
+    the Uno's clock).
+
+    Parameters
+    ----------
+    mode : "sim" | "hil" | "hardware" | "replay" | "inprocess"
+    opener : ``opener() -> Rig`` (e.g. ``lambda: rigctl.rigs.open_rig(kind, ...)``); the context closes a rig it
+        opened. Or ``rig``: an open rig (the GUI's), left open.
+    drum_port, taxel_port : the boards' serial ports when known before opening (hardware); else taken from the
+        opened rig's backend.
+    config_path : the rig config file (default ``$RIGCTL_CONFIG`` / ``~/.config/rigctl/rig.json``).
+    rest_s : duration of the taxel capture at rest, s (noise floor, crosstalk, Uno clock).
+    """
+
+    def __init__(self, mode: str, *, opener: Callable[[], Rig] | None = None, rig: Rig | None = None,
+                 drum_port: str | None = None, taxel_port: str | None = None, config_path: Any = None,
+                 rest_s: float = 10.0) -> None:
+        if opener is None and rig is None:
+            raise ValueError("DoctorContext needs an opener or an open rig")
+        self.mode = mode
+        self._opener = opener
+        self._rig = rig
+        self._owns_rig = False
+        self.open_error: str | None = None
+        self._ports = {k: v for k, v in (("drum", drum_port), ("taxel", taxel_port)) if v}
+        self.config_path = config_path
+        self.rest_s = float(rest_s)
+        self.cache: dict[str, Any] = {}
+
+    @property
+    def simulated(self) -> bool:
+        """True unless the rig is real hardware."""
+        return self.mode != "hardware"
+
+    def rig(self) -> Rig:
+        """The open rig (opened on first use). Raises :class:`Skip` if it could not be opened."""
+        if self._rig is None:
+            if self.open_error is not None:
+                raise Skip(f"the rig did not open ({self.open_error})")
+            assert self._opener is not None
+            try:
+                self._rig = self._opener()
+                self._owns_rig = True
+            except Exception as exc:  # noqa: BLE001 - reported by the link check, skipped by the others
+                self.open_error = " ".join(str(exc).split()) or type(exc).__name__
+                raise Skip(f"the rig did not open ({self.open_error})") from exc
+        return self._rig
+
+    def ports(self) -> dict[str, str]:
+        """``{"drum": path, "taxel": path}``: as given, else the opened rig backend's (``{}`` for a backend without
+        serial ports, e.g. the in-process rig)."""
+        if not self._ports:
+            desc = self.rig().backend.describe()
+            self._ports = {k[:-5]: str(v) for k, v in desc.items()
+                           if k in ("drum_port", "taxel_port") and v and str(v).startswith("/")}
+        return dict(self._ports)
+
+    @property
+    def clock(self) -> Any:
+        """The drum client's clock (simulated on the in-process rig), else the host's monotonic clock."""
+        return getattr(self.rig().drum, "clock", None) or _WallClock()
+
+    def cached(self, key: str, fn: Callable[[], Any]) -> Any:
+        """``fn()`` once per context (a failure is cached too and raised again)."""
+        if key not in self.cache:
+            try:
+                self.cache[key] = ("ok", fn())
+            except Exception as exc:  # noqa: BLE001 - re-raised to every check that needs it
+                self.cache[key] = ("error", exc)
+        kind, value = self.cache[key]
+        if kind == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        """Stop the rig safely and close it if this context opened it."""
+        if self._rig is not None and self._owns_rig:
+            with contextlib.suppress(Exception):
+                self._rig.close()
+            self._rig = None
+
+
+@dataclasses.dataclass
+class DoctorReport:
+    """The doctor's results on one rig: ``checked_utc`` (ISO 8601), ``rig`` (the mode), ``results`` in order."""
+
+    checked_utc: str
+    rig: str
+    results: list[CheckResult]
+
+    @property
+    def ok(self) -> bool:
+        """No check failed (skipped checks do not count as failures; they are listed as such)."""
+        return not any(r.status == "fail" for r in self.results)
+
+    def counts(self) -> dict[str, int]:
+        return {s: sum(r.status == s for r in self.results) for s in STATUSES}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"checked_utc": self.checked_utc, "rig": self.rig, "ok": self.ok,
+                "checks": [r.to_dict() for r in self.results]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "DoctorReport":
+        return cls(d["checked_utc"], d["rig"], [CheckResult(c["name"], c["status"], c["summary"], c.get("fix", ""),
+                                                            dict(c.get("values", {}))) for c in d["checks"]])
+
+
+def _run_one(check: Check, ctx: DoctorContext) -> CheckResult:
+    try:
+        result = check.fn(ctx)
+    except Skip as why:
+        return CheckResult(check.name, "skip", str(why))
+    except Exception as exc:  # noqa: BLE001 - a check that could not finish has not passed
+        return CheckResult(check.name, "fail", f"the check could not finish: {' '.join(str(exc).split())}",
+                           fix="see the message; rerun `rigctl doctor --check " + check.name + "`")
+    finally:
+        if check.moves and ctx._rig is not None:
+            _make_safe(ctx)
+    if result.name != check.name:
+        result = dataclasses.replace(result, name=check.name)
+    return result
+
+
+def _make_safe(ctx: DoctorContext) -> None:
+    """After a check that moved the rig: STOP and wait for the actuator home (never raises)."""
+    rig = ctx._rig
+    assert rig is not None
+    rig.safe_stop()
+    with contextlib.suppress(Exception):
+        rig.drum.wait_released(timeout_s=30.0)
+
+
+def run_doctor(checks: Iterable[Check], ctx: DoctorContext, *,
+               on_result: Callable[[CheckResult], Any] | None = None) -> DoctorReport:
+    """Run ``checks`` in order on ``ctx``; ``on_result(result)`` after each (the CLI prints, the GUI shows it).
+
+    The context's rig is stopped safely after each check that moves it and closed at the end if the context opened
+    it. Never raises for a failing check (it is a ``fail`` line); returns the :class:`DoctorReport`.
+    """
+    stamp = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    results = []
+    try:
+        for check in checks:
+            result = _run_one(check, ctx)
+            results.append(result)
+            if on_result is not None:
+                on_result(result)
+    finally:
+        ctx.close()
+    return DoctorReport(stamp, ctx.mode, results)

@@ -1,0 +1,244 @@
+"""Doctor checks of the drum controller (Mega): firmware against the installed sources, reset cause and boot count,
+the HX711's rate, the load cell's zero, scale and polarity, the force loop's step response, the drum speed measured
+from the index.
+
+Register names are docs/wire-protocol.md's (section 2). A check that needs a register this firmware does not have
+reports ``skip`` naming it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, passed
+from rigctl.acquisition.doctor.measure import step_response
+from rigctl.acquisition.rigconfig import load_rig_config
+from rigctl.devices import wire
+from rigctl.devices.wire import DrumState, HoldingRegister as HR
+
+__all__ = ["CHECKS", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G", "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
+
+#: setpoint of the polarity check's press, g (the smallest of the paper's forces)
+POLARITY_SETPOINT_G = 250.0
+#: setpoint of the step-response check, g (the middle of the paper's 250/500/1000 g)
+STEP_SETPOINT_G = 500.0
+#: a step response overshooting more than this fails: at 1000 g it would be 1300 g, near the 1500 g force limit
+MAX_OVERSHOOT_PCT = 30.0
+#: ... and one that has not settled within the tolerance this long after contact fails (a trial waits for FORCE_SETTLED)
+MAX_SETTLING_S = 3.0
+#: how long the step-response trace runs after contact, s
+STEP_TRACE_S = 6.0
+#: status polling period of the traces, s (~50 Hz, as a trial's trace)
+POLL_S = 0.02
+
+#: the fix for a force loop that does not settle
+FORCE_LOOP_FIX = ("set the HX711 board's RATE pin high (80 SPS; many boards ship at 10 SPS) and check the contact "
+                  "stiffness against the force-loop gains (docs/hardware)")
+
+
+def input_register(name: str) -> Any:
+    """The input register ``name`` of this host's register map, or raise :class:`Skip` naming it."""
+    reg = getattr(wire.InputRegister, name, None)
+    if reg is None:
+        raise Skip(f"the register map has no input register {name} (docs/wire-protocol.md 2.2)")
+    return reg
+
+
+def _read_input(ctx: DoctorContext, reg: Any) -> int:
+    drum = ctx.rig().drum
+    reader = getattr(drum, "read_inputs", None)
+    if reader is None:
+        raise Skip(f"this drum controller cannot read input register {reg.name}")
+    return int(reader(int(reg), 1)[0])
+
+
+def check_firmware_version(ctx: DoctorContext) -> CheckResult:
+    from rigctl import firmware
+
+    want = firmware.source_versions()
+    rig = ctx.rig()
+    mega = tuple(rig.drum.read_status().firmware)
+    banner = getattr(rig.stream, "banner", None) or {}
+    uno = tuple(banner.get("firmware") or ())
+    values = {"mega_firmware": list(mega), "uno_firmware": list(uno), "sources_mega": list(want["mega"]),
+              "sources_uno": list(want["uno"])}
+    wrong = [f"{b} reports {'.'.join(map(str, got)) or '?'}, the installed sources are "
+             f"{'.'.join(map(str, want[b]))}" for b, got in (("mega", mega), ("uno", uno)) if got != want[b]]
+    if wrong:
+        return failed("firmware-version", "; ".join(wrong), "flash the installed firmware: rigctl firmware --flash "
+                      "PORT --board mega|uno", **values)
+    return passed("firmware-version", f"mega {mega[0]}.{mega[1]}, uno {uno[0]}.{uno[1]}: the installed sources' "
+                  f"versions", **values)
+
+
+def check_firmware_build(ctx: DoctorContext) -> CheckResult:
+    from rigctl import firmware
+
+    digest = firmware.source_digest()
+    banner = getattr(ctx.rig().stream, "banner", None) or {}
+    build = banner.get("build")
+    if build is None:
+        raise Skip(f"the boards report a version only, no build hash to compare with the installed sources "
+                   f"(sha256 {digest[:12]}): a rebuild without a version change is not told apart")
+    if not digest.startswith(str(build).lower()):
+        return failed("firmware-build", f"the taxel streamer runs build {build}, the installed sources are "
+                      f"{digest[:len(str(build))]}", "flash the installed firmware: rigctl firmware --flash PORT",
+                      board_build=str(build), sources_digest=digest)
+    return passed("firmware-build", f"build {build} = the installed sources", sources_digest=digest)
+
+
+def check_reset_cause(ctx: DoctorContext) -> CheckResult:
+    cause_reg = input_register("RESET_CAUSE")
+    boots_reg = input_register("BOOT_COUNT")
+    cause = _read_input(ctx, cause_reg)
+    boots = _read_input(ctx, boots_reg)
+    return passed("reset-cause", f"last reset cause {cause}, {boots} boots", reset_cause=cause, boot_count=boots)
+
+
+def check_hx711_rate(ctx: DoctorContext) -> CheckResult:
+    reg = input_register("HX711_RATE_SPS")
+    sps = _read_input(ctx, reg)
+    if sps < 40:
+        return failed("hx711-rate", f"the HX711 converts at {sps} samples/s", "pull the HX711 board's RATE pin "
+                      "high (80 SPS): on most boards a solder jumper or the pin to VCC (Avia HX711 datasheet)",
+                      hx711_rate_sps=sps)
+    return passed("hx711-rate", f"{sps} samples/s", hx711_rate_sps=sps)
+
+
+def check_loadcell_zero(ctx: DoctorContext) -> CheckResult:
+    rig = ctx.rig()
+    drum = rig.drum
+    st = drum.read_status()
+    if st.state != DrumState.IDLE or st.actuator_mm > 0.05:
+        raise Skip(f"the actuator is not at home (state {st.state.name}, {st.actuator_mm:g} mm)")
+    tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+    clock = ctx.clock
+    forces = []
+    for _ in range(25):
+        forces.append(drum.read_status().force_g)
+        clock.sleep(POLL_S)
+    zero = float(np.mean(forces))
+    noise = float(np.std(forces))
+    if abs(zero) > tol:
+        return failed("loadcell-zero", f"the load cell reads {zero:+.1f} g at home (tolerance {tol} g)",
+                      "tare at home (the actuator released): rigctl calibrate, or the GUI's calibration tab; a reading "
+                      "that drifts back: check the cell's mounting and wiring", zero_g=zero, noise_g=noise)
+    return passed("loadcell-zero", f"{zero:+.1f} g at home (sd {noise:.1f} g, tolerance {tol} g)", zero_g=zero,
+                  noise_g=noise)
+
+
+def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
+    cal = load_rig_config(ctx.config_path).get("loadcell") or {}
+    if "scale_x100" not in cal:
+        raise Skip("the rig config holds no load-cell calibration (scale_x100): calibrate first")
+    board = ctx.rig().drum.read_holding(HR.LOADCELL_SCALE_X100)
+    if board != cal["scale_x100"]:
+        return failed("loadcell-scale", f"the Mega uses LOADCELL_SCALE_X100 {board}, the rig config's calibration "
+                      f"{cal['scale_x100']} (the EEPROM was lost or another cell was calibrated)",
+                      "calibrate the load cell again (rigctl calibrate / the GUI's calibration tab), which saves it "
+                      "to the EEPROM", board_scale_x100=board, config_scale_x100=cal["scale_x100"])
+    return passed("loadcell-scale", f"LOADCELL_SCALE_X100 {board} = the rig config's", scale_x100=board)
+
+
+def _fault_names(faults: Any) -> str:
+    return "|".join(f.name for f in type(faults) if f in faults and f.value) or str(int(faults))
+
+
+def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
+    rig = ctx.rig()
+    drum = rig.drum
+    tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+    clock = ctx.clock
+    drum.set_force(POLARITY_SETPOINT_G)
+    drum.press()
+    t0 = clock.now()
+    lowest = 0.0
+    reversed_fix = ("the load cell reads negative while pressing: swap the cell's signal wires (A+/A-, usually green/"
+                    "white) at the HX711, or turn the cell over; then calibrate again")
+    while clock.now() - t0 < 15.0:
+        st = drum.read_status()
+        lowest = min(lowest, st.force_g)
+        if st.state == DrumState.FAULT:
+            drum.stop()
+            if lowest < -2 * tol:
+                return failed("loadcell-polarity", f"fault {_fault_names(st.faults)} while pressing, the force went to "
+                              f"{lowest:.0f} g", reversed_fix, lowest_force_g=lowest)
+            return failed("loadcell-polarity", f"fault {_fault_names(st.faults)} while pressing (force {st.force_g:.0f}"
+                          f" g at {st.actuator_mm:.2f} mm)", "check the load cell's wiring and that the drum reaches "
+                          "the sensor within the actuator's travel", lowest_force_g=lowest)
+        if st.force_g < -2 * tol:
+            drum.stop()
+            return failed("loadcell-polarity", f"the force went to {st.force_g:.0f} g while the actuator pressed "
+                          f"{st.actuator_mm:.2f} mm towards the sensor", reversed_fix, lowest_force_g=lowest)
+        if st.force_g > POLARITY_SETPOINT_G / 2:
+            drum.stop()
+            return passed("loadcell-polarity", f"the force rises as the actuator presses ({st.force_g:.0f} g at "
+                          f"{st.actuator_mm:.2f} mm)", force_g=st.force_g, actuator_mm=st.actuator_mm)
+        clock.sleep(POLL_S)
+    drum.stop()
+    return failed("loadcell-polarity", f"the force did not rise within 15 s of PRESS (lowest {lowest:.0f} g)",
+                  "check the HX711 wiring (DOUT D3, SCK D4) and the load cell's excitation", lowest_force_g=lowest)
+
+
+def check_force_step(ctx: DoctorContext) -> CheckResult:
+    rig = ctx.rig()
+    drum = rig.drum
+    tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+    clock = ctx.clock
+    drum.set_force(STEP_SETPOINT_G)
+    drum.press()
+    t0 = clock.now()
+    t, f, x = [], [], []
+    contact = None
+    while True:
+        st = drum.read_status()
+        now = clock.now() - t0
+        t.append(now)
+        f.append(st.force_g)
+        x.append(st.actuator_mm)
+        if st.state == DrumState.FAULT:
+            drum.stop()
+            return failed("force-step", f"fault {_fault_names(st.faults)} during the {STEP_SETPOINT_G:g} g step "
+                          f"(force {st.force_g:.0f} g)", FORCE_LOOP_FIX)
+        if contact is None and st.force_g > 0.1 * STEP_SETPOINT_G:
+            contact = now
+        if contact is None and now > 15.0:
+            drum.stop()
+            raise Skip("no contact within 15 s of PRESS (see loadcell-polarity)")
+        if contact is not None and now - contact >= STEP_TRACE_S:
+            break
+        clock.sleep(POLL_S)
+    drum.stop()
+    r = step_response(np.array(t), np.array(f), np.array(x), STEP_SETPOINT_G, tol)
+    values = {"setpoint_g": STEP_SETPOINT_G, "tolerance_g": tol, "overshoot_pct": r.overshoot_pct,
+              "settling_time_s": None if math.isnan(r.settling_time_s) else r.settling_time_s,
+              "residual_pp_g": r.residual_pp_g,
+              "stiffness_g_per_mm": None if math.isnan(r.stiffness_g_per_mm) else r.stiffness_g_per_mm}
+    k = "" if math.isnan(r.stiffness_g_per_mm) else f" at {r.stiffness_g_per_mm:.0f} g/mm"
+    what = (f"0 -> {STEP_SETPOINT_G:g} g{k}: overshoot {r.overshoot_pct:.0f} %, "
+            + (f"settled in {r.settling_time_s:.2f} s" if r.settled else "not settled")
+            + f", last 1 s {r.residual_pp_g:.0f} g peak-to-peak")
+    if not r.settled or r.settling_time_s > MAX_SETTLING_S or r.overshoot_pct > MAX_OVERSHOOT_PCT:
+        return failed("force-step", what, FORCE_LOOP_FIX, **values)
+    return passed("force-step", what, **values)
+
+
+def check_drum_speed(ctx: DoctorContext) -> CheckResult:
+    input_register("INDEX_SPEED_0P1MMS")
+    raise Skip("not implemented for this register map")
+
+
+CHECKS = (
+    Check("firmware-version", check_firmware_version, title="firmware version = the installed sources'"),
+    Check("firmware-build", check_firmware_build, title="firmware build hash = the installed sources'"),
+    Check("reset-cause", check_reset_cause, title="reset cause and boot count"),
+    Check("hx711-rate", check_hx711_rate, title="HX711 rate (80 SPS)"),
+    Check("loadcell-zero", check_loadcell_zero, title="load cell reads zero at home"),
+    Check("loadcell-scale", check_loadcell_scale, title="load-cell scale = the rig config's calibration"),
+    Check("loadcell-polarity", check_loadcell_polarity, moves=True, title="load cell polarity"),
+    Check("force-step", check_force_step, moves=True, title="force step response"),
+    Check("drum-speed", check_drum_speed, moves=True, title="drum speed from the index at 40 and 120 mm/s"),
+)

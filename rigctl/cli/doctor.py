@@ -1,0 +1,68 @@
+"""``rigctl doctor``: bring-up checks on the connected rig (a thin face over :mod:`rigctl.acquisition.doctor`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+
+@click.command("doctor")
+@click.option("--sim", "sim", is_flag=True, default=False, help="Check the simulated rig (the default).")
+@click.option("--hil", is_flag=True, default=False, help="Check the real firmware under simavr.")
+@click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
+@click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
+@click.option("--check", "checks", multiple=True, metavar="NAME",
+              help="Run only this check (repeatable); --list shows the names.")
+@click.option("--list", "list_checks", is_flag=True, default=False, help="List the checks and exit.")
+@click.option("--json", "as_json", is_flag=True, default=False, help="Print the report as JSON.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Rig config file (default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json); the report is stored in it.")
+@click.option("--no-save", is_flag=True, default=False, help="Do not store the report in the rig config.")
+@click.option("--rest-s", type=click.FloatRange(2.0, 120.0), default=10.0, show_default=True,
+              help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the simulated rig.")
+def doctor(sim, hil, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
+    """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
+    available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
+    after each. The report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a check
+    failed.
+    """
+    from rigctl.acquisition import doctor as doc
+
+    if list_checks:
+        for c in doc.CHECKS:
+            click.echo(f"{c.name:18} {c.title}{' (moves the rig)' if c.moves else ''}")
+        return
+    if (drum_port is None) != (taxel_port is None):
+        raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
+    if drum_port is not None and (sim or hil):
+        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil")
+    if sim and hil:
+        raise click.UsageError("choose one of --sim and --hil")
+    try:
+        selected = doc.select(checks or None)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--check") from None
+    kind = "hardware" if drum_port is not None else "hil" if hil else "sim"
+
+    def opener():
+        from rigctl.rigs import open_rig
+
+        options = {"drum_port": drum_port, "taxel_port": taxel_port} if kind == "hardware" else {"seed": seed}
+        return open_rig(kind, host_config_path=config_path, **options)
+
+    ctx = doc.DoctorContext(kind, opener=opener, drum_port=drum_port, taxel_port=taxel_port,
+                            config_path=config_path, rest_s=rest_s)
+    report = doc.run_doctor(selected, ctx, on_result=None if as_json else lambda r: click.echo(r.line()))
+    if not no_save:
+        doc.save_report(report, config_path)
+    if as_json:
+        click.echo(json.dumps(report.to_dict(), indent=2))
+    else:
+        n = report.counts()
+        click.echo(f"{kind} rig: {n['pass']} passed, {n['fail']} failed, {n['skip']} skipped"
+                   + ("" if no_save else " (stored in the rig config)"))
+    if not report.ok:
+        raise SystemExit(1)

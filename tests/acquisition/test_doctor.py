@@ -1,0 +1,208 @@
+"""rigctl doctor: the measurements on known signals, the checks on the in-process rig (healthy and with injected
+faults), the report stored in the rig config, and the CLI (usage errors, a port without permission)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from rigctl.acquisition import doctor
+from rigctl.acquisition.doctor.measure import clock_error_ppm, crosstalk, step_response
+from rigctl.acquisition.rigconfig import RigConfigError, load_rig_config, validate_rig_config
+from rigctl.rigs import open_rig
+from rigctl.simulation.model import MechanicsConfig, RigConfig
+
+
+# ------------------------------------------------------------------------------------------------ measurements
+def _second_order(t, sp, zeta, wn):
+    wd = wn * np.sqrt(1 - zeta ** 2)
+    return sp * (1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / np.sqrt(1 - zeta ** 2) * np.sin(wd * t)))
+
+
+def test_step_response_of_a_damped_second_order_step():
+    t = np.arange(0, 6, 0.02)
+    zeta = 0.4
+    f = _second_order(t, 500.0, zeta, 2 * np.pi * 1.0)
+    x = f / 250.0  # 250 g/mm
+    r = step_response(t, f, x, 500.0, 15.0)
+    expected = 100 * np.exp(-np.pi * zeta / np.sqrt(1 - zeta ** 2))  # 25.4 %
+    assert r.overshoot_pct == pytest.approx(expected, abs=1.0)
+    assert r.settled and 0.5 < r.settling_time_s < 2.0
+    assert r.stiffness_g_per_mm == pytest.approx(250.0, rel=0.01)
+    assert r.residual_pp_g < 15
+
+
+def test_step_response_of_a_sustained_oscillation_does_not_settle():
+    t = np.arange(0, 6, 0.02)
+    f = 500 + 185 * np.sin(2 * np.pi * 3 * t)  # +-185 g, the issue's 80 SPS figure
+    r = step_response(t, f, f / 1500, 500.0, 15.0)
+    assert not r.settled
+    assert r.residual_pp_g == pytest.approx(370, rel=0.05)
+
+
+def test_crosstalk_finds_a_bleeding_pair_and_nothing_in_independent_noise():
+    rng = np.random.default_rng(1)
+    s = np.round(500 + 1.6 * rng.standard_normal((10_000, 18)))
+    c, noise = crosstalk(s)
+    assert np.nanmax(c) < 0.05
+    bled = s.copy()
+    bled[:, 4] = np.round(0.8 * s[:, 4] + 0.2 * bled[:, 3])  # 20 % of taxel 3 left in taxel 4 (47 kOhm)
+    c, _ = crosstalk(bled)
+    j, i = np.unravel_index(int(np.nanargmax(c)), c.shape)
+    assert {j, i} == {3, 4}
+    assert c[4, 3] == c[3, 4] == pytest.approx(0.2 / np.hypot(0.8, 0.2), abs=0.03)
+
+
+def test_clock_error_ppm():
+    assert clock_error_ppm(1000.5, 1000.0) == pytest.approx(500.0)
+
+
+# ------------------------------------------------------------------------------------------------ on a rig
+def _run(tmp_path, config=None, names=None):
+    cfg_path = tmp_path / "rig.json"
+    ctx = doctor.DoctorContext("inprocess", opener=lambda: open_rig("inprocess", config=config, seed=3,
+                                                                    host_config_path=cfg_path),
+                               config_path=cfg_path, rest_s=3.0)
+    report = doctor.run_doctor(doctor.select(names), ctx)
+    return report, {r.name: r for r in report.results}
+
+
+def test_the_healthy_inprocess_rig_passes_and_the_report_is_stored(tmp_path):
+    report, by = _run(tmp_path)
+    assert report.ok, [r.line() for r in report.results if r.status == "fail"]
+    for name in ("link", "firmware-version", "loadcell-zero", "noise-floor", "crosstalk", "uno-clock",
+                 "loadcell-polarity", "force-step"):
+        assert by[name].status == "pass", by[name].line()
+    # what the firmware does not report is a skip with the reason, never a pass
+    assert by["firmware-build"].status == "skip" and "build hash" in by["firmware-build"].summary
+    assert by["port-permissions"].status == "skip"  # the in-process rig has no ports
+    assert by["force-step"].values["settling_time_s"] < doctor.drum_checks.MAX_SETTLING_S
+    doctor.save_report(report, tmp_path / "rig.json")
+    stored = load_rig_config(tmp_path / "rig.json")["doctor"]["inprocess"]
+    assert stored["checked_utc"] == report.checked_utc and stored["ok"] is True
+    assert [c["name"] for c in stored["checks"]] == doctor.check_names()
+    again = doctor.last_report("inprocess", tmp_path / "rig.json")
+    assert again is not None and [r.status for r in again.results] == [r.status for r in report.results]
+
+
+def test_a_reversed_load_cell_fails_polarity_with_the_fix(tmp_path):
+    cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=-420.0))
+    report, by = _run(tmp_path, cfg, ["link", "loadcell-polarity"])
+    r = by["loadcell-polarity"]
+    assert r.status == "fail", r.line()
+    assert "swap" in r.fix and "A+/A-" in r.fix
+    assert r.values["lowest_force_g"] < -30
+    assert not report.ok
+
+
+def test_a_stored_report_is_schema_checked():
+    good = {"checked_utc": "2026-01-01T00:00:00+00:00", "rig": "sim", "ok": True,
+            "checks": [{"name": "link", "status": "pass", "summary": "ok", "values": {"x": [1, 2.5], "y": None}}]}
+    validate_rig_config({"doctor": {"sim": good}})
+    bad = json.loads(json.dumps(good))
+    bad["checks"][0]["status"] = "maybe"
+    with pytest.raises(RigConfigError, match="doctor.sim"):
+        validate_rig_config({"doctor": {"sim": bad}})
+    with pytest.raises(RigConfigError, match="unknown key"):
+        validate_rig_config({"doctor": {"bench": good}})
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def _rigctl(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "rigctl", *args], capture_output=True, text=True, timeout=120, **kw)
+
+
+def test_cli_usage_errors_exit_2():
+    p = _rigctl("doctor", "--check", "bogus", "--no-save")
+    assert p.returncode == 2 and "unknown check 'bogus'" in p.stderr
+    p = _rigctl("doctor", "--drum-port", "/dev/null", "--no-save")
+    assert p.returncode == 2 and "both --drum-port and --taxel-port" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def _as_unprivileged_user(args: list[str]) -> tuple[int, str]:
+    """``rigctl ARGS`` in a forked child that dropped root for the user nobody (65534): the interpreter's own files
+    may be unreadable for nobody, so the child runs the already imported CLI instead of a new interpreter."""
+    from click.testing import CliRunner
+
+    import rigctl.cli.doctor  # noqa: F401 - imported before the fork: nobody may not read the sources' folders
+    from rigctl.cli import main
+
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 99
+        try:
+            os.close(r)
+            os.setgroups([])
+            os.setgid(65534)
+            os.setuid(65534)
+            res = CliRunner().invoke(main, args)
+            os.write(w, res.output.encode())
+            code = res.exit_code
+        finally:
+            os._exit(code)
+    os.close(w)
+    with os.fdopen(r) as f:
+        out = f.read()
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status), out
+
+
+def test_a_port_without_permission_fails_with_the_dialout_fix(tmp_path):
+    """Two ptys (the boards' ports) that only root may open; the doctor runs as an unprivileged user (or, when the
+    tests do not run as root, on ports chmod 000)."""
+    fds, names = [], []
+    for _ in range(2):
+        m, s = os.openpty()
+        fds += [m, s]
+        names.append(os.ttyname(s))
+    try:
+        args = ["doctor", "--drum-port", names[0], "--taxel-port", names[1], "--check", "port-permissions", "--json",
+                "--no-save"]
+        if os.getuid() == 0:
+            for n in names:
+                os.chown(n, 0, 0)
+                os.chmod(n, 0o600)
+            code, out = _as_unprivileged_user(args)
+        else:
+            for n in names:
+                os.chmod(n, 0)
+            p = _rigctl(*args, env={**os.environ, "HOME": str(tmp_path)})
+            code, out = p.returncode, p.stdout
+        assert code == 1, out
+        rep = json.loads(out[out.index("{"):])
+        (check,) = rep["checks"]
+        assert check["status"] == "fail" and names[0] in check["summary"], check
+        assert "usermod -aG" in check["fix"] and "log out" in check["fix"]
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
+def test_cli_doctor_sim_passes_and_stores_the_dated_report(tmp_path):
+    cfg = tmp_path / "rig.json"
+    p = _rigctl("doctor", "--sim", "--rest-s", "3", "--config", str(cfg), env={**os.environ, "HOME": str(tmp_path)})
+    assert p.returncode == 0, p.stdout + p.stderr
+    lines = p.stdout.splitlines()
+    assert len(lines) == len(doctor.check_names()) + 1
+    assert all(line.split()[0] in ("PASS", "SKIP") for line in lines[:-1]), p.stdout
+    stored = load_rig_config(cfg)["doctor"]["sim"]
+    assert stored["ok"] is True and stored["rig"] == "sim"
+    assert {c["name"]: c["status"] for c in stored["checks"]}["port-permissions"] == "pass"
+
+
+@pytest.mark.hil
+def test_cli_doctor_hil_passes(tmp_path):
+    cfg = tmp_path / "rig.json"
+    p = _rigctl("doctor", "--hil", "--rest-s", "3", "--config", str(cfg), "--json",
+                env={**os.environ, "HOME": str(tmp_path)})
+    assert p.returncode == 0, p.stdout + p.stderr
+    rep = json.loads(p.stdout)
+    by = {c["name"]: c for c in rep["checks"]}
+    assert by["link"]["status"] == "pass" and by["force-step"]["status"] == "pass", by
