@@ -41,28 +41,21 @@ def doctor(sim, hil, drum_port, taxel_port, checks, list_checks, as_json, config
         raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil")
     if sim and hil:
         raise click.UsageError("choose one of --sim and --hil")
-    try:
-        selected = doc.select(checks or None)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--check") from None
-    kind = "hardware" if drum_port is not None else "hil" if hil else "sim"
+    from rigctl.operations import RigSource, doctor as run
 
-    def opener():
-        from rigctl.rigs import open_rig
-
-        options = {"drum_port": drum_port, "taxel_port": taxel_port} if kind == "hardware" else {"seed": seed}
-        return open_rig(kind, host_config_path=config_path, **options)
-
-    ctx = doc.DoctorContext(kind, opener=opener, drum_port=drum_port, taxel_port=taxel_port,
-                            config_path=config_path, rest_s=rest_s)
-    report = doc.run_doctor(selected, ctx, on_result=None if as_json else lambda r: click.echo(r.line()))
-    if not no_save:
-        doc.save_report(report, config_path)
+    if checks:
+        try:
+            doc.select(checks)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--check") from None
+    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port)
+    report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
+                 save=not no_save, on_result=None if as_json else lambda r: click.echo(r.line()))
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:
         n = report.counts()
-        click.echo(f"{kind} rig: {n['pass']} passed, {n['fail']} failed, {n['skip']} skipped"
+        click.echo(f"{source.kind} rig: {n['pass']} passed, {n['fail']} failed, {n['skip']} skipped"
                    + ("" if no_save else " (stored in the rig config)"))
     if not report.ok:
         raise SystemExit(1)

@@ -7,16 +7,19 @@ One package of small modules, each one job an operator does:
   controller's limits, run at a speed and force (press -> settle -> run), stop, tare, home, clear a fault, mount a
   plate, status; :class:`Home` says what opening does with a latched fault.
 - :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
+- :func:`doctor` (``_doctor``): the bring-up checks (:mod:`rigctl.acquisition.doctor`) on a source or an open rig,
+  the dated report stored in the rig config.
 
 The values they speak in (:class:`rigctl.core.drum.DrumStatus`, :class:`rigctl.core.drum.DrumLimits`, states,
 faults, errors) are :mod:`rigctl.core.drum`'s, shared by every layer.
 """
 
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
+from rigctl.operations._doctor import doctor
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 
 __all__ = [
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
-    "SetpointRefusal", "setpoint_refusals",
+    "SetpointRefusal", "setpoint_refusals", "doctor",
 ]

@@ -2,8 +2,10 @@
 the HX711's rate, the load cell's zero, scale and polarity, the force loop's step response, the drum speed measured
 from the index.
 
-Register names are docs/wire-protocol.md's (section 2). A check that needs a register this firmware does not have
-reports ``skip`` naming it.
+The checks speak to the controller through its typed contract (:class:`rigctl.core.interfaces.DrumController`:
+status, settings by register name, settle band), never through registers. A check that needs a value this
+controller does not report (a register its firmware lacks, docs/wire-protocol.md section 2) reports ``skip`` naming
+it.
 """
 
 from __future__ import annotations
@@ -16,8 +18,7 @@ import numpy as np
 from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, passed
 from rigctl.acquisition.doctor.measure import step_response
 from rigctl.acquisition.rigconfig import load_rig_config
-from rigctl.devices import wire
-from rigctl.devices.wire import DrumState, HoldingRegister as HR
+from rigctl.core.drum import DrumState
 
 __all__ = ["CHECKS", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G", "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
 
@@ -39,20 +40,16 @@ FORCE_LOOP_FIX = ("set the HX711 board's RATE pin high (80 SPS; many boards ship
                   "stiffness against the force-loop gains (docs/hardware)")
 
 
-def input_register(name: str) -> Any:
-    """The input register ``name`` of this host's register map, or raise :class:`Skip` naming it."""
-    reg = getattr(wire.InputRegister, name, None)
-    if reg is None:
-        raise Skip(f"the register map has no input register {name} (docs/wire-protocol.md 2.2)")
-    return reg
+def status_value(ctx: DoctorContext, field: str, register: str) -> Any:
+    """``field`` of the controller's status, or raise :class:`Skip` naming the ``register`` behind it."""
+    value = getattr(ctx.rig().drum.read_status(), field, None)
+    if value is None:
+        raise Skip(f"the drum controller does not report {register} (docs/wire-protocol.md 2.2)")
+    return value
 
 
-def _read_input(ctx: DoctorContext, reg: Any) -> int:
-    drum = ctx.rig().drum
-    reader = getattr(drum, "read_inputs", None)
-    if reader is None:
-        raise Skip(f"this drum controller cannot read input register {reg.name}")
-    return int(reader(int(reg), 1)[0])
+def _tolerance_g(ctx: DoctorContext) -> float:
+    return float(ctx.rig().drum.settle_band().force_tolerance_g)
 
 
 def check_firmware_version(ctx: DoctorContext) -> CheckResult:
@@ -91,16 +88,13 @@ def check_firmware_build(ctx: DoctorContext) -> CheckResult:
 
 
 def check_reset_cause(ctx: DoctorContext) -> CheckResult:
-    cause_reg = input_register("RESET_CAUSE")
-    boots_reg = input_register("BOOT_COUNT")
-    cause = _read_input(ctx, cause_reg)
-    boots = _read_input(ctx, boots_reg)
+    cause = status_value(ctx, "reset_cause", "RESET_CAUSE")
+    boots = status_value(ctx, "boot_count", "BOOT_COUNT")
     return passed("reset-cause", f"last reset cause {cause}, {boots} boots", reset_cause=cause, boot_count=boots)
 
 
 def check_hx711_rate(ctx: DoctorContext) -> CheckResult:
-    reg = input_register("HX711_RATE_SPS")
-    sps = _read_input(ctx, reg)
+    sps = status_value(ctx, "hx711_rate_sps", "HX711_RATE_SPS")
     if sps < 40:
         return failed("hx711-rate", f"the HX711 converts at {sps} samples/s", "pull the HX711 board's RATE pin "
                       "high (80 SPS): on most boards a solder jumper or the pin to VCC (Avia HX711 datasheet)",
@@ -114,7 +108,7 @@ def check_loadcell_zero(ctx: DoctorContext) -> CheckResult:
     st = drum.read_status()
     if st.state != DrumState.IDLE or st.actuator_mm > 0.05:
         raise Skip(f"the actuator is not at home (state {st.state.name}, {st.actuator_mm:g} mm)")
-    tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+    tol = _tolerance_g(ctx)
     clock = ctx.clock
     forces = []
     for _ in range(25):
@@ -134,7 +128,9 @@ def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
     cal = load_rig_config(ctx.config_path).get("loadcell") or {}
     if "scale_x100" not in cal:
         raise Skip("the rig config holds no load-cell calibration (scale_x100): calibrate first")
-    board = ctx.rig().drum.read_holding(HR.LOADCELL_SCALE_X100)
+    board = ctx.rig().drum.settings().get("LOADCELL_SCALE_X100")
+    if board is None:
+        raise Skip("the drum controller does not report LOADCELL_SCALE_X100")
     if board != cal["scale_x100"]:
         return failed("loadcell-scale", f"the Mega uses LOADCELL_SCALE_X100 {board}, the rig config's calibration "
                       f"{cal['scale_x100']} (the EEPROM was lost or another cell was calibrated)",
@@ -150,7 +146,7 @@ def _fault_names(faults: Any) -> str:
 def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
     rig = ctx.rig()
     drum = rig.drum
-    tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+    tol = _tolerance_g(ctx)
     clock = ctx.clock
     drum.set_force(POLARITY_SETPOINT_G)
     drum.press()
@@ -186,7 +182,7 @@ def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
 def check_force_step(ctx: DoctorContext) -> CheckResult:
     rig = ctx.rig()
     drum = rig.drum
-    tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+    tol = _tolerance_g(ctx)
     clock = ctx.clock
     drum.set_force(STEP_SETPOINT_G)
     drum.press()
@@ -227,7 +223,7 @@ def check_force_step(ctx: DoctorContext) -> CheckResult:
 
 
 def check_drum_speed(ctx: DoctorContext) -> CheckResult:
-    input_register("INDEX_SPEED_0P1MMS")
+    status_value(ctx, "index_speed_mm_s", "the drum speed measured from the index sensor")
     raise Skip("not implemented for this register map")
 
 

@@ -1,0 +1,61 @@
+"""The doctor as an operator runs it: :func:`doctor` on a :class:`RigSource` (the CLI's ``rigctl doctor``) or on
+an open :class:`RigControl` (the GUI's doctor dialog), the report stored in the rig config. The checks themselves
+are :mod:`rigctl.acquisition.doctor`'s."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from rigctl.acquisition import doctor as _doctor
+from rigctl.operations._control import Home, RigControl, open_control
+from rigctl.operations._source import RigSource
+
+__all__ = ["doctor"]
+
+
+def doctor(source: RigSource | None = None, *, control: RigControl | None = None,
+           checks: Iterable[str] | None = None, host_config_path: str | os.PathLike | None = None,
+           seed: int = 0, config: Any = None, rest_s: float = 10.0, save: bool = True,
+           on_result: Callable[[_doctor.CheckResult], Any] | None = None) -> _doctor.DoctorReport:
+    """Run the doctor's checks (all, or those named in ``checks``) and store the dated report.
+
+    Parameters
+    ----------
+    source : the rig to open (default the simulated rig); opened when the first check needs it (after the port
+        checks on hardware, so a port without permission is reported as such) and closed at the end.
+    control : an open rig instead (the GUI's), left open; the checks that move it stop it safely after each.
+    checks : check names (:func:`rigctl.acquisition.doctor.check_names`); ValueError for an unknown one.
+    host_config_path : the rig config file the report is stored in (default ``$RIGCTL_CONFIG`` /
+        ``~/.config/rigctl/rig.json``).
+    seed, config : the simulated rig's seed and model configuration (simulated kinds).
+    rest_s : length of the taxel capture at rest, s.
+    save : store the report in the rig config (``doctor.<rig kind>``).
+    on_result : called with each :class:`rigctl.acquisition.doctor.CheckResult` as it is known.
+
+    Returns
+    -------
+    :class:`rigctl.acquisition.doctor.DoctorReport` (``ok`` False when a check failed).
+
+    Raises
+    ------
+    ValueError for an unknown check name; :class:`rigctl.acquisition.rigconfig.RigConfigError` when the report
+    cannot be stored (an invalid rig config file).
+    """
+    selected = _doctor.select(checks)
+    if control is not None:
+        ctx = _doctor.DoctorContext(control.mode, rig=control.rig, config_path=host_config_path, rest_s=rest_s)
+    else:
+        source = source or RigSource()
+
+        def opener():
+            return open_control(source, home=Home.ALWAYS, config=config, seed=seed,
+                                host_config_path=host_config_path).rig
+
+        ctx = _doctor.DoctorContext(source.kind, opener=opener, drum_port=source.drum_port,
+                                    taxel_port=source.taxel_port, config_path=host_config_path, rest_s=rest_s)
+    report = _doctor.run_doctor(selected, ctx, on_result=on_result)
+    if save:
+        _doctor.save_report(report, host_config_path)
+    return report
