@@ -478,7 +478,16 @@ class AnalysisTab(QtWidgets.QWidget):
         self._start(ProcessJob("rigctl_gui.analysis_jobs:train_classifier", path=path,
                                variant=self.model_variant.currentText(), n_pcs=self.model_pcs.value()), "training")
 
+    def _log(self, text: str, *, error: bool = False) -> None:
+        """Into the main window's event log (every job and export is logged)."""
+        import logging
+
+        notify = getattr(self.main, "notify", None)
+        if notify is not None:
+            notify(text, level=logging.ERROR if error else logging.INFO, source="analysis")
+
     def _start(self, job, kind: str) -> None:
+        self._log(f"{kind} started ({os.path.basename(str(self.encoded_path or self.path))})")
         self.job, self._job_kind = job, kind
         self.progress.setRange(0, 0)  # busy from the first moment (spawning the worker takes seconds)
         self.status.setText(f"{kind}: starting...")
@@ -489,6 +498,7 @@ class AnalysisTab(QtWidgets.QWidget):
         if self._busy():
             self.job.cancel()
             self.status.setText(f"{self._job_kind} cancelled")
+            self._log(f"{self._job_kind} cancelled")
             self.job = None
         self.progress.setRange(0, 100)
         self.progress.setValue(0)
@@ -537,6 +547,8 @@ class AnalysisTab(QtWidgets.QWidget):
         self.status.setText(f"<span style='color:#c00'>{_html(what)}: {_html(f'{type(exc).__name__}: {exc}')}</span>")
 
     def _finish_job(self, job) -> None:
+        self._log(f"{self._job_kind} failed: {job.error}" if job.error else f"{self._job_kind} finished"
+                  + (f": {job.result}" if isinstance(job.result, str) else ""), error=bool(job.error))
         if job.error:
             self.status.setText(f"<span style='color:#c00'>{self._job_kind} failed: {_html(job.error)}</span>")
         elif self._job_kind == "encoding":
@@ -726,6 +738,7 @@ class AnalysisTab(QtWidgets.QWidget):
             self.status.setText(f"<span style='color:#c00'>could not write {_html(path)}</span>")
             return None
         self.status.setText(f"saved {_html(path)}")
+        self._log(f"figure exported to {path}")
         return path
 
     def _export_dir(self) -> str:
@@ -759,6 +772,7 @@ class AnalysisTab(QtWidgets.QWidget):
                 for v, (mu, sd) in row.items():
                     w.writerow([task, v, self.table_pcs.value(), f"{mu:.3f}", f"{sd:.3f}"])
         self.status.setText(f"saved {path} and {tpath}")
+        self._log(f"tables exported to {path} and {tpath}")
         return [path, tpath]
 
 

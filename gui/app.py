@@ -3,12 +3,15 @@
 ``python -m rigctl_gui.app [--drum-port P --taxel-port P] [--replay PATH] [--screenshot PATH --quit-after S] [--tab NAME]``
 (also ``rigctl gui``). With no ports the app starts on the simulated rig.
 
-The window holds a big STOP button that is always visible and never blocked (every dialog is non-modal, Esc is STOP
-in the window and in every dialog: :mod:`rigctl_gui.dialogs`), one banner per board and for faults and errors, the
-run strip (a protocol run's state and operator prompt, seen from every tab), one tab per panel, the event log
-(the app's messages and the library's logging records) and a status bar with both boards' link status. One QTimer
-pulls from the worker threads at the GUI's own pace. While a protocol run owns the rig (running or paused) manual
-motion, calibration and Connect are disabled.
+The window fits the screen it opens on (a saved size is restored only if it fits). Its top strip, of fixed height
+and outside any scroll area, holds Connect, the source, the run strip (a protocol run's state and operator prompt,
+seen from every tab) and the big STOP button, which acts on the first click and on Esc even while a menu or a
+drop-down is open (:mod:`rigctl_gui.guards`; every dialog is non-modal: :mod:`rigctl_gui.dialogs`). Below it a
+banner strip of fixed height (one banner per board, for faults and for errors: a banner never moves a control),
+one tab per panel, the event log (the app's messages and the library's logging records) and a status bar with both
+boards' link health (:mod:`rigctl.acquisition.link_health`). One QTimer pulls from the worker threads at the GUI's
+own pace. While a protocol run owns the rig (running or paused) manual motion, calibration and Connect are
+disabled.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl_gui.connect_dialog import source_problem
 from rigctl_gui.dialogs import ask, show_dialog
+from rigctl_gui.guards import install_guards
 from rigctl_gui.messages import EventLog, ExceptionGuard
 from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
 
@@ -35,6 +39,10 @@ REFRESH_MS = 30
 TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify")
 #: the live plots are marked stale when no taxel frame has arrived for this long, s
 STALE_AFTER_S = 1.0
+#: the window's size on a screen with room for it (px); a smaller screen gets its available area
+PREFERRED_SIZE = (1400, 900)
+#: the smallest screen the window is laid out for (px): STOP and every tab fit
+MIN_SCREEN = (1024, 600)
 #: why the manual controls are disabled while a protocol run owns the rig
 RUN_LOCK_REASON = ("a protocol run owns the rig (running or paused). Abort it on the Protocol tab, or press STOP, "
                    "to get the manual controls back")
@@ -123,23 +131,22 @@ class MainWindow(QtWidgets.QMainWindow):
         self.connect_btn.clicked.connect(self.choose_source)
         self.stop_btn = QtWidgets.QPushButton("STOP")
         self.stop_btn.setObjectName("big_stop")
-        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc, "
-                                 "also in every dialog)")
+        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc; "
+                                 "works with a menu or a drop-down open)")
         self.stop_btn.setMinimumSize(160, 48)
         self.stop_btn.setStyleSheet(
             "QPushButton { background: #d00; color: white; font-size: 20px; font-weight: bold; border-radius: 6px; }"
             "QPushButton:pressed { background: #900; }"
         )
         self.stop_btn.clicked.connect(self.emergency_stop)
-        QtGui.QShortcut(QtGui.QKeySequence("Esc"), self, activated=self.emergency_stop)
-        top = QtWidgets.QHBoxLayout()
-        top.addWidget(self.connect_btn)
-        top.addWidget(self.source_label, 1)
-        top.addWidget(self.stop_btn)
+        # Esc = STOP in the main window: rigctl_gui.guards.StopGuard (also with a menu or a drop-down open)
+        self.stop_btn.setFixedSize(160, 48)
 
         self.tabs = QtWidgets.QTabWidget()
         self.control = ControlPanel()
         self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
+        self.control.acted.connect(lambda text: self.notify(text, source="rig control"))
+        self.control.question.connect(self._ask)
         self.live = LiveView()
         self.protocol = ProtocolTab(self)
         self.analysis = AnalysisTab(self)
@@ -162,13 +169,29 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
         self.stale_label.hide()
 
+        # the top strip: fixed height, never in a scroll area; the run strip shows and hides inside it
+        self.top_strip = QtWidgets.QWidget()
+        self.top_strip.setObjectName("top_strip")
+        middle = QtWidgets.QVBoxLayout()
+        middle.setContentsMargins(0, 0, 0, 0)
+        middle.setSpacing(1)
+        middle.addWidget(self.source_label)
+        middle.addWidget(self.protocol.run_strip)
+        middle.addStretch(1)
+        top = QtWidgets.QHBoxLayout(self.top_strip)
+        top.setContentsMargins(0, 0, 0, 0)
+        top.addWidget(self.connect_btn, 0, QtCore.Qt.AlignTop)
+        top.addLayout(middle, 1)
+        top.addWidget(self.stop_btn, 0, QtCore.Qt.AlignTop)
+        self.top_strip.setFixedHeight(self.stop_btn.height() + 4)
+        self.source_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Fixed)
+
         central = QtWidgets.QWidget()
         lay = QtWidgets.QVBoxLayout(central)
         lay.setContentsMargins(6, 4, 6, 2)
         lay.setSpacing(3)
-        lay.addLayout(top)
+        lay.addWidget(self.top_strip)
         lay.addWidget(self.banners)
-        lay.addWidget(self.protocol.run_strip)
         lay.addWidget(self.tabs, 1)
         self.setCentralWidget(central)
 
@@ -181,19 +204,22 @@ class MainWindow(QtWidgets.QMainWindow):
         self.resizeDocks([self.log_dock], [110], QtCore.Qt.Vertical)
 
         self.links = LinkStatus()
-        self.links.link_changed.connect(self.banners.on_link_changed)
-        self.links.link_changed.connect(self._on_link_changed)
+        self.links.health_changed.connect(self.banners.on_health)
+        self.links.health_changed.connect(self._on_health)
         self.statusBar().addPermanentWidget(self.links)  # no stretch: the temporary messages keep their room
         self._build_menus()
 
+        state = self.settings.value("ui/state")
+        if state is not None:
+            self.restoreState(state)
         geom = self.settings.value("ui/geometry")
         if geom is not None:
             self.restoreGeometry(geom)
         else:
-            self.resize(1400, 900)
-        state = self.settings.value("ui/state")
-        if state is not None:
-            self.restoreState(state)
+            self.resize(*PREFERRED_SIZE)
+        self.fit_to_screen()
+        self.stop_guard, self.wheel_guard = install_guards(self, self.stop_btn, self.emergency_stop)
+        self._log_user_actions()
 
         self._tick = 0
         self.timer = QtCore.QTimer(self)
@@ -203,6 +229,52 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_source_label("not connected")
         if autoconnect:
             self.connect_source(self.source)
+
+    # ------------------------------------------------------------------------------------------------------
+    # the screen
+    # ------------------------------------------------------------------------------------------------------
+    def frame_margins(self) -> tuple[int, int]:
+        """The window manager's frame around the window (width, height, px): measured once the window is shown,
+        else a typical title bar and border (none offscreen)."""
+        fg, g = self.frameGeometry(), self.geometry()
+        dw, dh = fg.width() - g.width(), fg.height() - g.height()
+        if self.isVisible() and dh > 0:
+            return dw, dh
+        if QtGui.QGuiApplication.platformName() in ("offscreen", "minimal"):
+            return 0, 0
+        return max(dw, 8), max(dh, 40)
+
+    def fit_to_screen(self) -> bool:
+        """Keep the whole window, frame included, inside the available area of its screen (the screen less panels
+        and docks): shrink it and move it in when it does not fit (a first start on a small screen, a size saved on
+        a larger one). Returns True when it changed anything."""
+        if self.isMaximized() or self.isFullScreen():
+            return False
+        screen = self.screen() or QtGui.QGuiApplication.primaryScreen()
+        if screen is None:
+            return False
+        avail = screen.availableGeometry()
+        dw, dh = self.frame_margins()
+        w = min(self.width(), avail.width() - dw)
+        h = min(self.height(), avail.height() - dh)
+        changed = (w, h) != (self.width(), self.height())
+        if changed:
+            self.resize(w, h)
+        fg = self.frameGeometry()
+        x = min(max(fg.x(), avail.x()), avail.x() + avail.width() - (w + dw))
+        y = min(max(fg.y(), avail.y()), avail.y() + avail.height() - (h + dh))
+        if (x, y) != (fg.x(), fg.y()):
+            self.move(x, y)
+            changed = True
+        return changed
+
+    def showEvent(self, ev):  # noqa: N802 - Qt override
+        super().showEvent(ev)
+        if not getattr(self, "_fitted_shown", False):
+            self._fitted_shown = True
+            # the window manager's frame is known only once it has framed the window: fit again then
+            QtCore.QTimer.singleShot(300, self.fit_to_screen)
+            QtCore.QTimer.singleShot(1500, self.fit_to_screen)
 
     # ------------------------------------------------------------------------------------------------------
     # menus
@@ -234,7 +306,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         m = mb.addMenu("&Rig")
         self.act_connect = act(m, "&Connect...", self.choose_source, "Ctrl+K", self.connect_btn)
-        act(m, "STOP (safe stop)", self.emergency_stop, tip="Esc anywhere, also in dialogs")
+        act(m, "STOP (safe stop)", self.emergency_stop, tip="Esc in the window, also with a menu open")
         m.addSeparator()
         b = self.control.buttons
         act(m, "&Press", lambda: self.control.command("press"), "Ctrl+P", b["press"])
@@ -250,7 +322,7 @@ class MainWindow(QtWidgets.QMainWindow):
         act(m, "&Start protocol", p.start, "Ctrl+R", p.start_btn)
         act(m, "&Pause", p.pause, "Ctrl+Shift+P", p.pause_btn)
         act(m, "Res&ume", p.resume, "Ctrl+Shift+U", p.resume_btn)
-        act(m, "&Abort", p.request_abort, "Ctrl+Shift+A", p.abort_btn)
+        act(m, "&Abort...", p.ask_abort, "Ctrl+Shift+A", p.abort_btn)
 
         m = mb.addMenu("&View")
         for i in range(self.tabs.count()):
@@ -265,6 +337,24 @@ class MainWindow(QtWidgets.QMainWindow):
         m = mb.addMenu("&Help")
         act(m, "&Keyboard shortcuts", self._show_shortcuts, K.HelpContents)
         act(m, "&About rigctl", self._show_about)
+
+    def _ask(self, title: str, text: str, yes: str, no: str, on_yes) -> None:
+        """A non-modal question for a panel (its ``question`` signal)."""
+        self._question = ask(self, title, text, yes, no, on_yes)
+
+    def _log_user_actions(self) -> None:
+        """Every button pressed and menu item chosen is written to the event log (what the operator did, in
+        order, beside what the rig did)."""
+        for b in self.findChildren(QtWidgets.QAbstractButton):
+            if b is self.stop_btn or isinstance(b, (QtWidgets.QCheckBox, QtWidgets.QRadioButton)) or not b.text():
+                continue
+            b.clicked.connect(lambda _=False, b=b: self.events.add(
+                logging.INFO, "user", f"pressed {b.text().replace('&', '')!r}"))
+        for menu in self.menuBar().findChildren(QtWidgets.QMenu):
+            for a in menu.actions():
+                if a.text() and not a.isSeparator():
+                    a.triggered.connect(lambda _=False, a=a, m=menu: self.events.add(
+                        logging.INFO, "user", f"menu {m.title().replace('&', '')} > {a.text().replace('&', '')}"))
 
     def _open_protocol(self) -> None:
         self.tabs.setCurrentWidget(self.protocol)
@@ -284,7 +374,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 a.setToolTip(b.toolTip())
 
     def _show_shortcuts(self) -> None:
-        lines = ["Esc: STOP (safe stop), in the window and in every dialog"]
+        lines = ["Esc: STOP (safe stop), in the window, also with a menu or a drop-down open (in a dialog Esc "
+                 "only closes the dialog)"]
         for menu in self.menuBar().findChildren(QtWidgets.QMenu):
             for a in menu.actions():
                 if not a.shortcut().isEmpty():
@@ -321,11 +412,15 @@ class MainWindow(QtWidgets.QMainWindow):
         if level >= logging.ERROR and source not in self.OWN_BANNER and not text.startswith("unexpected error"):
             self.banner.show_message(f"{source}: {text}" if source not in ("app",) else text, error=True)
 
-    def _on_link_changed(self, board: str, connected: bool) -> None:
-        from rigctl_gui.status_bar import BOARD_NAMES
+    def _on_health(self, board: str, event) -> None:
+        """A board's link health changed: the event log says so (the banner and the status bar show it), the
+        header names a board that is not responding."""
+        from rigctl.acquisition.link_health import LinkState
 
-        self.events.add(logging.INFO if connected else logging.WARNING, "link",
-                        f"{BOARD_NAMES[board]} {'reconnected' if connected else 'lost'}")
+        if event.state == LinkState.NOT_CONNECTED:
+            return
+        level = logging.WARNING if event.state.is_problem else logging.INFO
+        self.events.add(level, "link", event.text)
         self._update_source_label(None)
 
     # ------------------------------------------------------------------------------------------------------
@@ -346,11 +441,25 @@ class MainWindow(QtWidgets.QMainWindow):
             if self._run_lock:  # a run started while the dialog was open: the run keeps the rig
                 self.notify(f"not connected to another rig: {self._run_lock}", level=logging.WARNING)
                 return
-            self.connect_source(dlg.source())
+            source = dlg.source()
+            if self.drum_turning():
+                self._connect_question = ask(
+                    self, "The drum is turning",
+                    f"The drum is turning. Connecting to the {source.label()} first stops this rig safely (drum to "
+                    "rest, actuator backed off) and closes it.", "Stop the drum and connect", "Cancel",
+                    self._connect_pending)
+                self._pending_source = source
+                return
+            self.connect_source(source)
 
         dlg.destroyed.connect(lambda *_: setattr(self, "_connect_dialog", None))
         dlg.finished.connect(lambda *_: setattr(self, "_connect_dialog", None))
         return show_dialog(dlg, accepted)
+
+    def _connect_pending(self) -> None:
+        source, self._pending_source = getattr(self, "_pending_source", None), None
+        if source is not None:
+            self.connect_source(source)
 
     def connect_source(self, source: RigSource) -> None:
         """Open ``source`` in a worker thread (the boards take ~2 s to boot); :meth:`refresh` finishes the job."""
@@ -482,14 +591,31 @@ class MainWindow(QtWidgets.QMainWindow):
             self.apply_run_lock()
             self._sync_actions()
             self._check_faults()
-        if self._tick % 20 == 0:
+        if self._tick % 10 == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
+            self._judge_dropped_frames()
             self.links.update_from(self.poller, self.handle.taxels if self.handle else None)
+        if self._tick % 20 == 0:
             self._update_stale(current)
             self.follow_sensor()
 
     # ------------------------------------------------------------------------------------------------------
     # the run owns the rig; faults; stale plots
     # ------------------------------------------------------------------------------------------------------
+    def _judge_dropped_frames(self) -> None:
+        """While a protocol records a trial, the status bar grades that trial's dropped frames against the
+        protocol's ``max_dropped_frames``; otherwise it shows the frames dropped since connecting."""
+        p = self.protocol
+        base = p.trial_dropped_base if p.running and p._current is not None else None
+        limit = getattr(p.protocol, "max_dropped_frames", None) if base is not None else None
+        self.links.judge_trial(base, limit)
+
+    def drum_turning(self) -> bool:
+        """True when the drum controller last reported the drum running or moving (> 0.5 mm/s)."""
+        from rigctl.devices.wire import DrumState
+
+        st = self.poller.latest if self.poller is not None and self.poller.ok else None
+        return st is not None and (int(st.state) == DrumState.RUNNING or abs(st.speed_mm_s) > 0.5)
+
     def apply_run_lock(self) -> None:
         """While a protocol run owns the rig (running or paused): manual motion, calibration and Connect disabled,
         their tooltips saying why. Re-applied every tick (another panel may re-enable its buttons)."""
@@ -591,6 +717,13 @@ class MainWindow(QtWidgets.QMainWindow):
                 "stops safely and the finished trials stay in the session file (resume it later).",
                 "Abort the run and close", "Keep running", self._close_after_abort)
             return
+        if self.drum_turning() and not self._close_confirmed:
+            ev.ignore()
+            self._close_question = ask(
+                self, "The drum is turning",
+                "The drum is turning. Quitting stops the rig safely (drum to rest, actuator backed off) and closes "
+                "the app.", "Stop the drum and quit", "Keep running", self._close_after_abort)
+            return
         self.settings.setValue("ui/geometry", self.saveGeometry())
         self.settings.setValue("ui/state", self.saveState())
         self.settings.setValue("ui/tab", self.tabs.currentIndex())
@@ -598,6 +731,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.disconnect_rig()
         self.events.detach_logging("rigctl")
         self.guard.uninstall()
+        self.stop_guard.uninstall()
+        self.wheel_guard.uninstall()
         super().closeEvent(ev)
 
     def _close_after_abort(self) -> None:

@@ -13,10 +13,11 @@ import time
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui.messages import escaped
+from rigctl_gui.widgets import keep_room, side_panel
 from rigctl_gui.workers import Job
 
 
@@ -55,6 +56,7 @@ class CalibrationTab(QtWidgets.QWidget):
         ml = QtWidgets.QHBoxLayout(self.mass_prompt)
         ml.addWidget(self.mass_label, 1)
         ml.addWidget(mass_ok)
+        keep_room(self.mass_prompt)  # its room is kept: nothing below moves when it asks for the mass
         self.mass_prompt.hide()
         self.loadcell_info = QtWidgets.QLabel("-")
         self.loadcell_info.setWordWrap(True)
@@ -84,24 +86,25 @@ class CalibrationTab(QtWidgets.QWidget):
         self.norm_info = QtWidgets.QLabel("-")
         self.norm_info.setWordWrap(True)
         self.norm_plot = pg.PlotWidget(title="Per-taxel range (ADC counts)")
-        self.norm_plot.setMinimumHeight(140)  # the window stays usable at 1024x686
+        self.norm_plot.setMinimumHeight(120)
         self.norm_bars = pg.BarGraphItem(x=np.arange(1), y0=np.zeros(1), height=np.zeros(1), width=0.7,
                                          brush="#1f77b4")
         self.norm_plot.addItem(self.norm_bars)
         self.set_layout(PAPER_SENSOR)
-        nf = QtWidgets.QFormLayout()
-        row = QtWidgets.QHBoxLayout()
-        row.addWidget(self.norm_seconds)
-        row.addWidget(self.norm_btn)
-        row.addWidget(self.from_session_btn)
-        row.addWidget(self.undo_btn)
-        row.addWidget(self.reset_btn)
-        nf.addRow("Calibration run", row)
-        nf.addRow("Stored", self.norm_info)
-        nf.addRow(self.norm_plot)
-        tn = QtWidgets.QGroupBox("Taxel normalisation: per-taxel min/max of a calibration run (paper, real-time "
-                                 "experiment)")
+        nf = QtWidgets.QGridLayout()
+        nf.addWidget(QtWidgets.QLabel("Calibration run"), 0, 0)
+        nf.addWidget(self.norm_seconds, 0, 1)
+        nf.addWidget(self.norm_btn, 0, 2)
+        nf.addWidget(self.from_session_btn, 1, 1, 1, 2)
+        nf.addWidget(self.undo_btn, 2, 1)
+        nf.addWidget(self.reset_btn, 2, 2)
+        nf.addWidget(QtWidgets.QLabel("Stored"), 3, 0, QtCore.Qt.AlignTop)
+        nf.addWidget(self.norm_info, 3, 1, 1, 2)
+        tn = QtWidgets.QGroupBox("Taxel normalisation")
+        tn.setToolTip("Per-taxel min/max of a calibration run (paper, real-time experiment)")
         tn.setLayout(nf)
+        lc.setTitle("Load cell")
+        lc.setToolTip("Tare, place a known mass, compute and write the scale")
 
         self.progress = QtWidgets.QProgressBar()
         self.status = QtWidgets.QLabel("")
@@ -110,12 +113,17 @@ class CalibrationTab(QtWidgets.QWidget):
         self.config_label = QtWidgets.QLabel("")
         self.config_label.setWordWrap(True)
 
-        lay = QtWidgets.QVBoxLayout(self)
-        lay.addWidget(self.config_label)
-        lay.addWidget(lc)
-        lay.addWidget(tn, 1)
-        lay.addWidget(self.progress)
-        lay.addWidget(self.status)
+        # left: the controls in a panel of fixed width (it scrolls when the window is short); right: the plot
+        left = QtWidgets.QVBoxLayout()
+        left.addWidget(self.config_label)
+        left.addWidget(lc)
+        left.addWidget(tn)
+        left.addWidget(self.progress)
+        left.addWidget(self.status)
+        left.addStretch(1)
+        lay = QtWidgets.QHBoxLayout(self)
+        lay.addWidget(side_panel(left, 420))
+        lay.addWidget(self.norm_plot, 1)
         self._enable(False)
 
     # ------------------------------------------------------------------------------------------------------

@@ -7,13 +7,14 @@ All drum calls go through :class:`rigctl_gui.workers.CommandExecutor` (a worker 
 
 from __future__ import annotations
 
+import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
-from rigctl_gui.widgets import side_panel
+from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
 
 #: what each controller state means, for the operator (docs/wire-protocol.md table 2.4)
 STATE_WORDS = {
@@ -41,6 +42,8 @@ FAULT_MEANINGS = {
     Fault.ACTUATOR_TRAVEL: "the actuator reached its end of travel without reaching the force setpoint: no plate, "
                            "or the sensor is too far away.",
 }
+#: the status is polled at 10 Hz: a longer pause between two reads is an outage, drawn as a gap in the plots, s
+GAP_S = 1.0
 STATE_COLOURS = {
     DrumState.IDLE: "#555",
     DrumState.HOMING: "#a60",
@@ -74,6 +77,10 @@ class ControlPanel(QtWidgets.QWidget):
 
     #: a manual setpoint was refused (the reason in words), for the window's event log
     refused = QtCore.Signal(str)
+    #: an operator action was sent (in words: the setpoints applied, a command queued), for the event log
+    acted = QtCore.Signal(str)
+    #: a question for the operator: (title, text, yes, no, on_yes); the main window shows it non-modal
+    question = QtCore.Signal(str, str, str, str, object)
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -95,6 +102,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.setpoint_error.setObjectName("setpoint_error")
         # short lines without word wrap: a wrapped label in a form is squeezed in a short window
         self.setpoint_error.setStyleSheet("color: #c00; font-weight: bold;")
+        keep_room(self.setpoint_error, lines=2)  # its room is kept while hidden: the buttons below never move
         self.setpoint_error.hide()
         self.limits = (MAX_SPEED_MM_S, MAX_FORCE_G)  # the controller's (speed mm/s, force g), read at attach
         for box in (self.speed, self.force):
@@ -177,14 +185,15 @@ class ControlPanel(QtWidgets.QWidget):
         # --- plots ---
         self.plots = pg.GraphicsLayoutWidget()
         self.force_plot = self.plots.addPlot(row=0, col=0, title="Load-cell force vs setpoint")
-        self.force_plot.setLabel("left", "force", units="g")
+        self.force_plot.setLabel("left", "force (g)")
         self.force_plot.addLegend(offset=(5, 5))
         self.force_curve = self.force_plot.plot(pen=pg.mkPen("#1f77b4", width=2), name="measured")
         self.setpoint_curve = self.force_plot.plot(
             pen=pg.mkPen("#d62728", width=2, style=QtCore.Qt.DashLine), name="setpoint"
         )
         self.speed_plot = self.plots.addPlot(row=1, col=0, title="Drum surface speed")
-        self.speed_plot.setLabel("left", "speed", units="mm/s")
+        # the unit written out (no SI prefix: a drum at rest read "speed (mmm/s)" from -400 to 400)
+        self.speed_plot.setLabel("left", "speed (mm/s)")
         self.speed_plot.setLabel("bottom", "time", units="s")
         self.speed_plot.addLegend(offset=(5, 5))
         self.speed_curve = self.speed_plot.plot(pen=pg.mkPen("#2ca02c", width=2), name="measured")
@@ -322,8 +331,10 @@ class ControlPanel(QtWidgets.QWidget):
     def apply_setpoints(self) -> None:
         if self.commands is None or self._refused_by_run() or self._refuse_setpoints():
             return
-        self.commands.submit("set speed", self.drum.set_speed, float(self.speed.value()))
-        self.commands.submit("set force", self.drum.set_force, float(self.force.value()))
+        speed, force = float(self.speed.value()), float(self.force.value())
+        self.commands.submit("set speed", self.drum.set_speed, speed)
+        self.commands.submit("set force", self.drum.set_force, force)
+        self.acted.emit(f"setpoints applied: speed {speed:g} mm/s, force {force:g} g")
 
     def command(self, name: str) -> None:
         """Queue a drum command. Press and Run first apply the setpoints and press until the force has settled
@@ -334,6 +345,7 @@ class ControlPanel(QtWidgets.QWidget):
             if self._refuse_setpoints():
                 return
             speed, force = float(self.speed.value()), float(self.force.value())
+            self.acted.emit(f"{name}: setpoints applied: speed {speed:g} mm/s, force {force:g} g")
             self.commands.submit("set speed", self.drum.set_speed, speed)
             if self.rig is not None and force > 0:
                 self.commands.submit(f"press to {force:g} g", self.rig.press, force)
@@ -343,8 +355,14 @@ class ControlPanel(QtWidgets.QWidget):
             if name == "press":
                 return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
+        self.acted.emit(f"{name.replace('_', ' ')} sent")
 
-    def mount_plate(self, label: str | None = None) -> None:
+    def drum_turning(self) -> bool:
+        """True when the newest status says the drum runs or moves (> 0.5 mm/s)."""
+        st = self.poller.latest if self.poller is not None and self.poller.ok else None
+        return st is not None and (int(st.state) == DrumState.RUNNING or abs(st.speed_mm_s) > 0.5)
+
+    def mount_plate(self, label: str | None = None, *, confirmed: bool = False) -> None:
         """Release the sensor and mount texture plate ``label`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
         on hardware the operator has mounted it when pressing the button). The label is taken in the set's spelling
         (``"l"`` -> ``"L"``); a label the set does not have is refused in the panel's message line."""
@@ -358,7 +376,20 @@ class ControlPanel(QtWidgets.QWidget):
                 self.show_result(False, str(exc))
                 return
         self.plate.setCurrentText(label)
+        if self.drum_turning() and not confirmed:
+            self._pending_plate = label
+            self.question.emit(
+                "The drum is turning",
+                f"The drum is turning. Mounting plate {label} stops it and releases the sensor first.",
+                f"Stop the drum and mount {label}", "Cancel", self._mount_pending)
+            return
         self.commands.submit(f"mount plate {label}", self.rig.mount_texture, label, lambda _msg: None)
+        self.acted.emit(f"mount plate {label} sent")
+
+    def _mount_pending(self) -> None:
+        label, self._pending_plate = getattr(self, "_pending_plate", None), None
+        if label is not None:
+            self.mount_plate(label, confirmed=True)
 
     def _mark_stale(self, stale: bool) -> None:
         """Say on the plots that they are frozen while the drum controller does not answer."""
@@ -369,6 +400,21 @@ class ControlPanel(QtWidgets.QWidget):
         colour = "#c00" if stale else None
         self.force_plot.setTitle("Load-cell force vs setpoint" + suffix, color=colour)
         self.speed_plot.setTitle("Drum surface speed" + suffix, color=colour)
+
+    def _set_y_ranges(self, h: np.ndarray) -> None:
+        """y axes that never zoom into noise: speed from below 0 to at least the rig's top protocol speed, force
+        from below 0 to at least 1.1x the highest value shown (a drum at rest shows a flat line at 0)."""
+        with np.errstate(all="ignore"):
+            spd = h[:, 3:5][np.isfinite(h[:, 3:5])]
+            frc = h[:, 1:3][np.isfinite(h[:, 1:3])]
+        s_lo = min(-5.0, float(spd.min()) - 5) if spd.size else -5.0
+        s_hi = max(MAX_SPEED_MM_S, float(spd.max()) * 1.1) if spd.size else MAX_SPEED_MM_S
+        f_lo = min(-20.0, float(frc.min()) * 1.1) if frc.size else -20.0
+        f_hi = max(100.0, float(frc.max()) * 1.1) if frc.size else 100.0
+        if getattr(self, "_y_ranges", None) != (s_lo, s_hi, f_lo, f_hi):
+            self._y_ranges = (s_lo, s_hi, f_lo, f_hi)
+            self.speed_plot.setYRange(s_lo, s_hi, padding=0)
+            self.force_plot.setYRange(f_lo, f_hi, padding=0)
 
     def show_result(self, ok: bool, text: str) -> None:
         self.message.setStyleSheet("" if ok else "color: #c00;")
@@ -381,13 +427,15 @@ class ControlPanel(QtWidgets.QWidget):
             return
         h = p.history.snapshot()
         if len(h):
-            t = h[:, 0] - h[-1, 0]
-            self.force_curve.setData(t, h[:, 1], skipFiniteCheck=True)
-            self.setpoint_curve.setData(t, h[:, 2], skipFiniteCheck=True)
-            self.speed_curve.setData(t, h[:, 3], skipFiniteCheck=True)
-            self.target_curve.setData(t, h[:, 4], skipFiniteCheck=True)
+            # an outage (no status read for longer than GAP_S) is a gap in the curves, never a straight line
+            h = gap_breaks(h, max_dt=GAP_S)
+            t = h[:, 0] - np.nanmax(h[:, 0])
+            for curve, col in ((self.force_curve, 1), (self.setpoint_curve, 2), (self.speed_curve, 3),
+                               (self.target_curve, 4)):
+                curve.setData(t, h[:, col], connect="finite")
             for plot in (self.force_plot, self.speed_plot):  # no setXLink (crashes with PySide6 6.12)
-                plot.setXRange(min(t[0], -5.0), 0.0, padding=0.02)
+                plot.setXRange(min(np.nanmin(t), -5.0), 0.0, padding=0.02)
+            self._set_y_ranges(h)
         st = p.latest
         self._mark_stale(not p.ok)
         if not p.ok:

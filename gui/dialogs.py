@@ -3,10 +3,9 @@
 An application-modal dialog (``QDialog.exec()``, ``QFileDialog.getOpenFileName``, ``QMessageBox.question``) keeps
 every click and key away from the main window while it is open, the big STOP button and Esc included, and the drum
 keeps turning. Every dialog of the app is therefore opened here, *non-modal*, with a callback for its answer: the
-main window (and its STOP) stays usable, and Esc inside the dialog is STOP too (it sends the safe stop, then closes
-the dialog as a cancel would).
-
-The STOP handler is the ``emergency_stop`` of the nearest parent widget that has one (the main window).
+main window (and its STOP) stays usable with the first click (:mod:`rigctl_gui.guards`). Esc inside a dialog closes
+the dialog as Cancel would, and nothing else: it never stops the rig or aborts a run (pressing Esc to close a help
+box once aborted a running protocol).
 """
 
 from __future__ import annotations
@@ -18,35 +17,6 @@ from collections.abc import Callable
 from PySide6 import QtCore, QtWidgets
 
 
-def stop_handler(widget: QtWidgets.QWidget | None) -> Callable[[], None] | None:
-    """The ``emergency_stop`` method of ``widget`` or its nearest parent that has one, else None."""
-    w = widget
-    while w is not None:
-        fn = getattr(w, "emergency_stop", None)
-        if callable(fn):
-            return fn
-        w = w.parentWidget()
-    return None
-
-
-class _EscIsStop(QtCore.QObject):
-    """Event filter on a dialog: Esc (pressed on the dialog or on any of its widgets that lets it through) sends
-    STOP, then closes the dialog as Cancel would."""
-
-    def __init__(self, dialog: QtWidgets.QDialog, stop: Callable[[], None] | None):
-        super().__init__(dialog)
-        self.dialog = dialog
-        self.stop = stop
-
-    def eventFilter(self, obj, ev) -> bool:  # noqa: N802 - Qt override
-        if ev.type() == QtCore.QEvent.KeyPress and ev.key() == QtCore.Qt.Key_Escape:
-            if self.stop is not None:
-                self.stop()
-            self.dialog.reject()
-            return True
-        return False
-
-
 def _weak(fn: Callable) -> Callable[[], Callable | None]:
     """A reference to ``fn`` that does not keep its object alive: a dialog's callback must not own the dialog's
     parent (deleting the dialog would then delete its own parent from inside the child's destructor)."""
@@ -55,15 +25,12 @@ def _weak(fn: Callable) -> Callable[[], Callable | None]:
     return lambda: fn
 
 
-def show_dialog(dialog: QtWidgets.QDialog, on_accept: Callable[[], None] | None = None, *,
-                stop: Callable[[], None] | None = None) -> QtWidgets.QDialog:
-    """Show ``dialog`` non-modal (STOP in the main window stays clickable); Esc in it sends STOP and closes it;
+def show_dialog(dialog: QtWidgets.QDialog, on_accept: Callable[[], None] | None = None) -> QtWidgets.QDialog:
+    """Show ``dialog`` non-modal (STOP in the main window stays clickable); Esc closes it as Cancel would;
     ``on_accept()`` runs when it is accepted. The dialog is deleted when closed. Returns it (shown, raised)."""
-    stop = stop or stop_handler(dialog.parentWidget())
     dialog.setWindowModality(QtCore.Qt.NonModal)
     dialog.setModal(False)
     dialog.setAttribute(QtCore.Qt.WA_DeleteOnClose, True)
-    dialog.installEventFilter(_EscIsStop(dialog, stop))
     if on_accept is not None:
         ref = _weak(on_accept)
         dialog.accepted.connect(lambda: (fn := ref()) is not None and fn())

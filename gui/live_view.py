@@ -51,6 +51,8 @@ INFO_EVERY = 10
 #: taxel numbers are written in the heat-map cells only when a cell is at least this wide on screen (px); smaller
 #: cells keep their colour visible (the map's tooltip still maps positions to taxels)
 MIN_LABELLED_CELL_PX = 22
+#: outages marked at once in each time plot (a dashed line each)
+GAP_MARKS = 4
 #: the heat maps are updated every this many refreshes (8 Hz at the app's 33 Hz: a "now" map needs no more, and
 #: each update repaints the maps and their taxel numbers)
 HEATMAP_EVERY = 4
@@ -285,10 +287,14 @@ class TracesItem(pg.GraphicsObject):
         self._points: list[np.ndarray] = []  # (capacity, 2) views of the polygons' points
         self._capacity = 0
         self._rect = QtCore.QRectF()
+        self.segments: list[tuple[int, int]] = []
 
-    def setData(self, t: np.ndarray, x: np.ndarray) -> None:  # noqa: N802 - pyqtgraph style
-        """Draw ``t`` (n,) s against each column of ``x`` (n, k) readings."""
+    def setData(self, t: np.ndarray, x: np.ndarray, breaks=()) -> None:  # noqa: N802 - pyqtgraph style
+        """Draw ``t`` (n,) s against each column of ``x`` (n, k) readings; ``breaks``: indices where a new segment
+        starts (an outage: no line is drawn across it)."""
         self.t, self.x = t, x
+        cuts = sorted({int(b) for b in breaks if 0 < int(b) < len(t)})
+        self.segments = list(zip([0, *cuts], [*cuts, len(t)]))
         n = len(t)
         if n > self._capacity or not self._polys:  # room for a few more points than now (lengths vary a little)
             self._capacity = n + 64
@@ -312,9 +318,18 @@ class TracesItem(pg.GraphicsObject):
         if len(self.t) == 0:
             return
         p.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing, False)
-        for pen, poly in zip(self._pens, self._polys):
+        if len(self.segments) <= 1:
+            for pen, poly in zip(self._pens, self._polys):
+                p.setPen(pen)
+                p.drawPolyline(poly)
+            return
+        for pen, pts in zip(self._pens, self._points):  # an outage in the window: one polyline per segment
             p.setPen(pen)
-            p.drawPolyline(poly)
+            for a, b in self.segments:
+                if b - a >= 2:
+                    poly = pg.functions.create_qpolygonf(b - a)
+                    pg.functions.ndarray_from_qpolygonf(poly)[:] = pts[a:b]
+                    p.drawPolyline(poly)
 
 
 class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
@@ -405,6 +420,7 @@ class LiveView(QtWidgets.QWidget):
         self.sensor_label.setToolTip(layout.describe())
         n_layers, adc_max, labels = layout.n_layers, layout.adc_max, layout.channel_labels()
         self._y_ranges: list[tuple[float, float] | None] = [None] * n_layers
+        self.gap_marks: list[list[pg.InfiniteLine]] = []
 
         def time_plot(row: int, title: str):
             p = self.gl.addPlot(row=row, col=0, title=title)
@@ -419,6 +435,13 @@ class LiveView(QtWidgets.QWidget):
             for name in ("left", "bottom"):
                 p.getAxis(name).setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
             p.titleLabel.item.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
+            # where frames stopped coming (an outage): a dashed red line per gap in the window
+            marks = [pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen("#c00", width=2, style=QtCore.Qt.DashLine))
+                     for _ in range(GAP_MARKS)]
+            for m in marks:
+                m.hide()
+                p.addItem(m, ignoreBounds=True)
+            self.gap_marks.append(marks)
             return p
 
         # traces: one plot per layer, a colour legend of its taxels in the title
@@ -574,6 +597,10 @@ class LiveView(QtWidgets.QWidget):
         width = self.data_width_px()
         # x = time before now: the axes never change, so pyqtgraph reuses their drawing
         t, x = peak_decimate(t - now, x, width, first_index=int(round(t[0] * buf.rate_hz)))
+        gaps = [(g - now, d) for g, d in buf.gaps if g - now > -self.window_s]
+        breaks = np.searchsorted(t, [g - 1e-9 for g, _ in gaps]) if gaps else ()
+        self.shown_gaps = gaps
+        self._show_gap_marks(gaps)
         auto = self.auto_box.isChecked()
         for i, (p, item, chans) in enumerate(zip(self.trace_plots, self.trace_items, self._layer_channels)):
             part = x[:, chans.start:chans.stop]
@@ -582,7 +609,7 @@ class LiveView(QtWidgets.QWidget):
                 if r is not None:
                     self._y_ranges[i] = r
                     p.setYRange(*r, padding=0)
-            item.setData(t, part)
+            item.setData(t, part, breaks)
         if self._refresh_n % HEATMAP_EVERY == 0:
             self.heatmap_frame = cur = buf.current.copy()
             for img, chans, la in zip(self.images, self._layer_channels, self.sensor_layout.layers):
@@ -599,12 +626,42 @@ class LiveView(QtWidgets.QWidget):
                 err = enc.encoder_error
                 state = "" if enc.ready else " (encoder starting: compiling kernels)"
                 self.info.setText(
-                    f"{buf.n_samples} frames shown, SA {enc.sa.total} / RA {enc.ra.total} spikes{state}"
+                    f"display {self.display_rate_hz():.0f} frames/s, taxels {self.stream_rate_hz(buf):.0f} "
+                    f"frames/s; {buf.n_samples} frames shown, SA {enc.sa.total} / RA {enc.ra.total} spikes{state}"
                     + (f" - encoder: {err}" if err else "")
                 )
         self._refresh_n += 1
         self._pending_host_t = buf.newest_host_time_s
         return True
+
+    def _show_gap_marks(self, gaps: list[tuple[float, float]]) -> None:
+        """Place the gap lines of every time plot at ``gaps`` ((time before now, s; outage length, s))."""
+        for marks in self.gap_marks:
+            for i, m in enumerate(marks):
+                if i < len(gaps):
+                    m.setPos(gaps[i][0])
+                    m.setToolTip(f"no taxel frame for {gaps[i][1]:.1f} s")
+                    m.show()
+                elif m.isVisible():
+                    m.hide()
+
+    def display_rate_hz(self) -> float:
+        """Paints of the live view per second over the last 2 s (the frame-rate readout)."""
+        t = self.paint_times[np.isfinite(self.paint_times)]
+        if t.size < 2:
+            return 0.0
+        t = t[t >= t.max() - 2.0]
+        return (t.size - 1) / (t.max() - t.min()) if t.size > 1 and t.max() > t.min() else 0.0
+
+    def stream_rate_hz(self, buf) -> float:
+        """Taxel frames per second arriving (the frames pulled over the last ~second)."""
+        now = time.monotonic()
+        last = getattr(self, "_rate_mark", None)
+        if last is None or now - last[0] >= 1.0:
+            if last is not None:
+                self._stream_rate = (buf.n_samples - last[1]) / (now - last[0])
+            self._rate_mark = (now, buf.n_samples)
+        return getattr(self, "_stream_rate", 0.0)
 
     def _on_painted(self, t_paint: float) -> None:
         self.paint_times[self._paint_n % len(self.paint_times)] = t_paint

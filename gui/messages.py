@@ -121,10 +121,17 @@ class EventLog(QtWidgets.QWidget):
     def drain(self) -> int:
         """Show the queued messages (GUI thread; called by the main window's timer). Returns how many."""
         n = 0
+        bar = self.view.verticalScrollBar()
+        # follow the newest line unless the operator scrolled up to read (judged before anything is added: a long
+        # line adds a horizontal scroll bar, which shrinks the view and moved the end away from the old bottom)
+        follow = bar.value() >= bar.maximum() - 2
+        keep = bar.value()
         while True:
             try:
                 entry = self._q.get_nowait()
             except queue.Empty:
+                if n:
+                    bar.setValue(bar.maximum() if follow else keep)
                 return n
             n += 1
             self.entries.append(entry)

@@ -44,6 +44,8 @@ class ProtocolTab(QtWidgets.QWidget):
         self._paused = False
         self._eta = None
         self._trial_started = time.monotonic()
+        #: the taxel stream's dropped-frame count when the current trial started (the status bar grades the trial)
+        self.trial_dropped_base: int | None = None
         self.last_output = None
         self.last_summary = None
 
@@ -52,6 +54,9 @@ class ProtocolTab(QtWidgets.QWidget):
         self.path_label = QtWidgets.QLabel("no protocol loaded")
         self.summary = QtWidgets.QLabel("")
         self.summary.setWordWrap(True)
+        # two lines whatever it says: the table and the buttons below never move
+        self.summary.setFixedHeight(2 * self.summary.fontMetrics().lineSpacing() + 4)
+        self.summary.setAlignment(QtCore.Qt.AlignLeft | QtCore.Qt.AlignTop)
         self.table = QtWidgets.QTableWidget(0, len(PLAN_COLUMNS))
         self.table.setHorizontalHeaderLabels(PLAN_COLUMNS)
         self.table.verticalHeader().setVisible(False)
@@ -73,7 +78,7 @@ class ProtocolTab(QtWidgets.QWidget):
             (self.start_btn, self.start),
             (self.pause_btn, self.pause),
             (self.resume_btn, self.resume),
-            (self.abort_btn, self.request_abort),
+            (self.abort_btn, self.ask_abort),
         ):
             b.clicked.connect(f)
         self.trial_bar = QtWidgets.QProgressBar()
@@ -94,19 +99,22 @@ class ProtocolTab(QtWidgets.QWidget):
         self.run_label.setObjectName("run_state")
         self.run_label.setTextFormat(QtCore.Qt.PlainText)
         self.run_label.setStyleSheet("font-weight: bold;")
+        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Fixed)
         self.prompt_frame = QtWidgets.QFrame()
         self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
         self.prompt_label = QtWidgets.QLabel()
-        self.prompt_label.setStyleSheet("font-size: 14px; font-weight: bold;")
+        self.prompt_label.setStyleSheet("font-weight: bold;")
         self.prompt_ok = QtWidgets.QPushButton("Plate mounted - continue")
         self.prompt_ok.clicked.connect(self._prompt_done)
         pl = QtWidgets.QHBoxLayout(self.prompt_frame)
+        pl.setContentsMargins(4, 0, 4, 0)
         pl.addWidget(self.prompt_label, 1)
         pl.addWidget(self.prompt_ok)
         self.prompt_frame.hide()
-        rs = QtWidgets.QVBoxLayout(self.run_strip)
-        rs.setContentsMargins(6, 2, 6, 2)
-        rs.addWidget(self.run_label)
+        # one row (the main window's top strip has a fixed height): the run's state, then the operator prompt
+        rs = QtWidgets.QHBoxLayout(self.run_strip)
+        rs.setContentsMargins(6, 0, 6, 0)
+        rs.addWidget(self.run_label, 1)
         rs.addWidget(self.prompt_frame)
         self.run_strip.hide()
 
@@ -251,6 +259,7 @@ class ProtocolTab(QtWidgets.QWidget):
         self.pause_event.clear()
         self._done_ids, self._failures = [], []
         self._current, self._paused, self._eta = None, False, None
+        self._trial_started = time.monotonic()
         self._done_before = self._completed_in(out) if resume else 0
         protocol, rig = self.protocol, h.rig
 
@@ -304,13 +313,30 @@ class ProtocolTab(QtWidgets.QWidget):
         if self.running:
             self.pause_event.set()
             set_plain(self.status, "pausing after the current trial...")
+            self._notify(logging.INFO, f"protocol {self.protocol_name()}: pause requested (after the current "
+                         "trial, the sensor released)")
             self._update_buttons()
 
     def resume(self) -> None:
         if self.running:
             self.pause_event.clear()
             set_plain(self.status, "resumed")
+            self._notify(logging.INFO, f"protocol {self.protocol_name()} resumed")
             self._update_buttons()
+
+    def ask_abort(self):
+        """Abort (the button and Run > Abort): asks first (non-modal); STOP aborts at once without asking."""
+        if not self.running:
+            return None
+        from rigctl_gui.dialogs import ask
+
+        done = len(self._done_ids) + self._done_before
+        self._abort_question = ask(
+            self, "Abort the protocol run?",
+            f"Abort the protocol {self.protocol_name()} ({done}/{len(self.plan)} trials done)? The trial in "
+            "progress is discarded, the rig stops safely and the finished trials stay in the session file (tick "
+            "'Resume' to continue it later).", "Abort the run", "Keep running", self.request_abort)
+        return self._abort_question
 
     def request_abort(self) -> None:
         if self.running and not self.stop_event.is_set():
@@ -364,9 +390,13 @@ class ProtocolTab(QtWidgets.QWidget):
         """A :class:`rigctl.acquisition.runner.TrialEvent` from the runner thread."""
         self._eta = ev.eta_s
         row = self._row_of(ev.planned) if ev.planned is not None else -1
+        if ev.kind in ("start", "texture") and self._current is not ev.planned:
+            # a new trial (its first event may be its plate): its clock and its dropped frames start now
+            self._trial_started = time.monotonic()
+            handle = getattr(self.main, "handle", None)
+            self.trial_dropped_base = int(handle.taxels.stats.dropped) if handle is not None else None
         if ev.kind == "start":
             self._current = ev.planned
-            self._trial_started = time.monotonic()
             self._set_status(row, "settling, then recording")
         elif ev.kind == "texture":
             self._current = ev.planned

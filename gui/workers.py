@@ -266,6 +266,10 @@ class CommandExecutor:
 # ----------------------------------------------------------------------------------------------------------------
 # Live taxels + streaming encoder
 # ----------------------------------------------------------------------------------------------------------------
+#: frames that arrive after a silence longer than this (host time, s) start a new segment of the live traces
+GAP_S = 0.5
+
+
 class TraceBuffer:
     """The last ``seconds`` of taxel readings, decimated by ``decimate``, in fixed-size arrays.
 
@@ -289,6 +293,8 @@ class TraceBuffer:
         self.n_samples = 0
         self.current = np.zeros(self.layout.n_channels, dtype=np.uint16)
         self.newest_host_time_s = float("nan")
+        #: outages seen: (stream time of the first frame after it, s; its length in host time, s), newest last
+        self.gaps: list[tuple[float, float]] = []
 
     def pull(self) -> int:
         """Take the new frames from the ring; returns how many arrived."""
@@ -297,6 +303,10 @@ class TraceBuffer:
         if n == 0:
             return 0
         idx = np.arange(self.cursor - n, self.cursor)  # absolute frame numbers of the stream
+        quiet = float(host_t[0]) - self.newest_host_time_s  # NaN before the first frame
+        if quiet > GAP_S:  # no frame arrived for that long: an outage, drawn as a gap in the traces
+            self.gaps.append((idx[0] / self.rate_hz, quiet))
+            del self.gaps[:-64]
         pick = idx % self.decimate == 0
         sub, sub_t = samples[pick], idx[pick] / self.rate_hz
         cap = len(self._x)

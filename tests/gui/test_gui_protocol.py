@@ -8,10 +8,11 @@ import json
 import os
 import time
 
-from PySide6 import QtCore
+from PySide6 import QtCore, QtWidgets
 
 from rigctl.devices.wire import HoldingRegister
 from rigctl.storage.session import open_session
+from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
 
 PROTOCOL = """
@@ -74,7 +75,14 @@ def test_pause_resume_abort_and_resume_the_session(window, qapp, qtbot, tmp_path
     assert len(tab._done_ids) == done  # nothing recorded while paused
     qtbot.mouseClick(tab.resume_btn, QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: len(tab._done_ids) > done, 60), tab.status.text()
+    qtbot.mouseClick(tab.abort_btn, QtCore.Qt.LeftButton)  # Abort asks first; Esc in the question keeps the run
+    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
+    qtbot.keyClick(box, QtCore.Qt.Key_Escape)
+    wait_for(qapp, lambda: False, 0.5)
+    assert tab.running and not tab.stop_event.is_set()
     qtbot.mouseClick(tab.abort_btn, QtCore.Qt.LeftButton)
+    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
+    qtbot.mouseClick(next(b for b in box.buttons() if b.text() == "Abort the run"), QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
     assert "aborted" in tab.status.text()
     with open_session(out) as s:

@@ -1,0 +1,149 @@
+"""Application-wide event filters: STOP before any popup, and no mouse wheel on an unfocused setpoint.
+
+:class:`StopGuard` sees every mouse press and key press of the application before the widget it is meant for. While
+a popup is open (a menu, a combo box's list, a tooltip-like frame) Qt hands the first click anywhere to the popup,
+which only closes itself: a click on STOP would be lost and the drum would keep turning. The guard calls STOP
+itself when the press lies inside STOP's rectangle on screen, and lets the popup close as usual. Esc pressed while
+one of the main window's popups is open is STOP too (the popup would otherwise take it to close itself), and so is
+Esc anywhere in the main window (judged by the widget the key goes to, not by which window is active). In a
+dialog, Esc only closes the dialog: it never stops or aborts anything (STOP stays one click away, no dialog is
+modal: :mod:`rigctl_gui.dialogs`).
+
+:class:`WheelGuard` keeps the mouse wheel away from spin boxes and combo boxes that do not have the keyboard focus
+(the wheel scrolls the panel under them instead): scrolling a panel never changes a setpoint by accident. Such
+widgets take the focus only by a click or Tab (``Qt.StrongFocus``), never by the wheel.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from PySide6 import QtCore, QtWidgets
+
+#: two STOP triggers closer than this (s) are one press seen twice (by the guard and by the button)
+_SAME_PRESS_S = 0.3
+
+
+class StopGuard(QtCore.QObject):
+    """Routes a press on ``button`` (and Esc) to ``stop()`` before an open popup of ``window`` consumes it.
+
+    Install with ``QApplication.instance().installEventFilter(guard)``; :meth:`uninstall` removes it. ``stop``
+    is called at most once per press (:meth:`trigger` debounces the guard and the button's own click)."""
+
+    def __init__(self, window: QtWidgets.QWidget, button: QtWidgets.QAbstractButton, stop: Callable[[], None]):
+        super().__init__(window)
+        self.window = window
+        self.button = button
+        self.stop = stop
+        self._last = -1.0
+        self.routed = 0  # presses routed to STOP past a popup (tests, log)
+
+    def install(self) -> "StopGuard":
+        QtWidgets.QApplication.instance().installEventFilter(self)
+        return self
+
+    def uninstall(self) -> None:
+        app = QtWidgets.QApplication.instance()
+        if app is not None:
+            app.removeEventFilter(self)
+
+    def trigger(self) -> None:
+        """Call ``stop()`` unless it was called for this same press already."""
+        now = time.monotonic()
+        if now - self._last < _SAME_PRESS_S:
+            return
+        self._last = now
+        self.stop()
+
+    def _own_popup(self, popup: QtWidgets.QWidget | None) -> bool:
+        """True when ``popup`` belongs to the main window (not to a dialog)."""
+        w = popup
+        while w is not None:
+            if w is self.window:
+                return True
+            w = w.parentWidget()
+        return False
+
+    def _on_stop(self, global_pos: QtCore.QPoint) -> bool:
+        b = self.button
+        if not (b.isVisible() and b.isEnabled()):
+            return False
+        return QtCore.QRect(b.mapToGlobal(QtCore.QPoint(0, 0)), b.size()).contains(global_pos)
+
+    def eventFilter(self, obj, ev) -> bool:  # noqa: N802 - Qt override
+        t = ev.type()
+        if t == QtCore.QEvent.MouseButtonPress and isinstance(obj, QtWidgets.QWidget):
+            popup = QtWidgets.QApplication.activePopupWidget()
+            if popup is not None and ev.button() == QtCore.Qt.LeftButton \
+                    and self._on_stop(ev.globalPosition().toPoint()):
+                self.routed += 1
+                self.trigger()
+                popup.close()
+                return True
+        elif t == QtCore.QEvent.KeyPress and ev.key() == QtCore.Qt.Key_Escape and isinstance(obj, QtWidgets.QWidget):
+            popup = QtWidgets.QApplication.activePopupWidget()
+            if popup is not None:
+                if not self._own_popup(popup):
+                    return False  # a dialog's drop-down: Esc closes it, as in any dialog
+                self.routed += 1
+                self.trigger()
+                popup.close()
+                return True
+            if obj.window() is self.window and not ev.isAutoRepeat():
+                # Esc on the main window itself (never in a dialog, which is a window of its own)
+                self.trigger()
+                return True
+        return False
+
+
+class WheelGuard(QtCore.QObject):
+    """The mouse wheel reaches a spin box or a combo box only while it has the keyboard focus; otherwise the wheel
+    goes to the widget's parent (a scroll area scrolls). :meth:`protect` sets ``Qt.StrongFocus`` on the widgets."""
+
+    KINDS = (QtWidgets.QAbstractSpinBox, QtWidgets.QComboBox)
+
+    def install(self) -> "WheelGuard":
+        QtWidgets.QApplication.instance().installEventFilter(self)
+        return self
+
+    def uninstall(self) -> None:
+        app = QtWidgets.QApplication.instance()
+        if app is not None:
+            app.removeEventFilter(self)
+
+    @classmethod
+    def protect(cls, root: QtWidgets.QWidget) -> int:
+        """Give every spin box and combo box under ``root`` ``Qt.StrongFocus`` (click or Tab, not the wheel).
+        Returns how many."""
+        n = 0
+        for w in root.findChildren(QtWidgets.QWidget):
+            if isinstance(w, cls.KINDS):
+                w.setFocusPolicy(QtCore.Qt.StrongFocus)
+                n += 1
+        return n
+
+    def eventFilter(self, obj, ev) -> bool:  # noqa: N802 - Qt override
+        if ev.type() != QtCore.QEvent.Wheel or not isinstance(obj, QtWidgets.QWidget):
+            return False
+        target = obj
+        # a spin box's line edit or a combo's own child gets the event first: judge the box it belongs to
+        while target is not None and not isinstance(target, self.KINDS):
+            target = target.parentWidget() if not target.isWindow() else None
+        if target is None or target.hasFocus() or (target.focusProxy() and target.focusProxy().hasFocus()):
+            return False
+        if isinstance(target, QtWidgets.QComboBox) and target.view().isVisible():
+            return False  # its open list scrolls
+        ev.ignore()  # not for this box: Qt passes an ignored wheel event on to the parent (the scroll area)
+        return True
+
+
+def install_guards(window: QtWidgets.QWidget, stop_button: QtWidgets.QAbstractButton,
+                   stop: Callable[[], None]) -> tuple[StopGuard, WheelGuard]:
+    """Install both guards for ``window`` (its STOP ``stop_button`` calling ``stop``) and protect its spin and combo
+    boxes; returns them (uninstall them when the window closes)."""
+    WheelGuard.protect(window)
+    return StopGuard(window, stop_button, stop).install(), WheelGuard(window).install()
+
+
+__all__ = ["StopGuard", "WheelGuard", "install_guards"]
