@@ -6,7 +6,8 @@ Rules (docs/architecture.md): ``rigctl.core`` imports nothing else of rigctl's; 
 the simulator, the acquisition, the encoder, the analysis or Qt; encoding and analysis never touch serial ports,
 Modbus, the devices, the simulator, the acquisition, Qt or the GUI; acquisition never imports the simulator (only
 the composition root ``rigctl.rigs`` knows every backend); devices never import the simulator, the acquisition or
-storage; nothing below the CLI imports the operator layer (``rigctl.operations``); and nothing in rigctl but ``rigctl.cli.gui`` pulls in Qt, pyqtgraph or the ``gui`` package.
+storage; nothing below the CLI imports the operator layer (``rigctl.operations``); and nothing in rigctl but
+``rigctl.cli.gui`` pulls in Qt, pyqtgraph or the ``gui`` package.
 """
 
 from __future__ import annotations
