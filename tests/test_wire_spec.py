@@ -167,7 +167,9 @@ def test_modbus_link(spec_text, h):
 def test_holding_registers(tables, h):
     rows = tables["holding"]
     assert [r["name"] for r in rows] == [r.name for r in sorted(wire.HoldingRegister)]
-    assert len(rows) == wire.N_HOLDING == h["RIGCTL_N_HOLDING"]
+    span = max(spec_int(r["address"]) for r in rows) + 1  # reserved addresses inside it read 0 (spec 2)
+    assert span == wire.N_HOLDING == h["RIGCTL_N_HOLDING"]
+    assert wire.RESERVED_HOLDING == set(range(span)) - {spec_int(r["address"]) for r in rows}
     for r in rows:
         name, addr = r["name"], spec_int(r["address"])
         lo, hi = map(spec_int, r["range"].split("-"))
@@ -192,7 +194,9 @@ def test_speed_profiles(tables, h):
 def test_input_registers(tables, h):
     rows = tables["input"]
     assert [r["name"] for r in rows] == [r.name for r in sorted(wire.InputRegister)]
-    assert len(rows) == wire.N_INPUT == h["RIGCTL_N_INPUT"]
+    span = max(spec_int(r["address"]) for r in rows) + 1
+    assert span == wire.N_INPUT == h["RIGCTL_N_INPUT"]
+    assert wire.RESERVED_INPUT == set(range(span)) - {spec_int(r["address"]) for r in rows}
     for r in rows:
         assert wire.InputRegister[r["name"]] == spec_int(r["address"]) == h[f"RIGCTL_IREG_{r['name']}"]
     signed = {wire.InputRegister[r["name"]] for r in rows if r["type"] == "int16"}
@@ -224,6 +228,23 @@ def test_faults(tables, spec_text, h):
         assert h[f"RIGCTL_FAULT_{r['name']}_BIT"] == bit and h[f"RIGCTL_FAULT_{r['name']}"] == 1 << bit
     timeout = int(re.search(r"no reading for (\d+) ms", spec_text).group(1))
     assert h["RIGCTL_LOADCELL_TIMEOUT_MS"] == timeout
+
+
+def test_hx711_rate_rules(spec_text, h):
+    """Section 2.9's numbers in the header and wire.py; the firmware's integration band in drum_config.h is the
+    one the virtual Mega uses."""
+    periods = int(re.search(r"times\s+the first (\d+) periods", spec_text).group(1))
+    tol = int(re.search(r"by more than (\d+) %", spec_text).group(1))
+    band = float(re.search(r"while abs\(e\) < (\d+) g", spec_text).group(1))
+    assert h["RIGCTL_HX711_RATE_PERIODS"] == periods == wire.HX711_RATE_PERIODS
+    assert h["RIGCTL_HX711_RATE_TOLERANCE_PCT"] == tol == round(wire.HX711_RATE_TOLERANCE * 100)
+    cfg = (REPO / "arduino" / "mega_drum" / "drum_config.h").read_text()
+    assert float(re.search(r"#define FORCE_INTEGRATE_BAND_G\s+([\d.]+)f?", cfg).group(1)) == band
+    from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G
+
+    assert FORCE_PI_INTEGRATE_BAND_G == band
+    lo, hi, _ = wire.HOLDING_RANGE[wire.HoldingRegister.HX711_RATE_SPS]
+    assert (lo, hi) == (min(wire.HX711_RATES_SPS), max(wire.HX711_RATES_SPS))
 
 
 def test_drum_geometry_and_index_pulse(spec_text, h):

@@ -59,6 +59,7 @@ class Fault(enum.IntFlag):
     WATCHDOG = 1 << 1
     LOADCELL_TIMEOUT = 1 << 2
     ACTUATOR_TRAVEL = 1 << 3
+    HX711_RATE = 1 << 8
 
 
 class SpeedProfile(enum.IntEnum):
@@ -83,6 +84,7 @@ FAULT_TEXT: dict[Fault, str] = {
     Fault.WATCHDOG: "host went silent for longer than WATCHDOG_MS",
     Fault.LOADCELL_TIMEOUT: "the load cell gave no reading for 200 ms",
     Fault.ACTUATOR_TRAVEL: "actuator reached its end of travel without reaching the force setpoint",
+    Fault.HX711_RATE: "the load cell amplifier's measured rate is not the one the force loop is set for",
 }
 #: what each fault bit means and what to do about it (spec table 2.5)
 FAULT_ADVICE: dict[Fault, str] = {
@@ -93,6 +95,9 @@ FAULT_ADVICE: dict[Fault, str] = {
     Fault.LOADCELL_TIMEOUT: "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring.",
     Fault.ACTUATOR_TRAVEL: "the actuator reached its end of travel without reaching the force setpoint: no plate, "
                            "or the sensor is too far away.",
+    Fault.HX711_RATE: "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE "
+                      "pin low; the default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or "
+                      "accept 10 SPS with its slower gains (DrumClient.set_force_loop, rate 10), then CLEAR_FAULT.",
 }
 
 
@@ -148,6 +153,18 @@ class DrumStatus:
     heartbeat: int  #: +1 every 10 ms, wraps at 65536
     loadcell_raw: int  #: raw HX711 counts (signed 24-bit)
     force_setpoint_active_g: float  #: setpoint the force loop holds now, g (0 when released)
+    hx711_rate_sps: float = 0.0  #: the HX711's rate measured at boot, samples/s (0 until measured; spec 2.9)
+    index_source: str = "steps"  #: what marks the drum index now: "sensor" (the index sensor) or "steps" (fallback)
+    index_period_s: float = 0.0  #: one drum revolution by the index sensor, s (0 before two sensor edges)
+    index_steps: int = 0  #: drum microsteps sent in that revolution (steps_per_rev x microsteps if the driver agrees)
+    index_count: int = 0  #: index-sensor edges since power-up, wraps at 65536
+
+    def index_speed_mm_s(self, diameter_mm: float) -> float | None:
+        """Drum surface speed measured by the index sensor, mm/s: ``pi * diameter_mm / index_period_s`` (the real
+        drum's speed, whatever the step count says); None before two sensor edges."""
+        if self.index_period_s <= 0:
+            return None
+        return math.pi * float(diameter_mm) / self.index_period_s
 
     @property
     def faulted(self) -> bool:

@@ -46,7 +46,8 @@ from rigctl.devices.errors import (
 )
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
-__all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "SpeedProfile"]
+__all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "ForceLoopConfig",
+           "IndexSource", "SpeedProfile"]
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +64,9 @@ class DrumStatus(core_drum.DrumStatus):
 
     @classmethod
     def from_registers(cls, regs: list[int]) -> "DrumStatus":
-        """Decode the 13 input registers (signed ones per :data:`wire.SIGNED_INPUT_REGISTERS`).
+        """Decode the input registers 0 .. N_INPUT - 1 (signed ones per :data:`wire.SIGNED_INPUT_REGISTERS`).
 
-        Raises :class:`DrumError` if there are not 13 registers or STATE holds no known state."""
+        Raises :class:`DrumError` if there are not N_INPUT registers or STATE holds no known state."""
         if len(regs) != wire.N_INPUT:
             raise DrumError(f"drum status needs the {wire.N_INPUT} input registers, got {len(regs)}")
         try:
@@ -89,7 +90,69 @@ class DrumStatus(core_drum.DrumStatus):
             heartbeat=regs[IR.HEARTBEAT],
             loadcell_raw=raw,
             force_setpoint_active_g=float(regs[IR.FORCE_SETPOINT_ACTIVE_G]),
+            hx711_rate_sps=regs[IR.HX711_RATE_0P01SPS] / 100.0,
+            index_source=IndexSource.SENSOR if regs[IR.INDEX_SOURCE] == 1 else IndexSource.STEPS,
+            index_period_s=regs[IR.INDEX_PERIOD_MS] / 1000.0,
+            index_steps=regs[IR.INDEX_STEPS],
+            index_count=regs[IR.INDEX_COUNT],
         )
+
+
+class IndexSource:
+    """Values of :attr:`DrumStatus.index_source` (the INDEX_SOURCE input register, spec 2.6)."""
+
+    SENSOR = "sensor"
+    STEPS = "steps"
+
+
+@dataclass(frozen=True)
+class ForceLoopConfig:
+    """The force loop's holding registers in physical units (spec 2.1 and 2.9).
+
+    Attributes
+    ----------
+    hx711_rate_sps : int
+        The HX711 rate the loop accepts to run at (10 or 80); another measured rate latches HX711_RATE.
+    kp_80sps_mm_s_per_g, ki_80sps_mm_s_per_g_s : float
+        PI gains used at 80 SPS: actuator velocity (mm/s) per g of force error, and per g*s of its integral.
+    kp_10sps_mm_s_per_g, ki_10sps_mm_s_per_g_s : float
+        The same at 10 SPS.
+    """
+
+    hx711_rate_sps: int = wire.HOLDING_RANGE[HR.HX711_RATE_SPS][2]
+    kp_80sps_mm_s_per_g: float = wire.HOLDING_RANGE[HR.FORCE_KP_80SPS_NMS_G][2] * 1e-6
+    ki_80sps_mm_s_per_g_s: float = wire.HOLDING_RANGE[HR.FORCE_KI_80SPS_NMS_GS][2] * 1e-6
+    kp_10sps_mm_s_per_g: float = wire.HOLDING_RANGE[HR.FORCE_KP_10SPS_NMS_G][2] * 1e-6
+    ki_10sps_mm_s_per_g_s: float = wire.HOLDING_RANGE[HR.FORCE_KI_10SPS_NMS_GS][2] * 1e-6
+
+    _REGS = (HR.HX711_RATE_SPS, HR.FORCE_KP_80SPS_NMS_G, HR.FORCE_KI_80SPS_NMS_GS, HR.FORCE_KP_10SPS_NMS_G,
+             HR.FORCE_KI_10SPS_NMS_GS)
+
+    def to_registers(self) -> list[int]:
+        """Raw values of HX711_RATE_SPS .. FORCE_KI_10SPS_NMS_GS (consecutive). Raises SetpointRangeError for a
+        rate other than 10/80 or a gain outside its register's range."""
+        if int(self.hx711_rate_sps) not in wire.HX711_RATES_SPS:
+            raise SetpointRangeError("HX711 rate", float(self.hx711_rate_sps), "SPS", 10, 80)
+        raw = [int(self.hx711_rate_sps)]
+        names = ("Kp at 80 SPS", "Ki at 80 SPS", "Kp at 10 SPS", "Ki at 10 SPS")
+        values = (self.kp_80sps_mm_s_per_g, self.ki_80sps_mm_s_per_g_s, self.kp_10sps_mm_s_per_g,
+                  self.ki_10sps_mm_s_per_g_s)
+        for name, reg, v in zip(names, self._REGS[1:], values):
+            lo, hi, _ = wire.HOLDING_RANGE[reg]
+            if not lo * 1e-6 <= float(v) <= hi * 1e-6:
+                raise SetpointRangeError(name, float(v), "(mm/s)/g", lo * 1e-6, hi * 1e-6)
+            raw.append(int(round(float(v) * 1e6)))
+        return raw
+
+    @classmethod
+    def from_registers(cls, regs: list[int]) -> "ForceLoopConfig":
+        """From the raw values of HX711_RATE_SPS .. FORCE_KI_10SPS_NMS_GS."""
+        return cls(int(regs[0]), regs[1] * 1e-6, regs[2] * 1e-6, regs[3] * 1e-6, regs[4] * 1e-6)
+
+    def to_dict(self) -> dict[str, float]:
+        return {"hx711_rate_sps": int(self.hx711_rate_sps), "kp_80sps_mm_s_per_g": self.kp_80sps_mm_s_per_g,
+                "ki_80sps_mm_s_per_g_s": self.ki_80sps_mm_s_per_g_s, "kp_10sps_mm_s_per_g": self.kp_10sps_mm_s_per_g,
+                "ki_10sps_mm_s_per_g_s": self.ki_10sps_mm_s_per_g_s}
 
 
 @dataclass(frozen=True)
@@ -569,6 +632,15 @@ class DrumClient:
         if not lo / 100 <= float(counts_per_g) <= hi / 100:
             raise SetpointRangeError("load-cell scale", float(counts_per_g), "counts/g", lo / 100, hi / 100)
         self.write_holding(HR.LOADCELL_SCALE_X100, int(round(counts_per_g * 100)))
+
+    def read_force_loop(self) -> ForceLoopConfig:
+        """The force loop's rate and gains (holding registers 20-24, spec 2.9)."""
+        return ForceLoopConfig.from_registers(self.read_holdings(HR.HX711_RATE_SPS, len(ForceLoopConfig._REGS)))
+
+    def set_force_loop(self, config: ForceLoopConfig) -> None:
+        """Write the force loop's rate and gains in one function-16 request (range-checked first: SetpointRangeError;
+        a rate the HX711 does not have latches HX711_RATE on the controller)."""
+        self.write_holdings(HR.HX711_RATE_SPS, config.to_registers())
 
     # ------------------------------------------------------------------ commands
     def command(self, cmd: Command) -> None:

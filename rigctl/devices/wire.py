@@ -126,6 +126,11 @@ class HoldingRegister(enum.IntEnum):
     WATCHDOG_MS = 11
     LOADCELL_SCALE_X100 = 12
     ACTUATOR_STEPS_PER_MM = 13
+    HX711_RATE_SPS = 20
+    FORCE_KP_80SPS_NMS_G = 21
+    FORCE_KI_80SPS_NMS_GS = 22
+    FORCE_KP_10SPS_NMS_G = 23
+    FORCE_KI_10SPS_NMS_GS = 24
 
 
 #: (min, max, default) of every holding register, spec table 2.1.
@@ -144,6 +149,11 @@ HOLDING_RANGE: dict[HoldingRegister, tuple[int, int, int]] = {
     HoldingRegister.WATCHDOG_MS: (100, 10000, 1000),
     HoldingRegister.LOADCELL_SCALE_X100: (1, 65535, 42000),
     HoldingRegister.ACTUATOR_STEPS_PER_MM: (1, 65535, 400),
+    HoldingRegister.HX711_RATE_SPS: (10, 80, 80),
+    HoldingRegister.FORCE_KP_80SPS_NMS_G: (0, 20000, 10000),
+    HoldingRegister.FORCE_KI_80SPS_NMS_GS: (0, 20000, 10000),
+    HoldingRegister.FORCE_KP_10SPS_NMS_G: (0, 2000, 1200),
+    HoldingRegister.FORCE_KI_10SPS_NMS_GS: (0, 2000, 600),
 }
 
 #: holding registers whose value must not exceed the value of another holding register
@@ -170,6 +180,11 @@ class InputRegister(enum.IntEnum):
     LOADCELL_RAW_HI = 10
     LOADCELL_RAW_LO = 11
     FORCE_SETPOINT_ACTIVE_G = 12
+    HX711_RATE_0P01SPS = 20
+    INDEX_SOURCE = 21
+    INDEX_PERIOD_MS = 22
+    INDEX_STEPS = 23
+    INDEX_COUNT = 24
 
 
 #: input registers holding two's-complement values
@@ -177,8 +192,23 @@ SIGNED_INPUT_REGISTERS = frozenset(
     {InputRegister.FORCE_G, InputRegister.SPEED_0P1MMS, InputRegister.ACTUATOR_POSITION_0P01MM}
 )
 
-N_HOLDING = len(HoldingRegister)
-N_INPUT = len(InputRegister)
+#: registers in each table's span (0 .. highest address); addresses inside it that the spec does not list are
+#: reserved: they read 0 and accept only 0 (spec section 2)
+N_HOLDING = max(HoldingRegister) + 1
+N_INPUT = max(InputRegister) + 1
+RESERVED_HOLDING = frozenset(range(N_HOLDING)) - set(HoldingRegister)
+RESERVED_INPUT = frozenset(range(N_INPUT)) - set(InputRegister)
+
+
+def holding_range(address: int) -> tuple[int, int, int]:
+    """(min, max, default) of any address of the holding span: a reserved one is (0, 0, 0)."""
+    return HOLDING_RANGE.get(HoldingRegister(address), (0, 0, 0)) if address not in RESERVED_HOLDING else (0, 0, 0)
+
+
+#: the HX711 rates the firmware knows (spec 2.9), and how far the measured rate may be from HX711_RATE_SPS
+HX711_RATES_SPS = (10, 80)
+HX711_RATE_TOLERANCE = 0.2
+HX711_RATE_PERIODS = 4  #: periods between DOUT-ready edges the firmware times at boot
 
 
 class Command(enum.IntEnum):

@@ -29,12 +29,7 @@ from pymodbus.constants import ExcCodes
 
 from rigctl.devices import wire
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR
-from rigctl.simulation.model import (
-    FORCE_PI_INTEGRATE_BAND_G,
-    FORCE_PI_KI_MM_S_PER_G_S,
-    FORCE_PI_KP_MM_S_PER_G,
-    RigModel,
-)
+from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G, RigModel
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +70,7 @@ class MegaController:
         self.model = model
         self.eeprom_path = Path(eeprom_path) if eeprom_path else None
         self._lock = threading.RLock()
-        self.holding = {reg: rng[2] for reg, rng in wire.HOLDING_RANGE.items()}
+        self.holding = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
         self.eeprom = {reg: self.holding[reg] for reg in _CALIBRATION}
         self._load_eeprom()
         self.state = DrumState.IDLE
@@ -88,6 +83,7 @@ class MegaController:
         self._t_s = 0.0
         self._run_t0 = 0.0
         self._integ = 0.0
+        self._pi_out = 0.0  # actuator velocity the force loop set at the last reading, mm/s
         self._on_target_ms = 0
         self._retracting = False  # actuator backing off to home (STOP, fault)
         self._homing = False
@@ -103,6 +99,29 @@ class MegaController:
         model.advance(1, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
         self._tare_raw = model.loadcell_raw
         self._update_force()
+        # HX711 rate timed at boot (spec 2.9), as the firmware's ctl_hx711_ready
+        self._hx_seen = model.hx711_conversions
+        self._hx_edges = 0
+        self._hx_last_s = 0.0
+        self._hx_sum_s = 0.0
+        self._hx_rate_sps = 0.0  # 0 until measured
+        self._hx_period_s = 0.0
+        # drum index (spec 2.6): the step count the firmware keeps, and the index sensor on the real drum
+        self._steps = 0.0  # microsteps sent since power-up
+        self._steps_at_sensor = 0.0
+        self._sensor_live = False
+        self._sensor_edges = 0
+        self._sensor_last_s = 0.0
+        self._index_period_ms = 0
+        self._index_steps = 0
+        self._revolutions = 0
+        self._boot()
+
+    def _boot(self) -> None:
+        """Run the board's boot at rest until the HX711's rate is timed (the first 5 DOUT-ready edges: 62 ms at
+        80 SPS, 500 ms at 10 SPS of simulated time), as the firmware does before a host can reach it."""
+        while self._hx_edges <= wire.HX711_RATE_PERIODS:
+            self.step(self.model.ms_to_next_conversion())
 
     # ------------------------------------------------------------------ EEPROM
     def _load_eeprom(self) -> None:
@@ -157,7 +176,7 @@ class MegaController:
             if func_code == 3:
                 if address < 0 or address + count > wire.N_HOLDING:
                     return ExcCodes.ILLEGAL_ADDRESS
-                return [0 if HR(a) == HR.COMMAND else self.holding[HR(a)] for a in range(address, address + count)]
+                return [0 if a == HR.COMMAND else self.holding[a] for a in range(address, address + count)]
             if func_code == 4:
                 if address < 0 or address + count > wire.N_INPUT:
                     return ExcCodes.ILLEGAL_ADDRESS
@@ -172,8 +191,8 @@ class MegaController:
         regs = [0] * wire.N_INPUT
         regs[IR.FORCE_G] = _u16(max(-32768, min(32767, self._force_g)))
         regs[IR.SPEED_0P1MMS] = _u16(m.drum_speed_mm_s * 10)
-        regs[IR.DRUM_ANGLE_0P01DEG] = int(m.angle_deg * 100) % 36000
-        regs[IR.DRUM_REVOLUTIONS] = m.revolutions & 0xFFFF
+        regs[IR.DRUM_ANGLE_0P01DEG] = int(self._index_angle_deg() * 100) % 36000
+        regs[IR.DRUM_REVOLUTIONS] = self._revolutions & 0xFFFF
         regs[IR.ACTUATOR_POSITION_0P01MM] = _u16(max(-32768, min(32767, act_mm * 100)))
         regs[IR.STATE] = int(self.state)
         regs[IR.FAULT_BITS] = int(self.faults)
@@ -183,6 +202,11 @@ class MegaController:
         regs[IR.LOADCELL_RAW_HI] = raw >> 16
         regs[IR.LOADCELL_RAW_LO] = raw & 0xFFFF
         regs[IR.FORCE_SETPOINT_ACTIVE_G] = self.holding[HR.FORCE_SETPOINT_G] if self.state in _ENGAGED else 0
+        regs[IR.HX711_RATE_0P01SPS] = int(round(self._hx_rate_sps * 100))
+        regs[IR.INDEX_SOURCE] = 1 if self._sensor_live else 0
+        regs[IR.INDEX_PERIOD_MS] = self._index_period_ms
+        regs[IR.INDEX_STEPS] = self._index_steps
+        regs[IR.INDEX_COUNT] = self._sensor_edges & 0xFFFF
         return regs
 
     def _write(self, func_code: int, address: int, values: list[int]):
@@ -196,15 +220,17 @@ class MegaController:
             new = dict(self.holding)
             command = None
             for i, value in enumerate(values):
-                reg = HR(address + i)
-                low, high, _ = wire.HOLDING_RANGE[reg]
+                reg = address + i
+                low, high, _ = wire.holding_range(reg)
                 if not low <= value <= high:
+                    return ExcCodes.ILLEGAL_VALUE
+                if reg == HR.HX711_RATE_SPS and value not in wire.HX711_RATES_SPS:
                     return ExcCodes.ILLEGAL_VALUE
                 if reg == HR.COMMAND:
                     command = Command(value)
                 else:
                     new[reg] = value
-            written = {HR(address + i) for i in range(len(values))}
+            written = {address + i for i in range(len(values))}
             for reg in wire.SPEED_REGISTERS:
                 if reg in written and new[reg] > new[HR.SPEED_LIMIT_0P1MMS]:
                     return ExcCodes.ILLEGAL_VALUE
@@ -219,6 +245,8 @@ class MegaController:
             if force_changed and self.state in (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED):
                 self.state = DrumState.SEEKING_FORCE
                 self._on_target_ms = 0
+            if self._hx_rate_sps and not self._hx711_rate_ok() and Fault.HX711_RATE not in self.faults:
+                self._fault(Fault.HX711_RATE)  # a rate the HX711 does not have: the loop must not run
             if command is not None:
                 self._execute(command)
             return None
@@ -229,13 +257,14 @@ class MegaController:
         if cmd in (Command.NONE, Command.STOP, Command.SAVE_CALIBRATION):
             return True
         if cmd in (Command.RUN, Command.PRESS):
-            return s not in (DrumState.FAULT, DrumState.HOMING)
+            return s not in (DrumState.FAULT, DrumState.HOMING) and self._hx711_rate_ok(holding)
         if cmd == Command.STOP_DRUM:
             return s in _ENGAGED
         if cmd in (Command.TARE, Command.HOME):
             return s == DrumState.IDLE and self._force_g < holding[HR.FORCE_TOLERANCE_G] * 2
         if cmd == Command.CLEAR_FAULT:
-            return self._force_g <= holding[HR.FORCE_LIMIT_G] and self._loadcell_ok
+            return self._force_g <= holding[HR.FORCE_LIMIT_G] and self._loadcell_ok and \
+                not (self._hx_rate_sps and not self._hx711_rate_ok(holding))
         return False
 
     def _execute(self, cmd: Command) -> None:
@@ -269,6 +298,7 @@ class MegaController:
     def _engage(self) -> None:
         self.state = DrumState.SEEKING_FORCE
         self._integ = 0.0
+        self._pi_out = 0.0
         self._on_target_ms = 0
         self._retracting = False
         self._homing = False
@@ -298,25 +328,112 @@ class MegaController:
     def step(self, n_ms: int):
         """Advance the rig by ``n_ms`` ms under the current outputs, then run the controller.
 
-        Returns the model's ``(samples (n, 18) uint16, sync_in (n,) bool)`` for the taxel streamer. Long steps are
-        cut into control periods of at most :attr:`max_step_ms` ms.
+        Returns the model's ``(samples (n, 18) uint16, sync_in (n,) bool)`` for the taxel streamer (``sync_in``:
+        the index output, from the index sensor or the step count, :meth:`_index_step`). The time is cut into
+        control periods of at most :attr:`max_step_ms` ms that end where an HX711 conversion completes, so the
+        force loop acts on each reading within the ms it arrives in, as the firmware does.
         """
-        if n_ms <= self.max_step_ms:
-            with self._lock:
-                rate, vel = self._outputs
-            out = self.model.advance(n_ms, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
-            self.control_step(n_ms)
-            return out
-        # after a scheduling hiccup: catch up in control periods, as the firmware's loop would have run
+        if n_ms <= 0:
+            return self.model.advance(0, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
         samples, sync = [], []
         left = int(n_ms)
         while left > 0:
-            k = min(left, self.max_step_ms)
-            s, y = self.step(k)
+            k = min(left, self.max_step_ms, self.model.ms_to_next_conversion())
+            with self._lock:
+                rate, vel = self._outputs
+            t0 = self.model.time_s
+            s, y = self.model.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
+            with self._lock:
+                y = self._index_step(y, rate, t0)
+            self.control_step(k)
             samples.append(s)
             sync.append(y)
             left -= k
+        if len(samples) == 1:
+            return samples[0], sync[0]
         return np.concatenate(samples), np.concatenate(sync)
+
+    # ------------------------------------------------------------------ drum index (spec 2.6)
+    def _index_step(self, sensor: np.ndarray, rate: float, t0: float) -> np.ndarray:
+        """Count the step pulses of a step of ``sensor.size`` ms at ``rate`` microsteps/s and take the index sensor's
+        passes (``sensor``: the model's real index mark, if a sensor is fitted); returns the index output per ms, as
+        the firmware's Timer5 capture and step ISR make it (lock held)."""
+        d = self.model.config.drum
+        usteps = d.steps_per_rev * d.microsteps  # what the firmware assumes
+        n = sensor.size
+        before = self._steps
+        steps = before + rate * np.arange(1, n + 1) / 1000.0
+        self._steps = float(steps[-1]) if n else before
+        out = np.zeros(n, bool)
+        if d.index_sensor:
+            for j in np.flatnonzero(sensor):
+                t = t0 + (j + 1) * 1e-3
+                if self._sensor_edges:
+                    self._index_period_ms = min(0xFFFF, int(round((t - self._sensor_last_s) * 1000.0)))
+                    self._index_steps = min(0xFFFF, int(round(steps[j] - self._steps_at_sensor)))
+                self._sensor_last_s = t
+                self._steps_at_sensor = float(steps[j])
+                self._sensor_edges += 1
+                self._sensor_live = True
+                self._revolutions += 1
+                out[j] = True
+        if self._sensor_live and self._steps - self._steps_at_sensor > 1.5 * usteps:
+            self._sensor_live = False  # no edge for 1.5 revolutions: back to the step count
+        if not self._sensor_live and n:
+            wraps = np.diff(np.floor(np.concatenate(([before], steps)) / usteps)) != 0
+            out |= wraps
+            self._revolutions += int(wraps.sum())
+        return out
+
+    def _index_angle_deg(self) -> float:
+        """DRUM_ANGLE: the steps since the last index-sensor edge while the sensor is live, else the step count."""
+        d = self.model.config.drum
+        usteps = d.steps_per_rev * d.microsteps
+        steps = self._steps - self._steps_at_sensor if self._sensor_live else self._steps
+        return (steps % usteps) / usteps * 360.0
+
+    # ------------------------------------------------------------------ HX711 rate and the force loop (spec 2.9)
+    def _hx711_rate_ok(self, holding=None) -> bool:
+        expected = (holding or self.holding)[HR.HX711_RATE_SPS]
+        return bool(self._hx_rate_sps) and abs(self._hx_rate_sps - expected) <= wire.HX711_RATE_TOLERANCE * expected
+
+    def _hx711_ready(self, t_s: float) -> None:
+        """A DOUT-ready edge at ``t_s``: the boot measurement of the rate (the firmware's ctl_hx711_ready)."""
+        if 0 < self._hx_edges <= wire.HX711_RATE_PERIODS:
+            self._hx_sum_s += t_s - self._hx_last_s
+        self._hx_last_s = t_s
+        if self._hx_edges <= wire.HX711_RATE_PERIODS:
+            self._hx_edges += 1
+        if self._hx_edges == wire.HX711_RATE_PERIODS + 1 and not self._hx_rate_sps and self._hx_sum_s > 0:
+            self._hx_period_s = self._hx_sum_s / wire.HX711_RATE_PERIODS
+            self._hx_rate_sps = round(100.0 / self._hx_period_s) / 100.0
+            if not self._hx711_rate_ok():
+                self._fault(Fault.HX711_RATE)
+
+    def _force_pi(self, setpoint_g: float, force_g: float) -> float:
+        """One PI update per HX711 reading, as the firmware's force_pi_update (the gains of HX711_RATE_SPS, time
+        step the measured period, the integral grows only inside FORCE_PI_INTEGRATE_BAND_G and not while the output
+        is clamped in the error's direction); actuator velocity, mm/s."""
+        h = self.holding
+        slow = h[HR.HX711_RATE_SPS] < 40
+        kp = h[HR.FORCE_KP_10SPS_NMS_G if slow else HR.FORCE_KP_80SPS_NMS_G] * 1e-6
+        ki = h[HR.FORCE_KI_10SPS_NMS_GS if slow else HR.FORCE_KI_80SPS_NMS_GS] * 1e-6
+        vmax = self.model.config.mechanics.actuator_max_speed_mm_s
+        e = setpoint_g - force_g
+        integ = self._integ + ki * e * self._hx_period_s if abs(e) < FORCE_PI_INTEGRATE_BAND_G else self._integ
+        out = kp * e + integ
+        if out > vmax:
+            out = vmax
+            if e < 0:
+                self._integ = integ
+        elif out < -vmax:
+            out = -vmax
+            if e > 0:
+                self._integ = integ
+        else:
+            self._integ = integ
+        self._integ = min(vmax, max(-vmax, self._integ))
+        return out
 
     def control_step(self, n_ms: int) -> None:
         """One pass of the Mega's control logic after ``n_ms`` ms of physics (reads the model, sets outputs)."""
@@ -329,11 +446,17 @@ class MegaController:
             self._t_s += dt
             self._heartbeat_ms += n_ms
             h = self.holding
-            if self._loadcell_ok:
+            conversions = m.hx711_conversions
+            new_reading = conversions != self._hx_seen and self._loadcell_ok
+            if new_reading:
+                period = m.config.mechanics.hx711_period_s
+                for i in range(min(conversions - self._hx_seen, wire.HX711_RATE_PERIODS + 1), 0, -1):
+                    self._hx711_ready(m.hx711_last_conversion_s - (i - 1) * period)
                 self._loadcell_silent_ms = 0
                 self._update_force()
             else:
                 self._loadcell_silent_ms += n_ms
+            self._hx_seen = conversions
             f = self._force_g
             engaged = self.state in _ENGAGED
             # --- faults (the host watchdog: check_watchdog, in the Modbus server's loop)
@@ -365,10 +488,9 @@ class MegaController:
             if engaged:
                 sp = h[HR.FORCE_SETPOINT_G]
                 e = sp - f
-                if abs(e) < FORCE_PI_INTEGRATE_BAND_G:
-                    self._integ += e * dt
-                vel = float(np.clip(FORCE_PI_KP_MM_S_PER_G * e + FORCE_PI_KI_MM_S_PER_G_S * self._integ, -vmax, vmax))
-                vel *= cal
+                if new_reading:  # the loop runs once per HX711 reading; its output holds in between
+                    self._pi_out = self._force_pi(sp, f)
+                vel = self._pi_out * cal
                 if abs(e) <= h[HR.FORCE_TOLERANCE_G]:
                     self._on_target_ms += n_ms
                 else:

@@ -245,8 +245,9 @@ class HilRig:
 
     @property
     def mm_per_step(self) -> float:
+        """Real drum surface travel per STEP pulse, mm (the driver's real microstep setting)."""
         d = self.config.drum
-        return float(np.pi * d.diameter_mm / (d.steps_per_rev * d.microsteps))
+        return float(np.pi * d.diameter_mm / (d.steps_per_rev * d.true_microsteps))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "HilRig":
@@ -270,7 +271,7 @@ class HilRig:
         self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
-            *lock], self._on_mega_line)
+            *self._hardware_args(), *lock], self._on_mega_line)
         if not self.with_uno:
             return self
         try:
@@ -287,6 +288,15 @@ class HilRig:
             self._feeder = threading.Thread(target=self._feed, name="hil-feeder", daemon=True)
             self._feeder.start()
         return self
+
+    def _hardware_args(self) -> list[str]:
+        """The harness options of the HX711 (rate, oscillator error), the drum driver's microstep setting and the
+        index sensor, from the rig config (``MechanicsConfig.hx711_*``, ``DrumConfig.driver_microsteps``,
+        ``DrumConfig.index_sensor``)."""
+        m, d = self.config.mechanics, self.config.drum
+        args = ["--hx711-sps", str(int(m.hx711_rate_sps)), "--hx711-clock-error", str(m.hx711_clock_error),
+                "--drum-driver-microsteps", str(d.true_microsteps)]
+        return args if d.index_sensor else [*args, "--no-index-sensor"]
 
     def close(self) -> None:
         """Stop the feeder and both harnesses (their processes exit when stdin closes)."""

@@ -94,6 +94,13 @@ class DrumConfig:
     start_jitter_mm : float
         Sd of the plate position at a trial's first sample around the index mark, mm (``start_at_index``): the
         index sensor's repeatability and the plate's mounting; the 1 ms frame latch adds a uniform 0..v*1 ms.
+    driver_microsteps : int or None
+        The microstep setting of the drum's stepper driver (its DIP switches), None = ``microsteps`` (what the
+        firmware assumes). Another value makes the drum turn at ``microsteps / driver_microsteps`` times the speed
+        the step count says (a driver left at another setting): the fault the index sensor catches.
+    index_sensor : bool
+        Whether an index sensor (optical/Hall, docs/wire-protocol.md 2.6) is fitted: it marks the real drum's index
+        mark; without one the controller marks the index by its step count.
     """
 
     diameter_mm: float = DRUM_DIAMETER_MM
@@ -103,10 +110,22 @@ class DrumConfig:
     runout_mm: float = 0.02
     start_at_index: bool = True
     start_jitter_mm: float = 0.2
+    driver_microsteps: int | None = None
+    index_sensor: bool = True
 
     @property
     def circumference_mm(self) -> float:
         return math.pi * self.diameter_mm
+
+    @property
+    def true_steps_per_mm(self) -> float:
+        """Step pulses per mm of real surface travel (the driver's real microstep setting)."""
+        return self.steps_per_rev * self.true_microsteps / self.circumference_mm
+
+    @property
+    def true_microsteps(self) -> int:
+        """The driver's real microstep setting (``driver_microsteps``, or ``microsteps`` when that is None)."""
+        return self.microsteps if self.driver_microsteps is None else int(self.driver_microsteps)
 
     @property
     def steps_per_mm(self) -> float:
@@ -248,6 +267,14 @@ class MechanicsConfig:
         Load-cell reading noise sd, g.
     texture_ripple : float
         Relative contact-force ripple per mm of texture height under the contact line.
+    hx711_rate_sps : float
+        The HX711's output data rate with its on-chip oscillator: 10 (RATE pin low, what many boards ship with) or
+        80 (RATE high, what the firmware's default gains are for). Avia HX711 datasheet, "Output Data Rate and
+        Format". Each reading is the sinc^4-filtered force of the last four conversion periods (the datasheet's
+        settling time: 4 periods after a step), available once per period (:meth:`RigModel.advance`).
+    hx711_clock_error : float
+        Relative error of the HX711's on-chip oscillator (the datasheet gives the rates only as "typical"), e.g.
+        0.05 = 5 % fast; the conversion period is ``1 / (rate * (1 + error))``. Must be within +-0.2.
     """
 
     contact_gap_mm: float = 3.0
@@ -258,6 +285,21 @@ class MechanicsConfig:
     loadcell_offset_counts: int = 83_000
     loadcell_noise_g: float = 0.8
     texture_ripple: float = 0.02
+    hx711_rate_sps: float = 80.0
+    hx711_clock_error: float = 0.0
+
+    def __post_init__(self):
+        if self.hx711_rate_sps not in (10.0, 80.0):
+            raise ValueError(f"hx711_rate_sps must be 10 or 80 (the HX711's RATE pin), got {self.hx711_rate_sps}")
+        if not -0.2 < self.hx711_clock_error < 0.2:
+            raise ValueError(f"hx711_clock_error must be within +-0.2, got {self.hx711_clock_error}")
+        if not 0 < self.contact_stiffness_g_per_mm <= 1e5:
+            raise ValueError(f"contact_stiffness_g_per_mm must be > 0, got {self.contact_stiffness_g_per_mm}")
+
+    @property
+    def hx711_period_s(self) -> float:
+        """Time between two HX711 conversions (DOUT-ready edges), s."""
+        return 1.0 / (self.hx711_rate_sps * (1.0 + self.hx711_clock_error))
 
 
 @dataclasses.dataclass
@@ -698,6 +740,13 @@ class RigModel:
         self._time_s = 0.0
         self._loadcell_g = 0.0
         self._mass_on_loadcell_g = 0.0  # a calibration mass resting on the load cell (place_mass)
+        # HX711: force on the cell, one sample per ms (newest last), and the conversions so far
+        self._hx_period_s = self.config.mechanics.hx711_period_s
+        self._hx_weights = sinc4_weights(self._hx_period_s * 1000.0)
+        self._hx_hist = np.zeros(_HX_HISTORY_MS)
+        self._hx_next_s = self._hx_period_s
+        self._hx_conversions = 0
+        self._hx_last_s = 0.0
 
     # -- properties ------------------------------------------------------------------------------------------------
     @property
@@ -726,9 +775,27 @@ class RigModel:
 
     @property
     def force_g(self) -> float:
-        """Load-cell force (tared), g, with reading noise; the latest reading (contact force + any calibration mass)."""
+        """Load-cell force (tared), g, with reading noise: the latest HX711 conversion (contact force + any
+        calibration mass, sinc^4-filtered over the last four conversion periods; ``MechanicsConfig.hx711_rate_sps``)."""
         with self._lock:
             return self._loadcell_g
+
+    @property
+    def hx711_conversions(self) -> int:
+        """HX711 conversions (DOUT-ready edges) since construction; :attr:`force_g` changes only with a new one."""
+        with self._lock:
+            return self._hx_conversions
+
+    @property
+    def hx711_last_conversion_s(self) -> float:
+        """Simulated time of the latest HX711 conversion, s (what a firmware timing the DOUT edges sees)."""
+        with self._lock:
+            return self._hx_last_s
+
+    def ms_to_next_conversion(self) -> int:
+        """Whole ms until the 1 ms step in which the next HX711 conversion completes (>= 1)."""
+        with self._lock:
+            return max(1, math.ceil((self._hx_next_s - self._time_s) * 1000.0 - 1e-9))
 
     @property
     def contact_force_g(self) -> float:
@@ -779,14 +846,13 @@ class RigModel:
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it).
 
-        The mass adds to the load-cell reading (``force_g``, ``loadcell_raw``) from now on, not to the contact force
-        the taxels feel. Raises ValueError for a negative mass.
+        The mass adds to the load-cell reading (``force_g``, ``loadcell_raw``) from the next HX711 conversion on
+        (settled after four conversion periods), not to the contact force the taxels feel. Raises ValueError for a negative mass.
         """
         mass = float(mass_g)
         if mass < 0 or not math.isfinite(mass):
             raise ValueError(f"mass_g must be >= 0, got {mass_g}")
         with self._lock:
-            self._loadcell_g += mass - self._mass_on_loadcell_g
             self._mass_on_loadcell_g = mass
 
     def home_actuator(self) -> None:
@@ -795,6 +861,24 @@ class RigModel:
             self._actuator_mm = 0.0
 
     # -- dynamics --------------------------------------------------------------------------------------------------
+    def _hx711_convert(self, cell_g: np.ndarray) -> None:
+        """Feed this step's force on the load cell (one sample per ms) to the HX711 model; every conversion that
+        completes in the step takes the sinc^4-weighted force of the four periods before it (lock held)."""
+        n = cell_g.size
+        t0 = self._time_s
+        self._hx_hist = np.concatenate((self._hx_hist, cell_g))[-(_HX_HISTORY_MS + n):]
+        w = self._hx_weights
+        noise = self.config.mechanics.loadcell_noise_g
+        while self._hx_next_s <= t0 + n * 1e-3 + 1e-12:
+            k = min(n, max(1, math.ceil((self._hx_next_s - t0) * 1000.0 - 1e-9)))  # the step it completes in
+            end = self._hx_hist.size - (n - k)
+            window = self._hx_hist[end - w.size:end][::-1]
+            self._loadcell_g = float(np.dot(w, window)) + noise * float(self._rng.standard_normal())
+            self._hx_last_s = self._hx_next_s
+            self._hx_next_s += self._hx_period_s
+            self._hx_conversions += 1
+        self._hx_hist = self._hx_hist[-_HX_HISTORY_MS:]
+
     def advance(self, n_ms: int, *, drum_step_rate_hz: float, actuator_velocity_mm_s: float
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Advance the physics by ``n_ms`` 1 ms steps under constant commands.
@@ -804,7 +888,8 @@ class RigModel:
         n_ms : int
             Number of 1 ms steps (>= 0).
         drum_step_rate_hz : float
-            Commanded stepper rate, microsteps/s (signed; surface speed = rate / ``drum.steps_per_mm``).
+            Commanded stepper rate, microsteps/s (signed; surface speed = rate / ``drum.true_steps_per_mm``: a
+            driver at another microstep setting than the firmware assumes turns the drum at another speed).
         actuator_velocity_mm_s : float
             Commanded actuator velocity, mm/s (positive towards the sensor; clipped to the speed limit).
 
@@ -824,7 +909,7 @@ class RigModel:
             if n == 0:
                 return np.empty((0, N_TAXELS), np.uint16), np.zeros(0, bool)
             k = np.arange(1, n + 1, dtype=np.float64)
-            target = float(drum_step_rate_hz) / d.steps_per_mm
+            target = float(drum_step_rate_hz) / d.true_steps_per_mm  # the driver's real microstep setting
             dv = target - self._speed_mm_s
             ramp = d.max_accel_mm_s2 * dt * k
             speed = np.where(ramp >= abs(dv), target, self._speed_mm_s + math.copysign(1.0, dv) * ramp)
@@ -852,10 +937,28 @@ class RigModel:
             self._position_mm = float(pos[-1])
             self._actuator_mm = float(act[-1])
             self._force_g = float(force[-1])
-            self._loadcell_g = (self._force_g + self._mass_on_loadcell_g
-                                + m.loadcell_noise_g * float(self._rng.standard_normal()))
+            self._hx711_convert(force + self._mass_on_loadcell_g)
             self._time_s += n * dt
             return samples, sync_in
+
+
+_HX_HISTORY_MS = 1024  # 4 conversion periods at 10 SPS with a 20 % slow oscillator fit
+
+
+def sinc4_weights(period_ms: float) -> np.ndarray:
+    """Weights of the HX711's settling as a sinc^4 filter on 1 ms force samples, newest first.
+
+    Four cascaded moving averages of one conversion period (``period_ms``): the cubic B-spline over four periods,
+    sampled at the sample centres and normalised to sum 1 (group delay two periods; a step settles after four, the
+    Avia HX711 datasheet's figure). Returns ``(ceil(4 * period_ms),)`` float64.
+    """
+    n = int(math.ceil(4.0 * period_ms))
+    u = (np.arange(n) + 0.5) / period_ms
+    u = np.where(u >= 2.0, 4.0 - u, u)
+    v = u - 1.0
+    w = np.where(u < 1.0, u ** 3 / 6.0, (1.0 + 3.0 * v + 3.0 * v * v - 3.0 * v ** 3) / 6.0)
+    w = np.clip(w, 0.0, None)
+    return w / w.sum()
 
 
 def simulate_force_loop(setpoint_g: float = 500.0, *, kp: float = FORCE_PI_KP_MM_S_PER_G,

@@ -148,7 +148,7 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
             if clock.now() > deadline:
                 raise
             time.sleep(0.05)
-    defaults = [wire.HOLDING_RANGE[r][2] for r in HR]
+    defaults = [wire.holding_range(a)[2] for a in range(wire.N_HOLDING)]  # reserved addresses: 0
     drum.write_holdings(0, defaults)
     drum.wait_released(timeout_s=15.0)
     deadline = clock.now() + 10.0

@@ -25,7 +25,8 @@ from rigctl.devices.errors import ModbusExceptionError
 from rigctl.devices.wire import Command, DrumState as S, Fault, HoldingRegister as HR, InputRegister as IR
 
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 1, 2, 3
-DEFAULT = {reg: rng[2] for reg, rng in wire.HOLDING_RANGE.items()}
+DEFAULT = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
+ADDRESSES = range(wire.N_HOLDING)
 #: a drum at rest reads below this speed, mm/s (one count of SPEED_0P1MMS)
 AT_REST_MM_S = 0.1
 #: drum diameter, mm (spec 2.6, the default geometry of both controllers)
@@ -142,7 +143,7 @@ def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
 # ------------------------------------------------------------------------------------------------ identity
 def test_identity_and_power_up_defaults(controller, drum):
     """Power-up: every holding register at the spec's default, firmware 1.0, IDLE, no faults, nothing engaged."""
-    assert controller.power_up_holding == [DEFAULT[r] for r in HR]
+    assert controller.power_up_holding == [DEFAULT[r] for r in ADDRESSES]
     st = DrumStatus.from_registers(controller.power_up_inputs)
     assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 0)
     assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 256
@@ -161,17 +162,19 @@ def test_every_holding_register_written_and_read_back(drum):
     new = {HR.SPEED_SETPOINT_0P1MMS: 800, HR.FORCE_SETPOINT_G: 250, HR.SPEED_PROFILE: 1,
            HR.RAMP_START_SPEED_0P1MMS: 1000, HR.RAMP_END_SPEED_0P1MMS: 500, HR.RAMP_DURATION_MS: 6000,
            HR.SPEED_LIMIT_0P1MMS: 1800, HR.FORCE_LIMIT_G: 1200, HR.FORCE_TOLERANCE_G: 20, HR.SETTLE_TIME_MS: 200,
-           HR.WATCHDOG_MS: 2000, HR.LOADCELL_SCALE_X100: 41000, HR.ACTUATOR_STEPS_PER_MM: 800}
+           HR.WATCHDOG_MS: 2000, HR.LOADCELL_SCALE_X100: 41000, HR.ACTUATOR_STEPS_PER_MM: 800,
+           HR.FORCE_KP_80SPS_NMS_G: 9000, HR.FORCE_KI_80SPS_NMS_GS: 8000, HR.FORCE_KP_10SPS_NMS_G: 1000,
+           HR.FORCE_KI_10SPS_NMS_GS: 500}
     for reg, value in new.items():  # function 06, one by one
         assert value != DEFAULT[reg]
         drum.write_holding(reg, value)
         assert drum.read_holding(reg) == value, reg.name
-    expected = [new.get(r, 0) for r in HR]  # COMMAND reads back 0
+    expected = [new.get(r, 0 if r == HR.COMMAND else DEFAULT[r]) for r in ADDRESSES]  # COMMAND reads back 0
     assert holding(drum) == expected
     drum.write_holding(HR.COMMAND, int(Command.NONE))  # accepted, changes nothing
     assert holding(drum) == expected
-    drum.write_holdings(0, [DEFAULT[r] for r in HR])  # function 16, the whole table in one request
-    assert holding(drum) == [DEFAULT[r] for r in HR]
+    drum.write_holdings(0, [DEFAULT[r] for r in ADDRESSES])  # function 16, the whole table in one request
+    assert holding(drum) == [DEFAULT[r] for r in ADDRESSES]
     assert drum.read_status().state == S.IDLE
 
 
@@ -187,7 +190,9 @@ def test_out_of_range_values_are_refused_and_change_nothing(drum):
 
 
 def _send_out_of_range_values(modbus) -> None:
-    good = [0 if r == HR.COMMAND else DEFAULT[r] + 1 for r in HR]  # valid, and none the register's value now
+    # valid, and none the register's value now (a reserved address takes only 0, the HX711 rate 10 or 80)
+    good = [0 if r == HR.COMMAND or r in wire.RESERVED_HOLDING else 10 if r == HR.HX711_RATE_SPS else DEFAULT[r] + 1
+            for r in ADDRESSES]
     for reg, (low, high, _) in wire.HOLDING_RANGE.items():
         for value in (v for v in (low - 1, high + 1) if 0 <= v <= 0xFFFF):
             code = raw_refusal(modbus.write_register(int(reg), value, device_id=wire.DRUM_DEVICE_ID))
@@ -208,11 +213,14 @@ def test_illegal_addresses(drum):
     with refused(ILLEGAL_ADDRESS):
         drum.read_input(wire.N_INPUT)
     with refused(ILLEGAL_ADDRESS):
-        drum.read_inputs(10, 4)
+        drum.read_inputs(wire.N_INPUT - 2, 4)
     with refused(ILLEGAL_ADDRESS):
         drum.write_holding(wire.N_HOLDING, 0)
     with refused(ILLEGAL_ADDRESS):
-        drum.write_holdings(HR.ACTUATOR_STEPS_PER_MM, [400, 1])
+        drum.write_holdings(wire.N_HOLDING - 1, [DEFAULT[wire.N_HOLDING - 1], 1])
+    with refused(ILLEGAL_VALUE):  # a reserved address inside the span takes only 0 (spec 2)
+        drum.write_holding(min(wire.RESERVED_HOLDING), 1)
+    assert drum.read_holding(min(wire.RESERVED_HOLDING)) == 0
     assert holding(drum) == before
     assert drum.read_input(IR.FIRMWARE_VERSION) == 256  # still answering
 

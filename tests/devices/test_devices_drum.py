@@ -18,8 +18,8 @@ from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR, InputRe
 
 
 def test_every_input_register_read(drum, mega):
-    regs = [drum.read_input(reg) for reg in IR]
-    assert len(regs) == wire.N_INPUT
+    regs = drum.read_inputs(0, wire.N_INPUT)
+    assert [drum.read_input(reg) for reg in wire.RESERVED_INPUT] == [0] * len(wire.RESERVED_INPUT)
     assert regs[IR.FIRMWARE_VERSION] == 256
     assert regs[IR.STATE] == DrumState.IDLE
     assert regs[IR.FAULT_BITS] == 0
@@ -29,7 +29,9 @@ def test_every_input_register_read(drum, mega):
     raw = mega.model.loadcell_raw
     assert abs(status.loadcell_raw - raw) < 50 * 420  # same reading, within 50 g of noise between the two reads
     assert status.firmware == wire.MEGA_FIRMWARE_VERSION
-    assert abs(status.angle_deg - mega.model.angle_deg) < 0.02
+    # the drum has not turned since power-up: no index-sensor edge yet, the angle is the step count's (0)
+    assert (status.index_source, status.angle_deg, status.index_count) == ("steps", 0.0, 0)
+    assert status.hx711_rate_sps == pytest.approx(80.0, abs=0.5)  # timed at boot from the DOUT-ready edges
     hb0 = drum.read_input(IR.HEARTBEAT)
     time.sleep(0.3)
     hb1 = drum.read_input(IR.HEARTBEAT)
@@ -80,12 +82,13 @@ def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
 
 def test_modbus_exceptions_become_named_errors(drum, mega):
     with pytest.raises(ModbusExceptionError) as info:
-        drum.read_holdings(12, 5)  # runs off the table
-    assert info.value.exception_code == 2 and info.value.register == "LOADCELL_SCALE_X100"
-    assert "LOADCELL_SCALE_X100" in str(info.value) and "illegal data address" in str(info.value)
+        drum.read_holdings(wire.N_HOLDING - 2, 5)  # runs off the table
+    name = HR(wire.N_HOLDING - 2).name
+    assert info.value.exception_code == 2 and info.value.register == name
+    assert name in str(info.value) and "illegal data address" in str(info.value)
     with pytest.raises(ModbusExceptionError) as info:
-        drum.read_input(13)
-    assert info.value.exception_code == 2 and "input register 13" in str(info.value)
+        drum.read_input(wire.N_INPUT)
+    assert info.value.exception_code == 2 and f"input register {wire.N_INPUT}" in str(info.value)
     # a write the client passes (within the range column) that the controller refuses: force above its limit,
     # in one function-16 request together with a valid speed: nothing of it is applied
     with pytest.raises(ModbusExceptionError) as info:

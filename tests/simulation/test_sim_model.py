@@ -12,6 +12,7 @@ import pytest
 from rigctl.simulation.model import (
     FORCE_PI_KI_MM_S_PER_G_S,
     FORCE_PI_KP_MM_S_PER_G,
+    MechanicsConfig,
     RigConfig,
     RigModel,
     SensorConfig,
@@ -142,15 +143,37 @@ def test_actuator_spring_and_load_cell():
     rig.advance(2000, drum_step_rate_hz=0, actuator_velocity_mm_s=2.0)  # 4.4 mm: 1.4 mm past contact
     expected = m.contact_stiffness_g_per_mm * (4.4 - m.contact_gap_mm)
     assert rig.contact_force_g == pytest.approx(expected, abs=m.contact_stiffness_g_per_mm * 0.03)
+    # the HX711 lags a moving force (sinc^4 over 4 conversion periods: ~2 periods at 500 g/s = 12.5 g, plus the
+    # time since the last conversion); 4 periods after the actuator stops it reads the contact force
+    lag_g = rig.contact_force_g - rig.force_g
+    assert 500 * 2 * m.hx711_period_s - 5 * m.loadcell_noise_g < lag_g < 500 * 3 * m.hx711_period_s + 5 * m.loadcell_noise_g
+    rig.advance(int(4 * m.hx711_period_s * 1000) + 1, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
     assert rig.force_g == pytest.approx(rig.contact_force_g, abs=5 * m.loadcell_noise_g)
     raw_g = (rig.loadcell_raw - m.loadcell_offset_counts) / m.loadcell_counts_per_g
     assert raw_g == pytest.approx(rig.force_g, abs=0.01)
     pressed, _ = rig.advance(50, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
     assert pressed[:, :9].mean() > samples[:, :9].mean() + 150
     rig.place_mass(200)
+    assert rig.force_g == pytest.approx(rig.contact_force_g, abs=5 * m.loadcell_noise_g)  # no conversion yet
+    rig.advance(int(4 * m.hx711_period_s * 1000) + 1, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
     assert rig.force_g == pytest.approx(rig.contact_force_g + 200, abs=5 * m.loadcell_noise_g)
-    rig.advance(5, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
-    assert rig.force_g == pytest.approx(rig.contact_force_g + 200, abs=5 * m.loadcell_noise_g)
+
+
+@pytest.mark.parametrize("sps", [10.0, 80.0])
+def test_hx711_converts_once_per_period_and_settles_in_four(sps):
+    """Avia HX711 datasheet: one reading per conversion period, settled 4 periods after a step (sinc^4)."""
+    rig = RigModel(RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=sps, hx711_clock_error=0.05, loadcell_noise_g=0)))
+    period = rig.config.mechanics.hx711_period_s
+    assert period == pytest.approx(1 / (sps * 1.05))
+    rig.advance(1000, drum_step_rate_hz=0, actuator_velocity_mm_s=0)
+    assert rig.hx711_conversions == int(1.0 / period)
+    n0, readings = rig.hx711_conversions, []
+    rig.place_mass(300)  # a force step
+    while rig.hx711_conversions < n0 + 6:
+        rig.advance(rig.ms_to_next_conversion(), drum_step_rate_hz=0, actuator_velocity_mm_s=0)
+        readings.append(rig.force_g)
+    assert 0 < readings[0] < 300 and 0 < readings[2] < 300  # still moving after 3 periods
+    assert readings[3] == pytest.approx(300, abs=1.0) and readings[5] == pytest.approx(300, abs=1e-6)
 
 
 @pytest.mark.parametrize("setpoint", [250.0, 500.0, 1000.0])

@@ -129,7 +129,28 @@
 #define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MIN 1
 #define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MAX 65535
 #define RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_DEF 400
-#define RIGCTL_N_HOLDING                      14
+#define RIGCTL_HREG_HX711_RATE_SPS            20
+#define RIGCTL_HREG_HX711_RATE_SPS_MIN        10
+#define RIGCTL_HREG_HX711_RATE_SPS_MAX        80
+#define RIGCTL_HREG_HX711_RATE_SPS_DEF        80
+#define RIGCTL_HREG_FORCE_KP_80SPS_NMS_G      21
+#define RIGCTL_HREG_FORCE_KP_80SPS_NMS_G_MIN  0
+#define RIGCTL_HREG_FORCE_KP_80SPS_NMS_G_MAX  20000
+#define RIGCTL_HREG_FORCE_KP_80SPS_NMS_G_DEF  10000
+#define RIGCTL_HREG_FORCE_KI_80SPS_NMS_GS     22
+#define RIGCTL_HREG_FORCE_KI_80SPS_NMS_GS_MIN 0
+#define RIGCTL_HREG_FORCE_KI_80SPS_NMS_GS_MAX 20000
+#define RIGCTL_HREG_FORCE_KI_80SPS_NMS_GS_DEF 10000
+#define RIGCTL_HREG_FORCE_KP_10SPS_NMS_G      23
+#define RIGCTL_HREG_FORCE_KP_10SPS_NMS_G_MIN  0
+#define RIGCTL_HREG_FORCE_KP_10SPS_NMS_G_MAX  2000
+#define RIGCTL_HREG_FORCE_KP_10SPS_NMS_G_DEF  1200
+#define RIGCTL_HREG_FORCE_KI_10SPS_NMS_GS     24
+#define RIGCTL_HREG_FORCE_KI_10SPS_NMS_GS_MIN 0
+#define RIGCTL_HREG_FORCE_KI_10SPS_NMS_GS_MAX 2000
+#define RIGCTL_HREG_FORCE_KI_10SPS_NMS_GS_DEF 600
+/* the span 0 .. highest address; addresses it holds that the spec does not list are reserved (read 0, accept 0) */
+#define RIGCTL_N_HOLDING                      25
 
 /* 2.2 input registers (read only) */
 #define RIGCTL_IREG_FORCE_G                  0
@@ -145,7 +166,12 @@
 #define RIGCTL_IREG_LOADCELL_RAW_HI          10
 #define RIGCTL_IREG_LOADCELL_RAW_LO          11
 #define RIGCTL_IREG_FORCE_SETPOINT_ACTIVE_G  12
-#define RIGCTL_N_INPUT                       13
+#define RIGCTL_IREG_HX711_RATE_0P01SPS       20
+#define RIGCTL_IREG_INDEX_SOURCE             21
+#define RIGCTL_IREG_INDEX_PERIOD_MS          22
+#define RIGCTL_IREG_INDEX_STEPS              23
+#define RIGCTL_IREG_INDEX_COUNT              24
+#define RIGCTL_N_INPUT                       25
 
 /* 2.3 commands (values written to RIGCTL_HREG_COMMAND) */
 #define RIGCTL_CMD_NONE              0
@@ -179,6 +205,8 @@
 #define RIGCTL_FAULT_WATCHDOG              (1u << RIGCTL_FAULT_WATCHDOG_BIT)
 #define RIGCTL_FAULT_LOADCELL_TIMEOUT      (1u << RIGCTL_FAULT_LOADCELL_TIMEOUT_BIT)
 #define RIGCTL_FAULT_ACTUATOR_TRAVEL       (1u << RIGCTL_FAULT_ACTUATOR_TRAVEL_BIT)
+#define RIGCTL_FAULT_HX711_RATE_BIT        8
+#define RIGCTL_FAULT_HX711_RATE            (1u << RIGCTL_FAULT_HX711_RATE_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 
 /* 2.6 drum geometry defaults (the firmware's own values live in mega_drum/drum_config.h) */
@@ -186,5 +214,12 @@
 #define RIGCTL_DRUM_STEPS_PER_REV_DEF      200
 #define RIGCTL_DRUM_MICROSTEPS_DEF         16
 #define RIGCTL_INDEX_PULSE_MS              1
+
+/* 2.9 HX711 rate: the firmware times this many periods at boot; the measured rate may differ from HX711_RATE_SPS
+ * by this many percent */
+#define RIGCTL_HX711_RATE_PERIODS          4
+#define RIGCTL_HX711_RATE_TOLERANCE_PCT    20
+#define RIGCTL_INDEX_SOURCE_STEPS          0
+#define RIGCTL_INDEX_SOURCE_SENSOR         1
 
 #endif /* RIGCTL_WIRE_H */

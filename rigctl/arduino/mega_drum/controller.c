@@ -3,24 +3,30 @@
 #include "drum_config.h"
 #include "steprate.h"
 
+/* range and default of every holding register by address; reserved addresses (not listed) are 0-0, default 0 */
+#define HREG(name, what) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_##what
 static const uint16_t hreg_min[RIGCTL_N_HOLDING] = {
-    RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_MIN, RIGCTL_HREG_FORCE_SETPOINT_G_MIN, RIGCTL_HREG_COMMAND_MIN,
-    RIGCTL_HREG_SPEED_PROFILE_MIN, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_MIN, RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_MIN,
-    RIGCTL_HREG_RAMP_DURATION_MS_MIN, RIGCTL_HREG_SPEED_LIMIT_0P1MMS_MIN, RIGCTL_HREG_FORCE_LIMIT_G_MIN,
-    RIGCTL_HREG_FORCE_TOLERANCE_G_MIN, RIGCTL_HREG_SETTLE_TIME_MS_MIN, RIGCTL_HREG_WATCHDOG_MS_MIN,
-    RIGCTL_HREG_LOADCELL_SCALE_X100_MIN, RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MIN};
+    HREG(SPEED_SETPOINT_0P1MMS, MIN), HREG(FORCE_SETPOINT_G, MIN), HREG(COMMAND, MIN), HREG(SPEED_PROFILE, MIN),
+    HREG(RAMP_START_SPEED_0P1MMS, MIN), HREG(RAMP_END_SPEED_0P1MMS, MIN), HREG(RAMP_DURATION_MS, MIN),
+    HREG(SPEED_LIMIT_0P1MMS, MIN), HREG(FORCE_LIMIT_G, MIN), HREG(FORCE_TOLERANCE_G, MIN),
+    HREG(SETTLE_TIME_MS, MIN), HREG(WATCHDOG_MS, MIN), HREG(LOADCELL_SCALE_X100, MIN),
+    HREG(ACTUATOR_STEPS_PER_MM, MIN), HREG(HX711_RATE_SPS, MIN), HREG(FORCE_KP_80SPS_NMS_G, MIN),
+    HREG(FORCE_KI_80SPS_NMS_GS, MIN), HREG(FORCE_KP_10SPS_NMS_G, MIN), HREG(FORCE_KI_10SPS_NMS_GS, MIN)};
 static const uint16_t hreg_max[RIGCTL_N_HOLDING] = {
-    RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_MAX, RIGCTL_HREG_FORCE_SETPOINT_G_MAX, RIGCTL_HREG_COMMAND_MAX,
-    RIGCTL_HREG_SPEED_PROFILE_MAX, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_MAX, RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_MAX,
-    RIGCTL_HREG_RAMP_DURATION_MS_MAX, RIGCTL_HREG_SPEED_LIMIT_0P1MMS_MAX, RIGCTL_HREG_FORCE_LIMIT_G_MAX,
-    RIGCTL_HREG_FORCE_TOLERANCE_G_MAX, RIGCTL_HREG_SETTLE_TIME_MS_MAX, RIGCTL_HREG_WATCHDOG_MS_MAX,
-    RIGCTL_HREG_LOADCELL_SCALE_X100_MAX, RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_MAX};
+    HREG(SPEED_SETPOINT_0P1MMS, MAX), HREG(FORCE_SETPOINT_G, MAX), HREG(COMMAND, MAX), HREG(SPEED_PROFILE, MAX),
+    HREG(RAMP_START_SPEED_0P1MMS, MAX), HREG(RAMP_END_SPEED_0P1MMS, MAX), HREG(RAMP_DURATION_MS, MAX),
+    HREG(SPEED_LIMIT_0P1MMS, MAX), HREG(FORCE_LIMIT_G, MAX), HREG(FORCE_TOLERANCE_G, MAX),
+    HREG(SETTLE_TIME_MS, MAX), HREG(WATCHDOG_MS, MAX), HREG(LOADCELL_SCALE_X100, MAX),
+    HREG(ACTUATOR_STEPS_PER_MM, MAX), HREG(HX711_RATE_SPS, MAX), HREG(FORCE_KP_80SPS_NMS_G, MAX),
+    HREG(FORCE_KI_80SPS_NMS_GS, MAX), HREG(FORCE_KP_10SPS_NMS_G, MAX), HREG(FORCE_KI_10SPS_NMS_GS, MAX)};
 static const uint16_t hreg_def[RIGCTL_N_HOLDING] = {
-    RIGCTL_HREG_SPEED_SETPOINT_0P1MMS_DEF, RIGCTL_HREG_FORCE_SETPOINT_G_DEF, RIGCTL_HREG_COMMAND_DEF,
-    RIGCTL_HREG_SPEED_PROFILE_DEF, RIGCTL_HREG_RAMP_START_SPEED_0P1MMS_DEF, RIGCTL_HREG_RAMP_END_SPEED_0P1MMS_DEF,
-    RIGCTL_HREG_RAMP_DURATION_MS_DEF, RIGCTL_HREG_SPEED_LIMIT_0P1MMS_DEF, RIGCTL_HREG_FORCE_LIMIT_G_DEF,
-    RIGCTL_HREG_FORCE_TOLERANCE_G_DEF, RIGCTL_HREG_SETTLE_TIME_MS_DEF, RIGCTL_HREG_WATCHDOG_MS_DEF,
-    RIGCTL_HREG_LOADCELL_SCALE_X100_DEF, RIGCTL_HREG_ACTUATOR_STEPS_PER_MM_DEF};
+    HREG(SPEED_SETPOINT_0P1MMS, DEF), HREG(FORCE_SETPOINT_G, DEF), HREG(COMMAND, DEF), HREG(SPEED_PROFILE, DEF),
+    HREG(RAMP_START_SPEED_0P1MMS, DEF), HREG(RAMP_END_SPEED_0P1MMS, DEF), HREG(RAMP_DURATION_MS, DEF),
+    HREG(SPEED_LIMIT_0P1MMS, DEF), HREG(FORCE_LIMIT_G, DEF), HREG(FORCE_TOLERANCE_G, DEF),
+    HREG(SETTLE_TIME_MS, DEF), HREG(WATCHDOG_MS, DEF), HREG(LOADCELL_SCALE_X100, DEF),
+    HREG(ACTUATOR_STEPS_PER_MM, DEF), HREG(HX711_RATE_SPS, DEF), HREG(FORCE_KP_80SPS_NMS_G, DEF),
+    HREG(FORCE_KI_80SPS_NMS_GS, DEF), HREG(FORCE_KP_10SPS_NMS_G, DEF), HREG(FORCE_KI_10SPS_NMS_GS, DEF)};
+#undef HREG
 
 void ctl_init(ctl_t *c, uint16_t loadcell_scale_x100, uint16_t actuator_steps_per_mm)
 {
@@ -32,7 +38,7 @@ void ctl_init(ctl_t *c, uint16_t loadcell_scale_x100, uint16_t actuator_steps_pe
     if (actuator_steps_per_mm) c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM] = actuator_steps_per_mm;
     c->state = RIGCTL_STATE_IDLE;
     c->tare_pending = 1; /* power-up tare with the actuator at home */
-    force_pi_init(&c->pi, FORCE_KP, FORCE_KI, ACT_MAX_SPEED_MM_S);
+    force_pi_init(&c->pi, 0.0f, 0.0f, ACT_MAX_SPEED_MM_S, FORCE_INTEGRATE_BAND_G); /* gains: force_loop_gains */
 }
 
 static uint8_t force_engaged(const ctl_t *c)
@@ -61,10 +67,42 @@ static void fault(ctl_t *c, uint16_t bits)
     force_pi_reset(&c->pi);
 }
 
+/* ---- HX711 rate (spec 2.9) ---- */
+/* the measured rate is the one HX711_RATE_SPS accepts (within RIGCTL_HX711_RATE_TOLERANCE_PCT) */
+static uint8_t hx711_rate_ok(const ctl_t *c)
+{
+    uint32_t expected = (uint32_t)c->hreg[RIGCTL_HREG_HX711_RATE_SPS] * 100u;
+    uint32_t dev = c->hx_rate_0p01 > expected ? c->hx_rate_0p01 - expected : expected - c->hx_rate_0p01;
+    return c->hx_rate_0p01 && dev * 100u <= expected * RIGCTL_HX711_RATE_TOLERANCE_PCT;
+}
+
+/* the gains of the rate the loop runs at, into the PI (every update: a gain written while pressing applies) */
+static void force_loop_gains(ctl_t *c)
+{
+    uint8_t slow = c->hreg[RIGCTL_HREG_HX711_RATE_SPS] < 40;
+    uint16_t kp = c->hreg[slow ? RIGCTL_HREG_FORCE_KP_10SPS_NMS_G : RIGCTL_HREG_FORCE_KP_80SPS_NMS_G];
+    uint16_t ki = c->hreg[slow ? RIGCTL_HREG_FORCE_KI_10SPS_NMS_GS : RIGCTL_HREG_FORCE_KI_80SPS_NMS_GS];
+    c->pi.kp = (float)kp * 1e-6f; /* nm/s per g -> mm/s per g */
+    c->pi.ki = (float)ki * 1e-6f;
+}
+
+void ctl_hx711_ready(ctl_t *c, uint32_t t_us)
+{
+    if (c->hx_edges && c->hx_edges <= RIGCTL_HX711_RATE_PERIODS) c->hx_sum_us += t_us - c->hx_last_us;
+    c->hx_last_us = t_us;
+    if (c->hx_edges <= RIGCTL_HX711_RATE_PERIODS) c->hx_edges++;
+    if (c->hx_edges == RIGCTL_HX711_RATE_PERIODS + 1 && !c->hx_rate_0p01 && c->hx_sum_us) {
+        c->hx_period_s = (float)c->hx_sum_us * 1e-6f / (float)RIGCTL_HX711_RATE_PERIODS;
+        c->hx_rate_0p01 = (uint16_t)(100.0f / c->hx_period_s + 0.5f);
+        if (!hx711_rate_ok(c)) fault(c, RIGCTL_FAULT_HX711_RATE);
+    }
+}
+
 static uint8_t fault_persists(const ctl_t *c)
 {
     if ((uint32_t)(c->now_ms - c->last_loadcell_ms) > RIGCTL_LOADCELL_TIMEOUT_MS) return 1;
     if (c->force_gf > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) return 1;
+    if (c->hx_rate_0p01 && !hx711_rate_ok(c)) return 1;
     return 0;
 }
 
@@ -94,7 +132,7 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
         return 1;
     case RIGCTL_CMD_RUN:
     case RIGCTL_CMD_PRESS:
-        return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING;
+        return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING && hx711_rate_ok(c);
     case RIGCTL_CMD_STOP_DRUM:
         return force_engaged(c);
     case RIGCTL_CMD_TARE:
@@ -181,6 +219,11 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr)
     case RIGCTL_IREG_LOADCELL_RAW_LO: return (uint16_t)((uint32_t)c->loadcell_raw & 0xFFFF);
     case RIGCTL_IREG_FORCE_SETPOINT_ACTIVE_G:
         return force_engaged(c) ? c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G] : 0;
+    case RIGCTL_IREG_HX711_RATE_0P01SPS: return c->hx_rate_0p01;
+    case RIGCTL_IREG_INDEX_SOURCE: return c->index_source;
+    case RIGCTL_IREG_INDEX_PERIOD_MS: return c->index_period_ms;
+    case RIGCTL_IREG_INDEX_STEPS: return c->index_steps;
+    case RIGCTL_IREG_INDEX_COUNT: return c->index_count;
     default: return 0;
     }
 }
@@ -196,6 +239,7 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
     for (i = 0; i < n; i++) {
         uint16_t a = (uint16_t)(start + i);
         if (values[i] < hreg_min[a] || values[i] > hreg_max[a]) return RIGCTL_MB_EX_ILLEGAL_VALUE;
+        if (a == RIGCTL_HREG_HX711_RATE_SPS && values[i] != 10 && values[i] != 80) return RIGCTL_MB_EX_ILLEGAL_VALUE;
         cand[a] = values[i];
         if (a == RIGCTL_HREG_COMMAND) {
             cmd = values[i];
@@ -220,6 +264,8 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
         c->on_target = 0;
     }
     for (i = 0; i < RIGCTL_N_HOLDING; i++) c->hreg[i] = cand[i];
+    if (c->hx_rate_0p01 && !hx711_rate_ok(c) && !(c->faults & RIGCTL_FAULT_HX711_RATE))
+        fault(c, RIGCTL_FAULT_HX711_RATE); /* a rate the HX711 does not have: the loop must not run */
     if (cmd_written) run_command(c, cmd);
     return 0;
 }
@@ -348,7 +394,8 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     if (on && !c->on_target) c->on_target_since_ms = c->now_ms;
     c->on_target = on;
     if (c->act_mode == ACT_MODE_FORCE) {
-        c->act_vel_mm_s = force_pi_update(&c->pi, (float)sp, f, HX711_SAMPLE_PERIOD_S);
+        force_loop_gains(c);
+        c->act_vel_mm_s = force_pi_update(&c->pi, (float)sp, f, c->hx_period_s);
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
             c->act_vel_mm_s = 0.0f;
             fault(c, RIGCTL_FAULT_ACTUATOR_TRAVEL);

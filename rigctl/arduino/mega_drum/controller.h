@@ -51,6 +51,17 @@ typedef struct {
     uint8_t zero_position;  /* output: glue must set its step count to 0 */
     force_pi_t pi;
     uint8_t save_calibration; /* output: glue writes EEPROM and clears it */
+    /* HX711 rate measured at boot (spec 2.9) */
+    uint32_t hx_last_us;
+    uint32_t hx_sum_us;
+    uint8_t hx_edges;
+    uint16_t hx_rate_0p01;  /* 0 until measured */
+    float hx_period_s;      /* the force loop's time step */
+    /* drum index (glue; spec 2.6) */
+    uint8_t index_source;   /* RIGCTL_INDEX_SOURCE_* */
+    uint16_t index_period_ms;
+    uint16_t index_steps;
+    uint16_t index_count;
 } ctl_t;
 
 /* power-up: defaults from the spec, calibration from EEPROM (or defaults), state IDLE */
@@ -70,6 +81,9 @@ void ctl_feed_watchdog(ctl_t *c);
 void ctl_tick(ctl_t *c, uint32_t now_ms);
 /* a new HX711 reading (signed 24-bit counts): force, tare, force limit, PI update */
 void ctl_loadcell(ctl_t *c, int32_t raw);
+/* the HX711's DOUT went low (a reading is ready) at t_us (any microsecond clock): times the first periods after
+ * boot (HX711_RATE_0P01SPS, the force loop's time step) and latches HX711_RATE when the rate is not HX711_RATE_SPS */
+void ctl_hx711_ready(ctl_t *c, uint32_t t_us);
 /* force in g from raw counts with the current tare and scale */
 float ctl_force_from_raw(const ctl_t *c, int32_t raw);
 

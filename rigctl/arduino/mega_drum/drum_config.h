@@ -17,12 +17,12 @@
 #define ACT_HOME_SPEED_MM_S    3.0f     /* HOME seeks the switch at this speed */
 #define ACT_MAX_TRAVEL_MM      20.0f    /* end of travel: ACTUATOR_TRAVEL fault while seeking force */
 
-/* ---- force loop (PI on the load cell, run on each HX711 reading at 80 SPS) ----
- * output: actuator velocity in mm/s, positive towards the sensor. With a contact stiffness of k g/mm the closed
- * loop time constant is 1 / (k * FORCE_KP): 0.1 s at k = 200 g/mm. */
-#define FORCE_KP               0.05f    /* (mm/s) per g */
-#define FORCE_KI               0.05f    /* (mm/s) per (g s) */
-#define HX711_SAMPLE_PERIOD_S  0.0125f  /* 80 SPS (RATE pin high) */
+/* ---- force loop (PI on the load cell, run on each HX711 reading; docs/wire-protocol.md 2.9) ----
+ * output: actuator velocity in mm/s, positive towards the sensor. Gains are holding registers (FORCE_KP/KI_80SPS,
+ * _10SPS), the time step is the HX711 period measured at boot. The integral grows only while abs(error) is below
+ * this band (no wind-up during the approach to contact); rigctl.simulation.model.FORCE_PI_INTEGRATE_BAND_G is held
+ * to it by tests/test_wire_spec.py. */
+#define FORCE_INTEGRATE_BAND_G 50.0f
 
 /* ---- pins (Arduino Mega 2560) ---- */
 /* drum stepper driver: STEP D11 = PB5, DIR D10 = PB4 (Timer1 compare interrupt makes the step pulses) */
@@ -51,5 +51,8 @@
 #define PIN_INDEX_PORT      PORTH
 #define PIN_INDEX_DDR       DDRH
 #define PIN_INDEX_BIT       6
+/* drum index sensor (optical/Hall, open collector, active low) D48 = PL1 = ICP5: Timer5 input capture */
+#define PIN_INDEX_SENSOR_PORT PORTL
+#define PIN_INDEX_SENSOR_BIT  1
 
 #endif

@@ -1,8 +1,9 @@
 /* force_pi.c - see force_pi.h */
 #include "force_pi.h"
 
-void force_pi_init(force_pi_t *pi, float kp, float ki, float out_max)
+void force_pi_init(force_pi_t *pi, float kp, float ki, float out_max, float band)
 {
+    pi->band = band;
     pi->kp = kp;
     pi->ki = ki;
     pi->out_max = out_max;
@@ -18,7 +19,7 @@ float force_pi_update(force_pi_t *pi, float setpoint_g, float measured_g, float 
 {
     float e = setpoint_g - measured_g;
     float p = pi->kp * e;
-    float integ = pi->integ + pi->ki * e * dt;
+    float integ = (e < pi->band && e > -pi->band) ? pi->integ + pi->ki * e * dt : pi->integ;
     float out = p + integ;
     if (out > pi->out_max) {
         out = pi->out_max;

@@ -8,7 +8,9 @@
  *   Timer1  drum step generator: CTC, its compare interrupt makes one STEP pulse and loads the next period,
  *           so the acceleration ramp changes the rate only between steps
  *   Timer3  actuator (lead-screw stepper) step generator, same scheme, counts the actuator position
- *   HX711   bit-banged in loop() whenever DOUT goes low (80 SPS), 25 clocks (channel A, gain 128)
+ *   Timer5  drum index sensor (D48 = ICP5): free running /1024 (64 us), input capture of the sensor's falling edge
+ *   HX711   bit-banged in loop() whenever DOUT goes low (10 or 80 SPS, the rate timed at boot: ctl_hx711_ready),
+ *           25 clocks (channel A, gain 128)
  *   EEPROM  calibration (load-cell scale, actuator steps/mm) with a magic word and CRC
  * Timer0 stays with the Arduino core (millis, unused here). HardwareSerial is not linked.
  */
@@ -46,6 +48,15 @@ static volatile uint16_t drum_running_ocr;
 static volatile uint16_t drum_step_in_rev;
 static volatile uint16_t drum_revs;
 static volatile uint8_t index_pending;   /* index mark passed: raise the index output */
+/* index sensor (Timer5 input capture; docs/wire-protocol.md 2.6) */
+#define INDEX_LOST_STEPS ((uint32_t)DRUM_USTEPS_PER_REV * 3u / 2u) /* 1.5 revolutions without an edge: fallback */
+static volatile uint32_t steps_since_sensor; /* drum steps since the last sensor edge */
+static volatile uint8_t sensor_live;
+static volatile uint16_t t5_overflows;
+static volatile uint32_t sensor_last_ticks;
+static volatile uint32_t sensor_period_ticks;  /* 64 us ticks between the last two edges */
+static volatile uint16_t sensor_steps;         /* drum steps between the last two edges */
+static volatile uint16_t sensor_edges;
 static volatile steptimer_t act_next;
 static volatile uint8_t act_next_dir;    /* 1 = towards the sensor */
 static volatile uint8_t act_dir;
@@ -95,11 +106,16 @@ ISR(TIMER1_COMPA_vect)
 {
     PIN_DRUM_STEP_PORT |= (1 << PIN_DRUM_STEP_BIT);
     uint16_t s = drum_step_in_rev + 1;
+    uint32_t ss = steps_since_sensor + 1;
+    steps_since_sensor = ss;
+    if (sensor_live && ss > INDEX_LOST_STEPS) sensor_live = 0; /* no edge for 1.5 revolutions: the step count */
     if (s >= DRUM_USTEPS_PER_REV) {
         s = 0;
-        drum_revs++;
-        PIN_INDEX_PORT |= (1 << PIN_INDEX_BIT);
-        index_pending = 1;
+        if (!sensor_live) { /* fallback: the step count marks the index */
+            drum_revs++;
+            PIN_INDEX_PORT |= (1 << PIN_INDEX_BIT);
+            index_pending = 1;
+        }
     }
     drum_step_in_rev = s;
     uint8_t cs = drum_next.cs;
@@ -110,6 +126,55 @@ ISR(TIMER1_COMPA_vect)
     TCCR1B = (uint8_t)((1 << WGM12) | cs);
     drum_running_cs = cs;
     PIN_DRUM_STEP_PORT &= (uint8_t)~(1 << PIN_DRUM_STEP_BIT); /* >= 2 us pulse */
+}
+
+ISR(TIMER5_OVF_vect)
+{
+    t5_overflows++;
+}
+
+/* the index sensor's falling edge: the real index mark */
+ISR(TIMER5_CAPT_vect)
+{
+    uint16_t icr = ICR5;
+    uint32_t ovf = t5_overflows;
+    if ((TIFR5 & (1 << TOV5)) && icr < 0x8000u) ovf++; /* an overflow not yet counted came before the capture */
+    uint32_t t = (ovf << 16) | icr;
+    uint32_t steps = steps_since_sensor;
+    if (sensor_edges) {
+        sensor_period_ticks = t - sensor_last_ticks;
+        sensor_steps = steps > 0xFFFFu ? 0xFFFFu : (uint16_t)steps;
+    }
+    sensor_last_ticks = t;
+    sensor_edges++;
+    steps_since_sensor = 0;
+    sensor_live = 1;
+    drum_revs++;
+    PIN_INDEX_PORT |= (1 << PIN_INDEX_BIT);
+    index_pending = 1;
+}
+
+static void index_sensor_setup(void)
+{
+    PIN_INDEX_SENSOR_PORT |= (1 << PIN_INDEX_SENSOR_BIT); /* pull-up: open-collector sensor */
+    TCCR5A = 0;
+    TCCR5B = (1 << ICNC5) | (1 << CS52) | (1 << CS50); /* normal mode, noise canceler, falling edge, /1024 */
+    TIFR5 = (1 << ICF5) | (1 << TOV5);
+    TIMSK5 = (1 << ICIE5) | (1 << TOIE5);
+}
+
+/* what the controller reports of the index (call with interrupts off) */
+static void index_to_controller(void)
+{
+    ctl.index_source = sensor_live ? RIGCTL_INDEX_SOURCE_SENSOR : RIGCTL_INDEX_SOURCE_STEPS;
+    ctl.drum_step_in_rev = sensor_live ? (uint16_t)(steps_since_sensor % DRUM_USTEPS_PER_REV) : drum_step_in_rev;
+    ctl.drum_revolutions = drum_revs;
+    if (sensor_edges >= 2) {
+        uint32_t ms = (sensor_period_ticks * 64u + 500u) / 1000u;
+        ctl.index_period_ms = ms > 0xFFFFu ? 0xFFFFu : (uint16_t)ms;
+        ctl.index_steps = sensor_steps;
+    }
+    ctl.index_count = sensor_edges;
 }
 
 ISR(TIMER3_COMPA_vect)
@@ -319,6 +384,7 @@ void setup(void)
     TCCR3A = 0;
     TCCR3B = (1 << WGM32);
     TIMSK3 = (1 << OCIE3A);
+    index_sensor_setup();
     sei();
 }
 
@@ -340,8 +406,7 @@ void loop(void)
         done_ms++;
         cli();
         ctl.act_pos_steps = act_steps;
-        ctl.drum_step_in_rev = drum_step_in_rev;
-        ctl.drum_revolutions = drum_revs;
+        index_to_controller();
         uint8_t idx = index_pending;
         index_pending = 0;
         sei();
@@ -373,6 +438,7 @@ void loop(void)
     }
 
     if (!((PIN_HX_DOUT_PIN >> PIN_HX_DOUT_BIT) & 1)) {
+        ctl_hx711_ready(&ctl, micros());
         ctl_loadcell(&ctl, hx711_read());
         act_apply(ctl.act_vel_mm_s);
     }

@@ -18,12 +18,14 @@
  * "sync" (a 1 ms pulse on the sync-in pin D2). Timing: the sampler's probe pin
  * (PB0) and the transmitter's (PB1) are timed on avr->cycle; "ISR ..." lines report cycles per 1 ms tick.
  *
- * Mega (ATmega2560): emulates the HX711 (DOUT PE5, SCK PG5; 80 SPS, 24-bit two's complement, 25th clock = gain
- * 128) with a spring model between the lead-screw actuator (STEP PE3, DIR PH3, --act-steps-per-mm) and the
+ * Mega (ATmega2560): emulates the HX711 (DOUT PE5, SCK PG5; --hx711-sps 10|80 with --hx711-clock-error, the
+ * datasheet's 4-period settling as a sinc^4 filter, 24-bit two's complement, 25th clock = gain 128) with a spring
+ * model (--spring-k: contact stiffness, g/mm) between the lead-screw actuator (STEP PE3, DIR PH3, --act-steps-per-mm) and the
  * load cell: force_g = k * max(0, x_mm - contact_mm) + bump; raw = offset + force_g * counts_per_g. Drives the
  * home switch (PH4, low at x <= 0). Watches the drum STEP (PB5)/DIR (PB4) pins and the index output (PH6):
  * "TEL ..." lines every --tel-ms of simulated time give step counts and the force; "IDX t=..." at each index
- * pulse. stdin commands: "bump G" (an external force offset in g, e.g. to trip the force limit), "reset" (the
+ * pulse; the drum index sensor on PL1 (ICP5) from the real drum angle ("ISENS t=..." at each mark; see
+ * index_sensor_poll). stdin commands: "bump G" (an external force offset in g, e.g. to trip the force limit), "reset" (the
  * reset button: the firmware restarts, its EEPROM is kept).
  */
 #define _GNU_SOURCE
@@ -561,6 +563,94 @@ static int hx_ready, hx_bit;
 static uint32_t hx_value;
 static uint64_t hx_next_cycle;
 
+/* ---- HX711 conversion model (Avia HX711 datasheet: "Output Data Rate and Format", "Clock Source Options") ----
+ * The output data rate is 10 or 80 SPS by the RATE pin with the on-chip oscillator, whose rate the datasheet gives
+ * only as "typical" (--hx711-clock-error: relative error of that oscillator, e.g. 0.05 = 5 % fast); the digital
+ * filter settles 4 conversion periods after an input step (400 ms at 10 SPS, 50 ms at 80 SPS). Modelled as a
+ * sinc^4 filter (four cascaded moving averages of one conversion period): each reading is the force over the last
+ * four periods weighted by the cubic B-spline (group delay 2 periods), from the force sampled every 0.1 ms of
+ * simulated time. DOUT goes low once per conversion period. */
+#define HX_HIST 8192 /* 0.1 ms samples: 4 periods at 10 SPS with a 20 % slow oscillator fit */
+static double opt_hx711_sps = 80.0;
+static double opt_hx711_clock_error = 0.0;
+static double hx_hist[HX_HIST];
+static size_t hx_hist_pos;
+static int hx_hist_primed;
+
+static uint64_t hx711_period_cycles(void)
+{
+    return (uint64_t)llround(16000000.0 / (opt_hx711_sps * (1.0 + opt_hx711_clock_error)));
+}
+
+/* one force sample per mega_poll (0.1 ms of simulated time) */
+static void hx711_sample(double force_g)
+{
+    if (!hx_hist_primed) { /* power-up: the filter starts from the force present now */
+        for (size_t i = 0; i < HX_HIST; i++) hx_hist[i] = force_g;
+        hx_hist_primed = 1;
+    }
+    hx_hist[hx_hist_pos] = force_g;
+    hx_hist_pos = (hx_hist_pos + 1) % HX_HIST;
+}
+
+static double bspline4(double u) /* cubic B-spline on [0, 4], integral 1 */
+{
+    if (u < 0.0 || u >= 4.0) return 0.0;
+    if (u >= 2.0) u = 4.0 - u;
+    if (u < 1.0) return u * u * u / 6.0;
+    double v = u - 1.0;
+    return (1.0 + 3.0 * v + 3.0 * v * v - 3.0 * v * v * v) / 6.0;
+}
+
+/* the reading of the conversion that ends now: the sinc^4-weighted force of the last four periods */
+static double hx711_filtered_g(void)
+{
+    double period_samples = (double)hx711_period_cycles() / 1600.0;
+    size_t n = (size_t)ceil(4.0 * period_samples);
+    if (n > HX_HIST) n = HX_HIST;
+    double sum = 0.0, wsum = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        double w = bspline4((i + 0.5) / period_samples);
+        sum += w * hx_hist[(hx_hist_pos + HX_HIST - 1 - i) % HX_HIST];
+        wsum += w;
+    }
+    return wsum > 0.0 ? sum / wsum : hx_hist[(hx_hist_pos + HX_HIST - 1) % HX_HIST];
+}
+
+/* ---- drum index sensor (optical/Hall, open collector, active low) on D48 = PL1 = ICP5 ----
+ * It sees the REAL drum: each STEP pulse turns the drum by 1 / (steps_per_rev x the driver's microstep setting) of
+ * a revolution; --drum-driver-microsteps sets that driver (default: the firmware's assumption, docs/wire-protocol.md
+ * 2.6), so a misconfigured driver turns the drum at another speed than the step count says. The sensor pulls its
+ * pin low for 1 ms each time the drum passes its index mark. --no-index-sensor: no sensor fitted (pin pulled up). */
+static int opt_index_sensor = 1;
+static double opt_driver_microsteps = RIGCTL_DRUM_MICROSTEPS_DEF;
+static avr_irq_t *index_sensor_pin;
+static int64_t index_sensor_revs; /* index marks passed (real drum) */
+static uint64_t index_sensor_release_cycle;
+
+static void index_sensor_setup(void)
+{
+    index_sensor_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 1);
+    avr_raise_irq(index_sensor_pin, 1);
+}
+
+/* called every 0.1 ms of simulated time */
+static void index_sensor_poll(int64_t drum_steps_now)
+{
+    if (!opt_index_sensor) return;
+    double usteps_per_rev = RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps;
+    int64_t revs = (int64_t)floor((double)drum_steps_now / usteps_per_rev);
+    if (revs != index_sensor_revs) {
+        index_sensor_revs = revs;
+        avr_raise_irq(index_sensor_pin, 0);
+        index_sensor_release_cycle = avr->cycle + 16000u;
+        printf("ISENS t=%.6f revs=%lld drum_steps=%lld\n", sim_s(), (long long)revs, (long long)drum_steps_now);
+    } else if (index_sensor_release_cycle && avr->cycle >= index_sensor_release_cycle) {
+        avr_raise_irq(index_sensor_pin, 1);
+        index_sensor_release_cycle = 0;
+    }
+}
+
 static double mega_force_g(void)
 {
     double x = (double)act_steps / opt_act_steps_per_mm;
@@ -645,8 +735,10 @@ static void mega_after_reset(void)
     hx_bit = 0;
     avr_raise_irq(hx_dout, 0); /* the irq keeps its last value across avr_reset: toggle so the port sees it */
     avr_raise_irq(hx_dout, 1);
-    hx_next_cycle = avr->cycle + 200000u;
+    hx_next_cycle = avr->cycle + hx711_period_cycles();
     update_home();
+    avr_raise_irq(index_sensor_pin, 0); /* the sensor's level is driven again after the port reset */
+    avr_raise_irq(index_sensor_pin, index_sensor_release_cycle ? 0 : 1);
 }
 
 static void mega_setup(void)
@@ -661,17 +753,20 @@ static void mega_setup(void)
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 5), drum_step_hook, NULL);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 4), drum_dir_hook, NULL);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 6), index_hook, NULL);
-    hx_next_cycle = 200000u;
+    hx_next_cycle = hx711_period_cycles();
+    index_sensor_setup();
 }
 
 static void mega_poll(void)
 {
     static uint64_t next_tel;
     update_home();
-    if (avr->cycle >= hx_next_cycle) { /* 80 SPS: a new conversion, DOUT low = ready */
-        hx_next_cycle += 200000u;
+    index_sensor_poll(drum_steps);
+    hx711_sample(mega_force_g());
+    if (avr->cycle >= hx_next_cycle) { /* end of a conversion period: DOUT low = ready */
+        hx_next_cycle += hx711_period_cycles();
         if (!hx_ready) {
-            double f = mega_force_g();
+            double f = hx711_filtered_g();
             long raw = opt_loadcell_offset + lround(f * opt_counts_per_g);
             if (raw > 0x7FFFFF) raw = 0x7FFFFF;
             if (raw < -0x800000) raw = -0x800000;
@@ -756,7 +851,9 @@ static void usage(void)
     fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
                     "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
-                    "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] FIRMWARE.elf\n");
+                    "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] "
+                    "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
+                    "FIRMWARE.elf\n");
     exit(2);
 }
 
@@ -783,12 +880,19 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--mux-ron-ohm")) opt_mux_ron_ohm = atof(NEXT());
         else if (!strcmp(a, "--mux-c-pf")) opt_mux_c_pf = atof(NEXT());
         else if (!strcmp(a, "--sh-c-pf")) opt_sh_c_pf = atof(NEXT());
+        else if (!strcmp(a, "--hx711-sps")) opt_hx711_sps = atof(NEXT());
+        else if (!strcmp(a, "--drum-driver-microsteps")) opt_driver_microsteps = atof(NEXT());
+        else if (!strcmp(a, "--no-index-sensor")) opt_index_sensor = 0;
+        else if (!strcmp(a, "--hx711-clock-error")) opt_hx711_clock_error = atof(NEXT());
         else if (a[0] == '-') usage();
         else fw = a;
     }
     if (!board || !fw) usage();
     is_uno = !strcmp(board, "uno");
     if (!is_uno && strcmp(board, "mega")) usage();
+    if (opt_hx711_sps != 10.0 && opt_hx711_sps != 80.0) usage();
+    if (!(opt_driver_microsteps >= 1.0 && opt_driver_microsteps <= 256.0)) usage();
+    if (!(opt_hx711_clock_error > -0.2 && opt_hx711_clock_error < 0.2)) usage();
 
     prctl(PR_SET_PDEATHSIG, SIGTERM);
     if (getppid() == 1) return 1;
