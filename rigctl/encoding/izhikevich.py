@@ -36,6 +36,7 @@ import numpy as np
 from rigctl.encoding.filters import lowpass_coefficients
 from rigctl.encoding.fused import FusedResult, FusedState, run_fused
 from rigctl.encoding.normalise import TaxelRange
+from rigctl.encoding.rate import MODEL_RATE_HZ, StreamResampler, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "TONIC_SPIKING",
     "K_SA",
     "K_RA",
+    "FS_HZ",
     "Ragged",
     "as_ragged",
     "run_izhikevich",
@@ -56,8 +58,9 @@ __all__ = [
 
 K_SA = 100.0  #: eq. (3) input scaling for SA (Methods)
 K_RA = 3.0  #: eq. (3) input scaling for RA (Methods)
-#: the model's step rate, Hz: one 1 ms step per input sample (other rates are resampled: rigctl.encoding.rate)
-FS_HZ = 1000.0
+#: the model's step rate, Hz (:data:`rigctl.encoding.rate.MODEL_RATE_HZ`, its one home): one 1 ms step per input
+#: sample (other rates are resampled)
+FS_HZ = MODEL_RATE_HZ
 
 
 @dataclass(frozen=True)
@@ -440,8 +443,6 @@ def encode(readings, *, k: float, gain=1.0, offset=0.0, scale=1.0, fs: float = F
 def _at_model_rate(rg: Ragged, fs: float, model_fs: float = FS_HZ) -> tuple[Ragged, float]:
     """Trials at ``fs`` Hz -> trials at the model's rate ``model_fs`` and that rate (no copy when equal). Raises
     ValueError as :func:`rigctl.encoding.rate.rate_conversion`."""
-    from rigctl.encoding.rate import rate_conversion
-
     conv = rate_conversion(fs, model_fs)
     if not conv.resampled or not rg.n_trials:
         return rg, conv.model_rate_hz
@@ -576,8 +577,6 @@ class StreamingEncoder:
         self.ra_dtype = np.dtype(np.float64)  # the fused kernel's RA path (rigctl.encoding.fused)
         self._resampler = None
         if self.input_fs != FS_HZ:
-            from rigctl.encoding.rate import StreamResampler, rate_conversion
-
             conv = rate_conversion(self.input_fs, FS_HZ)
             fs = conv.model_rate_hz
             if conv.resampled:
