@@ -29,11 +29,12 @@ def _children_cpu() -> float:
 
 
 def run(trials_per_condition: int, workers: int, out_dir: Path, compression=None) -> dict:
+    from rigctl.acquisition.protocol import load_protocol
     from rigctl.simulation.dataset import generate_dataset
 
     out = out_dir / f"bench_dataset_w{workers}_{compression or 'none'}.h5"
     cpu0, child0 = time.process_time(), _children_cpu()
-    summary = generate_dataset(REPO / "protocols" / "paper_dataset.toml", out, trials_per_condition=trials_per_condition,
+    summary = generate_dataset(load_protocol(REPO / "protocols" / "paper_dataset.toml"), out, trials_per_condition=trials_per_condition,
                                workers=workers, progress=False, overwrite=True, compression=compression, seed=1)
     summary["parent_cpu_s"] = time.process_time() - cpu0
     summary["workers_cpu_s"] = _children_cpu() - child0

@@ -100,6 +100,7 @@ def _fine_plates_protocol(out_dir: Path, scale: float = 0.4) -> Path:
 def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
     """Render the paper's protocol with one lever applied into the session file ``out`` (``tpc`` trials per
     condition, dataset ``seed``); ``fine-plates`` also writes its protocol, ``out_dir/fine-plates.toml``."""
+    from rigctl.acquisition.protocol import load_protocol
     from rigctl.simulation.dataset import generate_dataset
     from rigctl.simulation.model import RigConfig
 
@@ -121,7 +122,7 @@ def render(lever: str, out: Path, out_dir: Path, tpc: int, seed: int) -> None:
     elif lever == "level-signature-fabricslide":
         cfg.sensor = dataclasses.replace(cfg.sensor, indentation_ref_mm=1.0, sensitivity_drift=0.1)
         cfg.drum.start_at_index = False
-    generate_dataset(str(protocol), out, trials_per_condition=tpc, seed=seed, config=cfg, overwrite=True)
+    generate_dataset(load_protocol(protocol), out, trials_per_condition=tpc, seed=seed, config=cfg, overwrite=True)
 
 
 def trial_mean_lda(enc: Path) -> dict:

@@ -36,7 +36,7 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
 
     Writes the same session layout as `rigctl acquire` (kind "simulated-dataset"), trial by trial, on all cores.
     """
-    from rigctl.acquisition.protocol import ProtocolError
+    from rigctl.acquisition.protocol import ProtocolError, load_protocol
     from rigctl.simulation.dataset import generate_dataset
     from rigctl.simulation.model import RigConfig
 
@@ -48,7 +48,7 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
     config.drum.start_at_index = start_at == "index"
     try:
         with bars(not quiet) as progress:
-            summary = generate_dataset(protocol, out, trials_per_condition=trials_per_condition, seed=seed,
+            summary = generate_dataset(load_protocol(protocol), out, trials_per_condition=trials_per_condition, seed=seed,
                                        workers=workers, progress=progress, config=config,
                                        compression=None if compression == "none" else compression,
                                        overwrite=overwrite, resume=resume)

@@ -298,8 +298,9 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
 
     Parameters
     ----------
-    protocol : Protocol or path
-        A TOML protocol (:func:`rigctl.acquisition.protocol.load_protocol`), e.g. ``protocols/paper_dataset.toml``.
+    protocol : Protocol
+        A loaded TOML protocol (:func:`rigctl.acquisition.protocol.load_protocol` of e.g.
+        ``protocols/paper_dataset.toml``; the simulator sits below the acquisition layer and never loads one).
     out_path : path
         Session file to write (layout: ``docs/session-format.md``; kind ``"simulated-dataset"``), with the
         model's sensor (:func:`model_layout`) and the protocol's texture set (``protocol.texture_set``; the
@@ -339,15 +340,14 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     Raises
     ------
     TypeError
-        If the protocol is a Python script (it has no plan to render).
+        If the protocol is a path (load it first) or a Python script (it has no plan to render).
     FileExistsError
         If ``out_path`` exists and neither ``overwrite`` nor ``resume`` is set.
     """
-    from rigctl.acquisition.protocol import load_protocol
-
     t_start = time.perf_counter()
     if isinstance(protocol, (str, os.PathLike)):
-        protocol = load_protocol(protocol)
+        raise TypeError(f"generate_dataset takes a loaded protocol, not the path {protocol} "
+                        "(rigctl.acquisition.protocol.load_protocol)")
     if getattr(protocol, "format", "toml") == "python":
         raise TypeError("a Python-script protocol has no plan to render; use a TOML protocol")
     if trials_per_condition is not None:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from rigctl.acquisition.protocol import load_protocol
 from rigctl.simulation.dataset import RampProfile, generate_dataset, render_trial
 from rigctl.simulation.model import RigConfig
 from rigctl.simulation.textures import TEXTURES
@@ -148,7 +149,7 @@ def test_dataset_dynamic_range_suits_sa_encoding():
 
 def test_generate_dataset_writes_a_readable_session(protocol_path, tmp_path):
     out = tmp_path / "ds.h5"
-    summary = generate_dataset(protocol_path, out, seed=4, workers=0, progress=False)
+    summary = generate_dataset(load_protocol(protocol_path), out, seed=4, workers=0, progress=False)
     assert summary["n_trials"] == 24 and summary["samples"] == 12 * 6000 + 12 * 2000
     with open_session(out) as s:
         assert s.kind == "simulated-dataset"
@@ -164,22 +165,22 @@ def test_generate_dataset_writes_a_readable_session(protocol_path, tmp_path):
         assert cal is not None and np.all(cal["taxel_min"] < cal["taxel_max"])
         first = s.trial(0).taxels
     # the same seed gives the same file content; a reduced trial count is a prefix-free new plan
-    again = generate_dataset(protocol_path, tmp_path / "again.h5", seed=4, workers=0, progress=False,
+    again = generate_dataset(load_protocol(protocol_path), tmp_path / "again.h5", seed=4, workers=0, progress=False,
                              trials_per_condition=1)
     assert again["n_trials"] == 12
     with open_session(tmp_path / "again.h5") as s:
         assert len(s.plan) == 12
     with pytest.raises(FileExistsError):
-        generate_dataset(protocol_path, out, seed=4, workers=0, progress=False)
-    summary = generate_dataset(protocol_path, out, seed=4, workers=0, progress=False, overwrite=True)
+        generate_dataset(load_protocol(protocol_path), out, seed=4, workers=0, progress=False)
+    summary = generate_dataset(load_protocol(protocol_path), out, seed=4, workers=0, progress=False, overwrite=True)
     with open_session(out) as s:
         np.testing.assert_array_equal(s.trial(0).taxels, first)
 
 
 def test_generate_dataset_same_output_with_two_workers(protocol_path, tmp_path):
-    generate_dataset(protocol_path, tmp_path / "one.h5", seed=11, workers=0, progress=False,
+    generate_dataset(load_protocol(protocol_path), tmp_path / "one.h5", seed=11, workers=0, progress=False,
                      trials_per_condition=1)
-    generate_dataset(protocol_path, tmp_path / "two.h5", seed=11, workers=2, progress=False,
+    generate_dataset(load_protocol(protocol_path), tmp_path / "two.h5", seed=11, workers=2, progress=False,
                      trials_per_condition=1)
     with open_session(tmp_path / "one.h5") as a, open_session(tmp_path / "two.h5") as b:
         assert a.completed_ids() == b.completed_ids()
@@ -209,12 +210,11 @@ def test_cli_sim_dataset(protocol_path, tmp_path):
 
 
 def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_path, tmp_path):
-    from rigctl.acquisition.protocol import load_protocol
     from rigctl.simulation.dataset import _init_worker, _render_planned
     from rigctl.storage.session import SessionWriter
 
     fresh = tmp_path / "fresh.h5"
-    generate_dataset(protocol_path, fresh, seed=6, workers=0, progress=False)
+    generate_dataset(load_protocol(protocol_path), fresh, seed=6, workers=0, progress=False)
     # an interrupted run: the plan is there, 5 trials were written
     proto = load_protocol(protocol_path)
     part = tmp_path / "part.h5"
@@ -225,7 +225,7 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
             for p in proto.plan()[:5]]
     writer.write_trials(_render_planned(r) for r in rows)
     writer.close()  # one writer per session file: the resume opens its own
-    summary = generate_dataset(protocol_path, part, seed=999, workers=0, progress=False, resume=True)
+    summary = generate_dataset(load_protocol(protocol_path), part, seed=999, workers=0, progress=False, resume=True)
     assert summary["n_trials"] == 24 - 5  # the stored dataset seed (6) wins over the argument
     with open_session(fresh) as a, open_session(part) as b:
         assert a.completed_ids() == b.completed_ids() == list(range(24))
@@ -240,7 +240,6 @@ def test_cli_start_at_any_angle_and_a_resume_keeps_the_stored_model(protocol_pat
     renders the missing trials with the stored model, whatever model it is given, so the file equals a fresh one."""
     import json
 
-    from rigctl.acquisition.protocol import load_protocol
     from rigctl.cli import main
     from rigctl.simulation.dataset import _init_worker, _render_planned
     from rigctl.storage.session import SessionWriter
@@ -302,7 +301,6 @@ width_mm = 5.0
 
 @pytest.mark.parametrize("workers", [0, 2])
 def test_generate_dataset_stores_the_sensor_and_the_protocols_texture_set(tmp_path, workers):
-    from rigctl.acquisition.protocol import load_protocol
     from rigctl.core import PAPER_SENSOR
 
     path = tmp_path / "custom.toml"

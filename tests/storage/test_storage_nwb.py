@@ -43,11 +43,12 @@ def recorded(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
+    from rigctl.acquisition.protocol import load_protocol
     from rigctl.simulation.dataset import generate_dataset
 
     d = tmp_path_factory.mktemp("nwb_ds")
     (d / "p.toml").write_text(PROTOCOL)
-    generate_dataset(d / "p.toml", d / "ds.h5", seed=4, workers=0, progress=False)
+    generate_dataset(load_protocol(d / "p.toml"), d / "ds.h5", seed=4, workers=0, progress=False)
     encode_session(d / "ds.h5", d / "ds.enc.h5", progress=False)
     return d / "ds.h5", d / "ds.enc.h5"
 
