@@ -1,23 +1,29 @@
-"""The layering rules, enforced: each layer of rigctl is imported, every module of it (pkgutil.walk_packages), in a
-fresh interpreter, and the test fails if a module the layer must not use shows up in ``sys.modules``; the message
-names the forbidden module and the first module of the layer whose import brought it in.
+"""The layering rules (docs/architecture.md), enforced in two ways that do not overlap:
 
-Rules (docs/architecture.md): ``rigctl.core`` imports nothing else of rigctl's; storage never touches the devices,
-the simulator, the acquisition, the encoder, the analysis or Qt; encoding and analysis never touch serial ports,
-Modbus, the devices, the simulator, the acquisition, Qt or the GUI; acquisition never imports the simulator (only
-the composition root ``rigctl.rigs`` knows every backend); devices never import the simulator, the acquisition or
-storage; nothing below the CLI imports the operator layer (``rigctl.operations``); and nothing in rigctl but
-``rigctl.cli.gui`` pulls in Qt, pyqtgraph or the ``gui`` package.
+- between rigctl's own packages, from the source: the import-linter contracts in pyproject.toml (``lint-imports``,
+  run by scripts/test.sh), which read every import statement, those inside functions too;
+  :func:`test_the_contracts_catch_an_import_inside_a_function` is their negative control;
+- what static analysis cannot see, at run time: which third-party modules importing a layer actually loads (a
+  dependency that pulls in Qt, a plugin loaded by name). Each layer is imported, every module of it
+  (pkgutil.walk_packages), in a fresh interpreter, and the test fails if a module the layer must not use shows up
+  in ``sys.modules``; the message names the forbidden module and the first module of the layer whose import brought
+  it in. Rules: nothing in rigctl but ``rigctl.cli.gui`` loads Qt, pyqtgraph or the GUI package; the core, the file
+  formats, the encoder and the analyses never load serial or Modbus.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
+
+REPO = Path(__file__).resolve().parents[1]
 
 _PROBE = textwrap.dedent("""
     import importlib, json, pkgutil, sys, traceback
@@ -40,24 +46,14 @@ _PROBE = textwrap.dedent("""
     print(json.dumps({"modules": names, "culprit": culprit, "errors": errors}))
 """)
 
-#: layer -> (modules of it not checked, forbidden modules)
-_ALL_RIGCTL = ["PySide6", "pyqtgraph", "rigctl_gui"]
-#: the operator service layer sits above every library layer: only the CLI and the GUI import it
-_ABOVE = ["rigctl.operations"]
+#: layer -> (modules of it not checked, third-party modules it must not load)
+_NO_WIRE = ["serial", "pymodbus"]
 RULES: dict[str, tuple[list[str], list[str]]] = {
-    "rigctl.core": ([], ["rigctl.devices", "rigctl.simulation", "rigctl.acquisition", "rigctl.storage",
-                         "rigctl.encoding", "rigctl.analysis", "rigctl.cli", "rigctl.rigs", "rigctl.texture_set"]
-                    + _ALL_RIGCTL + _ABOVE),
-    "rigctl.storage": ([], ["serial", "pymodbus", "rigctl.devices", "rigctl.simulation", "rigctl.acquisition",
-                            "rigctl.encoding", "rigctl.analysis"] + _ALL_RIGCTL + _ABOVE),
-    "rigctl.encoding": ([], ["serial", "pymodbus", "rigctl.devices", "rigctl.simulation", "rigctl.acquisition"]
-                        + _ALL_RIGCTL + _ABOVE),
-    "rigctl.analysis": ([], ["serial", "pymodbus", "rigctl.devices", "rigctl.simulation", "rigctl.acquisition"]
-                        + _ALL_RIGCTL + _ABOVE),
-    "rigctl.acquisition": ([], ["rigctl.simulation"] + _ALL_RIGCTL + _ABOVE),
-    "rigctl.devices": ([], ["rigctl.simulation", "rigctl.acquisition", "rigctl.storage"] + _ALL_RIGCTL + _ABOVE),
-    "rigctl.simulation": ([], _ALL_RIGCTL + _ABOVE),
-    "rigctl": (["rigctl.cli.gui"], _ALL_RIGCTL),
+    "rigctl.core": ([], _NO_WIRE),
+    "rigctl.storage": ([], _NO_WIRE),
+    "rigctl.encoding": ([], _NO_WIRE),
+    "rigctl.analysis": ([], _NO_WIRE),
+    "rigctl": (["rigctl.cli.gui"], ["PySide6", "pyqtgraph", "rigctl_gui"]),
 }
 
 
@@ -83,3 +79,20 @@ def test_the_probe_sees_a_forbidden_import():
     """Negative control: the probe reports what a layer does import (numpy is everywhere in storage)."""
     out = probe("rigctl.storage", [], ["numpy"])
     assert "numpy" in out["culprit"]
+
+
+def test_the_contracts_catch_an_import_inside_a_function(tmp_path):
+    """Negative control of the import contracts: ``lint-imports`` on a copy of the package whose dataset generator
+    imports the acquisition layer inside a function (as simulation/dataset.py once did) names that import."""
+    shutil.copytree(REPO / "rigctl", tmp_path / "rigctl", ignore=shutil.ignore_patterns("__pycache__", "arduino"))
+    (tmp_path / "rigctl_gui").symlink_to(REPO / "gui")
+    shutil.copy(REPO / "pyproject.toml", tmp_path)
+    module = tmp_path / "rigctl" / "simulation" / "dataset.py"
+    module.write_text(module.read_text() + "\n\ndef _plan(path):\n    from rigctl.acquisition.protocol import "
+                      "load_protocol\n\n    return load_protocol(path).plan()\n")
+    lint = "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())"
+    run = subprocess.run([sys.executable, "-c", lint, "--no-cache"], cwd=tmp_path, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(tmp_path)}, timeout=300)
+    assert run.returncode == 1, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "rigctl.simulation is not allowed to import rigctl.acquisition" in run.stdout
+    assert "rigctl.simulation.dataset -> rigctl.acquisition.protocol" in run.stdout
