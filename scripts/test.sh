@@ -44,15 +44,36 @@ fi
 echo "== pip install -e .[test] (into $VIRTUAL_ENV)"
 python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 
-echo "== build firmware"
-make -C arduino -s all
+# everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
+# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), mypy's cache, Hypothesis'
+# example database, pytest's cache
+TEST_TMP="$(mktemp -d "${TMPDIR:-/tmp}/rigctl-test.XXXXXX")"
+trap 'rm -rf "$TEST_TMP"' EXIT
+export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis"
+
+echo "== build firmware (into $RIGCTL_FIRMWARE_BUILD)"
+make -C arduino -s BUILD="$RIGCTL_FIRMWARE_BUILD" all harness
 
 echo "== ruff check (rules and per-file ignores in pyproject.toml)"
 python3 -m ruff check --no-cache .
 
-echo "== mypy (settings in pyproject.toml; cache in .mypy_cache)"
-python3 -m mypy
+echo "== import contracts (lint-imports; the layers in pyproject.toml, docs/architecture.md)"
+lint-imports --cache-dir "$TEST_TMP/import-linter"
+
+echo "== mypy (settings in pyproject.toml)"
+python3 -m mypy --cache-dir "$TEST_TMP/mypy"
 
 echo "== pytest"
 export QT_QPA_PLATFORM=offscreen
-python3 -m pytest -q "$@"
+# what the checkout looks like before the tests (untracked and ignored files too, but byte code): no test may
+# change it
+checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
+before="$(checkout_state)"
+# every core (pytest-xdist); a test module stays on one worker (--dist loadfile: module-scoped rigs and windows)
+python3 -m pytest -q -n auto --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" "$@"
+after="$(checkout_state)"
+if [ "$before" != "$after" ]; then
+  echo "the tests changed the checkout (git status --porcelain --ignored, before -> after):"
+  diff <(echo "$before") <(echo "$after") || true
+  exit 1
+fi

@@ -2,13 +2,47 @@
 
 from __future__ import annotations
 
+import getpass
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+TESTS = Path(__file__).resolve().parent
+
+#: folders of tests/ whose every test is of one kind (markers registered in pyproject.toml)
+FOLDER_MARKERS = {"gui": ["gui"], "conformance": ["realtime"]}
+
+
+def scratch_dir() -> Path:
+    """``$TMPDIR/rigctl-tests-<user>``: what the suite keeps between runs (the firmware build of the current
+    sources, Hypothesis' examples), outside the checkout."""
+    return Path(tempfile.gettempdir()) / f"rigctl-tests-{getpass.getuser()}"
+
+
+def pytest_configure(config):
+    """Keep the checkout clean: the firmware builds (``rigctl.firmware.build_dir`` honours $RIGCTL_FIRMWARE_BUILD)
+    and Hypothesis' storage go under :func:`scratch_dir` unless the caller chose a place (scripts/test.sh does)."""
+    from hypothesis.configuration import set_hypothesis_home_dir
+
+    from rigctl import firmware
+
+    scratch = scratch_dir()
+    if not os.environ.get("RIGCTL_FIRMWARE_BUILD"):
+        digest = firmware.source_digest()[:16]
+        os.environ["RIGCTL_FIRMWARE_BUILD"] = str(scratch / f"firmware-{digest}")
+    set_hypothesis_home_dir(os.environ.get("HYPOTHESIS_STORAGE_DIRECTORY") or scratch / "hypothesis")
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        rel = item.path.resolve().relative_to(TESTS) if item.path.resolve().is_relative_to(TESTS) else None
+        if rel is not None and len(rel.parts) > 1:
+            for name in FOLDER_MARKERS.get(rel.parts[0], []):
+                item.add_marker(name)
 
 
 def shared_path(*parts: str) -> Path:
@@ -19,6 +53,14 @@ def shared_path(*parts: str) -> Path:
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(msg + "; under CI=true it must be present")
         pytest.skip(msg)
+    return path
+
+
+@pytest.fixture(scope="session")
+def scratch() -> Path:
+    """:func:`scratch_dir`, created: for what a test keeps between runs (never the checkout)."""
+    path = scratch_dir()
+    path.mkdir(parents=True, exist_ok=True)
     return path
 
 

@@ -363,6 +363,7 @@ def _start_sim(port_dir=None, env=None):
     return proc, ports
 
 
+@pytest.mark.realtime
 def test_a_second_sim_does_not_take_over_a_running_ones_port_folder(tmp_path):
     d = tmp_path / "ports"
     first, ports = _start_sim(d)
@@ -382,6 +383,7 @@ def test_a_second_sim_does_not_take_over_a_running_ones_port_folder(tmp_path):
     third.wait(timeout=300)
 
 
+@pytest.mark.realtime
 def test_a_killed_sims_temporary_folder_is_removed_by_the_next_one(tmp_path, monkeypatch):
     from rigctl.simulation.pty import PortDir
 
@@ -415,6 +417,7 @@ def _hardware(args, *, drum_port=None, timeout=180):
                               stdin=subprocess.DEVNULL)
 
 
+@pytest.mark.realtime
 def test_a_wrong_drum_port_is_one_line(data, tmp_path, monkeypatch):
     """A port that exists but answers nothing (a pty nobody serves): DrumTimeout traceback after three 'STOP attempt
     failed' lines before."""
@@ -432,6 +435,7 @@ def test_a_wrong_drum_port_is_one_line(data, tmp_path, monkeypatch):
     assert not (tmp_path / "o.h5").exists()
 
 
+@pytest.mark.realtime
 def test_plate_policy_unattended_hardware_run(data, tmp_path, monkeypatch):
     """Without a terminal the plate prompt made every trial fail with EOFError: now refused up front, and
     --plates auto runs the protocol, announcing each plate."""

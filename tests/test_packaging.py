@@ -38,17 +38,26 @@ def test_protocols_are_listed_and_found_by_name(tmp_path):
     assert sorted(line.split()[0] for line in out.stdout.splitlines()) == sorted(shipped)
 
 
+#: what is not the project's source (build output, caches, environments, version control): not copied for the build
+_NOT_SOURCE = shutil.ignore_patterns(".git", ".venv*", "build", "dist", "*.egg-info", "__pycache__", ".*_cache",
+                                     ".hypothesis", "site")
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory):
     d = tmp_path_factory.mktemp("wheel")
+    # built from a copy of the sources (setuptools writes build/ and *.egg-info beside them: never into the checkout);
     # the build requirements come from the test extra (no isolated build environment to download per run)
-    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(REPO),
+    src = tmp_path_factory.mktemp("source") / "rigctl"
+    shutil.copytree(REPO, src, symlinks=True, ignore=_NOT_SOURCE)
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(src),
                           "-w", str(d)], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     (whl,) = d.glob("rigctl-*.whl")
     return whl
 
 
+@pytest.mark.packaging
 def test_the_wheel_holds_every_package_and_the_data(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names}
@@ -103,11 +112,10 @@ class Venv:
 
 
 @pytest.fixture(scope="module")
-def venv(wheel, tmp_path_factory, request):
-    # the firmware cache persists between local runs (the Arduino core is not rebuilt); make still rebuilds every
-    # source of the fresh install, whose files are newer than any earlier build
-    cache = (request.config.cache.mkdir("rigctl-wheel-test-xdg-cache") if getattr(request.config, "cache", None)
-             else tmp_path_factory.mktemp("xdg-cache"))  # -p no:cacheprovider
+def venv(wheel, tmp_path_factory, scratch):
+    # the firmware cache persists between local runs, outside the checkout (the Arduino core is not rebuilt); make
+    # still rebuilds every source of the fresh install, whose files are newer than any earlier build
+    cache = scratch / "wheel-test-xdg-cache"
     v = Venv(tmp_path_factory.mktemp("installed"), wheel, cache)
     where = json.loads(v.py("import json, rigctl, rigctl_gui, rigctl.firmware as f; "
                             "print(json.dumps([rigctl.__file__, rigctl_gui.__file__, str(f.sources())]))"))
@@ -125,6 +133,7 @@ def sim_session(venv):
 
 
 @pytest.mark.slow
+@pytest.mark.packaging
 def test_the_installed_wheel_runs_from_an_empty_folder(venv, sim_session):
     """info, a tiny simulated dataset, encode, analyze and the NWB export, all from the installed wheel."""
     assert "complete" in venv.rigctl("info", "q.h5")
@@ -148,6 +157,7 @@ def _layout(path) -> dict[str, tuple]:
 
 
 @pytest.mark.slow
+@pytest.mark.packaging
 @pytest.mark.hil
 def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_session):
     """``rigctl firmware`` and ``rigctl acquire quick_check --hil`` from the installed wheel: both build from the

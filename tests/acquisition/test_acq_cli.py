@@ -14,6 +14,9 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.realtime
 
 REPO = Path(__file__).resolve().parents[2]
 RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]

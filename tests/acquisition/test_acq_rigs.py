@@ -25,6 +25,7 @@ def test_open_rig_refusals(kind, options, words):
         open_rig(kind, **options)
 
 
+@pytest.mark.realtime
 def test_every_kind_builds_a_backend(tmp_path):
     for kind in ("sim", "hardware", "inprocess"):
         opts = {"drum_port": "/dev/x", "taxel_port": "/dev/y"} if kind == "hardware" else {}
@@ -33,6 +34,7 @@ def test_every_kind_builds_a_backend(tmp_path):
     assert set(KINDS) == {"sim", "hil", "hardware", "replay", "inprocess"}
 
 
+@pytest.mark.realtime
 def test_replay_rig_on_a_session_file(tmp_path):
     proto = parse_protocol('name = "src"\ntextures = ["Linen-1", "Tweed-22"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
                            'duration_s = 0.3\n[settle]\nsettle_time_ms = 50\n'

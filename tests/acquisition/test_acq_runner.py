@@ -21,6 +21,8 @@ from rigctl.rigs import open_rig
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 from rigctl.storage.session import open_session
 
+pytestmark = pytest.mark.realtime
+
 TRUE_COUNTS_PER_G = 380.0  # the simulated load cell differs from the controller's default scale (420 counts/g)
 
 

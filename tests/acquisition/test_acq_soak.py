@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.realtime
+
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_soak.py"
 
 

@@ -74,6 +74,7 @@ def test_any_label_renders():
         get_texture("Silk", p.texture_set)
 
 
+@pytest.mark.realtime
 def test_custom_labels_recorded_on_the_simulated_rig(tmp_path):
     proto = parse_protocol(CUSTOM)
     out = tmp_path / "fabrics.h5"

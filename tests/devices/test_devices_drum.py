@@ -17,6 +17,7 @@ from rigctl.devices.errors import DrumFault, DrumTimeout, ModbusExceptionError, 
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR, InputRegister as IR
 
 
+@pytest.mark.realtime
 def test_every_input_register_read(drum, mega):
     regs = drum.read_inputs(0, wire.N_INPUT)
     assert [drum.read_input(reg) for reg in wire.RESERVED_INPUT] == [0] * len(wire.RESERVED_INPUT)
@@ -52,6 +53,7 @@ def test_status_decodes_signed_registers():
     assert s.faults == Fault.FORCE_LIMIT | Fault.WATCHDOG
 
 
+@pytest.mark.realtime
 def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
     drum.set_limits(speed_mm_s=100, force_g=800)
     writes = mega.write_requests
@@ -80,6 +82,7 @@ def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
     assert drum.read_holding(HR.SPEED_SETPOINT_0P1MMS) == 1000
 
 
+@pytest.mark.realtime
 def test_modbus_exceptions_become_named_errors(drum, mega):
     with pytest.raises(ModbusExceptionError) as info:
         drum.read_holdings(wire.N_HOLDING - 2, 5)  # runs off the table
@@ -104,6 +107,7 @@ def test_modbus_exceptions_become_named_errors(drum, mega):
     drum.stop()
 
 
+@pytest.mark.realtime
 def test_watchdog_trips_when_host_goes_silent(drum, mega):
     drum.write_holding(HR.WATCHDOG_MS, 500)
     time.sleep(0.8)  # idle and silent: a monitoring host never trips it
@@ -142,6 +146,7 @@ def _stall(mega, where: str, seconds: float) -> None:
     threading.Timer(seconds, lock.release).start()
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("where", ["server", "bridge"])
 def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
     """A flake under heavy CPU load: the virtual Mega's Modbus thread or pty copy thread got no CPU for longer than
@@ -176,6 +181,7 @@ def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
         drum.clear_fault()
 
 
+@pytest.mark.realtime
 def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     drum.home()
     assert drum.wait_state(DrumState.IDLE, timeout_s=2).actuator_mm == 0
@@ -194,6 +200,7 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     drum.stop()
 
 
+@pytest.mark.realtime
 def test_timeout_when_nobody_answers(tmp_path):
     from rigctl.simulation.pty import PtyEndpoint
 

@@ -66,6 +66,7 @@ def drum_proxy(mega, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------------ taxel link
+@pytest.mark.realtime
 def test_garbage_bit_flips_and_lost_bytes_are_counted_never_recorded(uno, taxel_proxy):
     proxy = taxel_proxy
     with TaxelStream(proxy.path) as stream:
@@ -92,6 +93,7 @@ def test_garbage_bit_flips_and_lost_bytes_are_counted_never_recorded(uno, taxel_
     np.testing.assert_array_equal(cap.samples, _expected_samples(uno, cap.seq))
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("where", ["board", "wire"])
 def test_a_lost_start_frame_costs_only_that_frame(uno, taxel_proxy, where):
     """The issue's repro: the frame flagged STREAMING_START never arrives (the board does not send it, or its first
@@ -118,6 +120,7 @@ def test_a_lost_start_frame_costs_only_that_frame(uno, taxel_proxy, where):
     np.testing.assert_array_equal(cap.samples, _expected_samples(uno, cap.seq))
 
 
+@pytest.mark.realtime
 def test_a_restart_counts_the_earlier_streams_frames_as_stale(uno, taxel_proxy):
     """START while streaming: the frames of the earlier stream still on their way are counted (``stale_frames``),
     not recorded in the capture of the new stream, and not lost silently."""
@@ -143,6 +146,7 @@ def test_a_restart_counts_the_earlier_streams_frames_as_stale(uno, taxel_proxy):
     np.testing.assert_array_equal(cap.samples, _expected_samples(uno, cap.seq))
 
 
+@pytest.mark.realtime
 def test_a_lost_start_command_is_sent_again(uno, taxel_proxy):
     proxy = taxel_proxy
     with TaxelStream(proxy.path, start_timeout_s=0.3) as stream:
@@ -157,6 +161,7 @@ def test_a_lost_start_command_is_sent_again(uno, taxel_proxy):
     assert cap.flags[0] & wire.FrameFlag.STREAMING_START
 
 
+@pytest.mark.realtime
 def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_proxy):
     proxy = taxel_proxy
     errors = []
@@ -201,6 +206,7 @@ def _late_answer_then_a_lost_request(drum, proxy):
     proxy.after_bytes(TO_BOARD, 8, proxy.release, TO_HOST)
 
 
+@pytest.mark.realtime
 def test_a_late_response_is_not_the_answer_to_the_next_request(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
     _late_answer_then_a_lost_request(drum, drum_proxy)
@@ -209,6 +215,7 @@ def test_a_late_response_is_not_the_answer_to_the_next_request(drum_via_proxy, d
     assert drum.read_holding(HR.SETTLE_TIME_MS) == 777  # the write itself was carried out
 
 
+@pytest.mark.realtime
 def test_stop_is_not_acknowledged_by_the_echo_of_another_write(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
     _late_answer_then_a_lost_request(drum, drum_proxy)
@@ -218,6 +225,7 @@ def test_stop_is_not_acknowledged_by_the_echo_of_another_write(drum_via_proxy, d
     assert drum.stale_responses >= 1
 
 
+@pytest.mark.realtime
 def test_read_status_gets_its_own_answer(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
     _late_answer_then_a_lost_request(drum, drum_proxy)
@@ -226,6 +234,7 @@ def test_read_status_gets_its_own_answer(drum_via_proxy, drum_proxy, mega):
     assert drum.stale_responses >= 1
 
 
+@pytest.mark.realtime
 def test_a_dropped_response_is_retried(drum_via_proxy, drum_proxy):
     drum = drum_via_proxy
     drum_proxy.drop_next(7, TO_HOST)  # the whole answer to the next one-register read
@@ -236,6 +245,7 @@ def test_a_dropped_response_is_retried(drum_via_proxy, drum_proxy):
     assert drum.read_holding(HR.SETTLE_TIME_MS) == 450
 
 
+@pytest.mark.realtime
 def test_a_crc_match_over_garbage_is_not_an_answer(drum_via_proxy, drum_proxy):
     """Found by the soak benchmark (seed 4): a garbage burst inside an answer, and pymodbus' RTU decoder accepts a
     frame whose CRC matches over a longer span than the function's frame size (it allows "garbage after frame"), so
@@ -252,6 +262,7 @@ def test_a_crc_match_over_garbage_is_not_an_answer(drum_via_proxy, drum_proxy):
     assert drum.stale_responses >= 1
 
 
+@pytest.mark.realtime
 def test_no_wrong_value_on_a_noisy_link(drum_via_proxy, drum_proxy):
     """Random bit flips, lost and inserted bytes in both directions and answers held back past the timeout now and
     then: every read that returns gives the register's own value (distinct per register, so an answer taken for
@@ -286,6 +297,7 @@ def test_no_wrong_value_on_a_noisy_link(drum_via_proxy, drum_proxy):
     assert drum.read_status().state == DrumState.IDLE  # the link settles again
 
 
+@pytest.mark.realtime
 def test_a_cut_modbus_link_is_a_clear_error_and_the_client_reopens_it(drum_via_proxy, drum_proxy):
     drum = drum_via_proxy
     drum_proxy.cut()  # the Mega's USB cable is pulled
@@ -321,6 +333,7 @@ def _read_all(host, board, n=None, idle_reads=3):
     return out
 
 
+@pytest.mark.realtime
 def test_the_proxy_forwards_both_ways_and_counts_exactly_what_it_did(tmp_path):
     import serial
 

@@ -4,10 +4,13 @@ replayed (resampled, quantised) source sample for sample."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.simulation.replay import FabricSlideReplay
 from rigctl.simulation.rig import SimulatedRig
+
+pytestmark = pytest.mark.realtime
 
 
 def test_recorded_samples_equal_the_replayed_source(fabricslide_dir):

@@ -5,12 +5,15 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.devices.wire import DrumState
 from rigctl.simulation.rig import SimulatedRig
+
+pytestmark = pytest.mark.realtime
 
 
 def _capture(stream: TaxelStream, n: int, drum: DrumClient | None = None):

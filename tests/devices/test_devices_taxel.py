@@ -18,6 +18,8 @@ from rigctl.simulation.counting import CountingSource
 from rigctl.simulation.pty import PtyEndpoint
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
+pytestmark = pytest.mark.realtime
+
 
 def test_banner_and_identify(uno):
     with TaxelStream(uno.path, banner_timeout_s=3) as stream:

@@ -3,7 +3,11 @@ persists in QSettings, and the FabricSlide replay streams recorded signals into 
 
 from __future__ import annotations
 
+import pytest
+
 from rigctl_gui.events import wait_for
+
+pytestmark = pytest.mark.realtime
 
 
 def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_path):

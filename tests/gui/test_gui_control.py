@@ -19,6 +19,8 @@ from rigctl.devices.wire import DrumState, Fault, HoldingRegister
 from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
 
+pytestmark = pytest.mark.realtime
+
 
 def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbot):
     panel = window.control

@@ -10,6 +10,8 @@ import pytest
 from rigctl.core.sensor import SensorLayout
 from rigctl_gui.events import wait_for
 
+pytestmark = pytest.mark.realtime
+
 FINGER_100HZ = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="finger 3x3")
 STEP = 37  # channel c of frame k reads (k * 3 + c * STEP) % 1024
 

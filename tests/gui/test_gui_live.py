@@ -4,8 +4,11 @@ rasters are drawn from the streaming encoder's spikes (one curve per population)
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rigctl_gui.events import wait_for
+
+pytestmark = pytest.mark.realtime
 
 
 def test_live_traces_heatmap_and_rasters(window, qapp):

@@ -8,12 +8,15 @@ import json
 import os
 import time
 
+import pytest
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.devices.wire import HoldingRegister
 from rigctl.storage.session import open_session
 from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
+
+pytestmark = pytest.mark.realtime
 
 PROTOCOL = """
 name = "gui_test"
@@ -114,7 +117,7 @@ def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
     assert not any(st.startswith(("settling", "recording", "mounting")) for st in statuses), statuses
 
 
-def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot, gui_home):
+def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot):
     tab = window.calibration
     window.tabs.setCurrentWidget(tab)
     tab.mass.setValue(200.0)
@@ -130,7 +133,7 @@ def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot, gui_home):
     assert "200 g mass" in tab.loadcell_info.text()
 
 
-def test_taxel_calibration_of_an_idle_drum_is_refused_and_undo_restores_the_previous(window, qapp, qtbot, gui_home):
+def test_taxel_calibration_of_an_idle_drum_is_refused_and_undo_restores_the_previous(window, qapp, qtbot):
     """A calibration run with the drum idle (taxels span ~16 counts: noise) is refused and changes nothing; Undo
     and Reset move between the stored normalisations, and the live encoder follows each."""
     import numpy as np

@@ -13,6 +13,8 @@ import pytest
 
 from rigctl_gui.events import wait_for
 
+pytestmark = pytest.mark.realtime
+
 RATE_HZ = 100
 #: texture -> the sine frequency of its recordings (Hz)
 TEXTURES = {"Denim": 3.0, "Silk": 0.75}

@@ -12,6 +12,8 @@ from rigctl.rigs import open_rig
 from rigctl.simulation.dataset import render_trial
 from rigctl.simulation.model import RigConfig
 
+pytestmark = pytest.mark.realtime
+
 
 def _windows(taxels, taxel=4, window=100):
     x = taxels[:, taxel].astype(float)
