@@ -70,19 +70,11 @@ def sensor_layout(handle):
 
 def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = None):
     """Open ``source`` and home the actuator, unless the drum controller reports a latched fault: that one is left
-    latched for the operator to see and clear (Clear fault), never cleared behind their back. Returns the
+    latched for the operator to see and clear (:data:`rigctl.operations.Home.UNLESS_FAULTED`). Returns the
     :class:`rigctl_gui.workers.RigHandle`; raises what :func:`rigctl_gui.workers.open_rig` raises."""
-    from rigctl.devices.wire import DrumState
+    from rigctl.operations import Home
 
-    h = open_rig(source, host_config_path=host_config_path, home=False)
-    try:
-        if int(h.drum.read_status().state) != DrumState.FAULT:
-            h.drum.home()
-            h.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
-    except BaseException:
-        h.close()
-        raise
-    return h
+    return open_rig(source, host_config_path=host_config_path, home=Home.UNLESS_FAULTED)
 
 
 class MainWindow(QtWidgets.QMainWindow):
@@ -766,7 +758,7 @@ def source_from_args(args) -> RigSource | None:
     if args.drum_port or args.taxel_port:
         if not (args.drum_port and args.taxel_port):
             raise SystemExit("give both --drum-port and --taxel-port")
-        return RigSource("serial", drum_port=args.drum_port, taxel_port=args.taxel_port)
+        return RigSource("hardware", drum_port=args.drum_port, taxel_port=args.taxel_port)
     if args.replay:
         return RigSource("replay", replay_dir=args.replay)
     if args.sim:

@@ -179,15 +179,13 @@ class CalibrationTab(QtWidgets.QWidget):
             return {}
 
     def taxel_range(self, rig=None, layout: SensorLayout | None = None):
-        """The stored per-taxel normalisation as a :class:`rigctl.encoding.normalise.TaxelRange`, or None (none
+        """The stored per-taxel normalisation as a :class:`rigctl.core.normalisation.TaxelRange`, or None (none
         stored, or stored for another channel count than ``layout``'s, default this tab's layout)."""
-        from rigctl.encoding.normalise import TaxelRange
+        from rigctl.acquisition.calibration import stored_taxel_range
 
         layout = layout or self.sensor_layout
-        block = (rig.taxel_normalisation() if rig is not None else None) or self._config().get("taxel_normalisation")
-        if not block or len(block["taxel_min"]) != layout.n_channels:
-            return None
-        return TaxelRange(np.asarray(block["taxel_min"], float), np.asarray(block["taxel_max"], float))
+        config = rig.host_config if rig is not None and rig.taxel_normalisation() else self._config()
+        return stored_taxel_range(config, layout.n_channels)
 
     def show_config(self) -> None:
         from rigctl.acquisition.calibration import config_path

@@ -14,13 +14,16 @@ from rigctl_gui.workers import RigSource
 
 
 def load_source(settings: QtCore.QSettings) -> RigSource:
-    """The last source chosen (the simulated rig when none was saved)."""
-    return RigSource(
-        kind=str(settings.value("source/kind", "sim")),
-        drum_port=settings.value("source/drum_port", None) or None,
-        taxel_port=settings.value("source/taxel_port", None) or None,
-        replay_dir=settings.value("source/replay_dir", None) or None,
-    )
+    """The last source chosen (the simulated rig when none was saved, or the saved kind is unknown)."""
+    try:
+        return RigSource(
+            kind=str(settings.value("source/kind", "sim")),
+            drum_port=settings.value("source/drum_port", None) or None,
+            taxel_port=settings.value("source/taxel_port", None) or None,
+            replay_dir=settings.value("source/replay_dir", None) or None,
+        )
+    except ValueError:
+        return RigSource()
 
 
 def save_source(settings: QtCore.QSettings, src: RigSource) -> None:
@@ -37,7 +40,7 @@ def source_problem(source: RigSource) -> str | None:
             return "choose a session file or a FabricSlide folder to replay (Connect...)"
         if not os.path.exists(source.replay_dir):
             return f"the replay source {source.replay_dir} does not exist (Connect... to choose another)"
-    if source.kind == "serial" and not (source.drum_port and source.taxel_port):
+    if source.is_hardware and not (source.drum_port and source.taxel_port):
         return "choose both serial ports: the drum controller's and the taxel board's (Connect...)"
     return None
 
@@ -106,7 +109,7 @@ class ConnectDialog(QtWidgets.QDialog):
         lay.addWidget(self.problem)
         lay.addWidget(buttons)
 
-        {"serial": self.serial, "replay": self.replay}.get(current.kind, self.sim).setChecked(True)
+        {"hardware": self.serial, "replay": self.replay}.get(current.kind, self.sim).setChecked(True)
         self.rescan(current)
 
     def rescan(self, current: RigSource | None = None) -> None:
@@ -164,7 +167,7 @@ class ConnectDialog(QtWidgets.QDialog):
 
     def source(self) -> RigSource:
         if self.serial.isChecked():
-            return RigSource("serial", drum_port=self._port(self.drum_port), taxel_port=self._port(self.taxel_port))
+            return RigSource("hardware", drum_port=self._port(self.drum_port), taxel_port=self._port(self.taxel_port))
         if self.replay.isChecked():
             return RigSource("replay", replay_dir=self.replay_dir.text() or None)
         return RigSource("sim")

@@ -11,39 +11,24 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from rigctl.acquisition.protocol import MAX_FORCE_G, MAX_SPEED_MM_S
+from rigctl.core.drum import (
+    MAX_FORCE_G,
+    MAX_SPEED_MM_S,
+    PROTOCOL_LIMITS,
+    STATE_TEXT as STATE_WORDS,
+    DrumLimits,
+    DrumState,
+    fault_advice as fault_meaning,
+)
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
-from rigctl.devices.wire import DrumState, Fault, HoldingRegister
+from rigctl.operations import RigControl, setpoint_refusals
 from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
 
-#: what each controller state means, for the operator (docs/wire-protocol.md table 2.4)
-STATE_WORDS = {
-    DrumState.IDLE: "Idle - drum at rest, actuator released",
-    DrumState.HOMING: "Homing - actuator moving to its home switch",
-    DrumState.SEEKING_FORCE: "Seeking force - pressing towards the setpoint",
-    DrumState.FORCE_SETTLED: "Force settled - on target, drum at rest",
-    DrumState.RUNNING: "Running - drum turning, force loop holding",
-    DrumState.FAULT: "FAULT - drum stopped, actuator backed off",
-}
-#: fault bits in words (table 2.5)
-FAULT_WORDS = {
-    Fault.FORCE_LIMIT: "force limit exceeded",
-    Fault.WATCHDOG: "host watchdog expired",
-    Fault.LOADCELL_TIMEOUT: "load cell not responding",
-    Fault.ACTUATOR_TRAVEL: "actuator end of travel before reaching force",
-}
-#: what each fault bit means and what to do about it (docs/wire-protocol.md table 2.5)
-FAULT_MEANINGS = {
-    Fault.FORCE_LIMIT: "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. "
-                       "Check the plate and the sensor, then lower the force setpoint.",
-    Fault.WATCHDOG: "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force "
-                    "loop held, and stopped (a crashed or killed program, a pulled USB cable).",
-    Fault.LOADCELL_TIMEOUT: "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring.",
-    Fault.ACTUATOR_TRAVEL: "the actuator reached its end of travel without reaching the force setpoint: no plate, "
-                           "or the sensor is too far away.",
-}
+__all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning"]
+
 #: the status is polled at 10 Hz: a longer pause between two reads is an outage, drawn as a gap in the plots, s
 GAP_S = 1.0
+#: the colour each controller state is shown in (the words are the library's: rigctl.core.drum.STATE_TEXT)
 STATE_COLOURS = {
     DrumState.IDLE: "#555",
     DrumState.HOMING: "#a60",
@@ -52,24 +37,6 @@ STATE_COLOURS = {
     DrumState.RUNNING: "#080",
     DrumState.FAULT: "#c00",
 }
-
-
-def fault_meaning(faults: int) -> str:
-    """Each latched fault bit with its meaning, one sentence each ("" when clear)."""
-    return " ".join(f"{FAULT_WORDS[bit].capitalize()}: {text}" for bit, text in FAULT_MEANINGS.items()
-                    if int(faults) & int(bit))
-
-
-def setpoint_problem(name: str, value: float, unit: str, hi: float, hi_source: str) -> tuple[str, str] | None:
-    """Why a manual ``value`` cannot be sent, as (a short line for under the box, the full sentence), or None when
-    it can: the protocol range is ``> 0`` and at most ``hi`` (the lower of the rig's protocol limit and the
-    controller's hard limit, named by ``hi_source``)."""
-    head = f"{name} {value:g} {unit} refused"
-    if not value > 0:
-        return f"{head}: must be > 0", f"{head}: it must be above 0 {unit} (Stop drum / STOP to stop)"
-    if value > hi:
-        return f"{head}: max {hi:g} {unit}", f"{head}: above the {hi_source} of {hi:g} {unit}"
-    return None
 
 
 class ControlPanel(QtWidgets.QWidget):
@@ -88,6 +55,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.commands = None
         self.drum = None
         self.rig = None
+        self.ops: RigControl | None = None
 
         # --- setpoints ---
         # the boxes take any number typed (a value above the limits is shown as typed and refused visibly, never
@@ -104,7 +72,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.setpoint_error.setStyleSheet("color: #c00; font-weight: bold;")
         keep_room(self.setpoint_error, lines=2)  # its room is kept while hidden: the buttons below never move
         self.setpoint_error.hide()
-        self.limits = (MAX_SPEED_MM_S, MAX_FORCE_G)  # the controller's (speed mm/s, force g), read at attach
+        self.limits = PROTOCOL_LIMITS  # the controller's hard limits (DrumLimits), read at attach
         for box in (self.speed, self.force):
             box.setKeyboardTracking(False)
             box.setMinimumWidth(120)
@@ -210,9 +178,10 @@ class ControlPanel(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------------
     def set_limits(self, speed_max_mm_s: float, force_max_g: float) -> None:
-        """The controller's hard limits (its SPEED_LIMIT / FORCE_LIMIT registers). A setpoint is accepted when it is
-        above 0 and within both the rig's protocol range and these limits; others are refused with a message."""
-        self.limits = (float(speed_max_mm_s), float(force_max_g))
+        """The controller's hard limits (its SPEED_LIMIT / FORCE_LIMIT). A setpoint is accepted when it is above 0
+        and within both the rig's protocol range and these limits (:class:`rigctl.core.drum.DrumLimits`); others
+        are refused with a message."""
+        self.limits = DrumLimits(float(speed_max_mm_s), float(force_max_g))
         self.limits_label.setText(
             f"protocol range > 0 to {MAX_SPEED_MM_S:g} mm/s, > 0 to {MAX_FORCE_G:g} g\n"
             f"controller hard limits {speed_max_mm_s:g} mm/s, {force_max_g:g} g")
@@ -224,19 +193,13 @@ class ControlPanel(QtWidgets.QWidget):
 
     def accepted_max(self, which: str) -> float:
         """The highest ``"speed"`` (mm/s) or ``"force"`` (g) setpoint accepted: the lower of both limits."""
-        return min(MAX_SPEED_MM_S, self.limits[0]) if which == "speed" else min(MAX_FORCE_G, self.limits[1])
+        return (self.limits.speed_range() if which == "speed" else self.limits.force_range()).high
 
     def setpoint_problems(self) -> list[tuple[str, str]]:
-        """Why the setpoints in the boxes cannot be sent, (short, full) per box (empty when they can)."""
-        out = []
-        for which, box, unit, i, proto in (("speed", self.speed, "mm/s", 0, MAX_SPEED_MM_S),
-                                           ("force", self.force, "g", 1, MAX_FORCE_G)):
-            hi = self.accepted_max(which)
-            src = "controller's hard limit" if self.limits[i] < proto else "rig's protocol range"
-            p = setpoint_problem(which, float(box.value()), unit, hi, src)
-            if p:
-                out.append(p)
-        return out
+        """Why the setpoints in the boxes cannot be sent, (short, full) per box (empty when they can): the
+        library's policy (:func:`rigctl.operations.setpoint_refusals`)."""
+        return [(r.short, r.full) for r in setpoint_refusals(self.limits, speed_mm_s=float(self.speed.value()),
+                                                              force_g=float(self.force.value()))]
 
     def check_setpoints(self) -> bool:
         """Mark an out-of-range box red and say why under the boxes; True when both can be sent."""
@@ -303,20 +266,22 @@ class ControlPanel(QtWidgets.QWidget):
         self.set_enabled(self._connected)
 
     def attach(self, drum, poller, commands, rig=None) -> None:
-        """Bind to a connected drum (``DrumClient``), its status poller and command executor, and the
-        :class:`rigctl.acquisition.rig.Rig` (its ``press`` waits for the force to settle)."""
-        self.drum, self.poller, self.commands, self.rig = drum, poller, commands, rig
-        self.set_textures(getattr(rig, "textures", PAPER_TEXTURES))
+        """Bind to a connected drum (a :class:`rigctl.core.interfaces.DrumController`), its status poller and
+        command executor, and the rig (a :class:`rigctl.operations.RigControl`, or the
+        :class:`rigctl.acquisition.rig.Rig` it wraps) that the panel's commands go through."""
+        self.drum, self.poller, self.commands = drum, poller, commands
+        self.ops = rig if isinstance(rig, RigControl) or rig is None else RigControl(rig)
+        self.rig = self.ops.rig if self.ops is not None else None
+        self.set_textures(getattr(self.rig, "textures", PAPER_TEXTURES))
         try:
-            spd = drum.read_holding(HoldingRegister.SPEED_LIMIT_0P1MMS) / 10.0
-            frc = float(drum.read_holding(HoldingRegister.FORCE_LIMIT_G))
-            self.set_limits(spd, frc)
+            lim = drum.limits()
+            self.set_limits(lim.speed_mm_s, lim.force_g)
         except Exception as exc:  # noqa: BLE001 - keep the defaults, say why
             self.message.setText(f"could not read the controller's limits: {exc}")
         self.set_enabled(True)
 
     def detach(self) -> None:
-        self.drum = self.poller = self.commands = self.rig = None
+        self.drum = self.poller = self.commands = self.rig = self.ops = None
         self.set_enabled(False)
         self.state_label.setText("not connected")
 
@@ -332,28 +297,32 @@ class ControlPanel(QtWidgets.QWidget):
         if self.commands is None or self._refused_by_run() or self._refuse_setpoints():
             return
         speed, force = float(self.speed.value()), float(self.force.value())
-        self.commands.submit("set speed", self.drum.set_speed, speed)
-        self.commands.submit("set force", self.drum.set_force, force)
+        if self.ops is not None:
+            self.commands.submit(f"set {speed:g} mm/s, {force:g} g", self.ops.apply_setpoints, speed, force)
+        else:
+            self.commands.submit("set speed", self.drum.set_speed, speed)
+            self.commands.submit("set force", self.drum.set_force, force)
         self.acted.emit(f"setpoints applied: speed {speed:g} mm/s, force {force:g} g")
 
     def command(self, name: str) -> None:
-        """Queue a drum command. Press and Run first apply the setpoints and press until the force has settled
-        (:meth:`rigctl.acquisition.rig.Rig.press`), so the drum never turns before the sensor is loaded."""
+        """Queue a drum command. Run is :meth:`rigctl.operations.RigControl.run_at` (press until the force has
+        settled, then run: the drum never turns before the sensor is loaded); Press presses to the force setpoint
+        and waits for it to settle."""
         if self.commands is None or self._refused_by_run():
             return
         if name in ("run", "press"):
             if self._refuse_setpoints():
                 return
             speed, force = float(self.speed.value()), float(self.force.value())
-            self.acted.emit(f"{name}: setpoints applied: speed {speed:g} mm/s, force {force:g} g")
-            self.commands.submit("set speed", self.drum.set_speed, speed)
-            if self.rig is not None and force > 0:
-                self.commands.submit(f"press to {force:g} g", self.rig.press, force)
-            else:
-                self.commands.submit("set force", self.drum.set_force, force)
-                self.commands.submit("press", self.drum.press)
-            if name == "press":
+            if self.ops is None:  # no rig attached: nothing to press with
+                self.show_result(False, f"{name} refused: no rig connected")
                 return
+            self.acted.emit(f"{name}: setpoints applied: speed {speed:g} mm/s, force {force:g} g")
+            if name == "press":
+                self.commands.submit(f"press to {force:g} g", self.ops.press, force)
+            else:
+                self.commands.submit(f"run at {speed:g} mm/s, {force:g} g", self.ops.run_at, speed, force)
+            return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
         self.acted.emit(f"{name.replace('_', ' ')} sent")
 
@@ -366,7 +335,7 @@ class ControlPanel(QtWidgets.QWidget):
         """Release the sensor and mount texture plate ``label`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
         on hardware the operator has mounted it when pressing the button). The label is taken in the set's spelling
         (``"l"`` -> ``"L"``); a label the set does not have is refused in the panel's message line."""
-        if self.commands is None or self.rig is None or self._refused_by_run():
+        if self.commands is None or self.ops is None or self._refused_by_run():
             return
         label = label or self.plate.currentText()
         if self.textures is not None:
@@ -383,7 +352,7 @@ class ControlPanel(QtWidgets.QWidget):
                 f"The drum is turning. Mounting plate {label} stops it and releases the sensor first.",
                 f"Stop the drum and mount {label}", "Cancel", self._mount_pending)
             return
-        self.commands.submit(f"mount plate {label}", self.rig.mount_texture, label, lambda _msg: None)
+        self.commands.submit(f"mount plate {label}", self.ops.mount_plate, label, lambda _msg: None)
         self.acted.emit(f"mount plate {label} sent")
 
     def _mount_pending(self) -> None:

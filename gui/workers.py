@@ -7,7 +7,6 @@ Nothing here implements rig, encoding or analysis logic: it only calls :mod:`rig
 
 from __future__ import annotations
 
-import dataclasses
 import queue
 import threading
 import time
@@ -19,37 +18,27 @@ import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
+# the rig kinds are the library's (rigctl.rigs.KINDS, through the operator layer); the live encoder runs in the
+# library too (rigctl.operations), the GUI only shows its spikes
+from rigctl.operations import (
+    LIVE_WINDOW_MAX_S as LIVE_WINDOW_MAX_S,
+    LiveEncoder as LiveEncoder,
+    RigSource as RigSource,
+    SpikeRing as SpikeRing,
+    spike_capacity as spike_capacity,
+)
+
 
 # ----------------------------------------------------------------------------------------------------------------
 # Connection
 # ----------------------------------------------------------------------------------------------------------------
-@dataclasses.dataclass
-class RigSource:
-    """Where the app gets its rig from.
-
-    ``kind`` is ``"sim"`` (the simulated rig, default), ``"serial"`` (two real boards at ``drum_port`` /
-    ``taxel_port``) or ``"replay"`` (the simulated rig streaming the FabricSlide recordings in ``replay_dir``).
-    """
-
-    kind: str = "sim"
-    drum_port: str | None = None
-    taxel_port: str | None = None
-    replay_dir: str | None = None
-
-    def label(self) -> str:
-        if self.kind == "serial":
-            return f"rig on {self.drum_port} + {self.taxel_port}"
-        if self.kind == "replay":
-            what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
-            return f"{what} ({self.replay_dir})"
-        return "simulated rig"
-
-
 class RigHandle:
-    """The open rig as the GUI sees it: an acquisition :class:`rigctl.acquisition.rig.Rig` and its parts.
+    """The open rig as the GUI sees it: the operator layer's :class:`rigctl.operations.RigControl` and its parts.
 
     Attributes
     ----------
+    control : rigctl.operations.RigControl
+        What the panels call (setpoints, press -> settle -> run, commands, status).
     rig : rigctl.acquisition.rig.Rig
         Owns the drum client, the taxel stream and (in simulation) the simulated rig; the protocol runner and the
         calibration use it.
@@ -58,44 +47,42 @@ class RigHandle:
     sim : the simulated rig behind the ports (``rig.backend.sim``: SimulatedRig / HilRig), or None
     """
 
-    def __init__(self, rig, source: RigSource):
-        from rigctl.core.interfaces import MassPlacer
+    def __init__(self, control, source: RigSource | None = None):
+        from rigctl.operations import RigControl
 
-        self.rig = rig
-        self.source = source
-        self.drum = rig.drum
-        self.taxels = rig.stream
-        self.sim = getattr(rig.backend, "sim", None)
-        self._places_mass = isinstance(rig.backend, MassPlacer)
+        if not isinstance(control, RigControl):  # an acquisition Rig
+            control = RigControl(control, source)
+        self.control = control
+        self.rig = control.rig
+        self.source = source or control.source
+        self.drum = control.drum
+        self.taxels = control.taxels
+        self.sim = control.sim
 
     @property
     def is_simulated(self) -> bool:
         """True when the rig can place a calibration mass itself (simulated backends)."""
-        return self._places_mass
+        return self.control.places_mass
 
     def close(self) -> None:
-        self.rig.close()
+        self.control.close()
 
 
 def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=None, seed: int = 0,
-             home: bool = True) -> RigHandle:
-    """Open the rig described by ``source`` with :func:`rigctl.rigs.open_rig` (which homes it unless ``home`` is
-    False; then a latched controller fault is left latched).
+             home=True) -> RigHandle:
+    """Open the rig described by ``source`` (:func:`rigctl.operations.open_control`). ``home``: a
+    :class:`rigctl.operations.Home` (or True: always, clearing a latched fault; False: never, a latched fault stays).
 
     ``host_config_path`` is the rig config file (calibration; None = the library's default path); ``prompt`` the
     operator prompt for plate changes on hardware. Raises :class:`rigctl.acquisition.rig.RigError` (the library's
     message names the ports) or ``OSError``.
     """
-    from rigctl.rigs import open_rig as _open_rig
+    from rigctl.operations import Home, open_control
 
-    kw = dict(host_config_path=host_config_path, prompt=prompt, home=home)
-    if source.kind == "serial":
-        rig = _open_rig("hardware", drum_port=source.drum_port, taxel_port=source.taxel_port, **kw)
-    elif source.kind == "replay":
-        rig = _open_rig("replay", source=source.replay_dir, config=config, seed=seed, **kw)
-    else:
-        rig = _open_rig("sim", config=config, seed=seed, **kw)
-    return RigHandle(rig, source)
+    policy = home if isinstance(home, (Home, str)) else Home.ALWAYS if home else Home.NEVER
+    control = open_control(source, home=policy, config=config, seed=seed, host_config_path=host_config_path,
+                           prompt=prompt)
+    return RigHandle(control, source)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -126,52 +113,6 @@ class HistoryRing:
     def clear(self) -> None:
         with self._lock:
             self._n = 0
-
-
-class SpikeRing:
-    """The most recent spikes of one population (e.g. the 18 SA trains): fixed-size arrays of time and channel.
-
-    ``capacity`` spikes are kept; older ones are overwritten (the raster only shows the last few seconds).
-    """
-
-    def __init__(self, capacity: int = 40_000):
-        self.t = np.zeros(capacity)
-        self.ch = np.zeros(capacity, dtype=np.int16)
-        self._n = 0
-        self._lock = threading.Lock()
-
-    def extend(self, t: np.ndarray, ch: np.ndarray) -> None:
-        k = len(t)
-        if k == 0:
-            return
-        cap = len(self.t)
-        with self._lock:
-            if k >= cap:
-                t, ch, k = t[-cap:], ch[-cap:], cap
-            i = self._n % cap
-            first = min(k, cap - i)
-            self.t[i : i + first] = t[:first]
-            self.ch[i : i + first] = ch[:first]
-            if first < k:
-                self.t[: k - first] = t[first:]
-                self.ch[: k - first] = ch[first:]
-            self._n += k
-
-    def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
-        """Spikes with time >= ``t0`` (s), unordered copies ``(t, channel)``."""
-        with self._lock:
-            n = min(self._n, len(self.t))
-            t, ch = self.t[:n], self.ch[:n]
-            keep = t >= t0
-            return t[keep], ch[keep]
-
-    def clear(self) -> None:
-        with self._lock:
-            self._n = 0
-
-    @property
-    def total(self) -> int:
-        return self._n
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -332,104 +273,6 @@ class TraceBuffer:
         if start >= 0:
             return self._t[start:end], self._x[start:end]
         return np.concatenate([self._t[start:], self._t[:end]]), np.concatenate([self._x[start:], self._x[:end]])
-
-
-#: the longest window the live view shows (s); the spike rings hold at least this much at the model's top rate
-LIVE_WINDOW_MAX_S = 10.0
-
-
-def spike_capacity(layout: SensorLayout, seconds: float = LIVE_WINDOW_MAX_S, max_rate_hz: float = 1000.0) -> int:
-    """Spikes one population can produce in ``seconds``: ``layout.n_channels`` trains at ``max_rate_hz`` (one spike
-    per 1 ms model step, the streaming encoder's ceiling), so a :class:`SpikeRing` of this size never drops a spike
-    of the last ``seconds``."""
-    return int(np.ceil(seconds * max_rate_hz * layout.n_channels))
-
-
-class LiveEncoder(threading.Thread):
-    """Streaming SA + RA encoding of the live taxel stream in a worker thread
-    (:class:`rigctl.encoding.izhikevich.StreamingEncoder`, paper eqs. 3-5).
-
-    Reads the taxel stream's ring buffer with its own cursor every ``poll_s`` and puts the spikes into
-    :attr:`sa` and :attr:`ra` (:class:`SpikeRing`, times in s of stream time =
-    frame number in the ring / ``layout.sample_rate_hz``, as :class:`TraceBuffer`; one model step per sample).
-    ``layout`` is the stream's sensor (default ``taxels.layout``, else the paper's 3x3x2 at 1 kHz): one SA and one RA
-    train per channel. ``normaliser`` is a :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
-    calibration); without one the full ADC range 0-``layout.adc_max`` is used.
-    """
-
-    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.04, layout: SensorLayout | None = None):
-        super().__init__(name="live-encoder", daemon=True)
-        self.taxels = taxels
-        self.layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
-        self.poll_s = poll_s
-        self.normaliser = normaliser or self.full_range()
-        self.n_samples = 0  # frames encoded since start
-        # room for every spike of the live view's longest window even if every train fired at every model step
-        # (1 ms): the raster never loses its oldest spikes to the ring's size
-        cap = spike_capacity(self.layout)
-        self.sa = SpikeRing(cap)
-        self.ra = SpikeRing(cap)
-        self.encoder_error: str | None = None
-        self.ready = False  # the encoder's kernels are compiled and it is keeping up
-        self._halt = threading.Event()
-        self._reset_request = threading.Event()
-
-    def full_range(self):
-        """The full ADC range of every channel (no calibration yet)."""
-        from rigctl.encoding.normalise import TaxelRange
-
-        n = self.layout.n_channels
-        return TaxelRange(np.zeros(n), np.full(n, float(self.layout.adc_max)))
-
-    @property
-    def stream_time_s(self) -> float:
-        return self.n_samples / self.layout.sample_rate_hz
-
-    def stop(self) -> None:
-        self._halt.set()
-
-    def set_normaliser(self, taxel_range) -> None:
-        """Use a new per-taxel range (a calibration) and start the encoder afresh."""
-        self.normaliser = taxel_range or self.full_range()
-        self._reset_request.set()
-
-    def _make_encoder(self):
-        from rigctl.encoding.izhikevich import StreamingEncoder
-
-        return StreamingEncoder(self.layout.n_channels, normalise=self.normaliser, fs=self.layout.sample_rate_hz)
-
-    def run(self) -> None:
-        ring = self.taxels.ring
-        encoder = None
-        while not self._halt.is_set():
-            if encoder is None or self._reset_request.is_set():
-                self._reset_request.clear()
-                try:
-                    encoder = self._make_encoder()
-                    encoder.process(np.zeros((1, self.layout.n_channels), np.uint16))  # compile before going live
-                    encoder.reset()
-                except Exception as exc:  # noqa: BLE001 - shown in the live view; traces keep going
-                    self.encoder_error = f"{type(exc).__name__}: {exc}"
-                    self._halt.wait(1.0)
-                    encoder = None
-                    continue
-                cursor = start = ring.total
-                self.ready = True
-            cursor, samples, _seq, _t = ring.read_since(cursor)
-            if len(samples):
-                try:
-                    chunk = encoder.process(samples)  # raw ADC counts; the encoder normalises
-                except Exception as exc:  # noqa: BLE001
-                    self.encoder_error = f"{type(exc).__name__}: {exc}"
-                else:
-                    off = start / self.layout.sample_rate_hz
-                    t, ch = chunk.events("sa")
-                    self.sa.extend(t + off, ch)
-                    t, ch = chunk.events("ra")
-                    self.ra.extend(t + off, ch)
-                    self.encoder_error = None
-                self.n_samples += len(samples)
-            self._halt.wait(self.poll_s)
 
 
 # ----------------------------------------------------------------------------------------------------------------

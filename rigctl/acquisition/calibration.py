@@ -42,6 +42,7 @@ from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the confi
 )
 from rigctl.core.drum import SetpointRangeError
 from rigctl.core.interfaces import DrumController, MassPlacer
+from rigctl.core.normalisation import TaxelRange
 
 log = logging.getLogger(__name__)
 
@@ -181,47 +182,18 @@ def simulated_mass(rig) -> tuple[Callable[[float], Any], Callable[[float], Any]]
 # ----------------------------------------------------------------------------------------------------------------
 # Taxel normalisation
 # ----------------------------------------------------------------------------------------------------------------
-@dataclass
-class TaxelNormalisation:
-    """Per-taxel minimum and maximum ADC counts of a calibration run (paper, Materials and Methods).
+#: the calibration's per-taxel normalisation is the one type of it, :class:`rigctl.core.normalisation.TaxelRange`
+#: (``TaxelNormalisation(taxel_min, taxel_max, n_trials, source, calibrated_utc)``; the encoders take it as it is)
+TaxelNormalisation = TaxelRange
 
-    Attributes
-    ----------
-    taxel_min, taxel_max : (n_channels,) float64 ADC counts
-    n_trials : int, trials the extremes were taken over
-    source : str, where they came from (a session file path, or "captures")
-    calibrated_utc : str
-    """
 
-    taxel_min: np.ndarray
-    taxel_max: np.ndarray
-    n_trials: int
-    source: str = "captures"
-    calibrated_utc: str = ""
-
-    def to_dict(self) -> dict:
-        """JSON-able dict (lists), the ``taxel_normalisation`` block of the rig config / session ``/calibration``."""
-        return {
-            "taxel_min": [float(v) for v in self.taxel_min],
-            "taxel_max": [float(v) for v in self.taxel_max],
-            "n_trials": int(self.n_trials),
-            "source": self.source,
-            "calibrated_utc": self.calibrated_utc,
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TaxelNormalisation":
-        return cls(np.asarray(d["taxel_min"], float), np.asarray(d["taxel_max"], float), int(d.get("n_trials", 0)),
-                   str(d.get("source", "")), str(d.get("calibrated_utc", "")))
-
-    def apply(self, taxels: np.ndarray) -> np.ndarray:
-        """Normalise ``(..., n_channels)`` ADC counts to ``(..., n_channels)`` float32 in [0, 1] (clipped); a taxel whose range is
-        zero maps to 0."""
-        span = self.taxel_max - self.taxel_min
-        safe = np.where(span > 0, span, 1.0)
-        out = (np.asarray(taxels, np.float64) - self.taxel_min) / safe
-        out = np.where(span > 0, out, 0.0)
-        return np.clip(out, 0.0, 1.0).astype(np.float32)
+def stored_taxel_range(host_config: dict, n_channels: int) -> TaxelRange | None:
+    """The rig config's taxel normalisation (``taxel_normalisation`` block) as a :class:`TaxelRange`, or None when
+    there is none or it was made for a sensor with another channel count than ``n_channels``."""
+    block = host_config.get("taxel_normalisation")
+    if not block or np.asarray(block.get("taxel_min", ())).size != int(n_channels):
+        return None
+    return TaxelRange.from_dict(block)
 
 
 def taxel_normalisation(captures: Iterable[np.ndarray], *, source: str = "captures") -> TaxelNormalisation:
@@ -251,7 +223,7 @@ def taxel_normalisation(captures: Iterable[np.ndarray], *, source: str = "captur
         n += 1
     if n == 0:
         raise ValueError("no samples to normalise over")
-    return TaxelNormalisation(lo, hi, n, source, _utc_now())
+    return TaxelRange(lo, hi, n, source, _utc_now())
 
 
 def taxel_normalisation_from_session(path: str | os.PathLike, *, store: bool = False,

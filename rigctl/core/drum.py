@@ -9,7 +9,7 @@ spec and the firmware header.
 Adding to the controller (a register, a status field, a state, a fault bit):
 
 - a state or fault bit: a member of :class:`DrumState` / :class:`Fault` here, with its words in
-  :data:`STATE_TEXT` / :data:`FAULT_TEXT` (and :data:`FAULT_ADVICE`); the spec's table and the header first.
+  :data:`STATE_TEXT` / :data:`FAULT_WORDS`; the spec's table and the header first.
 - a status field: a field *with a default* at the end of :class:`DrumStatus` (units in its name, a ``#:`` comment
   saying what it is), decoded in ``rigctl.devices.drum.DrumStatus.from_registers``; a default keeps every other
   backend and test that builds a status valid.
@@ -27,13 +27,13 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 __all__ = [
     "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "SetpointRange",
     "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM",
-    "STATE_TEXT", "FAULT_TEXT", "FAULT_ADVICE", "describe_state", "describe_faults", "fault_advice",
+    "STATE_TEXT", "FAULT_WORDS", "FaultWords", "describe_state", "describe_faults", "fault_advice",
     "DrumError", "DrumTimeout", "DrumFault", "SetpointRangeError", "Clock",
 ]
 
@@ -78,26 +78,39 @@ STATE_TEXT: dict[DrumState, str] = {
     DrumState.RUNNING: "Running - drum turning, force loop holding",
     DrumState.FAULT: "FAULT - drum stopped, actuator backed off",
 }
-#: each fault bit in a few words (spec table 2.5)
-FAULT_TEXT: dict[Fault, str] = {
-    Fault.FORCE_LIMIT: "measured force exceeded FORCE_LIMIT_G",
-    Fault.WATCHDOG: "host went silent for longer than WATCHDOG_MS",
-    Fault.LOADCELL_TIMEOUT: "the load cell gave no reading for 200 ms",
-    Fault.ACTUATOR_TRAVEL: "actuator reached its end of travel without reaching the force setpoint",
-    Fault.HX711_RATE: "the load cell amplifier's measured rate is not the one the force loop is set for",
-}
-#: what each fault bit means and what to do about it (spec table 2.5)
-FAULT_ADVICE: dict[Fault, str] = {
-    Fault.FORCE_LIMIT: "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. "
-                       "Check the plate and the sensor, then lower the force setpoint.",
-    Fault.WATCHDOG: "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force "
-                    "loop held, and stopped (a crashed or killed program, a pulled USB cable).",
-    Fault.LOADCELL_TIMEOUT: "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring.",
-    Fault.ACTUATOR_TRAVEL: "the actuator reached its end of travel without reaching the force setpoint: no plate, "
-                           "or the sensor is too far away.",
-    Fault.HX711_RATE: "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE "
-                      "pin low; the default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or "
-                      "accept 10 SPS with its slower gains (DrumClient.set_force_loop, rate 10), then CLEAR_FAULT.",
+class FaultWords(NamedTuple):
+    """A fault bit in words: ``label`` (a few words, for a status line), ``meaning`` (spec table 2.5's, for an error
+    message), ``advice`` (what happened and what to do, for the operator)."""
+
+    label: str
+    meaning: str
+    advice: str
+
+
+#: every fault bit in words (spec table 2.5); a new bit gets its entry here
+FAULT_WORDS: dict[Fault, FaultWords] = {
+    Fault.FORCE_LIMIT: FaultWords(
+        "force limit exceeded", "measured force exceeded FORCE_LIMIT_G",
+        "the measured force went above the controller's FORCE_LIMIT; the actuator backed off at once. Check the "
+        "plate and the sensor, then lower the force setpoint."),
+    Fault.WATCHDOG: FaultWords(
+        "host watchdog expired", "host went silent for longer than WATCHDOG_MS",
+        "the controller heard nothing from the host for WATCHDOG_MS while the drum turned or the force loop held, "
+        "and stopped (a crashed or killed program, a pulled USB cable)."),
+    Fault.LOADCELL_TIMEOUT: FaultWords(
+        "load cell not responding", "the load cell gave no reading for 200 ms",
+        "the load cell amplifier (HX711) gave no reading for 200 ms. Check its wiring."),
+    Fault.ACTUATOR_TRAVEL: FaultWords(
+        "actuator end of travel before reaching force",
+        "actuator reached its end of travel without reaching the force setpoint",
+        "the actuator reached its end of travel without reaching the force setpoint: no plate, or the sensor is too "
+        "far away."),
+    Fault.HX711_RATE: FaultWords(
+        "load-cell rate mismatch",
+        "the load cell amplifier's measured rate is not the one the force loop is set for",
+        "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE pin low; the "
+        "default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or accept 10 SPS with its slower "
+        "gains (DrumClient.set_force_loop, rate 10), then CLEAR_FAULT."),
 }
 
 
@@ -117,7 +130,8 @@ def _bits(faults: int) -> list[Fault]:
 def describe_faults(faults: int) -> str:
     """The set fault bits by name with their words, e.g. ``"FORCE_LIMIT (measured force exceeded FORCE_LIMIT_G)"``;
     ``"none"`` when clear. Unknown bits are named by number."""
-    parts = [f"{bit.name} ({FAULT_TEXT[bit]})" if bit in FAULT_TEXT else str(bit.name) for bit in _bits(faults)]
+    parts = [f"{bit.name} ({FAULT_WORDS[bit].meaning})" if bit in FAULT_WORDS else str(bit.name)
+             for bit in _bits(faults)]
     known = sum(int(b) for b in Fault)
     if int(faults) & ~known:
         parts.append(f"unknown fault bits 0x{int(faults) & ~known:x}")
@@ -126,8 +140,8 @@ def describe_faults(faults: int) -> str:
 
 def fault_advice(faults: int) -> str:
     """Each latched fault bit with its meaning and what to do, one sentence each (``""`` when clear)."""
-    return " ".join(f"{FAULT_TEXT[bit].capitalize()}: {FAULT_ADVICE[bit]}" for bit in _bits(faults)
-                    if bit in FAULT_ADVICE)
+    return " ".join(f"{FAULT_WORDS[bit].label.capitalize()}: {FAULT_WORDS[bit].advice}" for bit in _bits(faults)
+                    if bit in FAULT_WORDS)
 
 
 # ----------------------------------------------------------------------------------------------------------------

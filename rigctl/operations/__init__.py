@@ -9,6 +9,8 @@ One package of small modules, each one job an operator does:
 - :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
 - :func:`doctor` (``_doctor``): the bring-up checks (:mod:`rigctl.acquisition.doctor`) on a source or an open rig,
   the dated report stored in the rig config.
+- :class:`LiveEncoder` (``_live``): the taxel stream encoded into SA/RA spikes as it arrives, into
+  :class:`SpikeRing` s a live view reads.
 
 The values they speak in (:class:`rigctl.core.drum.DrumStatus`, :class:`rigctl.core.drum.DrumLimits`, states,
 faults, errors) are :mod:`rigctl.core.drum`'s, shared by every layer.
@@ -16,10 +18,12 @@ faults, errors) are :mod:`rigctl.core.drum`'s, shared by every layer.
 
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
+from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 
 __all__ = [
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
     "SetpointRefusal", "setpoint_refusals", "doctor",
+    "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
 ]

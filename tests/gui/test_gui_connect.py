@@ -24,7 +24,8 @@ def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_
         assert f"{n} serial port(s) found" in dlg.port_info.text()
         assert dlg.serial.isChecked()
         src = dlg.source()  # the saved ports are kept even when the scan does not list them (ptys)
-        assert (src.kind, src.drum_port, src.taxel_port) == ("serial", sim.drum_port, sim.taxel_port)
+    # the composition root's kind (rigctl.rigs.KINDS)
+    assert (src.kind, src.drum_port, src.taxel_port) == ("hardware", sim.drum_port, sim.taxel_port)
     dlg.replay.setChecked(True)
     dlg.replay_dir.setText(str(tmp_path))
     assert dlg.source() == RigSource("replay", replay_dir=str(tmp_path))
@@ -36,6 +37,12 @@ def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_
     settings.sync()
     again = load_source(make_settings())
     assert again == RigSource("serial", drum_port="/dev/ttyACM0", taxel_port="/dev/ttyACM1")
+    settings.setValue("source/kind", "serial")  # what earlier versions saved for the hardware rig
+    settings.sync()
+    assert load_source(make_settings()).kind == "hardware"
+    settings.setValue("source/kind", "no such kind")
+    settings.sync()
+    assert load_source(make_settings()) == RigSource("sim")
     save_source(settings, RigSource("sim"))
     settings.sync()
     assert load_source(make_settings()) == RigSource("sim")

@@ -282,10 +282,10 @@ def test_control_panel_offers_the_rigs_texture_set(qapp):
         textures = TextureSet([f"{a}{b}{n}" for a, b, n in zip("HBCDEFGHIJKLMNOPQRSTUVWXYZ", "B" * 26, range(26))],
                               name="lab26")
 
-        def mount_texture(self, label, prompt):  # pragma: no cover - not called (queued only)
+        def mount_plate(self, label, prompt):  # pragma: no cover - not called (queued only)
             pass
 
-    panel.commands, panel.rig = Commands(), Rig()
+    panel.commands, panel.ops = Commands(), Rig()  # the operator layer's RigControl mounts plates
     panel.set_textures(Rig.textures)
     assert panel.plate.count() == 26 and panel.plate.itemText(0) == "HB0"
     panel.mount_plate("hb0")  # the set's spelling
