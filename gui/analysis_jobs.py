@@ -1,10 +1,9 @@
-"""What the analysis tab runs in its worker process (:class:`rigctl_gui.workers.ProcessJob`): plain calls into
-:mod:`rigctl.encoding.pipeline` and :mod:`rigctl.analysis`, in the order ``rigctl encode`` / ``rigctl analyze``
-use them. No Qt here (the child process never imports it)."""
+"""What the analysis tab runs in its worker process (:class:`rigctl_gui.workers.ProcessJob`): calls into the
+operator layer (:mod:`rigctl.operations`: the analyses as ``rigctl analyze`` runs them, the model it saves) and
+:mod:`rigctl.encoding.pipeline`. No Qt here (the child process never imports it)."""
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 
@@ -17,47 +16,31 @@ def encode(session_path: str, out_path: str, progress=None) -> str:
 
 
 def encoded_path_for(session_path: str) -> str:
-    """Where the tab writes the encoded file of a session: ``<name>.encoded.h5`` beside it."""
-    p = Path(session_path)
-    return str(p.with_name(p.stem + ".encoded.h5"))
+    """Where the tab writes the encoded file of a session: ``<name>.encoded.h5`` beside it
+    (:func:`rigctl.operations.encoded_path_for`)."""
+    from rigctl.operations import encoded_path_for as beside
+
+    return str(beside(session_path))
 
 
 def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: int = 5, n_pcs: int = 50,
             per_texture: int = 500, seed: int = 0, variants=None, progress=None):
-    """The paper's analyses on an encoded file (a session file is encoded first, beside it).
+    """The paper's analyses on an encoded file (a session file is encoded first, beside it): the operator layer's
+    :func:`rigctl.operations.run_analyses`, as ``rigctl analyze`` runs them, skipping what the data cannot support.
 
     ``progress`` receives the :class:`rigctl.core.progress.ProgressEvent` s of the encoding and the analyses.
     Returns ``(TaskResults, encoded_path)``. Tasks the data cannot support (e.g. extrapolation without the
-    trained speeds/forces) are skipped and the reason is added to ``TaskResults.warnings``.
+    trained speeds/forces, groups of a texture set without groups) are skipped and the reason is added to
+    ``TaskResults.warnings``.
     """
-    from rigctl.analysis import tasks
-    from rigctl.analysis.data import NotEncodedError, load_features
+    from rigctl.analysis.params import CVParams, Repetitions
+    from rigctl.operations import AnalysisPlan, load_or_encode, run_analyses
 
-    try:
-        fs = load_features(path, variants)
-    except NotEncodedError:
-        path = encode(path, encoded_path_for(path), progress)
-        fs = load_features(path, variants)
-    res = tasks.TaskResults()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # they are kept in res.warnings
-        if cv:
-            wanted = ("textures", "groups") if fs.group is not None else ("textures",)
-            if fs.group is None:
-                res.warnings.append(f"groups skipped: the texture set {fs.textures.name or ''!r} defines no texture "
-                                    "groups")
-            try:
-                res.merge(tasks.run_cv(fs, wanted, variants=variants, n_pcs=n_pcs, repeats=repeats,
-                                       per_texture=per_texture, seed=seed, progress=progress))
-            except (ValueError, KeyError) as exc:
-                res.warnings.append(f"textures/groups skipped: {exc}")
-        if extrapolation:
-            try:
-                res.merge(tasks.run_extrapolation(fs, variants=variants, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                                                  progress=progress))
-            except (ValueError, KeyError) as exc:
-                res.warnings.append(f"extrapolation skipped: {exc}")
-    return res, str(path)
+    fs, encoded = load_or_encode(path, variants, task=None, encode_to=encoded_path_for(path), progress=progress)
+    wanted = (("textures", "groups") if cv else ()) + (("extrapolation",) if extrapolation else ())
+    plan = AnalysisPlan(wanted, groups_optional=True, on_error="skip", cv=CVParams(per_texture=per_texture),
+                        reps=Repetitions(n_pcs=n_pcs, repeats=repeats, seed=seed, variants=variants))
+    return run_analyses(fs, plan, progress=progress), str(encoded)
 
 
 def model_path_for(encoded_path: str, variant: str) -> str:
@@ -67,16 +50,13 @@ def model_path_for(encoded_path: str, variant: str) -> str:
 
 
 def train_classifier(path: str, variant: str = "speed_scaled", n_pcs: int = 25, out_path: str | None = None) -> str:
-    """Fit the raw-trials-to-label pipeline (:func:`rigctl.analysis.model.texture_pipeline`: normalise, encode,
-    features, PCA + LDA) on every trial of the session an encoded file was made from, encoding as the file did
-    (its parameters), and save it as a model file (:func:`rigctl.storage.model_file.save_model`, the format of
-    ``rigctl analyze --save-model``). Returns the model file's path (default :func:`model_path_for`)."""
-    from rigctl.analysis.model import model_info, session_of, texture_pipeline, trials_of_session
+    """Fit the raw-trials-to-label pipeline on every trial of the session an encoded file was made from
+    (:func:`rigctl.operations.train_model`, as ``rigctl analyze --save-model``) and save it as a model file
+    (:func:`rigctl.storage.model_file.save_model`). Returns the model file's path (default :func:`model_path_for`)."""
+    from rigctl.operations import train_model
     from rigctl.storage.model_file import save_model
 
-    session, params = session_of(path)
-    trials, texture = trials_of_session(session)
-    model = texture_pipeline(variant, n_pcs, params=params).fit(trials, texture)
+    trained = train_model(path, variant, n_pcs)
     out = out_path or model_path_for(path, variant)
-    save_model(model, out, info=model_info(model, session=session, analysed=path))
+    save_model(trained.model, out, info=trained.info)
     return out

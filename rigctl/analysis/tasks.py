@@ -35,6 +35,7 @@ from sklearn.model_selection import StratifiedKFold
 from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
 from rigctl.analysis.parallel import connected, map_repeats
+from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
 from rigctl.analysis.splitpca import split_scores
 from rigctl.analysis.stats import Comparison
 from rigctl.core.progress import Stage
@@ -196,18 +197,12 @@ def _accumulate(pred, truth, classes, confusion_pcs):
 def run_cv(
     fs: FeatureSet,
     tasks=("textures", "groups"),
+    params: CVParams | None = None,
     *,
-    variants=None,
-    n_pcs=50,
-    repeats=20,
-    per_texture=500,
-    k=4,
-    seed=0,
-    confusion_pcs=None,
+    reps: Repetitions | None = None,
+    execution: Execution | None = None,
     progress=None,
-    n_jobs=None,
-    scheduler=None,
-    workers=None,
+    **overrides,
 ) -> TaskResults:
     """Individual-texture and texture-group classification with k-fold CV (Fig. 3A-B).
 
@@ -216,27 +211,19 @@ def run_cv(
     fs : FeatureSet
     tasks : sequence of {"textures", "groups"}
         Label sets to classify; they share draws, folds and PCA fits.
-    variants : sequence of str, optional
-        Feature variants (default: all in ``fs``).
-    n_pcs : int
-        Largest PC count (the paper: 50).
-    repeats : int
-        Repetitions, each a new random draw of ``per_texture`` trials per texture and new folds (the paper: 20).
-    per_texture : int
-        Trials drawn per texture (the paper: 500 of 1500); reduced with a warning to the smallest texture's count.
-    k : int
-        Folds (the paper: 4).
-    seed : int
-        Repetition ``r`` uses ``numpy.random.default_rng([seed, r])``: the same draws for every variant.
-    confusion_pcs : int, optional
-        PC count for the confusion matrices (default ``n_pcs``).
+    params : :class:`rigctl.analysis.params.CVParams`
+        ``per_texture`` trials drawn per texture (the paper: 500 of 1500; reduced with a warning to the smallest
+        texture's count), ``k`` folds (the paper: 4).
+    reps : :class:`rigctl.analysis.params.Repetitions`
+        ``n_pcs`` (the paper: 50), ``repeats`` (each a new random draw and new folds; the paper: 20), ``seed``,
+        ``variants`` (default: all in ``fs``), ``confusion_pcs`` (default ``n_pcs``).
+    execution : :class:`rigctl.analysis.params.Execution`
+        Where the repetitions run (``n_jobs``, ``scheduler``, ``workers``); the results do not depend on it.
     progress : callable, optional
         Receives :class:`rigctl.core.progress.ProgressEvent` s (stage ``"textures/groups"``, done/total = PCA fits,
         reported per finished repetition).
-    n_jobs, scheduler, workers
-        Where the repetitions run (:func:`rigctl.analysis.parallel.map_repeats`): ``n_jobs`` at a time in this
-        process (default: one per core), or on the Dask cluster at ``scheduler`` (an address, or ``"local"`` with
-        ``workers`` processes). The results do not depend on it.
+    **overrides
+        Fields of the three objects as keywords (e.g. ``repeats=5``).
 
     Returns
     -------
@@ -249,6 +236,12 @@ def run_cv(
     ValueError
         Unknown task, or fewer than ``k`` trials per texture.
     """
+    params, reps, execution = resolve(overrides, params or CVParams(), reps or Repetitions(),
+                                      execution or Execution())
+    per_texture, k = params.per_texture, params.k
+    variants, n_pcs, repeats, seed, confusion_pcs = (reps.variants, reps.n_pcs, reps.repeats, reps.seed,
+                                                     reps.confusion_pcs)
+    n_jobs, scheduler, workers = execution.n_jobs, execution.scheduler, execution.workers
     for t in tasks:
         if t not in ("textures", "groups"):
             raise ValueError(f"unknown CV task '{t}'")
@@ -334,45 +327,27 @@ def _cells(fs: FeatureSet):
 
 def run_extrapolation(
     fs: FeatureSet,
+    params: ExtrapolationParams | None = None,
     *,
-    train_speeds=(40, 60, 80),
-    train_forces=(250, 500),
-    test_speeds=None,
-    test_forces=None,
-    variants=None,
-    n_pcs=50,
-    repeats=20,
-    n_train=75,
-    n_test=25,
-    seed=0,
-    confusion_pcs=None,
+    reps: Repetitions | None = None,
+    execution: Execution | None = None,
     progress=None,
-    prefix="",
-    n_jobs=None,
-    scheduler=None,
-    workers=None,
+    **overrides,
 ) -> TaskResults:
     """Texture extrapolation to untrained speed-force conditions (Fig. 3C-F).
 
     Parameters
     ----------
     fs : FeatureSet
-    train_speeds : sequence of float
-        Trained speeds in mm/s (matched on ``|speed|``: FabricSlide's signed directions count as one speed).
-        ``None`` = every speed.
-    train_forces : sequence of float
-        Trained forces in g; ``None`` = every force.
-    test_speeds, test_forces : sequence of float, optional
-        Restrict the untrained test cells to these (default: every condition in the data).
-    variants : sequence of str, optional
-    n_pcs, repeats, seed, confusion_pcs, progress, n_jobs, scheduler, workers
+    params : :class:`rigctl.analysis.params.ExtrapolationParams`
+        ``train_speeds`` (mm/s, matched on ``|speed|``: FabricSlide's signed directions count as one speed; None =
+        every speed), ``train_forces`` (g; None = every force), ``test_speeds`` / ``test_forces`` (restrict the
+        untrained test cells; default every condition in the data), ``n_train`` / ``n_test`` (per texture and
+        trained cell: training and held-out test trials, the paper's 75 and 25; untrained cells contribute
+        ``n_test`` test trials per texture; reduced proportionally, with a warning, when a cell has fewer than
+        ``n_train + n_test`` trials), ``prefix`` (prepended to the task keys, e.g. ``"speed_"``).
+    reps, execution, progress, **overrides
         As :func:`run_cv`.
-    n_train, n_test : int
-        Per texture and trained cell: training and held-out test trials (the paper: 75 and 25); untrained cells
-        contribute ``n_test`` test trials per texture. Reduced proportionally (with a warning) when a cell has fewer
-        than ``n_train + n_test`` trials.
-    prefix : str
-        Prepended to the task keys (e.g. ``"speed_"`` for the speed-only extrapolation).
 
     Returns
     -------
@@ -384,6 +359,14 @@ def run_extrapolation(
     ValueError
         No trials in the trained cells, or a trained cell too small to split.
     """
+    params, reps, execution = resolve(overrides, params or ExtrapolationParams(), reps or Repetitions(),
+                                      execution or Execution())
+    train_speeds, train_forces, test_speeds, test_forces = (params.train_speeds, params.train_forces,
+                                                            params.test_speeds, params.test_forces)
+    n_train, n_test, prefix = params.n_train, params.n_test, params.prefix
+    variants, n_pcs, repeats, seed, confusion_pcs = (reps.variants, reps.n_pcs, reps.repeats, reps.seed,
+                                                     reps.confusion_pcs)
+    n_jobs, scheduler, workers = execution.n_jobs, execution.scheduler, execution.workers
     vs = _variants(fs, variants)
     res = TaskResults()
     cells, trained_cells, cat_of, (a_tr, a_te, u_te), info = _extrapolation_plan(
@@ -522,19 +505,19 @@ def extrapolation_split(fs: FeatureSet, *, train_speeds=(40, 60, 80), train_forc
                                np.random.default_rng([seed, 10_000 + repeat]))
 
 
-def run_table1(fs: FeatureSet, *, variants=None, n_pcs=50, repeats=20, seed=0, progress=None, n_jobs=None,
-               scheduler=None, workers=None, **cv_kw) -> TaskResults:
+def run_table1(fs: FeatureSet, reps: Repetitions | None = None, *, execution: Execution | None = None,
+               cv: CVParams | None = None, progress=None, **overrides) -> TaskResults:
     """All six rows of Table 1 (textures, groups and the four extrapolation cells), every variant.
 
-    ``n_jobs``, ``scheduler`` (a Dask address, ``"local"`` or a client) and ``workers``: where the repetitions run,
-    as :func:`run_cv`; one Dask client serves both tasks.
+    ``execution``: where the repetitions run, as :func:`run_cv`; one Dask client serves both tasks. ``overrides``:
+    fields of ``reps``, ``execution`` and ``cv`` as keywords.
     """
-    with connected(scheduler, workers) as client:
-        par = {"n_jobs": n_jobs, "scheduler": client}
-        res = run_cv(fs, ("textures", "groups") if fs.group is not None else ("textures",), variants=variants,
-                     n_pcs=n_pcs, repeats=repeats, seed=seed, progress=progress, **par, **cv_kw)
-        return res.merge(run_extrapolation(fs, variants=variants, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                                           progress=progress, **par))
+    reps, execution, cv = resolve(overrides, reps or Repetitions(), execution or Execution(), cv or CVParams())
+    with connected(execution.scheduler, execution.workers) as client:
+        par = Execution(n_jobs=execution.n_jobs, scheduler=client)
+        res = run_cv(fs, ("textures", "groups") if fs.group is not None else ("textures",), cv, reps=reps,
+                     execution=par, progress=progress)
+        return res.merge(run_extrapolation(fs, reps=reps, execution=par, progress=progress))
 
 
 def _project(pca, x, centre):
@@ -543,18 +526,12 @@ def _project(pca, x, centre):
 
 def run_realtime(
     fs: FeatureSet,
+    params: RealtimeParams | None = None,
     *,
     new_session: FeatureSet | None = None,
-    train_profiles=("slow", "medium"),
-    variants=None,
-    n_pcs=50,
-    repeats=100,
-    k=4,
-    train_fraction=0.75,
-    calibration_per_texture=10,
-    headline_pcs=25,
-    seed=0,
+    reps: Repetitions | None = None,
     progress=None,
+    **overrides,
 ) -> TaskResults:
     """The real-time analyses of Fig. 4 on ramp-profile trials (Methods, real-time Statistical Analysis).
 
@@ -567,20 +544,17 @@ def run_realtime(
         A second session: the model trained on ``train_fraction`` of ``fs`` is calibrated with the mean vector of
         ``calibration_per_texture`` trials per texture of it (spread over its profiles) and tested on the rest
         (task ``rt_new_session``, Fig. 4B green).
-    train_profiles : sequence of str
-        Profiles trained in the extrapolation task (the paper: slow, medium).
-    variants : sequence of str, optional
-        Default: ``realtime_original`` / ``realtime_speed_scaled`` if present, else ``original`` / ``speed_scaled``.
-    n_pcs : int
-        Largest PC count (curves), clipped to what the training split supports.
-    repeats : int
-        Repetitions (the paper: 100 per data set).
-    k : int
-        Folds of the offline task (the paper: 4).
-    train_fraction : float
-        Fraction of the (trained-profile) trials drawn for training in the extrapolation / new-session tasks.
-    headline_pcs : int
-        PC count of the confusion matrices (the paper's real-time classifier: 25).
+    params : :class:`rigctl.analysis.params.RealtimeParams`
+        ``train_profiles`` (trained in the extrapolation task; the paper: slow, medium), ``k`` (folds of the offline
+        task; 4), ``train_fraction`` (of the trained-profile trials drawn for training in the extrapolation /
+        new-session tasks), ``calibration_per_texture``, ``headline_pcs`` (PC count of the confusion matrices; the
+        paper's real-time classifier: 25).
+    reps : :class:`rigctl.analysis.params.Repetitions`
+        ``n_pcs`` (largest PC count, clipped to what the training split supports), ``repeats`` (default here: 100
+        per data set, the paper's), ``seed``, ``variants`` (default: ``realtime_original`` /
+        ``realtime_speed_scaled`` if present, else ``original`` / ``speed_scaled``).
+    progress, **overrides
+        As :func:`run_cv`.
 
     Returns
     -------
@@ -592,6 +566,10 @@ def run_realtime(
     ValueError
         No ``profile`` column, or none of ``train_profiles`` present.
     """
+    params, reps = resolve(overrides, params or RealtimeParams(), reps or Repetitions(repeats=100))
+    train_profiles, k, train_fraction = params.train_profiles, params.k, params.train_fraction
+    calibration_per_texture, headline_pcs = params.calibration_per_texture, params.headline_pcs
+    variants, n_pcs, repeats, seed = reps.variants, reps.n_pcs, reps.repeats, reps.seed
     if fs.profile is None:
         raise ValueError("the real-time analysis needs ramp-profile trials: /trials has no 'profile' column")
     vs = _variants(fs, variants, "realtime")

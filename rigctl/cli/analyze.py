@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import tempfile
-import warnings
 from pathlib import Path
 
 import click
@@ -51,25 +51,20 @@ def _check_variants(path, variants):
 
 
 def _load(path, encode, variants, task="table1", progress=False):
-    from rigctl.analysis.data import NotEncodedError, default_variants, list_variants, load_features
+    """The features of ``path``; a session file is encoded on the fly (into a temporary folder) with ``encode``."""
+    from rigctl.analysis.data import NotEncodedError
+    from rigctl.operations import load_or_encode
 
     try:
-        if variants is None and list_variants(path):
-            variants = default_variants(list_variants(path), task)
-        return load_features(path, variants)
+        return load_or_encode(path, variants, task=task)[0]
     except NotEncodedError as exc:
         if not encode:
             raise click.ClickException(str(exc)) from None
-    try:
-        from rigctl.encoding.pipeline import encode_session
-    except ImportError as exc:  # pragma: no cover - depends on the encoding package
-        raise click.ClickException(f"cannot encode on the fly: rigctl.encoding.pipeline unavailable ({exc})") from None
     with tempfile.TemporaryDirectory(prefix="rigctl-analyze-") as tmp:  # the features are read into memory
-        out = Path(tmp) / (Path(path).stem + ".encoded.h5")
         click.echo(f"encoding {path} on the fly (rigctl encode) ...", err=True)
         with bars(progress) as bar:
-            encode_session(path, out, progress=bar)
-        return load_features(out, variants or default_variants(list_variants(out), task))
+            return load_or_encode(path, variants, task=task, encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"),
+                                  progress=bar)[0]
 
 
 def _variance(fs, variants):
@@ -115,21 +110,22 @@ def _session_and_params(file):
         raise click.ClickException(f"{exc} (with --encode)") from None
 
 
-def _save_model(path, session, params, variant, n_pcs, max_pcs, *, source):
-    from rigctl.analysis.model import model_info, texture_pipeline, trials_of_session
+def _save_model(path, variant, n_pcs, max_pcs, *, source):
+    from rigctl.operations import train_model
     from rigctl.storage.encoded import ALL_VARIANTS
     from rigctl.storage.model_file import save_model
 
     if variant not in ALL_VARIANTS:
         raise click.ClickException(f"--model-variant {variant}: not a variant ({', '.join(ALL_VARIANTS)})")
-    trials, texture = trials_of_session(session)
     try:
-        model = texture_pipeline(variant, n_pcs, max_pcs=max_pcs, params=params).fit(trials, texture)
+        trained = train_model(source, variant, n_pcs, max_pcs=max_pcs)
+    except FileNotFoundError as exc:
+        raise click.ClickException(f"{exc} (with --encode)") from None
     except ValueError as exc:
         raise click.ClickException(f"--save-model: {exc}") from None
     with replacing(path) as tmp:
-        save_model(model, tmp, info=model_info(model, session=session, analysed=source))
-    click.echo(f"saved the {variant} pipeline ({model[-1].n_pcs_} PCs, {len(trials)} trials) to {path}", err=True)
+        save_model(trained.model, tmp, info=trained.info)
+    click.echo(f"saved the {variant} pipeline ({trained.n_pcs} PCs, {trained.n_trials} trials) to {path}", err=True)
 
 
 def _force_leak(session, params, variant, *, repeats, seed, n_pcs):
@@ -217,143 +213,170 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
     """
     from threadpoolctl import threadpool_limits
 
+    from rigctl.analysis.params import Execution
+
     _check_outputs(file, new_session, overwrite, **{"--csv": csv_path, "--plot": plot, "--confusion": confusion,
                                                      "--save-model": save_model})
-    explicit_pcs = ctx.get_parameter_source("pcs") is not click.core.ParameterSource.DEFAULT
+    opts = AnalyzeOptions(
+        file=file, task="all" if table1_ else task, n_pcs=_parse_pcs(pcs),
+        explicit_pcs=ctx.get_parameter_source("pcs") is not click.core.ParameterSource.DEFAULT,
+        repeats=repeats, variants=[v.strip() for v in variants.split(",") if v.strip()] if variants else None,
+        per_texture=per_texture, seed=seed, table_pcs=table_pcs, compare_paper=compare_paper, as_json=as_json,
+        plot=plot, confusion=confusion, csv_path=csv_path, train_speeds=_floats(train_speeds),
+        test_speeds=_floats(test_speeds), train_forces=_floats(train_forces), baseline=baseline, channels=channels,
+        new_session=new_session, train_profiles=tuple(p.strip() for p in train_profiles.split(",")),
+        save_model=save_model, model_variant=model_variant, model_pcs=model_pcs, encode=encode_, progress=progress,
+        variance=variance or task == "variance", force_leak=force_leak_)
     require_dask(scheduler, otherwise="run in this process")
     limiter = threadpool_limits(threads) if threads else None
-    par = {"n_jobs": min(jobs, threads) if jobs and threads else (jobs or threads), "scheduler": scheduler,
-           "workers": workers}
+    execution = Execution(n_jobs=min(jobs, threads) if jobs and threads else (jobs or threads), scheduler=scheduler,
+                          workers=workers)
     try:
-        _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
-             confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-             train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs,
-             variance=variance or task == "variance", par=par, force_leak_=force_leak_)
+        _run(opts, execution)
     finally:
         if limiter is not None:
             limiter.unregister()
 
 
-def _run(file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json, plot,
-         confusion, csv_path, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
-         train_profiles, save_model, model_variant, model_pcs, encode_, progress, explicit_pcs=False,
-         variance=False, par=None, force_leak_=None):
-    from rigctl.analysis import report, tasks
+@dataclasses.dataclass(frozen=True)
+class AnalyzeOptions:
+    """``rigctl analyze``'s options, parsed (one object instead of 27 arguments)."""
 
-    n_pcs = _parse_pcs(pcs)
-    vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
-    if table1_:
-        task = "all"
-    _check_variants(file, vlist)
-    fs = _load(file, encode_, vlist, task, progress)
-    _check_pcs(fs, n_pcs, explicit_pcs)
-    from rigctl.analysis.variance import format_variance
+    file: str
+    task: str = "all"
+    n_pcs: int = 50
+    explicit_pcs: bool = False
+    repeats: int = 20
+    variants: list[str] | None = None
+    per_texture: int = 500
+    seed: int = 0
+    table_pcs: int = 50
+    compare_paper: bool = False
+    as_json: bool = False
+    plot: str | None = None
+    confusion: str | None = None
+    csv_path: str | None = None
+    train_speeds: list[float] | None = None
+    test_speeds: list[float] | None = None
+    train_forces: list[float] | None = None
+    baseline: str = "keep"
+    channels: int | None = None
+    new_session: str | None = None
+    train_profiles: tuple[str, ...] = ("slow", "medium")
+    save_model: str | None = None
+    model_variant: str = "speed_scaled"
+    model_pcs: int = 25
+    encode: bool = False
+    progress: bool = True
+    variance: bool = False
+    force_leak: str | None = None
 
-    shares = _variance(fs, vlist) if variance else None
-    if task == "variance":
-        if as_json:
-            click.echo(json.dumps({"source": str(file), "variance": [r.as_dict() for r in shares]}, indent=1))
-        else:
-            click.echo(format_variance(shares))
-        return
-    if shares is not None and not as_json:
-        click.echo(format_variance(shares) + "\n")
-    if task == "speed-extrapolation" and not train_speeds:
-        raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
 
-    runs = [("", fs)]
-    if baseline in ("remove", "both"):
-        try:  # spike trains per trial: --channels, else from the file's sensor layout (SA/RA x channels)
-            fs_b = fs.without_baseline(channels)
-        except ValueError as exc:
-            raise click.ClickException(f"--baseline remove: {exc}") from None
-        runs = [("", fs), ("baseline_removed:", fs_b)] if baseline == "both" else [("baseline_removed:", fs_b)]
+def _plan(opts: AnalyzeOptions, fs):
+    """The operator layer's :class:`rigctl.operations.AnalysisPlan` of these options."""
+    from rigctl.analysis.params import CVParams, ExtrapolationParams, RealtimeParams, Repetitions
+    from rigctl.operations import AnalysisPlan
 
+    if opts.task == "speed-extrapolation":
+        if not opts.train_speeds:
+            raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
+        extrapolation = ExtrapolationParams(train_speeds=opts.train_speeds, train_forces=opts.train_forces,
+                                            test_speeds=opts.test_speeds)
+    else:
+        extrapolation = ExtrapolationParams(train_speeds=opts.train_speeds or (40, 60, 80),
+                                            train_forces=opts.train_forces or (250, 500), test_speeds=opts.test_speeds)
+    other = (_load(opts.new_session, opts.encode, fs.variants, opts.task)
+             if opts.task == "realtime" and opts.new_session else None)
+    return AnalysisPlan.for_task(
+        opts.task, reps=Repetitions(n_pcs=opts.n_pcs, repeats=opts.repeats, seed=opts.seed, variants=opts.variants),
+        cv=CVParams(per_texture=opts.per_texture), extrapolation=extrapolation,
+        realtime=RealtimeParams(train_profiles=opts.train_profiles), baseline=opts.baseline, channels=opts.channels,
+        new_session=other)
+
+
+def _run(opts: AnalyzeOptions, execution=None):
+    """Load, (variance), analyse, the extras (force leak, model), then write and print."""
     from rigctl.analysis.parallel import connected
+    from rigctl.analysis.params import Execution
+    from rigctl.analysis.variance import format_variance
+    from rigctl.operations import BaselineError, run_analyses
 
-    par = dict(par or {})
-    res_all = tasks.TaskResults()
-    with warnings.catch_warnings(record=True) as caught, bars(progress, leave=False) as bar, \
-            connected(par.pop("scheduler", None), par.pop("workers", None)) as client:
-        par["scheduler"] = client
-        warnings.simplefilter("always")
-        for tag, data in runs:
-            res = tasks.TaskResults()
-            try:
-                if task in ("textures", "groups", "all"):
-                    wanted = ("textures", "groups") if task == "all" else (task,)
-                    if task == "all" and data.group is None:
-                        wanted = ("textures",)
-                        res.warnings.append(f"groups task skipped: the texture set {data.textures.name!r} defines "
-                                            "no texture groups" if data.textures.name else
-                                            "groups task skipped: the file's texture set defines no texture groups")
-                    res.merge(tasks.run_cv(data, wanted, variants=vlist, n_pcs=n_pcs, repeats=repeats,
-                                           per_texture=per_texture, seed=seed, progress=bar, **par))
-                if task in ("extrapolation", "all"):
-                    res.merge(tasks.run_extrapolation(
-                        data, train_speeds=_floats(train_speeds) or (40, 60, 80),
-                        train_forces=_floats(train_forces) or (250, 500), test_speeds=_floats(test_speeds),
-                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=bar, **par))
-                if task == "speed-extrapolation":
-                    res.merge(tasks.run_extrapolation(
-                        data, train_speeds=_floats(train_speeds), train_forces=_floats(train_forces),
-                        test_speeds=_floats(test_speeds), variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed,
-                        progress=bar, prefix="speed_", **par))
-                if task == "realtime":
-                    other = _load(new_session, encode_, fs.variants, task) if new_session else None
-                    res.merge(tasks.run_realtime(
-                        data, new_session=other, train_profiles=[p.strip() for p in train_profiles.split(",")],
-                        variants=vlist, n_pcs=n_pcs, repeats=repeats, seed=seed, progress=bar))
-            except (ValueError, KeyError) as exc:
-                raise click.ClickException(str(exc)) from None
-            for t, by_v in res.curves.items():
-                for c in by_v.values():
-                    c.task = tag + t
-                    res_all.add(c)
-            res_all.counts.update({tag + k: v for k, v in res.counts.items()})
-            res_all.warnings.extend(tag + w for w in res.warnings)
-            res_all.settings.update(res.settings)
-    del caught  # shown through res.warnings (in the table / JSON)
+    _check_variants(opts.file, opts.variants)
+    fs = _load(opts.file, opts.encode, opts.variants, opts.task, opts.progress)
+    _check_pcs(fs, opts.n_pcs, opts.explicit_pcs)
+    if opts.task == "variance":
+        only = _variance(fs, opts.variants)
+        if opts.as_json:
+            click.echo(json.dumps({"source": str(opts.file), "variance": [r.as_dict() for r in only]}, indent=1))
+        else:
+            click.echo(format_variance(only))
+        return
+    shares = _variance(fs, opts.variants) if opts.variance else None
+    if shares is not None and not opts.as_json:
+        click.echo(format_variance(shares) + "\n")
+    plan = _plan(opts, fs)
+    execution = execution or Execution()
+    with bars(opts.progress, leave=False) as bar, connected(execution.scheduler, execution.workers) as client:
+        try:
+            res = run_analyses(fs, plan, progress=bar,
+                               execution=dataclasses.replace(execution, scheduler=client, workers=None))
+        except BaselineError as exc:
+            raise click.ClickException(f"--baseline remove: {exc}") from None
+        except (ValueError, KeyError) as exc:
+            raise click.ClickException(str(exc)) from None
+    leak = _extras(opts)
+    _write_outputs(opts, res)
+    _print_results(opts, res, shares, leak)
 
+
+def _extras(opts: AnalyzeOptions):
+    """--force-leak (the report) and --save-model (the file)."""
     leak = None
-    if force_leak_ or save_model:
-        session, params = _session_and_params(file)
-    if force_leak_:
-        leak = _force_leak(session, params, force_leak_, repeats=min(repeats, 5), seed=seed,
-                           n_pcs=min(table_pcs, n_pcs))
-    if save_model:
-        _save_model(save_model, session, params, model_variant, model_pcs, max(model_pcs, n_pcs), source=file)
+    if opts.force_leak:
+        session, params = _session_and_params(opts.file)
+        leak = _force_leak(session, params, opts.force_leak, repeats=min(opts.repeats, 5), seed=opts.seed,
+                           n_pcs=min(opts.table_pcs, opts.n_pcs))
+    if opts.save_model:
+        _save_model(opts.save_model, opts.model_variant, opts.model_pcs, max(opts.model_pcs, opts.n_pcs),
+                    source=opts.file)
+    return leak
 
-    if csv_path:
-        with replacing(csv_path) as tmp:
-            tmp.write_text(report.to_csv(res_all))
-    if plot:
-        with replacing(plot) as tmp:
-            report.plot_curves(res_all, tmp, title=Path(file).name)
-    if confusion:
-        keys = list(res_all.curves)
+
+def _write_outputs(opts: AnalyzeOptions, res) -> None:
+    from rigctl.analysis import report
+
+    if opts.csv_path:
+        with replacing(opts.csv_path) as tmp:
+            tmp.write_text(report.to_csv(res))
+    if opts.plot:
+        with replacing(opts.plot) as tmp:
+            report.plot_curves(res, tmp, title=Path(opts.file).name)
+    if opts.confusion:
+        keys = list(res.curves)
         pick = next((k for k in keys if k.endswith("untrained_speed_force")), None) or next(
             (k for k in keys if "untrained" in k), keys[0])
-        with replacing(confusion) as tmp:
-            report.plot_confusions(res_all, tmp, pick)
-    if as_json:
+        with replacing(opts.confusion) as tmp:
+            report.plot_confusions(res, tmp, pick)
+
+
+def _print_results(opts: AnalyzeOptions, res, shares, leak) -> None:
+    from rigctl.analysis import report
+
+    if opts.as_json:
         if shares is None and leak is None:
-            click.echo(report.to_json(res_all, table_pcs, source=str(file)))
+            click.echo(report.to_json(res, opts.table_pcs, source=str(opts.file)))
         else:
-            out = report.to_dict(res_all, table_pcs, source=str(file))
+            out = report.to_dict(res, opts.table_pcs, source=str(opts.file))
             if shares is not None:
                 out["variance"] = [r.as_dict() for r in shares]
             if leak is not None:
                 out["force_leak"] = leak
             click.echo(json.dumps(out, indent=1, default=float))
     else:
-        click.echo(report.format_table1(res_all, table_pcs, compare_paper=compare_paper))
-        ordering = report.format_ordering(res_all, table_pcs)
-        if ordering:
-            click.echo(ordering)
-        collapse = report.format_collapse(res_all)
-        if collapse:
-            click.echo(collapse)
+        click.echo(report.format_table1(res, opts.table_pcs, compare_paper=opts.compare_paper))
+        for extra in (report.format_ordering(res, opts.table_pcs), report.format_collapse(res)):
+            if extra:
+                click.echo(extra)
         if leak is not None:
             click.echo(_format_leak(leak))
     sys.stdout.flush()

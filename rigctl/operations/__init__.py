@@ -9,6 +9,9 @@ One package of small modules, each one job an operator does:
 - :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
 - :func:`doctor` (``_doctor``): the bring-up checks (:mod:`rigctl.acquisition.doctor`) on a source or an open rig,
   the dated report stored in the rig config.
+- :class:`AnalysisPlan` / :func:`run_analyses` (``_analysis``): the paper's analyses as ``rigctl analyze`` and the
+  GUI's analysis tab run them (which tasks, the parameter objects of :mod:`rigctl.analysis.params`, baseline,
+  skip or raise); :func:`load_or_encode`, :func:`train_model`.
 - :class:`LiveEncoder` (``_live``): the taxel stream encoded into SA/RA spikes as it arrives, into
   :class:`SpikeRing` s a live view reads.
 
@@ -16,6 +19,16 @@ The values they speak in (:class:`rigctl.core.drum.DrumStatus`, :class:`rigctl.c
 faults, errors) are :mod:`rigctl.core.drum`'s, shared by every layer.
 """
 
+from rigctl.operations._analysis import (
+    ANALYSIS_TASKS,
+    AnalysisPlan,
+    BaselineError,
+    TrainedModel,
+    encoded_path_for,
+    load_or_encode,
+    run_analyses,
+    train_model,
+)
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
@@ -26,4 +39,6 @@ __all__ = [
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
+    "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
+    "train_model", "TrainedModel",
 ]
