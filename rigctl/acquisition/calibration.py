@@ -77,13 +77,19 @@ class LoadCellCalibration:
         return asdict(self)
 
 
+def _sleep(drum, s: float) -> None:
+    """Wait ``s`` on the controller's clock (simulated time in-process), as the drum client's own waits do."""
+    clock = getattr(drum, "clock", None)
+    (clock.sleep if clock is not None else time.sleep)(s)
+
+
 def _mean_raw(drum, n: int, interval_s: float) -> tuple[float, float, float]:
     raws, forces = [], []
     for _ in range(n):
         st = drum.read_status()
         raws.append(float(st.loadcell_raw))
         forces.append(float(st.force_g))
-        time.sleep(interval_s)
+        _sleep(drum, interval_s)
     return float(np.mean(raws)), float(np.std(raws)), float(np.mean(forces))
 
 
@@ -95,7 +101,7 @@ def calibrate_loadcell(
     remove_mass: Callable[[float], Any] | None = None,
     n_readings: int = 25,
     interval_s: float = 0.02,
-    settle_s: float = 0.3,
+    settle_s: float = 0.5,
     save: bool = True,
     config_file: str | os.PathLike | None | bool = None,
 ) -> LoadCellCalibration:
@@ -113,7 +119,8 @@ def calibrate_loadcell(
     mass_g : known mass, g (> 0)
     place_mass, remove_mass : callables that return once the mass is on / off the load cell
     n_readings, interval_s : raw readings averaged for each level, and their spacing (s)
-    settle_s : wait after placing/removing the mass before reading, s
+    settle_s : wait after placing/removing the mass before reading, s (0.5: the HX711 settles 4 conversion periods
+        after a step, 400 ms at 10 SPS; Avia HX711 datasheet)
     save : SAVE_CALIBRATION to the controller's EEPROM
     config_file : where to store the result in the rig config (``loadcell`` block); None = default path,
         False = do not store
@@ -131,11 +138,11 @@ def calibrate_loadcell(
         raise ValueError(f"mass_g must be > 0, got {mass_g}")
     wait_released(drum, timeout_s=30.0)
     drum.tare()
-    time.sleep(settle_s)
+    _sleep(drum, settle_s)
     zero, noise, _ = _mean_raw(drum, n_readings, interval_s)
     place_mass(mass_g)
     try:
-        time.sleep(settle_s)
+        _sleep(drum, settle_s)  # the HX711 settles 4 conversion periods after the mass lands (50 / 400 ms)
         loaded, _, _ = _mean_raw(drum, n_readings, interval_s)
         delta = loaded - zero
         if delta <= max(10 * noise / np.sqrt(n_readings), 1.0):
@@ -151,7 +158,7 @@ def calibrate_loadcell(
                                    f"holds ({exc.low:g}-{exc.high:g} counts/g)") from None
         if save:
             drum.save_calibration()
-        time.sleep(settle_s)
+        _sleep(drum, settle_s)
         _, _, check = _mean_raw(drum, max(5, n_readings // 2), interval_s)
     finally:
         if remove_mass is not None:

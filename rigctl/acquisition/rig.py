@@ -42,6 +42,8 @@ from rigctl.acquisition.protocol import PlannedTrial, Settle
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
 from rigctl.core.drum import (
     DRUM_CIRCUMFERENCE_MM,
+    DRUM_MICROSTEPS,
+    DRUM_STEPS_PER_REV,
     PROTOCOL_LIMITS,
     DrumError,
     DrumFault,
@@ -76,6 +78,10 @@ INDEX_GAP_MAX_FRAMES = 5
 #: ms, up to ~0.4 s seen; a revolution is 2.1-7.9 s at 150-40 mm/s)
 INDEX_PREDICTION_TOLERANCE_S = 0.5
 INDEX_PREDICTION_TOLERANCE_REVS = 0.1
+#: a trial's drum speed measured by the index sensor may differ from its setpoint by this fraction (and the
+#: microsteps per revolution counted between two index edges from the firmware's steps_per_rev x microsteps) before
+#: the trial is flagged ``drum_speed_mismatch`` (a driver at another microstep setting, a wrong drum diameter)
+DRUM_SPEED_TOLERANCE = 0.03
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0
 
@@ -114,6 +120,10 @@ class _Status:
     speed_mm_s: float
     state: int
     faults: int
+    index_source: str = "steps"
+    index_period_s: float = 0.0
+    index_steps: int = 0
+    index_count: int = 0
 
 
 def _utc_now() -> str:
@@ -439,7 +449,8 @@ class Rig:
         t0 = clock.now()
         st = self.drum.read_status()
         t1 = clock.now()
-        return _Status(0.5 * (t0 + t1), float(st.force_g), float(st.speed_mm_s), int(st.state), int(st.faults))
+        return _Status(0.5 * (t0 + t1), float(st.force_g), float(st.speed_mm_s), int(st.state), int(st.faults),
+                       str(st.index_source), float(st.index_period_s), int(st.index_steps), int(st.index_count))
 
     def _check_fault(self, s: _Status, what: str) -> None:
         if s.state == DrumState.FAULT:
@@ -644,7 +655,38 @@ class Rig:
         data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
                            layout=layout, host_rate_hz=host_rate)
         data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
+        data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1]))
+        if data.attrs["drum_speed_mismatch"]:
+            log.warning("trial %d: %s", planned.trial_id, data.attrs["drum_speed_warning"])
         return data
+
+
+def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
+    """What the drum index sensor measured during a trial (docs/session-format.md, trial attributes).
+
+    ``first`` and ``last``: the drum statuses at the start and the end of the capture (``index_source``,
+    ``index_period_s``, ``index_steps``, ``index_count``). Returns ``index_source`` ("sensor" or "steps": what
+    marked the index at the end), ``drum_speed_index_mm_s`` (pi x diameter / the index period when both edges of
+    that period fell inside the capture of a constant-speed trial, else NaN), ``drum_steps_per_rev_index``
+    (microsteps the firmware sent between the last two index edges, 0 without a sensor: speed-independent),
+    ``drum_speed_mismatch`` (True when either differs from what the step count says by more than
+    :data:`DRUM_SPEED_TOLERANCE`) and ``drum_speed_warning`` (its explanation, "" when none). Geometry:
+    :mod:`rigctl.core.drum`.
+    """
+    usteps = DRUM_STEPS_PER_REV * DRUM_MICROSTEPS
+    fresh = (int(last.index_count) - int(first.index_count)) % 65536 >= 2 and last.index_period_s > 0
+    speed = (DRUM_CIRCUMFERENCE_MM / last.index_period_s) if fresh and not planned.is_ramp else math.nan
+    steps = int(last.index_steps) if last.index_source == "sensor" else 0
+    why = []
+    if steps and abs(usteps / steps - 1.0) > DRUM_SPEED_TOLERANCE:
+        why.append(f"the drum turned once every {steps} microsteps, the firmware assumes {usteps} (is the driver "
+                   f"set to {DRUM_MICROSTEPS * steps / usteps:g} microsteps instead of {DRUM_MICROSTEPS}?)")
+    if math.isfinite(speed) and abs(speed / planned.speed_mm_s - 1.0) > DRUM_SPEED_TOLERANCE:
+        why.append(f"the index sensor measured {speed:.1f} mm/s at a setpoint of {planned.speed_mm_s:g} mm/s "
+                   "(wrong microstep setting or drum diameter?)")
+    return {"index_source": str(last.index_source), "drum_speed_index_mm_s": float(speed),
+            "drum_steps_per_rev_index": steps, "drum_speed_mismatch": bool(why),
+            "drum_speed_warning": "; ".join(why)}
 
 
 def locate_index(cap, n: int, t_index: float, *,

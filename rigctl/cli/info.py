@@ -26,7 +26,8 @@ def session_summary(path: str | Path) -> dict:
     trial_id, texture, profile, speed_mm_s, ramp_start_mm_s, ramp_end_mm_s, force_g, duration_s, status, samples,
     samples_per_s = samples / duration_s (the trial's length), host_rate_hz (frames per second on the host clock,
     lower-envelope estimate over the stream up to the trial's end), dropped_frames, crc_errors, force_mean_g,
-    speed_mean_mm_s, error) and ``totals``.
+    speed_mean_mm_s, index_source, drum_speed_index_mm_s, drum_speed_warning ("" unless the trial is flagged
+    drum_speed_mismatch), error) and ``totals``.
     """
     path = Path(path)
     with open_session(path) as s:
@@ -59,6 +60,10 @@ def session_summary(path: str | Path) -> dict:
                     t["crc_errors"] = int(a.get("crc_errors", 0))
                     t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
                     t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
+                    t["index_source"] = str(a.get("index_source", "")) or None
+                    t["drum_speed_index_mm_s"] = _num(a.get("drum_speed_index_mm_s", math.nan))
+                    t["drum_speed_warning"] = str(a.get("drum_speed_warning", "")) if a.get(
+                        "drum_speed_mismatch", False) else ""
             trials.append(t)
         done = [t for t in trials if t["status"] == "complete"]
         totals = {
@@ -145,6 +150,9 @@ def info(file, as_json):
         if t.get("error"):
             line += f" ({t['error']})"
         click.echo(line)
+    for t in summary["trials"]:
+        if t.get("drum_speed_warning"):
+            click.echo(f"warning: trial {t['trial_id']}: drum speed mismatch: {t['drum_speed_warning']}")
     tot = summary["totals"]
     click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete, {tot['failed']} failed, "
                f"{tot['pending']} pending; {tot['samples']} samples over {tot['recorded_s']:.1f} s of trials; "

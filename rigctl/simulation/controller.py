@@ -190,7 +190,8 @@ class MegaController:
         act_mm = self._actuator_position_mm()
         regs = [0] * wire.N_INPUT
         regs[IR.FORCE_G] = _u16(max(-32768, min(32767, self._force_g)))
-        regs[IR.SPEED_0P1MMS] = _u16(m.drum_speed_mm_s * 10)
+        d = m.config.drum  # the speed by the step rate, as the firmware knows it (not the real drum's)
+        regs[IR.SPEED_0P1MMS] = _u16(m.drum_speed_mm_s * d.true_steps_per_mm / d.steps_per_mm * 10)
         regs[IR.DRUM_ANGLE_0P01DEG] = int(self._index_angle_deg() * 100) % 36000
         regs[IR.DRUM_REVOLUTIONS] = self._revolutions & 0xFFFF
         regs[IR.ACTUATOR_POSITION_0P01MM] = _u16(max(-32768, min(32767, act_mm * 100)))

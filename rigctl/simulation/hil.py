@@ -178,6 +178,8 @@ class HilRig:
         Source impedance of every taxel, Ohm (default 47 kOhm, docs/firmware.md "Multiplexer settling"): the Uno
         harness charges each 74HC4051 common node and the ADC's sample-and-hold capacitor through it, so a firmware
         that converts before the node settles reads part of the previous input. :meth:`set_taxel_ohm` changes one.
+    tel_ms : float
+        Period of the Mega harness's ``TEL`` reports (actuator, spring force, step counts), ms of simulated time.
 
     Attributes
     ----------
@@ -195,7 +197,8 @@ class HilRig:
     """
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
-                 uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0):
+                 uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
+                 tel_ms: float = 50.0):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -205,6 +208,7 @@ class HilRig:
         self.uno_boot_ms = uno_boot_ms
         self.with_uno = with_uno
         self.taxel_ohm = float(taxel_ohm)
+        self.tel_ms = float(tel_ms)
         self.mux: dict[str, float] = {}
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
@@ -290,11 +294,12 @@ class HilRig:
         return self
 
     def _hardware_args(self) -> list[str]:
-        """The harness options of the HX711 (rate, oscillator error), the drum driver's microstep setting and the
-        index sensor, from the rig config (``MechanicsConfig.hx711_*``, ``DrumConfig.driver_microsteps``,
-        ``DrumConfig.index_sensor``)."""
+        """The harness options of the telemetry period (``tel_ms``), the HX711 (rate, oscillator error), the drum
+        driver's microstep setting and the index sensor, from the rig config (``MechanicsConfig.hx711_*``,
+        ``DrumConfig.driver_microsteps``, ``DrumConfig.index_sensor``)."""
         m, d = self.config.mechanics, self.config.drum
-        args = ["--hx711-sps", str(int(m.hx711_rate_sps)), "--hx711-clock-error", str(m.hx711_clock_error),
+        args = ["--tel-ms", str(self.tel_ms), "--hx711-sps", str(int(m.hx711_rate_sps)),
+                "--hx711-clock-error", str(m.hx711_clock_error),
                 "--drum-driver-microsteps", str(d.true_microsteps)]
         return args if d.index_sensor else [*args, "--no-index-sensor"]
 

@@ -66,10 +66,11 @@ def test_loadcell_calibration_inprocess(rig, tmp_path):
     place, remove = calibration.simulated_mass(rig)
     rig.drum.set_loadcell_scale(400.0)
     result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
-                                            n_readings=10, interval_s=0.0, settle_s=0.0, config_file=cfg)
+                                            n_readings=10, interval_s=0.0, settle_s=0.1, config_file=cfg)
     assert abs(result.counts_per_g - TRUE_COUNTS_PER_G) / TRUE_COUNTS_PER_G < 0.01
     assert rig.drum.read_holding(HoldingRegister.LOADCELL_SCALE_X100) == result.scale_x100
     assert abs(result.check_force_g - 500.0) < 5
+    rig.drum.clock.sleep(0.1)  # the mass is off: the HX711 settles 4 conversion periods later (50 ms at 80 SPS)
     assert abs(rig.drum.read_status().force_g) < 5
     assert json.loads(cfg.read_text())["loadcell"]["scale_x100"] == result.scale_x100
 

@@ -1,0 +1,115 @@
+"""Force-loop benchmark (issue 22 item 2): step responses of the Mega firmware's force loop under simavr, with the
+HX711's conversion delay modelled (the harness's sinc^4 filter, one reading per conversion period), over contact
+stiffness 0.25-2 kg/mm, at 10 and 80 SPS, from home to 250, 500 and 1000 g.
+
+Per run: the overshoot (highest spring force - setpoint, g), the settling time (from PRESS until the force stays
+within FORCE_TOLERANCE_G of the setpoint, s; "-" when it never does within the window) and the residual oscillation
+(peak-to-peak of the force over the last 2 s of the window, g). The force is the harness's spring force (the real
+contact force, ``TEL`` every 5 ms of simulated time), not the HX711's delayed reading. At 10 SPS the firmware
+refuses to press with its default HX711_RATE_SPS = 80 (fault HX711_RATE): the run first accepts the rate
+(``DrumClient.set_force_loop(ForceLoopConfig(hx711_rate_sps=10))``), so its 10 SPS gains run.
+
+Each (rate, stiffness) pair runs in its own harness, paced to real time (~35 % of a core): about 2 minutes at 80 SPS
+and 6-8 at 10 SPS on an idle machine. A row is marked OSC when the residual oscillation exceeds 2 x
+FORCE_TOLERANCE_G (the issue's criterion: no sustained oscillation beyond the tolerance where the firmware runs).
+
+Usage: python benchmarks/bench_force_loop.py [--rates 80,10] [--stiffness 250,500,1000,2000] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from rigctl.devices.drum import DrumClient, ForceLoopConfig
+from rigctl.devices.wire import DrumState, HoldingRegister as HR
+from rigctl.simulation.hil import HilRig
+from rigctl.simulation.model import MechanicsConfig, RigConfig
+
+SETPOINTS_G = (250, 500, 1000)
+TAIL_S = 2.0
+
+
+def step_response(rig: HilRig, drum: DrumClient, setpoint_g: float, tol_g: float, window_s: float) -> dict:
+    """PRESS from home to ``setpoint_g``; sample the spring force until it has stayed in the band for TAIL_S (or
+    ``window_s`` passed); STOP and wait until released."""
+    drum.set_force(setpoint_g)
+    t0 = rig.next_telemetry().t_s
+    drum.press()
+    samples: list[tuple[float, float]] = []
+    last_out = 0.0
+    while True:
+        drum.read_status()  # feeds the host watchdog
+        tel = rig.next_telemetry()
+        t = tel.t_s - t0
+        samples.append((t, tel.force_g))
+        if abs(tel.force_g - setpoint_g) > tol_g:
+            last_out = t
+        if (t - last_out >= TAIL_S and t > 0.5) or t >= window_s:
+            break
+    drum.stop()
+    drum.wait_released(timeout_s=30)
+    forces = [f for _, f in samples]
+    tail = [f for t, f in samples if t >= samples[-1][0] - TAIL_S]
+    settled = samples[-1][0] - last_out >= TAIL_S
+    return {"setpoint_g": setpoint_g, "overshoot_g": round(max(forces) - setpoint_g, 1),
+            "settle_s": round(last_out, 2) if settled else None, "residual_pp_g": round(max(tail) - min(tail), 1)}
+
+
+def run(rate_sps: int, stiffness_g_per_mm: float) -> list[dict]:
+    cfg = RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=float(rate_sps),
+                                              contact_stiffness_g_per_mm=stiffness_g_per_mm))
+    window_s = 12.0 if rate_sps == 80 else 45.0
+    rows = []
+    with HilRig(cfg, live=False, with_uno=False, tel_ms=5.0) as rig:
+        drum = DrumClient(rig.drum_port, timeout_s=1.0, clock=rig.clock).open()
+        try:
+            deadline = time.monotonic() + 15
+            while drum.read_status().hx711_rate_sps == 0:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the firmware did not time the HX711 rate")
+                time.sleep(0.05)
+            measured = drum.read_status().hx711_rate_sps
+            if drum.read_status().state == DrumState.FAULT:  # a 10 SPS board: accept it, its own gains
+                drum.set_force_loop(ForceLoopConfig(hx711_rate_sps=rate_sps))
+                drum.clear_fault()
+            tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
+            for sp in SETPOINTS_G:
+                r = step_response(rig, drum, sp, tol, window_s)
+                r.update(rate_sps=rate_sps, measured_sps=measured, stiffness_kg_per_mm=stiffness_g_per_mm / 1000,
+                         oscillating=r["residual_pp_g"] > 2 * tol)
+                rows.append(r)
+                print(f"  {rate_sps:>3} SPS  k {stiffness_g_per_mm / 1000:4.2f} kg/mm  {sp:>5} g: overshoot "
+                      f"{r['overshoot_g']:7.1f} g  settle {r['settle_s'] if r['settle_s'] is not None else '-':>6} s  "
+                      f"residual {r['residual_pp_g']:6.1f} g p-p", file=sys.stderr, flush=True)
+        finally:
+            drum.close()
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rates", default="80,10")
+    ap.add_argument("--stiffness", default="250,500,1000,2000", help="contact stiffness, g/mm")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    rows = []
+    for rate in (int(r) for r in args.rates.split(",")):
+        for k in (float(x) for x in args.stiffness.split(",")):
+            rows.extend(run(rate, k))
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return
+    print("| HX711 | stiffness (kg/mm) | setpoint (g) | overshoot (g) | settling (s) | residual p-p (g) |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        settle = f"{r['settle_s']:.2f}" if r["settle_s"] is not None else "not settled"
+        flag = " OSC" if r["oscillating"] else ""
+        print(f"| {r['rate_sps']} SPS | {r['stiffness_kg_per_mm']:.2f} | {r['setpoint_g']:g} | {r['overshoot_g']:.0f} | "
+              f"{settle} | {r['residual_pp_g']:.1f}{flag} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,58 @@
+"""The drum index sensor in every trial's attributes (issue 22 item 3), on the in-process simulated rig: which
+source marked the index, the drum speed the sensor measured, and a driver at another microstep setting flagged
+(the simulated drum turns by the driver's real setting; rigctl.simulation.model.DrumConfig.driver_microsteps)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import pytest
+from click.testing import CliRunner
+
+from rigctl.acquisition.protocol import parse_protocol
+from rigctl.acquisition.runner import run_protocol
+from rigctl.cli import main as cli
+from rigctl.rigs import open_rig
+from rigctl.simulation.model import DrumConfig, RigConfig
+from rigctl.storage.session import open_session
+
+PROTO = ('name = "index"\ntextures = ["A"]\nspeeds_mm_s = [120]\nforces_g = [300]\ntrials_per_condition = 3\n'
+         'duration_s = 3.0\n[settle]\nsettle_time_ms = 50\n')
+
+
+def _record(tmp_path, drum: DrumConfig):
+    out = tmp_path / "s.h5"
+    with open_rig("inprocess", config=RigConfig(drum=drum), seed=4, host_config_path=tmp_path / "rig.json") as rig:
+        summary = run_protocol(parse_protocol(PROTO), out, rig=rig)
+    assert summary.ok
+    with open_session(out) as s:
+        return out, [s.trial_attrs(t) for t in range(3)]
+
+
+def test_a_well_set_driver_records_the_index_speed_beside_the_setpoint(tmp_path):
+    _, attrs = _record(tmp_path, DrumConfig())
+    assert all(a["index_source"] == "sensor" for a in attrs)
+    assert all(a["drum_steps_per_rev_index"] == 3200 and not a["drum_speed_mismatch"] for a in attrs)
+    measured = [a["drum_speed_index_mm_s"] for a in attrs if math.isfinite(a["drum_speed_index_mm_s"])]
+    assert measured and all(v == pytest.approx(120, rel=0.01) for v in measured)
+
+
+def test_a_driver_at_8_microsteps_is_flagged_and_warned(tmp_path, caplog):
+    """Fails without the index sensor: the step count says 120 mm/s whatever the drum does."""
+    with caplog.at_level(logging.WARNING, logger="rigctl.acquisition.rig"):
+        out, attrs = _record(tmp_path, DrumConfig(driver_microsteps=8))
+    assert all(a["drum_speed_mismatch"] for a in attrs)
+    assert all(a["drum_steps_per_rev_index"] == pytest.approx(1600, abs=2) for a in attrs)
+    measured = [a["drum_speed_index_mm_s"] for a in attrs if math.isfinite(a["drum_speed_index_mm_s"])]
+    assert measured and all(v == pytest.approx(240, rel=0.02) for v in measured)
+    assert "8 microsteps instead of 16" in attrs[0]["drum_speed_warning"]
+    assert any("drum turned once every" in r.getMessage() for r in caplog.records)
+    res = CliRunner().invoke(cli, ["info", str(out)])
+    assert res.exit_code == 0 and "warning: trial 0: drum speed mismatch" in res.output
+
+
+def test_without_an_index_sensor_the_step_count_is_the_source(tmp_path):
+    _, attrs = _record(tmp_path, DrumConfig(index_sensor=False))
+    assert all(a["index_source"] == "steps" and a["drum_steps_per_rev_index"] == 0 for a in attrs)
+    assert all(math.isnan(a["drum_speed_index_mm_s"]) and not a["drum_speed_mismatch"] for a in attrs)
