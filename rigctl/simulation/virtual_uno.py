@@ -55,7 +55,7 @@ class VirtualUno:
     Notes
     -----
     Fault injection (for tests): :meth:`inject_garbage`, :meth:`corrupt_frames`, :meth:`drop_frames`,
-    :meth:`drop_sync_frames`.
+    :meth:`drop_sync_frames`, :meth:`stall`.
     """
 
     def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0, layout: SensorLayout | None = None):
@@ -80,6 +80,7 @@ class VirtualUno:
         self._corrupt_bits = 1
         self._drop_left = 0
         self._drop_sync_left = 0
+        self._stalled_until: float | None = None
         self.frames_sent = 0
         self.frames_dropped = 0
         #: samples handed to :meth:`tick` so far, and their count when the last START took effect: the frame with
@@ -116,6 +117,13 @@ class VirtualUno:
         with self._lock:
             self._drop_sync_left += int(n)
 
+    def stall(self, seconds: float) -> None:
+        """The board hangs for ``seconds`` (a firmware lock-up, a USB hub that stops forwarding): nothing is sampled
+        or sent and nothing is read, while the port stays open; then it carries on streaming where it was (its
+        sequence numbers continue: the host sees silence, not a sequence gap)."""
+        with self._lock:
+            self._stalled_until = time.monotonic() + float(seconds)
+
     # ------------------------------------------------------------------ unplug / replug
     def unplug(self) -> None:
         """The USB cable is pulled: the port vanishes, the board stops streaming."""
@@ -146,6 +154,10 @@ class VirtualUno:
             if not port.plugged:
                 return
             now = time.monotonic()
+            if self._stalled_until is not None:
+                if now < self._stalled_until:
+                    return
+                self._stalled_until = None
             if port.client_opened():  # DTR reset on open
                 self.streaming = False
                 port.discard_output()

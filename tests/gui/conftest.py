@@ -1,12 +1,19 @@
 """GUI test setup: a real Qt window offscreen (QT_QPA_PLATFORM=offscreen), QSettings and the rig config file in a
 temporary directory (per test, or per module for the shared window; both restored afterwards), and one main window
 on the simulated rig shared by a test module (opening the rig takes a few seconds: boards boot, the actuator homes).
-Every test here is marked ``gui`` (tests/conftest.py)."""
+Every test here is marked ``gui`` (tests/conftest.py). :func:`x_server`: a private X server with a window manager,
+for the tests that need real X (test_gui_x11.py): Xvfb on a free display number (``-displayfd``: parallel test
+workers never collide) with openbox, so windows get real frames, focus and placement; needs the Debian packages
+xvfb, openbox and xdotool (scripts/test.sh installs them)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
+import subprocess
+import time
+from collections.abc import Iterator
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -87,3 +94,55 @@ def window(qapp, window_home):
     del w
     gc.collect()
     qapp.processEvents()
+
+
+TOOLS = ("Xvfb", "openbox", "xdotool")
+
+
+def missing_tools() -> list[str]:
+    return [t for t in TOOLS if shutil.which(t) is None]
+
+
+@contextlib.contextmanager
+def x_server(width: int, height: int) -> Iterator[dict]:
+    """Start Xvfb (one ``width`` x ``height`` x 24 screen) and openbox; yield the environment to run a client in
+    (``DISPLAY``, ``QT_QPA_PLATFORM=xcb``); kill both afterwards. Skips the test when a tool is missing (fails under
+    ``CI=true``)."""
+    miss = missing_tools()
+    if miss:
+        msg = f"{', '.join(miss)} not installed (scripts/test.sh installs them)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+    r, wfd = os.pipe()
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(wfd), "-screen", "0", f"{width}x{height}x24", "-nolisten",
+                             "tcp"], pass_fds=(wfd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(wfd)
+    wm = None
+    try:
+        with os.fdopen(r) as f:
+            number = f.readline().strip()
+        if not number:
+            raise RuntimeError("Xvfb did not report its display number")
+        env = dict(os.environ, DISPLAY=f":{number}", QT_QPA_PLATFORM="xcb")
+        env.pop("WAYLAND_DISPLAY", None)
+        wm = subprocess.Popen(["openbox", "--sm-disable"], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:  # openbox is up once its own (WM check) window exists
+            probe = subprocess.run(["xdotool", "search", "--maxdepth", "1", "--class", "openbox"], env=env,
+                                   capture_output=True, text=True)
+            if probe.returncode == 0 or wm.poll() is not None:
+                break
+            time.sleep(0.2)
+        time.sleep(0.5)
+        yield env
+    finally:
+        for p in (wm, xvfb):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(5)

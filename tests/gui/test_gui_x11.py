@@ -1,0 +1,91 @@
+"""The app on a real X server (issue 25's "done when"): Xvfb at 1024x700 and 1280x800 with a window manager
+(openbox), real X clicks and keys from xdotool, the simulated rig on ptys. One run of tests/gui/x11_driver.py per
+screen size measures everything (it asserts nothing); the tests here judge what it measured:
+
+- the window fits the screen and STOP's rectangle lies inside it, on first start and after a larger size was saved;
+- with a menu open, and with a drop-down open, one click on STOP stops the turning drum;
+- the wheel over the unfocused speed box changes nothing (and over the focused one it does: the wheel does arrive);
+- Esc in a dialog during a protocol run closes the dialog and the run goes on;
+- the simulated Uno stalled for 6 s: the taxel banner and a log line within 2 s, no control moved by a pixel when
+  the banner appeared, and once frames come again the live traces show the gap.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from .conftest import x_server
+
+DRIVER = Path(__file__).with_name("x11_driver.py")
+SIZES = [(1024, 700), (1280, 800)]
+
+pytestmark = [pytest.mark.gui, pytest.mark.realtime, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module", params=SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def measured(request, tmp_path_factory):
+    width, height = request.param
+    out = tmp_path_factory.mktemp(f"x11_{width}x{height}") / "measured.json"
+    with x_server(width, height) as env:
+        proc = subprocess.run([sys.executable, str(DRIVER), str(out)], env=env, capture_output=True, text=True,
+                              timeout=600)
+    assert proc.returncode == 0 and out.exists(), proc.stderr[-3000:]
+    data = json.loads(out.read_text())
+    data["size"] = (width, height)
+    return data
+
+
+def _inside(inner, outer) -> bool:
+    x, y, w, h = inner
+    ox, oy, ow, oh = outer
+    return ox <= x and oy <= y and x + w <= ox + ow and y + h <= oy + oh
+
+
+@pytest.mark.parametrize("start", ["fit_first", "fit_restored"])
+def test_the_window_and_stop_fit_the_screen(measured, start):
+    m = measured[start]
+    assert m["visible"]
+    assert m["avail"][2:] == list(measured["size"]) or _inside(m["avail"], m["screen"])
+    assert _inside(m["frame"], m["avail"]), m  # the whole window, title bar included
+    assert _inside(m["stop"], m["avail"]), m
+    if start == "fit_restored":  # a saved size larger than this screen came back no larger than the screen
+        assert m["frame"][2] <= measured["size"][0] and m["frame"][3] <= measured["size"][1]
+
+
+@pytest.mark.parametrize("case", ["menu_stop", "combo_stop"])
+def test_one_click_on_stop_stops_the_drum_with_a_popup_open(measured, case):
+    assert measured["connected"], measured.get("connect_error")
+    r = measured[case]
+    assert r["spinning"] and r["popup"] is not None, r  # the drum turned and the popup was really open
+    assert r["stopped"], r  # drum at rest, speed target 0, after a single click
+    assert r["routed_by_guard"] == 1 and not r["popup_after"], r
+
+
+def test_the_wheel_over_an_unfocused_spin_box_changes_nothing(measured):
+    r = measured["wheel"]
+    assert not r["unfocused_has_focus"] and r["unfocused_value"] == 80.0, r
+    assert r["focused_has_focus"] and r["focused_value"] > 80.0, r  # the wheel events did arrive
+
+
+def test_esc_in_a_dialog_during_a_run_leaves_the_run_going(measured):
+    r = measured["esc_dialog"]
+    assert r["running"] and r["dialog_open"] and r["dialog_closed"], r
+    assert r["running_after"] and not r["log_aborted"], r
+
+
+def test_a_stalled_taxel_stream_is_shown_everywhere_and_moves_nothing(measured):
+    r = measured["stall"]
+    assert r["spinning"] and not r["banner_before"], r
+    assert r["banner_shown"] and r["banner_s"] <= 2.0, r
+    assert r["log_s"] is not None and r["log_s"] <= 2.0 and "stalled" in r["log_line"], r
+    assert "STALLED" in r["status_text"], r
+    assert r["n_widgets"] > 5 and r["moved"] == {}, r["moved"]
+    assert r["resumed"] and r["gaps"], r
+    (where, length), *_ = r["gaps"]
+    assert 5.0 <= length <= 8.0, r["gaps"]  # the 6 s outage, as seen by the host
+    assert all(n >= 2 for n in r["segments"]), r  # each trace plot breaks its lines at the gap

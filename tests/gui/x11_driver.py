@@ -1,0 +1,257 @@
+"""Drive the real app on a real X server (run by tests/gui/test_gui_x11.py under Xvfb + openbox, never directly).
+
+``python x11_driver.py OUT.json`` with ``DISPLAY`` set: opens the main window as an experimenter would, clicks and
+types with xdotool (real X events through the X server, past the popups' pointer grabs), and writes what it measured
+to ``OUT.json`` for the test to judge. Nothing is asserted here: the test does that.
+
+Measures, in order:
+
+- ``fit``: first start (fresh settings) and a start after a larger size was saved: the screen's available area, the
+  window's frame and STOP's rectangle on screen;
+- ``menu_stop`` / ``combo_stop``: the drum turning, a menu (File) or the plate drop-down opened by a click, then
+  one click on STOP: whether the popup was open, the controller's state and speed target afterwards;
+- ``wheel``: the wheel over the unfocused speed box, then over the focused one: the values;
+- ``esc_dialog``: a protocol running, the keyboard-shortcuts dialog opened, Esc: the dialog closed, the run going;
+- ``stall``: the live tab shown, every visible widget's geometry; the simulated Uno stalled 6 s: the time until the
+  taxel banner and the log line, every widget's geometry again, and after it resumes the gaps in the live traces.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+PROTOCOL = """
+name = "x11_run"
+textures = ["A"]
+speeds_mm_s = [60]
+forces_g = [300]
+trials_per_condition = 3
+duration_s = 2.0
+retries = 0
+"""
+
+
+def main(out_path: str) -> int:
+    tmp = tempfile.mkdtemp(prefix="rigctl-x11-")
+    os.environ["RIGCTL_CONFIG"] = os.path.join(tmp, "rig.json")
+    from PySide6 import QtCore, QtWidgets
+
+    QtCore.QSettings.setPath(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, os.path.join(tmp, "settings"))
+    app = QtWidgets.QApplication(sys.argv[:1])
+    from rigctl.devices.wire import DrumState
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph, make_settings
+    from rigctl_gui.dialogs import open_dialogs
+    from rigctl_gui.events import wait_for
+    from rigctl_gui.workers import RigSource
+
+    configure_pyqtgraph()
+    out: dict = {}
+
+    def wait(pred, timeout_s):
+        return wait_for(app, pred, timeout_s)
+
+    def pause(s):
+        wait(lambda: False, s)
+
+    def xdo(*args):
+        subprocess.run(["xdotool", *map(str, args)], check=True, timeout=10)
+        pause(0.2)
+
+    def centre(w):
+        p = w.mapToGlobal(QtCore.QPoint(w.width() // 2, w.height() // 2))
+        return p.x(), p.y()
+
+    def click(w):
+        xdo("mousemove", *centre(w))
+        xdo("click", 1)
+
+    def rect(w):
+        p = w.mapToGlobal(QtCore.QPoint(0, 0))
+        return [p.x(), p.y(), w.width(), w.height()]
+
+    def place(w):
+        screen = w.screen()
+        g = w.frameGeometry()
+        return {"avail": list(screen.availableGeometry().getRect()), "screen": list(screen.geometry().getRect()),
+                "frame": list(g.getRect()), "stop": rect(w.stop_btn), "visible": w.isVisible()}
+
+    # --- fit: first start, then after a larger size was saved ---
+    w = MainWindow(autoconnect=False)
+    w.show()
+    pause(2.5)
+    out["fit_first"] = place(w)
+    w.close()
+    big = MainWindow(autoconnect=False)  # never shown: no window manager clamps it
+    big.setGeometry(0, 0, 2400, 1600)
+    make_settings().setValue("ui/geometry", big.saveGeometry())
+    big.deleteLater()
+    w = MainWindow(autoconnect=False)
+    out["restored_size_before_fit"] = [w.width(), w.height()]
+    w.show()
+    pause(2.5)
+    out["fit_restored"] = place(w)
+    w.close()
+    app.processEvents()
+
+    # --- the rig: the simulated rig on ptys ---
+    w = MainWindow(RigSource("sim"))
+    w.show()
+    ok = wait(lambda: w.handle is not None, 60)
+    out["connected"] = ok
+    if not ok:
+        out["connect_error"] = w.banner.label.text()
+        return _write(out_path, out)
+    pause(1.0)
+    w.tabs.setCurrentWidget(w.control)
+    sim = w.handle.sim
+
+    def state():
+        st = w.poller.latest
+        return (int(st.state), float(st.speed_target_mm_s)) if st is not None else (None, None)
+
+    def spin():
+        w.control.speed.setValue(60.0)
+        w.control.force.setValue(300.0)
+        w.control.command("run")
+        return wait(lambda: state()[0] == DrumState.RUNNING and w.poller.latest.speed_mm_s > 20, 40)
+
+    def stopped():
+        return wait(lambda: state()[0] in (DrumState.IDLE, DrumState.HOMING) and state()[1] == 0, 15)
+
+    def click_menu(title):
+        mb = w.menuBar()
+        act = next(a for a in mb.actions() if a.text().replace("&", "") == title)
+        p = mb.mapToGlobal(mb.actionGeometry(act).center())
+        xdo("mousemove", p.x(), p.y())
+        xdo("click", 1)
+
+    for name, opener in (("menu_stop", lambda: click_menu("File")), ("combo_stop", lambda: click(w.control.plate))):
+        res = {"spinning": spin()}
+        routed = w.stop_guard.routed
+        opener()
+        wait(lambda: QtWidgets.QApplication.activePopupWidget() is not None, 3)
+        popup = QtWidgets.QApplication.activePopupWidget()
+        res["popup"] = type(popup).__name__ if popup is not None else None
+        t0 = time.monotonic()
+        click(w.stop_btn)  # one click
+        res["stopped"] = stopped()
+        res["stop_s"] = time.monotonic() - t0
+        res["routed_by_guard"] = w.stop_guard.routed - routed
+        res["popup_after"] = QtWidgets.QApplication.activePopupWidget() is not None
+        res["state_after"] = state()
+        out[name] = res
+        pause(0.5)
+
+    # --- wheel over the speed box: unfocused, then focused ---
+    box = w.control.speed
+    box.setValue(80.0)
+    w.tabs.tabBar().setFocus()
+    pause(0.3)
+    xdo("mousemove", *centre(box))
+    for _ in range(3):
+        xdo("click", 4)  # wheel up
+    res = {"unfocused_value": box.value(), "unfocused_has_focus": box.hasFocus()}
+    click(box)
+    for _ in range(3):
+        xdo("click", 4)
+    res["focused_value"] = box.value()
+    res["focused_has_focus"] = box.hasFocus()
+    out["wheel"] = res
+    box.setValue(80.0)
+    w.tabs.tabBar().setFocus()
+
+    # --- Esc in a dialog during a run ---
+    proto = os.path.join(tmp, "x11_run.toml")
+    with open(proto, "w") as f:
+        f.write(PROTOCOL)
+    tab = w.protocol
+    tab.load(proto)
+    tab.out_edit.setText(os.path.join(tmp, "x11_run.h5"))
+    tab.resume_box.setChecked(False)
+    tab.start()
+    res = {"running": wait(lambda: tab._current is not None, 60)}
+    w._show_shortcuts()
+    dlg = next((d for d in open_dialogs() if d.windowTitle() == "Keyboard shortcuts"), None)
+    res["dialog_open"] = dlg is not None
+    if dlg is not None:
+        click(dlg)  # the operator clicks into it (the window manager gives it the focus), then presses Esc
+        xdo("key", "Escape")
+        res["dialog_closed"] = wait(lambda: not any(d.windowTitle() == "Keyboard shortcuts" for d in open_dialogs()),
+                                    5)
+    pause(1.0)
+    res["running_after"] = tab.running and not tab.stop_event.is_set()
+    res["log_aborted"] = "aborted" in w.events.text()
+    out["esc_dialog"] = res
+    w.emergency_stop()
+    wait(lambda: tab.job is None, 30)
+    stopped()
+
+    # --- a stalled taxel stream: banner, log line, nothing moves, gaps in the plots ---
+    w.tabs.setCurrentWidget(w.live)
+    pause(2.0)
+    ok = spin()
+
+    def geometry():
+        g = {}
+        for c in w.findChildren(QtWidgets.QWidget):
+            if not c.isVisible() or c.window() is not w or c.objectName().startswith("banner") \
+                    or any(p.objectName().startswith("banner") for p in _parents(c)):
+                continue
+            if isinstance(c, (QtWidgets.QAbstractButton, QtWidgets.QAbstractSpinBox, QtWidgets.QComboBox,
+                              QtWidgets.QTabBar, QtWidgets.QLineEdit, QtWidgets.QAbstractScrollArea)):
+                p = c.mapTo(w, QtCore.QPoint(0, 0))
+                g[f"{type(c).__name__}:{c.objectName() or getattr(c, 'text', lambda: '')()}:{id(c)}"] = \
+                    [p.x(), p.y(), c.width(), c.height()]
+        return g
+
+    before = geometry()
+    banner = w.banners["taxel"]
+    res = {"spinning": ok, "banner_before": banner.isVisible(), "n_widgets": len(before)}
+    n_log = len(w.events.entries)
+    t0, wall0 = time.monotonic(), time.time()
+    sim.uno.stall(6.0)
+    res["banner_shown"] = wait(lambda: banner.isVisible() and "stalled" in banner.label.text(), 6)
+    res["banner_s"] = time.monotonic() - t0
+    res["log_s"] = None
+    for e in w.events.entries[n_log:]:
+        if "stalled" in e[3]:
+            res["log_s"] = e[0] - wall0
+            res["log_line"] = e[3]
+            break
+    res["banner_text"] = banner.label.text()
+    res["status_text"] = w.links.taxel.text()
+    after = geometry()
+    res["moved"] = {k: (before[k], after.get(k)) for k in before if after.get(k) != before[k]}
+    res["resumed"] = wait(lambda: w.links.health["taxel"].state.value in ("reconnected", "connected")
+                          and w.live.shown_gaps, 20)
+    pause(0.5)
+    res["gaps"] = [list(g) for g in w.live.shown_gaps]
+    res["segments"] = [len(it.segments) for it in w.live.trace_items]
+    out["stall"] = res
+    w.emergency_stop()
+    stopped()
+    w._close_confirmed = True
+    w.close()
+    return _write(out_path, out)
+
+
+def _parents(w):
+    p = w.parentWidget()
+    while p is not None:
+        yield p
+        p = p.parentWidget()
+
+
+def _write(path: str, out: dict) -> int:
+    with open(path, "w") as f:
+        json.dump(out, f, indent=1, default=str)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))
