@@ -10,9 +10,9 @@ DEBIAN_PACKAGES=(
   # independent Modbus master for tests
   mbpoll
   # virtual screen and the libraries Qt needs to run offscreen / under Xvfb
+  xvfb xauth libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libdbus-1-3 libfontconfig1 libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1
   # a window manager and real X input for the GUI tests under Xvfb (tests/gui/test_gui_x11.py)
   openbox xdotool
-  xvfb xauth libegl1 libgl1 libxkbcommon0 libxkbcommon-x11-0 libdbus-1-3 libfontconfig1 libxcb-cursor0 libxcb-icccm4 libxcb-keysyms1
 )
 
 SUDO=""
