@@ -9,10 +9,12 @@ from pathlib import Path
 
 def encode(session_path: str, out_path: str, progress=None) -> str:
     """Encode a session file into an encoded file (:func:`rigctl.encoding.pipeline.encode_session`); ``progress``
-    receives its :class:`rigctl.core.progress.ProgressEvent` s."""
+    receives its :class:`rigctl.core.progress.ProgressEvent` s. The tab's own ``<name>.encoded.h5`` is replaced
+    (the Encode button asks for it), under the library's output policy: refused while another writer holds it, never
+    the session itself, a full disk one line with nothing left behind."""
     from rigctl.encoding.pipeline import encode_session
 
-    return str(encode_session(session_path, out_path, progress=progress))
+    return str(encode_session(session_path, out_path, progress=progress, overwrite=True))
 
 
 def encoded_path_for(session_path: str) -> str:

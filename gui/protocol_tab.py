@@ -250,8 +250,13 @@ class ProtocolTab(QtWidgets.QWidget):
             set_plain(self.status, "choose an output file", error=True)
             return
         resume = self.resume_box.isChecked() and os.path.exists(out)
-        if os.path.exists(out) and not resume:
-            set_plain(self.status, f"{out} exists: tick 'Resume' to continue it, or choose another file", error=True)
+        from rigctl.storage.outputs import OutputError, check_output
+
+        try:  # the library's one output policy (exists, held by another writer, folder, ...)
+            check_output(out, option="output", overwrite=resume,
+                         overwrite_hint="tick 'Resume' to continue it, or choose another file")
+        except OutputError as exc:
+            set_plain(self.status, str(exc), error=True)
             return
         from rigctl.acquisition.runner import run_protocol
 

@@ -58,6 +58,12 @@ def _where(exc: BaseException) -> str:
 
 def as_click_error(exc: Exception) -> click.ClickException:
     """The one-line :class:`click.ClickException` shown for ``exc`` (see the module docstring)."""
+    from rigctl.storage.outputs import OutputError
+
+    if isinstance(exc, OutputError):  # an output refused before any work: a usage error
+        from rigctl.cli.outputs import UsageProblem
+
+        return UsageProblem(_message(exc))
     if is_rigctl_error(exc):
         return click.ClickException(_message(exc))
     if isinstance(exc, OSError):

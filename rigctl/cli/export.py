@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from rigctl.cli.outputs import UsageProblem, check_output, replacing
+from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars
 
 
@@ -27,18 +27,25 @@ def nwb(session, encoded, variants, out, overwrite, progress):
     """Export SESSION as an NWB file: taxel readings (TimeSeries), drum and load-cell traces, the trials table, the
     sensor and rig description, and with --encoded the SA/RA spike trains as a Units table (docs/nwb.md)."""
     from rigctl.storage.encoded import NotEncodedError
-    from rigctl.storage.nwb import NwbExportError, export_nwb
+    from rigctl.storage.nwb import NwbExportError, check_spike_variants, estimate_nwb_bytes, export_nwb
     from rigctl.storage.session import SessionError
 
-    check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",))
     vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
     try:
-        with replacing(out) as tmp, bars(progress, leave=False) as on_event:
-            summary = export_nwb(session, tmp, encoded_path=encoded, variants=vlist, progress=on_event)
+        if encoded is not None:  # before any work: an unknown variant is a usage error
+            check_spike_variants(encoded, vlist)
+        need = estimate_nwb_bytes(session, encoded)
+    except NwbExportError as exc:
+        raise UsageProblem(f"--variants: {exc}" if vlist else str(exc)) from None
+    except (SessionError, NotEncodedError) as exc:
+        raise click.ClickException(str(exc)) from None
+    check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",), need_bytes=need)
+    try:
+        with bars(progress, leave=False) as on_event:
+            summary = export_nwb(session, out, encoded_path=encoded, variants=vlist, progress=on_event,
+                                 overwrite=overwrite)
     except (NwbExportError, SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
-    except KeyError as exc:
-        raise UsageProblem(str(exc.args[0] if exc.args else exc)) from None
     units = ", ".join(f"{v}: {n} units, {summary.spikes[v]} spikes" for v, n in summary.units.items())
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_samples} samples x {summary.n_channels} taxels "
                f"at {summary.rate_hz:g} Hz" + (f"; {units}" if units else ""))

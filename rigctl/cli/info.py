@@ -23,14 +23,18 @@ def session_summary(path: str | Path) -> dict:
     ``n_channels``, ``sample_rate_hz``, ``adc_bits``, ``description`` = ``layout.describe()``, ``layout`` = its
     ``to_dict()``), ``texture_set`` (``name``, ``count``, ``labels``, ``groups``: group -> labels, empty when the
     set has none), ``trials`` (one dict per plan row:
-    trial_id, texture, profile, speed_mm_s, ramp_start_mm_s, ramp_end_mm_s, force_g, duration_s, status, samples,
+    trial_id, texture, profile, speed_mm_s, ramp_start_mm_s, ramp_end_mm_s, force_g, duration_s, status (``excluded``:
+    a complete trial the validator :func:`rigctl.storage.validate.usable_trials` refused, ``error`` says why), samples,
     samples_per_s = samples / duration_s (the trial's length), host_rate_hz (frames per second on the host clock,
     lower-envelope estimate over the stream up to the trial's end), dropped_frames, crc_errors, force_mean_g,
     speed_mean_mm_s, index_source, drum_speed_index_mm_s, drum_speed_warning ("" unless the trial is flagged
     drum_speed_mismatch), error) and ``totals``.
     """
+    from rigctl.storage.validate import usable_trials
+
     path = Path(path)
     with open_session(path) as s:
+        report = usable_trials(s)  # the one trial validator: excluded trials say why, as in encode and export
         trials = []
         for row in s.plan:
             tid = int(row["trial_id"])
@@ -43,7 +47,10 @@ def session_summary(path: str | Path) -> dict:
                 "status": status, "samples": 0, "samples_per_s": None, "host_rate_hz": None,
                 "dropped_frames": 0, "crc_errors": 0,
             }
-            if status in ("complete", "failed"):
+            if status == "complete" and tid in report.excluded:
+                t["status"] = "excluded"
+                t["error"] = report.excluded[tid]
+            elif status in ("complete", "failed"):
                 try:
                     a = s.trial_attrs(tid)
                 except KeyError:
@@ -56,7 +63,7 @@ def session_summary(path: str | Path) -> dict:
                     t["samples_per_s"] = n / t["duration_s"] if t["duration_s"] > 0 else None
                     # measured when recorded; None for generated/imported sessions (their clock is synthetic)
                     t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
-                    t["dropped_frames"] = int(a.get("dropped_frames", 0))
+                    t["dropped_frames"] = report.dropped_frames.get(tid, int(a.get("dropped_frames", 0)))
                     t["crc_errors"] = int(a.get("crc_errors", 0))
                     t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
                     t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
@@ -71,6 +78,7 @@ def session_summary(path: str | Path) -> dict:
             "complete": len(done),
             "failed": sum(t["status"] == "failed" for t in trials),
             "pending": sum(t["status"] == "pending" for t in trials),
+            "excluded": sum(t["status"] == "excluded" for t in trials),
             "samples": sum(t["samples"] for t in done),
             "recorded_s": sum(t["duration_s"] for t in done),
             "dropped_frames": sum(t["dropped_frames"] for t in done),
@@ -154,6 +162,7 @@ def info(file, as_json):
         if t.get("drum_speed_warning"):
             click.echo(f"warning: trial {t['trial_id']}: drum speed mismatch: {t['drum_speed_warning']}")
     tot = summary["totals"]
-    click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete, {tot['failed']} failed, "
+    excluded = f", {tot['excluded']} excluded as damaged" if tot["excluded"] else ""
+    click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete{excluded}, {tot['failed']} failed, "
                f"{tot['pending']} pending; {tot['samples']} samples over {tot['recorded_s']:.1f} s of trials; "
                f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors")

@@ -86,6 +86,7 @@ from rigctl.encoding.speed import (
 )
 from rigctl.encoding.spikes import SpikeTrains
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS, EncodedWriter
+from rigctl.storage.outputs import check_output
 
 __all__ = ["EncodeParams", "encode_session", "encode_batch", "trains_to_features", "SpeedMissingError", "windows_for"]
 
@@ -471,7 +472,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                    scheduler: str | None = None, workers: int | None = None,
                    progress: ProgressCallback | None = None,
                    trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 4e9,
-                   params: EncodeParams | None = None, overwrite: bool = True) -> Path:
+                   params: EncodeParams | None = None, overwrite: bool = False) -> Path:
     """Encode a session file (``rigctl.storage.session``) into an encoded file (:mod:`rigctl.storage.encoded`).
 
     Parameters
@@ -505,6 +506,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     that cannot be resampled to the model's.
     """
     from rigctl.storage.session import open_session
+    from rigctl.storage.validate import usable_trials
 
     p = replace(params) if params is not None else EncodeParams()
     explicit = variants is not None
@@ -514,15 +516,20 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         raise ValueError(f"unknown variants {bad}; choose from {', '.join(ALL_VARIANTS)}")
     session_path, out_path = Path(session_path), Path(out_path)
     if out_path.exists() and not overwrite:
-        raise FileExistsError(f"{out_path} exists (use --overwrite to replace it)")
+        raise FileExistsError(f"{out_path} exists (pass overwrite=True / --overwrite to replace it)")
+    check_output(out_path, overwrite=True, inputs=(session_path,))  # the output policy, before any work
     t_start = time.time()
 
     # ---- pass 1: labels, per-taxel range, model input for the force fit
     with open_session(session_path) as s:
         layout, textures = s.layout, s.textures
-        ids = s.completed_ids() if trial_ids is None else [int(t) for t in trial_ids]
+        report = usable_trials(s)  # the one trial validator: damaged trials excluded, with their reasons
+        ids = report.ids if trial_ids is None else [int(t) for t in trial_ids if int(t) not in report.excluded]
+        if report.excluded:
+            warnings.warn(f"{session_path}: {report.summary()}", stacklevel=2)
         if not ids:
-            raise ValueError(f"{session_path} has no complete trials")
+            raise ValueError(f"{session_path} has no usable complete trials"
+                             + (f" ({report.summary()})" if report.excluded else ""))
         labels = _labels(s, ids)
         conv = rate_conversion(layout.sample_rate_hz, p.fs_hz)
         p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
@@ -631,6 +638,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                "resampled": conv.resampled, "resampling": conv.describe(),
                                "windows_note": windows_note, "skipped_variants": skipped,
                                "source_session": str(session_path), "variants": list(variants),
+                               "excluded_trials": {str(k): v for k, v in report.excluded.items()},
                                "lossy_trials": sorted(lossy), "lost_frames": int(sum(lossy.values()))})
     try:
         writer.write_normalisation(rng_.minimum, rng_.maximum,

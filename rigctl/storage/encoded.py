@@ -46,6 +46,7 @@ import contextlib
 import json
 import math
 import os
+import sys
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +57,7 @@ import numpy as np
 
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
+from rigctl.storage.outputs import output_file
 
 __all__ = [
     "ENCODED_SCHEMA_VERSION", "ENCODED_KIND", "VariantInfo", "VARIANTS", "VARIANT_TITLES", "MAIN_VARIANTS",
@@ -285,14 +287,19 @@ class EncodedWriter:
                  trials: Mapping[str, Any], parameters: Mapping[str, Any] | None = None, overwrite: bool = False,
                  attrs: Mapping[str, Any] | None = None) -> None:
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} exists (pass overwrite=True / --overwrite to replace it)")
-        self.part = self.path.with_name(self.path.name + ".part")
         self.layout = layout
         self.textures = textures
         table = self._trials_table(trials, textures)
         self.n_trials = int(table.size)
-        self._f = h5py.File(self.part, "w")
+        self._done = False
+        self._output = output_file(self.path, overwrite=overwrite)  # the output policy: lock, part file, guard
+        self._target = self._output.__enter__()
+        self.part = self._target.part
+        try:
+            self._f = h5py.File(self._target.h5_file(), "w")
+        except BaseException:
+            self._output.__exit__(*sys.exc_info())
+            raise
         self._features: dict[str, h5py.Dataset] = {}
         self._spikes: dict[str, h5py.Group] = {}
         self._batch_spikes: dict[str, int] = {}  # spikes of the last appended batch, per variant with ticks
@@ -379,6 +386,7 @@ class EncodedWriter:
         if rows.shape[1] != ds.shape[1]:
             raise ValueError(f"{variant}: {rows.shape[1]} features, earlier rows had {ds.shape[1]}")
         ds[start:start + rows.shape[0]] = rows
+        self._target.check()  # a full disk ends the write here, in one line
 
     def add_spikes(self, variant: str, n_trains: int, trains: str = "", *, tick_s: float | None = None,
                    ticks_from: str | None = None) -> None:
@@ -448,6 +456,10 @@ class EncodedWriter:
         Raises KeyError if :meth:`add_spikes` was not called for ``variant``; ValueError for another train count,
         times off the tick grid, or a ``ticks_from`` variant whose spikes are not its base's (counts differ).
         """
+        self._append_spikes(variant, trains, time_scale)
+        self._target.check()  # a full disk ends the write here, in one line
+
+    def _append_spikes(self, variant: str, trains: Any, time_scale: Any) -> None:
         g = self._spikes[variant]
         n_trains = int(g.attrs["n_trains"])
         if int(trains.n_trains) != n_trains:
@@ -479,20 +491,36 @@ class EncodedWriter:
         self._batch_spikes[variant] = st.size
 
     # -- finish --------------------------------------------------------------------------------------------------
+    def check(self) -> None:
+        """Raise :class:`rigctl.storage.outputs.OutputWriteError` (one line) if the disk has refused a write (the
+        writer then aborts: see :mod:`rigctl.storage.outputs`)."""
+        self._target.check()
+
     def close(self) -> Path:
-        """Close and rename the part file to ``path``; returns ``path``."""
-        if self._f:
+        """Close and rename the part file to ``path`` (mode per the umask); returns ``path``.
+
+        Raises OutputWriteError (the part file removed) if the disk refused any of the file."""
+        if self._done:
+            raise ValueError(f"{self.path}: the writer is closed")
+        self._done = True
+        try:
             self._f.close()
-        os.replace(self.part, self.path)
+            self._target.check()
+        except BaseException:
+            self._output.__exit__(*sys.exc_info())
+            raise
+        self._output.__exit__(None, None, None)
         return self.path
 
     def abort(self) -> None:
-        """Close and delete the part file (nothing is written to ``path``)."""
+        """Close and delete the part file (nothing is written to ``path``; idempotent)."""
+        if self._done:
+            return
+        self._done = True
         try:
-            if self._f:
-                self._f.close()
+            self._f.close()
         finally:
-            self.part.unlink(missing_ok=True)
+            self._output.__exit__(RuntimeError, RuntimeError("aborted"), None)
 
     def __enter__(self) -> "EncodedWriter":
         return self

@@ -41,9 +41,11 @@ import numpy as np
 
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage import encoded as _encoded
+from rigctl.storage.outputs import OutputTarget, output_file
 from rigctl.storage.session import TrialStatus, open_session
 
-__all__ = ["NwbExportError", "NwbSummary", "export_nwb", "read_nwb_summary", "default_spike_variants"]
+__all__ = ["NwbExportError", "NwbExportParams", "NwbSummary", "export_nwb", "read_nwb_summary",
+           "default_spike_variants", "check_spike_variants", "estimate_nwb_bytes"]
 
 
 class NwbExportError(ValueError):
@@ -75,9 +77,12 @@ def default_spike_variants(enc: Any) -> list[str]:
 class _TaxelChunks:
     """hdmf data iterator over the trials' taxel readings (one chunk per trial: the session is never all in memory)."""
 
-    def __init__(self, session: Any, ids: Sequence[int], n_samples: Sequence[int], n_channels: int) -> None:
+    def __init__(self, session: Any, ids: Sequence[int], n_samples: Sequence[int], n_channels: int,
+                 progress: ProgressCallback | None = None, target: OutputTarget | None = None) -> None:
         self._session, self._ids, self._n, self._ch = session, list(ids), list(n_samples), int(n_channels)
         self._i, self._at = 0, 0
+        self._progress, self._target = progress, target
+        self._bar: Stage | None = None  # made when HDF5 asks for the first chunk (the write has started)
 
     def __iter__(self) -> Any:
         return self
@@ -85,6 +90,12 @@ class _TaxelChunks:
     def __next__(self) -> Any:
         from hdmf.data_utils import DataChunk
 
+        if self._target is not None:
+            self._target.check()  # the disk refused the previous chunk: stop here (one line, part file removed)
+        if self._bar is None:
+            self._bar = Stage(self._progress, "writing NWB", len(self._ids))
+        elif self._i > 0:
+            self._bar.advance(1)  # the previous trial has been handed to HDF5
         if self._i >= len(self._ids):
             raise StopIteration
         data = self._session.trial(self._ids[self._i]).taxels.astype(np.uint16, copy=False)
@@ -136,19 +147,73 @@ def _train_columns(layout: Any, n_trains: int) -> list[tuple[str, int, str, str,
             for rec, c in pairs]
 
 
+@dataclass(frozen=True)
+class NwbExportParams:
+    """What :func:`export_nwb` exports and how it writes (the parameter object of the export's steps).
+
+    encoded_path : optional ``rigctl encode`` output of the session: its spike trains become the Units table.
+    variants : the variants whose spike trains are exported (None: :func:`default_spike_variants`).
+    overwrite : replace an existing output (False: FileExistsError).
+    """
+
+    encoded_path: Path | None = None
+    variants: tuple[str, ...] | None = None
+    overwrite: bool = False
+
+
+@dataclass
+class _Timeline:
+    """The exported trials on session time: ids, samples per trial, start/stop s, their attributes."""
+
+    ids: list[int]
+    n: list[int]
+    starts: np.ndarray
+    stops: np.ndarray
+    lead: float
+    attrs: list[dict[str, Any]]
+
+
+def check_spike_variants(encoded_path: str | os.PathLike[str], variants: Sequence[str] | None) -> list[str]:
+    """The variants of ``encoded_path`` to export (``variants``, or :func:`default_spike_variants`), checked before
+    any work. Raises NwbExportError naming a variant without stored spike trains."""
+    with _encoded.open_encoded(encoded_path) as enc:
+        chosen = list(variants) if variants else default_spike_variants(enc)
+        for v in chosen:
+            if v not in enc.spike_variants:
+                raise NwbExportError(f"{encoded_path} holds no spike trains of {v!r} (stored: "
+                                     f"{', '.join(enc.spike_variants) or 'none'}; encode without --no-spikes)")
+    return chosen
+
+
+def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any = None) -> int:
+    """About how many bytes :func:`export_nwb` writes: the taxels uncompressed (``samples x channels x 2``) plus
+    the traces, plus the encoded file's size when its spike trains are exported (checked against the free space
+    before the export starts)."""
+    from rigctl.storage.validate import usable_trials
+
+    with open_session(session_path) as s:
+        ids = usable_trials(s).ids
+        n = sum(int(s.trial_attrs(t).get("n_samples", 0)) for t in ids)
+        total = n * s.layout.n_channels * 2 + n // 10 * 16 + 64 * 1024 * (1 + len(ids) // 100)
+    if encoded_path is not None:
+        total += Path(encoded_path).stat().st_size
+    return int(total)
+
+
 def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike[str], *, encoded_path: Any = None,
-               variants: Sequence[str] | None = None,
-               progress: ProgressCallback | None = None) -> NwbSummary:
-    """Write the session (and the spike trains of an encoded file of it) as an NWB file (module doc).
+               variants: Sequence[str] | None = None, progress: ProgressCallback | None = None,
+               overwrite: bool = False, params: NwbExportParams | None = None) -> NwbSummary:
+    """Write the session (and the spike trains of an encoded file of it) as an NWB file (module doc), under the
+    output policy of :mod:`rigctl.storage.outputs` (writer lock, ``<name>.part`` renamed when complete, a full disk
+    one line with nothing left behind).
 
     Parameters
     ----------
     session_path : a rigctl session file (``rigctl acquire`` / ``import`` / ``sim dataset`` output).
-    out_path : the NWB file to write (must not exist: the CLI checks it and writes through a temporary file).
-    encoded_path : optional ``rigctl encode`` output of that session: its spike trains become the Units table.
-    variants : the variants whose spike trains are exported (default :func:`default_spike_variants`).
-    progress : optional callback receiving :class:`rigctl.core.progress.ProgressEvent` s (stage ``"export nwb"``,
-        done/total = trials read).
+    out_path : the NWB file to write.
+    encoded_path, variants, overwrite : see :class:`NwbExportParams` (``params`` gives them all at once).
+    progress : optional callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stage ``"reading
+        traces"`` then ``"writing NWB"`` (done/total = trials, advanced as each trial's taxels are written).
 
     Returns
     -------
@@ -157,135 +222,191 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
     Raises
     ------
     NwbExportError
-        No recorded trial; an encoded file whose trials are not the session's; a variant without stored trains.
+        No usable trial; an encoded file whose trials are not the session's; a variant without stored trains
+        (checked before anything is written).
     rigctl.storage.session.SessionError, rigctl.storage.encoded.NotEncodedError
         Unreadable inputs.
+    FileExistsError, rigctl.storage.outputs.OutputLocked, rigctl.storage.outputs.OutputWriteError
+        The output policy (:func:`rigctl.storage.outputs.output_file`).
     """
-    from hdmf.common import DynamicTable, VectorData
-    from pynwb import NWBHDF5IO, NWBFile, TimeSeries
-    from pynwb.base import ProcessingModule
-    from pynwb.file import Subject
-    from pynwb.misc import Units
-
+    if params is None:
+        params = NwbExportParams(encoded_path=None if encoded_path is None else Path(encoded_path),
+                                 variants=tuple(variants) if variants else None, overwrite=overwrite)
+    chosen = check_spike_variants(params.encoded_path, params.variants) if params.encoded_path is not None else []
     out_path = Path(out_path)
     with open_session(session_path) as s:
-        layout, textures = s.layout, s.textures
-        ids = s.completed_ids()
-        if not ids:
-            raise NwbExportError(f"{session_path} has no recorded trial to export")
-        rate = float(layout.sample_rate_hz)
-        attrs = [s.trial_attrs(t) for t in ids]
-        n = [int(a.get("n_samples", 0)) for a in attrs]
-        first = s.trial(ids[0])  # traces may start before the first frame (settling): session time starts there
-        lead = max(0.0, -min([0.0] + [float(t.min()) for t in (first.force_time_s, first.speed_time_s) if t.size]))
-        starts = lead + np.concatenate([[0], np.cumsum(n)[:-1]]) / rate
-        stops = starts + np.asarray(n) / rate
-        nwb = NWBFile(
-            session_description=f"rigctl session: protocol {s.protocol_name or '?'} on "
-                                f"{s.rig_config.get('mode', 'a rig') if isinstance(s.rig_config, dict) else 'a rig'}",
-            identifier=str(s.attrs.get("session_id") or out_path.stem),
-            session_start_time=_start_time(s.attrs.get("created_utc", "")),
-            experiment_description="Tactile texture drum rig: taxel readings, drum speed and load-cell force per "
-                                   "trial (rigctl; Invariant neuromorphic representations of tactile stimuli ...)",
-            source_script="rigctl export nwb", source_script_file_name="rigctl",
-            keywords=["touch", "tactile sensor", "texture", "taxel", "neuromorphic", "Izhikevich"],
-            institution=str(s.rig_config.get("institution", "unknown")) if isinstance(s.rig_config, dict)
-            else "unknown",
-            experimenter=[str(s.rig_config.get("experimenter", "rigctl"))] if isinstance(s.rig_config, dict)
-            else ["rigctl"],
-        )
-        # NWB expects a subject: here the "subject" touched is an artificial sensor, no animal
-        nwb.subject = Subject(subject_id=layout.name or "taxel_sensor", species="none (artificial tactile sensor)",
-                              description="artificial tactile sensor on a texture drum rig: " + layout.describe(),
-                              sex="U", age="P0D")
-        sensor = nwb.create_device(name="taxel_sensor", description=layout.to_json())
-        nwb.create_device(name="drum_rig", description=json.dumps(s.rig_config, default=str))
-        chunks = _register_iterator()(s, ids, n, layout.n_channels)
-        nwb.add_acquisition(TimeSeries(
-            name="taxels", data=chunks, unit="fraction of the ADC full scale", conversion=1.0 / layout.adc_max,
-            resolution=1.0 / layout.adc_max, rate=rate, starting_time=float(lead),
-            description=f"taxel readings, ({sum(n)}, {layout.n_channels}) uint16 ADC counts "
-                        f"({layout.adc_bits}-bit) of the sensor {sensor.name}; channels "
-                        f"{', '.join(layout.channel_labels())}; trials back to back (recorded time)",
-            comments=layout.describe()))
-        force_t, force, speed_t, speed, means = [], [], [], [], []
-        bar = Stage(progress, "export nwb", len(ids))
-        for k, t in enumerate(ids):
-            tr = s.trial(t)
-            force_t.append(starts[k] + tr.force_time_s)
-            force.append(tr.force_g)
-            speed_t.append(starts[k] + tr.speed_time_s)
-            speed.append(tr.speed_mm_s)
-            means.append((float(np.mean(tr.force_g)) if tr.force_g.size else np.nan,
-                          float(np.mean(tr.speed_mm_s)) if tr.speed_mm_s.size else np.nan))
-            bar.advance(1)
-        for name, unit, t_parts, v_parts, what in (
-                ("load_cell_force", "g", force_t, force, "load-cell force"),
-                ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")):
-            ts = np.concatenate(t_parts) if t_parts else np.zeros(0)
-            vs = np.concatenate(v_parts) if v_parts else np.zeros(0)
-            order = np.argsort(ts, kind="stable")
-            nwb.add_acquisition(TimeSeries(name=name, data=vs[order], timestamps=ts[order], unit=unit,
-                                           description=f"{what} of each trial, on the taxels' session time"))
-
-        plan = s.plan
-        by_id = {int(r["trial_id"]): r for r in plan}
-        columns: dict[str, tuple[str, Any]] = {
-            "trial_id": ("rigctl trial id", np.asarray(ids, np.int64)),
-            "texture": ("texture plate label", [str(by_id[t]["texture"]) for t in ids]),
-            "group": ("texture group (the texture set's groups; '' when none)",
-                      [textures.group_of(str(by_id[t]["texture"])) or "" for t in ids]),
-            "speed_mm_s": ("drum surface speed setpoint, mm/s (ramp: mean)",
-                           np.asarray([by_id[t]["speed_mm_s"] for t in ids], np.float64)),
-            "force_g": ("force setpoint, g", np.asarray([by_id[t]["force_g"] for t in ids], np.float64)),
-            "profile": ("velocity profile", [str(by_id[t]["profile"]) for t in ids]),
-            "duration_s": ("planned duration, s", np.asarray([by_id[t]["duration_s"] for t in ids], np.float64)),
-            "status": ("trial status", [TrialStatus(int(by_id[t]["status"])).name.lower() for t in ids]),
-            "n_samples": ("taxel samples recorded", np.asarray(n, np.int64)),
-            "dropped_frames": ("frames lost on the taxel link within the trial (counted, not filled)",
-                               np.asarray([int(a.get("dropped_frames", 0)) for a in attrs], np.int64)),
-            "crc_errors": ("frames rejected by their CRC while the trial was captured",
-                           np.asarray([int(a.get("crc_errors", 0)) for a in attrs], np.int64)),
-            "started_utc": ("wall-clock start of the trial (UTC, ISO 8601)",
-                            [str(a.get("started_utc", "")) for a in attrs]),
-            "force_mean_g": ("mean measured force, g", np.asarray([m[0] for m in means], np.float64)),
-            "speed_mean_mm_s": ("mean measured surface speed, mm/s", np.asarray([m[1] for m in means], np.float64)),
-        }
-        for name, (desc, _) in columns.items():
-            nwb.add_trial_column(name=name, description=desc)
-        for k in range(len(ids)):
-            nwb.add_trial(start_time=float(starts[k]), stop_time=float(stops[k]),
-                          **{name: values[k] for name, (_, values) in columns.items()})
-
-        module = ProcessingModule(name="misc", description="rigctl metadata; texture set: " + textures.to_json())
-        nwb.add_processing_module(module)
-        module.add(DynamicTable(name="plan", description="every planned trial of the protocol, with its status",
-                                columns=[
-                                    VectorData(name="trial_id", description="rigctl trial id",
-                                               data=np.asarray(plan["trial_id"], np.int64)),
-                                    VectorData(name="texture", description="texture plate label",
-                                               data=[str(x) for x in plan["texture"]]),
-                                    VectorData(name="speed_mm_s", description="speed setpoint, mm/s",
-                                               data=np.asarray(plan["speed_mm_s"], np.float64)),
-                                    VectorData(name="force_g", description="force setpoint, g",
-                                               data=np.asarray(plan["force_g"], np.float64)),
-                                    VectorData(name="status", description="complete, pending or failed",
-                                               data=[TrialStatus(int(x)).name.lower() for x in plan["status"]]),
-                                ]))
-
-        summary = NwbSummary(out_path, n_trials=len(ids), n_samples=int(sum(n)), n_channels=layout.n_channels,
-                             rate_hz=rate)
-        if encoded_path is not None:
-            nwb.units = Units(name="units", resolution=1.0 / rate,
-                              description="SA/RA spike trains of the Izhikevich encoding (paper eqs. 3-5), one unit "
-                                          "per neuron of each exported variant, spike times in session time")
-            _add_units(nwb, encoded_path, ids, starts, layout, variants, summary)
-        with NWBHDF5IO(str(out_path), "w") as io:
-            io.write(nwb)
+        timeline = _timeline(s, session_path)
+        nwb = _new_nwbfile(s, out_path)
+        summary = NwbSummary(out_path, n_trials=len(timeline.ids), n_samples=int(sum(timeline.n)),
+                             n_channels=s.layout.n_channels, rate_hz=float(s.layout.sample_rate_hz))
+        with output_file(out_path, overwrite=params.overwrite) as target:
+            _add_taxels(nwb, s, timeline, progress, target)
+            _add_traces(nwb, s, timeline, Stage(progress, "reading traces", len(timeline.ids)))
+            _add_trials_table(nwb, s, timeline)
+            _add_plan(nwb, s)
+            if params.encoded_path is not None:
+                _add_units(nwb, params.encoded_path, timeline.ids, timeline.starts, s.layout, chosen, summary)
+            _write(nwb, target)
     return summary
 
 
+def _timeline(s: Any, session_path: Any) -> _Timeline:
+    """The usable trials (:func:`rigctl.storage.validate.usable_trials`) back to back on session time."""
+    from rigctl.storage.validate import usable_trials
+
+    ids = usable_trials(s).ids
+    if not ids:
+        raise NwbExportError(f"{session_path} has no usable recorded trial to export")
+    rate = float(s.layout.sample_rate_hz)
+    attrs = [s.trial_attrs(t) for t in ids]
+    n = [int(a.get("n_samples", 0)) for a in attrs]
+    first = s.trial(ids[0])  # traces may start before the first frame (settling): session time starts there
+    lead = max(0.0, -min([0.0] + [float(t.min()) for t in (first.force_time_s, first.speed_time_s) if t.size]))
+    starts = lead + np.concatenate([[0], np.cumsum(n)[:-1]]) / rate
+    return _Timeline(ids, n, starts, starts + np.asarray(n) / rate, lead, attrs)
+
+
+def _new_nwbfile(s: Any, out_path: Path) -> Any:
+    """The NWBFile with its session metadata, subject (the artificial sensor) and devices."""
+    from pynwb import NWBFile
+    from pynwb.file import Subject
+
+    layout = s.layout
+    cfg = s.rig_config if isinstance(s.rig_config, dict) else {}
+    nwb = NWBFile(
+        session_description=f"rigctl session: protocol {s.protocol_name or '?'} on {cfg.get('mode', 'a rig')}",
+        identifier=str(s.attrs.get("session_id") or out_path.stem),
+        session_start_time=_start_time(s.attrs.get("created_utc", "")),
+        experiment_description="Tactile texture drum rig: taxel readings, drum speed and load-cell force per "
+                               "trial (rigctl; Invariant neuromorphic representations of tactile stimuli ...)",
+        source_script="rigctl export nwb", source_script_file_name="rigctl",
+        keywords=["touch", "tactile sensor", "texture", "taxel", "neuromorphic", "Izhikevich"],
+        institution=str(cfg.get("institution", "unknown")),
+        experimenter=[str(cfg.get("experimenter", "rigctl"))],
+    )
+    # NWB expects a subject: here the "subject" touched is an artificial sensor, no animal
+    nwb.subject = Subject(subject_id=layout.name or "taxel_sensor", species="none (artificial tactile sensor)",
+                          description="artificial tactile sensor on a texture drum rig: " + layout.describe(),
+                          sex="U", age="P0D")
+    nwb.create_device(name="taxel_sensor", description=layout.to_json())
+    nwb.create_device(name="drum_rig", description=json.dumps(s.rig_config, default=str))
+    return nwb
+
+
+def _add_taxels(nwb: Any, s: Any, tl: _Timeline, progress: ProgressCallback | None, target: OutputTarget) -> None:
+    """``acquisition/taxels``: every trial's readings back to back, written chunk by chunk while the file is
+    written (the bar advances as each trial reaches the file; a refused write stops the export there)."""
+    from pynwb import TimeSeries
+
+    layout = s.layout
+    chunks = _register_iterator()(s, tl.ids, tl.n, layout.n_channels, progress, target)
+    nwb.add_acquisition(TimeSeries(
+        name="taxels", data=chunks, unit="fraction of the ADC full scale", conversion=1.0 / layout.adc_max,
+        resolution=1.0 / layout.adc_max, rate=float(layout.sample_rate_hz), starting_time=float(tl.lead),
+        description=f"taxel readings, ({sum(tl.n)}, {layout.n_channels}) uint16 ADC counts "
+                    f"({layout.adc_bits}-bit) of the sensor taxel_sensor; channels "
+                    f"{', '.join(layout.channel_labels())}; trials back to back (recorded time)",
+        comments=layout.describe()))
+
+
+def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
+    """``acquisition/load_cell_force`` and ``drum_speed`` on session time; the trials' measured means kept in
+    ``tl.attrs`` (``_force_mean_g``, ``_speed_mean_mm_s``) for the trials table."""
+    from pynwb import TimeSeries
+
+    force_t, force, speed_t, speed = [], [], [], []
+    for k, t in enumerate(tl.ids):
+        tr = s.trial(t)
+        force_t.append(tl.starts[k] + tr.force_time_s)
+        force.append(tr.force_g)
+        speed_t.append(tl.starts[k] + tr.speed_time_s)
+        speed.append(tr.speed_mm_s)
+        tl.attrs[k]["_force_mean_g"] = float(np.mean(tr.force_g)) if tr.force_g.size else np.nan
+        tl.attrs[k]["_speed_mean_mm_s"] = float(np.mean(tr.speed_mm_s)) if tr.speed_mm_s.size else np.nan
+        bar.advance(1)
+    for name, unit, t_parts, v_parts, what in (
+            ("load_cell_force", "g", force_t, force, "load-cell force"),
+            ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")):
+        ts = np.concatenate(t_parts) if t_parts else np.zeros(0)
+        vs = np.concatenate(v_parts) if v_parts else np.zeros(0)
+        order = np.argsort(ts, kind="stable")
+        nwb.add_acquisition(TimeSeries(name=name, data=vs[order], timestamps=ts[order], unit=unit,
+                                       description=f"{what} of each trial, on the taxels' session time"))
+
+
+def _add_trials_table(nwb: Any, s: Any, tl: _Timeline) -> None:
+    """The trials table: one row per exported trial (setpoints, counters, measured means)."""
+    ids, attrs, textures = tl.ids, tl.attrs, s.textures
+    by_id = {int(r["trial_id"]): r for r in s.plan}
+    columns: dict[str, tuple[str, Any]] = {
+        "trial_id": ("rigctl trial id", np.asarray(ids, np.int64)),
+        "texture": ("texture plate label", [str(by_id[t]["texture"]) for t in ids]),
+        "group": ("texture group (the texture set's groups; '' when none)",
+                  [textures.group_of(str(by_id[t]["texture"])) or "" for t in ids]),
+        "speed_mm_s": ("drum surface speed setpoint, mm/s (ramp: mean)",
+                       np.asarray([by_id[t]["speed_mm_s"] for t in ids], np.float64)),
+        "force_g": ("force setpoint, g", np.asarray([by_id[t]["force_g"] for t in ids], np.float64)),
+        "profile": ("velocity profile", [str(by_id[t]["profile"]) for t in ids]),
+        "duration_s": ("planned duration, s", np.asarray([by_id[t]["duration_s"] for t in ids], np.float64)),
+        "status": ("trial status", [TrialStatus(int(by_id[t]["status"])).name.lower() for t in ids]),
+        "n_samples": ("taxel samples recorded", np.asarray(tl.n, np.int64)),
+        "dropped_frames": ("frames lost on the taxel link within the trial (counted, not filled)",
+                           np.asarray([int(a.get("dropped_frames", 0)) for a in attrs], np.int64)),
+        "crc_errors": ("frames rejected by their CRC while the trial was captured",
+                       np.asarray([int(a.get("crc_errors", 0)) for a in attrs], np.int64)),
+        "started_utc": ("wall-clock start of the trial (UTC, ISO 8601)",
+                        [str(a.get("started_utc", "")) for a in attrs]),
+        "force_mean_g": ("mean measured force, g", np.asarray([a["_force_mean_g"] for a in attrs], np.float64)),
+        "speed_mean_mm_s": ("mean measured surface speed, mm/s",
+                            np.asarray([a["_speed_mean_mm_s"] for a in attrs], np.float64)),
+    }
+    for name, (desc, _) in columns.items():
+        nwb.add_trial_column(name=name, description=desc)
+    for k in range(len(ids)):
+        nwb.add_trial(start_time=float(tl.starts[k]), stop_time=float(tl.stops[k]),
+                      **{name: values[k] for name, (_, values) in columns.items()})
+
+
+def _add_plan(nwb: Any, s: Any) -> None:
+    """``processing/misc/plan``: every planned trial with its status; the texture set in the module's description."""
+    from hdmf.common import DynamicTable, VectorData
+    from pynwb.base import ProcessingModule
+
+    plan = s.plan
+    module = ProcessingModule(name="misc", description="rigctl metadata; texture set: " + s.textures.to_json())
+    nwb.add_processing_module(module)
+    module.add(DynamicTable(name="plan", description="every planned trial of the protocol, with its status", columns=[
+        VectorData(name="trial_id", description="rigctl trial id", data=np.asarray(plan["trial_id"], np.int64)),
+        VectorData(name="texture", description="texture plate label", data=[str(x) for x in plan["texture"]]),
+        VectorData(name="speed_mm_s", description="speed setpoint, mm/s",
+                   data=np.asarray(plan["speed_mm_s"], np.float64)),
+        VectorData(name="force_g", description="force setpoint, g", data=np.asarray(plan["force_g"], np.float64)),
+        VectorData(name="status", description="complete, pending or failed",
+                   data=[TrialStatus(int(x)).name.lower() for x in plan["status"]]),
+    ]))
+
+
+def _write(nwb: Any, target: OutputTarget) -> None:
+    """Write ``nwb`` with pynwb into the output's part file (through its :class:`GuardedFile`)."""
+    import h5py
+    from pynwb import NWBHDF5IO
+
+    h5 = h5py.File(target.h5_file(), "w")
+    try:
+        with NWBHDF5IO(file=h5, mode="w") as io:
+            io.write(nwb)
+    finally:
+        h5.close()
+    target.check()
+
+
 def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, variants: Any, summary: NwbSummary) -> None:
+    """The Units table: one unit per neuron of each variant, spike times on session time."""
+    from pynwb.misc import Units
+
+    nwb.units = Units(name="units", resolution=1.0 / float(layout.sample_rate_hz),
+                      description="SA/RA spike trains of the Izhikevich encoding (paper eqs. 3-5), one unit per "
+                                  "neuron of each exported variant, spike times in session time")
     with _encoded.open_encoded(encoded_path) as enc:
         enc_ids = np.asarray(enc.trials["trial_id"], np.int64)
         row_of = {int(t): i for i, t in enumerate(enc_ids)}
@@ -293,11 +414,7 @@ def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, 
         if missing:
             raise NwbExportError(f"{encoded_path} is not an encoding of this session: trials {missing[:5]} of the "
                                  "session are not in it")
-        chosen = list(variants) if variants else default_spike_variants(enc)
-        for v in chosen:
-            if v not in enc.spike_variants:
-                raise NwbExportError(f"{encoded_path} holds no spike trains of {v!r} (stored: "
-                                     f"{', '.join(enc.spike_variants) or 'none'}; encode without --no-spikes)")
+        chosen = list(variants)
         for name, desc in (("variant", "encoding variant (paper Table 1 column)"),
                            ("receptor", "SA (k=100 on the reading) or RA (k=3 on the 20 Hz low-passed derivative)"),
                            ("taxel", "channel index in the sensor description"),

@@ -1,0 +1,431 @@
+"""The one output policy: how every command, the GUI and the operations layer write a file of the user's.
+
+Rules (``docs/architecture.md``, "Outputs"), for sessions, encoded files, NWB exports, CSV, figures and models alike:
+
+- **checked before any work** (:func:`check_output`): an existing file is replaced only when ``overwrite`` is asked;
+  an output that is also an input is refused even then; the extension must be one the writer knows; the folder must
+  exist and take a new file; a file another writer holds (a session being recorded: the one-writer lock of
+  :class:`rigctl.storage.journal.WriterLock`) is refused; the free space is compared with an estimate of the output
+  (:func:`check_space`);
+- **written aside and renamed** (:func:`output_file`): the writer holds the target's writer lock for the whole
+  write, writes ``<name>.part`` and renames it over the target only when complete; on any failure the part file is
+  removed and the target (and every input) is left as it was;
+- **a full disk is one line** (:class:`OutputWriteError`, an OSError): HDF5 files are written through
+  :class:`GuardedFile`, so HDF5 itself never sees a failed write. (With h5py 3.16 / HDF5 2.0, a failed flush in
+  HDF5's sec2 driver leaves the file's open-object list freed while datasets still refer to it; closing one of them
+  later, even at interpreter exit, crashes in ``H5FO_top_decr`` -> ``H5SL_search``: the segfault users saw.) The
+  guard stops sending bytes to the disk at the first refused write, keeps later writes in memory until the writer
+  notices (:meth:`GuardedFile.check`, after each batch), so HDF5 closes cleanly and the part file is deleted;
+- **modes honour the umask** (0644 under umask 022, like any file the user makes), including files first made by
+  :func:`tempfile.mkstemp` (0600).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from rigctl.storage import journal
+
+__all__ = ["OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
+           "check_space", "check_writable_folder", "current_umask", "apply_umask", "free_bytes", "output_file",
+           "replacing", "same_file", "size_text"]
+
+#: overlay page of :class:`GuardedFile` once the disk has refused a write, bytes
+_PAGE = 1 << 16
+
+
+class OutputError(ValueError):
+    """An output refused before any work (exists, is an input, unknown format, no folder, no space): a usage
+    error, shown as one line. ``option`` is the option that named the output."""
+
+    def __init__(self, message: str, option: str = "--out") -> None:
+        super().__init__(message)
+        self.option = option
+
+
+class OutputLocked(OutputError):
+    """Another writer holds the output (e.g. a session being recorded): refused even with ``overwrite``."""
+
+
+class OutputWriteError(OSError):
+    """The disk refused the output while it was written (no space, quota, read-only): the part file was removed,
+    nothing else changed. ``str()`` is one line."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+def size_text(n_bytes: float) -> str:
+    """``n_bytes`` as a short human figure (``"12.3 MB"``, ``"640 KiB"`` below 1 MB)."""
+    return f"{n_bytes / 1024:.0f} KiB" if n_bytes < 1e6 else f"{n_bytes / 1e6:.1f} MB" if n_bytes < 1e9 \
+        else f"{n_bytes / 1e9:.2f} GB"
+
+
+def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
+    """True if ``a`` and ``b`` name the same file: :func:`os.path.samefile` when both exist (hard links, symlinks),
+    else the same resolved path."""
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+    except OSError:
+        pass
+    return pa.resolve() == pb.resolve()
+
+
+def current_umask() -> int:
+    """The process's umask (read from /proc where it is, else set and restored at once)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def apply_umask(path: str | os.PathLike[str], mode: int = 0o666) -> None:
+    """Give ``path`` ``mode`` minus the umask (what ``open()`` would have made; mkstemp makes 0600)."""
+    os.chmod(path, mode & ~current_umask())
+
+
+def free_bytes(folder: str | os.PathLike[str]) -> int | None:
+    """Bytes an unprivileged user may still write in ``folder``'s file system (None if unknown)."""
+    try:
+        st = os.statvfs(folder)
+    except (OSError, AttributeError):
+        return None
+    return int(st.f_bavail * st.f_frsize)
+
+
+def check_space(path: str | os.PathLike[str], need_bytes: float | None, *, option: str = "--out",
+                replaces: bool = True) -> None:
+    """Refuse (:class:`OutputError`) an output of about ``need_bytes`` that the folder's free space cannot hold
+    (the size of the file it replaces counts as free when ``replaces``). None or 0 passes."""
+    if not need_bytes:
+        return
+    p = Path(path)
+    free = free_bytes(p.parent if str(p.parent) else ".")
+    if free is None:
+        return
+    if replaces and p.is_file():
+        free += p.stat().st_size
+    if need_bytes > free:
+        raise OutputError(f"{option} {p}: needs about {size_text(need_bytes)}, {size_text(free)} free in "
+                          f"{p.parent}: free space or choose another folder", option)
+
+
+def check_writable_folder(folder: Path, *, option: str, target: Path | None = None) -> None:
+    """Refuse a folder that does not exist or does not take a new file (tried with a temporary file, removed)."""
+    what = f"{option} {target}" if target is not None else f"{option} {folder}"
+    if not folder.is_dir():
+        raise OutputError(f"{what}: the folder {folder} does not exist: create it or choose another", option)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".rigctl-write-check-", dir=folder)
+    except OSError as exc:
+        raise OutputError(f"{what}: cannot write in {folder} ({exc.strerror or exc}): choose another folder",
+                          option) from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+
+
+def _check_unlocked(p: Path, option: str) -> None:
+    """Refuse ``p`` while another writer holds its writer lock (probed: taken and released at once)."""
+    if not journal.lock_path(p).exists():
+        return
+    try:
+        lock = journal.WriterLock(p)
+    except journal.WriterLockHeld as exc:
+        raise OutputLocked(f"{option} {p}: {exc}", option) from None
+    except OSError:
+        return  # a lock file we cannot open: the folder check says what is wrong
+    lock.release()
+
+
+def check_output(path: str | os.PathLike[str], *, option: str = "--out", overwrite: bool = False,
+                 inputs: Iterable[str | os.PathLike[str] | None] = (), suffixes: Iterable[str] | None = None,
+                 overwrite_hint: str = "pass --overwrite to replace it", need_bytes: float | None = None) -> Path:
+    """Refuse an output path before any work starts; returns it as a Path.
+
+    Parameters
+    ----------
+    path : the output file. option : the option that named it (for the message).
+    overwrite : an existing file may be replaced.
+    inputs : the command's input files (None entries are ignored): the output must be none of them.
+    suffixes : allowed extensions (lower case, with the dot), or None for any.
+    overwrite_hint : what to do about an existing file (e.g. "continue it with --resume, or pass --overwrite").
+    need_bytes : an estimate of the output's size: refused when the folder has less free space.
+
+    Raises
+    ------
+    OutputError (a ValueError; the CLI shows it as a usage error, exit 2), one line: the path is a folder, is one
+    of the inputs, has an unsupported extension, exists without ``overwrite``, its folder is missing or does not
+    take a new file, it does not fit the free space; :class:`OutputLocked` when another writer holds it (a session
+    being recorded), even with ``overwrite``.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise OutputError(f"{option} {p} is a folder: give a file name", option)
+    for inp in inputs:
+        if inp is not None and same_file(p, inp):
+            alias = f" ({inp})" if str(inp) != str(p) else ""
+            raise OutputError(f"{option} {p} is one of the input files{alias}: choose another output file", option)
+    if suffixes is not None:
+        allowed = tuple(suffixes)
+        if p.suffix.lower() not in allowed:
+            raise OutputError(f"{option} {p}: unsupported format {p.suffix or '(no extension)'}; use one of "
+                              f"{', '.join(allowed)}", option)
+    _check_unlocked(p, option)
+    if p.exists() and not overwrite:
+        raise OutputError(f"{option} {p} exists: {overwrite_hint}", option)
+    check_writable_folder(p.parent if str(p.parent) else Path("."), option=option, target=p)
+    check_space(p, need_bytes, option=option)
+    return p
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Writing
+# ----------------------------------------------------------------------------------------------------------------
+class GuardedFile(io.RawIOBase):
+    """A file object for h5py (``h5py.File(GuardedFile(path), "w")``) whose writes never fail in HDF5's eyes.
+
+    Bytes go straight to the file (``os.pwrite``) until the disk refuses one (ENOSPC, EDQUOT, EFBIG, EIO, ...);
+    from then on nothing more is sent to the disk: writes land in an in-memory page overlay (reads see them), the
+    error is kept, and :meth:`check` raises it as an :class:`OutputWriteError`. The owner calls :meth:`check` after
+    each batch it writes, then closes HDF5 (which succeeds) and removes the file. The file is created with mode
+    0666 minus the umask.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, what: str | None = None) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.what = what or str(self.path)
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0)
+                           | getattr(os, "O_CLOEXEC", 0), 0o666)
+        self._pos = 0
+        self._size = 0
+        self._disk_size = 0  # bytes from 0 that are on disk (as written; beyond: zeros or the overlay)
+        self.error: OSError | None = None
+        self._pages: dict[int, bytearray] = {}
+
+    # -- io.RawIOBase ---------------------------------------------------------------------------------------------
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        self._pos = offset if whence == 0 else self._pos + offset if whence == 1 else self._size + offset
+        return self._pos
+
+    def _pread(self, n: int, at: int) -> bytes:
+        n = max(0, min(n, self._disk_size - at))
+        return os.pread(self._fd, n, at) if n else b""
+
+    def readinto(self, b: Any) -> int:
+        n = max(0, min(len(b), self._size - self._pos))
+        if n == 0:
+            return 0
+        out = memoryview(b).cast("B")
+        start, end = self._pos, self._pos + n
+        data = self._pread(n, start)
+        out[:len(data)] = data
+        out[len(data):n] = bytes(n - len(data))
+        for i in range(start // _PAGE, (end - 1) // _PAGE + 1) if self._pages else ():
+            page = self._pages.get(i)
+            if page is not None:
+                lo, up = max(start, i * _PAGE), min(end, (i + 1) * _PAGE)
+                out[lo - start:up - start] = page[lo - i * _PAGE:up - i * _PAGE]
+        self._pos = end
+        return n
+
+    def _overlay(self, data: memoryview, at: int) -> None:
+        done = 0
+        while done < len(data):
+            i, off = divmod(at + done, _PAGE)
+            page = self._pages.get(i)
+            if page is None:
+                page = bytearray(_PAGE)
+                disk = self._pread(_PAGE, i * _PAGE)
+                page[:len(disk)] = disk
+                self._pages[i] = page
+            k = min(_PAGE - off, len(data) - done)
+            page[off:off + k] = data[done:done + k]
+            done += k
+
+    def write(self, b: Any) -> int:
+        data = memoryview(b).cast("B")
+        n, at, done = len(data), self._pos, 0
+        while self.error is None and done < n:
+            try:
+                k = os.pwrite(self._fd, data[done:], at + done)
+            except OSError as exc:
+                self.error = exc
+                break
+            if k == 0:
+                self.error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                break
+            done += k
+            self._disk_size = max(self._disk_size, at + done)
+        if done < n:
+            self._overlay(data[done:], at + done)
+        self._pos = at + n
+        self._size = max(self._size, self._pos)
+        return n
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self._pos if size is None else int(size)
+        if self.error is None:
+            try:
+                os.ftruncate(self._fd, size)
+            except OSError as exc:
+                self.error = exc
+        self._disk_size = min(self._disk_size, size)
+        for i in [i for i in self._pages if i * _PAGE >= size]:
+            del self._pages[i]
+        self._size = size
+        return size
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if not self.closed:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+        super().close()
+
+    # -- the owner's side ---------------------------------------------------------------------------------------
+    @property
+    def failed(self) -> bool:
+        return self.error is not None
+
+    def check(self) -> None:
+        """Raise :class:`OutputWriteError` (one line) if the disk has refused a write."""
+        if self.error is not None:
+            raise _write_error(self.error, self.what)
+
+    def sync(self) -> None:
+        """fsync the bytes written (raises :class:`OutputWriteError` if the disk refused any)."""
+        self.check()
+        try:
+            os.fsync(self._fd)
+        except OSError as exc:
+            self.error = exc
+            self.check()
+
+
+def _write_error(exc: OSError, what: str) -> OutputWriteError:
+    reason = (exc.strerror or str(exc)).rstrip(".").lower() if isinstance(exc, OSError) else str(exc)
+    hint = "free space or choose another folder" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) \
+        else "choose another folder"
+    return OutputWriteError(exc.errno, f"{reason} writing {what}: the partial output was removed, the inputs "
+                                       f"are unchanged; {hint}")
+
+
+class OutputTarget:
+    """What :func:`output_file` yields: ``part`` (write here), ``path`` (the final name); :meth:`h5_file` opens
+    the part file for h5py through a :class:`GuardedFile`, :meth:`check` raises a refused write."""
+
+    def __init__(self, path: Path, part: Path) -> None:
+        self.path, self.part = path, part
+        self.guard: GuardedFile | None = None
+
+    def h5_file(self) -> GuardedFile:
+        """The part file as a :class:`GuardedFile` (created, empty) for ``h5py.File(target.h5_file(), "w")``."""
+        self.guard = GuardedFile(self.part, what=str(self.path))
+        return self.guard
+
+    def check(self) -> None:
+        if self.guard is not None:
+            self.guard.check()
+
+
+def _finish(target: OutputTarget) -> None:
+    """fsync and rename the part file over the target, mode per the umask."""
+    if target.guard is not None:
+        target.guard.sync()
+        target.guard.close()
+    elif target.part.exists():
+        try:
+            with open(target.part, "rb+") as fh:
+                os.fsync(fh.fileno())
+        except OSError as exc:
+            raise _write_error(exc, str(target.path)) from None
+    apply_umask(target.part)
+    os.replace(target.part, target.path)
+
+
+@contextlib.contextmanager
+def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_suffix: str = ".part",
+                option: str = "--out") -> Iterator[OutputTarget]:
+    """Write one output under the policy (module docstring): hold the target's writer lock, yield an
+    :class:`OutputTarget` whose ``part`` file becomes ``path`` when the block completes; on an exception the part
+    file is removed and ``path`` is left as it was. An OSError raised while writing becomes an
+    :class:`OutputWriteError` (one line).
+
+    Raises
+    ------
+    OutputLocked if another writer holds ``path``; FileExistsError if ``path`` exists and ``overwrite`` is False;
+    OutputWriteError (the disk refused the output).
+    """
+    p = Path(path)
+    try:
+        lock = journal.WriterLock(p)
+    except journal.WriterLockHeld as exc:
+        raise OutputLocked(f"{option} {p}: {exc}", option) from None
+    except OSError as exc:
+        raise _write_error(exc, str(p)) from None
+    part = p.with_name(p.name + part_suffix)
+    target = OutputTarget(p, part)
+    try:
+        if p.exists() and not overwrite:
+            raise FileExistsError(f"{p} exists (pass overwrite=True / --overwrite to replace it)")
+        try:
+            yield target
+            target.check()
+            _finish(target)
+        except OutputWriteError:
+            raise
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS):
+                raise _write_error(exc, str(p)) from None
+            raise
+    finally:
+        if target.guard is not None:
+            target.guard.close()
+        with contextlib.suppress(OSError):
+            part.unlink()
+        lock.release()
+
+
+@contextlib.contextmanager
+def replacing(path: str | os.PathLike[str], *, overwrite: bool = True) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same extension, for writers that choose the format by it: plots,
+    CSV, models); renamed over ``path`` when the block completes, with the umask's mode, under ``path``'s writer
+    lock (:func:`output_file`). An exception leaves ``path`` as it was and removes the temporary file."""
+    p = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}-", suffix=p.suffix, dir=p.parent if str(p.parent) else ".")
+    os.close(fd)
+    try:
+        with output_file(p, overwrite=overwrite) as target:
+            yield Path(tmp)
+            os.replace(tmp, target.part)
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)

@@ -1,0 +1,178 @@
+"""The one trial validator: which complete trials of a session may be used, and why the others may not.
+
+``rigctl info``, ``encode``, ``analyze`` (through the encoder), ``export nwb`` and the GUI all take their trials from
+:func:`usable_trials`, so a damaged trial is excluded everywhere with the same reason and counted in each summary.
+:class:`rigctl.storage.session.Session` checks the *shape* of a trial when it is read (datasets, types, the
+``n_samples`` attribute); this module adds what needs the data or the whole session:
+
+- **sequence gaps** are counted from the ``seq`` column (uint16 frame counter, wrapping at 65,536: wire spec
+  section 1), not trusted from the ``dropped_frames`` attribute; a trial whose column shows more missing frames
+  than its attribute says contradicts itself and is excluded;
+- **length**: the samples recorded plus the frames missing must be the plan's ``round(duration_s x rate)`` (within
+  2 samples or 1 %): a 10-sample trial of a 2 s plan is not a 2 s trial;
+- **ADC range**: counts outside ``0 .. 2**adc_bits - 1`` (negative counts of a signed dataset included);
+- **impossible attributes**: a plan duration that is not finite, <= 0 or over :data:`MAX_TRIAL_S`; a counter
+  (``dropped_frames``, ``crc_errors``) above :func:`max_count` (16 per frame slot of the trial + 1024: more frames
+  than the link could have carried); a sensor sample rate above :data:`MAX_RATE_HZ` (every trial excluded);
+- **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (BLAKE2b of the counts).
+
+The reasons are one line each; :attr:`TrialReport.excluded` maps trial id -> reason.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import h5py
+import numpy as np
+
+from rigctl.storage.session import Session, SessionError, TrialStatus, trial_group_name
+
+__all__ = ["MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "max_count", "seq_gaps", "usable_trials"]
+
+#: no taxel sensor samples faster (1 MHz; the paper's runs at 1 kHz): a faster rate is a damaged header
+MAX_RATE_HZ = 1e6
+#: the longest plausible trial, s (a day; the paper's are 2-6 s)
+MAX_TRIAL_S = 86_400.0
+
+
+def max_count(slots: int) -> int:
+    """The largest plausible ``dropped_frames`` / ``crc_errors`` of a trial of ``slots`` frame slots."""
+    return 16 * max(0, int(slots)) + 1024
+
+
+def seq_gaps(seq: np.ndarray) -> int:
+    """Frames missing inside a trial by its uint16 ``seq`` column (wrapping at 65,536): the sum of the jumps beyond
+    one."""
+    if seq.size < 2:
+        return 0
+    d = np.mod(np.diff(seq.astype(np.int64)), 65536)
+    return int(np.sum(d[d > 1] - 1))
+
+
+@dataclass
+class TrialReport:
+    """What :func:`usable_trials` found.
+
+    ids : usable complete trials, plan order. excluded : trial id -> one-line reason (complete trials only).
+    dropped_frames : usable trial id -> frames missing by its ``seq`` column (or its attribute, if larger).
+    """
+
+    ids: list[int] = field(default_factory=list)
+    excluded: dict[int, str] = field(default_factory=dict)
+    dropped_frames: dict[int, int] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        """One line: how many complete trials are usable and which were excluded (first three reasons)."""
+        n = len(self.ids) + len(self.excluded)
+        if not self.excluded:
+            return f"{len(self.ids)} of {n} complete trials usable"
+        shown = "; ".join(f"trial {t}: {why}" for t, why in list(self.excluded.items())[:3])
+        more = f"; +{len(self.excluded) - 3} more" if len(self.excluded) > 3 else ""
+        return f"{len(self.ids)} of {n} complete trials usable, {len(self.excluded)} excluded ({shown}{more})"
+
+
+def usable_trials(session: Session) -> TrialReport:
+    """Check every complete trial of ``session`` (module docstring); the report is computed once per open
+    session and cached on it."""
+    cached = getattr(session, "_trial_report", None)
+    if isinstance(cached, TrialReport):
+        return cached
+    report = TrialReport()
+    rate = float(session.layout.sample_rate_hz)
+    plan = {int(r["trial_id"]): r for r in session.plan}
+    session_problem = None
+    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
+        session_problem = f"the sensor's sample rate {rate:g} Hz is impossible (above {MAX_RATE_HZ:g} Hz)"
+    digests: dict[bytes, int] = {}
+    for tid in session.completed_ids():
+        if session_problem is not None:
+            report.excluded[tid] = session_problem
+            continue
+        try:
+            why, dropped = _check_trial(session, tid, plan[tid], rate, digests)
+        except (SessionError, KeyError) as exc:
+            why, dropped = _reason(exc, tid), 0
+        if why:
+            report.excluded[tid] = why
+        else:
+            report.ids.append(tid)
+            report.dropped_frames[tid] = dropped
+    for tid, why in report.excluded.items():
+        session._problem(f"{session.path}: trial {tid} excluded: {why}")
+    session._trial_report = report  # type: ignore[attr-defined]
+    return report
+
+
+def _reason(exc: BaseException, tid: int) -> str:
+    """The part of a SessionError that says what is wrong with the trial."""
+    text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+    marker = f"trial {tid} is damaged: "
+    if marker in text:
+        text = text.split(marker, 1)[1]
+    return text.replace("; its data are not used", "")
+
+
+def _count(attrs: dict[str, Any], name: str) -> int:
+    try:
+        return int(attrs.get(name, 0))
+    except (TypeError, ValueError, OverflowError):
+        return -1
+
+
+def _check_trial(session: Session, tid: int, row: Any, rate: float,
+                 digests: dict[bytes, int]) -> tuple[str | None, int]:
+    """(reason or None, frames missing by the seq column) for one complete trial."""
+    duration = float(row["duration_s"])
+    if not (math.isfinite(duration) and 0 < duration <= MAX_TRIAL_S):
+        return f"its plan duration {duration:g} s is impossible (not in 0..{MAX_TRIAL_S:g} s)", 0
+    attrs = session.trial_attrs(tid)  # shape checks (SessionError names the problem)
+    planned = int(round(duration * rate))
+    n = int(attrs.get("n_samples", -1))
+    g = session._f[trial_group_name(tid)]
+    seq = np.asarray(g["seq"][()])
+    taxels = g["taxels"]
+    if n < 0:
+        n = int(taxels.shape[0])
+    gaps = seq_gaps(seq)
+    said = _count(attrs, "dropped_frames")
+    for name in ("dropped_frames", "crc_errors"):
+        value = _count(attrs, name)
+        if value > max_count(planned + n):
+            return f"its {name} attribute {value} is impossible for {planned + n} frame slots", 0
+    if gaps > said:
+        return (f"its seq column shows {gaps} missing frames, its dropped_frames attribute says {said}"), gaps
+    if abs(n + gaps - planned) > max(2, planned // 100):
+        return (f"it holds {n} samples ({gaps} missing), its plan asks {duration:g} s = {planned} at "
+                f"{rate:g} Hz"), gaps
+    why = _check_counts(session, taxels, tid, digests)
+    return why, max(gaps, said)
+
+
+def _check_counts(session: Session, taxels: h5py.Dataset, tid: int, digests: dict[bytes, int]) -> str | None:
+    """ADC range and byte copies of the trial's taxel counts."""
+    data = np.asarray(taxels[()])
+    adc_max = session.layout.adc_max
+    if data.size:
+        lo, hi = int(data.min()), int(data.max())
+        if lo < 0 or hi > adc_max:
+            return (f"taxels hold {lo if lo < 0 else hi}, outside the sensor's {session.layout.adc_bits}-bit "
+                    f"range 0..{adc_max}")
+    digest = hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest()
+    if digest in digests:
+        return f"its taxels are a byte copy of trial {digests[digest]}'s"
+    digests[digest] = tid
+    return None
+
+
+def status_of(session: Session, tid: int) -> str:
+    """A trial's status for listings: the plan's (``complete`` / ``pending`` / ``failed``), or ``excluded`` for a
+    complete trial :func:`usable_trials` refused."""
+    row = session.plan[session.plan["trial_id"] == tid]
+    status = TrialStatus(int(row["status"][0])).name.lower() if row.size else "unknown"
+    if status == "complete" and tid in usable_trials(session).excluded:
+        return "excluded"
+    return status

@@ -1,0 +1,218 @@
+"""The one output policy (rigctl.storage.outputs) as every writer uses it: the one-writer lock, a full disk, modes.
+
+The full-disk tests write onto a real tmpfs of a few KiB when this process may mount one (root); otherwise they
+limit the file size of the child process (RLIMIT_FSIZE, SIGXFSZ ignored: writes past the limit fail with EFBIG),
+which takes the same path through HDF5 and the guard. Either way the command runs in its own process: the bug was
+a segfault.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigctl.storage.outputs import (
+    GuardedFile,
+    OutputError,
+    OutputLocked,
+    OutputWriteError,
+    check_output,
+    output_file,
+    replacing,
+)
+from rigctl.storage.session import SessionWriter, TrialData, open_session
+
+RATE = 1000.0
+
+
+def _session(path: Path, n_trials: int = 6, duration_s: float = 0.2, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=40.0 + 40 * (i % 3), force_g=500.0,
+                 duration_s=duration_s) for i in range(n_trials)]
+    n = int(round(duration_s * RATE))
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 't'") as w:
+        for i in range(n_trials):
+            w.write_trial(i, TrialData(taxels=rng.integers(100, 900, (n, 18)), seq=np.arange(n) % 65536,
+                                       force_g=[500.0], force_time_s=[0.0], speed_mm_s=[40.0], speed_time_s=[0.0]))
+    return path
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _rigctl(*args: str, limit_bytes: int | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    def limit() -> None:  # pragma: no cover - runs in the child
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    return subprocess.run([sys.executable, "-m", "rigctl", *args], capture_output=True, text=True, timeout=600,
+                          cwd=cwd, preexec_fn=limit if limit_bytes is not None else None)
+
+
+@pytest.fixture
+def session(tmp_path):
+    return _session(tmp_path / "s.h5")
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """(folder, child file-size limit or None): a 48 KiB tmpfs when it can be mounted, else a plain folder and a
+    48 KiB RLIMIT_FSIZE for the command's process."""
+    d = tmp_path / f"tmpfs-{uuid.uuid4().hex[:6]}"
+    d.mkdir()
+    mounted = shutil.which("mount") is not None and os.geteuid() == 0 and subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=48k", "tmpfs", str(d)], capture_output=True).returncode == 0
+    yield d, None if mounted else 48 * 1024
+    if mounted:
+        subprocess.run(["umount", "-l", str(d)], capture_output=True)
+
+
+# -- the one-writer lock ---------------------------------------------------------------------------------------
+def test_encode_overwrite_onto_a_session_being_recorded_is_refused_and_the_recording_finishes(tmp_path, session):
+    live = tmp_path / "live.h5"
+    n = 200
+    plan = [dict(trial_id=i, texture="A", speed_mm_s=40.0, force_g=500.0, duration_s=0.2) for i in range(3)]
+    rng = np.random.default_rng(3)
+    trial = lambda: TrialData(taxels=rng.integers(0, 1024, (n, 18)), seq=np.arange(n),  # noqa: E731
+                              force_g=[500.0], force_time_s=[0.0], speed_mm_s=[40.0], speed_time_s=[0.0])
+    with SessionWriter.create(live, plan=plan, protocol_source="name = 'live'") as w:  # the recorder
+        w.write_trial(0, trial())
+        before = _digest(live)
+        r = _rigctl("encode", str(session), "--out", str(live), "--overwrite", "--quiet")
+        assert r.returncode == 2, r.stderr
+        assert "being written by" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+        assert _digest(live) == before
+        w.write_trial(1, trial())  # the recorder goes on and finishes
+        w.write_trial(2, trial())
+    with open_session(live) as s:
+        assert s.completed_ids() == [0, 1, 2]
+
+
+def test_every_writer_checks_the_lock(tmp_path, session):
+    out = tmp_path / "held.h5"
+    out.write_bytes(b"x")
+    with SessionWriter.create(tmp_path / "other.h5", plan=[dict(trial_id=0, texture="A", speed_mm_s=40.0,
+                                                                force_g=500.0, duration_s=0.1)]):
+        pass
+    from rigctl.storage.journal import WriterLock
+
+    lock = WriterLock(out)
+    try:
+        with pytest.raises(OutputLocked):
+            check_output(out, overwrite=True)
+        with pytest.raises(OutputLocked):
+            with output_file(out, overwrite=True):
+                pass
+        with pytest.raises(OutputLocked):
+            with replacing(out):
+                pass
+        from rigctl.encoding.pipeline import encode_session
+        from rigctl.storage.nwb import export_nwb
+
+        with pytest.raises(OutputLocked):
+            encode_session(session, out, overwrite=True, progress=None)
+        with pytest.raises(OutputLocked):
+            export_nwb(session, out, overwrite=True)
+        r = _rigctl("export", "nwb", str(session), "--out", str(out.with_suffix(".nwb")), "--overwrite")
+        assert r.returncode == 0, r.stderr  # another file: not held
+    finally:
+        lock.release()
+    assert out.read_bytes() == b"x"
+
+
+# -- a full disk -----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("command", ["encode", "export"])
+def test_a_full_disk_is_one_line_no_part_file_inputs_unchanged(tmp_path, session, small_disk, command):
+    folder, limit = small_disk
+    before = _digest(session)
+    if command == "encode":
+        r = _rigctl("encode", str(session), "--out", str(folder / "e.h5"), "--quiet", limit_bytes=limit)
+    else:
+        r = _rigctl("export", "nwb", str(session), "--out", str(folder / "e.nwb"), "--no-progress",
+                    limit_bytes=limit)
+    assert r.returncode in (1, 2), (r.returncode, r.stderr)  # 2: refused up front by the space estimate
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), r.stderr
+    assert "Traceback" not in r.stderr and "internal error" not in r.stderr
+    assert list(folder.iterdir()) == []  # no .part, no lock file, no temporary file
+    assert _digest(session) == before
+
+
+def test_a_full_disk_during_the_write_is_caught_by_the_guard(tmp_path, session, small_disk):
+    """The library calls (no space estimate): the disk fills in the middle of HDF5's writes."""
+    folder, limit = small_disk
+    before = _digest(session)
+    code = ("from rigctl.encoding.pipeline import encode_session\n"
+            "from rigctl.storage.nwb import export_nwb\n"
+            "from rigctl.storage.outputs import OutputWriteError\n"
+            "import sys\n"
+            f"for f, out in ((encode_session, {str(folder / 'e.h5')!r}), (export_nwb, {str(folder / 'e.nwb')!r})):\n"
+            "    try:\n"
+            f"        f({str(session)!r}, out)\n"
+            "    except OutputWriteError as exc:\n"
+            "        print('refused:', exc)\n")
+
+    def lim() -> None:  # pragma: no cover - child
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                       preexec_fn=lim if limit else None)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.count("refused:") == 2, r.stdout + r.stderr[-2000:]
+    assert "the partial output was removed" in r.stdout
+    assert list(folder.iterdir()) == []
+    assert _digest(session) == before
+
+
+def test_guarded_file_keeps_refused_writes_readable(tmp_path):
+    g = GuardedFile(tmp_path / "x")
+    g.write(b"abc")
+    g.error = OSError(28, "No space left on device")  # as if the disk had refused the next write
+    g.seek(1)
+    g.write(b"ZZZZ")
+    g.seek(0)
+    buf = bytearray(5)
+    assert g.readinto(buf) == 5 and bytes(buf) == b"aZZZZ"
+    assert (tmp_path / "x").read_bytes() == b"abc"  # nothing more reached the disk
+    with pytest.raises(OutputWriteError, match="no space left on device"):
+        g.check()
+    g.close()
+
+
+# -- modes and refusals -------------------------------------------------------------------------------------------
+def test_outputs_honour_the_umask(tmp_path, session):
+    old = os.umask(0o022)
+    try:
+        r = _rigctl("encode", str(session), "--out", str(tmp_path / "e.h5"), "--quiet")
+        assert r.returncode == 0, r.stderr
+        r = _rigctl("export", "nwb", str(session), "--out", str(tmp_path / "e.nwb"), "--no-progress")
+        assert r.returncode == 0, r.stderr
+        with replacing(tmp_path / "fig.png") as tmp:
+            tmp.write_bytes(b"png")
+    finally:
+        os.umask(old)
+    for name in ("e.h5", "e.nwb", "fig.png"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
+
+
+def test_check_output_refusals(tmp_path, session):
+    with pytest.raises(OutputError, match="exists"):
+        check_output(session)
+    with pytest.raises(OutputError, match="one of the input files"):
+        check_output(session, overwrite=True, inputs=[session])
+    with pytest.raises(OutputError, match="needs about"):
+        check_output(tmp_path / "big.h5", need_bytes=1e18)
+    with pytest.raises(OutputError, match="does not exist"):
+        check_output(tmp_path / "nope" / "x.h5")
