@@ -38,7 +38,8 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
     from rigctl.analysis.params import CVParams, Repetitions
     from rigctl.operations import AnalysisPlan, load_or_encode, run_analyses
 
-    fs, encoded = load_or_encode(path, variants, task=None, encode_to=encoded_path_for(path), progress=progress)
+    fs, encoded = load_or_encode(path, variants, task=None, encode_to=encoded_path_for(path), progress=progress,
+                                 overwrite=True)  # the tab's own <name>.encoded.h5, as its Encode button
     wanted = (("textures", "groups") if cv else ()) + (("extrapolation",) if extrapolation else ())
     plan = AnalysisPlan(wanted, groups_optional=True, on_error="skip", cv=CVParams(per_texture=per_texture),
                         reps=Repetitions(n_pcs=n_pcs, repeats=repeats, seed=seed, variants=variants))

@@ -93,9 +93,11 @@ def trials_of_session(path, trial_ids=None):
     """The complete trials of a session file as pipeline input: ``(trials, texture)``, a list of
     :class:`rigctl.core.trial.TrialData` (attrs with speed, force and texture) and ``(n,)`` str labels."""
     from rigctl.storage.session import open_session
+    from rigctl.storage.validate import usable_trials
 
     with open_session(path) as s:
-        ids = s.completed_ids() if trial_ids is None else [int(t) for t in trial_ids]
+        report = usable_trials(s)  # the one trial validator: damaged trials excluded as everywhere else
+        ids = report.ids if trial_ids is None else [int(t) for t in trial_ids if int(t) not in report.excluded]
         trials = [s.trial(t) for t in ids]
     return trials, np.array([str(t.attrs["texture"]) for t in trials])
 

@@ -62,9 +62,15 @@ def _load(path, encode, variants, task="table1", progress=False):
             raise click.ClickException(str(exc)) from None
     with tempfile.TemporaryDirectory(prefix="rigctl-analyze-") as tmp:  # the features are read into memory
         click.echo(f"encoding {path} on the fly (rigctl encode) ...", err=True)
-        with bars(progress) as bar:
-            return load_or_encode(path, variants, task=task, encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"),
-                                  progress=bar)[0]
+        import warnings
+
+        with warnings.catch_warnings(record=True) as caught, bars(progress) as bar:
+            warnings.simplefilter("always")
+            loaded = load_or_encode(path, variants, task=task,
+                                    encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"), progress=bar)[0]
+        for w in caught:  # one line each (excluded trials, skipped variants), as rigctl encode shows them
+            click.echo(f"warning: {w.message}", err=True)
+        return loaded
 
 
 def _variance(fs, variants):

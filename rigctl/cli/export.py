@@ -29,6 +29,7 @@ def nwb(session, encoded, variants, out, overwrite, progress):
     from rigctl.storage.encoded import NotEncodedError
     from rigctl.storage.nwb import NwbExportError, check_spike_variants, estimate_nwb_bytes, export_nwb
     from rigctl.storage.session import SessionError
+    from rigctl.storage.validate import TrialsExcluded
 
     vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
     try:
@@ -40,12 +41,18 @@ def nwb(session, encoded, variants, out, overwrite, progress):
     except (SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
     check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",), need_bytes=need)
+    import warnings
+
     try:
-        with bars(progress, leave=False) as on_event:
+        with warnings.catch_warnings(record=True) as caught, bars(progress, leave=False) as on_event:
+            warnings.simplefilter("always")
             summary = export_nwb(session, out, encoded_path=encoded, variants=vlist, progress=on_event,
                                  overwrite=overwrite)
     except (NwbExportError, SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
+    for w in caught:  # one line each (excluded trials), as rigctl encode shows them
+        if issubclass(w.category, TrialsExcluded):
+            click.echo(f"warning: {w.message}", err=True)
     units = ", ".join(f"{v}: {n} units, {summary.spikes[v]} spikes" for v, n in summary.units.items())
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_samples} samples x {summary.n_channels} taxels "
                f"at {summary.rate_hz:g} Hz" + (f"; {units}" if units else ""))

@@ -506,7 +506,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     that cannot be resampled to the model's.
     """
     from rigctl.storage.session import open_session
-    from rigctl.storage.validate import usable_trials
+    from rigctl.storage.validate import TrialsExcluded, usable_trials
 
     p = replace(params) if params is not None else EncodeParams()
     explicit = variants is not None
@@ -526,7 +526,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         report = usable_trials(s)  # the one trial validator: damaged trials excluded, with their reasons
         ids = report.ids if trial_ids is None else [int(t) for t in trial_ids if int(t) not in report.excluded]
         if report.excluded:
-            warnings.warn(f"{session_path}: {report.summary()}", stacklevel=2)
+            warnings.warn(f"{session_path}: {report.summary()}", TrialsExcluded, stacklevel=2)
         if not ids:
             raise ValueError(f"{session_path} has no usable complete trials"
                              + (f" ({report.summary()})" if report.excluded else ""))

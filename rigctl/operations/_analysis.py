@@ -165,10 +165,12 @@ def encoded_path_for(session_path: str | os.PathLike) -> Path:
 
 
 def load_or_encode(path: str | os.PathLike, variants: Sequence[str] | None = None, *, task: str | None = "table1",
-                   encode_to: str | os.PathLike | None = None, progress: Progress = None) -> tuple[Any, Path]:
+                   encode_to: str | os.PathLike | None = None, progress: Progress = None,
+                   overwrite: bool = False) -> tuple[Any, Path]:
     """The features of ``path`` (an encoded file): ``variants``, else ``task``'s default variants
     (:func:`rigctl.analysis.data.default_variants`; ``task=None``: every variant in the file). A session file is
-    encoded first into ``encode_to`` (None: it is an error, :class:`rigctl.analysis.data.NotEncodedError`).
+    encoded first into ``encode_to`` (None: it is an error, :class:`rigctl.analysis.data.NotEncodedError`; an
+    existing ``encode_to`` is replaced only with ``overwrite``, never while another writer holds it).
 
     Returns ``(FeatureSet, the encoded file's path)``. Raises NotEncodedError, ValueError / KeyError (variants),
     OSError."""
@@ -183,7 +185,7 @@ def load_or_encode(path: str | os.PathLike, variants: Sequence[str] | None = Non
         if encode_to is None:
             raise
     out = Path(encode_to)
-    encode_session(path, out, progress=progress)
+    encode_session(path, out, progress=progress, overwrite=overwrite)  # the output policy: replaced only if asked
     return load_features(out, variants or (default_variants(list_variants(out), task) if task else None)), out
 
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -252,11 +253,15 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
 
 def _timeline(s: Any, session_path: Any) -> _Timeline:
     """The usable trials (:func:`rigctl.storage.validate.usable_trials`) back to back on session time."""
-    from rigctl.storage.validate import usable_trials
+    from rigctl.storage.validate import TrialsExcluded, usable_trials
 
-    ids = usable_trials(s).ids
+    report = usable_trials(s)  # the one trial validator: excluded trials said, as by info and encode
+    ids = report.ids
     if not ids:
-        raise NwbExportError(f"{session_path} has no usable recorded trial to export")
+        raise NwbExportError(f"{session_path} has no usable recorded trial to export"
+                             + (f" ({report.summary()})" if report.excluded else ""))
+    if report.excluded:
+        warnings.warn(f"{session_path}: {report.summary()}", TrialsExcluded, stacklevel=3)
     rate = float(s.layout.sample_rate_hz)
     attrs = [s.trial_attrs(t) for t in ids]
     n = [int(a.get("n_samples", 0)) for a in attrs]

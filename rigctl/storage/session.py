@@ -1433,9 +1433,14 @@ class Session:
         return TaxelBlock(data, starts, dropped, has_trace, speed_traces)
 
     def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
-        """Yield :class:`TrialData` of the complete trials (or of ``ids``), in plan order. A damaged trial is
-        skipped with a warning naming it (also added to :attr:`problems`)."""
-        for trial_id in self.completed_ids() if ids is None else ids:
+        """Yield :class:`TrialData` of the usable complete trials (the trial validator's,
+        :func:`rigctl.storage.validate.usable_trials`: excluded ones are listed in :attr:`problems`), or of ``ids``,
+        in plan order. A damaged trial is skipped with a warning naming it (also added to :attr:`problems`)."""
+        if ids is None:
+            from rigctl.storage.validate import usable_trials
+
+            ids = usable_trials(self).ids
+        for trial_id in ids:
             try:
                 yield self.trial(trial_id)
             except SessionError as exc:

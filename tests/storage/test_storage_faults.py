@@ -212,8 +212,10 @@ def test_a_damaged_trial_is_named_never_read_as_data(tmp_path, caplog, damage, m
         assert any("trial 2 is damaged" in p for p in s.problems)
         np.testing.assert_array_equal(s.trial(1).taxels, np.full((500, 18), 1))
     assert "trial 2 is damaged" in caplog.text
-    if "n_samples" in message or "taxels are" in message or "missing" in message:  # seen without reading data
-        _one_line_error(_info(path), "trial 2 is damaged", message)
+    result = _info(path)  # info lists it as excluded, with the reason encode and export give (rigctl.storage.validate)
+    assert result.exit_code == 0, result.output
+    row = [line for line in result.output.splitlines() if line.split()[:1] == ["2"]]
+    assert len(row) == 1 and row[0].rstrip().endswith(")") and "excluded (" in row[0] and message in row[0], row
 
 
 def _replace(group, name, data):
@@ -221,15 +223,19 @@ def _replace(group, name, data):
     group.create_dataset(name, data=data)
 
 
-def test_encode_refuses_a_damaged_trial_in_one_line(tmp_path):
+def test_encode_excludes_a_damaged_trial_and_says_why_in_one_line(tmp_path):
     from rigctl.cli import main
+    from rigctl.storage.encoded import open_encoded
 
     path = _edit(_session(tmp_path / "e.h5"), lambda f: _replace(f["trials/000001"], "taxels",
                                                                  np.full((500, 18), 65535, np.uint16)))
     out = tmp_path / "e.enc.h5"
     result = CliRunner().invoke(main, ["encode", str(path), "--out", str(out), "--quiet"])
-    _one_line_error(result, "trial 1 is damaged", "65535")
-    assert not out.exists()
+    assert result.exit_code == 0, result.output
+    warned = [line for line in result.stderr.splitlines() if "trial 1" in line]
+    assert len(warned) == 1 and "65535" in warned[0] and "2 of 3 complete trials usable" in warned[0]
+    with open_encoded(out) as e:
+        assert [int(t) for t in e.trials["trial_id"]] == [0, 2]
 
 
 def test_not_hdf5_and_foreign_files_are_session_errors(tmp_path):

@@ -323,7 +323,7 @@ def test_rigctl_info_shows_the_sensor_and_the_texture_set(tmp_path):
     path = tmp_path / "i.h5"
     ts = TextureSet.from_dict({"name": "lab", "textures": LABELS_26,
                                "groups": {"woven": LABELS_26[:13], "printed": LABELS_26[13:]}})
-    w = SessionWriter.create(path, plan=_plan(LABELS_26, 26), layout=NINE_100, textures=ts)
+    w = SessionWriter.create(path, plan=_plan(LABELS_26, 26, duration_s=0.3), layout=NINE_100, textures=ts)
     w.write_trial(9, _trial(np.random.default_rng(1), NINE_100, 30))
     out = CliRunner().invoke(main, ["info", str(path)])
     assert out.exit_code == 0, out.output

@@ -1,0 +1,152 @@
+"""The one trial validator (rigctl.storage.validate): crafted damaged files are excluded identically by ``info``,
+``encode``, ``analyze`` and ``export nwb``, with the same reason, counted in each summary."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.storage.encoded import open_encoded
+from rigctl.storage.nwb import read_nwb_summary
+from rigctl.storage.session import SessionWriter, TrialData, open_session
+from rigctl.storage.validate import seq_gaps, usable_trials
+
+N_TRIALS, N = 12, 200  # 0.2 s at 1 kHz
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("validate") / "base.h5"
+    rng = np.random.default_rng(5)
+    plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=[40.0, 80.0][i // 2 % 2], force_g=500.0,
+                 duration_s=N / 1000.0) for i in range(N_TRIALS)]
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 'v'") as w:
+        for i in range(N_TRIALS):
+            start = int(rng.integers(0, 65536))
+            w.write_trial(i, TrialData(taxels=rng.integers(100, 900, (N, 18)), seq=(start + np.arange(N)) % 65536,
+                                       force_g=[500.0], force_time_s=[0.0], speed_mm_s=[40.0], speed_time_s=[0.0]))
+    return path
+
+
+def _replace(g: h5py.Group, name: str, data: np.ndarray) -> None:
+    del g[name]
+    g.create_dataset(name, data=data)
+
+
+def _gap(f):  # a 7-frame gap in the seq column, dropped_frames still 0
+    g = f["trials/000000"] if "trials/000000" in f else f[f"trials/{sorted(f['trials'])[0]}"]
+    seq = g["seq"][()].astype(np.int64)
+    seq[100:] += 7
+    _replace(g, "seq", (seq % 65536).astype(np.uint16))
+
+
+def _group(f, tid):
+    names = sorted(f["trials"])
+    return f["trials"][names[tid]]
+
+
+def _copy(f):  # trial 1 is a byte copy of trial 0
+    _replace(_group(f, 1), "taxels", _group(f, 0)["taxels"][()])
+
+
+def _crc(f):
+    _group(f, 0).attrs["crc_errors"] = 2 ** 62
+
+
+def _duration(f):
+    plan = f["plan"][()]
+    plan["duration_s"][0] = 1e9
+    f["plan"][...] = plan
+
+
+def _short(f):  # a 10-sample trial in a 0.2 s plan
+    g = _group(f, 0)
+    for k in ("taxels", "seq", "flags", "host_time_s"):
+        _replace(g, k, g[k][()][:10])
+    g.attrs["n_samples"] = 10
+
+
+def _negative(f):  # counts shifted negative
+    g = _group(f, 0)
+    _replace(g, "taxels", g["taxels"][()].astype(np.int16) - 600)
+
+
+def _n_samples(f):
+    _group(f, 0).attrs["n_samples"] = 300
+
+
+CRAFTS = {"gap": (_gap, 0, "seq column shows 7 missing frames"), "copy": (_copy, 1, "byte copy of trial 0"),
+          "crc": (_crc, 0, "crc_errors attribute"), "duration": (_duration, 0, "plan duration 1e+09 s"),
+          "short": (_short, 0, "holds 10 samples"), "negative": (_negative, 0, "outside the sensor's"),
+          "n_samples": (_n_samples, 0, "n_samples attribute says 300")}
+
+
+@pytest.mark.parametrize("craft", sorted(CRAFTS))
+def test_crafted_trials_are_excluded_identically_by_every_command(base, tmp_path, craft):
+    damage, bad, words = CRAFTS[craft]
+    path = tmp_path / f"{craft}.h5"
+    shutil.copy(base, path)
+    with h5py.File(path, "r+") as f:
+        damage(f)
+    with open_session(path) as s:
+        report = usable_trials(s)
+    assert list(report.excluded) == [bad] and words in report.excluded[bad], report.excluded
+    reason = report.excluded[bad]
+    runner = CliRunner()
+
+    r = runner.invoke(main, ["info", str(path), "--json"])
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.stdout)
+    row = next(t for t in info["trials"] if t["trial_id"] == bad)
+    assert row["status"] == "excluded" and row["error"] == reason
+    assert info["totals"]["excluded"] == 1 and info["totals"]["complete"] == N_TRIALS - 1
+
+    enc = tmp_path / f"{craft}.enc.h5"
+    r = runner.invoke(main, ["encode", str(path), "--out", str(enc), "--quiet", "--variant", "original"])
+    assert r.exit_code == 0, r.output
+    assert reason in r.stderr
+    with open_encoded(enc) as e:
+        assert bad not in set(int(t) for t in e.trials["trial_id"]) and e.n_trials == N_TRIALS - 1
+
+    nwb = tmp_path / f"{craft}.nwb"
+    r = runner.invoke(main, ["export", "nwb", str(path), "--out", str(nwb), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert reason in r.stderr
+    _, arrays = read_nwb_summary(nwb)
+    assert bad not in set(int(t) for t in arrays["trial_id"]) and len(arrays["trial_id"]) == N_TRIALS - 1
+
+    r = runner.invoke(main, ["analyze", str(path), "--encode", "--task", "textures", "--repeats", "1",
+                             "--pcs", "1-2", "--per-texture", "4", "--variants", "original", "--json"])
+    assert r.exit_code == 0, r.output
+    assert reason in r.stderr
+
+
+def test_an_impossible_sample_rate_excludes_every_trial_everywhere(base, tmp_path):
+    path = tmp_path / "rate.h5"
+    shutil.copy(base, path)
+    with h5py.File(path, "r+") as f:
+        layout = json.loads(f.attrs["sensor_layout"])
+        layout["sample_rate_hz"] = 1e12
+        f.attrs["sensor_layout"] = json.dumps(layout)
+    runner = CliRunner()
+    r = runner.invoke(main, ["info", str(path), "--json"])
+    assert r.exit_code == 0, r.output
+    assert {t["status"] for t in json.loads(r.stdout)["trials"]} == {"excluded"}
+    for args in (["encode", str(path), "--out", str(tmp_path / "e.h5"), "--quiet"],
+                 ["export", "nwb", str(path), "--out", str(tmp_path / "e.nwb"), "--no-progress"]):
+        r = runner.invoke(main, args)
+        assert r.exit_code == 1 and "sample rate 1e+12 Hz is impossible" in r.stderr, (args, r.output)
+        assert not list(tmp_path.glob("e.*"))
+
+
+def test_seq_gaps_wrap_at_65536():
+    assert seq_gaps(np.array([65534, 65535, 0, 1], np.uint16)) == 0
+    assert seq_gaps(np.array([65534, 2], np.uint16)) == 3
+    assert seq_gaps(np.array([5, 6, 10], np.uint16)) == 3
