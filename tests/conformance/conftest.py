@@ -97,16 +97,16 @@ def _read_power_up(ctl: Controller) -> None:
         drum.close()
 
 
-def _start_sim():
+def _start_sim(config=None):
     from rigctl.simulation.rig import SimulatedRig
 
-    rig = SimulatedRig(seed=3).start()
+    rig = SimulatedRig(config, seed=3).start()
     model = rig.model
     return rig, Controller("sim", rig.drum_port, rig.place_mass, actuator_mm=lambda: model.actuator_mm,
                            load_g=lambda: model.force_g, drum_travel_mm=lambda: model.position_mm, rig=rig)
 
 
-def _start_hil():
+def _start_hil(config=None):
     from rigctl import firmware
     from rigctl.simulation import hil
 
@@ -116,7 +116,7 @@ def _start_hil():
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(str(exc))
         pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")
-    rig = hil.HilRig(live=False, with_uno=False).start()
+    rig = hil.HilRig(config, live=False, with_uno=False).start()
     return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm=lambda: rig.next_telemetry().act_mm,
                            load_g=lambda: rig.next_telemetry().force_g,
                            drum_travel_mm=lambda: rig.next_telemetry().drum_steps * rig.mm_per_step,
