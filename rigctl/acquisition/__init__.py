@@ -13,3 +13,30 @@
   :mod:`rigctl.acquisition.rigconfig` - the rig config file (``~/.config/rigctl/rig.json``) that keeps them;
   :mod:`rigctl.acquisition.motion` - ``wait_released`` (shared by the rig and the calibration).
 """
+
+from rigctl.core.lazy import lazy_exports
+
+#: the package's public names and the module each lives in
+_EXPORTS = {
+    "find_protocol": "rigctl.acquisition.builtin",
+    "LoadCellCalibration": "rigctl.acquisition.calibration",
+    "calibrate_loadcell": "rigctl.acquisition.calibration",
+    "taxel_normalisation": "rigctl.acquisition.calibration",
+    "taxel_normalisation_from_session": "rigctl.acquisition.calibration",
+    "Protocol": "rigctl.acquisition.protocol",
+    "ProtocolError": "rigctl.acquisition.protocol",
+    "Settle": "rigctl.acquisition.protocol",
+    "load_protocol": "rigctl.acquisition.protocol",
+    "parse_protocol": "rigctl.acquisition.protocol",
+    "CaptureError": "rigctl.acquisition.rig",
+    "Rig": "rigctl.acquisition.rig",
+    "RigError": "rigctl.acquisition.rig",
+    "RigOpenError": "rigctl.acquisition.rig",
+    "TrialAborted": "rigctl.acquisition.rig",
+    "CalibrationError": "rigctl.acquisition.rigconfig",
+    "load_rig_config": "rigctl.acquisition.rigconfig",
+    "RunSummary": "rigctl.acquisition.runner",
+    "TrialEvent": "rigctl.acquisition.runner",
+    "run_protocol": "rigctl.acquisition.runner",
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

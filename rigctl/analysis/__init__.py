@@ -8,3 +8,25 @@ extrapolation, speed extrapolation, real-time), ``stats`` (Welch + Cohen's d, tw
 the force-leak measurement), ``synthetic`` (feature sets with planted confounds).
 No device, serial or simulation imports.
 """
+
+from rigctl.core.lazy import lazy_exports
+
+#: the package's public names and the module each lives in
+_EXPORTS = {
+    "TextureClassifier": "rigctl.analysis.classify",
+    "FeatureSet": "rigctl.analysis.data",
+    "NotEncodedError": "rigctl.analysis.data",
+    "load_features": "rigctl.analysis.data",
+    "texture_pipeline": "rigctl.analysis.model",
+    "CVParams": "rigctl.analysis.params",
+    "Execution": "rigctl.analysis.params",
+    "ExtrapolationParams": "rigctl.analysis.params",
+    "RealtimeParams": "rigctl.analysis.params",
+    "Repetitions": "rigctl.analysis.params",
+    "TaskResults": "rigctl.analysis.tasks",
+    "run_cv": "rigctl.analysis.tasks",
+    "run_extrapolation": "rigctl.analysis.tasks",
+    "run_realtime": "rigctl.analysis.tasks",
+    "run_table1": "rigctl.analysis.tasks",
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

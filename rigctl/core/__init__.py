@@ -5,11 +5,37 @@
 - :mod:`rigctl.core.textures` - :class:`TextureSet` (labels of any length, groups, geometry, stable codes); the
   paper's A-P set is :data:`PAPER_TEXTURES`.
 - :mod:`rigctl.core.trial` - :class:`PlannedTrial` and :class:`TrialData` (the trial records).
+- :mod:`rigctl.core.drum` - the drum controller in the rig's terms: :class:`DrumState`, :class:`Fault`,
+  :class:`DrumStatus`, :class:`DrumLimits` (+ :class:`SetpointRange`, the rig's protocol range), the drum geometry,
+  the state and fault words, the controller errors.
+- :mod:`rigctl.core.normalisation` - :class:`TaxelRange`, the per-taxel 0-1 normalisation (one type everywhere).
 - :mod:`rigctl.core.interfaces` - the device Protocols: :class:`DrumController`, :class:`TaxelSource`,
   :class:`PlateMounter`, :class:`MassPlacer`, :class:`RigBackend`.
+- :mod:`rigctl.core.progress` - :class:`ProgressEvent` (long work reports how far it is);
+  :mod:`rigctl.core.lazy` - the lazy re-exports of the other packages' public names.
 """
 
+from rigctl.core.drum import (
+    DRUM_CIRCUMFERENCE_MM,
+    DRUM_DIAMETER_MM,
+    MAX_FORCE_G,
+    MAX_SPEED_MM_S,
+    PROTOCOL_LIMITS,
+    DrumError,
+    DrumFault,
+    DrumLimits,
+    DrumState,
+    DrumStatus,
+    DrumTimeout,
+    Fault,
+    SetpointRange,
+    SetpointRangeError,
+    SettleBand,
+    SpeedProfile,
+)
 from rigctl.core.interfaces import DrumController, MassPlacer, PlateMounter, RigBackend, TaxelSource
+from rigctl.core.normalisation import TaxelRange
+from rigctl.core.progress import ProgressEvent
 from rigctl.core.sensor import PAPER_FINGER, PAPER_SENSOR, LayoutError, SensorLayout, TaxelLayer, parse_layout
 from rigctl.core.textures import (
                                   PAPER_GROUPS,
@@ -26,4 +52,8 @@ __all__ = [
     "TextureSet", "TextureSpec", "TextureSetError", "PAPER_TEXTURES", "PAPER_GROUPS", "texture_set_from_labels",
     "PlannedTrial", "TrialData",
     "DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend",
+    "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "SetpointRange",
+    "SetpointRangeError", "DrumError", "DrumTimeout", "DrumFault", "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
+    "DRUM_DIAMETER_MM", "DRUM_CIRCUMFERENCE_MM",
+    "TaxelRange", "ProgressEvent",
 ]

@@ -22,3 +22,26 @@ Modules, one job each (data flows top to bottom):
 
 Submodules are imported on use (numba compiles on first call; compiled kernels are cached on disk).
 """
+
+from rigctl.core.lazy import lazy_exports
+
+#: the package's public names and the module each lives in
+_EXPORTS = {
+    "FeatureExtractor": "rigctl.encoding.estimators",
+    "SpikeEncoder": "rigctl.encoding.estimators",
+    "TaxelNormaliser": "rigctl.encoding.estimators",
+    "spike_features": "rigctl.encoding.features",
+    "ForceScaler": "rigctl.encoding.force",
+    "fit_force_coefficients": "rigctl.encoding.force",
+    "StreamingEncoder": "rigctl.encoding.izhikevich",
+    "encode_ra": "rigctl.encoding.izhikevich",
+    "encode_sa": "rigctl.encoding.izhikevich",
+    "encode_trials": "rigctl.encoding.izhikevich",
+    "TaxelRange": "rigctl.encoding.normalise",
+    "EncodeParams": "rigctl.encoding.pipeline",
+    "encode_session": "rigctl.encoding.pipeline",
+    "incremental_scale": "rigctl.encoding.speed",
+    "scale_spike_times": "rigctl.encoding.speed",
+    "SpikeTrains": "rigctl.encoding.spikes",
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -6,6 +6,7 @@ One package of small modules, each one job an operator does:
   recording); :func:`open_control` opens it as a :class:`RigControl` (``_control``): setpoints checked against the
   controller's limits, run at a speed and force (press -> settle -> run), stop, tare, home, clear a fault, mount a
   plate, status; :class:`Home` says what opening does with a latched fault.
+- :class:`ProtocolRun` (``_run``): run, pause, resume, abort a protocol (in this thread or a worker).
 - :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
 - :func:`doctor` (``_doctor``): the bring-up checks (:mod:`rigctl.acquisition.doctor`) on a source or an open rig,
   the dated report stored in the rig config.
@@ -32,6 +33,7 @@ from rigctl.operations._analysis import (
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
+from rigctl.operations._run import RUN_STATES, ProtocolRun
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 
@@ -40,5 +42,5 @@ __all__ = [
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
-    "train_model", "TrainedModel",
+    "train_model", "TrainedModel", "ProtocolRun", "RUN_STATES",
 ]

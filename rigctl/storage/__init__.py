@@ -1,1 +1,29 @@
-"""rigctl.storage"""
+"""rigctl.storage: every file format (h5py; layouts in ``docs/session-format.md``).
+
+Public API (re-exported here, imported on first use): session files (``SessionWriter``, ``open_session`` ->
+``Session``, ``SessionError``), encoded files (``EncodedWriter``, ``open_encoded`` -> ``EncodedFile``,
+``NotEncodedError``, the variant registry ``VARIANTS``), importers (``import_recordings``, ``import_fabricslide``),
+the NWB export (``export_nwb``) and model files (``save_model``, ``load_model``, ``ModelFileError``).
+"""
+
+from rigctl.core.lazy import lazy_exports
+
+#: the package's public names and the module each lives in
+_EXPORTS = {
+    "EncodedFile": "rigctl.storage.encoded",
+    "EncodedWriter": "rigctl.storage.encoded",
+    "NotEncodedError": "rigctl.storage.encoded",
+    "VARIANTS": "rigctl.storage.encoded",
+    "open_encoded": "rigctl.storage.encoded",
+    "import_fabricslide": "rigctl.storage.fabricslide",
+    "import_recordings": "rigctl.storage.importers",
+    "ModelFileError": "rigctl.storage.model_file",
+    "load_model": "rigctl.storage.model_file",
+    "save_model": "rigctl.storage.model_file",
+    "export_nwb": "rigctl.storage.nwb",
+    "Session": "rigctl.storage.session",
+    "SessionError": "rigctl.storage.session",
+    "SessionWriter": "rigctl.storage.session",
+    "open_session": "rigctl.storage.session",
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

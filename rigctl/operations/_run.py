@@ -1,0 +1,148 @@
+"""Run, pause, resume and abort a protocol: :class:`ProtocolRun`, the one run control of the CLI and the GUI.
+
+A run records a protocol's plan into a session file (:func:`rigctl.acquisition.runner.run_protocol`, which owns the
+trial loop, the retries and the clean stops); this object holds its controls: :meth:`pause` (between trials, the
+sensor released), :meth:`resume`, :meth:`abort` (the trial in progress is discarded, the rig left safe, finished
+trials kept: resumable), and its state (:attr:`state`: "ready", "running", "pausing", "paused", "aborting", "done").
+:meth:`run` records in the calling thread (the CLI: Ctrl-C and SIGTERM stop it cleanly there); :meth:`start` in a
+worker thread (the GUI), :meth:`wait` for its :class:`rigctl.acquisition.runner.RunSummary`.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from rigctl.acquisition.rig import Rig
+from rigctl.acquisition.runner import RunSummary, TrialEvent, run_protocol
+from rigctl.core.progress import ProgressEvent
+
+__all__ = ["ProtocolRun", "RUN_STATES"]
+
+#: the states of a run
+RUN_STATES = ("ready", "running", "pausing", "paused", "aborting", "done")
+
+
+class ProtocolRun:
+    """One run of ``protocol`` on ``rig`` into ``out_path``.
+
+    Parameters
+    ----------
+    rig : an open rig: a :class:`rigctl.operations.RigControl` or the :class:`rigctl.acquisition.rig.Rig` it wraps.
+    protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`).
+    out_path : the session file; must not exist unless ``resume`` or ``overwrite``.
+    resume, overwrite, on_failure, prompt : as :func:`rigctl.acquisition.runner.run_protocol`.
+    progress : receives :class:`rigctl.core.progress.ProgressEvent` s.
+    on_trial : receives :class:`rigctl.acquisition.runner.TrialEvent` s (from the thread the run records in).
+
+    Raises (from :meth:`run` / :meth:`wait`) what ``run_protocol`` raises: FileExistsError, FileNotFoundError,
+    SessionError, ValueError.
+    """
+
+    def __init__(self, rig: Any, protocol: Any, out_path: str | os.PathLike, *, resume: bool = False,
+                 overwrite: bool = False, on_failure: str = "continue",
+                 prompt: Callable[[str], Any] | None = None,
+                 progress: Callable[[ProgressEvent], Any] | None = None,
+                 on_trial: Callable[[TrialEvent], Any] | None = None) -> None:
+        self.rig: Rig = getattr(rig, "rig", rig)
+        self.protocol = protocol
+        self.out_path = Path(out_path)
+        #: continue an interrupted session file (not to be confused with :meth:`resume` after a pause)
+        self.resume_file = resume
+        self.overwrite, self.on_failure, self.prompt = overwrite, on_failure, prompt
+        self.progress, self.on_trial = progress, on_trial
+        #: set to stop the run cleanly (:meth:`abort`); set to pause it between trials (:meth:`pause`)
+        self.stop_event = threading.Event()
+        self.pause_event = threading.Event()
+        self.summary: RunSummary | None = None
+        self.error: BaseException | None = None
+        self._paused_now = False
+        self._started = False
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------------------------------------- state
+    @property
+    def state(self) -> str:
+        """"ready" (not started), "running", "pausing" (asked, the trial in progress ends first), "paused" (between
+        trials, the sensor released), "aborting", "done"."""
+        if self._done.is_set():
+            return "done"
+        if not self._started:
+            return "ready"
+        if self.stop_event.is_set():
+            return "aborting"
+        if self.pause_event.is_set():
+            return "paused" if self._paused_now else "pausing"
+        return "running"
+
+    @property
+    def running(self) -> bool:
+        """Started and not done (paused counts as running: the run owns the rig)."""
+        return self._started and not self._done.is_set()
+
+    # ------------------------------------------------------------------------------------------------- controls
+    def pause(self) -> None:
+        """Pause after the trial in progress, with the sensor released; :meth:`resume` goes on."""
+        if self.running and not self.stop_event.is_set():
+            self.pause_event.set()
+
+    def resume(self) -> None:
+        """Go on after :meth:`pause`."""
+        self.pause_event.clear()
+
+    def abort(self) -> None:
+        """Stop cleanly: the trial in progress is discarded, the rig left safe, finished trials stay in the file
+        (the run can be resumed later). Returns at once; :meth:`wait` for the end."""
+        self.stop_event.set()
+        self.pause_event.clear()
+
+    # ------------------------------------------------------------------------------------------------- running
+    def run(self) -> RunSummary:
+        """Record in the calling thread until the plan is done, the run is aborted or stops; returns the summary.
+        In the main thread Ctrl-C and SIGTERM stop it cleanly (``summary.stopped``)."""
+        if self._started:
+            raise RuntimeError("this run has already been started")
+        self._started = True
+        try:
+            self.summary = run_protocol(
+                self.protocol, self.out_path, rig=self.rig, resume=self.resume_file, progress=self.progress,
+                stop_event=self.stop_event, pause_event=self.pause_event, on_trial=self._trial,
+                prompt=self.prompt, on_failure=self.on_failure, overwrite=self.overwrite)
+            return self.summary
+        except BaseException as exc:
+            self.error = exc
+            raise
+        finally:
+            self._done.set()
+
+    def start(self) -> "ProtocolRun":
+        """Record in a worker thread; returns self. :meth:`wait` for the summary."""
+        def work() -> None:
+            try:
+                self.run()
+            except BaseException:  # noqa: BLE001 - kept in self.error, raised by wait()
+                pass
+
+        self._thread = threading.Thread(target=work, name="protocol-run", daemon=True)
+        self._thread.start()
+        return self
+
+    def wait(self, timeout_s: float | None = None) -> RunSummary | None:
+        """The summary once the run has ended (None if it has not within ``timeout_s``); raises the run's error."""
+        if not self._done.wait(timeout_s):
+            return None
+        if self.error is not None:
+            raise self.error
+        return self.summary
+
+    def _trial(self, event: TrialEvent) -> None:
+        if event.kind == "paused":
+            self._paused_now = True
+        elif event.kind == "resumed":
+            self._paused_now = False
+        if self.on_trial is not None:
+            self.on_trial(event)
