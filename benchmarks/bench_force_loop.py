@@ -7,7 +7,7 @@ within FORCE_TOLERANCE_G of the setpoint, s; "-" when it never does within the w
 (peak-to-peak of the force over the last 2 s of the window, g). The force is the harness's spring force (the real
 contact force, ``TEL`` every 5 ms of simulated time), not the HX711's delayed reading. At 10 SPS the firmware
 refuses to press with its default HX711_RATE_SPS = 80 (fault HX711_RATE): the run first accepts the rate
-(``DrumClient.set_force_loop(ForceLoopConfig(hx711_rate_sps=10))``), so its 10 SPS gains run.
+(``DrumClient.set_hx711_rate(10)``), so its 10 SPS gains run.
 
 Each (rate, stiffness) pair runs in its own harness, paced to real time (~35 % of a core): about 2 minutes at 80 SPS
 and 6-8 at 10 SPS on an idle machine. A row is marked OSC when the residual oscillation exceeds 2 x
@@ -23,7 +23,7 @@ import json
 import sys
 import time
 
-from rigctl.devices.drum import DrumClient, ForceLoopConfig
+from rigctl.devices.drum import DrumClient
 from rigctl.devices.wire import DrumState, HoldingRegister as HR
 from rigctl.simulation.hil import HilRig
 from rigctl.simulation.model import MechanicsConfig, RigConfig
@@ -73,7 +73,7 @@ def run(rate_sps: int, stiffness_g_per_mm: float) -> list[dict]:
                 time.sleep(0.05)
             measured = drum.read_status().hx711_rate_sps
             if drum.read_status().state == DrumState.FAULT:  # a 10 SPS board: accept it, its own gains
-                drum.set_force_loop(ForceLoopConfig(hx711_rate_sps=rate_sps))
+                drum.set_hx711_rate(rate_sps)
                 drum.clear_fault()
             tol = drum.read_holding(HR.FORCE_TOLERANCE_G)
             for sp in SETPOINTS_G:

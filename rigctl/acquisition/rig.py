@@ -50,7 +50,9 @@ from rigctl.core.drum import (
     DrumState,
     DrumTimeout,
     Fault,
+    ForceLoopConfig,
     SpeedProfile,
+    fault_advice,
 )
 from rigctl.core.interfaces import DrumController, RigBackend, TaxelSource
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
@@ -233,6 +235,7 @@ class Rig:
         return rig
 
     def _prepare(self, *, home: bool) -> None:
+        self._apply_force_loop()
         st = self.drum.read_status()
         if st.state == DrumState.FAULT:
             if not home:
@@ -240,10 +243,21 @@ class Rig:
                 return
             log.warning("drum controller was in FAULT (%s); clearing it", st.faults)
             self.drum.stop()
-            self.drum.clear_fault()
+            try:
+                self.drum.clear_fault()
+            except DrumError:  # refused: the fault's condition persists (e.g. an HX711 at another rate): say which
+                st = self.drum.read_status()
+                raise DrumFault(st.faults, f"the fault persists ({fault_advice(st.faults)})") from None
         if home:
             self.drum.home()
             self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+
+    def _apply_force_loop(self) -> None:
+        """The rig config's ``force_loop`` block (this rig's HX711 rate and gains), if any, to the controller."""
+        block = self.host_config.get("force_loop")
+        if block:
+            self.drum.set_force_loop(ForceLoopConfig(**block))
+            log.info("force loop from the rig config: %s", block)
 
     # ------------------------------------------------------------------------------------------------- sensor, textures
     @property

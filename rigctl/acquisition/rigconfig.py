@@ -12,6 +12,10 @@ optional blocks
   ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts`` (numbers), ``calibrated_utc`` (text);
 - ``taxel_normalisation``: ``taxel_min``, ``taxel_max`` (required, lists of ADC counts, one per taxel, of the same
   non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text);
+- ``force_loop``: the force loop's settings for this rig's contact stiffness and HX711 (all required):
+  ``hx711_rate_sps`` (10 or 80), ``kp_80sps_mm_s_per_g``, ``ki_80sps_mm_s_per_g_s``, ``kp_10sps_mm_s_per_g``,
+  ``ki_10sps_mm_s_per_g_s`` (numbers >= 0; :class:`rigctl.core.drum.ForceLoopConfig`), written to the controller
+  when the rig opens (the controller refuses gains outside its registers' ranges, docs/wire-protocol.md 2.1);
 - ``taxel_normalisation_previous``: the taxel normalisation the current one replaced (the same keys), kept for undo;
 - ``doctor``: the last ``rigctl doctor`` report per rig kind (``hardware``, ``sim``, ``hil``, ``replay``,
   ``inprocess``): ``checked_utc`` and ``rig`` (text), ``ok`` (true/false), ``checks`` (a list of objects with
@@ -57,12 +61,18 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
         "source": ("text", False), "calibrated_utc": ("text", False),
     },
 }
+SCHEMA["force_loop"] = {
+    "hx711_rate_sps": ("hx711_rate", True), "kp_80sps_mm_s_per_g": ("gain", True),
+    "ki_80sps_mm_s_per_g_s": ("gain", True), "kp_10sps_mm_s_per_g": ("gain", True),
+    "ki_10sps_mm_s_per_g_s": ("gain", True),
+}
 SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
 SCHEMA["doctor"] = {kind: ("report", False) for kind in ("hardware", "sim", "hil", "replay", "inprocess")}
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
              "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers",
-             "report": "a doctor report (checked_utc, rig, ok, checks)"}
+             "report": "a doctor report (checked_utc, rig, ok, checks)", "hx711_rate": "10 or 80",
+             "gain": "a number >= 0"}
 
 #: a doctor report's keys -> kind; each check's keys -> kind (``values`` checked by _is_plain_value)
 _REPORT_KEYS = {"checked_utc": "text", "rig": "text", "ok": "bool", "checks": "list"}
@@ -97,6 +107,10 @@ def _check_value(kind: str, v: Any) -> bool:
         return isinstance(v, list) and len(v) > 0 and all(_is_number(x) for x in v)
     if kind == "report":
         return _is_report(v)
+    if kind == "hx711_rate":
+        return isinstance(v, int) and not isinstance(v, bool) and v in (10, 80)
+    if kind == "gain":
+        return _is_number(v) and v >= 0
     raise AssertionError(kind)
 
 

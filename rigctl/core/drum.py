@@ -30,7 +30,8 @@ from dataclasses import dataclass
 from typing import NamedTuple, Protocol, runtime_checkable
 
 __all__ = [
-    "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "SetpointRange",
+    "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "ForceLoopConfig",
+    "SetpointRange",
     "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM",
     "STATE_TEXT", "FAULT_WORDS", "FaultWords", "describe_state", "describe_faults", "fault_advice",
@@ -110,7 +111,7 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the load cell amplifier's measured rate is not the one the force loop is set for",
         "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE pin low; the "
         "default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or accept 10 SPS with its slower "
-        "gains (DrumClient.set_force_loop, rate 10), then CLEAR_FAULT."),
+        "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT."),
 }
 
 
@@ -313,6 +314,34 @@ class SettleBand:
 
     force_tolerance_g: float
     settle_time_ms: int
+
+
+@dataclass(frozen=True)
+class ForceLoopConfig:
+    """The force loop's settings in physical units (spec 2.1 and 2.9; the registers' defaults and ranges:
+    ``rigctl.devices.drum.default_force_loop``).
+
+    Attributes
+    ----------
+    hx711_rate_sps : int
+        The HX711 rate the loop accepts to run at (10 or 80); a measured rate 20 % away latches HX711_RATE.
+    kp_80sps_mm_s_per_g, ki_80sps_mm_s_per_g_s : float
+        PI gains at 80 SPS: actuator velocity (mm/s) per g of force error, and per g*s of its integral.
+    kp_10sps_mm_s_per_g, ki_10sps_mm_s_per_g_s : float
+        The same at 10 SPS.
+    """
+
+    hx711_rate_sps: int
+    kp_80sps_mm_s_per_g: float
+    ki_80sps_mm_s_per_g_s: float
+    kp_10sps_mm_s_per_g: float
+    ki_10sps_mm_s_per_g_s: float
+
+    def to_dict(self) -> dict[str, float]:
+        """JSON-able, the keys of the rig config's ``force_loop`` block (:mod:`rigctl.acquisition.rigconfig`)."""
+        return {"hx711_rate_sps": int(self.hx711_rate_sps), "kp_80sps_mm_s_per_g": self.kp_80sps_mm_s_per_g,
+                "ki_80sps_mm_s_per_g_s": self.ki_80sps_mm_s_per_g_s, "kp_10sps_mm_s_per_g": self.kp_10sps_mm_s_per_g,
+                "ki_10sps_mm_s_per_g_s": self.ki_10sps_mm_s_per_g_s}
 
 
 # ----------------------------------------------------------------------------------------------------------------

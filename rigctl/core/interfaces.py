@@ -26,7 +26,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol, runtime_checkable
 
-from rigctl.core.drum import Clock, DrumLimits, DrumState, DrumStatus, SettleBand, SpeedProfile
+from rigctl.core.drum import Clock, DrumLimits, DrumState, DrumStatus, ForceLoopConfig, SettleBand, SpeedProfile
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 
@@ -127,6 +127,14 @@ class DrumController(Protocol):
 
     def save_calibration(self) -> None:
         """Write the calibration (load-cell scale, actuator steps per mm) to the controller's EEPROM."""
+        ...
+
+    def force_loop(self) -> ForceLoopConfig:
+        """The force loop's HX711 rate and PI gains (spec 2.9)."""
+        ...
+
+    def set_force_loop(self, config: ForceLoopConfig) -> None:
+        """Set the force loop's HX711 rate and PI gains (all at once; range-checked before anything is sent)."""
         ...
 
     # status

@@ -35,7 +35,7 @@ from pymodbus.framer import FramerRTU, FramerType
 from pymodbus.pdu import ExceptionResponse
 
 from rigctl.core import drum as core_drum
-from rigctl.core.drum import DrumLimits, SettleBand
+from rigctl.core.drum import DrumLimits, ForceLoopConfig, SettleBand
 from rigctl.devices import wire
 from rigctl.devices.errors import (
     DrumError,
@@ -47,7 +47,8 @@ from rigctl.devices.errors import (
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
 __all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "ForceLoopConfig",
-           "IndexSource", "SpeedProfile"]
+           "IndexSource", "SpeedProfile", "FORCE_LOOP_REGISTERS", "default_force_loop", "force_loop_registers",
+           "force_loop_from_registers"]
 
 log = logging.getLogger(__name__)
 
@@ -105,54 +106,39 @@ class IndexSource:
     STEPS = "steps"
 
 
-@dataclass(frozen=True)
-class ForceLoopConfig:
-    """The force loop's holding registers in physical units (spec 2.1 and 2.9).
+#: the force loop's holding registers, in order (consecutive: one function-16 write)
+FORCE_LOOP_REGISTERS = (HR.HX711_RATE_SPS, HR.FORCE_KP_80SPS_NMS_G, HR.FORCE_KI_80SPS_NMS_GS,
+                        HR.FORCE_KP_10SPS_NMS_G, HR.FORCE_KI_10SPS_NMS_GS)
+_NMS = 1e-6  # (nm/s) -> (mm/s)
 
-    Attributes
-    ----------
-    hx711_rate_sps : int
-        The HX711 rate the loop accepts to run at (10 or 80); another measured rate latches HX711_RATE.
-    kp_80sps_mm_s_per_g, ki_80sps_mm_s_per_g_s : float
-        PI gains used at 80 SPS: actuator velocity (mm/s) per g of force error, and per g*s of its integral.
-    kp_10sps_mm_s_per_g, ki_10sps_mm_s_per_g_s : float
-        The same at 10 SPS.
-    """
 
-    hx711_rate_sps: int = wire.HOLDING_RANGE[HR.HX711_RATE_SPS][2]
-    kp_80sps_mm_s_per_g: float = wire.HOLDING_RANGE[HR.FORCE_KP_80SPS_NMS_G][2] * 1e-6
-    ki_80sps_mm_s_per_g_s: float = wire.HOLDING_RANGE[HR.FORCE_KI_80SPS_NMS_GS][2] * 1e-6
-    kp_10sps_mm_s_per_g: float = wire.HOLDING_RANGE[HR.FORCE_KP_10SPS_NMS_G][2] * 1e-6
-    ki_10sps_mm_s_per_g_s: float = wire.HOLDING_RANGE[HR.FORCE_KI_10SPS_NMS_GS][2] * 1e-6
+def default_force_loop(hx711_rate_sps: int | None = None) -> ForceLoopConfig:
+    """The controller's power-up force-loop settings (the registers' defaults, spec 2.1), with ``hx711_rate_sps``
+    instead of the default rate if given."""
+    d = [wire.HOLDING_RANGE[r][2] for r in FORCE_LOOP_REGISTERS]
+    return ForceLoopConfig(int(hx711_rate_sps if hx711_rate_sps is not None else d[0]),
+                           d[1] * _NMS, d[2] * _NMS, d[3] * _NMS, d[4] * _NMS)
 
-    _REGS = (HR.HX711_RATE_SPS, HR.FORCE_KP_80SPS_NMS_G, HR.FORCE_KI_80SPS_NMS_GS, HR.FORCE_KP_10SPS_NMS_G,
-             HR.FORCE_KI_10SPS_NMS_GS)
 
-    def to_registers(self) -> list[int]:
-        """Raw values of HX711_RATE_SPS .. FORCE_KI_10SPS_NMS_GS (consecutive). Raises SetpointRangeError for a
-        rate other than 10/80 or a gain outside its register's range."""
-        if int(self.hx711_rate_sps) not in wire.HX711_RATES_SPS:
-            raise SetpointRangeError("HX711 rate", float(self.hx711_rate_sps), "SPS", 10, 80)
-        raw = [int(self.hx711_rate_sps)]
-        names = ("Kp at 80 SPS", "Ki at 80 SPS", "Kp at 10 SPS", "Ki at 10 SPS")
-        values = (self.kp_80sps_mm_s_per_g, self.ki_80sps_mm_s_per_g_s, self.kp_10sps_mm_s_per_g,
-                  self.ki_10sps_mm_s_per_g_s)
-        for name, reg, v in zip(names, self._REGS[1:], values):
-            lo, hi, _ = wire.HOLDING_RANGE[reg]
-            if not lo * 1e-6 <= float(v) <= hi * 1e-6:
-                raise SetpointRangeError(name, float(v), "(mm/s)/g", lo * 1e-6, hi * 1e-6)
-            raw.append(int(round(float(v) * 1e6)))
-        return raw
+def force_loop_registers(config: ForceLoopConfig) -> list[int]:
+    """Raw values of :data:`FORCE_LOOP_REGISTERS`. Raises SetpointRangeError for a rate other than 10/80 or a gain
+    outside its register's range (nothing is sent)."""
+    if int(config.hx711_rate_sps) not in wire.HX711_RATES_SPS:
+        raise SetpointRangeError("HX711 rate", float(config.hx711_rate_sps), "SPS", 10, 80)
+    raw = [int(config.hx711_rate_sps)]
+    gains = (("Kp at 80 SPS", config.kp_80sps_mm_s_per_g), ("Ki at 80 SPS", config.ki_80sps_mm_s_per_g_s),
+             ("Kp at 10 SPS", config.kp_10sps_mm_s_per_g), ("Ki at 10 SPS", config.ki_10sps_mm_s_per_g_s))
+    for (name, v), reg in zip(gains, FORCE_LOOP_REGISTERS[1:]):
+        lo, hi, _ = wire.HOLDING_RANGE[reg]
+        if not lo * _NMS <= float(v) <= hi * _NMS:
+            raise SetpointRangeError(name, float(v), "(mm/s)/g", lo * _NMS, hi * _NMS)
+        raw.append(int(round(float(v) / _NMS)))
+    return raw
 
-    @classmethod
-    def from_registers(cls, regs: list[int]) -> "ForceLoopConfig":
-        """From the raw values of HX711_RATE_SPS .. FORCE_KI_10SPS_NMS_GS."""
-        return cls(int(regs[0]), regs[1] * 1e-6, regs[2] * 1e-6, regs[3] * 1e-6, regs[4] * 1e-6)
 
-    def to_dict(self) -> dict[str, float]:
-        return {"hx711_rate_sps": int(self.hx711_rate_sps), "kp_80sps_mm_s_per_g": self.kp_80sps_mm_s_per_g,
-                "ki_80sps_mm_s_per_g_s": self.ki_80sps_mm_s_per_g_s, "kp_10sps_mm_s_per_g": self.kp_10sps_mm_s_per_g,
-                "ki_10sps_mm_s_per_g_s": self.ki_10sps_mm_s_per_g_s}
+def force_loop_from_registers(regs: list[int]) -> ForceLoopConfig:
+    """From the raw values of :data:`FORCE_LOOP_REGISTERS`."""
+    return ForceLoopConfig(int(regs[0]), regs[1] * _NMS, regs[2] * _NMS, regs[3] * _NMS, regs[4] * _NMS)
 
 
 @dataclass(frozen=True)
@@ -633,14 +619,21 @@ class DrumClient:
             raise SetpointRangeError("load-cell scale", float(counts_per_g), "counts/g", lo / 100, hi / 100)
         self.write_holding(HR.LOADCELL_SCALE_X100, int(round(counts_per_g * 100)))
 
-    def read_force_loop(self) -> ForceLoopConfig:
+    def force_loop(self) -> ForceLoopConfig:
         """The force loop's rate and gains (holding registers 20-24, spec 2.9)."""
-        return ForceLoopConfig.from_registers(self.read_holdings(HR.HX711_RATE_SPS, len(ForceLoopConfig._REGS)))
+        return force_loop_from_registers(self.read_holdings(HR.HX711_RATE_SPS, len(FORCE_LOOP_REGISTERS)))
 
     def set_force_loop(self, config: ForceLoopConfig) -> None:
         """Write the force loop's rate and gains in one function-16 request (range-checked first: SetpointRangeError;
         a rate the HX711 does not have latches HX711_RATE on the controller)."""
-        self.write_holdings(HR.HX711_RATE_SPS, config.to_registers())
+        self.write_holdings(HR.HX711_RATE_SPS, force_loop_registers(config))
+
+    def set_hx711_rate(self, sps: int) -> None:
+        """Tell the controller the HX711's rate (10 or 80 SPS): the loop then runs with that rate's gains, and a
+        latched HX711_RATE can be cleared once it matches the measured rate."""
+        if int(sps) not in wire.HX711_RATES_SPS:
+            raise SetpointRangeError("HX711 rate", float(sps), "SPS", 10, 80)
+        self.write_holding(HR.HX711_RATE_SPS, int(sps))
 
     # ------------------------------------------------------------------ commands
     def command(self, cmd: Command) -> None:

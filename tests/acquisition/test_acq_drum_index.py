@@ -56,3 +56,29 @@ def test_without_an_index_sensor_the_step_count_is_the_source(tmp_path):
     _, attrs = _record(tmp_path, DrumConfig(index_sensor=False))
     assert all(a["index_source"] == "steps" and a["drum_steps_per_rev_index"] == 0 for a in attrs)
     assert all(math.isnan(a["drum_speed_index_mm_s"]) and not a["drum_speed_mismatch"] for a in attrs)
+
+
+def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path):
+    """The rig config's force_loop block (this rig's HX711 rate and gains) reaches the controller when the rig opens;
+    without it a 10 SPS board is refused, by name."""
+    import json
+
+    from rigctl.acquisition.rig import RigError
+    from rigctl.acquisition.rigconfig import update_rig_config
+    from rigctl.core.drum import DrumState, Fault
+    from rigctl.devices.drum import default_force_loop
+    from rigctl.simulation.model import MechanicsConfig
+
+    cfg = RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=10.0, contact_stiffness_g_per_mm=1000.0))
+    host = tmp_path / "rig.json"
+    with pytest.raises(RigError, match="HX711_RATE.*Set the board.s RATE pin high"):
+        open_rig("inprocess", config=cfg, seed=2, host_config_path=host)
+    loop = default_force_loop(10)
+    update_rig_config(host, force_loop=loop.to_dict())
+    assert json.loads(host.read_text())["force_loop"]["hx711_rate_sps"] == 10
+    with open_rig("inprocess", config=cfg, seed=2, host_config_path=host) as rig:
+        assert rig.drum.force_loop() == loop
+        st = rig.drum.read_status()
+        assert st.faults == Fault(0) and st.hx711_rate_sps == pytest.approx(10, rel=0.02)
+        rig.press(500, timeout_s=30)
+        assert rig.drum.read_status().state == DrumState.FORCE_SETTLED

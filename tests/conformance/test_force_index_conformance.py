@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from rigctl.devices.drum import DrumClient, ForceLoopConfig
+from rigctl.devices.drum import DrumClient, default_force_loop
 from rigctl.devices.errors import ModbusExceptionError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
 from rigctl.simulation.model import DrumConfig, MechanicsConfig, RigConfig
@@ -78,8 +78,8 @@ def test_a_10sps_hx711_is_refused_with_a_fault_then_runs_with_its_own_gains(make
         drum.press()
     with pytest.raises(ModbusExceptionError):
         drum.clear_fault()  # refused while the rate is not HX711_RATE_SPS
-    drum.set_force_loop(ForceLoopConfig(hx711_rate_sps=10))  # accept the 10 SPS board: its own, slower gains
-    assert drum.read_holding(HR.HX711_RATE_SPS) == 10
+    drum.set_hx711_rate(10)  # accept the 10 SPS board: its own, slower gains
+    assert drum.force_loop() == default_force_loop(10)
     drum.clear_fault()
     drum.press()
     drum.wait_state(DrumState.FORCE_SETTLED, timeout_s=40)
