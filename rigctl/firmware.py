@@ -27,11 +27,30 @@ from pathlib import Path
 
 from rigctl import __version__
 
-__all__ = ["FirmwareBuildError", "build", "build_dir", "cache_root", "source_digest", "source_versions", "sources"]
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "FirmwareBuildError", "avrdude_command", "build", "build_dir", "cache_root",
+           "source_digest", "source_versions", "sources"]
 
 #: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
 _SOURCE_SUFFIXES = (".c", ".h", ".cpp")
 _SOURCE_NAMES = ("Makefile",)
+
+
+#: board -> (image, avrdude part, avrdude programmer, extra avrdude flags): the boards' stock bootloaders (Uno:
+#: optiboot, spoken to as ``arduino``; Mega: stk500v2, as ``wiring``, ``-D``: its bootloader erases page by page)
+BOARDS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
+    "uno": ("uno_taxel", "m328p", "arduino", ()),
+    "mega": ("mega_drum", "m2560", "wiring", ("-D",)),
+}
+#: both stock bootloaders talk at 115200 baud
+BOOTLOADER_BAUD = 115200
+
+
+def avrdude_command(board: str, port: str, hex_file: Path | str) -> list[str]:
+    """The avrdude command that flashes ``hex_file`` onto ``board`` ("uno" | "mega") through its bootloader on the
+    serial ``port``. Raises KeyError for another board."""
+    _, part, programmer, extra = BOARDS[board]
+    return ["avrdude", "-p", part, "-c", programmer, "-P", str(port), "-b", str(BOOTLOADER_BAUD), *extra,
+            "-U", f"flash:w:{hex_file}:i"]
 
 
 class FirmwareBuildError(RuntimeError):

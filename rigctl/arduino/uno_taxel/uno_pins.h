@@ -6,8 +6,14 @@
 #define UNO_SEL_DDR       DDRD
 #define UNO_SEL_SHIFT     4
 #define UNO_SEL_MASK      (0x07 << UNO_SEL_SHIFT)
-/* mux outputs (COM) -> A0, A1, A2 (ADC channels 0..2); A3-A5 unused */
-/* sync-in from the Mega's index output -> D2 = INT0, rising edge */
+/* mux outputs (COM) of mux 0, 1, 2 -> A0 (PC0), A1, A2 = ADC channels 0..2; A3-A5 unused. Declared for the
+ * docs' pin table (rigctl/firmware_pins.py), like every pin the board uses */
+#define UNO_MUX_COM_PIN   PINC
+#define UNO_MUX_COM_SHIFT 0
+#define UNO_MUX_COM_MASK  (0x07 << UNO_MUX_COM_SHIFT)
+/* sync-in from the Mega's index output -> D2 (PD2) = INT0, rising edge */
+#define UNO_SYNC_IN_PIN   PIND
+#define UNO_SYNC_IN_BIT   2
 /* timing probes for the simavr harness and a scope: D8 (PB0) high while a sampler ISR runs,
  * D9 (PB1) high while the UART transmit ISR runs */
 #define UNO_PROBE_PORT    PORTB
