@@ -9,8 +9,9 @@ What a header declares, and how it is read (the macros the firmware's code uses,
   register of a stem with the same prefix up to the last ``_``: ``PIN_DRUM_DIR_BIT`` -> ``PIN_DRUM_STEP_PORT``);
 - several pins of one register: ``<STEM>_SHIFT`` + ``<STEM>_MASK`` (consecutive bits), or named bits
   ``<STEM>_<NAME> n`` beside ``<STEM>_PORT``;
-- direction: a ``PORT`` or ``DDR`` register alone is an output, a ``PIN`` register an input (with ``PORT`` too: an
-  input with the internal pull-up).
+- direction: a pin with a ``DDR`` register is an output; one with a ``PIN`` register an input, and with ``PORT`` too
+  an input with the internal pull-up; ``PORT`` alone is an input with its pull-up (DDR resets to input). A group's
+  pin without registers of its own (``PIN_DRUM_DIR_BIT``) takes its group's ``PORT``/``DDR``.
 
 A comment naming a pin as ``D11 = PB5`` or ``D8 (PB0)`` must agree with the macros (:func:`comment_pins` lists
 them; the test checks every one is in the table), so a pin added in another style is noticed.
@@ -120,9 +121,11 @@ def parse_header(text: str, board: str) -> list[Pin]:
         return None
 
     def direction(regs: dict[str, str]) -> str:
+        if "DDR" in regs:
+            return "out"
         if "PIN" in regs:
             return "in, pull-up" if "PORT" in regs else "in"
-        return "out"
+        return "in, pull-up"  # a PORT register without DDR: the pin stays an input (DDR's reset value), PORT its pull-up
 
     def make(stem: str, signal: str, regs: dict[str, str], bit: int, pos: int) -> Pin:
         if not 0 <= bit <= 7:

@@ -71,6 +71,14 @@ def _block(elm, name: str, left: list[str], right: list[str] = (), *, board: boo
     return elm.Ic(pins=pins_, pinspacing=0.9, edgepadH=0.4, edgepadW=0.6, leadlen=0.6).label(name, "top")
 
 
+def _top_of(schemdraw, elm, name: str, left: list[str], right: list[str]) -> float:
+    """How far a block's top (its label included) lies above its first left pin (measured on a scratch drawing)."""
+    with schemdraw.Drawing(show=False) as scratch:
+        blk = _block(elm, name, left, right).anchor(left[0]).at((0, 0))
+        scratch += blk
+        return blk.get_bbox(transform=True, includetext=True).ymax - blk.absanchors[left[0]][1]
+
+
 def _route(d, elm, a, b, x: float, *, dot: bool = False) -> None:
     """A wire from ``a`` right to ``x``, vertical to ``b``'s height, right to ``b`` (a dot where it leaves a bus)."""
     d += elm.Line().at(a).to((x, a[1]))
@@ -123,17 +131,17 @@ def mega_drawing(all_pins: list[Pin]) -> str:
         m = _block(elm, "Arduino Mega 2560", left=["USB (host)", "5V", "GND"],
                    right=[label[p.signal] for p in wired + stubs], board=True)
         d += m
-        top = max(m.absanchors[label[p.signal]][1] for p in mega)
         x_blocks = m.absanchors[label[mega[0].signal]][0] + 2.0 + 0.35 * len(wired)
-        y = top
+        y = m.get_bbox(transform=True, includetext=True).ymax
         placed = {}
         for name, (left, right) in MEGA_BLOCKS.items():
             if not any(dest[p.signal][0] == name for p in wired):
                 continue
-            blk = _block(elm, name, left, right).anchor(left[0]).at((x_blocks, y))
+            blk = _block(elm, name, left, right).anchor(left[0]).at(
+                (x_blocks, y - _top_of(schemdraw, elm, name, left, right)))
             d += blk
             placed[name] = blk
-            y -= 0.9 * max(len(left), len(right)) + 2.0
+            y = blk.get_bbox(transform=True).ymin - 0.6
         ends = [(m.absanchors[label[p.signal]], placed[dest[p.signal][0]].absanchors[dest[p.signal][1]])
                 for p in wired]
         xs = _lanes([(a[1], b[1]) for a, b in ends], m.absanchors[label[mega[0].signal]][0] + 0.8, 0.35)
@@ -165,15 +173,16 @@ def uno_drawing(all_pins: list[Pin]) -> str:
         d += u
         x_pin = u.absanchors[label[uno[0].signal]][0]
         x_mux = x_pin + 2.0 + 0.35 * (len(sel) + len(com))
-        y = max(u.absanchors[label[p.signal]][1] for p in uno) - 0.9 * len(other)
+        y = u.absanchors[label[com[0].signal]][1] if com else 0.0  # the first COM level with its input
         muxes = []
         for i in range(len(com)):
             first = 6 * i
-            mx = _block(elm, f"74HC4051 #{i}", ["COM", "S0", "S1", "S2"],
-                        [f"Y0-Y5 <- taxels {first}-{first + 5}", "(R_aa, C_aa per taxel)", "E, VEE -> GND"])
+            mx_name, mx_left = f"74HC4051 #{i}", ["COM", "S0", "S1", "S2"]
+            mx_right = [f"Y0-Y5 <- taxels {first}-{first + 5}", "(R_aa, C_aa per taxel)", "E, VEE -> GND"]
+            mx = _block(elm, mx_name, mx_left, mx_right)
             d += mx.anchor("COM").at((x_mux, y))
             muxes.append(mx)
-            y -= 0.9 * 4 + 1.6
+            y = mx.get_bbox(transform=True).ymin - 0.6 - _top_of(schemdraw, elm, mx_name, mx_left, mx_right)
         # select lines: one vertical bus each, tapped by every multiplexer
         for j, p in enumerate(sel):
             x = x_pin + 0.8 + 0.35 * (len(com) + j)

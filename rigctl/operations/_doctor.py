@@ -24,7 +24,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
     Parameters
     ----------
     source : the rig to open (default the simulated rig); opened when the first check needs it (after the port
-        checks on hardware, so a port without permission is reported as such) and closed at the end.
+        checks on hardware, so a port without permission is reported as such), homed unless a fault is latched (the
+        fault is then reported, never cleared behind the operator's back), and closed at the end.
     control : an open rig instead (the GUI's), left open; the checks that move it stop it safely after each.
     checks : check names (:func:`rigctl.acquisition.doctor.check_names`); ValueError for an unknown one.
     host_config_path : the rig config file the report is stored in (default ``$RIGCTL_CONFIG`` /
@@ -50,7 +51,7 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
         source = source or RigSource()
 
         def opener():
-            return open_control(source, home=Home.ALWAYS, config=config, seed=seed,
+            return open_control(source, home=Home.UNLESS_FAULTED, config=config, seed=seed,
                                 host_config_path=host_config_path).rig
 
         ctx = _doctor.DoctorContext(source.kind, opener=opener, drum_port=source.drum_port,

@@ -15,7 +15,7 @@ from rigctl.acquisition import doctor
 from rigctl.acquisition.doctor.measure import clock_error_ppm, crosstalk, step_response
 from rigctl.acquisition.rigconfig import RigConfigError, load_rig_config, validate_rig_config
 from rigctl.rigs import open_rig
-from rigctl.simulation.model import MechanicsConfig, RigConfig
+from rigctl.simulation.model import DrumConfig, MechanicsConfig, RigConfig
 
 
 # ------------------------------------------------------------------------------------------------ measurements
@@ -75,8 +75,8 @@ def _run(tmp_path, config=None, names=None):
 def test_the_healthy_inprocess_rig_passes_and_the_report_is_stored(tmp_path):
     report, by = _run(tmp_path)
     assert report.ok, [r.line() for r in report.results if r.status == "fail"]
-    for name in ("link", "firmware-version", "loadcell-zero", "noise-floor", "crosstalk", "uno-clock",
-                 "loadcell-polarity", "force-step"):
+    for name in ("link", "controller-faults", "firmware-version", "hx711-rate", "loadcell-zero", "noise-floor",
+                 "crosstalk", "uno-clock", "loadcell-polarity", "force-step", "drum-speed"):
         assert by[name].status == "pass", by[name].line()
     # what the firmware does not report is a skip with the reason, never a pass
     assert by["firmware-build"].status == "skip" and "build hash" in by["firmware-build"].summary
@@ -98,6 +98,39 @@ def test_a_reversed_load_cell_fails_polarity_with_the_fix(tmp_path):
     assert "swap" in r.fix and "A+/A-" in r.fix
     assert r.values["lowest_force_g"] < -30
     assert not report.ok
+
+
+def _run_service(tmp_path, config, names):
+    from rigctl.operations import RigSource, doctor as run
+
+    report = run(RigSource("inprocess"), config=config, seed=3, host_config_path=tmp_path / "rig.json", rest_s=3.0,
+                 checks=names, save=False)
+    return report, {r.name: r for r in report.results}
+
+
+def test_a_10_sps_hx711_fails_its_check_with_the_rate_pin_fix(tmp_path):
+    """The simulated HX711 at 10 SPS on a controller set for 80: the controller latches HX711_RATE, the doctor opens
+    the rig without clearing it and names the RATE pin; the checks that would move the rig skip."""
+    cfg = RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=10.0))
+    report, by = _run_service(tmp_path, cfg, ["link", "controller-faults", "hx711-rate", "force-step"])
+    assert by["link"].status == "pass"
+    assert by["hx711-rate"].status == "fail" and "RATE pin high" in by["hx711-rate"].fix
+    assert by["hx711-rate"].values["hx711_rate_sps"] == pytest.approx(10.0, rel=0.05)
+    assert by["controller-faults"].status == "fail" and "HX711_RATE" in by["controller-faults"].summary
+    assert by["force-step"].status == "skip"
+    _, healthy = _run_service(tmp_path, None, ["hx711-rate"])
+    assert healthy["hx711-rate"].status == "pass", healthy["hx711-rate"].line()
+
+
+def test_a_drum_driver_at_8_microsteps_fails_the_index_speed_check(tmp_path):
+    _, by = _run_service(tmp_path, RigConfig(drum=DrumConfig(driver_microsteps=8)), ["drum-speed"])
+    r = by["drum-speed"]
+    assert r.status == "fail" and "16 microsteps" in r.fix
+    assert r.values["speed_at_40_mm_s"] == pytest.approx(80.0, rel=0.02)
+    assert r.values["steps_per_rev_at_40_mm_s"] == 1600
+    _, healthy = _run_service(tmp_path, None, ["drum-speed"])
+    assert healthy["drum-speed"].status == "pass", healthy["drum-speed"].line()
+    assert healthy["drum-speed"].values["speed_at_120_mm_s"] == pytest.approx(120.0, rel=0.02)
 
 
 def test_a_stored_report_is_schema_checked():
@@ -185,6 +218,7 @@ def test_a_port_without_permission_fails_with_the_dialout_fix(tmp_path):
             os.close(fd)
 
 
+@pytest.mark.realtime
 def test_cli_doctor_sim_passes_and_stores_the_dated_report(tmp_path):
     cfg = tmp_path / "rig.json"
     p = _rigctl("doctor", "--sim", "--rest-s", "3", "--config", str(cfg), env={**os.environ, "HOME": str(tmp_path)})

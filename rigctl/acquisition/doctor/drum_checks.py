@@ -18,7 +18,14 @@ import numpy as np
 from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, passed
 from rigctl.acquisition.doctor.measure import step_response
 from rigctl.acquisition.rigconfig import load_rig_config
-from rigctl.core.drum import DrumState
+from rigctl.core.drum import (
+    DRUM_CIRCUMFERENCE_MM,
+    DRUM_DIAMETER_MM,
+    DRUM_MICROSTEPS,
+    DRUM_STEPS_PER_REV,
+    DrumState,
+    fault_advice,
+)
 
 __all__ = ["CHECKS", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G", "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
 
@@ -34,6 +41,14 @@ MAX_SETTLING_S = 3.0
 STEP_TRACE_S = 6.0
 #: status polling period of the traces, s (~50 Hz, as a trial's trace)
 POLL_S = 0.02
+#: the drum speeds the index check runs at, mm/s (the paper's slowest and fastest)
+DRUM_SPEED_CHECK_MM_S = (40.0, 120.0)
+#: an index-measured drum speed further than this fraction from its setpoint fails (another microstep setting is a
+#: factor of 2 or more; a diameter 2 mm off is 2 %)
+DRUM_SPEED_TOLERANCE = 0.02
+#: the index check counts edges from this long after RUN (controller time), s: the drum reaches 120 mm/s in 0.3 s at
+#: its 400 mm/s^2 ramp (drum_config.h DRUM_ACCEL_MM_S2)
+DRUM_SPINUP_S = 1.0
 
 #: the fix for a force loop that does not settle
 FORCE_LOOP_FIX = ("set the HX711 board's RATE pin high (80 SPS; many boards ship at 10 SPS) and check the contact "
@@ -46,6 +61,54 @@ def status_value(ctx: DoctorContext, field: str, register: str) -> Any:
     if value is None:
         raise Skip(f"the drum controller does not report {register} (docs/wire-protocol.md 2.2)")
     return value
+
+
+class FirmwareClock:
+    """The drum controller's own time, s: its HEARTBEAT (+1 every 10 ms of the controller's clock, 16 bits)
+    unwrapped across reads. Traces are timed on it, so a step response measured on the firmware under simavr (which
+    runs slower than the wall clock) or on a loaded host is the controller's, not the host's."""
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._ticks = 0
+
+    def __call__(self, status: Any) -> float:
+        hb = int(status.heartbeat) & 0xFFFF
+        if self._last is not None:
+            self._ticks += (hb - self._last) & 0xFFFF
+        self._last = hb
+        return self._ticks * 0.01
+
+
+def _poll(ctx: DoctorContext, limit_s: float):
+    """Yield ``(t_s, status)`` every :data:`POLL_S` (host clock) until ``limit_s`` of controller time have passed."""
+    drum = ctx.rig().drum
+    clock = ctx.clock
+    fw = FirmwareClock()
+    while True:
+        st = drum.read_status()
+        t = fw(st)
+        yield t, st
+        if t >= limit_s:
+            return
+        clock.sleep(POLL_S)
+
+
+def _not_faulted(ctx: DoctorContext) -> None:
+    """Raise :class:`Skip` when the controller has a fault latched (a check that moves the rig cannot run)."""
+    st = ctx.rig().drum.read_status()
+    if st.state == DrumState.FAULT:
+        raise Skip(f"the drum controller is in FAULT ({_fault_names(st.faults)}): see controller-faults")
+
+
+def check_controller_faults(ctx: DoctorContext) -> CheckResult:
+    st = ctx.rig().drum.read_status()
+    if st.state != DrumState.FAULT and not int(st.faults):
+        return passed("controller-faults", f"none latched (state {st.state.name})")
+    names = [f for f in type(st.faults) if f in st.faults and f.value]
+    advice = fault_advice(st.faults)
+    return failed("controller-faults", f"latched: {_fault_names(st.faults)} (state {st.state.name})",
+                  advice or "clear the fault's cause, then CLEAR_FAULT", faults=[f.name for f in names])
 
 
 def _tolerance_g(ctx: DoctorContext) -> float:
@@ -94,12 +157,23 @@ def check_reset_cause(ctx: DoctorContext) -> CheckResult:
 
 
 def check_hx711_rate(ctx: DoctorContext) -> CheckResult:
-    sps = status_value(ctx, "hx711_rate_sps", "HX711_RATE_SPS")
+    drum = ctx.rig().drum
+    sps = float(status_value(ctx, "hx711_rate_sps", "HX711_RATE_0P01SPS"))
+    if sps <= 0:
+        raise Skip("the drum controller reports no measured HX711 rate (HX711_RATE_0P01SPS is 0: not measured yet, "
+                   "or a firmware without it)")
+    configured = drum.settings().get("HX711_RATE_SPS")
+    values = {"hx711_rate_sps": sps, "configured_sps": configured}
     if sps < 40:
-        return failed("hx711-rate", f"the HX711 converts at {sps} samples/s", "pull the HX711 board's RATE pin "
-                      "high (80 SPS): on most boards a solder jumper or the pin to VCC (Avia HX711 datasheet)",
-                      hx711_rate_sps=sps)
-    return passed("hx711-rate", f"{sps} samples/s", hx711_rate_sps=sps)
+        return failed("hx711-rate", f"the HX711 converts at {sps:.1f} samples/s (RATE pin low)", "set the HX711 "
+                      "board's RATE pin high for 80 SPS (docs/hardware/wiring.md#hx711-rate); the force loop at 10 SPS "
+                      "is slow", **values)
+    if configured and abs(sps / configured - 1) > 0.2:
+        return failed("hx711-rate", f"the HX711 converts at {sps:.1f} samples/s, the force loop is set for "
+                      f"{configured} (HX711_RATE_SPS)", f"write {round(sps)} to HX711_RATE_SPS if that rate is "
+                      "intended, else fix the board's RATE pin", **values)
+    return passed("hx711-rate", f"{sps:.1f} samples/s measured at boot" + (f", the force loop is set for {configured}"
+                  if configured else ""), **values)
 
 
 def check_loadcell_zero(ctx: DoctorContext) -> CheckResult:
@@ -144,18 +218,15 @@ def _fault_names(faults: Any) -> str:
 
 
 def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
-    rig = ctx.rig()
-    drum = rig.drum
+    _not_faulted(ctx)
+    drum = ctx.rig().drum
     tol = _tolerance_g(ctx)
-    clock = ctx.clock
     drum.set_force(POLARITY_SETPOINT_G)
     drum.press()
-    t0 = clock.now()
     lowest = 0.0
     reversed_fix = ("the load cell reads negative while pressing: swap the cell's signal wires (A+/A-, usually green/"
                     "white) at the HX711, or turn the cell over; then calibrate again")
-    while clock.now() - t0 < 15.0:
-        st = drum.read_status()
+    for _t, st in _poll(ctx, 15.0):
         lowest = min(lowest, st.force_g)
         if st.state == DrumState.FAULT:
             drum.stop()
@@ -163,8 +234,8 @@ def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
                 return failed("loadcell-polarity", f"fault {_fault_names(st.faults)} while pressing, the force went to "
                               f"{lowest:.0f} g", reversed_fix, lowest_force_g=lowest)
             return failed("loadcell-polarity", f"fault {_fault_names(st.faults)} while pressing (force {st.force_g:.0f}"
-                          f" g at {st.actuator_mm:.2f} mm)", "check the load cell's wiring and that the drum reaches "
-                          "the sensor within the actuator's travel", lowest_force_g=lowest)
+                          f" g at {st.actuator_mm:.2f} mm)", "clear the fault's cause (rigctl doctor's other lines, the "
+                          "GUI's fault advice), then check again", lowest_force_g=lowest)
         if st.force_g < -2 * tol:
             drum.stop()
             return failed("loadcell-polarity", f"the force went to {st.force_g:.0f} g while the actuator pressed "
@@ -173,25 +244,21 @@ def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
             drum.stop()
             return passed("loadcell-polarity", f"the force rises as the actuator presses ({st.force_g:.0f} g at "
                           f"{st.actuator_mm:.2f} mm)", force_g=st.force_g, actuator_mm=st.actuator_mm)
-        clock.sleep(POLL_S)
     drum.stop()
     return failed("loadcell-polarity", f"the force did not rise within 15 s of PRESS (lowest {lowest:.0f} g)",
-                  "check the HX711 wiring (DOUT D3, SCK D4) and the load cell's excitation", lowest_force_g=lowest)
+                  "check the HX711's wiring (pin table: PIN_HX_DOUT, PIN_HX_SCK) and the load cell's excitation",
+                  lowest_force_g=lowest)
 
 
 def check_force_step(ctx: DoctorContext) -> CheckResult:
-    rig = ctx.rig()
-    drum = rig.drum
+    _not_faulted(ctx)
+    drum = ctx.rig().drum
     tol = _tolerance_g(ctx)
-    clock = ctx.clock
     drum.set_force(STEP_SETPOINT_G)
     drum.press()
-    t0 = clock.now()
     t, f, x = [], [], []
     contact = None
-    while True:
-        st = drum.read_status()
-        now = clock.now() - t0
+    for now, st in _poll(ctx, 15.0 + STEP_TRACE_S):
         t.append(now)
         f.append(st.force_g)
         x.append(st.actuator_mm)
@@ -206,30 +273,80 @@ def check_force_step(ctx: DoctorContext) -> CheckResult:
             raise Skip("no contact within 15 s of PRESS (see loadcell-polarity)")
         if contact is not None and now - contact >= STEP_TRACE_S:
             break
-        clock.sleep(POLL_S)
     drum.stop()
     r = step_response(np.array(t), np.array(f), np.array(x), STEP_SETPOINT_G, tol)
     values = {"setpoint_g": STEP_SETPOINT_G, "tolerance_g": tol, "overshoot_pct": r.overshoot_pct,
-              "settling_time_s": None if math.isnan(r.settling_time_s) else r.settling_time_s,
-              "residual_pp_g": r.residual_pp_g,
-              "stiffness_g_per_mm": None if math.isnan(r.stiffness_g_per_mm) else r.stiffness_g_per_mm}
+              "settling_time_s": r.settling_time_s, "residual_pp_g": r.residual_pp_g,
+              "stiffness_g_per_mm": r.stiffness_g_per_mm, "samples": len(t)}
     k = "" if math.isnan(r.stiffness_g_per_mm) else f" at {r.stiffness_g_per_mm:.0f} g/mm"
     what = (f"0 -> {STEP_SETPOINT_G:g} g{k}: overshoot {r.overshoot_pct:.0f} %, "
             + (f"settled in {r.settling_time_s:.2f} s" if r.settled else "not settled")
-            + f", last 1 s {r.residual_pp_g:.0f} g peak-to-peak")
+            + f", last 1 s {r.residual_pp_g:.0f} g peak-to-peak (controller time, {len(t)} readings)")
     if not r.settled or r.settling_time_s > MAX_SETTLING_S or r.overshoot_pct > MAX_OVERSHOOT_PCT:
         return failed("force-step", what, FORCE_LOOP_FIX, **values)
     return passed("force-step", what, **values)
 
 
+def _index_speed(ctx: DoctorContext, speed_mm_s: float) -> tuple[float, int]:
+    """Run the drum at ``speed_mm_s`` (pressing at the polarity setpoint) and return the drum speed the index sensor
+    measured over a whole revolution after the speed is steady, mm/s, and the microsteps sent in it. Raises
+    :class:`Skip` / RuntimeError when the sensor gives no edges."""
+    drum = ctx.rig().drum
+    drum.set_force(POLARITY_SETPOINT_G)
+    drum.set_speed(speed_mm_s)
+    drum.press()
+    drum.wait_force_settled(timeout_s=30.0)
+    drum.run()
+    rev_s = DRUM_CIRCUMFERENCE_MM / speed_mm_s
+    start = None
+    for t, st in _poll(ctx, DRUM_SPINUP_S + 3.5 * rev_s):
+        if st.state == DrumState.FAULT:
+            raise RuntimeError(f"fault {_fault_names(st.faults)} while the drum turned")
+        if t < DRUM_SPINUP_S:
+            continue
+        if start is None:
+            start = st.index_count
+        elif (st.index_count - start) & 0xFFFF >= 2 and st.index_period_s > 0:
+            speed = st.index_speed_mm_s(DRUM_DIAMETER_MM)
+            assert speed is not None
+            return float(speed), int(st.index_steps)
+    raise RuntimeError(f"no two index-sensor edges in 3.5 drum revolutions at {speed_mm_s:g} mm/s")
+
+
 def check_drum_speed(ctx: DoctorContext) -> CheckResult:
-    status_value(ctx, "index_speed_mm_s", "the drum speed measured from the index sensor")
-    raise Skip("not implemented for this register map")
+    _not_faulted(ctx)
+    st = ctx.rig().drum.read_status()
+    if not hasattr(st, "index_count"):
+        raise Skip("the drum controller does not report the index sensor (INDEX_COUNT, docs/wire-protocol.md 2.6)")
+    expected_steps = DRUM_STEPS_PER_REV * DRUM_MICROSTEPS
+    values: dict[str, Any] = {"expected_steps_per_rev": expected_steps}
+    lines, bad = [], []
+    for v in DRUM_SPEED_CHECK_MM_S:
+        try:
+            measured, steps = _index_speed(ctx, v)
+        except RuntimeError as exc:
+            return failed("drum-speed", str(exc), "check the index sensor's wiring (pin table: PIN_INDEX_SENSOR) and "
+                          "its magnet or flag on the drum", **values)
+        err = measured / v - 1.0
+        values[f"speed_at_{v:g}_mm_s"] = measured
+        values[f"steps_per_rev_at_{v:g}_mm_s"] = steps
+        lines.append(f"{v:g} -> {measured:.1f} mm/s ({err * 100:+.1f} %, {steps} microsteps/rev)")
+        if abs(err) > DRUM_SPEED_TOLERANCE:
+            bad.append(v)
+            break  # a drum already too fast at 40 mm/s is not run at 120
+    what = "; ".join(lines)
+    if bad:
+        fix = ("set the drum driver to 16 microsteps (its MS pins, docs/hardware/wiring.md#microsteps)"
+               if any(values[f"steps_per_rev_at_{v:g}_mm_s"] != expected_steps for v in bad) else
+               "the drum's diameter differs from the firmware's (RIGCTL_DRUM_DIAMETER_MM_DEF): set it and rebuild")
+        return failed("drum-speed", what + f"; expected {expected_steps} microsteps/rev", fix, **values)
+    return passed("drum-speed", what, **values)
 
 
 CHECKS = (
     Check("firmware-version", check_firmware_version, title="firmware version = the installed sources'"),
     Check("firmware-build", check_firmware_build, title="firmware build hash = the installed sources'"),
+    Check("controller-faults", check_controller_faults, title="no fault latched in the drum controller"),
     Check("reset-cause", check_reset_cause, title="reset cause and boot count"),
     Check("hx711-rate", check_hx711_rate, title="HX711 rate (80 SPS)"),
     Check("loadcell-zero", check_loadcell_zero, title="load cell reads zero at home"),
