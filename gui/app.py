@@ -95,6 +95,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.settings = make_settings()
         self.source = source or load_source(self.settings)
         self.handle = None
+        self._doctor = None  # the doctor dialog (Rig > Doctor...), made on first use
         self.poller = None
         self.commands = None
         self.encoder = None
@@ -308,6 +309,8 @@ class MainWindow(QtWidgets.QMainWindow):
         act(m, "&Home", lambda: self.control.command("home"), None, b["home"])
         act(m, "Clear &fault", lambda: self.control.command("clear_fault"), None, b["clear_fault"])
         act(m, "&Mount plate", self.control.mount_plate, "Ctrl+M", self.control.mount_btn)
+        m.addSeparator()
+        act(m, "&Doctor...", self.open_doctor, tip="bring-up checks on the connected rig (rigctl doctor)")
 
         m = mb.addMenu("R&un")
         p = self.protocol
@@ -376,6 +379,18 @@ class MainWindow(QtWidgets.QMainWindow):
                                     QtWidgets.QMessageBox.Close, self)
         box.setTextFormat(QtCore.Qt.PlainText)
         show_dialog(box)
+
+    def open_doctor(self) -> None:
+        """Rig > Doctor...: the bring-up checks on the connected rig (:mod:`rigctl_gui.doctor_dialog`)."""
+        from rigctl_gui.doctor_dialog import DoctorDialog
+
+        if self.handle is None:
+            self.notify("Doctor: connect a rig first (Rig > Connect...)", level=logging.WARNING, source="doctor")
+            return
+        if self._doctor is None or self._doctor.control is not self.handle.control:
+            self._doctor = DoctorDialog(self.handle.control, self)
+        self._doctor.show()
+        self._doctor.raise_()
 
     def _show_about(self) -> None:
         import rigctl
@@ -536,6 +551,8 @@ class MainWindow(QtWidgets.QMainWindow):
         (never queued behind other commands; it tries 3 times). Its outcome is shown in the window: a STOP that
         cannot reach the controller raises the error banner."""
         self.protocol.request_abort()
+        if self._doctor is not None and self._doctor.running:
+            self._doctor.cancel()
         h = self.handle
         if h is None:
             self.notify("STOP: no rig connected", level=logging.WARNING, source="STOP")

@@ -5,6 +5,7 @@ are :mod:`rigctl.acquisition.doctor`'s."""
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -18,7 +19,8 @@ __all__ = ["doctor"]
 def doctor(source: RigSource | None = None, *, control: RigControl | None = None,
            checks: Iterable[str] | None = None, host_config_path: str | os.PathLike | None = None,
            seed: int = 0, config: Any = None, rest_s: float = 10.0, save: bool = True,
-           on_result: Callable[[_doctor.CheckResult], Any] | None = None) -> _doctor.DoctorReport:
+           on_result: Callable[[_doctor.CheckResult], Any] | None = None,
+           cancel: threading.Event | None = None) -> _doctor.DoctorReport:
     """Run the doctor's checks (all, or those named in ``checks``) and store the dated report.
 
     Parameters
@@ -34,6 +36,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
     rest_s : length of the taxel capture at rest, s.
     save : store the report in the rig config (``doctor.<rig kind>``).
     on_result : called with each :class:`rigctl.acquisition.doctor.CheckResult` as it is known.
+    cancel : set it (from any thread) to end the run early: the running check stops at its next poll (the rig is
+        stopped safely), the rest are reported as ``skip: cancelled``.
 
     Returns
     -------
@@ -56,6 +60,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
 
         ctx = _doctor.DoctorContext(source.kind, opener=opener, drum_port=source.drum_port,
                                     taxel_port=source.taxel_port, config_path=host_config_path, rest_s=rest_s)
+    if cancel is not None:
+        ctx.cancel = cancel
     report = _doctor.run_doctor(selected, ctx, on_result=on_result)
     if save:
         _doctor.save_report(report, host_config_path)

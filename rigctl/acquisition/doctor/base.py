@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import datetime as _dt
 import math
+import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -126,6 +127,14 @@ class DoctorContext:
         self.config_path = config_path
         self.rest_s = float(rest_s)
         self.cache: dict[str, Any] = {}
+        #: set it (from any thread) to stop: the running check ends as ``skip: cancelled`` at its next poll, the
+        #: rig is stopped safely, the remaining checks are skipped
+        self.cancel = threading.Event()
+
+    def check_cancel(self) -> None:
+        """Raise :class:`Skip` if :attr:`cancel` is set (the checks' polling loops call it)."""
+        if self.cancel.is_set():
+            raise Skip("cancelled")
 
     @property
     def simulated(self) -> bool:
@@ -242,7 +251,7 @@ def run_doctor(checks: Iterable[Check], ctx: DoctorContext, *,
     results = []
     try:
         for check in checks:
-            result = _run_one(check, ctx)
+            result = CheckResult(check.name, "skip", "cancelled") if ctx.cancel.is_set() else _run_one(check, ctx)
             results.append(result)
             if on_result is not None:
                 on_result(result)

@@ -86,6 +86,7 @@ def _poll(ctx: DoctorContext, limit_s: float):
     clock = ctx.clock
     fw = FirmwareClock()
     while True:
+        ctx.check_cancel()
         st = drum.read_status()
         t = fw(st)
         yield t, st
