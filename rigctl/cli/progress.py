@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+from typing import Any
 
 from rigctl.core.progress import ProgressEvent
 
@@ -17,7 +18,7 @@ class TqdmProgress:
 
     def __init__(self, *, leave: bool = True):
         self.leave = leave
-        self._bar = None
+        self._bar: Any = None  # a tqdm bar (tqdm ships no type information)
         self._stage: str | None = None
 
     def __call__(self, event: ProgressEvent) -> None:

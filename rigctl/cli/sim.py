@@ -24,6 +24,7 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
         [sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "--seed", str(seed), "--texture", texture,
          "--port-dir", str(port_dir)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     ports: dict[str, str] = {}
+    assert proc.stdout is not None and proc.stderr is not None  # both piped
     while len(ports) < 2:
         line = proc.stdout.readline()
         if not line:

@@ -385,7 +385,7 @@ def remove_stale_port_dirs(tmp_dir: str | os.PathLike | None = None) -> list[Pat
     without a pid) whose port links all point at ptys that are gone. Returns the folders removed.
 
     Folders of live processes are left alone; so is anything that does not look like a port folder."""
-    removed = []
+    removed: list[Path] = []
     base = Path(tmp_dir or tempfile.gettempdir())
     try:
         entries = list(base.glob(TEMP_PREFIX + "*"))
@@ -433,7 +433,7 @@ class PortDir:
     def __init__(self, path: str | os.PathLike | None = None):
         self.temporary = path is None
         remove_stale_port_dirs()
-        if self.temporary:
+        if path is None:
             self.path = Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}{os.getpid()}-"))
         else:
             self.path = Path(path)

@@ -137,7 +137,7 @@ class Texture:
 
 def _build() -> dict[str, Texture]:
     textures = {"A": Texture("A", "smooth", "smooth", "smooth", 0.0, float("inf"), 0.0)}
-    groups = (("circular ridges", "circular"), ("rectangular ridges", "rectangular"), ("waves", "wave"))
+    groups: tuple[tuple[str, Kind], ...] = (("circular ridges", "circular"), ("rectangular ridges", "rectangular"), ("waves", "wave"))
     letter = ord("B")
     for group, kind in groups:
         for variant in VARIANTS:
@@ -204,7 +204,7 @@ def texture_from_spec(label: str, group: str | None, geometry: Mapping[str, Any]
     if not (height >= 0 and math.isfinite(period) and period > 0 and width > 0):
         raise ValueError(f"texture {label!r}: geometry must have height >= 0, period > 0 and width > 0 (mm), got "
                          f"{height}, {period}, {width}")
-    return Texture(label, group or "", str(geo.get("variant", "")), kind, height, period, width)  # type: ignore[arg-type]
+    return Texture(label, group or "", str(geo.get("variant", "")), kind, height, period, width)
 
 
 def get_texture(texture: str | Texture, textures: TextureSet | None = None) -> Texture:

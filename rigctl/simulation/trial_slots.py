@@ -64,7 +64,7 @@ def render_into_slots(task: tuple[Sequence[int], Sequence[tuple]]) -> list[tuple
     Raises ValueError if a rendered trial's channel count is not the slots' (the sensor of :class:`TrialSlots`).
     """
     slots, rows = task
-    out = []
+    out: list[tuple] = []
     n_ch = _STATE["n_channels"]
     for slot, row in zip(slots, rows):
         trial_id, data = _STATE["render"](row)
@@ -135,13 +135,16 @@ class TrialSlots:
             os.ftruncate(fd, n_slots * self.slot_samples * sample_bytes(self.n_channels))
         finally:
             os.close(fd)
-        self._mm = np.memmap(self.path, dtype=np.uint8, mode="r+")
+        self._mm: np.memmap | None = np.memmap(self.path, dtype=np.uint8, mode="r+")
         self.initargs = (self.path, n_slots, self.slot_samples, self.n_channels)
 
     def results(self, pool, rows: Sequence[tuple]) -> Iterator[tuple[int, TrialData]]:
         """Render ``rows`` on ``pool`` (initialised with :func:`init_worker_slots`); yield ``(trial_id, TrialData)``
         in plan order. A trial's arrays live in its slot until the caller asks for the next trial: write it (or
-        copy it) before that."""
+        copy it) before that. Raises ValueError once closed."""
+        mm = self._mm
+        if mm is None:
+            raise ValueError(f"the trial slots {self.path} are closed")
         free = collections.deque(range(self.n_blocks))
         pending: collections.deque = collections.deque()
         starts = iter(range(0, len(rows), self.block))
@@ -164,7 +167,7 @@ class TrialSlots:
                 if slot is None:
                     yield trial_id, small
                     continue
-                taxels, seq, flags, host = _views(self._mm, slot, self.slot_samples, n, self.n_channels)
+                taxels, seq, flags, host = _views(mm, slot, self.slot_samples, n, self.n_channels)
                 yield trial_id, TrialData(taxels=taxels, seq=seq, flags=flags, host_time_s=host, layout=self.layout,
                                           **small)
             free.append(b)  # the caller has written every trial of the block
