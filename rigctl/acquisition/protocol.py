@@ -21,11 +21,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import re
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10: the same parser as the tomli package
-    import tomli as tomllib
+import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -132,6 +128,8 @@ class Protocol:
         """Trial length: ``travel_mm / mean speed`` (a ramp covers the travel at its mean speed), or ``duration_s``."""
         if self.duration_s is not None:
             return float(self.duration_s)
+        if self.travel_mm is None:
+            raise ValueError(f"protocol {self.name!r} gives neither duration_s nor travel_mm")
         return float(self.travel_mm) / profile.mean_speed_mm_s
 
     def with_seed(self, seed: int) -> "Protocol":
@@ -415,7 +413,7 @@ class _Validator:
             if not isinstance(st, dict):
                 raise self.error(("settle",), "expected a [settle] table")
             self._unknown(st, self.SETTLE, ("settle",))
-            kw = {}
+            kw: dict[str, Any] = {}
             for k in ("force_timeout_s", "speed_timeout_s"):
                 if k in st:
                     kw[k] = self._number(("settle", k), st[k], lo=0, hi=600, what=" s")
@@ -520,6 +518,8 @@ def _load_script(path: Path, source: str) -> ScriptProtocol:
     except SyntaxError as exc:
         raise ProtocolError(f"Python syntax error: {exc.msg}", path=str(path), line=exc.lineno) from None
     spec = importlib.util.spec_from_file_location(f"rigctl_protocol_{path.stem}", path)
+    if spec is None or spec.loader is None:
+        raise ProtocolError("cannot be loaded as a Python module", path=str(path), line=None)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     run = getattr(module, "run", None)

@@ -119,11 +119,12 @@ class FeatureSet:
     force_g: np.ndarray
     group: np.ndarray | None = None
     profile: np.ndarray | None = None
-    trial_id: np.ndarray | None = None
+    # None (the default) is replaced in __post_init__: never None on an instance
+    trial_id: np.ndarray = None  # type: ignore[assignment]
     source: str = "memory"
     attrs: dict = field(default_factory=dict)
     layout: SensorLayout | None = None
-    textures: TextureSet | None = None
+    textures: TextureSet = None  # type: ignore[assignment]  # as trial_id
 
     def __post_init__(self):
         self.texture = _text(self.texture)
@@ -188,6 +189,7 @@ class FeatureSet:
     def group_classes(self) -> list[str]:
         """Groups present, in the set's order. Raises :class:`GroupsError` when the set has no groups."""
         self.require_groups()
+        assert self.group is not None  # require_groups raised otherwise
         present = set(self.group.tolist())
         return [g for g in self.textures.groups if g in present]
 
