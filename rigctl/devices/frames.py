@@ -18,7 +18,7 @@ from rigctl.devices import wire
 _SYNC0, _SYNC1 = wire.SYNC[0], wire.SYNC[1]
 
 
-def encode_frames(seq: np.ndarray, flags: np.ndarray, samples: np.ndarray, *, adc_max: int = wire.ADC_MAX) -> bytes:
+def encode_frames(seq: np.ndarray, flags: np.ndarray | int, samples: np.ndarray, *, adc_max: int = wire.ADC_MAX) -> bytes:
     """Build consecutive frames.
 
     Parameters

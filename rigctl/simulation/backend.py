@@ -53,12 +53,13 @@ class PtyRigBackend(PortBackend):
         self.mounter = SimMounter(sim)
         self.textures = textures or PAPER_TEXTURES
 
+    # read-only here: the ports of the started simulated rig (PortBackend's subclasses may set plain attributes)
     @property
-    def drum_port(self) -> str:
+    def drum_port(self) -> str:  # type: ignore[override]
         return self.sim.drum_port
 
     @property
-    def taxel_port(self) -> str:
+    def taxel_port(self) -> str:  # type: ignore[override]
         return self.sim.taxel_port
 
     def __enter__(self) -> "PtyRigBackend":

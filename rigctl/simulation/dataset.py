@@ -26,11 +26,12 @@ seeded from ``(seed, trial_id)``, so a dataset is reproducible whatever the numb
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import multiprocessing as mp
 import os
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -278,10 +279,14 @@ def _render_planned(row: tuple) -> tuple[int, TrialData]:
     return int(trial_id), data
 
 
+def _field(row: Any, key: str) -> Any:
+    return getattr(row, key, None)
+
+
 def _plan_rows(plan: Iterable[Any]) -> list[tuple]:
     rows = []
     for p in plan:
-        get = p.get if isinstance(p, Mapping) else (lambda k, _p=p: getattr(_p, k, None))
+        get: Callable[[str], Any] = p.get if isinstance(p, Mapping) else functools.partial(_field, p)
         rows.append((int(get("trial_id")), str(get("texture")), float(get("speed_mm_s")), float(get("force_g")),
                      float(get("duration_s")),
                      math.nan if get("ramp_start_mm_s") is None else float(get("ramp_start_mm_s")),

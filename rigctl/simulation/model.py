@@ -328,7 +328,7 @@ class RigConfig:
             On an unknown key (names the section and key).
         """
         d = dict(d or {})
-        parts = {}
+        parts: dict[str, Any] = {}
         for name, klass in (("drum", DrumConfig), ("sensor", SensorConfig), ("mechanics", MechanicsConfig)):
             sub = dict(d.pop(name, None) or {})
             known = {f.name for f in dataclasses.fields(klass)}

@@ -47,6 +47,9 @@ class _BlockReplay:
     """A looping stream of consecutive blocks ``(m, ch) uint16``; subclasses give the blocks. Thread-safe."""
 
     layout: SensorLayout
+    _blocks: Iterator[np.ndarray]
+    _block: np.ndarray  #: the block being read, from sample _pos on
+    _pos: int
 
     def __init__(self, loop: bool):
         self.loop = bool(loop)

@@ -221,7 +221,7 @@ class VirtualUno:
                     pos = i * self.frame_size + int(self._rng.integers(2, self.frame_size))
                     data[pos] ^= 1 << int(self._rng.integers(0, 8))
         if self._garbage:
-            data = bytes(self._garbage) + data
+            data = bytearray(self._garbage) + data
             self._garbage.clear()
         self.port.write(bytes(data))
         self.frames_sent += len(samples)
