@@ -221,6 +221,8 @@ class FaultProxy:
 
     def _signal_open(self) -> None:
         """Tell the board a client opened its port (the line speed changes: the virtual Uno's DTR reset)."""
+        if self._board_fd is None:  # the board's side is not open
+            return
         try:
             attrs = termios.tcgetattr(self._board_fd)
             attrs[4] = attrs[5] = _BOARD_SPEED
@@ -387,11 +389,11 @@ class FaultProxy:
             return arr[keep].tobytes()
         inserts.sort(key=lambda x: x[0])
         out, lo = [], 0
-        for i, extra in inserts:
-            out.append(arr[lo:i + 1][keep[lo:i + 1]].tobytes())
+        for at, extra in inserts:
+            out.append(arr[lo:at + 1][keep[lo:at + 1]].tobytes())
             out.append(extra)
             counts.inserted += len(extra)
-            lo = i + 1
+            lo = at + 1
         out.append(arr[lo:][keep[lo:]].tobytes())
         return b"".join(out)
 

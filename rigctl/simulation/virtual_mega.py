@@ -61,6 +61,9 @@ class _Refusal(ModbusPDU):
     def decode(self, data: bytes) -> None:  # pragma: no cover - built by _SpecDecoder, never decoded
         pass
 
+    def encode(self) -> bytes:  # pragma: no cover - a request, never sent: update_datastore answers for it
+        return b""
+
     async def update_datastore(self, context) -> ModbusPDU:
         return ExceptionResponse(self.function_code, self.refusal)
 
