@@ -26,7 +26,7 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -103,7 +103,7 @@ def calibrate_loadcell(
     interval_s: float = 0.02,
     settle_s: float = 0.5,
     save: bool = True,
-    config_file: str | os.PathLike | None | bool = None,
+    config_file: str | os.PathLike | Literal[False] | None = None,
 ) -> LoadCellCalibration:
     """Calibrate the load cell with a known mass and write the scale to the drum controller.
 
@@ -168,7 +168,7 @@ def calibrate_loadcell(
         loaded_raw=loaded, check_force_g=check, noise_counts=noise, calibrated_utc=_utc_now(),
     )
     if config_file is not False:
-        update_rig_config(None if config_file is None else config_file, loadcell=result.to_dict())
+        update_rig_config(config_file, loadcell=result.to_dict())
     return result
 
 
@@ -215,20 +215,21 @@ def taxel_normalisation(captures: Iterable[np.ndarray], *, source: str = "captur
     ------
     ValueError if there are no samples or an array is not ``(n, n_channels)``.
     """
-    lo = hi = None
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
     n = 0
     for cap in captures:
         a = np.asarray(cap)
         if lo is None and a.ndim == 2:
             lo, hi = np.full(a.shape[1], np.inf), np.full(a.shape[1], -np.inf)
-        if a.ndim != 2 or a.shape[1] != len(lo):
+        if lo is None or hi is None or a.ndim != 2 or a.shape[1] != len(lo):
             raise ValueError(f"a capture must be (n, {len(lo) if lo is not None else 'channels'}), got {a.shape}")
         if not a.size:
             continue
         lo = np.minimum(lo, a.min(axis=0))
         hi = np.maximum(hi, a.max(axis=0))
         n += 1
-    if n == 0:
+    if n == 0 or lo is None or hi is None:
         raise ValueError("no samples to normalise over")
     return TaxelRange(lo, hi, n, source, _utc_now())
 

@@ -303,7 +303,7 @@ class _Run:
         self.summary = RunSummary(path=out_path, planned=len(self.plan))
         self.total = len(self.todo)
         self.t0 = time.monotonic()
-        self.bar = None
+        self.bar: Stage | None = None
         self.durations: list[float] = []
         self.link_failures = 0  # attempts in a row that failed and left a link down
         self.link_down_since: float | None = None

@@ -11,6 +11,7 @@ import csv
 import io
 import json
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -58,7 +59,7 @@ def table1(res: TaskResults, n_pcs=50):
 
     Rows in Table 1 order first, then any other tasks present; missing variants are omitted.
     """
-    out = {}
+    out: dict[str, Any] = {}
     order = [t for t in TABLE1_ROWS if t in res.curves] + [t for t in res.curves if t not in TABLE1_ROWS]
     for task in order:
         out[task] = {}

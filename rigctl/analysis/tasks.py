@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from sklearn.metrics import confusion_matrix
@@ -585,7 +586,7 @@ def run_realtime(
                               "trained_profiles": trained_p, "repeats": repeats, "folds": k,
                               "trained_profile_trials": int(in_tr.sum()),
                               "untrained_profile_trials": int((~in_tr).sum())}
-    store = {}
+    store: dict[Any, Any] = {}
     n_used = [n_pcs]
 
     def add(task, v, pred, truth):
