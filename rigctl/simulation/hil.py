@@ -32,11 +32,15 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rigctl import firmware
 from rigctl.devices import wire
+
+if TYPE_CHECKING:
+    from rigctl.simulation.textures import Texture
 
 log = logging.getLogger(__name__)
 
@@ -97,26 +101,29 @@ class _Harness:
         self._lock = threading.Lock()
         self.proc = subprocess.Popen([str(exe), "--board", board, *args, str(elf)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
-        self.port = None
+        assert self.proc.stdin is not None and self.proc.stdout is not None and self.proc.stderr is not None
+        self._stdin, self._stdout, self._stderr = self.proc.stdin, self.proc.stdout, self.proc.stderr  # all piped
+        port = None
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
-            line = self.proc.stdout.readline()
+            line = self._stdout.readline()
             if not line:
-                err = self.proc.stderr.read()
+                err = self._stderr.read()
                 raise HilError(f"simavr harness for the {board} exited at start: {err.strip()}")
             if line.startswith("PTY "):
-                self.port = line.split()[1]
+                port = line.split()[1]
                 break
-        if self.port is None:
+        if port is None:
             self.close()
             raise HilError(f"simavr harness for the {board} did not report its pty")
+        self.port: str = port
         self._on_line = on_line
         self._thread = threading.Thread(target=self._read, name=f"hil-{board}", daemon=True)
         self._thread.start()
 
     def _read(self) -> None:
         try:
-            for line in self.proc.stdout:
+            for line in self._stdout:
                 try:
                     self._on_line(line.rstrip("\n"))
                 except Exception:  # a bad line must not kill the reader (the pipe would fill and stall the sim)
@@ -128,15 +135,15 @@ class _Harness:
         with self._lock:
             if self.proc.poll() is None:
                 try:
-                    self.proc.stdin.write(text + "\n")
-                    self.proc.stdin.flush()
+                    self._stdin.write(text + "\n")
+                    self._stdin.flush()
                 except (BrokenPipeError, ValueError):
                     pass
 
     def close(self) -> None:
         try:
             with self._lock:
-                self.proc.stdin.close()
+                self._stdin.close()
         except Exception:
             pass
         try:
@@ -145,7 +152,7 @@ class _Harness:
             self.proc.kill()
             self.proc.wait()
         self._thread.join(timeout=2)  # the reader ends at EOF once the process is gone
-        for f in (self.proc.stdout, self.proc.stderr):
+        for f in (self._stdout, self._stderr):
             try:
                 f.close()
             except Exception:
@@ -214,7 +221,7 @@ class HilRig:
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         self.index_pulses = 0
         self.isr: dict[str, float] = {}
-        self._texture = "A"
+        self._texture: str | Texture = "A"  # a label of the paper's set, or a Texture (set_texture)
         self._mega: _Harness | None = None
         self._uno: _Harness | None = None
         self._tmp = Path(tempfile.mkdtemp(prefix="rigctl-hil-"))
@@ -226,19 +233,27 @@ class HilRig:
         self._render_lock = threading.Lock()
         self._scan_reply: tuple[int, int] | None = None
         self._wave_pos: np.ndarray | None = None  # drum travel (mm) of each row of the waveform playing now
+        self._wave_forces: np.ndarray | None = None  # its contact force (g) per row
         self._wave_force = 0.0  # contact force (g) the waveform playing now ends at
+
+    @staticmethod
+    def _running(harness: _Harness | None, board: str) -> _Harness:
+        """``harness``, started; raises HilError before :meth:`start` (or after :meth:`close`)."""
+        if harness is None:
+            raise HilError(f"the {board} harness is not running (HilRig.start() first)")
+        return harness
 
     # ------------------------------------------------------------------ properties
     @property
     def drum_port(self) -> str:
-        return self._mega.port
+        return self._running(self._mega, "Mega").port
 
     @property
     def taxel_port(self) -> str:
         """The Uno's port. Raises HilError if this rig runs the Mega alone (``with_uno=False``)."""
         if not self.with_uno:
             raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxel port")
-        return self._uno.port
+        return self._running(self._uno, "Uno").port
 
     @property
     def clock(self) -> "_MegaClock":
@@ -381,17 +396,17 @@ class HilRig:
             raise HilError("this HilRig runs the Mega alone (with_uno=False): no taxels")
         with self._cond:
             acks = self._ohm_acks
-            self._uno.send(f"taxel_ohm {-1 if taxel is None else int(taxel)} {float(ohm)}")
+            self._running(self._uno, "Uno").send(f"taxel_ohm {-1 if taxel is None else int(taxel)} {float(ohm)}")
             if not self._cond.wait_for(lambda: self._ohm_acks != acks, timeout_s):
                 raise HilError("the Uno harness did not confirm the source impedance")
 
     def bump(self, force_g: float) -> None:
         """Add an external force of ``force_g`` g on the load cell (0 removes it), e.g. to trip FORCE_LIMIT."""
-        self._mega.send(f"bump {float(force_g)}")
+        self._running(self._mega, "Mega").send(f"bump {float(force_g)}")
 
     def reset_mega(self) -> None:
         """Press the Mega's reset button: the firmware restarts (RAM cleared, EEPROM calibration kept)."""
-        self._mega.send("reset")
+        self._running(self._mega, "Mega").send("reset")
 
     def place_mass(self, mass_g: float) -> None:
         """A calibration mass on the load cell: the same external force as :meth:`bump`."""
@@ -475,7 +490,7 @@ class HilRig:
         os.replace(tmp, path)
         with self._cond:
             acks = self._wave_acks
-            self._uno.send(f"wave {path}" if base is None else f"wave {path} {int(base)}")
+            self._running(self._uno, "Uno").send(f"wave {path}" if base is None else f"wave {path} {int(base)}")
             deadline = time.monotonic() + timeout_s
             while self._wave_acks == acks:
                 left = deadline - time.monotonic()
@@ -492,7 +507,7 @@ class HilRig:
         """(scans so far, scan of the playing waveform's row 0) from the Uno harness (None if no reply)."""
         with self._cond:
             self._scan_reply = None
-            self._uno.send("scan?")
+            self._running(self._uno, "Uno").send("scan?")
             deadline = time.monotonic() + timeout_s
             while self._scan_reply is None:
                 left = deadline - time.monotonic()
@@ -547,27 +562,27 @@ class HilRig:
             self._rng = np.random.default_rng(self.seed)
         n = int(horizon_s * 1000)
         k = np.arange(n)  # rows = scans = ms of the Uno's simulated time
-        scan = self._scan() if self._wave_pos is not None else None
+        wave_pos, wave_forces = self._wave_pos, self._wave_forces  # the waveform playing now (None: none yet)
+        scan = self._scan() if wave_pos is not None else None
         target, speed, force = self._drum_now(time.monotonic())
         # the new waveform's target trajectory: the reported travel (at the scan just asked) and force
         new_pos = target + speed * k
         new_force = np.full(n, force)
         base = None
         old_pos, old_force = new_pos, new_force
-        if scan is not None:
+        if scan is not None and wave_pos is not None and wave_forces is not None:
             # row 0 of the new waveform stands for scan n (the harness skips the rows already due when it swaps,
             # so the swap keeps the phase however long the render and the load take); it first continues the
             # waveform playing now (its travel and force, row for row, extrapolated past its end), then converges
             # to the target from _BLEND_START rows on: a swap within that many scans of the query is seamless
             row = scan[0] - scan[1]
-            if 0 <= row < len(self._wave_pos) and abs(self._wave_pos[row] - target) < 50.0:
+            if 0 <= row < len(wave_pos) and abs(wave_pos[row] - target) < 50.0:
                 base = scan[0]
                 kk = row + k
-                last = len(self._wave_pos) - 1
-                tail = (self._wave_pos[-1] - self._wave_pos[-2]) if last >= 1 else 0.0
-                old_pos = np.where(kk <= last, self._wave_pos[np.minimum(kk, last)],
-                                   self._wave_pos[last] + tail * (kk - last))
-                old_force = self._wave_forces[np.minimum(kk, last)]
+                last = len(wave_pos) - 1
+                tail = (wave_pos[-1] - wave_pos[-2]) if last >= 1 else 0.0
+                old_pos = np.where(kk <= last, wave_pos[np.minimum(kk, last)], wave_pos[last] + tail * (kk - last))
+                old_force = wave_forces[np.minimum(kk, last)]
         # from row _BLEND_START on, the travel moves at the drum's speed plus a correction that closes the gap to
         # the target within _BLEND_ROWS rows, but changes the texture's speed under the taxels by at most
         # _MAX_CORRECTION (a faster correction steepens the signal's edges like a seam would; the drum stopped: by
