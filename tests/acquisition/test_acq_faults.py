@@ -69,7 +69,6 @@ def _events(store):
 
 
 # ------------------------------------------------------------------------------------------------ trials with holes
-@pytest.mark.realtime
 def test_a_trial_that_lost_frames_is_recorded_again(rig, tmp_path, monkeypatch):
     # the second capture (trial 1's first attempt) loses 3 frames in the middle of the trial
     _lose_frames(rig, monkeypatch, lambda i, cap: _inside_trial(cap, 100, 3) if i == 1 else [])
@@ -85,7 +84,6 @@ def test_a_trial_that_lost_frames_is_recorded_again(rig, tmp_path, monkeypatch):
         assert np.all(np.diff(s.trial(1).seq.astype(int)) == 1)
 
 
-@pytest.mark.realtime
 def test_a_trial_that_keeps_losing_frames_is_marked_failed_never_complete(rig, tmp_path, monkeypatch):
     # every attempt of trial 1 (captures 1 and 2, retries = 1) loses a frame
     _lose_frames(rig, monkeypatch, lambda i, cap: _inside_trial(cap, 50, 1) if i in (1, 2) else [])
@@ -104,7 +102,6 @@ def test_a_trial_that_keeps_losing_frames_is_marked_failed_never_complete(rig, t
         assert s.trial(1).dropped_frames == 0 and s.trial(1).n_samples == 300
 
 
-@pytest.mark.realtime
 def test_losses_within_the_protocols_limit_are_kept_counted_and_flagged_by_encode(rig, tmp_path, monkeypatch, caplog):
     from rigctl.encoding.pipeline import encode_session
     from rigctl.storage.encoded import open_encoded
@@ -123,7 +120,6 @@ def test_losses_within_the_protocols_limit_are_kept_counted_and_flagged_by_encod
 
 
 # ------------------------------------------------------------------------------------------------ the index frame
-@pytest.mark.realtime
 def test_a_lost_index_frame_costs_that_frame(rig, tmp_path, monkeypatch):
     lost_seq = []
 
@@ -209,7 +205,6 @@ def link():
     mp.undo()
 
 
-@pytest.mark.realtime
 def test_a_lost_drum_link_ends_the_run_after_a_bounded_wait_and_it_resumes(rig, tmp_path, monkeypatch, link):
     monkeypatch.setattr(runner_module, "LINK_LOSS_S", 1.0)
     monkeypatch.setattr(runner_module, "LINK_POLL_S", 0.05)
@@ -235,7 +230,6 @@ def test_a_lost_drum_link_ends_the_run_after_a_bounded_wait_and_it_resumes(rig, 
     assert summary.ok and summary.recorded == 3 and summary.complete == 5
 
 
-@pytest.mark.realtime
 def test_a_flapping_link_ends_the_run_after_three_attempts_in_a_row(rig, tmp_path, monkeypatch, link):
     monkeypatch.setattr(runner_module, "LINK_POLL_S", 0.05)
     recover = rig.recover
@@ -273,7 +267,6 @@ def sigterm_before():
     signal.signal(signal.SIGTERM, old)
 
 
-@pytest.mark.realtime
 def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_path, sigterm_before):
     previous, calls = sigterm_before
 
@@ -292,7 +285,6 @@ def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_pa
     assert summary.ok and summary.recorded == 2
 
 
-@pytest.mark.realtime
 def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path, monkeypatch, sigterm_before):
     write = SessionWriter.write_trial
 
@@ -309,7 +301,6 @@ def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path,
         assert s.completed_ids() == [0, 1] and s.trial(1).n_samples == 300
 
 
-@pytest.mark.realtime
 def test_a_reader_holding_the_file_for_long_costs_no_trial(rig, tmp_path, monkeypatch):
     # each write attempt waits 0.05 s instead of 10 s: 30 attempts stand for 5 minutes of a reader holding the file
     monkeypatch.setattr(runner_module, "FIRST_WRITE_WAIT_S", 0.05)

@@ -1,5 +1,9 @@
-"""The runner and the calibration helpers in-process on one simulated rig (real ptys, pymodbus, pyserial):
-Ctrl-C, stop and pause events, failed trials and their resume, ramps, load-cell and taxel calibration."""
+"""The runner and the calibration helpers: Ctrl-C, stop and pause events, failed trials and their resume, ramps,
+taxel calibration, a reader holding the file, on the in-process rig (rigctl.rigs.open_rig("inprocess"): the
+controller logic and the physical model on a simulated clock, no ptys). On the simulated rig on real ptys (pymodbus,
+pyserial), paced to the wall clock: a watchdog trip between trials (the host's silence in real time) and the
+load-cell calibration against the virtual Mega (its waits are real-time sleeps, which the in-process clock does not
+follow)."""
 
 from __future__ import annotations
 
@@ -21,8 +25,6 @@ from rigctl.rigs import open_rig
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 from rigctl.storage.session import open_session
 
-pytestmark = pytest.mark.realtime
-
 TRUE_COUNTS_PER_G = 380.0  # the simulated load cell differs from the controller's default scale (420 counts/g)
 
 
@@ -41,7 +43,15 @@ def config_file(tmp_path_factory):
 @pytest.fixture(scope="module")
 def rig(config_file):
     cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=TRUE_COUNTS_PER_G))
-    with open_rig("sim", config=cfg, seed=3, host_config_path=config_file) as r:
+    with open_rig("inprocess", config=cfg, seed=3, host_config_path=config_file) as r:
+        yield r
+
+
+@pytest.fixture(scope="module")
+def pty_rig(tmp_path_factory):
+    """The simulated rig on real ptys, paced to the wall clock (the virtual Mega's watchdog runs on it)."""
+    cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=TRUE_COUNTS_PER_G))
+    with open_rig("sim", config=cfg, seed=3, host_config_path=tmp_path_factory.mktemp("cfg") / "rig.json") as r:
         yield r
 
 
@@ -114,12 +124,12 @@ def test_failed_trials_are_marked_and_resumed(rig, tmp_path, monkeypatch):
         try:
             return record(planned, **kw)
         except Exception:
-            rig.backend.sim.replug_taxel()  # plugged back as the trial fails
+            rig.stream.start()  # the board streams again as the trial fails
             raise
 
     def on_trial(ev):
         if ev.kind == "start" and ev.planned.trial_id == 1:
-            rig.backend.sim.unplug_taxel()  # the Uno's USB cable is pulled during trial 1
+            rig.stream.stop()  # the taxel board goes silent during trial 1
         if ev.kind == "failed":
             failures.append(ev.error)
 
@@ -166,7 +176,9 @@ def test_ramp_trial_follows_the_profile(rig, tmp_path):
         assert np.all(np.diff(t.speed_time_s) > 0)
 
 
-def test_loadcell_calibration_against_the_virtual_mega(rig, config_file):
+@pytest.mark.realtime
+def test_loadcell_calibration_against_the_virtual_mega(pty_rig, tmp_path):
+    rig, config_file = pty_rig, tmp_path / "rig.json"
     place, remove = calibration.simulated_mass(rig)
     rig.drum.set_loadcell_scale(400.0)  # a wrong scale to start from
     result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
@@ -200,7 +212,7 @@ def test_taxel_normalisation_goes_into_the_config_and_the_next_session(rig, tmp_
     with open_session(out) as s:
         np.testing.assert_array_equal(s.calibration["taxel_max"], norm.taxel_max)
         assert s.calibration["taxel_n_trials"] == 2
-        assert "loadcell" in s.rig_config["host_config"]
+        assert s.rig_config["host_config"]["taxel_normalisation"]["taxel_max"] == norm.taxel_max.tolist()
 
 
 def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_path):
@@ -231,18 +243,19 @@ def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_pat
         assert [s.trial(i).n_samples for i in s.completed_ids()] == [300, 300, 300]
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("textures", ['"A"', '"A", "B"'], ids=["same-plate", "before-a-plate-change"])
-def test_a_watchdog_trip_between_trials_is_cleared(rig, tmp_path, textures):
+def test_a_watchdog_trip_between_trials_is_cleared(pty_rig, tmp_path, textures):
     # same plate: the next press finds the fault; plate change: the release before mounting B finds it
     out = tmp_path / "wd.h5"
 
     def on_trial(ev):
         if ev.kind == "complete" and ev.index == 0:
             time.sleep(1.5)  # a slow callback: the host is silent with the force engaged, the watchdog trips
-            assert rig.drum.read_status().state == DrumState.FAULT
+            assert pty_rig.drum.read_status().state == DrumState.FAULT
 
     n_per = 2 if textures == '"A"' else 1
-    summary = run_protocol(_proto(n_per, textures=textures), out, rig=rig, progress=False, on_trial=on_trial)
+    summary = run_protocol(_proto(n_per, textures=textures), out, rig=pty_rig, progress=False, on_trial=on_trial)
     assert summary.complete == 2 and summary.failed == 0, summary.failures
 
 
