@@ -266,14 +266,14 @@ def run_cv(
               "labels": {t: (fs.texture if t == "textures" else fs.group) for t in tasks}, "classes": classes,
               "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs}
     bar = Stage(progress, "textures/groups", repeats * k * len(vs), unit="fit")
-    reps = map_repeats(_cv_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler, workers=workers,
+    per_repeat = map_repeats(_cv_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler, workers=workers,
                        on_done=lambda: bar.advance(k * len(vs)))
-    n_used = min(len(c) for rep in reps for folds, _ in rep.values() for c in folds)
+    n_used = min(len(c) for rep in per_repeat for folds, _ in rep.values() for c in folds)
     n_drawn = n_draw * len(textures)
     for t in tasks:
         for v in vs:
-            a = np.vstack([np.sum([c[:n_used] for c in rep[(t, v)][0]], axis=0) / n_drawn for rep in reps])
-            cm = np.sum([rep[(t, v)][1] for rep in reps], axis=0)
+            a = np.vstack([np.sum([c[:n_used] for c in rep[(t, v)][0]], axis=0) / n_drawn for rep in per_repeat])
+            cm = np.sum([rep[(t, v)][1] for rep in per_repeat], axis=0)
             res.add(Curve(t, v, a.astype(np.float64), n_drawn, classes[t], cm.astype(np.int64),
                           min(confusion_pcs, n_used)))
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
@@ -389,14 +389,14 @@ def run_extrapolation(
               "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
               "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs}
     bar = Stage(progress, prefix + "extrapolation", repeats * len(vs), unit="fit")
-    reps = map_repeats(_extrapolation_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler,
+    per_repeat = map_repeats(_extrapolation_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler,
                        workers=workers, on_done=lambda: bar.advance(len(vs)))
-    n_used = min(len(acc) for rep in reps for acc, _, _ in rep.values())
-    n_tested = {c: reps[0][(c, vs[0])][2] for c in cats}
+    n_used = min(len(acc) for rep in per_repeat for acc, _, _ in rep.values())
+    n_tested = {c: per_repeat[0][(c, vs[0])][2] for c in cats}
     for c in cats:
         for v in vs:
-            a = np.vstack([rep[(c, v)][0][:n_used] for rep in reps])
-            cm = np.sum([rep[(c, v)][1] for rep in reps], axis=0)
+            a = np.vstack([rep[(c, v)][0][:n_used] for rep in per_repeat])
+            cm = np.sum([rep[(c, v)][1] for rep in per_repeat], axis=0)
             res.add(Curve(prefix + c, v, a, n_tested[c], classes, cm.astype(np.int64), min(confusion_pcs, n_used)))
     res.counts[prefix + "extrapolation"]["tested_per_repeat"] = {prefix + c: n_tested[c] for c in cats}
     res.settings.update({"n_pcs": n_used, "repeats": repeats, "seed": seed})
