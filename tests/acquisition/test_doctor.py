@@ -240,3 +240,22 @@ def test_cli_doctor_hil_passes(tmp_path):
     rep = json.loads(p.stdout)
     by = {c["name"]: c for c in rep["checks"]}
     assert by["link"]["status"] == "pass" and by["force-step"]["status"] == "pass", by
+
+
+@pytest.mark.hil
+def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path):
+    """The simavr harness's multiplexer RC model with one taxel at 1 MOhm (the firmware settles 47 kOhm): its
+    reading carries its scan neighbour's, and the crosstalk check names the source impedance."""
+    cfg = tmp_path / "rig.json"
+
+    def opener():
+        rig = open_rig("hil", host_config_path=cfg)
+        rig.backend.sim.set_taxel_ohm(1e6, taxel=4)
+        return rig
+
+    ctx = doctor.DoctorContext("hil", opener=opener, config_path=cfg, rest_s=3.0)
+    by = {r.name: r for r in doctor.run_doctor(doctor.select(["link", "crosstalk"]), ctx).results}
+    r = by["crosstalk"]
+    assert r.status == "fail", r.line()
+    assert 4 in r.values["worst_pair"] and r.values["worst_correlation"] > 0.1
+    assert "47 kOhm" in r.fix

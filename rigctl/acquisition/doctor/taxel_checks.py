@@ -79,9 +79,10 @@ def check_crosstalk(ctx: DoctorContext) -> CheckResult:
     what = (f"taxels {min(i, j)} and {max(i, j)} share {worst * 100:.1f} % (the most of any pair; resolution "
             f"{resolution * 100:.1f} % on {len(cap)} samples, bound {MAX_CROSSTALK * 100:g} %)")
     if worst > MAX_CROSSTALK:
-        return failed("crosstalk", what, "the multiplexer node does not settle through the taxels' source impedance: "
-                      "firmware with the mux settling fix, or a lower source impedance / a buffer per mux output "
-                      "(docs/hardware)", **values)
+        return failed("crosstalk", what, f"the multiplexer node does not settle through taxel {min(i, j)} or "
+                      f"{max(i, j)}'s source impedance: keep each taxel's source impedance <= 47 kOhm or buffer it "
+                      "(an op-amp follower; docs/hardware), and run the installed firmware (its mux settling delay)",
+                      **values)
     return passed("crosstalk", what, **values)
 
 
