@@ -693,14 +693,10 @@ class SensorModel:
 # ----------------------------------------------------------------------------------------------------------------
 # whole rig mechanics
 # ----------------------------------------------------------------------------------------------------------------
-#: Suggested force-loop gains for a PI controller on actuator velocity (``v = KP * e + KI * integral(e)``, e in g,
-#: v in mm/s, clipped to the actuator's speed limit), run every 10 ms on the load-cell reading, integrating only while
-#: ``abs(e) < FORCE_PI_INTEGRATE_BAND_G`` (conditional integration: no wind-up during the approach to contact).
-#: With the default stiffness (250 g/mm) the proportional loop gain is 5 /s; from home (3 mm gap) a 250 / 500 /
-#: 1000 g setpoint enters and stays in a +-15 g band after about 1.1 / 1.0 / 1.3 s, overshoot < 10 g
-#: (see :func:`simulate_force_loop`).
-FORCE_PI_KP_MM_S_PER_G = 0.02
-FORCE_PI_KI_MM_S_PER_G_S = 0.02
+#: The force loop integrates only while ``abs(e) < FORCE_PI_INTEGRATE_BAND_G`` g (conditional integration: no
+#: wind-up during the approach to contact): the firmware's FORCE_INTEGRATE_BAND_G (drum_config.h; equal by
+#: tests/test_wire_spec.py). The loop itself (gains in the holding registers, one update per HX711 reading) is
+#: :meth:`rigctl.simulation.controller.MegaController._force_pi`, the firmware's force_pi.c.
 FORCE_PI_INTEGRATE_BAND_G = 50.0
 
 
@@ -959,45 +955,3 @@ def sinc4_weights(period_ms: float) -> np.ndarray:
     w = np.where(u < 1.0, u ** 3 / 6.0, (1.0 + 3.0 * v + 3.0 * v * v - 3.0 * v ** 3) / 6.0)
     w = np.clip(w, 0.0, None)
     return w / w.sum()
-
-
-def simulate_force_loop(setpoint_g: float = 500.0, *, kp: float = FORCE_PI_KP_MM_S_PER_G,
-                        ki: float = FORCE_PI_KI_MM_S_PER_G_S, band_g: float = FORCE_PI_INTEGRATE_BAND_G,
-                        duration_s: float = 4.0, tolerance_g: float = 15.0,
-                        config: RigConfig | None = None, seed: int = 0, period_ms: int = 10) -> dict:
-    """Run a plain PI force loop (the kind the Mega runs) on a :class:`RigModel` from home; report its settling.
-
-    The loop, every ``period_ms``: ``e = setpoint - force_g``; the integrator ``I += e * dt`` only while
-    ``abs(e) < band_g``; ``v = clip(kp * e + ki * I, +-actuator_max_speed_mm_s)``. The drum stays at rest.
-
-    Returns
-    -------
-    dict
-        ``time_s`` (m,), ``force_g`` (m,) load-cell readings, ``settle_s`` (first time after which every reading
-        stays within ``tolerance_g``; ``nan`` if never), ``overshoot_g`` (max force - setpoint).
-    """
-    rig = RigModel(config, seed=seed)
-    vmax = rig.config.mechanics.actuator_max_speed_mm_s
-    dt = period_ms * 1e-3
-    steps = int(round(duration_s / dt))
-    integ = 0.0
-    v = 0.0
-    times = np.empty(steps)
-    forces = np.empty(steps)
-    for i in range(steps):
-        rig.advance(period_ms, drum_step_rate_hz=0.0, actuator_velocity_mm_s=v)
-        f = rig.force_g
-        times[i] = (i + 1) * dt
-        forces[i] = f
-        e = setpoint_g - f
-        if abs(e) < band_g:
-            integ += e * dt
-        v = float(np.clip(kp * e + ki * integ, -vmax, vmax))
-    outside = np.flatnonzero(np.abs(forces - setpoint_g) > tolerance_g)
-    if outside.size == 0:
-        settle = times[0]
-    elif outside[-1] == steps - 1:
-        settle = float("nan")
-    else:
-        settle = float(times[outside[-1] + 1])
-    return {"time_s": times, "force_g": forces, "settle_s": settle, "overshoot_g": float(forces.max() - setpoint_g)}
