@@ -259,3 +259,15 @@ def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path)
     assert r.status == "fail", r.line()
     assert 4 in r.values["worst_pair"] and r.values["worst_correlation"] > 0.1
     assert "47 kOhm" in r.fix
+
+
+@pytest.mark.hil
+def test_a_reversed_load_cell_fails_polarity_on_the_firmware_under_simavr(tmp_path):
+    cfg = tmp_path / "rig.json"
+    reversed_cell = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=-420.0))
+    ctx = doctor.DoctorContext("hil", opener=lambda: open_rig("hil", host_config_path=cfg, config=reversed_cell),
+                               config_path=cfg, rest_s=3.0)
+    by = {r.name: r for r in doctor.run_doctor(doctor.select(["link", "loadcell-polarity"]), ctx).results}
+    r = by["loadcell-polarity"]
+    assert r.status == "fail" and "A+/A-" in r.fix, r.line()
+    assert r.values["lowest_force_g"] < -30
