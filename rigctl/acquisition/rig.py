@@ -679,27 +679,38 @@ def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
     """What the drum index sensor measured during a trial (docs/session-format.md, trial attributes).
 
     ``first`` and ``last``: the drum statuses at the start and the end of the capture (``index_source``,
-    ``index_period_s``, ``index_steps``, ``index_count``). Returns ``index_source`` ("sensor" or "steps": what
-    marked the index at the end), ``drum_speed_index_mm_s`` (pi x diameter / the index period when both edges of
-    that period fell inside the capture of a constant-speed trial, else NaN), ``drum_steps_per_rev_index``
-    (microsteps the firmware sent between the last two index edges, 0 without a sensor: speed-independent),
-    ``drum_speed_mismatch`` (True when either differs from what the step count says by more than
-    :data:`DRUM_SPEED_TOLERANCE`) and ``drum_speed_warning`` (its explanation, "" when none). Geometry:
-    :mod:`rigctl.core.drum`.
+    ``index_period_s``, ``index_steps``, ``index_count``). Returns
+
+    - ``index_source``: "sensor" or "steps" (what marked the index at the end of the trial);
+    - ``drum_steps_per_rev_index``: the microsteps the firmware sent between the last two sensor edges (0 without a
+      live sensor): how far one step really turns the drum, whatever the speed;
+    - ``drum_speed_index_mm_s`` and ``drum_speed_index_method``: the real drum speed of a constant-speed trial,
+      ``"period"`` = pi x diameter / the index period when both edges of that period fell inside the capture,
+      else ``"steps"`` = the setpoint x steps_per_rev x microsteps / ``drum_steps_per_rev_index`` (the step rate
+      is the setpoint's; the revolutions per step come from the sensor); NaN and ``""`` when neither is known
+      (no sensor, a ramp trial);
+    - ``drum_speed_mismatch`` (True when the sensor disagrees with the step count by more than
+      :data:`DRUM_SPEED_TOLERANCE`) and ``drum_speed_warning`` (why, "" when none).
+
+    Geometry: :mod:`rigctl.core.drum`.
     """
     usteps = DRUM_STEPS_PER_REV * DRUM_MICROSTEPS
-    fresh = (int(last.index_count) - int(first.index_count)) % 65536 >= 2 and last.index_period_s > 0
-    speed = (DRUM_CIRCUMFERENCE_MM / last.index_period_s) if fresh and not planned.is_ramp else math.nan
     steps = int(last.index_steps) if last.index_source == "sensor" else 0
+    fresh = (int(last.index_count) - int(first.index_count)) % 65536 >= 2 and last.index_period_s > 0
+    speed, method = math.nan, ""
+    if not planned.is_ramp and fresh:
+        speed, method = DRUM_CIRCUMFERENCE_MM / last.index_period_s, "period"
+    elif not planned.is_ramp and steps:
+        speed, method = planned.speed_mm_s * usteps / steps, "steps"
     why = []
     if steps and abs(usteps / steps - 1.0) > DRUM_SPEED_TOLERANCE:
         why.append(f"the drum turned once every {steps} microsteps, the firmware assumes {usteps} (is the driver "
                    f"set to {DRUM_MICROSTEPS * steps / usteps:g} microsteps instead of {DRUM_MICROSTEPS}?)")
-    if math.isfinite(speed) and abs(speed / planned.speed_mm_s - 1.0) > DRUM_SPEED_TOLERANCE:
+    if method == "period" and abs(speed / planned.speed_mm_s - 1.0) > DRUM_SPEED_TOLERANCE:
         why.append(f"the index sensor measured {speed:.1f} mm/s at a setpoint of {planned.speed_mm_s:g} mm/s "
                    "(wrong microstep setting or drum diameter?)")
     return {"index_source": str(last.index_source), "drum_speed_index_mm_s": float(speed),
-            "drum_steps_per_rev_index": steps, "drum_speed_mismatch": bool(why),
+            "drum_speed_index_method": method, "drum_steps_per_rev_index": steps, "drum_speed_mismatch": bool(why),
             "drum_speed_warning": "; ".join(why)}
 
 
