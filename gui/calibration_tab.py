@@ -9,7 +9,6 @@ is shown as not matching and not used."""
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import pyqtgraph as pg
@@ -223,24 +222,19 @@ class CalibrationTab(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------------
     def calibrate_loadcell(self) -> None:
-        from rigctl.acquisition import calibration as cal
+        from rigctl.operations import calibrate_loadcell
 
         h = self.handle
         if h is None or (self.job is not None and not self.job.done):
             return
         mass = float(self.mass.value())
-        if h.is_simulated:
-            place, remove = cal.simulated_mass(h.rig)
-        else:
-            place, remove = self._prompt_place, self._prompt_remove
+        # a simulated rig rests the mass itself; on hardware the operator is asked
+        place, remove = (None, None) if h.is_simulated else (self._prompt_place, self._prompt_remove)
         cfg_path = self.main.rig_config_path()
 
         def work(job):
             job.progress(0.1, "taring and reading the empty load cell...")
-            result = cal.calibrate_loadcell(h.drum, mass, place_mass=place, remove_mass=remove,
-                                            config_file=cfg_path)
-            h.rig.host_config = cal.load_rig_config(cfg_path)  # later sessions carry it
-            return result
+            return calibrate_loadcell(h.control, mass, place_mass=place, remove_mass=remove, config_file=cfg_path)
 
         self._start(Job(work, name="loadcell"), "load-cell calibration")
 
@@ -257,26 +251,18 @@ class CalibrationTab(QtWidgets.QWidget):
         self._mass_event.set()
 
     def record_normalisation(self) -> None:
-        from rigctl.acquisition import calibration as cal
+        from rigctl.operations import record_taxel_normalisation
 
         h = self.handle
         if h is None or (self.job is not None and not self.job.done):
             return
         seconds = float(self.norm_seconds.value())
         cfg_path = self.main.rig_config_path()
-        layout = self.sensor_layout
 
         def work(job):
-            h.taxels.begin_capture()
-            t0 = time.monotonic()
-            try:
-                while time.monotonic() - t0 < seconds and not job.cancel.is_set():
-                    job.progress((time.monotonic() - t0) / seconds, "capturing the calibration run...")
-                    time.sleep(0.1)
-            finally:
-                cap = h.taxels.end_capture()
-            norm = cal.taxel_normalisation([cap.samples], source=f"live capture {seconds:g} s")
-            return self._store_checked(norm, h, cfg_path, layout)
+            return record_taxel_normalisation(
+                h.control, seconds, config_file=cfg_path, cancel=job.cancel,
+                progress=lambda f: job.progress(f, "capturing the calibration run..."))
 
         self._start(Job(work, name="normalisation"), "taxel normalisation")
 
@@ -289,29 +275,17 @@ class CalibrationTab(QtWidgets.QWidget):
 
     def normalisation_from_file(self, path: str) -> None:
         from rigctl.acquisition import calibration as cal
+        from rigctl.operations import store_taxel_normalisation
 
         cfg_path = self.main.rig_config_path()
         h = self.handle
         layout = self.sensor_layout
 
         def work(job):
-            norm = cal.taxel_normalisation_from_session(path)
-            return self._store_checked(norm, h, cfg_path, layout)
+            return store_taxel_normalisation(cal.taxel_normalisation_from_session(path), layout,
+                                             config_file=cfg_path, control=getattr(h, "control", None))
 
         self._start(Job(work, name="normalisation"), "taxel normalisation")
-
-    @staticmethod
-    def _store_checked(norm, handle, cfg_path, layout: SensorLayout):
-        """Store a taxel normalisation (worker thread) unless its span is implausibly small
-        (:func:`rigctl.acquisition.calibration.check_taxel_span` raises: the previous one stays in use); the one it
-        replaces is kept for Undo. Returns ``norm`` with ``low_taxels`` (taxels of a small span, reported)."""
-        from rigctl.acquisition import calibration as cal
-
-        norm.low_taxels = cal.check_taxel_span(norm, layout.adc_max)
-        cal.store_taxel_normalisation(norm, cfg_path)
-        if handle is not None:
-            handle.rig.host_config = cal.load_rig_config(cfg_path)
-        return norm
 
     def undo_normalisation(self) -> None:
         """Back to the previous taxel normalisation (a second Undo redoes); the live encoder follows at once."""
@@ -378,8 +352,8 @@ class CalibrationTab(QtWidgets.QWidget):
                 self.status.setText(f"load cell: {r.counts_per_g:.2f} counts/g written to the controller; with "
                                     f"the {r.mass_g:g} g mass it now reads {r.check_force_g:.1f} g")
             else:
-                low = getattr(r, "low_taxels", [])
-                self.status.setText(f"taxel normalisation stored ({r.n_trials} capture(s)); the live encoder uses "
+                low = r.low_taxels
+                self.status.setText(f"taxel normalisation stored ({r.norm.n_trials} capture(s)); the live encoder uses "
                                     "it from now on (Undo goes back)"
                                     + (f"; taxels {', '.join(map(str, low))} barely moved: check them" if low else ""))
                 self._apply_to_encoder()

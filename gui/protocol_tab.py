@@ -1,5 +1,5 @@
 """Protocol tab: open a protocol file (:func:`rigctl.acquisition.protocol.load_protocol`), show its plan, choose the
-output session file, start / pause / resume / abort a run (:func:`rigctl.acquisition.runner.run_protocol` in a
+output session file, start / pause / resume / abort a run (:class:`rigctl.operations.ProtocolRun` in a
 worker thread with stop and pause events), per-trial progress and ETA, the operator prompt to mount the next
 texture plate (the simulated rig mounts it by itself), and resume an interrupted session file."""
 
@@ -33,6 +33,7 @@ class ProtocolTab(QtWidgets.QWidget):
         self.protocol = None
         self.plan = []
         self.job: Job | None = None
+        self.run = None  # the rigctl.operations.ProtocolRun of the current (or last) run
         self.stop_event = threading.Event()
         self.pause_event = threading.Event()
         self._prompt_event = threading.Event()
@@ -258,28 +259,20 @@ class ProtocolTab(QtWidgets.QWidget):
         except OutputError as exc:
             set_plain(self.status, str(exc), error=True)
             return
-        from rigctl.acquisition.runner import run_protocol
+        from rigctl.operations import ProtocolRun
 
-        self.stop_event.clear()
-        self.pause_event.clear()
+        run = ProtocolRun(getattr(h, "control", h.rig), self.protocol, out, resume=resume,
+                          prompt=self._prompt)  # hardware only: the simulated rig mounts plates by itself
+        self.run = run
+        self.stop_event, self.pause_event = run.stop_event, run.pause_event  # the run's controls, shown here
         self._done_ids, self._failures = [], []
         self._current, self._paused, self._eta = None, False, None
         self._trial_started = time.monotonic()
         self._done_before = self._completed_in(out) if resume else 0
-        protocol, rig = self.protocol, h.rig
 
         def work(job: Job):
-            return run_protocol(
-                protocol,
-                out,
-                rig=rig,
-                resume=resume,
-                progress=None,
-                stop_event=self.stop_event,
-                pause_event=self.pause_event,
-                on_trial=lambda ev: job.events.put(("trial", ev)),
-                prompt=self._prompt,  # hardware only: the simulated rig mounts plates by itself
-            )
+            run.on_trial = lambda ev: job.events.put(("trial", ev))
+            return run.run()
 
         self.job = Job(work, name="protocol")
         self.job.start()
@@ -316,7 +309,7 @@ class ProtocolTab(QtWidgets.QWidget):
 
     def pause(self) -> None:
         if self.running:
-            self.pause_event.set()
+            self.run.pause()
             set_plain(self.status, "pausing after the current trial...")
             self._notify(logging.INFO, f"protocol {self.protocol_name()}: pause requested (after the current "
                          "trial, the sensor released)")
@@ -324,7 +317,7 @@ class ProtocolTab(QtWidgets.QWidget):
 
     def resume(self) -> None:
         if self.running:
-            self.pause_event.clear()
+            self.run.resume()
             set_plain(self.status, "resumed")
             self._notify(logging.INFO, f"protocol {self.protocol_name()} resumed")
             self._update_buttons()
@@ -345,8 +338,7 @@ class ProtocolTab(QtWidgets.QWidget):
 
     def request_abort(self) -> None:
         if self.running and not self.stop_event.is_set():
-            self.stop_event.set()
-            self.pause_event.clear()
+            self.run.abort()
             self._prompt_event.set()
             set_plain(self.status, "aborting: the rig stops safely, finished trials stay in the file")
             self._notify(logging.WARNING, "protocol run aborted: the rig stops safely, finished trials stay in "

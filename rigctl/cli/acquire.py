@@ -126,9 +126,8 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
-    from rigctl.acquisition.runner import run_protocol
     from rigctl.devices.errors import DrumError, TaxelStreamError
-    from rigctl.operations import RigSource, open_control
+    from rigctl.operations import ProtocolRun, RigSource, open_control
     from rigctl.storage.session import SessionError
 
     if (drum_port is None) != (taxel_port is None):
@@ -194,11 +193,10 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
             raise click.ClickException(f"cannot open the {source.kind} rig: {' '.join(str(exc).split())}") from None
     for record in held:  # the opening succeeded: what it logged is news
         logging.getLogger(record.name).handle(record)
-    rig = control.rig
     with control, bars(not quiet) as progress:
-        try:
-            summary = run_protocol(proto, out, rig=rig, resume=resume, progress=progress,
-                                   on_failure=on_failure, overwrite=overwrite)
+        try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
+            summary = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
+                                  overwrite=overwrite).run()
         except (SessionError, FileExistsError, FileNotFoundError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
     for line in summary.lines():

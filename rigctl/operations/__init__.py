@@ -6,6 +6,8 @@ One package of small modules, each one job an operator does:
   recording); :func:`open_control` opens it as a :class:`RigControl` (``_control``): setpoints checked against the
   controller's limits, run at a speed and force (press -> settle -> run), stop, tare, home, clear a fault, mount a
   plate, status; :class:`Home` says what opening does with a latched fault.
+- :func:`calibrate_loadcell`, :func:`record_taxel_normalisation`, :func:`store_taxel_normalisation`
+  (``_calibrate``): calibrating an open rig (checked, stored, taken up by the rig at once).
 - :class:`ProtocolRun` (``_run``): run, pause, resume, abort a protocol (in this thread or a worker).
 - :func:`setpoint_refusals` / :class:`SetpointRefusal` (``_setpoints``): the setpoint policy in the operator's words.
 - :func:`doctor` (``_doctor``): the bring-up checks (:mod:`rigctl.acquisition.doctor`) on a source or an open rig,
@@ -30,6 +32,12 @@ from rigctl.operations._analysis import (
     run_analyses,
     train_model,
 )
+from rigctl.operations._calibrate import (
+    StoredNormalisation,
+    calibrate_loadcell,
+    record_taxel_normalisation,
+    store_taxel_normalisation,
+)
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
@@ -43,4 +51,5 @@ __all__ = [
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "ProtocolRun", "RUN_STATES",
+    "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",
 ]

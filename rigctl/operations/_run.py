@@ -87,7 +87,7 @@ class ProtocolRun:
     # ------------------------------------------------------------------------------------------------- controls
     def pause(self) -> None:
         """Pause after the trial in progress, with the sensor released; :meth:`resume` goes on."""
-        if self.running and not self.stop_event.is_set():
+        if not self._done.is_set() and not self.stop_event.is_set():
             self.pause_event.set()
 
     def resume(self) -> None:
