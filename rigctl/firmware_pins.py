@@ -95,15 +95,32 @@ def _int(value: str) -> int | None:
     return int(value, 0) if re.fullmatch(r"0x[0-9a-fA-F]+|\d+", value) else None
 
 
+def _unconditional(text: str) -> str:
+    """``text`` without its conditional blocks (``#if``/``#ifdef`` ... ``#endif``, e.g. a test build's pins), the
+    include guard (``#ifndef X_H``) kept. Lines are blanked, not removed, so offsets stay."""
+    out, depth = [], 0
+    for line in text.splitlines(keepends=True):
+        word = line.strip().split(maxsplit=1)[0] if line.strip() else ""
+        if word in ("#if", "#ifdef") or (word == "#ifndef" and not line.strip().endswith("_H")):
+            depth += 1
+        elif word == "#endif" and depth:
+            depth -= 1
+            out.append("\n")
+            continue
+        out.append("\n" if depth else line)
+    return "".join(out)
+
+
 def parse_header(text: str, board: str) -> list[Pin]:
-    """The pins a pin header declares (see the module docstring), in the header's order.
+    """The pins a pin header declares (see the module docstring), in the header's order; pins inside a conditional
+    block (``#ifdef RIGCTL_TEST_HOOKS``: a test image's, never flashed) are left out.
 
     Raises
     ------
     ValueError
         A pin on a port bit the board does not have, or a bit outside 0-7.
     """
-    defines = {m.group(1): (m.group(2), m.start()) for m in _DEFINE.finditer(text)}
+    defines = {m.group(1): (m.group(2), m.start()) for m in _DEFINE.finditer(_unconditional(text))}
     registers: dict[str, dict[str, str]] = {}  # stem -> {"PORT": "B", ...}
     for name, (value, _) in defines.items():
         stem, _, kind = name.rpartition("_")

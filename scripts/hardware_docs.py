@@ -23,11 +23,11 @@ OUT = REPO / "docs" / "hardware"
 MEGA_WIRING = {
     "PIN_DRUM_STEP": ("drum driver", "STEP"), "PIN_DRUM_DIR": ("drum driver", "DIR"),
     "PIN_ACT_STEP": ("actuator driver", "STEP"), "PIN_ACT_DIR": ("actuator driver", "DIR"),
-    "PIN_DRIVERS_EN": ("e-stop", "EN"), "PIN_DRV_EN": ("e-stop", "EN"), "PIN_EN": ("e-stop", "EN"),
+    "PIN_EN": ("e-stop (NC contacts)", "NC2 (EN)"),
+    "PIN_ESTOP": ("e-stop (NC contacts)", "NC3 (GND)"),
     "PIN_HOME": ("home switch", "NO"),
     "PIN_HX_DOUT": ("HX711", "DT"), "PIN_HX_SCK": ("HX711", "SCK"),
-    "PIN_ESTOP": ("e-stop", "NC2"),
-    "PIN_INDEX_SENSOR": ("index sensor", "OUT"), "PIN_INDEX_IN": ("index sensor", "OUT"),
+    "PIN_INDEX_SENSOR": ("index sensor", "OUT"),
     "PIN_INDEX": ("Uno", "D2 sync-in"),
 }
 
@@ -101,10 +101,13 @@ def _lanes(pairs: list[tuple[float, float]], x0: float, step: float) -> list[flo
 
 #: the blocks the Mega is wired to, top to bottom: name -> (left pins (wired), right pins (labels))
 MEGA_BLOCKS = {
-    "e-stop (NC contacts)": (["EN", "NC2"], ["NC1: VMOT supply", "opens both when pressed"]),
-    "drum driver": (["STEP", "DIR"], ["coils -> NEMA17 drum", "MS pins: 16 microsteps", "VMOT via e-stop NC1"]),
+    "e-stop (NC contacts)": (["NC2 (EN)", "NC3 (GND)"], ["NC1: in the motor supply (VMOT)",
+                                                "NC2 -> both drivers' EN (10 kOhm pull-up to 5 V)",
+                                                "NC3: other side to GND; all open when pressed"]),
+    "drum driver": (["STEP", "DIR"], ["coils -> NEMA17 drum", "MS pins: 16 microsteps",
+                                      "EN via e-stop NC2, VMOT via NC1"]),
     "actuator driver": (["STEP", "DIR"], ["coils -> NEMA17 lead screw", "MS pins: 16 microsteps",
-                                          "VMOT via e-stop NC1"]),
+                                          "EN via e-stop NC2, VMOT via NC1"]),
     "HX711": (["DT", "SCK"], ["E+ / E-: excitation", "A+ / A-: signal", "RATE -> VCC (80 SPS)"]),
     "home switch": (["NO"], ["COM -> GND"]),
     "index sensor": (["OUT"], ["Hall / slotted opto", "open collector"]),
@@ -120,9 +123,7 @@ def mega_drawing(all_pins: list[Pin]) -> str:
     schemdraw.use("svg")
     mega = [p for p in all_pins if p.board == "mega"]
     targets = [(b, pin) for b, (left, _) in MEGA_BLOCKS.items() for pin in left]
-    block_of = {"e-stop": "e-stop (NC contacts)"}
-    dest = {p.signal: (block_of.get(MEGA_WIRING[p.signal][0], MEGA_WIRING[p.signal][0]), MEGA_WIRING[p.signal][1])
-            for p in mega if p.signal in MEGA_WIRING}
+    dest = {p.signal: MEGA_WIRING[p.signal] for p in mega if p.signal in MEGA_WIRING}
     wired = sorted((p for p in mega if dest.get(p.signal) in targets), key=lambda p: targets.index(dest[p.signal]))
     stubs = [p for p in mega if dest.get(p.signal) not in targets]
     label = {p.signal: f"{p.arduino} {p.signal.removeprefix('PIN_')}" for p in mega}

@@ -50,6 +50,9 @@ def test_the_table_follows_a_changed_header():
                    "#define PIN_ESTOP_BIT 4\n"
     estop = {p.signal: p for p in parse_header(added, "mega")}["PIN_ESTOP"]
     assert (estop.arduino, estop.avr, estop.direction) == ("D2", "PE4", "in, pull-up")
+    test_only = added + "#ifdef RIGCTL_TEST_HOOKS\n#define PIN_TEST_HANG_PIN PINA\n#define PIN_TEST_HANG_BIT 0\n#endif\n"
+    assert "PIN_TEST_HANG" not in {p.signal for p in parse_header(test_only, "mega")}  # a test image's pin
+    assert "PIN_ESTOP" in {p.signal for p in parse_header(test_only, "mega")}
 
 
 @pytest.mark.parametrize("board,variant", [("mega", "mega"), ("uno", "standard")])
