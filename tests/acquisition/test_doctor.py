@@ -133,6 +133,18 @@ def test_a_drum_driver_at_8_microsteps_fails_the_index_speed_check(tmp_path):
     assert healthy["drum-speed"].values["speed_at_120_mm_s"] == pytest.approx(120.0, rel=0.02)
 
 
+def test_the_load_cell_scale_is_compared_with_the_rig_configs_calibration(tmp_path):
+    from rigctl.acquisition.rigconfig import save_rig_config
+
+    save_rig_config({"loadcell": {"counts_per_g": 420.0, "scale_x100": 42000}}, tmp_path / "rig.json")
+    _, by = _run_service(tmp_path, None, ["loadcell-scale"])
+    assert by["loadcell-scale"].status == "pass", by["loadcell-scale"].line()
+    save_rig_config({"loadcell": {"counts_per_g": 500.0, "scale_x100": 50000}}, tmp_path / "rig.json")
+    _, by = _run_service(tmp_path, None, ["loadcell-scale"])
+    r = by["loadcell-scale"]
+    assert r.status == "fail" and r.values["board_counts_per_g"] == 420.0 and "calibrat" in r.fix
+
+
 def test_a_stored_report_is_schema_checked():
     good = {"checked_utc": "2026-01-01T00:00:00+00:00", "rig": "sim", "ok": True,
             "checks": [{"name": "link", "status": "pass", "summary": "ok", "values": {"x": [1, 2.5], "y": None}}]}

@@ -151,10 +151,50 @@ def check_firmware_build(ctx: DoctorContext) -> CheckResult:
     return passed("firmware-build", f"build {build} = the installed sources", sources_digest=digest)
 
 
+def _flag_names(value: Any) -> list[str]:
+    """The set bits of an IntFlag value by name."""
+    return [f.name for f in type(value) if f.value and f in value and f.name]
+
+
 def check_reset_cause(ctx: DoctorContext) -> CheckResult:
-    cause = status_value(ctx, "reset_cause", "RESET_CAUSE")
-    boots = status_value(ctx, "boot_count", "BOOT_COUNT")
-    return passed("reset-cause", f"last reset cause {cause}, {boots} boots", reset_cause=cause, boot_count=boots)
+    st = ctx.rig().drum.read_status()
+    if not hasattr(st, "reset_cause") or not hasattr(st, "boot_count"):
+        raise Skip("the drum controller does not report RESET_CAUSE and BOOT_COUNT (docs/wire-protocol.md 2.2)")
+    causes = _flag_names(st.reset_cause)
+    boots = int(st.boot_count)
+    values: dict[str, Any] = {"reset_cause": causes, "boot_count": boots}
+    what = (f"last reset: {', '.join(causes) if causes else 'cause unknown (0: the stk500v2 bootloader clears it)'}; "
+            f"{boots} boots")
+    from rigctl.acquisition.doctor import last_report  # the package imports this module
+
+    before = last_report(ctx.mode, ctx.config_path)
+    if before is not None:
+        prev = next((r.values.get("boot_count") for r in before.results if r.name == "reset-cause"), None)
+        if isinstance(prev, int):
+            values["boots_since_last_doctor"] = (boots - prev) & 0xFFFF
+            what += f", {(boots - prev) & 0xFFFF} since the last doctor run ({before.checked_utc})"
+    if "WATCHDOG" in causes:
+        return failed("reset-cause", what, "the controller's watchdog reset it: loop() hung. Note what the rig was "
+                      "doing, check the motor wiring for interference (docs/hardware/wiring.md#power-and-grounding) "
+                      "and report it with the firmware version", **values)
+    if "BROWN_OUT" in causes:
+        return failed("reset-cause", what, "the Mega's supply sagged below its brown-out level: power it from a "
+                      "stable supply (not a weak USB hub), and set the BOD fuse to 4.3 V "
+                      "(docs/hardware/wiring.md#brown-out-detection)", **values)
+    return passed("reset-cause", what, **values)
+
+
+def check_estop(ctx: DoctorContext) -> CheckResult:
+    st = ctx.rig().drum.read_status()
+    if not hasattr(st, "estop_open"):
+        raise Skip("the drum controller does not report its e-stop input (STATUS_FLAGS, docs/wire-protocol.md 2.2)")
+    values = {"estop_open": bool(st.estop_open), "drivers_enabled": bool(getattr(st, "drivers_enabled", False))}
+    if st.estop_open:
+        return failed("e-stop", "the e-stop input reads open (the button is pressed, or its normally-closed wire is "
+                      "broken)", "release the e-stop (turn it); else check its NC3 contact and wire to the Mega "
+                      "(docs/hardware/wiring.md#e-stop), then CLEAR_FAULT and HOME", **values)
+    return passed("e-stop", "the e-stop input reads closed" + (", drivers enabled" if values["drivers_enabled"] else
+                                                                ", drivers disabled"), **values)
 
 
 def check_hx711_rate(ctx: DoctorContext) -> CheckResult:
@@ -199,19 +239,35 @@ def check_loadcell_zero(ctx: DoctorContext) -> CheckResult:
                   noise_g=noise)
 
 
+def _board_counts_per_g(settings: dict[str, int]) -> float | None:
+    """The controller's load-cell scale, counts per g: the 32-bit signed LOADCELL_SCALE_X100_HI/_LO when the
+    controller has them, else the 16-bit LOADCELL_SCALE_X100; None if neither."""
+    if "LOADCELL_SCALE_X100_HI" in settings and "LOADCELL_SCALE_X100_LO" in settings:
+        raw = (settings["LOADCELL_SCALE_X100_HI"] << 16) | settings["LOADCELL_SCALE_X100_LO"]
+        return (raw - (1 << 32) if raw & 0x80000000 else raw) / 100.0
+    x100 = settings.get("LOADCELL_SCALE_X100")
+    return None if not x100 else x100 / 100.0
+
+
 def check_loadcell_scale(ctx: DoctorContext) -> CheckResult:
+    drum = ctx.rig().drum
+    if getattr(drum.read_status(), "calibration_defaults", False):
+        return failed("loadcell-scale", "the Mega's EEPROM calibration was missing or failed its checksum at boot: it "
+                      "runs on the default scale", "calibrate the load cell (the GUI's calibration tab), which saves "
+                      "it to the EEPROM", calibration_defaults=True)
     cal = load_rig_config(ctx.config_path).get("loadcell") or {}
-    if "scale_x100" not in cal:
-        raise Skip("the rig config holds no load-cell calibration (scale_x100): calibrate first")
-    board = ctx.rig().drum.settings().get("LOADCELL_SCALE_X100")
+    if "counts_per_g" not in cal:
+        raise Skip("the rig config holds no load-cell calibration: calibrate first")
+    board = _board_counts_per_g(drum.settings())
     if board is None:
-        raise Skip("the drum controller does not report LOADCELL_SCALE_X100")
-    if board != cal["scale_x100"]:
-        return failed("loadcell-scale", f"the Mega uses LOADCELL_SCALE_X100 {board}, the rig config's calibration "
-                      f"{cal['scale_x100']} (the EEPROM was lost or another cell was calibrated)",
-                      "calibrate the load cell again (rigctl calibrate / the GUI's calibration tab), which saves it "
-                      "to the EEPROM", board_scale_x100=board, config_scale_x100=cal["scale_x100"])
-    return passed("loadcell-scale", f"LOADCELL_SCALE_X100 {board} = the rig config's", scale_x100=board)
+        raise Skip("the drum controller does not report its load-cell scale")
+    want = float(cal["counts_per_g"])
+    values = {"board_counts_per_g": board, "config_counts_per_g": want}
+    if abs(board - want) > max(0.01, 0.001 * abs(want)):
+        return failed("loadcell-scale", f"the Mega uses {board:g} counts/g, the rig config's calibration {want:g} (the "
+                      "EEPROM was lost, or another cell was calibrated)", "calibrate the load cell again (the GUI's "
+                      "calibration tab), which saves it to the EEPROM and the rig config", **values)
+    return passed("loadcell-scale", f"{board:g} counts/g = the rig config's calibration", **values)
 
 
 def _fault_names(faults: Any) -> str:
@@ -349,6 +405,7 @@ CHECKS = (
     Check("firmware-build", check_firmware_build, title="firmware build hash = the installed sources'"),
     Check("controller-faults", check_controller_faults, title="no fault latched in the drum controller"),
     Check("reset-cause", check_reset_cause, title="reset cause and boot count"),
+    Check("e-stop", check_estop, title="the e-stop input reads closed"),
     Check("hx711-rate", check_hx711_rate, title="HX711 rate (80 SPS)"),
     Check("loadcell-zero", check_loadcell_zero, title="load cell reads zero at home"),
     Check("loadcell-scale", check_loadcell_scale, title="load-cell scale = the rig config's calibration"),
