@@ -15,7 +15,20 @@ import pwd
 from pathlib import Path
 
 from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, passed
+from rigctl.devices import ports as _ports
 from rigctl.devices.ports import find_ports
+
+#: a port named by its board's USB serial number (rigctl.devices.ports.resolve_port)
+SERIAL_PREFIX = getattr(_ports, "SERIAL_PREFIX", "serial:")
+
+
+def resolve(port: str) -> str:
+    """The device path of ``port`` (``serial:<number>`` looked up among the connected ports). OSError when no
+    connected port has that serial number."""
+    resolver = getattr(_ports, "resolve_port", None)
+    if resolver is None or not port.startswith(SERIAL_PREFIX):
+        return port
+    return str(resolver(port))
 
 __all__ = ["CHECKS", "check_port_permissions", "check_modemmanager", "check_serial_numbers", "check_link"]
 
@@ -40,7 +53,10 @@ def port_access_problem(path: str) -> tuple[str, str] | None:
     Uses ``os.access`` (the kernel's answer for this process's user and groups) and names the device's group and
     whether the user is already in it (then only a new login is missing).
     """
-    p = Path(path)
+    try:
+        p = Path(resolve(path))
+    except OSError as exc:
+        return str(exc), "plug the board in; `rigctl ports` lists the serial ports with their serial numbers"
     if not p.exists():
         return f"{path} does not exist", "plug the board in; `rigctl ports` lists the serial ports"
     if os.access(p, os.R_OK | os.W_OK):
@@ -122,7 +138,11 @@ def check_serial_numbers(ctx: DoctorContext) -> CheckResult:
     lines, problems = [], []
     values: dict[str, object] = {}
     for role, path in ports.items():
-        info = infos.get(os.path.realpath(path))
+        try:
+            info = infos.get(os.path.realpath(resolve(path)))
+        except OSError as exc:
+            problems.append((str(exc), "plug the board in; `rigctl ports` lists the serial numbers"))
+            continue
         if info is None:
             problems.append((f"{role} port {path} is not a USB serial port of this machine",
                              "plug the board in; `rigctl ports` lists the candidates"))
