@@ -157,7 +157,7 @@ static void bridge_reset(void)
 static int opt_pace = 1;
 static int opt_reset_on_open = 0;
 static double opt_boot_ms = 200.0;
-static double opt_spring_k = 200.0;       /* g per mm */
+static double opt_spring_k = 250.0; /* contact stiffness, g per mm: the documented default (MechanicsConfig); 250-2000 */
 static double opt_contact_mm = 5.0;
 static double opt_act_steps_per_mm = 400.0;
 static double opt_counts_per_g = 420.0;    /* LOADCELL_SCALE_X100 default / 100 */
