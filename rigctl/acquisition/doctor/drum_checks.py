@@ -344,6 +344,14 @@ def check_force_step(ctx: DoctorContext) -> CheckResult:
     return passed("force-step", what, **values)
 
 
+class _Faulted(Exception):
+    """The controller latched a fault during a check (``status`` the status that showed it)."""
+
+    def __init__(self, status: Any) -> None:
+        super().__init__(_fault_names(status.faults))
+        self.status = status
+
+
 def _index_speed(ctx: DoctorContext, speed_mm_s: float) -> tuple[float, int]:
     """Run the drum at ``speed_mm_s`` (pressing at the polarity setpoint) and return the drum speed the index sensor
     measured over a whole revolution after the speed is steady, mm/s, and the microsteps sent in it. Raises
@@ -358,7 +366,7 @@ def _index_speed(ctx: DoctorContext, speed_mm_s: float) -> tuple[float, int]:
     start = None
     for t, st in _poll(ctx, DRUM_SPINUP_S + 3.5 * rev_s):
         if st.state == DrumState.FAULT:
-            raise RuntimeError(f"fault {_fault_names(st.faults)} while the drum turned")
+            raise _Faulted(st)
         if t < DRUM_SPINUP_S:
             continue
         if start is None:
@@ -381,6 +389,9 @@ def check_drum_speed(ctx: DoctorContext) -> CheckResult:
     for v in DRUM_SPEED_CHECK_MM_S:
         try:
             measured, steps = _index_speed(ctx, v)
+        except _Faulted as exc:
+            return failed("drum-speed", f"fault {_fault_names(exc.status.faults)} while the drum turned at {v:g} mm/s",
+                          fault_advice(exc.status.faults) or "clear the fault's cause, then check again", **values)
         except RuntimeError as exc:
             return failed("drum-speed", str(exc), "check the index sensor's wiring (pin table: PIN_INDEX_SENSOR) and "
                           "its magnet or flag on the drum", **values)
