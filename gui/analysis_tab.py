@@ -15,9 +15,13 @@ from PySide6 import QtCore, QtWidgets
 
 from rigctl.core import PAPER_SENSOR, SensorLayout
 from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
-from rigctl_gui.widgets import side_panel
+from rigctl_gui.widgets import add_taxel_numbers, side_panel
 from rigctl_gui.workers import Job, ProcessJob
 
+#: an exported PNG is rendered at least this wide (px)
+EXPORT_PNG_WIDTH_PX = 1600
+#: the trial view's left axes are this wide (px), so readings, SA and RA share one data area and time axis
+TRIAL_AXIS_PX = 56
 #: Fig. 3 / report colours per variant
 VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
                    "speed_force_scaled": "#2ca02c"}
@@ -112,8 +116,10 @@ class AnalysisTab(QtWidgets.QWidget):
         model_box = QtWidgets.QGroupBox("Texture classifier (PCA + LDA)")
         model_box.setLayout(mf)
 
-        self.export_png = QtWidgets.QPushButton("Figure PNG...")
-        self.export_svg = QtWidgets.QPushButton("Figure SVG...")
+        self.export_png = QtWidgets.QPushButton("View PNG...")
+        self.export_svg = QtWidgets.QPushButton("View SVG...")
+        for b in (self.export_png, self.export_svg):
+            b.setToolTip("Save the view shown on the right (trial, accuracy vs PCs, Table 1 or confusion)")
         self.export_csv = QtWidgets.QPushButton("Tables CSV...")
         self.export_png.clicked.connect(lambda: self.export_figure("png"))
         self.export_svg.clicked.connect(lambda: self.export_figure("svg"))
@@ -154,18 +160,21 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trial_busy_label.setWordWrap(True)
         self.trial_plot = self.trial_gl.addPlot(row=0, col=0, title="Raw taxel readings")
         self.trial_plot.setLabel("left", "ADC counts")
+        # one time axis for readings, SA and RA: left axes of one width (the same data area), one x range
+        self.trial_plot.getAxis("left").setWidth(TRIAL_AXIS_PX)
         self.trial_curves: list = []
         self.trial_rasters = {}
         for row, (key, title, colour) in enumerate([("sa", "SA spikes", "#1f77b4"), ("ra", "RA spikes", "#d62728")],
                                                    start=1):
             p = self.trial_gl.addPlot(row=row, col=0, title=title)
             p.setLabel("left", "taxel")
+            p.getAxis("left").setWidth(TRIAL_AXIS_PX)
             c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), connect="pairs")
             p.addItem(c)
             self.trial_rasters[key] = (p, c)
         self.trial_rasters["ra"][0].setLabel("bottom", "time in trial (s)")
         self.heat_gl = pg.GraphicsLayoutWidget()
-        self.heat_gl.setMaximumWidth(260)
+        self.heat_gl.setFixedWidth(230)
         self.heat_plots: list = []  # (PlotItem, ImageItem) per layer
         tleft = QtWidgets.QVBoxLayout()
         busy_row = QtWidgets.QHBoxLayout()
@@ -184,11 +193,16 @@ class AnalysisTab(QtWidgets.QWidget):
         self.task_combo = QtWidgets.QComboBox()
         self.task_combo.currentIndexChanged.connect(self._draw_curves)
         al.addWidget(self.task_combo)
-        self.acc_plot = pg.PlotWidget(title="Accuracy vs number of PCs (mean +- sd over repetitions)")
+        self.acc_plot = pg.PlotWidget(title="Accuracy vs number of PCs")
         self.acc_plot.setLabel("left", "accuracy (%)")
         self.acc_plot.setLabel("bottom", "number of PCs")
         self.acc_plot.showGrid(x=True, y=True, alpha=0.3)
-        self.acc_plot.addLegend(offset=(-10, -10))
+        self.acc_plot.addLegend(offset=(-10, -10), labelTextSize="8pt")
+        # the long description in a wrapping label: a plot title wider than the view set the plot's minimum width
+        # and cut the title, the legend and the x axis at 1024x700
+        self.acc_info = QtWidgets.QLabel("")
+        self.acc_info.setWordWrap(True)
+        al.addWidget(self.acc_info)
         al.addWidget(self.acc_plot, 1)
         self.views.addTab(accw, "Accuracy vs PCs (Fig. 3)")
         # Table 1
@@ -260,17 +274,28 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trial_plot.setLabel("bottom", f"time in trial (s), {layout.sample_rate_hz:g} Hz")
         self.heat_gl.clear()
         self.heat_plots = []
-        lut = pg.colormap.get("viridis").getLookupTable(nPts=256)
+        cmap = pg.colormap.get("viridis")
+        lut = cmap.getLookupTable(nPts=256)
         for i, la in enumerate(layout.layers):
             p = self.heat_gl.addPlot(row=i, col=0, title=f"{la.name} ({la.receptor})" if la.receptor else la.name)
             p.setAspectLocked(True)
             p.invertY(True)
             p.hideAxis("bottom")
             p.hideAxis("left")
-            img = pg.ImageItem(axisOrder="row-major")
+            p.setMouseEnabled(x=False, y=False)
+            img = pg.ImageItem(np.zeros((la.rows, la.cols)), axisOrder="row-major")
             img.setLookupTable(lut)
             p.addItem(img)
+            p.setRange(xRange=(0, la.cols), yRange=(0, la.rows), padding=0)
+            p.disableAutoRange()
+            if la.n_channels <= 64:  # each taxel's number in its cell
+                add_taxel_numbers(p, la.rows, la.cols, layout.layer_channels(i).start)
             self.heat_plots.append((p, img))
+        # one colour bar for every map: mean ADC counts of the trial (an encoded file without its session: SA
+        # spike counts)
+        self.heat_bar = pg.ColorBarItem(values=(0, layout.adc_max), colorMap=cmap, interactive=False,
+                                        colorMapMenu=False, width=10, label="mean ADC counts")
+        self.heat_gl.addItem(self.heat_bar, row=0, col=1, rowspan=max(1, len(layout.layers)))
 
     def _browse(self):
         from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
@@ -296,6 +321,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self._wanted_tid = self.shown_tid = None
         rows, layout = self._trial_rows()
         self._build_trial_view(layout)
+        self.trials.clearSelection()  # a row selected in the previous file would not show its trial here
         self.trials.setRowCount(len(rows))
         for r, vals in enumerate(rows):
             for c, v in enumerate(vals):
@@ -366,7 +392,8 @@ class AnalysisTab(QtWidgets.QWidget):
                 sa = encode_sa(x[None], normalise=rng, fs=fs_hz)
                 ra = encode_ra(x[None], normalise=rng, fs=fs_hz)
                 n_ch = x.shape[1]
-                return x, [sa.train(0, k) for k in range(n_ch)], [ra.train(0, k) for k in range(n_ch)]
+                return (x, [sa.train(0, k) for k in range(n_ch)], [ra.train(0, k) for k in range(n_ch)],
+                        len(x) / fs_hz, "")
             from rigctl.encoding.spikes import SpikeTrains
             from rigctl.storage.encoded import open_encoded
 
@@ -379,9 +406,14 @@ class AnalysisTab(QtWidgets.QWidget):
                                      "open its session file to see this trial's spikes")
                 name = "original" if "original" in have else have[0]
                 st = SpikeTrains(*ef.spikes(name, trials=slice(i, i + 1)))  # this trial's rows only
+                duration_s = float(ef.trials["duration_s"][i])
+            x, note = _source_readings(path, tid)
+            if x is not None:
+                duration_s = len(x) / self.sensor_layout.sample_rate_hz
             n_tr = st.n_trains
             half = n_tr // 2
-            return None, [st.train(0, k) for k in range(half)], [st.train(0, half + k) for k in range(half)]
+            return (x, [st.train(0, k) for k in range(half)], [st.train(0, half + k) for k in range(half)],
+                    duration_s, note)
 
         self._trial_job = Job(work, name="trial")
         self._trial_job.tid = tid
@@ -415,26 +447,35 @@ class AnalysisTab(QtWidgets.QWidget):
             self.status.setText(f"<span style='color:#c00'>trial {job.tid}: {_html(job.error)}</span>")
             return
         self.shown_tid = job.tid
-        x, sa, ra = job.result
+        x, sa, ra, duration_s, note = job.result
         layout = self.sensor_layout
         if x is not None:
             t = np.arange(len(x)) / layout.sample_rate_hz
             for k, c in enumerate(self.trial_curves):
                 c.setData(t, x[:, k])
             mean = np.asarray(x, float).mean(axis=0)
-            for li, (la, (_, img)) in enumerate(zip(layout.layers, self.heat_plots)):
-                ch = layout.layer_channels(li)
-                img.setImage(mean[ch.start:ch.stop].reshape(la.rows, la.cols), levels=(0, layout.adc_max))
+            levels, label = (0.0, float(layout.adc_max)), "mean ADC counts"
+            values = mean
         else:
             for c in self.trial_curves:
                 c.setData([], [])
-            # an encoded file has no readings: the heat maps show each taxel's SA spike count
-            counts = np.array([len(v) for v in sa], float)
-            if len(counts) == layout.n_channels:
-                for li, (la, (_, img)) in enumerate(zip(layout.layers, self.heat_plots)):
-                    ch = layout.layer_channels(li)
-                    img.setImage(counts[ch.start:ch.stop].reshape(la.rows, la.cols),
-                                 levels=(0, max(1.0, counts.max())))
+            # no readings: the heat maps show each taxel's SA spike count
+            values = np.array([len(v) for v in sa], float)
+            levels, label = (0.0, max(1.0, float(values.max()) if values.size else 1.0)), "SA spikes in the trial"
+        if len(values) == layout.n_channels:
+            for li, (la, (_, img)) in enumerate(zip(layout.layers, self.heat_plots)):
+                ch = layout.layer_channels(li)
+                img.setImage(values[ch.start:ch.stop].reshape(la.rows, la.cols), levels=levels)
+        self.heat_bar.setLevels(levels)
+        self.heat_bar.axis.setLabel(label)
+        # one x range for readings, SA and RA: the whole trial (set, never each plot's own auto range)
+        if not duration_s or not np.isfinite(duration_s):
+            ends = [float(v.max()) for v in (*sa, *ra) if len(v)]
+            duration_s = max(ends) if ends else 1.0
+        for p in (self.trial_plot, *(q for q, _ in self.trial_rasters.values())):
+            p.disableAutoRange(axis="x")
+            p.setXRange(0.0, float(duration_s), padding=0.01)
+        self.trial_x_range = (0.0, float(duration_s))
         for key, trains in (("sa", sa), ("ra", ra)):
             ts = np.concatenate(trains) if trains else np.zeros(0)
             ch = np.concatenate([np.full(len(v), k, float) for k, v in enumerate(trains)]) if trains else ts
@@ -443,8 +484,7 @@ class AnalysisTab(QtWidgets.QWidget):
             seg[0::2, 1] = ch - 0.4
             seg[1::2, 1] = ch + 0.4
             self.trial_rasters[key][1].setData(seg[:, 0], seg[:, 1], connect="pairs")
-        self.trial_plot.setTitle(f"Trial {job.tid}: raw taxel readings"
-                                 + ("" if x is not None else " (not in an encoded file)"))
+        self.trial_plot.setTitle(f"Trial {job.tid}: raw taxel readings" + (f" ({note})" if note else ""))
         n_sa, n_ra = sum(len(v) for v in sa), sum(len(v) for v in ra)
         self.status.setText(f"trial {job.tid}: {n_sa} SA and {n_ra} RA spikes")
 
@@ -573,8 +613,9 @@ class AnalysisTab(QtWidgets.QWidget):
         self.run_btn.setEnabled(not busy and self.path is not None)
         self.train_btn.setEnabled(not busy and self.path is not None)
         self.cancel_btn.setEnabled(busy)
-        for b in (self.export_png, self.export_svg, self.export_csv):
-            b.setEnabled(self.results is not None)
+        for b in (self.export_png, self.export_svg):  # the trial view can be exported before any analysis
+            b.setEnabled(self.path is not None)
+        self.export_csv.setEnabled(self.results is not None)
 
     # ------------------------------------------------------------------------------------------------------
     # results
@@ -635,8 +676,9 @@ class AnalysisTab(QtWidgets.QWidget):
             self.acc_plot.addItem(pg.ErrorBarItem(x=x, y=m, height=2 * s, pen=pg.mkPen(colour, width=1), beam=0.3))
             self.acc_plot.plot(x, m, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=4, symbolBrush=colour,
                                symbolPen=None, name=variant_title(v))
-        self.acc_plot.setTitle(f"{TASK_TITLES.get(task, task)}: accuracy vs PCs (mean +- sd, "
-                               f"{next(iter(res.curves[task].values())).acc.shape[0]} repetitions)")
+        self.acc_plot.setTitle(f"{TASK_TITLES.get(task, task)}")
+        self.acc_info.setText(f"Accuracy vs number of PCs: mean +- sd over "
+                              f"{next(iter(res.curves[task].values())).acc.shape[0]} repetitions")
 
     def _fill_table(self) -> None:
         from rigctl.analysis import report
@@ -687,6 +729,7 @@ class AnalysisTab(QtWidgets.QWidget):
                 t.setPos(k + 0.5, r + 0.5)
                 self.conf_plot.addItem(t)
                 self.conf_counts.append(t)
+        self._fit_conf_counts()
         # a classifier off its training manifold piles its predictions on one class
         pile = report.prediction_collapse(res, tasks=(task,)).get(task, {}).get(v)
         pile_text = ("no test trials" if pile is None else f"most predicted: {pile.top_class}, "
@@ -695,24 +738,46 @@ class AnalysisTab(QtWidgets.QWidget):
         self.conf_info.setText(f"Confusion at {c.confusion_pcs} PCs (rows true, columns predicted; colour: fraction "
                                f"of the true class; trials summed over {c.acc.shape[0]} repetitions); {pile_text}")
 
+    def _fit_conf_counts(self) -> None:
+        """Size the confusion counts to their cells (three-digit counts overlapped in a small window); hide them
+        when a cell is too small for any readable number."""
+        if not self.conf_counts:
+            return
+        n = max(1, self.conf_img.image.shape[0] if self.conf_img.image is not None else 1)
+        vb = self.conf_plot.plotItem.vb
+        cell_px = min(vb.width(), vb.height()) / n
+        digits = max(len(t.textItem.toPlainText()) for t in self.conf_counts)
+        size = int(min(10, cell_px * 0.9 / max(digits, 2) * 1.6))  # ~0.6 em per digit
+        for t in self.conf_counts:
+            t.setVisible(size >= 5)
+            if size >= 5:
+                f = t.textItem.font()
+                f.setPixelSize(size)
+                t.setFont(f)
+
+    def resizeEvent(self, ev):  # noqa: N802 - Qt override
+        super().resizeEvent(ev)
+        QtCore.QTimer.singleShot(0, self._fit_conf_counts)  # once the plot has its new size
+
     # ------------------------------------------------------------------------------------------------------
     # export
     # ------------------------------------------------------------------------------------------------------
     def export_figure(self, fmt: str, path: str | None = None) -> str | None:
-        """Save the accuracy-vs-PCs figure as PNG (pyqtgraph's exporter, 1600 px wide) or SVG (QSvgGenerator:
+        """Save the view now shown (the trial, accuracy vs PCs, Table 1 or the confusion matrix: what you see is
+        what is exported) as PNG (rendered at least :data:`EXPORT_PNG_WIDTH_PX` wide) or SVG (QSvgGenerator:
         pyqtgraph 0.14's SVG exporter fails on Qt 6.11 paths).
 
         A path without an extension gets ``.png`` / ``.svg`` (:func:`export_path`); another extension, or an
         existing file the added extension would replace, is refused with a message. Returns the path written, or
         None (refused, cancelled, or the file could not be written: the status line says which)."""
-        from pyqtgraph.exporters import ImageExporter
         from PySide6 import QtGui
         from PySide6.QtSvg import QSvgGenerator
 
+        view = self.views.tabText(self.views.currentIndex())
         if path is None:  # ask (non-modal: STOP stays usable); the export runs when a name is chosen
             from rigctl_gui.dialogs import choose_path
 
-            choose_path(self, "save", "Export figure", self._export_dir(), f"{fmt.upper()} (*.{fmt})",
+            choose_path(self, "save", f"Export the {view} view", self._export_dir(), f"{fmt.upper()} (*.{fmt})",
                         lambda chosen: self.export_figure(fmt, chosen))
             return None
         try:
@@ -720,25 +785,32 @@ class AnalysisTab(QtWidgets.QWidget):
         except ValueError as exc:
             self.status.setText(f"<span style='color:#c00'>not saved: {_html(exc)}</span>")
             return None
+        page = self.views.currentWidget()
+        size = page.size()
         if fmt == "png":
-            exp = ImageExporter(self.acc_plot.plotItem)
-            exp.parameters()["width"] = 1600
-            exp.export(path)
+            scale = max(1.0, EXPORT_PNG_WIDTH_PX / max(size.width(), 1))
+            img = QtGui.QImage(int(size.width() * scale), int(size.height() * scale), QtGui.QImage.Format_ARGB32)
+            img.fill(QtGui.QColor("white"))
+            painter = QtGui.QPainter(img)
+            painter.setRenderHint(QtGui.QPainter.Antialiasing)
+            painter.scale(scale, scale)
+            page.render(painter, QtCore.QPoint(0, 0))
+            painter.end()
+            img.save(path)
         else:
-            size = self.acc_plot.size()
             gen = QSvgGenerator()
             gen.setFileName(path)
             gen.setSize(size)
             gen.setViewBox(QtCore.QRect(0, 0, size.width(), size.height()))
-            gen.setTitle(self.acc_plot.plotItem.titleLabel.text)
+            gen.setTitle(view)
             painter = QtGui.QPainter(gen)
-            self.acc_plot.render(painter)
+            page.render(painter, QtCore.QPoint(0, 0))
             painter.end()
         if not os.path.isfile(path) or os.path.getsize(path) == 0:
             self.status.setText(f"<span style='color:#c00'>could not write {_html(path)}</span>")
             return None
-        self.status.setText(f"saved {_html(path)}")
-        self._log(f"figure exported to {path}")
+        self.status.setText(f"saved the {_html(view)} view to {_html(path)}")
+        self._log(f"the {view} view exported to {path}")
         return path
 
     def _export_dir(self) -> str:
@@ -774,6 +846,23 @@ class AnalysisTab(QtWidgets.QWidget):
         self.status.setText(f"saved {path} and {tpath}")
         self._log(f"tables exported to {path} and {tpath}")
         return [path, tpath]
+
+
+def _source_readings(encoded_path: str, tid: int) -> tuple[np.ndarray | None, str]:
+    """The raw readings of trial ``tid`` from the session an encoded file was encoded from
+    (:func:`rigctl.analysis.model.session_of`: its ``source_session``, else a file of that name beside it), and a
+    note for the plot's title ("" when found; else why there are none)."""
+    from rigctl.analysis.model import session_of
+    from rigctl.storage.session import open_session
+
+    try:
+        session, _params = session_of(encoded_path)
+        with open_session(session) as s:
+            return s.trial(int(tid)).taxels, ""
+    except FileNotFoundError:
+        return None, "its session file is not found: open the session to see them"
+    except Exception as exc:  # noqa: BLE001 - the spikes are still shown; the title says why there are no readings
+        return None, f"not read from the session: {type(exc).__name__}: {exc}"
 
 
 def export_path(path: str, fmt: str) -> str:

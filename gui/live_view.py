@@ -34,6 +34,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl_gui.widgets import add_taxel_numbers
 from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 
 #: the time window's range (s): traces and rasters show the last WINDOW_RANGE_S seconds
@@ -486,8 +487,6 @@ class LiveView(QtWidgets.QWidget):
         self.taxel_labels = []
         cmap = pg.colormap.get("viridis")
         lut = cmap.getLookupTable(nPts=256)
-        font = QtGui.QFont()
-        font.setPointSize(7)
         for i, la in enumerate(layout.layers):
             cell = self.gl.addLayout(row=i, col=1)
             cell.addLabel(layer_titles(layout, i)[1], row=0, col=0, size="9pt")
@@ -506,15 +505,7 @@ class LiveView(QtWidgets.QWidget):
             vb.disableAutoRange()
             vb.setRange(xRange=(0, la.cols), yRange=(0, la.rows), padding=0)
             if la.n_channels <= 64:  # the taxel numbers, top left in each cell, on a pale box (any colour under it)
-                for r in range(la.rows):
-                    for c in range(la.cols):
-                        t = pg.TextItem(str(ch0 + r * la.cols + c), color="k", fill=pg.mkBrush(255, 255, 255, 190),
-                                        anchor=(0, 0))
-                        t.setFont(font)
-                        t.textItem.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)  # drawn once
-                        t.setPos(c + 0.03, r + 0.03)
-                        vb.addItem(t)
-                        self.taxel_labels.append(t)
+                self.taxel_labels.extend(add_taxel_numbers(vb, la.rows, la.cols, ch0))
             self.images.append(img)
         bar = pg.ColorBarItem(values=(0, adc_max), colorMap=cmap, interactive=False, colorMapMenu=False, width=12,
                               label="ADC counts")

@@ -44,3 +44,24 @@ def gap_breaks(rows: np.ndarray, *, max_dt: float, time_col: int = 0) -> np.ndar
     filler = np.full((len(jumps), rows.shape[1]), np.nan)
     filler[:, time_col] = (t[jumps] + t[jumps + 1]) / 2
     return np.insert(rows, jumps + 1, filler, axis=0)
+
+
+def add_taxel_numbers(view, rows: int, cols: int, first: int, *, point_size: int = 7) -> list:
+    """Write each taxel's channel number (``first`` + row * ``cols`` + col) in the top left corner of its cell of a
+    ``rows`` x ``cols`` heat map drawn in ``view`` (a pyqtgraph ViewBox or PlotItem, one unit per cell), on a pale box
+    so it reads over any colour. Returns the text items (to show or hide them)."""
+    import pyqtgraph as pg
+    from PySide6 import QtGui
+
+    font = QtGui.QFont()
+    font.setPointSize(point_size)
+    items = []
+    for r in range(rows):
+        for c in range(cols):
+            t = pg.TextItem(str(first + r * cols + c), color="k", fill=pg.mkBrush(255, 255, 255, 190), anchor=(0, 0))
+            t.setFont(font)
+            t.textItem.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)  # drawn once
+            t.setPos(c + 0.03, r + 0.03)
+            view.addItem(t)
+            items.append(t)
+    return items

@@ -5,6 +5,7 @@ export PNG/SVG/CSV, cancel a run; then train a classifier and classify trials in
 from __future__ import annotations
 
 import csv
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -47,6 +48,12 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert len(x) == 500
     sx, _ = tab.trial_rasters["sa"][1].getData()
     assert sx is not None and len(sx) > 0 and sx.max() <= 0.5
+    _assert_one_time_axis(tab, 0.5)
+    # heat maps: one colour bar, every taxel's number in its cell
+    assert tab.heat_bar.axis.labelText == "mean ADC counts"
+    numbers = sorted(int(i.textItem.toPlainText()) for p, _ in tab.heat_plots for i in p.items
+                     if hasattr(i, "textItem"))
+    assert numbers == list(range(18))
 
     tab.do_extra.setChecked(False)
     tab.repeats.setValue(2)
@@ -109,10 +116,31 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert tab.export_figure("png", str(tmp_path / "fig3.jpg")) is None and ".png" in tab.status.text()
     assert not (tmp_path / "fig3.jpg").exists()
     assert tab.export_figure("svg", str(tmp_path / "fig3c")).endswith("fig3c.svg")
+    # the export is of the view shown: the confusion matrix while it is shown, not Fig. 3
+    tab.views.setCurrentIndex(3)
+    qapp.processEvents()
+    conf_svg = tab.export_figure("svg", str(tmp_path / "confusion.svg"))
+    assert "<title>Confusion</title>" in open(conf_svg).read(3000)
+    conf_png = tab.export_figure("png", str(tmp_path / "confusion.png"))
+    from PySide6 import QtGui
+
+    img, page = QtGui.QImage(conf_png), tab.views.currentWidget()
+    assert img.width() >= 1600 and abs(img.width() / img.height() - page.width() / page.height()) < 0.02
+    assert open(conf_png, "rb").read() != open(png, "rb").read()
     rows = list(csv.DictReader(open(paths[0])))
     assert len(rows) == 2 * 4 * 6
     t1 = list(csv.DictReader(open(paths[1])))
     assert {r["variant"] for r in t1} == {"original", "speed_scaled", "force_scaled", "speed_force_scaled"}
+
+
+def _assert_one_time_axis(tab, duration_s):
+    """Readings, SA and RA share one x range (the whole trial) and one data area (left axes of one width)."""
+    plots = [tab.trial_plot, *(p for p, _ in tab.trial_rasters.values())]
+    ranges = [tuple(round(v, 6) for v in p.viewRange()[0]) for p in plots]
+    assert len(set(ranges)) == 1, ranges
+    lo, hi = ranges[0]
+    assert lo <= 0.0 and duration_s <= hi <= duration_s * 1.05, ranges
+    assert len({p.getAxis("left").width() for p in plots}) == 1
 
 
 def test_rapid_browsing_ends_on_the_selected_trial(window, qapp, qtbot, dataset):
@@ -382,3 +410,28 @@ def test_one_trial_session_analysis_says_why_in_the_window(lone_tab, qapp, qtbot
     assert "no analysis could run" in text and "one.encoded.h5" in text, text
     assert tab.results is None
     assert tab.run_btn.isEnabled() and not tab.cancel_btn.isEnabled() and tab.progress.maximum() == 100
+
+
+def test_an_encoded_files_trial_shows_the_readings_of_its_session(window, qapp, dataset):
+    """The readings of an encoded file's trial come from the session it was encoded from (its source_session)."""
+    from rigctl_gui.analysis_jobs import encoded_path_for
+
+    tab = window.analysis
+    window.tabs.setCurrentWidget(tab)
+    encoded = encoded_path_for(str(dataset))
+    if not os.path.exists(encoded):  # (the first test of this module encodes it while running the analyses)
+        tab.open(str(dataset))
+        tab.encode()
+        assert wait_for(qapp, lambda: tab.job is None, 180), tab.status.text()
+    tab.open(encoded)
+    assert tab.kind == "encoded"
+    tab.trials.selectRow(5)
+    assert wait_for(qapp, lambda: tab._trial_job is None and tab.shown_tid is not None, 60), tab.status.text()
+    x, _ = tab.trial_curves[0].getData()
+    assert x is not None and len(x) == 500, tab.trial_plot.titleLabel.text
+    from rigctl.storage.session import open_session
+
+    with open_session(dataset) as s:
+        np.testing.assert_array_equal(tab.trial_curves[2].getData()[1], s.trial(tab.shown_tid).taxels[:, 2])
+    assert "not" not in tab.trial_plot.titleLabel.text
+    _assert_one_time_axis(tab, 0.5)
