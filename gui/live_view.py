@@ -379,10 +379,15 @@ class LiveView(QtWidgets.QWidget):
         self.auto_box.toggled.connect(self.set_auto_range)
         self.info = QtWidgets.QLabel("")
         self.sensor_label = QtWidgets.QLabel("")
+        #: the frame-rate readout: the display's paints per second and the taxel frames arriving per second
+        self.rate_label = QtWidgets.QLabel("")
+        self.rate_label.setObjectName("live_rates")
+        self.rate_label.setToolTip("display: paints of these plots per second; taxels: frames arriving per second")
         bar = QtWidgets.QHBoxLayout()
         bar.addWidget(QtWidgets.QLabel("Time window"))
         bar.addWidget(self.window_box)
         bar.addWidget(self.auto_box)
+        bar.addWidget(self.rate_label)
         bar.addWidget(self.sensor_label)
         # the info line takes the room left and never widens the window (an encoder error can be long)
         self.info.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
@@ -616,9 +621,10 @@ class LiveView(QtWidgets.QWidget):
             if self._refresh_n % INFO_EVERY == 0:
                 err = enc.encoder_error
                 state = "" if enc.ready else " (encoder starting: compiling kernels)"
+                self.rate_label.setText(f"  display {self.display_rate_hz():.0f}/s, taxels "
+                                        f"{self.stream_rate_hz(buf):.0f} frames/s")
                 self.info.setText(
-                    f"display {self.display_rate_hz():.0f} frames/s, taxels {self.stream_rate_hz(buf):.0f} "
-                    f"frames/s; {buf.n_samples} frames shown, SA {enc.sa.total} / RA {enc.ra.total} spikes{state}"
+                    f"{buf.n_samples} frames shown, SA {enc.sa.total} / RA {enc.ra.total} spikes{state}"
                     + (f" - encoder: {err}" if err else "")
                 )
         self._refresh_n += 1

@@ -119,8 +119,21 @@ class ProtocolTab(QtWidgets.QWidget):
         rs.addWidget(self.prompt_frame)
         self.run_strip.hide()
 
+        # the protocols that ship with rigctl (rigctl.acquisition.builtin), one choice away
+        from rigctl.acquisition.builtin import builtin_protocols, summary
+
+        self.builtin = QtWidgets.QComboBox()
+        self.builtin.setObjectName("builtin_protocols")
+        self.builtin.addItem("Built-in protocol...", None)
+        for name, path in builtin_protocols().items():
+            self.builtin.addItem(name, str(path))
+            self.builtin.setItemData(self.builtin.count() - 1, summary(path) or name, QtCore.Qt.ToolTipRole)
+        self.builtin.setToolTip("Load one of the protocols that ship with rigctl (rigctl acquire NAME runs the same)")
+        self.builtin.activated.connect(self._builtin_chosen)
+        self.path_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
         top = QtWidgets.QHBoxLayout()
         top.addWidget(self.open_btn)
+        top.addWidget(self.builtin)
         top.addWidget(self.path_label, 1)
         out = QtWidgets.QHBoxLayout()
         out.addWidget(QtWidgets.QLabel("Output"))
@@ -151,9 +164,21 @@ class ProtocolTab(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------------
     def _browse_protocol(self) -> QtWidgets.QFileDialog:
-        """The (non-modal) file dialog to open a protocol; :meth:`load` takes the chosen file."""
-        start = str(self.main.settings.value("dirs/protocol", "protocols"))
-        return choose_path(self, "open", "Open protocol", start, "Protocols (*.toml *.py)", self.load)
+        """The (non-modal) file dialog to open a protocol (the built-in protocols' folder in its side bar, and
+        where it starts the first time); :meth:`load` takes the chosen file."""
+        from rigctl.acquisition.builtin import builtin_folder
+
+        folder = str(builtin_folder())
+        start = str(self.main.settings.value("dirs/protocol", folder))
+        dlg = choose_path(self, "open", "Open protocol", start, "Protocols (*.toml *.py)", self.load)
+        dlg.setSidebarUrls([*dlg.sidebarUrls(), QtCore.QUrl.fromLocalFile(folder)])
+        return dlg
+
+    def _builtin_chosen(self, index: int) -> None:
+        path = self.builtin.itemData(index)
+        self.builtin.setCurrentIndex(0)  # a menu of choices, not a state
+        if path:
+            self.load(str(path))
 
     def _browse_output(self) -> QtWidgets.QFileDialog:
         """The (non-modal) file dialog to choose the output session file (an existing one is resumed, never

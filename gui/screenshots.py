@@ -81,7 +81,7 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
             print("saved", path, f"({w.width()}x{w.height()})")
         w.resize(*size)
 
-    assert wait(lambda: w.handle is not None, 60), w.banner.label.text()
+    assert wait(lambda: w.handle is not None, 60), w.banner.text
     # calibration first (the drum must be released for TARE)
     w.tabs.setCurrentWidget(w.calibration)
     w.calibration.mass.setValue(500)

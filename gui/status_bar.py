@@ -147,6 +147,7 @@ class Banner(QtWidgets.QFrame):
         self.close_btn.clicked.connect(self.hide)
         lay.addWidget(self.close_btn, 0, QtCore.Qt.AlignTop)
         self.error = False
+        self.text = ""  # the whole message (the label may show it cut to the strip's lines)
         self._timer = QtCore.QTimer(self, singleShot=True)
         self._timer.timeout.connect(self.hide)
         self.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Ignored)
@@ -154,7 +155,8 @@ class Banner(QtWidgets.QFrame):
 
     def show_message(self, text: str, *, error: bool, hide_after_s: float | None = None) -> None:
         self.error = error
-        self.label.setText(text)
+        self.text = text
+        self._fit_text()
         self.setToolTip(text)
         self.setStyleSheet(
             "QFrame { background: #fdd; border: 1px solid #c00; } QLabel { color: #900; font-weight: bold; "
@@ -167,6 +169,20 @@ class Banner(QtWidgets.QFrame):
             self._timer.start(int(hide_after_s * 1000))
         else:
             self._timer.stop()
+
+
+    def _fit_text(self) -> None:
+        """Show as much of :attr:`text` as fits the strip's lines, cut at a word with an ellipsis (never a line
+        cut through the middle at the strip's edge)."""
+        fm = self.label.fontMetrics()
+        width = max(self.label.width() - 4, 40)
+        budget = width * Banners.LINES * 0.85  # word wrap leaves part of each line empty
+        self.label.setText(fm.elidedText(self.text, QtCore.Qt.ElideRight, int(budget)))
+
+    def resizeEvent(self, ev):  # noqa: N802 - Qt override
+        super().resizeEvent(ev)
+        if self.text:
+            self._fit_text()
 
 
 class Banners(QtWidgets.QFrame):

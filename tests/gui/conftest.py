@@ -83,7 +83,7 @@ def window(qapp, window_home):
     w.resize(1400, 900)
     w.show()
     wait_for(qapp, lambda: w.handle is not None or "not connected" in w.source_label.text(), 30)
-    assert w.handle is not None, w.banner.label.text()
+    assert w.handle is not None, w.banner.text
     yield w
     w.close()
     # delete the Qt objects now, while the QApplication lives (a GC pass at interpreter exit would segfault)

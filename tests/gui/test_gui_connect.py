@@ -52,9 +52,9 @@ def test_fabricslide_replay_source_feeds_the_live_view(window, qapp, fabricslide
     from rigctl_gui.workers import RigSource
 
     window.connect_source(RigSource("replay", replay_dir=str(fabricslide_dir)))
-    assert wait_for(qapp, lambda: window.handle is not None or "Could not" in window.banner.label.text(), 90), \
-        window.banner.label.text()
-    assert window.handle is not None, window.banner.label.text()
+    assert wait_for(qapp, lambda: window.handle is not None or "Could not" in window.banner.text, 90), \
+        window.banner.text
+    assert window.handle is not None, window.banner.text
     assert "FabricSlide replay" in window.source_label.text()
     window.tabs.setCurrentWidget(window.live)
     assert wait_for(qapp, lambda: window.live.buffer is not None and window.live.buffer.n_samples > 1000, 20)

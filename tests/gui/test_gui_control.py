@@ -245,10 +245,10 @@ def test_a_latched_fault_is_shown_with_its_meaning_and_cleared_only_by_the_opera
     try:
         banner = window.banners["fault"]
         assert wait_for(qapp, lambda: banner.isVisible(), 10)
-        text = banner.label.text()
+        text = banner.text
         assert "Load cell not responding: the load cell amplifier (HX711)" in text and "latched" in text
-        assert not window.banner.isVisible() or "FAULT" not in window.banner.label.text()  # said once
-        assert "Clear fault" in banner.label.text()
+        assert not window.banner.isVisible() or "FAULT" not in window.banner.text  # said once
+        assert "Clear fault" in banner.text
         assert wait_for(qapp, lambda: "Latched faults: Load cell" in window.control.fault_label.text(), 2)
     finally:
         mega.set_loadcell_alive(True)
@@ -297,7 +297,7 @@ def test_every_message_reaches_the_window(window, qapp, qtbot, tmp_path, monkeyp
     from rigctl_gui.workers import RigSource
 
     window.connect_source(RigSource("replay", replay_dir=None))
-    assert "choose a session file or a FabricSlide folder" in window.banner.label.text()
+    assert "choose a session file or a FabricSlide folder" in window.banner.text
     assert window.handle is not None
     # a failed trial's reason is in the plan table
     from rigctl.acquisition.rig import RigError
@@ -350,13 +350,13 @@ def test_an_unexpected_exception_is_shown_in_the_window(window, qapp):
 
     window.guard.install()  # (pytest-qt's hook of earlier tests may have replaced it)
     QtCore.QTimer.singleShot(0, lambda: 1 / 0)  # a bug in a Qt callback
-    assert wait_for(qapp, lambda: "ZeroDivisionError" in window.banner.label.text(), 3)
+    assert wait_for(qapp, lambda: "ZeroDivisionError" in window.banner.text, 3)
     assert window.banner.isVisible() and "Traceback" in window.events.text()
     t = threading.Thread(target=lambda: [][1], name="buggy-worker")  # and in a worker thread
     t.start()
     t.join()
-    assert wait_for(qapp, lambda: "IndexError" in window.banner.label.text(), 3)
-    assert "thread buggy-worker" in window.banner.label.text()
+    assert wait_for(qapp, lambda: "IndexError" in window.banner.text, 3)
+    assert "thread buggy-worker" in window.banner.text
     assert window.timer.isActive()  # the app carries on
 
 
@@ -369,35 +369,35 @@ def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot):
     try:
         assert wait_for(qapp, lambda: "NO RESPONSE" in window.links.drum.text(), 10), window.links.drum.text()
         assert wait_for(qapp, lambda: drum_banner.isVisible(), 2)
-        assert "Drum controller (Mega) not responding" in drum_banner.label.text(), drum_banner.label.text()
+        assert "Drum controller (Mega) not responding" in drum_banner.text, drum_banner.text
         assert "drum controller not responding" in window.source_label.text(), window.source_label.text()
         assert wait_for(qapp, lambda: "STALE" in window.control.force_plot.titleLabel.text, 2), \
             window.control.force_plot.titleLabel.text
         # a STOP that cannot reach the controller says so in the window, on any tab
         window.tabs.setCurrentWidget(window.live)
         qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
-        assert wait_for(qapp, lambda: "STOP FAILED" in window.banner.label.text(), 20), window.banner.label.text()
-        assert window.banner.isVisible() and "stop the rig by hand" in window.banner.label.text()
+        assert wait_for(qapp, lambda: "STOP FAILED" in window.banner.text, 20), window.banner.text
+        assert window.banner.isVisible() and "stop the rig by hand" in window.banner.text
         window.tabs.setCurrentWidget(window.control)
         # the taxel board's cable too, while the drum's is out: each board keeps its own banner
         sim.unplug_taxel()
         window.tabs.setCurrentWidget(window.live)
         assert wait_for(qapp, lambda: "DISCONNECTED" in window.links.taxel.text(), 10), window.links.taxel.text()
-        assert taxel_banner.isVisible() and "Taxel board (Uno) disconnected" in taxel_banner.label.text(), \
-            taxel_banner.label.text()
-        assert drum_banner.isVisible() and "not responding" in drum_banner.label.text(), drum_banner.label.text()
+        assert taxel_banner.isVisible() and "Taxel board (Uno) disconnected" in taxel_banner.text, \
+            taxel_banner.text
+        assert drum_banner.isVisible() and "not responding" in drum_banner.text, drum_banner.text
         assert wait_for(qapp, lambda: window.stale_label.isVisible(), 5)
         assert "STALE" in window.stale_label.text()
     finally:
         sim.mega.bridge.replug()
     # the drum reconnects by itself; its banner turns green; the taxel board is still out
     assert wait_for(qapp, lambda: window.links.drum.text().startswith("Drum: connected"), 30), window.links.drum.text()
-    assert "reconnected" in drum_banner.label.text() and "disconnected" in taxel_banner.label.text(), \
-        (drum_banner.label.text(), taxel_banner.label.text())
+    assert "reconnected" in drum_banner.text and "disconnected" in taxel_banner.text, \
+        (drum_banner.text, taxel_banner.text)
     sim.replug_taxel()
     assert wait_for(qapp, lambda: window.links.taxel.text().startswith("Taxels: connected"), 30), \
         window.links.taxel.text()
-    assert "reconnected" in taxel_banner.label.text(), taxel_banner.label.text()
+    assert "reconnected" in taxel_banner.text, taxel_banner.text
     assert wait_for(qapp, lambda: not window.stale_label.isVisible(), 5), window.stale_label.text()
     assert window.source_label.text().endswith("- connected"), window.source_label.text()
     n = window.handle.taxels.ring.total

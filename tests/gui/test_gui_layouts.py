@@ -365,7 +365,7 @@ def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_
         assert w.encoder is not first and w.encoder.layout == FINGER_100HZ
         assert len(w.live.images) == 1 and len(w.live.curves) == 9 and w.live.buffer.ring is stream.ring
         assert len(w.calibration.norm_bars.opts["x"]) == 9
-        assert "3x3" in w.banner.label.text() or "0-8" in w.banner.label.text()
+        assert "3x3" in w.banner.text or "0-8" in w.banner.text
         assert not w.follow_sensor()
     finally:
         w.close()

@@ -169,3 +169,21 @@ def test_taxel_calibration_of_an_idle_drum_is_refused_and_undo_restores_the_prev
     qtbot.mouseClick(tab.undo_btn, QtCore.Qt.LeftButton)
     assert json.loads(open(cfg_path).read())["taxel_normalisation"]["source"] == "older run"
     qtbot.mouseClick(tab.reset_btn, QtCore.Qt.LeftButton)  # leave the full range for the tests after this one
+
+
+def test_open_protocol_offers_the_built_in_protocols(window, qapp):
+    """The protocols that ship with rigctl are one choice away (the drop-down) and in the file dialog's side bar."""
+    from rigctl.acquisition.builtin import builtin_folder, builtin_protocols
+
+    tab = window.protocol
+    names = [tab.builtin.itemText(i) for i in range(1, tab.builtin.count())]
+    assert names == list(builtin_protocols()) and "quick_check" in names
+    i = names.index("quick_check") + 1
+    tab.builtin.activated.emit(i)  # what choosing it in the drop-down does
+    assert tab.protocol is not None and tab.path_label.text().endswith("quick_check.toml"), tab.path_label.text()
+    assert tab.table.rowCount() == len(tab.plan) > 0 and tab.builtin.currentIndex() == 0
+    dlg = tab._browse_protocol()
+    try:
+        assert str(builtin_folder()) in [u.toLocalFile() for u in dlg.sidebarUrls()]
+    finally:
+        dlg.reject()

@@ -81,9 +81,9 @@ def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session,
     w.resize(1400, 900)
     w.show()
     try:
-        assert wait_for(qapp, lambda: w.handle is not None or "Could not" in w.banner.label.text(), 90), \
-            w.banner.label.text()
-        assert w.handle is not None, w.banner.label.text()
+        assert wait_for(qapp, lambda: w.handle is not None or "Could not" in w.banner.text, 90), \
+            w.banner.text
+        assert w.handle is not None, w.banner.text
         assert "session replay" in w.source_label.text()
         live, panel = w.live, w.control
         # the plots follow the stream's layout

@@ -104,7 +104,7 @@ def main(out_path: str) -> int:
     ok = wait(lambda: w.handle is not None, 60)
     out["connected"] = ok
     if not ok:
-        out["connect_error"] = w.banner.label.text()
+        out["connect_error"] = w.banner.text
         return _write(out_path, out)
     pause(1.0)
     w.tabs.setCurrentWidget(w.control)
@@ -215,7 +215,7 @@ def main(out_path: str) -> int:
     n_log = len(w.events.entries)
     t0, wall0 = time.monotonic(), time.time()
     sim.uno.stall(6.0)
-    res["banner_shown"] = wait(lambda: banner.isVisible() and "stalled" in banner.label.text(), 6)
+    res["banner_shown"] = wait(lambda: banner.isVisible() and "stalled" in banner.text, 6)
     res["banner_s"] = time.monotonic() - t0
     res["log_s"] = None
     for e in w.events.entries[n_log:]:
@@ -223,7 +223,7 @@ def main(out_path: str) -> int:
             res["log_s"] = e[0] - wall0
             res["log_line"] = e[3]
             break
-    res["banner_text"] = banner.label.text()
+    res["banner_text"] = banner.text
     res["status_text"] = w.links.taxel.text()
     after = geometry()
     res["moved"] = {k: (before[k], after.get(k)) for k in before if after.get(k) != before[k]}
