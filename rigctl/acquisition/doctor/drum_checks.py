@@ -274,12 +274,19 @@ def _fault_names(faults: Any) -> str:
     return "|".join(f.name for f in type(faults) if f in faults and f.value) or str(int(faults))
 
 
-def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
+def _press(ctx: DoctorContext, setpoint_g: float) -> float:
+    """PRESS at ``setpoint_g`` (the controller not faulted, else :class:`Skip`); returns the force tolerance, g."""
     _not_faulted(ctx)
     drum = ctx.rig().drum
     tol = _tolerance_g(ctx)
-    drum.set_force(POLARITY_SETPOINT_G)
+    drum.set_force(setpoint_g)
     drum.press()
+    return tol
+
+
+def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
+    drum = ctx.rig().drum
+    tol = _press(ctx, POLARITY_SETPOINT_G)
     lowest = 0.0
     reversed_fix = ("the load cell reads negative while pressing: swap the cell's signal wires (A+/A-, usually green/"
                     "white) at the HX711, or turn the cell over; then calibrate again")
@@ -287,12 +294,13 @@ def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
         lowest = min(lowest, st.force_g)
         if st.state == DrumState.FAULT:
             drum.stop()
-            if lowest < -2 * tol:
-                return failed("loadcell-polarity", f"fault {_fault_names(st.faults)} while pressing, the force went to "
-                              f"{lowest:.0f} g", reversed_fix, lowest_force_g=lowest)
-            return failed("loadcell-polarity", f"fault {_fault_names(st.faults)} while pressing (force {st.force_g:.0f}"
-                          f" g at {st.actuator_mm:.2f} mm)", "clear the fault's cause (rigctl doctor's other lines, the "
-                          "GUI's fault advice), then check again", lowest_force_g=lowest)
+            names = _fault_names(st.faults)
+            if lowest < -2 * tol or "LOADCELL_REVERSED" in names:
+                return failed("loadcell-polarity", f"fault {names} while pressing, the force went to {lowest:.0f} g",
+                              reversed_fix, lowest_force_g=lowest)
+            return failed("loadcell-polarity", f"fault {names} while pressing (force {st.force_g:.0f} g at "
+                          f"{st.actuator_mm:.2f} mm)", fault_advice(st.faults) or "clear the fault's cause, then check "
+                          "again", lowest_force_g=lowest)
         if st.force_g < -2 * tol:
             drum.stop()
             return failed("loadcell-polarity", f"the force went to {st.force_g:.0f} g while the actuator pressed "
@@ -308,11 +316,8 @@ def check_loadcell_polarity(ctx: DoctorContext) -> CheckResult:
 
 
 def check_force_step(ctx: DoctorContext) -> CheckResult:
-    _not_faulted(ctx)
     drum = ctx.rig().drum
-    tol = _tolerance_g(ctx)
-    drum.set_force(STEP_SETPOINT_G)
-    drum.press()
+    tol = _press(ctx, STEP_SETPOINT_G)
     t, f, x = [], [], []
     contact = None
     for now, st in _poll(ctx, 15.0 + STEP_TRACE_S):
@@ -357,9 +362,8 @@ def _index_speed(ctx: DoctorContext, speed_mm_s: float) -> tuple[float, int]:
     measured over a whole revolution after the speed is steady, mm/s, and the microsteps sent in it. Raises
     :class:`Skip` / RuntimeError when the sensor gives no edges."""
     drum = ctx.rig().drum
-    drum.set_force(POLARITY_SETPOINT_G)
     drum.set_speed(speed_mm_s)
-    drum.press()
+    _press(ctx, POLARITY_SETPOINT_G)
     drum.wait_force_settled(timeout_s=30.0)
     drum.run()
     rev_s = DRUM_CIRCUMFERENCE_MM / speed_mm_s
