@@ -30,13 +30,13 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.acquisition.rig import Rig, RigError
-from rigctl.core.interfaces import RigBackend
+from rigctl.core.interfaces import RIG_KINDS, RigBackend
 from rigctl.core.textures import TextureSet
 
 __all__ = ["KINDS", "ANSWER_TIMEOUT_S", "drum_answer_timeout_s", "open_rig", "make_backend", "replay_source"]
 
-#: the backends :func:`open_rig` knows
-KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
+#: the backends :func:`open_rig` knows (the one list: :data:`rigctl.core.interfaces.RIG_KINDS`)
+KINDS = RIG_KINDS
 
 #: how long the host's :class:`rigctl.devices.drum.DrumClient` waits for each Modbus answer, s, per backend. A real
 #: Mega answers within milliseconds: 0.5 s, well inside the controller's default 1 s watchdog, so that a lost

@@ -35,6 +35,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from rigctl.core.interfaces import RIG_KINDS
+
 __all__ = ["CalibrationError", "RigConfigError", "SCHEMA", "default_config_path", "config_path", "load_rig_config",
            "save_rig_config", "update_rig_config", "validate_rig_config"]
 
@@ -67,7 +69,7 @@ SCHEMA["force_loop"] = {
     "ki_10sps_mm_s_per_g_s": ("gain", True),
 }
 SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
-SCHEMA["doctor"] = {kind: ("report", False) for kind in ("hardware", "sim", "hil", "replay", "inprocess")}
+SCHEMA["doctor"] = {kind: ("report", False) for kind in RIG_KINDS}
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
              "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers",

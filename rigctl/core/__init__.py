@@ -33,7 +33,7 @@ from rigctl.core.drum import (
     SettleBand,
     SpeedProfile,
 )
-from rigctl.core.interfaces import DrumController, MassPlacer, PlateMounter, RigBackend, TaxelSource
+from rigctl.core.interfaces import RIG_KINDS, DrumController, MassPlacer, PlateMounter, RigBackend, TaxelSource
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.progress import ProgressEvent
 from rigctl.core.sensor import PAPER_FINGER, PAPER_SENSOR, LayoutError, SensorLayout, TaxelLayer, parse_layout
@@ -51,7 +51,7 @@ __all__ = [
     "SensorLayout", "TaxelLayer", "PAPER_SENSOR", "PAPER_FINGER", "parse_layout", "LayoutError",
     "TextureSet", "TextureSpec", "TextureSetError", "PAPER_TEXTURES", "PAPER_GROUPS", "texture_set_from_labels",
     "PlannedTrial", "TrialData",
-    "DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend",
+    "DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "RIG_KINDS",
     "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "SetpointRange",
     "SetpointRangeError", "DrumError", "DrumTimeout", "DrumFault", "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
     "DRUM_DIAMETER_MM", "DRUM_CIRCUMFERENCE_MM",

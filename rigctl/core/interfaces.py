@@ -30,7 +30,10 @@ from rigctl.core.drum import Clock, DrumLimits, DrumState, DrumStatus, ForceLoop
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 
-__all__ = ["DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "Prompt"]
+#: the kinds of rig backend (:attr:`RigBackend.mode`): the one list; :func:`rigctl.rigs.open_rig` builds each
+RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
+
+__all__ = ["RIG_KINDS", "DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "Prompt"]
 
 
 @runtime_checkable

@@ -108,7 +108,8 @@ class TaxelRange:
         out = (np.asarray(readings, dtype=np.float64) - offset) * scale
         if clip:
             out = np.clip(out, 0.0, 1.0)
-        return out.astype(dtype)
+        result: np.ndarray = out.astype(dtype)
+        return result
 
     def apply(self, taxels: np.ndarray) -> np.ndarray:
         """``(..., n_taxels)`` ADC counts -> float32 in [0, 1] (clipped); a taxel whose range is zero maps to 0."""

@@ -158,14 +158,14 @@ def _run_tasks(data: Any, plan: AnalysisPlan, progress: Progress, execution: Exe
     return res
 
 
-def encoded_path_for(session_path: str | os.PathLike) -> Path:
+def encoded_path_for(session_path: str | os.PathLike[str]) -> Path:
     """Where a session's encoded file goes beside it: ``<name>.encoded.h5``."""
     p = Path(session_path)
     return p.with_name(p.stem + ".encoded.h5")
 
 
-def load_or_encode(path: str | os.PathLike, variants: Sequence[str] | None = None, *, task: str | None = "table1",
-                   encode_to: str | os.PathLike | None = None, progress: Progress = None,
+def load_or_encode(path: str | os.PathLike[str], variants: Sequence[str] | None = None, *, task: str | None = "table1",
+                   encode_to: str | os.PathLike[str] | None = None, progress: Progress = None,
                    overwrite: bool = False) -> tuple[Any, Path]:
     """The features of ``path`` (an encoded file): ``variants``, else ``task``'s default variants
     (:func:`rigctl.analysis.data.default_variants`; ``task=None``: every variant in the file). A session file is
@@ -197,10 +197,10 @@ class TrainedModel:
     variant: str
     n_pcs: int
     n_trials: int
-    info: dict
+    info: dict[str, Any]
 
 
-def train_model(encoded_path: str | os.PathLike, variant: str = "speed_scaled", n_pcs: int = 25, *,
+def train_model(encoded_path: str | os.PathLike[str], variant: str = "speed_scaled", n_pcs: int = 25, *,
                 max_pcs: int | None = None) -> TrainedModel:
     """Fit the raw-trials-to-label pipeline (:func:`rigctl.analysis.model.texture_pipeline`: normalise, [force,]
     encode, features, PCA + LDA) on every trial of the session the encoded file was made from, encoding as the file

@@ -15,12 +15,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from rigctl.acquisition import calibration as cal
+from rigctl.acquisition.rigconfig import load_rig_config
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.sensor import SensorLayout
 
 __all__ = ["calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation"]
 
-ConfigPath = str | os.PathLike | None
+ConfigPath = str | os.PathLike[str] | None
 
 
 def calibrate_loadcell(control: Any, mass_g: float, *, place_mass: Callable[[float], Any] | None = None,
@@ -36,7 +37,7 @@ def calibrate_loadcell(control: Any, mass_g: float, *, place_mass: Callable[[flo
         place_mass, remove_mass = cal.simulated_mass(control.rig)
     result = cal.calibrate_loadcell(control.drum, mass_g, place_mass=place_mass, remove_mass=remove_mass,
                                     config_file=config_file)
-    control.rig.host_config = cal.load_rig_config(config_file)
+    control.rig.host_config = load_rig_config(config_file)
     return result
 
 
@@ -57,7 +58,7 @@ def store_taxel_normalisation(norm: TaxelRange, layout: SensorLayout, *, config_
     low = cal.check_taxel_span(norm, layout.adc_max)
     cal.store_taxel_normalisation(norm, config_file)
     if control is not None:
-        control.rig.host_config = cal.load_rig_config(config_file)
+        control.rig.host_config = load_rig_config(config_file)
     return StoredNormalisation(norm, low)
 
 

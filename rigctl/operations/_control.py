@@ -53,7 +53,7 @@ class RunStarted:
 
 
 def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALWAYS, config: Any = None,
-                 seed: int = 0, host_config_path: str | os.PathLike | None = None,
+                 seed: int = 0, host_config_path: str | os.PathLike[str] | None = None,
                  prompt: Callable[[str], Any] | None = None, **options: Any) -> "RigControl":
     """Open the rig ``source`` names (default: the simulated rig) and start its taxel stream.
 
@@ -108,7 +108,7 @@ class RigControl:
 
     def __init__(self, rig: Rig, source: RigSource | None = None) -> None:
         self.rig = rig
-        self.source = source or RigSource(rig.mode if rig.mode != "hardware" else "hardware")
+        self.source = source or RigSource(rig.mode)
 
     # ------------------------------------------------------------------------------------------------- parts
     @property

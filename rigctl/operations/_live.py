@@ -9,9 +9,11 @@ a script, a server) can show them.
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 
+from rigctl.core.normalisation import TaxelRange
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 __all__ = ["LIVE_WINDOW_MAX_S", "LiveEncoder", "SpikeRing", "spike_capacity"]
@@ -23,7 +25,7 @@ class SpikeRing:
     ``capacity`` spikes are kept; older ones are overwritten (the raster only shows the last few seconds).
     """
 
-    def __init__(self, capacity: int = 40_000):
+    def __init__(self, capacity: int = 40_000) -> None:
         self.t = np.zeros(capacity)
         self.ch = np.zeros(capacity, dtype=np.int16)
         self._n = 0
@@ -82,11 +84,12 @@ class LiveEncoder(threading.Thread):
     :attr:`sa` and :attr:`ra` (:class:`SpikeRing`, times in s of stream time =
     frame number in the ring / ``layout.sample_rate_hz``; one model step per sample).
     ``layout`` is the stream's sensor (default ``taxels.layout``, else the paper's 3x3x2 at 1 kHz): one SA and one RA
-    train per channel. ``normaliser`` is a :class:`rigctl.encoding.normalise.TaxelRange` (per-taxel min/max, from the
+    train per channel. ``normaliser`` is a :class:`rigctl.core.normalisation.TaxelRange` (per-taxel min/max, from the
     calibration); without one the full ADC range 0-``layout.adc_max`` is used.
     """
 
-    def __init__(self, taxels, *, normaliser=None, poll_s: float = 0.04, layout: SensorLayout | None = None):
+    def __init__(self, taxels: Any, *, normaliser: TaxelRange | None = None, poll_s: float = 0.04,
+                 layout: SensorLayout | None = None) -> None:
         super().__init__(name="live-encoder", daemon=True)
         self.taxels = taxels
         self.layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
@@ -103,10 +106,8 @@ class LiveEncoder(threading.Thread):
         self._halt = threading.Event()
         self._reset_request = threading.Event()
 
-    def full_range(self):
+    def full_range(self) -> TaxelRange:
         """The full ADC range of every channel (no calibration yet)."""
-        from rigctl.encoding.normalise import TaxelRange
-
         n = self.layout.n_channels
         return TaxelRange(np.zeros(n), np.full(n, float(self.layout.adc_max)))
 
@@ -117,12 +118,12 @@ class LiveEncoder(threading.Thread):
     def stop(self) -> None:
         self._halt.set()
 
-    def set_normaliser(self, taxel_range) -> None:
+    def set_normaliser(self, taxel_range: TaxelRange | None) -> None:
         """Use a new per-taxel range (a calibration) and start the encoder afresh."""
         self.normaliser = taxel_range or self.full_range()
         self._reset_request.set()
 
-    def _make_encoder(self):
+    def _make_encoder(self) -> Any:
         from rigctl.encoding.izhikevich import StreamingEncoder
 
         return StreamingEncoder(self.layout.n_channels, normalise=self.normaliser, fs=self.layout.sample_rate_hz)

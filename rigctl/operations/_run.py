@@ -42,7 +42,7 @@ class ProtocolRun:
     SessionError, ValueError.
     """
 
-    def __init__(self, rig: Any, protocol: Any, out_path: str | os.PathLike, *, resume: bool = False,
+    def __init__(self, rig: Any, protocol: Any, out_path: str | os.PathLike[str], *, resume: bool = False,
                  overwrite: bool = False, on_failure: str = "continue",
                  prompt: Callable[[str], Any] | None = None,
                  progress: Callable[[ProgressEvent], Any] | None = None,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 from rigctl.rigs import KINDS
 
@@ -72,7 +73,7 @@ class RigSource:
         return {"hil": "firmware under simavr", "inprocess": "in-process simulated rig"}.get(self.kind,
                                                                                            "simulated rig")
 
-    def open_options(self) -> dict:
+    def open_options(self) -> dict[str, Any]:
         """The keyword arguments of :func:`rigctl.rigs.open_rig` this source selects (kind included)."""
         if self.kind == "hardware":
             return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port}
