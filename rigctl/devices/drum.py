@@ -19,11 +19,21 @@ earlier request can follow, and a later response of the right shape is the answe
 pymodbus is used with ``retries=0``: the retries are the client's own, so every retry goes through the fence. A port
 that fails (a pulled USB cable) is closed and opened afresh by the next attempt, so the client works again once the
 port is back; until then every request is a :class:`DrumError` naming the port.
+
+The Mega's bootloader must never be kept from starting the sketch. Opening the port resets the board (the USB
+bridge's DTR auto-reset); its stk500v2 bootloader then waits :data:`MEGA_BOOT_WINDOW_S` for a programmer, and a single
+byte in that window keeps it in programming mode until no byte has come for :data:`MEGA_BOOT_TRAP_S` (stk500boot.c,
+``recchar_timeout``): a host that sends at once and retries every 0.5 s keeps the board there for good. So after
+every open (the first, and each reopen after a port failure) the client sends nothing for ``boot_wait_s``, and after
+two attempts in a row got no answer (a board reset under a polling host, by power or brown-out, may have taken a
+request for a programmer's byte) it stays silent for ``boot_quiet_s`` before the next one.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import stat
 import threading
 import time
 from dataclasses import dataclass
@@ -44,6 +54,7 @@ from rigctl.devices.errors import (
     ModbusExceptionError,
     SetpointRangeError,
 )
+from rigctl.devices.ports import lock_exclusive
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
 __all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "ForceLoopConfig",
@@ -184,6 +195,30 @@ class _Expect:
         return self.function_code in (6, 16)
 
 
+#: The Mega 2560's stk500v2 bootloader (Debian arduino-core-avr ``stk500boot_v2_mega2560.hex``, ``stk500boot.c``),
+#: measured under simavr (``rigctl_simavr --bootloader``): it starts the sketch 0.83 s after a reset when no byte
+#: comes, s ...
+MEGA_BOOT_WINDOW_S = 0.83
+#: ... and after a byte it stays in programming mode until no byte has come for 5.0 s (``recchar_timeout``: F_CPU / 2
+#: polls of the UART), then starts the sketch, s
+MEGA_BOOT_TRAP_S = 5.0
+#: silence after opening a port that resets the board: the boot window with margin (a clone's clock, USB latency), s
+MEGA_BOOT_WAIT_S = 1.5
+#: silence after two unanswered attempts: longer than the programming-mode timeout, s
+MEGA_BOOT_QUIET_S = 6.0
+
+
+def resets_on_open(port: str) -> bool:
+    """Whether opening ``port`` resets the board behind it (an Arduino's DTR auto-reset): True for a serial device
+    (and for a path that cannot be checked), False for a pseudo-terminal, which has no DTR line (the virtual boards;
+    Linux Unix98 pty slaves are character devices of majors 136-143, Documentation/admin-guide/devices.txt)."""
+    try:
+        st = os.stat(port)
+    except OSError:
+        return True
+    return not (stat.S_ISCHR(st.st_mode) and 136 <= os.major(st.st_rdev) <= 143)
+
+
 #: register counts of the fence (a read of the input registers from 0), one that no unanswered request has
 _FENCE_COUNTS = tuple(range(2, wire.N_INPUT))
 
@@ -223,8 +258,15 @@ class DrumClient:
         ``write_registers`` (keyword ``device_id``) returning responses with ``registers`` / ``isError()``. The
         in-process backend (:mod:`rigctl.simulation.inprocess`) passes one that calls the controller logic directly.
     clock : object or None
-        ``now() -> s`` and ``sleep(s)`` used by the ``wait_*`` polls (default: ``time.monotonic`` / ``time.sleep``);
-        the in-process backend passes its simulated clock, so a wait advances simulated time, not wall time.
+        ``now() -> s`` and ``sleep(s)`` used by the ``wait_*`` polls and the bootloader waits (default:
+        ``time.monotonic`` / ``time.sleep``); the in-process backend passes its simulated clock, so a wait advances
+        simulated time, not wall time.
+    boot_wait_s : float or None
+        Silence after every open of the port, s (module doc): None = :data:`MEGA_BOOT_WAIT_S` if opening the port
+        resets the board (:func:`resets_on_open`: a serial device), 0 for a pseudo-terminal.
+    boot_quiet_s : float or None
+        Silence after two attempts in a row got no answer, s: None = :data:`MEGA_BOOT_QUIET_S` on a serial device,
+        0 on a pseudo-terminal.
 
     Attributes
     ----------
@@ -235,6 +277,10 @@ class DrumClient:
         Requests (fences included) that got no answer within ``timeout_s``.
     fences : int
         Fences sent to settle the link after a timeout or a discarded response.
+    boot_waits : int
+        Opens of the port waited out (``boot_wait_s``).
+    quiet_periods : int
+        Silences of ``boot_quiet_s`` kept after two unanswered attempts.
 
     Raises (all methods)
     --------------------
@@ -250,7 +296,7 @@ class DrumClient:
 
     def __init__(self, port: str, *, baudrate: int = wire.DRUM_BAUD, device_id: int = wire.DRUM_DEVICE_ID,
                  timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05, transport: Any = None,
-                 clock: Any = None) -> None:
+                 clock: Any = None, boot_wait_s: float | None = None, boot_quiet_s: float | None = None) -> None:
         self.port = port
         self.device_id = device_id
         self.timeout_s = timeout_s
@@ -261,6 +307,13 @@ class DrumClient:
         self.stale_responses = 0
         self.timeouts = 0
         self.fences = 0
+        self.boot_waits = 0
+        self.quiet_periods = 0
+        resets = transport is None and resets_on_open(port)
+        self.boot_wait_s = float(boot_wait_s) if boot_wait_s is not None else (MEGA_BOOT_WAIT_S if resets else 0.0)
+        self.boot_quiet_s = float(boot_quiet_s) if boot_quiet_s is not None else (MEGA_BOOT_QUIET_S if resets
+                                                                                   else 0.0)
+        self._unanswered = 0  # attempts in a row that got no answer
         self._unsettled = False  # answers to earlier requests may still arrive: fence before the next request
         self._fence_used: list[int] = []  # fence counts sent since the link was last settled
         self._rx = b""  # the bytes of the last response pymodbus decoded (its trace_packet hook)
@@ -272,11 +325,34 @@ class DrumClient:
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "DrumClient":
-        """Open the port. Raises :class:`DrumError` if it cannot be opened."""
+        """Open the port and wait out the board's bootloader (``boot_wait_s``, module doc). Raises :class:`DrumError`
+        if it cannot be opened."""
         with self._lock:
-            if not self._client.connect():
+            if not self._connect():
                 raise DrumError(f"cannot open the drum controller port {self.port}")
         return self
+
+    def _connect(self) -> bool:
+        """Open the port if it is closed (exclusively: pymodbus opens with ``exclusive=True``); after an open, send
+        nothing for ``boot_wait_s`` (the board resets and its bootloader listens), then drop what came meanwhile."""
+        if getattr(self._client, "connected", False):
+            return True
+        if not self._client.connect():
+            return False
+        lock_exclusive(self._client.socket)  # no other program can open (and so reset) the board now
+        if self.boot_wait_s > 0:
+            self.boot_waits += 1
+            self._silence(self.boot_wait_s)
+            sock = getattr(self._client, "socket", None)
+            if sock is not None:
+                sock.reset_input_buffer()
+        return True
+
+    def _silence(self, seconds: float) -> None:
+        """Send nothing for ``seconds`` of :attr:`clock` time."""
+        t0 = self.clock.now()
+        while (left := seconds - (self.clock.now() - t0)) > 0:
+            self.clock.sleep(min(left, 0.05))
 
     def close(self) -> None:
         with self._lock:
@@ -298,6 +374,14 @@ class DrumClient:
             for attempt in range(self.retries + 1):
                 pending = expect if sent else None  # this request may have been carried out already
                 try:
+                    if self._on_link and not self._connect():  # reopen after a port failure: the board resets
+                        raise OSError(f"cannot open {self.port}")
+                    if self._unanswered >= 2 and self.boot_quiet_s > 0:  # a bootloader may hold our bytes: let it go
+                        self.quiet_periods += 1
+                        self._unanswered = 0
+                        log.warning("drum controller on %s: no answer twice; %g s of silence for a bootloader to "
+                                    "start the sketch", self.port, self.boot_quiet_s)
+                        self._silence(self.boot_quiet_s)
                     echo = self._flush_input(pending)
                     if self._unsettled:
                         settled, fence_echo = self._fence(pending)
@@ -343,8 +427,10 @@ class DrumClient:
             response = getattr(self._client, what)(device_id=self.device_id, **kwargs)
         except ModbusIOException:
             self.timeouts += 1
+            self._unanswered += 1
             self._unsettled = self._on_link  # an answer may still come (not from an in-process transport)
             return None
+        self._unanswered = 0
         frames = self._frames(self._rx)
         if not frames:
             if self._on_link:  # pymodbus' RTU decoder accepts a CRC match over a longer span than the function's
@@ -451,6 +537,7 @@ class DrumClient:
             self._client.read_input_registers(0, count=count, device_id=self.device_id)
         except ModbusIOException:
             self.timeouts += 1
+            self._unanswered += 1
             return False, None
         frames = self._frames(self._rx)
         echo = None
@@ -461,9 +548,11 @@ class DrumClient:
             if settled:
                 self._unsettled = False
                 self._fence_used.clear()
+                self._unanswered = 0
                 return True, echo
             if time.monotonic() >= deadline:
                 self.timeouts += 1
+                self._unanswered += 1
                 return False, echo
             frames = self._frames(self._client.recv(None))
 

@@ -6,6 +6,8 @@ FTDI bridge cannot be told apart by id: they are reported with ``board=None`` an
 
 from __future__ import annotations
 
+import fcntl
+import termios
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -77,3 +79,29 @@ def find_ports(include_all: bool = False) -> list[PortInfo]:
                             serial_number=p.serial_number, note=note))
     out.sort(key=lambda i: ({"mega": 0, "uno": 1}.get(i.board or "", 2), i.device))
     return out
+
+
+#: TIOCGEXCL (Linux >= 3.8, asm-generic/ioctls.h): whether a tty is in exclusive mode
+TIOCGEXCL = 0x80045440
+
+
+def lock_exclusive(ser: Any) -> None:
+    """Put an open serial port (anything with ``fileno()``) in the tty's exclusive mode (``TIOCEXCL``): any further
+    ``open()`` of the device fails with EBUSY in the kernel, before the driver raises DTR, so another program (a
+    second rigctl, a serial monitor, ModemManager's probe) can neither talk to the board nor reset it. pyserial's
+    ``exclusive=True`` is an advisory ``flock`` only, taken after the open, which has already reset the board. Root
+    (CAP_SYS_ADMIN) bypasses TIOCEXCL. Ports without a tty (test transports) are left alone."""
+    try:
+        fcntl.ioctl(ser.fileno(), termios.TIOCEXCL)
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+def is_exclusive(ser: Any) -> bool:
+    """Whether the open port ``ser`` is in the tty's exclusive mode (TIOCGEXCL); False when it cannot be asked."""
+    buf = bytearray(4)
+    try:
+        fcntl.ioctl(ser.fileno(), TIOCGEXCL, buf)
+    except (OSError, ValueError, AttributeError):
+        return False
+    return int.from_bytes(buf, "little") != 0

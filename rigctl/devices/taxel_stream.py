@@ -36,6 +36,7 @@ from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
+from rigctl.devices.ports import lock_exclusive
 from rigctl.devices.ring import RingBuffer
 
 log = logging.getLogger(__name__)
@@ -273,7 +274,10 @@ class TaxelStream:
         return self.banner
 
     def _open_serial(self) -> serial.Serial:
-        return serial.Serial(self.port, self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0)
+        # exclusive: a second program can neither open the port nor, by opening it, reset the board under a stream
+        ser = serial.Serial(self.port, self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0, exclusive=True)
+        lock_exclusive(ser)
+        return ser
 
     def _wait_banner(self, ser: serial.Serial) -> dict[str, Any]:
         deadline = time.monotonic() + self.banner_timeout_s

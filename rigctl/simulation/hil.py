@@ -181,6 +181,12 @@ class HilRig:
     with_uno : bool
         Run the Uno too (default). False runs the Mega alone (no taxel port, no feeder): half the CPU for tests
         of the drum controller only.
+    bootloaders : bool
+        Load the boards' real bootloaders beside the sketches (the Mega's stk500v2, the Uno's optiboot: harness
+        ``--bootloader``, docs/firmware.md) and reset each board when a host opens its port (the DTR auto-reset):
+        the boot windows play out in simulated time. Hosts must then wait them out: :attr:`drum_boot_wait_s`,
+        :attr:`drum_boot_quiet_s` for :class:`rigctl.devices.drum.DrumClient` (a pty has no DTR, so its defaults
+        are 0). False (default): the Uno is held ``uno_boot_ms`` on open, the Mega never resets on open.
     taxel_ohm : float
         Source impedance of every taxel, Ohm (default 47 kOhm, docs/firmware.md "Multiplexer settling"): the Uno
         harness charges each 74HC4051 common node and the ADC's sample-and-hold capacitor through it, so a firmware
@@ -205,7 +211,7 @@ class HilRig:
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
-                 tel_ms: float = 50.0):
+                 tel_ms: float = 50.0, bootloaders: bool = False):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -216,6 +222,8 @@ class HilRig:
         self.with_uno = with_uno
         self.taxel_ohm = float(taxel_ohm)
         self.tel_ms = float(tel_ms)
+        self.bootloaders = bool(bootloaders)
+        self.boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.mux: dict[str, float] = {}
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
@@ -256,6 +264,20 @@ class HilRig:
         return self._running(self._uno, "Uno").port
 
     @property
+    def drum_boot_wait_s(self) -> float:
+        """``boot_wait_s`` a :class:`~rigctl.devices.drum.DrumClient` of this rig needs (0 without bootloaders)."""
+        from rigctl.devices.drum import MEGA_BOOT_WAIT_S
+
+        return MEGA_BOOT_WAIT_S if self.bootloaders else 0.0
+
+    @property
+    def drum_boot_quiet_s(self) -> float:
+        """``boot_quiet_s`` a :class:`~rigctl.devices.drum.DrumClient` of this rig needs (0 without bootloaders)."""
+        from rigctl.devices.drum import MEGA_BOOT_QUIET_S
+
+        return MEGA_BOOT_QUIET_S if self.bootloaders else 0.0
+
+    @property
     def clock(self) -> "_MegaClock":
         """The Mega's simulated time as a :class:`rigctl.devices.drum.DrumClient` clock (``now()``: s of simulated
         time from the harness's telemetry; ``sleep(s)``: host time): waits and deadlines in the firmware's own time,
@@ -287,7 +309,10 @@ class HilRig:
         # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
         lock = ["--clock-lock", str(self._tmp / "clock")] if self.with_uno else []
-        self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [
+        mega_boot = (["--reset-on-open", "--bootloader", str(build_dir / "stk500v2_mega.hex")] if self.bootloaders
+                     else [])
+        uno_boot = ["--bootloader", str(build_dir / "optiboot_uno.hex")] if self.bootloaders else []
+        self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [*mega_boot,
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
             *self._hardware_args(), *lock], self._on_mega_line)
@@ -295,7 +320,7 @@ class HilRig:
             return self
         try:
             self._uno = _Harness(exe, "uno", build_dir / "uno_taxel.elf",
-                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms),
+                                 ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms), *uno_boot,
                                   "--taxel-ohm", str(self.taxel_ohm), *lock], self._on_uno_line)
         except BaseException:
             self._mega.close()
@@ -456,6 +481,8 @@ class HilRig:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
                 self._cond.notify_all()
+        elif line.startswith("APP "):
+            self.boot_times_s.append(_parse_kv(line)["boot_s"])
         elif line.startswith("IDX "):
             self.index_pulses += 1
             if self._uno is not None:

@@ -153,9 +153,106 @@ static void bridge_reset(void)
     uart_xon = 1;
 }
 
+/* ================================ bootloader and DTR auto-reset ================================
+ * --bootloader HEX loads a bootloader image (Debian's arduino-core-avr: stk500v2 for the Mega, optiboot for the Uno)
+ * into flash beside the sketch, the way a flashed board holds them: the image goes to its own addresses (the boot
+ * section at the top of flash), and the reset vector moves to its start, which is what the BOOTRST fuse does on the
+ * chip (simavr has no fuse model: avr->reset_pc is that fuse). Every reset then enters the bootloader, which starts
+ * the sketch at 0 when its window passes. With --reset-on-open, a host opening the pty resets the MCU at once (as
+ * the Uno/Mega's 16U2 does: opening the port asserts DTR, whose edge reaches RESET through a 100 nF capacitor; a
+ * pty has no DTR, so the open itself is detected: inotify IN_OPEN on the slave), MCUSR = EXTRF, and the bootloader
+ * runs in simulated real time; host bytes written after the open reach it. Without --bootloader the old model
+ * stays: the core is held for --boot-ms, then the sketch starts. */
+static double sim_s(void);
+#define MCUSR_ADDR 0x54 /* MCUSR data-space address, ATmega328P and ATmega2560 */
+#define MCUSR_EXTRF 1
+static int boot_loaded;
+static uint32_t boot_start;
+static int boot_in_loader;  /* the MCU runs the bootloader (since the last reset) */
+static double boot_reset_t; /* simulated time of that reset */
+
+/* Intel HEX into flash (records 00 data, 01 end, 02/04 segment/linear base; 03/05 start addresses ignored: simavr's
+ * read_ihex_chunks refuses optiboot's type-03 record). Returns the lowest address loaded, or -1. */
+static long boot_read_hex(const char *path)
+{
+    FILE *f = fopen(path, "r");
+    if (!f) return -1;
+    char line[600];
+    uint32_t base = 0;
+    long lowest = -1;
+    int ok = 0;
+    while (fgets(line, sizeof line, f)) {
+        unsigned n, addr, type, sum = 0, b;
+        if (line[0] != ':' || sscanf(line + 1, "%2x%4x%2x", &n, &addr, &type) != 3 || strlen(line) < 11 + 2 * n) break;
+        uint8_t data[256];
+        for (unsigned i = 0; i < n + 5; i++) {
+            if (sscanf(line + 1 + 2 * i, "%2x", &b) != 1) goto done;
+            sum += b;
+            if (i >= 4 && i < 4 + n) data[i - 4] = (uint8_t)b;
+        }
+        if (sum & 0xFF) break; /* checksum */
+        if (type == 0) {
+            uint32_t a = base + addr;
+            if (a + n > avr->flashend + 1) break;
+            memcpy(avr->flash + a, data, n);
+            if (lowest < 0 || a < (uint32_t)lowest) lowest = a;
+            if (a + n > avr->codeend) avr->codeend = a + n;
+        } else if (type == 1) {
+            ok = 1;
+            break;
+        } else if (type == 2 && n == 2) {
+            base = (uint32_t)((data[0] << 8) | data[1]) << 4;
+        } else if (type == 4 && n == 2) {
+            base = (uint32_t)((data[0] << 8) | data[1]) << 16;
+        }
+    }
+done:
+    fclose(f);
+    return ok ? lowest : -1;
+}
+
+static int boot_load(const char *hex)
+{
+    long lowest = boot_read_hex(hex);
+    if (lowest < 0) return -1;
+    boot_start = (uint32_t)lowest;
+    avr->reset_pc = boot_start; /* BOOTRST programmed: reset enters the boot section */
+    avr->pc = boot_start;
+    boot_loaded = 1;
+    boot_in_loader = 1; /* power-on: the MCU starts in the bootloader */
+    return 0;
+}
+
+/* "APP t=... boot_s=..." when the sketch starts after a reset: how long the bootloader held the MCU (checked every
+ * 0.1 ms of simulated time; the sketch never runs code in the boot section) */
+static void boot_watch(void)
+{
+    if (boot_in_loader && avr->pc < boot_start) {
+        boot_in_loader = 0;
+        printf("APP t=%.6f boot_s=%.4f\n", sim_s(), sim_s() - boot_reset_t);
+    } else if (!boot_in_loader && boot_loaded && avr->pc >= boot_start) { /* any other reset (watchdog, button) */
+        boot_in_loader = 1;
+        boot_reset_t = sim_s();
+    }
+}
+
+/* the host opened the port: DTR reset into the bootloader (external reset flag set) */
+static void boot_dtr_reset(void (*after_reset)(void))
+{
+    avr_reset(avr);
+    avr->data[MCUSR_ADDR] |= (1 << MCUSR_EXTRF);
+    tx_tail = tx_head; /* what the old firmware had not yet sent is gone; host bytes sent after the open stay */
+    uart_xon = 1;
+    if (after_reset) after_reset();
+    boot_in_loader = 1;
+    boot_reset_t = sim_s();
+    printf("RESET t=%.6f cause=dtr\n", sim_s());
+}
+
 /* ---- options ---- */
 static int opt_pace = 1;
 static int opt_reset_on_open = 0;
+static const char *opt_bootloader = NULL;
 static double opt_boot_ms = 200.0;
 static double opt_spring_k = 250.0; /* contact stiffness, g per mm: the documented default (MechanicsConfig); 250-2000 */
 static double opt_contact_mm = 5.0;
@@ -529,6 +626,19 @@ static void uno_setup(void)
     mux_setup();
 }
 
+/* after any reset of the Uno */
+static void uno_after_reset(void)
+{
+    /* scans count from the reset, and the playing waveform restarts at row 0 with them: a scan_base left from before
+     * the reset would make scan_count - scan_base wrap around 2^64, and the rows jump (615 -> 0 for 1000 rows) once
+     * the count passes the old base */
+    scan_count = 0;
+    scan_base = 0;
+    scan_row = 0;
+    mux_after_reset();
+    avr_raise_irq(sync_pin, 0);
+}
+
 static void uno_poll(void)
 {
     static uint64_t next_report = 16000000u;
@@ -848,7 +958,7 @@ static void clock_lock_wait(void)
 /* ================================ main loop ================================ */
 static void usage(void)
 {
-    fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] "
+    fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] [--bootloader HEX] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
                     "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] "
@@ -866,6 +976,7 @@ int main(int argc, char **argv)
         if (!strcmp(a, "--board")) board = NEXT();
         else if (!strcmp(a, "--no-pace")) opt_pace = 0;
         else if (!strcmp(a, "--reset-on-open")) opt_reset_on_open = 1;
+        else if (!strcmp(a, "--bootloader")) opt_bootloader = NEXT();
         else if (!strcmp(a, "--boot-ms")) opt_boot_ms = atof(NEXT());
         else if (!strcmp(a, "--wave")) wave_path = NEXT();
         else if (!strcmp(a, "--spring-k")) opt_spring_k = atof(NEXT());
@@ -915,6 +1026,10 @@ int main(int argc, char **argv)
     avr_load_firmware(avr, &f);
     avr->frequency = 16000000;
     avr->log = LOG_ERROR;
+    if (opt_bootloader && boot_load(opt_bootloader)) {
+        fprintf(stderr, "cannot load the bootloader %s\n", opt_bootloader);
+        return 1;
+    }
 
     if (wave_path && load_wave(wave_path, -1) == 0) {
         wave = wave_pending;
@@ -963,16 +1078,7 @@ int main(int argc, char **argv)
                 hold_until = 0.0;
                 avr_reset(avr);
                 bridge_reset();
-                if (is_uno) {
-                    /* scans count from the reset, and the playing waveform restarts at row 0 with them: a
-                     * scan_base left from before the reset would make scan_count - scan_base wrap around 2^64,
-                     * and the rows jump (615 -> 0 for 1000 rows) once the count passes the old base */
-                    scan_count = 0;
-                    scan_base = 0;
-                    scan_row = 0;
-                    mux_after_reset();
-                    avr_raise_irq(sync_pin, 0);
-                }
+                if (is_uno) uno_after_reset();
                 wall0 = now_s();
                 cycle0 = avr->cycle;
             }
@@ -987,6 +1093,7 @@ int main(int argc, char **argv)
         if (avr->cycle < next_check) continue;
         next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
         bridge_poll();
+        if (boot_loaded) boot_watch();
         if (is_uno) uno_poll();
         else mega_poll();
         if (atomic_load(&quit_requested)) break;
@@ -1001,6 +1108,12 @@ int main(int argc, char **argv)
         if (ino >= 0) {
             char buf[4096];
             ssize_t n = read(ino, buf, sizeof buf);
+            if (n > 0 && boot_loaded) { /* a host opened the port: DTR reset into the bootloader */
+                boot_dtr_reset(is_uno ? uno_after_reset : mega_after_reset);
+                wall0 = now_s();
+                cycle0 = avr->cycle;
+                continue;
+            }
             if (n > 0) { /* a host opened the port: DTR reset, bootloader wait */
                 hold_until = now_s() + opt_boot_ms * 1e-3;
                 printf("RESET t=%.6f\n", sim_s());

@@ -1,0 +1,143 @@
+"""The boards' real bootloaders under simavr (stk500v2 on the Mega, optiboot on the Uno), each reset when a host
+opens its port (the DTR auto-reset): the host must connect every time and never trap the Mega's bootloader."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from rigctl.devices import wire
+from rigctl.devices.drum import MEGA_BOOT_WINDOW_S, DrumClient
+from rigctl.devices.errors import DrumError, DrumTimeout
+from rigctl.devices.ports import is_exclusive
+from rigctl.devices.taxel_stream import TaxelStream
+from rigctl.rigs import drum_answer_timeout_s
+from rigctl.simulation import hil
+
+pytestmark = pytest.mark.hil
+
+
+@pytest.fixture(scope="module")
+def boot_rig(fw_build):
+    """Both boards with their bootloaders; a fixed waveform (no live rendering: the CPU goes to the cores)."""
+    with hil.HilRig(bootloaders=True, live=False) as rig:
+        yield rig
+
+
+def _client(rig: hil.HilRig, **kw) -> DrumClient:
+    kw.setdefault("boot_wait_s", rig.drum_boot_wait_s)
+    kw.setdefault("boot_quiet_s", rig.drum_boot_quiet_s)
+    return DrumClient(rig.drum_port, timeout_s=drum_answer_timeout_s("hil"), clock=rig.clock, **kw)
+
+
+def _first_answer_s(rig: hil.HilRig, drum: DrumClient, t0: float) -> float:
+    drum.read_status()
+    return rig.clock.now() - t0
+
+
+def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(boot_rig):
+    """Today's host (sends at once, retries every 0.5 s): the Mega's bootloader takes the first request for a
+    programmer and every retry keeps it there, so it never answers."""
+    rig = boot_rig
+    drum = _client(rig, boot_wait_s=0.0, boot_quiet_s=0.0, retries=4)
+    with pytest.raises(DrumTimeout):
+        with drum:
+            drum.read_status()
+    # the sketch did start once the host went quiet (the bootloader's 5 s programming-mode timeout)
+    n = len(rig.boot_times_s)
+    deadline = rig.clock.now() + 10.0
+    while len(rig.boot_times_s) == n:
+        assert rig.clock.now() < deadline, "the bootloader never started the sketch after the host went quiet"
+    assert rig.boot_times_s[-1] > 4.0  # trapped for the programming-mode timeout, not the 0.83 s window
+    # a quiet open: the window alone, as measured on the bootloader's own loop
+    with _client(rig) as drum:
+        drum.read_status()
+    assert abs(rig.boot_times_s[-1] - MEGA_BOOT_WINDOW_S) < 0.05
+
+
+def test_thirty_openings_at_random_moments_all_connect(boot_rig):
+    """30 openings of the Mega's port: 20 by a new client at a random moment after the last close (often inside
+    the boot window the last open started), 10 while a host polls (its port fails under it, it reopens: the board
+    resets under the poller). Every one gets answers; the time to the first answer is reported."""
+    rig = boot_rig
+    rng = np.random.default_rng(22)
+    first_s: list[float] = []
+    boots0 = len(rig.boot_times_s)
+    for _ in range(20):
+        time.sleep(float(rng.uniform(0.0, 1.2)))
+        t0 = rig.clock.now()
+        with _client(rig) as drum:
+            first_s.append(_first_answer_s(rig, drum, t0))
+    with _client(rig) as drum:
+        polled = {"n": 0, "error": None}
+        stop = threading.Event()
+
+        def poll():
+            try:
+                while not stop.is_set():
+                    drum.read_status()
+                    polled["n"] += 1
+            except Exception as exc:  # noqa: BLE001 - reported below
+                polled["error"] = exc
+
+        poller = threading.Thread(target=poll, daemon=True)
+        poller.start()
+        for _ in range(10):
+            time.sleep(float(rng.uniform(0.2, 1.0)))
+            n0, t0 = polled["n"], rig.clock.now()
+            with drum._lock:  # the USB link drops under the poller: its next request reopens the port
+                drum._client.close()
+            while polled["n"] <= n0 + 1 and polled["error"] is None:
+                time.sleep(0.01)
+            first_s.append(rig.clock.now() - t0)
+        stop.set()
+        poller.join(timeout=30)
+    assert polled["error"] is None, f"the polling host failed: {polled['error']!r}"
+    first = np.array(first_s)
+    boots = np.array(list(rig.boot_times_s)[boots0:])
+    print(f"30/30 openings connected; time to the first answer (Mega's simulated time): median {np.median(first):.2f}"
+          f" s, min {first.min():.2f} s, max {first.max():.2f} s; {len(boots)} boot windows {boots.min():.3f}-"
+          f"{boots.max():.3f} s; load {open('/proc/loadavg').read().split()[0]}")
+    assert len(first) == 30
+    # never trapped: no opening took the bootloader's 5 s programming-mode timeout
+    assert len(boots) >= 30 and boots.max() < 1.0
+    assert first.max() < 5.0
+
+
+def test_a_second_program_cannot_open_the_port_and_reset_the_board_under_a_polling_host(boot_rig):
+    """The host holds its port in the tty's exclusive mode (TIOCEXCL): another program's open() fails in the kernel
+    before DTR is raised, so it cannot reset the board (root bypasses TIOCEXCL: then only the advisory lock refuses
+    the second client, after its open has reset the board, and the reset is not checked)."""
+    rig = boot_rig
+    with _client(rig) as drum:
+        drum.read_status()
+        assert is_exclusive(drum._client.socket)
+        n = len(rig.boot_times_s)
+        with pytest.raises(DrumError):
+            _client(rig).open()
+        if os.geteuid() != 0:
+            with pytest.raises(OSError):
+                os.close(os.open(rig.drum_port, os.O_RDWR | os.O_NOCTTY))
+        for _ in range(3):
+            drum.read_status()
+        if os.geteuid() != 0:
+            assert len(rig.boot_times_s) == n  # no reset
+
+
+def test_the_uno_stream_opens_through_optiboot_every_time(boot_rig, wait_frames):
+    rig = boot_rig
+    rig.play_waveform(np.full((10, wire.N_TAXELS), 512, dtype=np.uint16))
+    for _ in range(5):
+        t0 = time.monotonic()
+        with TaxelStream(rig.taxel_port) as stream:
+            banner_s = time.monotonic() - t0
+            stream.start()
+            stream.begin_capture()
+            assert wait_frames(stream, 200)
+            cap = stream.end_capture()
+        assert np.all(cap.samples == 512)
+        print(f"Uno: banner {banner_s:.2f} s after the open (optiboot's 1 s watchdog window)")
