@@ -23,6 +23,7 @@ COMMANDS = {
     "protocols": "rigctl.cli.protocols:protocols",
     "firmware": "rigctl.cli.firmware:firmware",
     "doctor": "rigctl.cli.doctor:doctor",
+    "udev-rules": "rigctl.cli.udev:udev_rules",
 }
 
 SHORT_HELP = {
@@ -39,6 +40,7 @@ SHORT_HELP = {
     "protocols": "List the built-in protocols (run one by name).",
     "firmware": "Build the boards' firmware images from the installed sources (for flashing).",
     "doctor": "Bring-up checks on the rig: one line each, pass/fail/skip and the fix.",
+    "udev-rules": "Print udev rules: stable /dev names for the boards by USB serial number.",
 }
 
 

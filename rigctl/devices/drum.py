@@ -54,7 +54,7 @@ from rigctl.devices.errors import (
     ModbusExceptionError,
     SetpointRangeError,
 )
-from rigctl.devices.ports import lock_exclusive
+from rigctl.devices.ports import SERIAL_PREFIX, lock_exclusive, resolve_port
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
 __all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "ForceLoopConfig",
@@ -241,7 +241,8 @@ class DrumClient:
     Parameters
     ----------
     port : str
-        Serial device (e.g. ``/dev/ttyACM0`` or the simulated rig's ``drum_port``).
+        Serial device (e.g. ``/dev/rigctl-drum``, ``/dev/ttyACM0`` or the simulated rig's ``drum_port``), or
+        ``serial:<USB serial number>``, looked up at every (re)open (:func:`rigctl.devices.ports.resolve_port`).
     baudrate : int
         115200 by default (spec section 2).
     device_id : int
@@ -328,7 +329,11 @@ class DrumClient:
         """Open the port and wait out the board's bootloader (``boot_wait_s``, module doc). Raises :class:`DrumError`
         if it cannot be opened."""
         with self._lock:
-            if not self._connect():
+            try:
+                opened = self._connect()
+            except OSError as exc:
+                raise DrumError(f"cannot open the drum controller port {self.port}: {exc}") from exc
+            if not opened:
                 raise DrumError(f"cannot open the drum controller port {self.port}")
         return self
 
@@ -337,6 +342,8 @@ class DrumClient:
         nothing for ``boot_wait_s`` (the board resets and its bootloader listens), then drop what came meanwhile."""
         if getattr(self._client, "connected", False):
             return True
+        if self.port.startswith(SERIAL_PREFIX):  # by USB serial number: whichever ttyACM the board is now
+            self._client.comm_params.host = resolve_port(self.port)
         if not self._client.connect():
             return False
         lock_exclusive(self._client.socket)  # no other program can open (and so reset) the board now

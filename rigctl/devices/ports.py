@@ -2,11 +2,17 @@
 
 Guesses from the USB vendor/product id (pyserial's ``serial.tools.list_ports``). Clone boards with a CH340 or
 FTDI bridge cannot be told apart by id: they are reported with ``board=None`` and the candidates in ``note``.
+
+A port can be named by the board's USB serial number instead of its path: ``serial:<number>`` (:func:`resolve_port`,
+looked up again at every open, so a board that re-enumerates as another ttyACM keeps its role and the two boards
+cannot swap), and :func:`udev_rules` writes udev rules that give each board a stable symlink by ``ATTRS{serial}``
+and keep ModemManager off it. :func:`lock_exclusive` makes an open port exclusive (TIOCEXCL).
 """
 
 from __future__ import annotations
 
 import fcntl
+import re
 import termios
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -105,3 +111,74 @@ def is_exclusive(ser: Any) -> bool:
     except (OSError, ValueError, AttributeError):
         return False
     return int.from_bytes(buf, "little") != 0
+
+
+#: prefix of a port named by the board's USB serial number
+SERIAL_PREFIX = "serial:"
+
+
+class PortNotFound(OSError):
+    """No connected serial port has the USB serial number asked for (an OSError: like a device path that is
+    missing, the board may come back)."""
+
+
+def resolve_port(port: str) -> str:
+    """The device path of ``port``: ``serial:<number>`` is the USB serial port whose serial number is ``<number>``
+    (pyserial's ``list_ports``, looked up now: call it at every open); anything else is returned as it is.
+
+    Raises
+    ------
+    PortNotFound
+        No connected port has that serial number (the board is unplugged, or not yet re-enumerated).
+    """
+    if not port.startswith(SERIAL_PREFIX):
+        return port
+    number = port[len(SERIAL_PREFIX):]
+    for p in list_ports.comports():
+        if p.serial_number == number:
+            return str(p.device)
+    raise PortNotFound(f"no serial port with USB serial number {number!r} is connected (`rigctl ports` lists them)")
+
+
+#: udev symlink names (under /dev) of the two boards
+UDEV_SYMLINKS = {"mega": "rigctl-drum", "uno": "rigctl-taxel"}
+_SERIAL_RE = re.compile(r"^[0-9A-Za-z._-]+$")
+
+
+def udev_rules(boards: list[PortInfo]) -> str:
+    """udev rules for the rig's boards: for each board in ``boards`` (``board`` "mega" or "uno" and
+    ``serial_number`` known) a rule matching its ``ATTRS{serial}`` (and USB ids when known) that creates
+    ``/dev/rigctl-drum`` / ``/dev/rigctl-taxel`` (:data:`UDEV_SYMLINKS`), puts the port in the dialout group and sets
+    ``ENV{ID_MM_DEVICE_IGNORE}="1"`` so ModemManager does not probe it (its probe bytes reset the board and reach the
+    bootloader). Install as ``/etc/udev/rules.d/99-rigctl.rules``.
+
+    Raises
+    ------
+    ValueError
+        A board without a role or a serial number, two boards in one role, or a serial number with
+        characters udev rules cannot carry.
+    """
+    lines = ["# rigctl: stable names for the rig's boards by USB serial number (`rigctl udev-rules`).",
+             "# Install: sudo cp THIS_FILE /etc/udev/rules.d/99-rigctl.rules && sudo udevadm control --reload-rules"
+             " && sudo udevadm trigger",
+             "# then open /dev/rigctl-drum and /dev/rigctl-taxel (or serial:<number>); add yourself to dialout:",
+             "#   sudo usermod -aG dialout $USER   (log in again)"]
+    seen: set[str] = set()
+    for b in boards:
+        if b.board not in UDEV_SYMLINKS:
+            raise ValueError(f"{b.device}: not known as the Mega or the Uno (give its role)")
+        if b.board in seen:
+            raise ValueError(f"two boards in the role {b.board!r}: give each board's serial number")
+        seen.add(b.board)
+        if not b.serial_number:
+            raise ValueError(f"{b.device}: no USB serial number to match (a clone without one cannot get a stable "
+                             "name this way; use its /dev/serial/by-path link)")
+        if not _SERIAL_RE.match(b.serial_number):
+            raise ValueError(f"{b.device}: serial number {b.serial_number!r} has characters a udev rule cannot match")
+        lines.append(f"# {b.board}: {b.description or b.device}")
+        ids = (f'ATTRS{{idVendor}}=="{b.vid:04x}", ATTRS{{idProduct}}=="{b.pid:04x}", '
+               if b.vid is not None and b.pid is not None else "")
+        lines.append(f'SUBSYSTEM=="tty", {ids}ATTRS{{serial}}=="{b.serial_number}", '
+                     f'SYMLINK+="{UDEV_SYMLINKS[b.board]}", GROUP="dialout", MODE="0660", '
+                     'ENV{ID_MM_DEVICE_IGNORE}="1"')
+    return "\n".join(lines) + "\n"

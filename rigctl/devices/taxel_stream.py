@@ -36,7 +36,7 @@ from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
-from rigctl.devices.ports import lock_exclusive
+from rigctl.devices.ports import lock_exclusive, resolve_port
 from rigctl.devices.ring import RingBuffer
 
 log = logging.getLogger(__name__)
@@ -155,7 +155,9 @@ class TaxelStream:
     Parameters
     ----------
     port : str
-        Serial device path (e.g. ``/dev/ttyACM0`` or the simulated rig's ``taxel_port``).
+        Serial device path (e.g. ``/dev/rigctl-taxel``, ``/dev/ttyACM0`` or the simulated rig's ``taxel_port``), or
+        ``serial:<USB serial number>``, looked up at every (re)open (:func:`rigctl.devices.ports.resolve_port`): a
+        board that re-enumerates under another name is found again, and the two boards cannot swap.
     baudrate : int
         1,000,000 (spec section 1).
     ring_seconds : float
@@ -259,7 +261,7 @@ class TaxelStream:
         try:
             ser = self._open_serial()
             self.banner = self._wait_banner(ser)
-        except serial.SerialException as exc:
+        except (serial.SerialException, OSError) as exc:  # OSError: ports.PortNotFound (serial:<number> absent)
             raise TaxelStreamError(f"cannot open the taxel streamer port {self.port}: {exc}") from exc
         try:
             self._apply_layout(self.banner)
@@ -275,7 +277,7 @@ class TaxelStream:
 
     def _open_serial(self) -> serial.Serial:
         # exclusive: a second program can neither open the port nor, by opening it, reset the board under a stream
-        ser = serial.Serial(self.port, self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0, exclusive=True)
+        ser = serial.Serial(resolve_port(self.port), self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0, exclusive=True)
         lock_exclusive(ser)
         return ser
 
