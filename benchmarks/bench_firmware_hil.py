@@ -2,7 +2,7 @@
 Python virtual boards of the simulated rig (ratios, one run).
 
 - Modbus round trip of DrumClient.read_status() (13 input registers) and of a one-register write: firmware under
-  simavr vs rigctl.simulation.virtual_mega, against the wire's own floor (request + t3.5 + reply at 115200 baud).
+  simavr vs rigctl.simulation.virtual_mega, against the wire's own floor (request + t3.5 + reply at the link's rate, wire.DRUM_BAUD).
 - Taxel stream: frames/s received by TaxelStream over --seconds, firmware vs virtual Uno (target 1000, zero lost).
 - Uno sampler ISR cycles per 1 ms tick (probe pins timed by the harness), against the tick's 16000 cycles.
 
@@ -16,11 +16,13 @@ import json
 import statistics
 import time
 
+from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.devices.wire import HoldingRegister as HR
 
-WIRE_FLOOR_MS = {"read_status": (8 + 31) * 11 / 115.2 + 1.75, "write_1": (8 + 8) * 11 / 115.2 + 1.75}
+_KBAUD = wire.DRUM_BAUD / 1000  # bits per ms; 11 bit times a byte in simavr, t3.5 = 1.75 ms above 19200 baud
+WIRE_FLOOR_MS = {"read_status": (8 + 31) * 11 / _KBAUD + 1.75, "write_1": (8 + 8) * 11 / _KBAUD + 1.75}
 
 
 def measure(rig, seconds: float) -> dict:

@@ -150,7 +150,9 @@ def test_uno_commands(tables, h):
 
 # ------------------------------------------------------------------------------------------------ Modbus
 def test_modbus_link(spec_text, h):
-    assert "**115200 baud 8N1**" in spec_text and wire.DRUM_BAUD == h["RIGCTL_DRUM_BAUD"] == 115200
+    assert f"**{wire.DRUM_BAUD} baud 8N1**" in spec_text and wire.DRUM_BAUD == h["RIGCTL_DRUM_BAUD"]
+    # exact at 16 MHz: the UART divides the clock by 16 x (UBRR + 1) (8 x with U2X), with no remainder
+    assert 16_000_000 % (16 * wire.DRUM_BAUD) == 0 and wire.DRUM_BAUD > 19200  # t3.5 = 1.75 ms above 19200
     assert "**device id 1**" in spec_text and wire.DRUM_DEVICE_ID == h["RIGCTL_DRUM_DEVICE_ID"] == 1
     for fc, name in ((3, "READ_HOLDING"), (4, "READ_INPUT"), (6, "WRITE_SINGLE"), (16, "WRITE_MULTIPLE")):
         assert f"{fc:02d} (" in spec_text and h[f"RIGCTL_MB_FC_{name}"] == fc

@@ -52,7 +52,7 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
     """Start the simulated rig: a virtual drum controller (Modbus RTU) and taxel streamer on two serial ports.
 
     Prints the two port paths, then runs until Ctrl-C. Any client can talk to them, e.g.
-    `mbpoll -m rtu -a 1 -b 115200 -P none -t 3 -r 1 -c 13 -1 DRUM_PORT`.
+    `mbpoll -m rtu -a 1 -b 500000 -P none -t 3 -r 1 -c 13 -1 DRUM_PORT`.
     """
     if ctx.invoked_subcommand is not None:
         return
@@ -93,7 +93,7 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
     with rig:
         if texture is not None:
             rig.set_texture(texture, textures)
-        click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 115200 8N1, device id 1)")
+        click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 500000 8N1, device id 1)")
         click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
         replaying = ", replaying " + replay_dir if replay_dir else ""
         click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{replaying}. Ctrl-C stops.")

@@ -244,7 +244,7 @@ class DrumClient:
         Serial device (e.g. ``/dev/rigctl-drum``, ``/dev/ttyACM0`` or the simulated rig's ``drum_port``), or
         ``serial:<USB serial number>``, looked up at every (re)open (:func:`rigctl.devices.ports.resolve_port`).
     baudrate : int
-        115200 by default (spec section 2).
+        :data:`rigctl.devices.wire.DRUM_BAUD` (500000, exact at 16 MHz) by default (spec section 2).
     device_id : int
         Modbus device id, 1.
     timeout_s : float

@@ -197,12 +197,15 @@ class HilRig:
     Attributes
     ----------
     drum_port, taxel_port : str
-        ``/dev/pts/N`` of the Mega (Modbus RTU 115200 8N1, device 1) and of the Uno (1,000,000 baud).
+        ``/dev/pts/N`` of the Mega (Modbus RTU 500000 8N1, device 1) and of the Uno (1,000,000 baud).
     telemetry : Telemetry or None
         Latest report of the Mega harness (every 50 ms of simulated time).
     isr : dict
         Latest ``ISR`` report of the Uno harness: ``sampler_cycles_per_tick``, ``sampler_max_per_tick``,
         ``tx_cycles_per_tick``, ``tx_max_per_tick`` (CPU cycles per 1 ms tick, timed on probe pins).
+    boot_times_s, uno_boot_times_s : deque of float
+        With ``bootloaders``: how long each bootloader run held the Mega / the Uno before the sketch started, s of
+        simulated time (the harness's ``APP`` lines).
     mux : dict
         Latest ``MUX`` report of the Uno harness (every simulated second): ``settle_err_window_lsb`` (largest
         difference, in LSB, between the voltage a conversion sampled and the settled value of the taxel it converted,
@@ -224,6 +227,7 @@ class HilRig:
         self.tel_ms = float(tel_ms)
         self.bootloaders = bool(bootloaders)
         self.boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
+        self.uno_boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.mux: dict[str, float] = {}
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
@@ -265,10 +269,12 @@ class HilRig:
 
     @property
     def drum_boot_wait_s(self) -> float:
-        """``boot_wait_s`` a :class:`~rigctl.devices.drum.DrumClient` of this rig needs (0 without bootloaders)."""
-        from rigctl.devices.drum import MEGA_BOOT_WAIT_S
+        """``boot_wait_s`` a :class:`~rigctl.devices.drum.DrumClient` of this rig needs (0 without bootloaders): the
+        simulated stk500v2 window plus 0.25 s (it is exact here: no clone's clock error, no USB latency, which
+        :data:`~rigctl.devices.drum.MEGA_BOOT_WAIT_S` allows for on hardware), in the Mega's simulated time."""
+        from rigctl.devices.drum import MEGA_BOOT_WINDOW_S
 
-        return MEGA_BOOT_WAIT_S if self.bootloaders else 0.0
+        return MEGA_BOOT_WINDOW_S + 0.25 if self.bootloaders else 0.0
 
     @property
     def drum_boot_quiet_s(self) -> float:
@@ -491,6 +497,8 @@ class HilRig:
     def _on_uno_line(self, line: str) -> None:
         if line.startswith("ISR "):
             self.isr = _parse_kv(line)
+        elif line.startswith("APP "):
+            self.uno_boot_times_s.append(_parse_kv(line)["boot_s"])
         elif line.startswith("MUX "):
             self.mux = _parse_kv(line)
         elif line.startswith("OK taxel_ohm") or line.startswith("ERR taxel_ohm"):

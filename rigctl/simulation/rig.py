@@ -68,7 +68,7 @@ class SimulatedRig:
     Attributes
     ----------
     drum_port, taxel_port : str
-        Paths to open (Modbus RTU 115200 8N1 device 1; taxel stream 1,000,000 baud).
+        Paths to open (Modbus RTU 500000 8N1 device 1; taxel stream 1,000,000 baud).
     model : RigModel
     mega : VirtualMega
     uno : VirtualUno

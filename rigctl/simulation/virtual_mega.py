@@ -9,7 +9,7 @@ watchdog (any valid request to device 1 feeds it), the 10 ms heartbeat, tare, ho
 registers kept in an emulated EEPROM (in memory, or a JSON file).
 
 The logic is :class:`rigctl.simulation.controller.MegaController` (shared with the in-process backend); the
-Modbus side is pymodbus' own :class:`pymodbus.server.ModbusSerialServer` (RTU framer, device id 1, 115200 8N1)
+Modbus side is pymodbus' own :class:`pymodbus.server.ModbusSerialServer` (RTU framer, device id 1, 500000 8N1)
 on one end of a :class:`rigctl.simulation.pty.PtyBridge`; the client opens :attr:`VirtualMega.path`. The physics is
 :class:`rigctl.simulation.model.RigModel` (drum step rate and actuator velocity in, load cell and drum state out);
 whoever owns the simulation clock calls :meth:`VirtualMega.step` (the rig's physics thread), or
@@ -145,7 +145,7 @@ class VirtualMega(MegaController):
     # ------------------------------------------------------------------ lifecycle
     @property
     def path(self) -> str:
-        """The path a Modbus master opens (115200 8N1, RTU, device id 1)."""
+        """The path a Modbus master opens (500000 8N1, RTU, device id 1)."""
         return self.bridge.client_path
 
     def start(self, *, clock: bool = True, control_period_s: float = 0.005) -> "VirtualMega":

@@ -36,7 +36,7 @@ class Controller:
     Attributes
     ----------
     name : "sim" or "hil"
-    port : the Modbus RTU port (115200 8N1, device id 1)
+    port : the Modbus RTU port (500000 8N1, device id 1)
     place_mass : ``g -> None``, an external force of ``g`` g on the load cell (0 removes it)
     actuator_mm : ``() -> mm``, where the actuator physically is (the physics model, or the harness's step count)
     load_g : ``() -> g``, the force physically on the load cell (the model's reading, or the harness's spring)

@@ -38,7 +38,7 @@ def sim_process(tmp_path_factory):
 def mbpoll(*args) -> subprocess.CompletedProcess:
     if MBPOLL is None:
         pytest.fail("mbpoll is not installed (Debian package mbpoll)")
-    return subprocess.run([MBPOLL, "-m", "rtu", "-a", "1", "-b", "115200", "-P", "none", "-o", "0.5", *args],
+    return subprocess.run([MBPOLL, "-m", "rtu", "-a", "1", "-b", str(wire.DRUM_BAUD), "-P", "none", "-o", "0.5", *args],
                           capture_output=True, text=True, timeout=20)
 
 

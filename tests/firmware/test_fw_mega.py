@@ -74,7 +74,7 @@ def mbpoll(port, *args, values=()) -> subprocess.CompletedProcess:
     """mbpoll as a Modbus RTU master on ``port`` (0-based register numbers, ``-0``); ``values`` are written."""
     if MBPOLL is None:
         pytest.fail("mbpoll is not installed (Debian package mbpoll)")
-    return subprocess.run([MBPOLL, "-m", "rtu", "-a", "1", "-b", "115200", "-P", "none", "-o", "1", "-0", *args,
+    return subprocess.run([MBPOLL, "-m", "rtu", "-a", "1", "-b", str(wire.DRUM_BAUD), "-P", "none", "-o", "1", "-0", *args,
                            port, *map(str, values)], capture_output=True, text=True, timeout=20)
 
 
@@ -124,7 +124,7 @@ def test_malformed_requests_get_exceptions_never_a_hang(hil_rig):
     """What only the firmware can do (it frames requests by t3.5 silence, the virtual Mega's pymodbus server by
     length): a truncated request with a valid CRC gets exception 03, and line noise is survived. Functions, CRC,
     other devices, broadcast and length errors of whole frames: tests/conformance, for both controllers."""
-    with serial.Serial(hil_rig.drum_port, 115200, timeout=0.2) as ser:
+    with serial.Serial(hil_rig.drum_port, wire.DRUM_BAUD, timeout=0.2) as ser:
         before = _transact(ser, _frame(1, 3, 0, 0, 0, 2), expect=9)
         assert len(before) == 9 and before[:3] == bytes([1, 3, 4])
         assert _transact(ser, _frame(1, 3, 0, 0, 0)) == _frame(1, 0x83, 3)  # truncated request, valid CRC
@@ -149,9 +149,10 @@ def test_modbus_round_trip_time(hil_rig):
             d.read_status()
         rtt = (time.perf_counter() - t0) / n
     print(f"Modbus round trip (read 13 input registers, pymodbus <-> firmware under simavr): {rtt * 1e3:.1f} ms")
-    # simavr times every byte from UBRR: no round trip beats the wire (request 8 B + t3.5 + reply 31 B at 115200
-    # baud, 11 bit times a byte in simavr = 5.5 ms). Upper bounds are benchmarks/bench_firmware_hil.py's business.
-    assert rtt > 0.005
+    # simavr times every byte from UBRR: no round trip beats the wire (request 8 B + t3.5 (1.75 ms above 19200 baud)
+    # + reply 31 B, 11 bit times a byte in simavr: 2.6 ms at 500000 baud). Upper bounds are
+    # benchmarks/bench_firmware_hil.py's business.
+    assert rtt > (8 + 31) * 11 / wire.DRUM_BAUD + 1.75e-3
 
 
 def test_calibration_survives_a_reset_only_when_saved(hil_rig):

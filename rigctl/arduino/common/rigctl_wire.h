@@ -55,7 +55,8 @@
 #define RIGCTL_UNO_IDENTITY "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"
 
 /* ---- 2. Drum controller (Mega), Modbus RTU ------------------------------------------------------------- */
-#define RIGCTL_DRUM_BAUD             115200UL
+/* 500000 baud: exact at 16 MHz (UBRR = 1), and on the 16U2 bridge; 115200 was +2.1 % off (docs/wire-protocol.md) */
+#define RIGCTL_DRUM_BAUD             500000UL
 #define RIGCTL_DRUM_DEVICE_ID        1
 #define RIGCTL_MEGA_FW_MAJOR         1
 #define RIGCTL_MEGA_FW_MINOR         0

@@ -2,7 +2,7 @@
  * mega_drum.cpp - Arduino Mega 2560 (ATmega2560, 16 MHz) drum controller: the hardware glue around the pure
  * logic (controller.c, modbus_slave.c, steprate.c, force_pi.c). docs/wire-protocol.md section 2.
  *
- *   UART0   Modbus RTU slave at 115200 8N1 (U2X), receive and transmit interrupt driven
+ *   UART0   Modbus RTU slave at 500000 8N1 (UBRR = 1, 16x sampling: exact), receive and transmit interrupt driven
  *   Timer4  t3.5 frame timer: restarted by every received byte, its compare match (1.75 ms) ends the frame
  *   Timer2  1 kHz control tick (CTC, /64, OCR2A = 249)
  *   Timer1  drum step generator: CTC, its compare interrupt makes one STEP pulse and loads the next period,
@@ -26,6 +26,12 @@
 #include "drum_config.h"
 #include "modbus_slave.h"
 #include "steprate.h"
+
+/* the Modbus link's UART divisor: exact or refused at build time (a rate the clock cannot divide into drifts) */
+#define MEGA_UBRR ((uint16_t)(F_CPU / (16UL * RIGCTL_DRUM_BAUD) - 1))
+#if F_CPU % (16UL * RIGCTL_DRUM_BAUD) != 0
+#error "RIGCTL_DRUM_BAUD is not exact at F_CPU with 16x sampling"
+#endif
 
 static ctl_t ctl;
 static mb_slave_t mb;
@@ -362,9 +368,9 @@ void setup(void)
     PIN_HX_SCK_DDR |= (1 << PIN_HX_SCK_BIT);
     PIN_INDEX_DDR |= (1 << PIN_INDEX_BIT);
 
-    /* UART0 115200 8N1, U2X: UBRR = 16 (as the Arduino core) */
-    UCSR0A = (1 << U2X0);
-    UBRR0 = 16;
+    /* UART0 500000 8N1: UBRR = F_CPU / (16 x baud) - 1 = 1, exact (115200 would be UBRR 16 with U2X: +2.1 %) */
+    UCSR0A = 0;
+    UBRR0 = MEGA_UBRR;
     UCSR0C = (1 << UCSZ01) | (1 << UCSZ00);
     UCSR0B = (1 << RXEN0) | (1 << TXEN0) | (1 << RXCIE0);
     /* Timer4: t3.5 = 1.75 ms = 437.5 ticks of 4 us */
