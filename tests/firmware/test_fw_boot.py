@@ -106,6 +106,7 @@ def test_thirty_openings_at_random_moments_all_connect(boot_rig):
     print(f"30/30 openings connected; time to the first answer (Mega's simulated time): median {np.median(first):.2f}"
           f" s, min {first.min():.2f} s, max {first.max():.2f} s; {len(boots)} boot windows {boots.min():.3f}-"
           f"{boots.max():.3f} s; load {open('/proc/loadavg').read().split()[0]}")
+    print("  per opening (s): " + " ".join(f"{v:.2f}" for v in first))
     assert len(first) == 30
     # never trapped: no opening took the bootloader's 5 s programming-mode timeout
     assert len(boots) >= 30 and boots.max() < 1.0
