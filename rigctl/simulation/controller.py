@@ -40,6 +40,9 @@ _TRUE_ACTUATOR_STEPS_PER_MM = wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2]
 _ENGAGED = (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING)
 _CALIBRATION = (HR.LOADCELL_SCALE_X100, HR.ACTUATOR_STEPS_PER_MM)
 LOADCELL_TIMEOUT_MS = 200
+#: the force loop's output clamp, mm/s: the firmware's ACT_MAX_SPEED_MM_S (drum_config.h; equal by
+#: tests/test_wire_spec.py)
+FORCE_LOOP_MAX_SPEED_MM_S = 5.0
 
 
 def _u16(x: float) -> int:
@@ -419,7 +422,7 @@ class MegaController:
         slow = h[HR.HX711_RATE_SPS] < 40
         kp = h[HR.FORCE_KP_10SPS_NMS_G if slow else HR.FORCE_KP_80SPS_NMS_G] * 1e-6
         ki = h[HR.FORCE_KI_10SPS_NMS_GS if slow else HR.FORCE_KI_80SPS_NMS_GS] * 1e-6
-        vmax = self.model.config.mechanics.actuator_max_speed_mm_s
+        vmax = FORCE_LOOP_MAX_SPEED_MM_S
         e = setpoint_g - force_g
         integ = self._integ + ki * e * self._hx_period_s if abs(e) < FORCE_PI_INTEGRATE_BAND_G else self._integ
         out = kp * e + integ

@@ -81,3 +81,41 @@ def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path):
         assert st.faults == Fault(0) and st.hx711_rate_sps == pytest.approx(10, rel=0.02)
         rig.press(500, timeout_s=30)
         assert rig.drum.read_status().state == DrumState.FORCE_SETTLED
+
+
+@pytest.mark.hil
+def test_under_simavr_a_driver_at_8_microsteps_flags_the_trial(tmp_path):
+    """The same check on the real firmware (both boards under simavr): the Mega's index sensor input follows the
+    harness's real drum, the trial attributes flag the mismatch."""
+    import time
+
+    from rigctl import firmware
+    from rigctl.core.drum import DrumState
+
+    try:
+        firmware.build()
+    except firmware.FirmwareBuildError as exc:
+        pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")
+    proto = parse_protocol('name = "index-hil"\ntextures = ["A"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+                           'trials_per_condition = 1\nduration_s = 1.0\n[settle]\nsettle_time_ms = 50\n')
+    out = tmp_path / "s.h5"
+    with open_rig("hil", config=RigConfig(drum=DrumConfig(driver_microsteps=8)),
+                  host_config_path=tmp_path / "rig.json") as rig:
+        # two sensor edges first, so the steps per revolution are known (1.3 s per revolution at 240 mm/s real)
+        rig.drum.set_force(300)
+        rig.drum.set_speed(120)
+        rig.drum.run()
+        deadline = time.monotonic() + 120  # simavr falls behind real time on a loaded machine
+        st = rig.drum.read_status()
+        while st.index_count < 2:
+            assert time.monotonic() < deadline and st.state == DrumState.RUNNING, st
+            time.sleep(0.2)
+            st = rig.drum.read_status()
+        rig.drum.stop()
+        summary = run_protocol(proto, out, rig=rig)
+    assert summary.ok
+    with open_session(out) as s:
+        a = s.trial_attrs(0)
+    assert a["index_source"] == "sensor" and a["drum_speed_mismatch"]
+    assert a["drum_steps_per_rev_index"] == pytest.approx(1600, abs=2)
+    assert a["drum_speed_index_mm_s"] == pytest.approx(240, rel=0.03)
