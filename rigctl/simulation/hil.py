@@ -209,7 +209,9 @@ class HilRig:
     mux : dict
         Latest ``MUX`` report of the Uno harness (every simulated second): ``settle_err_window_lsb`` (largest
         difference, in LSB, between the voltage a conversion sampled and the settled value of the taxel it converted,
-        over the last second), ``settle_err_max_lsb`` (since start), ``conversions``.
+        over the last second), ``settle_err_max_lsb`` (since start), ``conversions``, ``scan_us_window`` /
+        ``scan_us_max`` (longest scan, first ADSC to the end of the last conversion, us, over the last second / since
+        start).
     """
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,

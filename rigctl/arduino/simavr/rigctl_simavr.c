@@ -401,7 +401,8 @@ static uint16_t taxel_value(size_t row, int taxel)
  * an injected value comes back exact exactly when the settling error stays below 0.5 LSB; voltages go to simavr in
  * units of 0.1 mV (AVCC given as 50000). The taxels' source values change once per scan, when its last conversion
  * has been started (the row swap below). "MUX ..." lines report the largest settling error (sampled voltage minus
- * the settled value of the taxel being converted, in LSB) per second of simulated time. */
+ * the settled value of the taxel being converted, in LSB) per second of simulated time, and the longest scan (the
+ * first conversion's ADSC, i.e. the tick, to the end of the last conversion, us: it must end inside the 1 ms tick). */
 #define MUX_N 3
 #define ADC_UNITS_PER_MV 10.0 /* ADC injection units (0.1 mV) */
 #define M328_ADCSRA 0x7A      /* ATmega328P data-space addresses */
@@ -419,6 +420,8 @@ static uint64_t adc_conv_end;        /* cycle the running conversion ends */
 static int adc_first_conv = 1;       /* the first conversion after reset takes 25 ADC clocks, samples at 13.5 */
 static double mux_err_max_lsb, mux_err_window_lsb;
 static uint64_t mux_conversions;
+static uint64_t scan_first_cycle;           /* ADSC of the scan's first conversion (the tick interrupt's start) */
+static double scan_us_window, scan_us_max;  /* longest scan: first ADSC to the end of the last conversion, us */
 
 static double lsb_mv(void)
 {
@@ -515,6 +518,12 @@ static uint32_t mux_sample(int src, int taxel)
     double err = fabs(v - taxel_source_mv(scan_row, taxel)) / lsb_mv();
     if (err > mux_err_window_lsb) mux_err_window_lsb = err;
     mux_conversions++;
+    if (src == 0 && mux_sel == 0) scan_first_cycle = now;
+    if (src == 2 && mux_sel == 5 && scan_first_cycle) {
+        double us = (double)(adc_conv_end - scan_first_cycle) * 1e6 / avr->frequency;
+        if (us > scan_us_window) scan_us_window = us;
+        scan_first_cycle = 0;
+    }
     double units = v * ADC_UNITS_PER_MV;
     if (units < 0.0) units = 0.0;
     if (units > 65535.0) units = 65535.0;
@@ -527,6 +536,7 @@ static void mux_after_reset(void)
     sh_pending = -1;
     adc_conv_end = 0;
     adc_first_conv = 1;
+    scan_first_cycle = 0;
     for (int m = 0; m < MUX_N; m++) node_cycle[m] = avr->cycle; /* the analog nodes keep their charge */
 }
 
@@ -540,9 +550,12 @@ static void mux_setup(void)
 static void mux_report(void)
 {
     if (mux_err_window_lsb > mux_err_max_lsb) mux_err_max_lsb = mux_err_window_lsb;
-    printf("MUX t=%.3f settle_err_max_lsb=%.4f settle_err_window_lsb=%.4f conversions=%llu\n", sim_s(),
-           mux_err_max_lsb, mux_err_window_lsb, (unsigned long long)mux_conversions);
+    if (scan_us_window > scan_us_max) scan_us_max = scan_us_window;
+    printf("MUX t=%.3f settle_err_max_lsb=%.4f settle_err_window_lsb=%.4f conversions=%llu scan_us_window=%.1f "
+           "scan_us_max=%.1f\n", sim_s(), mux_err_max_lsb, mux_err_window_lsb, (unsigned long long)mux_conversions,
+           scan_us_window, scan_us_max);
     mux_err_window_lsb = 0.0;
+    scan_us_window = 0.0;
 }
 
 /* stdin "taxel_ohm I OHM" (I = -1: every taxel) */
