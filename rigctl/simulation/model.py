@@ -254,7 +254,9 @@ class MechanicsConfig:
     contact_gap_mm : float
         Actuator travel from home to first contact of drum and sensor, mm.
     contact_stiffness_g_per_mm : float
-        Spring between actuator and sensor contact (sensor pad + mount compliance), g per mm of travel past contact.
+        Spring between actuator and sensor contact (sensor pad + mount compliance), g per mm of travel past contact:
+        250 by default, the soft end of the 250-2000 g/mm (0.25-2 kg/mm) the firmware's default force-loop gains
+        are tuned for (docs/firmware.md, "Force loop: step responses with the HX711's delay").
     actuator_max_speed_mm_s : float
         Actuator speed limit, mm/s (commands beyond it are clipped).
     actuator_travel_mm : float
