@@ -17,6 +17,7 @@ import click
 from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
+from rigctl.cli.ranges import SEED
 
 #: --plates choices (see the option's help)
 PLATE_POLICIES = ("prompt", "auto", "skip")
@@ -101,7 +102,7 @@ def _held_rig_warnings():
 @click.option("--resume", is_flag=True, default=False,
               help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice).")
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
-@click.option("--seed", type=int, default=None,
+@click.option("--seed", type=SEED, default=None,
               help="Seed of the simulated rig, and of a protocol's random trial order.")
 @click.option("--on-failure", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
               help="What to do after a failed trial (timeout, fault).")
@@ -143,7 +144,7 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
     if resume and not out.exists():
-        raise click.ClickException(f"{out} does not exist: nothing to resume")
+        raise UsageProblem(f"--resume: {out} does not exist: nothing to resume")
     check_output(out, overwrite=overwrite or resume, inputs=(protocol, replay, config_path),
                  overwrite_hint="continue it with --resume, or pass --overwrite")
     hardware = drum_port is not None
@@ -156,8 +157,8 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
         raise click.ClickException(f"{exc} (fix it, or give another file with --config)") from None
     try:
         proto = load_protocol(protocol)
-    except ProtocolError as exc:
-        raise click.ClickException(str(exc)) from None
+    except ProtocolError as exc:  # the command's argument: a usage error
+        raise UsageProblem(str(exc)) from None
     if seed is not None and isinstance(proto, Protocol):
         proto = proto.with_seed(seed)
     if hardware and plates == "skip":

@@ -12,6 +12,7 @@ import click
 
 from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, require_dask, same_file
 from rigctl.cli.progress import bars
+from rigctl.cli.ranges import SEED, WORKERS
 
 TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all", "variance")
 
@@ -157,13 +158,13 @@ def _format_leak(leak) -> str:
               help="Analysis: Fig. 3A textures, 3B groups, 3C-F extrapolation, speed-only extrapolation, Fig. 4 "
                    "real-time; 'all' = the six rows of Table 1.")
 @click.option("--pcs", default="1-50", show_default=True, help="PC counts 1-N (PCA fitted once per split).")
-@click.option("--repeats", type=click.IntRange(1), default=20, show_default=True, help="Repetitions per task.")
+@click.option("--repeats", type=click.IntRange(1, 10_000), default=20, show_default=True, help="Repetitions per task.")
 @click.option("--variants", default=None, help="Comma-separated variants (default: all in the file).")
-@click.option("--per-texture", type=click.IntRange(2), default=500, show_default=True,
+@click.option("--per-texture", type=click.IntRange(2, 10_000_000), default=500, show_default=True,
               help="Trials drawn per texture for textures/groups (scaled down when the data has fewer).")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--table1", "table1_", is_flag=True, help="Print the paper's Table 1 layout (implies --task all).")
-@click.option("--table-pcs", type=click.IntRange(1), default=50, show_default=True, help="PC count of the table.")
+@click.option("--table-pcs", type=click.IntRange(1, 100_000), default=50, show_default=True, help="PC count of the table.")
 @click.option("--compare-paper", is_flag=True, help="Show the paper's Table 1 values beside ours.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
@@ -179,7 +180,7 @@ def _format_leak(leak) -> str:
 @click.option("--baseline", type=click.Choice(["keep", "remove", "both"]), default="keep", show_default=True,
               help="Per-trial, per-spike-train level removal before PCA (FabricSlide: the level alone separates "
                    "fabrics); 'both' reports both.")
-@click.option("--channels", type=int, default=None,
+@click.option("--channels", type=click.IntRange(1, 1_000_000), default=None,
               help="Spike trains per trial (for --baseline; default from the file's sensor layout: SA/RA x taxels).")
 @click.option("--new-session", type=click.Path(exists=True, dir_okay=False), default=None,
               help="realtime: an encoded second session, classified after mean-centering calibration.")
@@ -193,16 +194,16 @@ def _format_leak(leak) -> str:
                    "(re-encodes the session per fold).")
 @click.option("--model-variant", default="speed_scaled", show_default=True,
               help="Feature variant of the saved model (its pipeline: normalise, [force,] encode, features, PCA+LDA).")
-@click.option("--model-pcs", type=click.IntRange(1), default=25, show_default=True)
+@click.option("--model-pcs", type=click.IntRange(1, 100_000), default=25, show_default=True)
 @click.option("--encode", "encode_", is_flag=True, help="If FILE is a session file, encode it first.")
-@click.option("--threads", type=click.IntRange(1), default=None,
+@click.option("--threads", type=WORKERS, default=None,
               help="Limit BLAS threads and repetitions at a time to N (busy machines).")
-@click.option("--jobs", type=click.IntRange(1), default=None,
+@click.option("--jobs", type=WORKERS, default=None,
               help="Repetitions run side by side in this process (default: one per core, at most --threads).")
 @click.option("--scheduler", default=None,
               help="Run the repetitions on a Dask cluster: scheduler address (tcp://host:8786), or 'local' for a "
                    "local cluster of --workers processes.")
-@click.option("--workers", type=click.IntRange(1), default=None, help="Worker processes for --scheduler local.")
+@click.option("--workers", type=WORKERS, default=None, help="Worker processes for --scheduler local.")
 @click.option("--variance", is_flag=True,
               help="Also print where the feature variance lies (texture, condition, interaction, residual; per "
                    "variant). --task variance prints only that.")

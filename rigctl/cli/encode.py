@@ -6,8 +6,9 @@ from pathlib import Path
 
 import click
 
-from rigctl.cli.outputs import check_output, require_dask
+from rigctl.cli.outputs import UsageProblem, check_output, require_dask
 from rigctl.cli.progress import bars
+from rigctl.cli.ranges import MAX_WINDOWS, WORKERS
 from rigctl.storage.encoded import ALL_VARIANTS
 
 
@@ -18,9 +19,38 @@ def _windows_scaled(ctx, param, value):
         n = int(value)
     except ValueError:
         raise click.BadParameter(f"{value!r} is neither a count nor 'longest'") from None
-    if n < 1:
-        raise click.BadParameter(f"{n} is not >= 1")
+    if not 1 <= n <= MAX_WINDOWS:
+        raise click.BadParameter(f"{n} is not in the range 1<=x<={MAX_WINDOWS}")
     return n
+
+
+def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, windows_scaled, store_spikes):
+    """Refuse, before any work, an encoding whose output does not fit the disk or whose batch does not fit the
+    memory (:func:`rigctl.encoding.sizing.estimate_encode`), naming the option and the figure (exit 2)."""
+    from rigctl.encoding.sizing import available_memory_bytes, estimate_encode
+    from rigctl.storage.encoded import MAIN_VARIANTS
+    from rigctl.storage.outputs import free_bytes, size_text
+    from rigctl.storage.session import SessionError, open_session
+
+    try:
+        with open_session(session) as s:
+            est = estimate_encode(s, window_s=window_s, n_windows_unscaled=windows_unscaled,
+                                  n_windows_scaled=windows_scaled, variants=variants, batch_trials=batch,
+                                  store_spikes=MAIN_VARIANTS if store_spikes else ())
+    except SessionError as exc:
+        raise click.ClickException(str(exc)) from None
+    what = (f"--windows-unscaled {windows_unscaled}" if windows_unscaled else
+            f"--window-ms {window_s * 1000:g}" if window_s < 0.1 else "--out")
+    free = free_bytes(out.parent if str(out.parent) else ".")
+    if free is not None and est.out_bytes > free + (out.stat().st_size if out.is_file() else 0):
+        raise UsageProblem(f"{what}: the encoded file would be about {size_text(est.out_bytes)} "
+                           f"({est.n_trials} trials, {est.n_windows_unscaled} unscaled windows), {size_text(free)} "
+                           f"free in {out.parent}")
+    mem = available_memory_bytes()
+    if mem is not None and est.batch_bytes > mem:
+        raise UsageProblem(f"--batch {batch}: one batch needs about {size_text(est.batch_bytes)} of memory "
+                           f"({est.n_windows_unscaled} unscaled windows), {size_text(mem)} available: lower --batch"
+                           + (" or --windows-unscaled" if windows_unscaled else ""))
 
 
 @click.command("encode")
@@ -31,15 +61,15 @@ def _windows_scaled(ctx, param, value):
 @click.option("--scheduler", default=None,
               help="Dask scheduler address (tcp://host:8786), or 'local' for a local cluster; default: this "
                    "process, numba on all cores.")
-@click.option("--workers", type=int, default=None, help="Worker processes for --scheduler local.")
-@click.option("--batch", "batch", type=click.IntRange(min=1), default=256, show_default=True,
+@click.option("--workers", type=WORKERS, default=None, help="Worker processes for --scheduler local.")
+@click.option("--batch", "batch", type=click.IntRange(1, 100_000), default=256, show_default=True,
               help="Trials per batch.")
 @click.option("--variant", "variants", multiple=True, type=click.Choice(ALL_VARIANTS),
               help="Variant to compute (repeatable); default: all (speed-scaled ones are skipped, with a warning, "
                    "when some trials have no speed).")
-@click.option("--window-ms", type=click.FloatRange(min=0, min_open=True), default=100.0, show_default=True,
+@click.option("--window-ms", type=click.FloatRange(0, 60_000, min_open=True), default=100.0, show_default=True,
               help="Feature window length, ms.")
-@click.option("--windows-unscaled", type=click.IntRange(min=1), default=None,
+@click.option("--windows-unscaled", type=click.IntRange(1, MAX_WINDOWS), default=None,
               help="Windows per spike train of the unscaled variants (original, force_scaled); default: enough "
                    "for the longest trial in the session.")
 @click.option("--windows-scaled", default="20", show_default=True, callback=_windows_scaled,
@@ -60,6 +90,8 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
 
     out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,))
     require_dask(scheduler, otherwise="encode in this process")
+    _check_sizes(session, out, variants=list(variants) or None, batch=batch, window_s=window_ms / 1000.0,
+                 windows_unscaled=windows_unscaled, windows_scaled=windows_scaled, store_spikes=not no_spikes)
     import warnings
 
     try:

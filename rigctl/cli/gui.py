@@ -21,7 +21,7 @@ SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Save a PNG of the main window before quitting (with --quit-after).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --screenshot file.")
-@click.option("--quit-after", type=click.FloatRange(min=0), default=None, help="Quit after this many seconds.")
+@click.option("--quit-after", type=click.FloatRange(0, 1e6), default=None, help="Quit after this many seconds.")
 @click.option("--tab", type=click.Choice(["control", "live", "protocol", "analysis", "calibration", "classify"]),
               default=None, help="Tab to show first.")
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")

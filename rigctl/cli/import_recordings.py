@@ -8,23 +8,48 @@ import click
 
 from rigctl.cli.outputs import check_output
 from rigctl.cli.progress import bars
+from rigctl.cli.ranges import RATE_HZ
+
+
+def _checked_layout(ctx, param, value):
+    """--layout parsed before any work (a usage error, exit 2, naming the option); passed on as given."""
+    if value is not None:
+        from rigctl.core.sensor import parse_layout
+
+        try:
+            parse_layout(value)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc)) from None
+    return value
+
+
+def _checked_segment(ctx, param, value):
+    """--segment parsed before any work (a usage error, exit 2, naming the option); passed on as given."""
+    if value is not None:
+        from rigctl.storage.importers import parse_segment
+
+        try:
+            parse_segment(value)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc).removeprefix(f"--segment {value!r}: ")) from None
+    return value
 
 
 @click.command("import")
 @click.argument("files", nargs=-1, required=True, type=click.Path())
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
-@click.option("--rate", "rate_hz", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--rate", "rate_hz", type=RATE_HZ, default=None,
               help="Sample rate of the recordings, Hz (required unless the mapping or an NWB file gives it).")
-@click.option("--channels", type=click.IntRange(min=1), default=None, help="Taxel channels per sample.")
-@click.option("--layout", default=None, metavar="ROWSxCOLSxLAYERS",
+@click.option("--channels", type=click.IntRange(1, 1_000_000), default=None, help="Taxel channels per sample.")
+@click.option("--layout", default=None, metavar="ROWSxCOLSxLAYERS", callback=_checked_layout,
               help="Taxel grid, e.g. 3x3x1 (default: from the channel count; 18 -> the paper's 3x3x2).")
 @click.option("--label-pattern", default=None, metavar="PATTERN",
               help="File-name pattern naming texture, speed_mm_s, force_g, repeat, e.g. "
                    "'{texture}__V{speed_mm_s}__{rep}.csv'.")
 @click.option("--texture", default=None, help="Texture label of the files no pattern or mapping labels.")
-@click.option("--resample", "resample_hz", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--resample", "resample_hz", type=RATE_HZ, default=None,
               metavar="HZ", help="Resample to this rate (scipy.signal.resample_poly); recorded in the session.")
-@click.option("--segment", "segment_spec", default=None, metavar="METHOD",
+@click.option("--segment", "segment_spec", default=None, metavar="METHOD", callback=_checked_segment,
               help="Cut continuous recordings into trials: fixed:SECONDS[:HOP_S], "
                    "threshold:LEVEL[:MIN_S[:SMOOTH_S]] or cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]].")
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,

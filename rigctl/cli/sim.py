@@ -10,6 +10,8 @@ import threading
 
 import click
 
+from rigctl.cli.ranges import SEED
+
 #: the lines ``rigctl sim`` prints for its two ports
 PORT_LINE = re.compile(r"(drum|taxel) port:\s+(\S+)")
 
@@ -37,7 +39,7 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
 
 
 @click.group(invoke_without_command=True)
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the model's noise and drum angle.")
 @click.option("--texture", default=None,
               help="Texture plate mounted on the drum: a label of the paper's A-P (default A), or of the replayed "
                    "session's texture set (default: none mounted, the session streams in plan order).")

@@ -3,25 +3,47 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import click
 
-from rigctl.cli.outputs import check_output
+from rigctl.acquisition.protocol import MAX_PLAN_TRIALS
+from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
+from rigctl.cli.ranges import SEED, WORKERS_OR_0
+
+#: bytes a simulated trial stores per sample beyond its taxels: seq (2), flags (1), host_time_s (8)
+_SAMPLE_EXTRA_BYTES = 11
+
+
+def dataset_size(protocol, trials_per_condition=None) -> tuple[int | None, float | None]:
+    """(trials, bytes) of the dataset ``protocol`` renders, from its conditions without building the plan: the
+    paper's sensor (``rigctl sim dataset`` renders it), uncompressed taxels plus seq/flags/host time per sample and
+    the traces and HDF5 objects (~20 KiB a trial: the uncompressed paper dataset measured 4.4 GB)."""
+    from rigctl.core.sensor import PAPER_SENSOR
+
+    if not hasattr(protocol, "profiles"):  # a script protocol: its size is not known before it runs
+        return None, None
+    tpc = int(trials_per_condition or protocol.trials_per_condition)
+    per_condition = len(protocol.textures) * len(protocol.forces_g) * tpc
+    seconds = sum(protocol.trial_duration_s(p) for p in protocol.profiles) * per_condition
+    per_sample = PAPER_SENSOR.n_channels * 2 + _SAMPLE_EXTRA_BYTES
+    n_trials = per_condition * len(protocol.profiles)
+    return n_trials, seconds * PAPER_SENSOR.sample_rate_hz * per_sample + n_trials * 20 * 1024
 
 
 @click.command("dataset")
 @click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
-@click.option("--trials-per-condition", type=click.IntRange(min=1), default=None,
+@click.option("--trials-per-condition", type=click.IntRange(1, MAX_PLAN_TRIALS), default=None,
               help="Override the protocol's trials per condition (e.g. 10 for a reduced paper dataset).")
-@click.option("--seed", type=int, default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Dataset seed (trial i draws from SeedSequence([seed, i]); any --workers gives the same file).")
-@click.option("--workers", type=click.IntRange(min=0), default=None,
+@click.option("--workers", type=WORKERS_OR_0, default=None,
               help="Processes rendering trials while this one writes (default: cores - 1; 0: render here too).")
 @click.option("--compression", type=click.Choice(["none", "lzf", "gzip"]), default="none", show_default=True,
-              help="HDF5 compression of the taxels (none is fastest; the full paper dataset is then ~3 GB).")
+              help="HDF5 compression of the taxels (none is fastest; the full paper dataset is then ~4.4 GB).")
 @click.option("--start-at", "start_at", type=click.Choice(["index", "any-angle"]), default="index", show_default=True,
               help="Where each trial starts on the drum: at its index mark (trials of a texture phase-aligned, as "
                    "rigctl's rig records) or at an arbitrary angle (a rig whose recorder gets no index signal). "
@@ -37,18 +59,33 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
     Writes the same session layout as `rigctl acquire` (kind "simulated-dataset"), trial by trial, on all cores.
     """
     from rigctl.acquisition.protocol import ProtocolError, load_protocol
-    from rigctl.simulation.dataset import generate_dataset
-    from rigctl.simulation.model import RigConfig
 
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
+    if resume and not Path(out).exists():
+        raise UsageProblem(f"--resume: {out} does not exist: start it without --resume")
+    try:
+        loaded = load_protocol(protocol)
+    except ProtocolError as exc:
+        raise UsageProblem(str(exc)) from None
+    n_trials, need = dataset_size(loaded, trials_per_condition)
+    if n_trials is None:  # a script protocol: sized when it runs
+        pass
+    elif n_trials > MAX_PLAN_TRIALS:
+        raise UsageProblem(f"--trials-per-condition {trials_per_condition}: the plan would hold {n_trials} trials, "
+                           f"more than {MAX_PLAN_TRIALS}")
+    elif n_trials == 0:
+        raise UsageProblem(f"{protocol}: the protocol plans no trial (no textures, forces or speeds)")
     check_output(out, overwrite=overwrite or resume, inputs=(protocol,),
-                 overwrite_hint="continue it with --resume, or pass --overwrite")
+                 overwrite_hint="continue it with --resume, or pass --overwrite", need_bytes=None if resume else need)
+    from rigctl.simulation.dataset import generate_dataset  # the model, numba: after the checks
+    from rigctl.simulation.model import RigConfig
+
     config = RigConfig()
     config.drum.start_at_index = start_at == "index"
     try:
         with bars(not quiet) as progress:
-            summary = generate_dataset(load_protocol(protocol), out, trials_per_condition=trials_per_condition, seed=seed,
+            summary = generate_dataset(loaded, out, trials_per_condition=trials_per_condition, seed=seed,
                                        workers=workers, progress=progress, config=config,
                                        compression=None if compression == "none" else compression,
                                        overwrite=overwrite, resume=resume)

@@ -76,6 +76,7 @@ from rigctl.encoding.fused import run_fused
 from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
+from rigctl.encoding.sizing import windows_for
 from rigctl.encoding.speed import (
     REALTIME_REFERENCE_SPEED_MM_S,
     REFERENCE_SPEED_MM_S,
@@ -156,11 +157,6 @@ class EncodeParams:
         for name in ("n_windows_scaled", "n_windows_realtime", "n_windows_unscaled"):
             if getattr(self, name) is not None and int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
-
-
-def windows_for(duration_s: float, window_s: float = WINDOW_S) -> int:
-    """Windows of ``window_s`` covering ``duration_s`` (s): ``ceil(duration_s / window_s)``, at least 1."""
-    return max(1, int(math.ceil(round(float(duration_s) / float(window_s), 9))))
 
 
 # ---------------------------------------------------------------------------------------------------------- batch work

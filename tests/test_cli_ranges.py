@@ -1,0 +1,87 @@
+"""Every numeric option has a range checked before any work: absurd values exit 2 naming the option, in under a
+second (in process, imports done), and memory- or disk-sized work is estimated first and refused with the figure."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.storage.session import SessionWriter, TrialData
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    path = tmp_path_factory.mktemp("ranges") / "s.h5"
+    rng = np.random.default_rng(0)
+    plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=40.0, force_g=500.0, duration_s=0.1) for i in range(4)]
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 'r'") as w:
+        for i in range(4):
+            w.write_trial(i, TrialData(taxels=rng.integers(0, 1024, (100, 18)), seq=np.arange(100)))
+    return path
+
+
+def _refused(args, *needles, seconds=1.0):
+    runner = CliRunner()
+    runner.invoke(main, [str(a) for a in args])  # the command's imports done before the clock starts
+    t0 = time.monotonic()
+    r = runner.invoke(main, [str(a) for a in args])
+    took = time.monotonic() - t0
+    assert r.exit_code == 2, (args, r.exit_code, r.output)
+    assert "Traceback" not in r.output
+    for n in needles:
+        assert n in r.output, (args, r.output)
+    assert took < seconds, (args, took)
+    return r
+
+
+@pytest.mark.parametrize("args, option", [
+    (["encode", "{s}", "--out", "{d}/e.h5", "--workers", "-3", "--scheduler", "local"], "--workers"),
+    (["encode", "{s}", "--out", "{d}/e.h5", "--windows-unscaled", "1000000000000"], "--windows-unscaled"),
+    (["encode", "{s}", "--out", "{d}/e.h5", "--batch", "0"], "--batch"),
+    (["encode", "{s}", "--out", "{d}/e.h5", "--window-ms", "1e12"], "--window-ms"),
+    (["encode", "{s}", "--out", "{d}/e.h5", "--windows-scaled", "-4"], "--windows-scaled"),
+    (["sim", "dataset", "quick_check", "--out", "{d}/d.h5", "--trials-per-condition", "1000000000"],
+     "--trials-per-condition"),
+    (["sim", "dataset", "paper_dataset", "--out", "{d}/d.h5", "--trials-per-condition", "100000"],
+     "--trials-per-condition"),
+    (["sim", "dataset", "quick_check", "--out", "{d}/d.h5", "--seed", "-1"], "--seed"),
+    (["sim", "dataset", "quick_check", "--out", "{d}/d.h5", "--workers", "-2"], "--workers"),
+    (["sim", "dataset", "quick_check", "--out", "{d}/missing.h5", "--resume"], "--resume"),
+    (["acquire", "quick_check", "--out", "{d}/missing.h5", "--resume"], "--resume"),
+    (["acquire", "quick_check", "--out", "{d}/a.h5", "--seed", "-1"], "--seed"),
+    (["analyze", "{s}", "--seed", "-1"], "--seed"),
+    (["analyze", "{s}", "--repeats", "1000000000"], "--repeats"),
+    (["analyze", "{s}", "--jobs", "0"], "--jobs"),
+    (["import", "{s}", "--out", "{d}/i.h5", "--rate", "1e12"], "--rate"),
+    (["import", "{s}", "--out", "{d}/i.h5", "--rate", "100", "--layout", "0x0x0"], "--layout"),
+    (["import", "{s}", "--out", "{d}/i.h5", "--rate", "100", "--segment", "fixed:-1"], "--segment"),
+])
+def test_absurd_values_are_refused_at_once_naming_the_option(session, tmp_path, args, option):
+    _refused([a.format(s=session, d=tmp_path) for a in args], option)
+    assert not [p for p in tmp_path.iterdir() if p.suffix in (".h5", ".part")]
+
+
+def test_an_empty_protocol_is_a_usage_error(tmp_path):
+    proto = tmp_path / "empty.toml"
+    proto.write_text('name = "empty"\ntextures = []\n')
+    _refused(["acquire", proto, "--out", tmp_path / "a.h5"], "textures")
+    _refused(["sim", "dataset", proto, "--out", tmp_path / "d.h5"], "textures")
+
+
+def test_disk_and_memory_sized_work_is_refused_with_the_figure(session, tmp_path, monkeypatch):
+    import rigctl.encoding.sizing as sizing
+    import rigctl.storage.outputs as outputs
+
+    monkeypatch.setattr(outputs, "free_bytes", lambda folder: 10_000)  # a nearly full disk
+    r = _refused(["encode", session, "--out", tmp_path / "e.h5", "--windows-unscaled", "100000"],
+                 "--windows-unscaled 100000", "the encoded file would be about")
+    assert "MB" in r.output or "GB" in r.output
+    _refused(["sim", "dataset", "paper_dataset", "--out", tmp_path / "d.h5"], "needs about 4.4")
+    monkeypatch.setattr(outputs, "free_bytes", lambda folder: 10 ** 15)
+    monkeypatch.setattr(sizing, "available_memory_bytes", lambda: 1_000_000)  # 1 MB of memory left
+    _refused(["encode", session, "--out", tmp_path / "e.h5", "--batch", "100000"], "--batch 100000",
+             "of memory", "available")
