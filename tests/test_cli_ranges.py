@@ -82,6 +82,6 @@ def test_disk_and_memory_sized_work_is_refused_with_the_figure(session, tmp_path
     assert "MB" in r.output or "GB" in r.output
     _refused(["sim", "dataset", "paper_dataset", "--out", tmp_path / "d.h5"], "needs about 4.4")
     monkeypatch.setattr(outputs, "free_bytes", lambda folder: 10 ** 15)
-    monkeypatch.setattr(sizing, "available_memory_bytes", lambda: 1_000_000)  # 1 MB of memory left
-    _refused(["encode", session, "--out", tmp_path / "e.h5", "--batch", "100000"], "--batch 100000",
+    monkeypatch.setattr(sizing, "available_memory_bytes", lambda: 10_000)  # 10 kB of memory left
+    _refused(["encode", session, "--out", tmp_path / "e.h5", "--batch", "100"], "--batch 100",
              "of memory", "available")
