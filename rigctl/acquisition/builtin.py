@@ -49,19 +49,56 @@ def find_protocol(name_or_path: str | os.PathLike) -> Path:
                             f"{', '.join(builtin) or 'none'}; `rigctl protocols` lists them)")
 
 
-def summary(path: Path) -> str:
-    """The first line of a protocol's leading comment (TOML ``#`` lines) or docstring (script), "" if none."""
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except OSError:
-        return ""
+_QUOTES = ('"""', "'''")
+
+
+def _leading_text(lines: list[str]) -> str:
+    """The first paragraph of the leading ``#`` comment, or of the leading docstring, joined on one line."""
+    out: list[str] = []
+    doc = False
     for line in lines:
         s = line.strip()
-        if not s:
-            continue
-        if s.startswith("#"):
-            return s.lstrip("#").strip()
-        if s.startswith(('"""', "'''")):
-            return s.strip("\"' ").strip()
+        if not out and not doc:
+            if not s:
+                continue
+            if s.startswith("#"):
+                out.append(s.lstrip("#").strip())
+                continue
+            if s.startswith(_QUOTES):
+                doc = True
+                body = s[3:]
+                closed = any(q in body for q in _QUOTES)
+                for q in _QUOTES:
+                    body = body.replace(q, "")
+                if body.strip():
+                    out.append(body.strip())
+                if closed:
+                    break
+                continue
+            break
+        if doc:
+            if not s or any(q in s for q in _QUOTES):
+                for q in _QUOTES:
+                    s = s.replace(q, "")
+                if s.strip():
+                    out.append(s.strip())
+                break
+            out.append(s)
+        elif s.startswith("#") and s.lstrip("#").strip():
+            out.append(s.lstrip("#").strip())
+        else:
+            break
+    return " ".join(out)
+
+
+def summary(path: Path) -> str:
+    """The first sentence of a protocol's leading comment (TOML ``#`` lines) or docstring (script), whole even when
+    it runs over several lines ("" if none): what ``rigctl protocols`` shows."""
+    import re
+
+    try:
+        text = _leading_text(path.read_text(encoding="utf-8").splitlines())
+    except OSError:
         return ""
-    return ""
+    m = re.search(r"(?<!Fig)(?<!Figs)(?<!Eq)(?<!eq)(?<!Ref)(?<=[a-z0-9)\]])[.:](?=\s+[A-Z0-9]|$)", text)
+    return text[:m.start()] + "." if m else text

@@ -137,6 +137,15 @@ class RunSummary:
     def ok(self) -> bool:
         return not self.stopped and self.failed == 0 and self.complete == self.planned
 
+    def _recorded_line(self) -> str:
+        """What this run recorded: samples, lost frames (and in how many kept trials, when any), CRC errors."""
+        if self.recorded == 0:
+            return ("  nothing recorded now: every planned trial was already complete" if self.complete == self.planned
+                    else "  nothing recorded now")
+        lossy = f" (in {self.lossy} kept trials)" if self.lossy else ""
+        return (f"  samples: {self.samples}  dropped frames: {self.dropped_frames}{lossy}  "
+                f"CRC errors: {self.crc_errors}")
+
     def lines(self) -> list[str]:
         if self.link_lost:
             state = f"stopped: link lost: {self.link_lost} (resume with --resume once the rig answers again)"
@@ -146,8 +155,7 @@ class RunSummary:
             f"session {self.path}: {state} in {self.elapsed_s:.1f} s",
             f"  trials complete: {self.complete}/{self.planned} (recorded now: {self.recorded}, failed now: "
             f"{self.failed}, attempts recorded again: {self.retried})",
-            f"  samples: {self.samples}  dropped frames: {self.dropped_frames} (in {self.lossy} kept trials)  "
-            f"CRC errors: {self.crc_errors}",
+            self._recorded_line(),
         ]
         out += [f"  failed: {f}" for f in self.failures]
         return out

@@ -44,6 +44,20 @@ SHORT_HELP = {
 }
 
 
+def _quiet_broken_pipe() -> None:
+    """Point stdout at /dev/null (so the interpreter's last flush cannot fail again) and exit 1 without a word,
+    as https://docs.python.org/3/library/signal.html#note-on-sigpipe recommends."""
+    import os
+    import sys
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no real stdout (a test runner's buffer)
+        pass
+    raise SystemExit(1)
+
+
 class LazyGroup(click.Group):
     def list_commands(self, ctx):
         return sorted(COMMANDS)
@@ -72,6 +86,11 @@ class LazyGroup(click.Group):
             raise
         except (click.exceptions.Exit, click.Abort):
             raise
+        except KeyboardInterrupt:  # a command that has nothing to resume: its partial output is already removed
+            raise click.ClickException("interrupted (Ctrl-C): no partial output was left; the inputs are "
+                                       "unchanged") from None
+        except BrokenPipeError:  # `rigctl info X | head`: the reader has gone; end quietly (Python's recipe)
+            _quiet_broken_pipe()
         except Exception as exc:
             if ctx.params.get("debug"):
                 raise

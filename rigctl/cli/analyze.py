@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import tempfile
 from pathlib import Path
 
 import click
 
+from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, require_dask, same_file
 from rigctl.cli.progress import bars
 from rigctl.cli.ranges import SEED, WORKERS
@@ -314,7 +314,7 @@ def _run(opts: AnalyzeOptions, execution=None):
     if opts.task == "variance":
         only = _variance(fs, opts.variants)
         if opts.as_json:
-            click.echo(json.dumps({"source": str(opts.file), "variance": [r.as_dict() for r in only]}, indent=1))
+            click.echo(json_text({"source": str(opts.file), "variance": [r.as_dict() for r in only]}, indent=1))
         else:
             click.echo(format_variance(only))
         return
@@ -378,9 +378,9 @@ def _print_results(opts: AnalyzeOptions, res, shares, leak) -> None:
                 out["variance"] = [r.as_dict() for r in shares]
             if leak is not None:
                 out["force_leak"] = leak
-            click.echo(json.dumps(out, indent=1, default=float))
+            click.echo(json_text(out, indent=1))
     else:
-        click.echo(report.format_table1(res, opts.table_pcs, compare_paper=opts.compare_paper))
+        click.echo(report.format_table1(res, min(opts.table_pcs, opts.n_pcs), compare_paper=opts.compare_paper))
         for extra in (report.format_ordering(res, opts.table_pcs), report.format_collapse(res)):
             if extra:
                 click.echo(extra)

@@ -3,11 +3,11 @@ fabrics and board in one labelled session file)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
 
+from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import check_output
 from rigctl.cli.progress import bars
 
@@ -48,7 +48,7 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(json_text(summary))
     else:
         click.echo(f"{summary['n_trials']} trials, 16 channels, {summary['samples'] / 1000:.0f} s at 1 kHz -> "
                    f"{summary['path']} (textures: {', '.join(summary['labels'])})")

@@ -10,6 +10,21 @@ from rigctl.cli.outputs import check_output
 SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 
 
+def _require_display() -> None:
+    """Refuse, in one line, to start Qt without a display on Linux (Qt would abort the process, exit 134, with advice
+    to reinstall it). A platform plugin chosen with QT_QPA_PLATFORM (offscreen, vnc, ...) is left to Qt."""
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux") or os.environ.get("QT_QPA_PLATFORM"):
+        return
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return
+    raise click.ClickException("no display: rigctl gui needs a desktop session (DISPLAY and WAYLAND_DISPLAY are "
+                               "unset); on a machine without one run it under xvfb-run, or set "
+                               "QT_QPA_PLATFORM=offscreen for --screenshot")
+
+
 @click.command("gui")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega). Default: simulated rig.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno). Default: simulated rig.")
@@ -41,6 +56,7 @@ def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, t
     if screenshot:
         check_output(screenshot, option="--screenshot", overwrite=overwrite, inputs=(replay,),
                      suffixes=SCREENSHOT_SUFFIXES)
+    _require_display()
     try:
         from rigctl_gui.app import main
     except ImportError as exc:

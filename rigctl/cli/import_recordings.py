@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import json
-
 import click
 
+from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.ranges import RATE_HZ
@@ -84,7 +83,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
                 summary = import_fabricslide(files[0], out, overwrite=overwrite, progress=progress)
         except (FileNotFoundError, FileExistsError, ValueError) as exc:
             raise click.ClickException(str(exc)) from None
-        click.echo(json.dumps(summary) if as_json else
+        click.echo(json_text(summary) if as_json else
                    f"{summary['n_trials']} trials, 16 channels at 1000 Hz -> {summary['path']} "
                    f"(textures: {', '.join(summary['labels'])})")
         return
@@ -96,7 +95,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     except (RecordingImportError, FileExistsError, FileNotFoundError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     if as_json:
-        click.echo(json.dumps({k: v for k, v in summary.items() if k != "steps"}))
+        click.echo(json_text({k: v for k, v in summary.items() if k != "steps"}))
     else:
         click.echo(f"{summary['n_trials']} trials, {summary['n_channels']} channels at {summary['rate_hz']:g} Hz, "
                    f"{summary['samples'] / summary['rate_hz']:.1f} s -> {summary['path']} "

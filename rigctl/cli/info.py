@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import click
 
+from rigctl.cli.jsonout import json_text
 from rigctl.storage.session import TrialStatus, open_session
 
 _STATUS = {int(s): s.name.lower() for s in TrialStatus}
@@ -134,7 +134,7 @@ def info(file, as_json):
     except OSError as exc:
         raise click.ClickException(f"{file} is not a readable HDF5 session file ({exc})") from None
     if as_json:
-        click.echo(json.dumps(summary, indent=2))
+        click.echo(json_text(summary, indent=2))
         return
     click.echo(f"{summary['file']}  ({summary['size_bytes'] / 1e6:.2f} MB)  kind={summary['kind']}  "
                f"protocol={summary['protocol']['name']} ({summary['protocol']['format']})  rig={summary['rig_mode']}")

@@ -25,6 +25,8 @@ class TqdmProgress:
         from tqdm import tqdm
 
         if event.total is None:
+            if event.stage != self._stage:  # a note of the next stage: the finished bar is drawn once, not again
+                self.close()
             if event.message:
                 tqdm.write(event.message, file=sys.stderr)
             return

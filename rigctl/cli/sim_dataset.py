@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
 
 from rigctl.acquisition.protocol import MAX_PLAN_TRIALS
+from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
@@ -89,12 +89,15 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
                                        workers=workers, progress=progress, config=config,
                                        compression=None if compression == "none" else compression,
                                        overwrite=overwrite, resume=resume)
+    except KeyboardInterrupt:
+        raise click.ClickException(f"interrupted: the trials rendered so far are kept in {out}; continue with "
+                                   f"`rigctl sim dataset {protocol} --out {out} --resume`") from None
     except ProtocolError as exc:
         raise click.ClickException(str(exc)) from None
     except (FileExistsError, TypeError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     if as_json:
-        click.echo(json.dumps(summary))
+        click.echo(json_text(summary))
     else:
         click.echo(f"{summary['n_trials']} trials, {summary['trial_seconds']:.0f} s of trials in "
                    f"{summary['wall_s']:.1f} s ({summary['realtime_factor']:.0f}x real time, "

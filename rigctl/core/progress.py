@@ -27,7 +27,7 @@ class ProgressEvent:
     Attributes
     ----------
     stage : str
-        What is being done, in words ("range pass", "encoding", "dataset ds.h5", "textures/groups", "trials").
+        What is being done, in words ("reading trials", "encoding", "dataset ds.h5", "textures/groups", "trials").
     done : int
         Units finished in this stage (0 .. ``total``).
     total : int or None

@@ -450,3 +450,15 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
         fill(bits[p], cp, lengths, n0a, 1.0 / float(fs), out)
         trains.append(SpikeTrains.from_counts(out, cp))
     return FusedResult(tuple(trains[:n_sa]), trains[n_sa] if ra else None, counts)
+
+
+def kernels_cached() -> bool:
+    """True when numba's on-disk cache holds the fused kernels (encoding starts at once); False when the first
+    encoding of this installation must compile them first (seconds). Best effort: True when it cannot tell."""
+    import os
+
+    try:
+        kernels: tuple[Any, ...] = (_fused, _times)
+        return all(os.path.exists(k._cache._cache_file._index_path) for k in kernels)
+    except AttributeError:  # another numba: do not claim a compile that may not happen
+        return True

@@ -72,7 +72,7 @@ from rigctl.encoding.features import (
     spike_features,
 )
 from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler, fit_scalers
-from rigctl.encoding.fused import run_fused
+from rigctl.encoding.fused import kernels_cached, run_fused
 from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
@@ -481,8 +481,9 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     scheduler : None -> this process (numba, all cores); ``"local"`` -> a local Dask cluster of ``workers``
         processes; an address ``"tcp://host:8786"`` -> that Dask cluster (workers must see ``session_path``).
     workers : worker processes for ``scheduler="local"`` (default: cores).
-    progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stages ``"range pass"`` and
-        ``"encoding"`` (done/total = trials), and notes (resampling, lossy trials, the force fit).
+    progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stages ``"reading trials"`` (the
+        range pass) and ``"encoding"`` (done/total = trials), and notes (a first run's kernel compilation,
+        resampling, lossy trials, the force fit).
     trial_ids : optional subset of trial ids.
     store_spikes : variants whose spike trains are written under /spikes.
     fit_memory_bytes : memory allowed for the readings kept for the force fit (see module docstring).
@@ -531,7 +532,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
         log.info("rate: %s", conv.describe())
         if conv.resampled:
-            progress_note(progress, "range pass", f"resampling: {conv.describe()}")
+            progress_note(progress, "reading trials", f"resampling: {conv.describe()}")
         keys = np.array([f"{t}|{v:.3f}|{f:.3f}" for t, v, f in zip(labels["texture"], labels["speed_mm_s"],
                                                                      labels["force_g"])])
         plan_dur = {int(r["trial_id"]): float(r["duration_s"]) for r in s.plan} if "duration_s" in (s.plan.dtype.names or ()) \
@@ -552,7 +553,10 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
         n_samples = np.zeros(len(ids), dtype=np.int64)
         has_trace = np.zeros(len(ids), dtype=bool)
         lossy: dict[int, int] = {}  # trial id -> frames it lost on the taxel link (kept within the protocol's limit)
-        bar = Stage(progress, "range pass", len(ids))
+        if not kernels_cached():
+            progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
+                                                      "caches them) ...")
+        bar = Stage(progress, "reading trials", len(ids))
         for b in batches:
             b_ids = [ids[i] for i in b]
             blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
@@ -579,7 +583,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                       f"frames; trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials "
                       "attribute")
         log.warning("%s", lossy_note)
-        progress_note(progress, "range pass", lossy_note)
+        progress_note(progress, "reading trials", lossy_note)
     if np.any(n_samples == 0):
         raise ValueError("a complete trial has no samples: trials "
                          f"{_trial_list(np.asarray(ids)[n_samples == 0])}")

@@ -2,7 +2,7 @@
 
 Run it like a TOML protocol:
 
-    rigctl acquire protocols/example_script.py --out sweep.h5
+    rigctl acquire example_script --out sweep.h5
 
 A script protocol defines ``run(rig, session)``. ``rig`` is an open :class:`rigctl.acquisition.rig.Rig` (from
 :func:`rigctl.rigs.open_rig`; simulated by default), ``session`` a :class:`rigctl.storage.session.SessionWriter`

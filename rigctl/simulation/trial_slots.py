@@ -51,6 +51,9 @@ def init_worker_slots(path: str, n_slots: int, slot_samples: int, n_channels: in
                       init: Callable, init_args: tuple) -> None:
     """Pool initializer: map the slot file, remember the render function, run the model's own initializer.
     ``path, n_slots, slot_samples, n_channels`` are :attr:`TrialSlots.initargs`."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the pool, no worker traceback
     size = n_slots * slot_samples * sample_bytes(n_channels)
     _STATE.update(mm=np.memmap(path, dtype=np.uint8, mode="r+", shape=(size,)), slot_samples=slot_samples,
                   n_channels=int(n_channels), render=render)

@@ -72,9 +72,9 @@ def test_dataset_encoding_import_and_analyses_report_their_stages(tmp_path):
     events.clear()
     encode_session(session, tmp_path / "e.h5", variants=["original"], store_spikes=(), batch_trials=4,
                    progress=events.append)
-    assert done_counts(events, "range pass") == [0, 4, 6]  # read in blocks of batch_trials
+    assert done_counts(events, "reading trials") == [0, 4, 6]  # read in blocks of batch_trials
     assert done_counts(events, "encoding") == [0, 4, 6]  # batches of 4 trials
-    assert [e.stage for e in events if e.total is not None] == ["range pass"] * 3 + ["encoding"] * 3  # in order
+    assert [e.stage for e in events if e.total is not None] == ["reading trials"] * 3 + ["encoding"] * 3  # in order
 
     events.clear()
     files = []

@@ -66,8 +66,8 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert tab.results is not None, tab.status.text()
     # the progress bar followed the library's progress events (no text parsed): encoding, then the CV fits
     stages = [e.stage for e in job.events if e.total is not None]
-    assert list(dict.fromkeys(stages)) == ["range pass", "encoding", "textures/groups"]
-    for stage in ("range pass", "encoding", "textures/groups"):
+    assert list(dict.fromkeys(stages)) == ["reading trials", "encoding", "textures/groups"]
+    for stage in ("reading trials", "encoding", "textures/groups"):
         counted = [e for e in job.events if e.stage == stage and e.total is not None]
         counts = [e.done for e in counted]
         assert counts[0] == 0 and counts == sorted(counts) and counts[-1] == counted[0].total

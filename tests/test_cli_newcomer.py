@@ -1,0 +1,143 @@
+"""A newcomer's rough edges (issue 24): no display, Ctrl-C, strict JSON, broken pipes, honest bars and summaries,
+the README's library snippet from an empty folder, whole protocol descriptions."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.storage.session import SessionWriter, TrialData
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    path = tmp_path_factory.mktemp("newcomer") / "s.h5"
+    rng = np.random.default_rng(0)
+    plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=40.0, force_g=500.0, duration_s=0.1)
+            for i in range(400)]
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 'n'") as w:
+        w.write_trials((i, TrialData(taxels=rng.integers(0, 1024, (100, 18)), seq=np.arange(100))) for i in range(4))
+    return path
+
+
+def _env(**kw):
+    env = {k: v for k, v in os.environ.items() if k not in kw or kw[k] is not None}
+    env.update({k: v for k, v in kw.items() if v is not None})
+    return env
+
+
+def test_gui_without_a_display_is_one_line(tmp_path):
+    env = _env()
+    for k in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
+        env.pop(k, None)
+    r = subprocess.run([sys.executable, "-m", "rigctl", "gui", "--sim"], env=env, capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
+    assert r.returncode == 1, (r.returncode, r.stderr)
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "no display" in r.stderr
+
+
+def test_json_is_strict_nan_becomes_null(session, tmp_path):
+    path = tmp_path / "nan.h5"
+    path.write_bytes(session.read_bytes())
+    with h5py.File(path, "r+") as f:  # an imported recording: no force label
+        plan = f["plan"][()]
+        plan["force_g"][:] = np.nan
+        f["plan"][...] = plan
+    r = CliRunner().invoke(main, ["info", str(path), "--json"])
+    assert r.exit_code == 0, r.output
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    d = json.loads(r.stdout, parse_constant=refuse)
+    assert d["trials"][0]["force_g"] is None
+
+
+def test_a_broken_pipe_is_quiet(session):
+    p = subprocess.Popen([sys.executable, "-m", "rigctl", "info", str(session)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()  # `| head` that has read enough
+    err = p.stderr.read().decode()
+    p.wait(timeout=120)
+    assert p.returncode in (0, 1) and err == "", err
+
+
+def test_ctrl_c_during_sim_dataset_says_how_to_resume(tmp_path):
+    out = tmp_path / "d.h5"
+    p = subprocess.Popen([sys.executable, "-m", "rigctl", "sim", "dataset", "quick_check", "--out", str(out),
+                          "--trials-per-condition", "40", "--workers", "2", "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 300
+    while not out.exists() and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.0)  # the workers are rendering
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 1, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert "--resume" in err and err.strip().count("\n") == 0, err
+    r = CliRunner().invoke(main, ["sim", "dataset", "quick_check", "--out", str(out), "--trials-per-condition", "40",
+                                  "--resume", "--quiet", "--workers", "0"])
+    assert r.exit_code == 0, r.output
+
+
+def test_encode_bars_are_named_for_what_they_do(session, tmp_path):
+    r = CliRunner().invoke(main, ["encode", str(session), "--out", str(tmp_path / "e.h5"), "--variant", "original"])
+    assert r.exit_code == 0, r.output
+    stages = set(re.findall(r"(reading trials|range pass|encoding):", r.stderr))
+    assert stages == {"reading trials", "encoding"}, r.stderr
+
+
+def test_run_summary_of_nothing_recorded_says_so():
+    from rigctl.acquisition.runner import RunSummary
+
+    done = RunSummary(path=Path("q.h5"), planned=6, complete=6, recorded=0)
+    text = "\n".join(done.lines())
+    assert "samples: 0" not in text and "already complete" in text
+    run = RunSummary(path=Path("q.h5"), planned=6, complete=6, recorded=6, samples=12000)
+    assert "kept trials" not in "\n".join(run.lines())
+    lossy = RunSummary(path=Path("q.h5"), planned=6, complete=6, recorded=6, samples=12000, lossy=2, dropped_frames=5)
+    assert "(in 2 kept trials)" in "\n".join(lossy.lines())
+
+
+def test_protocol_descriptions_are_whole_sentences():
+    r = CliRunner().invoke(main, ["protocols"])
+    assert r.exit_code == 0
+    rows = dict(line.split(None, 1) for line in r.stdout.strip().splitlines())
+    assert rows["quick_check"].rstrip().endswith("fastest speed.")
+    assert all(text.rstrip().endswith(".") for text in rows.values()), rows
+
+
+def test_shipped_protocols_and_snippets_name_no_checkout_path():
+    for f in (ROOT / "rigctl" / "protocols").iterdir():
+        assert "protocols/" not in f.read_text(), f
+
+
+@pytest.mark.realtime
+def test_the_readme_library_snippet_runs_from_an_empty_folder(tmp_path):
+    text = (ROOT / "README.md").read_text()
+    block = text.split("## Library", 1)[1].split("```python", 1)[1].split("```", 1)[0]
+    (tmp_path / "snippet.py").write_text(block)
+    env = _env(RIGCTL_CONFIG=str(tmp_path / "rig.json"), HOME=str(tmp_path))
+    r = subprocess.run([sys.executable, "snippet.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    from rigctl.storage.session import open_session
+
+    with open_session(tmp_path / "quick.h5") as s:
+        assert len(s.completed_ids()) == len(s.plan) > 0
