@@ -1,0 +1,420 @@
+"""The session reader (:class:`Session`, :func:`open_session`): the header, trials one by one with their checks, and
+the encoder's block read. Re-exported by :mod:`rigctl.storage.session`."""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from h5py import h5a, h5d, h5g, h5s
+
+from rigctl.core.sensor import PAPER_SENSOR
+from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
+from rigctl.storage.session_format import (
+    SessionError,
+    TrialStatus,
+    _decode_rig_config,
+    _one_line,
+    _open_h5,
+    _plan_to_str,
+    _read_attrs,
+    _reading,
+    trial_group_name,
+)
+from rigctl.storage.session_schema import (
+    _read_session_header,
+)
+
+log = logging.getLogger("rigctl.storage.session")
+
+
+@dataclass(frozen=True)
+class TaxelBlock:
+    """Taxels of many trials read at once (:meth:`Session.read_taxels`).
+
+    data : (n_total_samples, n_channels) uint16 ADC counts, trial after trial (``data[starts[i]:starts[i+1]]``);
+    starts : (n_trials + 1,) int64; dropped_frames : (n_trials,) int64 frames lost on the taxel link;
+    has_speed_trace : (n_trials,) bool; speed_traces : list of ``(time_s, speed_mm_s)`` float64 arrays per trial,
+    or None when not asked for.
+    """
+
+    data: np.ndarray
+    starts: np.ndarray
+    dropped_frames: np.ndarray
+    has_speed_trace: np.ndarray
+    speed_traces: list[Any] | None = None
+
+
+class Session:
+    """A session file opened read-only (use :func:`open_session`). Context manager; :meth:`close` when done.
+
+    Attributes
+    ----------
+    path : Path
+    attrs : dict of the root attributes (``schema_version``, ``session_id``, ``created_utc``, ``kind``, ...).
+    rig_config : dict decoded from the ``rig_config`` JSON attribute.
+    layout : :class:`rigctl.core.sensor.SensorLayout`, the sensor of every trial (``sensor_layout`` attribute; the
+        paper's 3x3x2 @ 1 kHz for schema 1/2 files, see :func:`_file_layout` for their imports).
+    textures : :class:`rigctl.core.textures.TextureSet` (``texture_set`` attribute; for schema 1/2 files the set of
+        the plan's labels).
+    plan : structured array with numpy str fields (``texture`` ``U<longest label>``, ``profile`` ``U24``), the other
+        fields as :data:`PLAN_DTYPE`; one row per planned trial, ``status`` as :class:`TrialStatus` integers.
+    protocol_source, protocol_name, protocol_format : str
+    calibration : dict or None (``taxel_min``/``taxel_max`` as ``(layout.n_channels,)`` float64 arrays plus the
+        block's attributes).
+    problems : list of str, what was found wrong but read around (each also logged as a warning, one line naming
+        the file and the trial): a trial marked complete in ``/plan`` without its recording is shown ``pending``
+        in :attr:`plan` (a resume records it), a damaged trial skipped by :meth:`iter_trials`.
+
+    Notes
+    -----
+    What is checked, and what happens when it is wrong (a user never gets silently wrong data):
+
+    - the file as a whole (opening refuses it with SessionError): not HDF5 or truncated, not a session, a newer
+      schema, a ``/plan`` that is not a table of unique trial ids with known statuses, unreadable attributes, a
+      malformed ``sensor_layout`` / ``texture_set``, a calibration of another channel count;
+    - one trial (reading it raises SessionError naming it; :meth:`iter_trials` skips it with a warning):
+      ``taxels`` not ``(n, channels)`` integers, values above ``2**adc_bits - 1``, ``seq`` / ``flags`` /
+      ``host_time_s`` not ``(n,)``, a trace and its times of different lengths, an ``n_samples`` attribute that
+      disagrees with the data.
+
+    Raises
+    ------
+    SessionError (see above), rigctl.storage.journal.FileBusy (a writer holds the HDF5 lock for long).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self._f = _open_h5(self.path, "r")
+        self.problems: list[str] = []
+        self._checked: dict[int, int] = {}  # trial id -> its sample count, for trials whose recording passed
+        try:
+            with _reading(self.path, "the session header"):  # what the checks below did not foresee
+                self._read_header()
+        except BaseException:
+            self._f.close()
+            raise
+
+    def _read_header(self) -> None:
+        """The header (:func:`_read_session_header`) as attributes; the plan with unrecorded trials pending."""
+        f = self._f
+        header = _read_session_header(f, self.path)
+        self.attrs = header.attrs
+        self.layout, self._present, self.textures = header.layout, header.present, header.textures
+        raw_plan = header.raw_plan
+        for i, why in header.unrecorded.items():
+            raw_plan["status"][i] = TrialStatus.PENDING
+            self._problem(why)
+        self.plan = _plan_to_str(raw_plan)
+        self._complete = set(self.completed_ids())
+        self.protocol_source = header.protocol_source
+        try:
+            self.rig_config = _decode_rig_config(self.attrs)
+        except (TypeError, ValueError) as exc:
+            self.rig_config = {}
+            self._problem(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)}); "
+                          "ignored")
+        with _reading(self.path, "the /protocol attributes"):
+            pattrs = _read_attrs(f["protocol"])
+        self.protocol_name = str(pattrs.get("name", ""))
+        self.protocol_format = str(pattrs.get("format", ""))
+        self.calibration = self._read_calibration()
+
+    def _problem(self, message: str) -> None:
+        self.problems.append(message)
+        log.warning("%s", message)
+
+    def _read_calibration(self) -> dict[str, Any] | None:
+        f = self._f
+        if "calibration" not in f:
+            return None
+        with _reading(self.path, "/calibration"):
+            cal = _read_attrs(f["calibration"])
+            n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
+            for k in f["calibration"]:
+                cal[k] = f["calibration"][k][()]
+                if k in ("taxel_min", "taxel_max"):
+                    arr = np.asarray(cal[k])
+                    if arr.shape != (n_stored,) or arr.dtype.kind not in "iuf":
+                        raise SessionError(f"{self.path}: /calibration/{k} is {arr.dtype} {arr.shape}, not "
+                                           f"({n_stored},) numbers (one per channel of the sensor)")
+                    cal[k] = arr.astype(np.float64)
+                    if self._present is not None:
+                        cal[k] = cal[k][self._present]
+        return cal
+
+    @property
+    def kind(self) -> str:
+        return str(self.attrs.get("kind", ""))
+
+    def __len__(self) -> int:
+        return len(self.plan)
+
+    def completed_ids(self) -> list[int]:
+        """Trial ids whose plan status is complete (and whose group exists), in plan order."""
+        ids = self.plan["trial_id"][self.plan["status"] == TrialStatus.COMPLETE]
+        return [int(t) for t in ids]
+
+    def failed_ids(self) -> list[int]:
+        return [int(t) for t in self.plan["trial_id"][self.plan["status"] == TrialStatus.FAILED]]
+
+    def _group(self, trial_id: int) -> h5py.Group | None:
+        name = trial_group_name(trial_id)
+        with _reading(self.path, f"trial {trial_id} ({name})"):
+            g = self._f.get(name)
+            if g is not None and not isinstance(g, h5py.Group):
+                raise SessionError(f"{self.path}: trial {trial_id}: {name} is not a group; the file is damaged")
+            return g
+
+    def _damaged(self, trial_id: int, what: str) -> SessionError:
+        return SessionError(f"{self.path}: trial {trial_id} is damaged: {what}; its data are not used")
+
+    def _check_recording(self, trial_id: int, g: Any, attrs: Mapping[str, Any]) -> int:
+        """Check a recorded trial's datasets against each other and the sensor without reading them (shapes, types,
+        ``n_samples``); returns the sample count. Raises SessionError naming the trial and the problem."""
+        if trial_id in self._checked:
+            return self._checked[trial_id]
+        n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
+        with _reading(self.path, f"trial {trial_id}"):
+            ds = {}
+            for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s",
+                      "speed_time_s"):
+                d = g.get(k)
+                if not isinstance(d, h5py.Dataset):
+                    raise self._damaged(trial_id, f"{k} is missing" if d is None else f"{k} is not a dataset")
+                ds[k] = d
+            tax = ds["taxels"]
+            if tax.ndim != 2 or tax.shape[1] != n_stored:
+                raise self._damaged(trial_id, f"taxels are {tax.shape}, not (samples, {n_stored}) for the sensor "
+                                              f"{self.layout.shape_text}")
+            if tax.dtype.kind not in "iu":
+                raise self._damaged(trial_id, f"taxels are {tax.dtype}, not integer ADC counts (uint16)")
+            n = int(tax.shape[0])
+            for k in ("seq", "flags", "host_time_s"):
+                if ds[k].shape != (n,):
+                    raise self._damaged(trial_id, f"{k} is {ds[k].shape}, not ({n},) like taxels")
+            for k in ("seq", "flags"):
+                if ds[k].dtype.kind not in "iu":
+                    raise self._damaged(trial_id, f"{k} is {ds[k].dtype}, not integers")
+            for v, t in (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s")):
+                if ds[v].ndim != 1 or ds[v].shape != ds[t].shape:
+                    raise self._damaged(trial_id, f"{v} {ds[v].shape} and {t} {ds[t].shape} are not one trace")
+            for k in ("host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+                if ds[k].dtype.kind not in "iuf":
+                    raise self._damaged(trial_id, f"{k} is {ds[k].dtype}, not numbers")
+            if "n_samples" in attrs:
+                try:
+                    said = int(attrs["n_samples"])
+                except (TypeError, ValueError):
+                    said = None
+                if said != n:
+                    raise self._damaged(trial_id, f"its n_samples attribute says {attrs['n_samples']!r}, its taxels "
+                                                  f"hold {n} samples")
+            for k in ("dropped_frames", "crc_errors"):
+                try:
+                    ok = int(attrs.get(k, 0)) >= 0
+                except (TypeError, ValueError):
+                    ok = False
+                if not ok:
+                    raise self._damaged(trial_id, f"its {k} attribute is {attrs.get(k)!r}, not a count")
+        self._checked[trial_id] = n
+        return n
+
+    def trial_attrs(self, trial_id: int) -> dict[str, Any]:
+        """The attributes of ``/trials/<id>`` (setpoints, texture, status, n_samples, dropped_frames, ...).
+
+        Raises
+        ------
+        KeyError if the trial has no group; SessionError if it holds a recording that is damaged (see the class
+        docstring: shapes, types, an ``n_samples`` that disagrees with the data).
+        """
+        g = self._group(trial_id)
+        if g is None:
+            if int(trial_id) in self._complete:  # listed under /trials at opening, yet it does not open
+                raise self._damaged(trial_id, "its group cannot be opened")
+            raise KeyError(f"trial {trial_id} has not been recorded in {self.path}")
+        with _reading(self.path, f"the attributes of trial {trial_id}"):
+            attrs = _read_attrs(g)
+        with _reading(self.path, f"trial {trial_id}"):
+            has_data = "taxels" in g
+        if has_data or attrs.get("status") == "complete" or int(trial_id) in self._complete:
+            self._check_recording(trial_id, g, attrs)
+        return attrs
+
+    def trial(self, trial_id: int) -> TrialData:
+        """Read one recorded trial: a :class:`TrialData` with the session's :attr:`layout` (``taxels``
+        ``(n, layout.n_channels)`` uint16 ADC counts at ``layout.sample_rate_hz``).
+
+        Raises
+        ------
+        KeyError if the trial was not recorded (or failed); SessionError naming the trial if its recording is
+        damaged (see the class docstring).
+        """
+        g = self._group(trial_id)
+        with _reading(self.path, f"trial {trial_id}"):
+            has_data = g is not None and "taxels" in g
+        if not has_data:
+            if int(trial_id) in self._complete:
+                raise self._damaged(trial_id, "it is marked complete but holds no taxels")
+            raise KeyError(f"trial {trial_id} has no recorded data in {self.path}")
+        with _reading(self.path, f"the attributes of trial {trial_id}"):
+            attrs = _read_attrs(g)
+        self._check_recording(trial_id, g, attrs)
+        with _reading(self.path, f"the data of trial {trial_id}"):
+            assert g is not None  # has_data above
+            arrays = {k: g[k][()] for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s",
+                                            "speed_mm_s", "speed_time_s")}
+        taxels = arrays.pop("taxels")
+        if self._present is not None:  # a schema-1/2 import: only the real columns
+            taxels = taxels[:, self._present]
+        if taxels.size:
+            lo, hi = int(taxels.min()), int(taxels.max())
+            if lo < 0 or hi > self.layout.adc_max:
+                bad = np.flatnonzero(((taxels < 0) | (taxels > self.layout.adc_max)).any(axis=1))
+                raise self._damaged(trial_id, f"taxels hold {hi if hi > self.layout.adc_max else lo} (sample "
+                                              f"{int(bad[0])}), outside the sensor's {self.layout.adc_bits}-bit "
+                                              f"range 0..{self.layout.adc_max}")
+        try:
+            return TrialData(taxels=taxels, **arrays, dropped_frames=int(attrs.get("dropped_frames", 0)),
+                             crc_errors=int(attrs.get("crc_errors", 0)), attrs=attrs, layout=self.layout)
+        except (TypeError, ValueError) as exc:  # what the checks above did not foresee
+            raise self._damaged(trial_id, _one_line(exc)) from None
+
+    def read_taxels(self, ids: Sequence[int], *, traces: bool = False) -> TaxelBlock:
+        """Read the taxels of many complete trials at once into one flat array (the encoder's read path).
+
+        Only what an encoder needs, through h5py's low-level API: per trial one group and one dataset open and one
+        read straight into its rows of a preallocated array (no :class:`TrialData`, no attribute dictionaries,
+        no copies); the shape, type and ADC-range checks of :meth:`trial` are made on the block.
+
+        Parameters
+        ----------
+        ids : sequence of int
+            Trial ids (recorded trials), in the order wanted.
+        traces : bool
+            Also read each trial's measured speed trace (``speed_time_s``, ``speed_mm_s``).
+
+        Returns
+        -------
+        TaxelBlock
+            ``data`` (n_total_samples, n_channels) uint16 ADC counts, trial after trial; ``starts``
+            (n_trials + 1,) int64 row starts; ``dropped_frames`` (n_trials,) int64; ``has_speed_trace`` (n_trials,)
+            bool; ``speed_traces`` (list of (time_s, mm_s) or None).
+
+        Raises
+        ------
+        KeyError if a trial has no recorded data; SessionError naming the trial if its taxels are damaged
+        (shape, type, values outside the sensor's ADC range).
+        """
+        n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
+        fid = self._f.id
+        dsets, lengths = [], np.zeros(len(ids), dtype=np.int64)
+        dropped = np.zeros(len(ids), dtype=np.int64)
+        has_trace = np.zeros(len(ids), dtype=bool)
+        speed_traces: list[Any] | None = [] if traces else None
+        missing = None
+        with _reading(self.path, "trials' taxels"):
+            tg = h5g.open(fid, b"/trials") if fid.links.exists(b"trials") else None
+            for i, tid in enumerate(ids):
+                name = trial_group_name(tid).rpartition("/")[2].encode()
+                gid = h5g.open(tg, name) if tg is not None and tg.links.exists(name) else None
+                if gid is None or not gid.links.exists(b"taxels"):
+                    if int(tid) in self._complete:
+                        raise self._damaged(int(tid), "it is marked complete but holds no taxels")
+                    missing = int(tid)
+                    break
+                ds = h5d.open(gid, b"taxels")
+                shape = ds.shape
+                if len(shape) != 2 or shape[1] != n_stored or ds.dtype.kind not in "iu":
+                    raise self._damaged(int(tid), f"taxels are {shape} {ds.dtype}, not (samples, {n_stored}) "
+                                                  f"integer ADC counts for the sensor {self.layout.shape_text}")
+                lengths[i] = shape[0]
+                dsets.append(ds)
+                if h5a.exists(gid, b"dropped_frames"):
+                    a = h5a.open(gid, b"dropped_frames")
+                    buf = np.zeros((), dtype=a.dtype)
+                    a.read(buf)
+                    dropped[i] = int(buf)
+                if gid.links.exists(b"speed_mm_s"):
+                    sp = h5d.open(gid, b"speed_mm_s")
+                    has_trace[i] = sp.shape[0] > 0
+                    if traces:
+                        st = h5d.open(gid, b"speed_time_s")
+                        v = np.empty(sp.shape, dtype=np.float64)
+                        t = np.empty(st.shape, dtype=np.float64)
+                        if v.size:
+                            sp.read(h5s.ALL, h5s.ALL, v)
+                        if t.size:
+                            st.read(h5s.ALL, h5s.ALL, t)
+                        speed_traces.append((t, v))  # type: ignore[union-attr]  # a list with traces
+                elif traces:
+                    speed_traces.append((np.zeros(0), np.zeros(0)))  # type: ignore[union-attr]
+        if missing is not None:
+            raise KeyError(f"trial {missing} has no recorded data in {self.path}")
+        with _reading(self.path, "trials' taxels"):
+            starts = np.zeros(len(ids) + 1, dtype=np.int64)
+            np.cumsum(lengths, out=starts[1:])
+            data = np.empty((int(starts[-1]), n_stored), dtype=np.uint16)
+            for i, ds in enumerate(dsets):
+                if lengths[i]:
+                    ds.read(h5s.ALL, h5s.ALL, data[starts[i]:starts[i + 1]])
+        if self._present is not None:  # a schema-1/2 import: only the real columns
+            data = np.ascontiguousarray(data[:, self._present])
+        if data.size:
+            hi = int(data.max())
+            if hi > self.layout.adc_max:
+                row = int(np.flatnonzero((data > self.layout.adc_max).any(axis=1))[0])
+                k = int(np.searchsorted(starts, row, side="right") - 1)
+                raise self._damaged(int(ids[k]), f"taxels hold {hi} (sample {row - starts[k]}), outside the "
+                                                 f"sensor's {self.layout.adc_bits}-bit range 0..{self.layout.adc_max}")
+        return TaxelBlock(data, starts, dropped, has_trace, speed_traces)
+
+    def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
+        """Yield :class:`TrialData` of the usable complete trials (the trial validator's,
+        :func:`rigctl.storage.validate.usable_trials`: excluded ones are listed in :attr:`problems`), or of ``ids``,
+        in plan order. A damaged trial is skipped with a warning naming it (also added to :attr:`problems`)."""
+        if ids is None:
+            from rigctl.storage.validate import usable_trials
+
+            ids = usable_trials(self).ids
+        for trial_id in ids:
+            try:
+                yield self.trial(trial_id)
+            except SessionError as exc:
+                self._problem(f"{exc} (skipped)")
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            self._f.close()
+        except Exception:
+            pass
+
+
+def open_session(path: str | os.PathLike[str]) -> Session:
+    """Open a session file read-only (:class:`Session`, which says what it checks).
+
+    Raises
+    ------
+    FileNotFoundError; SessionError (not HDF5, not a session file, a newer schema, a malformed plan or header);
+    rigctl.storage.journal.FileBusy (an OSError: a writer holds the file for long).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    return Session(path)
+

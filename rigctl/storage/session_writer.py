@@ -1,0 +1,622 @@
+"""The session writer (:class:`SessionWriter`): a new file made in memory and renamed into place, then one
+crash-safe commit per trial (:mod:`rigctl.storage.journal`) under the one-writer lock. Re-exported by
+:mod:`rigctl.storage.session`."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import os
+import uuid
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from rigctl import __version__
+from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
+from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
+from rigctl.storage import h5objects, journal
+from rigctl.storage.session_format import (
+    PLAN_CHUNK_ROWS,
+    PLAN_DTYPE,
+    PLAN_FIELDS,
+    SCHEMA_VERSION,
+    SESSION_KINDS,
+    STATUS_ENUM,
+    TAXEL_CHUNK_BYTES,
+    SessionError,
+    SessionLocked,
+    SessionWriteError,
+    TrialStatus,
+    _attr_value,
+    _check_plan_textures,
+    _decode_rig_config,
+    _id_ranges,
+    _one_line,
+    _open_h5,
+    _os_error_text,
+    _parse_utc,
+    _plan_to_str,
+    _reading,
+    _row_value,
+    _text,
+    _utc_now,
+    plan_array,
+    taxels_description,
+    trial_group_name,
+)
+from rigctl.storage.session_schema import (
+    _group_status,
+    _read_session_header,
+)
+
+log = logging.getLogger("rigctl.storage.session")
+
+
+@contextlib.contextmanager
+def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0) -> Iterator[h5py.File]:
+    """Open ``path`` for writing through a :class:`rigctl.storage.journal.OverlayFile`: HDF5's writes stay in memory
+    and are committed (journaled) to disk only after HDF5 has closed the file cleanly; on an exception nothing
+    reaches the disk."""
+    overlay = journal.OverlayFile(path, durable=durable, wait_s=wait_s)
+    try:
+        f = h5py.File(overlay, "r+")
+        try:
+            yield f
+        finally:
+            f.close()
+        overlay.commit()
+    finally:
+        overlay.close()
+
+
+def _writer_lock(path: Path) -> journal.WriterLock:
+    """The writer lock of ``path`` (:class:`rigctl.storage.journal.WriterLock`). Raises SessionLocked if another
+    writer holds it, SessionWriteError if the lock file cannot be made."""
+    try:
+        return journal.WriterLock(path)
+    except journal.WriterLockHeld as exc:
+        raise SessionLocked(str(exc), exc.pid) from None
+    except OSError as exc:
+        raise SessionWriteError(f"cannot write {path}: {_os_error_text(exc)} (making its lock file "
+                                f"{journal.lock_path(path).name}); choose a writable place", exc.errno) from None
+
+
+def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: TextureSet, protocol_source: str,
+                    protocol_name: str, protocol_format: str, rig_config: Mapping[str, Any] | None, kind: str,
+                    calibration: Mapping[str, Any] | None, attrs: Mapping[str, Any] | None) -> bytes:
+    """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``),
+    built by HDF5 in memory: HDF5 never writes to a disk that may be full (at a few KiB free it can crash there)."""
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["session_id"] = str(uuid.uuid4())
+        f.attrs["created_utc"] = _utc_now()
+        f.attrs["rigctl_version"] = __version__
+        f.attrs["kind"] = kind
+        f.attrs["rig_config"] = json.dumps(dict(rig_config or {}), default=str)
+        f.attrs["sensor_layout"] = layout.to_json()
+        f.attrs["texture_set"] = textures.to_json()
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = _attr_value(v)
+        g = f.create_group("protocol")
+        g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
+        g.attrs["name"] = protocol_name
+        g.attrs["format"] = protocol_format
+        d = f.create_dataset("plan", data=plan_arr, maxshape=(None,), chunks=(PLAN_CHUNK_ROWS,))
+        d.attrs["status_enum"] = json.dumps(STATUS_ENUM)
+        trials = f.create_group("trials")
+        trials.attrs.update(taxels_description(layout))
+        if calibration:
+            _write_calibration(f, calibration, layout.n_channels)
+    return buf.getvalue()
+
+
+def _write_new_file(path: Path, image: bytes) -> None:
+    """Write ``image`` to ``<name>.creating``, fsync it and rename it to ``path`` (which appears complete or not at
+    all). A journal of a file being replaced is deleted first (it must never be replayed onto the new one).
+
+    Raises SessionWriteError (nothing left behind) if the disk refuses the bytes (no space, read-only).
+    """
+    tmp = path.with_name(path.name + ".creating")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0), 0o644)
+        try:
+            journal._pwrite(fd, image, 0)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        journal.journal_path(path).unlink(missing_ok=True)
+        os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        free = ""
+        with contextlib.suppress(OSError):
+            st = os.statvfs(path.parent)
+            free = f", {st.f_bavail * st.f_frsize / 1024:.0f} KiB free"
+        raise SessionWriteError(f"{_os_error_text(exc)} creating {path} ({len(image) / 1024:.0f} KiB needed{free}): "
+                                "nothing was written; free space or choose another --out", exc.errno) from None
+
+
+
+
+class SessionWriter:
+    """Writes a session file trial by trial; the file is open only during each write.
+
+    Create a new file with :meth:`create`, or reopen an interrupted one with :meth:`open` (resume). Then
+    :meth:`write_trial` for each recorded trial (or :meth:`mark_failed`), and :meth:`close` (or use it as a context
+    manager). From creation/opening to :meth:`close` the writer holds the file's writer lock (an exclusive
+    ``flock`` on ``<name>.lock``, :class:`rigctl.storage.journal.WriterLock`): a second writer of the same file, in
+    another process or in this one, is refused with :class:`SessionLocked`. HDF5 readers are not locked out between
+    writes. The lock dies with the process; a writer that is garbage-collected without :meth:`close` releases it.
+
+    Parameters
+    ----------
+    path : path of an existing session file (use :meth:`create` / :meth:`open`).
+    compression : "gzip" (level 1, shuffle; readable by any HDF5 tool), "lzf" (h5py only) or None.
+    durable : fsync the file and the journal at each commit (survives a power cut, not only a killed process).
+
+    Attributes
+    ----------
+    layout : :class:`rigctl.core.sensor.SensorLayout`, the session's sensor (every trial written must match its
+        channel count and rate).
+    textures : :class:`rigctl.core.textures.TextureSet`, the session's texture set (every plan label is in it).
+
+    Raises
+    ------
+    SessionLocked if another writer holds the file; SessionError if the file is not a session (or is malformed:
+    see :func:`open_session`), has a newer schema, or is a schema-1/2 import with absent channels
+    (``channel_present``: read it with :func:`open_session`; it cannot be appended to); SessionWriteError if the
+    lock file cannot be made (a read-only folder).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, compression: str | None = "gzip", durable: bool = True,
+                 _lock: journal.WriterLock | None = None) -> None:
+        self._lock = _lock
+        self.path = Path(path)
+        self.durable = durable
+        #: how long a write waits for another process (a reader holding the HDF5 file lock) before FileBusy, s
+        self.wait_s = 10.0
+        try:
+            if compression not in ("gzip", "lzf", None):
+                raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+            self.compression = compression
+            if self._lock is None:
+                self._lock = _writer_lock(self.path)
+            with _open_h5(self.path, "r") as f, _reading(self.path, "the session header"):
+                contents = _read_session_header(f, self.path)
+                self.attrs = contents.attrs
+                self.protocol_source = contents.protocol_source
+                self._plan = contents.raw_plan
+                self.layout, present, self.textures = contents.layout, contents.present, contents.textures
+                if present is not None:
+                    raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with "
+                                       "absent channels (channel_present); it can be read, not appended to: import "
+                                       "it again")
+                for i, why in contents.unrecorded.items():  # marked complete, no recording: a resume records it
+                    self._plan["status"][i] = TrialStatus.PENDING
+                    log.warning("%s", why)
+        except BaseException:
+            self.close()
+            raise
+        self._created = _parse_utc(self.attrs.get("created_utc", ""))
+
+    # -- lifetime -----------------------------------------------------------------------------------------------
+    @property
+    def closed(self) -> bool:
+        """True after :meth:`close`: the writer lock is released and nothing more can be written."""
+        return self._lock is None or not self._lock.held
+
+    def close(self) -> None:
+        """Release the writer lock (idempotent). Every write is on disk already; nothing else happens."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+    def __enter__(self) -> "SessionWriter":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover - best effort for writers nobody closed
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    @contextlib.contextmanager
+    def _commit(self, action: str) -> Iterator[h5py.File]:
+        """:func:`_writing` of this writer's file, with the disk's refusals (no space, read-only) turned into a
+        :class:`SessionWriteError` that says what is intact and what to do. ``action`` names the write."""
+        if self.closed:
+            raise SessionError(f"{self.path}: this SessionWriter is closed (open it again to write)")
+        before = self._plan["status"].copy()
+        try:
+            with _writing(self.path, durable=self.durable, wait_s=self.wait_s) as f:
+                yield f
+        except journal.FileBusy:
+            raise
+        except OSError as exc:
+            self._plan["status"] = before  # nothing of this write reached the file
+            done = self.completed_ids()
+            intact = (f"trials {_id_ranges(done)} are intact" if done else "no trial was complete before")
+            what = _os_error_text(exc)
+            hint = ("free space and --resume" if what == "no space left on device" else
+                    "make it writable (or copy it to a writable place) and --resume")
+            raise SessionWriteError(f"{what} writing {self.path} ({action}): nothing of it was written; {intact}; "
+                                    f"{hint}", exc.errno, done) from None
+
+    # -- construction -------------------------------------------------------------------------------------------
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        plan: Iterable[Any] | np.ndarray,
+        layout: SensorLayout = PAPER_SENSOR,
+        textures: TextureSet | Mapping[str, Any] | None = None,
+        protocol_source: str = "",
+        protocol_name: str = "",
+        protocol_format: str = "toml",
+        rig_config: Mapping[str, Any] | None = None,
+        kind: str = "recorded",
+        calibration: Mapping[str, Any] | None = None,
+        attrs: Mapping[str, Any] | None = None,
+        overwrite: bool = False,
+        compression: str | None = "gzip",
+        durable: bool = True,
+    ) -> "SessionWriter":
+        """Create a new session file with its root attributes, ``/protocol`` and ``/plan``; return its writer.
+
+        Parameters
+        ----------
+        path : output ``.h5`` file.
+        plan : planned trials (see :func:`plan_array`), or a :data:`PLAN_DTYPE` array; may be empty (Python-script
+            protocols append rows with :meth:`append_trial`).
+        layout : the sensor (:class:`rigctl.core.sensor.SensorLayout`; default the paper's 3x3x2 @ 1 kHz, 10-bit),
+            stored as the ``sensor_layout`` root attribute; every trial must match its channel count and rate.
+        textures : the texture set (:class:`rigctl.core.textures.TextureSet`, or its ``to_dict`` form), stored as
+            the ``texture_set`` root attribute. None: ``texture_set_from_labels`` of the plan's labels (the paper's
+            A-P set when all are A-P; for an empty plan the paper's set). Plan labels are stored in the set's
+            spelling (:meth:`TextureSet.resolve`).
+        protocol_source : the protocol file's text (a resume refuses a different source).
+        protocol_name, protocol_format : ``/protocol`` attrs; format is "toml" or "python".
+        rig_config : JSON-able mapping stored as the ``rig_config`` root attribute.
+        kind : "recorded" | "simulated-dataset" | "fabricslide" | "imported" (``rigctl import``).
+        calibration : optional mapping; ``taxel_min``/``taxel_max`` ``(layout.n_channels,)`` arrays go to
+            ``/calibration`` datasets, everything else to its attributes.
+        attrs : extra root attributes.
+        overwrite : replace an existing file (otherwise :class:`FileExistsError`).
+
+        Raises
+        ------
+        FileExistsError, ValueError (bad kind, plan or calibration shape), TypeError (layout not a SensorLayout),
+        rigctl.core.textures.TextureSetError (a plan label not in ``textures``). Nothing is created on any of them.
+        """
+        path = Path(path)
+        if kind not in SESSION_KINDS:
+            raise ValueError(f"kind must be one of {SESSION_KINDS}, got {kind!r}")
+        if protocol_format not in ("toml", "python", "none"):
+            raise ValueError(f"protocol_format must be 'toml', 'python' or 'none', got {protocol_format!r}")
+        if not isinstance(layout, SensorLayout):
+            raise TypeError(f"layout must be a rigctl.core.sensor.SensorLayout, got {type(layout).__name__}")
+        plan_arr = plan.copy() if isinstance(plan, np.ndarray) and plan.dtype == PLAN_DTYPE else plan_array(plan)
+        if textures is None:
+            labels = [_text(t) for t in plan_arr["texture"].tolist()]
+            textures = texture_set_from_labels(labels) if labels else PAPER_TEXTURES
+        elif isinstance(textures, Mapping):
+            textures = TextureSet.from_dict(textures)
+        elif not isinstance(textures, TextureSet):
+            raise TypeError(f"textures must be a rigctl.core.textures.TextureSet, got {type(textures).__name__}")
+        _check_plan_textures(plan_arr, textures)
+        reserved = sorted({"sensor_layout", "texture_set", "schema_version"} & set(attrs or {}))
+        if reserved:
+            raise ValueError(f"attrs must not set {reserved}: the layout/textures arguments and rigctl set them")
+        if calibration:
+            _calibration_arrays(calibration, layout.n_channels)  # refuse a wrong shape before creating anything
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; choose another --out, resume it, or remove it")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SessionWriteError(f"cannot create {path}: {_os_error_text(exc)} making its folder "
+                                    f"({path.parent}); choose another --out", exc.errno) from None
+        lock = _writer_lock(path)  # before anything is written: a file another writer holds is never replaced
+        try:
+            image = _new_file_image(
+                plan_arr, layout=layout, textures=textures, protocol_source=protocol_source,
+                protocol_name=protocol_name, protocol_format=protocol_format, rig_config=rig_config, kind=kind,
+                calibration=calibration, attrs=attrs)
+            _write_new_file(path, image)
+            return cls(path, compression=compression, durable=durable, _lock=lock)
+        except BaseException:
+            lock.release()
+            raise
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, protocol_source: str | None = None,
+             compression: str | None = "gzip", durable: bool = True) -> "SessionWriter":
+        """Reopen an interrupted session to resume it.
+
+        Parameters
+        ----------
+        protocol_source : if given, must equal the stored ``/protocol/source`` text.
+
+        Raises
+        ------
+        FileNotFoundError, SessionLocked (another writer holds the file), SessionError (not a session file, or the
+        protocol source differs).
+        """
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path} does not exist (nothing to resume)")
+        writer = cls(path, compression=compression, durable=durable)
+        if protocol_source is not None and protocol_source != writer.protocol_source:
+            writer.close()
+            raise SessionError(
+                f"{path}: the protocol differs from the one this session was started with; "
+                "resume with the same protocol file, or start a new session"
+            )
+        return writer
+
+    # -- queries ------------------------------------------------------------------------------------------------
+    @property
+    def plan(self) -> np.ndarray:
+        """The ``/plan`` table as last written by this writer, with numpy str fields (as :attr:`Session.plan`)."""
+        return _plan_to_str(self._plan)
+
+    @property
+    def rig_config(self) -> dict[str, Any]:
+        """The session's ``rig_config`` (as :attr:`Session.rig_config`; ``{}`` when none was stored). Raises
+        :class:`SessionError` when the attribute is not a JSON object."""
+        try:
+            return _decode_rig_config(self.attrs)
+        except (TypeError, ValueError) as exc:
+            raise SessionError(f"{self.path}: the rig_config attribute is not a JSON object ({_one_line(exc)})") \
+                from None
+
+    def completed_ids(self) -> list[int]:
+        """Trial ids whose status is complete."""
+        return [int(t) for t in self._plan["trial_id"][self._plan["status"] == TrialStatus.COMPLETE]]
+
+    def pending_ids(self) -> list[int]:
+        """Trial ids not yet complete (pending or failed), in plan order."""
+        return [int(t) for t in self._plan["trial_id"][self._plan["status"] != TrialStatus.COMPLETE]]
+
+    def next_trial_id(self) -> int:
+        """One more than the largest trial id in the plan (0 for an empty plan)."""
+        return int(self._plan["trial_id"].max()) + 1 if len(self._plan) else 0
+
+    def _row_index(self, trial_id: int) -> int:
+        idx = np.flatnonzero(self._plan["trial_id"] == int(trial_id))
+        if idx.size == 0:
+            raise SessionError(f"trial {trial_id} is not in the plan of {self.path}")
+        return int(idx[0])
+
+    # -- writing ------------------------------------------------------------------------------------------------
+    def write_trial(self, trial_id: int, data: TrialData) -> None:
+        """Write one trial in one go, mark it complete in ``/plan``, commit it to disk (journaled) and close the file.
+
+        Raises
+        ------
+        SessionError if the trial is not in the plan or is already complete (in this writer's plan or in the file's:
+        no trial is recorded twice, a complete recording is never replaced), if ``data.layout`` differs from the
+        session's :attr:`layout` in channel count or sample rate, or if the writer is closed.
+        SessionWriteError (a SessionError) if the disk refuses the write (no space left, read-only): nothing of
+        this trial was written, every trial written before is intact (the message names them).
+        rigctl.storage.journal.FileBusy (an OSError) if another process or a :class:`Session` holds the file open
+        for longer than :attr:`wait_s`; nothing was written then and the call can be repeated.
+        """
+        i = self._row_index(trial_id)
+        if self._plan["status"][i] == TrialStatus.COMPLETE:
+            raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+        self.write_trials([(trial_id, data)])
+
+    def write_trials(self, items: Iterable[tuple[int, TrialData]]) -> int:
+        """Write several trials during one opening of the file; returns how many.
+
+        For the dataset generator, where opening the file per trial would dominate. Same checks as
+        :meth:`write_trial`. The batch reaches the disk in one journaled commit when the last trial is written: a
+        crash before that loses the whole batch (the file stays as it was), never part of a trial.
+        """
+        before = self._plan["status"].copy()
+        written = []
+        try:
+            with self._commit("writing trials") as f:
+                self._adopt_file_status(f)
+                before = self._plan["status"].copy()
+                for trial_id, data in items:
+                    i = self._row_index(trial_id)
+                    if self._plan["status"][i] == TrialStatus.COMPLETE:
+                        raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+                    self._check_trial_layout(trial_id, data)
+                    self._write_group(f, self._plan[i], data)
+                    self._plan["status"][i] = TrialStatus.COMPLETE
+                    written.append(i)
+                if written:  # the plan's statuses last, in one write of the span they cover (only the status
+                    lo, hi = min(written), max(written) + 1  # field: the labels' heap objects stay as they are)
+                    f["plan"][lo:hi, "status"] = self._plan["status"][lo:hi]
+        except journal.CommittedInterrupt:
+            raise  # a Ctrl-C during the commit, which was completed first: the batch is on disk
+        except BaseException:
+            self._plan["status"] = before  # nothing of the batch reached the file
+            raise
+        return len(written)
+
+    def append_trial(self, planned: Any, data: TrialData | None = None) -> int:
+        """Append a row to ``/plan`` (for Python-script protocols) and, if ``data`` is given, write the trial.
+
+        ``planned`` is a planned trial as in :func:`plan_array`; a ``trial_id`` of None takes :meth:`next_trial_id`.
+        Returns the trial id.
+        """
+        row = plan_array([_with_id(planned, self.next_trial_id())])
+        _check_plan_textures(row, self.textures)  # TextureSetError for a label outside the session's set
+        if row["trial_id"][0] in self._plan["trial_id"]:
+            raise SessionError(f"trial {int(row['trial_id'][0])} is already in the plan of {self.path}")
+        if self._plan.dtype != PLAN_DTYPE:  # a schema-1/2 file: fixed-length labels
+            width = self._plan.dtype["texture"].itemsize
+            if len(row["texture"][0].encode()) > width:
+                raise SessionError(f"{self.path} (schema {self.attrs.get('schema_version')}) stores texture labels of "
+                                   f"at most {width} byte(s); {row['texture'][0]!r} does not fit")
+            row = np.array([tuple(_text(v).encode() if isinstance(v, str) else v for v in row[0].tolist())],
+                           dtype=self._plan.dtype)
+        with self._commit("appending a plan row") as f:
+            ds = f["plan"]
+            if ds.shape != (len(self._plan),):
+                raise SessionError(f"the plan of {self.path} has {ds.shape[0]} rows, this writer knows "
+                                   f"{len(self._plan)}: another writer changed it; open the file again")
+            ds.resize((len(self._plan) + 1,))
+            ds[len(self._plan)] = row[0]
+            f.flush()
+        self._plan = np.concatenate([self._plan, row])
+        row = row[0]
+        if data is not None:
+            self.write_trial(int(row["trial_id"]), data)
+        return int(row["trial_id"])
+
+    def mark_failed(self, trial_id: int, reason: str = "") -> None:
+        """Mark a trial failed in ``/plan`` (it stays eligible for a resume) and store the reason.
+
+        The reason goes to ``/trials/<id>`` attrs (``status`` = "failed", ``error``), a group without datasets.
+        """
+        i = self._row_index(trial_id)
+        if self._plan["status"][i] == TrialStatus.COMPLETE:
+            raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+        with self._commit(f"marking trial {trial_id} failed") as f:
+            self._adopt_file_status(f)
+            if self._plan["status"][i] == TrialStatus.COMPLETE:
+                raise SessionError(f"trial {trial_id} is already complete in {self.path}")
+            name = trial_group_name(trial_id)
+            if name in f:
+                self._refuse_complete_group(f[name], trial_id)
+                del f[name]
+            g = f.create_group(name)
+            g.attrs["status"] = "failed"
+            g.attrs["error"] = str(reason)
+            g.attrs["failed_utc"] = _utc_now()
+            f["plan"][i:i + 1, "status"] = np.array([TrialStatus.FAILED], dtype=self._plan.dtype["status"])
+            f.flush()
+        self._plan["status"][i] = TrialStatus.FAILED
+
+    def set_calibration(self, calibration: Mapping[str, Any]) -> None:
+        """Write (replace) the ``/calibration`` block.
+
+        Raises ValueError if ``taxel_min``/``taxel_max`` are not ``(layout.n_channels,)``.
+        """
+        _calibration_arrays(calibration, self.layout.n_channels)
+        with self._commit("writing the calibration") as f:
+            _write_calibration(f, calibration, self.layout.n_channels)
+
+    def _adopt_file_status(self, f: h5py.File) -> None:
+        """Take the file's ``/plan`` statuses, not only this writer's memory, as the truth about what is complete: a
+        trial the file holds complete (with its recording) is complete here too, so it is refused, never recorded
+        twice. Raises SessionError if the file's plan is not the one this writer read (rows or ids differ)."""
+        try:
+            rows = f["plan"].fields(["trial_id", "status"])[()]
+        except (KeyError, ValueError, OSError) as exc:
+            raise SessionError(f"{self.path}: cannot read /plan ({_one_line(exc)})") from None
+        if rows.shape != self._plan.shape or not np.array_equal(rows["trial_id"], self._plan["trial_id"]):
+            raise SessionError(f"the plan of {self.path} is not the one this writer read (another writer changed "
+                               "it); open the file again")
+        newly = np.flatnonzero((rows["status"] == TrialStatus.COMPLETE) & (self._plan["status"] != TrialStatus.COMPLETE))
+        if newly.size:
+            trials = f["trials"]
+            for i in newly:
+                name = f"{int(self._plan['trial_id'][i]):06d}"
+                if name in trials and _group_status(trials[name]) == "complete":
+                    self._plan["status"][i] = TrialStatus.COMPLETE
+
+    def _refuse_complete_group(self, group: h5py.Group, trial_id: int) -> None:
+        """A trial's group is replaced only when it holds no complete recording (a failed attempt)."""
+        if _group_status(group) == "complete":
+            raise SessionError(f"trial {trial_id}: {self.path} already holds a complete recording of it; refusing "
+                               "to overwrite it (no trial is recorded twice)")
+
+    def _check_trial_layout(self, trial_id: int, data: TrialData) -> None:
+        mine, theirs = self.layout, data.layout
+        if theirs.n_channels != mine.n_channels or theirs.sample_rate_hz != mine.sample_rate_hz:
+            raise SessionError(
+                f"trial {trial_id}: its sensor ({theirs.shape_text}, {theirs.n_channels} channels at "
+                f"{theirs.sample_rate_hz:g} Hz) differs from the session's ({mine.shape_text}, {mine.n_channels} "
+                f"channels at {mine.sample_rate_hz:g} Hz) in {self.path}")
+
+    def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:
+        # h5objects: the same objects as h5py's high-level API, without its per-object Python overhead (the
+        # dataset generator writes tens of thousands of trials)
+        name = trial_group_name(int(row["trial_id"]))
+        trials = f["trials"].id
+        short = name.rsplit("/", 1)[1]
+        if trials.links.exists(short.encode()):  # a failed earlier attempt (never a complete recording)
+            self._refuse_complete_group(f[name], int(row["trial_id"]))
+            del f[name]
+        g = h5objects.create_group(trials, short)
+        n = data.n_samples
+        layout = self.layout
+        n_ch = layout.n_channels
+        chunk_rows = max(1, min(n, 65536, TAXEL_CHUNK_BYTES // (2 * n_ch)))
+        comp = self.compression if n else None
+        tax = h5objects.create_dataset(g, "taxels", data.taxels, chunks=(chunk_rows, n_ch), compression=comp)
+        started = _parse_utc(str(data.attrs.get("started_utc", "")))
+        starting_time = (started - self._created).total_seconds() if started and self._created else 0.0
+        h5objects.set_attrs(tax, {"rate_hz": layout.sample_rate_hz, "unit": "ADC counts", "adc_bits": layout.adc_bits,
+                                  "starting_time": starting_time})
+        for key in ("seq", "flags", "host_time_s"):
+            h5objects.create_dataset(g, key, getattr(data, key), chunks=(chunk_rows,), compression=comp)
+        for key in ("force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+            h5objects.create_dataset(g, key, getattr(data, key))
+        attrs = {}
+        for fld in PLAN_FIELDS:
+            v = row[fld]
+            attrs[fld] = _text(v) if isinstance(v, (bytes, str)) else v.item()
+        for k, v in data.attrs.items():
+            if k not in ("status", "trial_id"):
+                attrs[k] = _attr_value(v)
+        attrs.update(n_samples=n, dropped_frames=data.dropped_frames, crc_errors=data.crc_errors)
+        attrs.setdefault("started_utc", "")
+        attrs["status"] = "complete"
+        h5objects.set_attrs(g, attrs)
+
+
+def _with_id(planned: Any, default_id: int) -> Any:
+    if _row_value(planned, "trial_id") is not None:
+        return planned
+    if isinstance(planned, Mapping):
+        return {**planned, "trial_id": default_id}
+    values = {n: _row_value(planned, n) for n in PLAN_DTYPE.names or ()}
+    values["trial_id"] = default_id
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def _calibration_arrays(calibration: Mapping[str, Any], n_channels: int) -> dict[str, Any]:
+    """``taxel_min``/``taxel_max`` of ``calibration`` as float64 arrays. Raises ValueError unless ``(n_channels,)``."""
+    out = {}
+    for k in ("taxel_min", "taxel_max"):
+        if k in calibration:
+            arr = np.asarray(calibration[k], dtype=np.float64)
+            if arr.shape != (n_channels,):
+                raise ValueError(f"calibration {k} must have shape ({n_channels},) (one value per channel of the "
+                                 f"session's sensor), got {arr.shape}")
+            out[k] = arr
+    return out
+
+
+def _write_calibration(f: h5py.File, calibration: Mapping[str, Any], n_channels: int) -> None:
+    arrays = _calibration_arrays(calibration, n_channels)
+    if "calibration" in f:
+        del f["calibration"]
+    g = f.create_group("calibration")
+    for k, v in calibration.items():
+        if k in arrays:
+            g.create_dataset(k, data=arrays[k]).attrs["unit"] = "ADC counts"
+        else:
+            g.attrs[k] = _attr_value(v)
+
+
