@@ -78,6 +78,7 @@ def cfg_env(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     """A small simulated session (8 trials), its encoded file, the protocol and a CSV recording."""
+    from rigctl.acquisition.protocol import load_protocol
     from rigctl.encoding.pipeline import encode_session
     from rigctl.simulation.dataset import generate_dataset
 
@@ -85,7 +86,7 @@ def data(tmp_path_factory):
     proto = d / "p.toml"
     proto.write_text(PROTOCOL)
     session = d / "session.h5"
-    generate_dataset(proto, session, seed=1, workers=0, progress=False)
+    generate_dataset(load_protocol(proto), session, seed=1, workers=0, progress=False)
     encoded = d / "session.encoded.h5"
     encode_session(session, encoded, progress=False)
     hw = d / "hw.toml"  # one trial per plate for the runs on the boards
