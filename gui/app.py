@@ -57,7 +57,7 @@ def configure_pyqtgraph() -> None:
 
 def make_settings() -> QtCore.QSettings:
     """The app's QSettings (INI format under the user scope; tests point it at a temporary directory)."""
-    return QtCore.QSettings(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, "rigctl", "gui")
+    return QtCore.QSettings(QtCore.QSettings.Format.IniFormat, QtCore.QSettings.Scope.UserScope, "rigctl", "gui")
 
 
 def sensor_layout(handle):
@@ -117,7 +117,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         # --- top bar: source, connect, STOP ---
         self.source_label = QtWidgets.QLabel()
-        self.source_label.setTextFormat(QtCore.Qt.PlainText)
+        self.source_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.source_label.setStyleSheet("font-weight: bold;")
         self.connect_btn = QtWidgets.QPushButton("Connect...")
         self.connect_btn.setToolTip("Choose the rig: the simulated rig, two serial ports, or a replay")
@@ -158,7 +158,7 @@ class MainWindow(QtWidgets.QMainWindow):
         # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
         self.stale_label = QtWidgets.QLabel(self.live)
         self.stale_label.setObjectName("stale_marker")
-        self.stale_label.setTextFormat(QtCore.Qt.PlainText)
+        self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
         self.stale_label.hide()
 
@@ -173,11 +173,11 @@ class MainWindow(QtWidgets.QMainWindow):
         middle.addStretch(1)
         top = QtWidgets.QHBoxLayout(self.top_strip)
         top.setContentsMargins(0, 0, 0, 0)
-        top.addWidget(self.connect_btn, 0, QtCore.Qt.AlignTop)
+        top.addWidget(self.connect_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
         top.addLayout(middle, 1)
-        top.addWidget(self.stop_btn, 0, QtCore.Qt.AlignTop)
+        top.addWidget(self.stop_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
         self.top_strip.setFixedHeight(self.stop_btn.height() + 4)
-        self.source_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Fixed)
+        self.source_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
 
         central = QtWidgets.QWidget()
         lay = QtWidgets.QVBoxLayout(central)
@@ -191,10 +191,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.log_dock = QtWidgets.QDockWidget("Event log", self)
         self.log_dock.setObjectName("event_log_dock")
         self.log_dock.setWidget(self.events)
-        self.log_dock.setFeatures(QtWidgets.QDockWidget.DockWidgetClosable | QtWidgets.QDockWidget.DockWidgetMovable
-                                  | QtWidgets.QDockWidget.DockWidgetFloatable)
-        self.addDockWidget(QtCore.Qt.BottomDockWidgetArea, self.log_dock)
-        self.resizeDocks([self.log_dock], [110], QtCore.Qt.Vertical)
+        self.log_dock.setFeatures(QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetClosable | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
+                                  | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+        self.addDockWidget(QtCore.Qt.DockWidgetArea.BottomDockWidgetArea, self.log_dock)
+        self.resizeDocks([self.log_dock], [110], QtCore.Qt.Orientation.Vertical)
 
         self.links = LinkStatus()
         self.links.health_changed.connect(self.banners.on_health)
@@ -216,7 +216,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self._tick = 0
         self.timer = QtCore.QTimer(self)
-        self.timer.setTimerType(QtCore.Qt.PreciseTimer)
+        self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
         self.timer.timeout.connect(self.refresh)
         self.timer.start(REFRESH_MS)
         self._update_source_label("not connected")
@@ -291,11 +291,11 @@ class MainWindow(QtWidgets.QMainWindow):
             return a
 
         m = mb.addMenu("&File")
-        act(m, "&Open protocol...", self._open_protocol, K.Open, self.protocol.open_btn)
+        act(m, "&Open protocol...", self._open_protocol, K.StandardKey.Open, self.protocol.open_btn)
         act(m, "Open session for &analysis...", self._open_analysis, "Ctrl+Shift+O")
         act(m, "Choose &output session file...", self.protocol._browse_output, "Ctrl+Shift+S")
         m.addSeparator()
-        act(m, "&Quit", self.close, K.Quit)
+        act(m, "&Quit", self.close, K.StandardKey.Quit)
 
         m = mb.addMenu("&Rig")
         self.act_connect = act(m, "&Connect...", self.choose_source, "Ctrl+K", self.connect_btn)
@@ -327,10 +327,10 @@ class MainWindow(QtWidgets.QMainWindow):
         log_act.setShortcut(K("Ctrl+L"))
         m.addAction(log_act)
         act(m, "&Full screen", lambda: self.showNormal() if self.isFullScreen() else self.showFullScreen(),
-            K.FullScreen)
+            K.StandardKey.FullScreen)
 
         m = mb.addMenu("&Help")
-        act(m, "&Keyboard shortcuts", self._show_shortcuts, K.HelpContents)
+        act(m, "&Keyboard shortcuts", self._show_shortcuts, K.StandardKey.HelpContents)
         act(m, "&About rigctl", self._show_about)
 
     def _ask(self, title: str, text: str, yes: str, no: str, on_yes) -> None:
@@ -374,10 +374,10 @@ class MainWindow(QtWidgets.QMainWindow):
         for menu in self.menuBar().findChildren(QtWidgets.QMenu):
             for a in menu.actions():
                 if not a.shortcut().isEmpty():
-                    lines.append(f"{a.shortcut().toString(QtGui.QKeySequence.NativeText)}: {a.text().replace('&', '')}")
-        box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Information, "Keyboard shortcuts", "\n".join(lines),
-                                    QtWidgets.QMessageBox.Close, self)
-        box.setTextFormat(QtCore.Qt.PlainText)
+                    lines.append(f"{a.shortcut().toString(QtGui.QKeySequence.SequenceFormat.NativeText)}: {a.text().replace('&', '')}")
+        box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Information, "Keyboard shortcuts", "\n".join(lines),
+                                    QtWidgets.QMessageBox.StandardButton.Close, self)
+        box.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         show_dialog(box)
 
     def open_doctor(self) -> None:
@@ -396,10 +396,10 @@ class MainWindow(QtWidgets.QMainWindow):
         import rigctl
 
         box = QtWidgets.QMessageBox(
-            QtWidgets.QMessageBox.Information, "About rigctl",
+            QtWidgets.QMessageBox.Icon.Information, "About rigctl",
             f"rigctl {getattr(rigctl, '__version__', '')}: control, recording and neuromorphic analysis for a "
-            "tactile texture drum rig.\nThe app's guide: docs/gui.md.", QtWidgets.QMessageBox.Close, self)
-        box.setTextFormat(QtCore.Qt.PlainText)
+            "tactile texture drum rig.\nThe app's guide: docs/gui.md.", QtWidgets.QMessageBox.StandardButton.Close, self)
+        box.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         show_dialog(box)
 
     # ------------------------------------------------------------------------------------------------------

@@ -145,7 +145,7 @@ class ClassifyView(QtWidgets.QWidget):
         self.latest.setText(predicted)
         self.latest.setStyleSheet(f"font-size: 64px; font-weight: bold; color: white; background: {colour};")
         tile = QtWidgets.QLabel(f"<b style='font-size:20px'>{predicted}</b><br>true {truth}<br>#{trial_id}")
-        tile.setAlignment(QtCore.Qt.AlignCenter)
+        tile.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
         tile.setFixedSize(70, 70)
         tile.setStyleSheet(f"background: {colour}; color: white; border-radius: 4px;")
         tile.setProperty("correct", ok)

@@ -92,11 +92,11 @@ class ConnectDialog(QtWidgets.QDialog):
 
         self.problem = QtWidgets.QLabel("")
         self.problem.setObjectName("connect_problem")
-        self.problem.setTextFormat(QtCore.Qt.PlainText)
+        self.problem.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.problem.setWordWrap(True)
         self.problem.setStyleSheet("color: #c00; font-weight: bold;")
         self.problem.hide()
-        buttons = QtWidgets.QDialogButtonBox(QtWidgets.QDialogButtonBox.Ok | QtWidgets.QDialogButtonBox.Cancel)
+        buttons = QtWidgets.QDialogButtonBox(QtWidgets.QDialogButtonBox.StandardButton.Ok | QtWidgets.QDialogButtonBox.StandardButton.Cancel)
         buttons.accepted.connect(self.accept)
         buttons.rejected.connect(self.reject)
 

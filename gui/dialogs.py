@@ -28,9 +28,9 @@ def _weak(fn: Callable) -> Callable[[], Callable | None]:
 def show_dialog(dialog: QtWidgets.QDialog, on_accept: Callable[[], None] | None = None) -> QtWidgets.QDialog:
     """Show ``dialog`` non-modal (STOP in the main window stays clickable); Esc closes it as Cancel would;
     ``on_accept()`` runs when it is accepted. The dialog is deleted when closed. Returns it (shown, raised)."""
-    dialog.setWindowModality(QtCore.Qt.NonModal)
+    dialog.setWindowModality(QtCore.Qt.WindowModality.NonModal)
     dialog.setModal(False)
-    dialog.setAttribute(QtCore.Qt.WA_DeleteOnClose, True)
+    dialog.setAttribute(QtCore.Qt.WidgetAttribute.WA_DeleteOnClose, True)
     if on_accept is not None:
         ref = _weak(on_accept)
         dialog.accepted.connect(lambda: (fn := ref()) is not None and fn())
@@ -47,17 +47,17 @@ def choose_path(parent: QtWidgets.QWidget, mode: str, caption: str, start: str, 
     or ``"dir"`` (an existing directory). ``on_chosen(path)`` is called once with the chosen path; nothing is called
     on Cancel. Returns the dialog (shown)."""
     dlg = QtWidgets.QFileDialog(parent, caption, start or "", filters)
-    dlg.setOption(QtWidgets.QFileDialog.DontUseNativeDialog, True)
+    dlg.setOption(QtWidgets.QFileDialog.Option.DontUseNativeDialog, True)
     if mode == "open":
-        dlg.setFileMode(QtWidgets.QFileDialog.ExistingFile)
-        dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptOpen)
+        dlg.setFileMode(QtWidgets.QFileDialog.FileMode.ExistingFile)
+        dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptMode.AcceptOpen)
     elif mode == "save":
-        dlg.setFileMode(QtWidgets.QFileDialog.AnyFile)
-        dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptSave)
-        dlg.setOption(QtWidgets.QFileDialog.DontConfirmOverwrite, not confirm_overwrite)
+        dlg.setFileMode(QtWidgets.QFileDialog.FileMode.AnyFile)
+        dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptMode.AcceptSave)
+        dlg.setOption(QtWidgets.QFileDialog.Option.DontConfirmOverwrite, not confirm_overwrite)
     elif mode == "dir":
-        dlg.setFileMode(QtWidgets.QFileDialog.Directory)
-        dlg.setOption(QtWidgets.QFileDialog.ShowDirsOnly, True)
+        dlg.setFileMode(QtWidgets.QFileDialog.FileMode.Directory)
+        dlg.setOption(QtWidgets.QFileDialog.Option.ShowDirsOnly, True)
     else:
         raise ValueError(f"mode must be 'open', 'save' or 'dir', got {mode!r}")
     ref = _weak(on_chosen)
@@ -68,10 +68,10 @@ def choose_path(parent: QtWidgets.QWidget, mode: str, caption: str, start: str, 
 def ask(parent: QtWidgets.QWidget, title: str, text: str, yes: str, no: str,
         on_yes: Callable[[], None]) -> QtWidgets.QMessageBox:
     """A non-modal question with two buttons; ``on_yes()`` runs when ``yes`` is chosen. Returns the message box."""
-    box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Question, title, text, QtWidgets.QMessageBox.NoButton, parent)
-    box.setTextFormat(QtCore.Qt.PlainText)
-    yes_btn = box.addButton(yes, QtWidgets.QMessageBox.AcceptRole)
-    box.addButton(no, QtWidgets.QMessageBox.RejectRole)
+    box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Question, title, text, QtWidgets.QMessageBox.StandardButton.NoButton, parent)
+    box.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+    yes_btn = box.addButton(yes, QtWidgets.QMessageBox.ButtonRole.AcceptRole)
+    box.addButton(no, QtWidgets.QMessageBox.ButtonRole.RejectRole)
     box.setDefaultButton(yes_btn)
     ref = _weak(on_yes)
     box.buttonClicked.connect(lambda b: b is yes_btn and (fn := ref()) is not None and fn())

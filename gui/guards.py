@@ -73,15 +73,15 @@ class StopGuard(QtCore.QObject):
 
     def eventFilter(self, obj, ev) -> bool:  # noqa: N802 - Qt override
         t = ev.type()
-        if t == QtCore.QEvent.MouseButtonPress and isinstance(obj, QtWidgets.QWidget):
+        if t == QtCore.QEvent.Type.MouseButtonPress and isinstance(obj, QtWidgets.QWidget):
             popup = QtWidgets.QApplication.activePopupWidget()
-            if popup is not None and ev.button() == QtCore.Qt.LeftButton \
+            if popup is not None and ev.button() == QtCore.Qt.MouseButton.LeftButton \
                     and self._on_stop(ev.globalPosition().toPoint()):
                 self.routed += 1
                 self.trigger()
                 popup.close()
                 return True
-        elif t == QtCore.QEvent.KeyPress and ev.key() == QtCore.Qt.Key_Escape and isinstance(obj, QtWidgets.QWidget):
+        elif t == QtCore.QEvent.Type.KeyPress and ev.key() == QtCore.Qt.Key.Key_Escape and isinstance(obj, QtWidgets.QWidget):
             popup = QtWidgets.QApplication.activePopupWidget()
             if popup is not None:
                 if not self._own_popup(popup):
@@ -119,12 +119,12 @@ class WheelGuard(QtCore.QObject):
         n = 0
         for w in root.findChildren(QtWidgets.QWidget):
             if isinstance(w, cls.KINDS):
-                w.setFocusPolicy(QtCore.Qt.StrongFocus)
+                w.setFocusPolicy(QtCore.Qt.FocusPolicy.StrongFocus)
                 n += 1
         return n
 
     def eventFilter(self, obj, ev) -> bool:  # noqa: N802 - Qt override
-        if ev.type() != QtCore.QEvent.Wheel or not isinstance(obj, QtWidgets.QWidget):
+        if ev.type() != QtCore.QEvent.Type.Wheel or not isinstance(obj, QtWidgets.QWidget):
             return False
         target = obj
         # a spin box's line edit or a combo's own child gets the event first: judge the box it belongs to

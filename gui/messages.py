@@ -34,7 +34,7 @@ def escaped(text: object) -> str:
 
 def set_plain(label: QtWidgets.QLabel, text: str, *, error: bool = False, colour: str | None = None) -> None:
     """Show ``text`` in ``label`` as plain text (never cut at a ``<``), red when ``error``."""
-    label.setTextFormat(QtCore.Qt.PlainText)
+    label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
     label.setText(str(text))
     label.setStyleSheet(f"color: {colour or ('#c00' if error else '')};" if (error or colour) else "")
 

@@ -394,7 +394,7 @@ class ProtocolTab(QtWidgets.QWidget):
             if tip:
                 item.setToolTip(tip)
             if text.startswith("FAILED"):
-                item.setForeground(QtCore.Qt.red)
+                item.setForeground(QtCore.Qt.GlobalColor.red)
             self.table.setItem(row, len(PLAN_COLUMNS) - 1, item)
 
     def row_status(self, row: int) -> str:

@@ -53,7 +53,7 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     os.environ.setdefault("RIGCTL_CONFIG", os.path.join(tmp, "rig.json"))
     from PySide6 import QtCore
 
-    QtCore.QSettings.setPath(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, os.path.join(tmp, "settings"))
+    QtCore.QSettings.setPath(QtCore.QSettings.Format.IniFormat, QtCore.QSettings.Scope.UserScope, os.path.join(tmp, "settings"))
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
     from rigctl_gui.workers import RigSource

@@ -135,22 +135,22 @@ class Banner(QtWidgets.QFrame):
         self.setObjectName(f"banner_{name}" if name else "banner")
         self.label = QtWidgets.QLabel()
         self.label.setObjectName("banner_text")
-        self.label.setTextFormat(QtCore.Qt.PlainText)  # error text is shown whole, '<' included
+        self.label.setTextFormat(QtCore.Qt.TextFormat.PlainText)  # error text is shown whole, '<' included
         self.label.setWordWrap(True)
-        self.label.setAlignment(QtCore.Qt.AlignLeft | QtCore.Qt.AlignTop)
-        self.label.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
-        self.label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Ignored)
+        self.label.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
+        self.label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
         lay = QtWidgets.QHBoxLayout(self)
         lay.setContentsMargins(6, 1, 4, 1)
         lay.addWidget(self.label, 1)
         self.close_btn = QtWidgets.QPushButton("Dismiss")
         self.close_btn.clicked.connect(self.hide)
-        lay.addWidget(self.close_btn, 0, QtCore.Qt.AlignTop)
+        lay.addWidget(self.close_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
         self.error = False
         self.text = ""  # the whole message (the label may show it cut to the strip's lines)
         self._timer = QtCore.QTimer(self, singleShot=True)
         self._timer.timeout.connect(self.hide)
-        self.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Ignored)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
         self.hide()
 
     def show_message(self, text: str, *, error: bool, hide_after_s: float | None = None) -> None:
