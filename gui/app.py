@@ -191,7 +191,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.log_dock = QtWidgets.QDockWidget("Event log", self)
         self.log_dock.setObjectName("event_log_dock")
         self.log_dock.setWidget(self.events)
-        self.log_dock.setFeatures(QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetClosable | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetMovable
+        feature = QtWidgets.QDockWidget.DockWidgetFeature
+        self.log_dock.setFeatures(feature.DockWidgetClosable | feature.DockWidgetMovable
                                   | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable)
         self.addDockWidget(QtCore.Qt.DockWidgetArea.BottomDockWidgetArea, self.log_dock)
         self.resizeDocks([self.log_dock], [110], QtCore.Qt.Orientation.Vertical)

@@ -96,7 +96,8 @@ class ConnectDialog(QtWidgets.QDialog):
         self.problem.setWordWrap(True)
         self.problem.setStyleSheet("color: #c00; font-weight: bold;")
         self.problem.hide()
-        buttons = QtWidgets.QDialogButtonBox(QtWidgets.QDialogButtonBox.StandardButton.Ok | QtWidgets.QDialogButtonBox.StandardButton.Cancel)
+        button = QtWidgets.QDialogButtonBox.StandardButton
+        buttons = QtWidgets.QDialogButtonBox(button.Ok | button.Cancel)
         buttons.accepted.connect(self.accept)
         buttons.rejected.connect(self.reject)
 
