@@ -193,7 +193,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.log_dock.setWidget(self.events)
         feature = QtWidgets.QDockWidget.DockWidgetFeature
         self.log_dock.setFeatures(feature.DockWidgetClosable | feature.DockWidgetMovable
-                                  | QtWidgets.QDockWidget.DockWidgetFeature.DockWidgetFloatable)
+                                  | feature.DockWidgetFloatable)
         self.addDockWidget(QtCore.Qt.DockWidgetArea.BottomDockWidgetArea, self.log_dock)
         self.resizeDocks([self.log_dock], [110], QtCore.Qt.Orientation.Vertical)
 
