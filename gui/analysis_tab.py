@@ -333,7 +333,8 @@ class AnalysisTab(QtWidgets.QWidget):
         self._update_buttons()
 
     def _trial_rows(self) -> tuple[list[tuple], SensorLayout]:
-        """Table rows (trial, texture, speed, force, status) and the file's sensor layout."""
+        """Table rows (trial, texture, speed, force, status) and the file's sensor layout (a file is open)."""
+        assert self.path is not None
         if self.kind == "session":
             from rigctl.storage.session import TrialStatus, open_session
 
@@ -369,6 +370,7 @@ class AnalysisTab(QtWidgets.QWidget):
 
     def _start_trial_job(self, tid: int) -> None:
         path, kind = self.path, self.kind
+        assert path is not None  # show_trial starts a job only with a file open
         first = self._session_range is None and kind == "session"
 
         def work(job):
@@ -478,11 +480,11 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trial_x_range = (0.0, float(duration_s))
         for key, trains in (("sa", sa), ("ra", ra)):
             ts = np.concatenate(trains) if trains else np.zeros(0)
-            ch = np.concatenate([np.full(len(v), k, float) for k, v in enumerate(trains)]) if trains else ts
+            rows = np.concatenate([np.full(len(v), k, float) for k, v in enumerate(trains)]) if trains else ts
             seg = np.empty((2 * len(ts), 2))
             seg[0::2, 0] = seg[1::2, 0] = ts
-            seg[0::2, 1] = ch - 0.4
-            seg[1::2, 1] = ch + 0.4
+            seg[0::2, 1] = rows - 0.4
+            seg[1::2, 1] = rows + 0.4
             self.trial_rasters[key][1].setData(seg[:, 0], seg[:, 1], connect="pairs")
         self.trial_plot.setTitle(f"Trial {job.tid}: raw taxel readings" + (f" ({note})" if note else ""))
         n_sa, n_ra = sum(len(v) for v in sa), sum(len(v) for v in ra)
@@ -497,7 +499,7 @@ class AnalysisTab(QtWidgets.QWidget):
     def encode(self) -> None:
         from rigctl_gui.analysis_jobs import encoded_path_for
 
-        if self.kind != "session" or self._busy():
+        if self.kind != "session" or self._busy() or self.path is None:
             return
         out = encoded_path_for(self.path)
         self._start(ProcessJob("rigctl_gui.analysis_jobs:encode", session_path=self.path, out_path=out), "encoding")

@@ -23,6 +23,7 @@ import logging
 import sys
 import threading
 import time
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
@@ -32,6 +33,9 @@ from rigctl_gui.dialogs import ask, show_dialog
 from rigctl_gui.guards import install_guards
 from rigctl_gui.messages import EventLog, ExceptionGuard
 from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
+
+if TYPE_CHECKING:
+    from rigctl_gui.connect_dialog import ConnectDialog
 
 #: the app's refresh period (ms): 30 ms = 33 Hz, so the live view keeps >= 30 frames/s with 10 % slack without
 #: drawing (and paying for) frames nobody needs (issue 12: < 25 % of a core)
@@ -96,15 +100,15 @@ class MainWindow(QtWidgets.QMainWindow):
         self.source = source or load_source(self.settings)
         self.handle = None
         self._doctor = None  # the doctor dialog (Rig > Doctor...), made on first use
-        self.poller = None
-        self.commands = None
-        self.encoder = None
-        self._connect_job = None
-        self._connect_dialog = None
+        self.poller: StatusPoller | None = None
+        self.commands: CommandExecutor | None = None
+        self.encoder: LiveEncoder | None = None
+        self._connect_job: Job | None = None
+        self._connect_dialog: ConnectDialog | None = None
         self._close_confirmed = False
         self._run_lock: str | None = None
         self._faults = 0
-        self._stop_results = []
+        self._stop_results: list[Any] = []  # what each STOP's safe_stop returned (the worker thread appends)
         self.setWindowTitle("rigctl - tactile texture rig")
 
         # --- messages first: everything below may report into them ---
@@ -154,7 +158,7 @@ class MainWindow(QtWidgets.QMainWindow):
             (self.classify, "Real-time classification"),
         ):
             self.tabs.addTab(w, name)
-        self.tabs.setCurrentIndex(int(self.settings.value("ui/tab", 0)))
+        self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
         # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
         self.stale_label = QtWidgets.QLabel(self.live)
         self.stale_label.setObjectName("stale_marker")
@@ -488,6 +492,8 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _finish_connect(self) -> None:
         job, self._connect_job = self._connect_job, None
+        if job is None:  # no connect under way
+            return
         self.connect_btn.setEnabled(True)
         if job.error:
             self._update_source_label("not connected")

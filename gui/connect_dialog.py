@@ -13,14 +13,19 @@ from rigctl_gui.dialogs import choose_path
 from rigctl_gui.workers import RigSource
 
 
+def _text(value: object) -> str | None:
+    """A QSettings string value, or None for a missing or empty one."""
+    return str(value) if value else None
+
+
 def load_source(settings: QtCore.QSettings) -> RigSource:
     """The last source chosen (the simulated rig when none was saved, or the saved kind is unknown)."""
     try:
         return RigSource(
             kind=str(settings.value("source/kind", "sim")),
-            drum_port=settings.value("source/drum_port", None) or None,
-            taxel_port=settings.value("source/taxel_port", None) or None,
-            replay_dir=settings.value("source/replay_dir", None) or None,
+            drum_port=_text(settings.value("source/drum_port", None)),
+            taxel_port=_text(settings.value("source/taxel_port", None)),
+            replay_dir=_text(settings.value("source/replay_dir", None)),
         )
     except ValueError:
         return RigSource()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import inspect
 import weakref
 from collections.abc import Callable
+from typing import TypeVar
 
 from PySide6 import QtCore, QtWidgets
 
@@ -25,7 +26,10 @@ def _weak(fn: Callable) -> Callable[[], Callable | None]:
     return lambda: fn
 
 
-def show_dialog(dialog: QtWidgets.QDialog, on_accept: Callable[[], None] | None = None) -> QtWidgets.QDialog:
+DialogT = TypeVar("DialogT", bound=QtWidgets.QDialog)
+
+
+def show_dialog(dialog: DialogT, on_accept: Callable[[], None] | None = None) -> DialogT:
     """Show ``dialog`` non-modal (STOP in the main window stays clickable); Esc closes it as Cancel would;
     ``on_accept()`` runs when it is accepted. The dialog is deleted when closed. Returns it (shown, raised)."""
     dialog.setWindowModality(QtCore.Qt.WindowModality.NonModal)
@@ -41,7 +45,7 @@ def show_dialog(dialog: QtWidgets.QDialog, on_accept: Callable[[], None] | None 
 
 
 def choose_path(parent: QtWidgets.QWidget, mode: str, caption: str, start: str, filters: str,
-                on_chosen: Callable[[str], None], *, confirm_overwrite: bool = True) -> QtWidgets.QFileDialog:
+                on_chosen: Callable[[str], object], *, confirm_overwrite: bool = True) -> QtWidgets.QFileDialog:
     """A non-modal file dialog (Qt's own widgets, the same on every platform). ``mode``: ``"open"`` (an existing
     file), ``"save"`` (a new or existing file; with ``confirm_overwrite`` Qt asks before an existing one is taken)
     or ``"dir"`` (an existing directory). ``on_chosen(path)`` is called once with the chosen path; nothing is called

@@ -122,10 +122,10 @@ class DoctorDialog(QtWidgets.QDialog):
         if job.error is not None:
             self.status.setText(f"The doctor stopped: {job.error}")
             return
-        self.report = job.result
-        n = self.report.counts()
+        report = self.report = job.result
+        n = report.counts()
         self.status.setText(f"{n['pass']} passed, {n['fail']} failed, {n['skip']} skipped; stored in the rig config "
-                            f"({self.report.checked_utc}).")
+                            f"({report.checked_utc}).")
 
     def _show(self, result) -> None:
         row = next((i for i, c in enumerate(CHECKS) if c.name == result.name), None)
@@ -146,7 +146,7 @@ class DoctorDialog(QtWidgets.QDialog):
     def row_of(self, name: str) -> dict[str, str]:
         """The table's row for the check ``name``: ``{"check", "result", "measured / why", "fix"}`` (tests)."""
         row = next(i for i, c in enumerate(CHECKS) if c.name == name)
-        return {col: (self.table.item(row, i).text() if self.table.item(row, i) else "")
+        return {col: (item.text() if (item := self.table.item(row, i)) is not None else "")
                 for i, col in enumerate(COLUMNS)}
 
     def cancel(self) -> None:

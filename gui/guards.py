@@ -25,6 +25,14 @@ from PySide6 import QtCore, QtWidgets
 _SAME_PRESS_S = 0.3
 
 
+
+def _app() -> QtCore.QCoreApplication:
+    """The running QApplication (the guards are installed on it). Raises RuntimeError before one exists."""
+    app = QtWidgets.QApplication.instance()
+    if app is None:
+        raise RuntimeError("no QApplication: create it before installing the guards")
+    return app
+
 class StopGuard(QtCore.QObject):
     """Routes a press on ``button`` (and Esc) to ``stop()`` before an open popup of ``window`` consumes it.
 
@@ -40,7 +48,7 @@ class StopGuard(QtCore.QObject):
         self.routed = 0  # presses routed to STOP past a popup (tests, log)
 
     def install(self) -> "StopGuard":
-        QtWidgets.QApplication.instance().installEventFilter(self)
+        _app().installEventFilter(self)
         return self
 
     def uninstall(self) -> None:
@@ -104,7 +112,7 @@ class WheelGuard(QtCore.QObject):
     KINDS = (QtWidgets.QAbstractSpinBox, QtWidgets.QComboBox)
 
     def install(self) -> "WheelGuard":
-        QtWidgets.QApplication.instance().installEventFilter(self)
+        _app().installEventFilter(self)
         return self
 
     def uninstall(self) -> None:
@@ -126,11 +134,11 @@ class WheelGuard(QtCore.QObject):
     def eventFilter(self, obj, ev) -> bool:  # noqa: N802 - Qt override
         if ev.type() != QtCore.QEvent.Type.Wheel or not isinstance(obj, QtWidgets.QWidget):
             return False
-        target = obj
+        target: QtWidgets.QWidget | None = obj
         # a spin box's line edit or a combo's own child gets the event first: judge the box it belongs to
         while target is not None and not isinstance(target, self.KINDS):
             target = target.parentWidget() if not target.isWindow() else None
-        if target is None or target.hasFocus() or (target.focusProxy() and target.focusProxy().hasFocus()):
+        if target is None or target.hasFocus() or ((proxy := target.focusProxy()) is not None and proxy.hasFocus()):
             return False
         if isinstance(target, QtWidgets.QComboBox) and target.view().isVisible():
             return False  # its open list scrolls

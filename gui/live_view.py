@@ -207,9 +207,9 @@ class RasterItem(pg.GraphicsObject):
         super().__init__()
         self._palette = np.array([c.rgb() for c in palette], np.uint32)  # 0xffRRGGBB
         self._rect = QtCore.QRectF(0, 0, 1, 1)
-        self._qimage = None
-        self._pixels = None
-        self.image = None
+        self._qimage: QtGui.QImage | None = None
+        self._pixels: np.ndarray | None = None
+        self.image: np.ndarray | None = None
 
     def setRect(self, rect: QtCore.QRectF) -> None:  # noqa: N802 - Qt style
         if rect != self._rect:
@@ -354,20 +354,20 @@ class LiveView(QtWidgets.QWidget):
                  layout: SensorLayout = PAPER_SENSOR):
         super().__init__(parent)
         self.encoder = None
-        self.buffer = None
-        self.sensor_layout = None
+        self.buffer: TraceBuffer | None = None
+        self.sensor_layout: SensorLayout | None = None
         self.window_s = float(window_s)
         #: the spikes drawn by the last refresh per population: ``(t (s before now), taxel)`` (tests, tooltips)
         self.drawn: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         #: host receive time (time.monotonic) of the newest frame drawn in the last refresh, awaiting its paint
-        self._pending_host_t = None
+        self._pending_host_t: float | None = None
         self.latencies_s = np.full(4096, np.nan)  # frame-to-screen latency of recent paints (ring)
         self._lat_n = 0
         self.paint_times = np.full(512, np.nan)
         self._paint_n = 0
         self._refresh_n = 0
         #: the readings (one frame, ADC counts) the heat maps show
-        self.heatmap_frame = None
+        self.heatmap_frame: np.ndarray | None = None
 
         self.window_box = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=1, minimum=WINDOW_RANGE_S[0],
                                                    maximum=WINDOW_RANGE_S[1], singleStep=0.5, value=self.window_s)
@@ -541,13 +541,19 @@ class LiveView(QtWidgets.QWidget):
         for t in self.taxel_labels:
             t.setVisible(show)
 
+    def _layout(self) -> SensorLayout:
+        """The sensor the plots are built for. Raises RuntimeError before :meth:`set_layout`."""
+        if self.sensor_layout is None:
+            raise RuntimeError("the live view has no sensor layout yet (set_layout)")
+        return self.sensor_layout
+
     def set_window(self, seconds: float) -> None:
         """Show the last ``seconds`` (0.5-10 s) in the traces and the rasters alike (one time axis)."""
         self.window_s = float(np.clip(seconds, *WINDOW_RANGE_S))
         for p in self.time_plots:
             p.setXRange(-self.window_s, 0, padding=0)
         for img in self.raster_images.values():
-            img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, self.sensor_layout.n_channels))
+            img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, self._layout().n_channels))
         if self.window_box.value() != self.window_s:
             self.window_box.setValue(self.window_s)
 
@@ -558,7 +564,7 @@ class LiveView(QtWidgets.QWidget):
         self._y_ranges = [None] * len(self.trace_plots)
         if not on:
             for p in self.trace_plots:
-                p.setYRange(0, self.sensor_layout.adc_max, padding=0)
+                p.setYRange(0, self._layout().adc_max, padding=0)
 
     def attach(self, taxels, encoder, layout: SensorLayout | None = None) -> None:
         """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes, with the
@@ -601,17 +607,17 @@ class LiveView(QtWidgets.QWidget):
         for i, (p, item, chans) in enumerate(zip(self.trace_plots, self.trace_items, self._layer_channels)):
             part = x[:, chans.start:chans.stop]
             if auto:  # the y range first, so the traces are drawn in the view they will be shown in
-                r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self.sensor_layout.adc_max)
+                r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self._layout().adc_max)
                 if r is not None:
                     self._y_ranges[i] = r
                     p.setYRange(*r, padding=0)
             item.setData(t, part, breaks)
         if self._refresh_n % HEATMAP_EVERY == 0:
             self.heatmap_frame = cur = buf.current.copy()
-            for img, chans, la in zip(self.images, self._layer_channels, self.sensor_layout.layers):
+            for img, chans, la in zip(self.images, self._layer_channels, self._layout().layers):
                 img.setImage(cur[chans.start:chans.stop].reshape(la.rows, la.cols).astype(float), autoLevels=False)
         if enc is not None:
-            n = self.sensor_layout.n_channels
+            n = self._layout().n_channels
             height = max(int(round(self.raster_plots["sa"].vb.height())), 1)
             for key, ring in (("sa", enc.sa), ("ra", enc.ra)):
                 st, sc = ring.since(now - self.window_s)

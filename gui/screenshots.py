@@ -43,7 +43,7 @@ duration_s = 1.0
 
 
 def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1400, 900),
-         more_sizes: list[tuple[int, int]] = ()) -> int:
+         more_sizes: list[tuple[int, int]] | None = None) -> int:
     """Save the screenshots into ``out_dir``; ``only`` = a subset of the shot names (without ``.png``; the
     rig-side ones control, calibration, live need no dataset) or None for all; ``size`` = the window's
     (width, height) in pixels; ``more_sizes``: each shot is also taken at these sizes, into ``out_dir/WxH/``
@@ -69,9 +69,10 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     def shot(name):
         if only and name[:-4] not in only:
             return
-        for i, (wd, ht) in enumerate([size, *more_sizes]):
+        more = more_sizes or []
+        for i, (wd, ht) in enumerate([size, *more]):
             w.resize(wd, ht)
-            for _ in range(8 if i or more_sizes else 5):  # a resized window redraws first
+            for _ in range(8 if i or more else 5):  # a resized window redraws first
                 app.processEvents()
                 time.sleep(0.05)
             folder = out_dir if i == 0 else os.path.join(out_dir, f"{wd}x{ht}")
@@ -114,7 +115,7 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     from rigctl.simulation.dataset import generate_dataset
 
     ds = os.path.join(tmp, "dataset.h5")
-    generate_dataset(parse_protocol(DATASET), ds, workers=1, progress=False)
+    generate_dataset(parse_protocol(DATASET), ds, workers=1, progress=None)
     a = w.analysis
     w.tabs.setCurrentWidget(a)
     a.open(ds)
@@ -159,7 +160,8 @@ def _cli(argv: list[str]) -> int:
     sizes = []
     while "--size" in argv:
         i = argv.index("--size")
-        sizes.append(tuple(int(v) for v in argv[i + 1].lower().split("x")))
+        width, height = (int(v) for v in argv[i + 1].lower().split("x"))
+        sizes.append((width, height))
         argv = argv[:i] + argv[i + 2:]
     sizes = sizes or [(1400, 900)]
     return main(argv[0] if argv else "docs/screenshots", argv[1:] or None, size=sizes[0], more_sizes=sizes[1:])

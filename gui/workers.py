@@ -284,13 +284,19 @@ class Job(threading.Thread):
     The GUI polls :attr:`done`, :attr:`fraction`, :attr:`message`, :attr:`result` and :attr:`error`.
     """
 
+    #: what a caller attaches to know which request the job answers (the analysis tab's trial view: ``tid``,
+    #: ``path``; the classification view: ``planned``)
+    tid: int
+    path: str
+    planned: Any
+
     def __init__(self, fn: Callable[["Job"], Any], name: str = "job"):
         super().__init__(name=name, daemon=True)
         self.fn = fn
         self.cancel = threading.Event()
         self.fraction = 0.0
         self.message = ""
-        self.result = None
+        self.result: Any = None
         self.error: str | None = None
         self.traceback: str | None = None
         self.done = False
@@ -369,7 +375,7 @@ class ProcessJob:
         self.cancelled = False
         self.fraction = 0.0
         self.message = "starting a worker process..."
-        self.result = None
+        self.result: Any = None
         self.error: str | None = None
         self.traceback: str | None = None
         self.events: list = []  # the ProgressEvents received, in order
