@@ -791,10 +791,10 @@ class AnalysisTab(QtWidgets.QWidget):
         size = page.size()
         if fmt == "png":
             scale = max(1.0, EXPORT_PNG_WIDTH_PX / max(size.width(), 1))
-            img = QtGui.QImage(int(size.width() * scale), int(size.height() * scale), QtGui.QImage.Format_ARGB32)
+            img = QtGui.QImage(int(size.width() * scale), int(size.height() * scale), QtGui.QImage.Format.Format_ARGB32)
             img.fill(QtGui.QColor("white"))
             painter = QtGui.QPainter(img)
-            painter.setRenderHint(QtGui.QPainter.Antialiasing)
+            painter.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing)
             painter.scale(scale, scale)
             page.render(painter, QtCore.QPoint(0, 0))
             painter.end()

@@ -228,7 +228,7 @@ class RasterItem(pg.GraphicsObject):
         self.image = counts
         self._pixels = colours  # top row first (screen order): blitted as it is
         h, w = counts.shape
-        self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format_RGB32)
+        self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format.Format_RGB32)
         self.update()
 
     def boundingRect(self) -> QtCore.QRectF:  # noqa: N802 - Qt override
@@ -390,8 +390,8 @@ class LiveView(QtWidgets.QWidget):
         bar.addWidget(self.rate_label)
         bar.addWidget(self.sensor_label)
         # the info line takes the room left and never widens the window (an encoder error can be long)
-        self.info.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
-        self.info.setAlignment(QtCore.Qt.AlignRight | QtCore.Qt.AlignVCenter)
+        self.info.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
+        self.info.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
         bar.addWidget(self.info, 1)
 
         self.gl = TimedGraphicsLayout()
@@ -439,10 +439,10 @@ class LiveView(QtWidgets.QWidget):
             # axes and titles are drawn once into pixmaps and blitted while the data under them scroll (their ticks
             # reach into the data area, so each frame's repaint of it would otherwise redraw their text)
             for name in ("left", "bottom"):
-                p.getAxis(name).setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
-            p.titleLabel.item.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
+                p.getAxis(name).setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)
+            p.titleLabel.item.setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)
             # where frames stopped coming (an outage): a dashed red line per gap in the window
-            marks = [pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen("#c00", width=2, style=QtCore.Qt.DashLine))
+            marks = [pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen("#c00", width=2, style=QtCore.Qt.PenStyle.DashLine))
                      for _ in range(GAP_MARKS)]
             for m in marks:
                 m.hide()

@@ -177,7 +177,7 @@ class Banner(QtWidgets.QFrame):
         fm = self.label.fontMetrics()
         width = max(self.label.width() - 4, 40)
         budget = width * Banners.LINES * 0.85  # word wrap leaves part of each line empty
-        self.label.setText(fm.elidedText(self.text, QtCore.Qt.ElideRight, int(budget)))
+        self.label.setText(fm.elidedText(self.text, QtCore.Qt.TextElideMode.ElideRight, int(budget)))
 
     def resizeEvent(self, ev):  # noqa: N802 - Qt override
         super().resizeEvent(ev)

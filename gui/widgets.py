@@ -60,7 +60,7 @@ def add_taxel_numbers(view, rows: int, cols: int, first: int, *, point_size: int
         for c in range(cols):
             t = pg.TextItem(str(first + r * cols + c), color="k", fill=pg.mkBrush(255, 255, 255, 190), anchor=(0, 0))
             t.setFont(font)
-            t.textItem.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)  # drawn once
+            t.textItem.setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)  # drawn once
             t.setPos(c + 0.03, r + 0.03)
             view.addItem(t)
             items.append(t)
