@@ -283,3 +283,34 @@ def test_a_reversed_load_cell_fails_polarity_on_the_firmware_under_simavr(tmp_pa
     r = by["loadcell-polarity"]
     assert r.status == "fail" and "A+/A-" in r.fix, r.line()
     assert r.values["lowest_force_g"] < -30
+
+
+def test_serial_numbers_on_hardware_ports(monkeypatch, tmp_path):
+    """The boards' USB serial numbers from pyserial's port list (replaced here: no USB boards on this machine): both
+    known -> pass; a CH340 clone without one -> fail naming the port; swapped roles -> fail."""
+    from rigctl.acquisition.doctor import host_checks
+    from rigctl.devices.ports import PortInfo
+
+    drum, taxel = tmp_path / "ttyACM0", tmp_path / "ttyACM1"
+    drum.touch()
+    taxel.touch()
+
+    def listing(*boards):
+        return lambda include_all=False: [PortInfo(str(p), 1, 2, desc, board, sn) for p, desc, board, sn in boards]
+
+    def run():
+        ctx = doctor.DoctorContext("hardware", opener=lambda: None, drum_port=str(drum), taxel_port=str(taxel))
+        return doctor.run_doctor(doctor.select(["serial-numbers"]), ctx).results[0]
+
+    monkeypatch.setattr(host_checks, "find_ports", listing((drum, "Arduino Mega 2560 R3", "mega", "A1"),
+                                                           (taxel, "Arduino Uno R3", "uno", "B2")))
+    r = run()
+    assert r.status == "pass" and r.values == {"drum_serial_number": "A1", "taxel_serial_number": "B2"}
+    monkeypatch.setattr(host_checks, "find_ports", listing((drum, "Arduino Mega 2560 R3", "mega", "A1"),
+                                                           (taxel, "CH340 USB-serial", None, None)))
+    r = run()
+    assert r.status == "fail" and str(taxel) in r.summary and "udev-rules" in r.fix
+    monkeypatch.setattr(host_checks, "find_ports", listing((drum, "Arduino Uno R3", "uno", "A1"),
+                                                           (taxel, "Arduino Mega 2560 R3", "mega", "B2")))
+    r = run()
+    assert r.status == "fail" and "swap" in r.fix

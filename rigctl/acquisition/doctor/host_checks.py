@@ -126,8 +126,8 @@ def check_modemmanager(ctx: DoctorContext) -> CheckResult:
                       running=True, rule_files=rules)
     return failed("modemmanager", "ModemManager is running and no udev rule sets ID_MM_DEVICE_IGNORE: it probes "
                   "the boards' ttyACM ports (bytes into the Mega's bootloader, a port busy for seconds)",
-                  "sudo systemctl disable --now ModemManager, or install udev rules that set "
-                  "ENV{ID_MM_DEVICE_IGNORE}=\"1\" for the boards (docs/hardware)", running=True)
+                  "install the rig's udev rules (rigctl udev-rules > 99-rigctl.rules; they set "
+                  "ENV{ID_MM_DEVICE_IGNORE}=\"1\"), or sudo systemctl disable --now ModemManager", running=True)
 
 
 def check_serial_numbers(ctx: DoctorContext) -> CheckResult:
@@ -154,9 +154,9 @@ def check_serial_numbers(ctx: DoctorContext) -> CheckResult:
                              "swap --drum-port and --taxel-port"))
         if not info.serial_number:
             problems.append((f"{role} port {path} ({info.description}) reports no USB serial number: its ttyACM/"
-                             f"ttyUSB name can change on replug", "name the port by its USB path "
-                             "(/dev/serial/by-path/...) or use a board whose USB bridge has a serial number "
-                             "(genuine 16U2)"))
+                             f"ttyUSB name can change on replug and the boards can swap", "name the port by its USB "
+                             "path (/dev/serial/by-path/...) or use a board whose USB bridge has a serial number "
+                             "(genuine 16U2); with one, `rigctl udev-rules` gives stable names"))
         else:
             lines.append(f"{role} {info.serial_number}")
     if problems:
