@@ -24,13 +24,14 @@ order = "blocked"
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
+    from rigctl.acquisition.protocol import load_protocol
     from rigctl.simulation.dataset import generate_dataset
 
     d = tmp_path_factory.mktemp("enc")
     proto = d / "enc_test.toml"
     proto.write_text(PROTOCOL)
     path = d / "session.h5"
-    generate_dataset(proto, path, seed=3, workers=0, progress=False)
+    generate_dataset(load_protocol(proto), path, seed=3, workers=0, progress=False)
     return path
 
 
