@@ -193,6 +193,8 @@ class HilRig:
         that converts before the node settles reads part of the previous input. :meth:`set_taxel_ohm` changes one.
     tel_ms : float
         Period of the Mega harness's ``TEL`` reports (actuator, spring force, step counts), ms of simulated time.
+    index_bounce : int
+        Extra 0.1 ms pulses the drum index sensor gives after each mark (a bouncing contact; the firmware debounces).
 
     Attributes
     ----------
@@ -216,7 +218,7 @@ class HilRig:
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
-                 tel_ms: float = 50.0, bootloaders: bool = False):
+                 tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -227,6 +229,7 @@ class HilRig:
         self.with_uno = with_uno
         self.taxel_ohm = float(taxel_ohm)
         self.tel_ms = float(tel_ms)
+        self.index_bounce = int(index_bounce)
         self.bootloaders = bool(bootloaders)
         self.boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.uno_boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
@@ -348,7 +351,7 @@ class HilRig:
         m, d = self.config.mechanics, self.config.drum
         args = ["--tel-ms", str(self.tel_ms), "--hx711-sps", str(int(m.hx711_rate_sps)),
                 "--hx711-clock-error", str(m.hx711_clock_error),
-                "--drum-driver-microsteps", str(d.true_microsteps)]
+                "--drum-driver-microsteps", str(d.true_microsteps), "--index-bounce", str(self.index_bounce)]
         return args if d.index_sensor else [*args, "--no-index-sensor"]
 
     def close(self) -> None:

@@ -56,6 +56,8 @@ static volatile uint16_t drum_revs;
 static volatile uint8_t index_pending;   /* index mark passed: raise the index output */
 /* index sensor (Timer5 input capture; docs/wire-protocol.md 2.6) */
 #define INDEX_LOST_STEPS ((uint32_t)DRUM_USTEPS_PER_REV * 3u / 2u) /* 1.5 revolutions without an edge: fallback */
+#define INDEX_DEBOUNCE_TICKS 313u /* 20 ms of 64 us ticks: edges this close to the last are the same mark (a
+                                   * revolution takes >= 98 ms even at 200 mm/s with a driver at 1/16 the steps) */
 static volatile uint32_t steps_since_sensor; /* drum steps since the last sensor edge */
 static volatile uint8_t sensor_live;
 static volatile uint16_t t5_overflows;
@@ -146,6 +148,7 @@ ISR(TIMER5_CAPT_vect)
     uint32_t ovf = t5_overflows;
     if ((TIFR5 & (1 << TOV5)) && icr < 0x8000u) ovf++; /* an overflow not yet counted came before the capture */
     uint32_t t = (ovf << 16) | icr;
+    if (sensor_edges && t - sensor_last_ticks < INDEX_DEBOUNCE_TICKS) return; /* contact bounce of the same mark */
     uint32_t steps = steps_since_sensor;
     if (sensor_edges) {
         sensor_period_ticks = t - sensor_last_ticks;

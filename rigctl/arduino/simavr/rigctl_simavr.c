@@ -744,12 +744,15 @@ static double hx711_filtered_g(void)
  * It sees the REAL drum: each STEP pulse turns the drum by 1 / (steps_per_rev x the driver's microstep setting) of
  * a revolution; --drum-driver-microsteps sets that driver (default: the firmware's assumption, docs/wire-protocol.md
  * 2.6), so a misconfigured driver turns the drum at another speed than the step count says. The sensor pulls its
- * pin low for 1 ms each time the drum passes its index mark. --no-index-sensor: no sensor fitted (pin pulled up). */
+ * pin low for 1 ms each time the drum passes its index mark, then --index-bounce N more 0.1 ms pulses 0.1 ms apart
+ * (a bouncing contact). --no-index-sensor: no sensor fitted (pin pulled up). */
 static int opt_index_sensor = 1;
+static int opt_index_bounce = 0; /* extra short pulses after each mark (a bouncing contact / noisy edge) */
 static double opt_driver_microsteps = RIGCTL_DRUM_MICROSTEPS_DEF;
 static avr_irq_t *index_sensor_pin;
 static int64_t index_sensor_revs; /* index marks passed (real drum) */
 static uint64_t index_sensor_release_cycle;
+static int index_bounces_left;
 
 static void index_sensor_setup(void)
 {
@@ -767,10 +770,15 @@ static void index_sensor_poll(int64_t drum_steps_now)
         index_sensor_revs = revs;
         avr_raise_irq(index_sensor_pin, 0);
         index_sensor_release_cycle = avr->cycle + 16000u;
+        index_bounces_left = opt_index_bounce;
         printf("ISENS t=%.6f revs=%lld drum_steps=%lld\n", sim_s(), (long long)revs, (long long)drum_steps_now);
     } else if (index_sensor_release_cycle && avr->cycle >= index_sensor_release_cycle) {
         avr_raise_irq(index_sensor_pin, 1);
         index_sensor_release_cycle = 0;
+    } else if (index_bounces_left && !index_sensor_release_cycle) { /* bounce: another 0.1 ms low pulse */
+        index_bounces_left--;
+        avr_raise_irq(index_sensor_pin, 0);
+        index_sensor_release_cycle = avr->cycle + 1600u;
     }
 }
 
@@ -976,6 +984,7 @@ static void usage(void)
                     "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
+                    "[--index-bounce N] "
                     "FIRMWARE.elf\n");
     exit(2);
 }
@@ -1007,6 +1016,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--hx711-sps")) opt_hx711_sps = atof(NEXT());
         else if (!strcmp(a, "--drum-driver-microsteps")) opt_driver_microsteps = atof(NEXT());
         else if (!strcmp(a, "--no-index-sensor")) opt_index_sensor = 0;
+        else if (!strcmp(a, "--index-bounce")) opt_index_bounce = atoi(NEXT());
         else if (!strcmp(a, "--hx711-clock-error")) opt_hx711_clock_error = atof(NEXT());
         else if (a[0] == '-') usage();
         else fw = a;
