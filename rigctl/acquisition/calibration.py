@@ -41,7 +41,7 @@ from rigctl.acquisition.rigconfig import (  # noqa: F401 (re-exported: the confi
     update_rig_config,
 )
 from rigctl.core.drum import SetpointRangeError
-from rigctl.core.interfaces import DrumController, MassPlacer
+from rigctl.core.interfaces import DrumController, DrumMonitor, MassPlacer
 from rigctl.core.normalisation import TaxelRange
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,7 @@ def _sleep(drum, s: float) -> None:
     (clock.sleep if clock is not None else time.sleep)(s)
 
 
-def _mean_raw(drum, n: int, interval_s: float) -> tuple[float, float, float]:
+def _mean_raw(drum: DrumMonitor, n: int, interval_s: float) -> tuple[float, float, float]:
     raws, forces = [], []
     for _ in range(n):
         st = drum.read_status()

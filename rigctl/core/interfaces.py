@@ -3,7 +3,8 @@
 The acquisition layer (``rigctl.acquisition``: the ``Rig`` facade, the trial runner, calibration) is written against
 these, never against a concrete backend. Implementations:
 
-- :class:`DrumController`: ``rigctl.devices.drum.DrumClient`` (Modbus RTU to the Mega: real board, the virtual Mega,
+- :class:`DrumController` (the roles :class:`DrumSetpoints`, :class:`DrumCommands`, :class:`DrumMonitor`,
+  :class:`DrumCalibration`): ``rigctl.devices.drum.DrumClient`` (Modbus RTU to the Mega: real board, the virtual Mega,
   or the firmware under simavr; the in-process backend gives it a transport that calls the controller logic,
   ``rigctl.simulation.controller.MegaController``, directly, and a simulated clock).
 - :class:`TaxelSource`: ``rigctl.devices.taxel_stream.TaxelStream`` (pyserial, the Uno's frames) and
@@ -33,39 +34,16 @@ from rigctl.core.textures import TextureSet
 #: the kinds of rig backend (:attr:`RigBackend.mode`): the one list; :func:`rigctl.rigs.open_rig` builds each
 RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
 
-__all__ = ["RIG_KINDS", "DrumController", "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "Prompt"]
+__all__ = ["RIG_KINDS", "DrumController", "DrumSetpoints", "DrumCommands", "DrumMonitor", "DrumCalibration",
+           "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "Prompt"]
 
 
 @runtime_checkable
-class DrumController(Protocol):
-    """The drum controller (Mega) in the rig's terms: speed and force setpoints in mm/s and g, commands, a typed
-    status (:class:`rigctl.core.drum.DrumStatus`), its limits (:class:`rigctl.core.drum.DrumLimits`) and settle band;
-    no registers (those stay inside ``rigctl.devices``).
+class DrumSetpoints(Protocol):
+    """Setting the drum controller: speed and force setpoints (mm/s, g), the speed profile, the settle band and the
+    force loop; reading its limits. Setters raise :class:`rigctl.core.drum.SetpointRangeError` (a ValueError)
+    before anything is sent when a value is outside the controller's range."""
 
-    Errors (all :mod:`rigctl.core.drum`): setters raise :class:`SetpointRangeError` (a ValueError) before anything
-    is sent when a value is outside the controller's range; every call raises :class:`DrumError` when the
-    controller does not answer or refuses (:class:`DrumTimeout`: no answer / not reached in time; a Modbus client
-    adds ``ModbusExceptionError``); the waits raise :class:`DrumFault` when the controller latches a fault.
-    ``clock`` (:class:`rigctl.core.drum.Clock`) is the host clock the waits run on and the taxel source's
-    ``host_time_s`` uses: the wall clock, or the in-process backend's simulated clock.
-    A context manager: ``__enter__`` opens the link (DrumError if it cannot), ``__exit__`` closes it.
-    """
-
-    clock: Clock
-
-    def __enter__(self) -> Any:
-        """Open the link to the controller; returns the controller. DrumError if it cannot be opened."""
-        ...
-
-    def __exit__(self, *exc: object) -> Any:
-        """Close the link (:meth:`close`)."""
-        ...
-
-    def close(self) -> None:
-        """Close the link; the controller keeps running on its own (its watchdog stops a drum left turning)."""
-        ...
-
-    # setpoints
     def set_speed(self, mm_s: float) -> None:
         """Drum surface speed for the CONSTANT profile, mm/s (0 to the controller's speed limit)."""
         ...
@@ -95,7 +73,20 @@ class DrumController(Protocol):
         """Set the force tolerance (g, 1-500) and / or the settle time (ms, 0-10000); None keeps a value."""
         ...
 
-    # commands
+    def force_loop(self) -> ForceLoopConfig:
+        """The force loop's HX711 rate and PI gains (spec 2.9)."""
+        ...
+
+    def set_force_loop(self, config: ForceLoopConfig) -> None:
+        """Set the force loop's HX711 rate and PI gains (all at once; range-checked before anything is sent)."""
+        ...
+
+
+@runtime_checkable
+class DrumCommands(Protocol):
+    """Commanding the drum controller (spec table 2.3); a command the state does not allow is refused
+    (:class:`rigctl.core.drum.DrumError`)."""
+
     def run(self) -> None:
         """Start the drum on the selected profile (the force loop keeps holding; PRESS first if it is not)."""
         ...
@@ -124,23 +115,16 @@ class DrumController(Protocol):
         """Clear the latched faults and leave FAULT for IDLE; refused while the fault condition persists."""
         ...
 
-    def set_loadcell_scale(self, counts_per_g: float) -> None:
-        """Load-cell calibration: HX711 counts per g (0.01-655.35); :meth:`save_calibration` keeps it."""
-        ...
 
-    def save_calibration(self) -> None:
-        """Write the calibration (load-cell scale, actuator steps per mm) to the controller's EEPROM."""
-        ...
+@runtime_checkable
+class DrumMonitor(Protocol):
+    """Watching the drum controller: its status now, its settings, and waits polled on ``clock``
+    (:class:`rigctl.core.drum.Clock`: the wall clock, or the in-process backend's simulated clock). A wait raises
+    :class:`rigctl.core.drum.DrumTimeout` when not reached within ``timeout_s`` and
+    :class:`rigctl.core.drum.DrumFault` when the controller latches a fault."""
 
-    def force_loop(self) -> ForceLoopConfig:
-        """The force loop's HX711 rate and PI gains (spec 2.9)."""
-        ...
+    clock: Clock
 
-    def set_force_loop(self, config: ForceLoopConfig) -> None:
-        """Set the force loop's HX711 rate and PI gains (all at once; range-checked before anything is sent)."""
-        ...
-
-    # status
     def read_status(self) -> DrumStatus:
         """The controller's state now: force, speed, angle, actuator position, state, faults, firmware."""
         ...
@@ -149,7 +133,6 @@ class DrumController(Protocol):
         """The controller's settings by name, raw (for the record: a session's ``rig_config``)."""
         ...
 
-    # waits (poll on ``clock``; DrumTimeout when not reached within timeout_s, DrumFault on a fault)
     def wait_state(self, states: Iterable[DrumState], timeout_s: float) -> DrumStatus:
         """Until the state is one of ``states`` (FAULT among them: a fault ends the wait instead of raising)."""
         ...
@@ -164,6 +147,45 @@ class DrumController(Protocol):
 
     def wait_speed_steady(self, timeout_s: float, tol_mm_s: float = ..., n_polls: int = ...) -> DrumStatus:
         """Until the drum speed is within ``tol_mm_s`` (mm/s) of the profile's target for ``n_polls`` polls."""
+        ...
+
+
+
+@runtime_checkable
+class DrumCalibration(Protocol):
+    """Calibrating the drum controller's load cell (spec 2.1: LOADCELL_SCALE_X100, SAVE_CALIBRATION)."""
+
+    def set_loadcell_scale(self, counts_per_g: float) -> None:
+        """Load-cell calibration: HX711 counts per g (0.01-655.35); :meth:`save_calibration` keeps it."""
+        ...
+
+    def save_calibration(self) -> None:
+        """Write the calibration (load-cell scale, actuator steps per mm) to the controller's EEPROM."""
+        ...
+
+
+@runtime_checkable
+class DrumController(DrumSetpoints, DrumCommands, DrumMonitor, DrumCalibration, Protocol):
+    """The drum controller (Mega) in the rig's terms, no registers (those stay inside ``rigctl.devices``): the
+    roles :class:`DrumSetpoints`, :class:`DrumCommands`, :class:`DrumMonitor` and :class:`DrumCalibration` (one job
+    each, as bluesky's protocols; a part that needs one role is typed against it), plus the link's life.
+
+    Errors (all :mod:`rigctl.core.drum`): every call raises :class:`DrumError` when the controller does not answer
+    or refuses (:class:`DrumTimeout`: no answer; a Modbus client adds ``ModbusExceptionError``); each role names
+    its own. ``clock`` is also the clock the taxel source's ``host_time_s`` uses. A context manager: ``__enter__``
+    opens the link (DrumError if it cannot), ``__exit__`` closes it.
+    """
+
+    def __enter__(self) -> Any:
+        """Open the link to the controller; returns the controller. DrumError if it cannot be opened."""
+        ...
+
+    def __exit__(self, *exc: object) -> Any:
+        """Close the link (:meth:`close`)."""
+        ...
+
+    def close(self) -> None:
+        """Close the link; the controller keeps running on its own (its watchdog stops a drum left turning)."""
         ...
 
 
