@@ -346,7 +346,7 @@ class DrumClient:
             self._client.comm_params.host = resolve_port(self.port)
         if not self._client.connect():
             return False
-        lock_exclusive(self._client.socket)  # no other program can open (and so reset) the board now
+        lock_exclusive(getattr(self._client, "socket", None))  # no other program can open (and so reset) the board now
         if self.boot_wait_s > 0:
             self.boot_waits += 1
             self._silence(self.boot_wait_s)
