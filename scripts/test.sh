@@ -60,7 +60,9 @@ echo "== ruff check (rules and per-file ignores in pyproject.toml)"
 python3 -m ruff check --no-cache .
 
 echo "== import contracts (lint-imports; the layers in pyproject.toml, docs/architecture.md)"
-lint-imports --cache-dir "$TEST_TMP/import-linter"
+# the lint-imports command, run by this interpreter (import-linter has no `python -m` entry point)
+python3 -c 'import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())' \
+  --cache-dir "$TEST_TMP/import-linter"
 
 echo "== mypy (settings in pyproject.toml)"
 python3 -m mypy --cache-dir "$TEST_TMP/mypy"
