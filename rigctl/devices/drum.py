@@ -54,7 +54,7 @@ from rigctl.devices.errors import (
     ModbusExceptionError,
     SetpointRangeError,
 )
-from rigctl.devices.ports import SERIAL_PREFIX, lock_exclusive, resolve_port
+from rigctl.devices.ports import PortIdentity, lock_exclusive
 from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
 
 __all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "ForceLoopConfig",
@@ -242,7 +242,8 @@ class DrumClient:
     ----------
     port : str
         Serial device (e.g. ``/dev/rigctl-drum``, ``/dev/ttyACM0`` or the simulated rig's ``drum_port``), or
-        ``serial:<USB serial number>``, looked up at every (re)open (:func:`rigctl.devices.ports.resolve_port`).
+        ``serial:<USB serial number>``. Reopens go to the board first opened, by its USB serial number
+        (:class:`rigctl.devices.ports.PortIdentity`): re-enumerated boards cannot swap.
     baudrate : int
         :data:`rigctl.devices.wire.DRUM_BAUD` (500000, exact at 16 MHz) by default (spec section 2).
     device_id : int
@@ -315,6 +316,7 @@ class DrumClient:
         self.boot_quiet_s = float(boot_quiet_s) if boot_quiet_s is not None else (MEGA_BOOT_QUIET_S if resets
                                                                                    else 0.0)
         self._unanswered = 0  # attempts in a row that got no answer
+        self._identity = PortIdentity(port)
         self._unsettled = False  # answers to earlier requests may still arrive: fence before the next request
         self._fence_used: list[int] = []  # fence counts sent since the link was last settled
         self._rx = b""  # the bytes of the last response pymodbus decoded (its trace_packet hook)
@@ -342,8 +344,9 @@ class DrumClient:
         nothing for ``boot_wait_s`` (the board resets and its bootloader listens), then drop what came meanwhile."""
         if getattr(self._client, "connected", False):
             return True
-        if self.port.startswith(SERIAL_PREFIX):  # by USB serial number: whichever ttyACM the board is now
-            self._client.comm_params.host = resolve_port(self.port)
+        if hasattr(self._client, "comm_params"):
+            # the board by its USB serial number: whichever ttyACM it is now (ports.PortIdentity)
+            self._client.comm_params.host = self._identity.device()
         if not self._client.connect():
             return False
         lock_exclusive(getattr(self._client, "socket", None))  # no other program can open (and so reset) the board now

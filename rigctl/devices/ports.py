@@ -12,6 +12,7 @@ and keep ModemManager off it. :func:`lock_exclusive` makes an open port exclusiv
 from __future__ import annotations
 
 import fcntl
+import os
 import re
 import termios
 from dataclasses import asdict, dataclass
@@ -138,6 +139,43 @@ def resolve_port(port: str) -> str:
         if p.serial_number == number:
             return str(p.device)
     raise PortNotFound(f"no serial port with USB serial number {number!r} is connected (`rigctl ports` lists them)")
+
+
+def usb_serial_of(port: str) -> str | None:
+    """USB serial number of the port at path ``port`` (symlinks followed), None if it has none or is not listed
+    (a pty, a board without a serial number)."""
+    try:
+        real = os.path.realpath(port)
+    except OSError:
+        return None
+    for p in list_ports.comports():
+        if p.serial_number and os.path.realpath(p.device) == real:
+            return str(p.serial_number)
+    return None
+
+
+class PortIdentity:
+    """Which board a client's port is: its USB serial number, learnt at the first open. Every later open goes to the
+    port that has that number now, wherever the board re-enumerated (a replug, a USB reset), so a client of the Mega
+    never reopens ``/dev/ttyACM0`` once the Uno holds that name. ``serial:<number>`` names are looked up at every
+    open; a port without a serial number (a pty, some clones) is reopened by its path.
+
+    Raises (:meth:`device`) :class:`PortNotFound` when the board is not connected now."""
+
+    def __init__(self, port: str) -> None:
+        self.port = port
+        self.serial_number = port[len(SERIAL_PREFIX):] if port.startswith(SERIAL_PREFIX) else None
+        self._learnt = self.serial_number is not None
+
+    def device(self) -> str:
+        """The device path to open now."""
+        if not self._learnt:
+            self._learnt = True
+            self.serial_number = usb_serial_of(self.port)
+            return self.port
+        if self.serial_number is None:
+            return self.port
+        return resolve_port(SERIAL_PREFIX + self.serial_number)
 
 
 #: udev symlink names (under /dev) of the two boards

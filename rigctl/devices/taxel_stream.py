@@ -36,7 +36,7 @@ from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
-from rigctl.devices.ports import lock_exclusive, resolve_port
+from rigctl.devices.ports import PortIdentity, lock_exclusive
 from rigctl.devices.ring import RingBuffer
 
 log = logging.getLogger(__name__)
@@ -156,8 +156,9 @@ class TaxelStream:
     ----------
     port : str
         Serial device path (e.g. ``/dev/rigctl-taxel``, ``/dev/ttyACM0`` or the simulated rig's ``taxel_port``), or
-        ``serial:<USB serial number>``, looked up at every (re)open (:func:`rigctl.devices.ports.resolve_port`): a
-        board that re-enumerates under another name is found again, and the two boards cannot swap.
+        ``serial:<USB serial number>``. Reopens go to the board first opened, by its USB serial number
+        (:class:`rigctl.devices.ports.PortIdentity`): a board that re-enumerates under another name is found again,
+        and the two boards cannot swap.
     baudrate : int
         1,000,000 (spec section 1).
     ring_seconds : float
@@ -179,6 +180,7 @@ class TaxelStream:
                  banner_timeout_s: float = 3.0, on_error: Any = None, reconnect: bool = True, read_timeout_s: float = 0.02,
                  start_timeout_s: float = 1.0) -> None:
         self.port = port
+        self._identity = PortIdentity(port)  # reopens go to this board, by USB serial number
         self.baudrate = baudrate
         self.banner_timeout_s = banner_timeout_s
         self.on_error = on_error
@@ -277,7 +279,7 @@ class TaxelStream:
 
     def _open_serial(self) -> serial.Serial:
         # exclusive: a second program can neither open the port nor, by opening it, reset the board under a stream
-        ser = serial.Serial(resolve_port(self.port), self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0, exclusive=True)
+        ser = serial.Serial(self._identity.device(), self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0, exclusive=True)
         lock_exclusive(ser)
         return ser
 

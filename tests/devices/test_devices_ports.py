@@ -50,6 +50,30 @@ def test_a_board_named_by_serial_number_is_found_wherever_it_enumerates(enumerat
         assert drum._client.comm_params.host == str(moved)
 
 
+def test_a_board_opened_by_path_is_reopened_by_its_serial_number_so_boards_cannot_swap(enumerated, mega, uno, tmp_path):
+    acm0, acm1 = tmp_path / "ttyACM0", tmp_path / "ttyACM1"
+    os.symlink(mega.path, acm0)
+    os.symlink(uno.path, acm1)
+    enumerated[:] = [_comport(str(acm0), 0x2341, 0x0042, MEGA_SERIAL), _comport(str(acm1), 0x2341, 0x0043, UNO_SERIAL)]
+    with DrumClient(str(acm0), timeout_s=0.5, retries=2) as drum:
+        drum.read_status()
+        # both boards re-enumerate in the other order: ttyACM0 is now the Uno
+        drum._client.close()
+        os.unlink(acm0)
+        os.unlink(acm1)
+        os.symlink(uno.path, acm0)
+        os.symlink(mega.path, acm1)
+        enumerated[:] = [_comport(str(acm0), 0x2341, 0x0043, UNO_SERIAL),
+                         _comport(str(acm1), 0x2341, 0x0042, MEGA_SERIAL)]
+        assert drum.read_status().firmware[0] >= 1  # the Mega, found as ttyACM1
+        assert drum._client.comm_params.host == str(acm1)
+        # and it is unplugged: no reopen of whatever holds a name now
+        drum._client.close()
+        enumerated[:] = [_comport(str(acm0), 0x2341, 0x0043, UNO_SERIAL)]
+        with pytest.raises(DrumError, match="USB serial number"):
+            drum.read_status()
+
+
 def test_a_board_that_is_not_connected_is_a_clear_error(enumerated):
     with pytest.raises(ports.PortNotFound, match="no serial port with USB serial number 'X1'"):
         ports.resolve_port("serial:X1")

@@ -75,14 +75,15 @@ def test_thirty_openings_at_random_moments_all_connect(boot_rig):
         with _client(rig) as drum:
             first_s.append(_first_answer_s(rig, drum, t0))
     with _client(rig) as drum:
-        polled = {"n": 0, "error": None}
+        polled: dict = {"error": None}
+        answers: list[int] = []  # drum.boot_waits (opens waited out so far) at each answer
         stop = threading.Event()
 
         def poll():
             try:
                 while not stop.is_set():
                     drum.read_status()
-                    polled["n"] += 1
+                    answers.append(drum.boot_waits)
             except Exception as exc:  # noqa: BLE001 - reported below
                 polled["error"] = exc
 
@@ -91,10 +92,12 @@ def test_thirty_openings_at_random_moments_all_connect(boot_rig):
         try:
             for _ in range(10):
                 time.sleep(float(rng.uniform(0.2, 1.0)))
-                n0, t0 = polled["n"], rig.clock.now()
                 with drum._lock:  # the USB link drops under the poller: its next request reopens the port
                     drum._client.close()
-                while polled["n"] <= n0 + 1 and polled["error"] is None and poller.is_alive():
+                    opens = drum.boot_waits
+                t0 = rig.clock.now()
+                # the first answer after the reopen (one with more opens waited out than before the close)
+                while not (answers and answers[-1] > opens) and polled["error"] is None and poller.is_alive():
                     time.sleep(0.01)
                 first_s.append(rig.clock.now() - t0)
         finally:
