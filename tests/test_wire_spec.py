@@ -161,6 +161,11 @@ def test_modbus_link(spec_text, h):
         assert h[f"RIGCTL_MB_EX_{name}"] == code
     t35 = float(re.search(r"t3\.5 silence \(([\d.]+) ms", spec_text).group(1))
     assert h["RIGCTL_MB_T35_US"] == round(t35 * 1000)
+    # the host's RTU client (pymodbus) keeps the same t3.5 at the link's rate, and no inter-byte timeout above 19200
+    from pymodbus.client import ModbusSerialClient
+
+    client = ModbusSerialClient("/dev/null", baudrate=wire.DRUM_BAUD)
+    assert client.silent_interval == t35 / 1000 and client.inter_byte_timeout == 0
     version = int(re.search(r"FIRMWARE_VERSION = (\d+)", spec_text).group(1))
     assert version == h["RIGCTL_MEGA_FIRMWARE_VERSION"] == (wire.MEGA_FIRMWARE_VERSION[0] << 8) | \
         wire.MEGA_FIRMWARE_VERSION[1]
