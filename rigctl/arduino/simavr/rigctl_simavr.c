@@ -1123,7 +1123,7 @@ int main(int argc, char **argv)
         if (atomic_exchange(&reset_requested, 0)) {
             avr_reset(avr);
             bridge_reset();
-            if (is_uno) mux_after_reset();
+            if (is_uno) uno_after_reset();
             else mega_after_reset();
             printf("RESET t=%.6f\n", sim_s());
         }
