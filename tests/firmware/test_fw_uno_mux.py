@@ -75,28 +75,27 @@ def test_a_step_on_one_taxel_stays_below_half_an_lsb_on_every_other_at_47_kohm(r
     np.fill_diagonal(off, 0.0)
     worst = np.unravel_index(np.argmax(np.abs(off)), off.shape)
     print(f"crosstalk at 47 kOhm, 1 kHz: worst {off[worst]:+.2f} LSB (step on taxel {worst[0]} seen on taxel "
-          f"{worst[1]}); harness settling error {mux.get('settle_err_window_lsb', float('nan')):.4f} LSB max over "
-          "the last simulated second")
+          f"{worst[1]}); harness settling error {mux.get('settle_err_max_lsb', float('nan')):.4f} LSB at most since "
+          "the harness started")
     # the stepped taxel itself follows its full step
     assert np.all(np.diag(xt) == _HIGH - _LOW)
     assert np.abs(off).max() <= 0.5
-    # and the analog value each conversion sampled was within 0.5 LSB of the settled one (the harness's own measure)
-    assert mux and mux["settle_err_window_lsb"] <= 0.5
-    # 1 kHz kept: every scan ended inside its 1 ms tick, streaming (longest scan over the last simulated second,
-    # from the tick's first conversion to the end of the last one), and no frame says otherwise
-    print(f"longest scan while streaming: {mux['scan_us_window']:.0f} us of the 1000 us tick")
-    assert 0 < mux["scan_us_window"] < 1000
+    # and the analog value every conversion sampled since the harness started was within 0.5 LSB of the settled one
+    # (the harness's own measure; this rig never ran above 47 kOhm)
+    assert mux and mux["settle_err_max_lsb"] <= 0.5
+    # 1 kHz kept: every scan since the harness started, streaming ones included, ended inside its 1 ms tick (from the
+    # tick's first conversion to the end of the last one), and no frame says otherwise
+    print(f"longest scan (streaming): {mux['scan_us_max']:.0f} us of the 1000 us tick")
+    assert 0 < mux["scan_us_max"] < 1000
     assert not np.any(flags & wire.FrameFlag.ADC_OVERRUN)
 
 
-def test_the_model_is_unkind_a_100x_source_impedance_is_seen(rig_47k, wait_frames):
-    """The same measurement with 4.7 MOhm taxels (tau = 180 us): the settling the firmware allows is not enough, and
-    the test above would see it. Restores 47 kOhm."""
-    rig_47k.set_taxel_ohm(4.7e6)
-    try:
-        xt, _, mux = measure(rig_47k, wait_frames, n_frames=1500)
-    finally:
-        rig_47k.set_taxel_ohm(47_000.0)
+def test_the_model_is_unkind_a_100x_source_impedance_is_seen(fw_build, wait_frames):
+    """The same measurement with 4.7 MOhm taxels (tau = 180 us; set at run time, as a fault injection would): the
+    settling the firmware allows is not enough, and the test above would see it."""
+    with hil.HilRig(live=False) as rig:
+        rig.set_taxel_ohm(4.7e6)
+        xt, _, mux = measure(rig, wait_frames, n_frames=1500)
     off = xt.copy()
     np.fill_diagonal(off, 0.0)
     print(f"crosstalk at 4.7 MOhm: worst {np.abs(off).max():.1f} LSB")
