@@ -48,10 +48,11 @@ python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 
 # everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
 # (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), mypy's cache, Hypothesis'
-# example database, pytest's cache
+# example database, numba's compiled kernels, pytest's cache
 TEST_TMP="$(mktemp -d "${TMPDIR:-/tmp}/rigctl-test.XXXXXX")"
 trap 'rm -rf "$TEST_TMP"' EXIT
-export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis"
+export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis" \
+  NUMBA_CACHE_DIR="$TEST_TMP/numba"
 
 echo "== build firmware (into $RIGCTL_FIRMWARE_BUILD)"
 make -C arduino -s BUILD="$RIGCTL_FIRMWARE_BUILD" all harness

@@ -24,13 +24,17 @@ def scratch_dir() -> Path:
 
 
 def pytest_configure(config):
-    """Keep the checkout clean: the firmware builds (``rigctl.firmware.build_dir`` honours $RIGCTL_FIRMWARE_BUILD)
-    and Hypothesis' storage go under :func:`scratch_dir` unless the caller chose a place (scripts/test.sh does)."""
+    """Keep the checkout clean: the firmware builds (``rigctl.firmware.build_dir`` honours $RIGCTL_FIRMWARE_BUILD),
+    numba's kernel cache and Hypothesis' storage go under :func:`scratch_dir` unless the caller chose a place
+    (scripts/test.sh does)."""
     from hypothesis.configuration import set_hypothesis_home_dir
 
     from rigctl import firmware
 
     scratch = scratch_dir()
+    # numba's compiled kernels (cache=True) would go to __pycache__ beside the sources; workers and the CLI
+    # subprocesses share this folder (read by numba when it is first imported: nothing has imported it yet)
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(scratch / "numba"))
     if not os.environ.get("RIGCTL_FIRMWARE_BUILD"):
         digest = firmware.source_digest()[:16]
         os.environ["RIGCTL_FIRMWARE_BUILD"] = str(scratch / f"firmware-{digest}")
