@@ -310,7 +310,7 @@ def test_a_cut_modbus_link_is_a_clear_error_and_the_client_reopens_it(drum_via_p
 
 
 def test_status_of_a_wrong_register_count_is_a_clear_error():
-    with pytest.raises(DrumError, match="13 input registers"):
+    with pytest.raises(DrumError, match=f"{wire.N_INPUT} input registers"):
         DrumStatus.from_registers([777])
     regs = [0] * wire.N_INPUT
     regs[wire.InputRegister.STATE] = 99
