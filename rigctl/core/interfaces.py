@@ -200,17 +200,52 @@ class TaxelSource(Protocol):
     banner: dict | None
 
     @property
-    def layout(self) -> SensorLayout: ...
+    def layout(self) -> SensorLayout:
+        """The sensor the frames come from: channels, grid, rate (Hz), ADC bits (the board's identify reply; the
+        paper's 3x3x2 at 1 kHz before :meth:`open`)."""
+        ...
+
     @property
-    def stats(self) -> Any: ...
-    def open(self) -> dict: ...
-    def start(self) -> None: ...
-    def stop(self) -> None: ...
-    def close(self) -> None: ...
-    def begin_capture(self) -> None: ...
-    def wait_capture(self, n_frames: int, timeout_s: float) -> bool: ...
-    def capture_flag_index(self, mask: int) -> int | None: ...
-    def end_capture(self) -> Any: ...
+    def stats(self) -> Any:
+        """A snapshot of the link's counters: ``frames``, ``dropped``, ``crc_errors``, ``frames_per_s``,
+        ``connected``, ``reconnects`` (``rigctl.devices.taxel_stream.StreamStats``)."""
+        ...
+
+    def open(self) -> dict:
+        """Open the link and wait for the board's ready banner; returns it parsed. ``TaxelStreamError`` when the
+        board does not answer or answers nonsense."""
+        ...
+
+    def start(self) -> None:
+        """Start streaming (the board restarts its sequence counter at 0, first frame flagged STREAMING_START)."""
+        ...
+
+    def stop(self) -> None:
+        """Stop streaming (frames already sent are still taken)."""
+        ...
+
+    def close(self) -> None:
+        """Stop streaming and close the link (best effort; never raises a link error)."""
+        ...
+
+    def begin_capture(self) -> None:
+        """Keep every frame received from now on (one trial) until :meth:`end_capture`."""
+        ...
+
+    def wait_capture(self, n_frames: int, timeout_s: float) -> bool:
+        """Block until the running capture holds ``n_frames`` frames; False after ``timeout_s`` s."""
+        ...
+
+    def capture_flag_index(self, mask: int) -> int | None:
+        """Position in the running capture of the first frame with a flag bit of ``mask`` (e.g. SYNC_IN, the drum's
+        index pulse); None if none yet or no capture runs."""
+        ...
+
+    def end_capture(self) -> Any:
+        """End the capture; every frame since :meth:`begin_capture`: ``samples (n, n_channels)`` uint16 ADC counts,
+        ``seq (n,)``, ``flags (n,)``, ``host_time_s (n,)`` s on the drum client's clock, ``dropped``,
+        ``crc_errors``. ``TaxelStreamError`` when no capture runs."""
+        ...
 
 
 @runtime_checkable
@@ -222,7 +257,9 @@ class PlateMounter(Protocol):
     Raises KeyError / ValueError for a label it cannot mount.
     """
 
-    def mount(self, label: str, textures: TextureSet, prompt: Callable[[str], Any] | None = None) -> None: ...
+    def mount(self, label: str, textures: TextureSet, prompt: Callable[[str], Any] | None = None) -> None:
+        """Put plate ``label`` of ``textures`` on the drum; returns when it is on (see the class docstring)."""
+        ...
 
 
 @runtime_checkable
@@ -230,7 +267,9 @@ class MassPlacer(Protocol):
     """Optional: a backend that can rest a calibration mass on the load cell (the simulated rigs); used by the
     load-cell calibration instead of asking an operator. ``place_mass(0)`` removes it."""
 
-    def place_mass(self, mass_g: float) -> None: ...
+    def place_mass(self, mass_g: float) -> None:
+        """Rest ``mass_g`` g on the load cell (0: take it off); returns when it rests there."""
+        ...
 
 
 @runtime_checkable
@@ -247,15 +286,35 @@ class RigBackend(Protocol):
 
     mode: str
 
-    def __enter__(self) -> Any: ...
-    def __exit__(self, *exc: Any) -> Any: ...
-    def drum(self) -> DrumController: ...
-    def taxels(self) -> TaxelSource: ...
+    def __enter__(self) -> Any:
+        """Start the backend (virtual boards, simavr; nothing on hardware). Raises when it cannot start."""
+        ...
+
+    def __exit__(self, *exc: Any) -> Any:
+        """Stop the backend (never raises)."""
+        ...
+
+    def drum(self) -> DrumController:
+        """A new client of the drum controller (not yet opened)."""
+        ...
+
+    def taxels(self) -> TaxelSource:
+        """A new client of the taxel board (not yet opened)."""
+        ...
+
     @property
-    def mounter(self) -> PlateMounter: ...
+    def mounter(self) -> PlateMounter:
+        """How plates get on the drum (the simulation renders them; on hardware an operator is asked)."""
+        ...
+
     @property
-    def textures(self) -> TextureSet: ...
-    def describe(self) -> dict: ...
+    def textures(self) -> TextureSet:
+        """The texture set the backend mounts by default."""
+        ...
+
+    def describe(self) -> dict:
+        """JSON-able: mode, ports, seed, the simulated model's configuration (a session's ``rig_config``)."""
+        ...
 
 
 #: the operator prompt used by mounters on hardware: ``prompt(message)`` blocks until the operator confirms

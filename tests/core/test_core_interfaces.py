@@ -51,3 +51,18 @@ def test_the_modbus_client_meets_every_role():
     client = DrumClient("/dev/null-not-opened")  # not opened: only its methods are looked at
     for role in (DrumSetpoints, DrumCommands, DrumMonitor, DrumCalibration, DrumController):
         assert isinstance(client, role), role.__name__
+
+
+def test_every_protocol_method_is_documented():
+    import inspect
+
+    from rigctl.core import drum, interfaces
+
+    protocols = [c for m in (interfaces, drum) for _, c in inspect.getmembers(m, inspect.isclass)
+                 if c.__module__ == m.__name__ and getattr(c, "_is_protocol", False)]
+    assert len(protocols) >= 9
+    undocumented = [f"{c.__name__}.{name}" for c in protocols for name, f in vars(c).items()
+                    if callable(f) or isinstance(f, property)
+                    if not name.startswith("__") or name in ("__enter__", "__exit__")
+                    if not (f.__doc__ or "").strip()]
+    assert not undocumented, undocumented
