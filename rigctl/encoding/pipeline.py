@@ -52,10 +52,9 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,22 +64,18 @@ from rigctl.core.cluster import dask_client
 from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
 from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.features import (
-    N_WINDOWS_REALTIME,
-    N_WINDOWS_SCALED,
     realtime_features,
     realtime_features_unscaled,
     spike_features,
 )
-from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G, ForceScaler, fit_scalers
+from rigctl.encoding.force import ForceScaler, fit_scalers
 from rigctl.encoding.fused import kernels_cached, run_fused
-from rigctl.encoding.izhikevich import K_RA, K_SA, Ragged, _at_model_rate, as_ragged
+from rigctl.encoding.izhikevich import Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.normalise import TaxelRange
-from rigctl.encoding.rate import MODEL_RATE_HZ, RateConversion, rate_conversion
+from rigctl.encoding.params import EncodeParams
+from rigctl.encoding.rate import RateConversion, rate_conversion
 from rigctl.encoding.sizing import windows_for
 from rigctl.encoding.speed import (
-    REALTIME_REFERENCE_SPEED_MM_S,
-    REFERENCE_SPEED_MM_S,
-    WINDOW_S,
     incremental_scale,
     speed_coefficient,
     window_speeds,
@@ -96,67 +91,6 @@ log = logging.getLogger(__name__)
 
 class SpeedMissingError(ValueError):
     """A speed-scaled variant was asked for, but some trials have no speed (NaN or <= 0 mm/s)."""
-
-
-@dataclass
-class EncodeParams:
-    """Parameters of an encoding run (stored as JSON in the output's ``parameters`` attribute).
-
-    Attributes (units in the names; defaults: the paper's Methods)
-    ----------------------------------------------------------------
-    fs_hz : the model's step rate, Hz (1 kHz: 1 ms Izhikevich steps); readings at another rate are resampled to it.
-    input_rate_hz : the session's sample rate, Hz (None: taken from the session's layout by :func:`encode_session`).
-    k_sa, k_ra : eq. (3) input scales (100, 3). cutoff_hz : RA low-pass (20 Hz). rectify_ra : rectify the RA input.
-    reference_speed_mm_s : eq. (2) reference (120 mm/s); realtime_reference_speed_mm_s : real-time one (100 mm/s).
-    reference_force_g, epsilon, c_max : eq. (1) (500 g, 0.1 spikes/s, 5).
-    window_s : feature window length, s (0.1 = 100 ms).
-    n_windows_scaled : windows of the speed-scaled variants (20 = 2 s at the reference speed, the paper's); None =
-        enough for the longest trial in scaled time (``duration x speed / reference``: whole trials).
-    n_windows_unscaled : windows of the unscaled variants; None = enough for the longest trial of the file
-        (:func:`windows_for`; 60 for the paper's dataset).
-    n_windows_realtime : windows of the real-time variants (20).
-    realtime_taxels : channels of the real-time variants; None = the sensor's first (top) layer (0-8 on the paper's
-        sensor).
-    izhikevich : eqs. (3)-(5) tonic-spiking constants.
-    kernel_dtype : the fused kernel's state, "float32" (default: within the model's own rounding sensitivity,
-        :mod:`rigctl.encoding.fused`) or "float64".
-    """
-
-    fs_hz: float = MODEL_RATE_HZ
-    input_rate_hz: float | None = None
-    k_sa: float = K_SA
-    k_ra: float = K_RA
-    cutoff_hz: float = 20.0
-    rectify_ra: bool = True
-    reference_speed_mm_s: float = REFERENCE_SPEED_MM_S
-    realtime_reference_speed_mm_s: float = REALTIME_REFERENCE_SPEED_MM_S
-    reference_force_g: float = REFERENCE_FORCE_G
-    epsilon: float = EPSILON
-    c_max: float = C_MAX
-    window_s: float = WINDOW_S
-    n_windows_scaled: int | None = N_WINDOWS_SCALED
-    n_windows_unscaled: int | None = None
-    n_windows_realtime: int = N_WINDOWS_REALTIME
-    realtime_taxels: list[Any] | None = None
-    izhikevich: dict[str, Any] = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
-    kernel_dtype: str = "float32"
-
-    @classmethod
-    def from_dict(cls, d) -> "EncodeParams":
-        """The parameters an encoded file was made with (``open_encoded(path).parameters``); unknown keys are
-        ignored, missing ones take the defaults. Use them to encode new trials the same way (:func:`encode_batch`:
-        same windows, taxels and constants, so the features match the file's columns)."""
-        known = {f for f in cls.__dataclass_fields__}
-        return cls(**{k: v for k, v in dict(d or {}).items() if k in known})
-
-    def __post_init__(self) -> None:
-        if self.kernel_dtype not in ("float32", "float64"):
-            raise ValueError(f"kernel_dtype must be 'float32' or 'float64', got {self.kernel_dtype!r}")
-        if not (math.isfinite(self.window_s) and self.window_s > 0):
-            raise ValueError(f"window_s must be > 0 s, got {self.window_s!r}")
-        for name in ("n_windows_scaled", "n_windows_realtime", "n_windows_unscaled"):
-            if getattr(self, name) is not None and int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
 
 
 # ---------------------------------------------------------------------------------------------------------- batch work
@@ -502,204 +436,315 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     trials without a speed; ValueError for unknown variants, a session without complete trials, or a sample rate
     that cannot be resampled to the model's.
     """
-    from rigctl.storage.session import open_session
-    from rigctl.storage.validate import TrialsExcluded, usable_trials
-
+    run = EncodeRun.of(session_path, out_path, variants=variants, batch_trials=batch_trials, scheduler=scheduler,
+                       workers=workers, trial_ids=trial_ids, store_spikes=store_spikes,
+                       fit_memory_bytes=fit_memory_bytes, overwrite=overwrite)
     p = replace(params) if params is not None else EncodeParams()
-    explicit = variants is not None
-    variants = tuple(ALL_VARIANTS if variants is None else variants)
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad:
-        raise ValueError(f"unknown variants {bad}; choose from {', '.join(ALL_VARIANTS)}")
-    session_path, out_path = Path(session_path), Path(out_path)
-    if out_path.exists() and not overwrite:
-        raise FileExistsError(f"{out_path} exists (pass overwrite=True / --overwrite to replace it)")
-    check_output(out_path, overwrite=True, inputs=(session_path,))  # the output policy, before any work
     t_start = time.time()
-
-    # ---- pass 1: labels, per-taxel range, model input for the force fit
-    with open_session(session_path) as s:
-        layout, textures = s.layout, s.textures
-        report = usable_trials(s)  # the one trial validator: damaged trials excluded, with their reasons
-        ids = report.ids if trial_ids is None else [int(t) for t in trial_ids if int(t) not in report.excluded]
-        if report.excluded:
-            warnings.warn(f"{session_path}: {report.summary()}", TrialsExcluded, stacklevel=2)
-        if not ids:
-            raise ValueError(f"{session_path} has no usable complete trials"
-                             + (f" ({report.summary()})" if report.excluded else ""))
-        labels = _labels(s, ids)
-        conv = rate_conversion(layout.sample_rate_hz, p.fs_hz)
-        p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
-        log.info("rate: %s", conv.describe())
-        if conv.resampled:
-            progress_note(progress, "reading trials", f"resampling: {conv.describe()}")
-        keys = np.array([f"{t}|{v:.3f}|{f:.3f}" for t, v, f in zip(labels["texture"], labels["speed_mm_s"],
-                                                                     labels["force_g"])])
-        plan_dur = {int(r["trial_id"]): float(r["duration_s"]) for r in s.plan} if "duration_s" in (s.plan.dtype.names or ()) \
-            else {}
-        item = 2 if not conv.resampled else 8  # bytes per kept value: uint16 counts, or float64 after resampling
-        est = np.array([plan_dur.get(t, 6.0) * conv.model_rate_hz * layout.n_channels * item for t in ids])
-        keep = set(_fit_subsample(keys, est, fit_memory_bytes).tolist())
-        rng_ = TaxelRange()
-        # the trials are read once, in blocks of batch_trials (the encode pass's batches); the blocks are kept for
-        # the force fit and the encode pass when they fit fit_memory_bytes, else the fit keeps its subsample and
-        # the encode pass reads each batch again
-        keep_all = len(keep) == len(ids)
-        want_ws = "realtime_speed_scaled" in variants
-        batches = [np.arange(i, min(i + batch_trials, len(ids))) for i in range(0, len(ids), batch_trials)]
-        kept: list[Any] = []  # (Ragged, window speeds) per batch when keep_all
-        fit_blocks: list[Any] = []
-        fit_idx: Any = []
-        n_samples = np.zeros(len(ids), dtype=np.int64)
-        has_trace = np.zeros(len(ids), dtype=bool)
-        lossy: dict[int, int] = {}  # trial id -> frames it lost on the taxel link (kept within the protocol's limit)
-        if not kernels_cached():
-            progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
-                                                      "caches them) ...")
-        bar = Stage(progress, "reading trials", len(ids))
-        for b in batches:
-            b_ids = [ids[i] for i in b]
-            blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
-            n_samples[b] = np.diff(blk.starts)
-            has_trace[b] = blk.has_speed_trace
-            for tid, n_lost in zip(b_ids, blk.dropped_frames):
-                if n_lost:
-                    lossy[int(tid)] = int(n_lost)
-            rg, ws = _model_input(blk, b_ids, labels["speed_mm_s"][b], want_ws and keep_all, p.window_s, conv)
-            del blk
-            rng_.update(rg.data)
-            if keep_all:
-                kept.append((rg, ws))
-                fit_blocks.append(rg)
-                fit_idx.extend(b.tolist())
-            else:
-                sel = [j for j, i in enumerate(b) if i in keep]
-                if sel:
-                    fit_blocks.append(rg.select(sel))
-                    fit_idx.extend(b[sel].tolist())
-            bar.advance(len(b))
-    if lossy:  # failed trials are not complete, so never encoded; kept ones with holes are flagged
-        lossy_note = (f"{len(lossy)} of {len(ids)} trials were recorded with lost frames ({sum(lossy.values())} "
-                      f"frames; trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials "
-                      "attribute")
-        log.warning("%s", lossy_note)
-        progress_note(progress, "reading trials", lossy_note)
-    if np.any(n_samples == 0):
-        raise ValueError("a complete trial has no samples: trials "
-                         f"{_trial_list(np.asarray(ids)[n_samples == 0])}")
-    variants, skipped = _check_speeds(variants, explicit, labels, has_trace)
-    if not variants:
+    read = _range_pass(run, p, progress)  # pass 1: labels, per-taxel range, the model input kept for the fit
+    variants_, skipped = _check_speeds(run.variants, run.explicit, read.labels, read.has_trace)
+    if not variants_:
         raise SpeedMissingError("nothing to encode: " + "; ".join(skipped.values()))
-    # bases before their speed-scaled twins (which may share their ticks: _add_spike_tables)
-    store_spikes = tuple(sorted((v for v in store_spikes if v in variants), key=lambda v: VARIANTS[v].speed_scaled))
-    offset, scale = rng_.offset_scale()
-    duration_s = n_samples / conv.input_rate_hz
-    longest_s = float(duration_s.max())
-    windows_note = f"{p.n_windows_unscaled} unscaled windows of {p.window_s * 1000:g} ms (as asked)"
-    if p.n_windows_unscaled is None:
-        p.n_windows_unscaled = windows_for(longest_s, p.window_s)
-        windows_note = (f"{p.n_windows_unscaled} unscaled windows of {p.window_s * 1000:g} ms cover the longest trial "
-                        f"({longest_s:.3f} s)")
-    if p.n_windows_scaled is None:
-        speed = labels["speed_mm_s"]
-        ok = np.isfinite(speed) & (speed > 0)
-        scaled_s = float(np.max(duration_s[ok] * speed[ok] / p.reference_speed_mm_s, initial=0.0))
-        p.n_windows_scaled = windows_for(scaled_s, p.window_s)
-        windows_note += (f"; {p.n_windows_scaled} speed-scaled windows cover the longest trial in scaled time "
-                         f"({scaled_s:.3f} s at {p.reference_speed_mm_s:g} mm/s)")
-    if p.realtime_taxels is None:
-        p.realtime_taxels = _realtime_taxels(p, layout.n_channels, layout)
-    log.info("windows: %s", windows_note)
-
-    # ---- force coefficients (once, for the whole dataset)
-    fit_rg = fit_blocks
-    del fit_blocks
-    fit_idx = np.asarray(fit_idx)
-    labels_fit = {k: v[fit_idx] for k, v in labels.items()}
-    need_force = any(VARIANTS[v].force_scaled for v in variants)
-    scaler = scaler_lf = None
-    fit_note = fit_note_lf = "not requested"
-    if need_force:
-        progress_note(progress, "force fit", f"fitting force coefficients on {fit_idx.size} trials ...")
-        (scaler, fit_note), (scaler_lf, fit_note_lf) = _fit_forces(fit_rg, labels_fit, offset, scale, p)
-    del fit_rg
-    coeffs = scaler.coefficients_for(labels["texture"], labels["speed_mm_s"], labels["force_g"]) if scaler else None
-    coeffs_lf = (scaler_lf.coefficients_for(labels["texture"], labels["speed_mm_s"], labels["force_g"])
-                 if scaler_lf else None)
-
-    # ---- pass 2: encode in batches
-    n_ch = int(offset.size)
-    trials = {**labels, "group": np.array([textures.group_of(t) or "" for t in labels["texture"]], dtype=str),
-              "duration_s": duration_s, "n_samples": n_samples}
-    client = cluster = None
-    writer = EncodedWriter(out_path, layout=layout, textures=textures, trials=trials, parameters=asdict(p),
-                           overwrite=overwrite, attrs={
-                               "input_rate_hz": conv.input_rate_hz, "model_rate_hz": conv.model_rate_hz,
-                               "resampled": conv.resampled, "resampling": conv.describe(),
+    run = replace(run, variants=variants_, store_spikes=tuple(sorted(  # bases before their speed-scaled twins
+        (v for v in run.store_spikes if v in variants_), key=lambda v: VARIANTS[v].speed_scaled)))
+    windows_note = _fix_windows(p, read)
+    force = _force_pass(run, p, read, progress)  # once, for the whole dataset
+    writer = EncodedWriter(run.out_path, layout=read.layout, textures=read.textures, trials=_trials_table(read),
+                           parameters=asdict(p), overwrite=run.overwrite, attrs={
+                               "input_rate_hz": read.conv.input_rate_hz, "model_rate_hz": read.conv.model_rate_hz,
+                               "resampled": read.conv.resampled, "resampling": read.conv.describe(),
                                "windows_note": windows_note, "skipped_variants": skipped,
-                               "source_session": str(session_path), "variants": list(variants),
-                               "excluded_trials": {str(k): v for k, v in report.excluded.items()},
-                               "lossy_trials": sorted(lossy), "lost_frames": int(sum(lossy.values()))})
+                               "source_session": str(run.session_path), "variants": list(run.variants),
+                               "excluded_trials": {str(k): v for k, v in read.excluded.items()},
+                               "lossy_trials": sorted(read.lossy), "lost_frames": int(sum(read.lossy.values()))})
     try:
-        writer.write_normalisation(rng_.minimum, rng_.maximum,
-                                   source="whole dataset (per-taxel min/max over every encoded trial, of the model "
-                                          "input)")
-        for lf, sc, note in ((False, scaler, fit_note), (True, scaler_lf, fit_note_lf)):
-            if sc is not None:
-                writer.write_force_coefficients(sc.table(), label_free=lf, n_not_converged=sc.n_not_converged_,
-                                                n_coefficients=sc.fit_.n_coefficients, n_iter=sc.fit_.n_iter,
-                                                n_fit_trials=int(fit_idx.size))
-            else:
-                writer.note_force_coefficients(note, label_free=lf)
-        _add_spike_tables(writer, store_spikes, n_ch, p)
-
-        def write(batch, result):
-            feats, spikes = result
-            for v, f in feats.items():
-                writer.write_features(v, int(batch[0]), f)
-            for v in store_spikes:  # bases before their speed-scaled twins
-                writer.append_spikes(v, spikes[v], _time_scale(v, labels["speed_mm_s"][batch], p))
-
-        args = [(str(session_path), [ids[i] for i in b], labels["speed_mm_s"][b],
-                 None if coeffs is None else coeffs[b], None if coeffs_lf is None else coeffs_lf[b],
-                 offset, scale, variants, store_spikes, p) for b in batches]
-        bar = Stage(progress, "encoding", len(ids))
-        if scheduler is None:
-            for bi, (b, a) in enumerate(zip(batches, args)):
-                if keep_all:  # read in the range pass
-                    rg, ws = kept[bi]
-                    kept[bi] = None  # freed as soon as encoded
-                    write(b, _encode_read(rg, ws, *a[2:]))
-                else:
-                    write(b, _batch_task(*a))
-                bar.advance(len(b))
-        else:
-            from dask.distributed import as_completed
-
-            client, cluster = dask_client(scheduler, workers)
-            futures = [client.submit(_batch_task, *a, n_threads=1, pure=False) for a in args]
-            index_of = {f.key: i for i, f in enumerate(futures)}
-            done, next_i = {}, 0
-            for fut in as_completed(futures):
-                done[index_of[fut.key]] = fut.result()
-                fut.release()
-                while next_i in done:  # spikes are appended in trial order
-                    write(batches[next_i], done.pop(next_i))
-                    bar.advance(len(batches[next_i]))
-                    next_i += 1
+        _write_tables(writer, run, p, read, force)
+        _encode_pass(writer, run, p, read, force, progress)  # pass 2: encode in batches
+        n_ch = int(read.offset.size)
         writer.set_attrs(
             parameters=json.dumps(asdict(p)),
             feature_layout=(f"train-major: [SA_0 windows, ..., SA_n-1, RA_0, ..., RA_n-1] for n = {n_ch} taxels; "
                             f"SR spikes/s (speed-scaled: x speed/{p.reference_speed_mm_s:g}), SC counts; "
                             f"{p.window_s * 1000:g} ms windows: {p.n_windows_unscaled} unscaled, "
                             f"{p.n_windows_scaled} speed-scaled, {p.n_windows_realtime} real-time"),
-            encode_seconds=time.time() - t_start, scheduler=str(scheduler))
+            encode_seconds=time.time() - t_start, scheduler=str(run.scheduler))
     except BaseException:
         writer.abort()
         raise
+    return writer.close()
+
+
+@dataclass(frozen=True)
+class EncodeRun:
+    """How :func:`encode_session` runs (what it computes is :class:`EncodeParams`): the files, the variants, the
+    batches, where the work runs, the memory for the force fit. ``explicit``: the variants were asked for."""
+
+    session_path: Path
+    out_path: Path
+    variants: tuple[str, ...]
+    explicit: bool
+    batch_trials: int = 256
+    scheduler: str | None = None
+    workers: int | None = None
+    trial_ids: tuple[int, ...] | None = None
+    store_spikes: tuple[str, ...] = MAIN_VARIANTS
+    fit_memory_bytes: float = 4e9
+    overwrite: bool = False
+
+    @classmethod
+    def of(cls, session_path: Any, out_path: Any, *, variants: Any, trial_ids: Any, store_spikes: Any,
+           **kw: Any) -> "EncodeRun":
+        """Checked: known variants, the output policy (:func:`rigctl.storage.outputs.check_output`) before any
+        work. Raises ValueError, FileExistsError, OutputError."""
+        chosen = tuple(ALL_VARIANTS if variants is None else variants)
+        bad = [v for v in chosen if v not in VARIANTS]
+        if bad:
+            raise ValueError(f"unknown variants {bad}; choose from {', '.join(ALL_VARIANTS)}")
+        run = cls(Path(session_path), Path(out_path), chosen, variants is not None,
+                  trial_ids=None if trial_ids is None else tuple(int(t) for t in trial_ids),
+                  store_spikes=tuple(store_spikes), **kw)
+        if run.out_path.exists() and not run.overwrite:
+            raise FileExistsError(f"{run.out_path} exists (pass overwrite=True / --overwrite to replace it)")
+        check_output(run.out_path, overwrite=True, inputs=(run.session_path,))
+        return run
+
+
+@dataclass
+class _Read:
+    """What the range pass learnt: the session's sensor and labels, the trials' lengths, the per-taxel range,
+    the batches (kept in memory when they fit) and the readings kept for the force fit."""
+
+    layout: SensorLayout
+    textures: Any
+    ids: list[int]
+    labels: dict[str, Any]
+    conv: RateConversion
+    batches: list[np.ndarray]
+    keep_all: bool
+    kept: list[Any]
+    fit_blocks: list[Any]
+    fit_idx: np.ndarray
+    n_samples: np.ndarray
+    has_trace: np.ndarray
+    lossy: dict[int, int]
+    excluded: dict[int, str]
+    offset: np.ndarray
+    scale: np.ndarray
+    rng: TaxelRange
+
+    @property
+    def duration_s(self) -> np.ndarray:
+        return self.n_samples / self.conv.input_rate_hz
+
+
+@dataclass
+class _Force:
+    """The force fit's scalers (per texture, label-free; None when not fitted), their notes and per-trial
+    coefficients."""
+
+    scaler: Any = None
+    scaler_lf: Any = None
+    note: str = "not requested"
+    note_lf: str = "not requested"
+    coeffs: Any = None
+    coeffs_lf: Any = None
+    n_fit_trials: int = 0
+
+
+def _usable_ids(s: Any, run: EncodeRun) -> tuple[list[int], dict[int, str]]:
+    """The trials to encode (the validator's usable ones, or the asked ones that are usable) and the excluded."""
+    from rigctl.storage.validate import TrialsExcluded, usable_trials
+
+    report = usable_trials(s)  # the one trial validator: damaged trials excluded, with their reasons
+    ids = report.ids if run.trial_ids is None else [t for t in run.trial_ids if t not in report.excluded]
+    if report.excluded:
+        warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)
+    if not ids:
+        raise ValueError(f"{run.session_path} has no usable complete trials"
+                         + (f" ({report.summary()})" if report.excluded else ""))
+    return ids, report.excluded
+
+
+def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | None) -> _Read:
+    """Pass 1: read the trials once, in blocks of ``batch_trials`` (the encode pass's batches): per-taxel range,
+    lengths, lost frames; the blocks are kept for the force fit and the encode pass when they fit
+    ``fit_memory_bytes``, else the fit keeps an even subsample and the encode pass reads each batch again."""
+    from rigctl.storage.session import open_session
+
+    with open_session(run.session_path) as s:
+        ids, excluded = _usable_ids(s, run)
+        labels = _labels(s, ids)
+        conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
+        p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
+        log.info("rate: %s", conv.describe())
+        if conv.resampled:
+            progress_note(progress, "reading trials", f"resampling: {conv.describe()}")
+        keep = _fit_keep(s, ids, labels, conv, run.fit_memory_bytes)
+        keep_all = len(keep) == len(ids)
+        want_ws = "realtime_speed_scaled" in run.variants
+        bt = run.batch_trials
+        batches = [np.arange(i, min(i + bt, len(ids))) for i in range(0, len(ids), bt)]
+        read = _Read(s.layout, s.textures, ids, labels, conv, batches, keep_all, [], [], np.zeros(0, np.int64),
+                     np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool), {}, excluded,
+                     np.zeros(0), np.zeros(0), TaxelRange())
+        if not kernels_cached():
+            progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
+                                                      "caches them) ...")
+        fit_idx: list[int] = []
+        bar = Stage(progress, "reading trials", len(ids))
+        for b in batches:
+            b_ids = [ids[i] for i in b]
+            blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
+            read.n_samples[b] = np.diff(blk.starts)
+            read.has_trace[b] = blk.has_speed_trace
+            read.lossy.update({int(t): int(n) for t, n in zip(b_ids, blk.dropped_frames) if n})
+            rg, ws = _model_input(blk, b_ids, labels["speed_mm_s"][b], want_ws and keep_all, p.window_s, conv)
+            del blk
+            read.rng.update(rg.data)
+            if keep_all:
+                read.kept.append((rg, ws))
+                read.fit_blocks.append(rg)
+                fit_idx.extend(b.tolist())
+            else:
+                sel = [j for j, i in enumerate(b) if i in keep]
+                if sel:
+                    read.fit_blocks.append(rg.select(sel))
+                    fit_idx.extend(b[sel].tolist())
+            bar.advance(len(b))
+    read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
+    _note_lossy(read, progress)
+    if np.any(read.n_samples == 0):
+        raise ValueError("a complete trial has no samples: trials "
+                         f"{_trial_list(np.asarray(ids)[read.n_samples == 0])}")
+    read.offset, read.scale = read.rng.offset_scale()
+    return read
+
+
+def _fit_keep(s: Any, ids: list[int], labels: dict[str, Any], conv: RateConversion, budget: float) -> set[int]:
+    """Indices of the trials kept in memory for the force fit (all of them when they fit ``budget`` bytes)."""
+    keys = np.array([f"{t}|{v:.3f}|{f:.3f}" for t, v, f in zip(labels["texture"], labels["speed_mm_s"],
+                                                                 labels["force_g"])])
+    plan_dur = ({int(r["trial_id"]): float(r["duration_s"]) for r in s.plan}
+                if "duration_s" in (s.plan.dtype.names or ()) else {})
+    item = 2 if not conv.resampled else 8  # bytes per kept value: uint16 counts, or float64 after resampling
+    est = np.array([plan_dur.get(t, 6.0) * conv.model_rate_hz * s.layout.n_channels * item for t in ids])
+    return set(_fit_subsample(keys, est, budget).tolist())
+
+
+def _note_lossy(read: _Read, progress: ProgressCallback | None) -> None:
+    """Kept trials recorded with lost frames are encoded as recorded, and said (failed trials never are)."""
+    if not read.lossy:
+        return
+    lossy = read.lossy
+    note = (f"{len(lossy)} of {len(read.ids)} trials were recorded with lost frames ({sum(lossy.values())} frames; "
+            f"trials {_trial_list(sorted(lossy))}): encoded as recorded, listed in the lossy_trials attribute")
+    log.warning("%s", note)
+    progress_note(progress, "reading trials", note)
+
+
+def _fix_windows(p: EncodeParams, read: _Read) -> str:
+    """Window counts left to the data (None): from the longest trial (unscaled) or the longest in scaled time;
+    the real-time taxels. Returns the note stored in the file."""
+    duration_s = read.duration_s
+    longest_s = float(duration_s.max())
+    note = f"{p.n_windows_unscaled} unscaled windows of {p.window_s * 1000:g} ms (as asked)"
+    if p.n_windows_unscaled is None:
+        p.n_windows_unscaled = windows_for(longest_s, p.window_s)
+        note = (f"{p.n_windows_unscaled} unscaled windows of {p.window_s * 1000:g} ms cover the longest trial "
+                f"({longest_s:.3f} s)")
+    if p.n_windows_scaled is None:
+        speed = read.labels["speed_mm_s"]
+        ok = np.isfinite(speed) & (speed > 0)
+        scaled_s = float(np.max(duration_s[ok] * speed[ok] / p.reference_speed_mm_s, initial=0.0))
+        p.n_windows_scaled = windows_for(scaled_s, p.window_s)
+        note += (f"; {p.n_windows_scaled} speed-scaled windows cover the longest trial in scaled time "
+                 f"({scaled_s:.3f} s at {p.reference_speed_mm_s:g} mm/s)")
+    if p.realtime_taxels is None:
+        p.realtime_taxels = _realtime_taxels(p, read.layout.n_channels, read.layout)
+    log.info("windows: %s", note)
+    return note
+
+
+def _force_pass(run: EncodeRun, p: EncodeParams, read: _Read, progress: ProgressCallback | None) -> _Force:
+    """Eq. (1)'s coefficients, once for the whole dataset (when a force-scaled variant is asked for); the kept
+    fit readings are freed."""
+    labels = read.labels
+    labels_fit = {k: v[read.fit_idx] for k, v in labels.items()}
+    fit_rg, read.fit_blocks = read.fit_blocks, []
+    force = _Force(n_fit_trials=int(read.fit_idx.size))
+    if any(VARIANTS[v].force_scaled for v in run.variants):
+        progress_note(progress, "force fit", f"fitting force coefficients on {read.fit_idx.size} trials ...")
+        (force.scaler, force.note), (force.scaler_lf, force.note_lf) = _fit_forces(fit_rg, labels_fit, read.offset,
+                                                                                   read.scale, p)
+    del fit_rg
+    args = (labels["texture"], labels["speed_mm_s"], labels["force_g"])
+    force.coeffs = force.scaler.coefficients_for(*args) if force.scaler else None
+    force.coeffs_lf = force.scaler_lf.coefficients_for(*args) if force.scaler_lf else None
+    return force
+
+
+def _trials_table(read: _Read) -> dict[str, Any]:
+    return {**read.labels, "group": np.array([read.textures.group_of(t) or "" for t in read.labels["texture"]],
+                                             dtype=str),
+            "duration_s": read.duration_s, "n_samples": read.n_samples}
+
+
+def _write_tables(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _Read, force: _Force) -> None:
+    """The normalisation, the force coefficient tables (or why there are none) and the spike tables."""
+    writer.write_normalisation(read.rng.minimum, read.rng.maximum,
+                               source="whole dataset (per-taxel min/max over every encoded trial, of the model input)")
+    for lf, sc, note in ((False, force.scaler, force.note), (True, force.scaler_lf, force.note_lf)):
+        if sc is not None:
+            writer.write_force_coefficients(sc.table(), label_free=lf, n_not_converged=sc.n_not_converged_,
+                                            n_coefficients=sc.fit_.n_coefficients, n_iter=sc.fit_.n_iter,
+                                            n_fit_trials=force.n_fit_trials)
+        else:
+            writer.note_force_coefficients(note, label_free=lf)
+    _add_spike_tables(writer, run.store_spikes, int(read.offset.size), p)
+
+
+def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _Read, force: _Force,
+                 progress: ProgressCallback | None) -> None:
+    """Pass 2: every batch encoded (here with numba on all cores, or as tasks on a Dask cluster) and written in
+    trial order."""
+    speed = read.labels["speed_mm_s"]
+
+    def write(batch: np.ndarray, result: Any) -> None:
+        feats, spikes = result
+        for v, f in feats.items():
+            writer.write_features(v, int(batch[0]), f)
+        for v in run.store_spikes:  # bases before their speed-scaled twins
+            writer.append_spikes(v, spikes[v], _time_scale(v, speed[batch], p))
+
+    args = [(str(run.session_path), [read.ids[i] for i in b], speed[b],
+             None if force.coeffs is None else force.coeffs[b], None if force.coeffs_lf is None else force.coeffs_lf[b],
+             read.offset, read.scale, run.variants, run.store_spikes, p) for b in read.batches]
+    bar = Stage(progress, "encoding", len(read.ids))
+    if run.scheduler is None:
+        for bi, (b, a) in enumerate(zip(read.batches, args)):
+            if read.keep_all:  # read in the range pass
+                rg, ws = read.kept[bi]
+                read.kept[bi] = None  # freed as soon as encoded
+                write(b, _encode_read(rg, ws, *a[2:]))
+            else:
+                write(b, _batch_task(*a))
+            bar.advance(len(b))
+        return
+    from dask.distributed import as_completed
+
+    client, cluster = dask_client(run.scheduler, run.workers)
+    try:
+        futures = [client.submit(_batch_task, *a, n_threads=1, pure=False) for a in args]
+        index_of = {f.key: i for i, f in enumerate(futures)}
+        done, next_i = {}, 0
+        for fut in as_completed(futures):
+            done[index_of[fut.key]] = fut.result()
+            fut.release()
+            while next_i in done:  # spikes are appended in trial order
+                write(read.batches[next_i], done.pop(next_i))
+                bar.advance(len(read.batches[next_i]))
+                next_i += 1
     finally:
-        if client is not None:
-            client.close()
+        client.close()
         if cluster is not None:
             cluster.close()
-    return writer.close()

@@ -18,6 +18,7 @@ import numpy as np
 
 from rigctl.encoding.speed import WINDOW_S
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS
+from rigctl.storage.validate import MAX_RATE_HZ, MAX_TRIAL_S
 
 __all__ = ["EncodeSize", "SPIKES_PER_S", "available_memory_bytes", "estimate_encode", "windows_for"]
 
@@ -60,7 +61,8 @@ def estimate_encode(session: Any, *, window_s: float = WINDOW_S, n_windows_unsca
     done = plan[plan["status"] == 1]  # TrialStatus.COMPLETE
     n = int(done.size)
     durations = np.asarray(done["duration_s"], np.float64) if n else np.zeros(0)
-    durations = durations[np.isfinite(durations) & (durations > 0)]
+    # impossible values are the trial validator's to exclude (rigctl.storage.validate), not to size the work by
+    durations = durations[np.isfinite(durations) & (durations > 0) & (durations <= MAX_TRIAL_S)]
     longest = float(durations.max()) if durations.size else 0.0
     n_ch = int(session.layout.n_channels)
     wu = int(n_windows_unscaled) if n_windows_unscaled is not None else windows_for(longest, window_s)
@@ -78,7 +80,8 @@ def estimate_encode(session: Any, *, window_s: float = WINDOW_S, n_windows_unsca
     seconds = float(durations.sum())
     spikes = int(len(stored) * trains * seconds * SPIKES_PER_S * 4)
     batch = min(int(batch_trials), max(n, 1))
-    samples = longest * float(session.layout.sample_rate_hz)
+    rate = float(session.layout.sample_rate_hz)
+    samples = longest * rate if 0 < rate <= MAX_RATE_HZ else 0.0
     batch_bytes = int(batch * (samples * n_ch * 8 * 3 + per_trial * 4))
     return EncodeSize(out_bytes=int(features + spikes + 256 * 1024), batch_bytes=batch_bytes, n_trials=n,
                       n_windows_unscaled=wu)

@@ -64,8 +64,10 @@ class OutputWriteError(OSError):
 
 def size_text(n_bytes: float) -> str:
     """``n_bytes`` as a short human figure (``"12.3 MB"``, ``"640 KiB"`` below 1 MB)."""
-    return f"{n_bytes / 1024:.0f} KiB" if n_bytes < 1e6 else f"{n_bytes / 1e6:.1f} MB" if n_bytes < 1e9 \
-        else f"{n_bytes / 1e9:.2f} GB"
+    if n_bytes < 1e6:
+        return f"{n_bytes / 1024:.0f} KiB"
+    return f"{n_bytes / 1e6:.1f} MB" if n_bytes < 1e9 else f"{n_bytes / 1e9:.2f} GB" if n_bytes < 1e12 \
+        else f"{n_bytes / 1e12:.3g} TB"
 
 
 def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
