@@ -90,6 +90,14 @@ class EventLog(QtWidgets.QWidget):
         lay.addLayout(side)
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self.entries: list[tuple[float, int, str, str]] = []
+        # follow the newest line unless the operator scrolled up to read: decided by where the operator left the
+        # scroll bar, and kept when the range changes later (a long line adds a horizontal scroll bar after the
+        # text is laid out, which shortens the view and moved the end away from a bottom judged at append time)
+        self._follow = True
+        self._following = False
+        bar = self.view.verticalScrollBar()
+        bar.valueChanged.connect(self._scrolled)
+        bar.rangeChanged.connect(self._range_changed)
         self._handler: logging.Handler | None = None
 
     # ------------------------------------------------------------------------------------------------------
@@ -121,17 +129,13 @@ class EventLog(QtWidgets.QWidget):
     def drain(self) -> int:
         """Show the queued messages (GUI thread; called by the main window's timer). Returns how many."""
         n = 0
-        bar = self.view.verticalScrollBar()
-        # follow the newest line unless the operator scrolled up to read (judged before anything is added: a long
-        # line adds a horizontal scroll bar, which shrinks the view and moved the end away from the old bottom)
-        follow = bar.value() >= bar.maximum() - 2
-        keep = bar.value()
         while True:
             try:
                 entry = self._q.get_nowait()
             except queue.Empty:
-                if n:
-                    bar.setValue(bar.maximum() if follow else keep)
+                if n and self._follow:
+                    bar = self.view.verticalScrollBar()
+                    bar.setValue(bar.maximum())
                 return n
             n += 1
             self.entries.append(entry)
@@ -140,6 +144,16 @@ class EventLog(QtWidgets.QWidget):
                 self.view.appendHtml(self._line(entry))
             if entry[1] >= logging.WARNING:
                 self.problem.emit(entry[1], entry[2], entry[3])
+
+    def _scrolled(self, value: int) -> None:
+        if not self._following:
+            self._follow = value >= self.view.verticalScrollBar().maximum() - 2
+
+    def _range_changed(self, _lo: int, hi: int) -> None:
+        if self._follow:
+            self._following = True
+            self.view.verticalScrollBar().setValue(hi)
+            self._following = False
 
     def text(self) -> str:
         """Everything shown, as plain text (tests, copy)."""

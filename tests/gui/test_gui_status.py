@@ -1,0 +1,128 @@
+"""The status bar's link health and dropped-frame grading, the banner strip, the event log's following and the plot
+gaps, on made-up link counters (no rig: these are about what the window shows)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from PySide6 import QtWidgets
+
+from rigctl.acquisition.link_health import LinkState
+from rigctl_gui.status_bar import BAD, OK, WARN, Banners, LinkStatus
+from rigctl_gui.widgets import gap_breaks
+
+
+def _taxels(frames=0, dropped=0, connected=True):
+    return SimpleNamespace(stats=SimpleNamespace(frames=frames, dropped=dropped, connected=connected,
+                                                 frames_per_s=1000.0, crc_errors=0, reconnects=0))
+
+
+def _poller(reads=0, ok=True, heartbeat=0):
+    st = SimpleNamespace(heartbeat=heartbeat)
+    return SimpleNamespace(reads=reads, ok=ok, failures=0, error=None, latest=st)
+
+
+def test_the_status_bar_follows_both_boards_health(qapp):
+    links = LinkStatus()
+    events = []
+    links.health_changed.connect(lambda board, ev: events.append((board, ev.state)))
+    links.update_from(_poller(1, heartbeat=100), _taxels(100), now_s=0.0)
+    assert ("drum", LinkState.CONNECTED) in events and ("taxel", LinkState.CONNECTED) in events
+    assert links.taxel.text().startswith("Taxels: connected") and links.taxel.styleSheet() == OK
+    # the taxel stream goes quiet with its port open: stalled after 1 s, red, 0 frames/s
+    links.update_from(_poller(2, heartbeat=110), _taxels(200), now_s=0.1)
+    links.update_from(_poller(13, heartbeat=220), _taxels(200), now_s=1.2)
+    assert events[-1] == ("taxel", LinkState.STALLED)
+    assert "STALLED, 0 frames/s" in links.taxel.text() and links.taxel.styleSheet() == BAD
+    assert links.state == {"drum": True, "taxel": False}
+    # the drum controller restarts (its heartbeat from near 0): controller reset, red
+    links.update_from(_poller(14, heartbeat=5), _taxels(300), now_s=1.3)
+    assert ("drum", LinkState.CONTROLLER_RESET) in events and "RESET" in links.drum.text()
+    assert events[-1] == ("taxel", LinkState.RECONNECTED)
+    # the drum's port fails: lost
+    links.update_from(_poller(14, ok=False), _taxels(400), now_s=1.4)
+    assert events[-1] == ("drum", LinkState.LOST) and "NO RESPONSE" in links.drum.text()
+    links.update_from(None, None, now_s=1.5)
+    assert links.state == {"drum": None, "taxel": None}
+
+
+def test_dropped_frames_turn_amber_then_red_against_the_protocols_threshold(qapp):
+    links = LinkStatus()
+    links.update_from(None, _taxels(10, dropped=0), now_s=0)
+    assert links.dropped.text().startswith("0 dropped") and links.dropped.styleSheet() == OK
+    links.update_from(None, _taxels(20, dropped=5385), now_s=0.1)  # an outage, no trial being recorded
+    assert "5,385 dropped (since connected)" in links.dropped.text() and links.dropped.styleSheet() == WARN
+    links.judge_trial(5385, 5)  # a trial starts; the protocol keeps a trial with at most 5 lost frames
+    links.update_from(None, _taxels(30, dropped=5388), now_s=0.2)
+    assert links.dropped.text().startswith("3 dropped (this trial)") and links.dropped.styleSheet() == WARN
+    links.update_from(None, _taxels(40, dropped=5391), now_s=0.3)
+    assert links.dropped.text().startswith("6 dropped") and links.dropped.styleSheet() == BAD
+    assert "at most 5" in links.dropped.toolTip()
+
+
+def test_banners_come_and_go_without_moving_anything(qapp):
+    w = QtWidgets.QWidget()
+    lay = QtWidgets.QVBoxLayout(w)
+    banners = Banners()
+    button = QtWidgets.QPushButton("Press")
+    lay.addWidget(banners)
+    lay.addWidget(button)
+    lay.addStretch(1)
+    w.resize(1024, 300)
+    w.show()
+    qapp.processEvents()
+    before = (banners.geometry(), button.geometry())
+    long_text = "Drum controller FAULT (latched). " + "a very long explanation " * 30 + "END"
+    banners["fault"].show_message(long_text, error=True)
+    banners["taxel"].show_message("Taxel board (Uno) reconnected.", error=False, hide_after_s=5)
+    qapp.processEvents()
+    assert banners["fault"].isVisible() and banners["taxel"].isVisible()
+    assert (banners.geometry(), button.geometry()) == before
+    # cut at a word with an ellipsis to the strip's lines; the whole text is kept for the tooltip and the log
+    assert banners["fault"].text == long_text and banners["fault"].toolTip() == long_text
+    assert banners["fault"].label.text().endswith("…") and "END" not in banners["fault"].label.text()
+    banners["fault"].hide()
+    banners["taxel"].hide()
+    qapp.processEvents()
+    assert (banners.geometry(), button.geometry()) == before
+    w.close()
+
+
+def test_the_event_log_follows_the_newest_line_unless_scrolled_up(qapp):
+    import logging
+
+    from rigctl_gui.messages import EventLog
+
+    log = EventLog()
+    log.resize(600, 120)
+    log.show()
+    bar = log.view.verticalScrollBar()
+    for i in range(50):
+        log.add(logging.INFO, "test", f"line {i}")
+    qapp.processEvents()
+    assert bar.value() == bar.maximum() > 0
+    log.add(logging.INFO, "test", "a long line " * 60)  # adds a horizontal scroll bar: the view gets shorter
+    qapp.processEvents()
+    assert bar.value() == bar.maximum()
+    bar.setValue(3)  # the operator scrolls up to read
+    for i in range(10):
+        log.add(logging.WARNING, "test", f"more {i}")
+    qapp.processEvents()
+    assert bar.value() == 3 and bar.maximum() > 3
+    bar.setValue(bar.maximum())  # back at the end: it follows again
+    log.add(logging.INFO, "test", "newest")
+    qapp.processEvents()
+    assert bar.value() == bar.maximum()
+    log.close()
+
+
+def test_gap_breaks_put_a_nan_row_in_each_outage():
+    t = np.array([0.0, 0.1, 0.2, 2.2, 2.3, 9.0])
+    rows = np.column_stack([t, t * 10])
+    out = gap_breaks(rows, max_dt=1.0)
+    assert out.shape == (8, 2)
+    nan_rows = np.flatnonzero(np.isnan(out[:, 1]))
+    assert list(nan_rows) == [3, 6] and np.allclose(out[nan_rows, 0], [1.2, 5.65])
+    assert np.array_equal(out[~np.isnan(out[:, 1])], rows)
+    assert gap_breaks(rows[:3], max_dt=1.0) is not None and len(gap_breaks(rows[:3], max_dt=1.0)) == 3
