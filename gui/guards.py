@@ -65,13 +65,12 @@ class StopGuard(QtCore.QObject):
         self.stop()
 
     def _own_popup(self, popup: QtWidgets.QWidget | None) -> bool:
-        """True when ``popup`` belongs to the main window (not to a dialog)."""
-        w = popup
-        while w is not None:
-            if w is self.window:
-                return True
+        """True when ``popup`` belongs to the main window: the widget that opened it (past any parent menus) sits in
+        the main window, not in a dialog (a dialog's parent is the main window too, so parents alone do not tell)."""
+        w = popup.parentWidget() if popup is not None else None
+        while w is not None and w.isWindow() and w.windowType() == QtCore.Qt.Popup:  # a submenu's parent menu
             w = w.parentWidget()
-        return False
+        return w is not None and w.window() is self.window
 
     def _on_stop(self, global_pos: QtCore.QPoint) -> bool:
         b = self.button

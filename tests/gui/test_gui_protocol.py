@@ -49,9 +49,19 @@ def test_protocol_run_records_a_session_file(window, qapp, qtbot, tmp_path):
     assert "2 trials" in tab.summary.text() and "textures A, L" in tab.summary.text()
     out = tmp_path / "run.h5"
     tab.out_edit.setText(str(out))
+    tab._trial_started = time.monotonic() - 355.0  # the app has been open a while (the clock of an old trial)
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
     assert tab.running
-    assert wait_for(qapp, lambda: tab.job is None, 60), tab.status.text()
+    shown = []  # the trial bar's "trial N: S s" while it runs: each trial's own clock, from its first event
+
+    def done():
+        fmt = tab.trial_bar.format()
+        if fmt.startswith("trial ") and " s (" in fmt:
+            shown.append(float(fmt.split(": ")[1].split(" s")[0]))
+        return tab.job is None
+
+    assert wait_for(qapp, done, 60), tab.status.text()
+    assert shown and max(shown) < 30, shown
     assert "finished: 2/2" in tab.status.text(), tab.status.text()
     assert [tab.table.item(r, 6).text() for r in range(2)] == ["recorded", "recorded"]
     with open_session(out) as s:
