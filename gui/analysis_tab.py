@@ -469,7 +469,7 @@ class AnalysisTab(QtWidgets.QWidget):
                 ch = layout.layer_channels(li)
                 img.setImage(values[ch.start:ch.stop].reshape(la.rows, la.cols), levels=levels)
         self.heat_bar.setLevels(levels)
-        self.heat_bar.axis.setLabel(label)
+        self.heat_bar.getAxis("left").setLabel(label)  # (where the constructor put it)
         # one x range for readings, SA and RA: the whole trial (set, never each plot's own auto range)
         if not duration_s or not np.isfinite(duration_s):
             ends = [float(v.max()) for v in (*sa, *ra) if len(v)]
@@ -694,14 +694,16 @@ class AnalysisTab(QtWidgets.QWidget):
         variants = sorted({v for row in grid.values() for v in row}, key=_variant_order)
         self.table1.setRowCount(len(grid))
         self.table1.setColumnCount(len(variants))
-        self.table1.setHorizontalHeaderLabels([variant_title(v) for v in variants])
-        self.table1.setVerticalHeaderLabels([TASK_TITLES.get(t, t) for t in grid])
+        # two-line headers: the whole grid fits the view at 1024x700 (one-line names cut off the last column)
+        self.table1.setHorizontalHeaderLabels([_two_lines(variant_title(v), 12) for v in variants])
+        self.table1.setVerticalHeaderLabels([TASK_TITLES.get(t, t).replace(" (Fig.", "\n(Fig.") for t in grid])
         for r, (_task, row) in enumerate(grid.items()):
             for c, v in enumerate(variants):
                 if v in row:
                     mu, sd = row[v]
                     self.table1.setItem(r, c, QtWidgets.QTableWidgetItem(f"{mu:.1f} +- {sd:.1f}"))
         self.table1.resizeColumnsToContents()
+        self.table1.resizeRowsToContents()
 
     def _draw_confusion(self) -> None:
         """The confusion matrix of the chosen task and variant: colour = fraction of the true class (row-normalised,
@@ -848,6 +850,14 @@ class AnalysisTab(QtWidgets.QWidget):
         self.status.setText(f"saved {path} and {tpath}")
         self._log(f"tables exported to {path} and {tpath}")
         return [path, tpath]
+
+
+def _two_lines(text: str, longest: int) -> str:
+    """``text`` broken at its last space when it is longer than ``longest`` characters (a table header)."""
+    if len(text) <= longest or " " not in text:
+        return text
+    head, _, tail = text.rpartition(" ")
+    return f"{head}\n{tail}"
 
 
 def _source_readings(encoded_path: str, tid: int) -> tuple[np.ndarray | None, str]:

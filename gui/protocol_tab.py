@@ -511,3 +511,4 @@ class ProtocolTab(QtWidgets.QWidget):
         self.resume_btn.setEnabled(running and self.pause_event.is_set())
         self.abort_btn.setEnabled(running)
         self.open_btn.setEnabled(not running)
+        self.builtin.setEnabled(not running)

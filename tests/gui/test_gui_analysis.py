@@ -50,7 +50,7 @@ def test_analysis_tab_browses_trials_and_produces_its_plot(window, qapp, qtbot, 
     assert sx is not None and len(sx) > 0 and sx.max() <= 0.5
     _assert_one_time_axis(tab, 0.5)
     # heat maps: one colour bar, every taxel's number in its cell
-    assert tab.heat_bar.axis.labelText == "mean ADC counts"
+    assert tab.heat_bar.getAxis("left").labelText == "mean ADC counts" and not tab.heat_bar.axis.labelText
     numbers = sorted(int(i.textItem.toPlainText()) for p, _ in tab.heat_plots for i in p.items
                      if hasattr(i, "textItem"))
     assert numbers == list(range(18))

@@ -406,6 +406,29 @@ def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot):
     assert wait_for(qapp, lambda: "STALE" not in window.control.force_plot.titleLabel.text, 2)
 
 
+def test_quit_connect_and_mount_plate_ask_while_the_drum_turns(window, qapp, qtbot):
+    """With the drum turning (no protocol run), Quit, Connect -> OK and Mount plate ask first; "Keep running" /
+    "Cancel" leaves the drum turning, the rig connected and the plate where it was."""
+    window.tabs.setCurrentWidget(window.control)
+    _spin(window, qapp)
+    handle, plate = window.handle, window.handle.rig.texture
+    for act, keep in ((window.close, "Keep running"),
+                      (lambda: window.choose_source().accept(), "Cancel"),
+                      (lambda: window.control.mount_plate("B" if plate != "B" else "C"), "Cancel")):
+        act()
+        box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
+        assert "The drum is turning" in box.text(), box.text()
+        qtbot.mouseClick(next(b for b in box.buttons() if b.text() == keep), QtCore.Qt.LeftButton)
+        wait_for(qapp, lambda: False, 0.5)
+        assert window.isVisible() and window.handle is handle and _state(window) == DrumState.RUNNING
+        assert window.handle.rig.texture == plate
+    # asked again and answered yes: the plate is mounted (the drum stopped for it)
+    window.control.mount_plate("C")
+    _answer(qapp, qtbot, "Stop the drum and mount C")
+    assert wait_for(qapp, lambda: window.handle.rig.texture == "C", 30), window.handle.rig.texture
+    assert "mount plate C" in window.events.text()
+
+
 def test_closing_the_window_mid_run_asks_then_stops_safely(window, qapp, qtbot, tmp_path):
     tab = window.protocol
     tab.load(_protocol(tmp_path, n=4))
@@ -430,25 +453,3 @@ def test_closing_the_window_mid_run_asks_then_stops_safely(window, qapp, qtbot, 
     assert mega.state not in (DrumState.RUNNING, DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED)
     assert mega._speed_target == 0
 
-
-def test_quit_connect_and_mount_plate_ask_while_the_drum_turns(window, qapp, qtbot):
-    """With the drum turning (no protocol run), Quit, Connect -> OK and Mount plate ask first; "Keep running" /
-    "Cancel" leaves the drum turning, the rig connected and the plate where it was."""
-    window.tabs.setCurrentWidget(window.control)
-    _spin(window, qapp)
-    handle, plate = window.handle, window.handle.rig.texture
-    for act, keep in ((window.close, "Keep running"),
-                      (lambda: window.choose_source().accept(), "Cancel"),
-                      (lambda: window.control.mount_plate("B" if plate != "B" else "C"), "Cancel")):
-        act()
-        box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
-        assert "The drum is turning" in box.text(), box.text()
-        qtbot.mouseClick(next(b for b in box.buttons() if b.text() == keep), QtCore.Qt.LeftButton)
-        wait_for(qapp, lambda: False, 0.5)
-        assert window.isVisible() and window.handle is handle and _state(window) == DrumState.RUNNING
-        assert window.handle.rig.texture == plate
-    # asked again and answered yes: the plate is mounted (the drum stopped for it)
-    window.control.mount_plate("C")
-    _answer(qapp, qtbot, "Stop the drum and mount C")
-    assert wait_for(qapp, lambda: window.handle.rig.texture == "C", 30), window.handle.rig.texture
-    assert "mount plate C" in window.events.text()
