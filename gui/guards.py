@@ -68,7 +68,7 @@ class StopGuard(QtCore.QObject):
         """True when ``popup`` belongs to the main window: the widget that opened it (past any parent menus) sits in
         the main window, not in a dialog (a dialog's parent is the main window too, so parents alone do not tell)."""
         w = popup.parentWidget() if popup is not None else None
-        while w is not None and w.isWindow() and w.windowType() == QtCore.Qt.Popup:  # a submenu's parent menu
+        while w is not None and w.isWindow() and w.windowType() == QtCore.Qt.WindowType.Popup:  # a submenu's parent menu
             w = w.parentWidget()
         return w is not None and w.window() is self.window
 
