@@ -12,6 +12,8 @@
 - :mod:`rigctl.acquisition.calibration` - load-cell calibration with a known mass, per-taxel normalisation;
   :mod:`rigctl.acquisition.rigconfig` - the rig config file (``~/.config/rigctl/rig.json``) that keeps them;
   :mod:`rigctl.acquisition.motion` - ``wait_released`` (shared by the rig and the calibration).
+- :mod:`rigctl.acquisition.link_health` - ``LinkHealth``: one health model for both boards' links (connected /
+  stalled / lost / reconnected / controller reset), pure, shown by the GUI.
 """
 
 from rigctl.core.lazy import lazy_exports
