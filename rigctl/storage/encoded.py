@@ -42,22 +42,40 @@ The variant registry (:data:`VARIANTS`) is the one list of feature variants of r
 
 from __future__ import annotations
 
-import contextlib
 import json
-import math
 import os
-import sys
-from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple, cast
+from typing import Any, cast
 
 import h5py
 import numpy as np
 
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
-from rigctl.storage.outputs import output_file
+from rigctl.storage.encoded_format import (
+    ALL_VARIANTS,
+    ENCODED_KIND,
+    ENCODED_SCHEMA_VERSION,
+    LABEL_FREE_VARIANTS,
+    MAIN_VARIANTS,
+    REALTIME_VARIANTS,
+    TRIAL_COLUMNS,
+    VARIANT_TITLES,
+    VARIANTS,
+    NotEncodedError,
+    SpikeArrays,
+    VariantInfo,
+    _attr_value,
+    _damaged,
+    _per_spike,
+    _reading,
+    _str_table,
+    _text,
+    _variant_order,
+    is_encoded_file,
+    variant_info,
+)
+from rigctl.storage.encoded_writer import EncodedWriter
 
 __all__ = [
     "ENCODED_SCHEMA_VERSION", "ENCODED_KIND", "VariantInfo", "VARIANTS", "VARIANT_TITLES", "MAIN_VARIANTS",
@@ -65,474 +83,7 @@ __all__ = [
     "open_encoded", "is_encoded_file", "NotEncodedError", "TRIAL_COLUMNS", "SpikeArrays",
 ]
 
-#: schema of the files :class:`EncodedWriter` writes; files without the attribute are schema 1
-ENCODED_SCHEMA_VERSION = 3
-#: the ``kind`` attribute of an encoded file
-ENCODED_KIND = "rigctl encoded"
 
-
-# ------------------------------------------------------------------------------------------------- variant registry
-@dataclass(frozen=True)
-class VariantInfo:
-    """One feature variant of the encoding (paper Table 1 columns, plus rigctl's label-free and real-time ones).
-
-    Attributes
-    ----------
-    name : str, the key under ``/features`` (``"speed_force_scaled"``).
-    title : str, the paper's name (``"Speed and Force Scaled"``).
-    speed_scaled : spike times scaled by the trial's speed (eq. 2): needs a finite, positive speed per trial.
-    force_scaled : SA input scaled by force coefficients (eq. 1).
-    label_free : force coefficients pooled over textures (not using the texture label).
-    realtime : the real-time system's features (top-layer SA trains only, 20 windows; Methods, real-time).
-    """
-
-    name: str
-    title: str
-    speed_scaled: bool = False
-    force_scaled: bool = False
-    label_free: bool = False
-    realtime: bool = False
-
-    @property
-    def main(self) -> bool:
-        """One of the paper's four Table 1 variants."""
-        return not (self.label_free or self.realtime)
-
-
-_REGISTRY = (
-    VariantInfo("original", "Original"),
-    VariantInfo("speed_scaled", "Speed Scaled", speed_scaled=True),
-    VariantInfo("force_scaled", "Force Scaled", force_scaled=True),
-    VariantInfo("speed_force_scaled", "Speed and Force Scaled", speed_scaled=True, force_scaled=True),
-    VariantInfo("force_scaled_label_free", "Force Scaled (label-free)", force_scaled=True, label_free=True),
-    VariantInfo("speed_force_scaled_label_free", "Speed and Force Scaled (label-free)", speed_scaled=True,
-                force_scaled=True, label_free=True),
-    VariantInfo("realtime_original", "Original (real-time)", realtime=True),
-    VariantInfo("realtime_speed_scaled", "Speed Scaled (real-time)", speed_scaled=True, realtime=True),
-)
-#: name -> :class:`VariantInfo`, in Table 1 order, then label-free, then real-time
-VARIANTS: dict[str, VariantInfo] = {v.name: v for v in _REGISTRY}
-#: name -> the paper's title
-VARIANT_TITLES: dict[str, str] = {v.name: v.title for v in _REGISTRY}
-#: the paper's four variants, Table 1 column order
-MAIN_VARIANTS: tuple[str, ...] = tuple(v.name for v in _REGISTRY if v.main)
-LABEL_FREE_VARIANTS: tuple[str, ...] = tuple(v.name for v in _REGISTRY if v.label_free)
-REALTIME_VARIANTS: tuple[str, ...] = tuple(v.name for v in _REGISTRY if v.realtime)
-ALL_VARIANTS: tuple[str, ...] = tuple(VARIANTS)
-
-
-def variant_info(name: str) -> VariantInfo:
-    """The registry entry of a variant. Raises KeyError naming the known variants."""
-    try:
-        return VARIANTS[name]
-    except KeyError:
-        raise KeyError(f"unknown variant {name!r}; choose from {', '.join(ALL_VARIANTS)}") from None
-
-
-def _variant_order(names: Iterable[str]) -> tuple[str, ...]:
-    names = list(names)
-    return tuple([v for v in ALL_VARIANTS if v in names] + [v for v in names if v not in VARIANTS])
-
-
-# ------------------------------------------------------------------------------------------------- helpers
-class SpikeArrays(NamedTuple):
-    """Stored spike trains, NWB ragged layout (the fields of :class:`rigctl.encoding.spikes.SpikeTrains`, which
-    storage does not import: ``SpikeTrains(*arrays)``).
-
-    spike_times : (n_spikes,) float64, s from each trial's first sample.
-    spike_times_index : (n_trials * n_trains,) int64 row ends; row ``r = trial * n_trains + train``.
-    n_trains : int, trains per trial.
-    """
-
-    spike_times: np.ndarray
-    spike_times_index: np.ndarray
-    n_trains: int
-
-
-class NotEncodedError(ValueError):
-    """The file is not an encoded file (a session file with raw readings, or another HDF5 file, or not HDF5):
-    run ``rigctl encode`` on a session first; or it is one whose contents are malformed (truncated, damaged,
-    tables and arrays of the wrong shape or type): the message names the file, the object and what is wrong."""
-
-
-#: what h5py, numpy and json raise on a malformed file (turned into NotEncodedError by :func:`_reading`)
-_READ_ERRORS = (OSError, KeyError, ValueError, TypeError, IndexError, AttributeError, RuntimeError, OverflowError)
-
-
-@contextlib.contextmanager
-def _reading(path: object, what: str) -> Iterator[None]:
-    """Turn the errors of reading ``what`` from a malformed file into one NotEncodedError naming file and object."""
-    try:
-        yield
-    except NotEncodedError:
-        raise
-    except _READ_ERRORS as exc:
-        text = " ".join(str(exc).split())
-        text = text if len(text) <= 160 else text[:157] + "..."
-        raise NotEncodedError(f"{path}: cannot read {what} ({type(exc).__name__}: {text}); the encoded file is "
-                              "damaged or not written by rigctl (encode the session again)") from None
-
-
-def _damaged(path: object, what: str) -> NotEncodedError:
-    return NotEncodedError(f"{path} is damaged: {what} (encode the session again)")
-
-
-#: columns of :attr:`EncodedFile.trials` (and of the ``/trials`` table)
-TRIAL_COLUMNS = ("trial_id", "texture", "group", "speed_mm_s", "force_g", "profile", "duration_s", "n_samples")
-
-_STR = h5py.string_dtype("utf-8")
-_TRIALS_DTYPE = np.dtype([("trial_id", "<u4"), ("texture", _STR), ("group", _STR), ("speed_mm_s", "<f4"),
-                          ("force_g", "<f4"), ("profile", _STR), ("duration_s", "<f4"), ("n_samples", "<u4")])
-
-
-def _text(values: Iterable[str]) -> np.ndarray[Any, Any]:
-    """Bytes / object / str array -> numpy str array (UTF-8 decoded)."""
-    a = np.asarray(values)
-    if a.dtype.kind in "SO":
-        return np.array([v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in a.ravel()],
-                        dtype=str).reshape(a.shape)
-    return a.astype(str)
-
-
-def _attr_value(v: Any) -> Any:
-    if isinstance(v, bytes):
-        return v.decode("utf-8", "replace")
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
-
-
-def _jsonable(v: Any) -> Any:
-    """An attribute value h5py can store: dicts/lists/tuples/None as JSON text, numpy scalars as Python."""
-    if isinstance(v, (dict, list, tuple)) or v is None:
-        return json.dumps(v, default=_json_default)
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    raise TypeError(f"{type(o).__name__} is not JSON-able")
-
-
-def _h5_table(table: np.ndarray) -> np.ndarray:
-    """A structured array HDF5 can store: str (``U``) fields become variable-length UTF-8 (never truncated)."""
-    table = np.asarray(table)
-    if table.dtype.names is None or not any(table.dtype[k].kind in "UO" for k in table.dtype.names):
-        return table
-    dt = np.dtype([(k, _STR if table.dtype[k].kind in "UO" else table.dtype[k]) for k in table.dtype.names])
-    out = np.zeros(table.shape, dtype=dt)
-    for k in table.dtype.names:
-        out[k] = np.array(table[k].astype(str), dtype=object) if table.dtype[k].kind in "UO" else table[k]
-    return out
-
-
-def _str_table(table: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_h5_table` for reading: bytes / object fields become numpy str fields."""
-    if table.dtype.names is None or not any(table.dtype[k].kind in "SO" for k in table.dtype.names):
-        return table
-    cols = {k: (_text(table[k]) if table.dtype[k].kind in "SO" else table[k]) for k in table.dtype.names}
-    dt = np.dtype([(k, cols[k].dtype) for k in table.dtype.names])
-    out = np.zeros(table.shape, dtype=dt)
-    for k, v in cols.items():
-        out[k] = v
-    return out
-
-
-def is_encoded_file(path: str | os.PathLike[str]) -> bool:
-    """True if ``path`` is an HDF5 file with a ``/features`` group (an encoded file of any schema)."""
-    try:
-        with h5py.File(path, "r") as f:
-            return "features" in f
-    except (OSError, ValueError):
-        return False
-
-
-def _per_spike(scale: np.ndarray, index: np.ndarray, n_trains: int) -> np.ndarray:
-    """Each spike's trial factor: ``scale`` (n_trials,) repeated by the trials' spike counts (row ends ``index``)."""
-    return np.repeat(scale, np.diff(index[n_trains - 1::n_trains], prepend=0))
-
-
-# ------------------------------------------------------------------------------------------------- writer
-class EncodedWriter:
-    """Writes one encoded file (the layout in the module docstring), under ``<name>.part`` until :meth:`close`
-    renames it into place; a writer left by an exception (context manager) removes the part file.
-
-    Parameters
-    ----------
-    path : the encoded .h5 to write.
-    layout : the session's :class:`SensorLayout` (stored as JSON; its rate is the *input* rate of the encoding).
-    textures : the session's :class:`TextureSet` (stored as JSON; gives each trial's group).
-    trials : mapping with the columns of :data:`TRIAL_COLUMNS` (``group`` optional: taken from ``textures``),
-        one entry per trial, in the row order of every feature matrix and spike table.
-    parameters : JSON-able encoding parameters (``EncodeParams`` as a dict).
-    overwrite : replace an existing ``path`` (default False: FileExistsError).
-    attrs : more root attributes (dicts and lists stored as JSON).
-
-    Raises
-    ------
-    FileExistsError when ``path`` exists and ``overwrite`` is False; ValueError for trial columns of unequal length
-    or without ``trial_id`` / ``texture``; rigctl.core.textures.TextureSetError for a label not in ``textures``.
-    """
-
-    def __init__(self, path: str | os.PathLike[str], *, layout: SensorLayout, textures: TextureSet,
-                 trials: Mapping[str, Any], parameters: Mapping[str, Any] | None = None, overwrite: bool = False,
-                 attrs: Mapping[str, Any] | None = None) -> None:
-        self.path = Path(path)
-        self.layout = layout
-        self.textures = textures
-        table = self._trials_table(trials, textures)
-        self.n_trials = int(table.size)
-        self._done = False
-        self._output = output_file(self.path, overwrite=overwrite)  # the output policy: lock, part file, guard
-        self._target = self._output.__enter__()
-        self.part = self._target.part
-        try:
-            self._f = h5py.File(self._target.h5_file(), "w")
-        except BaseException:
-            self._output.__exit__(*sys.exc_info())
-            raise
-        self._features: dict[str, h5py.Dataset] = {}
-        self._spikes: dict[str, h5py.Group] = {}
-        self._batch_spikes: dict[str, int] = {}  # spikes of the last appended batch, per variant with ticks
-        try:
-            self._f.create_dataset("trials", data=table)
-            a = self._f.attrs
-            a["schema_version"] = ENCODED_SCHEMA_VERSION
-            a["kind"] = ENCODED_KIND
-            a["sensor_layout"] = layout.to_json()
-            a["texture_set"] = textures.to_json()
-            a["parameters"] = json.dumps(dict(parameters or {}), default=_json_default)
-            a["n_trials"] = self.n_trials
-            a["n_taxels"] = layout.n_channels
-            self._f.create_group("features")
-            self._f.create_group("spikes")
-            self.set_attrs(**dict(attrs or {}))
-        except BaseException:
-            self.abort()
-            raise
-
-    @staticmethod
-    def _trials_table(trials: Mapping[str, Any], textures: TextureSet) -> np.ndarray:
-        if "trial_id" not in trials or "texture" not in trials:
-            raise ValueError("trials need at least 'trial_id' and 'texture' columns")
-        n = len(trials["trial_id"])
-        bad = [k for k, v in trials.items() if len(v) != n]
-        if bad:
-            raise ValueError(f"trial columns {bad} do not have {n} entries like trial_id")
-        out = np.zeros(n, dtype=_TRIALS_DTYPE)
-        texture = _text(trials["texture"])
-        out["trial_id"] = np.asarray(trials["trial_id"])
-        out["texture"] = np.array(texture, dtype=object)
-        if "group" in trials:
-            group = _text(trials["group"])
-        else:
-            group = np.array([textures.group_of(t) or "" for t in texture], dtype=str)
-        out["group"] = np.array(group, dtype=object)
-        out["profile"] = np.array(_text(trials.get("profile", np.full(n, "constant"))), dtype=object)
-        for k in ("speed_mm_s", "force_g", "duration_s"):
-            out[k] = np.asarray(trials.get(k, np.full(n, np.nan)), np.float64)
-        out["n_samples"] = np.asarray(trials.get("n_samples", np.zeros(n)))
-        return out
-
-    # -- content -------------------------------------------------------------------------------------------------
-    def set_attrs(self, **attrs: Any) -> None:
-        """Root attributes (dicts, lists and None stored as JSON text)."""
-        for k, v in attrs.items():
-            self._f.attrs[k] = _jsonable(v)
-
-    def write_normalisation(self, taxel_min: Any, taxel_max: Any, *, source: str = "") -> None:
-        """``/normalisation/taxel_min`` and ``taxel_max``: (n_taxels,) float64, the per-taxel range (ADC counts)."""
-        g = self._f.require_group("normalisation")
-        g.create_dataset("taxel_min", data=np.asarray(taxel_min, np.float64))
-        g.create_dataset("taxel_max", data=np.asarray(taxel_max, np.float64))
-        if source:
-            g.attrs["source"] = source
-
-    def write_force_coefficients(self, table: np.ndarray, *, label_free: bool = False, **attrs: Any) -> None:
-        """The force coefficient table (eq. 1) and its fit statistics (``n_not_converged``, ``n_coefficients``,
-        ``n_iter``, ``n_fit_trials``; also copied to root attributes ``<name>_<stat>``)."""
-        name = "force_coefficients_label_free" if label_free else "force_coefficients"
-        ds = self._f.create_dataset(name, data=_h5_table(table))
-        for k, v in attrs.items():
-            ds.attrs[k] = _jsonable(v)
-            if k in ("n_not_converged", "n_coefficients"):
-                self._f.attrs[f"{name}_{k}"] = _jsonable(v)
-
-    def note_force_coefficients(self, note: str, *, label_free: bool = False) -> None:
-        """Why there is no coefficient table (root attribute ``<name>_note``)."""
-        name = "force_coefficients_label_free" if label_free else "force_coefficients"
-        self._f.attrs[f"{name}_note"] = str(note)
-
-    def write_features(self, variant: str, start: int, rows: Any) -> None:
-        """Rows ``start .. start + len(rows) - 1`` of ``/features/<variant>`` ((n_trials, n_features) float32; made
-        on the first call). Raises ValueError for a feature count that differs from earlier rows."""
-        rows = np.asarray(rows, np.float32)
-        ds = self._features.get(variant)
-        if ds is None:
-            ds = self._f["features"].create_dataset(
-                variant, shape=(self.n_trials, rows.shape[1]), dtype="f4",
-                chunks=(max(1, min(256, self.n_trials)), max(1, rows.shape[1])))
-            ds.attrs["title"] = VARIANTS[variant].title if variant in VARIANTS else variant
-            self._features[variant] = ds
-        if rows.shape[1] != ds.shape[1]:
-            raise ValueError(f"{variant}: {rows.shape[1]} features, earlier rows had {ds.shape[1]}")
-        ds[start:start + rows.shape[0]] = rows
-        self._target.check()  # a full disk ends the write here, in one line
-
-    def add_spikes(self, variant: str, n_trains: int, trains: str = "", *, tick_s: float | None = None,
-                   ticks_from: str | None = None) -> None:
-        """Make ``/spikes/<variant>`` (appendable) for trains of ``n_trains`` per trial; ``trains`` says what they
-        are (e.g. ``"SA taxels 0..n-1 then RA taxels 0..n-1"``).
-
-        Parameters
-        ----------
-        tick_s : None -> spike times stored as float64 s (any times, e.g. the real-time variant's piecewise
-            scaling); a float (the model's step, ``1 / fs`` s) -> the compact tick layout: uint32 sample ticks,
-            time = ticks x ``tick_s`` x the trial's ``time_scale`` (1, or eq. 2's speed / reference), read back
-            bit-identical to the encoder's times.
-        ticks_from : a variant already added with ticks (same ``n_trains``) whose ticks and row ends this one
-            shares, storing only its per-trial ``time_scale`` (a speed-scaled variant and its unscaled base).
-
-        Raises
-        ------
-        ValueError for a ``ticks_from`` variant that is not stored with ticks or has another train count.
-        """
-        if ticks_from is not None:
-            base = self._spikes.get(ticks_from)
-            if base is None or "spike_ticks" not in base:
-                raise ValueError(f"{variant}: ticks_from={ticks_from!r} is not a variant stored with ticks")
-            if int(base.attrs["n_trains"]) != int(n_trains):
-                raise ValueError(f"{variant}: {n_trains} trains per trial, {ticks_from} has {base.attrs['n_trains']}")
-            tick_s = float(base.attrs["tick_s"])
-        g = self._f["spikes"].create_group(variant)
-        g.attrs["n_trains"] = int(n_trains)
-        g.attrs["unit"] = "s"
-        g.attrs["trains"] = trains
-        if tick_s is None:
-            g.create_dataset("spike_times", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 16,),
-                             compression="gzip", compression_opts=1)
-            g.attrs["layout"] = "NWB ragged: row r = spike_times[index[r-1]:index[r]], r = trial*n_trains+train"
-        else:
-            if not (math.isfinite(tick_s) and tick_s > 0):
-                raise ValueError(f"{variant}: tick_s must be a positive time step, got {tick_s}")
-            g.attrs["tick_s"] = float(tick_s)
-            g.create_dataset("time_scale", shape=(0,), maxshape=(None,), dtype="f8", chunks=(1 << 14,))
-            if ticks_from is not None:
-                g.attrs["ticks_from"] = ticks_from
-            else:  # uncompressed: 4 bytes a spike, written at memory speed
-                g.create_dataset("spike_ticks", shape=(0,), maxshape=(None,), dtype="u4", chunks=(1 << 18,))
-            g.attrs["layout"] = ("NWB ragged in ticks: row r = spike_ticks[index[r-1]:index[r]], "
-                                 "r = trial*n_trains+train; time (s) = ticks * tick_s * time_scale[trial]"
-                                 + (f"; ticks and index are {ticks_from}'s" if ticks_from else ""))
-        if ticks_from is None:
-            g.create_dataset("spike_times_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(1 << 14,),
-                             compression="gzip", compression_opts=1)
-        self._spikes[variant] = g
-
-    @staticmethod
-    def _append(ds: h5py.Dataset, values: np.ndarray) -> int:
-        """Append ``values`` to the 1-d resizable ``ds``; returns the row where they start."""
-        base = int(ds.shape[0])
-        ds.resize((base + values.size,))
-        ds[base:] = values
-        return base
-
-    def append_spikes(self, variant: str, trains: Any, time_scale: Any = None) -> None:
-        """Append the next trials' trains (anything with ``spike_times``, ``spike_times_index`` (row ends) and
-        ``n_trains``, e.g. :class:`rigctl.encoding.spikes.SpikeTrains`), in trial order.
-
-        ``time_scale`` : scalar or (n_trials,) the factor the trials' times carry beyond ``ticks x tick_s`` (eq. 2's
-        speed / reference for a speed-scaled variant; default 1); used by variants stored with ticks.
-
-        Raises KeyError if :meth:`add_spikes` was not called for ``variant``; ValueError for another train count,
-        times off the tick grid, or a ``ticks_from`` variant whose spikes are not its base's (counts differ).
-        """
-        self._append_spikes(variant, trains, time_scale)
-        self._target.check()  # a full disk ends the write here, in one line
-
-    def _append_spikes(self, variant: str, trains: Any, time_scale: Any) -> None:
-        g = self._spikes[variant]
-        n_trains = int(g.attrs["n_trains"])
-        if int(trains.n_trains) != n_trains:
-            raise ValueError(f"{variant}: {trains.n_trains} trains per trial, the file has {n_trains}")
-        idx = np.asarray(trains.spike_times_index, np.int64)
-        st = np.asarray(trains.spike_times, np.float64)
-        if "spike_times" in g:  # float64 times
-            base = self._append(g["spike_times"], st)
-            self._append(g["spike_times_index"], idx + base)
-            return
-        n_trials = idx.size // n_trains
-        scale = np.broadcast_to(np.asarray(1.0 if time_scale is None else time_scale, np.float64), (n_trials,))
-        ticks_from = g.attrs.get("ticks_from")
-        if ticks_from is not None:  # the base's ticks and rows: only the scale is this variant's
-            if self._batch_spikes.get(str(ticks_from)) != st.size:
-                raise ValueError(f"{variant}: {st.size} spikes in this batch, {ticks_from} had "
-                                 f"{self._batch_spikes.get(str(ticks_from))}: not the same trains")
-            self._append(g["time_scale"], np.ascontiguousarray(scale))
-            return
-        tick_s = float(g.attrs["tick_s"])
-        per_spike = _per_spike(scale, idx, n_trains)
-        ticks = np.rint(st / (per_spike * tick_s))
-        if st.size and (ticks.min() < 0 or ticks.max() > np.iinfo(np.uint32).max
-                        or not np.allclose(ticks * tick_s * per_spike, st, rtol=1e-12, atol=0.0)):
-            raise ValueError(f"{variant}: spike times are not multiples of tick_s = {tick_s:g} s x time_scale")
-        base = self._append(g["spike_ticks"], ticks.astype(np.uint32))
-        self._append(g["spike_times_index"], idx + base)
-        self._append(g["time_scale"], np.ascontiguousarray(scale))
-        self._batch_spikes[variant] = st.size
-
-    # -- finish --------------------------------------------------------------------------------------------------
-    def check(self) -> None:
-        """Raise :class:`rigctl.storage.outputs.OutputWriteError` (one line) if the disk has refused a write (the
-        writer then aborts: see :mod:`rigctl.storage.outputs`)."""
-        self._target.check()
-
-    def close(self) -> Path:
-        """Close and rename the part file to ``path`` (mode per the umask); returns ``path``.
-
-        Raises OutputWriteError (the part file removed) if the disk refused any of the file."""
-        if self._done:
-            raise ValueError(f"{self.path}: the writer is closed")
-        self._done = True
-        try:
-            self._f.close()
-            self._target.check()
-        except BaseException:
-            self._output.__exit__(*sys.exc_info())
-            raise
-        self._output.__exit__(None, None, None)
-        return self.path
-
-    def abort(self) -> None:
-        """Close and delete the part file (nothing is written to ``path``; idempotent)."""
-        if self._done:
-            return
-        self._done = True
-        try:
-            self._f.close()
-        finally:
-            self._output.__exit__(RuntimeError, RuntimeError("aborted"), None)
-
-    def __enter__(self) -> "EncodedWriter":
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-
-
-# ------------------------------------------------------------------------------------------------- reader
 class EncodedFile:
     """An open encoded file (read-only). Use :func:`open_encoded`; a context manager (closes the file).
 
@@ -879,3 +430,4 @@ def open_encoded(path: str | os.PathLike[str]) -> EncodedFile:
     except BaseException:
         f.close()
         raise
+

@@ -300,6 +300,9 @@ class GuardedFile(io.RawIOBase):
         self._disk_size = min(self._disk_size, size)
         for i in [i for i in self._pages if i * _PAGE >= size]:
             del self._pages[i]
+        tail = self._pages.get(size // _PAGE)
+        if tail is not None:  # bytes past the new end read as zeros if the file grows again
+            tail[size % _PAGE:] = bytes(_PAGE - size % _PAGE)
         self._size = size
         return size
 

@@ -188,6 +188,12 @@ def test_guarded_file_keeps_refused_writes_readable(tmp_path):
     assert (tmp_path / "x").read_bytes() == b"abc"  # nothing more reached the disk
     with pytest.raises(OutputWriteError, match="no space left on device"):
         g.check()
+    g.truncate(2)  # HDF5 truncates to its end of allocation; what lies beyond reads as zeros if it grows again
+    g.seek(4)
+    g.write(b"Q")
+    g.seek(0)
+    buf = bytearray(5)
+    assert g.readinto(buf) == 5 and bytes(buf) == b"aZ\x00\x00Q"
     g.close()
 
 
