@@ -85,25 +85,30 @@ ISR(ADC_vect)
     UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER);
     uint8_t k = adc_k;
     uint8_t in = adc_in, sel = adc_sel;
-    uint8_t w = adc_write_bank;
-    adc_bank[w][in * TAXEL_PER_MUX + sel] = ADC; /* TAXEL_SCAN_TAXEL(k); ADCL then ADCH */
-    k++;
-    if (++in == TAXEL_N_MUX) {
-        in = 0;
-        sel++;
+    uint16_t result = ADC; /* ADCL then ADCH: latched, so the input can change now */
+    uint8_t next_k = (uint8_t)(k + 1), next_in = (uint8_t)(in + 1), next_sel = sel;
+    if (next_in == TAXEL_N_MUX) {
+        next_in = 0;
+        next_sel++;
     }
-    if (k < RIGCTL_N_TAXELS) {
-        adc_k = k;
-        adc_in = in;
-        adc_sel = sel;
-        adc_select(in, sel);
+    /* the next input first: its settling time starts here, the bookkeeping runs inside it */
+    if (next_k < RIGCTL_N_TAXELS) {
+        adc_select(next_in, next_sel);
         adc_convert_after_settling();
+    } else {
+        adc_select(0, 0); /* the next scan's first input settles until the tick */
+    }
+    uint8_t w = adc_write_bank;
+    adc_bank[w][in * TAXEL_PER_MUX + sel] = result; /* TAXEL_SCAN_TAXEL(k) */
+    if (next_k < RIGCTL_N_TAXELS) {
+        adc_k = next_k;
+        adc_in = next_in;
+        adc_sel = next_sel;
     } else {
         adc_ready_bank = w;
         adc_write_bank = (uint8_t)(w ^ 1);
         adc_busy = 0;
         adc_in = adc_sel = 0;
-        adc_select(0, 0); /* the next scan's first input settles until the tick */
     }
     UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
 }
