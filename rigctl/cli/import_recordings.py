@@ -54,7 +54,8 @@ def _checked_segment(ctx, param, value):
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
               help="TOML mapping giving any of these values, per-file labels and the texture set.")
 @click.option("--volts-ref", type=click.FloatRange(min=0, min_open=True), default=None, metavar="V",
-              help="The recordings are volts with this ADC reference (default: they are counts).")
+              help="The recordings are volts with this ADC reference: one count is V/2^bits volts (5 V, 10 bits: "
+                   "5/1024 V), so V itself is past the top count (default: the recordings are counts).")
 @click.option("--bits", "adc_bits", type=click.IntRange(1, 16), default=None,
               help="ADC resolution of the stored counts [default: 10].")
 @click.option("--preset", type=click.Choice(["fabricslide"]), default=None,

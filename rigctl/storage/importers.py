@@ -17,7 +17,9 @@ Steps, each explicit and recorded in the session's root attributes (``import_ste
 2. **Resample** (optional, ``--resample HZ``): ``scipy.signal.resample_poly`` (polyphase FIR, Kaiser window,
    ``padtype="line"``) by the rational factor ``up/down`` closest to ``resample_hz / rate_hz``.
 3. **Scale** to ADC counts at the layout's bits: counts as given (``x * scale + offset``, rounded; mapping keys
-   ``scale``/``offset``), or volts with a reference ``V``: ``counts = rint(x / V * (2**bits - 1))``. Values outside
+   ``scale``/``offset``), or volts with a reference ``V``: one count is ``V / 2**bits`` volts (the AVR ADC's
+   ``ADC = Vin * 1024 / VREF``, ATmega328P datasheet, "ADC Conversion Result": 0x3FF is VREF minus one LSB), so
+   ``counts = rint(x / (V / 2**bits))``; ``V`` itself is one step past the top count and stored as ``2**bits - 1``. Values outside
    ``0 .. 2**bits - 1`` are refused with one clear error for raw counts; after resampling or volts scaling they
    are clipped and the clipped count recorded.
 4. **Segment** (optional, ``--segment``): a continuous recording cut into trials: ``fixed:SECONDS[:HOP_S]``,
@@ -79,7 +81,7 @@ from rigctl.core.trial import TrialData
 
 __all__ = [
     "RecordingImportError", "ImportedTrial", "FORMATS", "read_recording_file", "parse_label_pattern",
-    "labels_from_name", "resample", "to_counts", "segment", "parse_segment", "load_mapping", "import_recordings",
+    "labels_from_name", "resample", "to_counts", "volts_step", "segment", "parse_segment", "load_mapping", "import_recordings",
     "write_imported_session", "write_session",
 ]
 
@@ -399,7 +401,9 @@ def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, s
               offset: float = 0.0, clip: bool = False, where: str = "") -> tuple[np.ndarray, int]:
     """Readings -> ADC counts ``0 .. 2**adc_bits - 1`` (uint16).
 
-    Volts (``volts_ref`` given): ``rint(x / volts_ref * adc_max)``, clipped. Counts: ``rint(x * scale + offset)``;
+    Volts (``volts_ref`` given): one count is ``volts_ref / 2**adc_bits`` V (the AVR ADC's ``ADC = Vin * 1024 /
+    VREF``, ATmega328P datasheet, "ADC Conversion Result"), ``rint(x / step)``, clipped. Counts:
+    ``rint(x * scale + offset)``;
     values outside the range raise RecordingImportError unless ``clip`` (after resampling). Returns
     ``(counts, n_clipped)``.
     """
@@ -407,7 +411,7 @@ def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, s
     if volts_ref is not None:
         if not volts_ref > 0:
             raise RecordingImportError(f"--volts-ref must be > 0, got {volts_ref}")
-        y = np.rint(np.asarray(x, np.float64) / float(volts_ref) * adc_max)
+        y = np.rint(np.asarray(x, np.float64) / volts_step(float(volts_ref), adc_bits))
         clip = True
     else:
         y = np.rint(np.asarray(x, np.float64) * float(scale) + float(offset))
@@ -418,6 +422,12 @@ def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, s
             f"{where}: values {y.min():g}..{y.max():g} are outside the {adc_bits}-bit ADC range 0..{adc_max}: give "
             "the right --bits, --volts-ref for volts, or scale/offset in the mapping")
     return np.clip(y, 0, adc_max).astype(np.uint16), n_bad
+
+
+def volts_step(volts_ref: float, adc_bits: int) -> float:
+    """Volts per ADC count: ``volts_ref / 2**adc_bits`` (5 V, 10 bits: 4.883 mV; 0x3FF is VREF minus one LSB:
+    ATmega328P datasheet, "ADC Conversion Result")."""
+    return float(volts_ref) / float(1 << int(adc_bits))
 
 
 def parse_segment(spec: str | None) -> dict[str, Any] | None:
@@ -757,7 +767,7 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
             file_layout = None
     sl = file_layout if file_layout is not None and file_layout.n_channels == n_ch else _resolve_layout(
         n_ch, out_rate, channels=channels, layout=layout, sensor=m.get("sensor"), adc_bits=adc_bits)
-    steps["value_scale"] = ({"unit": "volts", "volts_ref": float(volts_ref), "formula": "rint(v / volts_ref * adc_max)"}
+    steps["value_scale"] = ({"unit": "volts", "volts_ref": float(volts_ref), "formula": "rint(v / (volts_ref / 2**adc_bits))"}
                             if volts_ref is not None else
                             {"unit": "counts", "scale": scale, "offset": offset, "formula": "rint(x * scale + offset)"})
     steps["value_scale"].update({"adc_bits": adc_bits, "clipped_values": n_clipped})

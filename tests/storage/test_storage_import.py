@@ -267,15 +267,21 @@ def test_refusals(tmp_path):
 
 
 def test_volts_with_a_reference(tmp_path):
+    """--volts-ref 5: one count is 5/1024 V (the AVR ADC's step), not 5/1023: known volts land on known counts."""
     counts = recording(0)
-    volts = counts / 1023 * 3.3
+    volts = counts * (5.0 / 1024)  # what a 10-bit AVR ADC reading of `counts` means in volts
+    volts[:4, 0] = [0.0, 5.0 / 1024, 2.5, 5.0]  # 0 V -> 0, one step -> 1, half the reference -> 512, 5 V -> top
+    counts[:4, 0] = [0, 1, 512, 1023]
     p = write(tmp_path / "wool__V10__0.npy", volts, "npy")
     out = tmp_path / "s.h5"
-    r = run(p, "--rate", 100, "--label-pattern", PATTERN, "--volts-ref", 3.3, "--out", out)
+    r = run(p, "--rate", 100, "--label-pattern", PATTERN, "--volts-ref", 5, "--out", out)
     assert r.exit_code == 0, r.output
     with open_session(out) as s:
         np.testing.assert_array_equal(s.trial(0).taxels, counts)
-        assert json.loads(s.attrs["import_steps"])["value_scale"]["unit"] == "volts"
+        step = json.loads(s.attrs["import_steps"])["value_scale"]
+        assert step["unit"] == "volts" and step["clipped_values"] == 1  # 5 V itself is one step past 1023
+    help_text = CliRunner().invoke(main, ["import", "--help"]).output
+    assert "V/2^bits" in help_text
 
 
 def test_fabricslide_preset_fabrics_and_board_in_one_16_channel_file(fabricslide_dir, tmp_path):
