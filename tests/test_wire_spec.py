@@ -81,7 +81,8 @@ def h():
 
 
 def test_spec_has_every_table(tables):
-    assert set(tables) == {"frame", "flags", "uno-commands", "holding", "input", "commands", "states", "faults"}
+    assert set(tables) == {"frame", "flags", "uno-commands", "holding", "input", "commands", "states", "faults",
+                           "reset-cause", "status-flags"}
     assert all(len(rows) >= 3 for rows in tables.values())
 
 
@@ -235,6 +236,33 @@ def test_faults(tables, spec_text, h):
         assert h[f"RIGCTL_FAULT_{r['name']}_BIT"] == bit and h[f"RIGCTL_FAULT_{r['name']}"] == 1 << bit
     timeout = int(re.search(r"no reading for (\d+) ms", spec_text).group(1))
     assert h["RIGCTL_LOADCELL_TIMEOUT_MS"] == timeout
+    travel, home_ms = map(int, re.search(r"HOME gives up after (\d+) mm of travel towards home or (\d+) ms",
+                                         spec_text).groups())
+    assert (h["RIGCTL_HOME_MAX_TRAVEL_MM"], h["RIGCTL_HOME_TIMEOUT_MS"]) == (travel, home_ms) == \
+        (wire.HOME_MAX_TRAVEL_MM, wire.HOME_TIMEOUT_MS)
+
+
+@pytest.mark.parametrize("table,flags,prefix", [
+    ("reset-cause", wire.ResetCause, "RIGCTL_RESET_"),
+    ("status-flags", wire.StatusFlag, "RIGCTL_STATUS_"),
+])
+def test_reset_cause_and_status_flags(tables, h, table, flags, prefix):
+    rows = tables[table]
+    assert {r["name"] for r in rows} == {f.name for f in flags}
+    for r in rows:
+        bit = spec_int(r["bit"])
+        assert flags[r["name"]] == 1 << bit
+        assert h[f"{prefix}{r['name']}_BIT"] == bit and h[f"{prefix}{r['name']}"] == 1 << bit
+
+
+def test_signed_loadcell_scale(spec_text, h):
+    """Spec 2.1: the 32-bit signed scale's absolute range, as the header and wire.py have it; the word split."""
+    lo, hi = (int(x.replace(",", "")) for x in re.search(r"absolute value of ([\d,]+)-([\d,]+)", spec_text).groups())
+    assert (lo, hi) == wire.LOADCELL_SCALE_X100_ABS_RANGE == (h["RIGCTL_LOADCELL_SCALE_X100_ABS_MIN"],
+                                                           h["RIGCTL_LOADCELL_SCALE_X100_ABS_MAX"])
+    for v in (42000, -42000, 430000, -1, 0, 2**31 - 1, -2**31):
+        assert wire.join_s32(*wire.split_s32(v)) == v
+    assert wire.split_s32(-42000) == (0xFFFF, (-42000) & 0xFFFF)
 
 
 def test_hx711_rate_rules(spec_text, h):

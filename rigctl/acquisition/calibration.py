@@ -11,7 +11,10 @@ session's ``/calibration`` block). Layout::
                              "source": "calib.h5", "calibrated_utc": "..."}}
 
 Load cell: with the actuator released, TARE, read the raw HX711 counts without and with a known mass; the scale is
-``(loaded - zero) / mass`` counts per gram, written to LOADCELL_SCALE_X100 and saved to EEPROM (SAVE_CALIBRATION).
+``(loaded - zero) / mass`` counts per gram, written to the controller's signed 32-bit scale (LOADCELL_SCALE_X100_HI/
+_LO: 1 to 100,000 counts/g, so 1-50 kg cells of 1-2 mV/V at gain 128 fit) and saved to EEPROM (SAVE_CALIBRATION). A
+cell that reads negative under the mass is reported as reversed (mounted or wired the other way round), and
+calibrated as negative only when the caller asks for it.
 
 Taxel normalisation (paper, Materials and Methods: "the taxel readings were normalized between 0 and 1 on a
 per-taxel basis", and for the real-time experiment "an initial dataset of 10 trials per texture was collected to get
@@ -56,7 +59,7 @@ class LoadCellCalibration:
     Attributes
     ----------
     counts_per_g : float, HX711 counts per gram
-    scale_x100 : int, the value written to LOADCELL_SCALE_X100 (1-65535)
+    scale_x100 : int, the signed scale written to LOADCELL_SCALE_X100_HI/_LO (counts per g x 100)
     mass_g : float, the known mass used
     zero_raw, loaded_raw : float, mean raw HX711 counts without / with the mass
     check_force_g : float, the controller's FORCE_G reading with the mass after the new scale (should be ~mass_g)
@@ -104,6 +107,7 @@ def calibrate_loadcell(
     settle_s: float = 0.5,
     save: bool = True,
     config_file: str | os.PathLike | Literal[False] | None = None,
+    allow_negative: bool = False,
 ) -> LoadCellCalibration:
     """Calibrate the load cell with a known mass and write the scale to the drum controller.
 
@@ -124,6 +128,8 @@ def calibrate_loadcell(
     save : SAVE_CALIBRATION to the controller's EEPROM
     config_file : where to store the result in the rig config (``loadcell`` block); None = default path,
         False = do not store
+    allow_negative : calibrate a cell that reads negative under the mass with a negative scale (else that is an
+        error naming the reversed cell)
 
     Returns
     -------
@@ -131,12 +137,13 @@ def calibrate_loadcell(
 
     Raises
     ------
-    ValueError (mass <= 0), CalibrationError (no response to the mass, or a scale outside 0.01-655.35 counts/g),
-    :class:`rigctl.devices.errors.DrumError` from the controller.
+    ValueError (mass <= 0), CalibrationError (no response to the mass, a reversed cell without ``allow_negative``,
+    or a scale outside 1-100,000 counts/g), :class:`rigctl.devices.errors.DrumError` from the controller.
     """
     if not mass_g > 0:
         raise ValueError(f"mass_g must be > 0, got {mass_g}")
     wait_released(drum, timeout_s=30.0)
+    _sleep(drum, settle_s)  # a load just taken off (a mass, a retract): the HX711 settles first, or the tare keeps it
     drum.tare()
     _sleep(drum, settle_s)
     zero, noise, _ = _mean_raw(drum, n_readings, interval_s)
@@ -145,17 +152,22 @@ def calibrate_loadcell(
         _sleep(drum, settle_s)  # the HX711 settles 4 conversion periods after the mass lands (50 / 400 ms)
         loaded, _, _ = _mean_raw(drum, n_readings, interval_s)
         delta = loaded - zero
-        if delta <= max(10 * noise / np.sqrt(n_readings), 1.0):
+        if abs(delta) <= max(10 * noise / np.sqrt(n_readings), 1.0):
             raise CalibrationError(
                 f"the load cell did not respond to the {mass_g:g} g mass (raw {zero:.0f} -> {loaded:.0f} counts): "
                 "is the mass on the load cell?")
+        if delta < 0 and not allow_negative:
+            raise CalibrationError(
+                f"the load cell reads negative under the {mass_g:g} g mass (raw {zero:.0f} -> {loaded:.0f} counts): "
+                "it is mounted or wired the other way round (swap its A+ and A- wires at the HX711, or turn it), "
+                "or calibrate it as negative on purpose (allow_negative)")
         counts_per_g = delta / mass_g
         scale_x100 = int(round(counts_per_g * 100))
         try:
             drum.set_loadcell_scale(counts_per_g)
         except SetpointRangeError as exc:
             raise CalibrationError(f"{counts_per_g:.3f} counts/g is outside what the controller's load-cell scale "
-                                   f"holds ({exc.low:g}-{exc.high:g} counts/g)") from None
+                                   f"holds ({exc.low:g}-{exc.high:g} counts/g, either sign)") from None
         if save:
             drum.save_calibration()
         _sleep(drum, settle_s)

@@ -47,6 +47,7 @@ from rigctl.core.drum import (
     PROTOCOL_LIMITS,
     DrumError,
     DrumFault,
+    DrumReset,
     DrumState,
     DrumTimeout,
     Fault,
@@ -174,6 +175,12 @@ class Rig:
         self._textures: TextureSet = backend.textures or PAPER_TEXTURES
         self._closed = False
         self._lock = threading.RLock()
+        #: the drum controller's BOOT_COUNT when this rig last homed it (None before): a change is a reset
+        self.drum_boot_count: int | None = None
+        #: unexpected resets of the drum controller seen while this rig used it
+        self.drum_resets = 0
+        #: warnings about the drum controller's state found when opening (bad EEPROM, calibration mismatch), in words
+        self.warnings: list[str] = []
         #: frames the last trial's capture received (None before the first, or once the stream is known to work)
         self.last_capture_frames: int | None = None
         #: whether the controller acknowledged the STOP of :meth:`close` (None while open)
@@ -237,6 +244,8 @@ class Rig:
     def _prepare(self, *, home: bool) -> None:
         self._apply_force_loop()
         st = self.drum.read_status()
+        self._check_calibration(st)
+        self.drum_boot_count = getattr(st, "boot_count", None)
         if st.state == DrumState.FAULT:
             if not home:
                 log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
@@ -249,8 +258,66 @@ class Rig:
                 st = self.drum.read_status()
                 raise DrumFault(st.faults, f"the fault persists ({fault_advice(st.faults)})") from None
         if home:
-            self.drum.home()
-            self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+            self._home()
+        elif st.state == DrumState.NOT_HOMED:
+            log.warning("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
+                        getattr(st, "reset_cause", "?"))
+
+    def _home(self) -> None:
+        """HOME (the controller tares at the home switch), wait for IDLE, TARE again at home, and remember the
+        controller's BOOT_COUNT: a later change of it is an unexpected reset (:meth:`check_drum_reset`)."""
+        self.drum.home()
+        st = self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+        self.drum.tare()
+        self.drum_boot_count = getattr(self.drum.read_status(), "boot_count", getattr(st, "boot_count", None))
+
+    def _check_calibration(self, st: Any) -> None:
+        """Warn (log and :attr:`warnings`) when the controller runs on default calibration (its EEPROM record was
+        missing or failed its checksum) or its load-cell scale differs from the rig config's."""
+        from rigctl.acquisition.rigconfig import loadcell_scale_mismatch
+
+        if getattr(st, "calibration_defaults", False):
+            self._warn("the drum controller's EEPROM calibration is missing or failed its checksum: it runs on the "
+                       "default load-cell scale and lead-screw calibration (recalibrate the load cell)")
+        try:
+            scale = self.drum.loadcell_scale()
+        except Exception as exc:  # noqa: BLE001 - a warning only; opening goes on
+            log.warning("cannot read the drum controller's load-cell scale: %s", exc)
+            return
+        mismatch = loadcell_scale_mismatch(self.host_config, scale)
+        if mismatch:
+            self._warn(mismatch)
+
+    def _warn(self, text: str) -> None:
+        log.warning("%s", text)
+        self.warnings.append(text)
+
+    def check_drum_reset(self, st: Any = None) -> bool:
+        """Has the drum controller reset since this rig homed it (BOOT_COUNT changed, or NOT_HOMED)? If so: report it
+        as such (log, :attr:`drum_resets`), HOME it again and TARE at home, so that no press runs on a position or a
+        zero from before the reset. Returns True if it had reset.
+
+        A controller found NOT_HOMED with an unchanged BOOT_COUNT (an e-stop, a failed HOME) is homed too, but not
+        counted as a reset; it returns False then.
+
+        Raises DrumError if it cannot be homed."""
+        st = self.drum.read_status() if st is None else st
+        boot = getattr(st, "boot_count", None)
+        reset = boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count
+        if not reset and st.state != DrumState.NOT_HOMED:
+            return False
+        if reset:
+            self.drum_resets += 1
+            log.error("the drum controller reset unexpectedly (reset cause %s, boot count %s -> %s, state %s): "
+                      "homing and taring it again", getattr(st, "reset_cause", "?"), self.drum_boot_count, boot,
+                      DrumState(int(st.state)).name)
+        else:
+            log.warning("the drum controller is NOT_HOMED (after an e-stop or a failed HOME): homing it")
+        if st.state == DrumState.FAULT:
+            self.drum.stop()
+            self.drum.clear_fault()
+        self._home()
+        return reset
 
     def _apply_force_loop(self) -> None:
         """The rig config's ``force_loop`` block (this rig's HX711 rate and gains), if any, to the controller."""
@@ -402,6 +469,8 @@ class Rig:
             st = self.drum.read_status()
             if st.state == DrumState.FAULT:
                 self.drum.clear_fault()
+                st = self.drum.read_status()
+            self.check_drum_reset(st)  # a reset, an e-stop or a failed HOME: home (and tare) again
             self.drum.wait_state([DrumState.IDLE], timeout_s=20.0)
         except DrumError as exc:
             log.warning("recovering the rig: %s", exc)
@@ -469,6 +538,9 @@ class Rig:
     def _check_fault(self, s: _Status, what: str) -> None:
         if s.state == DrumState.FAULT:
             raise DrumFault(Fault(s.faults), what)
+        if s.state == DrumState.NOT_HOMED:  # only a reset leaves it NOT_HOMED without a fault
+            raise DrumReset(f"the drum controller reset {what} (it reports NOT_HOMED): the trial is lost; the rig "
+                            "homes and tares it again before the next press")
 
     # ------------------------------------------------------------------------------------------------- trials
     def press(self, force_g: float, *, timeout_s: float | None = None) -> float:
@@ -481,6 +553,9 @@ class Rig:
         timeout_s = self.settle.force_timeout_s if timeout_s is None else timeout_s
         t0 = time.monotonic()
         st = self.drum.read_status()
+        # never press on a position or a zero from before a reset (or an e-stop): home and tare first
+        if self.check_drum_reset(st) or st.state == DrumState.NOT_HOMED:
+            st = self.drum.read_status()
         if st.state == DrumState.RUNNING:
             self.drum.stop_drum()
             self.drum.wait_state([DrumState.FORCE_SETTLED, DrumState.SEEKING_FORCE], timeout_s=10.0)

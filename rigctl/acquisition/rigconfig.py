@@ -8,7 +8,8 @@ into every session) and the calibration, which import this module, not each othe
 The schema (:data:`SCHEMA`, checked by :func:`validate_rig_config` on every load and save): a JSON object with the
 optional blocks
 
-- ``loadcell``: ``counts_per_g`` (required, a number > 0), ``scale_x100`` (an integer 1-65535), ``mass_g`` (> 0),
+- ``loadcell``: ``counts_per_g`` (required, a non-zero number: negative for a cell calibrated as reversed),
+  ``scale_x100`` (a non-zero integer of absolute value up to 10,000,000: the controller's signed scale), ``mass_g`` (> 0),
   ``zero_raw``, ``loaded_raw``, ``check_force_g``, ``noise_counts`` (numbers), ``calibrated_utc`` (text);
 - ``taxel_normalisation``: ``taxel_min``, ``taxel_max`` (required, lists of ADC counts, one per taxel, of the same
   non-zero length, min <= max), ``n_trials`` (an integer >= 0), ``source``, ``calibrated_utc`` (text);
@@ -38,7 +39,11 @@ from typing import Any
 from rigctl.core.interfaces import RIG_KINDS
 
 __all__ = ["CalibrationError", "RigConfigError", "SCHEMA", "default_config_path", "config_path", "load_rig_config",
-           "save_rig_config", "update_rig_config", "validate_rig_config"]
+           "loadcell_scale_mismatch", "save_rig_config", "update_rig_config", "validate_rig_config"]
+
+#: the controller's load-cell scale and the rig config's may differ by this fraction before the host warns (the
+#: scale is stored x100 as an integer: 0.5 % is far above its rounding at any plausible cell)
+LOADCELL_SCALE_TOLERANCE = 0.005
 
 
 class CalibrationError(RuntimeError):
@@ -50,11 +55,11 @@ class RigConfigError(CalibrationError):
     key at fault (e.g. ``rig.json: loadcell.counts_per_g: expected a number > 0, got "420"``)."""
 
 
-#: block -> key -> (kind, required); kinds: "number", "positive", "count" (int >= 0), "register" (int 1-65535),
-#: "text", "counts" (a non-empty list of numbers)
+#: block -> key -> (kind, required); kinds: "number", "positive", "nonzero", "count" (int >= 0), "scale" (a
+#: non-zero int, |v| <= 10,000,000), "text", "counts" (a non-empty list of numbers)
 SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "loadcell": {
-        "counts_per_g": ("positive", True), "scale_x100": ("register", False), "mass_g": ("positive", False),
+        "counts_per_g": ("nonzero", True), "scale_x100": ("scale", False), "mass_g": ("positive", False),
         "zero_raw": ("number", False), "loaded_raw": ("number", False), "check_force_g": ("number", False),
         "noise_counts": ("number", False), "calibrated_utc": ("text", False),
     },
@@ -72,7 +77,8 @@ SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
 SCHEMA["doctor"] = {kind: ("report", False) for kind in RIG_KINDS}
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
-             "register": "an integer 1-65535", "text": "text", "counts": "a non-empty list of numbers",
+             "nonzero": "a non-zero number",
+             "scale": "a non-zero integer of absolute value up to 10000000", "text": "text", "counts": "a non-empty list of numbers",
              "report": "a doctor report (checked_utc, rig, ok, checks)", "hx711_rate": "10 or 80",
              "gain": "a number >= 0"}
 
@@ -99,10 +105,12 @@ def _check_value(kind: str, v: Any) -> bool:
         return _is_number(v)
     if kind == "positive":
         return _is_number(v) and v > 0
+    if kind == "nonzero":
+        return _is_number(v) and v != 0
     if kind == "count":
         return isinstance(v, int) and not isinstance(v, bool) and v >= 0
-    if kind == "register":
-        return isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 65535
+    if kind == "scale":
+        return isinstance(v, int) and not isinstance(v, bool) and 0 < abs(v) <= 10_000_000
     if kind == "text":
         return isinstance(v, str)
     if kind == "counts":
@@ -238,3 +246,22 @@ def update_rig_config(path: str | os.PathLike | None = None, **blocks: Any) -> d
     cfg.update(blocks)
     save_rig_config(cfg, path)
     return cfg
+
+
+def loadcell_scale_mismatch(config: dict, board_counts_per_g: float) -> str | None:
+    """Compare the drum controller's load-cell scale with the rig config's calibration (``loadcell.counts_per_g``).
+
+    Returns None when they agree within :data:`LOADCELL_SCALE_TOLERANCE` (or the config holds no load-cell
+    calibration), else the warning in words: the controller's EEPROM lost or never got the calibration (a bad
+    checksum falls back to the default 420 counts/g), or another board or cell is connected.
+    """
+    block = config.get("loadcell") if isinstance(config, dict) else None
+    if not block or "counts_per_g" not in block:
+        return None
+    want = float(block["counts_per_g"])
+    have = float(board_counts_per_g)
+    if abs(have - want) <= LOADCELL_SCALE_TOLERANCE * abs(want):
+        return None
+    return (f"the drum controller's load-cell scale is {have:g} counts/g but the rig config's calibration is "
+            f"{want:g} counts/g ({block.get('calibrated_utc', 'undated')}): forces would be off by "
+            f"{(want / have - 1) * 100:+.1f} %; recalibrate (rigctl calibrate loadcell) or check the board and cell")

@@ -30,12 +30,12 @@ from dataclasses import dataclass
 from typing import NamedTuple, Protocol, runtime_checkable
 
 __all__ = [
-    "DrumState", "Fault", "SpeedProfile", "DrumStatus", "DrumLimits", "SettleBand", "ForceLoopConfig",
+    "DrumState", "Fault", "SpeedProfile", "ResetCause", "StatusFlag", "DrumStatus", "DrumLimits", "SettleBand", "ForceLoopConfig",
     "SetpointRange",
     "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM",
     "STATE_TEXT", "FAULT_WORDS", "FaultWords", "describe_state", "describe_faults", "fault_advice",
-    "DrumError", "DrumTimeout", "DrumFault", "SetpointRangeError", "Clock",
+    "DrumError", "DrumTimeout", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
 
 
@@ -51,6 +51,7 @@ class DrumState(enum.IntEnum):
     FORCE_SETTLED = 3
     RUNNING = 4
     FAULT = 5
+    NOT_HOMED = 6
 
 
 class Fault(enum.IntFlag):
@@ -60,7 +61,30 @@ class Fault(enum.IntFlag):
     WATCHDOG = 1 << 1
     LOADCELL_TIMEOUT = 1 << 2
     ACTUATOR_TRAVEL = 1 << 3
+    ESTOP = 1 << 4
+    LOADCELL_REVERSED = 1 << 5
+    HOME_NOT_FOUND = 1 << 6
     HX711_RATE = 1 << 8
+
+
+class ResetCause(enum.IntFlag):
+    """Bits of the RESET_CAUSE input register (spec table 2.7: the MCU's MCUSR at boot)."""
+
+    POWER_ON = 1 << 0
+    EXTERNAL = 1 << 1
+    BROWN_OUT = 1 << 2
+    WATCHDOG = 1 << 3
+
+
+class StatusFlag(enum.IntFlag):
+    """Bits of the STATUS_FLAGS input register (spec table 2.8)."""
+
+    CALIBRATION_DEFAULTS = 1 << 0
+    HOMED = 1 << 1
+    DRIVERS_ENABLED = 1 << 2
+    ESTOP_OPEN = 1 << 3
+    HOME_SWITCH = 1 << 4
+    TARED = 1 << 5
 
 
 class SpeedProfile(enum.IntEnum):
@@ -78,6 +102,7 @@ STATE_TEXT: dict[DrumState, str] = {
     DrumState.FORCE_SETTLED: "Force settled - on target, drum at rest",
     DrumState.RUNNING: "Running - drum turning, force loop holding",
     DrumState.FAULT: "FAULT - drum stopped, actuator backed off",
+    DrumState.NOT_HOMED: "Not homed - reset, e-stopped or homing failed: HOME before pressing",
 }
 class FaultWords(NamedTuple):
     """A fault bit in words: ``label`` (a few words, for a status line), ``meaning`` (spec table 2.5's, for an error
@@ -106,6 +131,23 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "actuator reached its end of travel without reaching the force setpoint",
         "the actuator reached its end of travel without reaching the force setpoint: no plate, or the sensor is too "
         "far away."),
+    Fault.ESTOP: FaultWords(
+        "e-stop", "the e-stop input opened (pressed, or its wire is broken): drivers disabled",
+        "the e-stop was pressed (or its normally-closed wire is broken): the stepper drivers were disabled at once "
+        "and the drum and actuator stopped where they were. Release it, CLEAR_FAULT, then HOME (the position was "
+        "lost)."),
+    Fault.LOADCELL_REVERSED: FaultWords(
+        "load cell reversed",
+        "the force read negative while pressing: the load cell is mounted or wired the other way round, or its "
+        "scale has the wrong sign",
+        "the force went below -2 x FORCE_TOLERANCE_G while pressing: the load cell is mounted or wired the other "
+        "way round (swap A+ and A- at the HX711) or its scale has the wrong sign; recalibrate it."),
+    Fault.HOME_NOT_FOUND: FaultWords(
+        "home switch not found",
+        "HOME did not reach the home switch within its travel limit or timeout (a broken switch or wire, a stalled "
+        "actuator)",
+        "HOME gave up after 25 mm or 10 s without the home switch closing: check the switch and its wire and that "
+        "the actuator moves, then CLEAR_FAULT and HOME."),
     Fault.HX711_RATE: FaultWords(
         "load-cell rate mismatch",
         "the load cell amplifier's measured rate is not the one the force loop is set for",
@@ -173,6 +215,29 @@ class DrumStatus:
     index_period_s: float = 0.0  #: one drum revolution by the index sensor, s (0 before two sensor edges)
     index_steps: int = 0  #: drum microsteps sent in that revolution (steps_per_rev x microsteps if the driver agrees)
     index_count: int = 0  #: index-sensor edges since power-up, wraps at 65536
+    reset_cause: ResetCause = ResetCause(0)  #: what caused the controller's last reset (spec table 2.7)
+    boot_count: int = 0  #: the controller's boots so far (EEPROM), wraps at 65536: a change = it was reset
+    flags: StatusFlag = StatusFlag(0)  #: status bits (spec table 2.8)
+
+    @property
+    def homed(self) -> bool:
+        """HOME has succeeded since the last reset, e-stop or failed HOME."""
+        return StatusFlag.HOMED in self.flags
+
+    @property
+    def calibration_defaults(self) -> bool:
+        """The controller's EEPROM calibration was missing or failed its checksum at boot: defaults in use."""
+        return StatusFlag.CALIBRATION_DEFAULTS in self.flags
+
+    @property
+    def estop_open(self) -> bool:
+        """The e-stop input reads open now."""
+        return StatusFlag.ESTOP_OPEN in self.flags
+
+    @property
+    def drivers_enabled(self) -> bool:
+        """The stepper drivers are enabled (EN active) now."""
+        return StatusFlag.DRIVERS_ENABLED in self.flags
 
     def index_speed_mm_s(self, diameter_mm: float) -> float | None:
         """Drum surface speed measured by the index sensor, mm/s: ``pi * diameter_mm / index_period_s`` (the real
@@ -372,6 +437,11 @@ class DrumFault(DrumError):
     def __init__(self, faults: int, message: str = "") -> None:
         self.faults = Fault(int(faults))
         super().__init__((message + ": " if message else "") + f"drum controller fault: {describe_faults(faults)}")
+
+
+class DrumReset(DrumError):
+    """The drum controller reset while the host used it (BOOT_COUNT changed, or it reports NOT_HOMED unasked): a
+    brown-out, its watchdog, a reset pulse. Whatever it was doing stopped; it must be homed (and tared) again."""
 
 
 @runtime_checkable

@@ -153,10 +153,15 @@ class DrumMonitor(Protocol):
 
 @runtime_checkable
 class DrumCalibration(Protocol):
-    """Calibrating the drum controller's load cell (spec 2.1: LOADCELL_SCALE_X100, SAVE_CALIBRATION)."""
+    """Calibrating the drum controller's load cell (spec 2.1: LOADCELL_SCALE_X100_HI/_LO, SAVE_CALIBRATION)."""
 
     def set_loadcell_scale(self, counts_per_g: float) -> None:
-        """Load-cell calibration: HX711 counts per g (0.01-655.35); :meth:`save_calibration` keeps it."""
+        """Load-cell calibration: HX711 counts per g, signed (absolute value 1-100,000);
+        :meth:`save_calibration` keeps it."""
+        ...
+
+    def loadcell_scale(self) -> float:
+        """The controller's load-cell scale now, HX711 counts per g (signed)."""
         ...
 
     def save_calibration(self) -> None:

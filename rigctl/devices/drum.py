@@ -32,6 +32,7 @@ request for a programmer's byte) it stays silent for ``boot_quiet_s`` before the
 from __future__ import annotations
 
 import logging
+import math
 import os
 import stat
 import threading
@@ -50,12 +51,22 @@ from rigctl.devices import wire
 from rigctl.devices.errors import (
     DrumError,
     DrumFault,
+    DrumNotHomed,
     DrumTimeout,
     ModbusExceptionError,
     SetpointRangeError,
 )
 from rigctl.devices.ports import PortIdentity, lock_exclusive
-from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR, SpeedProfile
+from rigctl.devices.wire import (
+    Command,
+    DrumState,
+    Fault,
+    HoldingRegister as HR,
+    InputRegister as IR,
+    ResetCause,
+    SpeedProfile,
+    StatusFlag,
+)
 
 __all__ = ["DrumClient", "DrumStatus", "DrumLimits", "SettleBand", "DrumState", "Fault", "ForceLoopConfig",
            "IndexSource", "SpeedProfile", "FORCE_LOOP_REGISTERS", "default_force_loop", "force_loop_registers",
@@ -107,6 +118,9 @@ class DrumStatus(core_drum.DrumStatus):
             index_period_s=regs[IR.INDEX_PERIOD_MS] / 1000.0,
             index_steps=regs[IR.INDEX_STEPS],
             index_count=regs[IR.INDEX_COUNT],
+            reset_cause=ResetCause(regs[IR.RESET_CAUSE] & 0x0F),
+            boot_count=regs[IR.BOOT_COUNT],
+            flags=StatusFlag(regs[IR.STATUS_FLAGS] & 0x3F),
         )
 
 
@@ -712,11 +726,19 @@ class DrumClient:
             self.write_holding(HR.FORCE_LIMIT_G, int(round(force_g)))
 
     def set_loadcell_scale(self, counts_per_g: float) -> None:
-        """Load-cell calibration, HX711 counts per g (0.01-655.35); SAVE_CALIBRATION keeps it in EEPROM."""
-        lo, hi, _ = wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100]
-        if not lo / 100 <= float(counts_per_g) <= hi / 100:
-            raise SetpointRangeError("load-cell scale", float(counts_per_g), "counts/g", lo / 100, hi / 100)
-        self.write_holding(HR.LOADCELL_SCALE_X100, int(round(counts_per_g * 100)))
+        """Load-cell calibration, HX711 counts per g, signed (absolute value 1-100,000; negative for a cell that
+        reads negative under load), written as the 32-bit pair LOADCELL_SCALE_X100_HI/_LO in one request (spec
+        2.1); SAVE_CALIBRATION keeps it in EEPROM."""
+        lo, hi = wire.LOADCELL_SCALE_X100_ABS_RANGE
+        v = float(counts_per_g)
+        if not (math.isfinite(v) and lo / 100 <= abs(v) <= hi / 100):
+            raise SetpointRangeError("load-cell scale (absolute value)", abs(v) if math.isfinite(v) else v,
+                                     "counts/g", lo / 100, hi / 100)
+        self.write_holdings(HR.LOADCELL_SCALE_X100_HI, list(wire.split_s32(int(round(v * 100)))))
+
+    def loadcell_scale(self) -> float:
+        """The controller's load-cell scale, HX711 counts per g (signed)."""
+        return wire.join_s32(*self.read_holdings(HR.LOADCELL_SCALE_X100_HI, 2)) / 100.0
 
     def force_loop(self) -> ForceLoopConfig:
         """The force loop's rate and gains (holding registers 20-24, spec 2.9)."""
@@ -739,9 +761,19 @@ class DrumClient:
         """Write a command code to COMMAND (spec table 2.3)."""
         self.write_holding(HR.COMMAND, int(Command(cmd)))
 
+    def _motion_command(self, cmd: Command) -> None:
+        """RUN / PRESS: a refusal from a NOT_HOMED controller says so (:class:`DrumNotHomed`)."""
+        try:
+            self.command(cmd)
+        except ModbusExceptionError as exc:
+            if exc.exception_code == 3 and self.read_status().state == DrumState.NOT_HOMED:
+                raise DrumNotHomed(exc.register, exc.function_code, exc.exception_code, exc.value) from None
+            raise
+
     def run(self) -> None:
-        """Start the drum on the selected profile (engages the force loop first if needed)."""
-        self.command(Command.RUN)
+        """Start the drum on the selected profile (engages the force loop first if needed). DrumNotHomed if the
+        controller has not been homed since its last reset."""
+        self._motion_command(Command.RUN)
 
     def stop(self) -> None:
         """Safe stop: drum to rest, actuator home, state IDLE."""
@@ -752,8 +784,9 @@ class DrumClient:
         self.command(Command.STOP_DRUM)
 
     def press(self) -> None:
-        """Engage the force loop (SEEKING_FORCE, then FORCE_SETTLED)."""
-        self.command(Command.PRESS)
+        """Engage the force loop (SEEKING_FORCE, then FORCE_SETTLED). DrumNotHomed if the controller has not been
+        homed since its last reset."""
+        self._motion_command(Command.PRESS)
 
     def tare(self) -> None:
         """Zero the load cell (actuator released)."""

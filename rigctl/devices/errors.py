@@ -11,6 +11,7 @@ from typing import Any
 from rigctl.core.drum import (
     DrumError as DrumError,
     DrumFault as DrumFault,
+    DrumReset as DrumReset,
     DrumTimeout as DrumTimeout,
     SetpointRangeError as SetpointRangeError,
     describe_faults as describe_faults,
@@ -43,6 +44,16 @@ class ModbusExceptionError(DrumError):
             f"Modbus exception {exception_code} ({name}) from the drum controller on register {register}"
             f"{what} (function {function_code})"
         )
+
+
+class DrumNotHomed(ModbusExceptionError):
+    """RUN or PRESS was refused because the controller is NOT_HOMED (after a reset, an e-stop or a failed HOME):
+    the actuator's position is unknown until HOME succeeds."""
+
+    def __init__(self, register: str, function_code: int, exception_code: int, value: Any = None) -> None:
+        super().__init__(register, function_code, exception_code, value)
+        self.args = (f"{self.args[0]}: the controller is NOT_HOMED (it was reset, e-stopped or HOME failed since it "
+                     "was last homed): HOME it first",)
 
 
 class TaxelStreamError(Exception):

@@ -15,7 +15,13 @@ import numpy as np
 
 # the controller's states, fault bits and speed profiles are shared by every layer: they live in rigctl.core.drum
 # (the numbers of spec tables 2.4 and 2.5, checked here by tests/test_wire_spec.py); re-exported as the spec's names
-from rigctl.core.drum import DrumState as DrumState, Fault as Fault, SpeedProfile as SpeedProfile
+from rigctl.core.drum import (
+    DrumState as DrumState,
+    Fault as Fault,
+    ResetCause as ResetCause,
+    SpeedProfile as SpeedProfile,
+    StatusFlag as StatusFlag,
+)
 from rigctl.core.sensor import PAPER_SENSOR
 
 # --------------------------------------------------------------------------------------------------------------
@@ -106,7 +112,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 0)
+MEGA_FIRMWARE_VERSION = (1, 1)
 
 
 class HoldingRegister(enum.IntEnum):
@@ -126,6 +132,8 @@ class HoldingRegister(enum.IntEnum):
     WATCHDOG_MS = 11
     LOADCELL_SCALE_X100 = 12
     ACTUATOR_STEPS_PER_MM = 13
+    LOADCELL_SCALE_X100_HI = 14
+    LOADCELL_SCALE_X100_LO = 15
     HX711_RATE_SPS = 20
     FORCE_KP_80SPS_NMS_G = 21
     FORCE_KI_80SPS_NMS_GS = 22
@@ -149,12 +157,29 @@ HOLDING_RANGE: dict[HoldingRegister, tuple[int, int, int]] = {
     HoldingRegister.WATCHDOG_MS: (100, 10000, 1000),
     HoldingRegister.LOADCELL_SCALE_X100: (1, 65535, 42000),
     HoldingRegister.ACTUATOR_STEPS_PER_MM: (1, 65535, 400),
+    HoldingRegister.LOADCELL_SCALE_X100_HI: (0, 65535, 0),
+    HoldingRegister.LOADCELL_SCALE_X100_LO: (0, 65535, 42000),
     HoldingRegister.HX711_RATE_SPS: (10, 80, 80),
     HoldingRegister.FORCE_KP_80SPS_NMS_G: (0, 20000, 10000),
     HoldingRegister.FORCE_KI_80SPS_NMS_GS: (0, 20000, 10000),
     HoldingRegister.FORCE_KP_10SPS_NMS_G: (0, 2000, 1200),
     HoldingRegister.FORCE_KI_10SPS_NMS_GS: (0, 2000, 600),
 }
+
+#: the signed 32-bit load-cell scale (LOADCELL_SCALE_X100_HI/_LO, counts per g x 100): its absolute value's range
+LOADCELL_SCALE_X100_ABS_RANGE = (100, 10_000_000)
+
+
+def split_s32(value: int) -> tuple[int, int]:
+    """A signed 32-bit value as its (high, low) uint16 register words (two's complement)."""
+    v = int(value) & 0xFFFFFFFF
+    return v >> 16, v & 0xFFFF
+
+
+def join_s32(high: int, low: int) -> int:
+    """The signed 32-bit value of (high, low) uint16 register words."""
+    v = ((int(high) & 0xFFFF) << 16) | (int(low) & 0xFFFF)
+    return v - (1 << 32) if v & 0x80000000 else v
 
 #: holding registers whose value must not exceed the value of another holding register
 SPEED_REGISTERS = (
@@ -180,6 +205,9 @@ class InputRegister(enum.IntEnum):
     LOADCELL_RAW_HI = 10
     LOADCELL_RAW_LO = 11
     FORCE_SETPOINT_ACTIVE_G = 12
+    RESET_CAUSE = 13
+    BOOT_COUNT = 14
+    STATUS_FLAGS = 15
     HX711_RATE_0P01SPS = 20
     INDEX_SOURCE = 21
     INDEX_PERIOD_MS = 22
@@ -223,6 +251,11 @@ class Command(enum.IntEnum):
     PRESS = 6
     STOP_DRUM = 7
     SAVE_CALIBRATION = 8
+
+
+#: HOME gives up (HOME_NOT_FOUND) after this much travel towards home, mm, or this long, ms (spec 2.5)
+HOME_MAX_TRAVEL_MM = 25
+HOME_TIMEOUT_MS = 10000
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -5,7 +5,19 @@
 whole before any register changes), the commands and states, the CONSTANT and RAMP speed profiles, a PI force loop
 on actuator velocity against the load cell, settle detection (FORCE_TOLERANCE_G for SETTLE_TIME_MS), the
 force-limit fault (actuator backs off at once), the 10 ms heartbeat, tare, home, clear fault, and the calibration
-registers kept in an emulated EEPROM (in memory, or a JSON file). The physics is
+registers kept in an emulated EEPROM (in memory, or a JSON file) with a checksum.
+
+The firmware's protection outside ``loop()`` (docs/wire-protocol.md 2.4-2.8, docs/firmware.md) is modelled with the
+same contract: after any reset (:meth:`MegaController.reset`: power-on, external, brown-out, watchdog) the state is
+NOT_HOMED, the drivers are disabled and RUN/PRESS are refused until HOME succeeds; the power-up tare is taken only
+with the home switch closed and HOME tares at the switch; RESET_CAUSE, BOOT_COUNT (EEPROM) and STATUS_FLAGS; the
+e-stop input (:meth:`MegaController.set_estop`: ESTOP latched at once, motors stopped, not homed); a force below
+-2 x FORCE_TOLERANCE_G while pressing faults LOADCELL_REVERSED; HOME gives up after its travel limit or timeout
+(HOME_NOT_FOUND; :meth:`MegaController.break_home_switch` for the test); the signed 32-bit load-cell scale; a bad
+EEPROM checksum falls back to the defaults and says so; :meth:`MegaController.hang_loop` stands for a hung
+``loop()``: the outputs keep running (the firmware's step ISRs would) until the 120 ms watchdog stops them and, 120 ms
+later, resets the controller. While hung, register requests get exception 04 (server device failure), where the
+firmware would not answer at all. The physics is
 :class:`rigctl.simulation.model.RigModel` (drum step rate and actuator velocity in, load cell and drum state out);
 whoever owns the simulation clock calls :meth:`MegaController.step`.
 
@@ -28,7 +40,15 @@ import numpy as np
 from pymodbus.constants import ExcCodes
 
 from rigctl.devices import wire
-from rigctl.devices.wire import Command, DrumState, Fault, HoldingRegister as HR, InputRegister as IR
+from rigctl.devices.wire import (
+    Command,
+    DrumState,
+    Fault,
+    HoldingRegister as HR,
+    InputRegister as IR,
+    ResetCause,
+    StatusFlag,
+)
 from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G, RigModel
 
 log = logging.getLogger(__name__)
@@ -38,11 +58,16 @@ __all__ = ["MegaController", "LOADCELL_TIMEOUT_MS"]
 #: actuator calibration the simulated mechanics are built with (ACTUATOR_STEPS_PER_MM default)
 _TRUE_ACTUATOR_STEPS_PER_MM = wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2]
 _ENGAGED = (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING)
-_CALIBRATION = (HR.LOADCELL_SCALE_X100, HR.ACTUATOR_STEPS_PER_MM)
 LOADCELL_TIMEOUT_MS = 200
 #: the force loop's output clamp, mm/s: the firmware's ACT_MAX_SPEED_MM_S (drum_config.h; equal by
 #: tests/test_wire_spec.py)
 FORCE_LOOP_MAX_SPEED_MM_S = 5.0
+#: the AVR watchdog's timeout (firmware: WDTO_120MS, interrupt first, reset at the second timeout), ms
+AVR_WATCHDOG_MS = 120
+#: actuator speed while seeking home, mm/s (firmware: ACT_HOME_SPEED_MM_S)
+HOME_SPEED_MM_S = 3.0
+_DEFAULT_SCALE_X100 = wire.join_s32(wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_HI][2],
+                                    wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_LO][2])
 
 
 def _u16(x: float) -> int:
@@ -73,35 +98,61 @@ class MegaController:
         self.model = model
         self.eeprom_path = Path(eeprom_path) if eeprom_path else None
         self._lock = threading.RLock()
-        self.holding = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
-        self.eeprom = {reg: self.holding[reg] for reg in _CALIBRATION}
-        self._load_eeprom()
-        self.state = DrumState.IDLE
-        self.faults = Fault(0)
+        #: the emulated EEPROM: the calibration record (None = erased) and the boot counter
+        self.eeprom: dict = {"calibration": None, "boot_count": 0xFFFF}
+        self._read_eeprom_file()
         self.requests = 0
         self.write_requests = 0
         self.writes: collections.deque[tuple[int, int, list[int]]] = collections.deque(maxlen=1000)
+        self._t_s = 0.0
+        self._loadcell_ok = True  # fault-injection hook: False = the HX711 stops answering
+        self._loadcell_silent_ms = 0
+        self._home_switch_ok = True  # fault-injection hook: False = the home switch never closes (a broken wire)
+        self.estop_open = False  # the e-stop input reads open (a pressed contact, a broken wire)
+        self.max_step_ms = 10
+        # compile the model's kernels now, not in the first control period
+        model.advance(1, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
+        self._power_up(ResetCause.POWER_ON)
+        self._boot()
+
+    def _power_up(self, cause: ResetCause) -> None:
+        """What the MCU does from its reset vector to loop(): RAM cleared, calibration from EEPROM (or the defaults,
+        flagged), the boot counter incremented, NOT_HOMED with the drivers disabled; the step count's zero is where
+        the actuator stands; the load cell is tared only if the home switch is closed; the HX711's rate is timed
+        again from the next conversions."""
+        model = self.model
+        self.holding = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
+        calib = self._valid_calibration()
+        self.calibration_defaults = calib is None
+        if calib is not None:
+            self._set_scale(self.holding, calib["scale_x100"])
+            self.holding[HR.ACTUATOR_STEPS_PER_MM] = calib["actuator_steps_per_mm"]
+        self.eeprom["boot_count"] = (self.eeprom["boot_count"] + 1) & 0xFFFF
+        self._write_eeprom_file()
+        self.reset_cause = ResetCause(cause)
+        self.state = DrumState.NOT_HOMED
+        self.faults = Fault(0)
+        self.homed = False
+        self.tared = False
+        self._tare_pending = True  # taken at the first reading, only with the home switch closed
+        self._tare_raw = 0
+        self._pos_offset_mm = model.actuator_mm  # the step count starts at 0 wherever the actuator stands
         self._last_request = time.monotonic()
         self._heartbeat_ms = 0
-        self._t_s = 0.0
         self._run_t0 = 0.0
         self._integ = 0.0
         self._pi_out = 0.0  # actuator velocity the force loop set at the last reading, mm/s
         self._on_target_ms = 0
         self._retracting = False  # actuator backing off to home (STOP, fault)
         self._homing = False
-        self._loadcell_ok = True  # fault-injection hook: False = the HX711 stops answering
-        self._loadcell_silent_ms = 0
+        self._home_travel_mm = 0.0
+        self._home_ms = 0
+        self._hung_ms: int | None = None
         self._speed_target = 0.0  # mm/s
         self._outputs = (0.0, 0.0)  # drum step rate (microsteps/s), actuator velocity (mm/s)
-        self._tare_raw = model.loadcell_raw  # the firmware tares at boot (actuator home)
+        self.drivers_enabled = False
         self._force_g = 0.0
         self._echo = 0
-        self.max_step_ms = 10
-        # compile the model's kernels now, not in the first control period
-        model.advance(1, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
-        self._tare_raw = model.loadcell_raw
-        self._update_force()
         # HX711 rate timed at boot (spec 2.9), as the firmware's ctl_hx711_ready
         self._hx_seen = model.hx711_conversions
         self._hx_edges = 0
@@ -118,7 +169,11 @@ class MegaController:
         self._index_period_ms = 0
         self._index_steps = 0
         self._revolutions = 0
-        self._boot()
+        if self.estop_open:
+            self._estop()
+        if self._home_switch():  # the first HX711 reading (12.5 ms after boot on the firmware)
+            self._tare()
+        self._update_force()
 
     def _boot(self) -> None:
         """Run the board's boot at rest until the HX711's rate is timed (the first 5 DOUT-ready edges: 62 ms at
@@ -126,21 +181,82 @@ class MegaController:
         while self._hx_edges <= wire.HX711_RATE_PERIODS:
             self.step(self.model.ms_to_next_conversion())
 
+    def reset(self, cause: ResetCause | int = ResetCause.EXTERNAL) -> None:
+        """Reset the MCU (``cause``: the MCUSR bits it would see, e.g. EXTERNAL for the reset button, BROWN_OUT,
+        WATCHDOG): the physics (the actuator where it stands, a load on the cell) is untouched."""
+        with self._lock:
+            self._power_up(ResetCause(cause))
+        log.warning("virtual Mega reset (%s)", ResetCause(cause))
+
     # ------------------------------------------------------------------ EEPROM
-    def _load_eeprom(self) -> None:
-        if self.eeprom_path and self.eeprom_path.exists():
+    @staticmethod
+    def _record_crc(rec: dict) -> int:
+        body = int(rec["scale_x100"]).to_bytes(4, "little", signed=True) + \
+            int(rec["actuator_steps_per_mm"]).to_bytes(2, "little")
+        return wire.crc16(body)
+
+    def _valid_calibration(self) -> dict | None:
+        rec = self.eeprom["calibration"]
+        if not isinstance(rec, dict):
+            return None
+        try:
+            ok = rec["crc"] == self._record_crc(rec) and rec["scale_x100"] != 0 and rec["actuator_steps_per_mm"] > 0
+        except (KeyError, TypeError, ValueError, OverflowError):
+            return None
+        return rec if ok else None
+
+    def _read_eeprom_file(self) -> None:
+        if not (self.eeprom_path and self.eeprom_path.exists()):
+            return
+        try:
             data = json.loads(self.eeprom_path.read_text())
-            for reg in _CALIBRATION:
-                if reg.name in data:
-                    self.eeprom[reg] = int(data[reg.name])
-        for reg in _CALIBRATION:
-            self.holding[reg] = self.eeprom[reg]
+        except (OSError, ValueError):
+            return  # unreadable: an erased EEPROM
+        if "calibration" in data:
+            self.eeprom["calibration"] = data["calibration"]
+        elif HR.LOADCELL_SCALE_X100.name in data:  # firmware 1.0's record (no checksum in the file)
+            rec = {"scale_x100": int(data[HR.LOADCELL_SCALE_X100.name]),
+                   "actuator_steps_per_mm": int(data.get(HR.ACTUATOR_STEPS_PER_MM.name, 400))}
+            rec["crc"] = self._record_crc(rec)
+            self.eeprom["calibration"] = rec
+        self.eeprom["boot_count"] = int(data.get("boot_count", 0xFFFF)) & 0xFFFF
+
+    def _write_eeprom_file(self) -> None:
+        if self.eeprom_path:
+            self.eeprom_path.write_text(json.dumps(self.eeprom))
 
     def _save_eeprom(self) -> None:
-        for reg in _CALIBRATION:
-            self.eeprom[reg] = self.holding[reg]
-        if self.eeprom_path:
-            self.eeprom_path.write_text(json.dumps({reg.name: self.eeprom[reg] for reg in _CALIBRATION}))
+        rec = {"scale_x100": self.scale_x100, "actuator_steps_per_mm": self.holding[HR.ACTUATOR_STEPS_PER_MM]}
+        rec["crc"] = self._record_crc(rec)
+        self.eeprom["calibration"] = rec
+        self.calibration_defaults = False
+        self._write_eeprom_file()
+
+    def corrupt_eeprom(self) -> None:
+        """Fault-injection hook: flip a bit of the stored calibration (its checksum fails at the next boot)."""
+        with self._lock:
+            rec = self._valid_calibration() or {"scale_x100": _DEFAULT_SCALE_X100,
+                                                "actuator_steps_per_mm": self.holding[HR.ACTUATOR_STEPS_PER_MM],
+                                                "crc": 0}
+            rec = dict(rec, scale_x100=rec["scale_x100"] ^ 0x10)
+            self.eeprom["calibration"] = rec
+            self._write_eeprom_file()
+
+    # ------------------------------------------------------------------ the load-cell scale (32-bit, signed)
+    @property
+    def scale_x100(self) -> int:
+        """The load-cell scale, counts per g x 100 (signed)."""
+        return wire.join_s32(self.holding[HR.LOADCELL_SCALE_X100_HI], self.holding[HR.LOADCELL_SCALE_X100_LO])
+
+    @staticmethod
+    def _set_scale(holding: dict, value: int) -> None:
+        holding[HR.LOADCELL_SCALE_X100_HI], holding[HR.LOADCELL_SCALE_X100_LO] = wire.split_s32(value)
+        holding[HR.LOADCELL_SCALE_X100] = value if 1 <= value <= 0xFFFF else 0
+
+    @staticmethod
+    def _scale_ok(value: int) -> bool:
+        lo, hi = wire.LOADCELL_SCALE_X100_ABS_RANGE
+        return lo <= abs(value) <= hi
 
     # ------------------------------------------------------------------ requests and the watchdog
     def note_request(self) -> None:
@@ -151,10 +267,14 @@ class MegaController:
 
     def read_registers(self, func_code: int, address: int, count: int):
         """Function 03 (holding) / 04 (input): a list of ``count`` raw uint16 values, or a pymodbus ``ExcCodes``."""
+        if self._hung_ms is not None:
+            return ExcCodes.DEVICE_FAILURE
         return self._read(func_code, address, count)
 
     def write_registers(self, func_code: int, address: int, values: list[int]):
         """Function 06 / 16: None when applied, or a pymodbus ``ExcCodes`` (nothing changed)."""
+        if self._hung_ms is not None:
+            return ExcCodes.DEVICE_FAILURE
         return self._write(func_code, address, values)
 
     def _watchdog_due(self) -> bool:
@@ -168,8 +288,23 @@ class MegaController:
 
     def _actuator_position_mm(self) -> float:
         """Where the controller believes the actuator is, mm: its step count over ACTUATOR_STEPS_PER_MM (the
-        firmware knows no other position; the true one differs when that calibration is wrong)."""
-        return self.model.actuator_mm * _TRUE_ACTUATOR_STEPS_PER_MM / self.holding[HR.ACTUATOR_STEPS_PER_MM]
+        firmware knows no other position; the true one differs when that calibration is wrong, or after a reset
+        away from home, which zeroes the count where the actuator stands)."""
+        return ((self.model.actuator_mm - self._pos_offset_mm) * _TRUE_ACTUATOR_STEPS_PER_MM
+                / self.holding[HR.ACTUATOR_STEPS_PER_MM])
+
+    def _home_switch(self) -> bool:
+        return self._home_switch_ok and self.model.actuator_mm <= 1e-6
+
+    def _status_flags(self) -> int:
+        flags = StatusFlag(0)
+        for on, flag in ((self.calibration_defaults, StatusFlag.CALIBRATION_DEFAULTS),
+                         (self.homed, StatusFlag.HOMED), (self.drivers_enabled, StatusFlag.DRIVERS_ENABLED),
+                         (self.estop_open, StatusFlag.ESTOP_OPEN), (self._home_switch(), StatusFlag.HOME_SWITCH),
+                         (self.tared, StatusFlag.TARED)):
+            if on:
+                flags |= flag
+        return int(flags)
 
 
     def _read(self, func_code: int, address: int, count: int):
@@ -211,6 +346,9 @@ class MegaController:
         regs[IR.INDEX_PERIOD_MS] = self._index_period_ms
         regs[IR.INDEX_STEPS] = self._index_steps
         regs[IR.INDEX_COUNT] = self._sensor_edges & 0xFFFF
+        regs[IR.RESET_CAUSE] = int(self.reset_cause)
+        regs[IR.BOOT_COUNT] = self.eeprom["boot_count"]
+        regs[IR.STATUS_FLAGS] = self._status_flags()
         return regs
 
     def _write(self, func_code: int, address: int, values: list[int]):
@@ -235,6 +373,20 @@ class MegaController:
                 else:
                     new[reg] = value
             written = {address + i for i in range(len(values))}
+            # the 32-bit scale: HI and LO together, in range; register 12 (its 16-bit view) must agree if written too
+            pair = {HR.LOADCELL_SCALE_X100_HI, HR.LOADCELL_SCALE_X100_LO}
+            if len(pair & written) == 1:
+                return ExcCodes.ILLEGAL_VALUE
+            if pair <= written:
+                scale = wire.join_s32(new[HR.LOADCELL_SCALE_X100_HI], new[HR.LOADCELL_SCALE_X100_LO])
+                if not self._scale_ok(scale) or (HR.LOADCELL_SCALE_X100 in written
+                                                 and new[HR.LOADCELL_SCALE_X100] != scale):
+                    return ExcCodes.ILLEGAL_VALUE
+                self._set_scale(new, scale)
+            elif HR.LOADCELL_SCALE_X100 in written:
+                if not self._scale_ok(new[HR.LOADCELL_SCALE_X100]):
+                    return ExcCodes.ILLEGAL_VALUE
+                self._set_scale(new, new[HR.LOADCELL_SCALE_X100])
             for reg in wire.SPEED_REGISTERS:
                 if reg in written and new[reg] > new[HR.SPEED_LIMIT_0P1MMS]:
                     return ExcCodes.ILLEGAL_VALUE
@@ -258,17 +410,20 @@ class MegaController:
     # ------------------------------------------------------------------ commands
     def _command_allowed(self, cmd: Command, holding) -> bool:
         s = self.state
+        unloaded = self._force_g < holding[HR.FORCE_TOLERANCE_G] * 2
         if cmd in (Command.NONE, Command.STOP, Command.SAVE_CALIBRATION):
             return True
-        if cmd in (Command.RUN, Command.PRESS):
-            return s not in (DrumState.FAULT, DrumState.HOMING) and self._hx711_rate_ok(holding)
+        if cmd in (Command.RUN, Command.PRESS):  # never after a reset, e-stop or failed HOME until HOME succeeds
+            return s not in (DrumState.FAULT, DrumState.HOMING, DrumState.NOT_HOMED) and self._hx711_rate_ok(holding)
         if cmd == Command.STOP_DRUM:
             return s in _ENGAGED
-        if cmd in (Command.TARE, Command.HOME):
-            return s == DrumState.IDLE and self._force_g < holding[HR.FORCE_TOLERANCE_G] * 2
+        if cmd == Command.TARE:  # only at home (switch closed), with no load on the cell once a tare is known
+            return s in (DrumState.IDLE, DrumState.NOT_HOMED) and self._home_switch() and (not self.tared or unloaded)
+        if cmd == Command.HOME:  # from IDLE only released; from NOT_HOMED always
+            return s == DrumState.NOT_HOMED or (s == DrumState.IDLE and unloaded)
         if cmd == Command.CLEAR_FAULT:
-            return self._force_g <= holding[HR.FORCE_LIMIT_G] and self._loadcell_ok and \
-                not (self._hx_rate_sps and not self._hx711_rate_ok(holding))
+            return ((not self.tared or self._force_g <= holding[HR.FORCE_LIMIT_G]) and self._loadcell_ok
+                    and not self.estop_open and not (self._hx_rate_sps and not self._hx711_rate_ok(holding)))
         return False
 
     def _execute(self, cmd: Command) -> None:
@@ -279,18 +434,19 @@ class MegaController:
             self._run_t0 = self._t_s
         elif cmd == Command.STOP:
             # a latched fault stays until CLEAR_FAULT; the rig is made safe either way
-            self._release(DrumState.FAULT if self.state == DrumState.FAULT else DrumState.IDLE)
+            self._release(DrumState.FAULT if self.state == DrumState.FAULT else self._rest_state())
         elif cmd == Command.TARE:
-            self._tare_raw = self.model.loadcell_raw
-            self._update_force()
+            self._tare()
         elif cmd == Command.HOME:
             self.state = DrumState.HOMING
             self._homing = True
             self._retracting = False
+            self._home_travel_mm = 0.0
+            self._home_ms = 0
         elif cmd == Command.CLEAR_FAULT:
             self.faults = Fault(0)
             if self.state == DrumState.FAULT:
-                self.state = DrumState.IDLE
+                self.state = self._rest_state()
         elif cmd == Command.PRESS:
             if self.state not in _ENGAGED:
                 self._engage()
@@ -307,9 +463,13 @@ class MegaController:
         self._retracting = False
         self._homing = False
 
+    def _rest_state(self) -> DrumState:
+        return DrumState.IDLE if self.homed else DrumState.NOT_HOMED
+
     def _release(self, state: DrumState) -> None:
+        """Stop pressing: back off to home if the position is known (homed), else stop where it stands."""
         self.state = state
-        self._retracting = True
+        self._retracting = self.homed
         self._homing = False
         self._integ = 0.0
 
@@ -318,10 +478,44 @@ class MegaController:
         self._release(DrumState.FAULT)
         log.warning("virtual Mega fault: %s", bits)
 
+    def _estop(self) -> None:
+        """The e-stop ISR: drivers disabled and motion stopped at once, ESTOP latched, the position no longer known."""
+        self.homed = False
+        self._fault(Fault.ESTOP)
+        self._outputs = (0.0, 0.0)
+        self._speed_target = 0.0
+        self.drivers_enabled = False
+
+    def _tare(self) -> None:
+        self._tare_raw = self.model.loadcell_raw
+        self._tare_pending = False
+        self.tared = True
+        self._update_force()
+
     # ------------------------------------------------------------------ control loop
     def _update_force(self) -> None:
-        scale = self.holding[HR.LOADCELL_SCALE_X100] / 100.0
+        scale = self.scale_x100 / 100.0
         self._force_g = (self.model.loadcell_raw - self._tare_raw) / scale
+
+    def set_estop(self, opened: bool) -> None:
+        """The e-stop input: ``True`` = open (contact pressed, or a broken wire), which trips ESTOP at once (the
+        firmware acts in the input's interrupt, not in its control loop); ``False`` = closed again."""
+        with self._lock:
+            self.estop_open = bool(opened)
+            if self.estop_open and Fault.ESTOP not in self.faults:
+                self._estop()
+
+    def break_home_switch(self, broken: bool = True) -> None:
+        """Fault-injection hook: the home switch never closes (a broken wire); HOME must give up."""
+        with self._lock:
+            self._home_switch_ok = not broken
+
+    def hang_loop(self) -> None:
+        """Test hook: the firmware's ``loop()`` hangs. The outputs keep running as they are (the step ISRs), until
+        the AVR watchdog's interrupt stops them after :data:`AVR_WATCHDOG_MS` and its reset follows after as long
+        again (:meth:`reset` with WATCHDOG)."""
+        with self._lock:
+            self._hung_ms = 0
 
     def set_loadcell_alive(self, alive: bool) -> None:
         """Fault-injection hook: ``False`` makes the simulated HX711 stop answering (LOADCELL_TIMEOUT after 200 ms)."""
@@ -448,6 +642,15 @@ class MegaController:
         mech = m.config.mechanics
         with self._lock:
             self._t_s += dt
+            if self._hung_ms is not None:  # loop() hangs: only the watchdog runs
+                self._hung_ms += n_ms
+                if self._hung_ms >= 2 * AVR_WATCHDOG_MS:
+                    self._power_up(ResetCause.WATCHDOG)
+                    log.warning("virtual Mega: loop() hung, the AVR watchdog reset it")
+                elif self._hung_ms >= AVR_WATCHDOG_MS:
+                    self._outputs = (0.0, 0.0)  # the watchdog interrupt: drivers off, step timers stopped
+                    self.drivers_enabled = False
+                return
             self._heartbeat_ms += n_ms
             h = self.holding
             conversions = m.hx711_conversions
@@ -457,6 +660,11 @@ class MegaController:
                 for i in range(min(conversions - self._hx_seen, wire.HX711_RATE_PERIODS + 1), 0, -1):
                     self._hx711_ready(m.hx711_last_conversion_s - (i - 1) * period)
                 self._loadcell_silent_ms = 0
+                if self._tare_pending and self._home_switch():
+                    self._tare()
+                    if self.state == DrumState.HOMING and not self._homing:  # HOME done: at the switch, tared
+                        self.homed = True
+                        self.state = DrumState.IDLE
                 self._update_force()
             else:
                 self._loadcell_silent_ms += n_ms
@@ -464,10 +672,13 @@ class MegaController:
             f = self._force_g
             engaged = self.state in _ENGAGED
             # --- faults (the host watchdog: check_watchdog, in the Modbus server's loop)
-            if f > h[HR.FORCE_LIMIT_G] and not (self.state == DrumState.FAULT and Fault.FORCE_LIMIT in self.faults):
+            if self.tared and f > h[HR.FORCE_LIMIT_G] and \
+                    not (self.state == DrumState.FAULT and Fault.FORCE_LIMIT in self.faults):
                 self._fault(Fault.FORCE_LIMIT)  # latches in any state, also beside another fault (spec 2.5)
             elif self._loadcell_silent_ms >= LOADCELL_TIMEOUT_MS and self.state != DrumState.FAULT:
                 self._fault(Fault.LOADCELL_TIMEOUT)
+            elif engaged and f < -2 * h[HR.FORCE_TOLERANCE_G]:
+                self._fault(Fault.LOADCELL_REVERSED)  # pressing reads negative: a reversed cell (or scale)
             elif engaged and self._actuator_position_mm() >= mech.actuator_travel_mm - 1e-3 and \
                     f < h[HR.FORCE_SETPOINT_G] - h[HR.FORCE_TOLERANCE_G]:
                 self._fault(Fault.ACTUATOR_TRAVEL)
@@ -502,18 +713,32 @@ class MegaController:
                 if self.state == DrumState.SEEKING_FORCE and self._on_target_ms >= h[HR.SETTLE_TIME_MS] and \
                         abs(m.drum_speed_mm_s) < 0.05:
                     self.state = DrumState.FORCE_SETTLED
-            elif self._retracting or self._homing:
-                vel = -vmax
-                if m.actuator_mm <= 1e-6:
+            elif self._homing:
+                vel = -HOME_SPEED_MM_S * cal
+                self._home_travel_mm += HOME_SPEED_MM_S * dt  # the step count: commanded mm, moving or not
+                self._home_ms += n_ms
+                if self._home_switch():
                     vel = 0.0
-                    if self._homing:
-                        m.home_actuator()
-                        self._homing = False
-                        if self.state == DrumState.HOMING:
-                            self.state = DrumState.IDLE
+                    m.home_actuator()
+                    self._pos_offset_mm = 0.0
+                    self._homing = False
+                    self._tare_pending = True  # HOMING ends when the tare at the switch is taken
+                elif self._home_travel_mm >= wire.HOME_MAX_TRAVEL_MM or self._home_ms >= wire.HOME_TIMEOUT_MS:
+                    vel = 0.0
+                    self.homed = False
+                    self._fault(Fault.HOME_NOT_FOUND)
+            elif self._retracting:
+                vel = -vmax
+                if self._actuator_position_mm() <= 1e-6 or self._home_switch():
+                    vel = 0.0
                     self._retracting = False
             else:
                 vel = 0.0
+            self.drivers_enabled = Fault.ESTOP not in self.faults and not self.estop_open and (
+                engaged or self._homing or self._retracting or self.state == DrumState.RUNNING
+                or rate != 0.0 or abs(m.drum_speed_mm_s) > 0.05 or vel != 0.0)
+            if not self.drivers_enabled:
+                rate, vel = 0.0, 0.0
             self._outputs = (rate, vel)
 
     # ------------------------------------------------------------------ inspection (tests)
@@ -521,4 +746,5 @@ class MegaController:
         """State of the controller for tests and logs."""
         with self._lock:
             return {"state": self.state, "faults": self.faults, "force_g": self._force_g,
-                    "holding": dict(self.holding), "requests": self.requests, "outputs": self._outputs}
+                    "holding": dict(self.holding), "requests": self.requests, "outputs": self._outputs,
+                    "homed": self.homed, "tared": self.tared, "drivers_enabled": self.drivers_enabled}

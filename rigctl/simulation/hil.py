@@ -77,6 +77,8 @@ class Telemetry:
     force_g: float
     index: int
     received: float = 0.0  #: host time.monotonic() when the line arrived
+    drivers_enabled: bool = True  #: the stepper drivers' EN pin is active (low) now
+    steps_disabled: int = 0  #: STEP pulses so far while the drivers were disabled (they moved nothing)
 
 
 class _MegaClock:
@@ -195,6 +197,9 @@ class HilRig:
         Period of the Mega harness's ``TEL`` reports (actuator, spring force, step counts), ms of simulated time.
     index_bounce : int
         Extra 0.1 ms pulses the drum index sensor gives after each mark (a bouncing contact; the firmware debounces).
+    mega_image : str
+        The Mega's image in the build folder: ``"mega_drum"`` (the shipped one) or ``"mega_drum_test"`` (the same
+        with a hang input for the watchdog test, :meth:`hang_loop`; built by ``make harness``, never flashed).
 
     Attributes
     ----------
@@ -218,7 +223,8 @@ class HilRig:
 
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
-                 tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0):
+                 tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0,
+                 mega_image: str = "mega_drum"):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -234,6 +240,10 @@ class HilRig:
         self.boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.uno_boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.mux: dict[str, float] = {}
+        self.mega_image = mega_image
+        #: resets of the Mega the harness reported (the reset commands and the MCU's own, e.g. its watchdog)
+        self.mega_resets = 0
+        self._eeprom_ack: bool | None = None
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         self.index_pulses = 0
@@ -323,7 +333,7 @@ class HilRig:
         mega_boot = (["--reset-on-open", "--bootloader", str(build_dir / "stk500v2_mega.hex")] if self.bootloaders
                      else [])
         uno_boot = ["--bootloader", str(build_dir / "optiboot_uno.hex")] if self.bootloaders else []
-        self._mega = _Harness(exe, "mega", build_dir / "mega_drum.elf", [*mega_boot,
+        self._mega = _Harness(exe, "mega", build_dir / f"{self.mega_image}.elf", [*mega_boot,
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
             *self._hardware_args(), *lock], self._on_mega_line)
@@ -440,9 +450,53 @@ class HilRig:
         """Add an external force of ``force_g`` g on the load cell (0 removes it), e.g. to trip FORCE_LIMIT."""
         self._running(self._mega, "Mega").send(f"bump {float(force_g)}")
 
-    def reset_mega(self) -> None:
-        """Press the Mega's reset button: the firmware restarts (RAM cleared, EEPROM calibration kept)."""
-        self._running(self._mega, "Mega").send("reset")
+    def reset_mega(self, cause: str = "external") -> None:
+        """Reset the Mega while the mechanics stay as they are (a reset under load): ``"external"`` (the reset button
+        or a DTR pulse: MCUSR EXTRF), ``"brownout"`` (BORF) or ``"poweron"`` (PORF). The firmware restarts (RAM
+        cleared, EEPROM kept)."""
+        commands = {"external": "reset", "brownout": "brownout", "poweron": "poweron"}
+        if cause not in commands:
+            raise ValueError(f"cause must be one of {sorted(commands)}, got {cause!r}")
+        self._running(self._mega, "Mega").send(commands[cause])
+
+    def set_estop(self, opened: bool) -> None:
+        """Open (``True``: pressed, or a broken wire) or close the normally-closed e-stop contact on the Mega's D2."""
+        self._running(self._mega, "Mega").send("estop open" if opened else "estop close")
+
+    def set_loadcell_polarity(self, sign: int) -> None:
+        """Mount the load cell the right way (``+1``) or reversed (``-1``: it reads negative under load)."""
+        self._running(self._mega, "Mega").send(f"polarity {-1 if sign < 0 else 1}")
+
+    def break_home_switch(self, broken: bool = True) -> None:
+        """Break the home switch's wire (it never closes) or mend it."""
+        self._running(self._mega, "Mega").send("homeswitch broken" if broken else "homeswitch ok")
+
+    def corrupt_eeprom(self) -> None:
+        """Flip a bit of the firmware's calibration record in the Mega's EEPROM (its checksum fails at the next
+        boot). The record's address comes from the image's symbol table (``avr-nm``, binutils-avr).
+
+        Raises HilError if the symbol cannot be found."""
+        elf = firmware.build_dir(self.firmware_sources) / f"{self.mega_image}.elf"
+        try:
+            out = subprocess.run(["avr-nm", str(elf)], capture_output=True, text=True, check=True).stdout
+        except (OSError, subprocess.CalledProcessError) as exc:
+            raise HilError(f"cannot read the symbols of {elf}: {exc}") from None
+        m = re.search(r"^([0-9a-fA-F]+) \w \S*ee_calib2\b", out, re.M)
+        if m is None:
+            raise HilError(f"no calibration record (ee_calib2) in {elf}")
+        offset = int(m.group(1), 16) - 0x810000  # avr-gcc places .eeprom at 0x810000
+        with self._cond:
+            self._eeprom_ack = None
+            self._running(self._mega, "Mega").send(f"eeprom-flip {offset + 2}")  # a byte of the scale, past the magic word
+            if not self._cond.wait_for(lambda: self._eeprom_ack is not None, timeout=10.0):
+                raise HilError("the Mega harness did not confirm the EEPROM change")
+            if not self._eeprom_ack:
+                raise HilError("the Mega harness could not change its EEPROM")
+
+    def hang_loop(self) -> None:
+        """Make the Mega's ``loop()`` hang until the MCU resets (only the test image ``mega_drum_test`` reacts: a
+        hang input on D22, absent from the shipped image); its AVR watchdog must then reset it."""
+        self._running(self._mega, "Mega").send("hang")
 
     def place_mass(self, mass_g: float) -> None:
         """A calibration mass on the load cell: the same external force as :meth:`bump`."""
@@ -487,13 +541,20 @@ class HilRig:
         if line.startswith("TEL "):
             kv = _parse_kv(line)
             tel = Telemetry(kv["t"], int(kv["cycle"]), int(kv["drum_steps"]), int(kv["act_steps"]), kv["act_mm"],
-                            kv["force_g"], int(kv["index"]), time.monotonic())
+                            kv["force_g"], int(kv["index"]), time.monotonic(), bool(kv.get("en", 1)),
+                            int(kv.get("steps_disabled", 0)))
             with self._cond:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
                 self._cond.notify_all()
         elif line.startswith("APP "):
             self.boot_times_s.append(_parse_kv(line)["boot_s"])
+        elif line.startswith("RESET "):
+            self.mega_resets += 1
+        elif line.startswith(("OK eeprom-flip", "ERR eeprom-flip")):
+            with self._cond:
+                self._eeprom_ack = line.startswith("OK")
+                self._cond.notify_all()
         elif line.startswith("IDX "):
             self.index_pulses += 1
             if self._uno is not None:

@@ -78,3 +78,64 @@ def test_loadcell_calibration_inprocess(rig, tmp_path):
 def test_labels_outside_the_rigs_set_are_refused(rig):
     with pytest.raises(ValueError, match="not in the texture set"):
         rig.mount_texture("Z")
+
+
+@pytest.mark.parametrize("counts_per_g", [2150.0, 4300.0, 43.0])
+def test_large_and_small_cells_calibrate(tmp_path, counts_per_g):
+    """1 kg cells of 1-2 mV/V (~2,150-4,300 counts/g at gain 128) and a 50 kg, 1 mV/V cell (~43 counts/g): beyond
+    or near the ends of firmware 1.0's 16-bit register (0.01-655.35 counts/g); the signed 32-bit scale holds them."""
+    cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=counts_per_g))
+    with open_rig("inprocess", config=cfg, seed=5, host_config_path=tmp_path / "rig.json") as rig:
+        place, remove = calibration.simulated_mass(rig)
+        result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
+                                                n_readings=10, interval_s=0.0, settle_s=0.1,
+                                                config_file=tmp_path / "rig.json")
+        assert abs(result.counts_per_g - counts_per_g) / counts_per_g < 0.01
+        assert rig.drum.loadcell_scale() == result.scale_x100 / 100
+        assert abs(result.check_force_g - 500.0) < 5
+
+
+def test_a_reversed_cell_is_reported_as_reversed_and_calibrates_negative_on_request(tmp_path):
+    """A cell that reads negative under the mass: the calibration says it is reversed (firmware 1.0's host called
+    it "did not respond"); asked to, it calibrates it with a negative scale, and the controller then reads the mass
+    as a positive force."""
+    cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=-TRUE_COUNTS_PER_G))
+    with open_rig("inprocess", config=cfg, seed=5, host_config_path=tmp_path / "rig.json") as rig:
+        place, remove = calibration.simulated_mass(rig)
+        kw = dict(place_mass=place, remove_mass=remove, n_readings=10, interval_s=0.0, settle_s=0.1,
+                  config_file=tmp_path / "rig.json")
+        with pytest.raises(calibration.CalibrationError, match="reads negative.*other way round"):
+            calibration.calibrate_loadcell(rig.drum, 500.0, **kw)
+        result = calibration.calibrate_loadcell(rig.drum, 500.0, allow_negative=True, **kw)
+        assert abs(result.counts_per_g + TRUE_COUNTS_PER_G) / TRUE_COUNTS_PER_G < 0.01
+        assert abs(result.check_force_g - 500.0) < 5
+        assert json.loads((tmp_path / "rig.json").read_text())["loadcell"]["scale_x100"] == result.scale_x100 < 0
+
+
+def test_an_unexpected_reset_is_reported_and_the_rig_rehomes_and_retares(rig):
+    """The controller resets while pressing (a brown-out): the next press reports the reset as such (boot count
+    changed), homes and tares again, and then presses the asked force on the cell, not twice it."""
+    from rigctl.devices.wire import ResetCause
+
+    ctl = rig.backend.controller
+    rig.press(800)
+    pressed_g = rig.backend.model.force_g  # (this rig's cell is not calibrated: 800 g read is not 800 g true)
+    boot0 = rig.drum_boot_count
+    ctl.reset(ResetCause.BROWN_OUT)  # under load: the actuator stays where it is
+    assert rig.drum.read_status().state.name == "NOT_HOMED" and rig.backend.model.force_g > 600
+    rig.press(800)
+    st = rig.drum.read_status()
+    assert rig.drum_resets == 1 and rig.drum_boot_count == st.boot_count == boot0 + 1
+    assert st.reset_cause == ResetCause.BROWN_OUT and st.homed
+    assert abs(rig.backend.model.force_g - pressed_g) < 30  # the same true force as before the reset, not twice it
+
+
+def test_bad_eeprom_and_a_calibration_mismatch_are_warned_on_open(tmp_path):
+    """Opening a rig whose controller runs on default calibration (blank or bad EEPROM), with a rig config whose
+    load-cell calibration differs from the controller's scale: both are warned about, by name."""
+    cfg_file = tmp_path / "rig.json"
+    cfg_file.write_text(json.dumps({"loadcell": {"counts_per_g": 380.0}}))
+    with open_rig("inprocess", seed=5, host_config_path=cfg_file) as rig:
+        text = " ".join(rig.warnings)
+        assert "EEPROM calibration is missing or failed its checksum" in text
+        assert "load-cell scale is 420 counts/g but the rig config's calibration is 380 counts/g" in text

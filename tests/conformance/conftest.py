@@ -44,8 +44,17 @@ class Controller:
     clock_s : ``() -> s``, the controller's own clock, read without a request (the host's monotonic clock that the
         virtual Mega's watchdog and physics follow, or simavr's simulated time, which falls behind real time on a
         starved machine)
-    power_up_holding, power_up_inputs : the 14 holding and 13 input registers read right after power-up, before any
+    power_up_holding, power_up_inputs : the holding and input registers read right after power-up, before any
         test wrote anything
+    reset : ``cause -> None``, reset the MCU while the mechanics stay as they are (a reset under load): "external"
+        (reset pin), "brownout" or "poweron"
+    set_estop : ``opened -> None``, open (pressed, broken wire) or close the e-stop contact
+    set_polarity : ``sign -> None``, mount the load cell the right way (+1) or reversed (-1)
+    break_home_switch : ``broken -> None``, the home switch never closes (a broken wire) or works again
+    corrupt_eeprom : ``() -> None``, flip a bit of the stored calibration record (its checksum fails at the next boot)
+    hang : ``() -> None``, make the controller's main loop hang (the firmware's test image, the virtual Mega's hook)
+    drivers_enabled : ``() -> bool``, the stepper drivers' EN as the hardware sees it (the harness's pin, the virtual
+        Mega's output)
     """
 
     name: str
@@ -55,6 +64,13 @@ class Controller:
     load_g: Callable[[], float]
     drum_travel_mm: Callable[[], float]
     clock_s: Callable[[], float] = time.monotonic
+    reset: Callable[[str], None] = lambda cause: None
+    set_estop: Callable[[bool], None] = lambda opened: None
+    set_polarity: Callable[[int], None] = lambda sign: None
+    break_home_switch: Callable[[bool], None] = lambda broken: None
+    corrupt_eeprom: Callable[[], None] = lambda: None
+    hang: Callable[[], None] = lambda: None
+    drivers_enabled: Callable[[], bool] = lambda: True
     power_up_holding: list[int] = field(default_factory=list)
     power_up_inputs: list[int] = field(default_factory=list)
     rig: Any = None
@@ -97,16 +113,30 @@ def _read_power_up(ctl: Controller) -> None:
         drum.close()
 
 
-def _start_sim(config=None):
+_SIM_CAUSES = {"external": wire.ResetCause.EXTERNAL, "brownout": wire.ResetCause.BROWN_OUT,
+               "poweron": wire.ResetCause.POWER_ON}
+
+
+def _start_sim(config=None, image: str = ""):
     from rigctl.simulation.rig import SimulatedRig
 
     rig = SimulatedRig(config, seed=3).start()
-    model = rig.model
+    model, mega = rig.model, rig.mega
+    mech = model.config.mechanics
+    counts_per_g = abs(mech.loadcell_counts_per_g)
+
+    def set_polarity(sign: int) -> None:
+        mech.loadcell_counts_per_g = counts_per_g * (-1 if sign < 0 else 1)
+
     return rig, Controller("sim", rig.drum_port, rig.place_mass, actuator_mm=lambda: model.actuator_mm,
-                           load_g=lambda: model.force_g, drum_travel_mm=lambda: model.position_mm, rig=rig)
+                           load_g=lambda: model.force_g, drum_travel_mm=lambda: model.position_mm,
+                           reset=lambda cause: mega.reset(_SIM_CAUSES[cause]), set_estop=mega.set_estop,
+                           set_polarity=set_polarity, break_home_switch=mega.break_home_switch,
+                           corrupt_eeprom=mega.corrupt_eeprom, hang=mega.hang_loop,
+                           drivers_enabled=lambda: mega.drivers_enabled, rig=rig)
 
 
-def _start_hil(config=None):
+def _start_hil(config=None, image: str = "mega_drum"):
     from rigctl import firmware
     from rigctl.simulation import hil
 
@@ -116,17 +146,23 @@ def _start_hil(config=None):
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(str(exc))
         pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")
-    rig = hil.HilRig(config, live=False, with_uno=False).start()
+    rig = hil.HilRig(config, live=False, with_uno=False, mega_image=image).start()
     return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm=lambda: rig.next_telemetry().act_mm,
                            load_g=lambda: rig.next_telemetry().force_g,
                            drum_travel_mm=lambda: rig.next_telemetry().drum_steps * rig.mm_per_step,
-                           clock_s=lambda: rig.next_telemetry().t_s, rig=rig)
+                           clock_s=lambda: rig.next_telemetry().t_s, reset=rig.reset_mega, set_estop=rig.set_estop,
+                           set_polarity=rig.set_loadcell_polarity, break_home_switch=rig.break_home_switch,
+                           corrupt_eeprom=rig.corrupt_eeprom, hang=rig.hang_loop,
+                           drivers_enabled=lambda: rig.next_telemetry().drivers_enabled, rig=rig)
 
 
 @pytest.fixture(scope="module", params=["sim", pytest.param("hil", marks=pytest.mark.hil)])
 def controller(request):
-    """A freshly powered-up drum controller of each backend, shared by one test module."""
-    rig, ctl = (_start_sim if request.param == "sim" else _start_hil)()
+    """A freshly powered-up drum controller of each backend, shared by one test module. A module sets
+    ``MEGA_IMAGE = "mega_drum_test"`` to run the firmware's test image (a hang input for the watchdog test) under
+    simavr instead of the shipped one."""
+    image = getattr(request.module, "MEGA_IMAGE", "mega_drum")
+    rig, ctl = (_start_sim if request.param == "sim" else _start_hil)(image=image)
     try:
         _read_power_up(ctl)
         yield ctl
@@ -134,10 +170,21 @@ def controller(request):
         rig.close()
 
 
+def home(drum: DrumClient) -> None:
+    """HOME a NOT_HOMED controller (after power-up or a reset), as a rig does when it opens; wait for IDLE."""
+    if drum.read_status().state == DrumState.NOT_HOMED:
+        drum.home()
+        drum.wait_state(DrumState.IDLE, timeout_s=30.0)
+
+
 def restore(drum: DrumClient, ctl: Controller) -> None:
-    """Bring the controller back to a clean IDLE: no external force, stopped, fault cleared, the spec's default in
-    every holding register (calibration too, not saved), actuator home, drum at rest. Raises if it cannot."""
+    """Bring the controller back to a clean, homed IDLE: no external force and no injected fault, stopped, fault
+    cleared, the spec's default in every holding register (calibration too, not saved), actuator home, drum at rest.
+    Raises if it cannot."""
     ctl.place_mass(0)
+    ctl.set_estop(False)
+    ctl.set_polarity(1)
+    ctl.break_home_switch(False)
     drum.stop()
     clock = drum.clock  # the controller's (the drum fixture's client)
     deadline = clock.now() + 5.0
@@ -150,6 +197,7 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
             time.sleep(0.05)
     defaults = [wire.holding_range(a)[2] for a in range(wire.N_HOLDING)]  # reserved addresses: 0
     drum.write_holdings(0, defaults)
+    home(drum)
     drum.wait_released(timeout_s=15.0)
     deadline = clock.now() + 10.0
     while abs(drum.read_status().speed_mm_s) > 0:  # the drum decelerates to rest
@@ -164,10 +212,11 @@ QUIET_WATCHDOG_MS = wire.HOLDING_RANGE[HR.WATCHDOG_MS][1]
 
 @pytest.fixture
 def drum(controller) -> DrumClient:
-    """The host's DrumClient on ``controller`` (WATCHDOG_MS at :data:`QUIET_WATCHDOG_MS`), which is left IDLE with
-    default registers afterwards."""
+    """The host's DrumClient on ``controller``, homed (WATCHDOG_MS at :data:`QUIET_WATCHDOG_MS`), which is left homed
+    and IDLE with default registers afterwards."""
     client = _open_client(controller, ControllerClock(controller.clock_s))
     try:
+        home(client)
         client.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)
         yield client
         restore(client, controller)

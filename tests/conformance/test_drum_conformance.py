@@ -142,12 +142,14 @@ def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
 
 # ------------------------------------------------------------------------------------------------ identity
 def test_identity_and_power_up_defaults(controller, drum):
-    """Power-up: every holding register at the spec's default, firmware 1.0, IDLE, no faults, nothing engaged."""
+    """Power-up: every holding register at the spec's default, firmware 1.1, NOT_HOMED (spec 2.4: after any reset),
+    no faults, nothing engaged, the drivers disabled, the reset cause power-on."""
     assert controller.power_up_holding == [DEFAULT[r] for r in ADDRESSES]
     st = DrumStatus.from_registers(controller.power_up_inputs)
-    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 0)
-    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 256
-    assert (st.state, st.faults) == (S.IDLE, Fault(0))
+    assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 1)
+    assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 257
+    assert (st.state, st.faults) == (S.NOT_HOMED, Fault(0))
+    assert st.reset_cause == wire.ResetCause.POWER_ON and not st.homed and not st.drivers_enabled
     assert st.speed_mm_s == st.speed_target_mm_s == st.force_setpoint_active_g == 0
     assert abs(st.force_g) <= DEFAULT[HR.FORCE_TOLERANCE_G]  # tared at power-up with the actuator home
     assert 0 <= controller.power_up_inputs[IR.DRUM_ANGLE_0P01DEG] < 36000
@@ -169,7 +171,9 @@ def test_every_holding_register_written_and_read_back(drum):
         assert value != DEFAULT[reg]
         drum.write_holding(reg, value)
         assert drum.read_holding(reg) == value, reg.name
-    expected = [new.get(r, 0 if r == HR.COMMAND else DEFAULT[r]) for r in ADDRESSES]  # COMMAND reads back 0
+    # register 12 is the 16-bit view of the 32-bit scale in 14-15 (spec 2.1); COMMAND reads back 0
+    expected = [new.get(r, 0 if r == HR.COMMAND else DEFAULT[r]) for r in ADDRESSES]
+    expected[HR.LOADCELL_SCALE_X100_LO] = 41000
     assert holding(drum) == expected
     drum.write_holding(HR.COMMAND, int(Command.NONE))  # accepted, changes nothing
     assert holding(drum) == expected
@@ -222,7 +226,7 @@ def test_illegal_addresses(drum):
         drum.write_holding(min(wire.RESERVED_HOLDING), 1)
     assert drum.read_holding(min(wire.RESERVED_HOLDING)) == 0
     assert holding(drum) == before
-    assert drum.read_input(IR.FIRMWARE_VERSION) == 256  # still answering
+    assert drum.read_input(IR.FIRMWARE_VERSION) == 257  # still answering
 
 
 def test_setpoint_limits(drum):

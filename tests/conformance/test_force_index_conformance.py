@@ -15,7 +15,7 @@ from rigctl.devices.errors import ModbusExceptionError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
 from rigctl.simulation.model import DrumConfig, MechanicsConfig, RigConfig
 
-from .conftest import QUIET_WATCHDOG_MS, ControllerClock, _open_client, _start_hil, _start_sim
+from .conftest import QUIET_WATCHDOG_MS, ControllerClock, _open_client, _start_hil, _start_sim, home
 
 TOL_G = 15  # FORCE_TOLERANCE_G default
 
@@ -35,6 +35,7 @@ def make_rig(request):
         while drum.read_status().hx711_rate_sps == 0:  # timed over the first DOUT-ready periods after boot
             assert ctl.clock_s() < deadline, "the HX711 rate was not measured"
             time.sleep(0.05)
+        home(drum)  # powered up NOT_HOMED: a rig homes when it opens (a controller in FAULT stays so)
         return ctl, drum
 
     yield make
@@ -81,6 +82,7 @@ def test_a_10sps_hx711_is_refused_with_a_fault_then_runs_with_its_own_gains(make
     drum.set_hx711_rate(10)  # accept the 10 SPS board: its own, slower gains
     assert drum.force_loop() == default_force_loop(10)
     drum.clear_fault()
+    home(drum)  # it never was homed: the rate fault came first
     drum.press()
     drum.wait_state(DrumState.FORCE_SETTLED, timeout_s=40)
     forces = _forces(ctl, drum, 1.0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from rigctl.devices.drum import DrumClient
+from rigctl.devices.wire import DrumState
 from rigctl.simulation.counting import CountingSource
 from rigctl.simulation.model import RigModel
 from rigctl.simulation.virtual_mega import VirtualMega
@@ -19,10 +20,18 @@ def mega(tmp_path):
     board.close()
 
 
+def home(client: DrumClient) -> None:
+    """HOME a controller that has just powered up (NOT_HOMED: it refuses RUN and PRESS until then), as a rig does
+    when it opens (rigctl.acquisition.rig.Rig.connect)."""
+    client.home()
+    client.wait_state(DrumState.IDLE, timeout_s=5)
+
+
 @pytest.fixture
 def drum(mega):
-    """A DrumClient connected to the ``mega`` fixture."""
+    """A DrumClient connected to the ``mega`` fixture, the controller homed."""
     with DrumClient(mega.path, timeout_s=0.5, retries=2, poll_s=0.02) as client:
+        home(client)
         yield client
 
 

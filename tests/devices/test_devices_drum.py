@@ -13,16 +13,24 @@ import pytest
 
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient, DrumStatus
-from rigctl.devices.errors import DrumFault, DrumTimeout, ModbusExceptionError, SetpointRangeError
+from rigctl.devices.errors import DrumFault, DrumNotHomed, DrumTimeout, ModbusExceptionError, SetpointRangeError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR, InputRegister as IR
+from rigctl.simulation.model import RigModel
+from rigctl.simulation.virtual_mega import VirtualMega
+
+from .conftest import home
 
 
 @pytest.mark.realtime
 def test_every_input_register_read(drum, mega):
     regs = drum.read_inputs(0, wire.N_INPUT)
     assert [drum.read_input(reg) for reg in wire.RESERVED_INPUT] == [0] * len(wire.RESERVED_INPUT)
-    assert regs[IR.FIRMWARE_VERSION] == 256
-    assert regs[IR.STATE] == DrumState.IDLE
+    assert regs[IR.FIRMWARE_VERSION] == 257
+    assert regs[IR.STATE] == DrumState.IDLE  # homed by the fixture
+    assert regs[IR.RESET_CAUSE] == wire.ResetCause.POWER_ON and regs[IR.BOOT_COUNT] == 0  # first boot of its EEPROM
+    # homed and tared; a fresh EEPROM holds no calibration: the defaults are in use, and say so
+    assert regs[IR.STATUS_FLAGS] == wire.StatusFlag.HOMED | wire.StatusFlag.TARED | wire.StatusFlag.HOME_SWITCH | \
+        wire.StatusFlag.CALIBRATION_DEFAULTS
     assert regs[IR.FAULT_BITS] == 0
     assert regs[IR.FORCE_SETPOINT_ACTIVE_G] == 0
     assert 0 <= regs[IR.DRUM_ANGLE_0P01DEG] < 36000
@@ -47,10 +55,15 @@ def test_status_decodes_signed_registers():
     regs[IR.LOADCELL_RAW_HI], regs[IR.LOADCELL_RAW_LO] = 0xFFFF, 0xFFFE  # -2
     regs[IR.FIRMWARE_VERSION] = 0x0102
     regs[IR.FAULT_BITS] = 0b0011
+    regs[IR.RESET_CAUSE] = 0b1000
+    regs[IR.BOOT_COUNT] = 65535
+    regs[IR.STATUS_FLAGS] = 0b001011
     s = DrumStatus.from_registers(regs)
     assert (s.force_g, s.speed_mm_s, s.actuator_mm, s.loadcell_raw) == (-10, -100.0, -1.0, -2)
     assert s.firmware == (1, 2)
     assert s.faults == Fault.FORCE_LIMIT | Fault.WATCHDOG
+    assert (s.reset_cause, s.boot_count) == (wire.ResetCause.WATCHDOG, 65535)
+    assert s.calibration_defaults and s.homed and s.estop_open and not s.drivers_enabled
 
 
 @pytest.mark.realtime
@@ -66,7 +79,8 @@ def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
         (lambda: drum.set_ramp(40, 80, 61.0), "ramp duration", "s", 60),
         (lambda: drum.set_limits(speed_mm_s=250), "speed limit", "mm/s", 200),
         (lambda: drum.set_limits(force_g=2500), "force limit", "g", 2000),
-        (lambda: drum.set_loadcell_scale(0.001), "load-cell scale", "counts/g", 655.35),
+        (lambda: drum.set_loadcell_scale(0.001), "load-cell scale (absolute value)", "counts/g", 100000),
+        (lambda: drum.set_loadcell_scale(-100001), "load-cell scale (absolute value)", "counts/g", 100000),
         (lambda: drum.set_profile(5), "speed profile", "(code)", 1),
         (lambda: drum.write_holding(HR.WATCHDOG_MS, 50), "WATCHDOG_MS", "(register units)", 10000),
     ]
@@ -155,6 +169,7 @@ def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
     Here one of those threads really stalls while the host polls over the real ptys and pymodbus."""
     stall_s = 1.6  # > WATCHDOG_MS (1000 ms)
     with DrumClient(mega.path, timeout_s=stall_s + 2.0, retries=0, poll_s=0.02) as drum:  # one request at a time
+        home(drum)
         drum.set_force(250)
         drum.set_speed(60)
         drum.run()
@@ -187,17 +202,69 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     assert drum.wait_state(DrumState.IDLE, timeout_s=2).actuator_mm == 0
     drum.tare()
     assert abs(drum.read_status().force_g) <= 5
+    assert drum.read_status().calibration_defaults  # nothing saved yet
     drum.set_loadcell_scale(400.0)  # a different calibration scales the measured force
+    assert drum.loadcell_scale() == 400.0 and drum.read_holding(HR.LOADCELL_SCALE_X100) == 40000
     drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, 500)
     drum.save_calibration()
+    assert not drum.read_status().calibration_defaults
     data = json.loads((tmp_path / "eeprom.json").read_text())
-    assert data == {"LOADCELL_SCALE_X100": 40000, "ACTUATOR_STEPS_PER_MM": 500}
+    assert data["calibration"]["scale_x100"] == 40000 and data["calibration"]["actuator_steps_per_mm"] == 500
     drum.set_force(420)
     drum.press()
     drum.wait_force_settled(6)
     # the controller believes 420 g at 400 counts/g: the true (model) force is 420 * 400 / 420 = 400 g
     assert abs(mega.model.contact_force_g - 400) <= 20
     drum.stop()
+
+
+def test_press_refused_before_home_names_why(tmp_path):
+    """After power-up the controller is NOT_HOMED: PRESS and RUN come back as DrumNotHomed, which says why."""
+    board = VirtualMega(RigModel(seed=7), tmp_path / "drum").start()
+    try:
+        with DrumClient(board.path, timeout_s=0.5, retries=2, poll_s=0.02) as drum:
+            assert drum.read_status().state == DrumState.NOT_HOMED
+            for send in (drum.press, drum.run):
+                with pytest.raises(DrumNotHomed) as info:
+                    send()
+                assert info.value.exception_code == 3 and "NOT_HOMED" in str(info.value) and "HOME" in str(info.value)
+            home(drum)
+            drum.set_force(200)
+            drum.press()
+            drum.stop()
+    finally:
+        board.close()
+
+
+def test_bad_eeprom_checksum_is_reported_and_defaults_used(tmp_path):
+    """A calibration record whose checksum fails: the controller boots on the spec's defaults and raises
+    CALIBRATION_DEFAULTS (the firmware did so silently before)."""
+    path = tmp_path / "eeprom.json"
+    board = VirtualMega(RigModel(seed=7), tmp_path / "drum", eeprom_path=path).start()
+    try:
+        with DrumClient(board.path, timeout_s=0.5, retries=2, poll_s=0.02) as drum:
+            home(drum)
+            drum.set_loadcell_scale(-2150.0)  # a reversed 1 kg, 1 mV/V cell: beyond firmware 1.0's 655 counts/g
+            drum.save_calibration()
+            assert not drum.read_status().calibration_defaults
+    finally:
+        board.close()
+    board = VirtualMega(RigModel(seed=7), tmp_path / "drum2", eeprom_path=path).start()
+    try:
+        with DrumClient(board.path, timeout_s=0.5, retries=2, poll_s=0.02) as drum:
+            st = drum.read_status()
+            assert drum.loadcell_scale() == -2150.0 and not st.calibration_defaults and st.boot_count == 1
+            board.corrupt_eeprom()
+    finally:
+        board.close()
+    board = VirtualMega(RigModel(seed=7), tmp_path / "drum3", eeprom_path=path).start()
+    try:
+        with DrumClient(board.path, timeout_s=0.5, retries=2, poll_s=0.02) as drum:
+            st = drum.read_status()
+            assert st.calibration_defaults and st.boot_count == 2
+            assert drum.loadcell_scale() == wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100][2] / 100
+    finally:
+        board.close()
 
 
 @pytest.mark.realtime

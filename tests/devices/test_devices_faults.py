@@ -21,6 +21,8 @@ from rigctl.devices.wire import Command, DrumState, HoldingRegister as HR
 from rigctl.simulation.counting import counting_samples
 from rigctl.simulation.fault_proxy import TO_BOARD, TO_HOST, FaultProxy, FaultRates
 
+from .conftest import home
+
 
 def _wait(cond, timeout_s=10.0, what="condition"):
     deadline = time.monotonic() + timeout_s
@@ -193,6 +195,7 @@ def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_pro
 def drum_via_proxy(drum_proxy):
     with DrumClient(drum_proxy.path, timeout_s=0.5, retries=2, poll_s=0.02) as client:
         assert client.read_holding(HR.FORCE_TOLERANCE_G) == 15
+        home(client)
         yield client
 
 
@@ -230,7 +233,7 @@ def test_read_status_gets_its_own_answer(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
     _late_answer_then_a_lost_request(drum, drum_proxy)
     status = drum.read_status()  # not a bare IndexError on the one-register echo
-    assert status.state == DrumState.IDLE and status.firmware == (1, 0)
+    assert status.state == DrumState.IDLE and status.firmware == (1, 1)
     assert drum.stale_responses >= 1
 
 

@@ -52,13 +52,14 @@ def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     res = mbpoll("-t", "4", "-r", "1", "-c", str(wire.N_HOLDING), "-1", port)
     assert res.returncode == 0, res.stderr
     regs = parse_registers(res.stdout)
-    assert regs == {reg + 1: (0 if reg == HR.COMMAND else wire.HOLDING_RANGE[reg][2]) for reg in HR}
+    # every address of the span: the spec's defaults, reserved addresses 0 (spec 2)
+    assert regs == {a + 1: (0 if a == HR.COMMAND else wire.holding_range(a)[2]) for a in range(wire.N_HOLDING)}
     res = mbpoll("-t", "3", "-r", "1", "-c", str(wire.N_INPUT), "-1", port)
     assert res.returncode == 0, res.stderr
     inputs = parse_registers(res.stdout)
     assert len(inputs) == wire.N_INPUT
-    assert inputs[IR.FIRMWARE_VERSION + 1] == 256
-    assert inputs[IR.STATE + 1] == 0
+    assert inputs[IR.FIRMWARE_VERSION + 1] == 257
+    assert inputs[IR.STATE + 1] == wire.DrumState.NOT_HOMED  # powered up, nobody homed it
 
 
 def test_mbpoll_writes_what_drumclient_reads_and_vice_versa(sim_process):
@@ -79,9 +80,9 @@ def test_mbpoll_sees_the_spec_exceptions(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "2001")
     assert res.returncode != 0 and "Illegal data value" in res.stderr
-    res = mbpoll("-t", "4", "-r", "15", "-1", port)  # address 14: no such register
+    res = mbpoll("-t", "4", "-r", str(wire.N_HOLDING + 1), "-1", port)  # no such register
     assert res.returncode != 0 and "Illegal data address" in res.stderr
-    res = mbpoll("-t", "3", "-r", "13", "-c", "2", "-1", port)  # runs off the input table
+    res = mbpoll("-t", "3", "-r", str(wire.N_INPUT), "-c", "2", "-1", port)  # runs off the input table
     assert res.returncode != 0 and "Illegal data address" in res.stderr
 
 

@@ -13,6 +13,8 @@ from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.devices.wire import DrumState
 from rigctl.simulation.rig import SimulatedRig
 
+from .conftest import home
+
 pytestmark = pytest.mark.realtime
 
 
@@ -32,6 +34,7 @@ def test_simulated_rig_drum_and_stream(tmp_path):
         rig.set_texture("G")
         assert rig.drum_port == str(tmp_path / "drum") and rig.taxel_port == str(tmp_path / "taxel")
         with DrumClient(rig.drum_port) as drum, TaxelStream(rig.taxel_port) as stream:
+            home(drum)
             stream.start()
             rest = _capture(stream, 300)
             drum.set_force(500)

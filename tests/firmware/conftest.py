@@ -9,6 +9,7 @@ import time
 import pytest
 
 from rigctl import firmware
+from rigctl.devices import wire
 from rigctl.simulation import hil
 
 
@@ -56,3 +57,11 @@ def _wait_frames(stream, n: int, *, stall_s: float = 10.0) -> bool:
 def wait_frames():
     """:func:`_wait_frames`: wait for a capture's frames while simavr keeps delivering them."""
     return _wait_frames
+
+
+def home(drum) -> None:
+    """HOME the Mega if it is NOT_HOMED (after power-up or a reset it refuses RUN and PRESS until then), as a rig does
+    when it opens (:meth:`rigctl.acquisition.rig.Rig.connect`)."""
+    if drum.read_status().state == wire.DrumState.NOT_HOMED:
+        drum.home()
+        drum.wait_state([wire.DrumState.IDLE], timeout_s=30)

@@ -9,6 +9,8 @@ import pytest
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import TaxelStream
 
+from .conftest import home
+
 pytestmark = pytest.mark.hil
 
 
@@ -19,6 +21,7 @@ def test_live_taxel_signal_follows_the_drum_without_seams(hil_rig):
     # the drum's waits on the Mega's simulated clock (simavr runs slower than real time on a starved machine)
     with DrumClient(rig.drum_port, clock=rig.clock) as drum, TaxelStream(rig.taxel_port) as stream:
         rig.set_texture("B")  # circular ridges
+        home(drum)
         drum.set_force(500)
         drum.set_speed(40)
         drum.run()

@@ -20,6 +20,8 @@ from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.rigs import drum_answer_timeout_s
 
+from .conftest import home
+
 pytestmark = pytest.mark.hil
 
 HR, IR = wire.HoldingRegister, wire.InputRegister
@@ -40,6 +42,7 @@ def expected_step_rate(v_mm_s: float) -> float:
 @pytest.fixture
 def drum(hil_rig):
     with hil_drum(hil_rig) as d:
+        home(d)
         yield d
         # leave the rig idle and fault-free for the next test
         hil_rig.bump(0)
@@ -94,7 +97,7 @@ def test_mbpoll_reads_and_writes_the_registers(hil_rig):
         assert regs[int(reg)] == wire.HOLDING_RANGE[reg][2], reg.name
     out = mbpoll(hil_rig.drum_port, "-t", "3", "-r", "0", "-c", str(wire.N_INPUT), "-1")
     assert out.returncode == 0, out.stdout + out.stderr
-    assert registers(out.stdout)[int(IR.FIRMWARE_VERSION)] == 256
+    assert registers(out.stdout)[int(IR.FIRMWARE_VERSION)] == 257
     out = mbpoll(hil_rig.drum_port, "-t", "4", "-r", str(int(HR.SETTLE_TIME_MS)), values=[450])
     assert out.returncode == 0, out.stdout + out.stderr
     out = mbpoll(hil_rig.drum_port, "-t", "4", "-r", str(int(HR.SPEED_SETPOINT_0P1MMS)), values=[2001])  # out of range
@@ -136,7 +139,7 @@ def test_malformed_requests_get_exceptions_never_a_hang(hil_rig):
             resp = _transact(ser, _frame(1, 4, 0, int(IR.FIRMWARE_VERSION), 0, 1), expect=7)
             if resp:
                 break
-        assert resp == _frame(1, 4, 2, 1, 0)
+        assert resp == _frame(1, 4, 2, *wire.MEGA_FIRMWARE_VERSION)
         assert _transact(ser, _frame(1, 3, 0, 0, 0, 2), expect=9) == before
 
 
@@ -175,7 +178,9 @@ def test_calibration_survives_a_reset_only_when_saved(hil_rig):
             time.sleep(0.05)
         time.sleep(0.3)  # longer than the load-cell timeout: a reset mid HX711 read must come up clean
         st = d.read_status()
-        assert (st.state, st.faults) == (State.IDLE, Fault(0))
+        assert (st.state, st.faults, st.reset_cause) == (State.NOT_HOMED, Fault(0), wire.ResetCause.EXTERNAL)
+        assert not st.calibration_defaults
+        home(d)
         assert d.read_holding(HR.LOADCELL_SCALE_X100) == 41234
         assert d.read_holding(HR.ACTUATOR_STEPS_PER_MM) == 401
         assert d.read_holding(HR.SETTLE_TIME_MS) == wire.HOLDING_RANGE[HR.SETTLE_TIME_MS][2]

@@ -177,6 +177,8 @@ static void test_modbus()
 // ---- controller in closed loop with a spring plant (the simavr harness's model, in C++) ----
 struct Plant {
     double x_mm = 0, k = 250, gap = 3, counts_per_g = 420, offset = 83000, extra_g = 0;
+    bool switch_broken = false; // the home switch never closes (a broken wire)
+    double rear_mm = -1.0;      // the actuator's rear stop
     double force() const { return (x_mm > gap ? k * (x_mm - gap) : 0.0) + extra_g; }
     int32_t raw() const { return (int32_t)std::lround(offset + force() * counts_per_g); }
 };
@@ -187,7 +189,7 @@ static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, 
         now++;
         if (feed && now % 100 == 0) ctl_feed_watchdog(&c);
         c.act_pos_steps = (int32_t)std::lround(p.x_mm * c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM]);
-        c.home_switch = p.x_mm <= 0.0;
+        c.home_switch = p.x_mm <= 0.0 && !p.switch_broken;
         ctl_tick(&c, now);
         if (c.zero_position) {
             p.x_mm = 0;
@@ -198,7 +200,7 @@ static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, 
             ctl_loadcell(&c, p.raw());
         }
         p.x_mm += c.act_vel_mm_s * 0.001;
-        if (p.x_mm < -1.0) p.x_mm = -1.0;
+        if (p.x_mm < p.rear_mm) p.x_mm = p.rear_mm;
     }
 }
 
@@ -217,11 +219,17 @@ static void test_controller()
     ctl_init(&c, 0, 0);
     run_ms(c, p, now, 50); // 4 DOUT-ready edges: the rate is not timed yet (spec 2.9)
     CHECK(ctl_read_input(&c, RIGCTL_IREG_HX711_RATE_0P01SPS) == 0);
-    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS) && c.state == RIGCTL_STATE_IDLE);
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS) && c.state == RIGCTL_STATE_NOT_HOMED);
     run_ms(c, p, now, 50);
     CHECK(ctl_read_input(&c, RIGCTL_IREG_HX711_RATE_0P01SPS) == 8333); // 12 ms periods
-    CHECK(c.state == RIGCTL_STATE_IDLE && c.faults == 0);
-    CHECK(std::abs(c.force_gf) < 0.01); // tared at power-up
+    CHECK(c.state == RIGCTL_STATE_NOT_HOMED && c.faults == 0);
+    CHECK(std::abs(c.force_gf) < 0.01 && c.tared); // tared at power-up: the home switch is closed
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS)); // not before HOME
+    CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_RUN));
+    CHECK(!c.drivers_on);
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+    run_ms(c, p, now, 30);
+    CHECK(c.state == RIGCTL_STATE_IDLE && c.homed && !c.drivers_on);
     // commands refused in the wrong state
     CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP_DRUM));
     CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 500));
@@ -303,6 +311,144 @@ static void test_controller()
     std::printf("controller: ok\n");
 }
 
+static void home(ctl_t &c, Plant &p, uint32_t &now)
+{
+    CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+    for (int i = 0; i < 200 && c.state == RIGCTL_STATE_HOMING; i++) run_ms(c, p, now, 50);
+    CHECK(c.state == RIGCTL_STATE_IDLE && c.homed && c.tared);
+}
+
+static void press_settled(ctl_t &c, Plant &p, uint32_t &now, uint16_t g)
+{
+    CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, g) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+    for (int i = 0; i < 500 && c.state != RIGCTL_STATE_FORCE_SETTLED; i++) run_ms(c, p, now, 10);
+    CHECK(c.state == RIGCTL_STATE_FORCE_SETTLED);
+}
+
+// docs/wire-protocol.md 2.4-2.8: what a reset, a reversed cell, a broken home switch and the e-stop do
+static void test_safety()
+{
+    uint32_t now = 0;
+    {   // a reset under load: no tare under load, NOT_HOMED, PRESS refused until HOME, which tares at the switch
+        ctl_t c;
+        Plant p;
+        ctl_init(&c, 0, 0);
+        now = 0; // tick_ms restarts with the MCU
+        run_ms(c, p, now, 30);
+        home(c, p, now);
+        press_settled(c, p, now, 1000);
+        CHECK(std::abs(p.force() - 1000) <= 15);
+        ctl_init(&c, 0, 0);
+        now = 0; // tick_ms restarts with the MCU // the MCU resets; the actuator stays where it is
+        run_ms(c, p, now, 50);
+        CHECK(c.state == RIGCTL_STATE_NOT_HOMED && !c.tared && !c.drivers_on && c.act_vel_mm_s == 0.0f);
+        CHECK(!(ctl_read_input(&c, RIGCTL_IREG_STATUS_FLAGS) & (RIGCTL_STATUS_HOMED | RIGCTL_STATUS_TARED)));
+        CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_TARE)); // not at home
+        home(c, p, now);
+        CHECK(p.x_mm <= 0.0 && std::abs(c.force_gf) < 1.0);
+        press_settled(c, p, now, 1000);
+        CHECK(std::abs(p.force() - 1000) <= 15); // not 2000 g
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
+        run_ms(c, p, now, 2000);
+        CHECK(c.state == RIGCTL_STATE_IDLE && p.x_mm <= 0.01 && !c.drivers_on);
+    }
+    {   // a reversed load cell: pressing reads negative -> LOADCELL_REVERSED, backs off
+        ctl_t c;
+        Plant p;
+        p.counts_per_g = -420;
+        ctl_init(&c, 0, 0);
+        now = 0; // tick_ms restarts with the MCU
+        run_ms(c, p, now, 30);
+        home(c, p, now);
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 500) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        for (int i = 0; i < 300 && c.state != RIGCTL_STATE_FAULT; i++) run_ms(c, p, now, 10);
+        CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_LOADCELL_REVERSED);
+        CHECK(p.force() < 3 * 15 + 1 && c.act_vel_mm_s < 0); // stopped within a reading or two
+        run_ms(c, p, now, 3000);
+        CHECK(p.x_mm <= 0.01);
+        // calibrated negative on purpose: the same cell presses normally
+        uint16_t pair[2] = {0xFFFF, (uint16_t)(-42000 & 0xFFFF)};
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_IDLE);
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, pair) == 0);
+        CHECK(ctl_scale_x100(&c) == -42000 && ctl_read_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100) == 0);
+        press_settled(c, p, now, 500);
+        CHECK(std::abs(p.force() - 500) <= 15);
+    }
+    {   // the signed 32-bit scale: HI and LO together, in range; register 12 is its view and must agree
+        ctl_t c;
+        ctl_init(&c, 0, 0);
+        now = 0; // tick_ms restarts with the MCU
+        uint16_t big[2] = {0x0006, 0x8FB0}; // 430000: a 2 mV/V 1 kg cell, 4300 counts/g
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, big) == 0 && ctl_scale_x100(&c) == 430000);
+        CHECK(ctl_read_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100) == 0);
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 1, big) == RIGCTL_MB_EX_ILLEGAL_VALUE);
+        uint16_t tiny[2] = {0, 99}, huge[2] = {0x0098, 0x9681}; // 99 and 10000001
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, tiny) == RIGCTL_MB_EX_ILLEGAL_VALUE);
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI, 2, huge) == RIGCTL_MB_EX_ILLEGAL_VALUE);
+        CHECK(ctl_scale_x100(&c) == 430000);
+        uint16_t v12 = 41000;
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100, 1, &v12) == 0 && ctl_scale_x100(&c) == 41000);
+        CHECK(ctl_read_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_HI) == 0 &&
+              ctl_read_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100_LO) == 41000);
+        uint16_t all[4] = {42000, 400, 0, 42001}; // 12..15: register 12 disagrees with the pair
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100, 4, all) == RIGCTL_MB_EX_ILLEGAL_VALUE);
+        all[3] = 42000;
+        CHECK(ctl_write_holding(&c, RIGCTL_HREG_LOADCELL_SCALE_X100, 4, all) == 0 && ctl_scale_x100(&c) == 42000);
+        ctl_init(&c, -250000, 0); // from EEPROM
+        CHECK(ctl_scale_x100(&c) == -250000);
+    }
+    {   // a broken home switch: HOME gives up after its travel limit, not at the rear stop
+        ctl_t c;
+        Plant p;
+        ctl_init(&c, 0, 0);
+        now = 0; // tick_ms restarts with the MCU
+        run_ms(c, p, now, 30);
+        p.switch_broken = true;
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+        p.rear_mm = -100.0; // the step count goes on (the firmware counts steps, not motion)
+        int ms = 0;
+        for (; ms < 20000 && c.state == RIGCTL_STATE_HOMING; ms += 10) run_ms(c, p, now, 10);
+        std::printf("safety: HOME_NOT_FOUND after %d ms\n", ms);
+        CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_HOME_NOT_FOUND);
+        CHECK(ms <= (int)(1000.0 * RIGCTL_HOME_MAX_TRAVEL_MM / ACT_HOME_SPEED_MM_S) + 50 && c.act_vel_mm_s == 0.0f);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_NOT_HOMED);
+        // a stalled actuator (no steps at all): the timeout
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+        uint32_t t0 = now;
+        while (c.state == RIGCTL_STATE_HOMING && now - t0 < 20000) {
+            now++;
+            ctl_feed_watchdog(&c);
+            ctl_tick(&c, now);
+            if (now % 12 == 0) ctl_loadcell(&c, p.raw());
+        }
+        CHECK(c.faults == RIGCTL_FAULT_HOME_NOT_FOUND && now - t0 >= RIGCTL_HOME_TIMEOUT_MS &&
+              now - t0 <= RIGCTL_HOME_TIMEOUT_MS + 2);
+    }
+    {   // e-stop: FAULT, not homed, CLEAR_FAULT refused while open, then NOT_HOMED
+        ctl_t c;
+        Plant p;
+        ctl_init(&c, 0, 0);
+        now = 0; // tick_ms restarts with the MCU
+        run_ms(c, p, now, 30);
+        home(c, p, now);
+        press_settled(c, p, now, 250);
+        CHECK(c.drivers_on);
+        c.estop_open = 1;
+        ctl_estop(&c);
+        run_ms(c, p, now, 5);
+        CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_ESTOP && !c.homed && !c.drivers_on);
+        CHECK(c.act_vel_mm_s == 0.0f && c.drum_cmd_mm_s == 0.0f);
+        CHECK(ctl_read_input(&c, RIGCTL_IREG_STATUS_FLAGS) & RIGCTL_STATUS_ESTOP_OPEN);
+        CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+        c.estop_open = 0;
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT));
+        CHECK(c.state == RIGCTL_STATE_NOT_HOMED && c.estop_release == 1);
+        CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+    }
+    std::printf("safety: ok\n");
+}
+
 static void test_pi()
 {
     force_pi_t pi;
@@ -349,6 +495,7 @@ int main()
     test_pi();
     test_steprate();
     test_controller();
+    test_safety();
     std::printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;
 }

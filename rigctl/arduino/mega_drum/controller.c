@@ -9,7 +9,8 @@
     X(SPEED_SETPOINT_0P1MMS) X(FORCE_SETPOINT_G) X(COMMAND) X(SPEED_PROFILE) X(RAMP_START_SPEED_0P1MMS)          \
     X(RAMP_END_SPEED_0P1MMS) X(RAMP_DURATION_MS) X(SPEED_LIMIT_0P1MMS) X(FORCE_LIMIT_G) X(FORCE_TOLERANCE_G)      \
     X(SETTLE_TIME_MS) X(WATCHDOG_MS) X(LOADCELL_SCALE_X100) X(ACTUATOR_STEPS_PER_MM) X(HX711_RATE_SPS)           \
-    X(FORCE_KP_80SPS_NMS_G) X(FORCE_KI_80SPS_NMS_GS) X(FORCE_KP_10SPS_NMS_G) X(FORCE_KI_10SPS_NMS_GS)
+    X(FORCE_KP_80SPS_NMS_G) X(FORCE_KI_80SPS_NMS_GS) X(FORCE_KP_10SPS_NMS_G) X(FORCE_KI_10SPS_NMS_GS)          \
+    X(LOADCELL_SCALE_X100_HI) X(LOADCELL_SCALE_X100_LO)
 #define HREG_MIN(name) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_MIN,
 #define HREG_MAX(name) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_MAX,
 #define HREG_DEF(name) [RIGCTL_HREG_##name] = RIGCTL_HREG_##name##_DEF,
@@ -17,16 +18,45 @@ static const uint16_t hreg_min[RIGCTL_N_HOLDING] = {HREG_LIST(HREG_MIN)};
 static const uint16_t hreg_max[RIGCTL_N_HOLDING] = {HREG_LIST(HREG_MAX)};
 static const uint16_t hreg_def[RIGCTL_N_HOLDING] = {HREG_LIST(HREG_DEF)};
 
-void ctl_init(ctl_t *c, uint16_t loadcell_scale_x100, uint16_t actuator_steps_per_mm)
+#define HI RIGCTL_HREG_LOADCELL_SCALE_X100_HI
+#define LO RIGCTL_HREG_LOADCELL_SCALE_X100_LO
+
+static int32_t scale_of(const uint16_t *h)
+{
+    return (int32_t)(((uint32_t)h[HI] << 16) | h[LO]);
+}
+
+/* the 32-bit scale into HI/LO and its 16-bit view into LOADCELL_SCALE_X100 (0 when it does not fit) */
+static void set_scale(uint16_t *h, int32_t s)
+{
+    h[HI] = (uint16_t)((uint32_t)s >> 16);
+    h[LO] = (uint16_t)((uint32_t)s & 0xFFFF);
+    h[RIGCTL_HREG_LOADCELL_SCALE_X100] = (s >= 1 && s <= 65535) ? (uint16_t)s : 0;
+}
+
+static uint8_t scale_ok(int32_t s)
+{
+    int32_t a = s < 0 ? -s : s;
+    return s != INT32_MIN && a >= RIGCTL_LOADCELL_SCALE_X100_ABS_MIN && a <= RIGCTL_LOADCELL_SCALE_X100_ABS_MAX;
+}
+
+int32_t ctl_scale_x100(const ctl_t *c)
+{
+    return scale_of(c->hreg);
+}
+
+void ctl_init(ctl_t *c, int32_t loadcell_scale_x100, uint16_t actuator_steps_per_mm)
 {
     uint16_t i;
     uint8_t *p = (uint8_t *)c;
     for (i = 0; i < sizeof(*c); i++) p[i] = 0;
     for (i = 0; i < RIGCTL_N_HOLDING; i++) c->hreg[i] = hreg_def[i];
-    if (loadcell_scale_x100) c->hreg[RIGCTL_HREG_LOADCELL_SCALE_X100] = loadcell_scale_x100;
+    if (loadcell_scale_x100 && scale_ok(loadcell_scale_x100)) set_scale(c->hreg, loadcell_scale_x100);
     if (actuator_steps_per_mm) c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM] = actuator_steps_per_mm;
-    c->state = RIGCTL_STATE_IDLE;
-    c->tare_pending = 1; /* power-up tare with the actuator at home */
+    /* after any reset the actuator's position is unknown (a reset under load leaves it pressed): nothing moves
+     * until HOME, and the power-up tare is taken only if the home switch is closed at the first reading */
+    c->state = RIGCTL_STATE_NOT_HOMED;
+    c->tare_pending = 1;
     force_pi_init(&c->pi, 0.0f, 0.0f, ACT_MAX_SPEED_MM_S, FORCE_INTEGRATE_BAND_G); /* gains: force_loop_gains */
 }
 
@@ -43,7 +73,19 @@ static float act_pos_mm(const ctl_t *c)
 
 float ctl_force_from_raw(const ctl_t *c, int32_t raw)
 {
-    return (float)(raw - c->tare_offset) * 100.0f / (float)c->hreg[RIGCTL_HREG_LOADCELL_SCALE_X100];
+    return (float)(raw - c->tare_offset) * 100.0f / (float)scale_of(c->hreg);
+}
+
+/* the actuator stops where it is (position unknown) or, homed, backs off to home */
+static void release_actuator(ctl_t *c)
+{
+    if (c->homed) {
+        c->act_mode = ACT_MODE_RETRACT;
+        c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
+    } else {
+        c->act_mode = ACT_MODE_HOLD;
+        c->act_vel_mm_s = 0.0f;
+    }
 }
 
 static void fault(ctl_t *c, uint16_t bits)
@@ -51,9 +93,15 @@ static void fault(ctl_t *c, uint16_t bits)
     c->faults |= bits;
     c->state = RIGCTL_STATE_FAULT;
     c->drum_on = 0;
-    c->act_mode = ACT_MODE_RETRACT;
-    c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
+    release_actuator(c);
     force_pi_reset(&c->pi);
+}
+
+void ctl_estop(ctl_t *c)
+{
+    c->homed = 0; /* the drivers lost power: steps may be lost */
+    fault(c, RIGCTL_FAULT_ESTOP);
+    c->drum_cmd_mm_s = 0.0f; /* the step timers were stopped in the ISR: no deceleration ramp */
 }
 
 /* ---- HX711 rate (spec 2.9) ---- */
@@ -90,8 +138,9 @@ void ctl_hx711_ready(ctl_t *c, uint32_t t_us)
 static uint8_t fault_persists(const ctl_t *c)
 {
     if ((uint32_t)(c->now_ms - c->last_loadcell_ms) > RIGCTL_LOADCELL_TIMEOUT_MS) return 1;
-    if (c->force_gf > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) return 1;
+    if (c->tared && c->force_gf > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) return 1;
     if (c->hx_rate_0p01 && !hx711_rate_ok(c)) return 1;
+    if (c->estop_open) return 1;
     return 0;
 }
 
@@ -120,14 +169,17 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
     case RIGCTL_CMD_SAVE_CALIBRATION:
         return 1;
     case RIGCTL_CMD_RUN:
-    case RIGCTL_CMD_PRESS:
-        return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING && hx711_rate_ok(c);
+    case RIGCTL_CMD_PRESS: /* never after a reset, e-stop or failed HOME until HOME has succeeded */
+        return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING && s != RIGCTL_STATE_NOT_HOMED &&
+               hx711_rate_ok(c);
     case RIGCTL_CMD_STOP_DRUM:
         return force_engaged(c);
-    case RIGCTL_CMD_TARE:
-    case RIGCTL_CMD_HOME: /* only with the actuator released (no load on the cell) */
-        return s == RIGCTL_STATE_IDLE &&
-               c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G];
+    case RIGCTL_CMD_TARE: /* only at home (switch closed), with no load on the cell once a tare is known */
+        return (s == RIGCTL_STATE_IDLE || s == RIGCTL_STATE_NOT_HOMED) && c->home_switch &&
+               (!c->tared || c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
+    case RIGCTL_CMD_HOME: /* from IDLE only with the actuator released (no load on the cell); NOT_HOMED: always */
+        return s == RIGCTL_STATE_NOT_HOMED ||
+               (s == RIGCTL_STATE_IDLE && c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
     case RIGCTL_CMD_CLEAR_FAULT:
         return !fault_persists(c);
     default:
@@ -144,9 +196,9 @@ static void run_command(ctl_t *c, uint16_t cmd)
         break;
     case RIGCTL_CMD_STOP:
         c->drum_on = 0;
-        c->act_mode = ACT_MODE_RETRACT;
+        release_actuator(c);
         force_pi_reset(&c->pi);
-        if (c->state != RIGCTL_STATE_FAULT) c->state = RIGCTL_STATE_IDLE;
+        if (c->state != RIGCTL_STATE_FAULT) c->state = c->homed ? RIGCTL_STATE_IDLE : RIGCTL_STATE_NOT_HOMED;
         break;
     case RIGCTL_CMD_TARE:
         c->tare_pending = 1;
@@ -154,10 +206,13 @@ static void run_command(ctl_t *c, uint16_t cmd)
     case RIGCTL_CMD_HOME:
         c->act_mode = ACT_MODE_HOMING;
         c->state = RIGCTL_STATE_HOMING;
+        c->home_start_ms = c->now_ms;
+        c->home_start_steps = c->act_pos_steps;
         break;
     case RIGCTL_CMD_CLEAR_FAULT:
+        if (c->faults & RIGCTL_FAULT_ESTOP) c->estop_release = 1;
         c->faults = 0;
-        if (c->state == RIGCTL_STATE_FAULT) c->state = RIGCTL_STATE_IDLE;
+        if (c->state == RIGCTL_STATE_FAULT) c->state = c->homed ? RIGCTL_STATE_IDLE : RIGCTL_STATE_NOT_HOMED;
         break;
     case RIGCTL_CMD_PRESS:
         if (!force_engaged(c)) engage(c);
@@ -213,6 +268,13 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr)
     case RIGCTL_IREG_INDEX_PERIOD_MS: return c->index_period_ms;
     case RIGCTL_IREG_INDEX_STEPS: return c->index_steps;
     case RIGCTL_IREG_INDEX_COUNT: return c->index_count;
+    case RIGCTL_IREG_RESET_CAUSE: return c->reset_cause;
+    case RIGCTL_IREG_BOOT_COUNT: return c->boot_count;
+    case RIGCTL_IREG_STATUS_FLAGS:
+        return (uint16_t)((c->calib_defaults ? RIGCTL_STATUS_CALIBRATION_DEFAULTS : 0) |
+                          (c->homed ? RIGCTL_STATUS_HOMED : 0) | (c->drivers_on ? RIGCTL_STATUS_DRIVERS_ENABLED : 0) |
+                          (c->estop_open ? RIGCTL_STATUS_ESTOP_OPEN : 0) |
+                          (c->home_switch ? RIGCTL_STATUS_HOME_SWITCH : 0) | (c->tared ? RIGCTL_STATUS_TARED : 0));
     default: return 0;
     }
 }
@@ -222,7 +284,7 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
     ctl_t *c = (ctl_t *)ctx;
     uint16_t cand[RIGCTL_N_HOLDING];
     uint16_t i, cmd = RIGCTL_CMD_NONE;
-    uint8_t cmd_written = 0;
+    uint8_t cmd_written = 0, w12 = 0, whi = 0, wlo = 0;
     if ((uint32_t)start + n > RIGCTL_N_HOLDING) return RIGCTL_MB_EX_ILLEGAL_ADDRESS;
     for (i = 0; i < RIGCTL_N_HOLDING; i++) cand[i] = c->hreg[i];
     for (i = 0; i < n; i++) {
@@ -230,6 +292,9 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
         if (values[i] < hreg_min[a] || values[i] > hreg_max[a]) return RIGCTL_MB_EX_ILLEGAL_VALUE;
         if (a == RIGCTL_HREG_HX711_RATE_SPS && values[i] != 10 && values[i] != 80) return RIGCTL_MB_EX_ILLEGAL_VALUE;
         cand[a] = values[i];
+        if (a == RIGCTL_HREG_LOADCELL_SCALE_X100) w12 = 1;
+        if (a == HI) whi = 1;
+        if (a == LO) wlo = 1;
         if (a == RIGCTL_HREG_COMMAND) {
             cmd = values[i];
             cmd_written = 1;
@@ -244,6 +309,16 @@ uint8_t ctl_write_holding(void *ctx, uint16_t start, uint16_t n, const uint16_t 
             return RIGCTL_MB_EX_ILLEGAL_VALUE;
         if (a == RIGCTL_HREG_FORCE_SETPOINT_G && cand[a] > cand[RIGCTL_HREG_FORCE_LIMIT_G])
             return RIGCTL_MB_EX_ILLEGAL_VALUE;
+    }
+    /* the 32-bit scale: HI and LO together, in range; register 12 (its 16-bit view) must agree when written too */
+    if (whi != wlo) return RIGCTL_MB_EX_ILLEGAL_VALUE;
+    if (whi) {
+        int32_t s = scale_of(cand);
+        if (!scale_ok(s) || (w12 && s != (int32_t)cand[RIGCTL_HREG_LOADCELL_SCALE_X100])) return RIGCTL_MB_EX_ILLEGAL_VALUE;
+        set_scale(cand, s);
+    } else if (w12) {
+        if (!scale_ok((int32_t)cand[RIGCTL_HREG_LOADCELL_SCALE_X100])) return RIGCTL_MB_EX_ILLEGAL_VALUE;
+        set_scale(cand, (int32_t)cand[RIGCTL_HREG_LOADCELL_SCALE_X100]);
     }
     if (cmd_written && !command_allowed(c, cmd)) return RIGCTL_MB_EX_ILLEGAL_VALUE;
     cand[RIGCTL_HREG_COMMAND] = RIGCTL_CMD_NONE; /* reads back 0 once accepted */
@@ -325,11 +400,17 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         break;
     case ACT_MODE_HOMING:
         if (c->home_switch) {
+            /* home: zero the position, then tare on the next reading (ctl_loadcell ends HOMING: IDLE is tared) */
             c->act_vel_mm_s = 0.0f;
             c->act_mode = ACT_MODE_HOLD;
             c->zero_position = 1;
             c->act_pos_steps = 0;
-            if (c->state == RIGCTL_STATE_HOMING) c->state = RIGCTL_STATE_IDLE;
+            c->tare_pending = 1;
+        } else if ((float)(c->home_start_steps - c->act_pos_steps) >=
+                       ACT_HOME_MAX_TRAVEL_MM * (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM] ||
+                   (uint32_t)(now_ms - c->home_start_ms) >= ACT_HOME_TIMEOUT_MS) {
+            c->homed = 0; /* a broken switch wire, a stalled motor: do not drive into the rear stop for ever */
+            fault(c, RIGCTL_FAULT_HOME_NOT_FOUND);
         } else {
             c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
         }
@@ -344,6 +425,11 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         c->act_vel_mm_s = 0.0f;
         break;
     }
+
+    /* the drivers are enabled only while something moves or the force loop holds (EN also drops in the e-stop ISR) */
+    c->drivers_on = !(c->faults & RIGCTL_FAULT_ESTOP) && !c->estop_open &&
+                    (c->act_mode != ACT_MODE_HOLD || c->state == RIGCTL_STATE_HOMING || force_engaged(c) ||
+                     c->drum_cmd_mm_s > 0.0f || c->drum_actual_mm_s > 0.0f || c->act_vel_mm_s != 0.0f);
 
     /* settle detection: FORCE_SETTLED is "force on target, drum at rest" (spec 2.4): after STOP_DRUM the drum
      * may still be decelerating when the force has been on target for SETTLE_TIME_MS */
@@ -364,20 +450,29 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     uint8_t on;
     c->last_loadcell_ms = c->now_ms;
     c->loadcell_raw = raw;
-    if (c->tare_pending) {
+    if (c->tare_pending && c->home_switch) { /* never under load: only at home */
         c->tare_offset = raw;
         c->tare_pending = 0;
+        c->tared = 1;
+        if (c->state == RIGCTL_STATE_HOMING && c->act_mode == ACT_MODE_HOLD) { /* HOME done: at the switch, tared */
+            c->homed = 1;
+            c->state = RIGCTL_STATE_IDLE;
+        }
     }
     f = ctl_force_from_raw(c, raw);
     c->force_gf = f;
     c->force_g = (int16_t)(f > 32767.0f ? 32767 : (f < -32768.0f ? -32768 : (f < 0 ? f - 0.5f : f + 0.5f)));
-    if (f > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) {
+    if (c->tared && f > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) {
         if (c->state != RIGCTL_STATE_FAULT || !(c->faults & RIGCTL_FAULT_FORCE_LIMIT)) {
             fault(c, RIGCTL_FAULT_FORCE_LIMIT); /* backs the actuator off at once */
         }
         return;
     }
     if (!force_engaged(c)) return;
+    if (f < -2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) {
+        fault(c, RIGCTL_FAULT_LOADCELL_REVERSED); /* pressing makes it read negative: reversed cell or scale */
+        return;
+    }
     on = (f >= (float)sp - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) &&
          (f <= (float)sp + (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
     if (on && !c->on_target) c->on_target_since_ms = c->now_ms;

@@ -20,9 +20,20 @@ extern "C" {
 #define ACT_MODE_HOMING  3 /* seeking the home switch, then position := 0 */
 
 typedef struct {
-    uint16_t hreg[RIGCTL_N_HOLDING];
+    uint16_t hreg[RIGCTL_N_HOLDING]; /* hreg[LOADCELL_SCALE_X100] is the view of the 32-bit scale in HI/LO */
     uint8_t state;
     uint16_t faults;
+    /* safety (docs/wire-protocol.md 2.4-2.8) */
+    uint8_t homed;          /* HOME succeeded since the last reset / e-stop / failed HOME */
+    uint8_t tared;          /* a tare was taken since the last reset */
+    uint8_t estop_open;     /* the e-stop input reads open now (glue) */
+    uint8_t estop_release;  /* output: CLEAR_FAULT cleared ESTOP; glue re-arms its latch and clears this */
+    uint8_t calib_defaults; /* EEPROM calibration missing or bad at boot: defaults in use */
+    uint8_t drivers_on;     /* output: the stepper drivers should be enabled (glue drives EN, ANDed with e-stop) */
+    uint16_t reset_cause;   /* RIGCTL_RESET_* bits (glue, at boot) */
+    uint16_t boot_count;    /* (glue, at boot) */
+    uint32_t home_start_ms;
+    int32_t home_start_steps;
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;
@@ -64,8 +75,14 @@ typedef struct {
     uint16_t index_count;
 } ctl_t;
 
-/* power-up: defaults from the spec, calibration from EEPROM (or defaults), state IDLE */
-void ctl_init(ctl_t *c, uint16_t loadcell_scale_x100, uint16_t actuator_steps_per_mm);
+/* power-up: defaults from the spec, calibration from EEPROM (0 = the default), state NOT_HOMED; the load cell is
+ * tared on the first reading only if the home switch is closed then */
+void ctl_init(ctl_t *c, int32_t loadcell_scale_x100, uint16_t actuator_steps_per_mm);
+/* the load-cell scale, counts per g x 100 (signed) */
+int32_t ctl_scale_x100(const ctl_t *c);
+/* the e-stop input opened (the glue has already disabled the drivers and stopped the step timers in its ISR):
+ * latch ESTOP, FAULT, not homed, nothing moves */
+void ctl_estop(ctl_t *c);
 /* register access for the Modbus handler (addresses already range-checked by it) */
 uint16_t ctl_read_holding(void *ctx, uint16_t addr);
 uint16_t ctl_read_input(void *ctx, uint16_t addr);

@@ -16,6 +16,10 @@
 #define ACT_MAX_SPEED_MM_S     5.0f     /* force loop output clamp and back-off speed */
 #define ACT_HOME_SPEED_MM_S    3.0f     /* HOME seeks the switch at this speed */
 #define ACT_MAX_TRAVEL_MM      20.0f    /* end of travel: ACTUATOR_TRAVEL fault while seeking force */
+/* HOME gives up (HOME_NOT_FOUND) after this much travel towards home or this long (spec 2.5): a broken switch
+ * wire must not drive the actuator into its rear stop for ever */
+#define ACT_HOME_MAX_TRAVEL_MM ((float)RIGCTL_HOME_MAX_TRAVEL_MM)
+#define ACT_HOME_TIMEOUT_MS    RIGCTL_HOME_TIMEOUT_MS
 
 /* ---- force loop (PI on the load cell, run on each HX711 reading; docs/wire-protocol.md 2.9) ----
  * output: actuator velocity in mm/s, positive towards the sensor. Gains are holding registers (FORCE_KP/KI_80SPS,
@@ -47,6 +51,17 @@
 #define PIN_HX_SCK_PORT     PORTG
 #define PIN_HX_SCK_DDR      DDRG
 #define PIN_HX_SCK_BIT      5
+/* stepper drivers' enable, shared by both drivers: D8 = PH5, active low (A4988, DRV8825, TMC2209 EN).
+ * Board: 10 kOhm pull-up EN -> 5 V, so the drivers stay disabled while the MCU is in reset or in its bootloader
+ * (pins are inputs then); 10 kOhm pull-downs on both STEP pins so no step is made meanwhile. */
+#define PIN_EN_PORT         PORTH
+#define PIN_EN_DDR          DDRH
+#define PIN_EN_BIT          5
+/* e-stop input D2 = PE4 (INT4): normally-closed contact to GND, internal pull-up: open (pressed, or a broken wire)
+ * reads high and trips ESTOP in the INT4 interrupt */
+#define PIN_ESTOP_PIN       PINE
+#define PIN_ESTOP_PORT      PORTE
+#define PIN_ESTOP_BIT       4
 /* drum index pulse out D9 = PH6 -> Uno D2 (sync-in) */
 #define PIN_INDEX_PORT      PORTH
 #define PIN_INDEX_DDR       DDRH
@@ -54,5 +69,11 @@
 /* drum index sensor (optical/Hall, open collector, active low) D48 = PL1 = ICP5: Timer5 input capture */
 #define PIN_INDEX_SENSOR_PORT PORTL
 #define PIN_INDEX_SENSOR_BIT  1
+#ifdef RIGCTL_TEST_HOOKS
+/* test image only (mega_drum_test.elf, never flashed): pin D22 (port A bit 0) high makes loop() hang, for the
+ * AVR watchdog test */
+#define PIN_TEST_HANG_PIN   PINA
+#define PIN_TEST_HANG_BIT   0
+#endif
 
 #endif

@@ -11,13 +11,22 @@
  *   Timer5  drum index sensor (D48 = ICP5): free running /1024 (64 us), input capture of the sensor's falling edge
  *   HX711   bit-banged in loop() whenever DOUT goes low (10 or 80 SPS, the rate timed at boot: ctl_hx711_ready),
  *           25 clocks (channel A, gain 128)
- *   EEPROM  calibration (load-cell scale, actuator steps/mm) with a magic word and CRC
+ *   EEPROM  calibration (load-cell scale, actuator steps/mm) with a magic word and CRC, the boot counter, the
+ *           watchdog's "about to reset" mark
+ *   WDT     120 ms, fed only by loop(): interrupt first (drivers off, step timers stopped, mark in EEPROM), then
+ *           the reset; MCUSR is read and cleared and the WDT disabled in .init3, before the C runtime's init
+ *   INT4    e-stop input (D2): drops the drivers' EN and stops both step timers inside the interrupt
  * Timer0 stays with the Arduino core (millis, unused here). HardwareSerial is not linked.
+ *
+ * Safety does not depend on loop(): the e-stop acts in its ISR, a hung loop() is ended by the watchdog within 120 ms
+ * (its interrupt disables the drivers first), and after any reset the drivers stay disabled (EN high from the first
+ * instructions, pulled up on the board during reset) and the controller stays NOT_HOMED until HOME.
  */
 #include <Arduino.h>
 #include <avr/eeprom.h>
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <avr/wdt.h>
 #include <util/delay.h>
 
 #include "../common/crc16.h"
@@ -70,6 +79,72 @@ static volatile uint8_t act_next_dir;    /* 1 = towards the sensor */
 static volatile uint8_t act_dir;
 static volatile uint8_t act_running_cs;
 static volatile int32_t act_steps;
+
+/* ---- safety outside loop() ---- */
+static uint8_t mcusr_at_boot __attribute__((section(".noinit")));
+static volatile uint8_t motion_inhibit; /* e-stop or watchdog: no step timer may run, EN stays high */
+
+/* .init3 runs before the C runtime clears .bss and long before setup(): keep the reset cause, clear MCUSR (WDRF
+ * forces WDE on, and a watchdog left running at its 16 ms reset value would reset the MCU in a loop: avr-libc,
+ * <avr/wdt.h>), and put the drivers' pins in their safe state (EN high = disabled, both STEP pins low). */
+extern "C" void early_init(void) __attribute__((naked, used, section(".init3")));
+extern "C" void early_init(void)
+{
+    mcusr_at_boot = MCUSR;
+    MCUSR = 0;
+    wdt_disable();
+    PIN_EN_PORT |= (1 << PIN_EN_BIT);
+    PIN_EN_DDR |= (1 << PIN_EN_BIT);
+    PIN_DRUM_STEP_PORT &= (uint8_t)~(1 << PIN_DRUM_STEP_BIT);
+    PIN_DRUM_STEP_DDR |= (1 << PIN_DRUM_STEP_BIT);
+    PIN_ACT_STEP_PORT &= (uint8_t)~(1 << PIN_ACT_STEP_BIT);
+    PIN_ACT_STEP_DDR |= (1 << PIN_ACT_STEP_BIT);
+}
+
+/* drivers off, both step generators stopped, STEP pins low; call with interrupts off (an ISR) */
+static void motion_kill(void)
+{
+    PIN_EN_PORT |= (1 << PIN_EN_BIT);
+    TCCR1B = (1 << WGM12);
+    TCCR3B = (1 << WGM32);
+    drum_next.cs = 0; /* the generators' own record: stopped, so that they start from rest once allowed again */
+    drum_running_cs = 0;
+    act_next.cs = 0;
+    act_running_cs = 0;
+    PIN_DRUM_STEP_PORT &= (uint8_t)~(1 << PIN_DRUM_STEP_BIT);
+    PIN_ACT_STEP_PORT &= (uint8_t)~(1 << PIN_ACT_STEP_BIT);
+    motion_inhibit = 1;
+}
+
+static volatile uint8_t estop_latched;
+static void estop_check_isr(void)
+{
+    if ((PIN_ESTOP_PIN >> PIN_ESTOP_BIT) & 1) { /* open: pressed, or the wire is broken */
+        motion_kill();
+        estop_latched = 1;
+    }
+}
+
+ISR(INT4_vect)
+{
+    estop_check_isr();
+}
+
+#define EE_WDT_MARK 0xA5
+static uint8_t EEMEM ee_wdt_mark;
+
+/* the watchdog's first timeout (interrupt mode): loop() has not run for 120 ms. Make the rig safe, record the cause
+ * (the stk500v2 bootloader clears MCUSR), and let the second timeout reset the MCU. */
+ISR(WDT_vect)
+{
+    motion_kill();
+    eeprom_write_byte(&ee_wdt_mark, EE_WDT_MARK);
+    /* interrupt mode off, reset mode on (the hardware clears WDIE itself; simavr 1.6 does not) */
+    WDTCSR = (1 << WDCE) | (1 << WDE);
+    WDTCSR = (1 << WDE) | (1 << WDP1) | (1 << WDP0); /* WDTO_120MS */
+    for (;;) {
+    }
+}
 
 ISR(USART0_RX_vect)
 {
@@ -203,41 +278,59 @@ ISR(TIMER3_COMPA_vect)
 }
 
 /* ---- EEPROM calibration ---- */
-struct calib_t {
+/* firmware 1.0's record (16-bit scale), still read so that an upgrade keeps its calibration */
+struct calib_v1_t {
     uint16_t magic;
     uint16_t loadcell_scale_x100;
     uint16_t actuator_steps_per_mm;
     uint16_t crc;
 };
-#define CALIB_MAGIC 0x5243 /* "RC" */
-static calib_t EEMEM ee_calib;
+#define CALIB_V1_MAGIC 0x5243 /* "RC" */
+static calib_v1_t EEMEM ee_calib;
+/* firmware 1.1: the signed 32-bit scale */
+struct calib_t {
+    uint16_t magic;
+    int32_t loadcell_scale_x100;
+    uint16_t actuator_steps_per_mm;
+    uint16_t crc;
+};
+#define CALIB_MAGIC 0x5253 /* "RS" */
+static calib_t EEMEM ee_calib2;
+static uint16_t EEMEM ee_boot_count;
 
-static uint16_t calib_crc(const calib_t *c)
-{
-    return rigctl_crc16((const uint8_t *)c, 6);
-}
-
-static void calib_load(uint16_t *scale, uint16_t *steps)
+/* returns 1 if a valid record was found; else scale and steps are 0 (the controller's defaults) */
+static uint8_t calib_load(int32_t *scale, uint16_t *steps)
 {
     calib_t c;
-    eeprom_read_block(&c, &ee_calib, sizeof(c));
-    if (c.magic == CALIB_MAGIC && c.crc == calib_crc(&c) && c.loadcell_scale_x100 && c.actuator_steps_per_mm) {
+    calib_v1_t v1;
+    eeprom_read_block(&c, &ee_calib2, sizeof(c));
+    if (c.magic == CALIB_MAGIC && c.crc == rigctl_crc16((const uint8_t *)&c, sizeof(c) - 2) &&
+        c.loadcell_scale_x100 && c.actuator_steps_per_mm) {
         *scale = c.loadcell_scale_x100;
         *steps = c.actuator_steps_per_mm;
-    } else {
-        *scale = 0; /* controller defaults */
-        *steps = 0;
+        return 1;
     }
+    eeprom_read_block(&v1, &ee_calib, sizeof(v1));
+    if (v1.magic == CALIB_V1_MAGIC && v1.crc == rigctl_crc16((const uint8_t *)&v1, 6) && v1.loadcell_scale_x100 &&
+        v1.actuator_steps_per_mm) {
+        *scale = v1.loadcell_scale_x100;
+        *steps = v1.actuator_steps_per_mm;
+        return 1;
+    }
+    *scale = 0;
+    *steps = 0;
+    return 0;
 }
 
 static void calib_save(void)
 {
     calib_t c;
     c.magic = CALIB_MAGIC;
-    c.loadcell_scale_x100 = ctl.hreg[RIGCTL_HREG_LOADCELL_SCALE_X100];
+    c.loadcell_scale_x100 = ctl_scale_x100(&ctl);
     c.actuator_steps_per_mm = ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
-    c.crc = calib_crc(&c);
-    eeprom_update_block(&c, &ee_calib, sizeof(c));
+    c.crc = rigctl_crc16((const uint8_t *)&c, sizeof(c) - 2);
+    eeprom_update_block(&c, &ee_calib2, sizeof(c));
+    ctl.calib_defaults = 0;
 }
 
 /* ---- HX711 ---- */
@@ -297,6 +390,7 @@ static void drum_apply(float v_mm_s)
     steptimer_t t;
     steprate_timer(steprate_hz_from_mm_s(v_mm_s, DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV), F_CPU, &t);
     cli();
+    if (motion_inhibit) t.cs = 0; /* e-stop: the timers stay stopped whatever loop() asks */
     drum_next.cs = t.cs;
     drum_next.ocr = t.ocr;
     if (t.cs && (t.cs != drum_running_cs || t.ocr != drum_running_ocr)) {
@@ -323,6 +417,7 @@ static void act_apply(float v_mm_s)
     float f = (v_mm_s < 0 ? -v_mm_s : v_mm_s) * (float)ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
     steprate_timer(f, F_CPU, &t);
     cli();
+    if (motion_inhibit) t.cs = 0;
     act_next.cs = t.cs;
     act_next.ocr = t.ocr;
     act_next_dir = dir;
@@ -354,12 +449,28 @@ static void modbus_poll(void)
     }
 }
 
+static uint16_t reset_cause(void)
+{
+    uint16_t cause = mcusr_at_boot & (RIGCTL_RESET_POWER_ON | RIGCTL_RESET_EXTERNAL | RIGCTL_RESET_BROWN_OUT |
+                                      RIGCTL_RESET_WATCHDOG);
+    if (eeprom_read_byte(&ee_wdt_mark) == EE_WDT_MARK) { /* our watchdog interrupt ran just before this reset */
+        cause |= RIGCTL_RESET_WATCHDOG;
+        eeprom_write_byte(&ee_wdt_mark, 0xFF);
+    }
+    return cause;
+}
+
 void setup(void)
 {
-    uint16_t scale, steps;
+    int32_t scale;
+    uint16_t steps;
     cli();
-    calib_load(&scale, &steps);
+    uint8_t calib_ok = calib_load(&scale, &steps);
     ctl_init(&ctl, scale, steps);
+    ctl.calib_defaults = !calib_ok;
+    ctl.reset_cause = reset_cause();
+    ctl.boot_count = (uint16_t)(eeprom_read_word(&ee_boot_count) + 1); /* erased EEPROM 0xFFFF: first boot is 0 */
+    eeprom_update_word(&ee_boot_count, ctl.boot_count);
     ctl_bind_modbus(&ctl, &mb);
 
     /* pins */
@@ -370,6 +481,13 @@ void setup(void)
     PIN_HOME_PORT |= (1 << PIN_HOME_BIT); /* pull-up */
     PIN_HX_SCK_DDR |= (1 << PIN_HX_SCK_BIT);
     PIN_INDEX_DDR |= (1 << PIN_INDEX_BIT);
+    /* e-stop: pull-up, INT4 on any edge; an input already open at boot latches at once */
+    PIN_ESTOP_PORT |= (1 << PIN_ESTOP_BIT);
+    EICRB = (uint8_t)((EICRB & ~((1 << ISC41) | (1 << ISC40))) | (1 << ISC40));
+    EIFR = (1 << INTF4);
+    EIMSK |= (1 << INT4);
+    _delay_us(10); /* the pull-up charges the input */
+    estop_check_isr();
 
     /* UART0 500000 8N1: UBRR = F_CPU / (16 x baud) - 1 = 1, exact (115200 would be UBRR 16 with U2X: +2.1 %) */
     UCSR0A = 0;
@@ -394,6 +512,9 @@ void setup(void)
     TCCR3B = (1 << WGM32);
     TIMSK3 = (1 << OCIE3A);
     index_sensor_setup();
+    /* AVR watchdog, 120 ms, interrupt then reset (WDIE + WDE); fed only at the top of loop() */
+    wdt_enable(WDTO_120MS);
+    WDTCSR |= (1 << WDIE);
     sei();
 }
 
@@ -402,6 +523,14 @@ void loop(void)
     static uint32_t done_ms;
     static uint32_t index_on_ms;
     static uint8_t index_on;
+
+    wdt_reset();
+#ifdef RIGCTL_TEST_HOOKS
+    if ((PIN_TEST_HANG_PIN >> PIN_TEST_HANG_BIT) & 1) { /* test image only: a hung loop() for the watchdog test */
+        for (;;) {
+        }
+    }
+#endif
 
     /* receiver status poll (see uno_taxel.cpp): lets simavr's UART model deliver host bytes */
     (void)UCSR0A;
@@ -427,6 +556,8 @@ void loop(void)
             PIN_INDEX_PORT &= (uint8_t)~(1 << PIN_INDEX_BIT);
         }
         ctl.home_switch = !((PIN_HOME_PIN >> PIN_HOME_BIT) & 1);
+        ctl.estop_open = (PIN_ESTOP_PIN >> PIN_ESTOP_BIT) & 1;
+        if (estop_latched && !(ctl.faults & RIGCTL_FAULT_ESTOP) && !ctl.estop_release) ctl_estop(&ctl);
         ctl.drum_actual_mm_s = drum_actual_mm_s();
         ctl_tick(&ctl, done_ms);
         if (ctl.zero_position) {
@@ -442,8 +573,23 @@ void loop(void)
             sei();
             ctl.zero_position = 0;
         }
+        if (ctl.estop_release) { /* CLEAR_FAULT with the input closed again: motion allowed again */
+            cli();
+            estop_latched = 0;
+            motion_inhibit = 0;
+            sei();
+            ctl.estop_release = 0;
+        }
         drum_apply(ctl.drum_cmd_mm_s);
         act_apply(ctl.act_vel_mm_s);
+        cli();
+        /* a step generator finishing its last step keeps the drivers on until it stops (a step made with the
+         * drivers off is lost, and the step count would no longer be the position) */
+        if ((ctl.drivers_on || act_running_cs || drum_running_cs) && !motion_inhibit)
+            PIN_EN_PORT &= (uint8_t)~(1 << PIN_EN_BIT);
+        else PIN_EN_PORT |= (1 << PIN_EN_BIT);
+        ctl.drivers_on = !((PIN_EN_PORT >> PIN_EN_BIT) & 1); /* STATUS_FLAGS reports the pin as it is */
+        sei();
     }
 
     if (!((PIN_HX_DOUT_PIN >> PIN_HX_DOUT_BIT) & 1)) {

@@ -27,6 +27,15 @@
  * pulse; the drum index sensor on PL1 (ICP5) from the real drum angle ("ISENS t=..." at each mark; see
  * index_sensor_poll). stdin commands: "bump G" (an external force offset in g, e.g. to trip the force limit), "reset" (the
  * reset button: the firmware restarts, its EEPROM is kept).
+ * Mega safety wiring (see "Mega: safety wiring" below): the stepper drivers' EN (PH5, active low, a pull-up on the
+ * board: an input pin or a high output disables them) is observed, and a STEP pulse while the drivers are disabled
+ * moves nothing ("TEL ... en=0|1 steps_disabled=N"); the e-stop input (PE4) is a normally-closed contact to GND
+ * ("estop open" / "estop close"); "polarity -1|1" mounts the load cell the other way round (or back); "reset",
+ * "brownout" and "poweron" reset the MCU with MCUSR's EXTRF, BORF or PORF set while the spring model keeps its state
+ * (a reset under load); "hang" holds PA0 (D22) high until the next reset: the test image (mega_drum_test.elf, built
+ * with RIGCTL_TEST_HOOKS) then hangs in loop(), for the watchdog test; "homeswitch broken|ok" breaks the home
+ * switch's wire (it never closes) or mends it; "eeprom-flip OFFSET" flips bit 4 of one EEPROM byte (a corrupted
+ * calibration record). A reset by the MCU itself (the watchdog) is reported as "RESET t=... cause=mcu".
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -49,6 +58,7 @@
 #include <unistd.h>
 
 #include "avr_adc.h"
+#include "avr_eeprom.h"
 #include "avr_ioport.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
@@ -257,6 +267,7 @@ static double opt_boot_ms = 200.0;
 static double opt_spring_k = 250.0; /* contact stiffness, g per mm: the documented default (MechanicsConfig); 250-2000 */
 static double opt_contact_mm = 5.0;
 static double opt_act_steps_per_mm = 400.0;
+static double opt_rear_stop_mm = 1.0;      /* the actuator's mechanical rear stop, mm behind the home switch */
 static double opt_counts_per_g = 420.0;    /* LOADCELL_SCALE_X100 default / 100 */
 static long opt_loadcell_offset = 8000;
 static double opt_tel_ms = 50.0;
@@ -268,6 +279,12 @@ static atomic_int quit_requested;
 static atomic_int reset_requested;
 static atomic_int sync_requests;
 static atomic_int bump_g_x1000;
+static atomic_int reset_cause_req;   /* MCUSR bits for the next "reset": EXTRF 2, BORF 4, PORF 1 */
+static atomic_int estop_open_req;    /* 1 = the e-stop contact is open */
+static atomic_int hang_req;          /* 1 = PA0 high until the next reset */
+static atomic_int polarity_req = 1;  /* +1 or -1: the load cell's sign */
+static atomic_int home_broken_req;   /* 1 = the home switch never closes */
+static atomic_int eeprom_flip_req = -1; /* EEPROM offset to corrupt, -1 = none */
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
 static uint16_t *wave;     /* n_rows x 18 ADC counts */
 static size_t wave_rows;
@@ -351,8 +368,24 @@ static void *stdin_thread(void *arg)
         } else if (!strncmp(line, "bump ", 5)) {
             atomic_store(&bump_g_x1000, (int)(atof(line + 5) * 1000.0));
             printf("OK bump\n");
-        } else if (!strcmp(line, "reset")) { /* power cycle / reset button: RAM cleared, EEPROM kept */
+        } else if (!strcmp(line, "reset") || !strcmp(line, "brownout") || !strcmp(line, "poweron")) {
+            /* reset button / brown-out / power cycle: RAM cleared, EEPROM and the mechanics kept */
+            atomic_store(&reset_cause_req, line[0] == 'r' ? 2 : line[0] == 'b' ? 4 : 1);
             atomic_store(&reset_requested, 1);
+        } else if (!strcmp(line, "estop open") || !strcmp(line, "estop close")) {
+            atomic_store(&estop_open_req, line[6] == 'o');
+            printf("OK estop\n");
+        } else if (!strcmp(line, "hang")) {
+            atomic_store(&hang_req, 1);
+            printf("OK hang\n");
+        } else if (!strcmp(line, "homeswitch broken") || !strcmp(line, "homeswitch ok")) {
+            atomic_store(&home_broken_req, line[11] == 'b');
+            printf("OK homeswitch\n");
+        } else if (!strncmp(line, "eeprom-flip ", 12)) {
+            atomic_store(&eeprom_flip_req, atoi(line + 12));
+        } else if (!strncmp(line, "polarity ", 9)) {
+            atomic_store(&polarity_req, atoi(line + 9) < 0 ? -1 : 1);
+            printf("OK polarity\n");
         } else if (!strcmp(line, "quit")) {
             break;
         }
@@ -782,6 +815,68 @@ static void index_sensor_poll(int64_t drum_steps_now)
     }
 }
 
+/* ---- Mega: safety wiring (drivers' EN, e-stop, test hang pin) ---- */
+static avr_irq_t *estop_pin, *hang_pin;
+static int estop_level = -1, hang_level = -1;
+static uint64_t steps_disabled; /* STEP pulses while the drivers were disabled (they move nothing) */
+
+/* EN (PH5) is active low with a pull-up on the board: enabled only while the pin is an output driven low */
+static int drivers_enabled(void)
+{
+    avr_ioport_state_t st;
+    if (avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE('H'), &st)) return 1;
+    return ((st.ddr >> 5) & 1) && !((st.port >> 5) & 1);
+}
+
+/* drive a harness input pin to `level`: as the port's external level (simavr keeps it across the firmware's
+ * PORT writes, e.g. its pull-up, which would otherwise pull the pin high until the next poll), and through the pin's
+ * irq for an immediate edge (the pin-change interrupt) */
+static void drive_pin(avr_irq_t *irq, char port, int bit, int level, int *last)
+{
+    avr_ioport_state_t st;
+    if (*last == level && avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE(port), &st) == 0 && ((st.pin >> bit) & 1) == level)
+        return;
+    avr_ioport_external_t ext = {.name = (unsigned long)port, .mask = 1u << bit, .value = (unsigned)level << bit};
+    avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL(port), &ext);
+    avr_raise_irq(irq, !level);
+    avr_raise_irq(irq, level);
+    *last = level;
+}
+
+static void safety_poll(void)
+{
+    int off = atomic_exchange(&eeprom_flip_req, -1);
+    if (off >= 0) { /* from the simulation thread: simavr's EEPROM is not shared with the stdin thread */
+        uint8_t b = 0;
+        avr_eeprom_desc_t d = {.ee = &b, .offset = (uint16_t)off, .size = 1};
+        if (avr_ioctl(avr, AVR_IOCTL_EEPROM_GET, &d) != -2) { /* simavr 1.6 returns -1 when it did it, -2 on error */
+            b ^= 0x10;
+            d.ee = &b;
+            avr_ioctl(avr, AVR_IOCTL_EEPROM_SET, &d);
+            printf("OK eeprom-flip %d\n", off);
+        } else {
+            printf("ERR eeprom-flip %d\n", off);
+        }
+    }
+    drive_pin(estop_pin, 'E', 4, atomic_load(&estop_open_req) ? 1 : 0, &estop_level);
+    drive_pin(hang_pin, 'A', 0, atomic_load(&hang_req) ? 1 : 0, &hang_level);
+}
+
+static void safety_setup(void)
+{
+    estop_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 4);
+    hang_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('A'), 0);
+    safety_poll();
+}
+
+/* after any reset: the hang request ends with it; the pins are driven again */
+static void safety_after_reset(void)
+{
+    atomic_store(&hang_req, 0);
+    estop_level = hang_level = -1;
+    safety_poll();
+}
+
 static double mega_force_g(void)
 {
     double x = (double)act_steps / opt_act_steps_per_mm;
@@ -793,7 +888,7 @@ static double mega_force_g(void)
  * this pin's irq, so the level is re-asserted whenever the pin register disagrees with the switch. */
 static void update_home(void)
 {
-    uint32_t level = act_steps <= 0 ? 0 : 1;
+    uint32_t level = act_steps <= 0 && !atomic_load(&home_broken_req) ? 0 : 1;
     avr_ioport_state_t st;
     if (avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE('H'), &st) == 0 && ((st.pin >> 4) & 1) != level) {
         avr_raise_irq(home_pin, !level);
@@ -806,6 +901,12 @@ static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
     (void)irq;
     (void)param;
     if (value & 1) {
+        if (!drivers_enabled()) {
+            steps_disabled++;
+            return;
+        }
+        if (!act_dir && act_steps <= -(int64_t)llround(opt_rear_stop_mm * opt_act_steps_per_mm))
+            return; /* against the rear stop: the motor stalls, the firmware's step count goes on */
         act_steps += act_dir ? 1 : -1;
         update_home();
     }
@@ -822,7 +923,12 @@ static void drum_step_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     (void)param;
-    if (value & 1) drum_steps += drum_dir ? 1 : -1;
+    if (!(value & 1)) return;
+    if (!drivers_enabled()) {
+        steps_disabled++;
+        return;
+    }
+    drum_steps += drum_dir ? 1 : -1;
 }
 
 static void drum_dir_hook(avr_irq_t *irq, uint32_t value, void *param)
@@ -870,6 +976,7 @@ static void mega_after_reset(void)
     update_home();
     avr_raise_irq(index_sensor_pin, 0); /* the sensor's level is driven again after the port reset */
     avr_raise_irq(index_sensor_pin, index_sensor_release_cycle ? 0 : 1);
+    safety_after_reset();
 }
 
 static void mega_setup(void)
@@ -886,19 +993,21 @@ static void mega_setup(void)
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 6), index_hook, NULL);
     hx_next_cycle = hx711_period_cycles();
     index_sensor_setup();
+    safety_setup();
 }
 
 static void mega_poll(void)
 {
     static uint64_t next_tel;
     update_home();
+    safety_poll();
     index_sensor_poll(drum_steps);
     hx711_sample(mega_force_g());
     if (avr->cycle >= hx_next_cycle) { /* end of a conversion period: DOUT low = ready */
         hx_next_cycle += hx711_period_cycles();
         if (!hx_ready) {
             double f = hx711_filtered_g();
-            long raw = opt_loadcell_offset + lround(f * opt_counts_per_g);
+            long raw = opt_loadcell_offset + lround(f * opt_counts_per_g * atomic_load(&polarity_req));
             if (raw > 0x7FFFFF) raw = 0x7FFFFF;
             if (raw < -0x800000) raw = -0x800000;
             hx_value = (uint32_t)raw & 0xFFFFFFu;
@@ -910,9 +1019,10 @@ static void mega_poll(void)
     if (avr->cycle >= next_tel) {
         next_tel = avr->cycle + (uint64_t)(opt_tel_ms * 16000.0);
         printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
-               "index=%u\n",
+               "index=%u en=%d steps_disabled=%llu\n",
                sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps,
-               act_steps / opt_act_steps_per_mm, mega_force_g(), index_count);
+               act_steps / opt_act_steps_per_mm, mega_force_g(), index_count, drivers_enabled(),
+               (unsigned long long)steps_disabled);
     }
 }
 
@@ -981,7 +1091,7 @@ static void usage(void)
 {
     fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] [--bootloader HEX] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
-                    "[--counts-per-g N] [--loadcell-offset N] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
+                    "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
                     "[--index-bounce N] "
@@ -1004,6 +1114,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--spring-k")) opt_spring_k = atof(NEXT());
         else if (!strcmp(a, "--contact-mm")) opt_contact_mm = atof(NEXT());
         else if (!strcmp(a, "--act-steps-per-mm")) opt_act_steps_per_mm = atof(NEXT());
+        else if (!strcmp(a, "--rear-stop-mm")) opt_rear_stop_mm = atof(NEXT());
         else if (!strcmp(a, "--counts-per-g")) opt_counts_per_g = atof(NEXT());
         else if (!strcmp(a, "--loadcell-offset")) opt_loadcell_offset = atol(NEXT());
         else if (!strcmp(a, "--tel-ms")) opt_tel_ms = atof(NEXT());
@@ -1091,6 +1202,7 @@ int main(int argc, char **argv)
     uint64_t cycle0 = avr->cycle;
     double hold_until = 0.0; /* in reset (bootloader wait) until this wall time */
     uint64_t next_check = 0;
+    int mcu_reset_seen = 0;
     for (;;) {
         if (hold_until > 0.0) {
             struct timespec ts = {0, 1000000};
@@ -1113,6 +1225,7 @@ int main(int argc, char **argv)
             fprintf(stderr, "simavr core stopped (state %d)\n", state);
             break;
         }
+        if (avr->pc == avr->reset_pc) mcu_reset_seen = 1; /* the MCU reset itself (watchdog): its reset vector */
         if (avr->cycle < next_check) continue;
         next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
         bridge_poll();
@@ -1122,10 +1235,20 @@ int main(int argc, char **argv)
         if (atomic_load(&quit_requested)) break;
         if (atomic_exchange(&reset_requested, 0)) {
             avr_reset(avr);
+            /* MCUSR: what reset the MCU (avr_reset cleared it) */
+            int cause = atomic_load(&reset_cause_req);
+            if (cause & 1) avr_regbit_set(avr, avr->reset_flags.porf);
+            if (cause & 2) avr_regbit_set(avr, avr->reset_flags.extrf);
+            if (cause & 4) avr_regbit_set(avr, avr->reset_flags.borf);
             bridge_reset();
             if (is_uno) uno_after_reset();
             else mega_after_reset();
             printf("RESET t=%.6f\n", sim_s());
+        } else if (!is_uno && mcu_reset_seen) { /* the MCU reset itself (the watchdog): the pins need driving again */
+            mcu_reset_seen = 0;
+            bridge_reset();
+            mega_after_reset();
+            printf("RESET t=%.6f cause=mcu\n", sim_s());
         }
         if (opt_max_seconds > 0 && sim_s() >= opt_max_seconds) break;
         if (ino >= 0) {

@@ -1,0 +1,237 @@
+"""The drum controller's protection outside its main loop and after resets (docs/wire-protocol.md 2.4-2.8,
+docs/firmware.md "Safety"), held to one contract on both controllers: the virtual Mega (``sim``) and the Mega
+firmware under simavr (``hil``, its test image: the shipped image plus a hang input for the watchdog test).
+
+Each test injects one bench fault through the harness (or the virtual Mega's hooks) and checks what the physics
+shows (where the actuator is, the force on the load cell, the drivers' EN pin), not only the registers: a reset
+under load, a reversed load cell, a hung main loop (the AVR watchdog), the e-stop, a broken home switch (the homing
+travel limit) and a corrupted EEPROM calibration.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from rigctl.devices import wire
+from rigctl.devices.errors import DrumNotHomed
+from rigctl.devices.wire import Command, DrumState as S, Fault, HoldingRegister as HR, ResetCause
+
+from .test_drum_conformance import DEFAULT, poll, refused, released, silent
+
+#: the firmware's test image under simavr (conftest.controller)
+MEGA_IMAGE = "mega_drum_test"
+TOL = DEFAULT[HR.FORCE_TOLERANCE_G]
+
+
+def settle(drum, force_g: float):
+    drum.set_force(force_g)
+    drum.press()
+    return drum.wait_state(S.FORCE_SETTLED, timeout_s=20)
+
+
+def after_reset(drum, ctl, boot0: int, cause: ResetCause, timeout_s: float = 10.0):
+    """Wait (controller's clock) until the controller answers after a reset with a new BOOT_COUNT; its status."""
+    deadline = ctl.clock_s() + timeout_s
+    while True:
+        try:
+            st = drum.read_status()
+            if st.boot_count != boot0:
+                break
+        except Exception:  # noqa: BLE001 - a request in the reset window may go unanswered
+            pass
+        assert ctl.clock_s() < deadline, "the controller did not come back after the reset"
+        time.sleep(0.05)
+    assert st.boot_count == (boot0 + 1) % 65536
+    assert st.reset_cause == cause and st.state == S.NOT_HOMED and not st.homed
+    return st
+
+
+def physically_still(ctl, ms: float = 300, tol_mm: float = 0.01) -> float:
+    """The actuator does not move for ``ms`` of the controller's time; returns where it stands, mm."""
+    x0 = ctl.actuator_mm()
+    silent(ctl, ms)
+    x1 = ctl.actuator_mm()
+    assert abs(x1 - x0) <= tol_mm, f"the actuator moved from {x0:.3f} to {x1:.3f} mm"
+    return x1
+
+
+@pytest.mark.parametrize("cause", ["external", "brownout"])
+def test_reset_under_load_is_not_homed_and_never_keeps_a_false_zero(drum, controller, cause):
+    """Pressing 1000 g, the controller resets (reset pin / brown-out): it comes back NOT_HOMED with the cause and a
+    new boot count, drivers disabled, the actuator where it was; PRESS is refused (naming NOT_HOMED), TARE is refused
+    away from home; HOME backs off to the switch and tares there; the next 1000 g press puts 1000 g on the cell, not
+    the 2000 g a zero taken under load gives (firmware 1.0)."""
+    st = settle(drum, 1000)
+    boot0 = st.boot_count
+    pressed = controller.load_g()
+    assert abs(pressed - 1000) <= 2 * TOL
+    controller.reset(cause)
+    expect = {"external": ResetCause.EXTERNAL, "brownout": ResetCause.BROWN_OUT}[cause]
+    st = after_reset(drum, controller, boot0, expect)
+    assert not st.drivers_enabled and not controller.drivers_enabled()
+    x = physically_still(controller)
+    assert x > 1.0 and controller.load_g() > 500  # still pressed: nothing released it
+    with pytest.raises(DrumNotHomed):
+        drum.press()
+    with pytest.raises(DrumNotHomed):
+        drum.run()
+    with refused():
+        drum.tare()  # not at home
+    assert drum.read_status().state == S.NOT_HOMED
+    drum.home()
+    st = drum.wait_state(S.IDLE, timeout_s=30)
+    assert st.homed and st.actuator_mm == 0 and abs(st.force_g) <= TOL
+    assert controller.load_g() <= TOL
+    settle(drum, 1000)
+    assert abs(controller.load_g() - 1000) <= 2 * TOL
+    drum.stop()
+    released(drum, controller)
+
+
+def test_reversed_load_cell_faults_at_once_and_calibrates_negative(drum, controller):
+    """A load cell mounted the other way reads negative while pressing: LOADCELL_REVERSED within -2 x
+    FORCE_TOLERANCE_G (the physical force stays small), the actuator backs off home. Calibrated with a negative
+    scale (the signed 32-bit registers 14-15), the same cell presses normally."""
+    counts_per_g = drum.loadcell_scale()
+    controller.set_polarity(-1)
+    drum.set_force(500)
+    drum.press()
+    peak = 0.0
+    while True:
+        st = drum.read_status()
+        peak = max(peak, controller.load_g())
+        if st.state == S.FAULT:
+            break
+        assert st.state == S.SEEKING_FORCE, st
+        time.sleep(0.02)
+    assert st.faults == Fault.LOADCELL_REVERSED
+    assert peak <= 2 * TOL + 60  # a reading or two past -2 x tolerance, never the 500 g setpoint
+    st = released(drum, controller)
+    assert (st.state, st.faults) == (S.FAULT, Fault.LOADCELL_REVERSED)
+    drum.clear_fault()
+    drum.set_loadcell_scale(-counts_per_g)
+    assert drum.read_holding(HR.LOADCELL_SCALE_X100) == 0  # the 16-bit view cannot show a negative scale
+    drum.tare()
+    settle(drum, 300)
+    assert abs(controller.load_g() - 300) <= 2 * TOL
+    drum.stop()
+    released(drum, controller)
+
+
+def test_hung_loop_watchdog_makes_it_safe_and_not_homed(drum, controller):
+    """The main loop hangs while the actuator drives towards the sensor (the step interrupts would go on at the
+    last commanded rate): within the 120 ms watchdog the drivers are disabled and the step generator stops, then
+    the watchdog resets the controller: NOT_HOMED, RESET_CAUSE watchdog, a new boot count. Firmware 1.0 had no
+    watchdog: nothing stopped the actuator before its end of travel."""
+    boot0 = drum.read_status().boot_count
+    drum.set_force(1000)
+    drum.press()
+    poll(drum, lambda s: s.actuator_mm > 0.5, 5, "the actuator on its way")
+    controller.hang()
+    x_hang = controller.actuator_mm()
+    silent(controller, 600)  # no request: the hung controller would not answer
+    # the actuator stopped within the watchdog's 120 ms (5 mm/s at most: 0.6 mm; two reports of margin)
+    x_stop = physically_still(controller)
+    assert x_stop - x_hang <= 1.2, f"drove {x_stop - x_hang:.2f} mm after the hang"
+    assert not controller.drivers_enabled()
+    st = after_reset(drum, controller, boot0, ResetCause.WATCHDOG)
+    assert not st.drivers_enabled and st.faults == Fault(0)
+    with pytest.raises(DrumNotHomed):
+        drum.press()
+    physically_still(controller)
+
+
+def test_estop_disables_the_drivers_at_once_and_latches(drum, controller):
+    """The e-stop contact opens while the drum turns and the force is held: ESTOP latches, the drivers are disabled,
+    the drum and the actuator stop where they are (no back-off: the drivers have no power); CLEAR_FAULT is refused
+    while the contact is open; closed again, CLEAR_FAULT leads to NOT_HOMED (steps may have been lost), and HOME
+    to IDLE."""
+    drum.set_force(250)
+    drum.set_speed(60)
+    drum.run()
+    poll(drum, lambda s: s.state == S.RUNNING and s.speed_mm_s > 20, 10, "the drum turning")
+    assert controller.drivers_enabled()
+    controller.set_estop(True)
+    st = poll(drum, lambda s: s.state == S.FAULT, 2, "FAULT")
+    assert st.faults == Fault.ESTOP and st.estop_open and not st.drivers_enabled and not st.homed
+    assert not controller.drivers_enabled()
+    physically_still(controller)  # the actuator stopped where it was; meanwhile an undriven drum coasts to rest
+    travel = controller.drum_travel_mm()
+    silent(controller, 300)
+    assert controller.drum_travel_mm() == pytest.approx(travel, abs=0.05)  # nothing drives the drum
+    with refused():
+        drum.clear_fault()
+    with refused():
+        drum.home()
+    controller.set_estop(False)
+    poll(drum, lambda s: not s.estop_open, 2, "the e-stop input closed")
+    st = drum.read_status()
+    assert (st.state, st.faults) == (S.FAULT, Fault.ESTOP)  # latched
+    drum.clear_fault()
+    assert drum.read_status().state == S.NOT_HOMED
+    with pytest.raises(DrumNotHomed):
+        drum.run()
+    drum.home()
+    st = drum.wait_state(S.IDLE, timeout_s=30)
+    assert st.homed and st.actuator_mm == 0
+
+
+def test_estop_open_at_boot_latches_at_once(drum, controller):
+    """A broken e-stop wire at power-up: the controller boots straight into FAULT (ESTOP), drivers disabled."""
+    boot0 = drum.read_status().boot_count
+    controller.set_estop(True)
+    poll(drum, lambda s: s.state == S.FAULT, 2, "FAULT")
+    controller.reset("poweron")
+    deadline = controller.clock_s() + 10
+    while True:
+        try:
+            st = drum.read_status()
+            if st.boot_count != boot0:
+                break
+        except Exception:  # noqa: BLE001 - the reset window
+            pass
+        assert controller.clock_s() < deadline
+        time.sleep(0.05)
+    assert (st.state, st.faults, st.reset_cause) == (S.FAULT, Fault.ESTOP, ResetCause.POWER_ON)
+    assert st.estop_open and not st.drivers_enabled
+
+
+def test_broken_home_switch_homing_gives_up(drum, controller):
+    """HOME with a broken home-switch wire: the actuator backs towards home for at most 25 mm of travel (or 10 s),
+    then HOME_NOT_FOUND latches, the drivers are disabled, and CLEAR_FAULT leads to NOT_HOMED; with the switch mended
+    HOME works. Firmware 1.0 drove into the rear stop for ever."""
+    controller.break_home_switch(True)
+    hb0 = drum.read_status().heartbeat
+    drum.home()
+    st = poll(drum, lambda s: s.state != S.HOMING, 15, "the end of HOMING")
+    assert (st.state, st.faults) == (S.FAULT, Fault.HOME_NOT_FOUND)
+    took_s = (st.heartbeat - hb0) % 65536 / 100
+    assert took_s <= wire.HOME_TIMEOUT_MS / 1000 + 0.5
+    assert -st.actuator_mm <= wire.HOME_MAX_TRAVEL_MM + 0.5  # the step count: at most the travel limit
+    physically_still(controller)
+    assert not controller.drivers_enabled()
+    drum.clear_fault()
+    assert drum.read_status().state == S.NOT_HOMED
+    controller.break_home_switch(False)
+    drum.home()
+    st = drum.wait_state(S.IDLE, timeout_s=30)
+    assert st.homed and st.actuator_mm == 0
+
+
+def test_bad_eeprom_calibration_is_reported(drum, controller):
+    """A saved calibration survives a reset (no CALIBRATION_DEFAULTS); a corrupted record fails its checksum at the
+    next boot: the defaults are used and CALIBRATION_DEFAULTS says so (firmware 1.0 fell back silently)."""
+    drum.set_loadcell_scale(2150.0)  # a 1 kg, 1 mV/V cell: beyond firmware 1.0's 655.35 counts/g
+    drum.command(Command.SAVE_CALIBRATION)
+    boot0 = drum.read_status().boot_count
+    controller.reset("external")
+    st = after_reset(drum, controller, boot0, ResetCause.EXTERNAL)
+    assert not st.calibration_defaults and drum.loadcell_scale() == 2150.0
+    controller.corrupt_eeprom()
+    controller.reset("external")
+    st = after_reset(drum, controller, st.boot_count, ResetCause.EXTERNAL)
+    assert st.calibration_defaults
+    assert drum.loadcell_scale() == wire.join_s32(DEFAULT[HR.LOADCELL_SCALE_X100_HI],
+                                                  DEFAULT[HR.LOADCELL_SCALE_X100_LO]) / 100
