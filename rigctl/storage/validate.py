@@ -16,7 +16,8 @@
 - **impossible attributes**: a plan duration that is not finite, <= 0 or over :data:`MAX_TRIAL_S`; a counter
   (``dropped_frames``, ``crc_errors``) above :func:`max_count` (16 per frame slot of the trial + 1024: more frames
   than the link could have carried); a sensor sample rate above :data:`MAX_RATE_HZ` (every trial excluded);
-- **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (BLAKE2b of the counts).
+- **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (BLAKE2b of the counts; constant
+  trials, e.g. a silent sensor, are not compared).
 
 The reasons are one line each; :attr:`TrialReport.excluded` maps trial id -> reason.
 """
@@ -169,6 +170,8 @@ def _check_counts(session: Session, taxels: h5py.Dataset, tid: int, digests: dic
             row = int(np.flatnonzero(((data < 0) | (data > adc_max)).any(axis=1))[0])
             return (f"taxels hold {hi if hi > adc_max else lo} (sample {row}), outside the sensor's "
                     f"{session.layout.adc_bits}-bit range 0..{adc_max}")
+    if data.size == 0 or int(data.min()) == int(data.max()):
+        return None  # a constant trial (a silent sensor) is no evidence of a copy
     digest = hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest()
     if digest in digests:
         return f"its taxels are a byte copy of trial {digests[digest]}'s"
