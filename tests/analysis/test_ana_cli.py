@@ -44,7 +44,8 @@ def test_table1_layout(encoded):
                                   "--compare-paper", "--no-progress", "--variants", "original,speed_scaled"])
     assert r.exit_code == 0, r.output
     lines = r.stdout.splitlines()
-    assert lines[0].startswith("Classification accuracy with 6 PCs (%) [asked for 50]")
+    assert lines[0] == "Classification accuracy with 6 PCs (%)"  # --pcs 6: nobody asked for 50 (the default of
+    # --table-pcs), so no "[asked for 50]" (issue 24)
     rows = [ln for ln in lines if ln.startswith(("Individual", "Texture Groups", "Untrained", "Trained"))]
     assert [r_.split("  ")[0] for r_ in rows] == ["Individual Textures (Fig. 3A)", "Texture Groups (Fig. 3B)",
                                                   "Untrained Speed and Force (Fig. 3C)", "Untrained Force (Fig. 3D)",
