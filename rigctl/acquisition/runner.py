@@ -53,8 +53,10 @@ from typing import Any
 
 from rigctl.acquisition.calibration import session_calibration_block
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
+from rigctl.acquisition.provenance import session_provenance
 from rigctl.acquisition.rig import CaptureError, Rig, TrialAborted
 from rigctl.core.progress import ProgressCallback, Stage
+from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json
 from rigctl.core.trial import PlannedTrial, TrialData
 from rigctl.storage.session import SessionError, SessionWriter, TrialStatus
 
@@ -286,11 +288,13 @@ def run_protocol(
         if resume:
             writer = SessionWriter.open(out_path, protocol_source=protocol.source)
         else:
+            described = rig.describe()
             writer = SessionWriter.create(
                 out_path, plan=protocol.plan(), layout=rig.layout, textures=protocol.texture_set,
                 protocol_source=protocol.source, protocol_name=protocol.name,
-                protocol_format="toml", rig_config=rig.describe(), kind="recorded",
+                protocol_format="toml", rig_config=described, kind="recorded",
                 calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
+                attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol))},
                 overwrite=overwrite,
             )
         run = _Run(protocol, writer, out_path, rig, interrupts=interrupts, progress=progress, stop_event=stop_event,
@@ -497,10 +501,12 @@ def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: b
     if resume:
         raise SessionError(f"{protocol.path}: a Python-script protocol cannot be resumed by the runner "
                            "(the script decides its trials); start a new session file")
+    described = rig.describe()
     writer = SessionWriter.create(
         out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source,
         protocol_name=protocol.name, protocol_format="python",
-        rig_config=rig.describe(), kind="recorded", calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
+        rig_config=described, kind="recorded", calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
+        attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol))},
         overwrite=overwrite,
     )
     summary = RunSummary(path=out_path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -119,13 +120,51 @@ def _fmt(v, spec=".1f", none="-"):
     return none if v is None else format(v, spec)
 
 
+def _provenance_lines(prov: Any, prefix: str = "") -> list[str]:
+    """``prov`` as ``key.path: value`` lines, a multi-line text (the protocol) as an indented block after its key."""
+    lines = []
+    for key, value in prov.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            lines += _provenance_lines(value, name + ".")
+        elif isinstance(value, str) and "\n" in value:
+            lines.append(f"{name}:")
+            lines += [f"    {line}" for line in value.rstrip().splitlines()]
+        else:
+            lines.append(f"{name}: {json_text(value) if isinstance(value, (dict, list)) else value}")
+    return lines
+
+
+def _show_provenance(file: Path, as_json: bool) -> None:
+    from rigctl.storage.provenance import ProvenanceError, read_provenance
+
+    try:
+        prov = read_provenance(file)
+    except ProvenanceError as exc:
+        raise click.ClickException(str(exc)) from None
+    if as_json:
+        click.echo(json_text(prov, indent=2))
+        return
+    for line in _provenance_lines(prov):
+        click.echo(line)
+
+
 @click.command()
 @click.argument("file", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the summary as JSON.")
-def info(file, as_json):
+@click.option("--provenance", is_flag=True, default=False,
+              help="Print what made FILE instead (a session, an encoded file or an NWB export): its UUID, rigctl's "
+                   "version and git state, Python and package versions, host, command line, both boards' firmware "
+                   "against the installed sources, the protocol, the rig config and calibration with their dates, "
+                   "seeds, encoder parameters, and the provenance of the files it was made from.")
+def info(file, as_json, provenance):
     """Summarise the session FILE: per trial its setpoints, samples, samples per second, dropped frames, CRC errors
-    and status; then the totals."""
+    and status; then the totals. With --provenance: what made FILE."""
     from rigctl.storage.session import SessionError
+
+    if provenance:
+        _show_provenance(file, as_json)
+        return
 
     try:
         summary = session_summary(file)

@@ -62,6 +62,7 @@ import numpy as np
 
 from rigctl.core.cluster import dask_client
 from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
+from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import SensorLayout
 from rigctl.encoding.features import (
     realtime_features,
@@ -456,7 +457,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                "windows_note": windows_note, "skipped_variants": skipped,
                                "source_session": str(run.session_path), "variants": list(run.variants),
                                "excluded_trials": {str(k): v for k, v in read.excluded.items()},
-                               "lossy_trials": sorted(read.lossy), "lost_frames": int(sum(read.lossy.values()))})
+                               "lossy_trials": sorted(read.lossy), "lost_frames": int(sum(read.lossy.values())),
+                               PROVENANCE_ATTR: provenance_json(_provenance(run, p))})
     try:
         _write_tables(writer, run, p, read, force)
         _encode_pass(writer, run, p, read, force, progress)  # pass 2: encode in batches
@@ -507,6 +509,19 @@ class EncodeRun:
             raise FileExistsError(f"{run.out_path} exists (pass overwrite=True / --overwrite to replace it)")
         check_output(run.out_path, overwrite=True, inputs=(run.session_path,))
         return run
+
+
+def _provenance(run: EncodeRun, p: EncodeParams) -> dict[str, Any]:
+    """The encoded file's provenance: this process's, the encoder's parameters and variants, and the source
+    session's own provenance (``rigctl.core.provenance``) with its UUID."""
+    from rigctl.storage.provenance import ProvenanceError, read_provenance
+
+    try:
+        source: dict[str, Any] | None = read_provenance(run.session_path)
+    except (ProvenanceError, OSError):
+        source = None
+    return software_provenance(encoder={"parameters": asdict(p), "variants": list(run.variants)},
+                               source_session={"path": str(run.session_path), "provenance": source})
 
 
 @dataclass

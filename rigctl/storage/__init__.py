@@ -21,6 +21,7 @@ _EXPORTS = {
     "load_model": "rigctl.storage.model_file",
     "save_model": "rigctl.storage.model_file",
     "export_nwb": "rigctl.storage.nwb",
+    "read_provenance": "rigctl.storage.provenance",
     "Session": "rigctl.storage.session",
     "SessionError": "rigctl.storage.session",
     "SessionWriter": "rigctl.storage.session",

@@ -245,6 +245,7 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
             _add_traces(nwb, s, timeline, Stage(progress, "reading traces", len(timeline.ids)))
             _add_trials_table(nwb, s, timeline)
             _add_plan(nwb, s)
+            _add_provenance(nwb, session_path, params.encoded_path)
             if params.encoded_path is not None:
                 _add_units(nwb, params.encoded_path, timeline.ids, timeline.starts, s.layout, chosen, summary)
             _write(nwb, target)
@@ -296,6 +297,26 @@ def _new_nwbfile(s: Any, out_path: Path) -> Any:
     nwb.create_device(name="taxel_sensor", description=layout.to_json())
     nwb.create_device(name="drum_rig", description=json.dumps(s.rig_config, default=str))
     return nwb
+
+
+def _add_provenance(nwb: Any, session_path: Any, encoded_path: Any) -> None:
+    """``/scratch/rigctl_provenance`` (:data:`rigctl.storage.provenance.NWB_PROVENANCE`): the export's provenance
+    with the session's (and the encoded file's) nested, as JSON text."""
+    from rigctl.core.provenance import provenance_json, software_provenance
+    from rigctl.storage.provenance import NWB_PROVENANCE, ProvenanceError, read_provenance
+
+    def of(path: Any) -> Any:
+        try:
+            return read_provenance(path)
+        except (ProvenanceError, OSError):
+            return None
+
+    prov = software_provenance(source_session={"path": str(session_path), "provenance": of(session_path)},
+                               encoded=None if encoded_path is None else {"path": str(encoded_path),
+                                                                          "provenance": of(encoded_path)})
+    nwb.add_scratch(provenance_json(prov), name=NWB_PROVENANCE.split("/")[-1],
+                    description="rigctl provenance (JSON): software, git state, host, command line, and the "
+                                "session's own (firmware, protocol, rig config, calibration)")
 
 
 def _add_taxels(nwb: Any, s: Any, tl: _Timeline, progress: ProgressCallback | None, target: OutputTarget) -> None:
