@@ -262,7 +262,7 @@ def test_rig_config_is_checked_before_the_rig_opens(data, tmp_path, monkeypatch)
     cfg = tmp_path / "rig.json"
     for doc, words in (('{"loadcell": {"counts_per_g": 420', ("--config", "not valid JSON")),
                        ('{"loadcel": {"counts_per_g": 420}}', ("--config", '"loadcel"', "loadcell")),
-                       ('{"loadcell": {"counts_per_g": "420"}}', ("loadcell.counts_per_g", "a number > 0")),
+                       ('{"loadcell": {"counts_per_g": "420"}}', ("loadcell.counts_per_g", "non-zero number")),
                        ('{"taxel_normalisation": {"taxel_min": [1], "taxel_max": [2], "n_trials": 1.5}}',
                         ("taxel_normalisation.n_trials", "integer"))):
         cfg.write_text(doc)

@@ -52,7 +52,7 @@ class CalibrationError(RuntimeError):
 
 class RigConfigError(CalibrationError):
     """The rig config file is not valid JSON or does not follow :data:`SCHEMA`; the message names the file and the
-    key at fault (e.g. ``rig.json: loadcell.counts_per_g: expected a number > 0, got "420"``)."""
+    key at fault (e.g. ``rig.json: loadcell.counts_per_g: expected a non-zero number, got "420"``)."""
 
 
 #: block -> key -> (kind, required); kinds: "number", "positive", "nonzero", "count" (int >= 0), "scale" (a

@@ -180,7 +180,18 @@ def test_pi_force_loop_settles_in_a_realistic_time(setpoint):
     from rigctl.devices.wire import Command, HoldingRegister as HR
     from rigctl.simulation.controller import MegaController
 
+    from rigctl.core.drum import DrumState
+
     ctl = MegaController(RigModel(seed=1))
+    # a controller out of reset is NOT_HOMED and refuses PRESS until HOME succeeds (docs/wire-protocol.md 2.6)
+    assert ctl.write_registers(6, HR.COMMAND, [int(Command.PRESS)]) is not None
+    assert ctl.write_registers(6, HR.COMMAND, [int(Command.HOME)]) is None
+    for _ in range(1000):  # 10 s at most
+        ctl.note_request()
+        ctl.step(10)
+        if ctl.state == DrumState.IDLE:
+            break
+    assert ctl.state == DrumState.IDLE
     assert ctl.write_registers(6, HR.FORCE_SETPOINT_G, [int(setpoint)]) is None
     assert ctl.write_registers(6, HR.COMMAND, [int(Command.PRESS)]) is None
     t, forces = [], []
