@@ -12,6 +12,8 @@ from rigctl.devices.wire import DrumState, HoldingRegister as HR
 from rigctl.simulation.hil import HilRig
 from rigctl.simulation.model import DrumConfig
 
+from .conftest import home
+
 pytestmark = pytest.mark.hil
 
 
@@ -20,6 +22,7 @@ def test_a_bouncing_index_sensor_counts_each_revolution_once(fw_build):
         drum = DrumClient(rig.drum_port, timeout_s=1.0, clock=rig.clock).open()
         try:
             drum.write_holding(HR.WATCHDOG_MS, 10000)
+            home(drum)  # out of reset the Mega is NOT_HOMED and refuses RUN
             drum.set_force(250)
             drum.set_speed(120)
             drum.run()
