@@ -181,13 +181,16 @@ def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: fl
     """A device's frame rate measured on the host clock, frames/s.
 
     A frame's host receive time is its true time plus a non-negative delivery delay (USB/OS batching,
-    scheduling), so the rate comes from the lower envelope: the least-delayed frame in the first third and in
-    the last third, ``(index_b - index_a) / (t_b - t_a)``, where the index counts dropped frames (from ``seq``).
-    Delays do not bias it, unlike a least-squares fit, as long as each third holds frames stamped with the least
-    delay: the taxel reader stamps a chunk as a fresh burst arrives (``rigctl.devices.taxel_stream``), and the
-    runner measures over the stream's history up to a trial's end, not the trial alone, so a stretch of a loaded
-    host's late deliveries (seen: 0.2-0.3 s reader stalls over most of a 2 s trial) is a small part of either
-    third.
+    scheduling): ``t_k = t_0 + k / rate + d_k`` with ``d_k >= 0``, where ``k`` counts dropped frames too (from
+    ``seq``). The rate comes from the lower envelope of ``(k, t_k)``, not a least-squares fit (which delays bias):
+    the line below every frame that lies closest to them on average, i.e. the lower convex hull's edge above the
+    mean frame index (minimising ``sum(t_k - line(k))`` under ``line(k) <= t_k`` puts the line on that edge). Its
+    slope is exact as long as the frames stamped with the least delay around the middle of the history are not
+    all late: a stretch of late deliveries at either end (a loaded host's reader stalled 0.2-1.7 s at a stream's
+    start, seen under CI load) leaves it unmoved, where the earlier estimate (the least-delayed frame of the first
+    and last thirds) read 1,390 Hz for a 1 kHz board when the whole first third came late. The taxel reader stamps
+    a chunk as a fresh burst arrives (``rigctl.devices.taxel_stream``), and the runner measures over the stream's
+    history up to a trial's end, not the trial alone.
 
     Parameters
     ----------
@@ -199,7 +202,7 @@ def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: fl
     Returns
     -------
     float
-        frames/s; NaN with fewer than 6 frames.
+        frames/s; NaN with fewer than 6 frames or a history that does not move forward in time.
     """
     n = len(seq)
     if n < 6:
@@ -209,9 +212,43 @@ def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: fl
     steps = ((s[1:] - s[:-1]) & 0xFFFF).astype(np.int64)
     steps[steps == 0] = 1
     index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
-    lag = t - index / float(rate_hz)  # delay + drift, relative to the nominal rate
-    third = n // 3
-    a = int(np.argmin(lag[:third]))
-    b = n - third + int(np.argmin(lag[n - third:]))
-    dt = float(t[b] - t[a])
-    return float(index[b] - index[a]) / dt if dt > 0 else math.nan
+    lag = (t - t[0]) - index / float(rate_hz)  # delay + drift, relative to the nominal rate, s
+    slope = _lower_hull_slope(index, lag, float(index.mean()))  # s of lag per frame
+    period = 1.0 / float(rate_hz) + slope
+    return 1.0 / period if period > 0 else math.nan
+
+
+def _lower_hull_slope(x: np.ndarray, y: np.ndarray, at: float) -> float:
+    """Slope of the lower convex hull of the points ``(x, y)`` (``x`` increasing) on the edge above ``x = at``.
+
+    Candidates are the points on or below the end-to-end chord (every lower-hull vertex is), thinned to the convex
+    hull's vertices by qhull (``scipy.spatial.ConvexHull``); Andrew's monotone chain then keeps the lower ones."""
+    chord = y[0] + (y[-1] - y[0]) * (x - x[0]) / (x[-1] - x[0])
+    resid = y - chord
+    below = resid <= 0
+    below[0] = below[-1] = True
+    px, py = x[below], y[below]
+    if len(px) > 64:  # qhull (scipy) thins the candidates to the hull's vertices; the chain below picks the lower ones
+        from scipy.spatial import ConvexHull, QhullError
+
+        span_y = float(np.ptp(py)) or 1.0
+        try:
+            vertices = np.sort(ConvexHull(np.column_stack(((px - px[0]) / (px[-1] - px[0]), (py - py[0]) / span_y))).vertices)
+        except QhullError:  # collinear: every candidate is on the line
+            vertices = np.array([0, len(px) - 1])
+        px, py = px[vertices], py[vertices]
+    hull: list[int] = []
+    for i in range(len(px)):
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            # drop b if it is not strictly below the segment a -> i (cross product <= 0: a right turn or straight)
+            if (px[b] - px[a]) * (py[i] - py[a]) - (py[b] - py[a]) * (px[i] - px[a]) <= 0:
+                hull.pop()
+            else:
+                break
+        hull.append(i)
+    hx = px[hull]
+    k = int(np.searchsorted(hx, at, side="right")) - 1
+    k = min(max(k, 0), len(hull) - 2)
+    i, j = hull[k], hull[k + 1]
+    return float((py[j] - py[i]) / (px[j] - px[i]))
