@@ -177,10 +177,9 @@ def test_hx711_converts_once_per_period_and_settles_in_four(sps):
 def test_pi_force_loop_settles_in_a_realistic_time(setpoint):
     """The virtual Mega's force loop (the firmware's algorithm and default gains) on the model with the HX711's delay,
     default stiffness (250 g/mm), pressing from home: settles within FORCE_TOLERANCE_G in 1-4 s, small overshoot."""
+    from rigctl.core.drum import DrumState
     from rigctl.devices.wire import Command, HoldingRegister as HR
     from rigctl.simulation.controller import MegaController
-
-    from rigctl.core.drum import DrumState
 
     ctl = MegaController(RigModel(seed=1))
     # a controller out of reset is NOT_HOMED and refuses PRESS until HOME succeeds (docs/wire-protocol.md 2.6)
