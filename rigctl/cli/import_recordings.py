@@ -56,6 +56,9 @@ def _checked_segment(ctx, param, value):
 @click.option("--volts-ref", type=click.FloatRange(min=0, min_open=True), default=None, metavar="V",
               help="The recordings are volts with this ADC reference: one count is V/2^bits volts (5 V, 10 bits: "
                    "5/1024 V), so V itself is past the top count (default: the recordings are counts).")
+@click.option("--nan", "nan", type=click.Choice(["refuse", "hold", "interpolate"]), default=None,
+              help="NaN samples: refuse (default; the error names the file, the count and the first samples), hold "
+                   "the last good value, or interpolate linearly between good samples.")
 @click.option("--bits", "adc_bits", type=click.IntRange(1, 16), default=None,
               help="ADC resolution of the stored counts [default: 10].")
 @click.option("--preset", type=click.Choice(["fabricslide"]), default=None,
@@ -64,7 +67,7 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      mapping, volts_ref, adc_bits, preset, overwrite, as_json, quiet):
+                      mapping, volts_ref, nan, adc_bits, preset, overwrite, as_json, quiet):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
@@ -92,7 +95,8 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         with bars(not quiet and not as_json) as progress:
             summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
                           texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, mapping=mapping,
-                          volts_ref=volts_ref, adc_bits=adc_bits, overwrite=overwrite, progress=progress)
+                          volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, overwrite=overwrite,
+                          progress=progress)
     except (RecordingImportError, FileExistsError, FileNotFoundError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     if as_json:

@@ -13,7 +13,8 @@ Steps, each explicit and recorded in the session's root attributes (``import_ste
    (``scipy.io.loadmat``; v7.3 files through h5py, transposed back from MATLAB's column-major order), NWB
    (``.nwb``, a ``TimeSeries`` read with pynwb; its ``rate`` is used when no rate is given). Arrays are turned to
    ``(n_samples, n_channels)`` (a ``(channels, n)`` array is transposed when the channel count says so, or when it
-   has more columns than rows).
+   has more columns than rows). NaN samples (``--nan``): refused by default with the count and the first sample
+   indices, or held (last good value) or linearly interpolated per channel (:func:`fill_nan`); the count is recorded.
 2. **Resample** (optional, ``--resample HZ``): ``scipy.signal.resample_poly`` (polyphase FIR, Kaiser window,
    ``padtype="line"``) by the rational factor ``up/down`` closest to ``resample_hz / rate_hz``.
 3. **Scale** to ADC counts at the layout's bits: counts as given (``x * scale + offset``, rounded; mapping keys
@@ -45,6 +46,7 @@ The TOML mapping may give every command-line value (command-line values win)::
     label_pattern = "{texture}__V{speed_mm_s}__{rep}.csv"
     resample_hz = 1000.0
     segment = "fixed:2.0"
+    nan = "interpolate"       # NaN samples: refuse (default) | hold | interpolate
     variable = "taxels"       # array / TimeSeries name in NPZ, MAT, NWB
     columns = ["t1", "t2"]    # CSV channel columns, in channel order (names or 0-based indices)
     time_column = "time"      # a CSV column that is not a channel
@@ -81,8 +83,8 @@ from rigctl.core.trial import TrialData
 
 __all__ = [
     "RecordingImportError", "ImportedTrial", "FORMATS", "read_recording_file", "parse_label_pattern",
-    "labels_from_name", "resample", "to_counts", "volts_step", "segment", "parse_segment", "load_mapping", "import_recordings",
-    "write_imported_session", "write_session",
+    "labels_from_name", "resample", "to_counts", "volts_step", "fill_nan", "NAN_POLICIES", "segment",
+    "parse_segment", "load_mapping", "import_recordings", "write_imported_session", "write_session",
 ]
 
 #: extension -> format name
@@ -275,7 +277,7 @@ def _nwb_trials(table: Any, start_s: float, rate: float, n: int) -> list[dict[st
 
 
 def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = None, variable: str | None = None,
-                        columns: Sequence[Any] | None = None, time_column: Any = None
+                        columns: Sequence[Any] | None = None, time_column: Any = None, nan: str = "refuse"
                         ) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
     """Read one recording file.
 
@@ -283,11 +285,14 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     -------
     blocks : list of (n_samples, n_channels) float64 arrays (one per stacked trial; usually one)
     rate_hz : float or None, the rate the file itself states (NWB), else None
-    meta : dict, format details for the session's attributes
+    meta : dict, format details for the session's attributes (``nan``: the policy and the values it filled)
+
+    ``nan`` is the NaN policy (:func:`fill_nan`: refuse, hold, interpolate).
 
     Raises
     ------
-    RecordingImportError for an unknown extension, an unreadable file or an array that is not 1-3-D numeric.
+    RecordingImportError for an unknown extension, an unreadable file, an array that is not 1-3-D numeric,
+    infinite values, or NaN values under ``nan="refuse"`` (the count and first sample indices named).
     """
     path = Path(path)
     fmt = FORMATS.get(path.suffix.lower())
@@ -323,9 +328,55 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     for b in blocks:
         if b.shape[0] < 1:
             raise RecordingImportError(f"{path}: no samples")
-        if not np.all(np.isfinite(b)):
-            raise RecordingImportError(f"{path}: holds NaN or infinite values")
-    return blocks, rate, meta
+        if np.isinf(b).any():
+            raise RecordingImportError(f"{path}: holds infinite values (at samples "
+                                       f"{_first_rows(np.isinf(b))}); fix the file")
+    filled = [fill_nan(b, nan, str(path)) for b in blocks]
+    meta["nan"] = {"policy": nan, "samples": sum(n for _, n in filled)}
+    return [b for b, _ in filled], rate, meta
+
+
+#: what ``--nan`` may say: refuse (default), hold the last good sample, interpolate linearly between good samples
+NAN_POLICIES = ("refuse", "hold", "interpolate")
+
+
+def _first_rows(bad: np.ndarray, k: int = 5) -> str:
+    """The first ``k`` sample indices (0-based rows) where ``bad`` (n, c) holds, as text."""
+    rows = np.flatnonzero(bad.any(axis=1))
+    return ", ".join(str(int(r)) for r in rows[:k]) + (", ..." if rows.size > k else "")
+
+
+def fill_nan(x: np.ndarray, policy: str, where: str = "") -> tuple[np.ndarray, int]:
+    """NaN samples of ``(n, c)`` readings handled by ``policy`` (:data:`NAN_POLICIES`).
+
+    ``refuse``: RecordingImportError naming ``where``, the NaN count and the first sample indices. ``hold``: each
+    NaN takes the channel's last good value (leading NaNs the first good one). ``interpolate``: linear between the
+    channel's good neighbours (``numpy.interp``; the ends hold). Returns ``(readings, n_nan_values)``; a channel with
+    no good value is refused under every policy.
+    """
+    if policy not in NAN_POLICIES:
+        raise RecordingImportError(f"--nan {policy!r}: use {' | '.join(NAN_POLICIES)}")
+    bad = np.isnan(x)
+    n_bad = int(bad.sum())
+    if not n_bad:
+        return x, 0
+    if policy == "refuse":
+        raise RecordingImportError(f"{where}: {n_bad} NaN values in {int(bad.any(axis=1).sum())} samples (first at "
+                                   f"samples {_first_rows(bad)}); give --nan hold or --nan interpolate")
+    empty = np.flatnonzero(bad.all(axis=0))
+    if empty.size:
+        raise RecordingImportError(f"{where}: channel {int(empty[0])} holds only NaN; nothing to fill it from")
+    out = np.array(x, dtype=np.float64, copy=True)
+    idx = np.arange(x.shape[0])
+    for c in np.flatnonzero(bad.any(axis=0)):
+        good = ~bad[:, c]
+        if policy == "interpolate":
+            out[:, c] = np.interp(idx, idx[good], x[good, c])
+        else:
+            last = np.maximum.accumulate(np.where(good, idx, -1))
+            last[last < 0] = int(np.flatnonzero(good)[0])
+            out[:, c] = x[last, c]
+    return out, n_bad
 
 
 # ----------------------------------------------------------------------------------------------------- labels
@@ -533,7 +584,7 @@ def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
 
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
-                "label_pattern", "resample_hz", "segment", "variable", "columns", "time_column", "defaults", "files",
+                "label_pattern", "resample_hz", "segment", "nan", "variable", "columns", "time_column", "defaults", "files",
                 "texture_set")
 
 
@@ -631,7 +682,7 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
                       channels: int | None = None, layout: str | None = None, label_pattern: str | None = None,
                       texture: str | None = None, resample_hz: float | None = None, segment_spec: str | None = None,
                       mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None, volts_ref: float | None = None,
-                      adc_bits: int | None = None, overwrite: bool = False,
+                      adc_bits: int | None = None, nan: str | None = None, overwrite: bool = False,
                       progress: ProgressCallback | None = None) -> dict[str, Any]:
     """Import recordings (CSV, NPY/NPZ, MAT, NWB) into a session file; the steps are in the module docstring.
 
@@ -650,6 +701,8 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
     mapping : TOML mapping path (or an already-loaded dict).
     volts_ref : the inputs are volts with this reference (V) -> counts at ``adc_bits``.
     adc_bits : ADC resolution of the stored counts (default 10).
+    nan : NaN samples: ``refuse`` (default; the error names the file, the count and the first samples), ``hold``,
+        ``interpolate`` (:func:`fill_nan`); the mapping's ``nan`` otherwise.
     progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stage ``"reading recordings"``
         (done/total = files), then ``"writing trials"`` (done/total = trials).
 
@@ -674,6 +727,7 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
     resample_hz = resample_hz if resample_hz is not None else m.get("resample_hz")
     segment_spec = segment_spec or m.get("segment")
     volts_ref = volts_ref if volts_ref is not None else m.get("volts_ref")
+    nan = nan or m.get("nan") or "refuse"
     adc_bits = int(adc_bits if adc_bits is not None else m.get("adc_bits", 10))
     scale, offset = float(m.get("scale", 1.0)), float(m.get("offset", 0.0))
     if layout and channels is None:
@@ -697,7 +751,8 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
     bar = Stage(progress, "reading recordings", len(paths), unit="file")
     for path in paths:
         blocks, file_rate, meta = read_recording_file(path, channels=channels, variable=m.get("variable"),
-                                                      columns=m.get("columns"), time_column=m.get("time_column"))
+                                                      columns=m.get("columns"), time_column=m.get("time_column"),
+                                                      nan=nan)
         src_rate = float(rate_hz) if rate_hz is not None else file_rate
         if src_rate is None or not src_rate > 0:
             raise RecordingImportError(f"{path}: no sample rate: give --rate HZ (or rate_hz in the mapping)")

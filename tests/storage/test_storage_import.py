@@ -284,6 +284,34 @@ def test_volts_with_a_reference(tmp_path):
     assert "V/2^bits" in help_text
 
 
+def test_nan_samples_refused_by_count_and_position_or_held_or_interpolated(tmp_path):
+    """NaN at samples 1-2 (as a lab's logger writes them) and a run at 100-103: refused by default with the file,
+    the count and the first positions; --nan hold repeats the last good value, --nan interpolate draws the line."""
+    counts = recording(0).astype(np.float64)
+    x = counts.copy()
+    x[1:3, 0] = np.nan
+    x[100:104, 4] = np.nan
+    p = write(tmp_path / "wool__V10__0.npy", x, "npy")
+    out = tmp_path / "s.h5"
+    r = run(p, "--rate", 100, "--label-pattern", PATTERN, "--out", out)
+    assert r.exit_code == 1 and "Traceback" not in r.output and not out.exists()
+    assert "wool__V10__0.npy" in r.output and "6 NaN values" in r.output and "samples 1, 2, 100, 101, 102" in r.output
+    for policy in ("hold", "interpolate"):
+        r = run(p, "--rate", 100, "--label-pattern", PATTERN, "--nan", policy, "--out", out, "--overwrite")
+        assert r.exit_code == 0, r.output
+        with open_session(out) as s:
+            got = s.trial(0).taxels.astype(np.float64)
+            read = json.loads(s.attrs["import_steps"])["read"][0]
+        ok = ~np.isnan(x)
+        np.testing.assert_array_equal(got[ok], counts[ok])  # good samples untouched
+        if policy == "hold":
+            assert list(got[1:3, 0]) == [counts[0, 0]] * 2 and list(got[100:104, 4]) == [counts[99, 4]] * 4
+        else:
+            line = np.interp(np.arange(100, 104), [99, 104], [counts[99, 4], counts[104, 4]])
+            np.testing.assert_array_equal(got[100:104, 4], np.rint(line))
+        assert read["nan"] == {"policy": policy, "samples": 6}
+
+
 def test_fabricslide_preset_fabrics_and_board_in_one_16_channel_file(fabricslide_dir, tmp_path):
     """The FabricSlide preset (real files, read in place): 16 channels as 16 at 1 kHz, fabrics and board in one
     session with the FabricSlide texture set; the same via `rigctl import --preset fabricslide` is refused for two
