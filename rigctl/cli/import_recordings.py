@@ -49,8 +49,14 @@ def _checked_segment(ctx, param, value):
 @click.option("--resample", "resample_hz", type=RATE_HZ, default=None,
               metavar="HZ", help="Resample to this rate (scipy.signal.resample_poly); recorded in the session.")
 @click.option("--segment", "segment_spec", default=None, metavar="METHOD", callback=_checked_segment,
-              help="Cut continuous recordings into trials: fixed:SECONDS[:HOP_S], "
-                   "threshold:LEVEL[:MIN_S[:SMOOTH_S]] or cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]].")
+              help="Cut continuous recordings into trials, per file at its own level: fixed:SECONDS[:HOP_S], "
+                   "threshold[:LEVEL[%][:MIN_S[:SMOOTH_S]]] (LEVEL: % of the file's own swing, default 50%, or "
+                   "counts) or cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]] (press-and-slide cycles, the period checked "
+                   "against its harmonics). A table per file is printed.")
+@click.option("--align", type=click.Choice(["onset", "none"]), default=None,
+              help="cycles: cut each trial at its press onset (default) or from sample 0 (none).")
+@click.option("--pre-ms", type=click.FloatRange(min=0, max=60_000), default=None, metavar="MS",
+              help="Margin kept before each press onset / run start, ms [default: 0].")
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
               help="TOML mapping giving any of these values, per-file labels and the texture set.")
 @click.option("--volts-ref", type=click.FloatRange(min=0, min_open=True), default=None, metavar="V",
@@ -67,7 +73,7 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      mapping, volts_ref, nan, adc_bits, preset, overwrite, as_json, quiet):
+                      align, pre_ms, mapping, volts_ref, nan, adc_bits, preset, overwrite, as_json, quiet):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
@@ -94,14 +100,20 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     try:
         with bars(not quiet and not as_json) as progress:
             summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
-                          texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, mapping=mapping,
-                          volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, overwrite=overwrite,
+                          texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, align=align,
+                          pre_ms=pre_ms, mapping=mapping, volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, overwrite=overwrite,
                           progress=progress)
     except (RecordingImportError, FileExistsError, FileNotFoundError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
+    for line in summary["warnings"]:
+        click.echo(f"warning: {line}", err=True)
     if as_json:
         click.echo(json_text({k: v for k, v in summary.items() if k != "steps"}))
     else:
+        if summary["segments"]:
+            from rigctl.storage.segmentation import segment_table
+
+            click.echo(segment_table(summary["segments"]))
         click.echo(f"{summary['n_trials']} trials, {summary['n_channels']} channels at {summary['rate_hz']:g} Hz, "
                    f"{summary['samples'] / summary['rate_hz']:.1f} s -> {summary['path']} "
                    f"(textures: {', '.join(summary['textures'])})")

@@ -29,7 +29,9 @@ def session_summary(path: str | Path) -> dict:
     samples_per_s = samples / duration_s (the trial's length), host_rate_hz (frames per second on the host clock,
     lower-envelope estimate over the stream up to the trial's end), dropped_frames, crc_errors, force_mean_g,
     speed_mean_mm_s, index_source, drum_speed_index_mm_s, drum_speed_warning ("" unless the trial is flagged
-    drum_speed_mismatch), error) and ``totals``.
+    drum_speed_mismatch), source (where an imported or replayed trial came from: ``file``, ``first_sample``,
+    ``last_sample`` (inclusive, at the session's rate), ``cycle`` (the cycle or run of a segmented recording),
+    ``trial_id`` (a replayed session's trial); None for a trial recorded here), error) and ``totals``.
     """
     from rigctl.storage.validate import usable_trials
 
@@ -72,6 +74,7 @@ def session_summary(path: str | Path) -> dict:
                     t["drum_speed_index_mm_s"] = _num(a.get("drum_speed_index_mm_s", math.nan))
                     t["drum_speed_warning"] = str(a.get("drum_speed_warning", "")) if a.get(
                         "drum_speed_mismatch", False) else ""
+                    t["source"] = _source(a)
             trials.append(t)
         done = [t for t in trials if t["status"] == "complete"]
         totals = {
@@ -95,6 +98,32 @@ def session_summary(path: str | Path) -> dict:
             "calibration": sorted(s.calibration) if s.calibration else None,
             "trials": trials, "totals": totals,
         }
+
+
+#: trial attribute -> key of a trial's ``source`` in the summary (written by rigctl import and by replay)
+SOURCE_ATTRS = {"source_file": "file", "source_first_sample": "first_sample", "source_last_sample": "last_sample",
+                "cycle_index": "cycle", "source_trial_id": "trial_id"}
+
+
+def _source(attrs) -> dict | None:
+    """A trial's provenance from its attributes (:data:`SOURCE_ATTRS`), None when it has none."""
+    out = {}
+    for attr, key in SOURCE_ATTRS.items():
+        v = attrs.get(attr)
+        if v is not None:
+            out[key] = v.decode() if isinstance(v, bytes) else (str(v) if attr == "source_file" else int(v))
+    return out or None
+
+
+def _source_text(src) -> str:
+    parts = [src.get("file", "")]
+    if "trial_id" in src:
+        parts.append(f"trial {src['trial_id']}")
+    if "first_sample" in src:
+        parts.append(f"samples {src['first_sample']}-{src['last_sample']}")
+    if "cycle" in src:
+        parts.append(f"cycle {src['cycle']}")
+    return " ".join(p for p in parts if p)
 
 
 def _sensor_summary(layout) -> dict:
@@ -196,6 +225,8 @@ def info(file, as_json, provenance):
                 f"{_fmt(t['host_rate_hz']):>8} {t['dropped_frames']:>7} {t['crc_errors']:>4}  {t['status']}")
         if t.get("error"):
             line += f" ({t['error']})"
+        if t.get("source"):
+            line += f"  from {_source_text(t['source'])}"
         click.echo(line)
     for t in summary["trials"]:
         if t.get("drum_speed_warning"):

@@ -23,11 +23,15 @@ Steps, each explicit and recorded in the session's root attributes (``import_ste
    ``counts = rint(x / (V / 2**bits))``; ``V`` itself is one step past the top count and stored as ``2**bits - 1``. Values outside
    ``0 .. 2**bits - 1`` are refused with one clear error for raw counts; after resampling or volts scaling they
    are clipped and the clipped count recorded.
-4. **Segment** (optional, ``--segment``): a continuous recording cut into trials: ``fixed:SECONDS[:HOP_S]``,
-   ``threshold:LEVEL[:MIN_S[:SMOOTH_S]]`` (activity = max over channels of ``|counts - channel median|``,
-   moving-averaged over SMOOTH_S (0.05 s); runs above LEVEL counts lasting at least MIN_S (0.2 s) are trials),
-   ``cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]]`` (the period from the autocorrelation peak of the channel-mean
-   signal: the shortest lag whose peak reaches 90 % of the highest; trials of N periods, default 1).
+4. **Segment** (optional, ``--segment``, ``--align``, ``--pre-ms``; :mod:`rigctl.storage.segmentation` gives the
+   rules): a continuous recording cut into trials, per file at that file's own level: ``fixed:SECONDS[:HOP_S]``,
+   ``threshold[:LEVEL[%][:MIN_S[:SMOOTH_S]]]`` (activity runs; LEVEL a percentage of the file's own swing, default
+   50 %, or counts), ``cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]]`` (press-and-slide cycles: the period checked
+   against its harmonics and sub-harmonics, trials cut at each press onset minus ``--pre-ms``). Every trial records
+   where it came from (``source_file``, ``source_first_sample``, ``source_last_sample``, ``cycle_index``); the
+   per-file table (period, trials, rejected partial cycles) is returned and stored (``import_steps.segments``),
+   files whose period or trial count is an outlier are named in ``warnings``, and a file that yields no trial is
+   an error naming it.
 5. **Label**: ``texture``, ``speed_mm_s``, ``force_g``, ``repeat`` from the file name by ``--label-pattern``
    (``{texture}__V{speed_mm_s}__{rep}.csv``; aliases ``label``, ``speed``, ``force``, ``rep``; other fields become
    trial attributes), from the mapping's ``[files."NAME"]`` tables, ``[defaults]`` or ``--texture``. Missing speed
@@ -45,7 +49,9 @@ The TOML mapping may give every command-line value (command-line values win)::
     offset = 0.0
     label_pattern = "{texture}__V{speed_mm_s}__{rep}.csv"
     resample_hz = 1000.0
-    segment = "fixed:2.0"
+    segment = "cycles"        # fixed:S | threshold[:LEVEL[%]] | cycles[:N]
+    align = "onset"           # cycles: cut at each press onset (or "none": from sample 0)
+    pre_ms = 100.0            # margin before each onset, ms
     nan = "interpolate"       # NaN samples: refuse (default) | hold | interpolate
     variable = "taxels"       # array / TimeSeries name in NPZ, MAT, NWB
     columns = ["t1", "t2"]    # CSV channel columns, in channel order (names or 0-based indices)
@@ -80,25 +86,26 @@ from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.sensor import LayoutError, SensorLayout, parse_layout
 from rigctl.core.textures import TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData
+from rigctl.storage.recording_files import (
+    FORMATS,
+    NAN_POLICIES,
+    RecordingImportError,
+    fill_nan,
+    read_recording_file,
+)
+from rigctl.storage.segmentation import Segmentation, SegmentSpec, outlier_warnings, parse_segment, segment
 
 __all__ = [
-    "RecordingImportError", "ImportedTrial", "FORMATS", "read_recording_file", "parse_label_pattern",
-    "labels_from_name", "resample", "to_counts", "volts_step", "fill_nan", "NAN_POLICIES", "segment",
-    "parse_segment", "load_mapping", "import_recordings", "write_imported_session", "write_session",
+    "RecordingImportError", "ImportedTrial", "ImportOptions", "FORMATS", "read_recording_file",
+    "parse_label_pattern", "labels_from_name", "resample", "to_counts", "volts_step", "fill_nan", "NAN_POLICIES",
+    "segment", "parse_segment", "SegmentSpec", "Segmentation", "load_mapping", "import_recordings",
+    "write_imported_session", "write_session",
 ]
-
-#: extension -> format name
-FORMATS = {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".npy": "npy", ".npz": "npz", ".mat": "mat",
-           ".nwb": "nwb"}
 
 #: pattern field aliases -> plan column
 _FIELD_ALIASES = {"texture": "texture", "label": "texture", "speed_mm_s": "speed_mm_s", "speed": "speed_mm_s",
                   "force_g": "force_g", "force": "force_g", "repeat": "repeat", "rep": "repeat"}
 _NUMERIC = {"speed_mm_s", "force_g", "repeat"}
-
-
-class RecordingImportError(ValueError):
-    """A recording that cannot be imported as asked (unreadable file, wrong shape, values out of range, ...)."""
 
 
 @dataclass
@@ -109,274 +116,6 @@ class ImportedTrial:
     counts: np.ndarray
     labels: dict[str, Any]
     attrs: dict[str, Any] = field(default_factory=dict)
-
-
-# ----------------------------------------------------------------------------------------------------- reading
-def _orient(arr: np.ndarray, channels: int | None, where: str) -> np.ndarray:
-    """``(n_samples, n_channels)`` from a 1-D or 2-D array (transposed when needed)."""
-    arr = np.asarray(arr)
-    if arr.dtype.kind not in "biuf":
-        raise RecordingImportError(f"{where}: expected a numeric array, got dtype {arr.dtype}")
-    if arr.ndim == 1:
-        arr = arr[:, None]
-    if arr.ndim != 2:
-        raise RecordingImportError(f"{where}: expected a (n_samples, n_channels) array, got shape {arr.shape}")
-    if channels is not None:
-        if arr.shape[1] == channels:
-            return arr
-        if arr.shape[0] == channels:
-            return arr.T
-        raise RecordingImportError(f"{where}: shape {arr.shape} has no axis of {channels} channels (--channels)")
-    return arr.T if arr.shape[0] < arr.shape[1] else arr
-
-
-def _as_blocks(arr: np.ndarray, channels: int | None, where: str) -> list[np.ndarray]:
-    arr = np.asarray(arr)
-    if arr.ndim == 3:  # stacked trials (n_trials, n_samples, n_channels)
-        return [_orient(a, channels, f"{where}[{i}]") for i, a in enumerate(arr)]
-    return [_orient(arr, channels, where)]
-
-
-_TIME_NAME = re.compile(r"^(time|timestamp|timestamps|t|time_s|time_ms|seconds)$", re.I)
-
-
-def _sniff_delimiter(line: str) -> str | None:
-    for d in (",", ";", "\t"):
-        if d in line:
-            return d
-    return None
-
-
-def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, time_column: Any) -> np.ndarray:
-    with open(path, encoding="utf-8-sig") as fh:
-        first = fh.readline()
-    delim = _sniff_delimiter(first)
-    cells = [c.strip().strip('"') for c in (first.split(delim) if delim else first.split())]
-    try:
-        [float(c) for c in cells]
-        header = None
-    except ValueError:
-        header = cells
-    try:
-        data = np.loadtxt(path, delimiter=delim, skiprows=1 if header else 0, ndmin=2, dtype=np.float64,
-                          encoding="utf-8-sig")
-    except ValueError as exc:
-        raise RecordingImportError(f"{path}: not a numeric CSV ({exc})") from None
-
-    def index(col: Any) -> int:
-        if isinstance(col, int) or (isinstance(col, str) and col.isdigit() and (header is None or col not in header)):
-            i = int(col)
-            if not 0 <= i < data.shape[1]:
-                raise RecordingImportError(f"{path}: column {i} out of range (0..{data.shape[1] - 1})")
-            return i
-        if header is None or col not in header:
-            raise RecordingImportError(f"{path}: no column {col!r} (header: {header})")
-        return header.index(col)
-
-    if columns:
-        keep = [index(c) for c in columns]
-    else:
-        skip = {index(time_column)} if time_column is not None else set()
-        if time_column is None and header is not None:  # a time column named as such is not a taxel
-            skip |= {i for i, name in enumerate(header) if _TIME_NAME.match(name)}
-        keep = [i for i in range(data.shape[1]) if i not in skip]
-    out = data[:, keep]
-    if channels is not None and out.shape[1] != channels:
-        raise RecordingImportError(f"{path}: {out.shape[1]} channel columns, but --channels {channels} (one column "
-                                   "per channel; pick columns with 'columns' / 'time_column' in the mapping)")
-    return out
-
-
-def _pick(arrays: Mapping[str, Any], variable: str | None, where: str) -> np.ndarray:
-    numeric = {k: v for k, v in arrays.items() if not k.startswith("__") and isinstance(v, np.ndarray)
-               and v.dtype.kind in "biuf" and v.size > 1}
-    if variable is not None:
-        if variable not in arrays:
-            raise RecordingImportError(f"{where}: no variable {variable!r} (has: {', '.join(sorted(numeric))})")
-        return np.asarray(arrays[variable])
-    if not numeric:
-        raise RecordingImportError(f"{where}: no numeric array in the file")
-    if len(numeric) > 1:
-        for name in ("taxels", "data", "signals", "readings"):
-            if name in numeric:
-                return numeric[name]
-    return max(numeric.values(), key=lambda a: a.size)
-
-
-def _read_mat(path: Path, variable: str | None) -> np.ndarray:
-    import scipy.io
-
-    try:
-        return _pick(scipy.io.loadmat(path), variable, str(path))
-    except NotImplementedError:  # MATLAB v7.3: an HDF5 file
-        import h5py
-
-        with h5py.File(path, "r") as f:
-            found: dict[str, Any] = {}
-            f.visititems(lambda name, obj: found.__setitem__(name, obj) if isinstance(obj, h5py.Dataset) else None)
-            arrays = {k: v[()] for k, v in found.items() if not k.startswith("#")}
-        arr = _pick(arrays, variable, str(path))
-        return np.asarray(arr).T  # MATLAB stores column-major: h5py sees the transpose
-    except ValueError as exc:
-        if isinstance(exc, RecordingImportError):
-            raise
-        raise RecordingImportError(f"{path}: not a MATLAB file ({exc})") from None
-
-
-def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | None, dict[str, Any]]:
-    try:
-        from pynwb import NWBHDF5IO, TimeSeries
-    except ImportError as exc:  # pragma: no cover - pynwb is a dependency
-        raise RecordingImportError(f"{path}: reading NWB needs pynwb ({exc})") from None
-    with NWBHDF5IO(str(path), "r") as io:
-        nwb = io.read()
-        series = {}
-        for container in (nwb.acquisition, nwb.processing):
-            for name, obj in container.items():
-                if isinstance(obj, TimeSeries):
-                    series[name] = obj
-        if variable is not None:
-            if variable not in series:
-                raise RecordingImportError(f"{path}: no TimeSeries {variable!r} (has: {', '.join(sorted(series))})")
-            ts = series[variable]
-        elif "taxels" in series:  # a file rigctl exported (rigctl.storage.nwb)
-            ts = series["taxels"]
-        elif series:
-            ts = series[sorted(series)[0]]
-        else:
-            raise RecordingImportError(f"{path}: no TimeSeries in the NWB file's acquisition")
-        data = np.asarray(ts.data[()], dtype=np.float64)
-        rate = ts.rate
-        if rate is None and ts.timestamps is not None and len(ts.timestamps) > 1:
-            rate = 1.0 / float(np.median(np.diff(np.asarray(ts.timestamps[()]))))
-        meta = {"timeseries": ts.name, "unit": ts.unit, "conversion": float(ts.conversion)}
-        if rate and nwb.trials is not None and ts.name == "taxels":
-            meta["trials"] = _nwb_trials(nwb.trials.to_dataframe(), float(ts.starting_time or 0.0), float(rate),
-                                         data.shape[0])
-        device = nwb.devices.get("taxel_sensor") if nwb.devices else None
-        if device is not None and ts.name == "taxels":
-            try:
-                meta["sensor"] = json.loads(device.description)
-            except (TypeError, ValueError):
-                pass
-    return data, (float(rate) if rate else None), meta
-
-
-def _nwb_trials(table: Any, start_s: float, rate: float, n: int) -> list[dict[str, Any]] | None:
-    """The trials of an NWB trials table as sample ranges of the TimeSeries with their labels, or None when the rows
-    do not fall inside the series."""
-    out = []
-    for _, row in table.iterrows():
-        a = int(round((float(row["start_time"]) - start_s) * rate))
-        b = int(round((float(row["stop_time"]) - start_s) * rate))
-        if not 0 <= a < b <= n:
-            return None
-        labels = {k: row[k] for k in ("texture", "speed_mm_s", "force_g") if k in row.index}
-        out.append({"start": a, "stop": b, "labels": labels})
-    return out or None
-
-
-def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = None, variable: str | None = None,
-                        columns: Sequence[Any] | None = None, time_column: Any = None, nan: str = "refuse"
-                        ) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
-    """Read one recording file.
-
-    Returns
-    -------
-    blocks : list of (n_samples, n_channels) float64 arrays (one per stacked trial; usually one)
-    rate_hz : float or None, the rate the file itself states (NWB), else None
-    meta : dict, format details for the session's attributes (``nan``: the policy and the values it filled)
-
-    ``nan`` is the NaN policy (:func:`fill_nan`: refuse, hold, interpolate).
-
-    Raises
-    ------
-    RecordingImportError for an unknown extension, an unreadable file, an array that is not 1-3-D numeric,
-    infinite values, or NaN values under ``nan="refuse"`` (the count and first sample indices named).
-    """
-    path = Path(path)
-    fmt = FORMATS.get(path.suffix.lower())
-    if fmt is None:
-        raise RecordingImportError(f"{path}: unknown format {path.suffix!r} (known: {', '.join(sorted(FORMATS))})")
-    if not path.is_file():
-        raise RecordingImportError(f"{path}: {'a folder, not a recording file' if path.is_dir() else 'no such file'}")
-    rate = None
-    meta: dict[str, Any] = {"format": fmt}
-    if fmt == "csv":
-        arr = _read_csv(path, channels, columns, time_column)
-    elif fmt == "npy":
-        try:
-            arr = np.load(path, allow_pickle=False)
-        except ValueError as exc:
-            raise RecordingImportError(f"{path}: not a plain NPY array ({exc})") from None
-    elif fmt == "npz":
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-        arr = _pick(arrays, variable, str(path))
-        if "rate_hz" in arrays and np.asarray(arrays["rate_hz"]).size == 1:
-            rate = float(arrays["rate_hz"])
-    elif fmt == "mat":
-        arr = _read_mat(path, variable)
-    else:
-        arr, rate, nwb_meta = _read_nwb(path, variable)
-        meta.update(nwb_meta)
-    blocks = _as_blocks(np.asarray(arr, dtype=np.float64), channels, str(path))
-    nwb_trials = meta.pop("trials", None)
-    if nwb_trials and len(blocks) == 1:  # an NWB trials table: one block per trial, labelled
-        blocks = [blocks[0][t["start"]:t["stop"]] for t in nwb_trials]
-        meta["block_labels"] = [t["labels"] for t in nwb_trials]
-    for b in blocks:
-        if b.shape[0] < 1:
-            raise RecordingImportError(f"{path}: no samples")
-        if np.isinf(b).any():
-            raise RecordingImportError(f"{path}: holds infinite values (at samples "
-                                       f"{_first_rows(np.isinf(b))}); fix the file")
-    filled = [fill_nan(b, nan, str(path)) for b in blocks]
-    meta["nan"] = {"policy": nan, "samples": sum(n for _, n in filled)}
-    return [b for b, _ in filled], rate, meta
-
-
-#: what ``--nan`` may say: refuse (default), hold the last good sample, interpolate linearly between good samples
-NAN_POLICIES = ("refuse", "hold", "interpolate")
-
-
-def _first_rows(bad: np.ndarray, k: int = 5) -> str:
-    """The first ``k`` sample indices (0-based rows) where ``bad`` (n, c) holds, as text."""
-    rows = np.flatnonzero(bad.any(axis=1))
-    return ", ".join(str(int(r)) for r in rows[:k]) + (", ..." if rows.size > k else "")
-
-
-def fill_nan(x: np.ndarray, policy: str, where: str = "") -> tuple[np.ndarray, int]:
-    """NaN samples of ``(n, c)`` readings handled by ``policy`` (:data:`NAN_POLICIES`).
-
-    ``refuse``: RecordingImportError naming ``where``, the NaN count and the first sample indices. ``hold``: each
-    NaN takes the channel's last good value (leading NaNs the first good one). ``interpolate``: linear between the
-    channel's good neighbours (``numpy.interp``; the ends hold). Returns ``(readings, n_nan_values)``; a channel with
-    no good value is refused under every policy.
-    """
-    if policy not in NAN_POLICIES:
-        raise RecordingImportError(f"--nan {policy!r}: use {' | '.join(NAN_POLICIES)}")
-    bad = np.isnan(x)
-    n_bad = int(bad.sum())
-    if not n_bad:
-        return x, 0
-    if policy == "refuse":
-        raise RecordingImportError(f"{where}: {n_bad} NaN values in {int(bad.any(axis=1).sum())} samples (first at "
-                                   f"samples {_first_rows(bad)}); give --nan hold or --nan interpolate")
-    empty = np.flatnonzero(bad.all(axis=0))
-    if empty.size:
-        raise RecordingImportError(f"{where}: channel {int(empty[0])} holds only NaN; nothing to fill it from")
-    out = np.array(x, dtype=np.float64, copy=True)
-    idx = np.arange(x.shape[0])
-    for c in np.flatnonzero(bad.any(axis=0)):
-        good = ~bad[:, c]
-        if policy == "interpolate":
-            out[:, c] = np.interp(idx, idx[good], x[good, c])
-        else:
-            last = np.maximum.accumulate(np.where(good, idx, -1))
-            last[last < 0] = int(np.flatnonzero(good)[0])
-            out[:, c] = x[last, c]
-    return out, n_bad
 
 
 # ----------------------------------------------------------------------------------------------------- labels
@@ -412,7 +151,7 @@ def labels_from_name(name: str, pattern: str | re.Pattern[str]) -> dict[str, Any
     """
     rx = parse_label_pattern(pattern) if isinstance(pattern, str) else pattern
     base = Path(name).name
-    m = rx.match(base) or rx.match(Path(base).stem)
+    m = rx.match(Path(base).stem) or rx.match(base)  # a pattern without an extension never takes it as a field
     if not m:
         shown = pattern if isinstance(pattern, str) else pattern.pattern
         raise RecordingImportError(f"file name {base!r} does not match the label pattern {shown!r}")
@@ -481,86 +220,6 @@ def volts_step(volts_ref: float, adc_bits: int) -> float:
     return float(volts_ref) / float(1 << int(adc_bits))
 
 
-def parse_segment(spec: str | None) -> dict[str, Any] | None:
-    """``fixed:S[:HOP]`` | ``threshold:LEVEL[:MIN_S[:SMOOTH_S]]`` | ``cycles[:N[:MIN_P[:MAX_P]]]`` -> dict.
-    Raises RecordingImportError on anything else."""
-    if not spec:
-        return None
-    kind, *args = str(spec).strip().split(":")
-    try:
-        vals = [float(a) for a in args if a != ""]
-    except ValueError:
-        raise RecordingImportError(f"--segment {spec!r}: the values after the method must be numbers") from None
-    if kind == "fixed" and 1 <= len(vals) <= 2 and all(v > 0 for v in vals):
-        return {"method": "fixed", "length_s": vals[0], "hop_s": vals[1] if len(vals) > 1 else vals[0]}
-    if kind == "threshold" and 1 <= len(vals) <= 3 and all(v >= 0 for v in vals):
-        return {"method": "threshold", "level_counts": vals[0], "min_s": vals[1] if len(vals) > 1 else 0.2,
-                "smooth_s": vals[2] if len(vals) > 2 else 0.05}
-    if kind == "cycles" and len(vals) <= 3 and all(v > 0 for v in vals):
-        return {"method": "cycles", "n_cycles": int(vals[0]) if vals else 1,
-                "min_period_s": vals[1] if len(vals) > 1 else None, "max_period_s": vals[2] if len(vals) > 2 else None}
-    raise RecordingImportError(f"--segment {spec!r}: use fixed:SECONDS[:HOP_S], threshold:LEVEL[:MIN_S[:SMOOTH_S]] "
-                               "or cycles[:N[:MIN_PERIOD_S[:MAX_PERIOD_S]]]")
-
-
-def _cycle_period(x: np.ndarray, rate_hz: float, min_p: float | None, max_p: float | None) -> int:
-    sig = x.astype(np.float64).mean(axis=1)
-    sig = sig - sig.mean()
-    n = sig.size
-    nfft = 1 << int(math.ceil(math.log2(2 * n)))
-    spec = np.fft.rfft(sig, nfft)
-    ac = np.fft.irfft(spec * np.conj(spec), nfft)[:n]
-    if ac[0] <= 0:
-        raise RecordingImportError("cycles: the recording is constant, no cycle to detect")
-    ac = ac / ac[0]
-    ac = ac * n / (n - np.arange(n))  # unbiased: long lags are not penalised
-    lo = max(1, int(round((min_p or 0.0) * rate_hz)))
-    hi = min(n // 2, int(round(max_p * rate_hz)) if max_p else n // 2)
-    if min_p is None:  # start after the first zero crossing (the central lobe is not a period)
-        neg = np.flatnonzero(ac[1:hi] < 0)
-        if not neg.size:
-            raise RecordingImportError("cycles: no periodic structure found (give MIN_PERIOD_S:MAX_PERIOD_S)")
-        lo = int(neg[0]) + 1
-    if hi <= lo + 1:
-        raise RecordingImportError("cycles: the recording is too short for the period range")
-    seg = ac[lo:hi]
-    # the shortest lag whose local peak reaches 90 % of the highest: multiples of the period peak as high
-    peaks = np.flatnonzero((seg[1:-1] >= seg[:-2]) & (seg[1:-1] >= seg[2:])) + 1
-    best = float(seg.max())
-    good = peaks[seg[peaks] >= 0.9 * best] if peaks.size else np.array([int(np.argmax(seg))])
-    return lo + int(good[0] if good.size else np.argmax(seg))
-
-
-def segment(counts: np.ndarray, rate_hz: float, spec: dict[str, Any] | None
-            ) -> tuple[list[tuple[int, int]], dict[str, Any]]:
-    """Cut a continuous ``(n, c)`` recording into trials; returns ``[(start, stop), ...]`` sample ranges and the
-    step's record (``period_s`` for cycles). ``spec`` None: the whole recording is one trial."""
-    n = counts.shape[0]
-    if spec is None:
-        return [(0, n)], {}
-    rec = dict(spec)
-    if spec["method"] == "fixed":
-        length = int(round(spec["length_s"] * rate_hz))
-        hop = int(round(spec["hop_s"] * rate_hz))
-        if length < 1 or hop < 1:
-            raise RecordingImportError(f"segment length {spec['length_s']} s is under one sample at {rate_hz:g} Hz")
-        return [(s, s + length) for s in range(0, n - length + 1, hop)], rec
-    if spec["method"] == "threshold":
-        x = counts.astype(np.float64)
-        act = np.abs(x - np.median(x, axis=0)).max(axis=1)
-        w = max(1, int(round(spec["smooth_s"] * rate_hz)))
-        act = np.convolve(act, np.ones(w) / w, mode="same")
-        on = np.concatenate(([False], act > spec["level_counts"], [False]))
-        edges = np.flatnonzero(np.diff(on.astype(np.int8)))
-        runs = list(zip(edges[::2].tolist(), edges[1::2].tolist()))
-        min_n = max(1, int(round(spec["min_s"] * rate_hz)))
-        return [(a, b) for a, b in runs if b - a >= min_n], rec
-    period = _cycle_period(counts, rate_hz, spec.get("min_period_s"), spec.get("max_period_s"))
-    length = period * int(spec["n_cycles"])
-    rec["period_s"] = period / rate_hz
-    return [(s, s + length) for s in range(0, n - length + 1, length)], rec
-
-
 # ----------------------------------------------------------------------------------------------------- mapping
 def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
     """Read a TOML mapping (see the module docstring). Raises RecordingImportError on a missing or bad file."""
@@ -584,8 +243,8 @@ def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
 
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
-                "label_pattern", "resample_hz", "segment", "nan", "variable", "columns", "time_column", "defaults", "files",
-                "texture_set")
+                "label_pattern", "resample_hz", "segment", "align", "pre_ms", "nan", "variable", "columns",
+                "time_column", "defaults", "files", "texture_set")
 
 
 def _resolve_layout(n_channels: int, rate_hz: float, *, channels: int | None, layout: str | None,
@@ -677,164 +336,251 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
     writer.write_trials(items)
 
 
+@dataclass(frozen=True)
+class ImportOptions:
+    """Every setting of an import (the module docstring's steps), the command line's over the mapping's.
+
+    Built by :meth:`resolve`; the field names are the mapping's keys (``segment`` parsed into a
+    :class:`rigctl.storage.segmentation.SegmentSpec`, ``files`` as ``per_file``).
+    """
+
+    rate_hz: float | None = None
+    channels: int | None = None
+    layout: str | None = None
+    sensor: Mapping[str, Any] | None = None
+    label_pattern: str | None = None
+    resample_hz: float | None = None
+    segment: SegmentSpec | None = None
+    volts_ref: float | None = None
+    adc_bits: int = 10
+    nan: str = "refuse"
+    scale: float = 1.0
+    offset: float = 0.0
+    variable: str | None = None
+    columns: Sequence[Any] | None = None
+    time_column: Any = None
+    per_file: Mapping[str, Any] = field(default_factory=dict)
+    defaults: Mapping[str, Any] = field(default_factory=dict)
+    texture_set: Mapping[str, Any] | None = None
+
+    @classmethod
+    def resolve(cls, mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None, *,
+                texture: str | None = None, segment_spec: str | None = None, align: str | None = None,
+                pre_ms: float | None = None, **given: Any) -> "ImportOptions":
+        """Options from a TOML mapping (path or loaded dict) and command-line values (``given``: the field names;
+        None = not given). Raises RecordingImportError for a bad mapping, layout or segmentation."""
+        m = dict(mapping) if isinstance(mapping, Mapping) else load_mapping(mapping)
+
+        def pick(key: str, default: Any = None) -> Any:
+            value = given.get(key)
+            return value if value is not None else m.get(key, default)
+
+        defaults = dict(m.get("defaults", {}) or {})
+        if texture:
+            defaults["texture"] = texture
+        channels, layout = pick("channels"), pick("layout")
+        if layout and channels is None:
+            try:
+                channels = parse_layout(layout).n_channels
+            except LayoutError as exc:
+                raise RecordingImportError(str(exc)) from None
+        segment = parse_segment(segment_spec or m.get("segment"), align=align or m.get("align"),
+                                pre_ms=pre_ms if pre_ms is not None else m.get("pre_ms"))
+        return cls(rate_hz=pick("rate_hz"), channels=channels, layout=layout, sensor=m.get("sensor"),
+                   label_pattern=pick("label_pattern"), resample_hz=pick("resample_hz"), segment=segment,
+                   volts_ref=pick("volts_ref"), adc_bits=int(pick("adc_bits", 10)), nan=pick("nan", "refuse"),
+                   scale=float(m.get("scale", 1.0)), offset=float(m.get("offset", 0.0)), variable=m.get("variable"),
+                   columns=m.get("columns"), time_column=m.get("time_column"), per_file=m.get("files", {}) or {},
+                   defaults=defaults, texture_set=m.get("texture_set"))
+
+    def value_scale(self, n_clipped: int) -> dict[str, Any]:
+        """The scale step's record."""
+        rec: dict[str, Any] = (
+            {"unit": "volts", "volts_ref": float(self.volts_ref), "formula": "rint(v / (volts_ref / 2**adc_bits))"}
+            if self.volts_ref is not None else
+            {"unit": "counts", "scale": self.scale, "offset": self.offset, "formula": "rint(x * scale + offset)"})
+        return {**rec, "adc_bits": self.adc_bits, "clipped_values": n_clipped}
+
+
+def _file_labels(path: Path, opts: ImportOptions, rx: re.Pattern[str] | None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The labels step for one file: plan labels (texture, speed_mm_s, force_g, repeat) from the defaults, the
+    pattern and the mapping's ``[files."NAME"]`` table, and the pattern's other fields."""
+    labels = {k: v for k, v in opts.defaults.items() if _FIELD_ALIASES.get(k, k) in ("texture", *_NUMERIC)}
+    extra: dict[str, Any] = {}
+    if rx is not None:
+        got = labels_from_name(path.name, rx)
+        labels.update({k: v for k, v in got.items() if k in ("texture", *_NUMERIC)})
+        extra.update({k: v for k, v in got.items() if k not in ("texture", *_NUMERIC)})
+    for key in (path.name, path.stem, str(path)):
+        if key in opts.per_file:
+            labels.update({_FIELD_ALIASES.get(k, k): v for k, v in opts.per_file[key].items()})
+    return {_FIELD_ALIASES.get(k, k): v for k, v in labels.items()}, extra
+
+
+@dataclass
+class _Import:
+    """The state of one import across its files: the trials so far, the steps' records, the per-file table."""
+
+    opts: ImportOptions
+    trials: list[ImportedTrial] = field(default_factory=list)
+    steps: dict[str, Any] = field(default_factory=lambda: {"read": [], "resampling": None, "value_scale": None,
+                                                           "segmentation": None})
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    out_rate: float | None = None
+    n_ch: int | None = None
+    n_clipped: int = 0
+    sensor_from_file: Mapping[str, Any] | None = None  # an NWB file's own sensor description (rigctl exports it)
+
+    def add_file(self, path: Path, rx: re.Pattern[str] | None) -> None:
+        """Read, label, resample, scale and segment one file; its trials join :attr:`trials`."""
+        o = self.opts
+        blocks, file_rate, meta = read_recording_file(path, channels=o.channels, variable=o.variable,
+                                                      columns=o.columns, time_column=o.time_column, nan=o.nan)
+        src_rate = float(o.rate_hz) if o.rate_hz is not None else file_rate
+        if src_rate is None or not src_rate > 0:
+            raise RecordingImportError(f"{path}: no sample rate: give --rate HZ (or rate_hz in the mapping)")
+        labels, extra = _file_labels(path, o, rx)
+        block_labels = meta.pop("block_labels", None)
+        file_sensor = meta.pop("sensor", None)
+        if file_sensor is not None and self.sensor_from_file is None:
+            self.sensor_from_file = file_sensor
+        if block_labels and not labels.get("texture"):
+            labels["texture"] = "?"  # each block has its own (below)
+        if not labels.get("texture"):
+            raise RecordingImportError(f"{path}: no texture label: give --label-pattern, --texture or a mapping")
+        labels["texture"] = str(labels["texture"])
+        self.steps["read"].append({"file": str(path), **meta, "rate_hz": src_rate, "blocks": len(blocks)})
+        attrs = {"source_file": path.name, "source_format": meta["format"], "source_rate_hz": src_rate,
+                 **{k: str(v) for k, v in extra.items()}}
+        for bi, block in enumerate(blocks):
+            lab = dict(labels)
+            if block_labels:
+                lab.update({k: (str(v) if k == "texture" else float(v)) for k, v in block_labels[bi].items()})
+            self._add_block(path, bi, len(blocks), self._counts(path, block, src_rate), lab,
+                            {**attrs, **({"source_block": bi} if len(blocks) > 1 else {})})
+
+    def _counts(self, path: Path, block: np.ndarray, src_rate: float) -> np.ndarray:
+        """Resample and scale steps: one block as uint16 counts at the import's one output rate."""
+        o, x, rate = self.opts, block, src_rate
+        if self.n_ch is None:
+            self.n_ch = block.shape[1]
+        elif block.shape[1] != self.n_ch:
+            raise RecordingImportError(f"{path}: {block.shape[1]} channels, earlier files have {self.n_ch}")
+        if o.resample_hz:
+            x, rs = resample(x, src_rate, float(o.resample_hz))
+            rate = rs["to_hz"]
+            self.steps["resampling"] = dict(rs)
+        if self.out_rate is None:
+            self.out_rate = rate
+        elif not math.isclose(self.out_rate, rate, rel_tol=1e-9):
+            raise RecordingImportError(f"{path}: {rate:g} Hz, earlier files are {self.out_rate:g} Hz: give --resample")
+        counts, clipped = to_counts(x, o.adc_bits, volts_ref=o.volts_ref, scale=o.scale, offset=o.offset,
+                                    clip=bool(o.resample_hz), where=str(path))
+        self.n_clipped += clipped
+        return counts
+
+    def _add_block(self, path: Path, bi: int, n_blocks: int, counts: np.ndarray, labels: dict[str, Any],
+                   attrs: dict[str, Any]) -> None:
+        """Segment step: the block's trials, each with its provenance (file, first and last sample, cycle)."""
+        spec, rate = self.opts.segment, float(self.out_rate or 0.0)
+        try:
+            cut = segment(counts, rate, spec)
+        except RecordingImportError as exc:
+            raise RecordingImportError(f"{path}: {exc}") from None
+        if spec is not None:
+            self.steps["segmentation"] = spec.record()
+            name = path.name if n_blocks == 1 else f"{path.name}[{bi}]"
+            self.rows.append(cut.row(name, rate))
+            if not cut.bounds:
+                raise RecordingImportError(
+                    f"{path}: no trial found by --segment {spec.method} ({cut.rejected} partial cycles or short runs "
+                    "rejected); its texture would be missing: check the file or give another --segment")
+        for si, ((a, b), ci) in enumerate(zip(cut.bounds, cut.cycle_index)):
+            lab = dict(labels)
+            if len(cut.bounds) > 1 or n_blocks > 1:
+                lab.pop("repeat", None)  # numbered per condition
+            prov: dict[str, Any] = {"source_first_sample": a, "source_last_sample": b - 1}
+            if spec is not None:
+                prov.update({"segment_index": si, "cycle_index": ci, "segment_start_s": a / rate,
+                             "segment_stop_s": b / rate})
+                if cut.period_s is not None:
+                    prov["cycle_period_s"] = cut.period_s
+            self.trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab, {**attrs, **prov}))
+
+    def layout(self) -> SensorLayout:
+        """The session's sensor layout: an NWB file's own (unless the options name one), else from the options."""
+        o = self.opts
+        assert self.out_rate is not None and self.n_ch is not None
+        if self.sensor_from_file is not None and o.sensor is None and o.layout is None and o.channels in (None, self.n_ch):
+            try:
+                got = SensorLayout.from_dict(dict(self.sensor_from_file)).with_rate(self.out_rate)
+                if got.n_channels == self.n_ch:
+                    return got
+            except (TypeError, ValueError, KeyError):
+                pass
+        return _resolve_layout(self.n_ch, self.out_rate, channels=o.channels, layout=o.layout, sensor=o.sensor,
+                               adc_bits=o.adc_bits)
+
+    def session_attrs(self) -> dict[str, Any]:
+        """The session's root attributes recording every step."""
+        self.steps["value_scale"] = self.opts.value_scale(self.n_clipped)
+        if self.rows:
+            self.steps["segments"] = self.rows
+        return {"import_steps": json.dumps(self.steps, default=str),
+                "resampling": json.dumps(self.steps["resampling"] or {"method": "none"}),
+                "segmentation": json.dumps(self.steps["segmentation"] or {"method": "none"}),
+                "label_pattern": self.opts.label_pattern or ""}
+
+
 def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
-                      rate_hz: float | None = None,
-                      channels: int | None = None, layout: str | None = None, label_pattern: str | None = None,
-                      texture: str | None = None, resample_hz: float | None = None, segment_spec: str | None = None,
-                      mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None, volts_ref: float | None = None,
-                      adc_bits: int | None = None, nan: str | None = None, overwrite: bool = False,
-                      progress: ProgressCallback | None = None) -> dict[str, Any]:
+                      mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None,
+                      options: ImportOptions | None = None, overwrite: bool = False,
+                      progress: ProgressCallback | None = None, **given: Any) -> dict[str, Any]:
     """Import recordings (CSV, NPY/NPZ, MAT, NWB) into a session file; the steps are in the module docstring.
 
     Parameters
     ----------
     files : recording files (format from the extension).
     out : session file (``.h5``) to write; refused if it exists (without ``overwrite``) or is one of ``files``.
-    rate_hz : the recordings' sample rate, Hz (or the mapping's ``rate_hz``, or the NWB file's rate).
-    channels, layout : channel count and/or ``ROWSxCOLSxLAYERS``; default the files' column count
-        (:meth:`SensorLayout.for_channels`).
-    label_pattern : file-name pattern naming ``texture``, ``speed_mm_s``, ``force_g``, ``repeat`` (and others).
-    texture : the texture label of every file the pattern / mapping does not label.
-    resample_hz : resample to this rate (scipy.signal.resample_poly); None keeps ``rate_hz``.
-    segment_spec : ``fixed:...``, ``threshold:...``, ``cycles...`` (see :func:`parse_segment`); None: a file (or a
-        stacked trial) is one trial.
     mapping : TOML mapping path (or an already-loaded dict).
-    volts_ref : the inputs are volts with this reference (V) -> counts at ``adc_bits``.
-    adc_bits : ADC resolution of the stored counts (default 10).
-    nan : NaN samples: ``refuse`` (default; the error names the file, the count and the first samples), ``hold``,
-        ``interpolate`` (:func:`fill_nan`); the mapping's ``nan`` otherwise.
+    options : the settings as an :class:`ImportOptions`; or, instead, the command line's values as keywords
+        (``given``, merged over the mapping by :meth:`ImportOptions.resolve`): ``rate_hz`` (Hz; else the mapping's
+        or an NWB file's), ``channels``, ``layout`` (``ROWSxCOLSxLAYERS``; default the files' column count),
+        ``label_pattern``, ``texture`` (of every file nothing else labels), ``resample_hz``, ``segment_spec``
+        (:func:`rigctl.storage.segmentation.parse_segment`), ``align`` ("onset" | "none"), ``pre_ms``,
+        ``volts_ref`` (V: one count is V/2^bits volts), ``adc_bits`` (default 10), ``nan`` ("refuse" | "hold" |
+        "interpolate").
     progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stage ``"reading recordings"``
         (done/total = files), then ``"writing trials"`` (done/total = trials).
 
     Returns
     -------
-    dict: ``path``, ``n_trials``, ``samples``, ``rate_hz``, ``n_channels``, ``textures``, ``steps``.
+    dict: ``path``, ``n_trials``, ``samples``, ``rate_hz``, ``n_channels``, ``textures``, ``steps``,
+    ``segments`` (the per-file table's rows: file, period_s, trials, rejected, first_start_s; empty without
+    ``--segment``) and ``warnings`` (outlier files, :func:`rigctl.storage.segmentation.outlier_warnings`).
 
     Raises
     ------
-    RecordingImportError (a ValueError) with one line for the user; FileExistsError for an existing ``out``.
+    RecordingImportError (a ValueError) with one line for the user (a file that yields no trial is one, named);
+    FileExistsError for an existing ``out``.
     """
-    m = dict(mapping) if isinstance(mapping, Mapping) else load_mapping(mapping)
+    opts = options if options is not None else ImportOptions.resolve(mapping, **given)
     paths = [Path(f) for f in files]
     if not paths:
         raise RecordingImportError("no input files")
     out = Path(out)
     _check_paths(paths, out, overwrite)
-    rate_hz = rate_hz if rate_hz is not None else m.get("rate_hz")
-    channels = channels if channels is not None else m.get("channels")
-    layout = layout or m.get("layout")
-    label_pattern = label_pattern or m.get("label_pattern")
-    resample_hz = resample_hz if resample_hz is not None else m.get("resample_hz")
-    segment_spec = segment_spec or m.get("segment")
-    volts_ref = volts_ref if volts_ref is not None else m.get("volts_ref")
-    nan = nan or m.get("nan") or "refuse"
-    adc_bits = int(adc_bits if adc_bits is not None else m.get("adc_bits", 10))
-    scale, offset = float(m.get("scale", 1.0)), float(m.get("offset", 0.0))
-    if layout and channels is None:
-        try:
-            channels = parse_layout(layout).n_channels
-        except LayoutError as exc:
-            raise RecordingImportError(str(exc)) from None
-    seg = parse_segment(segment_spec)
-    rx = parse_label_pattern(label_pattern) if label_pattern else None
-    per_file = m.get("files", {}) or {}
-    defaults = dict(m.get("defaults", {}) or {})
-    if texture:
-        defaults["texture"] = texture
-
-    trials: list[ImportedTrial] = []
-    steps: dict[str, Any] = {"read": [], "resampling": None, "value_scale": None, "segmentation": None}
-    out_rate = None
-    n_ch = None
-    n_clipped = 0
-    sensor_from_file = None  # an NWB file's own sensor description (rigctl exports it)
+    rx = parse_label_pattern(opts.label_pattern) if opts.label_pattern else None
+    run = _Import(opts)
     bar = Stage(progress, "reading recordings", len(paths), unit="file")
     for path in paths:
-        blocks, file_rate, meta = read_recording_file(path, channels=channels, variable=m.get("variable"),
-                                                      columns=m.get("columns"), time_column=m.get("time_column"),
-                                                      nan=nan)
-        src_rate = float(rate_hz) if rate_hz is not None else file_rate
-        if src_rate is None or not src_rate > 0:
-            raise RecordingImportError(f"{path}: no sample rate: give --rate HZ (or rate_hz in the mapping)")
-        labels = {k: v for k, v in defaults.items() if _FIELD_ALIASES.get(k, k) in ("texture", *_NUMERIC)}
-        extra = {}
-        if rx is not None:
-            got = labels_from_name(path.name, rx)
-            labels.update({k: v for k, v in got.items() if k in ("texture", *_NUMERIC)})
-            extra.update({k: v for k, v in got.items() if k not in ("texture", *_NUMERIC)})
-        for key in (path.name, path.stem, str(path)):
-            if key in per_file:
-                labels.update({_FIELD_ALIASES.get(k, k): v for k, v in per_file[key].items()})
-        labels = {_FIELD_ALIASES.get(k, k): v for k, v in labels.items()}
-        block_labels = meta.pop("block_labels", None)
-        file_sensor = meta.pop("sensor", None)
-        if file_sensor is not None and sensor_from_file is None:
-            sensor_from_file = file_sensor
-        if block_labels and not labels.get("texture"):
-            labels["texture"] = "?"  # each block has its own (below)
-        if not labels.get("texture"):
-            raise RecordingImportError(f"{path}: no texture label: give --label-pattern, --texture or a mapping")
-        labels["texture"] = str(labels["texture"])
-        steps["read"].append({"file": str(path), **meta, "rate_hz": src_rate, "blocks": len(blocks)})
-        for bi, block in enumerate(blocks):
-            if n_ch is None:
-                n_ch = block.shape[1]
-            elif block.shape[1] != n_ch:
-                raise RecordingImportError(f"{path}: {block.shape[1]} channels, earlier files have {n_ch}")
-            x, rate = block, src_rate
-            if resample_hz:
-                x, rs = resample(x, src_rate, float(resample_hz))
-                rate = rs["to_hz"]
-                steps["resampling"] = {k: v for k, v in rs.items()}
-            if out_rate is None:
-                out_rate = rate
-            elif not math.isclose(out_rate, rate, rel_tol=1e-9):
-                raise RecordingImportError(f"{path}: {rate:g} Hz, earlier files are {out_rate:g} Hz: give --resample")
-            counts, clipped = to_counts(x, adc_bits, volts_ref=volts_ref, scale=scale, offset=offset,
-                                        clip=bool(resample_hz), where=str(path))
-            n_clipped += clipped
-            bounds, seg_rec = segment(counts, rate, seg)
-            if seg is not None:
-                steps["segmentation"] = {k: v for k, v in seg_rec.items() if k != "period_s"}
-                steps.setdefault("segments", []).append({"file": str(path), "block": bi, "n": len(bounds),
-                                                         **({"period_s": seg_rec["period_s"]}
-                                                            if "period_s" in seg_rec else {})})
-            for si, (a, b) in enumerate(bounds):
-                lab = dict(labels)
-                if block_labels:
-                    lab.update({k: (str(v) if k == "texture" else float(v)) for k, v in block_labels[bi].items()})
-                if len(bounds) > 1 or len(blocks) > 1:
-                    lab.pop("repeat", None)  # numbered per condition
-                attrs = {"source_file": path.name, "source_format": meta["format"], "source_rate_hz": src_rate,
-                         **{k: str(v) for k, v in extra.items()}}
-                if len(blocks) > 1:
-                    attrs["source_block"] = bi
-                if seg is not None:
-                    attrs.update({"segment_index": si, "segment_start_s": a / rate, "segment_stop_s": b / rate})
-                trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab, attrs))
+        run.add_file(path, rx)
         bar.advance(1)
-    assert out_rate is not None and n_ch is not None
-    file_layout = None
-    if sensor_from_file is not None and m.get("sensor") is None and layout is None and channels in (None, n_ch):
-        try:
-            file_layout = SensorLayout.from_dict(sensor_from_file).with_rate(out_rate)
-        except (TypeError, ValueError, KeyError):
-            file_layout = None
-    sl = file_layout if file_layout is not None and file_layout.n_channels == n_ch else _resolve_layout(
-        n_ch, out_rate, channels=channels, layout=layout, sensor=m.get("sensor"), adc_bits=adc_bits)
-    steps["value_scale"] = ({"unit": "volts", "volts_ref": float(volts_ref), "formula": "rint(v / (volts_ref / 2**adc_bits))"}
-                            if volts_ref is not None else
-                            {"unit": "counts", "scale": scale, "offset": offset, "formula": "rint(x * scale + offset)"})
-    steps["value_scale"].update({"adc_bits": adc_bits, "clipped_values": n_clipped})
-    textures = None
-    if m.get("texture_set"):
-        textures = TextureSet.from_dict(m["texture_set"])
-    attrs = {"import_steps": json.dumps(steps, default=str),
-             "resampling": json.dumps(steps["resampling"] or {"method": "none"}),
-             "segmentation": json.dumps(steps["segmentation"] or {"method": "none"}),
-             "label_pattern": label_pattern or ""}
-    summary = write_imported_session(out, trials, layout=sl, textures=textures, kind="imported", attrs=attrs,
-                                     rig_config={"source": "rigctl import", "sensor": sl.to_dict()},
+    layout = run.layout()
+    textures = TextureSet.from_dict(dict(opts.texture_set)) if opts.texture_set else None
+    summary = write_imported_session(out, run.trials, layout=layout, textures=textures, kind="imported",
+                                     attrs=run.session_attrs(),
+                                     rig_config={"source": "rigctl import", "sensor": layout.to_dict()},
                                      protocol_name="import", overwrite=overwrite, progress=progress)
-    summary["steps"] = steps
+    summary.update(steps=run.steps, segments=run.rows, warnings=outlier_warnings(run.rows))
     return summary

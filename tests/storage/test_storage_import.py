@@ -225,11 +225,10 @@ def test_continuous_recording_segmented_fixed_and_by_cycles(tmp_path):
     t = np.arange(n) / RATE
     data = np.rint(500 + 100 * np.sign(np.sin(2 * np.pi * t / 0.8))[:, None] * np.ones(9)
                    + 30 * np.sin(2 * np.pi * 5 * t)[:, None]).astype(int)  # one drum revolution per 0.8 s
-    bounds, rec = segment(data, RATE, parse_segment("cycles:2"))
-    assert rec["period_s"] == pytest.approx(0.8, abs=0.011)
-    assert len(bounds) == 6 and all(b - a == 160 for a, b in bounds)
-    bounds, _ = segment(data, RATE, parse_segment("fixed:2.5"))
-    assert bounds == [(0, 250), (250, 500), (500, 750), (750, 1000)]
+    cut = segment(data, RATE, parse_segment("cycles:2", align="none"))  # windows from sample 0
+    assert cut.period_s == pytest.approx(0.8, abs=0.011)
+    assert len(cut.bounds) == 6 and all(b - a == 160 for a, b in cut.bounds)
+    assert segment(data, RATE, parse_segment("fixed:2.5")).bounds == [(0, 250), (250, 500), (500, 750), (750, 1000)]
     p = write(tmp_path / "drum.npy", data, "npy")
     out = tmp_path / "s.h5"
     r = run(p, "--rate", 100, "--texture", "ridges", "--segment", "fixed:2:1", "--out", out)
@@ -237,7 +236,7 @@ def test_continuous_recording_segmented_fixed_and_by_cycles(tmp_path):
     with open_session(out) as s:
         assert len(s.plan) == 9 and set(s.plan["texture"]) == {"ridges"}
         np.testing.assert_array_equal(s.trial(3).taxels, data[300:500])
-    for bad in ("fixed", "fixed:-1", "wavelet:3", "threshold:x"):
+    for bad in ("fixed", "fixed:-1", "wavelet:3", "threshold:x", "threshold:150%", "cycles:1.5", "cycles:1:5:2"):
         with pytest.raises(RecordingImportError):
             parse_segment(bad)
 
