@@ -2,7 +2,7 @@
 
 Public API (re-exported here, imported on first use): session files (``SessionWriter``, ``open_session`` ->
 ``Session``, ``SessionError``), encoded files (``EncodedWriter``, ``open_encoded`` -> ``EncodedFile``,
-``NotEncodedError``, the variant registry ``VARIANTS``), importers (``import_recordings``, ``import_fabricslide``),
+``NotEncodedError``, the variant registry ``VARIANTS``), importers (``import_recordings``, ``ImportOptions``, ``import_fabricslide``),
 the NWB export (``export_nwb``) and model files (``save_model``, ``load_model``, ``ModelFileError``).
 """
 
@@ -16,6 +16,7 @@ _EXPORTS = {
     "VARIANTS": "rigctl.storage.encoded",
     "open_encoded": "rigctl.storage.encoded",
     "import_fabricslide": "rigctl.storage.fabricslide",
+    "ImportOptions": "rigctl.storage.importers",
     "import_recordings": "rigctl.storage.importers",
     "ModelFileError": "rigctl.storage.model_file",
     "load_model": "rigctl.storage.model_file",
