@@ -33,7 +33,7 @@ from rigctl.acquisition.rig import Rig, RigError
 from rigctl.core.interfaces import RIG_KINDS, RigBackend
 from rigctl.core.textures import TextureSet
 
-__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "drum_answer_timeout_s", "open_rig", "make_backend", "replay_source"]
+__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "open_rig", "make_backend", "replay_source"]
 
 #: the backends :func:`open_rig` knows (the one list: :data:`rigctl.core.interfaces.RIG_KINDS`)
 KINDS = RIG_KINDS
@@ -45,6 +45,14 @@ KINDS = RIG_KINDS
 #: at 0.1-0.4 of real time (issue 10's loaded runs); their ptys lose nothing, so a longer wait costs only the time to
 #: notice a board that is gone. The in-process backend calls the controller directly (no answer to wait for).
 ANSWER_TIMEOUT_S = {"hardware": 0.5, "sim": 2.0, "replay": 2.0, "hil": 2.0}
+
+#: WATCHDOG_MS the drum client writes when it opens, per backend (absent: the controller's default, 1000 ms). A lost
+#: answer must be retried before the controller's host watchdog trips: on hardware the 0.5 s timeout is inside the
+#: default 1 s. The firmware under simavr keeps its watchdog in simulated time, paced to the wall clock, while the
+#: host waits ANSWER_TIMEOUT_S["hil"] = 2 s for a late answer (a host starved on a loaded machine: `rigctl doctor --hil`
+#: tripped WATCHDOG at 120 mm/s once in two runs at load 9.5 on 2 cores): 5 s covers one such wait and its retry.
+#: The virtual Mega keeps the default: its tests trip the 1 s watchdog on purpose (tests/acquisition/test_acq_runner).
+WATCHDOG_MS = {"hil": 5000}
 
 
 def drum_answer_timeout_s(kind: str) -> float:
@@ -108,7 +116,7 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
         from rigctl.simulation.backend import PtyRigBackend
 
         return PtyRigBackend(HilRig(config, seed=seed, **options), mode="hil", seed=seed, textures=textures,
-                             drum_timeout_s=ANSWER_TIMEOUT_S[kind])
+                             drum_timeout_s=ANSWER_TIMEOUT_S[kind], drum_watchdog_ms=WATCHDOG_MS[kind])
     if kind == "inprocess":
         from rigctl.simulation.inprocess import InProcessBackend
 

@@ -94,6 +94,9 @@ def _held_rig_warnings():
               help="Session file to write (HDF5, .h5).")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Use the simulated rig (the default).")
 @click.option("--hil", is_flag=True, default=False, help="Use the real firmware under simavr (hardware in the loop).")
+@click.option("--hil-bootloaders", is_flag=True, default=False,
+              help="As --hil, with the boards' real bootloaders (stk500v2, optiboot) under simavr: opening a port "
+                   "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
 @click.option("--replay", "replay", type=click.Path(exists=True, path_type=Path), default=None,
@@ -116,8 +119,8 @@ def _held_rig_warnings():
                    "never ask: every trial runs on the plate already mounted and is labelled with the plan's texture "
                    "(one-texture protocols, dry runs). The simulated rigs mount their plates themselves.")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
-def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure, config_path,
-            plates, quiet):
+def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure,
+            config_path, plates, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -131,6 +134,7 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
     from rigctl.operations import ProtocolRun, RigSource, open_control
     from rigctl.storage.session import SessionError
 
+    hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("give both --drum-port and --taxel-port (hardware), or neither (--sim)")
     if drum_port is not None and (sim or hil):
@@ -178,7 +182,8 @@ def acquire(protocol, out, sim, hil, drum_port, taxel_port, replay, resume, over
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay)
+    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
+                                  bootloaders=hil_bootloaders)
     with _held_rig_warnings() as held:
         try:
             control = open_control(source, prompt=prompt, seed=0 if seed is None else seed,

@@ -11,6 +11,9 @@ import click
 @click.command("doctor")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Check the simulated rig (the default).")
 @click.option("--hil", is_flag=True, default=False, help="Check the real firmware under simavr.")
+@click.option("--hil-bootloaders", is_flag=True, default=False,
+              help="As --hil, with the boards' real bootloaders (stk500v2, optiboot) under simavr: opening a port "
+                   "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
 @click.option("--check", "checks", multiple=True, metavar="NAME",
@@ -23,7 +26,7 @@ import click
 @click.option("--rest-s", type=click.FloatRange(2.0, 120.0), default=10.0, show_default=True,
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the simulated rig.")
-def doctor(sim, hil, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
+def doctor(sim, hil, hil_bootloaders, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
     after each. The report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a check
@@ -35,6 +38,7 @@ def doctor(sim, hil, drum_port, taxel_port, checks, list_checks, as_json, config
         for c in doc.CHECKS:
             click.echo(f"{c.name:18} {c.title}{' (moves the rig)' if c.moves else ''}")
         return
+    hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
     if drum_port is not None and (sim or hil):
@@ -48,7 +52,7 @@ def doctor(sim, hil, drum_port, taxel_port, checks, list_checks, as_json, config
             doc.select(checks)
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--check") from None
-    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port)
+    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders)
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
                  save=not no_save, on_result=None if as_json else lambda r: click.echo(r.line()))
     if as_json:

@@ -39,21 +39,25 @@ class PortBackend:
 
     Subclasses set :attr:`drum_port` / :attr:`taxel_port` (may be properties that exist once started) and
     :attr:`drum_timeout_s` (the answer timeout of the drum client, s; chosen per backend by the composition root,
-    :data:`rigctl.rigs.ANSWER_TIMEOUT_S`).
+    :data:`rigctl.rigs.ANSWER_TIMEOUT_S`) and :attr:`drum_watchdog_ms` (WATCHDOG_MS the client writes when it opens,
+    None: the controller's default; :data:`rigctl.rigs.WATCHDOG_MS`).
     """
 
     mode = "hardware"
     drum_port: str
     taxel_port: str
     drum_timeout_s: float = 0.5
+    drum_watchdog_ms: int | None = None
 
-    def drum(self) -> DrumClient:
-        """A new Modbus RTU client of the drum controller (not yet opened), answer timeout :attr:`drum_timeout_s`."""
-        return DrumClient(self.drum_port, timeout_s=self.drum_timeout_s, poll_s=0.02)
+    def drum(self, **options: Any) -> DrumClient:
+        """A new Modbus RTU client of the drum controller (not yet opened), answer timeout :attr:`drum_timeout_s`,
+        WATCHDOG_MS :attr:`drum_watchdog_ms` once opened; ``options``: more :class:`DrumClient` keywords."""
+        return DrumClient(self.drum_port, timeout_s=self.drum_timeout_s, poll_s=0.02, watchdog_ms=self.drum_watchdog_ms,
+                          **options)
 
-    def taxels(self) -> TaxelStream:
-        """A new taxel stream reader (not yet opened)."""
-        return TaxelStream(self.taxel_port)
+    def taxels(self, **options: Any) -> TaxelStream:
+        """A new taxel stream reader (not yet opened); ``options``: :class:`TaxelStream` keywords."""
+        return TaxelStream(self.taxel_port, **options)
 
 
 class SerialBackend(PortBackend):

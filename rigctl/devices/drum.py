@@ -283,6 +283,10 @@ class DrumClient:
     boot_quiet_s : float or None
         Silence after two attempts in a row got no answer, s: None = :data:`MEGA_BOOT_QUIET_S` on a serial device,
         0 on a pseudo-terminal.
+    watchdog_ms : int or None
+        WATCHDOG_MS written at :meth:`open` (None: the controller's own, default 1000 ms). For a controller whose
+        answers may take longer than the watchdog (the firmware under simavr on a loaded machine: one answer
+        waited out for ``timeout_s`` = 2 s is 2 s of host silence), else a single late answer trips it.
 
     Attributes
     ----------
@@ -312,8 +316,10 @@ class DrumClient:
 
     def __init__(self, port: str, *, baudrate: int = wire.DRUM_BAUD, device_id: int = wire.DRUM_DEVICE_ID,
                  timeout_s: float = 0.5, retries: int = 3, poll_s: float = 0.05, transport: Any = None,
-                 clock: Any = None, boot_wait_s: float | None = None, boot_quiet_s: float | None = None) -> None:
+                 clock: Any = None, boot_wait_s: float | None = None, boot_quiet_s: float | None = None,
+                 watchdog_ms: int | None = None) -> None:
         self.port = port
+        self.watchdog_ms = watchdog_ms
         self.device_id = device_id
         self.timeout_s = timeout_s
         self.retries = retries
@@ -342,8 +348,8 @@ class DrumClient:
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "DrumClient":
-        """Open the port and wait out the board's bootloader (``boot_wait_s``, module doc). Raises :class:`DrumError`
-        if it cannot be opened."""
+        """Open the port and wait out the board's bootloader (``boot_wait_s``, module doc); write ``watchdog_ms`` if
+        given. Raises :class:`DrumError` if it cannot be opened (or the controller does not take ``watchdog_ms``)."""
         with self._lock:
             try:
                 opened = self._connect()
@@ -351,6 +357,8 @@ class DrumClient:
                 raise DrumError(f"cannot open the drum controller port {self.port}: {exc}") from exc
             if not opened:
                 raise DrumError(f"cannot open the drum controller port {self.port}")
+            if self.watchdog_ms is not None:
+                self.write_holding(HR.WATCHDOG_MS, int(self.watchdog_ms))
         return self
 
     def _connect(self) -> bool:

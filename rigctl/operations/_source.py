@@ -31,33 +31,42 @@ class RigSource:
         taken as "hardware".
     drum_port, taxel_port : serial ports of the Mega and the Uno (hardware only)
     replay_dir : the recording a replay rig streams
+    bootloaders : "hil" only: the boards run their real bootloaders under simavr and reset when the host opens their
+        ports, as real boards do (:class:`rigctl.simulation.hil.HilRig` ``bootloaders``); the host waits the boot
+        windows out
 
     Raises
     ------
     ValueError
-        An unknown kind.
+        An unknown kind, or ``bootloaders`` for a kind other than "hil".
     """
 
     kind: str = "sim"
     drum_port: str | None = None
     taxel_port: str | None = None
     replay_dir: str | None = None
+    bootloaders: bool = False
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
         if self.kind not in KINDS:
             raise ValueError(f"unknown rig kind {self.kind!r}; choose one of {', '.join(KINDS)}")
+        if self.bootloaders and self.kind != "hil":
+            raise ValueError(f"bootloaders are the firmware under simavr's (kind 'hil'), not {self.kind!r}'s")
 
     @classmethod
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
-                   replay: str | Path | None = None) -> "RigSource":
-        """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` -> "hil",
-        else "sim" (the flags' consistency is the CLI's to check)."""
+                   replay: str | Path | None = None, bootloaders: bool = False) -> "RigSource":
+        """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
+        ``bootloaders`` -> "hil" (with its bootloaders if asked), else "sim" (the flags' consistency is the CLI's to
+        check)."""
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port)
         if replay is not None:
             return cls("replay", replay_dir=str(replay))
-        return cls("hil" if hil else "sim")
+        if hil or bootloaders:
+            return cls("hil", bootloaders=bootloaders)
+        return cls("sim")
 
     @property
     def is_hardware(self) -> bool:
@@ -70,6 +79,8 @@ class RigSource:
         if self.kind == "replay":
             what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
             return f"{what} ({self.replay_dir})"
+        if self.bootloaders:
+            return "firmware under simavr, with its bootloaders"
         return {"hil": "firmware under simavr", "inprocess": "in-process simulated rig"}.get(self.kind,
                                                                                            "simulated rig")
 
@@ -79,4 +90,6 @@ class RigSource:
             return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port}
         if self.kind == "replay":
             return {"kind": "replay", "source": self.replay_dir}
+        if self.bootloaders:
+            return {"kind": "hil", "bootloaders": True}
         return {"kind": self.kind}

@@ -12,6 +12,8 @@ from typing import Any
 
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices.backend import PortBackend
+from rigctl.devices.drum import DrumClient
+from rigctl.devices.taxel_stream import TaxelStream
 
 __all__ = ["SimMounter", "PtyRigBackend"]
 
@@ -38,6 +40,8 @@ class PtyRigBackend(PortBackend):
     seed : the seed it was built with (for the session's ``rig_config``).
     drum_timeout_s : the drum client's answer timeout, s (:data:`rigctl.rigs.ANSWER_TIMEOUT_S`; the simulated boards
         share the host's CPU and answer late on a loaded machine).
+    drum_watchdog_ms : WATCHDOG_MS the drum client writes when it opens (:data:`rigctl.rigs.WATCHDOG_MS`; None: the
+        controller's default).
 
     Attributes
     ----------
@@ -45,9 +49,10 @@ class PtyRigBackend(PortBackend):
     """
 
     def __init__(self, sim, *, mode: str = "sim", seed: int | None = None, textures: TextureSet | None = None,
-                 drum_timeout_s: float):
+                 drum_timeout_s: float, drum_watchdog_ms: int | None = None):
         self.sim = sim
         self.drum_timeout_s = drum_timeout_s
+        self.drum_watchdog_ms = drum_watchdog_ms
         self.mode = mode
         self.seed = seed
         self.mounter = SimMounter(sim)
@@ -65,6 +70,23 @@ class PtyRigBackend(PortBackend):
     def __enter__(self) -> "PtyRigBackend":
         self.sim.__enter__()
         return self
+
+    def drum(self, **options: Any) -> DrumClient:
+        """The drum client; on a simulated board that runs its real bootloader (``HilRig(bootloaders=True)``), one
+        that waits the boot window out after every open (the rig's ``drum_boot_wait_s`` / ``drum_boot_quiet_s``),
+        timed on the board's own simulated clock: a pty gives no sign that the board resets on open."""
+        if getattr(self.sim, "drum_boot_wait_s", 0.0):
+            options = {"boot_wait_s": self.sim.drum_boot_wait_s, "boot_quiet_s": self.sim.drum_boot_quiet_s,
+                       "clock": self.sim.clock, **options}
+        return super().drum(**options)
+
+    def taxels(self, **options: Any) -> TaxelStream:
+        """The taxel stream reader, waiting ``sim.taxel_banner_timeout_s`` for the banner where the rig gives one (a
+        bootloader's wait in simulated time)."""
+        timeout = getattr(self.sim, "taxel_banner_timeout_s", None)
+        if timeout:
+            options = {"banner_timeout_s": timeout, **options}
+        return super().taxels(**options)
 
     def __exit__(self, *exc) -> None:
         self.sim.__exit__(None, None, None)

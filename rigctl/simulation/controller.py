@@ -176,9 +176,9 @@ class MegaController:
         self._update_force()
 
     def _boot(self) -> None:
-        """Run the board's boot at rest until the HX711's rate is timed (the first 5 DOUT-ready edges: 62 ms at
-        80 SPS, 500 ms at 10 SPS of simulated time), as the firmware does before a host can reach it."""
-        while self._hx_edges <= wire.HX711_RATE_PERIODS:
+        """Run the board's boot at rest until the HX711's rate is timed (the first 6 DOUT-ready edges: 75 ms at
+        80 SPS, 600 ms at 10 SPS of simulated time), as the firmware does before a host can reach it."""
+        while self._hx_edges <= wire.HX711_RATE_PERIODS + 1:
             self.step(self.model.ms_to_next_conversion())
 
     def reset(self, cause: ResetCause | int = ResetCause.EXTERNAL) -> None:
@@ -596,13 +596,14 @@ class MegaController:
         return bool(self._hx_rate_sps) and abs(self._hx_rate_sps - expected) <= wire.HX711_RATE_TOLERANCE * expected
 
     def _hx711_ready(self, t_s: float) -> None:
-        """A DOUT-ready edge at ``t_s``: the boot measurement of the rate (the firmware's ctl_hx711_ready)."""
-        if 0 < self._hx_edges <= wire.HX711_RATE_PERIODS:
+        """A DOUT-ready edge at ``t_s``: the boot measurement of the rate (the firmware's ctl_hx711_ready: the periods
+        are timed from the second edge; the first reading may have waited since before the sketch started)."""
+        if 2 <= self._hx_edges <= wire.HX711_RATE_PERIODS + 1:
             self._hx_sum_s += t_s - self._hx_last_s
         self._hx_last_s = t_s
-        if self._hx_edges <= wire.HX711_RATE_PERIODS:
+        if self._hx_edges <= wire.HX711_RATE_PERIODS + 1:
             self._hx_edges += 1
-        if self._hx_edges == wire.HX711_RATE_PERIODS + 1 and not self._hx_rate_sps and self._hx_sum_s > 0:
+        if self._hx_edges == wire.HX711_RATE_PERIODS + 2 and not self._hx_rate_sps and self._hx_sum_s > 0:
             self._hx_period_s = self._hx_sum_s / wire.HX711_RATE_PERIODS
             self._hx_rate_sps = round(100.0 / self._hx_period_s) / 100.0
             if not self._hx711_rate_ok():

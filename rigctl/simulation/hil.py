@@ -292,6 +292,14 @@ class HilRig:
         return MEGA_BOOT_WINDOW_S + 0.25 if self.bootloaders else 0.0
 
     @property
+    def taxel_banner_timeout_s(self) -> float | None:
+        """``banner_timeout_s`` a :class:`~rigctl.devices.taxel_stream.TaxelStream` of this rig needs, s of host time
+        (None: its default): with bootloaders the Uno's optiboot holds the sketch about 1 s of simulated time after
+        the open's reset (its watchdog timeout), several seconds of host time on a loaded machine (the boot tests
+        wait 60 s)."""
+        return 60.0 if self.bootloaders and self.with_uno else None
+
+    @property
     def drum_boot_quiet_s(self) -> float:
         """``boot_quiet_s`` a :class:`~rigctl.devices.drum.DrumClient` of this rig needs (0 without bootloaders)."""
         from rigctl.devices.drum import MEGA_BOOT_QUIET_S

@@ -24,6 +24,12 @@ def test_rig_sources_use_the_composition_roots_kinds():
     assert RigSource.from_flags(hil=True).kind == "hil" and RigSource.from_flags().kind == "sim"
     with pytest.raises(ValueError, match="unknown rig kind 'usb'"):
         RigSource("usb")
+    # the firmware under simavr with the boards' real bootloaders (--hil-bootloaders): an option of "hil" only
+    boot = RigSource.from_flags(bootloaders=True)
+    assert boot.open_options() == {"kind": "hil", "bootloaders": True} and "bootloaders" in boot.label()
+    assert RigSource.from_flags(hil=True).open_options() == {"kind": "hil"}
+    with pytest.raises(ValueError, match="bootloaders"):
+        RigSource("sim", bootloaders=True)
 
 
 def test_refusals_name_the_binding_limit():

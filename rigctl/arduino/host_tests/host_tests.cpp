@@ -326,6 +326,21 @@ static void press_settled(ctl_t &c, Plant &p, uint32_t &now, uint16_t g)
 }
 
 // docs/wire-protocol.md 2.4-2.8: what a reset, a reversed cell, a broken home switch and the e-stop do
+// the first DOUT-ready edge after boot is a reading that waited (the HX711 converts through a reset and the
+// bootloader's wait): the rate is timed from the second edge, so a stale first one does not read the rate high
+static void test_hx711_rate_stale_first_edge()
+{
+    ctl_t c;
+    ctl_init(&c, 0, 0);
+    const uint32_t edges_us[] = {800, 5000, 17500, 30000, 42500, 55000}; // stale at 0.8 ms, then 12.5 ms periods
+    for (uint32_t t : edges_us) {
+        CHECK(ctl_read_input(&c, RIGCTL_IREG_HX711_RATE_0P01SPS) == 0);
+        ctl_hx711_ready(&c, t);
+    }
+    CHECK(ctl_read_input(&c, RIGCTL_IREG_HX711_RATE_0P01SPS) == 8000); // 80 SPS, not 4 / 41.7 ms = 95.9 SPS
+    CHECK(!(c.faults & RIGCTL_FAULT_HX711_RATE));
+}
+
 static void test_safety()
 {
     uint32_t now = 0;
@@ -495,6 +510,7 @@ int main()
     test_pi();
     test_steprate();
     test_controller();
+    test_hx711_rate_stale_first_edge();
     test_safety();
     std::printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;

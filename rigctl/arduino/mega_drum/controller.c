@@ -123,12 +123,17 @@ static void force_loop_gains(ctl_t *c)
     c->pi.ki = (float)ki * 1e-6f;
 }
 
+/* The first ready edge is not timed from: the HX711 converts on its own from power-up, through an MCU reset and the
+ * bootloader's wait (0.8 s on the Mega), so the sketch's first reading may have waited with DOUT low since before it
+ * started, and its edge is not the end of a conversion (timed from it, the rate read up to one period in 4 high:
+ * 95 SPS for an 80 SPS part under simavr with the bootloader, past the 20 % tolerance in a third of boots). The 4
+ * periods are timed from the second edge. */
 void ctl_hx711_ready(ctl_t *c, uint32_t t_us)
 {
-    if (c->hx_edges && c->hx_edges <= RIGCTL_HX711_RATE_PERIODS) c->hx_sum_us += t_us - c->hx_last_us;
+    if (c->hx_edges >= 2 && c->hx_edges <= RIGCTL_HX711_RATE_PERIODS + 1) c->hx_sum_us += t_us - c->hx_last_us;
     c->hx_last_us = t_us;
-    if (c->hx_edges <= RIGCTL_HX711_RATE_PERIODS) c->hx_edges++;
-    if (c->hx_edges == RIGCTL_HX711_RATE_PERIODS + 1 && !c->hx_rate_0p01 && c->hx_sum_us) {
+    if (c->hx_edges <= RIGCTL_HX711_RATE_PERIODS + 1) c->hx_edges++;
+    if (c->hx_edges == RIGCTL_HX711_RATE_PERIODS + 2 && !c->hx_rate_0p01 && c->hx_sum_us) {
         c->hx_period_s = (float)c->hx_sum_us * 1e-6f / (float)RIGCTL_HX711_RATE_PERIODS;
         c->hx_rate_0p01 = (uint16_t)(100.0f / c->hx_period_s + 0.5f);
         if (!hx711_rate_ok(c)) fault(c, RIGCTL_FAULT_HX711_RATE);
