@@ -275,13 +275,15 @@ def test_hx711_rate_rules(spec_text, h):
     assert h["RIGCTL_HX711_RATE_TOLERANCE_PCT"] == tol == round(wire.HX711_RATE_TOLERANCE * 100)
     cfg = (REPO / "arduino" / "mega_drum" / "drum_config.h").read_text()
     assert float(re.search(r"#define FORCE_INTEGRATE_BAND_G\s+([\d.]+)f?", cfg).group(1)) == band
-    from rigctl.simulation.controller import FORCE_LOOP_MAX_SPEED_MM_S
+    from rigctl.simulation.controller import FORCE_LOOP_MAX_SPEED_MM_S, HOME_SPEED_MM_S
     from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G
 
     assert FORCE_PI_INTEGRATE_BAND_G == band
     # the virtual Mega's force loop clamps its output where the firmware's does
     clamp = float(re.search(r"#define ACT_MAX_SPEED_MM_S\s+([\d.]+)f?", cfg).group(1))
     assert FORCE_LOOP_MAX_SPEED_MM_S == clamp
+    # ... and seeks home where it does
+    assert HOME_SPEED_MM_S == float(re.search(r"#define ACT_HOME_SPEED_MM_S\s+([\d.]+)f?", cfg).group(1))
     lo, hi, _ = wire.HOLDING_RANGE[wire.HoldingRegister.HX711_RATE_SPS]
     assert (lo, hi) == (min(wire.HX711_RATES_SPS), max(wire.HX711_RATES_SPS))
 

@@ -83,7 +83,9 @@ INDEX_PREDICTION_TOLERANCE_S = 0.5
 INDEX_PREDICTION_TOLERANCE_REVS = 0.1
 #: a trial's drum speed measured by the index sensor may differ from its setpoint by this fraction (and the
 #: microsteps per revolution counted between two index edges from the firmware's steps_per_rev x microsteps) before
-#: the trial is flagged ``drum_speed_mismatch`` (a driver at another microstep setting, a wrong drum diameter)
+#: the trial is flagged ``drum_speed_mismatch`` (a driver at another microstep setting, missed steps, a step rate that
+#: is not the setpoint's). The sensor counts revolutions: a drum of another diameter than the firmware's turns at the
+#: expected rate and is not seen (speeds in mm/s are computed with the firmware's diameter)
 DRUM_SPEED_TOLERANCE = 0.03
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0
@@ -783,7 +785,7 @@ def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
                    f"set to {DRUM_MICROSTEPS * steps / usteps:g} microsteps instead of {DRUM_MICROSTEPS}?)")
     if method == "period" and abs(speed / planned.speed_mm_s - 1.0) > DRUM_SPEED_TOLERANCE:
         why.append(f"the index sensor measured {speed:.1f} mm/s at a setpoint of {planned.speed_mm_s:g} mm/s "
-                   "(wrong microstep setting or drum diameter?)")
+                   "(wrong microstep setting, or the Mega's step timing?)")
     return {"index_source": str(last.index_source), "drum_speed_index_mm_s": float(speed),
             "drum_speed_index_method": method, "drum_steps_per_rev_index": steps, "drum_speed_mismatch": bool(why),
             "drum_speed_warning": "; ".join(why)}

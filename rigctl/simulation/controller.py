@@ -59,12 +59,12 @@ __all__ = ["MegaController", "LOADCELL_TIMEOUT_MS"]
 _TRUE_ACTUATOR_STEPS_PER_MM = wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2]
 _ENGAGED = (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING)
 LOADCELL_TIMEOUT_MS = 200
-#: the force loop's output clamp, mm/s: the firmware's ACT_MAX_SPEED_MM_S (drum_config.h; equal by
-#: tests/test_wire_spec.py)
+#: the force loop's output clamp and the retract (back-off) speed, commanded mm/s: the firmware's ACT_MAX_SPEED_MM_S
+#: (drum_config.h; equal by tests/test_wire_spec.py)
 FORCE_LOOP_MAX_SPEED_MM_S = 5.0
 #: the AVR watchdog's timeout (firmware: WDTO_120MS, interrupt first, reset at the second timeout), ms
 AVR_WATCHDOG_MS = 120
-#: actuator speed while seeking home, mm/s (firmware: ACT_HOME_SPEED_MM_S)
+#: actuator speed while seeking home, commanded mm/s (firmware: ACT_HOME_SPEED_MM_S; equal by tests/test_wire_spec.py)
 HOME_SPEED_MM_S = 3.0
 _DEFAULT_SCALE_X100 = wire.join_s32(wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_HI][2],
                                     wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_LO][2])
@@ -699,7 +699,6 @@ class MegaController:
             self._speed_target = target
             rate = target * m.config.drum.steps_per_mm
             # --- actuator: force PI loop, back-off or homing
-            vmax = mech.actuator_max_speed_mm_s
             cal = h[HR.ACTUATOR_STEPS_PER_MM] / _TRUE_ACTUATOR_STEPS_PER_MM  # true mm per commanded mm
             if engaged:
                 sp = h[HR.FORCE_SETPOINT_G]
@@ -728,8 +727,8 @@ class MegaController:
                     vel = 0.0
                     self.homed = False
                     self._fault(Fault.HOME_NOT_FOUND)
-            elif self._retracting:
-                vel = -vmax
+            elif self._retracting:  # the firmware's ACT_MODE_RETRACT: back to home at the loop's clamp speed
+                vel = -FORCE_LOOP_MAX_SPEED_MM_S * cal
                 if self._actuator_position_mm() <= 1e-6 or self._home_switch():
                     vel = 0.0
                     self._retracting = False

@@ -55,6 +55,8 @@ class Controller:
     hang : ``() -> None``, make the controller's main loop hang (the firmware's test image, the virtual Mega's hook)
     drivers_enabled : ``() -> bool``, the stepper drivers' EN as the hardware sees it (the harness's pin, the virtual
         Mega's output)
+    mechanics_s : ``() -> s``, the time of the mechanics that :attr:`actuator_mm` reports (the physics model's, which
+        falls behind the host's clock when its thread is starved; the harness's simulated time), to time motion on
     """
 
     name: str
@@ -71,6 +73,7 @@ class Controller:
     corrupt_eeprom: Callable[[], None] = lambda: None
     hang: Callable[[], None] = lambda: None
     drivers_enabled: Callable[[], bool] = lambda: True
+    mechanics_s: Callable[[], float] = time.monotonic
     power_up_holding: list[int] = field(default_factory=list)
     power_up_inputs: list[int] = field(default_factory=list)
     rig: Any = None
@@ -133,7 +136,7 @@ def _start_sim(config=None, image: str = ""):
                            reset=lambda cause: mega.reset(_SIM_CAUSES[cause]), set_estop=mega.set_estop,
                            set_polarity=set_polarity, break_home_switch=mega.break_home_switch,
                            corrupt_eeprom=mega.corrupt_eeprom, hang=mega.hang_loop,
-                           drivers_enabled=lambda: mega.drivers_enabled, rig=rig)
+                           drivers_enabled=lambda: mega.drivers_enabled, mechanics_s=lambda: model.time_s, rig=rig)
 
 
 def _start_hil(config=None, image: str = "mega_drum"):
@@ -153,7 +156,8 @@ def _start_hil(config=None, image: str = "mega_drum"):
                            clock_s=lambda: rig.next_telemetry().t_s, reset=rig.reset_mega, set_estop=rig.set_estop,
                            set_polarity=rig.set_loadcell_polarity, break_home_switch=rig.break_home_switch,
                            corrupt_eeprom=rig.corrupt_eeprom, hang=rig.hang_loop,
-                           drivers_enabled=lambda: rig.next_telemetry().drivers_enabled, rig=rig)
+                           drivers_enabled=lambda: rig.next_telemetry().drivers_enabled,
+                           mechanics_s=lambda: rig.next_telemetry().t_s, rig=rig)
 
 
 @pytest.fixture(scope="module", params=["sim", pytest.param("hil", marks=pytest.mark.hil)])
@@ -171,10 +175,15 @@ def controller(request):
 
 
 def home(drum: DrumClient) -> None:
-    """HOME a NOT_HOMED controller (after power-up or a reset), as a rig does when it opens; wait for IDLE."""
+    """HOME a NOT_HOMED controller (after power-up or a reset), as a rig does when it opens; wait for IDLE and for the
+    HX711 rate the controller times at boot (until then it refuses PRESS and RUN)."""
     if drum.read_status().state == DrumState.NOT_HOMED:
         drum.home()
         drum.wait_state(DrumState.IDLE, timeout_s=30.0)
+    deadline = drum.clock.now() + 10.0
+    while not drum.read_status().hx711_rate_sps:  # PRESS and RUN wait for the boot's HX711 rate (spec 2.9)
+        assert drum.clock.now() < deadline, "the controller never timed its HX711's rate"
+        time.sleep(0.02)
 
 
 def restore(drum: DrumClient, ctl: Controller) -> None:

@@ -438,6 +438,31 @@ def test_home_drives_the_actuator_home(drum, controller):
     assert st.actuator_mm == 0 and controller.actuator_mm() <= HOME_MM
 
 
+def test_stop_backs_the_actuator_off_at_the_clamp_speed(drum, controller):
+    """STOP after a press: the actuator goes home at ACT_MAX_SPEED_MM_S (drum_config.h, 5 mm/s; the firmware's
+    ACT_MODE_RETRACT), measured on the mechanics against the controller's own clock (the virtual Mega drove it at the
+    model's 8 mm/s mechanical limit). On the mechanics' own clock (the model's, the harness's)."""
+    from rigctl.simulation.controller import FORCE_LOOP_MAX_SPEED_MM_S
+
+    drum.set_force(1000)
+    drum.press()
+    poll(drum, lambda s: s.actuator_mm > 3.5, 10, "the actuator pressing")
+    start_mm = controller.actuator_mm()
+    drum.stop()
+    track = []  # (mechanics' time, actuator mm) while it retracts
+    deadline = controller.mechanics_s() + 5.0
+    while controller.mechanics_s() < deadline:
+        t, mm = controller.mechanics_s(), controller.actuator_mm()
+        track.append((t, mm))
+        if mm <= HOME_MM:
+            break
+        time.sleep(0.01)
+    mid = [(t, mm) for t, mm in track if 0.3 < mm < start_mm - 0.3]
+    assert len(mid) >= 3, track
+    (t0, x0), (t1, x1) = mid[0], mid[-1]
+    assert (x0 - x1) / (t1 - t0) == pytest.approx(FORCE_LOOP_MAX_SPEED_MM_S, rel=0.1), track
+
+
 def test_clear_fault_outside_fault_and_none_change_nothing(drum):
     regs, st0 = holding(drum), drum.read_status()
     drum.clear_fault()

@@ -416,7 +416,9 @@ def check_drum_speed(ctx: DoctorContext) -> CheckResult:
     if bad:
         fix = ("set the drum driver to 16 microsteps (its MS pins, docs/hardware/wiring.md#microsteps)"
                if any(values[f"steps_per_rev_at_{v:g}_mm_s"] != expected_steps for v in bad) else
-               "the drum's diameter differs from the firmware's (RIGCTL_DRUM_DIAMETER_MM_DEF): set it and rebuild")
+               "the drum turns the expected microsteps per revolution at another rate: the step timing is off (the "
+               "Mega's 16 MHz crystal, a firmware built for another F_CPU): flash the installed firmware and check the "
+               "board")
         return failed("drum-speed", what + f"; expected {expected_steps} microsteps/rev", fix, **values)
     return passed("drum-speed", what, **values)
 
