@@ -17,6 +17,17 @@ TESTS = Path(__file__).resolve().parent
 FOLDER_MARKERS = {"gui": ["gui"], "conformance": ["realtime"]}
 
 
+#: liblsl's configuration for the tests (docs/lsl.md: how it was checked that nothing leaves the host)
+LSL_API_CFG = """[ports]
+IPv6 = disable
+
+[multicast]
+ResolveScope = machine
+KnownPeers = {127.0.0.1}
+ListenAddress = 127.0.0.1
+"""
+
+
 def scratch_dir() -> Path:
     """``$TMPDIR/rigctl-tests-<user>``: what the suite keeps between runs (the firmware build of the current
     sources, Hypothesis' examples), outside the checkout."""
@@ -39,6 +50,20 @@ def pytest_configure(config):
         digest = firmware.source_digest()[:16]
         os.environ["RIGCTL_FIRMWARE_BUILD"] = str(scratch / f"firmware-{digest}")
     set_hypothesis_home_dir(os.environ.get("HYPOTHESIS_STORAGE_DIRECTORY") or scratch / "hypothesis")
+    # LSL on this machine alone (liblsl reads LSLAPICFG when it first resolves or opens a stream; CLI subprocesses
+    # inherit it): discovery only to 127.0.0.1, never a multicast or broadcast address, no IPv6; never $HOME's file
+    cfg_dir = Path(tempfile.mkdtemp(prefix="rigctl-lsl-"))
+    (cfg_dir / "lsl_api.cfg").write_text(LSL_API_CFG)
+    os.environ["LSLAPICFG"] = str(cfg_dir / "lsl_api.cfg")
+    config._rigctl_lsl_cfg_dir = cfg_dir
+
+
+def pytest_unconfigure(config):
+    import shutil
+
+    cfg_dir = getattr(config, "_rigctl_lsl_cfg_dir", None)
+    if cfg_dir is not None:
+        shutil.rmtree(cfg_dir, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -58,6 +83,26 @@ def shared_path(*parts: str) -> Path:
             pytest.fail(msg + "; under CI=true it must be present")
         pytest.skip(msg)
     return path
+
+
+def require_lsl():
+    """pylsl with a working liblsl: skip with the reason when it cannot load (a failure under ``CI=true``)."""
+    try:
+        import pylsl
+
+        pylsl.library_version()
+    except Exception as exc:  # noqa: BLE001 - ImportError, RuntimeError (no liblsl), OSError
+        msg = f"pylsl's liblsl is unavailable ({type(exc).__name__}: {exc})"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg + "; under CI=true it must be installed (pip install 'rigctl[lsl]')")
+        pytest.skip(msg)
+    return pylsl
+
+
+@pytest.fixture
+def lsl():
+    """pylsl (LSLAPICFG set to the machine-local :data:`LSL_API_CFG`), or a skip / CI failure."""
+    return require_lsl()
 
 
 @pytest.fixture(scope="session")

@@ -37,9 +37,11 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.acquisition.clock import trial_clock_attrs
 from rigctl.acquisition.motion import wait_released
 from rigctl.acquisition.protocol import PlannedTrial, Settle
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
+from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.drum import (
     DRUM_CIRCUMFERENCE_MM,
     DRUM_MICROSTEPS,
@@ -187,6 +189,8 @@ class Rig:
         self.last_capture_frames: int | None = None
         #: whether the controller acknowledged the STOP of :meth:`close` (None while open)
         self.stop_acknowledged: bool | None = None
+        #: the host <-> taxel-board clock mapping, fitted online on every captured frame (rigctl.acquisition.clock)
+        self.clock_fit: DeviceClockFit | None = None
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
@@ -724,6 +728,9 @@ class Rig:
         finally:
             cap = self.stream.end_capture()
             self.last_capture_frames = len(cap)
+        if self.clock_fit is None or self.clock_fit.nominal_rate_hz != rate:
+            self.clock_fit = DeviceClockFit(rate)
+        counts = self.clock_fit.add(cap.seq, cap.host_time_s)
         self.drum.stop_drum()
         k = lost = 0
         if align:
@@ -737,6 +744,7 @@ class Rig:
                             "drum angle predicts the index", planned.trial_id, lost)
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)
+            counts = counts[k:]
         ring = getattr(self.stream, "ring", None)  # a live stream's recent frames (the in-process one has none)
         host_rate = math.nan
         if ring is not None and len(cap) >= n:
@@ -746,6 +754,7 @@ class Rig:
         data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
                            layout=layout, host_rate_hz=host_rate)
         data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
+        data.attrs.update(trial_clock_attrs(self.clock_fit, counts[:n], cap.host_time_s[:n]))
         data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1]))
         if data.attrs["drum_speed_mismatch"]:
             log.warning("trial %d: %s", planned.trial_id, data.attrs["drum_speed_warning"])

@@ -21,7 +21,10 @@ optional blocks
 - ``doctor``: the last ``rigctl doctor`` report per rig kind (``hardware``, ``sim``, ``hil``, ``replay``,
   ``inprocess``): ``checked_utc`` and ``rig`` (text), ``ok`` (true/false), ``checks`` (a list of objects with
   ``name``, ``status`` ("pass", "fail" or "skip"), ``summary``, optional ``fix`` (text) and ``values`` (an object of
-  numbers, text, true/false, null or lists of them)) (:mod:`rigctl.acquisition.doctor`).
+  numbers, text, true/false, null or lists of them)) (:mod:`rigctl.acquisition.doctor`);
+- ``lsl``: Lab Streaming Layer (:mod:`rigctl.acquisition.lsl`): ``enabled`` (true/false: every run publishes its
+  streams unless the command says otherwise; default off), ``name`` (the streams' name prefix), ``source_id``
+  (their stable source id prefix, so LabRecorder finds the rig again after a restart).
 
 Numbers are finite (JSON ``NaN``/``Infinity`` are refused) and never ``true``/``false``. Any other key is refused, by
 name (a misspelt key would otherwise be ignored without a word).
@@ -75,12 +78,13 @@ SCHEMA["force_loop"] = {
 }
 SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
 SCHEMA["doctor"] = {kind: ("report", False) for kind in RIG_KINDS}
+SCHEMA["lsl"] = {"enabled": ("bool", False), "name": ("text", False), "source_id": ("text", False)}
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
              "nonzero": "a non-zero number",
              "scale": "a non-zero integer of absolute value up to 10000000", "text": "text", "counts": "a non-empty list of numbers",
              "report": "a doctor report (checked_utc, rig, ok, checks)", "hx711_rate": "10 or 80",
-             "gain": "a number >= 0"}
+             "gain": "a number >= 0", "bool": "true or false"}
 
 #: a doctor report's keys -> kind; each check's keys -> kind (``values`` checked by _is_plain_value)
 _REPORT_KEYS = {"checked_utc": "text", "rig": "text", "ok": "bool", "checks": "list"}
@@ -121,6 +125,8 @@ def _check_value(kind: str, v: Any) -> bool:
         return isinstance(v, int) and not isinstance(v, bool) and v in (10, 80)
     if kind == "gain":
         return _is_number(v) and v >= 0
+    if kind == "bool":
+        return isinstance(v, bool)
     raise AssertionError(kind)
 
 

@@ -46,7 +46,7 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -249,6 +249,7 @@ def run_protocol(
     prompt: Callable[[str], Any] | None = None,
     on_failure: str = "continue",
     overwrite: bool = False,
+    session_attrs: Mapping[str, Any] | None = None,
 ) -> RunSummary:
     """Record ``protocol`` on ``rig`` into the session file ``out_path``.
 
@@ -266,6 +267,7 @@ def run_protocol(
     prompt : operator prompt for plate changes on hardware (default: the rig's).
     on_failure : "continue" or "stop" after a trial failed (its retries used up).
     overwrite : replace an existing ``out_path`` (not with ``resume``).
+    session_attrs : more root attributes of a new session file (e.g. the LSL streams and clock offset).
 
     Returns
     -------
@@ -282,7 +284,8 @@ def run_protocol(
     out_path = Path(out_path)
     with _Interrupts() as interrupts:
         if isinstance(protocol, ScriptProtocol):
-            return _run_script(protocol, out_path, rig=rig, resume=resume, overwrite=overwrite)
+            return _run_script(protocol, out_path, rig=rig, resume=resume, overwrite=overwrite,
+                               session_attrs=session_attrs)
         rig.apply_settle(protocol.settle)
         rig.textures = protocol.texture_set
         if resume:
@@ -294,7 +297,8 @@ def run_protocol(
                 protocol_source=protocol.source, protocol_name=protocol.name,
                 protocol_format="toml", rig_config=described, kind="recorded",
                 calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
-                attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol))},
+                attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol)),
+                       **dict(session_attrs or {})},
                 overwrite=overwrite,
             )
         run = _Run(protocol, writer, out_path, rig, interrupts=interrupts, progress=progress, stop_event=stop_event,
@@ -496,7 +500,8 @@ class _Run:
             writer.wait_s = wait_s
 
 
-def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: bool, overwrite: bool) -> RunSummary:
+def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: bool, overwrite: bool,
+                session_attrs: Mapping[str, Any] | None = None) -> RunSummary:
     """Run a Python-script protocol: ``protocol.run(rig, session)`` with a fresh session writer (empty plan)."""
     if resume:
         raise SessionError(f"{protocol.path}: a Python-script protocol cannot be resumed by the runner "
@@ -506,7 +511,8 @@ def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: b
         out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source,
         protocol_name=protocol.name, protocol_format="python",
         rig_config=described, kind="recorded", calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
-        attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol))},
+        attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol)),
+               **dict(session_attrs or {})},
         overwrite=overwrite,
     )
     summary = RunSummary(path=out_path)

@@ -118,20 +118,24 @@ def _held_rig_warnings():
                    "on without waiting (a plate changer, or an operator following the printed schedule); skip = "
                    "never ask: every trial runs on the plate already mounted and is labelled with the plan's texture "
                    "(one-texture protocols, dry runs). The simulated rigs mount their plates themselves.")
+@click.option("--lsl/--no-lsl", "lsl", default=None,
+              help="Publish the run on Lab Streaming Layer (taxels, SA/RA spikes, drum state, markers; docs/lsl.md); "
+                   "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure,
-            config_path, plates, quiet):
+            config_path, plates, lsl, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
     continue later with --resume. Exit status: 0 when every planned trial is complete, 1 otherwise; 2 for a usage
     error (refused before the rig moves).
     """
+    from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.devices.errors import DrumError, TaxelStreamError
-    from rigctl.operations import ProtocolRun, RigSource, open_control
+    from rigctl.operations import ProtocolRun, RigSource, lsl_requested, open_control
     from rigctl.storage.session import SessionError
 
     hil = hil or hil_bootloaders
@@ -154,11 +158,17 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
     hardware = drum_port is not None
     prompt = plate_prompt(plates, hardware=hardware, stdin_is_tty=sys.stdin.isatty())
     try:  # the rig config is read again when the rig opens; a bad one is refused here, before anything starts
-        load_rig_config(config_path)
+        host_config = load_rig_config(config_path)
     except CalibrationError as exc:
         if config_path is not None:
             raise UsageProblem(f"--config {exc}") from None
         raise click.ClickException(f"{exc} (fix it, or give another file with --config)") from None
+    publish = lsl_requested(lsl, host_config)
+    if publish:  # before the rig moves
+        try:
+            require_pylsl()
+        except LslUnavailable as exc:
+            raise click.ClickException(f"{exc}{'' if lsl else ' (asked for by the rig config: lsl.enabled)'}") from None
     try:
         proto = load_protocol(protocol)
     except ProtocolError as exc:  # the command's argument: a usage error
@@ -202,8 +212,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
             summary = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
-                                  overwrite=overwrite).run()
-        except (SessionError, FileExistsError, FileNotFoundError, ValueError) as exc:
+                                  overwrite=overwrite, lsl=publish).run()
+        except (SessionError, FileExistsError, FileNotFoundError, ValueError, LslUnavailable) as exc:
             raise click.ClickException(str(exc)) from None
     for line in summary.lines():
         click.echo(line)

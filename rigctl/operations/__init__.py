@@ -15,6 +15,8 @@ One package of small modules, each one job an operator does:
 - :class:`AnalysisPlan` / :func:`run_analyses` (``_analysis``): the paper's analyses as ``rigctl analyze`` and the
   GUI's analysis tab run them (which tasks, the parameter objects of :mod:`rigctl.analysis.params`, baseline,
   skip or raise); :func:`load_or_encode`, :func:`train_model`.
+- :class:`LslPublisher` (``_lsl``): a run published on Lab Streaming Layer (taxels, SA/RA spikes, drum state,
+  markers); :func:`lsl_requested` (the flag, else the rig config's ``lsl.enabled``).
 - :class:`LiveEncoder` (``_live``): the taxel stream encoded into SA/RA spikes as it arrives, into
   :class:`SpikeRing` s a live view reads.
 
@@ -41,11 +43,13 @@ from rigctl.operations._calibrate import (
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
+from rigctl.operations._lsl import LslPublisher, lsl_requested
 from rigctl.operations._run import RUN_STATES, ProtocolRun
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 
 __all__ = [
+    "LslPublisher", "lsl_requested",
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",

@@ -19,6 +19,7 @@ from typing import Any
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import RunSummary, TrialEvent, run_protocol
 from rigctl.core.progress import ProgressEvent
+from rigctl.operations._lsl import LslPublisher
 
 __all__ = ["ProtocolRun", "RUN_STATES"]
 
@@ -37,6 +38,9 @@ class ProtocolRun:
     resume, overwrite, on_failure, prompt : as :func:`rigctl.acquisition.runner.run_protocol`.
     progress : receives :class:`rigctl.core.progress.ProgressEvent` s.
     on_trial : receives :class:`rigctl.acquisition.runner.TrialEvent` s (from the thread the run records in).
+    lsl : publish the run on Lab Streaming Layer (:class:`rigctl.operations.LslPublisher`: taxels, spikes, drum
+        state, one marker per run and trial event); the outlets open here, so a missing pylsl is
+        :class:`rigctl.acquisition.lsl.LslUnavailable` before anything moves. Or an ``LslPublisher`` to reuse.
 
     Raises (from :meth:`run` / :meth:`wait`) what ``run_protocol`` raises: FileExistsError, FileNotFoundError,
     SessionError, ValueError.
@@ -46,7 +50,7 @@ class ProtocolRun:
                  overwrite: bool = False, on_failure: str = "continue",
                  prompt: Callable[[str], Any] | None = None,
                  progress: Callable[[ProgressEvent], Any] | None = None,
-                 on_trial: Callable[[TrialEvent], Any] | None = None) -> None:
+                 on_trial: Callable[[TrialEvent], Any] | None = None, lsl: Any = False) -> None:
         self.rig: Rig = getattr(rig, "rig", rig)
         self.protocol = protocol
         self.out_path = Path(out_path)
@@ -63,6 +67,11 @@ class ProtocolRun:
         self._started = False
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
+        self.lsl: LslPublisher | None = None
+        if isinstance(lsl, LslPublisher):
+            self.lsl = lsl
+        elif lsl:
+            self.lsl = LslPublisher(self.rig, protocol_name=getattr(protocol, "name", ""))
 
     # ------------------------------------------------------------------------------------------------- state
     @property
@@ -99,6 +108,8 @@ class ProtocolRun:
         (the run can be resumed later). Returns at once; :meth:`wait` for the end."""
         self.stop_event.set()
         self.pause_event.clear()
+        if self.lsl is not None and not self._done.is_set():
+            self.lsl.run_marker("abort")
 
     # ------------------------------------------------------------------------------------------------- running
     def run(self) -> RunSummary:
@@ -108,10 +119,17 @@ class ProtocolRun:
             raise RuntimeError("this run has already been started")
         self._started = True
         try:
+            if self.lsl is not None:
+                self.lsl.run_marker("run_start", out=str(self.out_path), resume=self.resume_file)
             self.summary = run_protocol(
                 self.protocol, self.out_path, rig=self.rig, resume=self.resume_file, progress=self.progress,
                 stop_event=self.stop_event, pause_event=self.pause_event, on_trial=self._trial,
-                prompt=self.prompt, on_failure=self.on_failure, overwrite=self.overwrite)
+                prompt=self.prompt, on_failure=self.on_failure, overwrite=self.overwrite,
+                session_attrs=None if self.lsl is None else self.lsl.session_attrs())
+            if self.lsl is not None:
+                s = self.summary
+                self.lsl.run_marker("run_end", complete=s.complete, planned=s.planned, failed=s.failed,
+                                    stopped=s.stopped)
             return self.summary
         except BaseException as exc:
             self.error = exc
@@ -144,5 +162,7 @@ class ProtocolRun:
             self._paused_now = True
         elif event.kind == "resumed":
             self._paused_now = False
+        if self.lsl is not None:
+            self.lsl.on_trial(event)
         if self.on_trial is not None:
             self.on_trial(event)

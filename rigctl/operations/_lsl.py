@@ -1,0 +1,124 @@
+"""A protocol run published on Lab Streaming Layer: :class:`LslPublisher`, the consumer of a run's trial events
+that feeds :class:`rigctl.acquisition.lsl.LslOutlets` (taxels, SA/RA spikes, drum state, markers).
+
+Each recorded trial is pushed once it is complete: its frames with their fitted times (``rigctl.acquisition.clock``),
+the spikes of the streaming Izhikevich encoder (:class:`rigctl.encoding.izhikevich.StreamingEncoder`, paper eqs.
+3-5, reset per trial, normalised with the rig's taxel normalisation or the full ADC range: the same spikes
+``encode_sa``/``encode_ra`` give for the trial) and the drum traces; every run event is one marker. A
+:class:`ProtocolRun` made with ``lsl=`` does this (``rigctl acquire --lsl``, the GUI's toggle, the rig config's
+``lsl.enabled``, ``rigctl serve``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from rigctl.acquisition.clock import fitted_times
+from rigctl.acquisition.lsl import LslOutlets
+from rigctl.acquisition.runner import TrialEvent
+from rigctl.core.normalisation import TaxelRange
+
+__all__ = ["LslPublisher", "lsl_requested"]
+
+#: the marker each trial event becomes
+_MARKERS = {"start": "trial_start", "complete": "trial_end", "failed": "fault", "retry": "retry",
+            "link_down": "fault", "waiting": "waiting", "texture": "plate_change", "paused": "pause",
+            "resumed": "resume"}
+
+
+def lsl_requested(flag: bool | None, host_config: dict[str, Any] | None) -> bool:
+    """Whether a run publishes on LSL: the command's flag when given, else the rig config's ``lsl.enabled``
+    (default off)."""
+    if flag is not None:
+        return bool(flag)
+    block = (host_config or {}).get("lsl") or {}
+    return bool(block.get("enabled", False))
+
+
+def _planned_fields(planned: Any) -> dict[str, Any]:
+    if planned is None:
+        return {}
+    d = dataclasses.asdict(planned)
+    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in d.items()}
+
+
+class LslPublisher:
+    """Publishes a run on ``rig`` (a :class:`rigctl.acquisition.rig.Rig` or a ``RigControl``) over LSL.
+
+    Pass :meth:`on_trial` as (or from) the run's ``on_trial``; :meth:`run_marker` for run-level events (start, end,
+    abort, STOP); :meth:`session_attrs` for the session file (the streams and the host <-> LSL offset).
+
+    Raises :class:`rigctl.acquisition.lsl.LslUnavailable` when pylsl is missing.
+    """
+
+    def __init__(self, rig: Any, *, name: str | None = None, source_id: str | None = None,
+                 protocol_name: str = "") -> None:
+        self.rig = getattr(rig, "rig", rig)
+        block = (self.rig.host_config or {}).get("lsl") or {}
+        clock = getattr(self.rig.drum, "clock", None)
+        self.outlets = LslOutlets(self.rig.layout, name=name or block.get("name", "rigctl"),
+                                  source_id=source_id or block.get("source_id"),
+                                  host_clock=clock.now if clock is not None else time.monotonic,
+                                  extra_desc={"protocol": protocol_name, "rig": self.rig.mode})
+        self.protocol_name = protocol_name
+        norm = self.rig.taxel_normalisation()
+        layout = self.rig.layout
+        self.normaliser = (TaxelRange.from_dict(norm) if norm else
+                           TaxelRange(np.zeros(layout.n_channels), np.full(layout.n_channels, float(layout.adc_max))))
+        #: markers pushed (their JSON documents), in order
+        self.markers: list[dict[str, Any]] = []
+
+    def session_attrs(self) -> dict[str, Any]:
+        """``{"lsl": JSON}``: the streams' names and source ids, the host <-> LSL clock offset."""
+        return {"lsl": json.dumps(self.outlets.describe())}
+
+    def run_marker(self, event: str, **fields: Any) -> None:
+        self.markers.append(self.outlets.marker(event, protocol=self.protocol_name, **fields))
+
+    def on_trial(self, event: TrialEvent) -> None:
+        kind = _MARKERS.get(event.kind)
+        if kind is None:
+            return
+        fields: dict[str, Any] = {"protocol": self.protocol_name, **_planned_fields(event.planned),
+                                  "index": event.index, "total": event.total, "attempt": event.attempt}
+        if event.error:
+            fields["error"] = event.error
+        at = None
+        if event.kind == "complete" and event.data is not None:
+            at, span = self.push_trial(event.data)
+            fields.update(span)
+        self.markers.append(self.outlets.marker(kind, host_time_s=at, **fields))
+
+    def push_trial(self, data: Any) -> tuple[float | None, dict[str, Any]]:
+        """Push one recorded trial (:class:`rigctl.core.trial.TrialData`): taxels, spikes, drum traces. Returns the
+        host time of its last sample (the trial_end marker's time) and its span on the LSL clock."""
+        from rigctl.encoding.izhikevich import StreamingEncoder
+
+        layout = data.layout
+        times = fitted_times(data.attrs, data.seq)
+        origin = float(data.attrs.get("host_time_origin_s", 0.0))
+        if times is None:  # a trial without clock attributes: its receive times
+            times = origin + np.asarray(data.host_time_s, dtype=np.float64)
+        self.outlets.push_taxels(data.taxels, data.seq, times)
+        enc = StreamingEncoder(layout.n_channels, normalise=self.normaliser, fs=layout.sample_rate_hz)
+        chunk = enc.process(data.taxels)
+        trains, at = [], []
+        for k, which in enumerate(("sa", "ra")):
+            t, ch = chunk.events(which)
+            idx = np.clip(np.round(np.asarray(t) * layout.sample_rate_hz).astype(np.int64), 0, len(times) - 1)
+            trains.append(k * layout.n_channels + np.asarray(ch, dtype=np.int64))
+            at.append(times[idx])
+        self.outlets.push_spikes(np.concatenate(trains), np.concatenate(at))
+        self.outlets.push_drum(origin + np.asarray(data.force_time_s), data.speed_mm_s, data.force_g)
+        lsl = self.outlets.lsl_time(times[[0, -1]])
+        return float(times[-1]), {"first_sample_lsl_s": float(lsl[0]), "last_sample_lsl_s": float(lsl[1]),
+                                  "n_samples": int(data.n_samples), "n_spikes": int(sum(len(x) for x in trains))}
+
+    def close(self) -> None:
+        self.outlets.close()

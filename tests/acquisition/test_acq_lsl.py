@@ -1,0 +1,164 @@
+"""LSL outlets of a protocol run (issue 27 item 1): an inlet in this process receives, from a session recorded on
+the in-process rig, every taxel frame (equal to the session's, sequence-checked), the SA/RA spike events equal to the
+batch encoder's on the same readings, the drum traces, and one marker per trial event; the session stores the streams
+and the host <-> LSL offset. Loopback only (LSLAPICFG: tests/conftest.py)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import uuid
+
+import numpy as np
+import pytest
+
+from rigctl.acquisition.clock import fitted_times
+from rigctl.acquisition.protocol import parse_protocol
+from rigctl.rigs import open_rig
+from rigctl.storage.session import open_session
+
+PROTOCOL = ('name = "lsl_test"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+            'trials_per_condition = 2\nduration_s = 0.4\n[settle]\nsettle_time_ms = 50\n')
+
+
+def _inlet(pylsl, source_id):
+    found = pylsl.resolve_byprop("source_id", source_id, minimum=1, timeout=10)
+    assert found, f"stream {source_id} not found on loopback"
+    inlet = pylsl.StreamInlet(found[0], max_buflen=360, recover=False)
+    inlet.open_stream(timeout=10)
+    return inlet
+
+
+def _pull_all(inlet, n_expected=None, timeout_s=10.0):
+    import time
+
+    data, stamps = [], []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        chunk, ts = inlet.pull_chunk(timeout=0.5, max_samples=100_000)
+        if ts:
+            data.extend(chunk)
+            stamps.extend(ts)
+        elif n_expected is None or len(stamps) >= n_expected:
+            break
+    return data, np.asarray(stamps)
+
+
+@pytest.mark.lsl
+def test_a_run_is_published_on_lsl(lsl, tmp_path):
+    from rigctl.encoding.izhikevich import encode_ra, encode_sa
+    from rigctl.operations import LslPublisher, ProtocolRun
+
+    sid = f"rigctl-test-{uuid.uuid4().hex[:8]}"
+    events = []
+    with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json") as rig:
+        pub = LslPublisher(rig, source_id=sid, protocol_name="lsl_test")
+        inlets = {k: _inlet(lsl, f"{sid}-{k}") for k in ("taxels", "spikes", "drum", "markers")}
+        info = inlets["taxels"].info()
+        run = ProtocolRun(rig, parse_protocol(PROTOCOL), tmp_path / "s.h5", lsl=pub, on_trial=events.append)
+        summary = run.run()
+    assert summary.ok and summary.recorded == 4
+    # the taxel stream's description: channel labels, units, the sensor
+    ch = info.desc().child("channels").child("channel")
+    labels = []
+    while not ch.empty():
+        labels.append((ch.child_value("label"), ch.child_value("unit")))
+        ch = ch.next_sibling()
+    with open_session(tmp_path / "s.h5") as s:
+        layout = s.layout
+        trials = [s.trial(t) for t in sorted(s.completed_ids())]
+        lsl_attr = json.loads(s.attrs["lsl"])
+    assert labels == [(lab, "ADC counts") for lab in layout.channel_labels()] + [("frame_seq", "count")]
+    assert info.nominal_srate() == layout.sample_rate_hz and info.channel_count() == layout.n_channels + 1
+    assert json.loads(info.desc().child_value("sensor_layout"))["n_channels"] == layout.n_channels
+    assert lsl_attr["streams"]["taxels"]["source_id"] == f"{sid}-taxels"
+    offset = lsl_attr["lsl_offset_s"]
+
+    # every frame, equal to the session's, in sequence, at its fitted time on the LSL clock
+    n_total = sum(t.n_samples for t in trials)
+    got, ts = _pull_all(inlets["taxels"], n_total)
+    got = np.asarray(got)
+    assert got.shape == (n_total, layout.n_channels + 1)
+    assert np.array_equal(got[:, :-1], np.concatenate([t.taxels for t in trials]))
+    seq = got[:, -1]
+    k = 0
+    for t in trials:
+        part = seq[k:k + t.n_samples]
+        assert np.array_equal(part, t.seq) and np.all(((np.diff(part) & 0xFFFF)) == 1)
+        np.testing.assert_allclose(ts[k:k + t.n_samples], fitted_times(t.attrs, t.seq) + offset, rtol=0, atol=1e-6)
+        k += t.n_samples
+    assert np.all(np.diff(ts) > 0)
+
+    # spikes: the batch encoder's on the same readings (full ADC range: no normalisation stored in the rig config)
+    full = pub.normaliser
+    want = []
+    for t in trials:
+        times = fitted_times(t.attrs, t.seq) + offset
+        for kind, enc in enumerate((encode_sa, encode_ra)):
+            trains = enc(t.taxels[None].astype(np.float64), normalise=full, fs=layout.sample_rate_hz)
+            for taxel in range(layout.n_channels):
+                for st in trains.train(0, taxel):
+                    want.append((kind * layout.n_channels + taxel,
+                                 round(float(times[int(round(st * layout.sample_rate_hz))]), 6)))
+    sp, sts = _pull_all(inlets["spikes"], len(want))
+    have = sorted((int(v[0]), round(float(x), 6)) for v, x in zip(sp, sts))
+    assert len(want) > 100 and have == sorted(want)
+
+    # drum state at the poll rate
+    drum, dts = _pull_all(inlets["drum"])
+    assert len(drum) == sum(len(t.force_g) for t in trials)
+    np.testing.assert_allclose(np.asarray(drum)[:, 1], np.concatenate([t.force_g for t in trials]), rtol=1e-6)
+
+    # one marker per trial event, in order, plus the run's start and end
+    marks, mts = _pull_all(inlets["markers"])
+    docs = [json.loads(m[0]) for m in marks]
+    assert docs[0]["event"] == "run_start" and docs[-1]["event"] == "run_end" and docs[-1]["complete"] == 4
+    kinds = {"start": "trial_start", "complete": "trial_end", "texture": "plate_change", "retry": "retry",
+             "failed": "fault"}
+    assert [d["event"] for d in docs[1:-1]] == [kinds[e.kind] for e in events]
+    ends = [d for d in docs if d["event"] == "trial_end"]
+    assert [(d["trial_id"], d["texture"], d["speed_mm_s"], d["force_g"]) for d in ends] == [
+        (t.attrs["trial_id"], t.attrs["texture"], 120.0, 300.0) for t in trials]
+    assert all(d["protocol"] == "lsl_test" for d in docs)
+
+
+def test_without_pylsl_asking_for_lsl_is_one_line_and_nothing_moves(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+
+    monkeypatch.setitem(sys.modules, "pylsl", None)  # import pylsl raises ImportError
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "none.json"))
+    out = tmp_path / "s.h5"
+    res = CliRunner().invoke(main, ["acquire", "quick_check", "--out", str(out), "--lsl", "--quiet"])
+    assert res.exit_code == 1 and res.output.count("\n") == 1, res.output
+    assert res.output.startswith("Error: LSL streaming needs pylsl") and "pip install 'rigctl[lsl]'" in res.output
+    assert not out.exists()
+    # asked for by the rig config: said so
+    cfg = tmp_path / "rig.json"
+    cfg.write_text(json.dumps({"lsl": {"enabled": True}}))
+    res = CliRunner().invoke(main, ["acquire", "quick_check", "--out", str(out), "--quiet", "--config", str(cfg)])
+    assert res.exit_code == 1 and "lsl.enabled" in res.output and not out.exists()
+
+
+def test_nothing_loads_pylsl_unless_asked(tmp_path):
+    code = ("import sys; sys.modules['pylsl'] = None\n"
+            "import rigctl.operations, rigctl.cli.acquire, rigctl.acquisition.lsl, rigctl.storage\n"
+            "from rigctl.acquisition.lsl import LslUnavailable, require_pylsl\n"
+            "try:\n    require_pylsl()\nexcept LslUnavailable as e:\n    print('refused:', e)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("refused: LSL streaming needs pylsl")
+
+
+def test_the_rig_config_switches_it_on_and_a_flag_overrides(tmp_path):
+    from rigctl.acquisition.rigconfig import RigConfigError, validate_rig_config
+    from rigctl.operations import lsl_requested
+
+    assert lsl_requested(None, {}) is False
+    assert lsl_requested(None, {"lsl": {"enabled": True}}) is True
+    assert lsl_requested(False, {"lsl": {"enabled": True}}) is False
+    validate_rig_config({"lsl": {"enabled": True, "name": "bench2", "source_id": "rig-7"}})
+    with pytest.raises(RigConfigError, match="lsl.enabled: expected true or false"):
+        validate_rig_config({"lsl": {"enabled": "yes"}})
