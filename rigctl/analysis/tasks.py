@@ -253,7 +253,8 @@ def run_cv(
     textures, counts = np.unique(fs.texture, return_counts=True)
     n_draw = int(min(per_texture, counts.min()))
     if n_draw < k:
-        raise ValueError(f"need at least {k} trials per texture for {k}-fold CV (smallest texture has {counts.min()})")
+        why = (f"per_texture is {per_texture}" if per_texture < k else f"the smallest texture has {counts.min()}")
+        raise ValueError(f"need at least {k} trials per texture for {k}-fold CV ({why})")
     if n_draw < per_texture:
         _warn(res, f"textures/groups: only {counts.min()} trials for some texture; drawing {n_draw} per texture "
               f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "

@@ -3,7 +3,10 @@
 The full-disk tests write onto a real tmpfs of a few KiB when this process may mount one (root); otherwise they
 limit the file size of the child process (RLIMIT_FSIZE, SIGXFSZ ignored: writes past the limit fail with EFBIG),
 which takes the same path through HDF5 and the guard. Either way the command runs in its own process: the bug was
-a segfault.
+a segfault (139) or a bus error (135) inside h5py, which would take pytest down with it.
+
+The command-line tests import nothing but the session writer and the CLI, so that they run unchanged against an
+older rigctl (issue 24's "failing on today's main": 78d85b9).
 """
 
 from __future__ import annotations
@@ -20,16 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
-from rigctl.storage.outputs import (
-    GuardedFile,
-    OutputError,
-    OutputLocked,
-    OutputWriteError,
-    check_output,
-    output_file,
-    replacing,
-)
+from rigctl.cli import main
 from rigctl.storage.session import SessionWriter, TrialData, open_session
 
 RATE = 1000.0
@@ -51,13 +47,15 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _rigctl(*args: str, limit_bytes: int | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
+def _rigctl(*args: str, limit_bytes: int | None = None, module: bool = True) -> subprocess.CompletedProcess:
+    """``python -m rigctl ARGS`` (``python ARGS`` when not ``module``) in a child process, its file size limited to
+    ``limit_bytes`` when given."""
     def limit() -> None:  # pragma: no cover - runs in the child
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
 
-    return subprocess.run([sys.executable, "-m", "rigctl", *args], capture_output=True, text=True, timeout=600,
-                          cwd=cwd, preexec_fn=limit if limit_bytes is not None else None)
+    return subprocess.run([sys.executable, *(["-m", "rigctl"] if module else []), *args], capture_output=True,
+                          text=True, timeout=600, preexec_fn=limit if limit_bytes is not None else None)
 
 
 @pytest.fixture
@@ -100,14 +98,15 @@ def test_encode_overwrite_onto_a_session_being_recorded_is_refused_and_the_recor
 
 
 def test_every_writer_checks_the_lock(tmp_path, session):
-    out = tmp_path / "held.h5"
-    out.write_bytes(b"x")
-    with SessionWriter.create(tmp_path / "other.h5", plan=[dict(trial_id=0, texture="A", speed_mm_s=40.0,
-                                                                force_g=500.0, duration_s=0.1)]):
-        pass
+    from rigctl.encoding.pipeline import encode_session
     from rigctl.storage.journal import WriterLock
+    from rigctl.storage.nwb import export_nwb
+    from rigctl.storage.outputs import OutputLocked, check_output, output_file, replacing
 
-    lock = WriterLock(out)
+    out, nwb, csv = (tmp_path / f"held.{ext}" for ext in ("h5", "nwb", "csv"))
+    for path in (out, nwb, csv):
+        path.write_bytes(b"x")
+    locks = [WriterLock(path) for path in (out, nwb, csv)]
     try:
         with pytest.raises(OutputLocked):
             check_output(out, overwrite=True)
@@ -117,34 +116,50 @@ def test_every_writer_checks_the_lock(tmp_path, session):
         with pytest.raises(OutputLocked):
             with replacing(out):
                 pass
-        from rigctl.encoding.pipeline import encode_session
-        from rigctl.storage.nwb import export_nwb
-
         with pytest.raises(OutputLocked):
             encode_session(session, out, overwrite=True, progress=None)
         with pytest.raises(OutputLocked):
             export_nwb(session, out, overwrite=True)
-        r = _rigctl("export", "nwb", str(session), "--out", str(out.with_suffix(".nwb")), "--overwrite")
-        assert r.returncode == 0, r.stderr  # another file: not held
+        runner = CliRunner()
+        for args in (["export", "nwb", str(session), "--out", str(nwb), "--overwrite", "--no-progress"],
+                     ["analyze", str(session), "--csv", str(csv), "--overwrite"]):
+            r = runner.invoke(main, args)
+            assert r.exit_code == 2 and "being written by" in r.stderr, (args, r.output)
+        r = runner.invoke(main, ["export", "nwb", str(session), "--out", str(tmp_path / "free.nwb"),
+                                 "--no-progress"])
+        assert r.exit_code == 0, r.output  # another file: not held
     finally:
-        lock.release()
-    assert out.read_bytes() == b"x"
+        for lock in locks:
+            lock.release()
+    assert out.read_bytes() == nwb.read_bytes() == csv.read_bytes() == b"x"
 
 
 # -- a full disk -----------------------------------------------------------------------------------------------
+def _blind(*args: str) -> list[str]:
+    """``python -c`` running ``rigctl ARGS`` on a file system that does not report its free space (as some network
+    file systems do): no space check up front can help, the disk fills during the write itself."""
+    return ["-c", "import os, runpy, sys\n"
+            "del os.statvfs\n"  # shutil.disk_usage and every free-space estimate fail: nothing known up front
+            f"sys.argv = ['rigctl', *{list(args)!r}]\n"
+            "runpy.run_module('rigctl', run_name='__main__')"]
+
+
+@pytest.mark.parametrize("blind", [False, True], ids=["space-checked", "filled-during-the-write"])
 @pytest.mark.parametrize("command", ["encode", "export"])
-def test_a_full_disk_is_one_line_no_part_file_inputs_unchanged(tmp_path, session, small_disk, command):
+def test_a_full_disk_is_one_line_no_part_file_inputs_unchanged(tmp_path, session, small_disk, command, blind):
     folder, limit = small_disk
     before = _digest(session)
     if command == "encode":
-        r = _rigctl("encode", str(session), "--out", str(folder / "e.h5"), "--quiet", limit_bytes=limit)
+        args = ["encode", str(session), "--out", str(folder / "e.h5"), "--quiet"]
     else:
-        r = _rigctl("export", "nwb", str(session), "--out", str(folder / "e.nwb"), "--no-progress",
-                    limit_bytes=limit)
-    assert r.returncode in (1, 2), (r.returncode, r.stderr)  # 2: refused up front by the space estimate
+        args = ["export", "nwb", str(session), "--out", str(folder / "e.nwb"), "--no-progress"]
+    r = _rigctl(*(_blind(*args) if blind else args), limit_bytes=limit, module=not blind)
+    assert r.returncode in (1, 2), (r.returncode, r.stderr[-3000:])  # 2: refused up front by the space estimate
     lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), r.stderr
+    assert len(lines) == 1 and lines[0].startswith("Error: "), r.stderr[-3000:]
     assert "Traceback" not in r.stderr and "internal error" not in r.stderr
+    if blind:
+        assert r.returncode == 1 and ("no space left" in r.stderr.lower() or "too large" in r.stderr.lower())
     assert list(folder.iterdir()) == []  # no .part, no lock file, no temporary file
     assert _digest(session) == before
 
@@ -162,13 +177,7 @@ def test_a_full_disk_during_the_write_is_caught_by_the_guard(tmp_path, session, 
             f"        f({str(session)!r}, out)\n"
             "    except OutputWriteError as exc:\n"
             "        print('refused:', exc)\n")
-
-    def lim() -> None:  # pragma: no cover - child
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
-                       preexec_fn=lim if limit else None)
+    r = _rigctl("-c", code, limit_bytes=limit, module=False)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.count("refused:") == 2, r.stdout + r.stderr[-2000:]
     assert "the partial output was removed" in r.stdout
@@ -177,6 +186,8 @@ def test_a_full_disk_during_the_write_is_caught_by_the_guard(tmp_path, session, 
 
 
 def test_guarded_file_keeps_refused_writes_readable(tmp_path):
+    from rigctl.storage.outputs import GuardedFile, OutputWriteError
+
     g = GuardedFile(tmp_path / "x")
     g.write(b"abc")
     g.error = OSError(28, "No space left on device")  # as if the disk had refused the next write
@@ -198,22 +209,29 @@ def test_guarded_file_keeps_refused_writes_readable(tmp_path):
 
 
 # -- modes and refusals -------------------------------------------------------------------------------------------
-def test_outputs_honour_the_umask(tmp_path, session):
+def test_outputs_honour_the_umask(tmp_path):
+    """Sessions were 0644 but encoded files, NWB files and figures 0600 (mkstemp + rename): a colleague on the lab's
+    shared drive could not read them. In this process (the umask is the process's)."""
+    session = _session(tmp_path / "u.h5", n_trials=8)  # 4 trials per texture: 4-fold CV
+    runner = CliRunner()
     old = os.umask(0o022)
     try:
-        r = _rigctl("encode", str(session), "--out", str(tmp_path / "e.h5"), "--quiet")
-        assert r.returncode == 0, r.stderr
-        r = _rigctl("export", "nwb", str(session), "--out", str(tmp_path / "e.nwb"), "--no-progress")
-        assert r.returncode == 0, r.stderr
-        with replacing(tmp_path / "fig.png") as tmp:
-            tmp.write_bytes(b"png")
+        for args in (["encode", str(session), "--out", str(tmp_path / "e.h5"), "--quiet"],
+                     ["export", "nwb", str(session), "--out", str(tmp_path / "e.nwb"), "--no-progress"],
+                     ["analyze", str(tmp_path / "e.h5"), "--task", "textures", "--repeats", "1", "--pcs", "1-2",
+                      "--per-texture", "4", "--variants", "original", "--plot", str(tmp_path / "fig.png"),
+                      "--csv", str(tmp_path / "c.csv"), "--no-progress"]):
+            r = runner.invoke(main, args)
+            assert r.exit_code == 0, (args, r.output)
     finally:
         os.umask(old)
-    for name in ("e.h5", "e.nwb", "fig.png"):
+    for name in ("e.h5", "e.nwb", "fig.png", "c.csv"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
 
 
 def test_check_output_refusals(tmp_path, session):
+    from rigctl.storage.outputs import OutputError, check_output
+
     with pytest.raises(OutputError, match="exists"):
         check_output(session)
     with pytest.raises(OutputError, match="one of the input files"):

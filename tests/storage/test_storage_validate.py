@@ -1,5 +1,9 @@
 """The one trial validator (rigctl.storage.validate): crafted damaged files are excluded identically by ``info``,
-``encode``, ``analyze`` and ``export nwb``, with the same reason, counted in each summary."""
+``encode``, ``analyze`` and ``export nwb``, with the same reason, counted in each summary.
+
+The command-line checks come first and import only the session writer, the CLI and the readers, so that they run
+unchanged against an older rigctl (issue 24: on 78d85b9 ``info`` refused some of these trials while ``encode`` and
+``analyze`` used them all)."""
 
 from __future__ import annotations
 
@@ -16,7 +20,6 @@ from rigctl.cli import main
 from rigctl.storage.encoded import open_encoded
 from rigctl.storage.nwb import read_nwb_summary
 from rigctl.storage.session import SessionWriter, TrialData, open_session
-from rigctl.storage.validate import seq_gaps, usable_trials
 
 N_TRIALS, N = 12, 200  # 0.2 s at 1 kHz
 
@@ -95,37 +98,44 @@ def test_crafted_trials_are_excluded_identically_by_every_command(base, tmp_path
     shutil.copy(base, path)
     with h5py.File(path, "r+") as f:
         damage(f)
-    with open_session(path) as s:
-        report = usable_trials(s)
-    assert list(report.excluded) == [bad] and words in report.excluded[bad], report.excluded
-    reason = report.excluded[bad]
     runner = CliRunner()
+    verdict = {}  # command -> (exit status, trials left out, the reason said)
 
     r = runner.invoke(main, ["info", str(path), "--json"])
-    assert r.exit_code == 0, r.output
-    info = json.loads(r.stdout)
-    row = next(t for t in info["trials"] if t["trial_id"] == bad)
-    assert row["status"] == "excluded" and row["error"] == reason
-    assert info["totals"]["excluded"] == 1 and info["totals"]["complete"] == N_TRIALS - 1
+    info = json.loads(r.stdout) if r.exit_code == 0 else {"trials": []}
+    rows = [t for t in info["trials"] if t["status"] != "complete"]
+    reason = rows[0].get("error") or "" if rows else ""
+    verdict["info"] = (r.exit_code, [t["trial_id"] for t in rows], words in reason and
+                       [t["status"] for t in rows] == ["excluded"] and info["totals"]["excluded"] == 1)
+
+    def said(text: str) -> bool:
+        return bool(reason) and reason in text
 
     enc = tmp_path / f"{craft}.enc.h5"
     r = runner.invoke(main, ["encode", str(path), "--out", str(enc), "--quiet", "--variant", "original"])
-    assert r.exit_code == 0, r.output
-    assert reason in r.stderr
-    with open_encoded(enc) as e:
-        assert bad not in set(int(t) for t in e.trials["trial_id"]) and e.n_trials == N_TRIALS - 1
+    left_out = None
+    if r.exit_code == 0:
+        with open_encoded(enc) as e:
+            left_out = sorted(set(range(N_TRIALS)) - set(int(t) for t in e.trials["trial_id"]))
+    verdict["encode"] = (r.exit_code, left_out, said(r.stderr))
 
     nwb = tmp_path / f"{craft}.nwb"
     r = runner.invoke(main, ["export", "nwb", str(path), "--out", str(nwb), "--no-progress"])
-    assert r.exit_code == 0, r.output
-    assert reason in r.stderr
-    _, arrays = read_nwb_summary(nwb)
-    assert bad not in set(int(t) for t in arrays["trial_id"]) and len(arrays["trial_id"]) == N_TRIALS - 1
+    left_out = None
+    if r.exit_code == 0:
+        left_out = sorted(set(range(N_TRIALS)) - set(int(t) for t in read_nwb_summary(nwb)[1]["trial_id"]))
+    verdict["export nwb"] = (r.exit_code, left_out, said(r.stderr))
 
     r = runner.invoke(main, ["analyze", str(path), "--encode", "--task", "textures", "--repeats", "1",
                              "--pcs", "1-2", "--per-texture", "4", "--variants", "original", "--json"])
-    assert r.exit_code == 0, r.output
-    assert reason in r.stderr
+    verdict["analyze"] = (r.exit_code, [bad] if said(r.stderr) else None, said(r.stderr))
+
+    assert verdict == {command: (0, [bad], True) for command in verdict}, (reason, verdict)
+
+    from rigctl.storage.validate import usable_trials
+
+    with open_session(path) as s:  # the library's word is the commands' word
+        assert usable_trials(s).excluded == {bad: reason}
 
 
 def test_an_impossible_sample_rate_excludes_every_trial_everywhere(base, tmp_path):
@@ -147,6 +157,8 @@ def test_an_impossible_sample_rate_excludes_every_trial_everywhere(base, tmp_pat
 
 
 def test_seq_gaps_wrap_at_65536():
+    from rigctl.storage.validate import seq_gaps
+
     assert seq_gaps(np.array([65534, 65535, 0, 1], np.uint16)) == 0
     assert seq_gaps(np.array([65534, 2], np.uint16)) == 3
     assert seq_gaps(np.array([5, 6, 10], np.uint16)) == 3
