@@ -122,3 +122,25 @@ def fabricslide_dir() -> Path:
 @pytest.fixture
 def paper_path() -> Path:
     return shared_path("paper", "000_e930b09eb5eda72e.txt")
+
+
+@pytest.fixture(scope="session")
+def cli_commands():
+    """Every command of ``rigctl`` as (words after ``rigctl``, click command), groups that run on their own
+    (``rigctl sim``) included, in ``rigctl --help``'s order: what a test that must cover every command iterates."""
+    import click
+
+    from rigctl.cli import main
+
+    found = []
+
+    def walk(cmd, words, ctx):
+        if not isinstance(cmd, click.Group) or cmd.invoke_without_command:
+            found.append((tuple(words), cmd))
+        if isinstance(cmd, click.Group):
+            for name in cmd.list_commands(ctx):
+                sub = cmd.get_command(ctx, name)
+                walk(sub, [*words, name], click.Context(sub, parent=ctx, info_name=name))
+
+    walk(main, [], click.Context(main, info_name="rigctl"))
+    return [(words, cmd) for words, cmd in found if words]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 
+import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -59,10 +60,11 @@ def _refused(args, *needles, seconds=1.0):
     (["import", "{s}", "--out", "{d}/i.h5", "--rate", "1e12"], "--rate"),
     (["import", "{s}", "--out", "{d}/i.h5", "--rate", "100", "--layout", "0x0x0"], "--layout"),
     (["import", "{s}", "--out", "{d}/i.h5", "--rate", "100", "--segment", "fixed:-1"], "--segment"),
+    (["export", "nwb", "{s}", "--out", "{d}/x.nwb", "--variants", "nope", "--no-progress"], "--variants"),
 ])
 def test_absurd_values_are_refused_at_once_naming_the_option(session, tmp_path, args, option):
     _refused([a.format(s=session, d=tmp_path) for a in args], option)
-    assert not [p for p in tmp_path.iterdir() if p.suffix in (".h5", ".part")]
+    assert not [p for p in tmp_path.iterdir() if p.suffix in (".h5", ".nwb", ".part")]
 
 
 def test_an_empty_protocol_is_a_usage_error(tmp_path):
@@ -85,3 +87,29 @@ def test_disk_and_memory_sized_work_is_refused_with_the_figure(session, tmp_path
     monkeypatch.setattr(sizing, "available_memory_bytes", lambda: 10_000)  # 10 kB of memory left
     _refused(["encode", session, "--out", tmp_path / "e.h5", "--batch", "100"], "--batch 100",
              "of memory", "available")
+
+
+#: what a user might type into any numeric option: none of it is a usable number of anything
+NOT_USABLE = ("nan", "NaN", "inf", "-inf", "1e400", "-1e400", "99999999999999999999", "-99999999999999999999", "x")
+
+
+def test_every_numeric_option_of_every_command_has_a_finite_range(cli_commands, tmp_path, monkeypatch):
+    """Walks ``rigctl --help`` recursively: each integer or float option has both bounds, and each refuses what is
+    not a usable number (NaN passed click's FloatRange: every comparison with it is false) with exit 2 naming it.
+    The option comes first on the line, so click parses it before any argument and nothing runs."""
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))  # were a value let through: never $HOME's
+    runner = CliRunner()
+    seen = []
+    for words, cmd in cli_commands:
+        for param in cmd.params:
+            if not isinstance(param.type, (click.types.IntParamType, click.types.FloatParamType)):
+                continue
+            name = param.opts[0]
+            seen.append(f"{' '.join(words)} {name}")
+            assert getattr(param.type, "min", None) is not None and getattr(param.type, "max", None) is not None, (
+                words, name, param.type)
+            for value in NOT_USABLE:
+                r = runner.invoke(main, [*words, name, value])
+                assert r.exit_code == 2 and name in r.output and "Traceback" not in r.output, (words, name, value,
+                                                                                               r.output)
+    assert len(seen) >= 20, seen  # the walk found the commands' options

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from rigctl.cli.ranges import SEED, floats
+
 
 @click.command("doctor")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Check the simulated rig (the default).")
@@ -23,9 +25,9 @@ import click
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Rig config file (default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json); the report is stored in it.")
 @click.option("--no-save", is_flag=True, default=False, help="Do not store the report in the rig config.")
-@click.option("--rest-s", type=click.FloatRange(2.0, 120.0), default=10.0, show_default=True,
+@click.option("--rest-s", type=floats(2.0, 120.0), default=10.0, show_default=True,
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the simulated rig.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
 def doctor(sim, hil, hil_bootloaders, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped

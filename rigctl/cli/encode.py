@@ -8,7 +8,7 @@ import click
 
 from rigctl.cli.outputs import UsageProblem, check_output, require_dask
 from rigctl.cli.progress import bars
-from rigctl.cli.ranges import MAX_WINDOWS, WORKERS
+from rigctl.cli.ranges import MAX_WINDOWS, WORKERS, floats
 from rigctl.storage.encoded import ALL_VARIANTS
 
 
@@ -67,7 +67,7 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
 @click.option("--variant", "variants", multiple=True, type=click.Choice(ALL_VARIANTS),
               help="Variant to compute (repeatable); default: all (speed-scaled ones are skipped, with a warning, "
                    "when some trials have no speed).")
-@click.option("--window-ms", type=click.FloatRange(0, 60_000, min_open=True), default=100.0, show_default=True,
+@click.option("--window-ms", type=floats(0, 60_000, min_open=True), default=100.0, show_default=True,
               help="Feature window length, ms.")
 @click.option("--windows-unscaled", type=click.IntRange(1, MAX_WINDOWS), default=None,
               help="Windows per spike train of the unscaled variants (original, force_scaled); default: enough "

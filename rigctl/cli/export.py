@@ -32,6 +32,8 @@ def nwb(session, encoded, variants, out, overwrite, progress):
     from rigctl.storage.validate import TrialsExcluded
 
     vlist = [v.strip() for v in variants.split(",") if v.strip()] if variants else None
+    if variants is not None and encoded is None:  # was ignored (the export ran without a word)
+        raise UsageProblem("--variants chooses among the spike trains of --encoded FILE: give the encoded file too")
     try:
         if encoded is not None:  # before any work: an unknown variant is a usage error
             check_spike_variants(encoded, vlist)

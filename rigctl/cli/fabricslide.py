@@ -10,6 +10,7 @@ import click
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import check_output
 from rigctl.cli.progress import bars
+from rigctl.cli.ranges import floats
 
 #: the environment variable naming the FabricSlide folder when DIRECTORY is not given
 ENV_DIR = "RIGCTL_FABRICSLIDE"
@@ -21,7 +22,7 @@ ENV_DIR = "RIGCTL_FABRICSLIDE"
 @click.option("--include-board/--no-board", default=True, show_default=True,
               help="Also import the Board10mm recordings (20 mm ridges) into the same file.")
 @click.option("--pattern", default="*.csv", show_default=True, help="Glob of file names to import.")
-@click.option("--trim", type=click.FloatRange(0, 0.49), default=0.10, show_default=True,
+@click.option("--trim", type=floats(0, 0.49), default=0.10, show_default=True,
               help="Fraction of each trial dropped at each end (the arm's acceleration ramps).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from rigctl.cli.outputs import check_output
+from rigctl.cli.ranges import floats
 
 #: image formats the window grab is saved in (Qt's image writers, by extension)
 SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -36,7 +37,7 @@ def _require_display() -> None:
 @click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
               help="Save a PNG of the main window before quitting (with --quit-after).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --screenshot file.")
-@click.option("--quit-after", type=click.FloatRange(0, 1e6), default=None, help="Quit after this many seconds.")
+@click.option("--quit-after", type=floats(0, 1e6), default=None, help="Quit after this many seconds.")
 @click.option("--tab", type=click.Choice(["control", "live", "protocol", "analysis", "calibration", "classify"]),
               default=None, help="Tab to show first.")
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")

@@ -7,7 +7,7 @@ import click
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import check_output
 from rigctl.cli.progress import bars
-from rigctl.cli.ranges import RATE_HZ
+from rigctl.cli.ranges import MAX_VOLTS, RATE_HZ, floats
 
 
 def _checked_layout(ctx, param, value):
@@ -59,7 +59,7 @@ def _checked_segment(ctx, param, value):
               help="Margin kept before each press onset / run start, ms [default: 0].")
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
               help="TOML mapping giving any of these values, per-file labels and the texture set.")
-@click.option("--volts-ref", type=click.FloatRange(min=0, min_open=True), default=None, metavar="V",
+@click.option("--volts-ref", type=floats(0, MAX_VOLTS, min_open=True), default=None, metavar="V",
               help="The recordings are volts with this ADC reference: one count is V/2^bits volts (5 V, 10 bits: "
                    "5/1024 V), so V itself is past the top count (default: the recordings are counts).")
 @click.option("--nan", "nan", type=click.Choice(["refuse", "hold", "interpolate"]), default=None,
