@@ -55,7 +55,7 @@ def _checked_segment(ctx, param, value):
                    "against its harmonics). A table per file is printed.")
 @click.option("--align", type=click.Choice(["onset", "none"]), default=None,
               help="cycles: cut each trial at its press onset (default) or from sample 0 (none).")
-@click.option("--pre-ms", type=click.FloatRange(min=0, max=60_000), default=None, metavar="MS",
+@click.option("--pre-ms", type=floats(0, 60_000), default=None, metavar="MS",
               help="Margin kept before each press onset / run start, ms [default: 0].")
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
               help="TOML mapping giving any of these values, per-file labels and the texture set.")
