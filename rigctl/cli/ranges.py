@@ -9,6 +9,8 @@ A float option is a :class:`FiniteRange` (:func:`floats`): click's ``FloatRange`
 
 from __future__ import annotations
 
+from typing import Any
+
 import click
 
 from rigctl.storage.validate import MAX_RATE_HZ
@@ -30,7 +32,7 @@ class FiniteRange(click.FloatRange):
 
     name = "float range"
 
-    def convert(self, value, param, ctx):  # type: ignore[no-untyped-def]
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         rv = super().convert(value, param, ctx)
         if rv != rv:  # NaN
             self.fail(f"{value!r} is not a number in the range {self._describe_range()}.", param, ctx)
