@@ -106,6 +106,11 @@ class FeatureSet:
     textures : TextureSet
         The texture set (codes = positions in the set; groups). Default: the set of the distinct labels
         (:func:`rigctl.core.texture_set_from_labels`), with groups from ``group`` when given.
+    recording : ndarray (n_trials,) str or None
+        The source recording of each trial (an imported session's file); None when the trials carry none (a session
+        recorded here: the session is the one recording).
+    recording_start_s : ndarray (n_trials,) float64 or None
+        Where in its recording each trial starts, s (the order of time blocks); None with ``recording``.
 
     Raises
     ------
@@ -125,6 +130,8 @@ class FeatureSet:
     attrs: dict = field(default_factory=dict)
     layout: SensorLayout | None = None
     textures: TextureSet = None  # type: ignore[assignment]  # as trial_id
+    recording: np.ndarray | None = None
+    recording_start_s: np.ndarray | None = None
 
     def __post_init__(self):
         self.texture = _text(self.texture)
@@ -160,7 +167,14 @@ class FeatureSet:
         for name, arr in self.features.items():
             if arr.ndim != 2 or arr.shape[0] != n:
                 raise ValueError(f"features '{name}' has shape {arr.shape}; expected ({n}, n_features)")
-        for name in ("speed_mm_s", "force_g", "trial_id"):
+        if self.recording is not None:
+            self.recording = _text(self.recording)
+            self.recording_start_s = (np.zeros(n) if self.recording_start_s is None
+                                      else np.asarray(self.recording_start_s, dtype=np.float64))
+        else:
+            self.recording_start_s = None
+        for name in ("speed_mm_s", "force_g", "trial_id", *(("recording", "recording_start_s")
+                                                            if self.recording is not None else ())):
             if len(getattr(self, name)) != n:
                 raise ValueError(f"{name} has {len(getattr(self, name))} entries for {n} trials")
 
@@ -235,7 +249,22 @@ class FeatureSet:
             dict(self.attrs),
             self.layout,
             self.textures,
+            None if self.recording is None else self.recording[index],
+            None if self.recording_start_s is None else self.recording_start_s[index],
         )
+
+    def select_textures(self, labels) -> "FeatureSet":
+        """The trials of the textures ``labels`` only (``rigctl analyze --textures``), with the texture set cut to
+        them (groups kept). Raises ValueError naming a label the data does not hold."""
+        labels = list(dict.fromkeys(str(t) for t in labels))
+        have = set(self.texture.tolist())
+        missing = [t for t in labels if t not in have]
+        if missing:
+            raise ValueError(f"--textures: {', '.join(missing)} not in the data (it has: "
+                             f"{', '.join(self.texture_classes)})")
+        out = self.subset(np.isin(self.texture, labels))
+        out.textures = self.textures.subset(labels)
+        return out
 
 
 def list_variants(path) -> list[str]:
@@ -329,6 +358,8 @@ def load_features(path, variants=None) -> FeatureSet:
             attrs,
             layout,
             textures,
+            cols.get("recording"),
+            cols.get("recording_start_s"),
         )
     except TextureSetError as exc:
         raise ValueError(f"{path}: {exc}") from None

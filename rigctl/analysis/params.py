@@ -51,10 +51,13 @@ class Execution:
 @dataclass(frozen=True)
 class CVParams:
     """Texture / group classification with k-fold CV (Fig. 3A-B): ``per_texture`` trials drawn per texture (the
-    paper: 500 of 1500; fewer with a warning when the data has fewer), ``k`` folds (the paper: 4)."""
+    paper: 500 of 1500; fewer with a warning when the data has fewer), ``k`` folds (the paper: 4), ``groups``: None
+    (random stratified folds, the paper) or what a fold must not cut (:mod:`rigctl.analysis.grouping`:
+    ``recording``, ``session``, ``block:N``; scikit-learn's StratifiedGroupKFold)."""
 
     per_texture: int = 500
     k: int = 4
+    groups: str | None = None
 
 
 @dataclass(frozen=True)

@@ -130,6 +130,8 @@ def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True
 
 #: paper values closer than this (percentage points) set no ordering to check
 ORDERING_MARGIN_PCT = 3.0
+#: our values closer than this (percentage points, half the table's last digit) are a tie, not an ordering
+TIE_PCT = 0.005
 
 
 @dataclass(frozen=True)
@@ -137,16 +139,27 @@ class OrderingPair:
     """One pair of variants in a Table 1 row whose paper values differ by more than the margin.
 
     ``paper_diff`` and ``our_diff`` are ``mu(first) - mu(second)`` in percentage points (paper at 50 PCs, ours at the
-    table's PC count); ``holds`` is whether they have the same sign."""
+    table's PC count); ``holds`` is whether they have the same sign. ``identical``: the two variants scored the same
+    on every repetition and PC count (e.g. Force Scaled with every force coefficient C = 1 is Original); a pair that
+    is identical or tied (``|our_diff|`` under :data:`TIE_PCT`) is neither held nor reversed."""
 
     first: str
     second: str
     paper_diff: float
     our_diff: float
+    identical: bool = False
+
+    @property
+    def tied(self) -> bool:
+        return self.identical or abs(self.our_diff) < TIE_PCT
 
     @property
     def holds(self) -> bool:
-        return self.paper_diff * self.our_diff > 0
+        return self.paper_diff * self.our_diff > 0 and not self.tied
+
+    @property
+    def reversed(self) -> bool:
+        return not self.holds and not self.tied
 
     def describe(self) -> str:
         """``"Force Scaled > Original (paper +10.4, here -3.1)"``, in the paper's direction."""
@@ -176,7 +189,9 @@ def paper_ordering(res: TaskResults, n_pcs=50, *, margin=ORDERING_MARGIN_PCT) ->
         if ref is None:
             continue
         present = [v for v in VARIANTS if v in row and v in ref]
-        pairs = [OrderingPair(a, b, ref[a][0] - ref[b][0], row[a][0] - row[b][0])
+        curves = res.curves[task]
+        pairs = [OrderingPair(a, b, ref[a][0] - ref[b][0], row[a][0] - row[b][0],
+                              np.array_equal(curves[a].acc, curves[b].acc))
                  for i, a in enumerate(present) for b in present[i + 1:] if abs(ref[a][0] - ref[b][0]) > margin]
         if pairs:
             out[task] = pairs
@@ -187,9 +202,15 @@ def format_ordering(res: TaskResults, n_pcs=50) -> str:
     """One line per Table 1 row: whether the paper's ordering of the variants holds, and the pairs that break it."""
     lines = []
     for task, pairs in paper_ordering(res, n_pcs).items():
-        broken = [p for p in pairs if not p.holds]
-        verdict = (f"holds ({len(pairs)} pairs)" if not broken else
-                   f"NOT held: {len(broken)} of {len(pairs)} pairs reversed: " + "; ".join(p.describe() for p in broken))
+        broken = [p for p in pairs if p.reversed]
+        ties = [p for p in pairs if p.tied]
+        checked = len(pairs) - len(ties)
+        verdict = ("" if not checked else f"holds ({checked} pairs)" if not broken else
+                   f"NOT held: {len(broken)} of {checked} pairs reversed: " + "; ".join(p.describe() for p in broken))
+        if ties:
+            same = "; ".join(f"{VARIANT_TITLES.get(p.first, p.first)} and {VARIANT_TITLES.get(p.second, p.second)} "
+                             f"{'identical' if p.identical else 'tied'}" for p in ties)
+            verdict = f"{verdict}{'; ' if verdict else ''}not compared: {same}"
         lines.append(f"paper's ordering, {TASK_TITLES.get(task, task)}: {verdict}")
     return "\n".join(lines)
 
@@ -263,9 +284,10 @@ def to_dict(res: TaskResults, n_pcs=50, *, source=None):
     used = _pcs_used(res, n_pcs)
     out = {"source": source, "table_pcs": used, "settings": res.settings, "counts": res.counts,
            "warnings": res.warnings, "tasks": {}, "ordering": {
-               t: {"holds": all(p.holds for p in pairs),
+               t: {"holds": not any(p.reversed for p in pairs),
                    "pairs": [{"first": p.first, "second": p.second, "paper_diff_pct": p.paper_diff,
-                              "our_diff_pct": p.our_diff, "holds": p.holds} for p in pairs]}
+                              "our_diff_pct": p.our_diff, "holds": p.holds, "tied": p.tied,
+                              "identical": p.identical} for p in pairs]}
                for t, pairs in paper_ordering(res, used).items()},
            "collapse": {t: {v: {"top_class": c.top_class, "top_share": c.top_share, "even_share": c.even_share}
                             for v, c in by_v.items()} for t, by_v in prediction_collapse(res).items()}}
@@ -364,14 +386,18 @@ def plot_confusions(res: TaskResults, path, task, *, normalise=True):
     import matplotlib.pyplot as plt
 
     by_v = res.curves[task]
-    fig, axes = plt.subplots(1, len(by_v), figsize=(4.2 * len(by_v), 4.0), squeeze=False)
+    # whole labels (never cut): the panel grows with the longest label and the class count
+    longest = max((len(str(k)) for c in by_v.values() for k in c.classes), default=1)
+    n_cls = max((len(c.classes) for c in by_v.values()), default=1)
+    side = max(4.0, 1.6 + 0.16 * n_cls + 0.06 * longest)
+    fig, axes = plt.subplots(1, len(by_v), figsize=(side * len(by_v), side), squeeze=False)
     for ax, (v, c) in zip(axes[0], by_v.items()):
         cm = c.confusion.astype(float)
         if normalise:
             cm = 100 * cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
         ax.imshow(cm, cmap="Blues", vmin=0, vmax=100 if normalise else None)
-        ax.set_xticks(range(len(c.classes)), [str(k)[:6] for k in c.classes], fontsize=7, rotation=90)
-        ax.set_yticks(range(len(c.classes)), [str(k)[:6] for k in c.classes], fontsize=7)
+        ax.set_xticks(range(len(c.classes)), [str(k) for k in c.classes], fontsize=7, rotation=90)
+        ax.set_yticks(range(len(c.classes)), [str(k) for k in c.classes], fontsize=7)
         acc = np.trace(c.confusion) / max(c.confusion.sum(), 1)
         ax.set_title(f"{VARIANT_TITLES.get(v, v)}\n{100 * acc:.1f}% at {c.confusion_pcs} PCs", fontsize=9)
         ax.set_xlabel("predicted")

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 from sklearn.metrics import confusion_matrix
-from sklearn.model_selection import StratifiedKFold
+from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold
 
 from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
@@ -214,7 +214,8 @@ def run_cv(
         Label sets to classify; they share draws, folds and PCA fits.
     params : :class:`rigctl.analysis.params.CVParams`
         ``per_texture`` trials drawn per texture (the paper: 500 of 1500; reduced with a warning to the smallest
-        texture's count), ``k`` folds (the paper: 4).
+        texture's count), ``k`` folds (the paper: 4), ``groups`` (None: random folds; ``recording``, ``session``,
+        ``block:N``: folds that never put one group on both sides, :mod:`rigctl.analysis.grouping`).
     reps : :class:`rigctl.analysis.params.Repetitions`
         ``n_pcs`` (the paper: 50), ``repeats`` (each a new random draw and new folds; the paper: 20), ``seed``,
         ``variants`` (default: all in ``fs``), ``confusion_pcs`` (default ``n_pcs``).
@@ -235,11 +236,17 @@ def run_cv(
     GroupsError (a ValueError)
         "groups" asked for on data whose texture set defines no groups (the paper's groups are never assumed).
     ValueError
-        Unknown task, or fewer than ``k`` trials per texture.
+        Unknown task, fewer than ``k`` trials per texture, or groups the data cannot give (a texture in one group).
     """
     params, reps, execution = resolve(overrides, params or CVParams(), reps or Repetitions(),
                                       execution or Execution())
     per_texture, k = params.per_texture, params.k
+    groups = None
+    if params.groups:
+        from rigctl.analysis.grouping import check_groups, cv_groups
+
+        groups = cv_groups(fs, params.groups)
+        check_groups(fs.texture, groups, k, params.groups)
     variants, n_pcs, repeats, seed, confusion_pcs = (reps.variants, reps.n_pcs, reps.repeats, reps.seed,
                                                      reps.confusion_pcs)
     n_jobs, scheduler, workers = execution.n_jobs, execution.scheduler, execution.workers
@@ -260,12 +267,14 @@ def run_cv(
               f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "
               f"{per_texture * len(textures)})")
     res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
-                        "trials_per_repeat": n_draw * len(textures)}
+                        "trials_per_repeat": n_draw * len(textures), "groups": params.groups,
+                        "n_groups": None if groups is None else int(np.unique(groups).size)}
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
     shared = {"features": {v: fs.features[v] for v in vs}, "texture": fs.texture,
               "labels": {t: (fs.texture if t == "textures" else fs.group) for t in tasks}, "classes": classes,
-              "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs}
+              "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
+              "groups": groups}
     bar = Stage(progress, "textures/groups", repeats * k * len(vs), unit="fit")
     per_repeat = map_repeats(_cv_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler, workers=workers,
                        on_done=lambda: bar.advance(k * len(vs)))
@@ -281,9 +290,9 @@ def run_cv(
     return res
 
 
-def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs):
+def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs, groups=None):
     """Repetition ``r`` of :func:`run_cv`: ``{(task, variant): ([correct per PC count, per fold], confusion)}``."""
-    idx, folds = cv_split(texture, n_draw, k, seed=seed, repeat=r)
+    idx, folds = cv_split(texture, n_draw, k, seed=seed, repeat=r, groups=groups)
     correct, cms = {}, {}
     for v, x in features.items():
         scores = split_scores(x[idx], folds, n_pcs, random_states=[r * k + f for f in range(k)], kfold=True)
@@ -297,7 +306,7 @@ def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed,
     return {key: (correct[key], cms[key]) for key in correct}
 
 
-def cv_split(texture, per_texture, k, *, seed=0, repeat=0):
+def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
     """One repetition's draw and folds for the textures / groups tasks (Methods, Statistical Analysis).
 
     Parameters
@@ -309,6 +318,9 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0):
         Folds, stratified by texture (the paper: 4).
     seed, repeat : int
         ``numpy.random.default_rng([seed, repeat])``.
+    groups : ndarray (n_trials,) str, optional
+        What a fold must not cut (:func:`rigctl.analysis.grouping.cv_groups`): folds by
+        ``sklearn.model_selection.StratifiedGroupKFold``, so train and test never share a group.
 
     Returns
     -------
@@ -319,7 +331,11 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0):
     rng = np.random.default_rng([seed, repeat])
     idx = np.concatenate([rng.choice(np.flatnonzero(texture == t), per_texture, replace=False)
                           for t in np.unique(texture)])
-    skf = StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31)))
+    state = int(rng.integers(2**31))
+    if groups is not None:
+        sgk = StratifiedGroupKFold(k, shuffle=True, random_state=state)
+        return idx, list(sgk.split(idx, texture[idx], np.asarray(groups)[idx]))
+    skf = StratifiedKFold(k, shuffle=True, random_state=state)
     return idx, list(skf.split(idx, texture[idx]))
 
 

@@ -29,6 +29,18 @@ def _parse_pcs(text):
     return hi_i
 
 
+def _checked_cv_groups(ctx, param, value):
+    """--cv-groups parsed before any work (a usage error, exit 2, naming the option)."""
+    if value is not None:
+        from rigctl.analysis.grouping import parse_cv_groups
+
+        try:
+            parse_cv_groups(value)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc).split(": ", 1)[-1]) from None
+    return value
+
+
 def _floats(text):
     if text is None:
         return None
@@ -162,6 +174,12 @@ def _format_leak(leak) -> str:
 @click.option("--variants", default=None, help="Comma-separated variants (default: all in the file).")
 @click.option("--per-texture", type=click.IntRange(2, 10_000_000), default=500, show_default=True,
               help="Trials drawn per texture for textures/groups (scaled down when the data has fewer).")
+@click.option("--cv-groups", default=None, metavar="recording|session|block:N", callback=_checked_cv_groups,
+              help="textures/groups: folds that never put one group on both sides (StratifiedGroupKFold): each "
+                   "source recording, each session, or N time blocks of each recording (default: random folds; "
+                   "with one recording per texture the blocked figure is reported beside the random one).")
+@click.option("--textures", "textures_", default=None, metavar="A,B,...",
+              help="Analyse only these textures (comma-separated labels).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--table1", "table1_", is_flag=True, help="Print the paper's Table 1 layout (implies --task all).")
 @click.option("--table-pcs", type=click.IntRange(1, 100_000), default=50, show_default=True, help="PC count of the table.")
@@ -212,7 +230,7 @@ def _format_leak(leak) -> str:
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
             train_profiles, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
-            variance, force_leak_):
+            variance, force_leak_, cv_groups, textures_):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
     Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
@@ -233,7 +251,8 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
         test_speeds=_floats(test_speeds), train_forces=_floats(train_forces), baseline=baseline, channels=channels,
         new_session=new_session, train_profiles=tuple(p.strip() for p in train_profiles.split(",")),
         save_model=save_model, model_variant=model_variant, model_pcs=model_pcs, encode=encode_, progress=progress,
-        variance=variance or task == "variance", force_leak=force_leak_)
+        variance=variance or task == "variance", force_leak=force_leak_, cv_groups=cv_groups,
+        textures=[t.strip() for t in textures_.split(",") if t.strip()] if textures_ else None)
     require_dask(scheduler, otherwise="run in this process")
     limiter = threadpool_limits(threads) if threads else None
     execution = Execution(n_jobs=min(jobs, threads) if jobs and threads else (jobs or threads), scheduler=scheduler,
@@ -277,6 +296,8 @@ class AnalyzeOptions:
     progress: bool = True
     variance: bool = False
     force_leak: str | None = None
+    cv_groups: str | None = None
+    textures: list[str] | None = None
 
 
 def _plan(opts: AnalyzeOptions, fs):
@@ -296,7 +317,7 @@ def _plan(opts: AnalyzeOptions, fs):
              if opts.task == "realtime" and opts.new_session else None)
     return AnalysisPlan.for_task(
         opts.task, reps=Repetitions(n_pcs=opts.n_pcs, repeats=opts.repeats, seed=opts.seed, variants=opts.variants),
-        cv=CVParams(per_texture=opts.per_texture), extrapolation=extrapolation,
+        cv=CVParams(per_texture=opts.per_texture, groups=opts.cv_groups), extrapolation=extrapolation,
         realtime=RealtimeParams(train_profiles=opts.train_profiles), baseline=opts.baseline, channels=opts.channels,
         new_session=other)
 
@@ -310,6 +331,11 @@ def _run(opts: AnalyzeOptions, execution=None):
 
     _check_variants(opts.file, opts.variants)
     fs = _load(opts.file, opts.encode, opts.variants, opts.task, opts.progress)
+    if opts.textures:
+        try:
+            fs = fs.select_textures(opts.textures)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from None
     _check_pcs(fs, opts.n_pcs, opts.explicit_pcs)
     if opts.task == "variance":
         only = _variance(fs, opts.variants)

@@ -307,7 +307,24 @@ def _labels(session, ids):
         "speed_mm_s": np.asarray(col("speed_mm_s", np.nan), dtype=np.float64),
         "force_g": np.asarray(col("force_g", np.nan), dtype=np.float64),
         "profile": text(col("profile", "constant")),
+        **_recordings(session, ids),
     }
+
+
+def _recordings(session, ids) -> dict[str, np.ndarray]:
+    """An imported session's source recording per trial (``recording``: file, ``[block]`` of a stacked file) and
+    where in it the trial starts (``recording_start_s``), from the trial attributes ``rigctl import`` writes; {}
+    for a session recorded here (the session is the recording)."""
+    if str(session.attrs.get("kind", "")) != "imported":
+        return {}
+    rec, start = [], []
+    for tid in ids:
+        a = session.trial_attrs(int(tid))
+        name = str(a.get("source_file", ""))
+        block = a.get("source_block")
+        rec.append(name if block is None else f"{name}[{int(block)}]")
+        start.append(float(a.get("segment_start_s", 0.0)))
+    return {"recording": np.array(rec, dtype=str), "recording_start_s": np.asarray(start, dtype=np.float64)}
 
 
 def _add_spike_tables(writer, store_spikes, n_ch: int, p: EncodeParams) -> None:

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rigctl.analysis.grouping import one_recording_per_texture
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions
 from rigctl.core.progress import ProgressEvent
 
@@ -138,6 +139,15 @@ def _run_tasks(data: Any, plan: AnalysisPlan, progress: Progress, execution: Exe
     if cv_tasks:
         steps.append(("/".join(cv_tasks), lambda: tasks.run_cv(data, tuple(cv_tasks), plan.cv, reps=plan.reps,
                                                                execution=execution, progress=progress)))
+        if plan.cv.groups is None and one_recording_per_texture(data):
+            spec = f"block:{max(plan.cv.k, 2)}"
+            blocked = dataclasses.replace(plan.cv, groups=spec)
+            res.warnings.append(
+                f"every texture's trials come from one recording: random folds test how well a recording recognises "
+                f"itself; '{BLOCKED_SUFFIX.strip('_')}' rows hold out time blocks ({spec}: "
+                "--cv-groups block:N)")
+            steps.append(("/".join(cv_tasks) + " " + spec, lambda: _renamed(tasks.run_cv(
+                data, tuple(cv_tasks), blocked, reps=plan.reps, execution=execution, progress=progress))))
     if "extrapolation" in plan.tasks:
         steps.append(("extrapolation", lambda: tasks.run_extrapolation(
             data, plan.extrapolation, reps=plan.reps, execution=execution, progress=progress)))
@@ -156,6 +166,25 @@ def _run_tasks(data: Any, plan: AnalysisPlan, progress: Progress, execution: Exe
                 raise
             res.warnings.append(f"{name} skipped: {exc}")
     return res
+
+
+#: appended to a task's name for its time-blocked twin (reported beside the random folds)
+BLOCKED_SUFFIX = "_blocked"
+
+
+def _renamed(res: Any) -> Any:
+    """``res`` with every task renamed ``<task>_blocked`` (its curves and counts)."""
+    from rigctl.analysis import tasks
+
+    out = tasks.TaskResults()
+    for t, by_v in res.curves.items():
+        for c in by_v.values():
+            c.task = t + BLOCKED_SUFFIX
+            out.add(c)
+    out.counts.update({k + BLOCKED_SUFFIX: v for k, v in res.counts.items()})
+    out.warnings.extend(res.warnings)
+    out.settings.update(res.settings)
+    return out
 
 
 def encoded_path_for(session_path: str | os.PathLike[str]) -> Path:

@@ -40,6 +40,8 @@ PRESS_FRACTION = 0.55
 DEFAULT_SET = (("felt", 3.8, 40.0, 24, False), ("silk", 4.5, 200.0, 24, True), ("cork", 5.2, 80.0, 24, False),
                ("felt", 5.9, 120.0, 24, False), ("silk", 6.5, 60.0, 24, False), ("cork", 7.2, 160.0, 8, False))
 
+#: the seed of the one sensor every file was recorded with
+SENSOR_SEED = 23
 #: texture -> vibration frequency during the slide, Hz
 TEXTURE_HZ = {"felt": 9.0, "silk": 17.0, "cork": 13.0}
 
@@ -73,10 +75,11 @@ def press_slide_recording(period_s: float, level_counts: float, n_cycles: int, *
     first press, s; alternating : every other press at 60 % of the level; drift : the press level grows linearly by
     this fraction over the file; nan : plant NaN at samples 1-2 and a 6-sample run in the middle.
     """
+    sensor = np.random.default_rng(SENSOR_SEED)  # one sensor for every file: its channel gains and rest levels
+    gains = sensor.uniform(0.5, 1.0, N_CHANNELS) * sensor.choice([-1.0, 1.0], N_CHANNELS)
+    vib_gains = sensor.uniform(0.1, 0.2, N_CHANNELS)
+    base = 450.0 + sensor.uniform(-60, 60, N_CHANNELS)
     rng = np.random.default_rng(seed)
-    gains = rng.uniform(0.5, 1.0, N_CHANNELS) * rng.choice([-1.0, 1.0], N_CHANNELS)
-    vib_gains = rng.uniform(0.1, 0.2, N_CHANNELS)
-    base = 450.0 + rng.uniform(-60, 60, N_CHANNELS)
     ramp = int(round(RAMP_S * RATE_HZ))
     n0 = int(round(startup_s * RATE_HZ))
     periods = np.rint(period_s * RATE_HZ * (1 + rng.uniform(-0.03, 0.03, n_cycles))).astype(int)

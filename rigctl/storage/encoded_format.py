@@ -133,6 +133,11 @@ TRIAL_COLUMNS = ("trial_id", "texture", "group", "speed_mm_s", "force_g", "profi
 _STR = h5py.string_dtype("utf-8")
 _TRIALS_DTYPE = np.dtype([("trial_id", "<u4"), ("texture", _STR), ("group", _STR), ("speed_mm_s", "<f4"),
                           ("force_g", "<f4"), ("profile", _STR), ("duration_s", "<f4"), ("n_samples", "<u4")])
+#: columns the ``/trials`` table holds only when the encoder knows them (an additive change: readers of every schema
+#: pass unknown columns through): ``recording`` (the source recording of an imported trial: its file, and
+#: ``[block]`` for a stacked file) and ``recording_start_s`` (where in that recording the trial starts, s), what a
+#: recording-grouped or time-blocked cross-validation holds out (``rigctl analyze --cv-groups``)
+OPTIONAL_TRIAL_COLUMNS = {"recording": _STR, "recording_start_s": "<f8"}
 
 
 def _text(values: Iterable[str]) -> np.ndarray[Any, Any]:

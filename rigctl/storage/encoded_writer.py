@@ -20,6 +20,7 @@ from rigctl.storage.encoded_format import (
     _TRIALS_DTYPE,
     ENCODED_KIND,
     ENCODED_SCHEMA_VERSION,
+    OPTIONAL_TRIAL_COLUMNS,
     VARIANTS,
     _h5_table,
     _json_default,
@@ -39,7 +40,8 @@ class EncodedWriter:
     path : the encoded .h5 to write.
     layout : the session's :class:`SensorLayout` (stored as JSON; its rate is the *input* rate of the encoding).
     textures : the session's :class:`TextureSet` (stored as JSON; gives each trial's group).
-    trials : mapping with the columns of :data:`TRIAL_COLUMNS` (``group`` optional: taken from ``textures``),
+    trials : mapping with the columns of :data:`TRIAL_COLUMNS` (``group`` optional: taken from ``textures``) and
+        any of :data:`OPTIONAL_TRIAL_COLUMNS` (``recording``, ``recording_start_s``),
         one entry per trial, in the row order of every feature matrix and spike table.
     parameters : JSON-able encoding parameters (``EncodeParams`` as a dict).
     overwrite : replace an existing ``path`` (default False: FileExistsError).
@@ -96,7 +98,12 @@ class EncodedWriter:
         bad = [k for k, v in trials.items() if len(v) != n]
         if bad:
             raise ValueError(f"trial columns {bad} do not have {n} entries like trial_id")
-        out = np.zeros(n, dtype=_TRIALS_DTYPE)
+        extra = [(k, t) for k, t in OPTIONAL_TRIAL_COLUMNS.items() if k in trials]
+        names = _TRIALS_DTYPE.names or ()
+        out = np.zeros(n, dtype=np.dtype([(k, _TRIALS_DTYPE.fields[k][0]) for k in names] + extra)  # type: ignore[index]
+                       if extra else _TRIALS_DTYPE)
+        for k, t in extra:
+            out[k] = np.array(_text(trials[k]), dtype=object) if t != "<f8" else np.asarray(trials[k], np.float64)
         texture = _text(trials["texture"])
         out["trial_id"] = np.asarray(trials["trial_id"])
         out["texture"] = np.array(texture, dtype=object)

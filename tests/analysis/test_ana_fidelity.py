@@ -101,6 +101,48 @@ def test_the_papers_ordering_is_checked_pair_by_pair():
         assert report.to_dict(res, 5)["ordering"]["untrained_force"]["holds"] is holds
 
 
+def test_ties_and_identical_variants_are_not_reversals():
+    """Force Scaled with every coefficient C = 1 is Original (the same curves): named identical, not 'reversed';
+    two variants at the same mean are tied; the rest of the row is still checked."""
+    values = {"original": 100.0, "speed_scaled": 100.0, "force_scaled": 100.0, "speed_force_scaled": 100.0}
+    res = _results({"textures": values})
+    text = report.format_ordering(res, 5)
+    assert "NOT held" not in text and "reversed" not in text
+    assert "Original and Force Scaled identical" in text
+    assert report.to_dict(res, 5)["ordering"]["textures"]["holds"] is True
+    res = _results({"untrained_force": {"original": 50.0, "speed_scaled": 45.0, "force_scaled": 50.0}})
+    res.curves["untrained_force"]["force_scaled"].acc[0, 0] += 0.01  # equal means at 5 PCs, curves not identical
+    text = report.format_ordering(res, 5)
+    assert "NOT held: 1 of 2 pairs reversed: Speed Scaled > Original" in text
+    assert "Original and Force Scaled tied" in text and "identical" not in text
+
+
+def test_confusion_labels_are_whole(tmp_path):
+    """Labels longer than six characters ('Bumps_fine', 'Bumps_coarse', ...) are drawn whole."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = ["Bumps_fine", "Bumps_coarse", "Bumps_mixed", "Denim"]
+    res = TaskResults()
+    res.add(Curve(task="textures", variant="original", acc=np.full((2, 3), 0.5), n_tested=8, classes=labels,
+                  confusion=np.eye(4, dtype=int), confusion_pcs=3))
+    shown = []
+    real_savefig = plt.Figure.savefig
+
+    def capture(fig, *a, **kw):
+        shown.extend(t.get_text() for ax in fig.axes for t in ax.get_xticklabels() + ax.get_yticklabels())
+        return real_savefig(fig, *a, **kw)
+
+    plt.Figure.savefig = capture
+    try:
+        report.plot_confusions(res, tmp_path / "c.png", "textures")
+    finally:
+        plt.Figure.savefig = real_savefig
+    assert sorted(set(shown)) == sorted(labels) and (tmp_path / "c.png").stat().st_size > 0
+
+
 def test_analyze_prints_the_variance_and_the_ordering(tmp_path, write_schema1):
     from rigctl.analysis.synthetic import synthetic_features
 
