@@ -1,11 +1,16 @@
-"""Property-based test (hypothesis) of the offline commands: random values of every numeric option (negative,
-zero, huge, non-finite, not numbers at all) on small real inputs. Whatever the values: no traceback, exit status
-0, 1 or 2 only, nothing left in the output folder when the command failed, no input changed.
+"""Property-based test (hypothesis) of every ``rigctl`` command: random values of its options (numbers negative,
+zero, huge, non-finite, not numbers at all; choices, names and paths) on small real inputs. Whatever the values: no
+traceback, exit status 0, 1 or 2 only, nothing left in the output folder when the command failed, no input changed.
+:func:`test_every_command_is_driven` walks ``rigctl --help`` recursively and fails for a command no test here drives.
 
-The commands run in this process (click's CliRunner: imports paid once) on a 4-trial session, its encoded file and
-a CSV recording; ``rigctl acquire``, ``sim``, ``gui``, ``firmware`` and ``doctor`` drive a rig, a display or a
-compiler and are covered by their own tests. Deterministic (``derandomize``) and modest (``RIGCTL_PROPERTY_EXAMPLES``,
-default 5 per command) so that it runs in seconds on an idle machine.
+The commands run in this process (click's CliRunner: imports paid once) on an 8-trial session, its encoded file, a
+CSV recording and a two-file FabricSlide folder. Where a command needs a rig (``acquire``, ``doctor``) the simulated
+rig is the in-process one (the same controller logic and model on a simulated clock; the pty rig is the wire's
+tests' business); ``gui`` runs without a display (its one-line refusal; the window has its own tests); ``firmware``
+only prints (``--sources``, ``--flash PORT --dry-run``: building needs the AVR toolchain, flashing a board);
+``sim``, which runs until Ctrl-C, runs in a child process that gets its Ctrl-C once the ports are up.
+Deterministic (``derandomize``) and modest (``RIGCTL_PROPERTY_EXAMPLES``, default 5 per command) so that it runs in
+seconds on an idle machine.
 """
 
 from __future__ import annotations
@@ -13,6 +18,10 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -50,11 +59,22 @@ def inputs(tmp_path_factory):
     assert r.exit_code == 0, r.output
     csv = d / "A__1.csv"
     np.savetxt(csv, rng.integers(0, 1024, (300, 9)), delimiter=",", fmt="%d")
-    return {"session": session, "encoded": encoded, "csv": csv}
+    fabricslide = d / "fabricslide"  # the FabricSlide layout (rigctl.storage.fabricslide), two short recordings
+    (fabricslide / "fabric").mkdir(parents=True)
+    header = "timestamp, proximity1, proximity2, " + ", ".join(f"channel{k}" for k in range(1, 17))
+    for name in ("Linen_F120_V50mmps_0.csv", "Canvas_F120_V-50mmps_0.csv"):
+        rows = np.column_stack([4_000_000 + 28 * np.arange(200), np.zeros((200, 2), int),
+                                rng.integers(2, 850, (200, 16))])
+        np.savetxt(fabricslide / "fabric" / name, rows, delimiter=",", fmt="%d", header=header, comments="")
+    protocol = d / "tiny.toml"
+    protocol.write_text('name = "tiny"\ndescription = "One short trial."\ntextures = ["A"]\nspeeds_mm_s = [120]\n'
+                        'forces_g = [250]\ntrials_per_condition = 1\ntravel_mm = 12\norder = "blocked"\n')
+    return {"session": session, "encoded": encoded, "csv": csv, "fabricslide": fabricslide, "protocol": protocol}
 
 
 def _digests(paths):
-    return {p: hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in paths}
+    files = [f for p in paths for f in (sorted(Path(p).rglob("*")) if Path(p).is_dir() else [Path(p)]) if f.is_file()]
+    return {f: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
 
 
 def _check(inputs, out_dir: Path, args: list[str]):
@@ -142,3 +162,126 @@ def test_info_export_and_protocols(inputs, tmp_path, data):
                               *(["--variants", variants] if variants is not None else [])])
     _check(inputs, tmp_path, ["info", str(inputs["session"]), *(["--json"] if data.draw(st.booleans()) else [])])
     _check(inputs, tmp_path, ["protocols"])
+
+
+@pytest.fixture
+def inprocess_rig(monkeypatch, tmp_path_factory):
+    """The simulated rig a command opens is the in-process one; the rig config lives in a folder of its own."""
+    from rigctl.operations import RigSource
+
+    flags = RigSource.from_flags.__func__
+
+    def from_flags(cls, **kw):
+        source = flags(cls, **kw)
+        return cls("inprocess") if source.kind == "sim" else source
+
+    monkeypatch.setattr(RigSource, "from_flags", classmethod(from_flags))
+    config = tmp_path_factory.mktemp("rig_config") / "rig.json"
+    monkeypatch.setenv("RIGCTL_CONFIG", str(config))
+    return config
+
+
+@given(data=st.data())
+@PROPERTY
+def test_acquire(inputs, tmp_path, inprocess_rig, data):
+    opts = [(o, data.draw(_maybe(s), label=o)) for o, s in (
+        ("--seed", NUMBER), ("--on-failure", st.sampled_from(["continue", "stop", "later"])),
+        ("--plates", st.sampled_from(["prompt", "auto", "skip", "x"])))]
+    flags = data.draw(st.lists(st.sampled_from(["--resume", "--overwrite", "--no-lsl"]), unique=True), label="flags")
+    _check(inputs, tmp_path, ["acquire", str(inputs["protocol"]), "--out", str(tmp_path / "a.h5"), "--quiet",
+                              *flags, *_opts(opts)])
+
+
+@given(data=st.data())
+@PROPERTY
+def test_doctor(inputs, tmp_path, inprocess_rig, data):
+    checks = data.draw(st.lists(st.sampled_from(["link", "noise-floor", "loadcell-zero", "uno-clock", "e-stop",
+                                                 "hx711-rate", "nope"]), min_size=1, max_size=3), label="--check")
+    opts = [(o, data.draw(_maybe(s), label=o)) for o, s in (("--rest-s", NUMBER), ("--seed", NUMBER))]
+    flags = data.draw(st.lists(st.sampled_from(["--json", "--no-save", "--list"]), unique=True), label="flags")
+    _check(inputs, tmp_path, ["doctor", *[a for c in checks for a in ("--check", c)], *flags, *_opts(opts)])
+
+
+@given(data=st.data())
+@PROPERTY
+def test_gui_without_a_display(inputs, tmp_path, monkeypatch, data):
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
+        monkeypatch.delenv(name, raising=False)
+    opts = [(o, data.draw(_maybe(s), label=o)) for o, s in (
+        ("--quit-after", NUMBER), ("--tab", st.sampled_from(["control", "analysis", "nope"])),
+        ("--texture", st.sampled_from(["A", "P", "Z", ""])), ("--replay", st.just(str(inputs["session"]))),
+        ("--screenshot", st.sampled_from([str(tmp_path / "w.png"), str(tmp_path / "w.txt")])))]
+    flags = data.draw(st.lists(st.sampled_from(["--sim", "--run", "--overwrite"]), unique=True), label="flags")
+    r = _check(inputs, tmp_path, ["gui", *flags, *_opts(opts)])
+    assert r.exit_code in (1, 2), r.output  # never a window here: a usage error, or the display's one line
+
+
+@given(data=st.data())
+@PROPERTY
+def test_firmware_prints_only(inputs, tmp_path, data):
+    if data.draw(st.booleans(), label="--sources"):
+        args = ["firmware", "--sources"]
+    else:
+        port = data.draw(st.sampled_from(["/dev/ttyACM0", str(tmp_path / "nope"), "", "COM3"]), label="--flash")
+        board = data.draw(_maybe(st.sampled_from(["mega", "uno", "due"])), label="--board")
+        args = ["firmware", "--flash", port, "--dry-run", *(["--board", board] if board else [])]
+    _check(inputs, tmp_path, args)
+
+
+@given(data=st.data())
+@PROPERTY
+def test_ports_udev_rules_and_fabricslide(inputs, tmp_path, data):
+    _check(inputs, tmp_path, ["ports", *data.draw(st.lists(st.sampled_from(["--json", "--all"]), unique=True))])
+    serials = [(o, data.draw(_maybe(st.text(min_size=0, max_size=12)), label=o))
+               for o in ("--drum-serial", "--taxel-serial")]
+    _check(inputs, tmp_path, ["udev-rules", *_opts(serials)])
+    opts = [(o, data.draw(_maybe(s), label=o)) for o, s in (
+        ("--trim", NUMBER), ("--pattern", st.sampled_from(["*.csv", "Linen*", "*.npy", "["])))]
+    flags = data.draw(st.lists(st.sampled_from(["--no-board", "--json", "--overwrite"]), unique=True), label="flags")
+    _check(inputs, tmp_path, ["import-fabricslide", str(inputs["fabricslide"]), "--out", str(tmp_path / "f.h5"),
+                              "--quiet", *flags, *_opts(opts)])
+
+
+@given(data=st.data())
+@settings(PROPERTY, max_examples=min(N_EXAMPLES, 3))
+def test_sim_runs_until_ctrl_c(inputs, tmp_path, data):
+    """``rigctl sim`` in a child process: started with random options, stopped with Ctrl-C once its ports are up."""
+    port_dir = tmp_path / f"ports-{data.draw(st.integers(0, 10**6), label='dir')}"
+    opts = [(o, data.draw(_maybe(s), label=o)) for o, s in (
+        ("--seed", NUMBER), ("--texture", st.sampled_from(["A", "P", "Z", "", "BeigeCotton"])),
+        ("--replay", st.sampled_from([str(inputs["session"]), str(inputs["fabricslide"]), str(tmp_path / "no")])))]
+    before_inputs = _digests(inputs.values())
+    p = subprocess.Popen([sys.executable, "-m", "rigctl", "sim", "--port-dir", str(port_dir), *_opts(opts)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        out = ""
+        while "Ctrl-C stops" not in out and time.monotonic() < deadline:
+            line = p.stdout.readline()
+            if not line:
+                break  # it ended (refused)
+            out += line
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+        rest, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode in (0, 1, 2), (p.returncode, err)
+    assert "Traceback" not in err and "internal error" not in err, err
+    if "Ctrl-C stops" in out:
+        assert p.returncode == 0 and "simulated rig stopped" in rest, (out, rest, err)
+    assert not port_dir.exists() or not list(port_dir.iterdir()), list(port_dir.iterdir())  # its links removed
+    assert _digests(inputs.values()) == before_inputs
+
+
+#: the commands the tests above drive (``rigctl`` + these words)
+DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("info",), ("protocols",),
+          ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
+          ("sim",)}
+
+
+def test_every_command_is_driven(cli_commands):
+    """A new command needs its property test above (and an entry in DRIVEN)."""
+    commands = {words for words, _ in cli_commands}
+    assert commands == DRIVEN, (f"not driven: {sorted(commands - DRIVEN)}", f"gone: {sorted(DRIVEN - commands)}")

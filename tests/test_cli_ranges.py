@@ -61,6 +61,8 @@ def _refused(args, *needles, seconds=1.0):
     (["import", "{s}", "--out", "{d}/i.h5", "--rate", "100", "--layout", "0x0x0"], "--layout"),
     (["import", "{s}", "--out", "{d}/i.h5", "--rate", "100", "--segment", "fixed:-1"], "--segment"),
     (["export", "nwb", "{s}", "--out", "{d}/x.nwb", "--variants", "nope", "--no-progress"], "--variants"),
+    (["udev-rules", "--drum-serial", 'a"b'], "--drum-serial"),
+    (["udev-rules", "--taxel-serial", ""], "--taxel-serial"),
 ])
 def test_absurd_values_are_refused_at_once_naming_the_option(session, tmp_path, args, option):
     _refused([a.format(s=session, d=tmp_path) for a in args], option)

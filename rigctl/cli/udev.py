@@ -5,10 +5,25 @@ from __future__ import annotations
 import click
 
 
+def _checked_serial(ctx, param, value):
+    """A serial number given on the command line that no udev rule can match is a usage error (exit 2, the option
+    named), judged by the rule writer itself."""
+    if value is not None:
+        from rigctl.devices.ports import PortInfo, udev_rules
+
+        board = "mega" if param.name == "drum_serial" else "uno"
+        try:
+            udev_rules([PortInfo(device="(not connected)", vid=None, pid=None, description="", board=board,
+                                 serial_number=value)])
+        except ValueError as exc:
+            raise click.BadParameter(str(exc).removeprefix("(not connected): ")) from None
+    return value
+
+
 @click.command("udev-rules")
-@click.option("--drum-serial", default=None, metavar="SERIAL",
+@click.option("--drum-serial", default=None, metavar="SERIAL", callback=_checked_serial,
               help="USB serial number of the drum controller (Mega); default: the connected board that looks like one.")
-@click.option("--taxel-serial", default=None, metavar="SERIAL",
+@click.option("--taxel-serial", default=None, metavar="SERIAL", callback=_checked_serial,
               help="USB serial number of the taxel streamer (Uno); default: the connected board that looks like one.")
 def udev_rules(drum_serial, taxel_serial):
     """Print udev rules for the rig's boards: /dev/rigctl-drum and /dev/rigctl-taxel by USB serial number (ttyACM
