@@ -24,6 +24,7 @@ COMMANDS = {
     "firmware": "rigctl.cli.firmware:firmware",
     "doctor": "rigctl.cli.doctor:doctor",
     "udev-rules": "rigctl.cli.udev:udev_rules",
+    "serve": "rigctl.cli.serve:serve",
 }
 
 SHORT_HELP = {
@@ -41,6 +42,7 @@ SHORT_HELP = {
     "firmware": "Build the boards' firmware images from the installed sources (for flashing).",
     "doctor": "Bring-up checks on the rig: one line each, pass/fail/skip and the fix.",
     "udev-rules": "Print udev rules: stable /dev names for the boards by USB serial number.",
+    "serve": "Headless run queue with an HTTP API (127.0.0.1 by default).",
 }
 
 

@@ -15,6 +15,8 @@ One package of small modules, each one job an operator does:
 - :class:`AnalysisPlan` / :func:`run_analyses` (``_analysis``): the paper's analyses as ``rigctl analyze`` and the
   GUI's analysis tab run them (which tasks, the parameter objects of :mod:`rigctl.analysis.params`, baseline,
   skip or raise); :func:`load_or_encode`, :func:`train_model`.
+- :class:`RunQueue` (``_queue``): protocol runs one after another on one rig, kept in a file across restarts
+  (``rigctl serve``'s HTTP API is a face on it).
 - :class:`LslPublisher` (``_lsl``): a run published on Lab Streaming Layer (taxels, SA/RA spikes, drum state,
   markers); :func:`lsl_requested` (the flag, else the rig config's ``lsl.enabled``).
 - :class:`LiveEncoder` (``_live``): the taxel stream encoded into SA/RA spikes as it arrives, into
@@ -44,12 +46,13 @@ from rigctl.operations._control import Home, RigControl, RunStarted, open_contro
 from rigctl.operations._doctor import doctor
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
+from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue
 from rigctl.operations._run import RUN_STATES, ProtocolRun
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 
 __all__ = [
-    "LslPublisher", "lsl_requested",
+    "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES",
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",

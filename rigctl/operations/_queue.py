@@ -1,0 +1,368 @@
+"""The headless run queue: protocol runs recorded one after another on one open rig, the queue kept in a small JSON
+file so it survives a restart (``rigctl serve`` is a thin HTTP face on it; the GUI or a script can use it directly).
+
+One run owns the rig at a time (a second one waits, ``queued``); each is a :class:`rigctl.operations.ProtocolRun`
+(its pause / resume / abort), so the queue holds no rig logic. A run cut by a crash or a kill (the file says it was
+``running`` or ``paused``) is queued again at the front when the queue is reopened, and continues its session file
+with the session's own resume (no trial recorded twice, none lost: each finished trial is in the file the moment it
+is reported). :meth:`RunQueue.stop` is STOP: the drum to rest at once, the current run aborted, the queue held until
+:meth:`RunQueue.release`.
+
+Run states: ``queued``, ``running``, ``pausing``, ``paused``, ``aborting``, ``done`` (every planned trial complete),
+``stopped`` (ended early: aborted, STOP, a lost link; resumable), ``failed`` (an error before or while recording),
+``aborted`` (taken off the queue before it started).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import logging
+import os
+import queue
+import threading
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from rigctl.acquisition.protocol import ProtocolError, parse_protocol
+from rigctl.acquisition.runner import TrialEvent
+from rigctl.core.progress import ProgressEvent
+from rigctl.operations._run import ProtocolRun
+
+__all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES"]
+
+log = logging.getLogger(__name__)
+
+RUN_QUEUE_STATES = ("queued", "running", "pausing", "paused", "aborting", "done", "stopped", "failed", "aborted")
+#: states of a run that has not ended
+ACTIVE = ("queued", "running", "pausing", "paused", "aborting")
+#: the queue file's format version
+QUEUE_FORMAT = 1
+
+
+class QueueError(ValueError):
+    """A request the queue refuses (unknown run, a protocol that does not load, an output that exists, a control
+    that does not apply to the run's state); the message says why in one line. ``status`` is the HTTP status the
+    server answers with."""
+
+    def __init__(self, message: str, status: int = 400) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
+
+
+@dataclasses.dataclass
+class QueuedRun:
+    """One run of the queue, as the queue file and ``GET /runs/{id}`` show it."""
+
+    id: str
+    protocol_name: str
+    protocol_source: str
+    out: str
+    overwrite: bool = False
+    state: str = "queued"
+    trials_done: int = 0
+    trials_total: int = 0
+    errors: list[str] = dataclasses.field(default_factory=list)
+    created_utc: str = ""
+    started_utc: str | None = None
+    ended_utc: str | None = None
+    #: times the run was started (a crash and a restart make it 2)
+    starts: int = 0
+    summary: list[str] = dataclasses.field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def public(self) -> dict[str, Any]:
+        """Without the protocol's text (``GET /runs``)."""
+        d = self.to_dict()
+        d.pop("protocol_source")
+        return d
+
+
+class RunQueue:
+    """Runs recorded one after another on ``control`` (an open :class:`rigctl.operations.RigControl`).
+
+    Parameters
+    ----------
+    control : the open rig.
+    queue_file : the JSON file the queue lives in (created; read back when it exists: runs cut by a crash resume).
+    lsl : publish every run on LSL (``ProtocolRun(lsl=...)``).
+    protocols : () -> {name: protocol file} of the protocols a run may name (default the built-in ones,
+        :func:`rigctl.acquisition.builtin.builtin_protocols`).
+
+    :meth:`start` starts the worker thread; :meth:`close` ends it (a run in progress is stopped cleanly and stays
+    queued to resume at the next start).
+    """
+
+    def __init__(self, control: Any, queue_file: str | os.PathLike[str], *, lsl: bool = False,
+                 protocols: Callable[[], dict[str, Any]] | None = None) -> None:
+        self.control = control
+        self.path = Path(queue_file)
+        self.lsl = lsl
+        self._protocols = protocols
+        self._lock = threading.RLock()
+        self._wake = threading.Condition(self._lock)
+        self.runs: dict[str, QueuedRun] = {}
+        self.current: ProtocolRun | None = None
+        self.current_id: str | None = None
+        #: STOP holds the queue: no further run starts until release()
+        self.held = False
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self._subscribers: list[queue.Queue[dict[str, Any]]] = []
+        self._load()
+
+    # ----------------------------------------------------------------------------------------------- the file
+    def _load(self) -> None:
+        if not self.path.exists():
+            return
+        try:
+            doc = json.loads(self.path.read_text())
+            runs = [QueuedRun(**r) for r in doc["runs"]]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise QueueError(f"{self.path}: not a run queue file ({exc}); move it away or give another --queue") \
+                from None
+        cut = [r for r in runs if r.state in ACTIVE and r.state != "queued"]
+        for r in cut:  # cut by a crash: first in line again, resumed from its session file
+            r.state = "queued"
+            r.errors.append(f"interrupted (the server ended while it ran); resumed at {_utc_now()}")
+        order = cut + [r for r in runs if r not in cut]
+        self.runs = {r.id: r for r in order}
+        self._save()
+
+    def _save(self) -> None:
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        doc = {"format": QUEUE_FORMAT, "runs": [r.to_dict() for r in self.runs.values()]}
+        with open(tmp, "w") as f:
+            json.dump(doc, f, indent=1)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+
+    # ----------------------------------------------------------------------------------------------- events
+    def subscribe(self) -> "queue.Queue[dict[str, Any]]":
+        """A queue receiving every event from now on (``{"type": "progress" | "trial" | "run" | "stop", ...}``)."""
+        q: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=10_000)
+        with self._lock:
+            self._subscribers.append(q)
+        return q
+
+    def unsubscribe(self, q: "queue.Queue[dict[str, Any]]") -> None:
+        with self._lock:
+            if q in self._subscribers:
+                self._subscribers.remove(q)
+
+    def _emit(self, event: dict[str, Any]) -> None:
+        with self._lock:
+            subs = list(self._subscribers)
+        for q in subs:
+            try:
+                q.put_nowait(event)
+            except queue.Full:  # a client that stopped reading loses events, never the run
+                pass
+
+    # ----------------------------------------------------------------------------------------------- requests
+    def _load_protocol(self, name: str | None, toml: str | None) -> Any:
+        if (name is None) == (toml is None):
+            raise QueueError("give a protocol by name or as TOML text (one of them)")
+        try:
+            if toml is not None:
+                return parse_protocol(toml)
+            from rigctl.acquisition.builtin import builtin_protocols
+            from rigctl.acquisition.protocol import load_protocol
+
+            # by name only (a network client never names a file of this host)
+            known = self._protocols() if self._protocols is not None else builtin_protocols()
+            path = known.get(str(name).removesuffix(".toml"))
+            if path is None:
+                raise QueueError(f"no built-in protocol named {name!r}; known: {', '.join(known)}", 404)
+            return load_protocol(path)
+        except ProtocolError as exc:
+            raise QueueError(f"protocol: {exc}") from None
+
+    def submit(self, out: str | os.PathLike[str], *, protocol: str | None = None, toml: str | None = None,
+               overwrite: bool = False) -> QueuedRun:
+        """Queue a run of a built-in ``protocol`` (by name) or of ``toml`` text into the session file ``out``.
+
+        Raises QueueError: the protocol does not load (or is a Python script: not over the queue), ``out`` exists
+        without ``overwrite`` or is another queued run's output."""
+        proto = self._load_protocol(protocol, toml)
+        if not hasattr(proto, "texture_set"):
+            raise QueueError("Python-script protocols cannot be queued: give a TOML protocol")
+        out_path = Path(out).expanduser().resolve()
+        with self._lock:
+            if any(Path(r.out) == out_path for r in self.runs.values() if r.state in ACTIVE):
+                raise QueueError(f"{out_path} is the output of a run already queued", 409)
+            if out_path.exists() and not overwrite:
+                raise QueueError(f"{out_path} exists (pass overwrite, or choose another output)", 409)
+            if not out_path.parent.is_dir():
+                raise QueueError(f"{out_path.parent} is not a folder")
+            run = QueuedRun(id=uuid.uuid4().hex[:12], protocol_name=proto.name, protocol_source=proto.source,
+                            out=str(out_path), overwrite=overwrite, trials_total=len(proto.plan()),
+                            created_utc=_utc_now())
+            self.runs[run.id] = run
+            self._save()
+            self._wake.notify_all()
+        self._emit({"type": "run", "id": run.id, "state": run.state})
+        return run
+
+    def get(self, run_id: str) -> QueuedRun:
+        with self._lock:
+            run = self.runs.get(run_id)
+        if run is None:
+            raise QueueError(f"no run {run_id!r}", 404)
+        return run
+
+    def list(self) -> list[QueuedRun]:
+        with self._lock:
+            return list(self.runs.values())
+
+    def _set(self, run: QueuedRun, **changes: Any) -> None:
+        with self._lock:
+            for k, v in changes.items():
+                setattr(run, k, v)
+            self._save()
+        if "state" in changes:
+            self._emit({"type": "run", "id": run.id, "state": run.state})
+
+    def pause(self, run_id: str) -> QueuedRun:
+        """Pause the running run after its trial in progress (sensor released). QueueError unless it runs."""
+        run = self.get(run_id)
+        with self._lock:
+            if self.current_id != run_id or self.current is None:
+                raise QueueError(f"run {run_id} is {run.state}: only the running run can be paused", 409)
+            self.current.pause()
+            self._set(run, state=self.current.state)
+        return run
+
+    def resume(self, run_id: str) -> QueuedRun:
+        """Go on after :meth:`pause`."""
+        run = self.get(run_id)
+        with self._lock:
+            if self.current_id != run_id or self.current is None:
+                raise QueueError(f"run {run_id} is {run.state}: only a paused run can be resumed", 409)
+            self.current.resume()
+            self._set(run, state="running")
+        return run
+
+    def abort(self, run_id: str) -> QueuedRun:
+        """Abort a run: the running one stops cleanly (finished trials kept), a queued one never starts."""
+        run = self.get(run_id)
+        with self._lock:
+            if self.current_id == run_id and self.current is not None:
+                self.current.abort()
+                self._set(run, state="aborting")
+            elif run.state == "queued":
+                self._set(run, state="aborted", ended_utc=_utc_now())
+            else:
+                raise QueueError(f"run {run_id} is {run.state}: nothing to abort", 409)
+        return run
+
+    def stop(self) -> bool:
+        """STOP, at once: the drum to rest and the actuator home (:meth:`RigControl.stop`, not waiting for the
+        run), the current run aborted, the queue held until :meth:`release`. True when the controller acknowledged
+        STOP."""
+        with self._lock:
+            self.held = True
+            current = self.current
+        acknowledged = bool(self.control.stop())
+        if current is not None:
+            current.abort()
+        self._emit({"type": "stop", "acknowledged": acknowledged})
+        return acknowledged
+
+    def release(self) -> None:
+        """Let queued runs start again after STOP."""
+        with self._lock:
+            self.held = False
+            self._wake.notify_all()
+
+    # ----------------------------------------------------------------------------------------------- worker
+    def start(self) -> "RunQueue":
+        self._thread = threading.Thread(target=self._work, name="run-queue", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """End the worker; a run in progress stops cleanly and stays queued (it resumes at the next start)."""
+        with self._lock:
+            self._closing = True
+            current = self.current
+            self._wake.notify_all()
+        if current is not None:
+            current.abort()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _next(self) -> QueuedRun | None:
+        with self._lock:
+            while not self._closing:
+                if not self.held:
+                    for run in self.runs.values():
+                        if run.state == "queued":
+                            return run
+                self._wake.wait(0.5)
+        return None
+
+    def _work(self) -> None:
+        while True:
+            run = self._next()
+            if run is None:
+                return
+            self._record(run)
+
+    def _record(self, run: QueuedRun) -> None:
+        out = Path(run.out)
+        resume = run.starts > 0 and out.exists()
+        try:
+            proto = parse_protocol(run.protocol_source)
+            pr = ProtocolRun(self.control, proto, out, resume=resume, overwrite=run.overwrite and not resume,
+                             progress=lambda e: self._progress(run, e), on_trial=lambda e: self._trial(run, e),
+                             prompt=lambda message: self._emit({"type": "plate", "id": run.id, "message": message}),
+                             lsl=self.lsl)
+        except Exception as exc:  # noqa: BLE001 - a run that cannot start fails, the queue goes on
+            self._set(run, state="failed", errors=[*run.errors, f"{type(exc).__name__}: {exc}"],
+                      ended_utc=_utc_now())
+            return
+        with self._lock:
+            self.current, self.current_id = pr, run.id
+            self._set(run, state="running", starts=run.starts + 1, started_utc=run.started_utc or _utc_now())
+        try:
+            summary = pr.run()
+        except Exception as exc:  # noqa: BLE001
+            with self._lock:
+                self.current = self.current_id = None
+                self._set(run, state="failed", errors=[*run.errors, f"{type(exc).__name__}: {exc}"],
+                          ended_utc=_utc_now())
+            return
+        with self._lock:
+            self.current = self.current_id = None
+            if self._closing and not summary.ok:  # the server is ending: resume at its next start
+                self._set(run, state="queued", trials_done=summary.complete, summary=summary.lines())
+                return
+            state = "done" if summary.ok else ("stopped" if summary.stopped else "failed")
+            self._set(run, state=state, trials_done=summary.complete, trials_total=summary.planned,
+                      errors=[*run.errors, *summary.failures], summary=summary.lines(), ended_utc=_utc_now())
+
+    def _progress(self, run: QueuedRun, event: ProgressEvent) -> None:
+        if event.total is not None and (event.done != run.trials_done or event.total != run.trials_total):
+            self._set(run, trials_done=int(event.done), trials_total=int(event.total))
+        self._emit({"type": "progress", "id": run.id, "stage": event.stage, "done": event.done,
+                    "total": event.total, "message": event.message})
+
+    def _trial(self, run: QueuedRun, event: TrialEvent) -> None:
+        if event.kind in ("paused", "resumed"):
+            self._set(run, state="paused" if event.kind == "paused" else "running")
+        p = event.planned
+        self._emit({"type": "trial", "id": run.id, "kind": event.kind, "index": event.index, "total": event.total,
+                    "trial_id": None if p is None else p.trial_id, "texture": None if p is None else p.texture,
+                    "error": event.error, "attempt": event.attempt})

@@ -1,0 +1,190 @@
+"""The headless run queue and `rigctl serve`'s HTTP API (issue 27 item 3), on the in-process rig: a protocol queued,
+paused, resumed and finished through the API; a second run waits for the first; the token; the server killed
+(SIGKILL) mid-run and started again resumes the run without losing or re-recording a trial; the event feed; STOP
+through the API stops the simulated drum within 0.5 s (the pty rig, paced to the wall clock: `realtime`). Every
+request goes to 127.0.0.1 or to the app in this process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.operations import RigSource, RunQueue, open_control
+from rigctl.server import create_app
+
+fastapi = pytest.importorskip("fastapi")
+from fastapi.testclient import TestClient  # noqa: E402
+
+PROTOCOL = ('name = "serve_test"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+            'trials_per_condition = {n}\nduration_s = 0.4\n[settle]\nsettle_time_ms = 50\n')
+
+
+def _wait(pred, timeout_s=120.0, every_s=0.02):
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        value = pred()
+        if value:
+            return value
+        time.sleep(every_s)
+    raise AssertionError("timed out")
+
+
+@pytest.fixture
+def served(tmp_path):
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
+    q = RunQueue(control, tmp_path / "queue.json").start()
+    try:
+        yield TestClient(create_app(q)), q
+    finally:
+        q.close()
+        control.close()
+
+
+def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path):
+    client, q = served
+    a = client.post("/runs", json={"toml": PROTOCOL.format(n=4), "out": str(tmp_path / "a.h5")})
+    assert a.status_code == 201, a.text
+    a = a.json()["id"]
+    b = client.post("/runs", json={"protocol": "quick_check", "out": str(tmp_path / "b.h5")}).json()["id"]
+    _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "running")
+    assert client.get(f"/runs/{b}").json()["state"] == "queued"  # one run owns the rig
+    assert client.get("/status").json()["current_run"]["id"] == a
+    _wait(lambda: client.get(f"/runs/{a}").json()["trials_done"] >= 1)
+    assert client.post(f"/runs/{a}/pause").status_code == 200
+    _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "paused")
+    done = client.get(f"/runs/{a}").json()["trials_done"]
+    time.sleep(1.0)
+    assert client.get(f"/runs/{a}").json()["trials_done"] == done < 8  # nothing recorded while paused
+    assert client.get(f"/runs/{b}").json()["state"] == "queued"
+    assert client.post(f"/runs/{a}/resume").json()["state"] == "running"
+    ra = _wait(lambda: (r := client.get(f"/runs/{a}").json())["state"] in ("done", "failed", "stopped") and r)
+    assert ra["state"] == "done" and ra["trials_done"] == ra["trials_total"] == 8, ra
+    rb = _wait(lambda: (r := client.get(f"/runs/{b}").json())["state"] in ("done", "failed", "stopped") and r)
+    assert rb["state"] == "done" and rb["started_utc"] > ra["ended_utc"]
+    # refusals in one line with the right status
+    assert client.post(f"/runs/{a}/pause").status_code == 409
+    assert client.get("/runs/nope").status_code == 404
+    r = client.post("/runs", json={"protocol": "no_such", "out": str(tmp_path / "c.h5")})
+    assert r.status_code == 404 and "known:" in r.json()["detail"]
+    r = client.post("/runs", json={"toml": PROTOCOL.format(n=1), "out": str(tmp_path / "a.h5")})
+    assert r.status_code == 409 and "exists" in r.json()["detail"]
+    assert "/runs/{run_id}/pause" in client.get("/openapi.json").json()["paths"]
+
+
+def test_a_token_is_required_when_set(served):
+    _, q = served
+    client = TestClient(create_app(q, token="s3cret"))
+    assert client.get("/status").status_code == 401
+    assert client.get("/status", headers={"Authorization": "Bearer wrong"}).status_code == 401
+    assert client.get("/status", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+
+
+def test_a_non_loopback_bind_without_a_token_is_refused(tmp_path, monkeypatch):
+    monkeypatch.delenv("RIGCTL_SERVE_TOKEN", raising=False)
+    res = CliRunner().invoke(main, ["serve", "--host", "0.0.0.0", "--rig", "inprocess",
+                                    "--queue", str(tmp_path / "q.json")])
+    assert res.exit_code == 2 and "--token" in res.output and not (tmp_path / "q.json").exists()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _server(tmp_path, port):
+    env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json")}
+    return subprocess.Popen([sys.executable, "-m", "rigctl", "serve", "--rig", "inprocess", "--host", "127.0.0.1",
+                             "--port", str(port), "--queue", str(tmp_path / "queue.json")],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _trials(path):
+    import numpy as np
+
+    from rigctl.storage.session import open_session
+
+    with open_session(path) as s:
+        return {t: (s.trial_attrs(t)["started_utc"], int(np.asarray(s.trial(t).taxels, dtype=np.int64).sum()))
+                for t in s.completed_ids()}, len(s.plan)
+
+
+def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_trial(tmp_path):
+    import httpx
+
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    proc = _server(tmp_path, port)
+    try:
+        _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
+        rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=8), "out": str(tmp_path / "s.h5")}).json()["id"]
+        with httpx.stream("GET", f"{url}/events", timeout=60) as feed:  # the event feed: progress as it happens
+            events = []
+            for line in feed.iter_lines():
+                if line.startswith("data: "):
+                    events.append(json.loads(line[6:]))
+                    if events[-1]["type"] == "trial" and events[-1]["kind"] == "complete":
+                        break
+        assert any(e["type"] == "progress" and e["id"] == rid for e in events)
+        _wait(lambda: httpx.get(f"{url}/runs/{rid}").json()["trials_done"] >= 3, every_s=0.01)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(30)
+    before, planned = _trials(tmp_path / "s.h5")
+    assert 3 <= len(before) < planned == 16
+    proc = _server(tmp_path, port)
+    try:
+        _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
+        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}").json())["state"] in ("done", "failed", "stopped")
+                    and r, timeout_s=240, every_s=0.2)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+    assert run["state"] == "done" and run["starts"] == 2 and run["trials_done"] == 16, run
+    after, _ = _trials(tmp_path / "s.h5")
+    assert sorted(after) == list(range(16))  # none lost
+    assert {t: after[t] for t in before} == before  # the trials finished before the kill were not recorded again
+
+
+def _get(url):
+    import httpx
+
+    try:
+        return httpx.get(url, timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+@pytest.mark.realtime
+def test_stop_through_the_api_stops_the_drum_within_half_a_second(tmp_path):
+    control = open_control(RigSource("sim"), seed=1, host_config_path=tmp_path / "rig.json")
+    q = RunQueue(control, tmp_path / "queue.json").start()
+    try:
+        client = TestClient(create_app(q))
+        proto = PROTOCOL.format(n=2).replace("duration_s = 0.4", "duration_s = 4")
+        rid = client.post("/runs", json={"toml": proto, "out": str(tmp_path / "s.h5")}).json()["id"]
+        _wait(lambda: (client.get("/status").json()["rig"]["drum"] or {}).get("speed_mm_s", 0) > 100,
+              timeout_s=120, every_s=0.05)
+        t0 = time.monotonic()
+        assert client.post("/stop").json()["acknowledged"] is True
+        _wait(lambda: abs(control.status().speed_mm_s) < 1.0, timeout_s=5, every_s=0.01)
+        stopped_s = time.monotonic() - t0
+        print(f"STOP through the API -> drum at rest in {stopped_s * 1e3:.0f} ms")
+        assert stopped_s < 0.5, f"the drum took {stopped_s:.2f} s to stop"
+        run = _wait(lambda: (r := client.get(f"/runs/{rid}").json())["state"] in ("stopped", "failed") and r)
+        assert run["state"] == "stopped" and client.get("/status").json()["held"] is True
+    finally:
+        q.close()
+        control.close()
