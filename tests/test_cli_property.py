@@ -275,10 +275,26 @@ def test_sim_runs_until_ctrl_c(inputs, tmp_path, data):
     assert _digests(inputs.values()) == before_inputs
 
 
+@given(data=st.data())
+@PROPERTY
+def test_serve_refusals(inputs, tmp_path, monkeypatch, data):
+    """``rigctl serve`` runs until stopped: driven here with what it must refuse before it opens a rig or binds (a
+    non-loopback address without a token; --rig hardware without ports; --rig replay without a recording), with
+    random numbers for its numeric options."""
+    monkeypatch.delenv("RIGCTL_SERVE_TOKEN", raising=False)
+    opts = [(o, data.draw(_maybe(NUMBER), label=o)) for o in ("--port", "--seed")]
+    case = data.draw(st.sampled_from([["--host", "0.0.0.0"], ["--host", "192.168.1.7", "--rig", "inprocess"],
+                                      ["--host", "example.org"], ["--rig", "hardware"],
+                                      ["--rig", "hardware", "--drum-port", "/dev/null"], ["--rig", "replay"]]),
+                     label="case")
+    r = _check(inputs, tmp_path, ["serve", "--queue", str(tmp_path / "q.json"), *case, *_opts(opts)])
+    assert r.exit_code == 2, (case, r.output)
+
+
 #: the commands the tests above drive (``rigctl`` + these words)
 DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
-          ("sim",)}
+          ("sim",), ("serve",)}
 
 
 def test_every_command_is_driven(cli_commands):
