@@ -57,7 +57,7 @@ from rigctl.core.drum import (
     SpeedProfile,
     fault_advice,
 )
-from rigctl.core.interfaces import DrumController, RigBackend, TaxelSource
+from rigctl.core.interfaces import DrumController, ReplayProvenance, RigBackend, TaxelSource
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData, lower_envelope_rate_hz
@@ -75,6 +75,8 @@ CAPTURE_MARGIN_S = 5.0
 INDEX_TIMEOUT_REVS = 1.25
 #: extra frames captured beyond the expected index position + the trial's frames (status-read latency, jitter)
 INDEX_MARGIN_FRAMES = 150
+#: extra frames a replayed trial captures: the frames sent before the source's next trial began (in flight)
+REPLAY_MARGIN_S = 0.25
 #: a lost index frame is placed in a sequence gap of at most this many frames (the trial then starts at most this
 #: many frames after the index mark) ...
 INDEX_GAP_MAX_FRAMES = 5
@@ -610,7 +612,13 @@ class Rig:
 
         Notes
         -----
-        Index alignment (constant-speed trials): once the drum runs steadily, the capture starts and the drum angle
+        On the replay rig (:class:`rigctl.core.interfaces.ReplayProvenance`) a trial follows the source's trials
+        instead: the source goes on at its next trial as the capture starts, the trial starts at the frame carrying
+        that trial's first sample, and the source's labels and sample range are stored (``source_file``,
+        ``source_trial_id``, ``source_texture``, ``source_speed_mm_s``, ``source_force_g``,
+        ``source_first_sample``, ``source_last_sample``; ``source_pieces`` when it crosses source trials).
+
+        Index alignment (other constant-speed trials): once the drum runs steadily, the capture starts and the drum angle
         is read to predict when the index mark passes; the capture runs until that point + ``duration_s * rate``
         frames + :data:`INDEX_MARGIN_FRAMES`. The frames before the first one flagged
         ``wire.FrameFlag.SYNC_IN`` are dropped and exactly ``duration_s * rate`` frames from it on are kept
@@ -672,11 +680,15 @@ class Rig:
         # the capture is paced on the drum client's clock, the clock of the frames' host times and the status
         # times (wall time on a real link; simulated time in-process, where a wait advances the simulation)
         clock = self.drum.clock
+        replay = self.backend if self.mode == "replay" and isinstance(self.backend, ReplayProvenance) else None
+        # a replayed trial follows the source's next trial (from the frame that carries its first sample), not the
+        # drum's index
+        cue = replay.begin_source_trial() if replay is not None else None
         self.stream.begin_capture()
         t_start = clock.now()
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
-        align = not planned.is_ramp
-        n_capture = n_limit = n
+        align = not planned.is_ramp and replay is None
+        n_capture = n_limit = n if cue is None else n + int(math.ceil(REPLAY_MARGIN_S * rate)) + 8
         t_index = math.nan  # when the index pulse is predicted, on the clock of the frames' host times
         tolerance_s = INDEX_PREDICTION_TOLERANCE_S
         if align:
@@ -742,6 +754,10 @@ class Rig:
             if lost:
                 log.warning("trial %d: the index frame was lost; the trial starts after the %d-frame gap where the "
                             "drum angle predicts the index", planned.trial_id, lost)
+        elif cue is not None:  # start at the frame of the source trial's first sample (the frames before: in flight)
+            hits = np.flatnonzero((cap.seq.astype(np.int64) & 0xFFFF) == int(cue) & 0xFFFF)
+            k = int(hits[0]) if hits.size else 0
+        if k:
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)
             counts = counts[k:]
@@ -754,6 +770,8 @@ class Rig:
         data = _trial_data(planned, cap, n, statuses, started_utc=started_utc, settle_s=settle_s, spinup_s=spinup_s,
                            layout=layout, host_rate_hz=host_rate)
         data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
+        if replay is not None and len(cap) >= n:
+            data.attrs.update(replay.source_provenance(int(cap.seq[n - 1]), n))
         data.attrs.update(trial_clock_attrs(self.clock_fit, counts[:n], cap.host_time_s[:n]))
         data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1]))
         if data.attrs["drum_speed_mismatch"]:

@@ -278,6 +278,25 @@ class MassPlacer(Protocol):
 
 
 @runtime_checkable
+class ReplayProvenance(Protocol):
+    """Optional: a backend streaming recorded trials (the replay rig). The rig calls :meth:`begin_source_trial` as
+    each trial's capture starts and stores :meth:`source_provenance` in the trial's attributes, so a replayed trial
+    keeps the source's labels and says which of its samples it holds."""
+
+    def begin_source_trial(self) -> int | None:
+        """A recorded trial starts: stream from the source's next trial (of the mounted plate) on. Returns the wire
+        sequence number of the frame that carries its first sample (the frames before it were in flight), or None
+        when the stream does not jump (continuous play, no replay)."""
+        ...
+
+    def source_provenance(self, last_seq: int, n: int) -> dict[str, Any]:
+        """The source labels (``source_file``, ``source_trial_id``, ``source_texture``, ``source_speed_mm_s``,
+        ``source_force_g``, ...) and ``source_first_sample`` / ``source_last_sample`` of the ``n`` frames up to wire
+        sequence number ``last_seq``; {} when the backend replays nothing."""
+        ...
+
+
+@runtime_checkable
 class RigBackend(Protocol):
     """What a ``Rig`` is opened on: it starts its boards and says where they are and how plates get mounted.
 

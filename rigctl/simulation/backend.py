@@ -91,6 +91,19 @@ class PtyRigBackend(PortBackend):
     def __exit__(self, *exc) -> None:
         self.sim.__exit__(None, None, None)
 
+    # the replay rig (:class:`rigctl.core.interfaces.ReplayProvenance`): trials follow the source's and know it
+    def begin_source_trial(self) -> int | None:
+        """A recorded trial starts: the replay source goes on at its next trial; the wire sequence number of the
+        frame carrying its first sample (None on other rigs)."""
+        begin = getattr(self.sim, "begin_source_trial", None)
+        return begin() if begin is not None else None
+
+    def source_provenance(self, last_seq: int, n: int) -> dict:
+        """The replay source's labels and sample range of the ``n`` frames up to ``last_seq`` ({} on other rigs;
+        :meth:`rigctl.simulation.rig.SimulatedRig.source_provenance`)."""
+        prov = getattr(self.sim, "source_provenance", None)
+        return prov(last_seq, n) if prov is not None else {}
+
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass on the simulated load cell (0 removes it)."""
         self.sim.place_mass(mass_g)

@@ -15,15 +15,24 @@ frames of that channel count at that rate, so the host captures exactly the sour
 ``expected_samples(n, start)`` gives the exact samples of the unmounted stream, computed independently of the
 streaming state, so a test can prove that what the host recorded equals the source sample for sample.
 
+Trials follow the source's trials and keep its labels: :meth:`begin_trial` (called by the rig as each recorded trial
+starts, through :meth:`rigctl.simulation.rig.SimulatedRig.begin_source_trial`) drops the rest of the block being
+streamed, so the trial starts at the first sample of the source's next trial (of the mounted plate); with
+``continuous=True`` the stream runs on across trials instead. Every block served is logged with its stream
+position, so :meth:`provenance` says which source trial (file, trial id, texture, speed, force) and which of its
+samples a stretch of the stream holds: the recorded trial's ``source_*`` attributes.
+
 Used by :class:`rigctl.simulation.rig.SimulatedRig` (``source=...``), which pulls ``read(n) -> (n, ch) uint16``
 as the simulated clock advances by n sample periods.
 """
 
 from __future__ import annotations
 
+import bisect
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,12 +60,49 @@ class _BlockReplay:
     _block: np.ndarray  #: the block being read, from sample _pos on
     _pos: int
 
-    def __init__(self, loop: bool):
+    def __init__(self, loop: bool, continuous: bool = False):
         self.loop = bool(loop)
+        self.continuous = bool(continuous)
         self._lock = threading.Lock()
         self._restart()
         #: samples handed out by :meth:`read` since construction / :meth:`rewind`
         self.samples_served = 0
+        #: ``(stream position of the block's first sample served, the block's source labels)``, in stream order
+        self.served_blocks: list[tuple[int, dict[str, Any]]] = []
+
+    def _block_labels(self) -> dict[str, Any]:  # pragma: no cover - abstract
+        """The source labels of the block just taken from the iterator (file, trial, texture, speed, force)."""
+        raise NotImplementedError
+
+    def begin_trial(self) -> int | None:
+        """A recorded trial starts: the stream goes on at the first sample of the source's next trial (of the
+        mounted plate), unless ``continuous``. Returns the stream position of that sample (None: continuous)."""
+        if self.continuous:
+            return None
+        with self._lock:
+            if self._pos > 0:
+                self._block = self._block[:0]
+                self._pos = 0
+            return self.samples_served
+
+    def provenance(self, first: int, n: int) -> list[dict[str, Any]]:
+        """Which source samples stream positions ``first`` .. ``first + n - 1`` held: one dict per source block
+        crossed, its labels plus ``source_first_sample`` / ``source_last_sample`` (inclusive, in the block).
+        Raises ValueError for positions not served yet."""
+        first, last = int(first), int(first) + int(n) - 1
+        if first < 0 or last >= self.samples_served:
+            raise ValueError(f"stream samples {first}..{last} were not served (served: {self.samples_served})")
+        starts = [p for p, _ in self.served_blocks]
+        out = []
+        i = max(0, bisect.bisect_right(starts, first) - 1)
+        while i < len(self.served_blocks) and self.served_blocks[i][0] <= last:
+            p0, labels = self.served_blocks[i]
+            end = self.served_blocks[i + 1][0] - 1 if i + 1 < len(self.served_blocks) else self.samples_served - 1
+            a, b = max(first, p0), min(last, end)
+            if a <= b:
+                out.append({**labels, "source_first_sample": a - p0, "source_last_sample": b - p0})
+            i += 1
+        return out
 
     def _iter_blocks(self, *, track: bool = True) -> Iterator[np.ndarray]:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -80,6 +126,7 @@ class _BlockReplay:
                     except StopIteration:
                         raise EOFError(self._eof()) from None
                     self._pos = 0
+                    self.served_blocks.append((self.samples_served + filled, self._block_labels()))
                     continue
                 k = min(n - filled, self._block.shape[0] - self._pos)
                 out[filled:filled + k] = self._block[self._pos:self._pos + k]
@@ -99,6 +146,7 @@ class _BlockReplay:
         with self._lock:
             self._restart()
             self.samples_served = 0
+            self.served_blocks = []
 
     def _restart(self, blocks: Iterator[np.ndarray] | None = None) -> None:
         """Stream ``blocks`` (default the unmounted order) from their first sample on."""
@@ -152,7 +200,7 @@ class SessionReplay(_BlockReplay):
     FileNotFoundError, rigctl.storage.session.SessionError (not a session), ValueError (no complete trial).
     """
 
-    def __init__(self, path: str | Path, *, loop: bool = True):
+    def __init__(self, path: str | Path, *, loop: bool = True, continuous: bool = False):
         from rigctl.storage.session import open_session
 
         self.path = Path(path)
@@ -164,6 +212,9 @@ class SessionReplay(_BlockReplay):
             self.trial_ids = [int(t) for t in plan["trial_id"] if int(t) in done]
             labels = {int(t): str(x.decode() if isinstance(x, bytes) else x)
                       for t, x in zip(plan["trial_id"], plan["texture"])}
+            #: trial id -> (speed_mm_s, force_g) of the source's plan
+            self.trial_setpoints = {int(t): (float(v), float(f)) for t, v, f in
+                                    zip(plan["trial_id"], plan["speed_mm_s"], plan["force_g"])}
         if not self.trial_ids:
             raise ValueError(f"{self.path}: no complete trial to replay")
         self.trial_texture = {t: labels[t] for t in self.trial_ids}
@@ -175,10 +226,16 @@ class SessionReplay(_BlockReplay):
         self.mounted: str | None = None
         self.mounts: list[tuple[int, str]] = []
         self.current_trial: int | None = None
-        super().__init__(loop)
+        super().__init__(loop, continuous)
 
     def _eof(self) -> str:
         return f"end of the trials of {self.path.name} (loop=False)"
+
+    def _block_labels(self) -> dict[str, Any]:
+        t = int(self.current_trial) if self.current_trial is not None else -1
+        speed, force = self.trial_setpoints.get(t, (float("nan"), float("nan")))
+        return {"source_file": self.path.name, "source_trial_id": t, "source_texture": self.trial_texture.get(t, ""),
+                "source_speed_mm_s": speed, "source_force_g": force}
 
     def trial_samples(self, trial_id: int) -> np.ndarray:
         """The taxels of one trial, ``(n, ch) uint16`` (read once, then cached)."""
@@ -281,7 +338,8 @@ class FabricSlideReplay(_BlockReplay):
     layout = FABRICSLIDE_SENSOR
 
     def __init__(self, directory: str | Path, *, include_board: bool = False, pattern: str = "*.csv",
-                 scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET, loop: bool = True):
+                 scale: float = DEFAULT_SCALE, offset: float = DEFAULT_OFFSET, loop: bool = True,
+                 continuous: bool = False):
         self.directory = Path(directory)
         self.files = list_files(self.directory, include_board=include_board, pattern=pattern)
         if not self.files:
@@ -289,10 +347,61 @@ class FabricSlideReplay(_BlockReplay):
         self.textures = fabricslide_textures(parse_name(p.name)["label"] for p in self.files)
         self.scale, self.offset = float(scale), float(offset)
         self.current_file: Path | None = None
-        super().__init__(loop)
+        #: texture -> its files in replay order (a mount streams these)
+        self.by_texture: dict[str, list[Path]] = {}
+        for p in self.files:
+            self.by_texture.setdefault(parse_name(p.name)["label"], []).append(p)
+        self._next_of: dict[str, int] = {}
+        self.mounted: str | None = None
+        self.mounts: list[tuple[int, str]] = []
+        super().__init__(loop, continuous)
 
     def _eof(self) -> str:
         return "end of the FabricSlide recordings (loop=False)"
+
+    def _block_labels(self) -> dict[str, Any]:
+        if self.current_file is None:
+            return {}
+        name = parse_name(self.current_file.name)
+        return {"source_file": self.current_file.name, "source_texture": name["label"],
+                "source_speed_mm_s": abs(name["velocity_mm_s"]), "source_velocity_mm_s": name["velocity_mm_s"],
+                "source_force_setpoint": name["force_setpoint"], "source_repeat": name["repeat"]}
+
+    def _iter_texture(self, texture: str) -> Iterator[np.ndarray]:
+        files = self.by_texture[texture]
+        while True:
+            i = self._next_of.get(texture, 0)
+            if i >= len(files):
+                if not self.loop:
+                    return
+                i = 0
+            self._next_of[texture] = i + 1
+            self.current_file = files[i]
+            yield self._adc(files[i])
+
+    def mount(self, texture: str) -> None:
+        """The protocol mounted plate ``texture``: from the next sample on, stream that fabric's next recording
+        (then its following ones, looping), so a trial labelled Denim holds Denim's samples. A label with no
+        recording raises KeyError."""
+        label = texture
+        if label not in self.by_texture:
+            try:
+                label = self.textures.resolve(texture)
+            except TextureSetError:
+                pass
+        if label not in self.by_texture:
+            raise KeyError(f"no FabricSlide recording of texture '{texture}' here (there are: "
+                           f"{', '.join(self.by_texture)})")
+        with self._lock:
+            self.mounted = label
+            self.mounts.append((self.samples_served, label))
+            self._restart(self._iter_texture(label))
+
+    def unmount(self) -> None:
+        """Back to every recording in file-name order (from the first)."""
+        with self._lock:
+            self.mounted = None
+            self._restart()
 
     def _adc(self, path: Path) -> np.ndarray:
         return recording_adc(read_recording(path), scale=self.scale, offset=self.offset)

@@ -187,6 +187,41 @@ class SimulatedRig:
             textures = own  # the model renders the replayed set's plate (the drum's force loop sees it)
         self.model.set_texture(letter, textures)
 
+    def begin_source_trial(self) -> int | None:
+        """A recorded trial starts: a replay source that follows its trials (``begin_trial``) goes on at the first
+        sample of its next trial (:mod:`rigctl.simulation.replay`). Returns the wire sequence number of the frame
+        that carries that sample; None without a replay source, in continuous play or before the stream starts."""
+        begin = getattr(self.source, "begin_trial", None)
+        start = self.uno.stream_start_sample
+        if begin is None:
+            return None
+        pos = begin()
+        if pos is None or start is None:
+            return None
+        return int(pos - start) & 0xFFFF
+
+    def source_provenance(self, last_seq: int, n: int) -> dict:
+        """Which source samples the ``n`` frames up to the one of wire sequence number ``last_seq`` (sent in the
+        last 65536 frames) carried: the replay source's labels (``source_file``, ``source_trial_id``,
+        ``source_texture``, ``source_speed_mm_s``, ``source_force_g`` or FabricSlide's setpoints) and
+        ``source_first_sample`` / ``source_last_sample`` (inclusive, in that source trial); a trial that crosses
+        source trials also gets ``source_pieces`` (JSON, one entry per source trial). {} without a replay source."""
+        import json
+
+        provenance = getattr(self.source, "provenance", None)
+        start = self.uno.stream_start_sample
+        if provenance is None or start is None or n < 1:
+            return {}
+        newest = int(self.source.samples_served) - 1 - start  # the frame number of the newest sample served
+        frame = newest - ((newest - int(last_seq)) & 0xFFFF)
+        pieces = provenance(start + frame - n + 1, n)
+        if not pieces:
+            return {}
+        out = dict(pieces[0])
+        if len(pieces) > 1:
+            out["source_pieces"] = json.dumps(pieces)
+        return out
+
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass of ``mass_g`` g on the load cell (0 removes it): see ``RigModel.place_mass``."""
         self.model.place_mass(mass_g)

@@ -178,12 +178,46 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
         assert list(s.plan["texture"]) == ["HB3", "Linen weave"]
         for tid in s.completed_ids():
             t = s.trial(tid)
+            texture = str(s.plan["texture"][tid])
             assert t.taxels.shape == (50, 9)
-            rec = source[str(s.plan["texture"][tid])]
-            # the recorded stretch occurs in the mounted texture's recording (looped), sample for sample
-            loop = np.concatenate([rec, rec]).astype(np.uint16)
-            hits = [k for k in range(len(rec)) if np.array_equal(loop[k:k + 50], t.taxels)]
-            assert hits, f"trial {tid} ({s.plan['texture'][tid]}) is not a stretch of its texture's recording"
+            # the trial keeps the source's labels and says where its samples come from, which are exactly those
+            a = t.attrs
+            assert a["source_file"] == "lab.h5" and a["source_texture"] == texture
+            assert int(a["source_trial_id"]) == list(source).index(texture)
+            assert a["source_speed_mm_s"] == 40.0 and np.isnan(a["source_force_g"])
+            first, last = int(a["source_first_sample"]), int(a["source_last_sample"])
+            assert (first, last) == (0, 49)  # the trial starts with its source trial's first sample
+            np.testing.assert_array_equal(t.taxels, source[texture][first:last + 1].astype(np.uint16))
+    info = _info(out, env)
+    assert info["trials"][0]["source"]["file"] == "lab.h5" and info["trials"][0]["source"]["trial_id"] == 1
+
+
+def test_acquire_replays_a_fabricslide_folder_following_the_mounted_plate(tmp_path, fabricslide_dir):
+    """`rigctl acquire --replay FOLDER`: each trial holds the mounted fabric's recording (a trial labelled Canvas
+    holds Canvas samples, not the next file in name order), with the file, its setpoints and the sample range."""
+    from rigctl.storage.fabricslide import read_recording, recording_adc
+    from rigctl.storage.session import open_session
+
+    proto = tmp_path / "p.toml"
+    proto.write_text('name = "fabrics"\ntextures = ["Canvas", "BeigeCotton"]\nspeeds_mm_s = [100]\n'
+                     'forces_g = [500]\ntrials_per_condition = 1\nduration_s = 0.3\n\n[texture_set]\n'
+                     'name = "FabricSlide"\ntextures = ["BeigeCotton", "BrownCotton", "Canvas", "Linen"]\n')
+    env = _env(tmp_path)
+    out = tmp_path / "fabrics.h5"
+    run = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(fabricslide_dir), "--out", str(out),
+                          "--quiet"], capture_output=True, text=True, env=env, timeout=180)
+    assert run.returncode == 0, run.stderr
+    with open_session(out) as s:
+        assert s.layout.n_channels == 16 and s.layout.sample_rate_hz == 1000.0
+        for tid in s.completed_ids():
+            t = s.trial(tid)
+            texture, a = str(s.plan["texture"][tid]), t.attrs
+            assert a["source_texture"] == texture and str(a["source_file"]).startswith(texture + "_")
+            assert "source_pieces" not in a  # one recording per trial
+            rec = recording_adc(read_recording(fabricslide_dir / "fabric" / str(a["source_file"])))
+            first, last = int(a["source_first_sample"]), int(a["source_last_sample"])
+            assert (first, last) == (0, 299)  # from the first sample of the mounted fabric's recording
+            np.testing.assert_array_equal(t.taxels, rec[first:last + 1])
 
 
 def test_a_calibration_for_another_sensor_is_not_copied_into_the_session(tmp_path, caplog):
