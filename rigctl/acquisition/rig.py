@@ -91,6 +91,12 @@ INDEX_PREDICTION_TOLERANCE_REVS = 0.1
 #: is not the setpoint's). The sensor counts revolutions: a drum of another diameter than the firmware's turns at the
 #: expected rate and is not seen (speeds in mm/s are computed with the firmware's diameter)
 DRUM_SPEED_TOLERANCE = 0.03
+#: the drum controller times its HX711's rate at boot (6 DOUT-ready edges: 75 ms at 80 SPS, 0.6 s at 10 SPS; spec 2.9)
+#: and refuses PRESS and RUN until then. A rig that opens, or re-homes after a reset, waits up to this long (s of the
+#: drum client's clock; it ends at the measurement) so that a rate fault is latched before it judges the controller's
+#: state: the firmware under simavr answered 0.1 s after boot, HOME passed, and HX711_RATE latched during the wait for
+#: IDLE ("cannot open the rig")
+HX711_BOOT_WAIT_S = 5.0
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0
 
@@ -251,7 +257,7 @@ class Rig:
 
     def _prepare(self, *, home: bool) -> None:
         self._apply_force_loop()
-        st = self.drum.read_status()
+        st = self._booted_status()
         self._check_calibration(st)
         self.drum_boot_count = getattr(st, "boot_count", None)
         if st.state == DrumState.FAULT:
@@ -270,6 +276,17 @@ class Rig:
         elif st.state == DrumState.NOT_HOMED:
             log.warning("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
                         getattr(st, "reset_cause", "?"))
+
+    def _booted_status(self) -> Any:
+        """The drum controller's status once it has timed its HX711's rate (or faulted, or after
+        :data:`HX711_BOOT_WAIT_S`: an HX711 that never converts latches LOADCELL_TIMEOUT instead)."""
+        clock = self.drum.clock
+        deadline = clock.now() + HX711_BOOT_WAIT_S
+        st = self.drum.read_status()
+        while not getattr(st, "hx711_rate_sps", 1.0) and st.state != DrumState.FAULT and clock.now() < deadline:
+            clock.sleep(STATUS_PERIOD_S)
+            st = self.drum.read_status()
+        return st
 
     def _home(self) -> None:
         """HOME (the controller tares at the home switch), wait for IDLE, TARE again at home, and remember the
@@ -321,6 +338,7 @@ class Rig:
                       DrumState(int(st.state)).name)
         else:
             log.warning("the drum controller is NOT_HOMED (after an e-stop or a failed HOME): homing it")
+        st = self._booted_status()
         if st.state == DrumState.FAULT:
             self.drum.stop()
             self.drum.clear_fault()

@@ -301,6 +301,23 @@ def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path)
 
 
 @pytest.mark.hil
+def test_a_10_sps_hx711_fails_its_check_on_the_firmware_under_simavr(tmp_path):
+    """The harness's HX711 at 10 SPS (RATE pin low) on the firmware set for 80: the firmware times the rate at boot
+    and latches HX711_RATE; the doctor reports the rate it measured and names the RATE pin."""
+    from rigctl.operations import RigSource, doctor as run
+
+    cfg = RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=10.0))
+    report = run(RigSource("hil"), config=cfg, host_config_path=tmp_path / "rig.json", rest_s=2.0, save=False,
+                 checks=["link", "controller-faults", "hx711-rate"])
+    by = {r.name: r for r in report.results}
+    assert by["link"].status == "pass", by["link"].line()
+    r = by["hx711-rate"]
+    assert r.status == "fail" and "RATE pin high" in r.fix, r.line()
+    assert r.values["hx711_rate_sps"] == pytest.approx(10.0, rel=0.02)
+    assert by["controller-faults"].status == "fail" and "HX711_RATE" in by["controller-faults"].summary
+
+
+@pytest.mark.hil
 def test_a_reversed_load_cell_fails_polarity_on_the_firmware_under_simavr(tmp_path):
     cfg = tmp_path / "rig.json"
     reversed_cell = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=-420.0))
