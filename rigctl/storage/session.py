@@ -20,10 +20,11 @@ plan's labels (``docs/session-format.md``, "Older files").
 Data flow: acquisition, the dataset generator and the importers write (:class:`SessionWriter`); encoding, analysis,
 the GUI and ``rigctl info`` read (:func:`open_session`).
 
-The module is the public face of four: :mod:`rigctl.storage.session_format` (schema version, ``/plan`` table, trial
+The module is the public face of five: :mod:`rigctl.storage.session_format` (schema version, ``/plan`` table, trial
 status, errors, opening), :mod:`rigctl.storage.session_schema` (decoding the header of every schema, schema 1/2
-included), :mod:`rigctl.storage.session_writer` (:class:`SessionWriter`) and :mod:`rigctl.storage.session_reader`
-(:class:`Session`, :func:`open_session`); import from here.
+included), :mod:`rigctl.storage.session_recording` (schema 4: every trial's data back to back under ``/recording``
+with a trial index, and the per-trial views), :mod:`rigctl.storage.session_writer` (:class:`SessionWriter`) and
+:mod:`rigctl.storage.session_reader` (:class:`Session`, :func:`open_session`); import from here.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from rigctl.core.textures import TextureSet
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.storage import journal
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide", "imported")
 #: variable-length UTF-8 string (h5py's ``string_dtype``): ``/plan`` texture labels of any length
 VLEN_UTF8 = h5py.string_dtype("utf-8")

@@ -16,6 +16,7 @@ from h5py import h5a, h5d, h5g, h5s
 
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
+from rigctl.storage import session_recording
 from rigctl.storage.session_format import (
     SessionError,
     TrialStatus,
@@ -125,6 +126,24 @@ class Session:
         self.protocol_name = str(pattrs.get("name", ""))
         self.protocol_format = str(pattrs.get("format", ""))
         self.calibration = self._read_calibration()
+        self._flat = session_recording.is_flat(f)
+        self._index: dict[int, np.void] | None = None
+
+    def recording_index(self) -> dict[int, np.void]:
+        """Schema 4: trial id -> its row of ``/recording/index`` (:data:`rigctl.storage.session_recording.INDEX_DTYPE`:
+        where its samples and traces are in the recording arrays, ``dropped_frames``, ``crc_errors``), read once;
+        ``{}`` for older files (one group of datasets per trial). Raises SessionError for an unreadable index."""
+        if self._index is None:
+            if not self._flat:
+                self._index = {}
+            else:
+                with _reading(self.path, "/recording/index"):
+                    idx = session_recording.read_index(self._f)
+                    if idx.dtype != session_recording.INDEX_DTYPE:
+                        raise SessionError(f"{self.path}: /recording/index is {idx.dtype}, not the documented "
+                                           "table; the file is damaged")
+                self._index = {int(r["trial_id"]): r for r in idx}
+        return self._index
 
     def _problem(self, message: str) -> None:
         self.problems.append(message)
@@ -312,6 +331,8 @@ class Session:
         KeyError if a trial has no recorded data; SessionError naming the trial if its taxels are damaged
         (shape, type, values outside the sensor's ADC range).
         """
+        if self._flat:
+            return self._read_flat(ids, traces)
         n_stored = PAPER_SENSOR.n_channels if self._present is not None else self.layout.n_channels
         fid = self._f.id
         dsets, lengths = [], np.zeros(len(ids), dtype=np.int64)
@@ -366,6 +387,56 @@ class Session:
                     ds.read(h5s.ALL, h5s.ALL, data[starts[i]:starts[i + 1]])
         if self._present is not None:  # a schema-1/2 import: only the real columns
             data = np.ascontiguousarray(data[:, self._present])
+        self._check_block_range(ids, data, starts)
+        return TaxelBlock(data, starts, dropped, has_trace, speed_traces)
+
+    def _index_rows(self, ids: Sequence[int]) -> np.ndarray:
+        """The ``/recording/index`` rows of ``ids`` (schema 4), in that order. Raises KeyError for a trial that was
+        not recorded, SessionError for one marked complete that has no row or whose rows are outside the arrays."""
+        index = self.recording_index()
+        rows = np.zeros(len(ids), dtype=session_recording.INDEX_DTYPE)
+        for i, tid in enumerate(ids):
+            r = index.get(int(tid))
+            if r is None:
+                if int(tid) in self._complete:
+                    raise self._damaged(int(tid), "it is marked complete but /recording/index has no row for it")
+                raise KeyError(f"trial {tid} has no recorded data in {self.path}")
+            rows[i] = r
+        with _reading(self.path, "the recording arrays"):
+            n_rows = self._f[session_recording.GROUP]["taxels"].shape[0]
+        bad = (rows["sample_start"] < 0) | (rows["n_samples"] < 0) | (rows["sample_start"] + rows["n_samples"] > n_rows)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise self._damaged(int(ids[k]), f"/recording/index puts its samples at rows {int(rows['sample_start'][k])}"
+                                             f"+{int(rows['n_samples'][k])}, outside the {n_rows} recorded")
+        return rows
+
+    def _read_flat(self, ids: Sequence[int], traces: bool) -> TaxelBlock:
+        """:meth:`read_taxels` of a schema-4 file: the index once, then one read per run of trials stored one
+        after another in ``/recording/taxels``."""
+        rows = self._index_rows(ids)
+        lengths = rows["n_samples"].astype(np.int64)
+        starts = np.zeros(len(ids) + 1, dtype=np.int64)
+        np.cumsum(lengths, out=starts[1:])
+        rec = self._f[session_recording.GROUP]
+        with _reading(self.path, "trials' taxels"):
+            data = np.empty((int(starts[-1]), self.layout.n_channels), dtype=np.uint16)
+            session_recording.read_rows(rec["taxels"], rows["sample_start"], lengths, data)
+            speed_traces = None
+            if traces:
+                speed_traces = []
+                n_sp = rows["n_speed"].astype(np.int64)
+                pos = np.concatenate([[0], np.cumsum(n_sp)])
+                vs = np.empty(int(pos[-1]), dtype=np.float64)
+                ts = np.empty(int(pos[-1]), dtype=np.float64)
+                session_recording.read_rows(rec["speed_mm_s"], rows["speed_start"], n_sp, vs)
+                session_recording.read_rows(rec["speed_time_s"], rows["speed_start"], n_sp, ts)
+                speed_traces = [(ts[pos[i]:pos[i + 1]], vs[pos[i]:pos[i + 1]]) for i in range(len(ids))]
+        self._check_block_range(ids, data, starts)
+        return TaxelBlock(data, starts, rows["dropped_frames"].astype(np.int64), rows["n_speed"] > 0, speed_traces)
+
+    def _check_block_range(self, ids: Sequence[int], data: np.ndarray, starts: np.ndarray) -> None:
+        """Raise SessionError naming the first trial of a block whose counts exceed the sensor's ADC range."""
         if data.size:
             hi = int(data.max())
             if hi > self.layout.adc_max:
@@ -373,7 +444,6 @@ class Session:
                 k = int(np.searchsorted(starts, row, side="right") - 1)
                 raise self._damaged(int(ids[k]), f"taxels hold {hi} (sample {row - starts[k]}), outside the "
                                                  f"sensor's {self.layout.adc_bits}-bit range 0..{self.layout.adc_max}")
-        return TaxelBlock(data, starts, dropped, has_trace, speed_traces)
 
     def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
         """Yield :class:`TrialData` of the usable complete trials (the trial validator's,

@@ -21,7 +21,7 @@ from rigctl import __version__
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import h5objects, journal
+from rigctl.storage import h5objects, journal, session_recording
 from rigctl.storage.session_format import (
     PLAN_CHUNK_ROWS,
     PLAN_DTYPE,
@@ -66,7 +66,8 @@ def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0) -> Itera
     reaches the disk."""
     overlay = journal.OverlayFile(path, durable=durable, wait_s=wait_s)
     try:
-        f = h5py.File(overlay, "r+")
+        f = h5py.File(overlay, "r+", rdcc_nbytes=0)  # no chunk cache: an append to an uncompressed chunk writes
+        # only its own rows (not the whole chunk again, which the journal would copy)
         try:
             yield f
         finally:
@@ -90,12 +91,14 @@ def _writer_lock(path: Path) -> journal.WriterLock:
 
 def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: TextureSet, protocol_source: str,
                     protocol_name: str, protocol_format: str, rig_config: Mapping[str, Any] | None, kind: str,
-                    calibration: Mapping[str, Any] | None, attrs: Mapping[str, Any] | None) -> bytes:
-    """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``),
-    built by HDF5 in memory: HDF5 never writes to a disk that may be full (at a few KiB free it can crash there)."""
+                    calibration: Mapping[str, Any] | None, attrs: Mapping[str, Any] | None,
+                    schema_version: int = SCHEMA_VERSION, compression: str | None = "gzip") -> bytes:
+    """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``,
+    and for schema 4 the empty ``/recording`` arrays), built by HDF5 in memory: HDF5 never writes to a disk that may
+    be full (at a few KiB free it can crash there)."""
     buf = io.BytesIO()
     with h5py.File(buf, "w") as f:
-        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["schema_version"] = schema_version
         f.attrs["session_id"] = str(uuid.uuid4())
         f.attrs["created_utc"] = _utc_now()
         f.attrs["rigctl_version"] = __version__
@@ -115,6 +118,8 @@ def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: Tex
         trials.attrs.update(taxels_description(layout))
         if calibration:
             _write_calibration(f, calibration, layout.n_channels)
+        if schema_version >= 4:
+            session_recording.create(f, layout.n_channels, compression=compression)
     return buf.getvalue()
 
 
@@ -195,6 +200,7 @@ class SessionWriter:
                 self.attrs = contents.attrs
                 self.protocol_source = contents.protocol_source
                 self._plan = contents.raw_plan
+                self._flat = session_recording.is_flat(f)
                 self.layout, present, self.textures = contents.layout, contents.present, contents.textures
                 if present is not None:
                     raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with "
@@ -273,6 +279,7 @@ class SessionWriter:
         overwrite: bool = False,
         compression: str | None = "gzip",
         durable: bool = True,
+        schema_version: int = SCHEMA_VERSION,
     ) -> "SessionWriter":
         """Create a new session file with its root attributes, ``/protocol`` and ``/plan``; return its writer.
 
@@ -295,6 +302,9 @@ class SessionWriter:
             ``/calibration`` datasets, everything else to its attributes.
         attrs : extra root attributes.
         overwrite : replace an existing file (otherwise :class:`FileExistsError`).
+        schema_version : :data:`SCHEMA_VERSION` (4: the trials' data back to back in ``/recording``, read in large
+            blocks), or 3 (one group of datasets per trial, as rigctl wrote before; for tools that need it and for
+            tests of old files). A file keeps its layout: a resume writes what it holds.
 
         Raises
         ------
@@ -304,6 +314,8 @@ class SessionWriter:
         path = Path(path)
         if kind not in SESSION_KINDS:
             raise ValueError(f"kind must be one of {SESSION_KINDS}, got {kind!r}")
+        if schema_version not in (3, SCHEMA_VERSION):
+            raise ValueError(f"schema_version must be 3 or {SCHEMA_VERSION}, got {schema_version!r}")
         if protocol_format not in ("toml", "python", "none"):
             raise ValueError(f"protocol_format must be 'toml', 'python' or 'none', got {protocol_format!r}")
         if not isinstance(layout, SensorLayout):
@@ -334,7 +346,7 @@ class SessionWriter:
             image = _new_file_image(
                 plan_arr, layout=layout, textures=textures, protocol_source=protocol_source,
                 protocol_name=protocol_name, protocol_format=protocol_format, rig_config=rig_config, kind=kind,
-                calibration=calibration, attrs=attrs)
+                calibration=calibration, attrs=attrs, schema_version=schema_version, compression=compression)
             _write_new_file(path, image)
             return cls(path, compression=compression, durable=durable, _lock=lock)
         except BaseException:
@@ -433,14 +445,19 @@ class SessionWriter:
             with self._commit("writing trials") as f:
                 self._adopt_file_status(f)
                 before = self._plan["status"].copy()
+                views: list[tuple[Any, int, TrialData]] = []  # schema 4: written to /recording after the groups
                 for trial_id, data in items:
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
                         raise SessionError(f"trial {trial_id} is already complete in {self.path}")
                     self._check_trial_layout(trial_id, data)
-                    self._write_group(f, self._plan[i], data)
+                    self._write_group(f, self._plan[i], data, views)
                     self._plan["status"][i] = TrialStatus.COMPLETE
                     written.append(i)
+                if views:
+                    taxels = session_recording.append_trials(f, views)
+                    for tax, (_, _, data) in zip(taxels, views):
+                        self._taxels_attrs(tax, data)
                 if written:  # the plan's statuses last, in one write of the span they cover (only the status
                     lo, hi = min(written), max(written) + 1  # field: the labels' heap objects stay as they are)
                     f["plan"][lo:hi, "status"] = self._plan["status"][lo:hi]
@@ -548,7 +565,10 @@ class SessionWriter:
                 f"{theirs.sample_rate_hz:g} Hz) differs from the session's ({mine.shape_text}, {mine.n_channels} "
                 f"channels at {mine.sample_rate_hz:g} Hz) in {self.path}")
 
-    def _write_group(self, f: h5py.File, row: np.void, data: TrialData) -> None:
+    def _write_group(self, f: h5py.File, row: np.void, data: TrialData, views: list[tuple[Any, int, TrialData]]
+                     ) -> None:
+        """Make the trial's group with its attributes and (schema 1-3) its datasets; schema 4: add (group, trial id,
+        data) to ``views``, written to the recording arrays for the whole batch at once."""
         # h5objects: the same objects as h5py's high-level API, without its per-object Python overhead (the
         # dataset generator writes tens of thousands of trials)
         name = trial_group_name(int(row["trial_id"]))
@@ -561,17 +581,17 @@ class SessionWriter:
         n = data.n_samples
         layout = self.layout
         n_ch = layout.n_channels
-        chunk_rows = max(1, min(n, 65536, TAXEL_CHUNK_BYTES // (2 * n_ch)))
-        comp = self.compression if n else None
-        tax = h5objects.create_dataset(g, "taxels", data.taxels, chunks=(chunk_rows, n_ch), compression=comp)
-        started = _parse_utc(str(data.attrs.get("started_utc", "")))
-        starting_time = (started - self._created).total_seconds() if started and self._created else 0.0
-        h5objects.set_attrs(tax, {"rate_hz": layout.sample_rate_hz, "unit": "ADC counts", "adc_bits": layout.adc_bits,
-                                  "starting_time": starting_time})
-        for key in ("seq", "flags", "host_time_s"):
-            h5objects.create_dataset(g, key, getattr(data, key), chunks=(chunk_rows,), compression=comp)
-        for key in ("force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
-            h5objects.create_dataset(g, key, getattr(data, key))
+        if self._flat:  # schema 4: the data go to /recording, the group holds views of them
+            views.append((g, int(row["trial_id"]), data))
+        else:
+            chunk_rows = max(1, min(n, session_recording.sample_chunk_rows(n_ch, TAXEL_CHUNK_BYTES)))
+            comp = self.compression if n else None
+            tax = h5objects.create_dataset(g, "taxels", data.taxels, chunks=(chunk_rows, n_ch), compression=comp)
+            for key in ("seq", "flags", "host_time_s"):
+                h5objects.create_dataset(g, key, getattr(data, key), chunks=(chunk_rows,), compression=comp)
+            for key in ("force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+                h5objects.create_dataset(g, key, getattr(data, key))
+            self._taxels_attrs(tax, data)
         attrs = {}
         for fld in PLAN_FIELDS:
             v = row[fld]
@@ -583,6 +603,15 @@ class SessionWriter:
         attrs.setdefault("started_utc", "")
         attrs["status"] = "complete"
         h5objects.set_attrs(g, attrs)
+
+    def _taxels_attrs(self, tax: Any, data: TrialData) -> None:
+        """The attributes of a trial's ``taxels`` (NWB TimeSeries terms; ``starting_time`` s from the session's
+        ``created_utc`` to the trial's ``started_utc``)."""
+        started = _parse_utc(str(data.attrs.get("started_utc", "")))
+        starting_time = (started - self._created).total_seconds() if started and self._created else 0.0
+        layout = self.layout
+        h5objects.set_attrs(tax, {"rate_hz": layout.sample_rate_hz, "unit": "ADC counts", "adc_bits": layout.adc_bits,
+                                  "starting_time": starting_time})
 
 
 def _with_id(planned: Any, default_id: int) -> Any:

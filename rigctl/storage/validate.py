@@ -24,15 +24,17 @@ The reasons are one line each; :attr:`TrialReport.excluded` maps trial id -> rea
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import h5py
 import numpy as np
 
 from rigctl.storage.session import Session, SessionError, TrialStatus, trial_group_name
+from rigctl.storage.session_recording import read_rows
 
 __all__ = ["MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "max_count", "seq_gaps", "usable_trials"]
 
@@ -96,19 +98,17 @@ def usable_trials(session: Session) -> TrialReport:
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
         session_problem = f"the sensor's sample rate {rate:g} Hz is impossible (above {MAX_RATE_HZ:g} Hz)"
     digests: dict[bytes, int] = {}
-    for tid in session.completed_ids():
-        if session_problem is not None:
-            report.excluded[tid] = session_problem
-            continue
-        try:
-            why, dropped = _check_trial(session, tid, plan[tid], rate, digests)
-        except (SessionError, KeyError) as exc:
-            why, dropped = _reason(exc, tid), 0
-        if why:
-            report.excluded[tid] = why
-        else:
-            report.ids.append(tid)
-            report.dropped_frames[tid] = dropped
+    if session_problem is not None:
+        report.excluded = dict.fromkeys(session.completed_ids(), session_problem)
+    elif session._flat:  # schema 4: the recording arrays, in blocks
+        _check_recorded(session, session.completed_ids(), plan, rate, report)
+    else:
+        for tid in session.completed_ids():
+            try:
+                why, dropped = _check_trial(session, tid, plan[tid], rate, digests)
+            except (SessionError, KeyError) as exc:
+                why, dropped = _reason(exc, tid), 0
+            _record(report, tid, why, dropped)
     for tid, why in report.excluded.items():
         session._problem(f"{session.path}: trial {tid} is damaged: {why}; its data are not used (excluded)")
     session._trial_report = report  # type: ignore[attr-defined]
@@ -133,22 +133,36 @@ def _count(attrs: dict[str, Any], name: str) -> int:
 
 def _check_trial(session: Session, tid: int, row: Any, rate: float,
                  digests: dict[bytes, int]) -> tuple[str | None, int]:
-    """(reason or None, frames missing by the seq column) for one complete trial."""
-    duration = float(row["duration_s"])
-    if not (math.isfinite(duration) and 0 < duration <= MAX_TRIAL_S):
-        return f"its plan duration {duration:g} s is impossible (not in 0..{MAX_TRIAL_S:g} s)", 0
+    """(reason or None, frames missing by the seq column) for one complete trial of a file with one group of
+    datasets per trial (schema 1-3)."""
+    why = _check_duration(row)
+    if why:
+        return why, 0
     attrs = session.trial_attrs(tid)  # shape checks (SessionError names the problem)
-    planned = int(round(duration * rate))
     n = int(attrs.get("n_samples", -1))
     g = session._f[trial_group_name(tid)]
-    seq = np.asarray(g["seq"][()])
     taxels = g["taxels"]
     if n < 0:
         n = int(taxels.shape[0])
+    return _check_data(session, tid, float(row["duration_s"]), rate, n, np.asarray(g["seq"][()]),
+                       _count(attrs, "dropped_frames"), _count(attrs, "crc_errors"), lambda: np.asarray(taxels[()]),
+                       digests)
+
+
+def _check_duration(row: Any) -> str | None:
+    duration = float(row["duration_s"])
+    if not (math.isfinite(duration) and 0 < duration <= MAX_TRIAL_S):
+        return f"its plan duration {duration:g} s is impossible (not in 0..{MAX_TRIAL_S:g} s)"
+    return None
+
+
+def _check_data(session: Session, tid: int, duration: float, rate: float, n: int, seq: np.ndarray, said: int,
+                crc: int, taxels: Callable[[], np.ndarray], digests: dict[bytes, int]) -> tuple[str | None, int]:
+    """(reason or None, frames missing) from a trial's plan duration (s), the sensor's rate (Hz), its sample count,
+    counters, ``seq`` column and taxels (read by ``taxels()`` only when the other checks pass)."""
+    planned = int(round(duration * rate))
     gaps = seq_gaps(seq)
-    said = _count(attrs, "dropped_frames")
-    for name in ("dropped_frames", "crc_errors"):
-        value = _count(attrs, name)
+    for name, value in (("dropped_frames", said), ("crc_errors", crc)):
         if value > max_count(planned + n):
             return f"its {name} attribute {value} is impossible for {planned + n} frame slots", 0
     if gaps > said:
@@ -156,13 +170,74 @@ def _check_trial(session: Session, tid: int, row: Any, rate: float,
     if not planned / 2 - 2 <= n + gaps <= 2 * planned + 2:
         return (f"it holds {n} samples ({gaps} missing), its plan asks {duration:g} s = {planned} at "
                 f"{rate:g} Hz"), gaps
-    why = _check_counts(session, taxels, tid, digests)
+    why = _check_counts(session, taxels(), tid, digests)
     return why, max(gaps, said)
 
 
-def _check_counts(session: Session, taxels: h5py.Dataset, tid: int, digests: dict[bytes, int]) -> str | None:
+#: rows of the recording arrays checked at once (schema 4): 36 MB of the paper's taxels
+_BLOCK_ROWS = 1 << 20
+
+
+def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
+                    report: TrialReport) -> None:
+    """The checks of :func:`_check_trial` for a schema-4 file, from ``/recording/index`` and the recording arrays
+    read in blocks of about :data:`_BLOCK_ROWS` rows (no group opened per trial; memory bounded by the block)."""
+    from rigctl.storage.session_recording import GROUP
+
+    digests: dict[bytes, int] = {}
+    todo: list[tuple[int, np.void]] = []
+    for tid in ids:
+        why = _check_duration(plan[tid])
+        if why is None:
+            try:
+                row = session._index_rows([tid])[0]
+            except (SessionError, KeyError) as exc:
+                why = _reason(exc, tid)
+            else:
+                todo.append((tid, row))
+                continue
+        report.excluded[tid] = why
+    rec = session._f[GROUP]
+    k = 0
+    while k < len(todo):
+        j, rows = k, 0
+        while j < len(todo) and (j == k or rows + int(todo[j][1]["n_samples"]) <= _BLOCK_ROWS):
+            rows += int(todo[j][1]["n_samples"])
+            j += 1
+        block = todo[k:j]
+        starts = np.array([int(r["sample_start"]) for _, r in block], dtype=np.int64)
+        lengths = np.array([int(r["n_samples"]) for _, r in block], dtype=np.int64)
+        pos = np.concatenate([[0], np.cumsum(lengths)])
+        seq = np.empty(int(pos[-1]), dtype=np.uint16)
+        tax = np.empty((int(pos[-1]), rec["taxels"].shape[1]), dtype=np.uint16)
+        read_rows(rec["seq"], starts, lengths, seq)
+        read_rows(rec["taxels"], starts, lengths, tax)
+        for i, (tid, r) in enumerate(block):
+            a, b = int(pos[i]), int(pos[i + 1])
+            why, dropped = _check_data(session, tid, float(plan[tid]["duration_s"]), rate, b - a, seq[a:b],
+                                       int(r["dropped_frames"]), int(r["crc_errors"]),
+                                       functools.partial(_rows, tax, a, b), digests)
+            _record(report, tid, why, dropped)
+        k = j
+    order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
+    report.ids.sort(key=order.__getitem__)
+    report.excluded = dict(sorted(report.excluded.items(), key=lambda kv: order[kv[0]]))
+
+
+def _rows(arr: np.ndarray, a: int, b: int) -> np.ndarray:
+    return arr[a:b]
+
+
+def _record(report: TrialReport, tid: int, why: str | None, dropped: int) -> None:
+    if why:
+        report.excluded[tid] = why
+    else:
+        report.ids.append(tid)
+        report.dropped_frames[tid] = dropped
+
+
+def _check_counts(session: Session, data: np.ndarray, tid: int, digests: dict[bytes, int]) -> str | None:
     """ADC range and byte copies of the trial's taxel counts."""
-    data = np.asarray(taxels[()])
     adc_max = session.layout.adc_max
     if data.size:
         lo, hi = int(data.min()), int(data.max())

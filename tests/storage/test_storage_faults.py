@@ -39,7 +39,9 @@ def _trial(value, n=500):
 
 
 def _session(path, n_plan=6, n_done=3, **kw):
-    """A session of ``n_plan`` trials, the first ``n_done`` written (trial k holds the value k), writer closed."""
+    """A session of ``n_plan`` trials, the first ``n_done`` written (trial k holds the value k), writer closed.
+    (Tests that damage one trial's datasets write schema 3, one group of datasets per trial; the checks of schema
+    4's recording arrays are in test_storage_recording.py.)"""
     with SessionWriter.create(path, plan=_plan(n_plan), protocol_source="src", **kw) as w:
         for k in range(n_done):
             w.write_trial(k, _trial(k))
@@ -202,7 +204,7 @@ def test_a_complete_trial_without_its_recording_is_pending_with_a_warning(tmp_pa
     (lambda g: g.attrs.__setitem__("dropped_frames", -4), "dropped_frames attribute is -4"),
 ])
 def test_a_damaged_trial_is_named_never_read_as_data(tmp_path, caplog, damage, message):
-    path = _edit(_session(tmp_path / "t.h5"), lambda f: damage(f["trials/000002"]))
+    path = _edit(_session(tmp_path / "t.h5", schema_version=3), lambda f: damage(f["trials/000002"]))
     with open_session(path) as s:
         assert s.completed_ids() == [0, 1, 2]
         with pytest.raises(SessionError, match="trial 2 is damaged") as err:
@@ -227,7 +229,7 @@ def test_encode_excludes_a_damaged_trial_and_says_why_in_one_line(tmp_path):
     from rigctl.cli import main
     from rigctl.storage.encoded import open_encoded
 
-    path = _edit(_session(tmp_path / "e.h5"), lambda f: _replace(f["trials/000001"], "taxels",
+    path = _edit(_session(tmp_path / "e.h5", schema_version=3), lambda f: _replace(f["trials/000001"], "taxels",
                                                                  np.full((500, 18), 65535, np.uint16)))
     out = tmp_path / "e.enc.h5"
     result = CliRunner().invoke(main, ["encode", str(path), "--out", str(out), "--quiet"])
@@ -308,12 +310,12 @@ def test_creating_a_session_on_a_full_disk_is_a_clear_error_not_a_crash(tmp_path
 
 
 def test_a_full_disk_mid_session_keeps_every_finished_trial_and_resumes(tmp_path):
-    with _tmpfs(tmp_path, 512) as d:
+    with _tmpfs(tmp_path, 1024) as d:
         path = d / "S.h5"
         rng = np.random.default_rng(4)
         data = {k: rng.integers(0, 1024, (1000, 18)).astype(np.uint16) for k in range(40)}  # ~36 KiB each
         w = SessionWriter.create(path, plan=_plan(40), protocol_source="src", compression=None)
-        _fill(d, 200)
+        _fill(d, 450)  # a few trials: schema 4 allocates its recording arrays 4,096 samples (~190 KiB) at a time
         written = []
         with pytest.raises(SessionWriteError) as err:
             for k in range(40):

@@ -47,7 +47,7 @@ def test_nine_channels_at_100_hz_round_trip_with_layout_rate_and_calibration(tmp
     written = {0: _trial(rng, NINE_100, 200), 3: _trial(rng, NINE_100, 150)}
     w.write_trials(written.items())
     with open_session(path) as s:
-        assert s.attrs["schema_version"] == SCHEMA_VERSION == 3
+        assert s.attrs["schema_version"] == SCHEMA_VERSION == 4
         assert s.layout == NINE_100 and s.layout.n_channels == 9 and s.layout.sample_rate_hz == 100.0
         assert s.completed_ids() == [0, 3]
         for tid, data in written.items():
@@ -62,7 +62,8 @@ def test_nine_channels_at_100_hz_round_trip_with_layout_rate_and_calibration(tmp
         assert s.calibration["taxel_source"] == "test"
     with h5py.File(path, "r") as f:  # plain h5py: what a reader without rigctl sees
         tax = f["trials/000000/taxels"]
-        assert tax.shape == (200, 9) and tax.chunks == (200, 9)
+        assert tax.shape == (200, 9) and tax.is_virtual  # a view of its rows of /recording/taxels (schema 4)
+        assert f["recording/taxels"].shape == (350, 9) and f["recording/index"]["n_samples"].tolist() == [200, 150]
         assert tax.attrs["rate_hz"] == 100.0 and tax.attrs["adc_bits"] == 12
         tr = f["trials"].attrs
         assert tr["taxels_channels"] == NINE_100.describe() and tr["taxels_rate_hz"] == 100.0

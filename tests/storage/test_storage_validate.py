@@ -30,7 +30,8 @@ def base(tmp_path_factory) -> Path:
     rng = np.random.default_rng(5)
     plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=[40.0, 80.0][i // 2 % 2], force_g=500.0,
                  duration_s=N / 1000.0) for i in range(N_TRIALS)]
-    with SessionWriter.create(path, plan=plan, protocol_source="name = 'v'") as w:
+    # schema 3 (a group of datasets per trial, which the crafts below edit); schema 4: test_storage_recording.py
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 'v'", schema_version=3) as w:
         for i in range(N_TRIALS):
             start = int(rng.integers(0, 65536))
             w.write_trial(i, TrialData(taxels=rng.integers(100, 900, (N, 18)), seq=(start + np.arange(N)) % 65536,

@@ -1,0 +1,184 @@
+"""Schema 4's recording arrays: every trial's data back to back in one dataset per quantity, with a trial index.
+
+``/recording`` holds eight extendable datasets, appended to (never rewritten) as trials are committed, in commit
+order, and ``/recording/index``, one row per recorded trial (:data:`INDEX_DTYPE`) saying where its rows are:
+
+- per sample, rows ``sample_start .. sample_start + n_samples``: ``taxels`` (n, n_channels) uint16 ADC counts,
+  ``seq`` uint16, ``flags`` uint8, ``host_time_s`` float64;
+- the load-cell trace, rows ``force_start .. + n_force``: ``force_g``, ``force_time_s`` float64;
+- the speed trace, rows ``speed_start .. + n_speed``: ``speed_mm_s``, ``speed_time_s`` float64.
+
+Each trial's group ``/trials/<id>`` keeps its attributes and the same eight names as schema 3, as HDF5 *virtual
+datasets* mapping its rows of these arrays (an empty trace is a plain empty dataset): a plain ``h5py`` reader reads
+``f["trials/000001/taxels"]`` as before, and the encoder reads many trials in one hyperslab
+(:func:`read_rows`) without opening a group per trial. The arrays are written inside the same journaled commit as
+the trial's group and its ``/plan`` status (:mod:`rigctl.storage.journal`), so a killed writer leaves every
+finished trial readable and nothing of an unfinished one (``docs/session-format.md``, "Crash safety").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import h5py
+import numpy as np
+from h5py import h5d, h5p, h5s
+
+from rigctl.core.trial import TrialData
+from rigctl.storage import h5objects
+
+#: the group of the recording arrays
+GROUP = "recording"
+#: per-sample arrays, (name, dtype); ``taxels`` is 2-d (samples, channels)
+SAMPLE_ARRAYS = (("taxels", np.dtype("<u2")), ("seq", np.dtype("<u2")), ("flags", np.dtype("u1")),
+                 ("host_time_s", np.dtype("<f8")))
+#: traces, (value, times, the index's prefix)
+TRACES = (("force_g", "force_time_s", "force"), ("speed_mm_s", "speed_time_s", "speed"))
+#: ``/recording/index``: one row per recorded trial, in commit order
+INDEX_DTYPE = np.dtype([
+    ("trial_id", "<u4"),
+    ("sample_start", "<i8"), ("n_samples", "<i8"),
+    ("force_start", "<i8"), ("n_force", "<i8"),
+    ("speed_start", "<i8"), ("n_speed", "<i8"),
+    ("dropped_frames", "<i8"), ("crc_errors", "<i8"),
+])
+#: bytes of taxels per chunk of the per-sample arrays (4,096 samples of the paper's 18 taxels): large enough for
+#: reads at disk speed, small enough that a new file and each append allocate little (a chunk is allocated whole)
+SAMPLE_CHUNK_BYTES = 4096 * 36
+#: rows per chunk of the 1-d trace arrays (a few s of 10-100 Hz traces per trial)
+TRACE_CHUNK_ROWS = 1024
+INDEX_CHUNK_ROWS = 256
+
+
+def sample_chunk_rows(n_channels: int, chunk_bytes: int) -> int:
+    """Rows per chunk of the per-sample arrays: ``chunk_bytes`` of taxels (at most 65,536 rows)."""
+    return max(1, min(65536, chunk_bytes // (2 * max(1, int(n_channels)))))
+
+
+def create(f: h5py.File, n_channels: int, *, compression: str | None) -> None:
+    """Make the empty ``/recording`` arrays and index in a new schema-4 file (``compression`` as the writer's:
+    "gzip" level 1 with shuffle, "lzf", or None; fixed for the file's life)."""
+    g = f.create_group(GROUP)
+    rows = sample_chunk_rows(n_channels, SAMPLE_CHUNK_BYTES)
+    comp = {"compression": compression, "shuffle": True} if compression else {}
+    if compression == "gzip":
+        comp["compression_opts"] = 1
+    for name, dt in SAMPLE_ARRAYS:
+        shape = (0, n_channels) if name == "taxels" else (0,)
+        g.create_dataset(name, shape=shape, maxshape=(None,) + shape[1:], chunks=(rows,) + shape[1:], dtype=dt,
+                         **comp)
+    for value, times, _ in TRACES:
+        for name in (value, times):
+            g.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(TRACE_CHUNK_ROWS,), dtype="<f8", **comp)
+    g.create_dataset("index", shape=(0,), maxshape=(None,), chunks=(INDEX_CHUNK_ROWS,), dtype=INDEX_DTYPE)
+    g["taxels"].attrs.update(unit="ADC counts")
+
+
+def is_flat(f: h5py.File) -> bool:
+    """True for a file with recording arrays (schema 4)."""
+    return isinstance(f.get(GROUP), h5py.Group)
+
+
+def _append(ds: h5py.Dataset, data: np.ndarray) -> int:
+    """Append ``data`` to the extendable ``ds`` (one resize, one write); returns the first new row."""
+    start = int(ds.shape[0])
+    if len(data):
+        ds.resize((start + len(data),) + ds.shape[1:])
+        ds[start:] = data
+    return start
+
+
+def _stack(arrays: list[np.ndarray], dtype: np.dtype[Any], shape: tuple[int, ...]) -> np.ndarray:
+    return np.concatenate([np.asarray(a, dtype=dtype).reshape((-1,) + shape) for a in arrays]) if arrays else \
+        np.zeros((0,) + shape, dtype)
+
+
+def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]]) -> list[Any]:
+    """Append trials to ``/recording`` (each array once for the whole batch) and their index rows, and make each
+    trial's views in its new, empty group. ``items``: (group low-level id, trial id, data). Returns the low-level
+    ids of the ``taxels`` views, in ``items`` order (for their attributes)."""
+    rec = f[GROUP]
+    rows = np.zeros(len(items), dtype=INDEX_DTYPE)
+    rows["trial_id"] = [int(t) for _, t, _ in items]
+    data = [d for _, _, d in items]
+    rows["n_samples"] = [d.n_samples for d in data]
+    n_ch = rec["taxels"].shape[1]
+    for name, dt in SAMPLE_ARRAYS:
+        first = _append(rec[name], _stack([getattr(d, name) for d in data], dt, (n_ch,) if name == "taxels" else ()))
+    rows["sample_start"] = first + np.concatenate([[0], np.cumsum(rows["n_samples"])[:-1]])
+    for value, times, prefix in TRACES:
+        rows[f"n_{prefix}"] = [np.size(getattr(d, value)) for d in data]
+        first = _append(rec[value], _stack([getattr(d, value) for d in data], np.dtype("<f8"), ()))
+        _append(rec[times], _stack([getattr(d, times) for d in data], np.dtype("<f8"), ()))
+        rows[f"{prefix}_start"] = first + np.concatenate([[0], np.cumsum(rows[f"n_{prefix}"])[:-1]])
+    rows["dropped_frames"] = [d.dropped_frames for d in data]
+    rows["crc_errors"] = [d.crc_errors for d in data]
+    _append(rec["index"], rows)
+    sources = {name: _Source(rec[name]) for name, _ in SAMPLE_ARRAYS}
+    sources.update({name: _Source(rec[name]) for value, times, _ in TRACES for name in (value, times)})
+    out = []
+    for (gid, _, _), row in zip(items, rows):
+        gid = gid.id if isinstance(gid, h5py.HLObject) else gid
+        for name, _ in SAMPLE_ARRAYS:
+            view = sources[name].view(gid, name, int(row["sample_start"]), int(row["n_samples"]))
+            if name == "taxels":
+                out.append(view)
+        for value, times, prefix in TRACES:
+            for name in (value, times):
+                sources[name].view(gid, name, int(row[f"{prefix}_start"]), int(row[f"n_{prefix}"]))
+    return out
+
+
+class _Source:
+    """One recording array as the source of views (its type, name and extent read once per batch)."""
+
+    def __init__(self, ds: h5py.Dataset) -> None:
+        self.id = ds.id
+        self.name = ds.name.encode()
+        self.type = ds.id.get_type()
+        self.space = ds.id.get_space()
+        self.dtype = ds.dtype
+        self.tail = tuple(ds.shape[1:])
+
+    def view(self, gid: Any, name: str, start: int, n: int) -> Any:
+        """A virtual dataset ``name`` in ``gid`` mapping rows ``start .. start + n`` of this array (in the same
+        file), or a plain empty dataset when ``n`` is 0. Returns its low-level id."""
+        shape = (n,) + self.tail
+        if n == 0:
+            return h5objects.create_dataset(gid, name, np.zeros(shape, dtype=self.dtype))
+        src = self.space.copy()
+        src.select_hyperslab((start,) + (0,) * len(self.tail), shape)
+        vspace = h5s.create_simple(shape)
+        dcpl = h5p.create(h5p.DATASET_CREATE)
+        dcpl.set_obj_track_times(False)
+        dcpl.set_virtual(vspace, b".", self.name, src)
+        return h5d.create(gid, name.encode(), self.type, vspace, dcpl=dcpl)
+
+
+def read_index(f: h5py.File) -> np.ndarray:
+    """``/recording/index`` (:data:`INDEX_DTYPE`), one row per recorded trial."""
+    return np.asarray(f[GROUP]["index"][()])
+
+
+def runs(starts: np.ndarray, lengths: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """Contiguous runs of the row ranges ``starts[i] .. starts[i] + lengths[i]`` taken in order: ``(first trial,
+    end trial, first row, end row)`` for each run of trials whose rows follow each other in the file."""
+    out = []
+    i, n = 0, len(starts)
+    while i < n:
+        j = i + 1
+        while j < n and starts[j] == starts[j - 1] + lengths[j - 1]:
+            j += 1
+        out.append((i, j, int(starts[i]), int(starts[j - 1] + lengths[j - 1])))
+        i = j
+    return out
+
+
+def read_rows(ds: h5py.Dataset, starts: np.ndarray, lengths: np.ndarray, out: np.ndarray) -> None:
+    """Read the rows of many trials of the recording array ``ds`` back to back into ``out`` (preallocated,
+    ``sum(lengths)`` rows): one read per run of trials stored one after another (:func:`runs`)."""
+    pos = 0
+    for _, _, lo, hi in runs(starts, lengths):
+        if hi > lo:
+            ds.read_direct(out, np.s_[lo:hi], np.s_[pos:pos + hi - lo])
+        pos += hi - lo

@@ -1,0 +1,182 @@
+"""Schema 4's recording arrays (rigctl.storage.session_recording): trials back to back in ``/recording``, views in
+each trial's group for plain h5py, block reads for the encoder; old (schema 3) files read and encode identically;
+the validator's checks on the arrays. (Crash safety of schema 4: the kill -9 tests of test_storage_session.py and
+the full-disk test of test_storage_faults.py write it, the default.)"""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from rigctl.storage.session import SCHEMA_VERSION, SessionWriter, TrialData, open_session
+from rigctl.storage.validate import usable_trials
+
+N = 300
+
+
+def _plan(n):
+    return [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=[60.0, 120.0][i // 2 % 2],
+                 force_g=[250.0, 500.0, 1000.0][i // 4 % 3], duration_s=N / 1000.0) for i in range(n)]
+
+
+def _trial(rng, n=N, **kw):
+    start = int(rng.integers(0, 65536))
+    k = int(rng.integers(0, 6))
+    return TrialData(taxels=rng.integers(100, 900, (n, 18)), seq=(start + np.arange(n)) % 65536,
+                     flags=rng.integers(0, 4, n), host_time_s=np.arange(n) / 1000 + rng.uniform(0, 1e-3, n),
+                     force_g=rng.normal(500, 3, k), force_time_s=np.linspace(0, 0.3, k),
+                     speed_mm_s=rng.normal(120, 1, 6 - k), speed_time_s=np.linspace(0, 0.3, 6 - k), **kw)
+
+
+def _write(path, trials, n_plan, schema_version=SCHEMA_VERSION, **kw):
+    with SessionWriter.create(path, plan=_plan(n_plan), protocol_source="src", schema_version=schema_version,
+                              **kw) as w:
+        for tid, data in trials.items():
+            w.write_trial(tid, data)
+    return path
+
+
+ARRAYS = ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s")
+
+
+@pytest.mark.parametrize("compression", [None, "gzip"])
+def test_trials_back_to_back_with_views_for_plain_h5py(tmp_path, compression):
+    rng = np.random.default_rng(1)
+    trials = {3: _trial(rng), 0: _trial(rng, 250, dropped_frames=0), 5: _trial(rng, 280)}  # written out of order
+    path = _write(tmp_path / "s.h5", trials, 8, compression=compression)
+    with h5py.File(path, "r") as f:  # plain h5py: the schema-3 names read as before, the arrays hold every trial
+        assert f.attrs["schema_version"] == 4
+        rec = f["recording"]
+        assert rec["taxels"].shape == (830, 18) and rec["taxels"].compression == compression
+        idx = rec["index"][()]
+        assert idx["trial_id"].tolist() == [3, 0, 5] and idx["sample_start"].tolist() == [0, 300, 550]
+        for tid, data in trials.items():
+            g = f[f"trials/{tid:06d}"]
+            for name in ARRAYS:
+                np.testing.assert_array_equal(g[name][()], getattr(data, name), err_msg=name)
+            assert g["taxels"].is_virtual and g["taxels"].attrs["unit"] == "ADC counts"
+            assert g.attrs["n_samples"] == data.n_samples and g.attrs["status"] == "complete"
+    with open_session(path) as s:
+        for tid, data in trials.items():
+            back = s.trial(tid)
+            for name in ARRAYS:
+                np.testing.assert_array_equal(getattr(back, name), getattr(data, name), err_msg=name)
+        blk = s.read_taxels([0, 3, 5], traces=True)  # plan order: two runs of the arrays (0, then 3 and 5 ... )
+        np.testing.assert_array_equal(blk.data, np.concatenate([trials[t].taxels for t in (0, 3, 5)]))
+        assert blk.starts.tolist() == [0, 250, 550, 830]
+        for (t, v), tid in zip(blk.speed_traces, (0, 3, 5)):
+            np.testing.assert_array_equal(v, trials[tid].speed_mm_s)
+            np.testing.assert_array_equal(t, trials[tid].speed_time_s)
+        assert blk.has_speed_trace.tolist() == [trials[t].speed_mm_s.size > 0 for t in (0, 3, 5)]
+        with pytest.raises(KeyError):
+            s.read_taxels([1])
+
+
+def test_a_resumed_session_appends_and_a_failed_trial_is_recorded_later(tmp_path):
+    rng = np.random.default_rng(2)
+    path = _write(tmp_path / "r.h5", {0: _trial(rng)}, 4)
+    with SessionWriter.open(path, protocol_source="src") as w:
+        w.mark_failed(1, "link lost")
+        late = _trial(rng)
+        w.write_trials([(2, _trial(rng)), (1, late)])
+    with open_session(path) as s:
+        assert s.completed_ids() == [0, 1, 2] and usable_trials(s).ids == [0, 1, 2]
+        np.testing.assert_array_equal(s.trial(1).taxels, late.taxels)
+        np.testing.assert_array_equal(s.read_taxels([1]).data, late.taxels)
+    with h5py.File(path, "r") as f:
+        assert f["recording/index"]["trial_id"].tolist() == [0, 2, 1]
+
+
+def _copy_as_schema_3(src, dst):
+    """The same trials, plan and attributes in a schema-3 file (one group of datasets per trial)."""
+    with open_session(src) as s:
+        plan = s.plan.copy()
+        plan["status"] = 0
+        with SessionWriter.create(dst, plan=plan, layout=s.layout, textures=s.textures, protocol_source=s.protocol_source,
+                                  kind=s.kind, schema_version=3, compression=None) as w:
+            ids = s.completed_ids()
+            w.write_trials(zip(ids, s.iter_trials(ids)))
+    return dst
+
+
+def test_old_files_read_validate_and_encode_to_identical_features(tmp_path):
+    """A schema-3 file and a schema-4 file of the same trials: the same block reads, the same validator report,
+    and ``encode_session`` writes identical features, spike trains, normalisation and force coefficients."""
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.encoding.pipeline import encode_session
+    from rigctl.simulation.dataset import generate_dataset
+    from rigctl.storage.encoded import ALL_VARIANTS, open_encoded
+
+    proto = tmp_path / "p.toml"
+    proto.write_text('name = "old_new"\ntextures = ["A", "L"]\nspeeds_mm_s = [60, 120]\nforces_g = [250, 500]\n'
+                     'trials_per_condition = 2\ntravel_mm = 30\norder = "blocked"\n')
+    new = tmp_path / "new.h5"
+    generate_dataset(load_protocol(proto), new, seed=4, workers=0, progress=False)
+    old = _copy_as_schema_3(new, tmp_path / "old.h5")
+    with open_session(old) as so, open_session(new) as sn:
+        assert so.attrs["schema_version"] == 3 and sn.attrs["schema_version"] == 4
+        ids = sn.completed_ids()
+        assert so.completed_ids() == ids and len(ids) == 16
+        a, b = so.read_taxels(ids, traces=True), sn.read_taxels(ids, traces=True)
+        for name in ("data", "starts", "dropped_frames", "has_speed_trace"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        for (ta, va), (tb, vb) in zip(a.speed_traces, b.speed_traces):
+            np.testing.assert_array_equal(ta, tb)
+            np.testing.assert_array_equal(va, vb)
+        ra, rb = usable_trials(so), usable_trials(sn)
+        assert (ra.ids, ra.excluded, ra.dropped_frames) == (rb.ids, rb.excluded, rb.dropped_frames)
+    outs = [encode_session(p, tmp_path / f"{p.stem}.enc.h5", batch_trials=5, progress=False) for p in (old, new)]
+    with open_encoded(outs[0]) as eo, open_encoded(outs[1]) as en:
+        for v in ALL_VARIANTS:
+            np.testing.assert_array_equal(eo.features(v), en.features(v), err_msg=v)
+        assert eo.spike_variants == en.spike_variants and eo.spike_variants
+        for v in eo.spike_variants:
+            so_, sn_ = eo.spikes(v), en.spikes(v)
+            np.testing.assert_array_equal(so_.spike_times, sn_.spike_times, err_msg=v)
+            np.testing.assert_array_equal(so_.spike_times_index, sn_.spike_times_index, err_msg=v)
+        for k in ("taxel_min", "taxel_max"):
+            np.testing.assert_array_equal(eo.normalisation[k], en.normalisation[k])
+        for lf in (False, True):
+            np.testing.assert_array_equal(eo.force_coefficients(label_free=lf), en.force_coefficients(label_free=lf))
+
+
+def _edit(path, fn):
+    with h5py.File(path, "r+") as f:
+        fn(f["recording"])
+    return path
+
+
+def _rows(rec, tid):
+    r = rec["index"][()]
+    r = r[r["trial_id"] == tid][0]
+    return slice(int(r["sample_start"]), int(r["sample_start"] + r["n_samples"]))
+
+
+def _set_index(rec, tid, **values):
+    idx = rec["index"][()]
+    for k, v in values.items():
+        idx[k][idx["trial_id"] == tid] = v
+    rec["index"][...] = idx
+
+
+@pytest.mark.parametrize("damage, reason", [
+    (lambda rec: rec["taxels"].__setitem__((_rows(rec, 2).start + 7, 4), 4000),
+     "taxels hold 4000 (sample 7), outside the sensor's 10-bit range 0..1023"),
+    (lambda rec: rec["taxels"].__setitem__(_rows(rec, 2), rec["taxels"][_rows(rec, 1)]),
+     "its taxels are a byte copy of trial 1's"),
+    (lambda rec: rec["seq"].__setitem__(_rows(rec, 2), (np.arange(N) * 2) % 65536),
+     f"its seq column shows {N - 1} missing frames, its dropped_frames attribute says 0"),
+    (lambda rec: _set_index(rec, 2, crc_errors=2 ** 40), "its crc_errors attribute 1099511627776 is impossible"),
+    (lambda rec: _set_index(rec, 2, n_samples=N // 4), f"it holds {N // 4} samples (0 missing)"),
+    (lambda rec: _set_index(rec, 2, sample_start=10 ** 6), "/recording/index puts its samples at rows 1000000+300"),
+    (lambda rec: _set_index(rec, 2, trial_id=99), "it is marked complete but /recording/index has no row for it"),
+])
+def test_damage_in_the_recording_arrays_is_excluded_with_its_reason(tmp_path, damage, reason):
+    rng = np.random.default_rng(3)
+    path = _edit(_write(tmp_path / "d.h5", {t: _trial(rng, dropped_frames=0) for t in range(4)}, 4), damage)
+    with open_session(path) as s:
+        report = usable_trials(s)
+        assert report.ids == [0, 1, 3] and list(report.excluded) == [2]
+        assert reason in report.excluded[2], report.excluded[2]
+        np.testing.assert_array_equal(s.read_taxels([0, 1, 3]).data[:N], s.trial(0).taxels)
