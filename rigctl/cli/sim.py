@@ -93,14 +93,14 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
         raise click.BadParameter(f"cannot use {port_dir} for the port links ({exc.strerror or exc})",
                                  param_hint="--port-dir") from None
     with rig:
-        if texture is not None:
-            rig.set_texture(texture, textures)
-        click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 500000 8N1, device id 1)")
-        click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
-        replaying = ", replaying " + replay_dir if replay_dir else ""
-        click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{replaying}. Ctrl-C stops.")
-        sys.stdout.flush()
-        try:
+        try:  # a Ctrl-C as soon as the ports are printed (before the wait) is a clean stop too
+            if texture is not None:
+                rig.set_texture(texture, textures)
+            click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 500000 8N1, device id 1)")
+            click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
+            replaying = ", replaying " + replay_dir if replay_dir else ""
+            click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{replaying}. Ctrl-C stops.")
+            sys.stdout.flush()
             while not stop.wait(0.5):
                 pass
         except KeyboardInterrupt:
