@@ -34,7 +34,7 @@ SHORT_HELP = {
     "sim": "Start the simulated rig, or generate a simulated dataset.",
     "encode": "Encode a session's trials into SA/RA spike trains.",
     "analyze": "Run the paper's PCA + LDA analyses on a session or dataset.",
-    "import": "Import recordings of any sensor (CSV, NPY/NPZ, MAT, NWB) into a session file.",
+    "import": "Import recordings of any sensor (CSV, NPY/NPZ, MAT, NWB, XDF) into a session file.",
     "import-fabricslide": "Import the FabricSlide recordings into a session file.",
     "gui": "Start the desktop app.",
     "export": "Export a session (and its spike trains) as NWB.",

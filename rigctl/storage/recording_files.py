@@ -1,4 +1,5 @@
-"""Reading other labs' recording files: CSV, NPY/NPZ, MATLAB .mat, NWB -> ``(n_samples, n_channels)`` blocks.
+"""Reading other labs' recording files: CSV, NPY/NPZ, MATLAB .mat, NWB, XDF (:mod:`rigctl.storage.xdf`) ->
+``(n_samples, n_channels)`` blocks.
 
 The first step of ``rigctl import`` (:mod:`rigctl.storage.importers`, whose module docstring describes every format
 rule): :func:`read_recording_file` reads one file into float64 blocks (one per stacked trial), the rate the file
@@ -22,7 +23,7 @@ __all__ = ["RecordingImportError", "FORMATS", "NAN_POLICIES", "read_recording_fi
 
 #: extension -> format name
 FORMATS = {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".npy": "npy", ".npz": "npz", ".mat": "mat",
-           ".nwb": "nwb"}
+           ".nwb": "nwb", ".xdf": "xdf"}
 
 
 class RecordingImportError(ValueError):
@@ -235,12 +236,18 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
             rate = float(arrays["rate_hz"])
     elif fmt == "mat":
         arr = _read_mat(path, variable)
+    elif fmt == "xdf":
+        from rigctl.storage.xdf import read_xdf
+
+        arr, rate, xdf_meta = read_xdf(path, variable, RecordingImportError)
+        xdf_meta.pop("frame_seq", None)
+        meta.update(xdf_meta)
     else:
         arr, rate, nwb_meta = _read_nwb(path, variable)
         meta.update(nwb_meta)
     blocks = _as_blocks(np.asarray(arr, dtype=np.float64), channels, str(path))
     nwb_trials = meta.pop("trials", None)
-    if nwb_trials and len(blocks) == 1:  # an NWB trials table: one block per trial, labelled
+    if nwb_trials and len(blocks) == 1:  # an NWB trials table or rigctl's XDF markers: one block per trial, labelled
         blocks = [blocks[0][t["start"]:t["stop"]] for t in nwb_trials]
         meta["block_labels"] = [t["labels"] for t in nwb_trials]
     for b in blocks:

@@ -122,6 +122,29 @@ def test_a_run_is_published_on_lsl(lsl, tmp_path):
         (t.attrs["trial_id"], t.attrs["texture"], 120.0, 300.0) for t in trials]
     assert all(d["protocol"] == "lsl_test" for d in docs)
 
+    for inlet in inlets.values():  # before the outlets go
+        inlet.close_stream()
+
+    # what LabRecorder would write from these streams (rigctl.storage.xdf.write_xdf), imported back as a session:
+    # one labelled trial per trial_end marker, the readings and labels of the recorded session
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+    from rigctl.storage.xdf import XdfStream, write_xdf
+
+    write_xdf(tmp_path / "lab.xdf", [
+        XdfStream(inlets["taxels"].info().as_xml(), "int32", got, ts),
+        XdfStream(inlets["markers"].info().as_xml(), "string", marks, mts)])
+    res = CliRunner().invoke(main, ["import", str(tmp_path / "lab.xdf"), "--out", str(tmp_path / "lab.h5"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    with open_session(tmp_path / "lab.h5") as imported:
+        assert imported.layout.n_channels == layout.n_channels
+        assert imported.layout.sample_rate_hz == layout.sample_rate_hz
+        got_trials = [imported.trial(t) for t in sorted(imported.completed_ids())]
+        assert [str(x) for x in imported.plan["texture"]] == [t.attrs["texture"] for t in trials]
+        assert list(imported.plan["speed_mm_s"]) == [120.0] * len(trials)
+    assert [g.taxels.tolist() for g in got_trials] == [t.taxels.tolist() for t in trials]
+
 
 def test_without_pylsl_asking_for_lsl_is_one_line_and_nothing_moves(tmp_path, monkeypatch):
     from click.testing import CliRunner
