@@ -82,7 +82,10 @@ class LslOutlets:
         real or pty rig, simulated time in-process); the host <-> LSL offset is measured against it.
     extra_desc : more key/values for each stream's ``desc`` (e.g. the session id).
 
-    Raises LslUnavailable (pylsl missing).
+    Raises
+    ------
+    LslUnavailable
+        pylsl (or its liblsl) is missing.
     """
 
     def __init__(self, layout: SensorLayout, *, name: str = "rigctl", source_id: str | None = None,

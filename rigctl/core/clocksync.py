@@ -79,6 +79,8 @@ class DeviceClockFit:
     reset_s : a new frame further than this from the current fit (its count restarted: a device reset, or a gap no
         count can explain) starts a new segment, s
 
+    Notes
+    -----
     Feed it with :meth:`add` (``seq`` uint16 as received, host receive times); :meth:`mapping` fits; the running
     count of the last frame added is :attr:`count`.
     """

@@ -1,6 +1,6 @@
 """XDF files (Lab Streaming Layer recordings: LabRecorder's format): reading them for ``rigctl import`` (pyxdf, the
 optional extra ``rigctl[lsl]``) and writing them (:func:`write_xdf`, the XDF 1.0 specification,
-github.com/sccn/xdf/wiki/Specifications: the ``XDF:`` magic, then chunks of [NumLengthBytes][Length][Tag][content]:
+github.com/sccn/xdf/wiki/Specifications: the ``XDF:`` magic, then chunks of NumLengthBytes, Length, Tag and content:
 FileHeader (1), StreamHeader (2: the stream's info XML, as LabRecorder writes it), Samples (3), ClockOffset (4),
 StreamFooter (6)).
 
