@@ -450,6 +450,12 @@ def _fmt_values(values) -> str:
     return ", ".join("none" if np.isnan(v) else f"{float(v):g}" for v in np.asarray(values, float)) or "none"
 
 
+def _cell_text(cell: str) -> str:
+    """``"Board10mm|100.0|120.0"`` -> ``"Board10mm at 100 mm/s, 120 g"``."""
+    texture, speed, force = cell.rsplit("|", 2)
+    return f"{texture} at {_fmt_values([float(speed)])} mm/s, {_fmt_values([float(force)])} g"
+
+
 def _extrapolation_plan(fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test):
     """Cells (texture|speed|force -> trial indices), trained cells, cell category, and the counts to draw."""
     spd, frc = _cells(fs)
@@ -481,7 +487,10 @@ def _extrapolation_plan(fs, train_speeds, train_forces, test_speeds, test_forces
         a_te = max(1, int(round(min_tr * n_test / (n_train + n_test))))
         a_tr = min_tr - a_te
         if a_tr < 1:
-            raise ValueError(f"a trained cell has only {min_tr} trials: cannot split into train and test")
+            short = sorted(c for c in trained_cells if len(cells[c]) == min_tr)
+            raise ValueError(f"the trained cell {_cell_text(short[0])} has only {min_tr} trials"
+                             f"{f' (and {len(short) - 1} more cells)' if len(short) > 1 else ''}: cannot split into "
+                             "train and test (leave its texture out with --textures, or train other speeds/forces)")
     min_te = min((len(cells[c]) for c in test_cells), default=a_te)
     u_te = min(a_te, min_te)
     cat_of = {cell: EXTRAPOLATION_CELLS[(bool(s_in[ix[0]]), bool(f_in[ix[0]]))] for cell, ix in cells.items()}

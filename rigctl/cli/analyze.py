@@ -195,6 +195,11 @@ def _format_leak(leak) -> str:
                                                     "speed-extrapolation: required).")
 @click.option("--test-speeds", default=None, help="Untrained speeds tested (default: all others).")
 @click.option("--train-forces", default=None, help="Trained forces, g (extrapolation default 250,500).")
+@click.option("--n-train", type=click.IntRange(1, 10_000_000), default=75, show_default=True,
+              help="Extrapolation: training trials per texture and trained cell (fewer, in proportion, where a cell "
+                   "has fewer than --n-train + --n-test).")
+@click.option("--n-test", type=click.IntRange(1, 10_000_000), default=25, show_default=True,
+              help="Extrapolation: test trials per texture and cell.")
 @click.option("--baseline", type=click.Choice(["keep", "remove", "both"]), default="keep", show_default=True,
               help="Per-trial, per-spike-train level removal before PCA (FabricSlide: the level alone separates "
                    "fabrics); 'both' reports both.")
@@ -230,7 +235,7 @@ def _format_leak(leak) -> str:
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
             train_profiles, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
-            variance, force_leak_, cv_groups, textures_):
+            variance, force_leak_, cv_groups, textures_, n_train, n_test):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
     Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
@@ -251,7 +256,8 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
         test_speeds=_floats(test_speeds), train_forces=_floats(train_forces), baseline=baseline, channels=channels,
         new_session=new_session, train_profiles=tuple(p.strip() for p in train_profiles.split(",")),
         save_model=save_model, model_variant=model_variant, model_pcs=model_pcs, encode=encode_, progress=progress,
-        variance=variance or task == "variance", force_leak=force_leak_, cv_groups=cv_groups,
+        variance=variance or task == "variance", force_leak=force_leak_, cv_groups=cv_groups, n_train=n_train,
+        n_test=n_test,
         textures=[t.strip() for t in textures_.split(",") if t.strip()] if textures_ else None)
     require_dask(scheduler, otherwise="run in this process")
     limiter = threadpool_limits(threads) if threads else None
@@ -298,6 +304,8 @@ class AnalyzeOptions:
     force_leak: str | None = None
     cv_groups: str | None = None
     textures: list[str] | None = None
+    n_train: int = 75
+    n_test: int = 25
 
 
 def _plan(opts: AnalyzeOptions, fs):
@@ -309,17 +317,18 @@ def _plan(opts: AnalyzeOptions, fs):
         if not opts.train_speeds:
             raise click.UsageError("--task speed-extrapolation needs --train-speeds (e.g. 10,20,50)")
         extrapolation = ExtrapolationParams(train_speeds=opts.train_speeds, train_forces=opts.train_forces,
-                                            test_speeds=opts.test_speeds)
+                                            test_speeds=opts.test_speeds, n_train=opts.n_train, n_test=opts.n_test)
     else:
         extrapolation = ExtrapolationParams(train_speeds=opts.train_speeds or (40, 60, 80),
-                                            train_forces=opts.train_forces or (250, 500), test_speeds=opts.test_speeds)
+                                            train_forces=opts.train_forces or (250, 500), test_speeds=opts.test_speeds,
+                                            n_train=opts.n_train, n_test=opts.n_test)
     other = (_load(opts.new_session, opts.encode, fs.variants, opts.task)
              if opts.task == "realtime" and opts.new_session else None)
     return AnalysisPlan.for_task(
         opts.task, reps=Repetitions(n_pcs=opts.n_pcs, repeats=opts.repeats, seed=opts.seed, variants=opts.variants),
         cv=CVParams(per_texture=opts.per_texture, groups=opts.cv_groups), extrapolation=extrapolation,
         realtime=RealtimeParams(train_profiles=opts.train_profiles), baseline=opts.baseline, channels=opts.channels,
-        new_session=other)
+        new_session=other, on_error="skip" if opts.task == "all" else "raise")
 
 
 def _run(opts: AnalyzeOptions, execution=None):
@@ -357,6 +366,8 @@ def _run(opts: AnalyzeOptions, execution=None):
             raise click.ClickException(f"--baseline remove: {exc}") from None
         except (ValueError, KeyError) as exc:
             raise click.ClickException(str(exc)) from None
+    if not res.curves:  # --task all skipped every task: the reasons are the error
+        raise click.ClickException("nothing could be analysed: " + "; ".join(res.warnings))
     leak = _extras(opts)
     _write_outputs(opts, res)
     _print_results(opts, res, shares, leak)

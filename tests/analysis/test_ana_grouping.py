@@ -98,3 +98,42 @@ def test_groupings_parsed_and_refused_with_the_reason():
     with pytest.raises(ValueError, match="one session"):
         cv_groups(plain, "session")
     assert list(cv_groups(plain, "block:2")) == ["session#0"] * 4 + ["session#1"] * 4  # plan order
+
+
+def test_analyze_subsets_counts_and_skips(tmp_path, write_schema1):
+    """`--textures` analyses a subset; `--n-train/--n-test` set the extrapolation draw; a trained cell too small to
+    split is named; `--task all` skips what it cannot run, with the reason, and runs the rest."""
+    import json
+
+    from click.testing import CliRunner
+
+    from rigctl.analysis.synthetic import synthetic_features
+    from rigctl.cli import main
+
+    fs = synthetic_features(4, n_textures=4, n_channels=4, noise=0.5, seed=3)
+    path = write_schema1(fs, tmp_path / "enc.h5", 4)
+
+    def analyze(*args):
+        return CliRunner().invoke(main, ["analyze", str(path), "--repeats", "2", "--pcs", "1-3", "--json",
+                                         "--no-progress", *map(str, args)])
+
+    labels = sorted(set(fs.texture.tolist()))
+    r = analyze("--task", "textures", "--textures", ",".join(labels[:2]))
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["tasks"]["textures"]["variants"]["original"]["classes"] == labels[:2]
+    r = analyze("--task", "textures", "--textures", "nope")
+    assert r.exit_code == 1 and "nope not in the data" in r.output
+    r = analyze("--task", "extrapolation", "--n-train", "2", "--n-test", "1")
+    assert r.exit_code == 0, r.output
+    per_cell = json.loads(r.stdout)["counts"]["extrapolation"]
+    assert (per_cell["train_per_cell"], per_cell["test_per_trained_cell"]) == (2, 1)  # 4 per cell: 2 + 1 asked
+    # one trial per condition: a trained cell of 1 trial cannot be split; the message names it
+    one = synthetic_features(1, n_textures=4, n_channels=4, noise=0.5, seed=3)
+    path = write_schema1(one, tmp_path / "one.h5", 4)
+    r = analyze("--task", "extrapolation")
+    assert r.exit_code == 1 and "the trained cell " in r.output and " mm/s, " in r.output and "has only 1 trials" in r.output
+    r = analyze("--task", "all")
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert "textures" in out["tasks"] and any(w.startswith("extrapolation skipped: the trained cell")
+                                               for w in out["warnings"])
