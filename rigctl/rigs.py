@@ -66,9 +66,18 @@ def drum_answer_timeout_s(kind: str) -> float:
 
 def replay_source(source: Any) -> Any:
     """A replay source for the simulated rig: an object with ``read(n)`` as is; a directory -> the FabricSlide
-    replay; a file -> the replay module's session source. Raises RigError when the path cannot be replayed."""
+    replay; a file -> the replay module's session source; ``"lsl:NAME"`` -> the LSL stream NAME
+    (:class:`rigctl.simulation.lsl_replay.LslReplay`). Raises RigError when the path or stream cannot be replayed
+    (:class:`rigctl.core.lsl.LslUnavailable` without pylsl)."""
     if hasattr(source, "read") or callable(source):
         return source
+    if str(source).startswith("lsl:"):  # a live LSL stream (a lab's own taxel device)
+        from rigctl.simulation.lsl_replay import LslReplay, LslReplayError
+
+        try:
+            return LslReplay(str(source))
+        except LslReplayError as exc:
+            raise RigError(str(exc)) from None
     path = Path(os.fspath(source))
     from rigctl.simulation import replay
 

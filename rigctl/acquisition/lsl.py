@@ -36,25 +36,13 @@ from typing import Any
 import numpy as np
 
 from rigctl.core.clocksync import measure_clock_offset
+from rigctl.core.lsl import LslUnavailable, require_pylsl
 from rigctl.core.sensor import SensorLayout
 
 __all__ = ["LslUnavailable", "LslOutlets", "require_pylsl", "spike_train_labels"]
 
 #: the stream kinds, in the order they are made
 KINDS = ("taxels", "spikes", "drum", "markers")
-
-
-class LslUnavailable(RuntimeError):
-    """LSL streaming was asked for but pylsl (or its liblsl) cannot be loaded."""
-
-
-def require_pylsl() -> Any:
-    """The pylsl module; :class:`LslUnavailable` in one line naming the fix when it (or liblsl) is missing."""
-    try:
-        import pylsl
-    except (ImportError, RuntimeError, OSError) as exc:
-        raise LslUnavailable(f"LSL streaming needs pylsl with its liblsl: pip install 'rigctl[lsl]' ({exc})") from None
-    return pylsl
 
 
 def spike_train_labels(layout: SensorLayout) -> list[str]:

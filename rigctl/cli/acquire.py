@@ -19,6 +19,22 @@ from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED
 
+
+class ReplaySource(click.ParamType):
+    """``--replay``: an existing recording (a path), or ``lsl:NAME`` (a live LSL stream, kept as text)."""
+
+    name = "RECORDING|lsl:NAME"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and value.startswith("lsl:"):
+            if len(value) == 4:
+                self.fail("lsl: needs a stream name or source id (lsl:NAME)", param, ctx)
+            return value
+        return click.Path(exists=True, path_type=Path).convert(value, param, ctx)
+
+
+REPLAY = ReplaySource()
+
 #: --plates choices (see the option's help)
 PLATE_POLICIES = ("prompt", "auto", "skip")
 
@@ -99,9 +115,10 @@ def _held_rig_warnings():
                    "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
-@click.option("--replay", "replay", type=click.Path(exists=True, path_type=Path), default=None,
+@click.option("--replay", "replay", type=REPLAY, default=None,
               help="Simulated rig whose taxel board streams this recording (a session file, at its own layout and "
-                   "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model.")
+                   "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model; "
+                   "or lsl:NAME: the live LSL stream NAME (name or source id; a lab's own taxel device, docs/lsl).")
 @click.option("--resume", is_flag=True, default=False,
               help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice).")
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
@@ -147,13 +164,14 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
         raise click.UsageError("choose one of --sim and --hil")
     if replay is not None and (hil or drum_port is not None):
         raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--drum-port")
-    if replay is not None and Path(out).resolve() == Path(replay).resolve():
+    if isinstance(replay, Path) and Path(out).resolve() == replay.resolve():
         raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
     if resume and not out.exists():
         raise UsageProblem(f"--resume: {out} does not exist: nothing to resume")
-    check_output(out, overwrite=overwrite or resume, inputs=(protocol, replay, config_path),
+    check_output(out, overwrite=overwrite or resume,
+                 inputs=(protocol, replay if isinstance(replay, Path) else None, config_path),
                  overwrite_hint="continue it with --resume, or pass --overwrite")
     hardware = drum_port is not None
     prompt = plate_prompt(plates, hardware=hardware, stdin_is_tty=sys.stdin.isatty())
@@ -203,7 +221,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
                     else "; STOP was not acknowledged either: if the drum may be moving, stop it by hand")
             hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if hardware else ""
             raise click.ClickException(f"{exc}{hint}{stop}") from None
-        except (RigError, TaxelStreamError, OSError, ValueError) as exc:
+        except (RigError, TaxelStreamError, OSError, ValueError, LslUnavailable) as exc:
             raise click.ClickException(" ".join(str(exc).split())) from None
         except DrumError as exc:  # HOME failed
             raise click.ClickException(f"cannot open the {source.kind} rig: {' '.join(str(exc).split())}") from None

@@ -76,6 +76,8 @@ class RigSource:
         """The source in a few words, e.g. ``"rig on /dev/ttyACM0 + /dev/ttyACM1"``, ``"simulated rig"``."""
         if self.kind == "hardware":
             return f"rig on {self.drum_port} + {self.taxel_port}"
+        if self.kind == "replay" and str(self.replay_dir).startswith("lsl:"):
+            return f"LSL replay ({self.replay_dir})"
         if self.kind == "replay":
             what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
             return f"{what} ({self.replay_dir})"

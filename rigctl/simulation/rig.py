@@ -162,6 +162,9 @@ class SimulatedRig:
             self.mega.close()
         finally:
             self._port_dir.release(("drum", "taxel"))
+            close = getattr(self.source, "close", None)  # a live source (an LSL inlet) lets go of its stream
+            if close is not None:
+                close()
 
     def __enter__(self) -> "SimulatedRig":
         return self.start()

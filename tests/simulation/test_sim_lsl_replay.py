@@ -1,0 +1,94 @@
+"""LSL replay (issue 27 item 1's inlet): a lab's own taxel device publishes on LSL (an outlet in this process, paced to
+the wall clock) and the simulated rig's taxel board streams it (`open_rig("replay", source="lsl:NAME")`, i.e.
+`rigctl acquire --replay lsl:NAME`): a recorded trial holds consecutive samples of the stream, none repeated or lost.
+The pty rig (paced to the wall clock, as the device is): `realtime`. Loopback only (LSLAPICFG: tests/conftest.py)."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.acquisition.protocol import parse_protocol
+from rigctl.acquisition.runner import run_protocol
+from rigctl.cli import main
+from rigctl.rigs import open_rig
+from rigctl.storage.session import open_session
+
+N_CH = 6
+RATE_HZ = 1000.0
+
+
+def _sample(i: np.ndarray) -> np.ndarray:
+    """Sample i of the device: channel 0 = i mod 1000, channel 1 = i // 1000 mod 1000, then fixed offsets."""
+    i = np.asarray(i, dtype=np.int64)
+    cols = [i % 1000, (i // 1000) % 1000] + [(i + 37 * k) % 1000 for k in range(2, N_CH)]
+    return np.stack(cols, axis=1).astype(np.int32)
+
+
+def _index(rows: np.ndarray) -> np.ndarray:
+    return rows[:, 0].astype(np.int64) + 1000 * rows[:, 1].astype(np.int64)
+
+
+class Device(threading.Thread):
+    """An LSL taxel device: N_CH int32 channels at 1 kHz, pushed every 10 ms as the wall clock says."""
+
+    def __init__(self, pylsl, name):
+        super().__init__(daemon=True)
+        info = pylsl.StreamInfo(name, "Tactile", N_CH, RATE_HZ, pylsl.cf_int32, f"{name}-src")
+        info.desc().append_child_value("adc_bits", "10")
+        self.outlet = pylsl.StreamOutlet(info)
+        self.halt = threading.Event()
+        self.sent = 0
+
+    def run(self):
+        t0 = time.monotonic()
+        while not self.halt.is_set():
+            due = int((time.monotonic() - t0) * RATE_HZ)
+            if due > self.sent:
+                self.outlet.push_chunk(_sample(np.arange(self.sent, due)))
+                self.sent = due
+            time.sleep(0.01)
+
+
+@pytest.mark.lsl
+@pytest.mark.realtime
+def test_a_live_lsl_stream_is_recorded_through_the_simulated_board(lsl, tmp_path):
+    name = f"fingertip-{uuid.uuid4().hex[:8]}"
+    device = Device(lsl, name)
+    device.start()
+    try:
+        proto = parse_protocol('name = "lsl_replay"\ntextures = ["A"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+                               'trials_per_condition = 2\nduration_s = 1.0\n')
+        with open_rig("replay", source=f"lsl:{name}", host_config_path=tmp_path / "rig.json") as rig:
+            assert rig.layout.n_channels == N_CH and rig.layout.sample_rate_hz == RATE_HZ
+            summary = run_protocol(proto, tmp_path / "s.h5", rig=rig)
+            underruns = rig.backend.sim.source.underrun_samples
+    finally:
+        device.halt.set()
+        device.join(5)
+    assert summary.ok, summary.lines()
+    with open_session(tmp_path / "s.h5") as s:
+        for tid in s.completed_ids():
+            t = s.trial(tid)
+            idx = _index(t.taxels)
+            assert t.taxels.shape == (1000, N_CH)
+            assert np.array_equal(np.diff(idx), np.ones(999, dtype=np.int64)), (tid, underruns)  # consecutive
+            assert np.array_equal(t.taxels, _sample(idx))
+    print(f"{device.sent} samples sent, {underruns} repeated by the board while the stream lagged (between trials)")
+
+
+def test_the_command_takes_lsl_names_and_refuses_a_missing_stream(tmp_path, monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "pylsl", None)
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "none.json"))
+    res = CliRunner().invoke(main, ["acquire", "quick_check", "--out", str(tmp_path / "s.h5"), "--replay", "lsl:",
+                                    "--quiet"])
+    assert res.exit_code == 2 and "lsl:NAME" in res.output
+    res = CliRunner().invoke(main, ["acquire", "quick_check", "--out", str(tmp_path / "s.h5"), "--replay",
+                                    "lsl:nobody", "--quiet"])
+    assert res.exit_code == 1 and res.output.startswith("Error: LSL streaming needs pylsl"), res.output
+    assert not (tmp_path / "s.h5").exists()
