@@ -35,7 +35,12 @@ KEY_PACKAGES = ("numpy", "scipy", "h5py", "numba", "scikit-learn", "pyserial", "
 
 
 def package_versions(names: Sequence[str] = KEY_PACKAGES) -> dict[str, str | None]:
-    """``{distribution: version}`` of ``names`` as installed (None: not installed)."""
+    """``{distribution: version}`` of ``names`` as installed (None: not installed); looked up once per process."""
+    return dict(_versions(tuple(names)))
+
+
+@functools.lru_cache(maxsize=8)
+def _versions(names: tuple[str, ...]) -> dict[str, str | None]:
     out: dict[str, str | None] = {}
     for name in names:
         try:

@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 
 from rigctl import __version__
+from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
@@ -108,6 +109,8 @@ def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: Tex
         f.attrs["texture_set"] = textures.to_json()
         for k, v in (attrs or {}).items():
             f.attrs[k] = _attr_value(v)
+        if PROVENANCE_ATTR not in f.attrs:  # every session says what made it (the runner adds the rig's part)
+            f.attrs[PROVENANCE_ATTR] = provenance_json(software_provenance(kind=kind))
         g = f.create_group("protocol")
         g.create_dataset("source", data=protocol_source, dtype=h5py.string_dtype("utf-8"))
         g.attrs["name"] = protocol_name
@@ -300,7 +303,8 @@ class SessionWriter:
         kind : "recorded" | "simulated-dataset" | "fabricslide" | "imported" (``rigctl import``).
         calibration : optional mapping; ``taxel_min``/``taxel_max`` ``(layout.n_channels,)`` arrays go to
             ``/calibration`` datasets, everything else to its attributes.
-        attrs : extra root attributes.
+        attrs : extra root attributes; without a ``provenance`` one, the writing process's
+            (:func:`rigctl.core.provenance.software_provenance`: versions, git state, host, command line) is stored.
         overwrite : replace an existing file (otherwise :class:`FileExistsError`).
         schema_version : :data:`SCHEMA_VERSION` (4: the trials' data back to back in ``/recording``, read in large
             blocks), or 3 (one group of datasets per trial, as rigctl wrote before; for tools that need it and for

@@ -9,6 +9,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -90,6 +91,23 @@ def test_encoded_and_nwb_files_carry_it(recorded, tmp_path):
     assert pn["provenance_id"] not in (session["provenance_id"], pe["provenance_id"])
     res = CliRunner().invoke(main, ["info", "--provenance", str(nwb)])
     assert res.exit_code == 0 and "source_session.provenance.firmware.mega.version" in res.output
+
+
+def test_imported_and_generated_sessions_carry_it_too(tmp_path):
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "A__1.npy", rng.integers(0, 1024, (300, 4)))
+    res = CliRunner().invoke(main, ["import", str(tmp_path / "A__1.npy"), "--out", str(tmp_path / "imp.h5"),
+                                    "--rate", "500", "--texture", "A", "--quiet"])
+    assert res.exit_code == 0, res.output
+    p = read_provenance(tmp_path / "imp.h5")
+    assert p["kind"] == "imported" and p["rigctl_version"] == __version__ and p["command_line"]
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.simulation.dataset import generate_dataset
+
+    proto = parse_protocol('name = "d"\ntextures = ["A"]\nspeeds_mm_s = [60]\nforces_g = [250]\n'
+                           'trials_per_condition = 1\nduration_s = 0.2\n')
+    generate_dataset(proto, tmp_path / "ds.h5", seed=1, workers=0, progress=False)
+    assert read_provenance(tmp_path / "ds.h5")["kind"] == "simulated-dataset"
 
 
 def test_a_file_without_provenance_is_said_in_one_line(tmp_path):
