@@ -33,7 +33,7 @@ import datetime as _dt
 import json
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -75,55 +75,88 @@ def default_spike_variants(enc: Any) -> list[str]:
     return [v for v in enc.spike_variants if not (v in _encoded.VARIANTS and _encoded.VARIANTS[v].speed_scaled)]
 
 
-class _TaxelChunks:
-    """hdmf data iterator over the trials' taxel readings (one chunk per trial: the session is never all in memory)."""
+#: taxel samples handed to HDF5 at once (36 MB of the paper's 18 taxels): one block read of the session per chunk
+_BLOCK_SAMPLES = 1 << 20
+#: rows of an HDF5 chunk of ``acquisition/taxels``: 10 s of every channel at 1 kHz (a user reads a time range)
+TAXEL_CHUNK_ROWS = 10_000
+#: values per HDF5 chunk of the Units table's ``spike_times`` (512 KiB: a user reads one unit's train, a slice)
+SPIKE_CHUNK = 65_536
 
-    def __init__(self, session: Any, ids: Sequence[int], n_samples: Sequence[int], n_channels: int,
-                 progress: ProgressCallback | None = None, target: OutputTarget | None = None) -> None:
-        self._session, self._ids, self._n, self._ch = session, list(ids), list(n_samples), int(n_channels)
-        self._i, self._at = 0, 0
-        self._progress, self._target = progress, target
-        self._bar: Stage | None = None  # made when HDF5 asks for the first chunk (the write has started)
+
+def _blocks(lengths: Sequence[int], limit: int) -> list[tuple[int, int]]:
+    """Consecutive ranges ``(i0, i1)`` of items whose lengths sum to at most ``limit`` (at least one item each)."""
+    out, i0, acc = [], 0, 0
+    for i, n in enumerate(lengths):
+        if i > i0 and acc + int(n) > limit:
+            out.append((i0, i))
+            i0, acc = i, 0
+        acc += int(n)
+    if i0 < len(lengths):
+        out.append((i0, len(lengths)))
+    return out
+
+
+class _Chunks:
+    """hdmf data iterator over a 1-d or 2-d dataset written in blocks (the whole is never in memory): ``parts``
+    yields ``(array, n_done)`` blocks in row order; after a block is handed to HDF5 the bar ``stage`` advances by the
+    items (trials, units) it held, one event each; the output ``target`` is checked before each block (the disk
+    refused the previous one: stop there, one line, the part file removed)."""
+
+    def __init__(self, parts: Iterator[tuple[np.ndarray, int]], shape: tuple[int, ...], dtype: Any, chunks: tuple[int, ...],
+                 bar: Stage, target: OutputTarget | None = None) -> None:
+        self._parts, self._shape, self._chunks = parts, shape, chunks
+        self._dtype: np.dtype[Any] = np.dtype(dtype)
+        self._bar, self._target = bar, target
+        self._at, self._pending = 0, 0
 
     def __iter__(self) -> Any:
         return self
+
+    def __len__(self) -> int:
+        return int(self._shape[0])
 
     def __next__(self) -> Any:
         from hdmf.data_utils import DataChunk
 
         if self._target is not None:
-            self._target.check()  # the disk refused the previous chunk: stop here (one line, part file removed)
-        if self._bar is None:
-            self._bar = Stage(self._progress, "writing NWB", len(self._ids))
-        elif self._i > 0:
-            self._bar.advance(1)  # the previous trial has been handed to HDF5
-        if self._i >= len(self._ids):
-            raise StopIteration
-        data = self._session.trial(self._ids[self._i]).taxels.astype(np.uint16, copy=False)
-        sel = np.s_[self._at:self._at + data.shape[0], :]
+            self._target.check()
+        for _ in range(self._pending):
+            self._bar.advance(1)  # the previous block has been handed to HDF5
+        self._pending = 0
+        data, n_items = next(self._parts)  # StopIteration ends the write
+        data = np.asarray(data, dtype=self._dtype)
+        sel = (np.s_[self._at:self._at + data.shape[0]],) + (np.s_[:],) * (data.ndim - 1)
         self._at += data.shape[0]
-        self._i += 1
+        self._pending = n_items
         return DataChunk(data=data, selection=sel)
 
-    def recommended_chunk_shape(self) -> tuple[int, int]:
-        return (min(max(sum(self._n), 1), 10_000), self._ch)
+    def recommended_chunk_shape(self) -> tuple[int, ...]:
+        return (max(1, min(self._shape[0], self._chunks[0])),) + self._chunks[1:]
 
-    def recommended_data_shape(self) -> tuple[int, int]:
-        return (sum(self._n), self._ch)
+    def recommended_data_shape(self) -> tuple[int, ...]:
+        return self._shape
 
     @property
     def dtype(self) -> np.dtype[Any]:
-        return np.dtype(np.uint16)
+        return self._dtype
 
     @property
-    def maxshape(self) -> tuple[int, int]:
-        return (sum(self._n), self._ch)
+    def maxshape(self) -> tuple[int, ...]:
+        return self._shape
 
 
-def _register_iterator() -> type[Any]:
+def _taxel_blocks(session: Any, ids: Sequence[int], n_samples: Sequence[int]) -> Iterator[tuple[np.ndarray, int]]:
+    """The trials' taxels back to back, one block read (:meth:`Session.read_taxels`) of up to :data:`_BLOCK_SAMPLES`
+    samples at a time."""
+    for i0, i1 in _blocks(n_samples, _BLOCK_SAMPLES):
+        yield session.read_taxels(ids[i0:i1]).data, i1 - i0
+
+
+def _chunks(*args: Any, **kw: Any) -> Any:
+    """A :class:`_Chunks` registered as an hdmf ``AbstractDataChunkIterator`` (hdmf imported only when exporting)."""
     from hdmf.data_utils import AbstractDataChunkIterator
 
-    return type("TaxelChunks", (_TaxelChunks, AbstractDataChunkIterator), {})
+    return type("Chunks", (_Chunks, AbstractDataChunkIterator), {})(*args, **kw)
 
 
 def _start_time(text: Any) -> _dt.datetime:
@@ -194,7 +227,7 @@ def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any =
 
     with open_session(session_path) as s:
         ids = usable_trials(s).ids
-        n = sum(int(s.trial_attrs(t).get("n_samples", 0)) for t in ids)
+        n = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
         total = n * s.layout.n_channels * 2 + n // 10 * 16 + 64 * 1024 * (1 + len(ids) // 100)
     if encoded_path is not None:
         total += Path(encoded_path).stat().st_size
@@ -247,7 +280,8 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
             _add_plan(nwb, s)
             _add_provenance(nwb, session_path, params.encoded_path)
             if params.encoded_path is not None:
-                _add_units(nwb, params.encoded_path, timeline.ids, timeline.starts, s.layout, chosen, summary)
+                _add_units(nwb, params.encoded_path, timeline.ids, timeline.starts, s.layout, chosen, summary,
+                           progress, target)
             _write(nwb, target)
     return summary
 
@@ -264,7 +298,7 @@ def _timeline(s: Any, session_path: Any) -> _Timeline:
     if report.excluded:
         warnings.warn(f"{session_path}: {report.summary()}", TrialsExcluded, stacklevel=3)
     rate = float(s.layout.sample_rate_hz)
-    attrs = [s.trial_attrs(t) for t in ids]
+    attrs = s.trial_counts(ids)
     n = [int(a.get("n_samples", 0)) for a in attrs]
     first = s.trial(ids[0])  # traces may start before the first frame (settling): session time starts there
     lead = max(0.0, -min([0.0] + [float(t.min()) for t in (first.force_time_s, first.speed_time_s) if t.size]))
@@ -325,7 +359,8 @@ def _add_taxels(nwb: Any, s: Any, tl: _Timeline, progress: ProgressCallback | No
     from pynwb import TimeSeries
 
     layout = s.layout
-    chunks = _register_iterator()(s, tl.ids, tl.n, layout.n_channels, progress, target)
+    chunks = _chunks(_taxel_blocks(s, tl.ids, tl.n), (int(sum(tl.n)), layout.n_channels), np.uint16,
+                     (TAXEL_CHUNK_ROWS, layout.n_channels), Stage(progress, "writing NWB", len(tl.ids)), target)
     nwb.add_acquisition(TimeSeries(
         name="taxels", data=chunks, unit="fraction of the ADC full scale", conversion=1.0 / layout.adc_max,
         resolution=1.0 / layout.adc_max, rate=float(layout.sample_rate_hz), starting_time=float(tl.lead),
@@ -341,15 +376,17 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
     from pynwb import TimeSeries
 
     force_t, force, speed_t, speed = [], [], [], []
-    for k, t in enumerate(tl.ids):
-        tr = s.trial(t)
-        force_t.append(tl.starts[k] + tr.force_time_s)
-        force.append(tr.force_g)
-        speed_t.append(tl.starts[k] + tr.speed_time_s)
-        speed.append(tr.speed_mm_s)
-        tl.attrs[k]["_force_mean_g"] = float(np.mean(tr.force_g)) if tr.force_g.size else np.nan
-        tl.attrs[k]["_speed_mean_mm_s"] = float(np.mean(tr.speed_mm_s)) if tr.speed_mm_s.size else np.nan
-        bar.advance(1)
+    k = 0
+    for i0, i1 in _blocks([1] * len(tl.ids), 4096):
+        for ft, fv, vt, vv in s.read_traces(tl.ids[i0:i1]):
+            force_t.append(tl.starts[k] + ft)
+            force.append(fv)
+            speed_t.append(tl.starts[k] + vt)
+            speed.append(vv)
+            tl.attrs[k]["_force_mean_g"] = float(np.mean(fv)) if fv.size else np.nan
+            tl.attrs[k]["_speed_mean_mm_s"] = float(np.mean(vv)) if vv.size else np.nan
+            bar.advance(1)
+            k += 1
     for name, unit, t_parts, v_parts, what in (
             ("load_cell_force", "g", force_t, force, "load-cell force"),
             ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")):
@@ -426,13 +463,14 @@ def _write(nwb: Any, target: OutputTarget) -> None:
     target.check()
 
 
-def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, variants: Any, summary: NwbSummary) -> None:
-    """The Units table: one unit per neuron of each variant, spike times on session time."""
+def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, variants: Any, summary: NwbSummary,
+               progress: ProgressCallback | None = None, target: OutputTarget | None = None) -> None:
+    """The Units table: one unit per neuron of each variant, spike times on session time. Its ``spike_times`` are
+    written variant by variant while the file is written (stage ``"writing units"``, done/total = units), from the
+    encoded file's tables with numpy (no Python object per spike)."""
+    from hdmf.common import VectorData, VectorIndex
     from pynwb.misc import Units
 
-    nwb.units = Units(name="units", resolution=1.0 / float(layout.sample_rate_hz),
-                      description="SA/RA spike trains of the Izhikevich encoding (paper eqs. 3-5), one unit per "
-                                  "neuron of each exported variant, spike times in session time")
     with _encoded.open_encoded(encoded_path) as enc:
         enc_ids = np.asarray(enc.trials["trial_id"], np.int64)
         row_of = {int(t): i for i, t in enumerate(enc_ids)}
@@ -440,29 +478,72 @@ def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, 
         if missing:
             raise NwbExportError(f"{encoded_path} is not an encoding of this session: trials {missing[:5]} of the "
                                  "session are not in it")
+        rows = np.asarray([row_of[int(t)] for t in ids], np.int64)
         chosen = list(variants)
-        for name, desc in (("variant", "encoding variant (paper Table 1 column)"),
-                           ("receptor", "SA (k=100 on the reading) or RA (k=3 on the 20 Hz low-passed derivative)"),
-                           ("taxel", "channel index in the sensor description"),
-                           ("taxel_label", "channel name"), ("layer", "sensor layer"),
-                           ("receptor_type", "the layer's receptor type"),
-                           ("time_base", "'session', or 'speed-scaled': trial start + spike time scaled by eq. 2")):
-            nwb.add_unit_column(name=name, description=desc)
+        columns: dict[str, list[Any]] = {name: [] for name, _ in _UNIT_COLUMNS}
+        ends, n_units = [], []
         for v in chosen:
-            times, index, n_trains = enc.spikes(v)
+            _, index, n_trains = enc.spikes(v)  # the row ends (the times are read again, a variant at a time, below)
+            lens = _unit_lengths(index, rows, n_trains)
+            ends.append(lens.sum(axis=1))
+            n_units.append(n_trains)
             scaled = v in _encoded.VARIANTS and _encoded.VARIANTS[v].speed_scaled
-            cols = _train_columns(layout, n_trains)
-            ends = index.reshape(-1, n_trains)
-            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)
-            total = 0
-            for j, (rec, c, label, layer, rtype) in enumerate(cols):
-                parts = [starts[k] + times[begins[row_of[t], j]:ends[row_of[t], j]] for k, t in enumerate(ids)]
-                st = np.concatenate(parts) if parts else np.zeros(0)
-                total += st.size
-                nwb.add_unit(spike_times=st, variant=v, receptor=rec, taxel=c, taxel_label=label, layer=layer,
-                             receptor_type=rtype, time_base="speed-scaled" if scaled else "session")
-            summary.units[v] = len(cols)
-            summary.spikes[v] = total
+            for rec, c, label, layer, rtype in _train_columns(layout, n_trains):
+                for name, value in zip(columns, (v, rec, c, label, layer, rtype,
+                                                 "speed-scaled" if scaled else "session")):
+                    columns[name].append(value)
+            summary.units[v] = n_trains
+            summary.spikes[v] = int(lens.sum())
+    unit_ends = np.cumsum(np.concatenate(ends)) if ends else np.zeros(0, np.int64)
+    total = int(unit_ends[-1]) if unit_ends.size else 0
+    times = _chunks(_unit_spikes(encoded_path, chosen, rows, np.asarray(starts, np.float64)), (total,), np.float64,
+                    (SPIKE_CHUNK,), Stage(progress, "writing units", int(sum(n_units))), target)
+    spike_times = VectorData(name="spike_times", description="the spike times for each unit in seconds", data=times)
+    index = VectorIndex(name="spike_times_index", data=unit_ends.astype(_index_dtype(total)), target=spike_times)
+    cols = [VectorData(name=name, description=desc, data=columns[name]) for name, desc in _UNIT_COLUMNS]
+    nwb.units = Units(name="units", id=list(range(len(unit_ends))), columns=[*cols, index, spike_times],  # the index first (hdmf)
+                      colnames=[*columns, "spike_times"], resolution=1.0 / float(layout.sample_rate_hz),
+                      description="SA/RA spike trains of the Izhikevich encoding (paper eqs. 3-5), one unit per "
+                                  "neuron of each exported variant, spike times in session time")
+
+
+_UNIT_COLUMNS = (("variant", "encoding variant (paper Table 1 column)"),
+                 ("receptor", "SA (k=100 on the reading) or RA (k=3 on the 20 Hz low-passed derivative)"),
+                 ("taxel", "channel index in the sensor description"),
+                 ("taxel_label", "channel name"), ("layer", "sensor layer"),
+                 ("receptor_type", "the layer's receptor type"),
+                 ("time_base", "'session', or 'speed-scaled': trial start + spike time scaled by eq. 2"))
+
+
+def _index_dtype(largest: int) -> np.dtype[Any]:
+    """The smallest unsigned integer type holding ``largest`` (what hdmf picks for a ragged column's index)."""
+    for dt in (np.uint8, np.uint16, np.uint32):
+        if largest <= np.iinfo(dt).max:
+            return np.dtype(dt)
+    return np.dtype(np.uint64)
+
+
+def _unit_lengths(index: np.ndarray, rows: np.ndarray, n_trains: int) -> np.ndarray:
+    """(n_trains, n_trials) spike counts of each unit in each exported trial (the encoded rows ``rows``), from the
+    encoded file's row ends ``index`` (row ``trial * n_trains + train``)."""
+    ends = index.reshape(-1, n_trains)
+    begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)
+    return np.asarray((ends[rows] - begins[rows]).T, np.int64)
+
+
+def _unit_spikes(encoded_path: Any, variants: Sequence[str], rows: np.ndarray, starts: np.ndarray
+                 ) -> Iterator[tuple[np.ndarray, int]]:
+    """Each variant's units' spike times on session time, unit after unit (a unit: its train in each exported trial,
+    shifted by the trial's start), one variant at a time; with the number of units."""
+    with _encoded.open_encoded(encoded_path) as enc:
+        for v in variants:
+            times, index, n_trains = enc.spikes(v)
+            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)[rows].T.ravel()  # unit-major
+            lens = _unit_lengths(index, rows, n_trains).ravel()
+            shift = np.broadcast_to(starts, (n_trains, starts.size)).ravel()
+            first = np.concatenate([[0], np.cumsum(lens)[:-1]])
+            gather = np.repeat(begins - first, lens) + np.arange(int(lens.sum()))
+            yield np.repeat(shift, lens) + times[gather], n_trains
 
 
 def read_nwb_summary(path: str | os.PathLike[str]) -> tuple[NwbSummary, dict[str, np.ndarray]]:

@@ -35,6 +35,13 @@ from rigctl.storage.session_schema import (
 log = logging.getLogger("rigctl.storage.session")
 
 
+class _HasId:
+    """A low-level id where h5py's high-level helpers (``AttributeManager``) want an object with ``.id``."""
+
+    def __init__(self, oid: Any) -> None:
+        self.id = oid
+
+
 @dataclass(frozen=True)
 class TaxelBlock:
     """Taxels of many trials read at once (:meth:`Session.read_taxels`).
@@ -434,6 +441,56 @@ class Session:
                 speed_traces = [(ts[pos[i]:pos[i + 1]], vs[pos[i]:pos[i + 1]]) for i in range(len(ids))]
         self._check_block_range(ids, data, starts)
         return TaxelBlock(data, starts, rows["dropped_frames"].astype(np.int64), rows["n_speed"] > 0, speed_traces)
+
+    def trial_counts(self, ids: Sequence[int]) -> list[dict[str, Any]]:
+        """``n_samples``, ``dropped_frames``, ``crc_errors`` and ``started_utc`` of many recorded trials (the trials
+        table of an export), in the order of ``ids``: schema 4 from ``/recording/index`` and one attribute read per
+        trial; older files from :meth:`trial_attrs`.
+
+        Raises KeyError if a trial has no recorded data; SessionError naming a damaged trial.
+        """
+        if not self._flat:
+            return [{k: a.get(k, d) for k, d in (("n_samples", 0), ("dropped_frames", 0), ("crc_errors", 0),
+                                                 ("started_utc", ""))} for a in map(self.trial_attrs, ids)]
+        rows = self._index_rows(ids)
+        out = []
+        with _reading(self.path, "trials' started_utc"):
+            tg = h5g.open(self._f.id, b"/trials")
+            for tid, r in zip(ids, rows):
+                gid = h5g.open(tg, trial_group_name(int(tid)).rpartition("/")[2].encode())
+                started = ""
+                if h5a.exists(gid, b"started_utc"):
+                    started = h5py.AttributeManager(_HasId(gid))["started_utc"]
+                out.append({"n_samples": int(r["n_samples"]), "dropped_frames": int(r["dropped_frames"]),
+                            "crc_errors": int(r["crc_errors"]),
+                            "started_utc": started.decode() if isinstance(started, bytes) else str(started)})
+        return out
+
+    def read_traces(self, ids: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """The load-cell and speed traces of many recorded trials: ``(force_time_s, force_g, speed_time_s,
+        speed_mm_s)`` float64 arrays per trial, in the order of ``ids`` (schema 4: one read per run of trials of each
+        recording array; older files: :meth:`trial` per trial).
+
+        Raises KeyError if a trial has no recorded data; SessionError naming a damaged trial.
+        """
+        if not self._flat:
+            out = []
+            for tid in ids:
+                tr = self.trial(int(tid))
+                out.append((tr.force_time_s, tr.force_g, tr.speed_time_s, tr.speed_mm_s))
+            return out
+        rows = self._index_rows(ids)
+        rec = self._f[session_recording.GROUP]
+        arrays = []
+        with _reading(self.path, "trials' traces"):
+            for value, times, prefix in session_recording.TRACES:
+                n = rows[f"n_{prefix}"].astype(np.int64)
+                pos = np.concatenate([[0], np.cumsum(n)])
+                for name in (times, value):
+                    buf = np.empty(int(pos[-1]), dtype=np.float64)
+                    session_recording.read_rows(rec[name], rows[f"{prefix}_start"], n, buf)
+                    arrays.append([buf[pos[i]:pos[i + 1]] for i in range(len(ids))])
+        return list(zip(*arrays)) if ids else []
 
     def _check_block_range(self, ids: Sequence[int], data: np.ndarray, starts: np.ndarray) -> None:
         """Raise SessionError naming the first trial of a block whose counts exceed the sensor's ADC range."""

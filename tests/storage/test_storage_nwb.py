@@ -135,6 +135,74 @@ def test_an_encoded_dataset_exports_its_spike_trains_as_units(dataset, tmp_path)
     assert set(units.loc[units["variant"] == "speed_scaled", "time_base"]) == {"speed-scaled"}
 
 
+def _reference_units(encoded, ids, starts, layout, variants, path):
+    """The Units table as the export wrote it before it was written in blocks: pynwb's add_unit per unit, each
+    unit's spike times gathered trial by trial (the oracle of the block export)."""
+    import datetime as dt
+
+    from pynwb import NWBHDF5IO, NWBFile
+    from pynwb.misc import Units
+
+    from rigctl.storage import nwb as nwbmod
+
+    nwb = NWBFile(session_description="ref", identifier="ref", session_start_time=dt.datetime.now(dt.UTC))
+    nwb.units = Units(name="units", resolution=1.0 / layout.sample_rate_hz, description="ref")
+    for name, desc in nwbmod._UNIT_COLUMNS:
+        nwb.add_unit_column(name=name, description=desc)
+    with open_encoded(encoded) as enc:
+        row_of = {int(t): i for i, t in enumerate(enc.trials["trial_id"])}
+        for v in variants:
+            times, index, n_trains = enc.spikes(v)
+            ends = index.reshape(-1, n_trains)
+            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)
+            for j, (rec, c, label, layer, rtype) in enumerate(nwbmod._train_columns(layout, n_trains)):
+                parts = [starts[k] + times[begins[row_of[t], j]:ends[row_of[t], j]] for k, t in enumerate(ids)]
+                nwb.add_unit(spike_times=np.concatenate(parts), variant=v, receptor=rec, taxel=c, taxel_label=label,
+                             layer=layer, receptor_type=rtype,
+                             time_base="speed-scaled" if "speed" in v else "session")
+    with NWBHDF5IO(str(path), "w") as io:
+        io.write(nwb)
+
+
+def test_the_block_export_writes_what_the_per_trial_export_wrote(dataset, tmp_path):
+    """Units written variant by variant from the encoded tables, taxels and traces read in blocks: the same
+    values and types as the per-unit / per-trial path (pynwb's add_unit, Session.trial), with progress through the
+    units' write."""
+    import h5py
+
+    from rigctl.storage import nwb as nwbmod
+
+    session, encoded = dataset
+    out, ref = tmp_path / "blocks.nwb", tmp_path / "ref.nwb"
+    events = []
+    with open_encoded(encoded) as e:
+        variants = list(e.spike_variants)  # every stored variant, the speed-scaled ones included
+    assert len(variants) >= 2
+    summary = export_nwb(session, out, encoded_path=encoded, variants=variants, progress=events.append)
+    n_units = sum(summary.units.values())
+    assert [e.done for e in events if e.stage == "writing units"] == list(range(n_units + 1))
+    with open_session(session) as s:
+        ids = s.completed_ids()
+        trials = [s.trial(t) for t in ids]
+        layout = s.layout
+    starts = np.concatenate([[0], np.cumsum([t.n_samples for t in trials])[:-1]]) / layout.sample_rate_hz
+    lead = max(0.0, -min([0.0] + [float(x.min()) for x in (trials[0].force_time_s, trials[0].speed_time_s) if x.size]))
+    _reference_units(encoded, ids, lead + starts, layout, variants, ref)
+    with h5py.File(out, "r") as f, h5py.File(ref, "r") as g:
+        for name in ("spike_times", "spike_times_index", "id", *[c for c, _ in nwbmod._UNIT_COLUMNS]):
+            a, b = f["units"][name], g["units"][name]
+            assert a.dtype == b.dtype and a.shape == b.shape, name
+            np.testing.assert_array_equal(a[()], b[()], err_msg=name)
+        assert tuple(f["units"].attrs["colnames"]) == tuple(g["units"].attrs["colnames"])
+        assert f["units/spike_times"].chunks is not None  # chunked for a unit's slice
+        np.testing.assert_array_equal(f["acquisition/taxels/data"][()], np.concatenate([t.taxels for t in trials]))
+        force_t = np.concatenate([lead + st + t.force_time_s for st, t in zip(starts, trials)])
+        order = np.argsort(force_t, kind="stable")
+        np.testing.assert_array_equal(f["acquisition/load_cell_force/timestamps"][()], force_t[order])
+        np.testing.assert_array_equal(f["acquisition/load_cell_force/data"][()],
+                                      np.concatenate([t.force_g for t in trials])[order])
+
+
 def test_an_exported_file_imports_back(recorded, tmp_path):
     """`rigctl import` reads a file rigctl exported: one trial per row of its trials table, with its labels, at
     its rate and with its sensor description."""

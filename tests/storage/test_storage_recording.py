@@ -21,6 +21,7 @@ def _plan(n):
 
 
 def _trial(rng, n=N, **kw):
+    kw.setdefault("attrs", {"started_utc": f"2030-01-01T00:00:{int(rng.integers(10, 59))}+00:00"})
     start = int(rng.integers(0, 65536))
     k = int(rng.integers(0, 6))
     return TrialData(taxels=rng.integers(100, 900, (n, 18)), seq=(start + np.arange(n)) % 65536,
@@ -71,6 +72,13 @@ def test_trials_back_to_back_with_views_for_plain_h5py(tmp_path, compression):
         assert blk.has_speed_trace.tolist() == [trials[t].speed_mm_s.size > 0 for t in (0, 3, 5)]
         with pytest.raises(KeyError):
             s.read_taxels([1])
+        counts = [{k: s.trial_attrs(t)[k] for k in ("n_samples", "dropped_frames", "crc_errors", "started_utc")}
+                  for t in (5, 0)]
+        assert s.trial_counts([5, 0]) == counts
+        traces = s.read_traces([5, 0])
+        for (ft, fv, vt, vv), tid in zip(traces, (5, 0)):
+            for got, name in ((ft, "force_time_s"), (fv, "force_g"), (vt, "speed_time_s"), (vv, "speed_mm_s")):
+                np.testing.assert_array_equal(got, getattr(trials[tid], name), err_msg=name)
 
 
 def test_a_resumed_session_appends_and_a_failed_trial_is_recorded_later(tmp_path):
