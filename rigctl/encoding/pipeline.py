@@ -31,9 +31,12 @@ is 3 GB as uint16 and 12 GB as float64, so nothing float64 is held for more than
 
 1. **Range pass:** per-taxel min/max over every trial (of the model input, i.e. after resampling if any:
    :class:`~rigctl.encoding.normalise.TaxelRange`); the model input is kept in memory for the force fit, as long
-   as it fits ``fit_memory_bytes`` (default 4 GB, i.e. the paper-sized dataset as uint16). If it does not, an even
-   subsample of trials per condition is kept instead (each coefficient then comes from fewer trials; the count used
-   is stored in the attributes). The kernel normalises ``uint16`` counts on the fly, so the fit never makes a float
+   as it fits ``fit_memory_bytes`` (default 1 GB: about 7,000 of the paper's 2-6 s trials as uint16). If it does
+   not, an even subsample of trials per condition is kept instead (each coefficient then comes from fewer trials:
+   at the paper's size (3.5 GB of counts) about 29 of each condition's 100; the count used is stored in the
+   attributes), and the encode pass reads each batch again. Peak memory is therefore independent of the dataset's
+   size: ``fit_memory_bytes`` plus one batch's readings and spike trains plus the libraries (about 1.6 GB at the
+   defaults; measured in ``benchmarks/bench_paper.py``). The kernel normalises ``uint16`` counts on the fly, so the fit never makes a float
    copy of 1 kHz sessions.
 2. **Force fit** (once, all coefficients together): per (texture, taxel, speed, force) and label-free per
    (taxel, speed, force). A session without a 500 g reference for some (texture, speed) gets coefficients 1 and
@@ -50,6 +53,7 @@ The output is written by :class:`rigctl.storage.encoded.EncodedWriter` (layout a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -419,7 +423,7 @@ def _check_speeds(variants, explicit, labels, has_trace) -> tuple[tuple[str, ...
 def encode_session(session_path, out_path, *, variants=None, batch_trials: int = 256,
                    scheduler: str | None = None, workers: int | None = None,
                    progress: ProgressCallback | None = None,
-                   trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 4e9,
+                   trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 1e9,
                    params: EncodeParams | None = None, overwrite: bool = False) -> Path:
     """Encode a session file (``rigctl.storage.session``) into an encoded file (:mod:`rigctl.storage.encoded`).
 
@@ -507,7 +511,7 @@ class EncodeRun:
     workers: int | None = None
     trial_ids: tuple[int, ...] | None = None
     store_spikes: tuple[str, ...] = MAIN_VARIANTS
-    fit_memory_bytes: float = 4e9
+    fit_memory_bytes: float = 1e9
     overwrite: bool = False
 
     @classmethod
@@ -753,14 +757,21 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
              read.offset, read.scale, run.variants, run.store_spikes, p) for b in read.batches]
     bar = Stage(progress, "encoding", len(read.ids))
     if run.scheduler is None:
-        for bi, (b, a) in enumerate(zip(read.batches, args)):
-            if read.keep_all:  # read in the range pass
-                rg, ws = read.kept[bi]
-                read.kept[bi] = None  # freed as soon as encoded
+        from rigctl.storage.session import open_session
+
+        want_ws = "realtime_speed_scaled" in run.variants
+        with contextlib.ExitStack() as stack:
+            s = None if read.keep_all else stack.enter_context(open_session(run.session_path))
+            for bi, (b, a) in enumerate(zip(read.batches, args)):
+                if s is None:  # read in the range pass
+                    rg, ws = read.kept[bi]
+                    read.kept[bi] = None  # freed as soon as encoded
+                else:  # read again (the file stays open: one header read for the whole pass)
+                    blk = s.read_taxels(a[1], traces=want_ws)
+                    rg, ws = _model_input(blk, a[1], speed[b], want_ws, p.window_s, read.conv)
+                    del blk
                 write(b, _encode_read(rg, ws, *a[2:]))
-            else:
-                write(b, _batch_task(*a))
-            bar.advance(len(b))
+                bar.advance(len(b))
         return
     from dask.distributed import as_completed
 
