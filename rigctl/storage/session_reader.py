@@ -401,22 +401,31 @@ class Session:
         """The ``/recording/index`` rows of ``ids`` (schema 4), in that order. Raises KeyError for a trial that was
         not recorded, SessionError for one marked complete that has no row or whose rows are outside the arrays."""
         index = self.recording_index()
+        n_rows = self._recorded_rows()
         rows = np.zeros(len(ids), dtype=session_recording.INDEX_DTYPE)
         for i, tid in enumerate(ids):
             r = index.get(int(tid))
-            if r is None:
-                if int(tid) in self._complete:
-                    raise self._damaged(int(tid), "it is marked complete but /recording/index has no row for it")
+            if r is None and int(tid) not in self._complete:
                 raise KeyError(f"trial {tid} has no recorded data in {self.path}")
+            why = self.index_problem(r, n_rows)
+            if why:
+                raise self._damaged(int(tid), why)
             rows[i] = r
-        with _reading(self.path, "the recording arrays"):
-            n_rows = self._f[session_recording.GROUP]["taxels"].shape[0]
-        bad = (rows["sample_start"] < 0) | (rows["n_samples"] < 0) | (rows["sample_start"] + rows["n_samples"] > n_rows)
-        if bad.any():
-            k = int(np.flatnonzero(bad)[0])
-            raise self._damaged(int(ids[k]), f"/recording/index puts its samples at rows {int(rows['sample_start'][k])}"
-                                             f"+{int(rows['n_samples'][k])}, outside the {n_rows} recorded")
         return rows
+
+    def _recorded_rows(self) -> int:
+        with _reading(self.path, "the recording arrays"):
+            return int(self._f[session_recording.GROUP]["taxels"].shape[0])
+
+    @staticmethod
+    def index_problem(row: np.void | None, n_rows: int) -> str | None:
+        """What is wrong with a complete trial's ``/recording/index`` row (None: missing), or None."""
+        if row is None:
+            return "it is marked complete but /recording/index has no row for it"
+        start, n = int(row["sample_start"]), int(row["n_samples"])
+        if start < 0 or n < 0 or start + n > n_rows:
+            return f"/recording/index puts its samples at rows {start}+{n}, outside the {n_rows} recorded"
+        return None
 
     def _read_flat(self, ids: Sequence[int], traces: bool) -> TaxelBlock:
         """:meth:`read_taxels` of a schema-4 file: the index once, then one read per run of trials stored one

@@ -186,17 +186,14 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
 
     digests: dict[bytes, int] = {}
     todo: list[tuple[int, np.void]] = []
+    index, n_rows = session.recording_index(), session._recorded_rows()
     for tid in ids:
-        why = _check_duration(plan[tid])
-        if why is None:
-            try:
-                row = session._index_rows([tid])[0]
-            except (SessionError, KeyError) as exc:
-                why = _reason(exc, tid)
-            else:
-                todo.append((tid, row))
-                continue
-        report.excluded[tid] = why
+        row = index.get(tid)
+        why = _check_duration(plan[tid]) or session.index_problem(row, n_rows)
+        if why is None and row is not None:
+            todo.append((tid, row))
+        else:
+            report.excluded[tid] = str(why)
     rec = session._f[GROUP]
     k = 0
     while k < len(todo):
@@ -239,15 +236,16 @@ def _record(report: TrialReport, tid: int, why: str | None, dropped: int) -> Non
 def _check_counts(session: Session, data: np.ndarray, tid: int, digests: dict[bytes, int]) -> str | None:
     """ADC range and byte copies of the trial's taxel counts."""
     adc_max = session.layout.adc_max
-    if data.size:
-        lo, hi = int(data.min()), int(data.max())
-        if lo < 0 or hi > adc_max:  # worded as Session.trial words it
-            row = int(np.flatnonzero(((data < 0) | (data > adc_max)).any(axis=1))[0])
-            return (f"taxels hold {hi if hi > adc_max else lo} (sample {row}), outside the sensor's "
-                    f"{session.layout.adc_bits}-bit range 0..{adc_max}")
-    if data.size == 0 or int(data.min()) == int(data.max()):
+    if data.size == 0:
+        return None
+    lo, hi = int(data.min()), int(data.max())
+    if lo < 0 or hi > adc_max:  # worded as Session.trial words it
+        row = int(np.flatnonzero(((data < 0) | (data > adc_max)).any(axis=1))[0])
+        return (f"taxels hold {hi if hi > adc_max else lo} (sample {row}), outside the sensor's "
+                f"{session.layout.adc_bits}-bit range 0..{adc_max}")
+    if lo == hi:
         return None  # a constant trial (a silent sensor) is no evidence of a copy
-    digest = hashlib.blake2b(np.ascontiguousarray(data).tobytes(), digest_size=16).digest()
+    digest = hashlib.blake2b(np.ascontiguousarray(data).data.cast("B"), digest_size=16).digest()
     if digest in digests:
         return f"its taxels are a byte copy of trial {digests[digest]}'s"
     digests[digest] = tid
