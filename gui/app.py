@@ -506,6 +506,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.commands = CommandExecutor(h.drum)
         self._attach_sensor(h, sensor_layout(h))
         self.control.attach(h.drum, self.poller, self.commands, h.rig)
+        self.protocol.take_rig_defaults(h.rig)
         self._update_source_label("connected")
         self.events.add(logging.INFO, "connect", f"connected to the {self.source.label()}")
         # everything long-lived exists now: move it out of the cyclic GC's reach, so full collections (which

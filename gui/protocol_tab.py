@@ -70,6 +70,10 @@ class ProtocolTab(QtWidgets.QWidget):
         out_btn.clicked.connect(self._browse_output)
         self.resume_box = QtWidgets.QCheckBox("Resume this (interrupted) session file")
         self.resume_box.setToolTip("Skip the trials already recorded in the output file and record the rest")
+        self.lsl_box = QtWidgets.QCheckBox("Publish on LSL")
+        self.lsl_box.setToolTip("Publish the run on Lab Streaming Layer for LabRecorder (taxels, SA/RA spikes, drum "
+                                "state, markers; docs/guides/labrecorder.md). Set from the rig config's lsl.enabled "
+                                "when the rig connects. Needs pylsl: pip install 'rigctl[lsl]'")
 
         self.start_btn = QtWidgets.QPushButton("Start")
         self.pause_btn = QtWidgets.QPushButton("Pause")
@@ -140,6 +144,7 @@ class ProtocolTab(QtWidgets.QWidget):
         out.addWidget(self.out_edit, 1)
         out.addWidget(out_btn)
         out.addWidget(self.resume_box)
+        out.addWidget(self.lsl_box)
         ctl = QtWidgets.QHBoxLayout()
         for b in (self.start_btn, self.pause_btn, self.resume_btn, self.abort_btn):
             ctl.addWidget(b)
@@ -284,10 +289,16 @@ class ProtocolTab(QtWidgets.QWidget):
         except OutputError as exc:
             set_plain(self.status, str(exc), error=True)
             return
+        from rigctl.core.lsl import LslUnavailable
         from rigctl.operations import ProtocolRun
 
-        run = ProtocolRun(getattr(h, "control", h.rig), self.protocol, out, resume=resume,
-                          prompt=self._prompt)  # hardware only: the simulated rig mounts plates by itself
+        try:
+            run = ProtocolRun(getattr(h, "control", h.rig), self.protocol, out, resume=resume,
+                              prompt=self._prompt,  # hardware only: the simulated rig mounts plates by itself
+                              lsl=self.lsl_box.isChecked())
+        except LslUnavailable as exc:
+            set_plain(self.status, f"{exc} (or untick 'Publish on LSL')", error=True)
+            return
         self.run = run
         self.stop_event, self.pause_event = run.stop_event, run.pause_event  # the run's controls, shown here
         self._done_ids, self._failures = [], []
@@ -441,6 +452,12 @@ class ProtocolTab(QtWidgets.QWidget):
             self._notify(logging.ERROR, f"the run waits for a lost link: {ev.error}")
         elif ev.kind in ("paused", "resumed"):
             self._paused = ev.kind == "paused"
+
+    def take_rig_defaults(self, rig) -> None:
+        """A rig connected: 'Publish on LSL' as its rig config says (``lsl.enabled``, default off)."""
+        from rigctl.operations import lsl_requested
+
+        self.lsl_box.setChecked(lsl_requested(None, getattr(rig, "host_config", None)))
 
     def refresh(self) -> None:
         job = self.job

@@ -197,3 +197,23 @@ def test_open_protocol_offers_the_built_in_protocols(window, qapp):
         assert str(builtin_folder()) in [u.toLocalFile() for u in dlg.sidebarUrls()]
     finally:
         dlg.reject()
+
+
+def test_publish_on_lsl_follows_the_rig_config_and_says_what_is_missing(window, qapp, tmp_path, monkeypatch):
+    import sys
+    from types import SimpleNamespace
+
+    tab = window.protocol
+    tab.take_rig_defaults(SimpleNamespace(host_config={"lsl": {"enabled": True}}))
+    assert tab.lsl_box.isChecked()  # the rig config switches it on ...
+    tab.take_rig_defaults(window.handle.rig)
+    assert not tab.lsl_box.isChecked()  # ... the test rig's config says nothing: off
+    tab.load(_protocol(tmp_path, 1))
+    out = tmp_path / "lsl.h5"
+    tab.out_edit.setText(str(out))
+    monkeypatch.setitem(sys.modules, "pylsl", None)  # import pylsl raises ImportError
+    tab.lsl_box.setChecked(True)
+    tab.start()
+    assert not tab.running and not out.exists()
+    assert "pip install 'rigctl[lsl]'" in tab.status.text() and "untick" in tab.status.text()
+    tab.lsl_box.setChecked(False)
