@@ -963,16 +963,31 @@ static void hx_sck_hook(avr_irq_t *irq, uint32_t value, void *param)
     }
 }
 
-/* after a reset of the MCU: the reading being shifted out is abandoned (DOUT high until the next conversion), and
- * the pins the harness drives are driven again (avr_reset clears the port state) */
+/* after a reset of the MCU the pins the harness drives are driven again (avr_reset clears the port state). The HX711
+ * is another chip on the same supply: an external, brown-out or watchdog reset of the MCU leaves it converting on its
+ * own schedule (Avia HX711 datasheet: it powers down only when PD_SCK stays high for over 60 us), so a reading it
+ * finished stays ready with DOUT low through the reset and the bootloader's wait, and the firmware's first reading
+ * may be one that waited; a reading being shifted out when the MCU reset is abandoned (DOUT high until the next
+ * conversion). A power-on ("poweron") starts its conversions afresh with the MCU's. */
+static int hx_power_cycle; /* the next mega_after_reset is a power-on */
+
 static void mega_after_reset(void)
 {
     if (!hx_dout) return;
-    hx_ready = 0;
-    hx_bit = 0;
-    avr_raise_irq(hx_dout, 0); /* the irq keeps its last value across avr_reset: toggle so the port sees it */
-    avr_raise_irq(hx_dout, 1);
-    hx_next_cycle = avr->cycle + hx711_period_cycles();
+    if (hx_power_cycle || hx_bit > 0) {
+        hx_ready = 0;
+        hx_bit = 0;
+        avr_raise_irq(hx_dout, 0); /* the irq keeps its last value across avr_reset: toggle so the port sees it */
+        avr_raise_irq(hx_dout, 1);
+        if (hx_power_cycle) hx_next_cycle = avr->cycle + hx711_period_cycles();
+    } else if (hx_ready) { /* a finished reading waits: DOUT low, re-driven for the reset port */
+        avr_raise_irq(hx_dout, 1);
+        avr_raise_irq(hx_dout, 0);
+    } else {
+        avr_raise_irq(hx_dout, 0);
+        avr_raise_irq(hx_dout, 1);
+    }
+    hx_power_cycle = 0;
     update_home();
     avr_raise_irq(index_sensor_pin, 0); /* the sensor's level is driven again after the port reset */
     avr_raise_irq(index_sensor_pin, index_sensor_release_cycle ? 0 : 1);
@@ -1242,7 +1257,10 @@ int main(int argc, char **argv)
             if (cause & 4) avr_regbit_set(avr, avr->reset_flags.borf);
             bridge_reset();
             if (is_uno) uno_after_reset();
-            else mega_after_reset();
+            else {
+                hx_power_cycle = cause & 1;
+                mega_after_reset();
+            }
             printf("RESET t=%.6f\n", sim_s());
         } else if (!is_uno && mcu_reset_seen) { /* the MCU reset itself (the watchdog): the pins need driving again */
             mcu_reset_seen = 0;
