@@ -27,7 +27,7 @@ from pathlib import Path
 
 from rigctl import __version__
 
-__all__ = ["BOARDS", "BOOTLOADER_BAUD", "FirmwareBuildError", "avrdude_command", "build", "build_dir", "cache_root",
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "FirmwareBuildError", "avrdude_command", "build", "build_dir", "cache_root",
            "source_digest", "source_versions", "sources"]
 
 #: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
@@ -43,6 +43,8 @@ BOARDS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
 }
 #: both stock bootloaders talk at 115200 baud
 BOOTLOADER_BAUD = 115200
+#: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``)
+BUILD_ID_DIGITS = 12
 
 
 def avrdude_command(board: str, port: str, hex_file: Path | str) -> list[str]:
@@ -162,7 +164,9 @@ def build(src: Path | str | None = None, out: Path | str | None = None, *,
     src = Path(src) if src is not None else sources()
     out = Path(out) if out is not None else build_dir(src)
     out.mkdir(parents=True, exist_ok=True)
-    cmd = ["make", "-s", "-C", str(src), f"BUILD={out.resolve()}", *targets]
+    # BUILD_ID: the Uno reports it in its banner (build=), so the doctor can tell a board flashed from other sources
+    cmd = ["make", "-s", "-C", str(src), f"BUILD={out.resolve()}", f"BUILD_ID={source_digest(src)[:BUILD_ID_DIGITS]}",
+           *targets]
     with open(out / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:

@@ -110,10 +110,12 @@ def _number(text: str) -> int | float:
 
 def parse_identity(line: str) -> dict[str, Any]:
     """Parse an identity/banner line ``#RIGCTL-UNO [READY] fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000
-    [layout=3x3x2]`` (spec section 1.3: ``ch``, ``rate_hz`` and ``bits`` describe the link; ``layout`` is optional).
+    [layout=3x3x2] [build=1a2b3c4d5e6f]`` (spec section 1.4: ``ch``, ``rate_hz`` and ``bits`` describe the link;
+    ``layout`` and ``build`` are optional).
 
     Returns ``{"firmware": (1, 0), "channels": 18, "ch": 18, "rate_hz": 1000, "bits": 10, "baud": 1000000,
-    "layout": "3x3x2" or None, "line": ...}`` (``rate_hz`` an int when whole, else a float).
+    "layout": "3x3x2" or None, "build": the firmware's build id (``build=``, hex digits of its sources' digest) or
+    None, "line": ...}`` (``rate_hz`` an int when whole, else a float).
     Raises :class:`TaxelStreamError` if a field is missing or malformed.
     """
     fields = dict(kv.split("=", 1) for kv in line.split() if "=" in kv)
@@ -131,6 +133,7 @@ def parse_identity(line: str) -> dict[str, Any]:
             "bits": int(fields["bits"]),
             "baud": int(fields["baud"]),
             "layout": fields.get("layout"),
+            "build": fields.get("build"),
             "line": line.strip(),
         }
     except (KeyError, ValueError) as exc:

@@ -79,7 +79,7 @@ def test_the_healthy_inprocess_rig_passes_and_the_report_is_stored(tmp_path):
                  "crosstalk", "uno-clock", "loadcell-polarity", "force-step", "drum-speed"):
         assert by[name].status == "pass", by[name].line()
     # what the firmware does not report is a skip with the reason, never a pass
-    assert by["firmware-build"].status == "skip" and "build hash" in by["firmware-build"].summary
+    assert by["firmware-build"].status == "skip" and "reports no build" in by["firmware-build"].summary
     assert by["port-permissions"].status == "skip"  # the in-process rig has no ports
     assert by["force-step"].values["settling_time_s"] < doctor.drum_checks.MAX_SETTLING_S
     doctor.save_report(report, tmp_path / "rig.json")
@@ -143,6 +143,24 @@ def test_the_load_cell_scale_is_compared_with_the_rig_configs_calibration(tmp_pa
     _, by = _run_service(tmp_path, None, ["loadcell-scale"])
     r = by["loadcell-scale"]
     assert r.status == "fail" and r.values["board_counts_per_g"] == 420.0 and "calibrat" in r.fix
+
+
+def test_firmware_build_against_the_installed_sources():
+    """The Uno's banner names the build (build=, the sources' digest: wire-protocol 1.4): the installed sources' ->
+    pass; another -> fail naming the flash command; none (a simulated board, a plain make) -> skip."""
+    from types import SimpleNamespace
+
+    from rigctl import firmware
+
+    def check(banner):
+        rig = SimpleNamespace(stream=SimpleNamespace(banner=banner))
+        return doctor.run_doctor(doctor.select(["firmware-build"]), doctor.DoctorContext("hardware", rig=rig)).results[0]
+
+    own = firmware.source_digest()[:firmware.BUILD_ID_DIGITS]
+    assert check({"build": own}).status == "pass"
+    r = check({"build": "0123456789ab" if own != "0123456789ab" else "ba9876543210"})
+    assert r.status == "fail" and "rigctl firmware --flash" in r.fix and r.values["board_build"] in r.summary
+    assert check({"build": None}).status == "skip"
 
 
 def test_a_stored_report_is_schema_checked():
@@ -259,8 +277,8 @@ def test_cli_doctor_hil_passes(tmp_path):
     rep = json.loads(p.stdout)
     by = {c["name"]: c for c in rep["checks"]}
     assert not [n for n, c in by.items() if c["status"] == "fail"], by
-    for name in ("link", "firmware-version", "controller-faults", "reset-cause", "e-stop", "hx711-rate",
-                 "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed"):
+    for name in ("link", "firmware-version", "firmware-build", "controller-faults", "reset-cause", "e-stop",
+                 "hx711-rate", "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed"):
         assert by[name]["status"] == "pass", by[name]
     assert load_rig_config(cfg)["doctor"]["hil"]["ok"] is True
 
@@ -272,13 +290,16 @@ def test_cli_doctor_hil_with_the_real_bootloaders(tmp_path):
     the sketch's first reading had waited: timed from it, the rate read 95.4 SPS for the 80 SPS part (firmware before
     the rate was timed from the second edge; past the 20 % tolerance in a third of boots on a bench)."""
     p = _rigctl("doctor", "--hil-bootloaders", "--rest-s", "2", "--json", "--no-save", "--check", "link",
-                "--check", "reset-cause", "--check", "hx711-rate", env={**os.environ, "HOME": str(tmp_path)})
+                "--check", "reset-cause", "--check", "hx711-rate", "--check", "firmware-build",
+                env={**os.environ, "HOME": str(tmp_path)})
     assert p.returncode == 0, p.stdout + p.stderr
     by = {c["name"]: c for c in json.loads(p.stdout)["checks"]}
     assert by["link"]["status"] == "pass", by["link"]
     # the stk500v2 bootloader clears MCUSR before the sketch reads it: the cause is unknown, never a false one
     assert by["reset-cause"]["values"]["reset_cause"] == [], by["reset-cause"]
     assert by["hx711-rate"]["values"]["hx711_rate_sps"] == pytest.approx(80.0, rel=0.01), by["hx711-rate"]
+    # the Uno's banner names the sources it was built from (build=): those installed
+    assert by["firmware-build"]["status"] == "pass", by["firmware-build"]
 
 
 @pytest.mark.hil

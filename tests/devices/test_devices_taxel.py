@@ -29,7 +29,7 @@ def test_banner_and_identify(uno):
         assert stream.ring.n_channels == 18
         ident = stream.identify()
         assert ident == {"firmware": (1, 0), "channels": 18, "ch": 18, "rate_hz": 1000, "bits": 10,
-                         "baud": 1_000_000, "layout": None,
+                         "baud": 1_000_000, "layout": None, "build": None,
                          "line": "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"}
         assert stream.stats.connected
 

@@ -142,13 +142,15 @@ def check_firmware_build(ctx: DoctorContext) -> CheckResult:
     banner = getattr(ctx.rig().stream, "banner", None) or {}
     build = banner.get("build")
     if build is None:
-        raise Skip(f"the boards report a version only, no build hash to compare with the installed sources "
-                   f"(sha256 {digest[:12]}): a rebuild without a version change is not told apart")
+        raise Skip(f"the taxel streamer reports no build (a simulated board, or firmware built without BUILD_ID) to "
+                   f"compare with the installed sources (sha256 {digest[:12]})")
     if not digest.startswith(str(build).lower()):
         return failed("firmware-build", f"the taxel streamer runs build {build}, the installed sources are "
-                      f"{digest[:len(str(build))]}", "flash the installed firmware: rigctl firmware --flash PORT",
-                      board_build=str(build), sources_digest=digest)
-    return passed("firmware-build", f"build {build} = the installed sources", sources_digest=digest)
+                      f"{digest[:len(str(build))]}", "flash the installed firmware: rigctl firmware --flash PORT "
+                      "--board uno (and --board mega: built from the same sources)", board_build=str(build),
+                      sources_digest=digest)
+    return passed("firmware-build", f"taxel streamer build {build} = the installed sources' (the drum controller "
+                  "reports its version only: see firmware-version)", board_build=str(build), sources_digest=digest)
 
 
 def _flag_names(value: Any) -> list[str]:

@@ -203,8 +203,15 @@ ISR(USART_RX_vect)
 
 static uint8_t text_buf[96];
 
-static const char banner_P[] PROGMEM = RIGCTL_UNO_BANNER;
-static const char identity_P[] PROGMEM = RIGCTL_UNO_IDENTITY;
+/* build=<the sources' digest> (docs/wire-protocol.md 1.4): given by the build (make BUILD_ID=..., as rigctl's firmware
+ * builds do), so that the host can tell a board flashed from other sources with the same version */
+#ifdef RIGCTL_BUILD_ID
+#define RIGCTL_BUILD_FIELD " build=" RIGCTL_BUILD_ID
+#else
+#define RIGCTL_BUILD_FIELD ""
+#endif
+static const char banner_P[] PROGMEM = RIGCTL_UNO_BANNER RIGCTL_BUILD_FIELD;
+static const char identity_P[] PROGMEM = RIGCTL_UNO_IDENTITY RIGCTL_BUILD_FIELD;
 
 /* send a text line (in flash) through the transmit interrupt (the stream must be stopped); returns when it is out */
 static void send_line_P(const char *s)
