@@ -80,40 +80,25 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     in order: read, resample (--resample), scale to ADC counts (--volts-ref), segment (--segment), label
     (--label-pattern, --texture, mapping); each is recorded in the session's attributes.
     """
-    from rigctl.storage.importers import RecordingImportError, import_recordings as run
+    from rigctl.operations import import_recordings as run
 
     check_output(out, overwrite=overwrite, inputs=(*files, mapping))
-    if preset == "fabricslide":
-        from rigctl.storage.fabricslide import import_fabricslide
-
-        if len(files) != 1:
-            raise click.UsageError("--preset fabricslide takes one FILES argument: the FabricSlide folder")
-        try:
-            with bars(not quiet and not as_json) as progress:
-                summary = import_fabricslide(files[0], out, overwrite=overwrite, progress=progress)
-        except (FileNotFoundError, FileExistsError, ValueError) as exc:
-            raise click.ClickException(str(exc)) from None
-        click.echo(json_text(summary) if as_json else
-                   f"{summary['n_trials']} trials, 16 channels at 1000 Hz -> {summary['path']} "
-                   f"(textures: {', '.join(summary['labels'])})")
-        return
+    if preset is not None and len(files) != 1:
+        raise click.UsageError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
+    options = {} if preset else dict(
+        rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
+        resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, mapping=mapping,
+        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan)
     try:
         with bars(not quiet and not as_json) as progress:
-            summary = run(files, out, rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern,
-                          texture=texture, resample_hz=resample_hz, segment_spec=segment_spec, align=align,
-                          pre_ms=pre_ms, mapping=mapping, volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, overwrite=overwrite,
-                          progress=progress)
-    except (RecordingImportError, FileExistsError, FileNotFoundError, ValueError) as exc:
+            report = run(files, out, preset=preset, overwrite=overwrite, progress=progress, **options)
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RecordingImportError is a ValueError
         raise click.ClickException(str(exc)) from None
-    for line in summary["warnings"]:
+    for line in report.warnings:
         click.echo(f"warning: {line}", err=True)
     if as_json:
-        click.echo(json_text({k: v for k, v in summary.items() if k != "steps"}))
-    else:
-        if summary["segments"]:
-            from rigctl.storage.segmentation import segment_table
-
-            click.echo(segment_table(summary["segments"]))
-        click.echo(f"{summary['n_trials']} trials, {summary['n_channels']} channels at {summary['rate_hz']:g} Hz, "
-                   f"{summary['samples'] / summary['rate_hz']:.1f} s -> {summary['path']} "
-                   f"(textures: {', '.join(summary['textures'])})")
+        click.echo(json_text(report.json_summary()))
+        return
+    if report.table:
+        click.echo(report.table)
+    click.echo(report.line())

@@ -19,6 +19,8 @@ One package of small modules, each one job an operator does:
   (``rigctl serve``'s HTTP API is a face on it).
 - :class:`LslPublisher` (``_lsl``): a run published on Lab Streaming Layer (taxels, SA/RA spikes, drum state,
   markers); :func:`lsl_requested` (the flag, else the rig config's ``lsl.enabled``).
+- :func:`import_recordings` / :class:`ImportReport` (``_import``): other labs' recordings (or a known dataset's
+  preset) into a session file, with the per-file segmentation table and the outlier warnings.
 - :class:`LiveEncoder` (``_live``): the taxel stream encoded into SA/RA spikes as it arrives, into
   :class:`SpikeRing` s a live view reads.
 
@@ -44,6 +46,7 @@ from rigctl.operations._calibrate import (
 )
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
+from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recordings
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
 from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue
@@ -58,5 +61,6 @@ __all__ = [
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "ProtocolRun", "RUN_STATES",
+    "import_recordings", "ImportReport", "IMPORT_PRESETS",
     "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",
 ]
