@@ -113,6 +113,8 @@ class RunQueue:
         self.runs: dict[str, QueuedRun] = {}
         self.current: ProtocolRun | None = None
         self.current_id: str | None = None
+        #: the current run's trial: the last trial event's trial_id, texture, speed_mm_s, force_g, attempt, kind
+        self.current_trial: dict[str, Any] | None = None
         #: STOP holds the queue: no further run starts until release()
         self.held = False
         self._closing = False
@@ -334,7 +336,7 @@ class RunQueue:
                       ended_utc=_utc_now())
             return
         with self._lock:
-            self.current, self.current_id = pr, run.id
+            self.current, self.current_id, self.current_trial = pr, run.id, None
             self._set(run, state="running", starts=run.starts + 1, started_utc=run.started_utc or _utc_now())
         try:
             summary = pr.run()
@@ -363,6 +365,9 @@ class RunQueue:
         if event.kind in ("paused", "resumed"):
             self._set(run, state="paused" if event.kind == "paused" else "running")
         p = event.planned
+        if p is not None:
+            self.current_trial = {"trial_id": p.trial_id, "texture": p.texture, "speed_mm_s": p.speed_mm_s,
+                                  "force_g": p.force_g, "attempt": event.attempt, "event": event.kind}
         self._emit({"type": "trial", "id": run.id, "kind": event.kind, "index": event.index, "total": event.total,
                     "trial_id": None if p is None else p.trial_id, "texture": None if p is None else p.texture,
                     "error": event.error, "attempt": event.attempt})

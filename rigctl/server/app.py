@@ -97,8 +97,8 @@ def create_app(run_queue: RunQueue, *, token: str | None = None) -> FastAPI:
     @app.get("/status", dependencies=auth)
     def status() -> dict[str, Any]:
         """Rig state (the drum controller's status), board health (the taxel stream's frames, drops, CRC errors,
-        connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue and the
-        current run."""
+        connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue, the
+        current run and its current trial (id, texture, speed, force, attempt, last event)."""
         control = run_queue.control
         rig: dict[str, Any] = {"mode": control.rig.mode}
         try:
@@ -110,6 +110,7 @@ def create_app(run_queue: RunQueue, *, token: str | None = None) -> FastAPI:
         current = run_queue.current_id
         return {"rig": rig, "held": run_queue.held, "current_run": None if current is None else
                 run_queue.get(current).public(),
+                "current_trial": None if current is None else _plain(run_queue.current_trial),
                 "queued": [r.id for r in run_queue.list() if r.state == "queued"]}
 
     @app.post("/runs", status_code=201, dependencies=auth)

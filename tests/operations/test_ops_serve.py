@@ -59,6 +59,8 @@ def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path)
     assert client.get(f"/runs/{b}").json()["state"] == "queued"  # one run owns the rig
     assert client.get("/status").json()["current_run"]["id"] == a
     _wait(lambda: client.get(f"/runs/{a}").json()["trials_done"] >= 1)
+    trial = _wait(lambda: client.get("/status").json()["current_trial"])
+    assert trial["texture"] in ("A", "L") and trial["speed_mm_s"] == 120.0 and 0 <= trial["trial_id"] < 8
     assert client.post(f"/runs/{a}/pause").status_code == 200
     _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "paused")
     done = client.get(f"/runs/{a}").json()["trials_done"]
