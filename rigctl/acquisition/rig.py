@@ -45,6 +45,7 @@ from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.drum import (
     DRUM_CIRCUMFERENCE_MM,
     DRUM_MICROSTEPS,
+    DRUM_SPEED_TOLERANCE,
     DRUM_STEPS_PER_REV,
     PROTOCOL_LIMITS,
     DrumError,
@@ -85,12 +86,6 @@ INDEX_GAP_MAX_FRAMES = 5
 #: ms, up to ~0.4 s seen; a revolution is 2.1-7.9 s at 150-40 mm/s)
 INDEX_PREDICTION_TOLERANCE_S = 0.5
 INDEX_PREDICTION_TOLERANCE_REVS = 0.1
-#: a trial's drum speed measured by the index sensor may differ from its setpoint by this fraction (and the
-#: microsteps per revolution counted between two index edges from the firmware's steps_per_rev x microsteps) before
-#: the trial is flagged ``drum_speed_mismatch`` (a driver at another microstep setting, missed steps, a step rate that
-#: is not the setpoint's). The sensor counts revolutions: a drum of another diameter than the firmware's turns at the
-#: expected rate and is not seen (speeds in mm/s are computed with the firmware's diameter)
-DRUM_SPEED_TOLERANCE = 0.03
 #: the drum controller times its HX711's rate at boot (6 DOUT-ready edges: 75 ms at 80 SPS, 0.6 s at 10 SPS; spec 2.9)
 #: and refuses PRESS and RUN until then. A rig that opens, or re-homes after a reset, waits up to this long (s of the
 #: drum client's clock; it ends at the measurement) so that a rate fault is latched before it judges the controller's
@@ -812,7 +807,7 @@ def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
       is the setpoint's; the revolutions per step come from the sensor); NaN and ``""`` when neither is known
       (no sensor, a ramp trial);
     - ``drum_speed_mismatch`` (True when the sensor disagrees with the step count by more than
-      :data:`DRUM_SPEED_TOLERANCE`) and ``drum_speed_warning`` (why, "" when none).
+      :data:`rigctl.core.drum.DRUM_SPEED_TOLERANCE`) and ``drum_speed_warning`` (why, "" when none).
 
     Geometry: :mod:`rigctl.core.drum`.
     """

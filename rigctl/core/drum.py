@@ -33,7 +33,7 @@ __all__ = [
     "DrumState", "Fault", "SpeedProfile", "ResetCause", "StatusFlag", "DrumStatus", "DrumLimits", "SettleBand", "ForceLoopConfig",
     "SetpointRange",
     "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
-    "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM",
+    "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM", "DRUM_SPEED_TOLERANCE",
     "STATE_TEXT", "FAULT_WORDS", "FaultWords", "describe_state", "describe_faults", "fault_advice",
     "DrumError", "DrumTimeout", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
@@ -418,6 +418,12 @@ DRUM_STEPS_PER_REV = 200
 DRUM_MICROSTEPS = 16
 #: drum circumference, mm (pi x diameter): one revolution of the plate
 DRUM_CIRCUMFERENCE_MM = math.pi * DRUM_DIAMETER_MM
+#: how far the drum speed the index sensor measures (and the microsteps per revolution it counts) may be from the
+#: setpoint (the firmware's steps_per_rev x microsteps) before a trial is flagged ``drum_speed_mismatch`` and the
+#: doctor's drum-speed check fails: another microstep setting is a factor of 2 or more, missed steps a few %. The
+#: sensor counts revolutions: a drum of another diameter than the firmware's turns at the expected rate and is not
+#: seen (speeds in mm/s use the firmware's diameter)
+DRUM_SPEED_TOLERANCE = 0.03
 
 
 # ----------------------------------------------------------------------------------------------------------------

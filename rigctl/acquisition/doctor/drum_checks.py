@@ -22,6 +22,7 @@ from rigctl.core.drum import (
     DRUM_CIRCUMFERENCE_MM,
     DRUM_DIAMETER_MM,
     DRUM_MICROSTEPS,
+    DRUM_SPEED_TOLERANCE,
     DRUM_STEPS_PER_REV,
     DrumState,
     fault_advice,
@@ -43,9 +44,6 @@ STEP_TRACE_S = 6.0
 POLL_S = 0.02
 #: the drum speeds the index check runs at, mm/s (the paper's slowest and fastest)
 DRUM_SPEED_CHECK_MM_S = (40.0, 120.0)
-#: an index-measured drum speed further than this fraction from its setpoint fails (another microstep setting is a
-#: factor of 2 or more; a diameter 2 mm off is 2 %)
-DRUM_SPEED_TOLERANCE = 0.02
 #: the index check counts edges from this long after RUN (controller time), s: the drum reaches 120 mm/s in 0.3 s at
 #: its 400 mm/s^2 ramp (drum_config.h DRUM_ACCEL_MM_S2)
 DRUM_SPINUP_S = 1.0
