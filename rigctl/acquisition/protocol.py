@@ -5,7 +5,8 @@ the file declares, with optional groups and geometry), the speed/force condition
 lasts (a fixed travel of the drum surface, 240 mm in the paper's dataset, or a fixed duration), the trial order and
 the settle timeouts, and the trial quality policy: ``max_dropped_frames`` (default 0: a trial may lose no frame) and
 ``retries`` (default 2: a trial that fails or loses more frames than that is recorded again up to twice, then marked
-failed; :func:`rigctl.acquisition.runner.run_protocol`); :meth:`Protocol.plan` expands it into one
+failed; :func:`rigctl.acquisition.runner.run_protocol`) and, for the replay rig, ``replay`` ("trials": each
+trial starts at the replayed recording's next trial; "continuous"); :meth:`Protocol.plan` expands it into one
 :class:`PlannedTrial` per trial. Velocity profiles
 (constant, or a linear ramp from a start to an end speed) cover the paper's real-time experiment (Fig. 4: slow,
 medium, fast, slow-to-fast, fast-to-slow). The format is documented in ``protocols/paper_dataset.toml`` and
@@ -44,6 +45,9 @@ MAX_RETRIES = 10
 #: the paper's plate labels (the default texture set, :data:`rigctl.core.textures.PAPER_TEXTURES`)
 TEXTURE_LETTERS = "".join(PAPER_TEXTURES.labels)
 ORDERS = ("blocked", "interleaved", "random")
+#: what the replay rig does between trials (the protocol's ``replay``): start each at the source's next trial, or
+#: play the source on
+REPLAY_MODES = ("trials", "continuous")
 
 
 class ProtocolError(ValueError):
@@ -117,6 +121,9 @@ class Protocol:
     max_dropped_frames: int = 0
     #: how many times a failed trial (lost frames, a lost stream, a timeout, a fault) is recorded again at once
     retries: int = 2
+    #: on the replay rig: "trials" (each trial starts at the source's next trial of the mounted plate) or
+    #: "continuous" (the source plays on across trials)
+    replay: str = "trials"
     format: str = "toml"
 
     @property
@@ -291,6 +298,7 @@ class _Validator:
     TOP = {
         "name", "description", "textures", "speeds_mm_s", "forces_g", "trials_per_condition", "travel_mm",
         "duration_s", "order", "seed", "settle", "profiles", "texture_set", "max_dropped_frames", "retries",
+        "replay",
     }
     TEXTURE_SET = {"name", "textures", "groups", "geometry"}
     SETTLE = {"force_timeout_s", "speed_timeout_s", "speed_tolerance_mm_s", "force_tolerance_g", "settle_time_ms"}
@@ -402,6 +410,9 @@ class _Validator:
         seed = self._int(("seed",), doc.get("seed", 0), lo=0)
         max_dropped = self._int(("max_dropped_frames",), doc.get("max_dropped_frames", 0), lo=0)
         retries = self._int(("retries",), doc.get("retries", 2), lo=0, hi=MAX_RETRIES)
+        replay = doc.get("replay", "trials")
+        if replay not in REPLAY_MODES:
+            raise self.error(("replay",), f"{replay!r} is not one of {', '.join(REPLAY_MODES)}")
         n_trials = len(textures) * len(forces) * len(profiles) * tpc
         if n_trials > MAX_PLAN_TRIALS:
             raise self.error(("trials_per_condition",), f"the plan would hold {n_trials} trials, more than "
@@ -430,7 +441,7 @@ class _Validator:
             name=name.strip(), source=self.source, path=self.path, description=description,
             textures=tuple(textures), texture_set=texture_set, profiles=tuple(profiles), forces_g=forces, trials_per_condition=tpc,
             travel_mm=travel, duration_s=duration, order=order, seed=seed, settle=settle,
-            max_dropped_frames=max_dropped, retries=retries,
+            max_dropped_frames=max_dropped, retries=retries, replay=replay,
         )
         for key, prof in zip(keys, profiles):
             d = proto.trial_duration_s(prof)

@@ -177,6 +177,9 @@ class Rig:
         self.prompt = prompt
         self.texture: str | None = None
         self.settle = Settle()
+        #: replay rig: True plays the source on across trials (the protocol's ``replay = "continuous"``); False
+        #: starts each trial at the source's next trial
+        self.replay_continuous = False
         self.host_config = dict(host_config or {})
         self.host_config_path = host_config_path
         self._textures: TextureSet = backend.textures or PAPER_TEXTURES
@@ -626,9 +629,9 @@ class Rig:
         Notes
         -----
         On the replay rig (:class:`rigctl.core.interfaces.ReplayProvenance`) a trial follows the source's trials
-        instead: the source goes on at its next trial as the capture starts, the trial starts at the frame carrying
-        that trial's first sample, and the source's labels and sample range are stored (``source_file``,
-        ``source_trial_id``, ``source_texture``, ``source_speed_mm_s``, ``source_force_g``,
+        instead (unless :attr:`replay_continuous`): the source goes on at its next trial as the capture starts, the
+        trial starts at the frame carrying that trial's first sample, and the source's labels and sample range are
+        stored (``source_file``, ``source_trial_id``, ``source_texture``, ``source_speed_mm_s``, ``source_force_g``,
         ``source_first_sample``, ``source_last_sample``; ``source_pieces`` when it crosses source trials).
 
         Index alignment (other constant-speed trials): once the drum runs steadily, the capture starts and the drum angle
@@ -696,7 +699,7 @@ class Rig:
         replay = self.backend if self.mode == "replay" and isinstance(self.backend, ReplayProvenance) else None
         # a replayed trial follows the source's next trial (from the frame that carries its first sample), not the
         # drum's index
-        cue = replay.begin_source_trial() if replay is not None else None
+        cue = replay.begin_source_trial() if replay is not None and not self.replay_continuous else None
         self.stream.begin_capture()
         t_start = clock.now()
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S

@@ -312,6 +312,7 @@ class _Run:
     def __init__(self, protocol: Protocol, writer: SessionWriter, out_path: Path, rig: Rig, *, interrupts: _Interrupts,
                  progress: ProgressCallback | None, stop_event, on_trial, prompt, on_failure: str):
         self.protocol, self.writer, self.rig, self.interrupts = protocol, writer, rig, interrupts
+        rig.replay_continuous = protocol.replay == "continuous"  # what a replay rig does between trials
         self.progress, self.stop_event, self.on_trial, self.prompt = progress, stop_event, on_trial, prompt
         self.on_failure = on_failure
         self.plan = [PlannedTrial.from_row(r) for r in writer.plan]

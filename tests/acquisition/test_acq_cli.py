@@ -190,6 +190,20 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
             np.testing.assert_array_equal(t.taxels, source[texture][first:last + 1].astype(np.uint16))
     info = _info(out, env)
     assert info["trials"][0]["source"]["file"] == "lab.h5" and info["trials"][0]["source"]["trial_id"] == 1
+    # replay = "continuous": the recording plays on across trials; the provenance still names every sample
+    proto.write_text(proto.read_text().replace('duration_s = 0.5\n', 'duration_s = 0.5\nreplay = "continuous"\n'))
+    out2 = tmp_path / "continuous.h5"
+    run = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(out2), "--quiet"],
+                         capture_output=True, text=True, env=env, timeout=180)
+    assert run.returncode == 0, run.stderr
+    with open_session(out2) as s:
+        for tid in s.completed_ids():
+            a = s.trial_attrs(tid)
+            pieces = json.loads(a["source_pieces"]) if "source_pieces" in a else [
+                {k: a[k] for k in ("source_texture", "source_first_sample", "source_last_sample")}]
+            rebuilt = np.concatenate([source[p["source_texture"]][p["source_first_sample"]:p["source_last_sample"] + 1]
+                                      for p in pieces]).astype(np.uint16)
+            np.testing.assert_array_equal(s.trial(tid).taxels, rebuilt)
 
 
 def test_acquire_replays_a_fabricslide_folder_following_the_mounted_plate(tmp_path, fabricslide_dir):

@@ -136,3 +136,19 @@ def test_script_protocols(tmp_path):
     norun.write_text("def go(rig, session):\n    pass\n")
     with pytest.raises(ProtocolError, match=r"run\(rig, session\)"):
         load_protocol(norun)
+
+
+def test_replay_mode_key(tmp_path):
+    """`replay = "continuous"` lets a replay rig play the recording on across trials; the default starts each trial
+    at the recording's next trial; anything else is refused with the key named."""
+    from rigctl.acquisition.protocol import ProtocolError, load_protocol
+
+    base = 'name = "r"\ntextures = ["A"]\nspeeds_mm_s = [40]\nforces_g = [500]\nduration_s = 1.0\n'
+    p = tmp_path / "p.toml"
+    p.write_text(base)
+    assert load_protocol(p).replay == "trials"
+    p.write_text(base + 'replay = "continuous"\n')
+    assert load_protocol(p).replay == "continuous"
+    p.write_text(base + 'replay = "loop"\n')
+    with pytest.raises(ProtocolError, match="replay"):
+        load_protocol(p)
