@@ -10,7 +10,9 @@ Layout (schema :data:`ENCODED_SCHEMA_VERSION` = 3)::
     /trials                  compound table, one row per trial: trial_id u4, texture (variable-length UTF-8),
                              group (variable-length UTF-8, "" when the texture set has none), speed_mm_s f4 (NaN
                              when unknown), force_g f4 (NaN when unknown), profile (VL UTF-8), duration_s f4,
-                             n_samples u4 (samples at the session's own rate)
+                             n_samples u4 (samples at the session's own rate); an imported session's trials also
+                             recording (VL UTF-8: the source file) and recording_start_s f8 (where in it the trial
+                             starts), optional columns every reader passes through (OPTIONAL_TRIAL_COLUMNS)
     /features/<variant>      (n_trials, n_features) float32 (feature layout: rigctl.encoding.features)
     /spikes/<variant>/       NWB-style ragged trains, row = trial * n_trains + train; attrs n_trains, unit, trains;
                              either ticks: spike_ticks (uint32 model steps) + spike_times_index (int64 row ends) +
