@@ -37,9 +37,17 @@ from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, Sta
 if TYPE_CHECKING:
     from rigctl_gui.connect_dialog import ConnectDialog
 
-#: the app's refresh period (ms): 30 ms = 33 Hz, so the live view keeps >= 30 frames/s with 10 % slack without
-#: drawing (and paying for) frames nobody needs (issue 12: < 25 % of a core)
-REFRESH_MS = 30
+#: the frame cap: the app's clock ticks (and the visible live view redraws) at most this often, per s; 30 frames/s
+#: is smooth for 2 s of scrolling traces without drawing (and paying for) frames nobody needs (issue 26: < 20 % of a
+#: core). ``rigctl gui --max-fps`` sets it (the clock's period is whole ms: 30/s -> 33 ms = 30.3/s)
+MAX_FPS = 30.0
+#: the range ``--max-fps`` accepts, frames/s
+FPS_RANGE = (1.0, 120.0)
+
+
+def refresh_ms(max_fps: float) -> int:
+    """The clock's period (whole ms, at least 1) for a frame cap of ``max_fps`` frames/s: never above the cap."""
+    return max(1, int(np.ceil(1000.0 / float(max_fps))))
 TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify")
 #: the live plots are marked stale when no taxel frame has arrived for this long, s
 STALE_AFTER_S = 1.0
@@ -84,7 +92,7 @@ def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = No
 class MainWindow(QtWidgets.QMainWindow):
     """The rigctl main window. ``source=None`` reads the last source from QSettings (simulated rig by default)."""
 
-    def __init__(self, source: RigSource | None = None, *, autoconnect: bool = True):
+    def __init__(self, source: RigSource | None = None, *, autoconnect: bool = True, max_fps: float = MAX_FPS):
         super().__init__()
         from rigctl_gui.analysis_tab import AnalysisTab
         from rigctl_gui.calibration_tab import CalibrationTab
@@ -223,7 +231,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.timer = QtCore.QTimer(self)
         self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
         self.timer.timeout.connect(self.refresh)
-        self.timer.start(REFRESH_MS)
+        period_ms = refresh_ms(max_fps)
+        self._slow_every = max(1, round(120 / period_ms))  # the other tabs, events and faults: every ~0.12 s
+        self._health_every = max(1, round(300 / period_ms))  # link health: every ~0.3 s
+        self.timer.start(period_ms)
         self._update_source_label("not connected")
         if autoconnect:
             self.connect_source(self.source)
@@ -596,7 +607,7 @@ class MainWindow(QtWidgets.QMainWindow):
         current = self.tabs.currentWidget()
         if current is self.live:
             self.live.refresh()
-        if self._tick % 4 == 0:
+        if self._tick % self._slow_every == 0:
             if current is self.control:
                 self.control.refresh()
             self.protocol.refresh()
@@ -608,7 +619,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.apply_run_lock()
             self._sync_actions()
             self._check_faults()
-        if self._tick % 10 == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
+        if self._tick % self._health_every == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
             self._judge_dropped_frames()
             self.links.update_from(self.poller, self.handle.taxels if self.handle else None)
         if self._tick % 20 == 0:
@@ -776,7 +787,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                     "A-P on the paper's rig) once connected")
     ap.add_argument("--stats-out", metavar="PATH", help="append display statistics (JSON lines) every second "
                     "(benchmarks/bench_gui.py)")
-    return ap.parse_args(argv)
+    ap.add_argument("--max-fps", type=float, default=MAX_FPS, metavar="N",
+                    help=f"frame cap of the live view, frames/s ({FPS_RANGE[0]:g}-{FPS_RANGE[1]:g}; default "
+                         f"{MAX_FPS:g})")
+    args = ap.parse_args(argv)
+    if not FPS_RANGE[0] <= args.max_fps <= FPS_RANGE[1]:
+        ap.error(f"--max-fps must be {FPS_RANGE[0]:g}-{FPS_RANGE[1]:g} frames/s, got {args.max_fps:g}")
+    return args
 
 
 def source_from_args(args) -> RigSource | None:
@@ -827,7 +844,7 @@ def main(argv=None) -> int:
     # than the default 5 ms so a paint is not kept waiting behind a worker
     sys.setswitchinterval(0.001)
     configure_pyqtgraph()
-    window = MainWindow(source_from_args(args))
+    window = MainWindow(source_from_args(args), max_fps=args.max_fps)
     if args.tab:
         window.tabs.setCurrentIndex(TAB_NAMES.index(args.tab))
     window.show()

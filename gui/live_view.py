@@ -54,7 +54,7 @@ INFO_EVERY = 10
 MIN_LABELLED_CELL_PX = 22
 #: outages marked at once in each time plot (a dashed line each)
 GAP_MARKS = 4
-#: the heat maps are updated every this many refreshes (8 Hz at the app's 33 Hz: a "now" map needs no more, and
+#: the heat maps are updated every this many refreshes (~8 Hz at the app's default 30 frames/s: a "now" map needs no more, and
 #: each update repaints the maps and their taxel numbers)
 HEATMAP_EVERY = 4
 

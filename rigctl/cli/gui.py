@@ -43,7 +43,9 @@ def _require_display() -> None:
 @click.option("--run", is_flag=True, help="Press and run the drum at the panel's setpoints once connected.")
 @click.option("--texture", default=None, help="Mount this texture plate (a label of the rig's set, A-P by default) "
                                               "once connected.")
-def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, tab, run, texture):
+@click.option("--max-fps", type=floats(0, 1e6), default=None,
+              help="Frame cap of the live view, frames/s (1-120; default 30: the app's MAX_FPS).")
+def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, tab, run, texture, max_fps):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 
     With no source option it opens the source last chosen in its Connect dialog (the simulated rig the first time;
@@ -65,7 +67,7 @@ def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, t
     argv = []
     for flag, value in (("--drum-port", drum_port), ("--taxel-port", taxel_port), ("--replay", replay),
                         ("--screenshot", screenshot), ("--quit-after", quit_after), ("--tab", tab),
-                        ("--texture", texture)):
+                        ("--texture", texture), ("--max-fps", max_fps)):
         if value is not None:
             argv += [flag, str(value)]
     if run:

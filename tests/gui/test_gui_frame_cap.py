@@ -1,0 +1,41 @@
+"""The live view's frame cap (issue 26): the app's clock ticks at most ``--max-fps`` times a second (default 30),
+counted on a real Qt event loop offscreen, and the option refuses a cap outside its range."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from rigctl_gui.events import wait_for
+
+
+@pytest.mark.parametrize("fps", [30.0, 10.0])
+def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph, refresh_ms
+
+    configure_pyqtgraph()
+    w = MainWindow(autoconnect=False, max_fps=fps)
+    try:
+        assert w.timer.interval() == refresh_ms(fps) and 1000 / w.timer.interval() <= fps
+        w.show()
+        wait_for(qapp, lambda: w._tick >= 1, 30)
+        start, t0 = w._tick, time.monotonic()
+        assert wait_for(qapp, lambda: w._tick >= start + 10, 60)  # it ticks ...
+        rate = (w._tick - start) / (time.monotonic() - t0)
+        assert rate <= fps * 1.05  # ... never above the cap (a loaded machine may tick slower, never faster)
+    finally:
+        w.close()
+        w.deleteLater()
+        qapp.processEvents()
+
+
+def test_max_fps_is_an_option_with_a_range():
+    from rigctl_gui.app import MAX_FPS, parse_args
+
+    assert parse_args([]).max_fps == MAX_FPS == 30.0
+    assert parse_args(["--max-fps", "60"]).max_fps == 60.0
+    for bad in ("0.5", "500", "nan"):
+        with pytest.raises(SystemExit) as err:
+            parse_args(["--max-fps", bad])
+        assert err.value.code == 2
