@@ -58,6 +58,8 @@ __all__ = [
 TASK_TITLES = {
     "textures": "Individual Textures (Fig. 3A)",
     "groups": "Texture Groups (Fig. 3B)",
+    "textures_blocked": "Individual Textures, time blocks held out",
+    "groups_blocked": "Texture Groups, time blocks held out",
     "untrained_speed_force": "Untrained Speed and Force (Fig. 3C)",
     "untrained_force": "Untrained Force (Fig. 3D)",
     "untrained_speed": "Untrained Speed (Fig. 3E)",

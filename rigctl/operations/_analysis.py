@@ -144,8 +144,8 @@ def _run_tasks(data: Any, plan: AnalysisPlan, progress: Progress, execution: Exe
             blocked = dataclasses.replace(plan.cv, groups=spec)
             res.warnings.append(
                 f"every texture's trials come from one recording: random folds test how well a recording recognises "
-                f"itself; '{BLOCKED_SUFFIX.strip('_')}' rows hold out time blocks ({spec}: "
-                "--cv-groups block:N)")
+                f"itself; the 'time blocks held out' rows keep each block of a recording on one side ({spec}; "
+                "choose with --cv-groups block:N)")
             steps.append(("/".join(cv_tasks) + " " + spec, lambda: _renamed(tasks.run_cv(
                 data, tuple(cv_tasks), blocked, reps=plan.reps, execution=execution, progress=progress))))
     if "extrapolation" in plan.tasks:
@@ -165,6 +165,7 @@ def _run_tasks(data: Any, plan: AnalysisPlan, progress: Progress, execution: Exe
             if plan.on_error == "raise":
                 raise
             res.warnings.append(f"{name} skipped: {exc}")
+    res.warnings = list(dict.fromkeys(res.warnings))  # a blocked twin repeats its random run's warnings
     return res
 
 
