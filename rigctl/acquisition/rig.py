@@ -92,6 +92,8 @@ INDEX_PREDICTION_TOLERANCE_REVS = 0.1
 #: state: the firmware under simavr answered 0.1 s after boot, HOME passed, and HX711_RATE latched during the wait for
 #: IDLE ("cannot open the rig")
 HX711_BOOT_WAIT_S = 5.0
+#: :meth:`Rig.press` waits for the settled force in steps of this long, checking for an abort in between, s
+SETTLE_POLL_S = 0.25
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0
 
@@ -567,15 +569,18 @@ class Rig:
                             "homes and tares it again before the next press")
 
     # ------------------------------------------------------------------------------------------------- trials
-    def press(self, force_g: float, *, timeout_s: float | None = None) -> float:
+    def press(self, force_g: float, *, timeout_s: float | None = None,
+              stop_event: threading.Event | None = None) -> float:
         """Set the force setpoint, engage the force loop and wait until the force has settled on it.
 
         Returns the time it took, s. Raises :class:`rigctl.devices.errors.SetpointRangeError` (out of range, nothing
-        sent), :class:`rigctl.devices.errors.DrumTimeout` (not settled in time), ``DrumFault``.
+        sent), :class:`rigctl.devices.errors.DrumTimeout` (not settled in time), ``DrumFault``,
+        :class:`TrialAborted` (``stop_event`` set while waiting: within :data:`SETTLE_POLL_S`).
         """
         force_g = PROTOCOL_LIMITS.force_range().check(force_g)
         timeout_s = self.settle.force_timeout_s if timeout_s is None else timeout_s
-        t0 = time.monotonic()
+        clock = self.drum.clock  # wall time on a real link, simulated time in-process
+        t0 = clock.now()
         st = self.drum.read_status()
         # never press on a position or a zero from before a reset (or an e-stop): home and tare first
         if self.check_drum_reset(st) or st.state == DrumState.NOT_HOMED:
@@ -598,15 +603,25 @@ class Rig:
         tol = self.drum.settle_band().force_tolerance_g
         deadline = t0 + timeout_s
         while True:
-            self.drum.wait_force_settled(timeout_s=max(0.05, deadline - time.monotonic()))
-            st = self.drum.read_status()
+            # in short waits, so that an abort (STOP in the GUI, Ctrl-C's stop event) ends the wait at once
+            _abort_if(stop_event)
+            try:
+                self.drum.wait_force_settled(timeout_s=min(SETTLE_POLL_S, max(0.05, deadline - clock.now())))
+            except DrumTimeout:
+                if clock.now() <= deadline:
+                    continue
+                st = self.drum.read_status()
+            else:
+                st = self.drum.read_status()
             if (st.state == DrumState.FORCE_SETTLED and int(st.force_setpoint_active_g) == int(round(force_g))
                     and abs(float(st.force_g) - force_g) <= tol):
-                return time.monotonic() - t0
-            if time.monotonic() > deadline:
+                return clock.now() - t0
+            if clock.now() > deadline:
+                _abort_if(stop_event)
                 raise DrumTimeout(f"force did not settle at {force_g:g} g within {timeout_s:g} s "
                                   f"(state {DrumState(int(st.state)).name}, force {float(st.force_g):.0f} g)")
-            time.sleep(0.02)
+            _abort_if(stop_event)
+            clock.sleep(0.02)
 
     def record_trial(self, planned: PlannedTrial, *, stop_event: threading.Event | None = None) -> TrialData:
         """Record one trial on the mounted plate.
@@ -670,8 +685,8 @@ class Rig:
         settle = self.settle
         layout = self.layout
         rate = layout.sample_rate_hz
-        settle_s = self.press(planned.force_g)
         _abort_if(stop_event)
+        settle_s = self.press(planned.force_g, stop_event=stop_event)
         # spin up at a constant speed (a ramp's start speed) and wait until the drum runs steadily there
         first_speed = planned.ramp_start_mm_s if planned.is_ramp else planned.speed_mm_s
         self.drum.set_speed(first_speed)

@@ -840,6 +840,12 @@ class DrumClient:
         names = "/".join(sorted(s.name for s in states))
         return self._wait(lambda s: s.state in states, timeout_s, f"state {names}", DrumState.FAULT in states)
 
+    def wait_hx711_rate(self, timeout_s: float) -> DrumStatus:
+        """Poll until the controller has timed its HX711's output rate at boot (``hx711_rate_sps`` > 0: 6 DOUT-ready
+        edges, 75 ms at 80 SPS, 0.6 s at 10 SPS; docs/wire-protocol.md 2.9); until then it refuses PRESS and RUN.
+        Returns the status; DrumFault (e.g. HX711_RATE, LOADCELL_TIMEOUT) or DrumTimeout."""
+        return self._wait(lambda s: bool(s.hx711_rate_sps), timeout_s, "the HX711 rate timed at boot")
+
     def wait_released(self, timeout_s: float, home_mm: float = 0.05) -> DrumStatus:
         """Poll until IDLE with the actuator within ``home_mm`` of home (after STOP: the sensor is free).
         DrumFault / DrumTimeout."""

@@ -180,10 +180,7 @@ def home(drum: DrumClient) -> None:
     if drum.read_status().state == DrumState.NOT_HOMED:
         drum.home()
         drum.wait_state(DrumState.IDLE, timeout_s=30.0)
-    deadline = drum.clock.now() + 10.0
-    while not drum.read_status().hx711_rate_sps:  # PRESS and RUN wait for the boot's HX711 rate (spec 2.9)
-        assert drum.clock.now() < deadline, "the controller never timed its HX711's rate"
-        time.sleep(0.02)
+    drum.wait_hx711_rate(timeout_s=10.0)  # PRESS and RUN wait for the boot's HX711 rate (spec 2.9)
 
 
 def restore(drum: DrumClient, ctl: Controller) -> None:

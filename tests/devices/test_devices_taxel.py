@@ -46,6 +46,8 @@ def test_reopen_resets_the_board_and_waits_for_the_banner(uno):
 def test_no_banner_is_a_clear_error(tmp_path):
     silent = PtyEndpoint(tmp_path / "silent")
     try:
+        # open() compiles the numba CRC kernel first (1-4 s on a clean clone): what is timed here is the banner wait
+        wire.crc16_rows(np.zeros((1, 2), np.uint8))
         t0 = time.monotonic()
         with pytest.raises(TaxelStreamError, match="no ready banner"):
             TaxelStream(silent.path, banner_timeout_s=0.3).open()

@@ -65,3 +65,4 @@ def home(drum) -> None:
     if drum.read_status().state == wire.DrumState.NOT_HOMED:
         drum.home()
         drum.wait_state([wire.DrumState.IDLE], timeout_s=30)
+    drum.wait_hx711_rate(timeout_s=10)  # PRESS and RUN also wait for the HX711 rate timed at boot (spec 2.9)
