@@ -66,14 +66,16 @@ def _ramp(n: int) -> np.ndarray:
 
 def press_slide_recording(period_s: float, level_counts: float, n_cycles: int, *, texture_hz: float = 12.0,
                           seed: int = 0, startup_s: float = 3.0, alternating: bool = False, drift: float = 0.0,
-                          nan: bool = True) -> tuple[np.ndarray, list[int]]:
+                          nan: bool = True, vibration: float = 1.0, press_fraction: float = PRESS_FRACTION
+                          ) -> tuple[np.ndarray, list[int]]:
     """One continuous recording: ``(n, 9)`` float64 counts (NaN where planted) at :data:`RATE_HZ` and the press
     onsets (samples).
 
     period_s : the file's mean cycle period, s (each cycle +-3 %); level_counts : the press level, counts;
     n_cycles : presses; texture_hz : the slide's vibration, Hz; startup_s : rest with a decaying offset before the
     first press, s; alternating : every other press at 60 % of the level; drift : the press level grows linearly by
-    this fraction over the file; nan : plant NaN at samples 1-2 and a 6-sample run in the middle.
+    this fraction over the file; nan : plant NaN at samples 1-2 and a 6-sample run in the middle; vibration : the
+    slide's vibration relative to the default (0: a static press); press_fraction : the share of each cycle pressed.
     """
     sensor = np.random.default_rng(SENSOR_SEED)  # one sensor for every file: its channel gains and rest levels
     gains = sensor.uniform(0.5, 1.0, N_CHANNELS) * sensor.choice([-1.0, 1.0], N_CHANNELS)
@@ -89,7 +91,7 @@ def press_slide_recording(period_s: float, level_counts: float, n_cycles: int, *
     onsets = []
     pos = n0
     for i, p in enumerate(periods):
-        press = int(round(PRESS_FRACTION * p))
+        press = int(round(press_fraction * p))
         shape = np.ones(press)
         shape[:ramp] = _ramp(ramp)
         shape[press - ramp:] = _ramp(ramp)[::-1]
@@ -101,7 +103,8 @@ def press_slide_recording(period_s: float, level_counts: float, n_cycles: int, *
         pos += int(p)
     t = np.arange(n) / RATE_HZ
     startup = 0.6 * np.exp(-t / 0.5) * (t < startup_s)
-    x = (base + level_counts * (env[:, None] * gains + vib[:, None] * vib_gains + startup[:, None] * np.abs(gains))
+    x = (base + level_counts * (env[:, None] * gains + vibration * vib[:, None] * vib_gains
+                                + startup[:, None] * np.abs(gains))
          + rng.normal(0, 1.5, (n, N_CHANNELS)))
     x = np.clip(np.rint(x), 0, 1023)
     if nan:

@@ -8,7 +8,10 @@ Every method works on one file at a time, at that file's own level:
   sliding contact vibrates, an unloaded sensor does not); the activity is the largest deviation of any channel from
   its rest level, moving-averaged over ``smooth_s`` (0.05 s). Its *swing* runs from its median over the quiet samples
   (rest) to its 95th percentile (pressed), so a level given as a fraction of the swing means the same on a file 5x
-  weaker than the next.
+  weaker than the next. Limitation (measured with :mod:`rigctl.simulation.press_slide`): a static press (no
+  vibration) held for 75 % of the cycle or more is as quiet as rest, the rest level can come out as the pressed one,
+  and cycles are then cut at the release (trials 0.9-1.4 s off); a sliding press, or a static one under about half
+  the cycle, is cut within 50 ms of its onset.
 - ``fixed:SECONDS[:HOP_S]``: windows from the first sample.
 - ``threshold[:LEVEL[:MIN_S[:SMOOTH_S]]]``: runs of activity above LEVEL lasting at least MIN_S (0.2 s) are trials.
   A run cut by the start or the end of the file is partial and rejected. LEVEL is a percentage of the file's own
