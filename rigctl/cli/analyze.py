@@ -120,15 +120,6 @@ def _check_outputs(file, new_session, overwrite, **outputs):
 
 
 
-def _session_and_params(file):
-    from rigctl.analysis.model import session_of
-
-    try:
-        return session_of(file)
-    except FileNotFoundError as exc:
-        raise click.ClickException(f"{exc} (with --encode)") from None
-
-
 def _save_model(path, variant, n_pcs, max_pcs, *, source):
     from rigctl.operations import train_model
     from rigctl.storage.encoded import ALL_VARIANTS
@@ -147,12 +138,13 @@ def _save_model(path, variant, n_pcs, max_pcs, *, source):
     click.echo(f"saved the {variant} pipeline ({trained.n_pcs} PCs, {trained.n_trials} trials) to {path}", err=True)
 
 
-def _force_leak(session, params, variant, *, repeats, seed, n_pcs):
-    from rigctl.analysis.model import force_leak, trials_of_session
+def _force_leak(source, variant, *, repeats, seed, n_pcs):
+    from rigctl.operations import force_leak_report
 
-    trials, texture = trials_of_session(session)
     try:
-        return force_leak(trials, texture, variant=variant, n_pcs=n_pcs, repeats=repeats, seed=seed, params=params)
+        return force_leak_report(source, variant, n_pcs=n_pcs, repeats=repeats, seed=seed)
+    except FileNotFoundError as exc:
+        raise click.ClickException(f"{exc} (with --encode)") from None
     except (ValueError, KeyError) as exc:
         raise click.ClickException(f"--force-leak {variant}: {exc}") from None
 
@@ -377,8 +369,7 @@ def _extras(opts: AnalyzeOptions):
     """--force-leak (the report) and --save-model (the file)."""
     leak = None
     if opts.force_leak:
-        session, params = _session_and_params(opts.file)
-        leak = _force_leak(session, params, opts.force_leak, repeats=min(opts.repeats, 5), seed=opts.seed,
+        leak = _force_leak(opts.file, opts.force_leak, repeats=min(opts.repeats, 5), seed=opts.seed,
                            n_pcs=min(opts.table_pcs, opts.n_pcs))
     if opts.save_model:
         _save_model(opts.save_model, opts.model_variant, opts.model_pcs, max(opts.model_pcs, opts.n_pcs),

@@ -14,7 +14,7 @@ One package of small modules, each one job an operator does:
   the dated report stored in the rig config.
 - :class:`AnalysisPlan` / :func:`run_analyses` (``_analysis``): the paper's analyses as ``rigctl analyze`` and the
   GUI's analysis tab run them (which tasks, the parameter objects of :mod:`rigctl.analysis.params`, baseline,
-  skip or raise); :func:`load_or_encode`, :func:`train_model`.
+  skip or raise); :func:`load_or_encode`, :func:`train_model`, :func:`force_leak_report`.
 - :class:`RunQueue` (``_queue``): protocol runs one after another on one rig, kept in a file across restarts
   (``rigctl serve``'s HTTP API is a face on it).
 - :class:`LslPublisher` (``_lsl``): a run published on Lab Streaming Layer (taxels, SA/RA spikes, drum state,
@@ -34,6 +34,7 @@ from rigctl.operations._analysis import (
     BaselineError,
     TrainedModel,
     encoded_path_for,
+    force_leak_report,
     load_or_encode,
     run_analyses,
     train_model,
@@ -60,7 +61,7 @@ __all__ = [
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
-    "train_model", "TrainedModel", "ProtocolRun", "RUN_STATES",
+    "train_model", "TrainedModel", "force_leak_report", "ProtocolRun", "RUN_STATES",
     "import_recordings", "ImportReport", "IMPORT_PRESETS",
     "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",
 ]

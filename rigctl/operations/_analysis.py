@@ -5,7 +5,8 @@
 Table 1's tasks (textures, groups, extrapolation), the speed-only extrapolation and the real-time analyses, with or
 without the per-trial baseline, and merges them into one :class:`rigctl.analysis.tasks.TaskResults`.
 :func:`load_or_encode` reads an encoded file's features, encoding a session file first where asked;
-:func:`train_model` fits the raw-trials-to-label pipeline on the session an encoded file came from and saves it.
+:func:`train_model` fits the raw-trials-to-label pipeline on the session an encoded file came from and saves it;
+:func:`force_leak_report` measures how much the paper's label-dependent force coefficients leak into its accuracy.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, Rea
 from rigctl.core.progress import ProgressEvent
 
 __all__ = ["AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for", "train_model",
-           "TrainedModel"]
+           "TrainedModel", "force_leak_report"]
 
 #: the analyses :func:`run_analyses` knows (``"all"``: the six rows of Table 1)
 ANALYSIS_TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime")
@@ -244,3 +245,20 @@ def train_model(encoded_path: str | os.PathLike[str], variant: str = "speed_scal
     model = texture_pipeline(variant, n_pcs, max_pcs=max_pcs, params=params).fit(trials, texture)
     return TrainedModel(model, variant, int(model[-1].n_pcs_), len(trials),
                         model_info(model, session=session, analysed=str(encoded_path)))
+
+
+def force_leak_report(source: str | os.PathLike[str], variant: str, *, n_pcs: int, repeats: int,
+                      seed: int = 0) -> dict[str, Any]:
+    """A force-scaled ``variant``'s accuracy with its label-dependent force coefficients (eq. 1) fitted on all trials
+    (the paper; test labels leak in) and within each CV fold, on the raw trials of ``source`` (a session file, or
+    an encoded file whose session is found; encoded as that file was): :func:`rigctl.analysis.model.force_leak`'s
+    dict (``fitted_on_all``, ``per_fold``, ``leak``: fractions; ``variant``, ``n_pcs``, ``folds``, ``repeats``).
+
+    Raises FileNotFoundError (the encoded file's session is gone), ValueError/KeyError (not a force-scaled variant,
+    too few trials)."""
+    from rigctl.analysis.model import force_leak, session_of, trials_of_session
+
+    session, params = session_of(source)
+    trials, texture = trials_of_session(session)
+    return dict(force_leak(trials, texture, variant=variant, n_pcs=n_pcs, repeats=repeats, seed=seed,
+                           params=params))

@@ -18,7 +18,7 @@ from sklearn.utils import estimator_checks as ec
 from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from rigctl.analysis.classify import TextureClassifier
-from rigctl.analysis.model import texture_pipeline, trials_of_session
+from rigctl.analysis.model import force_leak, texture_pipeline, trials_of_session
 from rigctl.encoding.estimators import FeatureExtractor, ForceScaler, SpikeEncoder, TaxelNormaliser
 from rigctl.storage.model_file import ModelFileError, load_model, save_model
 
@@ -133,3 +133,16 @@ def test_saved_model_alone_classifies_new_trials_in_the_realtime_view(session, t
     assert wait_for(qapp, step, 60), view.model_label.text()
     assert sum(t == p for _, t, p in view.results) >= 6
     assert [tid for tid, _, _ in view.results] == list(range(0, 16, 2))
+
+
+def test_force_leak_report_is_the_operator_layers_face_of_force_leak(session):
+    """``rigctl analyze --force-leak`` goes through rigctl.operations.force_leak_report (the CLI holds no analysis
+    logic): on a session file it is force_leak on the session's raw trials; a variant without a force step is a
+    ValueError naming it."""
+    from rigctl.operations import force_leak_report
+
+    with pytest.raises(ValueError, match="original"):
+        force_leak_report(session, "original", n_pcs=2, repeats=1)
+    trials, texture = trials_of_session(session)
+    direct = force_leak(trials, texture, variant="speed_force_scaled", n_pcs=2, repeats=1, seed=3)
+    assert force_leak_report(session, "speed_force_scaled", n_pcs=2, repeats=1, seed=3) == direct
