@@ -22,6 +22,7 @@ import logging
 import os
 import queue
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +32,7 @@ from rigctl.acquisition.protocol import ProtocolError, parse_protocol
 from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._run import ProtocolRun
+from rigctl.storage.session import SessionLocked
 
 __all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES"]
 
@@ -41,6 +43,10 @@ RUN_QUEUE_STATES = ("queued", "running", "pausing", "paused", "aborting", "done"
 ACTIVE = ("queued", "running", "pausing", "paused", "aborting")
 #: the queue file's format version
 QUEUE_FORMAT = 1
+#: how long a run waits for its session file's writer lock (held by another writer, or by the journal helper of a
+#: killed one finishing its last commit) before it fails, s; and how often it tries
+LOCKED_WAIT_S = 60.0
+LOCKED_POLL_S = 0.5
 
 
 class QueueError(ValueError):
@@ -322,30 +328,49 @@ class RunQueue:
                 return
             self._record(run)
 
+    def _protocol_run(self, run: QueuedRun, out: Path, resume: bool) -> ProtocolRun:
+        proto = parse_protocol(run.protocol_source)
+        return ProtocolRun(self.control, proto, out, resume=resume, overwrite=run.overwrite and not resume,
+                           progress=lambda e: self._progress(run, e), on_trial=lambda e: self._trial(run, e),
+                           prompt=lambda message: self._emit({"type": "plate", "id": run.id, "message": message}),
+                           lsl=self.lsl)
+
+    def _fail(self, run: QueuedRun, exc: BaseException) -> None:
+        with self._lock:
+            self.current = self.current_id = None
+            self._set(run, state="failed", errors=[*run.errors, f"{type(exc).__name__}: {exc}"],
+                      ended_utc=_utc_now())
+
     def _record(self, run: QueuedRun) -> None:
         out = Path(run.out)
         resume = run.starts > 0 and out.exists()
-        try:
-            proto = parse_protocol(run.protocol_source)
-            pr = ProtocolRun(self.control, proto, out, resume=resume, overwrite=run.overwrite and not resume,
-                             progress=lambda e: self._progress(run, e), on_trial=lambda e: self._trial(run, e),
-                             prompt=lambda message: self._emit({"type": "plate", "id": run.id, "message": message}),
-                             lsl=self.lsl)
-        except Exception as exc:  # noqa: BLE001 - a run that cannot start fails, the queue goes on
-            self._set(run, state="failed", errors=[*run.errors, f"{type(exc).__name__}: {exc}"],
-                      ended_utc=_utc_now())
-            return
-        with self._lock:
-            self.current, self.current_id, self.current_trial = pr, run.id, None
-            self._set(run, state="running", starts=run.starts + 1, started_utc=run.started_utc or _utc_now())
-        try:
-            summary = pr.run()
-        except Exception as exc:  # noqa: BLE001
+        # a session a killed server was writing stays locked while its journal helper finishes the last commit
+        # (rigctl.storage.journal): a restart that resumes it at once waits for the lock, up to LOCKED_WAIT_S
+        deadline = time.monotonic() + LOCKED_WAIT_S
+        first = True
+        while True:
+            try:
+                pr = self._protocol_run(run, out, resume)
+            except Exception as exc:  # noqa: BLE001 - a run that cannot start fails, the queue goes on
+                self._fail(run, exc)
+                return
             with self._lock:
-                self.current = self.current_id = None
-                self._set(run, state="failed", errors=[*run.errors, f"{type(exc).__name__}: {exc}"],
-                          ended_utc=_utc_now())
-            return
+                self.current, self.current_id, self.current_trial = pr, run.id, None
+                self._set(run, state="running", starts=run.starts + int(first),
+                          started_utc=run.started_utc or _utc_now())
+            first = False
+            try:
+                summary = pr.run()
+            except SessionLocked as exc:
+                if time.monotonic() < deadline and not self._closing:
+                    time.sleep(LOCKED_POLL_S)
+                    continue
+                self._fail(run, exc)
+                return
+            except Exception as exc:  # noqa: BLE001
+                self._fail(run, exc)
+                return
+            break
         with self._lock:
             self.current = self.current_id = None
             if self._closing and not summary.ok:  # the server is ending: resume at its next start

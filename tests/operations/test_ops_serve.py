@@ -82,6 +82,36 @@ def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path)
     assert "/runs/{run_id}/pause" in client.get("/openapi.json").json()["paths"]
 
 
+def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
+    """A killed server's journal helper may still hold the session's writer lock when the server restarts: the
+    resumed run waits for it instead of failing."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.storage.journal import WriterLock
+    from rigctl.storage.session import SessionWriter
+
+    proto = parse_protocol(PROTOCOL.format(n=1))
+    out = tmp_path / "cut.h5"
+    SessionWriter.create(out, plan=proto.plan(), textures=proto.texture_set, protocol_source=proto.source,
+                         protocol_name=proto.name).close()
+    (tmp_path / "queue.json").write_text(json.dumps({"format": 1, "runs": [{
+        "id": "cut1", "protocol_name": proto.name, "protocol_source": proto.source, "out": str(out),
+        "state": "running", "trials_total": 2, "starts": 1, "created_utc": "2026-01-01T00:00:00+00:00"}]}))
+    lock = WriterLock(out)  # the helper of the killed writer, finishing its last commit
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
+    q = RunQueue(control, tmp_path / "queue.json")
+    assert q.get("cut1").state == "queued" and "interrupted" in q.get("cut1").errors[-1]
+    q.start()
+    try:
+        time.sleep(1.5)
+        assert q.get("cut1").state == "running" and q.get("cut1").trials_done == 0  # waiting for the lock
+        lock.release()
+        run = _wait(lambda: q.get("cut1").state not in ("queued", "running") and q.get("cut1"))
+        assert run.state == "done" and run.trials_done == 2 and run.starts == 2, run
+    finally:
+        q.close()
+        control.close()
+
+
 def test_a_token_is_required_when_set(served):
     _, q = served
     client = TestClient(create_app(q, token="s3cret"))
