@@ -843,8 +843,10 @@ class DrumClient:
     def wait_hx711_rate(self, timeout_s: float) -> DrumStatus:
         """Poll until the controller has timed its HX711's output rate at boot (``hx711_rate_sps`` > 0: 6 DOUT-ready
         edges, 75 ms at 80 SPS, 0.6 s at 10 SPS; docs/wire-protocol.md 2.9); until then it refuses PRESS and RUN.
-        Returns the status; DrumFault (e.g. HX711_RATE, LOADCELL_TIMEOUT) or DrumTimeout."""
-        return self._wait(lambda s: bool(s.hx711_rate_sps), timeout_s, "the HX711 rate timed at boot")
+        A fault ends the wait too (e.g. HX711_RATE: the rate measured is not the one configured): the status returned
+        says which. DrumTimeout if neither happens within ``timeout_s``."""
+        return self._wait(lambda s: bool(s.hx711_rate_sps) or s.state == DrumState.FAULT, timeout_s,
+                          "the HX711 rate timed at boot", allow_fault=True)
 
     def wait_released(self, timeout_s: float, home_mm: float = 0.05) -> DrumStatus:
         """Poll until IDLE with the actuator within ``home_mm`` of home (after STOP: the sensor is free).

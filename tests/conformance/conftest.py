@@ -177,10 +177,10 @@ def controller(request):
 def home(drum: DrumClient) -> None:
     """HOME a NOT_HOMED controller (after power-up or a reset), as a rig does when it opens; wait for IDLE and for the
     HX711 rate the controller times at boot (until then it refuses PRESS and RUN)."""
-    if drum.read_status().state == DrumState.NOT_HOMED:
+    # first the HX711 rate the controller times at boot (spec 2.9: PRESS and RUN wait for it; a wrong rate faults)
+    if drum.wait_hx711_rate(timeout_s=10.0).state == DrumState.NOT_HOMED:
         drum.home()
         drum.wait_state(DrumState.IDLE, timeout_s=30.0)
-    drum.wait_hx711_rate(timeout_s=10.0)  # PRESS and RUN wait for the boot's HX711 rate (spec 2.9)
 
 
 def restore(drum: DrumClient, ctl: Controller) -> None:

@@ -62,7 +62,7 @@ def wait_frames():
 def home(drum) -> None:
     """HOME the Mega if it is NOT_HOMED (after power-up or a reset it refuses RUN and PRESS until then), as a rig does
     when it opens (:meth:`rigctl.acquisition.rig.Rig.connect`)."""
-    if drum.read_status().state == wire.DrumState.NOT_HOMED:
+    # first the HX711 rate the controller times at boot (spec 2.9: PRESS and RUN wait for it; a wrong rate faults)
+    if drum.wait_hx711_rate(timeout_s=10).state == wire.DrumState.NOT_HOMED:
         drum.home()
         drum.wait_state([wire.DrumState.IDLE], timeout_s=30)
-    drum.wait_hx711_rate(timeout_s=10)  # PRESS and RUN also wait for the HX711 rate timed at boot (spec 2.9)
