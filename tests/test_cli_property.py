@@ -16,6 +16,7 @@ seconds on an idle machine.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import signal
@@ -77,6 +78,10 @@ def _digests(paths):
     return {f: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
 
 
+def _not_json(constant):
+    raise AssertionError(f"not JSON: {constant}")
+
+
 def _check(inputs, out_dir: Path, args: list[str]):
     before_inputs = _digests(inputs.values())
     before = set(os.listdir(out_dir))
@@ -87,6 +92,8 @@ def _check(inputs, out_dir: Path, args: list[str]):
     assert r.exception is None or isinstance(r.exception, SystemExit), (args, repr(r.exception))
     if r.exit_code != 0:
         assert set(os.listdir(out_dir)) == before, (args, sorted(set(os.listdir(out_dir)) - before), text)
+    elif "--json" in args and "--list" not in args:  # strict JSON (NaN is null), whatever the values
+        json.loads(r.stdout, parse_constant=_not_json)
     assert _digests(inputs.values()) == before_inputs, args
     for name in set(os.listdir(out_dir)) - before:  # a success: clear it for the next example
         p = out_dir / name
@@ -137,8 +144,9 @@ def test_analyze(inputs, tmp_path, data):
         ("--repeats", SMALL), ("--per-texture", SMALL), ("--seed", NUMBER), ("--table-pcs", SMALL),
         ("--jobs", SMALL), ("--threads", SMALL), ("--channels", SMALL),
         ("--pcs", st.one_of(st.sampled_from(["1-2", "0-3", "3-1", "1-1000000000", "a-b", "-1"]), SMALL)))]
+    json_flag = ["--json"] if data.draw(st.booleans(), label="--json") else []
     _check(inputs, tmp_path, ["analyze", str(inputs["encoded"]), "--task", "textures", "--variants", "original",
-                              "--csv", str(tmp_path / "c.csv"), *_opts(opts)])
+                              "--csv", str(tmp_path / "c.csv"), *json_flag, *_opts(opts)])
 
 
 @given(data=st.data())
@@ -149,8 +157,9 @@ def test_import(inputs, tmp_path, data):
         ("--layout", st.sampled_from(["3x3x1", "0x0x0", "3x3", "-1x2", "1e9x1e9x1", "x"])),
         ("--segment", st.sampled_from(["fixed:0.1", "fixed:-1", "fixed:1e12", "threshold:nan", "cycles:0", "bogus"])))]
     rate = data.draw(st.one_of(st.just("1000"), NUMBER), label="--rate")
+    json_flag = ["--json"] if data.draw(st.booleans(), label="--json") else []
     _check(inputs, tmp_path, ["import", str(inputs["csv"]), "--out", str(tmp_path / "i.h5"), "--rate", rate,
-                              "--texture", "A", "--quiet", *_opts(opts)])
+                              "--texture", "A", "--quiet", *json_flag, *_opts(opts)])
 
 
 @given(data=st.data())
