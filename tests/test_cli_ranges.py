@@ -115,3 +115,11 @@ def test_every_numeric_option_of_every_command_has_a_finite_range(cli_commands, 
                 assert r.exit_code == 2 and name in r.output and "Traceback" not in r.output, (words, name, value,
                                                                                                r.output)
     assert len(seen) >= 20, seen  # the walk found the commands' options
+
+
+def test_the_exit_statuses_are_documented():
+    """What the tests of every command hold them to (0, 1, 2: test_cli_property; 2 for usage errors: above) is what
+    ``rigctl --help`` promises."""
+    r = CliRunner().invoke(main, ["--help"])
+    text = " ".join(r.output.split())
+    assert "Exit status: 0 done; 1 an error" in text and "2 a usage error" in text, text

@@ -115,4 +115,7 @@ def main(debug):
 
     The simulated rig is the default wherever a rig is needed (--sim). An error is reported as one line; --debug
     shows its traceback.
+
+    Exit status: 0 done; 1 an error (a file, the rig, a failed check, Ctrl-C during work), nothing partial left; 2 a
+    usage error (an option or argument refused before any work, named in the message).
     """
