@@ -141,3 +141,15 @@ def test_the_readme_library_snippet_runs_from_an_empty_folder(tmp_path):
 
     with open_session(tmp_path / "quick.h5") as s:
         assert len(s.completed_ids()) == len(s.plan) > 0
+
+
+def test_sim_dataset_help_states_the_paper_datasets_size():
+    """The help said ~3 GB for a dataset of ~4.4 GB: its figure is the size estimate's (which refuses a disk too
+    small), in decimal GB."""
+    from rigctl.acquisition.builtin import find_protocol
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.cli.sim_dataset import dataset_size
+
+    _, size = dataset_size(load_protocol(find_protocol("paper_dataset")))
+    text = " ".join(CliRunner().invoke(main, ["sim", "dataset", "--help"]).output.split())
+    assert f"~{size / 1e9:.1f} GB" in text, text
