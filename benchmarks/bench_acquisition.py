@@ -33,7 +33,19 @@ def cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def bench_recording(minutes: float) -> dict:
+def stamp_error_ms(seq: np.ndarray, host_time_s: np.ndarray) -> dict:
+    """How far the host's receive stamps stray from the board's clock: the residuals of ``host_time_s`` against a
+    least-squares line over the frames' positions in the stream (``seq`` unwrapped, gaps kept), ms: median and 99th
+    percentile of their absolute value, and the largest (a stamp late by the reader's delay shows here)."""
+    if len(seq) < 3:
+        return {"p50": float("nan"), "p99": float("nan"), "max": float("nan")}
+    pos = np.concatenate([[0], np.cumsum(np.mod(np.diff(seq.astype(np.int64)), 65536))]).astype(np.float64)
+    a, b = np.polyfit(pos, host_time_s, 1)
+    r = np.abs(host_time_s - (a * pos + b)) * 1000.0
+    return {"p50": float(np.median(r)), "p99": float(np.percentile(r, 99)), "max": float(r.max())}
+
+
+def bench_recording(minutes: float, read_period_s: float | None = None) -> dict:
     from rigctl.devices.drum import DrumClient
     from rigctl.devices.taxel_stream import TaxelStream
 
@@ -46,7 +58,12 @@ def bench_recording(minutes: float) -> dict:
         except ImportError:  # psutil is optional here: the simulator's CPU is then not reported
             sim_ps = None
         try:
-            with DrumClient(ports["drum"]) as drum, TaxelStream(ports["taxel"]) as stream:
+            kw = {} if read_period_s is None else {"read_timeout_s": read_period_s}
+            with DrumClient(ports["drum"]) as drum, TaxelStream(ports["taxel"], **kw) as stream:
+                from rigctl.devices.wire import DrumState
+
+                drum.home()  # the controller refuses motion until homed since its last reset (issue 22)
+                drum.wait_state([DrumState.IDLE], timeout_s=30.0)
                 drum.set_force(500)
                 drum.set_speed(80)
                 drum.run()
@@ -85,6 +102,8 @@ def bench_recording(minutes: float) -> dict:
         "cpu_percent_host": 100.0 * (c1 - c0) / wall,
         "cpu_percent_simulator": 100.0 * (sim_cpu1 - sim_cpu0) / wall if sim_ps else float("nan"),
         "drum_polls": polls,
+        "read_period_s": stream.read_timeout_s,
+        "stamp_error_ms": stamp_error_ms(cap.seq, cap.host_time_s),
         "stream_stats": vars(stats),
     }
 
@@ -134,8 +153,17 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=1.0, help="recording length, minutes (default 1)")
     ap.add_argument("--json", action="store_true", help="print the results as JSON")
+    ap.add_argument("--read-period", type=float, default=None, metavar="S",
+                    help="the taxel reader's period, s (TaxelStream read_timeout_s; default: TaxelStream's)")
+    ap.add_argument("--recording-only", action="store_true", help="only the recording (CPU and stamps), no parser")
     args = ap.parse_args(argv)
-    rec = bench_recording(args.minutes)
+    rec = bench_recording(args.minutes, args.read_period)
+    if args.recording_only:
+        err = rec["stamp_error_ms"]
+        print(f"read period {rec['read_period_s'] * 1000:g} ms: CPU {rec['cpu_percent_host']:.2f} % of one core, "
+              f"{rec['frames_per_s']:.2f} frames/s, lost {rec['frames_lost']}, stamp error p50 {err['p50']:.3f} ms "
+              f"p99 {err['p99']:.3f} ms max {err['max']:.3f} ms")
+        return 0
     par = bench_parser()
     par_small = bench_parser(chunk=43 * 20)  # what the reader gets per 20 ms read timeout
     inproc = bench_inprocess()
@@ -150,6 +178,8 @@ def main(argv=None) -> int:
              "1000 +- 1", f"{rec['frames_per_s'] / 1000:.4f}x"),
             ("CPU of acquiring process", f"{rec['cpu_percent_host']:.2f} % of one core", "< 10 %",
              f"{rec['cpu_percent_host'] / 10:.3f} of budget"),
+            ("host stamp error (vs the board's clock)", f"p50 {rec['stamp_error_ms']['p50']:.3f} ms, p99 "
+             f"{rec['stamp_error_ms']['p99']:.3f} ms, max {rec['stamp_error_ms']['max']:.3f} ms", "as before", "-"),
             ("(simulator process CPU)", f"{rec['cpu_percent_simulator']:.1f} % of one core", "-", "-"),
             ("parser, 4096-byte chunks", f"{par['x_real_time']:.0f}x real time", ">= 100x",
              f"{par['x_real_time'] / 100:.1f}x target"),
