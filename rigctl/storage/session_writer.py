@@ -5,6 +5,7 @@ crash-safe commit per trial (:mod:`rigctl.storage.journal`) under the one-writer
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import json
 import logging
@@ -441,7 +442,8 @@ class SessionWriter:
 
         For the dataset generator, where opening the file per trial would dominate. Same checks as
         :meth:`write_trial`. The batch reaches the disk in one journaled commit when the last trial is written: a
-        crash before that loses the whole batch (the file stays as it was), never part of a trial.
+        crash before that loses the whole batch (the file stays as it was), never part of a trial. Each trial is
+        taken whole as ``items`` yields it (its arrays copied): a caller may reuse them for the next trial.
         """
         before = self._plan["status"].copy()
         written = []
@@ -586,7 +588,7 @@ class SessionWriter:
         layout = self.layout
         n_ch = layout.n_channels
         if self._flat:  # schema 4: the data go to /recording, the group holds views of them
-            views.append((g, int(row["trial_id"]), data))
+            views.append((g, int(row["trial_id"]), _snapshot(data)))
         else:
             chunk_rows = max(1, min(n, session_recording.sample_chunk_rows(n_ch, TAXEL_CHUNK_BYTES)))
             comp = self.compression if n else None
@@ -616,6 +618,16 @@ class SessionWriter:
         layout = self.layout
         h5objects.set_attrs(tax, {"rate_hz": layout.sample_rate_hz, "unit": "ADC counts", "adc_bits": layout.adc_bits,
                                   "starting_time": starting_time})
+
+
+def _snapshot(data: TrialData) -> TrialData:
+    """A copy of ``data`` whose arrays are its own: a batch's recording arrays are written after its last trial is
+    taken, and a caller may reuse a trial's buffers for the next one (the dataset generator's shared-memory slots)."""
+    snap = copy.copy(data)  # no __post_init__: the arrays were checked when ``data`` was made
+    for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+        setattr(snap, name, np.array(getattr(data, name), copy=True))
+    snap.attrs = dict(data.attrs)
+    return snap
 
 
 def _with_id(planned: Any, default_id: int) -> Any:

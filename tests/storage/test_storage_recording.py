@@ -96,6 +96,29 @@ def test_a_resumed_session_appends_and_a_failed_trial_is_recorded_later(tmp_path
         assert f["recording/index"]["trial_id"].tolist() == [0, 2, 1]
 
 
+@pytest.mark.parametrize("schema_version", [3, 4])
+def test_a_batch_from_one_reused_buffer_keeps_every_trial(tmp_path, schema_version):
+    """write_trials takes each trial as it is yielded: a generator that fills one buffer for every trial (the
+    dataset generator's shared-memory slots) still gets each trial's own data on disk."""
+    rng = np.random.default_rng(9)
+    expected = [rng.integers(100, 900, (N, 18)).astype(np.uint16) for _ in range(5)]
+    buf = np.zeros((N, 18), np.uint16)
+
+    def batch():
+        for tid, x in enumerate(expected):
+            buf[...] = x
+            yield tid, TrialData(taxels=buf, force_g=buf[:3, 0].astype(float), force_time_s=np.arange(3.0))
+
+    path = tmp_path / "b.h5"
+    with SessionWriter.create(path, plan=_plan(5), protocol_source="src", schema_version=schema_version) as w:
+        assert w.write_trials(batch()) == 5
+    with open_session(path) as s:
+        assert usable_trials(s).ids == [0, 1, 2, 3, 4]
+        for tid, x in enumerate(expected):
+            np.testing.assert_array_equal(s.trial(tid).taxels, x)
+            np.testing.assert_array_equal(s.trial(tid).force_g, x[:3, 0])
+
+
 def _copy_as_schema_3(src, dst):
     """The same trials, plan and attributes in a schema-3 file (one group of datasets per trial)."""
     with open_session(src) as s:
