@@ -133,8 +133,7 @@ def _save_model(path, variant, n_pcs, max_pcs, *, source):
         raise click.ClickException(f"{exc} (with --encode)") from None
     except ValueError as exc:
         raise click.ClickException(f"--save-model: {exc}") from None
-    with replacing(path) as tmp:
-        save_model(trained.model, tmp, info=trained.info)
+    save_model(trained.model, path, info=trained.info)  # under the output policy
     click.echo(f"saved the {variant} pipeline ({trained.n_pcs} PCs, {trained.n_trials} trials) to {path}", err=True)
 
 

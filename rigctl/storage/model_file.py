@@ -44,8 +44,13 @@ def model_versions() -> dict[str, str]:
 
 def save_model(model: Any, path: str | os.PathLike[str], *, info: dict[str, Any] | None = None) -> Path:
     """Write ``model`` (e.g. a fitted :class:`sklearn.pipeline.Pipeline`) to ``path`` with skops, plus a
-    ``rigctl_model.json`` entry: format, library versions, ``info`` (JSON-able: variant, PCs, training file...)."""
+    ``rigctl_model.json`` entry: format, library versions, ``info`` (JSON-able: variant, PCs, training file...).
+
+    Written under the output policy (:func:`rigctl.storage.outputs.replacing`): refused (``OutputLocked``) while
+    another writer holds ``path``, replaced in one rename (a failed write leaves the old file), the umask's mode."""
     import skops.io as sio
+
+    from rigctl.storage.outputs import replacing
 
     path = Path(path)
     data = sio.dumps(model)
@@ -53,7 +58,8 @@ def save_model(model: Any, path: str | os.PathLike[str], *, info: dict[str, Any]
     buf = io.BytesIO(data)
     with zipfile.ZipFile(buf, "a", compression=zipfile.ZIP_DEFLATED) as z:
         z.writestr(_META, json.dumps(meta, default=str))
-    path.write_bytes(buf.getvalue())
+    with replacing(path) as tmp:
+        tmp.write_bytes(buf.getvalue())
     return path
 
 

@@ -120,6 +120,13 @@ def test_every_writer_checks_the_lock(tmp_path, session):
             encode_session(session, out, overwrite=True, progress=None)
         with pytest.raises(OutputLocked):
             export_nwb(session, out, overwrite=True)
+        from rigctl.storage.model_file import save_model
+        from rigctl_gui.analysis_jobs import encode as gui_encode  # the GUI's worker (no Qt in it)
+
+        with pytest.raises(OutputLocked):
+            gui_encode(str(session), str(out))
+        with pytest.raises(OutputLocked):  # the GUI's and analyze --save-model's model file
+            save_model({"a": 1}, csv)
         runner = CliRunner()
         for args in (["export", "nwb", str(session), "--out", str(nwb), "--overwrite", "--no-progress"],
                      ["analyze", str(session), "--csv", str(csv), "--overwrite"]):
