@@ -153,3 +153,87 @@ def test_sim_dataset_help_states_the_paper_datasets_size():
     _, size = dataset_size(load_protocol(find_protocol("paper_dataset")))
     text = " ".join(CliRunner().invoke(main, ["sim", "dataset", "--help"]).output.split())
     assert f"~{size / 1e9:.1f} GB" in text, text
+
+
+def _interrupt_on_call(n: int):
+    """A stand-in that raises KeyboardInterrupt (Ctrl-C) on its n-th call and otherwise does nothing."""
+    calls = []
+
+    def stand_in(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+
+    return stand_in
+
+
+@pytest.mark.parametrize("command", ["encode", "export"])
+def test_ctrl_c_during_encode_or_export_is_one_line_and_leaves_nothing(session, tmp_path, monkeypatch, command):
+    """Ctrl-C in the middle of the write (the encoded file's tables written; the NWB file's first taxel block):
+    one line, exit 1, no partial output, the input unchanged. In this process: KeyboardInterrupt is what SIGINT
+    raises in the main thread."""
+    before = session.read_bytes()
+    partial = []
+    if command == "encode":
+        import rigctl.encoding.pipeline as pipeline
+
+        def interrupted_pass(*args, **kwargs):
+            partial.extend(tmp_path.iterdir())  # the encoded file is being written
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(pipeline, "_encode_pass", interrupted_pass)
+        args = ["encode", str(session), "--out", str(tmp_path / "e.h5"), "--quiet", "--variant", "original"]
+    else:
+        import rigctl.storage.nwb as nwb
+
+        blocks = nwb._taxel_blocks
+
+        def interrupted_blocks(*args, **kwargs):
+            for block in blocks(*args, **kwargs):
+                partial.extend(tmp_path.iterdir())  # the NWB file is being written
+                raise KeyboardInterrupt
+                yield block
+
+        monkeypatch.setattr(nwb, "_taxel_blocks", interrupted_blocks)
+        args = ["export", "nwb", str(session), "--out", str(tmp_path / "e.nwb"), "--no-progress"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 1, r.output
+    assert r.stderr.strip().splitlines() == ["Error: interrupted (Ctrl-C): no partial output was left; the inputs "
+                                             "are unchanged"], r.stderr
+    assert partial and list(tmp_path.iterdir()) == []
+    assert session.read_bytes() == before
+
+
+def test_ctrl_c_during_acquire_keeps_finished_trials_and_says_how_to_resume(tmp_path, monkeypatch):
+    """On the in-process rig: Ctrl-C before the second of three trials; the first stays in the file, the summary
+    says 'stopped early (resume with --resume)', exit 1, and --resume finishes the session."""
+    import rigctl.acquisition.runner as runner
+    from rigctl.operations import RigSource
+    from rigctl.storage.session import open_session
+
+    flags = RigSource.from_flags.__func__
+    monkeypatch.setattr(RigSource, "from_flags", classmethod(lambda cls, **kw: cls("inprocess")))
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    assert flags(RigSource).kind == "sim"  # what the CLI would open: the in-process rig stands in for it
+    protocol = tmp_path / "three.toml"
+    protocol.write_text('name = "three"\ndescription = "Three short trials."\ntextures = ["A"]\n'
+                        'speeds_mm_s = [120]\nforces_g = [250]\ntrials_per_condition = 3\ntravel_mm = 12\n')
+    out = tmp_path / "a.h5"
+    wait = runner._wait_while_paused
+    stand_in = _interrupt_on_call(2)
+
+    def wait_then_interrupt(*args, **kwargs):
+        stand_in()
+        return wait(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "_wait_while_paused", wait_then_interrupt)
+    r = CliRunner().invoke(main, ["acquire", str(protocol), "--out", str(out), "--quiet"])
+    assert r.exit_code == 1, r.output
+    assert "stopped early (resume with --resume)" in r.output and "Traceback" not in r.output, r.output
+    with open_session(out) as s:
+        assert s.completed_ids() == [0]
+    monkeypatch.setattr(runner, "_wait_while_paused", wait)
+    r = CliRunner().invoke(main, ["acquire", str(protocol), "--out", str(out), "--quiet", "--resume"])
+    assert r.exit_code == 0, r.output
+    with open_session(out) as s:
+        assert s.completed_ids() == [0, 1, 2]
