@@ -14,7 +14,7 @@ import pytest
 from rigctl.acquisition import doctor
 from rigctl.acquisition.doctor.measure import clock_error_ppm, crosstalk, step_response
 from rigctl.acquisition.rigconfig import RigConfigError, load_rig_config, validate_rig_config
-from rigctl.rigs import open_rig
+from rigctl.rigs import ANSWER_TIMEOUT_S, WATCHDOG_MS, open_rig
 from rigctl.simulation.model import DrumConfig, MechanicsConfig, RigConfig
 
 
@@ -308,8 +308,11 @@ def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path)
     reading carries its scan neighbour's, and the crosstalk check names the source impedance."""
     cfg = tmp_path / "rig.json"
 
+    watchdog_ms = []
+
     def opener():
         rig = open_rig("hil", host_config_path=cfg)
+        watchdog_ms.append(rig.drum.settings()["WATCHDOG_MS"])
         rig.backend.sim.set_taxel_ohm(1e6, taxel=4)
         return rig
 
@@ -319,6 +322,9 @@ def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path)
     assert r.status == "fail", r.line()
     assert 4 in r.values["worst_pair"] and r.values["worst_correlation"] > 0.1
     assert "47 kOhm" in r.fix
+    # the HIL rig's host watchdog outlasts its 2 s answer timeout (rigs.WATCHDOG_MS: one late answer on a loaded host
+    # tripped the default 1 s one during the doctor's drum-speed check)
+    assert watchdog_ms == [WATCHDOG_MS["hil"]] and WATCHDOG_MS["hil"] > 2000 * ANSWER_TIMEOUT_S["hil"]
 
 
 @pytest.mark.hil
