@@ -28,8 +28,8 @@ Without pylsl nothing here loads it; :func:`require_pylsl` says what to install 
 from __future__ import annotations
 
 import json
+import platform
 import time
-import uuid
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -65,7 +65,8 @@ class LslOutlets:
     Parameters
     ----------
     layout : the sensor streamed (channel count, rate, labels, grid).
-    name : stream name prefix; source_id : stable source id prefix (default ``rigctl-<hostname-free uuid>``).
+    name : stream name prefix; source_id : stable source id prefix (default ``rigctl-<host name>-<name>``: the
+        same streams to LabRecorder after a restart).
     host_clock : the clock the frames' host times are on (``Rig.drum.clock.now``: the host monotonic clock on a
         real or pty rig, simulated time in-process); the host <-> LSL offset is measured against it.
     extra_desc : more key/values for each stream's ``desc`` (e.g. the session id).
@@ -81,7 +82,7 @@ class LslOutlets:
         self.pylsl = pylsl = require_pylsl()
         self.layout = layout
         self.name = name
-        self.source_id = source_id or f"rigctl-{uuid.uuid4().hex[:12]}"
+        self.source_id = source_id or f"rigctl-{platform.node() or 'host'}-{name}"
         self.host_clock = host_clock
         #: LSL clock minus host clock (s), and half the bracket it was measured in (s)
         self.lsl_offset_s, self.lsl_offset_uncertainty_s = measure_clock_offset(pylsl.local_clock, host_clock)

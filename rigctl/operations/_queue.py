@@ -100,7 +100,8 @@ class RunQueue:
     ----------
     control : the open rig.
     queue_file : the JSON file the queue lives in (created; read back when it exists: runs cut by a crash resume).
-    lsl : publish every run on LSL (``ProtocolRun(lsl=...)``).
+    lsl : publish every run on LSL through one :class:`rigctl.operations.LslPublisher` (opened here: a missing
+        pylsl is :class:`rigctl.core.lsl.LslUnavailable` at once).
     protocols : () -> {name: protocol file} of the protocols a run may name (default the built-in ones,
         :func:`rigctl.acquisition.builtin.builtin_protocols`).
 
@@ -112,7 +113,12 @@ class RunQueue:
                  protocols: Callable[[], dict[str, Any]] | None = None) -> None:
         self.control = control
         self.path = Path(queue_file)
-        self.lsl = lsl
+        #: one LSL publisher for every run (the same streams to LabRecorder from run to run), or None
+        self.lsl: Any = None
+        if lsl:
+            from rigctl.operations._lsl import LslPublisher
+
+            self.lsl = LslPublisher(control)
         self._protocols = protocols
         self._lock = threading.RLock()
         self._wake = threading.Condition(self._lock)
@@ -330,10 +336,12 @@ class RunQueue:
 
     def _protocol_run(self, run: QueuedRun, out: Path, resume: bool) -> ProtocolRun:
         proto = parse_protocol(run.protocol_source)
+        if self.lsl is not None:
+            self.lsl.protocol_name = proto.name
         return ProtocolRun(self.control, proto, out, resume=resume, overwrite=run.overwrite and not resume,
                            progress=lambda e: self._progress(run, e), on_trial=lambda e: self._trial(run, e),
                            prompt=lambda message: self._emit({"type": "plate", "id": run.id, "message": message}),
-                           lsl=self.lsl)
+                           lsl=self.lsl if self.lsl is not None else False)
 
     def _fail(self, run: QueuedRun, exc: BaseException) -> None:
         with self._lock:

@@ -220,3 +220,33 @@ def test_stop_through_the_api_stops_the_drum_within_half_a_second(tmp_path):
     finally:
         q.close()
         control.close()
+
+
+@pytest.mark.lsl
+def test_the_queue_publishes_every_run_on_the_same_lsl_streams(lsl, tmp_path):
+    import uuid
+
+    sid = f"rigctl-queue-{uuid.uuid4().hex[:8]}"
+    (tmp_path / "rig.json").write_text(json.dumps({"lsl": {"enabled": True, "source_id": sid}}))
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
+    q = RunQueue(control, tmp_path / "queue.json", lsl=True)
+    found = lsl.resolve_byprop("source_id", f"{sid}-markers", minimum=1, timeout=10)
+    inlet = lsl.StreamInlet(found[0], max_buflen=60, recover=False)
+    inlet.open_stream(timeout=10)
+    q.start()
+    try:
+        ids = [q.submit(tmp_path / f"{k}.h5", toml=PROTOCOL.format(n=1).replace('"serve_test"', f'"run{k}"')).id
+               for k in range(2)]
+        for rid in ids:
+            _wait(lambda rid=rid: q.get(rid).state == "done")
+        events, t_end = [], time.monotonic() + 10
+        while time.monotonic() < t_end and sum(e["event"] == "run_end" for e in events) < 2:
+            chunk, _ = inlet.pull_chunk(timeout=0.5)
+            events += [json.loads(c[0]) for c in chunk]
+    finally:
+        inlet.close_stream()
+        q.close()
+        control.close()
+    starts = [e["protocol"] for e in events if e["event"] == "run_start"]
+    assert starts == ["run0", "run1"]
+    assert sum(e["event"] == "trial_end" for e in events) == 4
