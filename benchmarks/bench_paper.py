@@ -1,4 +1,5 @@
-"""The whole paper from nothing, stage by stage: ``rigctl sim dataset`` -> ``rigctl encode`` -> ``rigctl analyze --table1``.
+"""The whole paper from nothing, stage by stage: ``rigctl sim dataset`` -> ``rigctl encode`` -> ``rigctl analyze --table1``
+-> ``rigctl export nwb`` (with the encoded spike trains), and the encoder's floor in the same run.
 
 Runs the three commands as a user would (each its own process, default options: all cores) on the paper's protocol
 (``protocols/paper_dataset.toml``: 16 textures x 5 speeds x 3 forces x 100 trials = 24,000 trials), or on a stated
@@ -8,6 +9,11 @@ reads for the analysis), neuron-steps/s for the encoder (samples x taxels x SA/R
 machine's load average. Target (issue 12): the whole paper in < 5 min on 2 cores; with a fraction, the linear
 extrapolation of the trial-bound stages (simulation, encoding) to 24,000 trials is printed beside it (the analysis is
 full size from 1/3 on: its textures/groups draws are 500 per texture).
+
+The **floor** of the encoder (issue 26: encode <= 3x it) is a plain process that reads every trial's taxels with h5py
+(``/recording/taxels`` of a schema-4 session, in blocks of a million samples) and runs the fused SA/RA kernel once
+over them (one SA population and the RA one, spike times kept): what any encoder of the file must do, without the
+force fit, the speed-scaled variants or the features.
 
     python benchmarks/bench_paper.py --fraction 0.1          # 2,400 trials
     python benchmarks/bench_paper.py                          # the paper: 24,000 trials (~3 GB of session)
@@ -45,14 +51,42 @@ def _tree_rss(proc) -> int:
     return total
 
 
-def run_stage(args: list[str]) -> dict:
-    """Run ``python -m rigctl ARGS``; wall, CPU (process + children), peak tree RSS."""
+FLOOR = """
+import sys, h5py, numpy as np
+from rigctl.encoding.fused import run_fused
+from rigctl.encoding.normalise import TaxelRange
+with h5py.File(sys.argv[1], "r") as f:
+    ds, idx = f["recording/taxels"], f["recording/index"][()]
+    order = np.argsort(idx["sample_start"])
+    starts, lengths = idx["sample_start"][order], idx["n_samples"][order]
+    rng, blocks, i = TaxelRange(), [], 0
+    while i < len(order):  # the range pass: every sample read once
+        j, n = i, 0
+        while j < len(order) and (j == i or n + lengths[j] <= 1 << 20):
+            n += int(lengths[j]); j += 1
+        lo = int(starts[i])
+        data = ds[lo:lo + n]
+        rng.update(data)
+        blocks.append((lo, n, np.concatenate([[0], np.cumsum(lengths[i:j])])))
+        i = j
+    offset, scale = rng.offset_scale()
+    spikes = 0
+    for lo, n, st in blocks:  # the kernel: one SA population and RA over every sample
+        res = run_fused(ds[lo:lo + n], st, offset=offset, scale=scale, sa_gains=[1.0])
+        spikes += sum(int(s.spike_times.size) for s in res.sa) + int(res.ra.spike_times.size)
+print(f"floor: {int(lengths.sum())} samples, {spikes} spikes")
+"""
+
+
+def run_stage(args: list[str], python: bool = False) -> dict:
+    """Run ``python -m rigctl ARGS`` (``python``: ``python ARGS``); wall, CPU (process + children), peak tree
+    RSS."""
     import psutil
 
     before = os.times()
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "rigctl", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen([sys.executable, *([] if python else ["-m", "rigctl"]), *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     peak = [0]
     ps = psutil.Process(proc.pid)
 
@@ -104,22 +138,34 @@ def main() -> None:
         st.update(name="sim dataset", trials=n, mb=session.stat().st_size / 1e6, mb_what="written")
         stages.append(st)
         _print(st)
+        st = run_stage(["-c", FLOOR, str(session)], python=True)
+        st.update(name="read+kernel floor", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
+                  neuron_steps=samples * taxels * 2)
+        floor = st
+        _print(st)
         st = run_stage(["encode", str(session), "--out", str(encoded), "--overwrite", "--quiet"])
         st.update(name="encode", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
                   neuron_steps=samples * taxels * 2)
         stages.append(st)
         _print(st)
+        print(f"{'':>17}  encode / floor: {st['wall'] / floor['wall']:.2f} (target <= 3), peak RSS "
+              f"{st['rss'] / 1e9:.2f} GB (target < 2)", flush=True)
         st = run_stage(["analyze", str(encoded), "--table1", "--repeats", str(args.repeats), "--no-progress"])
         st.update(name="analyze --table1", trials=n, mb=encoded.stat().st_size / 1e6, mb_what="read")
         stages.append(st)
         _print(st)
         print(st["out"])
+        nwb = work / "paper.nwb"
+        st = run_stage(["export", "nwb", str(session), "--encoded", str(encoded), "--out", str(nwb), "--overwrite"])
+        st.update(name="export nwb", trials=n, mb=nwb.stat().st_size / 1e6, mb_what="written")
+        stages.append(st)
+        _print(st)
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     total = sum(s["wall"] for s in stages)
     scale = PAPER_TRIALS / n
-    # simulation and encoding scale with the trials; the analysis draws 500 per texture from 1/3 of the paper on
+    # simulation, encoding and export scale with the trials; the analysis draws 500 per texture from 1/3 of the paper on
     full = sum(s["wall"] * (scale if s["name"] != "analyze --table1" else min(scale, 3.0)) for s in stages)
     print(f"total: {total:.1f} s wall, {sum(s['cpu'] for s in stages):.1f} CPU-s for {n} trials "
           f"({total / TARGET_S:.2f} of the 5 min target" + (")" if n == PAPER_TRIALS else
