@@ -33,6 +33,7 @@ def _refused(args, *needles, seconds=1.0):
     took = time.monotonic() - t0
     assert r.exit_code == 2, (args, r.exit_code, r.output)
     assert "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1 and r.output.startswith("Error: "), r.output  # one line
     for n in needles:
         assert n in r.output, (args, r.output)
     assert took < seconds, (args, took)

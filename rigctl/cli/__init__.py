@@ -81,6 +81,11 @@ class LazyGroup(click.Group):
         ``--debug``."""
         try:
             return super().invoke(ctx)
+        except click.UsageError as exc:  # one line too: click would add the usage and a 'Try --help' line
+            from rigctl.cli.errors import one_line
+
+            where = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+            raise click.UsageError(one_line(exc.format_message()).rstrip(".") + where) from None
         except click.ClickException as exc:  # one line, values not numpy reprs, whoever built the message
             from rigctl.cli.errors import one_line
 
