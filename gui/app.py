@@ -116,6 +116,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._close_confirmed = False
         self._run_lock: str | None = None
         self._faults = 0
+        self._server_dialog: Any = None  # the window attached to a rigctl serve, once opened
         self._stop_results: list[Any] = []  # what each STOP's safe_stop returned (the worker thread appends)
         self.setWindowTitle("rigctl - tactile texture rig")
 
@@ -327,6 +328,8 @@ class MainWindow(QtWidgets.QMainWindow):
         act(m, "&Mount plate", self.control.mount_plate, "Ctrl+M", self.control.mount_btn)
         m.addSeparator()
         act(m, "&Doctor...", self.open_doctor, tip="bring-up checks on the connected rig (rigctl doctor)")
+        act(m, "Attach to a rigctl &server...", self.open_server,
+            tip="a rigctl serve owns the rig: its status and run queue, queue / pause / resume / abort, STOP")
 
         m = mb.addMenu("R&un")
         p = self.protocol
@@ -572,7 +575,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.protocol.request_abort()
         if self._doctor is not None and self._doctor.running:
             self._doctor.cancel()
+        server = self._server_dialog.client if self._server_dialog is not None else None
+        if server is not None:  # attached to a rigctl serve: it owns its rig, STOP goes there too, at once
+            threading.Thread(target=lambda: self._server_stop(server), name="server-stop", daemon=True).start()
+            self.notify(f"STOP sent to the server {server.url}", level=logging.WARNING, source="STOP")
         h = self.handle
+        if h is None and server is not None:
+            return
         if h is None:
             self.notify("STOP: no rig connected", level=logging.WARNING, source="STOP")
             return
@@ -583,6 +592,27 @@ class MainWindow(QtWidgets.QMainWindow):
 
         threading.Thread(target=work, name="drum-stop", daemon=True).start()
         self.notify("STOP sent: drum to rest, actuator backing off", level=logging.WARNING, source="STOP")
+
+    def _server_stop(self, server) -> None:
+        from rigctl.server.client import ServerError
+
+        try:
+            self._stop_results.append(bool(server.stop().get("acknowledged")))
+        except ServerError:
+            self._stop_results.append(False)
+
+    def open_server(self) -> None:
+        """The window attaching to a running ``rigctl serve`` (:class:`rigctl_gui.server_dialog.ServerDialog`)."""
+        if self._server_dialog is None:
+            from rigctl_gui.server_dialog import ServerDialog
+
+            def loaded():
+                proto = self.protocol.protocol
+                return getattr(proto, "source", None) if proto is not None else None
+
+            self._server_dialog = ServerDialog(self, protocol_source=loaded)
+        self._server_dialog.show()
+        self._server_dialog.raise_()
 
     def _drain_stop_results(self) -> None:
         while self._stop_results:

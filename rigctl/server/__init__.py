@@ -1,7 +1,14 @@
 """rigctl.server: ``rigctl serve``'s HTTP API (FastAPI), a thin face on the operator layer's run queue
-(:class:`rigctl.operations.RunQueue`) and rig control, as the CLI and the GUI are: no rig logic here.
-docs/serve.md is its reference; the OpenAPI page is served at ``/docs``."""
+(:class:`rigctl.operations.RunQueue`) and rig control, as the CLI and the GUI are: no rig logic here; and its client
+(:class:`ServerClient`, httpx only: the GUI attaches with it). docs/serve.md is the reference; the OpenAPI page is
+served at ``/docs``. Names load lazily: the client never imports FastAPI."""
 
-from rigctl.server.app import create_app, is_loopback
+from rigctl.core.lazy import lazy_exports
 
-__all__ = ["create_app", "is_loopback"]
+_EXPORTS = {
+    "create_app": "rigctl.server.app",
+    "is_loopback": "rigctl.server.app",
+    "ServerClient": "rigctl.server.client",
+    "ServerError": "rigctl.server.client",
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,89 @@
+"""The GUI attached to a running rigctl serve (Rig > Attach to a rigctl server...): the dialog over a server in this
+process (the in-process rig, FastAPI's test client): status, the loaded protocol queued, a run paused and resumed
+from the window, STOP holding the queue; an unreachable server said in one line (a refused port on 127.0.0.1)."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+from PySide6 import QtCore
+
+from rigctl.operations import RigSource, RunQueue, open_control
+from rigctl.server import ServerClient, create_app
+from rigctl_gui.server_dialog import ServerDialog
+
+pytest.importorskip("fastapi")
+from fastapi.testclient import TestClient  # noqa: E402
+
+PROTOCOL = ('name = "gui_serve"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
+            'trials_per_condition = 4\nduration_s = 0.4\n[settle]\nsettle_time_ms = 50\n')
+
+
+def _until(qapp, pred, timeout_s=120.0):
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        qapp.processEvents()
+        if pred():
+            return True
+        time.sleep(0.02)
+    raise AssertionError("timed out")
+
+
+def test_attached_window_queues_pauses_resumes_and_stops(qapp, qtbot, tmp_path):
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
+    q = RunQueue(control, tmp_path / "queue.json").start()
+    tc = TestClient(create_app(q))
+    dlg = ServerDialog(client_factory=lambda url, token: ServerClient(url, client=tc),
+                       protocol_source=lambda: PROTOCOL, poll_ms=100)
+    qtbot.addWidget(dlg)
+    try:
+        qtbot.mouseClick(dlg.attach_btn, QtCore.Qt.MouseButton.LeftButton)
+        assert dlg.attached and "attached to" in dlg.status.text() and "inprocess rig" in dlg.status.text()
+        dlg.out.setText(str(tmp_path / "s.h5"))
+        qtbot.mouseClick(dlg.queue_btn, QtCore.Qt.MouseButton.LeftButton)
+        assert dlg.table.rowCount() == 1
+        run_id = dlg.table.item(0, 0).text()
+        _until(qapp, lambda: q.get(run_id).trials_done >= 1)
+        dlg.table.selectRow(0)
+        qtbot.mouseClick(dlg.pause_btn, QtCore.Qt.MouseButton.LeftButton)
+        _until(qapp, lambda: q.get(run_id).state == "paused")
+        _until(qapp, lambda: dlg.table.item(0, 2).text() == "paused")  # the window follows the server
+        qtbot.mouseClick(dlg.resume_btn, QtCore.Qt.MouseButton.LeftButton)
+        assert q.get(run_id).state == "running"
+        qtbot.mouseClick(dlg.stop_btn, QtCore.Qt.MouseButton.LeftButton)
+        _until(qapp, lambda: q.get(run_id).state == "stopped")
+        _until(qapp, lambda: "HELD" in dlg.status.text())
+        assert q.held and q.get(run_id).trials_done < 8
+    finally:
+        q.close()
+        control.close()
+
+
+def test_an_unreachable_server_is_one_line(qapp, qtbot):
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    dlg = ServerDialog(poll_ms=100000)
+    qtbot.addWidget(dlg)
+    dlg.url.setText(f"http://127.0.0.1:{port}")
+    dlg.attach()
+    assert not dlg.attached and "does not answer" in dlg.status.text() and "\n" not in dlg.status.text()
+
+
+@pytest.mark.realtime
+def test_the_main_windows_stop_reaches_the_attached_server(window, qapp, tmp_path):
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
+    q = RunQueue(control, tmp_path / "queue.json").start()
+    try:
+        window.open_server()
+        window._server_dialog.client = ServerClient("http://test", client=TestClient(create_app(q)))
+        window.emergency_stop()  # what the STOP button, Esc and Rig > STOP call
+        _until(qapp, lambda: q.held, timeout_s=10)
+        _until(qapp, lambda: not window._stop_results, timeout_s=10)  # its outcome drained into the window
+    finally:
+        window._server_dialog.client = None
+        window._server_dialog.close()
+        q.close()
+        control.close()
