@@ -54,31 +54,57 @@ trap 'rm -rf "$TEST_TMP"' EXIT
 export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis" \
   NUMBA_CACHE_DIR="$TEST_TMP/numba"
 
-echo "== build firmware (into $RIGCTL_FIRMWARE_BUILD)"
+t0=$(date +%s)
+phase() { echo "== [$(( $(date +%s) - t0 )) s] $*"; }
+
+# numba's kernels compiled once into the cache, in the background while the firmware builds, the static checks run and
+# the test workers start (scripts/compile_kernels.py): otherwise each test worker and CLI subprocess compiles the ones
+# it needs (~70 s of CPU for all of them)
+python3 scripts/compile_kernels.py > "$TEST_TMP/compile_kernels.log" 2>&1 &
+kernels_pid=$!
+
+phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
 make -C arduino -s BUILD="$RIGCTL_FIRMWARE_BUILD" all harness
 
-echo "== ruff check (rules and per-file ignores in pyproject.toml)"
+phase "ruff check (rules and per-file ignores in pyproject.toml)"
 python3 -m ruff check --no-cache .
 
-echo "== import contracts (lint-imports; the layers in pyproject.toml, docs/architecture.md)"
+phase "import contracts (lint-imports; the layers in pyproject.toml, docs/architecture.md)"
 # the lint-imports command, run by this interpreter (import-linter has no `python -m` entry point)
 python3 -c 'import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())' \
   --cache-dir "$TEST_TMP/import-linter"
 
-echo "== mypy (settings in pyproject.toml)"
-python3 -m mypy --cache-dir "$TEST_TMP/mypy"
+# mypy (one core, ~30 s of CPU) runs beside the tests, many of which wait on rigs paced to the wall clock; its
+# verdict is printed and checked after them
+phase "mypy (settings in pyproject.toml), in the background"
+python3 -m mypy --cache-dir "$TEST_TMP/mypy" > "$TEST_TMP/mypy.log" 2>&1 &
+mypy_pid=$!
 
-echo "== pytest"
+phase "pytest"
 export QT_QPA_PLATFORM=offscreen
 # what the checkout looks like before the tests (untracked and ignored files too, but byte code): no test may
 # change it
 checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
 before="$(checkout_state)"
-# every core (pytest-xdist); a test module stays on one worker (--dist loadfile: module-scoped rigs and windows)
-python3 -m pytest -q -n auto --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" "$@"
+# every core (pytest-xdist); a test module stays on one worker (--dist loadfile: module-scoped rigs and windows), or
+# its xdist_group parts do; the longest units first (tests/conftest.py)
+status=0
+python3 -m pytest -q -n auto --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
+  "$@" || status=$?
+phase "pytest done (exit $status)"
+# (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
+wait "$kernels_pid" || echo "compiling the numba kernels beforehand failed:"
+cat "$TEST_TMP/compile_kernels.log"
+mypy_status=0
+wait "$mypy_pid" || mypy_status=$?
+echo "== mypy:"
+cat "$TEST_TMP/mypy.log"
 after="$(checkout_state)"
 if [ "$before" != "$after" ]; then
   echo "the tests changed the checkout (git status --porcelain --ignored, before -> after):"
   diff <(echo "$before") <(echo "$after") || true
   exit 1
 fi
+phase "done"
+if [ "$mypy_status" != 0 ]; then exit "$mypy_status"; fi
+exit "$status"

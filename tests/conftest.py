@@ -66,12 +66,58 @@ def pytest_unconfigure(config):
         shutil.rmtree(cfg_dir, ignore_errors=True)
 
 
+#: how long a unit of work of each kind takes, roughly (the scheduling order below; the biggest go first)
+_KIND_WEIGHT = {"packaging": 4, "hil": 3, "slow": 2, "realtime": 1, "gui": 1}
+
+#: test files whose tests split into units of work by the first part of their parameter id: each value of their
+#: module-scoped fixture (a backend, sim or hil; a screen size) sets up its own rig or X server anyway, so the parts can
+#: run on two workers
+SPLIT_BY_PARAM = ("tests/conformance/", "tests/gui/test_gui_x11.py")
+
+
+def unit_of(nodeid: str) -> str:
+    """The unit of work an xdist worker takes whole (--dist loadfile, scripts/test.sh): the test's file, or for
+    :data:`SPLIT_BY_PARAM`, ``file[first part of the parameter id]`` (``...[hil]`` for ``...::test_x[hil-external]``)."""
+    file = nodeid.split("::", 1)[0]
+    if file.startswith(SPLIT_BY_PARAM) and nodeid.endswith("]") and "[" in nodeid:
+        return f"{file}[{nodeid.split('[', 1)[1][:-1].split('-', 1)[0]}]"
+    return file
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         rel = item.path.resolve().relative_to(TESTS) if item.path.resolve().is_relative_to(TESTS) else None
         if rel is not None and len(rel.parts) > 1:
             for name in FOLDER_MARKERS.get(rel.parts[0], []):
                 item.add_marker(name)
+    # the longest units first (packaging, firmware under simavr, slow, real-time rigs), so that with a few workers
+    # none starts a ten-minute module last; within a unit, and between units of one cost, collection order is kept
+    units: dict[str, list] = {}
+    for item in items:
+        units.setdefault(unit_of(item.nodeid), []).append(item)
+
+    def cost(unit_items) -> tuple[int, int]:
+        weights = [max((w for k, w in _KIND_WEIGHT.items() if it.get_closest_marker(k)), default=0)
+                   for it in unit_items]
+        return max(weights), sum(weights)
+
+    order = sorted(units, key=lambda u: cost(units[u]), reverse=True)  # stable: ties keep collection order
+    items[:] = [it for u in order for it in units[u]]
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` by :func:`unit_of` (a file, or the parameter parts of one), handed out in the order
+    :func:`pytest_collection_modifyitems` gives (longest first) instead of xdist's (most tests first)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class UnitScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return unit_of(nodeid)
+
+    config.option.loadscopereorder = False
+    return UnitScheduling(config, log)
 
 
 def shared_path(*parts: str) -> Path:
