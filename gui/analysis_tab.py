@@ -60,7 +60,19 @@ class AnalysisTab(QtWidgets.QWidget):
         self._session_range = None
         self.sensor_layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
 
-        # ---------------- left: file, trials, actions ----------------
+        leftw = self._build_controls()
+        self.views = QtWidgets.QTabWidget()
+        self._build_trial_tab()
+        self._build_accuracy_tab()
+        self._build_table1_tab()
+        self._build_confusion_tab()
+        lay = QtWidgets.QHBoxLayout(self)
+        lay.addWidget(leftw)
+        lay.addWidget(self.views, 1)
+        self._update_buttons()
+
+    def _build_controls(self) -> QtWidgets.QWidget:
+        """The left panel: file, trials, the analyses' options and buttons, the model trainer, the exports."""
         self.open_btn = QtWidgets.QPushButton("Open session / encoded file...")
         self.open_btn.clicked.connect(self._browse)
         self.file_label = QtWidgets.QLabel("no file")
@@ -68,9 +80,9 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trials = QtWidgets.QTableWidget(0, 5)
         self.trials.setHorizontalHeaderLabels(["trial", "texture", "speed", "force", "status"])
         self.trials.verticalHeader().setVisible(False)
-        self.trials.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectRows)
-        self.trials.setSelectionMode(QtWidgets.QAbstractItemView.SingleSelection)
-        self.trials.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        self.trials.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
+        self.trials.setSelectionMode(QtWidgets.QAbstractItemView.SelectionMode.SingleSelection)
+        self.trials.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.trials.itemSelectionChanged.connect(self._trial_selected)
 
         self.repeats = QtWidgets.QSpinBox(minimum=1, maximum=100, value=5)
@@ -142,10 +154,10 @@ class AnalysisTab(QtWidgets.QWidget):
         left.addWidget(model_box)
         left.addLayout(ex)
         self.trials.setMinimumHeight(170)  # several rows even in a short window (the panel scrolls instead)
-        leftw = side_panel(left, 400)
+        return side_panel(left, 400)
 
-        # ---------------- right: views ----------------
-        self.views = QtWidgets.QTabWidget()
+    def _build_trial_tab(self) -> None:
+        """The trial view: raw traces and SA/RA rasters (left), one heat map per taxel layer (right)."""
         # trial view: raw traces and SA/RA rasters (left), one heat map per taxel layer (right)
         trialw = QtWidgets.QWidget()
         tlay = QtWidgets.QHBoxLayout(trialw)
@@ -187,7 +199,9 @@ class AnalysisTab(QtWidgets.QWidget):
         self._set_trial_busy(None)
         self.views.addTab(trialw, "Trial")
         self._build_trial_view(PAPER_SENSOR)
-        # accuracy vs PCs
+
+    def _build_accuracy_tab(self) -> None:
+        """Accuracy vs number of PCs (Fig. 3), one curve per variant of the chosen task."""
         accw = QtWidgets.QWidget()
         al = QtWidgets.QVBoxLayout(accw)
         self.task_combo = QtWidgets.QComboBox()
@@ -205,7 +219,9 @@ class AnalysisTab(QtWidgets.QWidget):
         al.addWidget(self.acc_info)
         al.addWidget(self.acc_plot, 1)
         self.views.addTab(accw, "Accuracy vs PCs (Fig. 3)")
-        # Table 1
+
+    def _build_table1_tab(self) -> None:
+        """Table 1: accuracy (%) of each task and variant at a chosen number of PCs."""
         tw = QtWidgets.QWidget()
         tl = QtWidgets.QVBoxLayout(tw)
         self.table_pcs = QtWidgets.QSpinBox(minimum=1, maximum=200, value=50)
@@ -216,13 +232,15 @@ class AnalysisTab(QtWidgets.QWidget):
         row.addStretch(1)
         tl.addLayout(row)
         self.table1 = QtWidgets.QTableWidget(0, 0)
-        self.table1.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        self.table1.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         tl.addWidget(self.table1, 1)
         self.warn_label = QtWidgets.QLabel("")
         self.warn_label.setWordWrap(True)
         tl.addWidget(self.warn_label)
         self.views.addTab(tw, "Table 1")
-        # confusion
+
+    def _build_confusion_tab(self) -> None:
+        """The confusion matrix of a chosen task and variant (rows: true, columns: predicted)."""
         cw = QtWidgets.QWidget()
         cl = QtWidgets.QVBoxLayout(cw)
         crow = QtWidgets.QHBoxLayout()
@@ -252,11 +270,6 @@ class AnalysisTab(QtWidgets.QWidget):
         self.conf_counts: list = []  # a TextItem per cell: the trial count
         cl.addWidget(self.conf_plot, 1)
         self.views.addTab(cw, "Confusion")
-
-        lay = QtWidgets.QHBoxLayout(self)
-        lay.addWidget(leftw)
-        lay.addWidget(self.views, 1)
-        self._update_buttons()
 
     # ------------------------------------------------------------------------------------------------------
     # file and trials
@@ -362,9 +375,10 @@ class AnalysisTab(QtWidgets.QWidget):
         The plot always ends on the selected trial: while one trial is being read, a newer selection is remembered
         and read next (the trials browsed past in between are skipped), and a finished trial that is no longer
         selected is not drawn."""
-        if self.path is None or self.trials.item(row, 0) is None:
+        item = self.trials.item(row, 0)
+        if self.path is None or item is None:
             return
-        self._wanted_tid = int(self.trials.item(row, 0).text())
+        self._wanted_tid = int(item.text())
         if self._trial_job is None:
             self._start_trial_job(self._wanted_tid)
 

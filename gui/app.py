@@ -128,25 +128,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.events.problem.connect(self._on_problem)
         self.guard = ExceptionGuard(self.events, lambda text: self.banner.show_message(text, error=True)).install()
 
-        # --- top bar: source, connect, STOP ---
-        self.source_label = QtWidgets.QLabel()
-        self.source_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-        self.source_label.setStyleSheet("font-weight: bold;")
-        self.connect_btn = QtWidgets.QPushButton("Connect...")
-        self.connect_btn.setToolTip("Choose the rig: the simulated rig, two serial ports, or a replay")
-        self.connect_btn.clicked.connect(self.choose_source)
-        self.stop_btn = QtWidgets.QPushButton("STOP")
-        self.stop_btn.setObjectName("big_stop")
-        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc; "
-                                 "works with a menu or a drop-down open)")
-        self.stop_btn.setMinimumSize(160, 48)
-        self.stop_btn.setStyleSheet(
-            "QPushButton { background: #d00; color: white; font-size: 20px; font-weight: bold; border-radius: 6px; }"
-            "QPushButton:pressed { background: #900; }"
-        )
-        self.stop_btn.clicked.connect(self.emergency_stop)
-        # Esc = STOP in the main window: rigctl_gui.guards.StopGuard (also with a menu or a drop-down open)
-        self.stop_btn.setFixedSize(160, 48)
+        self._build_top_bar()
 
         self.tabs = QtWidgets.QTabWidget()
         self.control = ControlPanel()
@@ -175,7 +157,62 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
         self.stale_label.hide()
 
-        # the top strip: fixed height, never in a scroll area; the run strip shows and hides inside it
+        self._build_layout()
+
+        self.links = LinkStatus()
+        self.links.health_changed.connect(self.banners.on_health)
+        self.links.health_changed.connect(self._on_health)
+        self.statusBar().addPermanentWidget(self.links)  # no stretch: the temporary messages keep their room
+        self._build_menus()
+
+        state = self.settings.value("ui/state")
+        if state is not None:
+            self.restoreState(state)
+        geom = self.settings.value("ui/geometry")
+        if geom is not None:
+            self.restoreGeometry(geom)
+        else:
+            self.resize(*PREFERRED_SIZE)
+        self.fit_to_screen()
+        self.stop_guard, self.wheel_guard = install_guards(self, self.stop_btn, self.emergency_stop)
+        self._log_user_actions()
+
+        self._tick = 0
+        self.timer = QtCore.QTimer(self)
+        self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
+        self.timer.timeout.connect(self.refresh)
+        period_ms = refresh_ms(max_fps)
+        self._slow_every = max(1, round(120 / period_ms))  # the other tabs, events and faults: every ~0.12 s
+        self._health_every = max(1, round(300 / period_ms))  # link health: every ~0.3 s
+        self.timer.start(period_ms)
+        self._update_source_label("not connected")
+        if autoconnect:
+            self.connect_source(self.source)
+
+    def _build_top_bar(self) -> None:
+        """The top bar's widgets: the rig source, Connect... and the big STOP."""
+        self.source_label = QtWidgets.QLabel()
+        self.source_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+        self.source_label.setStyleSheet("font-weight: bold;")
+        self.connect_btn = QtWidgets.QPushButton("Connect...")
+        self.connect_btn.setToolTip("Choose the rig: the simulated rig, two serial ports, or a replay")
+        self.connect_btn.clicked.connect(self.choose_source)
+        self.stop_btn = QtWidgets.QPushButton("STOP")
+        self.stop_btn.setObjectName("big_stop")
+        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc; "
+                                 "works with a menu or a drop-down open)")
+        self.stop_btn.setMinimumSize(160, 48)
+        self.stop_btn.setStyleSheet(
+            "QPushButton { background: #d00; color: white; font-size: 20px; font-weight: bold; border-radius: 6px; }"
+            "QPushButton:pressed { background: #900; }"
+        )
+        self.stop_btn.clicked.connect(self.emergency_stop)
+        # Esc = STOP in the main window: rigctl_gui.guards.StopGuard (also with a menu or a drop-down open)
+        self.stop_btn.setFixedSize(160, 48)
+
+    def _build_layout(self) -> None:
+        """The top strip (source, run strip, STOP: fixed height, never in a scroll area; the run strip shows and hides
+        inside it), the banners, the tabs and the event log dock."""
         self.top_strip = QtWidgets.QWidget()
         self.top_strip.setObjectName("top_strip")
         middle = QtWidgets.QVBoxLayout()
@@ -209,36 +246,6 @@ class MainWindow(QtWidgets.QMainWindow):
                                   | feature.DockWidgetFloatable)
         self.addDockWidget(QtCore.Qt.DockWidgetArea.BottomDockWidgetArea, self.log_dock)
         self.resizeDocks([self.log_dock], [110], QtCore.Qt.Orientation.Vertical)
-
-        self.links = LinkStatus()
-        self.links.health_changed.connect(self.banners.on_health)
-        self.links.health_changed.connect(self._on_health)
-        self.statusBar().addPermanentWidget(self.links)  # no stretch: the temporary messages keep their room
-        self._build_menus()
-
-        state = self.settings.value("ui/state")
-        if state is not None:
-            self.restoreState(state)
-        geom = self.settings.value("ui/geometry")
-        if geom is not None:
-            self.restoreGeometry(geom)
-        else:
-            self.resize(*PREFERRED_SIZE)
-        self.fit_to_screen()
-        self.stop_guard, self.wheel_guard = install_guards(self, self.stop_btn, self.emergency_stop)
-        self._log_user_actions()
-
-        self._tick = 0
-        self.timer = QtCore.QTimer(self)
-        self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
-        self.timer.timeout.connect(self.refresh)
-        period_ms = refresh_ms(max_fps)
-        self._slow_every = max(1, round(120 / period_ms))  # the other tabs, events and faults: every ~0.12 s
-        self._health_every = max(1, round(300 / period_ms))  # link health: every ~0.3 s
-        self.timer.start(period_ms)
-        self._update_source_label("not connected")
-        if autoconnect:
-            self.connect_source(self.source)
 
     # ------------------------------------------------------------------------------------------------------
     # the screen

@@ -56,8 +56,26 @@ class ControlPanel(QtWidgets.QWidget):
         self.drum = None
         self.rig = None
         self.ops: RigControl | None = None
+        self._pending_plate: str | None = None  # the plate to mount once the operator agrees to stop the drum
 
-        # --- setpoints ---
+        left = QtWidgets.QVBoxLayout()
+        left.addWidget(self._build_setpoints())
+        left.addWidget(self._build_commands())
+        left.addWidget(self._build_state())
+        left.addStretch(1)
+        leftw = side_panel(left, 350)  # fixed width, scrolls when the window is short
+        self._locked_by: str | None = None
+        self._connected = False
+
+        self._build_plots()
+
+        lay = QtWidgets.QHBoxLayout(self)
+        lay.addWidget(leftw)
+        lay.addWidget(self.plots, 1)
+        self.set_enabled(False)
+
+    def _build_setpoints(self) -> QtWidgets.QGroupBox:
+        """The speed and force setpoint boxes, the limits they are checked against and Apply."""
         # the boxes take any number typed (a value above the limits is shown as typed and refused visibly, never
         # cut to its first digits by the box's validator)
         self.speed = QtWidgets.QDoubleSpinBox(suffix=" mm/s", decimals=1, singleStep=10.0, maximum=99999.0)
@@ -91,8 +109,10 @@ class ControlPanel(QtWidgets.QWidget):
         form.addRow("", self.apply_btn)
         setp = QtWidgets.QGroupBox("Setpoints")
         setp.setLayout(form)
+        return setp
 
-        # --- commands ---
+    def _build_commands(self) -> QtWidgets.QGroupBox:
+        """The drum's command buttons and the plate chooser."""
         self.buttons = {}
         grid = QtWidgets.QGridLayout()
         for i, (name, label, tip) in enumerate(
@@ -113,7 +133,7 @@ class ControlPanel(QtWidgets.QWidget):
             grid.addWidget(b, i // 2, i % 2)
         self.plate = QtWidgets.QComboBox()
         self.plate.setObjectName("plate")
-        self.textures = None
+        self.textures: TextureSet | None = None
         self.set_textures(PAPER_TEXTURES)
         self.mount_btn = QtWidgets.QPushButton("Mount plate")
         self.mount_btn.setObjectName("btn_mount")
@@ -122,8 +142,10 @@ class ControlPanel(QtWidgets.QWidget):
         grid.addWidget(self.mount_btn, 3, 1)
         cmds = QtWidgets.QGroupBox("Drum")
         cmds.setLayout(grid)
+        return cmds
 
-        # --- state ---
+    def _build_state(self) -> QtWidgets.QGroupBox:
+        """The controller's state, faults, readout and messages."""
         self.state_label = QtWidgets.QLabel("not connected")
         self.state_label.setObjectName("state_label")
         self.state_label.setWordWrap(True)
@@ -131,33 +153,26 @@ class ControlPanel(QtWidgets.QWidget):
         self.fault_label = QtWidgets.QLabel("Faults: -")
         self.fault_label.setWordWrap(True)
         self.readout = QtWidgets.QLabel("-")
-        self.readout.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        self.readout.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
         self.message = QtWidgets.QLabel("")
         self.message.setWordWrap(True)
         sl = QtWidgets.QVBoxLayout()
         for w in (self.state_label, self.fault_label, self.readout, self.message):
-            w.setTextFormat(QtCore.Qt.PlainText)  # device errors are shown whole ('<' included)
+            w.setTextFormat(QtCore.Qt.TextFormat.PlainText)  # device errors are shown whole ('<' included)
             sl.addWidget(w)
         state = QtWidgets.QGroupBox("Controller")
         state.setLayout(sl)
+        return state
 
-        left = QtWidgets.QVBoxLayout()
-        left.addWidget(setp)
-        left.addWidget(cmds)
-        left.addWidget(state)
-        left.addStretch(1)
-        leftw = side_panel(left, 350)  # fixed width, scrolls when the window is short
-        self._locked_by: str | None = None
-        self._connected = False
-
-        # --- plots ---
+    def _build_plots(self) -> None:
+        """Force vs setpoint and drum speed vs target, over time."""
         self.plots = pg.GraphicsLayoutWidget()
         self.force_plot = self.plots.addPlot(row=0, col=0, title="Load-cell force vs setpoint")
         self.force_plot.setLabel("left", "force (g)")
         self.force_plot.addLegend(offset=(5, 5))
         self.force_curve = self.force_plot.plot(pen=pg.mkPen("#1f77b4", width=2), name="measured")
         self.setpoint_curve = self.force_plot.plot(
-            pen=pg.mkPen("#d62728", width=2, style=QtCore.Qt.DashLine), name="setpoint"
+            pen=pg.mkPen("#d62728", width=2, style=QtCore.Qt.PenStyle.DashLine), name="setpoint"
         )
         self.speed_plot = self.plots.addPlot(row=1, col=0, title="Drum surface speed")
         # the unit written out (no SI prefix: a drum at rest read "speed (mmm/s)" from -400 to 400)
@@ -166,15 +181,10 @@ class ControlPanel(QtWidgets.QWidget):
         self.speed_plot.addLegend(offset=(5, 5))
         self.speed_curve = self.speed_plot.plot(pen=pg.mkPen("#2ca02c", width=2), name="measured")
         self.target_curve = self.speed_plot.plot(
-            pen=pg.mkPen("#ff7f0e", width=2, style=QtCore.Qt.DashLine), name="target"
+            pen=pg.mkPen("#ff7f0e", width=2, style=QtCore.Qt.PenStyle.DashLine), name="target"
         )
         for p in (self.force_plot, self.speed_plot):
             p.showGrid(x=True, y=True, alpha=0.3)
-
-        lay = QtWidgets.QHBoxLayout(self)
-        lay.addWidget(leftw)
-        lay.addWidget(self.plots, 1)
-        self.set_enabled(False)
 
     # ------------------------------------------------------------------------------------------------------
     def set_limits(self, speed_max_mm_s: float, force_max_g: float) -> None:

@@ -61,7 +61,7 @@ class ProtocolTab(QtWidgets.QWidget):
         self.table = QtWidgets.QTableWidget(0, len(PLAN_COLUMNS))
         self.table.setHorizontalHeaderLabels(PLAN_COLUMNS)
         self.table.verticalHeader().setVisible(False)
-        self.table.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.Stretch)
 
         self.out_edit = QtWidgets.QLineEdit()
@@ -92,49 +92,13 @@ class ProtocolTab(QtWidgets.QWidget):
         self.run_bar.setFormat("session %v/%m trials")
         self.status = QtWidgets.QLabel("idle")
         self.status.setObjectName("protocol_status")
-        self.status.setTextFormat(QtCore.Qt.PlainText)  # errors shown whole, '<' included
+        self.status.setTextFormat(QtCore.Qt.TextFormat.PlainText)  # errors shown whole, '<' included
         self.status.setWordWrap(True)
 
-        # the run strip: the run's state and the operator prompt, shown by the main window above the tabs so they
-        # are seen from every tab
-        self.run_strip = QtWidgets.QFrame()
-        self.run_strip.setObjectName("run_strip")
-        self.run_strip.setStyleSheet("QFrame#run_strip { background: #eef; border: 1px solid #88a; }")
-        self.run_label = QtWidgets.QLabel()
-        self.run_label.setObjectName("run_state")
-        self.run_label.setTextFormat(QtCore.Qt.PlainText)
-        self.run_label.setStyleSheet("font-weight: bold;")
-        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Fixed)
-        self.prompt_frame = QtWidgets.QFrame()
-        self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
-        self.prompt_label = QtWidgets.QLabel()
-        self.prompt_label.setStyleSheet("font-weight: bold;")
-        self.prompt_ok = QtWidgets.QPushButton("Plate mounted - continue")
-        self.prompt_ok.clicked.connect(self._prompt_done)
-        pl = QtWidgets.QHBoxLayout(self.prompt_frame)
-        pl.setContentsMargins(4, 0, 4, 0)
-        pl.addWidget(self.prompt_label, 1)
-        pl.addWidget(self.prompt_ok)
-        self.prompt_frame.hide()
-        # one row (the main window's top strip has a fixed height): the run's state, then the operator prompt
-        rs = QtWidgets.QHBoxLayout(self.run_strip)
-        rs.setContentsMargins(6, 0, 6, 0)
-        rs.addWidget(self.run_label, 1)
-        rs.addWidget(self.prompt_frame)
-        self.run_strip.hide()
+        self._build_run_strip()
 
-        # the protocols that ship with rigctl (rigctl.acquisition.builtin), one choice away
-        from rigctl.acquisition.builtin import builtin_protocols, summary
-
-        self.builtin = QtWidgets.QComboBox()
-        self.builtin.setObjectName("builtin_protocols")
-        self.builtin.addItem("Built-in protocol...", None)
-        for name, path in builtin_protocols().items():
-            self.builtin.addItem(name, str(path))
-            self.builtin.setItemData(self.builtin.count() - 1, summary(path) or name, QtCore.Qt.ToolTipRole)
-        self.builtin.setToolTip("Load one of the protocols that ship with rigctl (rigctl acquire NAME runs the same)")
-        self.builtin.activated.connect(self._builtin_chosen)
-        self.path_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self._build_builtin_choice()
+        self.path_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
         top = QtWidgets.QHBoxLayout()
         top.addWidget(self.open_btn)
         top.addWidget(self.builtin)
@@ -166,6 +130,48 @@ class ProtocolTab(QtWidgets.QWidget):
                 self.load(str(last))
             except Exception:  # noqa: BLE001 - a stale setting is not an error
                 pass
+
+    def _build_run_strip(self) -> None:
+        """The run strip: the run's state and the operator prompt, shown by the main window above the tabs so they
+        are seen from every tab."""
+        self.run_strip = QtWidgets.QFrame()
+        self.run_strip.setObjectName("run_strip")
+        self.run_strip.setStyleSheet("QFrame#run_strip { background: #eef; border: 1px solid #88a; }")
+        self.run_label = QtWidgets.QLabel()
+        self.run_label.setObjectName("run_state")
+        self.run_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+        self.run_label.setStyleSheet("font-weight: bold;")
+        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
+        self.prompt_frame = QtWidgets.QFrame()
+        self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
+        self.prompt_label = QtWidgets.QLabel()
+        self.prompt_label.setStyleSheet("font-weight: bold;")
+        self.prompt_ok = QtWidgets.QPushButton("Plate mounted - continue")
+        self.prompt_ok.clicked.connect(self._prompt_done)
+        pl = QtWidgets.QHBoxLayout(self.prompt_frame)
+        pl.setContentsMargins(4, 0, 4, 0)
+        pl.addWidget(self.prompt_label, 1)
+        pl.addWidget(self.prompt_ok)
+        self.prompt_frame.hide()
+        # one row (the main window's top strip has a fixed height): the run's state, then the operator prompt
+        rs = QtWidgets.QHBoxLayout(self.run_strip)
+        rs.setContentsMargins(6, 0, 6, 0)
+        rs.addWidget(self.run_label, 1)
+        rs.addWidget(self.prompt_frame)
+        self.run_strip.hide()
+
+    def _build_builtin_choice(self) -> None:
+        """The protocols that ship with rigctl (rigctl.acquisition.builtin), one choice away."""
+        from rigctl.acquisition.builtin import builtin_protocols, summary
+
+        self.builtin = QtWidgets.QComboBox()
+        self.builtin.setObjectName("builtin_protocols")
+        self.builtin.addItem("Built-in protocol...", None)
+        for name, path in builtin_protocols().items():
+            self.builtin.addItem(name, str(path))
+            self.builtin.setItemData(self.builtin.count() - 1, summary(path) or name, QtCore.Qt.ItemDataRole.ToolTipRole)
+        self.builtin.setToolTip("Load one of the protocols that ship with rigctl (rigctl acquire NAME runs the same)")
+        self.builtin.activated.connect(self._builtin_chosen)
 
     # ------------------------------------------------------------------------------------------------------
     def _browse_protocol(self) -> QtWidgets.QFileDialog:
