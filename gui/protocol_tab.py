@@ -64,17 +64,6 @@ class ProtocolTab(QtWidgets.QWidget):
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.Stretch)
 
-        self.out_edit = QtWidgets.QLineEdit()
-        self.out_edit.setPlaceholderText("output session file (.h5)")
-        out_btn = QtWidgets.QPushButton("Choose...")
-        out_btn.clicked.connect(self._browse_output)
-        self.resume_box = QtWidgets.QCheckBox("Resume this (interrupted) session file")
-        self.resume_box.setToolTip("Skip the trials already recorded in the output file and record the rest")
-        self.lsl_box = QtWidgets.QCheckBox("Publish on LSL")
-        self.lsl_box.setToolTip("Publish the run on Lab Streaming Layer for LabRecorder (taxels, SA/RA spikes, drum "
-                                "state, markers; docs/guides/labrecorder.md). Set from the rig config's lsl.enabled "
-                                "when the rig connects. Needs pylsl: pip install 'rigctl[lsl]'")
-
         self.start_btn = QtWidgets.QPushButton("Start")
         self.pause_btn = QtWidgets.QPushButton("Pause")
         self.resume_btn = QtWidgets.QPushButton("Resume")
@@ -103,12 +92,7 @@ class ProtocolTab(QtWidgets.QWidget):
         top.addWidget(self.open_btn)
         top.addWidget(self.builtin)
         top.addWidget(self.path_label, 1)
-        out = QtWidgets.QHBoxLayout()
-        out.addWidget(QtWidgets.QLabel("Output"))
-        out.addWidget(self.out_edit, 1)
-        out.addWidget(out_btn)
-        out.addWidget(self.resume_box)
-        out.addWidget(self.lsl_box)
+        out = self._build_output_row()
         ctl = QtWidgets.QHBoxLayout()
         for b in (self.start_btn, self.pause_btn, self.resume_btn, self.abort_btn):
             ctl.addWidget(b)
@@ -130,6 +114,26 @@ class ProtocolTab(QtWidgets.QWidget):
                 self.load(str(last))
             except Exception:  # noqa: BLE001 - a stale setting is not an error
                 pass
+
+    def _build_output_row(self) -> QtWidgets.QHBoxLayout:
+        """The output file, its chooser, Resume and Publish on LSL."""
+        self.out_edit = QtWidgets.QLineEdit()
+        self.out_edit.setPlaceholderText("output session file (.h5)")
+        out_btn = QtWidgets.QPushButton("Choose...")
+        out_btn.clicked.connect(self._browse_output)
+        self.resume_box = QtWidgets.QCheckBox("Resume this (interrupted) session file")
+        self.resume_box.setToolTip("Skip the trials already recorded in the output file and record the rest")
+        self.lsl_box = QtWidgets.QCheckBox("Publish on LSL")
+        self.lsl_box.setToolTip("Publish the run on Lab Streaming Layer for LabRecorder (taxels, SA/RA spikes, drum "
+                                "state, markers; docs/guides/labrecorder.md). Set from the rig config's lsl.enabled "
+                                "when the rig connects. Needs pylsl: pip install 'rigctl[lsl]'")
+        out = QtWidgets.QHBoxLayout()
+        out.addWidget(QtWidgets.QLabel("Output"))
+        out.addWidget(self.out_edit, 1)
+        out.addWidget(out_btn)
+        out.addWidget(self.resume_box)
+        out.addWidget(self.lsl_box)
+        return out
 
     def _build_run_strip(self) -> None:
         """The run strip: the run's state and the operator prompt, shown by the main window above the tabs so they
