@@ -238,3 +238,18 @@ def test_the_command_refuses_what_it_must(recorded, tmp_path):
     r = run(main, ["export", "nwb", str(recorded), "--encoded", str(recorded), "--out", str(tmp_path / "y.nwb"),
                    "--no-progress"])
     assert r.exit_code == 1 and "Error:" in r.output and not (tmp_path / "y.nwb").exists()
+
+
+def test_unknown_variants_are_refused_before_the_export_runs(dataset, tmp_path, monkeypatch):
+    """`export nwb --variants nope` was refused only after the export ran (issue 24): now a usage error before any
+    work, with --encoded (not among its variants) and without it (nothing to choose among)."""
+    from rigctl.storage import nwb as nwbmod
+
+    session, encoded = dataset
+    ran = []
+    monkeypatch.setattr(nwbmod, "export_nwb", lambda *a, **k: ran.append(a))  # the command must not get here
+    for extra in (["--encoded", str(encoded)], []):
+        r = CliRunner().invoke(main, ["export", "nwb", str(session), *extra, "--variants", "nope", "--out",
+                                      str(tmp_path / "v.nwb"), "--no-progress"])
+        assert r.exit_code == 2 and "--variants" in r.output, (extra, r.output)
+    assert ran == [] and list(tmp_path.iterdir()) == []
