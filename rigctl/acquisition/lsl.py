@@ -11,16 +11,17 @@ ids ``<source_id>-<kind>`` (a restarted rig is the same stream to LabRecorder):
 - ``spikes`` (type ``Spikes``, irregular rate): one int32 channel, one sample per spike, the value the train
   ``type * n_channels + taxel`` (type 0 = SA, 1 = RA), timestamped at the spike's sample; the description lists
   each train.
-- ``drum`` (type ``DrumState``): speed_mm_s, force_g, actuator_mm (NaN where the trial's traces do not carry it) at
-  the drum controller's poll rate.
+- ``drum`` (type ``DrumState``): speed_mm_s, force_g, actuator_mm at the drum controller's poll rate (every status
+  read, as it is made).
 - ``markers`` (type ``Markers``, irregular, string): one JSON object per run event (``{"event": "trial_start",
   "trial_id", "texture", "speed_mm_s", "force_g", "protocol", ...}``, ``trial_end``, ``pause``, ``resume``,
   ``abort``, ``fault``, ...).
 
 Timestamps are on the LSL clock: every sample's fitted host time (:mod:`rigctl.acquisition.clock`: the board's
 sequence numbers against host receive times, not the nominal rate) plus the host <-> LSL offset measured when the
-outlets open (:func:`rigctl.core.clocksync.measure_clock_offset`). Samples are pushed per trial, once it is
-recorded, with their acquisition timestamps (LSL and LabRecorder place them by timestamp, not arrival).
+outlets open (:func:`rigctl.core.clocksync.measure_clock_offset`). Samples are pushed live, in chunks as the reader
+receives them (:class:`rigctl.operations.LslPublisher`), with their acquisition timestamps (LSL and LabRecorder place
+them by timestamp, not arrival).
 
 Without pylsl nothing here loads it; :func:`require_pylsl` says what to install when LSL is asked for.
 """

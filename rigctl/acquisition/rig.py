@@ -792,7 +792,7 @@ class Rig:
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)
             counts = counts[k:]
-        ring = getattr(self.stream, "ring", None)  # a live stream's recent frames (the in-process one has none)
+        ring = getattr(self.stream, "ring", None)  # a live stream's recent frames (in-process: once a live consumer asked)
         host_rate = math.nan
         if ring is not None and len(cap) >= n:
             _, ring_seq, ring_t = ring.timing_since(0)

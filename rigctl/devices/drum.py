@@ -331,6 +331,9 @@ class DrumClient:
         self.fences = 0
         self.boot_waits = 0
         self.quiet_periods = 0
+        #: called as ``fn(host_time_s, status)`` after every :meth:`read_status` (the midpoint of the request on
+        #: :attr:`clock`), from the thread that read it: live consumers of the polls (the LSL drum stream)
+        self.status_listeners: list[Any] = []
         resets = transport is None and resets_on_open(port)
         self.boot_wait_s = float(boot_wait_s) if boot_wait_s is not None else (MEGA_BOOT_WAIT_S if resets else 0.0)
         self.boot_quiet_s = float(boot_quiet_s) if boot_quiet_s is not None else (MEGA_BOOT_QUIET_S if resets
@@ -814,8 +817,16 @@ class DrumClient:
 
     # ------------------------------------------------------------------ status and waits
     def read_status(self) -> DrumStatus:
-        """All input registers in one request, decoded (signed registers as two's complement)."""
-        return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
+        """All input registers in one request, decoded (signed registers as two's complement); passed on to
+        :attr:`status_listeners`."""
+        if not self.status_listeners:
+            return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
+        t0 = self.clock.now()
+        status = DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
+        t = 0.5 * (t0 + self.clock.now())
+        for fn in list(self.status_listeners):
+            fn(t, status)
+        return status
 
     def _wait(self, done: Any, timeout_s: float, what: str, allow_fault: bool = False) -> DrumStatus:
         clock = self.clock

@@ -1,10 +1,12 @@
-"""A protocol run published on Lab Streaming Layer: :class:`LslPublisher`, the consumer of a run's trial events
-that feeds :class:`rigctl.acquisition.lsl.LslOutlets` (taxels, SA/RA spikes, drum state, markers).
+"""A protocol run published on Lab Streaming Layer: :class:`LslPublisher` feeds
+:class:`rigctl.acquisition.lsl.LslOutlets` (taxels, SA/RA spikes, drum state, markers).
 
-Each recorded trial is pushed once it is complete: its frames with their fitted times (``rigctl.acquisition.clock``),
-the spikes of the streaming Izhikevich encoder (:class:`rigctl.encoding.izhikevich.StreamingEncoder`, paper eqs.
-3-5, reset per trial, normalised with the rig's taxel normalisation or the full ADC range: the same spikes
-``encode_sa``/``encode_ra`` give for the trial) and the drum traces; every run event is one marker. A
+The taxel stream, its spikes and the drum state are live (:class:`rigctl.operations._lsl_live.LiveLslFeed`): frames
+pushed every 25 ms as the reader receives them, for as long as the publisher is open (between trials too), with
+their fitted times (the online host <-> board clock fit) on the LSL clock; the spikes of the streaming Izhikevich
+encoder (:class:`rigctl.encoding.izhikevich.StreamingEncoder`, paper eqs. 3-5, run over the whole stream, normalised
+with the rig's taxel normalisation or the full ADC range); the drum state at every status poll (speed, force,
+actuator position). Every run and trial event is one marker (a trial's end at its last sample's fitted time). A
 :class:`ProtocolRun` made with ``lsl=`` does this (``rigctl acquire --lsl``, the GUI's toggle, the rig config's
 ``lsl.enabled``, ``rigctl serve``).
 """
@@ -23,6 +25,7 @@ from rigctl.acquisition.clock import fitted_times
 from rigctl.acquisition.lsl import LslOutlets
 from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.normalisation import TaxelRange
+from rigctl.operations._lsl_live import LiveLslFeed
 
 __all__ = ["LslPublisher", "lsl_requested"]
 
@@ -51,8 +54,9 @@ def _planned_fields(planned: Any) -> dict[str, Any]:
 class LslPublisher:
     """Publishes a run on ``rig`` (a :class:`rigctl.acquisition.rig.Rig` or a ``RigControl``) over LSL.
 
-    Pass :meth:`on_trial` as (or from) the run's ``on_trial``; :meth:`run_marker` for run-level events (start, end,
-    abort, STOP); :meth:`session_attrs` for the session file (the streams and the host <-> LSL offset).
+    The taxels, spikes and drum state stream live from here on (:attr:`live`) until :meth:`close` (which pushes what
+    is left). Pass :meth:`on_trial` as (or from) the run's ``on_trial``; :meth:`run_marker` for run-level events
+    (start, end, abort, STOP); :meth:`session_attrs` for the session file (the streams and the host <-> LSL offset).
 
     Raises :class:`rigctl.acquisition.lsl.LslUnavailable` when pylsl is missing.
     """
@@ -73,6 +77,9 @@ class LslPublisher:
                            TaxelRange(np.zeros(layout.n_channels), np.full(layout.n_channels, float(layout.adc_max))))
         #: markers pushed (their JSON documents), in order
         self.markers: list[dict[str, Any]] = []
+        #: the live taxel / spike / drum feed (started here)
+        self.live = LiveLslFeed(self.outlets, self.rig.stream, self.rig.drum, self.normaliser)
+        self.live.start()
 
     def session_attrs(self) -> dict[str, Any]:
         """``{"lsl": JSON}``: the streams' names and source ids, the host <-> LSL clock offset."""
@@ -91,34 +98,26 @@ class LslPublisher:
             fields["error"] = event.error
         at = None
         if event.kind == "complete" and event.data is not None:
-            at, span = self.push_trial(event.data)
+            self.live.push_pending()  # the trial's frames are out before its end marker
+            at, span = self.trial_span(event.data)
             fields.update(span)
         self.markers.append(self.outlets.marker(kind, host_time_s=at, **fields))
 
-    def push_trial(self, data: Any) -> tuple[float | None, dict[str, Any]]:
-        """Push one recorded trial (:class:`rigctl.core.trial.TrialData`): taxels, spikes, drum traces. Returns the
-        host time of its last sample (the trial_end marker's time) and its span on the LSL clock."""
-        from rigctl.encoding.izhikevich import StreamingEncoder
-
-        layout = data.layout
+    def trial_span(self, data: Any) -> tuple[float | None, dict[str, Any]]:
+        """A recorded trial (:class:`rigctl.core.trial.TrialData`, its frames already streamed live): the fitted host
+        time of its last sample (the trial_end marker's time) and its span on the LSL clock."""
         times = fitted_times(data.attrs, data.seq)
-        origin = float(data.attrs.get("host_time_origin_s", 0.0))
         if times is None:  # a trial without clock attributes: its receive times
+            origin = float(data.attrs.get("host_time_origin_s", 0.0))
             times = origin + np.asarray(data.host_time_s, dtype=np.float64)
-        self.outlets.push_taxels(data.taxels, data.seq, times)
-        enc = StreamingEncoder(layout.n_channels, normalise=self.normaliser, fs=layout.sample_rate_hz)
-        chunk = enc.process(data.taxels)
-        trains, at = [], []
-        for k, which in enumerate(("sa", "ra")):
-            t, ch = chunk.events(which)
-            idx = np.clip(np.round(np.asarray(t) * layout.sample_rate_hz).astype(np.int64), 0, len(times) - 1)
-            trains.append(k * layout.n_channels + np.asarray(ch, dtype=np.int64))
-            at.append(times[idx])
-        self.outlets.push_spikes(np.concatenate(trains), np.concatenate(at))
-        self.outlets.push_drum(origin + np.asarray(data.force_time_s), data.speed_mm_s, data.force_g)
+        if not len(times):
+            return None, {"n_samples": 0}
         lsl = self.outlets.lsl_time(times[[0, -1]])
         return float(times[-1]), {"first_sample_lsl_s": float(lsl[0]), "last_sample_lsl_s": float(lsl[1]),
-                                  "n_samples": int(data.n_samples), "n_spikes": int(sum(len(x) for x in trains))}
+                                  "n_samples": int(data.n_samples)}
 
     def close(self) -> None:
-        self.outlets.close()
+        """Push what the reader has received, stop the live feed, close the outlets (once)."""
+        if self.outlets.outlets:
+            self.live.stop()
+            self.outlets.close()

@@ -316,6 +316,8 @@ class RunQueue:
             current.abort()
         if self._thread is not None:
             self._thread.join(timeout_s)
+        if self.lsl is not None:
+            self.lsl.close()
 
     def _next(self) -> QueuedRun | None:
         with self._lock:

@@ -68,10 +68,12 @@ class ProtocolRun:
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
         self.lsl: LslPublisher | None = None
+        self._own_lsl = False  # a publisher made here is closed at the run's end; one passed in, by its owner
         if isinstance(lsl, LslPublisher):
             self.lsl = lsl
         elif lsl:
             self.lsl = LslPublisher(self.rig, protocol_name=getattr(protocol, "name", ""))
+            self._own_lsl = True
 
     # ------------------------------------------------------------------------------------------------- state
     @property
@@ -135,6 +137,8 @@ class ProtocolRun:
             self.error = exc
             raise
         finally:
+            if self._own_lsl and self.lsl is not None:
+                self.lsl.close()
             self._done.set()
 
     def start(self) -> "ProtocolRun":

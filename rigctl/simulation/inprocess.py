@@ -28,6 +28,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
+from rigctl.devices.ring import RingBuffer
 from rigctl.devices.taxel_stream import Capture, StreamStats, first_flagged
 from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
@@ -157,7 +158,19 @@ class InProcessTaxels:
         self._frames = 0
         self._capture: list | None = None
         self._capture_count = 0
+        #: the live ring (:class:`rigctl.devices.ring.RingBuffer`) once a live consumer asked for it
+        #: (:meth:`enable_ring`); None before: the in-process tests pay nothing for it
+        self.ring: RingBuffer | None = None
         engine.listen(self._feed)
+
+    def enable_ring(self, seconds: float = 30.0) -> RingBuffer:
+        """Keep the last ``seconds`` of frames in :attr:`ring` from now on, as a serial stream does (live
+        consumers: the LSL outlets, a live view); returns it."""
+        with self._lock:
+            if self.ring is None:
+                lay = self._layout
+                self.ring = RingBuffer(max(1, int(seconds * lay.sample_rate_hz)), lay.n_channels)
+            return self.ring
 
     @property
     def layout(self) -> SensorLayout:
@@ -201,8 +214,12 @@ class InProcessTaxels:
                 flags[0] |= int(wire.FrameFlag.STREAMING_START)
                 self._first = False
             self._frames += n
+            if self._capture is None and self.ring is None:
+                return
+            t = (t0_ms + 1 + np.arange(n)) / 1000.0
+            if self.ring is not None:
+                self.ring.write(samples, seq, flags, t)
             if self._capture is not None:
-                t = (t0_ms + 1 + np.arange(n)) / 1000.0
                 self._capture.append((np.array(samples, np.uint16), seq, flags, t))
                 self._capture_count += n
 

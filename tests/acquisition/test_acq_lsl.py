@@ -1,7 +1,8 @@
 """LSL outlets of a protocol run (issue 27 item 1): an inlet in this process receives, from a session recorded on
 the in-process rig, every taxel frame (equal to the session's, sequence-checked), the SA/RA spike events equal to the
-batch encoder's on the same readings, the drum traces, and one marker per trial event; the session stores the streams
-and the host <-> LSL offset. Loopback only (LSLAPICFG: tests/conftest.py)."""
+batch encoder's on the same readings, the drum state of every poll, and one marker per trial event; the session stores
+the streams and the host <-> LSL offset. Pushed live: a trial's frames reach the inlet before the trial ends, the
+frames between trials too. Loopback only (LSLAPICFG: tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -30,35 +31,69 @@ def _inlet(pylsl, source_id):
     return inlet
 
 
-def _pull_all(inlet, n_expected=None, timeout_s=10.0):
-    import time
+class _Rx:
+    """What one inlet has received so far, pulled as the test goes."""
 
-    data, stamps = [], []
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        chunk, ts = inlet.pull_chunk(timeout=0.5, max_samples=100_000)
-        if ts:
-            data.extend(chunk)
-            stamps.extend(ts)
-        elif n_expected is None or len(stamps) >= n_expected:
-            break
-    return data, np.asarray(stamps)
+    def __init__(self, inlet):
+        self.inlet, self.data, self.ts = inlet, [], []
+
+    def pull(self, timeout_s=0.2):
+        chunk, ts = self.inlet.pull_chunk(timeout=timeout_s, max_samples=100_000)
+        self.data.extend(chunk)
+        self.ts.extend(ts)
+        return len(ts)
+
+    def until(self, done, timeout_s=10.0):
+        import time
+
+        deadline = time.monotonic() + timeout_s
+        while not done(self):
+            if time.monotonic() > deadline:
+                return False
+            self.pull(0.05)
+        return True
+
+    def drain(self):
+        while self.pull(0.5):
+            pass
+        return self.data, np.asarray(self.ts)
 
 
 @pytest.mark.lsl
-def test_a_run_is_published_on_lsl(lsl, tmp_path):
+def test_a_run_is_published_on_lsl_live(lsl, tmp_path):
     from rigctl.encoding.izhikevich import encode_ra, encode_sa
     from rigctl.operations import LslPublisher, ProtocolRun
 
     sid = f"rigctl-test-{uuid.uuid4().hex[:8]}"
-    events = []
+    events, live = [], []
     with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json") as rig:
         pub = LslPublisher(rig, source_id=sid, protocol_name="lsl_test")
-        inlets = {k: _inlet(lsl, f"{sid}-{k}") for k in ("taxels", "spikes", "drum", "markers")}
-        info = inlets["taxels"].info()
+        rx = {k: _Rx(_inlet(lsl, f"{sid}-{k}")) for k in ("taxels", "spikes", "drum", "markers")}
+        info = rx["taxels"].inlet.info()
+        stream, end_capture = rig.stream, rig.stream.end_capture
+
+        def end_capture_once_live():
+            # the trial has not ended (its capture is still open, the simulation stands still): every frame received
+            # so far, this trial's included, reaches the inlet now, pushed live, not once the trial is recorded
+            n_now, newest = stream.ring.total, int(stream.ring.latest(1)[2][0])
+            live.append(rx["taxels"].until(lambda r: len(r.data) >= n_now, timeout_s=10.0)
+                        and int(rx["taxels"].data[n_now - 1][-1]) == newest)
+            return end_capture()
+
+        stream.end_capture = end_capture_once_live
         run = ProtocolRun(rig, parse_protocol(PROTOCOL), tmp_path / "s.h5", lsl=pub, on_trial=events.append)
         summary = run.run()
+        n_streamed = stream.ring.total
+        pub.live.stop()  # pushes the rest
+        got, ts = rx["taxels"].drain()
+        sp, sts = rx["spikes"].drain()
+        drum, dts = rx["drum"].drain()
+        marks, mts = rx["markers"].drain()
+        for r in rx.values():  # before the outlets go
+            r.inlet.close_stream()
+        pub.close()
     assert summary.ok and summary.recorded == 4
+    assert live == [True] * 4, live
     # the taxel stream's description: channel labels, units, the sensor
     ch = info.desc().child("channels").child("channel")
     labels = []
@@ -75,43 +110,42 @@ def test_a_run_is_published_on_lsl(lsl, tmp_path):
     assert lsl_attr["streams"]["taxels"]["source_id"] == f"{sid}-taxels"
     offset = lsl_attr["lsl_offset_s"]
 
-    # every frame, equal to the session's, in sequence, at its fitted time on the LSL clock
-    n_total = sum(t.n_samples for t in trials)
-    got, ts = _pull_all(inlets["taxels"], n_total)
+    # the whole stream, between trials too: every frame the reader received, in sequence, increasing timestamps
     got = np.asarray(got)
-    assert got.shape == (n_total, layout.n_channels + 1)
-    assert np.array_equal(got[:, :-1], np.concatenate([t.taxels for t in trials]))
+    assert got.shape == (n_streamed, layout.n_channels + 1)
     seq = got[:, -1]
-    k = 0
+    assert np.all((np.diff(seq) & 0xFFFF) == 1) and np.all(np.diff(ts) > 0)
+    assert n_streamed > sum(t.n_samples for t in trials) + 1000  # the sensor streamed between trials
+    # each trial's frames within it, equal to the session's, at their fitted times on the LSL clock
     for t in trials:
-        part = seq[k:k + t.n_samples]
-        assert np.array_equal(part, t.seq) and np.all(((np.diff(part) & 0xFFFF)) == 1)
+        (k,) = np.flatnonzero(seq == t.seq[0])
+        assert np.array_equal(got[k:k + t.n_samples, :-1], t.taxels)
+        assert np.array_equal(seq[k:k + t.n_samples], t.seq)
         np.testing.assert_allclose(ts[k:k + t.n_samples], fitted_times(t.attrs, t.seq) + offset, rtol=0, atol=1e-6)
-        k += t.n_samples
-    assert np.all(np.diff(ts) > 0)
 
-    # spikes: the batch encoder's on the same readings (full ADC range: no normalisation stored in the rig config)
+    # spikes: the batch encoder's on the same readings, the whole stream (full ADC range: no normalisation stored)
     full = pub.normaliser
     want = []
-    for t in trials:
-        times = fitted_times(t.attrs, t.seq) + offset
-        for kind, enc in enumerate((encode_sa, encode_ra)):
-            trains = enc(t.taxels[None].astype(np.float64), normalise=full, fs=layout.sample_rate_hz)
-            for taxel in range(layout.n_channels):
-                for st in trains.train(0, taxel):
-                    want.append((kind * layout.n_channels + taxel,
-                                 round(float(times[int(round(st * layout.sample_rate_hz))]), 6)))
-    sp, sts = _pull_all(inlets["spikes"], len(want))
+    for kind, enc in enumerate((encode_sa, encode_ra)):
+        trains = enc(got[None, :, :-1].astype(np.float64), normalise=full, fs=layout.sample_rate_hz)
+        for taxel in range(layout.n_channels):
+            for st in trains.train(0, taxel):
+                want.append((kind * layout.n_channels + taxel,
+                             round(float(ts[int(round(st * layout.sample_rate_hz))]), 6)))
     have = sorted((int(v[0]), round(float(x), 6)) for v, x in zip(sp, sts))
     assert len(want) > 100 and have == sorted(want)
 
-    # drum state at the poll rate
-    drum, dts = _pull_all(inlets["drum"])
-    assert len(drum) == sum(len(t.force_g) for t in trials)
-    np.testing.assert_allclose(np.asarray(drum)[:, 1], np.concatenate([t.force_g for t in trials]), rtol=1e-6)
+    # drum state at every status poll, the actuator's position with it: each trial's force trace is among them
+    drum = np.asarray(drum)
+    assert np.all(np.isfinite(drum)) and np.all(np.diff(dts) >= 0)
+    for t in trials:
+        at = float(t.attrs["host_time_origin_s"]) + np.asarray(t.force_time_s) + offset
+        i = np.clip(np.searchsorted(dts, at), 0, len(dts) - 1)
+        np.testing.assert_allclose(dts[i], at, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(drum[i, 1], t.force_g, rtol=1e-6)
+        assert np.all(drum[i, 2] > 0)  # pressed: the actuator out of its home
 
     # one marker per trial event, in order, plus the run's start and end
-    marks, mts = _pull_all(inlets["markers"])
     docs = [json.loads(m[0]) for m in marks]
     assert docs[0]["event"] == "run_start" and docs[-1]["event"] == "run_end" and docs[-1]["complete"] == 4
     kinds = {"start": "trial_start", "complete": "trial_end", "texture": "plate_change", "retry": "retry",
@@ -121,9 +155,7 @@ def test_a_run_is_published_on_lsl(lsl, tmp_path):
     assert [(d["trial_id"], d["texture"], d["speed_mm_s"], d["force_g"]) for d in ends] == [
         (t.attrs["trial_id"], t.attrs["texture"], 120.0, 300.0) for t in trials]
     assert all(d["protocol"] == "lsl_test" for d in docs)
-
-    for inlet in inlets.values():  # before the outlets go
-        inlet.close_stream()
+    inlets = {k: r.inlet for k, r in rx.items()}
 
     # what LabRecorder would write from these streams (rigctl.storage.xdf.write_xdf), imported back as a session:
     # one labelled trial per trial_end marker, the readings and labels of the recorded session
