@@ -58,11 +58,7 @@ class LiveLslFeed(threading.Thread):
         enable = getattr(stream, "enable_ring", None)
         self._ring = enable() if getattr(stream, "ring", None) is None and enable is not None else stream.ring
         self._cursor = self._ring.total if self._ring is not None else 0
-        from rigctl.encoding.izhikevich import StreamingEncoder
-
-        self._encoder = StreamingEncoder(self.layout.n_channels, normalise=normaliser, fs=self.layout.sample_rate_hz)
-        self._encoder.process(np.zeros((1, self.layout.n_channels), np.uint16))  # compile before going live
-        self._encoder.reset()
+        self._encoder: Any = None  # made (its kernels compiled) by the feed's thread at its first chunk
         self._encoded = 0  # samples encoded (the encoder's time 0 = the first frame pushed)
         self._times = np.zeros(0)  # fitted host times of the samples encoded, kept for spikes the encoder
         self._times_from = 0  # gives later than their sample (a resampled stream); index of _times[0]
@@ -72,9 +68,14 @@ class LiveLslFeed(threading.Thread):
 
     # ----------------------------------------------------------------------------------------------- the drum
     def on_status(self, host_time_s: float, status: Any) -> None:
-        """One status poll (``DrumClient.status_listeners``): speed, force, actuator position on the drum stream."""
-        self.outlets.push_drum(np.array([host_time_s]), np.array([status.speed_mm_s]), np.array([status.force_g]),
-                               np.array([status.actuator_mm]))
+        """One status poll (``DrumClient.status_listeners``): speed, force, actuator position on the drum stream.
+        Never raises: it runs inside the poller's ``read_status`` (the run's, the GUI's)."""
+        try:
+            self.outlets.push_drum(np.array([host_time_s]), np.array([status.speed_mm_s]),
+                                   np.array([status.force_g]), np.array([status.actuator_mm]))
+        except Exception as exc:  # noqa: BLE001 - e.g. the outlets closed under a poll in another thread
+            self.error = f"drum stream: {type(exc).__name__}: {exc}"
+            return
         self.drum_samples += 1
 
     # ----------------------------------------------------------------------------------------------- the taxels
@@ -116,6 +117,11 @@ class LiveLslFeed(threading.Thread):
         self._encoded += len(samples)
         self._times = np.concatenate([self._times, times])
         try:
+            if self._encoder is None:
+                from rigctl.encoding.izhikevich import StreamingEncoder
+
+                self._encoder = StreamingEncoder(self.layout.n_channels, normalise=self.normaliser,
+                                                 fs=self.layout.sample_rate_hz)
             chunk = self._encoder.process(samples)
         except Exception as exc:  # noqa: BLE001 - the taxels go on; said in error
             self.error = f"spike encoder: {type(exc).__name__}: {exc}"
