@@ -113,7 +113,7 @@ def session_size(path: Path) -> tuple[int, int, int]:
 
     with open_session(path) as s:
         ids = s.completed_ids()
-        samples = sum(int(s.trial_attrs(i)["n_samples"]) for i in ids)
+        samples = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
         return len(ids), samples, s.layout.n_channels
 
 
