@@ -58,7 +58,12 @@ class LiveLslFeed(threading.Thread):
         enable = getattr(stream, "enable_ring", None)
         self._ring = enable() if getattr(stream, "ring", None) is None and enable is not None else stream.ring
         self._cursor = self._ring.total if self._ring is not None else 0
-        self._encoder: Any = None  # made (its kernels compiled) by the feed's thread at its first chunk
+        # the encoder is made (its kernels compiled: ~1 s the first time) in a thread of its own, so that the taxels
+        # go out live meanwhile; their spikes follow once it is ready (the chunks wait in the backlog)
+        self._encoder: Any = None
+        self._encoder_ready = threading.Event()
+        self._compiler = threading.Thread(target=self._make_encoder, name="lsl-live-encoder", daemon=True)
+        self._backlog: list[tuple[np.ndarray, np.ndarray]] = []
         self._encoded = 0  # samples encoded (the encoder's time 0 = the first frame pushed)
         self._times = np.zeros(0)  # fitted host times of the samples encoded, kept for spikes the encoder
         self._times_from = 0  # gives later than their sample (a resampled stream); index of _times[0]
@@ -110,18 +115,32 @@ class LiveLslFeed(threading.Thread):
             self._last_time = float(times[-1])
             self.outlets.push_taxels(samples, seq, times)
             self.frames += len(seq)
-            self._push_spikes(samples, times)
+            self._backlog.append((samples, times))
+            if self._encoder_ready.is_set():
+                for chunk in self._backlog:
+                    self._push_spikes(*chunk)
+                self._backlog.clear()
             return len(seq)
 
+    def _make_encoder(self) -> None:
+        try:
+            from rigctl.encoding.izhikevich import StreamingEncoder
+
+            enc = StreamingEncoder(self.layout.n_channels, normalise=self.normaliser, fs=self.layout.sample_rate_hz)
+            enc.process(np.zeros((1, self.layout.n_channels), np.uint16))  # compile
+            enc.reset()
+            self._encoder = enc
+        except Exception as exc:  # noqa: BLE001 - the taxels go on; said in error
+            self.error = f"spike encoder: {type(exc).__name__}: {exc}"
+        finally:
+            self._encoder_ready.set()
+
     def _push_spikes(self, samples: np.ndarray, times: np.ndarray) -> None:
+        if self._encoder is None:  # it failed to build: said in error
+            return
         self._encoded += len(samples)
         self._times = np.concatenate([self._times, times])
         try:
-            if self._encoder is None:
-                from rigctl.encoding.izhikevich import StreamingEncoder
-
-                self._encoder = StreamingEncoder(self.layout.n_channels, normalise=self.normaliser,
-                                                 fs=self.layout.sample_rate_hz)
             chunk = self._encoder.process(samples)
         except Exception as exc:  # noqa: BLE001 - the taxels go on; said in error
             self.error = f"spike encoder: {type(exc).__name__}: {exc}"
@@ -144,6 +163,7 @@ class LiveLslFeed(threading.Thread):
 
     # ----------------------------------------------------------------------------------------------- the thread
     def run(self) -> None:
+        self._compiler.start()
         while not self._halt.wait(self.poll_s):
             try:
                 self.push_pending()
@@ -155,6 +175,10 @@ class LiveLslFeed(threading.Thread):
         self._halt.set()
         if self.is_alive():
             self.join(timeout_s)
+        if self._compiler.is_alive():
+            self._compiler.join(max(timeout_s, 60.0))
+        elif not self._encoder_ready.is_set():  # never started
+            self._make_encoder()
         listeners = getattr(self.drum, "status_listeners", None)
         if listeners is not None and self.on_status in listeners:
             listeners.remove(self.on_status)
