@@ -27,8 +27,8 @@ from pathlib import Path
 
 from rigctl import __version__
 
-__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "FirmwareBuildError", "avrdude_command", "build", "build_dir", "cache_root",
-           "source_digest", "source_versions", "sources"]
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "FirmwareBuildError", "avrdude_command", "build", "build_dir",
+           "build_id", "cache_root", "source_digest", "source_versions", "sources"]
 
 #: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
 _SOURCE_SUFFIXES = (".c", ".h", ".cpp")
@@ -43,7 +43,8 @@ BOARDS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
 }
 #: both stock bootloaders talk at 115200 baud
 BOOTLOADER_BAUD = 115200
-#: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``)
+#: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``, the
+#: Mega's 48-bit BUILD_ID_0 .. _2 input registers: docs/wire-protocol.md 1.4 and 2.2)
 BUILD_ID_DIGITS = 12
 
 
@@ -87,6 +88,12 @@ def source_digest(src: Path | str | None = None) -> str:
         h.update(p.read_bytes())
         h.update(b"\0")
     return h.hexdigest()
+
+
+def build_id(src: Path | str | None = None) -> str:
+    """The build id :func:`build` gives the firmware built from ``src`` (default :func:`sources`): the first
+    :data:`BUILD_ID_DIGITS` hex digits of :func:`source_digest` (its errors)."""
+    return source_digest(src)[:BUILD_ID_DIGITS]
 
 
 def source_versions(src: Path | str | None = None) -> dict[str, tuple[int, int]]:
@@ -164,9 +171,9 @@ def build(src: Path | str | None = None, out: Path | str | None = None, *,
     src = Path(src) if src is not None else sources()
     out = Path(out) if out is not None else build_dir(src)
     out.mkdir(parents=True, exist_ok=True)
-    # BUILD_ID: the Uno reports it in its banner (build=), so the doctor can tell a board flashed from other sources
-    cmd = ["make", "-s", "-C", str(src), f"BUILD={out.resolve()}", f"BUILD_ID={source_digest(src)[:BUILD_ID_DIGITS]}",
-           *targets]
+    # BUILD_ID: the Uno reports it in its banner (build=), the Mega in its input registers (BUILD_ID_0 .. _2), so the
+    # doctor can tell a board flashed from other sources
+    cmd = ["make", "-s", "-C", str(src), f"BUILD={out.resolve()}", f"BUILD_ID={build_id(src)}", *targets]
     with open(out / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:

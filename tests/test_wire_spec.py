@@ -212,6 +212,24 @@ def test_input_registers(tables, h):
     assert {r["type"] for r in rows} <= {"int16", "uint16"}
 
 
+def test_build_id_registers(spec_text):
+    """Spec 2.2: the 48-bit build id in BUILD_ID_0 .. _2, most significant word first (the spec's example), all zero
+    = a build without one; as wide as the id rigctl's builds give the firmware."""
+    from rigctl import firmware
+
+    m = re.search(r"`([0-9a-f]{12})` reads 0x([0-9A-F]{4}), 0x([0-9A-F]{4}), 0x([0-9A-F]{4})", spec_text)
+    assert m, "spec 2.2 gives an example of the build id's words"
+    words = tuple(int(w, 16) for w in m.groups()[1:])
+    assert wire.build_id_words(m.group(1)) == words and wire.build_id_from_words(words) == m.group(1)
+    assert wire.build_id_words(None) == (0, 0, 0) and wire.build_id_from_words([0, 0, 0]) is None
+    assert wire.build_id_from_words(wire.build_id_words("abc")) == "000000000abc"
+    for bad in ("", "0123456789abc", "xyz", "12 4"):
+        with pytest.raises(ValueError):
+            wire.build_id_words(bad)
+    assert [int(r) for r in wire.BUILD_ID_REGISTERS] == [wire.InputRegister[f"BUILD_ID_{i}"] for i in range(3)]
+    assert wire.BUILD_ID_HEX_DIGITS == firmware.BUILD_ID_DIGITS == len(firmware.build_id())
+
+
 @pytest.mark.parametrize("table,enum,prefix", [
     ("commands", wire.Command, "RIGCTL_CMD_"),
     ("states", wire.DrumState, "RIGCTL_STATE_"),

@@ -218,6 +218,9 @@ class DrumStatus:
     reset_cause: ResetCause = ResetCause(0)  #: what caused the controller's last reset (spec table 2.7)
     boot_count: int = 0  #: the controller's boots so far (EEPROM), wraps at 65536: a change = it was reset
     flags: StatusFlag = StatusFlag(0)  #: status bits (spec table 2.8)
+    #: the firmware's build id: 12 hex digits of the sources' SHA-256 it was built from (spec 2.2, BUILD_ID_0 .. _2);
+    #: None for a build without one (a plain make, the Arduino IDE)
+    build_id: str | None = None
 
     @property
     def homed(self) -> bool:

@@ -121,6 +121,7 @@ class DrumStatus(core_drum.DrumStatus):
             reset_cause=ResetCause(regs[IR.RESET_CAUSE] & 0x0F),
             boot_count=regs[IR.BOOT_COUNT],
             flags=StatusFlag(regs[IR.STATUS_FLAGS] & 0x3F),
+            build_id=wire.build_id_from_words([regs[r] for r in wire.BUILD_ID_REGISTERS]),
         )
 
 

@@ -8,6 +8,8 @@ lives in :mod:`rigctl.devices.frames`. ``tests/test_wire_spec.py`` checks every 
 from __future__ import annotations
 
 import enum
+import re
+from collections.abc import Sequence
 from typing import Any
 
 import numba
@@ -213,6 +215,9 @@ class InputRegister(enum.IntEnum):
     INDEX_PERIOD_MS = 22
     INDEX_STEPS = 23
     INDEX_COUNT = 24
+    BUILD_ID_0 = 30
+    BUILD_ID_1 = 31
+    BUILD_ID_2 = 32
 
 
 #: input registers holding two's-complement values
@@ -226,6 +231,31 @@ N_HOLDING = max(HoldingRegister) + 1
 N_INPUT = max(InputRegister) + 1
 RESERVED_HOLDING = frozenset(range(N_HOLDING)) - set(HoldingRegister)
 RESERVED_INPUT = frozenset(range(N_INPUT)) - set(InputRegister)
+
+
+#: the build id's input registers, most significant word first (spec 2.2), and its width in hex digits
+BUILD_ID_REGISTERS = (InputRegister.BUILD_ID_0, InputRegister.BUILD_ID_1, InputRegister.BUILD_ID_2)
+BUILD_ID_HEX_DIGITS = 4 * len(BUILD_ID_REGISTERS)  # 12
+
+
+def build_id_words(build_id: str | None) -> tuple[int, ...]:
+    """The BUILD_ID_0 .. _2 register values (most significant first) of a build id of up to 12 hex digits (spec 2.2);
+    None -> zeros (a build without an id). Raises ValueError for anything else."""
+    if build_id is None:
+        return (0,) * len(BUILD_ID_REGISTERS)
+    if not re.fullmatch(rf"[0-9a-fA-F]{{1,{BUILD_ID_HEX_DIGITS}}}", build_id):
+        raise ValueError(f"a build id is 1-{BUILD_ID_HEX_DIGITS} hex digits, got {build_id!r}")
+    value = int(build_id, 16)
+    return tuple((value >> (16 * i)) & 0xFFFF for i in reversed(range(len(BUILD_ID_REGISTERS))))
+
+
+def build_id_from_words(words: Sequence[int]) -> str | None:
+    """The build id (12 lower-case hex digits) in BUILD_ID_0 .. _2 (spec 2.2), or None when all three are 0 (a build
+    without an id: a plain make, the Arduino IDE)."""
+    value = 0
+    for w in words:
+        value = (value << 16) | (int(w) & 0xFFFF)
+    return f"{value:0{BUILD_ID_HEX_DIGITS}x}" if value else None
 
 
 def holding_range(address: int) -> tuple[int, int, int]:

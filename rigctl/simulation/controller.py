@@ -30,6 +30,7 @@ directly, on a simulated clock.
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import logging
 import threading
@@ -39,6 +40,7 @@ from pathlib import Path
 import numpy as np
 from pymodbus.constants import ExcCodes
 
+from rigctl import firmware
 from rigctl.devices import wire
 from rigctl.devices.wire import (
     Command,
@@ -74,6 +76,17 @@ def _u16(x: float) -> int:
     return int(round(x)) & 0xFFFF
 
 
+@functools.cache
+def installed_build_id() -> str | None:
+    """The build id rigctl's firmware build gives the installed sources (:func:`rigctl.firmware.build_id`), what a Mega
+    flashed by ``rigctl firmware --flash`` reports in BUILD_ID_0 .. _2 (spec 2.2); None when the installed package
+    holds no firmware sources. Hashed once per process (~30 ms): the virtual board is "flashed" when first made."""
+    try:
+        return firmware.build_id()
+    except OSError:
+        return None
+
+
 class MegaController:
     """The drum controller's registers, commands and control loop on a :class:`RigModel` (no port, no thread).
 
@@ -92,6 +105,10 @@ class MegaController:
         Write requests that reached the register map, accepted or refused (for tests: "nothing was sent").
     writes : deque of (function_code, address, values)
         The last 1000 of them.
+    build_id : str or None
+        The build id it reports (BUILD_ID_0 .. _2, spec 2.2): the installed sources', as if flashed by rigctl
+        (:func:`installed_build_id`). Set another (12 hex digits) for a board flashed from other sources, None for a
+        build without one (a plain make, the Arduino IDE); ValueError for anything else.
     """
 
     def __init__(self, model: RigModel, *, eeprom_path=None):
@@ -110,10 +127,19 @@ class MegaController:
         self._home_switch_ok = True  # fault-injection hook: False = the home switch never closes (a broken wire)
         self.estop_open = False  # the e-stop input reads open (a pressed contact, a broken wire)
         self.max_step_ms = 10
+        self.build_id = installed_build_id()
         # compile the model's kernels now, not in the first control period
         model.advance(1, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
         self._power_up(ResetCause.POWER_ON)
         self._boot()
+
+    @property
+    def build_id(self) -> str | None:
+        return wire.build_id_from_words(self._build_id_words)
+
+    @build_id.setter
+    def build_id(self, value: str | None) -> None:
+        self._build_id_words = wire.build_id_words(value)
 
     def _power_up(self, cause: ResetCause) -> None:
         """What the MCU does from its reset vector to loop(): RAM cleared, calibration from EEPROM (or the defaults,
@@ -349,6 +375,8 @@ class MegaController:
         regs[IR.RESET_CAUSE] = int(self.reset_cause)
         regs[IR.BOOT_COUNT] = self.eeprom["boot_count"]
         regs[IR.STATUS_FLAGS] = self._status_flags()
+        for reg, word in zip(wire.BUILD_ID_REGISTERS, self._build_id_words, strict=True):
+            regs[reg] = word
         return regs
 
     def _write(self, func_code: int, address: int, values: list[int]):

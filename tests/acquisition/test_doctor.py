@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 
+from rigctl import firmware
 from rigctl.acquisition import doctor
 from rigctl.acquisition.doctor.measure import clock_error_ppm, crosstalk, step_response
 from rigctl.acquisition.rigconfig import RigConfigError, load_rig_config, validate_rig_config
@@ -78,8 +79,10 @@ def test_the_healthy_inprocess_rig_passes_and_the_report_is_stored(tmp_path):
     for name in ("link", "controller-faults", "firmware-version", "hx711-rate", "loadcell-zero", "noise-floor",
                  "crosstalk", "uno-clock", "loadcell-polarity", "force-step", "drum-speed"):
         assert by[name].status == "pass", by[name].line()
-    # what the firmware does not report is a skip with the reason, never a pass
-    assert by["firmware-build"].status == "skip" and "reports no build" in by["firmware-build"].summary
+    # the virtual Mega reports the installed sources' build id (as if flashed by rigctl); the virtual Uno none, named
+    own = firmware.build_id()
+    assert by["firmware-build"].status == "pass" and by["firmware-build"].values["mega_build"] == own
+    assert "taxel streamer (uno) reports no build id" in by["firmware-build"].summary
     assert by["port-permissions"].status == "skip"  # the in-process rig has no ports
     assert by["force-step"].values["settling_time_s"] < doctor.drum_checks.MAX_SETTLING_S
     doctor.save_report(report, tmp_path / "rig.json")
@@ -146,21 +149,51 @@ def test_the_load_cell_scale_is_compared_with_the_rig_configs_calibration(tmp_pa
 
 
 def test_firmware_build_against_the_installed_sources():
-    """The Uno's banner names the build (build=, the sources' digest: wire-protocol 1.4): the installed sources' ->
-    pass; another -> fail naming the flash command; none (a simulated board, a plain make) -> skip."""
+    """Each board's build id (the Mega's BUILD_ID_0 .. _2 registers, wire-protocol 2.2; the Uno's banner build=, 1.4)
+    against the installed sources' digest: equal -> pass; another -> fail naming the board's flash command; none (a
+    simulated Uno, a plain make, the Arduino IDE) -> named, and a skip when neither board reports one."""
     from types import SimpleNamespace
 
-    from rigctl import firmware
+    own = firmware.build_id()
+    other = "0123456789ab" if own != "0123456789ab" else "ba9876543210"
 
-    def check(banner):
-        rig = SimpleNamespace(stream=SimpleNamespace(banner=banner))
+    def check(mega, uno):
+        rig = SimpleNamespace(drum=SimpleNamespace(read_status=lambda: SimpleNamespace(build_id=mega)),
+                              stream=SimpleNamespace(banner={"build": uno}))
         return doctor.run_doctor(doctor.select(["firmware-build"]), doctor.DoctorContext("hardware", rig=rig)).results[0]
 
-    own = firmware.source_digest()[:firmware.BUILD_ID_DIGITS]
-    assert check({"build": own}).status == "pass"
-    r = check({"build": "0123456789ab" if own != "0123456789ab" else "ba9876543210"})
-    assert r.status == "fail" and "rigctl firmware --flash" in r.fix and r.values["board_build"] in r.summary
-    assert check({"build": None}).status == "skip"
+    assert check(own, own).status == "pass"
+    r = check(own, None)
+    assert r.status == "pass" and r.values == {"mega_build": own, "uno_build": None, "sources_digest": firmware.source_digest()}
+    assert "uno) reports no build id" in r.summary
+    for mega, uno, board in ((other, own, "mega"), (own, other.upper(), "uno"), (other, None, "mega")):
+        r = check(mega, uno)
+        assert r.status == "fail", r.line()
+        assert f"rigctl firmware --flash PORT --board {board}" in r.fix and f"({board}) runs build {other}" in r.summary
+    r = check(other, other)
+    assert "--board mega" in r.fix and "--board uno" in r.fix
+    assert check(None, None).status == "skip"
+
+
+def test_the_inprocess_mega_flashed_from_other_sources_fails_the_build_check():
+    """The virtual Mega reports the installed sources' build id; given another (a board flashed from other sources of
+    the same version), the doctor fails naming the flash command; given none (a plain make), it skips (the virtual
+    Uno reports none either)."""
+    own = firmware.build_id()
+    other = "0123456789ab" if own != "0123456789ab" else "ba9876543210"
+    with open_rig("inprocess", seed=3) as rig:
+        def check():
+            ctx = doctor.DoctorContext("inprocess", rig=rig)
+            return doctor.run_doctor(doctor.select(["firmware-build"]), ctx).results[0]
+
+        assert rig.drum.read_status().build_id == own
+        assert check().status == "pass"
+        rig.backend.controller.build_id = other
+        r = check()
+        assert r.status == "fail" and r.values["mega_build"] == other, r.line()
+        assert r.fix == "flash the installed firmware: rigctl firmware --flash PORT --board mega"
+        rig.backend.controller.build_id = None
+        assert rig.drum.read_status().build_id is None and check().status == "skip"
 
 
 def test_a_stored_report_is_schema_checked():
@@ -280,6 +313,9 @@ def test_cli_doctor_hil_passes(tmp_path):
     for name in ("link", "firmware-version", "firmware-build", "controller-faults", "reset-cause", "e-stop",
                  "hx711-rate", "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed"):
         assert by[name]["status"] == "pass", by[name]
+    # both images under simavr were built by rigctl from the installed sources: both boards report their build id
+    assert by["firmware-build"]["values"]["mega_build"] == by["firmware-build"]["values"]["uno_build"] == \
+        firmware.build_id()
     assert load_rig_config(cfg)["doctor"]["hil"]["ok"] is True
 
 
@@ -298,8 +334,9 @@ def test_cli_doctor_hil_with_the_real_bootloaders(tmp_path):
     # the stk500v2 bootloader clears MCUSR before the sketch reads it: the cause is unknown, never a false one
     assert by["reset-cause"]["values"]["reset_cause"] == [], by["reset-cause"]
     assert by["hx711-rate"]["values"]["hx711_rate_sps"] == pytest.approx(80.0, rel=0.01), by["hx711-rate"]
-    # the Uno's banner names the sources it was built from (build=): those installed
+    # the Uno's banner (build=) and the Mega's BUILD_ID registers name the sources they were built from: those installed
     assert by["firmware-build"]["status"] == "pass", by["firmware-build"]
+    assert by["firmware-build"]["values"]["mega_build"] == by["firmware-build"]["values"]["uno_build"]
 
 
 @pytest.mark.hil

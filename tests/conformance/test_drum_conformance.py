@@ -19,6 +19,7 @@ import serial
 from pymodbus.client import ModbusSerialClient
 from pymodbus.framer import FramerType
 
+from rigctl import firmware
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient, DrumStatus
 from rigctl.devices.errors import ModbusExceptionError
@@ -142,12 +143,18 @@ def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
 
 # ------------------------------------------------------------------------------------------------ identity
 def test_identity_and_power_up_defaults(controller, drum):
-    """Power-up: every holding register at the spec's default, firmware 1.1, NOT_HOMED (spec 2.4: after any reset),
-    no faults, nothing engaged, the drivers disabled, the reset cause power-on."""
+    """Power-up: every holding register at the spec's default, firmware 1.1 built from the installed sources (the
+    build id of rigctl's build in BUILD_ID_0 .. _2, spec 2.2: the virtual Mega as if flashed by rigctl, the image
+    firmware.build() made), NOT_HOMED (spec 2.4: after any reset), no faults, nothing engaged, the drivers disabled,
+    the reset cause power-on."""
     assert controller.power_up_holding == [DEFAULT[r] for r in ADDRESSES]
     st = DrumStatus.from_registers(controller.power_up_inputs)
     assert st.firmware == wire.MEGA_FIRMWARE_VERSION == (1, 1)
     assert controller.power_up_inputs[IR.FIRMWARE_VERSION] == 257
+    own = firmware.source_digest()[:12]
+    words = [controller.power_up_inputs[r] for r in (IR.BUILD_ID_0, IR.BUILD_ID_1, IR.BUILD_ID_2)]
+    assert words == [int(own[i:i + 4], 16) for i in (0, 4, 8)]  # most significant word first
+    assert st.build_id == own
     assert (st.state, st.faults) == (S.NOT_HOMED, Fault(0))
     assert st.reset_cause == wire.ResetCause.POWER_ON and not st.homed and not st.drivers_enabled
     assert st.speed_mm_s == st.speed_target_mm_s == st.force_setpoint_active_g == 0

@@ -16,6 +16,7 @@ import time
 import pytest
 import serial
 
+from rigctl import firmware
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.rigs import drum_answer_timeout_s
@@ -97,7 +98,13 @@ def test_mbpoll_reads_and_writes_the_registers(hil_rig):
         assert regs[int(reg)] == wire.HOLDING_RANGE[reg][2], reg.name
     out = mbpoll(hil_rig.drum_port, "-t", "3", "-r", "0", "-c", str(wire.N_INPUT), "-1")
     assert out.returncode == 0, out.stdout + out.stderr
-    assert registers(out.stdout)[int(IR.FIRMWARE_VERSION)] == 257
+    regs = registers(out.stdout)
+    assert regs[int(IR.FIRMWARE_VERSION)] == 257
+    # BUILD_ID_0 .. _2 (spec 2.2): the id rigctl's build gave the image, most significant word first (mbpoll prints
+    # uint16 registers as signed decimals)
+    own = firmware.build_id()
+    assert [regs[int(r)] & 0xFFFF for r in (IR.BUILD_ID_0, IR.BUILD_ID_1, IR.BUILD_ID_2)] == \
+        [int(own[i:i + 4], 16) for i in (0, 4, 8)]
     out = mbpoll(hil_rig.drum_port, "-t", "4", "-r", str(int(HR.SETTLE_TIME_MS)), values=[450])
     assert out.returncode == 0, out.stdout + out.stderr
     out = mbpoll(hil_rig.drum_port, "-t", "4", "-r", str(int(HR.SPEED_SETPOINT_0P1MMS)), values=[2001])  # out of range

@@ -133,22 +133,36 @@ def check_firmware_version(ctx: DoctorContext) -> CheckResult:
                   f"versions", **values)
 
 
+#: the boards by the name ``rigctl firmware --board`` takes, in words
+_BOARD_WORDS = {"mega": "the drum controller", "uno": "the taxel streamer"}
+
+
 def check_firmware_build(ctx: DoctorContext) -> CheckResult:
+    """Each board's build id (the sources' digest it was built from: the Mega's BUILD_ID_0 .. _2 input registers,
+    docs/wire-protocol.md 2.2; the Uno's banner ``build=``, 1.4) against the installed sources' digest: a board
+    flashed from other sources of the same version fails with the flash command; a board without an id (a plain
+    make, the Arduino IDE, a simulated Uno) is named; neither with one is a skip."""
     from rigctl import firmware
 
     digest = firmware.source_digest()
-    banner = getattr(ctx.rig().stream, "banner", None) or {}
-    build = banner.get("build")
-    if build is None:
-        raise Skip(f"the taxel streamer reports no build (a simulated board, or firmware built without BUILD_ID) to "
-                   f"compare with the installed sources (sha256 {digest[:12]})")
-    if not digest.startswith(str(build).lower()):
-        return failed("firmware-build", f"the taxel streamer runs build {build}, the installed sources are "
-                      f"{digest[:len(str(build))]}", "flash the installed firmware: rigctl firmware --flash PORT "
-                      "--board uno (and --board mega: built from the same sources)", board_build=str(build),
-                      sources_digest=digest)
-    return passed("firmware-build", f"taxel streamer build {build} = the installed sources' (the drum controller "
-                  "reports its version only: see firmware-version)", board_build=str(build), sources_digest=digest)
+    rig = ctx.rig()
+    banner = getattr(rig.stream, "banner", None) or {}
+    builds = {"mega": getattr(rig.drum.read_status(), "build_id", None), "uno": banner.get("build")}
+    builds = {board: None if b is None else str(b).lower() for board, b in builds.items()}
+    values = {"mega_build": builds["mega"], "uno_build": builds["uno"], "sources_digest": digest}
+    without = [f"{_BOARD_WORDS[board]} ({board}) reports no build id" for board, b in builds.items() if b is None]
+    if len(without) == len(builds):
+        raise Skip(f"{'; '.join(without)} (a simulated board, or firmware built without BUILD_ID: a plain make, the "
+                   f"Arduino IDE) to compare with the installed sources ({digest[:firmware.BUILD_ID_DIGITS]})")
+    wrong = [board for board, b in builds.items() if b is not None and not digest.startswith(b)]
+    if wrong:
+        return failed("firmware-build", "; ".join(f"{_BOARD_WORDS[board]} ({board}) runs build {builds[board]}, the "
+                                                  f"installed sources are {digest[:len(str(builds[board]))]}"
+                                                  for board in wrong),
+                      "flash the installed firmware: " + " and ".join(f"rigctl firmware --flash PORT --board {board}"
+                                                                      for board in wrong), **values)
+    same = [f"{board} build {b}" for board, b in builds.items() if b is not None]
+    return passed("firmware-build", "; ".join([f"{' and '.join(same)} = the installed sources'", *without]), **values)
 
 
 def _flag_names(value: Any) -> list[str]:

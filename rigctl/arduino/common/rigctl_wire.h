@@ -186,7 +186,11 @@
 #define RIGCTL_IREG_INDEX_PERIOD_MS          22
 #define RIGCTL_IREG_INDEX_STEPS              23
 #define RIGCTL_IREG_INDEX_COUNT              24
-#define RIGCTL_N_INPUT                       25
+/* the build id (make BUILD_ID=<12 hex digits>), 48 bits, most significant word first; 0 = built without one */
+#define RIGCTL_IREG_BUILD_ID_0               30
+#define RIGCTL_IREG_BUILD_ID_1               31
+#define RIGCTL_IREG_BUILD_ID_2               32
+#define RIGCTL_N_INPUT                       33
 
 /* 2.3 commands (values written to RIGCTL_HREG_COMMAND) */
 #define RIGCTL_CMD_NONE              0

@@ -241,6 +241,12 @@ uint16_t ctl_read_holding(void *ctx, uint16_t addr)
     return addr < RIGCTL_N_HOLDING ? c->hreg[addr] : 0;
 }
 
+/* the build id (docs/wire-protocol.md 2.2, BUILD_ID_0 .. _2): make BUILD_ID=<hex> passes it as RIGCTL_BUILD_ID_NUM
+ * (rigctl's builds give the sources' digest); a build without one reports 0 */
+#ifndef RIGCTL_BUILD_ID_NUM
+#define RIGCTL_BUILD_ID_NUM 0ULL
+#endif
+
 static uint16_t s16(float v)
 {
     long r = (long)(v < 0 ? v - 0.5f : v + 0.5f);
@@ -275,6 +281,9 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr)
     case RIGCTL_IREG_INDEX_COUNT: return c->index_count;
     case RIGCTL_IREG_RESET_CAUSE: return c->reset_cause;
     case RIGCTL_IREG_BOOT_COUNT: return c->boot_count;
+    case RIGCTL_IREG_BUILD_ID_0: return (uint16_t)((RIGCTL_BUILD_ID_NUM >> 32) & 0xFFFF);
+    case RIGCTL_IREG_BUILD_ID_1: return (uint16_t)((RIGCTL_BUILD_ID_NUM >> 16) & 0xFFFF);
+    case RIGCTL_IREG_BUILD_ID_2: return (uint16_t)(RIGCTL_BUILD_ID_NUM & 0xFFFF);
     case RIGCTL_IREG_STATUS_FLAGS:
         return (uint16_t)((c->calib_defaults ? RIGCTL_STATUS_CALIBRATION_DEFAULTS : 0) |
                           (c->homed ? RIGCTL_STATUS_HOMED : 0) | (c->drivers_on ? RIGCTL_STATUS_DRIVERS_ENABLED : 0) |
