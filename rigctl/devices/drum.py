@@ -817,13 +817,25 @@ class DrumClient:
         self.command(Command.SAVE_CALIBRATION)
 
     # ------------------------------------------------------------------ status and waits
+    def _read_status(self) -> DrumStatus:
+        try:
+            regs = self.read_inputs(0, wire.N_INPUT)
+        except ModbusExceptionError as exc:
+            if exc.exception_code != 2:
+                raise
+            raise DrumError(f"the drum controller on {self.port} has fewer than the {wire.N_INPUT} input registers of "
+                            "docs/wire-protocol.md 2.2 (exception 02): its firmware is older than the installed "
+                            "sources; flash them: rigctl firmware --flash PORT --board mega") from exc
+        return DrumStatus.from_registers(regs)
+
     def read_status(self) -> DrumStatus:
         """All input registers in one request, decoded (signed registers as two's complement); passed on to
-        :attr:`status_listeners`."""
+        :attr:`status_listeners`. DrumError naming the flash command when the controller has fewer input registers
+        than the spec (exception 02: firmware built before registers this rigctl reads, e.g. BUILD_ID_0 .. _2)."""
         if not self.status_listeners:
-            return DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
+            return self._read_status()
         t0 = self.clock.now()
-        status = DrumStatus.from_registers(self.read_inputs(0, wire.N_INPUT))
+        status = self._read_status()
         t = 0.5 * (t0 + self.clock.now())
         for fn in list(self.status_listeners):
             fn(t, status)

@@ -196,6 +196,30 @@ def test_the_inprocess_mega_flashed_from_other_sources_fails_the_build_check():
         assert rig.drum.read_status().build_id is None and check().status == "skip"
 
 
+def test_a_mega_flashed_before_the_build_id_registers_is_told_to_flash(monkeypatch):
+    """A controller whose input registers end at INDEX_COUNT (firmware built before BUILD_ID_0 .. _2) answers the
+    status read with exception 02: the host says what to do, not just the exception."""
+    from pymodbus.constants import ExcCodes
+
+    from rigctl.core.drum import DrumError
+    from rigctl.devices import wire
+
+    with open_rig("inprocess", seed=3) as rig:
+        ctl = rig.backend.controller
+        full = ctl._read
+
+        def older(func_code, address, count):  # the register span of the firmware before
+            if func_code == 4 and address + count > int(wire.InputRegister.INDEX_COUNT) + 1:
+                return ExcCodes.ILLEGAL_ADDRESS
+            return full(func_code, address, count)
+
+        monkeypatch.setattr(ctl, "_read", older)
+        with pytest.raises(DrumError, match=r"older than the installed sources; flash them: rigctl firmware --flash"):
+            rig.drum.read_status()
+        monkeypatch.setattr(ctl, "_read", full)
+        assert rig.drum.read_status().build_id == firmware.build_id()
+
+
 def test_a_stored_report_is_schema_checked():
     good = {"checked_utc": "2026-01-01T00:00:00+00:00", "rig": "sim", "ok": True,
             "checks": [{"name": "link", "status": "pass", "summary": "ok", "values": {"x": [1, 2.5], "y": None}}]}
