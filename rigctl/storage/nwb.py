@@ -538,17 +538,19 @@ def _unit_lengths(index: np.ndarray, rows: np.ndarray, n_trains: int) -> np.ndar
 
 def _unit_spikes(encoded_path: Any, variants: Sequence[str], rows: np.ndarray, starts: np.ndarray
                  ) -> Iterator[tuple[np.ndarray, int]]:
-    """Each variant's units' spike times on session time, unit after unit (a unit: its train in each exported trial,
-    shifted by the trial's start), one variant at a time; with the number of units."""
+    """Each unit's spike times on session time (its train in each exported trial, shifted by the trial's start),
+    unit after unit, variant after variant; one unit per block (memory: one variant's times plus one unit's)."""
     with _encoded.open_encoded(encoded_path) as enc:
         for v in variants:
             times, index, n_trains = enc.spikes(v)
-            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)[rows].T.ravel()  # unit-major
-            lens = _unit_lengths(index, rows, n_trains).ravel()
-            shift = np.broadcast_to(starts, (n_trains, starts.size)).ravel()
-            first = np.concatenate([[0], np.cumsum(lens)[:-1]])
-            gather = np.repeat(begins - first, lens) + np.arange(int(lens.sum()))
-            yield np.repeat(shift, lens) + times[gather], n_trains
+            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)[rows]  # (n_trials, n_trains)
+            lens = _unit_lengths(index, rows, n_trains)  # (n_trains, n_trials)
+            for j in range(n_trains):
+                n = lens[j]
+                first = np.concatenate([[0], np.cumsum(n)[:-1]])
+                gather = np.repeat(begins[:, j] - first, n) + np.arange(int(n.sum()))
+                yield np.repeat(starts, n) + times[gather], 1
+            del times, index
 
 
 def read_nwb_summary(path: str | os.PathLike[str]) -> tuple[NwbSummary, dict[str, np.ndarray]]:
