@@ -96,7 +96,9 @@ class Venv:
         # after the install (pip sees only the new environment): the test environment's packages, behind its own
         purelib = Path(self.py("import sysconfig; print(sysconfig.get_path('purelib'))"))
         assert purelib.is_relative_to(self.root)
-        (purelib / "_test_environment.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+        # (its site folders and those its own .pth files chain in: a venv layered on another's packages)
+        seen = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages"))]
+        (purelib / "_test_environment.pth").write_text("\n".join(dict.fromkeys(site.getsitepackages() + seen)) + "\n")
 
     def py(self, code: str) -> str:
         r = subprocess.run([str(self.python), "-c", code], capture_output=True, text=True, cwd=self.work,
