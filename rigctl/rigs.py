@@ -51,8 +51,11 @@ ANSWER_TIMEOUT_S = {"hardware": 0.5, "sim": 2.0, "replay": 2.0, "hil": 2.0}
 #: default 1 s. The firmware under simavr keeps its watchdog in simulated time, paced to the wall clock, while the
 #: host waits ANSWER_TIMEOUT_S["hil"] = 2 s for a late answer (a host starved on a loaded machine: `rigctl doctor --hil`
 #: tripped WATCHDOG at 120 mm/s once in two runs at load 9.5 on 2 cores): 5 s covers one such wait and its retry.
-#: The virtual Mega keeps the default: its tests trip the 1 s watchdog on purpose (tests/acquisition/test_acq_runner).
-WATCHDOG_MS = {"hil": 5000}
+#: The virtual Mega of the simulated rigs (sim, replay) is the same case: it runs beside a host that waits
+#: ANSWER_TIMEOUT_S["sim"] = 2 s, and with the 1 s default a host starved for a second on a loaded machine failed trials
+#: with WATCHDOG (CI at load 12-16: test_sim_index_alignment, test_acq_faults, doctor --sim). A test that trips the
+#: watchdog on purpose writes the register itself.
+WATCHDOG_MS = {"sim": 5000, "replay": 5000, "hil": 5000}
 
 
 def drum_answer_timeout_s(kind: str) -> float:
@@ -116,7 +119,8 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
             if source is not None:
                 raise RigError("a replay source selects kind='replay'")
             sim = SimulatedRig(config, seed=seed, **options)
-        return PtyRigBackend(sim, mode=kind, seed=seed, textures=textures, drum_timeout_s=ANSWER_TIMEOUT_S[kind])
+        return PtyRigBackend(sim, mode=kind, seed=seed, textures=textures, drum_timeout_s=ANSWER_TIMEOUT_S[kind],
+                             drum_watchdog_ms=WATCHDOG_MS[kind])
     if kind == "hil":
         try:
             from rigctl.simulation.hil import HilRig

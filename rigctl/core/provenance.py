@@ -77,12 +77,14 @@ def software_provenance(command_line: Sequence[str] | None = None, **extra: Any)
 
     Keys: ``provenance_id`` (a fresh UUID4), ``created_utc``, ``rigctl_version``, ``git`` (:func:`git_state`, None
     outside a clone), ``python`` (version, implementation), ``packages`` (:func:`package_versions`), ``host``
-    (node name, platform, machine), ``command_line`` (``sys.argv`` unless given, joined as a shell would read it),
+    (node name, platform, machine), ``command_line`` (``sys.orig_argv``, else ``sys.argv``, unless given, joined as a shell would read it),
     then ``extra`` (firmware, protocol, rig config, parameters: what the writer knows).
     """
     from rigctl import __version__
 
-    argv = list(sys.argv if command_line is None else command_line)
+    # the interpreter's own command line where there is one (``python -m rigctl ...``, ``python -c ...``: sys.argv
+    # alone is ['-m'...] or ['-c']); the installed ``rigctl`` script gives both the same way
+    argv = list((getattr(sys, "orig_argv", None) or sys.argv) if command_line is None else command_line)
     out: dict[str, Any] = {
         "provenance_id": str(uuid.uuid4()),
         "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

@@ -21,7 +21,7 @@ from rigctl.acquisition import calibration, rig as rig_module
 from rigctl.acquisition.protocol import parse_protocol
 from rigctl.acquisition.runner import run_protocol
 from rigctl.devices.wire import DrumState, HoldingRegister
-from rigctl.rigs import open_rig
+from rigctl.rigs import WATCHDOG_MS, open_rig
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 from rigctl.storage.session import open_session
 
@@ -255,7 +255,12 @@ def test_a_watchdog_trip_between_trials_is_cleared(pty_rig, tmp_path, textures):
             assert pty_rig.drum.read_status().state == DrumState.FAULT
 
     n_per = 2 if textures == '"A"' else 1
-    summary = run_protocol(_proto(n_per, textures=textures), out, rig=pty_rig, progress=False, on_trial=on_trial)
+    # the controller's default watchdog (1 s), not the simulated rig's longer one (rigs.WATCHDOG_MS)
+    pty_rig.drum.write_holding(HoldingRegister.WATCHDOG_MS, 1000)
+    try:
+        summary = run_protocol(_proto(n_per, textures=textures), out, rig=pty_rig, progress=False, on_trial=on_trial)
+    finally:
+        pty_rig.drum.write_holding(HoldingRegister.WATCHDOG_MS, WATCHDOG_MS["sim"])
     assert summary.complete == 2 and summary.failed == 0, summary.failures
 
 

@@ -56,7 +56,13 @@ def test_sync_in_pulse_sets_the_flag_once(hil_rig, wait_frames):
         stream.begin_capture()
         assert wait_frames(stream, 200)
         hil_rig._uno.send("sync")  # a 1 ms pulse on D2, as the Mega's index output gives
-        assert wait_frames(stream, 600)
+        # the pulse lands at the harness's simulated time when it reads the command, which on a loaded host can be
+        # well past the frames the reader has delivered: wait for the flagged frame (or 10 s of frames), then 200 more
+        target = 600
+        while stream.capture_flag_index(wire.FrameFlag.SYNC_IN) is None and target < 10_000:
+            assert wait_frames(stream, target)
+            target += 200
+        assert wait_frames(stream, target + 200)
         cap = stream.end_capture()
     sync = (cap.flags & wire.FrameFlag.SYNC_IN) != 0
     assert sync.sum() == 1
