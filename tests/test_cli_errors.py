@@ -278,10 +278,15 @@ JSON = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.
                     max_leaves=12)
 
 
-#: the rig config's blocks and their keys (docs: rigctl.acquisition.rigconfig)
-BLOCKS = {"loadcell": ["counts_per_g", "scale_x100", "mass_g", "zero_raw", "loaded_raw", "check_force_g",
-                       "noise_counts", "calibrated_utc"],
-          "taxel_normalisation": ["taxel_min", "taxel_max", "n_trials", "source", "calibrated_utc"]}
+def _rigconfig_schema() -> dict:
+    from rigctl.acquisition.rigconfig import SCHEMA
+
+    return SCHEMA
+
+
+#: the rig config's blocks and their keys, from its one schema (a block added there, e.g. lsl, is fuzzed as a block:
+#: its errors name "rig.json: lsl", not '"lsl"')
+BLOCKS = {block: list(keys) for block, keys in _rigconfig_schema().items()}
 
 
 def _near_valid():
