@@ -59,6 +59,10 @@ class _BlockReplay:
     _blocks: Iterator[np.ndarray]
     _block: np.ndarray  #: the block being read, from sample _pos on
     _pos: int
+    textures: TextureSet
+    by_texture: dict[str, Any]  #: texture label -> its trials / recordings, in stream order
+    mounted: str | None
+    mounts: list[tuple[int, str]]  #: ``(stream position, label)`` of every mount
 
     def __init__(self, loop: bool, continuous: bool = False):
         self.loop = bool(loop)
@@ -106,6 +110,37 @@ class _BlockReplay:
 
     def _iter_blocks(self, *, track: bool = True) -> Iterator[np.ndarray]:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def _iter_texture(self, texture: str) -> Iterator[np.ndarray]:  # pragma: no cover - abstract
+        """The blocks of texture ``texture`` (a key of ``by_texture``), from its next one on, looping."""
+        raise NotImplementedError
+
+    def _no_texture(self, texture: str) -> str:  # pragma: no cover - abstract
+        """The KeyError message for a texture the source has nothing of."""
+        raise NotImplementedError
+
+    def mount(self, texture: str) -> None:
+        """The protocol mounted plate ``texture`` (a label of the source, or one its texture set resolves): from the
+        next sample on, stream that texture's next trial or recording (then its following ones, looping), so a
+        trial labelled Denim holds Denim's samples. A texture the source has nothing of raises KeyError."""
+        label = texture
+        if label not in self.by_texture:
+            try:
+                label = self.textures.resolve(texture)
+            except TextureSetError:
+                pass
+        if label not in self.by_texture:
+            raise KeyError(self._no_texture(texture))
+        with self._lock:
+            self.mounted = label
+            self.mounts.append((self.samples_served, label))
+            self._restart(self._iter_texture(label))
+
+    def unmount(self) -> None:
+        """Back to the unmounted order (a session's plan order, FabricSlide's file-name order), from the first."""
+        with self._lock:
+            self.mounted = None
+            self._restart()
 
     def _eof(self) -> str:
         return "end of the replayed recordings (loop=False)"
@@ -269,28 +304,8 @@ class SessionReplay(_BlockReplay):
             self.current_trial = ids[i]
             yield self.trial_samples(ids[i])
 
-    def mount(self, texture: str) -> None:
-        """The protocol mounted plate ``texture``: from the next sample on, stream its next trial (and then the
-        following trials of that texture, looping). A label the session has no trial of raises KeyError."""
-        label = texture
-        if label not in self.by_texture:
-            try:
-                label = self.textures.resolve(texture)
-            except TextureSetError:
-                pass
-        if label not in self.by_texture:
-            raise KeyError(f"{self.path.name} has no trial of texture '{texture}' (it has: "
-                           f"{', '.join(self.by_texture)})")
-        with self._lock:
-            self.mounted = label
-            self.mounts.append((self.samples_served, label))
-            self._restart(self._iter_texture(label))
-
-    def unmount(self) -> None:
-        """Back to every trial in plan order (from the first)."""
-        with self._lock:
-            self.mounted = None
-            self._restart()
+    def _no_texture(self, texture: str) -> str:
+        return f"{self.path.name} has no trial of texture '{texture}' (it has: {', '.join(self.by_texture)})"
 
     def texture_samples(self, texture: str, n: int, *, first: int = 0) -> np.ndarray:
         """``n`` samples of texture ``texture``'s trials concatenated in plan order, looping, from its trial index
@@ -379,29 +394,8 @@ class FabricSlideReplay(_BlockReplay):
             self.current_file = files[i]
             yield self._adc(files[i])
 
-    def mount(self, texture: str) -> None:
-        """The protocol mounted plate ``texture``: from the next sample on, stream that fabric's next recording
-        (then its following ones, looping), so a trial labelled Denim holds Denim's samples. A label with no
-        recording raises KeyError."""
-        label = texture
-        if label not in self.by_texture:
-            try:
-                label = self.textures.resolve(texture)
-            except TextureSetError:
-                pass
-        if label not in self.by_texture:
-            raise KeyError(f"no FabricSlide recording of texture '{texture}' here (there are: "
-                           f"{', '.join(self.by_texture)})")
-        with self._lock:
-            self.mounted = label
-            self.mounts.append((self.samples_served, label))
-            self._restart(self._iter_texture(label))
-
-    def unmount(self) -> None:
-        """Back to every recording in file-name order (from the first)."""
-        with self._lock:
-            self.mounted = None
-            self._restart()
+    def _no_texture(self, texture: str) -> str:
+        return f"no FabricSlide recording of texture '{texture}' here (there are: {', '.join(self.by_texture)})"
 
     def _adc(self, path: Path) -> np.ndarray:
         return recording_adc(read_recording(path), scale=self.scale, offset=self.offset)
