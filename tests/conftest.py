@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import getpass
 import os
+import signal
 import tempfile
 from pathlib import Path
 
@@ -56,6 +57,11 @@ def pytest_configure(config):
     (cfg_dir / "lsl_api.cfg").write_text(LSL_API_CFG)
     os.environ["LSLAPICFG"] = str(cfg_dir / "lsl_api.cfg")
     config._rigctl_lsl_cfg_dir = cfg_dir
+    # a test that presses Ctrl-C on a child (SIGINT) needs the child to hear it: a shell runs a background job
+    # (`.ci/run &` in a script, as CI may) with SIGINT ignored, and an ignored signal stays ignored across exec, so
+    # every child Python would start with KeyboardInterrupt switched off (rigctl sim then ran on for 120 s)
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_unconfigure(config):
