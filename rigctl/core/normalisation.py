@@ -79,8 +79,7 @@ class TaxelRange:
         if x.size == 0:
             return self
         x = x.reshape(-1, x.shape[-1])
-        lo = x.min(axis=0).astype(np.float64)
-        hi = x.max(axis=0).astype(np.float64)
+        lo, hi = _column_extremes(x)
         if self.minimum is None or self.maximum is None:
             self.minimum, self.maximum = lo, hi
         else:
@@ -130,3 +129,28 @@ class TaxelRange:
         hi = d["taxel_max"] if "taxel_max" in d else d["maximum"]
         return cls(np.asarray(lo, float), np.asarray(hi, float), int(d.get("n_trials", 0)), str(d.get("source", "")),
                    str(d.get("calibrated_utc", "")), int(d.get("n_samples", 0)))
+
+
+#: rows folded side by side in :func:`_column_extremes` (numpy reduces wide rows far faster than 18-column ones)
+_FOLD_ROWS = 64
+
+
+def _column_extremes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of each column of the 2-d ``x`` as float64: the rows reduced ``_FOLD_ROWS`` at a time side by
+    side (the same extremes as ``x.min(axis=0)``, several times faster for few columns)."""
+    n_ch = x.shape[1]
+    n = x.shape[0] // _FOLD_ROWS * _FOLD_ROWS
+    lo_parts, hi_parts = [], []
+    if n and x.flags.c_contiguous:
+        wide = x[:n].reshape(-1, _FOLD_ROWS * n_ch)
+        lo_parts.append(wide.min(axis=0).reshape(_FOLD_ROWS, n_ch).min(axis=0))
+        hi_parts.append(wide.max(axis=0).reshape(_FOLD_ROWS, n_ch).max(axis=0))
+    else:
+        n = 0
+    if n < x.shape[0]:
+        lo_parts.append(x[n:].min(axis=0))
+        hi_parts.append(x[n:].max(axis=0))
+    lo = np.minimum.reduce(lo_parts) if len(lo_parts) > 1 else lo_parts[0]
+    hi = np.maximum.reduce(hi_parts) if len(hi_parts) > 1 else hi_parts[0]
+    return np.asarray(lo).astype(np.float64), np.asarray(hi).astype(np.float64)
+

@@ -255,10 +255,11 @@ class EncodedWriter:
             self._append(g["time_scale"], np.ascontiguousarray(scale))
             return
         tick_s = float(g.attrs["tick_s"])
-        per_spike = _per_spike(scale, idx, n_trains)
+        # a scale of 1 (unscaled variants) multiplies nothing: the same numbers without the per-spike array
+        per_spike: Any = 1.0 if np.all(scale == 1.0) else _per_spike(scale, idx, n_trains)
         ticks = np.rint(st / (per_spike * tick_s))
         if st.size and (ticks.min() < 0 or ticks.max() > np.iinfo(np.uint32).max
-                        or not np.allclose(ticks * tick_s * per_spike, st, rtol=1e-12, atol=0.0)):
+                        or not _on_grid(ticks * tick_s * per_spike, st)):
             raise ValueError(f"{variant}: spike times are not multiples of tick_s = {tick_s:g} s x time_scale")
         base = self._append(g["spike_ticks"], ticks.astype(np.uint32))
         self._append(g["spike_times_index"], idx + base)
@@ -306,4 +307,11 @@ class EncodedWriter:
         else:
             self.abort()
 
+
+def _on_grid(back: np.ndarray, times: np.ndarray) -> bool:
+    """Every ``back`` (ticks x tick_s x scale) within 1e-12 of ``times`` relative (``np.allclose(back, times,
+    rtol=1e-12, atol=0)`` for the finite times spikes have; NaN fails), in place on one temporary."""
+    np.subtract(back, times, out=back)
+    np.abs(back, out=back)
+    return bool(np.all(back <= 1e-12 * np.abs(times)))
 

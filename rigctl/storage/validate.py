@@ -16,8 +16,8 @@
 - **impossible attributes**: a plan duration that is not finite, <= 0 or over :data:`MAX_TRIAL_S`; a counter
   (``dropped_frames``, ``crc_errors``) above :func:`max_count` (16 per frame slot of the trial + 1024: more frames
   than the link could have carried); a sensor sample rate above :data:`MAX_RATE_HZ` (every trial excluded);
-- **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (BLAKE2b of the counts; constant
-  trials, e.g. a silent sensor, are not compared).
+- **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (trials of equal length and Adler-32
+  are compared by SHA-256 of the counts; constant trials, e.g. a silent sensor, are not compared).
 
 The reasons are one line each; :attr:`TrialReport.excluded` maps trial id -> reason.
 """
@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,7 +37,8 @@ import numpy as np
 from rigctl.storage.session import Session, SessionError, TrialStatus, trial_group_name
 from rigctl.storage.session_recording import read_rows
 
-__all__ = ["MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "max_count", "seq_gaps", "usable_trials"]
+__all__ = ["MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "block_seq_gaps", "max_count", "seq_gaps",
+           "usable_trials"]
 
 #: no taxel sensor samples faster (1 MHz; the paper's runs at 1 kHz): a faster rate is a damaged header
 MAX_RATE_HZ = 1e6
@@ -61,6 +63,21 @@ def seq_gaps(seq: np.ndarray) -> int:
         return 0
     d = np.mod(np.diff(seq.astype(np.int64)), 65536)
     return int(np.sum(d[d > 1] - 1))
+
+
+def block_seq_gaps(seq: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """:func:`seq_gaps` of every trial of a block stored back to back: trial ``i`` is ``seq[pos[i]:pos[i + 1]]``
+    (``pos`` (n_trials + 1,) non-decreasing, from 0 to ``seq.size``); (n_trials,) int64."""
+    pos = np.asarray(pos, dtype=np.int64)
+    # uint16 differences wrap at 65,536 by themselves
+    d = np.diff(seq) if seq.dtype == np.uint16 else np.mod(np.diff(seq.astype(np.int64)), 65536)
+    lost = np.where(d > 1, d - 1, 0)  # lost[k]: between samples k and k + 1 (a trial's last and the next's first too)
+    c = np.zeros(max(seq.size, 1), dtype=np.int64)  # c[k] = sum(lost[:k])
+    np.cumsum(lost, out=c[1:])
+    first = np.minimum(pos[:-1], c.size - 1)
+    last = np.minimum(np.maximum(pos[1:] - 1, pos[:-1]), c.size - 1)  # the jumps inside trial i: lost[pos[i]:last]
+    gaps: np.ndarray = c[last] - c[first]
+    return gaps
 
 
 @dataclass
@@ -97,7 +114,7 @@ def usable_trials(session: Session) -> TrialReport:
     session_problem = None
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
         session_problem = f"the sensor's sample rate {rate:g} Hz is impossible (above {MAX_RATE_HZ:g} Hz)"
-    digests: dict[bytes, int] = {}
+    copies = _Copies()
     if session_problem is not None:
         report.excluded = dict.fromkeys(session.completed_ids(), session_problem)
     elif session._flat:  # schema 4: the recording arrays, in blocks
@@ -105,7 +122,7 @@ def usable_trials(session: Session) -> TrialReport:
     else:
         for tid in session.completed_ids():
             try:
-                why, dropped = _check_trial(session, tid, plan[tid], rate, digests)
+                why, dropped = _check_trial(session, tid, plan[tid], rate, copies)
             except (SessionError, KeyError) as exc:
                 why, dropped = _reason(exc, tid), 0
             _record(report, tid, why, dropped)
@@ -131,8 +148,7 @@ def _count(attrs: dict[str, Any], name: str) -> int:
         return -1
 
 
-def _check_trial(session: Session, tid: int, row: Any, rate: float,
-                 digests: dict[bytes, int]) -> tuple[str | None, int]:
+def _check_trial(session: Session, tid: int, row: Any, rate: float, copies: "_Copies") -> tuple[str | None, int]:
     """(reason or None, frames missing by the seq column) for one complete trial of a file with one group of
     datasets per trial (schema 1-3)."""
     why = _check_duration(row)
@@ -144,9 +160,9 @@ def _check_trial(session: Session, tid: int, row: Any, rate: float,
     taxels = g["taxels"]
     if n < 0:
         n = int(taxels.shape[0])
-    return _check_data(session, tid, float(row["duration_s"]), rate, n, np.asarray(g["seq"][()]),
+    return _check_data(session, tid, float(row["duration_s"]), rate, n, seq_gaps(np.asarray(g["seq"][()])),
                        _count(attrs, "dropped_frames"), _count(attrs, "crc_errors"), lambda: np.asarray(taxels[()]),
-                       digests)
+                       copies)
 
 
 def _check_duration(row: Any) -> str | None:
@@ -156,12 +172,14 @@ def _check_duration(row: Any) -> str | None:
     return None
 
 
-def _check_data(session: Session, tid: int, duration: float, rate: float, n: int, seq: np.ndarray, said: int,
-                crc: int, taxels: Callable[[], np.ndarray], digests: dict[bytes, int]) -> tuple[str | None, int]:
+def _check_data(session: Session, tid: int, duration: float, rate: float, n: int, gaps: int, said: int,
+                crc: int, taxels: Callable[[], np.ndarray], copies: "_Copies", in_range: bool = False,
+                reload: Callable[[], np.ndarray] | None = None) -> tuple[str | None, int]:
     """(reason or None, frames missing) from a trial's plan duration (s), the sensor's rate (Hz), its sample count,
-    counters, ``seq`` column and taxels (read by ``taxels()`` only when the other checks pass)."""
+    counters, frames missing by its ``seq`` column (:func:`seq_gaps`) and taxels (read by ``taxels()`` only when the
+    other checks pass; ``in_range``: known to be inside the ADC range; ``reload()`` reads them again later, default
+    ``taxels``)."""
     planned = int(round(duration * rate))
-    gaps = seq_gaps(seq)
     for name, value in (("dropped_frames", said), ("crc_errors", crc)):
         if value > max_count(planned + n):
             return f"its {name} attribute {value} is impossible for {planned + n} frame slots", 0
@@ -170,7 +188,7 @@ def _check_data(session: Session, tid: int, duration: float, rate: float, n: int
     if not planned / 2 - 2 <= n + gaps <= 2 * planned + 2:
         return (f"it holds {n} samples ({gaps} missing), its plan asks {duration:g} s = {planned} at "
                 f"{rate:g} Hz"), gaps
-    why = _check_counts(session, taxels(), tid, digests)
+    why = _check_counts(session, taxels(), tid, copies, reload or taxels, in_range)
     return why, max(gaps, said)
 
 
@@ -184,7 +202,7 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     read in blocks of about :data:`_BLOCK_ROWS` rows (no group opened per trial; memory bounded by the block)."""
     from rigctl.storage.session_recording import GROUP
 
-    digests: dict[bytes, int] = {}
+    copies = _Copies()
     todo: list[tuple[int, np.void]] = []
     index, n_rows = session.recording_index(), session._recorded_rows()
     for tid in ids:
@@ -195,6 +213,7 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
         else:
             report.excluded[tid] = str(why)
     rec = session._f[GROUP]
+    taxels_ds = rec["taxels"]
     k = 0
     while k < len(todo):
         j, rows = k, 0
@@ -206,14 +225,17 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
         lengths = np.array([int(r["n_samples"]) for _, r in block], dtype=np.int64)
         pos = np.concatenate([[0], np.cumsum(lengths)])
         seq = np.empty(int(pos[-1]), dtype=np.uint16)
-        tax = np.empty((int(pos[-1]), rec["taxels"].shape[1]), dtype=np.uint16)
+        tax = np.empty((int(pos[-1]), taxels_ds.shape[1]), dtype=np.uint16)
         read_rows(rec["seq"], starts, lengths, seq)
-        read_rows(rec["taxels"], starts, lengths, tax)
+        read_rows(taxels_ds, starts, lengths, tax)
+        gaps = block_seq_gaps(seq, pos)
+        in_range = bool(tax.size == 0 or int(tax.max()) <= session.layout.adc_max)  # uint16: never below 0
         for i, (tid, r) in enumerate(block):
             a, b = int(pos[i]), int(pos[i + 1])
-            why, dropped = _check_data(session, tid, float(plan[tid]["duration_s"]), rate, b - a, seq[a:b],
+            why, dropped = _check_data(session, tid, float(plan[tid]["duration_s"]), rate, b - a, int(gaps[i]),
                                        int(r["dropped_frames"]), int(r["crc_errors"]),
-                                       functools.partial(_rows, tax, a, b), digests)
+                                       functools.partial(_rows, tax, a, b), copies, in_range,
+                                       functools.partial(_read_trial, taxels_ds, int(starts[i]), b - a))
             _record(report, tid, why, dropped)
         k = j
     order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
@@ -225,6 +247,10 @@ def _rows(arr: np.ndarray, a: int, b: int) -> np.ndarray:
     return arr[a:b]
 
 
+def _read_trial(ds: Any, start: int, n: int) -> np.ndarray:
+    return np.asarray(ds[start:start + n])
+
+
 def _record(report: TrialReport, tid: int, why: str | None, dropped: int) -> None:
     if why:
         report.excluded[tid] = why
@@ -233,23 +259,55 @@ def _record(report: TrialReport, tid: int, why: str | None, dropped: int) -> Non
         report.dropped_frames[tid] = dropped
 
 
-def _check_counts(session: Session, data: np.ndarray, tid: int, digests: dict[bytes, int]) -> str | None:
-    """ADC range and byte copies of the trial's taxel counts."""
+def _check_counts(session: Session, data: np.ndarray, tid: int, copies: "_Copies",
+                  load: Callable[[], np.ndarray], in_range: bool = False) -> str | None:
+    """ADC range and byte copies of the trial's taxel counts (``load()`` reads them again; ``in_range``: known to
+    be inside the ADC range)."""
     adc_max = session.layout.adc_max
     if data.size == 0:
         return None
-    lo, hi = int(data.min()), int(data.max())
-    if lo < 0 or hi > adc_max:  # worded as Session.trial words it
-        row = int(np.flatnonzero(((data < 0) | (data > adc_max)).any(axis=1))[0])
-        return (f"taxels hold {hi if hi > adc_max else lo} (sample {row}), outside the sensor's "
-                f"{session.layout.adc_bits}-bit range 0..{adc_max}")
-    if lo == hi:
-        return None  # a constant trial (a silent sensor) is no evidence of a copy
-    digest = hashlib.blake2b(np.ascontiguousarray(data).data.cast("B"), digest_size=16).digest()
-    if digest in digests:
-        return f"its taxels are a byte copy of trial {digests[digest]}'s"
-    digests[digest] = tid
-    return None
+    if not in_range:
+        lo, hi = int(data.min()), int(data.max())
+        if lo < 0 or hi > adc_max:  # worded as Session.trial words it
+            row = int(np.flatnonzero(((data < 0) | (data > adc_max)).any(axis=1))[0])
+            return (f"taxels hold {hi if hi > adc_max else lo} (sample {row}), outside the sensor's "
+                    f"{session.layout.adc_bits}-bit range 0..{adc_max}")
+    earlier = copies.copy_of(tid, data, load)
+    return None if earlier is None else f"its taxels are a byte copy of trial {earlier}'s"
+
+
+class _Copies:
+    """Byte copies among the trials' taxel counts, in the order the trials are checked: every non-constant trial is
+    remembered by (dtype, shape, Adler-32) (fast: the counts are read once); trials equal in that are compared by
+    SHA-256 (computed only then, re-reading an earlier trial's counts if needed). A constant trial (a silent sensor)
+    is no evidence of a copy."""
+
+    def __init__(self) -> None:
+        self._seen: dict[tuple[Any, ...], list[list[Any]]] = {}  # key -> [[tid, sha256 or None, load], ...]
+
+    @staticmethod
+    def _sha(data: np.ndarray) -> bytes:
+        return hashlib.sha256(np.ascontiguousarray(data).data.cast("B")).digest()
+
+    def copy_of(self, tid: int, data: np.ndarray, load: Callable[[], np.ndarray]) -> int | None:
+        """The earlier trial whose counts ``data`` copies, or None (then ``tid`` is remembered; ``load()`` reads its
+        counts again)."""
+        data = np.ascontiguousarray(data)
+        key = (data.dtype.str, data.shape, zlib.adler32(data.data.cast("B")))
+        same = self._seen.setdefault(key, [])
+        if same:
+            if int(data.min()) == int(data.max()):
+                return None
+            mine = self._sha(data)
+            for entry in same:
+                if entry[1] is None:
+                    entry[1] = self._sha(entry[2]())
+                if entry[1] == mine:
+                    return int(entry[0])
+            same.append([tid, mine, load])
+        else:
+            same.append([tid, None, load])
+        return None
 
 
 def status_of(session: Session, tid: int) -> str:
