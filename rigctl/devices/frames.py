@@ -1,8 +1,9 @@
 """Taxel-stream framing: build frames (for the simulated Uno and tests) and parse a byte stream into frames.
 
-The parser is vectorised with numpy: it finds every sync candidate in the buffer at once, checks all their CRCs in
-one pass (:func:`rigctl.devices.wire.crc16_rows`), keeps the valid non-overlapping frames, counts what it skipped
-and keeps an incomplete tail for the next chunk. Garbage, truncation and bit flips never raise and never yield a
+The parser runs one compiled pass over each chunk (numba): it finds every sync candidate, checks its CRC, keeps the
+valid non-overlapping frames and unpacks them, counts what it skipped and keeps an incomplete tail for the next chunk
+(one call per chunk: the reader parses ~50 small chunks a second, where a chain of numpy calls cost more than the
+bytes). Garbage, truncation and bit flips never raise and never yield a
 frame whose CRC is wrong. Layout: ``docs/wire-protocol.md`` section 1.
 """
 
@@ -11,11 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 
 from rigctl.devices import wire
 
 _SYNC0, _SYNC1 = wire.SYNC[0], wire.SYNC[1]
+_CRC_START = wire.CRC_START
+# the frame layout _scan unpacks: sync (2 bytes), seq (uint16 LE), flags (1), samples (uint16 LE each), CRC (2)
+assert wire.CRC_START == 2 and [wire.frame_dtype(1).fields[k][1]  # type: ignore[index]  # a record type: fields
+                                for k in ("seq", "flags", "samples", "crc")] == [2, 4, 5, 7]
 
 
 def encode_frames(seq: np.ndarray, flags: np.ndarray | int, samples: np.ndarray, *, adc_max: int = wire.ADC_MAX) -> bytes:
@@ -103,8 +109,6 @@ class FrameParser:
     def __post_init__(self) -> None:
         self.n_channels = int(self.n_channels)
         self._size = wire.frame_size(self.n_channels)
-        self._dtype = wire.frame_dtype(self.n_channels)
-        self._offsets = np.arange(self._size)[None, :]  # byte offsets within a frame (one fancy index per chunk)
 
     def feed(self, chunk: bytes) -> Frames:
         """Parse ``chunk`` (appended to any kept tail); return the complete valid frames found, in stream order."""
@@ -117,51 +121,57 @@ class FrameParser:
         if last_start < 0:
             self._buf = buf
             return Frames.empty(self.n_channels)
-        head = arr[: last_start + 1]
-        cand = np.flatnonzero((head == _SYNC0) & (arr[1 : last_start + 2] == _SYNC1))
-        accepted = np.zeros(0, dtype=np.int64)
-        if cand.size:
-            rows = arr[cand[:, None] + self._offsets]  # (candidates, frame size) bytes
-            off_crc = size - 2
-            crc_calc = wire.crc16_rows(rows[:, wire.CRC_START : off_crc])
-            crc_recv = rows[:, off_crc].astype(np.uint16) | (rows[:, off_crc + 1].astype(np.uint16) << 8)
-            ok = crc_calc == crc_recv
-            valid = cand[ok]
-            if valid.size > 1 and np.any(np.diff(valid) < size):
-                valid = _non_overlapping(valid, size)
-            accepted = valid
-            bad = cand[~ok]
-            if bad.size:
-                if accepted.size:
-                    # a bad candidate lying inside an accepted frame is payload, not a corrupt frame
-                    idx = np.searchsorted(accepted, bad, side="right") - 1
-                    inside = (idx >= 0) & (bad < accepted[np.maximum(idx, 0)] + size)
-                    bad = bad[~inside]
-                self.stats.crc_errors += int(bad.size)
-        consumed_to = int(accepted[-1]) + size if accepted.size else 0
-        keep_from = max(consumed_to, last_start + 1)
-        self.stats.bytes_skipped += keep_from - accepted.size * size
-        self.stats.frames += int(accepted.size)
+        n_max = last_start // size + 1
+        seq = np.empty(n_max, np.uint16)
+        flags = np.empty(n_max, np.uint8)
+        samples = np.empty((n_max, self.n_channels), np.uint16)
+        n_ok, crc_errors, consumed_to = _scan(arr, last_start, size, wire.CRC16_TABLE, seq, flags, samples)
+        self.stats.crc_errors += int(crc_errors)
+        keep_from = max(int(consumed_to), last_start + 1)
+        self.stats.bytes_skipped += keep_from - n_ok * size
+        self.stats.frames += int(n_ok)
         self._buf = buf[keep_from:]
-        if not accepted.size:
+        if not n_ok:
             return Frames.empty(self.n_channels)
-        windows = arr[accepted[:, None] + self._offsets]  # (frames, frame size) bytes, contiguous
-        rec: Any = windows.view(self._dtype).reshape(-1)  # records: fields by name
-        return Frames(rec["seq"].astype(np.uint16), rec["flags"].astype(np.uint8), rec["samples"].astype(np.uint16))
+        return Frames(seq[:n_ok], flags[:n_ok], samples[:n_ok])
 
     def reset(self) -> None:
         """Drop any kept partial frame (e.g. after the port was reopened)."""
         self._buf = b""
 
 
-def _non_overlapping(valid: np.ndarray, size: int) -> np.ndarray:
-    keep = []
-    end = -1
-    for pos in valid.tolist():
-        if pos >= end:
-            keep.append(pos)
-            end = pos + size
-    return np.asarray(keep, dtype=np.int64)
+@numba.njit(cache=True, nogil=True)
+def _scan(arr: Any, last_start: int, size: int, table: Any, seq: Any, flags: Any,
+          samples: Any) -> tuple[int, int, int]:  # pragma: no cover - compiled
+    """One pass over the buffer ``arr`` (uint8): every sync candidate at offsets 0..last_start, its CRC checked
+    (CRC-16/MODBUS over bytes CRC_START..size-3, little-endian CRC in the last two); a valid frame not overlapping
+    the previous accepted one is accepted and unpacked into ``seq``, ``flags``, ``samples`` (little-endian). A bad
+    candidate lying inside an accepted frame is payload, not a corrupt frame; the others are CRC errors.
+    Returns (frames accepted, CRC errors, the offset after the last accepted frame or 0)."""
+    n_ch = samples.shape[1]
+    off_crc = size - 2
+    n_ok = 0
+    crc_errors = 0
+    end = 0  # after the last accepted frame
+    for p in range(last_start + 1):
+        if arr[p] != _SYNC0 or arr[p + 1] != _SYNC1:
+            continue
+        crc = np.uint16(0xFFFF)
+        for j in range(p + _CRC_START, p + off_crc):
+            crc = (crc >> np.uint16(8)) ^ table[(crc ^ arr[j]) & np.uint16(0xFF)]
+        recv = np.uint16(arr[p + off_crc]) | (np.uint16(arr[p + off_crc + 1]) << np.uint16(8))
+        if crc == recv:
+            if n_ok == 0 or p >= end:  # a valid frame overlapping an accepted one is dropped
+                seq[n_ok] = np.uint16(arr[p + 2]) | (np.uint16(arr[p + 3]) << np.uint16(8))
+                flags[n_ok] = arr[p + 4]
+                for ch in range(n_ch):
+                    q = p + 5 + 2 * ch
+                    samples[n_ok, ch] = np.uint16(arr[q]) | (np.uint16(arr[q + 1]) << np.uint16(8))
+                n_ok += 1
+                end = p + size
+        elif n_ok == 0 or p >= end:
+            crc_errors += 1
+    return n_ok, crc_errors, end
 
 
 @dataclass
@@ -176,8 +186,10 @@ class SequenceTracker:
         if len(seq) == 0:
             return 0
         seq = np.asarray(seq, dtype=np.int64)
-        prev = np.concatenate(([seq[0] - 1 if self.last_seq is None else self.last_seq], seq[:-1]))
-        gaps = int(((seq - prev - 1) & 0xFFFF).sum())
+        first = int(seq[0])
+        gaps = 0 if self.last_seq is None else (first - self.last_seq - 1) & 0xFFFF
+        if len(seq) > 1:  # the steps inside the chunk: 1 when no frame is missing (mod 65,536)
+            gaps += int(((np.diff(seq) - 1) & 0xFFFF).sum())
         self.last_seq = int(seq[-1])
         self.dropped += gaps
         return gaps

@@ -58,11 +58,13 @@ class RingBuffer:
             skipped = 0
         with self._lock:
             start = (self._total + skipped) % self.capacity
-            idx = (start + np.arange(n)) % self.capacity
-            self._samples[idx] = samples
-            self._seq[idx] = seq
-            self._flags[idx] = flags
-            self._time[idx] = host_time_s
+            first = min(n, self.capacity - start)  # up to the ring's end, then the rest from its start
+            for lo, hi, at in ((0, first, start), (first, n, 0)):
+                if hi > lo:
+                    self._samples[at:at + hi - lo] = samples[lo:hi]
+                    self._seq[at:at + hi - lo] = seq[lo:hi]
+                    self._flags[at:at + hi - lo] = flags[lo:hi]
+                    self._time[at:at + hi - lo] = host_time_s[lo:hi]
             self._total += skipped + n
 
     def _window(self, cursor: int, max_frames: int | None) -> tuple[int, np.ndarray]:
