@@ -18,6 +18,7 @@ force fit, the speed-scaled variants or the features.
     python benchmarks/bench_paper.py --fraction 0.1          # 2,400 trials
     python benchmarks/bench_paper.py                          # the paper: 24,000 trials (~3 GB of session)
     python benchmarks/bench_paper.py --keep DIR               # keep the files in DIR
+    python benchmarks/bench_paper.py --session DIR/paper.h5 --stages floor,encode,export   # reuse a dataset
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER_TRIALS = 24_000
+STAGES = ("sim", "floor", "encode", "analyze", "export")
 TARGET_S = 300.0
 
 
@@ -84,6 +86,7 @@ def run_stage(args: list[str], python: bool = False) -> dict:
     import psutil
 
     before = os.times()
+    load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, *([] if python else ["-m", "rigctl"]), *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -104,7 +107,7 @@ def run_stage(args: list[str], python: bool = False) -> dict:
     cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
     if proc.returncode != 0:
         raise SystemExit(f"rigctl {' '.join(args)} failed ({proc.returncode}):\n{err[-3000:]}")
-    return {"wall": wall, "cpu": cpu, "rss": peak[0], "out": out, "load": os.getloadavg()[0]}
+    return {"wall": wall, "cpu": cpu, "rss": peak[0], "out": out, "load": (load0, os.getloadavg()[0])}
 
 
 def session_size(path: Path) -> tuple[int, int, int]:
@@ -122,47 +125,72 @@ def main() -> None:
     ap.add_argument("--fraction", type=float, default=1.0, help="of the paper's 100 trials per condition")
     ap.add_argument("--repeats", type=int, default=20, help="Table 1 repetitions (the paper: 20)")
     ap.add_argument("--keep", default=None, help="folder to keep the files in (default: a temporary one)")
+    ap.add_argument("--session", default=None, help="an existing session of the paper's protocol: no sim dataset stage "
+                                                    "(the other files go beside it unless --keep)")
+    ap.add_argument("--stages", default=",".join(STAGES),
+                    help=f"comma-separated stages to run, of {','.join(STAGES)} (encode must have run, or its file "
+                         "be in the folder, for analyze and export)")
     args = ap.parse_args()
+    stages_wanted = set(args.stages.split(","))
+    if stages_wanted - set(STAGES):
+        raise SystemExit(f"unknown stages {sorted(stages_wanted - set(STAGES))}; choose from {','.join(STAGES)}")
+    if args.session:
+        stages_wanted.discard("sim")
     tpc = max(1, round(100 * args.fraction))
     n_expected = 240 * tpc
-    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_paper_"))
+    work = Path(args.keep) if args.keep else (Path(args.session).resolve().parent if args.session else
+                                               Path(tempfile.mkdtemp(prefix="bench_paper_")))
     work.mkdir(parents=True, exist_ok=True)
-    session, encoded = work / "paper.h5", work / "paper.encoded.h5"
+    session = Path(args.session) if args.session else work / "paper.h5"
+    encoded = work / "paper.encoded.h5"
     print(f"the paper from nothing: {tpc} trials per condition ({n_expected} trials, {n_expected / PAPER_TRIALS:.3g} "
           f"of the paper), {os.cpu_count()} cores, load average at start {os.getloadavg()}", flush=True)
     stages = []
+    floor = None
     try:
-        st = run_stage(["sim", "dataset", str(REPO / "protocols" / "paper_dataset.toml"), "--out", str(session),
-                        "--trials-per-condition", str(tpc), "--overwrite", "--quiet"])
+        if "sim" in stages_wanted:
+            st = run_stage(["sim", "dataset", str(REPO / "protocols" / "paper_dataset.toml"), "--out", str(session),
+                            "--trials-per-condition", str(tpc), "--overwrite", "--quiet"])
         n, samples, taxels = session_size(session)
-        st.update(name="sim dataset", trials=n, mb=session.stat().st_size / 1e6, mb_what="written")
-        stages.append(st)
-        _print(st)
-        st = run_stage(["-c", FLOOR, str(session)], python=True)
-        st.update(name="read+kernel floor", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
-                  neuron_steps=samples * taxels * 2)
-        floor = st
-        _print(st)
-        st = run_stage(["encode", str(session), "--out", str(encoded), "--overwrite", "--quiet"])
-        st.update(name="encode", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
-                  neuron_steps=samples * taxels * 2)
-        stages.append(st)
-        _print(st)
-        print(f"{'':>17}  encode / floor: {st['wall'] / floor['wall']:.2f} (target <= 3), peak RSS "
-              f"{st['rss'] / 1e9:.2f} GB (target < 2)", flush=True)
-        st = run_stage(["analyze", str(encoded), "--table1", "--repeats", str(args.repeats), "--no-progress"])
-        st.update(name="analyze --table1", trials=n, mb=encoded.stat().st_size / 1e6, mb_what="read")
-        stages.append(st)
-        _print(st)
-        print(st["out"])
-        nwb = work / "paper.nwb"
-        st = run_stage(["export", "nwb", str(session), "--encoded", str(encoded), "--out", str(nwb), "--overwrite"])
-        st.update(name="export nwb", trials=n, mb=nwb.stat().st_size / 1e6, mb_what="written")
-        stages.append(st)
-        _print(st)
+        if "sim" in stages_wanted:
+            st.update(name="sim dataset", trials=n, mb=session.stat().st_size / 1e6, mb_what="written")
+            stages.append(st)
+            _print(st)
+        else:
+            print(f"session {session}: {n} trials (reused; no sim dataset stage)", flush=True)
+        if "floor" in stages_wanted:
+            st = run_stage(["-c", FLOOR, str(session)], python=True)
+            st.update(name="read+kernel floor", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
+                      neuron_steps=samples * taxels * 2)
+            floor = st
+            _print(st)
+        if "encode" in stages_wanted:
+            st = run_stage(["encode", str(session), "--out", str(encoded), "--overwrite", "--quiet"])
+            st.update(name="encode", trials=n, mb=session.stat().st_size / 1e6, mb_what="read",
+                      neuron_steps=samples * taxels * 2)
+            stages.append(st)
+            _print(st)
+            ratio = f"encode / floor: {st['wall'] / floor['wall']:.2f} wall, {st['cpu'] / floor['cpu']:.2f} CPU " \
+                    "(target <= 3), " if floor else ""
+            print(f"{'':>17}  {ratio}peak RSS {st['rss'] / 1e9:.2f} GB (target < 2)", flush=True)
+        if "analyze" in stages_wanted:
+            st = run_stage(["analyze", str(encoded), "--table1", "--repeats", str(args.repeats), "--no-progress"])
+            st.update(name="analyze --table1", trials=n, mb=encoded.stat().st_size / 1e6, mb_what="read")
+            stages.append(st)
+            _print(st)
+            print(st["out"])
+        if "export" in stages_wanted:
+            nwb = work / "paper.nwb"
+            st = run_stage(["export", "nwb", str(session), "--encoded", str(encoded), "--out", str(nwb),
+                            "--overwrite"])
+            st.update(name="export nwb", trials=n, mb=nwb.stat().st_size / 1e6, mb_what="written")
+            stages.append(st)
+            _print(st)
     finally:
-        if not args.keep:
+        if not args.keep and not args.session:
             shutil.rmtree(work, ignore_errors=True)
+    if not stages:
+        return
     total = sum(s["wall"] for s in stages)
     scale = PAPER_TRIALS / n
     # simulation, encoding and export scale with the trials; the analysis draws 500 per texture from 1/3 of the paper on
@@ -177,7 +205,7 @@ def _print(st: dict) -> None:
     extra = f", {st['neuron_steps'] / st['wall']:.3g} neuron-steps/s" if "neuron_steps" in st else ""
     print(f"{st['name']:>17}: {st['wall']:7.1f} s wall, {st['cpu']:7.1f} CPU-s, peak RSS {st['rss'] / 1e9:.2f} GB, "
           f"{st['trials'] / st['wall']:8.1f} trials/s, {st['mb'] / st['wall']:7.1f} MB/s {st['mb_what']} "
-          f"({st['mb']:.0f} MB){extra}; load average {st['load']:.2f}", flush=True)
+          f"({st['mb']:.0f} MB){extra}; load average {st['load'][0]:.2f} -> {st['load'][1]:.2f}", flush=True)
 
 
 if __name__ == "__main__":
