@@ -905,7 +905,9 @@ def main(argv=None) -> int:
         def _finish():
             if args.screenshot:
                 window.grab().save(args.screenshot)
-            window.close()
+            # --quit-after is the answer to "the drum is turning / a protocol is running": stop the rig safely and
+            # close (Qt 6's quit() first closes the windows, so a close left waiting for an answer kept the app up)
+            window._close_after_abort()
             app.quit()
 
         QtCore.QTimer.singleShot(int(args.quit_after * 1000), _finish)

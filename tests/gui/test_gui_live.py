@@ -42,6 +42,26 @@ def test_live_traces_heatmap_and_rasters(window, qapp):
     window.emergency_stop()
 
 
+def test_quit_after_stops_a_turning_drum_and_exits(tmp_path, gui_home):
+    """``--run --quit-after S`` (what benchmarks/bench_gui.py runs): the drum is turning when the time is up, and the
+    app still exits (its close asks "the drum is turning" of a user; the option is that answer), status 0."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_CONFIG_HOME=str(tmp_path / "config"),
+               RIGCTL_CONFIG=str(tmp_path / "rig.json"))
+    stats = tmp_path / "stats.jsonl"
+    cmd = [sys.executable, "-m", "rigctl_gui.app", "--sim", "--tab", "live", "--run", "--stats-out", str(stats),
+           "--quit-after", "12"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    import json
+
+    lines = [json.loads(x) for x in stats.read_text().splitlines()]
+    assert any(ln["connected"] and ln["frames"] > 0 for ln in lines)  # it was streaming when asked to quit
+
+
 def test_cli_screenshot_of_the_running_app(tmp_path, gui_home):
     """``rigctl gui --screenshot PATH --quit-after S`` renders the main window on the simulated rig and exits."""
     import os
