@@ -278,6 +278,22 @@ class EncodedFile:
 
         Raises KeyError if the file has no spike trains for ``variant`` (encoded with ``--no-spikes``, or a variant
         whose trains are not stored); ValueError for a slice with a step; NotEncodedError for damaged tables."""
+        raw, tick_s, scale, index, n_trains = self.spikes_stored(variant, trials)
+        if tick_s is None:
+            times = np.asarray(raw, np.float64)
+        else:
+            times = raw.astype(np.float64) * tick_s  # the encoder's own operations: bit-identical times
+        if scale is not None and np.any(scale != 1.0):
+            times *= _per_spike(scale, index, n_trains)
+        return SpikeArrays(times, index, n_trains)
+
+    def spikes_stored(self, variant: str, trials: slice | None = None
+                      ) -> tuple[np.ndarray, float | None, np.ndarray | None, np.ndarray, int]:
+        """A variant's spike trains as stored, not yet decoded to seconds (what :meth:`spikes` decodes; a tick grid
+        holds them in 4 bytes a spike instead of 8): ``(raw, tick_s, time_scale, index, n_trains)``. Schema 3 ticks:
+        ``raw`` uint32 ticks, the time of a spike of trial ``t`` is ``raw * tick_s * time_scale[t]`` (``time_scale``
+        (n_trials,) float64 or None: 1); float times (``tick_s`` None): ``raw`` s. ``index`` int64 row ends into
+        ``raw``. ``trials`` and the errors as :meth:`spikes`."""
         if variant not in self.spike_variants:
             raise KeyError(f"no spike trains of {variant!r} in {self.path} "
                            f"(stored: {', '.join(self.spike_variants) or 'none'})")
@@ -321,14 +337,7 @@ class EncodedFile:
                     raise _damaged(self.path, f"/spikes/{variant} has {scale_ds.shape[0]} time scales, not "
                                               f"{self.n_trials}")
                 scale = np.asarray(scale_ds[t0:t1], np.float64)
-        if tick_s is None:
-            times = np.asarray(raw, np.float64)
-        else:
-            times = raw.astype(np.float64) * tick_s  # the encoder's own operations: bit-identical times
-        index = index - s0
-        if scale is not None and np.any(scale != 1.0):
-            times *= _per_spike(scale, index, n_trains)
-        return SpikeArrays(times, index, n_trains)
+        return raw, tick_s, scale, index - s0, n_trains
 
     def spike_trains_description(self, variant: str) -> str:
         """What the trains of a variant are (``"SA taxels 0..n-1 then RA taxels 0..n-1"``), "" if not stored."""

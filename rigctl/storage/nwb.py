@@ -220,14 +220,17 @@ def check_spike_variants(encoded_path: str | os.PathLike[str], variants: Sequenc
 
 
 def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any = None) -> int:
-    """About how many bytes :func:`export_nwb` writes: the taxels uncompressed (``samples x channels x 2``) plus
-    the traces, plus the encoded file's size when its spike trains are exported (checked against the free space
-    before the export starts)."""
-    from rigctl.storage.validate import usable_trials
-
+    """About how many bytes :func:`export_nwb` writes, at most: the taxels uncompressed (``samples x channels x 2``)
+    of every complete trial (the validator may exclude some: not read here, so the estimate costs no pass over the
+    data) plus the traces, plus the encoded file's size when its spike trains are exported (checked against the free
+    space before the export starts)."""
     with open_session(session_path) as s:
-        ids = usable_trials(s).ids
-        n = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
+        ids = s.completed_ids()
+        if s._flat:  # schema 4: the recording index holds every trial's sample count
+            index = s.recording_index()
+            n = sum(int(index[t]["n_samples"]) for t in ids if t in index)
+        else:
+            n = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
         total = n * s.layout.n_channels * 2 + n // 10 * 16 + 64 * 1024 * (1 + len(ids) // 100)
     if encoded_path is not None:
         total += Path(encoded_path).stat().st_size
@@ -539,18 +542,26 @@ def _unit_lengths(index: np.ndarray, rows: np.ndarray, n_trains: int) -> np.ndar
 def _unit_spikes(encoded_path: Any, variants: Sequence[str], rows: np.ndarray, starts: np.ndarray
                  ) -> Iterator[tuple[np.ndarray, int]]:
     """Each unit's spike times on session time (its train in each exported trial, shifted by the trial's start),
-    unit after unit, variant after variant; one unit per block (memory: one variant's times plus one unit's)."""
+    unit after unit, variant after variant; one unit per block. Memory: one variant's spikes as stored (4-byte ticks
+    for schema 3) plus one unit's; each unit's times are decoded as :meth:`rigctl.storage.encoded.EncodedFile.spikes`
+    decodes them (the same operations, so the same numbers)."""
     with _encoded.open_encoded(encoded_path) as enc:
         for v in variants:
-            times, index, n_trains = enc.spikes(v)
+            raw, tick_s, scale, index, n_trains = enc.spikes_stored(v)
+            scale = scale[rows] if scale is not None and np.any(scale != 1.0) else None
             begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)[rows]  # (n_trials, n_trains)
             lens = _unit_lengths(index, rows, n_trains)  # (n_trains, n_trials)
             for j in range(n_trains):
                 n = lens[j]
                 first = np.concatenate([[0], np.cumsum(n)[:-1]])
                 gather = np.repeat(begins[:, j] - first, n) + np.arange(int(n.sum()))
-                yield np.repeat(starts, n) + times[gather], 1
-            del times, index
+                times = raw[gather].astype(np.float64)
+                if tick_s is not None:
+                    times *= tick_s
+                if scale is not None:
+                    times *= np.repeat(scale, n)
+                yield np.repeat(starts, n) + times, 1
+            del raw, index
 
 
 def read_nwb_summary(path: str | os.PathLike[str]) -> tuple[NwbSummary, dict[str, np.ndarray]]:
