@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import time
 from typing import Any
 
 from rigctl.core.progress import ProgressEvent
 
 __all__ = ["TqdmProgress", "bars"]
+
+#: a bar is redrawn at most this often, s (tqdm's own default ``mininterval``)
+REDRAW_S = 0.1
 
 
 class TqdmProgress:
@@ -20,6 +24,7 @@ class TqdmProgress:
         self.leave = leave
         self._bar: Any = None  # a tqdm bar (tqdm ships no type information)
         self._stage: str | None = None
+        self._drawn = -float("inf")  # time.monotonic() of the last redraw
 
     def __call__(self, event: ProgressEvent) -> None:
         from tqdm import tqdm
@@ -40,7 +45,12 @@ class TqdmProgress:
         self._bar.n = event.done
         if event.message:
             self._bar.set_postfix_str(event.message, refresh=False)
-        self._bar.refresh()
+        now = time.monotonic()
+        # drawn at most every REDRAW_S (an export sends an event per trial: 48,000 redraws at the paper's size), and
+        # always at a stage's end and with a message
+        if event.message or event.done >= event.total or now - self._drawn >= REDRAW_S:
+            self._bar.refresh()
+            self._drawn = now
 
     def close(self) -> None:
         if self._bar is not None:
