@@ -58,6 +58,8 @@ import json
 import logging
 import time
 import warnings
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -762,7 +764,8 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
         want_ws = "realtime_speed_scaled" in run.variants
         with contextlib.ExitStack() as stack:
             s = None if read.keep_all else stack.enter_context(open_session(run.session_path))
-            for bi, (b, a) in enumerate(zip(read.batches, args)):
+
+            def encode(bi: int, b: np.ndarray, a: tuple[Any, ...]) -> Any:
                 if s is None:  # read in the range pass
                     rg, ws = read.kept[bi]
                     read.kept[bi] = None  # freed as soon as encoded
@@ -770,8 +773,22 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
                     blk = s.read_taxels(a[1], traces=want_ws)
                     rg, ws = _model_input(blk, a[1], speed[b], want_ws, p.window_s, read.conv)
                     del blk
-                write(b, _encode_read(rg, ws, *a[2:]))
-                bar.advance(len(b))
+                return _encode_read(rg, ws, *a[2:])
+
+            # one batch ahead: a worker thread reads and encodes batch i + 1 (the kernels release the GIL) while
+            # this thread writes batch i, so the writes' serial time overlaps the kernels' instead of adding to it
+            pool = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="rigctl-encode"))
+            ahead: deque[tuple[np.ndarray, Future[Any]]] = deque()
+            try:
+                for bi, (b, a) in enumerate(zip(read.batches, args)):
+                    ahead.append((b, pool.submit(encode, bi, b, a)))
+                    while len(ahead) > (1 if bi + 1 < len(read.batches) else 0):
+                        done_b, fut = ahead.popleft()
+                        write(done_b, fut.result())
+                        bar.advance(len(done_b))
+            finally:
+                for _, fut in ahead:
+                    fut.cancel()
         return
     from dask.distributed import as_completed
 
