@@ -10,7 +10,7 @@ Modules, one job each (data flows top to bottom):
   spike times in one pass, float32 (``run_fused``); used by the pipeline, the streaming encoder and eq. (1).
 - :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index (stored by
   :mod:`rigctl.storage.encoded`).
-- :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceScaler``).
+- :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceCoefficients``).
 - :mod:`~rigctl.encoding.speed` - eq. (2): ``scale_spike_times``, ``incremental_scale`` (100 ms batches).
 - :mod:`~rigctl.encoding.features` - SR/SC in 100 ms windows (720 / 2160 features for 18 taxels; 180 real-time).
 - :mod:`~rigctl.encoding.rate` - the explicit resampling of readings not at the model's 1 kHz (1 ms steps).
@@ -31,7 +31,7 @@ _EXPORTS = {
     "SpikeEncoder": "rigctl.encoding.estimators",
     "TaxelNormaliser": "rigctl.encoding.estimators",
     "spike_features": "rigctl.encoding.features",
-    "ForceScaler": "rigctl.encoding.force",
+    "ForceScaler": "rigctl.encoding.estimators",
     "fit_force_coefficients": "rigctl.encoding.force",
     "StreamingEncoder": "rigctl.encoding.izhikevich",
     "encode_ra": "rigctl.encoding.izhikevich",

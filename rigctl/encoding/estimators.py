@@ -5,7 +5,7 @@ Steps (paper Fig. 1B; Methods), each a ``BaseEstimator`` + ``TransformerMixin`` 
 :class:`rigctl.encoding.batch.TrialBatch` on:
 
 1. :class:`TaxelNormaliser` - per-taxel 0-1 normalisation, min and max over the training trials.
-2. :class:`rigctl.encoding.force.ForceScaler` - eq. (1) force coefficients (per texture: fitted with the labels;
+2. :class:`ForceScaler` - eq. (1) force coefficients (per texture: fitted with the labels;
    label-free: pooled over textures). Only in the pipelines of force-scaled variants.
 3. :class:`SpikeEncoder` - Izhikevich SA (with the force gains) and RA spike trains (eqs. 3-5).
 4. :class:`FeatureExtractor` - speed scaling (eq. 2) and SR/SC features of one variant: a 2-D feature matrix, as
@@ -25,11 +25,62 @@ from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted
 
 from rigctl.encoding.batch import TrialBatch, as_trial_batch
-from rigctl.encoding.force import ForceScaler
+from rigctl.encoding.force import ForceCoefficients
 from rigctl.encoding.normalise import TaxelRange
 
 __all__ = ["TaxelNormaliser", "ForceScaler", "SpikeEncoder", "FeatureExtractor", "TrialBatch", "as_trial_batch"]
 
+
+
+class ForceScaler(TransformerMixin, BaseEstimator, ForceCoefficients):
+    """Eq. (1) as a scikit-learn transformer (:class:`rigctl.encoding.force.ForceCoefficients`, its parameters and
+    attributes): ``fit`` finds the coefficients, ``transform`` gives each trial its coefficients (the SA input gains).
+
+    ``X`` is a :class:`rigctl.encoding.batch.TrialBatch` (or raw trials: a list of
+    :class:`rigctl.core.trial.TrialData`), whose records carry each trial's speed and force (the condition) and the
+    normalisation (a :class:`TaxelNormaliser` before this step); ``y`` the texture labels.
+
+    Notes
+    -----
+    Per texture, :meth:`transform` must know each trial's texture: it uses the labels the trials carry
+    (``TrialBatch.texture``, from the records' ``attrs["texture"]``), as the paper did, which is a leak: the
+    coefficients depend on the label the classifier is asked for. Trials without a label, or of a condition not
+    seen in ``fit``, get C = 1. The label-free coefficients need no label.
+    """
+
+    def fit(self, X, y=None) -> "ForceScaler":
+        """Fit the coefficients on trials ``X`` (records with speed and force) labelled ``y`` (textures).
+
+        Parameters
+        ----------
+        X : TrialBatch or list of TrialData (:func:`rigctl.encoding.batch.as_trial_batch`).
+        y : (n_trials,) texture labels; None: the labels the trials carry (needed unless ``label_free``).
+
+        Raises
+        ------
+        ValueError
+            if a (texture, speed) has no trial at the reference force, or no texture labels (per texture).
+        """
+        from rigctl.encoding.batch import as_trial_batch
+
+        b = as_trial_batch(X)
+        texture = b.texture if y is None else np.asarray(y).astype(str)
+        if texture is None:
+            if not self.label_free:
+                raise ValueError("per-texture force coefficients need the texture labels: fit(X, y)")
+            texture = np.full(b.n_trials, "*")
+        return self.fit_labels(b.readings, texture, b.speed_mm_s, b.force_g, offset=b.offset, scale=b.scale)
+
+    def transform(self, X):
+        """``X`` (a TrialBatch or raw trials) with ``gains`` = each trial's coefficients, ``(n_trials, n_taxels)``
+        float64 (C of eq. 1: the SA input scale of :class:`rigctl.encoding.estimators.SpikeEncoder`)."""
+        import dataclasses
+
+        from rigctl.encoding.batch import as_trial_batch
+
+        check_is_fitted(self, "coeffs_")
+        b = as_trial_batch(X)
+        return dataclasses.replace(b, gains=self.coefficients_for(b.texture, b.speed_mm_s, b.force_g))
 
 def _params(params):
     from rigctl.encoding.pipeline import EncodeParams

@@ -23,16 +23,14 @@ Two groupings:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
-from sklearn.base import BaseEstimator, TransformerMixin
-from sklearn.utils.validation import check_is_fitted
 
 from rigctl.encoding.fused import run_fused
 from rigctl.encoding.izhikevich import FS_HZ, K_SA, TONIC_SPIKING, IzhikevichParams, Ragged, as_ragged
 
-__all__ = ["ForceFit", "fit_force_coefficients", "fit_force_groupings", "fit_scalers", "ForceScaler",
+__all__ = ["ForceFit", "fit_force_coefficients", "fit_force_groupings", "fit_scalers", "ForceCoefficients",
            "REFERENCE_FORCE_G", "EPSILON", "C_MAX"]
 
 REFERENCE_FORCE_G = 500.0  #: the force whose SA rate is the target (Methods)
@@ -227,21 +225,19 @@ def _key_index(keys: np.ndarray):
     return uniq, inv.reshape(-1)
 
 
-class ForceScaler(TransformerMixin, BaseEstimator):
-    """Eq. (1) as a scikit-learn transformer: ``fit`` finds the coefficients, ``transform`` gives each trial its
-    coefficients (the SA input gains).
-
-    ``X`` is a :class:`rigctl.encoding.batch.TrialBatch` (or raw trials: a list of
-    :class:`rigctl.core.trial.TrialData`), whose records carry each trial's speed and force (the condition) and the
-    normalisation (a :class:`rigctl.encoding.estimators.TaxelNormaliser` before this step); ``y`` the texture labels.
+class ForceCoefficients:
+    """Eq. (1)'s coefficients of labelled trials: :meth:`fit_labels` finds them (per texture or label-free),
+    :meth:`coefficients_for` gives each trial its coefficients (the SA input gains), :meth:`table` lists them. The
+    encoder's (:func:`rigctl.encoding.pipeline.encode_session`); :class:`rigctl.encoding.estimators.ForceScaler` is
+    the same as a scikit-learn transformer (this module does not import scikit-learn: the encoder starts without it).
 
     Parameters
     ----------
     label_free : False -> one coefficient per (texture, taxel, speed, force) (the paper); True -> per
-        (taxel, speed, force), pooled over textures (``y`` unused).
+        (taxel, speed, force), pooled over textures.
     reference_force_g, eps, c_max, k, max_iter, fs : see :func:`fit_force_coefficients`.
 
-    Attributes (after ``fit``)
+    Attributes (after fitting)
     --------------------------
     keys_ : (n_groups, 3) float64 rows (texture code, speed mm/s, force g); texture code = index into
         ``textures_`` (-1 for label-free).
@@ -249,13 +245,6 @@ class ForceScaler(TransformerMixin, BaseEstimator):
     coeffs_, converged_ : (n_groups, n_taxels).
     fit_ : the :class:`ForceFit`.
     n_not_converged_ : int.
-
-    Notes
-    -----
-    Per texture, :meth:`transform` must know each trial's texture: it uses the labels the trials carry
-    (``TrialBatch.texture``, from the records' ``attrs["texture"]``), as the paper did, which is a leak: the
-    coefficients depend on the label the classifier is asked for. Trials without a label, or of a condition not
-    seen in ``fit``, get C = 1. The label-free coefficients need no label.
     """
 
     def __init__(self, *, label_free: bool = False, reference_force_g: float = REFERENCE_FORCE_G,
@@ -278,43 +267,10 @@ class ForceScaler(TransformerMixin, BaseEstimator):
             tcode = np.array([lookup.get(t, -2) for t in texture], dtype=np.float64)
         return np.column_stack([tcode, _condition(speed), _condition(force_g)])
 
-    def fit(self, X, y=None) -> "ForceScaler":
-        """Fit the coefficients on trials ``X`` (records with speed and force) labelled ``y`` (textures).
-
-        Parameters
-        ----------
-        X : TrialBatch or list of TrialData (:func:`rigctl.encoding.batch.as_trial_batch`).
-        y : (n_trials,) texture labels; None: the labels the trials carry (needed unless ``label_free``).
-
-        Raises
-        ------
-        ValueError
-            if a (texture, speed) has no trial at the reference force, or no texture labels (per texture).
-        """
-        from rigctl.encoding.batch import as_trial_batch
-
-        b = as_trial_batch(X)
-        texture = b.texture if y is None else np.asarray(y).astype(str)
-        if texture is None:
-            if not self.label_free:
-                raise ValueError("per-texture force coefficients need the texture labels: fit(X, y)")
-            texture = np.full(b.n_trials, "*")
-        return self.fit_labels(b.readings, texture, b.speed_mm_s, b.force_g, offset=b.offset, scale=b.scale)
-
-    def transform(self, X):
-        """``X`` (a TrialBatch or raw trials) with ``gains`` = each trial's coefficients, ``(n_trials, n_taxels)``
-        float64 (C of eq. 1: the SA input scale of :class:`rigctl.encoding.estimators.SpikeEncoder`)."""
-        import dataclasses
-
-        from rigctl.encoding.batch import as_trial_batch
-
-        check_is_fitted(self, "coeffs_")
-        b = as_trial_batch(X)
-        return dataclasses.replace(b, gains=self.coefficients_for(b.texture, b.speed_mm_s, b.force_g))
-
-    def fit_labels(self, readings, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0) -> "ForceScaler":
-        """Fit on readings and one label per trial (texture, speed mm/s, force g): what :meth:`fit` and
-        :func:`rigctl.encoding.pipeline.encode_session` call.
+    def fit_labels(self, readings, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0) -> Self:
+        """Fit on readings and one label per trial (texture, speed mm/s, force g): what
+        :meth:`rigctl.encoding.estimators.ForceScaler.fit` and :func:`rigctl.encoding.pipeline.encode_session`
+        call.
 
         Raises
         ------
@@ -348,7 +304,7 @@ class ForceScaler(TransformerMixin, BaseEstimator):
         self.keys_ = uniq
         return group, np.array([index[tuple(r)] for r in ref_key], dtype=np.int64)
 
-    def _adopt(self, fit: ForceFit) -> "ForceScaler":
+    def _adopt(self, fit: ForceFit) -> Self:
         self.fit_ = fit
         self.coeffs_ = fit.coeffs
         self.converged_ = fit.converged
@@ -385,21 +341,21 @@ class ForceScaler(TransformerMixin, BaseEstimator):
 
 
 def fit_from_ragged(ragged: Ragged, texture, speed_mm_s, force_g, *, offset=0.0, scale=1.0,
-                    label_free: bool = False, **kw) -> ForceScaler:
-    """Convenience: ``ForceScaler(label_free=...).fit_labels(...)``."""
-    return ForceScaler(label_free=label_free, **kw).fit_labels(ragged, texture, speed_mm_s, force_g, offset=offset,
+                    label_free: bool = False, **kw) -> ForceCoefficients:
+    """Convenience: ``ForceCoefficients(label_free=...).fit_labels(...)``."""
+    return ForceCoefficients(label_free=label_free, **kw).fit_labels(ragged, texture, speed_mm_s, force_g, offset=offset,
                                                                scale=scale)
 
 
-def fit_scalers(scalers: list[ForceScaler], readings, texture, speed_mm_s, force_g, *, offset=0.0,
+def fit_scalers(scalers: list[ForceCoefficients], readings, texture, speed_mm_s, force_g, *, offset=0.0,
                 scale=1.0) -> list[str]:
-    """Fit several :class:`ForceScaler` s (e.g. per texture and label-free) on the same trials at once: one kernel
+    """Fit several :class:`ForceCoefficients` (e.g. per texture and label-free) on the same trials at once: one kernel
     pass per bisection step for all of them (:func:`fit_force_groupings`). Each scaler must share ``eps``, ``c_max``,
     ``k``, ``fs`` and ``max_iter`` with the first.
 
     Returns
     -------
-    list of str, one per scaler: "" if fitted, else why not (the ValueError of :meth:`ForceScaler.fit`: no trials
+    list of str, one per scaler: "" if fitted, else why not (the ValueError of :meth:`ForceCoefficients.fit_labels`: no trials
     at the reference force); such a scaler is left unfitted.
     """
     errors, groupings, fitted = [], [], []
@@ -417,3 +373,14 @@ def fit_scalers(scalers: list[ForceScaler], readings, texture, speed_mm_s, force
         for sc, fit in zip(fitted, fits):
             sc._adopt(fit)
     return errors
+
+
+def __getattr__(name: str) -> Any:
+    """``ForceScaler`` (the scikit-learn transformer) lives in :mod:`rigctl.encoding.estimators`, which imports
+    scikit-learn; it is still found here (older imports, pickled pipelines) without importing it for the encoder."""
+    if name == "ForceScaler":
+        from rigctl.encoding.estimators import ForceScaler
+
+        return ForceScaler
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+

@@ -75,7 +75,7 @@ from rigctl.encoding.features import (
     realtime_features_unscaled,
     spike_features,
 )
-from rigctl.encoding.force import ForceScaler, fit_scalers
+from rigctl.encoding.force import ForceCoefficients, fit_scalers
 from rigctl.encoding.fused import kernels_cached, run_fused
 from rigctl.encoding.izhikevich import Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.normalise import TaxelRange
@@ -381,7 +381,7 @@ def _fit_subsample(keys, nbytes, budget):
 def _fit_forces(fit_rg, labels_fit, offset, scale, p: EncodeParams):
     """Both groupings of eq. (1) (per texture, label-free) in one bisection (one kernel pass per step for both).
     Returns [(scaler or None, note)] for per texture, then label-free."""
-    scalers = [ForceScaler(label_free=lf, reference_force_g=p.reference_force_g, eps=p.epsilon, c_max=p.c_max,
+    scalers = [ForceCoefficients(label_free=lf, reference_force_g=p.reference_force_g, eps=p.epsilon, c_max=p.c_max,
                            k=p.k_sa, fs=p.fs_hz) for lf in (False, True)]
     errors = fit_scalers(scalers, fit_rg, labels_fit["texture"], labels_fit["speed_mm_s"], labels_fit["force_g"],
                          offset=offset, scale=scale)
