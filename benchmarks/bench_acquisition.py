@@ -165,7 +165,7 @@ def main(argv=None) -> int:
               f"p99 {err['p99']:.3f} ms max {err['max']:.3f} ms")
         return 0
     par = bench_parser()
-    par_small = bench_parser(chunk=43 * 30)  # what the reader gets per 30 ms read period (READ_PERIOD_S)
+    par_small = bench_parser(chunk=43 * 25)  # what the reader gets per 25 ms read period (READ_PERIOD_S)
     inproc = bench_inprocess()
     if args.json:
         print(json.dumps({"recording": rec, "parser": par, "parser_small_chunks": par_small, "inprocess": inproc},
@@ -183,7 +183,7 @@ def main(argv=None) -> int:
             ("(simulator process CPU)", f"{rec['cpu_percent_simulator']:.1f} % of one core", "-", "-"),
             ("parser, 4096-byte chunks", f"{par['x_real_time']:.0f}x real time", ">= 100x",
              f"{par['x_real_time'] / 100:.1f}x target"),
-            ("parser, 1290-byte chunks (30 ms)", f"{par_small['x_real_time']:.0f}x real time", ">= 100x",
+            ("parser, 1075-byte chunks (25 ms)", f"{par_small['x_real_time']:.0f}x real time", ">= 100x",
              f"{par_small['x_real_time'] / 100:.1f}x target"),
             ("in-process protocol", f"{inproc['trials']} trials: {inproc['simulated_s']:.1f} simulated s in "
              f"{inproc['wall_s']:.1f} s", "-", f"{inproc['x_real_time']:.1f}x real time"),

@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import queue
 import re
+import select
 import threading
 import time
 from dataclasses import dataclass
@@ -152,12 +154,40 @@ def layout_from_banner(banner: dict[str, Any]) -> SensorLayout:
         raise TaxelStreamError(f"taxel streamer banner {banner.get('line', '')!r}: {exc}") from exc
 
 
-#: the taxel reader's default period, s: the live view's frame cap is 30/s (``rigctl gui --max-fps``), so a chunk
-#: every 30 ms gives each drawn frame new data; the host's CPU falls with the wake-ups (benchmarks/bench_acquisition.py
-#: with the simulated rig, load 0.6-1.0: 20 ms 3.85 %, 25 ms 3.50 %, 30 ms 3.04 %, 40 ms 2.77 % of a core for the
-#: whole acquiring process) while the host-time stamps stay as accurate (each chunk is stamped at the arrival of a
-#: fresh burst: residual p50 0.22-0.26 ms, p99 1.3-1.7 ms at every period)
-READ_PERIOD_S = 0.03
+#: the taxel reader's default period, s: a chunk about every 27 ms (the period plus the wait for a fresh burst), so
+#: each frame of the live view (capped at 30/s, ``rigctl gui --max-fps``) finds new data; the host's CPU falls with
+#: the wake-ups while the host-time stamps stay as accurate, each chunk being stamped at the arrival of a fresh burst
+#: (benchmarks/bench_acquisition.py --recording-only, simulated rig, load 1.0-1.9, the whole acquiring process with
+#: its 10 Hz drum poll: 20 ms 2.95-3.03 %, 25 ms 2.72-2.87 %, 30 ms 2.13 % of a core; stamp residual p50 0.22-0.42 ms,
+#: p99 1.2-2.4 ms at every period)
+READ_PERIOD_S = 0.025
+
+
+
+def _read_chunk(ser: Any, timeout_s: float) -> bytes:
+    """All that is waiting on the port, then the next burst it delivers (block until its first byte, at most
+    ``timeout_s``): see :meth:`TaxelStream._reader`. On a POSIX port (pyserial's, with a file descriptor) straight
+    from the descriptor (FIONREAD, select, read: five system calls, without pyserial's per-read timeout objects and
+    select loops, which were a good part of the reader's CPU at ~40 chunks a second); otherwise through pyserial.
+    Raises OSError / SerialException when the port is gone (readable but empty: disconnected)."""
+    fd = getattr(ser, "fd", None)
+    if not isinstance(fd, int):
+        waiting = ser.in_waiting
+        data = ser.read(waiting) if waiting else b""
+        fresh = ser.read(1)
+        if fresh:
+            fresh += ser.read(ser.in_waiting)
+        return bytes(data + fresh)
+    waiting = ser.in_waiting
+    data = os.read(fd, waiting) if waiting else b""
+    ready, _, _ = select.select([fd], [], [], timeout_s)
+    if ready:
+        waiting = ser.in_waiting
+        if not waiting:  # what pyserial's read raises: readable with nothing to read is a vanished device
+            raise serial.SerialException("device reports readiness to read but returned no data (device "
+                                         "disconnected or multiple access on port?)")
+        data += os.read(fd, waiting)
+    return data
 
 
 class TaxelStream:
@@ -492,12 +522,7 @@ class TaxelStream:
                 # frames host_rate_hz measures from would vary by as much. Then the next chunk gathers for
                 # read_timeout_s: two wake-ups per chunk, not one per burst (pyserial's read(n) wakes on every burst
                 # until it has n bytes: ~1000 wake-ups/s at 1 kHz)
-                waiting = ser.in_waiting  # type: ignore[union-attr]
-                data = ser.read(waiting) if waiting else b""  # type: ignore[union-attr]
-                fresh = ser.read(1)  # type: ignore[union-attr]
-                if fresh:
-                    fresh += ser.read(ser.in_waiting)  # type: ignore[union-attr]
-                data += fresh
+                data = _read_chunk(ser, self.read_timeout_s)
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 if self._stop.is_set():
                     break
