@@ -6,6 +6,7 @@ import getpass
 import os
 import signal
 import tempfile
+import threading
 from pathlib import Path
 
 import pytest
@@ -57,11 +58,22 @@ def pytest_configure(config):
     (cfg_dir / "lsl_api.cfg").write_text(LSL_API_CFG)
     os.environ["LSLAPICFG"] = str(cfg_dir / "lsl_api.cfg")
     config._rigctl_lsl_cfg_dir = cfg_dir
-    # a test that presses Ctrl-C on a child (SIGINT) needs the child to hear it: a shell runs a background job
-    # (`.ci/run &` in a script, as CI may) with SIGINT ignored, and an ignored signal stays ignored across exec, so
-    # every child Python would start with KeyboardInterrupt switched off (rigctl sim then ran on for 120 s)
-    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+@pytest.fixture(autouse=True)
+def _ctrl_c_reaches_children():
+    """Before each test, SIGINT is handled in this process at the OS level, as in a terminal: a test that presses
+    Ctrl-C on a child needs the child to hear it, and an ignored signal stays ignored across fork and exec. A shell
+    starts a background job (``.ci/run &`` in a script, as CI may) with SIGINT ignored, and code below Python can
+    switch it to ignored behind ``signal.getsignal``'s back; either way every child Python then started with
+    KeyboardInterrupt off (CI: ``rigctl sim`` ran on for 120 s after its Ctrl-C, a commit's Ctrl-C was never seen).
+    Re-installing the Python-level handler re-installs it in the kernel."""
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.getsignal(signal.SIGINT)
+        if handler in (None, signal.SIG_IGN, signal.SIG_DFL):
+            handler = signal.default_int_handler
+        signal.signal(signal.SIGINT, handler)
+    yield
 
 
 def pytest_unconfigure(config):

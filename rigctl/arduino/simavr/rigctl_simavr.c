@@ -59,6 +59,7 @@
 
 #include "avr_adc.h"
 #include "avr_eeprom.h"
+#include "avr_extint.h"
 #include "avr_ioport.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
@@ -71,6 +72,7 @@
 
 static avr_t *avr;
 static int is_uno;
+static void extint_poll(void); /* simavr's level-trigger poll on only where the firmware asks for it (below) */
 
 /* ================================ UART0 <-> pty bridge ================================
  * Our own bridge instead of simavr's uart_pty: uart_pty keeps 512-byte buffers in a separate thread and drops
@@ -250,6 +252,7 @@ static void boot_watch(void)
 static void boot_dtr_reset(void (*after_reset)(void))
 {
     avr_reset(avr);
+    extint_poll();
     avr->data[MCUSR_ADDR] |= (1 << MCUSR_EXTRF);
     tx_tail = tx_head; /* what the old firmware had not yet sent is gone; host bytes sent after the open stay */
     uart_xon = 1;
@@ -815,6 +818,39 @@ static void index_sensor_poll(int64_t drum_steps_now)
     }
 }
 
+/* ---- external interrupts: simavr's level-trigger poll ----
+ * simavr 1.6 models the low-level external interrupt (ISCn1:0 = 00, the reset default) "strictly": whenever an INTn
+ * pin goes low it arms a cycle timer that reads the port through avr_ioctl on EVERY cycle while the pin stays low,
+ * whether or not INTn is enabled in EIMSK (avr_extint.c, avr_extint_poll_level_trig). The Mega's HX711 DOUT (PE5 =
+ * INT5) is low most of the time and the Uno's sync-in (PD2 = INT0) rests low, so that poll alone took ~27 % of the
+ * harness's CPU (perf) and the boards simulated at 0.6-0.8x real time. Neither firmware uses a level-triggered
+ * interrupt (the Mega's INT4 e-stop is any-edge, the Uno's INT0 rising-edge), but the datasheet's behaviour is kept
+ * for any that does: the strict poll is on exactly for the INTn that are enabled in EIMSK with ISCn = 00
+ * (ATmega2560 datasheet 15.2.1-15.2.3, ATmega328P 13.2.1-13.2.2), re-checked at every harness poll. */
+#define EIMSK_ADDR 0x3D /* data-space address, both MCUs */
+#define EICRA_ADDR 0x69
+#define EICRB_ADDR 0x6A /* ATmega2560 only (INT4-7) */
+static avr_extint_t *extint; /* the core's external-interrupt module */
+
+/* every avr_reset turns the strict poll back on (avr_extint_reset): called at setup, after each reset the harness
+ * makes and at every harness poll (a watchdog reset inside simavr is corrected within 0.1 ms) */
+static void extint_poll(void)
+{
+    if (!extint) {
+        for (avr_io_t *io = avr->io_port; io; io = io->next)
+            if (!strcmp(io->kind, "extint")) extint = (avr_extint_t *)io;
+        if (!extint) return;
+    }
+    int n_int = is_uno ? 2 : 8;
+    uint8_t eimsk = avr->data[EIMSK_ADDR];
+    uint16_t eicr = avr->data[EICRA_ADDR] | (is_uno ? 0 : (uint16_t)avr->data[EICRB_ADDR] << 8);
+    for (int n = 0; n < n_int; n++) {
+        if (!extint->eint[n].isc[1].reg) continue; /* edge-only */
+        uint8_t want = ((eimsk >> n) & 1) && ((eicr >> (2 * n)) & 3) == 0;
+        if (extint->eint[n].strict_lvl_trig != want) extint->eint[n].strict_lvl_trig = want;
+    }
+}
+
 /* ---- Mega: safety wiring (drivers' EN, e-stop, test hang pin) ---- */
 static avr_irq_t *estop_pin, *hang_pin;
 static int estop_level = -1, hang_level = -1;
@@ -1188,6 +1224,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "cannot read waveform %s\n", wave_path);
         return 1;
     }
+    extint_poll(); /* before the first instruction: a pin that goes low at init would otherwise arm the poll */
     if (is_uno) uno_setup();
     else mega_setup();
 
@@ -1227,6 +1264,7 @@ int main(int argc, char **argv)
             if (now_s() >= hold_until) {
                 hold_until = 0.0;
                 avr_reset(avr);
+                extint_poll();
                 bridge_reset();
                 if (is_uno) uno_after_reset();
                 wall0 = now_s();
@@ -1243,6 +1281,7 @@ int main(int argc, char **argv)
         if (avr->pc == avr->reset_pc) mcu_reset_seen = 1; /* the MCU reset itself (watchdog): its reset vector */
         if (avr->cycle < next_check) continue;
         next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
+        extint_poll();
         bridge_poll();
         if (boot_loaded) boot_watch();
         if (is_uno) uno_poll();
@@ -1250,6 +1289,7 @@ int main(int argc, char **argv)
         if (atomic_load(&quit_requested)) break;
         if (atomic_exchange(&reset_requested, 0)) {
             avr_reset(avr);
+            extint_poll();
             /* MCUSR: what reset the MCU (avr_reset cleared it) */
             int cause = atomic_load(&reset_cause_req);
             if (cause & 1) avr_regbit_set(avr, avr->reset_flags.porf);
