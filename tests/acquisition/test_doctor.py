@@ -414,7 +414,9 @@ def test_a_reversed_load_cell_fails_polarity_on_the_firmware_under_simavr(tmp_pa
     by = {r.name: r for r in doctor.run_doctor(doctor.select(["link", "loadcell-polarity"]), ctx).results}
     r = by["loadcell-polarity"]
     assert r.status == "fail" and "A+/A-" in r.fix, r.line()
-    assert r.values["lowest_force_g"] < -30
+    # the evidence: the firmware's own fault (it trips at once and backs off: a host polling late, on a loaded machine,
+    # never sees the negative force), or the negative force the host saw before any fault
+    assert "LOADCELL_REVERSED" in r.summary or r.values["lowest_force_g"] < -30, r.line()
 
 
 def test_serial_numbers_on_hardware_ports(monkeypatch, tmp_path):
