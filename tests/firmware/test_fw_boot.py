@@ -39,7 +39,7 @@ def _first_answer_s(rig: hil.HilRig, drum: DrumClient, t0: float) -> float:
     return rig.clock.now() - t0
 
 
-@pytest.mark.timeout(900)  # 5 s of programming-mode timeout, simulated at 0.2-0.8x real time
+@pytest.mark.timeout(900)  # 5 s of programming-mode timeout; a starved machine simulates slower than real time
 def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(boot_rig):
     """Today's host (sends at once, retries every 0.5 s): the Mega's bootloader takes the first request for a
     programmer and every retry keeps it there, so it never answers."""
@@ -60,7 +60,7 @@ def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(b
     assert abs(rig.boot_times_s[-1] - MEGA_BOOT_WINDOW_S) < 0.05
 
 
-@pytest.mark.timeout(1500)  # ~35 s of the Mega's simulated time, whose bootloader loop simulates at 0.2-0.8x real time
+@pytest.mark.timeout(1500)  # ~35 s of the Mega's simulated time; a starved machine simulates slower than real time
 def test_thirty_openings_at_random_moments_all_connect(boot_rig):
     """30 openings of the Mega's port: 20 by a new client at a random moment after the last close (often inside
     the boot window the last open started), 10 while a host polls (its port fails under it, it reopens: the board
@@ -142,8 +142,8 @@ def test_the_uno_stream_opens_through_optiboot_every_time(boot_rig, wait_frames)
     rig.play_waveform(np.full((10, wire.N_TAXELS), 512, dtype=np.uint16))
     for _ in range(5):
         t0 = time.monotonic()
-        # the banner comes 1 s of the Uno's simulated time after the open; its bootloader loop simulates at
-        # 0.2-0.8x real time, so the wait is for the banner, not for 3 s of host time
+        # the banner comes 1 s of the Uno's simulated time after the open; a starved machine simulates slower than
+        # real time, so the wait is for the banner, not for 3 s of host time
         with TaxelStream(rig.taxel_port, banner_timeout_s=60.0) as stream:
             banner_s = time.monotonic() - t0
             stream.start()

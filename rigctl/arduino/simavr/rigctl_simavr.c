@@ -1282,6 +1282,23 @@ int main(int argc, char **argv)
         if (avr->cycle < next_check) continue;
         next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
         extint_poll();
+        /* a host's open first: its DTR resets the board before it can send (the bytes it writes at once, waiting
+         * in the pty, then reach the bootloader, never the old sketch: both can land in one poll's gap) */
+        if (ino >= 0) {
+            char buf[4096];
+            ssize_t n = read(ino, buf, sizeof buf);
+            if (n > 0 && boot_loaded) { /* a host opened the port: DTR reset into the bootloader */
+                boot_dtr_reset(is_uno ? uno_after_reset : mega_after_reset);
+                wall0 = now_s();
+                cycle0 = avr->cycle;
+                continue;
+            }
+            if (n > 0) { /* a host opened the port: DTR reset, bootloader wait */
+                hold_until = now_s() + opt_boot_ms * 1e-3;
+                printf("RESET t=%.6f\n", sim_s());
+                continue;
+            }
+        }
         bridge_poll();
         if (boot_loaded) boot_watch();
         if (is_uno) uno_poll();
@@ -1309,21 +1326,6 @@ int main(int argc, char **argv)
             printf("RESET t=%.6f cause=mcu\n", sim_s());
         }
         if (opt_max_seconds > 0 && sim_s() >= opt_max_seconds) break;
-        if (ino >= 0) {
-            char buf[4096];
-            ssize_t n = read(ino, buf, sizeof buf);
-            if (n > 0 && boot_loaded) { /* a host opened the port: DTR reset into the bootloader */
-                boot_dtr_reset(is_uno ? uno_after_reset : mega_after_reset);
-                wall0 = now_s();
-                cycle0 = avr->cycle;
-                continue;
-            }
-            if (n > 0) { /* a host opened the port: DTR reset, bootloader wait */
-                hold_until = now_s() + opt_boot_ms * 1e-3;
-                printf("RESET t=%.6f\n", sim_s());
-                continue;
-            }
-        }
         if (lock_slots) {
             clock_lock_publish(0.0);
             clock_lock_wait();
