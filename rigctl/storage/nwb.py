@@ -225,11 +225,14 @@ def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any =
     data) plus the traces, plus the encoded file's size when its spike trains are exported (checked against the free
     space before the export starts)."""
     with open_session(session_path) as s:
-        ids = s.completed_ids()
         if s._flat:  # schema 4: the recording index holds every trial's sample count
+            ids = s.completed_ids()
             index = s.recording_index()
             n = sum(int(index[t]["n_samples"]) for t in ids if t in index)
-        else:
+        else:  # older schemas: a damaged trial's counts raise; the validator leaves it out first
+            from rigctl.storage.validate import usable_trials
+
+            ids = usable_trials(s).ids
             n = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
         total = n * s.layout.n_channels * 2 + n // 10 * 16 + 64 * 1024 * (1 + len(ids) // 100)
     if encoded_path is not None:
