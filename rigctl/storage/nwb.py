@@ -221,17 +221,18 @@ def check_spike_variants(encoded_path: str | os.PathLike[str], variants: Sequenc
 
 def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any = None) -> int:
     """About how many bytes :func:`export_nwb` writes, at most: the taxels uncompressed (``samples x channels x 2``)
-    of every complete trial (the validator may exclude some: not read here, so the estimate costs no pass over the
-    data) plus the traces, plus the encoded file's size when its spike trains are exported (checked against the free
-    space before the export starts)."""
+    of every complete trial (schema 4: from the recording index, so the estimate costs no pass over the data; the
+    validator may exclude some) or of the usable ones (older files) plus the traces, plus the encoded file's size
+    when its spike trains are exported (checked against the free space before the export starts)."""
+    from rigctl.storage.validate import usable_trials
+
     with open_session(session_path) as s:
         if s._flat:  # schema 4: the recording index holds every trial's sample count
             ids = s.completed_ids()
-            index = s.recording_index()
-            n = sum(int(index[t]["n_samples"]) for t in ids if t in index)
-        else:  # older schemas: a damaged trial's counts raise; the validator leaves it out first
-            from rigctl.storage.validate import usable_trials
-
+            index, n_rows = s.recording_index(), s._recorded_rows()
+            rows = [index[t] for t in ids if t in index]
+            n = sum(int(r["n_samples"]) for r in rows if s.index_problem(r, n_rows) is None)
+        else:  # older files: a damaged trial's attributes may not read, so the usable ones
             ids = usable_trials(s).ids
             n = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
         total = n * s.layout.n_channels * 2 + n // 10 * 16 + 64 * 1024 * (1 + len(ids) // 100)
