@@ -139,7 +139,7 @@ class SpikeEncoder(TransformerMixin, BaseEstimator):
 
     def transform(self, X) -> TrialBatch:
         """The batch with ``sa`` and ``ra`` (n_trials, n_channels) spike trains, times in s."""
-        from rigctl.encoding.pipeline import _sa_ra
+        from rigctl.encoding.batch_encode import _sa_ra
 
         check_is_fitted(self, "n_channels_")
         b = as_trial_batch(X)
@@ -172,7 +172,7 @@ class FeatureExtractor(TransformerMixin, BaseEstimator):
         self.params = params
 
     def _features(self, b: TrialBatch, p) -> np.ndarray:
-        from rigctl.encoding.pipeline import trains_to_features
+        from rigctl.encoding.batch_encode import trains_to_features
 
         if b.sa is None or b.ra is None:
             raise ValueError("FeatureExtractor needs spike trains: put a SpikeEncoder step before it")
@@ -185,7 +185,8 @@ class FeatureExtractor(TransformerMixin, BaseEstimator):
         """Fix the window counts from the training trials (the longest one, as ``encode_session`` does).
 
         Raises ValueError for an unknown variant."""
-        from rigctl.encoding.pipeline import _realtime_taxels, windows_for
+        from rigctl.encoding.batch_encode import _realtime_taxels
+        from rigctl.encoding.sizing import windows_for
         from rigctl.encoding.speed import speed_coefficient
         from rigctl.storage.encoded import ALL_VARIANTS, VARIANTS
 

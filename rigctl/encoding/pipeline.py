@@ -70,24 +70,18 @@ from rigctl.core.cluster import dask_client
 from rigctl.core.progress import ProgressCallback, Stage, note as progress_note
 from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import SensorLayout
-from rigctl.encoding.features import (
-    realtime_features,
-    realtime_features_unscaled,
-    spike_features,
-)
+from rigctl.encoding.batch_encode import _realtime_taxels, encode_batch, trains_to_features
 from rigctl.encoding.force import ForceCoefficients, fit_scalers
-from rigctl.encoding.fused import kernels_cached, run_fused
-from rigctl.encoding.izhikevich import Ragged, _at_model_rate, as_ragged
+from rigctl.encoding.fused import kernels_cached
+from rigctl.encoding.izhikevich import Ragged, as_ragged
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.params import EncodeParams
 from rigctl.encoding.rate import RateConversion, rate_conversion
 from rigctl.encoding.sizing import windows_for
 from rigctl.encoding.speed import (
-    incremental_scale,
     speed_coefficient,
     window_speeds,
 )
-from rigctl.encoding.spikes import SpikeTrains
 from rigctl.storage.encoded import ALL_VARIANTS, MAIN_VARIANTS, VARIANTS, EncodedWriter
 from rigctl.storage.outputs import check_output
 
@@ -98,148 +92,6 @@ log = logging.getLogger(__name__)
 
 class SpeedMissingError(ValueError):
     """A speed-scaled variant was asked for, but some trials have no speed (NaN or <= 0 mm/s)."""
-
-
-# ---------------------------------------------------------------------------------------------------------- batch work
-def _sa_ra(rg: Ragged, offset, scale, sa_gains: list[np.ndarray], p: EncodeParams):
-    """SA trains for each gain matrix in ``sa_gains`` and the RA trains, (n_trials, n_ch) each: one pass of the
-    fused kernel over the raw readings (:mod:`rigctl.encoding.fused`)."""
-    izh = p.izhikevich
-    res = run_fused(rg.data, rg.starts, offset=offset, scale=scale, sa_gains=sa_gains, k_sa=p.k_sa, ra=True,
-                    k_ra=p.k_ra, cutoff_hz=p.cutoff_hz, rectify=p.rectify_ra, fs=p.fs_hz,
-                    izhikevich=(izh["a"], izh["b"], izh["c"], izh["d"], izh["v_peak"]), dtype=np.dtype(p.kernel_dtype))
-    return list(res.sa), res.ra
-
-
-def _realtime_taxels(p: EncodeParams, n_ch: int, layout: SensorLayout | None = None) -> list[int]:
-    if p.realtime_taxels is not None:
-        return [int(t) for t in p.realtime_taxels if int(t) < n_ch] or list(range(n_ch))
-    if layout is not None and layout.n_channels == n_ch:
-        return list(layout.layer_channels(0))
-    return list(range(min(9, n_ch)))  # the paper's top layer
-
-
-def encode_batch(rg: Ragged, *, offset, scale, speed_mm_s, coeffs=None, coeffs_label_free=None,
-                 window_speed=None, variants=ALL_VARIANTS, params: EncodeParams | None = None,
-                 store_spikes=MAIN_VARIANTS, rate_hz: float | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Encode a batch of trials into every requested variant.
-
-    To encode new trials like an encoded file (e.g. live classification), pass
-    ``params=EncodeParams.from_dict(open_encoded(path).parameters)`` (same windows, so the same feature columns) and
-    the trials' ``rate_hz``.
-
-    Parameters
-    ----------
-    rg : Ragged readings (n_trials trials of (n_i, n_ch)), e.g. uint16 ADC counts, at ``rate_hz``; anything
-        :func:`rigctl.encoding.izhikevich.as_ragged` takes.
-    rate_hz : the readings' rate, Hz; None = already at the model's rate ``params.fs_hz`` (1 kHz). Other rates are
-        resampled to it first (:mod:`rigctl.encoding.rate`).
-    offset, scale : (n_ch,) normalisation ``(x - offset) * scale`` -> [0, 1].
-    speed_mm_s : (n_trials,) trial speed (setpoint) for eq. (2), mm/s; may be NaN when no speed-scaled variant is
-        asked for (and for ``realtime_speed_scaled`` when ``window_speed`` is given).
-    coeffs, coeffs_label_free : (n_trials, n_ch) force coefficients (eq. 1) or None (-> 1).
-    window_speed : list of (n_windows,) mm/s per trial (real-time variant) or None (-> constant speed_mm_s).
-    variants : names from :data:`rigctl.storage.encoded.ALL_VARIANTS`.
-    store_spikes : variants whose spike trains are returned.
-    params : :class:`EncodeParams`; ``n_windows_unscaled`` None means the longest trial of this batch.
-
-    Returns
-    -------
-    features : {variant: (n_trials, n_features) float32}
-    spikes : {variant: SpikeTrains (n_trials, 2 n_ch)} (real-time variants: (n_trials, n_realtime_taxels))
-
-    Raises
-    ------
-    ValueError for an unknown variant, or a speed that is not positive and finite for a speed-scaled variant.
-    """
-    p = params or EncodeParams()
-    rg = as_ragged(rg)
-    if rate_hz is not None:
-        rg, _ = _at_model_rate(rg, rate_hz, p.fs_hz)
-    n, n_ch = rg.n_trials, rg.n_channels
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad:
-        raise ValueError(f"unknown variants {bad}; choose from {ALL_VARIANTS}")
-    info = [VARIANTS[v] for v in variants]
-    speed = np.asarray(speed_mm_s, np.float64)
-    ones = np.ones((n, n_ch))
-    need_force = any(i.force_scaled and not i.label_free for i in info)
-    need_lf = any(i.label_free for i in info)
-    gain_list = [ones]
-    if need_force:
-        gain_list.append(ones if coeffs is None else coeffs)
-    if need_lf:
-        gain_list.append(ones if coeffs_label_free is None else coeffs_label_free)
-    sas, ra = _sa_ra(rg, offset, scale, gain_list, p)
-    sa_by = {"none": sas[0]}
-    if need_force:
-        sa_by["force"] = sas[1]
-    if need_lf:
-        sa_by["lf"] = sas[-1]
-    return trains_to_features(sa_by, ra, rg.lengths, speed, variants=variants, params=p, window_speed=window_speed,
-                              store_spikes=store_spikes)
-
-
-def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm_s, *, variants, params: EncodeParams,
-                       window_speed=None, store_spikes=()) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Speed scaling (eq. 2) and SR/SC features of already encoded trains, for each variant (the second half of
-    :func:`encode_batch`; :class:`rigctl.encoding.estimators.FeatureExtractor` calls it on its own).
-
-    Parameters
-    ----------
-    sa_by : {"none": SA trains with C = 1, "force": with the per-texture coefficients, "lf": with the label-free
-        ones} (n_trials, n_ch) :class:`SpikeTrains`; only the keys the variants use are needed.
-    ra : RA trains (n_trials, n_ch). lengths : (n_trials,) samples per trial at ``params.fs_hz``.
-    speed_mm_s : (n_trials,) mm/s (eq. 2). window_speed, store_spikes : as :func:`encode_batch`.
-    params : windows and constants; ``n_windows_unscaled`` / ``n_windows_scaled`` None = the longest trial here.
-
-    Returns
-    -------
-    (features {variant: (n_trials, n_features) float32}, spikes {variant: SpikeTrains})
-    """
-    p = params
-    info = [VARIANTS[v] for v in variants]
-    lengths = np.asarray(lengths)
-    speed = np.asarray(speed_mm_s, np.float64)
-    n_ch = ra.n_trains
-    n_unscaled = p.n_windows_unscaled
-    if n_unscaled is None:
-        n_unscaled = windows_for(lengths.max(initial=1) / p.fs_hz, p.window_s)
-    n_scaled = p.n_windows_scaled
-    coef = ra_scaled = None
-    if any(i.speed_scaled and not i.realtime for i in info):
-        coef = speed_coefficient(speed, p.reference_speed_mm_s)
-        ra_scaled = ra.scale_times(coef)
-        if n_scaled is None:
-            n_scaled = windows_for(float(np.max(lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
-    feats, spikes = {}, {}
-    for v, i in zip(variants, info):
-        if not i.realtime:
-            sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
-            if i.speed_scaled:
-                sa_v, ra_v = sa.scale_times(coef), ra_scaled
-                feats[v] = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled
-                                          window_s=p.window_s, sr_factor=coef)
-            else:
-                sa_v, ra_v = sa, ra
-                feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s)
-            if v in store_spikes:
-                spikes[v] = SpikeTrains.hstack([sa_v, ra_v])  # type: ignore[list-item]  # both set for a stored variant
-        else:
-            sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
-            if not i.speed_scaled:
-                feats[v] = realtime_features_unscaled(sa_rt, lengths / p.fs_hz, n_windows=p.n_windows_realtime,
-                                                      window_s=p.window_s)
-            else:
-                ws = window_speed
-                if ws is None:
-                    speed_coefficient(speed)  # the same check (positive, finite) as the other speed variants
-                    ws = [np.full(windows_for(L / p.fs_hz, p.window_s), s) for L, s in zip(lengths, speed)]
-                scaled, edges = incremental_scale(sa_rt, ws, p.realtime_reference_speed_mm_s, p.window_s)
-                feats[v] = realtime_features(scaled, edges, n_windows=p.n_windows_realtime, window_s=p.window_s)
-            if v in store_spikes:
-                spikes[v] = sa_rt
-    return feats, spikes
 
 
 def _model_input(blk, ids, labels_speed, want_window_speed, window_s, conv: RateConversion):
