@@ -73,12 +73,14 @@ class LinkStatus(QtWidgets.QWidget):
         self.dropped_base, self.max_dropped = base_dropped, max_dropped
 
     def update_from(self, poller, taxels, now_s: float | None = None) -> None:
+        """Show both links' state (every ~0.3 s); a label's text, tooltip and style are set only when they change
+        (a style sheet re-polishes the label and a new text relayouts the bar: most ticks change neither)."""
         now = time.monotonic() if now_s is None else now_s
         if poller is None:
             self._observe("drum", now, connected=None)
-            self.drum.setText("Drum: not connected")
-            self.drum.setToolTip("")
-            self.drum.setStyleSheet("")
+            _show(self.drum, text="Drum: not connected")
+            _show(self.drum, tip="")
+            _show(self.drum, style="")
         else:
             st = poller.latest
             state = self._observe("drum", now, connected=bool(poller.ok), progress=poller.reads,
@@ -88,36 +90,36 @@ class LinkStatus(QtWidgets.QWidget):
             self._last = (now, poller.reads)
             word = {LinkState.LOST: "NO RESPONSE", LinkState.STALLED: "NO RESPONSE (stalled)",
                     LinkState.CONTROLLER_RESET: "RESET"}.get(state, state.value)
-            self.drum.setText(f"Drum: {word}, {rate:.0f} polls/s")
-            self.drum.setToolTip(f"link: {state.value}\nstatus polls: {poller.reads} read, {poller.failures} "
+            _show(self.drum, text=f"Drum: {word}, {rate:.0f} polls/s")
+            _show(self.drum, tip=f"link: {state.value}\nstatus polls: {poller.reads} read, {poller.failures} "
                                  "failed" + (f"\nlast error: {poller.error}" if poller.error else ""))
-            self.drum.setStyleSheet(BAD if state.is_problem else OK)
+            _show(self.drum, style=BAD if state.is_problem else OK)
         if taxels is None:
             self._observe("taxel", now, connected=None)
-            self.taxel.setText("Taxels: not connected")
-            self.taxel.setToolTip("")
-            self.taxel.setStyleSheet("")
-            self.dropped.setText("")
-            self.dropped.setStyleSheet("")
+            _show(self.taxel, text="Taxels: not connected")
+            _show(self.taxel, tip="")
+            _show(self.taxel, style="")
+            _show(self.dropped, text="")
+            _show(self.dropped, style="")
             return
         s = taxels.stats
         state = self._observe("taxel", now, connected=bool(s.connected), progress=int(s.frames))
         word = {LinkState.LOST: "DISCONNECTED", LinkState.STALLED: "STALLED"}.get(state, state.value)
         rate = 0.0 if state == LinkState.STALLED else s.frames_per_s
-        self.taxel.setText(f"Taxels: {word}, {rate:.0f} frames/s,")
-        self.taxel.setToolTip(f"link: {state.value}\n{s.frames} frames, {s.dropped} dropped, {s.crc_errors} CRC "
+        _show(self.taxel, text=f"Taxels: {word}, {rate:.0f} frames/s,")
+        _show(self.taxel, tip=f"link: {state.value}\n{s.frames} frames, {s.dropped} dropped, {s.crc_errors} CRC "
                               f"errors, {s.reconnects} reconnects")
-        self.taxel.setStyleSheet(BAD if state.is_problem else OK)
+        _show(self.taxel, style=BAD if state.is_problem else OK)
         base = self.dropped_base if self.dropped_base is not None else 0
         lost = max(0, int(s.dropped) - base)
         severity = dropped_frames_severity(lost, self.max_dropped)
         where = "this trial" if self.max_dropped is not None else "since connected"
-        self.dropped.setText(f"{lost:,} dropped ({where})")
-        self.dropped.setToolTip(
+        _show(self.dropped, text=f"{lost:,} dropped ({where})")
+        _show(self.dropped, tip=
             f"taxel frames lost {where}: {lost}"
             + (f"; the protocol keeps a trial with at most {self.max_dropped}" if self.max_dropped is not None
                else "; no trial is being recorded") + f"\n{s.dropped} dropped since the stream opened")
-        self.dropped.setStyleSheet(SEVERITY_STYLES[severity])
+        _show(self.dropped, style=SEVERITY_STYLES[severity])
 
     def _observe(self, board: str, now: float, **kw) -> LinkState:
         ev = self.health[board].observe(now, **kw)
@@ -236,3 +238,14 @@ class Banners(QtWidgets.QFrame):
             strip.hide()
         elif st == LinkState.CONNECTED and strip.isVisible() and strip.error:
             strip.hide()
+
+
+def _show(label: QtWidgets.QLabel, *, text: str | None = None, tip: str | None = None, style: str | None = None) -> None:
+    """Set what differs of a label's text, tooltip and style sheet."""
+    if text is not None and label.text() != text:
+        label.setText(text)
+    if tip is not None and label.toolTip() != tip:
+        label.setToolTip(tip)
+    if style is not None and label.styleSheet() != style:
+        label.setStyleSheet(style)
+
