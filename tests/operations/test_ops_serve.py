@@ -158,8 +158,11 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
     proc = _server(tmp_path, port)
     try:
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
-        rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=8), "out": str(tmp_path / "s.h5")}).json()["id"]
-        with httpx.stream("GET", f"{url}/events", timeout=60) as feed:  # the event feed: progress as it happens
+        # the event feed: progress as it happens, subscribed before the run is queued (the feed sends what comes
+        # after it subscribes: a run posted first can emit its first events before the feed is there)
+        with httpx.stream("GET", f"{url}/events", timeout=60) as feed:
+            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=8), "out": str(tmp_path / "s.h5")}
+                             ).json()["id"]
             events = []
             for line in feed.iter_lines():
                 if line.startswith("data: "):
