@@ -256,6 +256,9 @@ class HilRig:
         self._feeder: threading.Thread | None = None
         self._cond = threading.Condition()
         self._wave_acks = 0
+        #: the last waveform loaded plays from the Uno's next scan (no scan since its reset), not from the next row
+        #: boundary of a scan under way
+        self.last_wave_playing = False
         self._ohm_acks = 0
         self._render_lock = threading.Lock()
         self._scan_reply: tuple[int, int] | None = None
@@ -587,6 +590,7 @@ class HilRig:
         elif line.startswith("OK wave") or line.startswith("ERR wave"):
             with self._cond:
                 self._wave_acks += 1
+                self.last_wave_playing = line == "OK wave playing"
                 self._cond.notify_all()
             if line.startswith("ERR"):
                 log.error("HIL Uno harness: %s", line)

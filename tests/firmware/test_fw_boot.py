@@ -153,3 +153,34 @@ def test_the_uno_stream_opens_through_optiboot_every_time(boot_rig, wait_frames)
         assert np.all(cap.samples == 512)
         print(f"Uno: banner {banner_s:.2f} s (host time) after the open; optiboot held the Uno "
               f"{rig.uno_boot_times_s[-1]:.3f} s (simulated)")
+
+
+def _capture(rig: hil.HilRig, wait_frames, n: int) -> np.ndarray:
+    """The stream's frames from its very first (the capture begins before START)."""
+    with TaxelStream(rig.taxel_port, banner_timeout_s=60.0) as stream:
+        stream.begin_capture()
+        stream.start()
+        assert wait_frames(stream, n)
+        return stream.end_capture().samples
+
+
+def test_a_waveform_loaded_while_the_uno_sits_in_optiboot_plays_from_its_first_scan(boot_rig, wait_frames):
+    """A waveform loaded while the Uno runs no scans (a host's open has just reset it into optiboot) has no row
+    boundary to wait for: the stream's first frame, the first scan after the reset, already plays it (CI once saw
+    that first frame play the harness's default pattern instead)."""
+    rig = boot_rig
+    rig.play_waveform(np.full((10, wire.N_TAXELS), 100, dtype=np.uint16))
+    assert np.all(_capture(rig, wait_frames, 50) == 100)
+    new_rows = (300 + np.arange(10, dtype=np.uint16))[:, None].repeat(wire.N_TAXELS, axis=1)
+    new_rows = new_rows[:7]
+    fd = os.open(rig.taxel_port, os.O_RDWR | os.O_NOCTTY)  # the DTR reset: optiboot holds the Uno ~1 s
+    try:
+        time.sleep(0.05)  # the harness has seen the open and reset the Uno
+        rig.play_waveform(new_rows)
+        scans, _ = rig._scan()
+        assert scans == 0, "the Uno scanned before the waveform was loaded: not the window this test is about"
+        assert rig.last_wave_playing
+    finally:
+        os.close(fd)
+    samples = _capture(rig, wait_frames, 50)
+    assert np.all(np.isin(samples, new_rows[:, 0])), f"first frame {samples[0].tolist()}"

@@ -296,6 +296,8 @@ static size_t wave_pending_rows;
 static long long wave_pending_base = -1; /* scan number of the pending waveform's row 0 (-1: the scan it starts at) */
 static uint64_t scan_count;       /* Uno: ADC scans so far (one per 1 ms tick) */
 static uint64_t scan_base;        /* scan_count when the playing waveform started (row 0) */
+static int scans_running;         /* the Uno has started a conversion since its last reset (written by the simulation
+                                   * thread under wave_lock; a waveform loaded before then plays from the first scan) */
 
 static int mux_set_taxel_ohm(const char *args);
 
@@ -311,7 +313,7 @@ static double sim_s(void)
     return (double)avr->cycle / (double)avr->frequency;
 }
 
-static int load_wave(const char *path, long long base)
+static int load_wave(const char *path, long long base, int *at_once)
 {
     FILE *f = fopen(path, "rb");
     if (!f) return -1;
@@ -336,11 +338,24 @@ static int load_wave(const char *path, long long base)
     }
     pthread_mutex_lock(&wave_lock);
     uint16_t *old = wave_pending;
-    wave_pending = buf;
-    wave_pending_rows = size / (2 * N_TAXELS);
-    wave_pending_base = base;
+    uint16_t *old_playing = NULL;
+    if (!scans_running) {
+        /* no scan since the reset (the bootloader, or the firmware's setup): no row boundary is coming to swap
+         * it in, and the first scan must already play it, from row 0 */
+        old_playing = wave;
+        wave = buf;
+        wave_rows = size / (2 * N_TAXELS);
+        scan_base = 0;
+        wave_pending = NULL;
+        *at_once = 1;
+    } else {
+        wave_pending = buf;
+        wave_pending_rows = size / (2 * N_TAXELS);
+        wave_pending_base = base;
+    }
     pthread_mutex_unlock(&wave_lock);
     free(old);
+    free(old_playing);
     return 0;
 }
 
@@ -359,8 +374,9 @@ static void *stdin_thread(void *arg)
                 *sp = 0;
                 base = atoll(sp + 1);
             }
-            if (load_wave(line + 5, base)) printf("ERR wave %s\n", line + 5);
-            else printf("OK wave %zu\n", wave_rows);
+            int at_once = 0;
+            if (load_wave(line + 5, base, &at_once)) printf("ERR wave %s\n", line + 5);
+            else printf("OK wave %s\n", at_once ? "playing" : "pending"); /* pending: from the next row boundary */
         } else if (!strcmp(line, "scan?")) { /* which row of the waveform plays now */
             printf("SCAN n=%llu start=%llu\n", (unsigned long long)scan_count, (unsigned long long)scan_base);
         } else if (!strncmp(line, "taxel_ohm ", 10)) {
@@ -637,6 +653,11 @@ static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
     int src = e.mux.src;
     if (src > 2) return;
     int taxel = src * 6 + (mux_sel < 6 ? mux_sel : 5);
+    if (!scans_running) {
+        pthread_mutex_lock(&wave_lock);
+        scans_running = 1;
+        pthread_mutex_unlock(&wave_lock);
+    }
     avr_raise_irq(adc_irq_base + ADC_IRQ_ADC0 + src, mux_sample(src, taxel));
     if (src == 2 && mux_sel == 5) uno_next_row(); /* the scan's last conversion: the taxels move on to the next row */
 }
@@ -681,9 +702,20 @@ static void uno_after_reset(void)
     /* scans count from the reset, and the playing waveform restarts at row 0 with them: a scan_base left from before
      * the reset would make scan_count - scan_base wrap around 2^64, and the rows jump (615 -> 0 for 1000 rows) once
      * the count passes the old base */
+    uint16_t *old = NULL;
+    pthread_mutex_lock(&wave_lock);
+    if (wave_pending) { /* loaded just before the reset: the row boundary it waited for will not come */
+        old = wave;
+        wave = wave_pending;
+        wave_rows = wave_pending_rows;
+        wave_pending = NULL;
+    }
     scan_count = 0;
     scan_base = 0;
     scan_row = 0;
+    scans_running = 0;
+    pthread_mutex_unlock(&wave_lock);
+    free(old);
     mux_after_reset();
     avr_raise_irq(sync_pin, 0);
 }
@@ -1216,11 +1248,8 @@ int main(int argc, char **argv)
         return 1;
     }
 
-    if (wave_path && load_wave(wave_path, -1) == 0) {
-        wave = wave_pending;
-        wave_rows = wave_pending_rows;
-        wave_pending = NULL;
-    } else if (wave_path) {
+    int at_once = 0;
+    if (wave_path && load_wave(wave_path, -1, &at_once)) { /* no scan yet: it plays from the first */
         fprintf(stderr, "cannot read waveform %s\n", wave_path);
         return 1;
     }
