@@ -213,13 +213,25 @@ def lower_envelope_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: fl
     steps[steps == 0] = 1
     index = np.concatenate(([0], np.cumsum(steps))).astype(np.float64)
     lag = (t - t[0]) - index / float(rate_hz)  # delay + drift, relative to the nominal rate, s
-    slope = _lower_hull_slope(index, lag, float(index.mean()))  # s of lag per frame
+    slope = _lower_hull_slope(index, lag, float(index.mean()), plausible=_PLAUSIBLE_RATE_ERROR / float(rate_hz))
     period = 1.0 / float(rate_hz) + slope
     return 1.0 / period if period > 0 else math.nan
 
 
-def _lower_hull_slope(x: np.ndarray, y: np.ndarray, at: float) -> float:
+#: a lower-hull edge whose lag slope is more than this fraction of a period per frame is delivery, not the device's
+#: clock (a reader catching up after a stall reads the queued frames at once: slopes near -1 period per frame); a
+#: board's clock is within +-0.5 % (resonator), a wrong crystal or firmware (e.g. 8 MHz for 16 MHz: -50 %) shows as
+#: every edge outside this, and the estimate falls back to the whole hull
+_PLAUSIBLE_RATE_ERROR = 0.2
+
+
+def _lower_hull_slope(x: np.ndarray, y: np.ndarray, at: float, plausible: float = math.inf) -> float:
     """Slope of the lower convex hull of the points ``(x, y)`` (``x`` increasing) on the edge above ``x = at``.
+
+    With ``plausible`` (a bound on ``|slope|``), ``at`` is moved to the middle of the longest run of consecutive
+    hull edges within it (by ``x`` span), if there is one: a stretch of late points that holds ``at`` (a reader that
+    stalled for more than half of the history, then read the queue at once: CI at load 8-10 read 2,268 Hz for a
+    1 kHz board) does not then pick the edge.
 
     Candidates are the points on or below the end-to-end chord (every lower-hull vertex is), thinned to the convex
     hull's vertices by qhull (``scipy.spatial.ConvexHull``); Andrew's monotone chain then keeps the lower ones."""
@@ -248,6 +260,21 @@ def _lower_hull_slope(x: np.ndarray, y: np.ndarray, at: float) -> float:
                 break
         hull.append(i)
     hx = px[hull]
+    hy = py[hull]
+    if math.isfinite(plausible) and len(hull) >= 2:
+        ok = np.abs(np.diff(hy) / np.diff(hx)) <= plausible
+        best, best_span, run_start = None, 0.0, None
+        for e in range(len(ok) + 1):
+            if e < len(ok) and ok[e]:
+                if run_start is None:
+                    run_start = e
+            elif run_start is not None:
+                span = float(hx[e] - hx[run_start])
+                if span > best_span:
+                    best, best_span = (run_start, e), span
+                run_start = None
+        if best is not None:
+            at = 0.5 * float(hx[best[0]] + hx[best[1]])
     k = int(np.searchsorted(hx, at, side="right")) - 1
     k = min(max(k, 0), len(hull) - 2)
     i, j = hull[k], hull[k + 1]

@@ -72,3 +72,26 @@ def test_host_rate_ignores_a_stalled_reader_at_the_start_of_the_history():
     keep = np.ones(len(t), bool)
     keep[4000:4010] = False
     assert lower_envelope_rate_hz(seq[keep], t[keep], 1000.0) == pytest.approx(1000.0, abs=0.05)
+
+
+@pytest.mark.parametrize("late_fraction", [0.6, 0.85])
+def test_host_rate_ignores_a_reader_that_stalled_for_most_of_the_history(late_fraction):
+    """The reader stalled for more than half of the history, then read the queue at once (CI at load 8-10: a
+    quick_check trial read 2,268 Hz for a 1 kHz board): the hull's edge over the middle is the catch-up, whose slope
+    is no clock's; the on-time stretch after it still gives the rate."""
+    from rigctl.core.trial import lower_envelope_rate_hz
+
+    seq, t = _stamps(1000.0, 6000, seed=5)
+    n_late = int(late_fraction * len(t))
+    t[:n_late] = np.maximum(t[:n_late], t[n_late - 1] + 0.05)
+    assert lower_envelope_rate_hz(seq, t, 1000.0) == pytest.approx(1000.0, abs=0.2)
+
+
+@pytest.mark.parametrize("rate_hz", [500.0, 1100.0])
+def test_host_rate_still_reads_a_clock_far_off_nominal(rate_hz):
+    """A board on the wrong crystal or firmware (every edge beyond the plausible band) is still measured as it is:
+    the doctor's uno-clock check must see it fail."""
+    from rigctl.core.trial import lower_envelope_rate_hz
+
+    seq, t = _stamps(rate_hz, 8000, seed=6)
+    assert lower_envelope_rate_hz(seq, t, 1000.0) == pytest.approx(rate_hz, rel=1e-3)

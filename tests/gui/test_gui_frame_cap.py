@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 
 from rigctl_gui.events import wait_for
@@ -22,9 +23,13 @@ def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
         # the first tick late by up to a period: 11.1/s measured for a 10/s cap under load)
         w.timer.timeout.connect(lambda: stamps.append(time.monotonic()))
         w.show()
-        assert wait_for(qapp, lambda: len(stamps) >= 12, 60)  # it ticks ...
-        rate = (len(stamps) - 2) / (stamps[-1] - stamps[1])
-        assert rate <= fps * 1.05  # ... never above the cap (a loaded machine may tick slower, never faster)
+        assert wait_for(qapp, lambda: len(stamps) >= 32, 120)  # it ticks ...
+        # ... never above the cap (a loaded machine may tick slower, never faster; Qt's coarse timers may fire up
+        # to 5 % early). The median interval: one timeout dispatched late (a loaded machine) is followed by one
+        # dispatched early by as much, and a rate from the first and last stamps read that pair as too fast
+        # (CI, load 8-10: 10.6/s for a 10/s cap)
+        intervals = np.diff(stamps[1:])
+        assert np.median(intervals) >= (1 / fps) / 1.05, intervals
     finally:
         w.close()
         w.deleteLater()
