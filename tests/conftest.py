@@ -76,6 +76,28 @@ def _ctrl_c_reaches_children():
     yield
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """With ``$RIGCTL_TEST_CPU_LOG`` set (a file path), append one line per test: its node id, wall seconds and CPU
+    seconds (this process and the children it reaped meanwhile: CLI subprocesses, and a module's simavr harnesses
+    when its rig closes), tab-separated: where the suite's CPU goes, which ``--durations`` (wall) cannot say."""
+    path = os.environ.get("RIGCTL_TEST_CPU_LOG")
+    if not path:
+        yield
+        return
+    import resource
+    import time
+
+    def cpu() -> float:
+        a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+    t0, c0 = time.monotonic(), cpu()
+    yield
+    with open(path, "a") as f:
+        f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\n")
+
+
 def pytest_unconfigure(config):
     import shutil
 
