@@ -30,6 +30,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl_gui.connect_dialog import source_problem
 from rigctl_gui.dialogs import ask, show_dialog
+from rigctl_gui.frame_clock import FrameClock
 from rigctl_gui.guards import install_guards
 from rigctl_gui.messages import EventLog, ExceptionGuard
 from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
@@ -37,17 +38,13 @@ from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, Sta
 if TYPE_CHECKING:
     from rigctl_gui.connect_dialog import ConnectDialog
 
-#: the frame cap: the app's clock ticks (and the visible live view redraws) at most this often, per s; 30 frames/s
-#: is smooth for 2 s of scrolling traces without drawing (and paying for) frames nobody needs (issue 26: < 20 % of a
-#: core). ``rigctl gui --max-fps`` sets it (the clock's period is whole ms: 30/s -> 33 ms = 30.3/s)
+#: the frame cap: the app's clock ticks (and the visible live view redraws) at most this often, per s, and this often
+#: on average while the event loop keeps up (:class:`rigctl_gui.frame_clock.FrameClock`); 30 frames/s is smooth for 2 s
+#: of scrolling traces without drawing (and paying for) frames nobody needs (issue 26: < 20 % of a core). ``rigctl gui
+#: --max-fps`` sets it
 MAX_FPS = 30.0
 #: the range ``--max-fps`` accepts, frames/s
 FPS_RANGE = (1.0, 120.0)
-
-
-def refresh_ms(max_fps: float) -> int:
-    """The clock's period (whole ms, at least 1) for a frame cap of ``max_fps`` frames/s: never above the cap."""
-    return max(1, int(np.ceil(1000.0 / float(max_fps))))
 TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify")
 #: the live plots are marked stale when no taxel frame has arrived for this long, s
 STALE_AFTER_S = 1.0
@@ -178,13 +175,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self._log_user_actions()
 
         self._tick = 0
-        self.timer = QtCore.QTimer(self)
-        self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
-        self.timer.timeout.connect(self.refresh)
-        period_ms = refresh_ms(max_fps)
-        self._slow_every = max(1, round(120 / period_ms))  # the other tabs, events and faults: every ~0.12 s
-        self._health_every = max(1, round(300 / period_ms))  # link health: every ~0.3 s
-        self.timer.start(period_ms)
+        self.clock = FrameClock(max_fps, self.refresh, self)
+        self.timer = self.clock.timer  # its timeout is each tick
+        period_s = self.clock.period_s
+        self._slow_every = max(1, round(0.12 / period_s))  # the other tabs, events and faults: every ~0.12 s
+        self._health_every = max(1, round(0.3 / period_s))  # link health: every ~0.3 s
+        self.clock.start()
         self._update_source_label("not connected")
         if autoconnect:
             self.connect_source(self.source)
@@ -792,7 +788,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.settings.setValue("ui/geometry", self.saveGeometry())
         self.settings.setValue("ui/state", self.saveState())
         self.settings.setValue("ui/tab", self.tabs.currentIndex())
-        self.timer.stop()
+        self.clock.stop()
         self.disconnect_rig()
         self.events.detach_logging("rigctl")
         self.guard.uninstall()

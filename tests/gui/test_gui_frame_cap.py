@@ -1,5 +1,6 @@
-"""The live view's frame cap (issue 26): the app's clock ticks at most ``--max-fps`` times a second (default 30),
-counted on a real Qt event loop offscreen, and the option refuses a cap outside its range."""
+"""The live view's frame cap (issue 26): the app's clock ticks at most ``--max-fps`` times a second (default 30) and,
+while the event loop keeps up, that often on average, counted on a real Qt event loop offscreen; the pacing grid
+itself (no catch-up burst after a stall); the option refuses a cap outside its range."""
 
 from __future__ import annotations
 
@@ -13,27 +14,47 @@ from rigctl_gui.events import wait_for
 
 @pytest.mark.parametrize("fps", [30.0, 10.0])
 def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
-    from rigctl_gui.app import MainWindow, configure_pyqtgraph, refresh_ms
+    from rigctl_gui.app import MainWindow, configure_pyqtgraph
 
     configure_pyqtgraph()
     w = MainWindow(autoconnect=False, max_fps=fps)
     try:
-        assert w.timer.interval() == refresh_ms(fps) and 1000 / w.timer.interval() <= fps
+        assert w.clock.period_s == pytest.approx(1 / fps)
         stamps: list[float] = []  # taken as each timeout is dispatched (polling the tick count from outside stamped
         # the first tick late by up to a period: 11.1/s measured for a 10/s cap under load)
         w.timer.timeout.connect(lambda: stamps.append(time.monotonic()))
         w.show()
         assert wait_for(qapp, lambda: len(stamps) >= 32, 120)  # it ticks ...
-        # ... never above the cap (a loaded machine may tick slower, never faster; Qt's coarse timers may fire up
-        # to 5 % early). The median interval: one timeout dispatched late (a loaded machine) is followed by one
-        # dispatched early by as much, and a rate from the first and last stamps read that pair as too fast
-        # (CI, load 8-10: 10.6/s for a 10/s cap)
+        # ... never above the cap: the ticks sit on a grid of 1/fps, so any span holds at most fps * span + 1 of them
+        # (a loaded machine may tick slower, never faster) ...
+        span = stamps[-1] - stamps[1]
+        assert len(stamps) - 2 <= fps * span + 1, (len(stamps), span)
+        # ... and the median interval is the period (Qt's timers may fire up to 5 % early; one timeout dispatched late
+        # is followed by a shorter wait, so the median, not the extremes, is the clock's period: CI at load 8-10 read
+        # 10.6/s for a 10/s cap from the first and last stamps of a plain repeating timer)
         intervals = np.diff(stamps[1:])
         assert np.median(intervals) >= (1 / fps) / 1.05, intervals
     finally:
         w.close()
         w.deleteLater()
         qapp.processEvents()
+
+
+def test_the_pacer_keeps_the_grid_and_never_bursts():
+    from rigctl_gui.frame_clock import FramePacer
+
+    p = FramePacer(30.0)
+    assert p.start(100.0) == 34  # 33.3 ms rounded up: never early
+    # dispatched 5 ms late: the next wait is shorter, so the grid (and the mean rate) holds
+    assert p.next_delay_ms(100.0 + 1 / 30 + 0.005) == 29
+    assert p.due_s == pytest.approx(100.0 + 2 / 30)
+    # a 100 ms stall: the grid restarts one period after now, no catch-up burst of zero waits
+    now = 100.0 + 2 / 30 + 0.1
+    assert p.next_delay_ms(now) == 34
+    assert p.due_s == pytest.approx(now + 1 / 30)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            FramePacer(bad)
 
 
 def test_max_fps_is_an_option_with_a_range():
