@@ -166,7 +166,9 @@ class CalibrationTab(QtWidgets.QWidget):
         for b in (self.undo_btn, self.reset_btn):
             if b.property("normal_tip") is None:
                 b.setProperty("normal_tip", b.toolTip())
-            b.setToolTip("Disabled while a protocol run owns the rig" if locked else b.property("normal_tip"))
+            tip = "Disabled while a protocol run owns the rig" if locked else b.property("normal_tip")
+            if b.toolTip() != tip:  # a tooltip set, even to the same text, is an event through the app's filters
+                b.setToolTip(tip)
 
     def _config(self) -> dict:
         from rigctl.acquisition.calibration import load_rig_config

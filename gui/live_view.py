@@ -27,6 +27,7 @@ called from the main window's QTimer at >= 30 Hz.
 
 from __future__ import annotations
 
+import functools
 import time
 
 import numpy as np
@@ -34,7 +35,9 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
-from rigctl_gui.widgets import add_taxel_numbers
+from rigctl_gui import live_kernels
+from rigctl_gui.live_kernels import fill_raster
+from rigctl_gui.widgets import StatusText, add_taxel_numbers
 from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 
 #: the time window's range (s): traces and rasters show the last WINDOW_RANGE_S seconds
@@ -153,10 +156,10 @@ def raster_rows(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float,
     width_px`` (the newest spike, t = 0, goes into the last column). ``rows`` is ``(n_channels + 1, width_px)``: the
     spikes per bin of each taxel (clipped to 2: one spike, more than one), then a blank row (the gap between
     taxels); ``row_of_pixel`` (height_px,) maps image row ``r`` (row 0 = bottom = y -0.5) to taxel ``round(y_r)``
-    where ``y_r`` is the row's centre, or to the blank row when ``|y_r - taxel| > tick / 2``. Spikes outside the
-    window are ignored.
+    where ``y_r`` is the row's centre, or to the blank row when ``|y_r - taxel| > tick / 2`` (:func:`raster_row_map`,
+    read-only). Spikes outside the window are ignored.
     """
-    w, h = max(int(width_px), 1), max(int(height_px), 1)
+    w = max(int(width_px), 1)
     t = np.asarray(t, float)
     ch = np.asarray(ch, np.int64)
     col = np.floor((t + window_s) * (w / window_s)).astype(np.int64)
@@ -164,10 +167,19 @@ def raster_rows(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float,
     ok = (col >= 0) & (col < w) & (ch >= 0) & (ch < n_channels)
     counts = np.bincount(ch[ok] * w + col[ok], minlength=(n_channels + 1) * w).reshape(n_channels + 1, w)
     rows = np.minimum(counts, 2).astype(np.uint8)  # the last row (no channel n_channels): the blank gap
-    y = -0.5 + (np.arange(h) + 0.5) * (n_channels / h)  # centre of each pixel row, in taxel units
+    return rows, raster_row_map(n_channels, max(int(height_px), 1), float(tick))
+
+
+@functools.lru_cache(maxsize=16)
+def raster_row_map(n_channels: int, height_px: int, tick: float = TICK_HEIGHT) -> np.ndarray:
+    """The ``(height_px,)`` row map of a raster of ``n_channels`` trains (:func:`raster_rows`; row 0 at the bottom;
+    ``n_channels`` = the blank gap between taxels). The same for every frame of a plot of that height: computed once
+    (a read-only array)."""
+    y = -0.5 + (np.arange(height_px) + 0.5) * (n_channels / height_px)  # centre of each pixel row, in taxel units
     row_ch = np.clip(np.rint(y), 0, n_channels - 1).astype(np.int64)
     row_ch[np.abs(y - row_ch) > tick / 2] = n_channels
-    return rows, row_ch
+    row_ch.flags.writeable = False
+    return row_ch
 
 
 def raster_image(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
@@ -201,7 +213,9 @@ def auto_y_range(lo: float, hi: float, current: tuple[float, float] | None, adc_
 class RasterItem(pg.GraphicsObject):
     """A spike raster image (:func:`raster_image`) drawn into a rectangle of its plot: an opaque 32-bit image from a
     small palette (Qt blits that several times faster than pyqtgraph's ImageItem's 24-bit or alpha images), row 0
-    at the rectangle's top in data coordinates (y = -0.5: the bottom taxel). ``image`` is the last array shown."""
+    at the rectangle's top in data coordinates (y = -0.5: the bottom taxel). The pixels live in one array (and one
+    QImage on it) reused while the size holds: a new half-megabyte image each frame cost its page faults.
+    ``image``: the last counts shown, as the ``(height, width)`` array."""
 
     def __init__(self, palette: list[QtGui.QColor]):
         super().__init__()
@@ -209,7 +223,16 @@ class RasterItem(pg.GraphicsObject):
         self._rect = QtCore.QRectF(0, 0, 1, 1)
         self._qimage: QtGui.QImage | None = None
         self._pixels: np.ndarray | None = None
-        self.image: np.ndarray | None = None
+        self._rows: np.ndarray | None = None
+        self._row_of_pixel: np.ndarray | None = None
+        self._spans: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+    @property
+    def image(self) -> np.ndarray | None:
+        """The counts shown (``(height, width)`` uint8, row 0 = the bottom row), or None before :meth:`setImage`."""
+        if self._rows is None or self._row_of_pixel is None:
+            return None
+        return self._rows.take(self._row_of_pixel, axis=0)
 
     def setRect(self, rect: QtCore.QRectF) -> None:  # noqa: N802 - Qt style
         if rect != self._rect:
@@ -220,15 +243,32 @@ class RasterItem(pg.GraphicsObject):
     def setImage(self, counts: np.ndarray, row_of_pixel: np.ndarray | None = None) -> None:  # noqa: N802 - Qt style
         """Show ``(height, width)`` uint8 spike counts (0, 1, 2+ -> the palette's colours), or, with
         ``row_of_pixel``, the image ``counts[row_of_pixel]`` (:func:`raster_rows`: coloured per row, then expanded)."""
+        if row_of_pixel is None:
+            row_of_pixel = np.arange(len(counts))
         colours = self._palette.take(counts, mode="clip")  # counts past the palette get its last colour
-        if row_of_pixel is not None:
-            counts, colours = counts.take(row_of_pixel, axis=0), colours.take(row_of_pixel[::-1], axis=0)
-        else:
-            colours = np.ascontiguousarray(colours[::-1])
-        self.image = counts
-        self._pixels = colours  # top row first (screen order): blitted as it is
-        h, w = counts.shape
-        self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format.Format_RGB32)
+        h, w = len(row_of_pixel), counts.shape[1]
+        if self._pixels is None or self._pixels.shape != (h, w):
+            self._pixels = np.empty((h, w), np.uint32)  # top row first (screen order): blitted as it is
+            self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format.Format_RGB32)
+        np.take(colours, row_of_pixel[::-1], axis=0, out=self._pixels)
+        self._rows, self._row_of_pixel = counts, row_of_pixel
+        self.update()
+
+    def draw_spikes(self, t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
+                    height_px: int) -> None:
+        """Show the spikes ``t`` (s before now) of trains ``ch`` binned at ``width_px`` x ``height_px``: the image of
+        :func:`raster_rows` and :meth:`setImage`, binned and coloured in one compiled pass
+        (:func:`rigctl_gui.live_kernels.fill_raster`) into the reused counts and pixels."""
+        w, h = max(int(width_px), 1), max(int(height_px), 1)
+        row_of_pixel = raster_row_map(n_channels, h, TICK_HEIGHT)
+        if self._pixels is None or self._pixels.shape != (h, w) or self._rows is None \
+                or self._rows.shape != (n_channels + 1, w) or self._row_of_pixel is not row_of_pixel:
+            self._pixels = np.empty((h, w), np.uint32)
+            self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format.Format_RGB32)
+            self._rows = np.zeros((n_channels + 1, w), np.uint8)
+            self._spans = live_kernels.raster_spans(row_of_pixel, n_channels)
+        fill_raster(t, ch, n_channels, window_s, self._spans, self._palette, self._rows, self._pixels)
+        self._row_of_pixel = row_of_pixel
         self.update()
 
     def boundingRect(self) -> QtCore.QRectF:  # noqa: N802 - Qt override
@@ -282,29 +322,46 @@ class TracesItem(pg.GraphicsObject):
         super().__init__()
         self._pens = pens
         self.curves = [TraceCurve(self, k, pen, name) for k, (pen, name) in enumerate(zip(pens, names))]
-        self.t = np.zeros(0)
-        self.x = np.zeros((0, len(pens)))
+        self._n = 0  # points drawn per taxel
         self._polys: list[QtGui.QPolygonF] = []  # one per taxel, reused from frame to frame
         self._points: list[np.ndarray] = []  # (capacity, 2) views of the polygons' points
-        self._capacity = 0
         self._rect = QtCore.QRectF()
         self.segments: list[tuple[int, int]] = []
+
+    @property
+    def t(self) -> np.ndarray:
+        """The times drawn (s), (n,)."""
+        return self._points[0][:self._n, 0].copy() if self._points else np.zeros(0)
+
+    @property
+    def x(self) -> np.ndarray:
+        """The readings drawn, (n, k)."""
+        if not self._points:
+            return np.zeros((0, len(self._pens)))
+        return np.stack([pts[:self._n, 1] for pts in self._points], axis=1)
 
     def setData(self, t: np.ndarray, x: np.ndarray, breaks=()) -> None:  # noqa: N802 - pyqtgraph style
         """Draw ``t`` (n,) s against each column of ``x`` (n, k) readings; ``breaks``: indices where a new segment
         starts (an outage: no line is drawn across it)."""
-        self.t, self.x = t, x
-        cuts = sorted({int(b) for b in breaks if 0 < int(b) < len(t)})
-        self.segments = list(zip([0, *cuts], [*cuts, len(t)]))
         n = len(t)
-        if n > self._capacity or not self._polys:  # room for a few more points than now (lengths vary a little)
-            self._capacity = n + 64
-            self._polys = [pg.functions.create_qpolygonf(self._capacity) for _ in range(x.shape[1])]
+        points = np.empty((x.shape[1], n, 2))
+        points[:, :, 0] = t
+        points[:, :, 1] = np.asarray(x).T
+        self.set_points(points, n, breaks)
+
+    def set_points(self, points: np.ndarray, n: int, breaks=()) -> None:
+        """Draw the first ``n`` of ``points`` (k, capacity, 2): each taxel's ``(t (s), reading)``, the points past
+        ``n`` repeating the last one (:func:`rigctl_gui.live_kernels.decimate_traces` writes them so); ``breaks``:
+        indices where a new segment starts (an outage: no line is drawn across it)."""
+        cuts = sorted({int(b) for b in breaks if 0 < int(b) < n}) if len(breaks) else []
+        self.segments = list(zip([0, *cuts], [*cuts, n]))
+        cap = points.shape[1]
+        if not self._polys or len(self._points[0]) != cap:
+            self._polys = [pg.functions.create_qpolygonf(cap) for _ in range(points.shape[0])]
             self._points = [pg.functions.ndarray_from_qpolygonf(poly) for poly in self._polys]
-        for k, pts in enumerate(self._points):
-            pts[:n, 0] = t
-            pts[:n, 1] = x[:, k]
-            pts[n:] = pts[n - 1] if n else 0.0  # the unused tail repeats the last point: nothing more is drawn
+        for pts, src in zip(self._points, points):
+            pts[:] = src
+        self._n = n
         vb = self.getViewBox()
         rect = vb.viewRect() if vb is not None else QtCore.QRectF()
         if rect != self._rect:
@@ -316,7 +373,7 @@ class TracesItem(pg.GraphicsObject):
         return QtCore.QRectF(self._rect)
 
     def paint(self, p, *args) -> None:
-        if len(self.t) == 0:
+        if self._n == 0:
             return
         p.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing, False)
         if len(self.segments) <= 1:
@@ -368,6 +425,9 @@ class LiveView(QtWidgets.QWidget):
         self._refresh_n = 0
         #: the readings (one frame, ADC counts) the heat maps show
         self.heatmap_frame: np.ndarray | None = None
+        # each taxel's decimated trace points (taxels, capacity, 2) and its min / max in the window, reused
+        self._trace_points: np.ndarray | None = None
+        self._trace_lo = self._trace_hi = np.zeros(0)
 
         self.window_box = QtWidgets.QDoubleSpinBox(suffix=" s", decimals=1, minimum=WINDOW_RANGE_S[0],
                                                    maximum=WINDOW_RANGE_S[1], singleStep=0.5, value=self.window_s)
@@ -377,10 +437,16 @@ class LiveView(QtWidgets.QWidget):
         self.auto_box.setToolTip("Trace y axes follow the readings in the window (else the full ADC range)")
         self.auto_box.setChecked(auto_range)
         self.auto_box.toggled.connect(self.set_auto_range)
-        self.info = QtWidgets.QLabel("")
+        # the info line and the rates change several times a second: StatusText repaints them without relayouting
+        # the window (issue 26); the info line takes the room left and never widens the window (an encoder error can
+        # be long: elided, whole in its tooltip)
+        self.info = StatusText("", template="888888 frames shown, SA 88888 / RA 88888 spikes",
+                               align=QtCore.Qt.AlignmentFlag.AlignRight)
+        self.info.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
         self.sensor_label = QtWidgets.QLabel("")
         #: the frame-rate readout: the display's paints per second and the taxel frames arriving per second
-        self.rate_label = QtWidgets.QLabel("")
+        self.rate_label = StatusText("", template="  display 888/s, taxels 88888 frames/s")
+        self.rate_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Fixed, QtWidgets.QSizePolicy.Policy.Fixed)
         self.rate_label.setObjectName("live_rates")
         self.rate_label.setToolTip("display: paints of these plots per second; taxels: frames arriving per second")
         bar = QtWidgets.QHBoxLayout()
@@ -389,9 +455,6 @@ class LiveView(QtWidgets.QWidget):
         bar.addWidget(self.auto_box)
         bar.addWidget(self.rate_label)
         bar.addWidget(self.sensor_label)
-        # the info line takes the room left and never widens the window (an encoder error can be long)
-        self.info.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
-        self.info.setAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
         bar.addWidget(self.info, 1)
 
         self.gl = TimedGraphicsLayout()
@@ -597,21 +660,29 @@ class LiveView(QtWidgets.QWidget):
         first = int(np.searchsorted(t, now - self.window_s - 1e-9))
         t, x = t[first:], x[first:]
         width = self.data_width_px()
-        # x = time before now: the axes never change, so pyqtgraph reuses their drawing
-        t, x = peak_decimate(t - now, x, width, first_index=int(round(t[0] * buf.rate_hz)))
+        # x = time before now: the axes never change, so pyqtgraph reuses their drawing; every taxel peak-decimated
+        # to the pixel width in one compiled pass, straight into the polyline points (live_kernels)
+        first_index = int(round(t[0] * buf.rate_hz))
+        need = live_kernels.decimated_length(len(t), width, first_index)
+        pts = self._trace_points
+        if pts is None or pts.shape[0] != x.shape[1] or pts.shape[1] < need:  # room for a few more points
+            pts = self._trace_points = np.zeros((x.shape[1], need + 64, 2))
+            self._trace_lo, self._trace_hi = np.empty(x.shape[1]), np.empty(x.shape[1])
+        lo, hi = self._trace_lo, self._trace_hi
+        n_points = live_kernels.decimate_traces(t, x, now, width, first_index, pts, lo, hi)
         gaps = [(g - now, d) for g, d in buf.gaps if g - now > -self.window_s]
-        breaks = np.searchsorted(t, [g - 1e-9 for g, _ in gaps]) if gaps else ()
+        breaks = np.searchsorted(pts[0, :n_points, 0], [g - 1e-9 for g, _ in gaps]) if gaps else ()
         self.shown_gaps = gaps
         self._show_gap_marks(gaps)
         auto = self.auto_box.isChecked()
         for i, (p, item, chans) in enumerate(zip(self.trace_plots, self.trace_items, self._layer_channels)):
-            part = x[:, chans.start:chans.stop]
             if auto:  # the y range first, so the traces are drawn in the view they will be shown in
-                r = auto_y_range(float(part.min()), float(part.max()), self._y_ranges[i], self._layout().adc_max)
+                r = auto_y_range(float(lo[chans.start:chans.stop].min()), float(hi[chans.start:chans.stop].max()),
+                                 self._y_ranges[i], self._layout().adc_max)
                 if r is not None:
                     self._y_ranges[i] = r
                     p.setYRange(*r, padding=0)
-            item.setData(t, part, breaks)
+            item.set_points(pts[chans.start:chans.stop], n_points, breaks)
         if self._refresh_n % HEATMAP_EVERY == 0:
             self.heatmap_frame = cur = buf.current.copy()
             for img, chans, la in zip(self.images, self._layer_channels, self._layout().layers):
@@ -623,7 +694,7 @@ class LiveView(QtWidgets.QWidget):
                 st, sc = ring.since(now - self.window_s)
                 st = st - now
                 self.drawn[key] = (st, sc)
-                self.raster_images[key].setImage(*raster_rows(st, sc, n, self.window_s, width, height))
+                self.raster_images[key].draw_spikes(st, sc, n, self.window_s, width, height)
             if self._refresh_n % INFO_EVERY == 0:
                 err = enc.encoder_error
                 state = "" if enc.ready else " (encoder starting: compiling kernels)"

@@ -31,6 +31,54 @@ def keep_room(widget: QtWidgets.QWidget, *, lines: int | None = None) -> None:
         widget.setFixedHeight(lines * widget.fontMetrics().lineSpacing() + 4)
 
 
+class StatusText(QtWidgets.QWidget):
+    """A one-line text that changes often (rates, counters): :meth:`setText` repaints it and nothing else. A QLabel's
+    new text asks its layout for room, and the request climbs every parent layout up to the main window (its docks
+    animated anew each time) although nothing moves; this widget's size hint is fixed (``template``'s width, one line),
+    it takes the width its layout gives it and elides what does not fit (the tooltip shows the whole text then).
+    ``align``: the text's horizontal alignment."""
+
+    def __init__(self, text: str = "", *, template: str = "", align=QtCore.Qt.AlignmentFlag.AlignLeft,
+                 parent: QtWidgets.QWidget | None = None):
+        super().__init__(parent)
+        self._text = text
+        self._align = align | QtCore.Qt.AlignmentFlag.AlignVCenter
+        fm = self.fontMetrics()
+        self._hint = QtCore.QSize(fm.horizontalAdvance(template or text) + 4, fm.height() + 2)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred, QtWidgets.QSizePolicy.Policy.Fixed)
+
+    def sizeHint(self) -> QtCore.QSize:  # noqa: N802 - Qt override
+        return QtCore.QSize(self._hint)
+
+    def minimumSizeHint(self) -> QtCore.QSize:  # noqa: N802 - Qt override
+        return QtCore.QSize(0, self._hint.height())
+
+    def text(self) -> str:
+        return self._text
+
+    def setText(self, text: str) -> None:  # noqa: N802 - Qt style
+        if text != self._text:
+            self._text = text
+            self.update()
+
+    def _shown(self) -> str:
+        return self.fontMetrics().elidedText(self._text, QtCore.Qt.TextElideMode.ElideRight, max(self.width() - 4, 0))
+
+    def paintEvent(self, ev) -> None:  # noqa: N802 - Qt override
+        from PySide6 import QtGui
+
+        p = QtGui.QPainter(self)
+        p.setPen(self.palette().color(QtGui.QPalette.ColorRole.WindowText))
+        p.drawText(self.rect().adjusted(2, 0, -2, 0), self._align, self._shown())
+        p.end()
+
+    def event(self, ev) -> bool:
+        if ev.type() == QtCore.QEvent.Type.ToolTip and not self.toolTip() and self._shown() != self._text:
+            QtWidgets.QToolTip.showText(ev.globalPos(), self._text, self)
+            return True
+        return super().event(ev)
+
+
 def gap_breaks(rows: np.ndarray, *, max_dt: float, time_col: int = 0) -> np.ndarray:
     """``rows`` (n, k) in time order with a NaN row inserted wherever the time (column ``time_col``, s) jumps by
     more than ``max_dt``: a curve drawn with ``connect="finite"`` shows the outage as a gap, not as a straight line

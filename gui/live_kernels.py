@@ -1,0 +1,173 @@
+"""The live view's per-frame numbers in one compiled pass each (numba), so a frame's refresh costs a few kernel calls
+instead of dozens of small numpy operations (issue 26: < 20 % of a core at 30 frames/s).
+
+- :func:`decimate_traces`: :func:`rigctl_gui.live_view.peak_decimate` of every taxel's window written straight into
+  the polyline points of the trace items, with each taxel's minimum and maximum in the window (the auto-ranged y
+  axes);
+- :func:`fill_raster`: a spike raster coloured at the data area's pixel size
+  (:func:`rigctl_gui.live_view.raster_rows` then the palette: the same pixels), written into the image the raster item
+  blits.
+
+Both give exactly what the numpy functions of :mod:`rigctl_gui.live_view` give (tests/gui/test_gui_live_kernels.py);
+those stay the reference. Compiled on first use and cached on disk, as the encoder's kernels are.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numba
+import numpy as np
+
+
+def decimated_length(n: int, width_px: int, first_index: int) -> int:
+    """How many points :func:`rigctl_gui.live_view.peak_decimate` makes of ``n`` samples for a plot ``width_px``
+    wide, the first sample's absolute number being ``first_index`` (at most ``width_px`` plus the two partial bins)."""
+    if n <= width_px:
+        return n
+    step = -(-n // max(int(width_px) // 2, 1))
+    if step < 2:
+        return n
+    skip = (-int(first_index)) % step
+    m = (n - skip) // step
+    return n - m * step + 2 * m
+
+
+@numba.njit(cache=True, nogil=True)
+def _decimate_traces(t: Any, x: Any, now: float, width_px: int, first_index: int, points: Any, lo: Any,
+                     hi: Any) -> int:  # pragma: no cover - compiled
+    n, k = x.shape
+    cap = points.shape[1]
+    for c in range(k):
+        lo[c] = np.inf
+        hi[c] = -np.inf
+    step = 1
+    if n > width_px:
+        step = -(-n // max(width_px // 2, 1))
+    if step < 2:  # every sample as it is
+        for i in range(n):
+            ti = t[i] - now
+            for c in range(k):
+                v = x[i, c]
+                points[c, i, 0] = ti
+                points[c, i, 1] = v
+                lo[c] = min(lo[c], v)
+                hi[c] = max(hi[c], v)
+        m_out = n
+    else:
+        skip = (-first_index) % step
+        m = (n - skip) // step
+        end = skip + m * step
+        j = 0
+        for i in range(skip):  # the oldest partial bin as it is
+            ti = t[i] - now
+            for c in range(k):
+                v = x[i, c]
+                points[c, j, 0] = ti
+                points[c, j, 1] = v
+                lo[c] = min(lo[c], v)
+                hi[c] = max(hi[c], v)
+            j += 1
+        for b in range(m):  # each full bin: its minimum at its first time, its maximum at its last
+            a = skip + b * step
+            t0 = t[a] - now
+            t1 = t[a + step - 1] - now
+            for c in range(k):
+                bmin = x[a, c]
+                bmax = bmin
+                for i in range(a + 1, a + step):
+                    v = x[i, c]
+                    if v < bmin:
+                        bmin = v
+                    elif v > bmax:
+                        bmax = v
+                points[c, j, 0] = t0
+                points[c, j, 1] = bmin
+                points[c, j + 1, 0] = t1
+                points[c, j + 1, 1] = bmax
+                lo[c] = min(lo[c], bmin)
+                hi[c] = max(hi[c], bmax)
+            j += 2
+        for i in range(end, n):  # the newest partial bin as it is
+            ti = t[i] - now
+            for c in range(k):
+                v = x[i, c]
+                points[c, j, 0] = ti
+                points[c, j, 1] = v
+                lo[c] = min(lo[c], v)
+                hi[c] = max(hi[c], v)
+            j += 1
+        m_out = j
+    for c in range(k):  # the unused tail repeats the last point: a fixed-length polyline draws nothing more
+        for i in range(m_out, cap):
+            points[c, i, 0] = points[c, m_out - 1, 0] if m_out else 0.0
+            points[c, i, 1] = points[c, m_out - 1, 1] if m_out else 0.0
+    return m_out
+
+
+def decimate_traces(t: np.ndarray, x: np.ndarray, now: float, width_px: int, first_index: int, points: np.ndarray,
+                    lo: np.ndarray, hi: np.ndarray) -> int:
+    """Peak-decimate ``x`` (n, k) readings at times ``t`` (n,) s for a plot ``width_px`` wide into ``points`` (k, cap,
+    2) float64: ``points[c, i] = (time before now (s) = t - now, reading)`` of taxel ``c``'s ``i``-th point, exactly
+    :func:`rigctl_gui.live_view.peak_decimate`'s ``(t - now, x)`` (bins aligned to the absolute sample number
+    ``first_index`` of ``t[0]``); points past the returned count repeat the last one. ``lo`` / ``hi`` (k,) float64
+    get each taxel's minimum / maximum reading in the window. Returns the number of points; raises ValueError when
+    ``points`` is too short (:func:`decimated_length`)."""
+    need = decimated_length(len(t), width_px, first_index)
+    if points.shape[0] != x.shape[1] or points.shape[1] < max(need, 1) or points.shape[2] != 2:
+        raise ValueError(f"points must be ({x.shape[1]}, >= {max(need, 1)}, 2), got {points.shape}")
+    return int(_decimate_traces(t, x, float(now), int(width_px), int(first_index), points, lo, hi))
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_raster(t: Any, ch: Any, n_channels: int, window_s: float, row_start: Any, row_stop: Any, palette: Any,
+                 counts: Any, pixels: Any) -> None:  # pragma: no cover - compiled
+    w = counts.shape[1]
+    counts[:, :] = 0
+    scale = w / window_s
+    for i in range(len(t)):
+        if t[i] == 0:
+            col = w - 1
+        else:
+            col = int(math.floor((t[i] + window_s) * scale))
+        c = ch[i]
+        if 0 <= col < w and 0 <= c < n_channels and counts[c, col] < 2:
+            counts[c, col] += 1
+    pixels[:, :] = palette[0]
+    for c in range(n_channels):
+        for j in range(w):
+            v = counts[c, j]
+            if v:
+                colour = palette[min(v, len(palette) - 1)]
+                for r in range(row_start[c], row_stop[c]):
+                    pixels[r, j] = colour
+
+
+def raster_spans(row_of_pixel: np.ndarray, n_channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each taxel's rows of the raster image in screen order (top row first): ``(start, stop)`` (n_channels,) int64,
+    from :func:`rigctl_gui.live_view.raster_row_map`'s ``row_of_pixel`` (bottom row first). A taxel with no row
+    gets an empty span. Raises ValueError if a taxel's rows are not contiguous."""
+    screen = np.asarray(row_of_pixel)[::-1]
+    start = np.zeros(n_channels, np.int64)
+    stop = np.zeros(n_channels, np.int64)
+    for c in range(n_channels):
+        rows = np.flatnonzero(screen == c)
+        if rows.size:
+            if rows[-1] - rows[0] + 1 != rows.size:
+                raise ValueError(f"taxel {c}'s raster rows are not contiguous")
+            start[c], stop[c] = rows[0], rows[-1] + 1
+    return start, stop
+
+
+def fill_raster(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, spans: tuple[np.ndarray, np.ndarray],
+                palette: np.ndarray, counts: np.ndarray, pixels: np.ndarray) -> None:
+    """Bin spikes ``t`` (s before now) of trains ``ch`` into ``counts`` (n_channels + 1, width) uint8 (clipped to 2:
+    :func:`rigctl_gui.live_view.raster_rows`' ``rows``) and colour ``pixels`` (height, width) uint32 (screen order)
+    with ``palette`` (uint32: empty, one spike, more): each taxel's ``spans`` (:func:`raster_spans`) in its
+    column's colour, everything else ``palette[0]``."""
+    _fill_raster(np.ascontiguousarray(t, np.float64), np.ascontiguousarray(ch, np.int64), int(n_channels),
+                 float(window_s), spans[0], spans[1], palette, counts, pixels)
+
+
+__all__ = ["decimate_traces", "decimated_length", "fill_raster", "raster_spans"]
