@@ -390,6 +390,23 @@ class TracesItem(pg.GraphicsObject):
                     p.drawPolyline(poly)
 
 
+def mark_containers(root: QtWidgets.QGraphicsItem) -> int:
+    """Flag every pure container under ``root`` (layouts, plots, titles' boxes, view boxes without a border: they draw
+    nothing themselves) ``ItemHasNoContents``, so Qt's paint of the scrolling data areas neither asks their Python
+    ``boundingRect`` nor calls their Python ``paint`` each frame (pyqtgraph leaves the flag off). Their children draw
+    as before. Returns how many were flagged."""
+    flag = QtWidgets.QGraphicsItem.GraphicsItemFlag.ItemHasNoContents
+    n, todo = 0, [root]
+    while todo:
+        item = todo.pop()
+        todo.extend(item.childItems())
+        if isinstance(item, (pg.GraphicsLayout, pg.PlotItem, pg.LabelItem)) or (
+                isinstance(item, pg.ViewBox) and item.border is None):
+            item.setFlag(flag, True)
+            n += 1
+    return n
+
+
 class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
     """A GraphicsLayoutWidget that records when each paint finished (for the frame-to-screen latency)."""
 
@@ -585,6 +602,7 @@ class LiveView(QtWidgets.QWidget):
         # the traces get at least as much height as the two rasters (a single layer: twice a raster's)
         for row in range(n_layers + 2):
             grid.setRowStretchFactor(row, 2 if n_layers == 1 and row == 0 else 1)
+        mark_containers(self.gl.ci)
 
     def resizeEvent(self, ev):  # noqa: N802 - Qt override
         super().resizeEvent(ev)
