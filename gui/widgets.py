@@ -35,7 +35,8 @@ class StatusText(QtWidgets.QWidget):
     """A one-line text that changes often (rates, counters): :meth:`setText` repaints it and nothing else. A QLabel's
     new text asks its layout for room, and the request climbs every parent layout up to the main window (its docks
     animated anew each time) although nothing moves; this widget's size hint is fixed (``template``'s width, one line),
-    it takes the width its layout gives it and elides what does not fit (the tooltip shows the whole text then).
+    it takes the width its layout gives it and elides what does not fit (the start of right-aligned text, else the
+    end; the tooltip shows the whole text then).
     ``align``: the text's horizontal alignment."""
 
     def __init__(self, text: str = "", *, template: str = "", align=QtCore.Qt.AlignmentFlag.AlignLeft,
@@ -62,7 +63,10 @@ class StatusText(QtWidgets.QWidget):
             self.update()
 
     def _shown(self) -> str:
-        return self.fontMetrics().elidedText(self._text, QtCore.Qt.TextElideMode.ElideRight, max(self.width() - 4, 0))
+        # right-aligned text loses its start (its end, e.g. the newest counter, stays in view), other text its end
+        mode = (QtCore.Qt.TextElideMode.ElideLeft if self._align & QtCore.Qt.AlignmentFlag.AlignRight
+                else QtCore.Qt.TextElideMode.ElideRight)
+        return self.fontMetrics().elidedText(self._text, mode, max(self.width() - 4, 0))
 
     def paintEvent(self, ev) -> None:  # noqa: N802 - Qt override
         from PySide6 import QtGui
