@@ -29,11 +29,13 @@ def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
         # (a loaded machine may tick slower, never faster) ...
         span = stamps[-1] - stamps[1]
         assert len(stamps) - 2 <= fps * span + 1, (len(stamps), span)
-        # ... and the median interval is the period (Qt's timers may fire up to 5 % early; one timeout dispatched late
-        # is followed by a shorter wait, so the median, not the extremes, is the clock's period: CI at load 8-10 read
-        # 10.6/s for a 10/s cap from the first and last stamps of a plain repeating timer)
-        intervals = np.diff(stamps[1:])
-        assert np.median(intervals) >= (1 / fps) / 1.05, intervals
+        # ... and, while the loop keeps up, near that often: the mean interval over the span is the period, not a
+        # multiple of it (a clock armed for twice the period, or one that only ticks on other events, fails here). Not
+        # the median: single intervals are not the period. CI (load ~1) read a sawtooth of one ~41 ms interval and
+        # three ~30.6 ms ones (mean 33.3 ms, median 30.8 ms) from the grid clock, the timeouts' dispatch wandering
+        # around their due times, which is what the grid is for
+        mean_interval = span / (len(stamps) - 2)
+        assert mean_interval <= 2 / fps, (mean_interval, np.diff(stamps[1:]))
     finally:
         w.close()
         w.deleteLater()
