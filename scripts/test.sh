@@ -43,8 +43,13 @@ if [ -z "${VIRTUAL_ENV:-}" ]; then
   . "$VENV/bin/activate"
 fi
 
-echo "== pip install -e .[test] (into $VIRTUAL_ENV)"
-python3 -m pip install -q --disable-pip-version-check -e ".[test]"
+# uv (PyPI's installer from Astral) resolves and installs the same requirements as pip, in parallel and without
+# compiling byte code: on a fresh 2-core machine pip took ~47 s here; pip itself if uv cannot be had or fails
+echo "== install -e .[test] with uv, pip if that fails (into $VIRTUAL_ENV)"
+if ! { python3 -m pip install -q --disable-pip-version-check uv && python3 -m uv pip install -q -e ".[test]"; }; then
+  echo "== uv failed: pip install -e .[test]"
+  python3 -m pip install -q --disable-pip-version-check -e ".[test]"
+fi
 
 # everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
 # (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), mypy's cache, Hypothesis'
