@@ -92,6 +92,7 @@ class ParserStats:
     bytes_in: int = 0
     bytes_skipped: int = 0  #: bytes that were not part of a valid frame
     crc_errors: int = 0  #: sync candidates rejected by their CRC
+    out_of_range: int = 0  #: candidates with a valid CRC but a sample above the link's ADC range (not frames)
 
 
 @dataclass
@@ -99,16 +100,23 @@ class FrameParser:
     """Incremental, vectorised taxel-frame parser. Feed it chunks of any size with :meth:`feed`.
 
     ``n_channels`` is the link's channel count (the ``ch`` of the board's banner; 18 for the Uno): frames are
-    ``7 + 2 * n_channels`` bytes. Raises ValueError for fewer than one channel.
+    ``7 + 2 * n_channels`` bytes. ``adc_max`` is the largest count the link carries (``2**bits - 1`` of the banner's
+    ``bits``; 1023 for the Uno's 10-bit ADC): a candidate whose CRC happens to match (1 in 65,536 for garbage) but
+    which holds a larger sample is no frame, and is skipped so that it cannot hide the real frame it overlaps.
+    Raises ValueError for fewer than one channel or an ``adc_max`` outside 1-65535.
     """
 
     stats: ParserStats = field(default_factory=ParserStats)
     _buf: bytes = b""
     n_channels: int = wire.N_TAXELS
+    adc_max: int = wire.ADC_MAX
 
     def __post_init__(self) -> None:
         self.n_channels = int(self.n_channels)
         self._size = wire.frame_size(self.n_channels)
+        self.adc_max = int(self.adc_max)
+        if not 1 <= self.adc_max <= 0xFFFF:
+            raise ValueError(f"adc_max must be 1-65535 counts, got {self.adc_max}")
 
     def feed(self, chunk: bytes) -> Frames:
         """Parse ``chunk`` (appended to any kept tail); return the complete valid frames found, in stream order."""
@@ -125,8 +133,10 @@ class FrameParser:
         seq = np.empty(n_max, np.uint16)
         flags = np.empty(n_max, np.uint8)
         samples = np.empty((n_max, self.n_channels), np.uint16)
-        n_ok, crc_errors, consumed_to = _scan(arr, last_start, size, wire.CRC16_TABLE, seq, flags, samples)
+        n_ok, crc_errors, out_of_range, consumed_to = _scan(arr, last_start, size, wire.CRC16_TABLE, self.adc_max,
+                                                             seq, flags, samples)
         self.stats.crc_errors += int(crc_errors)
+        self.stats.out_of_range += int(out_of_range)
         keep_from = max(int(consumed_to), last_start + 1)
         self.stats.bytes_skipped += keep_from - n_ok * size
         self.stats.frames += int(n_ok)
@@ -141,17 +151,19 @@ class FrameParser:
 
 
 @numba.njit(cache=True, nogil=True)
-def _scan(arr: Any, last_start: int, size: int, table: Any, seq: Any, flags: Any,
-          samples: Any) -> tuple[int, int, int]:  # pragma: no cover - compiled
+def _scan(arr: Any, last_start: int, size: int, table: Any, adc_max: int, seq: Any, flags: Any,
+          samples: Any) -> tuple[int, int, int, int]:  # pragma: no cover - compiled
     """One pass over the buffer ``arr`` (uint8): every sync candidate at offsets 0..last_start, its CRC checked
-    (CRC-16/MODBUS over bytes CRC_START..size-3, little-endian CRC in the last two); a valid frame not overlapping
-    the previous accepted one is accepted and unpacked into ``seq``, ``flags``, ``samples`` (little-endian). A bad
-    candidate lying inside an accepted frame is payload, not a corrupt frame; the others are CRC errors.
-    Returns (frames accepted, CRC errors, the offset after the last accepted frame or 0)."""
+    (CRC-16/MODBUS over bytes CRC_START..size-3, little-endian CRC in the last two) and its samples against
+    ``adc_max``; a valid frame not overlapping the previous accepted one is accepted and unpacked into ``seq``,
+    ``flags``, ``samples`` (little-endian). A bad candidate lying inside an accepted frame is payload, not a corrupt
+    frame; the others are CRC errors, or out of range when only the range check failed.
+    Returns (frames accepted, CRC errors, out-of-range candidates, the offset after the last accepted frame or 0)."""
     n_ch = samples.shape[1]
     off_crc = size - 2
     n_ok = 0
     crc_errors = 0
+    out_of_range = 0
     end = 0  # after the last accepted frame
     for p in range(last_start + 1):
         if arr[p] != _SYNC0 or arr[p + 1] != _SYNC1:
@@ -161,6 +173,16 @@ def _scan(arr: Any, last_start: int, size: int, table: Any, seq: Any, flags: Any
             crc = (crc >> np.uint16(8)) ^ table[(crc ^ arr[j]) & np.uint16(0xFF)]
         recv = np.uint16(arr[p + off_crc]) | (np.uint16(arr[p + off_crc + 1]) << np.uint16(8))
         if crc == recv:
+            in_range = True
+            for ch in range(n_ch):
+                q = p + 5 + 2 * ch
+                if (np.int64(arr[q]) | (np.int64(arr[q + 1]) << 8)) > adc_max:
+                    in_range = False
+                    break
+            if not in_range:
+                if n_ok == 0 or p >= end:
+                    out_of_range += 1
+                continue
             if n_ok == 0 or p >= end:  # a valid frame overlapping an accepted one is dropped
                 seq[n_ok] = np.uint16(arr[p + 2]) | (np.uint16(arr[p + 3]) << np.uint16(8))
                 flags[n_ok] = arr[p + 4]
@@ -171,7 +193,7 @@ def _scan(arr: Any, last_start: int, size: int, table: Any, seq: Any, flags: Any
                 end = p + size
         elif n_ok == 0 or p >= end:
             crc_errors += 1
-    return n_ok, crc_errors, end
+    return n_ok, crc_errors, out_of_range, end
 
 
 @dataclass

@@ -58,7 +58,7 @@ class StreamStats:
 
     frames: int = 0  #: valid frames received
     dropped: int = 0  #: frames missing from the device's sequence (plus the estimate over a reconnect)
-    crc_errors: int = 0  #: sync candidates rejected by their CRC-16
+    crc_errors: int = 0  #: corrupt frames rejected: a bad CRC-16, or a valid one over a sample beyond the ADC range
     bytes_skipped: int = 0  #: received bytes that were not part of a valid frame
     frames_per_s: float = 0.0  #: receive rate over the last second
     connected: bool = False
@@ -277,13 +277,14 @@ class TaxelStream:
 
     def _apply_layout(self, banner: dict[str, Any]) -> None:
         layout = layout_from_banner(banner)
-        if layout == self._layout and self._parser.n_channels == layout.n_channels:
+        if layout == self._layout and self._parser.n_channels == layout.n_channels \
+                and self._parser.adc_max == layout.adc_max:
             return
         if self._thread is not None and layout.n_channels != self._layout.n_channels:
             log.warning("taxel streamer on %s now reports %d channels (was %d)", self.port, layout.n_channels,
                         self._layout.n_channels)
         self._layout = layout
-        self._parser = FrameParser(n_channels=layout.n_channels)
+        self._parser = FrameParser(n_channels=layout.n_channels, adc_max=layout.adc_max)
         capacity = max(1, int(self.ring_seconds * layout.sample_rate_hz))
         if self.ring.n_channels != layout.n_channels or self.ring.capacity != capacity:
             self.ring = RingBuffer(capacity, layout.n_channels)
@@ -550,7 +551,7 @@ class TaxelStream:
         ps = self._parser.stats
         with self._lock:
             st = self._stats
-            st.crc_errors = ps.crc_errors
+            st.crc_errors = ps.crc_errors + ps.out_of_range
             st.bytes_skipped = ps.bytes_skipped
             n = len(frames)
             if n == 0:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+import pytest
 from hypothesis import given, settings, strategies as st
 
 from rigctl.devices import wire
@@ -153,7 +154,7 @@ def test_any_channel_count_round_trips_with_garbage(ch, bits, seq0, n, sizes, ga
     assert size == 7 + 2 * ch and len(data) == n * size
     assert data == b"".join(frame_bytes_ch(int(s), 0, row) for s, row in zip(seq, samples))
     stream = garbage + data
-    parser = FrameParser(n_channels=ch)
+    parser = FrameParser(n_channels=ch, adc_max=(1 << bits) - 1)
     out, pos = [], 0
     while pos < len(stream):
         for step in sizes:
@@ -177,3 +178,37 @@ def test_encode_refuses_counts_above_the_links_bits():
     assert len(encode_frames([0], 0, np.full((1, 9), 4095), adc_max=4095)) == wire.frame_size(9) == 25
     with pytest.raises(ValueError, match="at least one channel"):
         FrameParser(n_channels=0)
+
+
+def test_a_crc_valid_candidate_beyond_the_adc_range_does_not_hide_the_frame_it_overlaps():
+    """Garbage that starts with the sync bytes and whose CRC happens to match (1 in 65,536) once hid the real frame
+    it overlapped (Hypothesis found such a stream): the candidate was accepted, the real frame inside it dropped as
+    overlap. A 10-bit link never carries a sample above 1023, so the candidate is rejected on its range and the real
+    frame is found. Built here on purpose: 11 bytes of garbage (sync, seq, flags, a first sample of 0xFFFF, two free
+    bytes, one more) before a real frame, the free bytes searched so that the 43-byte candidate's CRC matches."""
+    real = frame_bytes(7, 0, list(range(100, 118)))
+    head = bytearray(wire.SYNC + bytes([1, 0, 0, 0xFF, 0xFF, 0, 0, 0]))  # 10 bytes; index 7, 8: the free bytes
+    head += b"\x00"
+    assert len(head) == 11
+    rows = np.tile(np.frombuffer(bytes(head) + real[: wire.FRAME_SIZE - len(head)], np.uint8), (65536, 1))
+    rows[:, 7] = np.arange(65536) & 0xFF
+    rows[:, 8] = np.arange(65536) >> 8
+    crcs = wire.crc16_rows(rows[:, wire.CRC_START: wire.FRAME_SIZE - 2])
+    want = rows[0, wire.FRAME_SIZE - 2].astype(np.uint16) | (rows[0, wire.FRAME_SIZE - 1].astype(np.uint16) << 8)
+    hits = np.flatnonzero(crcs == want)
+    assert hits.size, "no two free bytes give a matching CRC"
+    head[7], head[8] = int(hits[0]) & 0xFF, int(hits[0]) >> 8
+    candidate = bytes(head) + real[: wire.FRAME_SIZE - len(head)]
+    assert wire.crc16(candidate[wire.CRC_START:-2]) == struct.unpack("<H", candidate[-2:])[0]  # a CRC-valid candidate
+    stream = bytes(head) + real
+    parser = FrameParser()
+    frames = parser.feed(stream)
+    assert [(int(s), tuple(int(v) for v in row)) for s, row in zip(frames.seq, frames.samples)] == \
+        [(7, tuple(range(100, 118)))]
+    assert parser.stats.out_of_range == 1 and parser.stats.crc_errors == 0
+    # a 16-bit link carries 0xFFFF: there the candidate is a frame (and the overlapped one is lost, as before)
+    wide = FrameParser(adc_max=0xFFFF).feed(stream)
+    assert len(wide) == 1 and int(wide.samples[0, 0]) == 0xFFFF
+    for bad in (0, 70000):
+        with pytest.raises(ValueError):
+            FrameParser(adc_max=bad)
