@@ -163,3 +163,38 @@ def test_seq_gaps_wrap_at_65536():
     assert seq_gaps(np.array([65534, 65535, 0, 1], np.uint16)) == 0
     assert seq_gaps(np.array([65534, 2], np.uint16)) == 3
     assert seq_gaps(np.array([5, 6, 10], np.uint16)) == 3
+
+
+def test_block_seq_gaps_equals_seq_gaps_trial_by_trial():
+    """The block form (only the jumps gathered) against the per-trial definition, on random blocks: wraps at
+    65,536, repeats, jumps at trial boundaries (not counted: they are between trials), empty trials, int64 columns."""
+    from rigctl.storage.validate import block_seq_gaps, seq_gaps
+
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        n = int(rng.integers(0, 60))
+        steps = rng.choice([1, 1, 1, 2, 5, 0, 65535, 300], size=n)
+        seq = ((int(rng.integers(0, 65536)) + np.cumsum(steps)) % 65536).astype(np.uint16)
+        if rng.random() < 0.3:
+            seq = seq.astype(np.int64)
+        pos = np.concatenate([[0], np.sort(rng.integers(0, n + 1, size=int(rng.integers(0, 6)))), [n]])
+        want = [seq_gaps(seq[pos[i]:pos[i + 1]]) for i in range(len(pos) - 1)]
+        assert block_seq_gaps(seq, pos).tolist() == want, (seq, pos)
+
+
+def test_trials_alike_in_their_fingerprint_rows_are_no_copies_unless_every_byte_is():
+    """Byte copies are found by a fingerprint of a few hundred rows, confirmed on every byte: a trial that differs
+    from an earlier one only in a row outside the fingerprint is not called a copy; an exact copy is."""
+    from rigctl.storage.validate import _PRINT_ROWS, _Copies
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 1024, (5000, 18)).astype(np.uint16)
+    printed = set(range(0, 5000, 5000 // _PRINT_ROWS)) | {4999}
+    row = next(r for r in range(1, 5000) if r not in printed)
+    b = a.copy()
+    b[row, 3] ^= 1
+    assert _Copies.fingerprint(a) == _Copies.fingerprint(b)  # the fingerprint alone cannot tell them apart
+    copies = _Copies()
+    assert copies.copy_of(0, a, lambda: a) is None
+    assert copies.copy_of(1, b, lambda: b) is None  # ... every byte can
+    assert copies.copy_of(2, a.copy(), lambda: a) == 0
