@@ -27,7 +27,7 @@ def test_banner_and_identify(uno):
         assert stream.banner["line"].startswith(wire.UNO_BANNER_PREFIX)
         assert stream.layout == PAPER_SENSOR  # the firmware's banner names 18 channels at 1 kHz, 10 bits
         assert stream.ring.n_channels == 18
-        ident = stream.identify()
+        ident = stream.identify(timeout_s=5.0)  # behind the streamed frames on a loaded machine
         assert ident == {"firmware": (1, 0), "channels": 18, "ch": 18, "rate_hz": 1000, "bits": 10,
                          "baud": 1_000_000, "layout": None, "build": None,
                          "line": "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"}
