@@ -50,9 +50,11 @@ def test_banner_identify_and_ten_seconds_of_exact_frames(hil_rig, wait_frames):
     k0 = int(np.flatnonzero((wave == cap.samples[0]).all(axis=1))[0])
     expect = wave[(k0 + np.arange(len(seq))) % len(wave)]
     np.testing.assert_array_equal(cap.samples, expect)
-    # the harness is paced to the wall clock: 10 simulated seconds never arrive in much less than 10 s
-    # (a loaded machine may stretch them: that is a benchmark's business, not this test's)
-    assert cap.host_time_s[n - 1] - cap.host_time_s[0] > 9.0
+    # the harness is paced to the wall clock: 10 simulated seconds do not arrive in much less than 10 s. A harness
+    # starved before the capture catches up with the wall clock inside it (CI, 4 workers on 2 cores: 8.77 s), and a
+    # loaded machine may stretch them (a benchmark's business, not this test's); an unpaced Uno under simavr runs
+    # ~3x real time (1.5 CPU-s for 5 simulated s), 10 s in ~3 s
+    assert cap.host_time_s[n - 1] - cap.host_time_s[0] > 6.0
 
 
 def test_sync_in_pulse_sets_the_flag_once(hil_rig, wait_frames):
