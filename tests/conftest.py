@@ -124,6 +124,22 @@ def unit_of(nodeid: str) -> str:
     return file
 
 
+#: seconds each unit of work took in a clean-clone run of the test command (scripts/unit_seconds.py writes it from a
+#: $RIGCTL_TEST_CPU_LOG): only the order the units are handed out in; a stale or missing entry changes no result
+UNIT_SECONDS = TESTS / "unit_seconds.json"
+
+
+def unit_seconds() -> dict[str, float]:
+    """:data:`UNIT_SECONDS` as {unit: seconds} ({} when missing or unreadable)."""
+    import json
+
+    try:
+        data = json.loads(UNIT_SECONDS.read_text())
+        return {str(k): float(v) for k, v in data.items()}
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         rel = item.path.resolve().relative_to(TESTS) if item.path.resolve().is_relative_to(TESTS) else None
@@ -136,12 +152,16 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         units.setdefault(unit_of(item.nodeid), []).append(item)
 
-    def cost(unit_items) -> tuple[int, int]:
-        weights = [max((w for k, w in _KIND_WEIGHT.items() if it.get_closest_marker(k)), default=0)
-                   for it in unit_items]
-        return max(weights), sum(weights)
+    measured = unit_seconds()
 
-    order = sorted(units, key=lambda u: cost(units[u]), reverse=True)  # stable: ties keep collection order
+    def cost(unit: str) -> tuple[float, int, int]:
+        weights = [max((w for k, w in _KIND_WEIGHT.items() if it.get_closest_marker(k)), default=0)
+                   for it in units[unit]]
+        # a unit's measured seconds first (longest first is the best list schedule for a few workers); a new unit,
+        # not measured yet, by its kinds: packaging and hil ones among the long, the rest among the short
+        return measured.get(unit, 20.0 * max(weights)), max(weights), sum(weights)
+
+    order = sorted(units, key=cost, reverse=True)  # stable: ties keep collection order
     items[:] = [it for u in order for it in units[u]]
 
 
