@@ -26,11 +26,13 @@ def encoded_path_for(session_path: str) -> str:
 
 
 def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: int = 5, n_pcs: int = 50,
-            per_texture: int = 500, seed: int = 0, variants=None, progress=None):
+            per_texture: int = 500, seed: int = 0, variants=None, progress=None, cv_groups: str | None = None):
     """The paper's analyses on an encoded file (a session file is encoded first, beside it): the operator layer's
     :func:`rigctl.operations.run_analyses`, as ``rigctl analyze`` runs them, skipping what the data cannot support.
 
-    ``progress`` receives the :class:`rigctl.core.progress.ProgressEvent` s of the encoding and the analyses.
+    ``cv_groups``: how the textures/groups folds split the trials (``rigctl analyze --cv-groups``: None for random
+    trials, ``recording``, ``session``, ``block:N``; ValueError from :func:`rigctl.analysis.grouping.cv_groups` when
+    the file does not carry what it groups by). ``progress`` receives the :class:`rigctl.core.progress.ProgressEvent` s of the encoding and the analyses.
     Returns ``(TaskResults, encoded_path)``. Tasks the data cannot support (e.g. extrapolation without the
     trained speeds/forces, groups of a texture set without groups) are skipped and the reason is added to
     ``TaskResults.warnings``.
@@ -41,7 +43,7 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
     fs, encoded = load_or_encode(path, variants, task=None, encode_to=encoded_path_for(path), progress=progress,
                                  overwrite=True)  # the tab's own <name>.encoded.h5, as its Encode button
     wanted = (("textures", "groups") if cv else ()) + (("extrapolation",) if extrapolation else ())
-    plan = AnalysisPlan(wanted, groups_optional=True, on_error="skip", cv=CVParams(per_texture=per_texture),
+    plan = AnalysisPlan(wanted, groups_optional=True, on_error="skip", cv=CVParams(per_texture=per_texture, groups=cv_groups),
                         reps=Repetitions(n_pcs=n_pcs, repeats=repeats, seed=seed, variants=variants))
     return run_analyses(fs, plan, progress=progress), str(encoded)
 

@@ -96,6 +96,7 @@ class AnalysisTab(QtWidgets.QWidget):
         opts.addRow("Repetitions", self.repeats)
         opts.addRow("PCs 1..", self.n_pcs)
         opts.addRow("Trials per texture", self.per_texture)
+        opts.addRow("Test folds", self._build_cv_groups())
         opts.addRow(self.do_cv)
         opts.addRow(self.do_extra)
         self.encode_btn = QtWidgets.QPushButton("Encode")
@@ -518,13 +519,42 @@ class AnalysisTab(QtWidgets.QWidget):
         out = encoded_path_for(self.path)
         self._start(ProcessJob("rigctl_gui.analysis_jobs:encode", session_path=self.path, out_path=out), "encoding")
 
+    def _build_cv_groups(self) -> QtWidgets.QWidget:
+        """How the textures/groups folds split the trials (``rigctl analyze --cv-groups``): random trials, or whole
+        recordings / sessions / time blocks of each recording held out together (train and test never share one)."""
+        self.cv_groups = QtWidgets.QComboBox()
+        for text, spec in (("random trials", None), ("whole recordings", "recording"),
+                           ("whole sessions", "session"), ("time blocks", "block")):
+            self.cv_groups.addItem(text, spec)
+        self.cv_groups.setToolTip("Random folds over trials from one recording measure how well a recording "
+                                  "recognises itself; holding out whole recordings, sessions or time blocks keeps "
+                                  "each on one side of every split (rigctl analyze --cv-groups)")
+        self.cv_blocks = QtWidgets.QSpinBox(minimum=2, maximum=20, value=4)
+        self.cv_blocks.setSuffix(" per recording")
+        self.cv_blocks.setEnabled(False)
+        self.cv_groups.currentIndexChanged.connect(
+            lambda _i: self.cv_blocks.setEnabled(self.cv_groups.currentData() == "block"))
+        box = QtWidgets.QWidget()
+        row = QtWidgets.QHBoxLayout(box)
+        row.setContentsMargins(0, 0, 0, 0)
+        row.addWidget(self.cv_groups, 1)
+        row.addWidget(self.cv_blocks)
+        return box
+
+    def cv_groups_spec(self) -> str | None:
+        """The chosen split as ``--cv-groups`` spells it (None: random trials)."""
+        spec = self.cv_groups.currentData()
+        return f"block:{self.cv_blocks.value()}" if spec == "block" else spec
+
     def run_analyses(self) -> None:
         if self.path is None or self._busy():
             return
         self._start(ProcessJob("rigctl_gui.analysis_jobs:analyse", path=self.encoded_path or self.path,
                                cv=self.do_cv.isChecked(), extrapolation=self.do_extra.isChecked(),
                                repeats=self.repeats.value(), n_pcs=self.n_pcs.value(),
-                               per_texture=self.per_texture.value()), "analyses")
+                               per_texture=self.per_texture.value(), cv_groups=self.cv_groups_spec()), "analyses")
+        if self.do_cv.isChecked() and self.cv_groups_spec():
+            self._log(f"textures/groups test folds hold out {self.cv_groups.currentText()} ({self.cv_groups_spec()})")
 
     def train_model(self) -> None:
         path = self.encoded_path

@@ -435,3 +435,44 @@ def test_an_encoded_files_trial_shows_the_readings_of_its_session(window, qapp, 
         np.testing.assert_array_equal(tab.trial_curves[2].getData()[1], s.trial(tab.shown_tid).taxels[:, 2])
     assert "not" not in tab.trial_plot.titleLabel.text
     _assert_one_time_axis(tab, 0.5)
+
+
+def test_the_test_folds_can_hold_out_time_blocks_and_a_split_the_file_cannot_make_is_said(window, qapp, qtbot,
+                                                                                          tmp_path):
+    """The tab's "Test folds" (``rigctl analyze --cv-groups``, issue 23): time blocks of the recording held out
+    together reach the analyses (their counts name the split and its four groups; the textures interleaved, so each
+    block holds every texture); whole sessions, which one session file cannot give, end in the results' warnings,
+    not a crash; the block count is asked only for blocks."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.simulation.dataset import generate_dataset
+
+    path = tmp_path / "interleaved.h5"
+    generate_dataset(parse_protocol(PROTOCOL + 'order = "interleaved"\n'), path, workers=0, progress=False)
+    tab = window.analysis
+    window.tabs.setCurrentWidget(tab)
+    tab.open(str(path))
+    tab.do_extra.setChecked(False)
+    tab.repeats.setValue(1)
+    tab.n_pcs.setValue(4)
+    assert tab.cv_groups_spec() is None and not tab.cv_blocks.isEnabled()
+    tab.cv_groups.setCurrentIndex(tab.cv_groups.findData("block"))
+    assert tab.cv_blocks.isEnabled()
+    tab.cv_blocks.setValue(4)  # one per fold (4-fold CV needs 4 groups)
+    assert tab.cv_groups_spec() == "block:4"
+    try:
+        for spec in ("block:4", "session"):
+            tab.results = None
+            qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
+            assert wait_for(qapp, lambda: tab.job is None, 120), tab.status.text()
+            if spec == "block:4":
+                assert tab.results is not None, tab.status.text()
+                cv = tab.results.counts["cv"]
+                assert cv["groups"] == "block:4" and cv["n_groups"] == 4, tab.results.counts
+                assert "textures" in tab.results.curves
+                tab.cv_groups.setCurrentIndex(tab.cv_groups.findData("session"))
+                assert not tab.cv_blocks.isEnabled() and tab.cv_groups_spec() == "session"
+            else:  # nothing could run: the tab says why, in one line
+                assert tab.results is None
+                assert "skipped" in tab.status.text() and "session" in tab.status.text(), tab.status.text()
+    finally:
+        tab.cv_groups.setCurrentIndex(0)
