@@ -32,7 +32,8 @@ def analyse(path: str, *, cv: bool = True, extrapolation: bool = True, repeats: 
 
     ``cv_groups``: how the textures/groups folds split the trials (``rigctl analyze --cv-groups``: None for random
     trials, ``recording``, ``session``, ``block:N``; ValueError from :func:`rigctl.analysis.grouping.cv_groups` when
-    the file does not carry what it groups by). ``progress`` receives the :class:`rigctl.core.progress.ProgressEvent` s of the encoding and the analyses.
+    the file does not carry what it groups by, skipped as below). ``progress`` receives the
+    :class:`rigctl.core.progress.ProgressEvent` s of the encoding and the analyses.
     Returns ``(TaskResults, encoded_path)``. Tasks the data cannot support (e.g. extrapolation without the
     trained speeds/forces, groups of a texture set without groups) are skipped and the reason is added to
     ``TaskResults.warnings``.

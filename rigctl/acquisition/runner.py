@@ -290,6 +290,8 @@ def run_protocol(
         rig.textures = protocol.texture_set
         if resume:
             writer = SessionWriter.open(out_path, protocol_source=protocol.source)
+            # the trials from here on are this run's: its software, firmware and rig, beside the creating run's
+            writer.note_resume(session_provenance(rig.describe(), protocol=protocol))
         else:
             described = rig.describe()
             writer = SessionWriter.create(

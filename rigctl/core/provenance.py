@@ -23,11 +23,16 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-__all__ = ["KEY_PACKAGES", "PROVENANCE_ATTR", "git_state", "package_versions", "provenance_json",
+__all__ = ["KEY_PACKAGES", "PROVENANCE_ATTR", "RESUMED_ATTR", "git_state", "package_versions", "provenance_json",
            "software_provenance"]
 
 #: the root attribute (JSON text) every rigctl file keeps its provenance in
 PROVENANCE_ATTR = "provenance"
+
+#: the root attribute (JSON list) a resumed session keeps each resuming run's provenance in, oldest first: the
+#: trials recorded after ``complete_trials_before`` were recorded by that run (its software, firmware and rig), not
+#: by the one :data:`PROVENANCE_ATTR` names
+RESUMED_ATTR = "provenance_resumed"
 
 #: the packages whose versions decide what a file holds (distribution names)
 KEY_PACKAGES = ("numpy", "scipy", "h5py", "numba", "scikit-learn", "pyserial", "pymodbus", "pynwb", "hdmf", "pylsl",

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from rigctl.core.progress import ProgressCallback, Stage
+from rigctl.core.provenance import software_provenance
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData
@@ -381,6 +382,8 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             layout = model_layout(cfg)
             rate_hz = layout.sample_rate_hz
         done = set(writer.completed_ids())
+        if len(done) < len(plan):  # the missing trials are this run's (its software beside the creating run's)
+            writer.note_resume(software_provenance(kind="simulated-dataset"))
     else:
         writer = SessionWriter.create(
             out_path, plan=plan, protocol_source=protocol.source, protocol_name=protocol.name,

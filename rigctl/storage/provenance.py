@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from rigctl.core.provenance import PROVENANCE_ATTR
+from rigctl.core.provenance import PROVENANCE_ATTR, RESUMED_ATTR
 
 __all__ = ["NWB_PROVENANCE", "ProvenanceError", "read_provenance"]
 
@@ -33,7 +33,9 @@ def _text(v: Any) -> str:
 
 def read_provenance(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The provenance of the rigctl file ``path`` (session, encoded or NWB) as a dict, with ``session_id`` (a
-    session's UUID, when the file has one) added when the provenance itself lacks it.
+    session's UUID, when the file has one) added when the provenance itself lacks it, and ``resumed`` (the list of
+    :data:`rigctl.core.provenance.RESUMED_ATTR`: each resuming run's time, trials complete before it, provenance)
+    for a resumed session.
 
     Raises
     ------
@@ -61,4 +63,10 @@ def read_provenance(path: str | os.PathLike[str]) -> dict[str, Any]:
         sid = f.attrs.get("session_id")
         if sid is not None:
             out.setdefault("session_id", _text(sid))
+        resumed = f.attrs.get(RESUMED_ATTR)
+        if resumed is not None:  # a resumed session: each resuming run's provenance, oldest first
+            try:
+                out["resumed"] = json.loads(_text(resumed))
+            except ValueError as exc:
+                raise ProvenanceError(f"{path}: its {RESUMED_ATTR} is not valid JSON ({exc})") from None
     return out

@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from rigctl import __version__
-from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json, software_provenance
+from rigctl.core.provenance import PROVENANCE_ATTR, RESUMED_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
@@ -528,6 +528,19 @@ class SessionWriter:
             f["plan"][i:i + 1, "status"] = np.array([TrialStatus.FAILED], dtype=self._plan.dtype["status"])
             f.flush()
         self._plan["status"][i] = TrialStatus.FAILED
+
+    def note_resume(self, provenance: Mapping[str, Any]) -> None:
+        """Record that this run resumes the session: ``provenance`` (this run's, e.g.
+        :func:`rigctl.acquisition.provenance.session_provenance`) appended to the :data:`RESUMED_ATTR` root attribute
+        with the time and how many trials were complete before it. One crash-safe commit.
+
+        Raises SessionWriteError (disk full, read-only) as every commit does."""
+        entry = {"resumed_utc": _utc_now(), "complete_trials_before": len(self.completed_ids()),
+                 "provenance": dict(provenance)}
+        with self._commit("noting the resume") as f:
+            text = f.attrs.get(RESUMED_ATTR)
+            runs = json.loads(text.decode() if isinstance(text, bytes) else text) if text is not None else []
+            f.attrs[RESUMED_ATTR] = json.dumps([*runs, entry], default=str, sort_keys=True)  # as provenance_json
 
     def set_calibration(self, calibration: Mapping[str, Any]) -> None:
         """Write (replace) the ``/calibration`` block.

@@ -10,6 +10,7 @@ import pytest
 from rigctl.acquisition.protocol import parse_protocol
 from rigctl.core.drum import DrumState
 from rigctl.operations import ProtocolRun, RigSource, open_control
+from rigctl.storage.provenance import read_provenance
 from rigctl.storage.session import open_session
 
 PROTO = ('name = "ops"\ntextures = ["A"]\nspeeds_mm_s = [80]\nforces_g = [300]\ntrials_per_condition = {n}\n'
@@ -62,6 +63,13 @@ def test_abort_keeps_finished_trials_and_the_file_resumes(control, tmp_path):
         assert len(s.completed_ids()) == 2
     again = ProtocolRun(control, parse_protocol(PROTO.format(n=5)), out, resume=True).run()
     assert again.ok and again.recorded == 3 and again.complete == 5
+    # the file names the run that recorded trials 2-4 beside the one that created it (issue 27: a resumed session
+    # kept only its creator's provenance)
+    prov = read_provenance(out)
+    (resumed,) = prov["resumed"]
+    assert resumed["complete_trials_before"] == 2 and resumed["resumed_utc"]
+    assert resumed["provenance"]["provenance_id"] != prov["provenance_id"]
+    assert resumed["provenance"]["protocol"]["name"] == "ops" and "firmware" in resumed["provenance"]
     with pytest.raises(RuntimeError):
         run.run()  # a run is run once
     with pytest.raises(FileExistsError):

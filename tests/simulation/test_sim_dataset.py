@@ -233,6 +233,11 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
             np.testing.assert_array_equal(a.trial(tid).taxels, b.trial(tid).taxels)
         np.testing.assert_array_equal(a.calibration["taxel_min"], b.calibration["taxel_min"])
         np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
+    from rigctl.storage.provenance import read_provenance
+
+    (resumed,) = read_provenance(part)["resumed"]  # the run that rendered trials 5-23 is named in the file
+    assert resumed["complete_trials_before"] == 5 and resumed["provenance"]["kind"] == "simulated-dataset"
+    assert "resumed" not in read_provenance(fresh)
 
 
 def test_cli_start_at_any_angle_and_a_resume_keeps_the_stored_model(protocol_path, tmp_path):
