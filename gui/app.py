@@ -809,6 +809,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--taxel-port", help="serial port of the taxel streamer (Uno)")
     ap.add_argument("--sim", action="store_true", help="the simulated rig (default: the source last chosen in the "
                     "Connect dialog, the simulated rig the first time)")
+    ap.add_argument("--hil", action="store_true", help="the rig's own firmware under simavr (hardware-in-the-loop; "
+                    "needs the AVR toolchain and simavr)")
+    ap.add_argument("--hil-bootloaders", action="store_true", help="--hil with the boards' real bootloaders: each "
+                    "connect resets them, as USB does on a bench")
     ap.add_argument("--replay", metavar="PATH",
                     help="stream recorded taxel signals through the simulated rig: a session file (at its own rate "
                     "and sensor layout) or a FabricSlide directory")
@@ -830,15 +834,14 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def source_from_args(args) -> RigSource | None:
-    if args.drum_port or args.taxel_port:
-        if not (args.drum_port and args.taxel_port):
-            raise SystemExit("give both --drum-port and --taxel-port")
-        return RigSource("hardware", drum_port=args.drum_port, taxel_port=args.taxel_port)
-    if args.replay:
-        return RigSource("replay", replay_dir=args.replay)
-    if args.sim:
-        return RigSource("sim")
-    return None  # the source last chosen in the Connect dialog (QSettings)
+    """The rig the command line names (:meth:`RigSource.from_flags`, as the CLI's flags select it), or None: the
+    source last chosen in the Connect dialog (QSettings)."""
+    if bool(args.drum_port) != bool(args.taxel_port):
+        raise SystemExit("give both --drum-port and --taxel-port")
+    if args.drum_port or args.replay or args.hil or args.hil_bootloaders or args.sim:
+        return RigSource.from_flags(hil=args.hil, drum_port=args.drum_port, taxel_port=args.taxel_port,
+                                    replay=args.replay, bootloaders=args.hil_bootloaders)
+    return None
 
 
 def write_stats(window: MainWindow, path: str, state: dict) -> None:

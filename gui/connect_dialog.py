@@ -1,11 +1,13 @@
 """Connect dialog: choose the simulated rig (default), two serial ports found by VID/PID
-(:func:`rigctl.devices.ports.find_ports`), or a replay (a session file or a FabricSlide folder). The choice persists
+(:func:`rigctl.devices.ports.find_ports`), a replay (a session file or a FabricSlide folder), or the rig's own
+firmware under simavr (hardware-in-the-loop, optionally with the boards' real bootloaders). The choice persists
 in QSettings and is the source the app opens at its next start. The dialog is non-modal (STOP stays usable,
 :func:`rigctl_gui.dialogs.show_dialog`) and refuses OK, saying why, for a source that cannot be opened."""
 
 from __future__ import annotations
 
 import os
+import shutil
 
 from PySide6 import QtCore, QtWidgets
 
@@ -26,6 +28,8 @@ def load_source(settings: QtCore.QSettings) -> RigSource:
             drum_port=_text(settings.value("source/drum_port", None)),
             taxel_port=_text(settings.value("source/taxel_port", None)),
             replay_dir=_text(settings.value("source/replay_dir", None)),
+            bootloaders=str(settings.value("source/kind", "sim")) == "hil"
+            and str(settings.value("source/bootloaders", "false")).lower() == "true",
         )
     except ValueError:
         return RigSource()
@@ -36,6 +40,7 @@ def save_source(settings: QtCore.QSettings, src: RigSource) -> None:
     settings.setValue("source/drum_port", src.drum_port or "")
     settings.setValue("source/taxel_port", src.taxel_port or "")
     settings.setValue("source/replay_dir", src.replay_dir or "")
+    settings.setValue("source/bootloaders", "true" if src.bootloaders else "false")
 
 
 def source_problem(source: RigSource) -> str | None:
@@ -45,6 +50,11 @@ def source_problem(source: RigSource) -> str | None:
             return "choose a session file or a FabricSlide folder to replay (Connect...)"
         if not os.path.exists(source.replay_dir):
             return f"the replay source {source.replay_dir} does not exist (Connect... to choose another)"
+    if source.kind == "hil":
+        missing = [t for t in ("make", "avr-gcc", "pkg-config") if shutil.which(t) is None]
+        if missing:
+            return (f"the firmware under simavr needs {', '.join(missing)}: install the AVR toolchain and simavr "
+                    "(Debian: gcc-avr avr-libc arduino-core-avr simavr libsimavr-dev make pkg-config)")
     if source.is_hardware and not (source.drum_port and source.taxel_port):
         return "choose both serial ports: the drum controller's and the taxel board's (Connect...)"
     return None
@@ -70,6 +80,12 @@ class ConnectDialog(QtWidgets.QDialog):
         self.serial = QtWidgets.QRadioButton("Real rig on serial ports")
         self.replay = QtWidgets.QRadioButton("Replay (a recorded session file or FabricSlide directory through the "
                                              "simulated rig)")
+        self.hil = QtWidgets.QRadioButton("Firmware under simavr (hardware-in-the-loop: the rig's own Mega and Uno "
+                                          "images on simulated boards, built on first use)")
+        self.hil_bootloaders = QtWidgets.QCheckBox("with the boards' real bootloaders (each connect resets them, as "
+                                                   "USB does on a bench)")
+        self.hil_bootloaders.setChecked(current.bootloaders)
+        self.hil_bootloaders.toggled.connect(self._bootloaders_toggled)
         self.drum_port = QtWidgets.QComboBox(editable=True)
         self.taxel_port = QtWidgets.QComboBox(editable=True)
         self.refresh_btn = QtWidgets.QPushButton("Rescan ports")
@@ -112,10 +128,15 @@ class ConnectDialog(QtWidgets.QDialog):
         lay.addWidget(ports)
         lay.addWidget(self.replay)
         lay.addLayout(rl)
+        lay.addWidget(self.hil)
+        hl = QtWidgets.QHBoxLayout()
+        hl.addSpacing(24)
+        hl.addWidget(self.hil_bootloaders, 1)
+        lay.addLayout(hl)
         lay.addWidget(self.problem)
         lay.addWidget(buttons)
 
-        {"hardware": self.serial, "replay": self.replay}.get(current.kind, self.sim).setChecked(True)
+        {"hardware": self.serial, "replay": self.replay, "hil": self.hil}.get(current.kind, self.sim).setChecked(True)
         self.rescan(current)
 
     def rescan(self, current: RigSource | None = None) -> None:
@@ -144,6 +165,10 @@ class ConnectDialog(QtWidgets.QDialog):
                 else:
                     box.setEditText(saved)
         self.port_info.setText(err or f"{len(ports)} serial port(s) found")
+
+    def _bootloaders_toggled(self, on: bool) -> None:
+        if on:  # the bootloaders are the firmware under simavr's
+            self.hil.setChecked(True)
 
     def _browse(self) -> QtWidgets.QFileDialog:
         return choose_path(self, "dir", "FabricSlide directory", self.replay_dir.text(), "", self._replay_chosen)
@@ -176,4 +201,6 @@ class ConnectDialog(QtWidgets.QDialog):
             return RigSource("hardware", drum_port=self._port(self.drum_port), taxel_port=self._port(self.taxel_port))
         if self.replay.isChecked():
             return RigSource("replay", replay_dir=self.replay_dir.text() or None)
+        if self.hil.isChecked():
+            return RigSource("hil", bootloaders=self.hil_bootloaders.isChecked())
         return RigSource("sim")

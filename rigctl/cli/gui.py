@@ -31,6 +31,10 @@ def _require_display() -> None:
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno). Default: simulated rig.")
 @click.option("--sim", is_flag=True, help="The simulated rig (default: the source last chosen in the app's Connect "
                                         "dialog; the simulated rig the first time).")
+@click.option("--hil", is_flag=True, help="The rig's own firmware under simavr (hardware-in-the-loop; needs the AVR "
+                                        "toolchain and simavr).")
+@click.option("--hil-bootloaders", is_flag=True, help="--hil with the boards' real bootloaders: each connect resets "
+                                                    "them, as USB does on a bench.")
 @click.option("--replay", type=click.Path(exists=True), default=None,
               help="Stream a recorded session file (or the FabricSlide recordings in a directory) through the "
                    "simulated rig.")
@@ -45,7 +49,8 @@ def _require_display() -> None:
                                               "once connected.")
 @click.option("--max-fps", type=floats(0, 1e6), default=None,
               help="Frame cap of the live view, frames/s (1-120; default 30: the app's MAX_FPS).")
-def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, tab, run, texture, max_fps):
+def gui(drum_port, taxel_port, sim, hil, hil_bootloaders, replay, screenshot, overwrite, quit_after, tab, run, texture,
+        max_fps):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 
     With no source option it opens the source last chosen in its Connect dialog (the simulated rig the first time;
@@ -54,6 +59,9 @@ def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, t
     """
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("give both --drum-port and --taxel-port (or neither for the simulated rig)")
+    if sum(map(bool, (drum_port, sim, hil or hil_bootloaders, replay))) > 1:
+        raise click.UsageError("choose one source: --drum-port/--taxel-port, --sim, --hil (--hil-bootloaders) or "
+                               "--replay")
     if screenshot and quit_after is None:
         raise click.UsageError("--screenshot needs --quit-after SECONDS")
     if screenshot:
@@ -70,8 +78,7 @@ def gui(drum_port, taxel_port, sim, replay, screenshot, overwrite, quit_after, t
                         ("--texture", texture), ("--max-fps", max_fps)):
         if value is not None:
             argv += [flag, str(value)]
-    if run:
-        argv.append("--run")
-    if sim:
-        argv.append("--sim")
+    for flag, on in (("--run", run), ("--sim", sim), ("--hil", hil), ("--hil-bootloaders", hil_bootloaders)):
+        if on:
+            argv.append(flag)
     raise SystemExit(main(argv))

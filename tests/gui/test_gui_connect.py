@@ -29,8 +29,14 @@ def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_
     dlg.replay.setChecked(True)
     dlg.replay_dir.setText(str(tmp_path))
     assert dlg.source() == RigSource("replay", replay_dir=str(tmp_path))
+    dlg.hil.setChecked(True)
+    assert dlg.source() == RigSource("hil")
+    dlg.sim.setChecked(True)
+    dlg.hil_bootloaders.setChecked(True)  # ticking the bootloaders chooses the firmware under simavr
+    assert dlg.hil.isChecked() and dlg.source() == RigSource("hil", bootloaders=True)
     dlg.sim.setChecked(True)
     assert dlg.source() == RigSource("sim")
+    assert ConnectDialog(RigSource("hil", bootloaders=True)).source() == RigSource("hil", bootloaders=True)
 
     settings = make_settings()
     save_source(settings, RigSource("serial", drum_port="/dev/ttyACM0", taxel_port="/dev/ttyACM1"))
@@ -43,6 +49,9 @@ def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_
     settings.setValue("source/kind", "no such kind")
     settings.sync()
     assert load_source(make_settings()) == RigSource("sim")
+    save_source(settings, RigSource("hil", bootloaders=True))
+    settings.sync()
+    assert load_source(make_settings()) == RigSource("hil", bootloaders=True)
     save_source(settings, RigSource("sim"))
     settings.sync()
     assert load_source(make_settings()) == RigSource("sim")
@@ -100,3 +109,42 @@ def test_the_app_opens_the_source_chosen_last_unless_told_otherwise():
     assert source_from_args(parse_args(["--replay", "x.h5"])) == RigSource("replay", replay_dir="x.h5")
     assert source_from_args(parse_args(["--drum-port", "a", "--taxel-port", "b"])) == \
         RigSource("serial", drum_port="a", taxel_port="b")
+    assert source_from_args(parse_args(["--hil"])) == RigSource("hil")
+    assert source_from_args(parse_args(["--hil-bootloaders"])) == RigSource("hil", bootloaders=True)
+
+
+@pytest.mark.hil
+def test_the_app_drives_the_firmware_under_simavr(window, qapp, qtbot):
+    """The HIL source (issue 22 left the app without one): the window connects to the Mega and Uno images under
+    simavr (built from the installed sources on first use), the rig is homed, the Uno's frames reach the live view,
+    and a setpoint run and STOP reach the firmware, read back through the app's own status poll."""
+    import shutil
+
+    from PySide6 import QtCore
+
+    from rigctl.core.drum import DrumState
+    from rigctl_gui.workers import RigSource
+
+    for tool in ("make", "avr-gcc", "pkg-config"):
+        if shutil.which(tool) is None:
+            pytest.fail(f"{tool} is not installed (scripts/test.sh installs the AVR toolchain)")
+    try:
+        window.connect_source(RigSource("hil"))
+        assert wait_for(qapp, lambda: window.handle is not None or "Could not" in window.banner.text, 240), \
+            window.banner.text
+        assert window.handle is not None, window.banner.text
+        assert "firmware under simavr" in window.source_label.text()
+        assert wait_for(qapp, lambda: window.live.buffer is not None and window.live.buffer.n_samples > 500, 60)
+        panel, poller = window.control, window.poller
+        window.tabs.setCurrentWidget(panel)
+        panel.speed.setValue(60.0)
+        panel.force.setValue(300.0)
+        qtbot.mouseClick(panel.buttons["run"], QtCore.Qt.LeftButton)
+        assert wait_for(qapp, lambda: poller.latest is not None and poller.latest.state == DrumState.RUNNING
+                        and abs(poller.latest.speed_mm_s - 60.0) < 1.5, 90), poller.latest
+        qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
+        assert wait_for(qapp, lambda: poller.latest.state == DrumState.IDLE and abs(poller.latest.speed_mm_s) < 0.5,
+                        30), poller.latest
+    finally:
+        window.connect_source(RigSource("sim"))
+        assert wait_for(qapp, lambda: window.handle is not None and "simulated rig" in window.source_label.text(), 60)

@@ -5,7 +5,9 @@
  *
  * Common: UART0 is bridged to a pty (our own bridge, below); the line "PTY /dev/pts/N" on stdout names it. The core is paced to the wall clock (nanosleep on avr->cycle) unless
  * --no-pace; --clock-lock FILE also keeps it in lock step with the other board's harness (see "clock lock" below).
- * The harness exits when its stdin closes, on "quit", or when its parent dies (PR_SET_PDEATHSIG).
+ * The harness exits when its stdin closes, on "quit", or when its parent process dies (its parent pid changes; not
+ * PR_SET_PDEATHSIG, which fires when the host *thread* that started it ends: the desktop app opens the rig in a
+ * worker thread, and the boards vanished as it finished).
  * --reset-on-open emulates the Arduino's DTR auto-reset: each open() of the pty by a host (inotify IN_OPEN)
  * holds the core in reset for --boot-ms (the bootloader's wait) and restarts the firmware.
  *
@@ -53,7 +55,6 @@
 #include <string.h>
 #include <sys/inotify.h>
 #include <sys/mman.h>
-#include <sys/prctl.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -410,6 +411,22 @@ static void *stdin_thread(void *arg)
         }
     }
     atomic_store(&quit_requested, 1); /* stdin closed: the host is gone */
+    return NULL;
+}
+
+/* the host process gone (re-parented: its pid no longer our parent's) while something else keeps our stdin open, e.g.
+ * a forked child of the host: quit as if stdin had closed */
+static pid_t host_pid;
+static void *parent_watch_thread(void *arg)
+{
+    (void)arg;
+    while (!atomic_load(&quit_requested)) {
+        if (getppid() != host_pid) {
+            atomic_store(&quit_requested, 1);
+            break;
+        }
+        usleep(200000);
+    }
     return NULL;
 }
 
@@ -1222,8 +1239,8 @@ int main(int argc, char **argv)
     if (!(opt_driver_microsteps >= 1.0 && opt_driver_microsteps <= 256.0)) usage();
     if (!(opt_hx711_clock_error > -0.2 && opt_hx711_clock_error < 0.2)) usage();
 
-    prctl(PR_SET_PDEATHSIG, SIGTERM);
-    if (getppid() == 1) return 1;
+    host_pid = getppid();
+    if (host_pid == 1) return 1;
     setvbuf(stdout, NULL, _IOLBF, 0);
 
     elf_firmware_t f;
@@ -1272,8 +1289,9 @@ int main(int argc, char **argv)
     }
     printf("PTY %s\n", pty);
 
-    pthread_t th;
+    pthread_t th, watch;
     pthread_create(&th, NULL, stdin_thread, NULL);
+    pthread_create(&watch, NULL, parent_watch_thread, NULL);
 
     if (opt_clock_lock) {
         clock_lock_open(opt_clock_lock, is_uno);
