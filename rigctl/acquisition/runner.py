@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.acquisition.calibration import session_calibration_block
+from rigctl.acquisition.labels import recorded_labels
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
 from rigctl.acquisition.provenance import session_provenance
 from rigctl.acquisition.rig import CaptureError, Rig, TrialAborted
@@ -428,8 +429,9 @@ class _Run:
             break
         self.link_failures, self.link_down_since = 0, None
         data.attrs["attempts"] = attempt
-        self._write(f"writing trial {planned.trial_id}", lambda: self.writer.write_trial(planned.trial_id, data),
-                    planned, index)
+        labels = recorded_labels(planned, data.attrs)  # a replayed trial: the source trial's condition
+        self._write(f"writing trial {planned.trial_id}",
+                    lambda: self.writer.write_trial(planned.trial_id, data, labels=labels or None), planned, index)
         summary.recorded += 1
         summary.samples += data.n_samples
         summary.dropped_frames += data.dropped_frames

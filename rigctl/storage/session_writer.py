@@ -419,8 +419,13 @@ class SessionWriter:
         return int(idx[0])
 
     # -- writing ------------------------------------------------------------------------------------------------
-    def write_trial(self, trial_id: int, data: TrialData) -> None:
+    def write_trial(self, trial_id: int, data: TrialData, *, labels: Mapping[str, Any] | None = None) -> None:
         """Write one trial in one go, mark it complete in ``/plan``, commit it to disk (journaled) and close the file.
+
+        ``labels``: the condition the trial was recorded under where it is not the planned one (``texture`` str,
+        ``speed_mm_s`` mm/s, ``force_g`` g; a replayed trial's source, :func:`rigctl.acquisition.labels.
+        recorded_labels`): stored in its ``/plan`` row, the planned values kept as the trial attributes
+        ``planned_<field>``. ValueError for another field.
 
         Raises
         ------
@@ -435,31 +440,47 @@ class SessionWriter:
         i = self._row_index(trial_id)
         if self._plan["status"][i] == TrialStatus.COMPLETE:
             raise SessionError(f"trial {trial_id} is already complete in {self.path}")
-        self.write_trials([(trial_id, data)])
+        self.write_trials([(trial_id, data)], labels={trial_id: labels} if labels else None)
 
-    def write_trials(self, items: Iterable[tuple[int, TrialData]]) -> int:
+    def write_trials(self, items: Iterable[tuple[int, TrialData]], *,
+                     labels: Mapping[int, Mapping[str, Any]] | None = None) -> int:
         """Write several trials during one opening of the file; returns how many.
 
         For the dataset generator, where opening the file per trial would dominate. Same checks as
         :meth:`write_trial`. The batch reaches the disk in one journaled commit when the last trial is written: a
         crash before that loses the whole batch (the file stays as it was), never part of a trial. Each trial is
         taken whole as ``items`` yields it (its arrays copied): a caller may reuse them for the next trial.
+        ``labels``: trial id -> its recorded condition, as :meth:`write_trial`'s.
         """
-        before = self._plan["status"].copy()
-        written = []
+        for tid, asked in (labels or {}).items():
+            unknown = set(asked) - set(RELABEL_FIELDS)
+            if unknown:
+                raise ValueError(f"trial {tid}: only {', '.join(RELABEL_FIELDS)} can be relabelled, not "
+                                 f"{', '.join(sorted(unknown))}")
+        before = self._plan.copy()
+        written, relabelled = [], []
         try:
             with self._commit("writing trials") as f:
                 self._adopt_file_status(f)
-                before = self._plan["status"].copy()
+                before = self._plan.copy()
                 views: list[tuple[Any, int, TrialData]] = []  # schema 4: written to /recording after the groups
                 for trial_id, data in items:
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
                         raise SessionError(f"trial {trial_id} is already complete in {self.path}")
                     self._check_trial_layout(trial_id, data)
+                    lab = labels.get(int(trial_id)) if labels else None
+                    if lab:
+                        data = copy.copy(data)
+                        data.attrs = {**data.attrs, **{f"planned_{k}": _plan_value(self._plan[i][k]) for k in lab}}
+                        for k, v in lab.items():
+                            self._plan[i][k] = v
+                        relabelled.append(i)
                     self._write_group(f, self._plan[i], data, views)
                     self._plan["status"][i] = TrialStatus.COMPLETE
                     written.append(i)
+                for i in relabelled:  # the recorded condition in the plan row (before its status, below)
+                    f["plan"][i] = self._plan[i]
                 if views:
                     taxels = session_recording.append_trials(f, views)
                     for tax, (_, _, data) in zip(taxels, views):
@@ -470,7 +491,7 @@ class SessionWriter:
         except journal.CommittedInterrupt:
             raise  # a Ctrl-C during the commit, which was completed first: the batch is on disk
         except BaseException:
-            self._plan["status"] = before  # nothing of the batch reached the file
+            self._plan = before  # nothing of the batch reached the file
             raise
         return len(written)
 
@@ -631,6 +652,15 @@ class SessionWriter:
         layout = self.layout
         h5objects.set_attrs(tax, {"rate_hz": layout.sample_rate_hz, "unit": "ADC counts", "adc_bits": layout.adc_bits,
                                   "starting_time": starting_time})
+
+
+#: the /plan fields a trial's recorded condition may replace (:meth:`SessionWriter.write_trial` ``labels``)
+RELABEL_FIELDS = ("texture", "speed_mm_s", "force_g")
+
+
+def _plan_value(v: Any) -> Any:
+    """A /plan field's value as a Python str or number (a trial attribute)."""
+    return _text(v) if isinstance(v, (bytes, str)) else v.item()
 
 
 def _snapshot(data: TrialData) -> TrialData:

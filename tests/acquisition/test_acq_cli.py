@@ -176,6 +176,10 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
     with open_session(out) as s:
         assert s.layout.n_channels == 9 and s.layout.sample_rate_hz == 100.0
         assert list(s.plan["texture"]) == ["HB3", "Linen weave"]
+        # the plan rows hold the condition the samples were recorded under: the source's 40 mm/s, not the
+        # protocol's 120 (what the encoder labels and speed-scales by); the source has no force: the plan's stays
+        assert list(s.plan["speed_mm_s"]) == [40.0, 40.0] and list(s.plan["force_g"]) == [500.0, 500.0]
+        assert all(s.trial_attrs(t)["planned_speed_mm_s"] == 120.0 for t in s.completed_ids())
         for tid in s.completed_ids():
             t = s.trial(tid)
             texture = str(s.plan["texture"][tid])

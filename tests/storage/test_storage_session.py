@@ -130,6 +130,44 @@ def test_plan_status_failed_then_rewritten_and_no_trial_twice(tmp_path):
         assert list(f["plan"]["status"]) == [TrialStatus.COMPLETE, TrialStatus.PENDING, TrialStatus.COMPLETE]
 
 
+def test_a_trial_recorded_under_another_condition_keeps_it_in_the_plan_and_the_planned_one_beside(tmp_path):
+    """write_trial(labels=...): a replayed trial's source condition goes into its /plan row (what the encoder and the
+    analyses label by), the planned values into ``planned_*`` trial attributes; the other rows stay; a refused write
+    changes no label; only texture, speed and force can be relabelled; a resume reads the relabelled plan."""
+    from rigctl.acquisition.labels import recorded_labels
+    from rigctl.acquisition.protocol import PlannedTrial
+
+    rng = np.random.default_rng(4)
+    path = tmp_path / "s.h5"
+    w = SessionWriter.create(path, plan=_plan(3), protocol_source="src")  # trial 0: A, 40 mm/s, 250 g
+    w.write_trial(0, _trial(rng, 200), labels={"texture": "B", "speed_mm_s": 57.5})
+    with pytest.raises(SessionError, match="already complete"):
+        w.write_trial(0, _trial(rng, 200), labels={"speed_mm_s": 99.0})
+    with pytest.raises(ValueError, match="duration_s"):
+        w.write_trial(1, _trial(rng, 200), labels={"duration_s": 1.0})
+    w.write_trial(1, _trial(rng, 200))
+    w.close()
+    with open_session(path) as s:
+        plan = s.plan
+        assert (str(plan["texture"][0]), float(plan["speed_mm_s"][0]), float(plan["force_g"][0])) == ("B", 57.5, 250.0)
+        assert (str(plan["texture"][1]), float(plan["speed_mm_s"][1])) == ("B", 60.0)  # as planned
+        a = s.trial_attrs(0)
+        assert a["planned_texture"] == "A" and a["planned_speed_mm_s"] == 40.0 and "planned_force_g" not in a
+        assert a["texture"] == "B" and a["speed_mm_s"] == 57.5
+        assert "planned_speed_mm_s" not in s.trial_attrs(1)
+    w2 = SessionWriter.open(path, protocol_source="src")
+    assert float(w2.plan["speed_mm_s"][0]) == 57.5 and w2.pending_ids() == [2]
+    w2.close()
+    # the runner's rule: one source trial's finite labels that differ from the plan; none across source trials
+    planned = PlannedTrial(trial_id=0, texture="A", speed_mm_s=40.0, force_g=250.0, duration_s=1.0)
+    src = {"source_texture": "A", "source_speed_mm_s": 80.0, "source_force_g": float("nan")}
+    assert recorded_labels(planned, src) == {"speed_mm_s": 80.0}
+    assert recorded_labels(planned, {**src, "source_pieces": "[]"}) == {}
+    assert recorded_labels(planned, {"started_utc": "x"}) == {}
+    assert recorded_labels(planned, {"source_texture": "C", "source_speed_mm_s": 40.0, "source_force_g": 500}) == \
+        {"texture": "C", "force_g": 500.0}
+
+
 def test_file_is_closed_between_writes_and_script_plans_grow(tmp_path):
     rng = np.random.default_rng(3)
     path = tmp_path / "s.h5"
