@@ -203,8 +203,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
     if resume:
         from rigctl.storage.session import SessionWriter
 
-        try:  # refuse before the rig moves
-            SessionWriter.open(out, protocol_source=proto.source)
+        try:  # refuse before the rig moves (and let go of the file at once: the run opens its own writer)
+            SessionWriter.open(out, protocol_source=proto.source).close()
         except (SessionError, OSError) as exc:
             raise click.ClickException(str(exc)) from None
 
