@@ -288,10 +288,10 @@ def test_sigterm_is_a_clean_stop_and_the_previous_handler_comes_back(rig, tmp_pa
 def test_a_signal_during_a_write_stops_after_the_trial_is_written(rig, tmp_path, monkeypatch, sigterm_before):
     write = SessionWriter.write_trial
 
-    def write_trial(self, trial_id, data):
+    def write_trial(self, trial_id, data, **kw):
         if trial_id == 1:
             os.kill(os.getpid(), signal.SIGTERM)  # arrives while trial 1 is being written
-        return write(self, trial_id, data)
+        return write(self, trial_id, data, **kw)
 
     monkeypatch.setattr(SessionWriter, "write_trial", write_trial)
     out = tmp_path / "s.h5"
