@@ -27,7 +27,7 @@ from pathlib import Path
 
 from rigctl import __version__
 
-__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "FirmwareBuildError", "avrdude_command", "build", "build_dir",
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "FirmwareBuildError", "avrdude_command", "build", "build_dir", "make",
            "build_id", "cache_root", "source_digest", "source_versions", "sources"]
 
 #: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
@@ -170,6 +170,22 @@ def build(src: Path | str | None = None, out: Path | str | None = None, *,
     """
     src = Path(src) if src is not None else sources()
     out = Path(out) if out is not None else build_dir(src)
+    proc = make(targets, src, out)
+    if proc.returncode != 0:
+        raise FirmwareBuildError(f"firmware build failed ({' '.join(map(str, proc.args))}):\n{proc.stdout}\n"
+                                 f"{proc.stderr}")
+    return out
+
+
+def make(targets: tuple[str, ...], src: Path | str | None = None,
+         out: Path | str | None = None) -> subprocess.CompletedProcess[str]:
+    """Run ``make`` on ``targets`` in the build folder ``out`` (default :func:`build_dir` of ``src``) as
+    :func:`build` does: with the sources' BUILD_ID and under the folder's lock. Every make into one folder must go
+    through here: a make without the BUILD_ID (or with another) rewrites the build-id stamp, and the next build
+    relinks the images while others may be reading them. Returns the finished process (output captured); raises
+    FirmwareBuildError when there is no ``make`` at all."""
+    src = Path(src) if src is not None else sources()
+    out = Path(out) if out is not None else build_dir(src)
     out.mkdir(parents=True, exist_ok=True)
     # BUILD_ID: the Uno reports it in its banner (build=), the Mega in its input registers (BUILD_ID_0 .. _2), so the
     # doctor can tell a board flashed from other sources
@@ -177,9 +193,6 @@ def build(src: Path | str | None = None, out: Path | str | None = None, *,
     with open(out / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True)
+            return subprocess.run(cmd, capture_output=True, text=True)
         except FileNotFoundError as exc:  # no make at all
             raise FirmwareBuildError(f"firmware build failed: {exc} (install make and the AVR toolchain)") from None
-    if proc.returncode != 0:
-        raise FirmwareBuildError(f"firmware build failed ({' '.join(cmd)}):\n{proc.stdout}\n{proc.stderr}")
-    return out

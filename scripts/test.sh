@@ -69,7 +69,9 @@ python3 scripts/compile_kernels.py > "$TEST_TMP/compile_kernels.log" 2>&1 &
 kernels_pid=$!
 
 phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
-make -C arduino -s BUILD="$RIGCTL_FIRMWARE_BUILD" all harness
+# as the tests build it (rigctl.firmware.build: the sources' BUILD_ID, under the build folder's lock): a plain make
+# leaves the id out, and the first test's build would then relink the images while other workers read them
+python3 -c 'from rigctl import firmware; firmware.build()'
 
 phase "ruff check (rules and per-file ignores in pyproject.toml)"
 python3 -m ruff check --no-cache .
