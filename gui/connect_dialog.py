@@ -7,7 +7,6 @@ in QSettings and is the source the app opens at its next start. The dialog is no
 from __future__ import annotations
 
 import os
-import shutil
 
 from PySide6 import QtCore, QtWidgets
 
@@ -51,7 +50,9 @@ def source_problem(source: RigSource) -> str | None:
         if not os.path.exists(source.replay_dir):
             return f"the replay source {source.replay_dir} does not exist (Connect... to choose another)"
     if source.kind == "hil":
-        missing = [t for t in ("make", "avr-gcc", "pkg-config") if shutil.which(t) is None]
+        from rigctl.firmware import missing_build_tools
+
+        missing = missing_build_tools()
         if missing:
             return (f"the firmware under simavr needs {', '.join(missing)}: install the AVR toolchain and simavr "
                     "(Debian: gcc-avr avr-libc arduino-core-avr simavr libsimavr-dev make pkg-config)")

@@ -21,14 +21,20 @@ import fcntl
 import hashlib
 import os
 import re
+import shutil
 import subprocess
 from importlib import resources
 from pathlib import Path
 
 from rigctl import __version__
 
-__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "FirmwareBuildError", "avrdude_command", "build", "build_dir", "make",
-           "build_id", "cache_root", "source_digest", "source_versions", "sources"]
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "BUILD_TOOLS", "FirmwareBuildError", "avrdude_command", "build",
+           "build_dir", "build_id", "cache_root", "make", "missing_build_tools", "source_digest", "source_versions",
+           "sources"]
+
+#: the programs a build needs on the PATH (Debian: make, gcc-avr with avr-libc and arduino-core-avr, pkg-config with
+#: libsimavr-dev for the harness)
+BUILD_TOOLS = ("make", "avr-gcc", "pkg-config")
 
 #: file names and suffixes that make up the sources (anything else in the folder, e.g. ``build/``, is not hashed)
 _SOURCE_SUFFIXES = (".c", ".h", ".cpp")
@@ -175,6 +181,11 @@ def build(src: Path | str | None = None, out: Path | str | None = None, *,
         raise FirmwareBuildError(f"firmware build failed ({' '.join(map(str, proc.args))}):\n{proc.stdout}\n"
                                  f"{proc.stderr}")
     return out
+
+
+def missing_build_tools() -> list[str]:
+    """The programs of :data:`BUILD_TOOLS` not on the PATH ([] when a build can start)."""
+    return [tool for tool in BUILD_TOOLS if shutil.which(tool) is None]
 
 
 def make(targets: tuple[str, ...], src: Path | str | None = None,

@@ -205,6 +205,20 @@ def require_lsl():
     return pylsl
 
 
+@pytest.fixture(scope="session")
+def build_tools() -> None:
+    """The firmware's build tools (:data:`rigctl.firmware.BUILD_TOOLS`) are on the PATH: a skip naming the missing
+    ones, a failure under ``CI=true`` (scripts/test.sh installs the Debian toolchain)."""
+    from rigctl.firmware import missing_build_tools
+
+    missing = missing_build_tools()
+    if missing:
+        msg = f"{', '.join(missing)} not installed (scripts/test.sh installs the Debian toolchain)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+
+
 @pytest.fixture
 def lsl():
     """pylsl (LSLAPICFG set to the machine-local :data:`LSL_API_CFG`), or a skip / CI failure."""

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
 
 import pytest
@@ -13,20 +11,10 @@ from rigctl.devices import wire
 from rigctl.simulation import hil
 
 
-def _need(tool: str) -> None:
-    if shutil.which(tool) is None:
-        msg = f"{tool} is not installed (scripts/test.sh installs the Debian toolchain)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
-
-
 @pytest.fixture(scope="session")
-def fw_build():
+def fw_build(build_tools):
     """Build both images and the harness from the package's sources (:func:`rigctl.firmware.build`); returns the
     build directory."""
-    for tool in ("make", "avr-gcc", "pkg-config"):
-        _need(tool)
     return firmware.build()
 
 
