@@ -549,12 +549,13 @@ class AnalysisTab(QtWidgets.QWidget):
     def run_analyses(self) -> None:
         if self.path is None or self._busy():
             return
+        spec = self.cv_groups_spec()
         self._start(ProcessJob("rigctl_gui.analysis_jobs:analyse", path=self.encoded_path or self.path,
                                cv=self.do_cv.isChecked(), extrapolation=self.do_extra.isChecked(),
                                repeats=self.repeats.value(), n_pcs=self.n_pcs.value(),
-                               per_texture=self.per_texture.value(), cv_groups=self.cv_groups_spec()), "analyses")
-        if self.do_cv.isChecked() and self.cv_groups_spec():
-            self._log(f"textures/groups test folds hold out {self.cv_groups.currentText()} ({self.cv_groups_spec()})")
+                               per_texture=self.per_texture.value(), cv_groups=spec), "analyses")
+        if self.do_cv.isChecked() and spec:
+            self._log(f"textures/groups test folds hold out {self.cv_groups.currentText()} ({spec})")
 
     def train_model(self) -> None:
         path = self.encoded_path

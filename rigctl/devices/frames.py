@@ -173,6 +173,8 @@ def _scan(arr: Any, last_start: int, size: int, table: Any, adc_max: int, seq: A
             crc = (crc >> np.uint16(8)) ^ table[(crc ^ arr[j]) & np.uint16(0xFF)]
         recv = np.uint16(arr[p + off_crc]) | (np.uint16(arr[p + off_crc + 1]) << np.uint16(8))
         if crc == recv:
+            if n_ok > 0 and p < end:  # a valid frame overlapping an accepted one is dropped
+                continue
             in_range = True
             for ch in range(n_ch):
                 q = p + 5 + 2 * ch
@@ -180,17 +182,15 @@ def _scan(arr: Any, last_start: int, size: int, table: Any, adc_max: int, seq: A
                     in_range = False
                     break
             if not in_range:
-                if n_ok == 0 or p >= end:
-                    out_of_range += 1
+                out_of_range += 1
                 continue
-            if n_ok == 0 or p >= end:  # a valid frame overlapping an accepted one is dropped
-                seq[n_ok] = np.uint16(arr[p + 2]) | (np.uint16(arr[p + 3]) << np.uint16(8))
-                flags[n_ok] = arr[p + 4]
-                for ch in range(n_ch):
-                    q = p + 5 + 2 * ch
-                    samples[n_ok, ch] = np.uint16(arr[q]) | (np.uint16(arr[q + 1]) << np.uint16(8))
-                n_ok += 1
-                end = p + size
+            seq[n_ok] = np.uint16(arr[p + 2]) | (np.uint16(arr[p + 3]) << np.uint16(8))
+            flags[n_ok] = arr[p + 4]
+            for ch in range(n_ch):
+                q = p + 5 + 2 * ch
+                samples[n_ok, ch] = np.uint16(arr[q]) | (np.uint16(arr[q + 1]) << np.uint16(8))
+            n_ok += 1
+            end = p + size
         elif n_ok == 0 or p >= end:
             crc_errors += 1
     return n_ok, crc_errors, out_of_range, end

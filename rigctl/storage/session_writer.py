@@ -560,7 +560,7 @@ class SessionWriter:
                  "provenance": dict(provenance)}
         with self._commit("noting the resume") as f:
             text = f.attrs.get(RESUMED_ATTR)
-            runs = json.loads(text.decode() if isinstance(text, bytes) else text) if text is not None else []
+            runs = json.loads(_text(text)) if text is not None else []
             f.attrs[RESUMED_ATTR] = json.dumps([*runs, entry], default=str, sort_keys=True)  # as provenance_json
 
     def set_calibration(self, calibration: Mapping[str, Any]) -> None:
