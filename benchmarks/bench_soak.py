@@ -94,7 +94,8 @@ def taxel_soak(stop_at: float, seed: int, work: Path, out: dict) -> None:
     try:
         with TaxelStream(proxy.path) as stream:
             while time.monotonic() < stop_at:
-                seg_s = rng.uniform(10, 30)
+                # 10-30 s, but no longer than the time left (at least 8 s): a short soak ends near its time
+                seg_s = min(rng.uniform(10, 30), max(8.0, stop_at - time.monotonic()))
                 cut = rng.random() < 0.4
                 st0, sent0, bdrop0 = stream.stats, uno.frames_sent, uno.frames_dropped
                 stream.begin_capture()
@@ -267,13 +268,13 @@ def _finished(path: Path) -> dict[int, str]:
         return out
 
 
-def kill_soak(stop_at: float, seed: int, work: Path, out: dict) -> None:
+def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = KILL_PROTOCOL) -> None:
     rng = random.Random(seed + 2)
     f = out.setdefault("kill", dict(kills=0, sessions_completed=0, trials_finished=0, finished_trials_lost=0,
                                     finished_trials_changed=0, duplicates=0, unreadable_after_kill=0,
                                     runs_failed=0, tmp_leftovers=0))
     proto = work / "soak.toml"
-    proto.write_text(KILL_PROTOCOL)
+    proto.write_text(protocol)
     env = dict(os.environ, RIGCTL_CONFIG=str(work / "rig.json"))
     killed_pids = []
     session = 0
@@ -331,21 +332,23 @@ MUST_BE_ZERO = [("taxel", "silent_losses"), ("taxel", "bad_frames_recorded"), ("
                 ("kill", "unreadable_after_kill"), ("kill", "runs_failed"), ("kill", "tmp_leftovers")]
 
 
-def run(minutes: float, seed: int, work: Path) -> dict:
-    """Run the three parts side by side for ``minutes``; returns the figures (``errors``: parts that crashed)."""
+def run(minutes: float, seed: int, work: Path, *, kill_protocol: str = KILL_PROTOCOL) -> dict:
+    """Run the three parts side by side for ``minutes``; returns the figures (``errors``: parts that crashed).
+    ``kill_protocol``: the protocol (TOML text) the kill -9 part records again and again; the last session of the
+    soak runs to its end after ``minutes``, so a short soak gives a short one."""
     stop_at = time.monotonic() + minutes * 60
     out: dict = {"minutes": minutes, "seed": seed, "errors": []}
     t0 = time.time()
 
-    def part(fn, sub):
+    def part(fn, sub, *args):
         (work / sub).mkdir(parents=True, exist_ok=True)
         try:
-            fn(stop_at, seed, work / sub, out)
+            fn(stop_at, seed, work / sub, out, *args)
         except Exception:  # noqa: BLE001 - reported as a failure of the soak
             out["errors"].append(f"{fn.__name__}: {traceback.format_exc()}")
 
-    threads = [threading.Thread(target=part, args=(fn, fn.__name__), daemon=True)
-               for fn in (taxel_soak, modbus_soak, kill_soak)]
+    threads = [threading.Thread(target=part, args=(fn, fn.__name__, *args), daemon=True)
+               for fn, args in ((taxel_soak, ()), (modbus_soak, ()), (kill_soak, (kill_protocol,)))]
     for t in threads:
         t.start()
     for t in threads:
