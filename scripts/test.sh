@@ -62,11 +62,14 @@ export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="
 t0=$(date +%s)
 phase() { echo "== [$(( $(date +%s) - t0 )) s] $*"; }
 
-# numba's kernels compiled once into the cache, in the background while the firmware builds, the static checks run and
-# the test workers start (scripts/compile_kernels.py): otherwise each test worker and CLI subprocess compiles the ones
-# it needs (~70 s of CPU for all of them)
-python3 scripts/compile_kernels.py > "$TEST_TMP/compile_kernels.log" 2>&1 &
-kernels_pid=$!
+# numba's kernels compiled once into the cache before the tests start, in two processes side by side while the
+# firmware builds and ruff and lint-imports run (scripts/compile_kernels.py: ~13 + ~21 s of CPU); otherwise each test
+# worker, GUI analysis process and CLI subprocess that starts before the cache is ready compiles the ones it needs
+kernel_pids=()
+for part in serial parallel; do
+  python3 scripts/compile_kernels.py "$part" > "$TEST_TMP/compile_kernels_$part.log" 2>&1 &
+  kernel_pids+=($!)
+done
 
 phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
 # as the tests build it (rigctl.firmware.build: the sources' BUILD_ID, under the build folder's lock): a plain make
@@ -81,7 +84,14 @@ phase "import contracts (lint-imports; the layers in pyproject.toml, docs/archit
 python3 -c 'import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())' \
   --cache-dir "$TEST_TMP/import-linter"
 
-# mypy (one core, ~30 s of CPU) runs beside the tests, many of which wait on rigs paced to the wall clock; its
+phase "numba kernels (waiting for scripts/compile_kernels.py)"
+for i in 0 1; do
+  # (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
+  wait "${kernel_pids[$i]}" || echo "compiling the numba kernels beforehand failed:"
+done
+cat "$TEST_TMP"/compile_kernels_*.log
+
+# mypy (one core, ~15 s of CPU) runs beside the tests, many of which wait on rigs paced to the wall clock; its
 # verdict is printed and checked after them
 phase "mypy (settings in pyproject.toml), in the background"
 python3 -m mypy --cache-dir "$TEST_TMP/mypy" > "$TEST_TMP/mypy.log" 2>&1 &
@@ -105,9 +115,6 @@ status=0
 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
   "$@" || status=$?
 phase "pytest done (exit $status)"
-# (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
-wait "$kernels_pid" || echo "compiling the numba kernels beforehand failed:"
-cat "$TEST_TMP/compile_kernels.log"
 mypy_status=0
 wait "$mypy_pid" || mypy_status=$?
 echo "== mypy:"
