@@ -19,7 +19,6 @@ import time
 
 import numpy as np
 
-
 #: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, the
 #: serial builds (one trial at a time, and the simulated rig's renderer) and the parallel ones (more than a SIMD
 #: block of trials), so two processes never write the same kernel's cache index at once
