@@ -4,10 +4,11 @@
   run by scripts/test.sh), which read every import statement, those inside functions too;
   :func:`test_the_contracts_catch_an_import_inside_a_function` is their negative control;
 - what static analysis cannot see, at run time: which third-party modules importing a layer actually loads (a
-  dependency that pulls in Qt, a plugin loaded by name). Each layer is imported, every module of it
-  (pkgutil.walk_packages), in a fresh interpreter, and the test fails if a module the layer must not use shows up
-  in ``sys.modules``; the message names the forbidden module and the first module of the layer whose import brought
-  it in. Rules: nothing in rigctl but ``rigctl.cli.gui`` loads Qt, pyqtgraph or the GUI package; the core, the file
+  dependency that pulls in Qt, a plugin loaded by name). The layers are imported, every module of each
+  (pkgutil.walk_packages), one after another in one fresh interpreter, each after those it may use, and a layer's
+  test fails if a module it must not use shows up in ``sys.modules`` while its modules are imported (or was there
+  before it); the message names the forbidden module and the first module of the layer whose import brought it
+  in. Rules: nothing in rigctl but ``rigctl.cli.gui`` loads Qt, pyqtgraph or the GUI package; the core, the file
   formats, the encoder and the analyses never load serial or Modbus.
 """
 
@@ -27,26 +28,32 @@ REPO = Path(__file__).resolve().parents[1]
 
 _PROBE = textwrap.dedent("""
     import importlib, json, pkgutil, sys, traceback
-    package, skip, forbidden = sys.argv[1], set(json.loads(sys.argv[2])), json.loads(sys.argv[3])
+    layers = json.loads(sys.argv[1])  # [[package, skip, forbidden], ...] in order: each after those before it
 
-    def hits():
+    def hits(forbidden):
         return {f for f in forbidden for m in list(sys.modules) if m == f or m.startswith(f + ".")}
 
-    culprit, errors = {}, {}
-    pkg = importlib.import_module(package)
-    names = [package] + [m.name for m in pkgutil.walk_packages(pkg.__path__, package + ".")
-                         if not any(m.name == s or m.name.startswith(s + ".") for s in skip)]
-    for name in names:
-        try:
-            importlib.import_module(name)
-        except Exception as exc:  # a module of the layer that cannot be imported at all
-            errors[name] = f"{type(exc).__name__}: {exc}"
-        for f in hits():
-            culprit.setdefault(f, name)
-    print(json.dumps({"modules": names, "culprit": culprit, "errors": errors}))
+    out = {}
+    for package, skip, forbidden in layers:
+        before = hits(forbidden)  # loaded by a layer before (that layer's own test reports it)
+        culprit, errors = {}, {}
+        pkg = importlib.import_module(package)
+        names = [package] + [m.name for m in pkgutil.walk_packages(pkg.__path__, package + ".")
+                             if not any(m.name == s or m.name.startswith(s + ".") for s in skip)]
+        for name in names:
+            try:
+                importlib.import_module(name)
+            except Exception as exc:  # a module of the layer that cannot be imported at all
+                errors[name] = f"{type(exc).__name__}: {exc}"
+            for f in hits(forbidden) - before:
+                culprit.setdefault(f, name)
+        out[package] = {"modules": names, "culprit": culprit, "errors": errors, "before": sorted(before)}
+    print(json.dumps(out))
 """)
 
-#: layer -> (modules of it not checked, third-party modules it must not load)
+#: layer -> (modules of it not checked, third-party modules it must not load), in the order the probe imports them:
+#: each layer only after the layers it may use, so that whatever shows up while a layer's modules are imported was
+#: loaded by them (a module loaded by an earlier layer is that layer's failure, and is named as such)
 _NO_WIRE = ["serial", "pymodbus"]
 RULES: dict[str, tuple[list[str], list[str]]] = {
     "rigctl.core": ([], _NO_WIRE),
@@ -57,28 +64,39 @@ RULES: dict[str, tuple[list[str], list[str]]] = {
 }
 
 
-def probe(package: str, skip: list[str], forbidden: list[str]) -> dict:
-    """Import every module of ``package`` (but ``skip``) in a fresh interpreter; which ``forbidden`` modules came in."""
-    proc = subprocess.run([sys.executable, "-c", _PROBE, package, json.dumps(skip), json.dumps(forbidden)],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, f"importing {package} failed:\n{proc.stderr[-3000:]}"
+def probe(layers: dict[str, tuple[list[str], list[str]]]) -> dict:
+    """Import every module of each layer (but its skip list), in the given order, in one fresh interpreter (one
+    interpreter start and one import of numpy, h5py, scikit-learn... instead of one per layer): per layer, which of
+    its ``forbidden`` modules came in while its modules were imported, and which had come in before it."""
+    arg = json.dumps([[package, skip, forbidden] for package, (skip, forbidden) in layers.items()])
+    proc = subprocess.run([sys.executable, "-c", _PROBE, arg], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, f"importing {list(layers)} failed:\n{proc.stderr[-3000:]}"
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.fixture(scope="module")
+def probed() -> dict:
+    return probe(RULES)
+
+
 @pytest.mark.parametrize("layer", list(RULES))
-def test_layer_imports_nothing_forbidden(layer):
-    skip, forbidden = RULES[layer]
-    out = probe(layer, skip, forbidden)
+def test_layer_imports_nothing_forbidden(layer, probed):
+    out = probed[layer]
     assert len(out["modules"]) >= 1
     assert not out["errors"], f"modules of {layer} that cannot be imported: {out['errors']}"
     bad = [f"{f} (first pulled in by importing {m})" for f, m in sorted(out["culprit"].items())]
+    bad += [f"{f} (already loaded by a layer imported before it)" for f in out["before"]]
     assert not bad, f"{layer} must not import: " + "; ".join(bad)
 
 
 def test_the_probe_sees_a_forbidden_import():
     """Negative control: the probe reports what a layer does import (numpy is everywhere in storage)."""
-    out = probe("rigctl.storage", [], ["numpy"])
-    assert "numpy" in out["culprit"]
+    out = probe({"rigctl.core": ([], ["h5py"]), "rigctl.storage": ([], ["h5py", "serial"])})
+    assert "h5py" in out["rigctl.storage"]["culprit"] and not out["rigctl.storage"]["before"]
+    assert out["rigctl.storage"]["culprit"]["h5py"].startswith("rigctl.storage")
+    # a forbidden module an earlier layer loaded is reported against the later layer too, never lost
+    again = probe({"rigctl.storage": ([], []), "rigctl.encoding": ([], ["h5py"])})
+    assert again["rigctl.encoding"]["before"] == ["h5py"]
 
 
 def test_the_contracts_catch_an_import_inside_a_function(tmp_path):
