@@ -113,6 +113,9 @@ def _held_rig_warnings():
 @click.option("--hil-bootloaders", is_flag=True, default=False,
               help="As --hil, with the boards' real bootloaders (stk500v2, optiboot) under simavr: opening a port "
                    "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
+@click.option("--inprocess", is_flag=True, default=False,
+              help="Use the in-process simulated rig: the model and controller logic of --sim without ports or "
+                   "threads, on a simulated clock (a dry run in a fraction of the real time; no wire is exercised).")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
 @click.option("--replay", "replay", type=REPLAY, default=None,
@@ -139,7 +142,7 @@ def _held_rig_warnings():
               help="Publish the run on Lab Streaming Layer (taxels, SA/RA spikes, drum state, markers; docs/lsl.md); "
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
-def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure,
+def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure,
             config_path, plates, lsl, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
@@ -158,12 +161,13 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
     hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("give both --drum-port and --taxel-port (hardware), or neither (--sim)")
-    if drum_port is not None and (sim or hil):
-        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil")
-    if sim and hil:
-        raise click.UsageError("choose one of --sim and --hil")
-    if replay is not None and (hil or drum_port is not None):
-        raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--drum-port")
+    if drum_port is not None and (sim or hil or inprocess):
+        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil/--inprocess")
+    if sim + hil + inprocess > 1:
+        raise click.UsageError("choose one of --sim, --hil and --inprocess")
+    if replay is not None and (hil or inprocess or drum_port is not None):
+        raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--inprocess/"
+                               "--drum-port")
     if isinstance(replay, Path) and Path(out).resolve() == replay.resolve():
         raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
     if resume and overwrite:
@@ -200,21 +204,29 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, drum_port, taxel_port, rep
                 click.echo(f"note: --plates skip: the plan's {len(labels)} textures ({', '.join(labels[:8])}"
                            f"{' ...' if len(labels) > 8 else ''}) are all recorded on the plate already mounted, "
                            "each trial labelled with the plan's texture", err=True)
+    rig_seed = 0 if seed is None else seed
     if resume:
         from rigctl.storage.session import SessionWriter
 
         try:  # refuse before the rig moves (and let go of the file at once: the run opens its own writer)
-            SessionWriter.open(out, protocol_source=proto.source).close()
+            check = SessionWriter.open(out, protocol_source=proto.source)
+            try:
+                # a simulated rig goes on from a new seed (its seed plus the trials recorded so far): one started
+                # again from the first run's seed would record that run's first trials again, byte for byte (the
+                # in-process rig is deterministic), which the trial validator rightly flags as copies
+                rig_seed += len(check.completed_ids())
+            finally:
+                check.close()
         except (SessionError, OSError) as exc:
             raise click.ClickException(str(exc)) from None
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
-                                  bootloaders=hil_bootloaders)
+                                  bootloaders=hil_bootloaders, inprocess=inprocess)
     with _held_rig_warnings() as held:
         try:
-            control = open_control(source, prompt=prompt, seed=0 if seed is None else seed,
+            control = open_control(source, prompt=prompt, seed=rig_seed,
                                    host_config_path=config_path)
         except RigOpenError as exc:  # the port opened but the drum controller failed there
             stop = ("" if exc.stop_acknowledged

@@ -16,6 +16,9 @@ from rigctl.cli.ranges import SEED, floats
 @click.option("--hil-bootloaders", is_flag=True, default=False,
               help="As --hil, with the boards' real bootloaders (stk500v2, optiboot) under simavr: opening a port "
                    "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
+@click.option("--inprocess", is_flag=True, default=False,
+              help="Use the in-process simulated rig: the model and controller logic of --sim without ports or "
+                   "threads, on a simulated clock (a dry run in a fraction of the real time; no wire is exercised).")
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
 @click.option("--check", "checks", multiple=True, metavar="NAME",
@@ -28,7 +31,7 @@ from rigctl.cli.ranges import SEED, floats
 @click.option("--rest-s", type=floats(2.0, 120.0), default=10.0, show_default=True,
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
-def doctor(sim, hil, hil_bootloaders, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
+def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
     after each. The report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a check
@@ -43,10 +46,10 @@ def doctor(sim, hil, hil_bootloaders, drum_port, taxel_port, checks, list_checks
     hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
-    if drum_port is not None and (sim or hil):
-        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil")
-    if sim and hil:
-        raise click.UsageError("choose one of --sim and --hil")
+    if drum_port is not None and (sim or hil or inprocess):
+        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil/--inprocess")
+    if sim + hil + inprocess > 1:
+        raise click.UsageError("choose one of --sim, --hil and --inprocess")
     from rigctl.operations import RigSource, doctor as run
 
     if checks:
@@ -54,7 +57,8 @@ def doctor(sim, hil, hil_bootloaders, drum_port, taxel_port, checks, list_checks
             doc.select(checks)
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--check") from None
-    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders)
+    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders,
+                                  inprocess=inprocess)
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
                  save=not no_save, on_result=None if as_json else lambda r: click.echo(r.line()))
     if as_json:

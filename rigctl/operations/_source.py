@@ -56,16 +56,19 @@ class RigSource:
 
     @classmethod
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
-                   replay: str | Path | None = None, bootloaders: bool = False) -> "RigSource":
+                   replay: str | Path | None = None, bootloaders: bool = False,
+                   inprocess: bool = False) -> "RigSource":
         """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
-        ``bootloaders`` -> "hil" (with its bootloaders if asked), else "sim" (the flags' consistency is the CLI's to
-        check)."""
+        ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", else "sim" (the
+        flags' consistency is the CLI's to check)."""
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port)
         if replay is not None:
             return cls("replay", replay_dir=str(replay))
         if hil or bootloaders:
             return cls("hil", bootloaders=bootloaders)
+        if inprocess:
+            return cls("inprocess")
         return cls("sim")
 
     @property

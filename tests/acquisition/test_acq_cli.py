@@ -1,5 +1,7 @@
-"""`rigctl acquire` and `rigctl info` as separate processes on the simulated rig (real ptys, real pymodbus/pyserial):
-quick_check end to end, and a kill -9 mid-session followed by --resume."""
+"""`rigctl acquire` and `rigctl info` as separate processes: quick_check end to end and the replays on the simulated
+rig (real ptys, real pymodbus/pyserial), and a kill -9 mid-session followed by --resume on the in-process rig
+(``--inprocess``: the runner, the session writer and the resume are what it checks, in a fraction of the real time;
+the soak, tests/acquisition/test_acq_soak.py, kills ``rigctl acquire --sim`` on ptys again and again)."""
 
 from __future__ import annotations
 
@@ -15,8 +17,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
-pytestmark = pytest.mark.realtime
 
 REPO = Path(__file__).resolve().parents[2]
 RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
@@ -34,6 +34,7 @@ def _info(path, env) -> dict:
     return json.loads(out.stdout)
 
 
+@pytest.mark.realtime
 def test_quick_check_end_to_end(tmp_path):
     env = _env(tmp_path)
     out = tmp_path / "quick.h5"
@@ -70,12 +71,13 @@ def test_quick_check_end_to_end(tmp_path):
         assert rig["mode"] == "sim" and rig["drum_firmware"] == list(MEGA_FIRMWARE_VERSION)
 
 
-SHORT = """\
-name = "short"
+#: the kill -9 test's protocol: 40 short trials, so that the in-process rig is still recording when it is killed
+MANY = """\
+name = "many"
 textures = ["A", "B"]
 speeds_mm_s = [120]
 forces_g = [400]
-trials_per_condition = 3
+trials_per_condition = 20
 duration_s = 0.4
 
 [settle]
@@ -98,17 +100,18 @@ def _complete(path) -> list[int]:
 
 def test_kill_9_mid_session_then_resume(tmp_path):
     env = _env(tmp_path)
-    proto = tmp_path / "short.toml"
-    proto.write_text(SHORT)
+    proto = tmp_path / "many.toml"
+    proto.write_text(MANY)
+    n_plan = 40
     out = tmp_path / "s.h5"
-    proc = subprocess.Popen([*RIGCTL, "acquire", str(proto), "--out", str(out), "--quiet"], env=env,
+    proc = subprocess.Popen([*RIGCTL, "acquire", str(proto), "--inprocess", "--out", str(out), "--quiet"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
     while len(_complete(out)) < 2:
         assert proc.poll() is None, proc.stderr.read().decode()
         assert time.monotonic() < deadline
-        time.sleep(0.05)
-    time.sleep(0.3)  # somewhere inside the next trial
+        time.sleep(0.02)
+    time.sleep(0.05)  # somewhere inside a later trial
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL
@@ -117,32 +120,32 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     with h5py.File(out, "r") as f:
         status = f["plan"]["status"][()]
         before = {int(t): _digest(f, int(t)) for t in np.flatnonzero(status == 1)}
-        assert 2 <= len(before) < 6
+        assert 2 <= len(before) < n_plan
         for tid in before:
             assert f[f"trials/{tid:06d}/taxels"].shape == (400, 18)
-        assert set(np.flatnonzero(status == 0)) == set(range(6)) - set(before)
+        assert set(np.flatnonzero(status == 0)) == set(range(n_plan)) - set(before)
 
     # a different protocol is refused before the rig moves
     other = tmp_path / "other.toml"
-    other.write_text(SHORT.replace("[400]", "[300]"))
-    refused = subprocess.run([*RIGCTL, "acquire", str(other), "--out", str(out), "--resume"], env=env,
+    other.write_text(MANY.replace("[400]", "[300]"))
+    refused = subprocess.run([*RIGCTL, "acquire", str(other), "--inprocess", "--out", str(out), "--resume"], env=env,
                              capture_output=True, text=True, timeout=60)
     assert refused.returncode != 0 and "protocol differs" in refused.stderr
 
-    resumed = subprocess.run([*RIGCTL, "acquire", str(proto), "--out", str(out), "--resume", "--quiet"], env=env,
-                             capture_output=True, text=True, timeout=120)
+    resumed = subprocess.run([*RIGCTL, "acquire", str(proto), "--inprocess", "--out", str(out), "--resume", "--quiet"],
+                             env=env, capture_output=True, text=True, timeout=120)
     assert resumed.returncode == 0, resumed.stderr
-    assert "trials complete: 6/6" in resumed.stdout
-    assert f"recorded now: {6 - len(before)}" in resumed.stdout
+    assert f"trials complete: {n_plan}/{n_plan}" in resumed.stdout
+    assert f"recorded now: {n_plan - len(before)}" in resumed.stdout
     with h5py.File(out, "r") as f:
-        assert list(f["plan"]["status"][()]) == [1] * 6
-        assert sorted(f["trials"]) == [f"{i:06d}" for i in range(6)]  # one group per trial, none twice
+        assert list(f["plan"]["status"][()]) == [1] * n_plan
+        assert sorted(f["trials"]) == [f"{i:06d}" for i in range(n_plan)]  # one group per trial, none twice
         for tid, digest in before.items():  # trials finished before the kill were not recorded again
             assert _digest(f, tid) == digest
-        starts = [f[f"trials/{i:06d}"].attrs["started_utc"] for i in range(6)]
+        starts = [f[f"trials/{i:06d}"].attrs["started_utc"] for i in range(n_plan)]
         assert starts == sorted(starts)  # recorded once each, in plan order across the two runs
     info = _info(out, env)
-    assert info["totals"]["complete"] == 6 and info["totals"]["dropped_frames"] == 0
+    assert info["totals"]["complete"] == n_plan and info["totals"]["dropped_frames"] == 0
 
 
 def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
@@ -210,6 +213,7 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
             np.testing.assert_array_equal(s.trial(tid).taxels, rebuilt)
 
 
+@pytest.mark.realtime
 def test_acquire_replays_a_fabricslide_folder_following_the_mounted_plate(tmp_path, fabricslide_dir):
     """`rigctl acquire --replay FOLDER`: each trial holds the mounted fabric's recording (a trial labelled Canvas
     holds Canvas samples, not the next file in name order), with the file, its setpoints and the sample range."""

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from datetime import UTC, datetime, timedelta
 
 import numpy as np
 import pytest
@@ -244,7 +245,7 @@ def test_cli_usage_errors_exit_2():
     p = _rigctl("doctor", "--drum-port", "/dev/null", "--no-save")
     assert p.returncode == 2 and "both --drum-port and --taxel-port" in p.stderr
     p = _rigctl("doctor", "--hil-bootloaders", "--sim", "--no-save")
-    assert p.returncode == 2 and "choose one of --sim and --hil" in p.stderr
+    assert p.returncode == 2 and "choose one of --sim, --hil and --inprocess" in p.stderr
     assert "Traceback" not in p.stderr
 
 
@@ -308,17 +309,22 @@ def test_a_port_without_permission_fails_with_the_dialout_fix(tmp_path):
             os.close(fd)
 
 
-@pytest.mark.realtime
-def test_cli_doctor_sim_passes_and_stores_the_dated_report(tmp_path):
+def test_cli_doctor_inprocess_passes_and_stores_the_dated_report(tmp_path):
+    """`rigctl doctor` as a process, on the in-process rig (its checks' logic; the same command on the firmware under
+    simavr, over ptys, is test_cli_doctor_hil_passes): a line per check, the summary, the report stored under the
+    rig's kind with its date."""
     cfg = tmp_path / "rig.json"
-    p = _rigctl("doctor", "--sim", "--rest-s", "3", "--config", str(cfg), env={**os.environ, "HOME": str(tmp_path)})
+    p = _rigctl("doctor", "--inprocess", "--rest-s", "3", "--config", str(cfg),
+                env={**os.environ, "HOME": str(tmp_path)})
     assert p.returncode == 0, p.stdout + p.stderr
     lines = p.stdout.splitlines()
     assert len(lines) == len(doctor.check_names()) + 1
     assert all(line.split()[0] in ("PASS", "SKIP") for line in lines[:-1]), p.stdout
-    stored = load_rig_config(cfg)["doctor"]["sim"]
-    assert stored["ok"] is True and stored["rig"] == "sim"
-    assert {c["name"]: c["status"] for c in stored["checks"]}["port-permissions"] == "pass"
+    assert lines[-1].startswith("inprocess rig:") and "0 failed" in lines[-1]
+    stored = load_rig_config(cfg)["doctor"]["inprocess"]
+    assert stored["ok"] is True and stored["rig"] == "inprocess"
+    assert abs(datetime.fromisoformat(stored["checked_utc"]) - datetime.now(UTC)) < timedelta(minutes=5)
+    assert {c["name"]: c["status"] for c in stored["checks"]}["force-step"] == "pass"
 
 
 @pytest.mark.hil
@@ -334,7 +340,8 @@ def test_cli_doctor_hil_passes(tmp_path):
     rep = json.loads(p.stdout)
     by = {c["name"]: c for c in rep["checks"]}
     assert not [n for n, c in by.items() if c["status"] == "fail"], by
-    for name in ("link", "firmware-version", "firmware-build", "controller-faults", "reset-cause", "e-stop",
+    for name in ("port-permissions", "link", "firmware-version", "firmware-build", "controller-faults", "reset-cause",
+                 "e-stop",
                  "hx711-rate", "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed"):
         assert by[name]["status"] == "pass", by[name]
     # both images under simavr were built by rigctl from the installed sources: both boards report their build id
