@@ -104,6 +104,24 @@ def _held_rig_warnings():
             logger.removeFilter(hold)
 
 
+def _recorded_before(out: Path, proto) -> int:
+    """``--resume``: the trials ``out`` holds already, after checking it can be resumed with ``proto`` (refused before
+    the rig moves, and the file let go at once: the run opens its own writer). A simulated rig goes on from its seed
+    plus this count: one started again from the first run's seed would record that run's first trials again, byte for
+    byte (the in-process rig is deterministic), which the trial validator rightly flags as copies. Raises
+    click.ClickException when the file cannot be resumed (another protocol, not a session file, unreadable)."""
+    from rigctl.storage.session import SessionError, SessionWriter
+
+    try:
+        check = SessionWriter.open(out, protocol_source=proto.source)
+        try:
+            return len(check.completed_ids())
+        finally:
+            check.close()
+    except (SessionError, OSError) as exc:
+        raise click.ClickException(str(exc)) from None
+
+
 @click.command()
 @click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -204,21 +222,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                 click.echo(f"note: --plates skip: the plan's {len(labels)} textures ({', '.join(labels[:8])}"
                            f"{' ...' if len(labels) > 8 else ''}) are all recorded on the plate already mounted, "
                            "each trial labelled with the plan's texture", err=True)
-    rig_seed = 0 if seed is None else seed
-    if resume:
-        from rigctl.storage.session import SessionWriter
-
-        try:  # refuse before the rig moves (and let go of the file at once: the run opens its own writer)
-            check = SessionWriter.open(out, protocol_source=proto.source)
-            try:
-                # a simulated rig goes on from a new seed (its seed plus the trials recorded so far): one started
-                # again from the first run's seed would record that run's first trials again, byte for byte (the
-                # in-process rig is deterministic), which the trial validator rightly flags as copies
-                rig_seed += len(check.completed_ids())
-            finally:
-                check.close()
-        except (SessionError, OSError) as exc:
-            raise click.ClickException(str(exc)) from None
+    rig_seed = (0 if seed is None else seed) + (_recorded_before(out, proto) if resume else 0)
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
