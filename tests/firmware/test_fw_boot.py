@@ -22,6 +22,14 @@ pytestmark = pytest.mark.hil
 
 
 @pytest.fixture(scope="module")
+def mega_boot_rig(fw_build):
+    """The Mega alone with its bootloader, for the Mega's tests: no Uno core simulated beside it (~0.2 of a CPU core
+    for the ~80 s they take) and none to keep its clock in lock step with."""
+    with hil.HilRig(bootloaders=True, live=False, with_uno=False) as rig:
+        yield rig
+
+
+@pytest.fixture(scope="module")
 def boot_rig(fw_build):
     """Both boards with their bootloaders; a fixed waveform (no live rendering: the CPU goes to the cores)."""
     with hil.HilRig(bootloaders=True, live=False) as rig:
@@ -40,10 +48,10 @@ def _first_answer_s(rig: hil.HilRig, drum: DrumClient, t0: float) -> float:
 
 
 @pytest.mark.timeout(900)  # 5 s of programming-mode timeout; a starved machine simulates slower than real time
-def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(boot_rig):
+def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(mega_boot_rig):
     """Today's host (sends at once, retries every 0.5 s): the Mega's bootloader takes the first request for a
     programmer and every retry keeps it there, so it never answers."""
-    rig = boot_rig
+    rig = mega_boot_rig
     drum = _client(rig, boot_wait_s=0.0, boot_quiet_s=0.0, retries=4)
     with pytest.raises(DrumTimeout):
         with drum:
@@ -61,11 +69,11 @@ def test_the_stk500v2_window_is_measured_and_a_host_sending_at_once_is_trapped(b
 
 
 @pytest.mark.timeout(1500)  # ~35 s of the Mega's simulated time; a starved machine simulates slower than real time
-def test_thirty_openings_at_random_moments_all_connect(boot_rig):
+def test_thirty_openings_at_random_moments_all_connect(mega_boot_rig):
     """30 openings of the Mega's port: 20 by a new client at a random moment after the last close (often inside
     the boot window the last open started), 10 while a host polls (its port fails under it, it reopens: the board
     resets under the poller). Every one gets answers; the time to the first answer is reported."""
-    rig = boot_rig
+    rig = mega_boot_rig
     rng = np.random.default_rng(22)
     first_s: list[float] = []
     boots0 = len(rig.boot_times_s)
@@ -116,11 +124,11 @@ def test_thirty_openings_at_random_moments_all_connect(boot_rig):
     assert first.max() < 5.0
 
 
-def test_a_second_program_cannot_open_the_port_and_reset_the_board_under_a_polling_host(boot_rig):
+def test_a_second_program_cannot_open_the_port_and_reset_the_board_under_a_polling_host(mega_boot_rig):
     """The host holds its port in the tty's exclusive mode (TIOCEXCL): another program's open() fails in the kernel
     before DTR is raised, so it cannot reset the board (root bypasses TIOCEXCL: then only the advisory lock refuses
     the second client, after its open has reset the board, and the reset is not checked)."""
-    rig = boot_rig
+    rig = mega_boot_rig
     with _client(rig) as drum:
         drum.read_status()
         assert is_exclusive(drum._client.socket)
