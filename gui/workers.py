@@ -48,7 +48,7 @@ class RigHandle:
     """
 
     def __init__(self, control, source: RigSource | None = None):
-        from rigctl.operations import RigControl
+        from rigctl.operations import RigControl, live_ring
 
         if not isinstance(control, RigControl):  # an acquisition Rig
             control = RigControl(control, source)
@@ -58,6 +58,7 @@ class RigHandle:
         self.drum = control.drum
         self.taxels = control.taxels
         self.sim = control.sim
+        live_ring(self.taxels)  # the live view reads it: a source that keeps one only on request (in-process) now does
 
     @property
     def is_simulated(self) -> bool:

@@ -48,7 +48,7 @@ from rigctl.operations._calibrate import (
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
 from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recordings
-from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, spike_capacity
+from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, live_ring, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
 from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue
 from rigctl.operations._run import RUN_STATES, ProtocolRun
@@ -59,7 +59,7 @@ __all__ = [
     "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES",
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
     "SetpointRefusal", "setpoint_refusals", "doctor",
-    "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S",
+    "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S", "live_ring",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "force_leak_report", "ProtocolRun", "RUN_STATES",
     "import_recordings", "ImportReport", "IMPORT_PRESETS",

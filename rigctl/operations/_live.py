@@ -16,7 +16,16 @@ import numpy as np
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
-__all__ = ["LIVE_WINDOW_MAX_S", "LiveEncoder", "SpikeRing", "spike_capacity"]
+__all__ = ["LIVE_WINDOW_MAX_S", "LiveEncoder", "SpikeRing", "spike_capacity", "live_ring"]
+
+
+def live_ring(taxels: Any) -> Any:
+    """The live ring buffer (:class:`rigctl.devices.ring.RingBuffer`) of a taxel source, for a live consumer (the
+    live encoder, a live view, the LSL feed): a serial stream always keeps one; the in-process rig keeps one only once
+    asked (``enable_ring()``: its tests pay nothing for it), which this does. None for a source that has neither."""
+    ring = getattr(taxels, "ring", None)
+    enable = getattr(taxels, "enable_ring", None)
+    return enable() if ring is None and enable is not None else ring
 
 
 class SpikeRing:
@@ -129,7 +138,7 @@ class LiveEncoder(threading.Thread):
         return StreamingEncoder(self.layout.n_channels, normalise=self.normaliser, fs=self.layout.sample_rate_hz)
 
     def run(self) -> None:
-        ring = self.taxels.ring
+        ring = live_ring(self.taxels)
         encoder = None
         while not self._halt.is_set():
             if encoder is None or self._reset_request.is_set():

@@ -23,6 +23,7 @@ import numpy as np
 from rigctl.acquisition.lsl import LslOutlets
 from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.normalisation import TaxelRange
+from rigctl.operations._live import live_ring
 
 __all__ = ["LiveLslFeed", "LIVE_PUSH_S"]
 
@@ -55,8 +56,7 @@ class LiveLslFeed(threading.Thread):
         self._fit = DeviceClockFit(self.layout.sample_rate_hz)
         self._segment_origin: tuple[int, float] | None = None  # (count, host time) of a segment's first frame
         self._last_time = -math.inf
-        enable = getattr(stream, "enable_ring", None)
-        self._ring = enable() if getattr(stream, "ring", None) is None and enable is not None else stream.ring
+        self._ring = live_ring(stream)
         self._cursor = self._ring.total if self._ring is not None else 0
         # the encoder is made (its kernels compiled: ~1 s the first time) in a thread of its own, so that the taxels
         # go out live meanwhile; their spikes follow once it is ready (the chunks wait in the backlog)
