@@ -58,7 +58,7 @@ def gui_home(tmp_path_factory):
 def _never_the_users_home(request, tmp_path_factory):
     """Every GUI test runs in a private home: its own (:func:`gui_home`), else its module's window's, else a fresh
     one."""
-    if {"gui_home", "window"} & set(request.fixturenames):
+    if {"gui_home", "window", "inprocess_window"} & set(request.fixturenames):
         yield
         return
     with private_home(tmp_path_factory.mktemp("home")):
@@ -72,14 +72,13 @@ def window_home(tmp_path_factory):
         yield home
 
 
-@pytest.fixture(scope="module")
-def window(qapp, window_home):
-    """The main window connected to a fresh simulated rig (module-scoped); closed (rig stopped) afterwards."""
+def _main_window(qapp, kind: str):
+    """The main window connected to a fresh rig of ``kind``, shown at 1400x900; closed (rig stopped) afterwards."""
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
     from rigctl_gui.workers import RigSource
 
     configure_pyqtgraph()
-    w = MainWindow(RigSource("sim"))
+    w = MainWindow(RigSource(kind))
     w.resize(1400, 900)
     w.show()
     wait_for(qapp, lambda: w.handle is not None or "not connected" in w.source_label.text(), 30)
@@ -94,6 +93,44 @@ def window(qapp, window_home):
     del w
     gc.collect()
     qapp.processEvents()
+
+
+@pytest.fixture(scope="module")
+def window(qapp, window_home):
+    """The main window connected to a fresh simulated rig on ptys (module-scoped); closed (rig stopped) afterwards."""
+    yield from _main_window(qapp, "sim")
+
+
+@pytest.fixture(scope="module")
+def inprocess_window(qapp, window_home):
+    """The main window connected to the in-process rig (module-scoped): the GUI's flows on a simulated clock, a trial
+    in a fraction of its time; closed afterwards."""
+    yield from _main_window(qapp, "inprocess")
+
+
+#: a short protocol of the GUI tests (:func:`gui_protocol`): two textures, ``n`` trials each, 0.3 s trials
+GUI_PROTOCOL = """
+name = "gui_test"
+description = "GUI test: two textures, short trials"
+textures = ["A", "L"]
+speeds_mm_s = [100]
+forces_g = [300]
+trials_per_condition = {n}
+duration_s = 0.3
+order = "blocked"
+
+[settle]
+force_timeout_s = 10
+speed_timeout_s = 5
+speed_tolerance_mm_s = 3
+"""
+
+
+def gui_protocol(tmp_path, n: int) -> str:
+    """:data:`GUI_PROTOCOL` with ``n`` trials a texture, written under ``tmp_path``; its path."""
+    p = tmp_path / f"gui_test_{n}.toml"
+    p.write_text(GUI_PROTOCOL.format(n=n))
+    return str(p)
 
 
 TOOLS = ("Xvfb", "openbox", "xdotool")

@@ -1,6 +1,6 @@
-"""Protocol tab on the simulated rig: a short protocol records a session file; pause, resume and abort behave; an
-aborted session is resumed to completion. Calibration tab: the load cell is calibrated with a (simulated) known
-mass and the scale lands in the controller and the rig config."""
+"""Protocol tab on the simulated rig on ptys: STOP aborts a run. Calibration tab: the load cell is calibrated with a
+(simulated) known mass and the scale lands in the controller and the rig config. (The protocol tab's record, pause,
+resume and abort flows run on the in-process rig: test_gui_protocol_flow.py.)"""
 
 from __future__ import annotations
 
@@ -9,110 +9,18 @@ import os
 import time
 
 import pytest
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore
 
 from rigctl.devices.wire import HoldingRegister
-from rigctl.storage.session import open_session
-from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
+
+from .conftest import gui_protocol
 
 pytestmark = pytest.mark.realtime
 
-PROTOCOL = """
-name = "gui_test"
-description = "GUI test: two textures, short trials"
-textures = ["A", "L"]
-speeds_mm_s = [100]
-forces_g = [300]
-trials_per_condition = {n}
-duration_s = 0.3
-order = "blocked"
-
-[settle]
-force_timeout_s = 10
-speed_timeout_s = 5
-speed_tolerance_mm_s = 3
-"""
-
-
-def _protocol(tmp_path, n):
-    p = tmp_path / f"gui_test_{n}.toml"
-    p.write_text(PROTOCOL.format(n=n))
-    return str(p)
-
-
-def test_protocol_run_records_a_session_file(window, qapp, qtbot, tmp_path):
-    tab = window.protocol
-    window.tabs.setCurrentWidget(tab)
-    tab.load(_protocol(tmp_path, 1))
-    assert tab.table.rowCount() == 2
-    assert "2 trials" in tab.summary.text() and "textures A, L" in tab.summary.text()
-    out = tmp_path / "run.h5"
-    tab.out_edit.setText(str(out))
-    tab._trial_started = time.monotonic() - 355.0  # the app has been open a while (the clock of an old trial)
-    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
-    assert tab.running
-    shown = []  # the trial bar's "trial N: S s" while it runs: each trial's own clock, from its first event
-
-    def done():
-        fmt = tab.trial_bar.format()
-        if fmt.startswith("trial ") and " s (" in fmt:
-            shown.append(float(fmt.split(": ")[1].split(" s")[0]))
-        return tab.job is None
-
-    assert wait_for(qapp, done, 60), tab.status.text()
-    assert shown and max(shown) < 30, shown
-    assert "finished: 2/2" in tab.status.text(), tab.status.text()
-    assert [tab.table.item(r, 6).text() for r in range(2)] == ["recorded", "recorded"]
-    with open_session(out) as s:
-        assert s.completed_ids() == [0, 1]
-        tr = s.trial(1)
-        assert tr.taxels.shape == (300, 18)
-        assert s.plan["texture"][1] in (b"L", "L")
-
-
-def test_pause_resume_abort_and_resume_the_session(window, qapp, qtbot, tmp_path):
-    tab = window.protocol
-    tab.load(_protocol(tmp_path, 3))
-    out = tmp_path / "paused.h5"
-    tab.out_edit.setText(str(out))
-    tab.resume_box.setChecked(False)
-    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: len(tab._done_ids) >= 1, 60), tab.status.text()
-    qtbot.mouseClick(tab.pause_btn, QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: tab._paused, 30), tab.status.text()
-    assert "PAUSED" in tab.status.text()
-    assert tab.resume_btn.isEnabled() and not tab.pause_btn.isEnabled()
-    done = len(tab._done_ids)
-    wait_for(qapp, lambda: False, 1.0)
-    assert len(tab._done_ids) == done  # nothing recorded while paused
-    qtbot.mouseClick(tab.resume_btn, QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: len(tab._done_ids) > done, 60), tab.status.text()
-    qtbot.mouseClick(tab.abort_btn, QtCore.Qt.LeftButton)  # Abort asks first; Esc in the question keeps the run
-    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
-    qtbot.keyClick(box, QtCore.Qt.Key_Escape)
-    wait_for(qapp, lambda: False, 0.5)
-    assert tab.running and not tab.stop_event.is_set()
-    qtbot.mouseClick(tab.abort_btn, QtCore.Qt.LeftButton)
-    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
-    qtbot.mouseClick(next(b for b in box.buttons() if b.text() == "Abort the run"), QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
-    assert "aborted" in tab.status.text()
-    with open_session(out) as s:
-        n_done = len(s.completed_ids())
-        assert 2 <= n_done < 6
-    # resume the interrupted file: only the missing trials are recorded
-    tab.resume_box.setChecked(True)
-    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: tab.job is None, 90), tab.status.text()
-    assert "finished: 6/6" in tab.status.text(), tab.status.text()
-    with open_session(out) as s:
-        assert s.completed_ids() == list(range(6))
-
-
 def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
     tab = window.protocol
-    tab.load(_protocol(tmp_path, 3))
+    tab.load(gui_protocol(tmp_path, 3))
     tab.out_edit.setText(str(tmp_path / "stopped.h5"))
     tab.resume_box.setChecked(False)
     qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
@@ -208,7 +116,7 @@ def test_publish_on_lsl_follows_the_rig_config_and_says_what_is_missing(window, 
     assert tab.lsl_box.isChecked()  # the rig config switches it on ...
     tab.take_rig_defaults(window.handle.rig)
     assert not tab.lsl_box.isChecked()  # ... the test rig's config says nothing: off
-    tab.load(_protocol(tmp_path, 1))
+    tab.load(gui_protocol(tmp_path, 1))
     out = tmp_path / "lsl.h5"
     tab.out_edit.setText(str(out))
     monkeypatch.setitem(sys.modules, "pylsl", None)  # import pylsl raises ImportError
