@@ -8,6 +8,7 @@ import signal
 import tempfile
 import threading
 from pathlib import Path
+from typing import NoReturn
 
 import pytest
 
@@ -180,14 +181,20 @@ def pytest_xdist_make_scheduler(config, log):
     return UnitScheduling(config, log)
 
 
+def skip_or_fail(reason: str, ci_reason: str | None = None) -> NoReturn:
+    """Skip the test for ``reason`` (a tool, library or data folder this machine lacks); under ``CI=true``, where
+    scripts/test.sh installs everything, fail it instead, with ``ci_reason`` (default ``reason``)."""
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(reason if ci_reason is None else ci_reason)
+    pytest.skip(reason)
+
+
 def shared_path(*parts: str) -> Path:
     """Path under ``../shared/`` beside the repo. Skips the test if missing, fails it under ``CI=true``."""
     path = SHARED.joinpath(*parts)
     if not path.exists():
         msg = f"{path} is missing (the shared data beside the repo)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg + "; under CI=true it must be present")
-        pytest.skip(msg)
+        skip_or_fail(msg, msg + "; under CI=true it must be present")
     return path
 
 
@@ -199,9 +206,7 @@ def require_lsl():
         pylsl.library_version()
     except Exception as exc:  # noqa: BLE001 - ImportError, RuntimeError (no liblsl), OSError
         msg = f"pylsl's liblsl is unavailable ({type(exc).__name__}: {exc})"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg + "; under CI=true it must be installed (pip install 'rigctl[lsl]')")
-        pytest.skip(msg)
+        skip_or_fail(msg, msg + "; under CI=true it must be installed (pip install 'rigctl[lsl]')")
     return pylsl
 
 
@@ -213,10 +218,7 @@ def build_tools() -> None:
 
     missing = missing_build_tools()
     if missing:
-        msg = f"{', '.join(missing)} not installed (scripts/test.sh installs the Debian toolchain)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        skip_or_fail(f"{', '.join(missing)} not installed (scripts/test.sh installs the Debian toolchain)")
 
 
 @pytest.fixture

@@ -10,17 +10,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+from .conftest import skip_or_fail
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def test_the_docs_build_strictly(tmp_path):
     if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings") is None:
-        msg = 'mkdocs / mkdocstrings are not installed (the "docs" extra, part of "test")'
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        skip_or_fail('mkdocs / mkdocstrings are not installed (the "docs" extra, part of "test")')
     site = tmp_path / "site"
     out = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
                          capture_output=True, text=True, cwd=REPO, timeout=600,

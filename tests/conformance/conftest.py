@@ -14,7 +14,6 @@ refuses to send, so that the controller's own refusal is what is tested.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,6 +26,8 @@ from rigctl.devices.drum import DrumClient
 from rigctl.devices.errors import DrumError, ModbusExceptionError
 from rigctl.devices.wire import DrumState, HoldingRegister as HR
 from rigctl.rigs import drum_answer_timeout_s
+
+from ..conftest import skip_or_fail
 
 
 @dataclass
@@ -146,9 +147,7 @@ def _start_hil(config=None, image: str = "mega_drum"):
     try:
         firmware.build()
     except firmware.FirmwareBuildError as exc:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(str(exc))
-        pytest.skip(f"the firmware or the simavr harness cannot be built here: {exc}")
+        skip_or_fail(f"the firmware or the simavr harness cannot be built here: {exc}", str(exc))
     rig = hil.HilRig(config, live=False, with_uno=False, mega_image=image).start()
     return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm=lambda: rig.next_telemetry().act_mm,
                            load_g=lambda: rig.next_telemetry().force_g,

@@ -21,6 +21,8 @@ import pytest  # noqa: E402
 
 from rigctl_gui.events import wait_for  # noqa: E402
 
+from ..conftest import skip_or_fail  # noqa: E402
+
 #: the QSettings user-scope INI folders in force, innermost last (Qt has no getter for QSettings.setPath)
 _SETTINGS_PATHS: list[str] = []
 
@@ -147,10 +149,7 @@ def x_server(width: int, height: int) -> Iterator[dict]:
     ``CI=true``)."""
     miss = missing_tools()
     if miss:
-        msg = f"{', '.join(miss)} not installed (scripts/test.sh installs them)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        skip_or_fail(f"{', '.join(miss)} not installed (scripts/test.sh installs them)")
     r, wfd = os.pipe()
     xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(wfd), "-screen", "0", f"{width}x{height}x24", "-nolisten",
                              "tcp"], pass_fds=(wfd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
