@@ -18,6 +18,13 @@ from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED
+from rigctl.cli.rig_flags import (
+    check_one_rig,
+    drum_port_option,
+    hil_bootloaders_option,
+    inprocess_option,
+    taxel_port_option,
+)
 
 
 class ReplaySource(click.ParamType):
@@ -128,14 +135,10 @@ def _recorded_before(out: Path, proto) -> int:
               help="Session file to write (HDF5, .h5).")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Use the simulated rig (the default).")
 @click.option("--hil", is_flag=True, default=False, help="Use the real firmware under simavr (hardware in the loop).")
-@click.option("--hil-bootloaders", is_flag=True, default=False,
-              help="As --hil, with the boards' real bootloaders (stk500v2, optiboot) under simavr: opening a port "
-                   "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
-@click.option("--inprocess", is_flag=True, default=False,
-              help="Use the in-process simulated rig: the model and controller logic of --sim without ports or "
-                   "threads, on a simulated clock (a dry run in a fraction of the real time; no wire is exercised).")
-@click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
-@click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
+@hil_bootloaders_option
+@inprocess_option
+@drum_port_option
+@taxel_port_option
 @click.option("--replay", "replay", type=REPLAY, default=None,
               help="Simulated rig whose taxel board streams this recording (a session file, at its own layout and "
                    "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model; "
@@ -179,10 +182,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("give both --drum-port and --taxel-port (hardware), or neither (--sim)")
-    if drum_port is not None and (sim or hil or inprocess):
-        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil/--inprocess")
-    if sim + hil + inprocess > 1:
-        raise click.UsageError("choose one of --sim, --hil and --inprocess")
+    check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
     if replay is not None and (hil or inprocess or drum_port is not None):
         raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--inprocess/"
                                "--drum-port")

@@ -8,19 +8,22 @@ from pathlib import Path
 import click
 
 from rigctl.cli.ranges import SEED, floats
+from rigctl.cli.rig_flags import (
+    check_one_rig,
+    drum_port_option,
+    hil_bootloaders_option,
+    inprocess_option,
+    taxel_port_option,
+)
 
 
 @click.command("doctor")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Check the simulated rig (the default).")
 @click.option("--hil", is_flag=True, default=False, help="Check the real firmware under simavr.")
-@click.option("--hil-bootloaders", is_flag=True, default=False,
-              help="As --hil, with the boards' real bootloaders (stk500v2, optiboot) under simavr: opening a port "
-                   "resets its board as a real one's auto-reset does, and the host waits the boot window out.")
-@click.option("--inprocess", is_flag=True, default=False,
-              help="Use the in-process simulated rig: the model and controller logic of --sim without ports or "
-                   "threads, on a simulated clock (a dry run in a fraction of the real time; no wire is exercised).")
-@click.option("--drum-port", default=None, help="Serial port of the drum controller (Mega) on real hardware.")
-@click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (Uno) on real hardware.")
+@hil_bootloaders_option
+@inprocess_option
+@drum_port_option
+@taxel_port_option
 @click.option("--check", "checks", multiple=True, metavar="NAME",
               help="Run only this check (repeatable); --list shows the names.")
 @click.option("--list", "list_checks", is_flag=True, default=False, help="List the checks and exit.")
@@ -46,10 +49,7 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
-    if drum_port is not None and (sim or hil or inprocess):
-        raise click.UsageError("--drum-port/--taxel-port select the hardware rig: drop --sim/--hil/--inprocess")
-    if sim + hil + inprocess > 1:
-        raise click.UsageError("choose one of --sim, --hil and --inprocess")
+    check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
     from rigctl.operations import RigSource, doctor as run
 
     if checks:
