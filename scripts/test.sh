@@ -94,9 +94,9 @@ python3 -c 'import sys; from importlinter.cli import lint_imports_command; sys.e
   --cache-dir "$TEST_TMP/import-linter"
 
 phase "numba kernels (waiting for scripts/compile_kernels.py)"
-for i in 0 1; do
+for pid in "${kernel_pids[@]}"; do
   # (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
-  wait "${kernel_pids[$i]}" || echo "compiling the numba kernels beforehand failed:"
+  wait "$pid" || echo "compiling the numba kernels beforehand failed:"
 done
 cat "$TEST_TMP"/compile_kernels_*.log
 
