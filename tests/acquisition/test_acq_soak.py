@@ -1,5 +1,5 @@
-"""The soak benchmark (benchmarks/bench_soak.py) for half a minute (its segments cut to the time left): faults on both
-links and kill -9 cycles, with every must-be-0 figure at 0 (the benchmark's own runs go for an hour)."""
+"""The soak benchmark (benchmarks/bench_soak.py) for half a minute: faults on both links and kill -9 cycles, with
+every must-be-0 figure at 0 (the benchmark's own runs go for an hour)."""
 
 import importlib.util
 from pathlib import Path
