@@ -356,9 +356,29 @@ def _process_main(target: str, kwargs: dict, q) -> None:
         q.put(("result", result))
 
 
+#: what every job of the analysis tab imports (the library's encoding and analyses, scikit-learn, scipy, numba,
+#: h5py: ~1.5-2 s of CPU), loaded once into the fork server that starts the jobs (:func:`job_context`)
+JOB_PRELOAD = ("rigctl_gui.analysis_jobs", "rigctl.operations", "rigctl.encoding.pipeline", "rigctl.analysis.tasks",
+               "rigctl.analysis.classify", "rigctl.analysis.model", "rigctl.encoding.estimators")
+
+
+def job_context():
+    """The ``multiprocessing`` context the jobs start in: ``forkserver``, with :data:`JOB_PRELOAD` imported into the
+    server when it starts (the first job), so each later job is a fork of a process that has the analysis stack
+    loaded rather than a fresh interpreter importing it again (``spawn``). The server is a plain process started
+    from a fresh interpreter, not a fork of the GUI: no Qt, no threads of the app in the jobs. It lives as long as the
+    app and is stopped with it."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(list(JOB_PRELOAD))  # used when the server starts; no effect once it runs
+    return ctx
+
+
 class ProcessJob:
-    """Runs ``module:function(**kwargs)`` in a separate process (spawned), so heavy encoding and analyses neither
-    freeze the GUI nor compete for its GIL, and :meth:`cancel` really stops them (terminate).
+    """Runs ``module:function(**kwargs)`` in a separate process (forked from :func:`job_context`'s server), so heavy
+    encoding and analyses neither freeze the GUI nor compete for its GIL, and :meth:`cancel` really stops them
+    (terminate).
 
     Progress: a function that takes a ``progress`` argument gets a callback that sends the library's
     :class:`rigctl.core.progress.ProgressEvent` s to this process; :meth:`poll` turns the newest into
@@ -367,9 +387,7 @@ class ProcessJob:
     """
 
     def __init__(self, target: str, **kwargs):
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")
+        ctx = job_context()
         self.q = ctx.Queue()
         self.proc = ctx.Process(target=_process_main, args=(target, kwargs, self.q), daemon=True)
         self.done = False
