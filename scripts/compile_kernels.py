@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 #: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, the
-#: serial builds (one trial at a time, and the simulated rig's renderer) and the parallel ones (more than a SIMD
-#: block of trials), so two processes never write the same kernel's cache index at once
+#: serial builds (one trial at a time, and the simulated rig's renderer and mechanics) and the parallel ones (more
+#: than a SIMD block of trials), so two processes never write the same kernel's cache index at once
 PARTS = ("serial", "parallel")
 
 
@@ -33,13 +33,14 @@ def main(argv: list[str]) -> int:
     t0 = time.monotonic()
     from rigctl.encoding import izhikevich
     from rigctl.encoding.fused import BLOCK_TRIALS, run_fused
-    from rigctl.simulation.model import SensorModel
+    from rigctl.simulation.model import RigModel, SensorModel
 
     n = 64
-    if "serial" in parts:  # first the taxel renderer every simulated rig runs
+    if "serial" in parts:  # first the taxel renderer and the mechanics every simulated rig runs
         force_g = np.full(n, 300.0)
         force_g.flags.writeable = False  # as the dataset renderer passes it
         SensorModel().render("A", np.linspace(0.0, 10.0, n), force_g, np.random.default_rng(0))
+        RigModel().advance(3, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
     sizes = [n_trials for part, n_trials in (("serial", 1), ("parallel", BLOCK_TRIALS + 1)) if part in parts]
     for n_trials in sizes:  # the serial and the parallel builds
         starts = np.arange(n_trials + 1, dtype=np.int64) * n

@@ -33,6 +33,7 @@ import collections
 import functools
 import json
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -588,6 +589,11 @@ class MegaController:
         usteps = d.steps_per_rev * d.microsteps  # what the firmware assumes
         n = sensor.size
         before = self._steps
+        if n and not self._sensor_live and not sensor.any():  # the common ms: no index edge, maybe no wrap
+            last = before + rate * n / 1000.0
+            if math.floor(before / usteps) == math.floor(last / usteps):  # steps are linear in time: no wrap
+                self._steps = float(last)
+                return np.zeros(n, bool)
         steps = before + rate * np.arange(1, n + 1) / 1000.0
         self._steps = float(steps[-1]) if n else before
         out = np.zeros(n, bool)

@@ -57,6 +57,7 @@ from rigctl.core.drum import DRUM_DIAMETER_MM, DRUM_MICROSTEPS, DRUM_STEPS_PER_R
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.textures import TextureSet
 from rigctl.devices import wire
+from rigctl.simulation.mechanics import step_mechanics
 from rigctl.simulation.textures import TEXTURES, Texture, get_texture
 
 #: the model renders the paper's sensor (3x3 taxels, 2 layers: 18 channels), from its SensorLayout
@@ -741,7 +742,8 @@ class RigModel:
         # HX711: force on the cell, one sample per ms (newest last), and the conversions so far
         self._hx_period_s = self.config.mechanics.hx711_period_s
         self._hx_weights = sinc4_weights(self._hx_period_s * 1000.0)
-        self._hx_hist = np.zeros(_HX_HISTORY_MS)
+        self._hx_hist = np.zeros(4 * _HX_HISTORY_MS)
+        self._hx_fill = _HX_HISTORY_MS
         self._hx_next_s = self._hx_period_s
         self._hx_conversions = 0
         self._hx_last_s = 0.0
@@ -864,18 +866,27 @@ class RigModel:
         completes in the step takes the sinc^4-weighted force of the four periods before it (lock held)."""
         n = cell_g.size
         t0 = self._time_s
-        self._hx_hist = np.concatenate((self._hx_hist, cell_g))[-(_HX_HISTORY_MS + n):]
+        # the history, newest last, is _hx_hist[:_hx_fill]; the newest _HX_HISTORY_MS move to the front when the
+        # step does not fit behind them (no copy of the whole history per ms)
+        hist, fill = self._hx_hist, self._hx_fill
+        if fill + n > hist.size:
+            keep = hist[fill - _HX_HISTORY_MS:fill].copy()
+            if _HX_HISTORY_MS + n > hist.size:
+                hist = self._hx_hist = np.empty(2 * (_HX_HISTORY_MS + n))
+            hist[:_HX_HISTORY_MS] = keep
+            fill = _HX_HISTORY_MS
+        hist[fill:fill + n] = cell_g
+        fill = self._hx_fill = fill + n
         w = self._hx_weights
         noise = self.config.mechanics.loadcell_noise_g
         while self._hx_next_s <= t0 + n * 1e-3 + 1e-12:
             k = min(n, max(1, math.ceil((self._hx_next_s - t0) * 1000.0 - 1e-9)))  # the step it completes in
-            end = self._hx_hist.size - (n - k)
-            window = self._hx_hist[end - w.size:end][::-1]
+            end = fill - (n - k)
+            window = hist[end - w.size:end][::-1]
             self._loadcell_g = float(np.dot(w, window)) + noise * float(self._rng.standard_normal())
             self._hx_last_s = self._hx_next_s
             self._hx_next_s += self._hx_period_s
             self._hx_conversions += 1
-        self._hx_hist = self._hx_hist[-_HX_HISTORY_MS:]
 
     def advance(self, n_ms: int, *, drum_step_rate_hz: float, actuator_velocity_mm_s: float
                 ) -> tuple[np.ndarray, np.ndarray]:
@@ -906,22 +917,18 @@ class RigModel:
         with self._lock:
             if n == 0:
                 return np.empty((0, N_TAXELS), np.uint16), np.zeros(0, bool)
-            k = np.arange(1, n + 1, dtype=np.float64)
             target = float(drum_step_rate_hz) / d.true_steps_per_mm  # the driver's real microstep setting
-            dv = target - self._speed_mm_s
-            ramp = d.max_accel_mm_s2 * dt * k
-            speed = np.where(ramp >= abs(dv), target, self._speed_mm_s + math.copysign(1.0, dv) * ramp)
-            pos = self._position_mm + np.cumsum(speed) * dt
             circ = d.circumference_mm
-            rev = np.floor(np.concatenate(([self._position_mm], pos)) / circ)
-            sync_in = np.diff(rev) != 0
-
             va = float(np.clip(actuator_velocity_mm_s, -m.actuator_max_speed_mm_s, m.actuator_max_speed_mm_s))
-            act = np.clip(self._actuator_mm + va * dt * k, 0.0, m.actuator_travel_mm)
-            compression = act - m.contact_gap_mm
-            runout = d.runout_mm * np.sin(2 * np.pi * pos / circ + self._runout_phase)
-            force = m.contact_stiffness_g_per_mm * np.clip(compression + np.where(compression > 0, runout, 0.0), 0, None)
-            force *= 1.0 + m.texture_ripple * self.sensor.contact_height(self._texture, np.mod(pos, circ))
+            # speed ramp, surface travel, index-mark passes, actuator travel and contact force with the runout and
+            # the texture ripple (SensorModel.contact_height), one ms after another (rigctl.simulation.mechanics)
+            heights, period, mean = self.sensor.height_tables(self._texture)
+            pos, sync_in, force = np.empty(n), np.empty(n, bool), np.empty(n)
+            speed, act = step_mechanics(
+                self._speed_mm_s, target, d.max_accel_mm_s2 * dt, self._position_mm, circ, self._actuator_mm, va * dt,
+                m.actuator_travel_mm, m.contact_gap_mm, d.runout_mm, self._runout_phase, m.contact_stiffness_g_per_mm,
+                m.texture_ripple, heights[1], period, float(mean[1]), float(self.sensor.config.pitch_mm), pos, sync_in,
+                force)
 
             # slow sensitivity drift of the fabric: Ornstein-Uhlenbeck, tau 20 s
             c = self.config.sensor
@@ -931,9 +938,9 @@ class RigModel:
             samples = self.sensor.render(self._texture, pos, force, self._rng, sensitivity=self._sensitivity,
                                          wrap_mm=circ)
 
-            self._speed_mm_s = float(speed[-1])
+            self._speed_mm_s = float(speed)
             self._position_mm = float(pos[-1])
-            self._actuator_mm = float(act[-1])
+            self._actuator_mm = float(act)
             self._force_g = float(force[-1])
             self._hx711_convert(force + self._mass_on_loadcell_g)
             self._time_s += n * dt
