@@ -1,5 +1,5 @@
 """Write tests/unit_seconds.json from a test run's $RIGCTL_TEST_CPU_LOG (tests/conftest.py: one line per test, node
-id, wall s, CPU s): the wall seconds of each unit of work (``tests.conftest.unit_of``), which the test command's
+id, wall s, CPU s, worker, start time): the wall seconds of each unit of work (``tests.conftest.unit_of``), which the test command's
 scheduler hands out longest first.
 
     RIGCTL_TEST_CPU_LOG=/tmp/cpu.log bash scripts/test.sh && python scripts/unit_seconds.py /tmp/cpu.log
@@ -24,7 +24,7 @@ def main(argv: list[str]) -> int:
 
     seconds: dict[str, float] = defaultdict(float)
     for line in Path(argv[0]).read_text().splitlines():
-        nodeid, wall, _cpu = line.split("\t")
+        nodeid, wall = line.split("\t")[:2]
         seconds[unit_of(nodeid)] += float(wall)
     ordered = dict(sorted(((u, round(s, 1)) for u, s in seconds.items()), key=lambda kv: -kv[1]))
     UNIT_SECONDS.write_text(json.dumps(ordered, indent=0) + "\n")

@@ -81,7 +81,8 @@ def _ctrl_c_reaches_children():
 def pytest_runtest_protocol(item, nextitem):
     """With ``$RIGCTL_TEST_CPU_LOG`` set (a file path), append one line per test: its node id, wall seconds and CPU
     seconds (this process and the children it reaped meanwhile: CLI subprocesses, and a module's simavr harnesses
-    when its rig closes), tab-separated: where the suite's CPU goes, which ``--durations`` (wall) cannot say."""
+    when its rig closes), then the worker (pytest-xdist's id) and when the test started (Unix time), tab-separated:
+    where the suite's CPU goes, which ``--durations`` (wall) cannot say, and what ran beside what."""
     path = os.environ.get("RIGCTL_TEST_CPU_LOG")
     if not path:
         yield
@@ -93,10 +94,11 @@ def pytest_runtest_protocol(item, nextitem):
         a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
         return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
-    t0, c0 = time.monotonic(), cpu()
+    t0, c0, start = time.monotonic(), cpu(), time.time()
     yield
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     with open(path, "a") as f:
-        f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\n")
+        f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\t{worker}\t{start:.1f}\n")
 
 
 def pytest_unconfigure(config):

@@ -605,13 +605,16 @@ class SensorModel:
         if pos.ndim != 1:
             raise ValueError(f"position_mm must be 1-D, got shape {pos.shape}")
         n = pos.shape[0]
-        force = np.ascontiguousarray(np.broadcast_to(np.asarray(force_g, dtype=np.float64), (n,)))
+        if isinstance(force_g, np.ndarray) and force_g.dtype == np.float64 and force_g.shape == (n,):
+            force = np.ascontiguousarray(force_g)  # the live rig's case, a few ms at a time: no broadcast
+        else:
+            force = np.ascontiguousarray(np.broadcast_to(np.asarray(force_g, dtype=np.float64), (n,)))
         if out is None:
             out = np.empty((n, N_TAXELS), dtype=np.uint16)
         elif out.shape != (n, N_TAXELS) or out.dtype != np.uint16:
             raise ValueError(f"out must be ({n}, {N_TAXELS}) uint16")
         c = self.config
-        f_mean = float(force.mean()) if n else c.reference_force_g
+        f_mean = float(force.sum()) / n if n else c.reference_force_g  # (np.mean's sum and division)
         # the contact shape is that of the reference force (force-invariant, FabricSlide); the force sets the
         # level (per sample, saturating), the plate's contact efficiency and the depth (at the chunk's mean force).
         # The live rig renders 1 ms at a time: the last texture and force step's tables are kept at hand.
@@ -627,7 +630,8 @@ class SensorModel:
         seed = int(rng.integers(1, 2**63))
         _render_kernel(pos, force, tables, period, depth, eff, float(c.pitch_mm), self._row_w, self._p_half,
                        self._layer_gain, float(c.full_scale_counts),
-                       gain * sensitivity if np.ndim(sensitivity) else gain * float(sensitivity),
+                       gain * float(sensitivity) if isinstance(sensitivity, (int, float)) else
+                       gain * np.asarray(sensitivity, dtype=np.float64),
                        self.offset, float(c.noise_counts), self._noise_a, seed, float(wrap_mm or 0.0), out)
         return out
 
@@ -919,7 +923,7 @@ class RigModel:
                 return np.empty((0, N_TAXELS), np.uint16), np.zeros(0, bool)
             target = float(drum_step_rate_hz) / d.true_steps_per_mm  # the driver's real microstep setting
             circ = d.circumference_mm
-            va = float(np.clip(actuator_velocity_mm_s, -m.actuator_max_speed_mm_s, m.actuator_max_speed_mm_s))
+            va = min(max(float(actuator_velocity_mm_s), -m.actuator_max_speed_mm_s), m.actuator_max_speed_mm_s)
             # speed ramp, surface travel, index-mark passes, actuator travel and contact force with the runout and
             # the texture ripple (SensorModel.contact_height), one ms after another (rigctl.simulation.mechanics)
             heights, period, mean = self.sensor.height_tables(self._texture)

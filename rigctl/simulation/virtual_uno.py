@@ -198,32 +198,36 @@ class VirtualUno:
             flags[0] |= wire.FrameFlag.STREAMING_START
             self._first = False
         self.seq = (self.seq + n) & 0xFFFF
-        keep = np.ones(n, bool)
-        if self._drop_left:
-            k = min(self._drop_left, n)
-            keep[:k] = False
-            self._drop_left -= k
-            self.frames_dropped += k
-        if self._drop_sync_left:
-            idx = np.flatnonzero(keep & ((flags & wire.FrameFlag.SYNC_IN) != 0))[:self._drop_sync_left]
-            keep[idx] = False
-            self._drop_sync_left -= len(idx)
-            self.frames_dropped += len(idx)
-        samples = np.asarray(samples)[keep]
+        samples = np.asarray(samples)
+        if self._drop_left or self._drop_sync_left:  # fault injection: frames the link loses
+            keep = np.ones(n, bool)
+            if self._drop_left:
+                k = min(self._drop_left, n)
+                keep[:k] = False
+                self._drop_left -= k
+                self.frames_dropped += k
+            if self._drop_sync_left:
+                idx = np.flatnonzero(keep & ((flags & wire.FrameFlag.SYNC_IN) != 0))[:self._drop_sync_left]
+                keep[idx] = False
+                self._drop_sync_left -= len(idx)
+                self.frames_dropped += len(idx)
+            seq, flags, samples = seq[keep], flags[keep], samples[keep]
         if not len(samples):
             return
-        data = bytearray(encode_frames(seq[keep], flags[keep], samples, adc_max=self.layout.adc_max))
+        data = encode_frames(seq, flags, samples, adc_max=self.layout.adc_max)
         if self._corrupt_left:
+            flipped = bytearray(data)
             k = min(self._corrupt_left, len(samples))
             self._corrupt_left -= k
             for i in range(k):
                 for _ in range(self._corrupt_bits):
                     pos = i * self.frame_size + int(self._rng.integers(2, self.frame_size))
-                    data[pos] ^= 1 << int(self._rng.integers(0, 8))
+                    flipped[pos] ^= 1 << int(self._rng.integers(0, 8))
+            data = bytes(flipped)
         if self._garbage:
-            data = bytearray(self._garbage) + data
+            data = bytes(self._garbage) + data
             self._garbage.clear()
-        self.port.write(bytes(data))
+        self.port.write(data)
         self.frames_sent += len(samples)
 
     # ------------------------------------------------------------------ standalone pacing
