@@ -26,6 +26,7 @@
 #include <avr/eeprom.h>
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <avr/sleep.h>
 #include <avr/wdt.h>
 #include <util/delay.h>
 
@@ -129,6 +130,9 @@ ISR(INT4_vect)
 {
     estop_check_isr();
 }
+
+/* the HX711's DOUT falling (data ready) only wakes loop() from its idle sleep, which reads the conversion */
+EMPTY_INTERRUPT(INT5_vect)
 
 #define EE_WDT_MARK 0xA5
 static uint8_t EEMEM ee_wdt_mark;
@@ -512,6 +516,12 @@ void setup(void)
     TCCR3B = (1 << WGM32);
     TIMSK3 = (1 << OCIE3A);
     index_sensor_setup();
+    /* HX711 DOUT (PE5 = INT5) falling: wakes loop() from its idle sleep when a conversion is ready (the ISR does
+     * nothing; loop() reads it, as before) */
+    EICRB = (uint8_t)((EICRB & ~((1 << ISC51) | (1 << ISC50))) | (1 << ISC51));
+    EIFR = (1 << INTF5);
+    EIMSK |= (1 << INT5);
+    set_sleep_mode(SLEEP_MODE_IDLE);
     /* AVR watchdog, 120 ms, interrupt then reset (WDIE + WDE); fed only at the top of loop() */
     wdt_enable(WDTO_120MS);
     WDTCSR |= (1 << WDIE);
@@ -601,4 +611,21 @@ void loop(void)
         calib_save();
         ctl.save_calibration = 0;
     }
+
+    /* nothing left to do until an interrupt: idle sleep (ATmega2560 datasheet 11.2: the CPU stops, the timers, the
+     * UARTs and the external interrupts run on, and any enabled interrupt wakes it, 5 cycles later than an awake CPU
+     * would take it, 7.8.1): the 1 kHz tick, a Modbus frame's end (Timer4), the HX711's DOUT (INT5), a step, a byte.
+     * Checked with interrupts off and SLEEP right after SEI (the instruction after SEI runs before any interrupt), so
+     * an interrupt that comes after the check wakes the CPU at once instead of being slept past. The watchdog is fed
+     * at the top of every pass: at least once a tick. (Idle mode also starts a conversion of the ADC the Arduino core
+     * enables, 11.2: this sketch reads no analog input and takes no ADC interrupt. The Uno, whose sampler does, does
+     * not sleep.) */
+    cli();
+    if (tick_ms == done_ms && !frame_ready && ((PIN_HX_DOUT_PIN >> PIN_HX_DOUT_BIT) & 1)) {
+        sleep_enable();
+        sei();
+        sleep_cpu();
+        sleep_disable();
+    }
+    sei();
 }

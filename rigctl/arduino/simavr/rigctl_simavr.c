@@ -1186,6 +1186,33 @@ static void clock_lock_wait(void)
     }
 }
 
+/* ================================ a sleeping core ================================
+ * The Mega's loop() sleeps (SLEEP, idle mode) until an interrupt. simavr then skips the core's time to its next cycle
+ * timer and, in raw mode, usleeps that time itself (sim_avr.c avr_callback_sleep_raw). This harness paces the core to
+ * the wall clock on its own (below, and --no-pace runs it as fast as it can) and polls its models (pty, HX711, index
+ * sensor, e-stop, ...) every 0.1 ms of simulated time: the sleep callback does nothing, and a cycle timer every 0.1 ms
+ * bounds a sleeping core's skips to a poll period, so the models see the same time steps as with an awake core. An
+ * avr_reset (the harness's, or the watchdog's inside simavr) clears the cycle timers: each poll re-arms it. */
+#define POLL_CYCLES 1600 /* 0.1 ms at 16 MHz */
+static void sleep_paced_by_harness(avr_t *a, avr_cycle_count_t how_long)
+{
+    (void)a;
+    (void)how_long;
+}
+
+static avr_cycle_count_t poll_period_timer(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    (void)a;
+    (void)param;
+    return when + POLL_CYCLES;
+}
+
+static void poll_period_arm(void)
+{
+    if (!avr_cycle_timer_status(avr, poll_period_timer, NULL))
+        avr_cycle_timer_register(avr, POLL_CYCLES, poll_period_timer, NULL);
+}
+
 /* ================================ main loop ================================ */
 static void usage(void)
 {
@@ -1260,6 +1287,7 @@ int main(int argc, char **argv)
     avr_load_firmware(avr, &f);
     avr->frequency = 16000000;
     avr->log = LOG_ERROR;
+    avr->sleep = sleep_paced_by_harness;
     if (opt_bootloader && boot_load(opt_bootloader)) {
         fprintf(stderr, "cannot load the bootloader %s\n", opt_bootloader);
         return 1;
@@ -1327,7 +1355,8 @@ int main(int argc, char **argv)
         }
         if (avr->pc == avr->reset_pc) mcu_reset_seen = 1; /* the MCU reset itself (watchdog): its reset vector */
         if (avr->cycle < next_check) continue;
-        next_check = avr->cycle + 1600; /* every 0.1 ms of simulated time */
+        next_check = avr->cycle + POLL_CYCLES; /* every 0.1 ms of simulated time */
+        poll_period_arm();
         extint_poll();
         /* a host's open first: its DTR resets the board before it can send (the bytes it writes at once, waiting
          * in the pty, then reach the bootloader, never the old sketch: both can land in one poll's gap) */
