@@ -239,6 +239,7 @@ class PtyBridge:
         self.board = PtyEndpoint(None)
         self.client = PtyEndpoint(client_link)
         self._copying = False  # client bytes in this thread's hands (about to be read, or read and not yet written)
+        self._copying_from_board = False  # and the board's
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=self._run, name="pty-bridge", daemon=True)
@@ -271,12 +272,13 @@ class PtyBridge:
                     continue
                 end, other = ends[fd]
                 self._copying = end is self.client
+                self._copying_from_board = end is self.board
                 try:
                     data = end.read(65536)
                     if data:
                         other.write(data)
                 finally:
-                    self._copying = False
+                    self._copying = self._copying_from_board = False
             self.board.flush()
             self.client.flush()
 
@@ -287,6 +289,14 @@ class PtyBridge:
         n = self.client.unread_from_client()
         n += 1 if self._copying else 0
         return n + self.board.unread_by_board()
+
+    def bytes_from_board(self) -> int:
+        """Bytes the board's server has written that have not reached the client's side yet (in the board pty, in
+        the copy thread's hands (counted as 1), or queued for the client pty): the simulator's own delay, which the
+        host waits out. Bytes already in the client's pty are the host's to read, and not counted. Lock-free."""
+        n = self.board.unread_from_client()
+        n += 1 if self._copying_from_board else 0
+        return n + len(self.client._pending)
 
     def _wake(self) -> None:
         try:

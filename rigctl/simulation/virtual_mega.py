@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
@@ -236,12 +237,18 @@ class VirtualMega(MegaController):
 
         Called every :data:`WATCHDOG_CHECK_S` from the Modbus server's loop, so a request the server has read is
         always handled (and has fed the watchdog) before the check. Not due while request bytes that the server has
-        not read yet are on their way (the host spoke; the firmware would have handled them by now).
+        not read yet are on their way (the host spoke; the firmware would have handled them by now), and restarted
+        while a reply is still on its way to the host (:meth:`rigctl.simulation.pty.PtyBridge.bytes_from_board`: the
+        host waits on the simulator, and the firmware's reply would have reached it by now).
         """
         with self._lock:
             if not self._watchdog_due():
                 return False
         if self.bridge.bytes_to_board():
+            return False
+        if self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on it, and its
+            with self._lock:  # silence starts once the reply is out (the firmware's goes out within ms of the request)
+                self._last_request = time.monotonic()
             return False
         with self._lock:
             if not self._watchdog_due():

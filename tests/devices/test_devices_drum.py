@@ -161,9 +161,21 @@ def test_watchdog_trips_when_host_goes_silent(drum, mega):
 
 def _stall(mega, where: str, seconds: float) -> None:
     """Really stall one of the virtual Mega's threads for ``seconds`` (as a starved thread stalls), from now on:
-    the Modbus server's loop (blocked), or the pty copy thread (blocked mid-copy on the board port's lock)."""
+    the Modbus server's loop (blocked), the pty copy thread (blocked mid-copy on the board port's lock), or the pty
+    copy thread with the next reply in its hands (the host has been served and waits for the answer)."""
     if where == "server":
         mega._loop.call_soon_threadsafe(time.sleep, seconds)
+        return
+    if where == "reply":
+        client = mega.bridge.client
+        deliver = client.write
+
+        def late_once(data):
+            client.write = deliver
+            time.sleep(seconds)
+            return deliver(data)
+
+        client.write = late_once
         return
     lock = mega.bridge.board._lock
     lock.acquire()
@@ -171,7 +183,7 @@ def _stall(mega, where: str, seconds: float) -> None:
 
 
 @pytest.mark.realtime
-@pytest.mark.parametrize("where", ["server", "bridge"])
+@pytest.mark.parametrize("where", ["server", "bridge", "reply"])
 def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
     """A flake under heavy CPU load: the virtual Mega's Modbus thread or pty copy thread got no CPU for longer than
     WATCHDOG_MS while the host kept polling on time, and the simulator called the host silent (WATCHDOG, the trial
