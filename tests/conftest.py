@@ -191,6 +191,26 @@ def skip_or_fail(reason: str, ci_reason: str | None = None) -> NoReturn:
     pytest.skip(reason)
 
 
+def wait_unlocked(path, timeout_s: float = 20.0) -> None:
+    """Wait until no process holds ``path``'s lock (flock), as a reader after a ``kill -9`` of its writer waits: the
+    writer's commit helper (rigctl.storage.journal.apply_journal) outlives it by design and holds the lock until it
+    has finished its in-place writes, milliseconds on an idle machine, longer on a loaded one. AssertionError after
+    ``timeout_s``."""
+    import fcntl
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    with open(path, "rb") as fh:
+        while True:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+                return
+            except BlockingIOError:
+                assert time.monotonic() < deadline, f"{path} still locked after {timeout_s} s"
+                time.sleep(0.01)
+
+
 def shared_path(*parts: str) -> Path:
     """Path under ``../shared/`` beside the repo. Skips the test if missing, fails it under ``CI=true``."""
     path = SHARED.joinpath(*parts)

@@ -28,6 +28,8 @@ from rigctl.storage.session import (
     plan_array,
 )
 
+from ..conftest import wait_unlocked
+
 
 def _plan(n, textures="AB"):
     return [
@@ -235,22 +237,6 @@ _WRITER_CHILD = textwrap.dedent(
 )
 
 
-def _wait_unlocked(path, timeout_s=20.0):
-    """Wait until no process holds ``path``'s lock (a commit helper finishing after its writer was killed)."""
-    import fcntl
-
-    deadline = time.monotonic() + timeout_s
-    with open(path, "rb") as fh:
-        while True:
-            try:
-                fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-                return
-            except BlockingIOError:
-                assert time.monotonic() < deadline, f"{path} still locked after {timeout_s} s"
-                time.sleep(0.01)
-
-
 def _check_plain(path, n_samples):
     """Read every complete trial with plain h5py (no rigctl code runs first); return the complete ids."""
     with h5py.File(path, "r") as f:
@@ -288,7 +274,7 @@ def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
             kills += 1
         proc.wait()
-        _wait_unlocked(path)
+        wait_unlocked(path)
         done = _check_plain(path, 3000)
         assert len(done) >= completed_before  # nothing finished was lost
         if jpath.exists():  # killed after the journal's commit mark, before its helper started: the old file
@@ -352,7 +338,7 @@ def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     gate.touch()  # a detached helper goes on
-    _wait_unlocked(path)
+    wait_unlocked(path)
     if writes == "detached":
         assert not jpath.exists()
         assert list(_check_plain(path, 500)) == [0, 1]  # plain h5py, no rigctl opening first
