@@ -142,6 +142,8 @@ class VirtualMega(MegaController):
         self._server_thread: threading.Thread | None = None
         self._clock_thread: threading.Thread | None = None
         self._stop = threading.Event()
+        #: the request count when a check last found the host overdue with nothing on the way (check_watchdog)
+        self._overdue_at_requests: int | None = None
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -239,19 +241,31 @@ class VirtualMega(MegaController):
         always handled (and has fed the watchdog) before the check. Not due while request bytes that the server has
         not read yet are on their way (the host spoke; the firmware would have handled them by now), and restarted
         while a reply is still on its way to the host (:meth:`rigctl.simulation.pty.PtyBridge.bytes_from_board`: the
-        host waits on the simulator, and the firmware's reply would have reached it by now).
+        host waits on the simulator, and the firmware's reply would have reached it by now). And it trips only when two
+        checks in a row find the host overdue with nothing on the way and no request handled between them: the loop
+        runs between two checks, so bytes the server had already taken from its port (a frame still being decoded or
+        handled, which no count above sees) have fed the watchdog by the second (the firmware handles a frame within
+        about a millisecond; this costs a silent host one check period, 10 ms, on top of WATCHDOG_MS).
         """
         with self._lock:
             if not self._watchdog_due():
+                self._overdue_at_requests = None
                 return False
         if self.bridge.bytes_to_board():
+            self._overdue_at_requests = None
             return False
         if self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on it, and its
             with self._lock:  # silence starts once the reply is out (the firmware's goes out within ms of the request)
                 self._last_request = time.monotonic()
+                self._overdue_at_requests = None
             return False
         with self._lock:
             if not self._watchdog_due():
+                self._overdue_at_requests = None
                 return False
+            if self._overdue_at_requests != self.requests:  # the first check to find it overdue: confirm at the next
+                self._overdue_at_requests = self.requests
+                return False
+            self._overdue_at_requests = None
             self._fault(Fault.WATCHDOG)
             return True
