@@ -248,19 +248,15 @@ class VirtualMega(MegaController):
         about a millisecond; this costs a silent host one check period, 10 ms, on top of WATCHDOG_MS).
         """
         with self._lock:
-            if not self._watchdog_due():
-                self._overdue_at_requests = None
-                return False
-        if self.bridge.bytes_to_board():
-            self._overdue_at_requests = None
-            return False
-        if self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on it, and its
-            with self._lock:  # silence starts once the reply is out (the firmware's goes out within ms of the request)
+            overdue = self._watchdog_due()
+        if overdue and self.bridge.bytes_to_board():
+            overdue = False
+        if overdue and self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on
+            with self._lock:  # it, and its silence starts once the reply is out (the firmware's goes out within ms)
                 self._last_request = time.monotonic()
-                self._overdue_at_requests = None
-            return False
+            overdue = False
         with self._lock:
-            if not self._watchdog_due():
+            if not (overdue and self._watchdog_due()):
                 self._overdue_at_requests = None
                 return False
             if self._overdue_at_requests != self.requests:  # the first check to find it overdue: confirm at the next
