@@ -17,14 +17,41 @@ DEBIAN_PACKAGES=(
 
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
+
+# everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
+# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), mypy's cache, Hypothesis'
+# example database, numba's compiled kernels, Python's byte code, pytest's cache, the apt log
+TEST_TMP="$(mktemp -d "${TMPDIR:-/tmp}/rigctl-test.XXXXXX")"
+trap 'rm -rf "$TEST_TMP"' EXIT
+
+# the Debian packages install in the background, beside the Python install, the numba kernels and the byte code (none
+# of which needs them: measured on a fresh machine, apt took ~15-20 s of mostly waiting on downloads and dpkg, one after
+# the other with the rest); waited for before the firmware build, the first step that needs them
 missing=()
 for p in "${DEBIAN_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
 done
+apt_pid=""
+apt_install() {  # apt_install PACKAGE...: one apt-get update and install, quiet; its output in $TEST_TMP/apt.log
+  { $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "$@"
+  } >> "$TEST_TMP/apt.log" 2>&1
+}
+wait_apt() {  # wait for the background apt-get (if any); its log and a failure if it failed
+  if [ -n "$apt_pid" ]; then
+    local rc=0
+    wait "$apt_pid" || rc=$?
+    apt_pid=""
+    if [ "$rc" != 0 ]; then
+      tail -n 20 "$TEST_TMP/apt.log"
+      echo "apt-get install ${missing[*]} failed (exit $rc)"
+      exit "$rc"
+    fi
+  fi
+}
 if [ ${#missing[@]} -gt 0 ]; then
-  echo "== apt-get install ${missing[*]}"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  echo "== apt-get install ${missing[*]} (in the background)"
+  apt_install "${missing[@]}" &
+  apt_pid=$!
 fi
 
 # a virtual environment of its own (Debian 12 refuses pip outside one, PEP 668), unless one is active already
@@ -34,8 +61,8 @@ if [ -z "${VIRTUAL_ENV:-}" ]; then
     echo "== python3 -m venv $VENV"
     if ! python3 -m venv "$VENV" 2>/dev/null; then  # Debian's python3 needs python3-venv for ensurepip
       rm -rf "$VENV"
-      $SUDO apt-get update -qq
-      DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends python3-venv >/dev/null
+      wait_apt  # (one apt-get at a time: dpkg's lock)
+      apt_install python3-venv || { tail -n 20 "$TEST_TMP/apt.log"; exit 1; }
       python3 -m venv "$VENV"
     fi
   fi
@@ -51,11 +78,6 @@ if ! { python3 -m pip install -q --disable-pip-version-check uv && python3 -m uv
   python3 -m pip install -q --disable-pip-version-check -e ".[test]"
 fi
 
-# everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
-# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), mypy's cache, Hypothesis'
-# example database, numba's compiled kernels, Python's byte code, pytest's cache
-TEST_TMP="$(mktemp -d "${TMPDIR:-/tmp}/rigctl-test.XXXXXX")"
-trap 'rm -rf "$TEST_TMP"' EXIT
 export RIGCTL_FIRMWARE_BUILD="$TEST_TMP/firmware" HYPOTHESIS_STORAGE_DIRECTORY="$TEST_TMP/hypothesis" \
   NUMBA_CACHE_DIR="$TEST_TMP/numba"
 
@@ -77,14 +99,21 @@ export QT_QPA_PLATFORM=offscreen
 checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
 before="$(checkout_state)"
 
-# numba's kernels compiled once into the cache before the tests start, in two processes side by side while the
-# firmware builds and ruff and lint-imports run (scripts/compile_kernels.py: ~13 + ~21 s of CPU); otherwise each test
-# worker, GUI analysis process and CLI subprocess that starts before the cache is ready compiles the ones it needs
-kernel_pids=()
-for part in serial parallel; do
-  python3 scripts/compile_kernels.py "$part" > "$TEST_TMP/compile_kernels_$part.log" 2>&1 &
-  kernel_pids+=($!)
-done
+# numba's kernels compiled once into the cache (scripts/compile_kernels.py), otherwise each test worker, GUI analysis
+# process and CLI subprocess that starts before the cache is ready compiles the ones it needs. The serial part (the
+# simulated rig's renderer and mechanics, one trial's encoder: ~15 s of CPU), which the first tests (simulated rigs)
+# need, before pytest starts, beside the firmware build, ruff and lint-imports. The parallel part (more than a SIMD
+# block of trials: ~25 s of CPU, the longest step before pytest when it was waited for) goes on beside the first tests,
+# at a lower priority (nice 5): those are the long units on rigs paced to the wall clock, which leave the CPU partly
+# idle; a test that may encode waits for $RIGCTL_TEST_KERNELS_DONE (tests/conftest.py: every test but hil, packaging
+# and realtime ones; those come after the long ones anyway). The marker is written however the compile ended
+# (failed: each kernel compiles on first use)
+python3 scripts/compile_kernels.py serial > "$TEST_TMP/compile_kernels_serial.log" 2>&1 &
+kernel_pid=$!
+export RIGCTL_TEST_KERNELS_DONE="$TEST_TMP/compile_kernels_parallel.done"
+{ nice -n 5 python3 scripts/compile_kernels.py parallel > "$TEST_TMP/compile_kernels_parallel.log" 2>&1 \
+    || echo "compiling the parallel numba kernels beforehand failed (exit $?)" >> "$TEST_TMP/compile_kernels_parallel.log"
+  touch "$RIGCTL_TEST_KERNELS_DONE"; } &
 
 # the byte code of everything the test modules import, written once into the byte-code tree by one collection (as
 # the workers collect: same interpreter, same test modules), beside the kernels: the pytest-xdist workers all collect
@@ -92,11 +121,6 @@ done
 # process: 10.4 CPU-s to collect on a cold tree, 3.9 on a warm one; six workers)
 python3 -m pytest --collect-only -q -p no:cacheprovider > "$TEST_TMP/collect.log" 2>&1 &
 collect_pid=$!
-
-phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
-# as the tests build it (rigctl.firmware.build: the sources' BUILD_ID, under the build folder's lock): a plain make
-# leaves the id out, and the first test's build would then relink the images while other workers read them
-python3 -c 'from rigctl import firmware; firmware.build()'
 
 phase "ruff check (rules and per-file ignores in pyproject.toml)"
 python3 -m ruff check --no-cache .
@@ -106,12 +130,18 @@ phase "import contracts (lint-imports; the layers in pyproject.toml, docs/archit
 python3 -c 'import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())' \
   --cache-dir "$TEST_TMP/import-linter"
 
-phase "numba kernels and byte code (waiting for scripts/compile_kernels.py and the collection)"
-for pid in "${kernel_pids[@]}"; do
-  # (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
-  wait "$pid" || echo "compiling the numba kernels beforehand failed:"
-done
-cat "$TEST_TMP"/compile_kernels_*.log
+phase "Debian packages (waiting for apt-get)"
+wait_apt
+
+phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
+# as the tests build it (rigctl.firmware.build: the sources' BUILD_ID, under the build folder's lock): a plain make
+# leaves the id out, and the first test's build would then relink the images while other workers read them
+python3 -c 'from rigctl import firmware; firmware.build()'
+
+phase "numba kernels (serial) and byte code (waiting for scripts/compile_kernels.py serial and the collection)"
+# (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
+wait "$kernel_pid" || echo "compiling the serial numba kernels beforehand failed:"
+cat "$TEST_TMP/compile_kernels_serial.log"
 # (a failed collection shows again, with its reason, when pytest collects)
 wait "$collect_pid" || echo "collecting the tests beforehand (byte code) failed: $(tail -n 1 "$TEST_TMP/collect.log")"
 
@@ -136,6 +166,7 @@ status=0
 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
   "$@" || status=$?
 phase "pytest done (exit $status)"
+cat "$TEST_TMP/compile_kernels_parallel.log"
 mypy_status=0
 wait "$mypy_pid" || mypy_status=$?
 echo "== mypy:"
