@@ -99,21 +99,17 @@ export QT_QPA_PLATFORM=offscreen
 checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
 before="$(checkout_state)"
 
-# numba's kernels compiled once into the cache (scripts/compile_kernels.py), otherwise each test worker, GUI analysis
-# process and CLI subprocess that starts before the cache is ready compiles the ones it needs. The serial part (the
-# simulated rig's renderer and mechanics, one trial's encoder: ~15 s of CPU), which the first tests (simulated rigs)
-# need, before pytest starts, beside the firmware build, ruff and lint-imports. The parallel part (more than a SIMD
-# block of trials: ~25 s of CPU, the longest step before pytest when it was waited for) goes on beside the first tests,
-# at a lower priority (nice 5): those are the long units on rigs paced to the wall clock, which leave the CPU partly
-# idle; a test that may encode waits for $RIGCTL_TEST_KERNELS_DONE (tests/conftest.py: every test but hil, packaging
-# and realtime ones; those come after the long ones anyway). The marker is written however the compile ended
-# (failed: each kernel compiles on first use)
-python3 scripts/compile_kernels.py serial > "$TEST_TMP/compile_kernels_serial.log" 2>&1 &
-kernel_pid=$!
-export RIGCTL_TEST_KERNELS_DONE="$TEST_TMP/compile_kernels_parallel.done"
-{ nice -n 5 python3 scripts/compile_kernels.py parallel > "$TEST_TMP/compile_kernels_parallel.log" 2>&1 \
-    || echo "compiling the parallel numba kernels beforehand failed (exit $?)" >> "$TEST_TMP/compile_kernels_parallel.log"
-  touch "$RIGCTL_TEST_KERNELS_DONE"; } &
+# numba's kernels compiled once into the cache before the tests start, in two processes side by side while the
+# firmware builds and ruff and lint-imports run (scripts/compile_kernels.py: ~15 + ~25 s of CPU); otherwise each test
+# worker, GUI analysis process and CLI subprocess that starts before the cache is ready compiles the ones it needs.
+# (Tried: the parallel part beside the first tests, at nice 5, with the tests that may encode waiting for it. pytest
+# took as long (260 s against 258-269), the CPU being as busy then, and rigs starting beside the compile and mypy
+# missed their first answers: a ready banner not within 3 s, a Modbus read not answered in three tries.)
+kernel_pids=()
+for part in serial parallel; do
+  python3 scripts/compile_kernels.py "$part" > "$TEST_TMP/compile_kernels_$part.log" 2>&1 &
+  kernel_pids+=($!)
+done
 
 # the byte code of everything the test modules import, written once into the byte-code tree by one collection (as
 # the workers collect: same interpreter, same test modules), beside the kernels: the pytest-xdist workers all collect
@@ -138,10 +134,12 @@ phase "build firmware (into $RIGCTL_FIRMWARE_BUILD)"
 # leaves the id out, and the first test's build would then relink the images while other workers read them
 python3 -c 'from rigctl import firmware; firmware.build()'
 
-phase "numba kernels (serial) and byte code (waiting for scripts/compile_kernels.py serial and the collection)"
-# (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
-wait "$kernel_pid" || echo "compiling the serial numba kernels beforehand failed:"
-cat "$TEST_TMP/compile_kernels_serial.log"
+phase "numba kernels and byte code (waiting for scripts/compile_kernels.py and the collection)"
+for pid in "${kernel_pids[@]}"; do
+  # (a failed compile here is only slower tests: each kernel then compiles on first use, and the tests say why)
+  wait "$pid" || echo "compiling the numba kernels beforehand failed:"
+done
+cat "$TEST_TMP"/compile_kernels_*.log
 # (a failed collection shows again, with its reason, when pytest collects)
 wait "$collect_pid" || echo "collecting the tests beforehand (byte code) failed: $(tail -n 1 "$TEST_TMP/collect.log")"
 
@@ -166,7 +164,6 @@ status=0
 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
   "$@" || status=$?
 phase "pytest done (exit $status)"
-cat "$TEST_TMP/compile_kernels_parallel.log"
 mypy_status=0
 wait "$mypy_pid" || mypy_status=$?
 echo "== mypy:"

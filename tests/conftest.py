@@ -77,30 +77,6 @@ def _ctrl_c_reaches_children():
     yield
 
 
-#: markers of the tests that do not wait for the test command's numba kernels (scripts/test.sh compiles the parallel
-#: ones beside the first tests): the long units on rigs paced to the wall clock, firmware and the wheel that it hands
-#: out first, which encode a few trials at a time or none (one that does more compiles what it needs itself, as it
-#: would without the test command)
-_NO_KERNEL_WAIT = ("hil", "packaging", "realtime")
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_runtest_setup(item):
-    """Under scripts/test.sh, before a test's fixtures (module-scoped ones included) are set up, wait until its
-    background compile of numba's parallel kernels has ended (the file ``$RIGCTL_TEST_KERNELS_DONE`` exists; written
-    however it ended), so that the test's process, its CLI subprocesses and the GUI's analysis processes load the
-    kernels from the cache instead of each compiling the same ones beside it. Not for the tests marked
-    :data:`_NO_KERNEL_WAIT`; nothing to wait for outside the test command."""
-    done = os.environ.get("RIGCTL_TEST_KERNELS_DONE")
-    if done and not any(item.get_closest_marker(m) for m in _NO_KERNEL_WAIT):
-        import time
-
-        deadline = time.monotonic() + 900.0
-        while not os.path.exists(done):
-            assert time.monotonic() < deadline, f"scripts/test.sh's kernel compile never ended ({done})"
-            time.sleep(0.1)
-
-
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """With ``$RIGCTL_TEST_CPU_LOG`` set (a file path), append one line per test: its node id, wall seconds and CPU
