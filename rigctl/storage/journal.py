@@ -31,7 +31,6 @@ from __future__ import annotations
 import io
 import os
 import struct
-import subprocess
 import sys
 import time
 import zlib
@@ -44,9 +43,16 @@ try:  # POSIX; elsewhere (Windows) rigctl writers do not lock out HDF5 readers
 except ImportError:  # pragma: no cover
     fcntl = None  # type: ignore[assignment]
 
+from rigctl.storage import journal_replay
+from rigctl.storage.journal_replay import (
+    COMMIT as _COMMIT,
+    MAGIC as _MAGIC,
+    pwrite as _pwrite,
+    read_journal as _read_journal,
+    replay as _replay,
+)
+
 PAGE = 4096
-_MAGIC = b"RIGCTLJ1"
-_COMMIT = b"COMMITOK"
 _O_BINARY = getattr(os, "O_BINARY", 0)
 
 
@@ -55,18 +61,6 @@ def _pread(fd: int, n: int, offset: int) -> bytes:
         return os.pread(fd, n, offset)
     os.lseek(fd, offset, os.SEEK_SET)  # pragma: no cover
     return os.read(fd, n)  # pragma: no cover
-
-
-def _pwrite(fd: int, data: bytes | memoryview, offset: int) -> None:
-    view = memoryview(data)
-    while view:  # pwrite may write less than asked
-        if hasattr(os, "pwrite"):
-            n = os.pwrite(fd, view, offset)
-        else:  # pragma: no cover
-            os.lseek(fd, offset, os.SEEK_SET)
-            n = os.write(fd, view)
-        view = view[n:]
-        offset += n
 
 
 def journal_path(path: str | os.PathLike[str]) -> Path:
@@ -225,51 +219,28 @@ def recover(path: str | os.PathLike[str], *, wait_s: float = 10.0) -> bool:
 
 #: test hooks: seconds the helper waits before each in-place write, and a gate (a path): the helper makes the first
 #: in-place write, creates ``<gate>.reached`` and waits until the file ``<gate>`` exists (at most
-#: :data:`_TEST_GATE_MAX_S`) before the others, so a test acts in the middle of the in-place writes, however loaded
-#: the machine
+#: :data:`rigctl.storage.journal_replay.GATE_MAX_S`) before the others, so a test acts in the middle of the in-place
+#: writes, however loaded the machine
 _TEST_WRITE_DELAY_S = 0.0
 _TEST_WRITE_GATE = ""
-_TEST_GATE_MAX_S = 300.0
-
-
-def _wait_at_gate(gate: str) -> None:
-    Path(gate + ".reached").touch()
-    deadline = time.monotonic() + _TEST_GATE_MAX_S
-    while not os.path.exists(gate) and time.monotonic() < deadline:
-        time.sleep(0.005)
-
-
-def _replay(fd: int, jpath: Path, durable: bool, delay_s: float = 0.0, gate: str = "") -> None:
-    """Write a committed journal's pages onto ``fd``, truncate to the journal's size, then delete the journal."""
-    entries, new_size = _read_journal(jpath)
-    if entries is None:  # not committed (or already replayed and removed by another process)
-        return
-    for i, (offset, data) in enumerate(entries):
-        if delay_s:
-            time.sleep(delay_s)
-        if gate and i == 1:
-            _wait_at_gate(gate)
-        _pwrite(fd, data, offset)
-    if os.fstat(fd).st_size != new_size:
-        os.ftruncate(fd, new_size)
-    if durable:
-        os.fsync(fd)
-    jpath.unlink()
 
 
 def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = True) -> None:
     """Apply a committed journal to the open, locked file ``fd``, in a detached helper process.
 
     The in-place writes of a commit are the only moment at which the file on disk is neither the old nor the new
-    version. They are made by a short-lived helper (``python -I -S journal.py --apply FD JOURNAL``) that inherits
+    version. They are made by a short-lived helper (``python -I -S journal_replay.py --apply FD JOURNAL``,
+    :mod:`rigctl.storage.journal_replay`) that inherits
     the locked descriptor and runs in its own session: a ``kill -9`` of the writing process (or of its process
     group, or a Ctrl-C) cannot stop it half way, so plain HDF5 readers never see a torn file after such a kill.
     This process waits for the helper. If the helper cannot be started or fails, the journal is applied here. A
     Ctrl-C while waiting is held until the journal is applied, then raised as :class:`CommittedInterrupt`.
     Killing the helper itself (or a power cut) leaves the committed journal, which :func:`recover` replays.
     """
+    import subprocess  # (here: the helper, which imports none of this module, is the only other user of it)
+
     jpath = Path(jpath)
-    cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--apply", str(fd), str(jpath),
+    cmd = [sys.executable, "-I", "-S", os.path.abspath(journal_replay.__file__), "--apply", str(fd), str(jpath),
            "1" if durable else "0", repr(float(_TEST_WRITE_DELAY_S)), _TEST_WRITE_GATE]
     proc = interrupted = None
     if sys.executable and not getattr(sys, "frozen", False):  # a frozen app's executable is not Python
@@ -289,24 +260,6 @@ def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = Tru
         _replay(fd, jpath, durable, _TEST_WRITE_DELAY_S, _TEST_WRITE_GATE)
     if interrupted is not None:
         raise CommittedInterrupt("interrupted while committing; the commit was completed first") from interrupted
-
-
-def _read_journal(jpath: Path) -> tuple[list[tuple[int, bytes]] | None, int]:
-    raw = jpath.read_bytes()
-    if len(raw) < 28 or raw[:8] != _MAGIC or raw[-8:] != _COMMIT:
-        return None, 0
-    body, crc = raw[:-12], struct.unpack("<I", raw[-12:-8])[0]
-    if zlib.crc32(body) != crc:
-        return None, 0
-    new_size, count = struct.unpack_from("<QI", body, 8)
-    pos = 20
-    entries = []
-    for _ in range(count):
-        offset, length = struct.unpack_from("<QI", body, pos)
-        pos += 12
-        entries.append((offset, body[pos:pos + length]))
-        pos += length
-    return entries, new_size
 
 
 class OverlayFile(io.RawIOBase):
@@ -496,17 +449,3 @@ class OverlayFile(io.RawIOBase):
                 os.close(self._fd)  # releases the flock
             finally:
                 super().close()
-
-
-def _main(argv: list[str]) -> int:
-    """``journal.py --apply FD JOURNAL DURABLE DELAY_S [GATE]``: the helper of :func:`apply_journal` (stdlib
-    only)."""
-    if len(argv) not in (5, 6) or argv[0] != "--apply":
-        print("usage: journal.py --apply FD JOURNAL DURABLE(0|1) DELAY_S [GATE]", file=sys.stderr)
-        return 2
-    _replay(int(argv[1]), Path(argv[2]), argv[3] == "1", float(argv[4]), argv[5] if len(argv) == 6 else "")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
