@@ -23,7 +23,7 @@ from rigctl.core.provenance import PROVENANCE_ATTR, RESUMED_ATTR, provenance_jso
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import h5objects, journal, session_recording
+from rigctl.storage import h5objects, journal, journal_replay, session_recording
 from rigctl.storage.session_format import (
     PLAN_CHUNK_ROWS,
     PLAN_DTYPE,
@@ -137,7 +137,7 @@ def _write_new_file(path: Path, image: bytes) -> None:
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0), 0o644)
         try:
-            journal._pwrite(fd, image, 0)
+            journal_replay.pwrite(fd, image, 0)
             os.fsync(fd)
         finally:
             os.close(fd)
