@@ -146,7 +146,7 @@ wait "$collect_pid" || echo "collecting the tests beforehand (byte code) failed:
 # mypy (one core, ~15 s of CPU) runs beside the tests, many of which wait on rigs paced to the wall clock; its
 # verdict is printed and checked after them
 phase "mypy (settings in pyproject.toml), in the background"
-python3 -m mypy --cache-dir "$TEST_TMP/mypy" > "$TEST_TMP/mypy.log" 2>&1 &
+python3 -m mypy --cache-dir /dev/null > "$TEST_TMP/mypy.log" 2>&1 &
 mypy_pid=$!
 
 phase "pytest"
