@@ -121,10 +121,17 @@ collect_pid=$!
 phase "ruff check (rules and per-file ignores in pyproject.toml)"
 python3 -m ruff check --no-cache .
 
-phase "import contracts (lint-imports; the layers in pyproject.toml, docs/architecture.md)"
-# the lint-imports command, run by this interpreter (import-linter has no `python -m` entry point)
-python3 -c 'import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())' \
-  --cache-dir "$TEST_TMP/import-linter"
+# the import contracts (lint-imports; the layers in pyproject.toml, docs/architecture.md) and mypy (settings in
+# pyproject.toml), one after the other, in the background at a lower priority (nice 10; ~3 + ~10 s of CPU): the CPU is
+# busy until the workers have collected, and partly idle later, while the long tests wait on rigs paced to the wall
+# clock; their verdicts are printed and checked after pytest. The lint-imports command is run by this interpreter
+# (import-linter has no `python -m` entry point)
+phase "import contracts (lint-imports) and mypy, in the background (nice 10)"
+nice -n 10 bash -c '
+    python3 -c "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())" \
+      --cache-dir "$1/import-linter" > "$1/lint-imports.log" 2>&1; echo $? > "$1/lint-imports.status"
+    python3 -m mypy --cache-dir /dev/null > "$1/mypy.log" 2>&1; echo $? > "$1/mypy.status"' _ "$TEST_TMP" &
+static_pid=$!
 
 phase "Debian packages (waiting for apt-get)"
 wait_apt
@@ -143,11 +150,6 @@ cat "$TEST_TMP"/compile_kernels_*.log
 # (a failed collection shows again, with its reason, when pytest collects)
 wait "$collect_pid" || echo "collecting the tests beforehand (byte code) failed: $(tail -n 1 "$TEST_TMP/collect.log")"
 
-# mypy (one core, ~15 s of CPU) runs beside the tests, many of which wait on rigs paced to the wall clock; its
-# verdict is printed and checked after them
-phase "mypy (settings in pyproject.toml), in the background"
-python3 -m mypy --cache-dir /dev/null > "$TEST_TMP/mypy.log" 2>&1 &
-mypy_pid=$!
 
 phase "pytest"
 # three workers a core, at most 8 (pytest-xdist; RIGCTL_TEST_WORKERS overrides): the suite waits on rigs paced to
@@ -164,10 +166,14 @@ status=0
 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
   "$@" || status=$?
 phase "pytest done (exit $status)"
-mypy_status=0
-wait "$mypy_pid" || mypy_status=$?
-echo "== mypy:"
-cat "$TEST_TMP/mypy.log"
+static_status=0
+wait "$static_pid" || true
+for check in lint-imports mypy; do
+  echo "== $check:"
+  cat "$TEST_TMP/$check.log"
+  rc="$(cat "$TEST_TMP/$check.status" 2>/dev/null || echo 1)"
+  if [ "$rc" != 0 ]; then echo "$check failed (exit $rc)"; static_status=1; fi
+done
 after="$(checkout_state)"
 if [ "$before" != "$after" ]; then
   echo "the checks changed the checkout (git status --porcelain --ignored, before -> after):"
@@ -175,5 +181,5 @@ if [ "$before" != "$after" ]; then
   exit 1
 fi
 phase "done"
-if [ "$mypy_status" != 0 ]; then exit "$mypy_status"; fi
+if [ "$static_status" != 0 ]; then exit "$static_status"; fi
 exit "$status"

@@ -11,6 +11,7 @@ from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.devices.wire import DrumState
+from rigctl.rigs import WATCHDOG_MS, drum_answer_timeout_s
 from rigctl.simulation.rig import SimulatedRig
 
 from .conftest import home
@@ -33,7 +34,10 @@ def test_simulated_rig_drum_and_stream(tmp_path):
     with SimulatedRig(seed=4, port_dir=tmp_path) as rig:
         rig.set_texture("G")
         assert rig.drum_port == str(tmp_path / "drum") and rig.taxel_port == str(tmp_path / "taxel")
-        with DrumClient(rig.drum_port) as drum, TaxelStream(rig.taxel_port) as stream:
+        # the answer timeout and host watchdog of a simulated rig, as open_rig("sim") sets them (the virtual Mega is a
+        # thread of this process: late on a loaded machine)
+        with DrumClient(rig.drum_port, timeout_s=drum_answer_timeout_s("sim"), watchdog_ms=WATCHDOG_MS["sim"]) as drum, \
+                TaxelStream(rig.taxel_port) as stream:
             home(drum)
             stream.start()
             rest = _capture(stream, 300)

@@ -8,6 +8,7 @@ import pytest
 
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.taxel_stream import TaxelStream
+from rigctl.rigs import WATCHDOG_MS, drum_answer_timeout_s
 
 from .conftest import home
 
@@ -19,7 +20,11 @@ def test_live_taxel_signal_follows_the_drum_without_seams(hil_rig):
     continue the texture's phase and amplitude, so the stream has no seams."""
     rig = hil_rig
     # the drum's waits on the Mega's simulated clock (simavr runs slower than real time on a starved machine)
-    with DrumClient(rig.drum_port, clock=rig.clock) as drum, TaxelStream(rig.taxel_port) as stream:
+    # the answer timeout and host watchdog of the firmware under simavr, as open_rig("hil") sets them (paced to the
+    # wall clock: late on a loaded machine)
+    with DrumClient(rig.drum_port, clock=rig.clock, timeout_s=drum_answer_timeout_s("hil"),
+                    watchdog_ms=WATCHDOG_MS["hil"]) as drum, \
+            TaxelStream(rig.taxel_port) as stream:
         rig.set_texture("B")  # circular ridges
         home(drum)
         drum.set_force(500)
