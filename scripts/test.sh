@@ -152,16 +152,20 @@ wait "$collect_pid" || echo "collecting the tests beforehand (byte code) failed:
 
 
 phase "pytest"
-# three workers a core, at most 8 (pytest-xdist; RIGCTL_TEST_WORKERS overrides): the suite waits on rigs paced to
+# three workers a core and one more, at most 8 (pytest-xdist; RIGCTL_TEST_WORKERS overrides): the suite waits on rigs
+# paced to
 # the wall clock, and one worker a core left about half of the CPU idle (clean clone, 2 cores, nothing else running:
 # 680 s of pytest at load ~1.2 with 2 workers, 449 s at load ~3.7 with 4, CPU then ~80 % busy). Once the processes
 # stopped compiling byte code and kernels of their own, 4 workers left the CPU 40-70 % busy for minutes (377 s of
 # pytest); 5 gave 353 s; once the simulated rigs cost half as much CPU, 5 left it 46-90 % busy for ~100 s mid-run
-# and 6 gave 307 s. An earlier try at 4 failed three timing tests at load 8-10 (another session's work beside it);
-# those wait for their real events now. A test module stays on one worker (--dist loadfile: module-scoped rigs and
+# and 6 gave 307 s. With 6, the CPU was still 41-75 % busy for ~100 s mid-run (all six in tests waiting on wall
+# clocks); 7 gave 231 s of pytest against 244-260 with 6 (the CPU-bound tail is no longer). An earlier try at 4 failed
+# three timing tests at load 8-10 (another session's work beside it), a try at 8 four (drum clients on simulated
+# boards with the hardware's 0.5 s answer timeout, among them); those wait for their real events, or use the rig
+# kind's timeout, now. A test module stays on one worker (--dist loadfile: module-scoped rigs and
 # windows), or its xdist_group parts do; the longest units first (tests/conftest.py)
 cores="$(nproc 2>/dev/null || echo 1)"
-workers="${RIGCTL_TEST_WORKERS:-$(( cores * 3 > 8 ? 8 : cores * 3 ))}"
+workers="${RIGCTL_TEST_WORKERS:-$(( cores * 3 + 1 > 8 ? 8 : cores * 3 + 1 ))}"
 status=0
 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
   "$@" || status=$?
