@@ -19,8 +19,8 @@ SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 
 # everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
-# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), mypy's cache, Hypothesis'
-# example database, numba's compiled kernels, Python's byte code, pytest's cache, the apt log
+# (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), import-linter's cache,
+# Hypothesis' example database, numba's compiled kernels, Python's byte code, pytest's cache, the apt log
 TEST_TMP="$(mktemp -d "${TMPDIR:-/tmp}/rigctl-test.XXXXXX")"
 trap 'rm -rf "$TEST_TMP"' EXIT
 
@@ -99,11 +99,11 @@ export QT_QPA_PLATFORM=offscreen
 checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
 before="$(checkout_state)"
 
-# numba's kernels compiled once into the cache before the tests start, in two processes side by side while the
-# firmware builds and ruff and lint-imports run (scripts/compile_kernels.py: ~15 + ~25 s of CPU); otherwise each test
-# worker, GUI analysis process and CLI subprocess that starts before the cache is ready compiles the ones it needs.
-# (Tried: the parallel part beside the first tests, at nice 5, with the tests that may encode waiting for it. pytest
-# took as long (260 s against 258-269), the CPU being as busy then, and rigs starting beside the compile and mypy
+# numba's kernels compiled once into the cache before the tests start, in two processes side by side while ruff runs
+# and the firmware builds (scripts/compile_kernels.py: ~15 + ~25 s of CPU); otherwise each test worker, GUI analysis
+# process and CLI subprocess that starts before the cache is ready compiles the ones it needs. (Tried: the parallel
+# part beside the first tests, at nice 5 and at nice 19, with the tests that may encode waiting for it. pytest took as
+# long (260 s against 244-260 with 6 workers; 242 s against 219-231 with 7), and rigs starting beside the compile
 # missed their first answers: a ready banner not within 3 s, a Modbus read not answered in three tries.)
 kernel_pids=()
 for part in serial parallel; do
@@ -150,20 +150,18 @@ cat "$TEST_TMP"/compile_kernels_*.log
 # (a failed collection shows again, with its reason, when pytest collects)
 wait "$collect_pid" || echo "collecting the tests beforehand (byte code) failed: $(tail -n 1 "$TEST_TMP/collect.log")"
 
-
 phase "pytest"
 # three workers a core and one more, at most 8 (pytest-xdist; RIGCTL_TEST_WORKERS overrides): the suite waits on rigs
-# paced to
-# the wall clock, and one worker a core left about half of the CPU idle (clean clone, 2 cores, nothing else running:
-# 680 s of pytest at load ~1.2 with 2 workers, 449 s at load ~3.7 with 4, CPU then ~80 % busy). Once the processes
-# stopped compiling byte code and kernels of their own, 4 workers left the CPU 40-70 % busy for minutes (377 s of
-# pytest); 5 gave 353 s; once the simulated rigs cost half as much CPU, 5 left it 46-90 % busy for ~100 s mid-run
-# and 6 gave 307 s. With 6, the CPU was still 41-75 % busy for ~100 s mid-run (all six in tests waiting on wall
-# clocks); 7 gave 231 s of pytest against 244-260 with 6 (the CPU-bound tail is no longer). An earlier try at 4 failed
-# three timing tests at load 8-10 (another session's work beside it), a try at 8 four (drum clients on simulated
-# boards with the hardware's 0.5 s answer timeout, among them); those wait for their real events, or use the rig
-# kind's timeout, now. A test module stays on one worker (--dist loadfile: module-scoped rigs and
-# windows), or its xdist_group parts do; the longest units first (tests/conftest.py)
+# paced to the wall clock, and one worker a core left about half of the CPU idle (clean clone, 2 cores, nothing else
+# running: 680 s of pytest at load ~1.2 with 2 workers, 449 s at load ~3.7 with 4, CPU then ~80 % busy). Once the
+# processes stopped compiling byte code and kernels of their own, 4 workers left the CPU 40-70 % busy for minutes (377 s
+# of pytest); 5 gave 353 s; once the simulated rigs cost half as much CPU, 5 left it 46-90 % busy for ~100 s mid-run and
+# 6 gave 307 s. With 6, the CPU was still 41-75 % busy for ~100 s mid-run (all six in tests waiting on wall clocks); 7
+# gave 231 s of pytest against 244-260 with 6. An earlier try at 4 failed three timing
+# tests at load 8-10 (another session's work beside it), a try at 8 four (drum clients on simulated boards with the
+# hardware's 0.5 s answer timeout, among them); those wait for their real events, or use the rig kind's timeout, now. A
+# test module stays on one worker (--dist loadfile: module-scoped rigs and windows), or its xdist_group parts do; the
+# longest units first (tests/conftest.py)
 cores="$(nproc 2>/dev/null || echo 1)"
 workers="${RIGCTL_TEST_WORKERS:-$(( cores * 3 + 1 > 8 ? 8 : cores * 3 + 1 ))}"
 status=0

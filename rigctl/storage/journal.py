@@ -230,12 +230,12 @@ def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = Tru
 
     The in-place writes of a commit are the only moment at which the file on disk is neither the old nor the new
     version. They are made by a short-lived helper (``python -I -S journal_replay.py --apply FD JOURNAL``,
-    :mod:`rigctl.storage.journal_replay`) that inherits
-    the locked descriptor and runs in its own session: a ``kill -9`` of the writing process (or of its process
-    group, or a Ctrl-C) cannot stop it half way, so plain HDF5 readers never see a torn file after such a kill.
-    This process waits for the helper. If the helper cannot be started or fails, the journal is applied here. A
-    Ctrl-C while waiting is held until the journal is applied, then raised as :class:`CommittedInterrupt`.
-    Killing the helper itself (or a power cut) leaves the committed journal, which :func:`recover` replays.
+    :mod:`rigctl.storage.journal_replay`) that inherits the locked descriptor and runs in its own session: a
+    ``kill -9`` of the writing process (or of its process group, or a Ctrl-C) cannot stop it half way, so plain HDF5
+    readers never see a torn file after such a kill. This process waits for the helper. If the helper cannot be
+    started or fails, the journal is applied here. A Ctrl-C while waiting is held until the journal is applied, then
+    raised as :class:`CommittedInterrupt`. Killing the helper itself (or a power cut) leaves the committed journal,
+    which :func:`recover` replays.
     """
     import subprocess  # (here: the helper, which imports none of this module, is the only other user of it)
 
