@@ -246,6 +246,13 @@ class HilRig:
         self._eeprom_ack: bool | None = None
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
+        #: the actuator's reversals as the motor turned (``AREV``): (t_s of the new direction's first step, dir 1 =
+        #: towards the sensor, t_s of the old direction's last step)
+        self.actuator_reversals: collections.deque[tuple[float, int, float]] = collections.deque(maxlen=1000)
+        #: simulated times host bytes reached the Mega (``RX``) and the actuator's steps that moved it (``ASTEP``: t_s,
+        #: dir 1 = towards the sensor), after :meth:`log_requests`
+        self.request_times: collections.deque[float] = collections.deque(maxlen=1000)
+        self.actuator_steps: collections.deque[tuple[float, int]] = collections.deque(maxlen=50_000)
         self.index_pulses = 0
         self.isr: dict[str, float] = {}
         self._texture: str | Texture = "A"  # a label of the paper's set, or a Texture (set_texture)
@@ -474,6 +481,16 @@ class HilRig:
         """Open (``True``: pressed, or a broken wire) or close the normally-closed e-stop contact on the Mega's D2."""
         self._running(self._mega, "Mega").send("estop open" if opened else "estop close")
 
+    def reverse_actuator(self, reversed_: bool = True) -> None:
+        """Swap the actuator motor's coil pair (``True``: the firmware's "towards the sensor" moves it away and back
+        again) or mend it."""
+        self._running(self._mega, "Mega").send("actuator reversed" if reversed_ else "actuator ok")
+
+    def log_requests(self, on: bool = True) -> None:
+        """Record the simulated time host bytes reach the Mega (:attr:`request_times`) and each actuator step
+        (:attr:`actuator_steps`)."""
+        self._running(self._mega, "Mega").send(f"rxlog {int(bool(on))}")
+
     def set_loadcell_polarity(self, sign: int) -> None:
         """Mount the load cell the right way (``+1``) or reversed (``-1``: it reads negative under load)."""
         self._running(self._mega, "Mega").send(f"polarity {-1 if sign < 0 else 1}")
@@ -558,6 +575,14 @@ class HilRig:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
                 self._cond.notify_all()
+        elif line.startswith("RX "):
+            self.request_times.append(_parse_kv(line)["t"])
+        elif line.startswith("ASTEP "):
+            kv = _parse_kv(line)
+            self.actuator_steps.append((kv["t"], int(kv["dir"])))
+        elif line.startswith("AREV "):
+            kv = _parse_kv(line)
+            self.actuator_reversals.append((kv["t"], int(kv["dir"]), kv["last_t"]))
         elif line.startswith("APP "):
             self.boot_times_s.append(_parse_kv(line)["boot_s"])
         elif line.startswith("RESET "):

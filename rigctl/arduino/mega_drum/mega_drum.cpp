@@ -414,6 +414,11 @@ static float drum_actual_mm_s(void)
     return steprate_mm_s_from_hz(steprate_timer_hz(&t, F_CPU), DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV);
 }
 
+/* The actuator's step generator follows the commanded velocity at once. A stop or a reversal (STOP, a fault, the host
+ * watchdog: the back-off) drops the step counting down in the old direction: the timer stops now, DIR is set, and the
+ * new direction's period starts from rest, so its first step comes one period (0.5 ms at the back-off speed) after
+ * the command, never a step towards the sensor after it (issue 39: the old period, up to 4.2 s at the slowest rate,
+ * used to run out first). The DIR set-up time before the next STEP edge (A4988: 200 ns) is a whole period. */
 static void act_apply(float v_mm_s)
 {
     steptimer_t t;
@@ -425,12 +430,17 @@ static void act_apply(float v_mm_s)
     act_next.cs = t.cs;
     act_next.ocr = t.ocr;
     act_next_dir = dir;
+    if (act_running_cs && (!t.cs || dir != act_dir)) { /* stop or reversal: the pending step is dropped */
+        TCCR3B = (1 << WGM32);
+        TIFR3 = (1 << OCF3A);
+        act_running_cs = 0;
+    }
     if (t.cs && !act_running_cs) { /* from rest: set the direction before the first step */
         act_dir = dir;
         if (dir) PIN_ACT_DIR_PORT |= (1 << PIN_ACT_DIR_BIT);
         else PIN_ACT_DIR_PORT &= (uint8_t)~(1 << PIN_ACT_DIR_BIT);
     }
-    if (t.cs && dir == act_dir) step_timer_retime(&act_timer, &act_running_cs, &t);
+    if (t.cs) step_timer_retime(&act_timer, &act_running_cs, &t);
     sei();
 }
 

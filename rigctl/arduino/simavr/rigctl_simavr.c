@@ -38,6 +38,11 @@
  * with RIGCTL_TEST_HOOKS) then hangs in loop(), for the watchdog test; "homeswitch broken|ok" breaks the home
  * switch's wire (it never closes) or mends it; "eeprom-flip OFFSET" flips bit 4 of one EEPROM byte (a corrupted
  * calibration record). A reset by the MCU itself (the watchdog) is reported as "RESET t=... cause=mcu".
+ * Actuator direction: "actuator reversed|ok" swaps the motor's coil pair (DIR high then moves it away from the
+ * sensor) or mends it; each reversal of the steps that really move it is reported as "AREV t=<first step of the new
+ * direction> dir=1|0 (1 = towards the sensor) last_t=<the last step of the old one>". "rxlog 1|0": an "RX t=..." line
+ * each time host bytes arrive (when a request reached the board, to time the firmware's answer on the pins), and
+ * "ASTEP t=... dir=..." at each actuator step that moves it.
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -73,6 +78,7 @@
 
 static avr_t *avr;
 static int is_uno;
+static double sim_s(void);
 static void extint_poll(void); /* simavr's level-trigger poll on only where the firmware asks for it (below) */
 
 /* ================================ UART0 <-> pty bridge ================================
@@ -87,6 +93,7 @@ static uint64_t tx_lost;
 static int pty_master = -1, pty_slave = -1;
 static char pty_name[128];
 static int uart_xon = 1;
+static atomic_int rxlog_req; /* 1 = "RX t=..." each time host bytes arrive, "ASTEP t=... dir=..." at each actuator step */
 static uint8_t rx_buf[4096];
 static size_t rx_len, rx_pos;
 static avr_irq_t *uart_in_irq;
@@ -154,6 +161,7 @@ static void bridge_poll(void)
         ssize_t r = read(pty_master, rx_buf, sizeof rx_buf);
         rx_pos = 0;
         rx_len = r > 0 ? (size_t)r : 0;
+        if (r > 0 && atomic_load(&rxlog_req)) printf("RX t=%.6f n=%zd\n", sim_s(), r); /* a request's arrival */
     }
     while (uart_xon && rx_pos < rx_len) avr_raise_irq(uart_in_irq, rx_buf[rx_pos++]);
 }
@@ -289,6 +297,7 @@ static atomic_int hang_req;          /* 1 = PA0 high until the next reset */
 static atomic_int polarity_req = 1;  /* +1 or -1: the load cell's sign */
 static atomic_int home_broken_req;   /* 1 = the home switch never closes */
 static atomic_int eeprom_flip_req = -1; /* EEPROM offset to corrupt, -1 = none */
+static atomic_int act_reversed_req;  /* 1 = the actuator motor's coil pair swapped: DIR high moves it away */
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
 static uint16_t *wave;     /* n_rows x 18 ADC counts */
 static size_t wave_rows;
@@ -403,6 +412,12 @@ static void *stdin_thread(void *arg)
             printf("OK homeswitch\n");
         } else if (!strncmp(line, "eeprom-flip ", 12)) {
             atomic_store(&eeprom_flip_req, atoi(line + 12));
+        } else if (!strcmp(line, "actuator reversed") || !strcmp(line, "actuator ok")) {
+            atomic_store(&act_reversed_req, line[9] == 'r');
+            printf("OK actuator\n");
+        } else if (!strncmp(line, "rxlog ", 6)) {
+            atomic_store(&rxlog_req, atoi(line + 6) != 0);
+            printf("OK rxlog\n");
         } else if (!strncmp(line, "polarity ", 9)) {
             atomic_store(&polarity_req, atoi(line + 9) < 0 ? -1 : 1);
             printf("OK polarity\n");
@@ -981,6 +996,10 @@ static void update_home(void)
     }
 }
 
+/* the direction (1 = towards the sensor, as the motor really turns) and time of the last actuator step that moved */
+static int act_last_dir = -1;
+static double act_last_t;
+
 static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
@@ -990,9 +1009,16 @@ static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
             steps_disabled++;
             return;
         }
-        if (!act_dir && act_steps <= -(int64_t)llround(opt_rear_stop_mm * opt_act_steps_per_mm))
+        int fwd = act_dir ^ atomic_load(&act_reversed_req); /* a swapped coil pair turns the motor the other way */
+        double t = sim_s();
+        if (act_last_dir >= 0 && fwd != act_last_dir) /* the first step of a new direction, and the last of the old */
+            printf("AREV t=%.6f dir=%d last_t=%.6f act_steps=%lld\n", t, fwd, act_last_t, (long long)act_steps);
+        if (atomic_load(&rxlog_req)) printf("ASTEP t=%.6f dir=%d\n", t, fwd);
+        act_last_dir = fwd;
+        act_last_t = t;
+        if (!fwd && act_steps <= -(int64_t)llround(opt_rear_stop_mm * opt_act_steps_per_mm))
             return; /* against the rear stop: the motor stalls, the firmware's step count goes on */
-        act_steps += act_dir ? 1 : -1;
+        act_steps += fwd ? 1 : -1;
         update_home();
     }
 }
