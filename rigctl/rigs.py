@@ -25,11 +25,12 @@ actuator after opening), ``textures`` (the rig's default texture set).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from rigctl.acquisition.rig import Rig, RigError
+from rigctl.core.faults import FaultInjector, FaultSpec, check_faults, parse_fault
 from rigctl.core.interfaces import RIG_KINDS, RigBackend
 from rigctl.core.textures import TextureSet
 
@@ -138,7 +139,8 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
 
 
 def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
-             host_config_path: str | os.PathLike | None = None, home: bool = True, **options: Any) -> Rig:
+             host_config_path: str | os.PathLike | None = None, home: bool = True,
+             inject: Sequence[FaultSpec | str] = (), **options: Any) -> Rig:
     """Open a rig of ``kind`` ("sim" | "hil" | "hardware" | "replay" | "inprocess") and start its taxel stream.
 
     Parameters
@@ -147,6 +149,8 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     prompt : operator prompt for plate changes on hardware (default: a terminal prompt).
     host_config_path : the rig config file (calibration; default ``$RIGCTL_CONFIG`` or ``~/.config/rigctl/rig.json``).
     home : HOME the actuator after opening (clearing a latched fault first); False leaves a fault latched.
+    inject : faults to inject (:mod:`rigctl.core.faults`: :class:`FaultSpec` s or ``"estop@3+2"`` texts), timed on
+        the rig's clock from the moment it is open; every one is checked against the backend before it starts.
     **options : the backend's options: ``config``, ``seed``, ``source`` (replay), ``drum_port``/``taxel_port``
         (hardware), ``textures`` (the rig's default texture set), and backend-specific keywords.
 
@@ -158,7 +162,14 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     ------
     RigError
         Unknown kind, missing options, or the backend could not be started / the boards do not answer.
+    rigctl.core.faults.FaultSpecError
+        A malformed ``inject`` text, or a fault this rig cannot model (before anything starts).
     """
+    faults = tuple(f if isinstance(f, FaultSpec) else parse_fault(f) for f in inject)
     backend = make_backend(kind, prompt=prompt, **options)
-    return Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
-                       else str(host_config_path), home=home)
+    check_faults(backend, faults, kind=kind)
+    rig = Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
+                      else str(host_config_path), home=home)
+    if faults and isinstance(backend, FaultInjector):
+        backend.inject_faults(faults)
+    return rig

@@ -22,6 +22,7 @@ from rigctl.cli.rig_flags import (
     check_one_rig,
     drum_port_option,
     hil_bootloaders_option,
+    inject_option,
     inprocess_option,
     taxel_port_option,
 )
@@ -162,9 +163,10 @@ def _recorded_before(out: Path, proto) -> int:
 @click.option("--lsl/--no-lsl", "lsl", default=None,
               help="Publish the run on Lab Streaming Layer (taxels, SA/RA spikes, drum state, markers; docs/lsl.md); "
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
+@inject_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure,
-            config_path, plates, lsl, quiet):
+            config_path, plates, lsl, inject, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -175,6 +177,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
+    from rigctl.core.faults import FaultSpecError
     from rigctl.devices.errors import DrumError, TaxelStreamError
     from rigctl.operations import ProtocolRun, RigSource, lsl_requested, open_control
     from rigctl.storage.session import SessionError
@@ -196,6 +199,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                  inputs=(protocol, replay if isinstance(replay, Path) else None, config_path),
                  overwrite_hint="continue it with --resume, or pass --overwrite")
     hardware = drum_port is not None
+    if inject and hardware:
+        raise click.UsageError("--inject works on the simulated rigs (--sim, --inprocess, --hil), not on hardware")
     prompt = plate_prompt(plates, hardware=hardware, stdin_is_tty=sys.stdin.isatty())
     try:  # the rig config is read again when the rig opens; a bad one is refused here, before anything starts
         host_config = load_rig_config(config_path)
@@ -227,7 +232,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
-                                  bootloaders=hil_bootloaders, inprocess=inprocess)
+                                  bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject)
     with _held_rig_warnings() as held:
         try:
             control = open_control(source, prompt=prompt, seed=rig_seed,
@@ -237,6 +242,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                     else "; STOP was not acknowledged either: if the drum may be moving, stop it by hand")
             hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if hardware else ""
             raise click.ClickException(f"{exc}{hint}{stop}") from None
+        except FaultSpecError as exc:  # --inject names a fault this rig cannot model: refused before it opened
+            raise UsageProblem(str(exc)) from None
         except (RigError, TaxelStreamError, OSError, ValueError, LslUnavailable) as exc:
             raise click.ClickException(" ".join(str(exc).split())) from None
         except DrumError as exc:  # HOME failed

@@ -12,6 +12,7 @@ from rigctl.cli.rig_flags import (
     check_one_rig,
     drum_port_option,
     hil_bootloaders_option,
+    inject_option,
     inprocess_option,
     taxel_port_option,
 )
@@ -34,7 +35,9 @@ from rigctl.cli.rig_flags import (
 @click.option("--rest-s", type=floats(2.0, 120.0), default=10.0, show_default=True,
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
-def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save, rest_s, seed):
+@inject_option
+def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save,
+           rest_s, seed, inject):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
     after each. The report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a check
@@ -58,7 +61,9 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         except ValueError as exc:
             raise click.BadParameter(str(exc), param_hint="--check") from None
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders,
-                                  inprocess=inprocess)
+                                  inprocess=inprocess, inject=inject)
+    if inject and source.is_hardware:
+        raise click.UsageError("--inject works on the simulated rigs (--sim, --inprocess, --hil), not on hardware")
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
                  save=not no_save, on_result=None if as_json else lambda r: click.echo(r.line()))
     if as_json:

@@ -6,6 +6,7 @@ import click
 
 from rigctl.cli.outputs import check_output
 from rigctl.cli.ranges import floats
+from rigctl.cli.rig_flags import inject_option
 
 #: image formats the window grab is saved in (Qt's image writers, by extension)
 SCREENSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -49,8 +50,9 @@ def _require_display() -> None:
                                               "once connected.")
 @click.option("--max-fps", type=floats(0, 1e6), default=None,
               help="Frame cap of the live view, frames/s (1-120; default 30: the app's MAX_FPS).")
+@inject_option
 def gui(drum_port, taxel_port, sim, hil, hil_bootloaders, replay, screenshot, overwrite, quit_after, tab, run, texture,
-        max_fps):
+        max_fps, inject):
     """Start the desktop app: rig control, live taxels and SA/RA rasters, protocol runs, offline analysis.
 
     With no source option it opens the source last chosen in its Connect dialog (the simulated rig the first time;
@@ -62,6 +64,8 @@ def gui(drum_port, taxel_port, sim, hil, hil_bootloaders, replay, screenshot, ov
     if sum(map(bool, (drum_port, sim, hil or hil_bootloaders, replay))) > 1:
         raise click.UsageError("choose one source: --drum-port/--taxel-port, --sim, --hil (--hil-bootloaders) or "
                                "--replay")
+    if inject and drum_port:
+        raise click.UsageError("--inject works on the simulated rigs (--sim, --hil, --replay), not on hardware")
     if screenshot and quit_after is None:
         raise click.UsageError("--screenshot needs --quit-after SECONDS")
     if screenshot:
@@ -78,6 +82,8 @@ def gui(drum_port, taxel_port, sim, hil, hil_bootloaders, replay, screenshot, ov
                         ("--texture", texture), ("--max-fps", max_fps)):
         if value is not None:
             argv += [flag, str(value)]
+    for spec in inject:  # the app opens its rig with RigSource(inject=...)
+        argv += ["--inject", str(spec)]
     for flag, on in (("--run", run), ("--sim", sim), ("--hil", hil), ("--hil-bootloaders", hil_bootloaders)):
         if on:
             argv.append(flag)

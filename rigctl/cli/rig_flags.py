@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import click
 
-__all__ = ["hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "check_one_rig"]
+from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
+
+__all__ = ["hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
+           "check_one_rig"]
 
 hil_bootloaders_option = click.option(
     "--hil-bootloaders", is_flag=True, default=False,
@@ -20,6 +23,25 @@ drum_port_option = click.option("--drum-port", default=None,
                                 help="Serial port of the drum controller (Mega) on real hardware.")
 taxel_port_option = click.option("--taxel-port", default=None,
                                  help="Serial port of the taxel streamer (Uno) on real hardware.")
+
+
+def _parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]) -> tuple[FaultSpec, ...]:
+    out = []
+    for text in value:
+        try:
+            out.append(parse_fault(text))
+        except FaultSpecError as exc:
+            raise click.BadParameter(str(exc).removeprefix(f"--inject {text}: "), ctx, param) from None
+    return tuple(out)
+
+
+#: ``--inject FAULT@T[+D]`` (repeatable): faults injected into a simulated rig (rigctl.core.faults, docs/safety.md)
+inject_option = click.option(
+    "--inject", "inject", multiple=True, metavar="FAULT@T[+D]", callback=_parse_injections,
+    help="Inject a fault into the simulated rig (repeatable): FAULT starts T s after the rig is open and lasts D s "
+         "(no +D: to the end), on the rig's own clock (simulated time with --inprocess). FAULT is one of "
+         + ", ".join(("taxel-ohm=N" if name == "taxel-ohm" else name) for name in FAULTS)
+         + "; docs/safety.md says what the rig does with each and what clears it.")
 
 
 def check_one_rig(*, sim: bool, hil: bool, inprocess: bool, drum_port: str | None) -> None:

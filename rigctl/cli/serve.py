@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from rigctl.cli.outputs import UsageProblem
+from rigctl.cli.rig_flags import inject_option
 
 #: the rig kinds ``--rig`` takes (``rigctl.rigs.KINDS``)
 RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
@@ -43,7 +44,8 @@ def default_queue_file() -> Path:
               help="Seed of a simulated rig.")
 @click.option("--lsl/--no-lsl", "lsl", default=None,
               help="Publish every run on Lab Streaming Layer; default the rig config's lsl.enabled.")
-def serve(host, port, token, queue_file, kind, drum_port, taxel_port, replay, config_path, seed, lsl):
+@inject_option
+def serve(host, port, token, queue_file, kind, drum_port, taxel_port, replay, config_path, seed, lsl, inject):
     """Open the rig and serve its run queue over HTTP until Ctrl-C / SIGTERM.
 
     POST /runs queues a protocol (by name or TOML text); one run owns the rig at a time, the others wait; GET
@@ -54,6 +56,7 @@ def serve(host, port, token, queue_file, kind, drum_port, taxel_port, replay, co
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rig import RigError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
+    from rigctl.core.faults import FaultSpecError
     from rigctl.operations import QueueError, RigSource, RunQueue, lsl_requested, open_control
     from rigctl.server.app import create_app, is_loopback
 
@@ -81,9 +84,11 @@ def serve(host, port, token, queue_file, kind, drum_port, taxel_port, replay, co
         except LslUnavailable as exc:
             raise click.ClickException(str(exc)) from None
     source = RigSource(kind, drum_port=drum_port, taxel_port=taxel_port,
-                       replay_dir=None if replay is None else str(replay))
+                       replay_dir=None if replay is None else str(replay), inject=inject)
     try:
         control = open_control(source, seed=seed, host_config_path=config_path)
+    except FaultSpecError as exc:  # --inject names a fault this rig cannot model
+        raise UsageProblem(str(exc)) from None
     except (RigError, OSError, ValueError) as exc:
         raise click.ClickException(" ".join(str(exc).split())) from None
     with control:

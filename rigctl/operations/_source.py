@@ -11,6 +11,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from rigctl.core.faults import FaultSpec
 from rigctl.rigs import KINDS
 
 __all__ = ["RigSource", "KINDS", "LEGACY_KINDS"]
@@ -34,6 +35,8 @@ class RigSource:
     bootloaders : "hil" only: the boards run their real bootloaders under simavr and reset when the host opens their
         ports, as real boards do (:class:`rigctl.simulation.hil.HilRig` ``bootloaders``); the host waits the boot
         windows out
+    inject : faults injected into a simulated rig (``--inject``, :mod:`rigctl.core.faults`), timed on its clock from
+        the moment it is open; refused by :func:`rigctl.rigs.open_rig` on a rig that cannot model one
 
     Raises
     ------
@@ -46,6 +49,7 @@ class RigSource:
     taxel_port: str | None = None
     replay_dir: str | None = None
     bootloaders: bool = False
+    inject: tuple[FaultSpec, ...] = ()
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -57,19 +61,18 @@ class RigSource:
     @classmethod
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
                    replay: str | Path | None = None, bootloaders: bool = False,
-                   inprocess: bool = False) -> "RigSource":
+                   inprocess: bool = False, inject: tuple[FaultSpec, ...] = ()) -> "RigSource":
         """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
         ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", else "sim" (the
         flags' consistency is the CLI's to check)."""
+        inject = tuple(inject)
         if drum_port is not None or taxel_port is not None:
-            return cls("hardware", drum_port=drum_port, taxel_port=taxel_port)
+            return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject)
         if replay is not None:
-            return cls("replay", replay_dir=str(replay))
+            return cls("replay", replay_dir=str(replay), inject=inject)
         if hil or bootloaders:
-            return cls("hil", bootloaders=bootloaders)
-        if inprocess:
-            return cls("inprocess")
-        return cls("sim")
+            return cls("hil", bootloaders=bootloaders, inject=inject)
+        return cls("inprocess" if inprocess else "sim", inject=inject)
 
     @property
     def is_hardware(self) -> bool:
@@ -91,10 +94,11 @@ class RigSource:
 
     def open_options(self) -> dict[str, Any]:
         """The keyword arguments of :func:`rigctl.rigs.open_rig` this source selects (kind included)."""
+        extra: dict[str, Any] = {"inject": self.inject} if self.inject else {}
         if self.kind == "hardware":
-            return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port}
+            return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port, **extra}
         if self.kind == "replay":
-            return {"kind": "replay", "source": self.replay_dir}
+            return {"kind": "replay", "source": self.replay_dir, **extra}
         if self.bootloaders:
-            return {"kind": "hil", "bootloaders": True}
-        return {"kind": self.kind}
+            return {"kind": "hil", "bootloaders": True, **extra}
+        return {"kind": self.kind, **extra}

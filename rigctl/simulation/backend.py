@@ -7,9 +7,10 @@ set's geometry, :func:`rigctl.simulation.textures.get_texture`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
+from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices.backend import PortBackend
 from rigctl.devices.drum import DrumClient
@@ -107,6 +108,20 @@ class PtyRigBackend(PortBackend):
     def place_mass(self, mass_g: float) -> None:
         """Rest a calibration mass on the simulated load cell (0 removes it)."""
         self.sim.place_mass(mass_g)
+
+    # fault injection (:class:`rigctl.core.faults.FaultInjector`): the simulated rig's, or the HIL harness's once it
+    # implements ``fault_refusal`` / ``inject_faults``
+    def fault_refusal(self, spec: FaultSpec) -> str | None:
+        """Why this rig cannot model ``spec`` (None when it can)."""
+        refusal = getattr(self.sim, "fault_refusal", None)
+        if refusal is None:
+            return f"the {self.mode} rig's harness injects no faults yet"
+        return refusal(spec)
+
+    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+        """Arm ``specs`` on the simulated rig's clock from now (see :meth:`fault_refusal`)."""
+        schedule: FaultSchedule = self.sim.inject_faults(specs)
+        return schedule
 
     def describe(self) -> dict:
         out: dict[str, Any] = {"mode": self.mode, "drum_port": self.drum_port, "taxel_port": self.taxel_port,

@@ -10,20 +10,27 @@ Time is simulated and advances only when the host acts: each Modbus request take
 of bus time (2 ms: a status read at 115200 baud), a ``wait_*`` poll of the drum client sleeps on the simulated
 clock, and :meth:`InProcessTaxels.wait_capture` runs the simulation until the frames are there (up to its timeout,
 in simulated time). A whole trial takes a fraction of its duration in wall time; the results (force settling,
-index alignment, trial frames) are the model's, not a mock's. The host-silence watchdog is not simulated (the host
-cannot be silent on a clock that only moves when it speaks).
+index alignment, trial frames) are the model's, not a mock's. The host-silence watchdog is simulated only while a
+``host-silence`` fault is injected (the host cannot be silent on a clock that only moves when it speaks): then each
+request waits :data:`SILENT_ANSWER_MS` of simulated time for no answer, and WATCHDOG latches once the silence is
+longer than WATCHDOG_MS.
+
+Faults (``open_rig("inprocess", inject=...)``, :mod:`rigctl.core.faults`) are applied on the simulated clock as it
+passes their times (:class:`rigctl.simulation.faults.ModelFaults`).
 """
 
 from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from pymodbus.exceptions import ModbusIOException
 from pymodbus.pdu import ExceptionResponse
 
+from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices import wire
@@ -32,7 +39,12 @@ from rigctl.devices.ring import RingBuffer
 from rigctl.devices.taxel_stream import Capture, StreamStats, first_flagged
 from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
+from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
+
+#: how long a request waits for no answer while ``host-silence`` is injected, simulated ms (a real link's answer
+#: timeout, :data:`rigctl.rigs.ANSWER_TIMEOUT_S` of the hardware)
+SILENT_ANSWER_MS = 500
 
 __all__ = ["InProcessEngine", "InProcessTaxels", "InProcessBackend", "SimulatedClock"]
 
@@ -71,6 +83,14 @@ class InProcessEngine:
         self._t_ms = 0
         self._lock = threading.RLock()
         self._listeners: list[Callable[[np.ndarray, np.ndarray, int], Any]] = []
+        #: the injected faults (:meth:`InProcessBackend.inject_faults`) and what applies them
+        self.faults = ModelFaults(self.controller, self.model, drum_link=lambda up: None, taxel_link=self._taxel_link)
+        self.schedule: FaultSchedule | None = None
+        self.taxel_link_up = True
+        self._last_request_ms = 0
+
+    def _taxel_link(self, up: bool) -> None:
+        self.taxel_link_up = bool(up)
 
     @property
     def time_s(self) -> float:
@@ -87,11 +107,23 @@ class InProcessEngine:
         if n_ms <= 0:
             return
         with self._lock:
+            if self.schedule is not None:
+                self.schedule.due(self._t_ms / 1000.0)  # what is due by now acts from this step on
             samples, sync = self.controller.step(n_ms)
             t0 = self._t_ms
             self._t_ms += n_ms
+            if self.faults.host_silent:
+                self.controller.host_silent_for((self._t_ms - self._last_request_ms) / 1000.0)
             for fn in self._listeners:
                 fn(samples, sync, t0)
+
+    def note_request(self) -> bool:
+        """A request reaches the controller now (False: the host is cut off, ``host-silence``; nothing arrives)."""
+        if self.faults.host_silent:
+            return False
+        self._last_request_ms = self._t_ms
+        self.controller.note_request()
+        return True
 
 
 class _Response:
@@ -119,7 +151,9 @@ class _Transport:
         eng = self.engine
         with eng._lock:
             eng.advance(eng.request_ms)
-            eng.controller.note_request()
+            if not eng.note_request():  # the link is cut: the client waits out its answer timeout for nothing
+                eng.advance(SILENT_ANSWER_MS)
+                raise ModbusIOException("no answer (host-silence injected)")
             result = call()
         if result is None:
             return _Response()
@@ -179,8 +213,9 @@ class InProcessTaxels:
     @property
     def stats(self) -> StreamStats:
         with self._lock:
-            return StreamStats(frames=self._frames, frames_per_s=self._layout.sample_rate_hz if self._streaming
-                               else 0.0, connected=True)
+            up = self.engine.taxel_link_up
+            return StreamStats(frames=self._frames, frames_per_s=self._layout.sample_rate_hz if self._streaming and up
+                               else 0.0, connected=up)
 
     def open(self) -> dict:
         lay = self._layout
@@ -204,7 +239,7 @@ class InProcessTaxels:
 
     def _feed(self, samples: np.ndarray, sync: np.ndarray, t0_ms: int) -> None:
         with self._lock:
-            if not self._streaming:
+            if not self._streaming or not self.engine.taxel_link_up:
                 return
             n = len(samples)
             seq = ((self._seq + np.arange(n)) % 65536).astype(np.uint16)
@@ -302,6 +337,18 @@ class InProcessBackend:
 
     def place_mass(self, mass_g: float) -> None:
         self.engine.model.place_mass(mass_g)
+
+    # ------------------------------------------------------------------ fault injection (rigctl.core.faults)
+    def fault_refusal(self, spec: FaultSpec) -> str | None:
+        """Why the in-process rig cannot model ``spec`` (None when it can)."""
+        return self.engine.faults.fault_refusal(spec)
+
+    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+        """Arm ``specs`` on the simulated clock from now; returns the schedule."""
+        schedule = FaultSchedule(specs, self.engine.faults.apply_fault)
+        schedule.start(self.engine.time_s)
+        self.engine.schedule = schedule
+        return schedule
 
     def describe(self) -> dict:
         return {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": self.seed,

@@ -751,6 +751,11 @@ class RigModel:
         self._hx_next_s = self._hx_period_s
         self._hx_conversions = 0
         self._hx_last_s = 0.0
+        #: fault-injection hooks (rigctl.simulation.faults): the load cell mounted reversed (-1), the actuator's
+        #: motor wired reversed (-1), the drum blocked (True: it turns no further whatever the stepper is told)
+        self.loadcell_sign = 1
+        self.actuator_sign = 1
+        self.drum_blocked = False
 
     # -- properties ------------------------------------------------------------------------------------------------
     @property
@@ -812,7 +817,7 @@ class RigModel:
         """Raw HX711-like counts: ``loadcell_offset_counts + round(force_g * loadcell_counts_per_g)`` (signed 24-bit)."""
         m = self.config.mechanics
         with self._lock:
-            raw = m.loadcell_offset_counts + int(round(self._loadcell_g * m.loadcell_counts_per_g))
+            raw = m.loadcell_offset_counts + self.loadcell_sign * int(round(self._loadcell_g * m.loadcell_counts_per_g))
         return max(-(1 << 23), min((1 << 23) - 1, raw))
 
     @property
@@ -858,6 +863,15 @@ class RigModel:
             raise ValueError(f"mass_g must be >= 0, got {mass_g}")
         with self._lock:
             self._mass_on_loadcell_g = mass
+
+    def set_hx711_rate(self, rate_sps: float) -> None:
+        """The HX711's output rate from now on, samples/s (10 or 80: its RATE pin; fault injection). ValueError."""
+        if rate_sps not in (10.0, 80.0):
+            raise ValueError(f"the HX711 runs at 10 or 80 samples/s, got {rate_sps}")
+        with self._lock:
+            self._hx_period_s = 1.0 / (rate_sps * (1.0 + self.config.mechanics.hx711_clock_error))
+            self._hx_weights = sinc4_weights(self._hx_period_s * 1000.0)
+            self._hx_next_s = self._time_s + self._hx_period_s
 
     def home_actuator(self) -> None:
         """Place the actuator at home (0 mm) immediately (the end of a HOMING move)."""
@@ -923,7 +937,10 @@ class RigModel:
                 return np.empty((0, N_TAXELS), np.uint16), np.zeros(0, bool)
             target = float(drum_step_rate_hz) / d.true_steps_per_mm  # the driver's real microstep setting
             circ = d.circumference_mm
-            va = min(max(float(actuator_velocity_mm_s), -m.actuator_max_speed_mm_s), m.actuator_max_speed_mm_s)
+            va = min(max(self.actuator_sign * float(actuator_velocity_mm_s), -m.actuator_max_speed_mm_s),
+                     m.actuator_max_speed_mm_s)
+            if self.drum_blocked:  # a blocked drum: stopped at once, whatever the stepper is told
+                target, self._speed_mm_s = 0.0, 0.0
             # speed ramp, surface travel, index-mark passes, actuator travel and contact force with the runout and
             # the texture ripple (SensorModel.contact_height), one ms after another (rigctl.simulation.mechanics)
             heights, period, mean = self.sensor.height_tables(self._texture)

@@ -19,10 +19,13 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Sequence
 
 import numpy as np
 
+from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
 from rigctl.simulation.pty import PortDir
 from rigctl.simulation.virtual_mega import VirtualMega
@@ -105,6 +108,26 @@ class SimulatedRig:
         self.mega = VirtualMega(self.model, self.port_dir / "drum")
         self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=self.seed,
                               layout=self.layout)
+        #: the injected faults (:meth:`inject_faults`) and what applies them, on the physics clock
+        self.faults = ModelFaults(self.mega, self.model, drum_link=self._drum_link, taxel_link=self._taxel_link)
+        self.schedule: FaultSchedule | None = None
+
+    def _drum_link(self, up: bool) -> None:
+        (self.mega.bridge.replug if up else self.mega.bridge.unplug)()
+
+    def _taxel_link(self, up: bool) -> None:
+        (self.replug_taxel if up else self.unplug_taxel)()
+
+    def fault_refusal(self, spec: FaultSpec) -> str | None:
+        """Why this rig cannot model ``spec`` (None when it can; :mod:`rigctl.core.faults`)."""
+        return self.faults.fault_refusal(spec)
+
+    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+        """Arm ``specs`` on the physics clock from now; the physics thread applies each as its time comes."""
+        schedule = FaultSchedule(specs, self.faults.apply_fault)
+        schedule.start(self.model.time_s)
+        self.schedule = schedule
+        return schedule
 
     @property
     def drum_port(self) -> str:
@@ -126,6 +149,8 @@ class SimulatedRig:
         return self
 
     def _step(self, n_ms: int) -> None:
+        if self.schedule is not None:
+            self.schedule.due(self.model.time_s)
         samples, sync_in = self.mega.step(n_ms)
         if self._read_source is None:
             self.uno.tick(samples, sync_in)

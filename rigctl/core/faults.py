@@ -1,0 +1,206 @@
+"""Fault injection on the simulated rigs: the ``--inject FAULT@T[+D]`` spec, its schedule and the hook a rig implements.
+
+One spec per fault, ``FAULT@T[+D]``: ``FAULT`` (a name of :data:`FAULTS`, ``taxel-ohm=N`` with its value) starts
+``T`` s after the rig's clock was armed (:meth:`FaultSchedule.start`: when the rig is open, i.e. when ``rigctl
+acquire``'s run starts) and ends ``D`` s later (no ``+D``: it stays to the end; ``estop@3`` presses the e-stop and
+never releases it, ``reset@3`` is an instant). Times are the rig's own clock: simulated time on the in-process rig,
+the physics clock of the simulated rig on ptys, the firmware's clock under simavr.
+
+A rig backend that can inject faults implements :class:`FaultInjector` (the model rigs through
+``rigctl.simulation.faults.ModelFaults``; the firmware under simavr through its harness): ``fault_refusal(spec)``
+says in one line why it cannot model a fault (None when it can), ``inject_faults(specs)`` arms a
+:class:`FaultSchedule` on the rig's clock, whose :meth:`FaultSchedule.due` the clock calls with its time to start
+and end what is due. :func:`rigctl.rigs.open_rig` (``inject=``) checks every spec against the backend before
+anything opens and arms the schedule once the rig is open.
+
+Faults (docs/safety.md has what the rig does with each and what clears it):
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import threading
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+__all__ = ["FAULTS", "FaultSpec", "FaultSpecError", "FaultSchedule", "FaultInjector", "parse_fault", "parse_faults",
+           "check_faults"]
+
+#: every fault ``--inject`` knows: name -> what it does on a rig (one line)
+FAULTS: dict[str, str] = {
+    "estop": "the e-stop is pressed at T and released at T+D (its contact opens: drivers off at once, ESTOP latched)",
+    "reset": "the drum controller resets at T (a reset under load: NOT_HOMED, drivers off); D is not used",
+    "reversed-cell": "the load cell reads reversed (negative under load) from T to T+D",
+    "reversed-actuator": "the actuator moves the wrong way (away from the sensor when the loop presses) from T to T+D",
+    "host-silence": "the host's link to the drum controller is cut (USB pulled) from T to T+D: nothing reaches it",
+    "stall": "the drum is blocked (the stepper turns no further, the index mark stops passing) from T to T+D",
+    "hx711-10sps": "the HX711 comes up at 10 samples/s (its RATE pin low): the drum controller resets at T and "
+                   "measures the wrong rate at boot",
+    "taxel-ohm": "taxel-ohm=N: every taxel's source impedance is N Ohm from T to T+D (the multiplexer's crosstalk)",
+    "taxel-link-drop": "the taxel board's link drops (no frame arrives) from T to T+D",
+}
+__doc__ = (__doc__ or "") + "\n".join(f"- ``{name}``: {what}" for name, what in FAULTS.items()) + "\n"
+
+#: faults that happen at one instant (their duration is not used)
+INSTANT_FAULTS = frozenset({"reset", "hx711-10sps"})
+#: faults that take a value (``name=value``)
+VALUED_FAULTS = frozenset({"taxel-ohm"})
+
+_SPEC = re.compile(r"^(?P<name>[a-z0-9-]+)(=(?P<value>[^@]+))?@(?P<at>[^+]+)(\+(?P<dur>.+))?$")
+
+
+class FaultSpecError(ValueError):
+    """A malformed ``--inject`` spec, or a fault the rig cannot model (one line naming why)."""
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """One injected fault: ``name`` (a key of :data:`FAULTS`), ``at_s`` (start, s after the schedule starts, >= 0),
+    ``duration_s`` (s; ``math.inf``: to the end; 0 for an instant fault), ``value`` (``taxel-ohm``'s Ohm, else
+    None)."""
+
+    name: str
+    at_s: float
+    duration_s: float = math.inf
+    value: float | None = None
+
+    @property
+    def end_s(self) -> float:
+        """When the fault ends, s after the schedule starts (inf: never)."""
+        return self.at_s + self.duration_s
+
+    def __str__(self) -> str:
+        value = "" if self.value is None else f"={self.value:g}"
+        dur = "" if math.isinf(self.duration_s) or self.name in INSTANT_FAULTS else f"+{self.duration_s:g}"
+        return f"{self.name}{value}@{self.at_s:g}{dur}"
+
+
+def _seconds(text: str, what: str, spec: str) -> float:
+    try:
+        value = float(text.strip().removesuffix("s"))
+    except ValueError:
+        raise FaultSpecError(f"--inject {spec}: {what} {text!r} is not a number of seconds") from None
+    if not math.isfinite(value) or value < 0 or value > 1e6:
+        raise FaultSpecError(f"--inject {spec}: {what} must be 0 to 1e6 s, got {text}")
+    return value
+
+
+def parse_fault(spec: str) -> FaultSpec:
+    """Parse ``FAULT[=VALUE]@T[+D]`` (e.g. ``estop@3+2``, ``taxel-ohm=47000@0``, ``reset@5``).
+
+    Raises FaultSpecError (a ValueError) naming what is wrong: the form, an unknown fault (with the known ones), a
+    missing or unexpected value, a time that is not a number of seconds in 0..1e6."""
+    text = str(spec).strip()
+    m = _SPEC.match(text.lower())
+    if m is None:
+        raise FaultSpecError(f"--inject {text}: expected FAULT@T[+D] (e.g. estop@3+2: the e-stop pressed 3 s after the "
+                             "run starts, released 2 s later)")
+    name = m["name"]
+    if name not in FAULTS:
+        raise FaultSpecError(f"--inject {text}: unknown fault {name!r}; one of {', '.join(FAULTS)}")
+    value: float | None = None
+    if name in VALUED_FAULTS:
+        if m["value"] is None:
+            raise FaultSpecError(f"--inject {text}: {name} needs a value ({name}=N@T)")
+        try:
+            value = float(m["value"])
+        except ValueError:
+            raise FaultSpecError(f"--inject {text}: {name}'s value {m['value']!r} is not a number") from None
+        if not (math.isfinite(value) and 0 <= value <= 1e9):
+            raise FaultSpecError(f"--inject {text}: {name}'s value must be 0 to 1e9, got {m['value']}")
+    elif m["value"] is not None:
+        raise FaultSpecError(f"--inject {text}: {name} takes no value")
+    at = _seconds(m["at"], "the start", text)
+    if name in INSTANT_FAULTS:
+        duration = 0.0
+    else:
+        duration = math.inf if m["dur"] is None else _seconds(m["dur"], "the duration", text)
+    return FaultSpec(name, at, duration, value)
+
+
+def parse_faults(specs: Iterable[str]) -> tuple[FaultSpec, ...]:
+    """Every spec of a repeatable ``--inject`` option parsed, in order (FaultSpecError for the first bad one)."""
+    return tuple(parse_fault(s) for s in specs)
+
+
+@runtime_checkable
+class FaultInjector(Protocol):
+    """The hook a rig backend implements to inject faults (the model rigs: ``InProcessBackend`` and
+    ``PtyRigBackend`` on a ``SimulatedRig``, through ``rigctl.simulation.faults.ModelFaults``; the firmware under
+    simavr: its harness). :func:`rigctl.rigs.open_rig` asks :meth:`fault_refusal` of every spec before the rig
+    opens and calls :meth:`inject_faults` once it is open."""
+
+    def fault_refusal(self, spec: FaultSpec) -> str | None:
+        """Why this rig cannot model ``spec`` (one line), or None when it can."""
+        ...
+
+    def inject_faults(self, specs: Sequence[FaultSpec]) -> "FaultSchedule":
+        """Arm ``specs`` on the rig's own clock from now (its time 0); the rig applies each start and end as its
+        clock passes them (:meth:`FaultSchedule.due`). Returns the schedule."""
+        ...
+
+
+def check_faults(backend: object, specs: Iterable[FaultSpec], *, kind: str) -> None:
+    """Raise FaultSpecError when ``backend`` cannot inject one of ``specs``: it is no :class:`FaultInjector` (the
+    hardware rig), or its ``fault_refusal`` names why."""
+    specs = tuple(specs)
+    if not specs:
+        return
+    if not isinstance(backend, FaultInjector):
+        raise FaultSpecError(f"--inject: the {kind} rig cannot inject faults (only the simulated rigs: --sim, "
+                             "--inprocess, --hil)")
+    for spec in specs:
+        why = backend.fault_refusal(spec)
+        if why:
+            raise FaultSpecError(f"--inject {spec}: not on the {kind} rig: {why}")
+
+
+class FaultSchedule:
+    """The injected faults on one clock: :meth:`start` arms it at the clock's time ``t0``; :meth:`due` (called with
+    the clock's time as it advances) applies every start and end that came due since the last call, in time order,
+    to ``apply(spec, active)`` (start: True, end: False). Thread-safe; ``applied`` lists ``(time_s, spec, active)``
+    for tests and logs."""
+
+    def __init__(self, specs: Iterable[FaultSpec], apply: Callable[[FaultSpec, bool], None]):
+        self.specs = tuple(specs)
+        self.apply = apply
+        self._t0: float | None = None
+        self._edges: list[tuple[float, int, FaultSpec, bool]] = []
+        for i, spec in enumerate(self.specs):
+            self._edges.append((spec.at_s, i, spec, True))
+            if spec.name not in INSTANT_FAULTS and math.isfinite(spec.end_s):
+                self._edges.append((spec.end_s, i, spec, False))
+        self._edges.sort(key=lambda e: (e[0], e[1], not e[3]))
+        self._lock = threading.Lock()
+        self.applied: list[tuple[float, FaultSpec, bool]] = []
+
+    @property
+    def armed(self) -> bool:
+        return self._t0 is not None
+
+    @property
+    def pending(self) -> int:
+        """Starts and ends not applied yet."""
+        with self._lock:
+            return len(self._edges)
+
+    def start(self, t0_s: float) -> None:
+        """Arm the schedule: its times count from the clock's ``t0_s`` (the first call wins)."""
+        with self._lock:
+            if self._t0 is None:
+                self._t0 = float(t0_s)
+
+    def due(self, now_s: float) -> None:
+        """Apply every start and end due by the clock's ``now_s`` (nothing before :meth:`start`)."""
+        with self._lock:
+            if self._t0 is None or not self._edges:
+                return
+            t = float(now_s) - self._t0
+            ready = []
+            while self._edges and self._edges[0][0] <= t + 1e-9:
+                ready.append(self._edges.pop(0))
+        for at, _, spec, active in ready:
+            self.apply(spec, active)
+            self.applied.append((at, spec, active))

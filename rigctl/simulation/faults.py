@@ -1,0 +1,93 @@
+"""Fault injection on the model rigs (in-process and simulated on ptys): :class:`ModelFaults`.
+
+What the :class:`rigctl.core.faults.FaultInjector` of the rigs built on :class:`rigctl.simulation.model.RigModel` and
+:class:`rigctl.simulation.controller.MegaController` applies: each ``--inject`` fault acts where the real one would, on the
+model (the load cell's sign, the actuator's direction, a blocked drum, the HX711's rate), on the controller's
+inputs (the e-stop contact, a reset) or on a link (the drum controller's port, the taxel board's). What the host
+and the controller make of it is theirs: the controller latches its faults, the host's safety policy
+(:mod:`rigctl.acquisition.safety`) pauses the run. The firmware under simavr (``--hil``) implements the same
+hook with its harness.
+
+``taxel-ohm`` is refused: the model's sensor has no source impedance (the multiplexer's crosstalk lives in the
+firmware's ADC under simavr: ``--hil``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from rigctl.core.drum import ResetCause
+from rigctl.core.faults import FaultSpec
+from rigctl.simulation.controller import MegaController
+from rigctl.simulation.model import RigModel
+
+__all__ = ["ModelFaults"]
+
+log = logging.getLogger(__name__)
+
+
+class ModelFaults:
+    """Injects :mod:`rigctl.core.faults` faults into a model rig.
+
+    Parameters
+    ----------
+    controller, model : the rig's drum controller logic and physics.
+    drum_link : ``drum_link(up)`` cuts (False) or restores (True) the host's link to the drum controller (the
+        pty's bridge; in-process: :attr:`host_silent`, which the transport honours); None: ``host-silence`` refused.
+    taxel_link : ``taxel_link(up)`` drops or restores the taxel board's link; None: ``taxel-link-drop`` refused.
+
+    Attributes
+    ----------
+    host_silent : True while ``host-silence`` is active (the in-process transport then answers nothing).
+    active : the names of the faults active now.
+    """
+
+    def __init__(self, controller: MegaController, model: RigModel, *,
+                 drum_link: Callable[[bool], None] | None = None,
+                 taxel_link: Callable[[bool], None] | None = None) -> None:
+        self.controller, self.model = controller, model
+        self.drum_link, self.taxel_link = drum_link, taxel_link
+        self.host_silent = False
+        self.active: set[str] = set()
+
+    def fault_refusal(self, spec: FaultSpec) -> str | None:
+        """Why this rig cannot model ``spec`` (None when it can)."""
+        if spec.name == "taxel-ohm":
+            return ("the simulated sensor has no source impedance (the multiplexer's crosstalk is modelled by the "
+                    "firmware's ADC under simavr: use --hil)")
+        if spec.name == "host-silence" and self.drum_link is None:
+            return "this rig's drum link cannot be cut"
+        if spec.name == "taxel-link-drop" and self.taxel_link is None:
+            return "this rig's taxel link cannot be cut"
+        return None
+
+    def apply_fault(self, spec: FaultSpec, active: bool) -> None:
+        """Start (``active``) or end ``spec`` now."""
+        name = spec.name
+        log.warning("injected fault %s: %s", spec, "starts" if active else "ends")
+        if active:
+            self.active.add(name)
+        else:
+            self.active.discard(name)
+        c, m = self.controller, self.model
+        if name == "estop":
+            c.set_estop(active)
+        elif name == "reset":
+            c.reset(ResetCause.EXTERNAL)
+        elif name == "hx711-10sps":
+            m.set_hx711_rate(10.0)
+            c.reset(ResetCause.POWER_ON)  # the board comes up with the RATE pin low: the boot measures 10 SPS
+        elif name == "reversed-cell":
+            m.loadcell_sign = -1 if active else 1
+        elif name == "reversed-actuator":
+            m.actuator_sign = -1 if active else 1
+        elif name == "stall":
+            m.drum_blocked = active
+        elif name == "host-silence" and self.drum_link is not None:
+            self.host_silent = active
+            self.drum_link(not active)
+        elif name == "taxel-link-drop" and self.taxel_link is not None:
+            self.taxel_link(not active)
+        else:  # refused before the schedule was armed (fault_refusal)
+            raise ValueError(f"fault {spec} cannot be injected on this rig")

@@ -1,0 +1,101 @@
+"""Fault injection (``--inject FAULT@T[+D]``): the spec parser, the schedule on a rig's clock, and each fault as the
+in-process rig models it (simulated time)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from rigctl.core.drum import DrumState, Fault
+from rigctl.core.faults import FAULTS, FaultSchedule, FaultSpec, FaultSpecError, parse_fault
+from rigctl.rigs import open_rig
+
+
+def test_parse_fault_specs():
+    assert parse_fault("estop@3+2") == FaultSpec("estop", 3.0, 2.0)
+    assert parse_fault("ESTOP@3") == FaultSpec("estop", 3.0, math.inf)
+    assert parse_fault("reset@5+9") == FaultSpec("reset", 5.0, 0.0)  # an instant
+    assert parse_fault("taxel-ohm=47000@0.5+1s") == FaultSpec("taxel-ohm", 0.5, 1.0, 47000.0)
+    assert str(parse_fault("taxel-ohm=47000@0.5+1")) == "taxel-ohm=47000@0.5+1"
+    for bad, words in (("estop", "FAULT@T"), ("nope@1", "unknown fault"), ("estop@-1", "0 to 1e6"),
+                       ("estop@x", "not a number"), ("taxel-ohm@1", "needs a value"), ("estop=3@1", "takes no value"),
+                       ("estop@1+inf", "0 to 1e6")):
+        with pytest.raises(FaultSpecError, match=words):
+            parse_fault(bad)
+    assert {"estop", "reset", "reversed-cell", "reversed-actuator", "host-silence", "stall", "hx711-10sps",
+            "taxel-ohm", "taxel-link-drop"} <= set(FAULTS)
+
+
+def test_schedule_applies_starts_and_ends_in_time_order():
+    seen: list[tuple[str, bool]] = []
+    sched = FaultSchedule([parse_fault("stall@2+1"), parse_fault("estop@1+0.5"), parse_fault("reset@2")],
+                          lambda spec, on: seen.append((spec.name, on)))
+    sched.due(100.0)
+    assert seen == []  # not armed
+    sched.start(10.0)
+    sched.due(10.9)
+    assert seen == []
+    sched.due(11.0)
+    assert seen == [("estop", True)]
+    sched.due(12.0)
+    assert seen == [("estop", True), ("estop", False), ("stall", True), ("reset", True)]
+    sched.due(13.5)
+    assert seen[-1] == ("stall", False) and sched.pending == 0
+
+
+def _wait(rig, seconds: float):
+    """Let ``seconds`` of simulated time pass, reading the status as a host does; the last status."""
+    clock = rig.drum.clock
+    end = clock.now() + seconds
+    st = rig.drum.read_status()
+    while clock.now() < end:
+        clock.sleep(0.1)
+        st = rig.drum.read_status()
+    return st
+
+
+def test_inprocess_estop_latches_and_release_does_not_clear_it():
+    with open_rig("inprocess", inject=["estop@0.5+1"]) as rig:
+        st = _wait(rig, 0.8)
+        assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults
+        st = _wait(rig, 2.0)  # released at 1.5 s: still latched
+        assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults
+        rig.drum.clear_fault()  # accepted once released
+        assert rig.drum.read_status().state == DrumState.NOT_HOMED
+
+
+def test_inprocess_reversed_cell_and_taxel_link_drop():
+    with open_rig("inprocess", inject=["reversed-cell@0+30", "taxel-link-drop@0.5+0.5"]) as rig:
+        rig.drum.set_force(300.0)
+        rig.drum.press()
+        _wait(rig, 0.7)
+        frames = rig.stream.stats.frames
+        assert not rig.stream.stats.connected
+        _wait(rig, 0.2)
+        assert rig.stream.stats.frames == frames  # nothing arrives while the link is down
+        st = _wait(rig, 2.0)  # the actuator reaches the sensor: the cell reads negative
+        assert st.state == DrumState.FAULT and Fault.LOADCELL_REVERSED in st.faults
+        assert rig.stream.stats.connected and rig.stream.stats.frames > frames
+
+
+def test_inprocess_host_silence_trips_the_watchdog_in_simulated_time():
+    from rigctl.devices.errors import DrumError
+
+    with open_rig("inprocess", inject=["host-silence@1+3"]) as rig:
+        rig.drum.set_speed(50.0)
+        rig.drum.set_force(300.0)
+        rig.drum.press()
+        engine = rig.backend.engine
+        engine.advance(int((1.05 - engine.time_s) * 1000))
+        with pytest.raises(DrumError):
+            rig.drum.read_status()  # nothing reaches the controller
+        while engine.time_s < 4.2:  # the silence lasts 3 s, WATCHDOG_MS is 1 s
+            engine.advance(100)
+        st = rig.drum.read_status()
+        assert st.state == DrumState.FAULT and Fault.WATCHDOG in st.faults
+
+
+def test_refusals_name_why():
+    with pytest.raises(FaultSpecError, match="source impedance.*--hil"):
+        open_rig("inprocess", inject=["taxel-ohm=47000@0"])
