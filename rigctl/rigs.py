@@ -17,6 +17,9 @@ Kinds:
   plates mounted by the operator (``prompt``).
 - ``"inprocess"``: the model and the controller logic in this process, on a simulated clock, no ptys
   (:class:`rigctl.simulation.inprocess.InProcessBackend`; fast unit tests of the runner and calibration).
+- ``"handheld"``: the paper's real-time system, no drum: an operator scans flat plates with the finger
+  (:class:`rigctl.acquisition.handheld.HandheldRig`); option ``motion``: ``"sim"`` (default: the simulated operator,
+  :class:`rigctl.simulation.operator.SimulatedOperator`, on a simulated clock); :func:`open_handheld`.
 
 Common options: ``prompt`` (operator prompt), ``host_config_path`` (the rig config file), ``home`` (HOME the
 actuator after opening), ``textures`` (the rig's default texture set).
@@ -34,7 +37,8 @@ from rigctl.core.faults import FaultInjector, FaultSpec, check_faults, parse_fau
 from rigctl.core.interfaces import RIG_KINDS, RigBackend
 from rigctl.core.textures import TextureSet
 
-__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "open_rig", "make_backend", "replay_source"]
+__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "open_rig", "open_handheld", "make_backend",
+           "replay_source"]
 
 #: the backends :func:`open_rig` knows (the one list: :data:`rigctl.core.interfaces.RIG_KINDS`)
 KINDS = RIG_KINDS
@@ -141,7 +145,8 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
 def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
              host_config_path: str | os.PathLike | None = None, home: bool = True,
              inject: Sequence[FaultSpec | str] = (), **options: Any) -> Rig:
-    """Open a rig of ``kind`` ("sim" | "hil" | "hardware" | "replay" | "inprocess") and start its taxel stream.
+    """Open a rig of ``kind`` ("sim" | "hil" | "hardware" | "replay" | "inprocess" | "handheld") and start its
+    taxel stream.
 
     Parameters
     ----------
@@ -166,6 +171,10 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
         A malformed ``inject`` text, or a fault this rig cannot model (before anything starts).
     """
     faults = tuple(f if isinstance(f, FaultSpec) else parse_fault(f) for f in inject)
+    if kind == "handheld":
+        if faults:
+            raise RigError("the handheld rig models no injected fault (--inject): the simulated drum rigs do")
+        return open_handheld(prompt=prompt, host_config_path=host_config_path, **options)
     backend = make_backend(kind, prompt=prompt, **options)
     check_faults(backend, faults, kind=kind)
     rig = Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
@@ -173,3 +182,24 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     if faults and isinstance(backend, FaultInjector):
         backend.inject_faults(faults)
     return rig
+
+
+def open_handheld(*, motion: str = "sim", prompt: Callable[[str], Any] | None = None,
+                  host_config_path: str | os.PathLike | None = None, config: Any = None, seed: int = 0,
+                  textures: TextureSet | None = None, home: bool = True, **options: Any) -> Rig:
+    """Open the handheld rig (:class:`rigctl.acquisition.handheld.HandheldRig`): its scans come from the simulated
+    operator (``motion="sim"``: the plate's axis calibrated from its simulated touches of the plate's two ends).
+    ``home`` is ignored (no actuator). Raises RigError for an unknown motion source or unusable options."""
+    from rigctl.acquisition.handheld import HandheldRig
+    from rigctl.core.handheld import PlateAxis
+
+    path = None if host_config_path is None else str(host_config_path)
+    if motion == "sim":
+        from rigctl.simulation.operator import SimulatedOperator
+
+        if options:
+            raise RigError(f"the simulated operator takes no option {', '.join(sorted(options))}")
+        op = SimulatedOperator(seed=seed, rig_config=config, textures=textures)
+        axis = PlateAxis.from_touches(*op.touch_ends())
+        return HandheldRig(op, axis=axis, prompt=prompt, textures=textures, host_config_path=path)
+    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator)")

@@ -48,6 +48,8 @@ ORDERS = ("blocked", "interleaved", "random")
 #: what the replay rig does between trials (the protocol's ``replay``): start each at the source's next trial, or
 #: play the source on
 REPLAY_MODES = ("trials", "continuous")
+#: the rigs a protocol is recorded on (its ``rig``): the drum, or an operator's hand (the paper's real-time system)
+PROTOCOL_RIGS = ("drum", "handheld")
 
 
 class ProtocolError(ValueError):
@@ -125,6 +127,9 @@ class Protocol:
     #: "continuous" (the source plays on across trials)
     replay: str = "trials"
     format: str = "toml"
+    #: which rig records it: "drum" (the drum rigs, default) or "handheld" (an operator scans flat plates with the
+    #: finger: ``rigctl.rigs.open_handheld``; the profiles are the operator's intended velocity profiles)
+    rig: str = "drum"
 
     @property
     def speeds_mm_s(self) -> tuple[float, ...]:
@@ -298,7 +303,7 @@ class _Validator:
     TOP = {
         "name", "description", "textures", "speeds_mm_s", "forces_g", "trials_per_condition", "travel_mm",
         "duration_s", "order", "seed", "settle", "profiles", "texture_set", "max_dropped_frames", "retries",
-        "replay",
+        "replay", "rig",
     }
     TEXTURE_SET = {"name", "textures", "groups", "geometry"}
     SETTLE = {"force_timeout_s", "speed_timeout_s", "speed_tolerance_mm_s", "force_tolerance_g", "settle_time_ms"}
@@ -413,6 +418,9 @@ class _Validator:
         replay = doc.get("replay", "trials")
         if replay not in REPLAY_MODES:
             raise self.error(("replay",), f"{replay!r} is not one of {', '.join(REPLAY_MODES)}")
+        rig = doc.get("rig", "drum")
+        if rig not in PROTOCOL_RIGS:
+            raise self.error(("rig",), f"{rig!r} is not one of {', '.join(PROTOCOL_RIGS)}")
         n_trials = len(textures) * len(forces) * len(profiles) * tpc
         if n_trials > MAX_PLAN_TRIALS:
             raise self.error(("trials_per_condition",), f"the plan would hold {n_trials} trials, more than "
@@ -441,7 +449,7 @@ class _Validator:
             name=name.strip(), source=self.source, path=self.path, description=description,
             textures=tuple(textures), texture_set=texture_set, profiles=tuple(profiles), forces_g=forces, trials_per_condition=tpc,
             travel_mm=travel, duration_s=duration, order=order, seed=seed, settle=settle,
-            max_dropped_frames=max_dropped, retries=retries, replay=replay,
+            max_dropped_frames=max_dropped, retries=retries, replay=replay, rig=rig,
         )
         for key, prof in zip(keys, profiles):
             d = proto.trial_duration_s(prof)

@@ -43,6 +43,21 @@ class ReplaySource(click.ParamType):
 
 REPLAY = ReplaySource()
 
+
+class MotionSource(click.ParamType):
+    """``--motion``: ``sim`` or ``lsl:NAME`` (a tracker stream)."""
+
+    name = "sim|lsl:NAME"
+
+    def convert(self, value, param, ctx):
+        text = str(value)
+        if text == "sim" or (text.startswith("lsl:") and len(text) > 4):
+            return text
+        self.fail(f"{text!r}: give sim (the simulated operator) or lsl:NAME (a tracker stream)", param, ctx)
+
+
+MOTION = MotionSource()
+
 #: --plates choices (see the option's help)
 PLATE_POLICIES = ("prompt", "auto", "skip")
 
@@ -130,6 +145,23 @@ def _recorded_before(out: Path, proto) -> int:
         raise click.ClickException(str(exc)) from None
 
 
+def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, inprocess: bool, hardware: bool,
+                  replay: Any) -> bool:
+    """Whether the run records on the handheld rig: a protocol with ``rig = "handheld"``, or ``--handheld`` /
+    ``--motion``. Raises click.UsageError when the flags name another rig for a handheld protocol, or the handheld rig
+    for a drum protocol."""
+    wants = getattr(proto, "rig", "drum") == "handheld"
+    asked = handheld or motion is not None
+    if asked and not wants:
+        raise click.UsageError(f"--handheld/--motion record on the handheld rig, but protocol {proto.name!r} is a drum "
+                               "protocol (no rig = \"handheld\")")
+    if wants and (hil or inprocess or hardware or replay is not None):
+        raise click.UsageError(f"protocol {proto.name!r} records on the handheld rig (an operator's scans): drop "
+                               "--hil/--inprocess/--drum-port/--replay (--sim: the simulated operator; --motion "
+                               "lsl:NAME: a tracker)")
+    return wants
+
+
 @click.command()
 @click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -144,6 +176,13 @@ def _recorded_before(out: Path, proto) -> int:
               help="Simulated rig whose taxel board streams this recording (a session file, at its own layout and "
                    "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model; "
                    "or lsl:NAME: the live LSL stream NAME (name or source id; a lab's own taxel device, docs/lsl).")
+@click.option("--handheld", is_flag=True, default=False,
+              help="Use the handheld rig (the paper's real-time system: an operator scans flat plates with the finger; "
+                   "a protocol with rig = \"handheld\" selects it anyway). Motion from the simulated operator unless "
+                   "--motion says otherwise (docs/guides/handheld.md).")
+@click.option("--motion", type=MOTION, default=None,
+              help="The handheld rig's motion source: sim (the simulated operator, default) or lsl:NAME (a tracker "
+                   "stream: its position or velocity; docs/guides/handheld.md).")
 @click.option("--resume", is_flag=True, default=False,
               help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice).")
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
@@ -165,8 +204,8 @@ def _recorded_before(out: Path, proto) -> int:
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
 @inject_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
-def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, resume, overwrite, seed, on_failure,
-            config_path, plates, lsl, inject, quiet):
+def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, resume,
+            overwrite, seed, on_failure, config_path, plates, lsl, inject, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -220,6 +259,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         raise UsageProblem(str(exc)) from None
     if seed is not None and isinstance(proto, Protocol):
         proto = proto.with_seed(seed)
+    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess,
+                             hardware=drum_port is not None, replay=replay)
     if hardware and plates == "skip":
         with contextlib.suppress(Exception):  # a note only; the runner reports a plan it cannot build
             labels = sorted({str(t.texture) for t in proto.plan()})
@@ -232,7 +273,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
-                                  bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject)
+                                  bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
+                                  motion=motion)
     with _held_rig_warnings() as held:
         try:
             control = open_control(source, prompt=prompt, seed=rig_seed,

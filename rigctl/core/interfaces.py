@@ -32,7 +32,7 @@ from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 
 #: the kinds of rig backend (:attr:`RigBackend.mode`): the one list; :func:`rigctl.rigs.open_rig` builds each
-RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
+RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess", "handheld")
 
 __all__ = ["RIG_KINDS", "DrumController", "DrumSetpoints", "DrumCommands", "DrumMonitor", "DrumCalibration",
            "TaxelSource", "PlateMounter", "MassPlacer", "RigBackend", "Prompt"]

@@ -64,6 +64,10 @@ class PlannedTrial:
         )
 
 
+#: a trial's traces: (values, their times)
+TRACES = (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s"), ("position_mm", "position_time_s"))
+
+
 def _empty(dtype: Any) -> np.ndarray:
     return np.zeros(0, dtype=dtype)
 
@@ -89,7 +93,11 @@ class TrialData:
     force_g, force_time_s : (m,) float64
         Load-cell force trace (g) and its host times (s, same clock and origin as ``host_time_s``).
     speed_mm_s, speed_time_s : (k,) float64
-        Measured drum surface speed trace (mm/s) and its host times (s).
+        Measured drum surface speed trace (mm/s) and its host times (s); on the handheld rig the tracker's velocity
+        along the plate.
+    position_mm, position_time_s : (j,) float64
+        Handheld rig only (else empty): the tracker's position along the plate, mm from its start, and its host times
+        (s, same clock and origin as ``host_time_s``).
     dropped_frames : int
         Frames missing from ``seq`` within the trial.
     crc_errors : int
@@ -113,6 +121,8 @@ class TrialData:
     force_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
     speed_mm_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
     speed_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    position_mm: np.ndarray = field(default_factory=lambda: _empty(np.float64))
+    position_time_s: np.ndarray = field(default_factory=lambda: _empty(np.float64))
     dropped_frames: int = 0
     crc_errors: int = 0
     attrs: dict = field(default_factory=dict)
@@ -143,7 +153,7 @@ class TrialData:
         for name in ("seq", "flags", "host_time_s"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must be ({n},) like taxels, got {getattr(self, name).shape}")
-        for value, times in (("force_g", "force_time_s"), ("speed_mm_s", "speed_time_s")):
+        for value, times in TRACES:
             v = np.asarray(getattr(self, value), np.float64).reshape(-1)
             t = np.asarray(getattr(self, times), np.float64).reshape(-1)
             if v.shape != t.shape:

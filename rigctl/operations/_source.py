@@ -37,6 +37,8 @@ class RigSource:
         windows out
     inject : faults injected into a simulated rig (``--inject``, :mod:`rigctl.core.faults`), timed on its clock from
         the moment it is open; refused by :func:`rigctl.rigs.open_rig` on a rig that cannot model one
+    motion : "handheld" only: where the finger's motion comes from: "sim" (the simulated operator, default) or
+        "lsl:NAME" (a tracker stream; :func:`rigctl.rigs.open_handheld`)
 
     Raises
     ------
@@ -50,6 +52,7 @@ class RigSource:
     replay_dir: str | None = None
     bootloaders: bool = False
     inject: tuple[FaultSpec, ...] = ()
+    motion: str | None = None
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -57,15 +60,20 @@ class RigSource:
             raise ValueError(f"unknown rig kind {self.kind!r}; choose one of {', '.join(KINDS)}")
         if self.bootloaders and self.kind != "hil":
             raise ValueError(f"bootloaders are the firmware under simavr's (kind 'hil'), not {self.kind!r}'s")
+        if self.motion is not None and self.kind != "handheld":
+            raise ValueError(f"a motion source is the handheld rig's (kind 'handheld'), not {self.kind!r}'s")
 
     @classmethod
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
                    replay: str | Path | None = None, bootloaders: bool = False,
-                   inprocess: bool = False, inject: tuple[FaultSpec, ...] = ()) -> "RigSource":
+                   inprocess: bool = False, inject: tuple[FaultSpec, ...] = (), handheld: bool = False,
+                   motion: str | None = None) -> "RigSource":
         """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
-        ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", else "sim" (the
-        flags' consistency is the CLI's to check)."""
+        ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", ``handheld`` or a
+        ``motion`` -> "handheld", else "sim" (the flags' consistency is the CLI's to check)."""
         inject = tuple(inject)
+        if handheld or motion is not None:
+            return cls("handheld", motion=motion or "sim", inject=inject)
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject)
         if replay is not None:
@@ -87,6 +95,9 @@ class RigSource:
         if self.kind == "replay":
             what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
             return f"{what} ({self.replay_dir})"
+        if self.kind == "handheld":
+            return ("simulated operator" if (self.motion or "sim") == "sim" else
+                    f"handheld rig, motion from {self.motion}")
         if self.bootloaders:
             return "firmware under simavr, with its bootloaders"
         return {"hil": "firmware under simavr", "inprocess": "in-process simulated rig"}.get(self.kind,
@@ -101,4 +112,6 @@ class RigSource:
             return {"kind": "replay", "source": self.replay_dir, **extra}
         if self.bootloaders:
             return {"kind": "hil", "bootloaders": True, **extra}
+        if self.kind == "handheld":
+            return {"kind": "handheld", "motion": self.motion or "sim", **extra}
         return {"kind": self.kind, **extra}

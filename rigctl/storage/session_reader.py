@@ -295,7 +295,8 @@ class Session:
         with _reading(self.path, f"the data of trial {trial_id}"):
             assert g is not None  # has_data above
             arrays = {k: g[k][()] for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s",
-                                            "speed_mm_s", "speed_time_s")}
+                                            "speed_mm_s", "speed_time_s", "position_mm", "position_time_s")
+                      if k in g or k not in ("position_mm", "position_time_s")}  # position: handheld trials only
         taxels = arrays.pop("taxels")
         if self._present is not None:  # a schema-1/2 import: only the real columns
             taxels = taxels[:, self._present]

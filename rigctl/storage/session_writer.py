@@ -632,6 +632,9 @@ class SessionWriter:
             for key in ("force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
                 h5objects.create_dataset(g, key, getattr(data, key))
             self._taxels_attrs(tax, data)
+        if data.position_mm.size:  # the handheld rig's tracker position: plain datasets in the group (both schemas)
+            for key in ("position_mm", "position_time_s"):
+                h5objects.create_dataset(g, key, getattr(data, key))
         attrs = {}
         for fld in PLAN_FIELDS:
             v = row[fld]
@@ -667,7 +670,8 @@ def _snapshot(data: TrialData) -> TrialData:
     """A copy of ``data`` whose arrays are its own: a batch's recording arrays are written after its last trial is
     taken, and a caller may reuse a trial's buffers for the next one (the dataset generator's shared-memory slots)."""
     snap = copy.copy(data)  # no __post_init__: the arrays were checked when ``data`` was made
-    for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+    for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s",
+                 "position_mm", "position_time_s"):
         setattr(snap, name, np.array(getattr(data, name), copy=True))
     snap.attrs = dict(data.attrs)
     return snap

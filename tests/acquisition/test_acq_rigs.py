@@ -31,7 +31,7 @@ def test_every_kind_builds_a_backend(tmp_path):
         opts = {"drum_port": "/dev/x", "taxel_port": "/dev/y"} if kind == "hardware" else {}
         backend = make_backend(kind, **opts)
         assert isinstance(backend, RigBackend) and backend.mode == kind
-    assert set(KINDS) == {"sim", "hil", "hardware", "replay", "inprocess"}
+    assert set(KINDS) == {"sim", "hil", "hardware", "replay", "inprocess", "handheld"}
 
 
 @pytest.mark.realtime

@@ -1,0 +1,298 @@
+"""The handheld rig: the paper's real-time system, an operator scanning flat plates with the sensor on a finger.
+
+There is no drum. A trial's motion is the operator's scan: :meth:`HandheldRig.record_trial` prompts the operator
+(which plate, which velocity profile, go), waits for one pass of the finger from its :class:`rigctl.core.handheld.
+ScanSource` (the simulated operator, or a taxel board with a tracker stream), and cuts it by position
+(:func:`cut_scan`): the trial starts when the finger enters the plate's middle 200 mm and ends when it leaves it
+(Methods: the scan ends "once the finger has reached the end of the texture plate (determined by the position
+information from the motion tracker)"). So the run engine (:func:`rigctl.acquisition.runner.run_protocol`) records a
+handheld protocol exactly as a drum protocol: mount (here: ask for) the plate, record the trial, write it.
+
+Each trial keeps, beside its taxels:
+
+- the tracker's velocity along the plate as the trial's speed trace (``speed_mm_s``, ``speed_time_s``: the velocity
+  of each tracker sample, the mean over the :data:`VELOCITY_WINDOW_S` around it, as the paper averages the
+  tracker's velocity over 100 ms), which the encoder's incremental speed scaling reads
+  (:func:`rigctl.encoding.speed.window_speeds`);
+- the tracker's position along the plate (``position_mm``, ``position_time_s``, mm from the plate's start);
+- the two boundaries (``scan_enter_s``, ``scan_leave_s``: host clock; ``boundary = "position"``), the tracker's
+  measured rate and dropouts, the taxel board's clock fit (:mod:`rigctl.acquisition.clock`).
+
+The taxel frames are put on the host clock by the board's clock fit (:class:`rigctl.core.clocksync.DeviceClockFit`,
+the lower envelope of the frames' receive times), the tracker samples by their source (an LSL stream's timestamps
+with the LSL <-> host offset): the cut is made on that one clock.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import math
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from rigctl.acquisition.clock import trial_clock_attrs
+from rigctl.acquisition.protocol import PlannedTrial, Settle
+from rigctl.acquisition.rig import Rig, RigError
+from rigctl.acquisition.rigconfig import config_path, load_rig_config
+from rigctl.core.clocksync import DeviceClockFit
+from rigctl.core.handheld import PLATE_LENGTH_MM, USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError, ScanSource
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.core.trial import TrialData
+
+__all__ = ["HandheldRig", "NoDrumError", "cut_scan", "velocity_from_position", "VELOCITY_WINDOW_S"]
+
+log = logging.getLogger(__name__)
+
+#: the span the tracker's velocity is averaged over, s (the paper: every 100 ms)
+VELOCITY_WINDOW_S = 0.1
+#: tracker samples kept before the entry and after the exit, s (the velocity at the trial's edges)
+TRACE_MARGIN_S = 0.2
+
+
+class NoDrumError(RigError, AttributeError):
+    """The handheld rig has no drum: a drum command was asked of it."""
+
+
+class _NoDrum:
+    """Stands where a drum rig has its controller: every attribute is a :class:`NoDrumError`."""
+
+    def __getattr__(self, name: str) -> Any:
+        raise NoDrumError(f"the handheld rig has no drum (asked for {name!r}): the operator moves the finger")
+
+
+def velocity_from_position(time_s: np.ndarray, along_mm: np.ndarray, at_s: np.ndarray | None = None,
+                           window_s: float = VELOCITY_WINDOW_S) -> np.ndarray:
+    """Velocity along the plate, mm/s: the mean over ``window_s`` centred on each time of ``at_s`` (default the
+    samples' own times), ``(x(t + w/2) - x(t - w/2)) / w`` with the position linearly interpolated between tracker
+    samples (held at the ends). ``time_s`` (k,) s increasing, ``along_mm`` (k,) mm. Raises ScanError with fewer
+    than two samples."""
+    t = np.asarray(time_s, np.float64)
+    x = np.asarray(along_mm, np.float64)
+    if t.size < 2:
+        raise ScanError("fewer than two tracker samples: no velocity")
+    at = t if at_s is None else np.asarray(at_s, np.float64)
+    h = window_s / 2.0
+    return (np.interp(at + h, t, x) - np.interp(at - h, t, x)) / window_s
+
+
+def _crossing(t: np.ndarray, x: np.ndarray, level: float, after: int = 0) -> tuple[int, float] | None:
+    """The first sample index ``i > after`` where ``x`` rises through ``level`` (``x[i-1] < level <= x[i]``) and the
+    interpolated crossing time, or None."""
+    above = x[after:] >= level
+    rising = np.flatnonzero(above[1:] & ~above[:-1])
+    if not rising.size:
+        return None
+    i = after + int(rising[0]) + 1
+    x0, x1, t0, t1 = x[i - 1], x[i], t[i - 1], t[i]
+    return i, float(t0 + (level - x0) / (x1 - x0) * (t1 - t0)) if x1 != x0 else float(t1)
+
+
+def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, *,
+             used_mm: tuple[float, float] = (USED_START_MM, USED_END_MM),
+             velocity_window_s: float = VELOCITY_WINDOW_S) -> TrialData:
+    """One scan -> one trial, cut by position (module docstring).
+
+    Parameters
+    ----------
+    raw : the pass (taxels on the board's clock, tracker samples on the host clock).
+    layout : the taxel sensor.
+    axis : the plate's calibrated axis (needed when ``raw`` gives tracker-frame points only).
+    used_mm : where the used part starts and ends along the plate, mm (the paper's middle 200 mm: 50-250).
+
+    Returns
+    -------
+    TrialData: the frames whose fitted host time lies in [entry, exit), the speed and position traces (s from the
+    first kept frame's receive time, like ``host_time_s``), attrs (boundaries, tracker, clock fit, the source's).
+
+    Raises
+    ------
+    ScanError: no tracker position, the finger never entered or never left the used part, or no frame inside.
+    """
+    t = np.asarray(raw.tracker_time_s, np.float64)
+    if raw.along_mm is not None:
+        along = np.asarray(raw.along_mm, np.float64)
+    elif raw.tracker_xyz is not None and axis is not None:
+        along = axis.along_mm(raw.tracker_xyz)
+    else:
+        raise ScanError("the scan has no position along the plate (give the tracker's position and calibrate the "
+                        "plate's axis)")
+    ok = np.isfinite(t) & np.isfinite(along)
+    t, along = t[ok], along[ok]
+    order = np.argsort(t, kind="stable")
+    t, along = t[order], along[order]
+    enter = _crossing(t, along, used_mm[0]) if t.size >= 2 else None
+    if enter is None:
+        raise ScanError(f"the finger never entered the used part of the plate (from {used_mm[0]:g} mm; the tracker "
+                        f"saw {np.nanmin(along) if along.size else math.nan:.0f}-"
+                        f"{np.nanmax(along) if along.size else math.nan:.0f} mm)")
+    leave = _crossing(t, along, used_mm[1], after=enter[0] - 1)
+    if leave is None:
+        raise ScanError(f"the finger never left the used part of the plate (past {used_mm[1]:g} mm)")
+    t_in, t_out = enter[1], leave[1]
+    fit = DeviceClockFit(layout.sample_rate_hz)
+    counts = fit.add(np.asarray(raw.seq), np.asarray(raw.host_time_s, np.float64))
+    mapping = fit.mapping()
+    frame_t = (mapping.host_time(counts) if mapping is not None else
+               raw.host_time_s[0] + (counts - counts[0]) / layout.sample_rate_hz)
+    keep = np.flatnonzero((frame_t >= t_in) & (frame_t < t_out))
+    if keep.size == 0:
+        raise ScanError("no taxel frame between the finger's entry and exit (is the taxel board streaming?)")
+    host = np.asarray(raw.host_time_s, np.float64)[keep]
+    origin = float(host[0])
+    near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
+    if raw.velocity_mm_s is not None:
+        vel = np.asarray(raw.velocity_mm_s, np.float64)[ok][order][near]
+    else:
+        vel = velocity_from_position(t, along, t[near], velocity_window_s)
+    gaps = np.diff(t)
+    period = float(np.median(gaps)) if gaps.size else math.nan
+    seq = np.asarray(raw.seq, np.uint16)[keep]
+    steps = np.bitwise_and(np.diff(seq.astype(np.int64)), 0xFFFF)
+    attrs: dict[str, Any] = {
+        "boundary": "position", "scan_enter_s": t_in, "scan_leave_s": t_out,
+        "used_start_mm": float(used_mm[0]), "used_end_mm": float(used_mm[1]),
+        "scan_duration_s": t_out - t_in, "scan_mean_speed_mm_s": (used_mm[1] - used_mm[0]) / (t_out - t_in),
+        "tracker_samples": int(near.sum()), "tracker_rate_hz": 1.0 / period if period > 0 else math.nan,
+        "tracker_dropouts": int(np.sum(gaps > 1.5 * period)) if gaps.size else 0,
+        **trial_clock_attrs(fit, counts[keep], host),
+        **dict(raw.attrs),
+    }
+    return TrialData(taxels=np.asarray(raw.taxels)[keep], seq=seq, flags=np.zeros(keep.size, np.uint8),
+                     host_time_s=host - origin, speed_mm_s=vel, speed_time_s=t[near] - origin,
+                     position_mm=along[near], position_time_s=t[near] - origin,
+                     dropped_frames=int(np.sum(steps - 1)) if steps.size else 0, attrs=attrs, layout=layout)
+
+
+def _axis_from_config(block: dict[str, Any]) -> PlateAxis:
+    """The rig config's ``handheld.plate_axis`` (:meth:`PlateAxis.to_dict`). Raises ValueError for a bad block."""
+    try:
+        s, e = (tuple(float(v) for v in block[k]) for k in ("start_xyz", "end_xyz"))
+        return PlateAxis(s, e, float(block.get("length_mm", PLATE_LENGTH_MM)))  # type: ignore[arg-type]
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"the rig config's handheld.plate_axis is not a plate axis ({exc}): calibrate it again") \
+            from None
+
+
+class HandheldRig(Rig):
+    """A rig whose trials are an operator's scans (module docstring); open it with ``rigctl.rigs.open_rig(
+    "handheld")``.
+
+    It stands where a drum :class:`rigctl.acquisition.rig.Rig` does for the run engine (``record_trial``,
+    ``mount_texture``, ``safe_stop``, ``recover``, ``check_links``, ``describe``); there is no drum (``drum`` raises
+    :class:`NoDrumError`, a RigError).
+
+    Parameters
+    ----------
+    source : the scans (:class:`rigctl.core.handheld.ScanSource`).
+    axis : the plate's calibrated axis in the tracker's frame (None: the source gives positions along the plate,
+        or the rig config's ``handheld.plate_axis``).
+    prompt : ``prompt(text)`` the operator reads (the plate, the profile, the go cue); default: logged.
+    textures : the plates' texture set.
+    host_config_path : the rig config file.
+    """
+
+    def __init__(self, source: ScanSource, *, axis: PlateAxis | None = None,
+                 prompt: Callable[[str], Any] | None = None, textures: TextureSet | None = None,
+                 host_config_path: str | None = None, mode: str = "handheld") -> None:
+        self.source = source
+        self.backend = source  # type: ignore[assignment]  # what describes the rig (no drum backend)
+        self.drum = _NoDrum()
+        self.stream = source  # type: ignore[assignment]
+        self.mode = mode
+        self.prompt = prompt
+        self.texture: str | None = None
+        self.settle = Settle()
+        self.replay_continuous = False
+        self.host_config = load_rig_config(host_config_path)
+        self.host_config_path = str(config_path(host_config_path))
+        block = (self.host_config.get("handheld") or {}).get("plate_axis")
+        self.axis = axis or (_axis_from_config(block) if block else None)
+        self._textures = textures or getattr(source, "textures", None) or PAPER_TEXTURES
+        self._closed = False
+        self._lock = threading.RLock()
+        self.drum_boot_count = None
+        self.drum_resets = 0
+        self.warnings: list[str] = []
+        self.last_capture_frames = None
+        self.stop_acknowledged = None
+        self.clock_fit = None
+        #: ``on_marker(event, host_time_s, fields)`` receivers (the LSL publisher): scan_enter / scan_leave
+        self.marker_listeners: list[Callable[[str, float, dict[str, Any]], Any]] = []
+
+    @property
+    def layout(self) -> SensorLayout:
+        return self.source.layout
+
+    def _say(self, text: str) -> None:
+        if self.prompt is not None:
+            self.prompt(text)
+        else:
+            log.info("%s", text)
+
+    def describe(self) -> dict:
+        """JSON-able: mode, the source's description, the plate axis, the sensor, the texture set, the rig config."""
+        return {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": getattr(self.source, "seed", None),
+                "scan_source": self.source.describe(), "plate_axis": None if self.axis is None else self.axis.to_dict(),
+                "sensor_layout": self.layout.to_dict(), "texture_set": self.textures.to_dict(),
+                "host_config_path": self.host_config_path, "host_config": self.host_config}
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.source.close()
+
+    def apply_settle(self, settle: Settle) -> None:
+        self.settle = settle  # no force loop, no drum speed: nothing to write
+
+    def release(self, timeout_s: float = 20.0) -> None:
+        """Nothing holds the sensor: the operator lifts the finger."""
+
+    def press(self, force_g: float, *, timeout_s: float | None = None, stop_event: Any = None) -> float:
+        raise NoDrumError("the handheld rig has no actuator: the operator presses the finger")
+
+    def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
+        """Ask the operator to move to plate ``label`` (a label of :attr:`textures`)."""
+        label = self.textures.resolve(str(label))
+        (prompt or self._say)(f"plate {label}: put the finger at the start of plate {label}, then confirm")
+        self.texture = label
+
+    def safe_stop(self) -> bool:
+        return True  # nothing moves by itself
+
+    def recover(self) -> str | None:
+        return self.check_links()
+
+    def check_links(self, *, restart: bool = True, timeout_s: float | None = None) -> str | None:
+        problem = getattr(self.source, "link_problem", None)
+        return problem() if callable(problem) else None
+
+    def record_trial(self, planned: PlannedTrial, *, stop_event: threading.Event | None = None) -> TrialData:
+        """One scan of plate ``planned.texture`` with the profile ``planned.profile`` (the operator prompted), cut
+        by position (:func:`cut_scan`). Raises ValueError (another plate than the one asked for), ScanError,
+        :class:`rigctl.acquisition.rig.TrialAborted` (``stop_event``)."""
+        from rigctl.acquisition.rig import TrialAborted
+
+        if self.texture is not None and planned.texture != self.texture:
+            raise ValueError(f"trial {planned.trial_id} is on plate {planned.texture} but the operator is on "
+                             f"{self.texture}")
+        ramp = (f" from {planned.ramp_start_mm_s:g} to {planned.ramp_end_mm_s:g} mm/s" if planned.is_ramp else
+                f" at about {planned.speed_mm_s:g} mm/s")
+        cue = f"plate {planned.texture}, profile {planned.profile}{ramp}: go"
+        with self._lock:
+            self._say(cue)
+            started = _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
+            raw = self.source.scan(planned, stop=lambda: bool(stop_event and stop_event.is_set()))
+            if raw is None:
+                raise TrialAborted("stopped before the scan")
+            data = cut_scan(raw, self.layout, self.axis)
+        data.attrs.setdefault("started_utc", started)
+        for listener in list(self.marker_listeners):
+            fields = {"texture": planned.texture, "profile": planned.profile, "trial_id": planned.trial_id}
+            listener("scan_enter", float(data.attrs["scan_enter_s"]), fields)
+            listener("scan_leave", float(data.attrs["scan_leave_s"]), fields)
+        return data

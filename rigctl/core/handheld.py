@@ -1,0 +1,143 @@
+"""The handheld system's shared terms (the paper's real-time experiment): the plate, its axis, a recorded scan and
+what records one. Imports nothing else of rigctl's but :mod:`rigctl.core.sensor` and :mod:`rigctl.core.trial`.
+
+The paper (Materials and Methods, "Real-time Texture Classification - Processing Pipeline"): flat plates of textures
+A, B, D, L and N, 300 mm x 36 mm, the middle 200 mm used; an operator moves a 3x3 sensor on a 3D-printed finger along
+a plate, a motion tracker on the wrist gives the position, and the velocity is averaged every 100 ms. Here a scan is
+one pass of the finger along a plate: the taxel frames and the tracker samples of that pass on one clock
+(:class:`RawScan`), which :mod:`rigctl.acquisition.handheld` cuts into a trial by position (the finger entering and
+leaving the middle 200 mm). What produces scans is a :class:`ScanSource`: the simulated operator
+(:class:`rigctl.simulation.operator.SimulatedOperator`) or a live taxel board with a tracker stream.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.trial import PlannedTrial
+
+__all__ = ["PLATE_LENGTH_MM", "PLATE_WIDTH_MM", "USED_LENGTH_MM", "USED_START_MM", "USED_END_MM",
+           "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError"]
+
+#: a texture plate's length and width, mm (Methods)
+PLATE_LENGTH_MM = 300.0
+PLATE_WIDTH_MM = 36.0
+#: the middle of the plate used for classification, mm (Methods: "the middle 200 mm")
+USED_LENGTH_MM = 200.0
+#: where the used part starts and ends along the plate, mm from the plate's start
+USED_START_MM = (PLATE_LENGTH_MM - USED_LENGTH_MM) / 2.0
+USED_END_MM = USED_START_MM + USED_LENGTH_MM
+#: the paper's five plates (Fig. 2B letters)
+HANDHELD_TEXTURES = ("A", "B", "D", "L", "N")
+
+
+class ScanError(RuntimeError):
+    """A scan could not be recorded or cut (no tracker samples, the finger never crossed the used part, ...)."""
+
+
+@dataclass(frozen=True)
+class PlateAxis:
+    """The plate's axis in the tracker's frame, calibrated by touching the finger to the plate's two ends.
+
+    Attributes
+    ----------
+    start_xyz, end_xyz : (3,) mm, the tracked point with the finger on the plate's start and on its end.
+    length_mm : the plate's length, mm (:data:`PLATE_LENGTH_MM`); the two touches must be this far apart within
+        ``tolerance`` (10 %), else the calibration is refused.
+    """
+
+    start_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    end_xyz: tuple[float, float, float] = (PLATE_LENGTH_MM, 0.0, 0.0)
+    length_mm: float = PLATE_LENGTH_MM
+
+    def __post_init__(self) -> None:
+        d = np.subtract(self.end_xyz, self.start_xyz)
+        span = float(np.linalg.norm(d))
+        if not math.isfinite(span) or abs(span - self.length_mm) > 0.1 * self.length_mm:
+            raise ValueError(f"the plate's two ends are {span:.1f} mm apart in the tracker's frame, not "
+                             f"{self.length_mm:g} mm (+-10 %): touch the finger to each end again, or check the "
+                             "tracker's unit (mm)")
+
+    @property
+    def unit(self) -> np.ndarray:
+        """(3,) unit vector from the start to the end."""
+        d = np.subtract(self.end_xyz, self.start_xyz).astype(np.float64)
+        return d / np.linalg.norm(d)
+
+    def along_mm(self, xyz: np.ndarray) -> np.ndarray:
+        """(k,) position along the plate, mm from its start (scaled so the two touches are 0 and ``length_mm``),
+        of (k, 3) tracked points (mm)."""
+        p = np.asarray(xyz, np.float64).reshape(-1, 3) - np.asarray(self.start_xyz, np.float64)
+        span = float(np.linalg.norm(np.subtract(self.end_xyz, self.start_xyz)))
+        return (p @ self.unit) * (self.length_mm / span)
+
+    @classmethod
+    def from_touches(cls, start: np.ndarray, end: np.ndarray, length_mm: float = PLATE_LENGTH_MM) -> "PlateAxis":
+        """From tracked samples (k, 3) mm held at each end (their medians). Raises ValueError as the constructor."""
+        s = np.median(np.asarray(start, np.float64).reshape(-1, 3), axis=0)
+        e = np.median(np.asarray(end, np.float64).reshape(-1, 3), axis=0)
+        return cls(tuple(map(float, s)), tuple(map(float, e)), length_mm)  # type: ignore[arg-type]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"start_xyz": list(self.start_xyz), "end_xyz": list(self.end_xyz), "length_mm": self.length_mm}
+
+
+@dataclass
+class RawScan:
+    """One pass of the finger along a plate, before it is cut into a trial.
+
+    Attributes
+    ----------
+    taxels : (n, n_channels) uint16 ADC counts, the taxel board's frames of the pass (and some before and after).
+    seq : (n,) uint16 frame sequence numbers.
+    host_time_s : (n,) float64 host receive time of each frame, s (the host's clock; any origin shared with
+        ``tracker_time_s``).
+    tracker_time_s : (k,) float64 the tracker samples' times on the same host clock, s (a tracker stream's LSL
+        timestamps with the LSL <-> host offset applied).
+    tracker_xyz : (k, 3) float64 tracked position, mm, in the tracker's frame (NaN rows: none; see ``along_mm``).
+    along_mm : (k,) float64 position along the plate, mm from its start, when the source gives it directly
+        (the simulated operator); else computed from ``tracker_xyz`` with the rig's :class:`PlateAxis`.
+    velocity_mm_s : (k,) float64 velocity along the plate from the tracker, mm/s, when the source gives it (a
+        velocity channel); else computed from the position.
+    attrs : what the source knows of the pass (simulated: the operator's intent and variability), JSON-able.
+    """
+
+    taxels: np.ndarray
+    seq: np.ndarray
+    host_time_s: np.ndarray
+    tracker_time_s: np.ndarray
+    tracker_xyz: np.ndarray | None = None
+    along_mm: np.ndarray | None = None
+    velocity_mm_s: np.ndarray | None = None
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+
+@runtime_checkable
+class ScanSource(Protocol):
+    """What a handheld rig records from: a taxel source and a motion source on one clock.
+
+    ``layout`` is the taxel sensor; ``scan(planned, stop=)`` waits for the operator (cued by the rig) to pass the
+    finger along the plate ``planned.texture`` with the velocity profile ``planned.profile`` and returns the pass;
+    raises :class:`ScanError`, or returns None when ``stop()`` turned true. ``describe()`` a JSON-able dict for the
+    session's ``rig_config``.
+    """
+
+    layout: SensorLayout
+
+    def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
+        """One pass (see the class docstring)."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-able: the source's kind and settings."""
+        ...
+
+    def close(self) -> None:
+        """Release the source's links (never raises)."""
+        ...

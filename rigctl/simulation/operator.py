@@ -1,0 +1,248 @@
+"""The simulated operator: a person moving the paper's 3x3 finger along flat texture plates, tracked on the wrist.
+
+The paper's real-time experiment (Results, "Real-time Texture Classification with Speed Invariant Representation";
+Materials and Methods, "Real-time Texture Classification"): an operator moves a 3x3 sensor on a 3D-printed finger
+across flat plates of textures A, B, D, L and N (300 x 36 mm, the middle 200 mm used) with one of five velocity
+profiles (slow, medium, fast, slow-to-fast, fast-to-slow), "unconstrained" but purposefully varying the intended
+profile; an infrared tracker (HTC Vive) on the wrist gives the position, from which the velocity is computed.
+
+Here each scan is generated on a simulated clock (no real-time pacing): the finger is put down near the plate's
+start, pressed, moved along the plate following the planned profile with the variability of a human hand, and
+stopped near the plate's end. The taxel readings come from the rig's physical sensor model
+(:meth:`rigctl.simulation.model.SensorModel.render`, its top layer: :data:`rigctl.core.sensor.PAPER_FINGER`) along
+the finger's path at its pressure; the tracker samples the wrist at 90-120 Hz with timing jitter, position noise and
+the occasional dropout (a lost sample or a short burst, as a Vive loses line of sight), in the tracker's own frame
+(the plate lies along an arbitrary direction there: :meth:`SimulatedOperator.touch_ends` gives what touching the
+finger to the plate's two ends reads, from which the rig calibrates the axis).
+
+Human variability (:class:`OperatorConfig`, each figure a guess at a careful operator, documented as such):
+
+- speed: a per-scan bias (lognormal, 12 %) and a slow wobble (Ornstein-Uhlenbeck, 10 %, 0.25 s), smoothed by the
+  arm's response (80 ms);
+- pauses: in 20 % of the scans the finger stops for 80-250 ms somewhere in the used part;
+- pressure: a per-scan level (500 g nominal, 15 %) and a drift within the scan (8 %, 0.8 s), which scales the
+  readings through the model's force response;
+- path: the finger wanders sideways (1.5 mm, 0.5 s), seen by the tracker and rolling the contact a little
+  (taxel levels +-2 % per 1.5 mm).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from scipy.signal import lfilter
+
+from rigctl.core.handheld import (
+    PLATE_LENGTH_MM,
+    USED_LENGTH_MM,
+    USED_START_MM,
+    RawScan,
+)
+from rigctl.core.sensor import PAPER_FINGER, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.core.trial import PlannedTrial
+from rigctl.simulation.model import RigConfig, SensorModel
+from rigctl.simulation.textures import get_texture
+
+__all__ = ["OperatorConfig", "SimulatedOperator", "profile_speeds"]
+
+
+@dataclass(frozen=True)
+class OperatorConfig:
+    """The simulated operator's hand and tracker (module docstring). Speeds relative, times s, lengths mm, forces g."""
+
+    speed_bias: float = 0.12
+    speed_bias_range: tuple[float, float] = (0.72, 1.38)  # keeps a scan within the plan's length check (0.5-2x)
+    speed_wobble: float = 0.10
+    speed_wobble_tau_s: float = 0.25
+    arm_tau_s: float = 0.08
+    pause_probability: float = 0.2
+    pause_s: tuple[float, float] = (0.08, 0.25)
+    pressure_g: float = 500.0
+    pressure_spread: float = 0.15
+    pressure_drift: float = 0.08
+    pressure_drift_tau_s: float = 0.8
+    path_wobble_mm: float = 1.5
+    path_wobble_tau_s: float = 0.5
+    path_contact_gain: float = 0.02  # relative taxel level per path_wobble_mm sideways
+    start_mm: float = 15.0  # where the finger is put down
+    stop_mm: float = 285.0  # where it is stopped
+    press_s: float = 0.3  # pressed, still, before moving
+    hold_s: float = 0.2  # still, after stopping
+    tracker_rate_hz: tuple[float, float] = (90.0, 120.0)  # drawn once per operator (a tracker's fixed rate)
+    tracker_jitter_s: float = 0.0015
+    tracker_noise_mm: float = 0.3
+    tracker_dropout: float = 0.01  # a lost sample
+    tracker_burst: float = 0.002  # a burst of 5-25 lost samples starts
+    frame_delay_s: float = 0.0005  # mean host receive delay of a taxel frame (exponential)
+
+
+def profile_speeds(planned: PlannedTrial) -> tuple[float, float]:
+    """The intended speeds at the used part's start and end, mm/s: a ramp's ends, or the constant speed twice.
+    Raises ValueError for a plan without a positive speed."""
+    if planned.is_ramp:
+        a, b = float(planned.ramp_start_mm_s), float(planned.ramp_end_mm_s)
+    else:
+        a = b = float(planned.speed_mm_s)
+    if not (a > 0 and b > 0 and math.isfinite(a + b)):
+        raise ValueError(f"trial {planned.trial_id}: the operator needs a positive intended speed, got {a:g}/{b:g}")
+    return a, b
+
+
+def _ou(rng: np.random.Generator, n: int, dt: float, tau_s: float, sd: float) -> np.ndarray:
+    """(n,) Ornstein-Uhlenbeck noise of standard deviation ``sd`` and time constant ``tau_s`` at step ``dt``."""
+    a = math.exp(-dt / tau_s)
+    x0 = rng.standard_normal() * sd
+    out = lfilter([math.sqrt(1 - a * a) * sd], [1.0, -a], rng.standard_normal(n))
+    return np.asarray(out + x0 * a ** np.arange(1, n + 1), np.float64)
+
+
+class SimulatedOperator:
+    """A :class:`rigctl.core.handheld.ScanSource`: scans generated on a simulated clock (module docstring).
+
+    Parameters
+    ----------
+    config : the hand and tracker (:class:`OperatorConfig`).
+    seed : the random seed (every scan's variability, the tracker's rate, the plate's pose in the tracker's frame).
+    rig_config : the physical model's configuration (the sensor model).
+    textures : the plates' texture set (the paper's A-P; the paper used A, B, D, L, N).
+    """
+
+    layout: SensorLayout = PAPER_FINGER
+
+    def __init__(self, config: OperatorConfig | None = None, *, seed: int = 0, rig_config: RigConfig | None = None,
+                 textures: TextureSet | None = None) -> None:
+        self.config = config or OperatorConfig()
+        self.seed = int(seed)
+        self.rng = np.random.default_rng([self.seed, 3737])
+        self.rig_config = rig_config or RigConfig()
+        self.sensor = SensorModel(self.rig_config.sensor)
+        self.textures = textures or PAPER_TEXTURES
+        c = self.config
+        self.tracker_rate_hz = float(self.rng.uniform(*c.tracker_rate_hz))
+        # the plate in the tracker's frame: rotated about the vertical, offset (a lab's room coordinates, mm)
+        self._yaw = float(self.rng.uniform(-math.pi, math.pi))
+        self._origin = np.array([self.rng.uniform(-800, 800), self.rng.uniform(-800, 800), 850.0])
+        self.clock_s = 0.0  # the simulated host clock
+        self.count = 0  # the taxel board's running frame count
+        self.scans = 0
+
+    # ------------------------------------------------------------------------------------------------- geometry
+    def to_tracker(self, along_mm: np.ndarray, side_mm: np.ndarray) -> np.ndarray:
+        """(k, 3) tracker-frame points (mm) of plate coordinates: along the plate and sideways, mm."""
+        c, s = math.cos(self._yaw), math.sin(self._yaw)
+        x = np.asarray(along_mm, np.float64)
+        y = np.asarray(side_mm, np.float64)
+        return np.stack([self._origin[0] + c * x - s * y, self._origin[1] + s * x + c * y,
+                         np.full(x.shape, self._origin[2])], axis=1)
+
+    def touch_ends(self, n: int = 30) -> tuple[np.ndarray, np.ndarray]:
+        """What the tracker reads while the finger touches the plate's start and then its end: two (n, 3) arrays
+        of tracker-frame points, mm (the axis calibration's input)."""
+        c = self.config
+        out = []
+        for along in (0.0, PLATE_LENGTH_MM):
+            pts = self.to_tracker(np.full(n, along), np.zeros(n))
+            out.append(pts + self.rng.normal(0.0, c.tracker_noise_mm, pts.shape))
+        return out[0], out[1]
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-able: kind, seed, the operator and tracker settings, the tracker's rate."""
+        return {"kind": "simulated_operator", "seed": self.seed, "operator": asdict(self.config),
+                "tracker_rate_hz": self.tracker_rate_hz, "sensor_layout": self.layout.to_dict()}
+
+    def close(self) -> None:
+        """Nothing to release (a simulation)."""
+
+    # ------------------------------------------------------------------------------------------------- a scan
+    def _path(self, planned: PlannedTrial, rng: np.random.Generator, dt: float) -> tuple[np.ndarray, dict]:
+        """(n,) finger position along the plate (mm) every ``dt`` s, and the scan's intent and variability."""
+        c = self.config
+        v0, v1 = profile_speeds(planned)
+        bias = float(np.clip(math.exp(c.speed_bias * rng.standard_normal()), *c.speed_bias_range))
+        slowest = min(v0, v1) * c.speed_bias_range[0]
+        max_n = int((c.press_s + c.hold_s + 2 * (c.stop_mm - c.start_mm) / slowest + 2.0) / dt)
+        wobble = _ou(rng, max_n, dt, c.speed_wobble_tau_s, c.speed_wobble)
+        pause_at = USED_START_MM + USED_LENGTH_MM * rng.uniform(0.2, 0.8)
+        pause_s = rng.uniform(*c.pause_s) if rng.uniform() < c.pause_probability else 0.0
+        pos = np.empty(max_n)
+        x, v, n_press = c.start_mm, 0.0, int(c.press_s / dt)
+        pos[:n_press] = x
+        k, paused_until = n_press, -1
+        a = dt / c.arm_tau_s
+        while x < c.stop_mm - 0.05 and k < max_n:
+            p = min(max((x - USED_START_MM) / USED_LENGTH_MM, 0.0), 1.0)
+            target = (v0 + (v1 - v0) * p) * bias * (1.0 + wobble[k])
+            target *= min(1.0, max(0.08, (c.stop_mm - x) / 20.0))  # slowing down to stop at the end
+            if pause_s and paused_until < 0 and x >= pause_at:
+                paused_until = k + int(pause_s / dt)
+            if k < paused_until:
+                target = 0.0
+            v += (max(target, 0.0) - v) * a
+            x += v * dt
+            pos[k] = x
+            k += 1
+        n = min(max_n, k + int(c.hold_s / dt))
+        pos[k:n] = x
+        return pos[:n], {"operator_speed_bias": bias, "operator_pause_s": float(pause_s),
+                         "operator_pause_at_mm": float(pause_at) if pause_s else math.nan}
+
+    def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
+        """One pass along the plate ``planned.texture`` with the profile of ``planned`` (what the rig's cue asked
+        for). Returns the :class:`RawScan` (taxels of :attr:`layout` at 1 kHz on
+        the simulated host clock, tracker samples, the scan's variability in ``attrs``); None when ``stop()``.
+        Raises ValueError for a plan without a positive speed, KeyError for an unknown texture."""
+        if stop is not None and stop():
+            return None
+        c, layout = self.config, self.layout
+        rng = np.random.default_rng([self.seed, 3737, self.scans])
+        self.scans += 1
+        dt = 1.0 / layout.sample_rate_hz
+        tex = get_texture(planned.texture, self.textures)
+        pos, attrs = self._path(planned, rng, dt)
+        n = pos.size
+        pressure = c.pressure_g * math.exp(c.pressure_spread * rng.standard_normal())
+        force = pressure * (1.0 + _ou(rng, n, dt, c.pressure_drift_tau_s, c.pressure_drift))
+        n_press = int(c.press_s / dt)
+        force[: n_press // 3] *= np.linspace(0.05, 1.0, n_press // 3) if n_press >= 3 else 1.0
+        side = _ou(rng, n, dt, c.path_wobble_tau_s, c.path_wobble_mm)
+        cfg = self.rig_config.sensor
+        contact = np.exp(cfg.contact_level_spread * rng.standard_normal(self.sensor.gain.size))
+        sensitivity = (1.0 + cfg.sensitivity_drift * rng.standard_normal()) * contact
+        roll = 1.0 + c.path_contact_gain * side / max(c.path_wobble_mm, 1e-9)
+        taxels = self.sensor.render(tex, pos, np.maximum(force * roll, 0.0), rng, sensitivity=sensitivity)
+        taxels = np.ascontiguousarray(taxels[:, : layout.n_channels])
+        t0 = self.clock_s
+        t_frames = t0 + np.arange(n) * dt
+        host_time = t_frames + rng.exponential(c.frame_delay_s, n)
+        seq = ((self.count + np.arange(n)) % 65536).astype(np.uint16)
+        self.count += n
+        self.clock_s = t0 + n * dt + 0.5  # half a second between scans
+        t_trk, xyz = self._tracker(rng, t0, n * dt, pos, side, dt)
+        attrs.update(operator_pressure_g=float(pressure), tracker_rate_hz=self.tracker_rate_hz,
+                     operator_texture=str(planned.texture), operator_profile=str(planned.profile))
+        return RawScan(taxels=taxels, seq=seq, host_time_s=host_time, tracker_time_s=t_trk, tracker_xyz=xyz,
+                       attrs=attrs)
+
+    def _tracker(self, rng: np.random.Generator, t0: float, span_s: float, pos: np.ndarray, side: np.ndarray,
+                 dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The tracker's samples of a scan: times (s, host clock) and tracker-frame points (k, 3) mm."""
+        c = self.config
+        k = int(span_s * self.tracker_rate_hz)
+        t = np.arange(k) / self.tracker_rate_hz + rng.normal(0.0, c.tracker_jitter_s, k)
+        t = np.clip(np.sort(t), 0.0, span_s - dt)
+        keep = rng.uniform(size=k) >= c.tracker_dropout
+        for start in np.flatnonzero(rng.uniform(size=k) < c.tracker_burst):
+            keep[start: start + int(rng.integers(5, 26))] = False
+        t = t[keep]
+        grid = np.arange(pos.size) * dt
+        along = np.interp(t, grid, pos) + rng.normal(0.0, c.tracker_noise_mm, t.size)
+        sideways = np.interp(t, grid, side) + rng.normal(0.0, c.tracker_noise_mm, t.size)
+        xyz = self.to_tracker(along, sideways)
+        xyz[:, 2] += rng.normal(0.0, c.tracker_noise_mm, t.size)
+        return t0 + t, xyz
+

@@ -1,0 +1,173 @@
+"""The handheld rig (issue 37): the simulated operator, the plate axis, trials cut by position, the run engine on it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rigctl.acquisition.builtin import find_protocol
+from rigctl.acquisition.handheld import HandheldRig, NoDrumError, cut_scan, velocity_from_position
+from rigctl.acquisition.protocol import load_protocol
+from rigctl.acquisition.runner import run_protocol
+from rigctl.core.handheld import USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError
+from rigctl.core.sensor import PAPER_FINGER
+from rigctl.core.trial import PlannedTrial
+from rigctl.rigs import open_rig
+from rigctl.simulation.operator import SimulatedOperator
+from rigctl.storage.session import open_session
+
+SMALL = """
+name = "handheld_small"
+rig = "handheld"
+textures = ["A", "L"]
+forces_g = [500]
+trials_per_condition = 1
+travel_mm = 200
+
+[[profiles]]
+name = "fast"
+kind = "constant"
+speed_mm_s = 120
+
+[[profiles]]
+name = "slow-to-fast"
+kind = "ramp"
+start_mm_s = 40
+end_mm_s = 120
+"""
+
+
+def _planned(profile="fast", speed=120.0, ramp=(math.nan, math.nan), texture="L"):
+    return PlannedTrial(0, texture, speed, 500.0, 200.0 / speed, profile, *ramp)
+
+
+def _linear_scan(speed_mm_s=100.0, rate_hz=1000.0, tracker_hz=100.0):
+    """A finger at constant speed from 0 to 300 mm on a plate along the tracker's x axis, frames stamped exactly."""
+    span = 300.0 / speed_mm_s
+    n = int(span * rate_hz)
+    t_frames = 10.0 + np.arange(n) / rate_hz
+    taxels = (np.arange(n)[:, None] % 1000 + np.zeros((1, 9))).astype(np.uint16)
+    t_trk = 10.0 + np.arange(int(span * tracker_hz)) / tracker_hz
+    xyz = np.column_stack([speed_mm_s * (t_trk - 10.0), np.zeros(t_trk.size), np.zeros(t_trk.size)])
+    return RawScan(taxels=taxels, seq=(np.arange(n) % 65536).astype(np.uint16), host_time_s=t_frames,
+                   tracker_time_s=t_trk, tracker_xyz=xyz)
+
+
+def test_cut_by_position_exact_boundaries_and_velocity():
+    raw = _linear_scan(speed_mm_s=100.0)
+    data = cut_scan(raw, PAPER_FINGER, PlateAxis())
+    # enters at 50 mm = 0.5 s, leaves at 250 mm = 2.5 s: 2000 frames at 1 kHz
+    assert data.attrs["scan_enter_s"] == pytest.approx(10.5, abs=1e-9)
+    assert data.attrs["scan_leave_s"] == pytest.approx(12.5, abs=1e-9)
+    assert abs(data.n_samples - 2000) <= 1
+    assert data.attrs["boundary"] == "position"
+    inner = (data.speed_time_s > 0.1) & (data.speed_time_s < 1.9)
+    assert np.allclose(data.speed_mm_s[inner], 100.0, atol=1e-6)
+    assert data.position_mm[0] < USED_START_MM < USED_END_MM < data.position_mm[-1]
+    assert data.attrs["tracker_rate_hz"] == pytest.approx(100.0)
+    assert data.attrs["scan_mean_speed_mm_s"] == pytest.approx(100.0)
+
+
+def test_cut_refuses_a_scan_that_never_leaves():
+    raw = _linear_scan()
+    short = raw.tracker_xyz[:, 0] < 200.0
+    raw.tracker_time_s, raw.tracker_xyz = raw.tracker_time_s[short], raw.tracker_xyz[short]
+    with pytest.raises(ScanError, match="never left"):
+        cut_scan(raw, PAPER_FINGER, PlateAxis())
+    with pytest.raises(ScanError, match="no position"):
+        cut_scan(raw, PAPER_FINGER, None)
+
+
+def test_plate_axis_from_touches_in_a_rotated_frame():
+    op = SimulatedOperator(seed=3)
+    start, end = op.touch_ends()
+    axis = PlateAxis.from_touches(start, end)
+    pts = op.to_tracker(np.array([0.0, 50.0, 250.0]), np.array([0.0, 3.0, -3.0]))  # sideways wobble ignored
+    assert np.allclose(axis.along_mm(pts), [0.0, 50.0, 250.0], atol=0.5)
+    with pytest.raises(ValueError, match="apart"):
+        PlateAxis((0.0, 0.0, 0.0), (0.3, 0.0, 0.0))  # metres, not mm
+
+
+def test_velocity_from_position_is_the_100ms_mean():
+    t = np.arange(0, 2, 0.01)
+    x = 20.0 * t**2  # v = 40 t
+    v = velocity_from_position(t, x, np.array([1.0]))
+    assert v[0] == pytest.approx(40.0, rel=1e-3)
+
+
+def test_simulated_operator_tracker_and_variability():
+    op = SimulatedOperator(seed=5)
+    assert 90.0 <= op.tracker_rate_hz <= 120.0
+    scans = [op.scan(_planned()) for _ in range(3)]
+    for s in scans:
+        assert s.taxels.shape[1] == 9 and s.taxels.dtype == np.uint16
+        gaps = np.diff(s.tracker_time_s)
+        assert np.median(gaps) == pytest.approx(1.0 / op.tracker_rate_hz, rel=0.05)
+    # human variability: the same intent gives passes of different lengths; the same seed the same passes
+    assert len({s.taxels.shape[0] for s in scans}) >= 2
+    assert len({s.attrs["operator_speed_bias"] for s in scans}) == 3
+    again = SimulatedOperator(seed=5).scan(_planned())
+    assert np.array_equal(again.taxels, scans[0].taxels)
+    assert op.scan(_planned(), stop=lambda: True) is None
+
+
+def test_ramp_profile_speeds_up_along_the_plate():
+    op = SimulatedOperator(seed=8)
+    axis = PlateAxis.from_touches(*op.touch_ends())
+    data = cut_scan(op.scan(_planned("slow-to-fast", 80.0, (40.0, 120.0))), PAPER_FINGER, axis)
+    t, v = data.speed_time_s, data.speed_mm_s
+    first = v[(t > 0.1) & (t < 0.4)].mean()
+    last = v[(t > data.duration_s - 0.4) & (t < data.duration_s - 0.1)].mean()
+    assert last > 1.8 * first
+
+
+def test_handheld_protocol_records_position_cut_trials(tmp_path):
+    proto_path = tmp_path / "small.toml"
+    proto_path.write_text(SMALL)
+    proto = load_protocol(proto_path)
+    assert proto.rig == "handheld"
+    out = tmp_path / "hh.h5"
+    with open_rig("handheld", seed=2, host_config_path=tmp_path / "rig.json") as rig:
+        assert isinstance(rig, HandheldRig) and rig.layout == PAPER_FINGER
+        with pytest.raises(NoDrumError):
+            rig.drum.read_status()
+        summary = run_protocol(proto, out, rig=rig)
+    assert summary.ok and summary.complete == 4
+    with open_session(out) as s:
+        assert s.rig_config["mode"] == "handheld" and s.layout.n_channels == 9
+        for tid in s.completed_ids():
+            d = s.trial(tid)
+            rate = 1.0 / np.median(np.diff(d.speed_time_s))
+            assert rate >= 10.0  # the tracker's velocity, >= 10 Hz
+            assert d.position_mm.size == d.speed_mm_s.size > 0
+            assert d.attrs["boundary"] == "position"
+            t_in = np.interp(0.0, d.position_time_s, d.position_mm)
+            t_out = np.interp(d.duration_s, d.position_time_s, d.position_mm)
+            assert t_in == pytest.approx(USED_START_MM, abs=3.0) and t_out == pytest.approx(USED_END_MM, abs=3.0)
+
+
+def test_cli_refuses_mixed_rigs(tmp_path):
+    from rigctl.cli import main
+
+    runner = CliRunner()
+    res = runner.invoke(main, ["acquire", "quick_check", "--handheld", "--out", str(tmp_path / "x.h5")])
+    assert res.exit_code == 2 and "drum protocol" in res.output
+    res = runner.invoke(main, ["acquire", "handheld_training", "--inprocess", "--out", str(tmp_path / "x.h5")])
+    assert res.exit_code == 2 and "handheld rig" in res.output
+    res = runner.invoke(main, ["acquire", "handheld_training", "--motion", "udp:1", "--out", str(tmp_path / "x.h5")])
+    assert res.exit_code == 2
+
+
+def test_protocol_rig_key_is_checked_with_its_line():
+    from rigctl.acquisition.protocol import ProtocolError, parse_protocol
+
+    base = 'name = "t"\ntextures = ["A"]\nspeeds_mm_s = [40]\nforces_g = [250]\n'
+    assert parse_protocol(base).rig == "drum"
+    with pytest.raises(ProtocolError, match=r":5: rig: 'boat' is not one of drum, handheld"):
+        parse_protocol(base + 'rig = "boat"\n')
+    shipped = {n: load_protocol(find_protocol(n)).plan() for n in ("handheld_training", "handheld_calibration", "handheld_realtime")}
+    per_texture = {n: sum(p.texture == "A" for p in plan) for n, plan in shipped.items()}
+    assert per_texture == {"handheld_training": 20, "handheld_calibration": 10, "handheld_realtime": 20}
