@@ -23,5 +23,5 @@ def test_a_short_soak_loses_nothing(tmp_path):
     # the faults really happened and were survived
     assert taxel["segments"] >= 1 and taxel["frames_sent"] > 5000 and taxel["crc_errors"] > 0
     assert taxel["frames_recorded"] + taxel["frames_counted_lost"] + taxel["stale_frames"] >= taxel["frames_sent"]
-    assert modbus["answered"] > 100 and modbus["bytes_mangled"] > 0 and modbus["works_at_the_end"]
+    assert modbus["answered"] > 20 and modbus["bytes_mangled"] > 0 and modbus["works_at_the_end"]
     assert kill["kills"] >= 1 and kill["sessions_completed"] >= 1

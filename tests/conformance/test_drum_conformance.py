@@ -634,14 +634,20 @@ def raw_port(drum: DrumClient):
 
 
 def _transact(port, request: bytes, expect: int = 0) -> bytes:
-    """Send ``request``; the reply (``expect`` bytes; 30 s at most, a bound on a hang only), or whatever came within
-    0.3 s (``expect=0``)."""
-    port.reset_input_buffer()
-    port.write(request)
+    """Send ``request``; the reply (``expect`` bytes; 10 s at most a try, a bound on a hang only), or whatever came
+    within 0.3 s (``expect=0``). A request expecting a reply is sent again when none came, up to three times, as a
+    Modbus master does: on a loaded host a request written in two pieces more than 3.5 characters apart is, by the
+    RTU spec, two broken frames, which the controller rightly ignores."""
     out = b""
-    deadline = time.monotonic() + (30.0 if expect else 0.3)
-    while time.monotonic() < deadline and (not expect or len(out) < expect):
-        out += port.read(max(1, port.in_waiting))
+    for _attempt in range(3 if expect else 1):
+        port.reset_input_buffer()
+        port.write(request)
+        out = b""
+        deadline = time.monotonic() + (10.0 if expect else 0.3)
+        while time.monotonic() < deadline and (not expect or len(out) < expect):
+            out += port.read(max(1, port.in_waiting))
+        if not expect or out:
+            break
     return out
 
 

@@ -75,7 +75,7 @@ def test_garbage_bit_flips_and_lost_bytes_are_counted_never_recorded(uno, taxel_
         stream.begin_capture()
         stream.start()
         _wait(lambda: stream.stats.frames >= 100, what="the first frames")
-        proxy.set_rates(TO_HOST, FaultRates(flip=3e-4, drop=1e-4, insert=1e-4, garbage=5e-5, garbage_max=200))
+        proxy.set_rates(TO_HOST, FaultRates(flip=3e-4, drop=1e-4, insert=1e-4, garbage=1e-4, garbage_max=200))
         _wait(lambda: stream.stats.frames >= 2500, what="2,400 frames under faults")
         proxy.set_rates(TO_HOST, FaultRates())
         n = stream.stats.frames
