@@ -15,9 +15,10 @@ its public names (``from rigctl.storage import open_session``; ``__all__`` lists
 describes them); the most used ones are re-exported here too.
 """
 
-__version__ = "0.1.0"
+from typing import TYPE_CHECKING
 
 from rigctl.core.lazy import lazy_exports
+from rigctl.core.version import __version__ as __version__
 
 #: the package's public names and the module each lives in
 _EXPORTS = {
@@ -32,4 +33,16 @@ _EXPORTS = {
     "open_rig": "rigctl.rigs",
     "open_session": "rigctl.storage.session",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.acquisition.protocol import load_protocol as load_protocol
+    from rigctl.acquisition.runner import run_protocol as run_protocol
+    from rigctl.analysis.data import load_features as load_features
+    from rigctl.core.sensor import SensorLayout as SensorLayout
+    from rigctl.core.textures import TextureSet as TextureSet
+    from rigctl.encoding.pipeline import encode_session as encode_session
+    from rigctl.operations import RigSource as RigSource, open_control as open_control
+    from rigctl.rigs import open_rig as open_rig
+    from rigctl.storage.session import open_session as open_session
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -26,7 +26,7 @@ import subprocess
 from importlib import resources
 from pathlib import Path
 
-from rigctl import __version__
+from rigctl.core.version import __version__
 
 __all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "BUILD_TOOLS", "FirmwareBuildError", "avrdude_command", "build",
            "build_dir", "build_id", "cache_root", "make", "missing_build_tools", "source_digest", "source_versions",

@@ -4,9 +4,12 @@ lazy (importing a package does not import every module of it and their heavy dep
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -36,3 +39,56 @@ def test_re_exports_are_lazy():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+LAZY_PACKAGES = ["rigctl", "rigctl.acquisition", "rigctl.storage", "rigctl.encoding", "rigctl.analysis",
+                 "rigctl.simulation", "rigctl.devices", "rigctl.server"]
+
+
+def _type_checking_view(package: str) -> tuple[dict[str, str], dict[str, str], set[str]]:
+    """``(_EXPORTS, {name: module} imported under ``if TYPE_CHECKING:``, names bound outside that block)`` of a
+    lazy package's ``__init__``, read from its source."""
+    spec = importlib.util.find_spec(package)
+    assert spec is not None and spec.origin is not None
+    tree = ast.parse(Path(spec.origin).read_text())
+    exports: dict[str, str] = {}
+    typed: dict[str, str] = {}
+    visible: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "_EXPORTS" for t in node.targets):
+            exports = ast.literal_eval(node.value)
+        elif isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for imp in node.body:
+                assert isinstance(imp, ast.ImportFrom) and imp.module, ast.dump(imp)
+                for alias in imp.names:
+                    # `import X as X`: an explicit re-export, which mypy's no_implicit_reexport accepts
+                    assert alias.asname == alias.name, f"{package}: {alias.name} re-exported without `as`"
+                    typed[alias.name] = imp.module
+        else:
+            visible |= {t.id for n in ast.walk(node) if isinstance(n, ast.Assign) for t in n.targets
+                        if isinstance(t, ast.Name)}
+            visible |= {e.id for n in ast.walk(node) if isinstance(n, ast.Assign) for t in n.targets
+                        if isinstance(t, ast.Tuple) for e in t.elts if isinstance(e, ast.Name)}
+    return exports, typed, visible
+
+
+@pytest.mark.parametrize("package", LAZY_PACKAGES)
+def test_lazy_names_are_typed_for_checkers(package):
+    """Every lazily re-exported name is imported under ``if TYPE_CHECKING:`` from the module _EXPORTS names, so
+    mypy sees its real type, and the lazy ``__getattr__`` is hidden from checkers (it would make any unknown name
+    ``Any``). tests/typing/public_api.py, checked by the project's mypy run, asserts the types themselves."""
+    exports, typed, visible = _type_checking_view(package)
+    assert exports, f"{package} has no _EXPORTS"
+    assert typed == exports
+    assert "__getattr__" not in visible, f"{package}'s lazy __getattr__ is visible to type checkers"
+
+
+def test_version_has_one_value():
+    """``rigctl.__version__`` is ``rigctl.core.version``'s (what rigctl's modules import) and pyproject.toml's."""
+    import tomllib
+
+    import rigctl
+    from rigctl.core import version
+
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
+    assert rigctl.__version__ == version.__version__ == project["version"]

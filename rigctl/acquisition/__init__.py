@@ -16,6 +16,8 @@
   stalled / lost / reconnected / controller reset), pure, shown by the GUI.
 """
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.lazy import lazy_exports
 
 #: the package's public names and the module each lives in
@@ -41,4 +43,34 @@ _EXPORTS = {
     "TrialEvent": "rigctl.acquisition.runner",
     "run_protocol": "rigctl.acquisition.runner",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.acquisition.builtin import find_protocol as find_protocol
+    from rigctl.acquisition.calibration import (
+        LoadCellCalibration as LoadCellCalibration,
+        calibrate_loadcell as calibrate_loadcell,
+        taxel_normalisation as taxel_normalisation,
+        taxel_normalisation_from_session as taxel_normalisation_from_session,
+    )
+    from rigctl.acquisition.protocol import (
+        Protocol as Protocol,
+        ProtocolError as ProtocolError,
+        Settle as Settle,
+        load_protocol as load_protocol,
+        parse_protocol as parse_protocol,
+    )
+    from rigctl.acquisition.rig import (
+        CaptureError as CaptureError,
+        Rig as Rig,
+        RigError as RigError,
+        RigOpenError as RigOpenError,
+        TrialAborted as TrialAborted,
+    )
+    from rigctl.acquisition.rigconfig import CalibrationError as CalibrationError, load_rig_config as load_rig_config
+    from rigctl.acquisition.runner import (
+        RunSummary as RunSummary,
+        TrialEvent as TrialEvent,
+        run_protocol as run_protocol,
+    )
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -9,6 +9,8 @@ the force-leak measurement), ``synthetic`` (feature sets with planted confounds)
 No device, serial or simulation imports.
 """
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.lazy import lazy_exports
 
 #: the package's public names and the module each lives in
@@ -29,4 +31,28 @@ _EXPORTS = {
     "run_realtime": "rigctl.analysis.tasks",
     "run_table1": "rigctl.analysis.tasks",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.analysis.classify import TextureClassifier as TextureClassifier
+    from rigctl.analysis.data import (
+        FeatureSet as FeatureSet,
+        NotEncodedError as NotEncodedError,
+        load_features as load_features,
+    )
+    from rigctl.analysis.model import texture_pipeline as texture_pipeline
+    from rigctl.analysis.params import (
+        CVParams as CVParams,
+        Execution as Execution,
+        ExtrapolationParams as ExtrapolationParams,
+        RealtimeParams as RealtimeParams,
+        Repetitions as Repetitions,
+    )
+    from rigctl.analysis.tasks import (
+        TaskResults as TaskResults,
+        run_cv as run_cv,
+        run_extrapolation as run_extrapolation,
+        run_realtime as run_realtime,
+        run_table1 as run_table1,
+    )
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

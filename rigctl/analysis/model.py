@@ -28,7 +28,7 @@ def texture_pipeline(variant: str = "speed_scaled", n_pcs: int = 25, *, max_pcs:
     Parameters
     ----------
     variant : a name of :data:`rigctl.storage.encoded.VARIANTS`; force-scaled variants get a
-        :class:`~rigctl.encoding.force.ForceScaler` step (label-free for the ``*_label_free`` ones, per texture
+        :class:`~rigctl.encoding.estimators.ForceScaler` step (label-free for the ``*_label_free`` ones, per texture
         otherwise: that one uses the labels the trials carry at predict time too, as the paper did).
     n_pcs, max_pcs, random_state : :class:`TextureClassifier`'s (``max_pcs`` default ``n_pcs``).
     params : dict or EncodeParams (e.g. an encoded file's ``parameters``): windows and model constants.

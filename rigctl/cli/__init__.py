@@ -6,7 +6,7 @@ import importlib
 
 import click
 
-from rigctl import __version__
+from rigctl.core.version import __version__
 
 #: command name -> "module:attribute" of the click command, imported only when the command runs
 COMMANDS = {

@@ -12,7 +12,8 @@
 - :mod:`rigctl.core.interfaces` - the device Protocols: :class:`DrumController`, :class:`TaxelSource`,
   :class:`PlateMounter`, :class:`MassPlacer`, :class:`RigBackend`.
 - :mod:`rigctl.core.progress` - :class:`ProgressEvent` (long work reports how far it is);
-  :mod:`rigctl.core.lazy` - the lazy re-exports of the other packages' public names.
+  :mod:`rigctl.core.lazy` - the lazy re-exports of the other packages' public names;
+  :mod:`rigctl.core.version` - ``__version__`` (rigctl's modules import it from here, not from ``rigctl``).
 """
 
 from rigctl.core.drum import (

@@ -23,6 +23,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from rigctl.core.version import __version__
+
 __all__ = ["KEY_PACKAGES", "PROVENANCE_ATTR", "RESUMED_ATTR", "git_state", "package_versions", "provenance_json",
            "software_provenance"]
 
@@ -85,8 +87,6 @@ def software_provenance(command_line: Sequence[str] | None = None, **extra: Any)
     (node name, platform, machine), ``command_line`` (``sys.orig_argv``, else ``sys.argv``, unless given, joined as a shell would read it),
     then ``extra`` (firmware, protocol, rig config, parameters: what the writer knows).
     """
-    from rigctl import __version__
-
     # the interpreter's own command line where there is one (``python -m rigctl ...``, ``python -c ...``: sys.argv
     # alone is ['-m'...] or ['-c']); the installed ``rigctl`` script gives both the same way
     argv = list((getattr(sys, "orig_argv", None) or sys.argv) if command_line is None else command_line)

@@ -6,6 +6,8 @@ decoded ``DrumStatus``), the taxel streamer's client (``TaxelStream``, ``StreamS
 (``SerialBackend``) and the errors. The numbers of the spec are :mod:`rigctl.devices.wire`.
 """
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.lazy import lazy_exports
 
 #: the package's public names and the module each lives in
@@ -29,4 +31,22 @@ _EXPORTS = {
     "StreamStats": "rigctl.devices.taxel_stream",
     "TaxelStream": "rigctl.devices.taxel_stream",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.devices.backend import SerialBackend as SerialBackend
+    from rigctl.devices.drum import DrumClient as DrumClient, DrumStatus as DrumStatus
+    from rigctl.devices.errors import (
+        DrumError as DrumError,
+        DrumFault as DrumFault,
+        DrumTimeout as DrumTimeout,
+        ModbusExceptionError as ModbusExceptionError,
+        SetpointRangeError as SetpointRangeError,
+        TaxelLinkLost as TaxelLinkLost,
+        TaxelStreamError as TaxelStreamError,
+    )
+    from rigctl.devices.frames import FrameParser as FrameParser, encode_frames as encode_frames
+    from rigctl.devices.ports import PortInfo as PortInfo, find_ports as find_ports
+    from rigctl.devices.ring import RingBuffer as RingBuffer
+    from rigctl.devices.taxel_stream import Capture as Capture, StreamStats as StreamStats, TaxelStream as TaxelStream
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

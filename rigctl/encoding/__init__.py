@@ -23,6 +23,8 @@ Modules, one job each (data flows top to bottom):
 Submodules are imported on use (numba compiles on first call; compiled kernels are cached on disk).
 """
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.lazy import lazy_exports
 
 #: the package's public names and the module each lives in
@@ -44,4 +46,25 @@ _EXPORTS = {
     "scale_spike_times": "rigctl.encoding.speed",
     "SpikeTrains": "rigctl.encoding.spikes",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.encoding.estimators import (
+        FeatureExtractor as FeatureExtractor,
+        ForceScaler as ForceScaler,
+        SpikeEncoder as SpikeEncoder,
+        TaxelNormaliser as TaxelNormaliser,
+    )
+    from rigctl.encoding.features import spike_features as spike_features
+    from rigctl.encoding.force import fit_force_coefficients as fit_force_coefficients
+    from rigctl.encoding.izhikevich import (
+        StreamingEncoder as StreamingEncoder,
+        encode_ra as encode_ra,
+        encode_sa as encode_sa,
+        encode_trials as encode_trials,
+    )
+    from rigctl.encoding.normalise import TaxelRange as TaxelRange
+    from rigctl.encoding.pipeline import EncodeParams as EncodeParams, encode_session as encode_session
+    from rigctl.encoding.speed import incremental_scale as incremental_scale, scale_spike_times as scale_spike_times
+    from rigctl.encoding.spikes import SpikeTrains as SpikeTrains
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -35,7 +35,7 @@ class TrialBatch:
     rate_hz : the model's rate, Hz (1 kHz: one Izhikevich step per sample).
     offset, scale : (n_channels,) normalisation (after :class:`~rigctl.encoding.estimators.TaxelNormaliser`).
     gains : (n_trials, n_channels) SA input gains, the force coefficients of eq. 1 (after
-        :class:`~rigctl.encoding.force.ForceScaler`), or None (C = 1).
+        :class:`~rigctl.encoding.estimators.ForceScaler`), or None (C = 1).
     sa, ra : :class:`~rigctl.encoding.spikes.SpikeTrains` (n_trials, n_channels) (after
         :class:`~rigctl.encoding.estimators.SpikeEncoder`), or None.
     """

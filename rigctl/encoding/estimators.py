@@ -25,8 +25,13 @@ from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted
 
 from rigctl.encoding.batch import TrialBatch, as_trial_batch
+from rigctl.encoding.batch_encode import _realtime_taxels, _sa_ra, trains_to_features
 from rigctl.encoding.force import ForceCoefficients
 from rigctl.encoding.normalise import TaxelRange
+from rigctl.encoding.params import EncodeParams
+from rigctl.encoding.sizing import windows_for
+from rigctl.encoding.speed import speed_coefficient
+from rigctl.storage.encoded import ALL_VARIANTS, VARIANTS
 
 __all__ = ["TaxelNormaliser", "ForceScaler", "SpikeEncoder", "FeatureExtractor", "TrialBatch", "as_trial_batch"]
 
@@ -61,8 +66,6 @@ class ForceScaler(TransformerMixin, BaseEstimator, ForceCoefficients):
         ValueError
             if a (texture, speed) has no trial at the reference force, or no texture labels (per texture).
         """
-        from rigctl.encoding.batch import as_trial_batch
-
         b = as_trial_batch(X)
         texture = b.texture if y is None else np.asarray(y).astype(str)
         if texture is None:
@@ -74,17 +77,11 @@ class ForceScaler(TransformerMixin, BaseEstimator, ForceCoefficients):
     def transform(self, X):
         """``X`` (a TrialBatch or raw trials) with ``gains`` = each trial's coefficients, ``(n_trials, n_taxels)``
         float64 (C of eq. 1: the SA input scale of :class:`rigctl.encoding.estimators.SpikeEncoder`)."""
-        import dataclasses
-
-        from rigctl.encoding.batch import as_trial_batch
-
         check_is_fitted(self, "coeffs_")
         b = as_trial_batch(X)
         return dataclasses.replace(b, gains=self.coefficients_for(b.texture, b.speed_mm_s, b.force_g))
 
 def _params(params):
-    from rigctl.encoding.pipeline import EncodeParams
-
     if isinstance(params, EncodeParams):
         return dataclasses.replace(params)
     return EncodeParams.from_dict(params)
@@ -139,8 +136,6 @@ class SpikeEncoder(TransformerMixin, BaseEstimator):
 
     def transform(self, X) -> TrialBatch:
         """The batch with ``sa`` and ``ra`` (n_trials, n_channels) spike trains, times in s."""
-        from rigctl.encoding.batch_encode import _sa_ra
-
         check_is_fitted(self, "n_channels_")
         b = as_trial_batch(X)
         gains = np.ones((b.n_trials, b.n_channels)) if b.gains is None else b.gains
@@ -172,8 +167,6 @@ class FeatureExtractor(TransformerMixin, BaseEstimator):
         self.params = params
 
     def _features(self, b: TrialBatch, p) -> np.ndarray:
-        from rigctl.encoding.batch_encode import trains_to_features
-
         if b.sa is None or b.ra is None:
             raise ValueError("FeatureExtractor needs spike trains: put a SpikeEncoder step before it")
         sa_by = {"none": b.sa, "force": b.sa, "lf": b.sa}
@@ -185,11 +178,6 @@ class FeatureExtractor(TransformerMixin, BaseEstimator):
         """Fix the window counts from the training trials (the longest one, as ``encode_session`` does).
 
         Raises ValueError for an unknown variant."""
-        from rigctl.encoding.batch_encode import _realtime_taxels
-        from rigctl.encoding.sizing import windows_for
-        from rigctl.encoding.speed import speed_coefficient
-        from rigctl.storage.encoded import ALL_VARIANTS, VARIANTS
-
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; choose from {', '.join(ALL_VARIANTS)}")
         b = as_trial_batch(X)

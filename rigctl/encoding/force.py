@@ -374,13 +374,3 @@ def fit_scalers(scalers: list[ForceCoefficients], readings, texture, speed_mm_s,
             sc._adopt(fit)
     return errors
 
-
-def __getattr__(name: str) -> Any:
-    """``ForceScaler`` (the scikit-learn transformer) lives in :mod:`rigctl.encoding.estimators`, which imports
-    scikit-learn; it is still found here (older imports, pickled pipelines) without importing it for the encoder."""
-    if name == "ForceScaler":
-        from rigctl.encoding.estimators import ForceScaler
-
-        return ForceScaler
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-

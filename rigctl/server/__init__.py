@@ -3,6 +3,8 @@
 (:class:`ServerClient`, httpx only: the GUI attaches with it). docs/serve.md is the reference; the OpenAPI page is
 served at ``/docs``. Names load lazily: the client never imports FastAPI."""
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.lazy import lazy_exports
 
 _EXPORTS = {
@@ -11,4 +13,9 @@ _EXPORTS = {
     "ServerClient": "rigctl.server.client",
     "ServerError": "rigctl.server.client",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.server.app import create_app as create_app, is_loopback as is_loopback
+    from rigctl.server.client import ServerClient as ServerClient, ServerError as ServerError
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -30,7 +30,7 @@ from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
-from rigctl import __version__
+from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
 
 __all__ = ["RunRequest", "create_app", "is_loopback"]

@@ -6,6 +6,8 @@ Public API (re-exported here, imported on first use): session files (``SessionWr
 the NWB export (``export_nwb``) and model files (``save_model``, ``load_model``, ``ModelFileError``).
 """
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.lazy import lazy_exports
 
 #: the package's public names and the module each lives in
@@ -28,4 +30,29 @@ _EXPORTS = {
     "SessionWriter": "rigctl.storage.session",
     "open_session": "rigctl.storage.session",
 }
-__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+if TYPE_CHECKING:
+    # what static checkers see: the same names, typed (tests/test_public_api.py holds them equal to _EXPORTS)
+    from rigctl.storage.encoded import (
+        VARIANTS as VARIANTS,
+        EncodedFile as EncodedFile,
+        EncodedWriter as EncodedWriter,
+        NotEncodedError as NotEncodedError,
+        open_encoded as open_encoded,
+    )
+    from rigctl.storage.fabricslide import import_fabricslide as import_fabricslide
+    from rigctl.storage.importers import ImportOptions as ImportOptions, import_recordings as import_recordings
+    from rigctl.storage.model_file import (
+        ModelFileError as ModelFileError,
+        load_model as load_model,
+        save_model as save_model,
+    )
+    from rigctl.storage.nwb import export_nwb as export_nwb
+    from rigctl.storage.provenance import read_provenance as read_provenance
+    from rigctl.storage.session import (
+        Session as Session,
+        SessionError as SessionError,
+        SessionWriter as SessionWriter,
+        open_session as open_session,
+    )
+else:
+    __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -36,7 +36,7 @@ def model_versions() -> dict[str, str]:
     import sklearn
     import skops
 
-    from rigctl import __version__
+    from rigctl.core.version import __version__
 
     return {"rigctl": __version__, "scikit-learn": sklearn.__version__, "numpy": numpy.__version__,
             "scipy": scipy.__version__, "skops": skops.__version__}

@@ -18,11 +18,11 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigctl import __version__
 from rigctl.core.provenance import PROVENANCE_ATTR, RESUMED_ATTR, provenance_json, software_provenance
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
+from rigctl.core.version import __version__
 from rigctl.storage import h5objects, journal, journal_replay, session_recording
 from rigctl.storage.session_format import (
     PLAN_CHUNK_ROWS,

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.encoding.force import ForceScaler, fit_force_coefficients
+from rigctl.encoding.estimators import ForceScaler
+from rigctl.encoding.force import fit_force_coefficients
 from rigctl.encoding.izhikevich import encode_sa
 
 

@@ -19,8 +19,17 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from rigctl.acquisition.doctor import drum_checks, host_checks, taxel_checks
-from rigctl.acquisition.doctor.base import STATUSES, Check, CheckResult, DoctorContext, DoctorReport, Skip, run_doctor
-from rigctl.acquisition.rigconfig import load_rig_config, save_rig_config
+from rigctl.acquisition.doctor.base import (
+    STATUSES,
+    Check,
+    CheckResult,
+    DoctorContext,
+    DoctorReport,
+    Skip,
+    last_report,
+    run_doctor,
+    save_report,
+)
 
 __all__ = ["CHECKS", "STATUSES", "Check", "CheckResult", "DoctorContext", "DoctorReport", "Skip", "check_names",
            "last_report", "run_doctor", "save_report", "select"]
@@ -44,20 +53,3 @@ def select(names: Iterable[str] | None = None) -> list[Check]:
     if unknown:
         raise ValueError(f"unknown check {unknown[0]!r}; the checks are {', '.join(check_names())}")
     return [c for c in CHECKS if c.name in wanted]
-
-
-def save_report(report: DoctorReport, path=None) -> None:
-    """Store ``report`` in the rig config file (``doctor.<rig kind>``, dated), replacing that kind's previous one.
-
-    Raises :class:`rigctl.acquisition.rigconfig.RigConfigError` (nothing written) if the file is not valid."""
-    cfg = load_rig_config(path)
-    block = dict(cfg.get("doctor") or {})
-    block[report.rig] = report.to_dict()
-    cfg["doctor"] = block
-    save_rig_config(cfg, path)
-
-
-def last_report(kind: str, path=None) -> DoctorReport | None:
-    """The stored report of the rig ``kind`` ("hardware", "sim", ...), or None."""
-    d = (load_rig_config(path).get("doctor") or {}).get(kind)
-    return DoctorReport.from_dict(d) if d else None

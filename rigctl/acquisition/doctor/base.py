@@ -18,9 +18,11 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from rigctl.acquisition.rig import Rig
+from rigctl.acquisition.rigconfig import load_rig_config, save_rig_config
 from rigctl.devices.drum import _WallClock
 
-__all__ = ["CheckResult", "Check", "DoctorContext", "DoctorReport", "Skip", "STATUSES", "run_doctor"]
+__all__ = ["CheckResult", "Check", "DoctorContext", "DoctorReport", "Skip", "STATUSES", "run_doctor", "save_report",
+           "last_report"]
 
 #: what a check can report
 STATUSES = ("pass", "fail", "skip")
@@ -258,3 +260,20 @@ def run_doctor(checks: Iterable[Check], ctx: DoctorContext, *,
     finally:
         ctx.close()
     return DoctorReport(stamp, ctx.mode, results)
+
+
+def save_report(report: DoctorReport, path=None) -> None:
+    """Store ``report`` in the rig config file (``doctor.<rig kind>``, dated), replacing that kind's previous one.
+
+    Raises :class:`rigctl.acquisition.rigconfig.RigConfigError` (nothing written) if the file is not valid."""
+    cfg = load_rig_config(path)
+    block = dict(cfg.get("doctor") or {})
+    block[report.rig] = report.to_dict()
+    cfg["doctor"] = block
+    save_rig_config(cfg, path)
+
+
+def last_report(kind: str, path=None) -> DoctorReport | None:
+    """The stored report of the rig ``kind`` ("hardware", "sim", ...), or None."""
+    d = (load_rig_config(path).get("doctor") or {}).get(kind)
+    return DoctorReport.from_dict(d) if d else None

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, passed
+from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, last_report, passed
 from rigctl.acquisition.doctor.measure import step_response
 from rigctl.acquisition.rigconfig import load_rig_config
 from rigctl.core.drum import (
@@ -179,8 +179,6 @@ def check_reset_cause(ctx: DoctorContext) -> CheckResult:
     values: dict[str, Any] = {"reset_cause": causes, "boot_count": boots}
     what = (f"last reset: {', '.join(causes) if causes else 'cause unknown (0: the stk500v2 bootloader clears it)'}; "
             f"{boots} boots")
-    from rigctl.acquisition.doctor import last_report  # the package imports this module
-
     before = last_report(ctx.mode, ctx.config_path)
     if before is not None:
         prev = next((r.values.get("boot_count") for r in before.results if r.name == "reset-cause"), None)
