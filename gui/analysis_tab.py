@@ -391,26 +391,14 @@ class AnalysisTab(QtWidgets.QWidget):
         def work(job):
             import numpy as np
 
-            if kind == "session":
-                from rigctl.encoding.izhikevich import encode_ra, encode_sa
-                from rigctl.encoding.normalise import TaxelRange
-                from rigctl.storage.session import open_session
+            if kind == "session":  # the library encodes it (rigctl.operations.trial_spikes)
+                from rigctl.operations import session_taxel_range, trial_spikes
 
-                with open_session(path) as s:
-                    trial = s.trial(tid)
-                    rng = self._session_range
-                    if rng is None:  # the session's per-taxel range (paper: over the whole dataset)
-                        rng = TaxelRange()
-                        for t in s.iter_trials():
-                            rng.update(t.taxels)
-                        self._session_range = rng
-                x = trial.taxels
-                fs_hz = trial.layout.sample_rate_hz  # one model step per sample, at the session's rate
-                sa = encode_sa(x[None], normalise=rng, fs=fs_hz)
-                ra = encode_ra(x[None], normalise=rng, fs=fs_hz)
-                n_ch = x.shape[1]
-                return (x, [sa.train(0, k) for k in range(n_ch)], [ra.train(0, k) for k in range(n_ch)],
-                        len(x) / fs_hz, "")
+                rng = self._session_range
+                if rng is None:  # the session's per-taxel range (paper: over the whole dataset), read once
+                    rng = self._session_range = session_taxel_range(path)
+                t = trial_spikes(path, tid, taxel_range=rng)
+                return (t.readings, t.sa, t.ra, t.duration_s, "")
             from rigctl.encoding.spikes import SpikeTrains
             from rigctl.storage.encoded import open_encoded
 

@@ -5,12 +5,14 @@
 
 The window fits the screen it opens on (a saved size is restored only if it fits). Its top strip, of fixed height
 and outside any scroll area, holds Connect, the source, the run strip (a protocol run's state and operator prompt,
-seen from every tab) and the big STOP button, which acts on the first click and on Esc even while a menu or a
-drop-down is open (:mod:`rigctl_gui.guards`; every dialog is non-modal: :mod:`rigctl_gui.dialogs`). Below it a
+seen from every tab) and the big STOP button, which acts on the first click even while a menu or a drop-down is
+open, and on an Esc that no popup, dialog or widget takes (:mod:`rigctl_gui.guards`; every dialog is non-modal:
+:mod:`rigctl_gui.dialogs`). STOP stops a protocol run, resumable; Abort asks. The rig's monitor (the library's
+status poll, watchdog feed and dead man's switch) reaches the window as events (:mod:`rigctl_gui.rig_events`). Below it a
 banner strip of fixed height (one banner per board, for faults and for errors: a banner never moves a control),
 one tab per panel, the event log (the app's messages and the library's logging records) and a status bar with both
 boards' link health (:mod:`rigctl.acquisition.link_health`). One QTimer pulls from the worker threads at the GUI's
-own pace. While a protocol run owns the rig (running or paused) manual motion, calibration and Connect are
+own pace. While a protocol run owns the rig (running, paused or stopped) manual motion, calibration and Connect are
 disabled.
 """
 
@@ -26,6 +28,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import shiboken6
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl_gui.connect_dialog import source_problem
@@ -33,10 +36,12 @@ from rigctl_gui.dialogs import ask, show_dialog
 from rigctl_gui.frame_clock import FrameClock
 from rigctl_gui.guards import install_guards
 from rigctl_gui.messages import EventLog, ExceptionGuard
-from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, StatusPoller, open_rig
+from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, open_rig
 
 if TYPE_CHECKING:
+    from rigctl.operations import RigMonitor
     from rigctl_gui.connect_dialog import ConnectDialog
+    from rigctl_gui.rig_events import RigEvents
 
 #: the frame cap: the app's clock ticks (and the visible live view redraws) at most this often, per s, and this often
 #: on average while the event loop keeps up (:class:`rigctl_gui.frame_clock.FrameClock`); 30 frames/s is smooth for 2 s
@@ -53,7 +58,7 @@ PREFERRED_SIZE = (1400, 900)
 #: the smallest screen the window is laid out for (px): STOP and every tab fit
 MIN_SCREEN = (1024, 600)
 #: why the manual controls are disabled while a protocol run owns the rig
-RUN_LOCK_REASON = ("a protocol run owns the rig (running or paused). Abort it on the Protocol tab, or press STOP, "
+RUN_LOCK_REASON = ("a protocol run owns the rig (running, paused or stopped). Abort it on the Protocol tab "
                    "to get the manual controls back")
 
 
@@ -105,7 +110,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.source = source or load_source(self.settings)
         self.handle = None
         self._doctor = None  # the doctor dialog (Rig > Doctor...), made on first use
-        self.poller: StatusPoller | None = None
+        self.poller: RigMonitor | None = None  # the open rig's monitor (status poll, watchdog feed, events)
+        self.rig_events: RigEvents | None = None  # the subscription and the GUI thread's heartbeat
+        self.fault_dialog: Any = None  # the latched-fault dialog (rigctl_gui.fault_dialog), while one is open
+        self._latch_seen: Any = None  # the latch the dialog was last opened for (opened once per latch)
         self.commands: CommandExecutor | None = None
         self.encoder: LiveEncoder | None = None
         self._connect_job: Job | None = None
@@ -195,8 +203,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.connect_btn.clicked.connect(self.choose_source)
         self.stop_btn = QtWidgets.QPushButton("STOP")
         self.stop_btn.setObjectName("big_stop")
-        self.stop_btn.setToolTip("Safe stop: abort any protocol run, stop the drum, back the actuator off (Esc; "
-                                 "works with a menu or a drop-down open)")
+        self.stop_btn.setToolTip("Safe stop: stop the drum, back the actuator off and stop a protocol run, resumable "
+                                 "(Esc when no drop-down or dialog takes it; one click works with a menu or a "
+                                 "drop-down open)")
         self.stop_btn.setMinimumSize(160, 48)
         self.stop_btn.setStyleSheet(
             "QPushButton { background: #d00; color: white; font-size: 20px; font-weight: bold; border-radius: 6px; }"
@@ -319,7 +328,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         m = mb.addMenu("&Rig")
         self.act_connect = act(m, "&Connect...", self.choose_source, "Ctrl+K", self.connect_btn)
-        act(m, "STOP (safe stop)", self.emergency_stop, tip="Esc in the window, also with a menu open")
+        act(m, "STOP (safe stop)", self.emergency_stop, tip="Esc in the window when no popup or dialog takes it")
         m.addSeparator()
         b = self.control.buttons
         act(m, "&Press", lambda: self.control.command("press"), "Ctrl+P", b["press"])
@@ -328,6 +337,8 @@ class MainWindow(QtWidgets.QMainWindow):
         act(m, "&Tare", lambda: self.control.command("tare"), None, b["tare"])
         act(m, "&Home", lambda: self.control.command("home"), None, b["home"])
         act(m, "Clear &fault", lambda: self.control.command("clear_fault"), None, b["clear_fault"])
+        act(m, "Ac&knowledge fault...", self.open_fault_dialog,
+            tip="name the latched fault and acknowledge it with a reason (written into the session's event log)")
         act(m, "&Mount plate", self.control.mount_plate, "Ctrl+M", self.control.mount_btn)
         m.addSeparator()
         act(m, "&Doctor...", self.open_doctor, tip="bring-up checks on the connected rig (rigctl doctor)")
@@ -391,8 +402,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 a.setToolTip(b.toolTip())
 
     def _show_shortcuts(self) -> None:
-        lines = ["Esc: STOP (safe stop), in the window, also with a menu or a drop-down open (in a dialog Esc "
-                 "only closes the dialog)"]
+        lines = ["Esc: STOP (safe stop; a run stops, resumable) in the window when nothing else takes it (Esc "
+                 "closing a menu or a drop-down only closes it; in a dialog Esc only closes the dialog)"]
         for menu in self.menuBar().findChildren(QtWidgets.QMenu):
             for a in menu.actions():
                 if not a.shortcut().isEmpty():
@@ -434,7 +445,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.statusBar().showMessage(text, int(timeout_s * 1000))
 
     #: sources whose errors have their own banner (faults, links) or are shown by the exception guard
-    OWN_BANNER = ("drum controller", "link")
+    OWN_BANNER = ("drum controller", "link", "dead man's switch")
 
     def _on_problem(self, level: int, source: str, text: str) -> None:
         """Errors (the library's included) go to the error banner, seen from every tab."""
@@ -518,8 +529,13 @@ class MainWindow(QtWidgets.QMainWindow):
             self.events.add(logging.ERROR, "connect", f"could not open the {self.source.label()}: {job.error}")
             return
         h = self.handle = job.result
-        self.poller = StatusPoller(h.drum, period_s=0.1)
-        self.poller.start()
+        from rigctl_gui.rig_events import RigEvents
+
+        self.poller = h.control.monitor  # started by the library; the GUI only reads it and listens
+        self.rig_events = RigEvents(self.poller, self)  # the GUI thread's heartbeat: 0.5 s of silence stops the rig
+        self.rig_events.happened.connect(self._on_rig_event)
+        if self.poller.latest is not None:
+            self._show_faults(int(self.poller.latest.faults))
         self.commands = CommandExecutor(h.drum)
         self._attach_sensor(h, sensor_layout(h))
         self.control.attach(h.drum, self.poller, self.commands, h.rig)
@@ -535,6 +551,9 @@ class MainWindow(QtWidgets.QMainWindow):
     def disconnect_rig(self) -> None:
         """Abort a run, stop the rig safely (the library's safe stop), close it, then stop the workers."""
         self.protocol.abort_and_wait()
+        if self.rig_events is not None:  # the face leaves in order: no heartbeat left to go silent
+            self.rig_events.close()
+            self.rig_events = None
         self.control.detach()
         self.live.detach()
         self.calibration.detach()
@@ -545,14 +564,15 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.notify(f"closing the rig: {exc}", level=logging.ERROR, source="connect")
         if self.commands is not None:
             self.commands.close()
-        for w in (self.poller, self.encoder):
-            if w is not None:
-                w.stop()
-        for w in (self.poller, self.encoder):
-            if w is not None:
-                w.join(timeout=5)  # never leave a numba call running at interpreter exit
+        if self.encoder is not None:
+            self.encoder.stop()
+            self.encoder.join(timeout=5)  # never leave a numba call running at interpreter exit
         self.handle = self.poller = self.commands = self.encoder = None
         self._faults = 0
+        self._latch_seen = None
+        if self.fault_dialog is not None and shiboken6.isValid(self.fault_dialog):
+            self.fault_dialog.close()
+        self.fault_dialog = None
         self.banners["fault"].hide()
         for board in ("drum", "taxel"):
             self.banners[board].hide()
@@ -572,10 +592,12 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ------------------------------------------------------------------------------------------------------
     def emergency_stop(self) -> None:
-        """STOP: abort a protocol run (its stop event) and send the library's safe stop at once on a fresh thread
-        (never queued behind other commands; it tries 3 times). Its outcome is shown in the window: a STOP that
-        cannot reach the controller raises the error banner."""
-        self.protocol.request_abort()
+        """STOP: the library's STOP (:meth:`rigctl.operations.RigControl.stop`: a protocol run hears it first and
+        stops, resumable; then drum to rest, actuator backed off, three tries) at once on a fresh thread (never
+        queued behind other commands). It never aborts a run (Abort asks). Its outcome is shown in the window: a STOP
+        that cannot reach the controller raises the error banner."""
+        reason = "the operator pressed STOP"
+        self.protocol.request_stop(reason)
         if self._doctor is not None and self._doctor.running:
             self._doctor.cancel()
         server = self._server_dialog.client if self._server_dialog is not None else None
@@ -591,10 +613,11 @@ class MainWindow(QtWidgets.QMainWindow):
         results = self._stop_results
 
         def work():
-            results.append(h.rig.safe_stop())
+            results.append(h.control.stop(reason))
 
         threading.Thread(target=work, name="drum-stop", daemon=True).start()
-        self.notify("STOP sent: drum to rest, actuator backing off", level=logging.WARNING, source="STOP")
+        self.notify("STOP sent: drum to rest, actuator backing off" + (", the run stopped (Resume continues it)"
+                    if self.protocol.running else ""), level=logging.WARNING, source="STOP")
 
     def _server_stop(self, server) -> None:
         from rigctl.server.client import ServerError
@@ -651,7 +674,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.guard.drain()
             self.apply_run_lock()
             self._sync_actions()
-            self._check_faults()
+            self._check_latch()
         if self._tick % self._health_every == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
             self._judge_dropped_frames()
             self.links.update_from(self.poller, self.handle.taxels if self.handle else None)
@@ -698,15 +721,66 @@ class MainWindow(QtWidgets.QMainWindow):
             cal.from_session_btn.setEnabled(True)
             cal._enable(cal.handle is not None)
 
-    def _check_faults(self) -> None:
+    def _on_rig_event(self, ev) -> None:
+        """An event of the rig's monitor (:class:`rigctl.operations.RigEvent`, on the GUI thread): latched faults
+        raise the fault banner, and the dead man's switch says why it stopped the rig."""
+        if ev.kind == "faults" and ev.status is not None:
+            self._show_faults(int(ev.status.faults))
+        elif ev.kind == "deadman":
+            if "answers again" in ev.message:
+                self.events.add(logging.INFO, "dead man's switch", ev.message)
+                return
+            text = f"STOPPED by the library: {ev.message}. Resume the run (or command the rig) when ready."
+            self.banner.show_message(text, error=True)
+            self.events.add(logging.ERROR, "dead man's switch", ev.message)
+            self.statusBar().showMessage(text, 15000)
+
+    def _latch_key(self) -> Any:
+        """What is latched now (the library's latch, else the controller's fault bits), or None."""
+        h = self.handle
+        if h is None:
+            return None
+        latch = getattr(getattr(h.rig, "safety", None), "latch", None)
+        if latch is not None:
+            return latch
+        return self._faults or None
+
+    def _check_latch(self) -> None:
+        """A new latched fault opens the fault dialog (once per latch: Later closes it, Rig > Acknowledge fault...
+        opens it again); an open dialog follows the controller's status (the e-stop's contact)."""
+        key = self._latch_key()
+        if key is not None and key != self._latch_seen:
+            self._latch_seen = key
+            self.open_fault_dialog()
+        elif key is None:
+            self._latch_seen = None
+        dlg = self.fault_dialog
+        if dlg is not None and shiboken6.isValid(dlg) and dlg.isVisible() and self.poller is not None \
+                and self.poller.ok:
+            dlg.update_from(self.poller.latest)
+
+    def open_fault_dialog(self) -> QtWidgets.QDialog | None:
+        """The latched-fault dialog (:class:`rigctl_gui.fault_dialog.FaultDialog`, non-modal) for the fault latched
+        now; None (said in the status bar) when nothing is latched."""
+        from rigctl_gui.fault_dialog import FaultDialog
+
+        if self.handle is None or self._latch_key() is None:
+            self.notify("no latched fault to acknowledge")
+            return None
+        if self.fault_dialog is not None and shiboken6.isValid(self.fault_dialog) and self.fault_dialog.isVisible():
+            self.fault_dialog.raise_()
+            return self.fault_dialog
+        dlg = self.fault_dialog = FaultDialog(self.handle.control, self._faults, self, log=self.events.add)
+        dlg.destroyed.connect(lambda *_: setattr(self, "fault_dialog", None))  # deleted when closed
+        if self.poller is not None and self.poller.ok:
+            dlg.update_from(self.poller.latest)
+        return show_dialog(dlg)
+
+    def _show_faults(self, faults: int) -> None:
         """A latched controller fault raises the fault banner with its meaning; only Clear fault (the operator)
         clears it on the controller, and the banner goes when the controller reports it clear."""
         from rigctl_gui.control_panel import fault_meaning
 
-        st = self.poller.latest if self.poller is not None and self.poller.ok else None
-        if st is None:
-            return
-        faults = int(st.faults)
         if faults == self._faults:
             return
         self._faults = faults

@@ -3,11 +3,12 @@
 :class:`StopGuard` sees every mouse press and key press of the application before the widget it is meant for. While
 a popup is open (a menu, a combo box's list, a tooltip-like frame) Qt hands the first click anywhere to the popup,
 which only closes itself: a click on STOP would be lost and the drum would keep turning. The guard calls STOP
-itself when the press lies inside STOP's rectangle on screen, and lets the popup close as usual. Esc pressed while
-one of the main window's popups is open is STOP too (the popup would otherwise take it to close itself), and so is
-Esc anywhere in the main window (judged by the widget the key goes to, not by which window is active). In a
-dialog, Esc only closes the dialog: it never stops or aborts anything (STOP stays one click away, no dialog is
-modal: :mod:`rigctl_gui.dialogs`).
+itself when the press lies inside STOP's rectangle on screen, and lets the popup close as usual. Esc is STOP only
+when nothing else takes it: an open popup (a menu, a drop-down's list) closes on Esc and nothing stops, a widget that
+uses Esc (an editor in a table cell) keeps it, and in a dialog Esc only closes the dialog (STOP stays one click away,
+no dialog is modal: :mod:`rigctl_gui.dialogs`). An Esc that no widget took reaches the main window itself (Qt passes
+an ignored key press on to the parent, up to the window): that one is STOP. STOP never aborts a run (it stops it,
+resumable), so an Esc taken for STOP by mistake costs a Resume, never the run.
 
 :class:`WheelGuard` keeps the mouse wheel away from spin boxes and combo boxes that do not have the keyboard focus
 (the wheel scrolls the panel under them instead): scrolling a panel never changes a setpoint by accident. Such
@@ -67,14 +68,6 @@ class StopGuard(QtCore.QObject):
         self._last = now
         self.stop()
 
-    def _own_popup(self, popup: QtWidgets.QWidget | None) -> bool:
-        """True when ``popup`` belongs to the main window: the widget that opened it (past any parent menus) sits in
-        the main window, not in a dialog (a dialog's parent is the main window too, so parents alone do not tell)."""
-        w = popup.parentWidget() if popup is not None else None
-        while w is not None and w.isWindow() and w.windowType() == QtCore.Qt.WindowType.Popup:  # a submenu's parent menu
-            w = w.parentWidget()
-        return w is not None and w.window() is self.window
-
     def _on_stop(self, global_pos: QtCore.QPoint) -> bool:
         b = self.button
         if not (b.isVisible() and b.isEnabled()):
@@ -92,17 +85,10 @@ class StopGuard(QtCore.QObject):
                 self.trigger()
                 popup.close()
                 return True
-        elif t == QtCore.QEvent.Type.KeyPress and ev.key() == QtCore.Qt.Key.Key_Escape and isinstance(obj, QtWidgets.QWidget):
-            popup = QtWidgets.QApplication.activePopupWidget()
-            if popup is not None:
-                if not self._own_popup(popup):
-                    return False  # a dialog's drop-down: Esc closes it, as in any dialog
-                self.routed += 1
-                self.trigger()
-                popup.close()
-                return True
-            if obj.window() is self.window and not ev.isAutoRepeat():
-                # Esc on the main window itself (never in a dialog, which is a window of its own)
+        elif t == QtCore.QEvent.Type.KeyPress and ev.key() == QtCore.Qt.Key.Key_Escape and obj is self.window:
+            # Esc reached the main window itself: no popup, dialog or widget on the way took it (a popup gets every
+            # key while it is open, so Esc closing a drop-down never comes here)
+            if QtWidgets.QApplication.activePopupWidget() is None and not ev.isAutoRepeat():
                 self.trigger()
                 return True
         return False

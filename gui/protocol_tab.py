@@ -1,7 +1,11 @@
 """Protocol tab: open a protocol file (:func:`rigctl.acquisition.protocol.load_protocol`), show its plan, choose the
 output session file, start / pause / resume / abort a run (:class:`rigctl.operations.ProtocolRun` in a
 worker thread with stop and pause events), per-trial progress and ETA, the operator prompt to mount the next
-texture plate (the simulated rig mounts it by itself), and resume an interrupted session file."""
+texture plate (the simulated rig mounts it by itself), and resume an interrupted session file.
+
+STOP (the main window's, or the library's dead man's switch: any :meth:`rigctl.operations.RigControl.stop`) stops
+the run at once and leaves it **stopped, resumable**: the trial in progress is discarded (recorded again on Resume),
+the finished trials stay in the session file, Resume continues it. Abort is its own action and asks first."""
 
 from __future__ import annotations
 
@@ -49,6 +53,11 @@ class ProtocolTab(QtWidgets.QWidget):
         self.trial_dropped_base: int | None = None
         self.last_output = None
         self.last_summary = None
+        #: why the run was stopped (STOP, the dead man's switch): it waits for Resume or Abort; None otherwise
+        self.stopped_reason: str | None = None
+        self._stop_reason: str | None = None  # set (from any thread) when a STOP hits the running run
+        self._abort_requested = False
+        self._unhook_stop = None  # removes this tab's STOP listener from the rig (RigControl.on_stop)
 
         self.open_btn = QtWidgets.QPushButton("Open protocol...")
         self.open_btn.clicked.connect(self._browse_protocol)
@@ -268,8 +277,14 @@ class ProtocolTab(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------------
     @property
-    def running(self) -> bool:
+    def active(self) -> bool:
+        """A run thread records (or pauses, or ends)."""
         return self.job is not None and not self.job.done
+
+    @property
+    def running(self) -> bool:
+        """A run owns the rig: recording, paused, or stopped waiting for Resume or Abort."""
+        return self.active or self.stopped_reason is not None
 
     def _notify(self, level: int, text: str) -> None:
         notify = getattr(self.main, "notify", None)
@@ -278,7 +293,8 @@ class ProtocolTab(QtWidgets.QWidget):
 
     def start(self) -> None:
         h = self.main.handle
-        if self.protocol is None or h is None or self.running:
+        stopped = self.stopped_reason is not None and not self.active  # Resume after a STOP: the same file
+        if self.protocol is None or h is None or (self.running and not stopped):
             set_plain(self.status, "load a protocol and connect the rig first" if not self.running
                       else "already running", error=True)
             return
@@ -286,11 +302,11 @@ class ProtocolTab(QtWidgets.QWidget):
         if cal is not None and cal.job is not None and not cal.job.done:
             set_plain(self.status, "a calibration is running: start the protocol when it has finished", error=True)
             return
-        out = self.out_edit.text().strip()
+        out = (self.last_output or "") if stopped else self.out_edit.text().strip()
         if not out:
             set_plain(self.status, "choose an output file", error=True)
             return
-        resume = self.resume_box.isChecked() and os.path.exists(out)
+        resume = stopped or (self.resume_box.isChecked() and os.path.exists(out))
         from rigctl.storage.outputs import OutputError, check_output
 
         try:  # the library's one output policy (exists, held by another writer, folder, ...)
@@ -311,6 +327,11 @@ class ProtocolTab(QtWidgets.QWidget):
             return
         self.run = run
         self.stop_event, self.pause_event = run.stop_event, run.pause_event  # the run's controls, shown here
+        self.stopped_reason = self._stop_reason = None
+        self._abort_requested = False
+        control = getattr(h, "control", None)
+        if control is not None:  # the rig's STOP (the button, Esc, the dead man's switch) stops this run first
+            self._unhook_stop = control.on_stop(self.request_stop)
         self._done_ids, self._failures = [], []
         self._current, self._paused, self._eta = None, False, None
         self._trial_started = time.monotonic()
@@ -362,6 +383,11 @@ class ProtocolTab(QtWidgets.QWidget):
             self._update_buttons()
 
     def resume(self) -> None:
+        if self.stopped_reason is not None and not self.active:  # after a STOP: a new run continues the file
+            self._notify(logging.INFO, f"protocol {self.protocol_name()} resumed after the STOP "
+                         f"({self.stopped_reason})")
+            self.start()
+            return
         if self.running:
             self.run.resume()
             set_plain(self.status, "resumed")
@@ -369,7 +395,8 @@ class ProtocolTab(QtWidgets.QWidget):
             self._update_buttons()
 
     def ask_abort(self):
-        """Abort (the button and Run > Abort): asks first (non-modal); STOP aborts at once without asking."""
+        """Abort (the button and Run > Abort): asks first (non-modal). STOP never aborts: it stops the run,
+        resumable."""
         if not self.running:
             return None
         from rigctl_gui.dialogs import ask
@@ -382,8 +409,30 @@ class ProtocolTab(QtWidgets.QWidget):
             "'Resume' to continue it later).", "Abort the run", "Keep running", self.request_abort)
         return self._abort_question
 
+    def request_stop(self, reason: str) -> None:
+        """STOP hit the run (any thread: the rig's :meth:`~rigctl.operations.RigControl.stop` listener): the run
+        thread ends at once, the trial in progress discarded, and the run waits stopped for Resume or Abort."""
+        run = self.run
+        if self.active and run is not None and not run.stop_event.is_set():
+            self._stop_reason = reason
+            run.abort()
+            self._prompt_event.set()
+
     def request_abort(self) -> None:
-        if self.running and not self.stop_event.is_set():
+        self._abort_requested = True
+        if self.stopped_reason is not None and not self.active:  # a stopped run ends here
+            self.stopped_reason = None
+            self.run_strip.hide()
+            text = (f"aborted after the STOP: the finished trials stay in {self.last_output} (tick 'Resume' and "
+                    "Start to continue it)")
+            set_plain(self.status, text)
+            self._notify(logging.WARNING, f"protocol {self.protocol_name()} {text}")
+            self._update_buttons()
+            lock = getattr(self.main, "apply_run_lock", None)
+            if lock is not None:
+                lock()  # the manual controls come back at once, not at the next tick
+            return
+        if self.active and not self.stop_event.is_set():
             self.run.abort()
             self._prompt_event.set()
             set_plain(self.status, "aborting: the rig stops safely, finished trials stay in the file")
@@ -472,6 +521,8 @@ class ProtocolTab(QtWidgets.QWidget):
     def refresh(self) -> None:
         job = self.job
         if job is None:
+            if self.stopped_reason is not None:
+                self._show_stopped()
             return
         while not job.events.empty():
             kind, payload = job.events.get()
@@ -504,15 +555,27 @@ class ProtocolTab(QtWidgets.QWidget):
             self.run_strip.show()
         else:
             self.job = None
+            if self._unhook_stop is not None:
+                self._unhook_stop()
+                self._unhook_stop = None
             self.prompt_frame.hide()
             self.run_strip.hide()
             self.trial_bar.setFormat("trial %p%")
+            summary = job.result
+            stopped = (self._stop_reason is not None and not self._abort_requested and not job.error
+                       and summary is not None and summary.complete < summary.planned)
+            cut = "stopped (not recorded: recorded on Resume)" if stopped else "aborted (not recorded)"
             for r in range(self.table.rowCount()):  # a trial cut short by the abort is not "recording" any more
                 if self.row_status(r).startswith(("settling", "recording", "mounting")):
-                    self._set_status(r, "aborted (not recorded)")
-            summary = job.result
+                    self._set_status(r, cut)
             level = logging.INFO
-            if job.error:
+            if stopped:
+                self.stopped_reason = self._stop_reason
+                text, level = (f"STOPPED ({self.stopped_reason}): the rig is at rest, {summary.complete}/"
+                               f"{summary.planned} trials in {self.last_output}. Resume continues the run, Abort "
+                               "ends it"), logging.WARNING
+                self._show_stopped()
+            elif job.error:
                 text, level = f"run failed: {job.error}", logging.ERROR
             elif summary is not None and summary.stopped:
                 text, level = (f"aborted: {summary.complete}/{summary.planned} trials in {self.last_output} "
@@ -531,11 +594,19 @@ class ProtocolTab(QtWidgets.QWidget):
             self.last_summary = summary
         self._update_buttons()
 
+    def _show_stopped(self) -> None:
+        """The run strip of a stopped run (seen from every tab): why, how far, what next."""
+        n_done = len(self._done_ids) + self._done_before
+        self.run_label.setText(f"Protocol {self.protocol_name()}: STOPPED ({self.stopped_reason}) - "
+                               f"{n_done}/{len(self.plan)} done. Resume continues it, Abort ends it")
+        self.run_strip.show()
+
     def _update_buttons(self) -> None:
-        running = self.running
+        running, active = self.running, self.active
+        stopped = running and not active
         self.start_btn.setEnabled(not running and self.protocol is not None)
-        self.pause_btn.setEnabled(running and not self.pause_event.is_set())
-        self.resume_btn.setEnabled(running and self.pause_event.is_set())
+        self.pause_btn.setEnabled(active and not self.pause_event.is_set() and not self.stop_event.is_set())
+        self.resume_btn.setEnabled((active and self.pause_event.is_set()) or stopped)
         self.abort_btn.setEnabled(running)
         self.open_btn.setEnabled(not running)
         self.builtin.setEnabled(not running)

@@ -87,83 +87,9 @@ def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=No
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Fixed-size buffers
+# Drum commands (the status poll, the watchdog feed and the dead man's switch are the library's:
+# rigctl.operations.RigMonitor, which the GUI subscribes to through rigctl_gui.rig_events)
 # ----------------------------------------------------------------------------------------------------------------
-class HistoryRing:
-    """Fixed-size ring of ``n_fields`` float64 columns (e.g. time, force, setpoint). Thread-safe, no growth."""
-
-    def __init__(self, capacity: int, n_fields: int):
-        self._buf = np.full((capacity, n_fields), np.nan)
-        self._n = 0
-        self._lock = threading.Lock()
-
-    def append(self, row) -> None:
-        with self._lock:
-            self._buf[self._n % len(self._buf)] = row
-            self._n += 1
-
-    def snapshot(self) -> np.ndarray:
-        """Rows in time order, oldest first: ``(n, n_fields)`` float64 (a copy)."""
-        with self._lock:
-            cap = len(self._buf)
-            if self._n <= cap:
-                return self._buf[: self._n].copy()
-            i = self._n % cap
-            return np.concatenate([self._buf[i:], self._buf[:i]])
-
-    def clear(self) -> None:
-        with self._lock:
-            self._n = 0
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Drum: status polling and commands
-# ----------------------------------------------------------------------------------------------------------------
-class StatusPoller(threading.Thread):
-    """Reads :meth:`DrumClient.read_status` every ``period_s`` into a :class:`HistoryRing`.
-
-    Columns of :attr:`history`: time (s since start), force (g), active force setpoint (g), speed (mm/s), speed
-    target (mm/s). A failed read marks the drum link down (``ok=False``, ``error`` set) and is retried; the poll also
-    feeds the controller's watchdog.
-    """
-
-    def __init__(self, drum, *, period_s: float = 0.05, history_s: float = 60.0):
-        super().__init__(name="drum-status", daemon=True)
-        self.drum = drum
-        self.period_s = period_s
-        self.history = HistoryRing(int(history_s / period_s) + 1, 5)
-        self.latest = None
-        self.ok = False
-        self.error: str | None = None
-        self.reads = 0
-        self.failures = 0
-        self._halt = threading.Event()
-        self._t0 = time.monotonic()
-
-    def run(self) -> None:
-        while not self._halt.is_set():
-            t = time.monotonic()
-            try:
-                st = self.drum.read_status()
-            except Exception as exc:  # noqa: BLE001 - any failure means the link is down; shown, then retried
-                self.ok = False
-                self.failures += 1
-                self.error = f"{type(exc).__name__}: {exc}"
-                self._halt.wait(0.5)
-                continue
-            self.latest = st
-            self.ok = True
-            self.error = None
-            self.reads += 1
-            self.history.append(
-                (t - self._t0, st.force_g, st.force_setpoint_active_g, st.speed_mm_s, st.speed_target_mm_s)
-            )
-            self._halt.wait(max(0.0, self.period_s - (time.monotonic() - t)))
-
-    def stop(self) -> None:
-        self._halt.set()
-
-
 class CommandExecutor:
     """Runs drum commands one at a time in a worker thread; results land in :attr:`results` for the GUI to drain.
 
@@ -347,13 +273,18 @@ def _process_main(target: str, kwargs: dict, q) -> None:
     try:
         module, attr = target.split(":")
         fn = getattr(importlib.import_module(module), attr)
+        if q is None:  # the fork server's warm-up (:func:`start_job_server`): nothing to answer
+            fn(**kwargs)
+            return
         if "progress" in inspect.signature(fn).parameters:
             kwargs = {**kwargs, "progress": _ForwardProgress(q)}
         result = fn(**kwargs)
     except BaseException as exc:  # noqa: BLE001 - sent to the GUI
-        q.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+        if q is not None:
+            q.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
     else:
-        q.put(("result", result))
+        if q is not None:
+            q.put(("result", result))
 
 
 #: what every job of the analysis tab imports (the library's encoding and analyses, scikit-learn, scipy, numba,
@@ -364,10 +295,11 @@ JOB_PRELOAD = ("rigctl_gui.analysis_jobs", "rigctl.operations", "rigctl.encoding
 
 def job_context():
     """The ``multiprocessing`` context the jobs start in: ``forkserver``, with :data:`JOB_PRELOAD` imported into the
-    server when it starts (the first job), so each later job is a fork of a process that has the analysis stack
-    loaded rather than a fresh interpreter importing it again (``spawn``). The server is a plain process started
-    from a fresh interpreter, not a fork of the GUI: no Qt, no threads of the app in the jobs. It lives as long as the
-    app and is stopped with it."""
+    server when it starts, so each job is a fork of a process that has the analysis stack loaded rather than a fresh
+    interpreter importing it again (``spawn``). The server is a plain process started from a fresh interpreter, not a
+    fork of the GUI: no Qt, no threads of the app in the jobs. It lives as long as the app and is stopped with it.
+    Starting it takes seconds (the imports): :func:`start_job_server` starts it in the background at app start, and
+    :class:`ProcessJob` starts its process from a thread of its own, never the GUI thread."""
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver")
@@ -375,10 +307,39 @@ def job_context():
     return ctx
 
 
+def _warm_up() -> None:
+    """Start the fork server and wait until it has imported :data:`JOB_PRELOAD`: a job that does nothing is forked
+    from it and waited for (the answer to a fork request comes only once the server has loaded its preload)."""
+    ctx = job_context()
+    proc = ctx.Process(target=_process_main, args=("os:getpid", {}, None), daemon=True)
+    proc.start()
+    proc.join()
+
+
+_server_started: threading.Thread | None = None
+_server_lock = threading.Lock()
+
+
+def start_job_server() -> threading.Thread:
+    """Start the analysis jobs' fork server (:func:`job_context`) in a background thread, at once, so the first
+    Encode / Run analyses / Train finds it loaded; returns the thread (started once per process). The GUI thread never
+    waits on it: a job started earlier waits in its own launch thread."""
+    global _server_started
+    with _server_lock:
+        if _server_started is None:
+            _server_started = threading.Thread(target=_warm_up, name="job-server-start", daemon=True)
+            _server_started.start()
+        return _server_started
+
+
 class ProcessJob:
     """Runs ``module:function(**kwargs)`` in a separate process (forked from :func:`job_context`'s server), so heavy
     encoding and analyses neither freeze the GUI nor compete for its GIL, and :meth:`cancel` really stops them
     (terminate).
+
+    Nothing here blocks the calling (GUI) thread: :meth:`start` hands the process start to a launch thread (the first
+    start waits there until the fork server has loaded the analysis stack, seconds), :meth:`poll` only drains a queue
+    and :meth:`cancel` terminates without waiting for the process to end.
 
     Progress: a function that takes a ``progress`` argument gets a callback that sends the library's
     :class:`rigctl.core.progress.ProgressEvent` s to this process; :meth:`poll` turns the newest into
@@ -387,9 +348,9 @@ class ProcessJob:
     """
 
     def __init__(self, target: str, **kwargs):
-        ctx = job_context()
-        self.q = ctx.Queue()
-        self.proc = ctx.Process(target=_process_main, args=(target, kwargs, self.q), daemon=True)
+        self.target, self.kwargs = target, kwargs
+        self.q: Any = None  # the child's queue and process: made in the launch thread (the queue's lock may start
+        self.proc: Any = None  # multiprocessing's resource tracker, a process of its own)
         self.done = False
         self.cancelled = False
         self.fraction = 0.0
@@ -398,21 +359,50 @@ class ProcessJob:
         self.error: str | None = None
         self.traceback: str | None = None
         self.events: list = []  # the ProgressEvents received, in order
+        self.started = threading.Event()  # set once the process runs (or could not be started)
+        self._launch_error: str | None = None
+        self._lock = threading.Lock()  # the launch thread's start vs cancel
 
     def start(self) -> "ProcessJob":
-        self.proc.start()
+        """Start the process from a launch thread; returns at once."""
+        threading.Thread(target=self._launch, name="job-launch", daemon=True).start()
         return self
 
+    def _launch(self) -> None:
+        with self._lock:
+            if not self.cancelled:
+                try:
+                    ctx = job_context()
+                    self.q = ctx.Queue()
+                    self.proc = ctx.Process(target=_process_main, args=(self.target, self.kwargs, self.q),
+                                            daemon=True)
+                    self.proc.start()
+                except BaseException as exc:  # noqa: BLE001 - shown by poll()
+                    self._launch_error = f"could not start the worker process: {type(exc).__name__}: {exc}"
+        self.started.set()
+
     def cancel(self) -> None:
-        if not self.done:
+        """Stop the job: its process is terminated (reaped in the background); returns at once."""
+        if self.done:
+            return
+        with self._lock:  # a launch in progress finishes first (the process exists then), a later one never starts
             self.cancelled = True
+            started = self.proc is not None and self.proc._popen is not None
+        if started:
             self.proc.terminate()
-            self.proc.join(5)
-            self.done = True
-            self.error = "cancelled"
+            threading.Thread(target=self.proc.join, args=(5,), name="job-reap", daemon=True).start()
+        self.done = True
+        self.error = "cancelled"
 
     def poll(self) -> None:
-        """Drain the child's messages (call from the GUI timer)."""
+        """Drain the child's messages (call from the GUI timer; never blocks)."""
+        if self.done:
+            return
+        if not self.started.is_set():
+            return  # still launching
+        if self._launch_error is not None:
+            self.done, self.error = True, self._launch_error
+            return
         alive = self.proc.is_alive()  # before draining: a result sent just before exiting is still read
         while True:
             try:
@@ -430,8 +420,8 @@ class ProcessJob:
         if not self.done and not alive and self.proc.exitcode is not None:
             self.done = True
             self.error = self.error or f"worker process exited with code {self.proc.exitcode}"
-        if self.done:
-            self.proc.join(1)
+        if self.done and not alive:
+            self.proc.join(0)  # reap it (it has exited); a process still exiting is reaped by multiprocessing later
 
     def _on_progress(self, event) -> None:
         self.events.append(event)

@@ -5,7 +5,9 @@ One package of small modules, each one job an operator does:
 - :class:`RigSource` (``_source``): where a rig comes from (a kind of :data:`rigctl.rigs.KINDS`, its ports or
   recording); :func:`open_control` opens it as a :class:`RigControl` (``_control``): setpoints checked against the
   controller's limits, run at a speed and force (press -> settle -> run), stop, tare, home, clear a fault, mount a
-  plate, status; :class:`Home` says what opening does with a latched fault.
+  plate, status; :class:`Home` says what opening does with a latched fault. Its :attr:`RigControl.monitor`
+  (:class:`RigMonitor`, ``_monitor``) polls the status, feeds the controller's watchdog, publishes
+  :class:`RigEvent` s to the faces and runs the dead man's switch (a face's :class:`Heartbeat`).
 - :func:`calibrate_loadcell`, :func:`record_taxel_normalisation`, :func:`store_taxel_normalisation`
   (``_calibrate``): calibrating an open rig (checked, stored, taken up by the rig at once).
 - :class:`ProtocolRun` (``_run``): run, pause, resume, abort a protocol (in this thread or a worker).
@@ -14,7 +16,8 @@ One package of small modules, each one job an operator does:
   the dated report stored in the rig config.
 - :class:`AnalysisPlan` / :func:`run_analyses` (``_analysis``): the paper's analyses as ``rigctl analyze`` and the
   GUI's analysis tab run them (which tasks, the parameter objects of :mod:`rigctl.analysis.params`, baseline,
-  skip or raise); :func:`load_or_encode`, :func:`train_model`, :func:`force_leak_report`.
+  skip or raise); :func:`load_or_encode`, :func:`train_model`, :func:`force_leak_report`; :func:`trial_spikes`
+  (``_trial_spikes``): one trial of a session encoded on the fly, as a trial browser shows it.
 - :class:`RunQueue` (``_queue``): protocol runs one after another on one rig, kept in a file across restarts
   (``rigctl serve``'s HTTP API is a face on it).
 - :class:`LslPublisher` (``_lsl``): a run published on Lab Streaming Layer (taxels, SA/RA spikes, drum state,
@@ -50,18 +53,22 @@ from rigctl.operations._doctor import doctor
 from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recordings
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, live_ring, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
+from rigctl.operations._monitor import DEADMAN_TIMEOUT_S, Heartbeat, RigEvent, RigMonitor, StatusHistory
 from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue
 from rigctl.operations._run import RUN_STATES, ProtocolRun
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
+from rigctl.operations._trial_spikes import TrialSpikes, session_taxel_range, trial_spikes
 
 __all__ = [
     "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES",
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted",
+    "RigMonitor", "RigEvent", "Heartbeat", "StatusHistory", "DEADMAN_TIMEOUT_S",
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S", "live_ring",
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "force_leak_report", "ProtocolRun", "RUN_STATES",
+    "TrialSpikes", "trial_spikes", "session_taxel_range",
     "import_recordings", "ImportReport", "IMPORT_PRESETS",
     "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",
 ]

@@ -22,6 +22,7 @@ from rigctl.core.drum import DrumLimits, DrumState, DrumStatus, SetpointRangeErr
 from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
+from rigctl.operations._monitor import RigMonitor
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import RigSource
 from rigctl.rigs import open_rig
@@ -109,6 +110,23 @@ class RigControl:
     def __init__(self, rig: Rig, source: RigSource | None = None) -> None:
         self.rig = rig
         self.source = source or RigSource(rig.mode)
+        self._monitor: RigMonitor | None = None
+        self._stop_listeners: list[Callable[[str], object]] = []
+
+    @property
+    def monitor(self) -> RigMonitor:
+        """The rig's monitor (:class:`rigctl.operations.RigMonitor`, started on first use): the status poll that feeds
+        the controller's watchdog, the event stream faces subscribe to, and the dead man's switch (a face's
+        :meth:`~rigctl.operations.RigMonitor.heartbeat`), whose trip is this rig's :meth:`stop`."""
+        if self._monitor is None:
+            self._monitor = RigMonitor(self.drum, self.stop)
+        return self._monitor.start()
+
+    def on_stop(self, fn: Callable[[str], object]) -> Callable[[], None]:
+        """Call ``fn(reason)`` at every :meth:`stop` before the controller is stopped (a run that must pause, not
+        retry). Returns the function that removes it."""
+        self._stop_listeners.append(fn)
+        return lambda: self._stop_listeners.remove(fn) if fn in self._stop_listeners else None
 
     # ------------------------------------------------------------------------------------------------- parts
     @property
@@ -145,7 +163,9 @@ class RigControl:
 
     # ------------------------------------------------------------------------------------------------- life
     def close(self) -> None:
-        """Stop the rig safely and close it (never raises a device error)."""
+        """Stop the monitor, stop the rig safely and close it (never raises a device error)."""
+        if self._monitor is not None:
+            self._monitor.close()
         self.rig.close()
 
     def __enter__(self) -> "RigControl":
@@ -205,8 +225,14 @@ class RigControl:
         return RunStarted(float(speed_mm_s), float(force_g), settle_s)
 
     # ------------------------------------------------------------------------------------------------- commands
-    def stop(self) -> bool:
-        """STOP (drum to rest, actuator home); never raises. True when the controller acknowledged it."""
+    def stop(self, reason: str = "STOP") -> bool:
+        """STOP (drum to rest, actuator home) for ``reason`` (the operator's STOP, the dead man's switch); the
+        :meth:`on_stop` listeners hear it first. Never raises. True when the controller acknowledged it."""
+        for fn in list(self._stop_listeners):
+            try:
+                fn(reason)
+            except Exception:  # noqa: BLE001 - the STOP itself must go out
+                log.exception("a STOP listener failed")
         return self.rig.safe_stop()
 
     def stop_drum(self) -> None:

@@ -1,6 +1,7 @@
 """The application-wide guards (rigctl_gui.guards) in a main window without a rig, offscreen: Esc is STOP in the
-main window and past its open menus, never in a dialog or a dialog's drop-down; the wheel leaves an unfocused spin
-box alone. (tests/gui/test_gui_x11.py does the same with real X clicks on the simulated rig.)"""
+main window when nothing else takes it; Esc closing one of its menus or drop-downs, or in a dialog or a dialog's
+drop-down, stops nothing; the wheel leaves an unfocused spin box alone. (tests/gui/test_gui_x11.py does the same
+with real X clicks on the simulated rig.)"""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ def _esc(widget):
     QtTest.QTest.keyClick(widget, QtCore.Qt.Key_Escape)
 
 
-def test_esc_is_stop_in_the_main_window_and_past_its_menus(bare_window, qapp):
+def test_esc_is_stop_in_the_main_window_but_only_closes_its_menus_and_drop_downs(bare_window, qapp):
     w = bare_window
     _esc(w.tabs.tabBar())
     assert len(w.stops) == 1
@@ -40,7 +41,15 @@ def test_esc_is_stop_in_the_main_window_and_past_its_menus(bare_window, qapp):
     assert wait_for(qapp, lambda: QtWidgets.QApplication.activePopupWidget() is menu, 2)
     wait_for(qapp, lambda: False, 0.4)  # (past the debounce of one press)
     _esc(menu)
-    assert len(w.stops) == 2 and not menu.isVisible()
+    assert wait_for(qapp, lambda: not menu.isVisible(), 2) and len(w.stops) == 1  # the menu closed, nothing else
+    combo = w.protocol.builtin
+    combo.showPopup()
+    popup = QtWidgets.QApplication.activePopupWidget()
+    assert popup is not None
+    _esc(popup)
+    assert wait_for(qapp, lambda: QtWidgets.QApplication.activePopupWidget() is None, 2) and len(w.stops) == 1
+    _esc(w.tabs.tabBar())  # the popup gone, Esc is STOP again
+    assert len(w.stops) == 2
 
 
 def test_esc_in_a_dialog_or_its_drop_down_only_closes_it(bare_window, qapp):

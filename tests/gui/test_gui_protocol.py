@@ -1,6 +1,6 @@
-"""Protocol tab on the simulated rig on ptys: STOP aborts a run. Calibration tab: the load cell is calibrated with a
-(simulated) known mass and the scale lands in the controller and the rig config. (The protocol tab's record, pause,
-resume and abort flows run on the in-process rig: test_gui_protocol_flow.py.)"""
+"""Protocol tab on the simulated rig on ptys: STOP stops a run, resumable (Abort ends it). Calibration tab: the load
+cell is calibrated with a (simulated) known mass and the scale lands in the controller and the rig config. (The
+protocol tab's record, pause, resume and abort flows run on the in-process rig: test_gui_protocol_flow.py.)"""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from .conftest import gui_protocol
 
 pytestmark = pytest.mark.realtime
 
-def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
+def test_stop_button_stops_a_run_resumably(window, qapp, qtbot, tmp_path):
     tab = window.protocol
     tab.load(gui_protocol(tmp_path, 3))
     tab.out_edit.setText(str(tmp_path / "stopped.h5"))
@@ -29,10 +29,14 @@ def test_stop_button_aborts_a_run(window, qapp, qtbot, tmp_path):
     qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: tab.job is None, 20), tab.status.text()
     assert time.monotonic() - t0 < 15
-    assert "aborted" in tab.status.text()
+    assert "STOPPED (the operator pressed STOP)" in tab.status.text() and "Resume continues" in tab.status.text()
     statuses = [tab.row_status(r) for r in range(tab.table.rowCount())]
-    assert "aborted (not recorded)" in statuses, statuses  # the trial cut short says so
+    assert "stopped (not recorded: recorded on Resume)" in statuses, statuses  # the trial cut short says so
     assert not any(st.startswith(("settling", "recording", "mounting")) for st in statuses), statuses
+    # stopped, not aborted: the run still owns the rig, Resume or Abort
+    assert tab.running and tab.resume_btn.isEnabled() and tab.abort_btn.isEnabled() and not tab.start_btn.isEnabled()
+    tab.request_abort()
+    assert not tab.running and "aborted after the STOP" in tab.status.text()
 
 
 def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot):

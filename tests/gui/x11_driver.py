@@ -189,6 +189,7 @@ def main(out_path: str) -> int:
     out["esc_dialog"] = res
     w.emergency_stop()
     wait(lambda: tab.job is None, 30)
+    tab.request_abort()  # STOP left the run stopped (resumable): end it, the rig is the next tests'
     stopped()
 
     # --- a stalled taxel stream: banner, log line, nothing moves, gaps in the plots ---
