@@ -162,6 +162,36 @@ def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, 
     return wants
 
 
+def _scan_classifier(classify: Path | None, calibration: Path | None, variant: str, pcs: int, *,
+                     handheld: bool) -> Any:
+    """The live classifier of ``--classify`` (None without it); its predictions are echoed as they come. Raises
+    click.UsageError for --classify/--calibration without a handheld protocol or --calibration alone, UsageProblem for
+    a file that is not an encoded training block."""
+    if (classify is not None or calibration is not None) and not handheld:
+        raise click.UsageError("--classify/--calibration classify handheld scans: the protocol must record on the "
+                               "handheld rig")
+    if calibration is not None and classify is None:
+        raise click.UsageError("--calibration re-centres the --classify classifier: give --classify too")
+    if classify is None:
+        return None
+    from rigctl.operations import ScanClassifier
+
+    try:
+        return ScanClassifier(classify, calibration=calibration, variant=variant, n_pcs=pcs,
+                              on_prediction=lambda p: click.echo(p.line()))
+    except (ValueError, OSError) as exc:  # a file that is not encoded: NotEncodedError, a ValueError
+        raise UsageProblem(f"--classify: {' '.join(str(exc).split())}") from None
+
+
+def _prediction_lines(classifier: Any) -> list[str]:
+    """The summary's line on the live predictions (none without --classify)."""
+    if classifier is None or not classifier.predictions:
+        return []
+    right = sum(p.correct for p in classifier.predictions)
+    return [f"  predicted: {right}/{len(classifier.predictions)} scans correct ({100 * classifier.accuracy():.1f} %, "
+            f"{classifier.variant}, {classifier.model.n_pcs} PCs)"]
+
+
 @click.command()
 @click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -183,6 +213,19 @@ def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, 
 @click.option("--motion", type=MOTION, default=None,
               help="The handheld rig's motion source: sim (the simulated operator, default) or lsl:NAME (a tracker "
                    "stream: its position or velocity; docs/guides/handheld.md).")
+@click.option("--classify", "classify", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="Handheld rig: predict each scan's texture at its end with the classifier trained on this encoded "
+                   "training block (rigctl encode of a handheld_training session; LDA on --pcs PCs of its real-time "
+                   "speed-scaled features): one line per scan, and an LSL marker with --lsl.")
+@click.option("--calibration", "calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              default=None, help="With --classify: the encoded calibration block (handheld_calibration) whose mean "
+                                 "feature vector re-centres the classifier (the paper's calibration).")
+@click.option("--classify-variant", "classify_variant", type=click.Choice(["realtime_speed_scaled", "realtime_original"]),
+              default="realtime_speed_scaled", show_default=True,
+              help="With --classify: the features classified (Speed Scaled: the paper's system; Original: without the "
+                   "speed invariance module).")
+@click.option("--pcs", "pcs", type=click.IntRange(1, 1000), default=25, show_default=True,
+              help="With --classify: principal components of the classifier (the paper: 25).")
 @click.option("--resume", is_flag=True, default=False,
               help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice).")
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
@@ -204,8 +247,8 @@ def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, 
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
 @inject_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
-def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, resume,
-            overwrite, seed, on_failure, config_path, plates, lsl, inject, quiet):
+def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, classify,
+            calibration, classify_variant, pcs, resume, overwrite, seed, on_failure, config_path, plates, lsl, inject, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -259,8 +302,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         raise UsageProblem(str(exc)) from None
     if seed is not None and isinstance(proto, Protocol):
         proto = proto.with_seed(seed)
-    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess,
-                             hardware=drum_port is not None, replay=replay)
+    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware, replay=replay)
+    classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld)
     if hardware and plates == "skip":
         with contextlib.suppress(Exception):  # a note only; the runner reports a plan it cannot build
             labels = sorted({str(t.texture) for t in proto.plan()})
@@ -294,10 +337,13 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         logging.getLogger(record.name).handle(record)
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
-            summary = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
-                                  overwrite=overwrite, lsl=publish).run()
+            run = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
+                              overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial)
+            if classifier is not None:
+                classifier.lsl = run.lsl
+            summary = run.run()
         except (SessionError, FileExistsError, FileNotFoundError, ValueError, LslUnavailable) as exc:
             raise click.ClickException(str(exc)) from None
-    for line in summary.lines():
+    for line in summary.lines() + _prediction_lines(classifier):
         click.echo(line)
     sys.exit(0 if summary.ok else 1)

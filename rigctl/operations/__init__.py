@@ -24,6 +24,8 @@ One package of small modules, each one job an operator does:
   markers); :func:`lsl_requested` (the flag, else the rig config's ``lsl.enabled``).
 - :func:`import_recordings` / :class:`ImportReport` (``_import``): other labs' recordings (or a known dataset's
   preset) into a session file, with the per-file segmentation table and the outlier warnings.
+- :class:`ScanClassifier` / :class:`Prediction` (``_handheld``): the handheld rig's live prediction at the end of
+  each scan (a training block's classifier, re-centred on a calibration block).
 - :class:`LiveEncoder` (``_live``): the taxel stream encoded into SA/RA spikes as it arrives, into
   :class:`SpikeRing` s a live view reads.
 
@@ -50,6 +52,7 @@ from rigctl.operations._calibrate import (
 )
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
+from rigctl.operations._handheld import Prediction, ScanClassifier
 from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recordings
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, live_ring, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
@@ -69,6 +72,6 @@ __all__ = [
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "force_leak_report", "ProtocolRun", "RUN_STATES",
     "TrialSpikes", "trial_spikes", "session_taxel_range",
-    "import_recordings", "ImportReport", "IMPORT_PRESETS",
+    "import_recordings", "ImportReport", "IMPORT_PRESETS", "ScanClassifier", "Prediction",
     "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",
 ]

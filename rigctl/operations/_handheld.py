@@ -1,0 +1,132 @@
+"""The live prediction at the end of each handheld scan (the paper's real-time block, Fig. 4A, Fig. S5).
+
+:class:`ScanClassifier` is trained from an encoded training block (``rigctl encode`` of a ``handheld_training``
+session: its real-time features, labels, normalisation and encoding constants) and, optionally, re-centred on an
+encoded calibration block (``handheld_calibration``: the mean vector). Handed the run's trial events
+(:meth:`on_trial`), it encodes each finished scan as the microcontroller does (:class:`rigctl.encoding.realtime.
+ScanEncoder`: the readings chunk by chunk, the tracker's velocity as it came, incremental speed scaling per 100 ms
+window) and predicts its texture with LDA on 25 PCs; each prediction goes to ``on_prediction`` (the terminal line)
+and, with an LSL publisher, out as a ``prediction`` marker.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rigctl.acquisition.runner import TrialEvent
+from rigctl.core.normalisation import TaxelRange
+from rigctl.core.trial import TrialData
+
+__all__ = ["Prediction", "ScanClassifier"]
+
+#: how many readings the live encoder takes at a time (the taxel board's 1 kHz in 20 ms blocks)
+CHUNK_SAMPLES = 20
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """One scan's prediction: trial id, the plate it was on (the truth), the profile, the predicted texture."""
+
+    trial_id: int
+    truth: str
+    profile: str
+    predicted: str
+
+    @property
+    def correct(self) -> bool:
+        return self.predicted == self.truth
+
+    def line(self) -> str:
+        """The terminal line: ``scan 12 (plate D, fast): D  correct``."""
+        return (f"scan {self.trial_id} (plate {self.truth}, {self.profile}): predicted {self.predicted}  "
+                f"{'correct' if self.correct else 'WRONG'}")
+
+
+class ScanClassifier:
+    """Classifies each finished handheld scan (module docstring).
+
+    Parameters
+    ----------
+    training : the encoded training block (``.enc.h5``).
+    calibration : the encoded calibration block, or None (centre: the training block's mean).
+    variant : the features classified: ``realtime_speed_scaled`` (the paper's system) or ``realtime_original``.
+    n_pcs : principal components (the paper: 25).
+    on_prediction : receives each :class:`Prediction`.
+    lsl : an :class:`rigctl.operations.LslPublisher` (its marker outlet), or None.
+
+    Raises
+    ------
+    ValueError
+        The training file lacks the variant, or the calibration file another sensor's features.
+    """
+
+    def __init__(self, training: str | os.PathLike[str], *, calibration: str | os.PathLike[str] | None = None,
+                 variant: str = "realtime_speed_scaled", n_pcs: int = 25,
+                 on_prediction: Callable[[Prediction], Any] | None = None, lsl: Any = None) -> None:
+        # the encoder (numba) and the classifier (scikit-learn) load when a classifier is made, not with the layer
+        from rigctl.analysis.realtime_model import RealtimeClassifier
+        from rigctl.encoding.params import EncodeParams
+        from rigctl.encoding.realtime import ScanEncoder
+        from rigctl.storage.encoded import open_encoded
+
+        with open_encoded(training) as f:
+            if variant not in f.variants:
+                raise ValueError(f"{training} holds no {variant} features (encode the training block with them)")
+            x, labels = f.features(variant), f.trials["texture"]
+            norm = f.normalisation
+            self.params = EncodeParams.from_dict(f.parameters)
+        self.variant = variant
+        self.model = RealtimeClassifier(x, labels, n_pcs=n_pcs)
+        if calibration is not None:
+            with open_encoded(calibration) as c:
+                if variant not in c.variants:
+                    raise ValueError(f"{calibration} holds no {variant} features")
+                self.model.calibrate(c.features(variant))
+        self.encoder = ScanEncoder(TaxelRange(norm["taxel_min"], norm["taxel_max"]), self.params)
+        self.on_prediction, self.lsl = on_prediction, lsl
+        self.predictions: list[Prediction] = []
+
+    def features(self, data: TrialData) -> np.ndarray:
+        """The scan's features, encoded live: readings in blocks of :data:`CHUNK_SAMPLES`, each velocity sample
+        given once the readings have passed its time."""
+        se = self.encoder
+        se.reset()
+        t, v = data.speed_time_s, data.speed_mm_s
+        sent = 0
+        for a in range(0, data.n_samples, CHUNK_SAMPLES):
+            se.feed(data.taxels[a:a + CHUNK_SAMPLES])
+            n = int(np.searchsorted(t, (a + CHUNK_SAMPLES) / data.rate_hz, side="right"))
+            if n > sent:
+                se.feed_speed(t[sent:n], v[sent:n])
+                sent = n
+        if sent < t.size:
+            se.feed_speed(t[sent:], v[sent:])
+        feats = se.features()
+        if self.variant not in feats:
+            raise ValueError("the scan has no velocity samples: no speed-scaled features")
+        return feats[self.variant]
+
+    def classify(self, trial_id: int, truth: str, profile: str, data: TrialData) -> Prediction:
+        """Predict one scan's texture; reports it (``on_prediction``, the LSL marker) and returns it."""
+        pred = Prediction(int(trial_id), str(truth), str(profile), str(self.model.predict(self.features(data))[0]))
+        self.predictions.append(pred)
+        if self.on_prediction is not None:
+            self.on_prediction(pred)
+        if self.lsl is not None:
+            self.lsl.run_marker("prediction", trial_id=pred.trial_id, truth=pred.truth, profile=pred.profile,
+                                predicted=pred.predicted, correct=pred.correct, variant=self.variant)
+        return pred
+
+    def on_trial(self, event: TrialEvent) -> None:
+        """A run's trial event: each complete scan is classified."""
+        if event.kind == "complete" and event.data is not None and event.planned is not None:
+            self.classify(event.planned.trial_id, event.planned.texture, event.planned.profile, event.data)
+
+    def accuracy(self) -> float:
+        """Fraction of the scans classified so far that were right (NaN before the first)."""
+        return float(np.mean([p.correct for p in self.predictions])) if self.predictions else float("nan")
