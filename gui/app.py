@@ -31,6 +31,7 @@ import numpy as np
 import shiboken6
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rigctl.operations import DEADMAN_TIMEOUT_S
 from rigctl_gui.connect_dialog import source_problem
 from rigctl_gui.dialogs import ask, show_dialog
 from rigctl_gui.frame_clock import FrameClock
@@ -93,6 +94,10 @@ def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = No
 
 class MainWindow(QtWidgets.QMainWindow):
     """The rigctl main window. ``source=None`` reads the last source from QSettings (simulated rig by default)."""
+
+    #: how long the GUI thread may not answer while the rig moves before the library stops it, s (the dead man's
+    #: switch, :class:`rigctl.operations.RigMonitor`)
+    deadman_s: float = DEADMAN_TIMEOUT_S
 
     def __init__(self, source: RigSource | None = None, *, autoconnect: bool = True, max_fps: float = MAX_FPS):
         super().__init__()
@@ -532,7 +537,7 @@ class MainWindow(QtWidgets.QMainWindow):
         from rigctl_gui.rig_events import RigEvents
 
         self.poller = h.control.monitor  # started by the library; the GUI only reads it and listens
-        self.rig_events = RigEvents(self.poller, self)  # the GUI thread's heartbeat: 0.5 s of silence stops the rig
+        self.rig_events = RigEvents(self.poller, self, timeout_s=self.deadman_s)  # the GUI thread's heartbeat
         self.rig_events.happened.connect(self._on_rig_event)
         if self.poller.latest is not None:
             self._show_faults(int(self.poller.latest.faults))

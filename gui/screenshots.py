@@ -4,9 +4,11 @@ Run it under an X server (``xvfb-run -a -s "-screen 0 1600x1000x24" python -m ri
 It opens the main window on the simulated rig and drives each tab the way an experimenter would (mount a plate and
 run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
-analysis_table1.png, analysis_confusion.png, calibration.png, classify.png.
+analysis_table1.png, analysis_confusion.png, calibration.png, classify.png; then stopped.png (a run stopped by STOP,
+resumable) and fault.png (the latched-fault dialog after the e-stop, the whole screen).
 ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
-the rig-side shots (control.png, calibration.png, live.png: about 40 s instead of several minutes); ``--size 1280x800``
+the rig-side shots (control.png, calibration.png, live.png, stopped.png, fault.png: about a minute instead of
+several); ``--size 1280x800``
 sets the window's size (default 1400x900); more ``--size`` options take every shot at each size in the same session
 (the first size's PNGs in OUT_DIR, the others' in OUT_DIR/WxH/).
 """
@@ -107,7 +109,9 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     wait(lambda: False, 6)
     shot("live.png")
     w.emergency_stop()
-    if only and not set(only) - {"control", "calibration", "live"}:
+    if only and not set(only) - {"control", "calibration", "live", *SAFETY_SHOTS}:
+        safety_shots(w, app, out_dir, tmp, only)
+        w._close_confirmed = True
         w.close()
         return 0
     # analysis on a small generated dataset (also trains the model for the real-time view)
@@ -151,8 +155,61 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     w.tabs.setCurrentWidget(w.classify)
     wait(lambda: not w.classify._pending and w.classify._job is None, 120)
     shot("classify.png")
+    safety_shots(w, app, out_dir, tmp, only)
+    w._close_confirmed = True
     w.close()
     return 0
+
+
+#: the shots of :func:`safety_shots`
+SAFETY_SHOTS = ("stopped", "fault")
+
+
+def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) -> None:
+    """stopped.png: a protocol run stopped by STOP (resumable: the run strip and the protocol tab say so);
+    fault.png: the whole screen with the latched-fault dialog over the window after the e-stop was pressed and
+    released (the dialog is a window of its own, so the screen is grabbed), a reason typed in."""
+    from PySide6 import QtGui
+
+    def wait(pred, timeout_s):
+        return wait_for(app, pred, timeout_s)
+
+    def save(name, pixmap):
+        if only and name not in only:
+            return
+        path = os.path.join(out_dir, f"{name}.png")
+        pixmap.save(path)
+        print("saved", path, f"({pixmap.width()}x{pixmap.height()})")
+
+    p = w.protocol
+    for banner in ("app", "fault"):  # what earlier shots left (a loaded machine's dead man's switch, a fault)
+        w.banners[banner].hide()
+    proto = os.path.join(tmp, "screenshot_stop.toml")
+    with open(proto, "w") as f:
+        f.write(QUICK)
+    w.tabs.setCurrentWidget(p)
+    p.load(proto)
+    p.out_edit.setText(os.path.join(tmp, "stopped.h5"))
+    p.resume_box.setChecked(False)
+    p.start()
+    wait(lambda: len(p._done_ids) >= 3 and p._current is not None, 300)
+    w.emergency_stop()
+    wait(lambda: p.job is None and p.stopped_reason is not None, 60)
+    wait(lambda: False, 1.0)
+    save("stopped", w.grab())
+    p.request_abort()
+    mega = w.handle.sim.mega  # the simulated rig's controller: its e-stop input
+    mega.set_estop(True)
+    wait(lambda: w.fault_dialog is not None, 10)
+    wait(lambda: False, 1.5)
+    mega.set_estop(False)
+    dlg = w.fault_dialog
+    wait(lambda: dlg is not None and dlg.estop.text() == "released", 10)
+    if dlg is not None:
+        dlg.reason.setText("pressed to check a loose plate; plate G fastened again")
+        dlg.move(w.geometry().center() - dlg.rect().center())
+    wait(lambda: False, 1.0)
+    save("fault", QtGui.QGuiApplication.primaryScreen().grabWindow(0))
 
 
 def _cli(argv: list[str]) -> int:

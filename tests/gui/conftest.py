@@ -74,6 +74,12 @@ def window_home(tmp_path_factory):
         yield home
 
 
+#: the dead man's limit of the shared test windows, s: the GUI tests share a loaded machine, where the GUI thread can
+#: be starved for half a second; a test that is not about the dead man's switch must not see the drum stopped by it
+#: (test_gui_responsive.py sets the app's own 0.5 s on its window where it checks the switch)
+TEST_DEADMAN_S = 5.0
+
+
 def _main_window(qapp, kind: str):
     """The main window connected to a fresh rig of ``kind``, shown at 1400x900; closed (rig stopped) afterwards."""
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
@@ -81,6 +87,7 @@ def _main_window(qapp, kind: str):
 
     configure_pyqtgraph()
     w = MainWindow(RigSource(kind))
+    w.deadman_s = TEST_DEADMAN_S  # (taken at each connect)
     w.resize(1400, 900)
     w.show()
     wait_for(qapp, lambda: w.handle is not None or "not connected" in w.source_label.text(), 30)

@@ -18,10 +18,11 @@ import pytest
 from PySide6 import QtCore, QtTest, QtWidgets
 
 from rigctl.core.drum import DrumState
+from rigctl.operations import DEADMAN_TIMEOUT_S
 from rigctl.storage.session import open_session
 from rigctl_gui.events import wait_for
 
-from .conftest import gui_protocol
+from .conftest import TEST_DEADMAN_S, gui_protocol
 
 #: how long the GUI thread may stall while the first analysis job starts, s (issue 35)
 MAX_STALL_S = 0.1
@@ -148,10 +149,16 @@ def test_a_frozen_gui_thread_stops_the_turning_drum(inprocess_window, qapp):
     window.control.command("run")
     assert wait_for(qapp, lambda: _state(window) == DrumState.RUNNING, 30), window.poller.latest
     assert window.poller.deadman is None
-    time.sleep(1.0)  # this test runs on the GUI thread: it does not answer for 1 s
+    heartbeat = window.rig_events.heartbeat
+    assert heartbeat.name == "GUI thread"
+    heartbeat.timeout_s = DEADMAN_TIMEOUT_S  # the app's own limit (the shared test windows get a longer one)
+    try:
+        time.sleep(1.0)  # this test runs on the GUI thread: it does not answer for 1 s
+    finally:
+        heartbeat.timeout_s = TEST_DEADMAN_S
     st = window.handle.control.status()  # what the library did meanwhile (nobody else commanded the rig)
     assert st.state != DrumState.RUNNING and st.speed_target_mm_s == 0, st
-    assert "GUI thread did not answer" in (window.poller.deadman or "")
+    assert "GUI thread did not answer" in (window.poller.deadman or "") and "limit 0.5 s" in window.poller.deadman
     # the window says why once it wakes (the event waited in the queue)
     assert wait_for(qapp, lambda: "STOPPED by the library" in window.banner.text, 5), window.banner.text
     assert "dead man's switch" in window.events.text()
