@@ -14,6 +14,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.core import PAPER_SENSOR, SensorLayout
+from rigctl.core.errors import describe_error
 from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
 from rigctl_gui.widgets import add_taxel_numbers, side_panel
 from rigctl_gui.workers import Job, ProcessJob
@@ -619,7 +620,7 @@ class AnalysisTab(QtWidgets.QWidget):
         import logging
 
         logging.getLogger(__name__).error("%s", what, exc_info=exc)
-        self.status.setText(f"<span style='color:#c00'>{_html(what)}: {_html(f'{type(exc).__name__}: {exc}')}</span>")
+        self.status.setText(f"<span style='color:#c00'>{_html(what)}: {_html(describe_error(exc))}</span>")
 
     def _finish_job(self, job) -> None:
         self._log(f"{self._job_kind} failed: {job.error}" if job.error else f"{self._job_kind} finished"
@@ -907,7 +908,7 @@ def _source_readings(encoded_path: str, tid: int) -> tuple[np.ndarray | None, st
     except FileNotFoundError:
         return None, "its session file is not found: open the session to see them"
     except Exception as exc:  # noqa: BLE001 - the spikes are still shown; the title says why there are no readings
-        return None, f"not read from the session: {type(exc).__name__}: {exc}"
+        return None, f"not read from the session: {describe_error(exc)}"
 
 
 def export_path(path: str, fmt: str) -> str:

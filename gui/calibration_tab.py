@@ -14,6 +14,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from rigctl.core.errors import describe_error
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui.messages import escaped
 from rigctl_gui.widgets import keep_room, side_panel
@@ -310,7 +311,7 @@ class CalibrationTab(QtWidgets.QWidget):
         try:
             cfg = fn(cfg_path)
         except Exception as exc:  # noqa: BLE001 - shown; the stored calibration is unchanged
-            self.status.setText(f"<span style='color:#c00'>{escaped(f'{type(exc).__name__}: {exc}')}</span>")
+            self.status.setText(f"<span style='color:#c00'>{escaped(describe_error(exc))}</span>")
             return
         if self.handle is not None:
             self.handle.rig.host_config = cfg

@@ -20,6 +20,8 @@ from collections.abc import Callable
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rigctl.core.errors import describe_error
+
 #: colours of the log levels in the panel
 LEVEL_COLOURS = {logging.DEBUG: "#888", logging.INFO: "#000", logging.WARNING: "#a60", logging.ERROR: "#c00",
                  logging.CRITICAL: "#c00"}
@@ -221,7 +223,7 @@ class ExceptionGuard:
 
     def _report(self, etype, value, tb, *, where: str) -> None:
         self.count += 1
-        one_line = f"{etype.__name__}: {value}"
+        one_line = describe_error(value) if isinstance(value, BaseException) else etype.__name__
         full = "".join(traceback.format_exception(etype, value, tb)).rstrip()
         print(full, file=sys.__stderr__)  # the console keeps it too
         self.log.post(logging.ERROR, where, f"unexpected error: {full}")

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.core.errors import describe_error
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
 # the rig kinds are the library's (rigctl.rigs.KINDS, through the operator layer); the live encoder runs in the
@@ -239,7 +240,7 @@ class Job(threading.Thread):
         try:
             self.result = self.fn(self)
         except BaseException as exc:  # noqa: BLE001 - reported in the GUI
-            self.error = f"{type(exc).__name__}: {exc}"
+            self.error = describe_error(exc)
             self.traceback = traceback.format_exc()
         finally:
             self.done = True
@@ -281,7 +282,7 @@ def _process_main(target: str, kwargs: dict, q) -> None:
         result = fn(**kwargs)
     except BaseException as exc:  # noqa: BLE001 - sent to the GUI
         if q is not None:
-            q.put(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+            q.put(("error", describe_error(exc), traceback.format_exc()))
     else:
         if q is not None:
             q.put(("result", result))

@@ -56,6 +56,7 @@ from rigctl.acquisition.labels import recorded_labels
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
 from rigctl.acquisition.provenance import session_provenance
 from rigctl.acquisition.rig import CaptureError, Rig, TrialAborted
+from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json
 from rigctl.core.trial import PlannedTrial, TrialData
@@ -402,7 +403,7 @@ class _Run:
                 self.summary.stopped = True
                 return False
             except Exception as exc:  # noqa: BLE001 - a failed attempt is retried or recorded as failed
-                error = f"{type(exc).__name__}: {exc}"
+                error = describe_error(exc)
                 lost = self._after_failure(planned, index)
                 if (attempt <= self.protocol.retries and not lost and not self._stopping()
                         and not isinstance(exc, ValueError)):

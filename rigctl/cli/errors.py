@@ -19,6 +19,8 @@ import traceback
 
 import click
 
+from rigctl.core.errors import one_line as core_one_line
+
 __all__ = ["as_click_error", "is_rigctl_error", "one_line", "plain_numbers"]
 
 #: the repr of a numpy scalar (numpy >= 2): np.float64(1.5), np.int64(3), np.str_('A'), np.True_
@@ -34,7 +36,7 @@ def plain_numbers(text: str) -> str:
 def one_line(text: object) -> str:
     """``text`` on one line (runs of whitespace, newlines included, become one space), numpy reprs as plain
     values."""
-    return plain_numbers(" ".join(str(text).split()))
+    return plain_numbers(core_one_line(text))
 
 
 def is_rigctl_error(exc: BaseException) -> bool:

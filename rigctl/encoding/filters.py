@@ -26,11 +26,13 @@ from functools import lru_cache
 import numpy as np
 from scipy import signal
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
+
 __all__ = ["lowpass_coefficients", "ra_input", "RAFilter"]
 
 
 @lru_cache(maxsize=16)
-def lowpass_coefficients(cutoff_hz: float = 20.0, fs: float = 1000.0, order: int = 2):
+def lowpass_coefficients(cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE_HZ, order: int = 2):
     """``(b, a, zi_unit)`` of the Butterworth low-pass; ``zi_unit`` is ``lfilter_zi(b, a)`` (steady state for 1).
 
     Raises
@@ -44,7 +46,7 @@ def lowpass_coefficients(cutoff_hz: float = 20.0, fs: float = 1000.0, order: int
     return b, a, signal.lfilter_zi(b, a)
 
 
-def ra_input(readings: np.ndarray, *, cutoff_hz: float = 20.0, fs: float = 1000.0, rectify: bool = True,
+def ra_input(readings: np.ndarray, *, cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE_HZ, rectify: bool = True,
              order: int = 2) -> np.ndarray:
     """RA input current of one trial: low-passed, differentiated, rectified (see module docstring).
 
@@ -86,7 +88,7 @@ class RAFilter:
     cutoff_hz, fs, rectify, order : as in :func:`ra_input`.
     """
 
-    def __init__(self, n_taxels: int, *, cutoff_hz: float = 20.0, fs: float = 1000.0, rectify: bool = True,
+    def __init__(self, n_taxels: int, *, cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE_HZ, rectify: bool = True,
                  order: int = 2):
         self.b, self.a, self._zi_unit = lowpass_coefficients(float(cutoff_hz), float(fs), int(order))
         self.n_taxels = n_taxels

@@ -47,6 +47,7 @@ from numba import types
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numba.extending import overload
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.filters import lowpass_coefficients
 from rigctl.encoding.spikes import SpikeTrains
 
@@ -362,7 +363,7 @@ def _input_dtype(x: np.ndarray) -> np.ndarray:
 
 def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale: Any = 1.0,
               sa_gains: Sequence[Any] = (1.0,), k_sa: float = 100.0, ra: bool = True, k_ra: float = 3.0,
-              cutoff_hz: float = 20.0, rectify: bool = True, fs: float = 1000.0,
+              cutoff_hz: float = RA_CUTOFF_HZ, rectify: bool = True, fs: float = MODEL_RATE_HZ,
               izhikevich: tuple[float, float, float, float, float] = (0.02, 0.2, -65.0, 6.0, 30.0),
               dtype: Any = np.float32, ra_dtype: Any = np.float64, want_times: bool = True,
               state: FusedState | None = None, n0: Any = 0, active: np.ndarray | None = None,

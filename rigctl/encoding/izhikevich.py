@@ -33,10 +33,11 @@ from typing import Any
 import numba
 import numpy as np
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.filters import lowpass_coefficients
 from rigctl.encoding.fused import FusedResult, FusedState, run_fused
 from rigctl.encoding.normalise import TaxelRange
-from rigctl.encoding.rate import MODEL_RATE_HZ, StreamResampler, rate_conversion
+from rigctl.encoding.rate import StreamResampler, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = [
@@ -487,11 +488,11 @@ def encode_sa(readings, k: float = K_SA, coeff=1.0, *, normalise: TaxelRange | N
     SpikeTrains (n_trials, n_taxels), spike times in s.
     """
     rg, fs = _at_model_rate(as_ragged(readings), fs)
-    return _fused(rg, normalise=normalise, sa_coeffs=(coeff,), k_sa=k, ra=False, k_ra=K_RA, cutoff_hz=20.0,
+    return _fused(rg, normalise=normalise, sa_coeffs=(coeff,), k_sa=k, ra=False, k_ra=K_RA, cutoff_hz=RA_CUTOFF_HZ,
                   rectify=True, fs=fs, params=params, dtype=dtype).sa[0]
 
 
-def encode_ra(readings, k: float = K_RA, cutoff_hz: float = 20.0, *, normalise: TaxelRange | None = None,
+def encode_ra(readings, k: float = K_RA, cutoff_hz: float = RA_CUTOFF_HZ, *, normalise: TaxelRange | None = None,
               rectify: bool = True, fs: float = FS_HZ, params: IzhikevichParams = TONIC_SPIKING,
               dtype=np.float32) -> SpikeTrains:
     """RA encoding (Methods): tonic spiking, k = 3, on the 20 Hz low-passed, differentiated reading.
@@ -523,7 +524,7 @@ def encode_trials(readings, *, normalise: TaxelRange | None = None, coeff=1.0, f
     """SA and RA trains side by side: (n_trials, 2 * n_taxels), SA taxels first, then RA (the paper's 36 trains);
     one pass of the fused kernel."""
     rg, fs = _at_model_rate(as_ragged(readings), fs)
-    res = _fused(rg, normalise=normalise, sa_coeffs=(coeff,), k_sa=K_SA, ra=True, k_ra=K_RA, cutoff_hz=20.0,
+    res = _fused(rg, normalise=normalise, sa_coeffs=(coeff,), k_sa=K_SA, ra=True, k_ra=K_RA, cutoff_hz=RA_CUTOFF_HZ,
                  rectify=rectify, fs=fs, params=params, dtype=dtype)
     assert res.ra is not None
     return SpikeTrains.hstack([res.sa[0], res.ra])
@@ -566,7 +567,7 @@ class StreamingEncoder:
     """
 
     def __init__(self, n_taxels: int, *, normalise: TaxelRange | None = None, coeff=1.0, k_sa: float = K_SA,
-                 k_ra: float = K_RA, cutoff_hz: float = 20.0, rectify: bool = True, fs: float = FS_HZ,
+                 k_ra: float = K_RA, cutoff_hz: float = RA_CUTOFF_HZ, rectify: bool = True, fs: float = FS_HZ,
                  params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32):
         self.n_taxels = n_taxels
         self.normalise = normalise

@@ -9,10 +9,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.features import N_WINDOWS_REALTIME, N_WINDOWS_SCALED
 from rigctl.encoding.force import C_MAX, EPSILON, REFERENCE_FORCE_G
 from rigctl.encoding.izhikevich import K_RA, K_SA
-from rigctl.encoding.rate import MODEL_RATE_HZ
 from rigctl.encoding.speed import REALTIME_REFERENCE_SPEED_MM_S, REFERENCE_SPEED_MM_S, WINDOW_S
 
 __all__ = ["EncodeParams"]
@@ -46,7 +46,7 @@ class EncodeParams:
     input_rate_hz: float | None = None
     k_sa: float = K_SA
     k_ra: float = K_RA
-    cutoff_hz: float = 20.0
+    cutoff_hz: float = RA_CUTOFF_HZ
     rectify_ra: bool = True
     reference_speed_mm_s: float = REFERENCE_SPEED_MM_S
     realtime_reference_speed_mm_s: float = REALTIME_REFERENCE_SPEED_MM_S

@@ -30,10 +30,10 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ
+
 __all__ = ["MODEL_RATE_HZ", "RateConversion", "rate_conversion", "StreamResampler"]
 
-#: the model's step rate, Hz: one Izhikevich step per ms (Izhikevich 2003's scheme, :mod:`rigctl.encoding.izhikevich`)
-MODEL_RATE_HZ: float = 1000.0
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ
+from rigctl.core.errors import describe_error
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 
@@ -78,7 +80,7 @@ class SpikeRing:
 LIVE_WINDOW_MAX_S = 10.0
 
 
-def spike_capacity(layout: SensorLayout, seconds: float = LIVE_WINDOW_MAX_S, max_rate_hz: float = 1000.0) -> int:
+def spike_capacity(layout: SensorLayout, seconds: float = LIVE_WINDOW_MAX_S, max_rate_hz: float = MODEL_RATE_HZ) -> int:
     """Spikes one population can produce in ``seconds``: ``layout.n_channels`` trains at ``max_rate_hz`` (one spike
     per 1 ms model step, the streaming encoder's ceiling), so a :class:`SpikeRing` of this size never drops a spike
     of the last ``seconds``."""
@@ -148,7 +150,7 @@ class LiveEncoder(threading.Thread):
                     encoder.process(np.zeros((1, self.layout.n_channels), np.uint16))  # compile before going live
                     encoder.reset()
                 except Exception as exc:  # noqa: BLE001 - shown in the live view; traces keep going
-                    self.encoder_error = f"{type(exc).__name__}: {exc}"
+                    self.encoder_error = describe_error(exc)
                     self._halt.wait(1.0)
                     encoder = None
                     continue
@@ -159,7 +161,7 @@ class LiveEncoder(threading.Thread):
                 try:
                     chunk = encoder.process(samples)  # raw ADC counts; the encoder normalises
                 except Exception as exc:  # noqa: BLE001
-                    self.encoder_error = f"{type(exc).__name__}: {exc}"
+                    self.encoder_error = describe_error(exc)
                 else:
                     off = start / self.layout.sample_rate_hz
                     t, ch = chunk.events("sa")

@@ -22,6 +22,7 @@ import numpy as np
 
 from rigctl.acquisition.lsl import LslOutlets
 from rigctl.core.clocksync import DeviceClockFit
+from rigctl.core.errors import describe_error
 from rigctl.core.normalisation import TaxelRange
 from rigctl.operations._live import live_ring
 
@@ -79,7 +80,7 @@ class LiveLslFeed(threading.Thread):
             self.outlets.push_drum(np.array([host_time_s]), np.array([status.speed_mm_s]),
                                    np.array([status.force_g]), np.array([status.actuator_mm]))
         except Exception as exc:  # noqa: BLE001 - e.g. the outlets closed under a poll in another thread
-            self.error = f"drum stream: {type(exc).__name__}: {exc}"
+            self.error = f"drum stream: {describe_error(exc)}"
             return
         self.drum_samples += 1
 
@@ -131,7 +132,7 @@ class LiveLslFeed(threading.Thread):
             enc.reset()
             self._encoder = enc
         except Exception as exc:  # noqa: BLE001 - the taxels go on; said in error
-            self.error = f"spike encoder: {type(exc).__name__}: {exc}"
+            self.error = f"spike encoder: {describe_error(exc)}"
         finally:
             self._encoder_ready.set()
 
@@ -143,7 +144,7 @@ class LiveLslFeed(threading.Thread):
         try:
             chunk = self._encoder.process(samples)
         except Exception as exc:  # noqa: BLE001 - the taxels go on; said in error
-            self.error = f"spike encoder: {type(exc).__name__}: {exc}"
+            self.error = f"spike encoder: {describe_error(exc)}"
             return
         rate = self.layout.sample_rate_hz
         trains, at = [], []
@@ -168,7 +169,7 @@ class LiveLslFeed(threading.Thread):
             try:
                 self.push_pending()
             except Exception as exc:  # noqa: BLE001 - a live stream never stops the run; said in error
-                self.error = f"{type(exc).__name__}: {exc}"
+                self.error = describe_error(exc)
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Push what is left, end the thread, stop listening to the drum's polls."""

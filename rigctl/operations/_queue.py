@@ -30,6 +30,7 @@ from typing import Any
 
 from rigctl.acquisition.protocol import ProtocolError, parse_protocol
 from rigctl.acquisition.runner import TrialEvent
+from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._run import ProtocolRun
 from rigctl.storage.session import SessionLocked
@@ -348,7 +349,7 @@ class RunQueue:
     def _fail(self, run: QueuedRun, exc: BaseException) -> None:
         with self._lock:
             self.current = self.current_id = None
-            self._set(run, state="failed", errors=[*run.errors, f"{type(exc).__name__}: {exc}"],
+            self._set(run, state="failed", errors=[*run.errors, describe_error(exc)],
                       ended_utc=_utc_now())
 
     def _record(self, run: QueuedRun) -> None:

@@ -30,6 +30,7 @@ from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
+from rigctl.core.errors import describe_error
 from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
 
@@ -104,7 +105,7 @@ def create_app(run_queue: RunQueue, *, token: str | None = None) -> FastAPI:
         try:
             rig["drum"] = _plain(control.status())
         except Exception as exc:  # noqa: BLE001 - reported, not raised: the status page must answer
-            rig["drum_error"] = f"{type(exc).__name__}: {exc}"
+            rig["drum_error"] = describe_error(exc)
         stats = getattr(control.rig.stream, "stats", None)  # read only: never restarts a link under a run
         rig["taxel_stream"] = None if stats is None else _plain(stats)
         current = run_queue.current_id

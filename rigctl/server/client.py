@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from rigctl.core.errors import describe_error
+
 __all__ = ["ServerClient", "ServerError"]
 
 
@@ -35,7 +37,7 @@ class ServerClient:
         try:
             r = self._http.request(method, path, headers=self._headers, **kw)
         except self._httpx.HTTPError as exc:
-            raise ServerError(f"rigctl serve at {self.url} does not answer ({type(exc).__name__}: {exc})") from None
+            raise ServerError(f"rigctl serve at {self.url} does not answer ({describe_error(exc)})") from None
         if r.status_code >= 400:
             try:
                 detail = r.json().get("detail", r.text)

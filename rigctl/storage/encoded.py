@@ -52,6 +52,7 @@ from typing import Any, cast
 import h5py
 import numpy as np
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.storage.encoded_format import (
@@ -156,7 +157,7 @@ class EncodedFile:
         n = int(self.attrs.get("n_taxels", 0) or 0)
         if not n and "normalisation" in self._f:
             n = int(self._f["normalisation"]["taxel_min"].shape[0])
-        rate = float(self.parameters.get("fs_hz", 1000.0) or 1000.0)
+        rate = float(self.parameters.get("fs_hz", MODEL_RATE_HZ) or MODEL_RATE_HZ)
         return SensorLayout.for_channels(n or 18, sample_rate_hz=rate)
 
     def _read_textures(self) -> TextureSet:

@@ -15,6 +15,8 @@ from typing import Any, NamedTuple
 import h5py
 import numpy as np
 
+from rigctl.core.errors import describe_error
+
 #: schema of the files :class:`EncodedWriter` writes; files without the attribute are schema 1
 ENCODED_SCHEMA_VERSION = 3
 #: the ``kind`` attribute of an encoded file
@@ -117,9 +119,7 @@ def _reading(path: object, what: str) -> Iterator[None]:
     except NotEncodedError:
         raise
     except _READ_ERRORS as exc:
-        text = " ".join(str(exc).split())
-        text = text if len(text) <= 160 else text[:157] + "..."
-        raise NotEncodedError(f"{path}: cannot read {what} ({type(exc).__name__}: {text}); the encoded file is "
+        raise NotEncodedError(f"{path}: cannot read {what} ({describe_error(exc, 160)}); the encoded file is "
                               "damaged or not written by rigctl (encode the session again)") from None
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from rigctl.core.errors import describe_error, one_line
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
@@ -305,9 +306,8 @@ def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
 
 
 def _one_line(exc: BaseException) -> str:
-    """An exception's message on one line, without HDF5's long parenthesised details."""
-    text = " ".join(str(exc).split())
-    return text if len(text) <= 160 else text[:157] + "..."
+    """An exception's message on one line, cut at 160 characters (HDF5's messages run long)."""
+    return one_line(exc, 160)
 
 
 def _decode_rig_config(attrs: Mapping[str, Any]) -> dict[str, Any]:
@@ -338,7 +338,7 @@ def _reading(path: Path, what: str) -> Iterator[None]:
     except (SessionError, journal.FileBusy):
         raise
     except _READ_ERRORS as exc:
-        raise SessionError(f"{path}: cannot read {what} ({type(exc).__name__}: {_one_line(exc)}); the file is "
+        raise SessionError(f"{path}: cannot read {what} ({describe_error(exc, 160)}); the file is "
                            "damaged or not written by rigctl") from None
 
 

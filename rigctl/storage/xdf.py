@@ -26,6 +26,8 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from rigctl.core.errors import describe_error
+
 __all__ = ["XdfStream", "read_xdf", "stream_info_xml", "write_xdf"]
 
 
@@ -63,7 +65,7 @@ def read_xdf(path: Path, variable: str | None, error: type[Exception]) -> tuple[
     try:
         streams, _header = pyxdf.load_xdf(str(path), dejitter_timestamps=False)
     except Exception as exc:  # noqa: BLE001 - pyxdf raises many types for a bad file
-        raise error(f"{path}: not a readable XDF file ({type(exc).__name__}: {exc})") from None
+        raise error(f"{path}: not a readable XDF file ({describe_error(exc)})") from None
     numeric = [s for s in streams if _first(s["info"], "channel_format") != "string"
                and len(s.get("time_stamps", [])) > 0]
     names = [str(_first(s["info"], "name", "?")) for s in streams]
