@@ -379,7 +379,7 @@ class ProcessJob:
                                             daemon=True)
                     self.proc.start()
                 except BaseException as exc:  # noqa: BLE001 - shown by poll()
-                    self._launch_error = f"could not start the worker process: {type(exc).__name__}: {exc}"
+                    self._launch_error = f"could not start the worker process: {describe_error(exc)}"
         self.started.set()
 
     def cancel(self) -> None:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigctl.core.drum import DrumState, DrumStatus, describe_faults
+from rigctl.core.errors import describe_error
 from rigctl.core.interfaces import DrumMonitor
 
 __all__ = ["EVENT_KINDS", "DEADMAN_TIMEOUT_S", "Heartbeat", "RigEvent", "RigMonitor", "StatusHistory", "commanded"]
@@ -278,7 +279,7 @@ class RigMonitor:
 
     def _fail(self, exc: Exception) -> None:
         self.failures += 1
-        self.error = f"{type(exc).__name__}: {exc}"
+        self.error = describe_error(exc)
         if self.ok or self.reads == 0 and self.failures == 1:
             self._emit("link", f"drum controller not answering: {self.error}")
         self.ok = False
