@@ -69,3 +69,27 @@ def test_no_import_cycle_inside_rigctl():
     graph = grimp.build_graph("rigctl", "rigctl_gui", cache_dir=None)
     assert len(graph.modules) > 100
     assert strongly_connected(graph) == KNOWN
+
+
+def test_every_private_module_is_closed_to_the_faces():
+    """pyproject.toml's ``faces-public-api`` contract names every private (``_x``) module outside the faces, so a
+    new one cannot be imported by the CLI, the GUI or the server by being left off the list."""
+    import fnmatch
+    import tomllib
+    from pathlib import Path
+
+    config = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    contract = next(c for c in config["tool"]["importlinter"]["contracts"] if c["id"] == "faces-public-api")
+    faces = tuple(contract["source_modules"])
+    graph = grimp.build_graph("rigctl", "rigctl_gui", cache_dir=None)
+    private = [m for m in graph.modules if m.rsplit(".", 1)[-1].startswith("_") and not m.endswith("__")
+               and not m.startswith(faces)]
+    assert private, "no private module found: the scan is broken"
+
+    def covered(module: str) -> bool:
+        # import-linter's wildcards stand for whole segments: `*` one, `**` any number
+        return any(fnmatch.fnmatchcase(module, pattern.replace("**", "*")) and
+                   ("**" in pattern or module.count(".") == pattern.count("."))
+                   for pattern in contract["forbidden_modules"])
+
+    assert [m for m in sorted(private) if not covered(m)] == []
