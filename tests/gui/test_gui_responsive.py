@@ -2,8 +2,9 @@
 what STOP and Esc mean during a run.
 
 - The first analysis job (Encode) starts without stalling the GUI thread: its longest stall, measured with a QTimer
-  heartbeat while a fresh fork server loads the analysis stack, stays under 100 ms (plus the longest delay a probe
-  thread of the same process saw over the same span: the machine's load, not the app).
+  heartbeat while a fresh fork server loads the analysis stack, stays under 100 ms plus twice the longest delay a
+  probe thread of the same process saw over the same span (the machine's load, not the app); and none of the fork
+  server's blocking calls runs on the GUI thread.
 - A GUI thread frozen for 1 s while the drum turns: the library stops the drum and the window says why when it wakes.
 - Esc closing a drop-down during a run stops nothing; Esc with no popup is STOP, which stops the run resumably, and
   Resume completes the session.
@@ -129,7 +130,9 @@ def test_the_first_analysis_job_never_stalls_the_gui_thread(qapp, gui_home, tmp_
             fresh_job_server.callers
         print(f"GUI thread's longest stall {stalls.worst_s * 1000:.0f} ms ({stalls.when}); a probe thread's "
               f"longest delay {stalls.sched_s * 1000:.0f} ms")
-        assert stalls.worst_s < MAX_STALL_S + stalls.sched_s, (stalls.worst_s, stalls.sched_s)
+        # two threads sampled side by side on a loaded machine see different worst cases: the GUI thread gets
+        # MAX_STALL_S beyond twice the probe's (the old code stalled for the server's whole import: seconds)
+        assert stalls.worst_s < MAX_STALL_S + 2 * stalls.sched_s, (stalls.worst_s, stalls.sched_s)
     finally:
         w.close()
         w.deleteLater()
