@@ -61,14 +61,10 @@ def test_the_cycle_finder_finds_cycles():
     assert strongly_connected(graph) == []
 
 
-#: cycles not broken yet (each held by an import inside a function), to be emptied
-KNOWN = [["rigctl.storage.session", "rigctl.storage.session_reader", "rigctl.storage.validate"]]
-
-
 def test_no_import_cycle_inside_rigctl():
     graph = grimp.build_graph("rigctl", "rigctl_gui", cache_dir=None)
     assert len(graph.modules) > 100
-    assert strongly_connected(graph) == KNOWN
+    assert strongly_connected(graph) == []
 
 
 def test_every_private_module_is_closed_to_the_faces():

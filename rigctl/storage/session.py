@@ -24,10 +24,15 @@ The module is the public face of five: :mod:`rigctl.storage.session_format` (sch
 status, errors, opening), :mod:`rigctl.storage.session_schema` (decoding the header of every schema, schema 1/2
 included), :mod:`rigctl.storage.session_recording` (schema 4: every trial's data back to back under ``/recording``
 with a trial index, and the per-trial views), :mod:`rigctl.storage.session_writer` (:class:`SessionWriter`) and
-:mod:`rigctl.storage.session_reader` (:class:`Session`, :func:`open_session`); import from here.
+:mod:`rigctl.storage.session_reader` (:class:`SessionReader`, the reader :class:`Session` is built on with the trial
+validator, :mod:`rigctl.storage.validate`); import from here.
 """
 
 from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
 
 from rigctl.core.trial import TrialData
 from rigctl.storage.session_format import (
@@ -48,17 +53,42 @@ from rigctl.storage.session_format import (
     trial_group_name,
 )
 from rigctl.storage.session_reader import (
-    Session,
+    SessionReader,
     TaxelBlock,
-    open_session,
 )
 from rigctl.storage.session_writer import (
     SessionWriter,
 )
+from rigctl.storage.validate import usable_trials
 
 __all__ = [
     "PLAN_CHUNK_ROWS", "PLAN_DTYPE", "PLAN_FIELDS", "SCHEMA_VERSION", "SESSION_KINDS", "STATUS_ENUM", "Session",
-    "SessionError", "SessionLocked", "SessionWriteError", "SessionWriter", "TAXEL_CHUNK_BYTES", "TaxelBlock",
-    "TrialData", "TrialStatus", "VLEN_UTF8", "open_session", "plan_array", "taxels_description",
+    "SessionError", "SessionLocked", "SessionReader", "SessionWriteError", "SessionWriter", "TAXEL_CHUNK_BYTES",
+    "TaxelBlock", "TrialData", "TrialStatus", "VLEN_UTF8", "open_session", "plan_array", "taxels_description",
     "trial_group_name",
 ]
+
+
+class Session(SessionReader):
+    """A session file opened read-only (:func:`open_session`): :class:`SessionReader`'s header, trials and checks
+    (its docstring says which), and :meth:`iter_trials` over the trials the trial validator finds usable."""
+
+    def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
+        """Yield :class:`TrialData` of the usable complete trials (the trial validator's,
+        :func:`rigctl.storage.validate.usable_trials`: excluded ones are listed in :attr:`problems`), or of ``ids``,
+        in plan order. A damaged trial is skipped with a warning naming it (also added to :attr:`problems`)."""
+        return super().iter_trials(usable_trials(self).ids if ids is None else ids)
+
+
+def open_session(path: str | os.PathLike[str]) -> Session:
+    """Open a session file read-only (:class:`Session`, which says what it checks).
+
+    Raises
+    ------
+    FileNotFoundError; SessionError (not HDF5, not a session file, a newer schema, a malformed plan or header);
+    rigctl.storage.journal.FileBusy (an OSError: a writer holds the file for long).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    return Session(path)

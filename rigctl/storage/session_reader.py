@@ -1,5 +1,6 @@
-"""The session reader (:class:`Session`, :func:`open_session`): the header, trials one by one with their checks, and
-the encoder's block read. Re-exported by :mod:`rigctl.storage.session`."""
+"""The session reader (:class:`SessionReader`): the header, trials one by one with their checks, and the encoder's
+block read. :mod:`rigctl.storage.session` builds the public :class:`~rigctl.storage.session.Session` on it (the trial
+validator, :mod:`rigctl.storage.validate`, checks a reader's trials, so the reader never imports it)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import h5py
 import numpy as np
@@ -59,8 +60,10 @@ class TaxelBlock:
     speed_traces: list[Any] | None = None
 
 
-class Session:
-    """A session file opened read-only (use :func:`open_session`). Context manager; :meth:`close` when done.
+class SessionReader:
+    """A session file opened read-only (use :func:`rigctl.storage.session.open_session`, whose
+    :class:`~rigctl.storage.session.Session` adds the trial validator's choice of trials). Context manager;
+    :meth:`close` when done.
 
     Attributes
     ----------
@@ -512,14 +515,9 @@ class Session:
                 raise self._damaged(int(ids[k]), f"taxels hold {hi} (sample {row - starts[k]}), outside the "
                                                  f"sensor's {self.layout.adc_bits}-bit range 0..{self.layout.adc_max}")
 
-    def iter_trials(self, ids: Sequence[int] | None = None) -> Iterator[TrialData]:
-        """Yield :class:`TrialData` of the usable complete trials (the trial validator's,
-        :func:`rigctl.storage.validate.usable_trials`: excluded ones are listed in :attr:`problems`), or of ``ids``,
-        in plan order. A damaged trial is skipped with a warning naming it (also added to :attr:`problems`)."""
-        if ids is None:
-            from rigctl.storage.validate import usable_trials
-
-            ids = usable_trials(self).ids
+    def iter_trials(self, ids: Sequence[int]) -> Iterator[TrialData]:
+        """Yield :class:`TrialData` of the trials ``ids``, in that order (``Session.iter_trials()``: the usable
+        ones). A damaged trial is skipped with a warning naming it (also added to :attr:`problems`)."""
         for trial_id in ids:
             try:
                 yield self.trial(trial_id)
@@ -529,7 +527,7 @@ class Session:
     def close(self) -> None:
         self._f.close()
 
-    def __enter__(self) -> "Session":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -540,18 +538,3 @@ class Session:
             self._f.close()
         except Exception:
             pass
-
-
-def open_session(path: str | os.PathLike[str]) -> Session:
-    """Open a session file read-only (:class:`Session`, which says what it checks).
-
-    Raises
-    ------
-    FileNotFoundError; SessionError (not HDF5, not a session file, a newer schema, a malformed plan or header);
-    rigctl.storage.journal.FileBusy (an OSError: a writer holds the file for long).
-    """
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist")
-    return Session(path)
-

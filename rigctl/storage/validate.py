@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.storage.session import Session, SessionError, TrialStatus, trial_group_name
+from rigctl.storage.session_format import SessionError, TrialStatus, trial_group_name
+from rigctl.storage.session_reader import SessionReader as Session  # checked here; session.Session calls us
 from rigctl.storage.session_recording import read_rows
 
 __all__ = ["MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "block_seq_gaps", "max_count", "seq_gaps",
