@@ -80,6 +80,15 @@ def window_home(tmp_path_factory):
 TEST_DEADMAN_S = 5.0
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _test_deadman_limit():
+    """Every main window of the GUI tests gets :data:`TEST_DEADMAN_S` as its dead man's limit."""
+    from rigctl_gui.app import MainWindow
+
+    MainWindow.deadman_s = TEST_DEADMAN_S
+    yield
+
+
 def _main_window(qapp, kind: str):
     """The main window connected to a fresh rig of ``kind``, shown at 1400x900; closed (rig stopped) afterwards."""
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
@@ -87,7 +96,6 @@ def _main_window(qapp, kind: str):
 
     configure_pyqtgraph()
     w = MainWindow(RigSource(kind))
-    w.deadman_s = TEST_DEADMAN_S  # (taken at each connect)
     w.resize(1400, 900)
     w.show()
     wait_for(qapp, lambda: w.handle is not None or "not connected" in w.source_label.text(), 30)
