@@ -12,9 +12,9 @@ trial starts at the replayed recording's next trial; "continuous"); :meth:`Proto
 medium, fast, slow-to-fast, fast-to-slow). The format is documented in ``protocols/paper_dataset.toml`` and
 ``docs/session-format.md``.
 
-A ``.py`` file is a Python-script protocol: it defines ``run(rig, session)`` and uses the public API
-(:class:`rigctl.acquisition.rig.Rig`, :class:`rigctl.storage.session.SessionWriter`); see
-``protocols/example_script.py``.
+A ``.py`` file is a Python protocol: it defines ``plan(ctx)``, a generator that yields the trials it wants and
+receives their recordings (:mod:`rigctl.acquisition.plans`), run by the same engine as a TOML protocol; see
+``protocols/example_script.py`` and docs/protocols.md.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ import importlib.util
 import math
 import re
 import tomllib
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 # the rig's protocol range every setpoint is checked against (mm/s, g): one home, rigctl.core.drum
+from rigctl.acquisition.plans import PlanFunction
 from rigctl.core.drum import MAX_FORCE_G as MAX_FORCE_G, MAX_SPEED_MM_S as MAX_SPEED_MM_S
 from rigctl.core.textures import GEOMETRY_KEYS, KINDS as TEXTURE_KINDS, PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.core.trial import PlannedTrial  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
@@ -194,22 +194,21 @@ class Protocol:
 
 @dataclass
 class ScriptProtocol:
-    """A Python-script protocol: a ``.py`` file defining ``run(rig, session)``.
-
-    ``run`` receives an open :class:`rigctl.acquisition.rig.Rig` and a :class:`rigctl.storage.session.SessionWriter`
-    whose plan starts empty; it records trials with ``rig.record_trial(planned)`` and ``session.append_trial(planned,
-    data)``. An optional module-level ``NAME`` string names the protocol.
-    """
+    """A Python protocol: a ``.py`` file defining ``plan(ctx)``, a generator function run by the same engine as a
+    TOML protocol (:mod:`rigctl.acquisition.plans`: it yields trials and receives their recordings). Optional
+    module-level ``NAME`` (the protocol's name) and ``MAX_TRIALS`` (how many trials it yields at most: the progress
+    bar's total)."""
 
     name: str
     source: str
     path: str
-    run: Callable[[Any, Any], Any]
+    plan_function: PlanFunction
     description: str = ""
     format: str = "python"
+    max_trials: int | None = None
 
     def plan(self) -> list[PlannedTrial]:
-        """A script decides its trials as it runs: the plan is empty until then."""
+        """A Python protocol decides its trials as it runs: the plan is empty until then."""
         return []
 
 
@@ -227,7 +226,7 @@ def load_protocol(path: str | Path) -> Protocol | ScriptProtocol:
         With the file, the line and the key at fault, for a TOML syntax error, an unknown or missing key, a value
         of the wrong type, a texture outside the protocol's texture set (A-P unless it declares a
         ``[texture_set]``), a malformed ``[texture_set]``, or a setpoint outside the rig limits (0 < speed <= 150 mm/s,
-        0 < force <= 1500 g); for a script, a syntax error or a missing ``run(rig, session)``.
+        0 < force <= 1500 g); for a Python protocol, a syntax error or a missing ``plan(ctx)``.
     """
     path = Path(path)
     source = path.read_text(encoding="utf-8")
@@ -541,9 +540,18 @@ def _load_script(path: Path, source: str) -> ScriptProtocol:
         raise ProtocolError("cannot be loaded as a Python module", path=str(path), line=None)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    run = getattr(module, "run", None)
-    if not callable(run):
-        raise ProtocolError("a Python protocol must define run(rig, session)", path=str(path), line=None, key="run")
+    plan = getattr(module, "plan", None)
+    if not callable(plan):
+        if callable(getattr(module, "run", None)):
+            raise ProtocolError("run(rig, session) protocols are gone: write plan(ctx), a generator yielding "
+                                "ctx.trial(...) (docs/protocols.md, Python protocols)", path=str(path), line=None,
+                                key="plan")
+        raise ProtocolError("a Python protocol must define plan(ctx) (docs/protocols.md, Python protocols)",
+                            path=str(path), line=None, key="plan")
     name = getattr(module, "NAME", path.stem)
-    return ScriptProtocol(name=str(name), source=source, path=str(path), run=run,
-                          description=(module.__doc__ or "").strip())
+    max_trials = getattr(module, "MAX_TRIALS", None)
+    if max_trials is not None and (not isinstance(max_trials, int) or max_trials < 1):
+        raise ProtocolError(f"MAX_TRIALS must be a positive int, got {max_trials!r}", path=str(path), line=None,
+                            key="MAX_TRIALS")
+    return ScriptProtocol(name=str(name), source=source, path=str(path), plan_function=plan,
+                          description=(module.__doc__ or "").strip(), max_trials=max_trials)

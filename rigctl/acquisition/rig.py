@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -41,6 +41,15 @@ from rigctl.acquisition.clock import trial_clock_attrs
 from rigctl.acquisition.motion import wait_released
 from rigctl.acquisition.protocol import PlannedTrial, Settle
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
+from rigctl.acquisition.safety import (
+    Acknowledgement,
+    DrumStall,
+    Latch,
+    LatchedFault,
+    SafetyLatch,
+    latch_for,
+    latch_from_faults,
+)
 from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.drum import (
     DRUM_CIRCUMFERENCE_MM,
@@ -56,6 +65,7 @@ from rigctl.core.drum import (
     Fault,
     ForceLoopConfig,
     SpeedProfile,
+    StatusFlag,
     fault_advice,
 )
 from rigctl.core.interfaces import DrumController, ReplayProvenance, RigBackend, TaxelSource
@@ -96,6 +106,9 @@ HX711_BOOT_WAIT_S = 5.0
 SETTLE_POLL_S = 0.25
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
 LINK_CHECK_S = 1.0
+#: the drum runs at less than this fraction of its target while told to turn: stalled (two status reads in a row
+#: during a capture, or when the spin-up times out)
+STALL_FRACTION = 0.2
 
 
 class RigError(RuntimeError):
@@ -199,6 +212,10 @@ class Rig:
         self.stop_acknowledged: bool | None = None
         #: the host <-> taxel-board clock mapping, fitted online on every captured frame (rigctl.acquisition.clock)
         self.clock_fit: DeviceClockFit | None = None
+        #: the safety latch (rigctl.acquisition.safety): a latched fault refuses motion until acknowledged
+        self.safety = SafetyLatch()
+        #: this rig has homed the controller (a NOT_HOMED controller since then was reset: latched)
+        self.homed_once = False
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
@@ -294,6 +311,7 @@ class Rig:
         self.drum.home()
         st = self.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
         self.drum.tare()
+        self.homed_once = True
         self.drum_boot_count = getattr(self.drum.read_status(), "boot_count", getattr(st, "boot_count", None))
 
     def _check_calibration(self, st: Any) -> None:
@@ -318,32 +336,13 @@ class Rig:
         self.warnings.append(text)
 
     def check_drum_reset(self, st: Any = None) -> bool:
-        """Has the drum controller reset since this rig homed it (BOOT_COUNT changed, or NOT_HOMED)? If so: report it
-        as such (log, :attr:`drum_resets`), HOME it again and TARE at home, so that no press runs on a position or a
-        zero from before the reset. Returns True if it had reset.
-
-        A controller found NOT_HOMED with an unchanged BOOT_COUNT (an e-stop, a failed HOME) is homed too, but not
-        counted as a reset; it returns False then.
-
-        Raises DrumError if it cannot be homed."""
+        """Has the drum controller reset since this rig homed it (BOOT_COUNT changed, or NOT_HOMED unasked)? If so it
+        latches the rig (:attr:`safety`, cause "reset": nothing moves until an operator acknowledges, which homes
+        and tares it again) and returns True. Raises DrumError when the controller does not answer."""
         st = self.drum.read_status() if st is None else st
-        boot = getattr(st, "boot_count", None)
-        reset = boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count
-        if not reset and st.state != DrumState.NOT_HOMED:
-            return False
-        if reset:
-            self.drum_resets += 1
-            log.error("the drum controller reset unexpectedly (reset cause %s, boot count %s -> %s, state %s): "
-                      "homing and taring it again", getattr(st, "reset_cause", "?"), self.drum_boot_count, boot,
-                      DrumState(int(st.state)).name)
-        else:
-            log.warning("the drum controller is NOT_HOMED (after an e-stop or a failed HOME): homing it")
-        st = self._booted_status()
-        if st.state == DrumState.FAULT:
-            self.drum.stop()
-            self.drum.clear_fault()
-        self._home()
-        return reset
+        before = self.safety.latch
+        self.latch_unsafe(st, "status check")
+        return self.safety.latch is not None and self.safety.latch is not before and self.safety.latch.cause == "reset"
 
     def _apply_force_loop(self) -> None:
         """The rig config's ``force_loop`` block (this rig's HX711 rate and gains), if any, to the controller."""
@@ -434,21 +433,10 @@ class Rig:
 
     def release(self, timeout_s: float = 20.0) -> None:
         """STOP and wait until IDLE with the actuator back home (drum at rest, sensor free): the state for changing
-        a plate.
-
-        A latched WATCHDOG fault (the host was busy or starved between trials, e.g. a slow disk, while the force
-        loop was still engaged) is no reason to fail: the controller has already done what a release asks (drum
-        stopped, actuator backed off), so it is logged, cleared and the release completes. Any other fault is
-        raised. Raises DrumTimeout / DrumFault.
+        a plate. A fault the controller latched (the watchdog too) latches the rig (:attr:`safety`): LatchedFault.
+        Raises DrumTimeout, LatchedFault.
         """
-        try:
-            wait_released(self.drum, timeout_s=timeout_s)
-        except DrumFault as exc:
-            if exc.faults != Fault.WATCHDOG:
-                raise
-            log.warning("the controller's watchdog tripped while the host was busy between trials (the rig stopped "
-                        "itself safely); clearing it")
-            self.drum.clear_fault()
+        with self.latching("release"):
             wait_released(self.drum, timeout_s=timeout_s)
 
     def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
@@ -482,9 +470,10 @@ class Rig:
         return False
 
     def recover(self) -> str | None:
-        """After a failed trial: STOP, clear a latched fault, wait for IDLE, and make sure the taxel stream delivers
-        frames (restarting it when the last capture or the check saw none: a START the board never got leaves it
-        silent until the next START). Never raises a device error.
+        """After a failed trial: STOP, wait for IDLE, and make sure the taxel stream delivers frames (restarting it
+        when the last capture or the check saw none: a START the board never got leaves it silent until the next
+        START). A latched fault of the controller, or a reset, is never cleared here: it latches the rig
+        (:attr:`safety`) for an operator to acknowledge (:meth:`acknowledge`). Never raises a device error.
 
         Returns
         -------
@@ -493,14 +482,86 @@ class Rig:
         self.safe_stop()
         try:
             st = self.drum.read_status()
-            if st.state == DrumState.FAULT:
-                self.drum.clear_fault()
-                st = self.drum.read_status()
-            self.check_drum_reset(st)  # a reset, an e-stop or a failed HOME: home (and tare) again
-            self.drum.wait_state([DrumState.IDLE], timeout_s=20.0)
+            self.latch_unsafe(st, "after a failed trial")
+            if not self.safety.latched:
+                self.drum.wait_state([DrumState.IDLE], timeout_s=20.0)
         except DrumError as exc:
             log.warning("recovering the rig: %s", exc)
         return self.check_links(restart=True)
+
+    # ------------------------------------------------------------------------------------------------- safety
+    @contextlib.contextmanager
+    def latching(self, what: str) -> Any:
+        """Run a motion (``what``: its name) under the safety policy: refused while latched (LatchedFault); a
+        latched condition it runs into (a controller fault, a reset, a stall) latches the rig, which stops it, and is
+        raised as LatchedFault. (A drum link lost mid-press: the controller's watchdog latches WATCHDOG, seen when the
+        link is back.)"""
+        self.safety.refuse(what)
+        try:
+            yield
+        except LatchedFault:
+            self.safe_stop()
+            raise
+        except (DrumError, CaptureError) as exc:
+            latch = latch_for(exc)
+            if latch is None:
+                raise
+            self.safety.trip(latch)
+            self.safe_stop()
+            raise LatchedFault(latch, what) from exc
+
+    def latch_unsafe(self, st: Any, what: str) -> None:
+        """Latch the rig (:attr:`safety`) when the status ``st`` shows a latched fault, or a reset of the controller
+        since this rig homed it (BOOT_COUNT changed, or NOT_HOMED unasked). Nothing is cleared."""
+        if st.state == DrumState.FAULT:
+            self.safety.trip(latch_from_faults(int(st.faults), f"{what}: the controller latched "
+                                                               f"{fault_advice(int(st.faults)) or st.faults}"))
+            return
+        boot = getattr(st, "boot_count", None)
+        if boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count:
+            self.drum_resets += 1
+            self.safety.trip(Latch("reset", f"{what}: the drum controller reset (reset cause "
+                                            f"{getattr(st, 'reset_cause', '?')}, boot count {self.drum_boot_count} -> "
+                                            f"{boot}): it stopped and must be homed"))
+        elif st.state == DrumState.NOT_HOMED and self.homed_once:
+            self.safety.trip(Latch("reset", f"{what}: the drum controller reports NOT_HOMED unasked (a reset)"))
+
+    def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
+        """An operator acknowledges the latched fault: the condition must be gone (the e-stop released; the
+        controller accepts CLEAR_FAULT), then the rig is made ready (STOP, CLEAR_FAULT, HOME, TARE, the taxel stream
+        checked) and the latch cleared. Nothing turns the drum or presses until the next command.
+
+        Returns the :class:`rigctl.acquisition.safety.Acknowledgement` (which the run engine writes into the session's
+        event log). Raises ValueError (nothing latched, no reason), LatchedFault (the condition persists: the latch
+        stays), DrumError (the controller does not answer: the latch stays).
+        """
+        latch = self.safety.latch
+        if latch is None:
+            raise ValueError("nothing is latched: no fault to acknowledge")
+        if not str(reason).strip() or not str(by).strip():
+            raise ValueError("an acknowledgement needs a reason and who gives it")
+        with self._lock:  # no trial starts while the rig is made ready; the latch is released last
+            st = self.drum.read_status()
+            if StatusFlag.ESTOP_OPEN in StatusFlag(int(getattr(st, "flags", 0))):
+                raise LatchedFault(latch, "the e-stop is still pressed (its contact is open): release it first")
+            self.drum.stop()
+            if st.state == DrumState.FAULT:
+                try:
+                    self.drum.clear_fault()
+                except DrumError:
+                    st = self.drum.read_status()
+                    raise LatchedFault(latch, f"the controller refuses to clear it, the condition persists "
+                                              f"({fault_advice(int(st.faults)) or st.faults})") from None
+            try:
+                if self._booted_status().state == DrumState.IDLE:
+                    wait_released(self.drum)  # the actuator backs off to home first (HOME is refused under load)
+                self._home()
+            except DrumError as exc:  # HOME failed: still latched (the first cause stays the one to clear)
+                self.safe_stop()
+                raise LatchedFault(latch, f"HOME after the acknowledgement failed ({exc})") from exc
+            ack = self.safety.clear(reason, by)
+        self.check_links(restart=True)
+        return ack
 
     def check_links(self, *, restart: bool = True, timeout_s: float | None = None) -> str | None:
         """Check both links: the drum controller answers a status read, and taxel frames arrive.
@@ -570,32 +631,32 @@ class Rig:
 
     # ------------------------------------------------------------------------------------------------- trials
     def press(self, force_g: float, *, timeout_s: float | None = None,
-              stop_event: threading.Event | None = None) -> float:
+              stop_event: StopFlag | None = None) -> float:
         """Set the force setpoint, engage the force loop and wait until the force has settled on it.
 
         Returns the time it took, s. Raises :class:`rigctl.devices.errors.SetpointRangeError` (out of range, nothing
-        sent), :class:`rigctl.devices.errors.DrumTimeout` (not settled in time), ``DrumFault``,
-        :class:`TrialAborted` (``stop_event`` set while waiting: within :data:`SETTLE_POLL_S`).
+        sent), :class:`rigctl.devices.errors.DrumTimeout` (not settled in time), :class:`LatchedFault` (the rig is
+        latched, or a latched fault or reset happens: :attr:`safety`), :class:`TrialAborted` (``stop_event`` set while
+        waiting: within :data:`SETTLE_POLL_S`).
         """
         force_g = PROTOCOL_LIMITS.force_range().check(force_g)
-        timeout_s = self.settle.force_timeout_s if timeout_s is None else timeout_s
+        with self.latching("PRESS"):
+            return self._press(force_g, self.settle.force_timeout_s if timeout_s is None else timeout_s, stop_event)
+
+    def _press(self, force_g: float, timeout_s: float, stop_event: StopFlag | None) -> float:
         clock = self.drum.clock  # wall time on a real link, simulated time in-process
         t0 = clock.now()
         st = self.drum.read_status()
-        # never press on a position or a zero from before a reset (or an e-stop): home and tare first
-        if self.check_drum_reset(st) or st.state == DrumState.NOT_HOMED:
+        # never press on a position or a zero from before a reset or an e-stop: those latch (safety policy)
+        self.latch_unsafe(st, "before pressing")
+        self.safety.refuse("PRESS")
+        if st.state == DrumState.NOT_HOMED:  # opened without HOME: home and tare first
+            self._home()
             st = self.drum.read_status()
         if st.state == DrumState.RUNNING:
             self.drum.stop_drum()
             self.drum.wait_state([DrumState.FORCE_SETTLED, DrumState.SEEKING_FORCE], timeout_s=10.0)
             st = self.drum.read_status()
-        if st.state == DrumState.FAULT:
-            if Fault(int(st.faults)) != Fault.WATCHDOG:
-                raise DrumFault(Fault(int(st.faults)), "before pressing")
-            # the host went quiet between trials (nothing was being recorded): the rig stopped itself safely
-            log.warning("the controller's watchdog tripped between trials; clearing it and pressing again")
-            self.drum.clear_fault()
-            st = self.drum.wait_state([DrumState.IDLE], timeout_s=10.0)
         self.drum.set_force(force_g)
         if st.state not in (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED):
             self.drum.press()
@@ -623,7 +684,7 @@ class Rig:
             _abort_if(stop_event)
             clock.sleep(0.02)
 
-    def record_trial(self, planned: PlannedTrial, *, stop_event: threading.Event | None = None) -> TrialData:
+    def record_trial(self, planned: PlannedTrial, *, stop_event: StopFlag | None = None) -> TrialData:
         """Record one trial on the mounted plate.
 
         Parameters
@@ -672,7 +733,7 @@ class Rig:
         n = planned.samples_at(self.layout.sample_rate_hz)
         if n <= 0:
             raise ValueError(f"trial {planned.trial_id}: duration {planned.duration_s} s gives no samples")
-        with self._lock:
+        with self._lock, self.latching(f"trial {planned.trial_id}"):
             try:
                 return self._record(planned, n, stop_event)
             except BaseException:
@@ -696,6 +757,10 @@ class Rig:
         try:
             self.drum.wait_speed_steady(timeout_s=settle.speed_timeout_s, tol_mm_s=settle.speed_tolerance_mm_s)
         except DrumTimeout as exc:
+            st = self.drum.read_status()
+            if st.state == DrumState.RUNNING and abs(float(st.speed_mm_s)) < STALL_FRACTION * first_speed:
+                raise DrumStall(f"the drum turns at {float(st.speed_mm_s):.1f} mm/s, told {first_speed:g} mm/s "
+                                f"({settle.speed_timeout_s:g} s after RUN)") from exc
             raise DrumTimeout(f"drum did not reach {first_speed:g} mm/s within "
                               f"{settle.speed_timeout_s:g} s: {exc}") from exc
         if planned.is_ramp:
@@ -756,6 +821,7 @@ class Rig:
                     s = self._status()
                     statuses.append(s)
                     self._check_fault(s, f"during trial {planned.trial_id}")
+                    _check_stall(statuses, planned)
                     next_poll = max(next_poll + STATUS_PERIOD_S, now)
                 _abort_if(stop_event)
                 got = self.stream.stats
@@ -902,6 +968,23 @@ def locate_index(cap, n: int, t_index: float, *,
         raise CaptureError(f"the index pulse came {k} frames into the capture, only {n_cap - k} of {n} frames "
                            "follow it")
     raise CaptureError(f"no drum index pulse (SYNC_IN) in {n_cap} frames, and no short gap where it was predicted")
+
+
+def _check_stall(statuses: list[_Status], planned: PlannedTrial) -> None:
+    """Raise DrumStall when the last two status reads of a capture found the drum RUNNING at less than
+    :data:`STALL_FRACTION` of the trial's slowest speed."""
+    slowest = min(planned.ramp_start_mm_s, planned.ramp_end_mm_s) if planned.is_ramp else planned.speed_mm_s
+    last = statuses[-2:]
+    if len(last) == 2 and all(s.state == DrumState.RUNNING and abs(s.speed_mm_s) < STALL_FRACTION * slowest
+                              for s in last):
+        raise DrumStall(f"trial {planned.trial_id}: the drum turns at {last[-1].speed_mm_s:.1f} mm/s while told "
+                        f"{slowest:g} mm/s")
+
+
+class StopFlag(Protocol):
+    """What a trial checks for an abort (a ``threading.Event``, or the run engine's combined flag)."""
+
+    def is_set(self) -> bool: ...
 
 
 def _abort_if(stop_event) -> None:

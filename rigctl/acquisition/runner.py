@@ -18,8 +18,22 @@ Run control, for the CLI and the GUI alike:
   one stops at once);
 - ``pause_event``: while it is set the runner waits between trials with the rig released (no force applied, so the
   controller's watchdog cannot trip); clear it to continue;
+- ``halt_event`` (STOP, :meth:`rigctl.operations.ProtocolRun.stop`): the trial in progress is cut short and
+  discarded, the rig stopped, and the run pauses (``pause_event`` is set with it); resuming records that trial
+  again. Abort (``stop_event``) is the separate action that ends the run;
+- the safety latch (:mod:`rigctl.acquisition.safety`, docs/safety.md): a latched fault (e-stop, over-force, reversed
+  cell, watchdog, unexpected reset, HOME failure, stall, drum link lost mid-press) is never cleared here and never
+  retried: the rig is stopped and, with ``on_latch="wait"`` (the GUI, the server), the run waits until an operator
+  acknowledges it (:meth:`rigctl.acquisition.rig.Rig.acknowledge`), then records the trial again; with ``"end"``
+  (``rigctl acquire``) it ends, resumable (``RunSummary.latched`` says why), and resuming is the acknowledgement
+  (``acknowledge``). Every latch and acknowledgement is written into the session's event log
+  (:meth:`rigctl.storage.session.SessionWriter.log_event`);
 - ``resume=True``: continue an interrupted session file from its ``/plan`` (refused if the protocol source differs);
   complete trials are never recorded again, failed and pending ones are.
+
+Python protocols run in the same engine: ``plan(ctx)`` (:mod:`rigctl.acquisition.plans`) yields each trial, which
+is appended to the session's plan and recorded under all of the above, and gets its recording back; on resume the
+plan runs again and the trials the file holds are sent back from it.
 
 Trial quality (the protocol's ``max_dropped_frames`` and ``retries``): a trial that lost more frames than
 ``max_dropped_frames`` (sequence gaps among its kept frames, ``TrialData.dropped_frames``) is never stored as
@@ -41,21 +55,24 @@ the write retried, reporting, for as long as the file is held.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rigctl.acquisition.calibration import session_calibration_block
 from rigctl.acquisition.labels import recorded_labels
+from rigctl.acquisition.plans import PlanContext
 from rigctl.acquisition.protocol import Protocol, ScriptProtocol
 from rigctl.acquisition.provenance import session_provenance
 from rigctl.acquisition.rig import CaptureError, Rig, TrialAborted
+from rigctl.acquisition.safety import Acknowledgement, Latch, operator_name
 from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.provenance import PROVENANCE_ATTR, provenance_json
@@ -75,6 +92,11 @@ LINK_POLL_S = 0.5
 FIRST_WRITE_WAIT_S = 0.5
 #: then, with the rig released, each further write attempt waits this long, reporting in between, until written, s
 WRITE_RETRY_S = 10.0
+#: while latched (``on_latch="wait"``) the runner reads the controller's status this often, on the drum client's
+#: clock (simulated in-process), s
+LATCH_POLL_S = 0.1
+#: what ``on_latch`` takes
+ON_LATCH = ("end", "wait")
 
 
 class LostFramesError(CaptureError):
@@ -89,7 +111,9 @@ class TrialEvent:
     ----------
     kind : "start" | "complete" | "failed" | "retry" (an attempt failed, the trial is recorded again) | "link_down"
         (a failed attempt left a link down; the runner waits for it) | "waiting" (the session file is held by another
-        process; the trial is kept until written) | "texture" (a plate is being mounted) | "paused" | "resumed"
+        process; the trial is kept until written) | "texture" (a plate is being mounted) | "paused" | "resumed" |
+        "halted" (STOP: the trial in progress discarded, the run paused) | "latched" (a latched fault: ``error``
+        says which and what clears it) | "acknowledged" (an operator cleared it; the trial is recorded again)
     planned : the trial (None for "paused"/"resumed")
     index : 0-based position among the trials this run records
     total : how many trials this run records
@@ -118,8 +142,9 @@ class RunSummary:
     ``planned`` trials in the file's plan, ``complete`` (in the file, including earlier runs), ``recorded`` (by this
     run), ``failed`` (this run), ``retried`` (attempts recorded again, this run), ``lossy`` (trials kept with lost
     frames, within the protocol's ``max_dropped_frames``), ``samples``/``dropped_frames``/``crc_errors`` (this
-    run's kept trials), ``stopped`` (interrupted by stop_event, Ctrl-C, SIGTERM or a lost link), ``link_lost`` (why
-    a lost link ended the run, else ""), ``elapsed_s``, ``path``, ``failures`` (one line per failed trial).
+    run's kept trials), ``stopped`` (interrupted by stop_event, Ctrl-C, SIGTERM, a lost link or a latched fault),
+    ``link_lost`` (why a lost link ended the run, else ""), ``latched`` (the latched fault that ended it, in words,
+    else ""), ``elapsed_s``, ``path``, ``failures`` (one line per failed trial).
     """
 
     path: Path
@@ -134,6 +159,7 @@ class RunSummary:
     crc_errors: int = 0
     stopped: bool = False
     link_lost: str = ""
+    latched: str = ""
     elapsed_s: float = 0.0
     failures: list[str] = field(default_factory=list)
 
@@ -151,7 +177,10 @@ class RunSummary:
                 f"CRC errors: {self.crc_errors}")
 
     def lines(self) -> list[str]:
-        if self.link_lost:
+        if self.latched:
+            state = (f"stopped on a latched fault: {self.latched}; nothing moves until it is acknowledged: run the "
+                     "same command with --resume to acknowledge it and go on")
+        elif self.link_lost:
             state = f"stopped: link lost: {self.link_lost} (resume with --resume once the rig answers again)"
         else:
             state = "stopped early (resume with --resume)" if self.stopped else "finished"
@@ -226,10 +255,20 @@ class _Interrupts:
             raise KeyboardInterrupt(name)
 
 
+class _StopFlag:
+    """What a trial checks to stop: abort (``stop_event``) or STOP (``halt_event``)."""
+
+    def __init__(self, *events: threading.Event | None) -> None:
+        self.events = [e for e in events if e is not None]
+
+    def is_set(self) -> bool:
+        return any(e.is_set() for e in self.events)
+
+
 def _wait_while_paused(rig: Rig, pause_event, stop_event, on_trial, index, total, t0) -> None:
     if pause_event is None or not pause_event.is_set():
         return
-    rig.recover()  # STOP (clearing any fault): no force on the sensor while paused
+    rig.recover()  # STOP (a latched fault stays latched): no force on the sensor while paused
     _emit(on_trial, TrialEvent("paused", None, index, total, elapsed_s=time.monotonic() - t0))
     while pause_event.is_set():
         if stop_event is not None and stop_event.is_set():
@@ -252,13 +291,17 @@ def run_protocol(
     on_failure: str = "continue",
     overwrite: bool = False,
     session_attrs: Mapping[str, Any] | None = None,
+    on_latch: str = "end",
+    halt_event: threading.Event | None = None,
+    acknowledge: tuple[str, str] | None = None,
 ) -> RunSummary:
     """Record ``protocol`` on ``rig`` into the session file ``out_path``.
 
     Parameters
     ----------
-    protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`); its ``max_dropped_frames``
-        and ``retries`` set the trial quality policy (module docstring).
+    protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`): TOML, or Python (its
+        ``plan(ctx)``); a TOML protocol's ``max_dropped_frames`` and ``retries`` set the trial quality policy (module
+        docstring; a Python protocol: none lost, 2 retries).
     out_path : session file (``.h5``); must not exist unless ``resume`` or ``overwrite``.
     rig : an open :class:`rigctl.acquisition.rig.Rig` (:func:`rigctl.rigs.open_rig`). Its texture set becomes the
         protocol's (:attr:`Protocol.texture_set`), which the session stores with the taxel source's layout.
@@ -270,6 +313,11 @@ def run_protocol(
     on_failure : "continue" or "stop" after a trial failed (its retries used up).
     overwrite : replace an existing ``out_path`` (not with ``resume``).
     session_attrs : more root attributes of a new session file (e.g. the LSL streams and clock offset).
+    on_latch : "end" (the run ends, resumable) or "wait" (until an operator acknowledges) on a latched fault.
+    halt_event : STOP (module docstring): set it (with ``pause_event``) to cut the trial short and pause.
+    acknowledge : ``(reason, by)``: with ``resume``, a latched fault the session's event log holds unacknowledged
+        is acknowledged by this run (``rigctl acquire --resume``: the operator is present); default ("run resumed",
+        the login name).
 
     Returns
     -------
@@ -278,18 +326,21 @@ def run_protocol(
     Raises
     ------
     FileExistsError (out_path exists, no resume/overwrite), FileNotFoundError (resume without a file),
-    SessionError (resume with a different protocol), ValueError (bad on_failure).
+    SessionError (resume with a different protocol; a Python plan that yields other trials than the file holds),
+    ValueError (bad on_failure or on_latch).
     KeyboardInterrupt (Ctrl-C) and SIGTERM are caught: the run stops cleanly and the summary says ``stopped``.
     """
     if on_failure not in ("continue", "stop"):
         raise ValueError(f"on_failure must be 'continue' or 'stop', got {on_failure!r}")
+    if on_latch not in ON_LATCH:
+        raise ValueError(f"on_latch must be one of {', '.join(ON_LATCH)}, got {on_latch!r}")
     out_path = Path(out_path)
+    script = isinstance(protocol, ScriptProtocol)
     with _Interrupts() as interrupts:
-        if isinstance(protocol, ScriptProtocol):
-            return _run_script(protocol, out_path, rig=rig, resume=resume, overwrite=overwrite,
-                               session_attrs=session_attrs)
-        rig.apply_settle(protocol.settle)
-        rig.textures = protocol.texture_set
+        if isinstance(protocol, Protocol):
+            rig.apply_settle(protocol.settle)
+            rig.textures = protocol.texture_set
+        textures = rig.textures
         if resume:
             writer = SessionWriter.open(out_path, protocol_source=protocol.source)
             # the trials from here on are this run's: its software, firmware and rig, beside the creating run's
@@ -297,32 +348,45 @@ def run_protocol(
         else:
             described = rig.describe()
             writer = SessionWriter.create(
-                out_path, plan=protocol.plan(), layout=rig.layout, textures=protocol.texture_set,
+                out_path, plan=protocol.plan(), layout=rig.layout, textures=textures,
                 protocol_source=protocol.source, protocol_name=protocol.name,
-                protocol_format="toml", rig_config=described, kind="recorded",
+                protocol_format="python" if script else "toml", rig_config=described, kind="recorded",
                 calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
                 attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol)),
                        **dict(session_attrs or {})},
                 overwrite=overwrite,
             )
         run = _Run(protocol, writer, out_path, rig, interrupts=interrupts, progress=progress, stop_event=stop_event,
-                   on_trial=on_trial, prompt=prompt, on_failure=on_failure)
+                   on_trial=on_trial, prompt=prompt, on_failure=on_failure, on_latch=on_latch,
+                   halt_event=halt_event)
+        if resume:
+            run.acknowledge_open_latch(*(acknowledge or ("run resumed", operator_name())))
         return run.run(pause_event)
 
 
 class _Run:
-    """One run of a TOML protocol's plan (:func:`run_protocol`): the trial loop, retries, link watch, writes."""
+    """One run of a protocol (:func:`run_protocol`): the trial loop, retries, link watch, safety latch, writes."""
 
-    def __init__(self, protocol: Protocol, writer: SessionWriter, out_path: Path, rig: Rig, *, interrupts: _Interrupts,
-                 progress: ProgressCallback | None, stop_event, on_trial, prompt, on_failure: str):
+    def __init__(self, protocol: Protocol | ScriptProtocol, writer: SessionWriter, out_path: Path, rig: Rig, *,
+                 interrupts: _Interrupts, progress: ProgressCallback | None, stop_event, on_trial, prompt,
+                 on_failure: str, on_latch: str = "end", halt_event: threading.Event | None = None):
         self.protocol, self.writer, self.rig, self.interrupts = protocol, writer, rig, interrupts
-        rig.replay_continuous = protocol.replay == "continuous"  # what a replay rig does between trials
+        self.script = protocol if isinstance(protocol, ScriptProtocol) else None
+        # what a replay rig does between trials
+        rig.replay_continuous = self.script is None and getattr(protocol, "replay", "") == "continuous"
         self.progress, self.stop_event, self.on_trial, self.prompt = progress, stop_event, on_trial, prompt
-        self.on_failure = on_failure
+        self.on_failure, self.on_latch, self.halt_event = on_failure, on_latch, halt_event
+        self.max_dropped_frames = 0 if self.script else protocol.max_dropped_frames  # type: ignore[union-attr]
+        self.retries = 2 if self.script else protocol.retries  # type: ignore[union-attr]
         self.plan = [PlannedTrial.from_row(r) for r in writer.plan]
         self.todo = [p for p, st in zip(self.plan, writer.plan["status"]) if st != TrialStatus.COMPLETE]
         self.summary = RunSummary(path=out_path, planned=len(self.plan))
-        self.total = len(self.todo)
+        self.total = (self.script.max_trials or 0) if self.script else len(self.todo)
+        #: the last trial's recording (None: failed), what a Python plan's yield returns
+        self.last_data: TrialData | None = None
+        self._safety_log: list[Latch | Acknowledgement] = []  # latches and acks to write into the event log
+        self._safety_lock = threading.Lock()
+        rig.safety.listeners.append(self._note_safety)
         self.t0 = time.monotonic()
         self.bar: Stage | None = None
         self.durations: list[float] = []
@@ -349,10 +413,15 @@ class _Run:
 
     def run(self, pause_event) -> RunSummary:
         summary = self.summary
+        self.pause_event = pause_event
         if self.progress:
-            self.bar = Stage(self.progress, self.protocol.name, len(self.plan), done=len(self.plan) - self.total)
+            if self.script is not None:
+                self.bar = Stage(self.progress, self.protocol.name, self.total,
+                                 done=len(self.writer.completed_ids()))
+            else:
+                self.bar = Stage(self.progress, self.protocol.name, len(self.plan), done=len(self.plan) - self.total)
         try:
-            for index, planned in enumerate(self.todo):
+            for index, planned in enumerate(self._trials()):
                 if self._stopping():
                     summary.stopped = True
                     break
@@ -370,11 +439,124 @@ class _Run:
         finally:
             with self.interrupts.held():  # a signal now cannot cut the clean-up short: the run ends anyway
                 self.rig.safe_stop()
+                with contextlib.suppress(Exception):  # the event log is written best-effort at the end
+                    self._flush_safety()
+                self.rig.safety.listeners.remove(self._note_safety)
                 summary.complete = len(self.writer.completed_ids())
+                summary.planned = len(self.writer.plan)
                 self.writer.close()
             self.interrupts.pending = None
         summary.elapsed_s = self._elapsed()
         return summary
+
+    # ------------------------------------------------------------------------------------------------- the trials
+    def _trials(self) -> Iterator[PlannedTrial]:
+        """The trials to record: a TOML protocol's not yet complete, or what a Python plan yields (each sent its
+        recording back: :attr:`last_data`)."""
+        if self.script is None:
+            yield from self.todo
+            return
+        ctx = PlanContext(self.rig.textures, self.rig.layout, self._report)
+        gen = self.script.plan_function(ctx)
+        k = 0
+        try:
+            request = next(gen)
+            while True:
+                planned, stored = self._plan_row(k, request)
+                if stored is not None:
+                    result: TrialData | None = stored  # recorded by an earlier run: sent back from the file
+                else:
+                    self.last_data = None
+                    yield planned
+                    result = self.last_data
+                k += 1
+                request = gen.send(result)
+        except StopIteration:
+            return
+        finally:
+            gen.close()
+
+    def _plan_row(self, k: int, request: PlannedTrial) -> tuple[PlannedTrial, TrialData | None]:
+        """The plan's ``k``-th yield: the file's ``k``-th plan row (checked to be the same trial; its recording when
+        complete) or a new row appended to the plan."""
+        from rigctl.storage.session import open_session
+
+        if not isinstance(request, PlannedTrial):
+            raise TypeError(f"a plan yields ctx.trial(...), got {type(request).__name__}")
+        plan = self.writer.plan
+        if k >= len(plan):
+            tid = self.writer.append_trial(dataclasses.replace(request, trial_id=self.writer.next_trial_id()))
+            return dataclasses.replace(request, trial_id=tid), None
+        row = PlannedTrial.from_row(plan[k])
+        same = row.texture == request.texture and all(
+            math.isclose(a, b, rel_tol=1e-5, abs_tol=1e-6) for a, b in (
+                (row.force_g, request.force_g), (row.speed_mm_s, request.speed_mm_s),
+                (row.duration_s, request.duration_s)))  # the plan table stores float32
+        if not same:
+            raise SessionError(f"{self.summary.path}: the plan's trial {k + 1} ({request.texture}, "
+                               f"{request.speed_mm_s:g} mm/s, {request.force_g:g} g) is not the file's ({row.texture}, "
+                               f"{row.speed_mm_s:g} mm/s, {row.force_g:g} g): a resumed plan must yield the same "
+                               "trials from the same recordings")
+        if plan["status"][k] != TrialStatus.COMPLETE:
+            return row, None
+        with open_session(self.summary.path) as session:
+            return row, session.trial(row.trial_id)
+
+    # ------------------------------------------------------------------------------------------------- safety
+    def _note_safety(self, item: Latch | Acknowledgement) -> None:
+        with self._safety_lock:  # from any thread (an acknowledgement comes from a face); written by the run's
+            self._safety_log.append(item)
+
+    def _flush_safety(self) -> None:
+        """Write the latches and acknowledgements seen since the last call into the session's event log."""
+        with self._safety_lock:
+            items, self._safety_log = self._safety_log, []
+        for item in items:
+            if isinstance(item, Latch):
+                self.writer.log_event("latched", **item.to_dict())
+            else:
+                self.writer.log_event("acknowledged", **item.to_dict())
+
+    def acknowledge_open_latch(self, reason: str, by: str) -> None:
+        """On resume: a latch the event log holds without its acknowledgement is acknowledged now (the operator
+        resumes the run), logged with the fault it clears."""
+        events = self.writer.events()
+        kinds = [e.get("kind") for e in events]
+        if "latched" not in kinds:
+            return
+        last = len(kinds) - 1 - kinds[::-1].index("latched")
+        if "acknowledged" in kinds[last:]:
+            return
+        clears = {k: v for k, v in events[last].items() if k != "kind"}
+        self.writer.log_event("acknowledged", clears=clears, reason=reason, by=by)
+        self._report(f"acknowledged by {by} ({reason}): {clears.get('cause', '?')}: {clears.get('detail', '')}")
+
+    def _on_latch(self, planned: PlannedTrial, index: int) -> bool:
+        """The rig latched a fault: log it; end the run (``on_latch="end"``: False) or wait for an operator's
+        acknowledgement (True then; False when the run is aborted meanwhile)."""
+        latch = self.rig.safety.latch
+        if latch is None:
+            return True
+        self._flush_safety()
+        self._event("latched", planned, index, error=latch.describe())
+        self._report(f"LATCHED {latch.describe()}")
+        if self.on_latch == "end":
+            self.summary.stopped = True
+            self.summary.latched = latch.describe()
+            return False
+        clock = self.rig.drum.clock
+        while self.rig.safety.latched:
+            if self._stopping():
+                self.summary.stopped = True
+                return False
+            with contextlib.suppress(Exception):  # a silent controller: keep waiting for the operator
+                self.rig.drum.read_status()
+            if not self.rig.safety.wait_cleared(0.02):
+                clock.sleep(LATCH_POLL_S)
+        self._flush_safety()
+        self._event("acknowledged", planned, index)
+        self._report(f"acknowledged: {latch.label}; recording trial {planned.trial_id} again")
+        return True
 
     def _trial(self, index: int, planned: PlannedTrial) -> bool:
         """Record one trial, with its retries; False when the run must stop."""
@@ -383,6 +565,7 @@ class _Run:
                  f"{planned.force_g:g} g)")
         attempt = 0
         t_trial = time.monotonic()
+        stop = _StopFlag(self.stop_event, self.halt_event)
         while True:
             attempt += 1
             eta = self._eta(self.total - index)
@@ -394,39 +577,25 @@ class _Run:
                 if self.bar is not None:
                     self.bar.advance(0, f"{planned.texture} {planned.profile + ' ' if planned.is_ramp else ''}"
                                         f"{planned.speed_mm_s:g} mm/s {planned.force_g:g} g")
-                data = rig.record_trial(planned, stop_event=self.stop_event)
-                limit = self.protocol.max_dropped_frames
+                data = rig.record_trial(planned, stop_event=stop)
+                limit = self.max_dropped_frames
                 if data.dropped_frames > limit:
                     raise LostFramesError(f"{data.dropped_frames} frames lost on the taxel link ({data.crc_errors} "
                                           f"CRC errors), more than max_dropped_frames = {limit}")
             except TrialAborted:
-                self.summary.stopped = True
-                return False
-            except Exception as exc:  # noqa: BLE001 - a failed attempt is retried or recorded as failed
-                error = describe_error(exc)
-                lost = self._after_failure(planned, index)
-                if (attempt <= self.protocol.retries and not lost and not self._stopping()
-                        and not isinstance(exc, ValueError)):
-                    summary.retried += 1
-                    self._event("retry", planned, index, error=error, eta_s=eta, attempt=attempt)
-                    self._report(f"RETRY {where}, attempt {attempt} failed: {error}")
-                    continue
-                if attempt > 1:
-                    error += f" (after {attempt} attempts)"
-                reason = f"{where}: {error}"
-                self._write(f"marking trial {planned.trial_id} failed",
-                            lambda: self.writer.mark_failed(planned.trial_id, error), planned, index)
-                summary.failed += 1
-                summary.failures.append(reason)
-                self._event("failed", planned, index, error=reason, eta_s=eta, attempt=attempt)
-                self._report(f"FAILED {reason}")
-                if lost:
+                if self._stopping() or not self._halted(planned, index):
                     summary.stopped = True
-                    summary.link_lost = lost
-                    self._report(f"STOPPED: link lost: {lost}; every finished trial is in {self.summary.path}, "
-                                 "resume with --resume once the rig answers again")
                     return False
-                return self.on_failure != "stop"
+                attempt -= 1  # STOP: the trial is recorded again once the run resumes; no attempt is used up
+                continue
+            except Exception as exc:  # noqa: BLE001 - a failed attempt is retried or recorded as failed
+                outcome = self._failed_attempt(exc, planned, index, attempt, where, eta)
+                if outcome == "again":  # a latched fault acknowledged: no attempt is used up
+                    attempt -= 1
+                    continue
+                if outcome == "retry":
+                    continue
+                return outcome == "continue"
             break
         self.link_failures, self.link_down_since = 0, None
         data.attrs["attempts"] = attempt
@@ -440,13 +609,59 @@ class _Run:
         if data.dropped_frames:
             summary.lossy += 1
             log.warning("%s kept with %d lost frames (max_dropped_frames = %d)", where, data.dropped_frames,
-                        self.protocol.max_dropped_frames)
+                        self.max_dropped_frames)
         self.durations.append(time.monotonic() - t_trial)
         self._event("complete", planned, index, data=data, eta_s=self._eta(self.total - index - 1),
                     attempt=attempt)
+        self.last_data = data
         if self.bar is not None:
             self.bar.advance(1)
         return True
+
+    def _halted(self, planned: PlannedTrial, index: int) -> bool:
+        """STOP cut the trial short (``halt_event``): the rig stopped, the run paused; wait for resume. False when
+        it was no STOP (an abort)."""
+        if self.halt_event is None or not self.halt_event.is_set():
+            return False
+        self.halt_event.clear()
+        self.rig.safe_stop()
+        self._event("halted", planned, index, error="STOP: the trial was discarded; it is recorded again on resume")
+        self._report(f"STOP: trial {planned.trial_id} discarded, the run is paused (resume to record it again)")
+        _wait_while_paused(self.rig, self.pause_event, self.stop_event, self.on_trial, index, self.total, self.t0)
+        return not self._stopping()
+
+    def _failed_attempt(self, exc: Exception, planned: PlannedTrial, index: int, attempt: int, where: str,
+                        eta: float) -> str:
+        """After a failed attempt: "again" (a latched fault was acknowledged: record the trial again), "retry",
+        "continue" (marked failed; go on with the next trial) or "stop" (the run ends)."""
+        summary = self.summary
+        error = describe_error(exc)
+        lost = self._after_failure(planned, index)
+        if self.rig.safety.latched:  # never retried, never cleared here (docs/safety.md)
+            return "again" if self._on_latch(planned, index) else "stop"
+        if (attempt <= self.retries and not lost and not self._stopping()
+                and not isinstance(exc, ValueError)):
+            summary.retried += 1
+            self._event("retry", planned, index, error=error, eta_s=eta, attempt=attempt)
+            self._report(f"RETRY {where}, attempt {attempt} failed: {error}")
+            return "retry"
+        if attempt > 1:
+            error += f" (after {attempt} attempts)"
+        reason = f"{where}: {error}"
+        self._write(f"marking trial {planned.trial_id} failed",
+                    lambda: self.writer.mark_failed(planned.trial_id, error), planned, index)
+        summary.failed += 1
+        summary.failures.append(reason)
+        self._event("failed", planned, index, error=reason, eta_s=eta, attempt=attempt)
+        self._report(f"FAILED {reason}")
+        self.last_data = None
+        if lost:
+            summary.stopped = True
+            summary.link_lost = lost
+            self._report(f"STOPPED: link lost: {lost}; every finished trial is in {self.summary.path}, "
+                         "resume with --resume once the rig answers again")
+            return "stop"
+        return "continue" if self.on_failure != "stop" else "stop"
 
     def _after_failure(self, planned: PlannedTrial, index: int) -> str:
         """After a failed attempt: recover the rig; if a link stays down, wait (bounded) for it to come back.
@@ -454,7 +669,7 @@ class _Run:
         Returns "" to go on, else why the run must end (the link is lost).
         """
         problem = self.rig.recover()
-        if problem is None:
+        if problem is None or self.rig.safety.latched:  # a latch is the operator's, not a link wait
             self.link_failures, self.link_down_since = 0, None
             return ""
         now = time.monotonic()
@@ -504,42 +719,3 @@ class _Run:
                     self._event("waiting", planned, index, error=msg)
         finally:
             writer.wait_s = wait_s
-
-
-def _run_script(protocol: ScriptProtocol, out_path: Path, *, rig: Rig, resume: bool, overwrite: bool,
-                session_attrs: Mapping[str, Any] | None = None) -> RunSummary:
-    """Run a Python-script protocol: ``protocol.run(rig, session)`` with a fresh session writer (empty plan)."""
-    if resume:
-        raise SessionError(f"{protocol.path}: a Python-script protocol cannot be resumed by the runner "
-                           "(the script decides its trials); start a new session file")
-    described = rig.describe()
-    writer = SessionWriter.create(
-        out_path, plan=[], layout=rig.layout, textures=rig.textures, protocol_source=protocol.source,
-        protocol_name=protocol.name, protocol_format="python",
-        rig_config=described, kind="recorded", calibration=session_calibration_block(rig.host_config, rig.layout.n_channels),
-        attrs={PROVENANCE_ATTR: provenance_json(session_provenance(described, protocol=protocol)),
-               **dict(session_attrs or {})},
-        overwrite=overwrite,
-    )
-    summary = RunSummary(path=out_path)
-    t0 = time.monotonic()
-    try:
-        protocol.run(rig, writer)
-    except KeyboardInterrupt:
-        summary.stopped = True
-    finally:
-        rig.safe_stop()
-        writer.close()
-    from rigctl.storage.session import open_session
-
-    with open_session(out_path) as s:
-        summary.planned = len(s.plan)
-        summary.complete = len(s.completed_ids())
-        summary.recorded = summary.complete
-        for tid in s.completed_ids():
-            a = s.trial_attrs(tid)
-            summary.samples += int(a.get("n_samples", 0))
-            summary.dropped_frames += int(a.get("dropped_frames", 0))
-            summary.crc_errors += int(a.get("crc_errors", 0))
-    summary.elapsed_s = time.monotonic() - t0
-    return summary

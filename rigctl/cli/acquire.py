@@ -252,13 +252,16 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
-    continue later with --resume. Exit status: 0 when every planned trial is complete, 1 otherwise; 2 for a usage
+    continue later with --resume. A latched fault (e-stop, over-force, reset, ...: docs/safety.md) stops the rig and
+    ends the run, resumable; --resume is the operator's acknowledgement (logged in the session with the fault it
+    clears). Exit status: 0 when every planned trial is complete, 1 otherwise; 2 for a usage
     error (refused before the rig moves).
     """
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
+    from rigctl.acquisition.safety import operator_name
     from rigctl.core.faults import FaultSpecError
     from rigctl.devices.errors import DrumError, TaxelStreamError
     from rigctl.operations import ProtocolRun, RigSource, lsl_requested, open_control
@@ -337,8 +340,10 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         logging.getLogger(record.name).handle(record)
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
+            # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement
             run = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
-                              overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial)
+                              overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial,
+                              on_latch="end", acknowledge=("rigctl acquire --resume", operator_name()))
             if classifier is not None:
                 classifier.lsl = run.lsl
             summary = run.run()

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rigctl.acquisition.rig import Rig
+from rigctl.acquisition.safety import Acknowledgement, Latch
 from rigctl.core.drum import DrumLimits, DrumState, DrumStatus, SetpointRangeError
 from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
@@ -128,6 +129,10 @@ class RigControl:
         self._stop_listeners.append(fn)
         return lambda: self._stop_listeners.remove(fn) if fn in self._stop_listeners else None
 
+        #: the protocol run recording on this rig now (:class:`rigctl.operations.ProtocolRun` registers itself), which
+        #: :meth:`stop` pauses
+        self.active_run: Any = None
+
     # ------------------------------------------------------------------------------------------------- parts
     @property
     def drum(self) -> DrumController:
@@ -224,6 +229,23 @@ class RigControl:
         self.drum.run()
         return RunStarted(float(speed_mm_s), float(force_g), settle_s)
 
+    # ------------------------------------------------------------------------------------------------- safety
+    @property
+    def latch(self) -> Latch | None:
+        """The latched fault that holds the rig (docs/safety.md), or None. Nothing moves while one is held."""
+        return self.rig.safety.latch
+
+    def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
+        """An operator acknowledges the latched fault (the GUI's dialog, ``POST /ack``, ``rigctl acquire --resume``):
+        the condition must be gone (the e-stop released), then the controller is cleared, homed and tared, and the
+        latch released; a run waiting on it goes on (the acknowledgement goes into its session's event log). Nothing
+        turns or presses until the next command or the run's next trial.
+
+        Returns the :class:`rigctl.acquisition.safety.Acknowledgement`. Raises ValueError (nothing latched, an empty
+        reason), :class:`rigctl.acquisition.safety.LatchedFault` (the condition persists: e.g. the e-stop is still
+        pressed; the latch stays), DrumError."""
+        return self.rig.acknowledge(reason, by=by)
+
     # ------------------------------------------------------------------------------------------------- commands
     def stop(self, reason: str = "STOP") -> bool:
         """STOP (drum to rest, actuator home) for ``reason`` (the operator's STOP, the dead man's switch); the
@@ -233,6 +255,9 @@ class RigControl:
                 fn(reason)
             except Exception:  # noqa: BLE001 - the STOP itself must go out
                 log.exception("a STOP listener failed")
+        run = self.active_run  # a protocol run on this rig pauses (the trial in progress discarded, resumable)
+        if run is not None:
+            run.stop()
         return self.rig.safe_stop()
 
     def stop_drum(self) -> None:
@@ -247,8 +272,12 @@ class RigControl:
         """Drive the actuator to its home switch."""
         self.drum.home()
 
-    def clear_fault(self) -> None:
-        """Clear the latched faults (refused by the controller while the condition persists)."""
+    def clear_fault(self, *, by: str = "operator") -> None:
+        """Clear the latched faults: an operator's acknowledgement (:meth:`acknowledge`, reason "clear fault") when
+        the rig holds a latch, else CLEAR_FAULT (refused by the controller while the condition persists)."""
+        if self.latch is not None:
+            self.acknowledge("clear fault", by=by)
+            return
         self.drum.clear_fault()
 
     def mount_plate(self, label: str, prompt: Callable[[str], Any] | None = None) -> str:
@@ -259,5 +288,8 @@ class RigControl:
         return label
 
     def status(self) -> DrumStatus:
-        """The controller's status now. DrumError."""
-        return self.drum.read_status()
+        """The controller's status now; a latched fault or a reset it shows latches the rig (:attr:`latch`: the
+        owner's poll sees it whoever commanded the motion). DrumError."""
+        st = self.drum.read_status()
+        self.rig.latch_unsafe(st, "status poll")
+        return st

@@ -1,9 +1,11 @@
 """Run, pause, resume and abort a protocol: :class:`ProtocolRun`, the one run control of the CLI and the GUI.
 
 A run records a protocol's plan into a session file (:func:`rigctl.acquisition.runner.run_protocol`, which owns the
-trial loop, the retries and the clean stops); this object holds its controls: :meth:`pause` (between trials, the
-sensor released), :meth:`resume`, :meth:`abort` (the trial in progress is discarded, the rig left safe, finished
-trials kept: resumable), and its state (:attr:`state`: "ready", "running", "pausing", "paused", "aborting", "done").
+trial loop, the retries, the safety latch and the clean stops); this object holds its controls: :meth:`pause`
+(between trials, the sensor released), :meth:`stop` (STOP: the drum stopped and the trial in progress discarded at
+once, the run paused), :meth:`resume`, :meth:`abort` (the trial in progress is discarded, the rig left safe, finished
+trials kept: resumable), :meth:`acknowledge` (a latched fault: docs/safety.md), and its state (:attr:`state`:
+"ready", "running", "pausing", "paused", "latched", "aborting", "done").
 :meth:`run` records in the calling thread (the CLI: Ctrl-C and SIGTERM stop it cleanly there); :meth:`start` in a
 worker thread (the GUI), :meth:`wait` for its :class:`rigctl.acquisition.runner.RunSummary`.
 """
@@ -24,7 +26,7 @@ from rigctl.operations._lsl import LslPublisher
 __all__ = ["ProtocolRun", "RUN_STATES"]
 
 #: the states of a run
-RUN_STATES = ("ready", "running", "pausing", "paused", "aborting", "done")
+RUN_STATES = ("ready", "running", "pausing", "paused", "latched", "aborting", "done")
 
 
 class ProtocolRun:
@@ -38,6 +40,9 @@ class ProtocolRun:
     resume, overwrite, on_failure, prompt : as :func:`rigctl.acquisition.runner.run_protocol`.
     progress : receives :class:`rigctl.core.progress.ProgressEvent` s.
     on_trial : receives :class:`rigctl.acquisition.runner.TrialEvent` s (from the thread the run records in).
+    on_latch : "wait" (default: the run waits for an operator's :meth:`acknowledge` after a latched fault) or
+        "end" (it ends, resumable: ``rigctl acquire``); see :func:`rigctl.acquisition.runner.run_protocol`.
+    acknowledge : ``(reason, by)`` of the acknowledgement a resumed session's open latch gets (``resume``).
     lsl : publish the run on Lab Streaming Layer (:class:`rigctl.operations.LslPublisher`: taxels, spikes, drum
         state, one marker per run and trial event); the outlets open here, so a missing pylsl is
         :class:`rigctl.acquisition.lsl.LslUnavailable` before anything moves. Or an ``LslPublisher`` to reuse.
@@ -50,8 +55,13 @@ class ProtocolRun:
                  overwrite: bool = False, on_failure: str = "continue",
                  prompt: Callable[[str], Any] | None = None,
                  progress: Callable[[ProgressEvent], Any] | None = None,
-                 on_trial: Callable[[TrialEvent], Any] | None = None, lsl: Any = False) -> None:
+                 on_trial: Callable[[TrialEvent], Any] | None = None, lsl: Any = False, on_latch: str = "wait",
+                 acknowledge: tuple[str, str] | None = None) -> None:
+        self.control = rig if hasattr(rig, "rig") else None
         self.rig: Rig = getattr(rig, "rig", rig)
+        self.on_latch, self.acknowledge_as = on_latch, acknowledge
+        #: STOP: set with pause_event to cut the trial in progress short (:meth:`stop`)
+        self.halt_event = threading.Event()
         self.protocol = protocol
         self.out_path = Path(out_path)
         #: continue an interrupted session file (not to be confused with :meth:`resume` after a pause)
@@ -86,6 +96,8 @@ class ProtocolRun:
             return "ready"
         if self.stop_event.is_set():
             return "aborting"
+        if self.rig.safety.latched:
+            return "latched"
         if self.pause_event.is_set():
             return "paused" if self._paused_now else "pausing"
         return "running"
@@ -101,9 +113,21 @@ class ProtocolRun:
         if not self._done.is_set() and not self.stop_event.is_set():
             self.pause_event.set()
 
+    def stop(self) -> None:
+        """STOP: the drum stopped and the trial in progress discarded at once, the run paused (resumable with
+        :meth:`resume`, which records that trial again). Not an abort."""
+        if not self._done.is_set() and not self.stop_event.is_set():
+            self.pause_event.set()
+            self.halt_event.set()
+            self.rig.safe_stop()
+
     def resume(self) -> None:
-        """Go on after :meth:`pause`."""
+        """Go on after :meth:`pause` or :meth:`stop` (a latched fault needs :meth:`acknowledge` first)."""
         self.pause_event.clear()
+
+    def acknowledge(self, reason: str, *, by: str) -> Any:
+        """Acknowledge the rig's latched fault (:meth:`rigctl.acquisition.rig.Rig.acknowledge`); the run goes on."""
+        return self.rig.acknowledge(reason, by=by)
 
     def abort(self) -> None:
         """Stop cleanly: the trial in progress is discarded, the rig left safe, finished trials stay in the file
@@ -120,6 +144,8 @@ class ProtocolRun:
         if self._started:
             raise RuntimeError("this run has already been started")
         self._started = True
+        if self.control is not None:
+            self.control.active_run = self
         try:
             if self.lsl is not None:
                 self.lsl.run_marker("run_start", out=str(self.out_path), resume=self.resume_file)
@@ -127,7 +153,8 @@ class ProtocolRun:
                 self.protocol, self.out_path, rig=self.rig, resume=self.resume_file, progress=self.progress,
                 stop_event=self.stop_event, pause_event=self.pause_event, on_trial=self._trial,
                 prompt=self.prompt, on_failure=self.on_failure, overwrite=self.overwrite,
-                session_attrs=None if self.lsl is None else self.lsl.session_attrs())
+                session_attrs=None if self.lsl is None else self.lsl.session_attrs(), on_latch=self.on_latch,
+                halt_event=self.halt_event, acknowledge=self.acknowledge_as)
             if self.lsl is not None:
                 s = self.summary
                 self.lsl.run_marker("run_end", complete=s.complete, planned=s.planned, failed=s.failed,
@@ -137,6 +164,8 @@ class ProtocolRun:
             self.error = exc
             raise
         finally:
+            if self.control is not None and self.control.active_run is self:
+                self.control.active_run = None
             if self._own_lsl and self.lsl is not None:
                 self.lsl.close()
             self._done.set()

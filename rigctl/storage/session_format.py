@@ -342,3 +342,18 @@ def _reading(path: Path, what: str) -> Iterator[None]:
                            "damaged or not written by rigctl") from None
 
 
+#: the root attribute holding the session's event log (a JSON list of objects: the safety policy's latches and
+#: acknowledgements, docs/session-format.md)
+EVENTS_ATTR = "events"
+
+
+def decode_events(attrs: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The event log (:data:`EVENTS_ATTR`) of a session's root attributes, oldest first ([] when none)."""
+    text = attrs.get(EVENTS_ATTR)
+    if text is None:
+        return []
+    try:
+        events = json.loads(text if isinstance(text, str) else bytes(text).decode())
+    except ValueError:
+        raise SessionError(f"the {EVENTS_ATTR} attribute is not JSON") from None
+    return [e for e in events if isinstance(e, dict)] if isinstance(events, list) else []

@@ -27,6 +27,7 @@ from rigctl.storage.session_format import (
     _plan_to_str,
     _read_attrs,
     _reading,
+    decode_events,
     trial_group_name,
 )
 from rigctl.storage.session_schema import (
@@ -189,6 +190,12 @@ class SessionReader:
         """Trial ids whose plan status is complete (and whose group exists), in plan order."""
         ids = self.plan["trial_id"][self.plan["status"] == TrialStatus.COMPLETE]
         return [int(t) for t in ids]
+
+    @property
+    def events(self) -> list[dict[str, Any]]:
+        """The session's event log, oldest first (root attribute ``events``: the safety policy's ``latched`` and
+        ``acknowledged`` entries, docs/session-format.md); [] when none."""
+        return decode_events(self.attrs)
 
     def failed_ids(self) -> list[int]:
         return [int(t) for t in self.plan["trial_id"][self.plan["status"] == TrialStatus.FAILED]]

@@ -25,6 +25,7 @@ from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial re
 from rigctl.core.version import __version__
 from rigctl.storage import h5objects, journal, journal_replay, session_recording
 from rigctl.storage.session_format import (
+    EVENTS_ATTR,
     PLAN_CHUNK_ROWS,
     PLAN_DTYPE,
     PLAN_FIELDS,
@@ -49,6 +50,7 @@ from rigctl.storage.session_format import (
     _row_value,
     _text,
     _utc_now,
+    decode_events,
     plan_array,
     taxels_description,
     trial_group_name,
@@ -562,6 +564,25 @@ class SessionWriter:
             text = f.attrs.get(RESUMED_ATTR)
             runs = json.loads(_text(text)) if text is not None else []
             f.attrs[RESUMED_ATTR] = json.dumps([*runs, entry], default=str, sort_keys=True)  # as provenance_json
+
+    def log_event(self, kind: str, **fields: Any) -> dict[str, Any]:
+        """Append an entry to the session's event log (the :data:`EVENTS_ATTR` root attribute, a JSON list): ``kind``
+        (e.g. ``"latched"``, ``"acknowledged"``: the safety policy's, docs/safety.md), the time (``at_utc``, unless
+        given) and ``fields`` (JSON-able). One crash-safe commit; returns the entry.
+
+        Raises SessionWriteError (disk full, read-only) as every commit does."""
+        entry = {"kind": str(kind), "at_utc": _utc_now(), **fields}
+        with self._commit(f"logging a {kind} event") as f:
+            text = f.attrs.get(EVENTS_ATTR)
+            events = json.loads(_text(text)) if text is not None else []
+            text = json.dumps([*events, entry], default=str, sort_keys=True)
+            f.attrs[EVENTS_ATTR] = text
+        self.attrs = {**self.attrs, EVENTS_ATTR: text}
+        return entry
+
+    def events(self) -> list[dict[str, Any]]:
+        """The session's event log, oldest first (:meth:`log_event`)."""
+        return decode_events(self.attrs)
 
     def set_calibration(self, calibration: Mapping[str, Any]) -> None:
         """Write (replace) the ``/calibration`` block.

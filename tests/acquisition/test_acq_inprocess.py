@@ -112,9 +112,11 @@ def test_a_reversed_cell_is_reported_as_reversed_and_calibrates_negative_on_requ
         assert json.loads((tmp_path / "rig.json").read_text())["loadcell"]["scale_x100"] == result.scale_x100 < 0
 
 
-def test_an_unexpected_reset_is_reported_and_the_rig_rehomes_and_retares(rig):
-    """The controller resets while pressing (a brown-out): the next press reports the reset as such (boot count
-    changed), homes and tares again, and then presses the asked force on the cell, not twice it."""
+def test_an_unexpected_reset_latches_and_the_acknowledgement_rehomes_and_retares(rig):
+    """The controller resets while pressing (a brown-out): the next press is refused, the reset latched as such
+    (boot count changed: docs/safety.md); the operator's acknowledgement homes and tares it again, and the press
+    after it loads the cell with the asked force, not twice it."""
+    from rigctl.acquisition.safety import LatchedFault
     from rigctl.devices.wire import ResetCause
 
     ctl = rig.backend.controller
@@ -123,9 +125,15 @@ def test_an_unexpected_reset_is_reported_and_the_rig_rehomes_and_retares(rig):
     boot0 = rig.drum_boot_count
     ctl.reset(ResetCause.BROWN_OUT)  # under load: the actuator stays where it is
     assert rig.drum.read_status().state.name == "NOT_HOMED" and rig.backend.model.force_g > 600
+    with pytest.raises(LatchedFault, match="reset"):
+        rig.press(800)
+    with pytest.raises(LatchedFault, match="PRESS refused"):
+        rig.press(800)  # latched: refused until acknowledged
+    assert rig.drum_resets == 1 and rig.safety.latch.cause == "reset"
+    rig.acknowledge("brown-out checked", by="pytest")
     rig.press(800)
     st = rig.drum.read_status()
-    assert rig.drum_resets == 1 and rig.drum_boot_count == st.boot_count == boot0 + 1
+    assert rig.drum_boot_count == st.boot_count == boot0 + 1
     assert st.reset_cause == ResetCause.BROWN_OUT and st.homed
     assert abs(rig.backend.model.force_g - pressed_g) < 30  # the same true force as before the reset, not twice it
 

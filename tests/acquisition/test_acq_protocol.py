@@ -126,7 +126,8 @@ def test_toml_syntax_error_carries_its_line(tmp_path):
 
 def test_script_protocols(tmp_path):
     p = load_protocol(PROTOCOLS / "example_script.py")
-    assert isinstance(p, ScriptProtocol) and p.name == "force_sweep_example" and callable(p.run)
+    assert isinstance(p, ScriptProtocol) and p.name == "force_sweep_example" and callable(p.plan_function)
+    assert p.max_trials == 6
     bad = tmp_path / "bad.py"
     bad.write_text("x = 1\n\ndef run(rig, session)\n    pass\n")
     with pytest.raises(ProtocolError) as err:
@@ -134,8 +135,12 @@ def test_script_protocols(tmp_path):
     assert err.value.line == 3
     norun = tmp_path / "norun.py"
     norun.write_text("def go(rig, session):\n    pass\n")
-    with pytest.raises(ProtocolError, match=r"run\(rig, session\)"):
+    with pytest.raises(ProtocolError, match=r"must define plan\(ctx\)"):
         load_protocol(norun)
+    old_form = tmp_path / "old.py"
+    old_form.write_text("def run(rig, session):\n    pass\n")
+    with pytest.raises(ProtocolError, match=r"run\(rig, session\) protocols are gone: write plan\(ctx\)"):
+        load_protocol(old_form)
 
 
 def test_replay_mode_key(tmp_path):

@@ -245,8 +245,9 @@ def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_pat
 
 @pytest.mark.realtime
 @pytest.mark.parametrize("textures", ['"A"', '"A", "B"'], ids=["same-plate", "before-a-plate-change"])
-def test_a_watchdog_trip_between_trials_is_cleared(pty_rig, tmp_path, textures):
-    # same plate: the next press finds the fault; plate change: the release before mounting B finds it
+def test_a_watchdog_trip_between_trials_latches_until_acknowledged(pty_rig, tmp_path, textures):
+    # same plate: the next press finds the fault; plate change: the release before mounting B finds it. The
+    # watchdog is a latched fault (docs/safety.md): the run ends, resumable; the acknowledgement (logged) goes on
     out = tmp_path / "wd.h5"
 
     def on_trial(ev):
@@ -257,10 +258,14 @@ def test_a_watchdog_trip_between_trials_is_cleared(pty_rig, tmp_path, textures):
     n_per = 2 if textures == '"A"' else 1
     # the controller's default watchdog (1 s), not the simulated rig's longer one (rigs.WATCHDOG_MS)
     pty_rig.drum.write_holding(HoldingRegister.WATCHDOG_MS, 1000)
+    proto = _proto(n_per, textures=textures)
     try:
-        summary = run_protocol(_proto(n_per, textures=textures), out, rig=pty_rig, progress=False, on_trial=on_trial)
+        summary = run_protocol(proto, out, rig=pty_rig, progress=False, on_trial=on_trial)
     finally:
         pty_rig.drum.write_holding(HoldingRegister.WATCHDOG_MS, WATCHDOG_MS["sim"])
+    assert summary.complete == 1 and summary.stopped and "watchdog" in summary.latched, summary.lines()
+    pty_rig.acknowledge("slow callback", by="pytest")
+    summary = run_protocol(proto, out, rig=pty_rig, progress=False, resume=True)
     assert summary.complete == 2 and summary.failed == 0, summary.failures
 
 

@@ -1,0 +1,99 @@
+"""The safety policy (docs/safety.md) on the in-process rig, on simulated time: a latched fault pauses the run, its
+release moves nothing, only an operator's acknowledgement goes on; the same for a Python protocol (a plan); the
+CLI ends such a run with why and how to acknowledge, and ``--resume`` acknowledges it and completes the plan."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from rigctl.acquisition.builtin import find_protocol
+from rigctl.acquisition.protocol import load_protocol
+from rigctl.acquisition.safety import LatchedFault
+from rigctl.cli import main as cli
+from rigctl.core.drum import DrumState, Fault
+from rigctl.core.faults import parse_fault
+from rigctl.operations import ProtocolRun, RigSource, open_control
+from rigctl.storage.session import open_session
+
+EXAMPLE_PLAN = Path(__file__).resolve().parents[2] / "rigctl" / "protocols" / "example_script.py"
+
+
+def _until(cond, what: str, timeout_s: float = 120.0) -> None:
+    """Wait (wall time, generous: a loaded machine) until ``cond()``; the run thread moves the simulated clock."""
+    end = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+def _estop_held_then_acknowledged(tmp_path: Path, protocol, n_trials: int) -> None:
+    control = open_control(RigSource("inprocess", inject=(parse_fault("estop@3+2"),)))
+    with control:
+        engine, model, mega = control.rig.backend.engine, control.rig.backend.model, control.rig.backend.controller
+        t0 = engine.schedule._t0
+        run = ProtocolRun(control, protocol, tmp_path / "s.h5").start()  # on_latch="wait": the GUI's and server's
+        _until(lambda: run.state == "latched" or run.state == "done", "the latch")
+        assert run.state == "latched" and control.latch is not None and control.latch.cause == "estop"
+        _until(lambda: engine.time_s > t0 + 5.2, "the e-stop's release")
+        assert not mega.estop_open  # released ...
+        pos, act = model.position_mm, model.actuator_mm
+        _until(lambda: engine.time_s > t0 + 15.3, "10 s after the release")
+        # ... and nothing moved for 10 s of simulated time: the run waits for the operator
+        assert model.position_mm == pos and model.actuator_mm == act and model.drum_speed_mm_s == 0.0
+        st = control.drum.read_status()
+        assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults and not mega.drivers_enabled
+        assert run.state == "latched"
+        ack = control.acknowledge("e-stop released, bench checked", by="pytest")
+        assert ack.latch.cause == "estop" and control.latch is None
+        summary = run.wait(120)
+    assert summary is not None and summary.ok and summary.complete == n_trials
+    with open_session(tmp_path / "s.h5") as s:
+        events = s.events
+    assert [e["kind"] for e in events] == ["latched", "acknowledged"]
+    assert events[1]["by"] == "pytest" and events[1]["clears"]["cause"] == "estop"
+
+
+def test_estop_held_mid_run_pauses_until_acknowledged(tmp_path):
+    _estop_held_then_acknowledged(tmp_path, load_protocol(find_protocol("quick_check")), 6)
+
+
+def test_estop_held_mid_python_plan_pauses_until_acknowledged(tmp_path):
+    _estop_held_then_acknowledged(tmp_path, load_protocol(EXAMPLE_PLAN), 6)
+
+
+def test_acknowledgement_refused_while_the_estop_is_pressed():
+    with open_control(RigSource("inprocess", inject=(parse_fault("estop@0.1"),))) as control:
+        with pytest.raises(LatchedFault, match="PRESS refused"):
+            clock = control.drum.clock
+            clock.sleep(0.2)
+            control.status()  # the owner's poll latches what the controller latched
+            control.press(300.0)
+        assert control.latch is not None and control.latch.cause == "estop"
+        with pytest.raises(LatchedFault, match="still pressed"):
+            control.acknowledge("trying", by="pytest")
+        with pytest.raises(LatchedFault):
+            control.run_at(50.0, 300.0)  # nothing moves while latched
+        assert control.latch is not None
+
+
+@pytest.mark.parametrize("protocol", ["quick_check", str(EXAMPLE_PLAN)])
+def test_cli_ends_on_estop_and_resume_acknowledges_it(tmp_path, protocol):
+    out = tmp_path / "a.h5"
+    runner = CliRunner()
+    first = runner.invoke(cli, ["acquire", protocol, "--inprocess", "--inject", "estop@3+2", "--out", str(out),
+                                "--quiet"])
+    assert first.exit_code == 1, first.output
+    assert "e-stop" in first.output and "--resume" in first.output and "acknowledge" in first.output
+    with open_session(out) as s:
+        assert len(s.completed_ids()) < 6 and [e["kind"] for e in s.events] == ["latched"]
+    second = runner.invoke(cli, ["acquire", protocol, "--inprocess", "--out", str(out), "--resume", "--quiet"])
+    assert second.exit_code == 0, second.output
+    with open_session(out) as s:
+        assert len(s.completed_ids()) == 6
+        assert [e["kind"] for e in s.events] == ["latched", "acknowledged"]
+        assert s.events[1]["reason"] == "rigctl acquire --resume" and s.events[1]["clears"]["cause"] == "estop"
