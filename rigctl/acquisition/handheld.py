@@ -36,8 +36,9 @@ import numpy as np
 
 from rigctl.acquisition.clock import trial_clock_attrs
 from rigctl.acquisition.protocol import PlannedTrial, Settle
-from rigctl.acquisition.rig import Rig, RigError
+from rigctl.acquisition.rig import Rig, RigError, StopFlag
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
+from rigctl.acquisition.safety import SafetyLatch
 from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.handheld import PLATE_LENGTH_MM, USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError, ScanSource
 from rigctl.core.sensor import SensorLayout
@@ -221,6 +222,8 @@ class HandheldRig(Rig):
         self.last_capture_frames = None
         self.stop_acknowledged = None
         self.clock_fit = None
+        self.safety = SafetyLatch()  # the safety policy's latch (rigctl.acquisition.safety): nothing latches here
+        self.homed_once = False
         #: ``on_marker(event, host_time_s, fields)`` receivers (the LSL publisher): scan_enter / scan_leave
         self.marker_listeners: list[Callable[[str, float, dict[str, Any]], Any]] = []
 
@@ -271,7 +274,7 @@ class HandheldRig(Rig):
         problem = getattr(self.source, "link_problem", None)
         return problem() if callable(problem) else None
 
-    def record_trial(self, planned: PlannedTrial, *, stop_event: threading.Event | None = None) -> TrialData:
+    def record_trial(self, planned: PlannedTrial, *, stop_event: StopFlag | None = None) -> TrialData:
         """One scan of plate ``planned.texture`` with the profile ``planned.profile`` (the operator prompted), cut
         by position (:func:`cut_scan`). Raises ValueError (another plate than the one asked for), ScanError,
         :class:`rigctl.acquisition.rig.TrialAborted` (``stop_event``)."""

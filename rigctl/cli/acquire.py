@@ -192,6 +192,35 @@ def _prediction_lines(classifier: Any) -> list[str]:
             f"{classifier.variant}, {classifier.model.n_pcs} PCs)"]
 
 
+def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | None, drum_port: str | None) -> Any:
+    """Open the rig ``source`` names (:func:`rigctl.operations.open_control`), every failure as one line: a fault
+    ``--inject`` cannot model is a usage error (exit 2), the rest a ClickException; what the opening logged is shown
+    once it succeeded."""
+    from rigctl.acquisition.lsl import LslUnavailable
+    from rigctl.acquisition.rig import RigError, RigOpenError
+    from rigctl.core.faults import FaultSpecError
+    from rigctl.devices.errors import DrumError, TaxelStreamError
+    from rigctl.operations import open_control
+
+    with _held_rig_warnings() as held:
+        try:
+            control = open_control(source, prompt=prompt, seed=seed, host_config_path=config_path)
+        except RigOpenError as exc:  # the port opened but the drum controller failed there
+            stop = ("" if exc.stop_acknowledged
+                    else "; STOP was not acknowledged either: if the drum may be moving, stop it by hand")
+            hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if drum_port else ""
+            raise click.ClickException(f"{exc}{hint}{stop}") from None
+        except FaultSpecError as exc:  # --inject names a fault this rig cannot model: refused before it opened
+            raise UsageProblem(str(exc)) from None
+        except (RigError, TaxelStreamError, OSError, ValueError, LslUnavailable) as exc:
+            raise click.ClickException(" ".join(str(exc).split())) from None
+        except DrumError as exc:  # HOME failed
+            raise click.ClickException(f"cannot open the {source.kind} rig: {' '.join(str(exc).split())}") from None
+    for record in held:  # the opening succeeded: what it logged is news
+        logging.getLogger(record.name).handle(record)
+    return control
+
+
 @click.command()
 @click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -259,12 +288,9 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     """
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
-    from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.acquisition.safety import operator_name
-    from rigctl.core.faults import FaultSpecError
-    from rigctl.devices.errors import DrumError, TaxelStreamError
-    from rigctl.operations import ProtocolRun, RigSource, lsl_requested, open_control
+    from rigctl.operations import ProtocolRun, RigSource, lsl_requested
     from rigctl.storage.session import SessionError
 
     hil = hil or hil_bootloaders
@@ -321,23 +347,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                                   bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                                   motion=motion)
-    with _held_rig_warnings() as held:
-        try:
-            control = open_control(source, prompt=prompt, seed=rig_seed,
-                                   host_config_path=config_path)
-        except RigOpenError as exc:  # the port opened but the drum controller failed there
-            stop = ("" if exc.stop_acknowledged
-                    else "; STOP was not acknowledged either: if the drum may be moving, stop it by hand")
-            hint = f"; check --drum-port {drum_port} (`rigctl ports` lists the boards)" if hardware else ""
-            raise click.ClickException(f"{exc}{hint}{stop}") from None
-        except FaultSpecError as exc:  # --inject names a fault this rig cannot model: refused before it opened
-            raise UsageProblem(str(exc)) from None
-        except (RigError, TaxelStreamError, OSError, ValueError, LslUnavailable) as exc:
-            raise click.ClickException(" ".join(str(exc).split())) from None
-        except DrumError as exc:  # HOME failed
-            raise click.ClickException(f"cannot open the {source.kind} rig: {' '.join(str(exc).split())}") from None
-    for record in held:  # the opening succeeded: what it logged is news
-        logging.getLogger(record.name).handle(record)
+    control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
             # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement

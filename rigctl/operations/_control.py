@@ -113,6 +113,9 @@ class RigControl:
         self.source = source or RigSource(rig.mode)
         self._monitor: RigMonitor | None = None
         self._stop_listeners: list[Callable[[str], object]] = []
+        #: the protocol run recording on this rig now (:class:`rigctl.operations.ProtocolRun` registers itself), which
+        #: :meth:`stop` pauses
+        self.active_run: Any = None
 
     @property
     def monitor(self) -> RigMonitor:
@@ -128,10 +131,6 @@ class RigControl:
         retry). Returns the function that removes it."""
         self._stop_listeners.append(fn)
         return lambda: self._stop_listeners.remove(fn) if fn in self._stop_listeners else None
-
-        #: the protocol run recording on this rig now (:class:`rigctl.operations.ProtocolRun` registers itself), which
-        #: :meth:`stop` pauses
-        self.active_run: Any = None
 
     # ------------------------------------------------------------------------------------------------- parts
     @property
