@@ -224,3 +224,28 @@ def test_a_latched_e_stop_opens_the_fault_dialog_whose_ok_acknowledges_it(inproc
     assert wait_for(qapp, lambda: not dlg.isVisible(), 30), dlg.message.text()
     assert "fault acknowledged by the operator: a test pressed the e-stop" in window.events.text()
     assert wait_for(qapp, lambda: window.poller.latest is not None and not int(window.poller.latest.faults), 10)
+
+
+def test_a_frozen_gui_thread_stops_a_protocol_run_resumably(inprocess_window, qapp, qtbot, tmp_path):
+    window = inprocess_window
+    tab = window.protocol
+    tab.load(gui_protocol(tmp_path, 6))
+    out = tmp_path / "frozen.h5"
+    tab.out_edit.setText(str(out))
+    tab.resume_box.setChecked(False)
+    qtbot.mouseClick(tab.start_btn, QtCore.Qt.LeftButton)
+    assert wait_for(qapp, lambda: len(tab._done_ids) >= 1 and tab._current is not None, 60), tab.status.text()
+    heartbeat = window.rig_events.heartbeat
+    heartbeat.timeout_s = DEADMAN_TIMEOUT_S
+    try:
+        time.sleep(1.5)  # the GUI thread does not answer while the run presses and turns the drum
+    finally:
+        heartbeat.timeout_s = TEST_DEADMAN_S
+    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
+    assert tab.stopped_reason is not None and "GUI thread did not answer" in tab.stopped_reason, tab.stopped_reason
+    assert tab.running and tab.resume_btn.isEnabled() and "STOPPED" in tab.run_label.text()
+    st = window.handle.control.status()
+    assert st.state != DrumState.RUNNING and st.speed_target_mm_s == 0, st
+    tab.request_abort()
+    window.banner.hide()
+    assert not tab.running
