@@ -310,7 +310,7 @@ class ProtocolTab(QtWidgets.QWidget):
         from rigctl.storage.outputs import OutputError, check_output
 
         try:  # the library's one output policy (exists, held by another writer, folder, ...)
-            check_output(out, option="output", overwrite=resume,
+            check_output(out, option="output", overwrite=resume, kind="session",
                          overwrite_hint="tick 'Resume' to continue it, or choose another file")
         except OutputError as exc:
             set_plain(self.status, str(exc), error=True)

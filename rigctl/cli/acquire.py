@@ -308,7 +308,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         raise UsageProblem(f"--resume: {out} does not exist: nothing to resume")
     check_output(out, overwrite=overwrite or resume,
                  inputs=(protocol, replay if isinstance(replay, Path) else None, config_path),
-                 overwrite_hint="continue it with --resume, or pass --overwrite")
+                 overwrite_hint="continue it with --resume, or pass --overwrite", kind="session")
     hardware = drum_port is not None
     if inject and hardware:
         raise click.UsageError("--inject works on the simulated rigs (--sim, --inprocess, --hil), not on hardware")

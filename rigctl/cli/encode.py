@@ -88,7 +88,7 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     from rigctl.storage.encoded import MAIN_VARIANTS, open_encoded
     from rigctl.storage.session import SessionError
 
-    out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,))
+    out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,), kind="encoded")
     require_dask(scheduler, otherwise="encode in this process")
     _check_sizes(session, out, variants=list(variants) or None, batch=batch, window_s=window_ms / 1000.0,
                  windows_unscaled=windows_unscaled, windows_scaled=windows_scaled, store_spikes=not no_spikes)

@@ -42,7 +42,7 @@ def nwb(session, encoded, variants, out, overwrite, progress):
         raise UsageProblem(f"--variants: {exc}" if vlist else str(exc)) from None
     except (SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
-    check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",), need_bytes=need)
+    check_output(out, overwrite=overwrite, inputs=(session, encoded), suffixes=(".nwb",), need_bytes=need, kind="nwb")
     import warnings
 
     try:

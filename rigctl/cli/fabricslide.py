@@ -40,7 +40,7 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     if not directory:
         raise click.UsageError(f"give the FabricSlide folder (fabric/ and board/ of github.com/wngfra/FabricSlide): "
                                f"rigctl import-fabricslide DIRECTORY --out {out}, or set {ENV_DIR}")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, kind="session")
     directory = Path(directory)
     try:
         with bars(not quiet) as progress:

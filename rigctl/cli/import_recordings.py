@@ -82,7 +82,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     """
     from rigctl.operations import import_recordings as run
 
-    check_output(out, overwrite=overwrite, inputs=(*files, mapping))
+    check_output(out, overwrite=overwrite, inputs=(*files, mapping), kind="session")
     if preset is not None and len(files) != 1:
         raise click.UsageError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
     options = {} if preset else dict(

@@ -39,11 +39,12 @@ def image_suffixes() -> tuple[str, ...]:
 
 def check_output(path: str | os.PathLike, *, option: str = "--out", overwrite: bool = False,
                  inputs: Iterable[str | os.PathLike | None] = (), suffixes: Iterable[str] | None = None,
-                 overwrite_hint: str = "pass --overwrite to replace it", need_bytes: float | None = None) -> Path:
+                 overwrite_hint: str = "pass --overwrite to replace it", need_bytes: float | None = None,
+                 kind: str | None = None) -> Path:
     """:func:`rigctl.storage.outputs.check_output`, its refusal raised as :class:`UsageProblem` (exit 2)."""
     try:
         return _policy.check_output(path, option=option, overwrite=overwrite, inputs=inputs, suffixes=suffixes,
-                                    overwrite_hint=overwrite_hint, need_bytes=need_bytes)
+                                    overwrite_hint=overwrite_hint, need_bytes=need_bytes, kind=kind)
     except _policy.OutputError as exc:
         raise UsageProblem(str(exc)) from None
 

@@ -2,32 +2,50 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import os
+import signal
+import socket
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import click
 
 from rigctl.cli.outputs import UsageProblem
 from rigctl.cli.rig_flags import inject_option
+from rigctl.server.tokens import (
+    TokenError,
+    check_token,
+    default_data_dir,
+    default_queue_file,
+    new_token,
+    remove_token_file,
+    token_file_for,
+    write_token_file,
+)
 
 #: the rig kinds ``--rig`` takes (``rigctl.rigs.KINDS``)
 RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
-
-
-def default_queue_file() -> Path:
-    """``$XDG_STATE_HOME/rigctl/queue.json`` (``~/.local/state/rigctl/queue.json``)."""
-    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
-    return Path(state) / "rigctl" / "queue.json"
+#: how long a shutdown waits for open connections after closing the event streams, s
+SHUTDOWN_GRACE_S = 1
 
 
 @click.command()
 @click.option("--host", default="127.0.0.1", show_default=True,
-              help="Address to bind. Anything but a loopback address needs --token.")
+              help="Address to bind. Anything but a loopback address needs an explicit --token.")
 @click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="TCP port (0: any).")
 @click.option("--token", envvar="RIGCTL_SERVE_TOKEN", default=None,
-              help="Token every request must carry (Authorization: Bearer TOKEN); required off loopback. "
-                   "Default $RIGCTL_SERVE_TOKEN.")
+              help="Token every request must carry (Authorization: Bearer TOKEN), at least 16 characters; default "
+                   "$RIGCTL_SERVE_TOKEN, else one is generated and printed. Written (0600) beside the queue file, "
+                   "where rigctl's clients read it.")
+@click.option("--allow-host", "allow_hosts", multiple=True, metavar="NAME",
+              help="Another name the Host header may carry (besides the bound address and localhost); repeatable.")
+@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="The folder runs write their sessions in (a run's out is a name inside it). Default "
+                   "$XDG_DATA_HOME/rigctl/sessions.")
 @click.option("--queue", "queue_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The queue file (runs survive a restart; a run cut by a crash resumes). Default "
                    "$XDG_STATE_HOME/rigctl/queue.json.")
@@ -45,34 +63,77 @@ def default_queue_file() -> Path:
 @click.option("--lsl/--no-lsl", "lsl", default=None,
               help="Publish every run on Lab Streaming Layer; default the rig config's lsl.enabled.")
 @inject_option
-def serve(host, port, token, queue_file, kind, drum_port, taxel_port, replay, config_path, seed, lsl, inject):
+def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, drum_port, taxel_port, replay, config_path,
+          seed, lsl, inject):
     """Open the rig and serve its run queue over HTTP until Ctrl-C / SIGTERM.
 
-    POST /runs queues a protocol (by name or TOML text); one run owns the rig at a time, the others wait; GET
-    /runs/ID, pause / resume / abort, POST /stop (STOP at once), GET /events (server-sent progress events), the
-    OpenAPI page at /docs. A run cut by a crash resumes from its session file when the server starts again. Plate
-    changes on hardware are announced on the event feed, not waited for (as acquire --plates auto).
+    POST /runs queues a protocol (by name or TOML text) into a session inside --data-dir; one run owns the rig at
+    a time, the others wait; GET /runs/ID, pause / resume / abort, POST /stop (STOP at once), POST /ack, GET
+    /events (server-sent progress events), the OpenAPI page at /docs. Every request needs the token, a Host header
+    naming this server and, for a POST, JSON from no other web page (docs/serve.md, "Security"). A run cut by a crash
+    resumes from its session file when the server starts again. Plate changes on hardware are announced on the
+    event feed, not waited for (as acquire --plates auto).
     """
+    from rigctl.server.app import is_loopback
+
+    if not is_loopback(host) and not token:
+        raise UsageProblem(f"--host {host} serves other machines: give a --token (or $RIGCTL_SERVE_TOKEN) every "
+                           "request must carry, or bind 127.0.0.1")
+    try:
+        token = check_token(token) if token is not None else new_token()
+    except TokenError as exc:
+        raise UsageProblem(f"--token: {exc}") from None
+    for name in allow_hosts:
+        if not name or "*" in name[1:] or (name.startswith("*") and not name.startswith("*.")) or "/" in name:
+            raise UsageProblem(f"--allow-host {name!r}: give a host name or address (a leading '*.' for a domain)")
+    if (kind == "hardware") != (drum_port is not None and taxel_port is not None):
+        raise UsageProblem("--rig hardware takes both --drum-port and --taxel-port (and only it does)")
+    if (kind == "replay") != (replay is not None):
+        raise UsageProblem("--rig replay takes --replay RECORDING (and only it does)")
+    _serve(host=host, port=port, token=token, generated=not _given(), allow_hosts=allow_hosts,
+           data_dir=data_dir or default_data_dir(), queue_file=queue_file or default_queue_file(), kind=kind,
+           drum_port=drum_port, taxel_port=taxel_port, replay=replay, config_path=config_path, seed=seed, lsl=lsl,
+           inject=inject)
+
+
+def _given() -> bool:
+    """Whether the token came from --token or $RIGCTL_SERVE_TOKEN (not generated)."""
+    ctx = click.get_current_context()
+    return ctx.get_parameter_source("token") not in (None, click.core.ParameterSource.DEFAULT)
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    """The listening socket (bound here, so the token file and the banner name the real port when --port 0)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise click.ClickException(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
+    sock.listen(128)
+    sock.set_inheritable(True)
+    return sock
+
+
+def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tuple[str, ...], data_dir: Path,
+           queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
+           config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...]) -> None:
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rig import RigError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.core.faults import FaultSpecError
     from rigctl.operations import QueueError, RigSource, RunQueue, lsl_requested, open_control
-    from rigctl.server.app import create_app, is_loopback
 
-    if not is_loopback(host) and not token:
-        raise UsageProblem(f"--host {host} serves other machines: give a --token (or $RIGCTL_SERVE_TOKEN) every "
-                           "request must carry, or bind 127.0.0.1")
-    if (kind == "hardware") != (drum_port is not None and taxel_port is not None):
-        raise UsageProblem("--rig hardware takes both --drum-port and --taxel-port (and only it does)")
-    if (kind == "replay") != (replay is not None):
-        raise UsageProblem("--rig replay takes --replay RECORDING (and only it does)")
     try:
         import fastapi  # noqa: F401
         import uvicorn
     except ImportError as exc:
         raise click.ClickException(f"rigctl serve needs FastAPI and uvicorn: pip install 'rigctl[serve]' ({exc})") \
             from None
+    from rigctl.server.app import create_app
+
     try:
         host_config = load_rig_config(config_path)
     except CalibrationError as exc:
@@ -85,22 +146,83 @@ def serve(host, port, token, queue_file, kind, drum_port, taxel_port, replay, co
             raise click.ClickException(str(exc)) from None
     source = RigSource(kind, drum_port=drum_port, taxel_port=taxel_port,
                        replay_dir=None if replay is None else str(replay), inject=inject)
+    sock = _bind(host, port)
     try:
         control = open_control(source, seed=seed, host_config_path=config_path)
     except FaultSpecError as exc:  # --inject names a fault this rig cannot model
+        sock.close()
         raise UsageProblem(str(exc)) from None
     except (RigError, OSError, ValueError) as exc:
+        sock.close()
         raise click.ClickException(" ".join(str(exc).split())) from None
     with control:
         try:
-            run_queue = RunQueue(control, queue_file or default_queue_file(), lsl=publish)
+            run_queue = RunQueue(control, queue_file, lsl=publish, data_dir=data_dir)
         except QueueError as exc:
+            sock.close()
             raise click.ClickException(str(exc)) from None
+        bound = f"[{host}]" if ":" in host else host
+        url = f"http://{bound}:{sock.getsockname()[1]}"
+        app = create_app(run_queue, token=token, allowed_hosts=(bound, "localhost", *allow_hosts))
+        token_file = write_token_file(token_file_for(run_queue.path), url=url, token=token)
         run_queue.start()
-        app = create_app(run_queue, token=token)
-        click.echo(f"rigctl serve: {source.label()} on http://{host}:{port} (API reference: /docs; queue "
-                   f"{run_queue.path})", err=True)
+        click.echo(f"rigctl serve: {source.label()} on {url} (sessions in {run_queue.data_dir}; queue "
+                   f"{run_queue.path}; token in {token_file})", err=True)
+        if generated:  # printed once, as Jupyter does: the API reference with the token
+            click.echo(f"rigctl serve: open {url}/docs?token={token}", err=True)
+        server = _Server(uvicorn.Config(app, log_level=logging.getLevelName(logging.WARNING).lower(),
+                                        timeout_graceful_shutdown=SHUTDOWN_GRACE_S), run_queue)
         try:
-            uvicorn.run(app, host=host, port=port, log_level=logging.getLevelName(logging.WARNING).lower())
+            server.run(sockets=[sock])
         finally:
             run_queue.close()
+            remove_token_file(token_file, token)
+            sock.close()
+            click.echo(f"rigctl serve: stopped in {server.shutdown_s:.1f} s ({server.streams_closed} event "
+                       "stream(s) closed, the queue saved)", err=True)
+
+
+def _server_class() -> Any:
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        """uvicorn's server that ends the event streams first when told to exit (uvicorn's graceful shutdown
+        otherwise waits for every open response: an /events client kept Ctrl-C waiting ~50 s)."""
+
+        def __init__(self, config: Any, run_queue: Any) -> None:
+            super().__init__(config)
+            self.run_queue = run_queue
+            self.streams_closed = 0
+            self._exit_t: float | None = None
+
+        @property
+        def shutdown_s(self) -> float:
+            return 0.0 if self._exit_t is None else time.monotonic() - self._exit_t
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            """Ctrl-C and SIGTERM end the server (:meth:`handle_exit`); unlike uvicorn's own, the signal is not
+            raised again afterwards: the queue is closed and the token file removed, then the command returns."""
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            original = {sig: signal.signal(sig, self.handle_exit) for sig in (signal.SIGINT, signal.SIGTERM)}
+            try:
+                yield
+            finally:
+                for sig, handler in original.items():
+                    signal.signal(sig, handler)
+
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            if self._exit_t is None:
+                self._exit_t = time.monotonic()
+                click.echo("rigctl serve: stopping (closing the event streams, the run in progress stopped "
+                           "cleanly and kept queued)", err=True)
+            self.streams_closed += self.run_queue.end_streams()
+            super().handle_exit(sig, frame)
+
+    return Server
+
+
+def _Server(config: Any, run_queue: Any) -> Any:  # noqa: N802 - a class made on first use (uvicorn is optional)
+    return _server_class()(config, run_queue)

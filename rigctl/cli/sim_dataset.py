@@ -77,7 +77,8 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
     elif n_trials == 0:
         raise UsageProblem(f"{protocol}: the protocol plans no trial (no textures, forces or speeds)")
     check_output(out, overwrite=overwrite or resume, inputs=(protocol,),
-                 overwrite_hint="continue it with --resume, or pass --overwrite", need_bytes=None if resume else need)
+                 overwrite_hint="continue it with --resume, or pass --overwrite", need_bytes=None if resume else need,
+                 kind="session")
     from rigctl.simulation.dataset import generate_dataset  # the model, numba: after the checks
     from rigctl.simulation.model import RigConfig
 

@@ -382,7 +382,7 @@ class EncodeRun:
                   store_spikes=tuple(store_spikes), **kw)
         if run.out_path.exists() and not run.overwrite:
             raise FileExistsError(f"{run.out_path} exists (pass overwrite=True / --overwrite to replace it)")
-        check_output(run.out_path, overwrite=True, inputs=(run.session_path,))
+        check_output(run.out_path, overwrite=True, inputs=(run.session_path,), kind="encoded")
         return run
 
 

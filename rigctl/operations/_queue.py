@@ -5,7 +5,8 @@ One run owns the rig at a time (a second one waits, ``queued``); each is a :clas
 (its pause / resume / abort), so the queue holds no rig logic. A run cut by a crash or a kill (the file says it was
 ``running`` or ``paused``) is queued again at the front when the queue is reopened, and continues its session file
 with the session's own resume (no trial recorded twice, none lost: each finished trial is in the file the moment it
-is reported). :meth:`RunQueue.stop` is STOP: the drum to rest at once, the current run aborted, the queue held until
+is reported); a stopped or failed run is continued the same way on request (:meth:`RunQueue.resume`).
+:meth:`RunQueue.stop` is STOP: the drum to rest at once, the current run aborted, the queue held until
 :meth:`RunQueue.release`.
 
 Run states: ``queued``, ``running``, ``pausing``, ``paused``, ``aborting``, ``done`` (every planned trial complete),
@@ -15,6 +16,7 @@ Run states: ``queued``, ``running``, ``pausing``, ``paused``, ``aborting``, ``do
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import json
@@ -33,6 +35,7 @@ from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._run import ProtocolRun
+from rigctl.storage.outputs import OutputError, OutputLocked, check_output, name_in_folder
 from rigctl.storage.session import SessionLocked
 
 __all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES"]
@@ -48,6 +51,8 @@ QUEUE_FORMAT = 1
 #: killed one finishing its last commit) before it fails, s; and how often it tries
 LOCKED_WAIT_S = 60.0
 LOCKED_POLL_S = 0.5
+#: the longest protocol text a run takes, characters (the queue file holds it, rewritten at every change)
+MAX_PROTOCOL_CHARS = 1_000_000
 
 
 class QueueError(ValueError):
@@ -105,15 +110,26 @@ class RunQueue:
         pylsl is :class:`rigctl.core.lsl.LslUnavailable` at once).
     protocols : () -> {name: protocol file} of the protocols a run may name (default the built-in ones,
         :func:`rigctl.acquisition.builtin.builtin_protocols`).
+    data_dir : when given (``rigctl serve --data-dir``), a run's ``out`` is a relative name inside this folder
+        (:func:`rigctl.storage.outputs.name_in_folder`: absolute paths, ``..``, NUL and names resolving outside it
+        refused, 422); created if missing.
 
     :meth:`start` starts the worker thread; :meth:`close` ends it (a run in progress is stopped cleanly and stays
     queued to resume at the next start).
     """
 
     def __init__(self, control: Any, queue_file: str | os.PathLike[str], *, lsl: bool = False,
-                 protocols: Callable[[], dict[str, Any]] | None = None) -> None:
+                 protocols: Callable[[], dict[str, Any]] | None = None,
+                 data_dir: str | os.PathLike[str] | None = None) -> None:
         self.control = control
         self.path = Path(queue_file)
+        self.data_dir = None if data_dir is None else Path(data_dir).expanduser().resolve()
+        if self.data_dir is not None:
+            try:
+                self.data_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise QueueError(f"the data folder {self.data_dir} cannot be made ({exc.strerror or exc})") \
+                    from None
         #: one LSL publisher for every run (the same streams to LabRecorder from run to run), or None
         self.lsl: Any = None
         if lsl:
@@ -132,7 +148,8 @@ class RunQueue:
         self.held = False
         self._closing = False
         self._thread: threading.Thread | None = None
-        self._subscribers: list[queue.Queue[dict[str, Any]]] = []
+        self._subscribers: list[queue.Queue[dict[str, Any] | None]] = []
+        self._streams_ended = False
         self._load()
 
     # ----------------------------------------------------------------------------------------------- the file
@@ -164,17 +181,35 @@ class RunQueue:
         os.replace(tmp, self.path)
 
     # ----------------------------------------------------------------------------------------------- events
-    def subscribe(self) -> "queue.Queue[dict[str, Any]]":
-        """A queue receiving every event from now on (``{"type": "progress" | "trial" | "run" | "stop", ...}``)."""
-        q: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=10_000)
+    def subscribe(self) -> "queue.Queue[dict[str, Any] | None]":
+        """A queue receiving every event from now on (``{"type": "progress" | "trial" | "run" | "stop", ...}``);
+        None when the feed ends (:meth:`end_streams`)."""
+        q: queue.Queue[dict[str, Any] | None] = queue.Queue(maxsize=10_000)
         with self._lock:
-            self._subscribers.append(q)
+            if self._streams_ended:  # subscribed while the server shuts down: the feed ends at once
+                q.put_nowait(None)
+            else:
+                self._subscribers.append(q)
         return q
 
-    def unsubscribe(self, q: "queue.Queue[dict[str, Any]]") -> None:
+    def unsubscribe(self, q: "queue.Queue[dict[str, Any] | None]") -> None:
         with self._lock:
             if q in self._subscribers:
                 self._subscribers.remove(q)
+
+    def end_streams(self) -> int:
+        """End every subscriber's feed (a None each; the server's event streams close at once: a shutting-down
+        server does not wait for its clients). Returns how many were open."""
+        with self._lock:
+            self._streams_ended = True
+            subs, self._subscribers = list(self._subscribers), []
+        for q in subs:
+            with contextlib.suppress(queue.Empty):
+                if q.full():
+                    q.get_nowait()
+            with contextlib.suppress(queue.Full):
+                q.put_nowait(None)
+        return len(subs)
 
     def _emit(self, event: dict[str, Any]) -> None:
         with self._lock:
@@ -208,19 +243,27 @@ class RunQueue:
                overwrite: bool = False) -> QueuedRun:
         """Queue a run of a built-in ``protocol`` (by name) or of ``toml`` text into the session file ``out``.
 
-        Raises QueueError: the protocol does not load (or is a Python script: not over the queue), ``out`` exists
-        without ``overwrite`` or is another queued run's output."""
+        Raises QueueError: the protocol does not load (or is a Python script: not over the queue; over
+        :data:`MAX_PROTOCOL_CHARS`: 413), ``out`` breaks the data folder's rules (422), exists without
+        ``overwrite`` or is another queued run's output (409), is not a session ``overwrite`` may replace
+        (:func:`rigctl.storage.outputs.check_output` with ``kind="session"``: 422)."""
+        if toml is not None and len(toml) > MAX_PROTOCOL_CHARS:
+            raise QueueError(f"the protocol text has {len(toml)} characters: at most {MAX_PROTOCOL_CHARS}", 413)
+        out_path = self._out_path(out)
         proto = self._load_protocol(protocol, toml)
         if not hasattr(proto, "texture_set"):
             raise QueueError("Python-script protocols cannot be queued: give a TOML protocol")
-        out_path = Path(out).expanduser().resolve()
         with self._lock:
             if any(Path(r.out) == out_path for r in self.runs.values() if r.state in ACTIVE):
                 raise QueueError(f"{out_path} is the output of a run already queued", 409)
             if out_path.exists() and not overwrite:
                 raise QueueError(f"{out_path} exists (pass overwrite, or choose another output)", 409)
-            if not out_path.parent.is_dir():
-                raise QueueError(f"{out_path.parent} is not a folder")
+            try:  # the one output policy: only a session is replaced, the folder takes a file, no other writer
+                check_output(out_path, option="out", overwrite=overwrite, kind="session")
+            except OutputLocked as exc:
+                raise QueueError(str(exc), 409) from None
+            except OutputError as exc:
+                raise QueueError(str(exc), 422) from None
             run = QueuedRun(id=uuid.uuid4().hex[:12], protocol_name=proto.name, protocol_source=proto.source,
                             out=str(out_path), overwrite=overwrite, trials_total=len(proto.plan()),
                             created_utc=_utc_now())
@@ -229,6 +272,17 @@ class RunQueue:
             self._wake.notify_all()
         self._emit({"type": "run", "id": run.id, "state": run.state})
         return run
+
+    def _out_path(self, out: str | os.PathLike[str]) -> Path:
+        """``out`` as the absolute session path: a name inside :attr:`data_dir` when there is one."""
+        try:
+            if self.data_dir is not None:
+                return name_in_folder(self.data_dir, os.fspath(out) if isinstance(out, os.PathLike) else out)
+            return Path(out).expanduser().resolve()
+        except OutputError as exc:
+            raise QueueError(str(exc), 422) from None
+        except (ValueError, OSError, RuntimeError) as exc:
+            raise QueueError(f"out {str(out)[:100]!r}: not a usable file name ({exc})", 422) from None
 
     def get(self, run_id: str) -> QueuedRun:
         with self._lock:
@@ -260,13 +314,23 @@ class RunQueue:
         return run
 
     def resume(self, run_id: str) -> QueuedRun:
-        """Go on after :meth:`pause`."""
+        """Go on after :meth:`pause`; or queue a ``stopped`` or ``failed`` run again: it continues its session file
+        with the session's own resume (the trials finished kept, none recorded twice; it waits while the queue is
+        held after STOP). QueueError (409) for any other state."""
         run = self.get(run_id)
         with self._lock:
-            if self.current_id != run_id or self.current is None:
-                raise QueueError(f"run {run_id} is {run.state}: only a paused run can be resumed", 409)
-            self.current.resume()
-            self._set(run, state="running")
+            if self.current_id == run_id and self.current is not None:
+                self.current.resume()
+                self._set(run, state="running")
+                return run
+            if run.state not in ("stopped", "failed"):
+                raise QueueError(f"run {run_id} is {run.state}: only a paused, stopped or failed run can be "
+                                 "resumed", 409)
+            if any(r.out == run.out for r in self.runs.values() if r.state in ACTIVE):
+                raise QueueError(f"{run.out} is the output of a run already queued", 409)
+            self._set(run, state="queued", ended_utc=None,
+                      errors=[*run.errors, f"resumed on request at {_utc_now()}"])
+            self._wake.notify_all()
         return run
 
     def abort(self, run_id: str) -> QueuedRun:
@@ -313,6 +377,7 @@ class RunQueue:
             self._closing = True
             current = self.current
             self._wake.notify_all()
+        self.end_streams()
         if current is not None:
             current.abort()
         if self._thread is not None:

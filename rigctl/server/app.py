@@ -4,14 +4,17 @@
 - ``GET /status``: the rig (drum controller status, board links), the queue (held after STOP?), the current run;
 - ``POST /runs`` (``{"protocol": name}`` or ``{"toml": text}``, ``"out"``, ``"overwrite"``) -> ``{"id", ...}``;
   ``GET /runs``, ``GET /runs/{id}`` (state, trials done/total, errors);
-- ``POST /runs/{id}/pause|resume|abort``; ``POST /stop`` (STOP at once, the current run aborted, the queue held);
-  ``POST /queue/release`` (queued runs start again after STOP);
+- ``POST /runs/{id}/pause|resume|abort`` (resume: after a pause, or a stopped or failed run continued from its
+  session); ``POST /stop`` (STOP at once, the current run aborted, the queue held); ``POST /queue/release`` (queued
+  runs start again after STOP); ``POST /ack`` (``{"reason": text}``: the operator's acknowledgement of a latched
+  fault, :meth:`RigControl.acknowledge`);
 - ``GET /events``: server-sent events, one JSON object per progress, trial, run and STOP event (the progress events
   the CLI and the GUI draw);
 - ``/docs`` (the OpenAPI page), ``/openapi.json``.
 
-A token (``Authorization: Bearer <token>``, or ``?token=`` for an ``EventSource``) is required on every request
-when the server has one; ``rigctl serve`` refuses to bind a non-loopback address without one.
+Every request passes :mod:`rigctl.server.guard` first: the Host header, a same-origin or absent Origin, the token
+(always required), JSON for state-changing requests, a body size limit. A run's ``out`` is a name inside the data
+folder (:func:`rigctl.storage.outputs.name_in_folder`, checked by the queue).
 """
 
 from __future__ import annotations
@@ -22,17 +25,21 @@ import ipaddress
 import json
 import math
 import queue
-import secrets
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any
+from urllib.parse import quote
 
-from fastapi import Depends, FastAPI, HTTPException, Request
-from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 from rigctl.core.errors import describe_error
 from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
+from rigctl.server.guard import MAX_BODY_BYTES, install_guard
+from rigctl.server.tokens import check_token
 
 __all__ = ["RunRequest", "create_app", "is_loopback"]
 
@@ -51,9 +58,18 @@ class RunRequest(BaseModel):
     """A run to queue: a built-in protocol by name or a TOML protocol's text, and the session file to write."""
 
     protocol: str | None = Field(None, description="a built-in protocol's name (rigctl protocols lists them)")
-    toml: str | None = Field(None, description="a TOML protocol's text (instead of protocol)")
-    out: str = Field(..., description="the session file to write (on the server's host)")
-    overwrite: bool = Field(False, description="replace an existing out file")
+    toml: str | None = Field(None, description="a TOML protocol's text (instead of protocol)",
+                             max_length=MAX_BODY_BYTES)
+    out: str = Field(..., description="the session file to write: a name inside the server's data folder "
+                                      "(e.g. \"mouse1/s1.h5\")", max_length=4096)
+    overwrite: bool = Field(False, description="replace an existing out file (only a rigctl session)")
+
+
+class AckRequest(BaseModel):
+    """The operator's acknowledgement of a latched fault."""
+
+    reason: str = Field(..., min_length=1, max_length=1000, description="why the fault may be cleared (logged)")
+    by: str = Field("", max_length=200, description="who acknowledges (logged; default the API client)")
 
 
 def _plain(value: Any) -> Any:
@@ -75,27 +91,36 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def create_app(run_queue: RunQueue, *, token: str | None = None) -> FastAPI:
-    """The API over ``run_queue`` (and its rig control); ``token``: required on every request when given."""
-    app = FastAPI(title="rigctl serve", version=__version__,
+def create_app(run_queue: RunQueue, *, token: str,
+               allowed_hosts: Sequence[str] = ("127.0.0.1", "localhost")) -> FastAPI:
+    """The API over ``run_queue`` (and its rig control), behind :mod:`rigctl.server.guard`.
+
+    ``token``: required on every request (at least 16 characters; :class:`rigctl.server.tokens.TokenError`, a
+    ValueError, otherwise); ``allowed_hosts``: the names the Host header may carry (the bound address,
+    ``localhost``, ``--allow-host``)."""
+    check_token(token)
+    app = FastAPI(title="rigctl serve", version=__version__, docs_url=None, redoc_url=None,
                   description="The tactile texture rig's headless run queue (docs/serve.md).")
-
-    def authorised(request: Request) -> None:
-        if token is None:
-            return
-        given = request.headers.get("authorization", "")
-        given = given[7:] if given.lower().startswith("bearer ") else request.query_params.get("token", "")
-        if not secrets.compare_digest(given.encode(), token.encode()):
-            raise HTTPException(401, "a valid token is required (Authorization: Bearer <token>)",
-                                headers={"WWW-Authenticate": "Bearer"})
-
-    auth = [Depends(authorised)]
+    install_guard(app, token=token, allowed_hosts=allowed_hosts)
 
     @app.exception_handler(QueueError)
     def queue_error(request: Request, exc: QueueError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=exc.status)
 
-    @app.get("/status", dependencies=auth)
+    @app.exception_handler(RequestValidationError)
+    def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        first = exc.errors()[0] if exc.errors() else {}
+        where = ".".join(str(p) for p in first.get("loc", ()) if p != "body") or "body"
+        status = 413 if first.get("type") == "string_too_long" and where == "toml" else 422
+        return JSONResponse({"detail": f"{where}: {first.get('msg', 'invalid request')}"}, status_code=status)
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        """The OpenAPI page (the token already checked: the page fetches the schema with it)."""
+        return get_swagger_ui_html(openapi_url=f"/openapi.json?token={quote(token, safe='')}",
+                                   title="rigctl serve API")
+
+    @app.get("/status")
     def status() -> dict[str, Any]:
         """Rig state (the drum controller's status), board health (the taxel stream's frames, drops, CRC errors,
         connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue, the
@@ -114,48 +139,66 @@ def create_app(run_queue: RunQueue, *, token: str | None = None) -> FastAPI:
                 "current_trial": None if current is None else _plain(run_queue.current_trial),
                 "queued": [r.id for r in run_queue.list() if r.state == "queued"]}
 
-    @app.post("/runs", status_code=201, dependencies=auth)
+    @app.post("/runs", status_code=201)
     def submit(body: RunRequest) -> dict[str, Any]:
         """Queue a run; returns it (``id``). It starts when the rig is free (one run at a time)."""
         return run_queue.submit(body.out, protocol=body.protocol, toml=body.toml, overwrite=body.overwrite).public()
 
-    @app.get("/runs", dependencies=auth)
+    @app.get("/runs")
     def runs() -> list[dict[str, Any]]:
         return [r.public() for r in run_queue.list()]
 
-    @app.get("/runs/{run_id}", dependencies=auth)
+    @app.get("/runs/{run_id}")
     def run(run_id: str) -> dict[str, Any]:
         """A run: state, trials done / total, errors, the summary once ended."""
         return run_queue.get(run_id).public()
 
-    @app.post("/runs/{run_id}/pause", dependencies=auth)
+    @app.post("/runs/{run_id}/pause")
     def pause(run_id: str) -> dict[str, Any]:
         """Pause after the trial in progress (the sensor released)."""
         return run_queue.pause(run_id).public()
 
-    @app.post("/runs/{run_id}/resume", dependencies=auth)
+    @app.post("/runs/{run_id}/resume")
     def resume(run_id: str) -> dict[str, Any]:
+        """Go on after a pause; or queue a stopped or failed run again, to continue its session where it ended
+        (finished trials kept, none recorded twice)."""
         return run_queue.resume(run_id).public()
 
-    @app.post("/runs/{run_id}/abort", dependencies=auth)
+    @app.post("/runs/{run_id}/abort")
     def abort(run_id: str) -> dict[str, Any]:
         """Stop a run cleanly (finished trials kept, resumable), or take a queued one off the queue."""
         return run_queue.abort(run_id).public()
 
-    @app.post("/stop", dependencies=auth)
+    @app.post("/stop")
     def stop() -> dict[str, Any]:
         """STOP, at once (the GUI's STOP): drum to rest, actuator home, the current run aborted, the queue held
         until ``POST /queue/release``."""
         return {"acknowledged": run_queue.stop(), "held": True}
 
-    @app.post("/queue/release", dependencies=auth)
+    @app.post("/queue/release")
     def release() -> dict[str, Any]:
         run_queue.release()
         return {"held": False}
 
-    @app.get("/events", dependencies=auth)
+    @app.post("/ack")
+    def ack(body: AckRequest, request: Request) -> dict[str, Any]:
+        """The operator's acknowledgement of a latched fault (e-stop, over-force, ...), logged in the session with
+        ``by`` and ``reason``; it clears the latch, never starts motion (docs/safety.md)."""
+        acknowledge = getattr(run_queue.control, "acknowledge", None)
+        if acknowledge is None:
+            raise QueueError("this rigctl has no fault acknowledgement (RigControl.acknowledge)", 501)
+        client = request.client.host if request.client is not None else "?"
+        by = body.by.strip() or f"rigctl serve client {client}"
+        try:
+            result = acknowledge(body.reason, by=by)
+        except (ValueError, RuntimeError) as exc:
+            raise QueueError(f"acknowledgement refused: {exc}", 409) from None
+        return {"acknowledged": True, "by": by, "result": _plain(result)}
+
+    @app.get("/events")
     def events() -> StreamingResponse:
-        """Server-sent events: one ``data:`` JSON object per event (``type``: progress, trial, run, stop, plate)."""
+        """Server-sent events: one ``data:`` JSON object per event (``type``: progress, trial, run, stop, plate);
+        the stream ends when the server shuts down."""
         q = run_queue.subscribe()
 
         def stream() -> Iterator[str]:
@@ -167,6 +210,9 @@ def create_app(run_queue: RunQueue, *, token: str | None = None) -> FastAPI:
                     except queue.Empty:
                         yield ": keep-alive\n\n"
                         continue
+                    if event is None:  # the server is ending (RunQueue.end_streams)
+                        yield ": the server is shutting down\n\n"
+                        return
                     yield f"data: {json.dumps(_plain(event))}\n\n"
             finally:
                 run_queue.unsubscribe(q)

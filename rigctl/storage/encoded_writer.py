@@ -62,7 +62,7 @@ class EncodedWriter:
         table = self._trials_table(trials, textures)
         self.n_trials = int(table.size)
         self._done = False
-        self._output = output_file(self.path, overwrite=overwrite)  # the output policy: lock, part file, guard
+        self._output = output_file(self.path, overwrite=overwrite, kind="encoded")  # the output policy: lock, part file, guard
         self._target = self._output.__enter__()
         self.part = self._target.part
         try:

@@ -280,7 +280,7 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
         nwb = _new_nwbfile(s, out_path)
         summary = NwbSummary(out_path, n_trials=len(timeline.ids), n_samples=int(sum(timeline.n)),
                              n_channels=s.layout.n_channels, rate_hz=float(s.layout.sample_rate_hz))
-        with output_file(out_path, overwrite=params.overwrite) as target:
+        with output_file(out_path, overwrite=params.overwrite, kind="nwb") as target:
             _add_taxels(nwb, s, timeline, progress, target)
             _add_traces(nwb, s, timeline, Stage(progress, "reading traces", len(timeline.ids)))
             _add_trials_table(nwb, s, timeline)

@@ -16,6 +16,11 @@ Rules (``docs/architecture.md``, "Outputs"), for sessions, encoded files, NWB ex
   later, even at interpreter exit, crashes in ``H5FO_top_decr`` -> ``H5SL_search``: the segfault users saw.) The
   guard stops sending bytes to the disk at the first refused write, keeps later writes in memory until the writer
   notices (:meth:`GuardedFile.check`, after each batch), so HDF5 closes cleanly and the part file is deleted;
+- **only rigctl's own files are replaced** (:func:`check_replaceable`): ``overwrite`` replaces a regular file that is
+  a rigctl output of the same kind (:func:`existing_kind`: a session, an encoded file, an NWB export) and nothing
+  else: never a device, a FIFO, a folder, a symlink whose target lies outside the output's folder, an empty file or
+  another program's file (for outputs without a kind, CSV, figures, models: any regular file). Client-given names
+  (``rigctl serve``) are names inside a folder (:func:`name_in_folder`);
 - **modes honour the umask** (0644 under umask 022, like any file the user makes), including files first made by
   :func:`tempfile.mkstemp` (0600).
 """
@@ -26,6 +31,7 @@ import contextlib
 import errno
 import io
 import os
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -34,8 +40,16 @@ from typing import Any
 from rigctl.storage import journal
 
 __all__ = ["OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
-           "check_space", "check_writable_folder", "current_umask", "apply_umask", "free_bytes", "output_file",
-           "replacing", "same_file", "size_text"]
+           "check_replaceable", "check_space", "check_writable_folder", "current_umask", "apply_umask",
+           "existing_kind", "free_bytes", "name_in_folder", "output_file", "replacing", "same_file", "size_text",
+           "OUTPUT_KINDS"]
+
+#: the kinds of rigctl output :func:`existing_kind` recognises (``check_output(kind=)``), with their names in messages
+OUTPUT_KINDS = {"session": "rigctl session file", "encoded": "rigctl encoded file", "nwb": "NWB file"}
+#: the first bytes of an HDF5 file (at offset 0: rigctl writes no user block)
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+#: the longest client-given name :func:`name_in_folder` takes, bytes (a path component: 255, the file system's)
+MAX_NAME_BYTES = 1024
 
 #: overlay page of :class:`GuardedFile` once the disk has refused a write, bytes
 _PAGE = 1 << 16
@@ -139,6 +153,108 @@ def check_writable_folder(folder: Path, *, option: str, target: Path | None = No
         os.unlink(probe)
 
 
+def existing_kind(path: str | os.PathLike[str]) -> str:
+    """What an existing regular file is: ``"session"`` (a rigctl session: ``/plan`` and ``/protocol``, no
+    ``/features``), ``"encoded"`` (``/features``), ``"nwb"`` (an ``nwb_version`` root attribute), ``"hdf5"``
+    (another HDF5 file), ``"empty"``, or ``"other"`` (not HDF5, or unreadable). Reads the signature, then the HDF5
+    top level read-only (file locking off: a probe never waits for a writer)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(_HDF5_SIGNATURE))
+    except OSError:
+        return "other"
+    if not head:
+        return "empty"
+    if head != _HDF5_SIGNATURE:
+        return "other"
+    import h5py
+
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            if "features" in f:
+                return "encoded"
+            if "nwb_version" in f.attrs:
+                return "nwb"
+            if "plan" in f and "protocol" in f:
+                return "session"
+            return "hdf5"
+    except Exception:  # noqa: BLE001 - h5py raises OSError, ValueError, RuntimeError, KeyError on damaged files
+        return "other"
+
+
+_KIND_TEXT = {"hdf5": "an HDF5 file of another program", "empty": "an empty file",
+              "other": "a file of another program (not a rigctl output)", "session": "a rigctl session file",
+              "encoded": "a rigctl encoded file", "nwb": "an NWB file"}
+
+
+def check_replaceable(path: str | os.PathLike[str], *, kind: str | None = None, option: str = "--out") -> None:
+    """Refuse (:class:`OutputError`, one line) replacing the existing ``path`` with ``overwrite``: anything but a
+    regular file (a device such as /dev/null, a FIFO, a socket, a folder), a symlink whose target is outside
+    ``path``'s folder, and, when ``kind`` (a key of :data:`OUTPUT_KINDS`) is given, any file that is not a rigctl
+    output of that kind (:func:`existing_kind`). A path that does not exist passes."""
+    p = Path(path)
+    try:
+        st = os.lstat(p)
+    except (OSError, ValueError):
+        return
+    if stat.S_ISLNK(st.st_mode):
+        target = p.resolve()
+        if not target.is_relative_to(p.parent.resolve()):
+            raise OutputError(f"{option} {p} is a symlink to {target}, outside its folder: rigctl never replaces "
+                              "a file through a link leading out; choose another output", option)
+        try:
+            st = os.stat(p)
+        except OSError:
+            return  # a dangling link: the new file replaces the link itself
+    if stat.S_ISDIR(st.st_mode):
+        raise OutputError(f"{option} {p} is a folder: give a file name", option)
+    if not stat.S_ISREG(st.st_mode):
+        what = "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else \
+            "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a file"
+        raise OutputError(f"{option} {p} is {what}, not a regular file: --overwrite never replaces it; choose "
+                          "another output", option)
+    if kind is not None:
+        found = existing_kind(p)
+        if found != kind:
+            raise OutputError(f"{option} {p} is {_KIND_TEXT.get(found, found)}, not a {OUTPUT_KINDS[kind]}: "
+                              f"--overwrite replaces only a {OUTPUT_KINDS[kind]}; choose another output or move it "
+                              "away yourself", option)
+
+
+def name_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "out") -> Path:
+    """The file ``name`` (a client's relative name, e.g. ``"mouse1/s1.h5"``) inside ``folder``, resolved.
+
+    Raises OutputError naming the rule broken: an empty name, a NUL or another control character, an absolute
+    path, a ``..`` component, a name longer than :data:`MAX_NAME_BYTES` bytes (or a component over 255) or not
+    encodable for the file system, or a name that resolves outside ``folder`` (a symlink leading out)."""
+    if not isinstance(name, str) or not name.strip():
+        raise OutputError(f"{option}: give a file name inside the data folder", option)
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        raise OutputError(f"{option}: control characters (NUL, newline, ...) are refused in a file name", option)
+    try:
+        raw = os.fsencode(name)
+    except UnicodeError:
+        raise OutputError(f"{option}: the name cannot be encoded for the file system", option) from None
+    if len(raw) > MAX_NAME_BYTES or any(len(part) > 255 for part in raw.split(b"/")):
+        raise OutputError(f"{option}: the name is too long (at most {MAX_NAME_BYTES} bytes, 255 a component)",
+                          option)
+    rel = Path(name)
+    if rel.is_absolute() or name.startswith(("/", "\\", "~")):
+        raise OutputError(f"{option} {name}: absolute paths are refused: give a name relative to the data folder",
+                          option)
+    if ".." in rel.parts or ".." in name.split("\\"):
+        raise OutputError(f"{option} {name}: '..' is refused: give a name inside the data folder", option)
+    base = Path(folder).resolve()
+    try:
+        full = (base / rel).resolve()
+    except (OSError, RuntimeError, ValueError):
+        raise OutputError(f"{option} {name}: the name does not resolve (a symlink loop?)", option) from None
+    if full == base or not full.is_relative_to(base):
+        raise OutputError(f"{option} {name}: the name resolves outside the data folder (a symlink leading out?)",
+                          option)
+    return full
+
+
 def _check_unlocked(p: Path, option: str) -> None:
     """Refuse ``p`` while another writer holds its writer lock (probed: taken and released at once)."""
     if not journal.lock_path(p).exists():
@@ -154,7 +270,8 @@ def _check_unlocked(p: Path, option: str) -> None:
 
 def check_output(path: str | os.PathLike[str], *, option: str = "--out", overwrite: bool = False,
                  inputs: Iterable[str | os.PathLike[str] | None] = (), suffixes: Iterable[str] | None = None,
-                 overwrite_hint: str = "pass --overwrite to replace it", need_bytes: float | None = None) -> Path:
+                 overwrite_hint: str = "pass --overwrite to replace it", need_bytes: float | None = None,
+                 kind: str | None = None) -> Path:
     """Refuse an output path before any work starts; returns it as a Path.
 
     Parameters
@@ -165,6 +282,9 @@ def check_output(path: str | os.PathLike[str], *, option: str = "--out", overwri
     suffixes : allowed extensions (lower case, with the dot), or None for any.
     overwrite_hint : what to do about an existing file (e.g. "continue it with --resume, or pass --overwrite").
     need_bytes : an estimate of the output's size: refused when the folder has less free space.
+    kind : the output's kind (a key of :data:`OUTPUT_KINDS`): an existing file is replaced only when it is a rigctl
+        output of that kind (:func:`check_replaceable`; never a device, a FIFO or a symlink leading out, whatever
+        the kind).
 
     Raises
     ------
@@ -188,6 +308,7 @@ def check_output(path: str | os.PathLike[str], *, option: str = "--out", overwri
     _check_unlocked(p, option)
     if p.exists() and not overwrite:
         raise OutputError(f"{option} {p} exists: {overwrite_hint}", option)
+    check_replaceable(p, kind=kind, option=option)
     check_writable_folder(p.parent if str(p.parent) else Path("."), option=option, target=p)
     check_space(p, need_bytes, option=option)
     return p
@@ -378,7 +499,7 @@ def _finish(target: OutputTarget) -> None:
 
 @contextlib.contextmanager
 def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_suffix: str = ".part",
-                option: str = "--out") -> Iterator[OutputTarget]:
+                option: str = "--out", kind: str | None = None) -> Iterator[OutputTarget]:
     """Write one output under the policy (module docstring): hold the target's writer lock, yield an
     :class:`OutputTarget` whose ``part`` file becomes ``path`` when the block completes; on an exception the part
     file is removed and ``path`` is left as it was. An OSError raised while writing becomes an
@@ -387,7 +508,8 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
     Raises
     ------
     OutputLocked if another writer holds ``path``; FileExistsError if ``path`` exists and ``overwrite`` is False;
-    OutputWriteError (the disk refused the output).
+    OutputError if ``path`` is not a file rigctl replaces (:func:`check_replaceable` with ``kind``); OutputWriteError
+    (the disk refused the output).
     """
     p = Path(path)
     try:
@@ -401,6 +523,7 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
     try:
         if p.exists() and not overwrite:
             raise FileExistsError(f"{p} exists (pass overwrite=True / --overwrite to replace it)")
+        check_replaceable(p, kind=kind, option=option)
         try:
             yield target
             target.check()

@@ -24,6 +24,7 @@ from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_la
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.core.version import __version__
 from rigctl.storage import h5objects, journal, journal_replay, session_recording
+from rigctl.storage.outputs import check_replaceable
 from rigctl.storage.session_format import (
     EVENTS_ATTR,
     PLAN_CHUNK_ROWS,
@@ -350,6 +351,8 @@ class SessionWriter:
                                     f"({path.parent}); choose another --out", exc.errno) from None
         lock = _writer_lock(path)  # before anything is written: a file another writer holds is never replaced
         try:
+            if overwrite:  # only a session is replaced: never a device, a link leading out, another program's file
+                check_replaceable(path, kind="session")
             image = _new_file_image(
                 plan_arr, layout=layout, textures=textures, protocol_source=protocol_source,
                 protocol_name=protocol_name, protocol_format=protocol_format, rig_config=rig_config, kind=kind,

@@ -17,6 +17,13 @@ from rigctl_gui.server_dialog import ServerDialog
 pytest.importorskip("fastapi")
 from fastapi.testclient import TestClient  # noqa: E402
 
+TOKEN = "gui-test-token-0123456789"
+
+
+def _app_client(q):
+    return TestClient(create_app(q, token=TOKEN), base_url="http://127.0.0.1:8765",
+                      headers={"Authorization": f"Bearer {TOKEN}"})
+
 PROTOCOL = ('name = "gui_serve"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
             'trials_per_condition = 4\nduration_s = 0.4\n[settle]\nsettle_time_ms = 50\n')
 
@@ -33,15 +40,15 @@ def _until(qapp, pred, timeout_s=120.0):
 
 def test_attached_window_queues_pauses_resumes_and_stops(qapp, qtbot, tmp_path):
     control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
-    q = RunQueue(control, tmp_path / "queue.json").start()
-    tc = TestClient(create_app(q))
+    q = RunQueue(control, tmp_path / "queue.json", data_dir=tmp_path).start()
+    tc = _app_client(q)
     dlg = ServerDialog(client_factory=lambda url, token: ServerClient(url, client=tc),
                        protocol_source=lambda: PROTOCOL, poll_ms=100)
     qtbot.addWidget(dlg)
     try:
         qtbot.mouseClick(dlg.attach_btn, QtCore.Qt.MouseButton.LeftButton)
         assert dlg.attached and "attached to" in dlg.status.text() and "inprocess rig" in dlg.status.text()
-        dlg.out.setText(str(tmp_path / "s.h5"))
+        dlg.out.setText("s.h5")
         qtbot.mouseClick(dlg.queue_btn, QtCore.Qt.MouseButton.LeftButton)
         assert dlg.table.rowCount() == 1
         run_id = dlg.table.item(0, 0).text()
@@ -78,7 +85,7 @@ def test_the_main_windows_stop_reaches_the_attached_server(window, qapp, tmp_pat
     q = RunQueue(control, tmp_path / "queue.json").start()
     try:
         window.open_server()
-        window._server_dialog.client = ServerClient("http://test", client=TestClient(create_app(q)))
+        window._server_dialog.client = ServerClient("http://test", client=_app_client(q))
         window.emergency_stop()  # what the STOP button, Esc and Rig > STOP call
         _until(qapp, lambda: q.held, timeout_s=10)
         _until(qapp, lambda: not window._stop_results, timeout_s=10)  # its outcome drained into the window

@@ -13,6 +13,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -23,6 +24,15 @@ from rigctl.server import create_app
 
 fastapi = pytest.importorskip("fastapi")
 from fastapi.testclient import TestClient  # noqa: E402
+
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def api(q, token=TOKEN, **kw):
+    """The app over ``q`` through FastAPI's test client, as rigctl's own clients talk to it (the token, Host
+    127.0.0.1; JSON bodies: ``client.post(path, json={})``)."""
+    return TestClient(create_app(q, token=token), base_url="http://127.0.0.1:8765", headers=AUTH, **kw)
 
 PROTOCOL = ('name = "serve_test"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
             'trials_per_condition = {n}\nduration_s = 0.4\n[settle]\nsettle_time_ms = 50\n')
@@ -41,9 +51,9 @@ def _wait(pred, timeout_s=120.0, every_s=0.02):
 @pytest.fixture
 def served(tmp_path):
     control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
-    q = RunQueue(control, tmp_path / "queue.json").start()
+    q = RunQueue(control, tmp_path / "queue.json", data_dir=tmp_path).start()
     try:
-        yield TestClient(create_app(q)), q
+        yield api(q), q
     finally:
         q.close()
         control.close()
@@ -53,33 +63,33 @@ def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path)
     # 40 trials in run a: the in-process rig records one in a fraction of a second, and the pause must land while
     # it still runs on a loaded machine (once, in 3 parallel workers, the 8-trial run had ended before it)
     client, q = served
-    a = client.post("/runs", json={"toml": PROTOCOL.format(n=20), "out": str(tmp_path / "a.h5")})
+    a = client.post("/runs", json={"toml": PROTOCOL.format(n=20), "out": "a.h5"})
     assert a.status_code == 201, a.text
     a = a.json()["id"]
-    b = client.post("/runs", json={"protocol": "quick_check", "out": str(tmp_path / "b.h5")}).json()["id"]
+    b = client.post("/runs", json={"protocol": "quick_check", "out": "b.h5"}).json()["id"]
     _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "running")
     assert client.get(f"/runs/{b}").json()["state"] == "queued"  # one run owns the rig
     assert client.get("/status").json()["current_run"]["id"] == a
     _wait(lambda: client.get(f"/runs/{a}").json()["trials_done"] >= 1)
     trial = _wait(lambda: client.get("/status").json()["current_trial"])
     assert trial["texture"] in ("A", "L") and trial["speed_mm_s"] == 120.0 and 0 <= trial["trial_id"] < 40
-    assert client.post(f"/runs/{a}/pause").status_code == 200
+    assert client.post(f"/runs/{a}/pause", json={}).status_code == 200
     _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "paused")
     done = client.get(f"/runs/{a}").json()["trials_done"]
     time.sleep(1.0)
     assert client.get(f"/runs/{a}").json()["trials_done"] == done < 40  # nothing recorded while paused
     assert client.get(f"/runs/{b}").json()["state"] == "queued"
-    assert client.post(f"/runs/{a}/resume").json()["state"] == "running"
+    assert client.post(f"/runs/{a}/resume", json={}).json()["state"] == "running"
     ra = _wait(lambda: (r := client.get(f"/runs/{a}").json())["state"] in ("done", "failed", "stopped") and r)
     assert ra["state"] == "done" and ra["trials_done"] == ra["trials_total"] == 40, ra
     rb = _wait(lambda: (r := client.get(f"/runs/{b}").json())["state"] in ("done", "failed", "stopped") and r)
     assert rb["state"] == "done" and rb["started_utc"] > ra["ended_utc"]
     # refusals in one line with the right status
-    assert client.post(f"/runs/{a}/pause").status_code == 409
+    assert client.post(f"/runs/{a}/pause", json={}).status_code == 409
     assert client.get("/runs/nope").status_code == 404
-    r = client.post("/runs", json={"protocol": "no_such", "out": str(tmp_path / "c.h5")})
+    r = client.post("/runs", json={"protocol": "no_such", "out": "c.h5"})
     assert r.status_code == 404 and "known:" in r.json()["detail"]
-    r = client.post("/runs", json={"toml": PROTOCOL.format(n=1), "out": str(tmp_path / "a.h5")})
+    r = client.post("/runs", json={"toml": PROTOCOL.format(n=1), "out": "a.h5"})
     assert r.status_code == 409 and "exists" in r.json()["detail"]
     assert "/runs/{run_id}/pause" in client.get("/openapi.json").json()["paths"]
 
@@ -114,12 +124,12 @@ def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
         control.close()
 
 
-def test_a_token_is_required_when_set(served):
+def test_a_token_is_required(served):
     _, q = served
-    client = TestClient(create_app(q, token="s3cret"))
+    client = TestClient(create_app(q, token="s3cret-s3cret-s3cret"), base_url="http://127.0.0.1:8765")
     assert client.get("/status").status_code == 401
     assert client.get("/status", headers={"Authorization": "Bearer wrong"}).status_code == 401
-    assert client.get("/status", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+    assert client.get("/status", headers={"Authorization": "Bearer s3cret-s3cret-s3cret"}).status_code == 200
 
 
 def test_a_non_loopback_bind_without_a_token_is_refused(tmp_path, monkeypatch):
@@ -135,11 +145,33 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _env(tmp_path):
+    """The servers' environment: their queue (and token file) in $XDG_STATE_HOME/rigctl, as by default."""
+    return {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "RIGCTL_SERVE_TOKEN": TOKEN,
+            "XDG_STATE_HOME": str(tmp_path / "state")}
+
+
 def _server(tmp_path, port):
-    env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json")}
     return subprocess.Popen([sys.executable, "-m", "rigctl", "serve", "--rig", "inprocess", "--host", "127.0.0.1",
-                             "--port", str(port), "--queue", str(tmp_path / "queue.json")],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                             "--port", str(port), "--data-dir", str(tmp_path)], env=_env(tmp_path),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def _curl_examples(tmp_path, url):
+    """docs/serve.md's curl examples, run as written against the server at ``url`` (its port): the token read from
+    the token file, a run queued, the event feed (read for 2 s), STOP and release."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "serve.md").read_text()
+    block = text.split("## Examples with curl", 1)[1].split("```sh", 1)[1].split("```", 1)[0]
+    lines = [line.replace("http://127.0.0.1:8765", url) for line in block.strip().splitlines()]
+    assert lines[0].startswith("TOKEN=$(") and all(line.startswith("curl ") for line in lines[1:]), lines
+    out = {}
+    for line in lines[1:]:
+        feed = " -N " in line
+        r = subprocess.run(["bash", "-c", f"{lines[0]}\n{'timeout 2 ' if feed else ''}{line}"], env=_env(tmp_path),
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == (124 if feed else 0), (line, r.returncode, r.stderr)
+        out[line.split()[-1].rsplit("/", 1)[-1]] = r.stdout
+    return out
 
 
 def _trials(path):
@@ -162,8 +194,8 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
         # the event feed: progress as it happens, subscribed before the run is queued (the feed sends what comes
         # after it subscribes: a run posted first can emit its first events before the feed is there)
-        with httpx.stream("GET", f"{url}/events", timeout=60) as feed:
-            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=8), "out": str(tmp_path / "s.h5")}
+        with httpx.stream("GET", f"{url}/events", timeout=60, headers=AUTH) as feed:
+            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=8), "out": "s.h5"}, headers=AUTH
                              ).json()["id"]
             events = []
             for line in feed.iter_lines():
@@ -172,7 +204,7 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
                     if events[-1]["type"] == "trial" and events[-1]["kind"] == "complete":
                         break
         assert any(e["type"] == "progress" and e["id"] == rid for e in events)
-        _wait(lambda: httpx.get(f"{url}/runs/{rid}").json()["trials_done"] >= 3, every_s=0.01)
+        _wait(lambda: httpx.get(f"{url}/runs/{rid}", headers=AUTH).json()["trials_done"] >= 3, every_s=0.01)
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     finally:
@@ -184,22 +216,61 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
     proc = _server(tmp_path, port)
     try:
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
-        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}").json())["state"] in ("done", "failed", "stopped")
-                    and r, timeout_s=240, every_s=0.2)
+        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH).json())["state"] in
+                    ("done", "failed", "stopped") and r, timeout_s=240, every_s=0.2)
+        curl = _curl_examples(tmp_path, url)
+        assert json.loads(curl["status"])["rig"]["mode"] and json.loads(curl["runs"])["state"] == "queued"
+        assert ": rigctl events" in curl["events"] and json.loads(curl["stop"])["held"] is True
+        stopped_s, exit_s, said = _ctrl_c_with_an_open_feed(proc, url)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(60)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(60)
+    print(f"Ctrl-C with an open event feed: 'stopped' said after {stopped_s:.2f} s, exited after {exit_s:.2f} s")
+    assert "stopped in" in said and "event stream(s) closed" in said and "(0 event" not in said, said
+    assert stopped_s < 2.0 and exit_s < 5.0  # the process's own teardown (numba, h5py) adds ~1 s on a busy machine
+    assert not (tmp_path / "state" / "rigctl" / "queue.token").exists()  # its token file removed
     assert run["state"] == "done" and run["starts"] == 2 and run["trials_done"] == 16, run
     after, _ = _trials(tmp_path / "s.h5")
     assert sorted(after) == list(range(16))  # none lost
     assert {t: after[t] for t in before} == before  # the trials finished before the kill were not recorded again
 
 
+def _ctrl_c_with_an_open_feed(proc, url):
+    """SIGINT to the server while an /events client is connected: (s until it says it stopped, s until it exits,
+    what it said)."""
+    import threading
+
+    import httpx
+
+    opened = threading.Event()
+
+    def feed():
+        with httpx.stream("GET", f"{url}/events", timeout=30, headers=AUTH) as r:
+            for _ in r.iter_lines():
+                opened.set()
+
+    threading.Thread(target=feed, daemon=True).start()
+    assert opened.wait(30)
+    lines: list[tuple[float, str]] = []
+    reader = threading.Thread(target=lambda: lines.extend((time.monotonic(), line) for line in proc.stderr),
+                              daemon=True)
+    reader.start()
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    proc.wait(60)
+    exit_s = time.monotonic() - t0
+    reader.join(10)
+    said = [(t, line) for t, line in lines if "stopped in" in line]
+    assert proc.returncode == 0 and said, (proc.returncode, lines)
+    return said[0][0] - t0, exit_s, said[0][1]
+
+
 def _get(url):
     import httpx
 
     try:
-        return httpx.get(url, timeout=2).status_code == 200
+        return httpx.get(url, timeout=2, headers=AUTH).status_code == 200
     except httpx.HTTPError:
         return False
 
@@ -207,15 +278,15 @@ def _get(url):
 @pytest.mark.realtime
 def test_stop_through_the_api_stops_the_drum_within_half_a_second(tmp_path):
     control = open_control(RigSource("sim"), seed=1, host_config_path=tmp_path / "rig.json")
-    q = RunQueue(control, tmp_path / "queue.json").start()
+    q = RunQueue(control, tmp_path / "queue.json", data_dir=tmp_path).start()
     try:
-        client = TestClient(create_app(q))
+        client = api(q)
         proto = PROTOCOL.format(n=2).replace("duration_s = 0.4", "duration_s = 4")
-        rid = client.post("/runs", json={"toml": proto, "out": str(tmp_path / "s.h5")}).json()["id"]
+        rid = client.post("/runs", json={"toml": proto, "out": "s.h5"}).json()["id"]
         _wait(lambda: (client.get("/status").json()["rig"]["drum"] or {}).get("speed_mm_s", 0) > 100,
               timeout_s=120, every_s=0.05)
         t0 = time.monotonic()
-        assert client.post("/stop").json()["acknowledged"] is True
+        assert client.post("/stop", json={}).json()["acknowledged"] is True
         _wait(lambda: abs(control.status().speed_mm_s) < 1.0, timeout_s=5, every_s=0.01)
         stopped_s = time.monotonic() - t0
         print(f"STOP through the API -> drum at rest in {stopped_s * 1e3:.0f} ms")

@@ -192,11 +192,18 @@ def test_writer_refusals(tmp_path):
     with pytest.raises(FileExistsError):
         EncodedWriter(path, layout=LAYOUT, textures=TEXTURES, trials=_trials())
     assert path.read_bytes() == b"user data"
+    with pytest.raises(ValueError, match="not a rigctl encoded file"):  # only an encoded file is replaced
+        EncodedWriter(path, layout=LAYOUT, textures=TEXTURES, trials=_trials(), overwrite=True)
+    assert path.read_bytes() == b"user data"
+    path = tmp_path / "e2.h5"
+    with EncodedWriter(path, layout=LAYOUT, textures=TEXTURES, trials=_trials()) as w:
+        w.write_features("original", 0, np.zeros((5, 3)))
+    before = path.read_bytes()
     with pytest.raises(RuntimeError):
         with EncodedWriter(path, layout=LAYOUT, textures=TEXTURES, trials=_trials(), overwrite=True) as w:
             w.write_features("original", 0, np.zeros((5, 3)))
             raise RuntimeError("encoding failed")
-    assert path.read_bytes() == b"user data" and not w.part.exists()  # nothing replaced, part file removed
+    assert path.read_bytes() == before and not w.part.exists()  # nothing replaced, part file removed
     with pytest.raises(ValueError, match="entries"):
         EncodedWriter(tmp_path / "x.h5", layout=LAYOUT, textures=TEXTURES,
                       trials={"trial_id": [0, 1], "texture": ["Fabric-AAA"]})
