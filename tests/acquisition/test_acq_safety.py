@@ -4,6 +4,7 @@ CLI ends such a run with why and how to acknowledge, and ``--resume`` acknowledg
 
 from __future__ import annotations
 
+import shlex
 import time
 from pathlib import Path
 
@@ -81,17 +82,30 @@ def test_acknowledgement_refused_while_the_estop_is_pressed():
         assert control.latch is not None
 
 
+def _safety_doc_commands() -> list[list[str]]:
+    """The two commands of docs/safety.md's e-stop example, as argument lists."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "safety.md").read_text()
+    block = text.split("An e-stop held for 2 s", 1)[1].split("```sh", 1)[1].split("```", 1)[0]
+    lines = [shlex.split(line) for line in block.strip().splitlines()]
+    assert [line[:2] for line in lines] == [["rigctl", "acquire"]] * 2 and "--resume" in lines[1]
+    return [line[1:] for line in lines]
+
+
 @pytest.mark.parametrize("protocol", ["quick_check", str(EXAMPLE_PLAN)])
-def test_cli_ends_on_estop_and_resume_acknowledges_it(tmp_path, protocol):
-    out = tmp_path / "a.h5"
+def test_cli_ends_on_estop_and_resume_acknowledges_it(tmp_path, monkeypatch, protocol):
+    """docs/safety.md's commands as written (and with the Python plan): the run ends on the e-stop saying why and
+    how to acknowledge; --resume acknowledges it (logged with the fault it clears) and completes the plan."""
+    monkeypatch.chdir(tmp_path)
+    first_args, second_args = ([protocol if a == "quick_check" else a for a in args] + ["--quiet"]
+                               for args in _safety_doc_commands())
     runner = CliRunner()
-    first = runner.invoke(cli, ["acquire", protocol, "--inprocess", "--inject", "estop@3+2", "--out", str(out),
-                                "--quiet"])
+    first = runner.invoke(cli, first_args)
+    out = tmp_path / "a.h5"
     assert first.exit_code == 1, first.output
     assert "e-stop" in first.output and "--resume" in first.output and "acknowledge" in first.output
     with open_session(out) as s:
         assert len(s.completed_ids()) < 6 and [e["kind"] for e in s.events] == ["latched"]
-    second = runner.invoke(cli, ["acquire", protocol, "--inprocess", "--out", str(out), "--resume", "--quiet"])
+    second = runner.invoke(cli, second_args)
     assert second.exit_code == 0, second.output
     with open_session(out) as s:
         assert len(s.completed_ids()) == 6
