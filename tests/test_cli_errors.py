@@ -235,7 +235,7 @@ def test_unexpected_errors_are_one_line_and_debug_shows_them(data, monkeypatch):
     import rigctl.cli.info as info_cli
     from rigctl.storage.session import SessionError
 
-    def broken(path):
+    def broken(path, **kw):
         raise TypeError("boom")
 
     monkeypatch.setattr(info_cli, "session_summary", broken)
@@ -244,7 +244,7 @@ def test_unexpected_errors_are_one_line_and_debug_shows_them(data, monkeypatch):
     r = CliRunner().invoke(main, ["--debug", "info", str(data["session"])])
     assert isinstance(r.exception, TypeError)
 
-    def damaged(path):
+    def damaged(path, **kw):
         raise SessionError(f"{path}: trial 3 is damaged\n(its taxels are missing)")
 
     monkeypatch.setattr(info_cli, "session_summary", damaged)

@@ -97,10 +97,15 @@ def test_ctrl_c_during_sim_dataset_says_how_to_resume(tmp_path):
 
 
 def test_encode_bars_are_named_for_what_they_do(session, tmp_path):
-    r = CliRunner().invoke(main, ["encode", str(session), "--out", str(tmp_path / "e.h5"), "--variant", "original"])
+    r = CliRunner().invoke(main, ["encode", str(session), "--out", str(tmp_path / "e.h5"), "--variant", "original",
+                                  "--progress"])
     assert r.exit_code == 0, r.output
     stages = set(re.findall(r"(reading trials|range pass|encoding):", r.stderr))
     assert stages == {"reading trials", "encoding"}, r.stderr
+    # not a terminal (CliRunner's stderr is a buffer): no bars unless asked, so logs get no bar updates
+    r = CliRunner().invoke(main, ["encode", str(session), "--out", str(tmp_path / "f.h5"), "--variant", "original"])
+    assert r.exit_code == 0, r.output
+    assert not re.findall(r"(reading trials|range pass|encoding):", r.stderr), r.stderr
 
 
 def test_run_summary_of_nothing_recorded_says_so():

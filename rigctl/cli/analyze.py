@@ -10,8 +10,16 @@ from pathlib import Path
 import click
 
 from rigctl.cli.jsonout import json_text
-from rigctl.cli.outputs import UsageProblem, check_output, image_suffixes, replacing, require_dask, same_file
-from rigctl.cli.progress import bars
+from rigctl.cli.outputs import (
+    UsageProblem,
+    check_output,
+    image_suffixes,
+    replacing,
+    require_dask,
+    same_file,
+    scheduler_address,
+)
+from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import SEED, WORKERS
 
 TASKS = ("textures", "groups", "extrapolation", "speed-extrapolation", "realtime", "all", "variance")
@@ -63,7 +71,7 @@ def _check_variants(path, variants):
         raise UsageProblem(f"--variants: {', '.join(bad)} not in {path}; choose from {', '.join(have)}")
 
 
-def _load(path, encode, variants, task="table1", progress=False):
+def _load(path, encode, variants, task="table1", progress=False, keep_nonfinite=False):
     """The features of ``path``; a session file is encoded on the fly (into a temporary folder) with ``encode``."""
     from rigctl.analysis.data import NotEncodedError
     from rigctl.operations import load_or_encode
@@ -80,7 +88,8 @@ def _load(path, encode, variants, task="table1", progress=False):
         with warnings.catch_warnings(record=True) as caught, bars(progress) as bar:
             warnings.simplefilter("always")
             loaded = load_or_encode(path, variants, task=task,
-                                    encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"), progress=bar)[0]
+                                    encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"), progress=bar,
+                                    keep_nonfinite=keep_nonfinite)[0]
         for w in caught:  # one line each (excluded trials, skipped variants), as rigctl encode shows them
             click.echo(f"warning: {w.message}", err=True)
         return loaded
@@ -214,19 +223,21 @@ def _format_leak(leak) -> str:
               help="Limit BLAS threads and repetitions at a time to N (busy machines).")
 @click.option("--jobs", type=WORKERS, default=None,
               help="Repetitions run side by side in this process (default: one per core, at most --threads).")
-@click.option("--scheduler", default=None,
+@click.option("--scheduler", default=None, callback=scheduler_address,
               help="Run the repetitions on a Dask cluster: scheduler address (tcp://host:8786), or 'local' for a "
                    "local cluster of --workers processes.")
 @click.option("--workers", type=WORKERS, default=None, help="Worker processes for --scheduler local.")
 @click.option("--variance", is_flag=True,
               help="Also print where the feature variance lies (texture, condition, interaction, residual; per "
                    "variant). --task variance prints only that.")
-@click.option("--progress/--no-progress", default=True, show_default=True)
+@progress_option
+@click.option("--keep-nonfinite", is_flag=True,
+              help="With --encode: use trials whose force or speed readings hold NaN or inf (default: excluded).")
 @click.pass_context
 def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_, table_pcs, compare_paper, as_json,
             plot, confusion, csv_path, overwrite, train_speeds, test_speeds, train_forces, baseline, channels, new_session,
             train_profiles, save_model, model_variant, model_pcs, encode_, threads, jobs, scheduler, workers, progress,
-            variance, force_leak_, cv_groups, textures_, n_train, n_test):
+            keep_nonfinite, variance, force_leak_, cv_groups, textures_, n_train, n_test):
     """Run the paper's PCA + LDA analyses on FILE, an encoded file (``rigctl encode`` output).
 
     Accuracy is computed for PCs 1..N with one PCA per split; results print as Table 1 (mean and sd over repetitions,
@@ -246,7 +257,8 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
         plot=plot, confusion=confusion, csv_path=csv_path, train_speeds=_floats(train_speeds),
         test_speeds=_floats(test_speeds), train_forces=_floats(train_forces), baseline=baseline, channels=channels,
         new_session=new_session, train_profiles=tuple(p.strip() for p in train_profiles.split(",")),
-        save_model=save_model, model_variant=model_variant, model_pcs=model_pcs, encode=encode_, progress=progress,
+        save_model=save_model, model_variant=model_variant, model_pcs=model_pcs, encode=encode_, progress=show_bars(progress),
+        keep_nonfinite=keep_nonfinite,
         variance=variance or task == "variance", force_leak=force_leak_, cv_groups=cv_groups, n_train=n_train,
         n_test=n_test,
         textures=[t.strip() for t in textures_.split(",") if t.strip()] if textures_ else None)
@@ -291,6 +303,7 @@ class AnalyzeOptions:
     model_pcs: int = 25
     encode: bool = False
     progress: bool = True
+    keep_nonfinite: bool = False
     variance: bool = False
     force_leak: str | None = None
     cv_groups: str | None = None
@@ -330,7 +343,7 @@ def _run(opts: AnalyzeOptions, execution=None):
     from rigctl.operations import BaselineError, run_analyses
 
     _check_variants(opts.file, opts.variants)
-    fs = _load(opts.file, opts.encode, opts.variants, opts.task, opts.progress)
+    fs = _load(opts.file, opts.encode, opts.variants, opts.task, opts.progress, opts.keep_nonfinite)
     if opts.textures:
         try:
             fs = fs.select_textures(opts.textures)

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from rigctl.cli.outputs import UsageProblem, check_output, require_dask
-from rigctl.cli.progress import bars
+from rigctl.cli.outputs import UsageProblem, check_output, require_dask, scheduler_address
+from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import MAX_WINDOWS, WORKERS, floats
 from rigctl.storage.encoded import ALL_VARIANTS
 
@@ -58,7 +58,7 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Encoded file to write (default: SESSION with suffix .encoded.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace the output file if it exists.")
-@click.option("--scheduler", default=None,
+@click.option("--scheduler", default=None, callback=scheduler_address,
               help="Dask scheduler address (tcp://host:8786), or 'local' for a local cluster; default: this "
                    "process, numba on all cores.")
 @click.option("--workers", type=WORKERS, default=None, help="Worker processes for --scheduler local.")
@@ -76,9 +76,11 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
               help="Windows per spike train of the speed-scaled variants (20 = 2 s at the 120 mm/s reference, the "
                    "paper's), or 'longest': enough for the longest trial in scaled time (whole trials).")
 @click.option("--no-spikes", is_flag=True, help="Do not store spike trains, only features.")
-@click.option("--quiet", is_flag=True, help="No progress bars.")
+@progress_option
+@click.option("--keep-nonfinite", is_flag=True,
+              help="Use trials whose force or speed readings hold NaN or inf (flagged; default: excluded).")
 def encode(session, out, overwrite, scheduler, workers, batch, variants, window_ms, windows_unscaled,
-           windows_scaled, no_spikes, quiet):
+           windows_scaled, no_spikes, progress, keep_nonfinite):
     """Encode SESSION: per-taxel normalisation, force coefficients (eq. 1), Izhikevich SA/RA encoding (eqs. 3-5),
     speed scaling (eq. 2) and SR/SC features for the variants original, speed_scaled, force_scaled,
     speed_force_scaled (+ label-free force and real-time variants). The session's sensor layout gives the channel
@@ -86,6 +88,7 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     the encoded file)."""
     from rigctl.encoding.pipeline import EncodeParams, encode_session
     from rigctl.storage.encoded import MAIN_VARIANTS, open_encoded
+    from rigctl.storage.outputs import OutputError
     from rigctl.storage.session import SessionError
 
     out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,), kind="encoded")
@@ -97,14 +100,16 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     try:
         params = EncodeParams(window_s=window_ms / 1000.0, n_windows_unscaled=windows_unscaled,
                               n_windows_scaled=windows_scaled)
-        with warnings.catch_warnings(record=True) as caught, bars(not quiet) as progress:
+        with warnings.catch_warnings(record=True) as caught, bars(show_bars(progress)) as bar:
             warnings.simplefilter("always")
             path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,
-                                  scheduler=scheduler, workers=workers, progress=progress,
+                                  scheduler=scheduler, workers=workers, progress=bar,
                                   store_spikes=() if no_spikes else MAIN_VARIANTS, params=params,
-                                  overwrite=overwrite)
+                                  overwrite=overwrite, keep_nonfinite=keep_nonfinite)
         for w in caught:  # one line each, not Python's file:line form
             click.echo(f"warning: {w.message}", err=True)
+    except OutputError:  # another writer took the output meanwhile: refused like any output (exit 2, as export)
+        raise
     except (ValueError, KeyError, OSError, SessionError) as exc:
         msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
         raise click.ClickException(" ".join(msg.split())) from None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from rigctl.cli.outputs import UsageProblem, check_output
-from rigctl.cli.progress import bars
+from rigctl.cli.progress import bars, progress_option, show_bars
 
 
 @click.group("export")
@@ -22,8 +22,10 @@ def export():
                    "not speed-scaled).")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="The NWB file to write (.nwb).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
-@click.option("--progress/--no-progress", default=True, show_default=True)
-def nwb(session, encoded, variants, out, overwrite, progress):
+@progress_option
+@click.option("--keep-nonfinite", is_flag=True,
+              help="Export trials whose force or speed readings hold NaN or inf (default: excluded).")
+def nwb(session, encoded, variants, out, overwrite, progress, keep_nonfinite):
     """Export SESSION as an NWB file: taxel readings (TimeSeries), drum and load-cell traces, the trials table, the
     sensor and rig description, and with --encoded the SA/RA spike trains as a Units table (docs/nwb.md)."""
     from rigctl.storage.encoded import NotEncodedError
@@ -46,10 +48,10 @@ def nwb(session, encoded, variants, out, overwrite, progress):
     import warnings
 
     try:
-        with warnings.catch_warnings(record=True) as caught, bars(progress, leave=False) as on_event:
+        with warnings.catch_warnings(record=True) as caught, bars(show_bars(progress), leave=False) as on_event:
             warnings.simplefilter("always")
             summary = export_nwb(session, out, encoded_path=encoded, variants=vlist, progress=on_event,
-                                 overwrite=overwrite)
+                                 overwrite=overwrite, keep_nonfinite=keep_nonfinite)
     except (NwbExportError, SessionError, NotEncodedError) as exc:
         raise click.ClickException(str(exc)) from None
     for w in caught:  # one line each (excluded trials), as rigctl encode shows them

@@ -6,7 +6,7 @@ import click
 
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import check_output
-from rigctl.cli.progress import bars
+from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import MAX_VOLTS, RATE_HZ, floats
 
 
@@ -71,9 +71,9 @@ def _checked_segment(ctx, param, value):
               help="A known dataset: FILES is its folder (fabricslide = rigctl import-fabricslide's defaults).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-@click.option("--quiet", is_flag=True, help="No progress bars.")
+@progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, mapping, volts_ref, nan, adc_bits, preset, overwrite, as_json, quiet):
+                      align, pre_ms, mapping, volts_ref, nan, adc_bits, preset, overwrite, as_json, progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
@@ -90,7 +90,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, mapping=mapping,
         volts_ref=volts_ref, adc_bits=adc_bits, nan=nan)
     try:
-        with bars(not quiet and not as_json) as progress:
+        with bars(show_bars(progress) and not as_json) as progress:
             report = run(files, out, preset=preset, overwrite=overwrite, progress=progress, **options)
     except (FileExistsError, FileNotFoundError, ValueError) as exc:  # RecordingImportError is a ValueError
         raise click.ClickException(str(exc)) from None

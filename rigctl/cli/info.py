@@ -9,13 +9,25 @@ from typing import Any
 import click
 
 from rigctl.cli.jsonout import json_text
+from rigctl.cli.progress import bars, progress_option, show_bars
+from rigctl.core.progress import ProgressCallback
 from rigctl.storage.session import TrialStatus, open_session
 
 _STATUS = {int(s): s.name.lower() for s in TrialStatus}
 
 
-def session_summary(path: str | Path) -> dict:
+#: the trial attributes ``rigctl info`` shows (read in one pass, :meth:`Session.trial_table`); schema 4 takes the
+#: counts from ``/recording/index`` instead
+_SHOWN = ("n_samples", "dropped_frames", "crc_errors", "host_rate_hz", "force_mean_g", "speed_mean_mm_s",
+          "index_source", "drum_speed_index_mm_s", "drum_speed_mismatch", "drum_speed_warning", "error")
+
+
+def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
+                    progress: ProgressCallback | None = None) -> dict:
     """A JSON-able summary of a session file.
+
+    ``keep_nonfinite``: trials with NaN/inf force or speed readings are complete (flagged ``nonfinite``) instead of
+    excluded; ``progress``: the validator's ``rigctl.core.progress`` events.
 
     Returns
     -------
@@ -31,51 +43,23 @@ def session_summary(path: str | Path) -> dict:
     speed_mean_mm_s, index_source, drum_speed_index_mm_s, drum_speed_warning ("" unless the trial is flagged
     drum_speed_mismatch), source (where an imported or replayed trial came from: ``file``, ``first_sample``,
     ``last_sample`` (inclusive, at the session's rate), ``cycle`` (the cycle or run of a segmented recording),
-    ``trial_id`` (a replayed session's trial); None for a trial recorded here), error) and ``totals``.
+    ``trial_id`` (a replayed session's trial); None for a trial recorded here), nonfinite (a kept trial's NaN/inf
+    readings, in words; None otherwise), error) and ``totals``.
     """
     from rigctl.storage.validate import usable_trials
 
     path = Path(path)
     with open_session(path) as s:
-        report = usable_trials(s)  # the one trial validator: excluded trials say why, as in encode and export
-        trials = []
-        for row in s.plan:
-            tid = int(row["trial_id"])
-            status = _STATUS.get(int(row["status"]), str(row["status"]))
-            t = {
-                "trial_id": tid, "texture": str(row["texture"]), "profile": str(row["profile"]),
-                "speed_mm_s": float(row["speed_mm_s"]), "force_g": float(row["force_g"]),
-                "duration_s": float(row["duration_s"]),
-                "ramp_start_mm_s": _num(row["ramp_start_mm_s"]), "ramp_end_mm_s": _num(row["ramp_end_mm_s"]),
-                "status": status, "samples": 0, "samples_per_s": None, "host_rate_hz": None,
-                "dropped_frames": 0, "crc_errors": 0,
-            }
-            if status == "complete" and tid in report.excluded:
-                t["status"] = "excluded"
-                t["error"] = report.excluded[tid]
-            elif status in ("complete", "failed"):
-                try:
-                    a = s.trial_attrs(tid)
-                except KeyError:
-                    a = {}
-                if status == "failed":
-                    t["error"] = str(a.get("error", ""))
-                else:
-                    n = int(a.get("n_samples", 0))
-                    t["samples"] = n
-                    t["samples_per_s"] = n / t["duration_s"] if t["duration_s"] > 0 else None
-                    # measured when recorded; None for generated/imported sessions (their clock is synthetic)
-                    t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
-                    t["dropped_frames"] = report.dropped_frames.get(tid, int(a.get("dropped_frames", 0)))
-                    t["crc_errors"] = int(a.get("crc_errors", 0))
-                    t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
-                    t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
-                    t["index_source"] = str(a.get("index_source", "")) or None
-                    t["drum_speed_index_mm_s"] = _num(a.get("drum_speed_index_mm_s", math.nan))
-                    t["drum_speed_warning"] = str(a.get("drum_speed_warning", "")) if a.get(
-                        "drum_speed_mismatch", False) else ""
-                    t["source"] = _source(a)
-            trials.append(t)
+        # the one trial validator: excluded trials say why, as in encode and export
+        report = usable_trials(s, keep_nonfinite=keep_nonfinite, progress=progress)
+        shown = [int(r["trial_id"]) for r in s.plan if (int(r["status"]) == TrialStatus.COMPLETE and
+                                                        int(r["trial_id"]) not in report.excluded)
+                 or int(r["status"]) == TrialStatus.FAILED]
+        index = s.recording_index()  # schema 4: the counts (older files: the attributes)
+        names = _SHOWN[3:] if index else _SHOWN
+        attrs = dict(zip(shown, s.trial_table(shown, names + tuple(SOURCE_ATTRS))))  # one pass, no dataset opened
+        trials = [_trial_row(row, report, attrs.get(int(row["trial_id"])), index.get(int(row["trial_id"])))
+                  for row in s.plan]
         done = [t for t in trials if t["status"] == "complete"]
         totals = {
             "trials": len(trials),
@@ -83,14 +67,16 @@ def session_summary(path: str | Path) -> dict:
             "failed": sum(t["status"] == "failed" for t in trials),
             "pending": sum(t["status"] == "pending" for t in trials),
             "excluded": sum(t["status"] == "excluded" for t in trials),
+            "nonfinite": sum(t.get("nonfinite") is not None for t in done),
             "samples": sum(t["samples"] for t in done),
             "recorded_s": sum(t["duration_s"] for t in done),
             "dropped_frames": sum(t["dropped_frames"] for t in done),
             "crc_errors": sum(t["crc_errors"] for t in done),
         }
-        attrs = {k: s.attrs.get(k) for k in ("schema_version", "session_id", "created_utc", "kind", "rigctl_version")}
+        attrs_root = {k: s.attrs.get(k) for k in ("schema_version", "session_id", "created_utc", "kind",
+                                                  "rigctl_version")}
         return {
-            "file": str(path), "size_bytes": path.stat().st_size, **attrs,
+            "file": str(path), "size_bytes": path.stat().st_size, **attrs_root,
             "protocol": {"name": s.protocol_name, "format": s.protocol_format},
             "sensor": _sensor_summary(s.layout),
             "texture_set": _textures_summary(s.textures),
@@ -100,6 +86,51 @@ def session_summary(path: str | Path) -> dict:
         }
 
 
+def _count(v: Any) -> int:
+    try:
+        return int(v)
+    except (TypeError, ValueError, OverflowError):
+        return 0
+
+
+def _trial_row(row: Any, report: Any, a: dict | None, index_row: Any) -> dict:
+    """One trial of :func:`session_summary` from its plan row, the validator's report, its shown attributes
+    (:data:`_SHOWN`; None when not read) and its ``/recording/index`` row (schema 4, else None)."""
+    tid = int(row["trial_id"])
+    status = _STATUS.get(int(row["status"]), str(row["status"]))
+    t: dict[str, Any] = {
+        "trial_id": tid, "texture": str(row["texture"]), "profile": str(row["profile"]),
+        "speed_mm_s": float(row["speed_mm_s"]), "force_g": float(row["force_g"]),
+        "duration_s": float(row["duration_s"]),
+        "ramp_start_mm_s": _num(row["ramp_start_mm_s"]), "ramp_end_mm_s": _num(row["ramp_end_mm_s"]),
+        "status": status, "samples": 0, "samples_per_s": None, "host_rate_hz": None,
+        "dropped_frames": 0, "crc_errors": 0,
+    }
+    a = a or {}
+    if status == "complete" and tid in report.excluded:
+        t["status"] = "excluded"
+        t["error"] = report.excluded[tid]
+    elif status == "failed":
+        t["error"] = str(a.get("error", ""))
+    elif status == "complete":
+        counts = index_row if index_row is not None else a
+        n = _count(counts["n_samples"] if index_row is not None else a.get("n_samples", 0))
+        t["samples"] = n
+        t["samples_per_s"] = n / t["duration_s"] if t["duration_s"] > 0 else None
+        # measured when recorded; None for generated/imported sessions (their clock is synthetic)
+        t["host_rate_hz"] = _num(a.get("host_rate_hz", math.nan))
+        t["dropped_frames"] = report.dropped_frames.get(tid, 0)
+        t["crc_errors"] = _count(counts["crc_errors"] if index_row is not None else a.get("crc_errors", 0))
+        t["force_mean_g"] = _num(a.get("force_mean_g", math.nan))
+        t["speed_mean_mm_s"] = _num(a.get("speed_mean_mm_s", math.nan))
+        t["index_source"] = str(a.get("index_source", "")) or None
+        t["drum_speed_index_mm_s"] = _num(a.get("drum_speed_index_mm_s", math.nan))
+        t["drum_speed_warning"] = str(a.get("drum_speed_warning", "")) if a.get("drum_speed_mismatch", False) else ""
+        t["source"] = _source(a)
+        t["nonfinite"] = report.nonfinite.get(tid)
+    return t
+
+
 #: trial attribute -> key of a trial's ``source`` in the summary (written by rigctl import and by replay)
 SOURCE_ATTRS = {"source_file": "file", "source_first_sample": "first_sample", "source_last_sample": "last_sample",
                 "cycle_index": "cycle", "source_trial_id": "trial_id"}
@@ -107,11 +138,18 @@ SOURCE_ATTRS = {"source_file": "file", "source_first_sample": "first_sample", "s
 
 def _source(attrs) -> dict | None:
     """A trial's provenance from its attributes (:data:`SOURCE_ATTRS`), None when it has none."""
-    out = {}
+    out: dict[str, Any] = {}
     for attr, key in SOURCE_ATTRS.items():
         v = attrs.get(attr)
-        if v is not None:
-            out[key] = v.decode() if isinstance(v, bytes) else (str(v) if attr == "source_file" else int(v))
+        if v is None:
+            continue
+        if attr == "source_file":
+            out[key] = v.decode() if isinstance(v, bytes) else str(v)
+        else:
+            try:
+                out[key] = int(v)
+            except (TypeError, ValueError, OverflowError):  # a damaged attribute: shown as it is
+                out[key] = str(v)
     return out or None
 
 
@@ -186,7 +224,11 @@ def _show_provenance(file: Path, as_json: bool) -> None:
                    "version and git state, Python and package versions, host, command line, both boards' firmware "
                    "against the installed sources, the protocol, the rig config and calibration with their dates, "
                    "seeds, encoder parameters, and the provenance of the files it was made from.")
-def info(file, as_json, provenance):
+@click.option("--keep-nonfinite", is_flag=True,
+              help="Count trials whose force or speed readings hold NaN or inf as complete (flagged), as encode and "
+                   "export do with this option (default: excluded, with the reason).")
+@progress_option
+def info(file, as_json, provenance, keep_nonfinite, progress):
     """Summarise the session FILE: per trial its setpoints, samples, samples per second, dropped frames, CRC errors
     and status; then the totals. With --provenance: what made FILE."""
     from rigctl.storage.session import SessionError
@@ -196,7 +238,8 @@ def info(file, as_json, provenance):
         return
 
     try:
-        summary = session_summary(file)
+        with bars(show_bars(progress), leave=False) as bar:
+            summary = session_summary(file, keep_nonfinite=keep_nonfinite, progress=bar)
     except SessionError as exc:
         raise click.ClickException(str(exc)) from None
     except OSError as exc:
@@ -225,6 +268,8 @@ def info(file, as_json, provenance):
                 f"{_fmt(t['host_rate_hz']):>8} {t['dropped_frames']:>7} {t['crc_errors']:>4}  {t['status']}")
         if t.get("error"):
             line += f" ({t['error']})"
+        if t.get("nonfinite"):
+            line += f" (non-finite readings: {t['nonfinite']})"
         if t.get("source"):
             line += f"  from {_source_text(t['source'])}"
         click.echo(line)
@@ -233,6 +278,8 @@ def info(file, as_json, provenance):
             click.echo(f"warning: trial {t['trial_id']}: drum speed mismatch: {t['drum_speed_warning']}")
     tot = summary["totals"]
     excluded = f", {tot['excluded']} excluded as damaged" if tot["excluded"] else ""
+    if tot["nonfinite"]:
+        excluded += f", {tot['nonfinite']} with non-finite readings kept"
     click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete{excluded}, {tot['failed']} failed, "
                f"{tot['pending']} pending; {tot['samples']} samples over {tot['recorded_s']:.1f} s of trials; "
                f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors")

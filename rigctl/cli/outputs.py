@@ -13,6 +13,7 @@ target under its writer lock, mode per the umask).
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -71,3 +72,23 @@ def require_dask(scheduler: object, *, otherwise: str) -> None:
     if not found:
         raise UsageProblem("--scheduler needs Dask (dask.distributed), which is not installed: "
                            f"pip install 'rigctl[dask]', or drop --scheduler to {otherwise}")
+
+
+_ADDRESS = re.compile(r"^(?:(?:tcp|tls|ucx|ws|wss)://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][A-Za-z0-9.\-]*)"
+                      r"(?::(?P<port>\d{1,5}))?/?$")
+
+
+def scheduler_address(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    """The ``--scheduler`` callback: ``local``, or a Dask scheduler address (``tcp://host:8786``, ``host:8786``);
+    anything else is a usage error (exit 2) naming the option, before any work."""
+    if value is None:
+        return None
+    text = value.strip()
+    if text.lower() == "local":
+        return "local"
+    m = _ADDRESS.match(text)
+    if m is None or (m.group("port") is not None and not 0 < int(m.group("port")) <= 65535) or (
+            "://" not in text and m.group("port") is None):
+        raise click.BadParameter(f"{value!r} is neither 'local' nor a Dask scheduler address such as "
+                                 "tcp://127.0.0.1:8786")
+    return text

@@ -6,11 +6,14 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
+
+import click
 
 from rigctl.core.progress import ProgressEvent
 
-__all__ = ["TqdmProgress", "bars"]
+__all__ = ["PROGRESS_HELP", "TqdmProgress", "bars", "progress_option", "show_bars"]
 
 #: a bar is redrawn at most this often, s (tqdm's own default ``mininterval``)
 REDRAW_S = 0.1
@@ -64,7 +67,38 @@ class TqdmProgress:
         self.close()
 
 
+PROGRESS_HELP = ("Progress bars on stderr (default: on when stderr is a terminal, off when it is a file or a pipe, "
+                 "so logs get no bar updates).")
+
+
+def _quiet(ctx: click.Context, param: click.Parameter, value: bool) -> bool:
+    if value:
+        ctx.meta["rigctl.no_progress"] = True
+    return value
+
+
+def progress_option(f: Callable[..., Any]) -> Callable[..., Any]:
+    """The ``--progress/--no-progress`` option of a long command (parameter ``progress``: True, False or None for
+    "not said": :func:`show_bars` decides), with ``--quiet`` kept as another spelling of ``--no-progress``."""
+    f = click.option("--quiet", is_flag=True, expose_value=False, callback=_quiet,
+                     help="Same as --no-progress.")(f)
+    return click.option("--progress/--no-progress", "progress", default=None, help=PROGRESS_HELP)(f)
+
+
+def show_bars(progress: bool | None) -> bool:
+    """Whether to draw bars: ``--no-progress`` / ``--quiet`` no, ``--progress`` yes, else only on a terminal."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None and ctx.meta.get("rigctl.no_progress"):
+        return False
+    if progress is not None:
+        return bool(progress)
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # a closed or replaced stderr
+        return False
+
+
 def bars(enabled: bool = True, **kw):
-    """``with bars(enabled) as progress:`` -> a :class:`TqdmProgress` when ``enabled`` (the command's ``--progress``
-    / not ``--quiet``), else None (no bars); the last bar is closed on leaving the block."""
+    """``with bars(enabled) as progress:`` -> a :class:`TqdmProgress` when ``enabled`` (:func:`show_bars` of the
+    command's ``--progress``), else None (no bars); the last bar is closed on leaving the block."""
     return TqdmProgress(**kw) if enabled else contextlib.nullcontext(None)

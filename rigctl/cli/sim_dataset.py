@@ -9,7 +9,7 @@ import click
 from rigctl.acquisition.protocol import MAX_PLAN_TRIALS
 from rigctl.cli.jsonout import json_text
 from rigctl.cli.outputs import UsageProblem, check_output
-from rigctl.cli.progress import bars
+from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED, WORKERS_OR_0
 
@@ -51,9 +51,9 @@ def dataset_size(protocol, trials_per_condition=None) -> tuple[int | None, float
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted output file (renders only missing trials).")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@progress_option
 def dataset(protocol, out, trials_per_condition, seed, workers, compression, start_at, overwrite, resume, as_json,
-            quiet):
+            progress):
     """Generate a simulated dataset from PROTOCOL (e.g. protocols/paper_dataset.toml) without real-time pacing.
 
     Writes the same session layout as `rigctl acquire` (kind "simulated-dataset"), trial by trial, on all cores.
@@ -85,7 +85,7 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
     config = RigConfig()
     config.drum.start_at_index = start_at == "index"
     try:
-        with bars(not quiet) as progress:
+        with bars(show_bars(progress)) as progress:
             summary = generate_dataset(loaded, out, trials_per_condition=trials_per_condition, seed=seed,
                                        workers=workers, progress=progress, config=config,
                                        compression=None if compression == "none" else compression,

@@ -278,7 +278,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                    scheduler: str | None = None, workers: int | None = None,
                    progress: ProgressCallback | None = None,
                    trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 1e9,
-                   params: EncodeParams | None = None, overwrite: bool = False) -> Path:
+                   params: EncodeParams | None = None, overwrite: bool = False,
+                   keep_nonfinite: bool = False) -> Path:
     """Encode a session file (``rigctl.storage.session``) into an encoded file (:mod:`rigctl.storage.encoded`).
 
     Parameters
@@ -300,6 +301,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     params : :class:`EncodeParams` (window length and counts, model constants); ``input_rate_hz`` is set from the
         session's layout, ``n_windows_unscaled`` None from the longest trial.
     overwrite : replace an existing ``out_path`` (False: FileExistsError).
+    keep_nonfinite : encode trials whose force or speed traces hold NaN/inf (the validator's ``keep_nonfinite``;
+        default: excluded like damaged trials).
 
     Returns
     -------
@@ -314,7 +317,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     """
     run = EncodeRun.of(session_path, out_path, variants=variants, batch_trials=batch_trials, scheduler=scheduler,
                        workers=workers, trial_ids=trial_ids, store_spikes=store_spikes,
-                       fit_memory_bytes=fit_memory_bytes, overwrite=overwrite)
+                       fit_memory_bytes=fit_memory_bytes, overwrite=overwrite, keep_nonfinite=keep_nonfinite)
     p = replace(params) if params is not None else EncodeParams()
     t_start = time.time()
     read = _range_pass(run, p, progress)  # pass 1: labels, per-taxel range, the model input kept for the fit
@@ -367,6 +370,7 @@ class EncodeRun:
     store_spikes: tuple[str, ...] = MAIN_VARIANTS
     fit_memory_bytes: float = 1e9
     overwrite: bool = False
+    keep_nonfinite: bool = False
 
     @classmethod
     def of(cls, session_path: Any, out_path: Any, *, variants: Any, trial_ids: Any, store_spikes: Any,
@@ -445,7 +449,8 @@ def _usable_ids(s: Any, run: EncodeRun) -> tuple[list[int], dict[int, str]]:
     """The trials to encode (the validator's usable ones, or the asked ones that are usable) and the excluded."""
     from rigctl.storage.validate import TrialsExcluded, usable_trials
 
-    report = usable_trials(s)  # the one trial validator: damaged trials excluded, with their reasons
+    # the one trial validator: damaged trials excluded, with their reasons
+    report = usable_trials(s, keep_nonfinite=run.keep_nonfinite)
     ids = report.ids if run.trial_ids is None else [t for t in run.trial_ids if t not in report.excluded]
     if report.excluded:
         warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)

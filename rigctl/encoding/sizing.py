@@ -56,9 +56,14 @@ def estimate_encode(session: Any, *, window_s: float = WINDOW_S, n_windows_unsca
                     variants: Any = None, store_spikes: Any = MAIN_VARIANTS, batch_trials: int = 256) -> EncodeSize:
     """Sizes of encoding ``session`` (an open :class:`rigctl.storage.session.Session`) with these parameters
     (:class:`rigctl.encoding.pipeline.EncodeParams`' names), from its plan: complete trials, their planned
-    durations, the sensor's channels and rate."""
+    durations, the sensor's channels and rate (schema 4: of the trials the validator does not refuse before reading
+    their data, :func:`rigctl.storage.validate.precheck`: a trial declaring a size it does not hold sizes nothing)."""
     plan = session.plan
     done = plan[plan["status"] == 1]  # TrialStatus.COMPLETE
+    if getattr(session, "_flat", False):
+        from rigctl.storage.validate import precheck
+
+        done = done[np.isin(done["trial_id"], precheck(session))]
     n = int(done.size)
     durations = np.asarray(done["duration_s"], np.float64) if n else np.zeros(0)
     # impossible values are the trial validator's to exclude (rigctl.storage.validate), not to size the work by

@@ -197,11 +197,12 @@ def encoded_path_for(session_path: str | os.PathLike[str]) -> Path:
 
 def load_or_encode(path: str | os.PathLike[str], variants: Sequence[str] | None = None, *, task: str | None = "table1",
                    encode_to: str | os.PathLike[str] | None = None, progress: Progress = None,
-                   overwrite: bool = False) -> tuple[Any, Path]:
+                   overwrite: bool = False, keep_nonfinite: bool = False) -> tuple[Any, Path]:
     """The features of ``path`` (an encoded file): ``variants``, else ``task``'s default variants
     (:func:`rigctl.analysis.data.default_variants`; ``task=None``: every variant in the file). A session file is
     encoded first into ``encode_to`` (None: it is an error, :class:`rigctl.analysis.data.NotEncodedError`; an
-    existing ``encode_to`` is replaced only with ``overwrite``, never while another writer holds it).
+    existing ``encode_to`` is replaced only with ``overwrite``, never while another writer holds it;
+    ``keep_nonfinite``: see :func:`rigctl.encoding.pipeline.encode_session`).
 
     Returns ``(FeatureSet, the encoded file's path)``. Raises NotEncodedError, ValueError / KeyError (variants),
     OSError."""
@@ -216,7 +217,8 @@ def load_or_encode(path: str | os.PathLike[str], variants: Sequence[str] | None 
         if encode_to is None:
             raise
     out = Path(encode_to)
-    encode_session(path, out, progress=progress, overwrite=overwrite)  # the output policy: replaced only if asked
+    # the output policy: replaced only if asked
+    encode_session(path, out, progress=progress, overwrite=overwrite, keep_nonfinite=keep_nonfinite)
     return load_features(out, variants or (default_variants(list_variants(out), task) if task else None)), out
 
 

@@ -237,12 +237,18 @@ class SessionReplay(_BlockReplay):
 
     def __init__(self, path: str | Path, *, loop: bool = True, continuous: bool = False):
         from rigctl.storage.session import open_session
+        from rigctl.storage.validate import TrialsExcluded, usable_trials
 
         self.path = Path(path)
         with open_session(self.path) as s:
             self.layout = s.layout
             self.textures: TextureSet = s.textures
-            done = set(s.completed_ids())
+            report = usable_trials(s)  # the one trial validator: a damaged trial is never replayed
+            if report.excluded:
+                import warnings
+
+                warnings.warn(f"{self.path}: {report.summary()}", TrialsExcluded, stacklevel=2)
+            done = set(report.ids)
             plan = s.plan
             self.trial_ids = [int(t) for t in plan["trial_id"] if int(t) in done]
             labels = {int(t): str(x.decode() if isinstance(x, bytes) else x)
@@ -251,7 +257,8 @@ class SessionReplay(_BlockReplay):
             self.trial_setpoints = {int(t): (float(v), float(f)) for t, v, f in
                                     zip(plan["trial_id"], plan["speed_mm_s"], plan["force_g"])}
         if not self.trial_ids:
-            raise ValueError(f"{self.path}: no complete trial to replay")
+            raise ValueError(f"{self.path}: no usable complete trial to replay"
+                             + (f" ({report.summary()})" if report.excluded else ""))
         self.trial_texture = {t: labels[t] for t in self.trial_ids}
         self.by_texture: dict[str, list[int]] = {}
         for t in self.trial_ids:

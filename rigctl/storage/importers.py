@@ -327,13 +327,21 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
                   rig_config: Mapping[str, Any] | None = None, protocol_name: str = "import", overwrite: bool = False) -> None:
     """Create the session (``SessionWriter.create(out, plan=, layout=, textures=, ...)``) and write ``items``
     (``(trial_id, TrialData)`` pairs, produced lazily: a large import never holds every trial in memory) in one
-    opening of the file. Raises FileExistsError when ``out`` exists without ``overwrite``."""
-    from rigctl.storage.session import SessionWriter
+    opening of the file. Raises FileExistsError when ``out`` exists without ``overwrite``; SessionWriteError when
+    the disk refuses (one line; an import has no ``--resume``: it says to run the import again)."""
+    from rigctl.storage.session import SessionWriteError, SessionWriter
 
     writer = SessionWriter.create(out, plan=plan, layout=layout, textures=textures, protocol_name=protocol_name,
                                   protocol_format="none", rig_config=dict(rig_config or {}), kind=kind,
                                   overwrite=overwrite, attrs=dict(attrs or {}))
-    writer.write_trials(items)
+    try:
+        writer.write_trials(items)
+    except SessionWriteError as exc:  # the writer's hint is acquisition's (--resume), which an import has not
+        text = str(exc).rsplit("; ", 1)[0]
+        raise SessionWriteError(f"{text}; free space and run the import again with --overwrite (the file holds "
+                                "only the trials written before)", exc.errno, exc.intact) from None
+    finally:
+        writer.close()
 
 
 @dataclass(frozen=True)

@@ -188,11 +188,14 @@ class NwbExportParams:
     encoded_path : optional ``rigctl encode`` output of the session: its spike trains become the Units table.
     variants : the variants whose spike trains are exported (None: :func:`default_spike_variants`).
     overwrite : replace an existing output (False: FileExistsError).
+    keep_nonfinite : export trials whose force or speed traces hold NaN/inf (default: excluded, as by the
+        validator).
     """
 
     encoded_path: Path | None = None
     variants: tuple[str, ...] | None = None
     overwrite: bool = False
+    keep_nonfinite: bool = False
 
 
 @dataclass
@@ -224,14 +227,13 @@ def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any =
     of every complete trial (schema 4: from the recording index, so the estimate costs no pass over the data; the
     validator may exclude some) or of the usable ones (older files) plus the traces, plus the encoded file's size
     when its spike trains are exported (checked against the free space before the export starts)."""
-    from rigctl.storage.validate import usable_trials
+    from rigctl.storage.validate import precheck, usable_trials
 
     with open_session(session_path) as s:
         if s._flat:  # schema 4: the recording index holds every trial's sample count
-            ids = s.completed_ids()
-            index, n_rows = s.recording_index(), s._recorded_rows()
-            rows = [index[t] for t in ids if t in index]
-            n = sum(int(r["n_samples"]) for r in rows if s.index_problem(r, n_rows) is None)
+            ids = precheck(s)  # the trials the validator does not refuse before reading data
+            rows, _ = s.index_rows(ids)
+            n = int(rows["n_samples"].sum())
         else:  # older files: a damaged trial's attributes may not read, so the usable ones
             ids = usable_trials(s).ids
             n = sum(int(c["n_samples"]) for c in s.trial_counts(ids))
@@ -243,7 +245,8 @@ def estimate_nwb_bytes(session_path: str | os.PathLike[str], encoded_path: Any =
 
 def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike[str], *, encoded_path: Any = None,
                variants: Sequence[str] | None = None, progress: ProgressCallback | None = None,
-               overwrite: bool = False, params: NwbExportParams | None = None) -> NwbSummary:
+               overwrite: bool = False, params: NwbExportParams | None = None,
+               keep_nonfinite: bool = False) -> NwbSummary:
     """Write the session (and the spike trains of an encoded file of it) as an NWB file (module doc), under the
     output policy of :mod:`rigctl.storage.outputs` (writer lock, ``<name>.part`` renamed when complete, a full disk
     one line with nothing left behind).
@@ -252,7 +255,8 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
     ----------
     session_path : a rigctl session file (``rigctl acquire`` / ``import`` / ``sim dataset`` output).
     out_path : the NWB file to write.
-    encoded_path, variants, overwrite : see :class:`NwbExportParams` (``params`` gives them all at once).
+    encoded_path, variants, overwrite, keep_nonfinite : see :class:`NwbExportParams` (``params`` gives them all
+        at once).
     progress : optional callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stage ``"reading
         traces"`` then ``"writing NWB"`` (done/total = trials, advanced as each trial's taxels are written).
 
@@ -272,11 +276,12 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
     """
     if params is None:
         params = NwbExportParams(encoded_path=None if encoded_path is None else Path(encoded_path),
-                                 variants=tuple(variants) if variants else None, overwrite=overwrite)
+                                 variants=tuple(variants) if variants else None, overwrite=overwrite,
+                                 keep_nonfinite=keep_nonfinite)
     chosen = check_spike_variants(params.encoded_path, params.variants) if params.encoded_path is not None else []
     out_path = Path(out_path)
     with open_session(session_path) as s:
-        timeline = _timeline(s, session_path)
+        timeline = _timeline(s, session_path, params.keep_nonfinite)
         nwb = _new_nwbfile(s, out_path)
         summary = NwbSummary(out_path, n_trials=len(timeline.ids), n_samples=int(sum(timeline.n)),
                              n_channels=s.layout.n_channels, rate_hz=float(s.layout.sample_rate_hz))
@@ -293,11 +298,12 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
     return summary
 
 
-def _timeline(s: Any, session_path: Any) -> _Timeline:
+def _timeline(s: Any, session_path: Any, keep_nonfinite: bool = False) -> _Timeline:
     """The usable trials (:func:`rigctl.storage.validate.usable_trials`) back to back on session time."""
     from rigctl.storage.validate import TrialsExcluded, usable_trials
 
-    report = usable_trials(s)  # the one trial validator: excluded trials said, as by info and encode
+    # the one trial validator: excluded trials said, as by info and encode
+    report = usable_trials(s, keep_nonfinite=keep_nonfinite)
     ids = report.ids
     if not ids:
         raise NwbExportError(f"{session_path} has no usable recorded trial to export"

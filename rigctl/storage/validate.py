@@ -1,10 +1,21 @@
 """The one trial validator: which complete trials of a session may be used, and why the others may not.
 
-``rigctl info``, ``encode``, ``analyze`` (through the encoder), ``export nwb`` and the GUI all take their trials from
-:func:`usable_trials`, so a damaged trial is excluded everywhere with the same reason and counted in each summary.
-:class:`rigctl.storage.session.Session` checks the *shape* of a trial when it is read (datasets, types, the
-``n_samples`` attribute); this module adds what needs the data or the whole session:
+``rigctl info``, ``encode``, ``analyze`` (through the encoder), ``export nwb``, the replay rig and the GUI all take
+their trials from :func:`usable_trials`, so a damaged trial is excluded everywhere with the same reason and counted
+in each summary, and a damaged trial never takes the others down. Checked, per complete trial, in this order (the
+first problem found is the reason):
 
+- **the plan**: a duration that is not finite, <= 0 or over :data:`MAX_TRIAL_S`;
+- **where its data are** (schema 4): its ``/recording/index`` row missing, listed more than once (which rows are
+  its is ambiguous), or pointing outside the recording arrays (samples or traces);
+- **declared sizes**, against the file's real size before anything is read: a trial declaring more samples than
+  the file can hold (a dataset declared (2**34, 18) with nothing written) is excluded, never allocated;
+- **its group**: it must open; ``n_samples``, ``dropped_frames``, ``crc_errors`` must be counts agreeing with the
+  data (schema 4: with the index); ``taxels`` must be ``(n, channels)`` integers (schema 4: the view, the one the
+  documented plain-h5py reading uses; the other views are not opened: rigctl reads the recording arrays). Schema
+  1-3: every dataset's shape and type (:meth:`Session.trial_attrs`);
+- **counters**: ``dropped_frames``, ``crc_errors`` above :func:`max_count` (16 per frame slot of the trial + 1024:
+  more frames than the link could have carried);
 - **sequence gaps** are counted from the ``seq`` column (uint16 frame counter, wrapping at 65,536: wire spec
   section 1), not trusted from the ``dropped_frames`` attribute; a trial whose column shows more missing frames
   than its attribute says contradicts itself and is excluded;
@@ -13,11 +24,14 @@
   exactly the planned count and the importers plan what they read, so any difference is suspect; the bounds are
   loose so that hand-made sessions whose plan only roughly says the length still pass.)
 - **ADC range**: counts outside ``0 .. 2**adc_bits - 1`` (negative counts of a signed dataset included);
-- **impossible attributes**: a plan duration that is not finite, <= 0 or over :data:`MAX_TRIAL_S`; a counter
-  (``dropped_frames``, ``crc_errors``) above :func:`max_count` (16 per frame slot of the trial + 1024: more frames
-  than the link could have carried); a sensor sample rate above :data:`MAX_RATE_HZ` (every trial excluded);
 - **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (trials of equal length and Adler-32
-  are compared by SHA-256 of the counts; constant trials, e.g. a silent sensor, are not compared).
+  are compared by SHA-256 of the counts; constant trials, e.g. a silent sensor, are not compared);
+- **finite readings**: NaN or inf in the force or speed trace or their times: excluded (the reason ends with
+  :data:`KEEP_HINT`) unless the caller keeps them (``keep_nonfinite``, the commands' ``--keep-nonfinite``), then
+  usable and listed in :attr:`TrialReport.nonfinite`.
+
+A sensor sample rate above :data:`MAX_RATE_HZ`, or recording arrays of another type or shape than the documented
+ones, excludes every trial.
 
 The reasons are one line each; :attr:`TrialReport.excluded` maps trial id -> reason.
 """
@@ -32,14 +46,18 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import h5py
 import numpy as np
 
+from rigctl.core.progress import ProgressCallback, Stage
+from rigctl.storage.outputs import size_text
 from rigctl.storage.session_format import SessionError, TrialStatus, trial_group_name
 from rigctl.storage.session_reader import SessionReader as Session  # checked here; session.Session calls us
-from rigctl.storage.session_recording import read_rows
+from rigctl.storage.session_reader import as_count
+from rigctl.storage.session_recording import TRACES as _TRACES, read_rows
 
-__all__ = ["MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "block_seq_gaps", "max_count", "seq_gaps",
-           "usable_trials"]
+__all__ = ["KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "block_seq_gaps", "max_count",
+           "precheck", "seq_gaps", "usable_trials"]
 
 #: no taxel sensor samples faster (1 MHz; the paper's runs at 1 kHz): a faster rate is a damaged header
 MAX_RATE_HZ = 1e6
@@ -90,50 +108,129 @@ class TrialReport:
 
     ids : usable complete trials, plan order. excluded : trial id -> one-line reason (complete trials only).
     dropped_frames : usable trial id -> frames missing by its ``seq`` column (or its attribute, if larger).
+    nonfinite : trial id -> its non-finite readings in words (NaN / inf in a force or speed trace or their times):
+        excluded trials unless ``keep_nonfinite``, then usable and listed here.
     """
 
     ids: list[int] = field(default_factory=list)
     excluded: dict[int, str] = field(default_factory=dict)
     dropped_frames: dict[int, int] = field(default_factory=dict)
+    nonfinite: dict[int, str] = field(default_factory=dict)
 
     def summary(self) -> str:
         """One line: how many complete trials are usable and which were excluded (first three reasons)."""
         n = len(self.ids) + len(self.excluded)
+        kept = (f"; {len(self.nonfinite)} kept with non-finite readings (--keep-nonfinite)"
+                if self.nonfinite and set(self.nonfinite) & set(self.ids) else "")
         if not self.excluded:
-            return f"{len(self.ids)} of {n} complete trials usable"
+            return f"{len(self.ids)} of {n} complete trials usable{kept}"
         shown = "; ".join(f"trial {t}: {why}" for t, why in list(self.excluded.items())[:3])
         more = f"; +{len(self.excluded) - 3} more" if len(self.excluded) > 3 else ""
-        return f"{len(self.ids)} of {n} complete trials usable, {len(self.excluded)} excluded ({shown}{more})"
+        return (f"{len(self.ids)} of {n} complete trials usable, {len(self.excluded)} excluded ({shown}{more})"
+                f"{kept}")
 
 
-def usable_trials(session: Session) -> TrialReport:
-    """Check every complete trial of ``session`` (module docstring); the report is computed once per open
-    session and cached on it."""
-    cached = getattr(session, "_trial_report", None)
+#: how an excluded trial's non-finite readings end their reason (the option that keeps them)
+KEEP_HINT = " (kept with --keep-nonfinite)"
+
+
+def usable_trials(session: Session, *, keep_nonfinite: bool = False,
+                  progress: ProgressCallback | None = None) -> TrialReport:
+    """Check every complete trial of ``session`` (module docstring); computed once per open session (the report
+    for either ``keep_nonfinite`` is derived from one pass) and cached on it.
+
+    keep_nonfinite : trials whose force or speed traces hold NaN or inf are usable (listed in
+        :attr:`TrialReport.nonfinite`) instead of excluded.
+    progress : ``rigctl.core.progress`` callback: stage ``"checking trials"`` (trials).
+    """
+    key = "kept" if keep_nonfinite else "default"
+    cached = session.trial_reports.get(key)
     if isinstance(cached, TrialReport):
         return cached
+    full = session.trial_reports.get("kept")
+    if not isinstance(full, TrialReport):
+        full = _check_session(session, progress)
+        session.trial_reports["kept"] = full
+    report = full
+    if not keep_nonfinite and full.nonfinite:
+        order = {t: i for i, t in enumerate(session.plan["trial_id"].tolist())}
+        excluded = dict(full.excluded)
+        excluded.update({t: f"non-finite readings: {why}{KEEP_HINT}" for t, why in full.nonfinite.items()})
+        report = TrialReport(ids=[t for t in full.ids if t not in full.nonfinite],
+                             excluded=dict(sorted(excluded.items(), key=lambda kv: order.get(kv[0], 0))),
+                             dropped_frames={t: d for t, d in full.dropped_frames.items()
+                                             if t not in full.nonfinite},
+                             nonfinite=dict(full.nonfinite))
+    session.trial_reports[key] = report
+    for tid, why in report.excluded.items():  # one line per trial, each command the same
+        session._problem(f"{session.path}: trial {tid} is damaged: {why}; its data are not used (excluded)")
+    if keep_nonfinite:
+        for tid, why in full.nonfinite.items():
+            session._problem(f"{session.path}: trial {tid} holds non-finite readings ({why}); kept")
+    return report
+
+
+def precheck(session: Session) -> list[int]:
+    """The complete trials that pass every check made without reading their data (schema 4: the plan, the index,
+    declared sizes, counters, the group; older files: all of :func:`usable_trials`), plan order: what an estimate of
+    an output's size may count (``rigctl export nwb``)."""
+    if not session._flat:
+        return usable_trials(session, keep_nonfinite=True).ids
+    ids = session.completed_ids()
+    rate = float(session.layout.sample_rate_hz)
+    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ) or _recording_problem(session) is not None:
+        return []
+    plan = {int(r["trial_id"]): r for r in session.plan}
+    return [t for t, _ in _precheck_recorded(session, ids, plan, rate, TrialReport(), Stage(None, "", len(ids)))]
+
+
+def _check_session(session: Session, progress: ProgressCallback | None) -> TrialReport:
+    """The report with trials of non-finite readings usable (and listed)."""
     report = TrialReport()
     rate = float(session.layout.sample_rate_hz)
     plan = {int(r["trial_id"]): r for r in session.plan}
+    ids = session.completed_ids()
+    stage = Stage(progress, "checking trials", len(ids))
     session_problem = None
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
         session_problem = f"the sensor's sample rate {rate:g} Hz is impossible (above {MAX_RATE_HZ:g} Hz)"
-    copies = _Copies()
+    elif session._flat:
+        session_problem = _recording_problem(session)
     if session_problem is not None:
-        report.excluded = dict.fromkeys(session.completed_ids(), session_problem)
+        report.excluded = dict.fromkeys(ids, session_problem)
     elif session._flat:  # schema 4: the recording arrays, in blocks
-        _check_recorded(session, session.completed_ids(), plan, rate, report)
+        _check_recorded(session, ids, plan, rate, report, stage)
     else:
-        for tid in session.completed_ids():
+        copies = _Copies()
+        for k, tid in enumerate(ids):
             try:
-                why, dropped = _check_trial(session, tid, plan[tid], rate, copies)
+                why, dropped, bad = _check_trial(session, tid, plan[tid], rate, copies)
             except (SessionError, KeyError) as exc:
-                why, dropped = _reason(exc, tid), 0
-            _record(report, tid, why, dropped)
-    for tid, why in report.excluded.items():
-        session._problem(f"{session.path}: trial {tid} is damaged: {why}; its data are not used (excluded)")
-    session._trial_report = report  # type: ignore[attr-defined]
+                why, dropped, bad = _reason(exc, tid), 0, None
+            _record(report, tid, why, dropped, bad)
+            if k % 64 == 63:
+                stage.advance(64)
+    stage.advance(len(ids) - stage.done)
     return report
+
+
+def _recording_problem(session: Session) -> str | None:
+    """Schema 4: what makes every trial unusable in the recording arrays themselves (a type or shape other than
+    the documented one), or None."""
+    from rigctl.storage.session_recording import GROUP, SAMPLE_ARRAYS, TRACES
+
+    rec = session._f[GROUP]
+    want: dict[str, np.dtype[Any]] = dict(SAMPLE_ARRAYS)
+    want.update({name: np.dtype("<f8") for v, t, _ in TRACES for name in (v, t)})
+    for name, dt in want.items():
+        ds = rec.get(name)
+        if not isinstance(ds, h5py.Dataset):
+            return f"/recording/{name} is missing or not a dataset"
+        rows = ds.shape[0] if ds.ndim else 0
+        shape = (rows, session.layout.n_channels) if name == "taxels" else (rows,)
+        if ds.shape != shape or ds.dtype.kind != dt.kind or ds.dtype.itemsize != dt.itemsize:
+            return f"/recording/{name} is {ds.dtype} {ds.shape}, not the documented {dt} {shape}"
+    return None
 
 
 def _reason(exc: BaseException, tid: int) -> str:
@@ -146,33 +243,68 @@ def _reason(exc: BaseException, tid: int) -> str:
 
 
 def _count(attrs: dict[str, Any], name: str) -> int:
-    try:
-        return int(attrs.get(name, 0))
-    except (TypeError, ValueError, OverflowError):
-        return -1
+    v = as_count(attrs.get(name, 0))
+    return -1 if v is None else v
 
 
-def _check_trial(session: Session, tid: int, row: Any, rate: float, copies: "_Copies") -> tuple[str | None, int]:
-    """(reason or None, frames missing by the seq column) for one complete trial of a file with one group of
-    datasets per trial (schema 1-3)."""
+def _check_trial(session: Session, tid: int, row: Any, rate: float, copies: "_Copies"
+                 ) -> tuple[str | None, int, str | None]:
+    """(reason or None, frames missing by the seq column, non-finite readings or None) for one complete trial of
+    a file with one group of datasets per trial (schema 1-3)."""
     why = _check_duration(row)
     if why:
-        return why, 0
+        return why, 0, None
     attrs = session.trial_attrs(tid)  # shape checks (SessionError names the problem)
-    n = int(attrs.get("n_samples", -1))
     g = session._f[trial_group_name(tid)]
     taxels = g["taxels"]
-    if n < 0:
-        n = int(taxels.shape[0])
-    return _check_data(session, tid, float(row["duration_s"]), rate, n, seq_gaps(np.asarray(g["seq"][()])),
-                       _count(attrs, "dropped_frames"), _count(attrs, "crc_errors"), lambda: np.asarray(taxels[()]),
-                       copies)
+    n = int(taxels.shape[0])
+    why = _too_long(float(row["duration_s"]), rate, n) or _too_big(session, taxels, n)
+    if why:
+        return why, 0, None
+    why, dropped = _check_data(session, tid, float(row["duration_s"]), rate, n, seq_gaps(np.asarray(g["seq"][()])),
+                               _count(attrs, "dropped_frames"), _count(attrs, "crc_errors"),
+                               lambda: np.asarray(taxels[()]), copies)
+    bad = None
+    if why is None:
+        bad = _nonfinite_text({name: np.asarray(g[name][()]) for name in _TRACE_NAMES})
+    return why, dropped, bad
 
 
 def _check_duration(row: Any) -> str | None:
     duration = float(row["duration_s"])
     if not (math.isfinite(duration) and 0 < duration <= MAX_TRIAL_S):
         return f"its plan duration {duration:g} s is impossible (not in 0..{MAX_TRIAL_S:g} s)"
+    return None
+
+
+def _too_long(duration: float, rate: float, n: int) -> str | None:
+    """The length check's upper bound, made before any data is read (frames missing only make it longer)."""
+    planned = int(round(duration * rate))
+    if n > 2 * planned + 2:
+        return f"it holds {n} samples, its plan asks {duration:g} s = {planned} at {rate:g} Hz"
+    return None
+
+
+#: the most a compressed dataset's data can shrink (deflate's limit is 1,032:1), for :func:`_too_big`
+_MAX_COMPRESSION = 1100
+
+
+def _capacity_rows(session: Session, ds: Any) -> int:
+    """The most rows of ``ds`` the file can hold: its real size over a row's bytes (x :data:`_MAX_COMPRESSION`
+    for a compressed dataset), + 1 MiB of slack."""
+    row_bytes = max(1, int(np.prod(ds.shape[1:], dtype=np.int64)) * ds.dtype.itemsize)
+    size = session.path.stat().st_size
+    return int((size * (_MAX_COMPRESSION if ds.compression else 1) + (1 << 20)) // row_bytes)
+
+
+def _too_big(session: Session, ds: Any, n: int) -> str | None:
+    """A trial declaring more rows of ``ds`` than the file can hold (a dataset declared large with no data
+    written), checked against the file's real size before anything is read."""
+    if n > _capacity_rows(session, ds):
+        row_bytes = int(np.prod(ds.shape[1:], dtype=np.int64)) * ds.dtype.itemsize
+        size = session.path.stat().st_size
+        return (f"it declares {n} samples ({size_text(n * row_bytes)} of taxels), more than this "
+                f"{size_text(size)} file holds (declared, never written)")
     return None
 
 
@@ -184,9 +316,9 @@ def _check_data(session: Session, tid: int, duration: float, rate: float, n: int
     other checks pass; ``in_range``: known to be inside the ADC range; ``reload()`` reads them again later, default
     ``taxels``)."""
     planned = int(round(duration * rate))
-    for name, value in (("dropped_frames", said), ("crc_errors", crc)):
-        if value > max_count(planned + n):
-            return f"its {name} attribute {value} is impossible for {planned + n} frame slots", 0
+    why = _count_problem(said, crc, planned + n)
+    if why:
+        return why, 0
     if gaps > said:
         return (f"its seq column shows {gaps} missing frames, its dropped_frames attribute says {said}"), gaps
     if not planned / 2 - 2 <= n + gaps <= 2 * planned + 2:
@@ -196,26 +328,96 @@ def _check_data(session: Session, tid: int, duration: float, rate: float, n: int
     return why, max(gaps, said)
 
 
+def _count_problem(said: int, crc: int, slots: int) -> str | None:
+    for name, value in (("dropped_frames", said), ("crc_errors", crc)):
+        if value < 0:
+            return f"its {name} attribute is not a count"
+        if value > max_count(slots):
+            return f"its {name} attribute {value} is impossible for {slots} frame slots"
+    return None
+
+
+#: the traces whose readings must be finite (values and their times)
+_TRACE_NAMES = ("force_g", "force_time_s", "speed_mm_s", "speed_time_s")
+
+
+def _nonfinite_text(traces: dict[str, np.ndarray]) -> str | None:
+    """``"2 NaN in force_g, 1 inf in speed_mm_s"`` for the traces holding non-finite values, or None."""
+    parts = []
+    for name, values in traces.items():
+        if values.dtype.kind != "f":
+            continue
+        nan = int(np.count_nonzero(np.isnan(values)))
+        inf = int(np.count_nonzero(np.isinf(values)))
+        parts += [f"{k} {what} in {name}" for k, what in ((nan, "NaN"), (inf, "inf")) if k]
+    return ", ".join(parts) or None
+
+
 #: rows of the recording arrays checked at once (schema 4): 36 MB of the paper's taxels
 _BLOCK_ROWS = 1 << 20
 
 
-def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
-                    report: TrialReport) -> None:
-    """The checks of :func:`_check_trial` for a schema-4 file, from ``/recording/index`` and the recording arrays
-    read in blocks of about :data:`_BLOCK_ROWS` rows (no group opened per trial; memory bounded by the block)."""
+def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
+                       report: TrialReport, stage: Stage) -> list[tuple[int, np.void]]:
+    """The checks of a schema-4 file that read no data (duration, the index row, counters, length upper bound,
+    declared size, the group); the trials passing them, with their index rows. The checks on numbers run on all
+    trials at once; only a trial one of them refuses is looked at alone (for its reason)."""
     from rigctl.storage.session_recording import GROUP
 
-    copies = _Copies()
+    rows, have = session.index_rows(ids)
+    dups = session.index_duplicates()
+    n_rows, (force_rows, speed_rows) = session._recorded_rows(), session._trace_rows()
+    taxels_ds = session._f[GROUP]["taxels"]
+    duration = np.array([float(plan[t]["duration_s"]) for t in ids], dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        planned = np.where(np.isfinite(duration), np.round(duration * rate), 0).astype(np.int64)
+        n = rows["n_samples"]
+        slots = np.maximum(planned + n, 0)
+        ok = (np.isfinite(duration) & (duration > 0) & (duration <= MAX_TRIAL_S) & have
+              & ~np.isin(np.asarray(ids, dtype=np.int64), list(dups)))
+        for prefix, total in (("sample", n_rows), ("force", force_rows), ("speed", speed_rows)):
+            start, count = rows[f"{prefix}_start"], rows["n_samples" if prefix == "sample" else f"n_{prefix}"]
+            ok &= (start >= 0) & (count >= 0) & (start <= total - count)
+        for name in ("dropped_frames", "crc_errors"):
+            ok &= (rows[name] >= 0) & (rows[name] <= 16 * slots + 1024)
+        ok &= n <= 2 * planned + 2
+        ok &= n <= _capacity_rows(session, taxels_ds)
     todo: list[tuple[int, np.void]] = []
-    index, n_rows = session.recording_index(), session._recorded_rows()
-    for tid in ids:
-        row = index.get(tid)
-        why = _check_duration(plan[tid]) or session.index_problem(row, n_rows)
-        if why is None and row is not None:
+    for i, tid in enumerate(ids):
+        row = rows[i]
+        if ok[i]:
+            why = session.flat_group_problem(tid, row)
+        else:  # the same checks one by one, for the reason
+            why = _check_duration(plan[tid])
+            if why is None and tid in dups:
+                why = f"/recording/index lists it {dups[tid]} times"
+            why = why or session.index_problem(row if have[i] else None, n_rows, (force_rows, speed_rows))
+            if why is None:
+                m = int(row["n_samples"])
+                why = (_count_problem(int(row["dropped_frames"]), int(row["crc_errors"]), int(slots[i]))
+                       or _too_long(float(duration[i]), rate, m) or _too_big(session, taxels_ds, m)
+                       or session.flat_group_problem(tid, row))
+        if why is None:
             todo.append((tid, row))
         else:
             report.excluded[tid] = str(why)
+        if i % 256 == 255:
+            stage.advance(256)
+    stage.advance(len(ids) - stage.done)
+    return todo
+
+
+def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
+                    report: TrialReport, stage: Stage) -> None:
+    """The checks of :func:`_check_trial` for a schema-4 file, from ``/recording/index``, each trial's group
+    (:meth:`Session.flat_group_problem`) and the recording arrays read in blocks of about :data:`_BLOCK_ROWS` rows
+    (memory bounded by the block)."""
+    from rigctl.storage.session_recording import GROUP
+
+    copies = _Copies()
+    todo = _precheck_recorded(session, ids, plan, rate, report, Stage(stage.callback, "checking trial groups",
+                                                                      len(ids)))
+    stage.advance(len(ids) - len(todo))
     rec = session._f[GROUP]
     taxels_ds = rec["taxels"]
     k = 0
@@ -233,6 +435,7 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
         read_rows(rec["seq"], starts, lengths, seq)
         read_rows(taxels_ds, starts, lengths, tax)
         gaps = block_seq_gaps(seq, pos)
+        bad = _block_nonfinite(rec, [r for _, r in block])
         in_range = bool(tax.size == 0 or int(tax.max()) <= session.layout.adc_max)  # uint16: never below 0
         for i, (tid, r) in enumerate(block):
             a, b = int(pos[i]), int(pos[i + 1])
@@ -240,11 +443,32 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
                                        int(r["dropped_frames"]), int(r["crc_errors"]),
                                        functools.partial(_rows, tax, a, b), copies, in_range,
                                        functools.partial(_read_trial, taxels_ds, int(starts[i]), b - a))
-            _record(report, tid, why, dropped)
+            _record(report, tid, why, dropped, bad[i])
+        stage.advance(len(block))
         k = j
     order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
     report.ids.sort(key=order.__getitem__)
     report.excluded = dict(sorted(report.excluded.items(), key=lambda kv: order[kv[0]]))
+
+
+def _block_nonfinite(rec: Any, rows: list[np.void]) -> list[str | None]:
+    """:func:`_nonfinite_text` of each trial of a block, from the trace arrays (one read per run of trials)."""
+    counts: dict[str, list[np.ndarray]] = {}
+    for value, times, prefix in ((v, t, p) for v, t, p in _TRACES):
+        starts = np.array([int(r[f"{prefix}_start"]) for r in rows], dtype=np.int64)
+        lengths = np.array([int(r[f"n_{prefix}"]) for r in rows], dtype=np.int64)
+        pos = np.concatenate([[0], np.cumsum(lengths)])
+        for name in (value, times):
+            buf = np.empty(int(pos[-1]), dtype=np.float64)
+            read_rows(rec[name], starts, lengths, buf)
+            for what, test in (("NaN", np.isnan), ("inf", np.isinf)):
+                c = np.concatenate([[0], np.cumsum(test(buf))])
+                counts[f"{what} in {name}"] = c[pos[1:]] - c[pos[:-1]]
+    out: list[str | None] = []
+    for i in range(len(rows)):
+        parts = [f"{int(c[i])} {key}" for key, c in counts.items() if c[i]]
+        out.append(", ".join(parts) or None)
+    return out
 
 
 def _rows(arr: np.ndarray, a: int, b: int) -> np.ndarray:
@@ -255,12 +479,14 @@ def _read_trial(ds: Any, start: int, n: int) -> np.ndarray:
     return np.asarray(ds[start:start + n])
 
 
-def _record(report: TrialReport, tid: int, why: str | None, dropped: int) -> None:
+def _record(report: TrialReport, tid: int, why: str | None, dropped: int, nonfinite: str | None = None) -> None:
     if why:
         report.excluded[tid] = why
     else:
         report.ids.append(tid)
         report.dropped_frames[tid] = dropped
+        if nonfinite:
+            report.nonfinite[tid] = nonfinite
 
 
 def _check_counts(session: Session, data: np.ndarray, tid: int, copies: "_Copies",
