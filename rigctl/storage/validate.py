@@ -52,8 +52,10 @@ import numpy as np
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage.outputs import size_text
 from rigctl.storage.session_format import SessionError, TrialStatus, trial_group_name
-from rigctl.storage.session_reader import SessionReader as Session  # checked here; session.Session calls us
-from rigctl.storage.session_reader import as_count
+from rigctl.storage.session_reader import (
+    SessionReader as Session,  # checked here; session.Session calls us
+    as_count,
+)
 from rigctl.storage.session_recording import TRACES as _TRACES, read_rows
 
 __all__ = ["KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "block_seq_gaps", "max_count",
