@@ -188,7 +188,9 @@ def open_handheld(*, motion: str = "sim", prompt: Callable[[str], Any] | None = 
                   host_config_path: str | os.PathLike | None = None, config: Any = None, seed: int = 0,
                   textures: TextureSet | None = None, home: bool = True, **options: Any) -> Rig:
     """Open the handheld rig (:class:`rigctl.acquisition.handheld.HandheldRig`): its scans come from the simulated
-    operator (``motion="sim"``: the plate's axis calibrated from its simulated touches of the plate's two ends).
+    operator (``motion="sim"``: the plate's axis calibrated from its simulated touches of the plate's two ends) or a
+    tracker's LSL stream (``motion="lsl:NAME[@channels]"``, :func:`rigctl.simulation.handheld_lsl.open_lsl_scans`:
+    the plate axis from the rig config; options ``resolve_s``, ``timeout_s``).
     ``home`` is ignored (no actuator). Raises RigError for an unknown motion source or unusable options."""
     from rigctl.acquisition.handheld import HandheldRig
     from rigctl.core.handheld import PlateAxis
@@ -200,6 +202,18 @@ def open_handheld(*, motion: str = "sim", prompt: Callable[[str], Any] | None = 
         if options:
             raise RigError(f"the simulated operator takes no option {', '.join(sorted(options))}")
         op = SimulatedOperator(seed=seed, rig_config=config, textures=textures)
-        axis = PlateAxis.from_touches(*op.touch_ends())
-        return HandheldRig(op, axis=axis, prompt=prompt, textures=textures, host_config_path=path)
-    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator)")
+        return HandheldRig(op, axis=PlateAxis.from_touches(*op.touch_ends()), prompt=prompt, textures=textures, host_config_path=path)
+    if str(motion).startswith("lsl:"):
+        from rigctl.acquisition.handheld import plate_axis_from_config
+        from rigctl.acquisition.rigconfig import load_rig_config
+        from rigctl.core.handheld import ScanError
+        from rigctl.simulation.handheld_lsl import open_lsl_scans
+
+        try:
+            config_axis = plate_axis_from_config(load_rig_config(path))
+            source = open_lsl_scans(str(motion), axis=config_axis, config=config, seed=seed, textures=textures, **options)
+        except (ScanError, ValueError) as exc:
+            raise RigError(str(exc)) from None
+        return HandheldRig(source, axis=config_axis, prompt=prompt, textures=textures, host_config_path=path)
+    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator) or 'lsl:NAME' (a tracker "
+                   "stream)")

@@ -45,7 +45,7 @@ from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData
 
-__all__ = ["HandheldRig", "NoDrumError", "cut_scan", "velocity_from_position", "VELOCITY_WINDOW_S"]
+__all__ = ["HandheldRig", "NoDrumError", "cut_scan", "plate_axis_from_config", "velocity_from_position", "VELOCITY_WINDOW_S"]
 
 log = logging.getLogger(__name__)
 
@@ -169,14 +169,17 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
                      dropped_frames=int(np.sum(steps - 1)) if steps.size else 0, attrs=attrs, layout=layout)
 
 
-def _axis_from_config(block: dict[str, Any]) -> PlateAxis:
-    """The rig config's ``handheld.plate_axis`` (:meth:`PlateAxis.to_dict`). Raises ValueError for a bad block."""
+def plate_axis_from_config(host_config: dict[str, Any]) -> PlateAxis | None:
+    """The plate axis of a rig config's ``handheld`` block (:meth:`PlateAxis.to_dict`), None without one. Raises
+    ValueError for a bad block."""
+    block = host_config.get("handheld")
+    if not block:
+        return None
     try:
         s, e = (tuple(float(v) for v in block[k]) for k in ("start_xyz", "end_xyz"))
         return PlateAxis(s, e, float(block.get("length_mm", PLATE_LENGTH_MM)))  # type: ignore[arg-type]
     except (KeyError, TypeError) as exc:
-        raise ValueError(f"the rig config's handheld.plate_axis is not a plate axis ({exc}): calibrate it again") \
-            from None
+        raise ValueError(f"the rig config's handheld block is not a plate axis ({exc}): calibrate it again") from None
 
 
 class HandheldRig(Rig):
@@ -191,7 +194,7 @@ class HandheldRig(Rig):
     ----------
     source : the scans (:class:`rigctl.core.handheld.ScanSource`).
     axis : the plate's calibrated axis in the tracker's frame (None: the source gives positions along the plate,
-        or the rig config's ``handheld.plate_axis``).
+        or the rig config's ``handheld`` block: ``start_xyz``, ``end_xyz``, ``length_mm``).
     prompt : ``prompt(text)`` the operator reads (the plate, the profile, the go cue); default: logged.
     textures : the plates' texture set.
     host_config_path : the rig config file.
@@ -211,8 +214,7 @@ class HandheldRig(Rig):
         self.replay_continuous = False
         self.host_config = load_rig_config(host_config_path)
         self.host_config_path = str(config_path(host_config_path))
-        block = (self.host_config.get("handheld") or {}).get("plate_axis")
-        self.axis = axis or (_axis_from_config(block) if block else None)
+        self.axis = axis or plate_axis_from_config(self.host_config)
         self._textures = textures or getattr(source, "textures", None) or PAPER_TEXTURES
         self._closed = False
         self._lock = threading.RLock()

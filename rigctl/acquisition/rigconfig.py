@@ -79,6 +79,10 @@ SCHEMA["force_loop"] = {
 SCHEMA["taxel_normalisation_previous"] = SCHEMA["taxel_normalisation"]
 SCHEMA["doctor"] = {kind: ("report", False) for kind in RIG_KINDS}
 SCHEMA["lsl"] = {"enabled": ("bool", False), "name": ("text", False), "source_id": ("text", False)}
+#: the handheld rig's plate axis in the tracker's frame (mm): the tracked point with the finger on the plate's start
+#: and on its end (rigctl.core.handheld.PlateAxis)
+SCHEMA["handheld"] = {"start_xyz": ("counts", True), "end_xyz": ("counts", True), "length_mm": ("positive", False),
+                      "calibrated_utc": ("text", False)}
 
 _EXPECTED = {"number": "a number", "positive": "a number > 0", "count": "an integer >= 0",
              "nonzero": "a non-zero number",

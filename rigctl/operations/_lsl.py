@@ -77,9 +77,15 @@ class LslPublisher:
                            TaxelRange(np.zeros(layout.n_channels), np.full(layout.n_channels, float(layout.adc_max))))
         #: markers pushed (their JSON documents), in order
         self.markers: list[dict[str, Any]] = []
-        #: the live taxel / spike / drum feed (started here)
-        self.live = LiveLslFeed(self.outlets, self.rig.stream, self.rig.drum, self.normaliser)
-        self.live.start()
+        #: the live taxel / spike / drum feed (started here); None on the handheld rig (no drum, no live ring: its
+        #: scans' entry and exit go out as ``scan_enter`` / ``scan_leave`` markers at their times)
+        self.live: LiveLslFeed | None = None
+        listeners = getattr(self.rig, "marker_listeners", None)
+        if listeners is not None:
+            listeners.append(self._scan_marker)
+        else:
+            self.live = LiveLslFeed(self.outlets, self.rig.stream, self.rig.drum, self.normaliser)
+            self.live.start()
 
     def session_attrs(self) -> dict[str, Any]:
         """``{"lsl": JSON}``: the streams' names and source ids, the host <-> LSL clock offset."""
@@ -98,10 +104,16 @@ class LslPublisher:
             fields["error"] = event.error
         at = None
         if event.kind == "complete" and event.data is not None:
-            self.live.push_pending()  # the trial's frames are out before its end marker
+            if self.live is not None:
+                self.live.push_pending()  # the trial's frames are out before its end marker
             at, span = self.trial_span(event.data)
             fields.update(span)
         self.markers.append(self.outlets.marker(kind, host_time_s=at, **fields))
+
+    def _scan_marker(self, event: str, host_time_s: float, fields: dict[str, Any]) -> None:
+        """A handheld scan's boundary (``scan_enter`` / ``scan_leave``) at its host time."""
+        self.markers.append(self.outlets.marker(event, host_time_s=host_time_s, protocol=self.protocol_name,
+                                                **fields))
 
     def trial_span(self, data: Any) -> tuple[float | None, dict[str, Any]]:
         """A recorded trial (:class:`rigctl.core.trial.TrialData`, its frames already streamed live): the fitted host
@@ -119,5 +131,9 @@ class LslPublisher:
     def close(self) -> None:
         """Push what the reader has received, stop the live feed, close the outlets (once)."""
         if self.outlets.outlets:
-            self.live.stop()
+            if self.live is not None:
+                self.live.stop()
+            listeners = getattr(self.rig, "marker_listeners", None)
+            if listeners is not None and self._scan_marker in listeners:
+                listeners.remove(self._scan_marker)
             self.outlets.close()

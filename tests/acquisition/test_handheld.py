@@ -171,3 +171,18 @@ def test_protocol_rig_key_is_checked_with_its_line():
     shipped = {n: load_protocol(find_protocol(n)).plan() for n in ("handheld_training", "handheld_calibration", "handheld_realtime")}
     per_texture = {n: sum(p.texture == "A" for p in plan) for n, plan in shipped.items()}
     assert per_texture == {"handheld_training": 20, "handheld_calibration": 10, "handheld_realtime": 20}
+
+
+def test_plate_axis_from_the_rig_config(tmp_path):
+    import json
+
+    cfg = tmp_path / "rig.json"
+    cfg.write_text(json.dumps({"handheld": {"start_xyz": [10, 20, 0], "end_xyz": [10, 320, 0]}}))
+    rig = HandheldRig(SimulatedOperator(seed=1), host_config_path=str(cfg))
+    assert rig.axis is not None and rig.axis.along_mm(np.array([[10.0, 70.0, 5.0]]))[0] == pytest.approx(50.0)
+    assert rig.describe()["plate_axis"]["end_xyz"] == [10.0, 320.0, 0.0]
+    cfg.write_text(json.dumps({"handheld": {"start_xyz": [10, 20, 0]}}))
+    from rigctl.acquisition.rigconfig import RigConfigError
+
+    with pytest.raises(RigConfigError, match="end_xyz"):
+        HandheldRig(SimulatedOperator(seed=1), host_config_path=str(cfg))

@@ -1,0 +1,185 @@
+"""A tracker over Lab Streaming Layer as the handheld rig's motion source (``--motion lsl:NAME``).
+
+:class:`LslTracker` reads a tracker's stream (Vive, OptiTrack, Qualisys bridges publish their positions on LSL): the
+channels chosen on the command line, either three (x, y, z in the tracker's frame, mm; the plate's axis calibrated in
+the rig config's ``handheld`` block) or one (the position along the plate, mm). Its samples are put on the host clock
+with the host <-> LSL offset (:func:`rigctl.core.clocksync.measure_clock_offset`).
+
+:class:`TrackedFingerScans` is a :class:`rigctl.core.handheld.ScanSource` on it: after the cue it waits for the
+tracked finger to pass through the plate's used part and beyond, and returns the pass. Its taxel readings come from
+the rig's physical sensor model along the tracked path (the simulated finger following a live tracker: a dry run of
+the chain with a real tracker and no sensor, and the test of the tracker input); frames 1 ms apart on the host clock.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from rigctl.core.clocksync import measure_clock_offset
+from rigctl.core.handheld import USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError
+from rigctl.core.lsl import require_pylsl
+from rigctl.core.sensor import PAPER_FINGER, SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.core.trial import PlannedTrial
+from rigctl.simulation.model import RigConfig, SensorModel
+from rigctl.simulation.textures import get_texture
+
+__all__ = ["LslTracker", "TrackedFingerScans", "open_lsl_scans", "parse_motion"]
+
+#: how far past the used part's end the finger must be before a scan counts as over, mm
+PAST_END_MM = 10.0
+#: tracker time kept before the cue and after the exit, s
+MARGIN_S = 0.3
+
+
+class LslTracker:
+    """The samples of the LSL tracker stream ``name`` (name or source id), channels ``channels``, on the host clock.
+
+    Raises ScanError (no such stream, a channel it does not have), LslUnavailable (no pylsl).
+    """
+
+    def __init__(self, name: str, channels: tuple[int, ...] = (0, 1, 2), *, resolve_s: float = 5.0) -> None:
+        pylsl = require_pylsl()
+        self.name = name.removeprefix("lsl:")
+        found = (pylsl.resolve_byprop("name", self.name, minimum=1, timeout=resolve_s)
+                 or pylsl.resolve_byprop("source_id", self.name, minimum=1, timeout=resolve_s))
+        if not found:
+            raise ScanError(f"no LSL stream named {self.name!r} (by name or source id) within {resolve_s:g} s")
+        self.inlet = pylsl.StreamInlet(found[0], max_buflen=60, recover=True)
+        n = int(self.inlet.info(timeout=resolve_s).channel_count())
+        if len(channels) not in (1, 3) or any(not 0 <= c < n for c in channels):
+            raise ScanError(f"LSL stream {self.name!r} has {n} channels: choose 3 (x, y, z, mm) or 1 (along the "
+                            f"plate, mm) of 0..{n - 1}, not {list(channels)}")
+        self.channels = tuple(channels)
+        self.offset_s, _ = measure_clock_offset(pylsl.local_clock, time.monotonic)  # LSL minus host
+        self._t: list[np.ndarray] = []
+        self._x: list[np.ndarray] = []
+        self._lock = threading.Lock()
+        self._halt = threading.Event()
+        self.inlet.open_stream(timeout=resolve_s)
+        self._thread = threading.Thread(target=self._pull, name="lsl-tracker", daemon=True)
+        self._thread.start()
+
+    def _pull(self) -> None:
+        while not self._halt.is_set():
+            try:
+                chunk, stamps = self.inlet.pull_chunk(timeout=0.05, max_samples=4096)
+            except Exception:  # noqa: BLE001 - a lost stream: nothing arrives, the scan times out
+                self._halt.wait(0.2)
+                continue
+            if stamps:
+                x = np.asarray(chunk, np.float64)[:, list(self.channels)]
+                t = np.asarray(stamps, np.float64) - self.offset_s
+                with self._lock:
+                    self._t.append(t)
+                    self._x.append(x)
+
+    def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
+        """Samples received with host time >= ``t0``: times (k,) s and positions (k, n_channels) mm."""
+        with self._lock:
+            t = np.concatenate(self._t) if self._t else np.zeros(0)
+            x = np.concatenate(self._x) if self._x else np.zeros((0, len(self.channels)))
+            keep = t >= t0 - 60.0  # the last minute is enough for any scan
+            self._t, self._x = [t[keep]], [x[keep]]
+        sel = t >= t0
+        return t[sel], x[sel]
+
+    def close(self) -> None:
+        self._halt.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2)
+        self.inlet.close_stream()
+
+
+class TrackedFingerScans:
+    """Scans of a tracked finger (module docstring); ``timeout_s`` bounds the wait for one pass."""
+
+    layout: SensorLayout = PAPER_FINGER
+
+    def __init__(self, tracker: LslTracker, axis: PlateAxis | None, *, rig_config: RigConfig | None = None,
+                 seed: int = 0, textures: TextureSet | None = None, timeout_s: float = 60.0) -> None:
+        if len(tracker.channels) == 3 and axis is None:
+            raise ScanError("a tracker's x, y, z need the plate's axis: calibrate it (the rig config's handheld block, "
+                            "docs/guides/handheld.md), or give the position along the plate as one channel")
+        self.tracker, self.axis, self.timeout_s = tracker, axis, float(timeout_s)
+        self.sensor = SensorModel((rig_config or RigConfig()).sensor)
+        self.textures = textures or PAPER_TEXTURES
+        self.seed, self.scans, self.count = int(seed), 0, 0
+
+    def _along(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 0] if x.shape[1] == 1 else self.axis.along_mm(x)  # type: ignore[union-attr]  # checked above
+
+    def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
+        """Wait for the finger to enter the used part and pass its end; the pass with rendered readings. Raises
+        ScanError when no pass comes within ``timeout_s``."""
+        t_cue = time.monotonic()
+        while True:
+            if stop is not None and stop():
+                return None
+            t, x = self.tracker.since(t_cue - MARGIN_S)
+            along = self._along(x) if t.size else np.zeros(0)
+            entered = np.flatnonzero(along < USED_START_MM)
+            if entered.size and np.any(along[entered[0]:] > USED_END_MM + PAST_END_MM):
+                break
+            if time.monotonic() - t_cue > self.timeout_s:
+                raise ScanError(f"no pass of the finger through the plate within {self.timeout_s:g} s (the tracker "
+                                f"sent {t.size} samples)")
+            time.sleep(0.02)
+        time.sleep(MARGIN_S / 2)
+        t, x = self.tracker.since(t_cue - MARGIN_S)
+        along = self._along(x)
+        rng = np.random.default_rng([self.seed, 3738, self.scans])
+        self.scans += 1
+        frames = np.arange(t[0], t[-1], 1e-3)
+        pos = np.interp(frames, t, along)
+        taxels = self.sensor.render(get_texture(planned.texture, self.textures), pos, 500.0, rng)
+        n = frames.size
+        seq = ((self.count + np.arange(n)) % 65536).astype(np.uint16)
+        self.count += n
+        return RawScan(taxels=np.ascontiguousarray(taxels[:, : self.layout.n_channels]), seq=seq, host_time_s=frames,
+                       tracker_time_s=t, tracker_xyz=None if x.shape[1] == 1 else x,
+                       along_mm=along if x.shape[1] == 1 else None,
+                       attrs={"tracker_stream": self.tracker.name, "taxels_from": "sensor model on the tracked path"})
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "tracked_finger", "lsl_stream": self.tracker.name, "channels": list(self.tracker.channels),
+                "lsl_offset_s": self.tracker.offset_s, "taxels": "sensor model on the tracked path", "seed": self.seed}
+
+    def close(self) -> None:
+        self.tracker.close()
+
+
+def parse_motion(motion: str) -> tuple[str, tuple[int, ...]]:
+    """``lsl:NAME`` -> (NAME, (0, 1, 2)); ``lsl:NAME@3`` -> (NAME, (3,)); ``lsl:NAME@4,5,6`` -> (NAME, (4, 5, 6)):
+    the stream and its position channels (x, y, z in mm, or one: along the plate, mm). Raises ScanError."""
+    name = motion.removeprefix("lsl:")
+    if "@" not in name:
+        return name, (0, 1, 2)
+    name, _, chans = name.rpartition("@")
+    try:
+        channels = tuple(int(c) for c in chans.split(","))
+    except ValueError:
+        raise ScanError(f"{motion}: the channels after @ must be indices, e.g. lsl:{name}@0,1,2 or lsl:{name}@0") \
+            from None
+    if not name or len(channels) not in (1, 3):
+        raise ScanError(f"{motion}: give a stream name and 3 channels (x, y, z) or 1 (along the plate)")
+    return name, channels
+
+
+def open_lsl_scans(motion: str, *, axis: PlateAxis | None = None, config: RigConfig | None = None, seed: int = 0,
+                   textures: TextureSet | None = None, resolve_s: float = 5.0,
+                   timeout_s: float = 60.0) -> TrackedFingerScans:
+    """The scan source of ``--motion lsl:NAME[@channels]`` (:func:`parse_motion`; :class:`TrackedFingerScans` on
+    :class:`LslTracker`). Raises ScanError, LslUnavailable."""
+    name, channels = parse_motion(motion)
+    tracker = LslTracker(name, channels, resolve_s=resolve_s)
+    try:
+        return TrackedFingerScans(tracker, axis, rig_config=config, seed=seed, textures=textures, timeout_s=timeout_s)
+    except BaseException:
+        tracker.close()
+        raise
