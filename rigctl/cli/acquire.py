@@ -197,10 +197,9 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
     ``--inject`` cannot model is a usage error (exit 2), the rest a ClickException; what the opening logged is shown
     once it succeeded."""
     from rigctl.acquisition.lsl import LslUnavailable
-    from rigctl.acquisition.rig import RigError, RigOpenError
     from rigctl.core.faults import FaultSpecError
     from rigctl.devices.errors import DrumError, TaxelStreamError
-    from rigctl.operations import open_control
+    from rigctl.operations import RigError, RigOpenError, open_control
 
     with _held_rig_warnings() as held:
         try:

@@ -121,10 +121,9 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
            queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
            config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...]) -> None:
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
-    from rigctl.acquisition.rig import RigError
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.core.faults import FaultSpecError
-    from rigctl.operations import QueueError, RigSource, RunQueue, lsl_requested, open_control
+    from rigctl.operations import QueueError, RigError, RigSource, RunQueue, lsl_requested, open_control
 
     try:
         import fastapi  # noqa: F401

@@ -64,7 +64,7 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
 
     source = None
     if replay_dir:
-        from rigctl.acquisition.rig import RigError
+        from rigctl.operations import RigError
         from rigctl.rigs import replay_source
 
         try:

@@ -15,7 +15,7 @@ import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.safety import Acknowledgement, Latch
@@ -27,6 +27,10 @@ from rigctl.operations._monitor import RigMonitor
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import RigSource
 from rigctl.rigs import open_rig
+
+if TYPE_CHECKING:
+    from rigctl.simulation.hil import HilRig
+    from rigctl.simulation.rig import SimulatedRig
 
 __all__ = ["Home", "RigControl", "RunStarted", "open_control"]
 
@@ -156,9 +160,10 @@ class RigControl:
         return self.rig.mode
 
     @property
-    def sim(self) -> Any:
-        """The simulated rig behind the ports (SimulatedRig / HilRig), or None (hardware, in-process)."""
-        return getattr(self.rig.backend, "sim", None)
+    def sim(self) -> SimulatedRig | HilRig | None:
+        """The simulated rig behind the ports (the physical model's boards, or the firmware under simavr), or None
+        (hardware, in-process, replay): what a test or a demo pulls cables and presses the e-stop on."""
+        return cast("SimulatedRig | HilRig | None", getattr(self.rig.backend, "sim", None))
 
     @property
     def places_mass(self) -> bool:

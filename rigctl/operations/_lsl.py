@@ -23,8 +23,10 @@ import numpy as np
 
 from rigctl.acquisition.clock import fitted_times
 from rigctl.acquisition.lsl import LslOutlets
+from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.normalisation import TaxelRange
+from rigctl.operations._control import RigControl
 from rigctl.operations._lsl_live import LiveLslFeed
 
 __all__ = ["LslPublisher", "lsl_requested"]
@@ -61,9 +63,9 @@ class LslPublisher:
     Raises :class:`rigctl.acquisition.lsl.LslUnavailable` when pylsl is missing.
     """
 
-    def __init__(self, rig: Any, *, name: str | None = None, source_id: str | None = None,
+    def __init__(self, rig: RigControl | Rig, *, name: str | None = None, source_id: str | None = None,
                  protocol_name: str = "") -> None:
-        self.rig = getattr(rig, "rig", rig)
+        self.rig: Rig = rig.rig if isinstance(rig, RigControl) else rig
         block = (self.rig.host_config or {}).get("lsl") or {}
         clock = getattr(self.rig.drum, "clock", None)
         self.outlets = LslOutlets(self.rig.layout, name=name or block.get("name", "rigctl"),

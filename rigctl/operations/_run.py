@@ -21,6 +21,7 @@ from typing import Any
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import RunSummary, TrialEvent, run_protocol
 from rigctl.core.progress import ProgressEvent
+from rigctl.operations._control import RigControl
 from rigctl.operations._lsl import LslPublisher
 
 __all__ = ["ProtocolRun", "RUN_STATES"]
@@ -51,14 +52,14 @@ class ProtocolRun:
     SessionError, ValueError.
     """
 
-    def __init__(self, rig: Any, protocol: Any, out_path: str | os.PathLike[str], *, resume: bool = False,
+    def __init__(self, rig: RigControl | Rig, protocol: Any, out_path: str | os.PathLike[str], *, resume: bool = False,
                  overwrite: bool = False, on_failure: str = "continue",
                  prompt: Callable[[str], Any] | None = None,
                  progress: Callable[[ProgressEvent], Any] | None = None,
                  on_trial: Callable[[TrialEvent], Any] | None = None, lsl: Any = False, on_latch: str = "wait",
                  acknowledge: tuple[str, str] | None = None) -> None:
-        self.control = rig if hasattr(rig, "rig") else None
-        self.rig: Rig = getattr(rig, "rig", rig)
+        self.control = rig if isinstance(rig, RigControl) else None
+        self.rig: Rig = rig.rig if isinstance(rig, RigControl) else rig
         self.on_latch, self.acknowledge_as = on_latch, acknowledge
         #: STOP: set with pause_event to cut the trial in progress short (:meth:`stop`)
         self.halt_event = threading.Event()
