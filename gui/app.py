@@ -31,6 +31,7 @@ import numpy as np
 import shiboken6
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rigctl.core.faults import FaultSpecError, parse_faults
 from rigctl.operations import DEADMAN_TIMEOUT_S
 from rigctl_gui.connect_dialog import source_problem
 from rigctl_gui.dialogs import ask, show_dialog
@@ -906,7 +907,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--max-fps", type=float, default=MAX_FPS, metavar="N",
                     help=f"frame cap of the live view, frames/s ({FPS_RANGE[0]:g}-{FPS_RANGE[1]:g}; default "
                          f"{MAX_FPS:g})")
+    ap.add_argument("--inject", action="append", default=[], metavar="FAULT@T[+D]",
+                    help="inject a fault into the simulated rig (repeatable; rigctl gui --help, docs/safety.md)")
     args = ap.parse_args(argv)
+    try:
+        args.inject = parse_faults(args.inject)
+    except FaultSpecError as exc:
+        ap.error(str(exc))
     if not FPS_RANGE[0] <= args.max_fps <= FPS_RANGE[1]:
         ap.error(f"--max-fps must be {FPS_RANGE[0]:g}-{FPS_RANGE[1]:g} frames/s, got {args.max_fps:g}")
     return args
@@ -917,9 +924,9 @@ def source_from_args(args) -> RigSource | None:
     source last chosen in the Connect dialog (QSettings)."""
     if bool(args.drum_port) != bool(args.taxel_port):
         raise SystemExit("give both --drum-port and --taxel-port")
-    if args.drum_port or args.replay or args.hil or args.hil_bootloaders or args.sim:
+    if args.drum_port or args.replay or args.hil or args.hil_bootloaders or args.sim or args.inject:
         return RigSource.from_flags(hil=args.hil, drum_port=args.drum_port, taxel_port=args.taxel_port,
-                                    replay=args.replay, bootloaders=args.hil_bootloaders)
+                                    replay=args.replay, bootloaders=args.hil_bootloaders, inject=args.inject)
     return None
 
 

@@ -111,3 +111,42 @@ def test_cli_ends_on_estop_and_resume_acknowledges_it(tmp_path, monkeypatch, pro
         assert len(s.completed_ids()) == 6
         assert [e["kind"] for e in s.events] == ["latched", "acknowledged"]
         assert s.events[1]["reason"] == "rigctl acquire --resume" and s.events[1]["clears"]["cause"] == "estop"
+
+
+def test_stop_discards_the_trial_and_pauses_until_resumed(tmp_path):
+    """STOP (RigControl.stop) is not an abort: the trial in progress is discarded, the rig stopped, the run paused;
+    resume records that trial again and the plan completes."""
+    import threading
+
+    started, stopped = threading.Event(), threading.Event()
+    kinds: list[tuple[str, int | None]] = []
+
+    def on_trial(ev):
+        kinds.append((ev.kind, None if ev.planned is None else ev.planned.trial_id))
+        if ev.kind == "start" and ev.planned.trial_id == 1 and not started.is_set():
+            started.set()
+            stopped.wait(60)  # the operator hits STOP as trial 1 starts
+
+    with open_control(RigSource("inprocess")) as control:
+        run = ProtocolRun(control, load_protocol(find_protocol("quick_check")), tmp_path / "s.h5",
+                          on_trial=on_trial).start()
+        assert started.wait(120)
+        control.stop("pytest STOP")
+        stopped.set()
+        _until(lambda: run.state == "paused", "the pause after STOP")
+        assert control.status().state in (DrumState.IDLE, DrumState.NOT_HOMED) and run.summary is None
+        run.resume()
+        summary = run.wait(120)
+    assert summary is not None and summary.ok and summary.complete == 6
+    assert ("halted", 1) in kinds and kinds.count(("complete", 1)) == 1
+
+
+def test_a_stalled_drum_latches(tmp_path):
+    from rigctl.acquisition.runner import run_protocol
+
+    with open_control(RigSource("inprocess", inject=(parse_fault("stall@0+60"),))) as control:
+        summary = run_protocol(load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", rig=control.rig,
+                               progress=False)
+        assert summary.stopped and summary.complete == 0 and "drum stalled" in summary.latched
+        assert control.latch is not None and control.latch.cause == "stall"
+        assert control.rig.backend.model.drum_speed_mm_s == 0.0
