@@ -258,6 +258,10 @@ def test_faults(tables, spec_text, h):
                                          spec_text).groups())
     assert (h["RIGCTL_HOME_MAX_TRAVEL_MM"], h["RIGCTL_HOME_TIMEOUT_MS"]) == (travel, home_ms) == \
         (wire.HOME_MAX_TRAVEL_MM, wire.HOME_TIMEOUT_MS)
+    proof, rise = map(int, re.search(r"did not open within (\d+) mm of leaving home, or the load cell's untared force "
+                                     r"rose more than (\d+) g", spec_text).groups())
+    assert (h["RIGCTL_HOME_PROOF_MM"], h["RIGCTL_DIRECTION_RISE_G"]) == (proof, rise) == \
+        (wire.HOME_PROOF_MM, wire.DIRECTION_RISE_G)
 
 
 @pytest.mark.parametrize("table,flags,prefix", [

@@ -65,6 +65,7 @@ class Fault(enum.IntFlag):
     LOADCELL_REVERSED = 1 << 5
     HOME_NOT_FOUND = 1 << 6
     HX711_RATE = 1 << 8
+    ACTUATOR_DIRECTION = 1 << 9
 
 
 class ResetCause(enum.IntFlag):
@@ -154,6 +155,13 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the HX711 converts at another rate than HX711_RATE_SPS (most boards ship at 10 SPS, RATE pin low; the "
         "default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or accept 10 SPS with its slower "
         "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT."),
+    Fault.ACTUATOR_DIRECTION: FaultWords(
+        "actuator turns the wrong way",
+        "the actuator moved the wrong way: HOME's switch did not open when leaving home, or the load cell's untared "
+        "force rose while it moved home or backed off",
+        "the actuator moves towards the sensor when the firmware drives it home (a swapped coil pair, or the DIR "
+        "signal inverted): it was stopped where it stood. Power off, swap one coil pair of the actuator motor at its "
+        "driver (1A/1B), then CLEAR_FAULT and HOME; rigctl doctor checks it."),
 }
 
 

@@ -286,6 +286,10 @@ class Command(enum.IntEnum):
 #: HOME gives up (HOME_NOT_FOUND) after this much travel towards home, mm, or this long, ms (spec 2.5)
 HOME_MAX_TRAVEL_MM = 25
 HOME_TIMEOUT_MS = 10000
+#: HOME's direction proof: the switch must open within this travel when leaving home (spec 2.5, ACTUATOR_DIRECTION)
+HOME_PROOF_MM = 2
+#: ACTUATOR_DIRECTION: an untared force rise above the lowest reading since HOME or a back-off began, g (spec 2.5)
+DIRECTION_RISE_G = 150
 
 
 # --------------------------------------------------------------------------------------------------------------

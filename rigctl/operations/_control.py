@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.safety import Acknowledgement, Latch
-from rigctl.core.drum import DrumLimits, DrumState, DrumStatus, SetpointRangeError
+from rigctl.core.drum import DrumFault, DrumLimits, DrumState, DrumStatus, SetpointRangeError
 from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
@@ -184,14 +184,20 @@ class RigControl:
         self.close()
 
     def home_unless_faulted(self) -> DrumStatus:
-        """HOME and wait for IDLE, unless the controller reports a latched fault: that one is left latched (logged)
-        for the operator to see and clear. Returns the status. DrumError / DrumTimeout."""
+        """HOME and wait for IDLE, unless the controller reports a latched fault: that one, or one HOME itself latches
+        (e.g. ACTUATOR_DIRECTION: HOME's direction proof failed), is left latched (logged) for the operator to see
+        and clear. Returns the status. DrumError / DrumTimeout."""
         st = self.drum.read_status()
         if st.faulted:
             log.warning("drum controller is in FAULT (%s): left latched for the operator", st.describe())
             return st
         self.drum.home()
-        return self.drum.wait_state([DrumState.IDLE], timeout_s=HOME_TIMEOUT_S)
+        try:
+            return self.drum.wait_state([DrumState.IDLE], timeout_s=HOME_TIMEOUT_S)
+        except DrumFault:
+            st = self.drum.read_status()
+            log.warning("HOME latched a fault (%s): left latched for the operator", st.describe())
+            return st
 
     # ------------------------------------------------------------------------------------------------- setpoints
     def limits(self) -> DrumLimits:

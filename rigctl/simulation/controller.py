@@ -33,7 +33,6 @@ import collections
 import functools
 import json
 import logging
-import math
 import threading
 import time
 from pathlib import Path
@@ -52,6 +51,7 @@ from rigctl.devices.wire import (
     ResetCause,
     StatusFlag,
 )
+from rigctl.simulation.drum_index import DrumIndex
 from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G, RigModel
 
 log = logging.getLogger(__name__)
@@ -174,6 +174,10 @@ class MegaController:
         self._homing = False
         self._home_travel_mm = 0.0
         self._home_ms = 0
+        self._home_phase = 0  # the firmware's HOME_SEEK, HOME_LEAVE, HOME_RETURN
+        self._home_phase_mm = 0.0  # commanded travel in this phase (the step count), + towards the sensor
+        self._home_leave_mm = 0.0
+        self._move_ref_raw: int | None = None  # lowest untared reading since HOME or a back-off began
         self._hung_ms: int | None = None
         self._speed_target = 0.0  # mm/s
         self._outputs = (0.0, 0.0)  # drum step rate (microsteps/s), actuator velocity (mm/s)
@@ -188,14 +192,7 @@ class MegaController:
         self._hx_rate_sps = 0.0  # 0 until measured
         self._hx_period_s = 0.0
         # drum index (spec 2.6): the step count the firmware keeps, and the index sensor on the real drum
-        self._steps = 0.0  # microsteps sent since power-up
-        self._steps_at_sensor = 0.0
-        self._sensor_live = False
-        self._sensor_edges = 0
-        self._sensor_last_s = 0.0
-        self._index_period_ms = 0
-        self._index_steps = 0
-        self._revolutions = 0
+        self._index = DrumIndex(model.config.drum)
         if self.estop_open:
             self._estop()
         if self._home_switch():  # the first HX711 reading (12.5 ms after boot on the firmware)
@@ -368,8 +365,8 @@ class MegaController:
         regs[IR.FORCE_G] = _u16(max(-32768, min(32767, self._force_g)))
         d = m.config.drum  # the speed by the step rate, as the firmware knows it (not the real drum's)
         regs[IR.SPEED_0P1MMS] = _u16(m.drum_speed_mm_s * d.true_steps_per_mm / d.steps_per_mm * 10)
-        regs[IR.DRUM_ANGLE_0P01DEG] = int(self._index_angle_deg() * 100) % 36000
-        regs[IR.DRUM_REVOLUTIONS] = self._revolutions & 0xFFFF
+        regs[IR.DRUM_ANGLE_0P01DEG] = int(self._index.angle_deg() * 100) % 36000
+        regs[IR.DRUM_REVOLUTIONS] = self._index.revolutions & 0xFFFF
         regs[IR.ACTUATOR_POSITION_0P01MM] = _u16(max(-32768, min(32767, act_mm * 100)))
         regs[IR.STATE] = int(self.state)
         regs[IR.FAULT_BITS] = int(self.faults)
@@ -380,10 +377,10 @@ class MegaController:
         regs[IR.LOADCELL_RAW_LO] = raw & 0xFFFF
         regs[IR.FORCE_SETPOINT_ACTIVE_G] = self.holding[HR.FORCE_SETPOINT_G] if self.state in _ENGAGED else 0
         regs[IR.HX711_RATE_0P01SPS] = int(round(self._hx_rate_sps * 100))
-        regs[IR.INDEX_SOURCE] = 1 if self._sensor_live else 0
-        regs[IR.INDEX_PERIOD_MS] = self._index_period_ms
-        regs[IR.INDEX_STEPS] = self._index_steps
-        regs[IR.INDEX_COUNT] = self._sensor_edges & 0xFFFF
+        regs[IR.INDEX_SOURCE] = 1 if self._index.sensor_live else 0
+        regs[IR.INDEX_PERIOD_MS] = self._index.period_ms
+        regs[IR.INDEX_STEPS] = self._index.steps_per_mark
+        regs[IR.INDEX_COUNT] = self._index.edges & 0xFFFF
         regs[IR.RESET_CAUSE] = int(self.reset_cause)
         regs[IR.BOOT_COUNT] = self.eeprom["boot_count"]
         regs[IR.STATUS_FLAGS] = self._status_flags()
@@ -483,6 +480,8 @@ class MegaController:
             self._retracting = False
             self._home_travel_mm = 0.0
             self._home_ms = 0
+            self._home_phase = 0
+            self._move_ref_raw = self.model.loadcell_raw
         elif cmd == Command.CLEAR_FAULT:
             self.faults = Fault(0)
             if self.state == DrumState.FAULT:
@@ -509,6 +508,8 @@ class MegaController:
     def _release(self, state: DrumState) -> None:
         """Stop pressing: back off to home if the position is known (homed), else stop where it stands."""
         self.state = state
+        if self.homed and not self._retracting:
+            self._move_ref_raw = self.model.loadcell_raw
         self._retracting = self.homed
         self._homing = False
         self._integ = 0.0
@@ -517,6 +518,66 @@ class MegaController:
         self.faults |= bits
         self._release(DrumState.FAULT)
         log.warning("virtual Mega fault: %s", bits)
+
+    def _direction_fault(self) -> None:
+        """The actuator moved the wrong way (the firmware's direction_fault): not homed, stopped where it stands."""
+        self.homed = False
+        self._fault(Fault.ACTUATOR_DIRECTION)
+        self._retracting = False
+
+    def _watch_direction(self) -> None:
+        """A new reading while moving home or backing off: an untared rise above the lowest reading since the move
+        began (raw counts in the scale's sign) is a reversed actuator (firmware: ctl_loadcell)."""
+        if not (self._homing or self._retracting):
+            return
+        raw = self.model.loadcell_raw
+        if self._move_ref_raw is None:
+            self._move_ref_raw = raw
+        rise = (raw - self._move_ref_raw) * 100.0 / self.scale_x100
+        if rise < 0:
+            self._move_ref_raw = raw
+        elif rise > wire.DIRECTION_RISE_G:
+            self._direction_fault()
+
+    def _home_velocity(self, n_ms: int, cal: float) -> float:
+        """HOME's actuator velocity this step (the firmware's home_step): back to the switch, leave it (it must open
+        within HOME_PROOF_MM: the direction is right), back again; zero there. Travel is the step count (commanded
+        mm, moving or not)."""
+        m, dt = self.model, n_ms / 1000.0
+        self._home_ms += n_ms
+        late = self._home_ms >= wire.HOME_TIMEOUT_MS
+        if self._home_phase == 0:  # seek
+            if self._home_switch():
+                self._home_phase, self._home_phase_mm = 1, 0.0
+            elif self._home_travel_mm >= wire.HOME_MAX_TRAVEL_MM or late:
+                return self._home_not_found()
+            else:
+                self._home_travel_mm += HOME_SPEED_MM_S * dt
+                return -HOME_SPEED_MM_S * cal
+        if self._home_phase == 1:  # leave
+            if not self._home_switch():
+                self._home_phase, self._home_leave_mm, self._home_phase_mm = 2, self._home_phase_mm, 0.0
+            elif self._home_phase_mm >= wire.HOME_PROOF_MM:
+                self._direction_fault()
+                return 0.0
+            else:
+                self._home_phase_mm += HOME_SPEED_MM_S * dt
+                return HOME_SPEED_MM_S * cal
+        if self._home_switch():  # return: home, the direction proven
+            m.home_actuator()
+            self._pos_offset_mm = 0.0
+            self._homing = False
+            self._tare_pending = True  # HOMING ends when the tare at the switch is taken
+            return 0.0
+        if self._home_phase_mm >= self._home_leave_mm + wire.HOME_PROOF_MM or late:
+            return self._home_not_found()
+        self._home_phase_mm += HOME_SPEED_MM_S * dt
+        return -HOME_SPEED_MM_S * cal
+
+    def _home_not_found(self) -> float:
+        self.homed = False
+        self._fault(Fault.HOME_NOT_FOUND)
+        return 0.0
 
     def _estop(self) -> None:
         """The e-stop ISR: drivers disabled and motion stopped at once, ESTOP latched, the position no longer known."""
@@ -567,9 +628,10 @@ class MegaController:
         """Advance the rig by ``n_ms`` ms under the current outputs, then run the controller.
 
         Returns the model's ``(samples (n, 18) uint16, sync_in (n,) bool)`` for the taxel streamer (``sync_in``:
-        the index output, from the index sensor or the step count, :meth:`_index_step`). The time is cut into
-        control periods of at most :attr:`max_step_ms` ms that end where an HX711 conversion completes, so the
-        force loop acts on each reading within the ms it arrives in, as the firmware does.
+        the index output, from the index sensor or the step count,
+        :meth:`rigctl.simulation.drum_index.DrumIndex.step`). The time is cut into control periods of at most
+        :attr:`max_step_ms` ms that end where an HX711 conversion completes, so the force loop acts on each reading
+        within the ms it arrives in, as the firmware does.
         """
         if n_ms <= 0:
             return self.model.advance(0, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
@@ -582,7 +644,7 @@ class MegaController:
             t0 = self.model.time_s
             s, y = self.model.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
             with self._lock:
-                y = self._index_step(y, rate, t0)
+                y = self._index.step(y, rate, t0)
             self.control_step(k)
             samples.append(s)
             sync.append(y)
@@ -590,50 +652,6 @@ class MegaController:
         if len(samples) == 1:
             return samples[0], sync[0]
         return np.concatenate(samples), np.concatenate(sync)
-
-    # ------------------------------------------------------------------ drum index (spec 2.6)
-    def _index_step(self, sensor: np.ndarray, rate: float, t0: float) -> np.ndarray:
-        """Count the step pulses of a step of ``sensor.size`` ms at ``rate`` microsteps/s and take the index sensor's
-        passes (``sensor``: the model's real index mark, if a sensor is fitted); returns the index output per ms, as
-        the firmware's Timer5 capture and step ISR make it (lock held)."""
-        d = self.model.config.drum
-        usteps = d.steps_per_rev * d.microsteps  # what the firmware assumes
-        n = sensor.size
-        before = self._steps
-        if n and not self._sensor_live and not sensor.any():  # the common ms: no index edge, maybe no wrap
-            last = before + rate * n / 1000.0
-            if math.floor(before / usteps) == math.floor(last / usteps):  # steps are linear in time: no wrap
-                self._steps = float(last)
-                return np.zeros(n, bool)
-        steps = before + rate * np.arange(1, n + 1) / 1000.0
-        self._steps = float(steps[-1]) if n else before
-        out = np.zeros(n, bool)
-        if d.index_sensor:
-            for j in np.flatnonzero(sensor):
-                t = t0 + (j + 1) * 1e-3
-                if self._sensor_edges:
-                    self._index_period_ms = min(0xFFFF, int(round((t - self._sensor_last_s) * 1000.0)))
-                    self._index_steps = min(0xFFFF, int(round(steps[j] - self._steps_at_sensor)))
-                self._sensor_last_s = t
-                self._steps_at_sensor = float(steps[j])
-                self._sensor_edges += 1
-                self._sensor_live = True
-                self._revolutions += 1
-                out[j] = True
-        if self._sensor_live and self._steps - self._steps_at_sensor > 1.5 * usteps:
-            self._sensor_live = False  # no edge for 1.5 revolutions: back to the step count
-        if not self._sensor_live and n:
-            wraps = np.diff(np.floor(np.concatenate(([before], steps)) / usteps)) != 0
-            out |= wraps
-            self._revolutions += int(wraps.sum())
-        return out
-
-    def _index_angle_deg(self) -> float:
-        """DRUM_ANGLE: the steps since the last index-sensor edge while the sensor is live, else the step count."""
-        d = self.model.config.drum
-        usteps = d.steps_per_rev * d.microsteps
-        steps = self._steps - self._steps_at_sensor if self._sensor_live else self._steps
-        return (steps % usteps) / usteps * 360.0
 
     # ------------------------------------------------------------------ HX711 rate and the force loop (spec 2.9)
     def _hx711_rate_ok(self, holding=None) -> bool:
@@ -712,6 +730,7 @@ class MegaController:
                         self.homed = True
                         self.state = DrumState.IDLE
                 self._update_force()
+                self._watch_direction()
             else:
                 self._loadcell_silent_ms += n_ms
             self._hx_seen = conversions
@@ -759,19 +778,7 @@ class MegaController:
                         abs(m.drum_speed_mm_s) < 0.05:
                     self.state = DrumState.FORCE_SETTLED
             elif self._homing:
-                vel = -HOME_SPEED_MM_S * cal
-                self._home_travel_mm += HOME_SPEED_MM_S * dt  # the step count: commanded mm, moving or not
-                self._home_ms += n_ms
-                if self._home_switch():
-                    vel = 0.0
-                    m.home_actuator()
-                    self._pos_offset_mm = 0.0
-                    self._homing = False
-                    self._tare_pending = True  # HOMING ends when the tare at the switch is taken
-                elif self._home_travel_mm >= wire.HOME_MAX_TRAVEL_MM or self._home_ms >= wire.HOME_TIMEOUT_MS:
-                    vel = 0.0
-                    self.homed = False
-                    self._fault(Fault.HOME_NOT_FOUND)
+                vel = self._home_velocity(n_ms, cal)
             elif self._retracting:  # the firmware's ACT_MODE_RETRACT: back to home at the loop's clamp speed
                 vel = -FORCE_LOOP_MAX_SPEED_MM_S * cal
                 if self._actuator_position_mm() <= 1e-6 or self._home_switch():

@@ -244,6 +244,7 @@ class HilRig:
         #: resets of the Mega the harness reported (the reset commands and the MCU's own, e.g. its watchdog)
         self.mega_resets = 0
         self._eeprom_ack: bool | None = None
+        self._actuator_acks = 0
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         #: the actuator's reversals as the motor turned (``AREV``): (t_s of the new direction's first step, dir 1 =
@@ -380,6 +381,7 @@ class HilRig:
         args = ["--tel-ms", str(self.tel_ms), "--hx711-sps", str(int(m.hx711_rate_sps)),
                 "--hx711-clock-error", str(m.hx711_clock_error),
                 "--drum-driver-microsteps", str(d.true_microsteps), "--index-bounce", str(self.index_bounce)]
+        args += ["--actuator-reversed"] if m.actuator_reversed else []
         return args if d.index_sensor else [*args, "--no-index-sensor"]
 
     def close(self) -> None:
@@ -481,10 +483,15 @@ class HilRig:
         """Open (``True``: pressed, or a broken wire) or close the normally-closed e-stop contact on the Mega's D2."""
         self._running(self._mega, "Mega").send("estop open" if opened else "estop close")
 
-    def reverse_actuator(self, reversed_: bool = True) -> None:
+    def reverse_actuator(self, reversed_: bool = True, timeout_s: float = 5.0) -> None:
         """Swap the actuator motor's coil pair (``True``: the firmware's "towards the sensor" moves it away and back
-        again) or mend it."""
-        self._running(self._mega, "Mega").send("actuator reversed" if reversed_ else "actuator ok")
+        again) or mend it; returns once the harness has it (a request sent after sees it). HilError if it does not
+        confirm."""
+        with self._cond:
+            acks = self._actuator_acks
+            self._running(self._mega, "Mega").send("actuator reversed" if reversed_ else "actuator ok")
+            if not self._cond.wait_for(lambda: self._actuator_acks != acks, timeout_s):
+                raise HilError("the Mega harness did not confirm the actuator's wiring")
 
     def log_requests(self, on: bool = True) -> None:
         """Record the simulated time host bytes reach the Mega (:attr:`request_times`) and each actuator step
@@ -574,6 +581,10 @@ class HilRig:
             with self._cond:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
+                self._cond.notify_all()
+        elif line == "OK actuator":
+            with self._cond:
+                self._actuator_acks += 1
                 self._cond.notify_all()
         elif line.startswith("RX "):
             self.request_times.append(_parse_kv(line)["t"])

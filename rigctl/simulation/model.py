@@ -278,6 +278,9 @@ class MechanicsConfig:
     hx711_clock_error : float
         Relative error of the HX711's on-chip oscillator (the datasheet gives the rates only as "typical"), e.g.
         0.05 = 5 % fast; the conversion period is ``1 / (rate * (1 + error))``. Must be within +-0.2.
+    actuator_reversed : bool
+        The actuator motor's coil pair is swapped (a bench fault): a velocity towards the sensor moves it away and
+        back again (:attr:`RigModel.actuator_sign` starts from it; the simavr harness's ``--actuator-reversed``).
     """
 
     contact_gap_mm: float = 3.0
@@ -290,6 +293,7 @@ class MechanicsConfig:
     texture_ripple: float = 0.02
     hx711_rate_sps: float = 80.0
     hx711_clock_error: float = 0.0
+    actuator_reversed: bool = False
 
     def __post_init__(self):
         if self.hx711_rate_sps not in (10.0, 80.0):
@@ -754,7 +758,7 @@ class RigModel:
         #: fault-injection hooks (rigctl.simulation.faults): the load cell mounted reversed (-1), the actuator's
         #: motor wired reversed (-1), the drum blocked (True: it turns no further whatever the stepper is told)
         self.loadcell_sign = 1
-        self.actuator_sign = 1
+        self.actuator_sign = -1 if self.config.mechanics.actuator_reversed else 1
         self.drum_blocked = False
 
     # -- properties ------------------------------------------------------------------------------------------------

@@ -112,6 +112,19 @@ def _run_service(tmp_path, config, names):
     return report, {r.name: r for r in report.results}
 
 
+def test_a_reversed_actuator_fails_the_direction_check_with_the_fix(tmp_path):
+    """Issue 39: the actuator's coil pair swapped. Opening the rig HOMEs; HOME's direction proof latches
+    ACTUATOR_DIRECTION (the rig stays open with it latched for the operator), and the direction check says how to
+    fix it; the healthy rig passes it."""
+    cfg = RigConfig(mechanics=MechanicsConfig(actuator_reversed=True))
+    report, by = _run_service(tmp_path, cfg, ["actuator-direction", "controller-faults"])
+    r = by["actuator-direction"]
+    assert r.status == "fail" and "swap one coil pair" in r.fix, r.line()
+    assert by["controller-faults"].status == "fail" and "ACTUATOR_DIRECTION" in by["controller-faults"].summary
+    _, by = _run_service(tmp_path, None, ["actuator-direction"])
+    assert by["actuator-direction"].status == "pass", by["actuator-direction"].line()
+
+
 def test_a_10_sps_hx711_fails_its_check_with_the_rate_pin_fix(tmp_path):
     """The simulated HX711 at 10 SPS on a controller set for 80: the controller latches HX711_RATE, the doctor opens
     the rig without clearing it and names the RATE pin; the checks that would move the rig skip."""

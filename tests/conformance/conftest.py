@@ -52,6 +52,7 @@ class Controller:
     set_estop : ``opened -> None``, open (pressed, broken wire) or close the e-stop contact
     set_polarity : ``sign -> None``, mount the load cell the right way (+1) or reversed (-1)
     break_home_switch : ``broken -> None``, the home switch never closes (a broken wire) or works again
+    reverse_actuator : ``reversed -> None``, swap the actuator motor's coil pair (it turns the other way) or mend it
     corrupt_eeprom : ``() -> None``, flip a bit of the stored calibration record (its checksum fails at the next boot)
     hang : ``() -> None``, make the controller's main loop hang (the firmware's test image, the virtual Mega's hook)
     drivers_enabled : ``() -> bool``, the stepper drivers' EN as the hardware sees it (the harness's pin, the virtual
@@ -71,6 +72,7 @@ class Controller:
     set_estop: Callable[[bool], None] = lambda opened: None
     set_polarity: Callable[[int], None] = lambda sign: None
     break_home_switch: Callable[[bool], None] = lambda broken: None
+    reverse_actuator: Callable[[bool], None] = lambda reversed_: None
     corrupt_eeprom: Callable[[], None] = lambda: None
     hang: Callable[[], None] = lambda: None
     drivers_enabled: Callable[[], bool] = lambda: True
@@ -137,6 +139,7 @@ def _start_sim(config=None, image: str = ""):
                            reset=lambda cause: mega.reset(_SIM_CAUSES[cause]), set_estop=mega.set_estop,
                            set_polarity=set_polarity, break_home_switch=mega.break_home_switch,
                            corrupt_eeprom=mega.corrupt_eeprom, hang=mega.hang_loop,
+                           reverse_actuator=lambda r: setattr(model, "actuator_sign", -1 if r else 1),
                            drivers_enabled=lambda: mega.drivers_enabled, mechanics_s=lambda: model.time_s, rig=rig)
 
 
@@ -155,7 +158,7 @@ def _start_hil(config=None, image: str = "mega_drum"):
                            clock_s=lambda: rig.next_telemetry().t_s, reset=rig.reset_mega, set_estop=rig.set_estop,
                            set_polarity=rig.set_loadcell_polarity, break_home_switch=rig.break_home_switch,
                            corrupt_eeprom=rig.corrupt_eeprom, hang=rig.hang_loop,
-                           drivers_enabled=lambda: rig.next_telemetry().drivers_enabled,
+                           reverse_actuator=rig.reverse_actuator, drivers_enabled=lambda: rig.next_telemetry().drivers_enabled,
                            mechanics_s=lambda: rig.next_telemetry().t_s, rig=rig)
 
 
@@ -190,6 +193,7 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
     ctl.set_estop(False)
     ctl.set_polarity(1)
     ctl.break_home_switch(False)
+    ctl.reverse_actuator(False)
     drum.stop()
     clock = drum.clock  # the controller's (the drum fixture's client)
     deadline = clock.now() + 5.0

@@ -224,6 +224,51 @@ def test_broken_home_switch_homing_gives_up(drum, controller):
     assert st.homed and st.actuator_mm == 0
 
 
+def _peak_until_fault(drum, ctl, timeout_s: float = 15.0) -> tuple[float, object]:
+    """The largest force on the load cell (the harness's spring / the model's cell) until the controller leaves
+    HOMING, and 0.3 s after; with the final status."""
+    peak, deadline = 0.0, ctl.clock_s() + timeout_s
+    while drum.read_status().state == S.HOMING:
+        peak = max(peak, ctl.load_g())
+        assert ctl.clock_s() < deadline, "HOME did not end"
+    end = ctl.clock_s() + 0.3
+    while ctl.clock_s() < end:
+        peak = max(peak, ctl.load_g())
+    return peak, drum.read_status()
+
+
+def test_reversed_actuator_at_home_fails_homes_direction_proof(drum, controller):
+    """Issue 39: a swapped coil pair. HOME leaves the switch to prove the direction: the motor drives into the rear
+    stop instead, the switch stays closed, ACTUATOR_DIRECTION latches within 2 mm of steps; not homed, PRESS
+    refused; mended, HOME works."""
+    controller.reverse_actuator(True)
+    drum.home()
+    st = poll(drum, lambda s: s.state != S.HOMING, 10, "the end of HOMING")
+    assert (st.state, st.faults, st.homed) == (S.FAULT, Fault.ACTUATOR_DIRECTION, False)
+    assert controller.load_g() <= TOL
+    drum.clear_fault()
+    with pytest.raises(DrumNotHomed):
+        drum.press()
+    controller.reverse_actuator(False)
+    drum.home()
+    assert drum.wait_state(S.IDLE, timeout_s=30).homed
+
+
+def test_reversed_actuator_and_a_reset_while_pressing_stops_by_the_untared_rise(drum, controller):
+    """Issue 39: pressing 1000 g, the coil pair swapped and the MCU reset: HOME (untared, after the reset) drives
+    towards the sensor; the untared rise against the reading at boot stops it as ACTUATOR_DIRECTION; the force
+    never passes 1650 g (firmware 1.1 reached 13.5 kg and ignored its own 13,703 g reading)."""
+    st = settle(drum, 1000)
+    controller.reverse_actuator(True)
+    controller.reset("external")
+    after_reset(drum, controller, st.boot_count, ResetCause.EXTERNAL)
+    drum.home()
+    peak, st = _peak_until_fault(drum, controller)
+    assert (st.state, st.faults, st.homed) == (S.FAULT, Fault.ACTUATOR_DIRECTION, False)
+    assert peak <= 1650, f"the force reached {peak:.0f} g"
+    physically_still(controller)
+
+
 def test_bad_eeprom_calibration_is_reported(drum, controller):
     """A saved calibration survives a reset (no CALIBRATION_DEFAULTS); a corrupted record fails its checksum at the
     next boot: the defaults are used and CALIBRATION_DEFAULTS says so (firmware 1.0 fell back silently)."""

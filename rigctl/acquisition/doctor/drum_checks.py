@@ -28,7 +28,7 @@ from rigctl.core.drum import (
     fault_advice,
 )
 
-__all__ = ["CHECKS", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G", "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
+__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G", "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
 
 #: setpoint of the polarity check's press, g (the smallest of the paper's forces)
 POLARITY_SETPOINT_G = 250.0
@@ -108,6 +108,44 @@ def check_controller_faults(ctx: DoctorContext) -> CheckResult:
     advice = fault_advice(st.faults)
     return failed("controller-faults", f"latched: {_fault_names(st.faults)} (state {st.state.name})",
                   advice or "clear the fault's cause, then CLEAR_FAULT", faults=[f.name for f in names])
+
+
+#: how to fix an actuator that turns the wrong way (ACTUATOR_DIRECTION; docs/hardware/wiring.md)
+ACTUATOR_DIRECTION_FIX = ("the actuator turns the wrong way: power off and swap one coil pair of the actuator motor at "
+                          "its driver (1A <-> 1B), then CLEAR_FAULT and HOME (docs/hardware/wiring.md, actuator "
+                          "direction)")
+
+
+def check_actuator_direction(ctx: DoctorContext) -> CheckResult:
+    """HOME proves the actuator's direction (docs/wire-protocol.md 2.5): the home switch opened when HOME left home
+    and closed when it came back, and the load cell's untared force did not rise meanwhile. HOMEs again if the
+    controller is not homed (and not faulted)."""
+    drum = ctx.rig().drum
+    st = drum.read_status()
+    direction = getattr(type(st.faults), "ACTUATOR_DIRECTION", None)
+    if direction is None:
+        raise Skip("the drum controller's firmware has no ACTUATOR_DIRECTION fault (docs/wire-protocol.md 2.5): "
+                   "flash the installed firmware")
+    if st.state == DrumState.NOT_HOMED:
+        drum.home()
+        st = poll_until_not_homing(ctx)
+    if direction in st.faults:
+        return failed("actuator-direction", "HOME's direction proof failed: the actuator drove towards the sensor "
+                      "(or into its rear stop) when the firmware drove it home (ACTUATOR_DIRECTION)",
+                      ACTUATOR_DIRECTION_FIX)
+    if not st.homed:
+        raise Skip(f"the controller is not homed (state {st.state.name}): see controller-faults")
+    return passed("actuator-direction", "HOME left the home switch (it opened) and came back to it (it closed): the "
+                  "actuator turns the way the firmware drives it")
+
+
+def poll_until_not_homing(ctx: DoctorContext, limit_s: float = 15.0) -> Any:
+    """Poll the controller until it leaves HOMING (or ``limit_s`` of controller time); the last status."""
+    st = None
+    for _, st in _poll(ctx, limit_s):
+        if st.state != DrumState.HOMING:
+            break
+    return st
 
 
 def _tolerance_g(ctx: DoctorContext) -> float:
@@ -444,6 +482,7 @@ CHECKS = (
     Check("hx711-rate", check_hx711_rate, title="HX711 rate (80 SPS)"),
     Check("loadcell-zero", check_loadcell_zero, title="load cell reads zero at home"),
     Check("loadcell-scale", check_loadcell_scale, title="load-cell scale = the rig config's calibration"),
+    Check("actuator-direction", check_actuator_direction, moves=True, title="actuator turns the way HOME drives it"),
     Check("loadcell-polarity", check_loadcell_polarity, moves=True, title="load cell polarity"),
     Check("force-step", check_force_step, moves=True, title="force step response"),
     Check("drum-speed", check_drum_speed, moves=True, title="drum speed from the index at 40 and 120 mm/s"),

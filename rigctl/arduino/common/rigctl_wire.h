@@ -233,9 +233,13 @@
 #define RIGCTL_FAULT_HOME_NOT_FOUND        (1u << RIGCTL_FAULT_HOME_NOT_FOUND_BIT)
 #define RIGCTL_FAULT_HX711_RATE_BIT        8
 #define RIGCTL_FAULT_HX711_RATE            (1u << RIGCTL_FAULT_HX711_RATE_BIT)
+#define RIGCTL_FAULT_ACTUATOR_DIRECTION_BIT 9
+#define RIGCTL_FAULT_ACTUATOR_DIRECTION    (1u << RIGCTL_FAULT_ACTUATOR_DIRECTION_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000
+#define RIGCTL_HOME_PROOF_MM               2   /* the switch opens within this when HOME leaves home (2.5) */
+#define RIGCTL_DIRECTION_RISE_G            150 /* untared rise while moving home or backing off: ACTUATOR_DIRECTION */
 
 /* 2.7 reset cause (bit numbers = the MCUSR bits PORF, EXTRF, BORF, WDRF) */
 #define RIGCTL_RESET_POWER_ON_BIT          0

@@ -178,6 +178,9 @@ static void test_modbus()
 struct Plant {
     double x_mm = 0, k = 250, gap = 3, counts_per_g = 420, offset = 83000, extra_g = 0;
     bool switch_broken = false; // the home switch never closes (a broken wire)
+    bool reversed = false;      // the motor's coil pair swapped: it turns the other way
+    double peak_g = 0;          // the largest force so far
+    double cmd_mm = 0;          // the firmware's step count, mm (the real position when not reversed)
     double rear_mm = -1.0;      // the actuator's rear stop
     double force() const { return (x_mm > gap ? k * (x_mm - gap) : 0.0) + extra_g; }
     int32_t raw() const { return (int32_t)std::lround(offset + force() * counts_per_g); }
@@ -188,19 +191,23 @@ static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, 
     for (int i = 0; i < ms; i++) {
         now++;
         if (feed && now % 100 == 0) ctl_feed_watchdog(&c);
-        c.act_pos_steps = (int32_t)std::lround(p.x_mm * c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM]);
+        if (!p.reversed) p.cmd_mm = p.x_mm;
+        c.act_pos_steps = (int32_t)std::lround(p.cmd_mm * c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM]);
         c.home_switch = p.x_mm <= 0.0 && !p.switch_broken;
         ctl_tick(&c, now);
         if (c.zero_position) {
-            p.x_mm = 0;
+            if (!p.reversed) p.x_mm = 0;
+            p.cmd_mm = 0;
             c.zero_position = 0;
         }
         if (loadcell && now % 12 == 0) {
             ctl_hx711_ready(&c, now * 1000u); // 83 SPS: within 20 % of HX711_RATE_SPS = 80
             ctl_loadcell(&c, p.raw());
         }
-        p.x_mm += c.act_vel_mm_s * 0.001;
+        p.x_mm += (p.reversed ? -1 : 1) * c.act_vel_mm_s * 0.001;
+        p.cmd_mm += c.act_vel_mm_s * 0.001;
         if (p.x_mm < p.rear_mm) p.x_mm = p.rear_mm;
+        if (p.force() > p.peak_g) p.peak_g = p.force();
     }
 }
 
@@ -439,6 +446,55 @@ static void test_safety()
         }
         CHECK(c.faults == RIGCTL_FAULT_HOME_NOT_FOUND && now - t0 >= RIGCTL_HOME_TIMEOUT_MS &&
               now - t0 <= RIGCTL_HOME_TIMEOUT_MS + 2);
+    }
+    {   // a reversed actuator (issue 39): HOME from home drives into the rear stop, the switch stays closed
+        ctl_t c;
+        Plant p;
+        ctl_init(&c, 0, 0);
+        now = 0;
+        p.reversed = true;
+        p.rear_mm = -1.0;
+        p.x_mm = 0;
+        run_ms(c, p, now, 30);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+        int ms = 0;
+        for (; ms < 5000 && c.state == RIGCTL_STATE_HOMING; ms += 10) run_ms(c, p, now, 10);
+        std::printf("safety: reversed actuator at home: ACTUATOR_DIRECTION after %d ms\n", ms);
+        CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION && !c.homed);
+        CHECK(ms <= (int)(1000.0 * RIGCTL_HOME_PROOF_MM / ACT_HOME_SPEED_MM_S) + 50 && c.act_vel_mm_s == 0.0f);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_NOT_HOMED);
+        // a reset while pressing 1000 g at 2 kg/mm: HOME drives it further in; stopped by the untared rise
+        ctl_init(&c, 0, 0);
+        now = 0;
+        p.k = 2000;
+        p.x_mm = p.gap + 0.5;
+        p.peak_g = 0;
+        run_ms(c, p, now, 30);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
+        for (ms = 0; ms < 5000 && c.state == RIGCTL_STATE_HOMING; ms += 10) run_ms(c, p, now, 10);
+        run_ms(c, p, now, 200);
+        std::printf("safety: reversed actuator under load: ACTUATOR_DIRECTION after %d ms, peak %.0f g\n", ms,
+                    p.peak_g);
+        CHECK(c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION && p.peak_g < 1650.0 && c.act_vel_mm_s == 0.0f);
+        // the right way round it homes: leaves the switch and comes back (the direction proven)
+        ctl_init(&c, 0, 0);
+        now = 0;
+        p.reversed = false;
+        p.k = 250;
+        p.x_mm = 0;
+        run_ms(c, p, now, 30);
+        home(c, p, now);
+        CHECK(c.faults == 0 && c.homed);
+        // a back-off with the motor reversed meanwhile (the force rises): stopped, not homed
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 500) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        for (ms = 0; ms < 10000 && c.state != RIGCTL_STATE_FORCE_SETTLED; ms += 10) run_ms(c, p, now, 10);
+        CHECK(c.state == RIGCTL_STATE_FORCE_SETTLED);
+        p.reversed = true;
+        p.peak_g = 0;
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_STOP));
+        run_ms(c, p, now, 1000);
+        std::printf("safety: reversed back-off: peak %.0f g\n", p.peak_g);
+        CHECK(c.faults == RIGCTL_FAULT_ACTUATOR_DIRECTION && !c.homed && c.act_vel_mm_s == 0.0f && p.peak_g < 750);
     }
     {   // e-stop: FAULT, not homed, CLEAR_FAULT refused while open, then NOT_HOMED
         ctl_t c;

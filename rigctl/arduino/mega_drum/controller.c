@@ -76,10 +76,18 @@ float ctl_force_from_raw(const ctl_t *c, int32_t raw)
     return (float)(raw - c->tare_offset) * 100.0f / (float)scale_of(c->hreg);
 }
 
+/* a move that must only take force off the cell begins: its untared readings are compared with the lowest since */
+static void move_watch_start(ctl_t *c)
+{
+    c->move_ref_raw = c->loadcell_raw;
+    c->move_ref_valid = c->have_reading;
+}
+
 /* the actuator stops where it is (position unknown) or, homed, backs off to home */
 static void release_actuator(ctl_t *c)
 {
     if (c->homed) {
+        if (c->act_mode != ACT_MODE_RETRACT) move_watch_start(c);
         c->act_mode = ACT_MODE_RETRACT;
         c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
     } else {
@@ -95,6 +103,15 @@ static void fault(ctl_t *c, uint16_t bits)
     c->drum_on = 0;
     release_actuator(c);
     force_pi_reset(&c->pi);
+}
+
+/* the actuator moved the wrong way: its position means nothing, it stops where it stands (a back-off would press) */
+static void direction_fault(ctl_t *c)
+{
+    c->homed = 0;
+    fault(c, RIGCTL_FAULT_ACTUATOR_DIRECTION);
+    c->act_mode = ACT_MODE_HOLD;
+    c->act_vel_mm_s = 0.0f;
 }
 
 void ctl_estop(ctl_t *c)
@@ -213,6 +230,8 @@ static void run_command(ctl_t *c, uint16_t cmd)
         c->state = RIGCTL_STATE_HOMING;
         c->home_start_ms = c->now_ms;
         c->home_start_steps = c->act_pos_steps;
+        c->home_phase = HOME_SEEK;
+        move_watch_start(c);
         break;
     case RIGCTL_CMD_CLEAR_FAULT:
         if (c->faults & RIGCTL_FAULT_ESTOP) c->estop_release = 1;
@@ -384,6 +403,55 @@ static float profile_target_mm_s(ctl_t *c)
     return (float)target * 0.1f;
 }
 
+/* HOME (spec 2.5): back until the switch closes (25 mm / 10 s budget: HOME_NOT_FOUND), then prove the direction:
+ * leave home until the switch opens (within HOME_PROOF_MM, else ACTUATOR_DIRECTION: a reversed motor drives into the
+ * rear stop and the switch stays closed) and come back until it closes again; only then zero and tare. */
+static void home_step(ctl_t *c, uint32_t now_ms)
+{
+    float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    int32_t moved = c->act_pos_steps - c->home_phase_steps; /* + towards the sensor */
+    uint8_t late = (uint32_t)(now_ms - c->home_start_ms) >= ACT_HOME_TIMEOUT_MS;
+    switch (c->home_phase) {
+    case HOME_SEEK:
+        if (c->home_switch) {
+            c->home_phase = HOME_LEAVE;
+            c->home_phase_steps = c->act_pos_steps;
+            c->act_vel_mm_s = ACT_HOME_SPEED_MM_S;
+            return;
+        }
+        if ((float)(c->home_start_steps - c->act_pos_steps) >= ACT_HOME_MAX_TRAVEL_MM * spmm || late) break;
+        c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
+        return;
+    case HOME_LEAVE:
+        if (!c->home_switch) {
+            c->home_phase = HOME_RETURN;
+            c->home_leave_steps = moved;
+            c->home_phase_steps = c->act_pos_steps;
+            c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
+        } else if ((float)moved >= (float)RIGCTL_HOME_PROOF_MM * spmm) {
+            direction_fault(c); /* driven "away" for 2 mm, the switch still closed: the motor turns the other way */
+        } else {
+            c->act_vel_mm_s = ACT_HOME_SPEED_MM_S;
+        }
+        return;
+    default: /* HOME_RETURN */
+        if (c->home_switch) {
+            /* home: zero the position, then tare on the next reading (ctl_loadcell ends HOMING: IDLE is tared) */
+            c->act_vel_mm_s = 0.0f;
+            c->act_mode = ACT_MODE_HOLD;
+            c->zero_position = 1;
+            c->act_pos_steps = 0;
+            c->tare_pending = 1;
+            return;
+        }
+        if ((float)(-moved - c->home_leave_steps) >= (float)RIGCTL_HOME_PROOF_MM * spmm || late) break;
+        c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
+        return;
+    }
+    c->homed = 0; /* a broken switch wire, a stalled motor: do not drive into the rear stop for ever */
+    fault(c, RIGCTL_FAULT_HOME_NOT_FOUND);
+}
+
 void ctl_tick(ctl_t *c, uint32_t now_ms)
 {
     float dt = (float)(uint32_t)(now_ms - c->now_ms) * 0.001f;
@@ -413,21 +481,7 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         }
         break;
     case ACT_MODE_HOMING:
-        if (c->home_switch) {
-            /* home: zero the position, then tare on the next reading (ctl_loadcell ends HOMING: IDLE is tared) */
-            c->act_vel_mm_s = 0.0f;
-            c->act_mode = ACT_MODE_HOLD;
-            c->zero_position = 1;
-            c->act_pos_steps = 0;
-            c->tare_pending = 1;
-        } else if ((float)(c->home_start_steps - c->act_pos_steps) >=
-                       ACT_HOME_MAX_TRAVEL_MM * (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM] ||
-                   (uint32_t)(now_ms - c->home_start_ms) >= ACT_HOME_TIMEOUT_MS) {
-            c->homed = 0; /* a broken switch wire, a stalled motor: do not drive into the rear stop for ever */
-            fault(c, RIGCTL_FAULT_HOME_NOT_FOUND);
-        } else {
-            c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
-        }
+        home_step(c, now_ms);
         break;
     case ACT_MODE_FORCE:
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
@@ -464,6 +518,18 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     uint8_t on;
     c->last_loadcell_ms = c->now_ms;
     c->loadcell_raw = raw;
+    c->have_reading = 1;
+    if (c->act_mode == ACT_MODE_HOMING || c->act_mode == ACT_MODE_RETRACT) {
+        /* moving home or backing off only takes force off the cell: an untared rise (raw counts in the scale's sign,
+         * no tare needed) above the lowest reading since the move began means it drives towards the sensor */
+        float rise = (float)(raw - c->move_ref_raw) * 100.0f / (float)scale_of(c->hreg);
+        if (!c->move_ref_valid || rise < 0.0f) {
+            c->move_ref_raw = raw;
+            c->move_ref_valid = 1;
+        } else if (rise > (float)RIGCTL_DIRECTION_RISE_G) {
+            direction_fault(c);
+        }
+    }
     if (c->tare_pending && c->home_switch) { /* never under load: only at home */
         c->tare_offset = raw;
         c->tare_pending = 0;

@@ -17,7 +17,11 @@ extern "C" {
 #define ACT_MODE_HOLD    0 /* not moving */
 #define ACT_MODE_FORCE   1 /* the force loop drives it */
 #define ACT_MODE_RETRACT 2 /* backing off to position 0 (home) at full speed */
-#define ACT_MODE_HOMING  3 /* seeking the home switch, then position := 0 */
+#define ACT_MODE_HOMING  3 /* seeking the home switch, proving the direction, then position := 0 */
+/* HOME's phases (spec 2.5): back to the switch, leave it (it must open: the direction is right), back again */
+#define HOME_SEEK   0
+#define HOME_LEAVE  1
+#define HOME_RETURN 2
 
 typedef struct {
     uint16_t hreg[RIGCTL_N_HOLDING]; /* hreg[LOADCELL_SCALE_X100] is the view of the 32-bit scale in HI/LO */
@@ -34,6 +38,13 @@ typedef struct {
     uint16_t boot_count;    /* (glue, at boot) */
     uint32_t home_start_ms;
     int32_t home_start_steps;
+    uint8_t home_phase;      /* HOME_SEEK, HOME_LEAVE, HOME_RETURN */
+    int32_t home_phase_steps; /* the step count when the phase began */
+    int32_t home_leave_steps; /* steps HOME_LEAVE took to open the switch */
+    /* direction by force (spec 2.5): the lowest untared reading since HOME or a back-off began */
+    int32_t move_ref_raw;
+    uint8_t move_ref_valid;
+    uint8_t have_reading;
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;

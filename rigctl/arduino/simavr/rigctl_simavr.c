@@ -38,7 +38,7 @@
  * with RIGCTL_TEST_HOOKS) then hangs in loop(), for the watchdog test; "homeswitch broken|ok" breaks the home
  * switch's wire (it never closes) or mends it; "eeprom-flip OFFSET" flips bit 4 of one EEPROM byte (a corrupted
  * calibration record). A reset by the MCU itself (the watchdog) is reported as "RESET t=... cause=mcu".
- * Actuator direction: "actuator reversed|ok" swaps the motor's coil pair (DIR high then moves it away from the
+ * Actuator direction: --actuator-reversed or "actuator reversed|ok" swaps the motor's coil pair (DIR high then moves it away from the
  * sensor) or mends it; each reversal of the steps that really move it is reported as "AREV t=<first step of the new
  * direction> dir=1|0 (1 = towards the sensor) last_t=<the last step of the old one>". "rxlog 1|0": an "RX t=..." line
  * each time host bytes arrive (when a request reached the board, to time the firmware's answer on the pins), and
@@ -1280,6 +1280,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--hx711-sps")) opt_hx711_sps = atof(NEXT());
         else if (!strcmp(a, "--drum-driver-microsteps")) opt_driver_microsteps = atof(NEXT());
         else if (!strcmp(a, "--no-index-sensor")) opt_index_sensor = 0;
+        else if (!strcmp(a, "--actuator-reversed")) atomic_store(&act_reversed_req, 1);
         else if (!strcmp(a, "--index-bounce")) opt_index_bounce = atoi(NEXT());
         else if (!strcmp(a, "--hx711-clock-error")) opt_hx711_clock_error = atof(NEXT());
         else if (a[0] == '-') usage();
