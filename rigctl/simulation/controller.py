@@ -178,6 +178,7 @@ class MegaController:
         self._home_phase_mm = 0.0  # commanded travel in this phase (the step count), + towards the sensor
         self._home_leave_mm = 0.0
         self._move_ref_raw: int | None = None  # lowest untared reading since HOME or a back-off began
+        self._move_skip = 0  # readings a back-off skips (the firmware's move_skip: the HX711's settling)
         self._hung_ms: int | None = None
         self._speed_target = 0.0  # mm/s
         self._outputs = (0.0, 0.0)  # drum step rate (microsteps/s), actuator velocity (mm/s)
@@ -481,7 +482,7 @@ class MegaController:
             self._home_travel_mm = 0.0
             self._home_ms = 0
             self._home_phase = 0
-            self._move_ref_raw = self.model.loadcell_raw
+            self._move_ref_raw, self._move_skip = self.model.loadcell_raw, 0
         elif cmd == Command.CLEAR_FAULT:
             self.faults = Fault(0)
             if self.state == DrumState.FAULT:
@@ -509,7 +510,7 @@ class MegaController:
         """Stop pressing: back off to home if the position is known (homed), else stop where it stands."""
         self.state = state
         if self.homed and not self._retracting:
-            self._move_ref_raw = self.model.loadcell_raw
+            self._move_ref_raw, self._move_skip = self.model.loadcell_raw, wire.HX711_RATE_PERIODS
         self._retracting = self.homed
         self._homing = False
         self._integ = 0.0
@@ -528,16 +529,12 @@ class MegaController:
     def _watch_direction(self) -> None:
         """A new reading while moving home or backing off: an untared rise above the lowest reading since the move
         began (raw counts in the scale's sign) is a reversed actuator (firmware: ctl_loadcell)."""
-        if not (self._homing or self._retracting):
-            return
-        raw = self.model.loadcell_raw
-        if self._move_ref_raw is None:
-            self._move_ref_raw = raw
-        rise = (raw - self._move_ref_raw) * 100.0 / self.scale_x100
-        if rise < 0:
-            self._move_ref_raw = raw
-        elif rise > wire.DIRECTION_RISE_G:
+        raw, self._move_skip = self.model.loadcell_raw, max(0, self._move_skip - 1)
+        rise = 0.0 if self._move_ref_raw is None or self._move_skip else (raw - self._move_ref_raw) * 100 / self.scale_x100
+        if (self._homing or self._retracting) and rise > wire.DIRECTION_RISE_G:
             self._direction_fault()
+        elif rise <= 0:
+            self._move_ref_raw = raw
 
     def _home_velocity(self, n_ms: int, cal: float) -> float:
         """HOME's actuator velocity this step (the firmware's home_step): back to the switch, leave it (it must open

@@ -76,18 +76,21 @@ float ctl_force_from_raw(const ctl_t *c, int32_t raw)
     return (float)(raw - c->tare_offset) * 100.0f / (float)scale_of(c->hreg);
 }
 
-/* a move that must only take force off the cell begins: its untared readings are compared with the lowest since */
-static void move_watch_start(ctl_t *c)
+/* a move that must only take force off the cell begins: its untared readings are compared with the lowest since.
+ * A back-off skips the HX711's settling (4 periods): a force that tripped FORCE_LIMIT on its way up (a push on the
+ * cell) is still rising in the readings then; HOME starts unloaded or from a reset and checks from the first. */
+static void move_watch_start(ctl_t *c, uint8_t skip)
 {
     c->move_ref_raw = c->loadcell_raw;
     c->move_ref_valid = c->have_reading;
+    c->move_skip = skip;
 }
 
 /* the actuator stops where it is (position unknown) or, homed, backs off to home */
 static void release_actuator(ctl_t *c)
 {
     if (c->homed) {
-        if (c->act_mode != ACT_MODE_RETRACT) move_watch_start(c);
+        if (c->act_mode != ACT_MODE_RETRACT) move_watch_start(c, RIGCTL_HX711_RATE_PERIODS);
         c->act_mode = ACT_MODE_RETRACT;
         c->act_vel_mm_s = -ACT_MAX_SPEED_MM_S;
     } else {
@@ -231,7 +234,7 @@ static void run_command(ctl_t *c, uint16_t cmd)
         c->home_start_ms = c->now_ms;
         c->home_start_steps = c->act_pos_steps;
         c->home_phase = HOME_SEEK;
-        move_watch_start(c);
+        move_watch_start(c, 0);
         break;
     case RIGCTL_CMD_CLEAR_FAULT:
         if (c->faults & RIGCTL_FAULT_ESTOP) c->estop_release = 1;
@@ -523,7 +526,8 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         /* moving home or backing off only takes force off the cell: an untared rise (raw counts in the scale's sign,
          * no tare needed) above the lowest reading since the move began means it drives towards the sensor */
         float rise = (float)(raw - c->move_ref_raw) * 100.0f / (float)scale_of(c->hreg);
-        if (!c->move_ref_valid || rise < 0.0f) {
+        if (c->move_skip) c->move_skip--;
+        if (!c->move_ref_valid || rise < 0.0f || c->move_skip) {
             c->move_ref_raw = raw;
             c->move_ref_valid = 1;
         } else if (rise > (float)RIGCTL_DIRECTION_RISE_G) {

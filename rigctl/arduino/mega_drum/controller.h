@@ -44,6 +44,7 @@ typedef struct {
     /* direction by force (spec 2.5): the lowest untared reading since HOME or a back-off began */
     int32_t move_ref_raw;
     uint8_t move_ref_valid;
+    uint8_t move_skip;      /* readings still to skip (a back-off: the HX711's 4-period settling of what came before) */
     uint8_t have_reading;
     /* time */
     uint32_t now_ms;

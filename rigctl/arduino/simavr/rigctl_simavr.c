@@ -984,16 +984,14 @@ static double mega_force_g(void)
     return f + atomic_load(&bump_g_x1000) / 1000.0;
 }
 
-/* drive the home switch (PH4, closed = low at x <= 0). The firmware's pull-up write (PORTH bit 4) also raises
- * this pin's irq, so the level is re-asserted whenever the pin register disagrees with the switch. */
+/* drive the home switch (PH4, closed = low at x <= 0) as the port's external level (drive_pin): the firmware's writes
+ * to PORTH (DIR on PH3 at every actuator step, EN on PH5, the index output on PH6, the pull-up on PH4) used to raise
+ * this pin's irq with the pull-up's level, so a closed switch read open until the next poll (HOME's direction proof
+ * saw the switch open while a reversed motor drove into the rear stop) */
+static int home_level = -1;
 static void update_home(void)
 {
-    uint32_t level = act_steps <= 0 && !atomic_load(&home_broken_req) ? 0 : 1;
-    avr_ioport_state_t st;
-    if (avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE('H'), &st) == 0 && ((st.pin >> 4) & 1) != level) {
-        avr_raise_irq(home_pin, !level);
-        avr_raise_irq(home_pin, level);
-    }
+    drive_pin(home_pin, 'H', 4, act_steps <= 0 && !atomic_load(&home_broken_req) ? 0 : 1, &home_level);
 }
 
 /* the direction (1 = towards the sensor, as the motor really turns) and time of the last actuator step that moved */
