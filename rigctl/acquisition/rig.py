@@ -535,6 +535,8 @@ class Rig:
         event log). Raises ValueError (nothing latched, no reason), LatchedFault (the condition persists: the latch
         stays), DrumError (the controller does not answer: the latch stays).
         """
+        if self.safety.latch is None:  # a fault the controller latched while nobody asked the rig to move
+            self.latch_unsafe(self.drum.read_status(), "status check")
         latch = self.safety.latch
         if latch is None:
             raise ValueError("nothing is latched: no fault to acknowledge")

@@ -178,8 +178,8 @@ class RunSummary:
 
     def lines(self) -> list[str]:
         if self.latched:
-            state = (f"stopped on a latched fault: {self.latched}; nothing moves until it is acknowledged: run the "
-                     "same command with --resume to acknowledge it and go on")
+            state = (f"stopped on a latched fault: {self.latched}. Nothing moves until then: run the same command "
+                     "with --resume to acknowledge it (logged in the session) and go on")
         elif self.link_lost:
             state = f"stopped: link lost: {self.link_lost} (resume with --resume once the rig answers again)"
         else:

@@ -150,3 +150,16 @@ def test_a_stalled_drum_latches(tmp_path):
         assert summary.stopped and summary.complete == 0 and "drum stalled" in summary.latched
         assert control.latch is not None and control.latch.cause == "stall"
         assert control.rig.backend.model.drum_speed_mm_s == 0.0
+
+
+def test_a_fault_latched_while_idle_is_acknowledged_too():
+    """A fault the controller latched while no command asked the rig to move (the GUI's manual drum, a monitor that
+    only reads): the acknowledgement finds it, clears it and homes the rig."""
+    with open_control(RigSource("inprocess", inject=(parse_fault("estop@0.1+0.1"),))) as control:
+        control.drum.clock.sleep(0.5)
+        assert control.drum.read_status().state == DrumState.FAULT and control.rig.safety.latch is None
+        ack = control.acknowledge("released", by="pytest")
+        assert ack.latch.cause == "estop" and control.latch is None
+        assert control.drum.read_status().state == DrumState.IDLE
+        with pytest.raises(ValueError, match="nothing is latched"):
+            control.acknowledge("again", by="pytest")

@@ -99,3 +99,16 @@ def test_inprocess_host_silence_trips_the_watchdog_in_simulated_time():
 def test_refusals_name_why():
     with pytest.raises(FaultSpecError, match="source impedance.*--hil"):
         open_rig("inprocess", inject=["taxel-ohm=47000@0"])
+
+
+def test_inprocess_reset_hx711_rate_and_stall():
+    with open_rig("inprocess", inject=["reset@0.2", "hx711-10sps@1", "stall@2+1"]) as rig:
+        boot0 = rig.drum.read_status().boot_count
+        st = _wait(rig, 0.4)
+        assert st.state == DrumState.NOT_HOMED and st.boot_count == boot0 + 1
+        st = _wait(rig, 2.0)  # rebooted with the HX711 at 10 SPS: the boot measurement latches the wrong rate
+        assert st.state == DrumState.FAULT and Fault.HX711_RATE in st.faults and abs(st.hx711_rate_sps - 10) < 1
+        model = rig.backend.model
+        assert model.drum_blocked  # from 2 s to 3 s
+        _wait(rig, 1.0)
+        assert not model.drum_blocked
