@@ -26,8 +26,10 @@ IPv6 = disable
 
 [multicast]
 ResolveScope = machine
-KnownPeers = {127.0.0.1}
 ListenAddress = 127.0.0.1
+
+[lab]
+KnownPeers = {127.0.0.1}
 """
 
 

@@ -24,6 +24,7 @@ from rigctl.cli.rig_flags import (
     hil_bootloaders_option,
     inject_option,
     inprocess_option,
+    lsl_wait_option,
     taxel_port_option,
 )
 
@@ -273,10 +274,12 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @click.option("--lsl/--no-lsl", "lsl", default=None,
               help="Publish the run on Lab Streaming Layer (taxels, SA/RA spikes, drum state, markers; docs/lsl.md); "
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
+@lsl_wait_option
 @inject_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, classify,
-            calibration, classify_variant, pcs, resume, overwrite, seed, on_failure, config_path, plates, lsl, inject, quiet):
+            calibration, classify_variant, pcs, resume, overwrite, seed, on_failure, config_path, plates, lsl, lsl_wait_s,
+            inject, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -353,6 +356,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
             run = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
                               overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial,
                               on_latch="end", acknowledge=("rigctl acquire --resume", operator_name()))
+            if run.lsl is not None:
+                run.lsl.wait_s = lsl_wait_s  # --lsl-wait: run_start waits for a recorder
             if classifier is not None:
                 classifier.lsl = run.lsl
             summary = run.run()

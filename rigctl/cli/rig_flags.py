@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import click
 
+from rigctl.cli.ranges import LSL_WAIT_S
 from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
 
 __all__ = ["hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
-           "check_one_rig"]
+           "lsl_wait_option", "check_one_rig"]
 
 hil_bootloaders_option = click.option(
     "--hil-bootloaders", is_flag=True, default=False,
@@ -23,6 +24,14 @@ drum_port_option = click.option("--drum-port", default=None,
                                 help="Serial port of the drum controller (Mega) on real hardware.")
 taxel_port_option = click.option("--taxel-port", default=None,
                                  help="Serial port of the taxel streamer (Uno) on real hardware.")
+
+
+#: ``--lsl-wait SECONDS`` (``acquire``, ``serve``): wait for a recorder on the marker stream before a run starts
+lsl_wait_option = click.option(
+    "--lsl-wait", "lsl_wait_s", type=LSL_WAIT_S, default=0.0, show_default=True, metavar="SECONDS",
+    help="With LSL: before a run's first marker and trial, wait up to SECONDS for a consumer (LabRecorder) of the "
+         "marker stream, so the recording holds run_start; carries on (saying so) when none comes. liblsl tells "
+         "whether a consumer is connected, not how many (docs/lsl.md).")
 
 
 def _parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]) -> tuple[FaultSpec, ...]:

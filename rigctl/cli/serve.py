@@ -15,7 +15,7 @@ from typing import Any
 import click
 
 from rigctl.cli.outputs import UsageProblem
-from rigctl.cli.rig_flags import inject_option
+from rigctl.cli.rig_flags import inject_option, lsl_wait_option
 from rigctl.server.tokens import (
     TokenError,
     check_token,
@@ -62,9 +62,10 @@ SHUTDOWN_GRACE_S = 1
               help="Seed of a simulated rig.")
 @click.option("--lsl/--no-lsl", "lsl", default=None,
               help="Publish every run on Lab Streaming Layer; default the rig config's lsl.enabled.")
+@lsl_wait_option
 @inject_option
 def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, drum_port, taxel_port, replay, config_path,
-          seed, lsl, inject):
+          seed, lsl, lsl_wait_s, inject):
     """Open the rig and serve its run queue over HTTP until Ctrl-C / SIGTERM.
 
     POST /runs queues a protocol (by name or TOML text) into a session inside --data-dir; one run owns the rig at
@@ -93,7 +94,7 @@ def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, drum_port,
     _serve(host=host, port=port, token=token, generated=not _given(), allow_hosts=allow_hosts,
            data_dir=data_dir or default_data_dir(), queue_file=queue_file or default_queue_file(), kind=kind,
            drum_port=drum_port, taxel_port=taxel_port, replay=replay, config_path=config_path, seed=seed, lsl=lsl,
-           inject=inject)
+           inject=inject, lsl_wait_s=lsl_wait_s)
 
 
 def _given() -> bool:
@@ -119,7 +120,8 @@ def _bind(host: str, port: int) -> socket.socket:
 
 def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tuple[str, ...], data_dir: Path,
            queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
-           config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...]) -> None:
+           config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...],
+           lsl_wait_s: float) -> None:
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.core.faults import FaultSpecError
@@ -156,7 +158,7 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
         raise click.ClickException(" ".join(str(exc).split())) from None
     with control:
         try:
-            run_queue = RunQueue(control, queue_file, lsl=publish, data_dir=data_dir)
+            run_queue = RunQueue(control, queue_file, lsl=publish, data_dir=data_dir, lsl_wait_s=lsl_wait_s)
         except QueueError as exc:
             sock.close()
             raise click.ClickException(str(exc)) from None

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import time
 from typing import Any
@@ -28,6 +29,8 @@ from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.normalisation import TaxelRange
 from rigctl.operations._control import RigControl
 from rigctl.operations._lsl_live import LiveLslFeed
+
+log = logging.getLogger(__name__)
 
 __all__ = ["LslPublisher", "lsl_requested"]
 
@@ -64,8 +67,10 @@ class LslPublisher:
     """
 
     def __init__(self, rig: RigControl | Rig, *, name: str | None = None, source_id: str | None = None,
-                 protocol_name: str = "") -> None:
+                 protocol_name: str = "", wait_s: float = 0.0) -> None:
         self.rig: Rig = rig.rig if isinstance(rig, RigControl) else rig
+        #: how long a run's ``run_start`` waits for a consumer of the marker stream (:meth:`wait_for_recorder`), s
+        self.wait_s = float(wait_s)
         block = (self.rig.host_config or {}).get("lsl") or {}
         clock = getattr(self.rig.drum, "clock", None)
         self.outlets = LslOutlets(self.rig.layout, name=name or block.get("name", "rigctl"),
@@ -93,7 +98,24 @@ class LslPublisher:
         """``{"lsl": JSON}``: the streams' names and source ids, the host <-> LSL clock offset."""
         return {"lsl": json.dumps(self.outlets.describe())}
 
+    def wait_for_recorder(self, timeout_s: float | None = None) -> bool:
+        """Wait at most ``timeout_s`` (default :attr:`wait_s`) until a consumer (a recorder such as LabRecorder) has
+        the marker stream open; True if one has (at once when one already does). liblsl reports whether any
+        consumer is connected (``StreamOutlet.wait_for_consumers``), not how many."""
+        outlet = self.outlets.outlets.get("markers")
+        if outlet is None:
+            return False
+        timeout = self.wait_s if timeout_s is None else float(timeout_s)
+        if outlet.have_consumers():
+            return True
+        return bool(timeout > 0 and outlet.wait_for_consumers(timeout))
+
     def run_marker(self, event: str, **fields: Any) -> None:
+        """Push a run-level marker (``run_start``, ``run_end``, ``abort``, ``stop``); ``run_start`` first waits up to
+        :attr:`wait_s` for a recorder (:meth:`wait_for_recorder`), logging when none came."""
+        if event == "run_start" and self.wait_s > 0 and not self.wait_for_recorder():
+            log.warning("no LSL consumer of the marker stream after %.1f s: the run starts unrecorded on LSL",
+                        self.wait_s)
         self.markers.append(self.outlets.marker(event, protocol=self.protocol_name, **fields))
 
     def on_trial(self, event: TrialEvent) -> None:

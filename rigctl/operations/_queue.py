@@ -107,7 +107,8 @@ class RunQueue:
     control : the open rig.
     queue_file : the JSON file the queue lives in (created; read back when it exists: runs cut by a crash resume).
     lsl : publish every run on LSL through one :class:`rigctl.operations.LslPublisher` (opened here: a missing
-        pylsl is :class:`rigctl.core.lsl.LslUnavailable` at once).
+        pylsl is :class:`rigctl.core.lsl.LslUnavailable` at once); ``lsl_wait_s``: each run waits up to this long
+        for a consumer of the marker stream before its ``run_start`` (``serve --lsl-wait``).
     protocols : () -> {name: protocol file} of the protocols a run may name (default the built-in ones,
         :func:`rigctl.acquisition.builtin.builtin_protocols`).
     data_dir : when given (``rigctl serve --data-dir``), a run's ``out`` is a relative name inside this folder
@@ -120,7 +121,7 @@ class RunQueue:
 
     def __init__(self, control: Any, queue_file: str | os.PathLike[str], *, lsl: bool = False,
                  protocols: Callable[[], dict[str, Any]] | None = None,
-                 data_dir: str | os.PathLike[str] | None = None) -> None:
+                 data_dir: str | os.PathLike[str] | None = None, lsl_wait_s: float = 0.0) -> None:
         self.control = control
         self.path = Path(queue_file)
         self.data_dir = None if data_dir is None else Path(data_dir).expanduser().resolve()
@@ -135,7 +136,7 @@ class RunQueue:
         if lsl:
             from rigctl.operations._lsl import LslPublisher
 
-            self.lsl = LslPublisher(control)
+            self.lsl = LslPublisher(control, wait_s=lsl_wait_s)
         self._protocols = protocols
         self._lock = threading.RLock()
         self._wake = threading.Condition(self._lock)

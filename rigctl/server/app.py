@@ -35,6 +35,7 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
+from rigctl.core.drum import DrumError
 from rigctl.core.errors import describe_error
 from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
@@ -120,24 +121,13 @@ def create_app(run_queue: RunQueue, *, token: str,
         return get_swagger_ui_html(openapi_url=f"/openapi.json?token={quote(token, safe='')}",
                                    title="rigctl serve API")
 
-    @app.get("/status")
-    def status() -> dict[str, Any]:
-        """Rig state (the drum controller's status), board health (the taxel stream's frames, drops, CRC errors,
-        connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue, the
-        current run and its current trial (id, texture, speed, force, attempt, last event)."""
-        control = run_queue.control
-        rig: dict[str, Any] = {"mode": control.rig.mode}
-        try:
-            rig["drum"] = _plain(control.status())
-        except Exception as exc:  # noqa: BLE001 - reported, not raised: the status page must answer
-            rig["drum_error"] = describe_error(exc)
-        stats = getattr(control.rig.stream, "stats", None)  # read only: never restarts a link under a run
-        rig["taxel_stream"] = None if stats is None else _plain(stats)
-        current = run_queue.current_id
-        return {"rig": rig, "held": run_queue.held, "current_run": None if current is None else
-                run_queue.get(current).public(),
-                "current_trial": None if current is None else _plain(run_queue.current_trial),
-                "queued": [r.id for r in run_queue.list() if r.state == "queued"]}
+    _run_routes(app, run_queue)
+    _rig_routes(app, run_queue)
+    return app
+
+
+def _run_routes(app: FastAPI, run_queue: RunQueue) -> None:
+    """The runs: queue one, list them, one run, pause / resume / abort."""
 
     @app.post("/runs", status_code=201)
     def submit(body: RunRequest) -> dict[str, Any]:
@@ -169,6 +159,32 @@ def create_app(run_queue: RunQueue, *, token: str,
         """Stop a run cleanly (finished trials kept, resumable), or take a queued one off the queue."""
         return run_queue.abort(run_id).public()
 
+
+
+def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
+    """The rig: its status, STOP, the queue released, a latched fault acknowledged, the event feed."""
+
+    @app.get("/status")
+    def status() -> dict[str, Any]:
+        """Rig state (the drum controller's status), board health (the taxel stream's frames, drops, CRC errors,
+        connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue, the
+        current run and its current trial (id, texture, speed, force, attempt, last event)."""
+        control = run_queue.control
+        rig: dict[str, Any] = {"mode": control.rig.mode}
+        latch = getattr(control, "latch", None)  # a latched fault holds the rig until POST /ack
+        rig["latch"] = None if latch is None else _plain(latch.to_dict() if hasattr(latch, "to_dict") else latch)
+        try:
+            rig["drum"] = _plain(control.status())
+        except Exception as exc:  # noqa: BLE001 - reported, not raised: the status page must answer
+            rig["drum_error"] = describe_error(exc)
+        stats = getattr(control.rig.stream, "stats", None)  # read only: never restarts a link under a run
+        rig["taxel_stream"] = None if stats is None else _plain(stats)
+        current = run_queue.current_id
+        return {"rig": rig, "held": run_queue.held, "current_run": None if current is None else
+                run_queue.get(current).public(),
+                "current_trial": None if current is None else _plain(run_queue.current_trial),
+                "queued": [r.id for r in run_queue.list() if r.state == "queued"]}
+
     @app.post("/stop")
     def stop() -> dict[str, Any]:
         """STOP, at once (the GUI's STOP): drum to rest, actuator home, the current run aborted, the queue held
@@ -191,9 +207,10 @@ def create_app(run_queue: RunQueue, *, token: str,
         by = body.by.strip() or f"rigctl serve client {client}"
         try:
             result = acknowledge(body.reason, by=by)
-        except (ValueError, RuntimeError) as exc:
-            raise QueueError(f"acknowledgement refused: {exc}", 409) from None
-        return {"acknowledged": True, "by": by, "result": _plain(result)}
+        except (ValueError, RuntimeError, DrumError) as exc:  # nothing latched; the condition persists; no answer
+            raise QueueError(f"acknowledgement refused: {describe_error(exc)}", 409) from None
+        to_dict = getattr(result, "to_dict", None)
+        return {"acknowledged": True, "by": by, "result": _plain(to_dict() if to_dict is not None else result)}
 
     @app.get("/events")
     def events() -> StreamingResponse:
@@ -219,4 +236,3 @@ def create_app(run_queue: RunQueue, *, token: str,
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
-    return app

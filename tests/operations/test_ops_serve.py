@@ -326,3 +326,30 @@ def test_the_queue_publishes_every_run_on_the_same_lsl_streams(lsl, tmp_path):
     starts = [e["protocol"] for e in events if e["event"] == "run_start"]
     assert starts == ["run0", "run1"]
     assert sum(e["event"] == "trial_end" for e in events) == 4
+
+
+@pytest.mark.lsl
+def test_lsl_wait_holds_run_start_until_a_recorder_has_the_markers(lsl, tmp_path):
+    """``--lsl-wait``: run_start waits (bounded) for a consumer of the marker stream, so a recorder started first
+    holds it; without a consumer the wait ends after its bound."""
+    import uuid
+
+    from rigctl.operations import LslPublisher
+
+    sid = f"rigctl-wait-{uuid.uuid4().hex[:8]}"
+    (tmp_path / "rig.json").write_text(json.dumps({"lsl": {"enabled": True, "source_id": sid}}))
+    control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
+    pub = LslPublisher(control, protocol_name="wait", wait_s=0.5)
+    try:
+        t0 = time.monotonic()
+        assert pub.wait_for_recorder() is False and time.monotonic() - t0 >= 0.45  # nobody: bounded
+        inlet = lsl.StreamInlet(lsl.resolve_byprop("source_id", f"{sid}-markers", minimum=1, timeout=10)[0])
+        inlet.open_stream(timeout=10)
+        assert pub.wait_for_recorder(10.0) is True
+        pub.run_marker("run_start", out="x.h5")
+        sample, _ = inlet.pull_sample(timeout=10)
+        assert sample is not None and json.loads(sample[0])["event"] == "run_start"
+        inlet.close_stream()
+    finally:
+        pub.close()
+        control.close()

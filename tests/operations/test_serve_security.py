@@ -190,6 +190,10 @@ def test_a_stopped_run_resumes_through_the_api_without_a_trial_lost_or_twice(rig
 
 def test_ack_reaches_the_rig_control_with_reason_and_who(rig, monkeypatch):
     q, app, _ = rig
+    client = _client(app, **AUTH)
+    assert client.get("/status").json()["rig"]["latch"] is None
+    r = client.post("/ack", json={"reason": "nothing to clear"})  # the real RigControl: nothing latched
+    assert r.status_code == 409 and r.json()["detail"].startswith("acknowledgement refused"), r.text
     calls = []
     monkeypatch.setattr(q.control, "acknowledge", lambda reason, by: calls.append((reason, by)) or "cleared",
                         raising=False)
