@@ -319,7 +319,7 @@ class ProtocolTab(QtWidgets.QWidget):
         from rigctl.operations import ProtocolRun
 
         try:
-            run = ProtocolRun(getattr(h, "control", h.rig), self.protocol, out, resume=resume,
+            run = ProtocolRun(h.control, self.protocol, out, resume=resume,
                               prompt=self._prompt,  # hardware only: the simulated rig mounts plates by itself
                               lsl=self.lsl_box.isChecked())
         except LslUnavailable as exc:

@@ -14,6 +14,8 @@
 - :mod:`rigctl.core.progress` - :class:`ProgressEvent` (long work reports how far it is);
   :mod:`rigctl.core.lazy` - the lazy re-exports of the other packages' public names;
   :mod:`rigctl.core.version` - ``__version__`` (rigctl's modules import it from here, not from ``rigctl``).
+- :mod:`rigctl.core.encoding_model` - the encoding model's fixed numbers (``MODEL_RATE_HZ``, ``RA_CUTOFF_HZ``);
+  :mod:`rigctl.core.errors` - ``describe_error(exc)``, the one-line ``"TypeName: message"`` of an error.
 """
 
 from rigctl.core.drum import (
