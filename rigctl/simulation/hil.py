@@ -30,6 +30,7 @@ import subprocess
 import tempfile
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -37,7 +38,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rigctl import firmware
+from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.devices import wire
+from rigctl.simulation.hil_faults import HilFaults
 
 if TYPE_CHECKING:
     from rigctl.simulation.textures import Texture
@@ -245,6 +248,10 @@ class HilRig:
         self.mega_resets = 0
         self._eeprom_ack: bool | None = None
         self._actuator_acks = 0
+        #: the injected faults' schedule on the Mega's simulated time (:meth:`inject_faults`)
+        self.schedule: FaultSchedule | None = None
+        self.faults = HilFaults(lambda c: self._running(self._mega, "Mega").send(c),
+                                None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm)
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         #: the actuator's reversals as the motor turned (``AREV``): (t_s of the new direction's first step, dir 1 =
@@ -493,6 +500,17 @@ class HilRig:
             if not self._cond.wait_for(lambda: self._actuator_acks != acks, timeout_s):
                 raise HilError("the Mega harness did not confirm the actuator's wiring")
 
+    def fault_refusal(self, spec: FaultSpec) -> str | None:
+        """Why the harness cannot model ``spec`` (None when it can; :mod:`rigctl.core.faults`)."""
+        return self.faults.fault_refusal(spec)
+
+    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+        """Arm ``specs`` on the Mega's simulated time from now; each applies as the harness's reports pass it."""
+        schedule = FaultSchedule(specs, self.faults.apply_fault)
+        schedule.start(self.next_telemetry().t_s)
+        self.schedule = schedule
+        return schedule
+
     def log_requests(self, on: bool = True) -> None:
         """Record the simulated time host bytes reach the Mega (:attr:`request_times`) and each actuator step
         (:attr:`actuator_steps`)."""
@@ -582,6 +600,8 @@ class HilRig:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)
                 self._cond.notify_all()
+            if self.schedule is not None:
+                self.schedule.due(tel.t_s)
         elif line == "OK actuator":
             with self._cond:
                 self._actuator_acks += 1

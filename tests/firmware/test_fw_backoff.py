@@ -98,3 +98,35 @@ def test_host_silence_mid_press_backs_off_at_the_watchdog(rig, drum):
     _check_backoff(rig, t_last + 0.300)  # the watchdog latches WATCHDOG_MS after the last request
     st = drum.read_status()
     assert st.state == State.FAULT and Fault.WATCHDOG in st.faults
+
+
+def test_injected_host_silence_and_reversed_actuator_on_the_harness(rig, drum):
+    """``--inject`` on --hil (rigctl.simulation.hil_faults): ``host-silence@T+D`` cuts the pty link on the Mega's
+    simulated time (the firmware's watchdog backs off, the spring is below 100 g 1 s after the latch, the link comes
+    back with WATCHDOG latched); ``reversed-actuator`` swaps the coil pair (HOME's direction proof fails)."""
+    from rigctl.core.faults import parse_fault
+
+    _press_and_settle(rig, drum)
+    drum.write_holding(HR.WATCHDOG_MS, 300)
+    t0 = rig.next_telemetry().t_s
+    schedule = rig.inject_faults([parse_fault("host-silence@0.2+1.5")])
+    _wait_sim(rig, t0 + 0.2 + 0.3 + 1.0)
+    tel = [x for x in rig.telemetry_history if x.t_s >= t0 + 0.2 + 0.3 + 1.0]
+    assert tel[0].force_g < 100.0, f"true force {tel[0].force_g:.0f} g 1 s after the watchdog"
+    _wait_sim(rig, t0 + 1.8)
+    assert [a for _, _, a in schedule.applied] == [True, False]
+    st = drum.read_status()
+    assert st.state == State.FAULT and Fault.WATCHDOG in st.faults
+    drum.clear_fault()
+    rig.schedule = None
+    assert rig.fault_refusal(parse_fault("stall@1")) is not None
+    rig.inject_faults([parse_fault("reversed-actuator@0+2")])
+    _wait_sim(rig, rig.next_telemetry().t_s + 0.1)
+    drum.home()
+    st = drum.wait_state([State.FAULT, State.IDLE], timeout_s=20)
+    assert Fault.ACTUATOR_DIRECTION in st.faults, st
+    _wait_sim(rig, rig.next_telemetry().t_s + 2.0)  # the wiring mended: the fixture's HOME works
+    rig.schedule = None
+    drum.clear_fault()
+    drum.home()
+    drum.wait_state([State.IDLE], timeout_s=20)

@@ -42,7 +42,8 @@
  * sensor) or mends it; each reversal of the steps that really move it is reported as "AREV t=<first step of the new
  * direction> dir=1|0 (1 = towards the sensor) last_t=<the last step of the old one>". "rxlog 1|0": an "RX t=..." line
  * each time host bytes arrive (when a request reached the board, to time the firmware's answer on the pins), and
- * "ASTEP t=... dir=..." at each actuator step that moves it.
+ * "ASTEP t=... dir=..." at each actuator step that moves it. "link down|up" cuts the host's link (a pulled USB cable:
+ * host bytes and the board's answers are lost) or restores it.
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -93,6 +94,7 @@ static uint64_t tx_lost;
 static int pty_master = -1, pty_slave = -1;
 static char pty_name[128];
 static int uart_xon = 1;
+static atomic_int link_down_req; /* 1 = the host's link is cut (USB pulled): host bytes and board bytes are lost */
 static atomic_int rxlog_req; /* 1 = "RX t=..." each time host bytes arrive, "ASTEP t=... dir=..." at each actuator step */
 static uint8_t rx_buf[4096];
 static size_t rx_len, rx_pos;
@@ -151,6 +153,14 @@ static int bridge_open(void)
 /* move bytes both ways; called from the simulation loop every 0.1 ms of simulated time */
 static void bridge_poll(void)
 {
+    if (atomic_load(&link_down_req)) { /* USB pulled: nothing reaches the board, nothing it sends reaches the host */
+        uint8_t junk[512];
+        while (read(pty_master, junk, sizeof junk) > 0) {
+        }
+        tx_tail = tx_head;
+        rx_pos = rx_len = 0;
+        return;
+    }
     while (tx_tail != tx_head) {
         size_t n = tx_head > tx_tail ? tx_head - tx_tail : TX_RING_SIZE - tx_tail;
         ssize_t w = write(pty_master, tx_ring + tx_tail, n);
@@ -415,6 +425,9 @@ static void *stdin_thread(void *arg)
         } else if (!strcmp(line, "actuator reversed") || !strcmp(line, "actuator ok")) {
             atomic_store(&act_reversed_req, line[9] == 'r');
             printf("OK actuator\n");
+        } else if (!strcmp(line, "link down") || !strcmp(line, "link up")) {
+            atomic_store(&link_down_req, line[5] == 'd');
+            printf("OK link\n");
         } else if (!strncmp(line, "rxlog ", 6)) {
             atomic_store(&rxlog_req, atoi(line + 6) != 0);
             printf("OK rxlog\n");
