@@ -8,7 +8,9 @@
   trial ``k`` starts where trial ``k - 1`` ended (the dead time between trials, plate changes and settling, is left
   out; each trial's wall-clock start is the trials table's ``started_utc``). Frames the board sent but the host lost
   are missing, not filled (the trials table's ``dropped_frames`` counts them);
-- ``acquisition/load_cell_force`` (g) and ``acquisition/drum_speed`` (mm/s): the drum controller's traces with
+- ``acquisition/load_cell_force`` (g) and ``acquisition/drum_speed`` (mm/s): the drum controller's traces (a
+  handheld session: ``acquisition/tracker_velocity`` (mm/s) and ``acquisition/tracker_position`` (mm along the
+  plate), the tracker's samples) with
   timestamps on the same session time;
 - the **trials table**: one row per recorded trial (start/stop time in session time; ``trial_id``, ``texture``,
   ``group``, ``speed_mm_s`` and ``force_g`` setpoints, ``profile``, ``duration_s``, ``status``, ``n_samples``,
@@ -388,10 +390,14 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
     ``tl.attrs`` (``_force_mean_g``, ``_speed_mean_mm_s``) for the trials table."""
     from pynwb import TimeSeries
 
+    handheld = (s.rig_config or {}).get("mode") == "handheld"
     force_t, force, speed_t, speed = [], [], [], []
     k = 0
     for i0, i1 in _blocks([1] * len(tl.ids), 4096):
         for ft, fv, vt, vv in s.read_traces(tl.ids[i0:i1]):
+            if handheld:  # the tracker's samples kept around a scan: only those inside it (trials abut here)
+                inside = (vt >= 0) & (vt <= tl.stops[k] - tl.starts[k])
+                vt, vv = vt[inside], vv[inside]
             force_t.append(tl.starts[k] + ft)
             force.append(fv)
             speed_t.append(tl.starts[k] + vt)
@@ -400,9 +406,18 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
             tl.attrs[k]["_speed_mean_mm_s"] = float(np.mean(vv)) if vv.size else np.nan
             bar.advance(1)
             k += 1
-    for name, unit, t_parts, v_parts, what in (
-            ("load_cell_force", "g", force_t, force, "load-cell force"),
-            ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")):
+    series = [("load_cell_force", "g", force_t, force, "load-cell force"),
+              ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")]
+    if handheld:  # no drum, no load cell: the tracker's velocity and position
+        pos_t, pos = [], []
+        for k, tid in enumerate(tl.ids):
+            d = s.trial(int(tid))
+            inside = (d.position_time_s >= 0) & (d.position_time_s <= tl.stops[k] - tl.starts[k])
+            pos_t.append(tl.starts[k] + d.position_time_s[inside])
+            pos.append(d.position_mm[inside])
+        series = [("tracker_velocity", "mm/s", speed_t, speed, "the tracker's velocity along the plate (100 ms mean)"),
+                  ("tracker_position", "mm", pos_t, pos, "the tracker's position along the plate, from its start")]
+    for name, unit, t_parts, v_parts, what in series:
         ts = np.concatenate(t_parts) if t_parts else np.zeros(0)
         vs = np.concatenate(v_parts) if v_parts else np.zeros(0)
         order = np.argsort(ts, kind="stable")

@@ -494,6 +494,9 @@ class SessionReader:
                     arrays[name] = np.empty(int(row[f"n_{prefix}"]), dtype=np.float64)
                     session_recording.read_rows(rec[name], np.array([row[f"{prefix}_start"]]),
                                                 np.array([row[f"n_{prefix}"]]), arrays[name])
+            for name in ("position_mm", "position_time_s"):  # handheld trials: plain datasets of the group
+                if name in g:
+                    arrays[name] = np.asarray(g[name][()], np.float64)
         taxels = arrays.pop("taxels")
         self._check_block_range([tid], taxels, np.array([0, len(taxels)]))
         try:

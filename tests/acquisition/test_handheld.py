@@ -186,3 +186,27 @@ def test_plate_axis_from_the_rig_config(tmp_path):
 
     with pytest.raises(RigConfigError, match="end_xyz"):
         HandheldRig(SimulatedOperator(seed=1), host_config_path=str(cfg))
+
+
+def test_nwb_export_holds_the_tracker_as_time_series(tmp_path):
+    pynwb = pytest.importorskip("pynwb")
+    from rigctl.storage.nwb import export_nwb
+
+    proto_path = tmp_path / "small.toml"
+    proto_path.write_text(SMALL.replace('textures = ["A", "L"]', 'textures = ["L"]'))
+    with open_rig("handheld", seed=6, host_config_path=tmp_path / "rig.json") as rig:
+        assert run_protocol(load_protocol(proto_path), tmp_path / "hh.h5", rig=rig).ok
+    export_nwb(tmp_path / "hh.h5", tmp_path / "hh.nwb")
+    with pynwb.NWBHDF5IO(str(tmp_path / "hh.nwb"), "r") as io:
+        nwb = io.read()
+        assert "drum_speed" not in nwb.acquisition
+        pos, vel = nwb.acquisition["tracker_position"], nwb.acquisition["tracker_velocity"]
+        assert pos.unit == "mm" and vel.unit == "mm/s" and len(pos.data[:]) == len(vel.data[:]) > 50
+        starts = nwb.trials["start_time"][:]
+        stops = nwb.trials["stop_time"][:]
+        t, x = pos.timestamps[:], pos.data[:]
+        assert np.all((t >= starts[0]) & (t <= stops[-1]))  # only the samples inside the trials
+        for a, b in zip(starts, stops):  # each trial spans the finger's pass through the middle 200 mm
+            inside = x[(t >= a) & (t <= b)]
+            assert inside[0] == pytest.approx(USED_START_MM, abs=3.0)
+            assert inside[-1] == pytest.approx(USED_END_MM, abs=3.0)
