@@ -50,6 +50,12 @@ class ServerDialog(QtWidgets.QDialog):
         self.resume_btn = QtWidgets.QPushButton("Resume")
         self.abort_btn = QtWidgets.QPushButton("Abort")
         self.release_btn = QtWidgets.QPushButton("Release queue")
+        self.ack_btn = QtWidgets.QPushButton("Acknowledge fault...")
+        self.ack_btn.setToolTip("The operator's acknowledgement of the server rig's latched fault (logged with your "
+                                "name and reason); it clears the latch, it starts nothing")
+        self.ack_btn.clicked.connect(self.acknowledge)
+        #: () -> the acknowledgement's reason, or None (cancelled); a text dialog (tests replace it)
+        self.ask_reason: Any = self._reason_dialog
         self.stop_btn = QtWidgets.QPushButton("STOP")
         self.stop_btn.setStyleSheet("background: #c00; color: white; font-weight: bold;")
         for b, what in ((self.pause_btn, "pause"), (self.resume_btn, "resume"), (self.abort_btn, "abort")):
@@ -66,7 +72,7 @@ class ServerDialog(QtWidgets.QDialog):
         q.addWidget(self.out, 1)
         q.addWidget(self.queue_btn)
         ctl = QtWidgets.QHBoxLayout()
-        for b in (self.pause_btn, self.resume_btn, self.abort_btn, self.release_btn, self.stop_btn):
+        for b in (self.pause_btn, self.resume_btn, self.abort_btn, self.release_btn, self.ack_btn, self.stop_btn):
             ctl.addWidget(b)
         lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(top)
@@ -132,6 +138,19 @@ class ServerDialog(QtWidgets.QDialog):
         if self._ask(lambda c: c.submit(out, toml=source)) is not None:
             self.refresh()
 
+    def _reason_dialog(self) -> str | None:
+        text, ok = QtWidgets.QInputDialog.getText(self, "Acknowledge the latched fault",
+                                                  "What was checked (logged in the session):")
+        return text.strip() if ok and text.strip() else None
+
+    def acknowledge(self) -> None:
+        """``POST /ack`` with the operator's reason and name (the server answers 409 when nothing is latched)."""
+        import getpass
+
+        reason = self.ask_reason()
+        if reason and self._ask(lambda c: c.acknowledge(reason, by=getpass.getuser())) is not None:
+            self.refresh()
+
     def stop(self) -> bool:
         """STOP on the server at once; True when it answered."""
         return self._ask(lambda c: c.stop()) is not None
@@ -156,6 +175,7 @@ class ServerDialog(QtWidgets.QDialog):
                  f"drum {drum.get('state', '?')}, {drum.get('speed_mm_s', 0) or 0:.0f} mm/s, "
                  f"{drum.get('force_g', 0) or 0:.0f} g" if drum else st["rig"].get("drum_error", "drum ?"),
                  "queue HELD after STOP (Release queue)" if st.get("held") else "",
+                 f"FAULT LATCHED: {latch['text']}" if (latch := st["rig"].get("latch")) else "",
                  f"running {cur['protocol_name']} trial {trial.get('trial_id', '?')} ({trial.get('texture', '?')})"
                  if cur else "no run"]
         set_plain(self.status, "; ".join(p for p in parts if p))

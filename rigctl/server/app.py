@@ -172,7 +172,7 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
         control = run_queue.control
         rig: dict[str, Any] = {"mode": control.rig.mode}
         latch = getattr(control, "latch", None)  # a latched fault holds the rig until POST /ack
-        rig["latch"] = None if latch is None else _plain(latch.to_dict() if hasattr(latch, "to_dict") else latch)
+        rig["latch"] = None if latch is None else {**_plain(latch.to_dict()), "text": latch.describe()}
         try:
             rig["drum"] = _plain(control.status())
         except Exception as exc:  # noqa: BLE001 - reported, not raised: the status page must answer

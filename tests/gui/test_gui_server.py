@@ -63,6 +63,11 @@ def test_attached_window_queues_pauses_resumes_and_stops(qapp, qtbot, tmp_path):
         _until(qapp, lambda: q.get(run_id).state == "stopped")
         _until(qapp, lambda: "HELD" in dlg.status.text())
         assert q.held and q.get(run_id).trials_done < 8
+        calls = []  # the fault acknowledgement goes to the server's RigControl with the reason and the user
+        q.control.acknowledge = lambda reason, by: calls.append((reason, by))
+        dlg.ask_reason = lambda: "drum checked"
+        qtbot.mouseClick(dlg.ack_btn, QtCore.Qt.MouseButton.LeftButton)
+        assert len(calls) == 1 and calls[0][0] == "drum checked" and calls[0][1]
     finally:
         q.close()
         control.close()
