@@ -133,7 +133,7 @@ class TrialReport:
 
 
 #: how an excluded trial's non-finite readings end their reason (the option that keeps them)
-KEEP_HINT = " (kept with --keep-nonfinite)"
+KEEP_HINT = " (--keep-nonfinite keeps it)"
 
 
 def usable_trials(session: Session, *, keep_nonfinite: bool = False,
