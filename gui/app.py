@@ -746,7 +746,7 @@ class MainWindow(QtWidgets.QMainWindow):
         h = self.handle
         if h is None:
             return None
-        latch = getattr(getattr(h.rig, "safety", None), "latch", None)
+        latch = h.control.latch
         if latch is not None:
             return latch
         return self._faults or None

@@ -333,6 +333,10 @@ class ControlPanel(QtWidgets.QWidget):
             else:
                 self.commands.submit(f"run at {speed:g} mm/s, {force:g} g", self.ops.run_at, speed, force)
             return
+        if name == "clear_fault" and self.ops is not None:  # the library's: an acknowledgement when it holds a latch
+            self.commands.submit("clear fault", self.ops.clear_fault)
+            self.acted.emit("clear fault sent")
+            return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
         self.acted.emit(f"{name.replace('_', ' ')} sent")
 

@@ -7,8 +7,8 @@ reversed load cell, watchdog, unexpected reset, HOME failure, stall, link lost m
 do, shows whether the e-stop is still pressed (its contact open: OK stays disabled until it is released), takes a
 reason, and OK calls :meth:`rigctl.operations.RigControl.acknowledge` (``reason``, ``by`` the login name) in a worker
 thread; the library writes the acknowledgement into the session's event log. A refusal (the condition persists) is
-shown in the dialog, which stays open. On a library without the acknowledgement, OK clears the controller's fault
-(Clear fault) and the event log keeps the reason. Non-modal: STOP stays one click away.
+shown in the dialog, which stays open. A controller fault the library holds no latch for is cleared with the
+controller's Clear fault (the window's event log keeps the reason). Non-modal: STOP stays one click away.
 """
 
 from __future__ import annotations
@@ -26,16 +26,14 @@ __all__ = ["FaultDialog", "latch_of"]
 
 def latch_of(control: Any, faults: int) -> tuple[str, str, str]:
     """What is latched on ``control`` (a :class:`rigctl.operations.RigControl`), as ``(title, detail, what to do)``:
-    the library's latch (``control.rig.safety.latch``) when it keeps one, else the controller's fault bits
-    ``faults``."""
+    the library's latch (:attr:`rigctl.operations.RigControl.latch`) when it holds one, else the controller's fault
+    bits ``faults``."""
     from rigctl.core.drum import FAULT_WORDS, Fault
 
-    latch = getattr(getattr(getattr(control, "rig", None), "safety", None), "latch", None)
+    latch = getattr(control, "latch", None)
     if latch is not None:
-        try:
-            from rigctl.acquisition.safety import CAUSES  # type: ignore[import-not-found, unused-ignore]
-        except ImportError:  # a library without the safety policy's table
-            CAUSES = {}
+        from rigctl.acquisition.safety import CAUSES
+
         label, todo = CAUSES.get(latch.cause, (latch.cause, ""))
         return str(label), str(latch.detail), str(todo)
     words = [FAULT_WORDS[b] for b in Fault if int(faults) & int(b) and b in FAULT_WORDS]
@@ -47,13 +45,9 @@ def latch_of(control: Any, faults: int) -> tuple[str, str, str]:
 
 def _operator() -> str:
     """Who acknowledges: the library's operator name (the login name)."""
-    try:
-        from rigctl.acquisition.safety import operator_name  # type: ignore[import-not-found, unused-ignore]
-    except ImportError:  # a library without the safety policy
-        import getpass
+    from rigctl.acquisition.safety import operator_name
 
-        return getpass.getuser()
-    return str(operator_name())
+    return operator_name()
 
 
 class FaultDialog(QtWidgets.QDialog):
@@ -145,12 +139,11 @@ class FaultDialog(QtWidgets.QDialog):
         threading.Thread(target=self._work, args=(reason,), name="acknowledge", daemon=True).start()
 
     def _work(self, reason: str) -> None:
-        ack = getattr(self.control, "acknowledge", None)
         try:
-            if ack is not None:
-                ack(reason, by=_operator())
-            else:  # a library without the acknowledgement: the controller's Clear fault, the reason logged here
-                self.control.clear_fault()
+            if getattr(self.control, "latch", None) is not None:  # the library's latch: its acknowledgement
+                self.control.acknowledge(reason, by=_operator())
+            else:  # nothing latched in the library: the controller's Clear fault, the reason logged here
+                self.control.clear_fault(by=_operator())
         except Exception as exc:  # noqa: BLE001 - shown in the dialog, which stays open
             self.refused.emit(str(exc))
         else:

@@ -3,9 +3,11 @@ output session file, start / pause / resume / abort a run (:class:`rigctl.operat
 worker thread with stop and pause events), per-trial progress and ETA, the operator prompt to mount the next
 texture plate (the simulated rig mounts it by itself), and resume an interrupted session file.
 
-STOP (the main window's, or the library's dead man's switch: any :meth:`rigctl.operations.RigControl.stop`) stops
-the run at once and leaves it **stopped, resumable**: the trial in progress is discarded (recorded again on Resume),
-the finished trials stay in the session file, Resume continues it. Abort is its own action and asks first."""
+STOP (the main window's, or the library's dead man's switch: any :meth:`rigctl.operations.RigControl.stop`) is the
+run engine's STOP (:meth:`rigctl.operations.ProtocolRun.stop`): the drum stops, the trial in progress is discarded and
+the run pauses, **stopped, resumable**: Resume records that trial again and goes on. A latched fault (docs/safety.md)
+holds the run until the operator acknowledges it (the main window's fault dialog); then it goes on by itself. Abort is
+its own action and asks first."""
 
 from __future__ import annotations
 
@@ -53,10 +55,10 @@ class ProtocolTab(QtWidgets.QWidget):
         self.trial_dropped_base: int | None = None
         self.last_output = None
         self.last_summary = None
-        #: why the run was stopped (STOP, the dead man's switch): it waits for Resume or Abort; None otherwise
+        #: why the run was stopped (STOP, the dead man's switch: set from any thread): it waits for Resume or Abort
         self.stopped_reason: str | None = None
-        self._stop_reason: str | None = None  # set (from any thread) when a STOP hits the running run
-        self._abort_requested = False
+        self._halted = False  # the engine discarded a trial on STOP (its "halted" event)
+        self.latched: str | None = None  # the latched fault the run waits on (its "latched" event), in words
         self._unhook_stop = None  # removes this tab's STOP listener from the rig (RigControl.on_stop)
 
         self.open_btn = QtWidgets.QPushButton("Open protocol...")
@@ -277,14 +279,9 @@ class ProtocolTab(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------------
     @property
-    def active(self) -> bool:
-        """A run thread records (or pauses, or ends)."""
-        return self.job is not None and not self.job.done
-
-    @property
     def running(self) -> bool:
-        """A run owns the rig: recording, paused, or stopped waiting for Resume or Abort."""
-        return self.active or self.stopped_reason is not None
+        """A run owns the rig: recording, paused, stopped (waiting for Resume or Abort) or latched."""
+        return self.job is not None and not self.job.done
 
     def _notify(self, level: int, text: str) -> None:
         notify = getattr(self.main, "notify", None)
@@ -293,8 +290,7 @@ class ProtocolTab(QtWidgets.QWidget):
 
     def start(self) -> None:
         h = self.main.handle
-        stopped = self.stopped_reason is not None and not self.active  # Resume after a STOP: the same file
-        if self.protocol is None or h is None or (self.running and not stopped):
+        if self.protocol is None or h is None or self.running:
             set_plain(self.status, "load a protocol and connect the rig first" if not self.running
                       else "already running", error=True)
             return
@@ -302,11 +298,11 @@ class ProtocolTab(QtWidgets.QWidget):
         if cal is not None and cal.job is not None and not cal.job.done:
             set_plain(self.status, "a calibration is running: start the protocol when it has finished", error=True)
             return
-        out = (self.last_output or "") if stopped else self.out_edit.text().strip()
+        out = self.out_edit.text().strip()
         if not out:
             set_plain(self.status, "choose an output file", error=True)
             return
-        resume = stopped or (self.resume_box.isChecked() and os.path.exists(out))
+        resume = self.resume_box.isChecked() and os.path.exists(out)
         from rigctl.storage.outputs import OutputError, check_output
 
         try:  # the library's one output policy (exists, held by another writer, folder, ...)
@@ -327,10 +323,9 @@ class ProtocolTab(QtWidgets.QWidget):
             return
         self.run = run
         self.stop_event, self.pause_event = run.stop_event, run.pause_event  # the run's controls, shown here
-        self.stopped_reason = self._stop_reason = None
-        self._abort_requested = False
+        self.stopped_reason, self._halted, self.latched = None, False, None
         control = getattr(h, "control", None)
-        if control is not None:  # the rig's STOP (the button, Esc, the dead man's switch) stops this run first
+        if control is not None:  # the rig's STOP (the button, Esc, the dead man's switch) says why it stopped the run
             self._unhook_stop = control.on_stop(self.request_stop)
         self._done_ids, self._failures = [], []
         self._current, self._paused, self._eta = None, False, None
@@ -383,12 +378,8 @@ class ProtocolTab(QtWidgets.QWidget):
             self._update_buttons()
 
     def resume(self) -> None:
-        if self.stopped_reason is not None and not self.active:  # after a STOP: a new run continues the file
-            self._notify(logging.INFO, f"protocol {self.protocol_name()} resumed after the STOP "
-                         f"({self.stopped_reason})")
-            self.start()
-            return
         if self.running:
+            self.stopped_reason, self._halted = None, False
             self.run.resume()
             set_plain(self.status, "resumed")
             self._notify(logging.INFO, f"protocol {self.protocol_name()} resumed")
@@ -410,29 +401,14 @@ class ProtocolTab(QtWidgets.QWidget):
         return self._abort_question
 
     def request_stop(self, reason: str) -> None:
-        """STOP hit the run (any thread: the rig's :meth:`~rigctl.operations.RigControl.stop` listener): the run
-        thread ends at once, the trial in progress discarded, and the run waits stopped for Resume or Abort."""
-        run = self.run
-        if self.active and run is not None and not run.stop_event.is_set():
-            self._stop_reason = reason
-            run.abort()
-            self._prompt_event.set()
+        """STOP hit the run (any thread: the rig's :meth:`~rigctl.operations.RigControl.stop` listener, which then
+        stops the run itself: :meth:`rigctl.operations.ProtocolRun.stop`): say why while it waits for Resume or
+        Abort."""
+        if self.running and not self.stop_event.is_set():
+            self.stopped_reason = reason
 
     def request_abort(self) -> None:
-        self._abort_requested = True
-        if self.stopped_reason is not None and not self.active:  # a stopped run ends here
-            self.stopped_reason = None
-            self.run_strip.hide()
-            text = (f"aborted after the STOP: the finished trials stay in {self.last_output} (tick 'Resume' and "
-                    "Start to continue it)")
-            set_plain(self.status, text)
-            self._notify(logging.WARNING, f"protocol {self.protocol_name()} {text}")
-            self._update_buttons()
-            lock = getattr(self.main, "apply_run_lock", None)
-            if lock is not None:
-                lock()  # the manual controls come back at once, not at the next tick
-            return
-        if self.active and not self.stop_event.is_set():
+        if self.running and not self.stop_event.is_set():
             self.run.abort()
             self._prompt_event.set()
             set_plain(self.status, "aborting: the rig stops safely, finished trials stay in the file")
@@ -511,6 +487,24 @@ class ProtocolTab(QtWidgets.QWidget):
             self._notify(logging.ERROR, f"the run waits for a lost link: {ev.error}")
         elif ev.kind in ("paused", "resumed"):
             self._paused = ev.kind == "paused"
+            if ev.kind == "resumed":
+                self.stopped_reason, self._halted = None, False
+        elif ev.kind == "halted":  # STOP: the engine discarded the trial and pauses
+            self._halted = True
+            self._set_status(row, "stopped (not recorded: recorded again on Resume)", ev.error or "")
+            self._current = None
+            self._notify(logging.WARNING, f"protocol {self.protocol_name()} STOPPED"
+                         + (f" ({self.stopped_reason})" if self.stopped_reason else "")
+                         + f": trial {ev.planned.trial_id} discarded; Resume records it again, Abort ends the run")
+        elif ev.kind == "latched":
+            self.latched = ev.error or "a latched fault"
+            self._set_status(row, f"LATCHED: {self.latched}", self.latched)
+            self._notify(logging.ERROR, f"protocol {self.protocol_name()} waits on a latched fault: {self.latched}; "
+                         "acknowledge it (the fault dialog) to go on")
+        elif ev.kind == "acknowledged":
+            self.latched = None
+            self._set_status(row, "acknowledged: recorded again")
+            self._notify(logging.INFO, f"protocol {self.protocol_name()}: the fault was acknowledged, the run goes on")
 
     def take_rig_defaults(self, rig) -> None:
         """A rig connected: 'Publish on LSL' as its rig config says (``lsl.enabled``, default off)."""
@@ -521,8 +515,6 @@ class ProtocolTab(QtWidgets.QWidget):
     def refresh(self) -> None:
         job = self.job
         if job is None:
-            if self.stopped_reason is not None:
-                self._show_stopped()
             return
         while not job.events.empty():
             kind, payload = job.events.get()
@@ -542,7 +534,13 @@ class ProtocolTab(QtWidgets.QWidget):
                 el = time.monotonic() - self._trial_started
                 self.trial_bar.setValue(int(min(95, 100 * el / max(float(cur.duration_s), 1e-3))))
                 self.trial_bar.setFormat(f"trial {cur.trial_id}: {el:.1f} s (settling, then {cur.duration_s:g} s)")
-            if self.pause_event.is_set():
+            if self.latched:
+                state = f"LATCHED: {self.latched} - acknowledge it in the fault dialog to go on"
+            elif self.pause_event.is_set() and (self._halted or self.stopped_reason):
+                why = f" ({self.stopped_reason})" if self.stopped_reason else ""
+                state = (f"STOPPED{why}: the rig is at rest. Resume records the discarded trial again, Abort ends "
+                         "the run")
+            elif self.pause_event.is_set():
                 state = "PAUSED (rig released)" if self._paused else "pausing after the current trial..."
             elif cur is not None:
                 state = f"trial {cur.trial_id}: texture {cur.texture}, {cur.speed_mm_s:g} mm/s, {cur.force_g:g} g"
@@ -562,20 +560,12 @@ class ProtocolTab(QtWidgets.QWidget):
             self.run_strip.hide()
             self.trial_bar.setFormat("trial %p%")
             summary = job.result
-            stopped = (self._stop_reason is not None and not self._abort_requested and not job.error
-                       and summary is not None and summary.complete < summary.planned)
-            cut = "stopped (not recorded: recorded on Resume)" if stopped else "aborted (not recorded)"
             for r in range(self.table.rowCount()):  # a trial cut short by the abort is not "recording" any more
                 if self.row_status(r).startswith(("settling", "recording", "mounting")):
-                    self._set_status(r, cut)
+                    self._set_status(r, "aborted (not recorded)")
             level = logging.INFO
-            if stopped:
-                self.stopped_reason = self._stop_reason
-                text, level = (f"STOPPED ({self.stopped_reason}): the rig is at rest, {summary.complete}/"
-                               f"{summary.planned} trials in {self.last_output}. Resume continues the run, Abort "
-                               "ends it"), logging.WARNING
-                self._show_stopped()
-            elif job.error:
+            self.stopped_reason, self._halted, self.latched = None, False, None
+            if job.error:
                 text, level = f"run failed: {job.error}", logging.ERROR
             elif summary is not None and summary.stopped:
                 text, level = (f"aborted: {summary.complete}/{summary.planned} trials in {self.last_output} "
@@ -594,19 +584,11 @@ class ProtocolTab(QtWidgets.QWidget):
             self.last_summary = summary
         self._update_buttons()
 
-    def _show_stopped(self) -> None:
-        """The run strip of a stopped run (seen from every tab): why, how far, what next."""
-        n_done = len(self._done_ids) + self._done_before
-        self.run_label.setText(f"Protocol {self.protocol_name()}: STOPPED ({self.stopped_reason}) - "
-                               f"{n_done}/{len(self.plan)} done. Resume continues it, Abort ends it")
-        self.run_strip.show()
-
     def _update_buttons(self) -> None:
-        running, active = self.running, self.active
-        stopped = running and not active
+        running = self.running
         self.start_btn.setEnabled(not running and self.protocol is not None)
-        self.pause_btn.setEnabled(active and not self.pause_event.is_set() and not self.stop_event.is_set())
-        self.resume_btn.setEnabled((active and self.pause_event.is_set()) or stopped)
+        self.pause_btn.setEnabled(running and not self.pause_event.is_set() and not self.stop_event.is_set())
+        self.resume_btn.setEnabled(running and self.pause_event.is_set() and not self.latched)
         self.abort_btn.setEnabled(running)
         self.open_btn.setEnabled(not running)
         self.builtin.setEnabled(not running)

@@ -23,7 +23,7 @@ from rigctl.core.drum import DrumFault, DrumLimits, DrumState, DrumStatus, Setpo
 from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
-from rigctl.operations._monitor import RigMonitor
+from rigctl.operations._monitor import RigEvent, RigMonitor
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import RigSource
 from rigctl.rigs import open_rig
@@ -128,7 +128,14 @@ class RigControl:
         :meth:`~rigctl.operations.RigMonitor.heartbeat`), whose trip is this rig's :meth:`stop`."""
         if self._monitor is None:
             self._monitor = RigMonitor(self.drum, self.stop)
+            self._monitor.subscribe(self._latch_from)
         return self._monitor.start()
+
+    def _latch_from(self, event: RigEvent) -> None:
+        """The monitor saw a new state or fault bits: a latched fault or an unexpected reset latches the rig (the
+        safety policy's :meth:`rigctl.acquisition.rig.Rig.latch_unsafe`), as the rig's own reads do."""
+        if event.kind in ("state", "faults") and event.status is not None:
+            self.rig.latch_unsafe(event.status, "status poll")
 
     def on_stop(self, fn: Callable[[str], object]) -> Callable[[], None]:
         """Call ``fn(reason)`` at every :meth:`stop` before the controller is stopped (a run that must pause, not

@@ -27,16 +27,16 @@ def test_stop_button_stops_a_run_resumably(window, qapp, qtbot, tmp_path):
     assert wait_for(qapp, lambda: tab._current is not None, 30)
     t0 = time.monotonic()
     qtbot.mouseClick(window.stop_btn, QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: tab.job is None, 20), tab.status.text()
+    assert wait_for(qapp, lambda: tab._paused and "STOPPED" in tab.status.text(), 20), tab.status.text()
     assert time.monotonic() - t0 < 15
-    assert "STOPPED (the operator pressed STOP)" in tab.status.text() and "Resume continues" in tab.status.text()
+    assert "STOPPED (the operator pressed STOP)" in tab.status.text() and "Resume records" in tab.status.text()
     statuses = [tab.row_status(r) for r in range(tab.table.rowCount())]
-    assert "stopped (not recorded: recorded on Resume)" in statuses, statuses  # the trial cut short says so
+    assert "stopped (not recorded: recorded again on Resume)" in statuses, statuses  # the trial cut short says so
     assert not any(st.startswith(("settling", "recording", "mounting")) for st in statuses), statuses
     # stopped, not aborted: the run still owns the rig, Resume or Abort
     assert tab.running and tab.resume_btn.isEnabled() and tab.abort_btn.isEnabled() and not tab.start_btn.isEnabled()
     tab.request_abort()
-    assert not tab.running and "aborted after the STOP" in tab.status.text()
+    assert wait_for(qapp, lambda: not tab.running, 30) and "aborted" in tab.status.text(), tab.status.text()
 
 
 def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot):

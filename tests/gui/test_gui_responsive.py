@@ -188,19 +188,21 @@ def test_esc_closing_a_drop_down_during_a_run_stops_nothing_and_stop_is_resumabl
     assert wait_for(qapp, lambda: QtWidgets.QApplication.activePopupWidget() is None, 5)
     done = len(tab._done_ids)
     assert wait_for(qapp, lambda: len(tab._done_ids) > done, 60), tab.status.text()  # the run went on
-    assert stops == [] and tab.active and not tab.stop_event.is_set() and tab.stopped_reason is None
-    # Esc that no popup takes is STOP: the run stops, resumable; nothing moves while it waits
+    assert stops == [] and tab.running and not tab.pause_event.is_set() and tab.stopped_reason is None
+    # Esc that no popup takes is STOP: the run stops (the engine's STOP: trial discarded, paused), resumable
     wait_for(qapp, lambda: False, 0.4)  # (past the debounce of one press)
     QtTest.QTest.keyClick(window.tabs.tabBar(), QtCore.Qt.Key_Escape)
-    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
+    assert wait_for(qapp, lambda: tab._paused and "STOPPED" in tab.status.text(), 30), tab.status.text()
     assert stops == ["the operator pressed STOP"] and tab.stopped_reason == "the operator pressed STOP"
-    assert "STOPPED" in tab.status.text() and tab.running and tab.resume_btn.isEnabled()
-    assert "STOPPED" in tab.run_label.text() and not window.control.buttons["run"].isEnabled()
+    assert tab.running and tab.resume_btn.isEnabled() and not tab.stop_event.is_set()  # stopped, not aborted
+    assert "STOPPED (the operator pressed STOP)" in tab.run_label.text()
+    assert not window.control.buttons["run"].isEnabled()  # the run still owns the rig
+    assert not any(tab.row_status(r).startswith(("settling", "recording")) for r in range(tab.table.rowCount()))
     assert wait_for(qapp, lambda: _state(window) in (DrumState.IDLE, DrumState.HOMING), 10), window.poller.latest
-    with open_session(out) as s:
-        recorded = len(s.completed_ids())
-    assert 1 <= recorded < 12
-    qtbot.mouseClick(tab.resume_btn, QtCore.Qt.LeftButton)  # Resume continues the same file
+    done = len(tab._done_ids)
+    wait_for(qapp, lambda: False, 0.5)
+    assert len(tab._done_ids) == done and _state(window) != DrumState.RUNNING  # nothing moves while stopped
+    qtbot.mouseClick(tab.resume_btn, QtCore.Qt.LeftButton)  # Resume records the discarded trial and goes on
     assert wait_for(qapp, lambda: tab.job is None and not tab.running, 120), tab.status.text()
     assert "finished: 12/12" in tab.status.text(), tab.status.text()
     with open_session(out) as s:
@@ -241,11 +243,11 @@ def test_a_frozen_gui_thread_stops_a_protocol_run_resumably(inprocess_window, qa
         time.sleep(1.5)  # the GUI thread does not answer while the run presses and turns the drum
     finally:
         heartbeat.timeout_s = TEST_DEADMAN_S
-    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
+    assert wait_for(qapp, lambda: tab._paused and "STOPPED" in tab.run_label.text(), 30), tab.status.text()
     assert tab.stopped_reason is not None and "GUI thread did not answer" in tab.stopped_reason, tab.stopped_reason
-    assert tab.running and tab.resume_btn.isEnabled() and "STOPPED" in tab.run_label.text()
+    assert tab.running and tab.resume_btn.isEnabled()
     st = window.handle.control.status()
     assert st.state != DrumState.RUNNING and st.speed_target_mm_s == 0, st
     tab.request_abort()
     window.banner.hide()
-    assert not tab.running
+    assert wait_for(qapp, lambda: not tab.running, 30), tab.status.text()

@@ -191,8 +191,9 @@ def main(out_path: str) -> int:
     res["log_aborted"] = "aborted" in w.events.text()
     out["esc_dialog"] = res
     w.emergency_stop()
-    wait(lambda: tab.job is None, 30)
+    wait(lambda: tab._paused, 30)
     tab.request_abort()  # STOP left the run stopped (resumable): end it, the rig is the next tests'
+    wait(lambda: tab.job is None, 30)
     stopped()
 
     # --- a stalled taxel stream: banner, log line, nothing moves, gaps in the plots ---
