@@ -36,7 +36,7 @@ def test_stop_button_stops_a_run_resumably(window, qapp, qtbot, tmp_path):
     # stopped, not aborted: the run still owns the rig, Resume or Abort
     assert tab.running and tab.resume_btn.isEnabled() and tab.abort_btn.isEnabled() and not tab.start_btn.isEnabled()
     tab.request_abort()
-    assert wait_for(qapp, lambda: not tab.running, 30) and "aborted" in tab.status.text(), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 30) and "aborted" in tab.status.text(), tab.status.text()
 
 
 def test_loadcell_calibration_with_a_known_mass(window, qapp, qtbot):

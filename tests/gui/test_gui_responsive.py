@@ -250,4 +250,4 @@ def test_a_frozen_gui_thread_stops_a_protocol_run_resumably(inprocess_window, qa
     assert st.state != DrumState.RUNNING and st.speed_target_mm_s == 0, st
     tab.request_abort()
     window.banner.hide()
-    assert wait_for(qapp, lambda: not tab.running, 30), tab.status.text()
+    assert wait_for(qapp, lambda: tab.job is None, 30), tab.status.text()
