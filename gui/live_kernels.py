@@ -20,6 +20,8 @@ from typing import Any
 import numba
 import numpy as np
 
+import rigctl  # noqa: F401  (its import sends numba's kernel cache to the user's cache folder)
+
 
 def decimated_length(n: int, width_px: int, first_index: int) -> int:
     """How many points :func:`rigctl_gui.live_view.peak_decimate` makes of ``n`` samples for a plot ``width_px``

@@ -17,8 +17,11 @@ describes them); the most used ones are re-exported here too.
 
 from typing import TYPE_CHECKING
 
+from rigctl.core.caches import configure_numba_cache
 from rigctl.core.lazy import lazy_exports
 from rigctl.core.version import __version__ as __version__
+
+configure_numba_cache()  # numba's compiled kernels go to the user's cache folder, never into the installed package
 
 #: the package's public names and the module each lives in
 _EXPORTS = {

@@ -117,7 +117,7 @@ _KIND_WEIGHT = {"packaging": 4, "hil": 3, "slow": 2, "realtime": 1, "gui": 1}
 #: test files whose tests split into units of work by the first part of their parameter id: each value of their
 #: module-scoped fixture (a backend, sim or hil; a screen size) sets up its own rig or X server anyway, so the parts can
 #: run on two workers
-SPLIT_BY_PARAM = ("tests/conformance/", "tests/gui/test_gui_x11.py")
+SPLIT_BY_PARAM = ("tests/conformance/", "tests/gui/test_gui_x11.py", "tests/test_guides.py")
 
 
 def unit_of(nodeid: str) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -106,6 +107,21 @@ def test_encode_bars_are_named_for_what_they_do(session, tmp_path):
     r = CliRunner().invoke(main, ["encode", str(session), "--out", str(tmp_path / "f.h5"), "--variant", "original"])
     assert r.exit_code == 0, r.output
     assert not re.findall(r"(reading trials|range pass|encoding):", r.stderr), r.stderr
+
+
+def test_encode_writes_enc_h5_by_default_and_outputs_keep_their_format(session, tmp_path):
+    """One default suffix (``d.h5`` -> ``d.enc.h5``, as the docs write it) and an output's extension checked against
+    the format written: ``--out x.csv`` for an HDF5 writer is one usage line, nothing written (issue 38)."""
+    copy = tmp_path / "d.h5"
+    shutil.copyfile(session, copy)
+    r = CliRunner().invoke(main, ["encode", str(copy), "--variant", "original", "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "d.enc.h5").is_file() and not (tmp_path / "d.encoded.h5").exists()
+    for args in (["encode", str(copy)], ["sim", "dataset", "quick_check"], ["acquire", "quick_check", "--inprocess"],
+                 ["import", str(copy)]):
+        r = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "x.csv")])
+        assert r.exit_code == 2 and "unsupported format .csv; use one of .h5, .hdf5" in r.output, (args, r.output)
+        assert r.output.strip().count("\n") == 0 and not (tmp_path / "x.csv").exists()
 
 
 def test_run_summary_of_nothing_recorded_says_so():

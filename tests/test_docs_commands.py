@@ -1,13 +1,11 @@
-"""The documents' commands run as written (at a small size): docs/my-sensor.md section 5 (continuous recordings, one
-file per texture) and docs/results.md section 2a (FabricSlide speed extrapolation with whole trials)."""
+"""The documents' commands run as written (at a small size): docs/results.md section 2a (FabricSlide speed
+extrapolation with whole trials). The guides and docs/my-sensor.md run in tests/test_guides.py."""
 
 from __future__ import annotations
 
 import glob
 import json
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -34,36 +32,6 @@ def rigctl(line: str, cwd: Path):
         hits = sorted(glob.glob(str(cwd / word))) if any(c in word for c in "*?[") else []
         args += [str(Path(h).relative_to(cwd)) for h in hits] or [word]
     return CliRunner().invoke(main, args)
-
-
-def test_my_sensor_continuous_recordings_commands(tmp_path, monkeypatch):
-    text = section("my-sensor.md", "## 5. Continuous recordings, one file per texture")
-    block = text.split("```sh", 1)[1].split("```", 1)[0].strip().splitlines()
-    assert [line.split()[:2] for line in block] == [["python", "-c"], ["rigctl", "import"], ["rigctl", "info"],
-                                                    ["rigctl", "encode"], ["rigctl", "analyze"]]
-    monkeypatch.chdir(tmp_path)
-    made = subprocess.run([sys.executable, *shlex.split(block[0])[1:]], cwd=tmp_path, capture_output=True,
-                          text=True, timeout=120)
-    assert made.returncode == 0, made.stderr
-    out = {}
-    for line in block[1:]:
-        r = rigctl(line, tmp_path)
-        assert r.exit_code == 0, (line, r.output[-2000:])
-        out[line.split()[1]] = r
-    table = out["import"].stdout
-    assert table.splitlines()[0].split()[:2] == ["file", "period"] and table.count(".npy") == 6
-    assert "cork__R5.npy: trial count 8 is an outlier" in out["import"].stderr
-    assert "from felt__R0.npy samples" in out["info"].stdout
-    grouped_line = block[-1]
-    random = rigctl(grouped_line.replace(" --cv-groups recording", ""), tmp_path)
-    assert random.exit_code == 0, random.output
-
-    def textures_row(r):
-        row = next(line for line in r.stdout.splitlines() if line.startswith("Individual Textures"))
-        return float(row.split()[4])  # Original, mu (%)
-
-    assert textures_row(out["analyze"]) < textures_row(random) - 20  # the grouped figure is the lower one
-    assert '"groups": "recording"' in out["analyze"].stdout
 
 
 @pytest.mark.slow

@@ -18,6 +18,8 @@ import h5py
 import numpy as np
 import pytest
 
+import rigctl
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -43,13 +45,20 @@ _NOT_SOURCE = shutil.ignore_patterns(".git", ".venv*", "build", "dist", "*.egg-i
                                      ".hypothesis", "site")
 
 
+def copy_of_the_sources(into: Path) -> Path:
+    """A copy of the checkout's sources in ``into/rigctl`` (setuptools writes build/ and *.egg-info beside them: never
+    into the checkout)."""
+    src = into / "rigctl"
+    shutil.copytree(REPO, src, symlinks=True, ignore=_NOT_SOURCE)
+    return src
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory):
     d = tmp_path_factory.mktemp("wheel")
-    # built from a copy of the sources (setuptools writes build/ and *.egg-info beside them: never into the checkout);
-    # the build requirements come from the test extra (no isolated build environment to download per run)
-    src = tmp_path_factory.mktemp("source") / "rigctl"
-    shutil.copytree(REPO, src, symlinks=True, ignore=_NOT_SOURCE)
+    # built from a copy of the sources; the build requirements come from the test extra (no isolated build
+    # environment to download per run)
+    src = copy_of_the_sources(tmp_path_factory.mktemp("source"))
     out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", str(src),
                           "-w", str(d)], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -201,3 +210,58 @@ def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_
     # the taxel readings follow the mounted plate: smooth A is quieter than ridged B and waves L
     assert max(stds["A"]) < 0.5 * min(stds["B"] + stds["L"])
     assert _layout(hil) == _layout(sim_session)
+
+
+def _test_environment_paths() -> list[str]:
+    """The site folders of the environment running the tests (and those its own .pth files chain in)."""
+    seen = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages"))]
+    return list(dict.fromkeys(site.getsitepackages() + seen))
+
+
+@pytest.mark.slow
+@pytest.mark.packaging
+def test_the_readme_install_then_the_docs_extra(tmp_path):
+    """The README's first command (and first-recording.md's install) exactly as written, in a copy of the sources:
+    a virtual environment, ``pip install .``, a simulated recording; then the README's docs step, ``pip install -e
+    ".[docs]"``, and ``rigctl --version`` still works (issue 38: numba's cache files in ``site-packages/rigctl``
+    outlived the package and shadowed the editable install). numba's cache goes to ``$XDG_CACHE_HOME/rigctl/numba``.
+
+    Offline and without a download: the new environment sees the test environment's packages behind its own (a
+    ``sitecustomize`` appends them to ``sys.path``, so pip finds the dependencies installed and uninstalls the
+    environment's own rigctl, never the test environment's), and pip builds without an isolated build environment.
+    """
+    from .guides import run_by, script
+
+    blocks = run_by("tests/test_packaging.py::test_the_readme_install_then_the_docs_extra")
+    assert [b.page for b in blocks] == ["README.md", "docs/guides/first-recording.md"]
+    src = copy_of_the_sources(tmp_path)
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(f"import sys\nsys.path.extend({_test_environment_paths()!r})\n")
+    cache, elsewhere = tmp_path / "cache", tmp_path / "empty"
+    elsewhere.mkdir()
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "RIGCTL_FIRMWARE_BUILD")}
+    env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(hook),
+               PIP_NO_INDEX="1", PIP_NO_BUILD_ISOLATION="0", XDG_CACHE_HOME=str(cache),
+               RIGCTL_CONFIG=str(tmp_path / "rig.json"), PYTHONUNBUFFERED="1")
+
+    def shell(text: str) -> str:
+        (tmp_path / "step.sh").write_text(script([], src).replace("echo '@@guide-block end'", text))
+        r = subprocess.run(["bash", str(tmp_path / "step.sh")], cwd=src, env=env, capture_output=True, text=True,
+                           timeout=600)
+        assert r.returncode == 0 and "Traceback" not in r.stderr, (text, r.stdout[-2000:], r.stderr[-3000:])
+        return r.stdout
+
+    assert "trials complete: 6/6" in shell(blocks[0].text)
+    site_packages = next((src / ".venv" / "lib").glob("python3*/site-packages"))
+    kernels = [p.name for p in (site_packages / "rigctl").rglob("*.nb[ic]")]
+    assert not kernels, f"numba cached kernels inside the installed package: {kernels[:5]}"
+    assert any((cache / "rigctl" / "numba").rglob("*.nbi"))  # the run compiled (and cached) the rig's kernels
+    version = f"rigctl, version {rigctl.__version__}"
+    where = shell(f'. .venv/bin/activate && pip install -e ".[docs]" && cd {elsewhere} && rigctl --version && '
+                  'python -c "import rigctl; print(rigctl.__file__)"')
+    assert version in where and f"{src / 'rigctl' / '__init__.py'}" in where  # the editable sources, not a leftover
+    # first-recording.md's install, over the editable one, then the command again from an empty folder
+    where = shell(f"{blocks[1].text}\ncd {elsewhere} && rigctl --version && python -c 'import rigctl; print(rigctl.__file__)'")
+    assert version in where and str(site_packages / "rigctl" / "__init__.py") in where

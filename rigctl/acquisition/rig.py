@@ -290,9 +290,10 @@ class Rig:
                 raise DrumFault(st.faults, f"the fault persists ({fault_advice(st.faults)})") from None
         if home:
             self._home()
-        elif st.state == DrumState.NOT_HOMED:
-            log.warning("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
-                        getattr(st, "reset_cause", "?"))
+        elif st.state == DrumState.NOT_HOMED:  # the opener asked not to home (doctor, a connect without HOME): its
+            # status shows the state; a warning here read as a fault above a doctor report that passes (issue 38)
+            log.info("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
+                     getattr(st, "reset_cause", "?"))
 
     def _booted_status(self) -> Any:
         """The drum controller's status once it has timed its HX711's rate (or faulted, or after

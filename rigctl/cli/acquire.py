@@ -14,7 +14,7 @@ from typing import Any
 
 import click
 
-from rigctl.cli.outputs import UsageProblem, check_output
+from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED
@@ -309,7 +309,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     if resume and not out.exists():
         raise UsageProblem(f"--resume: {out} does not exist: nothing to resume")
     check_output(out, overwrite=overwrite or resume,
-                 inputs=(protocol, replay if isinstance(replay, Path) else None, config_path),
+                 inputs=(protocol, replay if isinstance(replay, Path) else None, config_path), suffixes=HDF5_SUFFIXES,
                  overwrite_hint="continue it with --resume, or pass --overwrite", kind="session")
     hardware = drum_port is not None
     if inject and hardware:

@@ -30,18 +30,19 @@ from rigctl.cli.rig_flags import (
 @click.option("--list", "list_checks", is_flag=True, default=False, help="List the checks and exit.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the report as JSON.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Rig config file (default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json); the report is stored in it.")
-@click.option("--no-save", is_flag=True, default=False, help="Do not store the report in the rig config.")
+              help="Rig config file (default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json); --save stores the report in it.")
+@click.option("--save/--no-save", default=False, show_default=True,
+              help="Store the report, dated, in the rig config (doctor.<rig kind>); without it nothing is written.")
 @click.option("--rest-s", type=floats(2.0, 120.0), default=10.0, show_default=True,
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
 @inject_option
-def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, no_save,
+def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, save,
            rest_s, seed, inject):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
-    after each. The report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a check
-    failed.
+    after each. With --save the report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a
+    check failed.
     """
     from rigctl.acquisition import doctor as doc
 
@@ -65,12 +66,12 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     if inject and source.is_hardware:
         raise click.UsageError("--inject works on the simulated rigs (--sim, --inprocess, --hil), not on hardware")
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
-                 save=not no_save, on_result=None if as_json else lambda r: click.echo(r.line()))
+                 save=save, on_result=None if as_json else lambda r: click.echo(r.line()))
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:
         n = report.counts()
         click.echo(f"{source.kind} rig: {n['pass']} passed, {n['fail']} failed, {n['skip']} skipped"
-                   + ("" if no_save else " (stored in the rig config)"))
+                   + (" (stored in the rig config)" if save else ""))
     if not report.ok:
         raise SystemExit(1)

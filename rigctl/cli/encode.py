@@ -6,10 +6,10 @@ from pathlib import Path
 
 import click
 
-from rigctl.cli.outputs import UsageProblem, check_output, require_dask, scheduler_address
+from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output, require_dask, scheduler_address
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import MAX_WINDOWS, WORKERS, floats
-from rigctl.storage.encoded import ALL_VARIANTS
+from rigctl.storage.encoded import ALL_VARIANTS, ENCODED_SUFFIX
 
 
 def _windows_scaled(ctx, param, value):
@@ -56,7 +56,7 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
 @click.command("encode")
 @click.argument("session", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Encoded file to write (default: SESSION with suffix .encoded.h5).")
+              help="Encoded file to write (default: SESSION with suffix .enc.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace the output file if it exists.")
 @click.option("--scheduler", default=None, callback=scheduler_address,
               help="Dask scheduler address (tcp://host:8786), or 'local' for a local cluster; default: this "
@@ -91,7 +91,8 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
     from rigctl.storage.outputs import OutputError
     from rigctl.storage.session import SessionError
 
-    out = check_output(out or session.with_suffix(".encoded.h5"), overwrite=overwrite, inputs=(session,), kind="encoded")
+    out = check_output(out or session.with_name(session.stem + ENCODED_SUFFIX), overwrite=overwrite, inputs=(session,),
+                       suffixes=HDF5_SUFFIXES, kind="encoded")
     require_dask(scheduler, otherwise="encode in this process")
     _check_sizes(session, out, variants=list(variants) or None, batch=batch, window_s=window_ms / 1000.0,
                  windows_unscaled=windows_unscaled, windows_scaled=windows_scaled, store_spikes=not no_spikes)

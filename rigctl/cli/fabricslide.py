@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from rigctl.cli.jsonout import json_text
-from rigctl.cli.outputs import check_output
+from rigctl.cli.outputs import HDF5_SUFFIXES, check_output
 from rigctl.cli.progress import bars
 from rigctl.cli.ranges import floats
 
@@ -40,7 +40,7 @@ def import_fabricslide(directory, out, include_board, pattern, trim, overwrite, 
     if not directory:
         raise click.UsageError(f"give the FabricSlide folder (fabric/ and board/ of github.com/wngfra/FabricSlide): "
                                f"rigctl import-fabricslide DIRECTORY --out {out}, or set {ENV_DIR}")
-    check_output(out, overwrite=overwrite, kind="session")
+    check_output(out, overwrite=overwrite, kind="session", suffixes=HDF5_SUFFIXES)
     directory = Path(directory)
     try:
         with bars(not quiet) as progress:

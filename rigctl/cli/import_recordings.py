@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from rigctl.cli.jsonout import json_text
-from rigctl.cli.outputs import check_output
+from rigctl.cli.outputs import HDF5_SUFFIXES, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.ranges import MAX_VOLTS, RATE_HZ, floats
 
@@ -82,7 +82,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     """
     from rigctl.operations import import_recordings as run
 
-    check_output(out, overwrite=overwrite, inputs=(*files, mapping), kind="session")
+    check_output(out, overwrite=overwrite, inputs=(*files, mapping), kind="session", suffixes=HDF5_SUFFIXES)
     if preset is not None and len(files) != 1:
         raise click.UsageError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
     options = {} if preset else dict(

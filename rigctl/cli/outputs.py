@@ -20,9 +20,9 @@ from pathlib import Path
 import click
 
 from rigctl.storage import outputs as _policy
-from rigctl.storage.outputs import replacing, same_file
+from rigctl.storage.outputs import HDF5_SUFFIXES, replacing, same_file
 
-__all__ = ["UsageProblem", "check_output", "same_file", "replacing", "image_suffixes"]
+__all__ = ["HDF5_SUFFIXES", "UsageProblem", "check_output", "same_file", "replacing", "image_suffixes"]
 
 
 class UsageProblem(click.ClickException):

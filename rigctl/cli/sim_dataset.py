@@ -8,7 +8,7 @@ import click
 
 from rigctl.acquisition.protocol import MAX_PLAN_TRIALS
 from rigctl.cli.jsonout import json_text
-from rigctl.cli.outputs import UsageProblem, check_output
+from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED, WORKERS_OR_0
@@ -76,7 +76,7 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
                            f"more than {MAX_PLAN_TRIALS}")
     elif n_trials == 0:
         raise UsageProblem(f"{protocol}: the protocol plans no trial (no textures, forces or speeds)")
-    check_output(out, overwrite=overwrite or resume, inputs=(protocol,),
+    check_output(out, overwrite=overwrite or resume, inputs=(protocol,), suffixes=HDF5_SUFFIXES,
                  overwrite_hint="continue it with --resume, or pass --overwrite", need_bytes=None if resume else need,
                  kind="session")
     from rigctl.simulation.dataset import generate_dataset  # the model, numba: after the checks
@@ -100,6 +100,8 @@ def dataset(protocol, out, trials_per_condition, seed, workers, compression, sta
     if as_json:
         click.echo(json_text(summary))
     else:
+        n = summary["workers"]  # 0: rendered in this process (a small dataset, or --workers 0)
+        where = f"{n} worker process{'es' if n != 1 else ''}" if n else "rendered in this process"
         click.echo(f"{summary['n_trials']} trials, {summary['trial_seconds']:.0f} s of trials in "
                    f"{summary['wall_s']:.1f} s ({summary['realtime_factor']:.0f}x real time, "
-                   f"{summary['workers']} workers) -> {summary['path']} ({summary['bytes'] / 1e6:.1f} MB)")
+                   f"{where}) -> {summary['path']} ({summary['bytes'] / 1e6:.1f} MB)")

@@ -97,6 +97,11 @@ class MegaController:
         The physics it drives.
     eeprom_path : path or None
         JSON file emulating the EEPROM (calibration registers); None keeps it in memory.
+    factory_calibrated : bool
+        Write the calibration record (the default load-cell scale, which is the model's true one, and lead-screw
+        calibration) at the first start when the EEPROM is erased, as a rig leaves the bench calibrated: the simulated
+        rigs do (no "EEPROM calibration is missing" warning on every simulated run); False (the default here) keeps
+        the erased EEPROM of a freshly flashed board. A corrupted record is never replaced.
 
     Attributes
     ----------
@@ -112,7 +117,7 @@ class MegaController:
         build without one (a plain make, the Arduino IDE); ValueError for anything else.
     """
 
-    def __init__(self, model: RigModel, *, eeprom_path=None):
+    def __init__(self, model: RigModel, *, eeprom_path=None, factory_calibrated: bool = False):
         self.model = model
         self.eeprom_path = Path(eeprom_path) if eeprom_path else None
         self._lock = threading.RLock()
@@ -133,6 +138,8 @@ class MegaController:
         model.advance(1, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
         self._power_up(ResetCause.POWER_ON)
         self._boot()
+        if factory_calibrated and self.eeprom["calibration"] is None:
+            self._save_eeprom()  # the first start of an erased EEPROM: the record written, taken as valid from now
 
     @property
     def build_id(self) -> str | None:

@@ -69,16 +69,19 @@ class InProcessEngine:
     ----------
     config : RigConfig or None; seed : int (model noise, drum start angle).
     request_ms : simulated bus time of one Modbus request, ms.
+    factory_calibrated : the controller starts with its calibration in EEPROM (``MegaController``); False: an
+        erased EEPROM (the controller runs on its defaults, flagged, and the rig warns).
 
     Attributes
     ----------
     model : RigModel; controller : MegaController; time_s : simulated time, s.
     """
 
-    def __init__(self, config: RigConfig | None = None, *, seed: int = 0, request_ms: int = 2):
+    def __init__(self, config: RigConfig | None = None, *, seed: int = 0, request_ms: int = 2,
+                 factory_calibrated: bool = True):
         self.config = config or RigConfig()
         self.model = RigModel(self.config, seed=seed)
-        self.controller = MegaController(self.model)
+        self.controller = MegaController(self.model, factory_calibrated=factory_calibrated)
         self.request_ms = int(request_ms)
         self._t_ms = 0
         self._lock = threading.RLock()
@@ -301,15 +304,15 @@ class InProcessTaxels:
 class InProcessBackend:
     """:class:`rigctl.core.interfaces.RigBackend` (and ``MassPlacer``) of the in-process simulated rig.
 
-    ``rigctl.rigs.open_rig("inprocess", config=..., seed=...)``. Attributes: ``engine`` (:class:`InProcessEngine`),
+    ``rigctl.rigs.open_rig("inprocess", config=..., seed=..., factory_calibrated=True)``. Attributes: ``engine`` (:class:`InProcessEngine`),
     ``model``, ``controller``.
     """
 
     mode = "inprocess"
 
     def __init__(self, config: RigConfig | None = None, *, seed: int = 0, request_ms: int = 2,
-                 textures: TextureSet | None = None):
-        self.engine = InProcessEngine(config, seed=seed, request_ms=request_ms)
+                 textures: TextureSet | None = None, factory_calibrated: bool = True):
+        self.engine = InProcessEngine(config, seed=seed, request_ms=request_ms, factory_calibrated=factory_calibrated)
         self.seed = seed
         self.textures = textures or PAPER_TEXTURES
         self.mounter = SimMounter(self.engine.model)

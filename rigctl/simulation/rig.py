@@ -105,7 +105,7 @@ class SimulatedRig:
         self._samples_total = 0
         self._pulse_pending = False  # an index pulse in a step with no sample due goes on the next sample
         self.model = RigModel(self.config, seed=self.seed)
-        self.mega = VirtualMega(self.model, self.port_dir / "drum")
+        self.mega = VirtualMega(self.model, self.port_dir / "drum", factory_calibrated=True)
         self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=self.seed,
                               layout=self.layout)
         #: the injected faults (:meth:`inject_faults`) and what applies them, on the physics clock

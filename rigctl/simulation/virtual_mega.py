@@ -134,8 +134,8 @@ class VirtualMega(MegaController):
         The last 1000 of them.
     """
 
-    def __init__(self, model: RigModel, link=None, *, eeprom_path=None):
-        super().__init__(model, eeprom_path=eeprom_path)
+    def __init__(self, model: RigModel, link=None, *, eeprom_path=None, factory_calibrated: bool = False):
+        super().__init__(model, eeprom_path=eeprom_path, factory_calibrated=factory_calibrated)
         self.bridge = PtyBridge(link)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server = None

@@ -59,6 +59,7 @@ from rigctl.storage.encoded_format import (
     ALL_VARIANTS,
     ENCODED_KIND,
     ENCODED_SCHEMA_VERSION,
+    ENCODED_SUFFIX,
     LABEL_FREE_VARIANTS,
     MAIN_VARIANTS,
     REALTIME_VARIANTS,
@@ -81,7 +82,7 @@ from rigctl.storage.encoded_format import (
 from rigctl.storage.encoded_writer import EncodedWriter
 
 __all__ = [
-    "ENCODED_SCHEMA_VERSION", "ENCODED_KIND", "VariantInfo", "VARIANTS", "VARIANT_TITLES", "MAIN_VARIANTS",
+    "ENCODED_SCHEMA_VERSION", "ENCODED_KIND", "ENCODED_SUFFIX", "VariantInfo", "VARIANTS", "VARIANT_TITLES", "MAIN_VARIANTS",
     "LABEL_FREE_VARIANTS", "REALTIME_VARIANTS", "ALL_VARIANTS", "variant_info", "EncodedWriter", "EncodedFile",
     "open_encoded", "is_encoded_file", "NotEncodedError", "TRIAL_COLUMNS", "SpikeArrays",
 ]

@@ -21,6 +21,8 @@ from rigctl.core.errors import describe_error
 ENCODED_SCHEMA_VERSION = 3
 #: the ``kind`` attribute of an encoded file
 ENCODED_KIND = "rigctl encoded"
+#: the default name of a session's encoded file: ``d.h5`` -> ``d.enc.h5`` (``rigctl encode`` and the docs)
+ENCODED_SUFFIX = ".enc.h5"
 
 
 # ------------------------------------------------------------------------------------------------- variant registry

@@ -39,7 +39,7 @@ from typing import Any
 
 from rigctl.storage import journal
 
-__all__ = ["OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
+__all__ = ["HDF5_SUFFIXES", "OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
            "check_replaceable", "check_space", "check_writable_folder", "current_umask", "apply_umask",
            "existing_kind", "free_bytes", "name_in_folder", "output_file", "replacing", "same_file", "size_text",
            "OUTPUT_KINDS"]
@@ -50,6 +50,10 @@ OUTPUT_KINDS = {"session": "rigctl session file", "encoded": "rigctl encoded fil
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 #: the longest client-given name :func:`name_in_folder` takes, bytes (a path component: 255, the file system's)
 MAX_NAME_BYTES = 1024
+
+#: the extensions of an HDF5 output (sessions, encoded files): ``check_output(..., suffixes=HDF5_SUFFIXES)`` refuses
+#: ``--out x.csv`` for a writer of HDF5 (issue 38: it wrote HDF5 into x.csv without a word)
+HDF5_SUFFIXES = (".h5", ".hdf5")
 
 #: overlay page of :class:`GuardedFile` once the disk has refused a write, bytes
 _PAGE = 1 << 16

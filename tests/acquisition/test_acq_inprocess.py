@@ -143,7 +143,7 @@ def test_bad_eeprom_and_a_calibration_mismatch_are_warned_on_open(tmp_path):
     load-cell calibration differs from the controller's scale: both are warned about, by name."""
     cfg_file = tmp_path / "rig.json"
     cfg_file.write_text(json.dumps({"loadcell": {"counts_per_g": 380.0}}))
-    with open_rig("inprocess", seed=5, host_config_path=cfg_file) as rig:
+    with open_rig("inprocess", seed=5, host_config_path=cfg_file, factory_calibrated=False) as rig:
         text = " ".join(rig.warnings)
         assert "EEPROM calibration is missing or failed its checksum" in text
         assert "load-cell scale is 420 counts/g but the rig config's calibration is 380 counts/g" in text

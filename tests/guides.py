@@ -1,0 +1,223 @@
+"""The runnable blocks of the guides (README.md, docs/my-sensor.md, docs/guides/*.md) and the shell that runs them.
+
+A guide's fenced ``sh`` blocks run in one bash shell, in order, in an empty folder, exactly as written; its
+``python`` blocks run there too (``python FILE``: later commands read what they write), and a ``toml`` / ``json`` /
+``ini`` block whose first line is a comment naming a file (``# groups.toml``) is written to that file. An HTML
+comment on the lines just before a block changes that, visibly in the page's source:
+
+- ``<!-- not-run: REASON -->``: not run here (a real rig's ports, root, a window, a service that runs until Ctrl-C);
+  tests/test_guides.py lists every such block with its reason;
+- ``<!-- run-by: tests/FILE.py::TEST -->``: run by that test (the install sequences: tests/test_packaging.py);
+- ``<!-- small: OLD => NEW | OLD2 => NEW2 -->``: the block runs with OLD replaced by NEW, a smaller size of an option
+  the page's text itself shows (the test checks that OLD is in the block and NEW's option is in the page).
+
+A block fails the test when a command in it fails (even the first of ``a && b``) or the output holds a traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import resource
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from . import guide_launcher
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: the pages whose blocks run
+PAGES = ("README.md", "docs/my-sensor.md", *sorted(p.relative_to(REPO).as_posix()
+                                                   for p in (REPO / "docs" / "guides").glob("*.md")))
+
+_FENCE = re.compile(r"^(?P<indent>[ \t]*)```(?P<lang>[\w-]*)[ \t]*$")
+_MARKER = re.compile(r"^\s*<!--\s*(?P<kind>not-run|run-by|small)\s*:\s*(?P<text>.*?)\s*-->\s*$")
+_FILE_LANGS = ("toml", "json", "ini")
+_FILE_NAME = re.compile(r"^\s*[#;]\s*(?P<name>[\w.-]+\.(toml|json|ini|cfg))\s*$")
+
+
+@dataclass
+class Block:
+    """One fenced block of a page: its language, text (dedented), first line number and markers."""
+
+    page: str
+    line: int
+    lang: str
+    text: str
+    markers: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return f"{self.page}:{self.line}"
+
+    @property
+    def file_name(self) -> str | None:
+        """The file a ``toml``/``json``/``ini`` block declares on its first line (``# groups.toml``), else None."""
+        if self.lang not in _FILE_LANGS:
+            return None
+        m = _FILE_NAME.match(self.text.splitlines()[0]) if self.text.strip() else None
+        return m.group("name") if m else None
+
+    @property
+    def runs_here(self) -> bool:
+        """Whether the guide's own test runs this block (an ``sh`` or ``python`` block, or a named file)."""
+        if "not-run" in self.markers or "run-by" in self.markers:
+            return False
+        return self.lang in ("sh", "python") or self.file_name is not None
+
+    def substitutions(self) -> list[tuple[str, str]]:
+        """The ``small`` marker's ``(old, new)`` pairs."""
+        text = self.markers.get("small", "")
+        pairs = []
+        for part in filter(None, (p.strip() for p in text.split("|"))):
+            old, sep, new = part.partition("=>")
+            assert sep, f"{self.name}: a small marker's part needs OLD => NEW: {part!r}"
+            pairs.append((old.strip(), new.strip()))
+        return pairs
+
+    def as_run(self) -> str:
+        """The text as the test runs it (the ``small`` substitutions made)."""
+        text = self.text
+        for old, new in self.substitutions():
+            assert old in text, f"{self.name}: the small marker's {old!r} is not in the block"
+            text = text.replace(old, new)
+        return text
+
+
+def blocks(page: str) -> list[Block]:
+    """Every fenced block of ``page`` (a path relative to the repo) with the markers just before it."""
+    lines = (REPO / page).read_text().splitlines()
+    out: list[Block] = []
+    i = 0
+    while i < len(lines):
+        m = _FENCE.match(lines[i])
+        if not m or not m.group("lang"):
+            i += 1
+            continue
+        indent, start = m.group("indent"), i
+        end = next(j for j in range(i + 1, len(lines)) if lines[j].strip() == "```")
+        markers: dict[str, str] = {}
+        k = start - 1
+        while k >= 0 and (not lines[k].strip() or _MARKER.match(lines[k])):
+            mm = _MARKER.match(lines[k])
+            if mm:
+                markers[mm.group("kind")] = mm.group("text")
+            k -= 1
+        body = "\n".join(line[len(indent):] if line.startswith(indent) else line for line in lines[start + 1:end])
+        out.append(Block(page, start + 1, m.group("lang"), textwrap.dedent(body) + "\n", markers))
+        i = end + 1
+    return out
+
+
+def run_by(test: str) -> list[Block]:
+    """The blocks of every page marked ``<!-- run-by: TEST -->`` (``tests/FILE.py::NAME``)."""
+    return [b for page in PAGES for b in blocks(page) if b.markers.get("run-by") == test]
+
+
+@dataclass
+class BlockRun:
+    """What one block printed (stdout and stderr together) and how long it took."""
+
+    block: Block
+    output: str
+    seconds: float
+
+
+_TRAP = ('trap \'__s=$?; if [ $__s -ne 0 ]; then echo "@@guide-failed status $__s" >&2; exit 97; fi\' DEBUG\n')
+
+
+def script(runnable: list[Block], work: Path) -> str:
+    """One bash script running ``runnable`` in order, each announced by a ``@@guide-block N`` line; a failing
+    command ends it (``set -e`` and a DEBUG trap, which also catches the first command of ``a && b``)."""
+    parts = ["set -eo pipefail", _TRAP.strip()]
+    for n, b in enumerate(runnable):
+        parts.append(f"echo '@@guide-block {n}'")
+        if b.file_name:
+            (work / b.file_name).write_text(b.text)
+        elif b.lang == "python":
+            name = f".guide-block-{n}.py"
+            (work / name).write_text(b.as_run())
+            parts.append(f"python {name}")
+        else:
+            parts.append(b.as_run())
+    parts.append("echo '@@guide-block end'")
+    return "\n".join(parts) + "\n"
+
+
+def guide_env(work: Path) -> dict[str, str]:
+    """The environment a guide runs in: this interpreter's environment first on the PATH (its ``rigctl`` and
+    ``python``), the rig config and the user's config folder inside the scratch folder (never ``$HOME``'s)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+               RIGCTL_CONFIG=str(work.parent / "rig.json"), XDG_CONFIG_HOME=str(work.parent / "config"),
+               PYTHONUNBUFFERED="1", COLUMNS="120")
+    return env
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True) -> list[BlockRun]:
+    """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
+    block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
+    one of tests/guide_launcher.py (the same command lines, without ~5 s of CPU to start each)."""
+    runnable = [b for b in blocks(page) if b.runs_here]
+    work.mkdir(parents=True, exist_ok=True)
+    path = work.parent / f".{Path(page).stem}.sh"
+    path.write_text(script(runnable, work))
+    t0 = time.monotonic()
+    cpu0 = _children_cpu_s()
+    env = guide_env(work)
+    server = None
+    if preload:
+        sock = work.parent / "rigctl.sock"
+        server = subprocess.Popen([sys.executable, str(Path(__file__).with_name("guide_launcher.py")), "serve",
+                                   str(sock)], cwd=work.parent, env=env, stdout=subprocess.PIPE, text=True)
+        assert server.stdout is not None and server.stdout.readline().strip() == "ready"
+        bin_dir = guide_launcher.write_client(work.parent / "bin", sock).parent
+        env["PATH"] = f"{bin_dir}{os.pathsep}{env['PATH']}"
+    try:
+        return _run_script(page, path, work, env, runnable, t0, cpu0, timeout_s)
+    finally:
+        if server is not None:
+            server.kill()
+            server.wait()
+
+
+def _run_script(page: str, path: Path, work: Path, env: dict[str, str], runnable: list[Block], t0: float,
+                cpu0: float, timeout_s: float) -> list[BlockRun]:
+    proc = subprocess.Popen(["bash", str(path)], cwd=work, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    killer = threading.Timer(timeout_s, proc.kill)  # a block that hangs without printing ends too
+    killer.start()
+    runs: list[BlockRun] = []
+    current: list[str] = []
+    started = t0
+    index = -1
+    assert proc.stdout is not None
+    for line in proc.stdout:  # the output in order, cut at the block markers (timed as they come)
+        if line.startswith("@@guide-block "):
+            if index >= 0:
+                runs.append(BlockRun(runnable[index], "".join(current), time.monotonic() - started))
+            current, started = [], time.monotonic()
+            index = index + 1 if line.split()[1] != "end" else len(runnable)
+            continue
+        current.append(line)
+    rc = proc.wait()
+    killer.cancel()
+    print(f"{page}: {time.monotonic() - t0:.1f} s wall, {_children_cpu_s() - cpu0:.1f} s CPU")
+    if index < len(runnable):
+        failed = runnable[index] if index >= 0 else None
+        where = failed.name if failed else page
+        raise AssertionError(f"{where}: the block failed (exit {rc}):\n{failed.as_run() if failed else ''}\n"
+                             f"--- output ---\n{''.join(current)[-4000:]}")
+    for r in runs:
+        assert "Traceback (most recent call last)" not in r.output, f"{r.block.name} printed a traceback:\n{r.output}"
+    return runs

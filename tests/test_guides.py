@@ -1,0 +1,140 @@
+"""The guides are tests: every fenced ``sh`` block of README.md, docs/my-sensor.md and docs/guides/*.md (and the
+``python`` blocks and named files they build on) runs as written, in order, in one shell per page in an empty folder
+(tests/guides.py), at the small sizes the pages' own markers give; a block that fails or prints a traceback fails
+its page's test. What does not run here is marked in the page and listed below, each with its reason. Each page is
+a unit of its own for the parallel run (tests/conftest.py: SPLIT_BY_PARAM)."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from collections.abc import Callable
+
+import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
+
+from .conftest import require_lsl
+from .guides import PAGES, REPO, BlockRun, blocks, run_page
+
+#: every block not run by its page's test: (page, first words) -> marker; a new one must be added here on purpose
+NOT_RUN = {
+    ("README.md", "bash scripts/test.sh"): "not-run",
+    ("README.md", "rigctl sim"): "not-run",
+    ("README.md", "python3 -m venv"): "run-by",
+    ("docs/guides/first-recording.md", "python3 -m venv"): "run-by",
+    ("docs/guides/labrecorder.md", "pip install 'rigctl[lsl]'"): "not-run",
+    ("docs/guides/labrecorder.md", "import pyxdf"): "not-run",
+    ("docs/guides/labrecorder.md", "rigctl import room.xdf"): "not-run",
+    ("docs/guides/real-rig.md", "sudo apt install"): "not-run",
+    ("docs/guides/real-rig.md", "avrdude -p m328p"): "not-run",
+    ("docs/guides/real-rig.md", "rigctl udev-rules"): "not-run",
+    ("docs/guides/real-rig.md", "rigctl gui --drum-port"): "not-run",
+    ("docs/guides/real-rig.md", "rigctl acquire quick_check --drum-port"): "not-run",
+    ("docs/my-sensor.md", "rigctl sim --replay"): "not-run",
+}
+
+
+def _words(text: str) -> set[str]:
+    return set(re.findall(r"[A-Za-z][\w-]*", text))
+
+
+def test_every_block_runs_or_says_why():
+    """Markers are sound: every block that does not run says why (and is listed in :data:`NOT_RUN`), a ``run-by``
+    names a test that exists, a ``small`` marker's old text is in its block and its new words are in the page; and
+    every page has its test below."""
+    assert set(PAGES) == {page for page, _ in GUIDES.values()}
+    skipped = {}
+    for page in PAGES:
+        prose = re.sub(r"<!--.*?-->", "", (REPO / page).read_text())
+        for b in blocks(page):
+            if b.lang not in ("sh", "python") and b.file_name is None:
+                continue
+            kind = next((k for k in ("not-run", "run-by") if k in b.markers), None)
+            if kind:
+                assert b.markers[kind], f"{b.name}: a {kind} marker needs its reason or test"
+                key = next((k for k in NOT_RUN if k[0] == page and b.text.startswith(k[1])), None)
+                assert key is not None, f"{b.name} is not run: list it in NOT_RUN ({b.text[:40]!r})"
+                skipped[key] = kind
+            if kind == "run-by":
+                path, _, name = b.markers["run-by"].partition("::")
+                assert f"def {name}(" in (REPO / path).read_text(), f"{b.name}: no test {b.markers['run-by']}"
+            for old, new in b.substitutions():
+                assert old in b.text, f"{b.name}: the small marker's {old!r} is not in the block"
+                missing = _words(new) - _words(old) - _words(prose)
+                assert not missing, f"{b.name}: the page does not offer {sorted(missing)} (small marker)"
+    assert skipped == NOT_RUN
+    print("\n".join(f"{kind:8} {page}: {first}" for (page, first), kind in NOT_RUN.items()))
+
+
+# ----------------------------------------------------------------------------------------- what each page shows
+def _first_recording(runs: list[BlockRun], tmp_path, request) -> None:
+    assert "trials complete: 6/6" in runs[0].output
+    assert "Individual Textures" in runs[-1].output
+
+
+def _readme(runs, tmp_path, request) -> None:
+    assert (tmp_path / "work" / "quick.h5").is_file()
+
+
+def _paper(runs, tmp_path, request) -> None:
+    assert (tmp_path / "work" / "fig3.png").is_file()
+    assert "untrained" in runs[-1].output.lower()
+
+
+def _real_rig(runs, tmp_path, request) -> None:
+    assert "mega_drum.hex" in runs[0].output
+
+
+def _my_sensor(runs, tmp_path, request) -> None:
+    section5 = next(r for r in runs if "write_press_slide_set" in r.block.text)
+    out = section5.output
+    assert "file" in out and "period" in out and out.count(".npy") >= 6
+    assert "cork__R5.npy: trial count 8 is an outlier" in out
+    assert "from felt__R0.npy samples" in out
+    # the page's claim: the recording-grouped folds score far below the random ones on these files
+    grouped = section5.block.text.strip().splitlines()[-1]
+    assert grouped.startswith("rigctl analyze") and grouped.endswith("--cv-groups recording")
+    monkeypatch = request.getfixturevalue("monkeypatch")
+    monkeypatch.chdir(tmp_path / "work")
+    random = CliRunner().invoke(main, shlex.split(grouped)[1:-2])
+    assert random.exit_code == 0, random.output
+
+    def textures_row(text):
+        row = next(line for line in text.splitlines() if line.startswith("Individual Textures"))
+        return float(row.split()[4])  # Original, mu (%)
+
+    assert textures_row(out) < textures_row(random.stdout) - 20
+
+
+def _nothing(runs, tmp_path, request) -> None:
+    pass
+
+
+#: test id -> (page, what its run must show)
+GUIDES: dict[str, tuple[str, Callable]] = {
+    "readme": ("README.md", _readme),
+    "firstrecording": ("docs/guides/first-recording.md", _first_recording),
+    "mysensor": ("docs/my-sensor.md", _my_sensor),
+    "paper": ("docs/guides/reproducing-the-paper.md", _paper),
+    "labrecorder": ("docs/guides/labrecorder.md", _nothing),
+    "realrig": ("docs/guides/real-rig.md", _real_rig),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("guide", list(GUIDES))
+def test_guide_runs_as_written(guide, tmp_path, request):
+    page, check = GUIDES[guide]
+    if guide == "paper":  # ../shared/data/fabricslide, as beside a checkout
+        (tmp_path / "shared" / "data").mkdir(parents=True)
+        (tmp_path / "shared" / "data" / "fabricslide").symlink_to(request.getfixturevalue("fabricslide_dir"))
+    if guide == "labrecorder":
+        require_lsl()
+    if guide == "realrig":
+        request.getfixturevalue("build_tools")
+    runs = run_page(page, tmp_path / "work")
+    print("\n".join(f"{r.seconds:6.1f} s  {r.block.name}" for r in runs))
+    check(runs, tmp_path, request)
