@@ -20,7 +20,9 @@ from typing import Any
 import numba
 import numpy as np
 
-import rigctl  # noqa: F401  (its import sends numba's kernel cache to the user's cache folder)
+from rigctl.core.caches import configure_numba_cache
+
+configure_numba_cache()  # numba's kernel cache in the user's cache folder (before the kernels below are defined)
 
 
 def decimated_length(n: int, width_px: int, first_index: int) -> int:

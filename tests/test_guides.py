@@ -120,6 +120,7 @@ GUIDES: dict[str, tuple[str, Callable]] = {
     "paper": ("docs/guides/reproducing-the-paper.md", _paper),
     "labrecorder": ("docs/guides/labrecorder.md", _nothing),
     "realrig": ("docs/guides/real-rig.md", _real_rig),
+    "handheld": ("docs/guides/handheld.md", _nothing),
 }
 
 

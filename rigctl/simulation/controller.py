@@ -98,10 +98,8 @@ class MegaController:
     eeprom_path : path or None
         JSON file emulating the EEPROM (calibration registers); None keeps it in memory.
     factory_calibrated : bool
-        Write the calibration record (the default load-cell scale, which is the model's true one, and lead-screw
-        calibration) at the first start when the EEPROM is erased, as a rig leaves the bench calibrated: the simulated
-        rigs do (no "EEPROM calibration is missing" warning on every simulated run); False (the default here) keeps
-        the erased EEPROM of a freshly flashed board. A corrupted record is never replaced.
+        Write the calibration record (the defaults: the model's true scale) at the first start of an erased EEPROM,
+        as the simulated rigs do; False keeps a freshly flashed board's erased EEPROM (a corrupt record stays).
 
     Attributes
     ----------
