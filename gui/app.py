@@ -450,8 +450,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.events.add(level, source, text)
         self.statusBar().showMessage(text, int(timeout_s * 1000))
 
-    #: sources whose errors have their own banner (faults, links) or are shown by the exception guard
-    OWN_BANNER = ("drum controller", "link", "dead man's switch")
+    #: sources whose errors have their own banner (faults, links, the dead man's switch; a latch opens the fault
+    #: dialog) or are shown by the exception guard
+    OWN_BANNER = ("drum controller", "link", "dead man's switch", "rigctl.acquisition.safety")
 
     def _on_problem(self, level: int, source: str, text: str) -> None:
         """Errors (the library's included) go to the error banner, seen from every tab."""
