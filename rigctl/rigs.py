@@ -37,7 +37,8 @@ from rigctl.core.faults import FaultInjector, FaultSpec, check_faults, parse_fau
 from rigctl.core.interfaces import RIG_KINDS, RigBackend
 from rigctl.core.textures import TextureSet
 
-__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "open_rig", "open_handheld", "make_backend",
+__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
+           "make_backend",
            "replay_source"]
 
 #: the backends :func:`open_rig` knows (the one list: :data:`rigctl.core.interfaces.RIG_KINDS`)
@@ -140,6 +141,18 @@ def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source
 
         return InProcessBackend(config, seed=seed, textures=textures, **options)
     raise RigError(f"unknown rig kind {kind!r}; choose one of {', '.join(KINDS)}")
+
+
+def fault_refusal(kind: str, spec: FaultSpec) -> str | None:
+    """Why a rig of ``kind`` cannot inject ``spec``, known before anything is built (None: it can, or only its
+    backend can tell: the firmware under simavr, checked when it opens). The CLI refuses with it (exit 2)."""
+    if kind == "hardware":
+        return "the hardware rig injects no faults (only the simulated rigs: --sim, --inprocess, --hil)"
+    if kind in ("sim", "replay", "inprocess"):
+        from rigctl.simulation.faults import model_fault_refusal
+
+        return model_fault_refusal(spec)
+    return None
 
 
 def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,

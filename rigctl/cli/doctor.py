@@ -63,8 +63,9 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
             raise click.BadParameter(str(exc), param_hint="--check") from None
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders,
                                   inprocess=inprocess, inject=inject)
-    if inject and source.is_hardware:
-        raise click.UsageError("--inject works on the simulated rigs (--sim, --inprocess, --hil), not on hardware")
+    why = source.injection_refusal()
+    if why:
+        raise click.UsageError(why)
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
                  save=save, on_result=None if as_json else lambda r: click.echo(r.line()))
     if as_json:

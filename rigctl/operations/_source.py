@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.core.faults import FaultSpec
-from rigctl.rigs import KINDS
+from rigctl.rigs import KINDS, fault_refusal
 
 __all__ = ["RigSource", "KINDS", "LEGACY_KINDS"]
 
@@ -102,6 +102,15 @@ class RigSource:
             return "firmware under simavr, with its bootloaders"
         return {"hil": "firmware under simavr", "inprocess": "in-process simulated rig"}.get(self.kind,
                                                                                            "simulated rig")
+
+    def injection_refusal(self) -> str | None:
+        """Why this rig cannot inject one of :attr:`inject` (one line), known before it opens; None when it can (or only
+        the opened backend can tell: the firmware under simavr)."""
+        for spec in self.inject:
+            why = fault_refusal(self.kind, spec)
+            if why:
+                return f"--inject {spec}: not on the {self.kind} rig: {why}"
+        return None
 
     def open_options(self) -> dict[str, Any]:
         """The keyword arguments of :func:`rigctl.rigs.open_rig` this source selects (kind included)."""

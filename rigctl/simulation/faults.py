@@ -22,9 +22,17 @@ from rigctl.core.faults import FaultSpec
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
 
-__all__ = ["ModelFaults"]
+__all__ = ["ModelFaults", "model_fault_refusal"]
 
 log = logging.getLogger(__name__)
+
+
+def model_fault_refusal(spec: FaultSpec) -> str | None:
+    """Why no model rig can inject ``spec`` (None: they can)."""
+    if spec.name == "taxel-ohm":
+        return ("the simulated sensor has no source impedance (the multiplexer's crosstalk is modelled by the "
+                "firmware's ADC under simavr: use --hil)")
+    return None
 
 
 class ModelFaults:
@@ -53,9 +61,9 @@ class ModelFaults:
 
     def fault_refusal(self, spec: FaultSpec) -> str | None:
         """Why this rig cannot model ``spec`` (None when it can)."""
-        if spec.name == "taxel-ohm":
-            return ("the simulated sensor has no source impedance (the multiplexer's crosstalk is modelled by the "
-                    "firmware's ADC under simavr: use --hil)")
+        why = model_fault_refusal(spec)
+        if why:
+            return why
         if spec.name == "host-silence" and self.drum_link is None:
             return "this rig's drum link cannot be cut"
         if spec.name == "taxel-link-drop" and self.taxel_link is None:

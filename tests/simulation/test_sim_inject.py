@@ -112,3 +112,25 @@ def test_inprocess_reset_hx711_rate_and_stall():
         assert model.drum_blocked  # from 2 s to 3 s
         _wait(rig, 1.0)
         assert not model.drum_blocked
+
+
+def test_cli_refuses_what_a_rig_cannot_inject_before_it_opens(tmp_path):
+    """Exit 2 and one line naming why, before anything opens (acquire, doctor); hardware injects nothing."""
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+
+    runner = CliRunner()
+    cases = [
+        (["doctor", "--inprocess", "--inject", "taxel-ohm=47000@0", "--no-save"], "no source impedance"),
+        (["acquire", "quick_check", "--inprocess", "--inject", "taxel-ohm=47000@0", "--out", str(tmp_path / "a.h5")],
+         "no source impedance"),
+        (["acquire", "quick_check", "--drum-port", "/dev/null", "--taxel-port", "/dev/null", "--inject", "estop@1",
+          "--out", str(tmp_path / "b.h5")], "not on hardware"),
+        (["doctor", "--inprocess", "--inject", "estop@x"], "not a number of seconds"),
+    ]
+    for args, words in cases:
+        r = runner.invoke(main, args)
+        assert r.exit_code == 2 and words in r.output, (args, r.output)
+        assert "Traceback" not in r.output
+    assert not (tmp_path / "a.h5").exists() and not (tmp_path / "b.h5").exists()
