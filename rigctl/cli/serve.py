@@ -147,6 +147,9 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
             raise click.ClickException(str(exc)) from None
     source = RigSource(kind, drum_port=drum_port, taxel_port=taxel_port,
                        replay_dir=None if replay is None else str(replay), inject=inject)
+    why = source.injection_refusal()  # known before the rig opens or the port is bound
+    if why:
+        raise UsageProblem(why)
     sock = _bind(host, port)
     try:
         control = open_control(source, seed=seed, host_config_path=config_path)
