@@ -286,7 +286,9 @@ class RigControl:
         self.drum.tare()
 
     def home(self) -> None:
-        """Drive the actuator to its home switch."""
+        """Drive the actuator to its home switch. Refused while a fault is latched
+        (:class:`rigctl.acquisition.safety.LatchedFault`: :meth:`acknowledge` homes the rig)."""
+        self.rig.safety.refuse("HOME")
         self.drum.home()
 
     def clear_fault(self, *, by: str = "operator") -> None:

@@ -308,24 +308,20 @@ class MegaController:
         return self._write(func_code, address, values)
 
     def _watchdog_guards(self) -> bool:
-        """Does the host-silence watchdog guard the rig now (not faulted; the drum turns or the force loop holds)?"""
-        if self.state == DrumState.FAULT:
-            return False
+        """The host watchdog guards the rig now: not faulted, the drum turns or the force loop holds."""
         turning = abs(self.model.drum_speed_mm_s) > 0.05 or self._speed_target > 0
-        return self.state in _ENGAGED or turning  # a host that only monitors never trips it
+        return self.state != DrumState.FAULT and (self.state in _ENGAGED or turning)
 
     def _watchdog_due(self) -> bool:
         return self._watchdog_guards() and time.monotonic() - self._last_request > self.holding[HR.WATCHDOG_MS] / 1000.0
 
     def host_silent_for(self, silent_s: float) -> bool:
-        """The host-silence watchdog on the caller's clock (the in-process rig's simulated time, where the host is
-        silent only when a fault is injected): WATCHDOG latches when the host has been silent for ``silent_s`` s, more
-        than WATCHDOG_MS, while the drum turns or the force loop holds. Returns True if it tripped."""
+        """The host watchdog on the caller's clock (in-process injected silence): WATCHDOG after > WATCHDOG_MS."""
         with self._lock:
-            if not self._watchdog_guards() or silent_s * 1000.0 <= self.holding[HR.WATCHDOG_MS]:
-                return False
-            self._fault(Fault.WATCHDOG)
-            return True
+            if self._watchdog_guards() and silent_s * 1000.0 > self.holding[HR.WATCHDOG_MS]:
+                self._fault(Fault.WATCHDOG)
+                return True
+            return False
 
     def _actuator_position_mm(self) -> float:
         """Where the controller believes the actuator is, mm: its step count over ACTUATOR_STEPS_PER_MM (the
