@@ -265,7 +265,9 @@ def run_cv(
         why = (f"per_texture is {per_texture}" if per_texture < k else f"the smallest texture has {counts.min()}")
         raise ValueError(f"need at least {k} trials per texture for {k}-fold CV ({why})")
     if n_draw < per_texture:
-        _warn(res, f"textures/groups: only {counts.min()} trials for some texture; drawing {n_draw} per texture "
+        short = [f"{t} ({c})" for t, c in zip(textures, counts, strict=True) if c < per_texture]
+        few = ", ".join(short[:6]) + (f" (+{len(short) - 6} more)" if len(short) > 6 else "")
+        _warn(res, f"textures/groups: fewer than {per_texture} trials for {few}; drawing {n_draw} per texture "
               f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "
               f"{per_texture * len(textures)})")
     res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,

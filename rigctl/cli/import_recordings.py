@@ -69,11 +69,15 @@ def _checked_segment(ctx, param, value):
               help="ADC resolution of the stored counts [default: 10].")
 @click.option("--preset", type=click.Choice(["fabricslide"]), default=None,
               help="A known dataset: FILES is its folder (fabricslide = rigctl import-fabricslide's defaults).")
+@click.option("--skip-bad", is_flag=True, default=False,
+              help="Leave out a file that cannot be imported (no trial found, NaN refused, other channels...), name "
+                   "it with its reason (also in the session's import steps) and import the rest.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, mapping, volts_ref, nan, adc_bits, preset, overwrite, as_json, progress):
+                      align, pre_ms, mapping, volts_ref, nan, adc_bits, preset, skip_bad, overwrite, as_json,
+                      progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
     A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
@@ -88,7 +92,7 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
     options = {} if preset else dict(
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, mapping=mapping,
-        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan)
+        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad)
     try:
         with bars(show_bars(progress) and not as_json) as progress:
             report = run(files, out, preset=preset, overwrite=overwrite, progress=progress, **options)

@@ -106,6 +106,9 @@ __all__ = [
 _FIELD_ALIASES = {"texture": "texture", "label": "texture", "speed_mm_s": "speed_mm_s", "speed": "speed_mm_s",
                   "force_g": "force_g", "force": "force_g", "repeat": "repeat", "rep": "repeat"}
 _NUMERIC = {"speed_mm_s", "force_g", "repeat"}
+#: a file imported whole (no ``--segment``) this long or longer, s, is named with the hint to segment it: a trial of
+#: the rigs rigctl knows lasts seconds (FabricSlide's longest, 10 mm/s over ~475 mm: 47.5 s)
+LONG_TRIAL_S = 60.0
 
 
 @dataclass
@@ -434,6 +437,8 @@ class _Import:
     steps: dict[str, Any] = field(default_factory=lambda: {"read": [], "resampling": None, "value_scale": None,
                                                            "segmentation": None})
     rows: list[dict[str, Any]] = field(default_factory=list)
+    #: lines for the user beyond the outlier table's: refused files (skip_bad), long unsegmented files
+    notes: list[str] = field(default_factory=list)
     out_rate: float | None = None
     n_ch: int | None = None
     n_clipped: int = 0
@@ -495,6 +500,9 @@ class _Import:
             cut = segment(counts, rate, spec)
         except RecordingImportError as exc:
             raise RecordingImportError(f"{path}: {exc}") from None
+        if spec is None and counts.shape[0] >= LONG_TRIAL_S * rate > 0:
+            self.notes.append(f"{path.name}: one trial of {counts.shape[0] / rate:.0f} s: a continuous recording? "
+                              "try --segment cycles (press-and-slide cycles) or --segment threshold")
         if spec is not None:
             self.steps["segmentation"] = spec.record()
             name = path.name if n_blocks == 1 else f"{path.name}[{bi}]"
@@ -514,6 +522,20 @@ class _Import:
                 if cut.period_s is not None:
                     prov["cycle_period_s"] = cut.period_s
             self.trials.append(ImportedTrial(np.ascontiguousarray(counts[a:b]), lab, {**attrs, **prov}))
+
+    def add_or_refuse(self, path: Path, rx: re.Pattern[str] | None) -> None:
+        """:meth:`add_file`, or with a file refused (RecordingImportError), nothing of it kept: the file and the
+        reason recorded in the session's import steps (``refused``) and named in :attr:`notes` (``--skip-bad``)."""
+        kept = (len(self.trials), len(self.rows), len(self.notes), self.n_ch, self.out_rate)
+        try:
+            self.add_file(path, rx)
+        except RecordingImportError as exc:
+            del self.trials[kept[0]:], self.rows[kept[1]:], self.notes[kept[2]:]
+            if not self.trials:
+                self.n_ch, self.out_rate = kept[3], kept[4]
+            reason = str(exc).removeprefix(f"{path}: ")
+            self.steps.setdefault("refused", []).append({"file": str(path), "reason": reason})
+            self.notes.append(f"refused {path.name}: {reason}")
 
     def layout(self) -> SensorLayout:
         """The session's sensor layout: an NWB file's own (unless the options name one), else from the options."""
@@ -543,7 +565,8 @@ class _Import:
 def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
                       mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None,
                       options: ImportOptions | None = None, overwrite: bool = False,
-                      progress: ProgressCallback | None = None, **given: Any) -> dict[str, Any]:
+                      progress: ProgressCallback | None = None, skip_bad: bool = False,
+                      **given: Any) -> dict[str, Any]:
     """Import recordings (CSV, NPY/NPZ, MAT, NWB) into a session file; the steps are in the module docstring.
 
     Parameters
@@ -560,12 +583,16 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
         "interpolate").
     progress : callback receiving :class:`rigctl.core.progress.ProgressEvent` s: stage ``"reading recordings"``
         (done/total = files), then ``"writing trials"`` (done/total = trials).
+    skip_bad : a file refused (RecordingImportError: no trial found, NaN refused, wrong channel count, ...) is left
+        out, named in ``warnings`` and recorded with its reason in the session's import steps (``refused``), and
+        the import goes on (``rigctl import --skip-bad``); refused if every file is.
 
     Returns
     -------
     dict: ``path``, ``n_trials``, ``samples``, ``rate_hz``, ``n_channels``, ``textures``, ``steps``,
     ``segments`` (the per-file table's rows: file, period_s, trials, rejected, first_start_s; empty without
-    ``--segment``) and ``warnings`` (outlier files, :func:`rigctl.storage.segmentation.outlier_warnings`).
+    ``--segment``), ``warnings`` (outlier files, :func:`rigctl.storage.segmentation.outlier_warnings`; refused files;
+    a file imported whole as one trial of a minute or more) and ``refused`` (``{file, reason}`` per refused file).
 
     Raises
     ------
@@ -582,13 +609,19 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
     run = _Import(opts)
     bar = Stage(progress, "reading recordings", len(paths), unit="file")
     for path in paths:
-        run.add_file(path, rx)
+        if skip_bad:
+            run.add_or_refuse(path, rx)
+        else:
+            run.add_file(path, rx)
         bar.advance(1)
+    if not run.trials:
+        raise RecordingImportError(f"every file was refused: {'; '.join(run.notes)}")
     layout = run.layout()
     textures = TextureSet.from_dict(dict(opts.texture_set)) if opts.texture_set else None
     summary = write_imported_session(out, run.trials, layout=layout, textures=textures, kind="imported",
                                      attrs=run.session_attrs(),
                                      rig_config={"source": "rigctl import", "sensor": layout.to_dict()},
                                      protocol_name="import", overwrite=overwrite, progress=progress)
-    summary.update(steps=run.steps, segments=run.rows, warnings=outlier_warnings(run.rows))
+    summary.update(steps=run.steps, segments=run.rows, warnings=outlier_warnings(run.rows) + run.notes,
+                   refused=run.steps.get("refused", []))
     return summary

@@ -426,8 +426,8 @@ def segment_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 
 def outlier_warnings(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """One line per file whose period or trial count is under half or over twice the import's median (three
-    files or more)."""
+    """One line per file whose period or trial count is at or under half, or at or over twice, the import's median
+    (three files or more: a period exactly twice the median is a cycle counted as two)."""
     out: list[str] = []
     if len(rows) < 3:
         return out
@@ -438,7 +438,7 @@ def outlier_warnings(rows: Sequence[Mapping[str, Any]]) -> list[str]:
         med = float(np.median(values))
         for r in rows:
             v = r.get(key)
-            if v is not None and med > 0 and not (med / OUTLIER_RATIO <= float(v) <= med * OUTLIER_RATIO):
+            if v is not None and med > 0 and not (med / OUTLIER_RATIO < float(v) < med * OUTLIER_RATIO):
                 shown = f"{float(v):.2f} s" if key == "period_s" else str(v)
                 median = f"{med:.2f} s" if key == "period_s" else f"{med:g}"
                 out.append(f"{r['file']}: {what} {shown} is an outlier (the import's median is {median}); check "

@@ -73,7 +73,7 @@ def test_planted_speed_confound_loses_on_untrained_speed(small):
 
 
 def test_cv_tasks_scale_down_and_shapes(small):
-    with pytest.warns(UserWarning, match="drawing 90 per texture"):
+    with pytest.warns(UserWarning, match=r"fewer than 500 trials for A \(90\), B \(90\).*\(\+2 more\); drawing 90 per texture"):
         res = run_cv(small, ("textures", "groups"), n_pcs=12, repeats=2, per_texture=500)
     assert res.counts["cv"]["per_texture"] == 90
     for task, n_cls in (("textures", 8), ("groups", 3)):  # A smooth, B-F circular, G-H rectangular

@@ -6,6 +6,7 @@ table printed, the outlier file named; the threshold method per file level; a fi
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -147,3 +148,45 @@ def test_a_file_without_cycles_is_named(tmp_path):
     r = run_import(p, "--rate", 100, "--label-pattern", PATTERN, "--segment", "cycles", "--out", tmp_path / "s.h5")
     assert r.exit_code == 1 and "Traceback" not in r.output and "flat__R0.npy" in r.output
     assert not (tmp_path / "s.h5").exists()
+
+
+def test_a_period_at_twice_the_median_is_flagged():
+    """The outlier rule fires at 2x the median and at half of it, not only beyond (issue 38: a file cut at exactly
+    twice its period, one trial per two cycles, passed silently); files within the band are not named."""
+    from rigctl.storage.segmentation import outlier_warnings
+
+    rows = [{"file": f"f{i}.npy", "period_s": p, "trials": 40} for i, p in enumerate((5.0, 5.0, 5.0, 10.0, 2.5, 9.9))]
+    named = [w.split(":")[0] for w in outlier_warnings(rows)]
+    assert named == ["f3.npy", "f4.npy"]
+
+
+def test_skip_bad_names_every_refused_file_and_imports_the_rest(tmp_path):
+    """``--skip-bad``: a flat file (no cycles) and a file with NaN (refused without --nan) are left out, each named
+    with its reason on stderr and in the session's import steps; the good files' trials are imported. Without the
+    option the first bad file stops the import (issue 38). A long file imported whole gets the hint to segment it."""
+    truth = write_press_slide_set(tmp_path, DEFAULT_SET_SHORT, nan=False)
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "flat__R7.npy", 500 + rng.normal(0, 2, (3000, 9)))
+    nan = np.load(truth[0].path)
+    nan[100:110] = np.nan
+    np.save(tmp_path / "felt__R8.npy", nan)
+    files = sorted(tmp_path.glob("*.npy"))
+    args = [*files, "--rate", 100, "--label-pattern", PATTERN, "--segment", "cycles", "--out"]
+    stopped = run_import(*args, tmp_path / "stopped.h5")
+    assert stopped.exit_code == 1 and not (tmp_path / "stopped.h5").exists()
+    r = run_import(*args, tmp_path / "s.h5", "--skip-bad")
+    assert r.exit_code == 0, r.output
+    refused = [line for line in r.stderr.splitlines() if line.startswith("warning: refused ")]
+    assert [line.split()[2].rstrip(":") for line in refused] == ["felt__R8.npy", "flat__R7.npy"], r.stderr
+    assert "NaN" in refused[0] and "no presses above the noise" in refused[1]
+    with open_session(tmp_path / "s.h5") as s:
+        steps = json.loads(s.attrs["import_steps"])
+        assert [Path(x["file"]).name for x in steps["refused"]] == ["felt__R8.npy", "flat__R7.npy"]
+        sources = {s.trial_attrs(i)["source_file"] for i in s.completed_ids()}
+    assert sources == {t.path.name for t in truth}
+    whole = run_import(truth[0].path, "--rate", 100, "--texture", "felt", "--out", tmp_path / "whole.h5")
+    assert whole.exit_code == 0 and "felt__R0.npy: one trial of" in whole.stderr and "--segment cycles" in whole.stderr
+
+
+#: three short clean files for the skip-bad test (texture, period_s, level, cycles, alternating)
+DEFAULT_SET_SHORT = (("felt", 3.8, 40.0, 17, False), ("silk", 4.5, 200.0, 14, False), ("cork", 5.2, 80.0, 12, False))
