@@ -109,6 +109,10 @@ class SegmentSpec:
         return {"method": self.method, **{k: v for k, v in asdict(self).items() if k in keep and v is not None}}
 
 
+#: a trial overlapping the next one by more than this share of its length is named (:meth:`Segmentation.overlaps`)
+OVERLAP_FRACTION = 0.2
+
+
 @dataclass
 class Segmentation:
     """One recording cut into trials.
@@ -128,11 +132,20 @@ class Segmentation:
     onsets: list[int] = field(default_factory=list)
     candidates: list[dict[str, float]] = field(default_factory=list)
 
+    def overlaps(self) -> tuple[int, int]:
+        """``(trials, samples)``: how many trials run into the next one's start by more than
+        :data:`OVERLAP_FRACTION` of their length, and the samples they share (a period longer than the spacing of
+        the presses makes trials that hold the same samples twice; a few samples of a press's jitter do not count)."""
+        shared = [b - a2 for (a, b), (a2, _) in zip(self.bounds, self.bounds[1:]) if b - a2 > OVERLAP_FRACTION * (b - a)]
+        return len(shared), int(sum(shared))
+
     def row(self, file: str, rate_hz: float) -> dict[str, Any]:
-        """The per-file table's row: file, period_s, trials, rejected, first_onset_s."""
+        """The per-file table's row: file, period_s, trials, rejected, first_onset_s, overlapping (trials that run
+        into the next one) and shared_samples."""
         first = self.bounds[0][0] / rate_hz if self.bounds else None
+        overlapping, shared = self.overlaps()
         return {"file": file, "period_s": self.period_s, "trials": len(self.bounds), "rejected": self.rejected,
-                "first_start_s": first}
+                "first_start_s": first, "overlapping": overlapping, "shared_samples": shared}
 
 
 def _number(text: str, spec: str) -> float:
@@ -426,9 +439,12 @@ def segment_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 
 def outlier_warnings(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """One line per file whose period or trial count is at or under half, or at or over twice, the import's median
-    (three files or more: a period exactly twice the median is a cycle counted as two)."""
-    out: list[str] = []
+    """One line per file whose trials overlap (any number of files), and per file whose period or trial count is
+    at or under half, or at or over twice, the import's median (three files or more: a period exactly twice the
+    median is a cycle counted as two)."""
+    out = [f"{r['file']}: {r['overlapping']} trials run into the next one ({r['shared_samples']} samples in two "
+           "trials): its period is likely wrong; check its trials (rigctl info) or give its period with "
+           "cycles:N:MIN_PERIOD_S:MAX_PERIOD_S" for r in rows if r.get("overlapping")]
     if len(rows) < 3:
         return out
     for key, what in (("period_s", "period"), ("trials", "trial count")):

@@ -190,3 +190,17 @@ def test_skip_bad_names_every_refused_file_and_imports_the_rest(tmp_path):
 
 #: three short clean files for the skip-bad test (texture, period_s, level, cycles, alternating)
 DEFAULT_SET_SHORT = (("felt", 3.8, 40.0, 17, False), ("silk", 4.5, 200.0, 14, False), ("cork", 5.2, 80.0, 12, False))
+
+
+def test_overlapping_trials_are_named_per_file():
+    """Trials that share samples (a period longer than the press spacing) are counted per file and named."""
+    from rigctl.storage.segmentation import Segmentation, outlier_warnings
+
+    cut = Segmentation(bounds=[(0, 600), (400, 1000), (800, 1400), (1500, 1900)], cycle_index=[0, 1, 2, 3])
+    assert cut.overlaps() == (2, 400)
+    row = cut.row("wood__R3.npy", 100.0)
+    assert (row["overlapping"], row["shared_samples"]) == (2, 400)
+    (line,) = outlier_warnings([row])
+    assert line.startswith("wood__R3.npy: 2 trials run into the next one (400 samples in two trials)")
+    clean = Segmentation(bounds=[(0, 400), (400, 800)], cycle_index=[0, 1]).row("ok.npy", 100.0)
+    assert clean["overlapping"] == 0 and outlier_warnings([clean]) == []
