@@ -515,8 +515,8 @@ class Rig:
         """Latch the rig (:attr:`safety`) when the status ``st`` shows a latched fault, or a reset of the controller
         since this rig homed it (BOOT_COUNT changed, or NOT_HOMED unasked). Nothing is cleared."""
         if st.state == DrumState.FAULT:
-            self.safety.trip(latch_from_faults(int(st.faults), f"{what}: the controller latched "
-                                                               f"{fault_advice(int(st.faults)) or st.faults}"))
+            latch = latch_from_faults(int(st.faults))
+            self.safety.trip(Latch(latch.cause, f"{what}: {latch.detail}", latch.faults))
             return
         boot = getattr(st, "boot_count", None)
         if boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count:
