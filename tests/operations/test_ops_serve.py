@@ -228,7 +228,9 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
             proc.wait(60)
     print(f"Ctrl-C with an open event feed: 'stopped' said after {stopped_s:.2f} s, exited after {exit_s:.2f} s")
     assert "stopped in" in said and "event stream(s) closed" in said and "(0 event" not in said, said
-    assert stopped_s < 2.0 and exit_s < 5.0  # the process's own teardown (numba, h5py) adds ~1 s on a busy machine
+    # measured 0.1-0.2 s to the line and 0.4-0.8 s to the exit at a load of 12-13 on 2 cores (once 3.0 s: the
+    # interpreter's own teardown of numba and FastAPI is most of it); the exit bound leaves room for a busier machine
+    assert stopped_s < 2.0 and exit_s < 5.0
     assert not (tmp_path / "state" / "rigctl" / "queue.token").exists()  # its token file removed
     assert run["state"] == "done" and run["starts"] == 2 and run["trials_done"] == 16, run
     after, _ = _trials(tmp_path / "s.h5")
