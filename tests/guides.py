@@ -32,7 +32,7 @@ from . import guide_launcher
 REPO = Path(__file__).resolve().parents[1]
 
 #: the pages whose blocks run
-PAGES = ("README.md", "docs/my-sensor.md", *sorted(p.relative_to(REPO).as_posix()
+PAGES = ("README.md", "docs/my-sensor.md", "docs/config.md", *sorted(p.relative_to(REPO).as_posix()
                                                    for p in (REPO / "docs" / "guides").glob("*.md")))
 
 _FENCE = re.compile(r"^(?P<indent>[ \t]*)```(?P<lang>[\w-]*)[ \t]*$")
@@ -167,7 +167,8 @@ def _children_cpu_s() -> float:
 def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True) -> list[BlockRun]:
     """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
     block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
-    one of tests/guide_launcher.py (the same command lines, without ~5 s of CPU to start each)."""
+    one of tests/guide_launcher.py (the same command lines, without ~5 s of CPU to start each) when the page runs
+    more than two ``rigctl`` commands."""
     runnable = [b for b in blocks(page) if b.runs_here]
     work.mkdir(parents=True, exist_ok=True)
     path = work.parent / f".{Path(page).stem}.sh"
@@ -176,7 +177,7 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
     cpu0 = _children_cpu_s()
     env = guide_env(work)
     server = None
-    if preload:
+    if preload and sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines()) > 2:
         sock = work.parent / "rigctl.sock"
         server = subprocess.Popen([sys.executable, str(Path(__file__).with_name("guide_launcher.py")), "serve",
                                    str(sock)], cwd=work.parent, env=env, stdout=subprocess.PIPE, text=True)

@@ -121,7 +121,21 @@ GUIDES: dict[str, tuple[str, Callable]] = {
     "labrecorder": ("docs/guides/labrecorder.md", _nothing),
     "realrig": ("docs/guides/real-rig.md", _real_rig),
     "handheld": ("docs/guides/handheld.md", _nothing),
+    "config": ("docs/config.md", _nothing),
 }
+
+
+def test_the_config_reference_lists_every_rig_config_key():
+    """docs/config.md's table names every key of the rig config's schema, and nothing else."""
+    from rigctl.acquisition.rigconfig import SCHEMA
+
+    text = (REPO / "docs" / "config.md").read_text()
+    table = text.split("## The rig config", 1)[1].split("\n## ", 1)[0]
+    named = {m for row in table.splitlines() if row.startswith("| `")
+             for m in re.findall(r"`(\w+(?:\.\w+)?)`", row.split("|")[1])}
+    schema = {f"{block}.{key}" for block, keys in SCHEMA.items() if block != "taxel_normalisation_previous"
+              for key in keys} | {"taxel_normalisation_previous"}
+    assert named == schema
 
 
 @pytest.mark.slow
