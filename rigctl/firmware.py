@@ -96,6 +96,21 @@ def source_digest(src: Path | str | None = None) -> str:
     return h.hexdigest()
 
 
+def build_mismatch(builds: dict[str, str | None], src: Path | str | None = None) -> str | None:
+    """One line naming each board whose firmware build (``builds``: board "mega"/"uno" -> the build id it reports,
+    None for none) differs from the installed sources' build id, with the flash command; None when all agree. A board
+    reporting no id (a plain make, the Arduino IDE, a simulated board) is not a mismatch: it cannot be compared.
+    Errors of :func:`source_digest`."""
+    digest = source_digest(src)
+    wrong = {b: str(v).lower() for b, v in builds.items() if v is not None and not digest.startswith(str(v).lower())}
+    if not wrong:
+        return None
+    runs = "; ".join(f"the {board.capitalize()} runs firmware build {v}" for board, v in wrong.items())
+    flash = " and ".join(f"rigctl firmware --flash PORT --board {board}" for board in wrong)
+    return (f"{runs}, the installed sources are build {digest[:BUILD_ID_DIGITS]}: flash them ({flash}), or pass "
+            "--allow-firmware-mismatch to run anyway")
+
+
 def build_id(src: Path | str | None = None) -> str:
     """The build id :func:`build` gives the firmware built from ``src`` (default :func:`sources`): the first
     :data:`BUILD_ID_DIGITS` hex digits of :func:`source_digest` (its errors)."""

@@ -157,7 +157,7 @@ def fault_refusal(kind: str, spec: FaultSpec) -> str | None:
 
 def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
              host_config_path: str | os.PathLike | None = None, home: bool = True,
-             inject: Sequence[FaultSpec | str] = (), **options: Any) -> Rig:
+             inject: Sequence[FaultSpec | str] = (), allow_firmware_mismatch: bool = False, **options: Any) -> Rig:
     """Open a rig of ``kind`` ("sim" | "hil" | "hardware" | "replay" | "inprocess" | "handheld") and start its
     taxel stream.
 
@@ -169,6 +169,8 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     home : HOME the actuator after opening (clearing a latched fault first); False leaves a fault latched.
     inject : faults to inject (:mod:`rigctl.core.faults`: :class:`FaultSpec` s or ``"estop@3+2"`` texts), timed on
         the rig's clock from the moment it is open; every one is checked against the backend before it starts.
+    allow_firmware_mismatch : open boards whose firmware build differs from the installed sources' (a warning);
+        default: :class:`rigctl.acquisition.rig.FirmwareMismatch` (a RigError) naming both builds.
     **options : the backend's options: ``config``, ``seed``, ``source`` (replay), ``drum_port``/``taxel_port``
         (hardware), ``textures`` (the rig's default texture set), and backend-specific keywords.
 
@@ -191,7 +193,7 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     backend = make_backend(kind, prompt=prompt, **options)
     check_faults(backend, faults, kind=kind)
     rig = Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
-                      else str(host_config_path), home=home)
+                      else str(host_config_path), home=home, allow_firmware_mismatch=allow_firmware_mismatch)
     if faults and isinstance(backend, FaultInjector):
         backend.inject_faults(faults)
     return rig

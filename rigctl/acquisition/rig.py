@@ -115,6 +115,10 @@ class RigError(RuntimeError):
     """The rig could not be opened or did not do what a trial needs (with the reason in words)."""
 
 
+class FirmwareMismatch(RigError):
+    """A board runs another firmware build than the installed sources' (one line naming both and the flash command)."""
+
+
 class TrialAborted(RigError):
     """A trial was stopped on request (stop event / Ctrl-C); the rig has been stopped, nothing was recorded."""
 
@@ -220,7 +224,8 @@ class Rig:
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
     def connect(cls, backend: RigBackend, *, prompt: Callable[[str], Any] | None = None,
-                host_config_path: str | None = None, home: bool = True) -> "Rig":
+                host_config_path: str | None = None, home: bool = True,
+                allow_firmware_mismatch: bool = False) -> "Rig":
         """Start ``backend``, open its drum controller and taxel source, start streaming, home the actuator.
 
         Parameters
@@ -231,6 +236,8 @@ class Rig:
             :func:`rigctl.acquisition.rigconfig.default_config_path`.
         home : HOME the actuator after opening (clears a latched fault first, e.g. the watchdog of a killed run).
             False: neither; a latched fault stays latched (logged) for the caller to show and the operator to clear.
+        allow_firmware_mismatch : run boards whose firmware build differs from the installed sources' (logged);
+            False (default): :class:`FirmwareMismatch` naming both builds and the flash command.
 
         Raises
         ------
@@ -264,6 +271,7 @@ class Rig:
         rig = cls(backend, drum, stream, prompt=prompt, host_config=host_config,
                   host_config_path=str(config_path(host_config_path)))
         try:
+            rig._check_firmware_build(allow_firmware_mismatch)
             rig._prepare(home=home)
         except BaseException as exc:
             rig.close()
@@ -271,6 +279,23 @@ class Rig:
                 raise RigOpenError(rig.mode, exc, stop_acknowledged=bool(rig.stop_acknowledged)) from exc
             raise
         return rig
+
+    def _check_firmware_build(self, allow: bool) -> None:
+        """Each board's build id against the installed sources' (:func:`rigctl.firmware.build_mismatch`): a mismatch
+        raises :class:`FirmwareMismatch` unless ``allow`` (then a warning)."""
+        from rigctl import firmware
+
+        banner = getattr(self.stream, "banner", None) or {}
+        builds = {"mega": getattr(self.drum.read_status(), "build_id", None), "uno": banner.get("build")}
+        try:
+            line = firmware.build_mismatch(builds)
+        except OSError as exc:  # no firmware sources installed: nothing to compare with
+            log.warning("cannot compare the boards' firmware builds with the installed sources: %s", exc)
+            return
+        if line and allow:
+            self._warn(line.split(", or pass")[0] + " (allowed: --allow-firmware-mismatch)")
+        elif line:
+            raise FirmwareMismatch(line)
 
     def _prepare(self, *, home: bool) -> None:
         self._apply_force_loop()

@@ -19,6 +19,7 @@ from rigctl.cli.progress import bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED
 from rigctl.cli.rig_flags import (
+    allow_firmware_mismatch_option,
     check_one_rig,
     drum_port_option,
     hil_bootloaders_option,
@@ -276,10 +277,11 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
 @lsl_wait_option
 @inject_option
+@allow_firmware_mismatch_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, classify,
             calibration, classify_variant, pcs, resume, overwrite, seed, on_failure, config_path, plates, lsl, lsl_wait_s,
-            inject, quiet):
+            inject, allow_firmware_mismatch, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -348,7 +350,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                                   bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
-                                  motion=motion)
+                                  motion=motion, allow_firmware_mismatch=allow_firmware_mismatch)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly

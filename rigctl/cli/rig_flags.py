@@ -9,7 +9,8 @@ import click
 from rigctl.cli.ranges import LSL_WAIT_S
 from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
 
-__all__ = ["hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
+__all__ = ["allow_firmware_mismatch_option",
+           "hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
            "lsl_wait_option", "check_one_rig"]
 
 hil_bootloaders_option = click.option(
@@ -51,6 +52,13 @@ inject_option = click.option(
          "(no +D: to the end), on the rig's own clock (simulated time with --inprocess). FAULT is one of "
          + ", ".join(("taxel-ohm=N" if name == "taxel-ohm" else name) for name in FAULTS)
          + "; docs/safety.md says what the rig does with each and what clears it.")
+
+
+#: ``--allow-firmware-mismatch``: open boards whose firmware build differs from the installed sources'
+allow_firmware_mismatch_option = click.option(
+    "--allow-firmware-mismatch", is_flag=True, default=False,
+    help="Run even if a board's firmware build differs from the installed sources' (checked at every open; without "
+         "it the run is refused with one line naming both builds and `rigctl firmware --flash`).")
 
 
 def check_one_rig(*, sim: bool, hil: bool, inprocess: bool, drum_port: str | None) -> None:

@@ -4,6 +4,7 @@ are :mod:`rigctl.acquisition.doctor`'s."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 from collections.abc import Callable, Iterable
@@ -52,7 +53,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
     if control is not None:
         ctx = _doctor.DoctorContext(control.mode, rig=control.rig, config_path=host_config_path, rest_s=rest_s)
     else:
-        source = source or RigSource()
+        # the doctor reports a firmware build mismatch as its firmware-build check, so it opens the boards anyway
+        source = dataclasses.replace(source or RigSource(), allow_firmware_mismatch=True)
 
         def opener():
             return open_control(source, home=Home.UNLESS_FAULTED, config=config, seed=seed,

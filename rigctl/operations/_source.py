@@ -53,6 +53,7 @@ class RigSource:
     bootloaders: bool = False
     inject: tuple[FaultSpec, ...] = ()
     motion: str | None = None
+    allow_firmware_mismatch: bool = False
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -67,20 +68,22 @@ class RigSource:
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
                    replay: str | Path | None = None, bootloaders: bool = False,
                    inprocess: bool = False, inject: tuple[FaultSpec, ...] = (), handheld: bool = False,
-                   motion: str | None = None) -> "RigSource":
+                   motion: str | None = None, allow_firmware_mismatch: bool = False) -> "RigSource":
         """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
         ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", ``handheld`` or a
         ``motion`` -> "handheld", else "sim" (the flags' consistency is the CLI's to check)."""
         inject = tuple(inject)
         if handheld or motion is not None:
             return cls("handheld", motion=motion or "sim", inject=inject)
+        allow = allow_firmware_mismatch
         if drum_port is not None or taxel_port is not None:
-            return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject)
+            return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject,
+                       allow_firmware_mismatch=allow)
         if replay is not None:
-            return cls("replay", replay_dir=str(replay), inject=inject)
+            return cls("replay", replay_dir=str(replay), inject=inject, allow_firmware_mismatch=allow)
         if hil or bootloaders:
-            return cls("hil", bootloaders=bootloaders, inject=inject)
-        return cls("inprocess" if inprocess else "sim", inject=inject)
+            return cls("hil", bootloaders=bootloaders, inject=inject, allow_firmware_mismatch=allow)
+        return cls("inprocess" if inprocess else "sim", inject=inject, allow_firmware_mismatch=allow)
 
     @property
     def is_hardware(self) -> bool:
@@ -115,6 +118,8 @@ class RigSource:
     def open_options(self) -> dict[str, Any]:
         """The keyword arguments of :func:`rigctl.rigs.open_rig` this source selects (kind included)."""
         extra: dict[str, Any] = {"inject": self.inject} if self.inject else {}
+        if self.allow_firmware_mismatch and self.kind != "handheld":
+            extra["allow_firmware_mismatch"] = True
         if self.kind == "hardware":
             return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port, **extra}
         if self.kind == "replay":

@@ -482,3 +482,30 @@ def test_serial_numbers_on_hardware_ports(monkeypatch, tmp_path):
                                                            (taxel, "Arduino Mega 2560 R3", "mega", "B2")))
     r = run()
     assert r.status == "fail" and "swap" in r.fix
+
+
+def test_a_firmware_build_mismatch_is_refused_at_open_unless_allowed(monkeypatch, tmp_path):
+    """Issue 39 item 6: every open compares the boards' builds with the installed sources: a Mega flashed from other
+    sources is refused with one line naming both builds and the flash command; --allow-firmware-mismatch opens it
+    with a warning; the doctor opens it anyway (its firmware-build check reports it)."""
+    from click.testing import CliRunner
+
+    from rigctl.acquisition.rig import FirmwareMismatch
+    from rigctl.cli import main
+    from rigctl.simulation import controller
+
+    own = firmware.build_id()
+    other = "0123456789ab" if own != "0123456789ab" else "ba9876543210"
+    monkeypatch.setattr(controller, "installed_build_id", lambda: other)
+    with pytest.raises(FirmwareMismatch) as exc:
+        open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json")
+    line = str(exc.value)
+    assert "\n" not in line and other in line and own in line and "rigctl firmware --flash" in line
+    with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json", allow_firmware_mismatch=True) as rig:
+        assert any(other in w for w in rig.warnings)
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    args = ["acquire", "quick_check", "--inprocess", "--out", str(tmp_path / "a.h5"), "--quiet"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code != 0 and "rigctl firmware --flash" in result.output and "Traceback" not in result.output
+    report, by = _run_service(tmp_path, None, ["firmware-build"])
+    assert by["firmware-build"].status == "fail" and other in by["firmware-build"].summary
