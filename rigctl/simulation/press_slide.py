@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["RATE_HZ", "N_CHANNELS", "PressSlideTruth", "press_slide_recording", "write_press_slide_set",
-           "DEFAULT_SET"]
+           "DEFAULT_SET", "LabFile", "lab_set", "write_lab_set"]
 
 RATE_HZ = 100.0
 N_CHANNELS = 9
@@ -130,4 +130,54 @@ def write_press_slide_set(folder: str | os.PathLike[str], files: tuple[tuple[str
             raise FileExistsError(f"{path} exists")
         np.save(path, x)
         out.append(PressSlideTruth(path, texture, period_s, level, onsets, x.shape[0], int(np.isnan(x).sum())))
+    return out
+
+
+@dataclass(frozen=True)
+class LabFile:
+    """One file of :func:`lab_set`: its texture, period (s), press level (counts), cycles, and what is wrong with it:
+    ``"nan"`` (NaN runs: refused unless ``--nan`` says what to do), ``"flat"`` (no presses: refused),
+    ``"doubled"`` (a period twice the others': its row must be flagged), or ``""``."""
+
+    texture: str
+    period_s: float
+    level_counts: float
+    n_cycles: int
+    fault: str = ""
+
+
+def lab_set(n_files: int = 38, *, seed: int = 0) -> list[LabFile]:
+    """A lab's 38 continuous recordings (issue 38): 6 textures, 9 channels at 100 Hz, 40-42 press cycles each at
+    periods 4.2-5.8 s and press levels 40-200 counts; 4 files with NaN runs, 2 flat (the sensor unplugged), 2 at twice
+    the usual period (a slower operator: 10.4 and 11.2 s, beyond twice the set's median), the rest clean."""
+    rng = np.random.default_rng(seed)
+    textures = ("felt", "silk", "cork", "wool", "denim", "linen")
+    faults = ["nan"] * 4 + ["flat"] * 2 + ["doubled"] * 2
+    faults += [""] * (n_files - len(faults))
+    order = rng.permutation(n_files)
+    out = []
+    for i in range(n_files):
+        fault = faults[order[i]]
+        period = float(rng.uniform(4.2, 5.8)) if fault != "doubled" else (10.4, 11.2)[i % 2]
+        out.append(LabFile(textures[i % len(textures)], round(period, 2), float(rng.uniform(40, 200)),
+                           int(rng.integers(40, 43)), fault))
+    return out
+
+
+def write_lab_set(folder: str | os.PathLike[str], files: list[LabFile] | None = None, *, seed: int = 0
+                  ) -> list[tuple[Path, LabFile]]:
+    """Write :func:`lab_set` (or ``files``) as ``TEXTURE__R<i>.npy`` in ``folder``; returns each path with its
+    truth. A flat file is rest and noise only; the others are :func:`press_slide_recording` (NaN only where the
+    fault says so)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i, f in enumerate(files if files is not None else lab_set(seed=seed)):
+        x, _ = press_slide_recording(f.period_s, f.level_counts, f.n_cycles, texture_hz=TEXTURE_HZ.get(f.texture, 12.0),
+                                     seed=seed + 100 + i, nan=f.fault == "nan")
+        if f.fault == "flat":
+            x = np.rint(np.median(x, axis=0) + np.random.default_rng(seed + i).normal(0, 1.5, x.shape))
+        path = folder / f"{f.texture}__R{i}.npy"
+        np.save(path, x)
+        out.append((path, f))
     return out

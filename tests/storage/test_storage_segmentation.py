@@ -204,3 +204,29 @@ def test_overlapping_trials_are_named_per_file():
     assert line.startswith("wood__R3.npy: 2 trials run into the next one (400 samples in two trials)")
     clean = Segmentation(bounds=[(0, 400), (400, 800)], cycle_index=[0, 1]).row("ok.npy", 100.0)
     assert clean["overlapping"] == 0 and outlier_warnings([clean]) == []
+
+
+def test_a_labs_38_recordings_in_one_import(tmp_path):
+    """issue 38's case, generated (rigctl.simulation.press_slide.write_lab_set): 38 continuous recordings, 9 channels
+    at 100 Hz, 40-42 press cycles each; 4 with NaN runs and 2 flat are refused by name with their reason and the import
+    goes on (--skip-bad); the 2 at twice the usual period are flagged; every good file is cut into its cycles."""
+    from rigctl.simulation.press_slide import write_lab_set
+
+    written = write_lab_set(tmp_path / "lab")
+    r = run_import(*(p for p, _ in written), "--rate", 100, "--layout", "3x3x1", "--label-pattern", PATTERN,
+                   "--segment", "cycles", "--skip-bad", "--out", tmp_path / "lab.h5")
+    assert r.exit_code == 0, r.output
+    refused = {line.split()[2].rstrip(":") for line in r.stderr.splitlines() if line.startswith("warning: refused ")}
+    assert refused == {p.name for p, f in written if f.fault in ("nan", "flat")}
+    flagged = {line.split()[1].rstrip(":") for line in r.stderr.splitlines() if " period " in line and "outlier" in line}
+    assert flagged == {p.name for p, f in written if f.fault == "doubled"}
+    assert "run into the next one" not in r.stderr
+    with open_session(tmp_path / "lab.h5") as s:
+        per_file: dict[str, int] = {}
+        for i in s.completed_ids():
+            name = s.trial_attrs(i)["source_file"]
+            per_file[name] = per_file.get(name, 0) + 1
+    good = {p.name: f for p, f in written if f.fault in ("", "doubled")}
+    assert set(per_file) == set(good) and len(good) == 32
+    for name, f in good.items():  # the partial first/last cycles rejected: every whole cycle a trial
+        assert f.n_cycles - 1 <= per_file[name] <= f.n_cycles, (name, per_file[name], f)
