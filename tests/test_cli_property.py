@@ -300,10 +300,23 @@ def test_serve_refusals(inputs, tmp_path, monkeypatch, data):
     assert r.exit_code == 2, (case, r.output)
 
 
+@given(data=st.data())
+@settings(PROPERTY, max_examples=min(N_EXAMPLES, 3))
+def test_sim_operator(inputs, tmp_path, lsl, data):
+    """``rigctl sim operator`` publishes in real time for --seconds: driven with what it refuses and a short run (at
+    most 2 s of publishing), random seeds."""
+    seconds = data.draw(st.sampled_from(["-1", "0", "nan", "inf", "abc", "1e9", "1", "2"]), label="seconds")
+    seed = data.draw(_maybe(NUMBER), label="--seed")
+    r = _check(inputs, tmp_path, ["sim", "operator", "--lsl", f"prop-{os.getpid()}", "--seconds", seconds,
+                                  *_opts([("--seed", seed)])])
+    if seconds in ("1", "2") and seed is None:
+        assert r.exit_code == 0 and "tracker samples published" in r.output, r.output
+
+
 #: the commands the tests above drive (``rigctl`` + these words)
 DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
-          ("sim",), ("serve",)}
+          ("sim",), ("serve",), ("sim", "operator")}
 
 
 def test_every_command_is_driven(cli_commands):

@@ -10,7 +10,7 @@ import threading
 
 import click
 
-from rigctl.cli.ranges import SEED
+from rigctl.cli.ranges import SEED, floats
 
 #: the lines ``rigctl sim`` prints for its two ports
 PORT_LINE = re.compile(r"(drum|taxel) port:\s+(\S+)")
@@ -115,3 +115,26 @@ except ModuleNotFoundError as _exc:  # pragma: no cover - only while that module
         raise
 else:
     sim.add_command(_dataset, "dataset")
+
+
+@sim.command("operator")
+@click.option("--lsl", "name", required=True, help="Name of the LSL tracker stream to publish (machine-local).")
+@click.option("--seconds", type=floats(1.0, 86400.0), default=60.0, show_default=True,
+              help="How long to play, s.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the operator and the tracker.")
+def operator(name, seconds, seed):
+    """Play the simulated operator in real time and publish its wrist tracker on LSL (x, y, z in the tracker's frame
+    and the position along the plate, mm, at 90-120 Hz): the tracker stream `rigctl acquire ... --handheld --motion
+    lsl:NAME@3` records from (docs/guides/handheld.md). Runs until --seconds or Ctrl-C."""
+    from rigctl.core.lsl import LslUnavailable
+    from rigctl.simulation.operator import publish_tracker
+
+    click.echo(f"publishing the simulated operator's tracker as LSL stream {name!r} for {seconds:g} s. Ctrl-C stops.")
+    sys.stdout.flush()
+    try:
+        n = publish_tracker(name, seconds=seconds, seed=seed, on_scan=lambda text: click.echo(text))
+    except LslUnavailable as exc:
+        raise click.ClickException(str(exc)) from None
+    except KeyboardInterrupt:
+        n = -1
+    click.echo("stopped." if n < 0 else f"done: {n} tracker samples published.")

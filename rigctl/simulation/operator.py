@@ -29,6 +29,7 @@ Human variability (:class:`OperatorConfig`, each figure a guess at a careful ope
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -48,7 +49,7 @@ from rigctl.core.trial import PlannedTrial
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import get_texture
 
-__all__ = ["OperatorConfig", "SimulatedOperator", "profile_speeds"]
+__all__ = ["OperatorConfig", "SimulatedOperator", "profile_speeds", "publish_tracker"]
 
 
 @dataclass(frozen=True)
@@ -246,3 +247,53 @@ class SimulatedOperator:
         xyz[:, 2] += rng.normal(0.0, c.tracker_noise_mm, t.size)
         return t0 + t, xyz
 
+
+
+def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple[str, ...] = ("A", "B", "D", "L", "N"),
+                    stop: Callable[[], bool] | None = None, on_scan: Callable[[str], Any] | None = None) -> int:
+    """Play the simulated operator in real time and publish its wrist tracker on LSL (stream ``name``, type
+    "Position", 4 channels: x, y, z in the tracker's frame and the position along the plate, mm; at the tracker's
+    90-120 Hz with its jitter and dropouts): passes along the plate with the five profiles in turn, each followed
+    by the finger's return (0.6 s) and a rest (0.4 s), until ``seconds`` have passed or ``stop()``. The handheld rig
+    takes it with ``--motion lsl:NAME`` (x, y, z: the plate axis in the rig config) or ``lsl:NAME@3`` (along the
+    plate). ``on_scan(text)`` hears each pass begin. Returns the samples pushed. Raises LslUnavailable."""
+    from rigctl.core.handheld import PlateAxis
+    from rigctl.core.lsl import require_pylsl
+
+    pylsl = require_pylsl()
+    op = SimulatedOperator(seed=seed)
+    axis = PlateAxis.from_touches(op.to_tracker(np.zeros(1), np.zeros(1)),
+                                  op.to_tracker(np.full(1, PLATE_LENGTH_MM), np.zeros(1)))
+    info = pylsl.StreamInfo(name, "Position", 4, op.tracker_rate_hz, pylsl.cf_float32, f"rigctl-operator-{name}")
+    chans = info.desc().append_child("channels")
+    for label in ("x_mm", "y_mm", "z_mm", "along_plate_mm"):
+        chans.append_child("channel").append_child_value("label", label).append_child_value("unit", "mm")
+    outlet = pylsl.StreamOutlet(info)
+    profiles = (("slow", 40.0, 40.0), ("medium", 80.0, 80.0), ("fast", 120.0, 120.0), ("slow-to-fast", 40.0, 120.0),
+                ("fast-to-slow", 120.0, 40.0))
+    t0, pushed, k = pylsl.local_clock(), 0, 0
+    start = t0
+    while pylsl.local_clock() - t0 < seconds and not (stop is not None and stop()):
+        prof, a, b = profiles[k % len(profiles)]
+        tex = textures[(k // len(profiles)) % len(textures)]
+        ramp = (a, b) if a != b else (math.nan, math.nan)
+        raw = op.scan(PlannedTrial(k, tex, (a + b) / 2, 500.0, 200.0 / ((a + b) / 2), prof, *ramp))
+        assert raw is not None and raw.tracker_xyz is not None  # no stop callable given, the simulator's points
+        if on_scan is not None:
+            on_scan(f"pass {k}: plate {tex}, {prof}")
+        t = raw.tracker_time_s - raw.host_time_s[0]
+        xyz = raw.tracker_xyz
+        back_t = t[-1] + np.arange(1, int(0.6 * op.tracker_rate_hz)) / op.tracker_rate_hz
+        back = op.to_tracker(np.linspace(op.config.stop_mm, op.config.start_mm, back_t.size), np.zeros(back_t.size))
+        t, xyz = np.concatenate([t, back_t]), np.concatenate([xyz, back])
+        rows = np.column_stack([xyz, axis.along_mm(xyz)]).astype(np.float32)
+        for ti, row in zip(t, rows):
+            while pylsl.local_clock() < start + ti:
+                time.sleep(min(0.005, max(0.0, start + ti - pylsl.local_clock())))
+            outlet.push_sample(row.tolist(), start + ti)
+            pushed += 1
+            if stop is not None and stop():
+                break
+        start += t[-1] + 0.4
+        k += 1
+    return pushed
