@@ -57,6 +57,9 @@ def _checked_segment(ctx, param, value):
               help="cycles: cut each trial at its press onset (default) or from sample 0 (none).")
 @click.option("--pre-ms", type=floats(0, 60_000), default=None, metavar="MS",
               help="Margin kept before each press onset / run start, ms [default: 0].")
+@click.option("--min-swing", type=floats(0, 1e6, min_open=True), default=None, metavar="RATIO",
+              help="threshold/cycles: the presses' swing must reach RATIO x the noise at rest, unless (cycles) the "
+                   "activity is clearly periodic [default: 10].")
 @click.option("--mapping", type=click.Path(exists=True, dir_okay=False), default=None,
               help="TOML mapping giving any of these values, per-file labels and the texture set.")
 @click.option("--volts-ref", type=floats(0, MAX_VOLTS, min_open=True), default=None, metavar="V",
@@ -76,7 +79,7 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, mapping, volts_ref, nan, adc_bits, preset, skip_bad, overwrite, as_json,
+                      align, pre_ms, min_swing, mapping, volts_ref, nan, adc_bits, preset, skip_bad, overwrite, as_json,
                       progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
@@ -91,7 +94,8 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         raise click.UsageError(f"--preset {preset} takes one FILES argument: the FabricSlide folder")
     options = {} if preset else dict(
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
-        resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, mapping=mapping,
+        resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
+        mapping=mapping,
         volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad)
     try:
         with bars(show_bars(progress) and not as_json) as progress:

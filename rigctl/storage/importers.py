@@ -246,7 +246,7 @@ def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
 
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",
-                "label_pattern", "resample_hz", "segment", "align", "pre_ms", "nan", "variable", "columns",
+                "label_pattern", "resample_hz", "segment", "align", "pre_ms", "min_swing", "nan", "variable", "columns",
                 "time_column", "defaults", "files", "texture_set")
 
 
@@ -377,7 +377,7 @@ class ImportOptions:
     @classmethod
     def resolve(cls, mapping: str | os.PathLike[str] | Mapping[str, Any] | None = None, *,
                 texture: str | None = None, segment_spec: str | None = None, align: str | None = None,
-                pre_ms: float | None = None, **given: Any) -> "ImportOptions":
+                pre_ms: float | None = None, min_swing: float | None = None, **given: Any) -> "ImportOptions":
         """Options from a TOML mapping (path or loaded dict) and command-line values (``given``: the field names;
         None = not given). Raises RecordingImportError for a bad mapping, layout or segmentation."""
         m = dict(mapping) if isinstance(mapping, Mapping) else load_mapping(mapping)
@@ -396,7 +396,8 @@ class ImportOptions:
             except LayoutError as exc:
                 raise RecordingImportError(str(exc)) from None
         segment = parse_segment(segment_spec or m.get("segment"), align=align or m.get("align"),
-                                pre_ms=pre_ms if pre_ms is not None else m.get("pre_ms"))
+                                pre_ms=pre_ms if pre_ms is not None else m.get("pre_ms"),
+                                min_swing=min_swing if min_swing is not None else m.get("min_swing"))
         return cls(rate_hz=pick("rate_hz"), channels=channels, layout=layout, sensor=m.get("sensor"),
                    label_pattern=pick("label_pattern"), resample_hz=pick("resample_hz"), segment=segment,
                    volts_ref=pick("volts_ref"), adc_bits=int(pick("adc_bits", 10)), nan=pick("nan", "refuse"),

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -64,8 +64,12 @@ ONSET_FRACTION = 0.05
 INTERVAL_LO, INTERVAL_HI = 0.8, 1.25
 #: a cycle has the shape of the others when its activity correlates at least this much with the median cycle
 SHAPE_MIN_CORR = 0.5
-#: presses must lift the activity at least this many times the rest's noise (robust sd of the activity at rest)
+#: presses must lift the activity at least this many times the rest's noise (robust sd of the activity at rest),
+#: unless the activity is clearly periodic (cycles: :data:`MIN_PERIODICITY`); ``--min-swing`` sets it per import
 MIN_SWING_NOISE = 10.0
+#: cycles: an activity whose autocorrelation peaks at least this high over the period range has presses, whatever its
+#: swing against the noise (issue 38: a file with 42 visible cycles at 7.9x its noise was refused on amplitude)
+MIN_PERIODICITY = 0.5
 #: period candidates: these multiples of the autocorrelation's highest peak
 HARMONICS = (0.25, 1 / 3, 0.5, 1.0, 2.0, 3.0, 4.0)
 #: a file is an outlier when its period or trial count is under 1/OUTLIER_RATIO or over OUTLIER_RATIO x the median
@@ -100,12 +104,14 @@ class SegmentSpec:
     max_period_s: float | None = None
     align: str = "onset"
     pre_s: float = 0.0
+    min_swing: float = MIN_SWING_NOISE
 
     def record(self) -> dict[str, Any]:
         """The settings that apply to this method, for the session's ``segmentation`` attribute."""
         keep = {"fixed": ("length_s", "hop_s"),
-                "threshold": ("level_counts", "level_fraction", "min_s", "smooth_s", "pre_s"),
-                "cycles": ("n_cycles", "min_period_s", "max_period_s", "smooth_s", "align", "pre_s")}[self.method]
+                "threshold": ("level_counts", "level_fraction", "min_s", "smooth_s", "pre_s", "min_swing"),
+                "cycles": ("n_cycles", "min_period_s", "max_period_s", "smooth_s", "align", "pre_s", "min_swing")
+                }[self.method]
         return {"method": self.method, **{k: v for k, v in asdict(self).items() if k in keep and v is not None}}
 
 
@@ -158,7 +164,19 @@ def _number(text: str, spec: str) -> float:
     return value
 
 
-def parse_segment(spec: str | None, *, align: str | None = None, pre_ms: float | None = None) -> SegmentSpec | None:
+def parse_segment(spec: str | None, *, align: str | None = None, pre_ms: float | None = None,
+                  min_swing: float | None = None) -> SegmentSpec | None:
+    """:func:`_parse_segment`, with ``min_swing`` (the presses' swing against the noise at rest that the threshold
+    and cycles methods require, default :data:`MIN_SWING_NOISE`; > 0)."""
+    out = _parse_segment(spec, align=align, pre_ms=pre_ms)
+    if out is None or min_swing is None:
+        return out
+    if not (math.isfinite(float(min_swing)) and float(min_swing) > 0):
+        raise RecordingImportError(f"--min-swing {min_swing}: must be a number > 0")
+    return replace(out, min_swing=float(min_swing))
+
+
+def _parse_segment(spec: str | None, *, align: str | None = None, pre_ms: float | None = None) -> SegmentSpec | None:
     """``fixed:S[:HOP]`` | ``threshold[:LEVEL[%][:MIN_S[:SMOOTH_S]]]`` | ``cycles[:N[:MIN_P[:MAX_P]]]`` ->
     :class:`SegmentSpec` (None for no spec). ``align`` (:data:`ALIGNS`, default "onset") and ``pre_ms`` (the margin
     before each onset, ms, default 0) apply to cycles and threshold runs. Raises RecordingImportError on anything
@@ -210,12 +228,19 @@ class Activity:
     noise: float
     rest_counts: np.ndarray
 
-    def check_presses(self) -> None:
-        """RecordingImportError unless the swing is at least MIN_SWING_NOISE x the rest's noise."""
-        if not self.swing >= MIN_SWING_NOISE * max(self.noise, 0.5):
-            raise RecordingImportError(
-                f"no presses above the noise (activity swing {self.swing:.1f} counts, noise at rest "
-                f"{self.noise:.1f} counts): give --segment fixed:SECONDS or threshold:COUNTS")
+    def check_presses(self, min_swing: float = MIN_SWING_NOISE, periodicity: float | None = None) -> None:
+        """RecordingImportError unless the swing is at least ``min_swing`` x the rest's noise or (cycles) the
+        activity's ``periodicity`` (its autocorrelation's highest peak over the period range) reaches
+        :data:`MIN_PERIODICITY`."""
+        if self.swing >= min_swing * max(self.noise, 0.5):
+            return
+        if periodicity is not None and periodicity >= MIN_PERIODICITY:
+            return
+        periodic = "" if periodicity is None else f", autocorrelation peak {periodicity:.2f}"
+        raise RecordingImportError(
+            f"no presses above the noise (activity swing {self.swing:.1f} counts = "
+            f"{self.swing / max(self.noise, 0.5):.1f}x the noise at rest, {self.noise:.1f} counts{periodic}): give "
+            f"--min-swing (now {min_swing:g}), --segment fixed:SECONDS or threshold:COUNTS")
 
     @property
     def swing(self) -> float:
@@ -294,6 +319,16 @@ def _acf_period(x: np.ndarray, rate_hz: float, min_p: float | None, max_p: float
     return lo + int(good[0] if good.size else np.argmax(seg))
 
 
+def _periodicity(a: np.ndarray, rate_hz: float, spec: SegmentSpec) -> float:
+    """The highest autocorrelation of the activity ``a`` over the period range (0 when none can be found)."""
+    try:
+        ac = _autocorrelation(a)
+        lo, hi = _lag_range(ac, rate_hz, spec.min_period_s, spec.max_period_s)
+    except RecordingImportError:
+        return 0.0
+    return float(ac[lo:hi].max())
+
+
 def _explained(a: np.ndarray, onsets: np.ndarray, period: int) -> np.ndarray:
     """Indices ``i`` of the onsets whose next onset follows within [INTERVAL_LO, INTERVAL_HI] x ``period`` and whose
     activity over one period correlates >= SHAPE_MIN_CORR with the median of those cycles."""
@@ -367,7 +402,7 @@ def _fixed(n: int, rate_hz: float, spec: SegmentSpec) -> Segmentation:
 def _threshold(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segmentation:
     act = activity(counts, rate_hz, spec.smooth_s)
     if spec.level_fraction is not None:
-        act.check_presses()
+        act.check_presses(spec.min_swing)
     on = act.level(spec.level_fraction) if spec.level_fraction is not None else float(spec.level_counts or 0.0)
     off = act.rest + (on - act.rest) / 2 if on > act.rest else on
     runs = _runs(act.values, on, off)
@@ -388,7 +423,7 @@ def _cycles(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segmentati
         bounds = [(s, s + length) for s in range(0, n - length + 1, length)]
         return Segmentation(bounds, [i * spec.n_cycles for i in range(len(bounds))], period_s=period / rate_hz)
     act = activity(counts, rate_hz, spec.smooth_s)
-    act.check_presses()
+    act.check_presses(spec.min_swing, _periodicity(act.values, rate_hz, spec))
     a = act.values
     low = np.flatnonzero(a <= act.level(ONSET_FRACTION))
     onsets, inside = [], 0

@@ -230,3 +230,27 @@ def test_a_labs_38_recordings_in_one_import(tmp_path):
     assert set(per_file) == set(good) and len(good) == 32
     for name, f in good.items():  # the partial first/last cycles rejected: every whole cycle a trial
         assert f.n_cycles - 1 <= per_file[name] <= f.n_cycles, (name, per_file[name], f)
+
+
+def test_a_clearly_periodic_file_passes_the_noise_rule_and_min_swing_sets_it(tmp_path):
+    """A file whose presses lift the activity only 6x its noise but repeat clearly (autocorrelation ~0.9) is cut into
+    its 40 cycles (issue 38: refused on amplitude alone); the noise rule's ratio is --min-swing, recorded in the
+    session; a flat file is still refused, its message naming --min-swing."""
+    from rigctl.simulation.press_slide import press_slide_recording
+
+    x, _ = press_slide_recording(5.0, 8.0, 40, nan=False, seed=3)
+    np.save(tmp_path / "faint__R0.npy", x)
+    common = ["--rate", 100, "--label-pattern", PATTERN, "--segment", "cycles"]
+    r = run_import(tmp_path / "faint__R0.npy", *common, "--out", tmp_path / "a.h5")
+    assert r.exit_code == 0, r.output
+    with open_session(tmp_path / "a.h5") as s:
+        assert len(s.completed_ids()) == 40
+        assert json.loads(s.attrs["segmentation"])["min_swing"] == 10.0
+    rng = np.random.default_rng(2)
+    np.save(tmp_path / "flat__R1.npy", 500 + rng.normal(0, 2, (3000, 9)))
+    r = run_import(tmp_path / "flat__R1.npy", *common, "--out", tmp_path / "b.h5")
+    assert r.exit_code == 1 and "--min-swing (now 10)" in r.output
+    r = run_import(tmp_path / "faint__R0.npy", *common, "--min-swing", 4, "--out", tmp_path / "c.h5")
+    assert r.exit_code == 0, r.output
+    with open_session(tmp_path / "c.h5") as s:
+        assert json.loads(s.attrs["segmentation"])["min_swing"] == 4.0
