@@ -659,7 +659,7 @@ class AnalysisTab(QtWidgets.QWidget):
     def show_results(self, res) -> None:
         """Show analysis results (:class:`rigctl.analysis.tasks.TaskResults`); results without a single curve (a
         file too small for any task, e.g. one trial) leave the previous results and say why in the status line."""
-        from rigctl.analysis.tasks import TASK_TITLES
+        from rigctl.analysis.tasks import task_title
 
         tasks = [t for t, by_v in res.curves.items() if by_v]
         if not tasks:
@@ -672,7 +672,7 @@ class AnalysisTab(QtWidgets.QWidget):
             combo.blockSignals(True)
             combo.clear()
             for t in tasks:
-                combo.addItem(TASK_TITLES.get(t, t), t)
+                combo.addItem(task_title(t), t)
             combo.blockSignals(False)
         from rigctl.analysis.data import variant_title
 
@@ -696,7 +696,7 @@ class AnalysisTab(QtWidgets.QWidget):
 
     def _draw_curves(self) -> None:
         from rigctl.analysis.data import variant_title
-        from rigctl.analysis.tasks import TASK_TITLES
+        from rigctl.analysis.tasks import task_title
 
         self.acc_plot.clear()
         legend = self.acc_plot.plotItem.legend
@@ -712,14 +712,20 @@ class AnalysisTab(QtWidgets.QWidget):
             self.acc_plot.addItem(pg.ErrorBarItem(x=x, y=m, height=2 * s, pen=pg.mkPen(colour, width=1), beam=0.3))
             self.acc_plot.plot(x, m, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=4, symbolBrush=colour,
                                symbolPen=None, name=variant_title(v))
-        self.acc_plot.setTitle(f"{TASK_TITLES.get(task, task)}")
-        self.acc_info.setText(f"Accuracy vs number of PCs: mean +- sd over "
-                              f"{next(iter(res.curves[task].values())).acc.shape[0]} repetitions")
+        from rigctl.analysis import report
+
+        chance = report.chance_pct(res, task)
+        self.acc_chance = pg.InfiniteLine(pos=chance, angle=0, pen=pg.mkPen("#888", width=1, style=QtCore.Qt.PenStyle.DotLine),
+                                          label=f"chance {chance:.1f} %", labelOpts={"position": 0.95, "color": "#888"})
+        self.acc_plot.addItem(self.acc_chance)
+        self.acc_plot.setTitle(f"{task_title(task)}")
+        self.acc_info.setText(f"Accuracy vs number of PCs: mean, {report.ERROR_BARS}; {report.n_text(res, task)}; "
+                              f"dotted: chance (1 / classes = {chance:.1f} %)")
 
     def _fill_table(self) -> None:
         from rigctl.analysis import report
         from rigctl.analysis.data import variant_title
-        from rigctl.analysis.tasks import TASK_TITLES
+        from rigctl.analysis.tasks import task_title
 
         res = self.results
         if res is None:
@@ -730,12 +736,13 @@ class AnalysisTab(QtWidgets.QWidget):
         self.table1.setColumnCount(len(variants))
         # two-line headers: the whole grid fits the view at 1024x700 (one-line names cut off the last column)
         self.table1.setHorizontalHeaderLabels([_two_lines(variant_title(v), 12) for v in variants])
-        self.table1.setVerticalHeaderLabels([TASK_TITLES.get(t, t).replace(" (Fig.", "\n(Fig.") for t in grid])
+        self.table1.setVerticalHeaderLabels([task_title(t).replace(" (Fig.", "\n(Fig.") for t in grid])
         for r, (_task, row) in enumerate(grid.items()):
             for c, v in enumerate(variants):
                 if v in row:
                     mu, sd = row[v]
-                    self.table1.setItem(r, c, QtWidgets.QTableWidgetItem(f"{mu:.1f} +- {sd:.1f}"))
+                    text = f"{mu:.1f} +- {sd:.1f}" if np.isfinite(mu) else "-"  # no test trials: never "nan"
+                    self.table1.setItem(r, c, QtWidgets.QTableWidgetItem(text))
         self.table1.resizeColumnsToContents()
         self.table1.resizeRowsToContents()
 
@@ -744,7 +751,7 @@ class AnalysisTab(QtWidgets.QWidget):
         with a colour bar), each cell's trial count written in it, the paper's names for task and variant."""
         from rigctl.analysis import report
         from rigctl.analysis.data import variant_title
-        from rigctl.analysis.tasks import TASK_TITLES
+        from rigctl.analysis.tasks import task_title
 
         for t in self.conf_counts:
             self.conf_plot.removeItem(t)
@@ -772,7 +779,7 @@ class AnalysisTab(QtWidgets.QWidget):
         pile = report.prediction_collapse(res, tasks=(task,)).get(task, {}).get(v)
         pile_text = ("no test trials" if pile is None else f"most predicted: {pile.top_class}, "
                      f"{100 * pile.top_share:.0f} % of the test trials (even: {100 * pile.even_share:.0f} %)")
-        self.conf_plot.setTitle(f"{TASK_TITLES.get(task, task)}, {variant_title(v)}")
+        self.conf_plot.setTitle(f"{task_title(task)}, {variant_title(v)}")
         self.conf_info.setText(f"Confusion at {c.confusion_pcs} PCs (rows true, columns predicted; colour: fraction "
                                f"of the true class; trials summed over {c.acc.shape[0]} repetitions); {pile_text}")
 

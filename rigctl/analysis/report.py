@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.analysis.data import VARIANT_TITLES, VARIANTS
-from rigctl.analysis.tasks import TASK_TITLES, TaskResults
+from rigctl.analysis.tasks import BASELINE_PREFIX, TaskResults, task_title
 
 __all__ = [
     "PAPER_TABLE1",
@@ -33,7 +33,17 @@ __all__ = [
     "prediction_collapse",
     "format_collapse",
     "Collapse",
+    "ERROR_BARS",
+    "chance_pct",
+    "mark",
+    "plottable",
+    "n_text",
+    "task_title",
 ]
+
+#: what the error bars and the sd columns are (Curve.sd)
+ERROR_BARS = "error bars: +-1 SD over repetitions (sample SD)"
+
 
 TABLE1_ROWS = ("textures", "groups", "untrained_speed_force", "untrained_force", "untrained_speed", "trained")
 
@@ -94,38 +104,68 @@ def format_table1(res: TaskResults, n_pcs=50, *, compare_paper=False, stars=True
     tab = table1(res, used)
     variants = [v for v in VARIANTS if any(v in row for row in tab.values())]
     variants += sorted({v for row in tab.values() for v in row} - set(variants))
-    w0 = max([len(TASK_TITLES.get(t, t)) for t in tab] + [len("Paper")]) + 2
-    wid = {v: max(18, len(VARIANT_TITLES.get(v, v)) + 2) for v in variants}
+    w0 = max([len(task_title(t)) for t in tab] + [len("Paper")]) + 2
+    wid = {v: max(19, len(VARIANT_TITLES.get(v, v)) + 2) for v in variants}
     head1 = " " * w0 + "".join(f"{VARIANT_TITLES.get(v, v):^{wid[v]}}" for v in variants)
-    head2 = " " * w0 + "".join(f"{'mu (%)':>{wid[v] - 9}}{'sd (%)':>9}" for v in variants)
+    head2 = " " * w0 + "".join(f"{'mu (%)':>{wid[v] - 10}}{'sd (%)':>7}   " for v in variants)
     lines = [f"Classification accuracy with {used} PCs (%)" + (f" [asked for {n_pcs}]" if used != n_pcs else ""),
              head1, head2]
     for task, row in tab.items():
         marks = {}
         if stars:
             for c in res.comparisons(task, used):
-                marks[c.variant] = c.stars_d
+                marks[c.variant] = mark(c.stars_d, c.mean_b - c.mean_a)
         cells = ""
         for v in variants:
             if v in row:
                 mu, sd = row[v]
-                cells += f"{mu:{wid[v] - 9}.2f}{sd:7.2f}{marks.get(v, ''):<2}"
+                cells += f"{_num(mu, wid[v] - 10)}{_num(sd, 7)}{marks.get(v, ''):<3}"
             else:
-                cells += f"{'-':>{wid[v] - 9}}{'-':>9}"
-        lines.append(f"{TASK_TITLES.get(task, task):<{w0}}{cells}")
+                cells += f"{'-':>{wid[v] - 10}}{'-':>7}   "
+        lines.append(f"{task_title(task):<{w0}}{cells}")
         if compare_paper and task in PAPER_TABLE1:
             ref = PAPER_TABLE1[task]
-            cells = "".join(f"{ref[v][0]:{wid[v] - 9}.2f}{ref[v][1]:7.2f}  " if v in ref else " " * wid[v]
+            cells = "".join(f"{ref[v][0]:{wid[v] - 10}.2f}{ref[v][1]:7.2f}   " if v in ref else " " * wid[v]
                             for v in variants)
             lines.append(f"{'  paper (50 PCs)':<{w0}}{cells}")
-    counts = res.counts
-    if counts:
-        lines.append("counts: " + json.dumps(counts, default=str))
+    lines += format_counts(res.counts)
     for w in res.warnings:
-        lines.append("warning: " + w)
+        lines.append("warning: " + (f"baseline removed, {w[len(BASELINE_PREFIX):]}" if w.startswith(BASELINE_PREFIX)
+                                    else w))
+    reps = sorted({c.acc.shape[0] for by_v in res.curves.values() for c in by_v.values()})
+    lines.append(f"mu, sd: mean and sample SD over {'/'.join(map(str, reps))} repetitions")
     if stars:
-        lines.append("* p<0.05 and d>0.5, ** p<0.01 and d>1 (Welch's t-test, Cohen's d; vs Original)")
+        lines.append("vs Original (Welch's t-test, Cohen's d): * p<0.05 and |d|>0.5, ** p<0.01 and |d|>1; "
+                     "^ this variant higher, v lower")
     return "\n".join(lines)
+
+
+def mark(stars: str, diff: float) -> str:
+    """A significance mark that says which way: ``"**^"`` (the variant higher than Original), ``"*v"`` (lower),
+    ``""`` (no mark); ``diff`` = variant - Original."""
+    return f"{stars}{'^' if diff > 0 else 'v'}" if stars else ""
+
+
+def _num(x: float, width: int) -> str:
+    """``x`` to 2 decimals in ``width`` columns; a non-finite value (no test trials) as ``-``, never ``nan``."""
+    return f"{x:{width}.2f}" if np.isfinite(x) else f"{'-':>{width}}"
+
+
+def _value(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:g}" if np.isfinite(v) else "n/a"
+    if isinstance(v, (list, tuple)):
+        return ",".join(_value(x) for x in v) or "none"
+    if isinstance(v, dict):
+        return "; ".join(f"{k} {_value(x)}" for k, x in v.items())
+    return "none" if v is None else str(v)
+
+
+def format_counts(counts: dict[str, Any]) -> list[str]:
+    """The trial counts of each analysis as text lines (``counts, cv: per_texture 75, ...``): no JSON, no NaN (a
+    non-finite number reads ``n/a``, a missing one ``none``)."""
+    return [f"counts, {task_title(k)}: " + ", ".join(f"{k2} {_value(v)}" for k2, v in c.items())
+            if isinstance(c, dict) else f"counts, {task_title(k)}: {_value(c)}" for k, c in counts.items()]
 
 
 #: paper values closer than this (percentage points) set no ordering to check
@@ -211,7 +251,7 @@ def format_ordering(res: TaskResults, n_pcs=50) -> str:
             same = "; ".join(f"{VARIANT_TITLES.get(p.first, p.first)} and {VARIANT_TITLES.get(p.second, p.second)} "
                              f"{'identical' if p.identical else 'tied'}" for p in ties)
             verdict = f"{verdict}{'; ' if verdict else ''}not compared: {same}"
-        lines.append(f"paper's ordering, {TASK_TITLES.get(task, task)}: {verdict}")
+        lines.append(f"paper's ordering, {task_title(task)}: {verdict}")
     return "\n".join(lines)
 
 
@@ -274,7 +314,7 @@ def format_collapse(res: TaskResults) -> str:
         even = next(iter(by_v.values())).even_share
         cells = "; ".join(f"{VARIANT_TITLES.get(v, v)} {100 * c.top_share:.0f} % ({c.top_class})"
                           for v, c in by_v.items())
-        lines.append(f"most-predicted class, {TASK_TITLES.get(task, task)} (even: {100 * even:.0f} %): {cells}")
+        lines.append(f"most-predicted class, {task_title(task)} (even: {100 * even:.0f} %): {cells}")
     return "\n".join(lines)
 
 
@@ -293,7 +333,7 @@ def to_dict(res: TaskResults, n_pcs=50, *, source=None):
                             for v, c in by_v.items()} for t, by_v in prediction_collapse(res).items()}}
     for task, by_v in res.curves.items():
         out["tasks"][task] = {
-            "title": TASK_TITLES.get(task, task),
+            "title": task_title(task),
             "variants": {
                 v: {"mean": c.mean.round(6).tolist(), "sd": c.sd.round(6).tolist(), "n_repeats": int(c.acc.shape[0]),
                     "n_tested": c.n_tested, "table": dict(zip(("mu_pct", "sd_pct"), (100 * x for x in c.at(used)))),
@@ -329,8 +369,29 @@ _COLOURS = {"original": "black", "force_scaled": "tab:red", "speed_scaled": "tab
             "speed_force_scaled": "tab:green"}
 
 
-def plot_curves(res: TaskResults, path, *, tasks=None, title=None):
-    """Fig. 3-like figure: accuracy (%) vs number of PCs, mean +- sd error bars, one panel per task, to PNG.
+def chance_pct(res: TaskResults, task: str) -> float:
+    """Chance level of ``task`` in percent: 100 / the number of classes (textures or groups) it tells apart."""
+    return 100.0 / max(len(next(iter(res.curves[task].values())).classes), 1)
+
+
+def plottable(res: TaskResults, tasks=None) -> list[str]:
+    """The tasks of ``res`` with an accuracy-vs-PCs curve to draw (at least 2 PC counts with a finite mean)."""
+    tasks = tasks or ([t for t in TABLE1_ROWS if t in res.curves] + [t for t in res.curves if t not in TABLE1_ROWS])
+    return [t for t in tasks if any(np.isfinite(c.mean).sum() >= 2 for c in res.curves.get(t, {}).values())]
+
+
+def n_text(res: TaskResults, task: str) -> str:
+    """``"n = 120 test trials x 20 repetitions, 16 classes"``: what one panel's accuracies rest on."""
+    by_v = res.curves[task].values()
+    tested = sorted({c.n_tested for c in by_v})
+    reps = sorted({c.acc.shape[0] for c in by_v})
+    return (f"n = {'/'.join(map(str, tested))} test trials x {'/'.join(map(str, reps))} repetitions, "
+            f"{len(next(iter(by_v)).classes)} classes")
+
+
+def plot_curves(res: TaskResults, path, *, tasks=None, title=None, compare_paper=False):
+    """Fig. 3-like figure: accuracy (%) vs number of PCs, mean +- 1 SD over repetitions (:data:`ERROR_BARS`, said in
+    the figure), one panel per task with its chance level (1 / classes) and n (test trials x repetitions), to PNG.
 
     Parameters
     ----------
@@ -338,34 +399,50 @@ def plot_curves(res: TaskResults, path, *, tasks=None, title=None):
     path : str or Path
         Output image (format from the suffix, e.g. ``.png``).
     tasks : sequence of str, optional
-        Panels (default: every task, Table 1 order first).
+        Panels (default: every task with a curve, Table 1 order first).
+    compare_paper : bool
+        Also draw the paper's Table 1 values (:data:`PAPER_TABLE1`, mean +- SD at 50 PCs) as hollow diamonds.
+
+    Raises
+    ------
+    ValueError
+        If no task has a curve to draw (fewer than 2 PC counts): nothing is written.
     """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    tasks = tasks or ([t for t in TABLE1_ROWS if t in res.curves] + [t for t in res.curves if t not in TABLE1_ROWS])
+    tasks = plottable(res, tasks)
+    if not tasks:
+        raise ValueError("no accuracy curve to draw (one PC count or none); pass --pcs 1-N")
     n = len(tasks)
     cols = min(n, 2 if n <= 4 else 3)
     rows = int(np.ceil(n / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.6 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.8 * rows + 0.4), squeeze=False)
     for ax, task in zip(axes.ravel(), tasks):
         for v, c in res.curves[task].items():
             ax.errorbar(c.pcs, 100 * c.mean, yerr=100 * c.sd, label=VARIANT_TITLES.get(v, v),
                         color=_COLOURS.get(v), capsize=2, lw=1.2, elinewidth=0.8)
-        chance = 100.0 / max(len(next(iter(res.curves[task].values())).classes), 1)
-        ax.axhline(chance, color="grey", ls=":", lw=0.8)
-        ax.set_title(TASK_TITLES.get(task, task), fontsize=10)
+            ref = PAPER_TABLE1.get(task, {}).get(v) if compare_paper else None
+            if ref is not None:
+                ax.errorbar([50], [ref[0]], yerr=[ref[1]], fmt="D", mfc="white", ms=6, color=_COLOURS.get(v),
+                            label="paper (Table 1, 50 PCs)" if v == "original" else None, zorder=5)
+        chance = chance_pct(res, task)
+        ax.axhline(chance, color="grey", ls=":", lw=1.0, label="chance")
+        ax.annotate(f"chance {chance:.1f} %", (1.0, chance), xycoords=("axes fraction", "data"), xytext=(-2, 2),
+                    textcoords="offset points", ha="right", va="bottom", fontsize=7, color="dimgrey")
+        ax.set_title(f"{task_title(task)}\n{n_text(res, task)}", fontsize=9)
         ax.set_xlabel("number of PCs")
         ax.set_ylabel("accuracy (%)")
         ax.set_ylim(0, 100)
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[n:]:
         ax.axis("off")
-    axes.ravel()[0].legend(fontsize=8, loc="lower right")
-    if title:
-        fig.suptitle(title)
+    handles, labels = axes.ravel()[0].get_legend_handles_labels()
+    keep = [(h, lab) for h, lab in zip(handles, labels) if lab != "chance"]
+    axes.ravel()[0].legend(*zip(*keep), fontsize=7, loc="lower right")
+    fig.suptitle((f"{title}: " if title else "") + f"mean, {ERROR_BARS}; dotted: chance (1 / classes)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -402,7 +479,7 @@ def plot_confusions(res: TaskResults, path, task, *, normalise=True):
         ax.set_title(f"{VARIANT_TITLES.get(v, v)}\n{100 * acc:.1f}% at {c.confusion_pcs} PCs", fontsize=9)
         ax.set_xlabel("predicted")
         ax.set_ylabel("true")
-    fig.suptitle(TASK_TITLES.get(task, task), fontsize=10)
+    fig.suptitle(task_title(task), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -43,6 +43,7 @@ from rigctl.core.progress import Stage
 
 __all__ = [
     "TASK_TITLES",
+    "task_title",
     "EXTRAPOLATION_CELLS",
     "Curve",
     "TaskResults",
@@ -69,6 +70,24 @@ TASK_TITLES = {
     "rt_trained": "Real-time trained profiles (Fig. 4C blue)",
     "rt_untrained": "Real-time untrained profiles (Fig. 4C green)",
 }
+#: the prefix ``operations.run_analyses`` gives the rows of baseline-removed data (``--baseline remove|both``)
+BASELINE_PREFIX = "baseline_removed:"
+#: the prefix of the speed-only extrapolation rows (``--task speed-extrapolation``)
+SPEED_PREFIX = "speed_"
+
+
+def task_title(key: str) -> str:
+    """A row's name for a reader (``"baseline_removed:speed_untrained_speed"`` -> ``"Untrained Speed, speed-only
+    extrapolation, baseline removed"``); :data:`TASK_TITLES` for the paper's rows, the key itself if unknown."""
+    suffix = ""
+    if key.startswith(BASELINE_PREFIX):
+        key, suffix = key[len(BASELINE_PREFIX):], ", baseline removed"
+    if key not in TASK_TITLES and key.startswith(SPEED_PREFIX) and key[len(SPEED_PREFIX):] in TASK_TITLES:
+        plain = TASK_TITLES[key[len(SPEED_PREFIX):]].split(" (Fig.")[0]  # not the paper's figure panel
+        return f"{plain}, speed-only extrapolation{suffix}"
+    return TASK_TITLES.get(key, key) + suffix
+
+
 #: extrapolation test cells: (speed trained?, force trained?) -> task key
 EXTRAPOLATION_CELLS = {
     (False, False): "untrained_speed_force",

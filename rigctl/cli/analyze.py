@@ -129,6 +129,15 @@ def _check_outputs(file, new_session, overwrite, **outputs):
 
 
 
+def _check_plot(task, table1_, n_pcs):
+    """--plot draws accuracy vs PCs: refused before any work (exit 2) when there is no curve to draw."""
+    if task == "variance" and not table1_:
+        raise UsageProblem("--plot: --task variance has no accuracy curves; pass --table1 or another --task")
+    if n_pcs < 2:
+        raise UsageProblem(f"--plot: one PC count ({n_pcs}) draws no curve; pass --pcs 1-N with N >= 2 "
+                           "(e.g. --pcs 1-50)")
+
+
 def _save_model(path, variant, n_pcs, max_pcs, *, source):
     from rigctl.operations import train_model
     from rigctl.storage.encoded import ALL_VARIANTS
@@ -183,7 +192,8 @@ def _format_leak(leak) -> str:
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--table1", "table1_", is_flag=True, help="Print the paper's Table 1 layout (implies --task all).")
 @click.option("--table-pcs", type=click.IntRange(1, 100_000), default=50, show_default=True, help="PC count of the table.")
-@click.option("--compare-paper", is_flag=True, help="Show the paper's Table 1 values beside ours.")
+@click.option("--compare-paper", is_flag=True,
+              help="Show the paper's Table 1 values beside ours (in the table and, with --plot, on the figure).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON on stdout.")
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Fig. 3-like plot of accuracy vs PCs (format from the extension: .png, .pdf, .svg, ...).")
@@ -249,6 +259,8 @@ def analyze(ctx, file, task, pcs, repeats, variants, per_texture, seed, table1_,
 
     _check_outputs(file, new_session, overwrite, **{"--csv": csv_path, "--plot": plot, "--confusion": confusion,
                                                      "--save-model": save_model})
+    if plot:
+        _check_plot(task, table1_, _parse_pcs(pcs))
     opts = AnalyzeOptions(
         file=file, task="all" if table1_ else task, n_pcs=_parse_pcs(pcs),
         explicit_pcs=ctx.get_parameter_source("pcs") is not click.core.ParameterSource.DEFAULT,
@@ -396,8 +408,10 @@ def _write_outputs(opts: AnalyzeOptions, res) -> None:
         with replacing(opts.csv_path) as tmp:
             tmp.write_text(report.to_csv(res))
     if opts.plot:
+        if not report.plottable(res):
+            raise UsageProblem("--plot: no task has an accuracy curve (fewer than 2 PC counts); pass --pcs 1-N")
         with replacing(opts.plot) as tmp:
-            report.plot_curves(res, tmp, title=Path(opts.file).name)
+            report.plot_curves(res, tmp, title=Path(opts.file).name, compare_paper=opts.compare_paper)
     if opts.confusion:
         keys = list(res.curves)
         pick = next((k for k in keys if k.endswith("untrained_speed_force")), None) or next(

@@ -476,3 +476,20 @@ def test_the_test_folds_can_hold_out_time_blocks_and_a_split_the_file_cannot_mak
                 assert "skipped" in tab.status.text() and "session" in tab.status.text(), tab.status.text()
     finally:
         tab.cv_groups.setCurrentIndex(0)
+
+
+def test_accuracy_plot_shows_chance_n_and_what_the_error_bars_are(lone_tab, qapp):
+    """Issue 38 part 4: the GUI's Fig. 3 view draws the chance level (1 / classes) and says n and the error bars."""
+    from rigctl.analysis.tasks import Curve, TaskResults
+
+    res = TaskResults()
+    acc = np.full((3, 5), 0.6)
+    for task in ("textures", "baseline_removed:speed_untrained_speed"):
+        res.add(Curve(task, "original", acc, 30, ["A", "B", "C", "D", "E"], np.eye(5, dtype=np.int64), 5))
+    lone_tab.show_results(res)
+    assert lone_tab.acc_chance.value() == pytest.approx(20.0)
+    assert lone_tab.acc_chance in lone_tab.acc_plot.plotItem.items
+    info = lone_tab.acc_info.text()
+    assert "SD over repetitions" in info and "n = 30 test trials x 3 repetitions" in info and "20.0 %" in info
+    names = [lone_tab.task_combo.itemText(i) for i in range(lone_tab.task_combo.count())]
+    assert "Untrained Speed, speed-only extrapolation, baseline removed" in names
