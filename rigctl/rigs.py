@@ -194,6 +194,9 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     check_faults(backend, faults, kind=kind)
     rig = Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
                       else str(host_config_path), home=home, allow_firmware_mismatch=allow_firmware_mismatch)
+    truth_start = getattr(getattr(backend, "sim", None), "truth_start", None)
+    if truth_start is not None:  # the truth log's time 0: the run's start, as the faults'
+        truth_start()
     if faults and isinstance(backend, FaultInjector):
         backend.inject_faults(faults)
     return rig

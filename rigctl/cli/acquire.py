@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as _dt
 import logging
 import re
@@ -21,12 +22,14 @@ from rigctl.cli.ranges import SEED
 from rigctl.cli.rig_flags import (
     allow_firmware_mismatch_option,
     check_one_rig,
+    check_truth_log,
     drum_port_option,
     hil_bootloaders_option,
     inject_option,
     inprocess_option,
     lsl_wait_option,
     taxel_port_option,
+    truth_log_option,
 )
 
 
@@ -278,10 +281,11 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @lsl_wait_option
 @inject_option
 @allow_firmware_mismatch_option
+@truth_log_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, classify,
             calibration, classify_variant, pcs, resume, overwrite, seed, on_failure, config_path, plates, lsl, lsl_wait_s,
-            inject, allow_firmware_mismatch, quiet):
+            inject, allow_firmware_mismatch, truth_log, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -351,6 +355,9 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                                   bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                                   motion=motion, allow_firmware_mismatch=allow_firmware_mismatch)
+    check_truth_log(truth_log, source.kind)
+    if truth_log is not None:
+        source = dataclasses.replace(source, truth_log=str(truth_log))
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,11 +11,13 @@ import click
 from rigctl.cli.ranges import SEED, floats
 from rigctl.cli.rig_flags import (
     check_one_rig,
+    check_truth_log,
     drum_port_option,
     hil_bootloaders_option,
     inject_option,
     inprocess_option,
     taxel_port_option,
+    truth_log_option,
 )
 
 
@@ -37,8 +40,9 @@ from rigctl.cli.rig_flags import (
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
 @inject_option
+@truth_log_option
 def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, save,
-           rest_s, seed, inject):
+           rest_s, seed, inject, truth_log):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
     after each. With --save the report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a
@@ -63,6 +67,9 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
             raise click.BadParameter(str(exc), param_hint="--check") from None
     source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, bootloaders=hil_bootloaders,
                                   inprocess=inprocess, inject=inject)
+    check_truth_log(truth_log, source.kind)
+    if truth_log is not None:
+        source = dataclasses.replace(source, truth_log=str(truth_log))
     why = source.injection_refusal()
     if why:
         raise click.UsageError(why)

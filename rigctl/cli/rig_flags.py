@@ -4,14 +4,16 @@ opens)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from rigctl.cli.ranges import LSL_WAIT_S
 from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
 
-__all__ = ["allow_firmware_mismatch_option",
+__all__ = ["allow_firmware_mismatch_option", "truth_log_option",
            "hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
-           "lsl_wait_option", "check_one_rig"]
+           "lsl_wait_option", "check_one_rig", "check_truth_log"]
 
 hil_bootloaders_option = click.option(
     "--hil-bootloaders", is_flag=True, default=False,
@@ -59,6 +61,24 @@ allow_firmware_mismatch_option = click.option(
     "--allow-firmware-mismatch", is_flag=True, default=False,
     help="Run even if a board's firmware build differs from the installed sources' (checked at every open; without "
          "it the run is refused with one line naming both builds and `rigctl firmware --flash`).")
+
+
+#: ``--truth-log FILE`` (``acquire``, ``doctor``): the simulated rig's ground truth as CSV (rigctl.simulation.truth)
+truth_log_option = click.option(
+    "--truth-log", "truth_log", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="FILE",
+    help="With --sim or --hil: write the physical model's ground truth to FILE (CSV: time_s from the run's start, the "
+         "clock --inject uses; true_force_g, actuator_mm, drum_speed_mm_s; >= 100 Hz). FILE must not exist.")
+
+
+def check_truth_log(truth_log: Path | None, kind: str) -> None:
+    """Raise click.UsageError for a --truth-log the rig of ``kind`` cannot write (not "sim"/"hil") or a FILE that
+    exists."""
+    if truth_log is None:
+        return
+    if kind not in ("sim", "hil"):
+        raise click.UsageError("--truth-log works with --sim or --hil (the models whose ground truth it writes)")
+    if truth_log.exists():
+        raise click.UsageError(f"--truth-log {truth_log}: the file exists (it is never overwritten)")
 
 
 def check_one_rig(*, sim: bool, hil: bool, inprocess: bool, drum_port: str | None) -> None:

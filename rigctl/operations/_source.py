@@ -54,6 +54,7 @@ class RigSource:
     inject: tuple[FaultSpec, ...] = ()
     motion: str | None = None
     allow_firmware_mismatch: bool = False
+    truth_log: str | None = None
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -120,6 +121,8 @@ class RigSource:
         extra: dict[str, Any] = {"inject": self.inject} if self.inject else {}
         if self.allow_firmware_mismatch and self.kind != "handheld":
             extra["allow_firmware_mismatch"] = True
+        if self.truth_log is not None and self.kind in ("sim", "hil"):
+            extra["truth_log"] = self.truth_log
         if self.kind == "hardware":
             return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port, **extra}
         if self.kind == "replay":

@@ -41,6 +41,7 @@ from rigctl import firmware
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.devices import wire
 from rigctl.simulation.hil_faults import HilFaults
+from rigctl.simulation.truth import TruthLog
 
 if TYPE_CHECKING:
     from rigctl.simulation.textures import Texture
@@ -227,7 +228,7 @@ class HilRig:
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
                  tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0,
-                 mega_image: str = "mega_drum"):
+                 mega_image: str = "mega_drum", truth_log=None):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -237,7 +238,8 @@ class HilRig:
         self.uno_boot_ms = uno_boot_ms
         self.with_uno = with_uno
         self.taxel_ohm = float(taxel_ohm)
-        self.tel_ms = float(tel_ms)
+        self.tel_ms = float(tel_ms) if truth_log is None else min(float(tel_ms), 10.0)  # the truth log's 100 Hz
+        self.truth = TruthLog(truth_log) if truth_log is not None else None  #: rigctl.simulation.truth, or None
         self.index_bounce = int(index_bounce)
         self.bootloaders = bool(bootloaders)
         self.boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
@@ -248,8 +250,7 @@ class HilRig:
         self.mega_resets = 0
         self._eeprom_ack: bool | None = None
         self._actuator_acks = 0
-        #: the injected faults' schedule on the Mega's simulated time (:meth:`inject_faults`)
-        self.schedule: FaultSchedule | None = None
+        self.schedule: FaultSchedule | None = None  #: the injected faults (:meth:`inject_faults`)
         self.faults = HilFaults(lambda c: self._running(self._mega, "Mega").send(c),
                                 None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm)
         self.telemetry: Telemetry | None = None
@@ -400,6 +401,8 @@ class HilRig:
         for h in (self._uno, self._mega):
             if h is not None:
                 h.close()
+        if self.truth is not None:
+            self.truth.close()
         self._uno = self._mega = None
         for f in self._tmp.glob("*"):
             f.unlink(missing_ok=True)
@@ -511,6 +514,11 @@ class HilRig:
         self.schedule = schedule
         return schedule
 
+    def truth_start(self) -> None:
+        """The run starts now (the Mega's simulated time): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""
+        if self.truth is not None:
+            self.truth.start(self.next_telemetry().t_s)
+
     def log_requests(self, on: bool = True) -> None:
         """Record the simulated time host bytes reach the Mega (:attr:`request_times`) and each actuator step
         (:attr:`actuator_steps`)."""
@@ -602,6 +610,10 @@ class HilRig:
                 self._cond.notify_all()
             if self.schedule is not None:
                 self.schedule.due(tel.t_s)
+            if self.truth is not None and len(self.telemetry_history) > 1:
+                prev = self.telemetry_history[-2]
+                dt = max((tel.cycle - prev.cycle) / 16e6, 1e-6)
+                self.truth.row(tel.t_s, tel.force_g, tel.act_mm, (tel.drum_steps - prev.drum_steps) * self.mm_per_step / dt)
         elif line == "OK actuator":
             with self._cond:
                 self._actuator_acks += 1

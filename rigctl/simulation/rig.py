@@ -28,6 +28,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
 from rigctl.simulation.pty import PortDir
+from rigctl.simulation.truth import TruthLog
 from rigctl.simulation.virtual_mega import VirtualMega
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
@@ -78,8 +79,10 @@ class SimulatedRig:
     """
 
     def __init__(self, config: RigConfig | None = None, *, seed: int = 0, source=None, port_dir=None,
-                 tick_s: float = 0.003, uno_reset_delay_s: float = 0.25):
+                 tick_s: float = 0.003, uno_reset_delay_s: float = 0.25, truth_log=None):
         self.config = config or RigConfig()
+        #: the ground truth as CSV (``truth_log``: a path; rigctl.simulation.truth), from :meth:`truth_start` on
+        self.truth = TruthLog(truth_log) if truth_log is not None else None
         self.seed = seed
         self._port_dir = PortDir(port_dir)
         self.port_dir = self._port_dir.path
@@ -152,6 +155,9 @@ class SimulatedRig:
         if self.schedule is not None:
             self.schedule.due(self.model.time_s)
         samples, sync_in = self.mega.step(n_ms)
+        if self.truth is not None:
+            m = self.model
+            self.truth.row(m.time_s, m.contact_force_g, m.actuator_mm, m.drum_speed_mm_s)
         if self._read_source is None:
             self.uno.tick(samples, sync_in)
             return
@@ -176,12 +182,19 @@ class SimulatedRig:
         samples = np.asarray(self._read_source(n), dtype=np.uint16).reshape(n, ch)
         self.uno.tick(samples, sync_in)
 
+    def truth_start(self) -> None:
+        """The run starts now (physics clock): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""
+        if self.truth is not None:
+            self.truth.start(self.model.time_s)
+
     def close(self) -> None:
         """Stop the physics thread (joined), the Modbus server, close every pty and remove the port links."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=3)
             self._thread = None
+        if self.truth is not None:
+            self.truth.close()
         try:
             self.uno.close()
             self.mega.close()

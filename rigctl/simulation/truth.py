@@ -1,0 +1,55 @@
+"""The simulated rigs' ground truth as CSV (``--truth-log FILE``, issue 39): what the physical model did, to compare
+with what the firmware or the controller believed.
+
+Columns: ``time_s`` (s from the run's start: the moment the rig was open, the clock ``--inject`` times its faults
+on: the physics clock of the simulated rig, the Mega's simulated time under simavr), ``true_force_g`` (the contact
+force on the load cell, g, not the HX711's delayed reading), ``actuator_mm`` (the actuator's real position from home,
+mm, + towards the sensor), ``drum_speed_mm_s`` (the drum's real surface speed, mm/s). One row per physics step of
+the simulated rig (<= 10 ms) or per report of the HIL harness (every 10 ms of simulated time): >= 100 Hz.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+__all__ = ["TruthLog", "TRUTH_COLUMNS"]
+
+TRUTH_COLUMNS = ("time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
+
+
+class TruthLog:
+    """A CSV file of ground-truth rows, written from the moment :meth:`start` gives the run's start.
+
+    Parameters
+    ----------
+    path : the file to create. FileExistsError if it exists (a user's file is never overwritten).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self.path = Path(path)
+        self._file = open(self.path, "x", encoding="ascii", newline="")  # noqa: SIM115 - closed by close()
+        self._file.write(",".join(TRUTH_COLUMNS) + "\n")
+        self._lock = threading.Lock()
+        self._t0: float | None = None
+        self.rows = 0
+
+    def start(self, t0_s: float) -> None:
+        """The run starts at the physics clock's ``t0_s`` (the first call wins); rows before it are not written."""
+        with self._lock:
+            if self._t0 is None:
+                self._t0 = float(t0_s)
+
+    def row(self, t_s: float, true_force_g: float, actuator_mm: float, drum_speed_mm_s: float) -> None:
+        """One row at the physics clock's ``t_s`` (nothing before :meth:`start`, or after :meth:`close`)."""
+        with self._lock:
+            if self._t0 is None or self._file.closed or t_s < self._t0:
+                return
+            self._file.write(f"{t_s - self._t0:.4f},{true_force_g:.2f},{actuator_mm:.4f},{drum_speed_mm_s:.3f}\n")
+            self.rows += 1
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._file.closed:
+                self._file.close()
