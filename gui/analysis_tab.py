@@ -315,8 +315,17 @@ class AnalysisTab(QtWidgets.QWidget):
     def _browse(self):
         from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
 
-        start = str(self.main.settings.value("dirs/analysis", self.main.settings.value("dirs/output", "")))
-        return choose_path(self, "open", "Open", start, "HDF5 (*.h5 *.hdf5)", self.open)
+        return choose_path(self, "open", "Open", self._session_dir(), "HDF5 (*.h5 *.hdf5)", self.open)
+
+    def _session_dir(self) -> str:
+        """Where the Open dialog starts: the last file opened here, else the sessions' output folder, else the working
+        folder; never empty (an empty start opened Qt's last-visited folder: protocols/ after a protocol was
+        opened)."""
+        for key in ("dirs/analysis", "dirs/output"):
+            d = str(self.main.settings.value(key, "") or "")
+            if d and os.path.isdir(d):
+                return d
+        return os.getcwd()
 
     def open(self, path: str) -> None:
         """Show a session or encoded file's trials."""
@@ -336,6 +345,9 @@ class AnalysisTab(QtWidgets.QWidget):
         self._wanted_tid = self.shown_tid = None
         rows, layout = self._trial_rows()
         self._build_trial_view(layout)
+        for _p, raster in self.trial_rasters.values():  # the previous file's trial is not this file's
+            raster.setData([], [])
+        self.trial_plot.setTitle("Raw taxel readings")
         self.trials.clearSelection()  # a row selected in the previous file would not show its trial here
         self.trials.setRowCount(len(rows))
         for r, vals in enumerate(rows):
@@ -612,7 +624,8 @@ class AnalysisTab(QtWidgets.QWidget):
         """A busy bar that moves: indeterminate until the job reports a fraction (model training reports none)."""
         if job.fraction > 0:
             self.progress.setRange(0, 100)
-            self.progress.setValue(int(100 * job.fraction))
+            # 100 % only once the job is done (its last stage, e.g. fitting force coefficients, reports no fraction)
+            self.progress.setValue(min(99, int(100 * job.fraction)))
         else:
             self.progress.setRange(0, 0)
 
@@ -623,8 +636,9 @@ class AnalysisTab(QtWidgets.QWidget):
         self.status.setText(f"<span style='color:#c00'>{_html(what)}: {_html(describe_error(exc))}</span>")
 
     def _finish_job(self, job) -> None:
-        self._log(f"{self._job_kind} failed: {job.error}" if job.error else f"{self._job_kind} finished"
-                  + (f": {job.result}" if isinstance(job.result, str) else ""), error=bool(job.error))
+        if self._job_kind != "analyses" or job.error:  # analyses: logged by show_results, as the panel says
+            self._log(f"{self._job_kind} failed: {job.error}" if job.error else f"{self._job_kind} finished"
+                      + (f": {job.result}" if isinstance(job.result, str) else ""), error=bool(job.error))
         if job.error:
             self.status.setText(f"<span style='color:#c00'>{self._job_kind} failed: {_html(job.error)}</span>")
         elif self._job_kind == "encoding":
@@ -664,8 +678,9 @@ class AnalysisTab(QtWidgets.QWidget):
         tasks = [t for t, by_v in res.curves.items() if by_v]
         if not tasks:
             why = "; ".join(res.warnings) or "the tasks produced no results"
-            self.status.setText(f"<span style='color:#c00'>no analysis could run on "
-                                f"{_html(os.path.basename(str(self.encoded_path or self.path)))}: {_html(why)}</span>")
+            name = os.path.basename(str(self.encoded_path or self.path))
+            self.status.setText(f"<span style='color:#c00'>no analysis could run on {_html(name)}: {_html(why)}</span>")
+            self._log(f"no analysis could run on {name}: {why}", error=True)
             return
         self.results = res
         for combo in (self.task_combo, self.conf_task):
@@ -691,8 +706,10 @@ class AnalysisTab(QtWidgets.QWidget):
         self.warn_label.setText("<br>".join(res.warnings))
         self.views.setCurrentIndex(1)
         n = sum(len(v) for v in res.curves.values())
-        self.status.setText(f"analyses done: {len(tasks)} task(s), {n} curves"
-                            + (f"; {len(res.warnings)} note(s) under Table 1" if res.warnings else ""))
+        done = (f"analyses done: {len(tasks)} task(s), {n} curves"
+                + (f"; {len(res.warnings)} note(s) under Table 1" if res.warnings else ""))
+        self.status.setText(done)
+        self._log(done)
 
     def _draw_curves(self) -> None:
         from rigctl.analysis.data import variant_title

@@ -22,9 +22,10 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.errors import describe_error
 
-#: colours of the log levels in the panel
-LEVEL_COLOURS = {logging.DEBUG: "#888", logging.INFO: "#000", logging.WARNING: "#a60", logging.ERROR: "#c00",
-                 logging.CRITICAL: "#c00"}
+#: colours of the log levels in the panel; info lines take the palette's text colour (a fixed black was black on
+#: near-black with a dark palette), the others colours readable on a light and a dark background
+LEVEL_COLOURS: dict[int, str | None] = {logging.DEBUG: "#888", logging.INFO: None, logging.WARNING: "#d80",
+                                        logging.ERROR: "#e33", logging.CRITICAL: "#e33"}
 #: the panel keeps this many lines (older ones scroll away)
 MAX_LINES = 2000
 
@@ -179,9 +180,10 @@ class EventLog(QtWidgets.QWidget):
         t, level, source, text = entry
         stamp = time.strftime("%H:%M:%S", time.localtime(t))
         name = logging.getLevelName(level).lower()
-        colour = LEVEL_COLOURS.get(level, "#000")
+        colour = LEVEL_COLOURS.get(level)
         body = escaped(text).replace("\n", "<br>&nbsp;&nbsp;")
-        return (f"<span style='color:#666'>{stamp}</span> <span style='color:{colour}'><b>{name}</b> "
+        style = f" style='color:{colour}'" if colour else ""
+        return (f"<span style='color:#888'>{stamp}</span> <span{style}><b>{name}</b> "
                 f"{escaped(source)}: {body}</span>")
 
 

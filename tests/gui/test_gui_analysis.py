@@ -493,3 +493,49 @@ def test_accuracy_plot_shows_chance_n_and_what_the_error_bars_are(lone_tab, qapp
     assert "SD over repetitions" in info and "n = 30 test trials x 3 repetitions" in info and "20.0 %" in info
     names = [lone_tab.task_combo.itemText(i) for i in range(lone_tab.task_combo.count())]
     assert "Untrained Speed, speed-only extrapolation, baseline removed" in names
+
+
+def test_the_log_agrees_with_the_panel_and_progress_is_100_only_when_done(lone_tab, qapp):
+    """Issue 38 part 8: the log said "analyses finished" while the panel said "no analysis could run"; the bar showed
+    100 % while a last stage (force coefficients) was still fitted."""
+    from rigctl.analysis.tasks import Curve, TaskResults
+
+    logged: list[tuple[str, int]] = []
+    lone_tab.main.notify = lambda text, level=0, source="": logged.append((text, level))
+    lone_tab._job_kind = "analyses"
+    lone_tab._finish_job(SimpleNamespace(error=None, result=(TaskResults(warnings=["one trial only"]), "x.enc.h5")))
+    assert "no analysis could run" in lone_tab.status.text()
+    assert [t for t, _ in logged] == ["no analysis could run on x.enc.h5: one trial only"] and logged[0][1] >= 40
+    res = TaskResults()
+    res.add(Curve("textures", "original", np.full((2, 3), 0.5), 10, ["A", "B"], np.eye(2, dtype=np.int64), 3))
+    logged.clear()
+    lone_tab._finish_job(SimpleNamespace(error=None, result=(res, "x.enc.h5")))
+    assert [t for t, _ in logged] == ["analyses done: 1 task(s), 1 curves"] and logged[0][1] < 30
+    lone_tab._show_progress(SimpleNamespace(fraction=1.0))  # every stage counted, the job not yet done
+    assert lone_tab.progress.maximum() == 100 and lone_tab.progress.value() == 99
+
+
+def test_the_open_dialog_starts_in_the_sessions_folder_and_a_new_file_clears_the_old_rasters(lone_tab, qapp,
+                                                                                            tmp_path):
+    """Issue 38 part 8: the Open dialog started in Qt's last-visited folder (protocols/ after opening a protocol);
+    the previous file's trial rasters stayed after another file was opened."""
+    from rigctl.core import SensorLayout
+
+    out = tmp_path / "sessions"
+    out.mkdir()
+    lone_tab.main.settings.remove("dirs/analysis")
+    lone_tab.main.settings.setValue("dirs/output", str(out))
+    dlg = lone_tab._browse()
+    try:
+        assert dlg.directory().absolutePath() == str(out)
+    finally:
+        dlg.close()
+    lone_tab.main.settings.remove("dirs/output")
+    assert lone_tab._session_dir() == os.getcwd()
+    for _p, raster in lone_tab.trial_rasters.values():
+        raster.setData([0.1, 0.1], [0.6, 1.4], connect="pairs")  # a trial of the previous file
+    layout = SensorLayout.grid(2, 2, 1, sample_rate_hz=100.0)
+    lone_tab.open(str(_layout_session(tmp_path / "next.h5", layout, ["A", "B"], per_texture=2, duration_s=0.3)))
+    for _p, raster in lone_tab.trial_rasters.values():
+        x, _y = raster.getData()
+        assert x is None or len(x) == 0

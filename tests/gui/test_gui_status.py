@@ -126,3 +126,14 @@ def test_gap_breaks_put_a_nan_row_in_each_outage():
     assert list(nan_rows) == [3, 6] and np.allclose(out[nan_rows, 0], [1.2, 5.65])
     assert np.array_equal(out[~np.isnan(out[:, 1])], rows)
     assert gap_breaks(rows[:3], max_dt=1.0) is not None and len(gap_breaks(rows[:3], max_dt=1.0)) == 3
+
+
+def test_info_log_lines_take_the_palettes_text_colour():
+    """Issue 38 part 8: info lines were a fixed black (black on near-black with a dark palette)."""
+    import logging
+
+    from rigctl_gui.messages import EventLog
+
+    line = EventLog._line((0.0, logging.INFO, "app", "connected"))
+    assert "color:#000" not in line and "<span><b>info</b> app: connected</span>" in line
+    assert "color:#e33" in EventLog._line((0.0, logging.ERROR, "app", "x"))
