@@ -66,6 +66,7 @@ from rigctl.core.drum import (
     ForceLoopConfig,
     SpeedProfile,
     StatusFlag,
+    describe_faults,
     fault_advice,
 )
 from rigctl.core.interfaces import DrumController, ReplayProvenance, RigBackend, TaxelSource
@@ -220,6 +221,10 @@ class Rig:
         self.safety = SafetyLatch()
         #: this rig has homed the controller (a NOT_HOMED controller since then was reset: latched)
         self.homed_once = False
+        #: a fault the controller held when this rig opened and that opening cleared (``home=True``: the operator
+        #: who starts a run is present, as with ``--resume``), in words; the run logs it in its session as an
+        #: acknowledgement (:func:`rigctl.acquisition.runner.run_protocol`) and sets this back to None
+        self.cleared_at_open: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
@@ -313,6 +318,8 @@ class Rig:
             except DrumError:  # refused: the fault's condition persists (e.g. an HX711 at another rate): say which
                 st = self.drum.read_status()
                 raise DrumFault(st.faults, f"the fault persists ({fault_advice(st.faults)})") from None
+            self.cleared_at_open = {"cause": "fault held at open", "fault_bits": int(st.faults),
+                                    "detail": describe_faults(st.faults)}
         if home:
             self._home()
         elif st.state == DrumState.NOT_HOMED:  # the opener asked not to home (doctor, a connect without HOME): its

@@ -361,6 +361,7 @@ def run_protocol(
                    halt_event=halt_event)
         if resume:
             run.acknowledge_open_latch(*(acknowledge or ("run resumed", operator_name())))
+        run.log_cleared_at_open()
         return run.run(pause_event)
 
 
@@ -530,6 +531,19 @@ class _Run:
         clears = {k: v for k, v in events[last].items() if k != "kind"}
         self.writer.log_event("acknowledged", clears=clears, reason=reason, by=by)
         self._report(f"acknowledged by {by} ({reason}): {clears.get('cause', '?')}: {clears.get('detail', '')}")
+
+    def log_cleared_at_open(self) -> None:
+        """A fault the controller held when the rig was opened for this run, cleared by opening it (the operator who
+        started the run is present, as with ``--resume``): logged in the session as that operator's acknowledgement,
+        so no latched fault is ever cleared without a trace (docs/safety.md)."""
+        cleared = getattr(self.rig, "cleared_at_open", None)
+        if not cleared:
+            return
+        self.rig.cleared_at_open = None
+        by = operator_name()
+        self.writer.log_event("acknowledged", clears=cleared, reason="cleared when the rig was opened for this run",
+                              by=by)
+        self._report(f"acknowledged by {by} (cleared when the rig was opened): {cleared['detail']}")
 
     def _on_latch(self, planned: PlannedTrial, index: int) -> bool:
         """The rig latched a fault: log it; end the run (``on_latch="end"``: False) or wait for an operator's

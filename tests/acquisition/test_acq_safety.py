@@ -163,3 +163,28 @@ def test_a_fault_latched_while_idle_is_acknowledged_too():
         assert control.drum.read_status().state == DrumState.IDLE
         with pytest.raises(ValueError, match="nothing is latched"):
             control.acknowledge("again", by="pytest")
+
+
+def test_a_fault_cleared_by_opening_the_rig_is_logged_as_the_operators_acknowledgement(tmp_path):
+    """A fault the controller still holds from before (an e-stop pressed and released while no run was going) is
+    cleared when a run opens the rig with HOME (the operator who starts it is present, as with ``--resume``); the
+    session's event log names it as that operator's acknowledgement: no latched fault is cleared without a trace."""
+    from rigctl.acquisition.runner import run_protocol
+    from rigctl.rigs import open_rig
+
+    with open_rig("inprocess", home=False) as rig:
+        mega = rig.backend.controller
+        mega.set_estop(True)
+        rig.drum.read_status()  # the controller runs its ESTOP path on the simulated clock
+        mega.set_estop(False)
+        st = rig.drum.read_status()
+        assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults  # latched, released, not cleared
+        rig._prepare(home=True)  # what opening with HOME does
+        assert rig.drum.read_status().state == DrumState.IDLE
+        summary = run_protocol(load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", rig=rig)
+    assert summary.ok
+    with open_session(tmp_path / "s.h5") as s:
+        events = s.events
+    assert [e["kind"] for e in events] == ["acknowledged"]
+    assert events[0]["clears"]["cause"] == "fault held at open" and "ESTOP" in events[0]["clears"]["detail"]
+    assert events[0]["by"]
