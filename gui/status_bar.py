@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.acquisition.link_health import LinkEvent, LinkHealth, LinkState, dropped_frames_severity
 
@@ -130,7 +130,11 @@ class LinkStatus(QtWidgets.QWidget):
 
 class Banner(QtWidgets.QFrame):
     """A non-modal message: red for a problem, green for good news (which hides itself after a while). Its text is
-    cut to the strip's height; the tooltip and the event log have it whole."""
+    shown whole, wrapped (never cut with "..."): in a smaller font down to :attr:`MIN_PX` when it needs more lines
+    than the strip has, and past that scrollable inside the strip (whose height never changes); the tooltip and the
+    event log have it too."""
+
+    MIN_PX = 9
 
     def __init__(self, name: str = "", parent=None):
         super().__init__(parent)
@@ -141,10 +145,19 @@ class Banner(QtWidgets.QFrame):
         self.label.setWordWrap(True)
         self.label.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
         self.label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
-        self.label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
+        self.label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
+        self.scroll = QtWidgets.QScrollArea()  # a text longer than the strip scrolls in it, never cut
+        self.scroll.setWidget(self.label)
+        self.scroll.setWidgetResizable(True)
+        self.scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        self.scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.scroll.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
+        self.scroll.setStyleSheet("QScrollArea, QScrollArea > QWidget > QWidget { background: transparent; "
+                                  "border: none; }")
         lay = QtWidgets.QHBoxLayout(self)
         lay.setContentsMargins(6, 1, 4, 1)
-        lay.addWidget(self.label, 1)
+        lay.addWidget(self.scroll, 1)
+        self._base_px = self.label.fontInfo().pixelSize()
         self.close_btn = QtWidgets.QPushButton("Dismiss")
         self.close_btn.clicked.connect(self.hide)
         lay.addWidget(self.close_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
@@ -160,10 +173,11 @@ class Banner(QtWidgets.QFrame):
         self.text = text
         self._fit_text()
         self.setToolTip(text)
+        frame = f"QFrame#{self.objectName()}"
         self.setStyleSheet(
-            "QFrame { background: #fdd; border: 1px solid #c00; } QLabel { color: #900; font-weight: bold; "
+            f"{frame} {{ background: #fdd; border: 1px solid #c00; }} QLabel {{ color: #900; font-weight: bold; "
             "border: none; }" if error
-            else "QFrame { background: #dfd; border: 1px solid #080; } QLabel { color: #060; font-weight: bold; "
+            else f"{frame} {{ background: #dfd; border: 1px solid #080; }} QLabel {{ color: #060; font-weight: bold; "
             "border: none; }"
         )
         self.show()
@@ -174,12 +188,19 @@ class Banner(QtWidgets.QFrame):
 
 
     def _fit_text(self) -> None:
-        """Show as much of :attr:`text` as fits the strip's lines, cut at a word with an ellipsis (never a line
-        cut through the middle at the strip's edge)."""
-        fm = self.label.fontMetrics()
-        width = max(self.label.width() - 4, 40)
-        budget = width * Banners.LINES * 0.85  # word wrap leaves part of each line empty
-        self.label.setText(fm.elidedText(self.text, QtCore.Qt.TextElideMode.ElideRight, int(budget)))
+        """Show the whole :attr:`text`, wrapped, in the largest font (from the app's down to :attr:`MIN_PX`) whose
+        lines fit the strip's height; a text that does not fit even then scrolls."""
+        self.label.setText(self.text)
+        width = max(self.scroll.viewport().width() - 4, 40)
+        height = max(self.scroll.viewport().height(), 1)
+        font = self.label.font()
+        for px in range(max(self._base_px, self.MIN_PX), self.MIN_PX - 1, -1):
+            font.setPixelSize(px)
+            rect = QtGui.QFontMetrics(font).boundingRect(QtCore.QRect(0, 0, width, 100_000),
+                                                         int(QtCore.Qt.TextFlag.TextWordWrap), self.text)
+            if rect.height() <= height:
+                break
+        self.label.setFont(font)
 
     def resizeEvent(self, ev):  # noqa: N802 - Qt override
         super().resizeEvent(ev)

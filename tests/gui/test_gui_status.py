@@ -79,9 +79,11 @@ def test_banners_come_and_go_without_moving_anything(qapp):
     qapp.processEvents()
     assert banners["fault"].isVisible() and banners["taxel"].isVisible()
     assert (banners.geometry(), button.geometry()) == before
-    # cut at a word with an ellipsis to the strip's lines; the whole text is kept for the tooltip and the log
+    # shown whole (wrapped; scrollable inside the strip when even the smallest font does not fit), never cut with
+    # an ellipsis (issue 38 part 8); the tooltip and the log have it too
     assert banners["fault"].text == long_text and banners["fault"].toolTip() == long_text
-    assert banners["fault"].label.text().endswith("…") and "END" not in banners["fault"].label.text()
+    assert banners["fault"].label.text() == long_text
+    assert banners["fault"].scroll.verticalScrollBar().maximum() > 0  # the end is reachable
     banners["fault"].hide()
     banners["taxel"].hide()
     qapp.processEvents()
@@ -137,3 +139,26 @@ def test_info_log_lines_take_the_palettes_text_colour():
     line = EventLog._line((0.0, logging.INFO, "app", "connected"))
     assert "color:#000" not in line and "<span><b>info</b> app: connected</span>" in line
     assert "color:#e33" in EventLog._line((0.0, logging.ERROR, "app", "x"))
+
+
+def test_banners_wrap_the_whole_text_and_keep_the_strips_height(qapp):
+    """Issue 38 part 8: at 1024 px the drum banner lost "While the link is down STOP cannot ..." to an ellipsis."""
+    from rigctl_gui.events import wait_for
+    from rigctl_gui.status_bar import Banners
+
+    strip = Banners()
+    strip.resize(1024, 10)
+    strip.show()
+    height = strip.height()
+    tail = "While the link is down STOP cannot reach the drum controller: stop the rig by hand (the red switch)."
+    drum = ("Drum controller (Mega) not responding for 2.0 s (/dev/ttyACM0): reconnecting every 1 s. " + tail)
+    strip["drum"].show_message(drum, error=True)
+    for t in ("taxel", "fault", "app"):
+        strip[t].show_message(f"{t}: a second message of some length to share the strip with", error=True)
+    wait_for(qapp, lambda: False, 0.1)
+    strip["drum"]._fit_text()
+    label = strip["drum"].label
+    assert label.text() == drum and "\u2026" not in label.text()  # whole, never elided
+    assert label.font().pixelSize() >= strip["drum"].MIN_PX
+    assert strip.height() == height  # nothing below the strip moves
+    strip.close()
