@@ -146,17 +146,17 @@ class Banner(QtWidgets.QFrame):
         self.label.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
         self.label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
         self.label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
-        self.scroll = QtWidgets.QScrollArea()  # a text longer than the strip scrolls in it, never cut
-        self.scroll.setWidget(self.label)
-        self.scroll.setWidgetResizable(True)
-        self.scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
-        self.scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.scroll.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
-        self.scroll.setStyleSheet("QScrollArea, QScrollArea > QWidget > QWidget { background: transparent; "
+        self.text_area = QtWidgets.QScrollArea()  # a text longer than the strip scrolls in it, never cut
+        self.text_area.setWidget(self.label)
+        self.text_area.setWidgetResizable(True)
+        self.text_area.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        self.text_area.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.text_area.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
+        self.text_area.setStyleSheet("QScrollArea, QScrollArea > QWidget > QWidget { background: transparent; "
                                   "border: none; }")
         lay = QtWidgets.QHBoxLayout(self)
         lay.setContentsMargins(6, 1, 4, 1)
-        lay.addWidget(self.scroll, 1)
+        lay.addWidget(self.text_area, 1)
         self._base_px = self.label.fontInfo().pixelSize()
         self.close_btn = QtWidgets.QPushButton("Dismiss")
         self.close_btn.clicked.connect(self.hide)
@@ -191,8 +191,8 @@ class Banner(QtWidgets.QFrame):
         """Show the whole :attr:`text`, wrapped, in the largest font (from the app's down to :attr:`MIN_PX`) whose
         lines fit the strip's height; a text that does not fit even then scrolls."""
         self.label.setText(self.text)
-        width = max(self.scroll.viewport().width() - 4, 40)
-        height = max(self.scroll.viewport().height(), 1)
+        width = max(self.text_area.viewport().width() - 4, 40)
+        height = max(self.text_area.viewport().height(), 1)
         font = self.label.font()
         for px in range(max(self._base_px, self.MIN_PX), self.MIN_PX - 1, -1):
             font.setPixelSize(px)

@@ -83,7 +83,7 @@ def test_banners_come_and_go_without_moving_anything(qapp):
     # an ellipsis (issue 38 part 8); the tooltip and the log have it too
     assert banners["fault"].text == long_text and banners["fault"].toolTip() == long_text
     assert banners["fault"].label.text() == long_text
-    assert banners["fault"].scroll.verticalScrollBar().maximum() > 0  # the end is reachable
+    assert banners["fault"].text_area.verticalScrollBar().maximum() > 0  # the end is reachable
     banners["fault"].hide()
     banners["taxel"].hide()
     qapp.processEvents()
