@@ -479,3 +479,34 @@ def test_peak_decimation_keeps_the_extremes():
     assert np.all(pairs[:, 0] % step == 0) and np.all(pairs[:, 1] - pairs[:, 0] == step - 1)
     dt2, dx2 = peak_decimate(t[:700], x[:700], width)
     assert len(dt2) == 700  # at most a sample per pixel: unchanged
+
+
+def test_a_refused_setpoint_never_moves_apply_press_or_run(qapp):
+    """Issue 38 part 8: a refusal under the setpoint boxes pushed Apply/Press/Run down 38 px (a QFormLayout drops a
+    hidden row's room); a click meant for Apply hit the message."""
+    from rigctl_gui.control_panel import ControlPanel
+    from rigctl_gui.events import wait_for
+
+    panel = ControlPanel()
+    panel.resize(1024, 640)
+    panel.set_enabled(True)
+    panel.show()
+    wait_for(qapp, lambda: False, 0.1)
+
+    def tops():
+        return [w.mapTo(panel, w.rect().topLeft()).y() for w in (panel.apply_btn, panel.buttons["press"],
+                                                                    panel.buttons["run"])]
+
+    before = tops()
+    panel.speed.setValue(5000.0)
+    panel.force.setValue(9000.0)  # two refusal lines
+    panel.apply_setpoints()
+    wait_for(qapp, lambda: False, 0.1)
+    assert panel.setpoint_error.isVisible() and "refused" in panel.setpoint_error.text()
+    assert tops() == before
+    panel.speed.setValue(80.0)
+    panel.force.setValue(500.0)
+    wait_for(qapp, lambda: False, 0.1)
+    assert not panel.setpoint_error.isVisible() and tops() == before
+    panel.close()
+    panel.deleteLater()
