@@ -204,6 +204,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.source_label = QtWidgets.QLabel()
         self.source_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.source_label.setStyleSheet("font-weight: bold;")
+        from rigctl_gui.widgets import StatusText
+
+        self.drum_state = StatusText("Drum: not connected", template="Drum: Seeking force 150 mm/s, 1500 g (fault "
+                                     "latched)", align=QtCore.Qt.AlignmentFlag.AlignRight)
+        self.drum_state.setObjectName("drum_state")
+        self.drum_state.setStyleSheet("font-weight: bold;")
         self.connect_btn = QtWidgets.QPushButton("Connect...")
         self.connect_btn.setToolTip("Choose the rig: the simulated rig, two serial ports, or a replay")
         self.connect_btn.clicked.connect(self.choose_source)
@@ -221,6 +227,19 @@ class MainWindow(QtWidgets.QMainWindow):
         # Esc = STOP in the main window: rigctl_gui.guards.StopGuard (also with a menu or a drop-down open)
         self.stop_btn.setFixedSize(160, 48)
 
+    def _show_drum_state(self) -> None:
+        """The drum's state in the top strip (seen from every tab), in its state's colour."""
+        from PySide6 import QtGui
+
+        from rigctl_gui.control_panel import drum_summary
+
+        text, colour = drum_summary(self.poller)
+        pal = self.drum_state.palette()
+        if pal.color(QtGui.QPalette.ColorRole.WindowText).name() != colour or self.drum_state.text() != text:
+            pal.setColor(QtGui.QPalette.ColorRole.WindowText, QtGui.QColor(colour))
+            self.drum_state.setPalette(pal)
+            self.drum_state.setText(text)
+
     def _build_layout(self) -> None:
         """The top strip (source, run strip, STOP: fixed height, never in a scroll area; the run strip shows and hides
         inside it), the banners, the tabs and the event log dock."""
@@ -229,7 +248,10 @@ class MainWindow(QtWidgets.QMainWindow):
         middle = QtWidgets.QVBoxLayout()
         middle.setContentsMargins(0, 0, 0, 0)
         middle.setSpacing(1)
-        middle.addWidget(self.source_label)
+        first = QtWidgets.QHBoxLayout()  # the source and the drum's state (turning, pressing, fault), on every tab
+        first.addWidget(self.source_label, 1)
+        first.addWidget(self.drum_state)
+        middle.addLayout(first)
         middle.addWidget(self.protocol.run_strip)
         middle.addStretch(1)
         top = QtWidgets.QHBoxLayout(self.top_strip)
@@ -682,6 +704,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.apply_run_lock()
             self._sync_actions()
             self._check_latch()
+            self._show_drum_state()
         if self._tick % self._health_every == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
             self._judge_dropped_frames()
             self.links.update_from(self.poller, self.handle.taxels if self.handle else None)

@@ -24,7 +24,7 @@ from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.operations import RigControl, setpoint_refusals
 from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
 
-__all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning"]
+__all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning", "drum_summary"]
 
 #: the status is polled at 10 Hz: a longer pause between two reads is an outage, drawn as a gap in the plots, s
 GAP_S = 1.0
@@ -37,6 +37,26 @@ STATE_COLOURS = {
     DrumState.RUNNING: "#080",
     DrumState.FAULT: "#c00",
 }
+
+
+def drum_summary(poller) -> tuple[str, str]:
+    """The drum in one short line and its colour, for the top strip seen from every tab: ``("Drum: Running 80 mm/s,
+    498 g", "#080")``, ``("Drum: FAULT", "#c00")``, not responding or not connected. ``poller``: the rig's monitor
+    (its latest status and link) or None."""
+    if poller is None:
+        return "Drum: not connected", "#555"
+    if not poller.ok:
+        return "Drum: NOT RESPONDING", "#c00"
+    st = poller.latest
+    if st is None:
+        return "Drum: -", "#555"
+    state = DrumState(int(st.state))
+    word = STATE_WORDS.get(state, state.name).split(" - ")[0]
+    if state in (DrumState.RUNNING, DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED):
+        word += f" {st.speed_mm_s:.0f} mm/s, {st.force_g:.0f} g"
+    if int(st.faults) and state != DrumState.FAULT:
+        word += " (fault latched)"
+    return f"Drum: {word}", STATE_COLOURS.get(state, "#c00" if int(st.faults) else "#555")
 
 
 class ControlPanel(QtWidgets.QWidget):

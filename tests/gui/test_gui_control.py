@@ -39,6 +39,11 @@ def test_setpoints_reach_the_simulated_drum_and_stop_stops_it(window, qapp, qtbo
                  and abs(poller.latest.speed_mm_s - 72.5) < 1.0, 30), poller.latest
     # the panel shows the state in words and the plots hold the history
     assert wait_for(qapp, lambda: panel.state_label.text().startswith("Running"), 30)
+    # ... and every tab's top strip says the drum is turning (issue 38 part 8)
+    window.tabs.setCurrentWidget(window.analysis)
+    assert wait_for(qapp, lambda: window.drum_state.text().startswith("Drum: Running"), 10), window.drum_state.text()
+    assert window.drum_state.isVisible()
+    window.tabs.setCurrentWidget(panel)
     assert wait_for(qapp, lambda: panel.speed_curve.getData()[1] is not None
                  and abs(panel.speed_curve.getData()[1][-1] - 72.5) < 1.5, 30)
     # the force loop holds the setpoint while the drum turns (it may settle after the speed: polled, not read once)
@@ -250,6 +255,7 @@ def test_a_latched_fault_is_shown_with_its_meaning_and_cleared_only_by_the_opera
         assert not window.banner.isVisible() or "FAULT" not in window.banner.text  # said once
         assert "Clear fault" in banner.text
         assert wait_for(qapp, lambda: "Latched faults: Load cell" in window.control.fault_label.text(), 2)
+        assert wait_for(qapp, lambda: window.drum_state.text() == "Drum: FAULT", 2), window.drum_state.text()
     finally:
         mega.set_loadcell_alive(True)
     wait_for(qapp, lambda: False, 1.0)  # nothing clears it by itself

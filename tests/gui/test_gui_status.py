@@ -162,3 +162,20 @@ def test_banners_wrap_the_whole_text_and_keep_the_strips_height(qapp):
     assert label.font().pixelSize() >= strip["drum"].MIN_PX
     assert strip.height() == height  # nothing below the strip moves
     strip.close()
+
+
+def test_the_drums_state_in_one_line_for_every_tab():
+    """Issue 38 part 8: the top strip (on every tab) says whether the drum turns, presses or is in fault."""
+    from rigctl.core.drum import DrumState
+    from rigctl_gui.control_panel import drum_summary
+
+    def status(state, faults=0):
+        return SimpleNamespace(ok=True, latest=SimpleNamespace(state=int(state), faults=faults, speed_mm_s=80.2,
+                                                               force_g=498.4))
+
+    assert drum_summary(None) == ("Drum: not connected", "#555")
+    assert drum_summary(SimpleNamespace(ok=False, latest=None))[0] == "Drum: NOT RESPONDING"
+    assert drum_summary(status(DrumState.RUNNING)) == ("Drum: Running 80 mm/s, 498 g", "#080")
+    assert drum_summary(status(DrumState.SEEKING_FORCE))[0] == "Drum: Seeking force 80 mm/s, 498 g"
+    assert drum_summary(status(DrumState.FAULT, 4)) == ("Drum: FAULT", "#c00")
+    assert drum_summary(status(DrumState.IDLE, 4))[0] == "Drum: Idle (fault latched)"
