@@ -264,6 +264,9 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
 @click.option("--seed", type=SEED, default=None,
               help="Seed of the simulated rig, and of a protocol's random trial order.")
+@click.option("--trials-per-condition", "trials_per_condition", type=click.IntRange(1, 100_000), default=None,
+              help="Override the TOML protocol's trials per condition (e.g. 1 for a first try of a long protocol); "
+                   "give it again with --resume.")
 @click.option("--on-failure", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
               help="What to do after a failed trial (timeout, fault).")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
@@ -284,7 +287,8 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @truth_log_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, classify,
-            calibration, classify_variant, pcs, resume, overwrite, seed, on_failure, config_path, plates, lsl, lsl_wait_s,
+            calibration, classify_variant, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
+            plates, lsl, lsl_wait_s,
             inject, allow_firmware_mismatch, truth_log, quiet):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
@@ -339,6 +343,10 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         raise UsageProblem(str(exc)) from None
     if seed is not None and isinstance(proto, Protocol):
         proto = proto.with_seed(seed)
+    if trials_per_condition is not None:
+        if not isinstance(proto, Protocol):
+            raise UsageProblem(f"--trials-per-condition: {protocol} is a Python plan; set its size in the script")
+        proto = dataclasses.replace(proto, trials_per_condition=trials_per_condition)
     handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware, replay=replay)
     classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld)
     if hardware and plates == "skip":
