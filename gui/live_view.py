@@ -673,14 +673,15 @@ class LiveView(QtWidgets.QWidget):
         if buf.pull() == 0:
             return False
         # only the window (and one sample before it) is copied out of the buffer
-        t, x = buf.view(last=int(np.ceil(self.window_s * buf.rate_hz)) + 2)
-        now = t[-1]
+        stream_t, x = buf.view(last=int(np.ceil(self.window_s * buf.rate_hz)) + 2)
+        t = buf.display_time(stream_t)  # an outage takes its real width on the time axis (a gap, not a seam)
+        stream_now, now = float(stream_t[-1]), float(t[-1])
         first = int(np.searchsorted(t, now - self.window_s - 1e-9))
-        t, x = t[first:], x[first:]
+        t, x, stream_t = t[first:], x[first:], stream_t[first:]
         width = self.data_width_px()
         # x = time before now: the axes never change, so pyqtgraph reuses their drawing; every taxel peak-decimated
         # to the pixel width in one compiled pass, straight into the polyline points (live_kernels)
-        first_index = int(round(t[0] * buf.rate_hz))
+        first_index = int(round(stream_t[0] * buf.rate_hz))  # the absolute sample number (bins stay put)
         need = live_kernels.decimated_length(len(t), width, first_index)
         pts = self._trace_points
         if pts is None or pts.shape[0] != x.shape[1] or pts.shape[1] < need:  # room for a few more points
@@ -688,7 +689,8 @@ class LiveView(QtWidgets.QWidget):
             self._trace_lo, self._trace_hi = np.empty(x.shape[1]), np.empty(x.shape[1])
         lo, hi = self._trace_lo, self._trace_hi
         n_points = live_kernels.decimate_traces(t, x, now, width, first_index, pts, lo, hi)
-        gaps = [(g - now, d) for g, d in buf.gaps if g - now > -self.window_s]
+        at = buf.display_time(np.array([g for g, _ in buf.gaps])) if buf.gaps else ()
+        gaps = [(float(g) - now, d) for g, (_, d) in zip(at, buf.gaps) if g - now > -self.window_s]
         breaks = np.searchsorted(pts[0, :n_points, 0], [g - 1e-9 for g, _ in gaps]) if gaps else ()
         self.shown_gaps = gaps
         self._show_gap_marks(gaps)
@@ -709,8 +711,8 @@ class LiveView(QtWidgets.QWidget):
             n = self._layout().n_channels
             height = max(int(round(self.raster_plots["sa"].vb.height())), 1)
             for key, ring in (("sa", enc.sa), ("ra", enc.ra)):
-                st, sc = ring.since(now - self.window_s)
-                st = st - now
+                st, sc = ring.since(stream_now - self.window_s)  # stream time, as the encoder counts it
+                st = buf.display_time(st) - now
                 self.drawn[key] = (st, sc)
                 self.raster_images[key].draw_spikes(st, sc, n, self.window_s, width, height)
             if self._refresh_n % INFO_EVERY == 0:

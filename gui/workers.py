@@ -164,6 +164,8 @@ class TraceBuffer:
         self.newest_host_time_s = float("nan")
         #: outages seen: (stream time of the first frame after it, s; its length in host time, s), newest last
         self.gaps: list[tuple[float, float]] = []
+        self._gap_at = np.zeros(0)  # the gaps' stream times and the shift each adds to the times after it
+        self._gap_shift = np.zeros(1)
 
     def pull(self) -> int:
         """Take the new frames from the ring; returns how many arrived."""
@@ -176,6 +178,10 @@ class TraceBuffer:
         if quiet > GAP_S:  # no frame arrived for that long: an outage, drawn as a gap in the traces
             self.gaps.append((idx[0] / self.rate_hz, quiet))
             del self.gaps[:-64]
+            # the frames lost in it have no number in the ring: its width on a time axis is the host's clock
+            self._gap_at = np.append(self._gap_at, idx[0] / self.rate_hz)[-64:]
+            extra = max(quiet - 1.0 / self.rate_hz, 0.0)
+            self._gap_shift = np.append(self._gap_shift, self._gap_shift[-1] + extra)[-65:]
         pick = idx % self.decimate == 0
         sub, sub_t = samples[pick], idx[pick] / self.rate_hz
         cap = len(self._x)
@@ -190,6 +196,16 @@ class TraceBuffer:
         self.current = samples[-1]
         self.newest_host_time_s = float(host_t[-1])
         return n
+
+    def display_time(self, t: np.ndarray) -> np.ndarray:
+        """Stream times ``t`` (s; frame number / rate, as :meth:`view` and the live encoder's spikes have them) on
+        a time axis where every outage takes its real width (the host's clock across it): ``t`` plus the length of
+        the outages before it. Returns a new float64 array of ``t``'s shape."""
+        t = np.asarray(t, dtype=np.float64)
+        if not len(self._gap_at):
+            return t.copy()
+        k = np.searchsorted(self._gap_at, t, side="right") + len(self._gap_shift) - len(self._gap_at) - 1
+        return t + self._gap_shift[k]
 
     def view(self, last: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(t (n,) s, readings (n, n_channels) uint16)``, oldest first: everything held, or only the newest

@@ -510,3 +510,35 @@ def test_a_refused_setpoint_never_moves_apply_press_or_run(qapp):
     assert not panel.setpoint_error.isVisible() and tops() == before
     panel.close()
     panel.deleteLater()
+
+
+def test_a_taxel_outage_takes_its_real_width_on_the_live_time_axis(live_view, qapp):
+    """Issue 38 part 8: a 3.5 s outage (its frames lost, so no frame numbers) took no width: everything left of it
+    was drawn 3.5 s too late. Now the time axis has a 3.5 s gap there, the trace starts 7.5 s back, and SA/RA
+    spikes (stream time, as the encoder counts) shift with the traces."""
+    from types import SimpleNamespace
+
+    from rigctl.devices.ring import RingBuffer
+
+    layout = FINGER_100HZ
+    view = live_view()
+    view.set_window(10.0)
+    ring = RingBuffer(4000, layout.n_channels)
+    enc = FakeEncoder(layout.n_channels, 3.99)  # spikes 0.1 s / 0.3 s before the last frame's stream time
+    view.attach(SimpleNamespace(ring=ring, layout=layout), enc)
+    x = frames(layout, 4.0)
+    n = len(x) // 2
+    zeros = np.zeros(n, np.uint16)
+    ring.write(x[:n], zeros, zeros.astype(np.uint8), 100.0 + np.arange(n) / layout.sample_rate_hz)
+    assert view.refresh()
+    after = 100.0 + (n - 1) / layout.sample_rate_hz + 3.5  # the first frame after the outage, host clock
+    ring.write(x[n:], zeros, zeros.astype(np.uint8), after + np.arange(n) / layout.sample_rate_hz)
+    assert view.refresh()
+    qapp.processEvents()
+    (where, length), = view.shown_gaps
+    assert length == pytest.approx(3.5, abs=0.01)
+    assert where == pytest.approx(-(n - 1) / layout.sample_rate_hz, abs=0.02)  # the mark at the first frame after
+    oldest = float(view._trace_points[0, 0, 0])
+    assert oldest == pytest.approx(-(2 * n - 1) / layout.sample_rate_hz - 3.5 + 1 / layout.sample_rate_hz, abs=0.02)
+    st, _ = view.drawn["sa"]
+    assert np.allclose(st, -0.1 - 0.01 * np.arange(layout.n_channels))  # after the outage: not shifted
