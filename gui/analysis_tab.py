@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core import PAPER_SENSOR, SensorLayout
 from rigctl.core.errors import describe_error
@@ -801,15 +801,25 @@ class AnalysisTab(QtWidgets.QWidget):
                                f"of the true class; trials summed over {c.acc.shape[0]} repetitions); {pile_text}")
 
     def _fit_conf_counts(self) -> None:
-        """Size the confusion counts to their cells (three-digit counts overlapped in a small window); hide them
-        when a cell is too small for any readable number."""
+        """Size the confusion counts to their cells (three-digit counts spilled into the next cell): the largest
+        font, up to 10 px, whose widest count takes at most 85 % of a cell's width on screen and whose line fits its
+        height; the counts are hidden when a cell is too small for 5 px."""
         if not self.conf_counts:
             return
         n = max(1, self.conf_img.image.shape[0] if self.conf_img.image is not None else 1)
         vb = self.conf_plot.plotItem.vb
-        cell_px = min(vb.width(), vb.height()) / n
-        digits = max(len(t.textItem.toPlainText()) for t in self.conf_counts)
-        size = int(min(10, cell_px * 0.9 / max(digits, 2) * 1.6))  # ~0.6 em per digit
+        cell_px = abs(vb.mapViewToScene(QtCore.QPointF(1, 0)).x() - vb.mapViewToScene(QtCore.QPointF(0, 0)).x())
+        if not cell_px > 0:  # not laid out yet
+            cell_px = min(vb.width(), vb.height()) / n
+        widest = max((t.textItem.toPlainText() for t in self.conf_counts), key=len)
+        font = self.conf_counts[0].textItem.font()
+        size = 10
+        while size >= 5:
+            font.setPixelSize(size)
+            fm = QtGui.QFontMetrics(font)
+            if fm.horizontalAdvance("8" * len(widest)) <= 0.85 * cell_px and fm.height() <= cell_px:
+                break
+            size -= 1
         for t in self.conf_counts:
             t.setVisible(size >= 5)
             if size >= 5:

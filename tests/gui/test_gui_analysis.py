@@ -539,3 +539,28 @@ def test_the_open_dialog_starts_in_the_sessions_folder_and_a_new_file_clears_the
     for _p, raster in lone_tab.trial_rasters.values():
         x, _y = raster.getData()
         assert x is None or len(x) == 0
+
+
+@pytest.mark.parametrize("size", [(1024, 620), (760, 520)])
+def test_three_digit_confusion_counts_fit_their_cells(lone_tab, qapp, size):
+    """Issue 38 part 8: three-digit counts spilled into the next cell (the cell size was guessed from the view, not
+    measured on screen)."""
+    from PySide6 import QtGui
+
+    from rigctl.analysis.tasks import Curve, TaskResults
+
+    res = TaskResults()
+    classes = [chr(65 + i) for i in range(16)]
+    cm = np.random.default_rng(0).integers(100, 1000, (16, 16)).astype(np.int64)
+    res.add(Curve("textures", "original", np.full((20, 5), 0.5), 100, classes, cm, 5))
+    lone_tab.resize(*size)
+    lone_tab.show_results(res)
+    lone_tab.views.setCurrentIndex(3)
+    wait_for(qapp, lambda: False, 0.3)
+    lone_tab._fit_conf_counts()
+    vb = lone_tab.conf_plot.plotItem.vb
+    cell = abs(vb.mapViewToScene(QtCore.QPointF(1, 0)).x() - vb.mapViewToScene(QtCore.QPointF(0, 0)).x())
+    shown = [t for t in lone_tab.conf_counts if t.isVisible()]
+    assert len(shown) == 256, (cell, size)
+    widest = max(QtGui.QFontMetrics(t.textItem.font()).horizontalAdvance(t.textItem.toPlainText()) for t in shown)
+    assert widest <= 0.9 * cell, (widest, cell)
