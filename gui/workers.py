@@ -376,6 +376,7 @@ class ProcessJob:
         self.error: str | None = None
         self.traceback: str | None = None
         self.events: list = []  # the ProgressEvents received, in order
+        self._counted_stage: str | None = None  # the stage of the newest counted event
         self.started = threading.Event()  # set once the process runs (or could not be started)
         self._launch_error: str | None = None
         self._lock = threading.Lock()  # the launch thread's start vs cancel
@@ -444,6 +445,9 @@ class ProcessJob:
         self.events.append(event)
         if event.total is None:
             self.message = event.message
+            if event.stage != self._counted_stage:  # a stage that counts nothing (fitting force coefficients):
+                self.fraction = 0.0  # busy, not the previous stage's 100 %
             return
+        self._counted_stage = event.stage
         self.fraction = event.fraction
         self.message = f"{event.stage}: {event.done}/{event.total}" + (f" ({event.message})" if event.message else "")

@@ -564,3 +564,18 @@ def test_three_digit_confusion_counts_fit_their_cells(lone_tab, qapp, size):
     assert len(shown) == 256, (cell, size)
     widest = max(QtGui.QFontMetrics(t.textItem.font()).horizontalAdvance(t.textItem.toPlainText()) for t in shown)
     assert widest <= 0.9 * cell, (widest, cell)
+
+
+def test_a_stage_that_counts_nothing_is_busy_not_100_percent():
+    """Issue 38 part 8: after 'reading trials' reached 100 %, the bar stayed there while the force coefficients were
+    fitted (a stage that reports only a message)."""
+    from rigctl.core.progress import ProgressEvent
+    from rigctl_gui.workers import ProcessJob
+
+    job = ProcessJob("encode")
+    job._on_progress(ProgressEvent("reading trials", 40, 40, "", "trial"))
+    assert job.fraction == 1.0
+    job._on_progress(ProgressEvent("reading trials", 40, None, "3 trials excluded", ""))  # a note within the stage
+    assert job.fraction == 1.0
+    job._on_progress(ProgressEvent("force fit", 0, None, "fitting force coefficients on 40 trials ...", ""))
+    assert job.fraction == 0.0 and "force coefficients" in job.message  # the tab shows a busy bar
