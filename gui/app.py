@@ -206,8 +206,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.source_label.setStyleSheet("font-weight: bold;")
         from rigctl_gui.widgets import StatusText
 
-        self.drum_state = StatusText("Drum: not connected", template="Drum: Seeking force 150 mm/s, 1500 g (fault "
-                                     "latched)", align=QtCore.Qt.AlignmentFlag.AlignRight)
+        # room for the usual line; a longer one loses its start (right-aligned), never its end ("fault latched")
+        self.drum_state = StatusText("Drum: not connected", template="Drum: Seeking force 120 mm/s, 1000 g",
+                                     align=QtCore.Qt.AlignmentFlag.AlignRight)
         self.drum_state.setObjectName("drum_state")
         self.drum_state.setStyleSheet("font-weight: bold;")
         self.connect_btn = QtWidgets.QPushButton("Connect...")
