@@ -713,6 +713,8 @@ class LiveView(QtWidgets.QWidget):
             for key, ring in (("sa", enc.sa), ("ra", enc.ra)):
                 st, sc = ring.since(stream_now - self.window_s)  # stream time, as the encoder counts it
                 st = buf.display_time(st) - now
+                keep = st >= -self.window_s  # an outage in the window pushes the spikes before it further back
+                st, sc = st[keep], sc[keep]
                 self.drawn[key] = (st, sc)
                 self.raster_images[key].draw_spikes(st, sc, n, self.window_s, width, height)
             if self._refresh_n % INFO_EVERY == 0:

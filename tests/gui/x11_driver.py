@@ -237,6 +237,7 @@ def main(out_path: str) -> int:
     pause(0.5)
     res["gaps"] = [list(g) for g in w.live.shown_gaps]
     res["segments"] = [len(it.segments) for it in w.live.trace_items]
+    res["first_t"] = [float(it.t[0]) if len(it.t) else 0.0 for it in w.live.trace_items]  # oldest point, s before now
     out["stall"] = res
     w.emergency_stop()
     stopped()
