@@ -18,6 +18,17 @@ DEBIAN_PACKAGES=(
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 
+# the cores other programs keep busy (a shared CI machine, CPU hogs beside the run), sampled over 1 s from /proc/stat
+# before anything of ours starts: the test workers are counted on the cores left (see the pytest step below)
+others_busy_cores="$(python3 -c '
+import os, time
+def snap():
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    return sum(v), v[3] + v[4]
+t0, i0 = snap(); time.sleep(1.0); t1, i1 = snap()
+print(int(round((1 - (i1 - i0) / max(t1 - t0, 1)) * (os.cpu_count() or 1))))' 2>/dev/null || echo 0)"
+
 # everything the checks make goes to a scratch folder outside the checkout, removed at the end: the firmware build
 # (rigctl.firmware honours $RIGCTL_FIRMWARE_BUILD; the firmware tests use this build), import-linter's cache,
 # Hypothesis' example database, numba's compiled kernels, Python's byte code, pytest's cache, the apt log
@@ -162,8 +173,14 @@ phase "pytest"
 # hardware's 0.5 s answer timeout, among them); those wait for their real events, or use the rig kind's timeout, now. A
 # test module stays on one worker (--dist loadfile: module-scoped rigs and windows), or its xdist_group parts do; the
 # longest units first (tests/conftest.py)
+# On a machine other programs keep busy (measured at the start: $others_busy_cores cores), the workers are counted on
+# the cores left, at least one: every worker beside a CPU hog adds one more runnable process to share the cores with,
+# and the rigs paced to the wall clock then starve (a run beside two hogs on 2 cores with 7 workers failed 25 timing
+# tests in its first third; each simulated board is a thread that must run every millisecond or so)
 cores="$(nproc 2>/dev/null || echo 1)"
-workers="${RIGCTL_TEST_WORKERS:-$(( cores * 3 + 1 > 8 ? 8 : cores * 3 + 1 ))}"
+free_cores=$(( cores - others_busy_cores < 1 ? 1 : cores - others_busy_cores ))
+workers="${RIGCTL_TEST_WORKERS:-$(( free_cores * 3 + 1 > 8 ? 8 : free_cores * 3 + 1 ))}"
+echo "== $workers test workers ($cores cores, $others_busy_cores kept busy by other programs at the start)"
 status=0
 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
   "$@" || status=$?
