@@ -34,6 +34,9 @@ from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
 log = logging.getLogger(__name__)
 
+#: the longest physics step between two rows of the truth log (``--truth-log``), ms: >= 100 rows a second
+TRUTH_STEP_MS = 10
+
 
 def _source_reader(source):
     """``n -> (n, ch) uint16`` from a replay source (an object with ``read(n)``, or a callable)."""
@@ -154,10 +157,19 @@ class SimulatedRig:
     def _step(self, n_ms: int) -> None:
         if self.schedule is not None:
             self.schedule.due(self.model.time_s)
-        samples, sync_in = self.mega.step(n_ms)
-        if self.truth is not None:
+        if self.truth is None:
+            samples, sync_in = self.mega.step(n_ms)
+        else:  # the truth log keeps >= 100 rows a second when a starved physics thread catches up in longer steps
+            parts = []
             m = self.model
-            self.truth.row(m.time_s, m.contact_force_g, m.actuator_mm, m.drum_speed_mm_s)
+            for done in range(0, n_ms, TRUTH_STEP_MS):
+                parts.append(self.mega.step(min(TRUTH_STEP_MS, n_ms - done)))
+                self.truth.row(m.time_s, m.contact_force_g, m.actuator_mm, m.drum_speed_mm_s)
+            if len(parts) == 1:
+                samples, sync_in = parts[0]
+            else:
+                samples = np.concatenate([p[0] for p in parts])
+                sync_in = np.concatenate([p[1] for p in parts])
         if self._read_source is None:
             self.uno.tick(samples, sync_in)
             return
