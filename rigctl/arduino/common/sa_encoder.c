@@ -1,49 +1,48 @@
-/* On-board SA encoder: fixed-point Izhikevich SA neurons, incremental speed scaling, SR windows (sa_encoder.h). */
+/* On-board SA encoder: Izhikevich SA neurons, incremental speed scaling, SR windows (sa_encoder.h). */
 #include "sa_encoder.h"
 
 #include <string.h>
 
 #ifndef SA_DOUBLE
-#define Q1 ((int32_t)1 << SA_Q)
-#define V_REST (-65L * Q1)          /* c */
-#define U_REST (-13L * Q1)          /* b c */
-#define V_PEAK (30L * Q1)
-#define D_JUMP (6L * Q1)
-#define C140 (140L * Q1)
-#define K004 171798692L             /* 0.04 in Q0.32 */
-#define KAB 17179869L               /* a b = 0.004 in Q0.32 */
-#define KA 85899346L                /* a = 0.02 in Q0.32 */
-#define SAT 0x7FFFFFFFL
-#define I_MAX (4000L * Q1)
+/* float32: the host's default (live) kernel, rigctl.encoding.fused _sa_step "fast", operation for operation: the
+ * constants are the float32 values the host folds (kc[4:9]: h q, 1 + h f, h e, 1 - a, a b, each rounded from its
+ * float64 value; hex literals, so no compiler folds them differently), and every expression below is one IEEE
+ * single operation in the host's order (no contraction: -ffp-contract=off where the compiler would fuse). */
+#define K_HQ 0x1.47ae14p-6f         /* float32(0.5 * 0.04) */
+#define K_1HF 3.5f                  /* 1 + 0.5 * 5 */
+#define K_HE 70.0f                  /* 0.5 * 140 */
+#define K_1A 0x1.f5c29p-1f          /* float32(1 - 0.02) */
+#define K_AB 0x1.0624dep-8f         /* float32(0.02 * 0.2) */
+#define V_REST (-65.0f)
+#define U_REST (-13.0f)             /* float32(0.2) * -65 rounds to -13 exactly */
 
-/* (x * k) >> 32 with rounding, k a Q0.32 constant < 1 */
-static int32_t mul_q32(int32_t x, int32_t k) {
-    return (int32_t)(((int64_t)x * k + ((int64_t)1 << 31)) >> 32);
-}
-
-static int32_t sat32(int64_t x) {
-    return x > SAT ? SAT : (x < -SAT ? -SAT : (int32_t)x);
-}
-
-/* 0.5 (0.04 v^2 + 5 v + 140 - u + I) in Q13.18 (64-bit: no overflow for any int32 v) */
-static int64_t half_dv(int32_t v, int32_t rest) {
-    int64_t sq = ((int64_t)mul_q32(v, K004) * v) >> SA_Q; /* 0.04 v^2 */
-    return (sq + 5 * (int64_t)v + rest) >> 1;
+/* x / 2 for the float32 x = i_in - u0: exact in IEEE arithmetic, so it is done on the exponent (one integer
+ * subtraction instead of a software multiply on boards without an FPU) unless x is zero, subnormal-bound or not
+ * finite, where the multiply gives the IEEE result. */
+static float half(float x) {
+    union { float f; uint32_t b; } q;
+    q.f = x;
+    uint32_t ex = q.b & 0x7F800000UL;
+    if (ex > 0x00800000UL && ex != 0x7F800000UL) {
+        q.b -= 0x00800000UL;
+        return q.f;
+    }
+    return 0.5f * x;
 }
 
 /* One 1 ms step of taxel i on reading x; returns 1 on a spike. */
 static uint8_t neuron_step(sa_encoder_t *e, uint8_t i, uint16_t x) {
-    int32_t in = (int32_t)((((int64_t)((int32_t)x - (int32_t)e->offset[i]) * e->gain_q24[i]) + (1L << (23 - SA_Q))) >> (24 - SA_Q));
-    if (in > I_MAX) in = I_MAX;
-    if (in < -I_MAX) in = -I_MAX;
-    int32_t u0 = e->u[i];
-    int32_t rest = C140 - u0 + in;
-    int32_t v1 = sat32((int64_t)e->v[i] + half_dv(e->v[i], rest));
-    int32_t v2 = sat32((int64_t)v1 + half_dv(v1, rest));
-    int32_t u1 = u0 + mul_q32(v2, KAB) - mul_q32(u0, KA);
-    if (v2 >= V_PEAK) {
+    /* the host's normalisation in float32: ((float)x - (float)offset) * scale, exact integer difference first */
+    float in = (float)((int32_t)x - (int32_t)e->offset[i]) * e->scale[i];
+    in = in * e->k;
+    float v0 = e->v[i], u0 = e->u[i];
+    float w = K_HE + half(in - u0);             /* h (e - u + I) */
+    float v1 = v0 * (K_HQ * v0 + K_1HF) + w;
+    float v2 = v1 * (K_HQ * v1 + K_1HF) + w;
+    float u1 = K_1A * u0 + K_AB * v2;
+    if (v2 >= 30.0f) {
         e->v[i] = V_REST;
-        e->u[i] = u1 + D_JUMP;
+        e->u[i] = u1 + 6.0f;
         return 1;
     }
     e->v[i] = v2;
@@ -52,8 +51,10 @@ static uint8_t neuron_step(sa_encoder_t *e, uint8_t i, uint16_t x) {
 }
 
 static void set_range(sa_encoder_t *e, uint8_t i, uint16_t lo, uint16_t hi, uint16_t k) {
-    uint32_t span = (uint32_t)(hi - lo);
-    e->gain_q24[i] = hi <= lo ? 0 : (int32_t)((((uint64_t)k << 24) + span / 2) / span);
+    /* float32(1 / span) rounded once equals the host's float32(float64(1 / span)) for every span 1..65535
+     * (checked exhaustively: no double-rounding case), so the board may divide in single precision */
+    e->scale[i] = hi <= lo ? 0.0f : 1.0f / (float)(hi - lo);
+    e->k = (float)k;
 }
 #else /* SA_DOUBLE: the host float64 kernel's expressions, in its order (rigctl.encoding.fused, _sa_step "exact") */
 #define V_REST (-65.0)
