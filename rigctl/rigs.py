@@ -19,7 +19,9 @@ Kinds:
   (:class:`rigctl.simulation.inprocess.InProcessBackend`; fast unit tests of the runner and calibration).
 - ``"handheld"``: the paper's real-time system, no drum: an operator scans flat plates with the finger
   (:class:`rigctl.acquisition.handheld.HandheldRig`); option ``motion``: ``"sim"`` (default: the simulated operator,
-  :class:`rigctl.simulation.operator.SimulatedOperator`, on a simulated clock); :func:`open_handheld`.
+  :class:`rigctl.simulation.operator.SimulatedOperator`, on a simulated clock), ``"lsl:NAME"`` (a tracker stream),
+  ``"replay:S.h5"`` (a recorded handheld session, :class:`rigctl.simulation.handheld_replay.SessionScans`);
+  :func:`open_handheld`.
 
 Common options: ``prompt`` (operator prompt), ``host_config_path`` (the rig config file), ``home`` (HOME the
 actuator after opening), ``textures`` (the rig's default texture set).
@@ -208,7 +210,8 @@ def open_handheld(*, motion: str = "sim", prompt: Callable[[str], Any] | None = 
     """Open the handheld rig (:class:`rigctl.acquisition.handheld.HandheldRig`): its scans come from the simulated
     operator (``motion="sim"``: the plate's axis calibrated from its simulated touches of the plate's two ends) or a
     tracker's LSL stream (``motion="lsl:NAME[@channels]"``, :func:`rigctl.simulation.handheld_lsl.open_lsl_scans`:
-    the plate axis from the rig config; options ``resolve_s``, ``timeout_s``).
+    the plate axis from the rig config; options ``resolve_s``, ``timeout_s``) or a recorded handheld session
+    (``motion="replay:S.h5"``: its scans as recorded, :class:`rigctl.simulation.handheld_replay.SessionScans`).
     ``home`` is ignored (no actuator). Raises RigError for an unknown motion source or unusable options."""
     from rigctl.acquisition.handheld import HandheldRig
     from rigctl.core.handheld import PlateAxis
@@ -233,5 +236,16 @@ def open_handheld(*, motion: str = "sim", prompt: Callable[[str], Any] | None = 
         except (ScanError, ValueError) as exc:
             raise RigError(str(exc)) from None
         return HandheldRig(source, axis=config_axis, prompt=prompt, textures=textures, host_config_path=path)
-    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator) or 'lsl:NAME' (a tracker "
-                   "stream)")
+    if str(motion).startswith("replay:"):
+        from rigctl.simulation.handheld_replay import SessionScans
+
+        if options:
+            raise RigError(f"a replayed handheld session takes no option {', '.join(sorted(options))}")
+        try:
+            scans = SessionScans(str(motion).removeprefix("replay:"))
+        except (OSError, RuntimeError, ValueError) as exc:  # ScanError, SessionError: RuntimeErrors
+            raise RigError(f"cannot replay {str(motion).removeprefix('replay:')}: {exc}") from None
+        return HandheldRig(scans, prompt=prompt, textures=textures or scans.textures, host_config_path=path,
+                           mode="handheld-replay")
+    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator), 'lsl:NAME' (a tracker "
+                   "stream) or 'replay:S.h5' (a recorded handheld session)")

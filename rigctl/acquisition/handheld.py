@@ -138,8 +138,11 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     fit = DeviceClockFit(layout.sample_rate_hz)
     counts = fit.add(np.asarray(raw.seq), np.asarray(raw.host_time_s, np.float64))
     mapping = fit.mapping()
-    frame_t = (mapping.host_time(counts) if mapping is not None else
-               raw.host_time_s[0] + (counts - counts[0]) / layout.sample_rate_hz)
+    if raw.frame_time_s is not None:  # the source's own frame times (a replayed session's fitted clock)
+        frame_t = np.asarray(raw.frame_time_s, np.float64)
+    else:
+        frame_t = (mapping.host_time(counts) if mapping is not None else
+                   raw.host_time_s[0] + (counts - counts[0]) / layout.sample_rate_hz)
     keep = np.flatnonzero((frame_t >= t_in) & (frame_t < t_out))
     if keep.size == 0:
         raise ScanError("no taxel frame between the finger's entry and exit (is the taxel board streaming?)")
@@ -155,7 +158,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     seq = np.asarray(raw.seq, np.uint16)[keep]
     steps = np.bitwise_and(np.diff(seq.astype(np.int64)), 0xFFFF)
     attrs: dict[str, Any] = {
-        "boundary": "position", "scan_enter_s": t_in, "scan_leave_s": t_out,
+        "boundary": "position", "scan_enter_s": raw.time_origin_s + t_in, "scan_leave_s": raw.time_origin_s + t_out,
         "used_start_mm": float(used_mm[0]), "used_end_mm": float(used_mm[1]),
         "scan_duration_s": t_out - t_in, "scan_mean_speed_mm_s": (used_mm[1] - used_mm[0]) / (t_out - t_in),
         "tracker_samples": int(near.sum()), "tracker_rate_hz": 1.0 / period if period > 0 else math.nan,

@@ -160,10 +160,12 @@ def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, 
     if asked and not wants:
         raise click.UsageError(f"--handheld/--motion record on the handheld rig, but protocol {proto.name!r} is a drum "
                                "protocol (no rig = \"handheld\")")
-    if wants and (hil or inprocess or hardware or replay is not None):
+    if wants and (hil or inprocess or hardware or isinstance(replay, str)):
         raise click.UsageError(f"protocol {proto.name!r} records on the handheld rig (an operator's scans): drop "
-                               "--hil/--inprocess/--drum-port/--replay (--sim: the simulated operator; --motion "
-                               "lsl:NAME: a tracker)")
+                               "--hil/--inprocess/--drum-port (--sim: the simulated operator; --motion lsl:NAME: a "
+                               "tracker; --replay S.h5: a recorded handheld session)")
+    if wants and replay is not None and motion is not None:
+        raise click.UsageError("--replay replays a handheld session's scans, their motion included: drop --motion")
     return wants
 
 
@@ -188,13 +190,26 @@ def _scan_classifier(classify: Path | None, calibration: Path | None, variant: s
         raise UsageProblem(f"--classify: {' '.join(str(exc).split())}") from None
 
 
-def _prediction_lines(classifier: Any) -> list[str]:
-    """The summary's line on the live predictions (none without --classify)."""
+def _prediction_lines(classifier: Any, out: Path, replay: Any) -> list[str]:
+    """The summary's lines on the live predictions (none without --classify): the score; the predictions are logged
+    into the session; a replayed handheld session's are compared with those its recording logged."""
+    from rigctl.storage.session import SessionError
+
     if classifier is None or not classifier.predictions:
         return []
     right = sum(p.correct for p in classifier.predictions)
-    return [f"  predicted: {right}/{len(classifier.predictions)} scans correct ({100 * classifier.accuracy():.1f} %, "
-            f"{classifier.variant}, {classifier.model.n_pcs} PCs)"]
+    lines = [f"  predicted: {right}/{len(classifier.predictions)} scans correct ({100 * classifier.accuracy():.1f} "
+             f"%, {classifier.variant}, {classifier.model.n_pcs} PCs)"]
+    try:
+        classifier.log_to(out)
+        if isinstance(replay, Path):
+            n, diffs = classifier.compare_recorded(replay)
+            lines += ([f"  replay: {n - len(diffs)}/{n} predictions equal those of the recorded run"] if n else
+                      [f"  replay: {replay} logged no predictions to compare (recorded without --classify)"])
+            lines += [f"    {d}" for d in diffs]
+    except (SessionError, OSError) as exc:
+        lines.append(f"  the predictions were not logged in {out}: {' '.join(str(exc).split())}")
+    return lines
 
 
 def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | None, drum_port: str | None) -> Any:
@@ -238,7 +253,9 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @click.option("--replay", "replay", type=REPLAY, default=None,
               help="Simulated rig whose taxel board streams this recording (a session file, at its own layout and "
                    "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model; "
-                   "or lsl:NAME: the live LSL stream NAME (name or source id; a lab's own taxel device, docs/lsl).")
+                   "or lsl:NAME: the live LSL stream NAME (name or source id; a lab's own taxel device, docs/lsl). "
+                   "A handheld protocol replays a recorded handheld session's scans (taxels, tracker, boundaries): "
+                   "with --classify, its predictions are compared with those the recording logged.")
 @click.option("--handheld", is_flag=True, default=False,
               help="Use the handheld rig (the paper's real-time system: an operator scans flat plates with the finger; "
                    "a protocol with rig = \"handheld\" selects it anyway). Motion from the simulated operator unless "
@@ -380,6 +397,6 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
             summary = run.run()
         except (SessionError, FileExistsError, FileNotFoundError, ValueError, LslUnavailable) as exc:
             raise click.ClickException(str(exc)) from None
-    for line in summary.lines() + _prediction_lines(classifier):
+    for line in summary.lines() + _prediction_lines(classifier, out, replay if handheld else None):
         click.echo(line)
     sys.exit(0 if summary.ok else 1)

@@ -106,6 +106,10 @@ class RawScan:
     velocity_mm_s : (k,) float64 velocity along the plate from the tracker, mm/s, when the source gives it (a
         velocity channel); else computed from the position.
     attrs : what the source knows of the pass (simulated: the operator's intent and variability), JSON-able.
+    frame_time_s : (n,) float64 each frame's time on the host clock when the source knows it already (a recorded
+        session replayed: its trial's fitted clock); None: fitted from ``seq`` and ``host_time_s`` (a live board).
+    time_origin_s : the host clock's time at 0 of the times above when they are relative (a replayed trial's times
+        count from its first frame, exactly as recorded): added to the boundaries the cut reports.
     """
 
     taxels: np.ndarray
@@ -116,6 +120,8 @@ class RawScan:
     along_mm: np.ndarray | None = None
     velocity_mm_s: np.ndarray | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
+    frame_time_s: np.ndarray | None = None
+    time_origin_s: float = 0.0
 
 
 @runtime_checkable

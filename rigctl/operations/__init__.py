@@ -54,7 +54,7 @@ from rigctl.operations._calibrate import (
 )
 from rigctl.operations._control import Home, RigControl, RunStarted, open_control
 from rigctl.operations._doctor import doctor
-from rigctl.operations._handheld import Prediction, ScanClassifier
+from rigctl.operations._handheld import Prediction, ScanClassifier, recorded_predictions
 from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recordings
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, live_ring, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
@@ -74,6 +74,6 @@ __all__ = [
     "AnalysisPlan", "ANALYSIS_TASKS", "BaselineError", "run_analyses", "load_or_encode", "encoded_path_for",
     "train_model", "TrainedModel", "force_leak_report", "ProtocolRun", "RUN_STATES",
     "TrialSpikes", "trial_spikes", "session_taxel_range",
-    "import_recordings", "ImportReport", "IMPORT_PRESETS", "ScanClassifier", "Prediction",
+    "import_recordings", "ImportReport", "IMPORT_PRESETS", "ScanClassifier", "Prediction", "recorded_predictions",
     "calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation",
 ]

@@ -22,7 +22,7 @@ from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.trial import TrialData
 
-__all__ = ["Prediction", "ScanClassifier"]
+__all__ = ["Prediction", "ScanClassifier", "recorded_predictions"]
 
 #: how many readings the live encoder takes at a time (the taxel board's 1 kHz in 20 ms blocks)
 CHUNK_SAMPLES = 20
@@ -36,6 +36,8 @@ class Prediction:
     truth: str
     profile: str
     predicted: str
+    #: a replayed scan: the trial id it had in the recording replayed (``replayed_trial``), else None
+    source_trial: int | None = None
 
     @property
     def correct(self) -> bool:
@@ -113,7 +115,9 @@ class ScanClassifier:
 
     def classify(self, trial_id: int, truth: str, profile: str, data: TrialData) -> Prediction:
         """Predict one scan's texture; reports it (``on_prediction``, the LSL marker) and returns it."""
-        pred = Prediction(int(trial_id), str(truth), str(profile), str(self.model.predict(self.features(data))[0]))
+        source = data.attrs.get("replayed_trial")
+        pred = Prediction(int(trial_id), str(truth), str(profile), str(self.model.predict(self.features(data))[0]),
+                          None if source is None else int(source))
         self.predictions.append(pred)
         if self.on_prediction is not None:
             self.on_prediction(pred)
@@ -130,3 +134,42 @@ class ScanClassifier:
     def accuracy(self) -> float:
         """Fraction of the scans classified so far that were right (NaN before the first)."""
         return float(np.mean([p.correct for p in self.predictions])) if self.predictions else float("nan")
+
+    def log_to(self, session: str | os.PathLike[str]) -> int:
+        """Write the predictions made so far into the session file's event log (``prediction`` events: trial id,
+        truth, profile, predicted, correct, variant, PCs; after the run, which holds the file while it records).
+        Returns how many. Raises SessionError, OSError."""
+        from rigctl.storage.session import SessionWriter
+
+        w = SessionWriter.open(session)
+        try:
+            for p in self.predictions:
+                w.log_event("prediction", trial_id=p.trial_id, truth=p.truth, profile=p.profile,
+                            predicted=p.predicted, correct=p.correct, variant=self.variant, n_pcs=self.model.n_pcs)
+        finally:
+            w.close()
+        return len(self.predictions)
+
+    def compare_recorded(self, recording: str | os.PathLike[str]) -> tuple[int, list[str]]:
+        """The replay check: this run's predictions of replayed scans against those the recording logged for the
+        same scans (:meth:`log_to`). Returns (how many were compared, one line per difference). Raises
+        SessionError, OSError."""
+        recorded = recorded_predictions(recording)
+        n, diffs = 0, []
+        for p in self.predictions:
+            if p.source_trial is None or p.source_trial not in recorded:
+                continue
+            n += 1
+            if recorded[p.source_trial] != p.predicted:
+                diffs.append(f"scan {p.trial_id} (recorded trial {p.source_trial}): predicted {p.predicted}, the "
+                             f"recorded run predicted {recorded[p.source_trial]}")
+        return n, diffs
+
+
+def recorded_predictions(session: str | os.PathLike[str]) -> dict[int, str]:
+    """trial id -> predicted texture of a session's ``prediction`` events (the last one of each trial). Raises
+    SessionError, OSError."""
+    from rigctl.storage.session import open_session
+
+    with open_session(session) as s:
+        return {int(e["trial_id"]): str(e["predicted"]) for e in s.events if e.get("kind") == "prediction"}

@@ -37,8 +37,9 @@ class RigSource:
         windows out
     inject : faults injected into a simulated rig (``--inject``, :mod:`rigctl.core.faults`), timed on its clock from
         the moment it is open; refused by :func:`rigctl.rigs.open_rig` on a rig that cannot model one
-    motion : "handheld" only: where the finger's motion comes from: "sim" (the simulated operator, default) or
-        "lsl:NAME" (a tracker stream; :func:`rigctl.rigs.open_handheld`)
+    motion : "handheld" only: where the finger's motion comes from: "sim" (the simulated operator, default),
+        "lsl:NAME" (a tracker stream) or "replay:S.h5" (a recorded handheld session's scans;
+        :func:`rigctl.rigs.open_handheld`)
 
     Raises
     ------
@@ -72,10 +73,11 @@ class RigSource:
                    motion: str | None = None, allow_firmware_mismatch: bool = False) -> "RigSource":
         """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
         ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", ``handheld`` or a
-        ``motion`` -> "handheld", else "sim" (the flags' consistency is the CLI's to check)."""
+        ``motion`` -> "handheld" (with ``replay``: that recording's scans), else "sim" (the flags' consistency is the CLI's to check)."""
         inject = tuple(inject)
-        if handheld or motion is not None:
-            return cls("handheld", motion=motion or "sim", inject=inject)
+        if handheld or motion is not None:  # a recording replayed on the handheld rig: its scans
+            replayed = None if replay is None else f"replay:{replay}"
+            return cls("handheld", motion=motion or replayed or "sim", inject=inject)
         allow = allow_firmware_mismatch
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject,
@@ -100,6 +102,8 @@ class RigSource:
             what = "session replay" if str(self.replay_dir).lower().endswith((".h5", ".hdf5")) else "FabricSlide replay"
             return f"{what} ({self.replay_dir})"
         if self.kind == "handheld":
+            if str(self.motion).startswith("replay:"):
+                return f"handheld session replay ({str(self.motion).removeprefix('replay:')})"
             return ("simulated operator" if (self.motion or "sim") == "sim" else
                     f"handheld rig, motion from {self.motion}")
         if self.bootloaders:
