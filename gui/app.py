@@ -81,7 +81,7 @@ def sensor_layout(handle):
     reply), else the rig's, else the paper's 3x3x2 at 1 kHz."""
     from rigctl.core.sensor import PAPER_SENSOR
 
-    return (getattr(handle.taxels, "layout", None) or getattr(handle.rig, "layout", None) or PAPER_SENSOR)
+    return (getattr(handle.taxels, "layout", None) or handle.control.layout or PAPER_SENSOR)
 
 
 def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = None):
@@ -568,8 +568,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._show_faults(int(self.poller.latest.faults))
         self.commands = CommandExecutor(h.drum)
         self._attach_sensor(h, sensor_layout(h))
-        self.control.attach(h.drum, self.poller, self.commands, h.rig)
-        self.protocol.take_rig_defaults(h.rig)
+        self.control.attach(h.drum, self.poller, self.commands, h.control)
+        self.protocol.take_rig_defaults(h.control)
         self._update_source_label("connected")
         self.events.add(logging.INFO, "connect", f"connected to the {self.source.label()}")
         # everything long-lived exists now: move it out of the cyclic GC's reach, so full collections (which
@@ -869,7 +869,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """Build the sensor side for ``layout``: the calibration tab, a started live encoder (with the stored
         normalisation when it fits the layout) and the live view."""
         self.calibration.attach(h, layout)
-        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.rig, layout), layout=layout)
+        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.control, layout), layout=layout)
         self.encoder.start()
         self.live.attach(h.taxels, self.encoder, layout)
 

@@ -180,13 +180,13 @@ class CalibrationTab(QtWidgets.QWidget):
             self.status.setText(f"rig config: {exc}")
             return {}
 
-    def taxel_range(self, rig=None, layout: SensorLayout | None = None):
+    def taxel_range(self, control=None, layout: SensorLayout | None = None):
         """The stored per-taxel normalisation as a :class:`rigctl.core.normalisation.TaxelRange`, or None (none
         stored, or stored for another channel count than ``layout``'s, default this tab's layout)."""
         from rigctl.acquisition.calibration import stored_taxel_range
 
         layout = layout or self.sensor_layout
-        config = rig.host_config if rig is not None and rig.taxel_normalisation() else self._config()
+        config = control.host_config if control is not None and control.taxel_normalisation() else self._config()
         return stored_taxel_range(config, layout.n_channels)
 
     def show_config(self) -> None:
@@ -314,7 +314,7 @@ class CalibrationTab(QtWidgets.QWidget):
             self.status.setText(f"<span style='color:#c00'>{escaped(describe_error(exc))}</span>")
             return
         if self.handle is not None:
-            self.handle.rig.host_config = cfg
+            self.handle.control.host_config = cfg
         self.status.setText(done)
         self._apply_to_encoder()
         self.show_config()

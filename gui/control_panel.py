@@ -74,7 +74,6 @@ class ControlPanel(QtWidgets.QWidget):
         self.poller = None
         self.commands = None
         self.drum = None
-        self.rig = None
         self.ops: RigControl | None = None
         self._pending_plate: str | None = None  # the plate to mount once the operator agrees to stop the drum
 
@@ -301,14 +300,13 @@ class ControlPanel(QtWidgets.QWidget):
             w.setToolTip(f"Disabled: {reason}" if reason else tip)
         self.set_enabled(self._connected)
 
-    def attach(self, drum, poller, commands, rig=None) -> None:
+    def attach(self, drum, poller, commands, control: RigControl | None = None) -> None:
         """Bind to a connected drum (a :class:`rigctl.core.interfaces.DrumController`), its status poller and
-        command executor, and the rig (a :class:`rigctl.operations.RigControl`, or the
-        :class:`rigctl.acquisition.rig.Rig` it wraps) that the panel's commands go through."""
+        command executor, and the open rig (a :class:`rigctl.operations.RigControl`) that the panel's commands go
+        through."""
         self.drum, self.poller, self.commands = drum, poller, commands
-        self.ops = rig if isinstance(rig, RigControl) or rig is None else RigControl(rig)
-        self.rig = self.ops.rig if self.ops is not None else None
-        self.set_textures(getattr(self.rig, "textures", PAPER_TEXTURES))
+        self.ops = control
+        self.set_textures(PAPER_TEXTURES if control is None else control.textures)
         try:
             lim = drum.limits()
             self.set_limits(lim.speed_mm_s, lim.force_g)
@@ -317,7 +315,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.set_enabled(True)
 
     def detach(self) -> None:
-        self.drum = self.poller = self.commands = self.rig = self.ops = None
+        self.drum = self.poller = self.commands = self.ops = None
         self.set_enabled(False)
         self.state_label.setText("not connected")
 
@@ -372,7 +370,7 @@ class ControlPanel(QtWidgets.QWidget):
         return st is not None and (int(st.state) == DrumState.RUNNING or abs(st.speed_mm_s) > 0.5)
 
     def mount_plate(self, label: str | None = None, *, confirmed: bool = False) -> None:
-        """Release the sensor and mount texture plate ``label`` (:meth:`rigctl.acquisition.rig.Rig.mount_texture`;
+        """Release the sensor and mount texture plate ``label`` (:meth:`rigctl.operations.RigControl.mount_plate`;
         on hardware the operator has mounted it when pressing the button). The label is taken in the set's spelling
         (``"l"`` -> ``"L"``); a label the set does not have is refused in the panel's message line."""
         if self.commands is None or self.ops is None or self._refused_by_run():
@@ -474,5 +472,5 @@ class ControlPanel(QtWidgets.QWidget):
             f"speed {st.speed_mm_s:6.1f} mm/s (target {st.speed_target_mm_s:.1f})\n"
             f"drum {st.angle_deg:6.1f} deg, {st.revolutions} rev; actuator {st.actuator_mm:.2f} mm\n"
             f"firmware {fw}, heartbeat {st.heartbeat}\n"
-            f"plate {getattr(self.rig, 'texture', None) or 'unknown'}"
+            f"plate {(self.ops.plate if self.ops is not None else None) or 'unknown'}"
         )

@@ -506,11 +506,12 @@ class ProtocolTab(QtWidgets.QWidget):
             self._set_status(row, "acknowledged: recorded again")
             self._notify(logging.INFO, f"protocol {self.protocol_name()}: the fault was acknowledged, the run goes on")
 
-    def take_rig_defaults(self, rig) -> None:
-        """A rig connected: 'Publish on LSL' as its rig config says (``lsl.enabled``, default off)."""
+    def take_rig_defaults(self, control) -> None:
+        """A rig connected (a :class:`rigctl.operations.RigControl`): 'Publish on LSL' as its rig config says
+        (``lsl.enabled``, default off)."""
         from rigctl.operations import lsl_requested
 
-        self.lsl_box.setChecked(lsl_requested(None, getattr(rig, "host_config", None)))
+        self.lsl_box.setChecked(lsl_requested(None, control.host_config))
 
     def refresh(self) -> None:
         job = self.job

@@ -199,11 +199,12 @@ def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) 
     save("stopped", w.grab())
     p.request_abort()
     wait(lambda: p.job is None, 60)
-    mega = w.handle.sim.mega  # the simulated rig's controller: its e-stop input
-    mega.set_estop(True)
+    from rigctl.core.faults import parse_fault
+
+    bench = w.handle.control.bench  # the simulated bench's hand: the e-stop pressed for 2 s of the rig's clock
+    assert bench is not None, "the screenshots need a simulated rig"
+    bench.inject_faults([parse_fault("estop@0+2")])
     wait(lambda: w.fault_dialog is not None, 10)
-    wait(lambda: False, 1.5)
-    mega.set_estop(False)
     dlg = w.fault_dialog
     wait(lambda: dlg is not None and dlg.estop.text() == "released", 10)
     if dlg is not None:

@@ -24,6 +24,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.operations import (
     LIVE_WINDOW_MAX_S as LIVE_WINDOW_MAX_S,
     LiveEncoder as LiveEncoder,
+    RigControl,
     RigSource as RigSource,
     SpikeRing as SpikeRing,
     spike_capacity as spike_capacity,
@@ -39,26 +40,19 @@ class RigHandle:
     Attributes
     ----------
     control : rigctl.operations.RigControl
-        What the panels call (setpoints, press -> settle -> run, commands, status).
-    rig : rigctl.acquisition.rig.Rig
-        Owns the drum client, the taxel stream and (in simulation) the simulated rig; the protocol runner and the
-        calibration use it.
+        What the panels call (setpoints, press -> settle -> run, commands, status, the rig config, the mounted
+        plate) and listen to (its ``monitor``); the rig itself is the library's, never the GUI's.
     drum : rigctl.core.interfaces.DrumController (a DrumClient)
     taxels : rigctl.core.interfaces.TaxelSource (a TaxelStream)
-    sim : the simulated rig behind the ports (``rig.backend.sim``: SimulatedRig / HilRig), or None
     """
 
-    def __init__(self, control, source: RigSource | None = None):
-        from rigctl.operations import RigControl, live_ring
+    def __init__(self, control: RigControl, source: RigSource | None = None):
+        from rigctl.operations import live_ring
 
-        if not isinstance(control, RigControl):  # an acquisition Rig
-            control = RigControl(control, source)
         self.control = control
-        self.rig = control.rig
         self.source = source or control.source
         self.drum = control.drum
         self.taxels = control.taxels
-        self.sim = control.sim
         live_ring(self.taxels)  # the live view reads it: a source that keeps one only on request (in-process) now does
 
     @property

@@ -43,7 +43,11 @@ CAUSES: dict[str, tuple[str, str]] = {
     "reversed-cell": ("load cell reversed", "mount the load cell the right way (or fix the sign of its scale)"),
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
     "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
-    "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor"),
+    "actuator-direction": ("actuator turning the wrong way",
+                           "swap one coil pair of the actuator motor (rigctl doctor --check actuator-direction)"),
+    "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor (and that "
+                                                  "the actuator turns the right way: a reversed motor drives into its "
+                                                  "rear stop while its steps count on)"),
     "home-failed": ("HOME failed", "check the home switch and its wire"),
     "hx711-rate": ("wrong HX711 rate", "set the HX711's RATE pin (or the rig config's force_loop) to match"),
     "reset": ("unexpected controller reset", "check the controller's power and reset line"),
@@ -54,7 +58,8 @@ CAUSES: dict[str, tuple[str, str]] = {
 _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.ESTOP, "estop"), (Fault.FORCE_LIMIT, "force-limit"), (Fault.LOADCELL_REVERSED, "reversed-cell"),
     (Fault.WATCHDOG, "watchdog"), (Fault.LOADCELL_TIMEOUT, "loadcell-timeout"),
-    (Fault.ACTUATOR_TRAVEL, "actuator-travel"), (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
+    (Fault.ACTUATOR_DIRECTION, "actuator-direction"), (Fault.ACTUATOR_TRAVEL, "actuator-travel"),
+    (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
 )
 
 

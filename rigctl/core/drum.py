@@ -246,6 +246,12 @@ class DrumStatus:
         return StatusFlag.ESTOP_OPEN in self.flags
 
     @property
+    def home_switch(self) -> bool:
+        """The actuator's home switch reads closed now: the actuator is at (or behind) home, whatever its step
+        count says."""
+        return StatusFlag.HOME_SWITCH in self.flags
+
+    @property
     def drivers_enabled(self) -> bool:
         """The stepper drivers are enabled (EN active) now."""
         return StatusFlag.DRIVERS_ENABLED in self.flags

@@ -138,7 +138,7 @@ class DrumMonitor(Protocol):
         ...
 
     def wait_released(self, timeout_s: float, home_mm: float = ...) -> DrumStatus:
-        """Until IDLE with the actuator within ``home_mm`` (mm) of home: the sensor is free."""
+        """Until IDLE with the actuator within ``home_mm`` (mm) of home, or its home switch closed: the sensor is free."""
         ...
 
     def wait_force_settled(self, timeout_s: float) -> DrumStatus:

@@ -873,9 +873,10 @@ class DrumClient:
                           "the HX711 rate timed at boot", allow_fault=True)
 
     def wait_released(self, timeout_s: float, home_mm: float = 0.05) -> DrumStatus:
-        """Poll until IDLE with the actuator within ``home_mm`` of home (after STOP: the sensor is free).
+        """Poll until IDLE with the actuator within ``home_mm`` of home, or its home switch closed (after STOP: the
+        sensor is free; a back-off ends at the switch, where a step count that lost steps may still read more).
         DrumFault / DrumTimeout."""
-        return self._wait(lambda s: s.state == DrumState.IDLE and s.actuator_mm <= home_mm, timeout_s,
+        return self._wait(lambda s: s.state == DrumState.IDLE and (s.actuator_mm <= home_mm or s.home_switch), timeout_s,
                           f"IDLE with the actuator home (within {home_mm:g} mm)")
 
     def wait_force_settled(self, timeout_s: float) -> DrumStatus:

@@ -18,13 +18,14 @@ from rigctl.acquisition import calibration as cal
 from rigctl.acquisition.rigconfig import load_rig_config
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.sensor import SensorLayout
+from rigctl.operations._control import RigControl, rig_of
 
 __all__ = ["calibrate_loadcell", "record_taxel_normalisation", "store_taxel_normalisation", "StoredNormalisation"]
 
 ConfigPath = str | os.PathLike[str] | None
 
 
-def calibrate_loadcell(control: Any, mass_g: float, *, place_mass: Callable[[float], Any] | None = None,
+def calibrate_loadcell(control: RigControl, mass_g: float, *, place_mass: Callable[[float], Any] | None = None,
                        remove_mass: Callable[[float], Any] | None = None,
                        config_file: ConfigPath = None) -> cal.LoadCellCalibration:
     """Calibrate the load cell of ``control``'s rig with a known ``mass_g`` (g) and store the result in the rig
@@ -34,10 +35,10 @@ def calibrate_loadcell(control: Any, mass_g: float, *, place_mass: Callable[[flo
     simulated rig rests the mass itself (CalibrationError on hardware). Raises ValueError, CalibrationError,
     DrumError."""
     if place_mass is None:
-        place_mass, remove_mass = cal.simulated_mass(control.rig)
+        place_mass, remove_mass = cal.simulated_mass(rig_of(control))
     result = cal.calibrate_loadcell(control.drum, mass_g, place_mass=place_mass, remove_mass=remove_mass,
                                     config_file=config_file)
-    control.rig.host_config = load_rig_config(config_file)
+    control.host_config = load_rig_config(config_file)
     return result
 
 
@@ -51,18 +52,18 @@ class StoredNormalisation:
 
 
 def store_taxel_normalisation(norm: TaxelRange, layout: SensorLayout, *, config_file: ConfigPath = None,
-                              control: Any = None) -> StoredNormalisation:
+                              control: RigControl | None = None) -> StoredNormalisation:
     """Store ``norm`` as the rig config's taxel normalisation unless its span is implausibly small for ``layout``'s
     ADC (:func:`rigctl.acquisition.calibration.check_taxel_span` raises CalibrationError: the previous one stays in
     use); the one it replaces is kept for Undo; ``control``'s rig takes it up at once."""
     low = cal.check_taxel_span(norm, layout.adc_max)
     cal.store_taxel_normalisation(norm, config_file)
     if control is not None:
-        control.rig.host_config = load_rig_config(config_file)
+        control.host_config = load_rig_config(config_file)
     return StoredNormalisation(norm, low)
 
 
-def record_taxel_normalisation(control: Any, seconds: float, *, config_file: ConfigPath = None,
+def record_taxel_normalisation(control: RigControl, seconds: float, *, config_file: ConfigPath = None,
                                cancel: threading.Event | None = None,
                                progress: Callable[[float], Any] | None = None) -> StoredNormalisation:
     """Capture ``seconds`` s of the live taxel stream (the operator runs the drum over the textures meanwhile),

@@ -15,11 +15,12 @@ import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.safety import Acknowledgement, Latch
 from rigctl.core.drum import DrumFault, DrumLimits, DrumState, DrumStatus, SetpointRangeError
+from rigctl.core.faults import FaultInjector
 from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
@@ -29,10 +30,9 @@ from rigctl.operations._source import RigSource
 from rigctl.rigs import open_rig
 
 if TYPE_CHECKING:
-    from rigctl.simulation.hil import HilRig
-    from rigctl.simulation.rig import SimulatedRig
+    from rigctl.simulation.model import RigConfig
 
-__all__ = ["Home", "RigControl", "RunStarted", "open_control"]
+__all__ = ["Home", "RigControl", "RunStarted", "open_control", "rig_of"]
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +58,10 @@ class RunStarted:
     settle_s: float
 
 
-def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALWAYS, config: Any = None,
+def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALWAYS, config: RigConfig | None = None,
                  seed: int = 0, host_config_path: str | os.PathLike[str] | None = None,
-                 prompt: Callable[[str], Any] | None = None, **options: Any) -> "RigControl":
+                 prompt: Callable[[str], object] | None = None,
+                 textures: TextureSet | None = None) -> "RigControl":
     """Open the rig ``source`` names (default: the simulated rig) and start its taxel stream.
 
     Parameters
@@ -68,10 +69,11 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     source : the rig (:class:`RigSource`: kind, ports or recording).
     home : :class:`Home` (or its value): HOME always (clearing a latched fault first), unless a fault is latched
         (the GUI: a fault is never cleared behind the operator's back), or never.
-    config, seed : the simulated rig's model configuration and seed (simulated kinds).
+    config, seed : the simulated rig's model configuration (:class:`rigctl.simulation.model.RigConfig`) and seed
+        (simulated kinds; ignored on hardware).
     host_config_path : the rig config file (calibration); None: the library's default.
-    prompt : operator prompt for plate changes on hardware.
-    **options : further options of :func:`rigctl.rigs.open_rig` (e.g. ``textures``).
+    prompt : operator prompt for plate changes on hardware (``prompt(message)``; default: the terminal).
+    textures : the texture set plates are mounted from (default: the paper's 16 textures).
 
     Returns
     -------
@@ -91,8 +93,9 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     kind = opts.pop("kind")
     if kind != "hardware":
         opts.update(config=config, seed=seed)
-    rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path, home=home is Home.ALWAYS,
-                   **opts, **options)
+    if textures is not None:
+        opts["textures"] = textures
+    rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path, home=home is Home.ALWAYS, **opts)
     control = RigControl(rig, source)
     if home is Home.UNLESS_FAULTED:
         try:
@@ -103,23 +106,37 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     return control
 
 
+class _Run(Protocol):
+    """What :meth:`RigControl.stop` asks of the run recording on the rig (:class:`rigctl.operations.ProtocolRun`)."""
+
+    def stop(self) -> None: ...
+
+
+def rig_of(control: "RigControl") -> Rig:
+    """The acquisition layer's :class:`rigctl.acquisition.rig.Rig` that ``control`` owns: for the operator layer's own
+    modules (the run engine, the calibration, the doctor) and for tests that look inside. Never a face's: the faces
+    (CLI, GUI, server, LSL feed, protocols) hold the :class:`RigControl` and its events only (the import-linter
+    contracts ``faces-public-api`` and ``faces-never-reach-the-rig`` keep them off this module and the rig's)."""
+    return control._rig
+
+
 class RigControl:
-    """An open rig, driven as an operator does (see the module docstring). Open one with :func:`open_control`.
+    """An open rig, driven as an operator does (see the module docstring). Open one with :func:`open_control`; the
+    :class:`rigctl.acquisition.rig.Rig` it owns is private to the operator layer (:func:`rig_of`).
 
     Attributes
     ----------
-    rig : :class:`rigctl.acquisition.rig.Rig` (the protocol runner and the calibration use it)
     source : the :class:`RigSource` it was opened from
+    active_run : the protocol run recording on this rig now (:class:`rigctl.operations.ProtocolRun` registers
+        itself), which :meth:`stop` pauses; None
     """
 
     def __init__(self, rig: Rig, source: RigSource | None = None) -> None:
-        self.rig = rig
+        self._rig = rig
         self.source = source or RigSource(rig.mode)
         self._monitor: RigMonitor | None = None
         self._stop_listeners: list[Callable[[str], object]] = []
-        #: the protocol run recording on this rig now (:class:`rigctl.operations.ProtocolRun` registers itself), which
-        #: :meth:`stop` pauses
-        self.active_run: Any = None
+        self.active_run: _Run | None = None
 
     @property
     def monitor(self) -> RigMonitor:
@@ -135,7 +152,7 @@ class RigControl:
         """The monitor saw a new state or fault bits: a latched fault or an unexpected reset latches the rig (the
         safety policy's :meth:`rigctl.acquisition.rig.Rig.latch_unsafe`), as the rig's own reads do."""
         if event.kind in ("state", "faults") and event.status is not None:
-            self.rig.latch_unsafe(event.status, "status poll")
+            self._rig.latch_unsafe(event.status, "status poll")
 
     def on_stop(self, fn: Callable[[str], object]) -> Callable[[], None]:
         """Call ``fn(reason)`` at every :meth:`stop` before the controller is stopped (a run that must pause, not
@@ -146,43 +163,80 @@ class RigControl:
     # ------------------------------------------------------------------------------------------------- parts
     @property
     def drum(self) -> DrumController:
-        return self.rig.drum
+        """The drum controller's client (reads and single commands; the STOP policy and the safety latch are this
+        object's: :meth:`stop`, :meth:`acknowledge`)."""
+        return self._rig.drum
 
     @property
     def taxels(self) -> TaxelSource:
-        return self.rig.stream
+        """The taxel stream (its live ring, its link statistics ``stats`` where it keeps them)."""
+        return self._rig.stream
 
     @property
     def layout(self) -> SensorLayout:
         """The sensor the taxel stream delivers (its identify reply)."""
-        return self.rig.layout
+        return self._rig.layout
 
     @property
     def textures(self) -> TextureSet:
         """The texture set plates are mounted from."""
-        return self.rig.textures
+        return self._rig.textures
 
     @property
     def mode(self) -> str:
-        return self.rig.mode
+        """The rig's kind: "sim" | "hil" | "hardware" | "replay" | "inprocess" | "handheld"."""
+        return self._rig.mode
 
     @property
-    def sim(self) -> SimulatedRig | HilRig | None:
-        """The simulated rig behind the ports (the physical model's boards, or the firmware under simavr), or None
-        (hardware, in-process, replay): what a test or a demo pulls cables and presses the e-stop on."""
-        return cast("SimulatedRig | HilRig | None", getattr(self.rig.backend, "sim", None))
+    def plate(self) -> str | None:
+        """The label of the plate mounted now (:meth:`mount_plate`), or None when unknown."""
+        return self._rig.texture
+
+    @property
+    def host_config(self) -> dict[str, Any]:
+        """The rig config (the file's content: calibration, ``lsl``, ...) this rig copies into each session (a copy).
+        Set it to take up a config just written to the file (the calibration tab): later sessions copy it."""
+        return dict(self._rig.host_config)
+
+    @host_config.setter
+    def host_config(self, config: dict[str, Any]) -> None:
+        self._rig.host_config = dict(config)
+
+    def taxel_normalisation(self) -> dict[str, Any] | None:
+        """The rig config's per-taxel normalisation block (``taxel_min`` / ``taxel_max``, counts), or None."""
+        return self._rig.taxel_normalisation()
+
+    def on_marker(self, fn: Callable[[str, float, dict[str, Any]], object]) -> Callable[[], None] | None:
+        """Call ``fn(name, host_time_s, fields)`` at each marker the rig itself emits (the handheld rig: a scan's
+        entry into and exit from the plate's used middle). Returns the function that removes it, or None when this
+        rig emits none (the drum rigs: their state comes from :attr:`monitor` and the taxel stream)."""
+        listeners = getattr(self._rig, "marker_listeners", None)
+        if listeners is None:
+            return None
+        listeners.append(fn)
+        return lambda: listeners.remove(fn) if fn in listeners else None
+
+    @property
+    def bench(self) -> FaultInjector | None:
+        """The simulated bench's hand, for tests, demos and training (None on hardware): :meth:`inject_faults
+        <rigctl.core.faults.FaultInjector.inject_faults>` presses the e-stop, resets the controller, reverses the
+        load cell or the actuator, blocks the drum, cuts a link, on the rig's own clock from now (``--inject``'s
+        faults, docs/safety.md; a new schedule replaces the one armed before), and ``fault_refusal`` says what this
+        rig cannot model."""
+        backend = self._rig.backend
+        return backend if isinstance(backend, FaultInjector) else None
 
     @property
     def places_mass(self) -> bool:
         """True when the rig rests a calibration mass itself (the simulated backends)."""
-        return isinstance(self.rig.backend, MassPlacer)
+        return isinstance(self._rig.backend, MassPlacer)
 
     # ------------------------------------------------------------------------------------------------- life
     def close(self) -> None:
         """Stop the monitor, stop the rig safely and close it (never raises a device error)."""
         if self._monitor is not None:
             self._monitor.close()
-        self.rig.close()
+        self._rig.close()
 
     def __enter__(self) -> "RigControl":
         return self
@@ -234,7 +288,7 @@ class RigControl:
         """Press to ``force_g`` (g) and wait until the force has settled (:meth:`rigctl.acquisition.rig.Rig.press`);
         returns the time it took, s. SetpointRangeError (nothing sent), DrumTimeout, DrumFault."""
         self._check(force_g=force_g)
-        return self.rig.press(float(force_g))
+        return self._rig.press(float(force_g))
 
     def run_at(self, speed_mm_s: float, force_g: float) -> RunStarted:
         """Run the drum at ``speed_mm_s`` (mm/s) with the force loop holding ``force_g`` (g): both checked first,
@@ -242,7 +296,7 @@ class RigControl:
         loaded. SetpointRangeError (nothing sent), DrumTimeout (the force did not settle), DrumFault."""
         self._check(speed_mm_s=speed_mm_s, force_g=force_g)
         self.drum.set_speed(float(speed_mm_s))
-        settle_s = self.rig.press(float(force_g))
+        settle_s = self._rig.press(float(force_g))
         self.drum.run()
         return RunStarted(float(speed_mm_s), float(force_g), settle_s)
 
@@ -250,7 +304,7 @@ class RigControl:
     @property
     def latch(self) -> Latch | None:
         """The latched fault that holds the rig (docs/safety.md), or None. Nothing moves while one is held."""
-        return self.rig.safety.latch
+        return self._rig.safety.latch
 
     def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
         """An operator acknowledges the latched fault (the GUI's dialog, ``POST /ack``, ``rigctl acquire --resume``):
@@ -261,7 +315,7 @@ class RigControl:
         Returns the :class:`rigctl.acquisition.safety.Acknowledgement`. Raises ValueError (nothing latched, an empty
         reason), :class:`rigctl.acquisition.safety.LatchedFault` (the condition persists: e.g. the e-stop is still
         pressed; the latch stays), DrumError."""
-        return self.rig.acknowledge(reason, by=by)
+        return self._rig.acknowledge(reason, by=by)
 
     # ------------------------------------------------------------------------------------------------- commands
     def stop(self, reason: str = "STOP") -> bool:
@@ -275,7 +329,7 @@ class RigControl:
         run = self.active_run  # a protocol run on this rig pauses (the trial in progress discarded, resumable)
         if run is not None:
             run.stop()
-        return self.rig.safe_stop()
+        return self._rig.safe_stop()
 
     def stop_drum(self) -> None:
         """Drum to rest, the force loop keeps holding."""
@@ -288,7 +342,7 @@ class RigControl:
     def home(self) -> None:
         """Drive the actuator to its home switch. Refused while a fault is latched
         (:class:`rigctl.acquisition.safety.LatchedFault`: :meth:`acknowledge` homes the rig)."""
-        self.rig.safety.refuse("HOME")
+        self._rig.safety.refuse("HOME")
         self.drum.home()
 
     def clear_fault(self, *, by: str = "operator") -> None:
@@ -299,16 +353,16 @@ class RigControl:
             return
         self.drum.clear_fault()
 
-    def mount_plate(self, label: str, prompt: Callable[[str], Any] | None = None) -> str:
+    def mount_plate(self, label: str, prompt: Callable[[str], object] | None = None) -> str:
         """Release the sensor and mount plate ``label`` (taken in the set's spelling, ``"l"`` -> ``"L"``); returns
         the label mounted. ValueError (TextureSetError) for a label outside the rig's set, DrumError."""
         label = self.textures.resolve(str(label))
-        self.rig.mount_texture(label, prompt)
+        self._rig.mount_texture(label, prompt)
         return label
 
     def status(self) -> DrumStatus:
         """The controller's status now; a latched fault or a reset it shows latches the rig (:attr:`latch`: the
         owner's poll sees it whoever commanded the motion). DrumError."""
         st = self.drum.read_status()
-        self.rig.latch_unsafe(st, "status poll")
+        self._rig.latch_unsafe(st, "status poll")
         return st

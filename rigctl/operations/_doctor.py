@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from rigctl.acquisition import doctor as _doctor
-from rigctl.operations._control import Home, RigControl, open_control
+from rigctl.operations._control import Home, RigControl, open_control, rig_of
 from rigctl.operations._source import RigSource
 
 __all__ = ["doctor"]
@@ -51,14 +51,15 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
     """
     selected = _doctor.select(checks)
     if control is not None:
-        ctx = _doctor.DoctorContext(control.mode, rig=control.rig, config_path=host_config_path, rest_s=rest_s)
+        ctx = _doctor.DoctorContext(control.mode, rig=rig_of(control), config_path=host_config_path, rest_s=rest_s)
     else:
         # the doctor reports a firmware build mismatch as its firmware-build check, so it opens the boards anyway
         source = dataclasses.replace(source or RigSource(), allow_firmware_mismatch=True)
 
         def opener():
-            return open_control(source, home=Home.UNLESS_FAULTED, config=config, seed=seed,
-                                host_config_path=host_config_path).rig
+            control = open_control(source, home=Home.UNLESS_FAULTED, config=config, seed=seed,
+                                   host_config_path=host_config_path)
+            return rig_of(control)
 
         ctx = _doctor.DoctorContext(source.kind, opener=opener, drum_port=source.drum_port,
                                     taxel_port=source.taxel_port, config_path=host_config_path, rest_s=rest_s)

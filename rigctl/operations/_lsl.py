@@ -24,7 +24,6 @@ import numpy as np
 
 from rigctl.acquisition.clock import fitted_times
 from rigctl.acquisition.lsl import LslOutlets
-from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.normalisation import TaxelRange
 from rigctl.operations._control import RigControl
@@ -57,7 +56,8 @@ def _planned_fields(planned: Any) -> dict[str, Any]:
 
 
 class LslPublisher:
-    """Publishes a run on ``rig`` (a :class:`rigctl.acquisition.rig.Rig` or a ``RigControl``) over LSL.
+    """Publishes a run on the rig ``control`` owns (a :class:`rigctl.operations.RigControl`: a face of it, as the
+    CLI and the GUI are) over LSL.
 
     The taxels, spikes and drum state stream live from here on (:attr:`live`) until :meth:`close` (which pushes what
     is left). Pass :meth:`on_trial` as (or from) the run's ``on_trial``; :meth:`run_marker` for run-level events
@@ -66,20 +66,20 @@ class LslPublisher:
     Raises :class:`rigctl.acquisition.lsl.LslUnavailable` when pylsl is missing.
     """
 
-    def __init__(self, rig: RigControl | Rig, *, name: str | None = None, source_id: str | None = None,
+    def __init__(self, control: RigControl, *, name: str | None = None, source_id: str | None = None,
                  protocol_name: str = "", wait_s: float = 0.0) -> None:
-        self.rig: Rig = rig.rig if isinstance(rig, RigControl) else rig
+        self.control = control
         #: how long a run's ``run_start`` waits for a consumer of the marker stream (:meth:`wait_for_recorder`), s
         self.wait_s = float(wait_s)
-        block = (self.rig.host_config or {}).get("lsl") or {}
-        clock = getattr(self.rig.drum, "clock", None)
-        self.outlets = LslOutlets(self.rig.layout, name=name or block.get("name", "rigctl"),
+        block = control.host_config.get("lsl") or {}
+        clock = getattr(control.drum, "clock", None)
+        self.outlets = LslOutlets(control.layout, name=name or block.get("name", "rigctl"),
                                   source_id=source_id or block.get("source_id"),
                                   host_clock=clock.now if clock is not None else time.monotonic,
-                                  extra_desc={"protocol": protocol_name, "rig": self.rig.mode})
+                                  extra_desc={"protocol": protocol_name, "rig": control.mode})
         self.protocol_name = protocol_name
-        norm = self.rig.taxel_normalisation()
-        layout = self.rig.layout
+        norm = control.taxel_normalisation()
+        layout = control.layout
         self.normaliser = (TaxelRange.from_dict(norm) if norm else
                            TaxelRange(np.zeros(layout.n_channels), np.full(layout.n_channels, float(layout.adc_max))))
         #: markers pushed (their JSON documents), in order
@@ -87,11 +87,9 @@ class LslPublisher:
         #: the live taxel / spike / drum feed (started here); None on the handheld rig (no drum, no live ring: its
         #: scans' entry and exit go out as ``scan_enter`` / ``scan_leave`` markers at their times)
         self.live: LiveLslFeed | None = None
-        listeners = getattr(self.rig, "marker_listeners", None)
-        if listeners is not None:
-            listeners.append(self._scan_marker)
-        else:
-            self.live = LiveLslFeed(self.outlets, self.rig.stream, self.rig.drum, self.normaliser)
+        self._unlisten = control.on_marker(self._scan_marker)
+        if self._unlisten is None:
+            self.live = LiveLslFeed(self.outlets, control.taxels, control.drum, self.normaliser)
             self.live.start()
 
     def session_attrs(self) -> dict[str, Any]:
@@ -157,7 +155,6 @@ class LslPublisher:
         if self.outlets.outlets:
             if self.live is not None:
                 self.live.stop()
-            listeners = getattr(self.rig, "marker_listeners", None)
-            if listeners is not None and self._scan_marker in listeners:
-                listeners.remove(self._scan_marker)
+            if self._unlisten is not None:
+                self._unlisten()
             self.outlets.close()

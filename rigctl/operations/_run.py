@@ -20,8 +20,9 @@ from typing import Any
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import RunSummary, TrialEvent, run_protocol
+from rigctl.acquisition.safety import Acknowledgement
 from rigctl.core.progress import ProgressEvent
-from rigctl.operations._control import RigControl
+from rigctl.operations._control import RigControl, rig_of
 from rigctl.operations._lsl import LslPublisher
 
 __all__ = ["ProtocolRun", "RUN_STATES"]
@@ -35,7 +36,8 @@ class ProtocolRun:
 
     Parameters
     ----------
-    rig : an open rig: a :class:`rigctl.operations.RigControl` or the :class:`rigctl.acquisition.rig.Rig` it wraps.
+    rig : an open rig: a :class:`rigctl.operations.RigControl` (or a :class:`rigctl.acquisition.rig.Rig` from
+        :func:`rigctl.open_rig`, which the run wraps in one).
     protocol : a loaded protocol (:func:`rigctl.acquisition.protocol.load_protocol`).
     out_path : the session file; must not exist unless ``resume`` or ``overwrite``.
     resume, overwrite, on_failure, prompt : as :func:`rigctl.acquisition.runner.run_protocol`.
@@ -58,8 +60,8 @@ class ProtocolRun:
                  progress: Callable[[ProgressEvent], Any] | None = None,
                  on_trial: Callable[[TrialEvent], Any] | None = None, lsl: Any = False, on_latch: str = "wait",
                  acknowledge: tuple[str, str] | None = None) -> None:
-        self.control = rig if isinstance(rig, RigControl) else None
-        self.rig: Rig = rig.rig if isinstance(rig, RigControl) else rig
+        #: the rig's owner: the run registers itself as its :attr:`~RigControl.active_run` (its STOP pauses the run)
+        self.control = rig if isinstance(rig, RigControl) else RigControl(rig)
         self.on_latch, self.acknowledge_as = on_latch, acknowledge
         #: STOP: set with pause_event to cut the trial in progress short (:meth:`stop`)
         self.halt_event = threading.Event()
@@ -83,7 +85,7 @@ class ProtocolRun:
         if isinstance(lsl, LslPublisher):
             self.lsl = lsl
         elif lsl:
-            self.lsl = LslPublisher(self.rig, protocol_name=getattr(protocol, "name", ""))
+            self.lsl = LslPublisher(self.control, protocol_name=getattr(protocol, "name", ""))
             self._own_lsl = True
 
     # ------------------------------------------------------------------------------------------------- state
@@ -97,7 +99,7 @@ class ProtocolRun:
             return "ready"
         if self.stop_event.is_set():
             return "aborting"
-        if self.rig.safety.latched:
+        if self.control.latch is not None:
             return "latched"
         if self.pause_event.is_set():
             return "paused" if self._paused_now else "pausing"
@@ -120,15 +122,15 @@ class ProtocolRun:
         if not self._done.is_set() and not self.stop_event.is_set():
             self.pause_event.set()
             self.halt_event.set()
-            self.rig.safe_stop()
+            rig_of(self.control).safe_stop()
 
     def resume(self) -> None:
         """Go on after :meth:`pause` or :meth:`stop` (a latched fault needs :meth:`acknowledge` first)."""
         self.pause_event.clear()
 
-    def acknowledge(self, reason: str, *, by: str) -> Any:
-        """Acknowledge the rig's latched fault (:meth:`rigctl.acquisition.rig.Rig.acknowledge`); the run goes on."""
-        return self.rig.acknowledge(reason, by=by)
+    def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
+        """Acknowledge the rig's latched fault (:meth:`RigControl.acknowledge`); the run goes on."""
+        return self.control.acknowledge(reason, by=by)
 
     def abort(self) -> None:
         """Stop cleanly: the trial in progress is discarded, the rig left safe, finished trials stay in the file
@@ -145,13 +147,12 @@ class ProtocolRun:
         if self._started:
             raise RuntimeError("this run has already been started")
         self._started = True
-        if self.control is not None:
-            self.control.active_run = self
+        self.control.active_run = self
         try:
             if self.lsl is not None:
                 self.lsl.run_marker("run_start", out=str(self.out_path), resume=self.resume_file)
             self.summary = run_protocol(
-                self.protocol, self.out_path, rig=self.rig, resume=self.resume_file, progress=self.progress,
+                self.protocol, self.out_path, rig=rig_of(self.control), resume=self.resume_file, progress=self.progress,
                 stop_event=self.stop_event, pause_event=self.pause_event, on_trial=self._trial,
                 prompt=self.prompt, on_failure=self.on_failure, overwrite=self.overwrite,
                 session_attrs=None if self.lsl is None else self.lsl.session_attrs(), on_latch=self.on_latch,
@@ -165,7 +166,7 @@ class ProtocolRun:
             self.error = exc
             raise
         finally:
-            if self.control is not None and self.control.active_run is self:
+            if self.control.active_run is self:
                 self.control.active_run = None
             if self._own_lsl and self.lsl is not None:
                 self.lsl.close()

@@ -170,14 +170,14 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
         connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue, the
         current run and its current trial (id, texture, speed, force, attempt, last event)."""
         control = run_queue.control
-        rig: dict[str, Any] = {"mode": control.rig.mode}
+        rig: dict[str, Any] = {"mode": control.mode}
         latch = getattr(control, "latch", None)  # a latched fault holds the rig until POST /ack
         rig["latch"] = None if latch is None else {**_plain(latch.to_dict()), "text": latch.describe()}
         try:
             rig["drum"] = _plain(control.status())
         except Exception as exc:  # noqa: BLE001 - reported, not raised: the status page must answer
             rig["drum_error"] = describe_error(exc)
-        stats = getattr(control.rig.stream, "stats", None)  # read only: never restarts a link under a run
+        stats = getattr(control.taxels, "stats", None)  # read only: never restarts a link under a run
         rig["taxel_stream"] = None if stats is None else _plain(stats)
         current = run_queue.current_id
         return {"rig": rig, "held": run_queue.held, "current_run": None if current is None else

@@ -168,7 +168,7 @@ class MegaController:
         self.tared = False
         self._tare_pending = True  # taken at the first reading, only with the home switch closed
         self._tare_raw = 0
-        self._pos_offset_mm = model.actuator_mm  # the step count starts at 0 wherever the actuator stands
+        self._steps_true_mm = 0.0  # the actuator's step count (in true mm of its lead screw): 0 wherever it stands
         self._last_request = time.monotonic()
         self._heartbeat_ms = 0
         self._run_t0 = 0.0
@@ -324,11 +324,9 @@ class MegaController:
             return False
 
     def _actuator_position_mm(self) -> float:
-        """Where the controller believes the actuator is, mm: its step count over ACTUATOR_STEPS_PER_MM (the
-        firmware knows no other position; the true one differs when that calibration is wrong, or after a reset
-        away from home, which zeroes the count where the actuator stands)."""
-        return ((self.model.actuator_mm - self._pos_offset_mm) * _TRUE_ACTUATOR_STEPS_PER_MM
-                / self.holding[HR.ACTUATOR_STEPS_PER_MM])
+        """Where the controller believes the actuator is, mm: the steps sent (:meth:`step`) over ACTUATOR_STEPS_PER_MM,
+        as the firmware counts them; wrong after a miscalibration, a reset away from home, a reversed motor."""
+        return self._steps_true_mm * _TRUE_ACTUATOR_STEPS_PER_MM / self.holding[HR.ACTUATOR_STEPS_PER_MM]
 
     def _home_switch(self) -> bool:
         return self._home_switch_ok and self.model.actuator_mm <= 1e-6
@@ -563,7 +561,7 @@ class MegaController:
                 return HOME_SPEED_MM_S * cal
         if self._home_switch():  # return: home, the direction proven
             m.home_actuator()
-            self._pos_offset_mm = 0.0
+            self._steps_true_mm = 0.0
             self._homing = False
             self._tare_pending = True  # HOMING ends when the tare at the switch is taken
             return 0.0
@@ -643,6 +641,8 @@ class MegaController:
             s, y = self.model.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
             with self._lock:
                 y = self._index.step(y, rate, t0)
+                vmax = self.model.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
+                self._steps_true_mm += min(max(vel, -vmax), vmax) * k / 1000.0
             self.control_step(k)
             samples.append(s)
             sync.append(y)

@@ -62,12 +62,12 @@ class _Rx:
 @pytest.mark.lsl
 def test_a_run_is_published_on_lsl_live(lsl, tmp_path):
     from rigctl.encoding.izhikevich import encode_ra, encode_sa
-    from rigctl.operations import LslPublisher, ProtocolRun
+    from rigctl.operations import LslPublisher, ProtocolRun, RigControl
 
     sid = f"rigctl-test-{uuid.uuid4().hex[:8]}"
     events, live = [], []
     with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json") as rig:
-        pub = LslPublisher(rig, source_id=sid, protocol_name="lsl_test")
+        pub = LslPublisher(RigControl(rig), source_id=sid, protocol_name="lsl_test")
         rx = {k: _Rx(_inlet(lsl, f"{sid}-{k}")) for k in ("taxels", "spikes", "drum", "markers")}
         info = rx["taxels"].inlet.info()
         stream, end_capture = rig.stream, rig.stream.end_capture

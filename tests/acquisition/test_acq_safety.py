@@ -18,6 +18,7 @@ from rigctl.cli import main as cli
 from rigctl.core.drum import DrumState, Fault
 from rigctl.core.faults import parse_fault
 from rigctl.operations import ProtocolRun, RigSource, open_control
+from rigctl.operations._control import rig_of
 from rigctl.storage.session import open_session
 
 EXAMPLE_PLAN = Path(__file__).resolve().parents[2] / "rigctl" / "protocols" / "example_script.py"
@@ -35,7 +36,8 @@ def _until(cond, what: str, timeout_s: float = 120.0) -> None:
 def _estop_held_then_acknowledged(tmp_path: Path, protocol, n_trials: int) -> None:
     control = open_control(RigSource("inprocess", inject=(parse_fault("estop@3+2"),)))
     with control:
-        engine, model, mega = control.rig.backend.engine, control.rig.backend.model, control.rig.backend.controller
+        backend = rig_of(control).backend
+        engine, model, mega = backend.engine, backend.model, backend.controller
         t0 = engine.schedule._t0
         run = ProtocolRun(control, protocol, tmp_path / "s.h5").start()  # on_latch="wait": the GUI's and server's
         _until(lambda: run.state == "latched" or run.state == "done", "the latch")
@@ -145,11 +147,11 @@ def test_a_stalled_drum_latches(tmp_path):
     from rigctl.acquisition.runner import run_protocol
 
     with open_control(RigSource("inprocess", inject=(parse_fault("stall@0+60"),))) as control:
-        summary = run_protocol(load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", rig=control.rig,
+        summary = run_protocol(load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", rig=rig_of(control),
                                progress=False)
         assert summary.stopped and summary.complete == 0 and "drum stalled" in summary.latched
         assert control.latch is not None and control.latch.cause == "stall"
-        assert control.rig.backend.model.drum_speed_mm_s == 0.0
+        assert rig_of(control).backend.model.drum_speed_mm_s == 0.0
 
 
 def test_a_fault_latched_while_idle_is_acknowledged_too():
@@ -157,7 +159,7 @@ def test_a_fault_latched_while_idle_is_acknowledged_too():
     only reads): the acknowledgement finds it, clears it and homes the rig."""
     with open_control(RigSource("inprocess", inject=(parse_fault("estop@0.1+0.1"),))) as control:
         control.drum.clock.sleep(0.5)
-        assert control.drum.read_status().state == DrumState.FAULT and control.rig.safety.latch is None
+        assert control.drum.read_status().state == DrumState.FAULT and control.latch is None
         ack = control.acknowledge("released", by="pytest")
         assert ack.latch.cause == "estop" and control.latch is None
         assert control.drum.read_status().state == DrumState.IDLE
@@ -188,3 +190,29 @@ def test_a_fault_cleared_by_opening_the_rig_is_logged_as_the_operators_acknowled
     assert [e["kind"] for e in events] == ["acknowledged"]
     assert events[0]["clears"]["cause"] == "fault held at open" and "ESTOP" in events[0]["clears"]["detail"]
     assert events[0]["by"]
+
+
+def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
+    """``--inject reversed-actuator`` on the in-process rig does what the firmware under simavr does (the model counts
+    the steps it sends, as the firmware does, whether the actuator moves with them or not): the press drives the
+    actuator into its rear stop while its step count reaches the end of travel, ACTUATOR_TRAVEL latches and the run
+    ends at once (no trial recorded again); acknowledged with the coil pair still swapped, HOME's direction proof
+    latches ACTUATOR_DIRECTION and the latch holds; mended, the acknowledgement homes the rig."""
+    with open_control(RigSource("inprocess", inject=(parse_fault("reversed-actuator@0+30"),))) as control:
+        run = ProtocolRun(control, load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", on_latch="end")
+        summary = run.run()
+        assert summary.stopped and summary.complete == 0 and summary.retried == 0 and summary.failed == 0
+        assert control.latch is not None and control.latch.cause == "actuator-travel", control.latch
+        assert "end of travel" in summary.latched
+        clock = control.drum.clock
+        assert clock.now() < 25.0  # still reversed
+        with pytest.raises(LatchedFault, match="ACTUATOR_DIRECTION"):
+            control.acknowledge("plate mounted", by="pytest")
+        st = control.drum.read_status()
+        assert control.latch is not None and Fault.ACTUATOR_DIRECTION in st.faults and not st.homed
+        clock.sleep(31.0 - clock.now())  # the coil pair mended
+        ack = control.acknowledge("coil pair swapped back", by="pytest")
+        assert ack.latch.cause == "actuator-travel" and control.latch is None
+        assert control.drum.read_status().state == DrumState.IDLE
+    with open_session(tmp_path / "s.h5") as s:
+        assert [e["kind"] for e in s.events] == ["latched"] and s.events[0]["cause"] == "actuator-travel"

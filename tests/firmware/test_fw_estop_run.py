@@ -13,6 +13,7 @@ from rigctl.acquisition.protocol import parse_protocol
 from rigctl.core.drum import DrumState, Fault
 from rigctl.core.faults import parse_fault
 from rigctl.operations import ProtocolRun, RigSource, open_control
+from rigctl.operations._control import rig_of
 from rigctl.storage.session import open_session
 
 pytestmark = pytest.mark.hil
@@ -33,7 +34,7 @@ def _until(cond, what: str, timeout_s: float = 180.0) -> None:
 def test_estop_held_mid_run_on_the_firmware_pauses_until_acknowledged(fw_build, tmp_path):
     control = open_control(RigSource("hil", inject=(parse_fault("estop@3+2"),)))
     with control:
-        hil = control.sim
+        hil = rig_of(control).backend.sim
         run = ProtocolRun(control, parse_protocol(PROTOCOL), tmp_path / "s.h5").start()
         _until(lambda: run.state in ("latched", "done", "failed"), "the latch")
         assert run.state == "latched" and control.latch is not None and control.latch.cause == "estop"

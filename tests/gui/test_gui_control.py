@@ -16,6 +16,7 @@ import shiboken6
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister
+from rigctl.operations._control import rig_of
 from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
 
@@ -70,7 +71,7 @@ def test_out_of_range_and_zero_setpoints_are_refused_visibly(window, qapp, qtbot
     qtbot.mouseClick(panel.apply_btn, QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 500
                     and drum.read_holding(HoldingRegister.FORCE_SETPOINT_G) == 300, 5)
-    writes = window.handle.sim.mega.write_requests
+    writes = rig_of(window.handle.control).backend.sim.mega.write_requests
     for box, typed, unit in ((panel.speed, "200", "mm/s"), (panel.force, "2000", "g")):
         box.lineEdit().selectAll()
         qtbot.keyClicks(box.lineEdit(), typed)
@@ -87,7 +88,7 @@ def test_out_of_range_and_zero_setpoints_are_refused_visibly(window, qapp, qtbot
     panel.force.setValue(300)
     assert not panel.setpoint_error.isVisible()
     wait_for(qapp, lambda: False, 0.3)
-    assert window.handle.sim.mega.write_requests == writes  # nothing refused reached the controller
+    assert rig_of(window.handle.control).backend.sim.mega.write_requests == writes  # nothing refused reached the controller
     assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 500
     # and the library refuses it again before anything is sent, reported in the panel
     window.commands.submit("set speed", drum.set_speed, limit * 3)
@@ -178,8 +179,8 @@ def test_stop_stops_the_drum_with_every_dialog_open_and_esc_only_closes_a_dialog
     # every dialog: neither modal nor in the way of STOP (each click reaches the rig's safe stop); Esc in the dialog
     # closes it and stops nothing
     stops = []
-    safe_stop = window.handle.rig.safe_stop
-    monkeypatch.setattr(window.handle.rig, "safe_stop", lambda: stops.append(1) or safe_stop())
+    safe_stop = rig_of(window.handle.control).safe_stop
+    monkeypatch.setattr(rig_of(window.handle.control), "safe_stop", lambda: stops.append(1) or safe_stop())
     for name, opener in openers.items():
         dlg = opener()
         assert dlg.isVisible() and not dlg.isModal() and QtWidgets.QApplication.activeModalWidget() is None, name
@@ -244,7 +245,7 @@ def test_setpoints_are_not_sent_while_a_run_owns_the_rig_and_the_menus_follow(wi
 
 
 def test_a_latched_fault_is_shown_with_its_meaning_and_cleared_only_by_the_operator(window, qapp, qtbot):
-    mega = window.handle.sim.mega
+    mega = rig_of(window.handle.control).backend.sim.mega
     window.tabs.setCurrentWidget(window.control)
     mega.set_loadcell_alive(False)  # the HX711 stops answering: LOADCELL_TIMEOUT latches
     try:
@@ -308,14 +309,14 @@ def test_every_message_reaches_the_window(window, qapp, qtbot, tmp_path, monkeyp
     # a failed trial's reason is in the plan table
     from rigctl.acquisition.rig import RigError
 
-    record = window.handle.rig.record_trial
+    record = rig_of(window.handle.control).record_trial
 
     def fail_trial_0(planned, **kw):
         if planned.trial_id == 0:
             raise RigError("the <test> made trial 0 fail")
         return record(planned, **kw)
 
-    monkeypatch.setattr(window.handle.rig, "record_trial", fail_trial_0)
+    monkeypatch.setattr(rig_of(window.handle.control), "record_trial", fail_trial_0)
     tab = window.protocol
     tab.load(_protocol(tmp_path, n=1))
     tab.out_edit.setText(str(tmp_path / "failing.h5"))
@@ -367,7 +368,7 @@ def test_an_unexpected_exception_is_shown_in_the_window(window, qapp):
 
 
 def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot):
-    sim = window.handle.sim
+    sim = rig_of(window.handle.control).backend.sim
     window.tabs.setCurrentWidget(window.control)
     drum_banner, taxel_banner = window.banners["drum"], window.banners["taxel"]
     # the drum controller's cable
@@ -417,7 +418,7 @@ def test_quit_connect_and_mount_plate_ask_while_the_drum_turns(window, qapp, qtb
     "Cancel" leaves the drum turning, the rig connected and the plate where it was."""
     window.tabs.setCurrentWidget(window.control)
     _spin(window, qapp)
-    handle, plate = window.handle, window.handle.rig.texture
+    handle, plate = window.handle, window.handle.control.plate
     for act, keep in ((window.close, "Keep running"),
                       (lambda: window.choose_source().accept(), "Cancel"),
                       (lambda: window.control.mount_plate("B" if plate != "B" else "C"), "Cancel")):
@@ -427,11 +428,11 @@ def test_quit_connect_and_mount_plate_ask_while_the_drum_turns(window, qapp, qtb
         qtbot.mouseClick(next(b for b in box.buttons() if b.text() == keep), QtCore.Qt.LeftButton)
         wait_for(qapp, lambda: False, 0.5)
         assert window.isVisible() and window.handle is handle and _state(window) == DrumState.RUNNING
-        assert window.handle.rig.texture == plate
+        assert window.handle.control.plate == plate
     # asked again and answered yes: the plate is mounted (the drum stopped for it)
     window.control.mount_plate("C")
     _answer(qapp, qtbot, "Stop the drum and mount C")
-    assert wait_for(qapp, lambda: window.handle.rig.texture == "C", 30), window.handle.rig.texture
+    assert wait_for(qapp, lambda: window.handle.control.plate == "C", 30), window.handle.control.plate
     assert "mount plate C" in window.events.text()
 
 
@@ -451,7 +452,7 @@ def test_closing_the_window_mid_run_asks_then_stops_safely(window, qapp, qtbot, 
     assert window.isVisible() and tab.running
     window.close()
     box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
-    mega = window.handle.sim.mega
+    mega = rig_of(window.handle.control).backend.sim.mega
     qtbot.mouseClick(next(b for b in box.buttons() if b.text().startswith("Abort")), QtCore.Qt.LeftButton)
     assert wait_for(qapp, lambda: not window.isVisible(), 20)
     assert window.handle is None and not tab.running

@@ -118,7 +118,7 @@ def test_publish_on_lsl_follows_the_rig_config_and_says_what_is_missing(window, 
     tab = window.protocol
     tab.take_rig_defaults(SimpleNamespace(host_config={"lsl": {"enabled": True}}))
     assert tab.lsl_box.isChecked()  # the rig config switches it on ...
-    tab.take_rig_defaults(window.handle.rig)
+    tab.take_rig_defaults(window.handle.control)
     assert not tab.lsl_box.isChecked()  # ... the test rig's config says nothing: off
     tab.load(gui_protocol(tmp_path, 1))
     out = tmp_path / "lsl.h5"

@@ -101,7 +101,7 @@ def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session,
         panel.mount_plate("silk")
         panel.command("run")
         assert wait_for(qapp, lambda: w.poller.latest is not None and w.poller.latest.state == DrumState.RUNNING
-                        and getattr(w.handle.rig, "texture", None) == "Silk", 60), (panel.message.text(),
+                        and w.handle.control.plate == "Silk", 60), (panel.message.text(),
                                                                                   w.poller.latest)
         n0 = live.buffer.n_samples if live.buffer else 0
         assert wait_for(qapp, lambda: live.buffer.n_samples > n0 + 500, 30), live.info.text()

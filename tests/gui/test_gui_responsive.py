@@ -20,6 +20,7 @@ from PySide6 import QtCore, QtTest, QtWidgets
 
 from rigctl.core.drum import DrumState
 from rigctl.operations import DEADMAN_TIMEOUT_S
+from rigctl.operations._control import rig_of
 from rigctl.storage.session import open_session
 from rigctl_gui.events import wait_for
 
@@ -211,7 +212,7 @@ def test_esc_closing_a_drop_down_during_a_run_stops_nothing_and_stop_is_resumabl
 
 def test_a_latched_e_stop_opens_the_fault_dialog_whose_ok_acknowledges_it(inprocess_window, qapp, qtbot):
     window = inprocess_window
-    controller = window.handle.rig.backend.engine.controller
+    controller = rig_of(window.handle.control).backend.engine.controller
     controller.set_estop(True)
     assert wait_for(qapp, lambda: window.fault_dialog is not None and window.fault_dialog.isVisible(), 10)
     dlg = window.fault_dialog

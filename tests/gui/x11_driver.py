@@ -111,7 +111,9 @@ def main(out_path: str) -> int:
         return _write(out_path, out)
     pause(1.0)
     w.tabs.setCurrentWidget(w.control)
-    sim = w.handle.sim
+    from rigctl.operations._control import rig_of
+
+    sim = rig_of(w.handle.control).backend.sim
 
     def state():
         st = w.poller.latest

@@ -26,7 +26,7 @@ def test_loadcell_calibration_is_stored_and_taken_up(control, tmp_path):
     assert abs(result.counts_per_g - TRUE_COUNTS_PER_G) / TRUE_COUNTS_PER_G < 0.02
     assert abs(result.check_force_g - 500.0) < 10
     assert load_rig_config(cfg)["loadcell"]["counts_per_g"] == pytest.approx(result.counts_per_g)
-    assert control.rig.host_config["loadcell"]["counts_per_g"] == pytest.approx(result.counts_per_g)
+    assert control.host_config["loadcell"]["counts_per_g"] == pytest.approx(result.counts_per_g)
 
 
 def test_taxel_normalisation_refused_idle_and_stored_while_running(control, tmp_path):
@@ -43,4 +43,4 @@ def test_taxel_normalisation_refused_idle_and_stored_while_running(control, tmp_
     assert fractions and fractions == sorted(fractions) and fractions[-1] <= 1.0
     block = load_rig_config(cfg)["taxel_normalisation"]
     assert block["taxel_min"] == [float(v) for v in stored.norm.taxel_min]
-    assert control.rig.taxel_normalisation() == block  # the rig carries it into later sessions
+    assert control.taxel_normalisation() == block  # the rig carries it into later sessions

@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 
 from rigctl.core.drum import MAX_FORCE_G, MAX_SPEED_MM_S, DrumLimits, DrumState, Fault, SetpointRangeError
+from rigctl.core.faults import parse_fault
 from rigctl.devices.wire import HoldingRegister
 from rigctl.operations import Home, RigSource, open_control, setpoint_refusals
 
@@ -77,7 +78,7 @@ def test_setpoints_outside_the_controllers_limits_send_nothing(control):
 
 
 def test_mount_plate_takes_the_sets_spelling(control):
-    assert control.mount_plate("l") == "L" and control.rig.texture == "L"
+    assert control.mount_plate("l") == "L" and control.plate == "L"
     with pytest.raises(ValueError):
         control.mount_plate("not a plate")
 
@@ -104,7 +105,8 @@ def test_home_unless_faulted_leaves_a_latched_fault_for_the_operator(control):
 
 def test_open_with_each_home_policy(tmp_path):
     with open_control(RigSource("inprocess"), home=Home.NEVER, host_config_path=tmp_path / "r.json") as c:
-        assert c.mode == "inprocess" and c.places_mass and c.sim is None
+        assert c.mode == "inprocess" and c.places_mass and c.bench is not None  # the simulated bench's hand
+        assert c.bench.fault_refusal(parse_fault("taxel-ohm=100@1")) is not None  # no source impedance in the model
         assert c.layout.n_channels == 18
     with open_control(RigSource("inprocess"), home="unless_faulted", host_config_path=tmp_path / "r.json") as c:
         assert c.status().state == DrumState.IDLE

@@ -33,6 +33,8 @@ def _wrong_calls_are_errors() -> None:
     rigctl.open_session(1, 2, 3, bogus=True)  # type: ignore[call-arg, arg-type]
     rigctl.open_rig(42)  # type: ignore[arg-type]
     rigctl.open_control(42)  # type: ignore[arg-type]
+    rigctl.open_control(bogus=True)  # type: ignore[call-arg]
+    rigctl.open_control(seed="0", home=3)  # type: ignore[arg-type]
     rigctl.run_protocol()  # type: ignore[call-arg]
     rigctl.no_such_public_name  # type: ignore[attr-defined]  # noqa: B018
     rigctl.storage.no_such_public_name  # type: ignore[attr-defined]  # noqa: B018
