@@ -1,15 +1,18 @@
 """Connect dialog: choose the simulated rig (default), two serial ports found by VID/PID
 (:func:`rigctl.devices.ports.find_ports`), a replay (a session file or a FabricSlide folder), or the rig's own
-firmware under simavr (hardware-in-the-loop, optionally with the boards' real bootloaders). The choice persists
-in QSettings and is the source the app opens at its next start. The dialog is non-modal (STOP stays usable,
+firmware under simavr (hardware-in-the-loop, optionally with the boards' real bootloaders), or a plugin's rig (an
+installed entry point of the group ``rigctl.rigs``, :mod:`rigctl.core.rig_plugins`, with its ``KEY=VALUE`` options).
+The choice persists in QSettings and is the source the app opens at its next start. The dialog is non-modal (STOP stays usable,
 :func:`rigctl_gui.dialogs.show_dialog`) and refuses OK, saying why, for a source that cannot be opened."""
 
 from __future__ import annotations
 
 import os
+import shlex
 
 from PySide6 import QtCore, QtWidgets
 
+from rigctl.core.rig_plugins import rig_entries
 from rigctl_gui.dialogs import choose_path
 from rigctl_gui.workers import RigSource
 
@@ -19,16 +22,39 @@ def _text(value: object) -> str | None:
     return str(value) if value else None
 
 
+def plugin_rigs() -> list[str]:
+    """The installed plugins' rigs (not rigctl's own), by name; no plugin is imported."""
+    return [name for name, entry in rig_entries().items() if not entry.builtin]
+
+
+def parse_rig_options(text: str) -> dict[str, str]:
+    """``KEY=VALUE KEY=VALUE`` (shell quoting for values with spaces) -> a dict; ValueError naming a bad word."""
+    out: dict[str, str] = {}
+    for word in shlex.split(text or ""):
+        key, sep, value = word.partition("=")
+        if not sep or not key:
+            raise ValueError(f"rig option {word!r}: give KEY=VALUE")
+        out[key] = value
+    return out
+
+
+def format_rig_options(options: dict[str, str]) -> str:
+    return " ".join(f"{k}={shlex.quote(v)}" for k, v in options.items())
+
+
 def load_source(settings: QtCore.QSettings) -> RigSource:
-    """The last source chosen (the simulated rig when none was saved, or the saved kind is unknown)."""
+    """The last source chosen (the simulated rig when none was saved, or the saved kind is unknown: a plugin
+    uninstalled since)."""
+    kind = str(settings.value("source/kind", "sim"))
     try:
         return RigSource(
-            kind=str(settings.value("source/kind", "sim")),
+            kind=kind,
             drum_port=_text(settings.value("source/drum_port", None)),
             taxel_port=_text(settings.value("source/taxel_port", None)),
             replay_dir=_text(settings.value("source/replay_dir", None)),
-            bootloaders=str(settings.value("source/kind", "sim")) == "hil"
-            and str(settings.value("source/bootloaders", "false")).lower() == "true",
+            bootloaders=kind == "hil" and str(settings.value("source/bootloaders", "false")).lower() == "true",
+            options=parse_rig_options(str(settings.value("source/rig_options", "") or "")) if kind in plugin_rigs()
+            else {},
         )
     except ValueError:
         return RigSource()
@@ -40,6 +66,7 @@ def save_source(settings: QtCore.QSettings, src: RigSource) -> None:
     settings.setValue("source/taxel_port", src.taxel_port or "")
     settings.setValue("source/replay_dir", src.replay_dir or "")
     settings.setValue("source/bootloaders", "true" if src.bootloaders else "false")
+    settings.setValue("source/rig_options", format_rig_options(src.options))
 
 
 def source_problem(source: RigSource) -> str | None:
@@ -87,6 +114,20 @@ class ConnectDialog(QtWidgets.QDialog):
                                                    "USB does on a bench)")
         self.hil_bootloaders.setChecked(current.bootloaders)
         self.hil_bootloaders.toggled.connect(self._bootloaders_toggled)
+        plugins = plugin_rigs()
+        self.plugin = QtWidgets.QRadioButton("Plugin rig (your own hardware: an installed rigctl.rigs backend; "
+                                             "`rigctl rigs` lists them)")
+        self.plugin_name = QtWidgets.QComboBox()
+        self.plugin_name.addItems(plugins)
+        self.plugin_options = QtWidgets.QLineEdit(format_rig_options(current.options))
+        self.plugin_options.setPlaceholderText("options: KEY=VALUE KEY=VALUE (e.g. port=/dev/ttyUSB0 drum=inprocess)")
+        if current.kind in plugins:
+            self.plugin_name.setCurrentText(current.kind)
+        if not plugins:
+            self.plugin.setEnabled(False)
+            self.plugin.setToolTip("no plugin rig is installed (docs/guides/my-hardware.md writes one)")
+        for widget in (self.plugin_name, self.plugin_options):
+            widget.setEnabled(bool(plugins))
         self.drum_port = QtWidgets.QComboBox(editable=True)
         self.taxel_port = QtWidgets.QComboBox(editable=True)
         self.refresh_btn = QtWidgets.QPushButton("Rescan ports")
@@ -134,10 +175,17 @@ class ConnectDialog(QtWidgets.QDialog):
         hl.addSpacing(24)
         hl.addWidget(self.hil_bootloaders, 1)
         lay.addLayout(hl)
+        lay.addWidget(self.plugin)
+        pl = QtWidgets.QHBoxLayout()
+        pl.addSpacing(24)
+        pl.addWidget(self.plugin_name)
+        pl.addWidget(self.plugin_options, 1)
+        lay.addLayout(pl)
         lay.addWidget(self.problem)
         lay.addWidget(buttons)
 
-        {"hardware": self.serial, "replay": self.replay, "hil": self.hil}.get(current.kind, self.sim).setChecked(True)
+        {"hardware": self.serial, "replay": self.replay, "hil": self.hil,
+         **{name: self.plugin for name in plugins}}.get(current.kind, self.sim).setChecked(True)
         self.rescan(current)
 
     def rescan(self, current: RigSource | None = None) -> None:
@@ -184,7 +232,10 @@ class ConnectDialog(QtWidgets.QDialog):
 
     def accept(self) -> None:
         """OK: refused (the reason shown in the dialog) when the chosen source cannot be opened."""
-        problem = source_problem(self.source())
+        try:
+            problem = source_problem(self.source())
+        except ValueError as exc:  # a rig option that is no KEY=VALUE, or a name rigctl keeps
+            problem = str(exc)
         if problem:
             self.problem.setText(problem)
             self.problem.show()
@@ -198,6 +249,9 @@ class ConnectDialog(QtWidgets.QDialog):
         return data if data and box.currentText().startswith(str(data)) else text
 
     def source(self) -> RigSource:
+        """The source chosen; ValueError for a plugin's options that are not ``KEY=VALUE`` words."""
+        if self.plugin.isChecked() and self.plugin_name.currentText():
+            return RigSource(self.plugin_name.currentText(), options=parse_rig_options(self.plugin_options.text()))
         if self.serial.isChecked():
             return RigSource("hardware", drum_port=self._port(self.drum_port), taxel_port=self._port(self.taxel_port))
         if self.replay.isChecked():

@@ -1,34 +1,40 @@
-"""The composition root: the one module that knows every rig backend.
+"""The composition root: the one module that builds rigs.
 
-:func:`open_rig` builds a :class:`rigctl.core.interfaces.RigBackend` of the kind asked for and opens a
-:class:`rigctl.acquisition.rig.Rig` on it. The CLI (``rigctl acquire``, ``rigctl gui``), the GUI and the tests open
-rigs here; nothing else imports the backends together (``rigctl.acquisition`` never imports ``rigctl.simulation``).
+:func:`open_rig` opens a :class:`rigctl.acquisition.rig.Rig` on the rig of a name: the entry point of that name in
+the group ``rigctl.rigs`` (:mod:`rigctl.core.rig_plugins`: rigctl's own rigs are registered there as a plugin's
+are, in ``pyproject.toml``) makes its parts, which are started and wrapped here. The CLI (``rigctl acquire``,
+``rigctl gui``), the GUI and the tests open rigs here (through :func:`rigctl.operations.open_control`); nothing
+else imports the backends together (``rigctl.acquisition`` never imports ``rigctl.simulation``).
 
-Kinds:
+rigctl's own rigs (their factories below, each imports its backend only when called):
 
-- ``"sim"``: the simulated rig (:class:`rigctl.simulation.rig.SimulatedRig`: physical model, virtual Mega and Uno
-  on real ptys, real-time physics clock); options ``config`` (RigConfig), ``seed``.
-- ``"replay"``: the simulated rig streaming recorded taxel signals instead of the model's sensor; option
-  ``source``: a replay source object (with ``read(n)``), or a path: a session file
+- ``"sim"`` (:func:`sim_rig`): the simulated rig (:class:`rigctl.simulation.rig.SimulatedRig`: physical model,
+  virtual Mega and Uno on real ptys, real-time physics clock); options ``config`` (RigConfig), ``seed``.
+- ``"replay"`` (:func:`replay_rig`): the simulated rig streaming recorded taxel signals instead of the model's
+  sensor; option ``source``: a replay source object (with ``read(n)``), or a path: a session file
   (:class:`rigctl.simulation.replay.SessionReplay`: its own layout, rate and texture set, following the plates
   mounted) or a directory of FabricSlide CSV files (:class:`rigctl.simulation.replay.FabricSlideReplay`).
-- ``"hil"``: the rig's firmware images under simavr (:class:`rigctl.simulation.hil.HilRig`); ``config``, ``seed``.
-- ``"hardware"``: the real boards on ``drum_port`` and ``taxel_port`` (:class:`rigctl.devices.backend.SerialBackend`);
-  plates mounted by the operator (``prompt``).
-- ``"inprocess"``: the model and the controller logic in this process, on a simulated clock, no ptys
-  (:class:`rigctl.simulation.inprocess.InProcessBackend`; fast unit tests of the runner and calibration).
-- ``"handheld"``: the paper's real-time system, no drum: an operator scans flat plates with the finger
-  (:class:`rigctl.acquisition.handheld.HandheldRig`); option ``motion``: ``"sim"`` (default: the simulated operator,
-  :class:`rigctl.simulation.operator.SimulatedOperator`, on a simulated clock), ``"lsl:NAME"`` (a tracker stream),
-  ``"replay:S.h5"`` (a recorded handheld session, :class:`rigctl.simulation.handheld_replay.SessionScans`);
-  :func:`open_handheld`.
+- ``"hil"`` (:func:`hil_rig`): the rig's firmware images under simavr (:class:`rigctl.simulation.hil.HilRig`);
+  ``config``, ``seed``.
+- ``"hardware"`` (:func:`hardware_rig`): the real boards on ``drum_port`` and ``taxel_port``
+  (:class:`rigctl.devices.backend.SerialBackend`); plates mounted by the operator (``prompt``).
+- ``"inprocess"`` (:func:`inprocess_rig`): the model and the controller logic in this process, on a simulated clock,
+  no ptys (:class:`rigctl.simulation.inprocess.InProcessBackend`; fast unit tests of the runner and calibration).
+- ``"handheld"`` (:func:`handheld_rig`): the paper's real-time system, no drum: an operator scans flat plates with
+  the finger (:class:`rigctl.acquisition.handheld.HandheldRig`); option ``motion``: ``"sim"`` (default: the
+  simulated operator, :class:`rigctl.simulation.operator.SimulatedOperator`, on a simulated clock), ``"lsl:NAME"``
+  (a tracker stream), ``"replay:S.h5"`` (a recorded handheld session,
+  :class:`rigctl.simulation.handheld_replay.SessionScans`).
 
+A plugin's rig is opened the same way; a sensor-only plugin (a :class:`rigctl.core.rig_plugins.SampleSource`) is
+streamed through the simulated rig's taxel board, the drum simulated (option ``drum``: "sim" or "inprocess").
 Common options: ``prompt`` (operator prompt), ``host_config_path`` (the rig config file), ``home`` (HOME the
 actuator after opening), ``textures`` (the rig's default texture set).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -36,14 +42,25 @@ from typing import Any
 
 from rigctl.acquisition.rig import Rig, RigError
 from rigctl.core.faults import FaultInjector, FaultSpec, check_faults, parse_fault
+from rigctl.core.handheld import ScanSource
 from rigctl.core.interfaces import RIG_KINDS, RigBackend
+from rigctl.core.rig_plugins import (
+    SENSOR_DRUMS,
+    RigOptionError,
+    RigParts,
+    RigPluginError,
+    RigRequest,
+    SampleSource,
+    load_rig_factory,
+)
 from rigctl.core.textures import TextureSet
 
 __all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
-           "make_backend",
-           "replay_source"]
+           "make_backend", "build_rig", "replay_source", "sim_rig", "replay_rig", "hil_rig", "hardware_rig",
+           "inprocess_rig", "handheld_rig"]
 
-#: the backends :func:`open_rig` knows (the one list: :data:`rigctl.core.interfaces.RIG_KINDS`)
+#: rigctl's own rigs (:data:`rigctl.core.interfaces.RIG_KINDS`); every installed one, plugins included:
+#: :func:`rigctl.core.rig_plugins.rig_names`
 KINDS = RIG_KINDS
 
 #: how long the host's :class:`rigctl.devices.drum.DrumClient` waits for each Modbus answer, s, per backend. A real
@@ -99,50 +116,200 @@ def replay_source(source: Any) -> Any:
     raise RigError(f"cannot replay {path}: no such file or directory")
 
 
-def make_backend(kind: str = "sim", *, config: Any = None, seed: int = 0, source: Any = None,
-                 drum_port: str | None = None, taxel_port: str | None = None,
-                 prompt: Callable[[str], Any] | None = None, textures: TextureSet | None = None,
-                 **options: Any) -> RigBackend:
-    """The backend of ``kind`` (not started). Raises RigError for an unknown kind or missing options."""
-    if kind == "hardware":
-        if not drum_port or not taxel_port:
-            raise RigError("the hardware rig needs both drum_port and taxel_port (--drum-port, --taxel-port)")
-        from rigctl.devices.backend import SerialBackend
+def _config(request: RigRequest) -> Any:
+    """The simulated model's configuration a request carries (``RigConfig`` or None; the model checks it)."""
+    return request.config
 
-        return SerialBackend(drum_port, taxel_port, prompt=prompt, textures=textures,
-                             drum_timeout_s=ANSWER_TIMEOUT_S[kind])
-    if drum_port or taxel_port:
-        raise RigError(f"drum_port/taxel_port select the hardware rig, not {kind!r}")
-    if kind in ("sim", "replay"):
+
+def _request_options(request: RigRequest, *, ports: bool = False) -> dict[str, Any]:
+    """A built-in rig's keyword options: the request's, refusing the hardware ports on a simulated rig."""
+    options = dict(request.options)
+    if not ports and (options.get("drum_port") or options.get("taxel_port")):
+        raise RigError(f"drum_port/taxel_port select the hardware rig, not {request.name!r}")
+    options.pop("drum_port", None)
+    options.pop("taxel_port", None)
+    return options
+
+
+def _pty_backend(request: RigRequest, sim: Any) -> RigBackend:
+    from rigctl.simulation.backend import PtyRigBackend
+
+    kind = request.name
+    return PtyRigBackend(sim, mode=kind, seed=request.seed, textures=request.textures,
+                         drum_timeout_s=ANSWER_TIMEOUT_S[kind], drum_watchdog_ms=WATCHDOG_MS[kind])
+
+
+def sim_rig(request: RigRequest) -> RigBackend:
+    """The simulated rig: virtual Mega and Uno on real ptys driven by the physical model, in real time (--sim).
+
+    Options: ``config`` (RigConfig), the keywords of :class:`rigctl.simulation.rig.SimulatedRig`."""
+    from rigctl.simulation.rig import SimulatedRig
+
+    options = _request_options(request)
+    if options.pop("source", None) is not None:
+        raise RigError("a replay source selects kind='replay'")
+    return _pty_backend(request, SimulatedRig(_config(request), seed=request.seed, **options))
+
+
+def replay_rig(request: RigRequest) -> RigBackend:
+    """The simulated rig streaming a recording instead of its model's sensor (--replay: a session, a FabricSlide
+    folder, lsl:NAME).
+
+    Option ``source``: a replay source (``read(n)``), a path or ``lsl:NAME`` (:func:`replay_source`)."""
+    from rigctl.simulation.rig import SimulatedRig
+
+    options = _request_options(request)
+    source = options.pop("source", None)
+    if source is None:
+        raise RigError("the replay rig needs a source (a session file, a FabricSlide directory, or a source)")
+    src = replay_source(source)
+    textures = request.textures or getattr(src, "textures", None)  # a session replays with its own texture set
+    sim = SimulatedRig(_config(request), seed=request.seed, source=src, **options)
+    return _pty_backend(dataclasses.replace(request, textures=textures), sim)
+
+
+def hil_rig(request: RigRequest) -> RigBackend:
+    """The rig's own firmware images under simavr, hardware in the loop (--hil).
+
+    Options: ``config``, ``bootloaders`` and the keywords of :class:`rigctl.simulation.hil.HilRig`."""
+    options = _request_options(request)
+    try:
+        from rigctl.simulation.hil import HilRig
+    except ImportError as exc:
+        raise RigError(f"the HIL rig needs rigctl.simulation.hil (the firmware under simavr): {exc}") from exc
+    return _pty_backend(request, HilRig(_config(request), seed=request.seed, **options))
+
+
+def hardware_rig(request: RigRequest) -> RigBackend:
+    """The real boards: the drum controller (Mega, Modbus RTU) and the taxel streamer (Uno) on two serial ports.
+
+    Options ``drum_port``, ``taxel_port`` (--drum-port, --taxel-port); plates mounted by the operator (prompt)."""
+    drum_port, taxel_port = request.options.get("drum_port"), request.options.get("taxel_port")
+    if not drum_port or not taxel_port:
+        raise RigError("the hardware rig needs both drum_port and taxel_port (--drum-port, --taxel-port)")
+    request.check_known(("drum_port", "taxel_port"))
+    from rigctl.devices.backend import SerialBackend
+
+    return SerialBackend(str(drum_port), str(taxel_port), prompt=request.prompt, textures=request.textures,
+                         drum_timeout_s=ANSWER_TIMEOUT_S["hardware"])
+
+
+def inprocess_rig(request: RigRequest) -> RigBackend:
+    """The model and the controller logic in this process on a simulated clock, no ports (--inprocess: dry runs).
+
+    Options: ``config``, ``source`` (a sample source streamed instead of the model's sensor), ``factory_calibrated``,
+    ``request_ms``."""
+    from rigctl.simulation.inprocess import InProcessBackend
+
+    options = _request_options(request)
+    return InProcessBackend(_config(request), seed=request.seed, textures=request.textures, **options)
+
+
+def handheld_rig(request: RigRequest) -> ScanSource:
+    """The paper's real-time system: an operator scans flat plates with the sensor on a finger, no drum (--handheld).
+
+    Option ``motion``: ``sim`` (the simulated operator, default) or ``lsl:NAME`` (a tracker stream; options
+    ``resolve_s``, ``timeout_s``)."""
+    options: dict[str, Any] = dict(request.options)
+    motion = str(options.pop("motion", "sim"))
+    if motion == "sim":
+        from rigctl.simulation.operator import SimulatedOperator
+
+        if options:
+            raise RigError(f"the simulated operator takes no option {', '.join(sorted(options))}")
+        return SimulatedOperator(seed=request.seed, rig_config=_config(request), textures=request.textures)
+    if motion.startswith("lsl:"):
+        from rigctl.acquisition.handheld import plate_axis_from_config
+        from rigctl.acquisition.rigconfig import load_rig_config
+        from rigctl.core.handheld import ScanError
+        from rigctl.simulation.handheld_lsl import open_lsl_scans
+
+        try:
+            config_axis = plate_axis_from_config(load_rig_config(request.host_config_path))
+            return open_lsl_scans(motion, axis=config_axis, config=_config(request), seed=request.seed,
+                                  textures=request.textures, **options)
+        except (ScanError, ValueError) as exc:
+            raise RigError(str(exc)) from None
+    if motion.startswith("replay:"):
+        from rigctl.simulation.handheld_replay import SessionScans
+
+        if options:
+            raise RigError(f"a replayed handheld session takes no option {', '.join(sorted(options))}")
+        try:
+            return SessionScans(motion.removeprefix("replay:"))
+        except (OSError, RuntimeError, ValueError) as exc:  # ScanError, SessionError: RuntimeErrors
+            raise RigError(f"cannot replay {motion.removeprefix('replay:')}: {exc}") from None
+    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator), 'lsl:NAME' (a tracker "
+                   "stream) or 'replay:S.h5' (a recorded handheld session)")
+
+
+def _sensor_backend(request: RigRequest, source: SampleSource, drum: str) -> RigBackend:
+    """A sensor-only plugin's samples streamed by a simulated rig's taxel board, the drum simulated (``drum``: "sim"
+    on ptys in real time, "inprocess" on a simulated clock); the backend's mode is the plugin's name."""
+    textures = request.textures or getattr(source, "textures", None)
+    if drum == "inprocess":
+        from rigctl.simulation.inprocess import InProcessBackend
+
+        backend: Any = InProcessBackend(_config(request), seed=request.seed, textures=textures, source=source)
+    else:
         from rigctl.simulation.backend import PtyRigBackend
         from rigctl.simulation.rig import SimulatedRig
 
-        if kind == "replay":
-            if source is None:
-                raise RigError("the replay rig needs a source (a session file, a FabricSlide directory, or a source)")
-            src = replay_source(source)
-            textures = textures or getattr(src, "textures", None)  # a session replays with its own texture set
-            sim = SimulatedRig(config, seed=seed, source=src, **options)
-        else:
-            if source is not None:
-                raise RigError("a replay source selects kind='replay'")
-            sim = SimulatedRig(config, seed=seed, **options)
-        return PtyRigBackend(sim, mode=kind, seed=seed, textures=textures, drum_timeout_s=ANSWER_TIMEOUT_S[kind],
-                             drum_watchdog_ms=WATCHDOG_MS[kind])
-    if kind == "hil":
-        try:
-            from rigctl.simulation.hil import HilRig
-        except ImportError as exc:
-            raise RigError(f"the HIL rig needs rigctl.simulation.hil (the firmware under simavr): {exc}") from exc
-        from rigctl.simulation.backend import PtyRigBackend
+        sim = SimulatedRig(_config(request), seed=request.seed, source=source)
+        backend = PtyRigBackend(sim, mode="sim", seed=request.seed, textures=textures,
+                                drum_timeout_s=ANSWER_TIMEOUT_S["sim"], drum_watchdog_ms=WATCHDOG_MS["sim"])
+    backend.mode = request.name
+    return backend
 
-        return PtyRigBackend(HilRig(config, seed=seed, **options), mode="hil", seed=seed, textures=textures,
-                             drum_timeout_s=ANSWER_TIMEOUT_S[kind], drum_watchdog_ms=WATCHDOG_MS[kind])
-    if kind == "inprocess":
-        from rigctl.simulation.inprocess import InProcessBackend
 
-        return InProcessBackend(config, seed=seed, textures=textures, **options)
-    raise RigError(f"unknown rig kind {kind!r}; choose one of {', '.join(KINDS)}")
+def build_rig(kind: str, request: RigRequest | None = None) -> RigParts:
+    """What the factory of rig ``kind`` makes of ``request`` (default: no options): a backend (not started), a
+    sample source or a scan source (:mod:`rigctl.core.rig_plugins`). Raises RigError for an unknown rig, a plugin
+    that does not load or refuses its options, or what it returns is none of those."""
+    request = request or RigRequest(kind)
+    try:
+        factory = load_rig_factory(kind)
+    except RigPluginError as exc:
+        raise RigError(str(exc)) from None
+    try:
+        made = factory(request)
+    except RigOptionError as exc:
+        raise RigError(str(exc)) from None
+    if not isinstance(made, RigBackend | SampleSource | ScanSource):
+        raise RigError(f"the {kind} rig's factory returned a {type(made).__name__}: neither a RigBackend, a "
+                       "SampleSource nor a ScanSource (rigctl.core.rig_plugins)")
+    return made
+
+
+def _request(kind: str, *, config: Any = None, seed: int = 0, prompt: Callable[[str], Any] | None = None,
+             textures: TextureSet | None = None, host_config_path: str | os.PathLike | None = None,
+             **options: Any) -> RigRequest:
+    return RigRequest(kind, options, seed=seed, config=config, prompt=prompt, textures=textures,
+                      host_config_path=None if host_config_path is None else str(host_config_path))
+
+
+def _as_backend(made: RigParts, request: RigRequest, drum: str | None) -> RigBackend:
+    """The backend of what a factory made: a backend as is, a sample source on the simulated ``drum``; RigError
+    for a scan source (a handheld rig: :func:`open_rig`) or a ``drum`` for a rig that has its own."""
+    if drum is not None and drum not in SENSOR_DRUMS:
+        raise RigError(f"drum={drum!r}: a sensor-only rig runs on the simulated drum {' or '.join(SENSOR_DRUMS)}")
+    if isinstance(made, RigBackend):
+        if drum is not None:
+            raise RigError(f"the {request.name} rig has its own drum: drum= is for sensor-only rigs")
+        return made
+    if isinstance(made, SampleSource):
+        return _sensor_backend(request, made, drum or "sim")
+    made.close()
+    raise RigError(f"the {request.name} rig is a handheld rig (no drum): open it with open_rig({request.name!r})")
+
+
+def make_backend(kind: str = "sim", *, drum: str | None = None, **options: Any) -> RigBackend:
+    """The backend of rig ``kind`` (not started): the entry point of that name in the group ``rigctl.rigs``
+    (:mod:`rigctl.core.rig_plugins`) called with the options (``config``, ``seed``, ``prompt``, ``textures``,
+    ``host_config_path`` and the rig's own); a sensor-only plugin's samples on the simulated ``drum`` ("sim",
+    default, or "inprocess"). Raises RigError for an unknown rig, a plugin that does not load or missing options."""
+    request = _request(kind, **options)
+    return _as_backend(build_rig(kind, request), request, drum)
 
 
 def fault_refusal(kind: str, spec: FaultSpec) -> str | None:
@@ -160,12 +327,12 @@ def fault_refusal(kind: str, spec: FaultSpec) -> str | None:
 def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
              host_config_path: str | os.PathLike | None = None, home: bool = True,
              inject: Sequence[FaultSpec | str] = (), allow_firmware_mismatch: bool = False, **options: Any) -> Rig:
-    """Open a rig of ``kind`` ("sim" | "hil" | "hardware" | "replay" | "inprocess" | "handheld") and start its
-    taxel stream.
+    """Open rig ``kind`` (an installed rig's name: "sim" | "hil" | "hardware" | "replay" | "inprocess" | "handheld"
+    or a plugin's, :func:`rigctl.core.rig_plugins.rig_names`) and start its taxel stream.
 
     Parameters
     ----------
-    kind : the backend (see the module docstring).
+    kind : the rig (see the module docstring).
     prompt : operator prompt for plate changes on hardware (default: a terminal prompt).
     host_config_path : the rig config file (calibration; default ``$RIGCTL_CONFIG`` or ``~/.config/rigctl/rig.json``).
     home : HOME the actuator after opening (clearing a latched fault first); False leaves a fault latched.
@@ -173,8 +340,9 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
         the rig's clock from the moment it is open; every one is checked against the backend before it starts.
     allow_firmware_mismatch : open boards whose firmware build differs from the installed sources' (a warning);
         default: :class:`rigctl.acquisition.rig.FirmwareMismatch` (a RigError) naming both builds.
-    **options : the backend's options: ``config``, ``seed``, ``source`` (replay), ``drum_port``/``taxel_port``
-        (hardware), ``textures`` (the rig's default texture set), and backend-specific keywords.
+    **options : the rig's options: ``config``, ``seed``, ``textures`` (the rig's default texture set), ``source``
+        (replay), ``drum_port``/``taxel_port`` (hardware), ``motion`` (handheld), ``drum`` (a sensor-only plugin's
+        simulated drum), and the rig's own keywords (a plugin's ``--rig-option`` s).
 
     Returns
     -------
@@ -183,19 +351,25 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     Raises
     ------
     RigError
-        Unknown kind, missing options, or the backend could not be started / the boards do not answer.
+        Unknown rig, a plugin that does not load, missing options, or the backend could not be started / the boards
+        do not answer.
     rigctl.core.faults.FaultSpecError
         A malformed ``inject`` text, or a fault this rig cannot model (before anything starts).
     """
     faults = tuple(f if isinstance(f, FaultSpec) else parse_fault(f) for f in inject)
-    if kind == "handheld":
-        if faults:
-            raise RigError("the handheld rig models no injected fault (--inject): the simulated drum rigs do")
-        return open_handheld(prompt=prompt, host_config_path=host_config_path, **options)
-    backend = make_backend(kind, prompt=prompt, **options)
+    drum = options.pop("drum", None)
+    request = _request(kind, prompt=prompt, host_config_path=host_config_path, **options)
+    made = build_rig(kind, request)
+    if isinstance(made, ScanSource) and not isinstance(made, RigBackend):
+        if faults or drum is not None:
+            made.close()
+            raise RigError(f"the {kind} rig models no injected fault (--inject): the simulated drum rigs do"
+                           if faults else f"the {kind} rig is a handheld rig: it has no drum (drum=)")
+        return _handheld(made, request)
+    backend = _as_backend(made, request, drum)
     check_faults(backend, faults, kind=kind)
-    rig = Rig.connect(backend, prompt=prompt, host_config_path=None if host_config_path is None
-                      else str(host_config_path), home=home, allow_firmware_mismatch=allow_firmware_mismatch)
+    rig = Rig.connect(backend, prompt=prompt, host_config_path=request.host_config_path, home=home,
+                      allow_firmware_mismatch=allow_firmware_mismatch)
     truth_start = getattr(getattr(backend, "sim", None), "truth_start", None)
     if truth_start is not None:  # the truth log's time 0: the run's start, as the faults'
         truth_start()
@@ -204,48 +378,27 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     return rig
 
 
-def open_handheld(*, motion: str = "sim", prompt: Callable[[str], Any] | None = None,
-                  host_config_path: str | os.PathLike | None = None, config: Any = None, seed: int = 0,
-                  textures: TextureSet | None = None, home: bool = True, **options: Any) -> Rig:
-    """Open the handheld rig (:class:`rigctl.acquisition.handheld.HandheldRig`): its scans come from the simulated
-    operator (``motion="sim"``: the plate's axis calibrated from its simulated touches of the plate's two ends) or a
-    tracker's LSL stream (``motion="lsl:NAME[@channels]"``, :func:`rigctl.simulation.handheld_lsl.open_lsl_scans`:
-    the plate axis from the rig config; options ``resolve_s``, ``timeout_s``) or a recorded handheld session
-    (``motion="replay:S.h5"``: its scans as recorded, :class:`rigctl.simulation.handheld_replay.SessionScans`).
-    ``home`` is ignored (no actuator). Raises RigError for an unknown motion source or unusable options."""
+def _handheld(source: ScanSource, request: RigRequest) -> Rig:
+    """The handheld rig (:class:`rigctl.acquisition.handheld.HandheldRig`) on ``source``: a source that can touch
+    the plate's two ends (the simulated operator) calibrates the plate's axis from them, the others take it from the
+    rig config; a source's own texture set (a replayed session's) unless the request names one; mode
+    "handheld-replay" for a replayed handheld session, else the rig's name."""
     from rigctl.acquisition.handheld import HandheldRig
     from rigctl.core.handheld import PlateAxis
 
-    path = None if host_config_path is None else str(host_config_path)
-    if motion == "sim":
-        from rigctl.simulation.operator import SimulatedOperator
+    touch_ends = getattr(source, "touch_ends", None)
+    axis = PlateAxis.from_touches(*touch_ends()) if callable(touch_ends) else None
+    replayed = request.name == "handheld" and str(request.options.get("motion", "")).startswith("replay:")
+    return HandheldRig(source, axis=axis, prompt=request.prompt,
+                       textures=request.textures or getattr(source, "textures", None),
+                       host_config_path=request.host_config_path, mode="handheld-replay" if replayed else request.name)
 
-        if options:
-            raise RigError(f"the simulated operator takes no option {', '.join(sorted(options))}")
-        op = SimulatedOperator(seed=seed, rig_config=config, textures=textures)
-        return HandheldRig(op, axis=PlateAxis.from_touches(*op.touch_ends()), prompt=prompt, textures=textures, host_config_path=path)
-    if str(motion).startswith("lsl:"):
-        from rigctl.acquisition.handheld import plate_axis_from_config
-        from rigctl.acquisition.rigconfig import load_rig_config
-        from rigctl.core.handheld import ScanError
-        from rigctl.simulation.handheld_lsl import open_lsl_scans
 
-        try:
-            config_axis = plate_axis_from_config(load_rig_config(path))
-            source = open_lsl_scans(str(motion), axis=config_axis, config=config, seed=seed, textures=textures, **options)
-        except (ScanError, ValueError) as exc:
-            raise RigError(str(exc)) from None
-        return HandheldRig(source, axis=config_axis, prompt=prompt, textures=textures, host_config_path=path)
-    if str(motion).startswith("replay:"):
-        from rigctl.simulation.handheld_replay import SessionScans
-
-        if options:
-            raise RigError(f"a replayed handheld session takes no option {', '.join(sorted(options))}")
-        try:
-            scans = SessionScans(str(motion).removeprefix("replay:"))
-        except (OSError, RuntimeError, ValueError) as exc:  # ScanError, SessionError: RuntimeErrors
-            raise RigError(f"cannot replay {str(motion).removeprefix('replay:')}: {exc}") from None
-        return HandheldRig(scans, prompt=prompt, textures=textures or scans.textures, host_config_path=path,
-                           mode="handheld-replay")
-    raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator), 'lsl:NAME' (a tracker "
-                   "stream) or 'replay:S.h5' (a recorded handheld session)")
+def open_handheld(*, prompt: Callable[[str], Any] | None = None, host_config_path: str | os.PathLike | None = None,
+                  home: bool = True, **options: Any) -> Rig:
+    """Open the built-in handheld rig (:func:`handheld_rig`: ``motion="sim"``, the simulated operator, the plate's
+    axis calibrated from its simulated touches of the plate's two ends; ``motion="lsl:NAME[@channels]"``, a tracker
+    stream, the plate axis from the rig config, options ``resolve_s``, ``timeout_s``; ``motion="replay:S.h5"``, a
+    recorded handheld session's scans as recorded). ``home`` is ignored (no actuator). Raises RigError for an unknown
+    motion source or unusable options."""
+    return open_rig("handheld", prompt=prompt, host_config_path=host_config_path, **options)

@@ -63,6 +63,8 @@ def _child(argv: list[str], cwd: str, env: dict[str, str], fds: list[int]) -> in
     os.chdir(cwd)
     os.environ.clear()
     os.environ.update(env)
+    # the command's PYTHONPATH, as a fresh interpreter would take it (a guide installs a plugin into a folder on it)
+    sys.path[:0] = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p and p not in sys.path]
     for target, fd in enumerate(fds):
         os.dup2(fd, target)
         os.close(fd)

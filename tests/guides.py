@@ -2,7 +2,8 @@
 
 A guide's fenced ``sh`` blocks run in one bash shell, in order, in an empty folder, exactly as written; its
 ``python`` blocks run there too (``python FILE``: later commands read what they write), and a ``toml`` / ``json`` /
-``ini`` block whose first line is a comment naming a file (``# groups.toml``) is written to that file. An HTML
+``ini`` block whose first line is a comment naming a file (``# groups.toml``) is written to that file, as is a
+``python`` block whose first line names a ``.py`` file (``# rigctl_csvboard/__init__.py``: a module, not run). An HTML
 comment on the lines just before a block changes that, visibly in the page's source:
 
 - ``<!-- not-run: REASON -->``: not run here (a real rig's ports, root, a window, a service that runs until Ctrl-C);
@@ -37,8 +38,8 @@ PAGES = ("README.md", "docs/my-sensor.md", "docs/config.md", *sorted(p.relative_
 
 _FENCE = re.compile(r"^(?P<indent>[ \t]*)```(?P<lang>[\w-]*)[ \t]*$")
 _MARKER = re.compile(r"^\s*<!--\s*(?P<kind>not-run|run-by|small)\s*:\s*(?P<text>.*?)\s*-->\s*$")
-_FILE_LANGS = ("toml", "json", "ini")
-_FILE_NAME = re.compile(r"^\s*[#;]\s*(?P<name>[\w.-]+\.(toml|json|ini|cfg))\s*$")
+_FILE_LANGS = ("toml", "json", "ini", "python")
+_FILE_NAME = re.compile(r"^\s*[#;]\s*(?P<name>\w[\w.-]*(?:/\w[\w.-]*)*\.(toml|json|ini|cfg|py))\s*$")
 
 
 @dataclass
@@ -138,6 +139,7 @@ def script(runnable: list[Block], work: Path) -> str:
     for n, b in enumerate(runnable):
         parts.append(f"echo '@@guide-block {n}'")
         if b.file_name:
+            (work / b.file_name).parent.mkdir(parents=True, exist_ok=True)
             (work / b.file_name).write_text(b.text)
         elif b.lang == "python":
             name = f".guide-block-{n}.py"

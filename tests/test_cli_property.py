@@ -171,6 +171,8 @@ def test_info_export_and_protocols(inputs, tmp_path, data):
                               *(["--variants", variants] if variants is not None else [])])
     _check(inputs, tmp_path, ["info", str(inputs["session"]), *(["--json"] if data.draw(st.booleans()) else [])])
     _check(inputs, tmp_path, ["protocols"])
+    r = _check(inputs, tmp_path, ["rigs", *(["--json"] if data.draw(st.booleans(), label="rigs --json") else [])])
+    assert r.exit_code == 0 and "inprocess" in r.output, r.output
 
 
 @pytest.fixture
@@ -294,7 +296,9 @@ def test_serve_refusals(inputs, tmp_path, monkeypatch, data):
     opts = [(o, data.draw(_maybe(NUMBER), label=o)) for o in ("--port", "--seed")]
     case = data.draw(st.sampled_from([["--host", "0.0.0.0"], ["--host", "192.168.1.7", "--rig", "inprocess"],
                                       ["--host", "example.org"], ["--rig", "hardware"],
-                                      ["--rig", "hardware", "--drum-port", "/dev/null"], ["--rig", "replay"]]),
+                                      ["--rig", "hardware", "--drum-port", "/dev/null"], ["--rig", "replay"],
+                                      ["--rig", "moon"], ["--rig", "handheld"],
+                                      ["--rig", "inprocess", "--rig-option", "x=1"]]),
                      label="case")
     r = _check(inputs, tmp_path, ["serve", "--queue", str(tmp_path / "q.json"), *case, *_opts(opts)])
     assert r.exit_code == 2, (case, r.output)
@@ -316,7 +320,7 @@ def test_sim_operator(inputs, tmp_path, lsl, data):
 #: the commands the tests above drive (``rigctl`` + these words)
 DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
-          ("sim",), ("serve",), ("sim", "operator")}
+          ("sim",), ("serve",), ("sim", "operator"), ("rigs",)}
 
 
 def test_every_command_is_driven(cli_commands):

@@ -33,6 +33,8 @@ NOT_RUN = {
     ("docs/guides/real-rig.md", "rigctl gui --drum-port"): "not-run",
     ("docs/guides/real-rig.md", "rigctl acquire quick_check --drum-port"): "not-run",
     ("docs/my-sensor.md", "rigctl sim --replay"): "not-run",
+    ("docs/guides/my-hardware.md", "rigctl acquire quick_check --rig csvboard --rig-option port=/dev/ttyUSB0"):
+        "not-run",
 }
 
 
@@ -108,6 +110,15 @@ def _my_sensor(runs, tmp_path, request) -> None:
     assert textures_row(out) < textures_row(random.stdout) - 20
 
 
+def _my_hardware(runs, tmp_path, request) -> None:
+    """The plugin installed, listed beside rigctl's own rigs, and recording quick_check from a pty and a file."""
+    listed = next(r for r in runs if "rigctl rigs" in r.block.text).output
+    assert "csvboard" in listed and "rigctl-csvboard 0.1.0" in listed and "sim" in listed, listed
+    bench = next(r for r in runs if "bench.h5" in r.block.text).output
+    assert "6 trials, 2400 samples of 4 taxels" in bench, bench
+    assert "trials complete: 6/6" in runs[-1].output or "6/6" in runs[-1].output, runs[-1].output
+
+
 def _nothing(runs, tmp_path, request) -> None:
     pass
 
@@ -122,6 +133,7 @@ GUIDES: dict[str, tuple[str, Callable]] = {
     "realrig": ("docs/guides/real-rig.md", _real_rig),
     "handheld": ("docs/guides/handheld.md", _nothing),
     "config": ("docs/config.md", _nothing),
+    "myhardware": ("docs/guides/my-hardware.md", _my_hardware),
 }
 
 

@@ -25,6 +25,7 @@ COMMANDS = {
     "doctor": "rigctl.cli.doctor:doctor",
     "udev-rules": "rigctl.cli.udev:udev_rules",
     "serve": "rigctl.cli.serve:serve",
+    "rigs": "rigctl.cli.rigs:rigs",
 }
 
 SHORT_HELP = {
@@ -43,6 +44,7 @@ SHORT_HELP = {
     "doctor": "Bring-up checks on the rig: one line each, pass/fail/skip and the fix.",
     "udev-rules": "Print udev rules: stable /dev names for the boards by USB serial number.",
     "serve": "Headless run queue with an HTTP API (127.0.0.1 by default).",
+    "rigs": "List the installed rigs (rigctl's own and plugins'), whether each loads.",
 }
 
 

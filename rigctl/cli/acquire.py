@@ -22,12 +22,15 @@ from rigctl.cli.ranges import SEED
 from rigctl.cli.rig_flags import (
     allow_firmware_mismatch_option,
     check_one_rig,
+    check_rig_flags,
     check_truth_log,
     drum_port_option,
     hil_bootloaders_option,
     inject_option,
     inprocess_option,
     lsl_wait_option,
+    rig_option,
+    rig_options_option,
     taxel_port_option,
     truth_log_option,
 )
@@ -212,6 +215,21 @@ def _prediction_lines(classifier: Any, out: Path, replay: Any) -> list[str]:
     return lines
 
 
+def _rig_source(flags: dict[str, Any], truth_log: Path | None) -> Any:
+    """The :class:`rigctl.operations.RigSource` the flags select (:meth:`~rigctl.operations.RigSource.from_flags`),
+    with ``--truth-log``; UsageProblem / click.UsageError (exit 2) for options a rig does not take."""
+    from rigctl.operations import RigSource
+
+    try:
+        source = RigSource.from_flags(**flags)
+    except ValueError as exc:  # options for one of rigctl's own rigs, a name rigctl keeps
+        raise UsageProblem(str(exc)) from None
+    check_truth_log(truth_log, source.kind)
+    if truth_log is not None:
+        source = dataclasses.replace(source, truth_log=str(truth_log))
+    return source
+
+
 def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | None, drum_port: str | None) -> Any:
     """Open the rig ``source`` names (:func:`rigctl.operations.open_control`), every failure as one line: a fault
     ``--inject`` cannot model is a usage error (exit 2), the rest a ClickException; what the opening logged is shown
@@ -250,6 +268,8 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @inprocess_option
 @drum_port_option
 @taxel_port_option
+@rig_option
+@rig_options_option
 @click.option("--replay", "replay", type=REPLAY, default=None,
               help="Simulated rig whose taxel board streams this recording (a session file, at its own layout and "
                    "rate, the trials of each plate the protocol mounts; or a FabricSlide folder) instead of the model; "
@@ -303,7 +323,8 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
 @allow_firmware_mismatch_option
 @truth_log_option
 @click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
-def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, replay, handheld, motion, classify,
+def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, rig, rig_options, replay,
+            handheld, motion, classify,
             calibration, classify_variant, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
             plates, lsl, lsl_wait_s,
             inject, allow_firmware_mismatch, truth_log, quiet):
@@ -319,13 +340,14 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.acquisition.safety import operator_name
-    from rigctl.operations import ProtocolRun, RigSource, lsl_requested
+    from rigctl.operations import ProtocolRun, lsl_requested
     from rigctl.storage.session import SessionError
 
     hil = hil or hil_bootloaders
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("give both --drum-port and --taxel-port (hardware), or neither (--sim)")
     check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
+    check_rig_flags(rig, rig_options, others=bool(sim or hil or inprocess or drum_port or replay or handheld or motion))
     if replay is not None and (hil or inprocess or drum_port is not None):
         raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--inprocess/"
                                "--drum-port")
@@ -377,12 +399,10 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
 
     # SIGTERM (e.g. a service manager) stops like Ctrl-C: clean stop, rig left safe
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    source = RigSource.from_flags(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
-                                  bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
-                                  motion=motion, allow_firmware_mismatch=allow_firmware_mismatch)
-    check_truth_log(truth_log, source.kind)
-    if truth_log is not None:
-        source = dataclasses.replace(source, truth_log=str(truth_log))
+    source = _rig_source(dict(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
+                              bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
+                              motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
+                              options=rig_options), truth_log)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly

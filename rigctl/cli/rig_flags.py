@@ -10,10 +10,71 @@ import click
 
 from rigctl.cli.ranges import LSL_WAIT_S
 from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
+from rigctl.core.rig_plugins import rig_names
 
 __all__ = ["allow_firmware_mismatch_option", "truth_log_option",
            "hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
-           "lsl_wait_option", "check_one_rig", "check_truth_log"]
+           "lsl_wait_option", "check_one_rig", "check_truth_log", "RIG", "rig_option", "rig_options_option",
+           "check_rig_flags"]
+
+
+class RigName(click.ParamType):
+    """``--rig NAME``: an installed rig (the entry points of the group ``rigctl.rigs``; no plugin is imported to
+    check the name: a broken one fails when it opens, in one line)."""
+
+    name = "NAME"
+
+    def convert(self, value: object, param: click.Parameter | None, ctx: click.Context | None) -> str:
+        text = str(value)
+        names = rig_names()
+        if text not in names:
+            self.fail(f"{text!r} is no installed rig: one of {', '.join(names)} (`rigctl rigs` lists them)", param,
+                      ctx)
+        return text
+
+    def shell_complete(self, ctx: click.Context, param: click.Parameter,
+                       incomplete: str) -> list[click.shell_completion.CompletionItem]:
+        return [click.shell_completion.CompletionItem(n) for n in rig_names() if n.startswith(incomplete)]
+
+
+RIG = RigName()
+
+#: ``--rig NAME`` (``acquire``): open an installed rig by name (a plugin's, or one of rigctl's own)
+rig_option = click.option(
+    "--rig", "rig", type=RIG, default=None,
+    help="Open this installed rig: a plugin's backend (your own hardware: docs/guides/my-hardware.md) or one of "
+         "rigctl's own; `rigctl rigs` lists them. Not with --sim/--hil/--inprocess/--drum-port/--replay/--handheld "
+         "(those choose rigctl's own rigs).")
+
+
+def _parse_rig_options(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for text in value:
+        key, sep, val = text.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise click.BadParameter(f"{text!r}: give KEY=VALUE", ctx, param)
+        if key in out:
+            raise click.BadParameter(f"{key} given twice", ctx, param)
+        out[key] = val
+    return out
+
+
+#: ``--rig-option KEY=VALUE`` (repeatable): options handed to a plugin rig's factory
+rig_options_option = click.option(
+    "--rig-option", "rig_options", multiple=True, metavar="KEY=VALUE", callback=_parse_rig_options,
+    help="An option of the --rig plugin (repeatable), handed to its factory as text (its `rigctl rigs` line and its "
+         "documentation name them); drum=sim|inprocess streams a sensor-only plugin through that simulated drum.")
+
+
+def check_rig_flags(rig: str | None, rig_options: dict[str, str], *, others: bool) -> None:
+    """Raise click.UsageError when ``--rig`` comes with a flag that chooses another rig (``others``), or
+    ``--rig-option`` without a plugin's ``--rig``."""
+    if rig is not None and others:
+        raise click.UsageError("--rig NAME chooses the rig: drop --sim/--hil/--inprocess/--drum-port/--replay/"
+                               "--handheld")
+    if rig_options and rig is None:
+        raise click.UsageError("--rig-option is an option of a plugin rig: give --rig NAME")
 
 hil_bootloaders_option = click.option(
     "--hil-bootloaders", is_flag=True, default=False,

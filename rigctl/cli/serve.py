@@ -16,7 +16,7 @@ from typing import Any
 import click
 
 from rigctl.cli.outputs import UsageProblem
-from rigctl.cli.rig_flags import inject_option, lsl_wait_option
+from rigctl.cli.rig_flags import RIG, inject_option, lsl_wait_option, rig_options_option
 from rigctl.server.tokens import (
     TokenError,
     check_token,
@@ -28,8 +28,6 @@ from rigctl.server.tokens import (
     write_token_file,
 )
 
-#: the rig kinds ``--rig`` takes (``rigctl.rigs.KINDS``)
-RIG_KINDS = ("sim", "hil", "hardware", "replay", "inprocess")
 #: how long a shutdown waits for open connections after closing the event streams, s
 SHUTDOWN_GRACE_S = 1
 
@@ -50,9 +48,11 @@ SHUTDOWN_GRACE_S = 1
 @click.option("--queue", "queue_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The queue file (runs survive a restart; a run cut by a crash resumes). Default "
                    "$XDG_STATE_HOME/rigctl/queue.json.")
-@click.option("--rig", "kind", type=click.Choice(RIG_KINDS), default="sim", show_default=True,
-              help="The rig: the simulated one, the firmware under simavr, hardware (--drum-port/--taxel-port), a "
-                   "replay (--replay) or the fast in-process simulation.")
+@click.option("--rig", "kind", type=RIG, default="sim", show_default=True,
+              help="The rig: sim (the simulated one), hil (the firmware under simavr), hardware (--drum-port/"
+                   "--taxel-port), replay (--replay), inprocess (the fast in-process simulation) or an installed "
+                   "plugin's rig (--rig-option KEY=VALUE; `rigctl rigs` lists them).")
+@rig_options_option
 @click.option("--drum-port", default=None, help="Serial port of the drum controller (--rig hardware).")
 @click.option("--taxel-port", default=None, help="Serial port of the taxel streamer (--rig hardware).")
 @click.option("--replay", type=click.Path(exists=True, path_type=Path), default=None,
@@ -65,8 +65,8 @@ SHUTDOWN_GRACE_S = 1
               help="Publish every run on Lab Streaming Layer; default the rig config's lsl.enabled.")
 @lsl_wait_option
 @inject_option
-def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, drum_port, taxel_port, replay, config_path,
-          seed, lsl, lsl_wait_s, inject):
+def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, rig_options, drum_port, taxel_port, replay,
+          config_path, seed, lsl, lsl_wait_s, inject):
     """Open the rig and serve its run queue over HTTP until Ctrl-C / SIGTERM.
 
     POST /runs queues a protocol (by name or TOML text) into a session inside --data-dir; one run owns the rig at
@@ -92,10 +92,13 @@ def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, drum_port,
         raise UsageProblem("--rig hardware takes both --drum-port and --taxel-port (and only it does)")
     if (kind == "replay") != (replay is not None):
         raise UsageProblem("--rig replay takes --replay RECORDING (and only it does)")
+    if kind == "handheld":
+        raise UsageProblem("--rig handheld: the run queue serves a drum rig (the handheld rig records with rigctl "
+                           "acquire --handheld)")
     _serve(host=host, port=port, token=token, generated=not _given(), allow_hosts=allow_hosts,
            data_dir=data_dir or default_data_dir(), queue_file=queue_file or default_queue_file(), kind=kind,
            drum_port=drum_port, taxel_port=taxel_port, replay=replay, config_path=config_path, seed=seed, lsl=lsl,
-           inject=inject, lsl_wait_s=lsl_wait_s)
+           inject=inject, lsl_wait_s=lsl_wait_s, rig_options=rig_options)
 
 
 def _given() -> bool:
@@ -122,7 +125,7 @@ def _bind(host: str, port: int) -> socket.socket:
 def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tuple[str, ...], data_dir: Path,
            queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
            config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...],
-           lsl_wait_s: float) -> None:
+           lsl_wait_s: float, rig_options: dict[str, str]) -> None:
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.core.faults import FaultSpecError
@@ -146,8 +149,11 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
             require_pylsl()
         except LslUnavailable as exc:
             raise click.ClickException(str(exc)) from None
-    source = RigSource(kind, drum_port=drum_port, taxel_port=taxel_port,
-                       replay_dir=None if replay is None else str(replay), inject=inject)
+    try:
+        source = RigSource(kind, drum_port=drum_port, taxel_port=taxel_port,
+                           replay_dir=None if replay is None else str(replay), inject=inject, options=rig_options)
+    except ValueError as exc:  # options for one of rigctl's own rigs, a name rigctl keeps
+        raise UsageProblem(str(exc)) from None
     why = source.injection_refusal()  # known before the rig opens or the port is bound
     if why:
         raise UsageProblem(why)

@@ -1,8 +1,8 @@
-"""Where a rig comes from: :class:`RigSource` (a rig kind of :data:`rigctl.rigs.KINDS` and its ports or recording).
+"""Where a rig comes from: :class:`RigSource` (an installed rig's name, its ports, recording or options).
 
 The CLI builds one from its flags, the GUI from its connect dialog and settings; both open it with
-:func:`rigctl.operations.open_control`. The kinds are the composition root's (:data:`rigctl.rigs.KINDS`), the one
-list of rig backends.
+:func:`rigctl.operations.open_control`. The kinds are the installed rigs (:func:`rigctl.core.rig_plugins.rig_names`:
+the entry points of the group ``rigctl.rigs``, rigctl's own :data:`rigctl.rigs.KINDS` among them).
 """
 
 from __future__ import annotations
@@ -12,9 +12,14 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.core.faults import FaultSpec
+from rigctl.core.rig_plugins import rig_names
 from rigctl.rigs import KINDS, fault_refusal
 
-__all__ = ["RigSource", "KINDS", "LEGACY_KINDS"]
+__all__ = ["RigSource", "KINDS", "LEGACY_KINDS", "RESERVED_RIG_OPTIONS"]
+
+#: option names a plugin rig cannot take (they are :func:`rigctl.rigs.open_rig`'s own, or the source's fields)
+RESERVED_RIG_OPTIONS = frozenset({"kind", "prompt", "host_config_path", "home", "inject", "allow_firmware_mismatch",
+                                  "config", "seed", "textures", "truth_log"})
 
 #: names earlier versions used for a kind (the GUI's saved settings said "serial" for the hardware rig)
 LEGACY_KINDS = {"serial": "hardware"}
@@ -26,10 +31,10 @@ class RigSource:
 
     Attributes
     ----------
-    kind : one of :data:`rigctl.rigs.KINDS`: "sim" (default), "hardware" (two real boards at ``drum_port`` /
-        ``taxel_port``), "replay" (the simulated rig streaming the recording at ``replay_dir``: a session file or a
-        FabricSlide folder), "hil" (the firmware under simavr), "inprocess" (the fast in-process rig). "serial" is
-        taken as "hardware".
+    kind : an installed rig (:func:`rigctl.core.rig_plugins.rig_names`): "sim" (default), "hardware" (two real boards
+        at ``drum_port`` / ``taxel_port``), "replay" (the simulated rig streaming the recording at ``replay_dir``: a
+        session file or a FabricSlide folder), "hil" (the firmware under simavr), "inprocess" (the fast in-process
+        rig), "handheld", or a plugin's rig. "serial" is taken as "hardware".
     drum_port, taxel_port : serial ports of the Mega and the Uno (hardware only)
     replay_dir : the recording a replay rig streams
     bootloaders : "hil" only: the boards run their real bootloaders under simavr and reset when the host opens their
@@ -40,11 +45,14 @@ class RigSource:
     motion : "handheld" only: where the finger's motion comes from: "sim" (the simulated operator, default),
         "lsl:NAME" (a tracker stream) or "replay:S.h5" (a recorded handheld session's scans;
         :func:`rigctl.rigs.open_handheld`)
+    options : a plugin rig's options (``--rig-option KEY=VALUE``: text), given to its factory; ``drum`` ("sim" or
+        "inprocess") is the simulated drum a sensor-only plugin streams through
 
     Raises
     ------
     ValueError
-        An unknown kind, or ``bootloaders`` for a kind other than "hil".
+        An unknown kind, ``bootloaders`` for a kind other than "hil", options for one of rigctl's own rigs (they take
+        their fields) or an option name :data:`RESERVED_RIG_OPTIONS` holds.
     """
 
     kind: str = "sim"
@@ -56,11 +64,19 @@ class RigSource:
     motion: str | None = None
     allow_firmware_mismatch: bool = False
     truth_log: str | None = None
+    options: dict[str, str] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown rig kind {self.kind!r}; choose one of {', '.join(KINDS)}")
+        if self.kind not in KINDS and self.kind not in rig_names():
+            raise ValueError(f"unknown rig kind {self.kind!r}; choose one of {', '.join(rig_names())} (`rigctl rigs` "
+                             "lists the installed rigs)")
+        if self.options and self.kind in KINDS:
+            raise ValueError(f"the {self.kind} rig takes its own settings (ports, recording), not rig options "
+                             f"({', '.join(sorted(self.options))})")
+        reserved = sorted(RESERVED_RIG_OPTIONS & set(self.options))
+        if reserved:
+            raise ValueError(f"rig option {', '.join(reserved)}: a name rigctl keeps for itself")
         if self.bootloaders and self.kind != "hil":
             raise ValueError(f"bootloaders are the firmware under simavr's (kind 'hil'), not {self.kind!r}'s")
         if self.motion is not None and self.kind != "handheld":
@@ -70,11 +86,15 @@ class RigSource:
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
                    replay: str | Path | None = None, bootloaders: bool = False,
                    inprocess: bool = False, inject: tuple[FaultSpec, ...] = (), handheld: bool = False,
-                   motion: str | None = None, allow_firmware_mismatch: bool = False) -> "RigSource":
-        """The source the CLI's flags select: ports -> "hardware", a recording -> "replay", ``hil`` or
-        ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` -> "inprocess", ``handheld`` or a
-        ``motion`` -> "handheld" (with ``replay``: that recording's scans), else "sim" (the flags' consistency is the CLI's to check)."""
+                   motion: str | None = None, allow_firmware_mismatch: bool = False, rig: str | None = None,
+                   options: dict[str, str] | None = None) -> "RigSource":
+        """The source the CLI's flags select: ``rig`` -> that rig (with its ``options``), ports -> "hardware", a
+        recording -> "replay", ``hil`` or ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` ->
+        "inprocess", ``handheld`` or a ``motion`` -> "handheld" (with ``replay``: that recording's scans), else "sim"
+        (the flags' consistency is the CLI's to check)."""
         inject = tuple(inject)
+        if rig is not None:
+            return cls(rig, inject=inject, allow_firmware_mismatch=allow_firmware_mismatch, options=dict(options or {}))
         if handheld or motion is not None:  # a recording replayed on the handheld rig: its scans
             replayed = None if replay is None else f"replay:{replay}"
             return cls("handheld", motion=motion or replayed or "sim", inject=inject)
@@ -108,6 +128,9 @@ class RigSource:
                     f"handheld rig, motion from {self.motion}")
         if self.bootloaders:
             return "firmware under simavr, with its bootloaders"
+        if self.kind not in KINDS:
+            settings = ", ".join(f"{k}={v}" for k, v in self.options.items())
+            return f"{self.kind} rig" + (f" ({settings})" if settings else "")
         return {"hil": "firmware under simavr", "inprocess": "in-process simulated rig"}.get(self.kind,
                                                                                            "simulated rig")
 
@@ -135,4 +158,4 @@ class RigSource:
             return {"kind": "hil", "bootloaders": True, **extra}
         if self.kind == "handheld":
             return {"kind": "handheld", "motion": self.motion or "sim", **extra}
-        return {"kind": self.kind, **extra}
+        return {"kind": self.kind, **self.options, **extra}

@@ -41,6 +41,7 @@ from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
+from rigctl.simulation.source_pacer import SourcePacer, source_layout
 
 #: how long a request waits for no answer while ``host-silence`` is injected, simulated ms (a real link's answer
 #: timeout, :data:`rigctl.rigs.ANSWER_TIMEOUT_S` of the hardware)
@@ -183,10 +184,12 @@ class InProcessTaxels:
     ``host_time_s`` of a capture is the simulated clock (s), the clock of the drum client's status times.
     """
 
-    def __init__(self, engine: InProcessEngine, layout: SensorLayout = PAPER_SENSOR):
+    def __init__(self, engine: InProcessEngine, layout: SensorLayout = PAPER_SENSOR, *, source: Any = None):
         self.engine = engine
         self.port = "in-process"
-        self._layout = layout
+        self._layout = source_layout(source) if source is not None else layout
+        #: a source streamed instead of the model's sensor (``read(n)`` at its own rate), paced by the engine's steps
+        self._pacer = None if source is None else SourcePacer(source, self._layout)
         self.banner: dict | None = None
         self._lock = threading.Lock()
         self._streaming = False
@@ -244,6 +247,10 @@ class InProcessTaxels:
         with self._lock:
             if not self._streaming or not self.engine.taxel_link_up:
                 return
+            n_ms = len(samples)
+            if self._pacer is not None:  # the source's samples due in these n_ms ms, spread over them
+                samples, pulse = self._pacer.step(n_ms, sync)
+                sync = np.zeros(len(samples), bool) if pulse is None else pulse
             n = len(samples)
             seq = ((self._seq + np.arange(n)) % 65536).astype(np.uint16)
             self._seq = (self._seq + n) % 65536
@@ -254,7 +261,7 @@ class InProcessTaxels:
             self._frames += n
             if self._capture is None and self.ring is None:
                 return
-            t = (t0_ms + 1 + np.arange(n)) / 1000.0
+            t = (t0_ms + (1 + np.arange(n)) * (n_ms / n if n else 1.0)) / 1000.0
             if self.ring is not None:
                 self.ring.write(samples, seq, flags, t)
             if self._capture is not None:
@@ -305,14 +312,17 @@ class InProcessBackend:
     """:class:`rigctl.core.interfaces.RigBackend` (and ``MassPlacer``) of the in-process simulated rig.
 
     ``rigctl.rigs.open_rig("inprocess", config=..., seed=..., factory_calibrated=True)``. Attributes: ``engine`` (:class:`InProcessEngine`),
-    ``model``, ``controller``.
+    ``model``, ``controller``. ``source``: a replay source (``read(n)``, its ``layout``) the taxel source streams
+    instead of the model's sensor (a sensor-only plugin's samples, :mod:`rigctl.core.rig_plugins`), read as the
+    simulated clock passes its samples' times.
     """
 
     mode = "inprocess"
 
     def __init__(self, config: RigConfig | None = None, *, seed: int = 0, request_ms: int = 2,
-                 textures: TextureSet | None = None, factory_calibrated: bool = True):
+                 textures: TextureSet | None = None, factory_calibrated: bool = True, source: Any = None):
         self.engine = InProcessEngine(config, seed=seed, request_ms=request_ms, factory_calibrated=factory_calibrated)
+        self.source = source
         self.seed = seed
         self.textures = textures or PAPER_TEXTURES
         self.mounter = SimMounter(self.engine.model)
@@ -329,14 +339,16 @@ class InProcessBackend:
         return self
 
     def __exit__(self, *exc) -> None:
-        pass
+        close = getattr(self.source, "close", None)  # a live source lets go of its device
+        if callable(close):
+            close()
 
     def drum(self) -> DrumClient:
         return DrumClient("in-process", transport=_Transport(self.engine), clock=SimulatedClock(self.engine),
                           poll_s=0.02)
 
     def taxels(self) -> InProcessTaxels:
-        return InProcessTaxels(self.engine)
+        return InProcessTaxels(self.engine, source=self.source)
 
     def place_mass(self, mass_g: float) -> None:
         self.engine.model.place_mass(mass_g)
@@ -354,5 +366,8 @@ class InProcessBackend:
         return schedule
 
     def describe(self) -> dict:
-        return {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": self.seed,
-                "model": self.engine.config.to_dict()}
+        out = {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": self.seed,
+               "model": self.engine.config.to_dict()}
+        if self.source is not None:
+            out["replay_source"] = type(self.source).__name__
+        return out

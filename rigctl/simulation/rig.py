@@ -24,10 +24,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from rigctl.core.faults import FaultSchedule, FaultSpec
-from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.sensor import SensorLayout
 from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
 from rigctl.simulation.pty import PortDir
+from rigctl.simulation.source_pacer import SourcePacer, source_layout
 from rigctl.simulation.truth import TruthLog
 from rigctl.simulation.virtual_mega import VirtualMega
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
@@ -36,17 +37,6 @@ log = logging.getLogger(__name__)
 
 #: the longest physics step between two rows of the truth log (``--truth-log``), ms: >= 100 rows a second
 TRUTH_STEP_MS = 10
-
-
-def _source_reader(source):
-    """``n -> (n, ch) uint16`` from a replay source (an object with ``read(n)``, or a callable)."""
-    if source is None:
-        return None
-    if hasattr(source, "read"):
-        return source.read
-    if callable(source):
-        return source
-    raise TypeError(f"source must have read(n) or be callable, got {type(source).__name__}")
 
 
 class SimulatedRig:
@@ -100,16 +90,10 @@ class SimulatedRig:
         self.step_errors = 0
 
     def _build(self, source, uno_reset_delay_s: float) -> None:
-        self._read_source = _source_reader(source)
         self.source = source
-        layout = getattr(source, "layout", None) if source is not None else None
-        if layout is not None and not isinstance(layout, SensorLayout):
-            raise TypeError(f"source.layout must be a SensorLayout, got {type(layout).__name__}")
         #: the sensor the taxel board streams (the source's, else the paper's 3x3x2 at 1 kHz)
-        self.layout: SensorLayout = layout or PAPER_SENSOR
-        self._ms_total = 0
-        self._samples_total = 0
-        self._pulse_pending = False  # an index pulse in a step with no sample due goes on the next sample
+        self.layout: SensorLayout = source_layout(source)
+        self._pacer = None if source is None else SourcePacer(source, self.layout)
         self.model = RigModel(self.config, seed=self.seed)
         self.mega = VirtualMega(self.model, self.port_dir / "drum", factory_calibrated=True)
         self.uno = VirtualUno(self.port_dir / "taxel", reset_delay_s=uno_reset_delay_s, seed=self.seed,
@@ -170,28 +154,8 @@ class SimulatedRig:
             else:
                 samples = np.concatenate([p[0] for p in parts])
                 sync_in = np.concatenate([p[1] for p in parts])
-        if self._read_source is None:
-            self.uno.tick(samples, sync_in)
-            return
-        ch = self.layout.n_channels
-        rate = self.layout.sample_rate_hz
-        if rate == 1000.0:  # one sample per simulated millisecond, the index pulse of each
-            n = n_ms
-        else:  # the source's own rate: sample j is due at t0 + j / rate
-            self._ms_total += n_ms
-            due = int(self._ms_total * rate / 1000.0)
-            n = due - self._samples_total
-            self._samples_total = due
-            self._pulse_pending |= sync_in is not None and bool(np.any(sync_in))
-            sync_in = None
-            if n > 0 and self._pulse_pending:  # an index pulse since the last sample marks this step's last one
-                sync_in = np.zeros(n, bool)
-                sync_in[-1] = True
-                self._pulse_pending = False
-        if n <= 0:
-            self.uno.tick(np.zeros((0, ch), np.uint16), None)
-            return
-        samples = np.asarray(self._read_source(n), dtype=np.uint16).reshape(n, ch)
+        if self._pacer is not None:
+            samples, sync_in = self._pacer.step(n_ms, sync_in)
         self.uno.tick(samples, sync_in)
 
     def truth_start(self) -> None:
