@@ -290,3 +290,43 @@ def cli_commands():
 
     walk(main, [], click.Context(main, info_name="rigctl"))
     return [(words, cmd) for words, cmd in found if words]
+
+
+#: the out-of-tree rig plugin the tests install (docs/guides/my-hardware.md shows its source)
+CSVBOARD_PLUGIN = Path(__file__).resolve().parent / "plugins" / "rigctl-csvboard"
+
+
+@pytest.fixture(scope="session")
+def csvboard_plugin(tmp_path_factory) -> Path:
+    """The folder tests/plugins/rigctl-csvboard is installed into (``pip install --no-deps --no-build-isolation
+    --target``, from a copy: nothing is built in the checkout; a few seconds), beside a broken plugin's metadata
+    (``broken``: its module does not exist). Put it on ``PYTHONPATH`` (a subprocess) or ``sys.path``
+    (:func:`installed_plugins`) and rigctl finds both rigs through their entry points."""
+    import shutil
+    import subprocess
+    import sys
+
+    root = tmp_path_factory.mktemp("plugins")
+    src = shutil.copytree(CSVBOARD_PLUGIN, root / "src", ignore=shutil.ignore_patterns("build", "*.egg-info"))
+    target = root / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
+                    "--no-warn-script-location", "--disable-pip-version-check", "--target", str(target), str(src)],
+                   check=True, capture_output=True, text=True, cwd=root)
+    broken = target / "rigctl_broken-0.1.0.dist-info"
+    broken.mkdir()
+    (broken / "METADATA").write_text("Metadata-Version: 2.1\nName: rigctl-broken\nVersion: 0.1.0\n")
+    (broken / "entry_points.txt").write_text("[rigctl.rigs]\nbroken = rigctl_broken_missing:open_rig\n")
+    return target
+
+
+@pytest.fixture
+def installed_plugins(csvboard_plugin, monkeypatch):
+    """:func:`csvboard_plugin` on this process's ``sys.path`` for one test (rigctl's list of rigs read again before
+    and after it)."""
+    from rigctl.core.rig_plugins import rig_entries
+
+    monkeypatch.syspath_prepend(str(csvboard_plugin))
+    rig_entries.cache_clear()
+    yield csvboard_plugin
+    monkeypatch.undo()
+    rig_entries.cache_clear()

@@ -1,0 +1,155 @@
+"""Rig backends as plugins (issue 38 part 6): rigctl's own rigs are entry points of the group ``rigctl.rigs``; an
+out-of-tree package (tests/plugins/rigctl-csvboard: a taxel board sending CSV lines, installed with pip into a folder
+of its own) is listed by ``rigctl rigs`` beside a broken plugin (one line, no traceback), records ``quick_check``
+from a simulated board on a pty through ``rigctl acquire --rig``, and is opened and recorded through ``rigctl serve``
+(loopback, a token) in a separate interpreter that finds it on ``PYTHONPATH``. The GUI's connect dialog opens it
+too (tests/gui/test_gui_connect.py). The simulated drum is the in-process one (``drum=inprocess``): each recording
+takes a few seconds."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+import tty
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.core.rig_plugins import BUILTIN_RIGS
+from rigctl.storage.session import open_session
+
+TOKEN = "plugin-test-token-0123456789"
+
+
+def test_the_builtin_rigs_are_entry_points():
+    """The installed metadata holds rigctl's own rigs in the group (not only the fallback table)."""
+    code = "from importlib.metadata import entry_points; print(entry_points(group='rigctl.rigs'))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    for name, target in BUILTIN_RIGS.items():
+        assert f"name='{name}', value='{target}', group='rigctl.rigs'" in out, out
+
+
+def test_the_guide_shows_the_plugin_as_it_is():
+    """docs/guides/my-hardware.md's two files are tests/plugins/rigctl-csvboard's, byte for byte."""
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guides" / "my-hardware.md").read_text()
+    plugin = Path(__file__).resolve().parent / "plugins" / "rigctl-csvboard"
+    for name in ("pyproject.toml", "rigctl_csvboard/__init__.py"):
+        block = guide.split(f"\n# {name}\n", 1)[1].split("\n```", 1)[0] + "\n"
+        assert block == (plugin / name).read_text(), name
+
+
+def _rigs_listing(installed: Path) -> list[str]:
+    r = CliRunner().invoke(main, ["rigs"])
+    assert r.exit_code == 0 and "Traceback" not in r.output, r.output
+    return r.output.splitlines()
+
+
+def test_rigctl_rigs_lists_a_plugin_and_a_broken_one(installed_plugins):
+    lines = _rigs_listing(installed_plugins)
+    by_name = {line.split()[0]: line for line in lines}
+    assert set(BUILTIN_RIGS) | {"csvboard", "broken"} == set(by_name), lines
+    assert "rigctl-csvboard 0.1.0" in by_name["csvboard"] and "comma-separated ADC counts" in by_name["csvboard"]
+    assert "BROKEN:" in by_name["broken"] and "rigctl_broken_missing" in by_name["broken"], by_name["broken"]
+    assert all("BROKEN" not in by_name[n] for n in BUILTIN_RIGS)
+    r = CliRunner().invoke(main, ["acquire", "quick_check", "--rig", "broken", "--out", "x.h5"])
+    assert r.exit_code == 1 and "does not load: ModuleNotFoundError" in r.output and len(r.output.splitlines()) == 1
+
+
+def _board(stop: threading.Event) -> str:
+    """A simulated CSV board on a pty: 4 counts a line (``i % 900 + 10 * channel``), ~400 lines a second until
+    ``stop``; returns the port."""
+    board, port_fd = os.openpty()
+    tty.setraw(port_fd)
+
+    def send() -> None:
+        for start in itertools.count(0, 20):
+            if stop.is_set():
+                break
+            lines = "".join(",".join(str(i % 900 + 10 * c) for c in range(4)) + "\n" for i in range(start, start + 20))
+            os.write(board, lines.encode())
+            time.sleep(0.05)
+        os.close(board)
+
+    threading.Thread(target=send, daemon=True).start()
+    return os.ttyname(port_fd)
+
+
+def _check_session(path: Path, *, mode: str) -> np.ndarray:
+    with open_session(path) as s:
+        trials = s.completed_ids()
+        layout = s.layout
+        taxels = np.concatenate([np.asarray(s.trial(t).taxels, dtype=np.int64) for t in trials])
+        rig = s.rig_config
+    assert len(trials) == 6 and layout.n_channels == 4 and layout.sample_rate_hz == 200.0
+    assert rig["mode"] == mode, rig
+    assert len(taxels) == 6 * 2 * 200 and (np.diff(taxels, axis=1) == 10).all()  # every sample is the board's
+    return taxels
+
+
+def test_quick_check_from_a_pty_board_through_acquire(installed_plugins, tmp_path, monkeypatch):
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    stop = threading.Event()
+    port = _board(stop)
+    try:
+        typo = CliRunner().invoke(main, ["acquire", "quick_check", "--rig", "csvboard", "--rig-option", f"prot={port}",
+                                         "--out", str(tmp_path / "t.h5")])
+        assert typo.exit_code == 1 and "has no option prot" in typo.output, typo.output
+        r = CliRunner().invoke(main, ["acquire", "quick_check", "--rig", "csvboard", "--rig-option", f"port={port}",
+                                      "--rig-option", "drum=inprocess", "--out", str(tmp_path / "s.h5"), "--quiet"])
+    finally:
+        stop.set()
+    assert r.exit_code == 0 and "trials complete: 6/6" in r.output, r.output
+    taxels = _check_session(tmp_path / "s.h5", mode="csvboard")
+    assert len(np.unique(taxels[:, 0])) > 50  # the board's lines as they came, not one repeated
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_quick_check_through_rigctl_serve(csvboard_plugin, tmp_path):
+    import httpx
+
+    board = tmp_path / "board.csv"
+    board.write_text("\n".join(",".join(str((i * 7) % 900 + 10 * c) for c in range(4)) for i in range(400)) + "\n")
+    port = _free_port()
+    url, auth = f"http://127.0.0.1:{port}", {"Authorization": f"Bearer {TOKEN}"}
+    env = {**os.environ, "PYTHONPATH": str(csvboard_plugin), "RIGCTL_SERVE_TOKEN": TOKEN,
+           "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "XDG_STATE_HOME": str(tmp_path / "state")}
+    proc = subprocess.Popen([sys.executable, "-m", "rigctl", "serve", "--rig", "csvboard", "--rig-option",
+                             f"file={board}", "--rig-option", "drum=inprocess", "--host", "127.0.0.1", "--port",
+                             str(port), "--data-dir", str(tmp_path / "data")], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            assert proc.poll() is None, proc.communicate()[1]
+            try:
+                status = httpx.get(f"{url}/status", headers=auth, timeout=2)
+                break
+            except httpx.HTTPError:
+                assert time.monotonic() < deadline, "rigctl serve did not answer"
+                time.sleep(0.2)
+        assert status.status_code == 200 and httpx.get(f"{url}/status", timeout=2).status_code == 401
+        run = httpx.post(f"{url}/runs", json={"protocol": "quick_check", "out": "s.h5"}, headers=auth, timeout=5)
+        assert run.status_code == 201, run.text
+        rid = run.json()["id"]
+        while (state := httpx.get(f"{url}/runs/{rid}", headers=auth, timeout=5).json()["state"]) in ("queued",
+                                                                                                       "running"):
+            assert time.monotonic() < deadline + 120, state
+            time.sleep(0.2)
+        assert state == "done", state
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=60)
+    assert "csvboard rig (file=" in err and "Traceback" not in err, err
+    _check_session(tmp_path / "data" / "s.h5", mode="csvboard")
