@@ -19,6 +19,7 @@ import tty
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from rigctl.cli import main
@@ -153,3 +154,19 @@ def test_quick_check_through_rigctl_serve(csvboard_plugin, tmp_path):
         _, err = proc.communicate(timeout=60)
     assert "csvboard rig (file=" in err and "Traceback" not in err, err
     _check_session(tmp_path / "data" / "s.h5", mode="csvboard")
+
+
+@pytest.mark.realtime
+def test_a_sensor_plugin_on_the_simulated_drum_in_real_time(installed_plugins, tmp_path):
+    """The default drum of a sensor-only plugin: the simulated rig on ptys, in real time (one 0.5 s trial)."""
+    from rigctl.core import PlannedTrial
+    from rigctl.rigs import open_rig
+
+    board = tmp_path / "board.csv"
+    board.write_text("\n".join(",".join(str((i * 7) % 900 + 10 * c) for c in range(4)) for i in range(400)) + "\n")
+    with open_rig("csvboard", file=str(board), host_config_path=tmp_path / "rig.json") as rig:
+        assert rig.mode == "csvboard" and rig.describe()["taxel_port"]  # the simulated Uno's pty
+        rig.mount_texture("A")
+        data = rig.record_trial(PlannedTrial(0, "A", 100.0, 300.0, 0.5))
+    taxels = np.asarray(data.taxels, dtype=np.int64)
+    assert taxels.shape == (100, 4) and (np.diff(taxels, axis=1) == 10).all()
