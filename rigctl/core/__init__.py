@@ -11,6 +11,9 @@
 - :mod:`rigctl.core.normalisation` - :class:`TaxelRange`, the per-taxel 0-1 normalisation (one type everywhere).
 - :mod:`rigctl.core.interfaces` - the device Protocols: :class:`DrumController`, :class:`TaxelSource`,
   :class:`PlateMounter`, :class:`MassPlacer`, :class:`RigBackend`.
+- :mod:`rigctl.core.rig_plugins` - rig backends as plugins: the entry-point group ``rigctl.rigs``, a factory's
+  :class:`~rigctl.core.rig_plugins.RigRequest` and what it returns (a RigBackend, a
+  :class:`~rigctl.core.rig_plugins.SampleSource`, a ScanSource), the installed rigs found without importing them.
 - :mod:`rigctl.core.progress` - :class:`ProgressEvent` (long work reports how far it is);
   :mod:`rigctl.core.lazy` - the lazy re-exports of the other packages' public names;
   :mod:`rigctl.core.version` - ``__version__`` (rigctl's modules import it from here, not from ``rigctl``).
