@@ -170,3 +170,33 @@ def test_a_sensor_plugin_on_the_simulated_drum_in_real_time(installed_plugins, t
         data = rig.record_trial(PlannedTrial(0, "A", 100.0, 300.0, 0.5))
     taxels = np.asarray(data.taxels, dtype=np.int64)
     assert taxels.shape == (100, 4) and (np.diff(taxels, axis=1) == 10).all()
+
+
+def test_a_request_reads_its_options_and_refuses_bad_ones():
+    from rigctl.core.rig_plugins import RigOptionError, RigRequest
+
+    req = RigRequest("board", {"rate_hz": "250.5", "channels": "0x10", "on": "yes", "off": "0", "bad": "x"})
+    assert (req.number("rate_hz"), req.integer("channels"), req.flag("on"), req.flag("off")) == (250.5, 16, True, False)
+    assert req.text("port", "/dev/ttyUSB0") == "/dev/ttyUSB0" and req.flag("absent") is False
+    for call, words in ((lambda: req.text("port"), "needs option port"), (lambda: req.number("bad"), "not a number"),
+                        (lambda: req.integer("rate_hz"), "not an integer"), (lambda: req.flag("bad"), "true or false"),
+                        (lambda: req.check_known(("rate_hz", "channels")), "no option bad, off, on")):
+        with pytest.raises(RigOptionError, match=words):
+            call()
+
+
+def test_rigctls_own_rigs_without_the_group_in_the_metadata(monkeypatch):
+    """An editable install made before the group existed (its metadata lacks it) still opens rigctl's own rigs."""
+    import importlib.metadata
+
+    from rigctl.core import rig_plugins
+
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda **kw: [])
+    rig_plugins.rig_entries.cache_clear()
+    try:
+        assert rig_plugins.rig_names() == tuple(BUILTIN_RIGS)
+        assert callable(rig_plugins.load_rig_factory("inprocess"))
+        with pytest.raises(rig_plugins.RigPluginError, match="unknown rig kind 'csvboard'; installed: sim, replay"):
+            rig_plugins.load_rig_factory("csvboard")
+    finally:
+        rig_plugins.rig_entries.cache_clear()
