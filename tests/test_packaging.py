@@ -86,61 +86,89 @@ def test_the_wheel_holds_every_package_and_the_data(wheel):
     assert any(n.endswith("LICENSE") for n in names)
 
 
-class Venv:
-    """A fresh virtual environment with the wheel installed (not editable), the dependencies seen from the
-    environment running the tests, and an empty working folder; :meth:`rigctl` runs its console script there."""
+def _test_environment_paths() -> list[str]:
+    """The site folders of the environment running the tests (and those its own .pth files chain in)."""
+    seen = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages"))]
+    return list(dict.fromkeys(site.getsitepackages() + seen))
 
-    def __init__(self, root: Path, wheel: Path, cache: Path):
-        self.root = root / "venv"
-        self.python = self.root / "bin" / "python"
-        self.work = root / "empty"
+
+class ReadmeInstall:
+    """The README's first command exactly as written (first-recording.md's install is the same ``pip install .``), in a
+    copy of the sources: a virtual environment in ``.venv``, ``pip install .`` (not editable: the package as a wheel
+    installs it), a simulated recording and ``rigctl info``. Then :meth:`rigctl` runs the installed console script from
+    an empty folder.
+
+    Offline and without a download: the new environment sees the test environment's packages behind its own (a
+    ``sitecustomize`` appends them to ``sys.path``, so pip finds the dependencies installed and uninstalls the
+    environment's own rigctl, never the test environment's), and pip builds without an isolated build environment.
+    numba's cache and the firmware build go to the user cache folder, ``$XDG_CACHE_HOME`` (here inside the test's
+    folder)."""
+
+    def __init__(self, root: Path):
+        from .guides import run_by, script
+
+        self.blocks = run_by("tests/test_packaging.py::test_the_readme_install_then_the_docs_extra")
+        assert [b.page for b in self.blocks] == ["README.md", "docs/guides/first-recording.md"]
+        self._script = script
+        self.root = root
+        self.src = copy_of_the_sources(root)
+        hook = root / "hook"
+        hook.mkdir()
+        (hook / "sitecustomize.py").write_text(f"import sys\nsys.path.extend({_test_environment_paths()!r})\n")
+        self.cache, self.work = root / "cache", root / "empty"
         self.work.mkdir()
-        self.env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "RIGCTL_FIRMWARE_BUILD")}
-        self.env.update(VIRTUAL_ENV=str(self.root), PATH=f"{self.root / 'bin'}{os.pathsep}{os.environ['PATH']}",
-                        RIGCTL_CONFIG=str(root / "rig.json"), XDG_CACHE_HOME=str(cache))
-        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(self.root)], check=True, timeout=120)
-        out = subprocess.run([sys.executable, "-m", "pip", "--python", str(self.python), "install", "-q",
-                              "--no-deps", "--no-index", str(wheel)], capture_output=True, text=True, timeout=300)
-        assert out.returncode == 0, out.stderr[-2000:]
-        # after the install (pip sees only the new environment): the test environment's packages, behind its own
-        purelib = Path(self.py("import sysconfig; print(sysconfig.get_path('purelib'))"))
-        assert purelib.is_relative_to(self.root)
-        # (its site folders and those its own .pth files chain in: a venv layered on another's packages)
-        seen = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages"))]
-        (purelib / "_test_environment.pth").write_text("\n".join(dict.fromkeys(site.getsitepackages() + seen)) + "\n")
+        self.env = {k: v for k, v in os.environ.items()
+                    if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "RIGCTL_FIRMWARE_BUILD")}
+        self.env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(hook),
+                        PIP_NO_INDEX="1", PIP_NO_BUILD_ISOLATION="0", XDG_CACHE_HOME=str(self.cache),
+                        RIGCTL_CONFIG=str(root / "rig.json"), PYTHONUNBUFFERED="1")
+        self.readme_output = self.shell(self.blocks[0].text)
+        self.venv = self.src / ".venv"
+        self.python = self.venv / "bin" / "python"
+        self.site_packages = next((self.venv / "lib").glob("python3*/site-packages"))
+        # the installed console script's environment: the activated virtual environment
+        self.run_env = dict(self.env, VIRTUAL_ENV=str(self.venv), PATH=f"{self.venv / 'bin'}{os.pathsep}{self.env['PATH']}")
+
+    def shell(self, text: str) -> str:
+        """``text`` run by bash in the copy of the sources, as the guides' blocks run (a failing command ends it)."""
+        step = self.root / "step.sh"
+        step.write_text(self._script([], self.src).replace("echo '@@guide-block end'", text))
+        r = subprocess.run(["bash", str(step)], cwd=self.src, env=self.env, capture_output=True, text=True,
+                           timeout=600)
+        assert r.returncode == 0 and "Traceback" not in r.stderr, (text, r.stdout[-2000:], r.stderr[-3000:])
+        return r.stdout
 
     def py(self, code: str) -> str:
         r = subprocess.run([str(self.python), "-c", code], capture_output=True, text=True, cwd=self.work,
-                           env=self.env, timeout=120)
+                           env=self.run_env, timeout=120)
         assert r.returncode == 0, r.stderr[-2000:]
         return r.stdout.strip()
 
     def rigctl(self, *args, timeout=300) -> str:
-        r = subprocess.run([str(self.root / "bin" / "rigctl"), *args], capture_output=True, text=True, cwd=self.work,
-                           env=self.env, timeout=timeout)
+        r = subprocess.run([str(self.venv / "bin" / "rigctl"), *args], capture_output=True, text=True, cwd=self.work,
+                           env=self.run_env, timeout=timeout)
         assert r.returncode == 0, (args, r.stdout[-1000:], r.stderr[-2000:])
         return r.stdout
 
 
 @pytest.fixture(scope="module")
-def venv(wheel, tmp_path_factory, scratch):
-    # the firmware cache persists between local runs, outside the checkout (the Arduino core is not rebuilt); make
-    # still rebuilds every source of the fresh install, whose files are newer than any earlier build
-    cache = scratch / "wheel-test-xdg-cache"
-    v = Venv(tmp_path_factory.mktemp("installed"), wheel, cache)
+def venv(tmp_path_factory):
+    """The README's install (:class:`ReadmeInstall`), shared by the tests of the installed package below; the last
+    test of this file (the docs extra) turns it into an editable install, so it runs last."""
+    v = ReadmeInstall(tmp_path_factory.mktemp("readme"))
     where = json.loads(v.py("import json, rigctl, rigctl_gui, rigctl.firmware as f; "
                             "print(json.dumps([rigctl.__file__, rigctl_gui.__file__, str(f.sources())]))"))
-    for path in where:  # the installed wheel, not the checkout
-        assert Path(path).is_relative_to(v.root), where
+    for path in where:  # the installed package, not the sources it was installed from nor the checkout
+        assert Path(path).is_relative_to(v.site_packages), where
     v.sources = Path(where[2])
     return v
 
 
 @pytest.fixture(scope="module")
 def sim_session(venv):
-    """``rigctl acquire quick_check --sim`` from the installed wheel (the protocol found by name)."""
-    assert "trials complete: 6/6" in venv.rigctl("acquire", "quick_check", "--sim", "--out", "q.h5")
-    return venv.work / "q.h5"
+    """The README's ``rigctl acquire quick_check --sim`` (the protocol found by name) from the installed package."""
+    assert "trials complete: 6/6" in venv.readme_output
+    return venv.src / "quick_check.h5"
 
 
 @pytest.mark.slow
@@ -148,13 +176,13 @@ def sim_session(venv):
 @pytest.mark.timeout(900)  # a bound on a hang: under load (CI run beside two CPU hogs) the chain took over 300 s
 def test_the_installed_wheel_runs_from_an_empty_folder(venv, sim_session):
     """info, a tiny simulated dataset, encode, analyze and the NWB export, all from the installed wheel."""
-    assert "complete" in venv.rigctl("info", "q.h5")
+    assert "complete" in venv.rigctl("info", str(sim_session))
     venv.rigctl("sim", "dataset", "quick_check", "--trials-per-condition", "6", "--out", "d.h5")
     venv.rigctl("encode", "d.h5", "--out", "d.enc.h5")
     assert "Individual Textures" in venv.rigctl("analyze", "d.enc.h5", "--task", "textures", "--repeats", "2",
                                                 "--pcs", "1-3", "--no-progress")
-    venv.rigctl("export", "nwb", "q.h5", "--out", "q.nwb", "--no-progress")
-    assert {"d.enc.h5", "d.h5", "q.h5", "q.nwb"} <= {p.name for p in venv.work.iterdir()}
+    venv.rigctl("export", "nwb", str(sim_session), "--out", "q.nwb", "--no-progress")
+    assert {"d.enc.h5", "d.h5", "q.nwb"} <= {p.name for p in venv.work.iterdir()}
 
 
 def _layout(path) -> dict[str, tuple]:
@@ -180,7 +208,7 @@ def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_
 
     version, digest = venv.py("import rigctl, rigctl.firmware as f; print(rigctl.__version__, f.source_digest())"
                               ).split()
-    build = Path(venv.env["XDG_CACHE_HOME"]) / "rigctl" / "firmware" / f"{version}-{digest[:16]}"
+    build = venv.cache / "rigctl" / "firmware" / f"{version}-{digest[:16]}"
     printed = venv.rigctl("firmware")
     assert f"build:   {build}" in printed and f"flash:w:{build / 'mega_drum.hex'}" in printed
     # quick_check's plan with one trial a texture (three plates, 2 s each: what the checks below need), from a file
@@ -212,56 +240,22 @@ def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_
     assert _layout(hil) == _layout(sim_session)
 
 
-def _test_environment_paths() -> list[str]:
-    """The site folders of the environment running the tests (and those its own .pth files chain in)."""
-    seen = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages"))]
-    return list(dict.fromkeys(site.getsitepackages() + seen))
-
-
 @pytest.mark.slow
 @pytest.mark.packaging
-def test_the_readme_install_then_the_docs_extra(tmp_path):
-    """The README's first command (and first-recording.md's install) exactly as written, in a copy of the sources:
-    a virtual environment, ``pip install .``, a simulated recording; then the README's docs step, ``pip install -e
+def test_the_readme_install_then_the_docs_extra(venv):
+    """After the README's install and its simulated recording (the :func:`venv` fixture), numba's cache files are in
+    ``$XDG_CACHE_HOME/rigctl/numba``, not in the installed package; then the README's docs step, ``pip install -e
     ".[docs]"``, and ``rigctl --version`` still works (issue 38: numba's cache files in ``site-packages/rigctl``
-    outlived the package and shadowed the editable install). numba's cache goes to ``$XDG_CACHE_HOME/rigctl/numba``.
-
-    Offline and without a download: the new environment sees the test environment's packages behind its own (a
-    ``sitecustomize`` appends them to ``sys.path``, so pip finds the dependencies installed and uninstalls the
-    environment's own rigctl, never the test environment's), and pip builds without an isolated build environment.
-    """
-    from .guides import run_by, script
-
-    blocks = run_by("tests/test_packaging.py::test_the_readme_install_then_the_docs_extra")
-    assert [b.page for b in blocks] == ["README.md", "docs/guides/first-recording.md"]
-    src = copy_of_the_sources(tmp_path)
-    hook = tmp_path / "hook"
-    hook.mkdir()
-    (hook / "sitecustomize.py").write_text(f"import sys\nsys.path.extend({_test_environment_paths()!r})\n")
-    cache, elsewhere = tmp_path / "cache", tmp_path / "empty"
-    elsewhere.mkdir()
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "RIGCTL_FIRMWARE_BUILD")}
-    env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(hook),
-               PIP_NO_INDEX="1", PIP_NO_BUILD_ISOLATION="0", XDG_CACHE_HOME=str(cache),
-               RIGCTL_CONFIG=str(tmp_path / "rig.json"), PYTHONUNBUFFERED="1")
-
-    def shell(text: str) -> str:
-        (tmp_path / "step.sh").write_text(script([], src).replace("echo '@@guide-block end'", text))
-        r = subprocess.run(["bash", str(tmp_path / "step.sh")], cwd=src, env=env, capture_output=True, text=True,
-                           timeout=600)
-        assert r.returncode == 0 and "Traceback" not in r.stderr, (text, r.stdout[-2000:], r.stderr[-3000:])
-        return r.stdout
-
-    assert "trials complete: 6/6" in shell(blocks[0].text)
-    site_packages = next((src / ".venv" / "lib").glob("python3*/site-packages"))
-    kernels = [p.name for p in (site_packages / "rigctl").rglob("*.nb[ic]")]
+    outlived the package and shadowed the editable install); then first-recording.md's install over it. Runs last in
+    this file: it turns the shared environment into an editable install."""
+    kernels = [p.name for p in (venv.site_packages / "rigctl").rglob("*.nb[ic]")]
     assert not kernels, f"numba cached kernels inside the installed package: {kernels[:5]}"
-    assert any((cache / "rigctl" / "numba").rglob("*.nbi"))  # the run compiled (and cached) the rig's kernels
+    assert any((venv.cache / "rigctl" / "numba").rglob("*.nbi"))  # the run compiled (and cached) the rig's kernels
     version = f"rigctl, version {rigctl.__version__}"
-    where = shell(f'. .venv/bin/activate && pip install -e ".[docs]" && cd {elsewhere} && rigctl --version && '
-                  'python -c "import rigctl; print(rigctl.__file__)"')
-    assert version in where and f"{src / 'rigctl' / '__init__.py'}" in where  # the editable sources, not a leftover
+    where = venv.shell(f'. .venv/bin/activate && pip install -e ".[docs]" && cd {venv.work} && rigctl --version && '
+                       'python -c "import rigctl; print(rigctl.__file__)"')
+    assert version in where and f"{venv.src / 'rigctl' / '__init__.py'}" in where  # the editable sources
     # first-recording.md's install, over the editable one, then the command again from an empty folder
-    where = shell(f"{blocks[1].text}\ncd {elsewhere} && rigctl --version && python -c 'import rigctl; print(rigctl.__file__)'")
-    assert version in where and str(site_packages / "rigctl" / "__init__.py") in where
+    where = venv.shell(f"{venv.blocks[1].text}\ncd {venv.work} && rigctl --version && "
+                       "python -c 'import rigctl; print(rigctl.__file__)'")
+    assert version in where and str(venv.site_packages / "rigctl" / "__init__.py") in where

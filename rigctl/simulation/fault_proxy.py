@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyEndpoint
 
 log = logging.getLogger(__name__)
@@ -179,7 +180,7 @@ class FaultProxy:
         """Start forwarding (idempotent)."""
         if self._thread is None:
             self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name="fault-proxy", daemon=True)
+            self._thread = threading.Thread(target=board_thread(self._run), name="fault-proxy", daemon=True)
             self._thread.start()
         return self
 

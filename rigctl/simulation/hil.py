@@ -41,6 +41,7 @@ from rigctl import firmware
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.devices import wire
 from rigctl.simulation.hil_faults import HilFaults
+from rigctl.simulation.priority import board_thread, raise_board_process
 from rigctl.simulation.truth import TruthLog
 
 if TYPE_CHECKING:
@@ -107,6 +108,7 @@ class _Harness:
         self._lock = threading.Lock()
         self.proc = subprocess.Popen([str(exe), "--board", board, *args, str(elf)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
+        raise_board_process(self.proc.pid)  # the board's clock, not the host's (rigctl.simulation.priority)
         assert self.proc.stdin is not None and self.proc.stdout is not None and self.proc.stderr is not None
         self._stdin, self._stdout, self._stderr = self.proc.stdin, self.proc.stdout, self.proc.stderr  # all piped
         port = None
@@ -124,7 +126,7 @@ class _Harness:
             raise HilError(f"simavr harness for the {board} did not report its pty")
         self.port: str = port
         self._on_line = on_line
-        self._thread = threading.Thread(target=self._read, name=f"hil-{board}", daemon=True)
+        self._thread = threading.Thread(target=board_thread(self._read), name=f"hil-{board}", daemon=True)
         self._thread.start()
 
     def _read(self) -> None:

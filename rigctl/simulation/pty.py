@@ -34,6 +34,8 @@ import threading
 import tty
 from pathlib import Path
 
+from rigctl.simulation.priority import board_thread
+
 log = logging.getLogger(__name__)
 
 #: line speed the endpoint parks the slave at between client opens; any client open sets its own speed
@@ -242,7 +244,7 @@ class PtyBridge:
         self._copying_from_board = False  # and the board's
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
-        self._thread = threading.Thread(target=self._run, name="pty-bridge", daemon=True)
+        self._thread = threading.Thread(target=board_thread(self._run), name="pty-bridge", daemon=True)
         self._thread.start()
 
     @property

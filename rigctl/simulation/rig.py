@@ -27,6 +27,7 @@ from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import SensorLayout
 from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
+from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PortDir
 from rigctl.simulation.source_pacer import SourcePacer, source_layout
 from rigctl.simulation.truth import TruthLog
@@ -133,7 +134,7 @@ class SimulatedRig:
         if self._thread is None:
             self.mega.start(clock=False)
             self._stop.clear()
-            self._thread = threading.Thread(target=paced_loop, args=(self._stop, self.tick_s, self._step),
+            self._thread = threading.Thread(target=board_thread(paced_loop), args=(self._stop, self.tick_s, self._step),
                                             name="sim-physics", daemon=True)
             self._thread.start()
         return self

@@ -42,6 +42,7 @@ from rigctl.devices import wire
 from rigctl.devices.wire import Fault
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
+from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyBridge
 from rigctl.simulation.virtual_uno import paced_loop
 
@@ -185,7 +186,7 @@ class VirtualMega(MegaController):
             loop.run_until_complete(main())
             loop.close()
 
-        self._server_thread = threading.Thread(target=serve, name="virtual-mega-modbus", daemon=True)
+        self._server_thread = threading.Thread(target=board_thread(serve), name="virtual-mega-modbus", daemon=True)
         self._server_thread.start()
         ready.wait(5)
         if errors:
@@ -193,7 +194,7 @@ class VirtualMega(MegaController):
         if clock:
             self._stop.clear()
             self._clock_thread = threading.Thread(
-                target=paced_loop, args=(self._stop, control_period_s, self.step), name="virtual-mega-control",
+                target=board_thread(paced_loop), args=(self._stop, control_period_s, self.step), name="virtual-mega-control",
                 daemon=True)
             self._clock_thread.start()
         return self

@@ -21,6 +21,7 @@ import numpy as np
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.devices import wire
 from rigctl.devices.frames import encode_frames
+from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyEndpoint
 
 log = logging.getLogger(__name__)
@@ -240,7 +241,7 @@ class VirtualUno:
         if self._thread is not None:
             raise RuntimeError("already running")
         self._stop.clear()
-        self._thread = threading.Thread(target=paced_loop, args=(self._stop, tick_s, lambda n: self.tick(*source(n))),
+        self._thread = threading.Thread(target=board_thread(paced_loop), args=(self._stop, tick_s, lambda n: self.tick(*source(n))),
                                         kwargs={"rate_hz": self.layout.sample_rate_hz}, name="virtual-uno",
                                         daemon=True)
         self._thread.start()
