@@ -38,6 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from rigctl.acquisition.clock import trial_clock_attrs
+from rigctl.acquisition.drum_marks import mark_attrs
 from rigctl.acquisition.motion import wait_released
 from rigctl.acquisition.protocol import PlannedTrial, Settle
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
@@ -154,6 +155,9 @@ class _Status:
     index_period_s: float = 0.0
     index_steps: int = 0
     index_count: int = 0
+    mark_period_s: float = 0.0
+    mark_steps: int = 0
+    mark_count: int = 0
 
 
 def _utc_now() -> str:
@@ -655,7 +659,8 @@ class Rig:
         st = self.drum.read_status()
         t1 = clock.now()
         return _Status(0.5 * (t0 + t1), float(st.force_g), float(st.speed_mm_s), int(st.state), int(st.faults),
-                       str(st.index_source), float(st.index_period_s), int(st.index_steps), int(st.index_count))
+                       str(st.index_source), float(st.index_period_s), int(st.index_steps), int(st.index_count),
+                       float(st.mark_period_s), int(st.mark_steps), int(st.mark_count))
 
     def _check_fault(self, s: _Status, what: str) -> None:
         if s.state == DrumState.FAULT:
@@ -905,13 +910,18 @@ class Rig:
         if replay is not None and len(cap) >= n:
             data.attrs.update(replay.source_provenance(int(cap.seq[n - 1]), n))
         data.attrs.update(trial_clock_attrs(self.clock_fit, counts[:n], cap.host_time_s[:n]))
-        data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1]))
+        data.attrs.update(mark_attrs(statuses))
+        data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1], marks_mm_s=data.attrs[
+            "drum_speed_marks_mm_s"]))
         if data.attrs["drum_speed_mismatch"]:
             log.warning("trial %d: %s", planned.trial_id, data.attrs["drum_speed_warning"])
+        if data.attrs["drum_slip"]:
+            log.warning("trial %d: the drum slipped: a speed-mark interval took %.0f %% more steps than it should",
+                        planned.trial_id, 100 * data.attrs["drum_slip_max"])
         return data
 
 
-def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
+def index_speed_attrs(planned: PlannedTrial, first, last, *, marks_mm_s: float = math.nan) -> dict:
     """What the drum index sensor measured during a trial (docs/session-format.md, trial attributes).
 
     ``first`` and ``last``: the drum statuses at the start and the end of the capture (``index_source``,
@@ -921,6 +931,8 @@ def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
     - ``drum_steps_per_rev_index``: the microsteps the firmware sent between the last two sensor edges (0 without a
       live sensor): how far one step really turns the drum, whatever the speed;
     - ``drum_speed_index_mm_s`` and ``drum_speed_index_method``: the real drum speed of a constant-speed trial,
+      ``"marks"`` = ``marks_mm_s``, the mean over the speed-mark intervals inside the capture
+      (:func:`rigctl.acquisition.drum_marks.mark_attrs`), when there was one; else
       ``"period"`` = pi x diameter / the index period when both edges of that period fell inside the capture,
       else ``"steps"`` = the setpoint x steps_per_rev x microsteps / ``drum_steps_per_rev_index`` (the step rate
       is the setpoint's; the revolutions per step come from the sensor); NaN and ``""`` when neither is known
@@ -934,7 +946,9 @@ def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
     steps = int(last.index_steps) if last.index_source == "sensor" else 0
     fresh = (int(last.index_count) - int(first.index_count)) % 65536 >= 2 and last.index_period_s > 0
     speed, method = math.nan, ""
-    if not planned.is_ramp and fresh:
+    if not planned.is_ramp and math.isfinite(marks_mm_s):
+        speed, method = float(marks_mm_s), "marks"
+    elif not planned.is_ramp and fresh:
         speed, method = DRUM_CIRCUMFERENCE_MM / last.index_period_s, "period"
     elif not planned.is_ramp and steps:
         speed, method = planned.speed_mm_s * usteps / steps, "steps"
@@ -942,7 +956,7 @@ def index_speed_attrs(planned: PlannedTrial, first, last) -> dict:
     if steps and abs(usteps / steps - 1.0) > DRUM_SPEED_TOLERANCE:
         why.append(f"the drum turned once every {steps} microsteps, the firmware assumes {usteps} (is the driver "
                    f"set to {DRUM_MICROSTEPS * steps / usteps:g} microsteps instead of {DRUM_MICROSTEPS}?)")
-    if method == "period" and abs(speed / planned.speed_mm_s - 1.0) > DRUM_SPEED_TOLERANCE:
+    if method in ("period", "marks") and abs(speed / planned.speed_mm_s - 1.0) > DRUM_SPEED_TOLERANCE:
         why.append(f"the index sensor measured {speed:.1f} mm/s at a setpoint of {planned.speed_mm_s:g} mm/s "
                    "(wrong microstep setting, or the Mega's step timing?)")
     return {"index_source": str(last.index_source), "drum_speed_index_mm_s": float(speed),

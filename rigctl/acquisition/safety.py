@@ -4,8 +4,9 @@ Every face (CLI, GUI, server, Python protocols) reaches the rig through :class:`
 :class:`rigctl.operations.RigControl`), whose :class:`SafetyLatch` this is; none decides what a fault means.
 
 - **Latched** (:func:`latch_for`): every fault the drum controller latches (e-stop, over-force, reversed load cell,
-  host watchdog, load cell silent, actuator end of travel, HOME failure, wrong HX711 rate), an unexpected reset of
-  the controller (NOT_HOMED or a new BOOT_COUNT), a stalled drum; a drum link lost mid-press latches WATCHDOG in the
+  host watchdog, load cell silent, actuator end of travel, HOME failure, wrong HX711 rate, a drum that slips or
+  stalls: its speed marks late), an unexpected reset of the controller (NOT_HOMED or a new BOOT_COUNT), a stalled
+  drum; a drum link lost mid-press latches WATCHDOG in the
   controller (seen when the link is back; meanwhile the run ends after a bounded wait, resumable). The rig stops motion
   (STOP), the latch holds (:attr:`SafetyLatch.latch`) and every motion the host asks for (press, run, home) is
   refused with :class:`LatchedFault` until an operator acknowledges it (:meth:`rigctl.acquisition.rig.Rig.acknowledge`:
@@ -51,7 +52,8 @@ CAUSES: dict[str, tuple[str, str]] = {
     "home-failed": ("HOME failed", "check the home switch and its wire"),
     "hx711-rate": ("wrong HX711 rate", "set the HX711's RATE pin (or the rig config's force_loop) to match"),
     "reset": ("unexpected controller reset", "check the controller's power and reset line"),
-    "stall": ("drum stalled", "free the drum (nothing may block it), check the stepper and its driver"),
+    "stall": ("drum stalled or slipping", "free the drum (nothing may block it), check its coupling, the stepper and "
+              "its driver's current"),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -60,6 +62,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.WATCHDOG, "watchdog"), (Fault.LOADCELL_TIMEOUT, "loadcell-timeout"),
     (Fault.ACTUATOR_DIRECTION, "actuator-direction"), (Fault.ACTUATOR_TRAVEL, "actuator-travel"),
     (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
+    (Fault.DRUM_SLIP, "stall"),
 )
 
 

@@ -34,6 +34,7 @@ __all__ = [
     "SetpointRange",
     "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM", "DRUM_SPEED_TOLERANCE",
+    "DRUM_MARKS_PER_REV", "DRUM_SLIP_TOLERANCE",
     "STATE_TEXT", "FAULT_WORDS", "FaultWords", "describe_state", "describe_faults", "fault_advice",
     "DrumError", "DrumTimeout", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
@@ -66,6 +67,7 @@ class Fault(enum.IntFlag):
     HOME_NOT_FOUND = 1 << 6
     HX711_RATE = 1 << 8
     ACTUATOR_DIRECTION = 1 << 9
+    DRUM_SLIP = 1 << 10
 
 
 class ResetCause(enum.IntFlag):
@@ -162,6 +164,13 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the actuator moves towards the sensor when the firmware drives it home (a swapped coil pair, or the DIR "
         "signal inverted): it was stopped where it stood. Power off, swap one coil pair of the actuator motor at its "
         "driver (1A/1B), then CLEAR_FAULT and HOME; rigctl doctor checks it."),
+    Fault.DRUM_SLIP: FaultWords(
+        "drum slipped or stalled",
+        "the drum turned less than its steps say: more steps than one speed-mark interval allows passed without a "
+        "mark (a stall, a slipping coupling, a stepper losing steps)",
+        "the drum's speed marks came late or stopped while the stepper was stepped: the drum slips (a loose "
+        "coupling or grub screw, a belt) or stalls (something blocks it, too little motor current for the load). "
+        "Free the drum and fix the drive, then CLEAR_FAULT; the trial in progress was not recorded."),
 }
 
 
@@ -223,6 +232,10 @@ class DrumStatus:
     index_period_s: float = 0.0  #: one drum revolution by the index sensor, s (0 before two sensor edges)
     index_steps: int = 0  #: drum microsteps sent in that revolution (steps_per_rev x microsteps if the driver agrees)
     index_count: int = 0  #: index-sensor edges since power-up, wraps at 65536
+    #: time between the last two speed marks (1 / DRUM_MARKS_PER_REV of a revolution), s (0 before two marks)
+    mark_period_s: float = 0.0
+    mark_steps: int = 0  #: drum microsteps sent between the last two speed marks (0 before two marks)
+    mark_count: int = 0  #: speed marks since power-up, wraps at 65536
     reset_cause: ResetCause = ResetCause(0)  #: what caused the controller's last reset (spec table 2.7)
     boot_count: int = 0  #: the controller's boots so far (EEPROM), wraps at 65536: a change = it was reset
     flags: StatusFlag = StatusFlag(0)  #: status bits (spec table 2.8)
@@ -441,6 +454,14 @@ DRUM_CIRCUMFERENCE_MM = math.pi * DRUM_DIAMETER_MM
 #: sensor counts revolutions: a drum of another diameter than the firmware's turns at the expected rate and is not
 #: seen (speeds in mm/s use the firmware's diameter)
 DRUM_SPEED_TOLERANCE = 0.03
+#: speed marks per drum revolution (a slotted disc and its sensor, spec 2.6; the firmware's
+#: RIGCTL_DRUM_MARKS_PER_REV): the drum's speed and its slip are measured once per mark, 39 mm of surface apart,
+#: six times inside a 240 mm trial
+DRUM_MARKS_PER_REV = 8
+#: how much more than one mark interval's microsteps may pass without a mark before the controller latches
+#: DRUM_SLIP (RIGCTL_DRUM_SLIP_TOLERANCE_PCT): the measurement's own error is +-1 step of 400 on the simulated
+#: rigs (docs/firmware.md, "Speed marks"); a disc's slots cut to +-0.5 degree add +-1.1 %
+DRUM_SLIP_TOLERANCE = 0.05
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -35,7 +35,9 @@ FAULTS: dict[str, str] = {
     "reversed-cell": "the load cell reads reversed (negative under load) from T to T+D",
     "reversed-actuator": "the actuator moves the wrong way (away from the sensor when the loop presses) from T to T+D",
     "host-silence": "the host's link to the drum controller is cut (USB pulled) from T to T+D: nothing reaches it",
-    "stall": "the drum is blocked (the stepper turns no further, the index mark stops passing) from T to T+D",
+    "stall": "the drum is blocked (its stepper loses every step: the index and speed marks stop passing) from T to T+D",
+    "slip": "slip=N%: the drum turns N % less than its steps say (a slipping coupling; the speed marks come late) "
+            "from T to T+D",
     "hx711-10sps": "the HX711 comes up at 10 samples/s (its RATE pin low): the drum controller resets at T and "
                    "measures the wrong rate at boot",
     "taxel-ohm": "taxel-ohm=N: every taxel's source impedance is N Ohm from T to T+D (the multiplexer's crosstalk)",
@@ -46,7 +48,9 @@ __doc__ = (__doc__ or "") + "\n".join(f"- ``{name}``: {what}" for name, what in 
 #: faults that happen at one instant (their duration is not used)
 INSTANT_FAULTS = frozenset({"reset", "hx711-10sps"})
 #: faults that take a value (``name=value``)
-VALUED_FAULTS = frozenset({"taxel-ohm"})
+VALUED_FAULTS = frozenset({"taxel-ohm", "slip"})
+#: faults whose value is a percentage (``slip=20%``; the ``%`` may be left out), 0-100
+PERCENT_FAULTS = frozenset({"slip"})
 
 _SPEC = re.compile(r"^(?P<name>[a-z0-9-]+)(=(?P<value>[^@]+))?@(?P<at>[^+]+)(\+(?P<dur>.+))?$")
 
@@ -58,8 +62,8 @@ class FaultSpecError(ValueError):
 @dataclass(frozen=True)
 class FaultSpec:
     """One injected fault: ``name`` (a key of :data:`FAULTS`), ``at_s`` (start, s after the schedule starts, >= 0),
-    ``duration_s`` (s; ``math.inf``: to the end; 0 for an instant fault), ``value`` (``taxel-ohm``'s Ohm, else
-    None)."""
+    ``duration_s`` (s; ``math.inf``: to the end; 0 for an instant fault), ``value`` (``taxel-ohm``'s Ohm,
+    ``slip``'s percent, else None)."""
 
     name: str
     at_s: float
@@ -72,7 +76,7 @@ class FaultSpec:
         return self.at_s + self.duration_s
 
     def __str__(self) -> str:
-        value = "" if self.value is None else f"={self.value:g}"
+        value = "" if self.value is None else f"={self.value:g}{'%' if self.name in PERCENT_FAULTS else ''}"
         dur = "" if math.isinf(self.duration_s) or self.name in INSTANT_FAULTS else f"+{self.duration_s:g}"
         return f"{self.name}{value}@{self.at_s:g}{dur}"
 
@@ -88,7 +92,7 @@ def _seconds(text: str, what: str, spec: str) -> float:
 
 
 def parse_fault(spec: str) -> FaultSpec:
-    """Parse ``FAULT[=VALUE]@T[+D]`` (e.g. ``estop@3+2``, ``taxel-ohm=47000@0``, ``reset@5``).
+    """Parse ``FAULT[=VALUE]@T[+D]`` (e.g. ``estop@3+2``, ``taxel-ohm=47000@0``, ``slip=20%@5+2``, ``reset@5``).
 
     Raises FaultSpecError (a ValueError) naming what is wrong: the form, an unknown fault (with the known ones), a
     missing or unexpected value, a time that is not a number of seconds in 0..1e6."""
@@ -104,12 +108,13 @@ def parse_fault(spec: str) -> FaultSpec:
     if name in VALUED_FAULTS:
         if m["value"] is None:
             raise FaultSpecError(f"--inject {text}: {name} needs a value ({name}=N@T)")
+        top = 100.0 if name in PERCENT_FAULTS else 1e9
         try:
-            value = float(m["value"])
+            value = float(m["value"].removesuffix("%") if name in PERCENT_FAULTS else m["value"])
         except ValueError:
             raise FaultSpecError(f"--inject {text}: {name}'s value {m['value']!r} is not a number") from None
-        if not (math.isfinite(value) and 0 <= value <= 1e9):
-            raise FaultSpecError(f"--inject {text}: {name}'s value must be 0 to 1e9, got {m['value']}")
+        if not (math.isfinite(value) and 0 <= value <= top):
+            raise FaultSpecError(f"--inject {text}: {name}'s value must be 0 to {top:g}, got {m['value']}")
     elif m["value"] is not None:
         raise FaultSpecError(f"--inject {text}: {name} takes no value")
     at = _seconds(m["at"], "the start", text)

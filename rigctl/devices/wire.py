@@ -215,6 +215,9 @@ class InputRegister(enum.IntEnum):
     INDEX_PERIOD_MS = 22
     INDEX_STEPS = 23
     INDEX_COUNT = 24
+    MARK_PERIOD_0P1MS = 25
+    MARK_STEPS = 26
+    MARK_COUNT = 27
     BUILD_ID_0 = 30
     BUILD_ID_1 = 31
     BUILD_ID_2 = 32

@@ -309,7 +309,7 @@ class MegaController:
 
     def _watchdog_guards(self) -> bool:
         """The host watchdog guards the rig now: not faulted, the drum turns or the force loop holds."""
-        turning = abs(self.model.drum_speed_mm_s) > 0.05 or self._speed_target > 0
+        turning = abs(self.model.stepper_speed_mm_s) > 0.05 or self._speed_target > 0
         return self.state != DrumState.FAULT and (self.state in _ENGAGED or turning)
 
     def _watchdog_due(self) -> bool:
@@ -364,9 +364,7 @@ class MegaController:
         regs = [0] * wire.N_INPUT
         regs[IR.FORCE_G] = _u16(max(-32768, min(32767, self._force_g)))
         d = m.config.drum  # the speed by the step rate, as the firmware knows it (not the real drum's)
-        regs[IR.SPEED_0P1MMS] = _u16(m.drum_speed_mm_s * d.true_steps_per_mm / d.steps_per_mm * 10)
-        regs[IR.DRUM_ANGLE_0P01DEG] = int(self._index.angle_deg() * 100) % 36000
-        regs[IR.DRUM_REVOLUTIONS] = self._index.revolutions & 0xFFFF
+        regs[IR.SPEED_0P1MMS] = _u16(m.stepper_speed_mm_s * d.true_steps_per_mm / d.steps_per_mm * 10)
         regs[IR.ACTUATOR_POSITION_0P01MM] = _u16(max(-32768, min(32767, act_mm * 100)))
         regs[IR.STATE] = int(self.state)
         regs[IR.FAULT_BITS] = int(self.faults)
@@ -377,10 +375,7 @@ class MegaController:
         regs[IR.LOADCELL_RAW_LO] = raw & 0xFFFF
         regs[IR.FORCE_SETPOINT_ACTIVE_G] = self.holding[HR.FORCE_SETPOINT_G] if self.state in _ENGAGED else 0
         regs[IR.HX711_RATE_0P01SPS] = int(round(self._hx_rate_sps * 100))
-        regs[IR.INDEX_SOURCE] = 1 if self._index.sensor_live else 0
-        regs[IR.INDEX_PERIOD_MS] = self._index.period_ms
-        regs[IR.INDEX_STEPS] = self._index.steps_per_mark
-        regs[IR.INDEX_COUNT] = self._index.edges & 0xFFFF
+        self._index.input_registers(regs)
         regs[IR.RESET_CAUSE] = int(self.reset_cause)
         regs[IR.BOOT_COUNT] = self.eeprom["boot_count"]
         regs[IR.STATUS_FLAGS] = self._status_flags()
@@ -638,9 +633,12 @@ class MegaController:
             with self._lock:
                 rate, vel = self._outputs
             t0 = self.model.time_s
+            travel0 = self.model.stepper_travel_mm
             s, y = self.model.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
-            with self._lock:
-                y = self._index.step(y, rate, t0)
+            m = self.model
+            with self._lock:  # the step pulses sent: the stepper's travel at the driver's real setting
+                y = self._index.step(y, (m.last_stepper_mm - travel0) * m.config.drum.true_steps_per_mm, t0,
+                                     m.last_marks)
                 vmax = self.model.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
                 self._steps_true_mm += min(max(vel, -vmax), vmax) * k / 1000.0
             self.control_step(k)
@@ -745,6 +743,8 @@ class MegaController:
             elif engaged and self._actuator_position_mm() >= mech.actuator_travel_mm - 1e-3 and \
                     f < h[HR.FORCE_SETPOINT_G] - h[HR.FORCE_TOLERANCE_G]:
                 self._fault(Fault.ACTUATOR_TRAVEL)
+            if self._index.take_slip() and Fault.DRUM_SLIP not in self.faults:
+                self._fault(Fault.DRUM_SLIP)  # the drum's speed marks came late or stopped (spec 2.5)
             engaged = self.state in _ENGAGED
             # --- drum speed profile
             limit = h[HR.SPEED_LIMIT_0P1MMS] / 10.0
@@ -773,7 +773,7 @@ class MegaController:
                 else:
                     self._on_target_ms = 0
                 if self.state == DrumState.SEEKING_FORCE and self._on_target_ms >= h[HR.SETTLE_TIME_MS] and \
-                        abs(m.drum_speed_mm_s) < 0.05:
+                        abs(m.stepper_speed_mm_s) < 0.05:
                     self.state = DrumState.FORCE_SETTLED
             elif self._homing:
                 vel = self._home_velocity(n_ms, cal)
@@ -786,7 +786,7 @@ class MegaController:
                 vel = 0.0
             self.drivers_enabled = Fault.ESTOP not in self.faults and not self.estop_open and (
                 engaged or self._homing or self._retracting or self.state == DrumState.RUNNING
-                or rate != 0.0 or abs(m.drum_speed_mm_s) > 0.05 or vel != 0.0)
+                or rate != 0.0 or abs(m.stepper_speed_mm_s) > 0.05 or vel != 0.0)
             if not self.drivers_enabled:
                 rate, vel = 0.0, 0.0
             self._outputs = (rate, vel)

@@ -1,6 +1,8 @@
-"""The drum controller's index counting (docs/wire-protocol.md 2.6), for the virtual Mega
-(:class:`rigctl.simulation.controller.MegaController`): the step count the firmware keeps and the index sensor's
-marks on the real drum, as the firmware's step ISR and Timer5 input capture make them (arduino/mega_drum/mega_drum.cpp).
+"""The drum controller's index counting and speed marks (docs/wire-protocol.md 2.6), for the virtual Mega
+(:class:`rigctl.simulation.controller.MegaController`): the step pulses the firmware sends (the stepper's travel
+through its acceleration ramp), the index sensor's marks and the speed-mark disc's on the real drum, as the firmware's
+step ISR, Timer5 input capture and INT2 interrupt make them (arduino/mega_drum/mega_drum.cpp), and the slip check
+that latches DRUM_SLIP.
 """
 
 from __future__ import annotations
@@ -9,13 +11,15 @@ import math
 
 import numpy as np
 
+from rigctl.core.drum import DRUM_SLIP_TOLERANCE
+from rigctl.devices.wire import InputRegister as IR
 from rigctl.simulation.model import DrumConfig
 
 __all__ = ["DrumIndex"]
 
 
 class DrumIndex:
-    """Index state of one power-up of the controller.
+    """Index and speed-mark state of one power-up of the controller.
 
     Attributes
     ----------
@@ -29,6 +33,12 @@ class DrumIndex:
         Time (ms) and microsteps between the last two sensor edges (INDEX_PERIOD_MS, INDEX_STEPS; 0 until two).
     revolutions : int
         Index marks passed, by the sensor or the step count (DRUM_REVOLUTIONS).
+    marks, mark_period_0p1ms, mark_steps : int
+        Speed marks since power-up (MARK_COUNT), the time (0.1 ms) and microsteps between the last two that came
+        while the drum was stepped (MARK_PERIOD_0P1MS, MARK_STEPS; 0 until then).
+    slipped : bool
+        More than ``1 + DRUM_SLIP_TOLERANCE`` mark intervals of steps passed without a mark while the drum was
+        stepped (the controller latches DRUM_SLIP and clears this).
     """
 
     def __init__(self, drum: DrumConfig):
@@ -41,21 +51,34 @@ class DrumIndex:
         self.period_ms = 0
         self.steps_per_mark = 0
         self.revolutions = 0
+        self.marks = 0
+        self.mark_period_0p1ms = 0
+        self.mark_steps = 0
+        self.slipped = False
+        self._steps_at_mark = 0.0
+        self._mark_s = 0.0
+        self._mark_fresh = False
+        usteps = drum.steps_per_rev * drum.microsteps
+        self._slip_steps = usteps / max(1, drum.marks_per_rev) * (1.0 + DRUM_SLIP_TOLERANCE)
 
-    def step(self, sensor: np.ndarray, rate: float, t0: float) -> np.ndarray:
-        """Count the step pulses of a step of ``sensor.size`` ms at ``rate`` microsteps/s from ``t0`` (s) and take
-        the index sensor's passes (``sensor``: (n,) bool, the model's real index mark, if a sensor is fitted);
-        returns the index output per ms, (n,) bool."""
+    def step(self, sensor: np.ndarray, pulses: np.ndarray, t0: float, marks: np.ndarray | None = None) -> np.ndarray:
+        """Count the step pulses of a step of ``sensor.size`` ms from ``t0`` (s) and take the sensors' passes.
+
+        ``sensor``: (n,) bool, the model's real index mark passed in that ms (if a sensor is fitted); ``pulses``:
+        (n,) float, the step pulses sent since the step's start at the end of each ms; ``marks``: (n,) bool, a speed
+        mark passed in that ms (None: no disc). Returns the index output per ms, (n,) bool."""
         d = self.drum
         usteps = d.steps_per_rev * d.microsteps  # what the firmware assumes
         n = sensor.size
         before = self.steps
+        if marks is not None and d.marks_per_rev > 0 and n:
+            self._speed_marks(marks, before + pulses, t0)
         if n and not self.sensor_live and not sensor.any():  # the common ms: no index edge, maybe no wrap
-            last = before + rate * n / 1000.0
-            if math.floor(before / usteps) == math.floor(last / usteps):  # steps are linear in time: no wrap
+            last = before + float(pulses[-1])
+            if math.floor(before / usteps) == math.floor(last / usteps):  # no wrap
                 self.steps = float(last)
                 return np.zeros(n, bool)
-        steps = before + rate * np.arange(1, n + 1) / 1000.0
+        steps = before + pulses
         self.steps = float(steps[-1]) if n else before
         out = np.zeros(n, bool)
         if d.index_sensor:
@@ -77,6 +100,42 @@ class DrumIndex:
             out |= wraps
             self.revolutions += int(wraps.sum())
         return out
+
+    def _speed_marks(self, marks: np.ndarray, steps: np.ndarray, t0: float) -> None:
+        """The speed marks of one step (the firmware's INT2 interrupt and its slip check in the 1 kHz tick)."""
+        prev = self.steps
+        for j in np.flatnonzero(marks):
+            t = t0 + (j + 1) * 1e-3
+            since = float(steps[j]) - self._steps_at_mark
+            if since > self._slip_steps:
+                self.slipped = True  # late: the tick saw the limit pass before this mark came
+            if self._mark_fresh and since > 0:
+                self.mark_period_0p1ms = min(0xFFFF, int(round((t - self._mark_s) * 10000.0)))
+                self.mark_steps = min(0xFFFF, int(round(since)))
+            self._mark_fresh = since > 0
+            self._mark_s, self._steps_at_mark = t, float(steps[j])
+            self.marks += 1
+        if float(steps[-1]) == prev:  # the drum at rest: the check re-arms, the next interval is not reported
+            self._steps_at_mark, self._mark_fresh = float(steps[-1]), False
+        elif float(steps[-1]) - self._steps_at_mark > self._slip_steps:
+            self.slipped = True  # a stall, or a slip: no mark within the interval's steps and the tolerance
+        if self.slipped:  # re-armed (the firmware's too): the deceleration that follows does not latch it again
+            self._steps_at_mark, self._mark_fresh = float(steps[-1]), False
+
+    def take_slip(self) -> bool:
+        """Whether the drum slipped or stalled since the last call (the controller latches DRUM_SLIP)."""
+        slipped, self.slipped = self.slipped, False
+        return slipped
+
+    def input_registers(self, regs: list[int]) -> None:
+        """Fill the drum angle, revolution, index and speed-mark input registers of ``regs`` (spec 2.2, 2.6)."""
+        regs[IR.DRUM_ANGLE_0P01DEG] = int(self.angle_deg() * 100) % 36000
+        regs[IR.DRUM_REVOLUTIONS] = self.revolutions & 0xFFFF
+        regs[IR.INDEX_SOURCE] = 1 if self.sensor_live else 0
+        regs[IR.INDEX_PERIOD_MS], regs[IR.INDEX_STEPS] = self.period_ms, self.steps_per_mark
+        regs[IR.INDEX_COUNT] = self.edges & 0xFFFF
+        regs[IR.MARK_PERIOD_0P1MS], regs[IR.MARK_STEPS] = self.mark_period_0p1ms, self.mark_steps
+        regs[IR.MARK_COUNT] = self.marks & 0xFFFF
 
     def angle_deg(self) -> float:
         """DRUM_ANGLE, degrees: the steps since the last index-sensor edge while the sensor is live, else the step

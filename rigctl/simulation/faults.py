@@ -2,7 +2,7 @@
 
 What the :class:`rigctl.core.faults.FaultInjector` of the rigs built on :class:`rigctl.simulation.model.RigModel` and
 :class:`rigctl.simulation.controller.MegaController` applies: each ``--inject`` fault acts where the real one would, on the
-model (the load cell's sign, the actuator's direction, a blocked drum, the HX711's rate), on the controller's
+model (the load cell's sign, the actuator's direction, a blocked or slipping drum, the HX711's rate), on the controller's
 inputs (the e-stop contact, a reset) or on a link (the drum controller's port, the taxel board's). What the host
 and the controller make of it is theirs: the controller latches its faults, the host's safety policy
 (:mod:`rigctl.acquisition.safety`) pauses the run. The firmware under simavr (``--hil``) implements the same
@@ -92,6 +92,8 @@ class ModelFaults:
             m.actuator_sign = -1 if active else 1
         elif name == "stall":
             m.drum_blocked = active
+        elif name == "slip":
+            m.drum_slip = (spec.value or 0.0) / 100.0 if active else 0.0
         elif name == "host-silence" and self.drum_link is not None:
             self.host_silent = active
             self.drum_link(not active)

@@ -25,11 +25,11 @@ _MEGA_COMMANDS: dict[str, tuple[str, str]] = {
     "reversed-cell": ("polarity -1", "polarity 1"),
     "reversed-actuator": ("actuator reversed", "actuator ok"),
     "host-silence": ("link down", "link up"),
+    "stall": ("drum slip 1", "drum ok"),
 }
 
 #: faults the harness does not model, and why
 _REFUSED: dict[str, str] = {
-    "stall": "the harness's drum follows its STEP pulses (no blocked-drum model under simavr: use --sim or --inprocess)",
     "hx711-10sps": "the harness's HX711 rate is fixed when it starts (use a rig config with mechanics.hx711_rate_sps "
                    "= 10)",
     "taxel-link-drop": "the Uno's link cannot be cut in the harness (use --sim)",
@@ -72,6 +72,8 @@ class HilFaults:
             command = _MEGA_COMMANDS[name][0 if active else 1]
             if command:
                 self.send_mega(command)
+        elif name == "slip":
+            self.send_mega(f"drum slip {(spec.value or 0.0) / 100.0:g}" if active else "drum ok")
         elif name == "taxel-ohm" and self.send_uno is not None:
             ohm = spec.value if active and spec.value is not None else self.taxel_ohm
             self.send_uno(f"taxel_ohm -1 {float(ohm)}")

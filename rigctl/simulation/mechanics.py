@@ -17,12 +17,15 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, travel, gap, runout_mm, runout_phase,
-                   stiffness, ripple, h_row, h_period, h_mean, pitch, pos_out, sync_out, force_out):  # pragma: no cover
+                   stiffness, ripple, h_row, h_period, h_mean, pitch, pos_out, sync_out, force_out, slip,
+                   motor_out):  # pragma: no cover
     """Advance ``pos_out.size`` 1 ms steps; fills ``pos_out`` (surface travel, mm, unwrapped), ``sync_out`` (the
     index mark passed in that ms) and ``force_out`` (contact force, g); returns ``(speed, actuator_mm)`` after the
     last step.
 
-    ``speed0``/``target``: surface speed now and commanded, mm/s; ``accel_step``: the speed change allowed per ms,
+    ``slip``: the fraction of the stepper's travel the drum loses (0: none, 1: a blocked drum); ``motor_out``: the
+    stepper's travel since the step's start per ms, mm of surface (what its step count says, without the slip).
+    ``speed0``/``target``: the stepper's surface speed now and commanded, mm/s; ``accel_step``: the speed change allowed per ms,
     mm/s; ``pos0``: travel now, mm; ``circ``: drum circumference, mm; ``act0``, ``act_step``, ``travel``, ``gap``:
     actuator position now, its travel per ms, its range and the contact gap, mm; ``runout_mm``, ``runout_phase``
     (rad); ``stiffness``, g/mm; ``ripple``: relative texture ripple of the force; ``h_row`` (n_table,) float64: the
@@ -41,7 +44,8 @@ def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, trave
         ramp = accel_step * k
         speed = target if ramp >= abs(dv) else speed0 + sign * ramp
         acc += speed
-        pos = pos0 + acc * 1e-3
+        motor_out[i] = acc * 1e-3
+        pos = pos0 + (1.0 - slip) * acc * 1e-3
         pos_out[i] = pos
         rev = math.floor(pos / circ)
         sync_out[i] = rev != rev_before

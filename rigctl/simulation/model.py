@@ -53,7 +53,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from rigctl.core.drum import DRUM_DIAMETER_MM, DRUM_MICROSTEPS, DRUM_STEPS_PER_REV
+from rigctl.core.drum import DRUM_DIAMETER_MM, DRUM_MARKS_PER_REV, DRUM_MICROSTEPS, DRUM_STEPS_PER_REV
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.textures import TextureSet
 from rigctl.devices import wire
@@ -102,6 +102,10 @@ class DrumConfig:
     index_sensor : bool
         Whether an index sensor (optical/Hall, docs/wire-protocol.md 2.6) is fitted: it marks the real drum's index
         mark; without one the controller marks the index by its step count.
+    marks_per_rev : int
+        Slots of the speed-mark disc on the drum (the firmware's RIGCTL_DRUM_MARKS_PER_REV, spec 2.6): the drum's
+        speed and slip are measured once per slot; 0: no disc (and no slip check: the firmware has no such build, a
+        rig without the disc latches DRUM_SLIP at its first RUN).
     """
 
     diameter_mm: float = DRUM_DIAMETER_MM
@@ -113,6 +117,7 @@ class DrumConfig:
     start_jitter_mm: float = 0.2
     driver_microsteps: int | None = None
     index_sensor: bool = True
+    marks_per_rev: int = DRUM_MARKS_PER_REV
 
     @property
     def circumference_mm(self) -> float:
@@ -756,10 +761,17 @@ class RigModel:
         self._hx_conversions = 0
         self._hx_last_s = 0.0
         #: fault-injection hooks (rigctl.simulation.faults): the load cell mounted reversed (-1), the actuator's
-        #: motor wired reversed (-1), the drum blocked (True: it turns no further whatever the stepper is told)
+        #: motor wired reversed (-1), the drum blocked (True: it turns no further whatever the stepper is told), the
+        #: drum slipping (the fraction of the stepper's travel it loses: a loose coupling, 0.2 = 20 %)
         self.loadcell_sign = 1
         self.actuator_sign = -1 if self.config.mechanics.actuator_reversed else 1
         self.drum_blocked = False
+        self.drum_slip = 0.0
+        self._motor_mm = 0.0  # the stepper's travel since construction, mm of surface (slip not included)
+        #: of the last :meth:`advance`, per ms: the stepper's travel at its end (mm of surface, since construction)
+        #: and whether a speed mark (``drum.marks_per_rev`` per revolution of the real drum) passed in it
+        self.last_stepper_mm = np.zeros(0)
+        self.last_marks = np.zeros(0, bool)
 
     # -- properties ------------------------------------------------------------------------------------------------
     @property
@@ -824,11 +836,28 @@ class RigModel:
             raw = m.loadcell_offset_counts + self.loadcell_sign * int(round(self._loadcell_g * m.loadcell_counts_per_g))
         return max(-(1 << 23), min((1 << 23) - 1, raw))
 
+    def _slip(self) -> float:
+        return 1.0 if self.drum_blocked else min(1.0, max(0.0, float(self.drum_slip)))
+
     @property
     def drum_speed_mm_s(self) -> float:
-        """Actual drum surface speed, mm/s (signed)."""
+        """Actual (real) drum surface speed, mm/s (signed): the stepper's, less any slip."""
+        with self._lock:
+            return self._speed_mm_s * (1.0 - self._slip())
+
+    @property
+    def stepper_speed_mm_s(self) -> float:
+        """The drum stepper's surface speed, mm/s (signed): its step rate through the acceleration ramp at the
+        driver's real microstep setting, what the drum would do without slip."""
         with self._lock:
             return self._speed_mm_s
+
+    @property
+    def stepper_travel_mm(self) -> float:
+        """The drum stepper's travel since construction, mm of surface (without slip; :attr:`stepper_speed_mm_s`
+        integrated)."""
+        with self._lock:
+            return self._motor_mm
 
     @property
     def position_mm(self) -> float:
@@ -943,17 +972,19 @@ class RigModel:
             circ = d.circumference_mm
             va = min(max(self.actuator_sign * float(actuator_velocity_mm_s), -m.actuator_max_speed_mm_s),
                      m.actuator_max_speed_mm_s)
-            if self.drum_blocked:  # a blocked drum: stopped at once, whatever the stepper is told
-                target, self._speed_mm_s = 0.0, 0.0
             # speed ramp, surface travel, index-mark passes, actuator travel and contact force with the runout and
             # the texture ripple (SensorModel.contact_height), one ms after another (rigctl.simulation.mechanics)
             heights, period, mean = self.sensor.height_tables(self._texture)
-            pos, sync_in, force = np.empty(n), np.empty(n, bool), np.empty(n)
+            pos, sync_in, force, motor = np.empty(n), np.empty(n, bool), np.empty(n), np.empty(n)
             speed, act = step_mechanics(
                 self._speed_mm_s, target, d.max_accel_mm_s2 * dt, self._position_mm, circ, self._actuator_mm, va * dt,
                 m.actuator_travel_mm, m.contact_gap_mm, d.runout_mm, self._runout_phase, m.contact_stiffness_g_per_mm,
                 m.texture_ripple, heights[1], period, float(mean[1]), float(self.sensor.config.pitch_mm), pos, sync_in,
-                force)
+                force, self._slip(), motor)
+            self.last_stepper_mm = motor + self._motor_mm  # the stepper's travel at the end of each ms of the step
+            self._motor_mm = float(self.last_stepper_mm[-1])
+            slots = np.floor(np.concatenate(([self._position_mm], pos)) * (d.marks_per_rev / circ))
+            self.last_marks = np.diff(slots) != 0
 
             # slow sensitivity drift of the fabric: Ornstein-Uhlenbeck, tau 20 s
             c = self.config.sensor

@@ -35,7 +35,7 @@ def test_a_well_set_driver_records_the_index_speed_beside_the_setpoint(tmp_path)
     assert all(a["index_source"] == "sensor" for a in attrs)
     assert all(a["drum_steps_per_rev_index"] == 3200 and not a["drum_speed_mismatch"] for a in attrs)
     assert all(a["drum_speed_index_mm_s"] == pytest.approx(120, rel=0.01) for a in attrs)  # every trial
-    assert "period" in {a["drum_speed_index_method"] for a in attrs}
+    assert {a["drum_speed_index_method"] for a in attrs} == {"marks"}  # measured inside every trial
 
 
 def test_a_driver_at_8_microsteps_is_flagged_and_warned(tmp_path, caplog):
@@ -54,7 +54,11 @@ def test_a_driver_at_8_microsteps_is_flagged_and_warned(tmp_path, caplog):
 def test_without_an_index_sensor_the_step_count_is_the_source(tmp_path):
     _, attrs = _record(tmp_path, DrumConfig(index_sensor=False))
     assert all(a["index_source"] == "steps" and a["drum_steps_per_rev_index"] == 0 for a in attrs)
-    assert all(math.isnan(a["drum_speed_index_mm_s"]) and not a["drum_speed_mismatch"] for a in attrs)
+    # the speed-mark disc is a sensor of its own: the speed is still measured inside every trial
+    assert all(a["drum_speed_index_method"] == "marks" and not a["drum_speed_mismatch"] for a in attrs)
+    (tmp_path / "nodisc").mkdir()
+    _, attrs = _record(tmp_path / "nodisc", DrumConfig(index_sensor=False, marks_per_rev=0))
+    assert all(math.isnan(a["drum_speed_index_mm_s"]) and a["drum_mark_intervals"] == 0 for a in attrs)
 
 
 def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path):

@@ -122,7 +122,7 @@ def test_injected_host_silence_and_reversed_actuator_on_the_harness(rig, drum):
     assert st.state == State.FAULT and Fault.WATCHDOG in st.faults
     drum.clear_fault()
     rig.schedule = None
-    assert rig.fault_refusal(parse_fault("stall@1")) is not None
+    assert rig.fault_refusal(parse_fault("hx711-10sps@1")) is not None
     rig.inject_faults([parse_fault("reversed-actuator@0+2")])
     _wait_sim(rig, rig.next_telemetry().t_s + 0.1)
     drum.home()

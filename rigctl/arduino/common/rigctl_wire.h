@@ -186,6 +186,9 @@
 #define RIGCTL_IREG_INDEX_PERIOD_MS          22
 #define RIGCTL_IREG_INDEX_STEPS              23
 #define RIGCTL_IREG_INDEX_COUNT              24
+#define RIGCTL_IREG_MARK_PERIOD_0P1MS        25
+#define RIGCTL_IREG_MARK_STEPS               26
+#define RIGCTL_IREG_MARK_COUNT               27
 /* the build id (make BUILD_ID=<12 hex digits>), 48 bits, most significant word first; 0 = built without one */
 #define RIGCTL_IREG_BUILD_ID_0               30
 #define RIGCTL_IREG_BUILD_ID_1               31
@@ -235,6 +238,8 @@
 #define RIGCTL_FAULT_HX711_RATE            (1u << RIGCTL_FAULT_HX711_RATE_BIT)
 #define RIGCTL_FAULT_ACTUATOR_DIRECTION_BIT 9
 #define RIGCTL_FAULT_ACTUATOR_DIRECTION    (1u << RIGCTL_FAULT_ACTUATOR_DIRECTION_BIT)
+#define RIGCTL_FAULT_DRUM_SLIP_BIT         10
+#define RIGCTL_FAULT_DRUM_SLIP             (1u << RIGCTL_FAULT_DRUM_SLIP_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000
@@ -270,6 +275,11 @@
 #define RIGCTL_DRUM_STEPS_PER_REV_DEF      200
 #define RIGCTL_DRUM_MICROSTEPS_DEF         16
 #define RIGCTL_INDEX_PULSE_MS              1
+/* 2.6 speed marks: a slotted disc on the drum with this many marks per revolution (its sensor on the Mega's D19);
+ * DRUM_SLIP latches when the drum was stepped more than (1 + this many percent) x the microsteps of one mark
+ * interval since the last mark (a stall: no mark; a slip: a late one) */
+#define RIGCTL_DRUM_MARKS_PER_REV          8
+#define RIGCTL_DRUM_SLIP_TOLERANCE_PCT     5
 
 /* 2.9 HX711 rate: the firmware times this many periods at boot; the measured rate may differ from HX711_RATE_SPS
  * by this many percent */

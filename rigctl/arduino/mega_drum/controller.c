@@ -301,6 +301,9 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr)
     case RIGCTL_IREG_INDEX_PERIOD_MS: return c->index_period_ms;
     case RIGCTL_IREG_INDEX_STEPS: return c->index_steps;
     case RIGCTL_IREG_INDEX_COUNT: return c->index_count;
+    case RIGCTL_IREG_MARK_PERIOD_0P1MS: return c->mark_period_0p1ms;
+    case RIGCTL_IREG_MARK_STEPS: return c->mark_steps;
+    case RIGCTL_IREG_MARK_COUNT: return c->mark_count;
     case RIGCTL_IREG_RESET_CAUSE: return c->reset_cause;
     case RIGCTL_IREG_BOOT_COUNT: return c->boot_count;
     case RIGCTL_IREG_BUILD_ID_0: return (uint16_t)((RIGCTL_BUILD_ID_NUM >> 32) & 0xFFFF);
@@ -461,6 +464,10 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
     c->now_ms = now_ms;
     if (dt > 0.1f) dt = 0.1f;
 
+    if (c->drum_slip && !(c->faults & RIGCTL_FAULT_DRUM_SLIP)) {
+        fault(c, RIGCTL_FAULT_DRUM_SLIP); /* the drum stops on its ramp, the actuator backs off */
+    }
+    c->drum_slip = 0;
     if (c->state != RIGCTL_STATE_FAULT) {
         if ((uint32_t)(now_ms - c->last_loadcell_ms) > RIGCTL_LOADCELL_TIMEOUT_MS) {
             fault(c, RIGCTL_FAULT_LOADCELL_TIMEOUT);

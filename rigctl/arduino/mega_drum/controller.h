@@ -85,6 +85,11 @@ typedef struct {
     uint16_t index_period_ms;
     uint16_t index_steps;
     uint16_t index_count;
+    /* drum speed marks (glue; spec 2.6) */
+    uint16_t mark_period_0p1ms;
+    uint16_t mark_steps;
+    uint16_t mark_count;
+    uint8_t drum_slip;      /* input: more than DRUM_SLIP_STEPS since the last mark while stepped: DRUM_SLIP */
 } ctl_t;
 
 /* power-up: defaults from the spec, calibration from EEPROM (0 = the default), state NOT_HOMED; the load cell is

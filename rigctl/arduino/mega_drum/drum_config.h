@@ -11,6 +11,10 @@
 #define DRUM_MICROSTEPS        RIGCTL_DRUM_MICROSTEPS_DEF
 #define DRUM_USTEPS_PER_REV    ((uint16_t)(DRUM_STEPS_PER_REV * DRUM_MICROSTEPS))
 #define DRUM_ACCEL_MM_S2       400.0f   /* acceleration ramp of the drum's surface speed */
+/* speed marks (spec 2.6): microsteps of one mark interval, and the most that may pass without a mark (DRUM_SLIP) */
+#define DRUM_MARKS_PER_REV     RIGCTL_DRUM_MARKS_PER_REV
+#define DRUM_USTEPS_PER_MARK   ((uint16_t)(DRUM_USTEPS_PER_REV / DRUM_MARKS_PER_REV))
+#define DRUM_SLIP_STEPS        ((uint32_t)DRUM_USTEPS_PER_MARK * (100u + RIGCTL_DRUM_SLIP_TOLERANCE_PCT) / 100u)
 
 /* ---- actuator: lead-screw stepper pressing the drum onto the sensor ---- */
 #define ACT_MAX_SPEED_MM_S     5.0f     /* force loop output clamp and back-off speed */
@@ -69,6 +73,11 @@
 /* drum index sensor (optical/Hall, open collector, active low) D48 = PL1 = ICP5: Timer5 input capture */
 #define PIN_INDEX_SENSOR_PORT PORTL
 #define PIN_INDEX_SENSOR_BIT  1
+/* drum speed-mark sensor (a slotted disc of RIGCTL_DRUM_MARKS_PER_REV slots on the drum shaft; optical, open
+ * collector, active low) D19 = PD2 = INT2: its falling edge is timestamped on Timer5 in the INT2 interrupt */
+#define PIN_MARK_SENSOR_PIN   PIND
+#define PIN_MARK_SENSOR_PORT  PORTD
+#define PIN_MARK_SENSOR_BIT   2
 #ifdef RIGCTL_TEST_HOOKS
 /* test image only (mega_drum_test.elf, never flashed): pin D22 (port A bit 0) high makes loop() hang, for the
  * AVR watchdog test */

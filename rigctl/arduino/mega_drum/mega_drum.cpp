@@ -9,6 +9,7 @@
  *           so the acceleration ramp changes the rate only between steps
  *   Timer3  actuator (lead-screw stepper) step generator, same scheme, counts the actuator position
  *   Timer5  drum index sensor (D48 = ICP5): free running /1024 (64 us), input capture of the sensor's falling edge
+ *   INT2    drum speed marks (D19): the falling edge of each of the disc's marks, timestamped on Timer5 in the ISR
  *   HX711   bit-banged in loop() whenever DOUT goes low (10 or 80 SPS, the rate timed at boot: ctl_hx711_ready),
  *           25 clocks (channel A, gain 128)
  *   EEPROM  calibration (load-cell scale, actuator steps/mm) with a magic word and CRC, the boot counter, the
@@ -75,6 +76,14 @@ static volatile uint32_t sensor_last_ticks;
 static volatile uint32_t sensor_period_ticks;  /* 64 us ticks between the last two edges */
 static volatile uint16_t sensor_steps;         /* drum steps between the last two edges */
 static volatile uint16_t sensor_edges;
+/* speed marks (INT2, timestamped on Timer5; docs/wire-protocol.md 2.6) */
+#define MARK_DEBOUNCE_TICKS 78u /* 5 ms of 64 us ticks: a mark interval takes >= 196 ms at 200 mm/s */
+static volatile uint32_t steps_since_mark; /* drum steps since the last mark (0 while the drum is at rest) */
+static volatile uint8_t mark_fresh;        /* the last mark came while the drum was stepped: the next interval counts */
+static volatile uint32_t mark_last_ticks;
+static volatile uint32_t mark_period_ticks; /* 64 us ticks between the last two marks */
+static volatile uint16_t mark_steps;        /* drum steps between the last two marks */
+static volatile uint16_t mark_count;
 static volatile steptimer_t act_next;
 static volatile uint8_t act_next_dir;    /* 1 = towards the sensor */
 static volatile uint8_t act_dir;
@@ -195,6 +204,7 @@ ISR(TIMER1_COMPA_vect)
     uint16_t s = drum_step_in_rev + 1;
     uint32_t ss = steps_since_sensor + 1;
     steps_since_sensor = ss;
+    steps_since_mark++;
     if (sensor_live && ss > INDEX_LOST_STEPS) sensor_live = 0; /* no edge for 1.5 revolutions: the step count */
     if (s >= DRUM_USTEPS_PER_REV) {
         s = 0;
@@ -242,8 +252,37 @@ ISR(TIMER5_CAPT_vect)
     index_pending = 1;
 }
 
+/* Timer5's 32-bit count now (64 us ticks); call with interrupts off */
+static uint32_t timer5_ticks(void)
+{
+    uint16_t tc = TCNT5;
+    uint32_t ovf = t5_overflows;
+    if ((TIFR5 & (1 << TOV5)) && tc < 0x8000u) ovf++; /* an overflow not yet counted came before the read */
+    return (ovf << 16) | tc;
+}
+
+/* a speed mark's falling edge: the drum turned 1 / DRUM_MARKS_PER_REV of a revolution since the last one */
+ISR(INT2_vect)
+{
+    uint32_t t = timer5_ticks();
+    if (mark_count && t - mark_last_ticks < MARK_DEBOUNCE_TICKS) return; /* bounce of the same mark */
+    uint32_t steps = steps_since_mark;
+    if (mark_fresh && steps) {
+        mark_period_ticks = t - mark_last_ticks;
+        mark_steps = steps > 0xFFFFu ? 0xFFFFu : (uint16_t)steps;
+    }
+    mark_fresh = steps != 0;
+    mark_last_ticks = t;
+    steps_since_mark = 0;
+    mark_count++;
+}
+
 static void index_sensor_setup(void)
 {
+    PIN_MARK_SENSOR_PORT |= (1 << PIN_MARK_SENSOR_BIT); /* pull-up: open-collector sensor */
+    EICRA = (uint8_t)((EICRA & ~((1 << ISC21) | (1 << ISC20))) | (1 << ISC21)); /* INT2 falling edge */
+    EIFR = (1 << INTF2);
+    EIMSK |= (1 << INT2);
     PIN_INDEX_SENSOR_PORT |= (1 << PIN_INDEX_SENSOR_BIT); /* pull-up: open-collector sensor */
     TCCR5A = 0;
     TCCR5B = (1 << ICNC5) | (1 << CS52) | (1 << CS50); /* normal mode, noise canceler, falling edge, /1024 */
@@ -263,6 +302,21 @@ static void index_to_controller(void)
         ctl.index_steps = sensor_steps;
     }
     ctl.index_count = sensor_edges;
+    /* speed marks: the interval's period and steps; the slip check while the drum is stepped, armed from power-up
+     * (a missing or unplugged disc sensor latches at the first RUN) and re-armed at rest (the first interval after
+     * a start runs from the start: never late, and not reported) */
+    uint32_t p = (mark_period_ticks * 64u + 50u) / 100u;
+    ctl.mark_period_0p1ms = p > 0xFFFFu ? 0xFFFFu : (uint16_t)p;
+    ctl.mark_steps = mark_steps;
+    ctl.mark_count = mark_count;
+    if (!drum_running_cs) {
+        steps_since_mark = 0;
+        mark_fresh = 0;
+    } else if (steps_since_mark > DRUM_SLIP_STEPS) {
+        ctl.drum_slip = 1;
+        steps_since_mark = 0; /* re-armed: the deceleration that follows (< 1 interval) does not latch it again */
+        mark_fresh = 0;
+    }
 }
 
 ISR(TIMER3_COMPA_vect)

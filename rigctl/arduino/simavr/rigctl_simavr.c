@@ -43,7 +43,8 @@
  * direction> dir=1|0 (1 = towards the sensor) last_t=<the last step of the old one>". "rxlog 1|0": an "RX t=..." line
  * each time host bytes arrive (when a request reached the board, to time the firmware's answer on the pins), and
  * "ASTEP t=... dir=..." at each actuator step that moves it. "link down|up" cuts the host's link (a pulled USB cable:
- * host bytes and the board's answers are lost) or restores it.
+ * host bytes and the board's answers are lost) or restores it. "drum slip F" (0-1) makes the real drum turn F less
+ * than its STEP pulses say (1 = stalled), "drum ok" ends it; "MARK t=..." at each speed mark (the disc's slots).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -308,6 +309,7 @@ static atomic_int polarity_req = 1;  /* +1 or -1: the load cell's sign */
 static atomic_int home_broken_req;   /* 1 = the home switch never closes */
 static atomic_int eeprom_flip_req = -1; /* EEPROM offset to corrupt, -1 = none */
 static atomic_int act_reversed_req;  /* 1 = the actuator motor's coil pair swapped: DIR high moves it away */
+static _Atomic double drum_slip_req; /* "drum slip F": the real drum turns F less than its steps say (1: stalled) */
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
 static uint16_t *wave;     /* n_rows x 18 ADC counts */
 static size_t wave_rows;
@@ -425,6 +427,10 @@ static void *stdin_thread(void *arg)
         } else if (!strcmp(line, "actuator reversed") || !strcmp(line, "actuator ok")) {
             atomic_store(&act_reversed_req, line[9] == 'r');
             printf("OK actuator\n");
+        } else if (!strncmp(line, "drum slip ", 10) || !strcmp(line, "drum ok")) {
+            double f = line[5] == 's' ? atof(line + 10) : 0.0;
+            atomic_store(&drum_slip_req, f < 0.0 ? 0.0 : f > 1.0 ? 1.0 : f);
+            printf("OK drum\n");
         } else if (!strcmp(line, "link down") || !strcmp(line, "link up")) {
             atomic_store(&link_down_req, line[5] == 'd');
             printf("OK link\n");
@@ -858,7 +864,8 @@ static double hx711_filtered_g(void)
  * a revolution; --drum-driver-microsteps sets that driver (default: the firmware's assumption, docs/wire-protocol.md
  * 2.6), so a misconfigured driver turns the drum at another speed than the step count says. The sensor pulls its
  * pin low for 1 ms each time the drum passes its index mark, then --index-bounce N more 0.1 ms pulses 0.1 ms apart
- * (a bouncing contact). --no-index-sensor: no sensor fitted (pin pulled up). */
+ * (a bouncing contact). --no-index-sensor: no index sensor fitted (pin pulled up; the speed-mark disc stays). The sensors
+ * see the real drum (drum_turn_steps below), which a slip or a stall makes lag its step count. */
 static int opt_index_sensor = 1;
 static int opt_index_bounce = 0; /* extra short pulses after each mark (a bouncing contact / noisy edge) */
 static double opt_driver_microsteps = RIGCTL_DRUM_MICROSTEPS_DEF;
@@ -866,25 +873,46 @@ static avr_irq_t *index_sensor_pin;
 static int64_t index_sensor_revs; /* index marks passed (real drum) */
 static uint64_t index_sensor_release_cycle;
 static int index_bounces_left;
+/* the speed-mark disc (RIGCTL_DRUM_MARKS_PER_REV slots) and its sensor on D19 = PD2 (INT2), 1 ms low per slot */
+static avr_irq_t *mark_sensor_pin;
+static int64_t mark_sensor_marks;
+static uint64_t mark_sensor_release_cycle;
+/* the real drum: revolutions turned (each STEP pulse turns 1 / (steps_per_rev x the driver's microsteps) of one,
+ * times 1 - the slip: "drum slip F" makes it turn F less than its steps say (a slipping coupling, F = 1: a stalled,
+ * blocked drum), "drum ok" ends it): drum_turn_steps / (steps_per_rev x the driver's microsteps) */
+static double drum_turn_steps; /* the real drum's travel in the driver's microsteps */
 
 static void index_sensor_setup(void)
 {
     index_sensor_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 1);
     avr_raise_irq(index_sensor_pin, 1);
+    mark_sensor_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
+    avr_raise_irq(mark_sensor_pin, 1);
 }
 
 /* called every 0.1 ms of simulated time */
-static void index_sensor_poll(int64_t drum_steps_now)
+static void index_sensor_poll(void)
 {
+    /* the real drum's revolutions (slip and stalls included) */
+    double turn = drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps);
+    int64_t marks = (int64_t)floor(turn * RIGCTL_DRUM_MARKS_PER_REV);
+    if (marks != mark_sensor_marks) { /* a slot of the speed-mark disc passes its sensor: 1 ms low */
+        mark_sensor_marks = marks;
+        avr_raise_irq(mark_sensor_pin, 0);
+        mark_sensor_release_cycle = avr->cycle + 16000u;
+        printf("MARK t=%.6f marks=%lld drum_steps=%lld\n", sim_s(), (long long)marks, (long long)drum_steps);
+    } else if (mark_sensor_release_cycle && avr->cycle >= mark_sensor_release_cycle) {
+        avr_raise_irq(mark_sensor_pin, 1);
+        mark_sensor_release_cycle = 0;
+    }
     if (!opt_index_sensor) return;
-    double usteps_per_rev = RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps;
-    int64_t revs = (int64_t)floor((double)drum_steps_now / usteps_per_rev);
+    int64_t revs = (int64_t)floor(turn);
     if (revs != index_sensor_revs) {
         index_sensor_revs = revs;
         avr_raise_irq(index_sensor_pin, 0);
         index_sensor_release_cycle = avr->cycle + 16000u;
         index_bounces_left = opt_index_bounce;
-        printf("ISENS t=%.6f revs=%lld drum_steps=%lld\n", sim_s(), (long long)revs, (long long)drum_steps_now);
+        printf("ISENS t=%.6f revs=%lld drum_steps=%lld\n", sim_s(), (long long)revs, (long long)drum_steps);
     } else if (index_sensor_release_cycle && avr->cycle >= index_sensor_release_cycle) {
         avr_raise_irq(index_sensor_pin, 1);
         index_sensor_release_cycle = 0;
@@ -1051,6 +1079,7 @@ static void drum_step_hook(avr_irq_t *irq, uint32_t value, void *param)
         return;
     }
     drum_steps += drum_dir ? 1 : -1;
+    drum_turn_steps += (drum_dir ? 1.0 : -1.0) * (1.0 - atomic_load(&drum_slip_req)); /* exact without slip */
 }
 
 static void drum_dir_hook(avr_irq_t *irq, uint32_t value, void *param)
@@ -1113,6 +1142,8 @@ static void mega_after_reset(void)
     update_home();
     avr_raise_irq(index_sensor_pin, 0); /* the sensor's level is driven again after the port reset */
     avr_raise_irq(index_sensor_pin, index_sensor_release_cycle ? 0 : 1);
+    avr_raise_irq(mark_sensor_pin, 0);
+    avr_raise_irq(mark_sensor_pin, mark_sensor_release_cycle ? 0 : 1);
     safety_after_reset();
 }
 
@@ -1138,7 +1169,7 @@ static void mega_poll(void)
     static uint64_t next_tel;
     update_home();
     safety_poll();
-    index_sensor_poll(drum_steps);
+    index_sensor_poll();
     hx711_sample(mega_force_g());
     if (avr->cycle >= hx_next_cycle) { /* end of a conversion period: DOUT low = ready */
         hx_next_cycle += hx711_period_cycles();
@@ -1156,10 +1187,11 @@ static void mega_poll(void)
     if (avr->cycle >= next_tel) {
         next_tel = avr->cycle + (uint64_t)(opt_tel_ms * 16000.0);
         printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
-               "index=%u en=%d steps_disabled=%llu\n",
+               "index=%u en=%d steps_disabled=%llu drum_turn=%.5f\n",
                sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps,
                act_steps / opt_act_steps_per_mm, mega_force_g(), index_count, drivers_enabled(),
-               (unsigned long long)steps_disabled);
+               (unsigned long long)steps_disabled,
+               drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps));
     }
 }
 
