@@ -405,9 +405,14 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                               options=rig_options), truth_log)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
+        # the bars follow the rig's event stream, as the GUI's and the server's views do (the run publishes its
+        # progress there); the CLI polls nothing: its run reads the controller, the process is the heartbeat
+        if progress is not None:
+            bar = progress
+            control.subscribe(lambda ev: bar(ev.progress) if ev.progress is not None else None)
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
             # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement
-            run = ProtocolRun(control, proto, out, resume=resume, progress=progress, on_failure=on_failure,
+            run = ProtocolRun(control, proto, out, resume=resume, on_failure=on_failure,
                               overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial,
                               on_latch="end", acknowledge=("rigctl acquire --resume", operator_name()))
             if run.lsl is not None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import enum
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
@@ -140,13 +141,34 @@ class RigControl:
 
     @property
     def monitor(self) -> RigMonitor:
-        """The rig's monitor (:class:`rigctl.operations.RigMonitor`, started on first use): the status poll that feeds
-        the controller's watchdog, the event stream faces subscribe to, and the dead man's switch (a face's
-        :meth:`~rigctl.operations.RigMonitor.heartbeat`), whose trip is this rig's :meth:`stop`."""
+        """The rig's monitor (:class:`rigctl.operations.RigMonitor`, its poll started on first use here): the status
+        poll that feeds the controller's watchdog, the event stream faces subscribe to, and the dead man's switch (a
+        face's :meth:`~rigctl.operations.RigMonitor.heartbeat`), whose trip is this rig's :meth:`stop`."""
+        return self._events().start()
+
+    def subscribe(self, fn: Callable[[RigEvent], object]) -> Callable[[], None]:
+        """Call ``fn(event)`` for every :class:`rigctl.operations.RigEvent` of this rig (the one stream of every face:
+        the monitor's state / faults / link / dead-man events once its poll runs, the safety latch, a run's progress
+        and trial events), without starting the poll (:attr:`monitor` does). Returns the function that
+        unsubscribes."""
+        return self._events().subscribe(fn)
+
+    def publish(self, event: RigEvent) -> None:
+        """Hand ``event`` to every subscriber of this rig's stream (the run engine's progress and trial events)."""
+        self._events().publish(event)
+
+    def _events(self) -> RigMonitor:
         if self._monitor is None:
             self._monitor = RigMonitor(self.drum, self.stop)
             self._monitor.subscribe(self._latch_from)
-        return self._monitor.start()
+            self._rig.safety.listeners.append(self._latch_event)
+        return self._monitor
+
+    def _latch_event(self, item: Latch | Acknowledgement) -> None:
+        """The safety latch tripped or was acknowledged: a ``latch`` event on the stream."""
+        text = (f"acknowledged by {item.by} ({item.reason}): {item.latch.label}" if isinstance(item, Acknowledgement)
+                else f"latched: {item.describe()}")
+        self.publish(RigEvent("latch", text, time.monotonic(), latch=item))
 
     def _latch_from(self, event: RigEvent) -> None:
         """The monitor saw a new state or fault bits: a latched fault or an unexpected reset latches the rig (the

@@ -2,8 +2,13 @@
 status, keeps its watchdog fed while the faces that command motion are alive, and tells subscribers what changed.
 
 Faces (the GUI, the CLI, the server) never poll the controller or feed its watchdog themselves: they
-:meth:`RigMonitor.subscribe` to its :class:`RigEvent` s (called from the monitor's thread: a face hands them on to its
-own thread, the GUI through a queued Qt signal) and read :attr:`RigMonitor.latest` and :attr:`RigMonitor.history`.
+:meth:`RigMonitor.subscribe` to its :class:`RigEvent` s (called from the monitor's thread, or the publisher's: a face
+hands them on to its own thread, the GUI through a queued Qt signal) and read :attr:`RigMonitor.latest` and
+:attr:`RigMonitor.history`. The stream is one for every face: the poll's state, fault, link and dead-man events, the
+safety latch (``latch``: a fault latched, an acknowledgement) and the run on the rig (``progress``, ``run``: its trial
+events), which :class:`rigctl.operations.RigControl` and :class:`rigctl.operations.ProtocolRun` publish. Subscribing
+does not start the poll: :attr:`rigctl.operations.RigControl.monitor` does (the GUI, ``rigctl serve``);
+``rigctl acquire`` only listens (its run reads the controller itself, on the rig's own clock).
 
 **Dead man's switch.** A face that can freeze while the rig moves (the GUI: its event loop) registers a
 :class:`Heartbeat` and beats it from the thread that must stay alive (the GUI: a QTimer on the GUI thread every ~0.1
@@ -24,12 +29,18 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rigctl.core.drum import DrumState, DrumStatus, describe_faults
 from rigctl.core.errors import describe_error
 from rigctl.core.interfaces import DrumMonitor
+from rigctl.core.progress import ProgressEvent
+
+if TYPE_CHECKING:
+    from rigctl.acquisition.runner import TrialEvent
+    from rigctl.acquisition.safety import Acknowledgement, Latch
 
 __all__ = ["EVENT_KINDS", "DEADMAN_TIMEOUT_S", "Heartbeat", "RigEvent", "RigMonitor", "StatusHistory", "commanded"]
 
@@ -37,8 +48,9 @@ log = logging.getLogger(__name__)
 
 #: what a :class:`RigEvent` can be: every status read (``status``), a new controller state (``state``), latched
 #: fault bits set or cleared (``faults``), the drum link lost or back (``link``), the dead man's switch stopping the
-#: rig (``deadman``), and what other parts publish through :meth:`RigMonitor.publish` (``progress``, ``run``)
-EVENT_KINDS = ("status", "state", "faults", "link", "deadman", "progress", "run")
+#: rig (``deadman``), and what other parts publish through :meth:`RigMonitor.publish`: the safety latch tripped or
+#: acknowledged (``latch``), a run's progress (``progress``) and its trial events (``run``)
+EVENT_KINDS = ("status", "state", "faults", "link", "deadman", "latch", "progress", "run")
 #: how long a face's heartbeat may be silent while the rig moves before the rig is stopped, s (issue 35)
 DEADMAN_TIMEOUT_S = 0.5
 #: the states in which the rig moves: the force loop presses the sensor, or the drum turns
@@ -61,12 +73,19 @@ class RigEvent:
     message : the event in words (empty for ``status``).
     time_s : ``time.monotonic()`` when it happened, s.
     status : the controller status it comes from (None for a lost link and published events).
+    progress : the run's :class:`rigctl.core.progress.ProgressEvent` (``progress``), else None.
+    trial : the run's :class:`rigctl.acquisition.runner.TrialEvent` (``run``), else None.
+    latch : the :class:`rigctl.acquisition.safety.Latch` tripped or the
+        :class:`rigctl.acquisition.safety.Acknowledgement` that cleared one (``latch``), else None.
     """
 
     kind: str
     message: str
     time_s: float
     status: DrumStatus | None = None
+    progress: ProgressEvent | None = None
+    trial: TrialEvent | None = None
+    latch: Latch | Acknowledgement | None = None
 
 
 def commanded(status: DrumStatus) -> bool:
@@ -153,6 +172,7 @@ class RigMonitor:
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
+        self._latest_s = float("nan")  # when :attr:`latest` was read (monotonic s)
         self._tripped: set[str] = set()  # heartbeats silent right now (tripped once, until they beat again)
         self._stopped_s = -1e9  # when the dead man's switch last sent STOP (monotonic s)
         self._starve = False  # a STOP was not acknowledged: no read feeds the watchdog while the face is silent
@@ -165,6 +185,10 @@ class RigMonitor:
                 self._thread = threading.Thread(target=self._run, name="rig-monitor", daemon=True)
                 self._thread.start()
         return self
+
+    def age_s(self) -> float:
+        """How long ago :attr:`latest` was read, s (NaN before the first read)."""
+        return time.monotonic() - self._latest_s
 
     @property
     def running(self) -> bool:
@@ -286,7 +310,7 @@ class RigMonitor:
 
     def _record(self, st: DrumStatus, now: float) -> None:
         prev, was_ok = self.latest, self.ok
-        self.latest, self.ok, self.error = st, True, None
+        self.latest, self.ok, self.error, self._latest_s = st, True, None, now
         self.reads += 1
         self.history.append((now - self._t0, st.force_g, st.force_setpoint_active_g, st.speed_mm_s,
                              st.speed_target_mm_s))

@@ -34,6 +34,8 @@ from rigctl.acquisition.protocol import ProtocolError, parse_protocol
 from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressEvent
+from rigctl.operations._control import RigControl
+from rigctl.operations._monitor import RigEvent
 from rigctl.operations._run import ProtocolRun
 from rigctl.storage.outputs import OutputError, OutputLocked, check_output, name_in_folder
 from rigctl.storage.session import SessionLocked
@@ -119,7 +121,7 @@ class RunQueue:
     queued to resume at the next start).
     """
 
-    def __init__(self, control: Any, queue_file: str | os.PathLike[str], *, lsl: bool = False,
+    def __init__(self, control: RigControl, queue_file: str | os.PathLike[str], *, lsl: bool = False,
                  protocols: Callable[[], dict[str, Any]] | None = None,
                  data_dir: str | os.PathLike[str] | None = None, lsl_wait_s: float = 0.0) -> None:
         self.control = control
@@ -151,6 +153,7 @@ class RunQueue:
         self._thread: threading.Thread | None = None
         self._subscribers: list[queue.Queue[dict[str, Any] | None]] = []
         self._streams_ended = False
+        self._unsubscribe_rig: Callable[[], None] | None = None
         self._load()
 
     # ----------------------------------------------------------------------------------------------- the file
@@ -368,9 +371,18 @@ class RunQueue:
 
     # ----------------------------------------------------------------------------------------------- worker
     def start(self) -> "RunQueue":
+        """Start the worker, and the rig's monitor (its status poll, what ``/status`` shows; the monitor's state,
+        fault, link and latch events go into the event feed as ``{"type": "rig", "kind", "message"}``). Returns
+        self."""
+        self._unsubscribe_rig = self.control.subscribe(self._rig_event)
+        self.control.monitor  # noqa: B018 - starts the library's poll: the server reads nothing from the rig itself
         self._thread = threading.Thread(target=self._work, name="run-queue", daemon=True)
         self._thread.start()
         return self
+
+    def _rig_event(self, event: RigEvent) -> None:
+        if event.kind in ("state", "faults", "link", "deadman", "latch"):
+            self._emit({"type": "rig", "kind": event.kind, "message": event.message})
 
     def close(self, timeout_s: float = 60.0) -> None:
         """End the worker; a run in progress stops cleanly and stays queued (it resumes at the next start)."""
@@ -379,6 +391,9 @@ class RunQueue:
             current = self.current
             self._wake.notify_all()
         self.end_streams()
+        if self._unsubscribe_rig is not None:
+            self._unsubscribe_rig()
+            self._unsubscribe_rig = None
         if current is not None:
             current.abort()
         if self._thread is not None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from rigctl.acquisition.safety import Acknowledgement
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._control import RigControl, rig_of
 from rigctl.operations._lsl import LslPublisher
+from rigctl.operations._monitor import RigEvent
 
 __all__ = ["ProtocolRun", "RUN_STATES"]
 
@@ -43,6 +45,8 @@ class ProtocolRun:
     resume, overwrite, on_failure, prompt : as :func:`rigctl.acquisition.runner.run_protocol`.
     progress : receives :class:`rigctl.core.progress.ProgressEvent` s.
     on_trial : receives :class:`rigctl.acquisition.runner.TrialEvent` s (from the thread the run records in).
+    Both also go onto the rig's event stream (:meth:`RigControl.subscribe`: ``progress`` and ``run``
+    :class:`rigctl.operations.RigEvent` s), which a face listens to instead (``rigctl acquire``'s bars).
     on_latch : "wait" (default: the run waits for an operator's :meth:`acknowledge` after a latched fault) or
         "end" (it ends, resumable: ``rigctl acquire``); see :func:`rigctl.acquisition.runner.run_protocol`.
     acknowledge : ``(reason, by)`` of the acknowledgement a resumed session's open latch gets (``resume``).
@@ -152,7 +156,7 @@ class ProtocolRun:
             if self.lsl is not None:
                 self.lsl.run_marker("run_start", out=str(self.out_path), resume=self.resume_file)
             self.summary = run_protocol(
-                self.protocol, self.out_path, rig=rig_of(self.control), resume=self.resume_file, progress=self.progress,
+                self.protocol, self.out_path, rig=rig_of(self.control), resume=self.resume_file, progress=self._progress,
                 stop_event=self.stop_event, pause_event=self.pause_event, on_trial=self._trial,
                 prompt=self.prompt, on_failure=self.on_failure, overwrite=self.overwrite,
                 session_attrs=None if self.lsl is None else self.lsl.session_attrs(), on_latch=self.on_latch,
@@ -192,7 +196,13 @@ class ProtocolRun:
             raise self.error
         return self.summary
 
+    def _progress(self, event: ProgressEvent) -> None:
+        if self.progress:
+            self.progress(event)
+        self.control.publish(RigEvent("progress", event.message, time.monotonic(), progress=event))
+
     def _trial(self, event: TrialEvent) -> None:
+        self.control.publish(RigEvent("run", f"trial {event.kind}", time.monotonic(), trial=event))
         if event.kind == "paused":
             self._paused_now = True
         elif event.kind == "resumed":

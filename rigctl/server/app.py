@@ -25,6 +25,7 @@ import ipaddress
 import json
 import math
 import queue
+import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 from urllib.parse import quote
@@ -41,6 +42,9 @@ from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
 from rigctl.server.guard import MAX_BODY_BYTES, install_guard
 from rigctl.server.tokens import check_token
+
+#: how long ``/status`` waits for the monitor's first read of a rig opened just now, s
+_FIRST_READ_S = 2.0
 
 __all__ = ["RunRequest", "create_app", "is_loopback"]
 
@@ -166,17 +170,24 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
 
     @app.get("/status")
     def status() -> dict[str, Any]:
-        """Rig state (the drum controller's status), board health (the taxel stream's frames, drops, CRC errors,
-        connection and reconnects; a drum controller that does not answer: ``drum_error``), the queue, the
-        current run and its current trial (id, texture, speed, force, attempt, last event)."""
+        """Rig state (the drum controller's status as the rig's monitor last read it, ``drum_age_s`` ago; a drum
+        controller that does not answer: ``drum_error``), board health (the taxel stream's frames, drops, CRC
+        errors, connection and reconnects), the queue, the current run and its current trial (id, texture, speed,
+        force, attempt, last event). A request reads nothing from the rig: a client polling ``/status`` never feeds
+        the controller's watchdog."""
         control = run_queue.control
         rig: dict[str, Any] = {"mode": control.mode}
-        latch = getattr(control, "latch", None)  # a latched fault holds the rig until POST /ack
+        latch = control.latch  # a latched fault holds the rig until POST /ack
         rig["latch"] = None if latch is None else {**_plain(latch.to_dict()), "text": latch.describe()}
-        try:
-            rig["drum"] = _plain(control.status())
-        except Exception as exc:  # noqa: BLE001 - reported, not raised: the status page must answer
-            rig["drum_error"] = describe_error(exc)
+        monitor = control.monitor  # the library's poll (started with the queue)
+        first = time.monotonic() + _FIRST_READ_S
+        while monitor.latest is None and monitor.failures == 0 and time.monotonic() < first:
+            time.sleep(0.02)  # a server just started: its monitor's first read
+        if monitor.ok and monitor.latest is not None:
+            rig["drum"] = _plain(monitor.latest)
+            rig["drum_age_s"] = round(monitor.age_s(), 3)
+        else:
+            rig["drum_error"] = monitor.error or "no status read yet"
         stats = getattr(control.taxels, "stats", None)  # read only: never restarts a link under a run
         rig["taxel_stream"] = None if stats is None else _plain(stats)
         current = run_queue.current_id
@@ -214,7 +225,8 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
 
     @app.get("/events")
     def events() -> StreamingResponse:
-        """Server-sent events: one ``data:`` JSON object per event (``type``: progress, trial, run, stop, plate);
+        """Server-sent events: one ``data:`` JSON object per event (``type``: progress, trial, run, stop, plate, rig:
+        the rig monitor's state, faults, link, dead-man and latch events);
         the stream ends when the server shuts down."""
         q = run_queue.subscribe()
 

@@ -185,3 +185,42 @@ def test_rig_control_owns_the_monitor_and_its_dead_mans_switch_stops_the_drum(co
     hb.close()
     control.close()
     assert not mon.running
+
+
+QUICK = """
+name = "two_trials"
+textures = ["A"]
+speeds_mm_s = [100]
+forces_g = [300]
+trials_per_condition = 2
+travel_mm = 60
+"""
+
+
+def test_one_event_stream_carries_the_run_and_the_latch_without_starting_the_poll(tmp_path):
+    """What ``rigctl acquire`` listens to: a run's progress and trial events and the safety latch (tripped, then
+    acknowledged) reach a subscriber of the rig's stream (RigControl.subscribe), and subscribing starts no poll of the
+    controller (on the in-process rig a poll would also move its simulated clock)."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.core.faults import parse_fault
+    from rigctl.operations import ProtocolRun
+
+    with open_control(RigSource("inprocess", inject=(parse_fault("estop@60+1"),)), seed=5,
+                      host_config_path=tmp_path / "rig.json") as c:
+        events: list[RigEvent] = []
+        c.subscribe(events.append)
+        summary = ProtocolRun(c, parse_protocol(QUICK), tmp_path / "s.h5", on_latch="end").run()
+        assert summary.ok
+        kinds = {e.kind for e in events}
+        assert {"progress", "run"} <= kinds and not kinds & {"status", "state"}  # nothing polled
+        done = [e.progress.done for e in events if e.kind == "progress" and e.progress.total]
+        assert done[-1] == 2
+        assert [e.trial.kind for e in events if e.kind == "run"].count("complete") == 2
+        c.drum.clock.sleep(61.0 - c.drum.clock.now())  # the e-stop, pressed while idle: the owner's check latches it
+        c.status()
+        latch = [e for e in events if e.kind == "latch"]
+        assert len(latch) == 1 and "e-stop" in latch[0].message and latch[0].latch is c.latch
+        c.drum.clock.sleep(1.5)
+        c.acknowledge("released", by="pytest")
+        assert [e.kind for e in events][-1] == "latch" and "acknowledged by pytest" in events[-1].message
+        assert c._monitor is not None and not c._monitor.running  # the stream, never the poll

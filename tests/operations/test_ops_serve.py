@@ -355,3 +355,42 @@ def test_lsl_wait_holds_run_start_until_a_recorder_has_the_markers(lsl, tmp_path
     finally:
         pub.close()
         control.close()
+
+
+def test_status_reads_the_monitor_not_the_controller_and_the_feed_carries_rig_events(served):
+    """``rigctl serve`` is a face of the rig's one event stream: ``/status`` shows what the library's monitor read
+    (a client polling it never reads the controller, so never feeds its watchdog), and the event feed carries the
+    monitor's state, fault and latch events."""
+    import threading
+
+    from rigctl.core.faults import parse_fault
+
+    client, q = served
+    control = q.control
+    callers: list[str] = []
+    read = control.drum.read_status
+
+    def counted():
+        callers.append(threading.current_thread().name)
+        return read()
+
+    control.drum.read_status = counted
+    try:
+        for _ in range(10):
+            rig = client.get("/status").json()["rig"]
+            assert rig["drum"]["state"] is not None and rig["drum_age_s"] >= 0
+        assert set(callers) <= {"rig-monitor"}, set(callers)
+    finally:
+        control.drum.read_status = read
+    feed = q.subscribe()
+    control.bench.inject_faults([parse_fault("estop@0")])
+    seen: list[dict] = []
+
+    def latched():
+        while not feed.empty():
+            seen.append(feed.get_nowait())
+        return any(e["type"] == "rig" and e["kind"] == "latch" for e in seen)
+
+    _wait(latched, 60)
+    assert any(e["type"] == "rig" and e["kind"] == "faults" and "ESTOP" in e["message"].upper() for e in seen), seen
+    assert client.get("/status").json()["rig"]["latch"]["cause"] == "estop"
