@@ -258,6 +258,14 @@ def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | No
     return control
 
 
+def _bars_follow_the_rig(control: Any, progress: Any) -> None:
+    """The bars follow the rig's event stream (``RigControl.subscribe``: the run publishes its progress there), as
+    the GUI's and the server's views do. The CLI polls nothing: its run reads the controller, the process is the
+    heartbeat (docs/safety.md)."""
+    if progress is not None:
+        control.subscribe(lambda ev: progress(ev.progress) if ev.progress is not None else None)
+
+
 @click.command()
 @click.argument("protocol", type=PROTOCOL)
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -405,11 +413,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                               options=rig_options), truth_log)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
-        # the bars follow the rig's event stream, as the GUI's and the server's views do (the run publishes its
-        # progress there); the CLI polls nothing: its run reads the controller, the process is the heartbeat
-        if progress is not None:
-            bar = progress
-            control.subscribe(lambda ev: bar(ev.progress) if ev.progress is not None else None)
+        _bars_follow_the_rig(control, progress)
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
             # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement
             run = ProtocolRun(control, proto, out, resume=resume, on_failure=on_failure,
