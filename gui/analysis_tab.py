@@ -15,6 +15,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core import PAPER_SENSOR, SensorLayout
 from rigctl.core.errors import describe_error
+from rigctl_gui.colours import ERROR, on_window
 from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
 from rigctl_gui.widgets import add_taxel_numbers, side_panel
 from rigctl_gui.workers import Job, ProcessJob
@@ -332,10 +333,10 @@ class AnalysisTab(QtWidgets.QWidget):
         try:
             kind = file_kind(path)
         except Exception as exc:  # noqa: BLE001
-            self.status.setText(f"<span style='color:#c00'>cannot open {_html(path)}: {_html(exc)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>cannot open {_html(path)}: {_html(exc)}</span>")
             return
         if kind == "unknown":
-            self.status.setText(f"<span style='color:#c00'>{_html(path)} is neither a session nor an encoded "
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>{_html(path)} is neither a session nor an encoded "
                                 "file</span>")
             return
         self.main.settings.setValue("dirs/analysis", os.path.dirname(path))
@@ -462,7 +463,7 @@ class AnalysisTab(QtWidgets.QWidget):
 
     def _draw_trial(self, job: Job) -> None:
         if job.error:
-            self.status.setText(f"<span style='color:#c00'>trial {job.tid}: {_html(job.error)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>trial {job.tid}: {_html(job.error)}</span>")
             return
         self.shown_tid = job.tid
         x, sa, ra, duration_s, note = job.result
@@ -633,14 +634,14 @@ class AnalysisTab(QtWidgets.QWidget):
         import logging
 
         logging.getLogger(__name__).error("%s", what, exc_info=exc)
-        self.status.setText(f"<span style='color:#c00'>{_html(what)}: {_html(describe_error(exc))}</span>")
+        self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>{_html(what)}: {_html(describe_error(exc))}</span>")
 
     def _finish_job(self, job) -> None:
         if self._job_kind != "analyses" or job.error:  # analyses: logged by show_results, as the panel says
             self._log(f"{self._job_kind} failed: {job.error}" if job.error else f"{self._job_kind} finished"
                       + (f": {job.result}" if isinstance(job.result, str) else ""), error=bool(job.error))
         if job.error:
-            self.status.setText(f"<span style='color:#c00'>{self._job_kind} failed: {_html(job.error)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>{self._job_kind} failed: {_html(job.error)}</span>")
         elif self._job_kind == "encoding":
             self.encoded_path = job.result
             self.status.setText(f"encoded into {_html(job.result)}")
@@ -679,7 +680,7 @@ class AnalysisTab(QtWidgets.QWidget):
         if not tasks:
             why = "; ".join(res.warnings) or "the tasks produced no results"
             name = os.path.basename(str(self.encoded_path or self.path))
-            self.status.setText(f"<span style='color:#c00'>no analysis could run on {_html(name)}: {_html(why)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>no analysis could run on {_html(name)}: {_html(why)}</span>")
             self._log(f"no analysis could run on {name}: {why}", error=True)
             return
         self.results = res
@@ -855,7 +856,7 @@ class AnalysisTab(QtWidgets.QWidget):
         try:
             path = export_path(path, fmt)
         except ValueError as exc:
-            self.status.setText(f"<span style='color:#c00'>not saved: {_html(exc)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>not saved: {_html(exc)}</span>")
             return None
         page = self.views.currentWidget()
         size = page.size()
@@ -879,7 +880,7 @@ class AnalysisTab(QtWidgets.QWidget):
             page.render(painter, QtCore.QPoint(0, 0))
             painter.end()
         if not os.path.isfile(path) or os.path.getsize(path) == 0:
-            self.status.setText(f"<span style='color:#c00'>could not write {_html(path)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>could not write {_html(path)}</span>")
             return None
         self.status.setText(f"saved the {_html(view)} view to {_html(path)}")
         self._log(f"the {view} view exported to {path}")
@@ -903,7 +904,7 @@ class AnalysisTab(QtWidgets.QWidget):
         try:
             path = export_path(path, "csv")
         except ValueError as exc:
-            self.status.setText(f"<span style='color:#c00'>not saved: {_html(exc)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>not saved: {_html(exc)}</span>")
             return []
         with open(path, "w", newline="") as f:
             f.write(report.to_csv(self.results))

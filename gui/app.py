@@ -33,6 +33,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.faults import FaultSpecError, parse_faults
 from rigctl.operations import DEADMAN_TIMEOUT_S
+from rigctl_gui.colours import on_window
 from rigctl_gui.connect_dialog import source_problem
 from rigctl_gui.dialogs import ask, show_dialog
 from rigctl_gui.frame_clock import FrameClock
@@ -235,6 +236,7 @@ class MainWindow(QtWidgets.QMainWindow):
         from rigctl_gui.control_panel import drum_summary
 
         text, colour = drum_summary(self.poller)
+        colour = on_window(colour, self)  # the state's colour, readable on this window's palette
         pal = self.drum_state.palette()
         if pal.color(QtGui.QPalette.ColorRole.WindowText).name() != colour or self.drum_state.text() != text:
             pal.setColor(QtGui.QPalette.ColorRole.WindowText, QtGui.QColor(colour))

@@ -16,6 +16,7 @@ from PySide6 import QtCore, QtWidgets
 
 from rigctl.core.errors import describe_error
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl_gui.colours import ERROR, on_window
 from rigctl_gui.messages import escaped
 from rigctl_gui.widgets import keep_room, side_panel
 from rigctl_gui.workers import Job
@@ -49,7 +50,7 @@ class CalibrationTab(QtWidgets.QWidget):
         self.loadcell_btn = QtWidgets.QPushButton("Calibrate load cell")
         self.loadcell_btn.clicked.connect(self.calibrate_loadcell)
         self.mass_prompt = QtWidgets.QFrame()
-        self.mass_prompt.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
+        self.mass_prompt.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; } QLabel { color: #000; }")
         self.mass_label = QtWidgets.QLabel()
         mass_ok = QtWidgets.QPushButton("Mass is on the load cell")
         mass_ok.clicked.connect(self._mass_placed)
@@ -311,7 +312,7 @@ class CalibrationTab(QtWidgets.QWidget):
         try:
             cfg = fn(cfg_path)
         except Exception as exc:  # noqa: BLE001 - shown; the stored calibration is unchanged
-            self.status.setText(f"<span style='color:#c00'>{escaped(describe_error(exc))}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>{escaped(describe_error(exc))}</span>")
             return
         if self.handle is not None:
             self.handle.control.host_config = cfg
@@ -347,7 +348,7 @@ class CalibrationTab(QtWidgets.QWidget):
         self.job = None
         self.mass_prompt.hide()
         if job.error:
-            self.status.setText(f"<span style='color:#c00'>{self._what} failed: {escaped(job.error)}</span>")
+            self.status.setText(f"<span style='color:{on_window(ERROR, self)}'>{self._what} failed: {escaped(job.error)}</span>")
         else:
             self.progress.setValue(100)
             r = job.result

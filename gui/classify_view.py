@@ -12,6 +12,7 @@ import math
 
 from PySide6 import QtCore, QtWidgets
 
+from rigctl_gui.colours import ERROR, on_window
 from rigctl_gui.workers import Job
 
 MAX_TILES = 60
@@ -105,7 +106,7 @@ class ClassifyView(QtWidgets.QWidget):
         try:
             self.load_model(path)
         except (OSError, ValueError) as exc:
-            self.model_label.setText(f"<span style='color:#c00'>cannot load {escaped(path)}: {escaped(exc)}</span>")
+            self.model_label.setText(f"<span style='color:{on_window(ERROR, self)}'>cannot load {escaped(path)}: {escaped(exc)}</span>")
 
     def clear(self) -> None:
         self.results.clear()
@@ -127,7 +128,7 @@ class ClassifyView(QtWidgets.QWidget):
             self._job = None
             planned = job.planned
             if job.error:
-                self.model_label.setText(f"<span style='color:#c00'>classification failed: {job.error}</span>")
+                self.model_label.setText(f"<span style='color:{on_window(ERROR, self)}'>classification failed: {job.error}</span>")
             else:
                 self._add(int(planned.trial_id), str(planned.texture), job.result)
         if self._job is None and self._pending:

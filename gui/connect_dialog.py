@@ -13,6 +13,7 @@ import shlex
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.core.rig_plugins import rig_entries
+from rigctl_gui.colours import ERROR, on_window
 from rigctl_gui.dialogs import choose_path
 from rigctl_gui.workers import RigSource
 
@@ -157,7 +158,7 @@ class ConnectDialog(QtWidgets.QDialog):
         self.problem.setObjectName("connect_problem")
         self.problem.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.problem.setWordWrap(True)
-        self.problem.setStyleSheet("color: #c00; font-weight: bold;")
+        self.problem.setStyleSheet(f"color: {on_window(ERROR, self)}; font-weight: bold;")
         self.problem.hide()
         button = QtWidgets.QDialogButtonBox.StandardButton
         buttons = QtWidgets.QDialogButtonBox(button.Ok | button.Cancel)

@@ -22,6 +22,7 @@ from rigctl.core.drum import (
 )
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.operations import RigControl, setpoint_refusals
+from rigctl_gui.colours import on_window
 from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
 
 __all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning", "drum_summary"]
@@ -106,7 +107,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.setpoint_error = QtWidgets.QLabel("")
         self.setpoint_error.setObjectName("setpoint_error")
         # short lines without word wrap: a wrapped label in a form is squeezed in a short window
-        self.setpoint_error.setStyleSheet("color: #c00; font-weight: bold;")
+        self.setpoint_error.setStyleSheet(f"color: {on_window('#c00', self)}; font-weight: bold;")
         keep_room(self.setpoint_error, lines=2)  # its room is kept while hidden: the buttons below never move
         self.setpoint_error.hide()
         self.limits = PROTOCOL_LIMITS  # the controller's hard limits (DrumLimits), read at attach
@@ -424,7 +425,7 @@ class ControlPanel(QtWidgets.QWidget):
             self.force_plot.setYRange(f_lo, f_hi, padding=0)
 
     def show_result(self, ok: bool, text: str) -> None:
-        self.message.setStyleSheet("" if ok else "color: #c00;")
+        self.message.setStyleSheet("" if ok else f"color: {on_window('#c00', self)};")
         self.message.setText(text)
 
     def refresh(self) -> None:
@@ -447,20 +448,20 @@ class ControlPanel(QtWidgets.QWidget):
         self._mark_stale(not p.ok)
         if not p.ok:
             self.state_label.setText("Drum controller not responding")
-            self.state_label.setStyleSheet("font-size: 15px; font-weight: bold; color: #c00;")
+            self.state_label.setStyleSheet(f"font-size: 15px; font-weight: bold; color: {on_window('#c00', self)};")
             return
         if st is None:
             return
         state = DrumState(int(st.state))
         self.state_label.setText(STATE_WORDS.get(state, state.name))
         self.state_label.setStyleSheet(
-            f"font-size: 15px; font-weight: bold; color: {STATE_COLOURS.get(state, '#000')};"
+            f"font-size: 15px; font-weight: bold; color: {on_window(STATE_COLOURS.get(state, '#000'), self)};"
         )
         faults = int(st.faults)
         if faults:
             self.fault_label.setText(f"Latched faults: {fault_meaning(faults)} The fault stays until you press "
                                      "Clear fault.")
-            self.fault_label.setStyleSheet("color: #c00; font-weight: bold;")
+            self.fault_label.setStyleSheet(f"color: {on_window('#c00', self)}; font-weight: bold;")
         else:
             self.fault_label.setText("Faults: none")
             self.fault_label.setStyleSheet("")

@@ -10,6 +10,7 @@ import threading
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.acquisition.doctor import CHECKS
+from rigctl_gui.colours import readable
 from rigctl_gui.workers import Job
 
 #: row colours by status
@@ -131,7 +132,7 @@ class DoctorDialog(QtWidgets.QDialog):
         row = next((i for i, c in enumerate(CHECKS) if c.name == result.name), None)
         if row is None:
             return
-        colour = QtGui.QColor(COLOURS[result.status])
+        colour = QtGui.QColor(readable(COLOURS[result.status], self.table.palette().color(QtGui.QPalette.ColorRole.Base)))
         for col, text in ((1, result.status.upper()), (2, result.summary), (3, result.fix)):
             item = QtWidgets.QTableWidgetItem(text)
             item.setToolTip(text)

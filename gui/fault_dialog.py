@@ -21,6 +21,8 @@ from typing import Any
 
 from PySide6 import QtCore, QtWidgets
 
+from rigctl_gui.colours import on_window
+
 __all__ = ["FaultDialog", "latch_of"]
 
 
@@ -69,7 +71,7 @@ class FaultDialog(QtWidgets.QDialog):
         self.busy = False
         self.title = QtWidgets.QLabel()
         self.title.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-        self.title.setStyleSheet("font-size: 16px; font-weight: bold; color: #c00;")
+        self.title.setStyleSheet(f"font-size: 16px; font-weight: bold; color: {on_window('#c00', self)};")
         self.detail = QtWidgets.QLabel()
         self.detail.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.detail.setWordWrap(True)
@@ -84,7 +86,7 @@ class FaultDialog(QtWidgets.QDialog):
         self.message = QtWidgets.QLabel()
         self.message.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.message.setWordWrap(True)
-        self.message.setStyleSheet("color: #c00;")
+        self.message.setStyleSheet(f"color: {on_window('#c00', self)};")
         self.ok_btn = QtWidgets.QPushButton("Acknowledge and clear")
         self.ok_btn.setDefault(True)
         self.later_btn = QtWidgets.QPushButton("Later")
@@ -121,7 +123,8 @@ class FaultDialog(QtWidgets.QDialog):
         self.todo.setText(f"What to do: {todo}" if todo else "")
         pressed = getattr(self, "_estop_open", False)
         self.estop.setText("PRESSED (contact open): release it before acknowledging" if pressed else "released")
-        self.estop.setStyleSheet("color: #c00; font-weight: bold;" if pressed else "color: #070;")
+        self.estop.setStyleSheet(f"color: {on_window('#c00', self)}; font-weight: bold;" if pressed
+                                 else f"color: {on_window('#070', self)};")
         ready = not pressed and bool(self.reason.text().strip()) and not self.busy
         self.ok_btn.setEnabled(ready)
         self.ok_btn.setToolTip("" if ready else "release the e-stop and give a reason first" if pressed
@@ -134,7 +137,7 @@ class FaultDialog(QtWidgets.QDialog):
             return
         self.busy = True
         self.update_from(None)
-        self.message.setStyleSheet("color: #000;")
+        self.message.setStyleSheet("")  # the palette's text colour
         self.message.setText("acknowledging: the rig is made ready (STOP, CLEAR_FAULT, HOME)...")
         threading.Thread(target=self._work, args=(reason,), name="acknowledge", daemon=True).start()
 
@@ -161,7 +164,7 @@ class FaultDialog(QtWidgets.QDialog):
 
     def _refused(self, why: str) -> None:
         self.busy = False
-        self.message.setStyleSheet("color: #c00;")
+        self.message.setStyleSheet(f"color: {on_window('#c00', self)};")
         self.message.setText(f"not cleared: {why}")
         self._log(logging.ERROR, f"acknowledgement refused: {why}")
         self.update_from(None)

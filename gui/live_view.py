@@ -16,7 +16,7 @@ Drawing costs do not grow with the data (issue 12): each trace is decimated to t
 max per pixel column, so peaks survive, :func:`peak_decimate`); each raster population is ONE image at the data
 area's pixel size (:func:`raster_image`: spikes binned per pixel column and taxel row), so every spike in the
 window is drawn whatever the rate (no spike budget) at the cost of one small image; each layer's traces are ONE item
-(:class:`TracesItem`: a polyline per taxel, no per-curve bounds or signals), only the window is copied out of the
+(:class:`rigctl_gui.live_items.TracesItem`: a polyline per taxel, no per-curve bounds or signals), only the window is copied out of the
 trace buffer, and the axes and titles are cached pixmaps (the data areas under them scroll every frame).
 
 Everything is drawn from fixed-size buffers filled from the taxel stream's ring buffer (never the file):
@@ -36,6 +36,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui import live_kernels
+from rigctl_gui.live_items import TimedGraphicsLayout, TracesItem, mark_containers
 from rigctl_gui.live_kernels import fill_raster
 from rigctl_gui.widgets import StatusText, add_taxel_numbers
 from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
@@ -60,6 +61,11 @@ GAP_MARKS = 4
 #: the heat maps are updated every this many refreshes (~8 Hz at the app's default 30 frames/s: a "now" map needs no more, and
 #: each update repaints the maps and their taxel numbers)
 HEATMAP_EVERY = 4
+#: the smallest data areas (px): traces, rasters; a view shorter than their sum (a short window, a 1.5x scale)
+#: scrolls instead of squeezing them (issue 38: 15-px traces at 1.5x on 1280x800)
+MIN_TRACE_PX, MIN_RASTER_PX = 60, 40
+#: title font sizes tried, largest first, until a title fits its plot's width (it never widens the column)
+TITLE_SIZES_PT = (10, 9, 8)
 
 
 def layer_titles(layout: SensorLayout, i: int) -> tuple[str, str]:
@@ -104,13 +110,14 @@ def heatmap_aspect(rows: int, cols: int, *, max_elongation: float = 4.0) -> floa
     return 1.0
 
 
-def raster_ticks(layout: SensorLayout) -> list[tuple[int, str]]:
-    """Left-axis ticks of a raster: every 3rd taxel for the paper's 18 (about six ticks for any count); the channel
-    names when the layout has its own and they fit (<= 20 channels)."""
-    n = layout.n_channels
-    if layout.channel_names is not None and n <= 20:
+def raster_ticks(layout: SensorLayout, max_ticks: int = 6) -> list[tuple[int, str]]:
+    """Left-axis ticks of a raster: at most ``max_ticks`` (every 3rd taxel for the paper's 18 at the default 6, so
+    a short plot gets fewer and its labels never overlap); the channel names when the layout has its own and each
+    gets a tick (<= 20 channels, <= ``max_ticks``)."""
+    n, max_ticks = layout.n_channels, max(int(max_ticks), 1)
+    if layout.channel_names is not None and n <= min(20, max_ticks):
         return list(enumerate(layout.channel_names))
-    step = max(1, int(round(n / 6)))
+    step = max(1, -(-n // max_ticks))
     return [(i, str(i)) for i in range(0, n, step)]
 
 
@@ -297,124 +304,15 @@ class RasterItem(pg.GraphicsObject):
         p.restore()
 
 
-class TraceCurve:
-    """One taxel's trace inside a :class:`TracesItem`: ``getData()`` (what is drawn: ``(t (n,) s, readings (n,))``),
-    ``name()`` (the channel label) and ``opts["pen"]`` (the legend's colour), as pyqtgraph's curves have them."""
-
-    def __init__(self, item: TracesItem, k: int, pen: QtGui.QPen, name: str):
-        self._item, self._k, self._name = item, k, name
-        self.opts = {"pen": pen, "name": name}
-
-    def getData(self) -> tuple[np.ndarray, np.ndarray]:  # noqa: N802 - pyqtgraph style
-        return self._item.t, self._item.x[:, self._k]
-
-    def name(self) -> str:
-        return self._name
-
-
-class TracesItem(pg.GraphicsObject):
-    """All the traces of one plot (one layer's taxels) in one item: each a polyline of the (decimated) readings in
-    its own 1-px cosmetic pen, no antialiasing. One item instead of a pyqtgraph curve per taxel: no per-curve data
-    bounds, signals and path building each frame (issue 12); the bounding rect is the plot's view (the item is
-    redrawn whole every frame anyway, since the traces scroll). ``curves``: a :class:`TraceCurve` per taxel."""
-
-    def __init__(self, pens: list[QtGui.QPen], names: list[str]):
-        super().__init__()
-        self._pens = pens
-        self.curves = [TraceCurve(self, k, pen, name) for k, (pen, name) in enumerate(zip(pens, names))]
-        self._n = 0  # points drawn per taxel
-        self._polys: list[QtGui.QPolygonF] = []  # one per taxel, reused from frame to frame
-        self._points: list[np.ndarray] = []  # (capacity, 2) views of the polygons' points
-        self._rect = QtCore.QRectF()
-        self.segments: list[tuple[int, int]] = []
-
-    @property
-    def t(self) -> np.ndarray:
-        """The times drawn (s), (n,)."""
-        return self._points[0][:self._n, 0].copy() if self._points else np.zeros(0)
-
-    @property
-    def x(self) -> np.ndarray:
-        """The readings drawn, (n, k)."""
-        if not self._points:
-            return np.zeros((0, len(self._pens)))
-        return np.stack([pts[:self._n, 1] for pts in self._points], axis=1)
-
-    def setData(self, t: np.ndarray, x: np.ndarray, breaks=()) -> None:  # noqa: N802 - pyqtgraph style
-        """Draw ``t`` (n,) s against each column of ``x`` (n, k) readings; ``breaks``: indices where a new segment
-        starts (an outage: no line is drawn across it)."""
-        n = len(t)
-        points = np.empty((x.shape[1], n, 2))
-        points[:, :, 0] = t
-        points[:, :, 1] = np.asarray(x).T
-        self.set_points(points, n, breaks)
-
-    def set_points(self, points: np.ndarray, n: int, breaks=()) -> None:
-        """Draw the first ``n`` of ``points`` (k, capacity, 2): each taxel's ``(t (s), reading)``, the points past
-        ``n`` repeating the last one (:func:`rigctl_gui.live_kernels.decimate_traces` writes them so); ``breaks``:
-        indices where a new segment starts (an outage: no line is drawn across it)."""
-        cuts = sorted({int(b) for b in breaks if 0 < int(b) < n}) if len(breaks) else []
-        self.segments = list(zip([0, *cuts], [*cuts, n]))
-        cap = points.shape[1]
-        if not self._polys or len(self._points[0]) != cap:
-            self._polys = [pg.functions.create_qpolygonf(cap) for _ in range(points.shape[0])]
-            self._points = [pg.functions.ndarray_from_qpolygonf(poly) for poly in self._polys]
-        for pts, src in zip(self._points, points):
-            pts[:] = src
-        self._n = n
-        vb = self.getViewBox()
-        rect = vb.viewRect() if vb is not None else QtCore.QRectF()
-        if rect != self._rect:
-            self.prepareGeometryChange()
-            self._rect = rect
-        self.update()
-
-    def boundingRect(self) -> QtCore.QRectF:  # noqa: N802 - Qt override
-        return QtCore.QRectF(self._rect)
-
-    def paint(self, p, *args) -> None:
-        if self._n == 0:
-            return
-        p.setRenderHint(QtGui.QPainter.RenderHint.Antialiasing, False)
-        if len(self.segments) <= 1:
-            for pen, poly in zip(self._pens, self._polys):
-                p.setPen(pen)
-                p.drawPolyline(poly)
-            return
-        for pen, pts in zip(self._pens, self._points):  # an outage in the window: one polyline per segment
-            p.setPen(pen)
-            for a, b in self.segments:
-                if b - a >= 2:
-                    poly = pg.functions.create_qpolygonf(b - a)
-                    pg.functions.ndarray_from_qpolygonf(poly)[:] = pts[a:b]
-                    p.drawPolyline(poly)
-
-
-def mark_containers(root: QtWidgets.QGraphicsItem) -> int:
-    """Flag every pure container under ``root`` (layouts, plots, titles' boxes, view boxes without a border: they draw
-    nothing themselves) ``ItemHasNoContents``, so Qt's paint of the scrolling data areas neither asks their Python
-    ``boundingRect`` nor calls their Python ``paint`` each frame (pyqtgraph leaves the flag off). Their children draw
-    as before. Returns how many were flagged."""
-    flag = QtWidgets.QGraphicsItem.GraphicsItemFlag.ItemHasNoContents
-    n, todo = 0, [root]
-    while todo:
-        item = todo.pop()
-        todo.extend(item.childItems())
-        if isinstance(item, (pg.GraphicsLayout, pg.PlotItem, pg.LabelItem)) or (
-                isinstance(item, pg.ViewBox) and item.border is None):
-            item.setFlag(flag, True)
-            n += 1
-    return n
-
-
-class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
-    """A GraphicsLayoutWidget that records when each paint finished (for the frame-to-screen latency)."""
-
-    painted = QtCore.Signal(float)
-
-    def paintEvent(self, ev):  # noqa: N802 - Qt override
-        super().paintEvent(ev)
-        self.painted.emit(time.monotonic())
+def _title_min(label: pg.LabelItem) -> None:
+    """A plot title's minimum size: its text's height, no width (a title never widens its column: the Live view
+    fits its text to the width, :meth:`LiveView.fit_plots`)."""
+    h = label.itemRect().height()
+    label.setMinimumWidth(0)
+    label.setMinimumHeight(h)
+    label._sizeHint = {QtCore.Qt.SizeHint.MinimumSize: (0, h), QtCore.Qt.SizeHint.PreferredSize: (0, h),
+                       QtCore.Qt.SizeHint.MaximumSize: (-1, -1), QtCore.Qt.SizeHint.MinimumDescent: (0, 0)}
+    label.updateGeometry()
 
 
 class LiveView(QtWidgets.QWidget):
@@ -479,9 +377,13 @@ class LiveView(QtWidgets.QWidget):
         self.gl.ci.layout.setSpacing(4)
         self.set_layout(layout)
 
+        # the plots keep readable heights (MIN_TRACE_PX, MIN_RASTER_PX): a shorter tab scrolls them
+        self.scroll = QtWidgets.QScrollArea(widgetResizable=True, frameShape=QtWidgets.QFrame.Shape.NoFrame)
+        self.scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.scroll.setWidget(self.gl)
         lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(bar)
-        lay.addWidget(self.gl, 1)
+        lay.addWidget(self.scroll, 1)
 
     @property
     def raster_s(self) -> float:
@@ -507,9 +409,12 @@ class LiveView(QtWidgets.QWidget):
         n_layers, adc_max, labels = layout.n_layers, layout.adc_max, layout.channel_labels()
         self._y_ranges: list[tuple[float, float] | None] = [None] * n_layers
         self.gap_marks: list[list[pg.InfiniteLine]] = []
+        #: each time plot's title texts, the first that fits its width in :data:`TITLE_SIZES_PT` is shown
+        self._titles: dict[pg.PlotItem, list[str]] = {}
 
         def time_plot(row: int, title: str):
-            p = self.gl.addPlot(row=row, col=0, title=title)
+            p = self.gl.addPlot(row=row, col=0)
+            self._titles[p] = [title]
             p.setMouseEnabled(x=False, y=False)
             p.setMenuEnabled(False)
             p.hideButtons()
@@ -537,7 +442,9 @@ class LiveView(QtWidgets.QWidget):
         self._layer_channels = [layout.layer_channels(i) for i in range(n_layers)]
         for i, chans in enumerate(self._layer_channels):
             p = time_plot(i, f"{layer_titles(layout, i)[0]}&nbsp;&nbsp;&nbsp;{legend_html(layout, i)}")
+            self._titles[p].append(legend_html(layout, i))  # a narrow plot: the legend alone (it names the taxels)
             p.setLabel("left", "ADC counts")
+            p.vb.setMinimumHeight(MIN_TRACE_PX)
             p.setYRange(0, adc_max, padding=0)
             item = TracesItem([pg.mkPen(colour, width=1) for colour in trace_colours(len(chans))],
                               [labels[ch] for ch in chans])
@@ -557,6 +464,7 @@ class LiveView(QtWidgets.QWidget):
             p.setYRange(-0.5, n - 0.5, padding=0)
             p.setLabel("left", "taxel")
             p.getAxis("left").setTicks([raster_ticks(layout)])
+            p.vb.setMinimumHeight(MIN_RASTER_PX)
             colour = QtGui.QColor(RASTER_COLOURS[key])
             img = RasterItem([QtGui.QColor("white"), colour, colour.darker(170)])
             img.setRect(QtCore.QRectF(-self.window_s, -0.5, self.window_s, n))
@@ -565,6 +473,8 @@ class LiveView(QtWidgets.QWidget):
             self.raster_images[key] = img
             self.drawn[key] = (np.zeros(0), np.zeros(0, np.int16))
         self.raster_plots["ra"].setLabel("bottom", "time before now (s)")
+        for p in self.time_plots[:-1]:  # one time axis: its values under the lowest plot only (the others' ticks stay)
+            p.getAxis("bottom").setStyle(showValues=False)
 
         # heat maps: one per layer beside its traces (its rows x cols grid, taxel numbers in the cells), one colour
         # bar for all
@@ -603,10 +513,38 @@ class LiveView(QtWidgets.QWidget):
         for row in range(n_layers + 2):
             grid.setRowStretchFactor(row, 2 if n_layers == 1 and row == 0 else 1)
         mark_containers(self.gl.ci)
+        self.fit_plots()
 
     def resizeEvent(self, ev):  # noqa: N802 - Qt override
         super().resizeEvent(ev)
-        QtCore.QTimer.singleShot(0, self.fit_taxel_labels)  # once the layout has settled
+        QtCore.QTimer.singleShot(0, self.fit_plots)  # once the layout has settled
+
+    def fit_plots(self) -> None:
+        """Fit the plots' text to their size: each time plot's title in the largest of :data:`TITLE_SIZES_PT` that
+        fits its width (else its shorter text; a title never widens the column, so the heat maps and the colour bar
+        keep their room), its title row as tall as that text, as many raster ticks as fit without overlapping, the
+        plots' minimum height (the tab scrolls below it), and the taxel numbers (:meth:`fit_taxel_labels`)."""
+        for p, texts in self._titles.items():
+            label, width = p.titleLabel, p.width() or self.gl.width()
+            for text, size in [(t, s) for t in texts for s in TITLE_SIZES_PT]:
+                if label.text != text or label.opts.get("size") != f"{size}pt":
+                    p.setTitle(text, size=f"{size}pt")
+                if label.item.boundingRect().width() <= width:
+                    break
+            h = int(np.ceil(label.item.boundingRect().height()))
+            label.updateMin = functools.partial(_title_min, label)  # pyqtgraph's sets the text's width at each resize
+            label.updateMin()
+            label.setMaximumHeight(h)
+            p.layout.setRowFixedHeight(0, h)
+        if self.raster_plots:  # a tick label per 1.5 lines of the axis' font at most
+            fit = int(self.raster_plots["sa"].vb.height() // (1.5 * QtGui.QFontMetrics(self.gl.font()).height()))
+            ticks = [raster_ticks(self._layout(), min(6, max(2, fit)))]
+            for p in self.raster_plots.values():
+                if p.getAxis("left")._tickLevels != ticks:
+                    p.getAxis("left").setTicks(ticks)
+        need = self.gl.ci.effectiveSizeHint(QtCore.Qt.SizeHint.MinimumSize).height()
+        self.gl.setMinimumHeight(int(np.ceil(need)) + 2 * self.gl.frameWidth())
+        self.fit_taxel_labels()
 
     def fit_taxel_labels(self) -> None:
         """Show the taxel numbers in the heat maps when the cells are large enough to keep their colour visible

@@ -21,9 +21,11 @@ from collections.abc import Callable
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.errors import describe_error
+from rigctl_gui.colours import on_window, readable
 
 #: colours of the log levels in the panel; info lines take the palette's text colour (a fixed black was black on
-#: near-black with a dark palette), the others colours readable on a light and a dark background
+#: near-black with a dark palette), the others these hues made readable on the log's background
+#: (:func:`rigctl_gui.colours.readable`)
 LEVEL_COLOURS: dict[int, str | None] = {logging.DEBUG: "#888", logging.INFO: None, logging.WARNING: "#d80",
                                         logging.ERROR: "#e33", logging.CRITICAL: "#e33"}
 #: the panel keeps this many lines (older ones scroll away)
@@ -39,7 +41,7 @@ def set_plain(label: QtWidgets.QLabel, text: str, *, error: bool = False, colour
     """Show ``text`` in ``label`` as plain text (never cut at a ``<``), red when ``error``."""
     label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
     label.setText(str(text))
-    label.setStyleSheet(f"color: {colour or ('#c00' if error else '')};" if (error or colour) else "")
+    label.setStyleSheet(f"color: {on_window(colour or '#c00', label)};" if (error or colour) else "")
 
 
 class _QueueHandler(logging.Handler):
@@ -175,15 +177,15 @@ class EventLog(QtWidgets.QWidget):
             if self._shown(e):
                 self.view.appendHtml(self._line(e))
 
-    @staticmethod
-    def _line(entry) -> str:
+    def _line(self, entry) -> str:
         t, level, source, text = entry
         stamp = time.strftime("%H:%M:%S", time.localtime(t))
         name = logging.getLevelName(level).lower()
+        base = self.view.palette().color(QtGui.QPalette.ColorRole.Base)  # each colour readable on the log's own
         colour = LEVEL_COLOURS.get(level)
         body = escaped(text).replace("\n", "<br>&nbsp;&nbsp;")
-        style = f" style='color:{colour}'" if colour else ""
-        return (f"<span style='color:#888'>{stamp}</span> <span{style}><b>{name}</b> "
+        style = f" style='color:{readable(colour, base)}'" if colour else ""
+        return (f"<span style='color:{readable('#888', base)}'>{stamp}</span> <span{style}><b>{name}</b> "
                 f"{escaped(source)}: {body}</span>")
 
 

@@ -16,8 +16,9 @@ import os
 import threading
 import time
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
+from rigctl_gui.colours import readable
 from rigctl_gui.dialogs import choose_path
 from rigctl_gui.messages import set_plain
 from rigctl_gui.workers import Job
@@ -151,14 +152,14 @@ class ProtocolTab(QtWidgets.QWidget):
         are seen from every tab."""
         self.run_strip = QtWidgets.QFrame()
         self.run_strip.setObjectName("run_strip")
-        self.run_strip.setStyleSheet("QFrame#run_strip { background: #eef; border: 1px solid #88a; }")
+        self.run_strip.setStyleSheet("QFrame#run_strip { background: #eef; border: 1px solid #88a; } QLabel { color: #000; }")
         self.run_label = QtWidgets.QLabel()
         self.run_label.setObjectName("run_state")
         self.run_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.run_label.setStyleSheet("font-weight: bold;")
         self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
         self.prompt_frame = QtWidgets.QFrame()
-        self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; }")
+        self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; } QLabel { color: #000; }")
         self.prompt_label = QtWidgets.QLabel()
         self.prompt_label.setStyleSheet("font-weight: bold;")
         self.prompt_ok = QtWidgets.QPushButton("Plate mounted - continue")
@@ -440,7 +441,7 @@ class ProtocolTab(QtWidgets.QWidget):
             if tip:
                 item.setToolTip(tip)
             if text.startswith("FAILED"):
-                item.setForeground(QtCore.Qt.GlobalColor.red)
+                item.setForeground(QtGui.QColor(readable("#c00", self.table.palette().color(QtGui.QPalette.ColorRole.Base))))
             self.table.setItem(row, len(PLAN_COLUMNS) - 1, item)
 
     def row_status(self, row: int) -> str:

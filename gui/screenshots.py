@@ -6,7 +6,9 @@ run the drum, record a short protocol, analyse a small generated dataset, calibr
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
 analysis_table1.png, analysis_confusion.png, calibration.png, classify.png; then stopped.png (a run stopped by STOP,
 resumable) and fault.png (the latched-fault dialog after the e-stop, the whole screen).
-``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
+``--scale 1.5`` takes them at Qt's scale factor 1.5 (``QT_SCALE_FACTOR``; each ``--size`` is then the screen's pixels,
+the window 1/1.5 of it in Qt's), ``--palette dark`` with a dark desktop palette
+(:func:`rigctl_gui.colours.dark_palette`). ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
 the rig-side shots (control.png, calibration.png, live.png, stopped.png, fault.png: about a minute instead of
 several); ``--size 1280x800``
 sets the window's size (default 1400x900); more ``--size`` options take every shot at each size in the same session
@@ -45,23 +47,36 @@ duration_s = 1.0
 
 
 def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1400, 900),
-         more_sizes: list[tuple[int, int]] | None = None) -> int:
+         more_sizes: list[tuple[int, int]] | None = None, *, scale: float = 1.0, palette: str = "") -> int:
     """Save the screenshots into ``out_dir``; ``only`` = a subset of the shot names (without ``.png``; the
     rig-side ones control, calibration, live need no dataset) or None for all; ``size`` = the window's
-    (width, height) in pixels; ``more_sizes``: each shot is also taken at these sizes, into ``out_dir/WxH/``
-    (width, height) in pixels."""
+    (width, height) in screen pixels; ``more_sizes``: each shot is also taken at these sizes, into ``out_dir/WxH/``
+    (width, height) in pixels. ``scale``: Qt's scale factor (``QT_SCALE_FACTOR``, set before the app starts: the
+    window is ``size / scale`` of Qt's pixels, the PNG ``size`` screen pixels); ``palette``: ``"dark"`` gives the
+    app :func:`rigctl_gui.colours.dark_palette` (a dark desktop theme), else the style's own."""
     os.makedirs(out_dir, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix="rigctl-shots-")
     os.environ.setdefault("RIGCTL_CONFIG", os.path.join(tmp, "rig.json"))
+    if scale != 1.0:
+        os.environ["QT_SCALE_FACTOR"] = f"{scale:g}"
     from PySide6 import QtCore
 
     QtCore.QSettings.setPath(QtCore.QSettings.Format.IniFormat, QtCore.QSettings.Scope.UserScope, os.path.join(tmp, "settings"))
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
+    if palette == "dark":
+        from rigctl_gui.colours import dark_palette
+
+        app.setStyle("Fusion")
+        app.setPalette(dark_palette())
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
     from rigctl_gui.workers import RigSource
 
     configure_pyqtgraph()
+    # the shots show the views, not the dead man's switch: a machine busy with other work can starve this GUI
+    # thread for over the app's 0.5 s and stop the drum mid-shot (the tests' windows do the same)
+    MainWindow.deadman_s = 5.0
     w = MainWindow(RigSource("sim"))
+    size, more_sizes = _logical(size, scale), [_logical(s, scale) for s in more_sizes or []]
     w.resize(*size)
     w.show()
 
@@ -77,7 +92,7 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
             for _ in range(8 if i or more else 5):  # a resized window redraws first
                 app.processEvents()
                 time.sleep(0.05)
-            folder = out_dir if i == 0 else os.path.join(out_dir, f"{wd}x{ht}")
+            folder = out_dir if i == 0 else os.path.join(out_dir, "{}x{}".format(*_screen((wd, ht), scale)))
             os.makedirs(folder, exist_ok=True)
             path = os.path.join(folder, name)
             w.grab().save(path)
@@ -214,8 +229,24 @@ def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) 
     save("fault", QtGui.QGuiApplication.primaryScreen().grabWindow(0))
 
 
+def _logical(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    """A window of ``size`` screen pixels in Qt's pixels at ``scale``."""
+    return round(size[0] / scale), round(size[1] / scale)
+
+
+def _screen(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    """A window of ``size`` Qt pixels in screen pixels at ``scale`` (the folder's name: what was asked)."""
+    return round(size[0] * scale), round(size[1] * scale)
+
+
 def _cli(argv: list[str]) -> int:
-    """``OUT_DIR [NAME ...] [--size WxH ...]``."""
+    """``OUT_DIR [NAME ...] [--size WxH ...] [--scale F] [--palette dark]``."""
+    opts = {"--scale": "1", "--palette": ""}
+    for name in opts:
+        if name in argv:
+            i = argv.index(name)
+            opts[name] = argv[i + 1]
+            argv = argv[:i] + argv[i + 2:]
     sizes = []
     while "--size" in argv:
         i = argv.index("--size")
@@ -223,7 +254,8 @@ def _cli(argv: list[str]) -> int:
         sizes.append((width, height))
         argv = argv[:i] + argv[i + 2:]
     sizes = sizes or [(1400, 900)]
-    return main(argv[0] if argv else "docs/screenshots", argv[1:] or None, size=sizes[0], more_sizes=sizes[1:])
+    return main(argv[0] if argv else "docs/screenshots", argv[1:] or None, size=sizes[0], more_sizes=sizes[1:],
+                scale=float(opts["--scale"]), palette=opts["--palette"])
 
 
 if __name__ == "__main__":

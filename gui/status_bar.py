@@ -14,8 +14,9 @@ import time
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.acquisition.link_health import LinkEvent, LinkHealth, LinkState, dropped_frames_severity
+from rigctl_gui.colours import on_window
 
-OK = "color: #080;"
+OK = "color: #007700;"  # 5:1 on a light window; made readable on the label's palette where it is shown (_show)
 WARN = "color: #000; background: #fc0; padding: 0 4px;"
 BAD = "color: #fff; background: #c00; padding: 0 4px;"
 SEVERITY_STYLES = {"ok": OK, "warn": WARN, "bad": BAD}
@@ -262,7 +263,10 @@ class Banners(QtWidgets.QFrame):
 
 
 def _show(label: QtWidgets.QLabel, *, text: str | None = None, tip: str | None = None, style: str | None = None) -> None:
-    """Set what differs of a label's text, tooltip and style sheet."""
+    """Set what differs of a label's text, tooltip and style sheet (:data:`OK`'s green readable on the label's
+    background, a dark palette's too)."""
+    if style == OK:
+        style = f"color: {on_window('#007700', label)};"
     if text is not None and label.text() != text:
         label.setText(text)
     if tip is not None and label.toolTip() != tip:

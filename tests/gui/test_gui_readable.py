@@ -1,0 +1,153 @@
+"""The app stays readable at Qt's 1.5x scale on a small screen and with a dark desktop palette (issue 38 part 8).
+
+1.5x on a 1280x800 screen is a window of 853x533 of Qt's pixels (``QT_SCALE_FACTOR=1.5`` draws every one of them as
+1.5 screen pixels; the layout is the same as at 1x in a window of that size, which is what these tests use: the
+test process's QApplication is already made, and the factor is read only when one is made). There the Live view's
+traces were squeezed to nothing by four title rows and four time axes, and its colour bar was pushed out of the
+window by the traces' titles; the docs' screenshots (docs/gui.md) are taken at the real factor.
+
+The dark palette is KDE Breeze Dark's (:func:`rigctl_gui.colours.dark_palette`): every text on screen is judged by
+its WCAG contrast ratio (>= 4.5) against the background it is drawn on, measured on the rendered pixels of each
+label, and from the colours of the event log's lines.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from rigctl_gui.colours import MIN_CONTRAST, contrast_ratio, dark_palette
+from rigctl_gui.events import wait_for
+
+#: 1280x800 screen pixels at Qt's scale factor 1.5, in Qt's pixels
+SCALED_1280x800 = (853, 533)
+
+
+def _live_geometry(window, qapp, size):
+    window.resize(*size)
+    window.tabs.setCurrentWidget(window.live)
+    wait_for(qapp, lambda: False, 0.5)  # the layout settles, fit_plots runs
+    return window.live
+
+
+@pytest.mark.parametrize("size", [SCALED_1280x800, (1024, 700)], ids=["1.5x-1280x800", "1024x700"])
+def test_the_live_view_keeps_readable_plots_and_its_colour_bar(inprocess_window, qapp, size):
+    """Each trace plot's data area is at least 60 px tall and each raster's 40 px (the view scrolls below that),
+    every title fits its plot, the raster's tick labels never overlap, and the colour bar with its labels lies
+    inside the plots' widget."""
+    from rigctl_gui.live_view import MIN_RASTER_PX, MIN_TRACE_PX
+
+    live = _live_geometry(inprocess_window, qapp, size)
+    try:
+        assert [round(p.vb.height()) >= MIN_TRACE_PX for p in live.trace_plots] == [True] * len(live.trace_plots), \
+            [p.vb.height() for p in live.trace_plots]
+        assert all(p.vb.height() >= MIN_RASTER_PX - 0.5 for p in live.raster_plots.values()), \
+            [p.vb.height() for p in live.raster_plots.values()]
+        # the traces take a real share of what the tab shows (not 15 px of a 533-px window)
+        shown = live.scroll.viewport().height()
+        assert sum(p.vb.height() for p in live.trace_plots) >= 0.3 * min(shown, live.gl.height())
+        for p in live.time_plots:
+            assert p.titleLabel.item.boundingRect().width() <= p.width() + 1, p.titleLabel.text
+        line = QtGui.QFontMetrics(live.gl.font()).height()
+        for p in live.raster_plots.values():
+            ticks = [t for t, _ in p.getAxis("left")._tickLevels[0]]
+            px_per_taxel = p.vb.height() / live.sensor_layout.n_channels
+            assert min(np.diff(ticks)) * px_per_taxel >= line, (ticks, p.vb.height())
+        # the plots' widget fits the tab's width (it scrolls only vertically) and its contents fit the widget (a
+        # title wider than its plot pushed the colour bar out of the window)
+        assert live.gl.width() <= live.scroll.viewport().width()
+        assert live.gl.ci.geometry().width() <= live.gl.viewport().width() + 0.5
+        view = QtCore.QRectF(live.gl.viewport().rect())
+        bar = live.colour_bar
+        r = live.gl.mapFromScene(bar.sceneBoundingRect()).boundingRect()
+        assert view.contains(QtCore.QRectF(r)), (r, view)
+        # the colour bar's labels as its axis draws them (the counts and "ADC counts"), each inside the widget
+        img = QtGui.QImage(8, 8, QtGui.QImage.Format.Format_RGB32)
+        painter = QtGui.QPainter(img)
+        try:
+            texts = bar.axis.generateDrawSpecs(painter)[2]
+        finally:
+            painter.end()
+        values = [t for _, _, t in texts]
+        assert {"0", "1000"} <= set(values), values
+        for rect, _, text in texts:
+            on_screen = live.gl.mapFromScene(bar.axis.mapRectToScene(rect)).boundingRect()
+            assert view.contains(QtCore.QRectF(on_screen)), (text, on_screen, view)
+        label = bar.getAxis("left").label  # "ADC counts", on the other side of the bar
+        assert label.toPlainText().strip() == "ADC counts"
+        on_screen = live.gl.mapFromScene(label.mapRectToScene(label.boundingRect())).boundingRect()
+        assert label.isVisible() and view.contains(QtCore.QRectF(on_screen)), (on_screen, view)
+    finally:
+        inprocess_window.resize(1400, 900)
+
+
+def _text_contrast(widget: QtWidgets.QWidget) -> float:
+    """The contrast of ``widget``'s text as drawn: its most common pixel colour (the background) against the pixel
+    farthest from it (a glyph's fully covered pixel has the text colour itself)."""
+    img = widget.grab().toImage().convertToFormat(QtGui.QImage.Format.Format_RGB32)
+    a = np.frombuffer(img.constBits(), np.uint32, img.width() * img.height()).copy()
+    colours, counts = np.unique(a, return_counts=True)
+    bg = QtGui.QColor.fromRgb(int(colours[counts.argmax()]))
+    return max(contrast_ratio(QtGui.QColor.fromRgb(int(c)), bg) for c in colours)
+
+
+@pytest.fixture
+def dark(qapp):
+    """The application in the dark palette for one test; the previous palette afterwards."""
+    before = QtGui.QPalette(qapp.palette())
+    qapp.setPalette(dark_palette())
+    yield
+    qapp.setPalette(before)
+
+
+def test_every_label_is_readable_with_a_dark_palette(inprocess_window, qapp, dark):
+    """With a dark palette and the drum running, every enabled label with text on the Rig control, Live view and
+    Calibration tabs, the top strip and the status bar has a WCAG contrast ratio of at least 4.5."""
+    w = inprocess_window
+    w.control.command("run")
+    try:
+        assert wait_for(qapp, lambda: "Running" in w.drum_state.text(), 30), w.drum_state.text()
+        bad = []
+        for tab in (w.control, w.live, w.calibration):
+            w.tabs.setCurrentWidget(tab)
+            wait_for(qapp, lambda: False, 1.0)  # state colours follow at the next refresh
+            for label in w.findChildren(QtWidgets.QLabel):
+                if label.isVisible() and label.isEnabled() and label.text().strip() and label.width() > 4:
+                    c = _text_contrast(label)
+                    if c < MIN_CONTRAST:
+                        bad.append((label.objectName() or label.text()[:40], round(c, 2)))
+        assert not bad, bad
+    finally:
+        w.control.command("stop")
+
+
+@pytest.mark.parametrize("palette", ["light", "dark"])
+def test_the_event_log_is_readable(qapp, palette):
+    """Every fragment of the event log (time stamp, level, source, text of info, warning and error lines) has a
+    contrast ratio of at least 4.5 against the log's background, in the style's palette and a dark one."""
+    from rigctl_gui.messages import EventLog
+
+    log = EventLog()
+    if palette == "dark":
+        log.setPalette(dark_palette())
+    for level in (logging.INFO, logging.WARNING, logging.ERROR):
+        log.add(level, "test", f"a {logging.getLevelName(level).lower()} line")
+    view = log.view
+    base, text = view.palette().color(QtGui.QPalette.ColorRole.Base), view.palette().color(QtGui.QPalette.ColorRole.Text)
+    seen = []
+    block = view.document().begin()
+    while block.isValid():
+        it = block.begin()
+        while not it.atEnd():
+            frag = it.fragment()
+            fmt = frag.charFormat()
+            colour = fmt.foreground().color() if fmt.hasProperty(QtGui.QTextFormat.Property.ForegroundBrush) else text
+            seen.append((frag.text(), colour.name(), round(contrast_ratio(colour, base), 2)))
+            it += 1
+        block = block.next()
+    assert len(seen) >= 9, seen
+    assert all(c >= MIN_CONTRAST for _, _, c in seen), [s for s in seen if s[2] < MIN_CONTRAST]
+    log.deleteLater()
