@@ -37,7 +37,7 @@ def readable(colour: str, background: QtGui.QColor | str, min_ratio: float = MIN
     c, bg = QtGui.QColor(colour), QtGui.QColor(background)
     if contrast_ratio(c, bg) >= min_ratio:
         return c.name()
-    h, s, lightness, _ = c.getHslF()
+    h, s, lightness = c.hslHueF(), c.hslSaturationF(), c.lightnessF()
     up = _luminance(bg) < 0.18  # a dark background: lighter text
     for k in range(1, 21):
         v = lightness + (1 - lightness) * k / 20 if up else lightness * (1 - k / 20)

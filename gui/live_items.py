@@ -123,9 +123,16 @@ def mark_containers(root: QtWidgets.QGraphicsItem) -> int:
 
 
 class TimedGraphicsLayout(pg.GraphicsLayoutWidget):
-    """A GraphicsLayoutWidget that records when each paint finished (for the frame-to-screen latency)."""
+    """A GraphicsLayoutWidget that records when each paint finished (for the frame-to-screen latency) and says when
+    it was resized."""
 
     painted = QtCore.Signal(float)
+    #: emitted after each resize (the Live view fits its titles and ticks to the new size)
+    resized = QtCore.Signal()
+
+    def resizeEvent(self, ev):  # noqa: N802 - Qt override
+        super().resizeEvent(ev)
+        self.resized.emit()
 
     def paintEvent(self, ev):  # noqa: N802 - Qt override
         super().paintEvent(ev)

@@ -63,7 +63,7 @@ GAP_MARKS = 4
 HEATMAP_EVERY = 4
 #: the smallest data areas (px): traces, rasters; a view shorter than their sum (a short window, a 1.5x scale)
 #: scrolls instead of squeezing them (issue 38: 15-px traces at 1.5x on 1280x800)
-MIN_TRACE_PX, MIN_RASTER_PX = 60, 40
+MIN_TRACE_PX, MIN_RASTER_PX = 56, 36
 #: title font sizes tried, largest first, until a title fits its plot's width (it never widens the column)
 TITLE_SIZES_PT = (10, 9, 8)
 
@@ -374,16 +374,19 @@ class LiveView(QtWidgets.QWidget):
 
         self.gl = TimedGraphicsLayout()
         self.gl.painted.connect(self._on_painted)
+        # the plots' own width changes without the tab's when the scroll bar comes or goes: fitted once settled
+        self.gl.resized.connect(lambda: QtCore.QTimer.singleShot(0, self.fit_plots))
         self.gl.ci.layout.setSpacing(4)
         self.set_layout(layout)
 
         # the plots keep readable heights (MIN_TRACE_PX, MIN_RASTER_PX): a shorter tab scrolls them
-        self.scroll = QtWidgets.QScrollArea(widgetResizable=True, frameShape=QtWidgets.QFrame.Shape.NoFrame)
-        self.scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.scroll.setWidget(self.gl)
+        self.plot_scroll = QtWidgets.QScrollArea(widgetResizable=True)
+        self.plot_scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        self.plot_scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.plot_scroll.setWidget(self.gl)
         lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(bar)
-        lay.addWidget(self.scroll, 1)
+        lay.addWidget(self.plot_scroll, 1)
 
     @property
     def raster_s(self) -> float:
@@ -525,7 +528,7 @@ class LiveView(QtWidgets.QWidget):
         keep their room), its title row as tall as that text, as many raster ticks as fit without overlapping, the
         plots' minimum height (the tab scrolls below it), and the taxel numbers (:meth:`fit_taxel_labels`)."""
         for p, texts in self._titles.items():
-            label, width = p.titleLabel, p.width() or self.gl.width()
+            label, width = p.titleLabel, p.vb.width() or self.gl.width()  # the title spans the data area
             for text, size in [(t, s) for t in texts for s in TITLE_SIZES_PT]:
                 if label.text != text or label.opts.get("size") != f"{size}pt":
                     p.setTitle(text, size=f"{size}pt")

@@ -66,8 +66,8 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     if palette == "dark":
         from rigctl_gui.colours import dark_palette
 
-        app.setStyle("Fusion")
-        app.setPalette(dark_palette())
+        QtWidgets.QApplication.setStyle("Fusion")
+        QtWidgets.QApplication.setPalette(dark_palette())
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
     from rigctl_gui.workers import RigSource
 

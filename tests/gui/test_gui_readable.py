@@ -35,7 +35,7 @@ def _live_geometry(window, qapp, size):
 
 @pytest.mark.parametrize("size", [SCALED_1280x800, (1024, 700)], ids=["1.5x-1280x800", "1024x700"])
 def test_the_live_view_keeps_readable_plots_and_its_colour_bar(inprocess_window, qapp, size):
-    """Each trace plot's data area is at least 60 px tall and each raster's 40 px (the view scrolls below that),
+    """Each trace plot's data area is at least 56 px tall and each raster's 36 px (the view scrolls below that),
     every title fits its plot, the raster's tick labels never overlap, and the colour bar with its labels lies
     inside the plots' widget."""
     from rigctl_gui.live_view import MIN_RASTER_PX, MIN_TRACE_PX
@@ -47,10 +47,10 @@ def test_the_live_view_keeps_readable_plots_and_its_colour_bar(inprocess_window,
         assert all(p.vb.height() >= MIN_RASTER_PX - 0.5 for p in live.raster_plots.values()), \
             [p.vb.height() for p in live.raster_plots.values()]
         # the traces take a real share of what the tab shows (not 15 px of a 533-px window)
-        shown = live.scroll.viewport().height()
+        shown = live.plot_scroll.viewport().height()
         assert sum(p.vb.height() for p in live.trace_plots) >= 0.3 * min(shown, live.gl.height())
         for p in live.time_plots:
-            assert p.titleLabel.item.boundingRect().width() <= p.width() + 1, p.titleLabel.text
+            assert p.titleLabel.item.boundingRect().width() <= p.vb.width() + 1, p.titleLabel.text
         line = QtGui.QFontMetrics(live.gl.font()).height()
         for p in live.raster_plots.values():
             ticks = [t for t, _ in p.getAxis("left")._tickLevels[0]]
@@ -58,7 +58,7 @@ def test_the_live_view_keeps_readable_plots_and_its_colour_bar(inprocess_window,
             assert min(np.diff(ticks)) * px_per_taxel >= line, (ticks, p.vb.height())
         # the plots' widget fits the tab's width (it scrolls only vertically) and its contents fit the widget (a
         # title wider than its plot pushed the colour bar out of the window)
-        assert live.gl.width() <= live.scroll.viewport().width()
+        assert live.gl.width() <= live.plot_scroll.viewport().width()
         assert live.gl.ci.geometry().width() <= live.gl.viewport().width() + 0.5
         view = QtCore.QRectF(live.gl.viewport().rect())
         bar = live.colour_bar
