@@ -23,8 +23,8 @@ rigctl's own rigs (their factories below, each imports its backend only when cal
 - ``"handheld"`` (:func:`handheld_rig`): the paper's real-time system, no drum: an operator scans flat plates with
   the finger (:class:`rigctl.acquisition.handheld.HandheldRig`); option ``motion``: ``"sim"`` (default: the
   simulated operator, :class:`rigctl.simulation.operator.SimulatedOperator`, on a simulated clock), ``"lsl:NAME"``
-  (a tracker stream), ``"replay:S.h5"`` (a recorded handheld session,
-  :class:`rigctl.simulation.handheld_replay.SessionScans`).
+  (a tracker stream), ``"serial:PORT"`` (a motion board, :class:`rigctl.devices.motion.SerialMotion`),
+  ``"replay:S.h5"`` (a recorded handheld session, :class:`rigctl.simulation.handheld_replay.SessionScans`).
 
 A plugin's rig is opened the same way; a sensor-only plugin (a :class:`rigctl.core.rig_plugins.SampleSource`) is
 streamed through the simulated rig's taxel board, the drum simulated (option ``drum``: "sim" or "inprocess").
@@ -208,8 +208,9 @@ def inprocess_rig(request: RigRequest) -> RigBackend:
 def handheld_rig(request: RigRequest) -> ScanSource:
     """The paper's real-time system: an operator scans flat plates with the sensor on a finger, no drum (--handheld).
 
-    Option ``motion``: ``sim`` (the simulated operator, default) or ``lsl:NAME`` (a tracker stream; options
-    ``resolve_s``, ``timeout_s``)."""
+    Option ``motion``: ``sim`` (the simulated operator, default), ``lsl:NAME`` (a tracker stream; options
+    ``resolve_s``, ``timeout_s``), ``serial:PORT`` (a motion board; :func:`_serial_motion_scans`) or
+    ``replay:S.h5`` (a recorded handheld session)."""
     options: dict[str, Any] = dict(request.options)
     motion = str(options.pop("motion", "sim"))
     if motion == "sim":
@@ -230,6 +231,8 @@ def handheld_rig(request: RigRequest) -> ScanSource:
                                   textures=request.textures, **options)
         except (ScanError, ValueError) as exc:
             raise RigError(str(exc)) from None
+    if motion.startswith("serial:"):
+        return _serial_motion_scans(motion.removeprefix("serial:"), request, options)
     if motion.startswith("replay:"):
         from rigctl.simulation.handheld_replay import SessionScans
 
@@ -240,7 +243,25 @@ def handheld_rig(request: RigRequest) -> ScanSource:
         except (OSError, RuntimeError, ValueError) as exc:  # ScanError, SessionError: RuntimeErrors
             raise RigError(f"cannot replay {motion.removeprefix('replay:')}: {exc}") from None
     raise RigError(f"unknown motion source {motion!r}: 'sim' (the simulated operator), 'lsl:NAME' (a tracker "
-                   "stream) or 'replay:S.h5' (a recorded handheld session)")
+                   "stream), 'serial:PORT' (a motion board) or 'replay:S.h5' (a recorded handheld session)")
+
+
+def _serial_motion_scans(port: str, request: RigRequest, options: dict[str, Any]) -> ScanSource:
+    """``motion="serial:PORT"``: the scans of a serial motion board (:class:`rigctl.devices.motion.SerialMotion`,
+    the position along the plate) with readings from the sensor model; options ``open_timeout_s``, ``timeout_s``."""
+    from rigctl.core.handheld import ScanError
+    from rigctl.devices.motion import SerialMotion
+    from rigctl.simulation.handheld_lsl import TrackedFingerScans
+
+    unknown = set(options) - {"timeout_s", "open_timeout_s"}
+    if unknown:
+        raise RigError(f"a serial motion board takes no option {', '.join(sorted(unknown))}")
+    try:
+        board = SerialMotion(port, open_timeout_s=float(options.get("open_timeout_s", 5.0)))
+    except ScanError as exc:
+        raise RigError(str(exc)) from None
+    return TrackedFingerScans(board, None, rig_config=_config(request), seed=request.seed, textures=request.textures,
+                              timeout_s=float(options.get("timeout_s", 60.0)))
 
 
 def _sensor_backend(request: RigRequest, source: SampleSource, drum: str) -> RigBackend:

@@ -53,15 +53,16 @@ REPLAY = ReplaySource()
 
 
 class MotionSource(click.ParamType):
-    """``--motion``: ``sim`` or ``lsl:NAME`` (a tracker stream)."""
+    """``--motion``: ``sim``, ``lsl:NAME`` (a tracker stream) or ``serial:PORT`` (a motion board)."""
 
-    name = "sim|lsl:NAME"
+    name = "sim|lsl:NAME|serial:PORT"
 
     def convert(self, value, param, ctx):
         text = str(value)
-        if text == "sim" or (text.startswith("lsl:") and len(text) > 4):
+        if text == "sim" or (text.startswith("lsl:") and len(text) > 4) or (text.startswith("serial:") and len(text) > 7):
             return text
-        self.fail(f"{text!r}: give sim (the simulated operator) or lsl:NAME (a tracker stream)", param, ctx)
+        self.fail(f"{text!r}: give sim (the simulated operator), lsl:NAME (a tracker stream) or serial:PORT (a "
+                  "motion board)", param, ctx)
 
 
 MOTION = MotionSource()
@@ -289,8 +290,9 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
                    "a protocol with rig = \"handheld\" selects it anyway). Motion from the simulated operator unless "
                    "--motion says otherwise (docs/guides/handheld.md).")
 @click.option("--motion", type=MOTION, default=None,
-              help="The handheld rig's motion source: sim (the simulated operator, default) or lsl:NAME (a tracker "
-                   "stream: its position or velocity; docs/guides/handheld.md).")
+              help="The handheld rig's motion source: sim (the simulated operator, default), lsl:NAME (a tracker "
+                   "stream: its position or velocity) or serial:PORT (a motion board's CRC-checked frames: an encoder "
+                   "or an IMU; docs/guides/handheld.md).")
 @click.option("--classify", "classify", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Handheld rig: predict each scan's texture at its end with the classifier trained on this encoded "
                    "training block (rigctl encode of a handheld_training session; LDA on --pcs PCs of its real-time "

@@ -118,17 +118,28 @@ else:
 
 
 @sim.command("operator")
-@click.option("--lsl", "name", required=True, help="Name of the LSL tracker stream to publish (machine-local).")
+@click.option("--lsl", "name", default=None, help="Name of the LSL tracker stream to publish (machine-local).")
+@click.option("--serial", "serial_board", is_flag=True, default=False,
+              help="Instead: a simulated serial motion board on a pty (prints its port; the frame of "
+                   "docs/guides/handheld.md), the port `--motion serial:PORT` reads.")
+@click.option("--fields", type=click.Choice(["position", "velocity", "both"]), default="both", show_default=True,
+              help="With --serial: what the board sends (an encoder: position; an IMU: velocity).")
 @click.option("--seconds", type=floats(1.0, 86400.0), default=60.0, show_default=True,
               help="How long to play, s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the operator and the tracker.")
-def operator(name, seconds, seed):
+def operator(name, serial_board, fields, seconds, seed):
     """Play the simulated operator in real time and publish its wrist tracker on LSL (x, y, z in the tracker's frame
     and the position along the plate, mm, at 90-120 Hz): the tracker stream `rigctl acquire ... --handheld --motion
-    lsl:NAME@3` records from (docs/guides/handheld.md). Runs until --seconds or Ctrl-C."""
+    lsl:NAME@3` records from; or, with --serial, as a serial motion board on a pty (`--motion serial:PORT`;
+    docs/guides/handheld.md). Runs until --seconds or Ctrl-C."""
     from rigctl.core.lsl import LslUnavailable
     from rigctl.simulation.operator import publish_tracker
 
+    if (name is None) == (not serial_board):
+        raise click.UsageError("give --lsl NAME (an LSL tracker stream) or --serial (a motion board on a pty)")
+    if serial_board:
+        _serial_operator(fields, seconds, seed)
+        return
     click.echo(f"publishing the simulated operator's tracker as LSL stream {name!r} for {seconds:g} s. Ctrl-C stops.")
     sys.stdout.flush()
     try:
@@ -138,3 +149,22 @@ def operator(name, seconds, seed):
     except KeyboardInterrupt:
         n = -1
     click.echo("stopped." if n < 0 else f"done: {n} tracker samples published.")
+
+
+def _serial_operator(fields: str, seconds: float, seed: int) -> None:
+    """``rigctl sim operator --serial``: the simulated motion board until ``seconds`` or Ctrl-C."""
+    import time
+
+    from rigctl.simulation.motion_board import VirtualMotionBoard
+
+    board = VirtualMotionBoard(seed=seed, fields=fields)
+    click.echo(f"motion board (the simulated operator, {fields}) on {board.path} for {seconds:g} s: record with "
+               f"--motion serial:{board.path}. Ctrl-C stops.")
+    sys.stdout.flush()
+    try:
+        time.sleep(seconds)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        board.close()
+    click.echo(f"done: {board.frames_sent} frames sent, {len(board.passes)} passes.")

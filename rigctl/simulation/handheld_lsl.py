@@ -5,7 +5,8 @@ channels chosen on the command line, either three (x, y, z in the tracker's fram
 the rig config's ``handheld`` block) or one (the position along the plate, mm). Its samples are put on the host clock
 with the host <-> LSL offset (:func:`rigctl.core.clocksync.measure_clock_offset`).
 
-:class:`TrackedFingerScans` is a :class:`rigctl.core.handheld.ScanSource` on it: after the cue it waits for the
+:class:`TrackedFingerScans` is a :class:`rigctl.core.handheld.ScanSource` on it (or on any :class:`Tracker`: a
+serial motion board, :class:`rigctl.devices.motion.SerialMotion`, ``--motion serial:PORT``): after the cue it waits for the
 tracked finger to pass through the plate's used part and beyond, and returns the pass. Its taxel readings come from
 the rig's physical sensor model along the tracked path (the simulated finger following a live tracker: a dry run of
 the chain with a real tracker and no sensor, and the test of the tracker input); frames 1 ms apart on the host clock.
@@ -16,7 +17,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from rigctl.core.trial import PlannedTrial
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import get_texture
 
-__all__ = ["LslTracker", "TrackedFingerScans", "open_lsl_scans", "parse_motion"]
+__all__ = ["LslTracker", "Tracker", "TrackedFingerScans", "open_lsl_scans", "parse_motion"]
 
 #: how far past the used part's end the finger must be before a scan counts as over, mm
 PAST_END_MM = 10.0
@@ -89,6 +90,9 @@ class LslTracker:
         sel = t >= t0
         return t[sel], x[sel]
 
+    def describe(self) -> dict[str, Any]:
+        return {"lsl_stream": self.name, "channels": list(self.channels), "lsl_offset_s": self.offset_s}
+
     def close(self) -> None:
         self._halt.set()
         if self._thread.is_alive():
@@ -96,12 +100,28 @@ class LslTracker:
         self.inlet.close_stream()
 
 
+class Tracker(Protocol):
+    """What :class:`TrackedFingerScans` reads: an :class:`LslTracker`, or a serial motion board
+    (:class:`rigctl.devices.motion.SerialMotion`). ``since(t0)`` gives the samples with host time >= ``t0``: times
+    (k,) s and positions (k, 3) x, y, z in the tracker's frame, (k, 1) along the plate, or (k, 2) along the plate and
+    the velocity along it (mm/s, NaN where not measured); ``channels`` has 3 entries for x, y, z."""
+
+    name: str
+    channels: tuple[int, ...]
+
+    def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def describe(self) -> dict[str, Any]: ...
+
+    def close(self) -> None: ...
+
+
 class TrackedFingerScans:
     """Scans of a tracked finger (module docstring); ``timeout_s`` bounds the wait for one pass."""
 
     layout: SensorLayout = PAPER_FINGER
 
-    def __init__(self, tracker: LslTracker, axis: PlateAxis | None, *, rig_config: RigConfig | None = None,
+    def __init__(self, tracker: Tracker, axis: PlateAxis | None, *, rig_config: RigConfig | None = None,
                  seed: int = 0, textures: TextureSet | None = None, timeout_s: float = 60.0) -> None:
         if len(tracker.channels) == 3 and axis is None:
             raise ScanError("a tracker's x, y, z need the plate's axis: calibrate it (the rig config's handheld block, "
@@ -112,7 +132,7 @@ class TrackedFingerScans:
         self.seed, self.scans, self.count = int(seed), 0, 0
 
     def _along(self, x: np.ndarray) -> np.ndarray:
-        return x[:, 0] if x.shape[1] == 1 else self.axis.along_mm(x)  # type: ignore[union-attr]  # checked above
+        return x[:, 0] if x.shape[1] != 3 else self.axis.along_mm(x)  # type: ignore[union-attr]  # checked above
 
     def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
         """Wait for the finger to enter the used part and pass its end; the pass with rendered readings. Raises
@@ -141,14 +161,21 @@ class TrackedFingerScans:
         n = frames.size
         seq = ((self.count + np.arange(n)) % 65536).astype(np.uint16)
         self.count += n
+        xyz = x.shape[1] == 3
+        velocity = x[:, 1] if x.shape[1] == 2 and np.all(np.isfinite(x[:, 1])) else None  # the board's own
         return RawScan(taxels=np.ascontiguousarray(taxels[:, : self.layout.n_channels]), seq=seq, host_time_s=frames,
-                       tracker_time_s=t, tracker_xyz=None if x.shape[1] == 1 else x,
-                       along_mm=along if x.shape[1] == 1 else None,
-                       attrs={"tracker_stream": self.tracker.name, "taxels_from": "sensor model on the tracked path"})
+                       tracker_time_s=t, tracker_xyz=x if xyz else None, along_mm=None if xyz else along,
+                       velocity_mm_s=velocity,
+                       attrs={"tracker_stream": self.tracker.name, "taxels_from": "sensor model on the tracked path",
+                              **getattr(self.tracker, "counters", dict)()})
 
     def describe(self) -> dict[str, Any]:
-        return {"kind": "tracked_finger", "lsl_stream": self.tracker.name, "channels": list(self.tracker.channels),
-                "lsl_offset_s": self.tracker.offset_s, "taxels": "sensor model on the tracked path", "seed": self.seed}
+        return {"kind": "tracked_finger", **self.tracker.describe(), "taxels": "sensor model on the tracked path",
+                "seed": self.seed}
+
+    def link_problem(self) -> str | None:
+        problem = getattr(self.tracker, "link_problem", None)
+        return problem() if callable(problem) else None
 
     def close(self) -> None:
         self.tracker.close()

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -41,6 +41,7 @@ from rigctl.core.handheld import (
     PLATE_LENGTH_MM,
     USED_LENGTH_MM,
     USED_START_MM,
+    PlateAxis,
     RawScan,
 )
 from rigctl.core.sensor import PAPER_FINGER, SensorLayout
@@ -49,7 +50,7 @@ from rigctl.core.trial import PlannedTrial
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import get_texture
 
-__all__ = ["OperatorConfig", "SimulatedOperator", "profile_speeds", "publish_tracker"]
+__all__ = ["OperatorConfig", "SimulatedOperator", "operator_passes", "plate_axis_of", "profile_speeds", "publish_tracker"]
 
 
 @dataclass(frozen=True)
@@ -229,6 +230,18 @@ class SimulatedOperator:
         return RawScan(taxels=taxels, seq=seq, host_time_s=host_time, tracker_time_s=t_trk, tracker_xyz=xyz,
                        attrs=attrs)
 
+    def tracker_pass(self, planned: PlannedTrial) -> tuple[np.ndarray, np.ndarray]:
+        """The tracker's samples of one pass (as :meth:`scan`'s, without rendering the taxels: a motion source's
+        view): times (k,) s from the pass's start and tracker-frame points (k, 3) mm. Raises ValueError as
+        :meth:`scan`."""
+        c = self.config
+        rng = np.random.default_rng([self.seed, 3740, self.scans])
+        self.scans += 1
+        dt = 1.0 / self.layout.sample_rate_hz
+        pos, _ = self._path(planned, rng, dt)
+        side = _ou(rng, pos.size, dt, c.path_wobble_tau_s, c.path_wobble_mm)
+        return self._tracker(rng, 0.0, pos.size * dt, pos, side, dt)
+
     def _tracker(self, rng: np.random.Generator, t0: float, span_s: float, pos: np.ndarray, side: np.ndarray,
                  dt: float) -> tuple[np.ndarray, np.ndarray]:
         """The tracker's samples of a scan: times (s, host clock) and tracker-frame points (k, 3) mm."""
@@ -249,43 +262,64 @@ class SimulatedOperator:
 
 
 
+#: the profiles the simulated operator's free-running passes take in turn: (name, start and end speed, mm/s)
+PASS_PROFILES = (("slow", 40.0, 40.0), ("medium", 80.0, 80.0), ("fast", 120.0, 120.0), ("slow-to-fast", 40.0, 120.0),
+                 ("fast-to-slow", 120.0, 40.0))
+#: after a pass the finger returns to the plate's start in this long, then rests, s
+RETURN_S, REST_S = 0.6, 0.4
+
+
+def operator_passes(op: SimulatedOperator, textures: tuple[str, ...] = ("A", "B", "D", "L", "N"),
+                    profiles: tuple[tuple[str, float, float], ...] = PASS_PROFILES,
+                    ) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """The simulated operator's free-running passes (no cue: the ``profiles`` in turn, then the next plate):
+    endless ``(label, t, xyz)``: each pass's tracker sample times (k,) s from the pass's start and tracker-frame
+    points (k, 3) mm, the finger's return to the start included (:data:`RETURN_S`); the next pass starts
+    :data:`REST_S` after the last sample. The points lie along ``op.to_tracker``'s plate (:meth:`SimulatedOperator.
+    touch_ends` calibrates its axis)."""
+    k = 0
+    while True:
+        prof, a, b = profiles[k % len(profiles)]
+        tex = textures[(k // len(profiles)) % len(textures)]
+        ramp = (a, b) if a != b else (math.nan, math.nan)
+        t, xyz = op.tracker_pass(PlannedTrial(k, tex, (a + b) / 2, 500.0, 200.0 / ((a + b) / 2), prof, *ramp))
+        back_t = t[-1] + np.arange(1, int(RETURN_S * op.tracker_rate_hz)) / op.tracker_rate_hz
+        back = op.to_tracker(np.linspace(op.config.stop_mm, op.config.start_mm, back_t.size), np.zeros(back_t.size))
+        yield f"pass {k}: plate {tex}, {prof}", np.concatenate([t, back_t]), np.concatenate([xyz, back])
+        k += 1
+
+
+def plate_axis_of(op: SimulatedOperator) -> PlateAxis:
+    """The plate's axis in the operator's tracker frame (its two ends, noise-free)."""
+    return PlateAxis.from_touches(op.to_tracker(np.zeros(1), np.zeros(1)),
+                                  op.to_tracker(np.full(1, PLATE_LENGTH_MM), np.zeros(1)))
+
+
 def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple[str, ...] = ("A", "B", "D", "L", "N"),
                     stop: Callable[[], bool] | None = None, on_scan: Callable[[str], Any] | None = None) -> int:
     """Play the simulated operator in real time and publish its wrist tracker on LSL (stream ``name``, type
     "Position", 4 channels: x, y, z in the tracker's frame and the position along the plate, mm; at the tracker's
-    90-120 Hz with its jitter and dropouts): passes along the plate with the five profiles in turn, each followed
-    by the finger's return (0.6 s) and a rest (0.4 s), until ``seconds`` have passed or ``stop()``. The handheld rig
-    takes it with ``--motion lsl:NAME`` (x, y, z: the plate axis in the rig config) or ``lsl:NAME@3`` (along the
-    plate). ``on_scan(text)`` hears each pass begin. Returns the samples pushed. Raises LslUnavailable."""
-    from rigctl.core.handheld import PlateAxis
+    90-120 Hz with its jitter and dropouts): :func:`operator_passes`, until ``seconds`` have passed or ``stop()``.
+    The handheld rig takes it with ``--motion lsl:NAME`` (x, y, z: the plate axis in the rig config) or
+    ``lsl:NAME@3`` (along the plate). ``on_scan(text)`` hears each pass begin. Returns the samples pushed. Raises
+    LslUnavailable."""
     from rigctl.core.lsl import require_pylsl
 
     pylsl = require_pylsl()
     op = SimulatedOperator(seed=seed)
-    axis = PlateAxis.from_touches(op.to_tracker(np.zeros(1), np.zeros(1)),
-                                  op.to_tracker(np.full(1, PLATE_LENGTH_MM), np.zeros(1)))
+    axis = plate_axis_of(op)
     info = pylsl.StreamInfo(name, "Position", 4, op.tracker_rate_hz, pylsl.cf_float32, f"rigctl-operator-{name}")
     chans = info.desc().append_child("channels")
     for label in ("x_mm", "y_mm", "z_mm", "along_plate_mm"):
         chans.append_child("channel").append_child_value("label", label).append_child_value("unit", "mm")
     outlet = pylsl.StreamOutlet(info)
-    profiles = (("slow", 40.0, 40.0), ("medium", 80.0, 80.0), ("fast", 120.0, 120.0), ("slow-to-fast", 40.0, 120.0),
-                ("fast-to-slow", 120.0, 40.0))
-    t0, pushed, k = pylsl.local_clock(), 0, 0
+    t0, pushed = pylsl.local_clock(), 0
     start = t0
-    while pylsl.local_clock() - t0 < seconds and not (stop is not None and stop()):
-        prof, a, b = profiles[k % len(profiles)]
-        tex = textures[(k // len(profiles)) % len(textures)]
-        ramp = (a, b) if a != b else (math.nan, math.nan)
-        raw = op.scan(PlannedTrial(k, tex, (a + b) / 2, 500.0, 200.0 / ((a + b) / 2), prof, *ramp))
-        assert raw is not None and raw.tracker_xyz is not None  # no stop callable given, the simulator's points
+    for label, t, xyz in operator_passes(op, textures):
+        if pylsl.local_clock() - t0 >= seconds or (stop is not None and stop()):
+            break
         if on_scan is not None:
-            on_scan(f"pass {k}: plate {tex}, {prof}")
-        t = raw.tracker_time_s - raw.host_time_s[0]
-        xyz = raw.tracker_xyz
-        back_t = t[-1] + np.arange(1, int(0.6 * op.tracker_rate_hz)) / op.tracker_rate_hz
-        back = op.to_tracker(np.linspace(op.config.stop_mm, op.config.start_mm, back_t.size), np.zeros(back_t.size))
-        t, xyz = np.concatenate([t, back_t]), np.concatenate([xyz, back])
+            on_scan(label)
         rows = np.column_stack([xyz, axis.along_mm(xyz)]).astype(np.float32)
         for ti, row in zip(t, rows):
             while pylsl.local_clock() < start + ti:
@@ -294,6 +328,5 @@ def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple
             pushed += 1
             if stop is not None and stop():
                 break
-        start += t[-1] + 0.4
-        k += 1
+        start += t[-1] + REST_S
     return pushed
