@@ -2,10 +2,10 @@
 
 :class:`HilRig` has the interface of :class:`rigctl.simulation.rig.SimulatedRig` (context manager, ``drum_port``,
 ``taxel_port``, ``set_texture``, ``place_mass``), so :class:`rigctl.devices.drum.DrumClient`,
-:class:`rigctl.devices.taxel_stream.TaxelStream` and ``rigctl.rigs.open_rig("hil")`` talk to it unchanged. It
-builds the firmware and the harness if needed
-from the sources shipped in the package (:func:`rigctl.firmware.build`: ``rigctl/arduino``, the repo's ``arduino/``)
-and starts two harness processes (``arduino/simavr/rigctl_simavr.c``), one per board:
+:class:`rigctl.devices.taxel_stream.TaxelStream` and ``rigctl.rigs.open_rig("hil")`` talk to it unchanged. It builds
+the firmware and the harness if needed from the sources shipped in the package (:func:`rigctl.firmware.build`:
+``rigctl/arduino``, the repo's ``arduino/``) and starts two harness processes (``arduino/simavr/rigctl_simavr.c``),
+one per board, each raised above the host code (:mod:`rigctl.simulation.priority`):
 
 - the Mega image (drum controller, Modbus RTU) with the HX711 and actuator spring emulated in C from the rig
   model's mechanics constants (:class:`rigctl.simulation.model.MechanicsConfig`), its drum STEP pin and index
@@ -108,16 +108,14 @@ class _Harness:
         self._lock = threading.Lock()
         self.proc = subprocess.Popen([str(exe), "--board", board, *args, str(elf)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
-        raise_board_process(self.proc.pid)  # the board's clock, not the host's (rigctl.simulation.priority)
+        raise_board_process(self.proc.pid)
         assert self.proc.stdin is not None and self.proc.stdout is not None and self.proc.stderr is not None
         self._stdin, self._stdout, self._stderr = self.proc.stdin, self.proc.stdout, self.proc.stderr  # all piped
-        port = None
-        deadline = time.monotonic() + 10.0
+        port, deadline = None, time.monotonic() + 10.0
         while time.monotonic() < deadline:
             line = self._stdout.readline()
             if not line:
-                err = self._stderr.read()
-                raise HilError(f"simavr harness for the {board} exited at start: {err.strip()}")
+                raise HilError(f"simavr harness for the {board} exited at start: {self._stderr.read().strip()}")
             if line.startswith("PTY "):
                 port = line.split()[1]
                 break
