@@ -17,7 +17,7 @@
  * first conversion of every scan (select 0 on A0), so frame k carries row (k0 + k) mod n, and the counts are
  * converted to exactly the millivolts that simavr's ADC turns back into the same counts. stdin commands:
  * "wave PATH [BASE]" (load a waveform; row 0 = scan BASE if given, else the scan it starts at), "scan?" (reply "SCAN n=<scans so far> start=<scan of the waveform's row 0>"),
- * "sync" (a 1 ms pulse on the sync-in pin D2). Timing: the sampler's probe pin
+ * "sync" (a 1 ms pulse on the sync-in pin D2), "taxel_aa NF" (the anti-alias capacitor at every mux input, below). Timing: the sampler's probe pin
  * (PB0) and the transmitter's (PB1) are timed on avr->cycle; "ISR ..." lines report cycles per 1 ms tick.
  *
  * Mega (ATmega2560): emulates the HX711 (DOUT PE5, SCK PG5; --hx711-sps 10|80 with --hx711-clock-error, the
@@ -309,6 +309,7 @@ static atomic_int polarity_req = 1;  /* +1 or -1: the load cell's sign */
 static atomic_int home_broken_req;   /* 1 = the home switch never closes */
 static atomic_int eeprom_flip_req = -1; /* EEPROM offset to corrupt, -1 = none */
 static atomic_int act_reversed_req;  /* 1 = the actuator motor's coil pair swapped: DIR high moves it away */
+static _Atomic double opt_aa_c_nf; /* Uno: the anti-alias C_aa at each mux input, nF (--aa-c-nf, "taxel_aa NF") */
 static _Atomic double drum_slip_req; /* "drum slip F": the real drum turns F less than its steps say (1: stalled) */
 static pthread_mutex_t wave_lock = PTHREAD_MUTEX_INITIALIZER;
 static uint16_t *wave;     /* n_rows x 18 ADC counts */
@@ -404,6 +405,14 @@ static void *stdin_thread(void *arg)
         } else if (!strncmp(line, "taxel_ohm ", 10)) {
             if (mux_set_taxel_ohm(line + 10)) printf("ERR taxel_ohm\n");
             else printf("OK taxel_ohm\n");
+        } else if (!strncmp(line, "taxel_aa ", 9)) {
+            double nf = atof(line + 9);
+            if (nf < 0.0 || nf > 10000.0) {
+                printf("ERR taxel_aa\n");
+            } else {
+                atomic_store(&opt_aa_c_nf, nf);
+                printf("OK taxel_aa\n");
+            }
         } else if (!strcmp(line, "sync")) {
             atomic_fetch_add(&sync_requests, 1);
         } else if (!strncmp(line, "bump ", 5)) {
@@ -493,31 +502,47 @@ static uint16_t taxel_value(size_t row, int taxel)
 }
 
 /* ================================ Uno: multiplexer settling (RC model) ================================
- * Each 74HC4051 common node is a capacitor (--mux-c-pf, 25 pF: NXP/TI 74HC4051 datasheets, C_S common) that charges
- * through the selected taxel's source impedance (--taxel-ohm, per taxel with stdin "taxel_ohm I OHM") plus the
- * switch's on-resistance (--mux-ron-ohm, 180 Ohm: the datasheets give ~70-180 Ohm at 4.5 V). The ATmega328P's
- * sample-and-hold capacitor (--sh-c-pf, 14 pF: ATmega328P datasheet, "Analog Input Circuitry") is connected to the
- * input ADMUX selects (from the ADMUX write, or from the end of a running conversion: the datasheet's ADMUX update
- * rule) and shares its charge with that node when it moves; the node then relaxes with it. The conversion samples
- * 1.5 ADC clocks after ADSC (13.5 for the first after ADEN), and that voltage is what simavr's ADC converts. Unused
- * inputs (Y6, Y7) float. Source voltages are the waveform's counts at the centre of their code ((c + 0.5) LSB), so
- * an injected value comes back exact exactly when the settling error stays below 0.5 LSB; voltages go to simavr in
- * units of 0.1 mV (AVCC given as 50000). The taxels' source values change once per scan, when its last conversion
- * has been started (the row swap below). "MUX ..." lines report the largest settling error (sampled voltage minus
- * the settled value of the taxel being converted, in LSB) per second of simulated time, and the longest scan (the
- * first conversion's ADSC, i.e. the tick, to the end of the last conversion, us: it must end inside the 1 ms tick). */
+ * Per taxel, the anti-alias RC at its 74HC4051 input Yn (docs/firmware.md, "Taxel source impedance and anti-alias
+ * filter"): the taxel's source impedance (--taxel-ohm, per taxel with stdin "taxel_ohm I OHM"; R_s + R_aa) charges
+ * a capacitor C_aa to ground at Yn (--aa-c-nf or stdin "taxel_aa NF": the documented 15 nF; default 0 = none fitted,
+ * so a waveform's codes come back exact). Each multiplexer's common node
+ * is a capacitor (--mux-c-pf, 25 pF: NXP/TI 74HC4051 datasheets, C_S common) joined to the selected input's C_aa
+ * through the switch's on-resistance (--mux-ron-ohm, 180 Ohm: ~70-180 Ohm at 4.5 V); R_on x C is a few ns, so a
+ * switch shares the node's charge with C_aa at once and the two then charge together through the source impedance:
+ * tau = (R_s + R_on) x (C_aa + 25 pF [+ 14 pF]). An unselected C_aa charges alone (tau = R_s x C_aa). Y6 and Y7 are
+ * tied to GND (docs/hardware): selecting them discharges the node. The ATmega328P's sample-and-hold capacitor
+ * (--sh-c-pf, 14 pF: ATmega328P datasheet, "Analog Input Circuitry") is connected to the input ADMUX selects (from
+ * the ADMUX write, or from the end of a running conversion: the datasheet's ADMUX update rule; channel 15 = GND
+ * discharges it) and shares its charge with that node when it moves. One PORTD store changes the three select lines
+ * in the same cycle (simavr raises one pin at a time): the new selection is applied once the cycle has moved on.
+ * The conversion samples 1.5 ADC clocks after ADSC (13.5 for the first after ADEN), and that voltage is what
+ * simavr's ADC converts. Source voltages are the waveform's counts at the centre of their code ((c + 0.5) LSB), so an
+ * injected value comes back exact exactly when the error stays below 0.5 LSB; voltages go to simavr in units of
+ * 0.1 mV (AVCC given as 50000). The taxels' source values change once per scan, when its last conversion has been
+ * started (the row swap below). "MUX ..." lines report the largest error (sampled voltage minus the taxel's filtered
+ * signal: its source through its RC alone, with nothing switching at it; in LSB) per second of simulated time, and the longest scan (the first conversion's
+ * ADSC, i.e. the tick, to the end of the last conversion, us: it must end inside the 1 ms tick). */
 #define MUX_N 3
 #define ADC_UNITS_PER_MV 10.0 /* ADC injection units (0.1 mV) */
 #define M328_ADCSRA 0x7A      /* ATmega328P data-space addresses */
 #define M328_ADMUX 0x7C
+#define ADC_CH_GND 15         /* ADMUX MUX3:0 = 1111: 0 V (GND) */
 static double opt_taxel_ohm = 47000.0;
 static double opt_mux_ron_ohm = 180.0;
 static double opt_mux_c_pf = 25.0;
 static double opt_sh_c_pf = 14.0;
 static _Atomic double taxel_ohm[N_TAXELS]; /* set by the stdin thread too */
-static double node_mv[MUX_N];        /* voltage of each mux common node */
+static double node_mv[MUX_N];        /* voltage of each mux common node (and of the C_aa it is connected to) */
 static uint64_t node_cycle[MUX_N];   /* when node_mv was last brought up to date */
+static int node_taxel[MUX_N];        /* the taxel each node is connected to now, -1 = Y6/Y7 (GND) */
+static double aa_mv[N_TAXELS];       /* voltage of each taxel's C_aa while not connected to its node */
+static uint64_t aa_cycle[N_TAXELS];
+static double ideal_mv[N_TAXELS];    /* what each C_aa would hold with nothing switching at it: the filtered signal */
+static uint64_t ideal_cycle[N_TAXELS];
+static uint64_t sel_pending_cycle;   /* the select lines changed in this cycle: applied once it is over */
+static int sel_pending;
 static int sh_ch = 0;                /* ADC input the sample-and-hold capacitor is connected to (ADMUX, 0 at reset) */
+static double sh_mv;                 /* its voltage */
 static int sh_pending = -1;          /* ADMUX written during a conversion: the input it connects at conv_end */
 static uint64_t adc_conv_end;        /* cycle the running conversion ends */
 static int adc_first_conv = 1;       /* the first conversion after reset takes 25 ADC clocks, samples at 13.5 */
@@ -536,27 +561,57 @@ static double taxel_source_mv(size_t row, int taxel)
     return (taxel_value(row, taxel) + 0.5) * lsb_mv();
 }
 
-/* the taxel mux m connects now (-1: Y6/Y7, unconnected) */
+/* the taxel mux m connects with the select lines as they are (-1: Y6/Y7, tied to GND) */
 static int mux_taxel(int m)
 {
     return mux_sel < 6 ? m * 6 + mux_sel : -1;
 }
 
-static double mux_tau_s(int m, int taxel)
+static double aa_c_pf(void)
 {
-    double c_pf = opt_mux_c_pf + (sh_ch == m ? opt_sh_c_pf : 0.0);
-    return (taxel_ohm[taxel] + opt_mux_ron_ohm) * c_pf * 1e-12;
+    return opt_aa_c_nf * 1000.0;
 }
 
-/* voltage of node m after dt_s more seconds with the present selection (no state change) */
+/* capacitance charging with node m (its C_aa, its own 25 pF, the sample-and-hold if ADMUX selects it), pF */
+static double node_c_pf(int m)
+{
+    return (node_taxel[m] >= 0 ? aa_c_pf() : 0.0) + opt_mux_c_pf + (sh_ch == m ? opt_sh_c_pf : 0.0);
+}
+
+/* voltage of node m after dt_s more seconds with the present connection (no state change) */
 static double mux_node_after(int m, double dt_s)
 {
-    int taxel = mux_taxel(m);
-    if (taxel < 0 || dt_s <= 0.0) return node_mv[m];
-    double target = taxel_source_mv(scan_row, taxel);
-    double tau = mux_tau_s(m, taxel);
+    int taxel = node_taxel[m];
+    double target = taxel >= 0 ? taxel_source_mv(scan_row, taxel) : 0.0;
+    double r = taxel >= 0 ? taxel_ohm[taxel] + opt_mux_ron_ohm : opt_mux_ron_ohm;
+    double tau = r * node_c_pf(m) * 1e-12;
+    if (dt_s <= 0.0) return node_mv[m];
     if (tau <= 0.0) return target;
     return target + (node_mv[m] - target) * exp(-dt_s / tau);
+}
+
+/* an unconnected C_aa brought up to `cycle` (it charges alone through the source impedance) */
+static void aa_to(int t, uint64_t cycle)
+{
+    for (int m = 0; m < MUX_N; m++)
+        if (node_taxel[m] == t) return; /* connected: it is the node's voltage (aa_mv is set when it leaves) */
+    if (cycle <= aa_cycle[t]) return;
+    double tau = taxel_ohm[t] * aa_c_pf() * 1e-12, target = taxel_source_mv(scan_row, t);
+    double dt = (double)(cycle - aa_cycle[t]) / avr->frequency;
+    aa_mv[t] = tau > 0.0 ? target + (aa_mv[t] - target) * exp(-dt / tau) : target;
+    aa_cycle[t] = cycle;
+}
+
+/* the taxel's filtered signal at `cycle` (its RC alone, unloaded): what an ideal sampler would read */
+static double ideal_to(int t, uint64_t cycle)
+{
+    if (cycle > ideal_cycle[t]) {
+        double tau = taxel_ohm[t] * aa_c_pf() * 1e-12, target = taxel_source_mv(scan_row, t);
+        double dt = (double)(cycle - ideal_cycle[t]) / avr->frequency;
+        ideal_mv[t] = tau > 0.0 ? target + (ideal_mv[t] - target) * exp(-dt / tau) : target;
+        ideal_cycle[t] = cycle;
+    }
+    return ideal_mv[t];
 }
 
 static void mux_nodes_to(uint64_t cycle)
@@ -566,22 +621,55 @@ static void mux_nodes_to(uint64_t cycle)
             node_mv[m] = mux_node_after(m, (double)(cycle - node_cycle[m]) / avr->frequency);
             node_cycle[m] = cycle;
         }
+        if (sh_ch == m) sh_mv = node_mv[m];
     }
 }
 
-/* the sample-and-hold capacitor moves to input ch: charge sharing with that node */
+/* the select lines' new value takes effect (at sel_pending_cycle): each node leaves its input's C_aa and joins the
+ * new one's (charge sharing), or is discharged by Y6/Y7 */
+static void mux_connect(void)
+{
+    for (int m = 0; m < MUX_N; m++) {
+        int old = node_taxel[m], t = mux_taxel(m);
+        if (t == old) continue;
+        double c_node = opt_mux_c_pf + (sh_ch == m ? opt_sh_c_pf : 0.0);
+        if (old >= 0) { /* C_aa keeps the common voltage and charges on alone */
+            aa_mv[old] = node_mv[m];
+            aa_cycle[old] = node_cycle[m];
+        }
+        if (t >= 0) {
+            aa_to(t, node_cycle[m]);
+            node_mv[m] = (c_node * node_mv[m] + aa_c_pf() * aa_mv[t]) / (c_node + aa_c_pf());
+        } else {
+            node_mv[m] = 0.0; /* Y6/Y7 at GND through R_on: a few ns */
+        }
+        node_taxel[m] = t;
+        if (sh_ch == m) sh_mv = node_mv[m];
+    }
+}
+
+/* the sample-and-hold capacitor moves to input ch (ADC_CH_GND: discharged): charge sharing with that node */
 static void mux_sh_connect(int ch)
 {
     if (ch == sh_ch) return;
-    double v_sh = (sh_ch >= 0 && sh_ch < MUX_N) ? node_mv[sh_ch] : node_mv[0];
-    if (ch >= 0 && ch < MUX_N)
-        node_mv[ch] = (opt_mux_c_pf * node_mv[ch] + opt_sh_c_pf * v_sh) / (opt_mux_c_pf + opt_sh_c_pf);
+    if (ch >= 0 && ch < MUX_N) {
+        double c = node_c_pf(ch); /* without the S/H yet: sh_ch != ch */
+        node_mv[ch] = (c * node_mv[ch] + opt_sh_c_pf * sh_mv) / (c + opt_sh_c_pf);
+        sh_mv = node_mv[ch];
+    } else if (ch == ADC_CH_GND) {
+        sh_mv = 0.0;
+    }
     sh_ch = ch;
 }
 
-/* bring every node up to `cycle`, applying an ADMUX change that took effect on the way */
+/* bring every node up to `cycle`, applying a select change and an ADMUX change that took effect on the way */
 static void mux_advance(uint64_t cycle)
 {
+    if (sel_pending && cycle > sel_pending_cycle) {
+        mux_nodes_to(sel_pending_cycle);
+        mux_connect();
+        sel_pending = 0;
+    }
     if (sh_pending >= 0 && adc_conv_end <= cycle) {
         mux_nodes_to(adc_conv_end);
         mux_sh_connect(sh_pending);
@@ -590,10 +678,12 @@ static void mux_advance(uint64_t cycle)
     mux_nodes_to(cycle);
 }
 
-/* select lines about to change (sel_pin_hook) */
+/* select lines about to change (sel_pin_hook): the nodes up to now, the new selection once this cycle is over */
 static void mux_before_select(void)
 {
     mux_advance(avr->cycle);
+    sel_pending = 1;
+    sel_pending_cycle = avr->cycle;
 }
 
 static void admux_write_hook(struct avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
@@ -618,7 +708,7 @@ static uint32_t mux_sample(int src, int taxel)
     adc_conv_end = now + (uint64_t)(adc_first_conv ? 25 : 13) * adc_clk;
     adc_first_conv = 0;
     double v = mux_node_after(src, t_sample_s);
-    double err = fabs(v - taxel_source_mv(scan_row, taxel)) / lsb_mv();
+    double err = fabs(v - ideal_to(taxel, now + (uint64_t)(t_sample_s * avr->frequency))) / lsb_mv();
     if (err > mux_err_window_lsb) mux_err_window_lsb = err;
     mux_conversions++;
     if (src == 0 && mux_sel == 0) scan_first_cycle = now;
@@ -635,17 +725,23 @@ static uint32_t mux_sample(int src, int taxel)
 
 static void mux_after_reset(void)
 {
+    mux_advance(avr->cycle);
     sh_ch = 0;
+    sh_mv = node_mv[0];
     sh_pending = -1;
     adc_conv_end = 0;
     adc_first_conv = 1;
     scan_first_cycle = 0;
     for (int m = 0; m < MUX_N; m++) node_cycle[m] = avr->cycle; /* the analog nodes keep their charge */
+    for (int t = 0; t < N_TAXELS; t++) aa_to(t, avr->cycle);
+    sel_pending = 1; /* the select pins read 0 after the reset */
+    sel_pending_cycle = avr->cycle;
 }
 
 static void mux_setup(void)
 {
     for (int t = 0; t < N_TAXELS; t++) taxel_ohm[t] = opt_taxel_ohm;
+    for (int m = 0; m < MUX_N; m++) node_taxel[m] = m * 6; /* select 0 at power-up */
     avr->avcc = (uint32_t)(5000 * ADC_UNITS_PER_MV); /* simavr: counts = value * 1023 / avcc */
     avr_register_io_write(avr, M328_ADMUX, admux_write_hook, NULL);
 }
@@ -688,7 +784,11 @@ static void uno_next_row(void)
     }
     pthread_mutex_unlock(&wave_lock);
     free(old);
-    mux_advance(avr->cycle); /* the nodes charged towards the old row until now */
+    mux_advance(avr->cycle); /* the nodes and the C_aa charged towards the old row until now */
+    for (int t = 0; t < N_TAXELS; t++) {
+        aa_to(t, avr->cycle);
+        ideal_to(t, avr->cycle);
+    }
     scan_row = ++scan_count - scan_base;
 }
 
@@ -1288,7 +1388,7 @@ static void usage(void)
     fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] [--bootloader HEX] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
                     "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
-                    "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] "
+                    "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] [--aa-c-nf NF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
                     "[--index-bounce N] "
                     "FIRMWARE.elf\n");
@@ -1320,6 +1420,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--mux-ron-ohm")) opt_mux_ron_ohm = atof(NEXT());
         else if (!strcmp(a, "--mux-c-pf")) opt_mux_c_pf = atof(NEXT());
         else if (!strcmp(a, "--sh-c-pf")) opt_sh_c_pf = atof(NEXT());
+        else if (!strcmp(a, "--aa-c-nf")) atomic_store(&opt_aa_c_nf, atof(NEXT()));
         else if (!strcmp(a, "--hx711-sps")) opt_hx711_sps = atof(NEXT());
         else if (!strcmp(a, "--drum-driver-microsteps")) opt_driver_microsteps = atof(NEXT());
         else if (!strcmp(a, "--no-index-sensor")) opt_index_sensor = 0;

@@ -20,6 +20,8 @@
 #define UNO_PROBE_DDR     DDRB
 #define UNO_PROBE_SAMPLER 0
 #define UNO_PROBE_TX      1
+/* ADMUX MUX3:0 of the ADC's GND channel (0 V): the sample-and-hold is discharged there between two inputs */
+#define UNO_ADMUX_GND     0x0F
 /* ADC clock prescaler 32: 500 kHz ADC clock, 13 ADC clocks = 26 us per conversion, 18 conversions ~ 0.47 ms */
 #define UNO_ADC_PRESCALER_BITS ((1 << ADPS2) | (1 << ADPS0))
 /* Timer1 at clk/8 (0.5 us per count): TOP of the 1 kHz tick, and the settling time between selecting an input and

@@ -18,6 +18,7 @@
 #include <avr/interrupt.h>
 #include <avr/io.h>
 #include <avr/pgmspace.h>
+#include <util/delay.h>
 
 #include "../common/rigctl_wire.h"
 #include "taxel_frame.h"
@@ -53,10 +54,22 @@ static volatile uint8_t rx_head, rx_tail;
 
 /* Input selection and conversion start are separate: after the select lines and ADMUX change, the multiplexer's
  * common node (~25 pF) and the ADC's sample-and-hold capacitor (14 pF) charge through the taxel's own source
- * impedance (tau = 47 kOhm x 39 pF = 1.8 us), so a conversion started at once samples (1.5 ADC clocks = 3 us later)
- * ~20 % of the previous input (docs/firmware.md, "Multiplexer settling"). Each conversion therefore starts
- * UNO_SETTLE_COUNTS of Timer1 (14 us) after its input was selected, from the Timer1 compare-B interrupt; the
- * first input of the next scan is selected when a scan ends, and settles until the tick. */
+ * impedance (tau = 47 kOhm x 39 pF = 1.8 us without an anti-alias capacitor), so a conversion started at once samples
+ * (1.5 ADC clocks = 3 us later) ~20 % of the previous input (docs/firmware.md, "Multiplexer settling"). Each
+ * conversion therefore starts UNO_SETTLE_COUNTS of Timer1 (14 us) after its input was selected, from the Timer1
+ * compare-B interrupt; the first input of the next scan is selected when a scan ends, and settles until the tick.
+ * With the anti-alias capacitor C_aa at each input (15 nF), the node's and the sample-and-hold's charge is shared
+ * with C_aa at once and recovers only through the source impedance (0.7 ms): whatever voltage they bring from the
+ * previous input stays in C_aa (3 LSB of a full-scale neighbour at 47 kOhm). So before each new input they are
+ * discharged to 0 V: ADMUX to the GND channel (the sample-and-hold), and, when the select lines change, the select
+ * lines to Y7, tied to GND (the nodes): the charge they then take from C_aa depends on that taxel's own voltage only
+ * (a gain error of 0.34 % at 47 kOhm, docs/firmware.md), not on its neighbour's. */
+static inline void adc_discharge(uint8_t select_changes)
+{
+    if (select_changes) UNO_SEL_PORT = (uint8_t)(UNO_SEL_PORT | UNO_SEL_MASK); /* Y7: GND */
+    ADMUX = (uint8_t)((1 << REFS0) | UNO_ADMUX_GND);
+}
+
 static inline void adc_select(uint8_t adc, uint8_t sel)
 {
     if (adc == 0) {
@@ -91,15 +104,19 @@ ISR(ADC_vect)
         next_in = 0;
         next_sel++;
     }
-    /* the next input first: its settling time starts here, the bookkeeping runs inside it */
+    /* discharge the sample-and-hold (and the nodes, if the select lines change) while the result is stored (>= 1 us:
+     * R_ADC x 14 pF <= 1.4 us, ATmega328P datasheet "Analog Input Circuitry"), then the next input: its settling
+     * time starts there, the rest of the bookkeeping runs inside it */
+    adc_discharge(next_in == 0);
+    uint8_t w = adc_write_bank;
+    adc_bank[w][in * TAXEL_PER_MUX + sel] = result; /* TAXEL_SCAN_TAXEL(k) */
+    _delay_us(1);
     if (next_k < RIGCTL_N_TAXELS) {
         adc_select(next_in, next_sel);
         adc_convert_after_settling();
     } else {
         adc_select(0, 0); /* the next scan's first input settles until the tick */
     }
-    uint8_t w = adc_write_bank;
-    adc_bank[w][in * TAXEL_PER_MUX + sel] = result; /* TAXEL_SCAN_TAXEL(k) */
     if (next_k < RIGCTL_N_TAXELS) {
         adc_k = next_k;
         adc_in = next_in;
