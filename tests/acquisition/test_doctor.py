@@ -398,9 +398,13 @@ def test_cli_doctor_hil_with_the_real_bootloaders(tmp_path):
 
 
 @pytest.mark.hil
-def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path):
-    """The simavr harness's multiplexer RC model with one taxel at 1 MOhm (the firmware settles 47 kOhm): its
-    reading carries its scan neighbour's, and the crosstalk check names the source impedance."""
+def test_a_high_impedance_taxel_does_not_bleed_into_its_neighbours_under_simavr(tmp_path):
+    """The simavr harness's multiplexer RC model with one taxel at 1 MOhm (the firmware settles 47 kOhm). The
+    firmware discharges the mux node and the sample-and-hold to 0 V before each input (issue 39 item 4,
+    docs/firmware.md): the slow taxel reads low (its node charges from 0 V for 17 us of a 39 us time constant), but
+    it neither carries its scan neighbour's reading nor lends its own: the crosstalk check passes, taxel 4 inside its
+    bound. (The firmware that switched straight from one input to the next failed this check: 4 shared its
+    neighbour's changes.)"""
     cfg = tmp_path / "rig.json"
 
     watchdog_ms = []
@@ -414,9 +418,8 @@ def test_a_high_impedance_taxel_fails_the_crosstalk_check_under_simavr(tmp_path)
     ctx = doctor.DoctorContext("hil", opener=opener, config_path=cfg, rest_s=3.0)
     by = {r.name: r for r in doctor.run_doctor(doctor.select(["link", "crosstalk"]), ctx).results}
     r = by["crosstalk"]
-    assert r.status == "fail", r.line()
-    assert 4 in r.values["worst_pair"] and r.values["worst_correlation"] > 0.1
-    assert "47 kOhm" in r.fix
+    assert r.status == "pass", r.line()
+    assert r.values["per_taxel_max"][4] <= r.values["bound"]
     # the HIL rig's host watchdog outlasts its 2 s answer timeout (rigs.WATCHDOG_MS: one late answer on a loaded host
     # tripped the default 1 s one during the doctor's drum-speed check)
     assert watchdog_ms == [WATCHDOG_MS["hil"]] and WATCHDOG_MS["hil"] > 2000 * ANSWER_TIMEOUT_S["hil"]

@@ -19,8 +19,9 @@ __all__ = ["CHECKS", "MAX_NOISE_COUNTS", "MAX_CROSSTALK", "MIN_CROSSTALK_NOISE_C
 MAX_NOISE_COUNTS = 4.0
 #: two taxels sharing more than this (the correlation of their changes at rest, :func:`.measure.crosstalk`) fail. An
 #: unsettled 74HC4051 node leaves ~20 % of the previous channel at 47 kOhm (a correlation of ~0.24) and ~45 % at
-#: 100 kOhm (bench-facts.md); 10 s at rest resolve ~0.015 (measured on the simulated sensor: the largest of 153
-#: noise-only pairs stays near 0.045)
+#: 100 kOhm (bench-facts.md), with a firmware that switches straight from one input to the next (the installed one
+#: discharges the node first: a taxel above 47 kOhm then reads low instead, docs/firmware.md); 10 s at rest resolve
+#: ~0.015 (measured on the simulated sensor: the largest of 153 noise-only pairs stays near 0.045)
 MAX_CROSSTALK = 0.10
 #: ... or this many times the measurement's own spread, if larger (a short capture cannot resolve 10 %: 4.5 sigma
 #: keeps the chance that one of 153 noise-only pairs fails below 0.1 %)
@@ -90,7 +91,7 @@ def check_crosstalk(ctx: DoctorContext) -> CheckResult:
     if worst > bound:
         return failed("crosstalk", what, f"the multiplexer node does not settle through taxel {min(i, j)} or "
                       f"{max(i, j)}'s source impedance: keep each taxel's source impedance <= 47 kOhm or buffer it "
-                      "(an op-amp follower; docs/hardware), and run the installed firmware (its mux settling delay)",
+                      "(an op-amp follower; docs/hardware), and run the installed firmware (it settles and discharges the mux)",
                       **values)
     return passed("crosstalk", what, **values)
 
