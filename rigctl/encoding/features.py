@@ -24,7 +24,7 @@ from rigctl.encoding.speed import WINDOW_S
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["N_WINDOWS_SCALED", "N_WINDOWS_UNSCALED", "N_WINDOWS_REALTIME", "spike_features", "realtime_features",
-           "realtime_features_unscaled"]
+           "realtime_rates", "realtime_features_unscaled"]
 
 N_WINDOWS_SCALED = 20  #: 2 s at the reference speed
 #: the paper's dataset: 6 s, its longest trial (40 mm/s); the pipeline's default covers each file's longest trial
@@ -80,6 +80,27 @@ def realtime_features(sa_scaled: SpikeTrains, scaled_edges: list[np.ndarray], *,
     real-time duration of that window (0 where the window lies past the trial's end).
     """
     counts = sa_scaled.window_counts(window_s, n_windows)  # (T, n, W)
+    return realtime_rates(counts, scaled_edges, window_s=window_s)
+
+
+def realtime_rates(counts: np.ndarray, scaled_edges: list[np.ndarray], *, window_s: float = WINDOW_S) -> np.ndarray:
+    """The speed-scaled SR features of scaled-window spike counts: :func:`realtime_features` after its counting,
+    also the host's side of an encoder that reports counts (the on-board encoder, ``arduino/common/sa_encoder.h``).
+
+    Parameters
+    ----------
+    counts : (n_trials, n_trains, n_windows) spikes in scaled windows ``[k w, (k+1) w)``.
+    scaled_edges : per trial, the scaled time (s) of each real-time window edge (from the window speeds:
+        :func:`rigctl.encoding.speed.incremental_scale`'s second output).
+    window_s : w, s.
+
+    Returns
+    -------
+    (n_trials, n_trains * n_windows) float32 spikes/s: each count divided by the real-time duration of its window
+    (0 where the window lies past the trial's end).
+    """
+    counts = np.asarray(counts, np.float64)
+    n_windows = counts.shape[2]
     bounds = np.arange(n_windows + 1) * window_s
     out = np.zeros_like(counts)
     for t, edges in enumerate(scaled_edges):
@@ -89,7 +110,7 @@ def realtime_features(sa_scaled: SpikeTrains, scaled_edges: list[np.ndarray], *,
         dur = np.diff(real_b)
         ok = (dur > 1e-9) & (bounds[:-1] < edges[-1])
         out[t][:, ok] = counts[t][:, ok] / dur[ok]
-    return out.reshape(sa_scaled.n_trials, -1).astype(np.float32)
+    return out.reshape(counts.shape[0], -1).astype(np.float32)
 
 
 def realtime_features_unscaled(sa: SpikeTrains, duration_s, *, n_windows: int = N_WINDOWS_REALTIME,

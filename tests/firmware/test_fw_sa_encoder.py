@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-import re
 import shutil
 import subprocess
 from collections.abc import Callable
@@ -31,12 +30,11 @@ from rigctl.core.normalisation import TaxelRange
 from rigctl.core.trial import PlannedTrial
 from rigctl.encoding.izhikevich import StreamingEncoder
 from rigctl.encoding.speed import incremental_scale, window_speeds
+from rigctl.simulation import sa_board
 from rigctl.simulation.operator import SimulatedOperator
 
 N_TAXELS = 9
 N_WINDOWS = 20
-#: the stream images and their cores (both at 16 MHz: 16 000 cycles per 1 ms sample)
-CORES = {"uno": "atmega328p", "mega": "atmega2560"}
 
 # a thin driver around the firmware API: one scan in, the spike raster and the scaled-window counts out
 _DRIVER = r"""
@@ -53,6 +51,7 @@ long run_scan(const uint16_t *x, long n, const uint16_t *lo, const uint16_t *hi,
         /* the host sends window w's speed once the window is over (here: as its last sample is processed) */
         if ((t + 1) % SA_WINDOW_MS == 0 && s < n_speeds) sa_speed(&e, speeds[s++]);
     }
+    while (s < n_speeds && sa_speed(&e, speeds[s]) == 0) s++; /* the last, partial window's speed */
     sa_finish(&e, speeds[n_speeds - 1]);
     memcpy(counts, e.counts, sizeof e.counts);
     return (long)e.held_windows;
@@ -210,50 +209,28 @@ def test_speed_scaling_is_exact_integer_map(sa_lib_double):
 
 
 # ------------------------------------------------------------------------------------------- on the AVR, simavr
-def _stream_input(x: np.ndarray, speeds_cmm: np.ndarray, rng: TaxelRange) -> bytes:
-    """sa_bench's input (sa_bench.c): the range, then each sample ('x'), window w's speed once its last sample is
-    in ('s'), the end of the scan ('f') and a stop byte."""
-    out = [np.asarray(rng.taxel_min, "<u2").tobytes(), np.asarray(rng.taxel_max, "<u2").tobytes()]
-    s = 0
-    for t in range(x.shape[0]):
-        out.append(b"x" + x[t].astype("<u2").tobytes())
-        if (t + 1) % 100 == 0 and s < speeds_cmm.size:
-            out.append(b"s" + int(speeds_cmm[s]).to_bytes(2, "little"))
-            s += 1
-    out.append(b"f" + int(speeds_cmm[-1]).to_bytes(2, "little") + b"q")
-    return b"".join(out)
-
-
 def _avr_run(build: Path, board: str, cycles: dict[str, int]) -> Board:
-    """The AVR build of ``board`` under simavr as a :data:`Board`; each run puts the mean and max cycles of one
-    step (9 taxels) into ``cycles``."""
+    """The AVR build of ``board`` under simavr (:func:`rigctl.simulation.sa_board.run_scan`) as a :data:`Board`;
+    each run puts the mean and max cycles of one step (9 taxels) into ``cycles``."""
     def run(x: np.ndarray, rng: TaxelRange, speeds_cmm: np.ndarray):
-        proc = subprocess.run([str(build / "sa_stream"), CORES[board], str(build / f"sa_bench_{board}.elf")],
-                              input=_stream_input(x, speeds_cmm, rng), capture_output=True, timeout=600, check=True)
-        n = x.shape[0]
-        out = np.frombuffer(proc.stdout, "<u2")
-        assert out.size == n + N_TAXELS * N_WINDOWS + 1
-        raster = (out[:n, None] >> np.arange(N_TAXELS)) & 1
-        line = re.search(r"^CYCLES (.*)$", proc.stderr.decode(), re.M)
-        assert line is not None
-        cyc = {k: int(v) for k, v in (kv.split("=") for kv in line.group(1).split())}
-        assert cyc["steps"] == n
-        cycles.update(mean=cyc["mean"], max=cyc["max"])
-        return raster, out[n:n + N_TAXELS * N_WINDOWS].reshape(N_TAXELS, N_WINDOWS), int(out[-1])
+        scan = sa_board.run_scan(x, rng.taxel_min, rng.taxel_max, speeds_cmm, board=board, build=build)
+        assert scan.raster.shape == x.shape
+        cycles.update(mean=scan.cycles_mean, max=scan.cycles_max)
+        return scan.raster, scan.counts, scan.held_windows
     return run
 
 
 @pytest.mark.hil
 @pytest.mark.parametrize("board", ["uno", "mega"])
 def test_avr_build_under_simavr_reproduces_the_host_encoder(fw_build, scans, board):
-    """The firmware's encoder on the simulated ATmega328P / ATmega2560 core, one 5 s slow-to-fast scan (~8 s of the
+    """The firmware's encoder on the simulated ATmega328P / ATmega2560 core, the slow-to-fast scan (~7 s of the
     core's time): every spike and count as the host's live float32 encoder; the cycles of a 1 ms step are printed
     (docs/firmware.md: ~20 500 on the 328P, above the 16 000 of a 1 kHz tick)."""
     cycles: dict[str, int] = {}
     frac_h, frac_b, worst, n = _agreement(_avr_run(fw_build, board, cycles), scans[2:], np.float32)
-    print(f"\n{board} ({CORES[board]}) vs host float32: {n} spikes, {100 * frac_h:.2f} % / {100 * frac_b:.2f} % "
-          f"within one sample, count error {100 * worst:.3f} %; cycles per 1 ms step of 9 taxels: mean "
-          f"{cycles['mean']}, max {cycles['max']}")
+    print(f"\n{board} ({sa_board.CORES[board]}) vs host float32: {n} spikes, {100 * frac_h:.2f} % / "
+          f"{100 * frac_b:.2f} % within one sample, count error {100 * worst:.3f} %; cycles per 1 ms step of 9 "
+          f"taxels: mean {cycles['mean']}, max {cycles['max']}")
     assert n > 1000
     assert frac_h >= 0.99 and frac_b >= 0.99 and worst <= 0.01
     assert frac_h == frac_b == 1.0 and worst == 0.0
