@@ -310,6 +310,28 @@ def test_hx711_rate_rules(spec_text, h):
     assert (lo, hi) == (min(wire.HX711_RATES_SPS), max(wire.HX711_RATES_SPS))
 
 
+def test_force_trip_and_contact_probe(spec_text, h):
+    """Section 2.10's numbers in the header and wire.py (the firmware and the virtual Mega's force_loop use them)."""
+    lead = int(re.search(r"its rise since the previous reading times (\d+) \(FORCE_LEAD_PERIODS\)", spec_text).group(1))
+    travel, periods = map(int, re.search(r"approaches at\s+(\d+) um per (\d+) HX711 periods", spec_text).groups())
+    contact = int(re.search(r"passes (\d+) g \(PROBE_CONTACT_G", spec_text).group(1))
+    step = int(re.search(r"moves (\d+) um further \(PROBE_STEP_UM\)", spec_text).group(1))
+    phase, delay = map(float, re.search(r"STIFFNESS_MAX_G_PER_MM = ([\d.]+) / \(Kp x ([\d.]+) x period\)",
+                                        spec_text).groups())
+    assert lead == periods == h["RIGCTL_FORCE_LEAD_PERIODS"] == wire.FORCE_LEAD_PERIODS
+    assert (travel, contact, step) == (h["RIGCTL_PROBE_TRAVEL_UM"], h["RIGCTL_PROBE_CONTACT_G"],
+                                       h["RIGCTL_PROBE_STEP_UM"]) == (wire.PROBE_TRAVEL_UM, wire.PROBE_CONTACT_G,
+                                                                      wire.PROBE_STEP_UM)
+    assert phase == h["RIGCTL_LOOP_PHASE_MRAD"] / 1000 == wire.LOOP_PHASE_RAD
+    assert delay == h["RIGCTL_HX711_DELAY_PERIODS_X10"] / 10 == wire.HX711_DELAY_PERIODS
+    from rigctl.simulation.force_loop import stiffness_max_g_per_mm
+
+    d = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}
+    at80, at10 = stiffness_max_g_per_mm(d, 1 / 80), stiffness_max_g_per_mm({**d, wire.HoldingRegister.HX711_RATE_SPS: 10}, 0.1)
+    m = re.search(r"\((\d+) g/mm at 80 SPS, (\d+) g/mm at 10 SPS with the default gains\)", spec_text)
+    assert (at80, at10) == tuple(map(int, m.groups()))
+
+
 def test_drum_geometry_and_index_pulse(spec_text, h):
     m = re.search(r"default diameter (\d+) mm, stepper (\d+) full steps/rev, (\d+)\s+microsteps", spec_text)
     assert m is not None

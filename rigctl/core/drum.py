@@ -68,6 +68,7 @@ class Fault(enum.IntFlag):
     HX711_RATE = 1 << 8
     ACTUATOR_DIRECTION = 1 << 9
     DRUM_SLIP = 1 << 10
+    CONTACT_STIFFNESS = 1 << 11
 
 
 class ResetCause(enum.IntFlag):
@@ -171,6 +172,13 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "the drum's speed marks came late or stopped while the stepper was stepped: the drum slips (a loose "
         "coupling or grub screw, a belt) or stalls (something blocks it, too little motor current for the load). "
         "Free the drum and fix the drive, then CLEAR_FAULT; the trial in progress was not recorded."),
+    Fault.CONTACT_STIFFNESS: FaultWords(
+        "contact too stiff",
+        "the contact stiffness the first press measured is more than the force loop holds with its gains",
+        "the first press since the controller's reset measured the contact's stiffness (CONTACT_STIFFNESS_G_PER_MM) "
+        "above what the force loop holds with its gains and the HX711's delay (STIFFNESS_MAX_G_PER_MM): it backed "
+        "off, and PRESS and RUN are refused. Use a softer sensor mount or pad, or store slower gains (the rig "
+        "config's force_loop block: the limit grows as Kp falls), then CLEAR_FAULT."),
 }
 
 
@@ -239,6 +247,10 @@ class DrumStatus:
     reset_cause: ResetCause = ResetCause(0)  #: what caused the controller's last reset (spec table 2.7)
     boot_count: int = 0  #: the controller's boots so far (EEPROM), wraps at 65536: a change = it was reset
     flags: StatusFlag = StatusFlag(0)  #: status bits (spec table 2.8)
+    #: the contact's stiffness the first press since the reset measured, g/mm (0 = not yet; spec 2.10)
+    contact_stiffness_g_per_mm: int = 0
+    #: the stiffest contact the force loop holds with its gains now, g/mm (spec 2.10; 0 from older firmware)
+    stiffness_max_g_per_mm: int = 0
     #: the firmware's build id: 12 hex digits of the sources' SHA-256 it was built from (spec 2.2, BUILD_ID_0 .. _2);
     #: None for a build without one (a plain make, the Arduino IDE)
     build_id: str | None = None

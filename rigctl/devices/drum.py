@@ -49,6 +49,7 @@ from rigctl.core import drum as core_drum
 from rigctl.core.drum import DrumLimits, ForceLoopConfig, SettleBand
 from rigctl.devices import wire
 from rigctl.devices.errors import (
+    DrumContactTooStiff,
     DrumError,
     DrumFault,
     DrumNotHomed,
@@ -121,6 +122,8 @@ class DrumStatus(core_drum.DrumStatus):
             mark_period_s=regs[IR.MARK_PERIOD_0P1MS] / 10000.0,
             mark_steps=regs[IR.MARK_STEPS],
             mark_count=regs[IR.MARK_COUNT],
+            contact_stiffness_g_per_mm=regs[IR.CONTACT_STIFFNESS_G_PER_MM],
+            stiffness_max_g_per_mm=regs[IR.STIFFNESS_MAX_G_PER_MM],
             reset_cause=ResetCause(regs[IR.RESET_CAUSE] & 0x0F),
             boot_count=regs[IR.BOOT_COUNT],
             flags=StatusFlag(regs[IR.STATUS_FLAGS] & 0x3F),
@@ -777,12 +780,18 @@ class DrumClient:
         self.write_holding(HR.COMMAND, int(Command(cmd)))
 
     def _motion_command(self, cmd: Command) -> None:
-        """RUN / PRESS: a refusal from a NOT_HOMED controller says so (:class:`DrumNotHomed`)."""
+        """RUN / PRESS: a refusal from a NOT_HOMED controller says so (:class:`DrumNotHomed`), one for a contact
+        stiffer than the force loop holds too (:class:`DrumContactTooStiff`, spec 2.10)."""
         try:
             self.command(cmd)
         except ModbusExceptionError as exc:
-            if exc.exception_code == 3 and self.read_status().state == DrumState.NOT_HOMED:
+            st = self.read_status() if exc.exception_code == 3 else None
+            if st is not None and st.state == DrumState.NOT_HOMED:
                 raise DrumNotHomed(exc.register, exc.function_code, exc.exception_code, exc.value) from None
+            if st is not None and st.stiffness_max_g_per_mm and \
+                    st.contact_stiffness_g_per_mm > st.stiffness_max_g_per_mm:
+                raise DrumContactTooStiff(exc.register, exc.function_code, exc.exception_code, exc.value,
+                                          st.contact_stiffness_g_per_mm, st.stiffness_max_g_per_mm) from None
             raise
 
     def run(self) -> None:

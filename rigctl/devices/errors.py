@@ -56,6 +56,19 @@ class DrumNotHomed(ModbusExceptionError):
                      "was last homed): HOME it first",)
 
 
+class DrumContactTooStiff(ModbusExceptionError):
+    """RUN or PRESS was refused because the contact stiffness the first press measured (g/mm) is more than the force
+    loop holds with its gains (spec 2.10, fault CONTACT_STIFFNESS)."""
+
+    def __init__(self, register: str, function_code: int, exception_code: int, value: Any = None,
+                 stiffness_g_per_mm: int = 0, max_g_per_mm: int = 0) -> None:
+        super().__init__(register, function_code, exception_code, value)
+        self.stiffness_g_per_mm, self.max_g_per_mm = stiffness_g_per_mm, max_g_per_mm
+        self.args = (f"{self.args[0]}: the contact is too stiff for the force loop ({stiffness_g_per_mm} g/mm "
+                     f"measured, its gains hold up to {max_g_per_mm} g/mm): use a softer mount or slower gains (the "
+                     "rig config's force_loop block)",)
+
+
 class TaxelStreamError(Exception):
     """The taxel streamer (Uno) could not be opened, did not send its banner, or answered nonsense."""
 

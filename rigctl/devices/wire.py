@@ -218,6 +218,8 @@ class InputRegister(enum.IntEnum):
     MARK_PERIOD_0P1MS = 25
     MARK_STEPS = 26
     MARK_COUNT = 27
+    CONTACT_STIFFNESS_G_PER_MM = 28
+    STIFFNESS_MAX_G_PER_MM = 29
     BUILD_ID_0 = 30
     BUILD_ID_1 = 31
     BUILD_ID_2 = 32
@@ -293,6 +295,35 @@ HOME_TIMEOUT_MS = 10000
 HOME_PROOF_MM = 2
 #: ACTUATOR_DIRECTION: an untared force rise above the lowest reading since HOME or a back-off began, g (spec 2.5)
 DIRECTION_RISE_G = 150
+
+#: resets that cost the RAM (spec 2.7): BOOT_COUNT's EEPROM part counts them; the others count in RAM
+COLD_RESETS = ResetCause.POWER_ON | ResetCause.BROWN_OUT
+
+
+def boot_count_register(cold_boots: int, warm_resets: int) -> int:
+    """BOOT_COUNT (spec 2.7) from the cold boots the EEPROM counts and the warm resets since the last (RAM): high
+    byte and low byte, each wrapping at 256; a low byte of 0 is a cold boot."""
+    return ((cold_boots & 0xFF) << 8) | (warm_resets & 0xFF)
+
+
+def boot_count_after(boot_count: int, cause: ResetCause | int) -> int:
+    """The BOOT_COUNT a controller reports after a reset of ``cause`` when it reported ``boot_count`` before
+    (:func:`boot_count_register`; a cold reset, :data:`COLD_RESETS`, only when the MCU saw its flag)."""
+    if ResetCause(cause) & COLD_RESETS:
+        return boot_count_register((boot_count >> 8) + 1, 0)
+    return boot_count_register(boot_count >> 8, boot_count + 1)
+
+
+#: spec 2.10: the over-force trip extrapolates the last period's rise over this many HX711 periods
+FORCE_LEAD_PERIODS = 3
+#: the contact probe of the first press after a reset: contact at this force, g; approach speed: this travel, um,
+#: per FORCE_LEAD_PERIODS; the measuring step, um
+PROBE_CONTACT_G = 50
+PROBE_TRAVEL_UM = 100
+PROBE_STEP_UM = 20
+#: the stiffest contact accepted: LOOP_PHASE_RAD / (Kp x HX711_DELAY_PERIODS x the HX711 period)
+LOOP_PHASE_RAD = 0.75
+HX711_DELAY_PERIODS = 2.5
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -52,6 +52,7 @@ from rigctl.devices.wire import (
     StatusFlag,
 )
 from rigctl.simulation.drum_index import DrumIndex
+from rigctl.simulation.force_loop import ContactProbe, force_pi_update, stiffness_max_g_per_mm
 from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G, RigModel
 
 log = logging.getLogger(__name__)
@@ -128,6 +129,7 @@ class MegaController:
         self._t_s = 0.0
         self._loadcell_ok = True  # fault-injection hook: False = the HX711 stops answering
         self._loadcell_silent_ms = 0
+        self._warm_boots: int = 0  # warm resets since the last cold boot (BOOT_COUNT's low byte: RAM, spec 2.7)
         self._home_switch_ok = True  # fault-injection hook: False = the home switch never closes (a broken wire)
         self.estop_open = False  # the e-stop input reads open (a pressed contact, a broken wire)
         self.max_step_ms = 10
@@ -148,10 +150,10 @@ class MegaController:
         self._build_id_words = wire.build_id_words(value)
 
     def _power_up(self, cause: ResetCause) -> None:
-        """What the MCU does from its reset vector to loop(): RAM cleared, calibration from EEPROM (or the defaults,
-        flagged), the boot counter incremented, NOT_HOMED with the drivers disabled; the step count's zero is where
-        the actuator stands; the load cell is tared only if the home switch is closed; the HX711's rate is timed
-        again from the next conversions."""
+        """What the MCU does from its reset vector to loop(): calibration from EEPROM (or the defaults, flagged), the
+        boot counter counted (EEPROM at a cold boot, RAM at a warm reset), NOT_HOMED with the drivers disabled; the
+        step count's zero is where the actuator stands; the load cell is tared only if the home switch is closed; the
+        HX711's rate is timed again from the next conversions."""
         model = self.model
         self.holding = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
         calib = self._valid_calibration()
@@ -159,26 +161,22 @@ class MegaController:
         if calib is not None:
             self._set_scale(self.holding, calib["scale_x100"])
             self.holding[HR.ACTUATOR_STEPS_PER_MM] = calib["actuator_steps_per_mm"]
-        self.eeprom["boot_count"] = (self.eeprom["boot_count"] + 1) & 0xFFFF
-        self._write_eeprom_file()
+        if cold := bool(ResetCause(cause) & wire.COLD_RESETS):  # BOOT_COUNT: EEPROM at a cold boot only (spec 2.7)
+            self.eeprom["boot_count"] = (self.eeprom["boot_count"] + 1) & 0xFFFF
+            self._write_eeprom_file()
+        self._warm_boots = 0 if cold else self._warm_boots + 1  # RAM, which survives a warm reset
         self.reset_cause = ResetCause(cause)
         self.state = DrumState.NOT_HOMED
         self.faults = Fault(0)
-        self.homed = False
-        self.tared = False
-        self._tare_pending = True  # taken at the first reading, only with the home switch closed
-        self._tare_raw = 0
+        self.homed, self.tared = False, False
+        self._tare_pending, self._tare_raw = True, 0  # taken at the first reading, only with the home switch closed
         self._steps_true_mm = 0.0  # the actuator's step count (in true mm of its lead screw): 0 wherever it stands
         self._last_request = time.monotonic()
-        self._heartbeat_ms = 0
-        self._run_t0 = 0.0
-        self._integ = 0.0
+        self._heartbeat_ms, self._run_t0, self._integ = 0, 0.0, 0.0
         self._pi_out = 0.0  # actuator velocity the force loop set at the last reading, mm/s
         self._on_target_ms = 0
         self._retracting = False  # actuator backing off to home (STOP, fault)
-        self._homing = False
-        self._home_travel_mm = 0.0
-        self._home_ms = 0
+        self._homing, self._home_travel_mm, self._home_ms = False, 0.0, 0
         self._home_phase = 0  # the firmware's HOME_SEEK, HOME_LEAVE, HOME_RETURN
         self._home_phase_mm = 0.0  # commanded travel in this phase (the step count), + towards the sensor
         self._home_leave_mm = 0.0
@@ -188,8 +186,7 @@ class MegaController:
         self._speed_target = 0.0  # mm/s
         self._outputs = (0.0, 0.0)  # drum step rate (microsteps/s), actuator velocity (mm/s)
         self.drivers_enabled = False
-        self._force_g = 0.0
-        self._echo = 0
+        self._force_g, self._echo = 0.0, 0
         # HX711 rate timed at boot (spec 2.9), as the firmware's ctl_hx711_ready
         self._hx_seen = model.hx711_conversions
         self._hx_edges = 0
@@ -199,6 +196,7 @@ class MegaController:
         self._hx_period_s = 0.0
         # drum index (spec 2.6): the step count the firmware keeps, and the index sensor on the real drum
         self._index = DrumIndex(model.config.drum)
+        self._probe, self._predicted_g = ContactProbe(), 0.0  # spec 2.10
         if self.estop_open:
             self._estop()
         if self._home_switch():  # the first HX711 reading (12.5 ms after boot on the firmware)
@@ -221,9 +219,8 @@ class MegaController:
     # ------------------------------------------------------------------ EEPROM
     @staticmethod
     def _record_crc(rec: dict) -> int:
-        body = int(rec["scale_x100"]).to_bytes(4, "little", signed=True) + \
-            int(rec["actuator_steps_per_mm"]).to_bytes(2, "little")
-        return wire.crc16(body)
+        return wire.crc16(int(rec["scale_x100"]).to_bytes(4, "little", signed=True)
+                          + int(rec["actuator_steps_per_mm"]).to_bytes(2, "little"))
 
     def _valid_calibration(self) -> dict | None:
         rec = self.eeprom["calibration"]
@@ -341,7 +338,6 @@ class MegaController:
                 flags |= flag
         return int(flags)
 
-
     def _read(self, func_code: int, address: int, count: int):
         with self._lock:
             if func_code == 6:  # echo of a single-register write (COMMAND itself reads back 0 afterwards)
@@ -376,8 +372,10 @@ class MegaController:
         regs[IR.FORCE_SETPOINT_ACTIVE_G] = self.holding[HR.FORCE_SETPOINT_G] if self.state in _ENGAGED else 0
         regs[IR.HX711_RATE_0P01SPS] = int(round(self._hx_rate_sps * 100))
         self._index.input_registers(regs)
+        regs[IR.CONTACT_STIFFNESS_G_PER_MM] = self._probe.stiffness_g_per_mm
+        regs[IR.STIFFNESS_MAX_G_PER_MM] = stiffness_max_g_per_mm(self.holding, self._hx_period_s)
         regs[IR.RESET_CAUSE] = int(self.reset_cause)
-        regs[IR.BOOT_COUNT] = self.eeprom["boot_count"]
+        regs[IR.BOOT_COUNT] = wire.boot_count_register(self.eeprom["boot_count"], self._warm_boots)
         regs[IR.STATUS_FLAGS] = self._status_flags()
         for reg, word in zip(wire.BUILD_ID_REGISTERS, self._build_id_words, strict=True):
             regs[reg] = word
@@ -446,7 +444,8 @@ class MegaController:
         if cmd in (Command.NONE, Command.STOP, Command.SAVE_CALIBRATION):
             return True
         if cmd in (Command.RUN, Command.PRESS):  # never after a reset, e-stop or failed HOME until HOME succeeds
-            return s not in (DrumState.FAULT, DrumState.HOMING, DrumState.NOT_HOMED) and self._hx711_rate_ok(holding)
+            return s not in (DrumState.FAULT, DrumState.HOMING, DrumState.NOT_HOMED) and \
+                self._hx711_rate_ok(holding) and self._probe.ok(holding, self._hx_period_s)
         if cmd == Command.STOP_DRUM:
             return s in _ENGAGED
         if cmd == Command.TARE:  # only at home (switch closed), with no load on the cell once a tare is known
@@ -491,6 +490,7 @@ class MegaController:
 
     def _engage(self) -> None:
         self.state = DrumState.SEEKING_FORCE
+        self._probe.engage()
         self._integ = 0.0
         self._pi_out = 0.0
         self._on_target_ms = 0
@@ -579,10 +579,9 @@ class MegaController:
         self.drivers_enabled = False
 
     def _tare(self) -> None:
-        self._tare_raw = self.model.loadcell_raw
-        self._tare_pending = False
-        self.tared = True
+        self._tare_raw, self._tare_pending, self.tared = self.model.loadcell_raw, False, True
         self._update_force()
+        self._probe.forget_reading()
 
     # ------------------------------------------------------------------ control loop
     def _update_force(self) -> None:
@@ -676,22 +675,22 @@ class MegaController:
         slow = h[HR.HX711_RATE_SPS] < 40
         kp = h[HR.FORCE_KP_10SPS_NMS_G if slow else HR.FORCE_KP_80SPS_NMS_G] * 1e-6
         ki = h[HR.FORCE_KI_10SPS_NMS_GS if slow else HR.FORCE_KI_80SPS_NMS_GS] * 1e-6
-        vmax = FORCE_LOOP_MAX_SPEED_MM_S
-        e = setpoint_g - force_g
-        integ = self._integ + ki * e * self._hx_period_s if abs(e) < FORCE_PI_INTEGRATE_BAND_G else self._integ
-        out = kp * e + integ
-        if out > vmax:
-            out = vmax
-            if e < 0:
-                self._integ = integ
-        elif out < -vmax:
-            out = -vmax
-            if e > 0:
-                self._integ = integ
-        else:
-            self._integ = integ
-        self._integ = min(vmax, max(-vmax, self._integ))
+        out, self._integ = force_pi_update(self._integ, kp, ki, FORCE_LOOP_MAX_SPEED_MM_S, FORCE_PI_INTEGRATE_BAND_G,
+                                           setpoint_g, force_g, self._hx_period_s)
         return out
+
+    def _profile_target_mm_s(self) -> float:
+        """The drum's surface speed the profile asks for now (CONSTANT or RAMP, within SPEED_LIMIT), mm/s."""
+        h = self.holding
+        if self.state != DrumState.RUNNING:
+            return 0.0
+        if h[HR.SPEED_PROFILE] == wire.SpeedProfile.RAMP:
+            frac = min(1.0, (self._t_s - self._run_t0) * 1000.0 / h[HR.RAMP_DURATION_MS])
+            v0, v1 = h[HR.RAMP_START_SPEED_0P1MMS] / 10.0, h[HR.RAMP_END_SPEED_0P1MMS] / 10.0
+            target = v0 + (v1 - v0) * frac
+        else:
+            target = h[HR.SPEED_SETPOINT_0P1MMS] / 10.0
+        return min(target, h[HR.SPEED_LIMIT_0P1MMS] / 10.0)
 
     def control_step(self, n_ms: int) -> None:
         """One pass of the Mega's control logic after ``n_ms`` ms of physics (reads the model, sets outputs)."""
@@ -727,13 +726,14 @@ class MegaController:
                         self.state = DrumState.IDLE
                 self._update_force()
                 self._watch_direction()
+                self._predicted_g = self._probe.predicted_g(self._force_g, self.state in _ENGAGED)
             else:
                 self._loadcell_silent_ms += n_ms
             self._hx_seen = conversions
             f = self._force_g
             engaged = self.state in _ENGAGED
             # --- faults (the host watchdog: check_watchdog, in the Modbus server's loop)
-            if self.tared and f > h[HR.FORCE_LIMIT_G] and \
+            if self.tared and max(f, self._predicted_g) > h[HR.FORCE_LIMIT_G] and \
                     not (self.state == DrumState.FAULT and Fault.FORCE_LIMIT in self.faults):
                 self._fault(Fault.FORCE_LIMIT)  # latches in any state, also beside another fault (spec 2.5)
             elif self._loadcell_silent_ms >= LOADCELL_TIMEOUT_MS and self.state != DrumState.FAULT:
@@ -745,30 +745,25 @@ class MegaController:
                 self._fault(Fault.ACTUATOR_TRAVEL)
             if self._index.take_slip() and Fault.DRUM_SLIP not in self.faults:
                 self._fault(Fault.DRUM_SLIP)  # the drum's speed marks came late or stopped (spec 2.5)
+            if probed := engaged and new_reading and self._probe.active and self.state in _ENGAGED:  # spec 2.10
+                self._pi_out, too_stiff = self._probe.reading(f, self._actuator_position_mm(), h, self._hx_period_s,
+                                                              FORCE_LOOP_MAX_SPEED_MM_S)
+                if too_stiff:
+                    self._fault(Fault.CONTACT_STIFFNESS)
             engaged = self.state in _ENGAGED
-            # --- drum speed profile
-            limit = h[HR.SPEED_LIMIT_0P1MMS] / 10.0
-            if self.state == DrumState.RUNNING:
-                if h[HR.SPEED_PROFILE] == wire.SpeedProfile.RAMP:
-                    frac = min(1.0, (self._t_s - self._run_t0) * 1000.0 / h[HR.RAMP_DURATION_MS])
-                    v0, v1 = h[HR.RAMP_START_SPEED_0P1MMS] / 10.0, h[HR.RAMP_END_SPEED_0P1MMS] / 10.0
-                    target = v0 + (v1 - v0) * frac
-                else:
-                    target = h[HR.SPEED_SETPOINT_0P1MMS] / 10.0
-                target = min(target, limit)
-            else:
-                target = 0.0
-            self._speed_target = target
+            self._speed_target = target = self._profile_target_mm_s()
             rate = target * m.config.drum.steps_per_mm
             # --- actuator: force PI loop, back-off or homing
             cal = h[HR.ACTUATOR_STEPS_PER_MM] / _TRUE_ACTUATOR_STEPS_PER_MM  # true mm per commanded mm
             if engaged:
                 sp = h[HR.FORCE_SETPOINT_G]
                 e = sp - f
-                if new_reading:  # the loop runs once per HX711 reading; its output holds in between
+                if new_reading and not probed:  # the loop runs once per HX711 reading; its output holds in between
                     self._pi_out = self._force_pi(sp, f)
+                if self._probe.step_done(self._actuator_position_mm()):
+                    self._pi_out = 0.0
                 vel = self._pi_out * cal
-                if abs(e) <= h[HR.FORCE_TOLERANCE_G]:
+                if abs(e) <= h[HR.FORCE_TOLERANCE_G] and not self._probe.active:
                     self._on_target_ms += n_ms
                 else:
                     self._on_target_ms = 0

@@ -41,6 +41,7 @@ from rigctl import firmware
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.devices import wire
 from rigctl.simulation.hil_faults import HilFaults
+from rigctl.simulation.mega_eeprom import EepromError, default_record, eeprom_offset
 from rigctl.simulation.priority import board_thread, raise_board_process
 from rigctl.simulation.truth import TruthLog
 
@@ -84,6 +85,7 @@ class Telemetry:
     received: float = 0.0  #: host time.monotonic() when the line arrived
     drivers_enabled: bool = True  #: the stepper drivers' EN pin is active (low) now
     steps_disabled: int = 0  #: STEP pulses so far while the drivers were disabled (they moved nothing)
+    ee_writes: int = 0  #: EEPROM byte writes the MCU made so far (EECR's EEPE), for the wear tests
 
 
 class _MegaClock:
@@ -204,6 +206,8 @@ class HilRig:
     mega_image : str
         The Mega's image in the build folder: ``"mega_drum"`` (the shipped one) or ``"mega_drum_test"`` (the same
         with a hang input for the watchdog test, :meth:`hang_loop`; built by ``make harness``, never flashed).
+    factory_calibrated : bool
+        Start the Mega's EEPROM calibrated (the defaults, as the simulated rigs); False: a freshly flashed board's.
 
     Attributes
     ----------
@@ -228,7 +232,7 @@ class HilRig:
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
                  tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0,
-                 mega_image: str = "mega_drum", truth_log=None):
+                 mega_image: str = "mega_drum", truth_log=None, factory_calibrated: bool = True):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -246,6 +250,7 @@ class HilRig:
         self.uno_boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.mux: dict[str, float] = {}
         self.mega_image = mega_image
+        self.factory_calibrated = bool(factory_calibrated)
         #: resets of the Mega the harness reported (the reset commands and the MCU's own, e.g. its watchdog)
         self.mega_resets = 0
         self._eeprom_ack: bool | None = None
@@ -357,13 +362,14 @@ class HilRig:
         # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
         lock = ["--clock-lock", str(self._tmp / "clock")] if self.with_uno else []
+        calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{default_record().hex()}"] if self.factory_calibrated else []
         mega_boot = (["--reset-on-open", "--bootloader", str(build_dir / "stk500v2_mega.hex")] if self.bootloaders
                      else [])
         uno_boot = ["--bootloader", str(build_dir / "optiboot_uno.hex")] if self.bootloaders else []
         self._mega = _Harness(exe, "mega", build_dir / f"{self.mega_image}.elf", [*mega_boot,
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
-            *self._hardware_args(), *lock], self._on_mega_line)
+            *self._hardware_args(), *lock, *calibrated], self._on_mega_line)
         if not self.with_uno:
             return self
         try:
@@ -483,7 +489,7 @@ class HilRig:
     def reset_mega(self, cause: str = "external") -> None:
         """Reset the Mega while the mechanics stay as they are (a reset under load): ``"external"`` (the reset button
         or a DTR pulse: MCUSR EXTRF), ``"brownout"`` (BORF) or ``"poweron"`` (PORF). The firmware restarts (RAM
-        cleared, EEPROM kept)."""
+        kept, except at a power-on; EEPROM kept)."""
         commands = {"external": "reset", "brownout": "brownout", "poweron": "poweron"}
         if cause not in commands:
             raise ValueError(f"cause must be one of {sorted(commands)}, got {cause!r}")
@@ -533,26 +539,19 @@ class HilRig:
         self._running(self._mega, "Mega").send("homeswitch broken" if broken else "homeswitch ok")
 
     def corrupt_eeprom(self) -> None:
-        """Flip a bit of the firmware's calibration record in the Mega's EEPROM (its checksum fails at the next
-        boot). The record's address comes from the image's symbol table (``avr-nm``, binutils-avr).
-
-        Raises HilError if the symbol cannot be found."""
-        elf = firmware.build_dir(self.firmware_sources) / f"{self.mega_image}.elf"
-        try:
-            out = subprocess.run(["avr-nm", str(elf)], capture_output=True, text=True, check=True).stdout
-        except (OSError, subprocess.CalledProcessError) as exc:
-            raise HilError(f"cannot read the symbols of {elf}: {exc}") from None
-        m = re.search(r"^([0-9a-fA-F]+) \w \S*ee_calib2\b", out, re.M)
-        if m is None:
-            raise HilError(f"no calibration record (ee_calib2) in {elf}")
-        offset = int(m.group(1), 16) - 0x810000  # avr-gcc places .eeprom at 0x810000
+        """Flip a bit of the Mega's EEPROM calibration record (its checksum fails at the next boot); HilError if none."""
+        offset = self._calibration_offset()
         with self._cond:
             self._eeprom_ack = None
             self._running(self._mega, "Mega").send(f"eeprom-flip {offset + 2}")  # a byte of the scale, past the magic word
-            if not self._cond.wait_for(lambda: self._eeprom_ack is not None, timeout=10.0):
-                raise HilError("the Mega harness did not confirm the EEPROM change")
-            if not self._eeprom_ack:
-                raise HilError("the Mega harness could not change its EEPROM")
+            if not self._cond.wait_for(lambda: self._eeprom_ack is not None, timeout=10.0) or not self._eeprom_ack:
+                raise HilError("the Mega harness did not confirm the EEPROM change (or could not make it)")
+
+    def _calibration_offset(self) -> int:  # the record's EEPROM address in the Mega's image; HilError if not found
+        try:
+            return eeprom_offset(firmware.build_dir(self.firmware_sources) / f"{self.mega_image}.elf")
+        except EepromError as exc:
+            raise HilError(str(exc)) from None
 
     def hang_loop(self) -> None:
         """Make the Mega's ``loop()`` hang until the MCU resets (only the test image ``mega_drum_test`` reacts: a
@@ -603,7 +602,7 @@ class HilRig:
             kv = _parse_kv(line)
             tel = Telemetry(kv["t"], int(kv["cycle"]), int(kv["drum_steps"]), int(kv["act_steps"]), kv["act_mm"],
                             kv["force_g"], int(kv["index"]), time.monotonic(), bool(kv.get("en", 1)),
-                            int(kv.get("steps_disabled", 0)))
+                            int(kv.get("steps_disabled", 0)), int(kv.get("ee_writes", 0)))
             with self._cond:
                 self.telemetry = tel
                 self.telemetry_history.append(tel)

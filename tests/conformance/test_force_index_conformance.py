@@ -66,7 +66,9 @@ def test_80sps_step_at_2kg_per_mm_settles_without_oscillation(make_rig):
 
 
 def test_a_10sps_hx711_is_refused_with_a_fault_then_runs_with_its_own_gains(make_rig):
-    ctl, drum = make_rig(RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=10.0, contact_stiffness_g_per_mm=500.0)))
+    # the contact 1 mm from home: the first press's contact probe approaches at 0.33 mm/s at 10 SPS (spec 2.10)
+    ctl, drum = make_rig(RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=10.0, contact_stiffness_g_per_mm=500.0,
+                                                             contact_gap_mm=1.0)))
     st = drum.read_status()
     assert st.hx711_rate_sps == pytest.approx(10.0, rel=0.02)
     assert st.state == DrumState.FAULT and Fault.HX711_RATE in st.faults

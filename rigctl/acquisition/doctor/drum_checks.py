@@ -215,14 +215,19 @@ def check_reset_cause(ctx: DoctorContext) -> CheckResult:
     causes = _flag_names(st.reset_cause)
     boots = int(st.boot_count)
     values: dict[str, Any] = {"reset_cause": causes, "boot_count": boots}
+    # BOOT_COUNT (spec 2.7): high byte = power-ups and brown-outs (EEPROM), low byte = warm resets since (RAM)
+    cold, warm = boots >> 8, boots & 0xFF
+    since = ("a power-up or brown-out (RAM lost)" if warm == 0 else
+             f"{warm} warm resets (reset pin, port opening, watchdog) since the last power-up")
     what = (f"last reset: {', '.join(causes) if causes else 'cause unknown (0: the stk500v2 bootloader clears it)'}; "
-            f"{boots} boots")
+            f"{since}")
     before = last_report(ctx.mode, ctx.config_path)
     if before is not None:
         prev = next((r.values.get("boot_count") for r in before.results if r.name == "reset-cause"), None)
         if isinstance(prev, int):
-            values["boots_since_last_doctor"] = (boots - prev) & 0xFFFF
-            what += f", {(boots - prev) & 0xFFFF} since the last doctor run ({before.checked_utc})"
+            values["power_ups_since_last_doctor"] = (cold - (prev >> 8)) & 0xFF
+            what += (f", {(cold - (prev >> 8)) & 0xFF} power-ups or brown-outs since the last doctor run "
+                     f"({before.checked_utc})")
     if "WATCHDOG" in causes:
         return failed("reset-cause", what, "the controller's watchdog reset it: loop() hung. Note what the rig was "
                       "doing, check the motor wiring for interference (docs/hardware/wiring.md#power-and-grounding) "

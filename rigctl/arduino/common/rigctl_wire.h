@@ -189,6 +189,8 @@
 #define RIGCTL_IREG_MARK_PERIOD_0P1MS        25
 #define RIGCTL_IREG_MARK_STEPS               26
 #define RIGCTL_IREG_MARK_COUNT               27
+#define RIGCTL_IREG_CONTACT_STIFFNESS_G_PER_MM 28
+#define RIGCTL_IREG_STIFFNESS_MAX_G_PER_MM   29
 /* the build id (make BUILD_ID=<12 hex digits>), 48 bits, most significant word first; 0 = built without one */
 #define RIGCTL_IREG_BUILD_ID_0               30
 #define RIGCTL_IREG_BUILD_ID_1               31
@@ -240,6 +242,8 @@
 #define RIGCTL_FAULT_ACTUATOR_DIRECTION    (1u << RIGCTL_FAULT_ACTUATOR_DIRECTION_BIT)
 #define RIGCTL_FAULT_DRUM_SLIP_BIT         10
 #define RIGCTL_FAULT_DRUM_SLIP             (1u << RIGCTL_FAULT_DRUM_SLIP_BIT)
+#define RIGCTL_FAULT_CONTACT_STIFFNESS_BIT 11
+#define RIGCTL_FAULT_CONTACT_STIFFNESS     (1u << RIGCTL_FAULT_CONTACT_STIFFNESS_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000
@@ -285,6 +289,16 @@
  * by this many percent */
 #define RIGCTL_HX711_RATE_PERIODS          4
 #define RIGCTL_HX711_RATE_TOLERANCE_PCT    20
+/* 2.10 over-force prediction and contact stiffness: the trip looks this many periods ahead (sinc^4 group delay 2 +
+ * the next reading 1); the first press after a reset probes the contact: approach at PROBE_TRAVEL_UM per LEAD
+ * periods until PROBE_CONTACT_G, settle, PROBE_STEP_UM further, settle; accepted up to a loop phase of
+ * LOOP_PHASE_MRAD at the crossover k x Kp with the HX711's DELAY_PERIODS_X10 / 10 periods of delay */
+#define RIGCTL_FORCE_LEAD_PERIODS          3
+#define RIGCTL_PROBE_CONTACT_G             50
+#define RIGCTL_PROBE_TRAVEL_UM             100
+#define RIGCTL_PROBE_STEP_UM               20
+#define RIGCTL_LOOP_PHASE_MRAD             750
+#define RIGCTL_HX711_DELAY_PERIODS_X10     25
 #define RIGCTL_INDEX_SOURCE_STEPS          0
 #define RIGCTL_INDEX_SOURCE_SENSOR         1
 

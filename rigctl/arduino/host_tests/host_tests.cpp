@@ -182,8 +182,22 @@ struct Plant {
     double peak_g = 0;          // the largest force so far
     double cmd_mm = 0;          // the firmware's step count, mm (the real position when not reversed)
     double rear_mm = -1.0;      // the actuator's rear stop
+    bool sinc4 = false;         // the HX711's sinc^4 filter: a reading averages the last 4 periods (cubic B-spline)
+    std::vector<double> hist;   // the force each ms, newest last (sinc4)
     double force() const { return (x_mm > gap ? k * (x_mm - gap) : 0.0) + extra_g; }
-    int32_t raw() const { return (int32_t)std::lround(offset + force() * counts_per_g); }
+    double read_g() const
+    {
+        if (!sinc4 || hist.empty()) return force();
+        double sum = 0, wsum = 0;
+        for (int i = 0; i < 48 && i < (int)hist.size(); i++) { // 4 periods of 12 ms
+            double u = (i + 0.5) / 12.0, v = u >= 2 ? 4 - u : u, w;
+            w = v < 1 ? v * v * v / 6 : (1 + 3 * (v - 1) + 3 * (v - 1) * (v - 1) - 3 * (v - 1) * (v - 1) * (v - 1)) / 6;
+            sum += w * hist[hist.size() - 1 - i];
+            wsum += w;
+        }
+        return sum / wsum;
+    }
+    int32_t raw() const { return (int32_t)std::lround(offset + read_g() * counts_per_g); }
 };
 
 static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, bool loadcell = true)
@@ -208,6 +222,7 @@ static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, 
         p.cmd_mm += c.act_vel_mm_s * 0.001;
         if (p.x_mm < p.rear_mm) p.x_mm = p.rear_mm;
         if (p.force() > p.peak_g) p.peak_g = p.force();
+        if (p.sinc4) p.hist.push_back(p.force());
     }
 }
 
@@ -558,6 +573,65 @@ static void test_steprate()
     std::printf("steprate: ok\n");
 }
 
+// spec 2.10: the first press after a reset probes the contact's stiffness; a contact stiffer than the loop holds is
+// refused (CONTACT_STIFFNESS), the over-force trip extrapolates the rise over the HX711's delay
+static void test_stiffness()
+{
+    for (double k : {2000.0, 6000.0}) {
+        ctl_t c;
+        Plant p;
+        uint32_t now = 0;
+        p.sinc4 = true;
+        p.k = k;
+        ctl_init(&c, 0, 0);
+        run_ms(c, p, now, 100);
+        home(c, p, now);
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1000) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        int ms = 0;
+        for (; ms < 8000 && c.state == RIGCTL_STATE_SEEKING_FORCE; ms += 10) run_ms(c, p, now, 10);
+        run_ms(c, p, now, 500);
+        uint16_t kmax = ctl_stiffness_max(&c), got = c.stiffness_g_mm;
+        std::printf("stiffness: %.0f g/mm measured %u (accepted up to %u), after %d ms: state %u faults %u, peak %.0f g\n",
+                    k, got, kmax, ms, c.state, c.faults, p.peak_g);
+        CHECK(std::abs(got - k) < 0.05 * k && p.peak_g < 1650.0);
+        CHECK(kmax > 2200 && kmax < 2600); // 0.75 rad / (0.01 (mm/s)/g x 2.5 x 12 ms)
+        if (k < kmax) {
+            CHECK(c.faults == 0 && c.state == RIGCTL_STATE_FORCE_SETTLED && std::abs(p.force() - 1000) < 15);
+            continue;
+        }
+        CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_CONTACT_STIFFNESS && c.act_mode == ACT_MODE_RETRACT);
+        CHECK(ctl_read_input(&c, RIGCTL_IREG_CONTACT_STIFFNESS_G_PER_MM) == got);
+        run_ms(c, p, now, 2000);
+        CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_IDLE);
+        CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS)); // refused: the loop cannot hold it
+        // slower gains hold it: accepted without a new probe; the trip's prediction keeps a press to 1400 g below 1.1 x
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_KP_80SPS_NMS_G, 2000) && ctl_stiffness_max(&c) > 6000);
+        p.peak_g = 0;
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1450) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        CHECK(c.probe_phase == PROBE_NONE);
+        run_ms(c, p, now, 3000);
+        std::printf("stiffness: %.0f g/mm with Kp 0.002: 1450 g, state %u faults %u, peak %.0f g\n", k, c.state, c.faults,
+                    p.peak_g);
+        CHECK(p.peak_g < 1650.0);
+    }
+    {   // the trip sees the future: 6 kg/mm taken for soft (a stale stiffness), 5 mm/s into the contact
+        ctl_t c;
+        Plant p;
+        uint32_t now = 0;
+        p.sinc4 = true;
+        p.k = 6000;
+        ctl_init(&c, 0, 0);
+        run_ms(c, p, now, 100);
+        home(c, p, now);
+        c.stiffness_g_mm = 500;
+        CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1000) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
+        run_ms(c, p, now, 3000);
+        std::printf("stiffness: predicted trip at 6 kg/mm: faults %u, peak %.0f g\n", c.faults, p.peak_g);
+        CHECK(c.faults == RIGCTL_FAULT_FORCE_LIMIT && p.peak_g < 1650.0);
+    }
+    std::printf("stiffness: ok\n");
+}
+
 int main()
 {
     test_crc();
@@ -568,6 +642,7 @@ int main()
     test_controller();
     test_hx711_rate_stale_first_edge();
     test_safety();
+    test_stiffness();
     std::printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;
 }

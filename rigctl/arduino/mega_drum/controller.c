@@ -169,9 +169,75 @@ static uint8_t fault_persists(const ctl_t *c)
     return 0;
 }
 
+/* ---- contact stiffness (spec 2.10) ---- */
+static float hx_period(const ctl_t *c)
+{
+    return c->hx_period_s > 0.0f ? c->hx_period_s : 1.0f / (float)c->hreg[RIGCTL_HREG_HX711_RATE_SPS];
+}
+
+/* the loop's crossover is k x Kp; with the HX711's delay D it lags k Kp D radians more than an integrator: the
+ * stiffest contact held is LOOP_PHASE / (Kp D) */
+uint16_t ctl_stiffness_max(const ctl_t *c)
+{
+    uint8_t slow = c->hreg[RIGCTL_HREG_HX711_RATE_SPS] < 40;
+    float kp = (float)c->hreg[slow ? RIGCTL_HREG_FORCE_KP_10SPS_NMS_G : RIGCTL_HREG_FORCE_KP_80SPS_NMS_G] * 1e-6f;
+    float d = hx_period(c) * (float)RIGCTL_HX711_DELAY_PERIODS_X10 * 0.1f;
+    float k = (float)RIGCTL_LOOP_PHASE_MRAD * 1e-3f / (kp * d);
+    return kp <= 0.0f || k >= 65535.0f ? 65535u : (uint16_t)k;
+}
+
+static uint8_t stiffness_ok(const ctl_t *c)
+{
+    return !c->stiffness_g_mm || c->stiffness_g_mm <= ctl_stiffness_max(c);
+}
+
+/* the probe's speed: PROBE_TRAVEL_UM in the time the trip looks ahead, so a contact is seen within that travel */
+static float probe_speed(const ctl_t *c)
+{
+    float v = (float)RIGCTL_PROBE_TRAVEL_UM * 1e-3f / ((float)RIGCTL_FORCE_LEAD_PERIODS * hx_period(c));
+    return v < ACT_MAX_SPEED_MM_S ? v : ACT_MAX_SPEED_MM_S;
+}
+
+/* one reading while the probe runs: approach until contact, settle, step PROBE_STEP_UM, settle, k = dF / dx */
+static void probe_reading(ctl_t *c, float f)
+{
+    float contact = (float)RIGCTL_PROBE_CONTACT_G, half = 0.5f * (float)c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
+    float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    if (half < contact) contact = half;
+    c->act_vel_mm_s = 0.0f;
+    switch (c->probe_phase) {
+    case PROBE_APPROACH:
+        if (f < contact) c->act_vel_mm_s = probe_speed(c);
+        else c->probe_phase = PROBE_SETTLE1, c->probe_readings = 0;
+        return;
+    case PROBE_STEP: /* ctl_tick stops it at the target */
+        c->act_vel_mm_s = probe_speed(c);
+        return;
+    default: /* settling: the reading at the 5th edge after the stop averages only the new position (4 periods) */
+        if (++c->probe_readings <= RIGCTL_HX711_RATE_PERIODS) return;
+        if (c->probe_phase == PROBE_SETTLE1) {
+            c->probe_f1_gf = f;
+            c->probe_x1_steps = c->act_pos_steps;
+            c->probe_x_target = c->act_pos_steps + (int32_t)((float)RIGCTL_PROBE_STEP_UM * 1e-3f * spmm + 0.5f);
+            c->probe_phase = PROBE_STEP;
+            c->act_vel_mm_s = probe_speed(c);
+        } else {
+            float dx = (float)(c->act_pos_steps - c->probe_x1_steps) / spmm;
+            float k = dx > 0.0f ? (f - c->probe_f1_gf) / dx : 0.0f;
+            c->stiffness_g_mm = k >= 65535.0f ? 65535u : (k < 1.0f ? 1u : (uint16_t)k);
+            c->probe_phase = PROBE_NONE;
+            force_pi_reset(&c->pi);
+            if (!stiffness_ok(c)) fault(c, RIGCTL_FAULT_CONTACT_STIFFNESS); /* backs off: the loop cannot hold it */
+        }
+        return;
+    }
+}
+
 static void engage(ctl_t *c)
 {
     force_pi_reset(&c->pi);
+    c->probe_phase = c->stiffness_g_mm ? PROBE_NONE : PROBE_APPROACH;
+    c->force_prev_valid = 0;
     c->act_mode = ACT_MODE_FORCE;
     c->state = RIGCTL_STATE_SEEKING_FORCE;
     c->on_target = 0;
@@ -196,7 +262,7 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
     case RIGCTL_CMD_RUN:
     case RIGCTL_CMD_PRESS: /* never after a reset, e-stop or failed HOME until HOME has succeeded */
         return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING && s != RIGCTL_STATE_NOT_HOMED &&
-               hx711_rate_ok(c);
+               hx711_rate_ok(c) && stiffness_ok(c);
     case RIGCTL_CMD_STOP_DRUM:
         return force_engaged(c);
     case RIGCTL_CMD_TARE: /* only at home (switch closed), with no load on the cell once a tare is known */
@@ -304,6 +370,8 @@ uint16_t ctl_read_input(void *ctx, uint16_t addr)
     case RIGCTL_IREG_MARK_PERIOD_0P1MS: return c->mark_period_0p1ms;
     case RIGCTL_IREG_MARK_STEPS: return c->mark_steps;
     case RIGCTL_IREG_MARK_COUNT: return c->mark_count;
+    case RIGCTL_IREG_CONTACT_STIFFNESS_G_PER_MM: return c->stiffness_g_mm;
+    case RIGCTL_IREG_STIFFNESS_MAX_G_PER_MM: return ctl_stiffness_max(c);
     case RIGCTL_IREG_RESET_CAUSE: return c->reset_cause;
     case RIGCTL_IREG_BOOT_COUNT: return c->boot_count;
     case RIGCTL_IREG_BUILD_ID_0: return (uint16_t)((RIGCTL_BUILD_ID_NUM >> 32) & 0xFFFF);
@@ -494,6 +562,11 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         home_step(c, now_ms);
         break;
     case ACT_MODE_FORCE:
+        if (c->probe_phase == PROBE_STEP && c->act_pos_steps >= c->probe_x_target) {
+            c->act_vel_mm_s = 0.0f;
+            c->probe_phase = PROBE_SETTLE2;
+            c->probe_readings = 0;
+        }
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
             c->act_vel_mm_s = 0.0f;
             fault(c, RIGCTL_FAULT_ACTUATOR_TRAVEL);
@@ -523,7 +596,7 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
 
 void ctl_loadcell(ctl_t *c, int32_t raw)
 {
-    float f;
+    float f, rise;
     uint16_t sp = c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
     uint8_t on;
     c->last_loadcell_ms = c->now_ms;
@@ -544,6 +617,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     if (c->tare_pending && c->home_switch) { /* never under load: only at home */
         c->tare_offset = raw;
         c->tare_pending = 0;
+        c->force_prev_valid = 0;
         c->tared = 1;
         if (c->state == RIGCTL_STATE_HOMING && c->act_mode == ACT_MODE_HOLD) { /* HOME done: at the switch, tared */
             c->homed = 1;
@@ -553,7 +627,13 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     f = ctl_force_from_raw(c, raw);
     c->force_gf = f;
     c->force_g = (int16_t)(f > 32767.0f ? 32767 : (f < -32768.0f ? -32768 : (f < 0 ? f - 0.5f : f + 0.5f)));
-    if (c->tared && f > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) {
+    /* the trip sees the future (spec 2.10): while the loop drives, the force read now is the true force ~2 periods
+     * ago (sinc^4) and the next reading comes a period later, so the rise of the last period is extrapolated over
+     * FORCE_LEAD_PERIODS (only then: a mass put on an idle cell is not the actuator's doing) */
+    rise = c->act_mode == ACT_MODE_FORCE && c->force_prev_valid && f > c->force_prev_gf ? f - c->force_prev_gf : 0.0f;
+    c->force_prev_gf = f;
+    c->force_prev_valid = 1;
+    if (c->tared && f + rise * (float)RIGCTL_FORCE_LEAD_PERIODS > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) {
         if (c->state != RIGCTL_STATE_FAULT || !(c->faults & RIGCTL_FAULT_FORCE_LIMIT)) {
             fault(c, RIGCTL_FAULT_FORCE_LIMIT); /* backs the actuator off at once */
         }
@@ -564,11 +644,13 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         fault(c, RIGCTL_FAULT_LOADCELL_REVERSED); /* pressing makes it read negative: reversed cell or scale */
         return;
     }
-    on = (f >= (float)sp - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) &&
+    on = c->probe_phase == PROBE_NONE && (f >= (float)sp - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) &&
          (f <= (float)sp + (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
     if (on && !c->on_target) c->on_target_since_ms = c->now_ms;
     c->on_target = on;
-    if (c->act_mode == ACT_MODE_FORCE) {
+    if (c->act_mode == ACT_MODE_FORCE && c->probe_phase != PROBE_NONE) {
+        probe_reading(c, f);
+    } else if (c->act_mode == ACT_MODE_FORCE) {
         force_loop_gains(c);
         c->act_vel_mm_s = force_pi_update(&c->pi, (float)sp, f, c->hx_period_s);
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {

@@ -22,6 +22,12 @@ extern "C" {
 #define HOME_SEEK   0
 #define HOME_LEAVE  1
 #define HOME_RETURN 2
+/* the contact probe of the first press after a reset (spec 2.10): approach slowly, settle, a small step, settle */
+#define PROBE_NONE     0
+#define PROBE_APPROACH 1
+#define PROBE_SETTLE1  2
+#define PROBE_STEP     3
+#define PROBE_SETTLE2  4
 
 typedef struct {
     uint16_t hreg[RIGCTL_N_HOLDING]; /* hreg[LOADCELL_SCALE_X100] is the view of the 32-bit scale in HI/LO */
@@ -46,6 +52,15 @@ typedef struct {
     uint8_t move_ref_valid;
     uint8_t move_skip;      /* readings still to skip (a back-off: the HX711's 4-period settling of what came before) */
     uint8_t have_reading;
+    /* over-force prediction and contact stiffness (spec 2.10) */
+    float force_prev_gf;       /* the previous reading's force while the force loop drives (prediction) */
+    uint8_t force_prev_valid;
+    uint16_t stiffness_g_mm;   /* contact stiffness measured by the probe since the reset, g/mm (0 = not yet) */
+    uint8_t probe_phase;       /* PROBE_* */
+    uint8_t probe_readings;    /* readings since the actuator stopped (settling) */
+    float probe_f1_gf;
+    int32_t probe_x1_steps;
+    int32_t probe_x_target;
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;
@@ -118,6 +133,8 @@ void ctl_loadcell(ctl_t *c, int32_t raw);
 /* the HX711's DOUT went low (a reading is ready) at t_us (any microsecond clock): times the first periods after
  * boot (HX711_RATE_0P01SPS, the force loop's time step) and latches HX711_RATE when the rate is not HX711_RATE_SPS */
 void ctl_hx711_ready(ctl_t *c, uint32_t t_us);
+/* the stiffest contact the force loop holds with its gains now, g/mm (spec 2.10; 65535 with Kp = 0) */
+uint16_t ctl_stiffness_max(const ctl_t *c);
 /* force in g from raw counts with the current tare and scale */
 float ctl_force_from_raw(const ctl_t *c, int32_t raw);
 

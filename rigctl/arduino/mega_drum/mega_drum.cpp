@@ -356,6 +356,30 @@ struct calib_t {
 static calib_t EEMEM ee_calib2;
 static uint16_t EEMEM ee_boot_count;
 
+/* BOOT_COUNT (spec 2.7): EEPROM is written only at a cold boot (power-on or brown-out, or RAM lost); a warm reset
+ * (reset pin, the DTR of a port opening, the watchdog) counts in RAM, which survives it. The high byte counts cold
+ * boots (EEPROM), the low byte warm resets since (0 = this is a cold boot): every reset changes the value. */
+#define WARM_MAGIC 0x5752 /* "WR" */
+static struct {
+    uint16_t magic, cold, warm, check;
+} warm_boot __attribute__((section(".noinit")));
+
+static uint16_t boot_count(void)
+{
+    uint16_t check = (uint16_t)(warm_boot.magic ^ warm_boot.cold ^ warm_boot.warm ^ 0xA55A);
+    if ((mcusr_at_boot & (RIGCTL_RESET_POWER_ON | RIGCTL_RESET_BROWN_OUT)) || warm_boot.magic != WARM_MAGIC ||
+        warm_boot.check != check) {
+        warm_boot.cold = (uint16_t)(eeprom_read_word(&ee_boot_count) + 1); /* erased EEPROM 0xFFFF: first boot 0 */
+        eeprom_update_word(&ee_boot_count, warm_boot.cold);
+        warm_boot.warm = 0;
+        warm_boot.magic = WARM_MAGIC;
+    } else {
+        warm_boot.warm++;
+    }
+    warm_boot.check = (uint16_t)(warm_boot.magic ^ warm_boot.cold ^ warm_boot.warm ^ 0xA55A);
+    return (uint16_t)((warm_boot.cold << 8) | (warm_boot.warm & 0xFF));
+}
+
 /* returns 1 if a valid record was found; else scale and steps are 0 (the controller's defaults) */
 static uint8_t calib_load(int32_t *scale, uint16_t *steps)
 {
@@ -537,8 +561,7 @@ void setup(void)
     ctl_init(&ctl, scale, steps);
     ctl.calib_defaults = !calib_ok;
     ctl.reset_cause = reset_cause();
-    ctl.boot_count = (uint16_t)(eeprom_read_word(&ee_boot_count) + 1); /* erased EEPROM 0xFFFF: first boot is 0 */
-    eeprom_update_word(&ee_boot_count, ctl.boot_count);
+    ctl.boot_count = boot_count();
     ctl_bind_modbus(&ctl, &mb);
 
     /* pins */

@@ -419,7 +419,8 @@ static void *stdin_thread(void *arg)
             atomic_store(&bump_g_x1000, (int)(atof(line + 5) * 1000.0));
             printf("OK bump\n");
         } else if (!strcmp(line, "reset") || !strcmp(line, "brownout") || !strcmp(line, "poweron")) {
-            /* reset button / brown-out / power cycle: RAM cleared, EEPROM and the mechanics kept */
+            /* reset button / brown-out / power cycle: the sketch starts afresh; the SRAM survives but a power cycle;
+             * EEPROM and the mechanics kept */
             atomic_store(&reset_cause_req, line[0] == 'r' ? 2 : line[0] == 'b' ? 4 : 1);
             atomic_store(&reset_requested, 1);
         } else if (!strcmp(line, "estop open") || !strcmp(line, "estop close")) {
@@ -1103,6 +1104,27 @@ static void safety_poll(void)
     drive_pin(hang_pin, 'A', 0, atomic_load(&hang_req) ? 1 : 0, &hang_level);
 }
 
+/* --eeprom-write OFFSET:HEXBYTES: bytes in the EEPROM before the first instruction (after the image's .eeprom
+ * section): what a board that was once calibrated holds (HilRig writes the calibration record, as the simulated
+ * rigs' factory calibration does) */
+static const char *opt_eeprom_write;
+
+static int eeprom_write_arg(const char *arg)
+{
+    uint8_t bytes[64];
+    char *end;
+    long off = strtol(arg, &end, 0);
+    size_t n = 0;
+    if (*end != ':' || off < 0 || off > 4095) return 1;
+    for (const char *h = end + 1; h[0] && h[1]; h += 2) {
+        unsigned v;
+        if (n >= sizeof bytes || sscanf(h, "%2x", &v) != 1) return 1;
+        bytes[n++] = (uint8_t)v;
+    }
+    avr_eeprom_desc_t d = {.ee = bytes, .offset = (uint16_t)off, .size = (uint16_t)n};
+    return !n || off + (long)n > 4096 || avr_ioctl(avr, AVR_IOCTL_EEPROM_SET, &d) == -2;
+}
+
 static void safety_setup(void)
 {
     estop_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 4);
@@ -1247,6 +1269,17 @@ static void mega_after_reset(void)
     safety_after_reset();
 }
 
+/* EEPROM writes (EECR with EEPE set: avr-libc's eeprom_write/update after EEMPE), counted for the wear tests ("TEL
+ * ... ee_writes=N"); simavr's EEPROM module keeps its own handler on EECR (io writes are dispatched to both) */
+#define M2560_EECR 0x3F
+static unsigned long long ee_writes;
+
+static void eecr_write_hook(struct avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a, (void)addr, (void)param;
+    if (v & (1 << 1)) ee_writes++;
+}
+
 static void mega_setup(void)
 {
     hx_dout = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 5);
@@ -1259,6 +1292,7 @@ static void mega_setup(void)
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 5), drum_step_hook, NULL);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 4), drum_dir_hook, NULL);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 6), index_hook, NULL);
+    avr_register_io_write(avr, M2560_EECR, eecr_write_hook, NULL);
     hx_next_cycle = hx711_period_cycles();
     index_sensor_setup();
     safety_setup();
@@ -1287,11 +1321,11 @@ static void mega_poll(void)
     if (avr->cycle >= next_tel) {
         next_tel = avr->cycle + (uint64_t)(opt_tel_ms * 16000.0);
         printf("TEL t=%.6f cycle=%llu drum_steps=%lld drum_dir=%d act_steps=%lld act_mm=%.4f force_g=%.3f "
-               "index=%u en=%d steps_disabled=%llu drum_turn=%.5f\n",
+               "index=%u en=%d steps_disabled=%llu drum_turn=%.5f ee_writes=%llu\n",
                sim_s(), (unsigned long long)avr->cycle, (long long)drum_steps, drum_dir, (long long)act_steps,
                act_steps / opt_act_steps_per_mm, mega_force_g(), index_count, drivers_enabled(),
                (unsigned long long)steps_disabled,
-               drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps));
+               drum_turn_steps / (RIGCTL_DRUM_STEPS_PER_REV_DEF * opt_driver_microsteps), ee_writes);
     }
 }
 
@@ -1390,7 +1424,7 @@ static void usage(void)
                     "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] [--aa-c-nf NF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
-                    "[--index-bounce N] "
+                    "[--index-bounce N] [--eeprom-write OFFSET:HEX] "
                     "FIRMWARE.elf\n");
     exit(2);
 }
@@ -1427,6 +1461,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--actuator-reversed")) atomic_store(&act_reversed_req, 1);
         else if (!strcmp(a, "--index-bounce")) opt_index_bounce = atoi(NEXT());
         else if (!strcmp(a, "--hx711-clock-error")) opt_hx711_clock_error = atof(NEXT());
+        else if (!strcmp(a, "--eeprom-write")) opt_eeprom_write = NEXT();
         else if (a[0] == '-') usage();
         else fw = a;
     }
@@ -1467,6 +1502,10 @@ int main(int argc, char **argv)
     int at_once = 0;
     if (wave_path && load_wave(wave_path, -1, &at_once)) { /* no scan yet: it plays from the first */
         fprintf(stderr, "cannot read waveform %s\n", wave_path);
+        return 1;
+    }
+    if (opt_eeprom_write && eeprom_write_arg(opt_eeprom_write)) {
+        fprintf(stderr, "bad --eeprom-write %s (OFFSET:HEXBYTES)\n", opt_eeprom_write);
         return 1;
     }
     extint_poll(); /* before the first instruction: a pin that goes low at init would otherwise arm the poll */
@@ -1559,6 +1598,8 @@ int main(int argc, char **argv)
             if (cause & 1) avr_regbit_set(avr, avr->reset_flags.porf);
             if (cause & 2) avr_regbit_set(avr, avr->reset_flags.extrf);
             if (cause & 4) avr_regbit_set(avr, avr->reset_flags.borf);
+            if (cause & 1) /* a power cycle loses the SRAM (avr_reset keeps it, as a warm reset does) */
+                memset(avr->data + avr->ioend + 1, 0, avr->ramend - avr->ioend);
             bridge_reset();
             if (is_uno) uno_after_reset();
             else {
