@@ -5,7 +5,8 @@ widgets, move work into worker threads (:mod:`rigctl_gui.workers`) and pull resu
 
 Modules, one per panel: :mod:`rigctl_gui.app` (QApplication, main window, ``--screenshot``), :mod:`rigctl_gui.connect_dialog`,
 :mod:`rigctl_gui.control_panel`, :mod:`rigctl_gui.live_view`, :mod:`rigctl_gui.protocol_tab`, :mod:`rigctl_gui.analysis_tab`,
-:mod:`rigctl_gui.calibration_tab`, :mod:`rigctl_gui.classify_view`, :mod:`rigctl_gui.status_bar`, :mod:`rigctl_gui.workers`;
+:mod:`rigctl_gui.calibration_tab`, :mod:`rigctl_gui.classify_view`, :mod:`rigctl_gui.handheld_tab`,
+:mod:`rigctl_gui.status_bar`, :mod:`rigctl_gui.workers`;
 and shared by them: :mod:`rigctl_gui.dialogs` (every dialog non-modal, Esc is STOP), :mod:`rigctl_gui.messages` (the
 event log, the exception guard, plain-text errors), :mod:`rigctl_gui.widgets` (fixed-width side panels).
 """

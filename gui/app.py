@@ -53,7 +53,7 @@ if TYPE_CHECKING:
 MAX_FPS = 30.0
 #: the range ``--max-fps`` accepts, frames/s
 FPS_RANGE = (1.0, 120.0)
-TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify")
+TAB_NAMES = ("control", "live", "protocol", "analysis", "calibration", "classify", "handheld")
 #: the live plots are marked stale when no taxel frame has arrived for this long, s
 STALE_AFTER_S = 1.0
 #: the window's size on a screen with room for it (px); a smaller screen gets its available area
@@ -108,6 +108,7 @@ class MainWindow(QtWidgets.QMainWindow):
         from rigctl_gui.classify_view import ClassifyView
         from rigctl_gui.connect_dialog import ConnectDialog, load_source, save_source
         from rigctl_gui.control_panel import ControlPanel
+        from rigctl_gui.handheld_tab import HandheldTab
         from rigctl_gui.live_view import LiveView
         from rigctl_gui.protocol_tab import ProtocolTab
         from rigctl_gui.status_bar import Banners, LinkStatus
@@ -152,6 +153,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.analysis = AnalysisTab(self)
         self.calibration = CalibrationTab(self)
         self.classify = ClassifyView(self)
+        self.handheld = HandheldTab(self)
         for w, name in (
             (self.control, "Rig control"),
             (self.live, "Live view"),
@@ -159,6 +161,7 @@ class MainWindow(QtWidgets.QMainWindow):
             (self.analysis, "Analysis"),
             (self.calibration, "Calibration"),
             (self.classify, "Real-time classification"),
+            (self.handheld, "Handheld"),
         ):
             self.tabs.addTab(w, name)
         self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
@@ -897,6 +900,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.settings.setValue("ui/tab", self.tabs.currentIndex())
         self.clock.stop()
         self.disconnect_rig()
+        self.handheld.close_rig()
         self.events.detach_logging("rigctl")
         self.guard.uninstall()
         self.stop_guard.uninstall()

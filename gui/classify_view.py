@@ -34,6 +34,80 @@ def classify_trial(model, data, planned) -> str:
     return str(model.predict([trial_record(data, planned)])[0])
 
 
+class PredictionBoard(QtWidgets.QWidget):
+    """The predictions of finished trials or scans: the latest as a big letter on green (right) or red (wrong), the
+    score, and a tile per prediction in :attr:`tiles` (newest last, the truth below, at most :data:`MAX_TILES`)."""
+
+    def __init__(self, parent=None, *, letter_px: int = 64, per_row: int = 12):
+        super().__init__(parent)
+        self.results: list[tuple[int, str, str]] = []  # (trial_id, truth, predicted)
+        self._letter_px, self.per_row = letter_px, per_row
+        self.score = QtWidgets.QLabel("")
+        self.score.setObjectName("classify_score")
+        self.score.setStyleSheet("font-size: 16px; font-weight: bold;")
+        self.latest = QtWidgets.QLabel("")
+        self.latest.setObjectName("classify_latest")
+        self.latest.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.latest.setMinimumHeight(int(letter_px * 2.2))
+        self.latest.setStyleSheet(f"font-size: {letter_px}px; font-weight: bold; border: 2px solid #ccc;")
+        self.detail = QtWidgets.QLabel("")  # the latest in words (a layout may show it)
+        self.detail.setObjectName("classify_detail")
+        self.detail.setWordWrap(True)
+        self.grid = QtWidgets.QGridLayout()
+        self.grid.setSpacing(4)
+        self.grid.setAlignment(QtCore.Qt.AlignmentFlag.AlignTop | QtCore.Qt.AlignmentFlag.AlignLeft)
+        gw = QtWidgets.QWidget()
+        gw.setLayout(self.grid)
+        self.tiles = QtWidgets.QScrollArea()
+        self.tiles.setWidgetResizable(True)
+        self.tiles.setWidget(gw)
+
+    def clear(self) -> None:
+        self.results.clear()
+        while self.grid.count():
+            item = self.grid.takeAt(0)
+            w = item.widget() if item is not None else None
+            if w is not None:
+                w.deleteLater()
+        self.latest.setText("")
+        self.latest.setStyleSheet(f"font-size: {self._letter_px}px; font-weight: bold; border: 2px solid #ccc;")
+        self.score.setText("")
+        self.detail.setText("")
+
+    def add(self, trial_id: int, truth: str, predicted: str) -> None:
+        """Show one prediction: the big letter (green: right, red: wrong), its tile, the score."""
+        self.results.append((trial_id, truth, predicted))
+        ok = truth == predicted
+        colour = "#2a2" if ok else "#d22"
+        self.latest.setText(predicted)
+        self.latest.setProperty("correct", ok)
+        self.detail.setText(f"#{trial_id}: predicted {predicted}, the plate was {truth}: "
+                            f"{'right' if ok else 'WRONG'}")
+        self.latest.setToolTip(self.detail.text())
+        self.latest.setStyleSheet(f"font-size: {self._letter_px}px; font-weight: bold; color: white; "
+                                  f"background: {colour};")
+        tile = QtWidgets.QLabel(f"<b style='font-size:20px'>{predicted}</b><br>true {truth}<br>#{trial_id}")
+        tile.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        tile.setFixedSize(70, 70)
+        tile.setStyleSheet(f"background: {colour}; color: white; border-radius: 4px;")
+        tile.setProperty("correct", ok)
+        n = len(self.results) - 1
+        if self.grid.count() >= MAX_TILES:
+            item = self.grid.takeAt(0)
+            old = item.widget() if item is not None else None
+            if old is not None:
+                old.deleteLater()
+            n = MAX_TILES - 1
+            # re-flow the remaining tiles
+            items = [self.grid.itemAt(i) for i in range(self.grid.count())]
+            widgets = [it.widget() for it in items if it is not None]
+            for i, kept in enumerate(w for w in widgets if w is not None):
+                self.grid.addWidget(kept, i // self.per_row, i % self.per_row)
+        self.grid.addWidget(tile, n // self.per_row, n % self.per_row)
+        correct = sum(t == p for _, t, p in self.results)
+        self.score.setText(f"{correct}/{len(self.results)} correct ({100 * correct / len(self.results):.0f} %)")
+
+
 class ClassifyView(QtWidgets.QWidget):
     """The real-time classification tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
@@ -44,28 +118,14 @@ class ClassifyView(QtWidgets.QWidget):
         self.model_path: str | None = None
         self._pending: collections.deque = collections.deque()
         self._job: Job | None = None
-        self.results: list[tuple[int, str, str]] = []  # (trial_id, truth, predicted)
+        self.board = PredictionBoard()
+        self.results = self.board.results  # (trial_id, truth, predicted)
+        self.score, self.latest, self.grid = self.board.score, self.board.latest, self.board.grid
 
         self.model_label = QtWidgets.QLabel("No model: train one in the Analysis tab (Train model for the real-time "
                                             "view) or load a model file (rigctl analyze --save-model), then run a "
                                             "protocol.")
         self.model_label.setWordWrap(True)
-        self.score = QtWidgets.QLabel("")
-        self.score.setObjectName("classify_score")
-        self.score.setStyleSheet("font-size: 16px; font-weight: bold;")
-        self.latest = QtWidgets.QLabel("")
-        self.latest.setObjectName("classify_latest")
-        self.latest.setAlignment(QtCore.Qt.AlignCenter)
-        self.latest.setMinimumHeight(140)
-        self.latest.setStyleSheet("font-size: 64px; font-weight: bold; border: 2px solid #ccc;")
-        self.grid = QtWidgets.QGridLayout()
-        self.grid.setSpacing(4)
-        self.grid.setAlignment(QtCore.Qt.AlignTop | QtCore.Qt.AlignLeft)
-        gw = QtWidgets.QWidget()
-        gw.setLayout(self.grid)
-        scroll = QtWidgets.QScrollArea()
-        scroll.setWidgetResizable(True)
-        scroll.setWidget(gw)
         clear = QtWidgets.QPushButton("Clear")
         clear.clicked.connect(self.clear)
         load = QtWidgets.QPushButton("Load model...")
@@ -81,7 +141,7 @@ class ClassifyView(QtWidgets.QWidget):
         lay.addLayout(top)
         lay.addWidget(QtWidgets.QLabel("Finished trials (newest last): predicted texture; green = correct, red = "
                                        "wrong, the true texture below"))
-        lay.addWidget(scroll, 1)
+        lay.addWidget(self.board.tiles, 1)
 
     def load_model(self, path: str) -> None:
         """Use the model file ``path`` for the trials to come. Raises :class:`rigctl.storage.model_file.ModelFileError`
@@ -109,13 +169,7 @@ class ClassifyView(QtWidgets.QWidget):
             self.model_label.setText(f"<span style='color:{on_window(ERROR, self)}'>cannot load {escaped(path)}: {escaped(exc)}</span>")
 
     def clear(self) -> None:
-        self.results.clear()
-        while self.grid.count():
-            w = self.grid.takeAt(0).widget()
-            if w is not None:
-                w.deleteLater()
-        self.latest.setText("")
-        self.score.setText("")
+        self.board.clear()
 
     def on_trial(self, planned, data) -> None:
         """A finished trial from the protocol runner (GUI thread); classified in a worker thread."""
@@ -140,26 +194,4 @@ class ClassifyView(QtWidgets.QWidget):
             job.start()
 
     def _add(self, trial_id: int, truth: str, predicted: str) -> None:
-        self.results.append((trial_id, truth, predicted))
-        ok = truth == predicted
-        colour = "#2a2" if ok else "#d22"
-        self.latest.setText(predicted)
-        self.latest.setStyleSheet(f"font-size: 64px; font-weight: bold; color: white; background: {colour};")
-        tile = QtWidgets.QLabel(f"<b style='font-size:20px'>{predicted}</b><br>true {truth}<br>#{trial_id}")
-        tile.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
-        tile.setFixedSize(70, 70)
-        tile.setStyleSheet(f"background: {colour}; color: white; border-radius: 4px;")
-        tile.setProperty("correct", ok)
-        n = len(self.results) - 1
-        if self.grid.count() >= MAX_TILES:
-            w = self.grid.takeAt(0).widget()
-            if w is not None:
-                w.deleteLater()
-            n = MAX_TILES - 1
-            # re-flow the remaining tiles
-            widgets = [self.grid.itemAt(i).widget() for i in range(self.grid.count())]
-            for i, w in enumerate(widgets):
-                self.grid.addWidget(w, i // 12, i % 12)
-        self.grid.addWidget(tile, n // 12, n % 12)
-        correct = sum(t == p for _, t, p in self.results)
-        self.score.setText(f"{correct}/{len(self.results)} correct ({100 * correct / len(self.results):.0f} %)")
+        self.board.add(trial_id, truth, predicted)

@@ -5,7 +5,8 @@ It opens the main window on the simulated rig and drives each tab the way an exp
 run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
 analysis_table1.png, analysis_confusion.png, calibration.png, classify.png; then stopped.png (a run stopped by STOP,
-resumable) and fault.png (the latched-fault dialog after the e-stop, the whole screen).
+resumable), fault.png (the latched-fault dialog after the e-stop, the whole screen) and handheld.png (the handheld
+tab in a real-time block; ``python -m rigctl_gui.screenshots OUT_DIR handheld`` takes it alone, without the drum rig).
 ``--scale 1.5`` takes them at Qt's scale factor 1.5 (``QT_SCALE_FACTOR``; each ``--size`` is then the screen's pixels,
 the window 1/1.5 of it in Qt's), ``--palette dark`` with a dark desktop palette
 (:func:`rigctl_gui.colours.dark_palette`). ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
@@ -99,6 +100,11 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
             print("saved", path, f"({w.width()}x{w.height()})")
         w.resize(*size)
 
+    if only and set(only) <= {"handheld"}:  # the handheld rig needs no drum rig: its shot alone
+        handheld_shots(w, app, shot, tmp)
+        w._close_confirmed = True
+        w.close()
+        return 0
     assert wait(lambda: w.handle is not None, 60), w.banner.text
     # calibration first (the drum must be released for TARE)
     w.tabs.setCurrentWidget(w.calibration)
@@ -171,9 +177,50 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     wait(lambda: not w.classify._pending and w.classify._job is None, 120)
     shot("classify.png")
     safety_shots(w, app, out_dir, tmp, only)
+    handheld_shots(w, app, shot, tmp)
     w._close_confirmed = True
     w.close()
     return 0
+
+
+def handheld_shots(w, app, shot, tmp: str) -> None:
+    """handheld.png: the handheld tab in the middle of a real-time block on the simulated operator (the last go cue,
+    the predictions so far), with a classifier trained on a training block (2 scans per texture and profile,
+    recorded and encoded here) and calibrated on the calibration block the tab records (1 per texture and
+    profile)."""
+    from rigctl.acquisition.builtin import find_protocol
+    from rigctl.acquisition.protocol import load_protocol
+    from rigctl.encoding.pipeline import encode_session
+    from rigctl.operations import ProtocolRun, RigSource, open_control
+
+    def wait(pred, timeout_s):
+        return wait_for(app, pred, timeout_s)
+
+    training = os.path.join(tmp, "handheld_training.h5")
+    proto = load_protocol(find_protocol("handheld_training"))
+    with open_control(RigSource("handheld"), seed=11) as control:
+        ProtocolRun(control, type(proto)(**{**proto.__dict__, "trials_per_condition": 2}), training).run()
+    enc = str(encode_session(training, training.removesuffix(".h5") + ".enc.h5",
+                             variants=["realtime_original", "realtime_speed_scaled"]))
+    tab = w.handheld
+    w.tabs.setCurrentWidget(tab)
+    tab.training.setText(enc)
+    tab.per_condition.setValue(1)
+    tab.out_dir.setText(tmp)
+    tab.open_rig()
+    wait(lambda: tab.control is not None, 60)
+    tab.start_block("calibration")
+    wait(lambda: tab.calibration_enc is not None, 300)
+    tab.start_block("realtime")
+    wait(lambda: len(tab.board.results) >= 12, 300)
+    tab.run.pause()
+    wait(lambda: tab.run is None or tab.run.state == "paused", 60)
+    wait(lambda: False, 0.5)
+    shot("handheld.png")
+    if tab.run is not None:
+        tab.run.resume()
+    wait(lambda: tab.run is None and tab.job is None, 300)
+    tab.close_rig()
 
 
 #: the shots of :func:`safety_shots`

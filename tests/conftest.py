@@ -330,3 +330,28 @@ def installed_plugins(csvboard_plugin, monkeypatch):
     yield csvboard_plugin
     monkeypatch.undo()
     rig_entries.cache_clear()
+
+
+def small_handheld_protocol(*textures: str) -> str:
+    """A handheld protocol's TOML (issue 37's tests): ``textures`` (default B, L), one scan of each with the profiles
+    fast (120 mm/s) and slow-to-fast (40 -> 120 mm/s)."""
+    labels = ", ".join(f'"{t}"' for t in (textures or ("B", "L")))
+    return f"""
+name = "handheld_small"
+rig = "handheld"
+textures = [{labels}]
+forces_g = [500]
+trials_per_condition = 1
+travel_mm = 200
+
+[[profiles]]
+name = "fast"
+kind = "constant"
+speed_mm_s = 120
+
+[[profiles]]
+name = "slow-to-fast"
+kind = "ramp"
+start_mm_s = 40
+end_mm_s = 120
+"""

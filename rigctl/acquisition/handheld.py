@@ -231,6 +231,10 @@ class HandheldRig(Rig):
         self.homed_once = False
         #: ``on_marker(event, host_time_s, fields)`` receivers (the LSL publisher): scan_enter / scan_leave
         self.marker_listeners: list[Callable[[str, float, dict[str, Any]], Any]] = []
+        #: ``on_cue(cue, text, fields)`` receivers of what the operator is told (the rig owner's event stream):
+        #: ``plate`` (move to plate ``texture``) and ``go`` (scan it now with ``profile``); fields: texture, profile,
+        #: trial_id, speeds
+        self.cue_listeners: list[Callable[[str, str, dict[str, Any]], Any]] = []
 
     @property
     def layout(self) -> SensorLayout:
@@ -241,6 +245,10 @@ class HandheldRig(Rig):
             self.prompt(text)
         else:
             log.info("%s", text)
+
+    def _cue(self, cue: str, text: str, fields: dict[str, Any]) -> None:
+        for listener in list(self.cue_listeners):
+            listener(cue, text, fields)
 
     def describe(self) -> dict:
         """JSON-able: mode, the source's description, the plate axis, the sensor, the texture set, the rig config."""
@@ -266,7 +274,9 @@ class HandheldRig(Rig):
     def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
         """Ask the operator to move to plate ``label`` (a label of :attr:`textures`)."""
         label = self.textures.resolve(str(label))
-        (prompt or self._say)(f"plate {label}: put the finger at the start of plate {label}, then confirm")
+        text = f"plate {label}: put the finger at the start of plate {label}, then confirm"
+        self._cue("plate", text, {"texture": label})
+        (prompt or self._say)(text)
         self.texture = label
 
     def safe_stop(self) -> bool:
@@ -292,6 +302,10 @@ class HandheldRig(Rig):
                 f" at about {planned.speed_mm_s:g} mm/s")
         cue = f"plate {planned.texture}, profile {planned.profile}{ramp}: go"
         with self._lock:
+            start, end = ((planned.ramp_start_mm_s, planned.ramp_end_mm_s) if planned.is_ramp else
+                          (planned.speed_mm_s, planned.speed_mm_s))
+            self._cue("go", cue, {"texture": planned.texture, "profile": planned.profile,
+                                  "trial_id": planned.trial_id, "start_mm_s": float(start), "end_mm_s": float(end)})
             self._say(cue)
             started = _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
             raw = self.source.scan(planned, stop=lambda: bool(stop_event and stop_event.is_set()))

@@ -162,7 +162,14 @@ class RigControl:
             self._monitor = RigMonitor(self.drum, self.stop)
             self._monitor.subscribe(self._latch_from)
             self._rig.safety.listeners.append(self._latch_event)
+            cues = getattr(self._rig, "cue_listeners", None)
+            if cues is not None:  # the handheld rig: what its operator is told goes on the stream
+                cues.append(self._cue_event)
         return self._monitor
+
+    def _cue_event(self, cue: str, text: str, fields: dict[str, Any]) -> None:
+        """The handheld rig told its operator something: a ``prompt`` event (``fields["cue"]``: plate / go)."""
+        self.publish(RigEvent("prompt", text, time.monotonic(), fields={"cue": cue, **fields}))
 
     def _latch_event(self, item: Latch | Acknowledgement) -> None:
         """The safety latch tripped or was acknowledged: a ``latch`` event on the stream."""

@@ -12,6 +12,7 @@ and, with an LSL publisher, out as a ``prediction`` marker.
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -21,6 +22,8 @@ import numpy as np
 from rigctl.acquisition.runner import TrialEvent
 from rigctl.core.normalisation import TaxelRange
 from rigctl.core.trial import TrialData
+from rigctl.operations._control import RigControl
+from rigctl.operations._monitor import RigEvent
 
 __all__ = ["Prediction", "ScanClassifier", "recorded_predictions"]
 
@@ -60,6 +63,8 @@ class ScanClassifier:
     n_pcs : principal components (the paper: 25).
     on_prediction : receives each :class:`Prediction`.
     lsl : an :class:`rigctl.operations.LslPublisher` (its marker outlet), or None.
+    control : the rig's owner (:class:`rigctl.operations.RigControl`): each prediction also goes on its event
+        stream as a ``prediction`` :class:`rigctl.operations.RigEvent` (what the GUI listens to), or None.
 
     Raises
     ------
@@ -69,7 +74,8 @@ class ScanClassifier:
 
     def __init__(self, training: str | os.PathLike[str], *, calibration: str | os.PathLike[str] | None = None,
                  variant: str = "realtime_speed_scaled", n_pcs: int = 25,
-                 on_prediction: Callable[[Prediction], Any] | None = None, lsl: Any = None) -> None:
+                 on_prediction: Callable[[Prediction], Any] | None = None, lsl: Any = None,
+                 control: RigControl | None = None) -> None:
         # the encoder (numba) and the classifier (scikit-learn) load when a classifier is made, not with the layer
         from rigctl.analysis.realtime_model import RealtimeClassifier
         from rigctl.encoding.params import EncodeParams
@@ -90,7 +96,7 @@ class ScanClassifier:
                     raise ValueError(f"{calibration} holds no {variant} features")
                 self.model.calibrate(c.features(variant))
         self.encoder = ScanEncoder(TaxelRange(norm["taxel_min"], norm["taxel_max"]), self.params)
-        self.on_prediction, self.lsl = on_prediction, lsl
+        self.on_prediction, self.lsl, self.control = on_prediction, lsl, control
         self.predictions: list[Prediction] = []
 
     def features(self, data: TrialData) -> np.ndarray:
@@ -121,6 +127,10 @@ class ScanClassifier:
         self.predictions.append(pred)
         if self.on_prediction is not None:
             self.on_prediction(pred)
+        if self.control is not None:
+            self.control.publish(RigEvent("prediction", pred.line(), time.monotonic(), fields={
+                "trial_id": pred.trial_id, "truth": pred.truth, "profile": pred.profile, "predicted": pred.predicted,
+                "correct": pred.correct, "variant": self.variant}))
         if self.lsl is not None:
             self.lsl.run_marker("prediction", trial_id=pred.trial_id, truth=pred.truth, profile=pred.profile,
                                 predicted=pred.predicted, correct=pred.correct, variant=self.variant)

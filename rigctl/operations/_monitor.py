@@ -29,7 +29,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,8 +49,9 @@ log = logging.getLogger(__name__)
 #: what a :class:`RigEvent` can be: every status read (``status``), a new controller state (``state``), latched
 #: fault bits set or cleared (``faults``), the drum link lost or back (``link``), the dead man's switch stopping the
 #: rig (``deadman``), and what other parts publish through :meth:`RigMonitor.publish`: the safety latch tripped or
-#: acknowledged (``latch``), a run's progress (``progress``) and its trial events (``run``)
-EVENT_KINDS = ("status", "state", "faults", "link", "deadman", "latch", "progress", "run")
+#: acknowledged (``latch``), a run's progress (``progress``) and its trial events (``run``), what the handheld rig's
+#: operator is told (``prompt``: ``fields["cue"]`` "plate" or "go") and a scan's live prediction (``prediction``)
+EVENT_KINDS = ("status", "state", "faults", "link", "deadman", "latch", "progress", "run", "prompt", "prediction")
 #: how long a face's heartbeat may be silent while the rig moves before the rig is stopped, s (issue 35)
 DEADMAN_TIMEOUT_S = 0.5
 #: the states in which the rig moves: the force loop presses the sensor, or the drum turns
@@ -77,6 +78,8 @@ class RigEvent:
     trial : the run's :class:`rigctl.acquisition.runner.TrialEvent` (``run``), else None.
     latch : the :class:`rigctl.acquisition.safety.Latch` tripped or the
         :class:`rigctl.acquisition.safety.Acknowledgement` that cleared one (``latch``), else None.
+    fields : the details of a ``prompt`` (cue, texture, profile, trial_id, start/end speeds) or a ``prediction``
+        (trial_id, truth, profile, predicted, correct, variant), JSON-able; else None.
     """
 
     kind: str
@@ -86,6 +89,7 @@ class RigEvent:
     progress: ProgressEvent | None = None
     trial: TrialEvent | None = None
     latch: Latch | Acknowledgement | None = None
+    fields: dict[str, Any] | None = None
 
 
 def commanded(status: DrumStatus) -> bool:

@@ -19,25 +19,9 @@ from rigctl.rigs import open_rig
 from rigctl.simulation.operator import SimulatedOperator
 from rigctl.storage.session import open_session
 
-SMALL = """
-name = "handheld_small"
-rig = "handheld"
-textures = ["A", "L"]
-forces_g = [500]
-trials_per_condition = 1
-travel_mm = 200
+from ..conftest import small_handheld_protocol
 
-[[profiles]]
-name = "fast"
-kind = "constant"
-speed_mm_s = 120
-
-[[profiles]]
-name = "slow-to-fast"
-kind = "ramp"
-start_mm_s = 40
-end_mm_s = 120
-"""
+SMALL = small_handheld_protocol("A", "L")
 
 
 def _planned(profile="fast", speed=120.0, ramp=(math.nan, math.nan), texture="L"):
@@ -193,7 +177,7 @@ def test_nwb_export_holds_the_tracker_as_time_series(tmp_path):
     from rigctl.storage.nwb import export_nwb
 
     proto_path = tmp_path / "small.toml"
-    proto_path.write_text(SMALL.replace('textures = ["A", "L"]', 'textures = ["L"]'))
+    proto_path.write_text(small_handheld_protocol("L"))
     with open_rig("handheld", seed=6, host_config_path=tmp_path / "rig.json") as rig:
         assert run_protocol(load_protocol(proto_path), tmp_path / "hh.h5", rig=rig).ok
     export_nwb(tmp_path / "hh.h5", tmp_path / "hh.nwb")

@@ -15,25 +15,9 @@ from rigctl.encoding.pipeline import encode_session
 from rigctl.rigs import open_rig
 from rigctl.storage.session import SessionWriter, open_session
 
-SMALL = """
-name = "handheld_small"
-rig = "handheld"
-textures = ["B", "L"]
-forces_g = [500]
-trials_per_condition = 1
-travel_mm = 200
+from ..conftest import small_handheld_protocol
 
-[[profiles]]
-name = "fast"
-kind = "constant"
-speed_mm_s = 120
-
-[[profiles]]
-name = "slow-to-fast"
-kind = "ramp"
-start_mm_s = 40
-end_mm_s = 120
-"""
+SMALL = small_handheld_protocol("B", "L")
 
 
 @pytest.fixture(scope="module")
