@@ -374,8 +374,11 @@ class LiveView(QtWidgets.QWidget):
 
         self.gl = TimedGraphicsLayout()
         self.gl.painted.connect(self._on_painted)
-        # the plots' own width changes without the tab's when the scroll bar comes or goes: fitted once settled
-        self.gl.resized.connect(lambda: QtCore.QTimer.singleShot(0, self.fit_plots))
+        # the text is fitted to the plots once their layout has settled, after any change of their size: the tab's,
+        # the plots' widget's alone (the scroll bar comes or goes), or a rebuild for a layout (a reconnected board)
+        self._fit_timer = QtCore.QTimer(self, singleShot=True, interval=0)
+        self._fit_timer.timeout.connect(self.fit_plots)
+        self.gl.resized.connect(self._fit_timer.start)
         self.gl.ci.layout.setSpacing(4)
         self.set_layout(layout)
 
@@ -516,11 +519,10 @@ class LiveView(QtWidgets.QWidget):
         for row in range(n_layers + 2):
             grid.setRowStretchFactor(row, 2 if n_layers == 1 and row == 0 else 1)
         mark_containers(self.gl.ci)
+        for vb in [p.vb for p in self.time_plots] + [img.getViewBox() for img in self.images]:
+            vb.sigResized.connect(self._fit_timer.start)
         self.fit_plots()
-
-    def resizeEvent(self, ev):  # noqa: N802 - Qt override
-        super().resizeEvent(ev)
-        QtCore.QTimer.singleShot(0, self.fit_plots)  # once the layout has settled
+        self._fit_timer.start()
 
     def fit_plots(self) -> None:
         """Fit the plots' text to their size: each time plot's title in the largest of :data:`TITLE_SIZES_PT` that

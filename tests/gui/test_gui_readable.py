@@ -27,10 +27,16 @@ SCALED_1280x800 = (853, 533)
 
 
 def _live_geometry(window, qapp, size):
+    from rigctl_gui.live_view import MIN_TRACE_PX
+
     window.resize(*size)
     window.tabs.setCurrentWidget(window.live)
-    wait_for(qapp, lambda: False, 0.5)  # the layout settles, fit_plots runs
-    return window.live
+    live = window.live
+    # the layout settles and the text is fitted (a loaded machine: up to 5 s; the assertions judge what it shows)
+    wait_for(qapp, lambda: not live._fit_timer.isActive() and min(p.vb.height() for p in live.trace_plots)
+             >= MIN_TRACE_PX, 5)
+    wait_for(qapp, lambda: False, 0.2)
+    return live
 
 
 @pytest.mark.parametrize("size", [SCALED_1280x800, (1024, 700)], ids=["1.5x-1280x800", "1024x700"])
@@ -80,6 +86,15 @@ def test_the_live_view_keeps_readable_plots_and_its_colour_bar(inprocess_window,
         assert label.toPlainText().strip() == "ADC counts"
         on_screen = live.gl.mapFromScene(label.mapRectToScene(label.boundingRect())).boundingRect()
         assert label.isVisible() and view.contains(QtCore.QRectF(on_screen)), (on_screen, view)
+        # rebuilt for a sensor (a board reconnected) with no resize: the taxel numbers stay hidden in small cells
+        from rigctl_gui.live_view import MIN_LABELLED_CELL_PX
+
+        layout, live.sensor_layout = live.sensor_layout, None
+        live.set_layout(layout)
+        wait_for(qapp, lambda: not live._fit_timer.isActive(), 5)
+        wait_for(qapp, lambda: False, 0.2)
+        cell = min(i.mapRectToScene(i.boundingRect()).width() / i.image.shape[1] for i in live.images)
+        assert cell < MIN_LABELLED_CELL_PX and not any(t.isVisible() for t in live.taxel_labels), cell
     finally:
         inprocess_window.resize(1400, 900)
 
@@ -110,16 +125,22 @@ def test_every_label_is_readable_with_a_dark_palette(inprocess_window, qapp, dar
     w.control.command("run")
     try:
         assert wait_for(qapp, lambda: "Running" in w.drum_state.text(), 30), w.drum_state.text()
-        bad = []
-        for tab in (w.control, w.live, w.calibration):
-            w.tabs.setCurrentWidget(tab)
-            wait_for(qapp, lambda: False, 1.0)  # state colours follow at the next refresh
-            for label in w.findChildren(QtWidgets.QLabel):
+        from rigctl_gui.widgets import StatusText
+
+        def unreadable() -> list[tuple[str, float]]:
+            bad = []
+            for label in [*w.findChildren(QtWidgets.QLabel), *w.findChildren(StatusText)]:
                 if label.isVisible() and label.isEnabled() and label.text().strip() and label.width() > 4:
                     c = _text_contrast(label)
                     if c < MIN_CONTRAST:
                         bad.append((label.objectName() or label.text()[:40], round(c, 2)))
-        assert not bad, bad
+            return bad
+
+        for tab in (w.control, w.live, w.calibration):
+            w.tabs.setCurrentWidget(tab)
+            wait_for(qapp, lambda: False, 1.0)  # state colours follow at the next refresh
+            assert wait_for(qapp, lambda: not unreadable(), 5), (type(tab).__name__, unreadable())
+        assert "Running" in w.drum_state.text()
     finally:
         w.control.command("stop")
 
