@@ -335,7 +335,7 @@ def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
     from rigctl_gui.workers import LiveEncoder
 
-    class Rig:
+    class Control:  # the rig's RigControl as the window reads it: no layout of its own, no stored normalisation
         layout = None
         textures = PAPER_TEXTURES
 
@@ -344,7 +344,7 @@ def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_
 
     class Handle:
         def __init__(self, stream):
-            self.taxels, self.rig = stream, Rig()
+            self.taxels, self.control = stream, Control()
 
         def close(self):
             pass
