@@ -194,6 +194,16 @@ def _scan_classifier(classify: Path | None, calibration: Path | None, variant: s
         raise UsageProblem(f"--classify: {' '.join(str(exc).split())}") from None
 
 
+def _cues_on_the_terminal(control: Any, source: Any) -> None:
+    """A handheld rig with a live motion source (a tracker, a motion board): each cue the rig gives its operator
+    (the plate, then each scan's profile and go) is a line on stderr, from the rig's event stream (``prompt``
+    events). The simulated operator and a replayed session need none (they follow the plan by themselves)."""
+    motion = str(getattr(source, "motion", None) or "sim")
+    if source.kind != "handheld" or motion == "sim" or motion.startswith("replay:"):
+        return
+    control.subscribe(lambda ev: click.echo(f"operator: {ev.message}", err=True) if ev.kind == "prompt" else None)
+
+
 def _prediction_lines(classifier: Any, out: Path, replay: Any) -> list[str]:
     """The summary's lines on the live predictions (none without --classify): the score; the predictions are logged
     into the session; a replayed handheld session's are compared with those its recording logged."""
@@ -416,6 +426,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(not quiet) as progress:
         _bars_follow_the_rig(control, progress)
+        _cues_on_the_terminal(control, source)
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
             # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement
             run = ProtocolRun(control, proto, out, resume=resume, on_failure=on_failure,

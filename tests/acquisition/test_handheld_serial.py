@@ -90,6 +90,10 @@ def test_a_handheld_run_recorded_from_the_simulated_motion_board(tmp_path, monke
     finally:
         board.close()
     assert res.exit_code == 0, res.output
+    # the operator's cues on the terminal (a live motion source: nobody else tells the operator what to scan)
+    cues = [line for line in res.output.splitlines() if line.startswith("operator: ")]
+    assert cues[0] == "operator: plate B: put the finger at the start of plate B, then confirm"
+    assert cues[1:] == ["operator: plate B, profile fast at about 120 mm/s: go"] * 2
     with open_session(tmp_path / "s.h5") as s:
         assert s.rig_config["scan_source"]["kind"] == "tracked_finger"
         assert s.rig_config["scan_source"]["port"] == board.path
