@@ -699,6 +699,8 @@ class Rig:
             st = self.drum.read_status()
         self.drum.set_force(force_g)
         if st.state not in (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED):
+            if getattr(st, "stiffness_max_g_per_mm", 0) and not st.contact_stiffness_g_per_mm:
+                timeout_s += wire.probe_time_s(st.hx711_rate_sps)  # the first press probes the contact (spec 2.10)
             self.drum.press()
         # the controller may still report FORCE_SETTLED for the previous setpoint for one control period
         tol = self.drum.settle_band().force_tolerance_g

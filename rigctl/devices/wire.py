@@ -321,6 +321,19 @@ FORCE_LEAD_PERIODS = 3
 PROBE_CONTACT_G = 50
 PROBE_TRAVEL_UM = 100
 PROBE_STEP_UM = 20
+#: the contact travel :func:`probe_time_s` allows for, mm (the simulated rigs' gap is 3 mm)
+PROBE_ALLOWANCE_TRAVEL_MM = 5.0
+
+
+def probe_time_s(hx711_rate_sps: float, travel_mm: float = PROBE_ALLOWANCE_TRAVEL_MM) -> float:
+    """What the first press after a reset spends on its contact probe (spec 2.10) beyond a plain press, at most, s:
+    ``travel_mm`` to the contact at the probe's speed plus two settles of HX711_RATE_PERIODS + 1 readings (a host
+    adds it to its settle timeout; 16 s at 10 SPS, 2 s at 80 SPS)."""
+    period = 1.0 / hx711_rate_sps if hx711_rate_sps > 0 else 0.1
+    speed_mm_s = PROBE_TRAVEL_UM * 1e-3 / (FORCE_LEAD_PERIODS * period)
+    return travel_mm / speed_mm_s + 2 * (HX711_RATE_PERIODS + 1) * period
+
+
 #: the stiffest contact accepted: LOOP_PHASE_RAD / (Kp x HX711_DELAY_PERIODS x the HX711 period)
 LOOP_PHASE_RAD = 0.75
 HX711_DELAY_PERIODS = 2.5

@@ -83,8 +83,10 @@ def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path):
         assert rig.drum.force_loop() == loop
         st = rig.drum.read_status()
         assert st.faults == Fault(0) and st.hx711_rate_sps == pytest.approx(10, rel=0.02)
-        rig.press(500, timeout_s=30)
-        assert rig.drum.read_status().state == DrumState.FORCE_SETTLED
+        assert not st.contact_stiffness_g_per_mm  # the first press probes the contact: ~10 s at 10 SPS (spec 2.10)
+        rig.press(500, timeout_s=10)  # 12.8 s of which ~10.5 s probe: in time with the allowance (wire.probe_time_s)
+        st = rig.drum.read_status()
+        assert st.state == DrumState.FORCE_SETTLED and st.contact_stiffness_g_per_mm == pytest.approx(1000, rel=0.1)
 
 
 @pytest.mark.hil
