@@ -109,6 +109,16 @@ def test_encode_bars_are_named_for_what_they_do(session, tmp_path):
     assert not re.findall(r"(reading trials|range pass|encoding):", r.stderr), r.stderr
 
 
+def test_acquire_draws_its_bar_only_on_a_terminal_or_when_asked(tmp_path):
+    """acquire follows the other long commands' rule (issue 38): its trial bar is drawn on a terminal or with
+    ``--progress``, not into a log (a CI log held 3,000 characters of bar redraws and no error line)."""
+    for extra, drawn in (([], False), (["--progress"], True)):
+        out = tmp_path / f"q{len(extra)}{drawn}.h5"
+        r = CliRunner().invoke(main, ["acquire", "quick_check", "--inprocess", "--out", str(out), *extra])
+        assert r.exit_code == 0, r.output
+        assert bool(re.search(r"quick_check: +\d+%", r.stderr)) == drawn, (extra, r.stderr[-500:])
+
+
 def test_encode_writes_enc_h5_by_default_and_outputs_keep_their_format(session, tmp_path):
     """One default suffix (``d.h5`` -> ``d.enc.h5``, as the docs write it) and an output's extension checked against
     the format written: ``--out x.csv`` for an HDF5 writer is one usage line, nothing written (issue 38)."""

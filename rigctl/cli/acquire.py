@@ -16,7 +16,7 @@ from typing import Any
 import click
 
 from rigctl.cli.outputs import HDF5_SUFFIXES, UsageProblem, check_output
-from rigctl.cli.progress import bars
+from rigctl.cli.progress import bars, progress_option, show_bars
 from rigctl.cli.protocols import PROTOCOL
 from rigctl.cli.ranges import SEED
 from rigctl.cli.rig_flags import (
@@ -342,12 +342,12 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @inject_option
 @allow_firmware_mismatch_option
 @truth_log_option
-@click.option("--quiet", is_flag=True, default=False, help="No progress bar.")
+@progress_option
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, rig, rig_options, replay,
             handheld, motion, classify,
             calibration, classify_variant, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
             plates, lsl, lsl_wait_s,
-            inject, allow_firmware_mismatch, truth_log, quiet):
+            inject, allow_firmware_mismatch, truth_log, progress):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -424,7 +424,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
                               options=rig_options), truth_log)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
-    with control, bars(not quiet) as progress:
+    with control, bars(show_bars(progress)) as progress:
         _bars_follow_the_rig(control, progress)
         _cues_on_the_terminal(control, source)
         try:  # in this thread: Ctrl-C and SIGTERM stop the run cleanly
