@@ -601,7 +601,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.commands.close()
         if self.encoder is not None:
             self.encoder.stop()
-            self.encoder.join(timeout=5)  # never leave a numba call running at interpreter exit
+            if self.encoder.ident is not None:  # (an encoder never started, after a failed connect, has no thread)
+                self.encoder.join(timeout=5)  # never leave a numba call running at interpreter exit
         self.handle = self.poller = self.commands = self.encoder = None
         self._faults = 0
         self._latch_seen = None
