@@ -8,8 +8,9 @@ and the controller make of it is theirs: the controller latches its faults, the 
 (:mod:`rigctl.acquisition.safety`) pauses the run. The firmware under simavr (``--hil``) implements the same
 hook with its harness.
 
-``taxel-ohm`` is refused: the model's sensor has no source impedance (the multiplexer's crosstalk lives in the
-firmware's ADC under simavr: ``--hil``).
+``taxel-ohm`` sets the source impedance of the taxel board's analog front end
+(:class:`rigctl.simulation.mux_rc.MuxFrontEnd`: the anti-alias RC and the mux the firmware discharges before each
+input; the firmware's own ADC under simavr with ``--hil``).
 """
 
 from __future__ import annotations
@@ -29,9 +30,6 @@ log = logging.getLogger(__name__)
 
 def model_fault_refusal(spec: FaultSpec) -> str | None:
     """Why no model rig can inject ``spec`` (None: they can)."""
-    if spec.name == "taxel-ohm":
-        return ("the simulated sensor has no source impedance (the multiplexer's crosstalk is modelled by the "
-                "firmware's ADC under simavr: use --hil)")
     return None
 
 
@@ -97,6 +95,8 @@ class ModelFaults:
         elif name == "host-silence" and self.drum_link is not None:
             self.host_silent = active
             self.drum_link(not active)
+        elif name == "taxel-ohm":  # the taxel board's front end (rigctl.simulation.mux_rc); ideal again at the end
+            m.front_end.source_ohm = float(spec.value or 0.0) if active else 0.0
         elif name == "taxel-link-drop" and self.taxel_link is not None:
             self.taxel_link(not active)
         else:  # refused before the schedule was armed (fault_refusal)

@@ -58,6 +58,7 @@ from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.textures import TextureSet
 from rigctl.devices import wire
 from rigctl.simulation.mechanics import step_mechanics
+from rigctl.simulation.mux_rc import MuxFrontEnd
 from rigctl.simulation.textures import TEXTURES, Texture, get_texture
 
 #: the model renders the paper's sensor (3x3 taxels, 2 layers: 18 channels), from its SensorLayout
@@ -772,6 +773,9 @@ class RigModel:
         #: and whether a speed mark (``drum.marks_per_rev`` per revolution of the real drum) passed in it
         self.last_stepper_mm = np.zeros(0)
         self.last_marks = np.zeros(0, bool)
+        #: the taxels' analog path into the Uno's ADC (source impedance, anti-alias RC, the mux; ideal until a
+        #: source impedance is set: ``--inject taxel-ohm=N``)
+        self.front_end = MuxFrontEnd(N_TAXELS, adc_max=ADC_MAX)
 
     # -- properties ------------------------------------------------------------------------------------------------
     @property
@@ -991,8 +995,8 @@ class RigModel:
             a = math.exp(-n * dt / 20.0)
             self._sensitivity = 1.0 + a * (self._sensitivity - 1.0) + c.sensitivity_drift * math.sqrt(1 - a * a) * float(
                 self._rng.standard_normal())
-            samples = self.sensor.render(self._texture, pos, force, self._rng, sensitivity=self._sensitivity,
-                                         wrap_mm=circ)
+            samples = self.front_end.apply(self.sensor.render(self._texture, pos, force, self._rng,
+                                                              sensitivity=self._sensitivity, wrap_mm=circ))
 
             self._speed_mm_s = float(speed)
             self._position_mm = float(pos[-1])

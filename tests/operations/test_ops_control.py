@@ -106,7 +106,7 @@ def test_home_unless_faulted_leaves_a_latched_fault_for_the_operator(control):
 def test_open_with_each_home_policy(tmp_path):
     with open_control(RigSource("inprocess"), home=Home.NEVER, host_config_path=tmp_path / "r.json") as c:
         assert c.mode == "inprocess" and c.places_mass and c.bench is not None  # the simulated bench's hand
-        assert c.bench.fault_refusal(parse_fault("taxel-ohm=100@1")) is not None  # no source impedance in the model
+        assert c.bench.fault_refusal(parse_fault("taxel-ohm=100@1")) is None  # the model's taxel front end
         assert c.layout.n_channels == 18
     with open_control(RigSource("inprocess"), home="unless_faulted", host_config_path=tmp_path / "r.json") as c:
         assert c.status().state == DrumState.IDLE

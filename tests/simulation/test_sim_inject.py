@@ -96,9 +96,26 @@ def test_inprocess_host_silence_trips_the_watchdog_in_simulated_time():
         assert st.state == DrumState.FAULT and Fault.WATCHDOG in st.faults
 
 
-def test_refusals_name_why():
-    with pytest.raises(FaultSpecError, match="source impedance.*--hil"):
-        open_rig("inprocess", inject=["taxel-ohm=47000@0"])
+def test_taxel_ohm_on_the_model_rig_reads_through_the_front_end():
+    """``taxel-ohm`` on the in-process rig: the taxel board's analog front end (rigctl.simulation.mux_rc, the same
+    RC and discharged mux as the simavr harness) reads a 1 MOhm taxel at 1 - exp(-17 us / 39 us) = 35 % of its
+    value, and nothing of its neighbours; 47 kOhm without C_aa leaves the codes exact. The figures match the
+    firmware's under simavr (tests/firmware/test_fw_uno_mux.py: 1023 reads 1020 at 47 kOhm and 15 nF)."""
+    import numpy as np
+
+    from rigctl.simulation.mux_rc import MuxFrontEnd
+
+    counts = np.tile(np.array([[0, 1023, 500] * 6], np.uint16), (20, 1))
+    fe = MuxFrontEnd(18, source_ohm=47_000.0)
+    assert np.array_equal(fe.apply(counts), counts)
+    fe = MuxFrontEnd(18, source_ohm=47_000.0, aa_c_nf=15.0)
+    assert fe.apply(counts)[-1, 1] == 1020 and fe.apply(counts)[-1, 0] == 0
+    with open_rig("inprocess", inject=["taxel-ohm=1000000@0.5"]) as rig:
+        model = rig.backend.model
+        assert model.front_end.source_ohm == 0.0
+        _wait(rig, 0.6)
+        assert model.front_end.source_ohm == 1e6
+        assert model.front_end.apply(counts)[-1, 1] == int(1023.5 * (1 - np.exp(-17e-6 / (1.00018e6 * 39e-12))))
 
 
 def test_inprocess_reset_hx711_rate_and_stall():
@@ -122,9 +139,8 @@ def test_cli_refuses_what_a_rig_cannot_inject_before_it_opens(tmp_path):
 
     runner = CliRunner()
     cases = [
-        (["doctor", "--inprocess", "--inject", "taxel-ohm=47000@0", "--no-save"], "no source impedance"),
-        (["acquire", "quick_check", "--inprocess", "--inject", "taxel-ohm=47000@0", "--out", str(tmp_path / "a.h5")],
-         "no source impedance"),
+        (["acquire", "quick_check", "--inprocess", "--inject", "slip=120%@0", "--out", str(tmp_path / "a.h5")],
+         "must be 0 to 100"),
         (["acquire", "quick_check", "--drum-port", "/dev/null", "--taxel-port", "/dev/null", "--inject", "estop@1",
           "--out", str(tmp_path / "b.h5")], "not on hardware"),
         (["doctor", "--inprocess", "--inject", "estop@x"], "not a number of seconds"),
