@@ -58,18 +58,19 @@ def test_a_stall_mid_run_latches_within_one_mark_interval(tmp_path):
 
 
 def test_a_long_correct_run_warns_of_no_slip_and_no_microsteps(tmp_path, caplog):
-    """Stops, starts and four speeds (40-150 mm/s): every trial's mark intervals agree with the steps to +-1 step
-    of 400 (0.25 %), far inside the 5 % tolerance, and no speed or microstep warning."""
+    """Stops, starts and four speeds (40-150 mm/s), 16 trials (~90 s of simulated time, ~3 s of CPU; the hour-long
+    run of docs/firmware.md "Speed marks" took 107 CPU-s): every trial's mark intervals agree with the steps to +-1
+    step of 400 (0.25 %), far inside the 5 % tolerance, and no speed or microstep warning."""
     proto = PROTO.replace('speeds_mm_s = [120]', 'speeds_mm_s = [40, 80, 120, 150]').replace(
-        'trials_per_condition = 3', 'trials_per_condition = 2')
+        'trials_per_condition = 3', 'trials_per_condition = 4')
     out = tmp_path / "s.h5"
     with caplog.at_level(logging.WARNING, logger="rigctl.acquisition"):
         with open_rig("inprocess", seed=5, host_config_path=tmp_path / "rig.json") as rig:
             summary = run_protocol(parse_protocol(proto), out, rig=rig, progress=False)
             simulated_s = rig.backend.engine.time_s
-    assert summary.ok and summary.complete == 8 and simulated_s > 40
+    assert summary.ok and summary.complete == 16 and simulated_s > 80
     with open_session(out) as s:
-        attrs = [s.trial_attrs(t) for t in range(8)]
+        attrs = [s.trial_attrs(t) for t in range(16)]
     assert all(a["drum_mark_intervals"] >= 2 and not a["drum_slip"] and not a["drum_speed_mismatch"] for a in attrs)
     assert max(abs(a["drum_slip_max"]) for a in attrs) <= 0.0025 + 1e-9  # +-1 microstep of 400
     assert all(a["drum_steps_per_rev_index"] in (0, 3199, 3200, 3201) for a in attrs)
