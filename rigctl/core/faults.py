@@ -35,6 +35,7 @@ FAULTS: dict[str, str] = {
     "reversed-cell": "the load cell reads reversed (negative under load) from T to T+D",
     "reversed-actuator": "the actuator moves the wrong way (away from the sensor when the loop presses) from T to T+D",
     "host-silence": "the host's link to the drum controller is cut (USB pulled) from T to T+D: nothing reaches it",
+    "reversed-drum": "the drum turns backwards (a swapped coil pair of its motor) from T to T+D",
     "stall": "the drum is blocked (its stepper loses every step: the index and speed marks stop passing) from T to T+D",
     "slip": "slip=N%: the drum turns N % less than its steps say (a slipping coupling; the speed marks come late) "
             "from T to T+D",

@@ -88,6 +88,8 @@ class ModelFaults:
             m.loadcell_sign = -1 if active else 1
         elif name == "reversed-actuator":
             m.actuator_sign = -1 if active else 1
+        elif name == "reversed-drum":
+            m.drum_sign = -1 if active else 1
         elif name == "stall":
             m.drum_blocked = active
         elif name == "slip":

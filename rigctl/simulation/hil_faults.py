@@ -33,6 +33,8 @@ _REFUSED: dict[str, str] = {
     "hx711-10sps": "the harness's HX711 rate is fixed when it starts (use a rig config with mechanics.hx711_rate_sps "
                    "= 10)",
     "taxel-link-drop": "the Uno's link cannot be cut in the harness (use --sim)",
+    "reversed-drum": "the taxels rendered for the Uno follow the Mega's drum steps, not a drum turning backwards "
+                     "(use --sim)",
 }
 
 

@@ -768,6 +768,8 @@ class RigModel:
         self.actuator_sign = -1 if self.config.mechanics.actuator_reversed else 1
         self.drum_blocked = False
         self.drum_slip = 0.0
+        #: the drum motor's direction: -1 turns it backwards (a swapped coil pair: fault injection)
+        self.drum_sign = 1
         self._motor_mm = 0.0  # the stepper's travel since construction, mm of surface (slip not included)
         #: of the last :meth:`advance`, per ms: the stepper's travel at its end (mm of surface, since construction)
         #: and whether a speed mark (``drum.marks_per_rev`` per revolution of the real drum) passed in it
@@ -847,7 +849,7 @@ class RigModel:
     def drum_speed_mm_s(self) -> float:
         """Actual (real) drum surface speed, mm/s (signed): the stepper's, less any slip."""
         with self._lock:
-            return self._speed_mm_s * (1.0 - self._slip())
+            return self._speed_mm_s * self.drum_sign * (1.0 - self._slip())
 
     @property
     def stepper_speed_mm_s(self) -> float:
@@ -984,7 +986,7 @@ class RigModel:
                 self._speed_mm_s, target, d.max_accel_mm_s2 * dt, self._position_mm, circ, self._actuator_mm, va * dt,
                 m.actuator_travel_mm, m.contact_gap_mm, d.runout_mm, self._runout_phase, m.contact_stiffness_g_per_mm,
                 m.texture_ripple, heights[1], period, float(mean[1]), float(self.sensor.config.pitch_mm), pos, sync_in,
-                force, self._slip(), motor)
+                force, 1.0 - self.drum_sign * (1.0 - self._slip()), motor)  # the kernel's slip: 2 turns it backwards
             self.last_stepper_mm = motor + self._motor_mm  # the stepper's travel at the end of each ms of the step
             self._motor_mm = float(self.last_stepper_mm[-1])
             slots = np.floor(np.concatenate(([self._position_mm], pos)) * (d.marks_per_rev / circ))

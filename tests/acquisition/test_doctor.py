@@ -78,7 +78,7 @@ def test_the_healthy_inprocess_rig_passes_and_the_report_is_stored(tmp_path):
     report, by = _run(tmp_path)
     assert report.ok, [r.line() for r in report.results if r.status == "fail"]
     for name in ("link", "controller-faults", "firmware-version", "hx711-rate", "loadcell-zero", "noise-floor",
-                 "crosstalk", "uno-clock", "loadcell-polarity", "force-step", "drum-speed"):
+                 "crosstalk", "uno-clock", "loadcell-polarity", "force-step", "drum-speed", "drum-direction"):
         assert by[name].status == "pass", by[name].line()
     # the virtual Mega reports the installed sources' build id (as if flashed by rigctl); the virtual Uno none, named
     own = firmware.build_id()
@@ -369,7 +369,8 @@ def test_cli_doctor_hil_passes(tmp_path):
     assert not [n for n, c in by.items() if c["status"] == "fail"], by
     for name in ("port-permissions", "link", "firmware-version", "firmware-build", "controller-faults", "reset-cause",
                  "e-stop",
-                 "hx711-rate", "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed"):
+                 "hx711-rate", "loadcell-zero", "noise-floor", "crosstalk", "loadcell-polarity", "force-step", "drum-speed",
+                 "drum-direction"):
         assert by[name]["status"] == "pass", by[name]
     # both images under simavr were built by rigctl from the installed sources: both boards report their build id
     assert by["firmware-build"]["values"]["mega_build"] == by["firmware-build"]["values"]["uno_build"] == \
@@ -512,3 +513,34 @@ def test_a_firmware_build_mismatch_is_refused_at_open_unless_allowed(monkeypatch
     assert result.exit_code != 0 and "rigctl firmware --flash" in result.output and "Traceback" not in result.output
     report, by = _run_service(tmp_path, None, ["firmware-build"])
     assert by["firmware-build"].status == "fail" and other in by["firmware-build"].summary
+
+
+def test_row_correlations_tell_the_drum_direction_on_a_periodic_texture():
+    """The back row repeats the front one ``lag`` samples later when the drum turns forwards; a 15 mm ridge period
+    correlates again one period away, outside the two windows searched (pure: no rig)."""
+    from rigctl.acquisition.doctor.measure import row_correlations
+
+    t = np.arange(2000) / 1000.0
+    ridges = lambda x: np.sign(np.sin(2 * np.pi * x / 15.0))  # noqa: E731 - 15 mm ridges
+    front, back = ridges(40.0 * t), ridges(40.0 * t - 10.0)  # 40 mm/s, rows 10 mm apart: 250 samples
+    fwd, bwd = row_correlations(np.c_[front, front], np.c_[back, back], 250)
+    assert fwd > 0.95 and bwd < 0.5  # the square ridges 20 +- 2 mm off: 3 mm out of phase at best
+    fwd, bwd = row_correlations(back, front, 250)  # the drum turning backwards: the back row leads
+    assert bwd > 0.95 and fwd < 0.5
+    with pytest.raises(ValueError):
+        row_correlations(front[:600], back[:600], 250)
+
+
+def test_a_reversed_drum_fails_the_direction_check_with_the_fix(tmp_path, monkeypatch):
+    """Issue 39 item 1: the drum's coil pair swapped (``--inject reversed-drum``): the index and the speed marks pass
+    at the right speed, the taxels show the back row leading; the check fails with the fix, the healthy rig passes."""
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    args = ["doctor", "--inprocess", "--check", "drum-direction", "--no-save"]
+    bad = CliRunner().invoke(main, [*args, "--inject", "reversed-drum@0"])
+    assert bad.exit_code == 1 and "FAIL  drum-direction" in bad.output and "swap one coil pair of the drum" in bad.output
+    good = CliRunner().invoke(main, args)
+    assert good.exit_code == 0 and "PASS  drum-direction" in good.output, good.output

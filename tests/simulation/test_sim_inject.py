@@ -24,7 +24,7 @@ def test_parse_fault_specs():
         with pytest.raises(FaultSpecError, match=words):
             parse_fault(bad)
     assert {"estop", "reset", "reversed-cell", "reversed-actuator", "host-silence", "stall", "hx711-10sps",
-            "taxel-ohm", "taxel-link-drop"} <= set(FAULTS)
+            "taxel-ohm", "taxel-link-drop", "reversed-drum"} <= set(FAULTS)
 
 
 def test_schedule_applies_starts_and_ends_in_time_order():

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Skip, failed, last_report, passed
-from rigctl.acquisition.doctor.measure import step_response
+from rigctl.acquisition.doctor.measure import row_correlations, step_response
 from rigctl.acquisition.rigconfig import load_rig_config
 from rigctl.core.drum import (
     DRUM_CIRCUMFERENCE_MM,
@@ -28,7 +28,8 @@ from rigctl.core.drum import (
     fault_advice,
 )
 
-__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G", "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
+__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "DRUM_DIRECTION_FIX", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G",
+           "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
 
 #: setpoint of the polarity check's press, g (the smallest of the paper's forces)
 POLARITY_SETPOINT_G = 250.0
@@ -47,6 +48,21 @@ DRUM_SPEED_CHECK_MM_S = (40.0, 120.0)
 #: the index check counts edges from this long after RUN (controller time), s: the drum reaches 120 mm/s in 0.3 s at
 #: its 400 mm/s^2 ramp (drum_config.h DRUM_ACCEL_MM_S2)
 DRUM_SPINUP_S = 1.0
+
+#: the drum-direction check: the drum's speed, mm/s, the taxel capture after the spin-up, s, and the correlation between
+#: the front and the back taxel row below which the plate shows too little texture to tell the direction
+DIRECTION_SPEED_MM_S = 40.0
+DIRECTION_CAPTURE_S = 2.0
+#: the plate the check mounts on a simulated rig (circular ridges, 2 mm high, 15 mm apart; a real rig's operator
+#: mounts a textured plate)
+DIRECTION_PLATE = "C"
+DIRECTION_MIN_CORRELATION = 0.5
+#: ... and the least difference between the forwards and the backwards correlation that decides
+DIRECTION_MIN_MARGIN = 0.2
+#: how to fix a drum that turns backwards
+DRUM_DIRECTION_FIX = ("the drum turns backwards: power off and swap one coil pair of the drum motor at its driver "
+                      "(1A <-> 1B), or invert the driver's direction setting (e.g. a TMC2209's GCONF shaft bit over "
+                      "UART); the firmware drives DIR high for forwards (docs/hardware/wiring.md#actuator-direction)")
 
 #: the fix for a force loop that does not settle
 FORCE_LOOP_FIX = ("set the HX711 board's RATE pin high (80 SPS; many boards ship at 10 SPS) and check the contact "
@@ -443,6 +459,53 @@ def _index_speed(ctx: DoctorContext, speed_mm_s: float) -> tuple[float, int]:
     raise RuntimeError(f"no two index-sensor edges in 3.5 drum revolutions at {speed_mm_s:g} mm/s")
 
 
+def check_drum_direction(ctx: DoctorContext) -> CheckResult:
+    """The drum turns forwards: pressing at the polarity setpoint with the drum at :data:`DIRECTION_SPEED_MM_S`, the
+    texture reaches the first layer's front row (row 0) before its back row, (rows - 1) x pitch / speed earlier; a
+    drum turning backwards reverses that lag (:func:`.measure.row_correlations`). Neither the index sensor nor the
+    speed-mark disc can tell (both symmetric)."""
+    rig = ctx.rig()
+    layout = rig.layout
+    layer = layout.layers[0]
+    if layer.rows < 2:
+        raise Skip("the sensor's first layer has one row: no lag between rows shows the drum's direction")
+    if ctx.simulated:  # a plate with ridges: the simulated rigs start with the smooth plate A
+        rig.mount_texture(DIRECTION_PLATE)
+    drum = rig.drum
+    drum.set_speed(DIRECTION_SPEED_MM_S)
+    _press(ctx, POLARITY_SETPOINT_G)
+    drum.wait_force_settled(timeout_s=30.0)
+    drum.run()
+    for _, st in _poll(ctx, DRUM_SPINUP_S):
+        if st.state == DrumState.FAULT:
+            return failed("drum-direction", f"fault {_fault_names(st.faults)} while the drum turned",
+                          fault_advice(st.faults) or "clear the fault's cause, then check again")
+    n = int(round(DIRECTION_CAPTURE_S * layout.sample_rate_hz))
+    rig.stream.begin_capture()
+    try:
+        rig.stream.wait_capture(n, timeout_s=3 * DIRECTION_CAPTURE_S + 5.0)
+    finally:
+        cap = rig.stream.end_capture()
+    drum.stop()
+    grid = cap.samples[:, : layer.n_channels].reshape(len(cap.samples), layer.rows, layer.cols)
+    lag = (layer.rows - 1) * layout.pitch_mm / DIRECTION_SPEED_MM_S * layout.sample_rate_hz
+    try:
+        forward, backward = row_correlations(grid[:, 0, :], grid[:, -1, :], lag)
+    except ValueError:
+        raise Skip(f"the taxel stream delivered {len(cap.samples)} frames in {DIRECTION_CAPTURE_S:g} s of the drum "
+                   "turning: too few to tell its direction") from None
+    values = {"lag_s": lag / layout.sample_rate_hz, "forward_correlation": round(forward, 3),
+              "backward_correlation": round(backward, 3)}
+    what = (f"the back taxel row repeats the front one {lag / layout.sample_rate_hz * 1000:.0f} ms later with a "
+            f"correlation of {forward:.2f} (forwards), {lag / layout.sample_rate_hz * 1000:.0f} ms earlier with "
+            f"{backward:.2f} (backwards), at {DIRECTION_SPEED_MM_S:g} mm/s")
+    if max(forward, backward) < DIRECTION_MIN_CORRELATION or abs(forward - backward) < DIRECTION_MIN_MARGIN:
+        raise Skip(f"{what}: too little texture to tell the drum's direction (mount a textured plate)")
+    if backward > forward:
+        return failed("drum-direction", what, DRUM_DIRECTION_FIX, **values)
+    return passed("drum-direction", what, **values)
+
+
 def check_drum_speed(ctx: DoctorContext) -> CheckResult:
     _not_faulted(ctx)
     st = ctx.rig().drum.read_status()
@@ -491,4 +554,5 @@ CHECKS = (
     Check("loadcell-polarity", check_loadcell_polarity, moves=True, title="load cell polarity"),
     Check("force-step", check_force_step, moves=True, title="force step response"),
     Check("drum-speed", check_drum_speed, moves=True, title="drum speed from the index at 40 and 120 mm/s"),
+    Check("drum-direction", check_drum_direction, moves=True, title="drum turns forwards (taxel rows' lag)"),
 )

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-__all__ = ["StepResponse", "step_response", "noise_floor", "crosstalk", "clock_error_ppm"]
+__all__ = ["StepResponse", "step_response", "noise_floor", "crosstalk", "clock_error_ppm", "row_correlations"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,3 +130,27 @@ def crosstalk(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def clock_error_ppm(measured_hz: float, nominal_hz: float) -> float:
     """``(measured / nominal - 1) * 1e6``: a device's clock error against the host clock, ppm."""
     return (measured_hz / nominal_hz - 1.0) * 1e6
+
+
+def row_correlations(front: np.ndarray, back: np.ndarray, lag: float, spread: float = 0.2) -> tuple[float, float]:
+    """How well ``back`` (a taxel row's readings, (n,) or (n, k) for k columns) repeats ``front`` (the row ahead of it
+    along the drum's travel) ``lag`` samples later, and how well ``lag`` samples earlier: the largest normalised
+    correlation (-1..1) over lags within ``spread`` of +``lag`` and of -``lag``. A drum turning forwards brings the
+    texture to the front row first (the first is high), one turning backwards to the back row (the second). Only
+    the two windows are searched: a periodic texture correlates again one period away. ValueError for fewer than
+    ``3 * lag`` samples or arrays of different shapes."""
+    a = np.asarray(front, dtype=np.float64).reshape(len(front), -1)
+    b = np.asarray(back, dtype=np.float64).reshape(len(back), -1)
+    n, hi = a.shape[0], int(math.ceil(lag * (1.0 + spread)))
+    if n < 3 * lag or b.shape != a.shape or lag < 1:
+        raise ValueError(f"row_correlations needs two (n, k) arrays of the same shape, n >= 3 x lag ({lag:g}); got "
+                         f"{a.shape}, {b.shape}")
+    a, b = a - a.mean(axis=0), b - b.mean(axis=0)
+
+    def corr(k: int) -> float:
+        x, y = (a[: n - k], b[k:]) if k >= 0 else (a[-k:], b[: n + k])
+        den = math.sqrt(float((x * x).sum()) * float((y * y).sum()))
+        return float((x * y).sum()) / den if den > 0 else 0.0
+
+    lo = int(math.floor(lag * (1.0 - spread)))
+    return max(corr(k) for k in range(lo, hi + 1)), max(corr(-k) for k in range(lo, hi + 1))
