@@ -20,8 +20,13 @@ Sessions (docs/results.md 3b)::
     rigctl acquire handheld_realtime --sim --seed 7 --out rt.h5
     rigctl encode tr.h5 --out tr.enc.h5 --variant realtime_original --variant realtime_speed_scaled   (cal, rt too)
 
+``--kernel fixed`` runs the integer kernel (``sa_bench_fixed_uno.elf``, -DSA_FIXED) instead of the float32 one;
+``--mirror`` runs the host's copy of the board's kernel (:class:`rigctl.encoding.fixed_sa.FixedSAEncoder`, or the
+float32 :class:`~rigctl.encoding.izhikevich.StreamingEncoder`) instead of simavr: the same spikes
+(tests/firmware/test_fw_sa_encoder.py holds them equal bit for bit), seconds instead of ~13 minutes.
+
 Usage: python benchmarks/bench_onboard_encoder.py TR.h5 TR.enc.h5 CAL.h5 CAL.enc.h5 RT.h5 RT.enc.h5
-       [--workers 2] [--n-pcs 25]
+       [--workers 2] [--n-pcs 25] [--kernel float32|fixed] [--mirror]
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ import numpy as np
 from rigctl import firmware
 from rigctl.analysis.realtime_model import RealtimeClassifier
 from rigctl.encoding.features import realtime_features, realtime_rates
+from rigctl.encoding.fixed_sa import FixedSAEncoder
 from rigctl.encoding.izhikevich import StreamingEncoder
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.params import EncodeParams
@@ -47,7 +53,19 @@ from rigctl.storage.session import open_session
 VARIANT = "realtime_speed_scaled"
 
 
-def board_block(session: str, encoded: str, build, workers: int) -> dict:
+def host_raster(x: np.ndarray, rng: TaxelRange, p: EncodeParams, kernel: str) -> np.ndarray:
+    """(n, 9) uint8 spike raster of the host's copy of the board's ``kernel`` ("float32" or "fixed")."""
+    if kernel == "fixed":
+        return FixedSAEncoder(rng, k_sa=p.k_sa).raster(x)
+    sa = StreamingEncoder(x.shape[1], normalise=rng, k_sa=p.k_sa, dtype=np.float32).process(x).sa
+    out = np.zeros(x.shape, np.uint8)
+    for k in range(x.shape[1]):
+        out[np.rint(sa.train(0, k) * p.fs_hz).astype(np.int64), k] = 1
+    return out
+
+
+def board_block(session: str, encoded: str, build, workers: int, kernel: str = "float32",
+                mirror: bool = False) -> dict:
     """The block's host features, board features, labels and the board's agreement figures."""
     with open_encoded(encoded) as f:
         p = EncodeParams.from_dict(f.parameters)
@@ -66,19 +84,25 @@ def board_block(session: str, encoded: str, build, workers: int) -> dict:
         t, v = blk.speed_traces[i]
         ws = window_speeds(t, v, x.shape[0] / p.fs_hz, p.window_s)
         cmm = np.clip(np.round(ws * 100.0), 0, 0xFFFF).astype(np.uint16)
-        scan = sa_board.run_scan(x, lo, hi, cmm, board="uno", build=build)
-        trains = SpikeTrains.from_lists([[np.flatnonzero(scan.raster[:, k]) / p.fs_hz for k in range(len(taxels))]])
+        rng = TaxelRange(lo, hi)
+        if mirror:
+            raster, counts, cycles = host_raster(x, rng, p, kernel), None, 0
+        else:
+            scan = sa_board.run_scan(x, lo, hi, cmm, board="uno", build=build, kernel=kernel)
+            raster, counts, cycles = scan.raster, scan.counts, scan.cycles_mean
+            assert scan.held_windows == 0
+        trains = SpikeTrains.from_lists([[np.flatnonzero(raster[:, k]) / p.fs_hz for k in range(len(taxels))]])
         scaled, edges = incremental_scale(trains, [cmm / 100.0], p.realtime_reference_speed_mm_s, p.window_s)
         # the board's counts are the host's map of its own spikes with the speeds it was sent
-        assert np.array_equal(scaled.window_counts(p.window_s, p.n_windows_realtime)[0], scan.counts)
-        assert scan.held_windows == 0 and per == 100
-        board = realtime_rates(scan.counts[None], edges, window_s=p.window_s)[0]
-        # the host's encoder on the same samples and the same (rounded) speeds: the board's features bit for bit
-        sa = StreamingEncoder(len(taxels), normalise=TaxelRange(lo, hi), k_sa=p.k_sa,
-                              dtype=np.dtype(p.kernel_dtype)).process(x).sa
+        host_counts = scaled.window_counts(p.window_s, p.n_windows_realtime)[0]
+        assert counts is None or np.array_equal(host_counts, counts)
+        assert per == 100
+        board = realtime_rates(host_counts[None], edges, window_s=p.window_s)[0]
+        # the host's copy of the kernel on the same samples and the same (rounded) speeds: the board's features
+        sa = SpikeTrains.from_lists([[np.flatnonzero(r) / p.fs_hz for r in host_raster(x, rng, p, kernel).T]])
         same = realtime_features(*incremental_scale(sa, [cmm / 100.0], p.realtime_reference_speed_mm_s, p.window_s),
                                  n_windows=p.n_windows_realtime, window_s=p.window_s)[0]
-        return board, scan.cycles_mean, bool(np.array_equal(board, same))
+        return board, cycles, bool(np.array_equal(board, same))
 
     with ThreadPoolExecutor(workers) as pool:
         res = list(pool.map(one, range(len(ids))))
@@ -94,12 +118,14 @@ def main() -> None:
     ap.add_argument("files", nargs=6, metavar="FILE")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--n-pcs", type=int, default=25)
+    ap.add_argument("--kernel", choices=sorted(sa_board.KERNELS), default="float32")
+    ap.add_argument("--mirror", action="store_true", help="the host's copy of the kernel instead of simavr")
     a = ap.parse_args()
-    build = firmware.build(targets=("sa-bench",))
+    build = None if a.mirror else firmware.build(targets=("sa-bench",))
     t0 = time.monotonic()
     blocks = {}
     for name, (sess, enc) in zip(("training", "calibration", "realtime"), zip(a.files[::2], a.files[1::2])):
-        blocks[name] = b = board_block(sess, enc, build, a.workers)
+        blocks[name] = b = board_block(sess, enc, build, a.workers, a.kernel, a.mirror)
         print(f"{name}: {b['labels'].size} scans; {100 * b['same']:.1f} % of them with features bit for bit the host "
               f"encoder's on the speeds sent (0.01 mm/s); against the encoded file's (unrounded speeds): "
               f"{100 * b['near']:.2f} % of features within 1 %, largest difference {b['max_diff']:.2f} spikes/s; "

@@ -8,6 +8,8 @@ Modules, one job each (data flows top to bottom):
   ``StreamingEncoder``, the float64 kernel (``run_izhikevich``).
 - :mod:`~rigctl.encoding.fused` - the fused kernel: raw counts -> normalisation, SA and RA (filter included) ->
   spike times in one pass, float32 (``run_fused``); used by the pipeline, the streaming encoder and eq. (1).
+- :mod:`~rigctl.encoding.fixed_sa` - the on-board encoder's integer SA kernel, integer for integer the firmware's
+  (``FixedSAEncoder``; ``ScanEncoder(kernel="fixed")``).
 - :mod:`~rigctl.encoding.spikes` - ``SpikeTrains``: NWB-style flat spike times + row-end index (stored by
   :mod:`rigctl.storage.encoded`).
 - :mod:`~rigctl.encoding.force` - eq. (1): vectorised bisection of the force coefficients (``ForceCoefficients``).

@@ -22,12 +22,17 @@ import numpy as np
 
 from rigctl.core.normalisation import TaxelRange
 from rigctl.encoding.features import realtime_features, realtime_features_unscaled
+from rigctl.encoding.fixed_sa import FixedSAEncoder
 from rigctl.encoding.izhikevich import StreamingEncoder
 from rigctl.encoding.params import EncodeParams
 from rigctl.encoding.speed import window_speeds
 from rigctl.encoding.spikes import SpikeTrains
 
-__all__ = ["ScanEncoder"]
+__all__ = ["KERNELS", "ScanEncoder"]
+
+#: the SA kernels a scan can be encoded with: "float" (the fused kernel in ``params.kernel_dtype``, float32 by
+#: default) or "fixed" (the integer kernel the on-board encoder runs, :mod:`rigctl.encoding.fixed_sa`)
+KERNELS = ("float", "fixed")
 
 
 class ScanEncoder:
@@ -40,23 +45,34 @@ class ScanEncoder:
     params : the encoding's constants (an encoded file's ``EncodeParams.from_dict(f.parameters)``): ``k_sa``,
         ``window_s``, ``n_windows_realtime``, ``realtime_reference_speed_mm_s``, ``realtime_taxels``, ``fs_hz``.
     taxels : the channels encoded (default ``params.realtime_taxels``, else every channel).
+    kernel : "float" (default: the fused float kernel in ``params.kernel_dtype``) or "fixed" (the on-board
+        encoder's integer kernel, :class:`rigctl.encoding.fixed_sa.FixedSAEncoder`: the board's spikes exactly;
+        needs an integer range and an integer ``k_sa`` <= 255).
 
     Raises
     ------
     ValueError
-        The stream is not at the model's rate (``params.fs_hz``: resample first), or the range has no taxels.
+        The stream is not at the model's rate (``params.fs_hz``: resample first), the range has no taxels, an
+        unknown kernel, or a range or k the integer kernel cannot take.
     """
 
     def __init__(self, normalisation: TaxelRange, params: EncodeParams | None = None, *,
-                 taxels: list[int] | None = None) -> None:
+                 taxels: list[int] | None = None, kernel: str = "float") -> None:
         self.params = p = params or EncodeParams()
         n_ch = normalisation.n_taxels
         if n_ch == 0:
             raise ValueError("the normalisation has no taxels")
         self.taxels = list(taxels if taxels is not None else (p.realtime_taxels or range(n_ch)))
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+        self.kernel = kernel
         rng = TaxelRange(normalisation.taxel_min[self.taxels], normalisation.taxel_max[self.taxels])
-        self._encoder = StreamingEncoder(len(self.taxels), normalise=rng, k_sa=p.k_sa, fs=p.fs_hz,
-                                         dtype=np.dtype(p.kernel_dtype))
+        self._encoder: StreamingEncoder | FixedSAEncoder
+        if kernel == "fixed":
+            self._encoder = FixedSAEncoder(rng, k_sa=p.k_sa, fs=p.fs_hz)
+        else:
+            self._encoder = StreamingEncoder(len(self.taxels), normalise=rng, k_sa=p.k_sa, fs=p.fs_hz,
+                                             dtype=np.dtype(p.kernel_dtype))
         self.reset()
 
     def reset(self) -> None:
@@ -80,10 +96,11 @@ class ScanEncoder:
     def feed(self, readings: np.ndarray) -> None:
         """The next ``(n, n_channels)`` raw readings (ADC counts) of the scan, at ``params.fs_hz``."""
         x = np.asarray(readings)[:, self.taxels]
-        chunk = self._encoder.process(x)
+        enc = self._encoder
+        sa = enc.process(x) if isinstance(enc, FixedSAEncoder) else enc.process(x).sa
         self.n_samples += x.shape[0]
         for i in range(len(self.taxels)):
-            self._real[i].append(chunk.sa.train(0, i))
+            self._real[i].append(sa.train(0, i))
         self._scale_ready()
 
     def feed_speed(self, time_s: np.ndarray, speed_mm_s: np.ndarray) -> None:

@@ -1,5 +1,5 @@
 """The on-board SA encoder on a simulated AVR core: the firmware's ``common/sa_encoder.c`` built for the ATmega328P
-or the ATmega2560 (``sa_bench/sa_bench.c``, avr-libc's IEEE software float) and run under simavr through the stream
+or the ATmega2560 (``sa_bench/sa_bench.c``, avr-libc's IEEE software float, or the integer kernel) and run under simavr through the stream
 harness ``simavr/sa_stream.c`` (docs/firmware.md, "The on-board SA encoder"): what the board computes for a scan's
 readings and window speeds, and the core's cycles per 1 ms step.
 
@@ -18,10 +18,13 @@ import numpy as np
 
 from rigctl import firmware
 
-__all__ = ["CORES", "BoardScan", "run_scan"]
+__all__ = ["CORES", "KERNELS", "BoardScan", "run_scan"]
 
 #: board -> the simulated core of its stream image (``sa_bench_<board>.elf``); both at 16 MHz
 CORES = {"uno": "atmega328p", "mega": "atmega2560"}
+
+#: kernel -> its stream image's name part: the float32 build, or the integer one (-DSA_FIXED)
+KERNELS = {"float32": "", "fixed": "fixed_"}
 
 _N_TAXELS = 9  # SA_N_TAXELS
 _N_WINDOWS = 20  # SA_N_WINDOWS
@@ -63,7 +66,7 @@ def _stream_input(x: np.ndarray, taxel_min: np.ndarray, taxel_max: np.ndarray, s
 
 
 def run_scan(x: np.ndarray, taxel_min: np.ndarray, taxel_max: np.ndarray, speeds_cmm: np.ndarray, *,
-             board: str = "uno", build: Path | None = None) -> BoardScan:
+             board: str = "uno", build: Path | None = None, kernel: str = "float32") -> BoardScan:
     """Encode one scan on the simulated ``board``'s core.
 
     Parameters
@@ -73,6 +76,8 @@ def run_scan(x: np.ndarray, taxel_min: np.ndarray, taxel_max: np.ndarray, speeds
     speeds_cmm : (n_windows >= 1,) each 100 ms real-time window's mean speed, 0.01 mm/s (what the host sends).
     board : "uno" (ATmega328P) or "mega" (ATmega2560).
     build : the firmware build folder (default: :func:`rigctl.firmware.build` with the ``sa-bench`` target).
+    kernel : "float32" (``sa_bench_<board>.elf``: the host's live float32 kernel) or "fixed" (``sa_bench_fixed_<board>
+        .elf``, built with -DSA_FIXED: the integer kernel of :mod:`rigctl.encoding.fixed_sa`).
 
     Raises
     ------
@@ -90,8 +95,10 @@ def run_scan(x: np.ndarray, taxel_min: np.ndarray, taxel_max: np.ndarray, speeds
         raise ValueError("speeds_cmm must be >= 1 speeds in 0.01 mm/s (0..65535)")
     if board not in CORES:
         raise ValueError(f"board must be one of {sorted(CORES)}, got {board!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {sorted(KERNELS)}, got {kernel!r}")
     build = build if build is not None else firmware.build(targets=("sa-bench",))
-    proc = subprocess.run([str(build / "sa_stream"), CORES[board], str(build / f"sa_bench_{board}.elf")],
+    proc = subprocess.run([str(build / "sa_stream"), CORES[board], str(build / f"sa_bench_{KERNELS[kernel]}{board}.elf")],
                           input=_stream_input(x, lo, hi, speeds), capture_output=True, check=True)
     n = x.shape[0]
     out = np.frombuffer(proc.stdout, "<u2")

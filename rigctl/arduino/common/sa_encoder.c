@@ -3,7 +3,92 @@
 
 #include <string.h>
 
-#ifndef SA_DOUBLE
+#if defined(SA_FIXED)
+#if (-1 >> 1) != -1
+#error "SA_FIXED needs an arithmetic right shift of negative integers (gcc, clang, avr-gcc, arm-gcc have one)"
+#endif
+#define Y_PEAK 10066330L            /* ceil(0.6 * 2^24): v2 >= 30 mV */
+#define Y_RESET (-21810381L)        /* round(-1.3 * 2^24): c = -65 mV */
+#define Z_REST (-2181038L)          /* round(-0.13 * 2^24): u = b c = -13 */
+#define Z_JUMP 1006633L             /* round(0.06 * 2^24): d = 6 */
+#define W_E 23488102L               /* round(1.4 * 2^24): h e / 50 */
+#define Y_MAX 134217727L            /* 8 * 2^24 - 1 */
+#define K_A 1311                    /* round(0.02 * 2^16): a (0.0200043) */
+#define K_AB 33554u                 /* round(0.002 * 2^24): a b 50 / 100 */
+#define V_REST Y_RESET
+#define U_REST Z_REST
+
+/* 16 x 16 -> 32 bit products, kept out of line so that the compiler sees 16-bit operands (avr-gcc otherwise folds
+ * the halves of y back into 32-bit values and calls its 32 x 32 multiply: 7 of them cost ~2 000 cycles a step) */
+#if defined(__GNUC__)
+#define SA_NOINLINE __attribute__((noinline))
+#define SA_INLINE inline __attribute__((always_inline))
+#else
+#define SA_NOINLINE
+#define SA_INLINE inline
+#endif
+static SA_NOINLINE int32_t mul_ss(int16_t a, int16_t b) { return (int32_t)a * b; }
+static SA_NOINLINE int32_t mul_su(int16_t a, uint16_t b) { return (int32_t)a * (int32_t)b; }
+static SA_NOINLINE uint32_t mul_uu(uint16_t a, uint16_t b) { return (uint32_t)a * b; }
+
+/* y^2 for a Q24 y in [-8, 8): y = h 2^16 + l, h signed, l in [0, 2^16), m = l's high byte: (h^2 2^8) +
+ * floor(2h l / 2^8) + floor(m^2 / 2^8) (l^2 / 2^24 but for < 2 LSB): two 16 x 16 -> 32 bit products and an 8 x 8,
+ * shifts by whole bytes. */
+static SA_INLINE int32_t sq(int32_t y) {
+    int16_t h = (int16_t)(y >> 16);
+    uint16_t l = (uint16_t)(y & 0xFFFF);
+    uint8_t m = (uint8_t)(l >> 8);
+    return mul_ss(h, h) * 256 + (mul_su((int16_t)(2 * h), l) >> 8) + (int32_t)(((uint16_t)m * m) >> 8);
+}
+
+/* floor(y * c / 2^16) as h c + floor(l c / 2^16): two 16 x 16 -> 32 bit products */
+static SA_INLINE int32_t mulc16(int32_t y, uint16_t c) {
+    int16_t h = (int16_t)(y >> 16);
+    uint16_t l = (uint16_t)(y & 0xFFFF);
+    return mul_su(h, c) + (int32_t)(mul_uu(l, c) >> 16);
+}
+
+/* floor(y * c / 2^24) as floor(h c / 2^8) + floor(l c / 2^24) */
+static SA_INLINE int32_t mulc24(int32_t y, uint16_t c) {
+    int16_t h = (int16_t)(y >> 16);
+    uint16_t l = (uint16_t)(y & 0xFFFF);
+    return (mul_su(h, c) >> 8) + (int32_t)(mul_uu(l, c) >> 24);
+}
+
+static SA_INLINE int32_t clamp_y(int32_t y) {
+    return y > Y_MAX ? Y_MAX : (y < -Y_MAX - 1 ? -Y_MAX - 1 : y);
+}
+
+/* One 1 ms step of taxel i on reading x; returns 1 on a spike. */
+static uint8_t neuron_step(sa_encoder_t *e, uint8_t i, uint16_t x) {
+    int32_t d = (int32_t)x - (int32_t)e->offset[i];
+    d = d < e->d_lo[i] ? e->d_lo[i] : (d > e->d_hi[i] ? e->d_hi[i] : d);
+    int32_t z0 = e->z[i];
+    int32_t w = W_E + d * e->gain[i] - z0;
+    int32_t y0 = clamp_y(e->y[i]);
+    int32_t y1 = clamp_y(sq(y0) + 4 * y0 - (y0 >> 1) + w);
+    int32_t y2 = sq(y1) + 4 * y1 - (y1 >> 1) + w;
+    int32_t z1 = z0 - mulc16(z0, K_A) + mulc24(y2, K_AB);
+    if (y2 >= Y_PEAK) {
+        e->y[i] = Y_RESET;
+        e->z[i] = z1 + Z_JUMP;
+        return 1;
+    }
+    e->y[i] = y2;
+    e->z[i] = z1;
+    return 0;
+}
+
+static void set_range(sa_encoder_t *e, uint8_t i, uint16_t lo, uint16_t hi, uint16_t k) {
+    uint32_t span = hi > lo ? (uint32_t)(hi - lo) : 0u;
+    if (k > SA_FIXED_K_MAX)
+        k = SA_FIXED_K_MAX;
+    /* R = round(k 2^24 / (100 span)); a taxel with max <= min gets a constant 0 input, as on the host */
+    e->gain[i] = span ? (int32_t)(((uint32_t)k * 16777216UL + 50u * span) / (100u * span)) : 0;
+    e->d_lo[i] = -2 * (int32_t)span;
+    e->d_hi[i] = 4 * (int32_t)span;
+}
+#elif !defined(SA_DOUBLE)
 /* float32: the host's default (live) kernel, rigctl.encoding.fused _sa_step "fast", operation for operation: the
  * constants are the float32 values the host folds (kc[4:9]: h q, 1 + h f, h e, 1 - a, a b, each rounded from its
  * float64 value; hex literals, so no compiler folds them differently), and every expression below is one IEEE
@@ -86,10 +171,17 @@ static void set_range(sa_encoder_t *e, uint8_t i, uint16_t lo, uint16_t hi, uint
 
 void sa_reset(sa_encoder_t *e) {
     for (uint8_t i = 0; i < SA_N_TAXELS; i++) {
+#if defined(SA_FIXED)
+        e->y[i] = V_REST;
+        e->z[i] = U_REST;
+#else
         e->v[i] = V_REST;
         e->u[i] = U_REST;
+#endif
     }
     e->n = 0;
+    e->win = 0;
+    e->pos = 0;
     e->windows_scaled = 0;
     e->scaled_ticks = 0;
     e->held_windows = 0;
@@ -112,14 +204,28 @@ void sa_init(sa_encoder_t *e, const uint16_t min_count[SA_N_TAXELS], const uint1
 static void scale_window(sa_encoder_t *e, uint16_t s) {
     uint8_t slot = (uint8_t)(e->windows_scaled % SA_PENDING);
     uint32_t t0 = e->scaled_ticks;
+    /* sample j's scaled window is floor((t0 + j s) / ticks) = k0 + the edges it has passed: the first sample past
+     * each edge (at most 7 in a window: 99 x 65535 ticks < 7e6) found once, not a division per spike */
+    uint32_t k0 = t0 / SA_WINDOW_TICKS;
+    uint8_t cut[8], n_cut = 0;
+    if (s > 0) {
+        for (uint32_t edge = (k0 + 1u) * SA_WINDOW_TICKS; n_cut < 8u; edge += SA_WINDOW_TICKS) {
+            uint32_t j = (edge - t0 + s - 1u) / s;
+            if (j >= SA_WINDOW_MS)
+                break;
+            cut[n_cut++] = (uint8_t)j;
+        }
+    }
     for (uint8_t i = 0; i < SA_N_TAXELS; i++) {
         uint8_t *m = e->map[slot][i];
         for (uint8_t b = 0; b < SA_MAP_BYTES; b++) {
             uint8_t bits = m[b];
             m[b] = 0;
-            for (uint8_t j = 0; bits; j++, bits >>= 1) {
+            for (uint8_t j = (uint8_t)(b * 8u); bits; j++, bits >>= 1) {
                 if (bits & 1u) {
-                    uint32_t k = (t0 + (uint32_t)(b * 8u + j) * s) / SA_WINDOW_TICKS;
+                    uint32_t k = k0;
+                    for (uint8_t c = 0; c < n_cut && j >= cut[c]; c++)
+                        k++;
                     if (k < SA_N_WINDOWS && e->counts[i][k] < 0xFFFFu)
                         e->counts[i][k]++;
                 }
@@ -133,7 +239,7 @@ static void scale_window(sa_encoder_t *e, uint16_t s) {
 
 /* Scale every complete window whose speed is queued. */
 static void scale_ready(sa_encoder_t *e) {
-    while (e->n_speeds > 0 && e->windows_scaled < e->n / SA_WINDOW_MS) {
+    while (e->n_speeds > 0 && e->windows_scaled < e->win) {
         uint16_t s = e->speed_cmm_s[e->windows_scaled % SA_PENDING];
         e->n_speeds--;
         scale_window(e, s);
@@ -150,8 +256,8 @@ int8_t sa_speed(sa_encoder_t *e, uint16_t speed_cmm_s) {
 }
 
 uint16_t sa_step(sa_encoder_t *e, const uint16_t x[SA_N_TAXELS]) {
-    uint32_t w = e->n / SA_WINDOW_MS;
-    uint8_t pos = (uint8_t)(e->n - w * SA_WINDOW_MS);
+    uint32_t w = e->win;
+    uint8_t pos = e->pos;
     if (pos == 0) {
         while (w - e->windows_scaled >= SA_PENDING) { /* no slot: the oldest waits no longer */
             e->held_windows++; /* (no speed is queued here: a queued speed is used as soon as its window ends) */
@@ -167,8 +273,13 @@ uint16_t sa_step(sa_encoder_t *e, const uint16_t x[SA_N_TAXELS]) {
         }
     }
     e->n++;
-    if (pos == SA_WINDOW_MS - 1)
+    if (pos == SA_WINDOW_MS - 1) {
+        e->pos = 0;
+        e->win++;
         scale_ready(e);
+    } else {
+        e->pos = (uint8_t)(pos + 1u);
+    }
     return mask;
 }
 

@@ -53,19 +53,42 @@ extern "C" {
 #define SA_MAP_BYTES ((SA_WINDOW_MS + 7) / 8)
 #define SA_WINDOW_TICKS 1000000UL   /* 100 ms of scaled time in 0.1 us ticks */
 
-#ifdef SA_DOUBLE
+#if defined(SA_FIXED)
+/* The integer kernel (-DSA_FIXED): the host runs the same integers (rigctl.encoding.fixed_sa), so the two agree by
+ * construction. Scaled variables, Q24 (value * 2^24) in int32: y = v / 50 (mV), z = u / 100, J = I / 100.
+ *   w  = 1.4 + J - z0                       (h (e - u + I) / 50)
+ *   y1 = sq(y0) + 3.5 y0 + w                (v1 = v0 + h (0.04 v0^2 + 5 v0 + 140 - u0 + I), divided by 50)
+ *   y2 = sq(y1) + 3.5 y1 + w
+ *   z1 = z0 - a z0 + ab50 y2                (u1 = u0 + a (b v2 - u0), divided by 100: a = 0.02, a b 50 / 100 = 0.002)
+ *   y2 >= 0.6 (v >= 30 mV): spike; y <- -1.3 (c = -65), z <- z1 + 0.06 (d = 6).   Rest: y = -1.3, z = -0.13.
+ * sq(y) = y^2 in Q24 from three 16 x 16 -> 32 products of y's halves; a z0 and ab50 y2 two each (constants in Q20 and
+ * Q24); J = clamp(x - offset, -2 span, 4 span) * R, R = round(k 2^24 / (100 span)) once per scan (k <= 255). y is
+ * held in [-8, 8) before each square (|v| < 400 mV: never reached by inputs inside [-2, 4] of the range), which
+ * bounds every intermediate inside int32 (docs/firmware.md). Right shifts are floors (arithmetic shifts). */
+#define SA_FIXED_K_MAX 255
+#elif defined(SA_DOUBLE)
 typedef double sa_num_t;                /* the host's float64 kernel, operation for operation */
 #else
 typedef float sa_num_t;                 /* the host's float32 kernel, operation for operation */
 #endif
 
 typedef struct {
+#if defined(SA_FIXED)
+    int32_t y[SA_N_TAXELS];             /* v / 50, Q24 */
+    int32_t z[SA_N_TAXELS];             /* u / 100, Q24 */
+    int32_t gain[SA_N_TAXELS];          /* R: J (Q24) per ADC count above the minimum */
+    int32_t d_lo[SA_N_TAXELS];          /* -2 span: the input's clamp, ADC counts */
+    int32_t d_hi[SA_N_TAXELS];          /* 4 span */
+#else
     sa_num_t v[SA_N_TAXELS];            /* mV */
     sa_num_t u[SA_N_TAXELS];
     sa_num_t scale[SA_N_TAXELS];        /* 1 / (max - min), 0 when max <= min */
     sa_num_t k;                         /* input gain (k_SA times the force coefficient C) */
+#endif
     uint16_t offset[SA_N_TAXELS];       /* ADC count of the taxel's minimum */
     uint32_t n;                         /* samples since the scan started */
+    uint32_t win;                       /* n / SA_WINDOW_MS: the real-time window of the next sample */
+    uint8_t pos;                        /* n % SA_WINDOW_MS (kept, not divided: a 32-bit division is ~600 cycles) */
     uint32_t windows_scaled;            /* real-time windows scaled so far */
     uint32_t scaled_ticks;              /* scaled time of the next unscaled window's start, 0.1 us */
     uint32_t held_windows;              /* windows scaled with the last speed: theirs came too late */
