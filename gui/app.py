@@ -103,14 +103,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def __init__(self, source: RigSource | None = None, *, autoconnect: bool = True, max_fps: float = MAX_FPS):
         super().__init__()
-        from rigctl_gui.analysis_tab import AnalysisTab
-        from rigctl_gui.calibration_tab import CalibrationTab
-        from rigctl_gui.classify_view import ClassifyView
         from rigctl_gui.connect_dialog import ConnectDialog, load_source, save_source
-        from rigctl_gui.control_panel import ControlPanel
-        from rigctl_gui.handheld_tab import HandheldTab
-        from rigctl_gui.live_view import LiveView
-        from rigctl_gui.protocol_tab import ProtocolTab
         from rigctl_gui.status_bar import Banners, LinkStatus
 
         self._ConnectDialog, self._save_source = ConnectDialog, save_source
@@ -143,35 +136,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self._build_top_bar()
 
-        self.tabs = QtWidgets.QTabWidget()
-        self.control = ControlPanel()
-        self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
-        self.control.acted.connect(lambda text: self.notify(text, source="rig control"))
-        self.control.question.connect(self._ask)
-        self.live = LiveView()
-        self.protocol = ProtocolTab(self)
-        self.analysis = AnalysisTab(self)
-        self.calibration = CalibrationTab(self)
-        self.classify = ClassifyView(self)
-        self.handheld = HandheldTab(self)
-        for w, name in (
-            (self.control, "Rig control"),
-            (self.live, "Live view"),
-            (self.protocol, "Protocol"),
-            (self.analysis, "Analysis"),
-            (self.calibration, "Calibration"),
-            (self.classify, "Real-time classification"),
-            (self.handheld, "Handheld"),
-        ):
-            self.tabs.addTab(w, name)
-        self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
-        # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
-        self.stale_label = QtWidgets.QLabel(self.live)
-        self.stale_label.setObjectName("stale_marker")
-        self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-        self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
-        self.stale_label.hide()
-
+        self._build_tabs()
         self._build_layout()
 
         self.links = LinkStatus()
@@ -202,6 +167,46 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_source_label("not connected")
         if autoconnect:
             self.connect_source(self.source)
+
+    def _build_tabs(self) -> None:
+        """The tabs (rig control, live view, protocol, analysis, calibration, real-time classification,
+        handheld) and the stale-data marker over the live view."""
+        from rigctl_gui.analysis_tab import AnalysisTab
+        from rigctl_gui.calibration_tab import CalibrationTab
+        from rigctl_gui.classify_view import ClassifyView
+        from rigctl_gui.control_panel import ControlPanel
+        from rigctl_gui.handheld_tab import HandheldTab
+        from rigctl_gui.live_view import LiveView
+        from rigctl_gui.protocol_tab import ProtocolTab
+
+        self.tabs = QtWidgets.QTabWidget()
+        self.control = ControlPanel()
+        self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
+        self.control.acted.connect(lambda text: self.notify(text, source="rig control"))
+        self.control.question.connect(self._ask)
+        self.live = LiveView()
+        self.protocol = ProtocolTab(self)
+        self.analysis = AnalysisTab(self)
+        self.calibration = CalibrationTab(self)
+        self.classify = ClassifyView(self)
+        self.handheld = HandheldTab(self)
+        for w, name in (
+            (self.control, "Rig control"),
+            (self.live, "Live view"),
+            (self.protocol, "Protocol"),
+            (self.analysis, "Analysis"),
+            (self.calibration, "Calibration"),
+            (self.classify, "Real-time classification"),
+            (self.handheld, "Handheld"),
+        ):
+            self.tabs.addTab(w, name)
+        self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
+        # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
+        self.stale_label = QtWidgets.QLabel(self.live)
+        self.stale_label.setObjectName("stale_marker")
+        self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+        self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
+        self.stale_label.hide()
 
     def _build_top_bar(self) -> None:
         """The top bar's widgets: the rig source, Connect... and the big STOP."""
