@@ -39,6 +39,8 @@ class BoardScan:
     counts : (9, 20) int64 spikes per 100 ms scaled-time window (speed-scaled, reference 100 mm/s).
     held_windows : real-time windows scaled with the previous speed (theirs came too late).
     cycles_mean, cycles_max : the core's cycles per 1 ms step of the 9 taxels (16 000 = a 1 kHz tick at 16 MHz).
+    speed_cycles_mean, speed_cycles_max : the core's cycles per window speed received (``sa_speed``: scaling the
+        window(s) waiting for it, once per 100 ms).
     """
 
     raster: np.ndarray
@@ -46,6 +48,8 @@ class BoardScan:
     held_windows: int
     cycles_mean: int
     cycles_max: int
+    speed_cycles_mean: int = 0
+    speed_cycles_max: int = 0
 
 
 def _stream_input(x: np.ndarray, taxel_min: np.ndarray, taxel_max: np.ndarray, speeds_cmm: np.ndarray) -> bytes:
@@ -102,10 +106,13 @@ def run_scan(x: np.ndarray, taxel_min: np.ndarray, taxel_max: np.ndarray, speeds
                           input=_stream_input(x, lo, hi, speeds), capture_output=True, check=True)
     n = x.shape[0]
     out = np.frombuffer(proc.stdout, "<u2")
-    line = re.search(r"^CYCLES (.*)$", proc.stderr.decode(errors="replace"), re.M)
-    if out.size != n + _N_TAXELS * _N_WINDOWS + 1 or line is None:
+    err = proc.stderr.decode(errors="replace")
+    line = re.search(r"^CYCLES (.*)$", err, re.M)
+    speed_line = re.search(r"^SPEEDS (.*)$", err, re.M)
+    if out.size != n + _N_TAXELS * _N_WINDOWS + 1 or line is None or speed_line is None:
         raise RuntimeError(f"sa_stream gave {out.size} words for {n} samples: {proc.stderr.decode()[-300:]}")
     cyc = {k: int(v) for k, v in (kv.split("=") for kv in line.group(1).split())}
+    spd = {k: int(v) for k, v in (kv.split("=") for kv in speed_line.group(1).split())}
     raster = ((out[:n, None] >> np.arange(_N_TAXELS)) & 1).astype(np.uint8)
     counts = out[n:n + _N_TAXELS * _N_WINDOWS].reshape(_N_TAXELS, _N_WINDOWS).astype(np.int64)
-    return BoardScan(raster, counts, int(out[-1]), cyc["mean"], cyc["max"])
+    return BoardScan(raster, counts, int(out[-1]), cyc["mean"], cyc["max"], spd["mean"], spd["max"])

@@ -272,7 +272,8 @@ def _avr_run(build: Path, board: str, cycles: dict[str, int], kernel: str = "flo
         scan = sa_board.run_scan(x, rng.taxel_min, rng.taxel_max, speeds_cmm, board=board, build=build,
                                  kernel=kernel)
         assert scan.raster.shape == x.shape
-        cycles.update(mean=scan.cycles_mean, max=scan.cycles_max)
+        cycles.update(mean=scan.cycles_mean, max=scan.cycles_max, speed_mean=scan.speed_cycles_mean,
+                      speed_max=scan.speed_cycles_max)
         return scan.raster, scan.counts, scan.held_windows
     return run
 
@@ -304,7 +305,9 @@ def test_avr_fixed_build_under_simavr_is_the_host_integer_kernel(fw_build, scans
     frac_h, frac_b, worst, n = _agreement(_avr_run(fw_build, board, cycles, "fixed"), scans[1:2], "fixed")
     print(f"\n{board} ({sa_board.CORES[board]}) integer kernel vs host mirror: {n} spikes, {100 * frac_h:.2f} % / "
           f"{100 * frac_b:.2f} %, count error {100 * worst:.3f} %; cycles per 1 ms step of 9 taxels: mean "
-          f"{cycles['mean']}, max {cycles['max']}")
+          f"{cycles['mean']}, max {cycles['max']}; per window speed (its scaling): mean {cycles['speed_mean']}, "
+          f"max {cycles['speed_max']}")
     assert n > 1000
     assert frac_h == frac_b == 1.0 and worst == 0.0
     assert 2000 < cycles["mean"] <= cycles["max"] < 11_000
+    assert 100 < cycles["speed_mean"] <= cycles["speed_max"] < 16_000

@@ -6,7 +6,8 @@
  *
  * Byte streams through general-purpose I/O registers (no UART, so nothing but the encoder runs): each read of
  * GPIOR2 takes the harness's next input byte, each write of GPIOR0 gives it an output byte, and writes of GPIOR1
- * mark the cycle counter (1 = a step starts, 2 = it ended). Input, little-endian:
+ * mark the cycle counter (1 = a step starts, 2 = it ended; 3, 4 = the same around a speed: sa_speed scales the
+ * windows waiting for it). Input, little-endian:
  *   9 x uint16 minimum count, 9 x uint16 maximum count (sa_init, k = 100), then commands:
  *   'x' + 9 x uint16 ADC counts   one 1 ms sample: sa_step; output: the spike mask, uint16
  *   's' + uint16 speed_cmm_s      sa_speed (the next window's mean speed, 0.01 mm/s)
@@ -48,7 +49,10 @@ int main(void)
             GPIOR1 = 2;
             out16(m);
         } else if (cmd == 's') {
-            sa_speed(&enc, in16());
+            uint16_t s = in16();
+            GPIOR1 = 3;
+            sa_speed(&enc, s);
+            GPIOR1 = 4;
         } else if (cmd == 'f') {
             sa_finish(&enc, in16());
             for (uint8_t i = 0; i < SA_N_TAXELS; i++)

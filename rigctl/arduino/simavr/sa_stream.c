@@ -2,7 +2,8 @@
  * sa_stream.c - runs a stream image (sa_bench/sa_bench.c) under simavr: stdin bytes are served to the firmware's
  * reads of GPIOR2 (0 once stdin is exhausted), its writes of GPIOR0 go to stdout, and its writes of GPIOR1 mark
  * the cycle counter: the cycles from each mark 1 to the next mark 2 are summed, and at the end one line
- * "CYCLES steps=N mean=M max=X total=T" goes to stderr. Not paced: simulated time runs as fast as the host can.
+ * "CYCLES steps=N mean=M max=X total=T" goes to stderr; marks 3 and 4 likewise (the speeds: sa_speed, which scales
+ * the windows), reported as "SPEEDS n=N mean=M max=X". Not paced: simulated time runs as fast as the host can.
  *
  *   sa_stream MCU FIRMWARE.elf < input > output        (MCU: atmega328p | atmega2560; 16 MHz)
  */
@@ -22,6 +23,7 @@ static uint8_t *in_buf;
 static size_t in_len, in_pos;
 static FILE *out; /* the firmware's bytes: the real stdout (simavr logs its loading on stdout, moved to stderr) */
 static uint64_t mark_at, steps, total, worst;
+static uint64_t speed_at, speeds, speed_total, speed_worst;
 
 static uint8_t read_in(struct avr_t *avr, avr_io_addr_t addr, void *param)
 {
@@ -45,6 +47,13 @@ static void write_mark(struct avr_t *avr, avr_io_addr_t addr, uint8_t v, void *p
         steps++;
         total += c;
         if (c > worst) worst = c;
+    } else if (v == 3) {
+        speed_at = avr->cycle;
+    } else if (v == 4) {
+        uint64_t c = avr->cycle - speed_at;
+        speeds++;
+        speed_total += c;
+        if (c > speed_worst) speed_worst = c;
     }
 }
 
@@ -90,5 +99,7 @@ int main(int argc, char **argv)
     fflush(out);
     fprintf(stderr, "CYCLES steps=%llu mean=%llu max=%llu total=%llu\n", (unsigned long long)steps,
             (unsigned long long)(steps ? total / steps : 0), (unsigned long long)worst, (unsigned long long)total);
+    fprintf(stderr, "SPEEDS n=%llu mean=%llu max=%llu\n", (unsigned long long)speeds,
+            (unsigned long long)(speeds ? speed_total / speeds : 0), (unsigned long long)speed_worst);
     return state == cpu_Crashed;
 }
