@@ -915,11 +915,13 @@ class Rig:
         data.attrs.update(mark_attrs(statuses))
         data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1], marks_mm_s=data.attrs[
             "drum_speed_marks_mm_s"]))
+        if data.attrs["drum_slip"]:  # flagged like a speed mismatch (rigctl info shows it)
+            slipped = (f"the drum slipped: a speed-mark interval took {100 * data.attrs['drum_slip_max']:.0f} % more "
+                       "steps than it should")
+            data.attrs["drum_speed_warning"] = "; ".join(w for w in (data.attrs["drum_speed_warning"], slipped) if w)
+            data.attrs["drum_speed_mismatch"] = True
         if data.attrs["drum_speed_mismatch"]:
             log.warning("trial %d: %s", planned.trial_id, data.attrs["drum_speed_warning"])
-        if data.attrs["drum_slip"]:
-            log.warning("trial %d: the drum slipped: a speed-mark interval took %.0f %% more steps than it should",
-                        planned.trial_id, 100 * data.attrs["drum_slip_max"])
         return data
 
 

@@ -75,3 +75,20 @@ def test_a_long_correct_run_warns_of_no_slip_and_no_microsteps(tmp_path, caplog)
     assert max(abs(a["drum_slip_max"]) for a in attrs) <= 0.0025 + 1e-9  # +-1 microstep of 400
     assert all(a["drum_steps_per_rev_index"] in (0, 3199, 3200, 3201) for a in attrs)
     assert not [r for r in caplog.records if "microsteps" in r.getMessage() or "slipped" in r.getMessage()]
+
+
+def test_mark_attrs_count_only_intervals_inside_the_capture():
+    """Pure logic: the interval that ends at the first read's MARK_COUNT + 1 began before the capture (left out);
+    a 500-step interval of 400 is a 25 % excess (a 20 % slip): flagged."""
+    from types import SimpleNamespace
+
+    from rigctl.acquisition.drum_marks import mark_attrs
+
+    def st(count, steps, period_s=0.3272):
+        return SimpleNamespace(mark_period_s=period_s, mark_steps=steps, mark_count=count)
+
+    reads = [st(65535, 400), st(0, 999, 9.9), st(0, 999, 9.9), st(1, 400), st(2, 500, 0.409)]
+    a = mark_attrs(reads)
+    assert a["drum_mark_intervals"] == 2 and a["drum_slip"] and a["drum_slip_max"] == pytest.approx(0.25)
+    assert a["drum_speed_marks_min_mm_s"] == pytest.approx(314.159 / 8 / 0.409, rel=1e-3)
+    assert not mark_attrs(reads[:4])["drum_slip"] and mark_attrs(reads[:1])["drum_mark_intervals"] == 0
