@@ -224,6 +224,24 @@ def test_fixed_build_is_the_host_integer_kernel(sa_lib_fixed, scans):
     assert near >= 0.7 * n_ref
 
 
+def test_fixed_build_stays_inside_int32_on_any_input(tmp_path, capfd):
+    """The integer kernel's clamps: ADC counts anywhere in 0..65535 against a one-count range, a full-scale range and
+    a flat taxel, built with the undefined-behaviour sanitizer (a signed overflow or a bad shift is reported on
+    stderr), give the host mirror's spikes exactly (the host computes in int64: an int32 overflow in C differs)."""
+    lib = _build(tmp_path, "sa_fixed_ubsan", "-DSA_FIXED", "-fsanitize=undefined")
+    rng_x = np.random.default_rng(3)
+    x = rng_x.integers(0, 65536, size=(3000, N_TAXELS)).astype(np.uint16)
+    x[:1000] = np.where(rng_x.random((1000, N_TAXELS)) < 0.5, 0, 65535)  # the extremes, held and switching
+    lo = np.array([500, 0, 0, 1000, 65534, 3, 700, 0, 20000], np.float64)
+    hi = np.array([501, 65535, 0, 1000, 65535, 4, 900, 1023, 20001], np.float64)  # taxels 2, 3 flat
+    rng = TaxelRange(lo, hi)
+    raster, _, _ = _firmware(lib, x, rng, np.array([10000], np.uint16))
+    host = FixedSAEncoder(rng).raster(x)
+    assert "runtime error" not in capfd.readouterr().err
+    assert np.array_equal(raster, host)
+    assert raster[:, [2, 3]].sum() == 0 and raster.sum() > 1000
+
+
 def test_scan_encoder_fixed_kernel_is_the_board(sa_lib_fixed, scans):
     """ScanEncoder(kernel="fixed") fed a scan in chunks: the C build's spikes, so the same features (the real-time
     original ones here, from the C raster through the same feature function)."""
