@@ -11,8 +11,11 @@
  * operations. Default: IEEE single precision with the operations of the host's live kernel (float32,
  * rigctl.encoding.fused _sa_step "fast": EncodeParams.kernel_dtype "float32", the ScanEncoder's), its folded
  * constants rounded as the host rounds them; -DSA_DOUBLE: IEEE double with the float64 kernel's expressions
- * (kernel_dtype "float64"). Both need a compiler that rounds every operation to its type (no FMA contraction:
- * -ffp-contract=off; no x87 excess precision) and a correctly rounded (round to nearest even) float library:
+ * (kernel_dtype "float64"); -DSA_FIXED: an integer kernel (below) that fits the AVR's 1 kHz tick, which the host runs
+ * integer for integer (rigctl.encoding.fixed_sa, ScanEncoder(kernel="fixed")): equal by construction, not to the
+ * float kernels (docs/firmware.md, "The integer kernel"). The float builds need a compiler that rounds every
+ * operation to its type (no FMA contraction: -ffp-contract=off; no x87 excess precision) and a correctly rounded
+ * (round to nearest even) float library:
  * an FPU, or avr-libc's software float on the AVR (tests/firmware/test_fw_sa_encoder.py runs the AVR build under
  * simavr against the host).
  *
