@@ -317,8 +317,8 @@ def test_avr_build_under_simavr_reproduces_the_host_encoder(fw_build, scans, boa
 @pytest.mark.parametrize("board", ["uno", "mega"])
 def test_avr_fixed_build_under_simavr_is_the_host_integer_kernel(fw_build, scans, board):
     """The integer kernel on the simulated ATmega328P / ATmega2560 (the fast scan, ~1.7 s of the core's time): every
-    spike and count as the host's mirror, in well under a 1 kHz tick's 16 000 cycles (docs/firmware.md: ~8 800 on
-    the 328P, the float32 build's 20 400 did not fit)."""
+    spike and count as the host's mirror, in well under a 1 kHz tick's 16 000 cycles (docs/firmware.md: ~7 600 on
+    the 328P, the float32 build's 19 900 did not fit)."""
     cycles: dict[str, int] = {}
     frac_h, frac_b, worst, n = _agreement(_avr_run(fw_build, board, cycles, "fixed"), scans[1:2], "fixed")
     print(f"\n{board} ({sa_board.CORES[board]}) integer kernel vs host mirror: {n} spikes, {100 * frac_h:.2f} % / "

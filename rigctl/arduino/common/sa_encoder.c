@@ -18,18 +18,22 @@
 #define V_REST Y_RESET
 #define U_REST Z_REST
 
-/* 16 x 16 -> 32 bit products, kept out of line so that the compiler sees 16-bit operands (avr-gcc otherwise folds
- * the halves of y back into 32-bit values and calls its 32 x 32 multiply: 7 of them cost ~2 000 cycles a step) */
+/* 16 x 16 -> 32 bit products. avr-gcc folds the halves of y back into 32-bit values and calls its 32 x 32 multiply
+ * (7 of them cost ~2 000 cycles a step); an empty asm statement that "changes" each operand hides where it came
+ * from, so it calls its 16 x 16 -> 32 routines instead (the same products: only the code differs) */
 #if defined(__GNUC__)
-#define SA_NOINLINE __attribute__((noinline))
 #define SA_INLINE inline __attribute__((always_inline))
 #else
-#define SA_NOINLINE
 #define SA_INLINE inline
 #endif
-static SA_NOINLINE int32_t mul_ss(int16_t a, int16_t b) { return (int32_t)a * b; }
-static SA_NOINLINE int32_t mul_su(int16_t a, uint16_t b) { return (int32_t)a * (int32_t)b; }
-static SA_NOINLINE uint32_t mul_uu(uint16_t a, uint16_t b) { return (uint32_t)a * b; }
+#if defined(__GNUC__) && defined(__AVR__)
+#define SA_OPAQUE(x) __asm__("" : "+r"(x))
+#else
+#define SA_OPAQUE(x) ((void)0)
+#endif
+static SA_INLINE int32_t mul_ss(int16_t a, int16_t b) { SA_OPAQUE(a); SA_OPAQUE(b); return (int32_t)a * b; }
+static SA_INLINE int32_t mul_su(int16_t a, uint16_t b) { SA_OPAQUE(a); SA_OPAQUE(b); return (int32_t)a * (int32_t)b; }
+static SA_INLINE uint32_t mul_uu(uint16_t a, uint16_t b) { SA_OPAQUE(a); SA_OPAQUE(b); return (uint32_t)a * b; }
 
 /* y^2 for a Q24 y in [-8, 8): y = h 2^16 + l, h signed, l in [0, 2^16), m = l's high byte: (h^2 2^8) +
  * floor(2h l / 2^8) + floor(m^2 / 2^8) (l^2 / 2^24 but for < 2 LSB): two 16 x 16 -> 32 bit products and an 8 x 8,
