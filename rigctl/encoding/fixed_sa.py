@@ -23,6 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from rigctl.core.encoding_model import MODEL_RATE_HZ
 from rigctl.core.normalisation import TaxelRange
 from rigctl.encoding.spikes import SpikeTrains
 
@@ -122,7 +123,7 @@ class FixedSAEncoder:
         As :func:`fixed_gains`.
     """
 
-    def __init__(self, normalise: TaxelRange, *, k_sa: float = 100.0, fs: float = 1000.0) -> None:
+    def __init__(self, normalise: TaxelRange, *, k_sa: float = 100.0, fs: float = MODEL_RATE_HZ) -> None:
         self.n_taxels = normalise.n_taxels
         self.fs = float(fs)
         self._off, self._gain, self._lo, self._hi = fixed_gains(normalise.taxel_min, normalise.taxel_max, k_sa)
