@@ -383,7 +383,7 @@ class HilRig:
         if self.live:
             self._render_and_load()
             self._stop.clear()
-            self._feeder = threading.Thread(target=self._feed, name="hil-feeder", daemon=True)
+            self._feeder = threading.Thread(target=board_thread(self._feed), name="hil-feeder", daemon=True)
             self._feeder.start()
         return self
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from rigctl.devices.motion import pack_motion_frame
 from rigctl.simulation.operator import PASS_PROFILES, REST_S, SimulatedOperator, operator_passes, plate_axis_of
+from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyEndpoint
 
 __all__ = ["VirtualMotionBoard"]
@@ -51,7 +52,7 @@ class VirtualMotionBoard:
         self.frames_sent = 0
         self.passes: list[str] = []
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="virtual-motion-board", daemon=True)
+        self._thread = threading.Thread(target=board_thread(self._run), name="virtual-motion-board", daemon=True)
         self._thread.start()
 
     @property
