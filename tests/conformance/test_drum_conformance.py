@@ -370,6 +370,8 @@ def test_tare_and_the_load_cell_scale(drum, controller):
     def force_near(target: float) -> DrumStatus:
         return poll(drum, lambda s: abs(s.force_g - target) <= 3, 5, f"FORCE_G near {target} g")
 
+    # TARE is taken only at rest at home: the previous test's release may still be backing off on a loaded machine
+    poll(drum, lambda s: s.state in (S.IDLE, S.NOT_HOMED) and s.home_switch, 10, "at rest at home")
     force_near(0)
     controller.place_mass(20)  # a small load (under 2 x FORCE_TOLERANCE_G) that TARE accepts
     force_near(20)
