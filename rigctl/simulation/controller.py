@@ -632,14 +632,19 @@ class MegaController:
             with self._lock:
                 rate, vel = self._outputs
             t0 = self.model.time_s
-            travel0 = self.model.stepper_travel_mm
+            travel0, act0 = self.model.stepper_travel_mm, self.model.actuator_mm
             s, y = self.model.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
             m = self.model
             with self._lock:  # the step pulses sent: the stepper's travel at the driver's real setting
                 y = self._index.step(y, (m.last_stepper_mm - travel0) * m.config.drum.true_steps_per_mm, t0,
                                      m.last_marks)
                 vmax = self.model.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
-                self._steps_true_mm += min(max(vel, -vmax), vmax) * k / 1000.0
+                sent = min(max(vel, -vmax), vmax) * k / 1000.0
+                if m.actuator_sign > 0 and m.actuator_mm <= 1e-6 and sent < m.actuator_mm - act0:
+                    # the rear stop is the home switch, where the firmware stops on the step: a k-ms chunk counted
+                    # steps past it never sent (a starved clock's long chunks put the count 0.06 mm off)
+                    sent = m.actuator_mm - act0
+                self._steps_true_mm += sent
             self.control_step(k)
             samples.append(s)
             sync.append(y)

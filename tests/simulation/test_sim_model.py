@@ -312,3 +312,36 @@ def test_plate_pattern_is_static_per_plate_and_contact_efficiency_below_one():
     for letter in "BDGL":
         e250, e1000 = a.contact_efficiency(letter, 250), a.contact_efficiency(letter, 1000)
         assert np.all(e250 < 1.0) and np.all(e1000 <= e250 + 1e-9), letter
+
+
+def test_a_starved_clock_keeps_the_actuator_count_on_the_true_position():
+    """The controller counts the actuator's steps as the firmware does; a starved clock hands the model long chunks
+    (here 37 ms, stepped 10 ms at a time), and each STOP's retract ending at the home switch used to count steps past
+    it: over 12 presses the count and the true position parted by 0.012 mm (0.06 mm in a loaded CI run, enough for a
+    'home' actuator to stand off its switch). They stay together now."""
+    from rigctl.devices.wire import Command, HoldingRegister as HR
+    from rigctl.simulation.controller import MegaController
+
+    model = RigModel(seed=1)
+    ctl = MegaController(model, factory_calibrated=True)
+
+    def write(reg, value):
+        assert ctl.write_registers(6, reg, [int(value)]) is None, (reg, value)
+
+    def run(ms, chunk=37):
+        for _ in range(ms // chunk):
+            write(HR.WATCHDOG_MS, 10000)  # the host's requests, fed between chunks
+            ctl.step(chunk)
+
+    write(HR.WATCHDOG_MS, 10000)
+    write(HR.COMMAND, Command.HOME)
+    run(8000, 10)
+    for _ in range(12):
+        write(HR.FORCE_SETPOINT_G, 200)
+        write(HR.COMMAND, Command.PRESS)
+        run(4000)
+        assert model.actuator_mm > 1.0  # it pressed
+        write(HR.COMMAND, Command.STOP)
+        run(3000)
+    assert model.actuator_mm <= 1e-6 and abs(ctl._actuator_position_mm()) <= 1e-3, (model.actuator_mm,
+                                                                                   ctl._actuator_position_mm())
