@@ -640,7 +640,7 @@ class MegaController:
                                      m.last_marks)
                 vmax = self.model.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
                 sent = min(max(vel, -vmax), vmax) * k / 1000.0
-                if m.actuator_sign > 0 and m.actuator_mm <= 1e-6 and sent < m.actuator_mm - act0:
+                if m.actuator_sign > 0 and self._home_switch_ok and m.actuator_mm <= 1e-6 and sent < m.actuator_mm - act0:
                     # the rear stop is the home switch, where the firmware stops on the step: a k-ms chunk counted
                     # steps past it never sent (a starved clock's long chunks put the count 0.06 mm off)
                     sent = m.actuator_mm - act0
