@@ -9,11 +9,7 @@ cd "$(dirname "$0")/.."
 # clock (each stands for hardware with a processor of its own), and on a machine other programs keep busy they starved
 # (a run beside two CPU hogs on 2 cores with 7 workers failed 25 timing tests in its first third). The boards' threads
 # and simavr harnesses raise themselves a further 5 levels above the host code beside them (rigctl.simulation.priority)
-# Linux schedules each session (autogroup) as one: a nice level counts only against the session's own processes, so the
-# session's own level is raised too (/proc/self/autogroup; programs started in other sessions then get ~10 % beside it:
-# a run beside two hogs of another session with only the processes' nice -10 failed 17 timing tests)
 if [ -z "${RIGCTL_TEST_PRIORITY:-}" ] && [ "$(nice -n -10 nice 2>/dev/null)" = "-10" ]; then
-  if [ -w /proc/self/autogroup ]; then echo -10 > /proc/self/autogroup 2>/dev/null || true; fi
   RIGCTL_TEST_PRIORITY=raised exec nice -n -10 bash "$0" "$@"
 fi
 
