@@ -187,7 +187,8 @@ phase "pytest"
 # and the rigs paced to the wall clock then starve (a run beside two hogs on 2 cores with 7 workers failed 25 timing
 # tests in its first third; each simulated board is a thread that must run every millisecond or so)
 cores="$(nproc 2>/dev/null || echo 1)"
-if [ "${RIGCTL_TEST_PRIORITY:-}" = raised ]; then others_busy_cores=0; fi  # (other programs get ~10 % beside us)
+# (also when the run's priority is raised: Linux weighs each session as one group, so programs of another session keep
+# their share whatever our nice level)
 free_cores=$(( cores - others_busy_cores < 1 ? 1 : cores - others_busy_cores ))
 workers="${RIGCTL_TEST_WORKERS:-$(( free_cores * 3 + 1 > 8 ? 8 : free_cores * 3 + 1 ))}"
 echo "== $workers test workers ($cores cores, $others_busy_cores kept busy by other programs at the start; priority: ${RIGCTL_TEST_PRIORITY:-as started})"
