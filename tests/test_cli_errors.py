@@ -415,9 +415,14 @@ def test_a_killed_sims_temporary_folder_is_removed_by_the_next_one(tmp_path, mon
 def _hardware(args, *, drum_port=None, timeout=180):
     """`rigctl acquire ... --drum-port --taxel-port` on the simulated rig's ports as if they were the real boards
     (stdin not a terminal); ``drum_port`` replaces the drum's."""
+    from rigctl.devices.wire import HoldingRegister
+    from rigctl.rigs import WATCHDOG_MS
     from rigctl.simulation.rig import SimulatedRig
 
     with SimulatedRig(seed=1) as sim:
+        # the simulated rig's own watchdog (5 s), not the hardware's 1 s: these tests judge the command line, and a
+        # host process starved for 1 s on a saturated test machine latched WATCHDOG in every CI run
+        sim.mega.holding[HoldingRegister.WATCHDOG_MS] = WATCHDOG_MS["sim"]
         return subprocess.run([*RIGCTL, "acquire", *map(str, args), "--quiet", "--drum-port", drum_port or sim.drum_port,
                                "--taxel-port", sim.taxel_port], capture_output=True, text=True, timeout=timeout,
                               stdin=subprocess.DEVNULL)
