@@ -103,6 +103,26 @@ def pytest_runtest_protocol(item, nextitem):
         f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\t{worker}\t{start:.1f}\n")
 
 
+#: the tiers whose tests judge against the wall clock (a rig paced to it, the firmware under simavr, a real window, a
+#: fresh install): on a saturated machine one of them can fail for want of CPU, not of correctness
+WALL_CLOCK_TIERS = ("realtime", "hil", "gui", "packaging")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """With ``$RIGCTL_FAILURES_LOG`` set (a file path), append one line per failed test: its node id and its tier,
+    ``wall`` (one of :data:`WALL_CLOCK_TIERS`) or ``logic``, tab-separated. scripts/test.sh reruns a run's wall-clock
+    failures alone, one at a time, once the parallel run is over (the CPU then free), and fails on any logic failure
+    and any wall-clock test that fails again alone."""
+    outcome = yield
+    report = outcome.get_result()
+    path = os.environ.get("RIGCTL_FAILURES_LOG")
+    if path and report.failed:
+        tier = "wall" if any(item.get_closest_marker(m) for m in WALL_CLOCK_TIERS) else "logic"
+        with open(path, "a") as f:
+            f.write(f"{item.nodeid}\t{tier}\t{report.when}\n")
+
+
 def pytest_unconfigure(config):
     import shutil
 
@@ -249,6 +269,18 @@ def build_tools() -> None:
 def lsl():
     """pylsl (LSLAPICFG set to the machine-local :data:`LSL_API_CFG`), or a skip / CI failure."""
     return require_lsl()
+
+
+@pytest.fixture(scope="session")
+def rigctl_cmd(tmp_path_factory):
+    """The argv prefix of a ``rigctl`` command run by this worker's preloaded interpreter (tests/launcher.py: the
+    real command line, forked from a process that has imported rigctl once, without ~3-5 s of CPU to start each),
+    to be used where ``[sys.executable, "-m", "rigctl"]`` would be; signals sent to it reach the command."""
+    from .launcher import Launcher
+
+    launcher = Launcher(tmp_path_factory.mktemp("launcher"))
+    yield launcher.command
+    launcher.close()
 
 
 @pytest.fixture(scope="session")

@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import guide_launcher
+from . import launcher
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -169,7 +169,7 @@ def _children_cpu_s() -> float:
 def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True) -> list[BlockRun]:
     """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
     block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
-    one of tests/guide_launcher.py (the same command lines, without ~5 s of CPU to start each) when the page runs
+    one of tests/launcher.py (the same command lines, without ~5 s of CPU to start each) when the page runs
     more than two ``rigctl`` commands."""
     runnable = [b for b in blocks(page) if b.runs_here]
     work.mkdir(parents=True, exist_ok=True)
@@ -181,10 +181,10 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
     server = None
     if preload and sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines()) > 2:
         sock = work.parent / "rigctl.sock"
-        server = subprocess.Popen([sys.executable, str(Path(__file__).with_name("guide_launcher.py")), "serve",
+        server = subprocess.Popen([sys.executable, str(Path(__file__).with_name("launcher.py")), "serve",
                                    str(sock)], cwd=work.parent, env=env, stdout=subprocess.PIPE, text=True)
         assert server.stdout is not None and server.stdout.readline().strip() == "ready"
-        bin_dir = guide_launcher.write_client(work.parent / "bin", sock).parent
+        bin_dir = launcher.write_client(work.parent / "bin", sock).parent
         env["PATH"] = f"{bin_dir}{os.pathsep}{env['PATH']}"
     try:
         return _run_script(page, path, work, env, runnable, t0, cpu0, timeout_s)

@@ -1,0 +1,200 @@
+"""A preloaded ``rigctl`` for the tests and the guides' shells: each command forks an interpreter that has already
+imported rigctl.
+
+A ``rigctl`` command pays ~3-5 s of CPU to start (numpy, scipy, scikit-learn, h5py, numba and its cached kernels,
+the CLI) before any work, and on the tests' small sizes that start is most of its cost: the suite runs a few hundred
+commands. ``python launcher.py serve SOCKET`` imports all of it once and listens on a Unix socket; a client (the
+``rigctl`` script :func:`write_client` writes, a few lines of the standard library started with ``python -S``) sends
+its arguments, working folder, environment and its stdin/stdout/stderr (SCM_RIGHTS); the server forks, the child runs
+``rigctl.cli.main`` exactly as the console script does with them, and its exit status comes back (128 + N when a
+signal N ended it). Commands run side by side (a test may start a ``rigctl sim`` and then an ``acquire`` beside it).
+
+The client stands for the command to the test: SIGINT, SIGTERM and SIGHUP sent to it are passed on to the command
+(a test's Ctrl-C), and a client that dies (a test's kill -9 or its timeout) takes the command with it (SIGKILL, to
+the command's process group: the simulated boards a ``--sim`` command started go too). The command lines are the
+real ones, unchanged; the installed console script itself is run by the packaging tests (tests/test_packaging.py).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+#: what the server imports before it forks (the CLI and what its commands load)
+PRELOAD = ("rigctl.cli", "rigctl.cli.errors", "rigctl.cli.progress", "rigctl.operations", "rigctl.encoding.pipeline",
+           "rigctl.encoding.fused", "rigctl.analysis.tasks", "rigctl.analysis.classify", "rigctl.analysis.report",
+           "rigctl.simulation.dataset", "rigctl.storage.importers", "rigctl.storage.session", "rigctl.storage.encoded",
+           "sklearn.discriminant_analysis", "sklearn.decomposition", "matplotlib.pyplot")
+
+_CLIENT = '''#!{python} -S
+import json, os, signal, socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+s.connect({sock!r})
+msg = json.dumps([sys.argv[1:], os.getcwd(), dict(os.environ)]).encode()
+socket.send_fds(s, [len(msg).to_bytes(4, "big") + msg], [0, 1, 2])
+f = s.makefile("rb")
+pid = int(f.readline() or b"0")
+def forward(sig, _frame):
+    try:
+        os.kill(pid, sig)
+    except OSError:
+        pass
+if pid:
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, forward)
+status = f.readline()
+sys.exit(int(status or b"70"))
+'''
+
+
+def write_client(bin_dir: Path, sock: Path) -> Path:
+    """Write the ``rigctl`` client into ``bin_dir`` (to be first on a shell's PATH); returns its path."""
+    bin_dir.mkdir(parents=True, exist_ok=True)
+    path = bin_dir / "rigctl"
+    path.write_text(_CLIENT.format(python=sys.executable, sock=str(sock)))
+    path.chmod(0o755)
+    return path
+
+
+def _receive(conn: socket.socket) -> tuple[list[str], str, dict[str, str], list[int]]:
+    """One request: a 4-byte length, that much JSON ([argv, cwd, env]), and the client's three descriptors."""
+    data, fds, _flags, _addr = socket.recv_fds(conn, 1 << 20, 3)
+    while len(data) < 4 or len(data) < 4 + int.from_bytes(data[:4], "big"):
+        more = conn.recv(1 << 20)
+        if not more:
+            raise ConnectionError("the client left mid-request")
+        data += more
+    argv, cwd, env = json.loads(data[4:])
+    return argv, cwd, env, fds
+
+
+def _child(argv: list[str], cwd: str, env: dict[str, str], fds: list[int]) -> int:
+    """In the forked child: become the command (its folder, environment and stdio) and run the console script."""
+    os.chdir(cwd)
+    os.environ.clear()
+    os.environ.update(env)
+    # the command's PYTHONPATH, as a fresh interpreter would take it (a guide installs a plugin into a folder on it)
+    sys.path[:0] = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p and p not in sys.path]
+    for target, fd in enumerate(fds):
+        os.dup2(fd, target)
+        os.close(fd)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD):
+        signal.signal(sig, signal.SIG_DFL)
+    from rigctl.cli import main
+
+    sys.argv = ["rigctl", *argv]
+    try:
+        code = main()
+    except SystemExit as exc:
+        code = exc.code
+    except KeyboardInterrupt:  # as an interpreter ends on an unhandled Ctrl-C
+        code = 130
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
+
+
+def _watch(pid: int, conn: socket.socket) -> None:
+    """Wait for the command ``pid`` to end and send its status; if the client goes first, end the command."""
+    pidfd = os.pidfd_open(pid)
+    try:
+        while True:
+            ready, _, _ = select.select([pidfd, conn], [], [])
+            if pidfd in ready:
+                break
+            if conn.recv(1) == b"":  # the client is gone: so is its command
+                for kill in (os.killpg, os.kill):
+                    try:
+                        kill(pid, signal.SIGKILL)
+                    except OSError:
+                        pass
+                break
+        _, status = os.waitpid(pid, 0)
+        code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else 128 + os.WTERMSIG(status)
+        try:
+            conn.sendall(f"{code}\n".encode())
+        except OSError:
+            pass
+    finally:
+        os.close(pidfd)
+        conn.close()
+
+
+def serve(sock: Path) -> None:
+    """Import :data:`PRELOAD`, then run each command a client sends in a child of its own, side by side."""
+    import importlib
+
+    for name in PRELOAD:
+        importlib.import_module(name)
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(str(sock))
+    server.listen(16)
+    print("ready", flush=True)
+    while True:
+        conn, _ = server.accept()
+        try:
+            argv, cwd, env, fds = _receive(conn)
+        except (ConnectionError, ValueError):
+            conn.close()
+            continue
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child
+            server.close()
+            conn.close()
+            os.setpgid(0, 0)  # a group of its own: the boards a --sim command starts end with it
+            code = 70
+            try:
+                code = _child(argv, cwd, env, fds)
+            finally:
+                import atexit
+
+                atexit._run_exitfuncs()
+                os._exit(code)
+        for fd in fds:
+            os.close(fd)
+        conn.sendall(f"{pid}\n".encode())
+        threading.Thread(target=_watch, args=(pid, conn), daemon=True).start()
+
+
+class Launcher:
+    """One preloaded server (``python launcher.py serve``) and its client script, for a test session.
+
+    ``command`` is the argv prefix that runs ``rigctl`` through it (``[*launcher.command, "info", path]``), to be used
+    wherever ``[sys.executable, "-m", "rigctl"]`` would be; :meth:`close` stops the server."""
+
+    def __init__(self, folder: Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        sock = folder / "rigctl.sock"
+        self._server = subprocess.Popen([sys.executable, str(Path(__file__)), "serve", str(sock)], cwd=folder,
+                                        stdout=subprocess.PIPE, text=True)
+        assert self._server.stdout is not None
+        line = self._server.stdout.readline().strip()
+        if line != "ready":
+            self._server.kill()
+            raise RuntimeError(f"the preloaded rigctl did not start: {line!r}")
+        self.client = write_client(folder / "bin", sock)
+        self.command = [sys.executable, "-S", str(self.client)]
+
+    def close(self) -> None:
+        self._server.kill()
+        self._server.wait()
+
+
+if __name__ == "__main__":
+    serve(Path(sys.argv[2]))
