@@ -283,6 +283,15 @@ def rigctl_cmd(tmp_path_factory):
     launcher.close()
 
 
+@pytest.fixture(autouse=True)
+def _preloaded_rigctl(request):
+    """A test module that declares ``RIGCTL: list[str] = []`` gets it filled with :func:`rigctl_cmd` (its commands
+    then run through this worker's preloaded interpreter)."""
+    target = getattr(request.module, "RIGCTL", None)
+    if isinstance(target, list) and not target:
+        target[:] = request.getfixturevalue("rigctl_cmd")
+
+
 @pytest.fixture(scope="session")
 def scratch() -> Path:
     """:func:`scratch_dir`, created: for what a test keeps between runs (never the checkout)."""

@@ -10,7 +10,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import pytest
 from ..conftest import wait_unlocked
 
 REPO = Path(__file__).resolve().parents[2]
-RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 
 
 def _env(tmp_path):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from datetime import UTC, datetime, timedelta
 
 import numpy as np
@@ -247,9 +246,11 @@ def test_a_stored_report_is_schema_checked():
 
 
 # ------------------------------------------------------------------------------------------------ CLI
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
+
+
 def _rigctl(*args, timeout_s: float = 120, **kw):
-    return subprocess.run([sys.executable, "-m", "rigctl", *args], capture_output=True, text=True, timeout=timeout_s,
-                          **kw)
+    return subprocess.run([*RIGCTL, *args], capture_output=True, text=True, timeout=timeout_s, **kw)
 
 
 def test_cli_usage_errors_exit_2():
