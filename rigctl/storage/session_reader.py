@@ -18,7 +18,7 @@ from h5py import h5a, h5d, h5g, h5s, h5t
 
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import session_recording
+from rigctl.storage import session_recording, trial_facts
 from rigctl.storage.session_format import (
     SessionError,
     TrialStatus,
@@ -158,6 +158,7 @@ class SessionReader:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._f = _open_h5(self.path, "r")
+        self._mtime_ns = trial_facts.mtime_ns(self.path)  # under the HDF5 lock: the seal of the trial facts
         self.problems: list[str] = []
         self._checked: dict[int, int] = {}  # trial id -> its sample count, for trials whose recording passed
         try:
@@ -195,6 +196,7 @@ class SessionReader:
         self._index: dict[int, np.void] | None = None
         self._index_dups: dict[int, int] = {}
         self._tg: Any = None
+        self._facts: dict[int, np.void] | None = None
         #: the trial validator's reports (rigctl.storage.validate), computed once per open session
         self.trial_reports: dict[str, Any] = {}
 
@@ -218,6 +220,14 @@ class SessionReader:
                         self._index_dups[tid] = self._index_dups.get(tid, 1) + 1
                     self._index[tid] = r
         return self._index
+
+    def trusted_facts(self) -> dict[int, np.void]:
+        """Schema 4: trial id -> its ``/recording/facts`` row (:data:`rigctl.storage.trial_facts.FACTS_DTYPE`: what
+        the writer found in its samples) while the file is sealed (nobody wrote to it after rigctl's last commit:
+        :mod:`rigctl.storage.trial_facts`), read once; ``{}`` otherwise (older files, edited files)."""
+        if self._facts is None:
+            self._facts = trial_facts.trusted_facts(self._f, self.attrs, self._mtime_ns) if self._flat else {}
+        return self._facts
 
     def index_rows(self, ids: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """Schema 4: ``(rows, have)``: the ``/recording/index`` rows of ``ids`` (:data:`INDEX_DTYPE`, zeros where

@@ -88,28 +88,40 @@ def _append(ds: h5py.Dataset, data: np.ndarray) -> int:
     return start
 
 
-def _stack(arrays: list[np.ndarray], dtype: np.dtype[Any], shape: tuple[int, ...]) -> np.ndarray:
-    return np.concatenate([np.asarray(a, dtype=dtype).reshape((-1,) + shape) for a in arrays]) if arrays else \
-        np.zeros((0,) + shape, dtype)
+#: every recording array's stored type: the per-sample arrays', then the traces' (float64)
+STORED_DTYPES: dict[str, np.dtype[Any]] = {**dict(SAMPLE_ARRAYS),
+                                           **{name: np.dtype("<f8") for v, t, _ in TRACES for name in (v, t)}}
 
 
-def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]]) -> list[Any]:
+def stored(name: str, array: Any, n_channels: int) -> np.ndarray:
+    """One trial's ``array`` as recording array ``name`` stores it (its type; ``taxels`` as ``(n, n_channels)``):
+    the bytes written, from which the trial facts (:mod:`rigctl.storage.trial_facts`) are computed too."""
+    return np.asarray(array, dtype=STORED_DTYPES[name]).reshape((-1, n_channels) if name == "taxels" else (-1,))
+
+
+def _stack(name: str, arrays: list[Any], n_channels: int) -> np.ndarray:
+    if not arrays:
+        return np.zeros((0, n_channels) if name == "taxels" else (0,), STORED_DTYPES[name])
+    return np.concatenate([stored(name, a, n_channels) for a in arrays])
+
+
+def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]]) -> tuple[list[Any], np.ndarray]:
     """Append trials to ``/recording`` (each array once for the whole batch) and their index rows, and make each
     trial's views in its new, empty group. ``items``: (group low-level id, trial id, data). Returns the low-level
-    ids of the ``taxels`` views, in ``items`` order (for their attributes)."""
+    ids of the ``taxels`` views, in ``items`` order (for their attributes), and the new index rows."""
     rec = f[GROUP]
     rows = np.zeros(len(items), dtype=INDEX_DTYPE)
     rows["trial_id"] = [int(t) for _, t, _ in items]
     data = [d for _, _, d in items]
     rows["n_samples"] = [d.n_samples for d in data]
     n_ch = rec["taxels"].shape[1]
-    for name, dt in SAMPLE_ARRAYS:
-        first = _append(rec[name], _stack([getattr(d, name) for d in data], dt, (n_ch,) if name == "taxels" else ()))
+    for name, _ in SAMPLE_ARRAYS:
+        first = _append(rec[name], _stack(name, [getattr(d, name) for d in data], n_ch))
     rows["sample_start"] = first + np.concatenate([[0], np.cumsum(rows["n_samples"])[:-1]])
     for value, times, prefix in TRACES:
         rows[f"n_{prefix}"] = [np.size(getattr(d, value)) for d in data]
-        first = _append(rec[value], _stack([getattr(d, value) for d in data], np.dtype("<f8"), ()))
-        _append(rec[times], _stack([getattr(d, times) for d in data], np.dtype("<f8"), ()))
+        first = _append(rec[value], _stack(value, [getattr(d, value) for d in data], n_ch))
+        _append(rec[times], _stack(times, [getattr(d, times) for d in data], n_ch))
         rows[f"{prefix}_start"] = first + np.concatenate([[0], np.cumsum(rows[f"n_{prefix}"])[:-1]])
     rows["dropped_frames"] = [d.dropped_frames for d in data]
     rows["crc_errors"] = [d.crc_errors for d in data]
@@ -126,7 +138,7 @@ def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]]) -> list
         for value, times, prefix in TRACES:
             for name in (value, times):
                 sources[name].view(gid, name, int(row[f"{prefix}_start"]), int(row[f"n_{prefix}"]))
-    return out
+    return out, rows
 
 
 class _Source:

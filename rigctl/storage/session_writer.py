@@ -23,7 +23,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_labels
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.core.version import __version__
-from rigctl.storage import h5objects, journal, journal_replay, session_recording
+from rigctl.storage import h5objects, journal, journal_replay, session_recording, trial_facts
 from rigctl.storage.outputs import check_replaceable
 from rigctl.storage.session_format import (
     EVENTS_ATTR,
@@ -70,14 +70,22 @@ def _writing(path: Path, *, durable: bool = True, wait_s: float = 10.0) -> Itera
     and are committed (journaled) to disk only after HDF5 has closed the file cleanly; on an exception nothing
     reaches the disk."""
     overlay = journal.OverlayFile(path, durable=durable, wait_s=wait_s)
+    stamp = None
     try:
         f = h5py.File(overlay, "r+", rdcc_nbytes=0)  # no chunk cache: an append to an uncompressed chunk writes
         # only its own rows (not the whole chunk again, which the journal would copy)
         try:
+            # schema 4's trial facts stay only if nobody wrote since the last commit (stat under the lock)
+            stamp = trial_facts.begin_commit(f, trial_facts.mtime_ns(path))
             yield f
         finally:
             f.close()
-        overlay.commit()
+        try:
+            overlay.commit()
+        except journal.CommittedInterrupt:  # on disk all the same
+            trial_facts.seal(path, stamp)
+            raise
+        trial_facts.seal(path, stamp)  # under the lock: no other writer comes between
     finally:
         overlay.close()
 
@@ -487,7 +495,8 @@ class SessionWriter:
                 for i in relabelled:  # the recorded condition in the plan row (before its status, below)
                     f["plan"][i] = self._plan[i]
                 if views:
-                    taxels = session_recording.append_trials(f, views)
+                    taxels, rows = session_recording.append_trials(f, views)
+                    trial_facts.append(f, rows, [d for _, _, d in views])
                     for tax, (_, _, data) in zip(taxels, views):
                         self._taxels_attrs(tax, data)
                 if written:  # the plan's statuses last, in one write of the span they cover (only the status

@@ -5,6 +5,7 @@ while the validator works (judged generously: a loaded machine stretches wall cl
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -69,8 +70,15 @@ _SLOW_INFO = textwrap.dedent("""
 """)
 
 
-def test_ctrl_c_stops_info_within_a_second(many):
-    p = subprocess.Popen([sys.executable, "-c", _SLOW_INFO, str(many)], stdout=subprocess.PIPE,
+def test_ctrl_c_stops_info_within_a_second(many, tmp_path):
+    """On a file whose trial facts cannot be trusted (a plain copy: its modification time is not its seal), where
+    the validator opens every trial's group and reads every sample: the slow case, where Ctrl-C matters."""
+    copy = tmp_path / "copy.h5"
+    shutil.copy(many, copy)
+    for path, sealed in ((many, True), (copy, False)):
+        with SessionReader(path) as s:
+            assert bool(s.trusted_facts()) == sealed
+    p = subprocess.Popen([sys.executable, "-c", _SLOW_INFO, str(copy)], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     buf = ""
     deadline = time.monotonic() + 120

@@ -185,7 +185,8 @@ def test_block_seq_gaps_equals_seq_gaps_trial_by_trial():
 def test_trials_alike_in_their_fingerprint_rows_are_no_copies_unless_every_byte_is():
     """Byte copies are found by a fingerprint of a few hundred rows, confirmed on every byte: a trial that differs
     from an earlier one only in a row outside the fingerprint is not called a copy; an exact copy is."""
-    from rigctl.storage.validate import _PRINT_ROWS, _Copies
+    from rigctl.storage.trial_facts import PRINT_ROWS as _PRINT_ROWS
+    from rigctl.storage.validate import _Copies
 
     rng = np.random.default_rng(3)
     a = rng.integers(0, 1024, (5000, 18)).astype(np.uint16)

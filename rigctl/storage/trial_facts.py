@@ -1,0 +1,193 @@
+"""Schema 4's trial facts: what the trial validator needs from a trial's samples, computed once by the writer from
+the very arrays it stores, so that the validator need not read every sample of every trial again.
+
+``/recording/facts`` holds one row per trial committed by a rigctl that writes them (:data:`FACTS_DTYPE`): where
+its rows are (the index's extents, to pair them), its ``seq`` column's missing frames (:func:`seq_gaps`), the
+minimum and maximum of its taxel counts, their fingerprint (:func:`taxels_print`) and SHA-256 (byte copies), and
+the NaN and inf counts of its force and speed traces and their times.
+
+The facts describe the samples only while nobody else has written to the file: a file edited afterwards (h5py in
+``r+`` mode, a copy that was cut short and mended, another program) may hold other samples under the same facts.
+So every commit of :class:`rigctl.storage.session_writer.SessionWriter` **seals** the file: it stores a time in the
+root attribute :data:`SEAL_ATTR` and, once the commit is on disk, sets the file's modification time to exactly that
+time (ns). Any later write by anyone moves the modification time, and the seal no longer holds: the readers then
+trust no fact (:func:`trusted_facts`) and the validator reads the samples, as it does for files without facts. A
+writer that finds the seal broken drops the facts of the trials already in the file before it adds its own (an
+edit made before a resume is never hidden behind facts computed before it). A filesystem that cannot keep a
+modification time to the nanosecond (FAT, some network shares) never holds a seal: always the full read there.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+import zlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from rigctl.core.trial import TrialData
+from rigctl.storage import session_recording
+from rigctl.storage.session_recording import GROUP, TRACES
+
+#: the facts' dataset in ``/recording``
+FACTS = "facts"
+#: root attribute: the modification time (ns since the epoch) the last commit gave the file
+SEAL_ATTR = "facts_sealed_mtime_ns"
+#: the traces whose non-finite readings are counted, in the validator's order (value, then its times)
+TRACE_NAMES = tuple(name for value, times, _ in TRACES for name in (value, times))
+#: one row per trial: its extents (as its ``/recording/index`` row), then what its samples hold
+FACTS_DTYPE = np.dtype([
+    ("trial_id", "<u4"),
+    ("sample_start", "<i8"), ("n_samples", "<i8"),
+    ("force_start", "<i8"), ("n_force", "<i8"),
+    ("speed_start", "<i8"), ("n_speed", "<i8"),
+    ("seq_gaps", "<i8"),
+    ("taxels_min", "<i8"), ("taxels_max", "<i8"),
+    ("taxels_print", "<u4"), ("taxels_sha256", "u1", (32,)),
+    *((f"{name}_{what}", "<i8") for name in TRACE_NAMES for what in ("nan", "inf")),
+])
+#: the index fields a facts row repeats (a row describes the trial only if they agree)
+EXTENTS = ("sample_start", "n_samples", "force_start", "n_force", "speed_start", "n_speed")
+#: rows of a trial's counts in its fingerprint (:func:`taxels_print`)
+PRINT_ROWS = 256
+
+
+def seq_gaps(seq: np.ndarray) -> int:
+    """Frames missing inside a trial by its uint16 ``seq`` column (wrapping at 65,536): the sum of the jumps beyond
+    one."""
+    if seq.size < 2:
+        return 0
+    d = np.mod(np.diff(seq.astype(np.int64)), 65536)
+    return int(np.sum(d[d > 1] - 1))
+
+
+def taxels_print(data: np.ndarray) -> int:
+    """Adler-32 of every ``len // PRINT_ROWS``-th row and the last of ``(n, channels)`` counts (``n`` > 0): equal
+    for byte copies, cheap to compute (hashing every byte cost as much as reading them)."""
+    step = max(1, data.shape[0] // PRINT_ROWS)
+    crc = zlib.adler32(np.ascontiguousarray(data[::step]).data.cast("B"))
+    return zlib.adler32(np.ascontiguousarray(data[-1]).data.cast("B"), crc)
+
+
+def sha256(data: np.ndarray) -> bytes:
+    """SHA-256 of an array's bytes (C order)."""
+    return hashlib.sha256(np.ascontiguousarray(data).data.cast("B")).digest()
+
+
+def nonfinite_text(counts: dict[str, int]) -> str | None:
+    """``"2 NaN in force_g, 1 inf in speed_mm_s"`` from ``"<what> in <trace>"`` -> count (:data:`TRACE_NAMES`
+    order, NaN before inf), or None when all are 0."""
+    parts = [f"{int(counts.get(f'{what} in {name}', 0))} {what} in {name}" for name in TRACE_NAMES
+             for what in ("NaN", "inf") if counts.get(f"{what} in {name}", 0)]
+    return ", ".join(parts) or None
+
+
+def facts_of(rows: np.ndarray, data: Sequence[TrialData], n_channels: int) -> np.ndarray:
+    """The facts rows of trials just appended: ``rows`` their ``/recording/index`` rows, ``data`` the trials, each
+    array converted as :func:`rigctl.storage.session_recording.stored` converts it (the bytes on disk)."""
+    out = np.zeros(len(data), dtype=FACTS_DTYPE)
+    for name in ("trial_id", *EXTENTS):
+        out[name] = rows[name]
+    for i, d in enumerate(data):
+        tax = session_recording.stored("taxels", d.taxels, n_channels)
+        if tax.size:
+            out["taxels_min"][i], out["taxels_max"][i] = int(tax.min()), int(tax.max())
+            out["taxels_print"][i] = taxels_print(tax)
+            out["taxels_sha256"][i] = np.frombuffer(sha256(tax), dtype=np.uint8)
+        out["seq_gaps"][i] = seq_gaps(session_recording.stored("seq", d.seq, n_channels))
+        for name in TRACE_NAMES:
+            values = session_recording.stored(name, getattr(d, name), n_channels)
+            out[f"{name}_nan"][i] = int(np.count_nonzero(np.isnan(values)))
+            out[f"{name}_inf"][i] = int(np.count_nonzero(np.isinf(values)))
+    return out
+
+
+def append(f: h5py.File, rows: np.ndarray, data: Sequence[TrialData]) -> None:
+    """Append the facts of trials just appended to ``/recording`` (``rows`` their index rows), making
+    ``/recording/facts`` in a file that has none (an older schema-4 file: its earlier trials stay without)."""
+    rec = f[GROUP]
+    new = facts_of(rows, data, int(rec["taxels"].shape[1]))
+    ds = rec.get(FACTS)
+    if ds is None:
+        ds = rec.create_dataset(FACTS, shape=(0,), maxshape=(None,), chunks=(session_recording.INDEX_CHUNK_ROWS,),
+                                dtype=FACTS_DTYPE)
+    start = int(ds.shape[0])
+    ds.resize((start + len(new),))
+    ds[start:] = new
+
+
+def mtime_ns(path: Path) -> int | None:
+    """The file's modification time, ns (None if it cannot be read)."""
+    try:
+        return os.stat(path).st_mtime_ns
+    except OSError:
+        return None
+
+
+def is_sealed(attrs: Any, file_mtime_ns: int | None) -> bool:
+    """True when the file's modification time is the one its last rigctl commit gave it (``attrs``: the root
+    attributes, a mapping): nobody has written to it since."""
+    seal = attrs.get(SEAL_ATTR)
+    try:
+        return file_mtime_ns is not None and seal is not None and int(seal) == int(file_mtime_ns) and int(seal) > 0
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def begin_commit(f: h5py.File, file_mtime_ns: int | None) -> int | None:
+    """At the start of a commit to a schema-4 file (``file_mtime_ns``: the file's modification time before it):
+    drop the facts when the seal is broken (they may describe other samples than the file's) and store a new seal.
+    Returns the seal to give the file once the commit is on disk (:func:`seal`); None for older schemas."""
+    if not session_recording.is_flat(f):
+        return None
+    if not is_sealed(f.attrs, file_mtime_ns) and FACTS in f[GROUP]:
+        del f[GROUP][FACTS]
+    stamp = time.time_ns()
+    f.attrs[SEAL_ATTR] = np.int64(stamp)
+    return stamp
+
+
+def seal(path: Path, stamp: int | None) -> None:
+    """Give the committed file the modification time ``stamp`` (:func:`begin_commit`); a filesystem that refuses
+    leaves it unsealed (the validator then reads the samples)."""
+    if stamp is None:
+        return
+    try:
+        os.utime(path, ns=(os.stat(path).st_atime_ns, stamp))
+    except OSError:
+        pass
+
+
+def trusted_facts(f: h5py.File, attrs: Any, file_mtime_ns: int | None) -> dict[int, np.void]:
+    """Trial id -> its facts row, for a sealed schema-4 file (:func:`is_sealed`) whose ``/recording/facts`` is the
+    documented table; ``{}`` otherwise. A trial listed more than once gets none (which row is its is ambiguous).
+    Read errors give ``{}`` (the validator then reads the samples and names the damage)."""
+    if not is_sealed(attrs, file_mtime_ns):
+        return {}
+    try:
+        ds = f[GROUP].get(FACTS)
+        if not isinstance(ds, h5py.Dataset) or ds.dtype != FACTS_DTYPE or ds.ndim != 1:
+            return {}
+        table = ds[()]
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError):
+        return {}
+    out: dict[int, np.void] = {}
+    seen: set[int] = set()
+    for row in table:
+        tid = int(row["trial_id"])
+        if tid in seen:
+            out.pop(tid, None)
+        else:
+            out[tid] = row
+        seen.add(tid)
+    return out
+
+
+def describes(facts: np.void | None, index_row: np.void) -> bool:
+    """True when ``facts`` is about the rows ``index_row`` gives the trial (every extent equal)."""
+    return facts is not None and all(int(facts[k]) == int(index_row[k]) for k in EXTENTS)
