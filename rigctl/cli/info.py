@@ -259,7 +259,7 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
     tw = max([3] + [len(t["texture"]) for t in summary["trials"]])
     header = (f"{'trial':>6} {'tex':>{tw}} {'profile':<13} {'speed':>7} {'force':>6} {'dur_s':>6} {'samples':>8} "
               f"{'samp/s':>8} {'host_hz':>8} {'dropped':>7} {'crc':>4}  status")
-    click.echo(header)
+    lines = [header]  # printed at once: a big session has thousands of lines
     for t in summary["trials"]:
         speed = (f"{t['ramp_start_mm_s']:g}>{t['ramp_end_mm_s']:g}" if t["ramp_start_mm_s"] is not None
                  else f"{t['speed_mm_s']:g}")
@@ -272,7 +272,8 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
             line += f" (non-finite readings: {t['nonfinite']})"
         if t.get("source"):
             line += f"  from {_source_text(t['source'])}"
-        click.echo(line)
+        lines.append(line)
+    click.echo("\n".join(lines))
     for t in summary["trials"]:
         if t.get("drum_speed_warning"):
             click.echo(f"warning: trial {t['trial_id']}: drum speed mismatch: {t['drum_speed_warning']}")

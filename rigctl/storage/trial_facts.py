@@ -188,6 +188,26 @@ def trusted_facts(f: h5py.File, attrs: Any, file_mtime_ns: int | None) -> dict[i
     return out
 
 
-def describes(facts: np.void | None, index_row: np.void) -> bool:
-    """True when ``facts`` is about the rows ``index_row`` gives the trial (every extent equal)."""
-    return facts is not None and all(int(facts[k]) == int(index_row[k]) for k in EXTENTS)
+def aligned(facts: dict[int, np.void], ids: Sequence[int], index_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, trusted)``: the facts rows of ``ids`` (:data:`FACTS_DTYPE`, zeros where a trial has none) and whether
+    each describes the rows ``index_rows`` (their ``/recording/index`` rows, same order) give the trial (every
+    extent equal)."""
+    rows = np.zeros(len(ids), dtype=FACTS_DTYPE)
+    trusted = np.zeros(len(ids), dtype=bool)
+    for i, tid in enumerate(ids):
+        q = facts.get(int(tid))
+        if q is not None:
+            rows[i], trusted[i] = q, True
+    for name in EXTENTS:
+        trusted &= rows[name] == index_rows[name]
+    return rows, trusted
+
+
+#: (the validator's words, the facts field) of each non-finite count (:func:`nonfinite_text`)
+NONFINITE_FIELDS = tuple((f"{what} in {name}", f"{name}_{what.lower()}") for name in TRACE_NAMES
+                         for what in ("NaN", "inf"))
+
+
+def facts_nonfinite_text(row: np.void) -> str | None:
+    """:func:`nonfinite_text` of a facts row."""
+    return nonfinite_text({words: int(row[name]) for words, name in NONFINITE_FIELDS})

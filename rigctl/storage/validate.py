@@ -33,6 +33,12 @@ first problem found is the reason):
 A sensor sample rate above :data:`MAX_RATE_HZ`, or recording arrays of another type or shape than the documented
 ones, excludes every trial.
 
+Schema 4 files written by this rigctl hold the trial facts (:mod:`rigctl.storage.trial_facts`): while the file is
+sealed (nobody wrote to it after rigctl's last commit), a trial with facts is judged on them (sequence gaps, ADC
+range, byte copies, non-finite readings) and its group is not opened; a trial whose facts show counts outside the
+ADC range is read, for the reason. The verdicts and reasons are those of reading the samples; an edited, copied or
+older file is read as before.
+
 The reasons are one line each; :attr:`TrialReport.excluded` maps trial id -> reason.
 """
 
@@ -56,8 +62,10 @@ from rigctl.storage.session_reader import (
 )
 from rigctl.storage.session_recording import TRACES as _TRACES, read_rows
 from rigctl.storage.trial_facts import (
+    NONFINITE_FIELDS,
     TRACE_NAMES as _TRACE_NAMES,
-    describes,
+    aligned,
+    facts_nonfinite_text,
     nonfinite_text,
     seq_gaps,
     sha256,
@@ -180,7 +188,7 @@ def precheck(session: Session) -> list[int]:
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ) or _recording_problem(session) is not None:
         return []
     plan = {int(r["trial_id"]): r for r in session.plan}
-    return [t for t, _ in _precheck_recorded(session, ids, plan, rate, TrialReport(), Stage(None, "", len(ids)))]
+    return [t for t, _ in _precheck_recorded(session, ids, plan, rate, TrialReport(), Stage(None, "", len(ids)))[0]]
 
 
 def _check_session(session: Session, progress: ProgressCallback | None) -> TrialReport:
@@ -348,17 +356,19 @@ def _nonfinite_text(traces: dict[str, np.ndarray]) -> str | None:
 _BLOCK_ROWS = 1 << 20
 
 
-def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
-                       report: TrialReport, stage: Stage) -> list[tuple[int, np.void]]:
+def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float, report: TrialReport,
+                       stage: Stage) -> tuple[list[tuple[int, np.void]], np.ndarray, np.ndarray]:
     """The checks of a schema-4 file that read no data (duration, the index row, counters, length upper bound,
-    declared size, the group); the trials passing them, with their index rows. The checks on numbers run on all
+    declared size, the group); the trials passing them, with their index rows, their facts rows
+    (:data:`rigctl.storage.trial_facts.FACTS_DTYPE`) and whether those are trusted. The checks on numbers run on all
     trials at once; only a trial one of them refuses is looked at alone (for its reason). A trial with trusted facts
     (:meth:`Session.trusted_facts`: the file is as rigctl's writer left it, which made its group from the index row)
     has its group as written: not opened."""
     from rigctl.storage.session_recording import GROUP
 
-    facts = session.trusted_facts()
     rows, have = session.index_rows(ids)
+    facts, trusted = aligned(session.trusted_facts(), ids, rows)
+    trusted &= have
     dups = session.index_duplicates()
     n_rows, (force_rows, speed_rows) = session._recorded_rows(), session._trace_rows()
     taxels_ds = session._f[GROUP]["taxels"]
@@ -377,10 +387,11 @@ def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], r
         ok &= n <= 2 * planned + 2
         ok &= n <= _capacity_rows(session, taxels_ds)
     todo: list[tuple[int, np.void]] = []
+    passed: list[int] = []
     for i, tid in enumerate(ids):
         row = rows[i]
         if ok[i]:
-            why = None if describes(facts.get(tid), row) else session.flat_group_problem(tid, row)
+            why = None if trusted[i] else session.flat_group_problem(tid, row)
         else:  # the same checks one by one, for the reason
             why = _check_duration(plan[tid])
             if why is None and tid in dups:
@@ -393,12 +404,13 @@ def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], r
                        or session.flat_group_problem(tid, row))
         if why is None:
             todo.append((tid, row))
+            passed.append(i)
         else:
             report.excluded[tid] = str(why)
         if i % 256 == 255:
             stage.advance(256)
     stage.advance(len(ids) - stage.done)
-    return todo
+    return todo, facts[passed], trusted[passed]
 
 
 def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
@@ -408,20 +420,21 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     (memory bounded by the block). A trial with trusted facts (:meth:`Session.trusted_facts`) is judged on them
     instead of its samples, unless they show counts outside the ADC range (read then, for the reason's sample)."""
     copies = _Copies()
-    todo = _precheck_recorded(session, ids, plan, rate, report, Stage(stage.callback, "checking trial groups",
-                                                                      len(ids)))
+    todo, facts, trusted = _precheck_recorded(session, ids, plan, rate, report,
+                                              Stage(stage.callback, "checking trial groups", len(ids)))
     stage.advance(len(ids) - len(todo))
-    facts = session.trusted_facts()
-    adc_max = session.layout.adc_max
-    known = [q if q is not None and describes(q, r) and 0 <= int(q["taxels_min"]) and int(q["taxels_max"]) <= adc_max
-             else None for q, r in ((facts.get(tid), r) for tid, r in todo)]
+    known = trusted & (facts["taxels_min"] >= 0) & (facts["taxels_max"] <= session.layout.adc_max)
+    nonfinite = np.zeros(len(todo), dtype=bool)
+    for _, name in NONFINITE_FIELDS:
+        nonfinite |= facts[name] != 0
+    entries = [(tid, r, facts[i] if known[i] else None, bool(nonfinite[i])) for i, (tid, r) in enumerate(todo)]
     k = 0
     while k < len(todo):
         j, rows = k, 0
-        while j < len(todo) and (j == k or known[j] is not None or rows + int(todo[j][1]["n_samples"]) <= _BLOCK_ROWS):
-            rows += 0 if known[j] is not None else int(todo[j][1]["n_samples"])
+        while j < len(todo) and (j == k or known[j] or rows + int(todo[j][1]["n_samples"]) <= _BLOCK_ROWS):
+            rows += 0 if known[j] else int(todo[j][1]["n_samples"])
             j += 1
-        _check_block(session, todo[k:j], known[k:j], plan, rate, report, copies)
+        _check_block(session, entries[k:j], plan, rate, report, copies)
         stage.advance(j - k)
         k = j
     order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
@@ -429,16 +442,16 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     report.excluded = dict(sorted(report.excluded.items(), key=lambda kv: order[kv[0]]))
 
 
-def _check_block(session: Session, block: list[tuple[int, np.void]], known: list[np.void | None],
-                 plan: dict[int, Any], rate: float, report: TrialReport, copies: "_Copies") -> None:
-    """:func:`_check_data` of a block of trials in order: those with facts (``known``) on them, the others on their
-    samples, read together."""
+def _check_block(session: Session, block: list[tuple[int, np.void, np.void | None, bool]], plan: dict[int, Any],
+                 rate: float, report: TrialReport, copies: "_Copies") -> None:
+    """:func:`_check_data` of a block of trials in order, each ``(trial id, index row, facts row or None, whether
+    the facts count non-finite readings)``: those with facts on them, the others on their samples, read together."""
     from rigctl.storage.session_recording import GROUP
 
     rec = session._f[GROUP]
     taxels_ds = rec["taxels"]
     n_ch = int(taxels_ds.shape[1])
-    read = [r for (_, r), q in zip(block, known) if q is None]
+    read = [r for _, r, q, _ in block if q is None]
     starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
     lengths = np.array([int(r["n_samples"]) for r in read], dtype=np.int64)
     pos = np.concatenate([[0], np.cumsum(lengths)])
@@ -450,14 +463,12 @@ def _check_block(session: Session, block: list[tuple[int, np.void]], known: list
     bad = _block_nonfinite(rec, read)
     in_range = bool(tax.size == 0 or int(tax.max()) <= session.layout.adc_max)  # uint16: never below 0
     i = 0  # the next trial read
-    for (tid, r), q in zip(block, known):
+    for tid, r, q, nonfinite in block:
         duration, said, crc = float(plan[tid]["duration_s"]), int(r["dropped_frames"]), int(r["crc_errors"])
         if q is not None:
             why, dropped = _check_data(duration, rate, int(r["n_samples"]), int(q["seq_gaps"]), said, crc,
                                        functools.partial(_check_known_counts, tid, q, n_ch, copies))
-            _record(report, tid, why, dropped, nonfinite_text(
-                {f"{what} in {name}": int(q[f"{name}_{what.lower()}"]) for name in _TRACE_NAMES
-                 for what in ("NaN", "inf")}))
+            _record(report, tid, why, dropped, facts_nonfinite_text(q) if nonfinite else None)
             continue
         a, b = int(pos[i]), int(pos[i + 1])
         data, load = tax[a:b], functools.partial(_read_trial, taxels_ds, int(starts[i]), b - a)
