@@ -6,8 +6,12 @@ with what it cannot do without, in one run:
 - ``per-trial attrs``: the old way, ``Session.trial_attrs`` of each trial (measured on a tenth of the trials and
   scaled: the whole would take minutes);
 - ``info``: ``rigctl.cli.info.session_summary`` (the validator and the table: what ``rigctl info`` prints, in this
-  process);
-- ``rigctl info``: the command end to end in a new process (interpreter start and imports included).
+  process), on the file as its writer left it: sealed, the validator judges the trials on their trial facts
+  (``/recording/facts``, docs/session-format.md) without reading their samples or opening their groups;
+- ``info, no facts``: the same with the file's modification time moved (what a plain copy or an edit looks like:
+  the seal no longer holds, the validator opens every group and reads every sample, as for files written before
+  trial facts); the time is set back afterwards (the bytes were not touched);
+- ``rigctl info``: the command end to end in a new process (interpreter start and imports included), sealed.
 
 Each is given in wall seconds, CPU seconds (this process's, or the child's) and as a ratio to the plain read; the
 target is ``rigctl info`` < 2 s for 4,800 trials. The session is made like ``rigctl sim dataset``'s (uncompressed,
@@ -99,7 +103,16 @@ def bench(path: Path, n: int, share: int = 10) -> dict:
     out["plain read"] = timed(lambda: plain_read(path))
     wall, cpu = timed(lambda: per_trial_attrs(path, share))
     out["per-trial attrs"] = (wall * share, cpu * share)
+    with open_session(path) as s:
+        out["sealed"] = bool(s.trusted_facts())
     out["info"] = timed(lambda: summary(path))
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))  # unsealed
+    try:
+        summary(path)  # warm, as above
+        out["info, no facts"] = timed(lambda: summary(path))
+    finally:
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
     out["rigctl info"] = command(path)
     return out
 
@@ -115,10 +128,11 @@ def main() -> None:
     if args.json:
         print(json.dumps(r, indent=2))
         return
-    print(f"{r['trials']} trials, {r['file_bytes'] / 1e6:.0f} MB, load average {r['load_average']:.1f}")
+    print(f"{r['trials']} trials, {r['file_bytes'] / 1e6:.0f} MB, load average {r['load_average']:.1f}, "
+          f"{'sealed with trial facts' if r['sealed'] else 'NO trusted trial facts (a file from before them?)'}")
     print(f"{'what':<16} {'wall s':>8} {'CPU s':>8} {'x plain read':>13}")
     base = r["plain read"][0]
-    for name in ("plain read", "per-trial attrs", "info", "rigctl info"):
+    for name in ("plain read", "per-trial attrs", "info", "info, no facts", "rigctl info"):
         wall, cpu = r[name]
         print(f"{name:<16} {wall:8.2f} {cpu:8.2f} {wall / base:13.1f}")
     print(f"target: rigctl info < {TARGET_S:g} s ({'met' if r['rigctl info'][0] < TARGET_S else 'NOT met'} here)")

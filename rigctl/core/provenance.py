@@ -19,7 +19,6 @@ import subprocess
 import sys
 import uuid
 from collections.abc import Mapping, Sequence
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +47,8 @@ def package_versions(names: Sequence[str] = KEY_PACKAGES) -> dict[str, str | Non
 
 @functools.lru_cache(maxsize=8)
 def _versions(names: tuple[str, ...]) -> dict[str, str | None]:
+    from importlib import metadata  # here: its imports cost ~0.1 s, which reading a session (rigctl info) never needs
+
     out: dict[str, str | None] = {}
     for name in names:
         try:
