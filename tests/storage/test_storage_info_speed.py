@@ -18,8 +18,10 @@ import pytest
 from click.testing import CliRunner
 
 from rigctl.cli import main
+from rigctl.storage import validate
 from rigctl.storage.session import SessionWriter, TrialData
 from rigctl.storage.session_reader import SessionReader
+from rigctl.storage.session_recording import read_rows
 
 N = 20  # samples a trial
 
@@ -40,13 +42,25 @@ def many(tmp_path_factory) -> Path:
 
 
 def test_info_reads_no_trial_one_by_one(many, monkeypatch):
-    """The table comes from the plan, the index, the validator's report and one low-level pass over the groups
-    (Session.trial_table): neither trial_attrs nor trial is called, and every column is still there."""
+    """The table comes from the plan, the index, the validator's report (on the trial facts) and one low-level pass
+    over the groups (Session.trial_table): neither trial_attrs nor trial is called, the validator opens no group and
+    reads no sample, and every column is still there."""
     def refused(self, trial_id):
         raise AssertionError(f"trial {trial_id} read one by one")
 
+    def no_group(self, trial_id, row):
+        raise AssertionError(f"trial {trial_id}'s group opened by the validator")
+
+    def no_samples(ds, starts, lengths, out):
+        if ds.name in ("/recording/taxels", "/recording/seq") and int(np.sum(lengths)):
+            raise AssertionError(f"{ds.name} read by the validator")
+        return read_rows(ds, starts, lengths, out)
+
     monkeypatch.setattr(SessionReader, "trial_attrs", refused)
     monkeypatch.setattr(SessionReader, "trial", refused)
+    # the file as its writer left it: the validator judges on the trial facts, no group opened, no sample read
+    monkeypatch.setattr(SessionReader, "flat_group_problem", no_group)
+    monkeypatch.setattr(validate, "read_rows", no_samples)
     r = CliRunner().invoke(main, ["info", str(many), "--json"])
     assert r.exit_code == 0, r.output
     trials = json.loads(r.stdout)["trials"]
