@@ -14,7 +14,8 @@ time (ns). Any later write by anyone moves the modification time, and the seal n
 trust no fact (:func:`trusted_facts`) and the validator reads the samples, as it does for files without facts. A
 writer that finds the seal broken drops the facts of the trials already in the file before it adds its own (an
 edit made before a resume is never hidden behind facts computed before it). A filesystem that cannot keep a
-modification time to the nanosecond (FAT, some network shares) never holds a seal: always the full read there.
+modification time to the microsecond (FAT's 2 s, some network shares) never holds a seal: always the full read
+there.
 """
 
 from __future__ import annotations
@@ -147,7 +148,9 @@ def begin_commit(f: h5py.File, file_mtime_ns: int | None) -> int | None:
         return None
     if not is_sealed(f.attrs, file_mtime_ns) and FACTS in f[GROUP]:
         del f[GROUP][FACTS]
-    stamp = time.time_ns()
+    # a whole microsecond: filesystems keeping 100 ns (NTFS) or 1 us hold it too; on a nanosecond one, another
+    # write gets this exact time only if the kernel's clock tick fell on that very nanosecond
+    stamp = time.time_ns() // 1000 * 1000
     f.attrs[SEAL_ATTR] = np.int64(stamp)
     return stamp
 
