@@ -18,14 +18,21 @@
 #define V_REST Y_RESET
 #define U_REST Z_REST
 
-/* 16 x 16 -> 32 bit products. avr-gcc folds the halves of y back into 32-bit values and calls its 32 x 32 multiply
- * (7 of them cost ~2 000 cycles a step); an empty asm statement that "changes" each operand hides where it came
+/* 16 x 16 -> 32 bit products. Plain C here; an AVR build defines SA_MUL_AVR and gets them as inline MUL code
+ * (sa_mul_avr.h: the same integers, no libgcc calls). Without it avr-gcc folds the halves of y back into 32-bit
+ * values and calls its 32 x 32 multiply; an empty asm statement that "changes" each operand hides where it came
  * from, so it calls its 16 x 16 -> 32 routines instead (the same products: only the code differs) */
 #if defined(__GNUC__)
 #define SA_INLINE inline __attribute__((always_inline))
 #else
 #define SA_INLINE inline
 #endif
+#if defined(SA_MUL_AVR)
+#include "sa_mul_avr.h"
+#define mul_ss sa_mul_ss
+#define mul_su sa_mul_su
+#define mul_uu sa_mul_uu
+#else
 #if defined(__GNUC__) && defined(__AVR__)
 #define SA_OPAQUE(x) __asm__("" : "+r"(x))
 #else
@@ -34,6 +41,19 @@
 static SA_INLINE int32_t mul_ss(int16_t a, int16_t b) { SA_OPAQUE(a); SA_OPAQUE(b); return (int32_t)a * b; }
 static SA_INLINE int32_t mul_su(int16_t a, uint16_t b) { SA_OPAQUE(a); SA_OPAQUE(b); return (int32_t)a * (int32_t)b; }
 static SA_INLINE uint32_t mul_uu(uint16_t a, uint16_t b) { SA_OPAQUE(a); SA_OPAQUE(b); return (uint32_t)a * b; }
+#endif
+
+/* d R, the input (|d R| < 2^31 by the clamps: 4 span R <= 4 k 2^24 / 100 + 2 span): with d inside int16 (every
+ * 10-bit ADC's case) as two 16 x 16 products of R's halves, d R_lo + 2^16 d R_hi, summed modulo 2^32 (the exact
+ * product, which fits int32); a 32 x 32 product otherwise */
+static SA_INLINE int32_t mul_in(int32_t d, int32_t r) {
+    if (d >= INT16_MIN && d <= INT16_MAX) {
+        uint32_t lo = (uint32_t)mul_su((int16_t)d, (uint16_t)(r & 0xFFFF));
+        uint32_t hi = (uint32_t)mul_ss((int16_t)d, (int16_t)(r >> 16));
+        return (int32_t)(lo + (hi << 16));
+    }
+    return d * r;
+}
 
 /* y^2 for a Q24 y in [-8, 8): y = h 2^16 + l, h signed, l in [0, 2^16), m = l's high byte: (h^2 2^8) +
  * floor(2h l / 2^8) + floor(m^2 / 2^8) (l^2 / 2^24 but for < 2 LSB): two 16 x 16 -> 32 bit products and an 8 x 8,
@@ -68,7 +88,7 @@ static uint8_t neuron_step(sa_encoder_t *e, uint8_t i, uint16_t x) {
     int32_t d = (int32_t)x - (int32_t)e->offset[i];
     d = d < e->d_lo[i] ? e->d_lo[i] : (d > e->d_hi[i] ? e->d_hi[i] : d);
     int32_t z0 = e->z[i];
-    int32_t w = W_E + d * e->gain[i] - z0;
+    int32_t w = W_E + mul_in(d, e->gain[i]) - z0;
     int32_t y0 = clamp_y(e->y[i]);
     int32_t y1 = clamp_y(sq(y0) + 4 * y0 - (y0 >> 1) + w);
     int32_t y2 = sq(y1) + 4 * y1 - (y1 >> 1) + w;
