@@ -105,6 +105,35 @@ class UnoCommand(bytes, enum.Enum):
     IDENTIFY = b"I"
 
 
+class EncoderCommand(bytes, enum.Enum):
+    """Host -> Uno commands of the encoder image (spec table 1.5): CALIBRATE, SPEED and FINISH carry a payload and
+    its CRC-16 (:mod:`rigctl.devices.encoder_stream` builds them)."""
+
+    CALIBRATE = b"C"
+    ENCODE = b"E"
+    SPEED = b"V"
+    FINISH = b"F"
+
+
+class SpikeFlag(enum.IntFlag):
+    """Bits of a spike frame's flags byte (spec 1.5)."""
+
+    HELD = 1 << 0
+    DROPPED = 1 << 1
+
+
+#: the encoder image's frames (spec 1.5): spike frames beside the taxel frames while encoding, a counts frame at
+#: FINISH; both CRC-16/MODBUS over their bytes 2 .. size - 3
+SPIKE_SYNC = b"\xa5\xc3"
+SPIKE_MASKS = 10
+SPIKE_FRAME_SIZE = 6 + 2 * SPIKE_MASKS + 2  # 28
+COUNTS_SYNC = b"\xa5\xc4"
+ENC_N_TAXELS = 9
+ENC_N_WINDOWS = 20
+COUNTS_FRAME_SIZE = 11 + 2 * ENC_N_TAXELS * ENC_N_WINDOWS + 2  # 373
+#: the encoder image's banner and identity carry this field
+UNO_ENCODER_FIELD = "encoder=sa_fixed"
+
 UNO_BANNER_PREFIX = "#RIGCTL-UNO READY"
 UNO_IDENTITY_PREFIX = "#RIGCTL-UNO"
 UNO_FIRMWARE_VERSION = (1, 0)

@@ -206,6 +206,9 @@ class HilRig:
     mega_image : str
         The Mega's image in the build folder: ``"mega_drum"`` (the shipped one) or ``"mega_drum_test"`` (the same
         with a hang input for the watchdog test, :meth:`hang_loop`; built by ``make harness``, never flashed).
+    uno_image : str
+        The Uno's image: ``"uno_taxel"`` (the taxel streamer) or ``"uno_encoder"`` (the same with the on-board SA
+        encoder, docs/firmware.md "The encoder in the Uno image").
     factory_calibrated : bool
         Start the Mega's EEPROM calibrated (the defaults, as the simulated rigs); False: a freshly flashed board's.
 
@@ -232,7 +235,8 @@ class HilRig:
     def __init__(self, config=None, *, seed: int = 0, live: bool = True, firmware_sources: Path | str | None = None,
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
                  tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0,
-                 mega_image: str = "mega_drum", truth_log=None, factory_calibrated: bool = True):
+                 mega_image: str = "mega_drum", truth_log=None, factory_calibrated: bool = True,
+                 uno_image: str = "uno_taxel"):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -250,6 +254,7 @@ class HilRig:
         self.uno_boot_times_s: collections.deque[float] = collections.deque(maxlen=1000)
         self.mux: dict[str, float] = {}
         self.mega_image = mega_image
+        self.uno_image = uno_image
         self.factory_calibrated = bool(factory_calibrated)
         #: resets of the Mega the harness reported (the reset commands and the MCU's own, e.g. its watchdog)
         self.mega_resets = 0
@@ -269,6 +274,14 @@ class HilRig:
         self.actuator_steps: collections.deque[tuple[float, int]] = collections.deque(maxlen=50_000)
         self.index_pulses = 0
         self.isr: dict[str, float] = {}
+        #: latest ``LOAD`` report of the Uno harness (every simulated second): ``busy_cycles_per_tick`` (mean over the
+        #: second) and ``busy_max_per_tick`` (its largest tick; ``busy_max_since_start``): CPU cycles per 1 ms tick
+        #: with interrupts off (an ISR, entry and exit included) or the encoder's probe (D10) high;
+        #: ``encoder_cycles_per_tick`` / ``encoder_max_per_tick``: that probe alone (since start)
+        self.load: dict[str, float] = {}
+        #: the encoder image's scans: the waveform row of each one's first sample (the harness's ``ENCSTART``, from
+        #: the image's marker pin D11; -1 before a waveform plays), in order
+        self.encoder_start_rows: list[int] = []
         self._texture: str | Texture = "A"  # a label of the paper's set, or a Texture (set_texture)
         self._mega: _Harness | None = None
         self._uno: _Harness | None = None
@@ -373,7 +386,7 @@ class HilRig:
         if not self.with_uno:
             return self
         try:
-            self._uno = _Harness(exe, "uno", build_dir / "uno_taxel.elf",
+            self._uno = _Harness(exe, "uno", build_dir / f"{self.uno_image}.elf",
                                  ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms), *uno_boot,
                                   "--taxel-ohm", str(self.taxel_ohm), *lock], self._on_uno_line)
         except BaseException:
@@ -641,6 +654,12 @@ class HilRig:
     def _on_uno_line(self, line: str) -> None:
         if line.startswith("ISR "):
             self.isr = _parse_kv(line)
+        elif line.startswith("LOAD "):
+            self.load = _parse_kv(line)
+        elif line.startswith("ENCSTART "):
+            with self._cond:
+                self.encoder_start_rows.append(int(_parse_kv(line)["row"]))
+                self._cond.notify_all()
         elif line.startswith("APP "):
             self.uno_boot_times_s.append(_parse_kv(line)["boot_s"])
         elif line.startswith("MUX "):

@@ -54,6 +54,49 @@
 #define RIGCTL_UNO_BANNER   "#RIGCTL-UNO READY fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"
 #define RIGCTL_UNO_IDENTITY "#RIGCTL-UNO fw=1.0 ch=18 rate_hz=1000 bits=10 baud=1000000"
 
+/* 1.5 the on-board encoder image (uno_encoder): host -> Uno commands with a payload (little-endian) and a CRC-16 of
+ * the payload, and the two frames it sends while encoding instead of the taxel frames */
+#define RIGCTL_ENC_CMD_CALIBRATE     'C'   /* + 9 x uint16 minimum, 9 x uint16 maximum, uint16 k, crc */
+#define RIGCTL_ENC_CMD_ENCODE        'E'   /* a new scan of the encoder: spike frames instead of taxel frames */
+#define RIGCTL_ENC_CMD_SPEED         'V'   /* + uint16 window, uint16 speed (0.01 mm/s), crc */
+#define RIGCTL_ENC_CMD_FINISH        'F'   /* + uint16 speed (0.01 mm/s), crc */
+#define RIGCTL_ENC_CALIBRATE_PAYLOAD 38
+#define RIGCTL_ENC_SPEED_PAYLOAD     4
+#define RIGCTL_ENC_FINISH_PAYLOAD    2
+#define RIGCTL_ENC_N_TAXELS          9
+#define RIGCTL_ENC_N_WINDOWS         20
+/* spike frame: sync, seq of its first sample, n samples (1-10), flags, 10 x uint16 spike masks, crc over 2..25 */
+#define RIGCTL_SPIKE_SYNC0           0xA5
+#define RIGCTL_SPIKE_SYNC1           0xC3
+#define RIGCTL_SPIKE_SEQ_OFFSET      2
+#define RIGCTL_SPIKE_N_OFFSET        4
+#define RIGCTL_SPIKE_FLAGS_OFFSET    5
+#define RIGCTL_SPIKE_MASKS_OFFSET    6
+#define RIGCTL_SPIKE_MASKS           10
+#define RIGCTL_SPIKE_CRC_OFFSET      26
+#define RIGCTL_SPIKE_FRAME_SIZE      28
+#define RIGCTL_SPIKE_CRC_START       2
+#define RIGCTL_SPIKE_FLAG_HELD_BIT    0  /* a window was scaled with the last speed since the previous spike frame */
+#define RIGCTL_SPIKE_FLAG_DROPPED_BIT 1  /* a sample was dropped (the encoder's queue was full) since then */
+#define RIGCTL_SPIKE_FLAG_SYNC_IN_BIT 2  /* a sync-in edge was latched since then */
+#define RIGCTL_SPIKE_FLAG_HELD        (1u << RIGCTL_SPIKE_FLAG_HELD_BIT)
+#define RIGCTL_SPIKE_FLAG_DROPPED     (1u << RIGCTL_SPIKE_FLAG_DROPPED_BIT)
+#define RIGCTL_SPIKE_FLAG_SYNC_IN     (1u << RIGCTL_SPIKE_FLAG_SYNC_IN_BIT)
+/* counts frame (after FINISH): sync, samples uint32, held uint16, dropped uint16, queue_max uint8,
+ * counts uint16[9][20] (taxel-major), crc over 2..370 */
+#define RIGCTL_COUNTS_SYNC0          0xA5
+#define RIGCTL_COUNTS_SYNC1          0xC4
+#define RIGCTL_COUNTS_SAMPLES_OFFSET 2
+#define RIGCTL_COUNTS_HELD_OFFSET    6
+#define RIGCTL_COUNTS_DROPPED_OFFSET 8
+#define RIGCTL_COUNTS_QUEUE_OFFSET   10
+#define RIGCTL_COUNTS_COUNTS_OFFSET  11
+#define RIGCTL_COUNTS_CRC_OFFSET     371
+#define RIGCTL_COUNTS_FRAME_SIZE     373
+#define RIGCTL_COUNTS_CRC_START      2
+/* the encoder image's banner and identity: the stream's, and the encoder it runs */
+#define RIGCTL_UNO_ENC_FIELD         " encoder=sa_fixed"
+
 /* ---- 2. Drum controller (Mega), Modbus RTU ------------------------------------------------------------- */
 /* 500000 baud: exact at 16 MHz (UBRR = 1), and on the 16U2 bridge; 115200 was +2.1 % off (docs/wire-protocol.md) */
 #define RIGCTL_DRUM_BAUD             500000UL

@@ -479,7 +479,26 @@ static uint8_t mux_sel;          /* select lines PD4..PD6 as the pins show them 
 static size_t scan_row;
 static void mux_before_select(void);
 static avr_irq_t *adc_irq_base;
-static uint64_t probe_rise[2], probe_total[2], probe_window_sum[2], probe_window_max[2], probe_window[2];
+static uint64_t probe_rise[3], probe_total[3], probe_window_sum[3], probe_window_max[3], probe_window[3];
+/* CPU load of the Uno: cycles spent with interrupts off (inside an ISR, its entry and exit included) or with a probe
+ * pin high (an ISR's body, the tick's frame building with interrupts enabled, loop()'s encoder on PB2), per 1 ms
+ * tick window (16 000 cycles): mean and largest since the last report, largest since start */
+static int probes_high; /* bit p: probe p is high */
+static uint64_t busy_window, busy_window_sum, busy_report_sum, busy_report_ticks, busy_report_max, busy_max;
+
+static void busy_account(uint64_t cycle_before, int busy)
+{
+    uint64_t w = cycle_before / 16000u;
+    if (w != busy_window) {
+        busy_report_sum += busy_window_sum;
+        busy_report_ticks += w - busy_window;
+        if (busy_window_sum > busy_report_max) busy_report_max = busy_window_sum;
+        if (busy_window_sum > busy_max) busy_max = busy_window_sum;
+        busy_window_sum = 0;
+        busy_window = w;
+    }
+    if (busy) busy_window_sum += avr->cycle - cycle_before;
+}
 static uint64_t sync_off_cycle;
 static avr_irq_t *sync_pin;
 
@@ -818,6 +837,7 @@ static void probe_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     int p = (int)(intptr_t)param;
+    probes_high = (value & 1) ? (probes_high | (1 << p)) : (probes_high & ~(1 << p));
     if (value & 1) {
         probe_rise[p] = avr->cycle;
     } else if (probe_rise[p]) {
@@ -834,6 +854,20 @@ static void probe_hook(avr_irq_t *irq, uint32_t value, void *param)
     }
 }
 
+/* the encoder image's marker (PB3) rises on the tick that gives the encoder a scan's first sample: that sample is the
+ * last completed scan, the waveform's row (scan_count - 1 - scan_base) mod rows; reported as "ENCSTART" */
+static void encode_mark_hook(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (!(value & 1)) return;
+    pthread_mutex_lock(&wave_lock);
+    unsigned long long rows = wave_rows, done = scan_count, base = scan_base;
+    pthread_mutex_unlock(&wave_lock);
+    long long row = rows && done > base ? (long long)((done - 1 - base) % rows) : -1;
+    printf("ENCSTART t=%.6f scans=%llu row=%lld\n", sim_s(), done, row);
+}
+
 static void uno_setup(void)
 {
     for (int b = 4; b <= 6; b++)
@@ -843,6 +877,8 @@ static void uno_setup(void)
     avr_irq_register_notify(adc_irq_base + ADC_IRQ_OUT_TRIGGER, adc_trigger_hook, NULL);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 0), probe_hook, (void *)0);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 1), probe_hook, (void *)1);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 2), probe_hook, (void *)2);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 3), encode_mark_hook, NULL);
     sync_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
     avr_raise_irq(sync_pin, 0);
     mux_setup();
@@ -890,6 +926,13 @@ static void uno_poll(void)
                "tx_max_per_tick=%llu scans=%llu\n",
                sim_s(), probe_total[0] / ticks, (unsigned long long)probe_window_max[0], probe_total[1] / ticks,
                (unsigned long long)probe_window_max[1], (unsigned long long)scan_count);
+        /* the encoder image's loop() work (PB2) and the CPU's load (interrupts off or encoding), per tick */
+        printf("LOAD t=%.3f encoder_cycles_per_tick=%.1f encoder_max_per_tick=%llu busy_cycles_per_tick=%.1f "
+               "busy_max_per_tick=%llu busy_max_since_start=%llu\n", sim_s(), probe_total[2] / ticks,
+               (unsigned long long)probe_window_max[2],
+               busy_report_ticks ? (double)busy_report_sum / (double)busy_report_ticks : 0.0,
+               (unsigned long long)busy_report_max, (unsigned long long)busy_max);
+        busy_report_sum = busy_report_ticks = busy_report_max = 0;
         mux_report();
         next_report += 16000000u;
     }
@@ -1558,7 +1601,10 @@ int main(int argc, char **argv)
             if (atomic_load(&quit_requested)) break;
             continue;
         }
+        uint64_t cycle_before = avr->cycle;
+        int busy_before = !avr->sreg[S_I] || probes_high;
         int state = avr_run(avr);
+        if (is_uno) busy_account(cycle_before, busy_before || !avr->sreg[S_I]);
         if (state == cpu_Done || state == cpu_Crashed) {
             fprintf(stderr, "simavr core stopped (state %d)\n", state);
             break;

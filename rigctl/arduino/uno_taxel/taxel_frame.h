@@ -22,6 +22,15 @@ extern "C" {
  * bytes 2..40 (LE). samples are ADC counts 0-1023 (higher bits are sent as they are). */
 void taxel_frame_build(uint8_t *out, uint16_t seq, uint8_t flags, const uint16_t *samples);
 
+/* The encoder image's frames (docs/wire-protocol.md 1.5). A spike frame: sync, seq of its first sample, n (1-10)
+ * samples, flags, the 10 spike masks (bit i = taxel i spiked; masks past n are 0), CRC-16 over bytes 2..25. */
+void spike_frame_build(uint8_t *out, uint16_t seq, uint8_t n, uint8_t flags, const uint16_t *masks);
+/* The counts frame's 11-byte head (sync, samples, held, dropped, queue_max); returns the CRC-16 over its bytes 2..10
+ * and the 360 bytes of counts (uint16[9][20], little-endian in memory on the AVR and sent from there), which
+ * follow it, and the CRC after them (crc_out, 2 bytes LE). */
+void counts_frame_head(uint8_t *head, uint32_t samples, uint16_t held, uint16_t dropped, uint8_t queue_max,
+                       const uint16_t *counts, uint8_t *crc_out);
+
 #ifdef __cplusplus
 }
 #endif

@@ -15,11 +15,15 @@
 #define UNO_SYNC_IN_PIN   PIND
 #define UNO_SYNC_IN_BIT   2
 /* timing probes for the simavr harness and a scope: D8 (PB0) high while a sampler ISR runs,
- * D9 (PB1) high while the UART transmit ISR runs */
+ * D9 (PB1) high while the UART transmit ISR runs, D10 (PB2) high while loop() runs the encoder (uno_encoder image) */
 #define UNO_PROBE_PORT    PORTB
 #define UNO_PROBE_DDR     DDRB
 #define UNO_PROBE_SAMPLER 0
 #define UNO_PROBE_TX      1
+#define UNO_PROBE_ENCODER 2
+/* marker for the simavr harness and a scope: D11 (PB3) high from the tick that gives the encoder a scan's first sample
+ * to the next tick (uno_encoder image) */
+#define UNO_MARK_ENCODE   3
 /* ADMUX MUX3:0 of the ADC's GND channel (0 V): the sample-and-hold is discharged there between two inputs */
 #define UNO_ADMUX_GND     0x0F
 /* ADC clock prescaler 32: 500 kHz ADC clock, 13 ADC clocks = 26 us per conversion, 18 conversions ~ 0.47 ms */

@@ -13,6 +13,12 @@
  * Host commands (S, P, I) arrive through the UART receive interrupt and are handled in loop(); text replies are
  * sent only while the stream is stopped and the transmitter is idle. The Arduino core supplies main(), init()
  * and Timer0 (millis); HardwareSerial is not linked, the UART is driven here.
+ *
+ * Built with -DUNO_SA_ENCODER (the uno_encoder image, docs/firmware.md "The encoder in the Uno image"), the sketch
+ * also runs the SA encoder (common/sa_encoder.c, integer kernel) on the 9 top-layer taxels of every sample while
+ * encoding (E): the tick queues them (ENC_QUEUE deep) instead of building a taxel frame, loop() encodes them and
+ * sends a spike frame every 10 samples, scales each 100 ms window when the host sends its speed (V), and sends the
+ * window counts at the end of a scan (F) (docs/wire-protocol.md 1.5). S still streams taxel frames as above.
  */
 #include <Arduino.h>
 #include <avr/interrupt.h>
@@ -20,9 +26,13 @@
 #include <avr/pgmspace.h>
 #include <util/delay.h>
 
+#include "../common/crc16.h"
 #include "../common/rigctl_wire.h"
 #include "taxel_frame.h"
 #include "uno_pins.h"
+#ifdef UNO_SA_ENCODER
+#include "../common/sa_encoder.h"
+#endif
 
 /* ---- sampler state (ADC ISR + tick ISR) ---- */
 static volatile uint16_t adc_bank[2][RIGCTL_N_TAXELS]; /* scan in progress writes one bank, frames read the other */
@@ -34,13 +44,26 @@ static volatile uint8_t adc_in, adc_sel; /* its analog input and select value: T
 static volatile uint8_t adc_busy;                       /* a scan is running */
 
 /* ---- stream state ----
- * The UDRE interrupt sends tx_left bytes from tx_ptr, then the queued frame buffer, if any. Frames use the two
- * buffers of tx_buf; a text reply (stream stopped) is sent the same way from flash-free RAM. */
+ * The UDRE interrupt sends tx_left bytes from tx_ptr, then the next block of its queue (TX_QUEUE deep), if any.
+ * Each block belongs to a buffer (an owner bit): the bit is set in tx_owned while the block waits or is sent, so a
+ * buffer is rewritten only when its bit is clear. Frames use the two buffers of tx_buf; a text reply (stream
+ * stopped) is sent the same way from RAM. */
+#define TX_QUEUE 8 /* a power of 2 */
+#define TX_RAW0 0x01
+#define TX_RAW1 0x02
+#define TX_TEXT 0x04
+#define TX_SPIKE0 0x08
+#define TX_SPIKE1 0x10
+#define TX_COUNTS 0x20
 static uint8_t tx_buf[2][RIGCTL_FRAME_SIZE];
 static const uint8_t *volatile tx_ptr;
-static volatile uint8_t tx_left;
-static volatile int8_t tx_active = -1; /* frame buffer being sent, -1 = none */
-static volatile int8_t tx_queued = -1; /* frame buffer waiting for the transmitter, -1 = none */
+static volatile uint16_t tx_left;
+static volatile uint8_t tx_owner;      /* owner bit of the block being sent */
+static volatile uint8_t tx_owned;      /* owner bits of the blocks queued or being sent */
+static const uint8_t *tx_q_ptr[TX_QUEUE];
+static uint16_t tx_q_len[TX_QUEUE];
+static uint8_t tx_q_owner[TX_QUEUE];
+static volatile uint8_t tx_q_head, tx_q_tail;
 static volatile uint8_t tx_busy;       /* the transmitter has bytes to send */
 static volatile uint8_t streaming;
 static volatile uint8_t start_pending;  /* next frame is the first after START */
@@ -49,7 +72,8 @@ static volatile uint8_t sync_latched;
 static volatile uint16_t seq;
 
 /* ---- command receive ring ---- */
-static volatile uint8_t rx_ring[16];
+static volatile uint8_t rx_ring[64]; /* the encoder's calibration command is 41 bytes */
+#define RX_MASK 63
 static volatile uint8_t rx_head, rx_tail;
 
 /* Input selection and conversion start are separate: after the select lines and ADMUX change, the multiplexer's
@@ -93,9 +117,66 @@ static inline void adc_convert_after_settling(void)
     TIMSK1 |= (1 << OCIE1B);
 }
 
+/* queue a block for the transmitter (interrupts off: from an interrupt, or inside cli/sei) */
+static void tx_push_locked(const uint8_t *p, uint16_t n, uint8_t owner)
+{
+    tx_owned |= owner;
+    if (!tx_busy) {
+        tx_ptr = p;
+        tx_left = n;
+        tx_owner = owner;
+        tx_busy = 1;
+        UCSR0B |= (1 << UDRIE0);
+    } else {
+        uint8_t t = tx_q_tail;
+        tx_q_ptr[t] = p;
+        tx_q_len[t] = n;
+        tx_q_owner[t] = owner;
+        tx_q_tail = (uint8_t)((t + 1) & (TX_QUEUE - 1));
+    }
+}
+
+#ifdef UNO_SA_ENCODER
+/* ---- encoder state: the tick queues the top layer's samples, loop() encodes them ---- */
+#define ENC_QUEUE 8 /* a power of 2: samples waiting for loop() (the speed scaling holds it ~1 ms) */
+static uint16_t enc_q[ENC_QUEUE][RIGCTL_ENC_N_TAXELS];
+static volatile uint8_t enc_q_head, enc_q_tail;
+static volatile uint8_t encoding;       /* the stream feeds the encoder (ENCODE) */
+static volatile uint16_t enc_dropped;   /* samples the full queue lost this scan */
+static volatile uint8_t enc_tick_flags; /* spike frame flags the tick latched (DROPPED, SYNC_IN) */
+static volatile uint8_t enc_first;      /* the next sample is the scan's first: the marker pin goes high */
+
+/* the tick's part: the completed scan's taxels 0-8 into the queue (the sample a taxel frame of this tick would
+ * carry); the marker pin (D11) is high from the tick that takes a scan's first sample to the next tick */
+static inline void enc_enqueue(const uint16_t *scan, uint8_t frame_flags)
+{
+    if (enc_first) {
+        enc_first = 0;
+        UNO_PROBE_PORT |= (1 << UNO_MARK_ENCODE);
+    } else {
+        UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_MARK_ENCODE);
+    }
+    if (frame_flags & RIGCTL_FLAG_SYNC_IN) enc_tick_flags |= RIGCTL_SPIKE_FLAG_SYNC_IN;
+    uint8_t h = enc_q_head, next = (uint8_t)((h + 1) & (ENC_QUEUE - 1));
+    if (next == enc_q_tail) {
+        enc_dropped++;
+        enc_tick_flags |= RIGCTL_SPIKE_FLAG_DROPPED;
+        return;
+    }
+    uint16_t *q = enc_q[h];
+    for (uint8_t i = 0; i < RIGCTL_ENC_N_TAXELS; i++) q[i] = scan[i];
+    enc_q_head = next;
+}
+#endif
+
+/* the sampler's probe inside an interrupt that may have interrupted the tick's frame building (probe already high) */
+#define SAMPLER_PROBE_ENTER() uint8_t probe_was = UNO_PROBE_PORT & (1 << UNO_PROBE_SAMPLER); \
+    UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER)
+#define SAMPLER_PROBE_LEAVE() if (!probe_was) UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER)
+
 ISR(ADC_vect)
 {
-    UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER);
+    SAMPLER_PROBE_ENTER();
     uint8_t k = adc_k;
     uint8_t in = adc_in, sel = adc_sel;
     uint16_t result = ADC; /* ADCL then ADCH: latched, so the input can change now */
@@ -127,15 +208,26 @@ ISR(ADC_vect)
         adc_busy = 0;
         adc_in = adc_sel = 0;
     }
-    UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+    SAMPLER_PROBE_LEAVE();
 }
 
-ISR(TIMER1_COMPB_vect)
+/* Timer1 compare B: start the selected conversion (adc_convert) and disable itself (TIMSK1 back to the tick's
+ * OCIE1A alone). Naked: two constant stores through one register, SREG untouched, so it costs ~20 cycles with its
+ * entry and exit instead of the ~90 of a compiled one (18 a tick); no probe (the harness counts its cycles with the
+ * interrupts-off time) */
+ISR(TIMER1_COMPB_vect, ISR_NAKED)
 {
-    UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER);
-    TIMSK1 &= (uint8_t)~(1 << OCIE1B);
-    adc_convert();
-    UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+    __asm__ __volatile__("push r24"        "\n\t"
+                         "ldi r24, %[start]" "\n\t"
+                         "sts %[adcsra], r24" "\n\t"
+                         "ldi r24, %[tick]" "\n\t"
+                         "sts %[timsk1], r24" "\n\t"
+                         "pop r24"          "\n\t"
+                         "reti"
+                         :
+                         : [start] "n"((uint8_t)((1 << ADEN) | (1 << ADSC) | (1 << ADIE) | UNO_ADC_PRESCALER_BITS)),
+                           [adcsra] "n"(_SFR_MEM_ADDR(ADCSRA)), [tick] "n"((uint8_t)(1 << OCIE1A)),
+                           [timsk1] "n"(_SFR_MEM_ADDR(TIMSK1)));
 }
 
 ISR(INT0_vect)
@@ -163,26 +255,34 @@ ISR(TIMER1_COMPA_vect)
             start_pending = 0;
             flags |= RIGCTL_FLAG_STREAMING_START;
         }
-        if (tx_queued >= 0) {
+        uint16_t s = seq++;
+        const uint16_t *ready = (const uint16_t *)adc_bank[adc_ready_bank]; /* the running scan writes the other */
+#ifdef UNO_SA_ENCODER
+        if (encoding) { /* the encoder's sample instead of a taxel frame: loop() sends spike frames */
+            enc_enqueue(ready, flags);
+            UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+            return;
+        }
+#endif
+        uint8_t owned = tx_owned; /* the transmitter only frees buffers: a free one stays free */
+        /* the frame is built with interrupts enabled, so that the scan's ADC and compare-B interrupts run on time
+         * (the first conversion ends 26 us after the tick, the frame and its CRC take ~75 us); the tick cannot
+         * come again before it is done (a ms) */
+        sei();
+        if ((owned & (TX_RAW0 | TX_RAW1)) == (TX_RAW0 | TX_RAW1)) {
             tx_overrun_pending = 1; /* both buffers taken: drop this frame */
         } else {
             if (tx_overrun_pending) {
                 tx_overrun_pending = 0;
                 flags |= RIGCTL_FLAG_TX_OVERRUN;
             }
-            int8_t b = (tx_active == 0) ? 1 : 0;
-            taxel_frame_build(tx_buf[b], seq, flags, (const uint16_t *)adc_bank[adc_ready_bank]);
-            if (!tx_busy) {
-                tx_active = b;
-                tx_ptr = tx_buf[b];
-                tx_left = RIGCTL_FRAME_SIZE;
-                tx_busy = 1;
-                UCSR0B |= (1 << UDRIE0);
-            } else {
-                tx_queued = b;
-            }
+            uint8_t b = (owned & TX_RAW0) ? 1 : 0;
+            taxel_frame_build(tx_buf[b], s, flags, ready);
+            cli();
+            tx_push_locked(tx_buf[b], RIGCTL_FRAME_SIZE, b ? TX_RAW1 : TX_RAW0);
+            sei();
         }
-        seq++;
+        cli();
     }
     UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
 }
@@ -192,13 +292,14 @@ ISR(USART_UDRE_vect)
     UNO_PROBE_PORT |= (1 << UNO_PROBE_TX);
     UDR0 = *tx_ptr++;
     if (--tx_left == 0) {
-        if (tx_queued >= 0) {
-            tx_active = tx_queued;
-            tx_queued = -1;
-            tx_ptr = tx_buf[tx_active];
-            tx_left = RIGCTL_FRAME_SIZE;
+        tx_owned &= (uint8_t)~tx_owner;
+        uint8_t h = tx_q_head;
+        if (h != tx_q_tail) {
+            tx_ptr = tx_q_ptr[h];
+            tx_left = tx_q_len[h];
+            tx_owner = tx_q_owner[h];
+            tx_q_head = (uint8_t)((h + 1) & (TX_QUEUE - 1));
         } else {
-            tx_active = -1;
             tx_busy = 0;
             UCSR0B &= (uint8_t)~(1 << UDRIE0);
         }
@@ -211,7 +312,7 @@ ISR(USART_RX_vect)
     uint8_t status = UCSR0A; /* read before UDR0: frame error / data overrun of this byte */
     uint8_t c = UDR0;
     if (status & ((1 << FE0) | (1 << DOR0))) return;
-    uint8_t next = (uint8_t)((rx_head + 1) & 15);
+    uint8_t next = (uint8_t)((rx_head + 1) & RX_MASK);
     if (next != rx_tail) {
         rx_ring[rx_head] = c;
         rx_head = next;
@@ -227,8 +328,13 @@ static uint8_t text_buf[96];
 #else
 #define RIGCTL_BUILD_FIELD ""
 #endif
-static const char banner_P[] PROGMEM = RIGCTL_UNO_BANNER RIGCTL_BUILD_FIELD;
-static const char identity_P[] PROGMEM = RIGCTL_UNO_IDENTITY RIGCTL_BUILD_FIELD;
+#ifdef UNO_SA_ENCODER
+#define UNO_ENC_FIELD RIGCTL_UNO_ENC_FIELD
+#else
+#define UNO_ENC_FIELD ""
+#endif
+static const char banner_P[] PROGMEM = RIGCTL_UNO_BANNER UNO_ENC_FIELD RIGCTL_BUILD_FIELD;
+static const char identity_P[] PROGMEM = RIGCTL_UNO_IDENTITY UNO_ENC_FIELD RIGCTL_BUILD_FIELD;
 
 /* send a text line (in flash) through the transmit interrupt (the stream must be stopped); returns when it is out */
 static void send_line_P(const char *s)
@@ -240,11 +346,7 @@ static void send_line_P(const char *s)
     while (tx_busy) {
     }
     cli();
-    tx_active = -1;
-    tx_ptr = text_buf;
-    tx_left = n;
-    tx_busy = 1;
-    UCSR0B |= (1 << UDRIE0);
+    tx_push_locked(text_buf, n, TX_TEXT);
     sei();
     while (tx_busy) {
     }
@@ -253,9 +355,159 @@ static void send_line_P(const char *s)
 static void stop_and_drain(void)
 {
     streaming = 0;
+#ifdef UNO_SA_ENCODER
+    encoding = 0;
+#endif
     while (tx_busy) {
     }
 }
+
+static void stream_start(uint8_t encode)
+{
+    cli();
+    seq = 0;
+    sync_latched = 0;
+    tx_overrun_pending = 0;
+    start_pending = 1;
+#ifdef UNO_SA_ENCODER
+    encoding = encode;
+#else
+    (void)encode;
+#endif
+    streaming = 1;
+    sei();
+}
+
+#ifdef UNO_SA_ENCODER
+/* ---- the encoder's side of loop() (docs/wire-protocol.md 1.5) ---- */
+static sa_encoder_t enc;
+static uint16_t cal_min[RIGCTL_ENC_N_TAXELS], cal_max[RIGCTL_ENC_N_TAXELS], cal_k = 100; /* CALIBRATE */
+static uint8_t spike_buf[2][RIGCTL_SPIKE_FRAME_SIZE];
+static uint16_t spike_masks[RIGCTL_SPIKE_MASKS];
+static uint8_t spike_n, spike_flags, spike_b;
+static uint16_t spike_seq, enc_seq;  /* seq of the spike frame's first sample, of the next sample */
+static uint8_t enc_q_max;             /* deepest the queue was this scan */
+static uint8_t counts_head[RIGCTL_COUNTS_COUNTS_OFFSET], counts_crc[2];
+
+#define ENC_PROBE_ON() (UNO_PROBE_PORT |= (1 << UNO_PROBE_ENCODER))
+#define ENC_PROBE_OFF() (UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_ENCODER))
+
+/* send the spike frame being filled (its n samples), into the other buffer next */
+static void spike_flush(void)
+{
+    if (spike_n == 0) return;
+    uint8_t owner = spike_b ? TX_SPIKE1 : TX_SPIKE0;
+    while (tx_owned & owner) { /* sent 10 ms ago: free long since, but never overwrite one in flight */
+    }
+    cli();
+    uint8_t flags = (uint8_t)(spike_flags | enc_tick_flags);
+    enc_tick_flags = 0;
+    sei();
+    spike_frame_build(spike_buf[spike_b], spike_seq, spike_n, flags, spike_masks);
+    cli();
+    tx_push_locked(spike_buf[spike_b], RIGCTL_SPIKE_FRAME_SIZE, owner);
+    sei();
+    spike_b ^= 1;
+    spike_n = 0;
+    spike_flags = 0;
+}
+
+/* encode every queued sample (the probe pin is high while loop() encodes) */
+static void enc_poll(void)
+{
+    while (enc_q_tail != enc_q_head) {
+        ENC_PROBE_ON();
+        uint8_t depth = (uint8_t)((enc_q_head - enc_q_tail) & (ENC_QUEUE - 1));
+        if (depth > enc_q_max) enc_q_max = depth;
+        uint32_t held = enc.held_windows;
+        uint16_t mask = sa_step(&enc, enc_q[enc_q_tail]);
+        enc_q_tail = (uint8_t)((enc_q_tail + 1) & (ENC_QUEUE - 1));
+        if (enc.held_windows != held) spike_flags |= RIGCTL_SPIKE_FLAG_HELD;
+        if (spike_n == 0) spike_seq = enc_seq;
+        spike_masks[spike_n++] = mask;
+        enc_seq++;
+        if (spike_n == RIGCTL_SPIKE_MASKS) spike_flush();
+        ENC_PROBE_OFF();
+    }
+}
+
+/* ENCODE: a new scan (calibration of the last CALIBRATE) and the stream with it */
+static void enc_start(void)
+{
+    cli();
+    streaming = 0;
+    encoding = 0;
+    sei();
+    while (tx_owned & TX_COUNTS) { /* the last scan's counts are sent from the encoder's state */
+    }
+    enc_q_head = enc_q_tail = 0;
+    enc_dropped = 0;
+    enc_tick_flags = 0;
+    enc_first = 1;
+    enc_q_max = 0;
+    spike_n = 0;
+    spike_flags = 0;
+    enc_seq = 0;
+    sa_init(&enc, cal_min, cal_max, cal_k);
+    stream_start(1);
+}
+
+/* FINISH: stop the stream, encode what is queued, scale the last windows, send the counts frame */
+static void enc_finish(uint16_t speed_cmm_s)
+{
+    cli();
+    streaming = 0;
+    encoding = 0;
+    sei();
+    enc_poll();
+    spike_flush();
+    ENC_PROBE_ON();
+    sa_finish(&enc, speed_cmm_s);
+    ENC_PROBE_OFF();
+    cli();
+    uint16_t dropped = enc_dropped;
+    sei();
+    counts_frame_head(counts_head, enc.n, (uint16_t)enc.held_windows, dropped, enc_q_max, &enc.counts[0][0],
+                      counts_crc);
+    cli();
+    /* the counts go out from the encoder's state itself (uint16 little-endian on the AVR, as the frame has them) */
+    tx_push_locked(counts_head, sizeof counts_head, TX_COUNTS);
+    tx_push_locked((const uint8_t *)&enc.counts[0][0], sizeof enc.counts, TX_COUNTS);
+    tx_push_locked(counts_crc, sizeof counts_crc, TX_COUNTS);
+    sei();
+}
+
+static uint16_t le16(const uint8_t *p)
+{
+    return (uint16_t)(p[0] | ((uint16_t)p[1] << 8));
+}
+
+/* a command with a payload, complete: n bytes, the last 2 the CRC-16 of the others; a bad CRC drops it */
+static void enc_command(uint8_t cmd, const uint8_t *p, uint8_t n)
+{
+    if (rigctl_crc16(p, (uint16_t)(n - 2)) != le16(p + n - 2)) return;
+    if (cmd == RIGCTL_ENC_CMD_CALIBRATE) {
+        for (uint8_t i = 0; i < RIGCTL_ENC_N_TAXELS; i++) {
+            cal_min[i] = le16(p + 2 * i);
+            cal_max[i] = le16(p + 2 * (RIGCTL_ENC_N_TAXELS + i));
+        }
+        cal_k = le16(p + 4 * RIGCTL_ENC_N_TAXELS);
+    } else if (cmd == RIGCTL_ENC_CMD_SPEED) {
+        /* window p[0..1] (mod 65536): the next one without a speed, or later; an earlier one was held (scaled with
+         * the last speed when its slot was needed), and its speed, come too late, is dropped */
+        uint16_t next = (uint16_t)(enc.windows_scaled + enc.n_speeds);
+        if ((int16_t)(le16(p) - next) < 0) return;
+        ENC_PROBE_ON();
+        sa_speed(&enc, le16(p + 2)); /* scales the windows waiting for it: ~9 000 cycles, interrupts keep running */
+        ENC_PROBE_OFF();
+    } else if (cmd == RIGCTL_ENC_CMD_FINISH) {
+        enc_finish(le16(p));
+    }
+}
+
+static uint8_t cmd_byte, cmd_need, cmd_got;
+static uint8_t cmd_buf[RIGCTL_ENC_CALIBRATE_PAYLOAD + 2];
+#endif
 
 void setup(void)
 {
@@ -267,7 +519,7 @@ void setup(void)
     UCSR0B = (1 << RXEN0) | (1 << TXEN0) | (1 << RXCIE0);
     /* mux select lines and timing probes as outputs */
     UNO_SEL_DDR |= UNO_SEL_MASK;
-    UNO_PROBE_DDR |= (1 << UNO_PROBE_SAMPLER) | (1 << UNO_PROBE_TX);
+    UNO_PROBE_DDR |= (1 << UNO_PROBE_SAMPLER) | (1 << UNO_PROBE_TX) | (1 << UNO_PROBE_ENCODER) | (1 << UNO_MARK_ENCODE);
     /* analog inputs A0-A2: digital input buffers off */
     DIDR0 = (1 << ADC0D) | (1 << ADC1D) | (1 << ADC2D);
     ADCSRA = (uint8_t)((1 << ADEN) | UNO_ADC_PRESCALER_BITS);
@@ -294,19 +546,41 @@ void loop(void)
     /* receiver status poll: besides the RX interrupt, this read is what tells simavr's UART model (and its pty
      * bridge) that the receiver has room, so host bytes flow in */
     (void)UCSR0A;
+#ifdef UNO_SA_ENCODER
+    enc_poll();
+#endif
     while (rx_tail != rx_head) {
         uint8_t c = rx_ring[rx_tail];
-        rx_tail = (uint8_t)((rx_tail + 1) & 15);
+        rx_tail = (uint8_t)((rx_tail + 1) & RX_MASK);
+#ifdef UNO_SA_ENCODER
+        if (cmd_need) { /* a payload byte */
+            cmd_buf[cmd_got++] = c;
+            if (cmd_got == cmd_need) {
+                cmd_need = 0;
+                enc_command(cmd_byte, cmd_buf, cmd_got);
+            }
+            continue;
+        }
+        if (c == RIGCTL_ENC_CMD_CALIBRATE || c == RIGCTL_ENC_CMD_SPEED || c == RIGCTL_ENC_CMD_FINISH) {
+            cmd_byte = c;
+            cmd_got = 0;
+            cmd_need = (uint8_t)((c == RIGCTL_ENC_CMD_CALIBRATE ? RIGCTL_ENC_CALIBRATE_PAYLOAD
+                                  : c == RIGCTL_ENC_CMD_SPEED   ? RIGCTL_ENC_SPEED_PAYLOAD
+                                                                : RIGCTL_ENC_FINISH_PAYLOAD) + 2);
+            continue;
+        }
+        if (c == RIGCTL_ENC_CMD_ENCODE) {
+            enc_start();
+            continue;
+        }
+#endif
         if (c == RIGCTL_UNO_CMD_START) {
-            cli();
-            seq = 0;
-            sync_latched = 0;
-            tx_overrun_pending = 0;
-            start_pending = 1;
-            streaming = 1;
-            sei();
+            stream_start(0);
         } else if (c == RIGCTL_UNO_CMD_STOP) {
             streaming = 0;
+#ifdef UNO_SA_ENCODER
+            encoding = 0;
+#endif
         } else if (c == RIGCTL_UNO_CMD_IDENTIFY) {
             stop_and_drain();
             send_line_P(identity_P);

@@ -1,0 +1,194 @@
+"""The host's side of the Uno encoder image's link (docs/wire-protocol.md 1.5): its commands (CALIBRATE, SPEED,
+FINISH with their CRC-16) and a parser that splits the byte stream into taxel frames, spike frames and counts frames.
+
+The encoder image streams the taxel frames of 1.1 and, beside them, a spike frame every 10 samples (the 9 top-layer
+taxels' spike masks of the integer SA kernel, :mod:`rigctl.encoding.fixed_sa` bit for bit) and, after FINISH, one
+counts frame (the 20 scaled-time windows' spike counts of each taxel, with the samples encoded, the windows held and
+the samples dropped). Source: the firmware ``arduino/uno_taxel/uno_taxel.cpp`` built with ``-DUNO_SA_ENCODER``.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rigctl.devices import wire
+
+__all__ = ["CountsFrame", "EncoderStreamParser", "SpikeFrame", "applied_speeds", "calibrate_command",
+           "finish_command", "held_windows", "speed_command", "spike_raster"]
+
+_MAX_SPEED_CMM_S = 0xFFFF
+
+
+def _with_crc(cmd: wire.EncoderCommand, payload: bytes) -> bytes:
+    return cmd.value + payload + struct.pack("<H", wire.crc16(payload))
+
+
+def calibrate_command(taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100) -> bytes:
+    """CALIBRATE: the 9 top-layer taxels' minimum and maximum ADC counts ((9,) each, 0-65535) and the input gain
+    ``k`` (1-255: the integer kernel's range; 100 for SA). Raises ValueError for other shapes or values."""
+    lo = np.asarray(taxel_min)
+    hi = np.asarray(taxel_max)
+    if lo.shape != (wire.ENC_N_TAXELS,) or hi.shape != (wire.ENC_N_TAXELS,):
+        raise ValueError(f"taxel_min and taxel_max must be ({wire.ENC_N_TAXELS},), got {lo.shape} and {hi.shape}")
+    if lo.min() < 0 or hi.min() < 0 or lo.max() > 0xFFFF or hi.max() > 0xFFFF:
+        raise ValueError("taxel_min and taxel_max must be ADC counts 0-65535")
+    if not 1 <= int(k) <= 255:
+        raise ValueError(f"k must be 1-255, got {k}")
+    payload = np.concatenate([lo, hi, [int(k)]]).astype("<u2").tobytes()
+    return _with_crc(wire.EncoderCommand.CALIBRATE, payload)
+
+
+def _cmm(speed_mm_s: float) -> int:
+    cmm = int(round(float(speed_mm_s) * 100.0))
+    if not 0 <= cmm <= _MAX_SPEED_CMM_S:
+        raise ValueError(f"speed must be 0-{_MAX_SPEED_CMM_S / 100:.2f} mm/s, got {speed_mm_s}")
+    return cmm
+
+
+def speed_command(window: int, speed_mm_s: float) -> bytes:
+    """SPEED: the mean speed of real-time window ``window`` (0, 1, ... from the scan's start: samples 100 w to
+    100 w + 99; sent mod 65536) as 0.01 mm/s (rounded). The board drops the speed of a window it already scaled with
+    the last speed (held: its speed came after the next window but one had begun). Raises ValueError outside
+    0-655.35 mm/s or for a negative window."""
+    if window < 0:
+        raise ValueError(f"window must be >= 0, got {window}")
+    return _with_crc(wire.EncoderCommand.SPEED, struct.pack("<HH", window % 65536, _cmm(speed_mm_s)))
+
+
+def finish_command(speed_mm_s: float) -> bytes:
+    """FINISH: end the scan (the stream stops); ``speed_mm_s`` scales the windows still without a speed, if no
+    speed was ever sent. Raises ValueError outside 0-655.35 mm/s."""
+    return _with_crc(wire.EncoderCommand.FINISH, struct.pack("<H", _cmm(speed_mm_s)))
+
+
+@dataclass(frozen=True)
+class SpikeFrame:
+    """One spike frame: ``seq`` of its first sample (the taxel frame's seq of that sample), ``masks`` ((n,) uint16,
+    bit i = taxel i spiked at that sample), ``flags`` (:class:`rigctl.devices.wire.SpikeFlag`)."""
+
+    seq: int
+    flags: int
+    masks: np.ndarray
+
+
+@dataclass(frozen=True)
+class CountsFrame:
+    """The counts frame after FINISH: ``counts`` ((9, 20) uint16, spikes per taxel and scaled-time window),
+    ``samples`` encoded, windows ``held`` (scaled with the last speed: theirs came late), samples ``dropped`` (the
+    board's queue was full), ``queue_max`` (the deepest its sample queue was)."""
+
+    samples: int
+    held: int
+    dropped: int
+    queue_max: int
+    counts: np.ndarray
+
+
+@dataclass
+class EncoderStreamParser:
+    """Splits the encoder image's byte stream into its three frames (feed chunks of any size with :meth:`feed`):
+    each candidate (sync ``0xA5`` then ``0x5A`` taxel, ``0xC3`` spike, ``0xC4`` counts) whose CRC-16 holds is taken
+    whole, anything else is skipped a byte at a time (``crc_errors`` counts the candidates that failed).
+
+    Attributes: ``seq``, ``flags``, ``samples`` (lists of the taxel frames' fields, samples (18,) uint16 each),
+    ``spikes`` (:class:`SpikeFrame` list), ``counts`` (:class:`CountsFrame` list), ``crc_errors``, ``bytes_skipped``.
+    """
+
+    seq: list[int] = field(default_factory=list)
+    flags: list[int] = field(default_factory=list)
+    samples: list[np.ndarray] = field(default_factory=list)
+    spikes: list[SpikeFrame] = field(default_factory=list)
+    counts: list[CountsFrame] = field(default_factory=list)
+    crc_errors: int = 0
+    bytes_skipped: int = 0
+    _buf: bytes = b""
+
+    _SIZES = {wire.SYNC[1]: wire.FRAME_SIZE, wire.SPIKE_SYNC[1]: wire.SPIKE_FRAME_SIZE,
+              wire.COUNTS_SYNC[1]: wire.COUNTS_FRAME_SIZE}
+
+    def feed(self, chunk: bytes) -> None:
+        """Parse ``chunk`` (after any kept tail) into the frame lists."""
+        buf = self._buf + bytes(chunk)
+        p, n = 0, len(buf)
+        while p < n:
+            q = buf.find(wire.SYNC[:1], p)
+            if q < 0:
+                self.bytes_skipped += n - p
+                p = n
+                break
+            self.bytes_skipped += q - p
+            p = q
+            if p + 1 >= n:
+                break
+            size = self._SIZES.get(buf[p + 1])
+            if size is None:
+                p += 1
+                self.bytes_skipped += 1
+                continue
+            if p + size > n:
+                break
+            frame = buf[p:p + size]
+            if wire.crc16(frame[2:size - 2]) != struct.unpack_from("<H", frame, size - 2)[0]:
+                self.crc_errors += 1
+                self.bytes_skipped += 1
+                p += 1
+                continue
+            self._take(frame)
+            p += size
+        self._buf = buf[p:]
+
+    def _take(self, frame: bytes) -> None:
+        kind = frame[1]
+        if kind == wire.SYNC[1]:
+            self.seq.append(struct.unpack_from("<H", frame, wire.OFFSET_SEQ)[0])
+            self.flags.append(frame[wire.OFFSET_FLAGS])
+            self.samples.append(np.frombuffer(frame, "<u2", wire.N_TAXELS, wire.OFFSET_SAMPLES).astype(np.uint16))
+        elif kind == wire.SPIKE_SYNC[1]:
+            seq, n, flags = struct.unpack_from("<HBB", frame, 2)
+            masks = np.frombuffer(frame, "<u2", wire.SPIKE_MASKS, 6).astype(np.uint16)
+            self.spikes.append(SpikeFrame(seq, flags, masks[:min(n, wire.SPIKE_MASKS)]))
+        else:
+            samples, held, dropped, queue_max = struct.unpack_from("<IHHB", frame, 2)
+            counts = np.frombuffer(frame, "<u2", wire.ENC_N_TAXELS * wire.ENC_N_WINDOWS, 11).astype(np.uint16)
+            self.counts.append(CountsFrame(samples, held, dropped, queue_max,
+                                           counts.reshape(wire.ENC_N_TAXELS, wire.ENC_N_WINDOWS)))
+
+
+def spike_raster(frames: list[SpikeFrame]) -> np.ndarray:
+    """The spike frames of one scan (from its first, seq 0) as a raster ``(n_samples, 9)`` uint8 (1 = a spike at
+    that sample). Raises ValueError if the frames leave a gap (a frame lost: its samples are unknown)."""
+    n = 0
+    rows = []
+    for f in frames:
+        if f.seq != n % 65536:
+            raise ValueError(f"spike frames: sample {n} expected, a frame starts at seq {f.seq} (a frame was lost)")
+        rows.append(f.masks)
+        n += len(f.masks)
+    masks = np.concatenate(rows) if rows else np.zeros(0, np.uint16)
+    return ((masks[:, None] >> np.arange(wire.ENC_N_TAXELS, dtype=np.uint16)) & 1).astype(np.uint8)
+
+
+def held_windows(frames: list[SpikeFrame]) -> list[int]:
+    """The real-time windows the board scaled with the last speed (held) during one scan, from its spike frames (from
+    the first, seq 0): a frame flagged HELD holds the start of window W (a window starts every 100 samples, a frame
+    holds 10), whose step held window W - 2 (:mod:`rigctl.arduino` ``sa_step``: 2 windows may wait)."""
+    out = []
+    n = 0
+    for f in frames:
+        if f.flags & wire.SpikeFlag.HELD:
+            out.append(-(-n // 100) - 2)
+        n += len(f.masks)
+    return out
+
+
+def applied_speeds(sent_mm_s: np.ndarray, held: list[int]) -> np.ndarray:
+    """The speed each window was scaled with on the board ((n,) mm/s): the speed sent for it (``sent_mm_s[w]``, as
+    rounded to 0.01 mm/s), or for a held window the one before it used."""
+    out = np.round(np.asarray(sent_mm_s, dtype=np.float64), 2)
+    for w in sorted(held):
+        if 0 < w < out.size:
+            out[w] = out[w - 1]
+    return out

@@ -1,0 +1,178 @@
+"""The Uno encoder image (uno_encoder: the taxel streamer with the integer SA encoder) under simavr, against the host's
+integer kernel on the samples the board streamed beside its spikes (docs/firmware.md "The encoder in the Uno image",
+docs/wire-protocol.md 1.5).
+
+The harness feeds simulated handheld scans to the ADC; the host calibrates the board, starts it encoding, sends one
+speed per 100 ms window as the board's samples arrive, stops, sends FINISH and reads the counts frame. The host
+encodes the taxel frames it received (the samples the board encoded) with :class:`rigctl.encoding.fixed_sa
+.FixedSAEncoder` and scales them with the speeds it sent: every spike on the same sample, every window count equal,
+no sample dropped, and the CPU's load per 1 ms tick (the harness's ``LOAD`` lines) under the tick.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from rigctl.acquisition.handheld import velocity_from_position
+from rigctl.core.handheld import PlateAxis
+from rigctl.core.normalisation import TaxelRange
+from rigctl.core.trial import PlannedTrial
+from rigctl.devices import wire
+from rigctl.devices.encoder_stream import (EncoderStreamParser, applied_speeds, calibrate_command, finish_command,
+                                           held_windows, speed_command, spike_raster)
+from rigctl.encoding.fixed_sa import FixedSAEncoder
+from rigctl.encoding.speed import incremental_scale, window_speeds
+from rigctl.simulation import hil
+from rigctl.simulation.operator import SimulatedOperator
+
+pytestmark = pytest.mark.hil
+
+N_TAXELS = wire.ENC_N_TAXELS
+TICK_CYCLES = 16_000
+
+
+@pytest.fixture(scope="module")
+def scans() -> list[tuple[np.ndarray, np.ndarray]]:
+    """Simulated handheld scans (taxels 0-8 ADC counts at 1 kHz, window speeds mm/s): slow, fast, slow-to-fast."""
+    op = SimulatedOperator(seed=7)
+    plans = [PlannedTrial(0, "L", 40.0, 500.0, 200.0 / 40.0, "slow", math.nan, math.nan),
+             PlannedTrial(1, "B", 120.0, 500.0, 200.0 / 120.0, "fast", math.nan, math.nan),
+             PlannedTrial(2, "N", 80.0, 500.0, 200.0 / 80.0, "slow-to-fast", 40.0, 120.0)]
+    axis = PlateAxis.from_touches(*op.touch_ends())
+    out = []
+    for plan in plans:
+        scan = op.scan(plan)
+        assert scan is not None
+        x = np.ascontiguousarray(scan.taxels[:, :N_TAXELS], dtype=np.uint16)
+        ok = np.all(np.isfinite(scan.tracker_xyz), axis=1)
+        t = scan.tracker_time_s[ok] - scan.host_time_s[0]
+        vel = np.abs(velocity_from_position(t, axis.along_mm(scan.tracker_xyz[ok])))
+        out.append((x, window_speeds(t, vel, x.shape[0] / 1000.0)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def enc_rig(fw_build, scans):
+    """Both boards under simavr, the Uno running the encoder image and playing the scans in a loop (top layer and,
+    for the bottom layer, the same counts)."""
+    x = np.concatenate([s[0] for s in scans])
+    with hil.HilRig(uno_image="uno_encoder", live=False) as rig:
+        rig.play_waveform(np.concatenate([x, x], axis=1))
+        yield rig
+
+
+def _read_until(port: serial.Serial, parser: EncoderStreamParser, done, *, stall_s: float = 10.0) -> None:
+    """Feed the port's bytes to ``parser`` until ``done()``; fail when nothing arrives for ``stall_s`` (a starved
+    machine slows the paced simulation down, a dead board sends nothing)."""
+    last = time.monotonic()
+    while not done():
+        chunk = port.read(4096)
+        if chunk:
+            parser.feed(chunk)
+            last = time.monotonic()
+        assert time.monotonic() - last < stall_s, "the board stopped sending"
+
+
+def _n_encoded(parser: EncoderStreamParser) -> int:
+    return sum(len(f.masks) for f in parser.spikes)
+
+
+def _encode_scan(rig: hil.HilRig, port: serial.Serial, n_samples: int, lo: np.ndarray, hi: np.ndarray,
+                 speeds_mm_s: np.ndarray):
+    """One scan on the board: CALIBRATE, ENCODE, a SPEED per window once half of the next window's samples are
+    encoded (window w's speed is ``speeds_mm_s[w % len]``), STOP after ``n_samples``, the last windows' speeds,
+    FINISH. Returns (parser, the speeds sent, mm/s as the board has them, the harness's LOAD reports of the seconds
+    while the board encoded, after the first 2 s)."""
+    parser = EncoderStreamParser()
+    loads: list[dict[str, float]] = []
+    port.write(calibrate_command(lo, hi, 100) + wire.EncoderCommand.ENCODE.value)
+    sent: list[float] = []
+
+    def send(v: float) -> None:
+        port.write(speed_command(len(sent), v))
+        sent.append(round(v, 2))
+
+    def enough() -> bool:
+        n = _n_encoded(parser)
+        while len(sent) * 100 + 50 <= n:
+            send(float(speeds_mm_s[len(sent) % len(speeds_mm_s)]))
+        if n > 2000 and rig.load and (not loads or rig.load is not loads[-1]):
+            loads.append(rig.load)
+        return n >= n_samples
+
+    _read_until(port, parser, enough)
+    port.write(wire.UnoCommand.STOP.value)
+    quiet = time.monotonic()
+    while time.monotonic() - quiet < 0.5:  # the spike frames of the samples already taken
+        chunk = port.read(4096)
+        if chunk:
+            parser.feed(chunk)
+            quiet = time.monotonic()
+    n_windows = -(-_n_encoded(parser) // 100)
+    while len(sent) < n_windows:  # the windows the stop left without a speed (the last one partial)
+        send(float(speeds_mm_s[len(sent) % len(speeds_mm_s)]))
+    port.write(finish_command(sent[-1]))
+    _read_until(port, parser, lambda: len(parser.counts) > 0)
+    return parser, np.array(sent), loads[1:]  # the first may cover the second before ENCODE
+
+
+def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans):
+    x_all = np.concatenate([s[0] for s in scans])
+    lo, hi = x_all.min(axis=0), x_all.max(axis=0)
+    speeds = np.concatenate([s[1] for s in scans])
+    rng = TaxelRange(lo.astype(np.float64), hi.astype(np.float64))
+    results = []
+    with serial.Serial(enc_rig.taxel_port, timeout=0.05) as port:
+        banner = b""
+        t0 = time.monotonic()
+        while b"\n" not in banner:
+            banner += port.read(256)
+            assert time.monotonic() - t0 < 30, "no banner"
+        assert wire.UNO_ENCODER_FIELD.encode() in banner
+        for n in (30_000, 3_000):  # a long scan (30 s: the samples counted), then a handheld scan's length
+            parser, sent, loads = _encode_scan(enc_rig, port, n, lo, hi, speeds)
+            results.append((parser, sent, loads))
+    assert len(enc_rig.encoder_start_rows) == 2
+    total_spikes = 0
+    for (parser, sent, _), row0 in zip(results, enc_rig.encoder_start_rows):
+        assert parser.crc_errors == 0 and not parser.seq  # spike frames instead of taxel frames
+        counts = parser.counts[0]
+        raster = spike_raster(parser.spikes)  # raises on a lost frame
+        n = raster.shape[0]
+        # every sample of the scan encoded, none dropped; a window whose speed the host sent too late (a starved
+        # host: > 150 ms) is scaled with the last speed, flagged, and the host's reference does the same
+        held = held_windows(parser.spikes)
+        assert n >= 3_000 and counts.samples == n and counts.dropped == 0 and counts.held == len(held)
+        assert len(held) <= 0.1 * len(sent)
+        assert not any(f.flags & ~wire.SpikeFlag.HELD for f in parser.spikes)
+        assert row0 >= 0
+        x = x_all[(row0 + np.arange(n)) % len(x_all)]  # the harness's rows: what the board's ADC converted
+        host = FixedSAEncoder(rng, k_sa=100.0).process(x)
+        host_raster = np.zeros_like(raster)
+        for i in range(N_TAXELS):
+            host_raster[np.rint(host.train(0, i) * 1000.0).astype(np.int64), i] = 1
+        total_spikes += int(host_raster.sum())
+        assert host_raster.sum() > 1000 * n / 30_000
+        same = int((raster & host_raster).sum())
+        print(f"scan of {n} samples: {int(host_raster.sum())} host spikes, {int(raster.sum())} board spikes, "
+              f"{same} on the same sample; queue depth max {counts.queue_max}, windows held {len(held)}")
+        assert np.array_equal(raster, host_raster), "a spike differs from the host's integer kernel"
+        scaled, _ = incremental_scale(host, [applied_speeds(sent, held)])
+        host_counts = scaled.window_counts(0.1, wire.ENC_N_WINDOWS)[0]
+        assert host_counts.sum() > 200
+        assert np.array_equal(counts.counts, host_counts)
+    long_loads = results[0][2]
+    assert len(long_loads) >= 10, "the harness reported no load while the board encoded"
+    busy = np.array([r["busy_cycles_per_tick"] for r in long_loads])
+    busy_max = max(r["busy_max_per_tick"] for r in long_loads)
+    print(f"Uno encoder image while encoding, CPU cycles per 1 ms tick over {busy.size} s: mean {busy.mean():.0f} "
+          f"(seconds {busy.min():.0f}-{busy.max():.0f}), largest tick {busy_max:.0f}")
+    assert total_spikes > 0
+    # the tick's interrupts and the encoder leave the CPU idle part of every tick on average (the queue absorbs a
+    # tick that scales a window: none dropped above)
+    assert 0.3 * TICK_CYCLES < busy.max() < 0.9 * TICK_CYCLES
