@@ -28,7 +28,7 @@ from pathlib import Path
 
 from rigctl.core.version import __version__
 
-__all__ = ["BOARDS", "BOOTLOADER_BAUD", "BUILD_ID_DIGITS", "BUILD_TOOLS", "FirmwareBuildError", "avrdude_command", "build",
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "IMAGES", "BUILD_ID_DIGITS", "BUILD_TOOLS", "FirmwareBuildError", "avrdude_command", "build",
            "build_dir", "build_id", "cache_root", "make", "missing_build_tools", "source_digest", "source_versions",
            "sources"]
 
@@ -47,6 +47,9 @@ BOARDS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
     "uno": ("uno_taxel", "m328p", "arduino", ()),
     "mega": ("mega_drum", "m2560", "wiring", ("-D",)),
 }
+#: board -> the images it can be flashed with, the default first: the Uno's taxel streamer, or the same with the
+#: on-board SA encoder (``uno_encoder``: docs/firmware.md "The encoder in the Uno image"); the Mega's drum controller
+IMAGES: dict[str, tuple[str, ...]] = {"uno": ("uno_taxel", "uno_encoder"), "mega": ("mega_drum",)}
 #: both stock bootloaders talk at 115200 baud
 BOOTLOADER_BAUD = 115200
 #: hex digits of :func:`source_digest` a build gives the firmware as its BUILD_ID (the Uno's banner ``build=``, the

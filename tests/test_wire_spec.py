@@ -81,8 +81,9 @@ def h():
 
 
 def test_spec_has_every_table(tables):
-    assert set(tables) == {"frame", "flags", "uno-commands", "holding", "input", "commands", "states", "faults",
-                           "reset-cause", "status-flags"}
+    assert set(tables) == {"frame", "flags", "uno-commands", "encoder-commands", "spike-frame", "spike-flags",
+                           "counts-frame", "holding", "input", "commands", "states", "faults", "reset-cause",
+                           "status-flags"}
     assert all(len(rows) >= 3 for rows in tables.values())
 
 
@@ -130,13 +131,15 @@ def test_stream_link_and_identity(spec_text, h):
     assert h["RIGCTL_UNO_IDENTITY"].startswith(wire.UNO_IDENTITY_PREFIX)
 
 
-def test_flags(tables, h):
-    rows = tables["flags"]
-    assert {r["name"] for r in rows} == {f.name for f in wire.FrameFlag}
+@pytest.mark.parametrize("table, flag, prefix", [("flags", wire.FrameFlag, "RIGCTL_FLAG_"),
+                                                 ("spike-flags", wire.SpikeFlag, "RIGCTL_SPIKE_FLAG_")])
+def test_flags(tables, h, table, flag, prefix):
+    rows = tables[table]
+    assert {r["name"] for r in rows} == {f.name for f in flag}
     for r in rows:
         bit = spec_int(r["bit"])
-        assert wire.FrameFlag[r["name"]] == 1 << bit
-        assert h[f"RIGCTL_FLAG_{r['name']}_BIT"] == bit and h[f"RIGCTL_FLAG_{r['name']}"] == 1 << bit
+        assert flag[r["name"]] == 1 << bit
+        assert h[f"{prefix}{r['name']}_BIT"] == bit and h[f"{prefix}{r['name']}"] == 1 << bit
 
 
 def test_uno_commands(tables, h):
@@ -147,6 +150,47 @@ def test_uno_commands(tables, h):
         assert len(byte) == 1
         assert wire.UnoCommand[r["command"]].value == byte.encode()
         assert h[f"RIGCTL_UNO_CMD_{r['command']}"] == ord(byte)
+
+
+# ------------------------------------------------------------------------------------------------ encoder image
+def test_encoder_commands(tables, h):
+    rows = tables["encoder-commands"]
+    assert {r["command"] for r in rows} == {c.name for c in wire.EncoderCommand}
+    payload = {"CALIBRATE": 2 * (2 * wire.ENC_N_TAXELS + 1), "SPEED": 4, "FINISH": 2}
+    for r in rows:
+        byte = r["byte"].strip("`")
+        assert len(byte) == 1 and wire.EncoderCommand[r["command"]].value == byte.encode()
+        assert h[f"RIGCTL_ENC_CMD_{r['command']}"] == ord(byte)
+        if r["command"] in payload:
+            assert h[f"RIGCTL_ENC_{r['command']}_PAYLOAD"] == payload[r["command"]]
+    # the encoder's commands and the streamer's share one byte space
+    assert not {c.value for c in wire.EncoderCommand} & {c.value for c in wire.UnoCommand}
+    assert h["RIGCTL_ENC_N_TAXELS"] == wire.ENC_N_TAXELS and h["RIGCTL_ENC_N_WINDOWS"] == wire.ENC_N_WINDOWS
+
+
+@pytest.mark.parametrize("table, prefix, sync, size", [("spike-frame", "SPIKE", wire.SPIKE_SYNC, wire.SPIKE_FRAME_SIZE),
+                                                       ("counts-frame", "COUNTS", wire.COUNTS_SYNC,
+                                                        wire.COUNTS_FRAME_SIZE)])
+def test_encoder_frames(tables, h, table, prefix, sync, size):
+    rows = {r["field"]: r for r in tables[table]}
+    end = 0
+    for name, r in rows.items():
+        off, n = spec_int(r["offset"]), spec_int(r["size"])
+        assert off == end, f"{name} does not follow the previous field"
+        end = off + n
+        if name not in ("sync", "masks", "counts") and f"RIGCTL_{prefix}_{name.upper()}_OFFSET" in h:
+            assert h[f"RIGCTL_{prefix}_{name.upper()}_OFFSET"] == off
+    assert end == size == h[f"RIGCTL_{prefix}_FRAME_SIZE"]
+    assert rows["crc"]["offset"] == str(h[f"RIGCTL_{prefix}_CRC_OFFSET"]) == str(size - 2)
+    assert f"`0x{sync[0]:02X} 0x{sync[1]:02X}`" == rows["sync"]["meaning"]
+    assert (h[f"RIGCTL_{prefix}_SYNC0"], h[f"RIGCTL_{prefix}_SYNC1"]) == (sync[0], sync[1])
+    assert h[f"RIGCTL_{prefix}_CRC_START"] == 2 and f"over bytes 2..{size - 3}" in rows["crc"]["meaning"]
+    if table == "spike-frame":
+        assert spec_int(rows["masks"]["size"]) == 2 * wire.SPIKE_MASKS == 2 * h["RIGCTL_SPIKE_MASKS"]
+        assert h["RIGCTL_SPIKE_MASKS_OFFSET"] == spec_int(rows["masks"]["offset"])
+    else:
+        assert spec_int(rows["counts"]["size"]) == 2 * wire.ENC_N_TAXELS * wire.ENC_N_WINDOWS
+        assert h["RIGCTL_COUNTS_COUNTS_OFFSET"] == spec_int(rows["counts"]["offset"])
 
 
 # ------------------------------------------------------------------------------------------------ Modbus

@@ -120,6 +120,7 @@ class SpikeFlag(enum.IntFlag):
 
     HELD = 1 << 0
     DROPPED = 1 << 1
+    SYNC_IN = 1 << 2
 
 
 #: the encoder image's frames (spec 1.5): spike frames beside the taxel frames while encoding, a counts frame at

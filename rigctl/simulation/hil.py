@@ -26,7 +26,6 @@ import collections
 import logging
 import os
 import re
-import subprocess
 import tempfile
 import threading
 import time
@@ -41,8 +40,9 @@ from rigctl import firmware
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.devices import wire
 from rigctl.simulation.hil_faults import HilFaults
+from rigctl.simulation.hil_harness import HilError, _Harness
 from rigctl.simulation.mega_eeprom import EepromError, default_record, eeprom_offset
-from rigctl.simulation.priority import board_thread, raise_board_process
+from rigctl.simulation.priority import board_thread
 from rigctl.simulation.truth import TruthLog
 
 if TYPE_CHECKING:
@@ -61,10 +61,6 @@ _BLEND_ROWS = 500
 _MAX_CORRECTION = 0.2
 #: live rendering: drum speed (mm per ms) below which the travel's correction is limited as at this speed
 _MIN_SPEED = 0.01
-
-
-class HilError(RuntimeError):
-    """The firmware or the harness could not be built or started."""
 
 
 def _parse_kv(line: str) -> dict[str, float]:
@@ -100,71 +96,6 @@ class _MegaClock:
     @staticmethod
     def sleep(s: float) -> None:
         time.sleep(s)
-
-
-class _Harness:
-    """One rigctl_simavr process: start, read its stdout in a thread, send stdin commands."""
-
-    def __init__(self, exe: Path, board: str, elf: Path, args: list[str], on_line):
-        self.board = board
-        self._lock = threading.Lock()
-        self.proc = subprocess.Popen([str(exe), "--board", board, *args, str(elf)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
-        raise_board_process(self.proc.pid)
-        assert self.proc.stdin is not None and self.proc.stdout is not None and self.proc.stderr is not None
-        self._stdin, self._stdout, self._stderr = self.proc.stdin, self.proc.stdout, self.proc.stderr  # all piped
-        port, deadline = None, time.monotonic() + 10.0
-        while time.monotonic() < deadline:
-            line = self._stdout.readline()
-            if not line:
-                raise HilError(f"simavr harness for the {board} exited at start: {self._stderr.read().strip()}")
-            if line.startswith("PTY "):
-                port = line.split()[1]
-                break
-        if port is None:
-            self.close()
-            raise HilError(f"simavr harness for the {board} did not report its pty")
-        self.port: str = port
-        self._on_line = on_line
-        self._thread = threading.Thread(target=board_thread(self._read), name=f"hil-{board}", daemon=True)
-        self._thread.start()
-
-    def _read(self) -> None:
-        try:
-            for line in self._stdout:
-                try:
-                    self._on_line(line.rstrip("\n"))
-                except Exception:  # a bad line must not kill the reader (the pipe would fill and stall the sim)
-                    log.exception("HIL %s: cannot handle %r", self.board, line)
-        except (ValueError, OSError):  # stdout closed by close()
-            pass
-
-    def send(self, text: str) -> None:
-        with self._lock:
-            if self.proc.poll() is None:
-                try:
-                    self._stdin.write(text + "\n")
-                    self._stdin.flush()
-                except (BrokenPipeError, ValueError):
-                    pass
-
-    def close(self) -> None:
-        try:
-            with self._lock:
-                self._stdin.close()
-        except Exception:
-            pass
-        try:
-            self.proc.wait(timeout=3)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._thread.join(timeout=2)  # the reader ends at EOF once the process is gone
-        for f in (self._stdout, self._stderr):
-            try:
-                f.close()
-            except Exception:
-                pass
 
 
 class HilRig:

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import math
 import time
 
+import numpy as np
 import pytest
 
 from rigctl import firmware
 from rigctl.devices import wire
 from rigctl.simulation import hil
+
+#: the taxels the on-board encoder reads: the top layer, channels 0-8
+ENCODER_TAXELS = 9
 
 
 @pytest.fixture(scope="session")
@@ -16,6 +21,33 @@ def fw_build(build_tools):
     """Build both images and the harness from the package's sources (:func:`rigctl.firmware.build`); returns the
     build directory."""
     return firmware.build()
+
+
+@pytest.fixture(scope="session")
+def handheld_scans() -> list[tuple[np.ndarray, np.ndarray]]:
+    """Simulated handheld scans for the on-board encoder's tests: (taxels 0-8 ADC counts at 1 kHz (n, 9) uint16,
+    window speeds mm/s): slow, fast, slow-to-fast."""
+    from rigctl.acquisition.handheld import velocity_from_position
+    from rigctl.core.handheld import PlateAxis
+    from rigctl.core.trial import PlannedTrial
+    from rigctl.encoding.speed import window_speeds
+    from rigctl.simulation.operator import SimulatedOperator
+
+    op = SimulatedOperator(seed=7)
+    plans = [PlannedTrial(0, "L", 40.0, 500.0, 200.0 / 40.0, "slow", math.nan, math.nan),
+             PlannedTrial(1, "B", 120.0, 500.0, 200.0 / 120.0, "fast", math.nan, math.nan),
+             PlannedTrial(2, "N", 80.0, 500.0, 200.0 / 80.0, "slow-to-fast", 40.0, 120.0)]
+    axis = PlateAxis.from_touches(*op.touch_ends())
+    out = []
+    for plan in plans:
+        scan = op.scan(plan)
+        assert scan is not None
+        x = np.ascontiguousarray(scan.taxels[:, :ENCODER_TAXELS], dtype=np.uint16)
+        ok = np.all(np.isfinite(scan.tracker_xyz), axis=1)  # the tracker's dropouts
+        t = scan.tracker_time_s[ok] - scan.host_time_s[0]
+        vel = np.abs(velocity_from_position(t, axis.along_mm(scan.tracker_xyz[ok])))
+        out.append((x, window_speeds(t, vel, x.shape[0] / 1000.0)))
+    return out
 
 
 @pytest.fixture(scope="module")

@@ -35,3 +35,13 @@ def test_flash_needs_a_board_it_can_tell_and_options_need_flash():
     assert res.exit_code == 2 and "--flash PORT" in res.output
     res = _run("firmware", "--flash", "/dev/ttyACM7", "--board", "leonardo", "--dry-run")
     assert res.exit_code == 2
+
+
+def test_the_uno_encoder_image_is_flashed_by_name():
+    res = _run("firmware", "--flash", "/dev/ttyACM7", "--board", "uno", "--image", "uno_encoder", "--dry-run")
+    assert res.exit_code == 0, res.output
+    assert shlex.split(res.output.splitlines()[0])[-1] == f"flash:w:{fw.build_dir() / 'uno_encoder.hex'}:i"
+    res = _run("firmware", "--flash", "/dev/ttyACM7", "--board", "mega", "--image", "uno_encoder", "--dry-run")
+    assert res.exit_code == 2 and "not a mega image" in res.output
+    res = _run("firmware", "--image", "uno_encoder")
+    assert res.exit_code == 2 and "--flash PORT" in res.output

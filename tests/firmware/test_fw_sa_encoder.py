@@ -14,7 +14,6 @@ default) and scales them with the same window speeds (:func:`rigctl.encoding.spe
 from __future__ import annotations
 
 import ctypes
-import math
 import shutil
 import subprocess
 from collections.abc import Callable
@@ -24,18 +23,14 @@ import numpy as np
 import pytest
 
 from rigctl import firmware
-from rigctl.acquisition.handheld import velocity_from_position
-from rigctl.core.handheld import PlateAxis
 from rigctl.core.normalisation import TaxelRange
-from rigctl.core.trial import PlannedTrial
 from rigctl.encoding.features import realtime_features_unscaled
 from rigctl.encoding.fixed_sa import FixedSAEncoder
 from rigctl.encoding.izhikevich import StreamingEncoder
 from rigctl.encoding.realtime import ScanEncoder
-from rigctl.encoding.speed import incremental_scale, window_speeds
+from rigctl.encoding.speed import incremental_scale
 from rigctl.encoding.spikes import SpikeTrains
 from rigctl.simulation import sa_board
-from rigctl.simulation.operator import SimulatedOperator
 
 N_TAXELS = 9
 N_WINDOWS = 20
@@ -99,27 +94,8 @@ def sa_lib_fixed(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def scans():
-    return _scans()
-
-
-def _scans() -> list[tuple[np.ndarray, np.ndarray]]:
-    """Simulated handheld scans (taxels 0-8 ADC counts at 1 kHz, window speeds mm/s): slow, fast, slow-to-fast."""
-    op = SimulatedOperator(seed=7)
-    plans = [PlannedTrial(0, "L", 40.0, 500.0, 200.0 / 40.0, "slow", math.nan, math.nan),
-             PlannedTrial(1, "B", 120.0, 500.0, 200.0 / 120.0, "fast", math.nan, math.nan),
-             PlannedTrial(2, "N", 80.0, 500.0, 200.0 / 80.0, "slow-to-fast", 40.0, 120.0)]
-    axis = PlateAxis.from_touches(*op.touch_ends())
-    out = []
-    for plan in plans:
-        scan = op.scan(plan)
-        assert scan is not None
-        x = np.ascontiguousarray(scan.taxels[:, :N_TAXELS], dtype=np.uint16)
-        ok = np.all(np.isfinite(scan.tracker_xyz), axis=1)  # the tracker's dropouts
-        t = scan.tracker_time_s[ok] - scan.host_time_s[0]
-        vel = np.abs(velocity_from_position(t, axis.along_mm(scan.tracker_xyz[ok])))
-        out.append((x, window_speeds(t, vel, x.shape[0] / 1000.0)))
-    return out
+def scans(handheld_scans):
+    return handheld_scans
 
 
 def _firmware(lib, x, rng: TaxelRange, speeds_cmm):

@@ -11,24 +11,29 @@ no sample dropped, and the CPU's load per 1 ms tick (the harness's ``LOAD`` line
 
 from __future__ import annotations
 
-import math
+import re
+import subprocess
 import time
 
 import numpy as np
 import pytest
 import serial
 
-from rigctl.acquisition.handheld import velocity_from_position
-from rigctl.core.handheld import PlateAxis
 from rigctl.core.normalisation import TaxelRange
-from rigctl.core.trial import PlannedTrial
 from rigctl.devices import wire
-from rigctl.devices.encoder_stream import (EncoderStreamParser, applied_speeds, calibrate_command, finish_command,
-                                           held_windows, speed_command, spike_raster)
+from rigctl.devices.encoder_stream import (
+    EncoderStreamParser,
+    applied_speeds,
+    calibrate_command,
+    finish_command,
+    held_windows,
+    speed_command,
+    spike_raster,
+)
+from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.encoding.fixed_sa import FixedSAEncoder
-from rigctl.encoding.speed import incremental_scale, window_speeds
+from rigctl.encoding.speed import incremental_scale
 from rigctl.simulation import hil
-from rigctl.simulation.operator import SimulatedOperator
 
 pytestmark = pytest.mark.hil
 
@@ -37,23 +42,8 @@ TICK_CYCLES = 16_000
 
 
 @pytest.fixture(scope="module")
-def scans() -> list[tuple[np.ndarray, np.ndarray]]:
-    """Simulated handheld scans (taxels 0-8 ADC counts at 1 kHz, window speeds mm/s): slow, fast, slow-to-fast."""
-    op = SimulatedOperator(seed=7)
-    plans = [PlannedTrial(0, "L", 40.0, 500.0, 200.0 / 40.0, "slow", math.nan, math.nan),
-             PlannedTrial(1, "B", 120.0, 500.0, 200.0 / 120.0, "fast", math.nan, math.nan),
-             PlannedTrial(2, "N", 80.0, 500.0, 200.0 / 80.0, "slow-to-fast", 40.0, 120.0)]
-    axis = PlateAxis.from_touches(*op.touch_ends())
-    out = []
-    for plan in plans:
-        scan = op.scan(plan)
-        assert scan is not None
-        x = np.ascontiguousarray(scan.taxels[:, :N_TAXELS], dtype=np.uint16)
-        ok = np.all(np.isfinite(scan.tracker_xyz), axis=1)
-        t = scan.tracker_time_s[ok] - scan.host_time_s[0]
-        vel = np.abs(velocity_from_position(t, axis.along_mm(scan.tracker_xyz[ok])))
-        out.append((x, window_speeds(t, vel, x.shape[0] / 1000.0)))
-    return out
+def scans(handheld_scans):
+    return handheld_scans
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +111,7 @@ def _encode_scan(rig: hil.HilRig, port: serial.Serial, n_samples: int, lo: np.nd
     return parser, np.array(sent), loads[1:]  # the first may cover the second before ENCODE
 
 
-def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans):
+def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_build):
     x_all = np.concatenate([s[0] for s in scans])
     lo, hi = x_all.min(axis=0), x_all.max(axis=0)
     speeds = np.concatenate([s[1] for s in scans])
@@ -173,6 +163,40 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans):
     print(f"Uno encoder image while encoding, CPU cycles per 1 ms tick over {busy.size} s: mean {busy.mean():.0f} "
           f"(seconds {busy.min():.0f}-{busy.max():.0f}), largest tick {busy_max:.0f}")
     assert total_spikes > 0
+    # the stack's high-water mark above the static RAM (the ATmega328P's RAM starts at 0x100)
+    size = subprocess.run(["avr-size", "-A", str(fw_build / "uno_encoder.elf")], capture_output=True, text=True,
+                          check=True).stdout
+    sec = {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\.\w+)\s+(\d+)", size, re.M)}
+    static_end = 0x100 + sec.get(".data", 0) + sec.get(".bss", 0)
+    headroom = int(long_loads[-1]["sp_min"]) - static_end
+    print(f"static RAM {static_end - 0x100} B, stack high-water {0x8FF - int(long_loads[-1]['sp_min'])} B, "
+          f"{headroom} B never touched")
+    assert headroom > 100
     # the tick's interrupts and the encoder leave the CPU idle part of every tick on average (the queue absorbs a
     # tick that scales a window: none dropped above)
     assert 0.3 * TICK_CYCLES < busy.max() < 0.9 * TICK_CYCLES
+
+
+def test_the_encoder_image_still_streams_exact_taxel_frames(enc_rig, scans, wait_frames):
+    """START on the encoder image: the taxel stream of the plain streamer (docs/wire-protocol.md 1.1), every frame in
+    order with the harness's values (the waveform above: top layer and its copy)."""
+    x_all = np.concatenate([s[0] for s in scans])
+    wave = np.concatenate([x_all, x_all], axis=1)
+    with TaxelStream(enc_rig.taxel_port, start_timeout_s=10.0) as stream:
+        assert stream.banner["firmware"] == wire.UNO_FIRMWARE_VERSION
+        stream.start()
+        stream.begin_capture()
+        assert wait_frames(stream, 3000), f"only {stream.stats.frames} frames"
+        cap = stream.end_capture()
+        stream.stop()
+    assert cap.crc_errors == 0 and cap.dropped == 0
+    assert np.all(np.diff(cap.seq.astype(np.int64)) % 65536 == 1)
+    assert not np.any(cap.flags & (wire.FrameFlag.ADC_OVERRUN | wire.FrameFlag.TX_OVERRUN))
+    # the row of the first frame: the one whose next 200 rows are the next 200 frames (a scan repeats rows where the
+    # finger rests)
+    n_fit = 200
+    fits = [k for k in np.flatnonzero((wave == cap.samples[0]).all(axis=1))
+            if np.array_equal(wave[(k + np.arange(n_fit)) % len(wave)], cap.samples[:n_fit])]
+    assert fits, "the first frames are no rows of the waveform"
+    k0 = int(fits[0])
+    np.testing.assert_array_equal(cap.samples, wave[(k0 + np.arange(len(cap.seq))) % len(wave)])

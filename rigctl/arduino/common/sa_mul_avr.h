@@ -17,6 +17,11 @@
 #error "sa_mul_avr.h needs an AVR core with the hardware multiplier"
 #endif
 
+/* add the partial product r1:r0 to bytes 1-3 of the result (z = 0); _SIGNED first folds MULSU's sign (in C) into
+ * the top byte */
+#define SA_MUL_ACC "add %B[r], r0\n\tadc %C[r], r1\n\tadc %D[r], %[z]\n\t"
+#define SA_MUL_ACC_SIGNED "sbc %D[r], %[z]\n\t" SA_MUL_ACC
+
 /* (int32) a * b, a and b signed */
 static inline __attribute__((always_inline)) int32_t sa_mul_ss(int16_t a, int16_t b) {
     int32_t r;
@@ -27,15 +32,9 @@ static inline __attribute__((always_inline)) int32_t sa_mul_ss(int16_t a, int16_
             "mul %A[a], %A[b]"         "\n\t"
             "movw %A[r], r0"           "\n\t"
             "mulsu %B[a], %A[b]"       "\n\t"
-            "sbc %D[r], %[z]"          "\n\t"
-            "add %B[r], r0"            "\n\t"
-            "adc %C[r], r1"            "\n\t"
-            "adc %D[r], %[z]"          "\n\t"
+            SA_MUL_ACC_SIGNED
             "mulsu %B[b], %A[a]"       "\n\t"
-            "sbc %D[r], %[z]"          "\n\t"
-            "add %B[r], r0"            "\n\t"
-            "adc %C[r], r1"            "\n\t"
-            "adc %D[r], %[z]"          "\n\t"
+            SA_MUL_ACC_SIGNED
             "clr r1"
             : [r] "=&r"(r), [z] "=&r"(z)
             : [a] "a"(a), [b] "a"(b));
@@ -52,14 +51,9 @@ static inline __attribute__((always_inline)) int32_t sa_mul_su(int16_t a, uint16
             "mul %A[a], %A[b]"         "\n\t"
             "movw %A[r], r0"           "\n\t"
             "mulsu %B[a], %A[b]"       "\n\t"
-            "sbc %D[r], %[z]"          "\n\t"
-            "add %B[r], r0"            "\n\t"
-            "adc %C[r], r1"            "\n\t"
-            "adc %D[r], %[z]"          "\n\t"
+            SA_MUL_ACC_SIGNED
             "mul %B[b], %A[a]"         "\n\t"
-            "add %B[r], r0"            "\n\t"
-            "adc %C[r], r1"            "\n\t"
-            "adc %D[r], %[z]"          "\n\t"
+            SA_MUL_ACC
             "clr r1"
             : [r] "=&r"(r), [z] "=&r"(z)
             : [a] "a"(a), [b] "a"(b));
@@ -76,13 +70,9 @@ static inline __attribute__((always_inline)) uint32_t sa_mul_uu(uint16_t a, uint
             "mul %A[a], %A[b]"         "\n\t"
             "movw %A[r], r0"           "\n\t"
             "mul %B[a], %A[b]"         "\n\t"
-            "add %B[r], r0"            "\n\t"
-            "adc %C[r], r1"            "\n\t"
-            "adc %D[r], %[z]"          "\n\t"
+            SA_MUL_ACC
             "mul %B[b], %A[a]"         "\n\t"
-            "add %B[r], r0"            "\n\t"
-            "adc %C[r], r1"            "\n\t"
-            "adc %D[r], %[z]"          "\n\t"
+            SA_MUL_ACC
             "clr r1"
             : [r] "=&r"(r), [z] "=&r"(z)
             : [a] "r"(a), [b] "r"(b));

@@ -484,6 +484,7 @@ static uint64_t probe_rise[3], probe_total[3], probe_window_sum[3], probe_window
  * pin high (an ISR's body, the tick's frame building with interrupts enabled, loop()'s encoder on PB2), per 1 ms
  * tick window (16 000 cycles): mean and largest since the last report, largest since start */
 static int probes_high; /* bit p: probe p is high */
+static unsigned sp_min = 0xFFFF; /* lowest stack pointer seen since start (the stack's high-water mark) */
 static uint64_t busy_window, busy_window_sum, busy_report_sum, busy_report_ticks, busy_report_max, busy_max;
 
 static void busy_account(uint64_t cycle_before, int busy)
@@ -498,6 +499,8 @@ static void busy_account(uint64_t cycle_before, int busy)
         busy_window = w;
     }
     if (busy) busy_window_sum += avr->cycle - cycle_before;
+    unsigned sp = avr->data[0x5D] | ((unsigned)avr->data[0x5E] << 8); /* SPL, SPH */
+    if (sp < sp_min && sp >= 0x100) sp_min = sp;
 }
 static uint64_t sync_off_cycle;
 static avr_irq_t *sync_pin;
@@ -928,10 +931,10 @@ static void uno_poll(void)
                (unsigned long long)probe_window_max[1], (unsigned long long)scan_count);
         /* the encoder image's loop() work (PB2) and the CPU's load (interrupts off or encoding), per tick */
         printf("LOAD t=%.3f encoder_cycles_per_tick=%.1f encoder_max_per_tick=%llu busy_cycles_per_tick=%.1f "
-               "busy_max_per_tick=%llu busy_max_since_start=%llu\n", sim_s(), probe_total[2] / ticks,
+               "busy_max_per_tick=%llu busy_max_since_start=%llu sp_min=%u\n", sim_s(), probe_total[2] / ticks,
                (unsigned long long)probe_window_max[2],
                busy_report_ticks ? (double)busy_report_sum / (double)busy_report_ticks : 0.0,
-               (unsigned long long)busy_report_max, (unsigned long long)busy_max);
+               (unsigned long long)busy_report_max, (unsigned long long)busy_max, sp_min);
         busy_report_sum = busy_report_ticks = busy_report_max = 0;
         mux_report();
         next_report += 16000000u;

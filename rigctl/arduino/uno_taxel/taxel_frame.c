@@ -54,7 +54,7 @@ void counts_frame_head(uint8_t *head, uint32_t samples, uint16_t held, uint16_t 
     head[RIGCTL_COUNTS_HELD_OFFSET + 1] = (uint8_t)(held >> 8);
     head[RIGCTL_COUNTS_DROPPED_OFFSET] = (uint8_t)dropped;
     head[RIGCTL_COUNTS_DROPPED_OFFSET + 1] = (uint8_t)(dropped >> 8);
-    head[RIGCTL_COUNTS_QUEUE_OFFSET] = queue_max;
+    head[RIGCTL_COUNTS_QUEUE_MAX_OFFSET] = queue_max;
     crc = rigctl_crc16(head + RIGCTL_COUNTS_CRC_START, RIGCTL_COUNTS_COUNTS_OFFSET - RIGCTL_COUNTS_CRC_START);
     for (i = 0; i < RIGCTL_ENC_N_TAXELS * RIGCTL_ENC_N_WINDOWS; i++) {
         uint8_t le[2];

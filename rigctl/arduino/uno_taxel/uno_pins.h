@@ -23,7 +23,7 @@
 #define UNO_PROBE_ENCODER 2
 /* marker for the simavr harness and a scope: D11 (PB3) high from the tick that gives the encoder a scan's first sample
  * to the next tick (uno_encoder image) */
-#define UNO_MARK_ENCODE   3
+#define UNO_PROBE_MARK    3
 /* ADMUX MUX3:0 of the ADC's GND channel (0 V): the sample-and-hold is discharged there between two inputs */
 #define UNO_ADMUX_GND     0x0F
 /* ADC clock prescaler 32: 500 kHz ADC clock, 13 ADC clocks = 26 us per conversion, 18 conversions ~ 0.47 ms */

@@ -152,9 +152,9 @@ static inline void enc_enqueue(const uint16_t *scan, uint8_t frame_flags)
 {
     if (enc_first) {
         enc_first = 0;
-        UNO_PROBE_PORT |= (1 << UNO_MARK_ENCODE);
+        UNO_PROBE_PORT |= (1 << UNO_PROBE_MARK);
     } else {
-        UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_MARK_ENCODE);
+        UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_MARK);
     }
     if (frame_flags & RIGCTL_FLAG_SYNC_IN) enc_tick_flags |= RIGCTL_SPIKE_FLAG_SYNC_IN;
     uint8_t h = enc_q_head, next = (uint8_t)((h + 1) & (ENC_QUEUE - 1));
@@ -519,7 +519,7 @@ void setup(void)
     UCSR0B = (1 << RXEN0) | (1 << TXEN0) | (1 << RXCIE0);
     /* mux select lines and timing probes as outputs */
     UNO_SEL_DDR |= UNO_SEL_MASK;
-    UNO_PROBE_DDR |= (1 << UNO_PROBE_SAMPLER) | (1 << UNO_PROBE_TX) | (1 << UNO_PROBE_ENCODER) | (1 << UNO_MARK_ENCODE);
+    UNO_PROBE_DDR |= (1 << UNO_PROBE_SAMPLER) | (1 << UNO_PROBE_TX) | (1 << UNO_PROBE_ENCODER) | (1 << UNO_PROBE_MARK);
     /* analog inputs A0-A2: digital input buffers off */
     DIDR0 = (1 << ADC0D) | (1 << ADC1D) | (1 << ADC2D);
     ADCSRA = (uint8_t)((1 << ADEN) | UNO_ADC_PRESCALER_BITS);
