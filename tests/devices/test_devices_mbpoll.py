@@ -6,7 +6,6 @@ import json
 import re
 import shutil
 import subprocess
-import sys
 
 import pytest
 from click.testing import CliRunner
@@ -18,7 +17,6 @@ from rigctl.devices.ports import find_ports, guess_board
 from rigctl.devices.wire import HoldingRegister as HR, InputRegister as IR
 
 MBPOLL = shutil.which("mbpoll")
-RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +45,7 @@ def parse_registers(text: str) -> dict[int, int]:
     return {int(r): int(v) for r, v in re.findall(r"^\[(\d+)\]:\s+(-?\d+)", text, re.M)}
 
 
+@pytest.mark.realtime  # a `rigctl sim` paced to the wall clock, mbpoll with its own 1 s answer timeout
 def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", "1", "-c", str(wire.N_HOLDING), "-1", port)
@@ -62,6 +61,7 @@ def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     assert inputs[IR.STATE + 1] == wire.DrumState.NOT_HOMED  # powered up, nobody homed it
 
 
+@pytest.mark.realtime  # a `rigctl sim` paced to the wall clock, mbpoll with its own 1 s answer timeout
 def test_mbpoll_writes_what_drumclient_reads_and_vice_versa(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "800")
@@ -76,6 +76,7 @@ def test_mbpoll_writes_what_drumclient_reads_and_vice_versa(sim_process):
     assert parse_registers(res.stdout) == {HR.FORCE_SETPOINT_G + 1: 321}
 
 
+@pytest.mark.realtime  # a `rigctl sim` paced to the wall clock, mbpoll with its own 1 s answer timeout
 def test_mbpoll_sees_the_spec_exceptions(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "2001")
