@@ -10,14 +10,16 @@ the samples dropped). Source: the firmware ``arduino/uno_taxel/uno_taxel.cpp`` b
 from __future__ import annotations
 
 import struct
+import time
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 from rigctl.devices import wire
 
-__all__ = ["CountsFrame", "EncoderStreamParser", "SpikeFrame", "applied_speeds", "calibrate_command",
-           "finish_command", "held_windows", "speed_command", "spike_raster"]
+__all__ = ["CountsFrame", "EncoderStreamParser", "OnboardEncoder", "OnboardScan", "SpikeFrame", "applied_speeds",
+           "calibrate_command", "finish_command", "held_windows", "speed_command", "spike_raster"]
 
 _MAX_SPEED_CMM_S = 0xFFFF
 
@@ -192,3 +194,95 @@ def applied_speeds(sent_mm_s: np.ndarray, held: list[int]) -> np.ndarray:
         if 0 < w < out.size:
             out[w] = out[w - 1]
     return out
+
+
+class _Port(Protocol):
+    def read(self, size: int = 1) -> bytes: ...
+
+    def write(self, data: bytes) -> int | None: ...
+
+
+@dataclass(frozen=True)
+class OnboardScan:
+    """One scan the board encoded: ``raster`` ((n, 9) uint8 spikes per sample), ``counts`` (its counts frame),
+    ``speeds_mm_s`` ((n_windows,) the speed each real-time window was scaled with: the ones sent, a held window's
+    the one before), ``held`` (the windows held)."""
+
+    raster: np.ndarray
+    counts: CountsFrame
+    speeds_mm_s: np.ndarray
+    held: list[int]
+
+
+class OnboardEncoder:
+    """The host's side of one scan on the Uno encoder image, on its open serial port (a pyserial ``Serial`` with a
+    short read timeout, or anything with ``read(size)`` and ``write(data)``): :meth:`start` calibrates and starts
+    it, :meth:`poll` reads what has arrived, :meth:`send_speed` gives each 100 ms window's speed in order (the window
+    numbers are counted here), :meth:`finish` stops, gives the last speeds and returns the :class:`OnboardScan`.
+    The board's features are :func:`rigctl.encoding.features.counted_realtime_features` of its counts and speeds."""
+
+    def __init__(self, port: _Port) -> None:
+        self.port = port
+        self.parser = EncoderStreamParser()
+        self.speeds_sent: list[float] = []
+
+    @property
+    def samples(self) -> int:
+        """Samples the board has encoded (and sent the spike frames of) so far."""
+        return sum(len(f.masks) for f in self.parser.spikes)
+
+    def start(self, taxel_min: np.ndarray, taxel_max: np.ndarray, k: int = 100) -> None:
+        """CALIBRATE with the 9 taxels' range and ``k``, then ENCODE: a new scan (errors of
+        :func:`calibrate_command`)."""
+        self.parser = EncoderStreamParser()
+        self.speeds_sent = []
+        self.port.write(calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ENCODE.value)
+
+    def poll(self) -> int:
+        """Read once from the port (its timeout); returns :attr:`samples`."""
+        chunk = self.port.read(4096)
+        if chunk:
+            self.parser.feed(chunk)
+        return self.samples
+
+    def send_speed(self, speed_mm_s: float) -> None:
+        """The next window's mean speed (window 0 first; sent once it is known, at the latest 100 ms after the
+        window ended: later, the board holds it). Errors of :func:`speed_command`."""
+        self.port.write(speed_command(len(self.speeds_sent), speed_mm_s))
+        self.speeds_sent.append(round(float(speed_mm_s), 2))
+
+    def finish(self, last_speeds_mm_s: list[float], *, quiet_s: float = 0.3, timeout_s: float = 10.0) -> OnboardScan:
+        """STOP, read the spike frames still coming (until ``quiet_s`` without bytes), send the speeds of the windows
+        still without one (``last_speeds_mm_s``, in order; the last one repeated if they are too few), FINISH, and
+        read the counts frame.
+
+        Raises
+        ------
+        TimeoutError
+            No counts frame within ``timeout_s``.
+        ValueError
+            A spike frame was lost (:func:`spike_raster`), or no speed at all.
+        """
+        self.port.write(wire.UnoCommand.STOP.value)
+        quiet = time.monotonic()
+        while time.monotonic() - quiet < quiet_s:
+            chunk = self.port.read(4096)
+            if chunk:
+                self.parser.feed(chunk)
+                quiet = time.monotonic()
+        pending = list(last_speeds_mm_s)
+        while len(self.speeds_sent) < -(-self.samples // 100):  # the windows still without a speed
+            if not pending and not self.speeds_sent:
+                raise ValueError("no speed for the scan's windows")
+            self.send_speed(pending.pop(0) if pending else self.speeds_sent[-1])
+        if not self.speeds_sent:
+            raise ValueError("no speed for the scan's windows")
+        self.port.write(finish_command(self.speeds_sent[-1]))
+        deadline = time.monotonic() + timeout_s
+        while not self.parser.counts:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no counts frame from the board within {timeout_s} s of FINISH")
+            self.poll()
+        held = held_windows(self.parser.spikes)
+        return OnboardScan(spike_raster(self.parser.spikes), self.parser.counts[0],
+                           applied_speeds(np.array(self.speeds_sent), held), held)

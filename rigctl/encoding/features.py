@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.encoding.speed import WINDOW_S
+from rigctl.encoding.speed import REALTIME_REFERENCE_SPEED_MM_S, WINDOW_S, scaled_edges
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["N_WINDOWS_SCALED", "N_WINDOWS_UNSCALED", "N_WINDOWS_REALTIME", "spike_features", "realtime_features",
-           "realtime_rates", "realtime_features_unscaled"]
+           "realtime_rates", "realtime_features_unscaled", "counted_realtime_features"]
 
 N_WINDOWS_SCALED = 20  #: 2 s at the reference speed
 #: the paper's dataset: 6 s, its longest trial (40 mm/s); the pipeline's default covers each file's longest trial
@@ -81,6 +81,36 @@ def realtime_features(sa_scaled: SpikeTrains, scaled_edges: list[np.ndarray], *,
     """
     counts = sa_scaled.window_counts(window_s, n_windows)  # (T, n, W)
     return realtime_rates(counts, scaled_edges, window_s=window_s)
+
+
+def counted_realtime_features(counts: np.ndarray, speeds_mm_s: np.ndarray, *,
+                               reference_mm_s: float = REALTIME_REFERENCE_SPEED_MM_S,
+                               window_s: float = WINDOW_S) -> np.ndarray:
+    """One scan's speed-scaled SR features from the scaled-window counts an on-board encoder reports (the Uno
+    encoder image's counts frame, docs/wire-protocol.md 1.5) and the speed each real-time window was scaled with
+    (:func:`rigctl.devices.encoder_stream.applied_speeds`): what :func:`realtime_features` gives on the same spikes.
+
+    Parameters
+    ----------
+    counts : (n_trains, n_windows) spikes per train and scaled window ``[k w, (k+1) w)``.
+    speeds_mm_s : (n_real_windows,) mm/s, >= 0.
+
+    Returns
+    -------
+    (n_trains * n_windows,) float32 spikes/s.
+
+    Raises
+    ------
+    ValueError
+        ``counts`` not 2-D, or no speeds, or a negative one.
+    """
+    counts = np.asarray(counts)
+    v = np.asarray(speeds_mm_s, dtype=np.float64)
+    if counts.ndim != 2:
+        raise ValueError(f"counts must be (n_trains, n_windows), got shape {counts.shape}")
+    if v.size == 0 or np.any(v < 0):
+        raise ValueError("speeds must be non-empty and >= 0")
+    return realtime_rates(counts[None], [scaled_edges(v, reference_mm_s, window_s)], window_s=window_s)[0]
 
 
 def realtime_rates(counts: np.ndarray, scaled_edges: list[np.ndarray], *, window_s: float = WINDOW_S) -> np.ndarray:

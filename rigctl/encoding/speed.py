@@ -27,6 +27,7 @@ __all__ = [
     "scale_spike_times",
     "window_speeds",
     "incremental_scale",
+    "scaled_edges",
 ]
 
 REFERENCE_SPEED_MM_S = 120.0  #: eq. (2) reference, drum dataset
@@ -89,6 +90,15 @@ def window_speeds(speed_time_s, speed_mm_s, duration_s: float, window_s: float =
     return np.interp(grid, t[order], v[order]).reshape(n_win, per).mean(axis=1)
 
 
+def scaled_edges(speeds_mm_s: np.ndarray, reference_mm_s: float = REALTIME_REFERENCE_SPEED_MM_S,
+                 window_s: float = WINDOW_S) -> np.ndarray:
+    """The scaled time (s) of each real-time window edge of a scan whose windows had ``speeds_mm_s`` ((n,) mm/s):
+    (n + 1,) ``[0, cumsum(v / reference * window_s)]``, eq. 2 applied window by window (what
+    :func:`incremental_scale` maps spikes with and returns)."""
+    v = np.asarray(speeds_mm_s, dtype=np.float64)
+    return np.concatenate([[0.0], np.cumsum(v / reference_mm_s * window_s)])
+
+
 def incremental_scale(trains: SpikeTrains, speeds: list[np.ndarray],
                       reference_mm_s: float = REALTIME_REFERENCE_SPEED_MM_S,
                       window_s: float = WINDOW_S) -> tuple[SpikeTrains, list[np.ndarray]]:
@@ -124,7 +134,7 @@ def incremental_scale(trains: SpikeTrains, speeds: list[np.ndarray],
         if np.any(v < 0) or v.size == 0:
             raise ValueError(f"trial {t}: speeds must be non-empty and >= 0")
         factor = v / reference_mm_s
-        edges = np.concatenate([[0.0], np.cumsum(factor * window_s)])
+        edges = scaled_edges(v, reference_mm_s, window_s)
         edges_out.append(edges)
         s0, s1 = starts[t, 0], ends[t, -1]
         if s1 == s0:

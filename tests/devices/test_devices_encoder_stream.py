@@ -13,6 +13,7 @@ import pytest
 from rigctl.devices import wire
 from rigctl.devices.encoder_stream import (
     EncoderStreamParser,
+    OnboardEncoder,
     SpikeFrame,
     applied_speeds,
     calibrate_command,
@@ -80,3 +81,60 @@ def test_a_raster_needs_every_spike_frame_and_held_windows_take_the_last_speed()
         spike_raster(frames[:3] + frames[4:])
     assert held_windows(frames) == [0]  # the frame of sample 200 (window 2 begins): window 0 was held
     assert list(applied_speeds(np.array([10.0, 20.0, 30.0]), [1])) == [10.0, 10.0, 30.0]
+
+
+def test_counted_features_are_the_features_of_the_same_spikes():
+    """A board's counts frame and the speeds it applied give realtime_features' SR of the same spikes."""
+    from rigctl.encoding.features import counted_realtime_features, realtime_features
+    from rigctl.encoding.speed import incremental_scale
+    from rigctl.encoding.spikes import SpikeTrains
+
+    rng = np.random.default_rng(5)
+    trains = SpikeTrains.from_lists([[np.sort(rng.uniform(0, 3.0, 60)) for _ in range(9)]])
+    speeds = rng.uniform(30, 130, 30)
+    scaled, edges = incremental_scale(trains, [speeds])
+    counts = scaled.window_counts(0.1, wire.ENC_N_WINDOWS)[0]
+    expect = realtime_features(scaled, edges, n_windows=wire.ENC_N_WINDOWS)[0]
+    assert np.array_equal(counted_realtime_features(counts, speeds), expect) and expect.sum() > 0
+    for bad in (lambda: counted_realtime_features(counts[0], speeds), lambda: counted_realtime_features(counts, []),
+                lambda: counted_realtime_features(counts, -speeds)):
+        with pytest.raises(ValueError):
+            bad()
+
+
+class _FakeBoard:
+    """A port that plays a board: 25 samples of spike frames after ENCODE, the counts frame after FINISH; it keeps
+    what the host wrote."""
+
+    def __init__(self) -> None:
+        self.written = b""
+        self.out = b""
+
+    def write(self, data: bytes) -> int:
+        self.written += data
+        if data[:1] == b"E" or data.endswith(b"E"):
+            self.out += _spike(0, [1] * 10) + _spike(10, [2] * 10) + _spike(20, [4] * 5)
+        if data[:1] == b"F":
+            body = struct.pack("<IHHB", 25, 0, 0, 1) + bytes(2 * wire.ENC_N_TAXELS * wire.ENC_N_WINDOWS)
+            self.out += _framed(wire.COUNTS_SYNC, body)
+        return len(data)
+
+    def read(self, size: int = 1) -> bytes:
+        chunk, self.out = self.out[:size], self.out[size:]
+        return chunk
+
+
+def test_the_client_gives_every_window_a_speed_before_finish():
+    board = _FakeBoard()
+    enc = OnboardEncoder(board)
+    enc.start(np.zeros(9), np.full(9, 1000))
+    assert enc.poll() == 25
+    scan = enc.finish([42.0], quiet_s=0.05)
+    assert scan.raster.shape == (25, 9) and scan.raster[:10, 0].all() and scan.counts.samples == 25
+    # one window (25 samples) without a speed: the given one, in a SPEED for window 0, then FINISH with it
+    assert speed_command(0, 42.0) + finish_command(42.0) in board.written and b"P" in board.written
+    assert list(scan.speeds_mm_s) == [42.0] and scan.held == []
+    silent = OnboardEncoder(_FakeBoard())  # the board sends 25 samples; the host has no speed for them
+    silent.start(np.zeros(9), np.full(9, 1000))
+    with pytest.raises(ValueError, match="no speed"):
+        silent.finish([], quiet_s=0.05)

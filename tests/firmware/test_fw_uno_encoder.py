@@ -21,17 +21,12 @@ import serial
 
 from rigctl.core.normalisation import TaxelRange
 from rigctl.devices import wire
-from rigctl.devices.encoder_stream import (
-    EncoderStreamParser,
-    applied_speeds,
-    calibrate_command,
-    finish_command,
-    held_windows,
-    speed_command,
-    spike_raster,
-)
+from rigctl.devices.encoder_stream import OnboardEncoder
 from rigctl.devices.taxel_stream import TaxelStream
+from rigctl.encoding.features import counted_realtime_features
 from rigctl.encoding.fixed_sa import FixedSAEncoder
+from rigctl.encoding.params import EncodeParams
+from rigctl.encoding.realtime import ScanEncoder
 from rigctl.encoding.speed import incremental_scale
 from rigctl.simulation import hil
 
@@ -56,59 +51,28 @@ def enc_rig(fw_build, scans):
         yield rig
 
 
-def _read_until(port: serial.Serial, parser: EncoderStreamParser, done, *, stall_s: float = 10.0) -> None:
-    """Feed the port's bytes to ``parser`` until ``done()``; fail when nothing arrives for ``stall_s`` (a starved
-    machine slows the paced simulation down, a dead board sends nothing)."""
-    last = time.monotonic()
-    while not done():
-        chunk = port.read(4096)
-        if chunk:
-            parser.feed(chunk)
-            last = time.monotonic()
-        assert time.monotonic() - last < stall_s, "the board stopped sending"
-
-
-def _n_encoded(parser: EncoderStreamParser) -> int:
-    return sum(len(f.masks) for f in parser.spikes)
-
-
 def _encode_scan(rig: hil.HilRig, port: serial.Serial, n_samples: int, lo: np.ndarray, hi: np.ndarray,
                  speeds_mm_s: np.ndarray):
-    """One scan on the board: CALIBRATE, ENCODE, a SPEED per window once half of the next window's samples are
-    encoded (window w's speed is ``speeds_mm_s[w % len]``), STOP after ``n_samples``, the last windows' speeds,
-    FINISH. Returns (parser, the speeds sent, mm/s as the board has them, the harness's LOAD reports of the seconds
-    while the board encoded, after the first 2 s)."""
-    parser = EncoderStreamParser()
+    """One scan on the board through the host's client (:class:`OnboardEncoder`): a SPEED per window once half of
+    the next window's samples are encoded (window w's speed is ``speeds_mm_s[w % len]``), stop after
+    ``n_samples``. Returns (the scan, the spike frames, the harness's LOAD reports of the seconds while the board
+    encoded, after the first 2 s)."""
+    enc = OnboardEncoder(port)
+    enc.start(lo, hi, 100)
     loads: list[dict[str, float]] = []
-    port.write(calibrate_command(lo, hi, 100) + wire.EncoderCommand.ENCODE.value)
-    sent: list[float] = []
-
-    def send(v: float) -> None:
-        port.write(speed_command(len(sent), v))
-        sent.append(round(v, 2))
-
-    def enough() -> bool:
-        n = _n_encoded(parser)
-        while len(sent) * 100 + 50 <= n:
-            send(float(speeds_mm_s[len(sent) % len(speeds_mm_s)]))
+    last = time.monotonic()
+    while enc.samples < n_samples:
+        n = enc.poll()
+        if n:
+            last = time.monotonic()
+        assert time.monotonic() - last < 10.0, "the board stopped sending"
+        while len(enc.speeds_sent) * 100 + 50 <= n:
+            enc.send_speed(float(speeds_mm_s[len(enc.speeds_sent) % len(speeds_mm_s)]))
         if n > 2000 and rig.load and (not loads or rig.load is not loads[-1]):
             loads.append(rig.load)
-        return n >= n_samples
-
-    _read_until(port, parser, enough)
-    port.write(wire.UnoCommand.STOP.value)
-    quiet = time.monotonic()
-    while time.monotonic() - quiet < 0.5:  # the spike frames of the samples already taken
-        chunk = port.read(4096)
-        if chunk:
-            parser.feed(chunk)
-            quiet = time.monotonic()
-    n_windows = -(-_n_encoded(parser) // 100)
-    while len(sent) < n_windows:  # the windows the stop left without a speed (the last one partial)
-        send(float(speeds_mm_s[len(sent) % len(speeds_mm_s)]))
-    port.write(finish_command(sent[-1]))
-    _read_until(port, parser, lambda: len(parser.counts) > 0)
-    return parser, np.array(sent), loads[1:]  # the first may cover the second before ENCODE
+    rest = [float(speeds_mm_s[(len(enc.speeds_sent) + i) % len(speeds_mm_s)]) for i in range(5)]
+    scan = enc.finish(rest, quiet_s=0.5)
+    return scan, enc.parser, loads[1:]  # the first may cover the second before ENCODE
 
 
 def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_build):
@@ -125,20 +89,17 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
             assert time.monotonic() - t0 < 30, "no banner"
         assert wire.UNO_ENCODER_FIELD.encode() in banner
         for n in (30_000, 3_000):  # a long scan (30 s: the samples counted), then a handheld scan's length
-            parser, sent, loads = _encode_scan(enc_rig, port, n, lo, hi, speeds)
-            results.append((parser, sent, loads))
+            results.append(_encode_scan(enc_rig, port, n, lo, hi, speeds))
     assert len(enc_rig.encoder_start_rows) == 2
     total_spikes = 0
-    for (parser, sent, _), row0 in zip(results, enc_rig.encoder_start_rows):
+    for (scan, parser, _), row0 in zip(results, enc_rig.encoder_start_rows):
         assert parser.crc_errors == 0 and not parser.seq  # spike frames instead of taxel frames
-        counts = parser.counts[0]
-        raster = spike_raster(parser.spikes)  # raises on a lost frame
+        counts, raster, held, applied = scan.counts, scan.raster, scan.held, scan.speeds_mm_s
         n = raster.shape[0]
         # every sample of the scan encoded, none dropped; a window whose speed the host sent too late (a starved
         # host: > 150 ms) is scaled with the last speed, flagged, and the host's reference does the same
-        held = held_windows(parser.spikes)
         assert n >= 3_000 and counts.samples == n and counts.dropped == 0 and counts.held == len(held)
-        assert len(held) <= 0.1 * len(sent)
+        assert len(held) <= 0.1 * applied.size
         assert not any(f.flags & ~wire.SpikeFlag.HELD for f in parser.spikes)
         assert row0 >= 0
         x = x_all[(row0 + np.arange(n)) % len(x_all)]  # the harness's rows: what the board's ADC converted
@@ -152,10 +113,18 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
         print(f"scan of {n} samples: {int(host_raster.sum())} host spikes, {int(raster.sum())} board spikes, "
               f"{same} on the same sample; queue depth max {counts.queue_max}, windows held {len(held)}")
         assert np.array_equal(raster, host_raster), "a spike differs from the host's integer kernel"
-        scaled, _ = incremental_scale(host, [applied_speeds(sent, held)])
+        scaled, _ = incremental_scale(host, [applied])
         host_counts = scaled.window_counts(0.1, wire.ENC_N_WINDOWS)[0]
         assert host_counts.sum() > 200
         assert np.array_equal(counts.counts, host_counts)
+        # the classifier's features: the board's counts as the handheld real-time path's encoder (ScanEncoder, the
+        # integer kernel) computes them live from the same samples and a velocity trace of the same window speeds
+        live = ScanEncoder(rng, EncodeParams(), taxels=list(range(N_TAXELS)), kernel="fixed")
+        live.feed(x)
+        edges = np.arange(applied.size) * 0.1
+        live.feed_speed(np.stack([edges + 1e-6, edges + 0.1 - 1e-6], axis=1).ravel(), np.repeat(applied, 2))
+        assert np.array_equal(counted_realtime_features(counts.counts, applied),
+                              live.features()["realtime_speed_scaled"])
     long_loads = results[0][2]
     assert len(long_loads) >= 10, "the harness reported no load while the board encoded"
     busy = np.array([r["busy_cycles_per_tick"] for r in long_loads])
