@@ -204,7 +204,8 @@ phase "pytest done (exit $status)"
 # parallel run is over, those (at most 12) run again one at a time, with the CPU to themselves; the run fails if any
 # fails again, and on any failure of a logic test (those judge simulated time and never get a second chance). Every
 # rerun is listed in the log: a test that keeps needing one is a test to fix.
-if [ "$status" = 1 ] && [ -s "$RIGCTL_FAILURES_LOG" ] && ! cut -f2 "$RIGCTL_FAILURES_LOG" | grep -qvx wall; then
+if [ "$status" = 1 ] && [ -s "$RIGCTL_FAILURES_LOG" ] \
+    && awk -F'\t' '$2 != "wall" { logic = 1 } END { exit logic }' "$RIGCTL_FAILURES_LOG"; then
   mapfile -t rerun < <(cut -f1 "$RIGCTL_FAILURES_LOG" | sort -u)
   if [ "${#rerun[@]}" -le 12 ]; then
     phase "rerunning ${#rerun[@]} wall-clock failure(s) alone, one at a time:"
