@@ -63,6 +63,8 @@ MIN_SCREEN = (1024, 600)
 #: why the manual controls are disabled while a protocol run owns the rig
 RUN_LOCK_REASON = ("a protocol run owns the rig (running, paused or stopped). Abort it on the Protocol tab "
                    "to get the manual controls back")
+#: why Connect is disabled while a handheld block owns the rig
+HANDHELD_LOCK_REASON = "a handheld block owns the rig (running or stopped). Abort it on the Handheld tab first"
 
 
 def configure_pyqtgraph() -> None:
@@ -243,7 +245,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
         from rigctl_gui.control_panel import drum_summary
 
-        text, colour = drum_summary(self.poller)
+        if self.handle is not None and not self.handle.control.has_drum:
+            text, colour = "Drum: none (handheld rig)", "#555"
+        else:
+            text, colour = drum_summary(self.poller)
         colour = on_window(colour, self)  # the state's colour, readable on this window's palette
         pal = self.drum_state.palette()
         if pal.color(QtGui.QPalette.ColorRole.WindowText).name() != colour or self.drum_state.text() != text:
@@ -577,8 +582,12 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.poller.latest is not None:
             self._show_faults(int(self.poller.latest.faults))
         self.commands = CommandExecutor(h.drum)
-        self._attach_sensor(h, sensor_layout(h))
-        self.control.attach(h.drum, self.poller, self.commands, h.control)
+        if getattr(h.taxels, "ring", None) is not None:  # the handheld rig's sensor model keeps no live stream
+            self._attach_sensor(h, sensor_layout(h))
+        if h.control.has_drum:
+            self.control.attach(h.drum, self.poller, self.commands, h.control)
+        else:  # the handheld rig: an operator moves the finger; its blocks run on the Handheld tab
+            self.control.state_label.setText("No drum: the handheld rig (the Handheld tab runs its blocks)")
         self.protocol.take_rig_defaults(h.control)
         self._update_source_label("connected")
         self.events.add(logging.INFO, "connect", f"connected to the {self.source.label()}")
@@ -591,6 +600,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def disconnect_rig(self) -> None:
         """Abort a run, stop the rig safely (the library's safe stop), close it, then stop the workers."""
         self.protocol.abort_and_wait()
+        self.handheld.abort_and_wait()
         if self.rig_events is not None:  # the face leaves in order: no heartbeat left to go silent
             self.rig_events.close()
             self.rig_events = None
@@ -657,6 +667,11 @@ class MainWindow(QtWidgets.QMainWindow):
             results.append(h.control.stop(reason))
 
         threading.Thread(target=work, name="drum-stop", daemon=True).start()
+        if not h.control.has_drum:  # the handheld rig: nothing moves by itself, the operator lifts the finger
+            self.notify("STOP: " + ("the handheld block stopped, the operator lifts the finger (Resume continues "
+                                    "at the next cue)" if self.handheld.block_running else "nothing was running"),
+                        level=logging.WARNING, source="STOP")
+            return
         self.notify("STOP sent: drum to rest, actuator backing off" + (", the run stopped (Resume continues it)"
                     if self.protocol.running else ""), level=logging.WARNING, source="STOP")
 
@@ -719,7 +734,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._show_drum_state()
         if self._tick % self._health_every == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
             self._judge_dropped_frames()
-            self.links.update_from(self.poller, self.handle.taxels if self.handle else None)
+            self.links.update_from(*self._links())
         if self._tick % 20 == 0:
             self._update_stale(current)
             self.follow_sensor()
@@ -735,6 +750,15 @@ class MainWindow(QtWidgets.QMainWindow):
         limit = getattr(p.protocol, "max_dropped_frames", None) if base is not None else None
         self.links.judge_trial(base, limit)
 
+    def _links(self) -> tuple[Any, Any]:
+        """What the status bar's link labels read: the drum's monitor (None without a drum: the handheld rig) and the
+        taxel stream (None when it keeps no link statistics: the handheld rig's sensor model)."""
+        h = self.handle
+        if h is None:
+            return None, None
+        return (self.poller if h.control.has_drum else None,
+                h.taxels if getattr(h.taxels, "stats", None) is not None else None)
+
     def drum_turning(self) -> bool:
         """True when the drum controller last reported the drum running or moving (> 0.5 mm/s)."""
         from rigctl.devices.wire import DrumState
@@ -745,7 +769,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def apply_run_lock(self) -> None:
         """While a protocol run owns the rig (running or paused): manual motion, calibration and Connect disabled,
         their tooltips saying why. Re-applied every tick (another panel may re-enable its buttons)."""
-        reason = RUN_LOCK_REASON if self.protocol.running else None
+        reason = (RUN_LOCK_REASON if self.protocol.running else
+                  HANDHELD_LOCK_REASON if self.handheld.block_running else None)
         changed = reason != self._run_lock
         self._run_lock = reason
         self.control.set_run_lock(reason)
@@ -885,6 +910,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.live.attach(h.taxels, self.encoder, layout)
 
     def closeEvent(self, ev):  # noqa: N802 - Qt override
+        if self.handheld.block_running and not self._close_confirmed:
+            ev.ignore()
+            self._close_question = ask(
+                self, "A handheld block is running",
+                f"The handheld {self.handheld.block} block is running. Closing the window aborts it: the finished "
+                "scans stay in its file.", "Abort the block and close", "Keep running", self._close_after_abort)
+            return
         if self.protocol.running and not self._close_confirmed:
             # the run owns the rig: ask first (non-modal, STOP stays usable), then stop it safely and close
             ev.ignore()
@@ -906,7 +938,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.settings.setValue("ui/tab", self.tabs.currentIndex())
         self.clock.stop()
         self.disconnect_rig()
-        self.handheld.close_rig()
         self.events.detach_logging("rigctl")
         self.guard.uninstall()
         self.stop_guard.uninstall()
@@ -916,6 +947,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _close_after_abort(self) -> None:
         self._close_confirmed = True
         self.protocol.request_abort()
+        self.handheld.request_abort()
         self.close()
 
 

@@ -1,15 +1,20 @@
-"""Handheld tab: the paper's real-time system (Fig. 4A) on the handheld rig: open it (the simulated operator, a
-tracker's LSL stream ``lsl:NAME`` or a motion board ``serial:PORT``), run the calibration block and the real-time
-block with the operator's prompts (which plate, which profile, go) and show each scan's end-of-scan prediction as a
-big letter, green when right and red when wrong.
+"""Handheld tab: the paper's real-time system (Fig. 4A) on the handheld rig: connect the window to it (the simulated
+operator, a tracker's LSL stream ``lsl:NAME`` or a motion board ``serial:PORT``, with the finger's taxel board at a
+port or the sensor model's taxels), run the calibration block and the real-time block with the operator's prompts
+(which plate, which profile, go) and show each scan's end-of-scan prediction as a big letter, green when right and
+red when wrong.
 
-The tab owns nothing of the rig: it holds the operations layer's :class:`rigctl.operations.RigControl` of the
-handheld rig, sends it commands (runs: :class:`rigctl.operations.ProtocolRun`) and listens to its event stream
-(:meth:`~rigctl.operations.RigControl.subscribe`: ``prompt`` events, what the rig tells its operator; ``prediction``
-events, what the :class:`rigctl.operations.ScanClassifier` predicted at each scan's end; ``run`` events). Opening the
-rig, training the classifier and encoding the calibration block run in worker threads (:class:`rigctl_gui.workers.
-Job`); the events are queued by the threads that make them and drained here every 50 ms, so nothing slow runs on the
-GUI thread.
+The tab owns nothing of the rig: the handheld rig is the main window's one connection (:meth:`rigctl_gui.app.
+MainWindow.connect_source`), the operations layer's :class:`rigctl.operations.RigControl`, and a block is that rig's
+run (:class:`rigctl.operations.ProtocolRun`, the one run engine of every protocol). So the main STOP (the button, Esc,
+the dead man's switch: :meth:`rigctl.operations.RigControl.stop`) pauses a block as it pauses a drum protocol: the
+scan in progress is discarded, the operator is told to lift the finger (the rig's ``stop`` cue), and Resume goes on
+at the next cue (the discarded scan cued again). Abort is its own button and asks first. The tab sends commands and
+listens to the rig's event stream (:meth:`~rigctl.operations.RigControl.subscribe`: ``prompt`` events, what the rig
+tells its operator; ``prediction`` events, what the :class:`rigctl.operations.ScanClassifier` predicted at each
+scan's end; ``run`` events). Training the classifier and encoding the calibration block run in worker threads
+(:class:`rigctl_gui.workers.Job`); the events are queued by the threads that make them and drained here every 50 ms,
+so nothing slow runs on the GUI thread.
 """
 
 from __future__ import annotations
@@ -29,7 +34,11 @@ from rigctl_gui.workers import Job
 #: the blocks the tab runs: name -> the built-in protocol
 BLOCKS = {"calibration": "handheld_calibration", "realtime": "handheld_realtime"}
 CUE_STYLE = {"plate": "background: #ffd; border: 2px solid #aa0;", "go": "background: #2a2; color: white;",
+             "stop": "background: #c22; color: white;",
              "": "background: palette(window); border: 2px solid #ccc;"}
+#: what the operator reads while a block is stopped
+STOPPED_TEXT = ("STOPPED{why}: lift the finger off the plate. Resume continues at the next cue (the discarded scan "
+                "again); Abort block ends the block")
 
 
 class HandheldTab(QtWidgets.QWidget):
@@ -41,11 +50,14 @@ class HandheldTab(QtWidgets.QWidget):
         from rigctl.acquisition.builtin import find_protocol
 
         self.main = main
-        self.control = None  # the handheld rig's rigctl.operations.RigControl, once open
         self.events: queue.SimpleQueue = queue.SimpleQueue()  # RigEvents, put by the threads that make them
+        self._listening = None  # the RigControl this tab listens to (the main window's handheld rig)
         self._unsubscribe = None
-        self.job: Job | None = None  # opening the rig, training the classifier or encoding a block
-        self.job_kind = ""  # which: open, classifier, encode, log
+        self._unhook_stop = None
+        #: why STOP stopped the block (set by the rig's STOP listener, any thread); None while it runs
+        self.stopped_reason: str | None = None
+        self.job: Job | None = None  # training the classifier or encoding a block
+        self.job_kind = ""  # which: classifier, encode, log
         self.run = None  # the rigctl.operations.ProtocolRun of the block being recorded
         self.block: str | None = None
         self.classifier = None
@@ -58,11 +70,19 @@ class HandheldTab(QtWidgets.QWidget):
         self.timer.start(50)
 
     # ------------------------------------------------------------------------------------------------- layout
-    def _build(self) -> None:
-        self.motion = QtWidgets.QLineEdit("sim")
+    def _build_form(self) -> QtWidgets.QFormLayout:
+        """The form: motion source, taxel board, Connect, classifier, scans per condition, output, block buttons."""
+        self.motion = QtWidgets.QLineEdit(str(self.main.settings.value("handheld/motion", "sim")))
         self.motion.setToolTip("sim: the simulated operator; lsl:NAME: a tracker's LSL stream; serial:PORT: a motion "
                                "board (docs/guides/handheld.md)")
-        self.open_btn = QtWidgets.QPushButton("Open handheld rig")
+        self.taxel_port = QtWidgets.QLineEdit(str(self.main.settings.value("handheld/taxel_port", "")))
+        self.taxel_port.setPlaceholderText("the finger's taxel board (empty: the sensor model's taxels)")
+        self.taxel_port.setToolTip("With lsl:NAME or serial:PORT motion: the serial port of the finger's taxel board "
+                                   "(its frames are the trials' taxels); empty: the sensor model along the tracked "
+                                   "path")
+        self.open_btn = QtWidgets.QPushButton("Connect the handheld rig")
+        self.open_btn.setToolTip("Connect the window to the handheld rig (it replaces the rig connected now): its "
+                                 "STOP, status and event log are the window's")
         self.open_btn.clicked.connect(self.open_rig)
         self.training = QtWidgets.QLineEdit(str(self.main.settings.value("handheld/training", "")))
         self.training.setPlaceholderText("encoded training block (rigctl encode of a handheld_training session)")
@@ -78,14 +98,19 @@ class HandheldTab(QtWidgets.QWidget):
         self.cal_btn.clicked.connect(lambda: self.start_block("calibration"))
         self.rt_btn = QtWidgets.QPushButton("2. Real-time block")
         self.rt_btn.clicked.connect(lambda: self.start_block("realtime"))
+        self.resume_btn = QtWidgets.QPushButton("Resume")
+        self.resume_btn.setToolTip("Go on after STOP, at the next cue (the discarded scan is cued again)")
+        self.resume_btn.clicked.connect(self.resume)
         self.abort_btn = QtWidgets.QPushButton("Abort block")
-        self.abort_btn.clicked.connect(self.abort)
+        self.abort_btn.setToolTip("End the block (asks first); the finished scans stay in its file")
+        self.abort_btn.clicked.connect(self.ask_abort)
 
         form = QtWidgets.QFormLayout()
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.motion, 1)
         row.addWidget(self.open_btn)
         form.addRow("Motion", row)
+        form.addRow("Taxel board", self.taxel_port)
         row = QtWidgets.QHBoxLayout()
         row.addWidget(self.training, 1)
         row.addWidget(browse)
@@ -93,9 +118,13 @@ class HandheldTab(QtWidgets.QWidget):
         form.addRow("Scans per condition", self.per_condition)
         form.addRow("Output folder", self.out_dir)
         buttons = QtWidgets.QHBoxLayout()
-        for b in (self.cal_btn, self.rt_btn, self.abort_btn):
+        for b in (self.cal_btn, self.rt_btn, self.resume_btn, self.abort_btn):
             buttons.addWidget(b)
         form.addRow(buttons)
+        return form
+
+    def _build(self) -> None:
+        form = self._build_form()
 
         self.cue = QtWidgets.QFrame()
         self.cue.setObjectName("handheld_cue")
@@ -103,7 +132,7 @@ class HandheldTab(QtWidgets.QWidget):
         self.cue_plate.setObjectName("handheld_cue_plate")
         self.cue_plate.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
         self.cue_plate.setStyleSheet("font-size: 56px; font-weight: bold;")
-        self.cue_text = QtWidgets.QLabel("Open the handheld rig, then run the calibration block")
+        self.cue_text = QtWidgets.QLabel("Connect the handheld rig, then run the calibration block")
         self.cue_text.setObjectName("handheld_cue_text")
         self.cue_text.setWordWrap(True)
         self.cue_text.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
@@ -114,7 +143,7 @@ class HandheldTab(QtWidgets.QWidget):
         cl.addWidget(self.cue_plate)
         cl.addWidget(self.cue_text)
         cl.addStretch(1)
-        self._show_cue("", "", "Open the handheld rig, then run the calibration block")
+        self._show_cue("", "", "Connect the handheld rig, then run the calibration block")
         self.status = QtWidgets.QLabel("not open")
         self.status.setObjectName("handheld_status")
         self.status.setWordWrap(True)
@@ -168,28 +197,47 @@ class HandheldTab(QtWidgets.QWidget):
 
     # ------------------------------------------------------------------------------------------------- commands
     @property
+    def control(self):
+        """The main window's rig when it is a handheld rig (a :class:`rigctl.operations.RigControl` without a drum),
+        else None."""
+        handle = getattr(self.main, "handle", None)
+        control = getattr(handle, "control", None)
+        return control if control is not None and not control.has_drum else None
+
+    @property
+    def block_running(self) -> bool:
+        """A block owns the rig: recording, stopped (waiting for Resume or Abort) or latched."""
+        return self.run is not None and self.run.state != "done"
+
+    @property
     def running(self) -> bool:
-        return (self.run is not None and self.run.state != "done") or (self.job is not None and not self.job.done)
+        return self.block_running or (self.job is not None and not self.job.done)
 
     def open_rig(self) -> None:
-        """Open the handheld rig with the motion source typed (in a worker: an LSL stream or a port may take
-        seconds)."""
-        from rigctl.operations import RigSource, open_control
+        """Connect the main window to the handheld rig with the motion source (and taxel board) typed: the window's
+        one connection (its worker: an LSL stream or a port may take seconds)."""
+        from rigctl.operations import RigSource
 
         if self.running:
             return
-        self.close_rig()
-        source = RigSource("handheld", motion=self.motion.text().strip() or "sim")
-        cfg = self.main.rig_config_path() if hasattr(self.main, "rig_config_path") else None
-        self._start_job("open", lambda job: open_control(source, host_config_path=cfg))
-        set_plain(self.status, f"opening the {source.label()}...")
+        motion = self.motion.text().strip() or "sim"
+        port = self.taxel_port.text().strip() or None
+        try:
+            source = RigSource("handheld", motion=motion, taxel_port=port)
+        except ValueError as exc:
+            set_plain(self.status, str(exc), error=True)
+            return
+        self.main.settings.setValue("handheld/motion", motion)
+        self.main.settings.setValue("handheld/taxel_port", port or "")
+        self.main.connect_source(source)
+        set_plain(self.status, f"connecting the {source.label()}...")
 
     def start_block(self, kind: str) -> None:
         """Record the ``kind`` block ("calibration" or "realtime") into a new file in the output folder; the
         real-time block first trains the classifier (a worker) on the training block, re-centred on the calibration
         block recorded here."""
         if self.control is None or self.running:
-            set_plain(self.status, "open the handheld rig first" if self.control is None else "a block is running",
+            set_plain(self.status, "connect the handheld rig first" if self.control is None else "a block is running",
                       error=True)
             return
         if kind == "realtime":
@@ -211,6 +259,10 @@ class HandheldTab(QtWidgets.QWidget):
         from rigctl.acquisition.protocol import Protocol, load_protocol
         from rigctl.operations import ProtocolRun
 
+        control = self.control
+        if control is None:
+            set_plain(self.status, "the handheld rig is not connected any more", error=True)
+            return
         proto = load_protocol(self.protocols[kind])
         if self.per_condition.value() > 0 and isinstance(proto, Protocol):
             proto = dataclasses.replace(proto, trials_per_condition=self.per_condition.value())
@@ -218,34 +270,82 @@ class HandheldTab(QtWidgets.QWidget):
         os.makedirs(folder, exist_ok=True)
         out = os.path.join(folder, f"{BLOCKS[kind]}-{time.strftime('%Y%m%d-%H%M%S')}.h5")
         clf = self.classifier if kind == "realtime" else None
-        self.run = ProtocolRun(self.control, proto, out, on_trial=None if clf is None else clf.on_trial).start()
+        self.stopped_reason = None
+        self.run = ProtocolRun(control, proto, out, on_trial=None if clf is None else clf.on_trial).start()
         self.block, self.last_output = kind, out
         if kind == "realtime":
             self.board.clear()
         set_plain(self.status, f"{kind} block: recording {len(proto.plan())} scans into {out}")
         self._notify(f"handheld {kind} block started, recording to {out}")
+        lock = getattr(self.main, "apply_run_lock", None)
+        if lock is not None:
+            lock()  # the block owns the rig: Connect and the manual controls go at once
         self._update_buttons()
 
-    def abort(self) -> None:
-        if self.run is not None:
-            self.run.abort()
+    def request_stop(self, reason: str) -> None:
+        """STOP hit the rig (its :meth:`~rigctl.operations.RigControl.stop` listener, any thread; the rig then stops
+        the block itself: :meth:`rigctl.operations.ProtocolRun.stop`): say why while it waits for Resume or Abort."""
+        if self.block_running:
+            self.stopped_reason = reason
 
-    def close_rig(self) -> None:
-        """Abort a block, stop listening and close the handheld rig."""
-        if self.run is not None:
+    def resume(self) -> None:
+        """Go on after STOP, at the next cue."""
+        if self.block_running:
+            self.stopped_reason = None
+            self.run.resume()
+            set_plain(self.status, f"{self.block} block resumed: the next cue follows")
+            self._notify(f"handheld {self.block} block resumed")
+            self._update_buttons()
+
+    def ask_abort(self):
+        """Abort the block: asks first (non-modal; STOP stays usable). STOP never aborts: it pauses the block."""
+        if not self.block_running:
+            return None
+        from rigctl_gui.dialogs import ask
+
+        done = sum(1 for r in self.board.results) if self.block == "realtime" else None
+        self._abort_question = ask(
+            self, "Abort the handheld block?",
+            f"Abort the {self.block} block? The scan in progress is discarded; the finished scans stay in "
+            f"{self.last_output}" + (f" ({done} predicted)" if done is not None else "") + ".",
+            "Abort the block", "Keep the block", self.request_abort)
+        return self._abort_question
+
+    def request_abort(self) -> None:
+        if self.block_running:
             self.run.abort()
+            set_plain(self.status, f"aborting the {self.block} block: the finished scans stay in its file")
+            self._notify(f"handheld {self.block} block aborted", logging.WARNING)
+
+    def abort_and_wait(self, timeout_s: float = 10.0) -> None:
+        """Abort a block and wait for its end (the window closes, or connects another rig)."""
+        run = self.run
+        if run is not None:
+            run.abort()
             try:
-                self.run.wait(10)
+                run.wait(timeout_s)
             except Exception:  # noqa: BLE001 - the run's own error; the rig is closed anyway
                 pass
-            self.run = None
-        if self._unsubscribe is not None:
-            self._unsubscribe()
-            self._unsubscribe = None
-        if self.control is not None:
-            self.control.close()
-            self.control = None
-        self._update_buttons()
+
+    def _listen(self) -> None:
+        """Listen to the main window's handheld rig (again after a new connection), and to nothing else."""
+        control = self.control
+        if control is self._listening:
+            return
+        for undo in (self._unsubscribe, self._unhook_stop):
+            if undo is not None:
+                undo()
+        self._unsubscribe = self._unhook_stop = None
+        self._listening = control
+        if control is None:
+            self.classifier = None
+            set_plain(self.status, "not connected: connect the handheld rig")
+            self._show_cue("", "", "Connect the handheld rig, then run the calibration block")
+            return
+        self._unsubscribe = control.subscribe(self.events.put)
+        self._unhook_stop = control.on_stop(self.request_stop)
+        set_plain(self.status, f"connected: {control.source.label()}; run the calibration block")
+        self._show_cue("", "", "Ready: run the calibration block")
 
     def _start_job(self, name: str, fn) -> None:
         self.job = Job(fn, name=f"handheld-{name}")
@@ -256,6 +356,7 @@ class HandheldTab(QtWidgets.QWidget):
     # ------------------------------------------------------------------------------------------------- events
     def refresh(self) -> None:
         """Drain the rig's events and finish what the workers and the run did (GUI thread, every 50 ms)."""
+        self._listen()
         while not self.events.empty():
             self._on_event(self.events.get())
         job = self.job
@@ -266,12 +367,19 @@ class HandheldTab(QtWidgets.QWidget):
         if run is not None and run.state == "done":
             self.run = None
             self._run_done(run)
+        elif run is not None and run.pause_event.is_set() and run.state in ("paused", "pausing"):
+            why = f" ({self.stopped_reason})" if self.stopped_reason else ""
+            if self.cue.property("cue") != "stop":
+                self._show_cue("stop", "", STOPPED_TEXT.format(why=why))
+            set_plain(self.status, f"{self.block} block stopped{why}: Resume or Abort block")
         self._update_buttons()
 
     def _on_event(self, ev) -> None:
         f = ev.fields or {}
         if ev.kind == "prompt":
-            if f.get("cue") == "go":
+            if f.get("cue") == "stop":
+                self._show_cue("stop", "", STOPPED_TEXT.format(why=f" ({f['reason']})" if f.get("reason") else ""))
+            elif f.get("cue") == "go":
                 speeds = (f"{f['start_mm_s']:g} mm/s" if f.get("start_mm_s") == f.get("end_mm_s") else
                           f"{f.get('start_mm_s', 0):g} -> {f.get('end_mm_s', 0):g} mm/s")
                 self._show_cue("go", str(f.get("texture", "")), f"scan {f.get('trial_id')}: profile "
@@ -284,18 +392,16 @@ class HandheldTab(QtWidgets.QWidget):
             self._notify(ev.message, logging.INFO)
         elif ev.kind == "run" and ev.trial is not None and ev.trial.kind == "failed":
             self._notify(f"scan {ev.trial.planned.trial_id} failed: {ev.trial.error}", logging.WARNING)
+        elif ev.kind == "run" and ev.trial is not None and ev.trial.kind == "halted":
+            self._notify(f"handheld {self.block} block STOPPED: scan {ev.trial.planned.trial_id} discarded; Resume "
+                         "cues it again, Abort block ends the block", logging.WARNING)
 
     def _job_done(self, job: Job, kind: str) -> None:
         if job.error:
             set_plain(self.status, f"{kind}: {job.error}", error=True)
             self._notify(f"handheld {kind} failed: {job.error}", logging.ERROR)
             return
-        if kind == "open":
-            self.control = job.result
-            self._unsubscribe = self.control.subscribe(self.events.put)
-            set_plain(self.status, f"open: {self.control.source.label()}; run the calibration block")
-            self._show_cue("", "", "Ready: run the calibration block")
-        elif kind == "classifier":
+        if kind == "classifier":
             self.classifier = job.result
             self._record("realtime")
         elif kind == "encode":
@@ -306,8 +412,13 @@ class HandheldTab(QtWidgets.QWidget):
         kind, out = self.block, self.last_output
         self.block = None
         s = run.summary
+        self.stopped_reason = None
         if run.error is not None or s is None:
             set_plain(self.status, f"{kind} block failed: {run.error}", error=True)
+            return
+        if s.stopped:
+            self._show_cue("", "", f"{kind} block aborted: {s.complete}/{s.planned} scans kept in {out}")
+            set_plain(self.status, f"{kind} block aborted: {s.complete}/{s.planned} scans in {out}")
             return
         self._show_cue("", "", f"{kind} block done: {s.complete}/{s.planned} scans")
         if kind == "calibration" and s.complete:
@@ -325,7 +436,9 @@ class HandheldTab(QtWidgets.QWidget):
 
     def _update_buttons(self) -> None:
         busy = self.running
+        stopped = self.block_running and self.run.pause_event.is_set() and self.run.state != "latched"
         self.open_btn.setEnabled(not busy)
         self.cal_btn.setEnabled(self.control is not None and not busy)
         self.rt_btn.setEnabled(self.control is not None and not busy)
-        self.abort_btn.setEnabled(self.run is not None)
+        self.resume_btn.setEnabled(stopped)
+        self.abort_btn.setEnabled(self.block_running and not self.run.stop_event.is_set())

@@ -220,7 +220,6 @@ def handheld_shots(w, app, shot, tmp: str) -> None:
     if tab.run is not None:
         tab.run.resume()
     wait(lambda: tab.run is None and tab.job is None, 300)
-    tab.close_rig()
 
 
 #: the shots of :func:`safety_shots`

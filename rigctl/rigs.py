@@ -209,30 +209,22 @@ def handheld_rig(request: RigRequest) -> ScanSource:
     """The paper's real-time system: an operator scans flat plates with the sensor on a finger, no drum (--handheld).
 
     Option ``motion``: ``sim`` (the simulated operator, default), ``lsl:NAME`` (a tracker stream; options
-    ``resolve_s``, ``timeout_s``), ``serial:PORT`` (a motion board; :func:`_serial_motion_scans`) or
-    ``replay:S.h5`` (a recorded handheld session)."""
+    ``resolve_s``, ``timeout_s``), ``serial:PORT`` (a motion board; options ``open_timeout_s``, ``timeout_s``) or
+    ``replay:S.h5`` (a recorded handheld session). Option ``taxel_port`` (with ``lsl:`` or ``serial:``): the finger's
+    taxel board on that port gives the taxels (:class:`rigctl.devices.finger_board.BoardFingerScans`); without it they
+    come from the sensor model along the tracked path (:class:`rigctl.simulation.handheld_lsl.TrackedFingerScans`)."""
     options: dict[str, Any] = dict(request.options)
     motion = str(options.pop("motion", "sim"))
     if motion == "sim":
         from rigctl.simulation.operator import SimulatedOperator
 
         if options:
-            raise RigError(f"the simulated operator takes no option {', '.join(sorted(options))}")
+            raise RigError(f"the simulated operator takes no option {', '.join(sorted(options))}"
+                           + (" (a finger's taxel board needs a live motion source: lsl:NAME or serial:PORT)"
+                              if "taxel_port" in options else ""))
         return SimulatedOperator(seed=request.seed, rig_config=_config(request), textures=request.textures)
-    if motion.startswith("lsl:"):
-        from rigctl.acquisition.handheld import plate_axis_from_config
-        from rigctl.acquisition.rigconfig import load_rig_config
-        from rigctl.core.handheld import ScanError
-        from rigctl.simulation.handheld_lsl import open_lsl_scans
-
-        try:
-            config_axis = plate_axis_from_config(load_rig_config(request.host_config_path))
-            return open_lsl_scans(motion, axis=config_axis, config=_config(request), seed=request.seed,
-                                  textures=request.textures, **options)
-        except (ScanError, ValueError) as exc:
-            raise RigError(str(exc)) from None
-    if motion.startswith("serial:"):
-        return _serial_motion_scans(motion.removeprefix("serial:"), request, options)
+    if motion.startswith(("lsl:", "serial:")):
+        return _tracked_scans(motion, request, options)
     if motion.startswith("replay:"):
         from rigctl.simulation.handheld_replay import SessionScans
 
@@ -246,22 +238,50 @@ def handheld_rig(request: RigRequest) -> ScanSource:
                    "stream), 'serial:PORT' (a motion board) or 'replay:S.h5' (a recorded handheld session)")
 
 
-def _serial_motion_scans(port: str, request: RigRequest, options: dict[str, Any]) -> ScanSource:
-    """``motion="serial:PORT"``: the scans of a serial motion board (:class:`rigctl.devices.motion.SerialMotion`,
-    the position along the plate) with readings from the sensor model; options ``open_timeout_s``, ``timeout_s``."""
-    from rigctl.core.handheld import ScanError
-    from rigctl.devices.motion import SerialMotion
+def _tracked_scans(motion: str, request: RigRequest, options: dict[str, Any]) -> ScanSource:
+    """``motion="lsl:NAME[@channels]"`` (a tracker stream, :class:`rigctl.simulation.handheld_lsl.LslTracker`; options
+    ``resolve_s``, ``timeout_s``) or ``"serial:PORT"`` (a motion board, :class:`rigctl.devices.motion.SerialMotion`;
+    options ``open_timeout_s``, ``timeout_s``), the plate axis from the rig config; the taxels from the finger's taxel
+    board at option ``taxel_port``, else from the sensor model along the tracked path."""
+    from rigctl.acquisition.handheld import plate_axis_from_config
+    from rigctl.acquisition.rigconfig import load_rig_config
+    from rigctl.core.handheld import ScanError, Tracker
     from rigctl.simulation.handheld_lsl import TrackedFingerScans
 
-    unknown = set(options) - {"timeout_s", "open_timeout_s"}
+    lsl = motion.startswith("lsl:")
+    known = {"timeout_s", "taxel_port", "resolve_s" if lsl else "open_timeout_s"}
+    unknown = set(options) - known
     if unknown:
-        raise RigError(f"a serial motion board takes no option {', '.join(sorted(unknown))}")
+        raise RigError(f"{'a tracker stream' if lsl else 'a serial motion board'} takes no option "
+                       f"{', '.join(sorted(unknown))}")
+    timeout_s = float(options.get("timeout_s", 60.0))
+    taxel_port = options.get("taxel_port")
+    tracker: Tracker
     try:
-        board = SerialMotion(port, open_timeout_s=float(options.get("open_timeout_s", 5.0)))
-    except ScanError as exc:
+        if lsl:
+            from rigctl.simulation.handheld_lsl import LslTracker, parse_motion
+
+            axis = plate_axis_from_config(load_rig_config(request.host_config_path))
+            name, channels = parse_motion(motion)
+            tracker = LslTracker(name, channels, resolve_s=float(options.get("resolve_s", 5.0)))
+        else:
+            from rigctl.devices.motion import SerialMotion
+
+            axis = None  # a motion board sends the position along the plate
+            tracker = SerialMotion(motion.removeprefix("serial:"),
+                                   open_timeout_s=float(options.get("open_timeout_s", 5.0)))
+        if taxel_port is not None:
+            from rigctl.devices.finger_board import open_finger_board
+
+            return open_finger_board(str(taxel_port), tracker, axis, textures=request.textures, timeout_s=timeout_s)
+        try:
+            return TrackedFingerScans(tracker, axis, rig_config=_config(request), seed=request.seed,
+                                      textures=request.textures, timeout_s=timeout_s)
+        except BaseException:
+            tracker.close()
+            raise
+    except (ScanError, ValueError) as exc:
         raise RigError(str(exc)) from None
-    return TrackedFingerScans(board, None, rig_config=_config(request), seed=request.seed, textures=request.textures,
-                              timeout_s=float(options.get("timeout_s", 60.0)))
 
 
 def _sensor_backend(request: RigRequest, source: SampleSource, drum: str) -> RigBackend:

@@ -135,7 +135,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     if leave is None:
         raise ScanError(f"the finger never left the used part of the plate (past {used_mm[1]:g} mm)")
     t_in, t_out = enter[1], leave[1]
-    fit = DeviceClockFit(layout.sample_rate_hz)
+    fit = raw.clock_fit or DeviceClockFit(layout.sample_rate_hz)
     counts = fit.add(np.asarray(raw.seq), np.asarray(raw.host_time_s, np.float64))
     mapping = fit.mapping()
     if raw.frame_time_s is not None:  # the source's own frame times (a replayed session's fitted clock)
@@ -202,6 +202,8 @@ class HandheldRig(Rig):
     textures : the plates' texture set.
     host_config_path : the rig config file.
     """
+
+    has_drum = False
 
     def __init__(self, source: ScanSource, *, axis: PlateAxis | None = None,
                  prompt: Callable[[str], Any] | None = None, textures: TextureSet | None = None,
@@ -281,6 +283,13 @@ class HandheldRig(Rig):
 
     def safe_stop(self) -> bool:
         return True  # nothing moves by itself
+
+    def announce_stop(self, reason: str) -> None:
+        """STOP (the operator's, the dead man's switch): tell the operator to lift the finger (a ``stop`` cue; the run
+        pauses, the scan in progress is discarded and cued again on resume)."""
+        text = f"STOP ({reason}): lift the finger off the plate; the scan is cued again when the block resumes"
+        self._cue("stop", text, {"reason": reason})
+        self._say(text)
 
     def recover(self) -> str | None:
         return self.check_links()

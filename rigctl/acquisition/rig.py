@@ -189,7 +189,11 @@ class Rig:
     texture : label of the mounted plate, or None if unknown
     settle : :class:`rigctl.acquisition.protocol.Settle`, the timeouts used by :meth:`record_trial`
     host_config : dict, the rig config file's content (calibration), copied into each session
+    has_drum : False for a rig whose trials are not the drum's (the handheld rig: nothing to poll, nothing moves by
+        itself)
     """
+
+    has_drum: bool = True
 
     def __init__(self, backend: RigBackend, drum: DrumController, stream: TaxelSource, *,
                  prompt: Callable[[str], Any] | None = None, host_config: dict | None = None,

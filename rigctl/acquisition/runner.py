@@ -426,8 +426,11 @@ class _Run:
                 if self._stopping():
                     summary.stopped = True
                     break
+                paused = pause_event is not None and pause_event.is_set()
                 _wait_while_paused(self.rig, pause_event, self.stop_event, self.on_trial, index, self.total,
                                    self.t0)
+                if paused and self.halt_event is not None:  # a STOP between trials: no trial to discard
+                    self.halt_event.clear()
                 if self._stopping():
                     summary.stopped = True
                     break

@@ -31,7 +31,6 @@ from rigctl.cli.rig_flags import (
     lsl_wait_option,
     rig_option,
     rig_options_option,
-    taxel_port_option,
     truth_log_option,
 )
 
@@ -152,6 +151,19 @@ def _recorded_before(out: Path, proto) -> int:
             check.close()
     except (SessionError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
+
+
+def _check_ports(drum_port: str | None, taxel_port: str | None, *, handheld: bool, motion: str | None) -> None:
+    """Both hardware ports or neither; on the handheld rig ``--taxel-port`` alone is the finger's taxel board, beside
+    a live motion source. Raises click.UsageError."""
+    finger_board = taxel_port is not None and drum_port is None and (handheld or motion is not None)
+    if (drum_port is None) != (taxel_port is None) and not finger_board:
+        raise click.UsageError("give both --drum-port and --taxel-port (hardware), or neither (--sim); on the "
+                               "handheld rig, --taxel-port alone is the finger's taxel board (with --motion lsl:NAME "
+                               "or serial:PORT)")
+    if finger_board and not str(motion).startswith(("lsl:", "serial:")):
+        raise click.UsageError("--taxel-port on the handheld rig reads the finger's taxel board beside a live motion "
+                               "source: give --motion lsl:NAME or serial:PORT")
 
 
 def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, inprocess: bool, hardware: bool,
@@ -286,7 +298,10 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @hil_bootloaders_option
 @inprocess_option
 @drum_port_option
-@taxel_port_option
+@click.option("--taxel-port", default=None,
+              help="Serial port of the taxel streamer (Uno) on real hardware (with --drum-port); on the handheld rig "
+                   "alone (with --motion lsl:NAME or serial:PORT): the finger's taxel board, its frames the trials' "
+                   "taxels (docs/guides/handheld.md).")
 @rig_option
 @rig_options_option
 @click.option("--replay", "replay", type=REPLAY, default=None,
@@ -364,8 +379,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     from rigctl.storage.session import SessionError
 
     hil = hil or hil_bootloaders
-    if (drum_port is None) != (taxel_port is None):
-        raise click.UsageError("give both --drum-port and --taxel-port (hardware), or neither (--sim)")
+    _check_ports(drum_port, taxel_port, handheld=handheld, motion=motion)
     check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
     check_rig_flags(rig, rig_options, others=bool(sim or hil or inprocess or drum_port or replay or handheld or motion))
     if replay is not None and (hil or inprocess or drum_port is not None):

@@ -124,31 +124,56 @@ else:
                    "docs/guides/handheld.md), the port `--motion serial:PORT` reads.")
 @click.option("--fields", type=click.Choice(["position", "velocity", "both"]), default="both", show_default=True,
               help="With --serial: what the board sends (an encoder: position; an IMU: velocity).")
+@click.option("--taxel-board", is_flag=True, default=False,
+              help="With --lsl: also the finger's taxel board on a pty (prints its port; the 3x3 finger at 1 kHz, "
+                   "the sensor model at the finger's place), the port `--taxel-port PORT` reads.")
 @click.option("--seconds", type=floats(1.0, 86400.0), default=60.0, show_default=True,
               help="How long to play, s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the operator and the tracker.")
-def operator(name, serial_board, fields, seconds, seed):
+def operator(name, serial_board, fields, taxel_board, seconds, seed):
     """Play the simulated operator in real time and publish its wrist tracker on LSL (x, y, z in the tracker's frame
     and the position along the plate, mm, at 90-120 Hz): the tracker stream `rigctl acquire ... --handheld --motion
-    lsl:NAME@3` records from; or, with --serial, as a serial motion board on a pty (`--motion serial:PORT`;
-    docs/guides/handheld.md). Runs until --seconds or Ctrl-C."""
+    lsl:NAME@3` records from, with --taxel-board beside it the finger's taxel board on a pty (`--taxel-port PORT`);
+    or, with --serial, as a serial motion board on a pty (`--motion serial:PORT`; docs/guides/handheld.md). Runs
+    until --seconds or Ctrl-C."""
     from rigctl.core.lsl import LslUnavailable
     from rigctl.simulation.operator import publish_tracker
 
     if (name is None) == (not serial_board):
         raise click.UsageError("give --lsl NAME (an LSL tracker stream) or --serial (a motion board on a pty)")
+    if taxel_board and serial_board:
+        raise click.UsageError("--taxel-board goes with --lsl (the tracker stream it follows)")
     if serial_board:
         _serial_operator(fields, seconds, seed)
         return
+    try:
+        board = _finger_board(seed) if taxel_board else None
+    except LslUnavailable as exc:
+        raise click.ClickException(str(exc)) from None
     click.echo(f"publishing the simulated operator's tracker as LSL stream {name!r} for {seconds:g} s. Ctrl-C stops.")
     sys.stdout.flush()
     try:
-        n = publish_tracker(name, seconds=seconds, seed=seed, on_scan=lambda text: click.echo(text))
+        n = publish_tracker(name, seconds=seconds, seed=seed, on_scan=lambda text: click.echo(text),
+                            on_pass=None if board is None else board.follow)
     except LslUnavailable as exc:
         raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
         n = -1
+    finally:
+        if board is not None:
+            board.close()
     click.echo("stopped." if n < 0 else f"done: {n} tracker samples published.")
+
+
+def _finger_board(seed: int):
+    """``--taxel-board``: the simulated finger's taxel board on a pty, its port printed (the line
+    ``taxel port: PATH``, as ``rigctl sim`` prints it). Raises LslUnavailable."""
+    from rigctl.core.lsl import require_pylsl
+    from rigctl.simulation.finger_board import SimulatedFingerBoard
+
+    board = SimulatedFingerBoard(clock=require_pylsl().local_clock, seed=seed)
+    click.echo(f"taxel port: {board.path}   (the finger's taxel board, 3x3 at 1 kHz: --taxel-port {board.path})")
+    return board
 
 
 def _serial_operator(fields: str, seconds: float, seed: int) -> None:

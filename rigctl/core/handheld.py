@@ -1,5 +1,6 @@
 """The handheld system's shared terms (the paper's real-time experiment): the plate, its axis, a recorded scan and
-what records one. Imports nothing else of rigctl's but :mod:`rigctl.core.sensor` and :mod:`rigctl.core.trial`.
+what records one. Imports nothing else of rigctl's but :mod:`rigctl.core.sensor`, :mod:`rigctl.core.trial` and
+:mod:`rigctl.core.clocksync`.
 
 The paper (Materials and Methods, "Real-time Texture Classification - Processing Pipeline"): flat plates of textures
 A, B, D, L and N, 300 mm x 36 mm, the middle 200 mm used; an operator moves a 3x3 sensor on a 3D-printed finger along
@@ -13,17 +14,20 @@ leaving the middle 200 mm). What produces scans is a :class:`ScanSource`: the si
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from rigctl.core.clocksync import DeviceClockFit
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.trial import PlannedTrial
 
 __all__ = ["PLATE_LENGTH_MM", "PLATE_WIDTH_MM", "USED_LENGTH_MM", "USED_START_MM", "USED_END_MM",
-           "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError"]
+           "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError", "Tracker", "wait_for_pass",
+           "PAST_END_MM", "MARGIN_S"]
 
 #: a texture plate's length and width, mm (Methods)
 PLATE_LENGTH_MM = 300.0
@@ -35,6 +39,10 @@ USED_START_MM = (PLATE_LENGTH_MM - USED_LENGTH_MM) / 2.0
 USED_END_MM = USED_START_MM + USED_LENGTH_MM
 #: the paper's five plates (Fig. 2B letters)
 HANDHELD_TEXTURES = ("A", "B", "D", "L", "N")
+#: how far past the used part's end the finger must be before a live scan counts as over, mm
+PAST_END_MM = 10.0
+#: tracker time a live scan keeps before the cue and waits after the exit, s
+MARGIN_S = 0.3
 
 
 class ScanError(RuntimeError):
@@ -110,6 +118,8 @@ class RawScan:
         session replayed: its trial's fitted clock); None: fitted from ``seq`` and ``host_time_s`` (a live board).
     time_origin_s : the host clock's time at 0 of the times above when they are relative (a replayed trial's times
         count from its first frame, exactly as recorded): added to the boundaries the cut reports.
+    clock_fit : the source's fit of the board's clock over its whole stream (a live board: every scan's frames are
+        added to it, so one scan's late frames bend nothing); None: a fit of this scan's frames alone.
     """
 
     taxels: np.ndarray
@@ -122,6 +132,7 @@ class RawScan:
     attrs: dict[str, Any] = field(default_factory=dict)
     frame_time_s: np.ndarray | None = None
     time_origin_s: float = 0.0
+    clock_fit: DeviceClockFit | None = None
 
 
 @runtime_checkable
@@ -147,3 +158,44 @@ class ScanSource(Protocol):
     def close(self) -> None:
         """Release the source's links (never raises)."""
         ...
+
+
+class Tracker(Protocol):
+    """A live motion source of the handheld rig: a tracker's LSL stream
+    (:class:`rigctl.simulation.handheld_lsl.LslTracker`) or a serial motion board
+    (:class:`rigctl.devices.motion.SerialMotion`). ``since(t0)`` gives the samples with host time >= ``t0``
+    (``time.monotonic`` s): times (k,) s and positions (k, 3) x, y, z in the tracker's frame, (k, 1) along the
+    plate, or (k, 2) along the plate and the velocity along it (mm/s, NaN where not measured); ``channels`` has 3
+    entries for x, y, z."""
+
+    name: str
+    channels: tuple[int, ...]
+
+    def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def describe(self) -> dict[str, Any]: ...
+
+    def close(self) -> None: ...
+
+
+def wait_for_pass(tracker: Tracker, along: Callable[[np.ndarray], np.ndarray], t_cue: float, *,
+                  stop: Callable[[], bool] | None = None, timeout_s: float = 60.0,
+                  poll_s: float = 0.02) -> tuple[np.ndarray, np.ndarray] | None:
+    """After a cue at ``t_cue`` (``time.monotonic`` s): wait until the tracked finger has been before the plate's used
+    part and then :data:`PAST_END_MM` past its end, then :data:`MARGIN_S` / 2 more; returns the tracker's samples from
+    ``t_cue - MARGIN_S`` (times (k,) s, positions (k, channels)), or None when ``stop()`` turned true. ``along(x)``
+    turns the positions into mm along the plate. Raises ScanError when no pass comes within ``timeout_s``."""
+    while True:
+        if stop is not None and stop():
+            return None
+        t, x = tracker.since(t_cue - MARGIN_S)
+        pos = along(x) if t.size else np.zeros(0)
+        entered = np.flatnonzero(pos < USED_START_MM)
+        if entered.size and np.any(pos[entered[0]:] > USED_END_MM + PAST_END_MM):
+            break
+        if time.monotonic() - t_cue > timeout_s:
+            raise ScanError(f"no pass of the finger through the plate within {timeout_s:g} s (the tracker sent "
+                            f"{t.size} samples)")
+        time.sleep(poll_s)
+    time.sleep(MARGIN_S / 2)
+    return tracker.since(t_cue - MARGIN_S)

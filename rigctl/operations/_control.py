@@ -98,7 +98,7 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
         opts["textures"] = textures
     rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path, home=home is Home.ALWAYS, **opts)
     control = RigControl(rig, source)
-    if home is Home.UNLESS_FAULTED:
+    if home is Home.UNLESS_FAULTED and control.has_drum:  # the handheld rig has no actuator to home
         try:
             control.home_unless_faulted()
         except BaseException:
@@ -159,7 +159,7 @@ class RigControl:
 
     def _events(self) -> RigMonitor:
         if self._monitor is None:
-            self._monitor = RigMonitor(self.drum, self.stop)
+            self._monitor = RigMonitor(self.drum if self.has_drum else None, self.stop)
             self._monitor.subscribe(self._latch_from)
             self._rig.safety.listeners.append(self._latch_event)
             cues = getattr(self._rig, "cue_listeners", None)
@@ -210,6 +210,12 @@ class RigControl:
     def textures(self) -> TextureSet:
         """The texture set plates are mounted from."""
         return self._rig.textures
+
+    @property
+    def has_drum(self) -> bool:
+        """False for the handheld rig (no drum: :attr:`drum` raises, the monitor polls nothing, nothing moves by
+        itself; STOP pauses its run and tells its operator to lift the finger)."""
+        return bool(self._rig.has_drum)
 
     @property
     def mode(self) -> str:
@@ -358,6 +364,12 @@ class RigControl:
         run = self.active_run  # a protocol run on this rig pauses (the trial in progress discarded, resumable)
         if run is not None:
             run.stop()
+        announce = getattr(self._rig, "announce_stop", None)
+        if announce is not None:  # the handheld rig: its operator is told to lift the finger
+            try:
+                announce(reason)
+            except Exception:  # noqa: BLE001 - the STOP itself goes on
+                log.exception("telling the operator about the STOP failed")
         return self._rig.safe_stop()
 
     def stop_drum(self) -> None:

@@ -149,7 +149,8 @@ class RigMonitor:
     """Polls ``drum.read_status()`` every ``period_s`` in a thread (which also feeds the controller's watchdog), keeps
     :attr:`history` (``history_s`` of reads), and publishes :class:`RigEvent` s; runs the dead man's switch (module
     docstring), calling ``stop(reason)`` (the owner's STOP; never raising) when a heartbeat goes silent while the rig
-    moves.
+    moves. ``drum`` None: a rig without a drum (the handheld rig): nothing is polled, nothing moves by itself; the
+    stream carries what other parts publish.
 
     Attributes
     ----------
@@ -160,7 +161,7 @@ class RigMonitor:
     deadman : the reason of the last dead-man stop (None: never tripped).
     """
 
-    def __init__(self, drum: DrumMonitor, stop: Callable[[str], object], *, period_s: float = 0.1,
+    def __init__(self, drum: DrumMonitor | None, stop: Callable[[str], object], *, period_s: float = 0.1,
                  history_s: float = 60.0) -> None:
         self.drum, self._stop, self.period_s = drum, stop, float(period_s)
         self.history = StatusHistory(int(history_s / period_s) + 1)
@@ -298,6 +299,8 @@ class RigMonitor:
         self._emit("deadman", reason, st)
 
     def _poll(self, now: float) -> None:
+        if self.drum is None:  # a rig without a drum (the handheld rig): nothing to read, nothing moves by itself
+            return
         try:
             st = self.drum.read_status()
         except Exception as exc:  # noqa: BLE001 - any failure means the link is down; shown, then retried

@@ -35,7 +35,8 @@ class RigSource:
         at ``drum_port`` / ``taxel_port``), "replay" (the simulated rig streaming the recording at ``replay_dir``: a
         session file or a FabricSlide folder), "hil" (the firmware under simavr), "inprocess" (the fast in-process
         rig), "handheld", or a plugin's rig. "serial" is taken as "hardware".
-    drum_port, taxel_port : serial ports of the Mega and the Uno (hardware only)
+    drum_port, taxel_port : serial ports of the Mega and the Uno (hardware); "handheld": ``taxel_port`` is the finger's
+        taxel board (with a live ``motion``: its taxels instead of the sensor model's)
     replay_dir : the recording a replay rig streams
     bootloaders : "hil" only: the boards run their real bootloaders under simavr and reset when the host opens their
         ports, as real boards do (:class:`rigctl.simulation.hil.HilRig` ``bootloaders``); the host waits the boot
@@ -81,6 +82,8 @@ class RigSource:
             raise ValueError(f"bootloaders are the firmware under simavr's (kind 'hil'), not {self.kind!r}'s")
         if self.motion is not None and self.kind != "handheld":
             raise ValueError(f"a motion source is the handheld rig's (kind 'handheld'), not {self.kind!r}'s")
+        if self.kind == "handheld" and self.drum_port is not None:
+            raise ValueError("the handheld rig has no drum: no drum port")
 
     @classmethod
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
@@ -97,7 +100,7 @@ class RigSource:
             return cls(rig, inject=inject, allow_firmware_mismatch=allow_firmware_mismatch, options=dict(options or {}))
         if handheld or motion is not None:  # a recording replayed on the handheld rig: its scans
             replayed = None if replay is None else f"replay:{replay}"
-            return cls("handheld", motion=motion or replayed or "sim", inject=inject)
+            return cls("handheld", motion=motion or replayed or "sim", taxel_port=taxel_port, inject=inject)
         allow = allow_firmware_mismatch
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject,
@@ -124,8 +127,9 @@ class RigSource:
         if self.kind == "handheld":
             if str(self.motion).startswith("replay:"):
                 return f"handheld session replay ({str(self.motion).removeprefix('replay:')})"
-            return ("simulated operator" if (self.motion or "sim") == "sim" else
-                    f"handheld rig, motion from {self.motion}")
+            board = f", taxels from {self.taxel_port}" if self.taxel_port else ""
+            return ("simulated operator" if (self.motion or "sim") == "sim" and not board else
+                    f"handheld rig, motion from {self.motion or 'sim'}{board}")
         if self.bootloaders:
             return "firmware under simavr, with its bootloaders"
         if self.kind not in KINDS:
@@ -157,5 +161,6 @@ class RigSource:
         if self.bootloaders:
             return {"kind": "hil", "bootloaders": True, **extra}
         if self.kind == "handheld":
-            return {"kind": "handheld", "motion": self.motion or "sim", **extra}
+            board = {} if self.taxel_port is None else {"taxel_port": self.taxel_port}
+            return {"kind": "handheld", "motion": self.motion or "sim", **board, **extra}
         return {"kind": self.kind, **self.options, **extra}

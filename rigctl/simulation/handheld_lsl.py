@@ -17,12 +17,12 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
 from rigctl.core.clocksync import measure_clock_offset
-from rigctl.core.handheld import USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError
+from rigctl.core.handheld import PlateAxis, RawScan, ScanError, Tracker, wait_for_pass
 from rigctl.core.lsl import require_pylsl
 from rigctl.core.sensor import PAPER_FINGER, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
@@ -30,13 +30,7 @@ from rigctl.core.trial import PlannedTrial
 from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.textures import get_texture
 
-__all__ = ["LslTracker", "Tracker", "TrackedFingerScans", "open_lsl_scans", "parse_motion"]
-
-#: how far past the used part's end the finger must be before a scan counts as over, mm
-PAST_END_MM = 10.0
-#: tracker time kept before the cue and after the exit, s
-MARGIN_S = 0.3
-
+__all__ = ["LslTracker", "Tracker", "TrackedFingerScans", "parse_motion"]
 
 class LslTracker:
     """The samples of the LSL tracker stream ``name`` (name or source id), channels ``channels``, on the host clock.
@@ -100,22 +94,6 @@ class LslTracker:
         self.inlet.close_stream()
 
 
-class Tracker(Protocol):
-    """What :class:`TrackedFingerScans` reads: an :class:`LslTracker`, or a serial motion board
-    (:class:`rigctl.devices.motion.SerialMotion`). ``since(t0)`` gives the samples with host time >= ``t0``: times
-    (k,) s and positions (k, 3) x, y, z in the tracker's frame, (k, 1) along the plate, or (k, 2) along the plate and
-    the velocity along it (mm/s, NaN where not measured); ``channels`` has 3 entries for x, y, z."""
-
-    name: str
-    channels: tuple[int, ...]
-
-    def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]: ...
-
-    def describe(self) -> dict[str, Any]: ...
-
-    def close(self) -> None: ...
-
-
 class TrackedFingerScans:
     """Scans of a tracked finger (module docstring); ``timeout_s`` bounds the wait for one pass."""
 
@@ -137,21 +115,10 @@ class TrackedFingerScans:
     def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
         """Wait for the finger to enter the used part and pass its end; the pass with rendered readings. Raises
         ScanError when no pass comes within ``timeout_s``."""
-        t_cue = time.monotonic()
-        while True:
-            if stop is not None and stop():
-                return None
-            t, x = self.tracker.since(t_cue - MARGIN_S)
-            along = self._along(x) if t.size else np.zeros(0)
-            entered = np.flatnonzero(along < USED_START_MM)
-            if entered.size and np.any(along[entered[0]:] > USED_END_MM + PAST_END_MM):
-                break
-            if time.monotonic() - t_cue > self.timeout_s:
-                raise ScanError(f"no pass of the finger through the plate within {self.timeout_s:g} s (the tracker "
-                                f"sent {t.size} samples)")
-            time.sleep(0.02)
-        time.sleep(MARGIN_S / 2)
-        t, x = self.tracker.since(t_cue - MARGIN_S)
+        got = wait_for_pass(self.tracker, self._along, time.monotonic(), stop=stop, timeout_s=self.timeout_s)
+        if got is None:
+            return None
+        t, x = got
         along = self._along(x)
         rng = np.random.default_rng([self.seed, 3738, self.scans])
         self.scans += 1
@@ -196,17 +163,3 @@ def parse_motion(motion: str) -> tuple[str, tuple[int, ...]]:
     if not name or len(channels) not in (1, 3):
         raise ScanError(f"{motion}: give a stream name and 3 channels (x, y, z) or 1 (along the plate)")
     return name, channels
-
-
-def open_lsl_scans(motion: str, *, axis: PlateAxis | None = None, config: RigConfig | None = None, seed: int = 0,
-                   textures: TextureSet | None = None, resolve_s: float = 5.0,
-                   timeout_s: float = 60.0) -> TrackedFingerScans:
-    """The scan source of ``--motion lsl:NAME[@channels]`` (:func:`parse_motion`; :class:`TrackedFingerScans` on
-    :class:`LslTracker`). Raises ScanError, LslUnavailable."""
-    name, channels = parse_motion(motion)
-    tracker = LslTracker(name, channels, resolve_s=resolve_s)
-    try:
-        return TrackedFingerScans(tracker, axis, rig_config=config, seed=seed, textures=textures, timeout_s=timeout_s)
-    except BaseException:
-        tracker.close()
-        raise

@@ -82,7 +82,7 @@ class VirtualMotionBoard:
         t0 = time.monotonic()
         start, seq = 0.0, 0
         while not self._stop.is_set():
-            label, t, xyz = next(self._passes)
+            label, t, xyz, _texture = next(self._passes)
             self.passes.append(label)
             rest = t[-1] + np.arange(1, int(REST_S * self.op.tracker_rate_hz)) / self.op.tracker_rate_hz
             along = self._axis.along_mm(xyz)

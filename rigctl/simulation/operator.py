@@ -271,9 +271,9 @@ RETURN_S, REST_S = 0.6, 0.4
 
 def operator_passes(op: SimulatedOperator, textures: tuple[str, ...] = ("A", "B", "D", "L", "N"),
                     profiles: tuple[tuple[str, float, float], ...] = PASS_PROFILES,
-                    ) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+                    ) -> Iterator[tuple[str, np.ndarray, np.ndarray, str]]:
     """The simulated operator's free-running passes (no cue: the ``profiles`` in turn, then the next plate):
-    endless ``(label, t, xyz)``: each pass's tracker sample times (k,) s from the pass's start and tracker-frame
+    endless ``(label, t, xyz, texture)``: each pass's tracker sample times (k,) s from the pass's start and tracker-frame
     points (k, 3) mm, the finger's return to the start included (:data:`RETURN_S`); the next pass starts
     :data:`REST_S` after the last sample. The points lie along ``op.to_tracker``'s plate (:meth:`SimulatedOperator.
     touch_ends` calibrates its axis)."""
@@ -285,7 +285,7 @@ def operator_passes(op: SimulatedOperator, textures: tuple[str, ...] = ("A", "B"
         t, xyz = op.tracker_pass(PlannedTrial(k, tex, (a + b) / 2, 500.0, 200.0 / ((a + b) / 2), prof, *ramp))
         back_t = t[-1] + np.arange(1, int(RETURN_S * op.tracker_rate_hz)) / op.tracker_rate_hz
         back = op.to_tracker(np.linspace(op.config.stop_mm, op.config.start_mm, back_t.size), np.zeros(back_t.size))
-        yield f"pass {k}: plate {tex}, {prof}", np.concatenate([t, back_t]), np.concatenate([xyz, back])
+        yield f"pass {k}: plate {tex}, {prof}", np.concatenate([t, back_t]), np.concatenate([xyz, back]), tex
         k += 1
 
 
@@ -296,13 +296,16 @@ def plate_axis_of(op: SimulatedOperator) -> PlateAxis:
 
 
 def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple[str, ...] = ("A", "B", "D", "L", "N"),
-                    stop: Callable[[], bool] | None = None, on_scan: Callable[[str], Any] | None = None) -> int:
+                    stop: Callable[[], bool] | None = None, on_scan: Callable[[str], Any] | None = None,
+                    on_pass: Callable[[str, np.ndarray, np.ndarray], Any] | None = None) -> int:
     """Play the simulated operator in real time and publish its wrist tracker on LSL (stream ``name``, type
     "Position", 4 channels: x, y, z in the tracker's frame and the position along the plate, mm; at the tracker's
     90-120 Hz with its jitter and dropouts): :func:`operator_passes`, until ``seconds`` have passed or ``stop()``.
     The handheld rig takes it with ``--motion lsl:NAME`` (x, y, z: the plate axis in the rig config) or
-    ``lsl:NAME@3`` (along the plate). ``on_scan(text)`` hears each pass begin. Returns the samples pushed. Raises
-    LslUnavailable."""
+    ``lsl:NAME@3`` (along the plate). ``on_scan(text)`` hears each pass begin; ``on_pass(texture, t, along_mm)``
+    gets each pass before it plays: its sample times on ``pylsl.local_clock`` (s) and the positions along the plate
+    (mm; the simulated finger's taxel board follows them: :class:`rigctl.simulation.finger_board.
+    SimulatedFingerBoard`). Returns the samples pushed. Raises LslUnavailable."""
     from rigctl.core.lsl import require_pylsl
 
     pylsl = require_pylsl()
@@ -315,12 +318,14 @@ def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple
     outlet = pylsl.StreamOutlet(info)
     t0, pushed = pylsl.local_clock(), 0
     start = t0
-    for label, t, xyz in operator_passes(op, textures):
+    for label, t, xyz, texture in operator_passes(op, textures):
         if pylsl.local_clock() - t0 >= seconds or (stop is not None and stop()):
             break
         if on_scan is not None:
             on_scan(label)
         rows = np.column_stack([xyz, axis.along_mm(xyz)]).astype(np.float32)
+        if on_pass is not None:
+            on_pass(texture, start + t, rows[:, 3].astype(np.float64))
         for ti, row in zip(t, rows):
             while pylsl.local_clock() < start + ti:
                 time.sleep(min(0.005, max(0.0, start + ti - pylsl.local_clock())))

@@ -1,14 +1,19 @@
-"""The handheld tab (issue 37) in a real main window, offscreen: it opens the handheld rig through the operations
-layer, runs the calibration block and the real-time block of a small protocol on the simulated operator, shows each
-prompt the rig gives its operator (plate, profile, go: the simulated operator scans what the cue said) and each
-scan's end-of-scan prediction as a big letter, green when right and red when wrong; the predictions land in the
-session file."""
+"""The handheld tab (issue 37) in a real main window, offscreen: it connects the window to the handheld rig (the
+window's one rig, through the operations layer), runs the calibration block and the real-time block of a small
+protocol on the simulated operator, shows each prompt the rig gives its operator (plate, profile, go: the simulated
+operator scans what the cue said) and each scan's end-of-scan prediction as a big letter, green when right and red
+when wrong; the predictions land in the session file. A block is the rig's run: the main STOP (and Esc) pauses it,
+the operator told to lift the finger, Resume goes on at the next cue and completes it; Abort block ends it only once
+confirmed."""
 
 from __future__ import annotations
 
-import pytest
-from PySide6 import QtCore, QtTest
+import threading
 
+import pytest
+from PySide6 import QtCore, QtTest, QtWidgets
+
+from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
 
 from ..conftest import small_handheld_protocol
@@ -41,6 +46,8 @@ def test_the_handheld_blocks_with_prompts_and_predictions(handheld_window, qapp)
     click = QtCore.Qt.MouseButton.LeftButton
     QtTest.QTest.mouseClick(tab.open_btn, click)
     assert wait_for(qapp, lambda: tab.control is not None, 60)
+    assert tab.control is handheld_window.handle.control  # the window's one rig, not the tab's own
+    assert wait_for(qapp, lambda: handheld_window.drum_state.text() == "Drum: none (handheld rig)", 5)
     prompts = []
     tab.control.subscribe(lambda ev: prompts.append(dict(ev.fields)) if ev.kind == "prompt" else None)
     QtTest.QTest.mouseClick(tab.cal_btn, click)
@@ -68,3 +75,78 @@ def test_the_handheld_blocks_with_prompts_and_predictions(handheld_window, qapp)
         logged = [(e["trial_id"], e["truth"], e["predicted"]) for e in s.events if e["kind"] == "prediction"]
     assert logged == tab.board.results
     assert tab.cal_btn.isEnabled() and tab.rt_btn.isEnabled()
+
+
+@pytest.fixture
+def slow_operator(monkeypatch):
+    """The simulated operator as a person is: a scan takes until the test lets it go (``gate``), and a STOP during
+    it (the rig's ``stop()``) ends it unfinished, as a lifted finger does."""
+    from rigctl.simulation.operator import SimulatedOperator
+
+    gate = threading.Event()
+    scan = SimulatedOperator.scan
+
+    def slow_scan(self, planned, *, stop=None):
+        while not gate.wait(0.02):
+            if stop is not None and stop():
+                return None
+        return scan(self, planned, stop=stop)
+
+    monkeypatch.setattr(SimulatedOperator, "scan", slow_scan)
+    return gate
+
+
+def test_stop_pauses_a_block_resume_completes_it_and_abort_asks(handheld_window, qapp, slow_operator):
+    from rigctl.storage.session import open_session
+
+    w, tab, gate = handheld_window, handheld_window.handheld, slow_operator
+    click = QtCore.Qt.MouseButton.LeftButton
+    QtTest.QTest.mouseClick(tab.open_btn, click)
+    assert wait_for(qapp, lambda: tab.control is not None, 60)
+    prompts = []
+    tab.control.subscribe(lambda ev: prompts.append(dict(ev.fields)) if ev.kind == "prompt" else None)
+    QtTest.QTest.mouseClick(tab.cal_btn, click)
+    assert wait_for(qapp, lambda: [p["cue"] for p in prompts] == ["plate", "go"], 30), prompts
+    assert not w.connect_btn.isEnabled()  # the block owns the rig
+
+    QtTest.QTest.mouseClick(w.stop_btn, click)  # the main STOP, during the first scan
+    assert wait_for(qapp, lambda: tab.run.state == "paused", 30), tab.status.text()
+    assert prompts[-1]["cue"] == "stop"  # the rig told its operator
+    assert wait_for(qapp, lambda: "lift the finger" in tab.cue_text.text(), 5), tab.cue_text.text()
+    assert tab.cue.property("cue") == "stop" and "the operator pressed STOP" in tab.cue_text.text()
+    assert tab.resume_btn.isEnabled() and tab.abort_btn.isEnabled()
+    gate.set()  # the operator is ready again: nothing is recorded before Resume
+    wait_for(qapp, lambda: False, 0.5)
+    assert tab.run.state == "paused" and [p["cue"] for p in prompts].count("go") == 1
+    gate.clear()
+    QtTest.QTest.mouseClick(tab.resume_btn, click)
+    # the discarded scan is cued again (the next cue), then the block goes on to its end
+    assert wait_for(qapp, lambda: [p["cue"] for p in prompts].count("go") == 2, 30), prompts
+    assert prompts[-1]["trial_id"] == prompts[1]["trial_id"]
+    assert tab.cue.property("cue") != "stop" or wait_for(qapp, lambda: tab.cue.property("cue") == "go", 5)
+    gate.set()
+    assert wait_for(qapp, lambda: tab.run is None and tab.calibration_enc is not None, 120), tab.status.text()
+    with open_session(tab.last_output) as s:
+        assert len(s.completed_ids()) == len(s.plan) == 4 and not s.failed_ids()
+    first = tab.last_output
+
+    gate.clear()
+    del prompts[:]
+    QtTest.QTest.mouseClick(tab.cal_btn, click)
+    assert wait_for(qapp, lambda: tab.run is not None and tab.last_output != first
+                    and [p["cue"] for p in prompts][-1:] == ["go"], 30), prompts
+    QtTest.QTest.keyClick(w.tabs.tabBar(), QtCore.Qt.Key.Key_Escape)  # Esc is STOP in the window
+    assert wait_for(qapp, lambda: tab.run.state == "paused", 30), tab.status.text()
+    QtTest.QTest.mouseClick(tab.abort_btn, click)  # asks first; keeping the block keeps it stopped
+    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
+    QtTest.QTest.mouseClick(next(b for b in box.buttons() if b.text() == "Keep the block"), click)
+    wait_for(qapp, lambda: False, 0.5)
+    assert tab.block_running and tab.run.state == "paused" and not tab.run.stop_event.is_set()
+    QtTest.QTest.mouseClick(tab.abort_btn, click)
+    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
+    QtTest.QTest.mouseClick(next(b for b in box.buttons() if b.text() == "Abort the block"), click)
+    assert wait_for(qapp, lambda: tab.run is None, 30), tab.status.text()
+    assert "aborted" in tab.status.text()
+    assert wait_for(qapp, lambda: w.connect_btn.isEnabled(), 5)  # the rig is the window's again
+    with open_session(tab.last_output) as s:
+        assert len(s.completed_ids()) == 0 and len(s.plan) == 4

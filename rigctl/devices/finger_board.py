@@ -1,0 +1,142 @@
+"""The handheld rig's real finger: the taxel board's frames beside a live motion source (``--taxel-port PORT`` with
+``--motion lsl:NAME`` or ``serial:PORT``).
+
+:class:`BoardFingerScans` is a :class:`rigctl.core.handheld.ScanSource`: after each cue it keeps every frame of the
+taxel board (the Uno's CRC-checked frames, :class:`rigctl.devices.taxel_stream.TaxelStream`, the layout from its
+identify reply: ``layout=3x3x1`` for the paper's finger) while it waits for the tracked finger to pass the plate's
+used part (:func:`rigctl.core.handheld.wait_for_pass`), and returns the frames with their sequence numbers and host
+receive times beside the tracker's samples. The cut (:func:`rigctl.acquisition.handheld.cut_scan`) puts the frames
+on the host clock by the board's clock fit (:class:`rigctl.core.clocksync.DeviceClockFit`: sequence numbers against
+receive times, the lower envelope, over every frame of every scan since the board opened) and the tracker's samples
+are on the host clock already (an LSL stream's timestamps less the measured LSL <-> host offset; a motion board's own
+clock fit), so both are cut on one clock.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from rigctl.core.clocksync import DeviceClockFit
+from rigctl.core.handheld import PlateAxis, RawScan, ScanError, Tracker, wait_for_pass
+from rigctl.core.sensor import SensorLayout
+from rigctl.core.textures import PAPER_TEXTURES, TextureSet
+from rigctl.core.trial import PlannedTrial
+from rigctl.devices.errors import TaxelStreamError
+from rigctl.devices.ring import RingBuffer
+from rigctl.devices.taxel_stream import StreamStats, TaxelStream
+
+__all__ = ["BoardFingerScans", "open_finger_board"]
+
+#: the frames the board must have sent before the first scan, s of its rate (the stream is flowing)
+WARM_UP_S = 0.5
+#: how long the board may take to send them, s
+WARM_UP_TIMEOUT_S = 10.0
+
+
+class BoardFingerScans:
+    """Scans of the real finger: the taxel board ``taxels`` (open and streaming) and the motion source ``tracker``
+    (module docstring). ``axis``: the plate's axis when the tracker gives x, y, z; ``timeout_s`` bounds the wait for
+    one pass. Raises ScanError for x, y, z without an axis."""
+
+    def __init__(self, taxels: TaxelStream, tracker: Tracker, axis: PlateAxis | None, *,
+                 textures: TextureSet | None = None, timeout_s: float = 60.0) -> None:
+        if len(tracker.channels) == 3 and axis is None:
+            raise ScanError("a tracker's x, y, z need the plate's axis: calibrate it (the rig config's handheld block, "
+                            "docs/guides/handheld.md), or give the position along the plate as one channel")
+        self.taxels, self.tracker, self.axis, self.timeout_s = taxels, tracker, axis, float(timeout_s)
+        self.textures = textures or PAPER_TEXTURES
+        #: the finger's sensor, as the open board's banner announces it (``layout=3x3x1``)
+        self.layout: SensorLayout = taxels.layout
+        #: the board's clock, fitted over every scan's frames (the cut adds each scan's): a burst of frames held up by
+        #: a busy host in one scan is an outlier of a long fit, not the slope of a short one
+        self.clock_fit = DeviceClockFit(self.layout.sample_rate_hz)
+        self.scans = 0
+
+    @property
+    def ring(self) -> RingBuffer:
+        """The board's live ring buffer (a live view, the LSL feed): every frame, between scans too."""
+        return self.taxels.ring
+
+    @property
+    def stats(self) -> StreamStats:
+        """The board's link statistics (frames, dropped, CRC errors, connected)."""
+        return self.taxels.stats
+
+    def _along(self, x: np.ndarray) -> np.ndarray:
+        return x[:, 0] if x.shape[1] != 3 else self.axis.along_mm(x)  # type: ignore[union-attr]  # checked above
+
+    def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
+        """Keep the board's frames from the cue until the finger has passed the plate's used part; the pass (frames
+        with ``seq`` and receive times, tracker samples) or None when ``stop()``. Raises ScanError (no pass within
+        ``timeout_s``, no frame from the board)."""
+        t_cue = time.monotonic()
+        self.taxels.begin_capture()
+        try:
+            got = wait_for_pass(self.tracker, self._along, t_cue, stop=stop, timeout_s=self.timeout_s)
+        finally:
+            cap = self.taxels.end_capture()
+        if got is None:
+            return None
+        if not len(cap):
+            raise ScanError(f"no frame from the taxel board on {self.taxels.port} during the scan (is it streaming?)")
+        t, x = got
+        self.scans += 1
+        xyz = x.shape[1] == 3
+        velocity = x[:, 1] if x.shape[1] == 2 and np.all(np.isfinite(x[:, 1])) else None  # a motion board's own
+        return RawScan(taxels=cap.samples, seq=cap.seq, host_time_s=cap.host_time_s, tracker_time_s=t,
+                       tracker_xyz=x if xyz else None, along_mm=None if xyz else x[:, 0], velocity_mm_s=velocity,
+                       attrs={"tracker_stream": self.tracker.name, "taxels_from": f"taxel board on {self.taxels.port}",
+                              "taxel_crc_errors": int(cap.crc_errors), "taxel_dropped_frames": int(cap.dropped),
+                              **getattr(self.tracker, "counters", dict)()}, clock_fit=self.clock_fit)
+
+    def describe(self) -> dict[str, Any]:
+        banner = dict(self.taxels.banner or {})
+        return {"kind": "taxel_board_finger", **self.tracker.describe(), "taxels": "taxel board",
+                "taxel_port": self.taxels.port, "taxel_board": {k: banner[k] for k in sorted(banner)
+                                                                if isinstance(banner[k], str | int | float)}}
+
+    def link_problem(self) -> str | None:
+        """The taxel board or the motion source not answering, in words; None when both are up."""
+        if not self.taxels.stats.connected:
+            return f"the taxel board on {self.taxels.port} is not connected"
+        problem = getattr(self.tracker, "link_problem", None)
+        return problem() if callable(problem) else None
+
+    def close(self) -> None:
+        try:
+            self.taxels.close()
+        finally:
+            self.tracker.close()
+
+
+def open_finger_board(port: str, tracker: Tracker, axis: PlateAxis | None, *, textures: TextureSet | None = None,
+                      timeout_s: float = 60.0, banner_timeout_s: float = 3.0) -> BoardFingerScans:
+    """Open the taxel board on ``port`` (its banner and identify reply give the layout), start it streaming, and make
+    the scan source on it and ``tracker``. On any failure the board and the tracker are closed. Raises ScanError
+    (one line naming the port) or TaxelStreamError."""
+    stream = TaxelStream(port, banner_timeout_s=banner_timeout_s)
+    try:
+        try:
+            stream.open()
+            stream.start()
+            # the stream flowing before the first cue: the frame parser's kernel is loaded by the first frames, and
+            # frames held up meanwhile would arrive in a burst that bends the first scan's clock fit
+            stream.begin_capture()
+            flowing = stream.wait_capture(int(WARM_UP_S * stream.layout.sample_rate_hz), WARM_UP_TIMEOUT_S)
+            first = stream.end_capture()
+        except (OSError, TaxelStreamError) as exc:
+            raise ScanError(f"cannot open the finger's taxel board on {port}: {exc}") from None
+        if not flowing:
+            raise ScanError(f"the finger's taxel board on {port} sent no frames within {WARM_UP_TIMEOUT_S:g} s of "
+                            "START")
+        scans = BoardFingerScans(stream, tracker, axis, textures=textures, timeout_s=timeout_s)
+        scans.clock_fit.add(first.seq, first.host_time_s)  # the fit starts before the first scan
+        return scans
+    except BaseException:
+        stream.close()
+        tracker.close()
+        raise
