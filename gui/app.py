@@ -668,8 +668,8 @@ class MainWindow(QtWidgets.QMainWindow):
 
         threading.Thread(target=work, name="drum-stop", daemon=True).start()
         if not h.control.has_drum:  # the handheld rig: nothing moves by itself, the operator lifts the finger
-            self.notify("STOP: " + ("the handheld block stopped, the operator lifts the finger (Resume continues "
-                                    "at the next cue)" if self.handheld.block_running else "nothing was running"),
+            self.notify("the handheld block stopped, the operator lifts the finger (Resume continues at the next cue)"
+                        if self.handheld.block_running else "nothing was running (the handheld rig has no drum)",
                         level=logging.WARNING, source="STOP")
             return
         self.notify("STOP sent: drum to rest, actuator backing off" + (", the run stopped (Resume continues it)"

@@ -34,7 +34,7 @@ from rigctl_gui.workers import Job
 #: the blocks the tab runs: name -> the built-in protocol
 BLOCKS = {"calibration": "handheld_calibration", "realtime": "handheld_realtime"}
 CUE_STYLE = {"plate": "background: #ffd; border: 2px solid #aa0;", "go": "background: #2a2; color: white;",
-             "stop": "background: #c22; color: white;",
+             "stop": "background: #b00;",
              "": "background: palette(window); border: 2px solid #ccc;"}
 #: what the operator reads while a block is stopped
 STOPPED_TEXT = ("STOPPED{why}: lift the finger off the plate. Resume continues at the next cue (the discarded scan "
@@ -80,7 +80,7 @@ class HandheldTab(QtWidgets.QWidget):
         self.taxel_port.setToolTip("With lsl:NAME or serial:PORT motion: the serial port of the finger's taxel board "
                                    "(its frames are the trials' taxels); empty: the sensor model along the tracked "
                                    "path")
-        self.open_btn = QtWidgets.QPushButton("Connect the handheld rig")
+        self.open_btn = QtWidgets.QPushButton("Connect")
         self.open_btn.setToolTip("Connect the window to the handheld rig (it replaces the rig connected now): its "
                                  "STOP, status and event log are the window's")
         self.open_btn.clicked.connect(self.open_rig)
@@ -185,7 +185,8 @@ class HandheldTab(QtWidgets.QWidget):
                     self.training.setText)
 
     def _show_cue(self, cue: str, plate: str, text: str) -> None:
-        self.cue.setStyleSheet(f"QFrame#handheld_cue {{ {CUE_STYLE.get(cue, CUE_STYLE[''])} }}")
+        text_colour = "QLabel { color: white; }" if cue == "stop" else ""  # 7:1 on the stop cue's red
+        self.cue.setStyleSheet(f"QFrame#handheld_cue {{ {CUE_STYLE.get(cue, CUE_STYLE[''])} }} {text_colour}")
         self.cue.setProperty("cue", cue)
         self.cue_plate.setText(plate)
         self.cue_text.setText(text)
@@ -219,6 +220,11 @@ class HandheldTab(QtWidgets.QWidget):
         from rigctl.operations import RigSource
 
         if self.running:
+            return
+        busy = getattr(self.main, "_run_lock", None) or ("the drum is turning: stop it first" if getattr(
+            self.main, "drum_turning", lambda: False)() else None)
+        if busy:  # the window's rig is busy: connecting another would abort its run
+            set_plain(self.status, f"not connected: {busy}", error=True)
             return
         motion = self.motion.text().strip() or "sim"
         port = self.taxel_port.text().strip() or None

@@ -6,7 +6,7 @@ run the drum, record a short protocol, analyse a small generated dataset, calibr
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
 analysis_table1.png, analysis_confusion.png, calibration.png, classify.png; then stopped.png (a run stopped by STOP,
 resumable), fault.png (the latched-fault dialog after the e-stop, the whole screen) and handheld.png (the handheld
-tab in a real-time block; ``python -m rigctl_gui.screenshots OUT_DIR handheld`` takes it alone, without the drum rig).
+tab in a real-time block, stopped by STOP; ``python -m rigctl_gui.screenshots OUT_DIR handheld`` takes it alone, without the drum rig).
 ``--scale 1.5`` takes them at Qt's scale factor 1.5 (``QT_SCALE_FACTOR``; each ``--size`` is then the screen's pixels,
 the window 1/1.5 of it in Qt's), ``--palette dark`` with a dark desktop palette
 (:func:`rigctl_gui.colours.dark_palette`). ``python -m rigctl_gui.screenshots OUT_DIR live calibration`` takes only
@@ -184,10 +184,10 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
 
 
 def handheld_shots(w, app, shot, tmp: str) -> None:
-    """handheld.png: the handheld tab in the middle of a real-time block on the simulated operator (the last go cue,
-    the predictions so far), with a classifier trained on a training block (2 scans per texture and profile,
-    recorded and encoded here) and calibrated on the calibration block the tab records (1 per texture and
-    profile)."""
+    """handheld.png: the handheld tab in the middle of a real-time block on the simulated operator, stopped by the
+    main STOP (the operator told to lift the finger; the predictions so far), with a classifier trained on a training
+    block (2 scans per texture and profile, recorded and encoded here) and calibrated on the calibration block the
+    tab records (1 per texture and profile)."""
     from rigctl.acquisition.builtin import find_protocol
     from rigctl.acquisition.protocol import load_protocol
     from rigctl.encoding.pipeline import encode_session
@@ -213,12 +213,12 @@ def handheld_shots(w, app, shot, tmp: str) -> None:
     wait(lambda: tab.calibration_enc is not None, 300)
     tab.start_block("realtime")
     wait(lambda: len(tab.board.results) >= 12, 300)
-    tab.run.pause()
-    wait(lambda: tab.run is None or tab.run.state == "paused", 60)
+    w.emergency_stop()  # the main STOP: the block pauses, the operator is told to lift the finger
+    wait(lambda: tab.run is None or (tab.run.state == "paused" and tab.cue.property("cue") == "stop"), 60)
     wait(lambda: False, 0.5)
     shot("handheld.png")
     if tab.run is not None:
-        tab.run.resume()
+        tab.resume()
     wait(lambda: tab.run is None and tab.job is None, 300)
 
 

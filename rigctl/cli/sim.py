@@ -154,7 +154,8 @@ def operator(name, serial_board, fields, taxel_board, seconds, seed):
     sys.stdout.flush()
     try:
         n = publish_tracker(name, seconds=seconds, seed=seed, on_scan=lambda text: click.echo(text),
-                            on_pass=None if board is None else board.follow)
+                            on_pass=None if board is None else board.follow,
+                            on_open=None if board is None else lambda: _say_port(board.path))
     except LslUnavailable as exc:
         raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
@@ -166,14 +167,19 @@ def operator(name, serial_board, fields, taxel_board, seconds, seed):
 
 
 def _finger_board(seed: int):
-    """``--taxel-board``: the simulated finger's taxel board on a pty, its port printed (the line
-    ``taxel port: PATH``, as ``rigctl sim`` prints it). Raises LslUnavailable."""
+    """``--taxel-board``: the simulated finger's taxel board on a pty (its port is printed once the tracker stream is
+    up: :func:`_say_port`). Raises LslUnavailable."""
     from rigctl.core.lsl import require_pylsl
     from rigctl.simulation.finger_board import SimulatedFingerBoard
 
-    board = SimulatedFingerBoard(clock=require_pylsl().local_clock, seed=seed)
-    click.echo(f"taxel port: {board.path}   (the finger's taxel board, 3x3 at 1 kHz: --taxel-port {board.path})")
-    return board
+    return SimulatedFingerBoard(clock=require_pylsl().local_clock, seed=seed)
+
+
+def _say_port(path: str) -> None:
+    """The line ``taxel port: PATH`` (as ``rigctl sim`` prints its ports), once the board and the tracker stream are
+    both up: a script may start recording when it reads it."""
+    click.echo(f"taxel port: {path}   (the finger's taxel board, 3x3 at 1 kHz: --taxel-port {path})")
+    sys.stdout.flush()
 
 
 def _serial_operator(fields: str, seconds: float, seed: int) -> None:

@@ -365,7 +365,7 @@ class RigControl:
         if run is not None:
             run.stop()
         announce = getattr(self._rig, "announce_stop", None)
-        if announce is not None:  # the handheld rig: its operator is told to lift the finger
+        if announce is not None and run is not None:  # a handheld block: its operator is told to lift the finger
             try:
                 announce(reason)
             except Exception:  # noqa: BLE001 - the STOP itself goes on

@@ -297,7 +297,8 @@ def plate_axis_of(op: SimulatedOperator) -> PlateAxis:
 
 def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple[str, ...] = ("A", "B", "D", "L", "N"),
                     stop: Callable[[], bool] | None = None, on_scan: Callable[[str], Any] | None = None,
-                    on_pass: Callable[[str, np.ndarray, np.ndarray], Any] | None = None) -> int:
+                    on_pass: Callable[[str, np.ndarray, np.ndarray], Any] | None = None,
+                    on_open: Callable[[], Any] | None = None) -> int:
     """Play the simulated operator in real time and publish its wrist tracker on LSL (stream ``name``, type
     "Position", 4 channels: x, y, z in the tracker's frame and the position along the plate, mm; at the tracker's
     90-120 Hz with its jitter and dropouts): :func:`operator_passes`, until ``seconds`` have passed or ``stop()``.
@@ -305,7 +306,8 @@ def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple
     ``lsl:NAME@3`` (along the plate). ``on_scan(text)`` hears each pass begin; ``on_pass(texture, t, along_mm)``
     gets each pass before it plays: its sample times on ``pylsl.local_clock`` (s) and the positions along the plate
     (mm; the simulated finger's taxel board follows them: :class:`rigctl.simulation.finger_board.
-    SimulatedFingerBoard`). Returns the samples pushed. Raises LslUnavailable."""
+    SimulatedFingerBoard`); ``on_open()`` is called once the stream can be resolved. Returns the samples pushed.
+    Raises LslUnavailable."""
     from rigctl.core.lsl import require_pylsl
 
     pylsl = require_pylsl()
@@ -316,6 +318,8 @@ def publish_tracker(name: str, *, seconds: float, seed: int = 0, textures: tuple
     for label in ("x_mm", "y_mm", "z_mm", "along_plate_mm"):
         chans.append_child("channel").append_child_value("label", label).append_child_value("unit", "mm")
     outlet = pylsl.StreamOutlet(info)
+    if on_open is not None:
+        on_open()
     t0, pushed = pylsl.local_clock(), 0
     start = t0
     for label, t, xyz, texture in operator_passes(op, textures):

@@ -45,7 +45,7 @@ def test_the_handheld_blocks_with_prompts_and_predictions(handheld_window, qapp)
     tab = handheld_window.handheld
     click = QtCore.Qt.MouseButton.LeftButton
     QtTest.QTest.mouseClick(tab.open_btn, click)
-    assert wait_for(qapp, lambda: tab.control is not None, 60)
+    assert wait_for(qapp, lambda: tab.control is not None and tab.cal_btn.isEnabled(), 60)
     assert tab.control is handheld_window.handle.control  # the window's one rig, not the tab's own
     assert wait_for(qapp, lambda: handheld_window.drum_state.text() == "Drum: none (handheld rig)", 5)
     prompts = []
@@ -102,7 +102,7 @@ def test_stop_pauses_a_block_resume_completes_it_and_abort_asks(handheld_window,
     w, tab, gate = handheld_window, handheld_window.handheld, slow_operator
     click = QtCore.Qt.MouseButton.LeftButton
     QtTest.QTest.mouseClick(tab.open_btn, click)
-    assert wait_for(qapp, lambda: tab.control is not None, 60)
+    assert wait_for(qapp, lambda: tab.control is not None and tab.cal_btn.isEnabled(), 60)
     prompts = []
     tab.control.subscribe(lambda ev: prompts.append(dict(ev.fields)) if ev.kind == "prompt" else None)
     QtTest.QTest.mouseClick(tab.cal_btn, click)
