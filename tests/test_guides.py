@@ -119,6 +119,12 @@ def _my_hardware(runs, tmp_path, request) -> None:
     assert "trials complete: 6/6" in runs[-1].output or "6/6" in runs[-1].output, runs[-1].output
 
 
+def _handheld(runs, tmp_path, request) -> None:
+    """The finger's taxel board beside a tracker stream: both scans recorded, the sensor from the board's banner."""
+    board = next(r for r in runs if "--taxel-port" in r.block.text).output
+    assert "trials complete: 2/2" in board and "sensor 3x3x1: 9 channels" in board, board
+
+
 def _nothing(runs, tmp_path, request) -> None:
     pass
 
@@ -131,7 +137,7 @@ GUIDES: dict[str, tuple[str, Callable]] = {
     "paper": ("docs/guides/reproducing-the-paper.md", _paper),
     "labrecorder": ("docs/guides/labrecorder.md", _nothing),
     "realrig": ("docs/guides/real-rig.md", _real_rig),
-    "handheld": ("docs/guides/handheld.md", _nothing),
+    "handheld": ("docs/guides/handheld.md", _handheld),
     "config": ("docs/config.md", _nothing),
     "myhardware": ("docs/guides/my-hardware.md", _my_hardware),
 }
@@ -159,7 +165,7 @@ def test_guide_runs_as_written(guide, tmp_path, request):
     if guide == "paper":  # ../shared/data/fabricslide, as beside a checkout
         (tmp_path / "shared" / "data").mkdir(parents=True)
         (tmp_path / "shared" / "data" / "fabricslide").symlink_to(request.getfixturevalue("fabricslide_dir"))
-    if guide == "labrecorder":
+    if guide in ("labrecorder", "handheld"):  # the handheld page's tracker stream
         require_lsl()
     if guide == "realrig":
         request.getfixturevalue("build_tools")
