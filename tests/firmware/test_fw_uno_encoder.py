@@ -1,12 +1,14 @@
 """The Uno encoder image (uno_encoder: the taxel streamer with the integer SA encoder) under simavr, against the host's
-integer kernel on the samples the board streamed beside its spikes (docs/firmware.md "The encoder in the Uno image",
+integer kernel on the samples the board's ADC converted (docs/firmware.md "The encoder in the Uno image",
 docs/wire-protocol.md 1.5).
 
-The harness feeds simulated handheld scans to the ADC; the host calibrates the board, starts it encoding, sends one
-speed per 100 ms window as the board's samples arrive, stops, sends FINISH and reads the counts frame. The host
-encodes the taxel frames it received (the samples the board encoded) with :class:`rigctl.encoding.fixed_sa
-.FixedSAEncoder` and scales them with the speeds it sent: every spike on the same sample, every window count equal,
-no sample dropped, and the CPU's load per 1 ms tick (the harness's ``LOAD`` lines) under the tick.
+The harness plays simulated handheld scans to the ADC in a loop and reports the row of each encoded scan's first sample
+(the image's marker pin); the host runs each scan through its client (:class:`rigctl.devices.encoder_stream
+.OnboardEncoder`: calibrate, encode, one speed per 100 ms window as the board's samples arrive, stop, finish) and
+encodes the same rows with :class:`rigctl.encoding.fixed_sa.FixedSAEncoder`, scaled with the speeds the board applied:
+every spike on the same sample, every window count and the 180 features equal (those of the live
+``ScanEncoder(kernel="fixed")`` too), no sample dropped, the CPU's load per 1 ms tick (the harness's ``LOAD`` lines)
+under the tick and the stack clear of the static RAM. Then START on the same image: its taxel frames exact.
 """
 
 from __future__ import annotations
