@@ -107,8 +107,10 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
 
     Returns
     -------
-    TrialData: the frames whose fitted host time lies in [entry, exit), the speed and position traces (s from the
-    first kept frame's receive time, like ``host_time_s``), attrs (boundaries, tracker, clock fit, the source's).
+    TrialData: the frames whose fitted host time lies in [entry, exit); the frames' receive times (``host_time_s``)
+    and the speed and position traces on one axis whose 0 is the first kept frame's fitted time (so the traces line
+    up with the samples, ``i / rate``, however late a busy host received the frames; ``trial_time_origin_s`` is that
+    0 on the host clock); attrs (boundaries, tracker, clock fit, the source's).
 
     Raises
     ------
@@ -147,7 +149,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     if keep.size == 0:
         raise ScanError("no taxel frame between the finger's entry and exit (is the taxel board streaming?)")
     host = np.asarray(raw.host_time_s, np.float64)[keep]
-    origin = float(host[0])
+    origin = float(frame_t[keep[0]])  # the first kept frame's time on the board's clock, not its (late) receipt
     near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
     if raw.velocity_mm_s is not None:
         vel = np.asarray(raw.velocity_mm_s, np.float64)[ok][order][near]
@@ -164,6 +166,7 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
         "tracker_samples": int(near.sum()), "tracker_rate_hz": 1.0 / period if period > 0 else math.nan,
         "tracker_dropouts": int(np.sum(gaps > 1.5 * period)) if gaps.size else 0,
         **trial_clock_attrs(fit, counts[keep], host),
+        "trial_time_origin_s": raw.time_origin_s + origin,  # the host-clock time of the trial's time 0
         **dict(raw.attrs),
     }
     return TrialData(taxels=np.asarray(raw.taxels)[keep], seq=seq, flags=np.zeros(keep.size, np.uint8),

@@ -32,21 +32,22 @@ from rigctl.storage.session import open_session
 __all__ = ["SessionScans"]
 
 #: the clock attributes a replayed trial keeps as recorded (:func:`rigctl.acquisition.clock.trial_clock_attrs`)
-CLOCK_ATTRS = ("host_time_origin_s", "device_count_origin", "fitted_time_origin_s", "clock_period_s",
+CLOCK_ATTRS = ("trial_time_origin_s", "host_time_origin_s", "device_count_origin", "fitted_time_origin_s", "clock_period_s",
                "clock_drift_ppm", "clock_residual_s", "clock_blocks", "clock_rejected", "clock_span_s",
                "clock_segment")
 
 
 def _frame_times(data: TrialData) -> np.ndarray:
-    """Each frame's fitted host time relative to the trial's first frame's receive time, s (the recorded clock fit;
-    the receive times when the trial has none)."""
+    """Each frame's fitted host time on the trial's time axis, s (the recorded clock fit: relative to the trial's time
+    0, ``trial_time_origin_s``, or in a trial recorded before it, the first frame's receive time; the receive times
+    when the trial has no fit)."""
     a = data.attrs
     if "fitted_time_origin_s" not in a or "clock_period_s" not in a:
         return np.asarray(data.host_time_s, np.float64)
     seq = np.asarray(data.seq, np.int64)
     steps = np.concatenate((np.zeros(1, np.int64), np.bitwise_and(np.diff(seq), 0xFFFF)))
     fitted = float(a["fitted_time_origin_s"]) + np.cumsum(steps) * float(a["clock_period_s"])
-    return fitted - float(a.get("host_time_origin_s", fitted[0]))
+    return fitted - float(a.get("trial_time_origin_s", a.get("host_time_origin_s", fitted[0])))
 
 
 class SessionScans:
@@ -110,7 +111,8 @@ class SessionScans:
         return RawScan(taxels=data.taxels, seq=seq, host_time_s=np.asarray(data.host_time_s, np.float64),
                        tracker_time_s=np.asarray(data.position_time_s, np.float64), along_mm=data.position_mm,
                        velocity_mm_s=np.asarray(data.speed_mm_s, np.float64), attrs=keep,
-                       frame_time_s=_frame_times(data), time_origin_s=float(a.get("host_time_origin_s", 0.0)))
+                       frame_time_s=_frame_times(data),
+                       time_origin_s=float(a.get("trial_time_origin_s", a.get("host_time_origin_s", 0.0))))
 
     def describe(self) -> dict[str, Any]:
         """JSON-able: kind, the file, its scans."""

@@ -55,6 +55,51 @@ def test_cut_by_position_exact_boundaries_and_velocity():
     assert data.attrs["scan_mean_speed_mm_s"] == pytest.approx(100.0)
 
 
+def test_late_frames_never_shift_the_trials_time_axis():
+    """A busy host receives the scan's first 0.8 s of frames in one burst at 0.8 s: the frames kept are still those
+    between the boundaries on the board's clock, and the traces' time 0 is the first kept frame's time on that clock
+    (its 50 mm crossing), not its late receipt (0.3 s later)."""
+    raw = _linear_scan(speed_mm_s=100.0)
+    late = raw.host_time_s < 10.8
+    raw.host_time_s[late] = 10.8  # received all at once
+    data = cut_scan(raw, PAPER_FINGER, PlateAxis())
+    assert abs(data.n_samples - 2000) <= 1
+    assert data.attrs["trial_time_origin_s"] == pytest.approx(10.5, abs=0.0011)
+    assert np.interp(0.0, data.position_time_s, data.position_mm) == pytest.approx(USED_START_MM, abs=0.11)
+    assert data.host_time_s[0] == pytest.approx(0.3, abs=0.0011)  # the receipt, on the same axis
+    assert np.interp(data.duration_s, data.position_time_s, data.position_mm) == pytest.approx(USED_END_MM, abs=0.2)
+
+
+def test_stop_between_scans_pauses_the_block_and_resume_records_every_scan(tmp_path):
+    """STOP (RigControl.stop) right after a scan: the block pauses before the next cue, the operator is told to lift
+    the finger (a stop cue); Resume records the rest, none discarded or recorded twice."""
+    import threading
+
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.operations import ProtocolRun, RigSource, open_control
+
+    events, cues = [], []
+    with open_control(RigSource("handheld"), seed=4, host_config_path=tmp_path / "rig.json") as control:
+        assert not control.has_drum
+        control.subscribe(lambda ev: cues.append(ev.fields["cue"]) if ev.kind == "prompt" else None)
+        run = ProtocolRun(control, parse_protocol(SMALL), tmp_path / "s.h5")
+
+        def on_trial(ev):
+            events.append(ev.kind)
+            if ev.kind == "complete" and events.count("complete") == 1:
+                control.stop("test STOP")  # in the run's thread, between the first and the second scan
+            elif ev.kind == "paused":
+                threading.Timer(0.2, run.resume).start()
+
+        run.on_trial = on_trial
+        summary = run.run()
+    assert summary.ok and summary.complete == 4
+    assert events.count("paused") == 1 and events.count("halted") == 0 and events.count("resumed") == 1
+    assert events.index("paused") == events.index("complete") + 1
+    assert cues.count("stop") == 1 and cues.count("go") == 4  # no scan cued twice
+    assert cues.index("stop") == cues.index("go") + 1
+
+
 def test_cut_refuses_a_scan_that_never_leaves():
     raw = _linear_scan()
     short = raw.tracker_xyz[:, 0] < 200.0

@@ -117,7 +117,7 @@ def assert_cut_at_the_crossings(d) -> None:
     """The trial's frames, on the board's fitted clock, start where the tracked position crossed 50 mm and end where
     it crossed 250 mm (within a frame: the first frame at or after the entry, the last before the exit)."""
     a = d.attrs
-    frames = fitted_times(a, d.seq) - a["host_time_origin_s"]  # on the trial's time axis, like position_time_s
+    frames = fitted_times(a, d.seq) - a["trial_time_origin_s"]  # on the trial's time axis, like position_time_s
     t_in = crossing_s(d.position_time_s, d.position_mm, USED_START_MM)
     t_out = crossing_s(d.position_time_s, d.position_mm, USED_END_MM)
     assert t_out - t_in == pytest.approx(a["scan_duration_s"], abs=1e-9)
