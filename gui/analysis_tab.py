@@ -24,6 +24,9 @@ from rigctl_gui.workers import Job, ProcessJob
 EXPORT_PNG_WIDTH_PX = 1600
 #: the trial view's left axes are this wide (px), so readings, SA and RA share one data area and time axis
 TRIAL_AXIS_PX = 56
+#: the result views' smallest height, px: three trial plots (readings, SA, RA) keep readable data areas; a shorter tab
+#: scrolls (at 1.5x on a 1024x700 screen the plots were squeezed to a few px and their tick labels overlapped)
+VIEWS_MIN_PX = 320
 #: Fig. 3 / report colours per variant
 VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
                    "speed_force_scaled": "#2ca02c"}
@@ -64,6 +67,7 @@ class AnalysisTab(QtWidgets.QWidget):
 
         leftw = self._build_controls()
         self.views = QtWidgets.QTabWidget()
+        self.views.setMinimumHeight(VIEWS_MIN_PX)
         self._build_trial_tab()
         self._build_accuracy_tab()
         self._build_table1_tab()

@@ -180,8 +180,9 @@ class MainWindow(QtWidgets.QMainWindow):
         from rigctl_gui.handheld_tab import HandheldTab
         from rigctl_gui.live_view import LiveView
         from rigctl_gui.protocol_tab import ProtocolTab
+        from rigctl_gui.widgets import PageTabs
 
-        self.tabs = QtWidgets.QTabWidget()
+        self.tabs = PageTabs()  # each page scrolls when the window is smaller than it (a small screen at 1.5x)
         self.control = ControlPanel()
         self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
         self.control.acted.connect(lambda text: self.notify(text, source="rig control"))
@@ -201,7 +202,7 @@ class MainWindow(QtWidgets.QMainWindow):
             (self.classify, "Real-time classification"),
             (self.handheld, "Handheld"),
         ):
-            self.tabs.addTab(w, name)
+            self.tabs.add_page(w, name)
         self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
         # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
         self.stale_label = QtWidgets.QLabel(self.live)
@@ -212,10 +213,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _build_top_bar(self) -> None:
         """The top bar's widgets: the rig source, Connect... and the big STOP."""
-        self.source_label = QtWidgets.QLabel()
-        self.source_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-        self.source_label.setStyleSheet("font-weight: bold;")
-        from rigctl_gui.widgets import StatusText
+        from rigctl_gui.widgets import FittedText, StatusText
+
+        # the whole source, wrapped or in a smaller font where the strip is narrow (a small screen at 1.5x), never cut
+        self.source_label = FittedText(bold=True)
 
         # room for the usual line; a longer one loses its start (right-aligned), never its end ("fault latched")
         self.drum_state = StatusText("Drum: not connected", template="Drum: Seeking force 120 mm/s, 1000 g",
@@ -259,24 +260,10 @@ class MainWindow(QtWidgets.QMainWindow):
     def _build_layout(self) -> None:
         """The top strip (source, run strip, STOP: fixed height, never in a scroll area; the run strip shows and hides
         inside it), the banners, the tabs and the event log dock."""
-        self.top_strip = QtWidgets.QWidget()
-        self.top_strip.setObjectName("top_strip")
-        middle = QtWidgets.QVBoxLayout()
-        middle.setContentsMargins(0, 0, 0, 0)
-        middle.setSpacing(1)
-        first = QtWidgets.QHBoxLayout()  # the source and the drum's state (turning, pressing, fault), on every tab
-        first.addWidget(self.source_label, 1)
-        first.addWidget(self.drum_state)
-        middle.addLayout(first)
-        middle.addWidget(self.protocol.run_strip)
-        middle.addStretch(1)
-        top = QtWidgets.QHBoxLayout(self.top_strip)
-        top.setContentsMargins(0, 0, 0, 0)
-        top.addWidget(self.connect_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
-        top.addLayout(middle, 1)
-        top.addWidget(self.stop_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
-        self.top_strip.setFixedHeight(self.stop_btn.height() + 4)
-        self.source_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
+        from rigctl_gui.top_strip import TopStrip
+
+        self.top_strip = TopStrip(self.connect_btn, self.source_label, self.drum_state, self.protocol.run_strip,
+                                  self.stop_btn)
 
         central = QtWidgets.QWidget()
         lay = QtWidgets.QVBoxLayout(central)

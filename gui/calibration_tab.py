@@ -86,7 +86,12 @@ class CalibrationTab(QtWidgets.QWidget):
         self.reset_btn.clicked.connect(self.reset_normalisation)
         self.norm_info = QtWidgets.QLabel("-")
         self.norm_info.setWordWrap(True)
-        self.norm_plot = pg.PlotWidget(title="Per-taxel range (ADC counts)")
+        self.norm_plot = pg.PlotWidget()
+        # the title in a wrapping label: as the plot's own title it set the plot's smallest width and was cut (with
+        # the last bars) where the tab is narrow (1.5x on 1024x700)
+        self.norm_title = QtWidgets.QLabel("Per-taxel range (ADC counts)")
+        self.norm_title.setWordWrap(True)
+        self.norm_title.setAlignment(QtCore.Qt.AlignmentFlag.AlignHCenter)
         self.norm_plot.setMinimumHeight(120)
         self.norm_bars = pg.BarGraphItem(x=np.arange(1), y0=np.zeros(1), height=np.zeros(1), width=0.7,
                                          brush="#1f77b4")
@@ -124,7 +129,10 @@ class CalibrationTab(QtWidgets.QWidget):
         left.addStretch(1)
         lay = QtWidgets.QHBoxLayout(self)
         lay.addWidget(side_panel(left, 420))
-        lay.addWidget(self.norm_plot, 1)
+        right = QtWidgets.QVBoxLayout()
+        right.addWidget(self.norm_title)
+        right.addWidget(self.norm_plot, 1)
+        lay.addLayout(right, 1)
         self._enable(False)
 
     # ------------------------------------------------------------------------------------------------------

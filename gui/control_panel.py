@@ -27,6 +27,8 @@ from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
 
 __all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning", "drum_summary"]
 
+#: the force and speed plots' smallest height together, px (each data area keeps ~60 px: its legend, its label)
+PLOTS_MIN_PX = 240
 #: the status is polled at 10 Hz: a longer pause between two reads is an outage, drawn as a gap in the plots, s
 GAP_S = 1.0
 #: the colour each controller state is shown in (the words are the library's: rigctl.core.drum.STATE_TEXT)
@@ -211,6 +213,9 @@ class ControlPanel(QtWidgets.QWidget):
         )
         for p in (self.force_plot, self.speed_plot):
             p.showGrid(x=True, y=True, alpha=0.3)
+        # each plot keeps room for its legend and its axis label (a shorter tab scrolls: at 1.5x on 1024x700 the
+        # plots had 15 px and their axis labels ran into each other)
+        self.plots.setMinimumHeight(PLOTS_MIN_PX)
 
     # ------------------------------------------------------------------------------------------------------
     def set_limits(self, speed_max_mm_s: float, force_max_g: float) -> None:

@@ -164,18 +164,11 @@ class HandheldTab(QtWidgets.QWidget):
         top.addLayout(side, 1)
         right.addLayout(top)
         right.addWidget(self.board.tiles, 1)
-        # the tab's content scrolls when the window is shorter than it (a 1280x800 screen at 1.5x): it never sets
-        # the main window's smallest size (the prediction tile alone asks 211 px)
-        inner = QtWidgets.QWidget()
-        lay = QtWidgets.QHBoxLayout(inner)
+        # the main window's tabs scroll this tab's content when the window is shorter than it (the prediction tile
+        # alone asks 211 px: rigctl_gui.widgets.PageTabs)
+        lay = QtWidgets.QHBoxLayout(self)
         lay.addLayout(left, 1)
         lay.addLayout(right, 1)
-        area = QtWidgets.QScrollArea(widgetResizable=True)
-        area.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
-        area.setWidget(inner)
-        outer = QtWidgets.QVBoxLayout(self)
-        outer.setContentsMargins(0, 0, 0, 0)
-        outer.addWidget(area)
         self._update_buttons()
 
     def _browse_training(self) -> None:

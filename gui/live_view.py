@@ -364,13 +364,17 @@ class LiveView(QtWidgets.QWidget):
         self.rate_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Fixed, QtWidgets.QSizePolicy.Policy.Fixed)
         self.rate_label.setObjectName("live_rates")
         self.rate_label.setToolTip("display: paints of these plots per second; taxels: frames arriving per second")
-        bar = QtWidgets.QHBoxLayout()
-        bar.addWidget(QtWidgets.QLabel("Time window"))
-        bar.addWidget(self.window_box)
-        bar.addWidget(self.auto_box)
+        # one row of controls and readouts where the tab is wide enough, else the rates and the sensor on a second
+        # row (:meth:`_arrange_bar`): the bar never sets the window's smallest width
+        self._bar = bar = QtWidgets.QHBoxLayout()
+        self._bar_first: list[QtWidgets.QWidget] = [QtWidgets.QLabel("Time window"), self.window_box, self.auto_box]
+        for w in self._bar_first:
+            bar.addWidget(w)
         bar.addWidget(self.rate_label)
         bar.addWidget(self.sensor_label)
         bar.addWidget(self.info, 1)
+        self._bar2 = QtWidgets.QHBoxLayout()
+        self._bar2.addStretch(1)
 
         self.gl = TimedGraphicsLayout()
         self.gl.painted.connect(self._on_painted)
@@ -387,9 +391,45 @@ class LiveView(QtWidgets.QWidget):
         self.plot_scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
         self.plot_scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.plot_scroll.setWidget(self.gl)
-        lay = QtWidgets.QVBoxLayout(self)
+        self._vbox = lay = QtWidgets.QVBoxLayout(self)
         lay.addLayout(bar)
+        lay.addLayout(self._bar2)
         lay.addWidget(self.plot_scroll, 1)
+
+    def _bar_widths(self) -> tuple[int, int]:
+        """The width (px) the bar needs on one row, and on two rows (the rates and the sensor on the second)."""
+        space = self._bar.spacing()
+        m = self._vbox.contentsMargins()
+        first = self._bar_first  # Time window, its box, Auto-range y
+        second: list[QtWidgets.QWidget] = [self.rate_label, self.sensor_label]
+        one = sum(w.sizeHint().width() for w in first + second) + space * len(first + second)
+        two = max(sum(w.sizeHint().width() for w in first) + space * (len(first) - 1),
+                  sum(w.sizeHint().width() for w in second) + space)
+        return one + m.left() + m.right(), two + m.left() + m.right()
+
+    def _arrange_bar(self) -> None:
+        """The bar on one row when the tab is wide enough for it, else on two: the rates and the sensor move to the
+        second row (issue 38: 683 px of Qt's pixels at 1.5x on a 1024x700 screen), nothing is cut."""
+        two_rows = self.width() < self._bar_widths()[0]
+        if two_rows == (self._bar2.indexOf(self.sensor_label) >= 0):
+            return
+        for i, w in enumerate((self.rate_label, self.sensor_label)):
+            (self._bar if two_rows else self._bar2).removeWidget(w)
+            if two_rows:
+                self._bar2.insertWidget(i, w)
+            else:
+                self._bar.insertWidget(3 + i, w)
+
+    def resizeEvent(self, ev) -> None:  # noqa: N802 - Qt override
+        self._arrange_bar()
+        super().resizeEvent(ev)
+
+    def minimumSizeHint(self) -> QtCore.QSize:  # noqa: N802 - Qt override
+        """As the layout's, but as wide only as the bar on two rows needs (it takes two rows when narrower)."""
+        hint = super().minimumSizeHint()
+        m = self._vbox.contentsMargins()
+        hint.setWidth(max(self._bar_widths()[1], self.plot_scroll.minimumSizeHint().width() + m.left() + m.right()))
+        return hint
 
     @property
     def raster_s(self) -> float:

@@ -21,6 +21,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from rigctl_gui.colours import readable
 from rigctl_gui.dialogs import choose_path
 from rigctl_gui.messages import set_plain
+from rigctl_gui.widgets import FittedText
 from rigctl_gui.workers import Job
 
 PLAN_COLUMNS = ("trial", "texture", "speed (mm/s)", "force (g)", "duration (s)", "profile", "status")
@@ -153,11 +154,10 @@ class ProtocolTab(QtWidgets.QWidget):
         self.run_strip = QtWidgets.QFrame()
         self.run_strip.setObjectName("run_strip")
         self.run_strip.setStyleSheet("QFrame#run_strip { background: #eef; border: 1px solid #88a; } QLabel { color: #000; }")
-        self.run_label = QtWidgets.QLabel()
+        # the whole state (STOPPED's reason and what to do), wrapped or smaller where the strip is narrow, never cut
+        self.run_label = FittedText(bold=True, align=QtCore.Qt.AlignmentFlag.AlignLeft
+                                    | QtCore.Qt.AlignmentFlag.AlignVCenter)
         self.run_label.setObjectName("run_state")
-        self.run_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-        self.run_label.setStyleSheet("font-weight: bold;")
-        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
         self.prompt_frame = QtWidgets.QFrame()
         self.prompt_frame.setStyleSheet("QFrame { background: #ffd; border: 1px solid #aa0; } QLabel { color: #000; }")
         self.prompt_label = QtWidgets.QLabel()

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import time
 
-from PySide6 import QtCore, QtGui, QtWidgets
+from PySide6 import QtCore, QtWidgets
 
 from rigctl.acquisition.link_health import LinkEvent, LinkHealth, LinkState, dropped_frames_severity
 from rigctl_gui.colours import on_window
+from rigctl_gui.widgets import FittedText
 
 OK = "color: #007700;"  # 5:1 on a light window; made readable on the label's palette where it is shown (_show)
 WARN = "color: #000; background: #fc0; padding: 0 4px;"
@@ -135,30 +136,18 @@ class Banner(QtWidgets.QFrame):
     than the strip has, and past that scrollable inside the strip (whose height never changes); the tooltip and the
     event log have it too."""
 
-    MIN_PX = 9
+    MIN_PX = FittedText.MIN_PX
 
     def __init__(self, name: str = "", parent=None):
         super().__init__(parent)
         self.setObjectName(f"banner_{name}" if name else "banner")
-        self.label = QtWidgets.QLabel()
+        self.text_area = FittedText()  # wrapped, a smaller font when long, past that scrolling in the strip
+        self.label = self.text_area.label
         self.label.setObjectName("banner_text")
-        self.label.setTextFormat(QtCore.Qt.TextFormat.PlainText)  # error text is shown whole, '<' included
-        self.label.setWordWrap(True)
-        self.label.setAlignment(QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop)
         self.label.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
-        self.label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
-        self.text_area = QtWidgets.QScrollArea()  # a text longer than the strip scrolls in it, never cut
-        self.text_area.setWidget(self.label)
-        self.text_area.setWidgetResizable(True)
-        self.text_area.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
-        self.text_area.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.text_area.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
-        self.text_area.setStyleSheet("QScrollArea, QScrollArea > QWidget > QWidget { background: transparent; "
-                                  "border: none; }")
         lay = QtWidgets.QHBoxLayout(self)
         lay.setContentsMargins(6, 1, 4, 1)
         lay.addWidget(self.text_area, 1)
-        self._base_px = self.label.fontInfo().pixelSize()
         self.close_btn = QtWidgets.QPushButton("Dismiss")
         self.close_btn.clicked.connect(self.hide)
         lay.addWidget(self.close_btn, 0, QtCore.Qt.AlignmentFlag.AlignTop)
@@ -187,26 +176,10 @@ class Banner(QtWidgets.QFrame):
         else:
             self._timer.stop()
 
-
     def _fit_text(self) -> None:
-        """Show the whole :attr:`text`, wrapped, in the largest font (from the app's down to :attr:`MIN_PX`) whose
-        lines fit the strip's height; a text that does not fit even then scrolls."""
-        self.label.setText(self.text)
-        width = max(self.text_area.viewport().width() - 4, 40)
-        height = max(self.text_area.viewport().height(), 1)
-        font = self.label.font()
-        for px in range(max(self._base_px, self.MIN_PX), self.MIN_PX - 1, -1):
-            font.setPixelSize(px)
-            rect = QtGui.QFontMetrics(font).boundingRect(QtCore.QRect(0, 0, width, 100_000),
-                                                         int(QtCore.Qt.TextFlag.TextWordWrap), self.text)
-            if rect.height() <= height:
-                break
-        self.label.setFont(font)
-
-    def resizeEvent(self, ev):  # noqa: N802 - Qt override
-        super().resizeEvent(ev)
-        if self.text:
-            self._fit_text()
+        """Fit :attr:`text` to the strip (:meth:`rigctl_gui.widgets.FittedText.fit`)."""
+        self.text_area.setText(self.text)
+        self.text_area.fit()
 
 
 class Banners(QtWidgets.QFrame):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 
 def side_panel(layout: QtWidgets.QLayout, width: int) -> QtWidgets.QScrollArea:
@@ -19,6 +19,137 @@ def side_panel(layout: QtWidgets.QLayout, width: int) -> QtWidgets.QScrollArea:
     area.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
     area.setFixedWidth(width)
     return area
+
+
+class FittedText(QtWidgets.QScrollArea):
+    """A text shown whole, never cut with "...": wrapped to the widget's width, in the largest font from the app's
+    down to :attr:`MIN_PX` whose lines fit the widget's height, and past that scrollable inside it. The text never
+    sizes the widget (its layout does: a new text moves nothing); the tooltip has the whole text. ``bold``: in bold;
+    ``align``: the text's alignment (top left by default). :attr:`label` is the QLabel showing it."""
+
+    MIN_PX = 9
+
+    def __init__(self, text: str = "", parent: QtWidgets.QWidget | None = None, *, bold: bool = False,
+                 align: QtCore.Qt.AlignmentFlag = QtCore.Qt.AlignmentFlag.AlignLeft | QtCore.Qt.AlignmentFlag.AlignTop):
+        super().__init__(parent)
+        self.label = QtWidgets.QLabel()
+        self.label.setTextFormat(QtCore.Qt.TextFormat.PlainText)  # a '<' in an error is text, never markup
+        self.label.setWordWrap(True)
+        self.label.setAlignment(align)
+        self.label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
+        if bold:
+            font = self.label.font()
+            font.setBold(True)
+            self.label.setFont(font)
+        #: the text's own size (the app's font), px: :meth:`fit` goes down from it
+        self.base_px = self.label.fontInfo().pixelSize()
+        self.setWidget(self.label)
+        self.setWidgetResizable(True)
+        self.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        self.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Ignored)
+        # see-through (the strip's own background shows), without a style sheet: a widget under one keeps the palette
+        # it was polished with (black text after the desktop turned dark)
+        self.viewport().setAutoFillBackground(False)
+        self.label.setAutoFillBackground(False)
+        self._text = ""
+        self.setText(text)
+
+    def text(self) -> str:
+        """The whole text."""
+        return self._text
+
+    def setText(self, text: str) -> None:  # noqa: N802 - Qt style
+        if text != self._text:
+            self._text = text
+            self.setToolTip(text)
+            self.fit()
+
+    def fit(self) -> None:
+        """Show the whole text, wrapped, in the largest font (from the app's down to :attr:`MIN_PX`) whose lines fit
+        the widget's height; a text that does not fit even then scrolls."""
+        self.label.setText(self._text)
+        width = max(self.viewport().width() - 4, 40)
+        height = max(self.viewport().height(), 1)
+        font = self.label.font()
+        for px in range(max(self.base_px, self.MIN_PX), self.MIN_PX - 1, -1):
+            font.setPixelSize(px)
+            rect = QtGui.QFontMetrics(font).boundingRect(QtCore.QRect(0, 0, width, 100_000),
+                                                         int(QtCore.Qt.TextFlag.TextWordWrap), self._text)
+            if rect.height() <= height:
+                break
+        if font != self.label.font():
+            self.label.setFont(font)
+
+    def resizeEvent(self, ev) -> None:  # noqa: N802 - Qt override
+        super().resizeEvent(ev)
+        if self._text:
+            self.fit()
+
+
+class _PageLayout(QtWidgets.QVBoxLayout):
+    """The margin-free layout of one page in :class:`PageTabs`: its height for a width is the page's *smallest*
+    (its wrapped labels' lines counted), where a box layout gives the preferred one (the plots' preferred heights
+    made a scroll area scroll a page that had room)."""
+
+    def __init__(self, parent: QtWidgets.QWidget):
+        super().__init__(parent)
+        self.setContentsMargins(0, 0, 0, 0)
+
+    def heightForWidth(self, width: int) -> int:  # noqa: N802 - Qt override
+        item = self.itemAt(0)
+        page = item.widget() if item is not None else None
+        layout = page.layout() if page is not None else None
+        if page is None or layout is None:
+            return super().heightForWidth(width)
+        smallest = page.minimumSizeHint().expandedTo(page.minimumSize()).height()
+        return max(layout.totalMinimumHeightForWidth(width), smallest)
+
+
+class PageTabs(QtWidgets.QTabWidget):
+    """A tab widget whose every page lies in a scroll area of its own: a page that needs more room than the window
+    gives it scrolls (both ways) instead of setting the window's smallest size (issue 38: at Qt's scale 1.5 a
+    1024x700 screen is 683x466 of Qt's pixels), and where the room suffices the page is laid out exactly as without
+    it. Pages are added, found and chosen as themselves: :meth:`widget`, :meth:`currentWidget`, :meth:`indexOf` and
+    :meth:`setCurrentWidget` see the page, not its scroll area (:meth:`area` gives that)."""
+
+    def add_page(self, page: QtWidgets.QWidget, label: str) -> int:
+        """Add ``page`` as the tab ``label`` inside a frameless scroll area; returns its index."""
+        # the page sits in a holder whose height for a width is the page's smallest (:class:`_PageLayout`)
+        holder = QtWidgets.QWidget()
+        _PageLayout(holder).addWidget(page)
+        area = QtWidgets.QScrollArea()
+        area.setObjectName(f"page_scroll_{self.count()}")
+        area.setWidgetResizable(True)
+        area.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+        area.setWidget(holder)
+        return self.addTab(area, label)
+
+    def area(self, index: int) -> QtWidgets.QScrollArea | None:
+        """The scroll area of the page at ``index`` (None: no such tab)."""
+        area = super().widget(index)
+        return area if isinstance(area, QtWidgets.QScrollArea) and area.objectName().startswith("page_scroll") \
+            else None
+
+    def widget(self, index: int) -> QtWidgets.QWidget | None:
+        area = self.area(index)
+        holder = area.widget() if area is not None else None
+        layout = holder.layout() if holder is not None else None
+        if layout is None:
+            return super().widget(index)
+        item = layout.itemAt(0)
+        return item.widget() if item is not None else None
+
+    def currentWidget(self) -> QtWidgets.QWidget | None:  # type: ignore[override]  # noqa: N802 - Qt style
+        return self.widget(self.currentIndex())
+
+    def indexOf(self, page: QtWidgets.QWidget) -> int:  # noqa: N802 - Qt style
+        return next((i for i in range(self.count()) if self.widget(i) is page), super().indexOf(page))
+
+    def setCurrentWidget(self, page: QtWidgets.QWidget) -> None:  # noqa: N802 - Qt style
+        index = self.indexOf(page)
+        if index >= 0:
+            self.setCurrentIndex(index)
 
 
 def keep_room(widget: QtWidgets.QWidget, *, lines: int | None = None) -> None:

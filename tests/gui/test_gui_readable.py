@@ -24,6 +24,8 @@ from rigctl_gui.events import wait_for
 
 #: 1280x800 screen pixels at Qt's scale factor 1.5, in Qt's pixels
 SCALED_1280x800 = (853, 533)
+#: a whole 1024x700 screen at Qt's scale factor 1.5, in Qt's pixels: the window's smallest size must fit it
+SCALED_1024x700 = (683, 466)
 
 
 def _live_geometry(window, qapp, size):
@@ -39,7 +41,8 @@ def _live_geometry(window, qapp, size):
     return live
 
 
-@pytest.mark.parametrize("size", [SCALED_1280x800, (1024, 700)], ids=["1.5x-1280x800", "1024x700"])
+@pytest.mark.parametrize("size", [SCALED_1024x700, SCALED_1280x800, (1024, 700)],
+                         ids=["1.5x-1024x700", "1.5x-1280x800", "1024x700"])
 def test_the_live_view_keeps_readable_plots_and_its_colour_bar(inprocess_window, qapp, size):
     """Each trace plot's data area is at least 56 px tall and each raster's 36 px (the view scrolls below that),
     every title fits its plot, the raster's tick labels never overlap, and the colour bar with its labels lies
@@ -172,3 +175,112 @@ def test_the_event_log_is_readable(qapp, palette):
     assert len(seen) >= 9, seen
     assert all(c >= MIN_CONTRAST for _, _, c in seen), [s for s in seen if s[2] < MIN_CONTRAST]
     log.deleteLater()
+
+
+def _overlaps(parent: QtWidgets.QWidget) -> list[tuple[str, str]]:
+    """Pairs of visible sibling widgets under ``parent`` (at any depth) whose rectangles overlap, by name; a scroll
+    area's or a tab bar's own parts, overlays (the stale marker) and hidden widgets are left out."""
+    def name(w: QtWidgets.QWidget) -> str:
+        text = w.text() if hasattr(w, "text") and callable(w.text) and isinstance(w.text(), str) else ""
+        return f"{type(w).__name__}:{w.objectName() or text[:30]}"
+
+    found = []
+    for p in [parent, *parent.findChildren(QtWidgets.QWidget)]:
+        if isinstance(p, (QtWidgets.QAbstractScrollArea, QtWidgets.QTabBar)) or not p.isVisible():
+            continue
+        kids = [k for k in p.findChildren(QtWidgets.QWidget, options=QtCore.Qt.FindChildOption.FindDirectChildrenOnly)
+                if k.isVisible() and not k.isWindow() and k.objectName() != "stale_marker"
+                and not k.objectName().startswith("qt_")]
+        for i, a in enumerate(kids):
+            for b in kids[i + 1:]:
+                if a.geometry().intersects(b.geometry()):
+                    found.append((name(a), name(b)))
+    return found
+
+
+def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
+    """Issue 38: at 1.5x a 1024x700 screen is 683x466 of Qt's pixels and the window's smallest size was 794x519. Now
+    the window's smallest size fits it, and at that size: STOP is whole; every tab's content gets at least its own
+    smallest size (what does not fit scrolls, and the scroll bars reach all of it); no two widgets overlap; the Live
+    view's bar takes two rows with every readout whole; the control plots keep their room (their axis labels ran
+    into each other at 15 px); the calibration plot fits its widget; the source and a STOPPED run's long state are
+    shown whole in the top strip; a refused setpoint moves neither Apply nor Press nor Run."""
+    from rigctl_gui.control_panel import PLOTS_MIN_PX
+    from rigctl_gui.widgets import FittedText
+
+    w = inprocess_window
+    width, height = SCALED_1024x700
+    hint, smallest = w.minimumSizeHint(), w.minimumSize()
+    assert hint.width() <= width and hint.height() <= height, hint
+    assert smallest.width() <= width and smallest.height() <= height, smallest
+    w.resize(width, height)
+    try:
+        wait_for(qapp, lambda: w.width() == width and w.height() == height, 5)
+        assert (w.width(), w.height()) == SCALED_1024x700
+        stop = QtCore.QRect(w.stop_btn.mapTo(w, QtCore.QPoint(0, 0)), w.stop_btn.size())
+        assert w.rect().contains(stop) and (stop.width(), stop.height()) == (160, 48), stop
+        for i in range(w.tabs.count()):
+            page, area = w.tabs.widget(i), w.tabs.area(i)
+            w.tabs.setCurrentIndex(i)
+            wait_for(qapp, lambda: False, 0.3)
+            need = page.minimumSizeHint().expandedTo(page.minimumSize())
+            name = w.tabs.tabText(i)
+            assert page.width() >= need.width() and page.height() >= need.height(), (name, page.size(), need)
+            view = area.viewport()
+            assert area.horizontalScrollBar().maximum() >= page.width() - view.width(), name
+            assert area.verticalScrollBar().maximum() >= page.height() - view.height(), name
+            assert not _overlaps(page), (name, _overlaps(page))
+        assert not _overlaps(w.top_strip), _overlaps(w.top_strip)
+        # the Live view: its bar on two rows, each readout given its whole width
+        w.tabs.setCurrentWidget(w.live)
+        wait_for(qapp, lambda: False, 0.3)
+        live = w.live
+        assert live._bar2.indexOf(live.sensor_label) >= 0
+        for label in (live.rate_label, live.sensor_label):
+            assert label.width() >= label.sizeHint().width(), (label.objectName(), label.width())
+        # the control plots: their room, and their axis labels apart
+        w.tabs.setCurrentWidget(w.control)
+        wait_for(qapp, lambda: False, 0.3)
+        c = w.control
+        assert c.plots.height() >= PLOTS_MIN_PX
+        labels = [p.getAxis("left").label for p in (c.force_plot, c.speed_plot)]
+        a, b = (lab.mapRectToScene(lab.boundingRect()) for lab in labels)
+        assert not a.intersects(b), (a, b)
+        # the calibration plot (title, axes, bars) inside its widget
+        w.tabs.setCurrentWidget(w.calibration)
+        wait_for(qapp, lambda: False, 0.3)
+        plot = w.calibration.norm_plot
+        shown = plot.mapFromScene(plot.plotItem.sceneBoundingRect()).boundingRect()
+        assert plot.viewport().rect().adjusted(-1, -1, 1, 1).contains(shown), (shown, plot.viewport().rect())
+        # the top strip's texts whole: the source, and beside it a stopped run's long state
+        assert isinstance(w.source_label, FittedText)
+        assert w.source_label.verticalScrollBar().maximum() == 0, w.source_label.text()
+        run = w.protocol
+        run.run_label.setText("Protocol screenshot_demo: STOPPED (the operator pressed STOP): the rig is at rest. "
+                              "Resume records the discarded trial again, Abort ends the run - 3/16 done, ETA 0:21")
+        run.run_strip.show()
+        wait_for(qapp, lambda: False, 0.3)
+        try:
+            for text in (run.run_label, w.source_label):
+                assert text.verticalScrollBar().maximum() == 0, text.text()
+                assert text.label.font().pixelSize() >= FittedText.MIN_PX
+        finally:
+            run.run_strip.hide()
+        # a refused setpoint moves none of Apply, Press, Run
+        w.tabs.setCurrentWidget(w.control)
+        wait_for(qapp, lambda: False, 0.3)
+
+        def tops():
+            return [b.mapTo(w, b.rect().topLeft()).y() for b in (c.apply_btn, c.buttons["press"], c.buttons["run"])]
+
+        before, speed, force = tops(), c.speed.value(), c.force.value()
+        c.speed.setValue(5000.0)
+        c.force.setValue(9000.0)
+        c.apply_setpoints()
+        wait_for(qapp, lambda: False, 0.3)
+        assert c.setpoint_error.isVisible() and "refused" in c.setpoint_error.text()
+        assert tops() == before
+        c.speed.setValue(speed)
+        c.force.setValue(force)
+    finally:
+        w.resize(1400, 900)
