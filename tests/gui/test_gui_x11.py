@@ -3,6 +3,7 @@
 screen size measures everything (it asserts nothing); the tests here judge what it measured:
 
 - the window fits the screen and STOP's rectangle lies inside it, on first start and after a larger size was saved;
+  also at Qt's scale 1.5 on the 1024x700 screen (683x466 of Qt's pixels: the window's smallest size fits it);
 - with a menu open, and with a drop-down open, one click on STOP stops the turning drum;
 - the wheel over the unfocused speed box changes nothing (and over the focused one it does: the wheel does arrive);
 - Esc in a dialog during a protocol run closes the dialog and the run goes on;
@@ -40,6 +41,17 @@ def measured(request, tmp_path_factory):
     return data
 
 
+@pytest.fixture(scope="module")
+def measured_scaled(tmp_path_factory):
+    """The window's fit on a 1024x700 screen at Qt's scale factor 1.5 (the driver's ``--fit-only``)."""
+    out = tmp_path_factory.mktemp("x11_scaled") / "measured.json"
+    with x_server(1024, 700) as env:
+        proc = subprocess.run([sys.executable, str(DRIVER), str(out), "--fit-only"],
+                              env=dict(env, QT_SCALE_FACTOR="1.5"), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and out.exists(), proc.stderr[-3000:]
+    return json.loads(out.read_text())
+
+
 def _inside(inner, outer) -> bool:
     x, y, w, h = inner
     ox, oy, ow, oh = outer
@@ -55,6 +67,19 @@ def test_the_window_and_stop_fit_the_screen(measured, start):
     assert _inside(m["stop"], m["avail"]), m
     if start == "fit_restored":  # a saved size larger than this screen came back no larger than the screen
         assert m["frame"][2] <= measured["size"][0] and m["frame"][3] <= measured["size"][1]
+
+
+@pytest.mark.parametrize("start", ["fit_first", "fit_restored"])
+def test_the_window_fits_a_1024x700_screen_at_1_5x(measured_scaled, start):
+    """Issue 38: at 1.5x a 1024x700 screen is 683x466 of Qt's pixels, and the window's smallest size was 794x519:
+    the window stuck out of the screen. Its smallest size now fits, and the whole window (its frame too) and STOP lie
+    on the screen."""
+    m = measured_scaled[start]
+    assert m["visible"] and m["scale"] == 1.5, m
+    assert m["screen"][2:] == [683, 467] or m["screen"][2:] == [683, 466], m  # 1024x700 / 1.5, rounded
+    assert m["smallest"][0] <= 683 and m["smallest"][1] <= 466, m
+    assert _inside(m["frame"], m["avail"]), m
+    assert _inside(m["stop"], m["avail"]) and m["stop"][2:] == [160, 48], m
 
 
 @pytest.mark.parametrize("case", ["menu_stop", "combo_stop"])

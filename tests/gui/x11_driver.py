@@ -1,13 +1,14 @@
 """Drive the real app on a real X server (run by tests/gui/test_gui_x11.py under Xvfb + openbox, never directly).
 
-``python x11_driver.py OUT.json`` with ``DISPLAY`` set: opens the main window as an experimenter would, clicks and
+``python x11_driver.py OUT.json [--fit-only]`` with ``DISPLAY`` set: opens the main window as an experimenter would, clicks and
 types with xdotool (real X events through the X server, past the popups' pointer grabs), and writes what it measured
 to ``OUT.json`` for the test to judge. Nothing is asserted here: the test does that.
 
 Measures, in order:
 
 - ``fit``: first start (fresh settings) and a start after a larger size was saved: the screen's available area, the
-  window's frame and STOP's rectangle on screen;
+  window's frame, its smallest size and STOP's rectangle on screen, and Qt's scale factor (``--fit-only``: only
+  this, e.g. under ``QT_SCALE_FACTOR=1.5``);
 - ``menu_stop`` / ``combo_stop``: the drum turning, a menu (File) or the plate drop-down opened by a click, then
   one click on STOP: whether the popup was open, the controller's state and speed target afterwards;
 - ``wheel``: the wheel over the unfocused speed box, then over the focused one: the values;
@@ -36,7 +37,7 @@ retries = 0
 """
 
 
-def main(out_path: str) -> int:
+def main(out_path: str, fit_only: bool = False) -> int:
     tmp = tempfile.mkdtemp(prefix="rigctl-x11-")
     os.environ["RIGCTL_CONFIG"] = os.path.join(tmp, "rig.json")
     from PySide6 import QtCore, QtWidgets
@@ -77,8 +78,10 @@ def main(out_path: str) -> int:
     def place(w):
         screen = w.screen()
         g = w.frameGeometry()
+        smallest = w.minimumSizeHint().expandedTo(w.minimumSize())
         return {"avail": list(screen.availableGeometry().getRect()), "screen": list(screen.geometry().getRect()),
-                "frame": list(g.getRect()), "stop": rect(w.stop_btn), "visible": w.isVisible()}
+                "frame": list(g.getRect()), "stop": rect(w.stop_btn), "visible": w.isVisible(),
+                "smallest": [smallest.width(), smallest.height()], "scale": w.devicePixelRatio()}
 
     # the GUI tests' dead man's limit (tests/gui/conftest.py TEST_DEADMAN_S): a loaded machine can starve the GUI
     # thread for half a second, and these checks are not about the dead man's switch
@@ -100,6 +103,8 @@ def main(out_path: str) -> int:
     out["fit_restored"] = place(w)
     w.close()
     app.processEvents()
+    if fit_only:
+        return _write(out_path, out)
 
     # --- the rig: the simulated rig on ptys ---
     w = MainWindow(RigSource("sim"))
@@ -262,4 +267,4 @@ def _write(path: str, out: dict) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1]))
+    sys.exit(main(sys.argv[1], "--fit-only" in sys.argv[2:]))
