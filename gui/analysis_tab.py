@@ -47,6 +47,15 @@ def file_kind(path: str) -> str:
         return "unknown"
 
 
+class _Views(QtWidgets.QTabWidget):
+    """The result views, of :data:`VIEWS_MIN_PX` at least, without height-for-width: a tab widget's is its pages'
+    *preferred* height (their plots' 480 px), and the main window's page scroll area took it as the tab's smallest
+    height, so the Analysis tab scrolled at 1024x700 and 1280x800 with a file open."""
+
+    def hasHeightForWidth(self) -> bool:  # noqa: N802 - Qt override
+        return False
+
+
 class AnalysisTab(QtWidgets.QWidget):
     """The offline analysis tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
@@ -66,7 +75,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.sensor_layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
 
         leftw = self._build_controls()
-        self.views = QtWidgets.QTabWidget()
+        self.views = _Views()
         self.views.setMinimumHeight(VIEWS_MIN_PX)
         self._build_trial_tab()
         self._build_accuracy_tab()
