@@ -284,3 +284,21 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         c.force.setValue(force)
     finally:
         w.resize(1400, 900)
+
+
+@pytest.mark.parametrize("size", [(1024, 700), (1280, 800)], ids=["1024x700", "1280x800"])
+def test_no_tab_scrolls_at_1x_on_the_usual_screens(inprocess_window, qapp, size):
+    """The tabs' scroll areas (which let a 1024x700 screen at 1.5x hold the window) change nothing where the
+    window has room: at 1024x700 and 1280x800 no tab's content scrolls, either way."""
+    w = inprocess_window
+    w.resize(*size)
+    try:
+        wait_for(qapp, lambda: (w.width(), w.height()) == size, 5)
+        for i in range(w.tabs.count()):
+            w.tabs.setCurrentIndex(i)
+            wait_for(qapp, lambda: False, 0.2)
+            area = w.tabs.area(i)
+            bars = area.verticalScrollBar().maximum(), area.horizontalScrollBar().maximum()
+            assert bars == (0, 0), (w.tabs.tabText(i), bars)
+    finally:
+        w.resize(1400, 900)
