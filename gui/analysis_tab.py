@@ -27,6 +27,9 @@ TRIAL_AXIS_PX = 56
 #: the result views' smallest height, px: three trial plots (readings, SA, RA) keep readable data areas; a shorter tab
 #: scrolls (at 1.5x on a 1024x700 screen the plots were squeezed to a few px and their tick labels overlapped)
 VIEWS_MIN_PX = 320
+#: the trial view's plots' smallest width, px (beside the 230-px heat maps; at 1.5x on a 1024x700 screen they had 70 px,
+#: their data areas 14): a narrower tab scrolls sideways
+TRIAL_PLOTS_MIN_PX = 240
 #: Fig. 3 / report colours per variant
 VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
                    "speed_force_scaled": "#2ca02c"}
@@ -178,6 +181,7 @@ class AnalysisTab(QtWidgets.QWidget):
         trialw = QtWidgets.QWidget()
         tlay = QtWidgets.QHBoxLayout(trialw)
         self.trial_gl = pg.GraphicsLayoutWidget()
+        self.trial_gl.setMinimumWidth(TRIAL_PLOTS_MIN_PX)
         self.trial_busy = QtWidgets.QProgressBar()  # indeterminate while a trial is read and encoded
         self.trial_busy.setRange(0, 0)
         self.trial_busy.setMaximumHeight(14)

@@ -144,6 +144,10 @@ def main(out_dir: str, only: list[str] | None = None, size: tuple[int, int] = (1
     a = w.analysis
     w.tabs.setCurrentWidget(a)
     a.open(ds)
+    area = w.tabs.area(w.tabs.indexOf(a))
+    if area is not None:  # a tab too narrow (1.5x on 1024x700) shows its views, scrolled to them as a user would
+        bar = area.horizontalScrollBar()
+        bar.rangeChanged.connect(lambda _lo, hi: bar.setValue(hi))
     a.repeats.setValue(3)
     a.n_pcs.setValue(30)
     a.run_analyses()
@@ -264,6 +268,7 @@ def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) 
 
     bench = w.handle.control.bench  # the simulated bench's hand: the e-stop pressed for 2 s of the rig's clock
     assert bench is not None, "the screenshots need a simulated rig"
+    w.fit_to_screen()  # the screen is grabbed: the whole window on it, its title bar too (as a desktop places it)
     bench.inject_faults([parse_fault("estop@0+2")])
     wait(lambda: w.fault_dialog is not None, 10)
     dlg = w.fault_dialog
@@ -273,6 +278,9 @@ def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) 
         dlg.move(w.geometry().center() - dlg.rect().center())
     wait(lambda: False, 1.0)
     save("fault", QtGui.QGuiApplication.primaryScreen().grabWindow(0))
+    if dlg is not None:  # acknowledged, as the operator would: the shots after it show no latched fault
+        dlg.acknowledge()
+        wait(lambda: w.fault_dialog is None and not w.banners["fault"].isVisible(), 20)
 
 
 def _logical(size: tuple[int, int], scale: float) -> tuple[int, int]:
