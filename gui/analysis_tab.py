@@ -24,12 +24,12 @@ from rigctl_gui.workers import Job, ProcessJob
 EXPORT_PNG_WIDTH_PX = 1600
 #: the trial view's left axes are this wide (px), so readings, SA and RA share one data area and time axis
 TRIAL_AXIS_PX = 56
-#: the result views' smallest height, px: three trial plots (readings, SA, RA) keep readable data areas; a shorter tab
-#: scrolls (at 1.5x on a 1024x700 screen the plots were squeezed to a few px and their tick labels overlapped)
-VIEWS_MIN_PX = 320
-#: the trial view's plots' smallest width, px (beside the 230-px heat maps; at 1.5x on a 1024x700 screen they had 70 px,
-#: their data areas 14): a narrower tab scrolls sideways
-TRIAL_PLOTS_MIN_PX = 240
+#: the accuracy and confusion plots' smallest height, px: a shorter tab scrolls (at 1.5x on a 1024x700 screen the plots
+#: were squeezed to a few px and their tick labels overlapped)
+RESULT_PLOT_MIN_PX = 200
+#: the trial view's plots' smallest size, px (beside the 230-px heat maps; at 1.5x on a 1024x700 screen they had 70 px,
+#: their data areas 14 px wide and ~20 px tall, the title cut): a smaller tab scrolls
+TRIAL_PLOTS_MIN_PX = (300, 340)
 #: Fig. 3 / report colours per variant
 VARIANT_COLOURS = {"original": "#000000", "speed_scaled": "#1f77b4", "force_scaled": "#d62728",
                    "speed_force_scaled": "#2ca02c"}
@@ -51,9 +51,9 @@ def file_kind(path: str) -> str:
 
 
 class _Views(QtWidgets.QTabWidget):
-    """The result views, of :data:`VIEWS_MIN_PX` at least, without height-for-width: a tab widget's is its pages'
-    *preferred* height (their plots' 480 px), and the main window's page scroll area took it as the tab's smallest
-    height, so the Analysis tab scrolled at 1024x700 and 1280x800 with a file open."""
+    """The result views, without height-for-width: a tab widget's is its pages' *preferred* height (their plots'
+    480 px), and the main window's page scroll area took it as the tab's smallest height, so the Analysis tab
+    scrolled at 1024x700 and 1280x800 with a file open."""
 
     def hasHeightForWidth(self) -> bool:  # noqa: N802 - Qt override
         return False
@@ -79,7 +79,6 @@ class AnalysisTab(QtWidgets.QWidget):
 
         leftw = self._build_controls()
         self.views = _Views()
-        self.views.setMinimumHeight(VIEWS_MIN_PX)
         self._build_trial_tab()
         self._build_accuracy_tab()
         self._build_table1_tab()
@@ -181,7 +180,7 @@ class AnalysisTab(QtWidgets.QWidget):
         trialw = QtWidgets.QWidget()
         tlay = QtWidgets.QHBoxLayout(trialw)
         self.trial_gl = pg.GraphicsLayoutWidget()
-        self.trial_gl.setMinimumWidth(TRIAL_PLOTS_MIN_PX)
+        self.trial_gl.setMinimumSize(*TRIAL_PLOTS_MIN_PX)
         self.trial_busy = QtWidgets.QProgressBar()  # indeterminate while a trial is read and encoded
         self.trial_busy.setRange(0, 0)
         self.trial_busy.setMaximumHeight(14)
@@ -232,6 +231,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.acc_plot.setLabel("bottom", "number of PCs")
         self.acc_plot.showGrid(x=True, y=True, alpha=0.3)
         self.acc_plot.addLegend(offset=(-10, -10), labelTextSize="8pt")
+        self.acc_plot.setMinimumHeight(RESULT_PLOT_MIN_PX)
         # the long description in a wrapping label: a plot title wider than the view set the plot's minimum width
         # and cut the title, the legend and the x axis at 1024x700
         self.acc_info = QtWidgets.QLabel("")
@@ -277,6 +277,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.conf_info.setWordWrap(True)
         cl.addWidget(self.conf_info)
         self.conf_plot = pg.PlotWidget(title="Confusion matrix")
+        self.conf_plot.setMinimumHeight(RESULT_PLOT_MIN_PX)
         self.conf_plot.setAspectLocked(True)
         self.conf_plot.invertY(True)
         self.conf_img = pg.ImageItem(axisOrder="row-major")

@@ -27,8 +27,9 @@ from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
 
 __all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning", "drum_summary"]
 
-#: the force and speed plots' smallest height together, px (each data area keeps ~60 px: its legend, its label)
-PLOTS_MIN_PX = 240
+#: the force and speed plots' smallest height together, px (each data area keeps ~80 px: its two-line legend, its axis
+#: label)
+PLOTS_MIN_PX = 300
 #: the status is polled at 10 Hz: a longer pause between two reads is an outage, drawn as a gap in the plots, s
 GAP_S = 1.0
 #: the colour each controller state is shown in (the words are the library's: rigctl.core.drum.STATE_TEXT)

@@ -203,8 +203,9 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
     the window's smallest size fits it, and at that size: STOP is whole; every tab's content gets at least its own
     smallest size (what does not fit scrolls, and the scroll bars reach all of it); no two widgets overlap; the Live
     view's bar takes two rows with every readout whole; the control plots keep their room (their axis labels ran
-    into each other at 15 px); the calibration plot fits its widget; the source and a STOPPED run's long state are
-    shown whole in the top strip; a refused setpoint moves neither Apply nor Press nor Run."""
+    into each other at 15 px); the calibration plot fits its widget; the analysis trial plots keep their room and
+    their title; the source and a STOPPED run's long state are shown whole in the top strip; a refused setpoint
+    moves neither Apply nor Press nor Run."""
     from rigctl_gui.control_panel import PLOTS_MIN_PX
     from rigctl_gui.widgets import FittedText
 
@@ -252,6 +253,17 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         plot = w.calibration.norm_plot
         shown = plot.mapFromScene(plot.plotItem.sceneBoundingRect()).boundingRect()
         assert plot.viewport().rect().adjusted(-1, -1, 1, 1).contains(shown), (shown, plot.viewport().rect())
+        # the analysis trial view: its plots whole (a trial's title inside, data areas of at least 36 px)
+        an = w.analysis
+        w.tabs.setCurrentWidget(an)
+        an.views.setCurrentIndex(0)
+        an.trial_plot.setTitle("Trial 4321: raw taxel readings")
+        wait_for(qapp, lambda: False, 0.3)
+        plots = [an.trial_plot, *(p for p, _ in an.trial_rasters.values())]
+        assert all(p.vb.height() >= 36 for p in plots), [p.vb.height() for p in plots]
+        title = an.trial_plot.titleLabel.item
+        assert title.mapRectToScene(title.boundingRect()).right() <= an.trial_gl.viewport().width() + 1
+        an.trial_plot.setTitle("Raw taxel readings")
         # the top strip's texts whole: the source, and beside it a stopped run's long state
         assert isinstance(w.source_label, FittedText)
         assert w.source_label.verticalScrollBar().maximum() == 0, w.source_label.text()
