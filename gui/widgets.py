@@ -175,15 +175,17 @@ class StatusText(QtWidgets.QWidget):
         super().__init__(parent)
         self._text = text
         self._align = align | QtCore.Qt.AlignmentFlag.AlignVCenter
-        fm = self.fontMetrics()
-        self._hint = QtCore.QSize(fm.horizontalAdvance(template or text) + 4, fm.height() + 2)
+        self._template = template or text
         self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred, QtWidgets.QSizePolicy.Policy.Fixed)
 
     def sizeHint(self) -> QtCore.QSize:  # noqa: N802 - Qt override
-        return QtCore.QSize(self._hint)
+        # in the font the text is drawn in (a style sheet's bold, set after this widget was made, included: measured
+        # in the plain font, the drum's bold state lost its start at its template's length)
+        fm = self.fontMetrics()  # 4 px of margins, 2 more for the text's fractional width
+        return QtCore.QSize(fm.horizontalAdvance(self._template) + 6, fm.height() + 2)
 
     def minimumSizeHint(self) -> QtCore.QSize:  # noqa: N802 - Qt override
-        return QtCore.QSize(0, self._hint.height())
+        return QtCore.QSize(0, self.sizeHint().height())
 
     def text(self) -> str:
         return self._text

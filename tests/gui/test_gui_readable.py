@@ -267,6 +267,14 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         # the top strip's texts whole: the source, and beside it a stopped run's long state
         assert isinstance(w.source_label, FittedText)
         assert w.source_label.verticalScrollBar().maximum() == 0, w.source_label.text()
+        # the drum's state at its longest usual length, whole in its bold font (it lost its start: measured in the
+        # plain font)
+        state = w.drum_state.text()
+        w.drum_state.setText("Drum: Seeking force 120 mm/s, 1000 g")
+        try:
+            assert w.drum_state._shown() == w.drum_state.text(), (w.drum_state._shown(), w.drum_state.width())
+        finally:
+            w.drum_state.setText(state)
         run = w.protocol
         run.run_label.setText("Protocol screenshot_demo: STOPPED (the operator pressed STOP): the rig is at rest. "
                               "Resume records the discarded trial again, Abort ends the run - 3/16 done, ETA 0:21")
