@@ -217,6 +217,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
         # the whole source, wrapped or in a smaller font where the strip is narrow (a small screen at 1.5x), never cut
         self.source_label = FittedText(bold=True)
+        self.source_label.setObjectName("source")
 
         # room for the usual line; a longer one loses its start (right-aligned), never its end ("fault latched")
         self.drum_state = StatusText("Drum: not connected", template="Drum: Seeking force 120 mm/s, 1000 g",
