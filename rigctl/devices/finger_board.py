@@ -1,15 +1,16 @@
 """The handheld rig's real finger: the taxel board's frames beside a live motion source (``--taxel-port PORT`` with
 ``--motion lsl:NAME`` or ``serial:PORT``).
 
-:class:`BoardFingerScans` is a :class:`rigctl.core.handheld.ScanSource`: after each cue it keeps every frame of the
-taxel board (the Uno's CRC-checked frames, :class:`rigctl.devices.taxel_stream.TaxelStream`, the layout from its
-identify reply: ``layout=3x3x1`` for the paper's finger) while it waits for the tracked finger to pass the plate's
-used part (:func:`rigctl.core.handheld.wait_for_pass`), and returns the frames with their sequence numbers and host
-receive times beside the tracker's samples. The cut (:func:`rigctl.acquisition.handheld.cut_scan`) puts the frames
-on the host clock by the board's clock fit (:class:`rigctl.core.clocksync.DeviceClockFit`: sequence numbers against
-receive times, the lower envelope, over every frame of every scan since the board opened) and the tracker's samples
-are on the host clock already (an LSL stream's timestamps less the measured LSL <-> host offset; a motion board's own
-clock fit), so both are cut on one clock.
+:class:`BoardFingerScans` is a :class:`rigctl.core.handheld.ScanSource`: after each cue it waits for the tracked
+finger to pass the plate's used part (:func:`rigctl.core.handheld.wait_for_pass`) and takes every frame the taxel
+board sent from a second before the cue (the Uno's CRC-checked frames, from the live ring of its
+:class:`rigctl.devices.taxel_stream.TaxelStream`; the layout from its identify reply: ``layout=3x3x1`` for the paper's
+finger; a finger already on its way when a busy host cued it late still has its entry's frames), and returns the
+frames with their sequence numbers and host receive times beside the tracker's samples. The cut
+(:func:`rigctl.acquisition.handheld.cut_scan`) puts the frames on the host clock by the board's clock fit
+(:class:`rigctl.core.clocksync.DeviceClockFit`: sequence numbers against receive times, the lower envelope, over every
+frame of every scan since the board opened) and the tracker's samples are on the host clock already (an LSL stream's
+timestamps less the measured LSL <-> host offset; a motion board's own clock fit), so both are cut on one clock.
 """
 
 from __future__ import annotations
@@ -31,6 +32,10 @@ from rigctl.devices.taxel_stream import StreamStats, TaxelStream
 
 __all__ = ["BoardFingerScans", "open_finger_board"]
 
+#: a scan keeps the board's frames from this long before its cue, s (the tracker's from MARGIN_S before it)
+PRE_CUE_S = 1.0
+#: the board's ring holds this much more than the longest wait for a pass, s
+RING_SPARE_S = 10.0
 #: the frames the board must have sent before the first scan, s of its rate (the stream is flowing)
 WARM_UP_S = 0.5
 #: how long the board may take to send them, s
@@ -55,6 +60,7 @@ class BoardFingerScans:
         #: a busy host in one scan is an outlier of a long fit, not the slope of a short one
         self.clock_fit = DeviceClockFit(self.layout.sample_rate_hz)
         self.scans = 0
+        self._ring, self._cursor = taxels.ring, taxels.ring.total  # the frames a scan may take start here
 
     @property
     def ring(self) -> RingBuffer:
@@ -70,27 +76,31 @@ class BoardFingerScans:
         return x[:, 0] if x.shape[1] != 3 else self.axis.along_mm(x)  # type: ignore[union-attr]  # checked above
 
     def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
-        """Keep the board's frames from the cue until the finger has passed the plate's used part; the pass (frames
-        with ``seq`` and receive times, tracker samples) or None when ``stop()``. Raises ScanError (no pass within
-        ``timeout_s``, no frame from the board)."""
+        """The board's frames from :data:`PRE_CUE_S` before the cue until the finger has passed the plate's used part
+        (from its ring: a finger already on its way when a busy host gave the cue late entered the plate with frames
+        kept), the pass's tracker samples; None when ``stop()``. Raises ScanError (no pass within ``timeout_s``, no
+        frame from the board)."""
         t_cue = time.monotonic()
-        self.taxels.begin_capture()
-        try:
-            got = wait_for_pass(self.tracker, self._along, t_cue, stop=stop, timeout_s=self.timeout_s)
-        finally:
-            cap = self.taxels.end_capture()
+        ring, before = self.taxels.ring, self.taxels.stats
+        # never a frame an earlier scan took: the clock fit takes each frame once, in order
+        start = max(ring.total - int(PRE_CUE_S * self.layout.sample_rate_hz), self._cursor if ring is self._ring else 0)
+        got = wait_for_pass(self.tracker, self._along, t_cue, stop=stop, timeout_s=self.timeout_s)
         if got is None:
             return None
-        if not len(cap):
+        self._cursor, samples, seq, host_time_s = ring.read_since(start)
+        self._ring = ring
+        after = self.taxels.stats
+        if not len(seq) or host_time_s[-1] < t_cue:
             raise ScanError(f"no frame from the taxel board on {self.taxels.port} during the scan (is it streaming?)")
         t, x = got
         self.scans += 1
         xyz = x.shape[1] == 3
         velocity = x[:, 1] if x.shape[1] == 2 and np.all(np.isfinite(x[:, 1])) else None  # a motion board's own
-        return RawScan(taxels=cap.samples, seq=cap.seq, host_time_s=cap.host_time_s, tracker_time_s=t,
+        return RawScan(taxels=samples, seq=seq, host_time_s=host_time_s, tracker_time_s=t,
                        tracker_xyz=x if xyz else None, along_mm=None if xyz else x[:, 0], velocity_mm_s=velocity,
                        attrs={"tracker_stream": self.tracker.name, "taxels_from": f"taxel board on {self.taxels.port}",
-                              "taxel_crc_errors": int(cap.crc_errors), "taxel_dropped_frames": int(cap.dropped),
+                              "taxel_crc_errors": int(after.crc_errors - before.crc_errors),
+                              "taxel_dropped_frames": int(after.dropped - before.dropped),
                               **getattr(self.tracker, "counters", dict)()}, clock_fit=self.clock_fit)
 
     def describe(self) -> dict[str, Any]:
@@ -118,7 +128,7 @@ def open_finger_board(port: str, tracker: Tracker, axis: PlateAxis | None, *, te
     """Open the taxel board on ``port`` (its banner and identify reply give the layout), start it streaming, and make
     the scan source on it and ``tracker``. On any failure the board and the tracker are closed. Raises ScanError
     (one line naming the port) or TaxelStreamError."""
-    stream = TaxelStream(port, banner_timeout_s=banner_timeout_s)
+    stream = TaxelStream(port, banner_timeout_s=banner_timeout_s, ring_seconds=timeout_s + PRE_CUE_S + RING_SPARE_S)
     try:
         try:
             stream.open()

@@ -88,9 +88,17 @@ def test_trials_hold_the_boards_frames_cut_by_the_tracked_position(tmp_path):
         assert scans.layout.layers == PAPER_FINGER.layers  # from the board's banner (layout=3x3x1), not assumed
         with HandheldRig(scans, host_config_path=str(tmp_path / "rig.json")) as rig:
             summary = run_protocol(parse_protocol(TWO_SCANS), tmp_path / "s.h5", rig=rig)
+            # a cue a busy host gave late: the finger entered the used part 0.07-0.13 s before it
+            tracker = scans.tracker
+            phase = (REST_S + 60.0 / SPEED_MM_S, REST_S + 70.0 / SPEED_MM_S)  # on the way out, 60-70 mm
+            while not phase[0] <= (time.monotonic() - tracker.t0) % PERIOD_S < phase[1]:
+                time.sleep(0.002)
+            late = rig.record_trial(parse_protocol(TWO_SCANS).plan()[0])
     finally:
         board.close()
     assert summary.ok, summary.failures
+    assert late.n_samples == pytest.approx(1000 * late.attrs["scan_duration_s"], abs=3)  # its entry's frames kept
+    assert_cut_at_the_crossings(late)
     with open_session(tmp_path / "s.h5") as s:
         assert s.layout.layers == PAPER_FINGER.layers
         assert s.rig_config["scan_source"]["kind"] == "taxel_board_finger"
