@@ -73,7 +73,9 @@ class ScriptedTracker:
         pass
 
 
-def test_trials_hold_the_boards_frames_cut_by_the_tracked_position(tmp_path):
+@pytest.fixture
+def counting_finger(tmp_path):
+    """The simulated Uno streaming the 3x3 finger on a pty (its port), every frame a countable sample."""
     board = VirtualUno(tmp_path / "finger", reset_delay_s=0.05, layout=PAPER_FINGER)
     sent = {"k": 0}
 
@@ -83,19 +85,28 @@ def test_trials_hold_the_boards_frames_cut_by_the_tracked_position(tmp_path):
         return counting_samples(k, PAPER_FINGER.n_channels), None
 
     board.run_paced(counting)
-    try:
-        scans = open_finger_board(str(tmp_path / "finger"), ScriptedTracker(), None, timeout_s=30.0)
-        assert scans.layout.layers == PAPER_FINGER.layers  # from the board's banner (layout=3x3x1), not assumed
-        with HandheldRig(scans, host_config_path=str(tmp_path / "rig.json")) as rig:
-            summary = run_protocol(parse_protocol(TWO_SCANS), tmp_path / "s.h5", rig=rig)
-            # a cue a busy host gave late: the finger entered the used part 0.07-0.13 s before it
-            tracker = scans.tracker
-            phase = (REST_S + 60.0 / SPEED_MM_S, REST_S + 70.0 / SPEED_MM_S)  # on the way out, 60-70 mm
-            while not phase[0] <= (time.monotonic() - tracker.t0) % PERIOD_S < phase[1]:
-                time.sleep(0.002)
-            late = rig.record_trial(parse_protocol(TWO_SCANS).plan()[0])
-    finally:
-        board.close()
+    yield str(tmp_path / "finger")
+    board.close()
+
+
+def assert_board_frames(d) -> None:
+    """Every row of trial ``d`` is one of the counting board's frames, consecutive, none lost."""
+    assert d.taxels.shape[1] == 9 and bool(np.all(intact_frames(d.taxels)))
+    step = np.diff(d.taxels[:, 0].astype(np.int64)) % 1024
+    assert np.all(step == 7) and d.dropped_frames == 0
+
+
+def test_trials_hold_the_boards_frames_cut_by_the_tracked_position(tmp_path, counting_finger):
+    scans = open_finger_board(counting_finger, ScriptedTracker(), None, timeout_s=30.0)
+    assert scans.layout.layers == PAPER_FINGER.layers  # from the board's banner (layout=3x3x1), not assumed
+    with HandheldRig(scans, host_config_path=str(tmp_path / "rig.json")) as rig:
+        summary = run_protocol(parse_protocol(TWO_SCANS), tmp_path / "s.h5", rig=rig)
+        # a cue a busy host gave late: the finger entered the used part 0.07-0.13 s before it
+        tracker = scans.tracker
+        phase = (REST_S + 60.0 / SPEED_MM_S, REST_S + 70.0 / SPEED_MM_S)  # on the way out, 60-70 mm
+        while not phase[0] <= (time.monotonic() - tracker.t0) % PERIOD_S < phase[1]:
+            time.sleep(0.002)
+        late = rig.record_trial(parse_protocol(TWO_SCANS).plan()[0])
     assert summary.ok, summary.failures
     assert late.n_samples == pytest.approx(1000 * late.attrs["scan_duration_s"], abs=3)  # its entry's frames kept
     assert_cut_at_the_crossings(late)
@@ -104,15 +115,43 @@ def test_trials_hold_the_boards_frames_cut_by_the_tracked_position(tmp_path):
         assert s.rig_config["scan_source"]["kind"] == "taxel_board_finger"
         for tid in s.completed_ids():
             d = s.trial(tid)
-            assert d.taxels.shape[1] == 9 and bool(np.all(intact_frames(d.taxels)))  # every row a board frame
-            step = np.diff(d.taxels[:, 0].astype(np.int64)) % 1024  # consecutive samples of the board, none lost
-            assert np.all(step == 7) and d.dropped_frames == 0
+            assert_board_frames(d)
             # the frames between the finger's entry (50 mm) and exit (250 mm): 200 mm at 150 mm/s, 1.33 s at 1 kHz
             assert d.attrs["scan_duration_s"] == pytest.approx(200.0 / SPEED_MM_S, abs=0.011)  # tracker at 100 Hz
             assert d.n_samples == pytest.approx(1000 * d.attrs["scan_duration_s"], abs=3)
             assert d.attrs["clock_residual_s"] < 0.005 and d.attrs["taxels_from"].startswith("taxel board on")
             assert np.median(d.speed_mm_s[5:-5]) == pytest.approx(SPEED_MM_S, rel=0.02)
             assert_cut_at_the_crossings(d)
+
+
+def test_a_serial_motion_board_beside_the_fingers_board(tmp_path, counting_finger, monkeypatch):
+    """`acquire --motion serial:PORT --taxel-port PORT`: the motion board's frames (its clock fitted to the host's)
+    cut the taxel board's frames (its own clock fit)."""
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+    from rigctl.simulation.motion_board import VirtualMotionBoard
+
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    (tmp_path / "two.toml").write_text(TWO_SCANS)
+    motion = VirtualMotionBoard(seed=2, profiles=(("fast", 120.0, 120.0),), drift_ppm=300.0)
+    try:
+        res = CliRunner().invoke(main, ["acquire", str(tmp_path / "two.toml"), "--motion", f"serial:{motion.path}",
+                                        "--taxel-port", counting_finger, "--out", str(tmp_path / "s.h5"), "--quiet"])
+    finally:
+        motion.close()
+    assert res.exit_code == 0, res.output
+    with open_session(tmp_path / "s.h5") as s:
+        src = s.rig_config["scan_source"]
+        assert src["kind"] == "taxel_board_finger" and src["port"] == motion.path
+        assert src["taxel_port"] == counting_finger and len(s.completed_ids()) == 2
+        for tid in s.completed_ids():
+            d = s.trial(tid)
+            assert_board_frames(d)
+            assert d.n_samples == pytest.approx(1000 * d.attrs["scan_duration_s"], abs=3)
+            assert_cut_at_the_crossings(d)
+            inner = (d.speed_time_s > 0.3) & (d.speed_time_s < d.duration_s - 0.3)
+            assert 70.0 < np.median(d.speed_mm_s[inner]) < 180.0  # the motion board's own velocity
 
 
 def crossing_s(t: np.ndarray, x: np.ndarray, level: float) -> float:
