@@ -1,5 +1,5 @@
 """Trial records shared by every layer: what a protocol plans (:class:`PlannedTrial`) and what a trial recorded
-(:class:`TrialData`). Imports nothing else of rigctl's but :mod:`rigctl.core.sensor`.
+(:class:`TrialData`). Imports nothing else of rigctl's but :mod:`rigctl.core.sensor` and :mod:`rigctl.core.onboard`.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.core.onboard import OnboardEncoding
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 
 __all__ = ["PlannedTrial", "TrialData", "lower_envelope_rate_hz"]
@@ -104,6 +105,9 @@ class TrialData:
         Frames rejected by their CRC while the trial was captured.
     attrs : dict
         Trial attributes (setpoints, texture, profile, started_utc, ...); JSON-able scalars and strings.
+    onboard : :class:`rigctl.core.onboard.OnboardEncoding` or None
+        A scan the taxel board encoded itself (the handheld rig's ``--onboard-encoder``): its spikes, counts frame,
+        applied speeds and flags; such a trial has no raw taxels (``taxels`` has 0 rows).
 
     Raises
     ------
@@ -127,6 +131,7 @@ class TrialData:
     crc_errors: int = 0
     attrs: dict = field(default_factory=dict)
     layout: SensorLayout = PAPER_SENSOR
+    onboard: OnboardEncoding | None = None
 
     def __post_init__(self) -> None:
         taxels = self.layout.check_readings(self.taxels)

@@ -24,6 +24,7 @@ from rigctl.core.textures import PAPER_TEXTURES, TextureSet, texture_set_from_la
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.core.version import __version__
 from rigctl.storage import h5objects, journal, journal_replay, session_recording, trial_facts
+from rigctl.storage.onboard_group import ONBOARD_ATTR, write_onboard
 from rigctl.storage.outputs import check_replaceable
 from rigctl.storage.session_format import (
     EVENTS_ATTR,
@@ -668,6 +669,8 @@ class SessionWriter:
         if data.position_mm.size:  # the handheld rig's tracker position: plain datasets in the group (both schemas)
             for key in ("position_mm", "position_time_s"):
                 h5objects.create_dataset(g, key, getattr(data, key))
+        if data.onboard is not None:  # a scan the taxel board encoded itself: its record instead of raw taxels
+            write_onboard(g, data.onboard)
         attrs = {}
         for fld in PLAN_FIELDS:
             v = row[fld]
@@ -676,6 +679,8 @@ class SessionWriter:
             if k not in ("status", "trial_id"):
                 attrs[k] = _attr_value(v)
         attrs.update(n_samples=n, dropped_frames=data.dropped_frames, crc_errors=data.crc_errors)
+        if data.onboard is not None:
+            attrs[ONBOARD_ATTR] = True
         attrs.setdefault("started_utc", "")
         attrs["status"] = "complete"
         h5objects.set_attrs(g, attrs)

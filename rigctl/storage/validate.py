@@ -22,7 +22,10 @@ first problem found is the reason):
 - **length**: the samples recorded plus the frames missing must be between half and twice the plan's
   ``round(duration_s x rate)`` (+-2): a 10-sample trial of a 2 s plan is not a 2 s trial. (The recorder captures
   exactly the planned count and the importers plan what they read, so any difference is suspect; the bounds are
-  loose so that hand-made sessions whose plan only roughly says the length still pass.)
+  loose so that hand-made sessions whose plan only roughly says the length still pass.) A trial encoded on the
+  board (the handheld rig's ``--onboard-encoder``: no taxel frames, marked ``encoded_on_board`` with a whole
+  ``onboard`` record, :mod:`rigctl.storage.onboard_group`) is measured by the samples the board encoded; marked
+  with a record that is not whole, it is excluded with that reason; 0 frames without the mark stay 0 frames;
 - **ADC range**: counts outside ``0 .. 2**adc_bits - 1`` (negative counts of a signed dataset included);
 - **duplicates**: a trial whose taxels are a byte copy of an earlier trial's (trials of equal length and Adler-32
   are compared by SHA-256 of the counts; constant trials, e.g. a silent sensor, are not compared);
@@ -54,6 +57,7 @@ import h5py
 import numpy as np
 
 from rigctl.core.progress import ProgressCallback, Stage
+from rigctl.storage.onboard_group import onboard_samples
 from rigctl.storage.outputs import size_text
 from rigctl.storage.session_format import SessionError, TrialStatus, trial_group_name
 from rigctl.storage.session_reader import (
@@ -269,6 +273,9 @@ def _check_trial(session: Session, tid: int, row: Any, rate: float, copies: "_Co
     def load() -> np.ndarray:
         return np.asarray(taxels[()])
 
+    n, why = _encoded_samples(session, tid, n)
+    if why:
+        return why, 0, None
     why, dropped = _check_data(float(row["duration_s"]), rate, n, seq_gaps(np.asarray(g["seq"][()])),
                                _count(attrs, "dropped_frames"), _count(attrs, "crc_errors"),
                                lambda: _check_counts(session, load(), tid, copies, load))
@@ -331,6 +338,21 @@ def _check_data(duration: float, rate: float, n: int, gaps: int, said: int, crc:
         return (f"it holds {n} samples ({gaps} missing), its plan asks {duration:g} s = {planned} at "
                 f"{rate:g} Hz"), gaps
     return counts(), max(gaps, said)
+
+
+def _encoded_samples(session: Session, tid: int, n: int) -> tuple[int, str | None]:
+    """A trial's length for the length check: its ``n`` taxel frames, or, for a trial with none that is marked
+    encoded on the board with a whole record (:func:`rigctl.storage.onboard_group.onboard_samples`), the samples the
+    board encoded; with a reason when it is marked but its record is not whole. Only a trial of 0 frames has its
+    group opened for this."""
+    if n != 0:
+        return n, None
+    try:
+        group = session._f[trial_group_name(tid)]
+    except (KeyError, OSError):
+        return n, None
+    samples, why = onboard_samples(group)
+    return (n, why) if samples is None else (samples, None)
 
 
 def _count_problem(said: int, crc: int, slots: int) -> str | None:
@@ -466,14 +488,18 @@ def _check_block(session: Session, block: list[tuple[int, np.void, np.void | Non
     for tid, r, q, nonfinite in block:
         duration, said, crc = float(plan[tid]["duration_s"]), int(r["dropped_frames"]), int(r["crc_errors"])
         if q is not None:
-            why, dropped = _check_data(duration, rate, int(r["n_samples"]), int(q["seq_gaps"]), said, crc,
-                                       functools.partial(_check_known_counts, tid, q, n_ch, copies))
+            n, why = _encoded_samples(session, tid, int(r["n_samples"]))
+            why, dropped = (why, 0) if why else _check_data(duration, rate, n, int(q["seq_gaps"]), said, crc,
+                                                            functools.partial(_check_known_counts, tid, q, n_ch,
+                                                                              copies))
             _record(report, tid, why, dropped, facts_nonfinite_text(q) if nonfinite else None)
             continue
         a, b = int(pos[i]), int(pos[i + 1])
         data, load = tax[a:b], functools.partial(_read_trial, taxels_ds, int(starts[i]), b - a)
-        why, dropped = _check_data(duration, rate, b - a, int(gaps[i]), said, crc,
-                                   functools.partial(_check_counts, session, data, tid, copies, load, in_range))
+        n, why = _encoded_samples(session, tid, b - a)
+        why, dropped = (why, 0) if why else _check_data(duration, rate, n, int(gaps[i]), said, crc,
+                                                        functools.partial(_check_counts, session, data, tid, copies,
+                                                                          load, in_range))
         _record(report, tid, why, dropped, bad[i])
         i += 1
 
