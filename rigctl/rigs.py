@@ -215,6 +215,14 @@ def handheld_rig(request: RigRequest) -> ScanSource:
     come from the sensor model along the tracked path (:class:`rigctl.simulation.handheld_lsl.TrackedFingerScans`)."""
     options: dict[str, Any] = dict(request.options)
     motion = str(options.pop("motion", "sim"))
+    onboard = options.pop("onboard_encoder", None)
+    if options.pop("hil_finger", False):
+        return _hil_finger(request, motion, onboard, options)
+    if onboard is not None:
+        if "taxel_port" not in options or not motion.startswith(("lsl:", "serial:")):
+            raise RigError("the on-board encoder runs on the finger's taxel board: give its port (taxel_port, with a "
+                           "live motion source lsl:NAME or serial:PORT) or run it under simavr (hil_finger)")
+        options["onboard_encoder"] = onboard
     if motion == "sim":
         from rigctl.simulation.operator import SimulatedOperator
 
@@ -238,6 +246,44 @@ def handheld_rig(request: RigRequest) -> ScanSource:
                    "stream), 'serial:PORT' (a motion board) or 'replay:S.h5' (a recorded handheld session)")
 
 
+def board_range(training: Any) -> Any:
+    """The on-board encoder's CALIBRATE (:class:`rigctl.devices.onboard_finger.BoardRange`) from the encoded
+    training block at path ``training`` (its normalisation, rounded, and its k): the board encodes with the range the
+    classifier was trained on. A BoardRange is taken as it is. Raises RigError for a file that is not one."""
+    from rigctl.devices.onboard_finger import BoardRange
+
+    if isinstance(training, BoardRange):
+        return training
+    from rigctl.encoding.params import EncodeParams
+    from rigctl.storage.encoded import open_encoded
+
+    try:
+        with open_encoded(training) as f:
+            norm, params = f.normalisation, EncodeParams.from_dict(f.parameters)
+        return BoardRange.of(norm["taxel_min"], norm["taxel_max"], params.k_sa)
+    except (OSError, ValueError, KeyError) as exc:
+        raise RigError(f"the on-board encoder's range from {training}: {' '.join(str(exc).split())}") from None
+
+
+def _hil_finger(request: RigRequest, motion: str, onboard: Any, options: dict[str, Any]) -> ScanSource:
+    """``hil_finger``: the simulated operator's finger on the Uno encoder image under simavr
+    (:class:`rigctl.simulation.hil_finger.HilFingerScans`), the board calibrated from ``onboard_encoder``."""
+    from rigctl.core.handheld import ScanError
+    from rigctl.simulation.hil import HilError
+    from rigctl.simulation.hil_finger import HilFingerScans
+
+    unknown = set(options) - {"timeout_s"}
+    if motion != "sim" or onboard is None or unknown:
+        raise RigError("the finger's board under simavr (hil_finger) runs the encoder image with the simulated "
+                       "operator: motion 'sim', an onboard_encoder and no other option"
+                       + (f" (got {', '.join(sorted(unknown))})" if unknown else ""))
+    try:
+        return HilFingerScans(board_range(onboard), seed=request.seed, rig_config=_config(request),
+                              textures=request.textures, timeout_s=float(options.get("timeout_s", 60.0)))
+    except (ScanError, HilError, OSError) as exc:
+        raise RigError(f"cannot start the finger's board under simavr: {exc}") from None
+
+
 def _tracked_scans(motion: str, request: RigRequest, options: dict[str, Any]) -> ScanSource:
     """``motion="lsl:NAME[@channels]"`` (a tracker stream, :class:`rigctl.simulation.handheld_lsl.LslTracker`; options
     ``resolve_s``, ``timeout_s``) or ``"serial:PORT"`` (a motion board, :class:`rigctl.devices.motion.SerialMotion`;
@@ -249,7 +295,7 @@ def _tracked_scans(motion: str, request: RigRequest, options: dict[str, Any]) ->
     from rigctl.simulation.handheld_lsl import TrackedFingerScans
 
     lsl = motion.startswith("lsl:")
-    known = {"timeout_s", "taxel_port", "resolve_s" if lsl else "open_timeout_s"}
+    known = {"timeout_s", "taxel_port", "onboard_encoder", "resolve_s" if lsl else "open_timeout_s"}
     unknown = set(options) - known
     if unknown:
         raise RigError(f"{'a tracker stream' if lsl else 'a serial motion board'} takes no option "
@@ -270,6 +316,11 @@ def _tracked_scans(motion: str, request: RigRequest, options: dict[str, Any]) ->
             axis = None  # a motion board sends the position along the plate
             tracker = SerialMotion(motion.removeprefix("serial:"),
                                    open_timeout_s=float(options.get("open_timeout_s", 5.0)))
+        if options.get("onboard_encoder") is not None:
+            from rigctl.devices.onboard_finger import open_onboard_finger
+
+            return open_onboard_finger(str(taxel_port), tracker, axis, board_range(options["onboard_encoder"]),
+                                       textures=request.textures, timeout_s=timeout_s)
         if taxel_port is not None:
             from rigctl.devices.finger_board import open_finger_board
 

@@ -137,6 +137,18 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     if leave is None:
         raise ScanError(f"the finger never left the used part of the plate (past {used_mm[1]:g} mm)")
     t_in, t_out = enter[1], leave[1]
+    near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
+    if raw.velocity_mm_s is not None:
+        vel = np.asarray(raw.velocity_mm_s, np.float64)[ok][order][near]
+    else:
+        vel = velocity_from_position(t, along, t[near], velocity_window_s)
+    if raw.onboard is not None:  # encoded on the board: its record, no taxel frames; times from its first sample
+        origin = float(raw.onboard_start_s)
+        return TrialData(taxels=np.zeros((0, layout.n_channels), np.uint16), speed_mm_s=vel,
+                         speed_time_s=t[near] - origin, position_mm=along[near], position_time_s=t[near] - origin,
+                         attrs={**_tracker_attrs(raw, t, t_in, t_out, near, used_mm),
+                                "trial_time_origin_s": raw.time_origin_s + origin, **dict(raw.attrs)},
+                         layout=layout, onboard=raw.onboard)
     fit = raw.clock_fit or DeviceClockFit(layout.sample_rate_hz)
     counts = fit.add(np.asarray(raw.seq), np.asarray(raw.host_time_s, np.float64))
     mapping = fit.mapping()
@@ -150,29 +162,29 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
         raise ScanError("no taxel frame between the finger's entry and exit (is the taxel board streaming?)")
     host = np.asarray(raw.host_time_s, np.float64)[keep]
     origin = float(frame_t[keep[0]])  # the first kept frame's time on the board's clock, not its (late) receipt
-    near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
-    if raw.velocity_mm_s is not None:
-        vel = np.asarray(raw.velocity_mm_s, np.float64)[ok][order][near]
-    else:
-        vel = velocity_from_position(t, along, t[near], velocity_window_s)
-    gaps = np.diff(t)
-    period = float(np.median(gaps)) if gaps.size else math.nan
     seq = np.asarray(raw.seq, np.uint16)[keep]
     steps = np.bitwise_and(np.diff(seq.astype(np.int64)), 0xFFFF)
-    attrs: dict[str, Any] = {
-        "boundary": "position", "scan_enter_s": raw.time_origin_s + t_in, "scan_leave_s": raw.time_origin_s + t_out,
-        "used_start_mm": float(used_mm[0]), "used_end_mm": float(used_mm[1]),
-        "scan_duration_s": t_out - t_in, "scan_mean_speed_mm_s": (used_mm[1] - used_mm[0]) / (t_out - t_in),
-        "tracker_samples": int(near.sum()), "tracker_rate_hz": 1.0 / period if period > 0 else math.nan,
-        "tracker_dropouts": int(np.sum(gaps > 1.5 * period)) if gaps.size else 0,
-        **trial_clock_attrs(fit, counts[keep], host),
-        "trial_time_origin_s": raw.time_origin_s + origin,  # the host-clock time of the trial's time 0
-        **dict(raw.attrs),
-    }
+    attrs: dict[str, Any] = {**_tracker_attrs(raw, t, t_in, t_out, near, used_mm),
+                             **trial_clock_attrs(fit, counts[keep], host),
+                             "trial_time_origin_s": raw.time_origin_s + origin,  # the host-clock time of time 0
+                             **dict(raw.attrs)}
     return TrialData(taxels=np.asarray(raw.taxels)[keep], seq=seq, flags=np.zeros(keep.size, np.uint8),
                      host_time_s=host - origin, speed_mm_s=vel, speed_time_s=t[near] - origin,
                      position_mm=along[near], position_time_s=t[near] - origin,
                      dropped_frames=int(np.sum(steps - 1)) if steps.size else 0, attrs=attrs, layout=layout)
+
+
+def _tracker_attrs(raw: RawScan, t: np.ndarray, t_in: float, t_out: float, near: np.ndarray,
+                   used_mm: tuple[float, float]) -> dict[str, Any]:
+    """The trial's attributes from the tracker: the boundaries, the used part, the scan's duration and mean speed,
+    the tracker's samples, rate and dropouts."""
+    gaps = np.diff(t)
+    period = float(np.median(gaps)) if gaps.size else math.nan
+    return {"boundary": "position", "scan_enter_s": raw.time_origin_s + t_in, "scan_leave_s": raw.time_origin_s + t_out,
+            "used_start_mm": float(used_mm[0]), "used_end_mm": float(used_mm[1]),
+            "scan_duration_s": t_out - t_in, "scan_mean_speed_mm_s": (used_mm[1] - used_mm[0]) / (t_out - t_in),
+            "tracker_samples": int(near.sum()), "tracker_rate_hz": 1.0 / period if period > 0 else math.nan,
+            "tracker_dropouts": int(np.sum(gaps > 1.5 * period)) if gaps.size else 0}
 
 
 def plate_axis_from_config(host_config: dict[str, Any]) -> PlateAxis | None:

@@ -185,6 +185,26 @@ def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, 
     return wants
 
 
+def _check_onboard(onboard: bool, *, handheld: bool, classify: Path | None, variant: str, hil: bool,
+                   taxel_port: str | None, replay: Any) -> None:
+    """``--onboard-encoder``: a handheld run classifying speed-scaled features (--classify: the board is calibrated
+    with its range) on the finger's board (--taxel-port) or on the image under simavr (--hil). Raises
+    click.UsageError."""
+    if not onboard:
+        return
+    if not handheld:
+        raise click.UsageError("--onboard-encoder encodes handheld scans on the finger's board: the protocol must record "
+                               "on the handheld rig")
+    if classify is None:
+        raise click.UsageError("--onboard-encoder calibrates the board with the classifier's range: give --classify")
+    if variant != "realtime_speed_scaled":
+        raise click.UsageError("--onboard-encoder gives the board's speed-scaled features: drop --classify-variant "
+                               f"{variant}")
+    if replay is not None or hil == (taxel_port is not None):
+        raise click.UsageError("--onboard-encoder runs on the finger's taxel board: give --taxel-port PORT (with --motion "
+                               "lsl:NAME or serial:PORT) or --hil (the board under simavr), one of them, no --replay")
+
+
 def _scan_classifier(classify: Path | None, calibration: Path | None, variant: str, pcs: int, *,
                      handheld: bool) -> Any:
     """The live classifier of ``--classify`` (None without it); its predictions are echoed as they come. Raises
@@ -329,6 +349,13 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
               default="realtime_speed_scaled", show_default=True,
               help="With --classify: the features classified (Speed Scaled: the paper's system; Original: without the "
                    "speed invariance module).")
+@click.option("--onboard-encoder", "onboard_encoder", is_flag=True, default=False,
+              help="Handheld rig with --classify: the finger's taxel board runs the encoder image (uno_encoder) and "
+                   "encodes each scan itself, calibrated with the --classify block's range: ENCODE at the scan's "
+                   "start, the tracker's velocity of each 100 ms window, FINISH at its end; the trials keep the board's "
+                   "spikes and counts instead of raw taxels. With --taxel-port PORT (and --motion lsl:NAME or "
+                   "serial:PORT), or --hil: the simulated operator's finger on the image under simavr "
+                   "(docs/guides/handheld.md).")
 @click.option("--pcs", "pcs", type=click.IntRange(1, 1000), default=25, show_default=True,
               help="With --classify: principal components of the classifier (the paper: 25).")
 @click.option("--resume", is_flag=True, default=False,
@@ -360,7 +387,7 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @progress_option
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, rig, rig_options, replay,
             handheld, motion, classify,
-            calibration, classify_variant, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
+            calibration, classify_variant, onboard_encoder, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
             plates, lsl, lsl_wait_s,
             inject, allow_firmware_mismatch, truth_log, progress):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
@@ -420,7 +447,10 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         if not isinstance(proto, Protocol):
             raise UsageProblem(f"--trials-per-condition: {protocol} is a Python plan; set its size in the script")
         proto = dataclasses.replace(proto, trials_per_condition=trials_per_condition)
-    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware, replay=replay)
+    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil and not onboard_encoder,
+                             inprocess=inprocess, hardware=hardware, replay=replay)
+    _check_onboard(onboard_encoder, handheld=handheld, classify=classify, variant=classify_variant, hil=hil,
+                   taxel_port=taxel_port, replay=replay)
     classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld)
     if hardware and plates == "skip":
         with contextlib.suppress(Exception):  # a note only; the runner reports a plan it cannot build
@@ -436,7 +466,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     source = _rig_source(dict(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                               bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
-                              options=rig_options), truth_log)
+                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None),
+                         truth_log)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(show_bars(progress)) as progress:
         _bars_follow_the_rig(control, progress)

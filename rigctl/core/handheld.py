@@ -22,6 +22,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from rigctl.core.clocksync import DeviceClockFit
+from rigctl.core.onboard import OnboardEncoding
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.trial import PlannedTrial
 
@@ -120,6 +121,8 @@ class RawScan:
         count from its first frame, exactly as recorded): added to the boundaries the cut reports.
     clock_fit : the source's fit of the board's clock over its whole stream (a live board: every scan's frames are
         added to it, so one scan's late frames bend nothing); None: a fit of this scan's frames alone.
+    onboard : a pass the taxel board encoded itself (``--onboard-encoder``): its record; then ``taxels`` has no rows.
+    onboard_start_s : with ``onboard``: the time of the board's first encoded sample on the tracker's clock, s.
     """
 
     taxels: np.ndarray
@@ -133,6 +136,8 @@ class RawScan:
     frame_time_s: np.ndarray | None = None
     time_origin_s: float = 0.0
     clock_fit: DeviceClockFit | None = None
+    onboard: OnboardEncoding | None = None
+    onboard_start_s: float = math.nan
 
 
 @runtime_checkable

@@ -101,7 +101,15 @@ class ScanClassifier:
 
     def features(self, data: TrialData) -> np.ndarray:
         """The scan's features, encoded live: readings in blocks of :data:`CHUNK_SAMPLES`, each velocity sample
-        given once the readings have passed its time."""
+        given once the readings have passed its time; a scan encoded on the board (``data.onboard``): its counts
+        frame's (:func:`rigctl.encoding.features.counted_realtime_features` with the speeds the board applied).
+        Raises ValueError (no velocity; an on-board scan for another variant than ``realtime_speed_scaled``)."""
+        if data.onboard is not None:  # encoded on the finger's board: its counts frame and the speeds it applied
+            from rigctl.encoding.features import counted_realtime_features
+
+            if self.variant != "realtime_speed_scaled":
+                raise ValueError(f"a scan encoded on the board gives realtime_speed_scaled features, not {self.variant}")
+            return counted_realtime_features(data.onboard.counts, data.onboard.speeds_mm_s)
         se = self.encoder
         se.reset()
         t, v = data.speed_time_s, data.speed_mm_s

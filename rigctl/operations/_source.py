@@ -48,6 +48,11 @@ class RigSource:
         :func:`rigctl.rigs.open_handheld`)
     options : a plugin rig's options (``--rig-option KEY=VALUE``: text), given to its factory; ``drum`` ("sim" or
         "inprocess") is the simulated drum a sensor-only plugin streams through
+    onboard_encoder : "handheld" only: the encoded training block whose normalisation calibrates the finger's board
+        running the encoder image (``--onboard-encoder``): the board encodes each scan, the trials keep its spikes
+        and counts instead of raw taxels (:mod:`rigctl.devices.onboard_finger`)
+    hil_finger : "handheld" only, with ``onboard_encoder``: the finger's board is the encoder image under simavr, the
+        simulated operator's passes played to it (``--handheld --hil``; :mod:`rigctl.simulation.hil_finger`)
 
     Raises
     ------
@@ -66,6 +71,8 @@ class RigSource:
     allow_firmware_mismatch: bool = False
     truth_log: str | None = None
     options: dict[str, str] = dataclasses.field(default_factory=dict)
+    onboard_encoder: str | None = None
+    hil_finger: bool = False
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -84,23 +91,33 @@ class RigSource:
             raise ValueError(f"a motion source is the handheld rig's (kind 'handheld'), not {self.kind!r}'s")
         if self.kind == "handheld" and self.drum_port is not None:
             raise ValueError("the handheld rig has no drum: no drum port")
+        if (self.onboard_encoder is not None or self.hil_finger) and self.kind != "handheld":
+            raise ValueError(f"the on-board encoder is the handheld rig's finger board, not {self.kind!r}'s")
+        if self.hil_finger and (self.onboard_encoder is None or (self.motion or "sim") != "sim"):
+            raise ValueError("the finger's board under simavr runs the encoder image with the simulated operator: "
+                             "give --onboard-encoder (and no --motion, no --taxel-port)")
+        if self.onboard_encoder is not None and not self.hil_finger and self.taxel_port is None:
+            raise ValueError("the on-board encoder runs on the finger's taxel board: give --taxel-port PORT (with "
+                             "--motion lsl:NAME or serial:PORT), or --hil for the board under simavr")
 
     @classmethod
     def from_flags(cls, *, hil: bool = False, drum_port: str | None = None, taxel_port: str | None = None,
                    replay: str | Path | None = None, bootloaders: bool = False,
                    inprocess: bool = False, inject: tuple[FaultSpec, ...] = (), handheld: bool = False,
                    motion: str | None = None, allow_firmware_mismatch: bool = False, rig: str | None = None,
-                   options: dict[str, str] | None = None) -> "RigSource":
+                   options: dict[str, str] | None = None, onboard_encoder: str | None = None) -> "RigSource":
         """The source the CLI's flags select: ``rig`` -> that rig (with its ``options``), ports -> "hardware", a
         recording -> "replay", ``hil`` or ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` ->
-        "inprocess", ``handheld`` or a ``motion`` -> "handheld" (with ``replay``: that recording's scans), else "sim"
-        (the flags' consistency is the CLI's to check)."""
+        "inprocess", ``handheld`` or a ``motion`` -> "handheld" (with ``replay``: that recording's scans; with
+        ``onboard_encoder``: the finger's board encodes, under simavr with ``hil``), else "sim" (the flags'
+        consistency is the CLI's to check)."""
         inject = tuple(inject)
         if rig is not None:
             return cls(rig, inject=inject, allow_firmware_mismatch=allow_firmware_mismatch, options=dict(options or {}))
         if handheld or motion is not None:  # a recording replayed on the handheld rig: its scans
             replayed = None if replay is None else f"replay:{replay}"
-            return cls("handheld", motion=motion or replayed or "sim", taxel_port=taxel_port, inject=inject)
+            return cls("handheld", motion=motion or replayed or "sim", taxel_port=taxel_port, inject=inject,
+                       onboard_encoder=onboard_encoder, hil_finger=bool(hil and onboard_encoder is not None))
         allow = allow_firmware_mismatch
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject,
@@ -128,6 +145,9 @@ class RigSource:
             if str(self.motion).startswith("replay:"):
                 return f"handheld session replay ({str(self.motion).removeprefix('replay:')})"
             board = f", taxels from {self.taxel_port}" if self.taxel_port else ""
+            if self.onboard_encoder is not None:
+                return ("simulated operator, encoded on the board under simavr" if self.hil_finger else
+                        f"handheld rig, motion from {self.motion}, encoded on the board on {self.taxel_port}")
             return ("simulated operator" if (self.motion or "sim") == "sim" and not board else
                     f"handheld rig, motion from {self.motion or 'sim'}{board}")
         if self.bootloaders:
@@ -161,6 +181,10 @@ class RigSource:
         if self.bootloaders:
             return {"kind": "hil", "bootloaders": True, **extra}
         if self.kind == "handheld":
-            board = {} if self.taxel_port is None else {"taxel_port": self.taxel_port}
+            board: dict[str, Any] = {} if self.taxel_port is None else {"taxel_port": self.taxel_port}
+            if self.onboard_encoder is not None:
+                board["onboard_encoder"] = self.onboard_encoder
+            if self.hil_finger:
+                board["hil_finger"] = True
             return {"kind": "handheld", "motion": self.motion or "sim", **board, **extra}
         return {"kind": self.kind, **self.options, **extra}

@@ -1,0 +1,140 @@
+"""The simulated operator's finger on the taxel board's real firmware with the encoder on board: the Uno encoder image
+(``uno_encoder``) under simavr (:class:`rigctl.simulation.hil.HilRig`), the handheld rig's ``--hil
+--onboard-encoder``.
+
+For each cue the simulated operator makes its pass (:class:`rigctl.simulation.operator.SimulatedOperator`: the
+taxel readings at 1 kHz and the tracker's samples); the readings are played to the board's ADC (the top layer, and
+the same counts on the bottom layer's pins), and the host encodes the pass on the board exactly as on a real finger
+(:func:`rigctl.devices.onboard_finger.encode_pass`): ENCODE once the finger enters the used part, each window's
+tracker velocity as SPEED, FINISH once it has left. The tracker's samples are handed out on the board's clock (the
+row it plays: its waveform's row 0 is the pass's time 0), so a simavr slower than the wall clock changes nothing.
+Each scan keeps what the board's ADC converted (:attr:`HilFingerScans.played`: the pass's readings and the row of
+the first encoded sample) for a check against the host's integer kernel.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rigctl.core.handheld import PlateAxis, RawScan, ScanError
+from rigctl.core.sensor import PAPER_FINGER, SensorLayout
+from rigctl.core.textures import TextureSet
+from rigctl.core.trial import PlannedTrial
+from rigctl.devices import wire
+from rigctl.devices.encoder_stream import OnboardEncoder
+from rigctl.devices.onboard_finger import BoardRange, encode_pass, onboard_encoding, onboard_raw_scan, read_banner
+from rigctl.simulation.model import RigConfig
+from rigctl.simulation.operator import SimulatedOperator, plate_axis_of
+
+__all__ = ["HilFingerScans", "PlayedScan"]
+
+#: rows of the pass's last reading played after it (the board keeps converting while the host finishes)
+TAIL_ROWS = 2000
+#: how long the harness may take to report the first encoded row, s
+START_TIMEOUT_S = 10.0
+
+
+@dataclass(frozen=True)
+class PlayedScan:
+    """One pass as the board's ADC saw it: ``taxels`` (n, 9) the readings played (row 0 = the pass's time 0),
+    ``first_row`` the row of the board's first encoded sample, ``samples`` how many it encoded."""
+
+    taxels: np.ndarray
+    first_row: int
+    samples: int
+
+    def encoded(self) -> np.ndarray:
+        """(samples, 9) the readings the board encoded."""
+        return self.taxels[self.first_row:self.first_row + self.samples]
+
+
+class HilFingerScans:
+    """The simulated operator's scans encoded on the Uno encoder image under simavr (module docstring); ``board``:
+    the CALIBRATE (the classifier's range). Raises ScanError when the board does not start or is not the encoder
+    image (:class:`rigctl.simulation.hil.HilError` for simavr's own failures)."""
+
+    layout: SensorLayout = PAPER_FINGER
+
+    def __init__(self, board: BoardRange, *, seed: int = 0, rig_config: RigConfig | None = None,
+                 textures: TextureSet | None = None, timeout_s: float = 60.0) -> None:
+        import serial
+
+        from rigctl.simulation.hil import HilRig
+
+        self.operator = SimulatedOperator(seed=seed, rig_config=rig_config, textures=textures)
+        self.textures = self.operator.textures
+        self.seed = int(seed)
+        self.board, self.timeout_s = board, float(timeout_s)
+        self._axis: PlateAxis = plate_axis_of(self.operator)
+        #: every scan's readings as the board converted them (:class:`PlayedScan`), in order
+        self.played: list[PlayedScan] = []
+        self.hil = HilRig(rig_config, seed=seed, live=False, uno_image="uno_encoder").start()
+        try:
+            self.port = serial.Serial(self.hil.taxel_port, wire.TAXEL_BAUD, timeout=0.02)
+            self.banner = read_banner(self.port, 30.0)
+        except BaseException:
+            self.hil.close()
+            raise
+
+    def touch_ends(self) -> tuple[np.ndarray, np.ndarray]:
+        """The operator's touches of the plate's two ends (the rig calibrates its axis from them)."""
+        return self.operator.touch_ends()
+
+    def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
+        """The operator's pass for ``planned``, played to the board and encoded there. Raises ScanError."""
+        t_origin = self.operator.clock_s
+        raw = self.operator.scan(planned, stop=stop)
+        if raw is None:
+            return None
+        x = np.clip(raw.taxels[:, :wire.ENC_N_TAXELS], 0, wire.ADC_MAX).astype(np.uint16)
+        ok = np.all(np.isfinite(raw.tracker_xyz), axis=1) if raw.tracker_xyz is not None else np.zeros(0, bool)
+        t_pass = np.asarray(raw.tracker_time_s, np.float64)[ok] - t_origin
+        along = self._axis.along_mm(raw.tracker_xyz[ok]) if raw.tracker_xyz is not None else np.zeros(0)
+        wave = np.concatenate([x, np.repeat(x[-1:], TAIL_ROWS, axis=0)])
+        self.hil.play_waveform(np.concatenate([wave, wave], axis=1))
+        t_played = time.monotonic()
+        enc = OnboardEncoder(self.port)
+        starts = len(self.hil.encoder_start_rows)
+        first: list[int] = []
+
+        def started(_t: float) -> float:
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while len(self.hil.encoder_start_rows) <= starts:
+                if time.monotonic() > deadline:
+                    raise ScanError("the board under simavr did not report its first encoded row")
+                time.sleep(0.002)
+            first.append(self.hil.encoder_start_rows[starts])
+            return first[0] / 1000.0
+
+        def now() -> float:  # the board's clock once it encodes (its rows), the wall clock before
+            return (first[0] + enc.samples) / 1000.0 if first else time.monotonic() - t_played
+
+        def motion() -> tuple[np.ndarray, np.ndarray]:
+            n = int(np.searchsorted(t_pass, now(), side="right"))
+            return t_pass[:n], along[:n]
+
+        got = encode_pass(enc, self.board, motion, now=now, started=started, stop=stop, timeout_s=self.timeout_s)
+        if got is None:
+            return None
+        t0, scan = got
+        self.played.append(PlayedScan(wave, first[0], int(scan.counts.samples)))
+        return onboard_raw_scan(t_pass, along, t0, onboard_encoding(scan, self.layout.sample_rate_hz), self.layout,
+                                {**raw.attrs, "taxels_from": "encoded on the Uno encoder image under simavr",
+                                 "onboard_crc_errors": int(enc.parser.crc_errors)})
+
+    def describe(self) -> dict[str, Any]:
+        return {**self.operator.describe(), "kind": "simulated_operator_hil_onboard_encoder",
+                "taxels": "encoded on board (uno_encoder under simavr)", "taxel_board": dict(self.banner),
+                "onboard_taxel_min": self.board.taxel_min.tolist(), "onboard_taxel_max": self.board.taxel_max.tolist(),
+                "onboard_k": self.board.k}
+
+    def close(self) -> None:
+        try:
+            self.port.close()
+        finally:
+            self.hil.close()
