@@ -167,11 +167,14 @@ def _check_ports(drum_port: str | None, taxel_port: str | None, *, handheld: boo
 
 
 def _handheld_rig(proto: Any, *, handheld: bool, motion: str | None, hil: bool, inprocess: bool, hardware: bool,
-                  replay: Any) -> bool:
+                  replay: Any, onboard: dict[str, Any]) -> bool:
     """Whether the run records on the handheld rig: a protocol with ``rig = "handheld"``, or ``--handheld`` /
     ``--motion``. Raises click.UsageError when the flags name another rig for a handheld protocol, or the handheld rig
-    for a drum protocol."""
+    for a drum protocol, or ``--onboard-encoder``'s flags (``onboard``: :func:`_check_onboard`'s) do not fit."""
     wants = getattr(proto, "rig", "drum") == "handheld"
+    on_board = bool(onboard.pop("onboard"))
+    _check_onboard(on_board, handheld=wants, hil=hil, replay=replay, **onboard)
+    hil = hil and not on_board  # --hil with --onboard-encoder: the finger's board under simavr
     asked = handheld or motion is not None
     if asked and not wants:
         raise click.UsageError(f"--handheld/--motion record on the handheld rig, but protocol {proto.name!r} is a drum "
@@ -447,10 +450,9 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         if not isinstance(proto, Protocol):
             raise UsageProblem(f"--trials-per-condition: {protocol} is a Python plan; set its size in the script")
         proto = dataclasses.replace(proto, trials_per_condition=trials_per_condition)
-    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil and not onboard_encoder,
-                             inprocess=inprocess, hardware=hardware, replay=replay)
-    _check_onboard(onboard_encoder, handheld=handheld, classify=classify, variant=classify_variant, hil=hil,
-                   taxel_port=taxel_port, replay=replay)
+    handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware,
+                             replay=replay, onboard=dict(onboard=onboard_encoder, classify=classify,
+                                                         variant=classify_variant, taxel_port=taxel_port))
     classifier = _scan_classifier(classify, calibration, classify_variant, pcs, handheld=handheld)
     if hardware and plates == "skip":
         with contextlib.suppress(Exception):  # a note only; the runner reports a plan it cannot build
@@ -466,8 +468,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     source = _rig_source(dict(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                               bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
-                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None),
-                         truth_log)
+                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None), truth_log)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(show_bars(progress)) as progress:
         _bars_follow_the_rig(control, progress)

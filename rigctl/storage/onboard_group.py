@@ -31,7 +31,7 @@ ONBOARD_ATTR = "encoded_on_board"
 #: the trial group's subgroup holding the board's record
 ONBOARD_GROUP = "onboard"
 _ARRAYS = ("spike_sample", "spike_taxel", "counts", "speeds_mm_s", "held_windows")
-_SCALARS = ("samples", "dropped_samples", "queue_max", "rate_hz")
+_SCALARS = ("samples", "dropped_samples", "queue_max", "rate_hz")  # attributes of the group
 
 
 def write_onboard(group: Any, enc: OnboardEncoding) -> None:
@@ -54,8 +54,11 @@ def read_onboard(group: h5py.Group) -> OnboardEncoding | None:
     if ONBOARD_GROUP not in group:
         return None
     g = group[ONBOARD_GROUP]
-    return OnboardEncoding(**{k: np.asarray(g[k][()]) for k in _ARRAYS},
-                           **{k: g.attrs[k].item() if hasattr(g.attrs[k], "item") else g.attrs[k] for k in _SCALARS})
+    a = g.attrs
+    return OnboardEncoding(spike_sample=g["spike_sample"][()], spike_taxel=g["spike_taxel"][()], counts=g["counts"][()],
+                           speeds_mm_s=g["speeds_mm_s"][()], held_windows=g["held_windows"][()],
+                           samples=int(a["samples"]), dropped_samples=int(a["dropped_samples"]),
+                           queue_max=int(a["queue_max"]), rate_hz=float(a["rate_hz"]))
 
 
 def onboard_samples(group: h5py.Group) -> tuple[int | None, str | None]:

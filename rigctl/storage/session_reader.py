@@ -18,8 +18,7 @@ from h5py import h5a, h5d, h5g, h5s, h5t
 
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import session_recording, trial_facts
-from rigctl.storage.onboard_group import read_onboard
+from rigctl.storage import onboard_group, session_recording, trial_facts
 from rigctl.storage.session_format import (
     SessionError,
     TrialStatus,
@@ -508,7 +507,7 @@ class SessionReader:
             for name in ("position_mm", "position_time_s"):  # handheld trials: plain datasets of the group
                 if name in g:
                     arrays[name] = np.asarray(g[name][()], np.float64)
-            onboard = read_onboard(g)  # a scan the taxel board encoded itself
+            onboard = onboard_group.read_onboard(g)  # a scan the taxel board encoded itself
         taxels = arrays.pop("taxels")
         self._check_block_range([tid], taxels, np.array([0, len(taxels)]))
         try:
@@ -543,7 +542,7 @@ class SessionReader:
             arrays = {k: g[k][()] for k in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s",
                                             "speed_mm_s", "speed_time_s", "position_mm", "position_time_s")
                       if k in g or k not in ("position_mm", "position_time_s")}  # position: handheld trials only
-            onboard = read_onboard(g)
+            onboard = onboard_group.read_onboard(g)
         taxels = arrays.pop("taxels")
         if self._present is not None:  # a schema-1/2 import: only the real columns
             taxels = taxels[:, self._present]
@@ -556,8 +555,7 @@ class SessionReader:
                                               f"range 0..{self.layout.adc_max}")
         try:
             return TrialData(taxels=taxels, **arrays, dropped_frames=int(attrs.get("dropped_frames", 0)),
-                             crc_errors=int(attrs.get("crc_errors", 0)), attrs=attrs, layout=self.layout,
-                             onboard=onboard)
+                             crc_errors=int(attrs.get("crc_errors", 0)), attrs=attrs, layout=self.layout, onboard=onboard)
         except (TypeError, ValueError) as exc:  # what the checks above did not foresee
             raise self._damaged(trial_id, _one_line(exc)) from None
 

@@ -1,0 +1,91 @@
+"""The handheld real-time path with the encoder on the finger's board (issue 37, item 7): ``--handheld --hil
+--onboard-encoder`` runs the simulated operator's passes on the Uno encoder image under simavr through the rig's owner
+(:class:`rigctl.operations.RigControl`) and the run engine (:class:`rigctl.operations.ProtocolRun`); each scan is
+classified from the board's counts frame, and the trial keeps the board's spikes, counts, applied speeds and flags
+(no raw taxels). Held against the host's integer kernel (``ScanEncoder(kernel="fixed")``, ``FixedSAEncoder``) on
+the readings the board's ADC converted and the speeds the board applied: every spike and all 180 features equal.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rigctl.acquisition.builtin import find_protocol
+from rigctl.acquisition.protocol import load_protocol
+from rigctl.acquisition.runner import run_protocol
+from rigctl.core.normalisation import TaxelRange
+from rigctl.devices import wire
+from rigctl.encoding.features import counted_realtime_features
+from rigctl.encoding.fixed_sa import FixedSAEncoder
+from rigctl.encoding.params import EncodeParams
+from rigctl.encoding.pipeline import encode_session
+from rigctl.encoding.realtime import ScanEncoder
+from rigctl.operations import ProtocolRun, RigSource, ScanClassifier, open_control
+from rigctl.operations._control import rig_of
+from rigctl.rigs import board_range, open_rig
+from rigctl.storage.session import open_session
+from rigctl.storage.validate import usable_trials
+
+from ..conftest import small_handheld_protocol
+
+pytestmark = pytest.mark.hil
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A calibration block of plates B and L (10 scans, host-encoded) on the simulated operator: the training block."""
+    tmp = tmp_path_factory.mktemp("hh_onboard")
+    proto = load_protocol(find_protocol("handheld_calibration"))
+    proto = type(proto)(**{**proto.__dict__, "textures": ("B", "L"), "trials_per_condition": 1})
+    with open_rig("handheld", seed=4, host_config_path=tmp / "rig.json") as rig:
+        assert run_protocol(proto, tmp / "cal.h5", rig=rig).ok
+    enc = encode_session(tmp / "cal.h5", tmp / "cal.enc.h5", variants=["realtime_speed_scaled"])
+    (tmp / "small.toml").write_text(small_handheld_protocol("B", "L"))
+    return tmp, enc
+
+
+def test_a_realtime_run_encoded_on_the_simulated_finger_board(fw_build, trained):
+    tmp, enc = trained
+    clf = ScanClassifier(enc, n_pcs=5)
+    source = RigSource.from_flags(handheld=True, hil=True, onboard_encoder=str(enc))
+    assert source.hil_finger and source.onboard_encoder == str(enc)
+    with open_control(source, seed=5, host_config_path=tmp / "rig.json") as control:
+        summary = ProtocolRun(control, load_protocol(tmp / "small.toml"), tmp / "rt.h5", on_trial=clf.on_trial).run()
+        played = list(rig_of(control).source.played)  # type: ignore[attr-defined]  # HilFingerScans
+    assert summary.ok, summary.lines()
+    assert len(clf.predictions) == 4 == len(played)
+    assert {p.predicted for p in clf.predictions} <= {"B", "L"}
+    print("on-board predictions:", [p.line() for p in clf.predictions])
+    board = board_range(enc)
+    rng = TaxelRange(board.taxel_min.astype(np.float64), board.taxel_max.astype(np.float64))
+    with open_session(tmp / "rt.h5") as s:
+        report = usable_trials(s)
+        assert not report.excluded and report.ids == s.completed_ids()  # 0 taxel frames, not damaged
+        for tid, p, pred in zip(s.completed_ids(), played, clf.predictions):
+            d = s.trial(tid)
+            o = d.onboard
+            assert o is not None and d.n_samples == 0 and d.attrs["encoded_on_board"]
+            # the board encoded the whole used part: its samples span the scan between the boundaries (+-0.15 s)
+            assert abs(o.samples / 1000.0 - d.attrs["scan_duration_s"]) < 0.15
+            assert o.dropped_samples == 0 and o.samples == p.samples
+            assert o.speeds_mm_s.size == -(-o.samples // 100) and len(o.held_windows) <= 0.2 * o.speeds_mm_s.size
+            x = p.encoded()
+            assert x.shape == (o.samples, wire.ENC_N_TAXELS)
+            # every spike the board sent (stored per taxel) is the host integer kernel's on the same readings
+            host = FixedSAEncoder(rng, k_sa=float(board.k)).process(x)
+            for i in range(wire.ENC_N_TAXELS):
+                assert np.array_equal(np.rint(host.train(0, i) * 1000.0).astype(np.int64),
+                                      np.rint(o.spike_times_s(i) * 1000.0).astype(np.int64)), f"taxel {i}"
+            assert o.spike_sample.size > 100
+            # the classifier's features: the board's counts frame and applied speeds = the live host path's with the
+            # integer kernel on the same readings and a velocity trace of the same window speeds
+            live = ScanEncoder(rng, EncodeParams(), taxels=list(range(wire.ENC_N_TAXELS)), kernel="fixed")
+            live.feed(x)
+            edges = np.arange(o.speeds_mm_s.size) * 0.1
+            live.feed_speed(np.stack([edges + 1e-6, edges + 0.1 - 1e-6], axis=1).ravel(), np.repeat(o.speeds_mm_s, 2))
+            feats = counted_realtime_features(o.counts, o.speeds_mm_s)
+            assert feats.shape == (180,) and feats.sum() > 0
+            assert np.array_equal(feats, live.features()["realtime_speed_scaled"])
+            assert np.array_equal(clf.features(d), feats)
+            assert clf.model.predict(feats)[0] == pred.predicted  # the prediction is the stored record's
