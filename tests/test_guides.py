@@ -123,6 +123,8 @@ def _handheld(runs, tmp_path, request) -> None:
     """The finger's taxel board beside a tracker stream: both scans recorded, the sensor from the board's banner."""
     board = next(r for r in runs if "--taxel-port" in r.block.text).output
     assert "trials complete: 2/2" in board and "sensor 3x3x1: 9 channels" in board, board
+    onboard = next(r for r in runs if "--onboard-encoder" in r.block.text).output
+    assert "predicted: " in onboard and "totals: 2/2 trials complete, 0 failed" in onboard, onboard
 
 
 def _nothing(runs, tmp_path, request) -> None:
