@@ -628,8 +628,9 @@ class HilRig:
                     raise HilError("the Uno harness did not confirm the waveform")
                 self._cond.wait(left)
 
-    def _playing_row(self, timeout_s: float = 2.0) -> int | None:
-        """Row of the current waveform the Uno harness plays now (None if unknown)."""
+    def playing_row(self, timeout_s: float = 2.0) -> int | None:
+        """Row of the current waveform the Uno harness plays now (None if unknown): the board's clock in ms since the
+        waveform began, however fast simavr runs."""
         scan = self._scan(timeout_s)
         return None if scan is None else scan[0] - scan[1]
 

@@ -7,7 +7,8 @@ taxel readings at 1 kHz and the tracker's samples); the readings are played to t
 the same counts on the bottom layer's pins), and the host encodes the pass on the board exactly as on a real finger
 (:func:`rigctl.devices.onboard_finger.encode_pass`): ENCODE once the finger enters the used part, each window's
 tracker velocity as SPEED, FINISH once it has left. The tracker's samples are handed out on the board's clock (the
-row it plays: its waveform's row 0 is the pass's time 0), so a simavr slower than the wall clock changes nothing.
+row it plays, :meth:`rigctl.simulation.hil.HilRig.playing_row`, then the samples it encoded: its waveform's row 0 is
+the pass's time 0), so a simavr slower or faster than the wall clock changes nothing.
 Each scan keeps what the board's ADC converted (:attr:`HilFingerScans.played`: the pass's readings and the row of
 the first encoded sample) for a check against the host's integer kernel.
 """
@@ -111,8 +112,13 @@ class HilFingerScans:
             first.append(self.hil.encoder_start_rows[starts])
             return first[0] / 1000.0
 
-        def now() -> float:  # the board's clock once it encodes (its rows), the wall clock before
-            return (first[0] + enc.samples) / 1000.0 if first else time.monotonic() - t_played
+        def now() -> float:  # the board's clock: the row it converts (its encoded samples once it encodes)
+            if first:
+                return (first[0] + enc.samples) / 1000.0
+            row, wall = self.hil.playing_row(), time.monotonic() - t_played
+            # simavr runs at most in real time: a row ahead of the wall clock is the last waveform's (its reply before
+            # the new one began), not this one's
+            return wall if row is None or row / 1000.0 > wall + 0.05 else row / 1000.0
 
         def motion() -> tuple[np.ndarray, np.ndarray]:
             n = int(np.searchsorted(t_pass, now(), side="right"))
