@@ -54,6 +54,7 @@ def load_source(settings: QtCore.QSettings) -> RigSource:
             taxel_port=_text(settings.value("source/taxel_port", None)),
             replay_dir=_text(settings.value("source/replay_dir", None)),
             bootloaders=kind == "hil" and str(settings.value("source/bootloaders", "false")).lower() == "true",
+            motion=_text(settings.value("source/motion", None)) if kind == "handheld" else None,
             options=parse_rig_options(str(settings.value("source/rig_options", "") or "")) if kind in plugin_rigs()
             else {},
         )
@@ -68,6 +69,7 @@ def save_source(settings: QtCore.QSettings, src: RigSource) -> None:
     settings.setValue("source/replay_dir", src.replay_dir or "")
     settings.setValue("source/bootloaders", "true" if src.bootloaders else "false")
     settings.setValue("source/rig_options", format_rig_options(src.options))
+    settings.setValue("source/motion", src.motion or "")
 
 
 def source_problem(source: RigSource) -> str | None:

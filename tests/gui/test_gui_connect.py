@@ -52,6 +52,10 @@ def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_
     save_source(settings, RigSource("hil", bootloaders=True))
     settings.sync()
     assert load_source(make_settings()) == RigSource("hil", bootloaders=True)
+    finger = RigSource("handheld", motion="lsl:Tracker@3", taxel_port="/dev/ttyACM1")  # the Handheld tab's rig
+    save_source(settings, finger)
+    settings.sync()
+    assert load_source(make_settings()) == finger
     save_source(settings, RigSource("sim"))
     settings.sync()
     assert load_source(make_settings()) == RigSource("sim")
