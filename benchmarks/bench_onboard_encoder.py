@@ -25,8 +25,17 @@ Sessions (docs/results.md 3b)::
 float32 :class:`~rigctl.encoding.izhikevich.StreamingEncoder`) instead of simavr: the same spikes
 (tests/firmware/test_fw_sa_encoder.py holds them equal bit for bit), seconds instead of ~13 minutes.
 
+``--live RT_HOST.h5 RT_BOARD.h5`` compares two live real-time blocks of the same scans instead (the same seed: the
+simulated operator's passes are the same): one encoded on the host (``rigctl acquire handheld_realtime --sim --seed 7
+--classify tr.enc.h5 --calibration cal.enc.h5``), one on the board in the loop (the same with ``--handheld --hil
+--onboard-encoder``: ENCODE at the tracked entry, the tracker's velocity per window as SPEED, FINISH past the end;
+the Uno encoder image under simavr): each block's logged predictions (accuracy at the PCs it was classified with),
+the scans predicted alike, and the board's record (samples encoded against the scan's duration, held windows,
+dropped samples).
+
 Usage: python benchmarks/bench_onboard_encoder.py TR.h5 TR.enc.h5 CAL.h5 CAL.enc.h5 RT.h5 RT.enc.h5
        [--workers 2] [--n-pcs 25] [--kernel float32|fixed] [--mirror]
+       python benchmarks/bench_onboard_encoder.py --live RT_HOST.h5 RT_BOARD.h5
 """
 
 from __future__ import annotations
@@ -113,14 +122,44 @@ def board_block(session: str, encoded: str, build, workers: int, kernel: str = "
             "max_diff": float(np.max(np.abs(board - host)))}
 
 
+def live_blocks(host_path: str, board_path: str) -> None:
+    """``--live``: the two real-time blocks' logged predictions and the board's record (module docstring)."""
+    preds = {}
+    for who, path in (("host", host_path), ("board", board_path)):
+        with open_session(path) as s:
+            ev = {int(e["trial_id"]): e for e in s.events if e.get("kind") == "prediction"}
+            preds[who] = ev
+            n_pcs = {e.get("n_pcs") for e in ev.values()}
+            acc = float(np.mean([bool(e["correct"]) for e in ev.values()])) if ev else float("nan")
+            print(f"{who}-encoded live block {path}: {len(ev)} scans, {100 * acc:.1f} % correct at {n_pcs} PCs")
+            if who == "board":
+                trials = [s.trial(t) for t in s.completed_ids()]
+                rec = [d.onboard for d in trials if d.onboard is not None]
+                lag = [o.samples / o.rate_hz - d.attrs["scan_duration_s"] for d, o in zip(trials, rec)]
+                held = [len(o.held_windows) / max(o.speeds_mm_s.size, 1) for o in rec]
+                print(f"  the board's record: {len(rec)}/{len(trials)} trials encoded on board; encoded span minus the "
+                      f"scan's duration {np.mean(lag) * 1000:.0f} ms mean ({np.min(lag) * 1000:.0f} to "
+                      f"{np.max(lag) * 1000:.0f}); windows held {100 * np.mean(held):.1f} %; samples dropped "
+                      f"{sum(o.dropped_samples for o in rec)}")
+    both = sorted(set(preds["host"]) & set(preds["board"]))
+    alike = sum(preds["host"][t]["predicted"] == preds["board"][t]["predicted"] for t in both)
+    print(f"predicted alike: {alike}/{len(both)} scans")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("files", nargs=6, metavar="FILE")
+    ap.add_argument("files", nargs="*", metavar="FILE")
+    ap.add_argument("--live", nargs=2, metavar=("RT_HOST", "RT_BOARD"), default=None)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--n-pcs", type=int, default=25)
     ap.add_argument("--kernel", choices=sorted(sa_board.KERNELS), default="float32")
     ap.add_argument("--mirror", action="store_true", help="the host's copy of the kernel instead of simavr")
     a = ap.parse_args()
+    if a.live is not None:
+        live_blocks(*a.live)
+        return
+    if len(a.files) != 6:
+        ap.error("give the six files TR.h5 TR.enc.h5 CAL.h5 CAL.enc.h5 RT.h5 RT.enc.h5 (or --live RT_HOST RT_BOARD)")
     build = None if a.mirror else firmware.build(targets=("sa-bench",))
     t0 = time.monotonic()
     blocks = {}

@@ -254,7 +254,8 @@ class OnboardEncoder:
     def finish(self, last_speeds_mm_s: list[float], *, quiet_s: float = 0.3, timeout_s: float = 10.0) -> OnboardScan:
         """STOP, read the spike frames still coming (until ``quiet_s`` without bytes), send the speeds of the windows
         still without one (``last_speeds_mm_s``, in order; the last one repeated if they are too few), FINISH, and
-        read the counts frame.
+        read the counts frame. The applied speeds cover every window of the counts frame's samples (a last partial
+        frame's window, sent with FINISH, is scaled with the last speed: docs/wire-protocol.md 1.5).
 
         Raises
         ------
@@ -284,5 +285,8 @@ class OnboardEncoder:
                 raise TimeoutError(f"no counts frame from the board within {timeout_s} s of FINISH")
             self.poll()
         held = held_windows(self.parser.spikes)
-        return OnboardScan(spike_raster(self.parser.spikes), self.parser.counts[0],
-                           applied_speeds(np.array(self.speeds_sent), held), held)
+        applied = applied_speeds(np.array(self.speeds_sent), held)
+        n_windows = -(-self.parser.counts[0].samples // 100)
+        if applied.size < n_windows:  # samples whose spike frame came after FINISH: FINISH scaled them with the last
+            applied = np.concatenate([applied, np.repeat(applied[-1:], n_windows - applied.size)])
+        return OnboardScan(spike_raster(self.parser.spikes), self.parser.counts[0], applied, held)

@@ -38,6 +38,8 @@ __all__ = ["BoardRange", "OnboardFingerScans", "encode_pass", "onboard_encoding"
 
 #: a real-time window of the on-board encoder, s (the paper's 100 ms: the board's 100 samples at 1 kHz)
 WINDOW_S = 0.1
+#: the board's samples per window (1 kHz)
+WINDOW_SAMPLES = 100
 #: how often the host polls the board and the tracker during a scan, s
 POLL_S = 0.005
 #: windows ahead of the last sent whose speeds go with FINISH (more than the board's quiet tail can hold)
@@ -68,9 +70,13 @@ class BoardRange:
 
 def window_speed_mm_s(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float) -> float:
     """The finger's mean speed along the plate over ``[t0, t1)`` (s), mm/s >= 0: the position's change over the span
-    (linearly interpolated between tracker samples, held at the ends), as the paper's tracker velocity per 100 ms.
-    0 with fewer than two samples."""
+    (linearly interpolated between tracker samples), as the paper's tracker velocity per 100 ms; over the part the
+    tracker covers when its samples end before ``t1`` (a dropout: the speed is due before the next sample comes).
+    0 with fewer than two samples or less than 10 ms covered."""
     if t.size < 2:
+        return 0.0
+    t1 = min(t1, float(t[-1]))
+    if t1 - t0 < 0.01:
         return 0.0
     x0, x1 = np.interp([t0, t1], t, along_mm)
     return max(0.0, float(x1 - x0) / (t1 - t0))
@@ -142,9 +148,11 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
             else:
                 time.sleep(POLL_S)
             continue
-        enc.poll()
+        n = enc.poll()
         w = len(enc.speeds_sent)
-        while t.size and t[-1] >= w_origin + WINDOW_S * (w + 1):
+        # a window's speed once the tracker has passed its end, or (a tracker dropout) once the board is half way
+        # through the next window: later, the board would scale it with the last speed (held)
+        while t.size and (t[-1] >= w_origin + WINDOW_S * (w + 1) or n >= WINDOW_SAMPLES * (w + 1) + WINDOW_SAMPLES // 2):
             enc.send_speed(window_speed_mm_s(t, along, w_origin + WINDOW_S * w, w_origin + WINDOW_S * (w + 1)))
             w += 1
         after = t >= t_enc
