@@ -60,7 +60,7 @@ class BoardFingerScans:
         #: a busy host in one scan is an outlier of a long fit, not the slope of a short one
         self.clock_fit = DeviceClockFit(self.layout.sample_rate_hz)
         self.scans = 0
-        self._ring, self._cursor = taxels.ring, taxels.ring.total  # the frames a scan may take start here
+        self._ring, self._cursor = taxels.ring, 0  # the frames a scan may take: any the ring holds, each once
 
     @property
     def ring(self) -> RingBuffer:
@@ -137,15 +137,14 @@ def open_finger_board(port: str, tracker: Tracker, axis: PlateAxis | None, *, te
             # frames held up meanwhile would arrive in a burst that bends the first scan's clock fit
             stream.begin_capture()
             flowing = stream.wait_capture(int(WARM_UP_S * stream.layout.sample_rate_hz), WARM_UP_TIMEOUT_S)
-            first = stream.end_capture()
+            stream.end_capture()
         except (OSError, TaxelStreamError) as exc:
             raise ScanError(f"cannot open the finger's taxel board on {port}: {exc}") from None
         if not flowing:
             raise ScanError(f"the finger's taxel board on {port} sent no frames within {WARM_UP_TIMEOUT_S:g} s of "
                             "START")
-        scans = BoardFingerScans(stream, tracker, axis, textures=textures, timeout_s=timeout_s)
-        scans.clock_fit.add(first.seq, first.host_time_s)  # the fit starts before the first scan
-        return scans
+        # the fit starts with the first scan's frames (a second before its cue on), each frame fed once, in order
+        return BoardFingerScans(stream, tracker, axis, textures=textures, timeout_s=timeout_s)
     except BaseException:
         stream.close()
         tracker.close()
