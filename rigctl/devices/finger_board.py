@@ -9,7 +9,7 @@ finger; a finger already on its way when a busy host cued it late still has its 
 frames with their sequence numbers and host receive times beside the tracker's samples. The cut
 (:func:`rigctl.acquisition.handheld.cut_scan`) puts the frames on the host clock by the board's clock fit
 (:class:`rigctl.core.clocksync.DeviceClockFit`: sequence numbers against receive times, the lower envelope, over every
-frame of every scan since the board opened) and the tracker's samples are on the host clock already (an LSL stream's
+frame every scan took, from the first on) and the tracker's samples are on the host clock already (an LSL stream's
 timestamps less the measured LSL <-> host offset; a motion board's own clock fit), so both are cut on one clock.
 """
 
