@@ -315,6 +315,9 @@ def _timeline(s: Any, session_path: Any, keep_nonfinite: bool = False) -> _Timel
     rate = float(s.layout.sample_rate_hz)
     attrs = s.trial_counts(ids)
     n = [int(a.get("n_samples", 0)) for a in attrs]
+    if not all(n):  # trials encoded on the finger's board hold spikes and counts, no taxel series to export
+        raise NwbExportError(f"{session_path}: trials {[t for t, k in zip(ids, n) if not k][:5]} hold no taxel frames "
+                             "(encoded on the board: docs/session-format.md); NWB export takes taxel recordings")
     first = s.trial(ids[0])  # traces may start before the first frame (settling): session time starts there
     lead = max(0.0, -min([0.0] + [float(t.min()) for t in (first.force_time_s, first.speed_time_s) if t.size]))
     starts = lead + np.concatenate([[0], np.cumsum(n)[:-1]]) / rate

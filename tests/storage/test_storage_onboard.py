@@ -87,3 +87,13 @@ def test_only_a_whole_marked_record_of_the_plans_length_stands_for_taxels(tmp_pa
         report = usable_trials(s)
     assert report.ids == [1]
     assert report.excluded[0].startswith(reason), report.excluded[0]
+
+
+def test_nwb_export_refuses_trials_without_taxel_frames_in_one_line(tmp_path):
+    pytest.importorskip("pynwb")
+    from rigctl.storage.nwb import NwbExportError, export_nwb
+
+    _write(tmp_path / "s.h5", [_onboard(np.random.default_rng(5)), None])
+    with pytest.raises(NwbExportError, match=r"trials \[0\] hold no taxel frames \(encoded on the board"):
+        export_nwb(tmp_path / "s.h5", tmp_path / "s.nwb")
+    assert not (tmp_path / "s.nwb").exists()
