@@ -68,16 +68,16 @@ class BoardRange:
         return cls(lo.clip(0, 0xFFFF).astype(np.int64), hi.clip(0, 0xFFFF).astype(np.int64), int(k))
 
 
-def window_speed_mm_s(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float) -> float:
+def window_speed_mm_s(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float, last: float = 0.0) -> float:
     """The finger's mean speed along the plate over ``[t0, t1)`` (s), mm/s >= 0: the position's change over the span
     (linearly interpolated between tracker samples), as the paper's tracker velocity per 100 ms; over the part the
     tracker covers when its samples end before ``t1`` (a dropout: the speed is due before the next sample comes).
-    0 with fewer than two samples or less than 10 ms covered."""
+    ``last`` (the speed before) with fewer than two samples or less than 10 ms of the window covered."""
     if t.size < 2:
-        return 0.0
+        return last
     t1 = min(t1, float(t[-1]))
     if t1 - t0 < 0.01:
-        return 0.0
+        return last
     x0, x1 = np.interp([t0, t1], t, along_mm)
     return max(0.0, float(x1 - x0) / (t1 - t0))
 
@@ -153,13 +153,16 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
         # a window's speed once the tracker has passed its end, or (a tracker dropout) once the board is half way
         # through the next window: later, the board would scale it with the last speed (held)
         while t.size and (t[-1] >= w_origin + WINDOW_S * (w + 1) or n >= WINDOW_SAMPLES * (w + 1) + WINDOW_SAMPLES // 2):
-            enc.send_speed(window_speed_mm_s(t, along, w_origin + WINDOW_S * w, w_origin + WINDOW_S * (w + 1)))
+            enc.send_speed(window_speed_mm_s(t, along, w_origin + WINDOW_S * w, w_origin + WINDOW_S * (w + 1),
+                                             enc.speeds_sent[-1] if enc.speeds_sent else 0.0))
             w += 1
         after = t >= t_enc
         if np.any(along[after] > USED_END_MM):
             break
-    rest = [window_speed_mm_s(t, along, w_origin + WINDOW_S * i, w_origin + WINDOW_S * (i + 1))
-            for i in range(len(enc.speeds_sent), len(enc.speeds_sent) + FINISH_WINDOWS)]
+    rest: list[float] = []
+    for i in range(len(enc.speeds_sent), len(enc.speeds_sent) + FINISH_WINDOWS):
+        before = rest[-1] if rest else enc.speeds_sent[-1] if enc.speeds_sent else 0.0
+        rest.append(window_speed_mm_s(t, along, w_origin + WINDOW_S * i, w_origin + WINDOW_S * (i + 1), before))
     try:
         scan = enc.finish(rest)
     except (TimeoutError, ValueError) as exc:
