@@ -201,13 +201,13 @@ phase "pytest done (exit $status)"
 # 2-core machine, workers beside the rigs they pace), and a test of a wall-clock tier (realtime, hil, gui, packaging:
 # tests/conftest.py WALL_CLOCK_TIERS) can then fail for want of CPU: each run failed a different handful of 3-7 of
 # ~1,190 (a 0.73 s STOP against 0.5, a simulated board's banner not within 3 s, a frame burst stamped late). Once the
-# parallel run is over, those (at most 12) run again one at a time, with the CPU to themselves; the run fails if any
+# parallel run is over, those (at most 25) run again one at a time, with the CPU to themselves; the run fails if any
 # fails again, and on any failure of a logic test (those judge simulated time and never get a second chance). Every
 # rerun is listed in the log: a test that keeps needing one is a test to fix.
 if [ "$status" = 1 ] && [ -s "$RIGCTL_FAILURES_LOG" ] \
     && awk -F'\t' '$2 != "wall" { logic = 1 } END { exit logic }' "$RIGCTL_FAILURES_LOG"; then
   mapfile -t rerun < <(cut -f1 "$RIGCTL_FAILURES_LOG" | sort -u)
-  if [ "${#rerun[@]}" -le 12 ]; then
+  if [ "${#rerun[@]}" -le 25 ]; then
     phase "rerunning ${#rerun[@]} wall-clock failure(s) alone, one at a time:"
     printf '   %s\n' "${rerun[@]}"
     mv "$RIGCTL_FAILURES_LOG" "$TEST_TMP/failures-parallel.log"
@@ -216,7 +216,7 @@ if [ "$status" = 1 ] && [ -s "$RIGCTL_FAILURES_LOG" ] \
       || status=$?
     phase "rerun done (exit $status)"
   else
-    echo "== ${#rerun[@]} wall-clock failures: not rerun (more than 12 is not the load)"
+    echo "== ${#rerun[@]} wall-clock failures: not rerun (more than 25 is not the load)"
   fi
 fi
 static_status=0
