@@ -180,18 +180,13 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
     env = guide_env(work)
     server = None
     if preload and sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines()) > 2:
-        sock = work.parent / "rigctl.sock"
-        server = subprocess.Popen([sys.executable, str(Path(__file__).with_name("launcher.py")), "serve",
-                                   str(sock)], cwd=work.parent, env=env, stdout=subprocess.PIPE, text=True)
-        assert server.stdout is not None and server.stdout.readline().strip() == "ready"
-        bin_dir = launcher.write_client(work.parent / "bin", sock).parent
-        env["PATH"] = f"{bin_dir}{os.pathsep}{env['PATH']}"
+        server = launcher.Launcher(work.parent, env=env)
+        env["PATH"] = f"{server.client.parent}{os.pathsep}{env['PATH']}"
     try:
         return _run_script(page, path, work, env, runnable, t0, cpu0, timeout_s)
     finally:
         if server is not None:
-            server.kill()
-            server.wait()
+            server.close()
 
 
 def _run_script(page: str, path: Path, work: Path, env: dict[str, str], runnable: list[Block], t0: float,

@@ -176,13 +176,14 @@ class Launcher:
     """One preloaded server (``python launcher.py serve``) and its client script, for a test session.
 
     ``command`` is the argv prefix that runs ``rigctl`` through it (``[*launcher.command, "info", path]``), to be used
-    wherever ``[sys.executable, "-m", "rigctl"]`` would be; :meth:`close` stops the server."""
+    wherever ``[sys.executable, "-m", "rigctl"]`` would be, and ``client`` the ``rigctl`` script itself (for a shell's
+    PATH); ``env`` is the server's environment (each command runs in its client's); :meth:`close` stops the server."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, env: dict[str, str] | None = None) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         sock = folder / "rigctl.sock"
         self._server = subprocess.Popen([sys.executable, str(Path(__file__)), "serve", str(sock)], cwd=folder,
-                                        stdout=subprocess.PIPE, text=True)
+                                        env=env, stdout=subprocess.PIPE, text=True)
         assert self._server.stdout is not None
         line = self._server.stdout.readline().strip()
         if line != "ready":
