@@ -19,7 +19,8 @@ _STATUS = {int(s): s.name.lower() for s in TrialStatus}
 #: the trial attributes ``rigctl info`` shows (read in one pass, :meth:`Session.trial_table`); schema 4 takes the
 #: counts from ``/recording/index`` instead
 _SHOWN = ("n_samples", "dropped_frames", "crc_errors", "host_rate_hz", "force_mean_g", "speed_mean_mm_s",
-          "index_source", "drum_speed_index_mm_s", "drum_speed_mismatch", "drum_speed_warning", "error")
+          "index_source", "drum_speed_index_mm_s", "drum_speed_mismatch", "drum_speed_warning", "error",
+          "encoded_on_board")
 
 
 def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
@@ -44,7 +45,8 @@ def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
     drum_speed_mismatch), source (where an imported or replayed trial came from: ``file``, ``first_sample``,
     ``last_sample`` (inclusive, at the session's rate), ``cycle`` (the cycle or run of a segmented recording),
     ``trial_id`` (a replayed session's trial); None for a trial recorded here), nonfinite (a kept trial's NaN/inf
-    readings, in words; None otherwise), error) and ``totals``.
+    readings, in words; None otherwise), encoded_on_board (a scan the finger's board encoded itself, the handheld
+    rig's ``--onboard-encoder``: no taxel frames, its samples the ones the board encoded), error) and ``totals``.
     """
     from rigctl.storage.validate import usable_trials
 
@@ -60,6 +62,11 @@ def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
         attrs = dict(zip(shown, s.trial_table(shown, names + tuple(SOURCE_ATTRS))))  # one pass, no dataset opened
         trials = [_trial_row(row, report, attrs.get(int(row["trial_id"])), index.get(int(row["trial_id"])))
                   for row in s.plan]
+        for t in trials:  # a scan the finger's board encoded: no taxel frames, the samples the board encoded
+            if t.get("encoded_on_board"):
+                onboard = s.trial(t["trial_id"]).onboard
+                t["samples"] = onboard.samples if onboard is not None else 0
+                t["samples_per_s"] = t["samples"] / t["duration_s"] if t["duration_s"] > 0 else None
         done = [t for t in trials if t["status"] == "complete"]
         totals = {
             "trials": len(trials),
@@ -68,6 +75,7 @@ def session_summary(path: str | Path, *, keep_nonfinite: bool = False,
             "pending": sum(t["status"] == "pending" for t in trials),
             "excluded": sum(t["status"] == "excluded" for t in trials),
             "nonfinite": sum(t.get("nonfinite") is not None for t in done),
+            "encoded_on_board": sum(bool(t.get("encoded_on_board")) for t in done),
             "samples": sum(t["samples"] for t in done),
             "recorded_s": sum(t["duration_s"] for t in done),
             "dropped_frames": sum(t["dropped_frames"] for t in done),
@@ -128,6 +136,7 @@ def _trial_row(row: Any, report: Any, a: dict | None, index_row: Any) -> dict:
         t["drum_speed_warning"] = str(a.get("drum_speed_warning", "")) if a.get("drum_speed_mismatch", False) else ""
         t["source"] = _source(a)
         t["nonfinite"] = report.nonfinite.get(tid)
+        t["encoded_on_board"] = bool(a.get("encoded_on_board", False))
     return t
 
 
@@ -270,6 +279,8 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
             line += f" ({t['error']})"
         if t.get("nonfinite"):
             line += f" (non-finite readings: {t['nonfinite']})"
+        if t.get("encoded_on_board"):
+            line += " (encoded on the board: its spikes and counts, no taxel frames)"
         if t.get("source"):
             line += f"  from {_source_text(t['source'])}"
         lines.append(line)
@@ -281,6 +292,8 @@ def info(file, as_json, provenance, keep_nonfinite, progress):
     excluded = f", {tot['excluded']} excluded as damaged" if tot["excluded"] else ""
     if tot["nonfinite"]:
         excluded += f", {tot['nonfinite']} with non-finite readings kept"
+    if tot["encoded_on_board"]:
+        excluded += f", {tot['encoded_on_board']} encoded on the board"
     click.echo(f"totals: {tot['complete']}/{tot['trials']} trials complete{excluded}, {tot['failed']} failed, "
                f"{tot['pending']} pending; {tot['samples']} samples over {tot['recorded_s']:.1f} s of trials; "
                f"{tot['dropped_frames']} dropped frames; {tot['crc_errors']} CRC errors")

@@ -97,3 +97,25 @@ def test_nwb_export_refuses_trials_without_taxel_frames_in_one_line(tmp_path):
     with pytest.raises(NwbExportError, match=r"trials \[0\] hold no taxel frames \(encoded on the board"):
         export_nwb(tmp_path / "s.h5", tmp_path / "s.nwb")
     assert not (tmp_path / "s.nwb").exists()
+
+
+def test_info_names_the_trials_encoded_on_the_board_and_their_samples(tmp_path):
+    """`rigctl info` (issue 37's follow-up): a scan the board encoded is complete with the samples the board
+    encoded (not 0) and says it was encoded on the board; the totals count such trials."""
+    from click.testing import CliRunner
+
+    from rigctl.cli import main
+    from rigctl.cli.info import session_summary
+
+    rng = np.random.default_rng(4)
+    _write(tmp_path / "s.h5", [_onboard(rng), None, _onboard(rng, N - 300)])
+    summary = session_summary(tmp_path / "s.h5")
+    rows = summary["trials"]
+    assert [t["encoded_on_board"] for t in rows] == [True, False, True]
+    assert [t["samples"] for t in rows] == [N, N, N - 300]
+    assert summary["totals"]["encoded_on_board"] == 2 and summary["totals"]["complete"] == 3
+    out = CliRunner().invoke(main, ["info", str(tmp_path / "s.h5")])
+    assert out.exit_code == 0, out.output
+    lines = [line for line in out.output.splitlines() if line.strip().split(" ", 1)[0] in ("0", "1", "2")]
+    assert ["encoded on the board" in line for line in lines] == [True, False, True]
+    assert "2 encoded on the board" in out.output
