@@ -7,8 +7,8 @@ screen size measures everything (it asserts nothing); the tests here judge what 
 - with a menu open, and with a drop-down open, one click on STOP stops the turning drum;
 - the wheel over the unfocused speed box changes nothing (and over the focused one it does: the wheel does arrive);
 - Esc in a dialog during a protocol run closes the dialog and the run goes on;
-- the simulated Uno stalled for 6 s: the taxel banner and a log line within 2 s, no control moved by a pixel when
-  the banner appeared, and once frames come again the live traces show the gap.
+- the simulated Uno stalled for 3 s (the driver's STALL_S): the taxel banner and a log line within 2 s, no control
+  moved by a pixel when the banner appeared, and once frames come again the live traces show the gap.
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ def test_a_stalled_taxel_stream_is_shown_everywhere_and_moves_nothing(measured):
     assert r["n_widgets"] > 5 and r["moved"] == {}, r["moved"]
     assert r["resumed"] and r["gaps"], r
     (where, length), *_ = r["gaps"]
-    assert 5.0 <= length <= 8.0, r["gaps"]  # the 6 s outage, as seen by the host
+    assert r["stall_s"] - 1.0 <= length <= r["stall_s"] + 2.0, r["gaps"]  # the outage, as seen by the host
     # nothing is drawn across the outage: each trace plot breaks its lines at the gap, or (the outage takes its real
-    # width on the time axis, issue 38, and 6 s is wider than the 2 s window) starts after it
+    # width on the time axis, issue 38, and the stall is wider than the 2 s window) starts after it
     assert all(n >= 2 or first >= where - 1e-6 for n, first in zip(r["segments"], r["first_t"])), r

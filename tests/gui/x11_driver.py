@@ -9,12 +9,17 @@ Measures, in order:
 - ``fit``: first start (fresh settings) and a start after a larger size was saved: the screen's available area, the
   window's frame, its smallest size and STOP's rectangle on screen, and Qt's scale factor (``--fit-only``: only
   this, e.g. under ``QT_SCALE_FACTOR=1.5``);
+- ``stall``: the live tab shown, the drum turning, every visible widget's geometry; the simulated Uno stalled
+  :data:`STALL_S`: the time until the taxel banner and the log line, every widget's geometry again, and after it
+  resumes the gaps in the live traces;
 - ``menu_stop`` / ``combo_stop``: the drum turning, a menu (File) or the plate drop-down opened by a click, then
   one click on STOP: whether the popup was open, the controller's state and speed target afterwards;
 - ``wheel``: the wheel over the unfocused speed box, then over the focused one: the values;
-- ``esc_dialog``: a protocol running, the keyboard-shortcuts dialog opened, Esc: the dialog closed, the run going;
-- ``stall``: the live tab shown, every visible widget's geometry; the simulated Uno stalled 6 s: the time until the
-  taxel banner and the log line, every widget's geometry again, and after it resumes the gaps in the live traces.
+- ``esc_dialog``: a protocol running, the keyboard-shortcuts dialog opened, Esc: the dialog closed, the run going.
+
+One rig serves them all, in this order (the drum still turning after the stall is the menu's); every wait is on
+the condition (the window manager's placement, the drum's state, a popup), fixed pauses only where nothing is to be
+seen (a wheel that must change nothing, a run that must go on).
 """
 
 from __future__ import annotations
@@ -35,6 +40,10 @@ trials_per_condition = 3
 duration_s = 2.0
 retries = 0
 """
+
+#: how long the simulated Uno stalls, s: longer than the taxel link's 1 s to call it stalled plus the 2 s the banner
+#: may take, and than the live view's 2 s window (the gap then takes the whole window)
+STALL_S = 3.0
 
 
 def main(out_path: str, fit_only: bool = False) -> int:
@@ -75,6 +84,22 @@ def main(out_path: str, fit_only: bool = False) -> int:
         p = w.mapToGlobal(QtCore.QPoint(0, 0))
         return [p.x(), p.y(), w.width(), w.height()]
 
+    def placed(w, timeout_s=10.0):
+        """Wait until the window manager has framed and placed ``w`` (mapped, exposed, a frame around it) and its
+        frame has kept still for 0.3 s (a resize to fit the screen may follow the first placement)."""
+        def framed():
+            h = w.windowHandle()
+            return h is not None and h.isExposed() and w.frameGeometry() != w.geometry()
+        end = time.monotonic() + timeout_s
+        wait(framed, timeout_s)
+        last = w.frameGeometry()
+        while time.monotonic() < end:
+            pause(0.3)
+            now = w.frameGeometry()
+            if now == last:
+                return
+            last = now
+
     def place(w):
         screen = w.screen()
         g = w.frameGeometry()
@@ -89,7 +114,7 @@ def main(out_path: str, fit_only: bool = False) -> int:
     # --- fit: first start, then after a larger size was saved ---
     w = MainWindow(autoconnect=False)
     w.show()
-    pause(2.5)
+    placed(w)
     out["fit_first"] = place(w)
     w.close()
     big = MainWindow(autoconnect=False)  # never shown: no window manager clamps it
@@ -99,7 +124,7 @@ def main(out_path: str, fit_only: bool = False) -> int:
     w = MainWindow(autoconnect=False)
     out["restored_size_before_fit"] = [w.width(), w.height()]
     w.show()
-    pause(2.5)
+    placed(w)
     out["fit_restored"] = place(w)
     w.close()
     app.processEvents()
@@ -114,8 +139,7 @@ def main(out_path: str, fit_only: bool = False) -> int:
     if not ok:
         out["connect_error"] = w.banner.text
         return _write(out_path, out)
-    pause(1.0)
-    w.tabs.setCurrentWidget(w.control)
+    wait(lambda: w.poller.latest is not None, 10)
     from rigctl.operations._control import rig_of
 
     sim = rig_of(w.handle.control).backend.sim
@@ -124,11 +148,16 @@ def main(out_path: str, fit_only: bool = False) -> int:
         st = w.poller.latest
         return (int(st.state), float(st.speed_target_mm_s)) if st is not None else (None, None)
 
+    def turning():
+        return state()[0] == DrumState.RUNNING and w.poller.latest.speed_mm_s > 20
+
     def spin():
+        if turning():  # (still turning from the section before)
+            return True
         w.control.speed.setValue(60.0)
         w.control.force.setValue(300.0)
         w.control.command("run")
-        return wait(lambda: state()[0] == DrumState.RUNNING and w.poller.latest.speed_mm_s > 20, 40)
+        return wait(turning, 40)
 
     def stopped():
         return wait(lambda: state()[0] in (DrumState.IDLE, DrumState.HOMING) and state()[1] == 0, 15)
@@ -140,6 +169,53 @@ def main(out_path: str, fit_only: bool = False) -> int:
         xdo("mousemove", p.x(), p.y())
         xdo("click", 1)
 
+    # --- a stalled taxel stream: banner, log line, nothing moves, gaps in the plots (the drum turning) ---
+    w.tabs.setCurrentWidget(w.live)
+    ok = spin()  # (seconds: the live view fills its window meanwhile)
+    paints = w.live.paints
+    wait(lambda: w.live.paints >= paints + 5, 5)
+
+    def geometry():
+        g = {}
+        for c in w.findChildren(QtWidgets.QWidget):
+            if not c.isVisible() or c.window() is not w or c.objectName().startswith("banner") \
+                    or any(p.objectName().startswith("banner") for p in _parents(c)):
+                continue
+            if isinstance(c, (QtWidgets.QAbstractButton, QtWidgets.QAbstractSpinBox, QtWidgets.QComboBox,
+                              QtWidgets.QTabBar, QtWidgets.QLineEdit, QtWidgets.QAbstractScrollArea)):
+                p = c.mapTo(w, QtCore.QPoint(0, 0))
+                g[f"{type(c).__name__}:{c.objectName() or getattr(c, 'text', lambda: '')()}:{id(c)}"] = \
+                    [p.x(), p.y(), c.width(), c.height()]
+        return g
+
+    before = geometry()
+    banner = w.banners["taxel"]
+    res = {"spinning": ok, "banner_before": banner.isVisible(), "n_widgets": len(before), "stall_s": STALL_S}
+    n_log = len(w.events.entries)
+    t0, wall0 = time.monotonic(), time.time()
+    sim.uno.stall(STALL_S)
+    res["banner_shown"] = wait(lambda: banner.isVisible() and "stalled" in banner.text, STALL_S)
+    res["banner_s"] = time.monotonic() - t0
+    res["log_s"] = None
+    for e in w.events.entries[n_log:]:
+        if "stalled" in e[3]:
+            res["log_s"] = e[0] - wall0
+            res["log_line"] = e[3]
+            break
+    res["banner_text"] = banner.text
+    res["status_text"] = w.links.taxel.text()
+    after = geometry()
+    res["moved"] = {k: (before[k], after.get(k)) for k in before if after.get(k) != before[k]}
+    res["resumed"] = wait(lambda: w.links.health["taxel"].state.value in ("reconnected", "connected")
+                          and w.live.shown_gaps, 20)
+    pause(0.5)
+    res["gaps"] = [list(g) for g in w.live.shown_gaps]
+    res["segments"] = [len(it.segments) for it in w.live.trace_items]
+    res["first_t"] = [float(it.t[0]) if len(it.t) else 0.0 for it in w.live.trace_items]  # oldest point, s before now
+    out["stall"] = res
+
+    # --- one click on STOP with a popup open (the drum turning still from the stall) ---
+    w.tabs.setCurrentWidget(w.control)
     for name, opener in (("menu_stop", lambda: click_menu("File")), ("combo_stop", lambda: click(w.control.plate))):
         res = {"spinning": spin()}
         routed = w.stop_guard.routed
@@ -199,54 +275,8 @@ def main(out_path: str, fit_only: bool = False) -> int:
     out["esc_dialog"] = res
     w.emergency_stop()
     wait(lambda: tab._paused, 30)
-    tab.request_abort()  # STOP left the run stopped (resumable): end it, the rig is the next tests'
+    tab.request_abort()  # STOP left the run stopped (resumable): end it
     wait(lambda: tab.job is None, 30)
-    stopped()
-
-    # --- a stalled taxel stream: banner, log line, nothing moves, gaps in the plots ---
-    w.tabs.setCurrentWidget(w.live)
-    pause(2.0)
-    ok = spin()
-
-    def geometry():
-        g = {}
-        for c in w.findChildren(QtWidgets.QWidget):
-            if not c.isVisible() or c.window() is not w or c.objectName().startswith("banner") \
-                    or any(p.objectName().startswith("banner") for p in _parents(c)):
-                continue
-            if isinstance(c, (QtWidgets.QAbstractButton, QtWidgets.QAbstractSpinBox, QtWidgets.QComboBox,
-                              QtWidgets.QTabBar, QtWidgets.QLineEdit, QtWidgets.QAbstractScrollArea)):
-                p = c.mapTo(w, QtCore.QPoint(0, 0))
-                g[f"{type(c).__name__}:{c.objectName() or getattr(c, 'text', lambda: '')()}:{id(c)}"] = \
-                    [p.x(), p.y(), c.width(), c.height()]
-        return g
-
-    before = geometry()
-    banner = w.banners["taxel"]
-    res = {"spinning": ok, "banner_before": banner.isVisible(), "n_widgets": len(before)}
-    n_log = len(w.events.entries)
-    t0, wall0 = time.monotonic(), time.time()
-    sim.uno.stall(6.0)
-    res["banner_shown"] = wait(lambda: banner.isVisible() and "stalled" in banner.text, 6)
-    res["banner_s"] = time.monotonic() - t0
-    res["log_s"] = None
-    for e in w.events.entries[n_log:]:
-        if "stalled" in e[3]:
-            res["log_s"] = e[0] - wall0
-            res["log_line"] = e[3]
-            break
-    res["banner_text"] = banner.text
-    res["status_text"] = w.links.taxel.text()
-    after = geometry()
-    res["moved"] = {k: (before[k], after.get(k)) for k in before if after.get(k) != before[k]}
-    res["resumed"] = wait(lambda: w.links.health["taxel"].state.value in ("reconnected", "connected")
-                          and w.live.shown_gaps, 20)
-    pause(0.5)
-    res["gaps"] = [list(g) for g in w.live.shown_gaps]
-    res["segments"] = [len(it.segments) for it in w.live.trace_items]
-    res["first_t"] = [float(it.t[0]) if len(it.t) else 0.0 for it in w.live.trace_items]  # oldest point, s before now
-    out["stall"] = res
-    w.emergency_stop()
     stopped()
     w._close_confirmed = True
     w.close()
