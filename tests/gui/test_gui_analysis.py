@@ -25,6 +25,13 @@ duration_s = 0.5
 
 
 @pytest.fixture(scope="module")
+def window(inprocess_window):
+    """The module's main window: on the in-process rig, since nothing here needs a rig (the analysis tab and the
+    real-time view work on files and given trials); a real-time rig on ptys would only stream and burn CPU meanwhile."""
+    return inprocess_window
+
+
+@pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     from rigctl.acquisition.protocol import parse_protocol
     from rigctl.simulation.dataset import generate_dataset
