@@ -10,6 +10,14 @@ from rigctl_gui.events import wait_for
 pytestmark = pytest.mark.realtime
 
 
+@pytest.fixture(scope="module")
+def window(inprocess_window):
+    """The module's main window, the one that connects to the replays and the HIL rig: it starts on the in-process
+    rig and goes back to it after each test (a source it leaves; a real-time rig on ptys took seconds to boot and
+    home, each time)."""
+    return inprocess_window
+
+
 def test_connect_dialog_lists_ports_and_persists_the_choice(qapp, gui_home, tmp_path):
     from rigctl.devices.ports import find_ports
     from rigctl.simulation.rig import SimulatedRig
@@ -73,7 +81,7 @@ def test_fabricslide_replay_source_feeds_the_live_view(window, qapp, fabricslide
     assert wait_for(qapp, lambda: window.live.buffer is not None and window.live.buffer.n_samples > 1000, 20)
     x = window.live.buffer.view()[1]
     assert x.std(axis=0).max() > 0  # recorded signals, not a constant
-    window.connect_source(RigSource("sim"))
+    window.connect_source(RigSource("inprocess"))
     assert wait_for(qapp, lambda: window.handle is not None, 60)
 
 
@@ -145,5 +153,5 @@ def test_the_app_drives_the_firmware_under_simavr(window, qapp, qtbot, build_too
         assert wait_for(qapp, lambda: poller.latest.state == DrumState.IDLE and abs(poller.latest.speed_mm_s) < 0.5,
                         30), poller.latest
     finally:
-        window.connect_source(RigSource("sim"))
+        window.connect_source(RigSource("inprocess"))
         assert wait_for(qapp, lambda: window.handle is not None and "simulated rig" in window.source_label.text(), 60)

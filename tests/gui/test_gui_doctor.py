@@ -1,5 +1,7 @@
-"""Rig > Doctor...: the doctor dialog runs the library's checks on the connected (simulated) rig in a worker thread
-and shows each result as a row; the report lands in the rig config."""
+"""Rig > Doctor...: the doctor dialog runs the library's checks on the connected rig (the in-process simulated rig:
+the dialog, its worker thread and the config it writes are judged here, the checks on the rigs on ptys and under
+simavr in the doctor's own tests) in a worker thread and shows each result as a row; the report lands in the rig
+config."""
 
 from __future__ import annotations
 
@@ -21,7 +23,8 @@ def _menu_action(window, menu_title, text):
     raise AssertionError(f"no menu item {menu_title} > {text}")
 
 
-def test_the_doctor_dialog_shows_the_checks_of_the_connected_rig(qapp, window):
+def test_the_doctor_dialog_shows_the_checks_of_the_connected_rig(qapp, inprocess_window):
+    window = inprocess_window
     _menu_action(window, "Rig", "Doctor...").trigger()
     dlg = window._doctor
     assert dlg is not None and dlg.isVisible()
@@ -37,7 +40,7 @@ def test_the_doctor_dialog_shows_the_checks_of_the_connected_rig(qapp, window):
         "measured / why"]
     assert dlg.row_of("force-step")["result"] == ""  # not run: it moves the rig
     assert "passed" in dlg.status.text() and dlg.run_btn.isEnabled()
-    stored = json.loads(Path(os.environ["RIGCTL_CONFIG"]).read_text())["doctor"]["sim"]
+    stored = json.loads(Path(os.environ["RIGCTL_CONFIG"]).read_text())["doctor"]["inprocess"]
     assert stored["checked_utc"] == dlg.report.checked_utc
     from rigctl.acquisition.doctor import CHECKS
 
