@@ -213,6 +213,10 @@ class HilRig:
         #: the encoder image's scans: the waveform row of each one's first sample (the harness's ``ENCSTART``, from
         #: the image's marker pin D11; -1 before a waveform plays), in order
         self.encoder_start_rows: list[int] = []
+        #: the Uno's simulated time at each of those scans' first sample (s), in the same order
+        self.encoder_start_times_s: list[float] = []
+        #: host bytes reaching the Uno after :meth:`log_uno_requests`: (simulated time s, bytes), in order
+        self.uno_requests: collections.deque[tuple[float, int]] = collections.deque(maxlen=100_000)
         self._texture: str | Texture = "A"  # a label of the paper's set, or a Texture (set_texture)
         self._mega: _Harness | None = None
         self._uno: _Harness | None = None
@@ -474,6 +478,11 @@ class HilRig:
         (:attr:`actuator_steps`)."""
         self._running(self._mega, "Mega").send(f"rxlog {int(bool(on))}")
 
+    def log_uno_requests(self, on: bool = True) -> None:
+        """Record the simulated time and size of each chunk of host bytes that reaches the Uno
+        (:attr:`uno_requests`): when a host's command arrived on the board's clock."""
+        self._running(self._uno, "Uno").send(f"rxlog {int(bool(on))}")
+
     def set_loadcell_polarity(self, sign: int) -> None:
         """Mount the load cell the right way (``+1``) or reversed (``-1``: it reads negative under load)."""
         self._running(self._mega, "Mega").send(f"polarity {-1 if sign < 0 else 1}")
@@ -588,9 +597,14 @@ class HilRig:
         elif line.startswith("LOAD "):
             self.load = _parse_kv(line)
         elif line.startswith("ENCSTART "):
+            kv = _parse_kv(line)
             with self._cond:
-                self.encoder_start_rows.append(int(_parse_kv(line)["row"]))
+                self.encoder_start_times_s.append(kv["t"])
+                self.encoder_start_rows.append(int(kv["row"]))
                 self._cond.notify_all()
+        elif line.startswith("RX "):
+            kv = _parse_kv(line)
+            self.uno_requests.append((kv["t"], int(kv["n"])))
         elif line.startswith("APP "):
             self.uno_boot_times_s.append(_parse_kv(line)["boot_s"])
         elif line.startswith("MUX "):

@@ -8,7 +8,10 @@ The harness plays simulated handheld scans to the ADC in a loop and reports the 
 encodes the same rows with :class:`rigctl.encoding.fixed_sa.FixedSAEncoder`, scaled with the speeds the board applied:
 every spike on the same sample, every window count and the 180 features equal (those of the live
 ``ScanEncoder(kernel="fixed")`` too), no sample dropped, the CPU's load per 1 ms tick (the harness's ``LOAD`` lines)
-under the tick and the stack clear of the static RAM. Then START on the same image: its taxel frames exact.
+under the tick and the stack clear of the static RAM. A window the board held (scaled with the last speed) is judged
+on the board's clock and the host's own: its SPEED reached the board only after the board needed it (the harness's
+``RX`` times), and the host sent it measurably late; a speed that arrived in time is never held. Then START on the
+same image: its taxel frames exact.
 """
 
 from __future__ import annotations
@@ -36,6 +39,15 @@ pytestmark = pytest.mark.hil
 
 N_TAXELS = wire.ENC_N_TAXELS
 TICK_CYCLES = 16_000
+#: samples per real-time window; the host sends a window's SPEED once it has this many of the next window's samples
+WINDOW = 100
+SEND_AFTER = 50
+#: the board holds window w when it starts window w + HOLD_AFTER without w's speed (sa_step: 2 windows may wait)
+HOLD_AFTER = 2
+#: a host's send is measurably late: it had already received this many samples past the one that triggered it (a
+#: window: twice its 50 ms read timeout), or it wrote the SPEED this long (s) after the read that triggered it returned
+LATE_SAMPLES = WINDOW
+LATE_WRITE_S = 0.05
 
 
 @pytest.fixture(scope="module")
@@ -50,16 +62,43 @@ def enc_rig(fw_build, scans):
     x = np.concatenate([s[0] for s in scans])
     with hil.HilRig(uno_image="uno_encoder", live=False) as rig:
         rig.play_waveform(np.concatenate([x, x], axis=1))
+        rig.log_uno_requests()  # when each host command reaches the board (its clock)
         yield rig
 
 
-def _encode_scan(rig: hil.HilRig, port: serial.Serial, n_samples: int, lo: np.ndarray, hi: np.ndarray,
+class _LoggedPort:
+    """The host's port, noting each SPEED it writes: (its last byte's offset in the bytes written, the samples the host
+    had received, the time since the read before it returned (s))."""
+
+    def __init__(self, port: serial.Serial):
+        self.port = port
+        self.written = 0
+        self.speeds: list[tuple[int, int, float]] = []
+        self.samples = lambda: 0
+        self._read_at = time.monotonic()
+
+    def read(self, size: int = 1) -> bytes:
+        out = self.port.read(size)
+        self._read_at = time.monotonic()
+        return out
+
+    def write(self, data: bytes) -> int:
+        self.port.write(data)
+        self.written += len(data)
+        if data[:1] == wire.EncoderCommand.SPEED.value:
+            self.speeds.append((self.written, self.samples(), time.monotonic() - self._read_at))
+        return len(data)
+
+
+def _encode_scan(rig: hil.HilRig, port: _LoggedPort, n_samples: int, lo: np.ndarray, hi: np.ndarray,
                  speeds_mm_s: np.ndarray):
     """One scan on the board through the host's client (:class:`OnboardEncoder`): a SPEED per window once half of
     the next window's samples are encoded (window w's speed is ``speeds_mm_s[w % len]``), stop after
     ``n_samples``. Returns (the scan, the spike frames, the harness's LOAD reports of the seconds while the board
     encoded, after the first 2 s)."""
     enc = OnboardEncoder(port)
+    port.samples = lambda: enc.samples
+    port.speeds = []
     enc.start(lo, hi, 100)
     loads: list[dict[str, float]] = []
     last = time.monotonic()
@@ -68,13 +107,46 @@ def _encode_scan(rig: hil.HilRig, port: serial.Serial, n_samples: int, lo: np.nd
         if n:
             last = time.monotonic()
         assert time.monotonic() - last < 10.0, "the board stopped sending"
-        while len(enc.speeds_sent) * 100 + 50 <= n:
+        while len(enc.speeds_sent) * WINDOW + SEND_AFTER <= n:
             enc.send_speed(float(speeds_mm_s[len(enc.speeds_sent) % len(speeds_mm_s)]))
         if n > 2000 and rig.load and (not loads or rig.load is not loads[-1]):
             loads.append(rig.load)
     rest = [float(speeds_mm_s[(len(enc.speeds_sent) + i) % len(speeds_mm_s)]) for i in range(5)]
     scan = enc.finish(rest, quiet_s=0.5)
-    return scan, enc.parser, loads[1:]  # the first may cover the second before ENCODE
+    return scan, enc.parser, loads[1:], list(port.speeds)  # the first load may cover the second before ENCODE
+
+
+def _arrivals(rig: hil.HilRig, port: _LoggedPort, offsets: list[int]) -> np.ndarray:
+    """The board's simulated time (s) at which the byte at each offset of the host's writes reached it (the harness's
+    ``RX`` chunks, in order); waits for the harness's reports of every byte written."""
+    deadline = time.monotonic() + 30.0
+    while sum(n for _, n in rig.uno_requests) < port.written:
+        assert time.monotonic() < deadline, "the harness did not report every host byte's arrival"
+        time.sleep(0.05)
+    chunks = list(rig.uno_requests)
+    ends = np.cumsum([n for _, n in chunks])
+    return np.array([chunks[i][0] for i in np.searchsorted(ends, offsets)])
+
+
+def _judge_held(held: list[int], speeds: list[tuple[int, int, float]], arrived_s: np.ndarray, start_s: float,
+                samples: int, queue_max: int) -> None:
+    """The board held exactly the windows whose SPEED reached it after it needed it (it starts window w + 2: sample
+    WINDOW * (w + 2); its main loop encodes a sample and reads a command up to ``queue_max`` ticks after they come,
+    so a speed within that many ms of the sample's tick may go either way), and each was the host's lateness: sent
+    measurably late by the host's own count (:data:`LATE_SAMPLES`, :data:`LATE_WRITE_S`)."""
+    for w, ((_, seen, write_s), t) in enumerate(zip(speeds, arrived_s)):
+        need = WINDOW * (w + HOLD_AFTER)  # the sample at which the board needs window w's speed
+        if need >= samples:
+            continue  # stopped before: the board never needed it
+        due_ms = (t - start_s) * 1000.0 - need  # arrival after the tick of that sample, ms of the board's clock
+        late = f"window {w}: speed arrived {due_ms:+.1f} ms after the board needed it, host sent it with {seen} " \
+               f"samples received (trigger {WINDOW * w + SEND_AFTER}), {1e3 * write_s:.0f} ms after its read"
+        if w in held:
+            assert due_ms > -(queue_max + 1.0), "held, though its speed arrived in time: " + late
+            assert seen - (WINDOW * w + SEND_AFTER) >= LATE_SAMPLES or write_s >= LATE_WRITE_S, \
+                "held, though the host sent its speed in time: " + late
+        else:
+            assert due_ms < queue_max + 1.0, "not held, though its speed arrived after it was needed: " + late
 
 
 def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_build):
@@ -83,25 +155,29 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
     speeds = np.concatenate([s[1] for s in scans])
     rng = TaxelRange(lo.astype(np.float64), hi.astype(np.float64))
     results = []
-    with serial.Serial(enc_rig.taxel_port, timeout=0.05) as port:
+    with serial.Serial(enc_rig.taxel_port, timeout=0.05) as raw:
+        port = _LoggedPort(raw)
         banner = b""
         t0 = time.monotonic()
         while b"\n" not in banner:
-            banner += port.read(256)
+            banner += raw.read(256)
             assert time.monotonic() - t0 < 30, "no banner"
         assert wire.UNO_ENCODER_FIELD.encode() in banner
-        for n in (30_000, 3_000):  # a long scan (30 s: the samples counted), then a handheld scan's length
+        arrivals = []
+        for n in (14_000, 3_000):  # a long scan (14 s: ten LOAD reports while encoding), then a handheld scan's length
             results.append(_encode_scan(enc_rig, port, n, lo, hi, speeds))
+            arrivals.append(_arrivals(enc_rig, port, [end for end, _, _ in results[-1][3]]))
     assert len(enc_rig.encoder_start_rows) == 2
     total_spikes = 0
-    for (scan, parser, _), row0 in zip(results, enc_rig.encoder_start_rows):
+    for (scan, parser, _, sent), row0, start_s, arrived_s in zip(results, enc_rig.encoder_start_rows,
+                                                                  enc_rig.encoder_start_times_s, arrivals):
         assert parser.crc_errors == 0 and not parser.seq  # spike frames instead of taxel frames
         counts, raster, held, applied = scan.counts, scan.raster, scan.held, scan.speeds_mm_s
         n = raster.shape[0]
-        # every sample of the scan encoded, none dropped; a window whose speed the host sent too late (a starved
+        # every sample of the scan encoded, none dropped; a window whose speed reached the board too late (a starved
         # host: > 150 ms) is scaled with the last speed, flagged, and the host's reference does the same
         assert n >= 3_000 and counts.samples == n and counts.dropped == 0 and counts.held == len(held)
-        assert len(held) <= 0.1 * applied.size
+        _judge_held(held, sent, arrived_s, start_s, n, counts.queue_max)
         assert not any(f.flags & ~wire.SpikeFlag.HELD for f in parser.spikes)
         assert row0 >= 0
         x = x_all[(row0 + np.arange(n)) % len(x_all)]  # the harness's rows: what the board's ADC converted
