@@ -3,7 +3,9 @@
 The full-disk tests write onto a real tmpfs of a few KiB when this process may mount one (root); otherwise they
 limit the file size of the child process (RLIMIT_FSIZE, SIGXFSZ ignored: writes past the limit fail with EFBIG),
 which takes the same path through HDF5 and the guard. Either way the command runs in its own process: the bug was
-a segfault (139) or a bus error (135) inside h5py, which would take pytest down with it.
+a segfault (139) or a bus error (135) inside h5py, which would take pytest down with it. Those processes are forked
+from one interpreter of this module's (:func:`forker`) that has imported the CLI, the encoder and the NWB writer once:
+a fresh ``python -m rigctl`` paid ~2 CPU-s of imports for a fraction of a second of work.
 
 The command-line tests import nothing but the session writer and the CLI, so that they run unchanged against an
 older rigctl (issue 24's "failing on today's main": 78d85b9).
@@ -12,10 +14,9 @@ older rigctl (issue 24's "failing on today's main": 78d85b9).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
-import resource
 import shutil
-import signal
 import subprocess
 import sys
 import uuid
@@ -47,15 +48,70 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _rigctl(*args: str, limit_bytes: int | None = None, module: bool = True) -> subprocess.CompletedProcess:
-    """``python -m rigctl ARGS`` (``python ARGS`` when not ``module``) in a child process, its file size limited to
-    ``limit_bytes`` when given."""
-    def limit() -> None:  # pragma: no cover - runs in the child
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+#: the forking interpreter: imports what the commands use, then per request line (JSON: argv as ``python`` takes it,
+#: the file-size limit or null, the files for stdout and stderr) forks a child that runs it as ``python ARGV`` would
+#: (``-m MODULE`` or ``-c CODE``; exit status as the interpreter's), waits for it and answers its status (negative:
+#: the signal that ended it, as subprocess says)
+_FORKER = """
+import json, os, resource, runpy, signal, sys, traceback
+import rigctl.cli, rigctl.encoding.pipeline, rigctl.storage.nwb
+print("ready", flush=True)
+for line in sys.stdin:
+    argv, limit, out, err = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            for fd, path in ((1, out), (2, err)):
+                f = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                os.dup2(f, fd)
+                os.close(f)
+            if limit is not None:
+                signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+                resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+            if argv[0] == "-m":
+                sys.argv = [argv[1], *argv[2:]]
+                runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
+            else:
+                sys.argv = ["-c", *argv[2:]]
+                exec(compile(argv[1], "<string>", "exec"), {"__name__": "__main__"})
+            code = 0
+        except SystemExit as exc:
+            if exc.code is None or isinstance(exc.code, int):
+                code = exc.code or 0
+            else:
+                print(exc.code, file=sys.stderr)
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    print(os.waitstatus_to_exitcode(status), flush=True)
+"""
 
-    return subprocess.run([sys.executable, *(["-m", "rigctl"] if module else []), *args], capture_output=True,
-                          text=True, timeout=600, preexec_fn=limit if limit_bytes is not None else None)
+
+@pytest.fixture(scope="module")
+def forker():
+    """The forking interpreter (:data:`_FORKER`), for this module's tests; waited for at the end."""
+    proc = subprocess.Popen([sys.executable, "-c", _FORKER], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    yield proc
+    proc.stdin.close()
+    proc.wait(60)
+
+
+def _rigctl(forker, tmp_path: Path, *args: str, limit_bytes: int | None = None,
+            module: bool = True) -> subprocess.CompletedProcess:
+    """``python -m rigctl ARGS`` (``python ARGS`` when not ``module``) in a child process (forked by ``forker``),
+    its file size limited to ``limit_bytes`` when given."""
+    argv = ["-m", "rigctl", *args] if module else list(args)
+    out, err = tmp_path / f"out-{uuid.uuid4().hex[:6]}", tmp_path / f"err-{uuid.uuid4().hex[:6]}"
+    forker.stdin.write(json.dumps([argv, limit_bytes, str(out), str(err)]) + "\n")
+    forker.stdin.flush()
+    code = int(forker.stdout.readline())
+    return subprocess.CompletedProcess(argv, code, out.read_text(), err.read_text())
 
 
 @pytest.fixture
@@ -77,7 +133,8 @@ def small_disk(tmp_path):
 
 
 # -- the one-writer lock ---------------------------------------------------------------------------------------
-def test_encode_overwrite_onto_a_session_being_recorded_is_refused_and_the_recording_finishes(tmp_path, session):
+def test_encode_overwrite_onto_a_session_being_recorded_is_refused_and_the_recording_finishes(tmp_path, session,
+                                                                                               forker):
     live = tmp_path / "live.h5"
     n = 200
     plan = [dict(trial_id=i, texture="A", speed_mm_s=40.0, force_g=500.0, duration_s=0.2) for i in range(3)]
@@ -87,7 +144,7 @@ def test_encode_overwrite_onto_a_session_being_recorded_is_refused_and_the_recor
     with SessionWriter.create(live, plan=plan, protocol_source="name = 'live'") as w:  # the recorder
         w.write_trial(0, trial())
         before = _digest(live)
-        r = _rigctl("encode", str(session), "--out", str(live), "--overwrite", "--quiet")
+        r = _rigctl(forker, tmp_path, "encode", str(session), "--out", str(live), "--overwrite", "--quiet")
         assert r.returncode == 2, r.stderr
         assert "being written by" in r.stderr and len(r.stderr.strip().splitlines()) == 1
         assert _digest(live) == before
@@ -153,14 +210,15 @@ def _blind(*args: str) -> list[str]:
 
 @pytest.mark.parametrize("blind", [False, True], ids=["space-checked", "filled-during-the-write"])
 @pytest.mark.parametrize("command", ["encode", "export"])
-def test_a_full_disk_is_one_line_no_part_file_inputs_unchanged(tmp_path, session, small_disk, command, blind):
+def test_a_full_disk_is_one_line_no_part_file_inputs_unchanged(tmp_path, session, small_disk, command, blind,
+                                                                 forker):
     folder, limit = small_disk
     before = _digest(session)
     if command == "encode":
         args = ["encode", str(session), "--out", str(folder / "e.h5"), "--quiet"]
     else:
         args = ["export", "nwb", str(session), "--out", str(folder / "e.nwb"), "--no-progress"]
-    r = _rigctl(*(_blind(*args) if blind else args), limit_bytes=limit, module=not blind)
+    r = _rigctl(forker, tmp_path, *(_blind(*args) if blind else args), limit_bytes=limit, module=not blind)
     assert r.returncode in (1, 2), (r.returncode, r.stderr[-3000:])  # 2: refused up front by the space estimate
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("Error: "), r.stderr[-3000:]
@@ -171,7 +229,7 @@ def test_a_full_disk_is_one_line_no_part_file_inputs_unchanged(tmp_path, session
     assert _digest(session) == before
 
 
-def test_a_full_disk_during_the_write_is_caught_by_the_guard(tmp_path, session, small_disk):
+def test_a_full_disk_during_the_write_is_caught_by_the_guard(tmp_path, session, small_disk, forker):
     """The library calls (no space estimate): the disk fills in the middle of HDF5's writes."""
     folder, limit = small_disk
     before = _digest(session)
@@ -184,7 +242,7 @@ def test_a_full_disk_during_the_write_is_caught_by_the_guard(tmp_path, session, 
             f"        f({str(session)!r}, out)\n"
             "    except OutputWriteError as exc:\n"
             "        print('refused:', exc)\n")
-    r = _rigctl("-c", code, limit_bytes=limit, module=False)
+    r = _rigctl(forker, tmp_path, "-c", code, limit_bytes=limit, module=False)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.count("refused:") == 2, r.stdout + r.stderr[-2000:]
     assert "the partial output was removed" in r.stdout
