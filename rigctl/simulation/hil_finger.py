@@ -10,11 +10,14 @@ tracker velocity as SPEED, FINISH once it has left. The tracker's samples are ha
 row it plays, :meth:`rigctl.simulation.hil.HilRig.playing_row`, then the samples it encoded: its waveform's row 0 is
 the pass's time 0), so a simavr slower or faster than the wall clock changes nothing.
 Each scan keeps what the board's ADC converted (:attr:`HilFingerScans.played`: the pass's readings and the row of
-the first encoded sample) for a check against the host's integer kernel.
+the first encoded sample) for a check against the host's integer kernel, and when the host sent its commands (how far
+its view of the pass had got, and how long after its last read it wrote): on a starved machine the host acts late,
+and what it measured of its own lateness tells that apart from the board's.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,7 +35,7 @@ from rigctl.devices.onboard_finger import BoardRange, encode_pass, onboard_encod
 from rigctl.simulation.model import RigConfig
 from rigctl.simulation.operator import SimulatedOperator, plate_axis_of
 
-__all__ = ["HilFingerScans", "PlayedScan"]
+__all__ = ["HilFingerScans", "NotingPort", "PlayedScan"]
 
 #: rows of the pass's last reading played after it (the board keeps converting while the host finishes)
 TAIL_ROWS = 2000
@@ -43,15 +46,51 @@ START_TIMEOUT_S = 10.0
 @dataclass(frozen=True)
 class PlayedScan:
     """One pass as the board's ADC saw it: ``taxels`` (n, 9) the readings played (row 0 = the pass's time 0),
-    ``first_row`` the row of the board's first encoded sample, ``samples`` how many it encoded."""
+    ``first_row`` the row of the board's first encoded sample, ``samples`` how many it encoded.
+
+    And the host's side: ``encode_view_s`` the pass's time (s) the host's view had reached when it sent ENCODE;
+    ``speeds_sent`` (samples the host had received, s since its last read returned) at each SPEED, window 0 first;
+    ``stop_sent`` the same at STOP."""
 
     taxels: np.ndarray
     first_row: int
     samples: int
+    encode_view_s: float = math.nan
+    speeds_sent: tuple[tuple[int, float], ...] = ()
+    stop_sent: tuple[int, float] = (-1, math.nan)
 
     def encoded(self) -> np.ndarray:
         """(samples, 9) the readings the board encoded."""
         return self.taxels[self.first_row:self.first_row + self.samples]
+
+
+class NotingPort:
+    """The encoder board's serial port (``read(size)``, ``write(data)``: a pyserial ``Serial``) for an
+    :class:`~rigctl.devices.encoder_stream.OnboardEncoder`, noting when the host writes each command, to judge a
+    starved host by its own measure: :attr:`writes` holds per write (its first byte: the command, the count of bytes
+    written so far with it, the samples the host had received then: ``samples()``, s since the last read returned)."""
+
+    def __init__(self, port: Any) -> None:
+        self.port = port
+        self.samples: Callable[[], int] = lambda: 0
+        self.written = 0
+        self.writes: list[tuple[bytes, int, int, float]] = []
+        self._read_at = time.monotonic()
+
+    def read(self, size: int = 1) -> bytes:
+        out = self.port.read(size)
+        self._read_at = time.monotonic()
+        return out
+
+    def write(self, data: bytes) -> int:
+        self.port.write(data)
+        self.written += len(data)
+        self.writes.append((bytes(data[:1]), self.written, self.samples(), time.monotonic() - self._read_at))
+        return len(data)
+
+    def sent(self, command: bytes) -> list[tuple[int, int, float]]:
+        """(bytes written up to it, samples received, s since the read) of each write of ``command``, in order."""
+        return [(end, n, s) for c, end, n, s in self.writes if c == command]
 
 
 class HilFingerScans:
@@ -99,11 +138,15 @@ class HilFingerScans:
         wave = np.concatenate([x, np.repeat(x[-1:], TAIL_ROWS, axis=0)])
         self.hil.play_waveform(np.concatenate([wave, wave], axis=1))
         t_played = time.monotonic()
-        enc = OnboardEncoder(self.port)
+        noted = NotingPort(self.port)
+        enc = OnboardEncoder(noted)
+        noted.samples = lambda: enc.samples
         starts = len(self.hil.encoder_start_rows)
         first: list[int] = []
+        view: list[float] = []
 
-        def started(_t: float) -> float:
+        def started(t_sent: float) -> float:
+            view.append(t_sent)
             deadline = time.monotonic() + START_TIMEOUT_S
             while len(self.hil.encoder_start_rows) <= starts:
                 if time.monotonic() > deadline:
@@ -128,7 +171,9 @@ class HilFingerScans:
         if got is None:
             return None
         t0, scan = got
-        self.played.append(PlayedScan(wave, first[0], int(scan.counts.samples)))
+        speeds = tuple((n, s) for _, n, s in noted.sent(wire.EncoderCommand.SPEED.value))
+        stop_sent = [(n, s) for _, n, s in noted.sent(wire.UnoCommand.STOP.value)][0]
+        self.played.append(PlayedScan(wave, first[0], int(scan.counts.samples), view[0], speeds, stop_sent))
         return onboard_raw_scan(t_pass, along, t0, onboard_encoding(scan, self.layout.sample_rate_hz), self.layout,
                                 {**raw.attrs, "taxels_from": "encoded on the Uno encoder image under simavr",
                                  "onboard_crc_errors": int(enc.parser.crc_errors)})

@@ -34,6 +34,7 @@ from rigctl.encoding.params import EncodeParams
 from rigctl.encoding.realtime import ScanEncoder
 from rigctl.encoding.speed import incremental_scale
 from rigctl.simulation import hil
+from rigctl.simulation.hil_finger import NotingPort
 
 pytestmark = pytest.mark.hil
 
@@ -66,31 +67,9 @@ def enc_rig(fw_build, scans):
         yield rig
 
 
-class _LoggedPort:
-    """The host's port, noting each SPEED it writes: (its last byte's offset in the bytes written, the samples the host
-    had received, the time since the read before it returned (s))."""
-
-    def __init__(self, port: serial.Serial):
-        self.port = port
-        self.written = 0
-        self.speeds: list[tuple[int, int, float]] = []
-        self.samples = lambda: 0
-        self._read_at = time.monotonic()
-
-    def read(self, size: int = 1) -> bytes:
-        out = self.port.read(size)
-        self._read_at = time.monotonic()
-        return out
-
-    def write(self, data: bytes) -> int:
-        self.port.write(data)
-        self.written += len(data)
-        if data[:1] == wire.EncoderCommand.SPEED.value:
-            self.speeds.append((self.written, self.samples(), time.monotonic() - self._read_at))
-        return len(data)
 
 
-def _encode_scan(rig: hil.HilRig, port: _LoggedPort, n_samples: int, lo: np.ndarray, hi: np.ndarray,
+def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarray, hi: np.ndarray,
                  speeds_mm_s: np.ndarray):
     """One scan on the board through the host's client (:class:`OnboardEncoder`): a SPEED per window once half of
     the next window's samples are encoded (window w's speed is ``speeds_mm_s[w % len]``), stop after
@@ -98,7 +77,7 @@ def _encode_scan(rig: hil.HilRig, port: _LoggedPort, n_samples: int, lo: np.ndar
     encoded, after the first 2 s)."""
     enc = OnboardEncoder(port)
     port.samples = lambda: enc.samples
-    port.speeds = []
+    speeds0 = len(port.sent(wire.EncoderCommand.SPEED.value))
     enc.start(lo, hi, 100)
     loads: list[dict[str, float]] = []
     last = time.monotonic()
@@ -113,10 +92,11 @@ def _encode_scan(rig: hil.HilRig, port: _LoggedPort, n_samples: int, lo: np.ndar
             loads.append(rig.load)
     rest = [float(speeds_mm_s[(len(enc.speeds_sent) + i) % len(speeds_mm_s)]) for i in range(5)]
     scan = enc.finish(rest, quiet_s=0.5)
-    return scan, enc.parser, loads[1:], list(port.speeds)  # the first load may cover the second before ENCODE
+    speeds = port.sent(wire.EncoderCommand.SPEED.value)[speeds0:]
+    return scan, enc.parser, loads[1:], speeds  # the first load may cover the second before ENCODE
 
 
-def _arrivals(rig: hil.HilRig, port: _LoggedPort, offsets: list[int]) -> np.ndarray:
+def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarray:
     """The board's simulated time (s) at which the byte at each offset of the host's writes reached it (the harness's
     ``RX`` chunks, in order); waits for the harness's reports of every byte written."""
     deadline = time.monotonic() + 30.0
@@ -156,7 +136,7 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
     rng = TaxelRange(lo.astype(np.float64), hi.astype(np.float64))
     results = []
     with serial.Serial(enc_rig.taxel_port, timeout=0.05) as raw:
-        port = _LoggedPort(raw)
+        port = NotingPort(raw)
         banner = b""
         t0 = time.monotonic()
         while b"\n" not in banner:
