@@ -17,7 +17,7 @@ Measures, in order:
 - ``wheel``: the wheel over the unfocused speed box, then over the focused one: the values;
 - ``esc_dialog``: a protocol running, the keyboard-shortcuts dialog opened, Esc: the dialog closed, the run going.
 
-One rig serves them all, in this order (the drum still turning after the stall is the menu's); every wait is on
+The window of the second start is the rig's; one rig serves all the checks after it, in this order (the drum still turning after the stall is the menu's); every wait is on
 the condition (the window manager's placement, the drum's state, a popup), fixed pauses only where nothing is to be
 seen (a wheel that must change nothing, a run that must go on).
 """
@@ -121,19 +121,18 @@ def main(out_path: str, fit_only: bool = False) -> int:
     big.setGeometry(0, 0, 2400, 1600)
     make_settings().setValue("ui/geometry", big.saveGeometry())
     big.deleteLater()
-    w = MainWindow(autoconnect=False)
+    # (the window of the rig's checks below: it connects meanwhile)
+    w = MainWindow(autoconnect=False) if fit_only else MainWindow(RigSource("sim"))
     out["restored_size_before_fit"] = [w.width(), w.height()]
     w.show()
     placed(w)
     out["fit_restored"] = place(w)
-    w.close()
-    app.processEvents()
     if fit_only:
+        w.close()
+        app.processEvents()
         return _write(out_path, out)
 
     # --- the rig: the simulated rig on ptys ---
-    w = MainWindow(RigSource("sim"))
-    w.show()
     ok = wait(lambda: w.handle is not None, 60)
     out["connected"] = ok
     if not ok:
