@@ -5,11 +5,11 @@ plate in the control panel replays that texture's recordings (its own frequency 
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
+from click.testing import CliRunner
+
+from rigctl.cli import main
 
 from rigctl_gui.events import wait_for
 
@@ -43,7 +43,7 @@ speed_tolerance_mm_s = 3
 
 @pytest.fixture(scope="module")
 def finger_session(tmp_path_factory):
-    """A session file of 9 channels at 100 Hz, textures Denim and Silk, 8 s per trial (rigctl import from CSV)."""
+    """A session file of 9 channels at 100 Hz, textures Denim and Silk, 8 s per trial (``rigctl import`` from CSV)."""
     d = tmp_path_factory.mktemp("finger")
     rng = np.random.default_rng(3)
     t = np.arange(8 * RATE_HZ) / RATE_HZ
@@ -54,10 +54,10 @@ def finger_session(tmp_path_factory):
             np.savetxt(d / f"{tex}__V40__{rep}.csv", np.rint(x).astype(int), fmt="%d", delimiter=",")
     out = d / "finger.h5"
     files = sorted(str(p) for p in d.glob("*.csv"))
-    cmd = [sys.executable, "-c", "from rigctl.cli import main; main()", "import", *files, "--rate", str(RATE_HZ),
-           "--layout", "3x3x1", "--label-pattern", "{texture}__V{speed_mm_s}__{rep}.csv", "--out", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    # the CLI in this process (click's runner): the import is how the file is made, not what is tested here
+    res = CliRunner().invoke(main, ["import", *files, "--rate", str(RATE_HZ), "--layout", "3x3x1", "--label-pattern",
+                                    "{texture}__V{speed_mm_s}__{rep}.csv", "--out", str(out)])
+    assert res.exit_code == 0, res.output[-2000:]
     return out
 
 
@@ -104,10 +104,10 @@ def test_app_replaying_a_9_channel_100hz_session(qapp, gui_home, finger_session,
                         and w.handle.control.plate == "Silk", 60), (panel.message.text(),
                                                                                   w.poller.latest)
         n0 = live.buffer.n_samples if live.buffer else 0
-        assert wait_for(qapp, lambda: live.buffer.n_samples > n0 + 500, 30), live.info.text()
+        assert wait_for(qapp, lambda: live.buffer.n_samples >= n0 + 400, 30), live.info.text()
         assert live.buffer.decimate == 1
         t, x = live.buffer.view()
-        t, x = t[-400:], x[-400:]
+        t, x = t[-400:], x[-400:]  # 4 s of Silk, every sample streamed after it was mounted
         np.testing.assert_allclose(np.diff(t), 1.0 / RATE_HZ, rtol=1e-9)
         assert _dominant_hz(x[:, 0], RATE_HZ) == pytest.approx(TEXTURES["Silk"], abs=0.3)
         # the heat map shows a recent frame of the stream (it is redrawn every HEATMAP_EVERY refreshes, not every frame)
