@@ -10,7 +10,6 @@ import pytest
 from click.testing import CliRunner
 
 from rigctl.cli import main
-
 from rigctl_gui.events import wait_for
 
 pytestmark = pytest.mark.realtime

@@ -17,9 +17,10 @@ Measures, in order:
 - ``wheel``: the wheel over the unfocused speed box, then over the focused one: the values;
 - ``esc_dialog``: a protocol running, the keyboard-shortcuts dialog opened, Esc: the dialog closed, the run going.
 
-The window of the second start is the rig's; one rig serves all the checks after it, in this order (the drum still turning after the stall is the menu's); every wait is on
-the condition (the window manager's placement, the drum's state, a popup), fixed pauses only where nothing is to be
-seen (a wheel that must change nothing, a run that must go on).
+The window of the second start is the rig's; one rig serves all the checks after it, in this order (the drum still
+turning after the stall is the menu's); every wait is on the condition (the window manager's placement, the drum's
+state, a popup), fixed pauses only where nothing is to be seen (a wheel that must change nothing, a run that must go
+on).
 """
 
 from __future__ import annotations
