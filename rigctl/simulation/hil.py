@@ -84,6 +84,24 @@ class Telemetry:
     ee_writes: int = 0  #: EEPROM byte writes the MCU made so far (EECR's EEPE), for the wear tests
 
 
+@dataclass(frozen=True)
+class LiveSwap:
+    """One swap of live rendering's waveform (:attr:`HilRig.live_swaps`): ``loaded_s`` (host time.monotonic() when the
+    load was sent; the swap comes after), ``done_s`` (when it was confirmed and measured; the swap came before),
+    ``delay_rows`` (scans between the one the new waveform's row 0 stands for and the one after the swap: at most the
+    rows it skipped; None when it could not continue the waveform playing: that one had run out, a starved feeder).
+    ``late``: the swap skipped past the rows that continue the old waveform (:data:`_BLEND_START`), or could not
+    continue it: the stream may jump there, the feeder's lateness."""
+
+    loaded_s: float
+    done_s: float
+    delay_rows: int | None
+
+    @property
+    def late(self) -> bool:
+        return self.delay_rows is None or self.delay_rows >= _BLEND_START
+
+
 class _MegaClock:
     """:attr:`HilRig.clock`."""
 
@@ -215,6 +233,8 @@ class HilRig:
         self.encoder_start_rows: list[int] = []
         #: the Uno's simulated time at each of those scans' first sample (s), in the same order
         self.encoder_start_times_s: list[float] = []
+        #: live rendering's waveform swaps (:class:`LiveSwap`), in order
+        self.live_swaps: collections.deque[LiveSwap] = collections.deque(maxlen=10_000)
         #: host bytes reaching the Uno after :meth:`log_uno_requests`: (simulated time s, bytes), in order
         self.uno_requests: collections.deque[tuple[float, int]] = collections.deque(maxlen=100_000)
         self._texture: str | Texture = "A"  # a label of the paper's set, or a Texture (set_texture)
@@ -750,7 +770,12 @@ class HilRig:
             edges.append(n if steady else min(n, a0 + 25))
         for a0, b0 in zip(edges[:-1], edges[1:]):
             self._sensor.render(self._texture, position[a0:b0], forces[a0:b0], self._rng, out=samples[a0:b0])
+        loaded_s = time.monotonic()
         self._load(np.clip(samples, 0, wire.ADC_MAX).astype("<u2"), base=base)
+        if wave_pos is not None:  # a swap, not the first waveform: how late it came
+            swapped = self._scan() if base is not None else None
+            delay = None if swapped is None or base is None else swapped[0] - base
+            self.live_swaps.append(LiveSwap(loaded_s, time.monotonic(), delay))
         self._wave_pos = position
         self._wave_forces = forces
         self._wave_force = force
