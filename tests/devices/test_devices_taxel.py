@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import select
+import struct
 import threading
 import time
 
@@ -96,17 +98,32 @@ def test_frames_are_stamped_as_their_burst_arrives(tmp_path):
     """A board that writes a burst every 40 ms (a starved board's ticks) to a reader that gathers a chunk every 50
     ms: the reader stamps a chunk when a fresh burst arrives, not when it happens to wake up, so a chunk's newest
     frame is late by the wake-up latency only, not by the time it sat in the buffer (0-40 ms here, which would move
-    the least-delayed frames host_rate_hz measures from)."""
+    the least-delayed frames host_rate_hz measures from). The wake-up latency is this host's, measured beside it: a
+    thread blocked in select() on a pipe written with each burst (on a loaded machine it is tens of ms: the frames'
+    delay is judged against it, not against an idle machine's)."""
     board = VirtualUno(tmp_path / "taxel", reset_delay_s=0.05)
     source = CountingSource()
     written = []  # (host time just after the write, sequence number of the board's next frame)
+    probe_r, probe_w = os.pipe()
+    woke_ms = []  # how late the probe thread woke after each burst's write: the scheduling delay, ms
 
     def step(n):
         board.tick(*source(n))
-        written.append((time.monotonic(), board.seq))
+        t = time.monotonic()
+        written.append((t, board.seq))
+        os.write(probe_w, struct.pack("d", t))
+
+    def probe():
+        while not stop.is_set():
+            if select.select([probe_r], [], [], 0.1)[0]:
+                t_wake = time.monotonic()
+                sent = struct.unpack_from("d", os.read(probe_r, 8 * 64))[0]  # the oldest burst not yet seen
+                woke_ms.append((t_wake - sent) * 1e3)
 
     stop = threading.Event()
     ticker = threading.Thread(target=paced_loop, args=(stop, 0.04, step), daemon=True)
+    prober = threading.Thread(target=probe, daemon=True)
+    prober.start()
     ticker.start()
     try:
         with TaxelStream(board.path, read_timeout_s=0.05) as stream:
@@ -118,13 +135,17 @@ def test_frames_are_stamped_as_their_burst_arrives(tmp_path):
     finally:
         stop.set()
         ticker.join()
+        prober.join()
         board.close()
+        os.close(probe_r)
+        os.close(probe_w)
     t_w, next_seq = np.array(written).T
     seq = cap.seq.astype(np.int64)
     burst = np.searchsorted(next_seq, seq, side="right")  # the write that carried each frame
     # delay of each frame after its due time (frame k of a burst written at W is due at W - (last - k) ms)
     late_ms = (cap.host_time_s - (t_w[burst] - (next_seq[burst] - 1 - seq) / 1000)) * 1e3
-    assert np.median(late_ms) < 10, np.percentile(late_ms, [10, 50, 90])
+    sched_ms = float(np.median(woke_ms))
+    assert np.median(late_ms) < 10 + sched_ms, (np.percentile(late_ms, [10, 50, 90]), sched_ms)
 
 
 def test_faults_are_counted_and_skipped(uno):
