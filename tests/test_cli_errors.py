@@ -23,7 +23,9 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from rigctl.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
-RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
+#: a fresh interpreter, where the command's own pid is judged (a sim's port folder names it; kill -9 must hit it)
+OWN_PROCESS = [sys.executable, "-c", "from rigctl.cli import main; main()"]
 
 PROTOCOL = """\
 name = "cli_errors"
@@ -354,8 +356,8 @@ def test_rig_config_fuzz_bytes(raw, tmp_path):
 
 
 # -------------------------------------------------------------------------------------------- item 3: port folders
-def _start_sim(port_dir=None, env=None):
-    args = [*RIGCTL, "sim"] + (["--port-dir", str(port_dir)] if port_dir else [])
+def _start_sim(port_dir=None, env=None, command=OWN_PROCESS):
+    args = [*command, "sim"] + (["--port-dir", str(port_dir)] if port_dir else [])
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     from rigctl.cli.sim import PORT_LINE
 
@@ -384,7 +386,7 @@ def test_a_second_sim_does_not_take_over_a_running_ones_port_folder(tmp_path):
         first.send_signal(signal.SIGINT)
         first.wait(timeout=300)
     assert not (d / "drum").exists() and not (d / "taxel").exists()
-    third, _ = _start_sim(d)  # the folder is free again once its owner is gone
+    third, _ = _start_sim(d, command=RIGCTL)  # the folder is free again once its owner is gone
     third.kill()
     third.wait(timeout=300)
 
