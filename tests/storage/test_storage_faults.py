@@ -8,7 +8,6 @@ import contextlib
 import os
 import signal
 import subprocess
-import sys
 import textwrap
 import uuid
 from pathlib import Path
@@ -28,6 +27,8 @@ from rigctl.storage.session import (
     TrialStatus,
     open_session,
 )
+
+from .forked import PythonC
 
 
 def _plan(n, texture="A"):
@@ -77,7 +78,7 @@ def test_a_second_writer_is_refused_in_this_process_and_from_another_one(tmp_pat
     with pytest.raises(SessionError, match="closed"):
         w.write_trial(4, _trial(4))
     # another process holds it: refused, naming the holder's pid
-    proc = subprocess.Popen([sys.executable, "-c", _HOLDER, str(path)], stdout=subprocess.PIPE, text=True)
+    proc = PythonC(_HOLDER, str(path), stdout=True)
     try:
         assert proc.stdout.readline().strip() == "holding"
         with pytest.raises(SessionLocked, match=f"another process \\(pid {proc.pid}\\)") as err:
@@ -301,11 +302,11 @@ def test_creating_a_session_on_a_full_disk_is_a_clear_error_not_a_crash(tmp_path
     """At 4-8 KiB free HDF5 crashed the process (SIGSEGV) creating the file and left S.h5.creating behind."""
     with _tmpfs(tmp_path, 256) as d:
         _fill(d, free_kib)
-        r = subprocess.run([sys.executable, "-c", _CREATE_ON_FULL_DISK, str(d / "S.h5")], capture_output=True,
-                           text=True, timeout=60)
-        assert r.returncode == 0, (r.returncode, r.stderr[-500:])
-        assert r.stdout.startswith("ERROR SessionWriteError no space left on device creating"), r.stdout
-        assert "free space or choose another --out" in r.stdout
+        proc = PythonC(_CREATE_ON_FULL_DISK, str(d / "S.h5"), stdout=True)  # a crash takes only the child
+        assert proc.wait(60) == 0, proc.returncode  # (its traceback, if any, on stderr)
+        out = proc.stdout.read()
+        assert out.startswith("ERROR SessionWriteError no space left on device creating"), out
+        assert "free space or choose another --out" in out
         assert sorted(p.name for p in d.iterdir()) == ["filler"]  # no S.h5, no .creating, no lock file
 
 

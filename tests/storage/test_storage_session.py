@@ -6,7 +6,6 @@ import json
 import math
 import os
 import signal
-import sys
 import textwrap
 import time
 
@@ -28,6 +27,7 @@ from rigctl.storage.session import (
 )
 
 from ..conftest import wait_unlocked
+from .forked import PythonC
 
 
 def _plan(n, textures="AB"):
@@ -221,71 +221,6 @@ def test_host_rate_ignores_delivery_delays():
     assert math.isnan(TrialData(taxels=np.zeros((3, 18))).host_rate_hz())
 
 
-class _PythonC:
-    """``python -c CODE ARGS`` as a child forked from this process instead of a new interpreter (which paid ~0.25
-    CPU-s of imports, numpy and h5py, for each of the 17 children here; what the children do needs no fresh
-    interpreter, only a process of their own to kill): ``CODE`` runs with ``sys.argv = ["-c", *ARGS]``, the exit
-    status as the interpreter's (an exception: its traceback and 1; ``-N``: ended by signal N). ``stdout``: a pipe,
-    read as :attr:`stdout`; ``new_session``: the child leads a session (and process group) of its own."""
-
-    def __init__(self, code: str, *args: str, stdout: bool = False, new_session: bool = False) -> None:
-        r, w = os.pipe() if stdout else (-1, -1)
-        self.returncode: int | None = None
-        self.pid = os.fork()
-        if self.pid == 0:  # pragma: no cover - the child
-            status = 1
-            try:
-                signal.signal(signal.SIGINT, signal.default_int_handler)  # as a fresh interpreter has them
-                for sig in (signal.SIGTERM, signal.SIGHUP):
-                    signal.signal(sig, signal.SIG_DFL)
-                if new_session:
-                    os.setsid()
-                if stdout:
-                    os.close(r)
-                    os.dup2(w, 1)
-                sys.stdout = open(1, "w", buffering=1, closefd=False)
-                sys.argv = ["-c", *args]
-                exec(compile(code, "<string>", "exec"), {"__name__": "__main__"})
-                status = 0
-            except SystemExit as exc:
-                status = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
-            except BaseException:
-                import traceback
-
-                traceback.print_exc()
-            finally:
-                sys.stdout.flush()
-                os._exit(status)
-        self.stdout = None
-        if stdout:
-            os.close(w)
-            self.stdout = open(r)
-
-    def _reaped(self, flags: int) -> int | None:
-        if self.returncode is None:
-            pid, status = os.waitpid(self.pid, flags)
-            if pid:
-                self.returncode = os.waitstatus_to_exitcode(status)
-        return self.returncode
-
-    def poll(self) -> int | None:
-        return self._reaped(os.WNOHANG)
-
-    def wait(self, timeout_s: float = 120.0) -> int:
-        """The exit status; AssertionError if the child still runs after ``timeout_s`` (it is then killed)."""
-        deadline = time.monotonic() + timeout_s
-        while self.poll() is None:
-            if time.monotonic() > deadline:
-                os.kill(self.pid, signal.SIGKILL)
-                self.wait()
-                raise AssertionError(f"the child {self.pid} still ran after {timeout_s} s")
-            time.sleep(0.005)
-        return self.returncode
-
-    def send_signal(self, sig: int) -> None:
-        os.kill(self.pid, sig)
-
-
 _WRITER_CHILD = textwrap.dedent(
     """
     import sys, numpy as np
@@ -330,7 +265,7 @@ def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
     completed_before = 0
     kills = 0
     for round_ in range(12):
-        proc = _PythonC(_WRITER_CHILD, str(path), str(round_), stdout=True, new_session=True)
+        proc = PythonC(_WRITER_CHILD, str(path), str(round_), stdout=True, new_session=True)
         assert proc.stdout.readline().strip() == "ready"
         time.sleep(rng.uniform(0.05, 0.4))
         if proc.poll() is None:
@@ -393,7 +328,7 @@ def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
     w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
     w.close()  # one writer per file: the child writes next
     gate = tmp_path / "gate"
-    proc = _PythonC(_SLOW_COMMIT, str(path), writes, str(gate), new_session=True)
+    proc = PythonC(_SLOW_COMMIT, str(path), writes, str(gate), new_session=True)
     _wait_at_gate(proc, gate)
     n_writes = len(journal._read_journal(jpath)[0])
     assert n_writes >= 3  # several pages are rewritten in place: the kill lands among them (after the first)
@@ -437,7 +372,7 @@ def test_a_commit_killed_after_its_journal_is_finished_on_the_next_opening(tmp_p
     w = SessionWriter.create(path, plan=_plan(3), protocol_source="src")
     w.write_trial(0, _trial(rng))
     w.close()  # one writer per file: the child writes next
-    assert _PythonC(_DIE_IN_COMMIT, str(path)).wait() == 9
+    assert PythonC(_DIE_IN_COMMIT, str(path)).wait() == 9
     jpath = path.with_name(path.name + ".journal")
     assert jpath.exists()
     with h5py.File(path, "r") as f:  # the file on disk is still the old, consistent one
@@ -455,7 +390,7 @@ def test_overwriting_a_file_drops_the_old_files_journal(tmp_path):
     (``overwrite=True``) must not replay it onto the new one."""
     path = tmp_path / "o.h5"
     SessionWriter.create(path, plan=_plan(3), protocol_source="old")
-    assert _PythonC(_DIE_IN_COMMIT, str(path)).wait() == 9
+    assert PythonC(_DIE_IN_COMMIT, str(path)).wait() == 9
     assert path.with_name(path.name + ".journal").exists()
     w = SessionWriter.create(path, plan=_plan(2), protocol_source="new", overwrite=True)
     w.write_trial(0, TrialData(taxels=np.full((100, 18), 3)))
@@ -491,7 +426,7 @@ def test_ctrl_c_during_a_commit_finishes_it_first(tmp_path):
     w.write_trial(0, TrialData(taxels=np.zeros((500, 18)), force_g=[0], force_time_s=[0.0]))
     w.close()  # one writer per file: the child writes next
     gate = tmp_path / "gate"
-    proc = _PythonC(_CTRL_C_IN_COMMIT, str(path), str(gate), stdout=True)
+    proc = PythonC(_CTRL_C_IN_COMMIT, str(path), str(gate), stdout=True)
     _wait_at_gate(proc, gate)  # the journal is committed and the in-place writes have begun
     proc.send_signal(signal.SIGINT)
     gate.touch()
