@@ -1,10 +1,10 @@
 """Rig backends as plugins (issue 38 part 6): rigctl's own rigs are entry points of the group ``rigctl.rigs``; an
 out-of-tree package (tests/plugins/rigctl-csvboard: a taxel board sending CSV lines, installed with pip into a folder
-of its own) is listed by ``rigctl rigs`` beside a broken plugin (one line, no traceback), records a protocol (two
-1 s trials) from a simulated board on a pty through ``rigctl acquire --rig``, and is opened and recorded through
-``rigctl serve`` (loopback, a token) in a separate interpreter that finds it on ``PYTHONPATH``. The GUI's connect
-dialog opens it too (tests/gui/test_gui_connect.py). The simulated drum is the in-process one (``drum=inprocess``):
-each recording takes a few seconds."""
+of its own) is listed by ``rigctl rigs`` beside a broken plugin (one line, no traceback), records ``quick_check``
+from a simulated board on a pty through ``rigctl acquire --rig``, and is opened and recorded through ``rigctl serve``
+(loopback, a token) in a separate interpreter that finds it on ``PYTHONPATH``. The GUI's connect dialog opens it
+too (tests/gui/test_gui_connect.py). The simulated drum is the in-process one (``drum=inprocess``): each recording
+takes a few seconds."""
 
 from __future__ import annotations
 
@@ -27,10 +27,6 @@ from rigctl.core.rig_plugins import BUILTIN_RIGS
 from rigctl.storage.session import open_session
 
 TOKEN = "plugin-test-token-0123456789"
-
-#: what the plugin records: two 1 s trials (quick_check's six of 2 s proved no more, at 3x the cost)
-PROTOCOL = ('name = "plugin_check"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [500]\n'
-            'trials_per_condition = 1\nduration_s = 1.0\n')
 
 
 def test_the_builtin_rigs_are_entry_points():
@@ -92,13 +88,13 @@ def _check_session(path: Path, *, mode: str) -> np.ndarray:
         layout = s.layout
         taxels = np.concatenate([np.asarray(s.trial(t).taxels, dtype=np.int64) for t in trials])
         rig = s.rig_config
-    assert len(trials) == 2 and layout.n_channels == 4 and layout.sample_rate_hz == 200.0
+    assert len(trials) == 6 and layout.n_channels == 4 and layout.sample_rate_hz == 200.0
     assert rig["mode"] == mode, rig
-    assert len(taxels) == 2 * 1 * 200 and (np.diff(taxels, axis=1) == 10).all()  # every sample is the board's
+    assert len(taxels) == 6 * 2 * 200 and (np.diff(taxels, axis=1) == 10).all()  # every sample is the board's
     return taxels
 
 
-def test_a_recording_from_a_pty_board_through_acquire(installed_plugins, tmp_path, monkeypatch):
+def test_quick_check_from_a_pty_board_through_acquire(installed_plugins, tmp_path, monkeypatch):
     monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
     stop = threading.Event()
     port = _board(stop)
@@ -106,13 +102,11 @@ def test_a_recording_from_a_pty_board_through_acquire(installed_plugins, tmp_pat
         typo = CliRunner().invoke(main, ["acquire", "quick_check", "--rig", "csvboard", "--rig-option", f"prot={port}",
                                          "--out", str(tmp_path / "t.h5")])
         assert typo.exit_code == 1 and "has no option prot" in typo.output, typo.output
-        (tmp_path / "plugin_check.toml").write_text(PROTOCOL)
-        r = CliRunner().invoke(main, ["acquire", str(tmp_path / "plugin_check.toml"), "--rig", "csvboard",
-                                      "--rig-option", f"port={port}",
+        r = CliRunner().invoke(main, ["acquire", "quick_check", "--rig", "csvboard", "--rig-option", f"port={port}",
                                       "--rig-option", "drum=inprocess", "--out", str(tmp_path / "s.h5"), "--quiet"])
     finally:
         stop.set()
-    assert r.exit_code == 0 and "trials complete: 2/2" in r.output, r.output
+    assert r.exit_code == 0 and "trials complete: 6/6" in r.output, r.output
     taxels = _check_session(tmp_path / "s.h5", mode="csvboard")
     assert len(np.unique(taxels[:, 0])) > 50  # the board's lines as they came, not one repeated
 
@@ -123,7 +117,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def test_a_recording_through_rigctl_serve(csvboard_plugin, tmp_path):
+def test_quick_check_through_rigctl_serve(csvboard_plugin, tmp_path):
     import httpx
 
     board = tmp_path / "board.csv"
@@ -147,7 +141,7 @@ def test_a_recording_through_rigctl_serve(csvboard_plugin, tmp_path):
                 assert time.monotonic() < deadline, "rigctl serve did not answer"
                 time.sleep(0.2)
         assert status.status_code == 200 and httpx.get(f"{url}/status", timeout=2).status_code == 401
-        run = httpx.post(f"{url}/runs", json={"toml": PROTOCOL, "out": "s.h5"}, headers=auth, timeout=5)
+        run = httpx.post(f"{url}/runs", json={"protocol": "quick_check", "out": "s.h5"}, headers=auth, timeout=5)
         assert run.status_code == 201, run.text
         rid = run.json()["id"]
         while (state := httpx.get(f"{url}/runs/{rid}", headers=auth, timeout=5).json()["state"]) in ("queued",
