@@ -66,11 +66,12 @@ def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path)
     import threading
 
     client, q = served
-    gate, begin, captures = threading.Event(), q.control.taxels.begin_capture, []
+    gate, at_gate, begin, captures = threading.Event(), threading.Event(), q.control.taxels.begin_capture, []
 
     def gated_begin(*args, **kwargs):
         captures.append(None)
         if len(captures) == 2:
+            at_gate.set()
             assert gate.wait(120), "the test never opened the gate"
         return begin(*args, **kwargs)
 
@@ -83,7 +84,8 @@ def test_queued_paused_resumed_finished_and_a_second_run_waits(served, tmp_path)
     _wait(lambda: client.get(f"/runs/{a}").json()["state"] == "running")
     assert client.get(f"/runs/{b}").json()["state"] == "queued"  # one run owns the rig
     assert client.get("/status").json()["current_run"]["id"] == a
-    _wait(lambda: client.get(f"/runs/{a}").json()["trials_done"] >= 1)
+    assert at_gate.wait(120)  # trial 0 recorded, trial 1 started
+    _wait(lambda: client.get(f"/runs/{a}").json()["trials_done"] == 1)  # (trial 1 cannot end: it waits at the gate)
     trial = _wait(lambda: client.get("/status").json()["current_trial"])
     assert trial["texture"] in ("A", "L") and trial["speed_mm_s"] == 120.0 and 0 <= trial["trial_id"] < 4
     assert client.post(f"/runs/{a}/pause", json={}).status_code == 200
