@@ -368,10 +368,14 @@ def test_an_unexpected_exception_is_shown_in_the_window(window, qapp):
     assert window.timer.isActive()  # the app carries on
 
 
-def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot):
+def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot, monkeypatch):
     sim = rig_of(window.handle.control).backend.sim
     window.tabs.setCurrentWidget(window.control)
     drum_banner, taxel_banner = window.banners["drum"], window.banners["taxel"]
+    # "reconnected" is held 1 s before "connected", not the app's 5 s (its hold is link_health's to test; here each
+    # board's way back, one after the other)
+    for health in window.links.health.values():
+        monkeypatch.setattr(health, "settle_s", 1.0)
     # the drum controller's cable
     sim.mega.bridge.unplug()
     try:
