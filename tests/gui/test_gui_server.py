@@ -84,8 +84,8 @@ def test_an_unreachable_server_is_one_line(qapp, qtbot):
     assert not dlg.attached and "does not answer" in dlg.status.text() and "\n" not in dlg.status.text()
 
 
-@pytest.mark.realtime
-def test_the_main_windows_stop_reaches_the_attached_server(window, qapp, tmp_path):
+def test_the_main_windows_stop_reaches_the_attached_server(inprocess_window, qapp, tmp_path):
+    window = inprocess_window  # (its own rig is not the point: the attached server's is)
     control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
     q = RunQueue(control, tmp_path / "queue.json").start()
     try:
