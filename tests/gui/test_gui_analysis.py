@@ -180,7 +180,7 @@ def test_analysis_can_be_cancelled(window, qapp, qtbot):
     tab.repeats.setValue(20)
     qtbot.mouseClick(tab.run_btn, QtCore.Qt.LeftButton)
     job = tab.job
-    wait_for(qapp, lambda: False, 1.0)
+    assert wait_for(qapp, lambda: job.proc is not None and job.proc.is_alive(), 30)  # its process runs
     qtbot.mouseClick(tab.cancel_btn, QtCore.Qt.LeftButton)
     assert tab.job is None and "cancelled" in tab.status.text()  # at once: the process is reaped in the background
     assert wait_for(qapp, lambda: job.proc is None or not job.proc.is_alive(), 10)

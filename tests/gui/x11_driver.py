@@ -239,12 +239,10 @@ def main(out_path: str, fit_only: bool = False) -> int:
     w.tabs.tabBar().setFocus()
     pause(0.3)
     xdo("mousemove", *centre(box))
-    for _ in range(3):
-        xdo("click", 4)  # wheel up
+    xdo("click", "--repeat", 3, "--delay", 50, 4)  # three notches of the wheel, up
     res = {"unfocused_value": box.value(), "unfocused_has_focus": box.hasFocus()}
     click(box)
-    for _ in range(3):
-        xdo("click", 4)
+    xdo("click", "--repeat", 3, "--delay", 50, 4)
     res["focused_value"] = box.value()
     res["focused_has_focus"] = box.hasFocus()
     out["wheel"] = res
