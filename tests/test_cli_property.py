@@ -21,7 +21,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from rigctl.cli import main
 from rigctl.storage.session import SessionWriter, TrialData
 
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 N_EXAMPLES = int(os.environ.get("RIGCTL_PROPERTY_EXAMPLES", "5"))
 PROPERTY = settings(max_examples=N_EXAMPLES, deadline=None, database=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -262,8 +262,8 @@ def test_sim_runs_until_ctrl_c(inputs, tmp_path, data):
         ("--seed", NUMBER), ("--texture", st.sampled_from(["A", "P", "Z", "", "BeigeCotton"])),
         ("--replay", st.sampled_from([str(inputs["session"]), str(inputs["fabricslide"]), str(tmp_path / "no")])))]
     before_inputs = _digests(inputs.values())
-    p = subprocess.Popen([sys.executable, "-m", "rigctl", "sim", "--port-dir", str(port_dir), *_opts(opts)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen([*RIGCTL, "sim", "--port-dir", str(port_dir), *_opts(opts)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
         out = ""

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 import uuid
 
 import numpy as np
@@ -15,6 +14,8 @@ from rigctl.acquisition.runner import run_protocol
 from rigctl.core.handheld import USED_END_MM, USED_START_MM
 from rigctl.rigs import open_rig
 from rigctl.storage.session import open_session
+
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 
 PROTO = """
 name = "hh_lsl"
@@ -39,8 +40,8 @@ def test_scans_from_a_tracker_stream_of_another_process(lsl, tmp_path):
     op = SimulatedOperator(seed=5)  # the publisher's operator: its plate's ends in the tracker's frame
     ends = [op.to_tracker(np.array([x]), np.zeros(1))[0].tolist() for x in (0.0, 300.0)]
     (tmp_path / "rig.json").write_text(json.dumps({"handheld": {"start_xyz": ends[0], "end_xyz": ends[1]}}))
-    pub = subprocess.Popen([sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "operator", "--lsl",
-                            name, "--seconds", "120", "--seed", "5"], stdout=subprocess.DEVNULL)
+    pub = subprocess.Popen([*RIGCTL, "sim", "operator", "--lsl", name, "--seconds", "120", "--seed", "5"],
+                           stdout=subprocess.DEVNULL)
     try:
         with open_rig("handheld", motion=f"lsl:{name}", host_config_path=tmp_path / "rig.json",
                       resolve_s=30.0, timeout_s=30.0) as rig:
