@@ -176,26 +176,6 @@ def test_ramp_trial_follows_the_profile(rig, tmp_path):
         assert np.all(np.diff(t.speed_time_s) > 0)
 
 
-@pytest.mark.realtime
-def test_loadcell_calibration_against_the_virtual_mega(pty_rig, tmp_path):
-    rig, config_file = pty_rig, tmp_path / "rig.json"
-    place, remove = calibration.simulated_mass(rig)
-    rig.drum.set_loadcell_scale(400.0)  # a wrong scale to start from
-    result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
-                                            config_file=config_file)
-    assert abs(result.counts_per_g - TRUE_COUNTS_PER_G) / TRUE_COUNTS_PER_G < 0.01
-    assert rig.drum.read_holding(HoldingRegister.LOADCELL_SCALE_X100) == result.scale_x100
-    assert abs(result.check_force_g - 500.0) < 5  # with the new scale the controller reads the mass right
-    t0 = time.monotonic()  # mass removed: the controller reads ~0 g at its next load-cell sample (bound: a hang)
-    while abs(force := rig.drum.read_status().force_g) >= 5 and time.monotonic() - t0 < 10:
-        time.sleep(0.05)
-    assert abs(force) < 5
-    stored = json.loads(config_file.read_text())["loadcell"]
-    assert stored["scale_x100"] == result.scale_x100
-    with pytest.raises(ValueError):
-        calibration.calibrate_loadcell(rig.drum, 0, place_mass=place)
-
-
 def test_taxel_normalisation_goes_into_the_config_and_the_next_session(rig, tmp_path, config_file):
     calib = tmp_path / "calib.h5"
     run_protocol(_proto(1, textures='"A", "L"', duration=0.5), calib, rig=rig, progress=False)
@@ -241,6 +221,26 @@ def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_pat
     assert summary.complete == 3 and summary.failed == 0 and not summary.stopped
     with open_session(out) as s:
         assert [s.trial(i).n_samples for i in s.completed_ids()] == [300, 300, 300]
+
+
+@pytest.mark.realtime
+def test_loadcell_calibration_against_the_virtual_mega(pty_rig, tmp_path):
+    rig, config_file = pty_rig, tmp_path / "rig.json"
+    place, remove = calibration.simulated_mass(rig)
+    rig.drum.set_loadcell_scale(400.0)  # a wrong scale to start from
+    result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
+                                            config_file=config_file)
+    assert abs(result.counts_per_g - TRUE_COUNTS_PER_G) / TRUE_COUNTS_PER_G < 0.01
+    assert rig.drum.read_holding(HoldingRegister.LOADCELL_SCALE_X100) == result.scale_x100
+    assert abs(result.check_force_g - 500.0) < 5  # with the new scale the controller reads the mass right
+    t0 = time.monotonic()  # mass removed: the controller reads ~0 g at its next load-cell sample (bound: a hang)
+    while abs(force := rig.drum.read_status().force_g) >= 5 and time.monotonic() - t0 < 10:
+        time.sleep(0.05)
+    assert abs(force) < 5
+    stored = json.loads(config_file.read_text())["loadcell"]
+    assert stored["scale_x100"] == result.scale_x100
+    with pytest.raises(ValueError):
+        calibration.calibrate_loadcell(rig.drum, 0, place_mass=place)
 
 
 @pytest.mark.realtime
