@@ -249,6 +249,7 @@ class HilRig:
         #: boundary of a scan under way
         self.last_wave_playing = False
         self._ohm_acks = 0
+        self._rxlog_acks = 0
         self._render_lock = threading.Lock()
         self._scan_reply: tuple[int, int] | None = None
         self._wave_pos: np.ndarray | None = None  # drum travel (mm) of each row of the waveform playing now
@@ -498,10 +499,15 @@ class HilRig:
         (:attr:`actuator_steps`)."""
         self._running(self._mega, "Mega").send(f"rxlog {int(bool(on))}")
 
-    def log_uno_requests(self, on: bool = True) -> None:
+    def log_uno_requests(self, on: bool = True, timeout_s: float = 10.0) -> None:
         """Record the simulated time and size of each chunk of host bytes that reaches the Uno
-        (:attr:`uno_requests`): when a host's command arrived on the board's clock."""
-        self._running(self._uno, "Uno").send(f"rxlog {int(bool(on))}")
+        (:attr:`uno_requests`): when a host's command arrived on the board's clock. Returns once the harness
+        confirms (bytes a host writes after the call are all recorded); HilError if it does not."""
+        with self._cond:
+            acks = self._rxlog_acks
+            self._running(self._uno, "Uno").send(f"rxlog {int(bool(on))}")
+            if not self._cond.wait_for(lambda: self._rxlog_acks != acks, timeout_s):
+                raise HilError("the Uno harness did not confirm the request log")
 
     def set_loadcell_polarity(self, sign: int) -> None:
         """Mount the load cell the right way (``+1``) or reversed (``-1``: it reads negative under load)."""
@@ -625,6 +631,10 @@ class HilRig:
         elif line.startswith("RX "):
             kv = _parse_kv(line)
             self.uno_requests.append((kv["t"], int(kv["n"])))
+        elif line == "OK rxlog":
+            with self._cond:
+                self._rxlog_acks += 1
+                self._cond.notify_all()
         elif line.startswith("APP "):
             self.uno_boot_times_s.append(_parse_kv(line)["boot_s"])
         elif line.startswith("MUX "):
