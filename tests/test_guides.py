@@ -124,7 +124,8 @@ def _handheld(runs, tmp_path, request) -> None:
     board = next(r for r in runs if "--taxel-port" in r.block.text).output
     assert "trials complete: 2/2" in board and "sensor 3x3x1: 9 channels" in board, board
     onboard = next(r for r in runs if "--onboard-encoder" in r.block.text).output
-    assert "predicted: " in onboard and "totals: 2/2 trials complete, 0 failed" in onboard, onboard
+    assert "predicted: " in onboard and "totals: 2/2 trials complete, 2 encoded on the board, 0 failed" in onboard, \
+        onboard
 
 
 def _nothing(runs, tmp_path, request) -> None:

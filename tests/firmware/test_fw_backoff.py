@@ -61,14 +61,14 @@ def _check_backoff(rig, t_req: float) -> None:
     """The first actuator step after ``t_req`` is away from the sensor within 10 ms, no step towards the sensor
     follows, and the spring's force is below 100 g 1 s after ``t_req``."""
     _wait_sim(rig, t_req + 1.0)
-    steps = [(t, d) for t, d in rig.actuator_steps if t >= t_req]
+    steps = [(t, d) for t, d in tuple(rig.actuator_steps) if t >= t_req]
     assert steps, "no actuator step after the request"
     t_first, d_first = steps[0]
     assert d_first == 0, f"the first step after the request went towards the sensor at +{t_first - t_req:.4f} s"
     assert t_first - t_req <= 0.010, f"the first step away came {1e3 * (t_first - t_req):.1f} ms after the request"
     towards = [t - t_req for t, d in steps if d == 1]
     assert not towards, f"steps towards the sensor during the back-off, s after the request: {towards[:5]}"
-    tel = [x for x in rig.telemetry_history if x.t_s >= t_req + 1.0]
+    tel = [x for x in tuple(rig.telemetry_history) if x.t_s >= t_req + 1.0]
     assert tel[0].force_g < 100.0, f"true force {tel[0].force_g:.0f} g 1 s after the request"
 
 
@@ -114,7 +114,7 @@ def test_injected_host_silence_and_reversed_actuator_on_the_harness(rig, drum):
     t0 = rig.next_telemetry().t_s
     schedule = rig.inject_faults([parse_fault("host-silence@0.2+1.5")])
     _wait_sim(rig, t0 + 0.2 + 0.3 + 1.0)
-    tel = [x for x in rig.telemetry_history if x.t_s >= t0 + 0.2 + 0.3 + 1.0]
+    tel = [x for x in tuple(rig.telemetry_history) if x.t_s >= t0 + 0.2 + 0.3 + 1.0]
     assert tel[0].force_g < 100.0, f"true force {tel[0].force_g:.0f} g 1 s after the watchdog"
     _wait_sim(rig, t0 + 1.8)
     assert [a for _, _, a in schedule.applied] == [True, False]

@@ -48,7 +48,7 @@ def test_live_taxel_signal_follows_the_drum_without_seams(hil_rig):
             cap = stream.end_capture()
             t1 = time.monotonic()
             with rig._render_lock:  # a swap under way has been measured
-                late = [s for s in rig.live_swaps if s.loaded_s < t1 and s.done_s > t0 and s.late]
+                late = [s for s in tuple(rig.live_swaps) if s.loaded_s < t1 and s.done_s > t0 and s.late]
             tries.append([s.delay_rows for s in late])
             if not late:
                 break

@@ -100,7 +100,7 @@ def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarr
     """The board's simulated time (s) at which the byte at each offset of the host's writes reached it (the harness's
     ``RX`` chunks, in order); waits for the harness's reports of every byte written."""
     deadline = time.monotonic() + 30.0
-    while sum(n for _, n in rig.uno_requests) < port.written:
+    while sum(n for _, n in tuple(rig.uno_requests)) < port.written:
         assert time.monotonic() < deadline, "the harness did not report every host byte's arrival"
         time.sleep(0.05)
     chunks = list(rig.uno_requests)
