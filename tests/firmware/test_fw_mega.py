@@ -175,7 +175,9 @@ def test_calibration_survives_a_reset_only_when_saved(hil_rig):
         d.write_holding(HR.LOADCELL_SCALE_X100, 40000)  # changed but not saved
         hb = d.read_status().heartbeat
         hil_rig.reset_mega()
-        deadline = time.monotonic() + 5
+        # on the Mega's clock: a request lost in the reset costs the client its answer timeouts (2 s each, retried),
+        # more than a few seconds of a loaded host's time
+        deadline = hil_rig.clock.now() + 10
         while True:  # the controller restarts: heartbeat back near 0, defaults in RAM, calibration from EEPROM
             try:
                 st = d.read_status()
@@ -183,7 +185,7 @@ def test_calibration_survives_a_reset_only_when_saved(hil_rig):
                     break
             except Exception:
                 pass
-            assert time.monotonic() < deadline, "no restart seen"
+            assert hil_rig.clock.now() < deadline, "no restart seen"
             time.sleep(0.05)
         time.sleep(0.3)  # longer than the load-cell timeout: a reset mid HX711 read must come up clean
         st = d.read_status()
