@@ -183,8 +183,21 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
     same = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(src)],
                           capture_output=True, text=True, env=env, timeout=60)
     assert same.returncode == 2 and "is the recording being replayed" in same.stderr
-    run = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(out), "--quiet"],
-                         capture_output=True, text=True, env=env, timeout=180)
+    # replay = "continuous" (the recording plays on across trials) beside it, on a simulated rig of its own: both
+    # wait on rigs paced to the wall clock
+    continuous = tmp_path / "continuous.toml"
+    continuous.write_text(proto.read_text().replace('duration_s = 0.5\n', 'duration_s = 0.5\nreplay = "continuous"\n'))
+    out2 = tmp_path / "continuous.h5"
+    beside = subprocess.Popen([*RIGCTL, "acquire", str(continuous), "--replay", str(src), "--out", str(out2), "--quiet"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env={**env, "RIGCTL_CONFIG": str(tmp_path / "rig2.json")})
+    try:
+        run = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(out), "--quiet"],
+                             capture_output=True, text=True, env=env, timeout=180)
+        _, beside_err = beside.communicate(timeout=180)
+    finally:
+        if beside.poll() is None:
+            beside.kill()
     assert run.returncode == 0, run.stderr
     with open_session(out) as s:
         assert s.layout.n_channels == 9 and s.layout.sample_rate_hz == 100.0
@@ -207,12 +220,8 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
             np.testing.assert_array_equal(t.taxels, source[texture][first:last + 1].astype(np.uint16))
     info = _info(out, env)
     assert info["trials"][0]["source"]["file"] == "lab.h5" and info["trials"][0]["source"]["trial_id"] == 1
-    # replay = "continuous": the recording plays on across trials; the provenance still names every sample
-    proto.write_text(proto.read_text().replace('duration_s = 0.5\n', 'duration_s = 0.5\nreplay = "continuous"\n'))
-    out2 = tmp_path / "continuous.h5"
-    run = subprocess.run([*RIGCTL, "acquire", str(proto), "--replay", str(src), "--out", str(out2), "--quiet"],
-                         capture_output=True, text=True, env=env, timeout=180)
-    assert run.returncode == 0, run.stderr
+    # replay = "continuous": the provenance still names every sample
+    assert beside.returncode == 0, beside_err
     with open_session(out2) as s:
         for tid in s.completed_ids():
             a = s.trial_attrs(tid)
