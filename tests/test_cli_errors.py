@@ -454,7 +454,14 @@ def test_plate_policy_unattended_hardware_run(data, tmp_path, monkeypatch):
     --plates auto runs the protocol, announcing each plate."""
     monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
     out = tmp_path / "hw.h5"
-    no_tty = _hardware([data["hw_protocol"], "--out", out])
+    ptys = [os.openpty() for _ in range(2)]  # refused up front: two ports nobody serves are never opened
+    try:
+        no_tty = subprocess.run([*RIGCTL, "acquire", str(data["hw_protocol"]), "--out", str(out), "--quiet",
+                                 "--drum-port", os.ttyname(ptys[0][1]), "--taxel-port", os.ttyname(ptys[1][1])],
+                                capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL)
+    finally:
+        for fd in (fd for pair in ptys for fd in pair):
+            os.close(fd)
     _error_line(no_tty.stderr, 2, no_tty.returncode, "stdin is not a terminal", "--plates auto", "--plates skip")
     assert not out.exists()
     auto = _hardware([data["hw_protocol"], "--out", out, "--plates", "auto"])
