@@ -11,6 +11,7 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -113,8 +114,11 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     proto.write_text(MANY)
     n_plan = 16
     out = tmp_path / "s.h5"
-    proc = subprocess.Popen([*RIGCTL, "acquire", str(proto), "--inprocess", "--out", str(out), "--quiet"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # the writer in an interpreter of its own, so that SIGKILL hits the writer itself (through the preloaded rigctl it
+    # hit the launcher's client, and the writer went on until the launcher noticed: a loaded CI run's resume then
+    # found the session "being written by another process")
+    proc = subprocess.Popen([sys.executable, "-m", "rigctl", "acquire", str(proto), "--inprocess", "--out", str(out),
+                             "--quiet"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
     while len(_complete(out)) < 2:
         assert proc.poll() is None, proc.stderr.read().decode()
