@@ -83,7 +83,8 @@ def _ctrl_c_reaches_children():
 def pytest_runtest_protocol(item, nextitem):
     """With ``$RIGCTL_TEST_CPU_LOG`` set (a file path), append one line per test: its node id, wall seconds and CPU
     seconds (this process and the children it reaped meanwhile: CLI subprocesses, and a module's simavr harnesses
-    when its rig closes), then the worker (pytest-xdist's id) and when the test started (Unix time), tab-separated:
+    when its rig closes), then the worker (pytest-xdist's id), when the test started (Unix time) and the CPU seconds of the worker's whole
+    process tree (:func:`tree_cpu`), tab-separated:
     where the suite's CPU goes, which ``--durations`` (wall) cannot say, and what ran beside what."""
     path = os.environ.get("RIGCTL_TEST_CPU_LOG")
     if not path:
@@ -96,11 +97,34 @@ def pytest_runtest_protocol(item, nextitem):
         a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
         return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
-    t0, c0, start = time.monotonic(), cpu(), time.time()
+    def tree_cpu() -> float:
+        """:func:`cpu` plus the live descendants' CPU and that of the children they reaped (/proc/PID/stat fields
+        14-17, clock ticks): the preloaded launcher's commands and the harnesses still running count too."""
+        stats: dict[int, tuple[int, float]] = {}
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    with open(f"/proc/{entry}/stat") as f:
+                        fields = f.read().rsplit(")", 1)[1].split()
+                except OSError:
+                    continue
+                stats[int(entry)] = (int(fields[1]), sum(int(x) for x in fields[11:15]) / os.sysconf("SC_CLK_TCK"))
+        children: dict[int, list[int]] = {}
+        for pid, (ppid, _) in stats.items():
+            children.setdefault(ppid, []).append(pid)
+        total, todo = cpu(), list(children.get(os.getpid(), []))
+        while todo:
+            pid = todo.pop()
+            total += stats[pid][1]
+            todo.extend(children.get(pid, []))
+        return total
+
+    t0, c0, tc0, start = time.monotonic(), cpu(), tree_cpu(), time.time()
     yield
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     with open(path, "a") as f:
-        f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\t{worker}\t{start:.1f}\n")
+        f.write(f"{item.nodeid}\t{time.monotonic() - t0:.2f}\t{cpu() - c0:.2f}\t{worker}\t{start:.1f}"
+                f"\t{tree_cpu() - tc0:.2f}\n")
 
 
 #: the tiers whose tests judge against the wall clock (a rig paced to it, the firmware under simavr, a real window, a
