@@ -24,7 +24,6 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy import signal
 
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 
@@ -42,6 +41,9 @@ def lowpass_coefficients(cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE
     """
     if not 0 < cutoff_hz < fs / 2:
         raise ValueError(f"cutoff_hz={cutoff_hz} must be in (0, {fs / 2}) for fs={fs}")
+    # (scipy.signal imported on first use: it takes ~1 s to import, and most commands never filter)
+    from scipy import signal
+
     b, a = signal.butter(order, cutoff_hz, btype="low", fs=fs)
     return b, a, signal.lfilter_zi(b, a)
 
@@ -69,7 +71,9 @@ def ra_input(readings: np.ndarray, *, cutoff_hz: float = RA_CUTOFF_HZ, fs: float
     b, a, zi_unit = lowpass_coefficients(float(cutoff_hz), float(fs), int(order))
     first = x[..., :1, :]  # (..., 1, n_taxels)
     zi = zi_unit[:, None] * first  # broadcasts to (..., order, n_taxels)
-    y, _ = signal.lfilter(b, a, x, axis=-2, zi=zi)
+    from scipy.signal import lfilter
+
+    y, _ = lfilter(b, a, x, axis=-2, zi=zi)
     d = np.empty_like(y)
     d[..., 0, :] = 0.0
     np.subtract(y[..., 1:, :], y[..., :-1, :], out=d[..., 1:, :])
@@ -111,7 +115,9 @@ class RAFilter:
         if self._zi is None:
             self._zi = self._zi_unit[:, None] * x[:1, :]
             self._last = None
-        y, self._zi = signal.lfilter(self.b, self.a, x, axis=0, zi=self._zi)
+        from scipy.signal import lfilter
+
+        y, self._zi = lfilter(self.b, self.a, x, axis=0, zi=self._zi)
         d = np.empty_like(y)
         d[0] = 0.0 if self._last is None else y[0] - self._last
         np.subtract(y[1:], y[:-1], out=d[1:])

@@ -36,7 +36,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.core.provenance import software_provenance
@@ -202,6 +201,8 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         speed = np.full(n, float(speed_mm_s))
     else:
         speed = prof.speed(t, duration_s)
+    from scipy.signal import lfilter  # (on first use: scipy.signal takes ~1 s to import)
+
     # stepper speed error: static + slow wobble (Ornstein-Uhlenbeck)
     aw = math.exp(-dt / SPEED_WOBBLE_TAU_S)
     wobble = lfilter([math.sqrt(1 - aw * aw)], [1.0, -aw], rng.standard_normal(n)) * SPEED_WOBBLE

@@ -35,7 +35,6 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from rigctl.core.handheld import (
     PLATE_LENGTH_MM,
@@ -97,6 +96,8 @@ def profile_speeds(planned: PlannedTrial) -> tuple[float, float]:
 
 def _ou(rng: np.random.Generator, n: int, dt: float, tau_s: float, sd: float) -> np.ndarray:
     """(n,) Ornstein-Uhlenbeck noise of standard deviation ``sd`` and time constant ``tau_s`` at step ``dt``."""
+    from scipy.signal import lfilter  # (on first use: scipy.signal takes ~1 s to import)
+
     a = math.exp(-dt / tau_s)
     x0 = rng.standard_normal() * sd
     out = lfilter([math.sqrt(1 - a * a) * sd], [1.0, -a], rng.standard_normal(n))
