@@ -18,6 +18,7 @@ offset on the shared LSL clock. Imports nothing else of rigctl's.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
@@ -158,6 +159,14 @@ class DeviceClockFit:
             for b in sorted(self._blocks)[:len(self._blocks) - self.max_blocks]:
                 del self._blocks[b]
         return counts
+
+    def preview(self, seq: np.ndarray, host_time_s: np.ndarray) -> np.ndarray:
+        """The fitted host times (s, (n,)) that frames (as for :meth:`add`) would get were they added next, NaN
+        before a fit exists; the fit itself is left as it was (a source asking whether a frame of a given time has
+        arrived yet, before it takes the frames once for good)."""
+        trial = copy.copy(self)
+        trial._blocks = dict(self._blocks)
+        return trial.host_time(trial.add(seq, host_time_s))
 
     # ----------------------------------------------------------------------------------------------- fitting
     def mapping(self) -> ClockMapping | None:

@@ -3,7 +3,8 @@
 
 :class:`BoardFingerScans` is a :class:`rigctl.core.handheld.ScanSource`: after each cue it waits for the tracked
 finger to pass the plate's used part (:func:`rigctl.core.handheld.wait_for_pass`) and takes every frame the taxel
-board sent from a second before the cue (the Uno's CRC-checked frames, from the live ring of its
+board sent from a second before the cue until the frame of the pass's last tracker sample, waited for when a host
+starved on a loaded machine has not read it yet as the tracker shows the finger past (the Uno's CRC-checked frames, from the live ring of its
 :class:`rigctl.devices.taxel_stream.TaxelStream`; the layout from its identify reply: ``layout=3x3x1`` for the paper's
 finger; a finger already on its way when a busy host cued it late still has its entry's frames), and returns the
 frames with their sequence numbers and host receive times beside the tracker's samples. The cut
@@ -36,6 +37,10 @@ __all__ = ["BoardFingerScans", "open_finger_board"]
 PRE_CUE_S = 1.0
 #: the board's ring holds this much more than the longest wait for a pass, s
 RING_SPARE_S = 10.0
+#: how long a scan waits for the board's frames up to the pass's end once the tracker has shown it, s
+FRAMES_WAIT_S = 5.0
+#: how often it looks, s
+FRAMES_POLL_S = 0.01
 #: the frames the board must have sent before the first scan, s of its rate (the stream is flowing)
 WARM_UP_S = 0.5
 #: how long the board may take to send them, s
@@ -78,8 +83,9 @@ class BoardFingerScans:
     def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
         """The board's frames from :data:`PRE_CUE_S` before the cue until the finger has passed the plate's used part
         (from its ring: a finger already on its way when a busy host gave the cue late entered the plate with frames
-        kept), the pass's tracker samples; None when ``stop()``. Raises ScanError (no pass within ``timeout_s``, no
-        frame from the board)."""
+        kept; up to the frame of the pass's last tracker sample, waited for), the pass's tracker samples; None when
+        ``stop()``. Raises ScanError (no pass within ``timeout_s``, no frame from the board up to the pass's end
+        within :data:`FRAMES_WAIT_S`)."""
         t_cue = time.monotonic()
         ring, before = self.taxels.ring, self.taxels.stats
         # never a frame an earlier scan took: the clock fit takes each frame once, in order
@@ -87,12 +93,12 @@ class BoardFingerScans:
         got = wait_for_pass(self.tracker, self._along, t_cue, stop=stop, timeout_s=self.timeout_s)
         if got is None:
             return None
+        t, x = got
+        if not self._frames_cover(ring, start, float(t[-1]), t_cue, stop):
+            return None
         self._cursor, samples, seq, host_time_s = ring.read_since(start)
         self._ring = ring
         after = self.taxels.stats
-        if not len(seq) or host_time_s[-1] < t_cue:
-            raise ScanError(f"no frame from the taxel board on {self.taxels.port} during the scan (is it streaming?)")
-        t, x = got
         self.scans += 1
         xyz = x.shape[1] == 3
         velocity = x[:, 1] if x.shape[1] == 2 and np.all(np.isfinite(x[:, 1])) else None  # a motion board's own
@@ -102,6 +108,28 @@ class BoardFingerScans:
                               "taxel_crc_errors": int(after.crc_errors - before.crc_errors),
                               "taxel_dropped_frames": int(after.dropped - before.dropped),
                               **getattr(self.tracker, "counters", dict)()}, clock_fit=self.clock_fit)
+
+    def _frames_cover(self, ring: RingBuffer, start: int, until_s: float, t_cue: float,
+                      stop: Callable[[], bool] | None) -> bool:
+        """Wait until the ring holds the board's frames up to host time ``until_s`` (the pass's last tracker sample):
+        until its newest frame's time on the board's fitted clock is at or past it. The board sent them on time; a
+        host starved on a loaded machine may not have read them yet when the tracker shows the finger past the plate,
+        and a scan that took its frames then would lose the pass's last ones. False when ``stop()`` turned true.
+        Raises ScanError when the board sent no frame since the cue, or none that late within
+        :data:`FRAMES_WAIT_S`."""
+        deadline = time.monotonic() + FRAMES_WAIT_S
+        while True:
+            _, seq, host_time_s = ring.timing_since(start)
+            if len(seq) and host_time_s[-1] >= t_cue:
+                newest = float(self.clock_fit.preview(seq, host_time_s)[-1])
+                if not newest < until_s:  # past it, or no fit yet (NaN): the frames received are all there is
+                    return True
+            if stop is not None and stop():
+                return False
+            if time.monotonic() > deadline:
+                raise ScanError(f"no frame from the taxel board on {self.taxels.port} up to the end of the pass "
+                                f"within {FRAMES_WAIT_S:g} s (is it streaming?)")
+            time.sleep(FRAMES_POLL_S)
 
     def describe(self) -> dict[str, Any]:
         banner = dict(self.taxels.banner or {})
