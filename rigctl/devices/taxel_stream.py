@@ -46,6 +46,8 @@ log = logging.getLogger(__name__)
 _LINE_RE = re.compile(rb"#RIGCTL-UNO[ -~]*\n")
 #: a stream whose last frame came longer ago than this has no frames left on the way when START is sent, s
 _QUIET_S = 0.5
+#: the span of recent chunks whose least-delayed one dates the stream's newest frame, s (a lost link's gap)
+ENVELOPE_S = 2.0
 
 
 #: the STREAMING_START flag bit as a plain int (an IntFlag member costs an enum lookup per use, per chunk)
@@ -259,6 +261,9 @@ class TaxelStream:
         self._capture_event = threading.Condition(self._lock)
         self._last_frame_time: float | None = None
         self._gap_pending = False
+        #: the stream's chunks of the last ENVELOPE_S: (host time, running frame count) of each chunk's newest frame
+        self._envelope: collections.deque[tuple[float, int]] = collections.deque()
+        self._envelope_seq = 0  # the sequence number of the newest frame in it
 
     # ------------------------------------------------------------------ context manager
     def __enter__(self) -> "TaxelStream":
@@ -481,7 +486,7 @@ class TaxelStream:
             if self._gap_pending and self._loss_in_capture and self._last_frame_time is not None:
                 # the port vanished during the capture and the stream has not come back yet: the frames due
                 # until now are lost
-                dropped += max(0, int((time.monotonic() - self._last_frame_time) * self._layout.sample_rate_hz))
+                dropped += max(0, int((time.monotonic() - self._last_sent_s()) * self._layout.sample_rate_hz))
             self._loss_in_capture = False
             crc = self._stats.crc_errors - self._capture_crc_base
         if parts:
@@ -558,6 +563,7 @@ class TaxelStream:
                 return
             seq, flags, samples = frames.seq, frames.flags, frames.samples
             lost_at_start = 0
+            new_stream = self._gap_pending or self._await_start or not self._envelope
             if self._await_start:
                 k = self._new_stream_start(seq, flags, t_rx)
                 st.stale_frames += n if k is None else k
@@ -585,7 +591,7 @@ class TaxelStream:
             if self._gap_pending and self._last_frame_time is not None:
                 # frames lost while the port was gone: estimated from the time gap at the link's rate. They count in
                 # a capture only if it was running when the port vanished
-                lost = max(0, int(round((host_t[0] - self._last_frame_time) * rate)) - 1)
+                lost = max(0, int(round((host_t[0] - self._last_sent_s()) * rate)) - 1)
                 lost_at_start = 0  # lost frames at the restarted stream's start lie inside that time gap
                 st.dropped += lost
                 if capturing and self._loss_in_capture:
@@ -605,6 +611,7 @@ class TaxelStream:
                 if capturing:
                     self._capture_dropped += gaps
             self._last_frame_time = float(host_t[-1])
+            self._note_envelope(seq, new_stream or bool(starts.size), float(host_t[-1]))
             st.frames += n
             self._rate.append((t_rx, st.frames))
             if self._capture is not None:
@@ -612,6 +619,31 @@ class TaxelStream:
                 self._capture_count += n
                 self._capture_event.notify_all()
         self.ring.write(samples, seq, flags, host_t)
+
+    def _note_envelope(self, seq: np.ndarray, restart: bool, t: float) -> None:
+        """Add a chunk (``seq`` as received, its newest frame stamped ``t``) to the envelope; ``restart``: a new
+        stream (its counts start again). Called under the lock."""
+        if restart:
+            self._envelope.clear()
+            count = 0
+        else:
+            count = self._envelope[-1][1] + ((int(seq[-1]) - self._envelope_seq) & 0xFFFF)
+        self._envelope.append((t, count))
+        self._envelope_seq = int(seq[-1])
+        while self._envelope[0][0] < t - ENVELOPE_S:
+            self._envelope.popleft()
+
+    def _last_sent_s(self) -> float:
+        """When the board sent the newest frame received (host clock, s): its stamp less the least delay of the
+        stream's chunks over the last :data:`ENVELOPE_S` (the lower envelope, at the nominal rate). A stamp is the
+        time the reader read a chunk: on a loaded host it is late by however long the reader (or a simulated board
+        behind its clock) was starved, and the frames lost across a reconnect, counted from the time gap to the
+        restarted stream's first frame, would be under-counted by as much. Called under the lock."""
+        if not self._envelope:
+            return float(self._last_frame_time or 0.0)
+        period = 1.0 / self._layout.sample_rate_hz
+        count_last = self._envelope[-1][1]
+        return min(t + (count_last - c) * period for t, c in self._envelope)
 
     def _new_stream_start(self, seq: np.ndarray, flags: np.ndarray, t_rx: float) -> int | None:
         """Index of the first frame of the stream START began, or None if all are frames of an earlier stream.

@@ -8,12 +8,13 @@ earlier stream discarded after a restart). Nothing is lost silently and no frame
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
 import pytest
 
-from rigctl.devices import wire
+from rigctl.devices import taxel_stream, wire
 from rigctl.devices.drum import DrumClient, DrumStatus
 from rigctl.devices.errors import DrumError, DrumTimeout
 from rigctl.devices.taxel_stream import TaxelStream
@@ -188,6 +189,40 @@ def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_pro
     restart = np.flatnonzero(cap.flags & wire.FrameFlag.STREAMING_START)
     assert len(restart) == 1 and cap.seq[restart[0]] == 0
     assert 250 <= cap.dropped <= (t_back - t_cut) * 1000  # the hole is reported (estimated from the time gap)
+
+
+def test_a_reader_late_at_the_cut_still_counts_every_frame_lost(uno, taxel_proxy, monkeypatch):
+    """The frames lost across a cut are counted from the time gap between the board's last frame received and the
+    restarted stream's first: from when the board sent that frame, not from when a reader starved at that moment
+    stamped it. Here the reader, having read a chunk, waits 0.5 s before stamping it (a loaded host) while the link
+    is cut: the frames the board sent meanwhile were under-counted by ~500 (a silent loss) when the gap ran from the
+    late stamp."""
+    proxy, read, armed, late = taxel_proxy, taxel_stream._read_chunk, threading.Event(), []
+
+    def starved(ser, timeout_s):
+        data = read(ser, timeout_s)
+        if data and armed.is_set() and not late:
+            late.append(len(data))
+            proxy.cut()
+            time.sleep(0.5)
+        return data
+
+    monkeypatch.setattr(taxel_stream, "_read_chunk", starved)
+    with TaxelStream(proxy.path) as stream:
+        stream.start()
+        _wait(lambda: stream.stats.frames >= 500, what="frames")
+        armed.set()
+        _wait(lambda: not stream.stats.connected, what="the cut to be noticed")
+        time.sleep(0.3)
+        proxy.restore()
+        _wait(lambda: stream.stats.reconnects == 1, what="the reconnect")
+        n = stream.stats.frames
+        _wait(lambda: stream.stats.frames >= n + 300, what="the stream to continue")
+        _settle(stream, proxy, uno)
+        st = stream.stats
+    assert late and proxy.stats().to_host.lost_while_cut > 0
+    sent = uno.frames_sent + uno.frames_dropped
+    assert st.frames + st.dropped + st.stale_frames >= sent, (sent, st)  # over-counted at most, never silent
 
 
 # ------------------------------------------------------------------------------------------------------ Modbus link
