@@ -248,8 +248,9 @@ class InProcessTaxels:
             if not self._streaming or not self.engine.taxel_link_up:
                 return
             n_ms = len(samples)
+            unsent = 0
             if self._pacer is not None:  # the source's samples due in these n_ms ms, spread over them
-                samples, pulse = self._pacer.step(n_ms, sync)
+                samples, pulse, unsent = self._pacer.step(n_ms, sync)
                 sync = np.zeros(len(samples), bool) if pulse is None else pulse
             n = len(samples)
             seq = ((self._seq + np.arange(n)) % 65536).astype(np.uint16)
@@ -258,10 +259,13 @@ class InProcessTaxels:
             if self._first and n:
                 flags[0] |= int(wire.FrameFlag.STREAMING_START)
                 self._first = False
+            t = (t0_ms + (1 + np.arange(n)) * (n_ms / n if n else 1.0)) / 1000.0
+            if unsent:  # periods the source had no sample for: numbered, never sent (the host counts them lost)
+                n -= unsent
+                samples, seq, flags, t = samples[:n], seq[:n], flags[:n], t[:n]
             self._frames += n
             if self._capture is None and self.ring is None:
                 return
-            t = (t0_ms + (1 + np.arange(n)) * (n_ms / n if n else 1.0)) / 1000.0
             if self.ring is not None:
                 self.ring.write(samples, seq, flags, t)
             if self._capture is not None:

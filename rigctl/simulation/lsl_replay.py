@@ -9,8 +9,11 @@ too): the source starts once ``prebuffer_s`` of samples are in, so the stream's 
 The layout is the stream's: a rigctl taxel stream's ``sensor_layout`` description (its ``frame_seq`` channel
 dropped), else ``SensorLayout.for_channels(channel_count)`` at the stream's nominal rate and
 ``adc_bits`` (10 unless the description says). Values are clipped to the ADC range. When the stream falls behind
-the board's clock, ``read`` repeats the last sample and counts it (:attr:`LslReplay.underrun_samples`, logged):
-the recording is never shorter, and how much was filled is said.
+the board's clock (its delivery held up longer than ``prebuffer_s``), ``read`` gives what it has and the board sends
+no frame for the rest: the host counts them as lost frames (a trial that lost frames is recorded again), none is
+invented. The source then holds back until ``prebuffer_s`` of samples are in again, so the next jitter is absorbed
+as the first was (without it, every later chunk of the stream would arrive just too late); the periods without a
+sample are counted (:attr:`LslReplay.underrun_samples`, logged).
 """
 
 from __future__ import annotations
@@ -75,15 +78,16 @@ class LslReplay:
             self.layout = SensorLayout.for_channels(n - int(self.drop_seq), sample_rate_hz=rate, adc_bits=bits)
         self.underrun_samples = 0
         self.samples_read = 0
+        self._prebuffer = max(1, int(prebuffer_s * rate))
+        self._refilling = False  # after an underrun: nothing is given until the prebuffer is full again
         self._pending: list[np.ndarray] = []
         self._n_pending = 0
-        self._last = np.zeros(self.layout.n_channels, dtype=np.uint16)
         self._lock = threading.Lock()
         self._halt = threading.Event()
         self.inlet.open_stream(timeout=resolve_s)
         self._thread = threading.Thread(target=self._pull_loop, name="lsl-replay", daemon=True)
         self._thread.start()
-        want = int(prebuffer_s * rate)
+        want = self._prebuffer
         deadline = time.monotonic() + resolve_s
         while self._n_pending < want and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -110,23 +114,29 @@ class LslReplay:
                     self._n_pending += len(x)
 
     def read(self, n: int) -> np.ndarray:
-        """The next ``n`` samples ``(n, n_channels)`` uint16, at once: what the stream has delivered, then the last
-        sample repeated for what it has not yet (counted in :attr:`underrun_samples`)."""
+        """The next samples of ``n`` due, ``(m, n_channels)`` uint16 with ``m <= n``, at once: what the stream has
+        delivered; fewer when it fell behind (the missing ``n - m`` are counted in :attr:`underrun_samples`; after an
+        underrun none until the prebuffer is full again)."""
         with self._lock:
+            if self._refilling and self._n_pending >= self._prebuffer:
+                self._refilling = False
+                log.info("LSL stream %r: %d samples buffered again, the taxel board streams it on", self.name,
+                         self._n_pending)
+            take = 0 if self._refilling else min(n, self._n_pending)
             have = np.concatenate(self._pending) if len(self._pending) > 1 else (
                 self._pending[0] if self._pending else np.zeros((0, self.layout.n_channels), np.uint16))
-            out, rest = have[:n], have[n:]
+            out, rest = have[:take], have[take:]
             self._pending = [rest] if len(rest) else []
             self._n_pending = len(rest)
-        if len(out):
-            self._last = out[-1]
-        if len(out) < n:
             missing = n - len(out)
+            started = missing > 0 and not self._refilling
+            self._refilling = self._refilling or missing > 0
+        self.samples_read += len(out)
+        if missing:
             self.underrun_samples += missing
-            log.warning("LSL stream %r fell behind the taxel board: %d samples repeated (%d so far)", self.name,
-                        missing, self.underrun_samples)
-            out = np.concatenate([out, np.tile(self._last, (missing, 1))])
-        self.samples_read += n
+            if started:
+                log.warning("LSL stream %r fell behind the taxel board: no frame until %d samples are buffered again "
+                            "(%d periods without a sample so far)", self.name, self._prebuffer, self.underrun_samples)
         return out
 
     def describe(self) -> dict[str, Any]:

@@ -155,9 +155,10 @@ class SimulatedRig:
             else:
                 samples = np.concatenate([p[0] for p in parts])
                 sync_in = np.concatenate([p[1] for p in parts])
+        unsent = 0
         if self._pacer is not None:
-            samples, sync_in = self._pacer.step(n_ms, sync_in)
-        self.uno.tick(samples, sync_in)
+            samples, sync_in, unsent = self._pacer.step(n_ms, sync_in)
+        self.uno.tick(samples, sync_in, unsent)
 
     def truth_start(self) -> None:
         """The run starts now (physics clock): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""

@@ -40,6 +40,8 @@ class SourcePacer:
 
     :meth:`step` gives the samples due in the next ``n_ms`` ms (sample j is due at ``j / rate``) with the index
     pulse (SYNC_IN) of the step on its last sample; a pulse in a step with no sample due goes on the next sample.
+    A live source behind the board's clock (:class:`rigctl.simulation.lsl_replay.LslReplay`) gives fewer rows than
+    asked: the periods it had no sample for are the step's last, ``unsent`` (the board sends no frame for them).
     """
 
     def __init__(self, source: Any, layout: SensorLayout) -> None:
@@ -49,9 +51,10 @@ class SourcePacer:
         self._samples_total = 0
         self._pulse_pending = False
 
-    def step(self, n_ms: int, sync_in: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(samples (n, ch) uint16, sync_in (n,) bool or None)`` of the next ``n_ms`` ms (``sync_in``: the
-        model's index pulse per millisecond, or None)."""
+    def step(self, n_ms: int, sync_in: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, int]:
+        """``(samples (n, ch) uint16, sync_in (n,) bool or None, unsent)`` of the next ``n_ms`` ms (``sync_in``:
+        the model's index pulse per millisecond, or None; ``unsent``: how many of the last rows the source had no
+        sample for, filled, not to be sent)."""
         ch = self.layout.n_channels
         rate = self.layout.sample_rate_hz
         if rate == 1000.0:  # one sample per simulated millisecond, the index pulse of each
@@ -68,5 +71,9 @@ class SourcePacer:
                 sync_in[-1] = True
                 self._pulse_pending = False
         if n <= 0:
-            return np.zeros((0, ch), np.uint16), None
-        return np.asarray(self.read(n), dtype=np.uint16).reshape(n, ch), sync_in
+            return np.zeros((0, ch), np.uint16), None, 0
+        got = np.asarray(self.read(n), dtype=np.uint16).reshape(-1, ch)
+        unsent = n - len(got)
+        if unsent > 0:
+            got = np.concatenate([got, np.zeros((unsent, ch), np.uint16)])
+        return got, sync_in, max(unsent, 0)

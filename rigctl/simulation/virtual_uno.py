@@ -140,13 +140,16 @@ class VirtualUno:
             self._booting_until = time.monotonic() + self.reset_delay_s
 
     # ------------------------------------------------------------------ the board's loop
-    def tick(self, samples: np.ndarray, sync_in: np.ndarray | None = None) -> None:
+    def tick(self, samples: np.ndarray, sync_in: np.ndarray | None = None, unsent: int = 0) -> None:
         """Advance the board by ``len(samples)`` sample periods (ms at 1 kHz).
 
         Parameters
         ----------
         samples : (n, layout.n_channels) uint16 ADC counts 0..layout.adc_max, one row per elapsed sample period.
         sync_in : (n,) bool, the drum index pulse seen in each period (sets the SYNC_IN flag), or None.
+        unsent : the last ``unsent`` periods had no sample (a live source behind the board's clock): no frame is
+            sent for them, the sequence counter still steps over them (the host counts them as lost; counted in
+            :attr:`frames_dropped`).
         """
         with self._lock:
             base = self.samples_ticked
@@ -186,10 +189,10 @@ class VirtualUno:
                     self.streaming = False
                     port.write(self.identity)
             if self.streaming and n:
-                self._send_frames(samples, sync_in)
+                self._send_frames(samples, sync_in, unsent)
             port.flush()
 
-    def _send_frames(self, samples, sync_in) -> None:
+    def _send_frames(self, samples, sync_in, unsent: int = 0) -> None:
         n = len(samples)
         seq = (self.seq + np.arange(n)) & 0xFFFF
         flags = np.zeros(n, np.uint8)
@@ -200,6 +203,11 @@ class VirtualUno:
             self._first = False
         self.seq = (self.seq + n) & 0xFFFF
         samples = np.asarray(samples)
+        if unsent > 0:  # periods without a sample: numbered, never sent
+            k = min(int(unsent), n)
+            self.frames_dropped += k
+            seq, flags, samples = seq[:n - k], flags[:n - k], samples[:n - k]
+            n -= k
         if self._drop_left or self._drop_sync_left:  # fault injection: frames the link loses
             keep = np.ones(n, bool)
             if self._drop_left:

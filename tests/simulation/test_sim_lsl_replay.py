@@ -43,13 +43,14 @@ class Device(threading.Thread):
         info.desc().append_child_value("adc_bits", "10")
         self.outlet = pylsl.StreamOutlet(info)
         self.halt = threading.Event()
+        self.hold = threading.Event()  # set: nothing is pushed (a starved device), the samples due pile up
         self.sent = 0
 
     def run(self):
         t0 = time.monotonic()
         while not self.halt.is_set():
             due = int((time.monotonic() - t0) * RATE_HZ)
-            if due > self.sent:
+            if due > self.sent and not self.hold.is_set():
                 self.outlet.push_chunk(_sample(np.arange(self.sent, due)))
                 self.sent = due
             time.sleep(0.01)
@@ -79,7 +80,49 @@ def test_a_live_lsl_stream_is_recorded_through_the_simulated_board(lsl, tmp_path
             assert t.taxels.shape == (1000, N_CH)
             assert np.array_equal(np.diff(idx), np.ones(999, dtype=np.int64)), (tid, underruns)  # consecutive
             assert np.array_equal(t.taxels, _sample(idx))
-    print(f"{device.sent} samples sent, {underruns} repeated by the board while the stream lagged (between trials)")
+    print(f"{device.sent} samples sent; {underruns} periods the board had no sample for while the stream lagged")
+
+
+@pytest.mark.lsl
+def test_a_stream_that_falls_behind_is_never_filled_in(lsl):
+    """A stream held up longer than the prebuffer: the board gets fewer samples than are due (it sends no frame for
+    the others: the host counts them lost, the trial is recorded again), never a repeated one; then none until the
+    prebuffer is full again (else every later chunk would come just too late); every sample it gets is the stream's
+    next, none lost."""
+    from rigctl.simulation.lsl_replay import LslReplay
+
+    name = f"fingertip-{uuid.uuid4().hex[:8]}"
+    device = Device(lsl, name)
+    device.start()
+    src = LslReplay(name, prebuffer_s=0.25)
+    try:
+        device.hold.set()
+        time.sleep(0.1)  # what was pushed has arrived
+        got, asked = [], 0
+        while not got or len(got[-1]) == 50:
+            got.append(src.read(50))
+            asked += 50
+            assert len(got) < 1000
+        short = sum(len(g) for g in got)
+        assert 0 < short < asked and src.underrun_samples == asked - short
+        device.hold.clear()
+        deadline = time.monotonic() + 5
+        while src._n_pending < 400 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        got.append(src.read(50))
+        assert len(got[-1]) == 50  # buffered again
+        device.hold.set()
+        while len(part := src.read(50)) == 50:
+            got.append(part)
+        got.append(part)
+        assert len(src.read(50)) == 0  # behind again: nothing until the prebuffer is full
+        assert src.underrun_samples > asked - short
+    finally:
+        device.halt.set()
+        device.join(5)
+        src.close()
+    idx = _index(np.concatenate(got))
+    assert np.array_equal(np.diff(idx), np.ones(len(idx) - 1, dtype=np.int64))  # the stream's own, in order
 
 
 def test_the_command_takes_lsl_names_and_refuses_a_missing_stream(tmp_path, monkeypatch):
