@@ -188,11 +188,12 @@ def held_windows(frames: list[SpikeFrame]) -> list[int]:
 
 def applied_speeds(sent_mm_s: np.ndarray, held: list[int]) -> np.ndarray:
     """The speed each window was scaled with on the board ((n,) mm/s): the speed sent for it (``sent_mm_s[w]``, as
-    rounded to 0.01 mm/s), or for a held window the one before it used."""
+    rounded to 0.01 mm/s), or for a held window the one before it used; a held window 0 had none before it and was
+    scaled with 0 (the board's last speed after ENCODE: ``sa_reset``)."""
     out = np.round(np.asarray(sent_mm_s, dtype=np.float64), 2)
     for w in sorted(held):
-        if 0 < w < out.size:
-            out[w] = out[w - 1]
+        if 0 <= w < out.size:
+            out[w] = out[w - 1] if w else 0.0
     return out
 
 

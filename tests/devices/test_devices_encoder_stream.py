@@ -81,6 +81,8 @@ def test_a_raster_needs_every_spike_frame_and_held_windows_take_the_last_speed()
         spike_raster(frames[:3] + frames[4:])
     assert held_windows(frames) == [0]  # the frame of sample 200 (window 2 begins): window 0 was held
     assert list(applied_speeds(np.array([10.0, 20.0, 30.0]), [1])) == [10.0, 10.0, 30.0]
+    # window 0 held (a starved host's first SPEED came late): the board had no speed before it and used 0
+    assert list(applied_speeds(np.array([10.0, 20.0, 30.0]), [0, 1])) == [0.0, 0.0, 30.0]
 
 
 def test_counted_features_are_the_features_of_the_same_spikes():
