@@ -69,6 +69,16 @@ def drum_proxy(mega, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------------ taxel link
+def _unplugged_a_while(stream, proxy):
+    """Once the host has seen the cut: 0.3 s unplugged, then the link restored, reopened and streaming again."""
+    _wait(lambda: not stream.stats.connected, what="the cut to be noticed")
+    time.sleep(0.3)
+    proxy.restore()
+    _wait(lambda: stream.stats.reconnects == 1, what="the reconnect")
+    n = stream.stats.frames
+    _wait(lambda: stream.stats.frames >= n + 300, what="the stream to continue")
+
+
 @pytest.mark.realtime
 def test_garbage_bit_flips_and_lost_bytes_are_counted_never_recorded(uno, taxel_proxy):
     proxy = taxel_proxy
@@ -174,12 +184,7 @@ def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_pro
         stream.begin_capture()
         t_cut = time.monotonic()
         proxy.cut()
-        _wait(lambda: not stream.stats.connected, what="the cut to be noticed")
-        time.sleep(0.3)
-        proxy.restore()
-        _wait(lambda: stream.stats.reconnects == 1, what="the reconnect")
-        n = stream.stats.frames
-        _wait(lambda: stream.stats.frames >= n + 300, what="the stream to continue")
+        _unplugged_a_while(stream, proxy)
         t_back = time.monotonic()
         cap = stream.end_capture()
         stats = stream.stats
@@ -212,12 +217,7 @@ def test_a_reader_late_at_the_cut_still_counts_every_frame_lost(uno, taxel_proxy
         stream.start()
         _wait(lambda: stream.stats.frames >= 500, what="frames")
         armed.set()
-        _wait(lambda: not stream.stats.connected, what="the cut to be noticed")
-        time.sleep(0.3)
-        proxy.restore()
-        _wait(lambda: stream.stats.reconnects == 1, what="the reconnect")
-        n = stream.stats.frames
-        _wait(lambda: stream.stats.frames >= n + 300, what="the stream to continue")
+        _unplugged_a_while(stream, proxy)
         _settle(stream, proxy, uno)
         st = stream.stats
     assert late and proxy.stats().to_host.lost_while_cut > 0
