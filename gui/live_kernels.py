@@ -9,12 +9,16 @@ instead of dozens of small numpy operations (issue 26: < 20 % of a core at 30 fr
   blits.
 
 Both give exactly what the numpy functions of :mod:`rigctl_gui.live_view` give (tests/gui/test_gui_live_kernels.py);
-those stay the reference. Compiled on first use and cached on disk, as the encoder's kernels are.
+those stay the reference. Compiled (or loaded from numba's cache on disk, as the encoder's kernels are) by
+:func:`warm_up` in a background thread, never on the GUI thread: a first compile costs ~2.4 s of CPU and a load from
+the cache ~1.2 s, which on the GUI thread froze the window for seconds on a loaded machine (the drum turning, long
+enough for the dead man's switch to stop it). Until :func:`ready`, the live view draws with the numpy reference.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any
 
 import numba
@@ -174,4 +178,34 @@ def fill_raster(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float,
                  float(window_s), spans[0], spans[1], palette, counts, pixels)
 
 
-__all__ = ["decimate_traces", "decimated_length", "fill_raster", "raster_spans"]
+_ready = threading.Event()
+_warming: threading.Thread | None = None
+_warm_lock = threading.Lock()
+
+
+def _compile_both() -> None:
+    points, lo, hi = np.zeros((1, 2, 2)), np.zeros(1), np.zeros(1)
+    decimate_traces(np.zeros(1), np.zeros((1, 1), np.uint16), 0.0, 1, 0, points, lo, hi)
+    spans = raster_spans(np.zeros(1, np.int64), 1)
+    fill_raster(np.zeros(0), np.zeros(0, np.int64), 1, 1.0, spans, np.zeros(3, np.uint32), np.zeros((2, 1), np.uint8),
+                np.zeros((1, 1), np.uint32))
+    _ready.set()
+
+
+def warm_up() -> threading.Thread:
+    """Compile both kernels (or load them from numba's cache) in a background thread, once per process; returns the
+    thread. :func:`ready` is True once they can be called without compiling."""
+    global _warming
+    with _warm_lock:
+        if _warming is None:
+            _warming = threading.Thread(target=_compile_both, name="live-kernels-compile", daemon=True)
+            _warming.start()
+        return _warming
+
+
+def ready() -> bool:
+    """True once :func:`warm_up` has compiled both kernels: a call then costs microseconds, not seconds."""
+    return _ready.is_set()
+
+
+__all__ = ["decimate_traces", "decimated_length", "fill_raster", "raster_spans", "ready", "warm_up"]

@@ -153,6 +153,20 @@ def peak_decimate(t: np.ndarray, x: np.ndarray, width_px: int, first_index: int 
     return out_t, out_x
 
 
+def _decimate_into(t: np.ndarray, x: np.ndarray, now: float, width_px: int, first_index: int, points: np.ndarray,
+                   lo: np.ndarray, hi: np.ndarray) -> int:
+    """:func:`rigctl_gui.live_kernels.decimate_traces` done with :func:`peak_decimate` (while the kernel compiles):
+    the same points, minima and maxima written into ``points``, ``lo`` and ``hi``; returns the number of points."""
+    dt, dx = peak_decimate(t, x, width_px, first_index)
+    n = len(dt)
+    lo[:], hi[:] = (x.min(axis=0), x.max(axis=0)) if len(x) else (np.inf, -np.inf)
+    if n:
+        points[:, :n, 0] = dt - now
+        points[:, :n, 1] = dx.T
+        points[:, n:] = points[:, n - 1:n]
+    return n
+
+
 def raster_rows(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float, width_px: int,
                 height_px: int, *, tick: float = TICK_HEIGHT) -> tuple[np.ndarray, np.ndarray]:
     """A spike raster at the data area's pixel size as ``(rows, row_of_pixel)``: the ``(height_px, width_px)`` uint8
@@ -274,6 +288,9 @@ class RasterItem(pg.GraphicsObject):
             self._qimage = QtGui.QImage(self._pixels.data, w, h, 4 * w, QtGui.QImage.Format.Format_RGB32)
             self._rows = np.zeros((n_channels + 1, w), np.uint8)
             self._spans = live_kernels.raster_spans(row_of_pixel, n_channels)
+        if not live_kernels.ready():  # the kernel still compiling in the background: the numpy reference
+            self.setImage(raster_rows(t, ch, n_channels, window_s, w, h)[0], row_of_pixel)
+            return
         fill_raster(t, ch, n_channels, window_s, self._spans, self._palette, self._rows, self._pixels)
         self._row_of_pixel = row_of_pixel
         self.update()
@@ -671,7 +688,11 @@ class LiveView(QtWidgets.QWidget):
             pts = self._trace_points = np.zeros((x.shape[1], need + 64, 2))
             self._trace_lo, self._trace_hi = np.empty(x.shape[1]), np.empty(x.shape[1])
         lo, hi = self._trace_lo, self._trace_hi
-        n_points = live_kernels.decimate_traces(t, x, now, width, first_index, pts, lo, hi)
+        if live_kernels.ready():
+            n_points = live_kernels.decimate_traces(t, x, now, width, first_index, pts, lo, hi)
+        else:  # the kernels compile in the background (seconds, never here): the numpy reference, the same points
+            live_kernels.warm_up()
+            n_points = _decimate_into(t, x, now, width, first_index, pts, lo, hi)
         at = buf.display_time(np.array([g for g, _ in buf.gaps])) if buf.gaps else ()
         gaps = [(float(g) - now, d) for g, (_, d) in zip(at, buf.gaps) if g - now > -self.window_s]
         breaks = np.searchsorted(pts[0, :n_points, 0], [g - 1e-9 for g, _ in gaps]) if gaps else ()

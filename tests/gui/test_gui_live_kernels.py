@@ -1,14 +1,16 @@
 """The live view's compiled per-frame kernels (rigctl_gui.live_kernels) give exactly what the live view's numpy
 reference functions give: the peak-decimated traces (every bin alignment, short and long windows, the unused tail)
-with each taxel's min / max, and the coloured spike raster (counts and pixels)."""
+with each taxel's min / max, and the coloured spike raster (counts and pixels); the live view's numpy stand-in while
+the kernels compile in the background fills the same points; the kernels compile off the calling thread."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from rigctl_gui import live_kernels
 from rigctl_gui.live_kernels import decimate_traces, decimated_length, fill_raster, raster_spans
-from rigctl_gui.live_view import TICK_HEIGHT, peak_decimate, raster_row_map, raster_rows
+from rigctl_gui.live_view import TICK_HEIGHT, _decimate_into, peak_decimate, raster_row_map, raster_rows
 
 
 @pytest.mark.parametrize("n, width, first", [(2000, 1000, 0), (2000, 1000, 13), (2001, 997, 123456), (500, 1000, 7),
@@ -33,6 +35,19 @@ def test_decimate_traces_is_peak_decimate(n, width, first):
     np.testing.assert_array_equal(hi, x.max(axis=0))
     with pytest.raises(ValueError):
         decimate_traces(t, x, now, width, first, np.zeros((18, max(need - 1, 0), 2)), lo, hi)
+    # the numpy stand-in the live view draws with until the kernels are compiled: the same points, tail, min, max
+    points2, lo2, hi2 = np.full_like(points, np.nan), np.empty(18), np.empty(18)
+    assert _decimate_into(t, x, now, width, first, points2, lo2, hi2) == m
+    np.testing.assert_array_equal(points2, points)
+    np.testing.assert_array_equal(lo2, lo)
+    np.testing.assert_array_equal(hi2, hi)
+
+
+def test_the_kernels_compile_in_a_background_thread():
+    thread = live_kernels.warm_up()
+    assert thread.name == "live-kernels-compile" and live_kernels.warm_up() is thread  # once per process
+    thread.join(120)
+    assert live_kernels.ready()
 
 
 @pytest.mark.parametrize("width, height, n_spikes", [(1000, 130, 1500), (333, 57, 20000), (50, 18, 0), (7, 200, 300)])

@@ -105,7 +105,7 @@ def test_esc_in_a_dialog_during_a_run_leaves_the_run_going(measured):
 
 def test_a_stalled_taxel_stream_is_shown_everywhere_and_moves_nothing(measured):
     r = measured["stall"]
-    assert r["spinning"] and not r["banner_before"], r
+    assert r["spinning"] and not r["banner_before"], (r, measured.get("spin_failures"))
     assert r["banner_shown"] and r["banner_s"] <= 2.0, r
     assert r["log_s"] is not None and r["log_s"] <= 2.0 and "stalled" in r["log_line"], r
     assert "STALLED" in r["status_text"], r

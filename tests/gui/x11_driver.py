@@ -151,13 +151,19 @@ def main(out_path: str, fit_only: bool = False) -> int:
     def turning():
         return state()[0] == DrumState.RUNNING and w.poller.latest.speed_mm_s > 20
 
+    spin_failures: list = []
+
     def spin():
         if turning():  # (still turning from the section before)
             return True
         w.control.speed.setValue(60.0)
         w.control.force.setValue(300.0)
         w.control.command("run")
-        return wait(turning, 40)
+        ok = wait(turning, 40)
+        if not ok:  # what the operator saw: the panel's message line, the rig's state, the log's last lines
+            spin_failures.append({"message": w.control.message.text(), "state": state(),
+                                  "log": [e[3] for e in w.events.entries[-8:]]})
+        return ok
 
     def stopped():
         return wait(lambda: state()[0] in (DrumState.IDLE, DrumState.HOMING) and state()[1] == 0, 15)
@@ -206,12 +212,21 @@ def main(out_path: str, fit_only: bool = False) -> int:
     res["status_text"] = w.links.taxel.text()
     after = geometry()
     res["moved"] = {k: (before[k], after.get(k)) for k in before if after.get(k) != before[k]}
-    res["resumed"] = wait(lambda: w.links.health["taxel"].state.value in ("reconnected", "connected")
-                          and w.live.shown_gaps, 20)
-    pause(0.5)
-    res["gaps"] = [list(g) for g in w.live.shown_gaps]
-    res["segments"] = [len(it.segments) for it in w.live.trace_items]
-    res["first_t"] = [float(it.t[0]) if len(it.t) else 0.0 for it in w.live.trace_items]  # oldest point, s before now
+    shown: dict = {}
+
+    def drawn_after_gap():
+        """Frames came again and the live view shows the gap with traces drawn after it (0.2 s of them): what it
+        shows then (the traces of one refresh; a fixed pause instead let a starved GUI thread's next refresh scroll
+        the gap out of the 2 s window before it was read)."""
+        if w.links.health["taxel"].state.value not in ("reconnected", "connected") or not w.live.shown_gaps:
+            return False
+        shown["gaps"] = [list(g) for g in w.live.shown_gaps]
+        shown["segments"] = [len(it.segments) for it in w.live.trace_items]
+        shown["first_t"] = [float(it.t[0]) if len(it.t) else 0.0 for it in w.live.trace_items]  # oldest, s before now
+        return w.live.shown_gaps[0][0] <= -0.2
+
+    res["resumed"] = wait(drawn_after_gap, 20)
+    res.update({"gaps": [], "segments": [], "first_t": []}, **shown)
     out["stall"] = res
 
     # --- one click on STOP with a popup open (the drum turning still from the stall) ---
@@ -276,6 +291,7 @@ def main(out_path: str, fit_only: bool = False) -> int:
     tab.request_abort()  # STOP left the run stopped (resumable): end it
     wait(lambda: tab.job is None, 30)
     stopped()
+    out["spin_failures"] = spin_failures
     w._close_confirmed = True
     w.close()
     return _write(out_path, out)
