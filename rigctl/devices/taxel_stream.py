@@ -62,7 +62,7 @@ class StreamStats:
     dropped: int = 0  #: frames missing from the device's sequence (plus the estimate over a reconnect)
     crc_errors: int = 0  #: corrupt frames rejected: a bad CRC-16, or a valid one over a sample beyond the ADC range
     bytes_skipped: int = 0  #: received bytes that were not part of a valid frame
-    frames_per_s: float = 0.0  #: receive rate over the last second
+    frames_per_s: float = 0.0  #: receive rate over the last second (from the last chunk received >= 1 s ago)
     connected: bool = False
     reconnects: int = 0
     stale_frames: int = 0  #: valid frames of an earlier stream received after START was sent (discarded)
@@ -505,11 +505,13 @@ class TaxelStream:
             if len(self._rate) >= 2:
                 (t0, n0), (t1, n1) = self._rate[0], self._rate[-1]
                 now = time.monotonic()
-                # the window reaches back about one second
+                # the window reaches back to the last chunk received a second ago or more, so it spans a second or
+                # more: begun at the first chunk inside the last second, a window after a stall of the reader could
+                # hold just two chunks of the backlog read ms apart (15,000 frames/s read from a 1 kHz stream)
                 for t, n in self._rate:
-                    if now - t <= 1.0:
-                        t0, n0 = t, n
+                    if now - t < 1.0:
                         break
+                    t0, n0 = t, n
                 s.frames_per_s = (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
                 if now - t1 > 0.5:
                     s.frames_per_s = 0.0
