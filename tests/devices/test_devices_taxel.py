@@ -216,6 +216,14 @@ def test_frames_are_stamped_as_their_burst_arrives(tmp_path):
                                           np.nanpercentile(late_ms, [10, 50, 90]))
 
 
+def _received_past(stream, uno, n):
+    """Wait (bounded, 10 s) until the host has received a frame the board sends ``n`` frames from now: its frames
+    reach the host through the pty late by up to hundreds of ms on a loaded machine, so a count of frames received
+    says nothing of whether a fault injected now has arrived."""
+    target = uno.seq + n
+    _wait(lambda: stream.ring.total and int(stream.ring.latest(1)[2][-1]) >= target, timeout_s=10)
+
+
 def test_faults_are_counted_and_skipped(uno):
     with TaxelStream(uno.path) as stream:
         stream.start()
@@ -225,11 +233,11 @@ def test_faults_are_counted_and_skipped(uno):
         # capture's first frame can already be past the gap) and after it (so that it has been counted)
         assert stream.wait_capture(20, timeout_s=10)
         uno.drop_frames(5)
-        assert stream.wait_capture(120, timeout_s=10)
+        _received_past(stream, uno, 5 + 20)
         uno.corrupt_frames(3, bits=2)
-        assert stream.wait_capture(220, timeout_s=10)
+        _received_past(stream, uno, 3 + 20)
         uno.inject_garbage(b"\xa5\x5a" * 10 + bytes(range(200)))
-        assert stream.wait_capture(420, timeout_s=10)
+        _received_past(stream, uno, 20)
         cap = stream.end_capture()
     assert cap.dropped == 8  # 5 never sent + 3 rejected by their CRC
     assert cap.crc_errors >= 3 + 10
@@ -289,8 +297,8 @@ def test_capture_across_an_unplug_reports_the_frames_lost(uno):
         time.sleep(0.2)
         stream.begin_capture()
         time.sleep(0.2)
-        t_unplug = time.monotonic()
         _unplug(stream, uno)
+        t_lost = time.monotonic()  # the reader has seen the port vanish
         time.sleep(0.3)
         uno.replug()
         _wait(lambda: stream.stats.reconnects == 1)
@@ -299,15 +307,19 @@ def test_capture_across_an_unplug_reports_the_frames_lost(uno):
         t_back = time.monotonic()
         cap = stream.end_capture()
         stats = stream.stats
-    # the capture holds both streams: the restarted one begins with STREAMING_START at seq 0
+    # the capture holds both streams: the restarted one begins with STREAMING_START at seq 0 (and again at each START
+    # the stream sent again: its first frame came later than start_timeout_s, as a pty on a loaded host can deliver)
     restart = np.flatnonzero(cap.flags & wire.FrameFlag.STREAMING_START)
-    assert len(restart) == 1 and cap.seq[restart[0]] == 0
-    assert np.all(np.diff(cap.seq[:restart[0]].astype(np.int64)) == 1)
-    assert np.all(np.diff(cap.seq[restart[0]:].astype(np.int64)) == 1)
+    assert len(restart) == 1 + stats.start_retries and np.all(cap.seq[restart] == 0), (restart, stats)
+    for part in np.split(cap.seq.astype(np.int64), restart):
+        assert np.all(np.diff(part) == 1)
     # the hole between them is reported, in the capture and in the stream's counters alike
     hole_s = cap.host_time_s[restart[0]] - cap.host_time_s[restart[0] - 1]
     assert cap.dropped == stats.dropped == round(hole_s * 1000) - 1
-    assert 300 <= cap.dropped <= (t_back - t_unplug) * 1000
+    # from the last frame received before the unplug (earlier than the unplug by the pty's delay on a loaded host) to
+    # the restarted stream's first, received before the test saw it back
+    assert cap.host_time_s[restart[0] - 1] <= t_lost
+    assert 300 <= cap.dropped <= (t_back - cap.host_time_s[restart[0] - 1]) * 1000
 
 
 def test_capture_ended_while_unplugged_reports_the_frames_due(uno):
