@@ -31,6 +31,7 @@ import struct
 import tempfile
 import termios
 import threading
+import time
 import tty
 from pathlib import Path
 
@@ -242,6 +243,10 @@ class PtyBridge:
         self.client = PtyEndpoint(client_link)
         self._copying = False  # client bytes in this thread's hands (about to be read, or read and not yet written)
         self._copying_from_board = False  # and the board's
+        #: when the copy thread last began to hand the client's bytes to the board's pty (time.monotonic): bytes a
+        #: pty's writer has handed over reach its reader through a kernel worker, which a loaded machine can hold
+        #: back for hundreds of ms, and no byte count (TIOCINQ) sees them meanwhile
+        self.to_board_at = 0.0
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=board_thread(self._run), name="pty-bridge", daemon=True)
@@ -278,6 +283,8 @@ class PtyBridge:
                 try:
                     data = end.read(65536)
                     if data:
+                        if other is self.board:  # stamped before the write: whatever the server reads of them is later
+                            self.to_board_at = time.monotonic()
                         other.write(data)
                 finally:
                     self._copying = self._copying_from_board = False

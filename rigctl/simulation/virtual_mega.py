@@ -145,6 +145,8 @@ class VirtualMega(MegaController):
         self._stop = threading.Event()
         #: the request count when a check last found the host overdue with nothing on the way (check_watchdog)
         self._overdue_at_requests: int | None = None
+        #: when the Modbus server last received bytes from its port (time.monotonic, its own loop's clock)
+        self._received_at = 0.0
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -168,6 +170,7 @@ class VirtualMega(MegaController):
                         ModbusServerContext(devices={wire.DRUM_DEVICE_ID: _MegaContext(self)}, single=False),
                         framer=FramerType.RTU, port=self.bridge.board_path, baudrate=wire.DRUM_BAUD, bytesize=8,
                         parity="N", stopbits=1, ignore_missing_devices=True, trace_pdu=self._trace_pdu,
+                        trace_packet=self._trace_packet,
                         broadcast_enable=True,  # device id 0: writes executed, no reply (as the firmware)
                     )
                     self._server.decoder = _SpecDecoder(True)  # before serving: each connection's framer takes it
@@ -227,6 +230,11 @@ class VirtualMega(MegaController):
             self.note_request()
         return pdu
 
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if not sending:
+            self._received_at = time.monotonic()
+        return data
+
     async def _watchdog_loop(self) -> None:
         while True:
             await asyncio.sleep(WATCHDOG_CHECK_S)
@@ -240,7 +248,10 @@ class VirtualMega(MegaController):
 
         Called every :data:`WATCHDOG_CHECK_S` from the Modbus server's loop, so a request the server has read is
         always handled (and has fed the watchdog) before the check. Not due while request bytes that the server has
-        not read yet are on their way (the host spoke; the firmware would have handled them by now), and restarted
+        not read yet are on their way (the host spoke; the firmware would have handled them by now): counted in the
+        ptys, or handed to the board's pty by the bridge after the server last received any (the kernel hands a pty's
+        bytes to its reader from a worker thread, which a loaded machine holds back for up to hundreds of ms, and no
+        count sees them meanwhile: a request copied after a stall of the bridge's thread tripped it so), and restarted
         while a reply is still on its way to the host (:meth:`rigctl.simulation.pty.PtyBridge.bytes_from_board`: the
         host waits on the simulator, and the firmware's reply would have reached it by now). And it trips only when two
         checks in a row find the host overdue with nothing on the way and no request handled between them: the loop
@@ -250,8 +261,8 @@ class VirtualMega(MegaController):
         """
         with self._lock:
             overdue = self._watchdog_due()
-        if overdue and self.bridge.bytes_to_board():
-            overdue = False
+        if overdue and (self.bridge.bytes_to_board() or self.bridge.to_board_at > self._received_at):
+            overdue = False  # request bytes on their way (also those the kernel has yet to hand to the server)
         if overdue and self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on
             with self._lock:  # it, and its silence starts once the reply is out (the firmware's goes out within ms)
                 self._last_request = time.monotonic()
