@@ -30,6 +30,10 @@ import numpy as np
 __all__ = ["ClockMapping", "DeviceClockFit", "measure_clock_offset"]
 
 _WRAP = 65536
+#: the most a device's rate may be off its nominal rate, as a fraction (a ceramic resonator's +-0.5 % four times
+#: over): a steeper or flatter fit is not the device's clock but frames of a few blocks received in one burst (a
+#: reader starved for seconds), and the nominal rate through the least-delayed block stands instead
+MAX_RATE_ERROR = 0.02
 
 
 @dataclass(frozen=True)
@@ -193,6 +197,9 @@ class DeviceClockFit:
             if new.sum() < 2 or np.array_equal(new, keep):
                 break
             keep = new
+        if abs(slope * self.nominal_rate_hz - 1.0) > MAX_RATE_ERROR:
+            slope = 1.0 / self.nominal_rate_hz
+            icpt = float(np.min(t[keep] - slope * c[keep]))
         r = t[keep] - (icpt + slope * c[keep])
         self._cached = ClockMapping(
             offset_s=float(icpt), period_s=float(slope), count_origin=0, nominal_rate_hz=self.nominal_rate_hz,

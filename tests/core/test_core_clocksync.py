@@ -86,6 +86,22 @@ def test_a_board_reset_starts_a_new_segment():
     assert fit.mapping() is None or abs(fit.mapping().drift_ppm - PPM) < 200
 
 
+def test_blocks_received_in_one_burst_get_the_nominal_rate_not_a_slope():
+    """A reader starved for the stream's first 2.5 s receives its frames in one burst: the first blocks' minima all
+    carry that one receive time, and a line through them maps every frame to nearly that instant (a handheld scan's
+    200 mm in 1.6 ms, seen under load); the fit keeps the nominal rate through the least-delayed block instead."""
+    seq, sent, received, bounds = simulated_board(0.05, seed=3)
+    burst = received.copy()
+    burst[:2500] = sent[2499] + 0.001  # all read at once, just after the last of them was sent
+    fit = DeviceClockFit(RATE_HZ)
+    counts = fit.add(seq[:2500], burst[:2500])
+    m = fit.mapping()
+    assert m is not None and abs(m.period_s * RATE_HZ - 1.0) < 0.02
+    t = m.host_time(counts)
+    # the frames 1 ms apart, 2.5 s from first to last (not one instant), never before the board sent them
+    assert t[-1] - t[0] == pytest.approx(sent[2499] - sent[0], rel=0.01) and np.all(t >= sent[:2500] - 1e-3)
+
+
 def test_the_lsl_offset_is_measured_within_its_bracket():
     host = iter(np.arange(0.0, 100.0, 1e-4)).__next__
     offset, half = measure_clock_offset(lambda: 5000.0 + host(), host=host, rounds=5)
