@@ -29,15 +29,29 @@ from .conftest import TEST_DEADMAN_S, gui_protocol
 #: how long the GUI thread may stall while the first analysis job starts, s (issue 35)
 MAX_STALL_S = 0.1
 
+def _run_delay_s() -> float:
+    """The calling thread's time spent runnable but waiting for a CPU so far, s (Linux schedstat: the machine's
+    load, not the thread's own work or a wait it is blocked in); 0 where the kernel does not tell."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 class Stalls(QtCore.QObject):
-    """A QTimer on the GUI thread every 5 ms: the longest gap between two of its ticks is the GUI thread's longest
-    stall. A probe thread of the same process sleeping 2 ms at a time measures what the machine's load alone does to
-    a thread over the same span (its longest overshoot): a GUI thread blocked in a read, or busy without the GIL
-    released, stalls while the probe keeps its pace (the GIL changes hands every few ms)."""
+    """A QTimer on the GUI thread every 5 ms: the longest gap between two of its ticks, less the time the GUI thread
+    itself waited for a CPU within it (the kernel's schedstat, read at each tick), is the GUI thread's longest stall
+    of its own making: blocked in a read, waiting for the GIL, or busy. A probe thread of the same process sleeping
+    2 ms at a time measures what the machine's load does to the other threads the GUI thread may wait on (its longest
+    overshoot): a GUI thread blocked in a read, or kept off the GIL, stalls while the probe keeps its pace (the GIL
+    changes hands every few ms). On a loaded CI machine the GUI thread waited up to 1 s in the run queue with 2 ms
+    of work done (measured), where the probe, which never works, saw 26-50 ms."""
 
     def __init__(self):
         super().__init__()
         self.worst_s, self._last, self.when = 0.0, None, ""
+        self.worst_gap_s = self.worst_wait_s = 0.0  # the worst stall's gap and run-queue wait
         self.phase = "start"
         self.timer = QtCore.QTimer(self)
         self.timer.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
@@ -46,10 +60,12 @@ class Stalls(QtCore.QObject):
         self.sched_s = 0.0
 
     def _tick(self):
-        now = time.monotonic()
-        if self._last is not None and now - self._last > self.worst_s:
-            self.worst_s, self.when = now - self._last, self.phase
-        self._last = now
+        now, waited = time.monotonic(), _run_delay_s()
+        if self._last is not None:
+            gap, wait = now - self._last[0], waited - self._last[1]
+            if gap - wait > self.worst_s:
+                self.worst_s, self.when, self.worst_gap_s, self.worst_wait_s = gap - wait, self.phase, gap, wait
+        self._last = (now, waited)
 
     def _probe(self):
         while not self._halt.is_set():
@@ -114,6 +130,7 @@ def test_the_first_analysis_job_never_stalls_the_gui_thread(qapp, gui_home, tmp_
         qapp.processEvents()
         assert fresh_job_server._forkserver_pid is None  # no server yet: this Encode starts it
         with Stalls() as stalls:
+            assert wait_for(qapp, lambda: stalls._last is not None, 5)  # ticking: a stall in the click counts too
             QtTest.QTest.mouseClick(tab.encode_btn, QtCore.Qt.LeftButton)
             job = tab.job
             assert job is not None
@@ -129,11 +146,12 @@ def test_the_first_analysis_job_never_stalls_the_gui_thread(qapp, gui_home, tmp_
         gui = threading.current_thread().name
         assert fresh_job_server.callers and all(who != gui for _, who in fresh_job_server.callers), \
             fresh_job_server.callers
-        print(f"GUI thread's longest stall {stalls.worst_s * 1000:.0f} ms ({stalls.when}); a probe thread's "
-              f"longest delay {stalls.sched_s * 1000:.0f} ms")
+        print(f"GUI thread's longest stall {stalls.worst_s * 1000:.0f} ms ({stalls.when}; a gap of "
+              f"{stalls.worst_gap_s * 1000:.0f} ms less {stalls.worst_wait_s * 1000:.0f} ms in the run queue); a probe "
+              f"thread's longest delay {stalls.sched_s * 1000:.0f} ms")
         # two threads sampled side by side on a loaded machine see different worst cases: the GUI thread gets
         # MAX_STALL_S beyond twice the probe's (the old code stalled for the server's whole import: seconds)
-        assert stalls.worst_s < MAX_STALL_S + 2 * stalls.sched_s, (stalls.worst_s, stalls.sched_s)
+        assert stalls.worst_s < MAX_STALL_S + 2 * stalls.sched_s, (stalls.worst_s, stalls.sched_s, stalls.worst_gap_s)
     finally:
         w.close()
         w.deleteLater()
