@@ -469,7 +469,8 @@ def test_issue_10_repro_a_lost_start_frame_on_the_simulated_rig():
     from rigctl.simulation.rig import SimulatedRig
 
     with SimulatedRig() as sim:
-        stream = TaxelStream(sim.taxel_port, start_timeout_s=60.0)  # no START retry: the sequence must do it
+        # no START retry: the sequence must do it; the banner wait is a bound on a hang (over 3 s at load ~15)
+        stream = TaxelStream(sim.taxel_port, start_timeout_s=60.0, banner_timeout_s=30.0)
         stream.open()
         try:
             sim.uno.drop_frames(1)
