@@ -96,6 +96,16 @@ def slow_operator(monkeypatch):
     return gate
 
 
+def _abort_question_button(text: str) -> QtWidgets.QAbstractButton:
+    """The button ``text`` of the handheld tab's question "Abort the handheld block?" on screen: that question by
+    its title, not the first message box open (in CI a message box of an earlier test in the same worker process,
+    still open, was taken for it: StopIteration on its buttons)."""
+    boxes = [d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox)]
+    box = next((d for d in boxes if d.windowTitle() == "Abort the handheld block?"), None)
+    assert box is not None, [d.windowTitle() for d in boxes]
+    return next(b for b in box.buttons() if b.text() == text)
+
+
 def test_stop_pauses_a_block_resume_completes_it_and_abort_asks(handheld_window, qapp, slow_operator):
     from rigctl.storage.session import open_session
 
@@ -138,13 +148,11 @@ def test_stop_pauses_a_block_resume_completes_it_and_abort_asks(handheld_window,
     QtTest.QTest.keyClick(w.tabs.tabBar(), QtCore.Qt.Key.Key_Escape)  # Esc is STOP in the window
     assert wait_for(qapp, lambda: tab.run.state == "paused", 30), tab.status.text()
     QtTest.QTest.mouseClick(tab.abort_btn, click)  # asks first; keeping the block keeps it stopped
-    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
-    QtTest.QTest.mouseClick(next(b for b in box.buttons() if b.text() == "Keep the block"), click)
+    QtTest.QTest.mouseClick(_abort_question_button("Keep the block"), click)
     wait_for(qapp, lambda: False, 0.5)
     assert tab.block_running and tab.run.state == "paused" and not tab.run.stop_event.is_set()
     QtTest.QTest.mouseClick(tab.abort_btn, click)
-    box = next(d for d in open_dialogs() if isinstance(d, QtWidgets.QMessageBox))
-    QtTest.QTest.mouseClick(next(b for b in box.buttons() if b.text() == "Abort the block"), click)
+    QtTest.QTest.mouseClick(_abort_question_button("Abort the block"), click)
     assert wait_for(qapp, lambda: tab.run is None, 30), tab.status.text()
     assert "aborted" in tab.status.text()
     assert wait_for(qapp, lambda: w.connect_btn.isEnabled(), 5)  # the rig is the window's again
