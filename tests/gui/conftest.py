@@ -150,6 +150,16 @@ def gui_protocol(tmp_path, n: int) -> str:
     return str(p)
 
 
+def run_queue_wait_s() -> float:
+    """The calling thread's time spent runnable but waiting for a CPU so far, s (Linux schedstat: the machine's
+    load, not the thread's own work nor a wait it is blocked in); 0 where the kernel does not tell."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 TOOLS = ("Xvfb", "openbox", "xdotool")
 
 

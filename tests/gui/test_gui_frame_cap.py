@@ -11,6 +11,8 @@ import pytest
 
 from rigctl_gui.events import wait_for
 
+from .conftest import run_queue_wait_s
+
 
 @pytest.mark.parametrize("fps", [30.0, 10.0])
 def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
@@ -22,7 +24,8 @@ def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
         assert w.clock.period_s == pytest.approx(1 / fps)
         stamps: list[float] = []  # taken as each timeout is dispatched (polling the tick count from outside stamped
         # the first tick late by up to a period: 11.1/s measured for a 10/s cap under load)
-        w.timer.timeout.connect(lambda: stamps.append(time.monotonic()))
+        waits: list[float] = []  # the GUI thread's run-queue wait so far at each stamp (conftest.run_queue_wait_s)
+        w.timer.timeout.connect(lambda: (stamps.append(time.monotonic()), waits.append(run_queue_wait_s())))
         w.show()
         assert wait_for(qapp, lambda: len(stamps) >= 32, 120)  # it ticks ...
         # ... never above the cap: the ticks sit on a grid of 1/fps, so any span holds at most fps * span + 1 of them
@@ -34,8 +37,11 @@ def test_the_clock_ticks_at_the_frame_cap(qapp, gui_home, fps):
         # the median: single intervals are not the period. CI (load ~1) read a sawtooth of one ~41 ms interval and
         # three ~30.6 ms ones (mean 33.3 ms, median 30.8 ms) from the grid clock, the timeouts' dispatch wandering
         # around their due times, which is what the grid is for
-        mean_interval = span / (len(stamps) - 2)
-        assert mean_interval <= 2 / fps, (mean_interval, np.diff(stamps[1:]))
+        # The span the loop could keep up in: less the time the GUI thread waited for a CPU (CI's 7 workers on 2 cores
+        # starved it twice for 0.45 s within 32 ticks: mean 68.6 ms at a 30/s cap, every other interval 11-52 ms)
+        kept_up = span - (waits[-1] - waits[1])
+        mean_interval = kept_up / (len(stamps) - 2)
+        assert mean_interval <= 2 / fps, (mean_interval, span, np.diff(stamps[1:]), np.diff(waits[1:]))
     finally:
         w.close()
         w.deleteLater()

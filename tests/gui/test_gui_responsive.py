@@ -24,20 +24,10 @@ from rigctl.operations._control import rig_of
 from rigctl.storage.session import open_session
 from rigctl_gui.events import wait_for
 
-from .conftest import TEST_DEADMAN_S, gui_protocol
+from .conftest import TEST_DEADMAN_S, gui_protocol, run_queue_wait_s
 
 #: how long the GUI thread may stall while the first analysis job starts, s (issue 35)
 MAX_STALL_S = 0.1
-
-def _run_delay_s() -> float:
-    """The calling thread's time spent runnable but waiting for a CPU so far, s (Linux schedstat: the machine's
-    load, not the thread's own work or a wait it is blocked in); 0 where the kernel does not tell."""
-    try:
-        with open("/proc/thread-self/schedstat") as f:
-            return int(f.read().split()[1]) / 1e9
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
 
 class Stalls(QtCore.QObject):
     """A QTimer on the GUI thread every 5 ms: the longest gap between two of its ticks, less the time the GUI thread
@@ -60,7 +50,7 @@ class Stalls(QtCore.QObject):
         self.sched_s = 0.0
 
     def _tick(self):
-        now, waited = time.monotonic(), _run_delay_s()
+        now, waited = time.monotonic(), run_queue_wait_s()
         if self._last is not None:
             gap, wait = now - self._last[0], waited - self._last[1]
             if gap - wait > self.worst_s:
