@@ -175,7 +175,7 @@ def test_three_seconds_of_streaming_lose_nothing(tmp_path):
     delay_s = (on_time - on_time.min()) + way_ms / 1e3
     during = (t_mark >= t0) & (t_mark <= t0 + elapsed)
     t_late, late_s = np.array(probe.overslept).T
-    woke_late_s = float(late_s[(t_late >= t0) & (t_late <= t0 + elapsed + 0.01)].max())
+    woke_late_s = float(late_s[t_late >= t0].max(initial=0.0))  # from the capture's start to the probe's close
     worst_s = float(np.nanmax(delay_s[during])) + woke_late_s
     assert np.all(np.diff(cap.host_time_s) > 0)
     # 1000 frames/s as received: the stamps span the frames' periods, give or take the delay on the way
