@@ -39,7 +39,15 @@ from rigctl_gui.dialogs import ask, show_dialog
 from rigctl_gui.frame_clock import FrameClock
 from rigctl_gui.guards import install_guards
 from rigctl_gui.messages import EventLog, ExceptionGuard
-from rigctl_gui.workers import CommandExecutor, Job, LiveEncoder, RigSource, open_rig
+from rigctl_gui.workers import (
+    CommandExecutor,
+    Job,
+    LiveEncoder,
+    RigSource,
+    job_server_state,
+    open_rig,
+    start_job_server,
+)
 
 if TYPE_CHECKING:
     from rigctl.operations import RigMonitor
@@ -989,7 +997,8 @@ def source_from_args(args) -> RigSource | None:
 
 def write_stats(window: MainWindow, path: str, state: dict) -> None:
     """Append one JSON line of display statistics (benchmarks): cumulative paints of the live view and the
-    frame-to-screen latencies (s) measured since the previous line."""
+    frame-to-screen latencies (s) measured since the previous line; ``job_server``: the analysis jobs' fork server
+    (:func:`rigctl_gui.workers.job_server_state`)."""
     lv = window.live
     n = lv._lat_n
     start = max(state.get("lat_n", 0), n - len(lv.latencies_s))
@@ -1005,6 +1014,7 @@ def write_stats(window: MainWindow, path: str, state: dict) -> None:
         "ra_spikes": enc.ra.total if enc else 0,
         "encoder_error": enc.encoder_error if enc else None,
         "connected": window.handle is not None,
+        "job_server": job_server_state(),
     }
     with open(path, "a") as f:
         f.write(json.dumps(line) + "\n")
@@ -1027,6 +1037,9 @@ def main(argv=None) -> int:
     if args.tab:
         window.tabs.setCurrentIndex(TAB_NAMES.index(args.tab))
     window.show()
+    # the analysis jobs' fork server loads the analysis stack in the background now, so the first Encode / Run
+    # analyses / Train finds it ready (the GUI thread never waits on it; only the app does this, not each window)
+    start_job_server()
     if args.run or args.texture:
         def _run_when_ready():
             if window.commands is None:

@@ -343,6 +343,15 @@ def start_job_server() -> threading.Thread:
         return _server_started
 
 
+def job_server_state() -> str | None:
+    """The analysis jobs' fork server as :func:`start_job_server` left it in this process: None (never started),
+    ``"starting"`` (importing :data:`JOB_PRELOAD`) or ``"ready"``."""
+    started = _server_started
+    if started is None:
+        return None
+    return "starting" if started.is_alive() else "ready"
+
+
 class ProcessJob:
     """Runs ``module:function(**kwargs)`` in a separate process (forked from :func:`job_context`'s server), so heavy
     encoding and analyses neither freeze the GUI nor compete for its GIL, and :meth:`cancel` really stops them

@@ -74,6 +74,8 @@ def test_quit_after_stops_a_turning_drum_and_exits_with_a_screenshot(tmp_path, g
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = [json.loads(x) for x in stats.read_text().splitlines()]
     assert any(ln["connected"] and ln["frames"] > 0 for ln in lines)  # it was streaming when asked to quit
+    # the analysis jobs' fork server was started with the app, before any job (the first stats line is at 1 s)
+    assert lines and all(ln["job_server"] in ("starting", "ready") for ln in lines), [ln["job_server"] for ln in lines]
     from PySide6 import QtGui
 
     img = QtGui.QImage(str(out))
