@@ -4,10 +4,11 @@
 :class:`BoardFingerScans` is a :class:`rigctl.core.handheld.ScanSource`: after each cue it waits for the tracked
 finger to pass the plate's used part (:func:`rigctl.core.handheld.wait_for_pass`) and takes every frame the taxel
 board sent from a second before the cue until the frame of the pass's last tracker sample, waited for when a host
-starved on a loaded machine has not read it yet as the tracker shows the finger past (the Uno's CRC-checked frames, from the live ring of its
-:class:`rigctl.devices.taxel_stream.TaxelStream`; the layout from its identify reply: ``layout=3x3x1`` for the paper's
-finger; a finger already on its way when a busy host cued it late still has its entry's frames), and returns the
-frames with their sequence numbers and host receive times beside the tracker's samples. The cut
+starved on a loaded machine has not read it yet as the tracker shows the finger past (the Uno's CRC-checked frames,
+from the live ring of its :class:`rigctl.devices.taxel_stream.TaxelStream`; the layout from its identify reply:
+``layout=3x3x1`` for the paper's finger; a finger already on its way when a busy host cued it late still has its
+entry's frames), and returns the frames with their sequence numbers and host receive times beside the tracker's
+samples. The cut
 (:func:`rigctl.acquisition.handheld.cut_scan`) puts the frames on the host clock by the board's clock fit
 (:class:`rigctl.core.clocksync.DeviceClockFit`: sequence numbers against receive times, the lower envelope, over every
 frame every scan took, from the first on) and the tracker's samples are on the host clock already (an LSL stream's
