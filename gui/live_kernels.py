@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from rigctl.core.caches import configure_numba_cache
+from rigctl_gui.once import StartOnce
 
 configure_numba_cache()  # numba's kernel cache in the user's cache folder (before the kernels below are defined)
 
@@ -179,8 +180,6 @@ def fill_raster(t: np.ndarray, ch: np.ndarray, n_channels: int, window_s: float,
 
 
 _ready = threading.Event()
-_warming: threading.Thread | None = None
-_warm_lock = threading.Lock()
 
 
 def _compile_both() -> None:
@@ -192,15 +191,13 @@ def _compile_both() -> None:
     _ready.set()
 
 
+_warming = StartOnce(_compile_both, "live-kernels-compile")
+
+
 def warm_up() -> threading.Thread:
     """Compile both kernels (or load them from numba's cache) in a background thread, once per process; returns the
     thread. :func:`ready` is True once they can be called without compiling."""
-    global _warming
-    with _warm_lock:
-        if _warming is None:
-            _warming = threading.Thread(target=_compile_both, name="live-kernels-compile", daemon=True)
-            _warming.start()
-        return _warming
+    return _warming.start()
 
 
 def ready() -> bool:

@@ -29,6 +29,7 @@ from rigctl.operations import (
     SpikeRing as SpikeRing,
     spike_capacity as spike_capacity,
 )
+from rigctl_gui.once import StartOnce
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -327,26 +328,20 @@ def _warm_up() -> None:
     proc.join()
 
 
-_server_started: threading.Thread | None = None
-_server_lock = threading.Lock()
+_job_server = StartOnce(_warm_up, "job-server-start")
 
 
 def start_job_server() -> threading.Thread:
     """Start the analysis jobs' fork server (:func:`job_context`) in a background thread, at once, so the first
     Encode / Run analyses / Train finds it loaded; returns the thread (started once per process). The GUI thread never
     waits on it: a job started earlier waits in its own launch thread."""
-    global _server_started
-    with _server_lock:
-        if _server_started is None:
-            _server_started = threading.Thread(target=_warm_up, name="job-server-start", daemon=True)
-            _server_started.start()
-        return _server_started
+    return _job_server.start()
 
 
 def job_server_state() -> str | None:
     """The analysis jobs' fork server as :func:`start_job_server` left it in this process: None (never started),
     ``"starting"`` (importing :data:`JOB_PRELOAD`) or ``"ready"``."""
-    started = _server_started
+    started = _job_server.thread
     if started is None:
         return None
     return "starting" if started.is_alive() else "ready"

@@ -82,6 +82,7 @@ def fresh_job_server(monkeypatch):
     import multiprocessing.forkserver as fs
 
     import rigctl_gui.workers as workers
+    from rigctl_gui.once import StartOnce
 
     fresh = fs.ForkServer()
     fresh.callers = []  # the threads that started the server or a process through it (each may block for seconds)
@@ -97,7 +98,7 @@ def fresh_job_server(monkeypatch):
         monkeypatch.setattr(fs, name, recorded(getattr(fresh, name)))
     for name in ("get_inherited_fds", "set_forkserver_preload"):
         monkeypatch.setattr(fs, name, getattr(fresh, name))
-    monkeypatch.setattr(workers, "_server_started", None)
+    monkeypatch.setattr(workers, "_job_server", StartOnce(workers._warm_up, "job-server-start"))  # not started yet
     yield fresh
     fresh._stop()
 
