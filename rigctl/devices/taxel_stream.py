@@ -171,7 +171,9 @@ def _read_chunk(ser: Any, timeout_s: float) -> bytes:
     ``timeout_s``): see :meth:`TaxelStream._reader`. On a POSIX port (pyserial's, with a file descriptor) straight
     from the descriptor (FIONREAD, select, read: five system calls, without pyserial's per-read timeout objects and
     select loops, which were a good part of the reader's CPU at ~40 chunks a second); otherwise through pyserial.
-    Raises OSError / SerialException when the port is gone (readable but empty: disconnected)."""
+    Raises OSError / SerialException when the port is gone (readable but empty: disconnected), unless it had
+    read bytes before (a starved reader's backlog, read as the cable is pulled): those are returned, and the next
+    call raises."""
     fd = getattr(ser, "fd", None)
     if not isinstance(fd, int):
         waiting = ser.in_waiting
@@ -182,13 +184,18 @@ def _read_chunk(ser: Any, timeout_s: float) -> bytes:
         return bytes(data + fresh)
     waiting = ser.in_waiting
     data = os.read(fd, waiting) if waiting else b""
-    ready, _, _ = select.select([fd], [], [], timeout_s)
-    if ready:
-        waiting = ser.in_waiting
-        if not waiting:  # what pyserial's read raises: readable with nothing to read is a vanished device
-            raise serial.SerialException("device reports readiness to read but returned no data (device "
-                                         "disconnected or multiple access on port?)")
-        data += os.read(fd, waiting)
+    try:
+        ready, _, _ = select.select([fd], [], [], timeout_s)
+        if ready:
+            waiting = ser.in_waiting
+            if not waiting:  # what pyserial's read raises: readable with nothing to read is a vanished device
+                raise serial.SerialException("device reports readiness to read but returned no data (device "
+                                             "disconnected or multiple access on port?)")
+            data += os.read(fd, waiting)
+    except (serial.SerialException, OSError):
+        if data:  # the bytes read before the port vanished were received: handed over, the next call raises
+            return data
+        raise
     return data
 
 
