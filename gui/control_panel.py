@@ -23,13 +23,16 @@ from rigctl.core.drum import (
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.operations import RigControl, setpoint_refusals
 from rigctl_gui.colours import on_window
-from rigctl_gui.widgets import gap_breaks, keep_room, side_panel
+from rigctl_gui.live_items import cache_axes_and_title, mark_containers
+from rigctl_gui.widgets import gap_breaks, keep_room, restyle, side_panel
 
 __all__ = ["ControlPanel", "STATE_WORDS", "STATE_COLOURS", "fault_meaning", "drum_summary"]
 
 #: the force and speed plots' smallest height together, px (each data area keeps ~80 px: its two-line legend, its axis
 #: label)
 PLOTS_MIN_PX = 300
+#: the time axes of the force and speed plots show at least this much history, s
+X_MIN_SPAN_S = 5.0
 #: the status is polled at 10 Hz: a longer pause between two reads is an outage, drawn as a gap in the plots, s
 GAP_S = 1.0
 #: the colour each controller state is shown in (the words are the library's: rigctl.core.drum.STATE_TEXT)
@@ -214,6 +217,11 @@ class ControlPanel(QtWidgets.QWidget):
         )
         for p in (self.force_plot, self.speed_plot):
             p.showGrid(x=True, y=True, alpha=0.3)
+            # each refresh redraws the curves: the axes, their grid and the titles are drawn only when they change
+            cache_axes_and_title(p)
+        mark_containers(self.plots.ci)
+        #: the time axes' span shown, s (:meth:`_set_x_range`)
+        self._x_span_s = 0.0
         # each plot keeps room for its legend and its axis label (a shorter tab scrolls: at 1.5x on 1024x700 the
         # plots had 15 px and their axis labels ran into each other)
         self.plots.setMinimumHeight(PLOTS_MIN_PX)
@@ -415,6 +423,17 @@ class ControlPanel(QtWidgets.QWidget):
         self.force_plot.setTitle("Load-cell force vs setpoint" + suffix, color=colour)
         self.speed_plot.setTitle("Drum surface speed" + suffix, color=colour)
 
+    def _set_x_range(self, span_s: float) -> None:
+        """Both time axes from ``-S`` to 0 s (``S``: at least 5 s, whole seconds) so the ``span_s`` s of history all
+        show; ``S`` changes only when the history no longer fits or has room for more than 2 s more, so the time
+        axes (ticks, grid) are not drawn again at every refresh while the history grows or holds steady."""
+        need = max(X_MIN_SPAN_S, span_s)
+        if need <= self._x_span_s < need + 2.0:
+            return
+        self._x_span_s = float(np.ceil(need))
+        for plot in (self.force_plot, self.speed_plot):  # no setXLink (crashes with PySide6 6.12)
+            plot.setXRange(-self._x_span_s, 0.0, padding=0.02)
+
     def _set_y_ranges(self, h: np.ndarray) -> None:
         """y axes that never zoom into noise: speed from below 0 to at least the rig's top protocol speed, force
         from below 0 to at least 1.1x the highest value shown (a drum at rest shows a flat line at 0)."""
@@ -447,32 +466,30 @@ class ControlPanel(QtWidgets.QWidget):
             for curve, col in ((self.force_curve, 1), (self.setpoint_curve, 2), (self.speed_curve, 3),
                                (self.target_curve, 4)):
                 curve.setData(t, h[:, col], connect="finite")
-            for plot in (self.force_plot, self.speed_plot):  # no setXLink (crashes with PySide6 6.12)
-                plot.setXRange(min(np.nanmin(t), -5.0), 0.0, padding=0.02)
+            self._set_x_range(float(-np.nanmin(t)))
             self._set_y_ranges(h)
         st = p.latest
         self._mark_stale(not p.ok)
         if not p.ok:
             self.state_label.setText("Drum controller not responding")
-            self.state_label.setStyleSheet(f"font-size: 15px; font-weight: bold; color: {on_window('#c00', self)};")
+            restyle(self.state_label, f"font-size: 15px; font-weight: bold; color: {on_window('#c00', self)};")
             return
         if st is None:
             return
         state = DrumState(int(st.state))
         self.state_label.setText(STATE_WORDS.get(state, state.name))
-        self.state_label.setStyleSheet(
-            f"font-size: 15px; font-weight: bold; color: {on_window(STATE_COLOURS.get(state, '#000'), self)};"
-        )
+        restyle(self.state_label,
+                f"font-size: 15px; font-weight: bold; color: {on_window(STATE_COLOURS.get(state, '#000'), self)};")
         faults = int(st.faults)
         if faults:
             self.fault_label.setText(f"Latched faults: {fault_meaning(faults)} The fault stays until you press "
                                      "Clear fault.")
-            self.fault_label.setStyleSheet(f"color: {on_window('#c00', self)}; font-weight: bold;")
+            restyle(self.fault_label, f"color: {on_window('#c00', self)}; font-weight: bold;")
         else:
             self.fault_label.setText("Faults: none")
-            self.fault_label.setStyleSheet("")
-        self.buttons["clear_fault"].setStyleSheet("QPushButton { background: #fdd; color: #900; font-weight: bold; }"
-                                                  if faults else "")
+            restyle(self.fault_label, "")
+        restyle(self.buttons["clear_fault"],
+                "QPushButton { background: #fdd; color: #900; font-weight: bold; }" if faults else "")
         fw = ".".join(str(x) for x in st.firmware)
         self.readout.setText(
             f"force {st.force_g:7.1f} g (holding {st.force_setpoint_active_g:.0f} g)\n"

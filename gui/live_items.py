@@ -1,6 +1,7 @@
 """The Live view's drawing items (:mod:`rigctl_gui.live_view`): all the traces of a plot in one item
 (:class:`TracesItem`, issue 12: no per-curve bounds, signals and path building each frame), the flag that keeps Qt
-from asking pure containers to paint (:func:`mark_containers`) and the layout widget that times its paints
+from asking pure containers to paint (:func:`mark_containers`), the cached axes and titles
+(:func:`cache_axes_and_title`, the control panel's plots too) and the layout widget that times its paints
 (:class:`TimedGraphicsLayout`, for the frame-to-screen latency)."""
 
 from __future__ import annotations
@@ -103,6 +104,15 @@ class TracesItem(pg.GraphicsObject):
                     poly = pg.functions.create_qpolygonf(b - a)
                     pg.functions.ndarray_from_qpolygonf(poly)[:] = pts[a:b]
                     p.drawPolyline(poly)
+
+
+def cache_axes_and_title(plot: pg.PlotItem) -> None:
+    """Draw ``plot``'s left and bottom axes (their grid lines too) and its title once into pixmaps that are blitted
+    while the data under them change (each repaint of the data area would otherwise replay their text); an axis or
+    title is drawn again only when it changes (a new range, size or text)."""
+    for name in ("left", "bottom"):
+        plot.getAxis(name).setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)
+    plot.titleLabel.item.setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)
 
 
 def mark_containers(root: QtWidgets.QGraphicsItem) -> int:

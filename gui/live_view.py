@@ -36,7 +36,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui import live_kernels
-from rigctl_gui.live_items import TimedGraphicsLayout, TracesItem, mark_containers
+from rigctl_gui.live_items import TimedGraphicsLayout, TracesItem, cache_axes_and_title, mark_containers
 from rigctl_gui.live_kernels import fill_raster
 from rigctl_gui.widgets import StatusText, add_taxel_numbers
 from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
@@ -486,9 +486,7 @@ class LiveView(QtWidgets.QWidget):
             p.getAxis("left").setWidth(AXIS_WIDTH_PX)
             # axes and titles are drawn once into pixmaps and blitted while the data under them scroll (their ticks
             # reach into the data area, so each frame's repaint of it would otherwise redraw their text)
-            for name in ("left", "bottom"):
-                p.getAxis(name).setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)
-            p.titleLabel.item.setCacheMode(QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache)
+            cache_axes_and_title(p)
             # where frames stopped coming (an outage): a dashed red line per gap in the window
             marks = [pg.InfiniteLine(angle=90, movable=False, pen=pg.mkPen("#c00", width=2, style=QtCore.Qt.PenStyle.DashLine))
                      for _ in range(GAP_MARKS)]

@@ -15,7 +15,7 @@ from PySide6 import QtCore, QtWidgets
 
 from rigctl.acquisition.link_health import LinkEvent, LinkHealth, LinkState, dropped_frames_severity
 from rigctl_gui.colours import on_window
-from rigctl_gui.widgets import FittedText
+from rigctl_gui.widgets import FittedText, restyle
 
 OK = "color: #007700;"  # 5:1 on a light window; made readable on the label's palette where it is shown (_show)
 WARN = "color: #000; background: #fc0; padding: 0 4px;"
@@ -244,6 +244,6 @@ def _show(label: QtWidgets.QLabel, *, text: str | None = None, tip: str | None =
         label.setText(text)
     if tip is not None and label.toolTip() != tip:
         label.setToolTip(tip)
-    if style is not None and label.styleSheet() != style:
-        label.setStyleSheet(style)
+    if style is not None:
+        restyle(label, style)
 

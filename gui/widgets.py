@@ -152,6 +152,13 @@ class PageTabs(QtWidgets.QTabWidget):
             self.setCurrentIndex(index)
 
 
+def restyle(widget: QtWidgets.QWidget, style: str) -> None:
+    """Set ``widget``'s style sheet to ``style`` unless it is that already (Qt re-polishes the widget at every
+    ``setStyleSheet``, the same sheet too)."""
+    if widget.styleSheet() != style:
+        widget.setStyleSheet(style)
+
+
 def keep_room(widget: QtWidgets.QWidget, *, lines: int | None = None) -> None:
     """Keep ``widget``'s room in its layout while it is hidden (and, with ``lines``, a fixed height of that many
     text lines), so the widgets around it never move when it shows or hides or its text grows."""

@@ -118,7 +118,9 @@ def main(out_path: str, fit_only: bool = False) -> int:
     placed(w)
     out["fit_first"] = place(w)
     w.close()
-    big = MainWindow(autoconnect=False)  # never shown: no window manager clamps it
+    # the saved size: a plain widget's geometry (the same bytes as the main window's; never shown: no window manager
+    # clamps it)
+    big = QtWidgets.QWidget()
     big.setGeometry(0, 0, 2400, 1600)
     make_settings().setValue("ui/geometry", big.saveGeometry())
     big.deleteLater()
