@@ -1071,12 +1071,18 @@ def history_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: float, *,
     """The device's frame rate on the host clock (frames/s) over the stream's unbroken history that ends with the
     last frame given: :func:`rigctl.core.trial.lower_envelope_rate_hz` of the frames back to where the device's
     counter restarted or the link was gone (a sequence step of 0 or of more than 1 s of frames, or a host-time gap
-    that disagrees with the step by more than 1 s). NaN if that history has fewer than ``min_frames`` frames.
+    that disagrees with a step of more than one frame by more than 1 s). NaN if that history has fewer than
+    ``min_frames`` frames.
 
     A trial's ``host_rate_hz`` is measured this way over the live ring (up to its ``ring_seconds``, at least the
     trial): the device's crystal clock does not change between trials, and a longer baseline keeps a loaded
     host's late deliveries over a part of the trial from moving the estimate (the per-trial lower envelope read
     994-998 Hz for a 1 kHz board when the reader stalled for 0.2-0.3 s at a time over a third of a 2 s trial).
+    Two consecutive frames (a step of one) were sent one period apart, however long the host took to deliver the
+    second: a host that delivered nothing for over a second and then the backlog (a starved reader, simulator or
+    pty) does not end the history. Cut there, the history began with the backlog draining (a simulated rig stopped
+    for 1.3 s: its frames 1.28 s late, draining over 1,600 frames), and a trial inside the drain read the drain's
+    rate (a CI run: 1,313 Hz for a 1 kHz board).
     """
     seq = np.asarray(seq, dtype=np.int64)
     t = np.asarray(host_time_s, dtype=np.float64)
@@ -1084,7 +1090,7 @@ def history_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: float, *,
         return math.nan
     rate = float(rate_hz)
     steps = (seq[1:] - seq[:-1]) & 0xFFFF
-    broken = (steps == 0) | (steps > rate) | (np.abs(np.diff(t) * rate - steps) > rate)
+    broken = (steps == 0) | (steps > rate) | ((steps > 1) & (np.abs(np.diff(t) * rate - steps) > rate))
     start = int(np.flatnonzero(broken)[-1]) + 1 if broken.any() else 0
     if len(seq) - start < max(6, min_frames):
         return math.nan

@@ -189,6 +189,32 @@ def test_host_rate_over_the_streams_history_ignores_a_loaded_hosts_stalls():
     assert abs(rig_module.history_rate_hz(all_seq, all_t, 1000, min_frames=n_trial) - true_rate) < 0.2
     assert np.isnan(rig_module.history_rate_hz(all_seq, all_t, 1000, min_frames=n_hist + 1))
 
+def test_host_rate_over_a_history_with_a_delivery_stall_of_over_a_second():
+    """A host that delivered nothing for 1.3 s and then the backlog, draining at 1.3x the stream's rate (a starved
+    reader, simulator or pty; a simulated rig stopped for 1.3 s drained 1.28 s of backlog over 1,600 frames), with
+    the trial inside the drain: the stall is no break of the stream's history (its frames catch up with the delay
+    they had before), so the rate comes from the frames around it. Cut at the stall (as before), the history began
+    with the drain and read its rate (a CI run: 1,313 Hz for a 1 kHz board). A new stream on another time line after
+    a gap (its counter continuing by chance) is still cut off."""
+    rate, n_trial = 1000.0, 2000
+    k = np.arange(12000)
+    t = 3.0 + k / rate + np.random.default_rng(5).uniform(0, 2e-3, len(k))  # on time, up to 2 ms late
+    k_stall, stall_s = 4000, 1.3
+    drain = t[k_stall] + stall_s + (k - k_stall) / (1.3 * rate)  # the backlog delivered at 1.3x the stream's rate
+    t = np.where(k >= k_stall, np.maximum(t, drain), t)
+    seq = (60000 + k) & 0xFFFF
+    end = k_stall + 3000  # the trial's last frame: still draining (0.6 s late)
+    assert t[end - 1] - (3.0 + (end - 1) / rate) > 0.5
+    assert abs(rig_module.history_rate_hz(seq[:end], t[:end], rate, min_frames=n_trial) - rate) < 1
+    assert abs(rig_module.history_rate_hz(seq, t, rate, min_frames=n_trial) - rate) < 1
+    # a stream that began 2 s after the last frame of another, its counter 50 frames on: cut off there
+    new_t = t[end - 1] + 2.0 + np.arange(6000) / 999.0
+    new_seq = (seq[end - 1] + 50 + np.arange(6000)) & 0xFFFF
+    both_seq, both_t = np.concatenate([seq[:end], new_seq]), np.concatenate([t[:end], new_t])
+    assert abs(rig_module.history_rate_hz(both_seq, both_t, rate, min_frames=n_trial) - 999.0) < 0.1
+    assert np.isnan(rig_module.history_rate_hz(both_seq, both_t, rate, min_frames=6001))
+
+
 def _cut_drum_link(rig, link):
     """The Mega's cable is pulled: every Modbus request of the in-process drum client fails as on a vanished port
     (EIO; ``link.undo()`` plugs it back)."""
