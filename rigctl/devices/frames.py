@@ -19,6 +19,7 @@ from rigctl.devices import wire
 
 _SYNC0, _SYNC1 = wire.SYNC[0], wire.SYNC[1]
 _CRC_START = wire.CRC_START
+_SYNC_IN, _STREAMING_START = int(wire.FrameFlag.SYNC_IN), int(wire.FrameFlag.STREAMING_START)
 # the frame layout _scan unpacks: sync (2 bytes), seq (uint16 LE), flags (1), samples (uint16 LE each), CRC (2)
 assert wire.CRC_START == 2 and [wire.frame_dtype(1).fields[k][1]  # type: ignore[index]  # a record type: fields
                                 for k in ("seq", "flags", "samples", "crc")] == [2, 4, 5, 7]
@@ -48,15 +49,68 @@ def encode_frames(seq: np.ndarray, flags: np.ndarray | int, samples: np.ndarray,
     if samples.size and (samples.min() < 0 or samples.max() > adc_max):
         raise ValueError(f"samples must be ADC counts 0-{adc_max}")
     n, ch = samples.shape
-    size = wire.frame_size(ch)
-    out = np.zeros(n, dtype=wire.frame_dtype(ch))
-    out["sync"] = np.frombuffer(wire.SYNC, dtype=np.uint8)
-    out["seq"] = np.asarray(seq, dtype=np.int64) & 0xFFFF
-    out["flags"] = np.broadcast_to(np.asarray(flags, dtype=np.int64) & 0xFF, (n,))
-    out["samples"] = samples
-    raw = out.view(np.uint8).reshape(n, size)
-    out["crc"] = wire.crc16_rows(raw[:, wire.CRC_START : size - 2])
+    out = np.empty(n * wire.frame_size(ch), np.uint8)
+    _encode_kernel(np.ascontiguousarray(np.broadcast_to(np.asarray(seq, dtype=np.int64), (n,))),
+                   np.ascontiguousarray(np.broadcast_to(np.asarray(flags, dtype=np.int64), (n,))),
+                   np.ascontiguousarray(samples, dtype=np.uint16), wire.CRC16_TABLE, out)
     return out.tobytes()
+
+
+def encode_stream_frames(seq0: int, sync_in: np.ndarray, first: bool, samples: np.ndarray, adc_max: int) -> bytes:
+    """Frames ``seq0, seq0 + 1, ...`` (mod 65536) of a board's stream in one compiled pass (the simulated Uno's
+    every tick): flags SYNC_IN where ``sync_in`` ((n,) bool) is set, and STREAMING_START on the first frame if
+    ``first``; ``samples`` (n, ch) uint16. The same bytes as :func:`encode_frames` with those sequence numbers and
+    flags; ValueError for a sample above ``adc_max``."""
+    n, ch = samples.shape
+    out = np.empty(n * wire.frame_size(ch), np.uint8)
+    if not _encode_stream_kernel(int(seq0), sync_in, bool(first), samples, int(adc_max), wire.CRC16_TABLE, out):
+        raise ValueError(f"samples must be ADC counts 0-{adc_max}")
+    return out.tobytes()
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _put_frame(out: Any, p: int, seq: int, flags: int, samples: Any, i: int, table: Any) -> None:  # pragma: no cover
+    """Frame ``i`` at byte offset ``p`` of ``out``: sync, seq, flags, samples (little-endian), CRC-16/MODBUS."""
+    n_ch = samples.shape[1]
+    out[p] = _SYNC0
+    out[p + 1] = _SYNC1
+    out[p + 2] = seq & 0xFF
+    out[p + 3] = (seq >> 8) & 0xFF
+    out[p + 4] = flags & 0xFF
+    for ch in range(n_ch):
+        v = samples[i, ch]
+        out[p + 5 + 2 * ch] = v & 0xFF
+        out[p + 6 + 2 * ch] = v >> 8
+    end = p + 5 + 2 * n_ch
+    crc = np.uint16(0xFFFF)
+    for j in range(p + _CRC_START, end):
+        crc = (crc >> np.uint16(8)) ^ table[(crc ^ out[j]) & np.uint16(0xFF)]
+    out[end] = crc & np.uint16(0xFF)
+    out[end + 1] = crc >> np.uint16(8)
+
+
+@numba.njit(cache=True, nogil=True)
+def _encode_kernel(seq: Any, flags: Any, samples: Any, table: Any, out: Any) -> None:  # pragma: no cover - compiled
+    size = 7 + 2 * samples.shape[1]
+    for i in range(samples.shape[0]):
+        _put_frame(out, i * size, seq[i], flags[i], samples, i, table)
+
+
+@numba.njit(cache=True, nogil=True)
+def _encode_stream_kernel(seq0: int, sync_in: Any, first: bool, samples: Any, adc_max: int, table: Any,
+                          out: Any) -> bool:  # pragma: no cover - compiled
+    n, n_ch = samples.shape
+    for i in range(n):
+        for ch in range(n_ch):
+            if samples[i, ch] > adc_max:
+                return False
+    size = 7 + 2 * n_ch
+    for i in range(n):
+        flags = _SYNC_IN if sync_in[i] else 0
+        if first and i == 0:
+            flags |= _STREAMING_START
+        _put_frame(out, i * size, (seq0 + i) & 0xFFFF, flags, samples, i, table)
+    return True
 
 
 def encode_frame(seq: int, flags: int, samples: Any) -> bytes:

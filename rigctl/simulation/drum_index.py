@@ -72,7 +72,7 @@ class DrumIndex:
         n = sensor.size
         before = self.steps
         if marks is not None and d.marks_per_rev > 0 and n:
-            self._speed_marks(marks, before + pulses, t0)
+            self._speed_marks(marks, before, pulses, t0)
         if n and not self.sensor_live and not sensor.any():  # the common ms: no index edge, maybe no wrap
             last = before + float(pulses[-1])
             if math.floor(before / usteps) == math.floor(last / usteps):  # no wrap
@@ -101,26 +101,29 @@ class DrumIndex:
             self.revolutions += int(wraps.sum())
         return out
 
-    def _speed_marks(self, marks: np.ndarray, steps: np.ndarray, t0: float) -> None:
-        """The speed marks of one step (the firmware's INT2 interrupt and its slip check in the 1 kHz tick)."""
-        prev = self.steps
-        for j in np.flatnonzero(marks):
-            t = t0 + (j + 1) * 1e-3
-            since = float(steps[j]) - self._steps_at_mark
-            if since > self._slip_steps:
-                self.slipped = True  # late: the tick saw the limit pass before this mark came
-            if self._mark_fresh and since > 0:
-                self.mark_period_0p1ms = min(0xFFFF, int(round((t - self._mark_s) * 10000.0)))
-                self.mark_steps = min(0xFFFF, int(round(since)))
-            self._mark_fresh = since > 0
-            self._mark_s, self._steps_at_mark = t, float(steps[j])
-            self.marks += 1
-        if float(steps[-1]) == prev:  # the drum at rest: the check re-arms, the next interval is not reported
-            self._steps_at_mark, self._mark_fresh = float(steps[-1]), False
-        elif float(steps[-1]) - self._steps_at_mark > self._slip_steps:
+    def _speed_marks(self, marks: np.ndarray, before: float, pulses: np.ndarray, t0: float) -> None:
+        """The speed marks of one step (the firmware's INT2 interrupt and its slip check in the 1 kHz tick): the
+        step count is ``before + pulses`` at the end of each ms."""
+        last = before + float(pulses[-1])
+        if marks.any():  # (most steps of a few ms pass none)
+            steps = before + pulses
+            for j in np.flatnonzero(marks):
+                t = t0 + (j + 1) * 1e-3
+                since = float(steps[j]) - self._steps_at_mark
+                if since > self._slip_steps:
+                    self.slipped = True  # late: the tick saw the limit pass before this mark came
+                if self._mark_fresh and since > 0:
+                    self.mark_period_0p1ms = min(0xFFFF, int(round((t - self._mark_s) * 10000.0)))
+                    self.mark_steps = min(0xFFFF, int(round(since)))
+                self._mark_fresh = since > 0
+                self._mark_s, self._steps_at_mark = t, float(steps[j])
+                self.marks += 1
+        if last == before:  # the drum at rest: the check re-arms, the next interval is not reported
+            self._steps_at_mark, self._mark_fresh = last, False
+        elif last - self._steps_at_mark > self._slip_steps:
             self.slipped = True  # a stall, or a slip: no mark within the interval's steps and the tolerance
         if self.slipped:  # re-armed (the firmware's too): the deceleration that follows does not latch it again
-            self._steps_at_mark, self._mark_fresh = float(steps[-1]), False
+            self._steps_at_mark, self._mark_fresh = last, False
 
     def take_slip(self) -> bool:
         """Whether the drum slipped or stalled since the last call (the controller latches DRUM_SLIP)."""

@@ -18,13 +18,14 @@ import numpy as np
 @numba.njit(cache=True, nogil=True)
 def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, travel, gap, runout_mm, runout_phase,
                    stiffness, ripple, h_row, h_period, h_mean, pitch, pos_out, sync_out, force_out, slip,
-                   motor_out):  # pragma: no cover
+                   motor_out, marks_per_mm, marks_out):  # pragma: no cover
     """Advance ``pos_out.size`` 1 ms steps; fills ``pos_out`` (surface travel, mm, unwrapped), ``sync_out`` (the
     index mark passed in that ms) and ``force_out`` (contact force, g); returns ``(speed, actuator_mm)`` after the
     last step.
 
     ``slip``: the fraction of the stepper's travel the drum loses (0: none, 1: a blocked drum); ``motor_out``: the
     stepper's travel since the step's start per ms, mm of surface (what its step count says, without the slip).
+    ``marks_out``: a speed mark passed in that ms (the slot ``floor(travel * marks_per_mm)`` changed).
     ``speed0``/``target``: the stepper's surface speed now and commanded, mm/s; ``accel_step``: the speed change allowed per ms,
     mm/s; ``pos0``: travel now, mm; ``circ``: drum circumference, mm; ``act0``, ``act_step``, ``travel``, ``gap``:
     actuator position now, its travel per ms, its range and the contact gap, mm; ``runout_mm``, ``runout_phase``
@@ -36,6 +37,7 @@ def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, trave
     sign = 1.0 if dv >= 0.0 else -1.0  # math.copysign(1.0, dv) for dv != -0.0
     n_table = h_row.size
     rev_before = math.floor(pos0 / circ)
+    slot_before = math.floor(pos0 * marks_per_mm)
     acc = 0.0
     speed = speed0
     act = act0
@@ -50,6 +52,9 @@ def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, trave
         rev = math.floor(pos / circ)
         sync_out[i] = rev != rev_before
         rev_before = rev
+        slot = math.floor(pos * marks_per_mm)
+        marks_out[i] = slot != slot_before
+        slot_before = slot
         act = min(max(act0 + act_step * k, 0.0), travel)
         compression = act - gap
         runout = runout_mm * math.sin(2 * np.pi * pos / circ + runout_phase)

@@ -775,6 +775,7 @@ class RigModel:
         #: and whether a speed mark (``drum.marks_per_rev`` per revolution of the real drum) passed in it
         self.last_stepper_mm = np.zeros(0)
         self.last_marks = np.zeros(0, bool)
+        self._heights: tuple = (None,)  # (texture, its bottom-layer height table, period, mean) for the mechanics
         #: the taxels' analog path into the Uno's ADC (source impedance, anti-alias RC, the mux; ideal until a
         #: source impedance is set: ``--inject taxel-ohm=N``)
         self.front_end = MuxFrontEnd(N_TAXELS, adc_max=ADC_MAX)
@@ -978,26 +979,32 @@ class RigModel:
             circ = d.circumference_mm
             va = min(max(self.actuator_sign * float(actuator_velocity_mm_s), -m.actuator_max_speed_mm_s),
                      m.actuator_max_speed_mm_s)
-            # speed ramp, surface travel, index-mark passes, actuator travel and contact force with the runout and
-            # the texture ripple (SensorModel.contact_height), one ms after another (rigctl.simulation.mechanics)
-            heights, period, mean = self.sensor.height_tables(self._texture)
-            pos, sync_in, force, motor = np.empty(n), np.empty(n, bool), np.empty(n), np.empty(n)
+            # speed ramp, surface travel, index-mark passes, speed marks, actuator travel and contact force with the
+            # runout and the texture ripple (SensorModel.contact_height), one ms after another
+            # (rigctl.simulation.mechanics)
+            tex = self._texture
+            if self._heights[0] is not tex:  # the mounted plate's tables, looked up once per plate
+                heights, period, mean = self.sensor.height_tables(tex)
+                self._heights = (tex, heights[1], period, float(mean[1]))
+            _, h_row, period, h_mean = self._heights
+            pos, sync_in, force, motor, marks = np.empty(n), np.empty(n, bool), np.empty(n), np.empty(n), np.empty(n, bool)
             speed, act = step_mechanics(
                 self._speed_mm_s, target, d.max_accel_mm_s2 * dt, self._position_mm, circ, self._actuator_mm, va * dt,
                 m.actuator_travel_mm, m.contact_gap_mm, d.runout_mm, self._runout_phase, m.contact_stiffness_g_per_mm,
-                m.texture_ripple, heights[1], period, float(mean[1]), float(self.sensor.config.pitch_mm), pos, sync_in,
-                force, 1.0 - self.drum_sign * (1.0 - self._slip()), motor)  # the kernel's slip: 2 turns it backwards
-            self.last_stepper_mm = motor + self._motor_mm  # the stepper's travel at the end of each ms of the step
-            self._motor_mm = float(self.last_stepper_mm[-1])
-            slots = np.floor(np.concatenate(([self._position_mm], pos)) * (d.marks_per_rev / circ))
-            self.last_marks = np.diff(slots) != 0
+                m.texture_ripple, h_row, period, h_mean, float(self.sensor.config.pitch_mm), pos, sync_in,
+                force, 1.0 - self.drum_sign * (1.0 - self._slip()), motor,  # the kernel's slip: 2 turns it backwards
+                d.marks_per_rev / circ, marks)
+            motor += self._motor_mm
+            self.last_stepper_mm = motor  # the stepper's travel at the end of each ms of the step
+            self._motor_mm = float(motor[-1])
+            self.last_marks = marks
 
             # slow sensitivity drift of the fabric: Ornstein-Uhlenbeck, tau 20 s
             c = self.config.sensor
             a = math.exp(-n * dt / 20.0)
             self._sensitivity = 1.0 + a * (self._sensitivity - 1.0) + c.sensitivity_drift * math.sqrt(1 - a * a) * float(
                 self._rng.standard_normal())
-            samples = self.front_end.apply(self.sensor.render(self._texture, pos, force, self._rng,
+            samples = self.front_end.apply(self.sensor.render(tex, pos, force, self._rng,
                                                               sensitivity=self._sensitivity, wrap_mm=circ))
 
             self._speed_mm_s = float(speed)

@@ -53,6 +53,19 @@ def _unread(fd: int | None) -> int:
         return 0
 
 
+def _write_some(fd: int, data: bytes | bytearray) -> int:
+    """Write what the pty behind ``fd`` takes of ``data`` now (non-blocking): bytes written, 0 when it is full or
+    has no reader side (EIO)."""
+    try:
+        return os.write(fd, data)
+    except BlockingIOError:
+        return 0
+    except OSError as exc:
+        if exc.errno in (errno.EIO, errno.EAGAIN):
+            return 0
+        raise
+
+
 class PtyEndpoint:
     """One pty pair; the board side holds the master fd and a slave fd, the client opens :attr:`path`.
 
@@ -146,6 +159,11 @@ class PtyEndpoint:
             if len(data) > room:
                 self.dropped_bytes += len(data) - max(room, 0)
                 data = data[: max(room, 0)]
+            if not self._pending:  # straight into the pty; what it does not take now is queued
+                n = _write_some(self.master_fd, data) if data else 0
+                if n < len(data):
+                    self._pending += data[n:]
+                return len(data)
             self._pending += data
             self._flush_locked()
             return len(data)
@@ -158,14 +176,9 @@ class PtyEndpoint:
 
     def _flush_locked(self) -> None:
         while self._pending and self.master_fd is not None:
-            try:
-                n = os.write(self.master_fd, self._pending)
-            except BlockingIOError:
+            n = _write_some(self.master_fd, self._pending)
+            if not n:
                 return
-            except OSError as exc:
-                if exc.errno in (errno.EIO, errno.EAGAIN):
-                    return
-                raise
             del self._pending[:n]
 
     def unread_from_client(self) -> int:

@@ -20,7 +20,7 @@ import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.devices import wire
-from rigctl.devices.frames import encode_frames
+from rigctl.devices.frames import encode_frames, encode_stream_frames
 from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyEndpoint
 
@@ -68,6 +68,7 @@ class VirtualUno:
         # compile/load the numba CRC kernel of the framing now, not in the first tick of a stream: that first call
         # takes 1-4 s, during which the board's clock thread (the simulated rig's physics) would stand still
         encode_frames(np.zeros(1), 0, np.zeros((1, self.layout.n_channels)))
+        encode_stream_frames(0, np.zeros(1, bool), True, np.zeros((1, self.layout.n_channels), np.uint16), 1)
         self.port = PtyEndpoint(link)
         self.reset_delay_s = reset_delay_s
         self._rng = np.random.default_rng(seed)
@@ -173,7 +174,7 @@ class VirtualUno:
                     port.write(self.banner)
                 port.flush()
                 return
-            commands = port.read(4096)
+            commands = port.read(4096) if port.unread_from_client() else b""  # (a read that finds none costs more)
             n = len(samples)
             # commands are applied at the start of this tick (the Uno checks its UART between ticks)
             for byte in commands:
@@ -194,6 +195,15 @@ class VirtualUno:
 
     def _send_frames(self, samples, sync_in, unsent: int = 0) -> None:
         n = len(samples)
+        if not (unsent > 0 or self._drop_left or self._drop_sync_left or self._corrupt_left or self._garbage) and \
+                getattr(samples, "dtype", None) == np.uint16:  # the common tick: every period's frame, as it is
+            first, seq0 = self._first, self.seq
+            self._first = False
+            self.seq = (seq0 + n) & 0xFFFF
+            sync = np.zeros(n, bool) if sync_in is None else np.ascontiguousarray(sync_in, dtype=bool)
+            self.port.write(encode_stream_frames(seq0, sync, first, np.ascontiguousarray(samples), self.layout.adc_max))
+            self.frames_sent += n
+            return
         seq = (self.seq + np.arange(n)) & 0xFFFF
         flags = np.zeros(n, np.uint8)
         if sync_in is not None:
@@ -267,13 +277,15 @@ class VirtualUno:
 def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1000.0) -> None:
     """Call ``step(n)`` about every ``tick_s`` with the periods of ``rate_hz`` elapsed since the last call (the
     milliseconds at the default 1 kHz). Exact long-run rate: period k is handed out no earlier than
-    ``t0 + k / rate_hz``."""
+    ``t0 + k / rate_hz``. Ends within one such wait of ``stop`` being set (a plain sleep: an ``Event.wait`` with a
+    timeout costs several times its CPU, hundreds of times a second)."""
     rate = float(rate_hz)
-    t0 = time.monotonic()
+    monotonic, sleep, stopped = time.monotonic, time.sleep, stop.is_set
+    t0 = monotonic()
     done = 0
     ahead = max(1, int(tick_s * rate))
-    while not stop.is_set():
-        due = int((time.monotonic() - t0) * rate)
+    while not stopped():
+        due = int((monotonic() - t0) * rate)
         n = due - done
         if n > 0:
             try:
@@ -281,5 +293,6 @@ def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1
             except Exception:  # keep the clock alive; the error is logged
                 log.exception("simulation step failed")
             done = due
-        next_t = t0 + (done + ahead) / rate
-        stop.wait(max(0.0, next_t - time.monotonic()))
+        wait = t0 + (done + ahead) / rate - monotonic()
+        if wait > 0.0:
+            sleep(wait)
