@@ -39,7 +39,7 @@ from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusSerialServer
 
 from rigctl.devices import wire
-from rigctl.devices.wire import Fault
+from rigctl.devices.wire import Fault, HoldingRegister as HR
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
 from rigctl.simulation.priority import board_thread
@@ -48,8 +48,10 @@ from rigctl.simulation.virtual_uno import paced_loop
 
 log = logging.getLogger(__name__)
 
-#: period of the watchdog check in the Modbus server's loop, s
+#: period of the watchdog check in the Modbus server's loop once the host may be overdue, s
 WATCHDOG_CHECK_S = 0.01
+#: the longest wait between two checks while the host cannot be overdue yet, s: the shortest WATCHDOG_MS
+WATCHDOG_IDLE_CHECK_S = wire.holding_range(HR.WATCHDOG_MS)[0] / 1000.0
 
 
 class _Refusal(ModbusPDU):
@@ -236,17 +238,37 @@ class VirtualMega(MegaController):
         return data
 
     async def _watchdog_loop(self) -> None:
+        wait_s = WATCHDOG_CHECK_S
         while True:
-            await asyncio.sleep(WATCHDOG_CHECK_S)
+            await asyncio.sleep(wait_s)
             try:
                 self.check_watchdog()
+                wait_s = self._next_check_s()
             except Exception:  # noqa: BLE001 - keep checking; the error is logged
                 log.exception("watchdog check failed")
+                wait_s = WATCHDOG_CHECK_S
+
+    def _next_check_s(self) -> float:
+        """The wait before the next :meth:`check_watchdog`, s: :data:`WATCHDOG_CHECK_S` from the time the host could
+        be overdue (its last request + WATCHDOG_MS) on and while a check waits for its confirmation; until then no
+        check can trip, and the loop sleeps up to that time, at most :data:`WATCHDOG_IDLE_CHECK_S` (the shortest
+        WATCHDOG_MS: a request that shortens the timeout feeds the watchdog too, so the new deadline is never before
+        the next check). Past due while the watchdog does not guard (the rig at rest), also that long: only a request
+        (RUN, PRESS), which feeds it, makes it guard again. A check costs the server's loop a wake-up; one every
+        10 ms was most of its CPU."""
+        with self._lock:
+            if self._overdue_at_requests is not None:
+                return WATCHDOG_CHECK_S
+            left_s = self._last_request + self.holding[HR.WATCHDOG_MS] / 1000.0 - time.monotonic()
+            if left_s <= 0.0 and not self._watchdog_guards():
+                return WATCHDOG_IDLE_CHECK_S
+        return min(WATCHDOG_IDLE_CHECK_S, max(WATCHDOG_CHECK_S, left_s))
 
     def check_watchdog(self) -> bool:
         """Trip the host-silence watchdog (spec 2.5) if it is due; returns True if it tripped.
 
-        Called every :data:`WATCHDOG_CHECK_S` from the Modbus server's loop, so a request the server has read is
+        Called from the Modbus server's loop (every :data:`WATCHDOG_CHECK_S` once the host may be overdue:
+        :meth:`_next_check_s`), so a request the server has read is
         always handled (and has fed the watchdog) before the check. Not due while request bytes that the server has
         not read yet are on their way (the host spoke; the firmware would have handled them by now): counted in the
         ptys, or handed to the board's pty by the bridge after the server last received any (the kernel hands a pty's
