@@ -836,11 +836,14 @@ class Rig:
         if align:
             # predict the index pulse from the drum angle; capture up to it + the trial + a margin
             rev_s = DRUM_CIRCUMFERENCE_MM / planned.speed_mm_s
+            t_asked = clock.now()
             st = self.drum.read_status()
             t_read = clock.now()
             to_index_s = (360.0 - float(st.angle_deg)) % 360.0 / 360.0 * rev_s
-            t_index = t_read + to_index_s
-            tolerance_s = max(tolerance_s, INDEX_PREDICTION_TOLERANCE_REVS * rev_s)
+            # the angle is from some time between the request and its answer (a loaded host's Modbus read, with a
+            # retry, took up to 2.8 s beside two CPU hogs): the index is due between t_asked and t_read plus to_index_s
+            t_index = 0.5 * (t_asked + t_read) + to_index_s
+            tolerance_s = max(tolerance_s, INDEX_PREDICTION_TOLERANCE_REVS * rev_s) + 0.5 * (t_read - t_asked)
             n_capture = n + int(math.ceil((t_read - t_start + to_index_s) * rate)) + INDEX_MARGIN_FRAMES
             n_limit = n + int(math.ceil(INDEX_TIMEOUT_REVS * rev_s * rate))
             n_capture = min(n_capture, n_limit)
@@ -890,7 +893,7 @@ class Rig:
         k = lost = 0
         if align:
             try:
-                k, lost = locate_index(cap, n, t_index, tolerance_s=tolerance_s)
+                k, lost = locate_index(cap, n, t_index, rate_hz=rate, tolerance_s=tolerance_s)
             except CaptureError as exc:
                 raise CaptureError(f"trial {planned.trial_id}: {exc} ({len(cap) / rate:.1f} s at "
                                    f"{planned.speed_mm_s:g} mm/s)") from None
@@ -972,7 +975,7 @@ def index_speed_attrs(planned: PlannedTrial, first, last, *, marks_mm_s: float =
             "drum_speed_warning": "; ".join(why)}
 
 
-def locate_index(cap, n: int, t_index: float, *,
+def locate_index(cap, n: int, t_index: float, *, rate_hz: float,
                  tolerance_s: float = INDEX_PREDICTION_TOLERANCE_S) -> tuple[int, int]:
     """Where a constant-speed trial starts in its capture: at the drum's index mark.
 
@@ -981,7 +984,10 @@ def locate_index(cap, n: int, t_index: float, *,
     cap : the capture (``seq``, ``flags``, ``host_time_s`` (s), ``len(cap)`` frames).
     n : frames the trial keeps from its start.
     t_index : when the drum angle predicts the index pulse, s, on the clock of ``cap.host_time_s`` (NaN: unknown).
-    tolerance_s : how far from ``t_index`` a gap may lie to hold the lost index frame, s.
+    rate_hz : the link's frame rate, Hz.
+    tolerance_s : how far from ``t_index`` a gap may lie to hold the lost index frame, s. A gap's time is when the
+        board sent the frames around it: their stamps less their delay over the capture's least-delayed frame (at
+        ``rate_hz``, from the sequence numbers; a loaded host delivers stretches of frames over a second late).
 
     Returns
     -------
@@ -1010,7 +1016,14 @@ def locate_index(cap, n: int, t_index: float, *,
         gap = (seq[1:] - seq[:-1] - 1) & 0xFFFF
         after = np.arange(1, n_cap)  # the frame after each gap
         t = np.asarray(cap.host_time_s, dtype=np.float64)
-        before_t, after_t = t[:-1], t[1:]
+        # when the board sent each frame: the least-delayed frame's stamp, on at the frame rate by the sequence
+        # (each stream, from its STREAMING_START on, for itself)
+        index = np.concatenate(([0], np.cumsum((seq[1:] - seq[:-1]) & 0xFFFF))) / float(rate_hz)
+        stream = np.cumsum((cap.flags & wire.FrameFlag.STREAMING_START) != 0)
+        starts = np.flatnonzero(np.r_[True, stream[1:] != stream[:-1]])
+        offset = np.minimum.reduceat(t - index, starts)
+        sent = index + np.repeat(offset, np.diff(np.r_[starts, n_cap]))
+        before_t, after_t = sent[:-1], sent[1:]
         dist = np.maximum(0.0, np.maximum(before_t - t_index, t_index - after_t))
         ok = ((gap > 0) & (gap <= INDEX_GAP_MAX_FRAMES) & (n_cap - after >= n)
               & ((cap.flags[1:] & wire.FrameFlag.STREAMING_START) == 0)
