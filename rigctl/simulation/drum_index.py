@@ -73,10 +73,14 @@ class DrumIndex:
         before = self.steps
         if marks is not None and d.marks_per_rev > 0 and n:
             self._speed_marks(marks, before, pulses, t0)
-        if n and not self.sensor_live and not sensor.any():  # the common ms: no index edge, maybe no wrap
+        if n and not sensor.any():  # the common step: no index edge, and no wrap of the step count that counts
             last = before + float(pulses[-1])
-            if math.floor(before / usteps) == math.floor(last / usteps):  # no wrap
-                self.steps = float(last)
+            if self.sensor_live:
+                if last - self.steps_at_sensor <= 1.5 * usteps:  # the sensor stays live: no index output
+                    self.steps = last
+                    return np.zeros(n, bool)
+            elif math.floor(before / usteps) == math.floor(last / usteps):  # no wrap
+                self.steps = last
                 return np.zeros(n, bool)
         steps = before + pulses
         self.steps = float(steps[-1]) if n else before
