@@ -6,8 +6,8 @@ run, and starts pytest when they are done: every pytest-xdist worker, every proc
 (measured: tests/gui/test_gui_analysis.py alone takes 57 CPU-s on a cold cache, 33 on a warm one; compiled in the
 background beside the tests, the cache was ready after 87 s of a loaded run, and the tests that came first compiled
 their own). Calls the public functions with the input types the library and its tests use (uint16 counts and float64
-readings; float32 and float64 state; one trial: the serial kernels, more than a SIMD block: the parallel ones), so the
-signatures follow the code; a kernel missed here is still compiled on first use, only slower.
+readings; float32 and float64 state; one trial and more than a SIMD block: numba's serial and parallel builds where a
+kernel has both), so the signatures follow the code; a kernel missed here is still compiled on first use, only slower.
 
     python scripts/compile_kernels.py [serial|parallel ...]   (no part: both, one after the other)
 """
@@ -19,9 +19,10 @@ import time
 
 import numpy as np
 
-#: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, the
-#: serial builds (one trial at a time, and the simulated rig's renderer and mechanics) and the parallel ones (more
-#: than a SIMD block of trials), so two processes never write the same kernel's cache index at once
+#: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, so
+#: two processes never write the same kernel's cache index at once: the serial builds (the simulated rig's renderer
+#: and mechanics, the fused encoder for every input type and its spike times, the float64 reference on one trial) and
+#: numba's parallel builds (the fused encoder on raw counts, the float64 reference, the spike trains' window counts)
 PARTS = ("serial", "parallel")
 
 
@@ -33,26 +34,26 @@ def main(argv: list[str]) -> int:
     t0 = time.monotonic()
     from rigctl.encoding import izhikevich
     from rigctl.encoding.fused import BLOCK_TRIALS, run_fused
+    from rigctl.encoding.spikes import SpikeTrains
     from rigctl.simulation.model import RigModel, SensorModel
 
-    n = 64
+    n, n_trials_big = 64, BLOCK_TRIALS + 1
     if "serial" in parts:  # first the taxel renderer and the mechanics every simulated rig runs
         force_g = np.full(n, 300.0)
         force_g.flags.writeable = False  # as the dataset renderer passes it
         SensorModel().render("A", np.linspace(0.0, 10.0, n), force_g, np.random.default_rng(0))
         RigModel().advance(3, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
-    sizes = [n_trials for part, n_trials in (("serial", 1), ("parallel", BLOCK_TRIALS + 1)) if part in parts]
-    for n_trials in sizes:  # the serial and the parallel builds
-        starts = np.arange(n_trials + 1, dtype=np.int64) * n
+        # the fused encoder's serial build (any input type: one block of trials, or more on threads) and spike times
         for data_dtype, dtype in ((np.uint16, np.float32), (np.float64, np.float32), (np.float64, np.float64),
                                   (np.uint16, np.float64)):
-            if n_trials > BLOCK_TRIALS and (data_dtype, dtype) == (np.uint16, np.float64):
-                continue  # float64 state on counts: the reference checks, one trial at a time
-            data = np.full((n * n_trials, 2), 512, dtype=data_dtype)
-            # the spike trains (times kernels) and their window counts (the features' binning)
-            res = run_fused(data, starts, scale=1 / 1023, dtype=dtype)
-            res.ra.window_counts(0.032, 2)
-        izhikevich.run_izhikevich(np.full((n_trials, n, 2), 0.5), k=100.0)  # the float64 reference kernels
+            run_fused(np.full((n, 2), 512, dtype=data_dtype), np.array([0, n]), scale=1 / 1023, dtype=dtype)
+        izhikevich.run_izhikevich(np.full((1, n, 2), 0.5), k=100.0)  # the float64 reference, one trial
+    if "parallel" in parts:  # numba's parallel builds: the fused encoder on raw counts, the float64 reference on more
+        # than a SIMD block of trials, the features' binning
+        starts = np.arange(n_trials_big + 1, dtype=np.int64) * n
+        run_fused(np.full((n * n_trials_big, 2), 512, dtype=np.uint16), starts, scale=1 / 1023, want_times=False)
+        izhikevich.run_izhikevich(np.full((n_trials_big, n, 2), 0.5), k=100.0)
+        SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2).window_counts(0.032, 2)
     print(f"numba kernels ({', '.join(parts)}) compiled into the cache in {time.monotonic() - t0:.0f} s")
     return 0
 
