@@ -36,7 +36,6 @@ from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
 from pymodbus.framer import FramerType
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
-from pymodbus.server import ModbusSerialServer
 
 from rigctl.devices import wire
 from rigctl.devices.wire import Fault, HoldingRegister as HR
@@ -158,6 +157,9 @@ class VirtualMega(MegaController):
 
     def start(self, *, clock: bool = True, control_period_s: float = 0.005) -> "VirtualMega":
         """Start the Modbus server thread and, with ``clock=True``, a real-time control loop (200 Hz default)."""
+        # imported here, not with the module: pymodbus.server imports aiohttp for its HTTP simulator (~0.5 s of CPU)
+        from pymodbus.server import ModbusSerialServer
+
         ready = threading.Event()
         errors: list[BaseException] = []
 

@@ -4,6 +4,7 @@ from the window, STOP holding the queue; an unreachable server said in one line 
 
 from __future__ import annotations
 
+import importlib.util
 import socket
 import time
 
@@ -11,16 +12,20 @@ import pytest
 from PySide6 import QtCore
 
 from rigctl.operations import RigSource, RunQueue, open_control
-from rigctl.server import ServerClient, create_app
+from rigctl.server import ServerClient
 from rigctl_gui.server_dialog import ServerDialog
 
-pytest.importorskip("fastapi")
-from fastapi.testclient import TestClient  # noqa: E402
+if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
+    pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
 
 TOKEN = "gui-test-token-0123456789"
 
 
 def _app_client(q):
+    from fastapi.testclient import TestClient
+
+    from rigctl.server import create_app
+
     return TestClient(create_app(q, token=TOKEN), base_url="http://127.0.0.1:8765",
                       headers={"Authorization": f"Bearer {TOKEN}"})
 

@@ -6,6 +6,7 @@ request goes to 127.0.0.1 or to the app in this process."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -20,10 +21,9 @@ from click.testing import CliRunner
 
 from rigctl.cli import main
 from rigctl.operations import RigSource, RunQueue, open_control
-from rigctl.server import create_app
 
-fastapi = pytest.importorskip("fastapi")
-from fastapi.testclient import TestClient  # noqa: E402
+if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
+    pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -32,6 +32,10 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 def api(q, token=TOKEN, **kw):
     """The app over ``q`` through FastAPI's test client, as rigctl's own clients talk to it (the token, Host
     127.0.0.1; JSON bodies: ``client.post(path, json={})``)."""
+    from fastapi.testclient import TestClient
+
+    from rigctl.server import create_app
+
     return TestClient(create_app(q, token=token), base_url="http://127.0.0.1:8765", headers=AUTH, **kw)
 
 PROTOCOL = ('name = "serve_test"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
@@ -145,6 +149,10 @@ def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
 
 def test_a_token_is_required(served):
     _, q = served
+    from fastapi.testclient import TestClient
+
+    from rigctl.server import create_app
+
     client = TestClient(create_app(q, token="s3cret-s3cret-s3cret"), base_url="http://127.0.0.1:8765")
     assert client.get("/status").status_code == 401
     assert client.get("/status", headers={"Authorization": "Bearer wrong"}).status_code == 401

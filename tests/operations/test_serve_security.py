@@ -5,6 +5,7 @@ test sending random requests to every endpoint. All in this process (FastAPI's t
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import time
@@ -16,12 +17,10 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rigctl.cli import main
 from rigctl.operations import RigSource, RunQueue, open_control
-from rigctl.server import create_app
 from rigctl.server.tokens import TokenError
 
-pytest.importorskip("fastapi")
-from fastapi.routing import APIRoute  # noqa: E402
-from fastapi.testclient import TestClient  # noqa: E402
+if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
+    pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
 
 TOKEN = "sec-test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -42,6 +41,8 @@ def _wait(pred, timeout_s=120.0):
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
+    from rigctl.server import create_app
+
     root = tmp_path_factory.mktemp("serve-sec")
     control = open_control(RigSource("inprocess"), seed=3, host_config_path=root / "rig.json")
     q = RunQueue(control, root / "state" / "queue.json", data_dir=root / "data").start()
@@ -54,11 +55,15 @@ def rig(tmp_path_factory):
 
 
 def _client(app, **headers):
+    from fastapi.testclient import TestClient
+
     return TestClient(app, base_url=BASE, headers=headers)
 
 
 def _endpoints(app):
     """(method, path) of every route, path parameters filled with an unknown id; the OpenAPI page and schema."""
+    from fastapi.routing import APIRoute
+
     out = [("GET", "/docs"), ("GET", "/openapi.json")]
     for route in app.routes:
         if isinstance(route, APIRoute):
@@ -114,6 +119,8 @@ def test_cross_origin_and_form_posts_to_every_state_changing_endpoint_are_refuse
 
 
 def test_blank_or_short_tokens_are_refused(rig, tmp_path, monkeypatch):
+    from rigctl.server import create_app
+
     q, _, _ = rig
     for bad in ("", " ", " " * 20, "short", "x" * 15, "sixteen chars ok"):
         with pytest.raises(TokenError):
@@ -221,6 +228,8 @@ _BODY = st.one_of(
 
 @pytest.fixture
 def prop_rig(tmp_path):
+    from rigctl.server import create_app
+
     control = open_control(RigSource("inprocess"), seed=4, host_config_path=tmp_path / "rig.json")
     q = RunQueue(control, tmp_path / "state" / "queue.json", data_dir=tmp_path / "data").start()
     q.end_streams()  # /events answers and ends at once (the test client would read an open feed forever)
@@ -261,7 +270,7 @@ def test_random_requests_to_every_endpoint(prop_rig, method, path, run_id, token
     headers = {k: v for k, v in (("Host", host), ("Origin", origin), ("Content-Type", ctype)) if v is not None}
     if token is not None:
         headers["Authorization"] = f"Bearer {token}"
-    client = TestClient(app, base_url=BASE, raise_server_exceptions=True)
+    client = _client(app)
     try:
         r = client.request(method, path, headers=headers, content=body)
     except (UnicodeEncodeError, ValueError) as exc:  # httpx refuses to send it: nothing reached the server
