@@ -10,12 +10,13 @@ import pytest
 
 from rigctl_gui import live_kernels
 from rigctl_gui.live_kernels import decimate_traces, decimated_length, fill_raster, raster_spans
-from rigctl_gui.live_view import TICK_HEIGHT, _decimate_into, peak_decimate, raster_row_map, raster_rows
 
 
 @pytest.mark.parametrize("n, width, first", [(2000, 1000, 0), (2000, 1000, 13), (2001, 997, 123456), (500, 1000, 7),
                                              (10000, 640, 3), (2000, 1, 5), (1, 800, 0)])
 def test_decimate_traces_is_peak_decimate(n, width, first):
+    from rigctl_gui.live_view import _decimate_into, peak_decimate  # (pyqtgraph: not for the collection)
+
     rng = np.random.default_rng(n + width + first)
     t = (first + np.arange(n)) / 1000.0
     x = rng.integers(0, 1024, (n, 18)).astype(np.uint16)
@@ -52,6 +53,8 @@ def test_the_kernels_compile_in_a_background_thread():
 
 @pytest.mark.parametrize("width, height, n_spikes", [(1000, 130, 1500), (333, 57, 20000), (50, 18, 0), (7, 200, 300)])
 def test_fill_raster_is_raster_rows_coloured(width, height, n_spikes):
+    from rigctl_gui.live_view import TICK_HEIGHT, raster_row_map, raster_rows  # (pyqtgraph: not for the collection)
+
     rng = np.random.default_rng(width * height + n_spikes)
     n_channels, window_s = 18, 2.0
     t = rng.uniform(-2.5, 0.2, n_spikes)
