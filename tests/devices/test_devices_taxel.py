@@ -209,6 +209,14 @@ def test_frames_are_stamped_as_their_burst_arrives(tmp_path):
     ticker.start()
     try:
         with TaxelStream(board.path, read_timeout_s=0.05) as stream:
+            handled = []  # the receive time of each chunk the reader handled: the stamp of its newest frame
+            handle = stream._handle
+
+            def recorded(data, t_rx):
+                handle(data, t_rx)
+                handled.append(t_rx)
+
+            stream._handle = recorded
             stream.start()
             time.sleep(0.1)
             stream.begin_capture()
@@ -228,8 +236,17 @@ def test_frames_are_stamped_as_their_burst_arrives(tmp_path):
     way_ms = np.array([probe.delay_ms.get(t, np.nan) for t in t_w])[burst]  # its burst's way to a reader
     assert np.count_nonzero(np.isnan(way_ms)) < len(way_ms) / 10
     excess_ms = late_ms - way_ms
-    assert np.nanmedian(excess_ms) < 10, (np.nanpercentile(excess_ms, [10, 50, 90]),
-                                          np.nanpercentile(late_ms, [10, 50, 90]))
+    # judged on the chunks that end at a burst's end (the kernel had handed the reader whole bursts). A chunk cut
+    # inside a burst shows a backlog in the kernel: a loaded host's pty hands a backlog over 4 KiB at a time, each
+    # after a kernel worker's turn, so its frames sat there for tens to thousands of ms, which the probe's 8-byte
+    # marks (never behind a backlog) do not see (beside two CPU hogs: median excess 10-2,300 ms over all frames,
+    # -0.2 to 0.2 ms over those chunks; a reader stamping at its wake-up instead: 17-27 ms over those chunks)
+    newest = np.abs(cap.host_time_s[:, None] - np.array(handled)[None, :]).min(axis=1) < 1e-7
+    chunk = np.cumsum(np.r_[0, newest[:-1]])  # each frame's chunk, numbered from the capture's first
+    whole = (seq + 1 == next_seq[burst])[newest][np.minimum(chunk, np.count_nonzero(newest) - 1)]
+    assert whole.any(), "no chunk ended at a burst's end"
+    assert np.nanmedian(excess_ms[whole]) < 10, (np.nanpercentile(excess_ms[whole], [10, 50, 90]),
+                                                 np.nanpercentile(late_ms, [10, 50, 90]), np.count_nonzero(whole))
 
 
 def _received_past(stream, uno, n):
