@@ -300,9 +300,11 @@ def _process_main(target: str, kwargs: dict, q) -> None:
 
 
 #: what every job of the analysis tab imports (the library's encoding and analyses, scikit-learn, scipy, numba,
-#: h5py: ~1.5-2 s of CPU), loaded once into the fork server that starts the jobs (:func:`job_context`)
+#: h5py: ~1.5-2 s of CPU), loaded once into the fork server that starts the jobs (:func:`job_context`), and numba's
+#: CPU target set up there once (:mod:`rigctl_gui.job_numba`)
 JOB_PRELOAD = ("rigctl_gui.analysis_jobs", "rigctl.operations", "rigctl.encoding.pipeline", "rigctl.analysis.tasks",
-               "rigctl.analysis.classify", "rigctl.analysis.model", "rigctl.encoding.estimators")
+               "rigctl.analysis.classify", "rigctl.analysis.model", "rigctl.encoding.estimators",
+               "rigctl_gui.job_numba")
 
 
 def job_context():
