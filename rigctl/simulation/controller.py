@@ -625,25 +625,26 @@ class MegaController:
         """
         if n_ms <= 0:
             return self.model.advance(0, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
+        m = self.model
+        steps_per_mm = m.config.drum.true_steps_per_mm  # the step pulses per mm at the driver's real setting
+        vmax = m.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
         samples, sync = [], []
         left = int(n_ms)
         while left > 0:
-            k = min(left, self.max_step_ms, self.model.ms_to_next_conversion())
+            k = min(left, self.max_step_ms, m.ms_to_next_conversion())
             with self._lock:
                 rate, vel = self._outputs
-            t0 = self.model.time_s
-            travel0, act0 = self.model.stepper_travel_mm, self.model.actuator_mm
-            s, y = self.model.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
-            m = self.model
+            t0 = m.time_s
+            travel0, act0 = m.stepper_travel_mm, m.actuator_mm
+            s, y = m.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
             with self._lock:  # the step pulses sent: the stepper's travel at the driver's real setting
-                y = self._index.step(y, (m.last_stepper_mm - travel0) * m.config.drum.true_steps_per_mm, t0,
-                                     m.last_marks)
-                vmax = self.model.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
+                y = self._index.step(y, (m.last_stepper_mm - travel0) * steps_per_mm, t0, m.last_marks)
                 sent = min(max(vel, -vmax), vmax) * k / 1000.0
-                if m.actuator_sign > 0 and self._home_switch_ok and m.actuator_mm <= 1e-6 and sent < m.actuator_mm - act0:
+                act = m.actuator_mm
+                if m.actuator_sign > 0 and self._home_switch_ok and act <= 1e-6 and sent < act - act0:
                     # the rear stop is the home switch, where the firmware stops on the step: a k-ms chunk counted
                     # steps past it never sent (a starved clock's long chunks put the count 0.06 mm off)
-                    sent = m.actuator_mm - act0
+                    sent = act - act0
                 self._steps_true_mm += sent
             self.control_step(k)
             samples.append(s)
