@@ -21,8 +21,8 @@ import numpy as np
 
 #: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, so
 #: two processes never write the same kernel's cache index at once: the serial builds (the simulated rig's renderer
-#: and mechanics, the fused encoder for every input type and its spike times, the float64 reference on one trial) and
-#: numba's parallel builds (the fused encoder on raw counts, the float64 reference, the spike trains' window counts)
+#: and mechanics, the fused encoder for every input type and its spike times, the float64 reference; ~18 s of CPU) and
+#: numba's parallel builds (the fused encoder on raw counts, the spike trains' window counts; ~11 s)
 PARTS = ("serial", "parallel")
 
 
@@ -47,12 +47,10 @@ def main(argv: list[str]) -> int:
         for data_dtype, dtype in ((np.uint16, np.float32), (np.float64, np.float32), (np.float64, np.float64),
                                   (np.uint16, np.float64)):
             run_fused(np.full((n, 2), 512, dtype=data_dtype), np.array([0, n]), scale=1 / 1023, dtype=dtype)
-        izhikevich.run_izhikevich(np.full((1, n, 2), 0.5), k=100.0)  # the float64 reference, one trial
-    if "parallel" in parts:  # numba's parallel builds: the fused encoder on raw counts, the float64 reference on more
-        # than a SIMD block of trials, the features' binning
+        izhikevich.encode(np.full((1, n, 2), 0.5), k=100.0)  # the float64 reference and its spike times
+    if "parallel" in parts:  # numba's parallel builds: the fused encoder on raw counts, the features' binning
         starts = np.arange(n_trials_big + 1, dtype=np.int64) * n
         run_fused(np.full((n * n_trials_big, 2), 512, dtype=np.uint16), starts, scale=1 / 1023, want_times=False)
-        izhikevich.run_izhikevich(np.full((n_trials_big, n, 2), 0.5), k=100.0)
         SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2).window_counts(0.032, 2)
     print(f"numba kernels ({', '.join(parts)}) compiled into the cache in {time.monotonic() - t0:.0f} s")
     return 0

@@ -35,7 +35,7 @@ import numpy as np
 
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.filters import lowpass_coefficients
-from rigctl.encoding.fused import FusedResult, FusedState, run_fused
+from rigctl.encoding.fused import FusedResult, FusedState, _on_threads, run_fused
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import StreamResampler, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
@@ -82,15 +82,6 @@ TONIC_SPIKING = IzhikevichParams()
 #: no FMA contraction or reassociation: every lane computes exactly the same IEEE operations, so batch, streaming
 #: and a plain Python loop agree bit for bit, whatever lane a channel lands in.
 _FASTMATH = {"nnan", "ninf", "nsz"}
-def _renamed(fn, name):
-    """A copy of ``fn`` under another name, so that numba caches its serial and parallel builds in separate files
-    (numba's cache index is per function name, not per compile flags)."""
-    import types
-
-    new = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
-    new.__qualname__ = name
-    new.__module__ = fn.__module__
-    return new
 
 
 #: steps buffered per block before their spikes are appended to the trains' sample-number slots
@@ -127,7 +118,7 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, spk, bl
     (0, 1) to skip: the sample numbers (from the trial start) of each train's first ``cap - 1`` spikes, written
     directly, branch-free (row ``t * C + ch``; ``counts`` says how many, ``>= cap`` = overflow; the last slot is
     scratch); block = trials per SIMD
-    block. Blocks of ``block`` trials run in parallel (prange); inside a block, time is the outer loop and the
+    block. Blocks of ``block`` trials run in parallel (on threads: :func:`_run`); inside a block, time is the outer loop and the
     ``block * C`` lanes (trial-major, channel-minor) are the contiguous SIMD axis.
     """
     n_ch = x.shape[1]
@@ -136,7 +127,7 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, spk, bl
     write = raster.shape[0] > 0
     write_spk = spk.shape[0] > 0
     cap = spk.shape[1]
-    for bi in numba.prange(n_blocks):
+    for bi in range(n_blocks):
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
         n_lanes = m * n_ch
@@ -203,10 +194,9 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, spk, bl
                 counts[t, ch] += cnt[k * n_ch + ch]
 
 
-_izh_kernel = numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)(_izh_kernel_py)
-#: the same kernel without the thread pool, for small calls (streaming chunks): no parallel launch overhead
-_izh_kernel_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=True, nogil=True)(
-    _renamed(_izh_kernel_py, "_izh_kernel_serial_py"))
+#: one serial build (no ``parallel=True`` build: ~3x the compile time); more than a block of trials runs on threads
+#: (:func:`rigctl.encoding.fused._on_threads`: the next block on each, the kernel releases the GIL)
+_izh_kernel = numba.njit(fastmath=_FASTMATH, cache=True, nogil=True)(_izh_kernel_py)
 
 
 def _raster_to_times_py(raster, starts, index_start, n0, dt, out):  # pragma: no cover
@@ -214,7 +204,7 @@ def _raster_to_times_py(raster, starts, index_start, n0, dt, out):  # pragma: no
     n0 (T,) int64 sample number of each trial's first row (0 in batch, the samples already seen when streaming)."""
     n_trials = starts.shape[0] - 1
     n_ch = raster.shape[1]
-    for t in numba.prange(n_trials):
+    for t in range(n_trials):
         pos = index_start[t].copy()
         s0 = starts[t]
         for n in range(s0, starts[t + 1]):
@@ -225,9 +215,7 @@ def _raster_to_times_py(raster, starts, index_start, n0, dt, out):  # pragma: no
                     pos[ch] += 1
 
 
-_raster_to_times = numba.njit(parallel=True, cache=True, nogil=True)(_raster_to_times_py)
-_raster_to_times_serial = numba.njit(parallel=False, cache=True, nogil=True)(
-    _renamed(_raster_to_times_py, "_raster_to_times_serial_py"))
+_raster_to_times = numba.njit(cache=True, nogil=True)(_raster_to_times_py)
 
 
 # ---------------------------------------------------------------------------------------------------------- input
@@ -358,10 +346,10 @@ def _run(readings, *, k, gain, offset, scale, params, state, active, want_raster
     order = order[np.argsort(lengths[order], kind="stable")]
     counts = np.zeros((n_trials, n_ch), dtype=np.int64)
     raster = np.zeros((x.shape[0] if want_raster else 0, n_ch), dtype=np.uint8)
-    kernel = _izh_kernel if order.size > block else _izh_kernel_serial
     spk = np.empty((n_trials * n_ch, spike_cap) if spike_cap > 0 else (0, 1), dtype=np.int32)
-    kernel(x, rg.starts, order, offset, g, v, u, counts, raster, spk, int(block), params.a, params.b, params.c,
-           params.d, params.v_peak)
+    _on_threads(lambda i, j: _izh_kernel(x, rg.starts, order[i:j], offset, g, v, u, counts, raster, spk, int(block),
+                                         params.a, params.b, params.c, params.d, params.v_peak),
+                order.size, int(block))  # whole blocks: no two calls write the same trial
     return counts, (raster if want_raster else None), (v, u), spk
 
 
@@ -369,7 +357,7 @@ def _times_from_spk_py(spk, index_start, counts, n0, dt, out):  # pragma: no cov
     """Flat spike times from the kernel's per-train sample numbers: row r = t * C + ch of ``spk`` holds
     ``counts[t, ch]`` sample numbers; time = (sample + n0[t]) * dt, written from ``index_start[t, ch]``."""
     n_trials, n_ch = counts.shape
-    for t in numba.prange(n_trials):
+    for t in range(n_trials):
         for ch in range(n_ch):
             r = t * n_ch + ch
             p0 = index_start[t, ch]
@@ -377,9 +365,7 @@ def _times_from_spk_py(spk, index_start, counts, n0, dt, out):  # pragma: no cov
                 out[p0 + i] = (np.int64(spk[r, i]) + n0[t]) * dt
 
 
-_times_from_spk = numba.njit(parallel=True, cache=True, nogil=True)(_times_from_spk_py)
-_times_from_spk_serial = numba.njit(parallel=False, cache=True, nogil=True)(
-    _renamed(_times_from_spk_py, "_times_from_spk_serial_py"))
+_times_from_spk = numba.njit(cache=True, nogil=True)(_times_from_spk_py)
 
 
 def _spike_cap(n_max: int) -> int:
@@ -410,8 +396,9 @@ def _encode_trains(rg: Ragged, *, k, gain=1.0, offset=0.0, scale=1.0, fs=FS_HZ, 
     index_start = (index - flat).reshape(counts.shape)
     out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
     n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
-    fill = _times_from_spk if n_trials > BLOCK_TRIALS else _times_from_spk_serial
-    fill(spk, index_start, counts, n0, 1.0 / fs, out)
+    n_ch = counts.shape[1]
+    _on_threads(lambda i, j: _times_from_spk(spk[i * n_ch:j * n_ch], index_start[i:j], counts[i:j], n0[i:j], 1.0 / fs,
+                                             out), n_trials, BLOCK_TRIALS)  # (out: written at index_start)
     return SpikeTrains(out, index, counts.shape[1])
 
 
@@ -421,8 +408,9 @@ def _trains_from_raster(raster, starts, counts, fs, n0=0) -> SpikeTrains:
     index_start = (index - counts.ravel()).reshape(counts.shape)
     out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
     n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
-    fill = _raster_to_times if n_trials > BLOCK_TRIALS else _raster_to_times_serial
-    fill(raster, starts, np.ascontiguousarray(index_start), n0, 1.0 / fs, out)
+    index_start = np.ascontiguousarray(index_start)
+    _on_threads(lambda i, j: _raster_to_times(raster, starts[i:j + 1], index_start[i:j], n0[i:j], 1.0 / fs, out),
+                n_trials, BLOCK_TRIALS)  # (rows and out: at starts and index_start)
     return SpikeTrains(out, index, counts.shape[1])
 
 
