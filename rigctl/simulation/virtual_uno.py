@@ -174,7 +174,7 @@ class VirtualUno:
                     port.write(self.banner)
                 port.flush()
                 return
-            commands = port.read(4096) if port.unread_from_client() else b""  # (a read that finds none costs more)
+            commands = port.read(4096)
             n = len(samples)
             # commands are applied at the start of this tick (the Uno checks its UART between ticks)
             for byte in commands:
