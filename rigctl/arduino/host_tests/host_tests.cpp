@@ -567,6 +567,31 @@ static void test_steprate()
     CHECK(steprate_timer(0.1f, 16000000UL, &t) == 0);      // below /1024's range: stopped
     CHECK(steprate_timer(1.0f, 16000000UL, &t) == 1 && t.cs == 4); // /256
     CHECK(steprate_timer(2000.0f, 16000000UL, &t) == 1 && t.cs == 1 && t.ocr == 7999);
+    // one division scaled by 1 / prescaler gives bit for bit the per-prescaler form f_cpu / (prescaler * f_hz)
+    {
+        static const uint16_t presc[5] = {1, 8, 64, 256, 1024};
+        int mismatches = 0;
+        for (float f = 0.05f; f < 2.0e7f; f *= 1.0001f) {
+            for (float g : {f, std::nextafter(f, 0.0f), std::nextafter(f, 1e9f)}) {
+                steptimer_t ref = {0, 0}, got;
+                uint8_t ref_ok = 0;
+                for (int i = 0; i < 5; i++) {
+                    float period = (float)16000000UL / ((float)presc[i] * g);
+                    if (period <= 65536.0f) {
+                        uint32_t p = (uint32_t)(period + 0.5f);
+                        if (p < 2) p = 2;
+                        ref.cs = (uint8_t)(i + 1);
+                        ref.ocr = (uint16_t)(p - 1);
+                        ref_ok = 1;
+                        break;
+                    }
+                }
+                uint8_t ok = steprate_timer(g, 16000000UL, &got);
+                if (ok != ref_ok || got.cs != ref.cs || got.ocr != ref.ocr) mismatches++;
+            }
+        }
+        CHECK(mismatches == 0);
+    }
     CHECK(steprate_ramp(0, 100, 400, 0.001f) == 0.4f);
     CHECK(steprate_ramp(99.9f, 100, 400, 0.001f) == 100.0f);
     CHECK(steprate_ramp(50, 0, 400, 0.001f) == 49.6f);

@@ -467,10 +467,18 @@ static void step_timer_retime(const step_timer_regs *r, volatile uint8_t *runnin
     }
 }
 
+/* loop() applies both step rates every 1 kHz tick (and the actuator's at each HX711 reading), mostly unchanged: each
+ * float computation is remembered with its input and redone only when that changes (the same result, without
+ * ~1000-3000 cycles of soft-float a tick; a NaN key never matches, so the first call computes) */
 static void drum_apply(float v_mm_s)
 {
-    steptimer_t t;
-    steprate_timer(steprate_hz_from_mm_s(v_mm_s, DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV), F_CPU, &t);
+    static float memo_v = NAN;
+    static steptimer_t memo_t;
+    if (!(v_mm_s == memo_v)) {
+        steprate_timer(steprate_hz_from_mm_s(v_mm_s, DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV), F_CPU, &memo_t);
+        memo_v = v_mm_s;
+    }
+    steptimer_t t = memo_t;
     cli();
     if (motion_inhibit) t.cs = 0; /* e-stop: the timers stay stopped whatever loop() asks */
     drum_next.cs = t.cs;
@@ -489,7 +497,13 @@ static float drum_actual_mm_s(void)
     t.cs = drum_running_cs;
     t.ocr = drum_running_ocr;
     sei();
-    return steprate_mm_s_from_hz(steprate_timer_hz(&t, F_CPU), DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV);
+    static steptimer_t memo_t = {0xFF, 0}; /* no timer setting: the first call computes */
+    static float memo_mm_s;
+    if (t.cs != memo_t.cs || t.ocr != memo_t.ocr) {
+        memo_mm_s = steprate_mm_s_from_hz(steprate_timer_hz(&t, F_CPU), DRUM_DIAMETER_MM, DRUM_USTEPS_PER_REV);
+        memo_t = t;
+    }
+    return memo_mm_s;
 }
 
 /* The actuator's step generator follows the commanded velocity at once. A stop or a reversal (STOP, a fault, the host
@@ -502,7 +516,13 @@ static void act_apply(float v_mm_s)
     steptimer_t t;
     uint8_t dir = v_mm_s > 0.0f;
     float f = (v_mm_s < 0 ? -v_mm_s : v_mm_s) * (float)ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
-    steprate_timer(f, F_CPU, &t);
+    static float memo_f = NAN; /* drum_apply: the step rate's timer setting remembered */
+    static steptimer_t memo_t;
+    if (!(f == memo_f)) {
+        steprate_timer(f, F_CPU, &memo_t);
+        memo_f = f;
+    }
+    t = memo_t;
     cli();
     if (motion_inhibit) t.cs = 0;
     act_next.cs = t.cs;

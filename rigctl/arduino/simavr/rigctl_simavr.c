@@ -151,8 +151,9 @@ static int bridge_open(void)
     return tx_ring ? 0 : -1;
 }
 
-/* move bytes both ways; called from the simulation loop every 0.1 ms of simulated time */
-static void bridge_poll(void)
+/* move bytes both ways; called from the simulation loop every 0.1 ms of simulated time; readable: poll() saw host
+ * bytes (or a hang-up) on the pty */
+static void bridge_poll(int readable)
 {
     if (atomic_load(&link_down_req)) { /* USB pulled: nothing reaches the board, nothing it sends reaches the host */
         uint8_t junk[512];
@@ -168,7 +169,7 @@ static void bridge_poll(void)
         if (w <= 0) break; /* EAGAIN: the host is behind; keep the bytes */
         tx_tail = (tx_tail + (size_t)w) & (TX_RING_SIZE - 1);
     }
-    if (rx_pos == rx_len) {
+    if (rx_pos == rx_len && readable) {
         ssize_t r = read(pty_master, rx_buf, sizeof rx_buf);
         rx_pos = 0;
         rx_len = r > 0 ? (size_t)r : 0;
@@ -487,10 +488,15 @@ static int probes_high; /* bit p: probe p is high */
 static unsigned sp_min = 0xFFFF; /* lowest stack pointer seen since start (the stack's high-water mark) */
 static uint64_t busy_window, busy_window_sum, busy_report_sum, busy_report_ticks, busy_report_max, busy_max;
 
+static uint64_t busy_window_start, busy_window_end = 16000u; /* the window's cycles [start, end) */
+
+/* called for every step of the core: the window is found with a division only when the step left it */
 static void busy_account(uint64_t cycle_before, int busy)
 {
-    uint64_t w = cycle_before / 16000u;
-    if (w != busy_window) {
+    if (cycle_before < busy_window_start || cycle_before >= busy_window_end) {
+        uint64_t w = cycle_before / 16000u;
+        busy_window_start = w * 16000u;
+        busy_window_end = busy_window_start + 16000u;
         busy_report_sum += busy_window_sum;
         busy_report_ticks += w - busy_window;
         if (busy_window_sum > busy_report_max) busy_report_max = busy_window_sum;
@@ -1385,6 +1391,8 @@ static void mega_poll(void)
  * time (stopped, exited), is not waited for. */
 #define LOCK_LEAD_S 0.002
 #define LOCK_STALE_S 0.5
+#define LOCK_WAIT_MIN_S 0.0001
+#define LOCK_WAIT_MAX_S 0.002
 static _Atomic uint64_t *lock_slots;
 static int lock_self;
 static double lock_time_s;       /* this core's simulated time for the lock */
@@ -1427,10 +1435,15 @@ static void clock_lock_wait(void)
             lock_other_ns = other;
             lock_other_wall = t;
         }
-        if (other == 0 || lock_time_s <= (other - 1) * 1e-9 + LOCK_LEAD_S || t - lock_other_wall > LOCK_STALE_S
-            || atomic_load(&quit_requested))
+        double excess = lock_time_s - ((other - 1) * 1e-9 + LOCK_LEAD_S);
+        if (other == 0 || excess <= 0.0 || t - lock_other_wall > LOCK_STALE_S || atomic_load(&quit_requested))
             return;
-        struct timespec ts = {0, 100000};
+        /* the partner moves at about wall-clock pace: sleep until it has caught up by the excess and half the lead
+         * (LOCK_WAIT_MIN_S .. LOCK_WAIT_MAX_S), not in 0.1 ms steps (each a context switch: ~3000 a second) */
+        double wait = excess + LOCK_LEAD_S / 2;
+        if (wait < LOCK_WAIT_MIN_S) wait = LOCK_WAIT_MIN_S;
+        if (wait > LOCK_WAIT_MAX_S) wait = LOCK_WAIT_MAX_S;
+        struct timespec ts = {0, (long)(wait * 1e9)};
         nanosleep(&ts, NULL);
     }
 }
@@ -1460,6 +1473,155 @@ static void poll_period_arm(void)
 {
     if (!avr_cycle_timer_status(avr, poll_period_timer, NULL))
         avr_cycle_timer_register(avr, POLL_CYCLES, poll_period_timer, NULL);
+}
+
+/* ================================ a spinning core ================================
+ * A loop() that polls (the Uno's: it reads UCSR0A and its receive ring until an interrupt brings work) runs the same
+ * few instructions over and over; each costs the harness as much as any other, and on the Uno they were ~43 % of all
+ * instructions (the rest: its interrupts). When the core comes back to a loop head with the same registers, SREG and
+ * SP as on its previous pass there, P cycles later, and that pass wrote nothing (no store, push, call, OUT/SBI/CBI,
+ * SLEEP/WDR/SPM, SEI/CLI, RET/RETI) and read no I/O register whose read has a side effect in simavr (a read hook; the
+ * UART status register's is allowed: it only re-raises XON while the receive FIFO is empty), and no interrupt is
+ * pending that the core would take, then every following pass is the very same until an event changes memory or an
+ * I/O register: a cycle timer (a timer, the ADC, the UART, the watchdog, the poll-period bound) or the harness's
+ * 0.1 ms poll (pins and bytes it drives). The harness then moves avr->cycle on by the whole passes that end before the next of those events: the
+ * core is at the same instruction with the same state at the same cycle as if it had run them, so the instruction
+ * that reaches the event, the interrupt it takes and everything after are cycle for cycle those of the busy loop
+ * (its PC and registers are unchanged, and no pass skipped could have seen anything new). Streaming, the Uno's loop()
+ * gets ~41 % of its cycles (its interrupts the rest); optiboot's wait for a byte (interrupts off) qualifies too. The
+ * tracking costs every instruction a little, so it runs for the Uno only: the Mega's loop() sleeps (SLEEP) and feeds
+ * the watchdog (WDR), and its bootloader's wait counts, so neither ever qualifies (measured: 15 % more CPU for the
+ * Mega, none saved). The EXIT line counts the skips ("spin_skips=N"). */
+#define SPIN_MAX_PASS 32 /* instructions in one pass at most */
+#define SPIN_MAX_BACK 256 /* bytes of a backward jump that starts a candidate loop */
+#define SPIN_MISSES 2
+#define SPIN_BAN_STEPS 100000
+#define UCSR0A_ADDR 0xC0 /* data-space address, ATmega328P and ATmega2560 */
+static uint32_t spin_head = UINT32_MAX; /* candidate loop head (byte address) */
+static int spin_dirty, spin_len, spin_have;
+static uint8_t spin_state[32 + 8 + 2]; /* registers, SREG, SP at the last arrival at the head ... */
+static uint64_t spin_cycle;            /* ... and its cycle */
+static int spin_misses;                /* pure passes in a row whose state changed (a counting loop, a division) */
+static uint64_t spin_steps;            /* steps tracked */
+static struct {
+    uint32_t head;
+    uint64_t until; /* spin_steps */
+} spin_ban[64]; /* heads of such loops, not taken as candidates for SPIN_BAN_STEPS */
+static uint64_t spin_skips;
+
+static void spin_snapshot(uint8_t *out)
+{
+    memcpy(out, avr->data, 32);
+    memcpy(out + 32, avr->sreg, 8);
+    out[40] = avr->data[0x5D];
+    out[41] = avr->data[0x5E];
+}
+
+/* a read of data address addr has no side effect in simavr (SRAM, an I/O register without a read hook, or the UART
+ * status register) */
+static int spin_read_ok(uint32_t addr)
+{
+    if (addr < 32 || addr >= 32 + MAX_IOs) return 1;
+    avr_io_read_t hook = avr->io[AVR_DATA_TO_IO(addr)].r.c;
+    return !hook || hook == avr->io[AVR_DATA_TO_IO(UCSR0A_ADDR)].r.c;
+}
+
+/* the instruction at pc, about to run with the registers as they are now, writes nothing and reads no I/O register
+ * with a side effect */
+static int spin_pure(uint32_t pc)
+{
+    uint16_t op = avr->flash[pc] | (avr->flash[pc + 1] << 8);
+    const uint8_t *r = avr->data;
+    if ((op & 0xFE00) == 0x9200) return 0;                   /* STS, ST X/Y/Z +/-, XCH/LAS/LAC/LAT, PUSH */
+    if ((op & 0xD200) == 0x8200) return 0;                   /* ST/STD Y+q, Z+q */
+    if ((op & 0xF800) == 0xB800) return 0;                   /* OUT */
+    if ((op & 0xFD00) == 0x9800) return 0;                   /* CBI, SBI */
+    if ((op & 0xF000) == 0xD000) return 0;                   /* RCALL */
+    if ((op & 0xFE0E) == 0x940E) return 0;                   /* CALL */
+    if ((op & 0xFF0F) == 0x9408) return 0;                   /* BSET/BCLR: SEI, CLI, ... */
+    if ((op & 0xFF0F) == 0x9508 || (op & 0xFF0F) == 0x9509) return 0; /* RET, RETI, ICALL, EICALL, SLEEP, WDR, SPM... */
+    if ((op & 0xFE0F) == 0x900F) return 0;                   /* POP */
+    if ((op & 0xF800) == 0xB000) return spin_read_ok(32 + ((op & 0x0F) | ((op >> 5) & 0x30))); /* IN */
+    if ((op & 0xFD00) == 0x9900) return spin_read_ok(32 + ((op >> 3) & 0x1F));                /* SBIC, SBIS */
+    if ((op & 0xFE0F) == 0x9000) return spin_read_ok(avr->flash[pc + 2] | (avr->flash[pc + 3] << 8)); /* LDS */
+    if ((op & 0xD200) == 0x8000) { /* LD/LDD Y+q, Z+q */
+        uint32_t q = (op & 7) | ((op >> 7) & 0x18) | ((op >> 8) & 0x20);
+        uint32_t base = (op & 8) ? (r[28] | (r[29] << 8)) : (r[30] | (r[31] << 8));
+        return spin_read_ok(base + q);
+    }
+    if ((op & 0xFE00) == 0x9000) { /* LD X/Y/Z with pre-decrement or post-increment; LPM/ELPM (flash) */
+        switch (op & 0x0F) {
+        case 0x1: case 0x2: return spin_read_ok(r[30] | (r[31] << 8));
+        case 0x9: case 0xA: return spin_read_ok(r[28] | (r[29] << 8));
+        case 0xC: case 0xD: case 0xE: return spin_read_ok(r[26] | (r[27] << 8));
+        default: return 1;
+        }
+    }
+    return 1;
+}
+
+/* the cycle of the next cycle timer (simavr's list), or UINT64_MAX */
+static uint64_t spin_next_timer(void)
+{
+    uint64_t when = UINT64_MAX;
+    for (avr_cycle_timer_slot_p t = avr->cycle_timers.timer; t; t = t->next)
+        if (t->when < when) when = t->when;
+    return when;
+}
+
+/* after a step the core ran (pc_before: the instruction it ran; pure: spin_pure of it, before it ran): track the
+ * candidate loop and skip the passes that would repeat themselves before the next event (next_check: the harness's
+ * next poll) */
+static void spin_step(uint32_t pc_before, int pure, uint64_t next_check)
+{
+    uint32_t pc = avr->pc;
+    if (!pure) spin_dirty = 1;
+    spin_steps++;
+    if (pc == spin_head) {
+        uint8_t now[sizeof spin_state];
+        spin_snapshot(now);
+        uint64_t pass = avr->cycle - spin_cycle;
+        if (spin_have && !spin_dirty && (!avr->sreg[S_I] || avr->interrupt_state == 0) && avr->state == cpu_Running
+            && pass > 0 && !memcmp(now, spin_state, sizeof now)) {
+            uint64_t event = spin_next_timer();
+            if (next_check < event) event = next_check;
+            if (event != UINT64_MAX && event > avr->cycle + pass) {
+                avr->cycle += (event - 1 - avr->cycle) / pass * pass; /* whole passes, all ending before the event */
+                spin_skips++;
+            }
+            spin_misses = 0;
+        } else {
+            /* a loop whose pure passes keep changing its registers (a delay loop, a division) never repeats a pass:
+             * after SPIN_MISSES of them its head is no candidate for SPIN_BAN_STEPS steps (decoding and comparing
+             * its passes cost more than they would find) */
+            spin_misses = spin_have && !spin_dirty ? spin_misses + 1 : 0;
+            if (spin_misses >= SPIN_MISSES) {
+                spin_ban[(pc >> 1) & 63].head = pc;
+                spin_ban[(pc >> 1) & 63].until = spin_steps + SPIN_BAN_STEPS;
+                spin_misses = 0;
+                spin_head = UINT32_MAX;
+                spin_have = 0;
+                return;
+            }
+            memcpy(spin_state, now, sizeof now);
+            spin_have = 1;
+        }
+        spin_cycle = avr->cycle;
+        spin_dirty = 0;
+        spin_len = 0;
+    } else if (pc < pc_before && pc_before - pc <= SPIN_MAX_BACK /* a backward jump: a new candidate loop */
+               && !(spin_ban[(pc >> 1) & 63].head == pc && spin_steps < spin_ban[(pc >> 1) & 63].until)) {
+        spin_misses = 0;
+        spin_head = pc;
+        spin_snapshot(spin_state);
+        spin_cycle = avr->cycle;
+        spin_have = 1;
+        spin_dirty = 0;
+        spin_len = 0;
+    } else if (++spin_len > SPIN_MAX_PASS) {
+        spin_head = UINT32_MAX;
+        spin_have = 0;
+    }
 }
 
 /* ================================ main loop ================================ */
@@ -1606,8 +1768,14 @@ int main(int argc, char **argv)
         }
         uint64_t cycle_before = avr->cycle;
         int busy_before = !avr->sreg[S_I] || probes_high;
+        uint32_t pc_before = avr->pc;
+        int ran = avr->state == cpu_Running;
+        /* an instruction outside the candidate loop's span (an interrupt's, a callee's) ends the pass undecoded */
+        int pure = is_uno && ran && pc_before >= spin_head && pc_before - spin_head <= SPIN_MAX_BACK
+                   && spin_pure(pc_before);
         int state = avr_run(avr);
         if (is_uno) busy_account(cycle_before, busy_before || !avr->sreg[S_I]);
+        if (is_uno && ran && state == cpu_Running) spin_step(pc_before, pure, next_check);
         if (state == cpu_Done || state == cpu_Crashed) {
             fprintf(stderr, "simavr core stopped (state %d)\n", state);
             break;
@@ -1619,7 +1787,12 @@ int main(int argc, char **argv)
         extint_poll();
         /* a host's open first: its DTR resets the board before it can send (the bytes it writes at once, waiting
          * in the pty, then reach the bootloader, never the old sketch: both can land in one poll's gap) */
-        if (ino >= 0) {
+        /* one poll() for the pty and the open detector instead of a read() on each (both empty almost always):
+         * both are seen at the same instant, so an open and the bytes written after it are found together, and the
+         * open is handled first */
+        struct pollfd pfd[2] = {{.fd = pty_master, .events = POLLIN}, {.fd = ino, .events = POLLIN}};
+        if (poll(pfd, ino >= 0 ? 2 : 1, 0) <= 0) pfd[0].revents = pfd[1].revents = 0;
+        if (ino >= 0 && pfd[1].revents) {
             char buf[4096];
             ssize_t n = read(ino, buf, sizeof buf);
             if (n > 0 && boot_loaded) { /* a host opened the port: DTR reset into the bootloader */
@@ -1634,7 +1807,7 @@ int main(int argc, char **argv)
                 continue;
             }
         }
-        bridge_poll();
+        bridge_poll(pfd[0].revents != 0);
         if (boot_loaded) boot_watch();
         if (is_uno) uno_poll();
         else mega_poll();
@@ -1678,7 +1851,8 @@ int main(int argc, char **argv)
             }
         }
     }
-    printf("EXIT t=%.6f lost_tx_bytes=%llu\n", sim_s(), (unsigned long long)tx_lost);
+    printf("EXIT t=%.6f lost_tx_bytes=%llu spin_skips=%llu\n", sim_s(), (unsigned long long)tx_lost,
+           (unsigned long long)spin_skips);
     fflush(stdout);
     _exit(0); /* the stdin reader thread may still block in fgets */
 }
