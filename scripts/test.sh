@@ -119,12 +119,13 @@ export QT_QPA_PLATFORM=offscreen
 checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
 before="$(checkout_state)"
 
-# numba's kernels compiled once into the cache before the tests start, in two processes side by side while ruff runs
-# and the firmware builds (scripts/compile_kernels.py: ~18 + ~12 s of CPU since the fused encoder keeps one parallel
-# build); otherwise each test worker, GUI analysis process and CLI subprocess that starts before the cache is ready
-# compiles the ones it needs. (Tried: the parallel part beside the first tests, at nice 5 and at nice 19, with the tests that may encode waiting for it. pytest took as
-# long (260 s against 244-260 with 6 workers; 242 s against 219-231 with 7), and rigs starting beside the compile
-# missed their first answers: a ready banner not within 3 s, a Modbus read not answered in three tries.)
+# numba's kernels compiled once into the cache before the tests start, in two processes side by side while ruff runs and
+# the firmware builds (scripts/compile_kernels.py: ~18 + ~12 s of CPU since the fused encoder keeps one parallel build);
+# otherwise each test worker, GUI analysis process and CLI subprocess that starts before the cache is ready compiles the
+# ones it needs. (Tried: the parallel part beside the first tests, at nice 5 and at nice 19, with the tests that may
+# encode waiting for it. pytest took as long (260 s against 244-260 with 6 workers; 242 s against 219-231 with 7), and
+# rigs starting beside the compile missed their first answers: a ready banner not within 3 s, a Modbus read not answered
+# in three tries.)
 kernel_pids=()
 for part in serial parallel; do
   python3 scripts/compile_kernels.py "$part" > "$TEST_TMP/compile_kernels_$part.log" 2>&1 &
