@@ -8,6 +8,8 @@ app itself takes whatever palette the desktop gives it.
 
 from __future__ import annotations
 
+import functools
+
 from PySide6 import QtGui, QtWidgets
 
 #: the app's error red (on a light window; :func:`on_window` makes it readable on any)
@@ -33,8 +35,14 @@ def contrast_ratio(a: QtGui.QColor | str, b: QtGui.QColor | str) -> float:
 def readable(colour: str, background: QtGui.QColor | str, min_ratio: float = MIN_CONTRAST) -> str:
     """``colour`` (a name or ``#rgb``) as a ``#rrggbb`` text colour readable on ``background``: itself when its
     contrast ratio is at least ``min_ratio``, else the same hue made lighter (on a dark background) or darker (on a
-    light one) until it is."""
-    c, bg = QtGui.QColor(colour), QtGui.QColor(background)
+    light one) until it is. The app asks this for its state colours several times a second: each answer is
+    worked out once per colour, background and ratio."""
+    return _readable(colour, QtGui.QColor(background).rgba(), min_ratio)
+
+
+@functools.lru_cache(maxsize=512)
+def _readable(colour: str, background_rgba: int, min_ratio: float) -> str:
+    c, bg = QtGui.QColor(colour), QtGui.QColor.fromRgba(background_rgba)
     if contrast_ratio(c, bg) >= min_ratio:
         return c.name()
     h, s, lightness = c.hslHueF(), c.hslSaturationF(), c.lightnessF()
