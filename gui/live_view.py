@@ -476,10 +476,9 @@ class LiveView(QtWidgets.QWidget):
         self._titles: dict[pg.PlotItem, list[str]] = {}
 
         def time_plot(row: int, title: str):
-            p = self.gl.addPlot(row=row, col=0)
+            p = self.gl.addPlot(row=row, col=0, enableMenu=False)  # no context menus (never built)
             self._titles[p] = [title]
             p.setMouseEnabled(x=False, y=False)
-            p.setMenuEnabled(False)
             p.hideButtons()
             p.disableAutoRange()
             p.setXRange(-self.window_s, 0, padding=0)
