@@ -669,12 +669,17 @@ class AnalysisTab(QtWidgets.QWidget):
             self.progress.setValue(100)
             self.show_results(results)
         elif self._job_kind == "training":
-            self.main.classify.load_model(job.result)
-            clf = self.main.classify.model[-1]
             self.progress.setRange(0, 100)
             self.progress.setValue(100)
-            self.status.setText(f"trained a {clf.variant} PCA+LDA pipeline ({clf.n_pcs_} PCs, {len(clf.classes_)} "
-                                f"textures), saved to {_html(job.result)}; the real-time view uses it")
+            saved = job.result
+            self.status.setText(f"trained a model, saved to {_html(saved)}; loading it for the real-time view")
+
+            def loaded(model) -> None:
+                clf = model[-1]
+                self.status.setText(f"trained a {clf.variant} PCA+LDA pipeline ({clf.n_pcs_} PCs, {len(clf.classes_)} "
+                                    f"textures), saved to {_html(saved)}; the real-time view uses it")
+
+            self.main.classify.load_model(saved, on_loaded=loaded)
 
     def _update_buttons(self) -> None:
         busy = self._busy()

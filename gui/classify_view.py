@@ -9,10 +9,13 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+from collections.abc import Callable
+from typing import Any
 
 from PySide6 import QtCore, QtWidgets
 
 from rigctl_gui.colours import ERROR, on_window
+from rigctl_gui.messages import escaped
 from rigctl_gui.workers import Job
 
 MAX_TILES = 60
@@ -118,6 +121,7 @@ class ClassifyView(QtWidgets.QWidget):
         self.model_path: str | None = None
         self._pending: collections.deque = collections.deque()
         self._job: Job | None = None
+        self._loading: tuple[Job, Callable[[Any], None] | None] | None = None  # a model file being loaded
         self.board = PredictionBoard()
         self.results = self.board.results  # (trial_id, truth, predicted)
         self.score, self.latest, self.grid = self.board.score, self.board.latest, self.board.grid
@@ -143,17 +147,38 @@ class ClassifyView(QtWidgets.QWidget):
                                        "wrong, the true texture below"))
         lay.addWidget(self.board.tiles, 1)
 
-    def load_model(self, path: str) -> None:
-        """Use the model file ``path`` for the trials to come. Raises :class:`rigctl.storage.model_file.ModelFileError`
-        (not a model file, other library versions) or OSError."""
+    def load_model(self, path: str, on_loaded: Callable[[Any], None] | None = None) -> None:
+        """Use the model file ``path`` for the trials to come, loaded in a worker thread (the first load imports
+        skops and scikit-learn: ~1.5 s, which on the GUI thread would trip the dead man's switch while the drum
+        turns); :meth:`refresh` applies it on the GUI thread and calls ``on_loaded(model)``. A file that cannot be
+        loaded (:class:`rigctl.storage.model_file.ModelFileError`: not a model file, other library versions; OSError)
+        is named in the tab and the model in use stays."""
         from rigctl.storage.model_file import load_model
 
-        model = load_model(path)
+        self.model_label.setText(f"Loading the model {escaped(path)} ...")
+        job = Job(lambda j: load_model(path), name="load-model")
+        job.path = str(path)
+        self._loading = (job, on_loaded)
+        job.start()
+
+    def _apply_loaded(self) -> None:
+        """The model load :meth:`load_model` started, once it is done (GUI thread)."""
+        if self._loading is None or not self._loading[0].done:
+            return
+        job, on_loaded = self._loading
+        self._loading = None
+        if job.error:
+            self.model_label.setText(f"<span style='color:{on_window(ERROR, self)}'>cannot load {escaped(job.path)}: "
+                                     f"{escaped(job.error)}</span>")
+            return
+        model = job.result
         clf = model[-1]
-        self.model, self.model_path = model, str(path)
+        self.model, self.model_path = model, job.path
         self.model_label.setText(f"Model: {' -> '.join(model.named_steps)}; PCA + LDA on <b>{clf.variant}</b> "
                                  f"features, {clf.n_pcs_} PCs, textures {', '.join(map(str, clf.classes_))} "
-                                 f"(from {path})")
+                                 f"(from {job.path})")
+        if on_loaded is not None:
+            on_loaded(model)
 
     def _choose_model(self):
         from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
@@ -161,12 +186,7 @@ class ClassifyView(QtWidgets.QWidget):
         return choose_path(self, "open", "Model file", "", "Model files (*.skops)", self._model_chosen)
 
     def _model_chosen(self, path: str) -> None:
-        from rigctl_gui.messages import escaped
-
-        try:
-            self.load_model(path)
-        except (OSError, ValueError) as exc:
-            self.model_label.setText(f"<span style='color:{on_window(ERROR, self)}'>cannot load {escaped(path)}: {escaped(exc)}</span>")
+        self.load_model(path)
 
     def clear(self) -> None:
         self.board.clear()
@@ -177,6 +197,7 @@ class ClassifyView(QtWidgets.QWidget):
             self._pending.append((planned, data))
 
     def refresh(self) -> None:
+        self._apply_loaded()
         job = self._job
         if job is not None and job.done:
             self._job = None

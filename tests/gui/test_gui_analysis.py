@@ -216,6 +216,47 @@ def test_realtime_view_marks_predictions_against_ground_truth(window, qapp, qtbo
     assert sum(t == p for _, t, p in view.results) >= 3
 
 
+def test_a_model_file_loads_off_the_gui_thread(window, qapp, monkeypatch):
+    """Loading a model file (the first load imports skops and scikit-learn, ~1.5 s: on the GUI thread that trips the
+    dead man's switch while the drum turns) runs in a worker thread: the GUI thread gets on while the load is held,
+    the tab says it is loading, the model is used once loaded; a file that cannot be loaded is named in the tab and
+    the model in use stays."""
+    import threading
+
+    import rigctl.storage.model_file as model_file
+
+    class Loaded(list):  # a model file's pipeline as the view reads it: its steps and the classifier last
+        named_steps = {"encode": None, "classify": None}
+
+    view = window.classify
+    kept = view.model, view.model_path
+    gate, on_gui_thread, got = threading.Event(), [], []
+    model = Loaded([SimpleNamespace(variant="speed_scaled", n_pcs_=3, classes_=["A", "B"])])
+
+    def held_load(path):
+        on_gui_thread.append(threading.current_thread() is threading.main_thread())
+        assert gate.wait(5)
+        if str(path).endswith("broken.skops"):
+            raise model_file.ModelFileError(f"{path}: not a model file")
+        return model
+
+    monkeypatch.setattr(model_file, "load_model", held_load)
+    try:
+        view.load_model("/models/m.skops")  # returns while the load is held (on the GUI thread: held 5 s, then fails)
+        assert "Loading" in view.model_label.text() and view.model is kept[0]
+        assert wait_for(qapp, lambda: on_gui_thread, 10) and on_gui_thread == [False]
+        gate.set()
+        assert wait_for(qapp, lambda: view.model is model, 10), view.model_label.text()
+        assert view.model_path == "/models/m.skops" and "speed_scaled" in view.model_label.text()
+        view.load_model("/models/m.skops", on_loaded=got.append)  # the training job's way: told when it is in use
+        assert wait_for(qapp, lambda: got, 10) and got == [model]
+        view.load_model("/models/broken.skops", on_loaded=got.append)
+        assert wait_for(qapp, lambda: "cannot load" in view.model_label.text(), 10), view.model_label.text()
+        assert "broken.skops" in view.model_label.text() and view.model is model and got == [model]
+    finally:
+        view.model, view.model_path = kept
+
+
 def test_a_first_trial_and_the_results_keep_a_1280x800_window_1280_px_wide(window, qapp, qtbot, dataset):
     """The first trial of a file shows a long busy note ("... the first trial also takes each taxel's range ...");
     unwrapped, that label's width grew a 1280x800 window to ~1490 px (and Qt never shrinks it back), which is what
