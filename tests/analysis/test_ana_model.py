@@ -118,7 +118,13 @@ def test_saved_model_alone_classifies_new_trials_in_the_realtime_view(session, t
     assert leak["variant"] == "speed_force_scaled" and leak["folds"] == 4
     assert 0 <= leak["per_fold"] <= 1 and leak["leak"] == pytest.approx(leak["fitted_on_all"] - leak["per_fold"])
     view = ClassifyView(SimpleNamespace())
-    view.load_model(str(model))
+    view.load_model(str(model))  # in a worker thread; the view's refresh (the window's clock) puts it in use
+
+    def loaded():
+        view.refresh()
+        return view.model is not None
+
+    assert wait_for(qapp, loaded, 60), view.model_label.text()
     assert "speed_scaled" in view.model_label.text()
     with open_session(session) as s:
         records = [(s.plan[i], s.trial(i)) for i in range(0, 16, 2)]
