@@ -625,9 +625,8 @@ class MegaController:
         """
         if n_ms <= 0:
             return self.model.advance(0, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
-        m = self.model
-        steps_per_mm = m.config.drum.true_steps_per_mm  # the step pulses per mm at the driver's real setting
-        vmax = m.config.mechanics.actuator_max_speed_mm_s  # steps sent, moved with or not
+        m = self.model  # the step pulses per mm at the driver's real setting; the actuator's steps sent, moved or not
+        steps_per_mm, vmax = m.config.drum.true_steps_per_mm, m.config.mechanics.actuator_max_speed_mm_s
         samples, sync = [], []
         left = int(n_ms)
         while left > 0:
