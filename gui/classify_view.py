@@ -183,10 +183,7 @@ class ClassifyView(QtWidgets.QWidget):
     def _choose_model(self):
         from rigctl_gui.dialogs import choose_path  # non-modal: STOP stays usable
 
-        return choose_path(self, "open", "Model file", "", "Model files (*.skops)", self._model_chosen)
-
-    def _model_chosen(self, path: str) -> None:
-        self.load_model(path)
+        return choose_path(self, "open", "Model file", "", "Model files (*.skops)", self.load_model)
 
     def clear(self) -> None:
         self.board.clear()
