@@ -426,26 +426,6 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
                     out[i, ch] = np.uint16(v)
 
 
-_SEED_RANGE = 2**63 - 1  # the seeds drawn: 1 .. 2**63 - 1
-_U64 = 2**64 - 1
-_SEED_THRESHOLD = (_U64 - (_SEED_RANGE - 1)) % _SEED_RANGE
-
-
-def _seed_draw(rng: np.random.Generator) -> int:
-    """``int(rng.integers(1, 2**63))``, the same number from the same generator state: for numpy's default bit
-    generator (PCG64) numpy's own bounded draw (Lemire's multiply-shift with rejection: numpy/random/src/distributions,
-    ``bounded_lemire_uint64``) on its raw output, without the Generator's general bounded-integer path, which cost the
-    live rig's physics several us a render; any other bit generator goes through ``integers``."""
-    bits = rng.bit_generator
-    if type(bits) is not np.random.PCG64:
-        return int(rng.integers(1, 2**63))
-    m = int(bits.random_raw()) * _SEED_RANGE
-    if m & _U64 < _SEED_RANGE:
-        while m & _U64 < _SEED_THRESHOLD:
-            m = int(bits.random_raw()) * _SEED_RANGE
-    return 1 + (m >> 64)
-
-
 def _profile(tex: Texture) -> np.ndarray:
     """Height profile over one period, supersampled (8 x the table size) so rectangular edges are resolved."""
     m = 8
@@ -657,7 +637,7 @@ class SensorModel:
                     float(self.depth_factor(1.02 ** fq)), self.gain * self.plate_pattern(texture))
             self._last = last
         _, _, tables, period, eff, depth, gain = last
-        seed = _seed_draw(rng)
+        seed = int(rng.integers(1, 2**63))
         _render_kernel(pos, force, tables, period, depth, eff, float(c.pitch_mm), self._row_w, self._p_half,
                        self._layer_gain, float(c.full_scale_counts),
                        gain * float(sensitivity) if isinstance(sensitivity, (int, float)) else
