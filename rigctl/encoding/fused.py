@@ -58,7 +58,7 @@ from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.filters import lowpass_coefficients
 from rigctl.encoding.spikes import SpikeTrains
 
-__all__ = ["FusedState", "FusedResult", "run_fused", "BLOCK_TRIALS"]
+__all__ = ["FusedState", "FusedResult", "run_fused", "on_threads", "BLOCK_TRIALS"]
 
 #: trials interleaved per SIMD block: block x n_channels lanes (18 channels -> 144 float32 lanes, 18 AVX2 vectors)
 BLOCK_TRIALS = 8
@@ -282,13 +282,13 @@ _fused = numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)(_
 #: the parallel build's input types (data, SA state, RA state): the pipeline's raw counts
 _PARALLEL_TYPES = (np.dtype(np.uint16), np.dtype(np.float32), np.dtype(np.float64))
 #: without numba's thread pool: small calls (streaming chunks, a few trials: no parallel launch overhead) and the other
-#: input types (on threads of ours, :func:`_on_threads`). numpy's error model, as numba's parallel build compiles its
+#: input types (on threads of ours, :func:`on_threads`). numpy's error model, as numba's parallel build compiles its
 #: loop body with: no zero-division checks (the kernel divides only by constants), which ran the RA path ~10 % faster
 _fused_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=True, nogil=True, error_model="numpy")(
     _renamed(_fused_py, "_fused_serial_py"))
 
 
-def _on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
+def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
     """``run(i, j)`` over the ranges ``[i, j)`` of ``step`` items that cover ``range(n)``: in this thread when one
     range covers it, else on ``numba.get_num_threads()`` threads (at most one a range), each taking the next range
     when its last is done. ``run`` calls a ``nogil`` kernel on disjoint parts of the output."""
@@ -487,7 +487,7 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
     if order.size > block and (x.dtype, dt, rdt) == _PARALLEL_TYPES:
         _fused(x, starts, order, *args)
     else:
-        _on_threads(partial(_serial_blocks, x, starts, order, args), order.size, int(block))
+        on_threads(partial(_serial_blocks, x, starts, order, args), order.size, int(block))
     if not want_times:
         return FusedResult((), None, counts)
     n0a = np.array(np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)))  # a copy: writable, one kernel signature
@@ -496,7 +496,7 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
         cp = np.ascontiguousarray(counts[p])
         ends = np.concatenate(([0], np.cumsum(cp.sum(axis=1))))  # each trial's first spike in out, and the end
         out = np.empty(int(ends[-1]), dtype=np.float64)
-        _on_threads(partial(_times_of, bits[p], cp, lengths, n0a, 1.0 / float(fs), out, ends), n_trials, int(block))
+        on_threads(partial(_times_of, bits[p], cp, lengths, n0a, 1.0 / float(fs), out, ends), n_trials, int(block))
         trains.append(SpikeTrains.from_counts(out, cp))
     return FusedResult(tuple(trains[:n_sa]), trains[n_sa] if ra else None, counts)
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.filters import lowpass_coefficients
-from rigctl.encoding.fused import FusedResult, FusedState, _on_threads, run_fused
+from rigctl.encoding.fused import FusedResult, FusedState, on_threads, run_fused
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.rate import StreamResampler, rate_conversion
 from rigctl.encoding.spikes import SpikeTrains
@@ -195,7 +195,7 @@ def _izh_kernel_py(x, starts, order, offset, gain, v, u, counts, raster, spk, bl
 
 
 #: one serial build (no ``parallel=True`` build: ~3x the compile time); more than a block of trials runs on threads
-#: (:func:`rigctl.encoding.fused._on_threads`: the next block on each, the kernel releases the GIL)
+#: (:func:`rigctl.encoding.fused.on_threads`: the next block on each, the kernel releases the GIL)
 _izh_kernel = numba.njit(fastmath=_FASTMATH, cache=True, nogil=True)(_izh_kernel_py)
 
 
@@ -347,7 +347,7 @@ def _run(readings, *, k, gain, offset, scale, params, state, active, want_raster
     counts = np.zeros((n_trials, n_ch), dtype=np.int64)
     raster = np.zeros((x.shape[0] if want_raster else 0, n_ch), dtype=np.uint8)
     spk = np.empty((n_trials * n_ch, spike_cap) if spike_cap > 0 else (0, 1), dtype=np.int32)
-    _on_threads(lambda i, j: _izh_kernel(x, rg.starts, order[i:j], offset, g, v, u, counts, raster, spk, int(block),
+    on_threads(lambda i, j: _izh_kernel(x, rg.starts, order[i:j], offset, g, v, u, counts, raster, spk, int(block),
                                          params.a, params.b, params.c, params.d, params.v_peak),
                 order.size, int(block))  # whole blocks: no two calls write the same trial
     return counts, (raster if want_raster else None), (v, u), spk
@@ -397,7 +397,7 @@ def _encode_trains(rg: Ragged, *, k, gain=1.0, offset=0.0, scale=1.0, fs=FS_HZ, 
     out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
     n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
     n_ch = counts.shape[1]
-    _on_threads(lambda i, j: _times_from_spk(spk[i * n_ch:j * n_ch], index_start[i:j], counts[i:j], n0[i:j], 1.0 / fs,
+    on_threads(lambda i, j: _times_from_spk(spk[i * n_ch:j * n_ch], index_start[i:j], counts[i:j], n0[i:j], 1.0 / fs,
                                              out), n_trials, BLOCK_TRIALS)  # (out: written at index_start)
     return SpikeTrains(out, index, counts.shape[1])
 
@@ -409,7 +409,7 @@ def _trains_from_raster(raster, starts, counts, fs, n0=0) -> SpikeTrains:
     out = np.empty(int(index[-1]) if index.size else 0, dtype=np.float64)
     n0 = np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)).copy()
     index_start = np.ascontiguousarray(index_start)
-    _on_threads(lambda i, j: _raster_to_times(raster, starts[i:j + 1], index_start[i:j], n0[i:j], 1.0 / fs, out),
+    on_threads(lambda i, j: _raster_to_times(raster, starts[i:j + 1], index_start[i:j], n0[i:j], 1.0 / fs, out),
                 n_trials, BLOCK_TRIALS)  # (rows and out: at starts and index_start)
     return SpikeTrains(out, index, counts.shape[1])
 
