@@ -52,7 +52,9 @@ def test_truth_log_under_simavr_shows_the_back_off_after_host_silence(fw_build, 
 def test_truth_log_of_the_simulated_rig_from_the_cli(tmp_path, monkeypatch):
     monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
     path = tmp_path / "t.csv"
-    result = CliRunner().invoke(main, ["doctor", "--sim", "--check", "controller-faults", "--no-save", "--rest-s", "2",
+    # the noise-floor check holds the rig at rest for --rest-s (2 s of taxel capture): a run of known length (the
+    # controller-faults check, one status read, was over in 30-110 ms of physics: 10-35 rows, as fast as the host was)
+    result = CliRunner().invoke(main, ["doctor", "--sim", "--check", "noise-floor", "--no-save", "--rest-s", "2",
                                        "--truth-log", str(path)])
     assert result.exit_code == 0, result.output
     t = _read(path)
