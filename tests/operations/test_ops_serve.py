@@ -316,13 +316,23 @@ def test_stop_through_the_api_stops_the_drum_within_half_a_second(tmp_path):
               timeout_s=120, every_s=0.05)
         t0 = time.monotonic()
         assert client.post("/stop", json={}).json()["acknowledged"] is True
-        _wait(lambda: abs(control.status().speed_mm_s) < 1.0, timeout_s=5, every_s=0.01)
+        # the drum's speed read every 10 ms until it is at rest; the longest of those reads is the host's own
+        # scheduling delay on this machine while the drum stopped (a read is one Modbus exchange with the virtual
+        # Mega: ~5 ms on an idle machine), measured in the window it judges, not at another moment
+        reads_s: list[float] = []
+        while time.monotonic() - t0 < 5:
+            t1 = time.monotonic()
+            speed_mm_s = control.status().speed_mm_s
+            reads_s.append(time.monotonic() - t1)
+            if abs(speed_mm_s) < 1.0:
+                break
+            time.sleep(0.01)
         stopped_s = time.monotonic() - t0
-        t1 = time.monotonic()
-        control.status()
-        read_s = time.monotonic() - t1  # one status read now: the host's own scheduling delay on this machine
-        print(f"STOP through the API -> drum at rest in {stopped_s * 1e3:.0f} ms (a read: {read_s * 1e3:.0f} ms)")
-        assert stopped_s < 0.5 + read_s, f"the drum took {stopped_s:.2f} s to stop (a read took {read_s:.2f} s)"
+        read_s = max(reads_s)
+        print(f"STOP through the API -> drum at rest in {stopped_s * 1e3:.0f} ms ({len(reads_s)} reads, the longest "
+              f"{read_s * 1e3:.0f} ms)")
+        assert abs(speed_mm_s) < 1.0, f"the drum still turned at {speed_mm_s:.1f} mm/s 5 s after STOP"
+        assert stopped_s < 0.5 + read_s, f"the drum took {stopped_s:.2f} s to stop (the longest read {read_s:.2f} s)"
         run = _wait(lambda: (r := client.get(f"/runs/{rid}").json())["state"] in ("stopped", "failed") and r)
         assert run["state"] == "stopped" and client.get("/status").json()["held"] is True
     finally:
