@@ -195,6 +195,8 @@ class SessionReader:
         self._flat = session_recording.is_flat(f)
         self._index: dict[int, np.void] | None = None
         self._index_dups: dict[int, int] = {}
+        self._n_rows: int | None = None  # _recorded_rows and _trace_rows, read once
+        self._n_trace_rows: tuple[int, int] | None = None
         self._tg: Any = None
         self._facts: dict[int, np.void] | None = None
         #: the trial validator's reports (rigctl.storage.validate), computed once per open session
@@ -663,17 +665,23 @@ class SessionReader:
         return rows
 
     def _recorded_rows(self) -> int:
-        """Rows of the per-sample recording arrays (the shortest of them: a row outside one is not recorded)."""
-        with _reading(self.path, "the recording arrays"):
-            rec = self._f[session_recording.GROUP]
-            return min(int(rec[name].shape[0]) for name, _ in session_recording.SAMPLE_ARRAYS)
+        """Rows of the per-sample recording arrays (the shortest of them: a row outside one is not recorded), read
+        once (the file is open read-only; :meth:`trial_attrs` asks once per trial)."""
+        if self._n_rows is None:
+            with _reading(self.path, "the recording arrays"):
+                rec = self._f[session_recording.GROUP]
+                self._n_rows = min(int(rec[name].shape[0]) for name, _ in session_recording.SAMPLE_ARRAYS)
+        return self._n_rows
 
     def _trace_rows(self) -> tuple[int, int]:
-        """Rows of the force and the speed trace arrays (the shorter of each value/times pair)."""
-        with _reading(self.path, "the recording arrays"):
-            rec = self._f[session_recording.GROUP]
-            force, speed = ((min(int(rec[v].shape[0]), int(rec[t].shape[0]))) for v, t, _ in session_recording.TRACES)
-            return force, speed
+        """Rows of the force and the speed trace arrays (the shorter of each value/times pair), read once."""
+        if self._n_trace_rows is None:
+            with _reading(self.path, "the recording arrays"):
+                rec = self._f[session_recording.GROUP]
+                force, speed = ((min(int(rec[v].shape[0]), int(rec[t].shape[0])))
+                                for v, t, _ in session_recording.TRACES)
+                self._n_trace_rows = force, speed
+        return self._n_trace_rows
 
     @staticmethod
     def index_problem(row: np.void | None, n_rows: int, trace_rows: tuple[int, int] | None = None) -> str | None:
