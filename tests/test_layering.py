@@ -28,15 +28,12 @@ REPO = Path(__file__).resolve().parents[1]
 
 _PROBE = textwrap.dedent("""
     import importlib, json, pkgutil, sys, traceback
-    layers = json.loads(sys.argv[1])  # [[package, skip, forbidden], ...] in order: each after those before it
-
-    def hits(forbidden):
-        return {f for f in forbidden for m in list(sys.modules) if m == f or m.startswith(f + ".")}
+    layers = json.loads(sys.argv[1])  # [[package, skip], ...] in order: each after those before it
 
     out = {}
-    for package, skip, forbidden in layers:
-        before = hits(forbidden)  # loaded by a layer before (that layer's own test reports it)
-        culprit, errors = {}, {}
+    for package, skip in layers:
+        before = sorted(sys.modules)  # loaded before the layer (by a layer before it, or by Python)
+        seen, culprit, errors = set(before), {}, {}
         pkg = importlib.import_module(package)
         names = [package] + [m.name for m in pkgutil.walk_packages(pkg.__path__, package + ".")
                              if not any(m.name == s or m.name.startswith(s + ".") for s in skip)]
@@ -45,9 +42,10 @@ _PROBE = textwrap.dedent("""
                 importlib.import_module(name)
             except Exception as exc:  # a module of the layer that cannot be imported at all
                 errors[name] = f"{type(exc).__name__}: {exc}"
-            for f in hits(forbidden) - before:
-                culprit.setdefault(f, name)
-        out[package] = {"modules": names, "culprit": culprit, "errors": errors, "before": sorted(before)}
+            for m in sorted(set(sys.modules) - seen):  # in the order the layer's modules brought them in
+                culprit[m] = name
+                seen.add(m)
+        out[package] = {"modules": names, "culprit": culprit, "errors": errors, "before": before}
     print(json.dumps(out))
 """)
 
@@ -64,19 +62,37 @@ RULES: dict[str, tuple[list[str], list[str]]] = {
 }
 
 
-def probe(layers: dict[str, tuple[list[str], list[str]]]) -> dict:
-    """Import every module of each layer (but its skip list), in the given order, in one fresh interpreter (one
-    interpreter start and one import of numpy, h5py, scikit-learn... instead of one per layer): per layer, which of
-    its ``forbidden`` modules came in while its modules were imported, and which had come in before it."""
-    arg = json.dumps([[package, skip, forbidden] for package, (skip, forbidden) in layers.items()])
+def probe(layers: dict[str, list[str]]) -> dict:
+    """Import every module of each layer (package -> the modules of it not checked), in the given order, in one
+    fresh interpreter (one interpreter start and one import of numpy, h5py, scikit-learn... instead of one per layer):
+    per layer, every module that came in while its modules were imported (and the first of them whose import brought
+    it in), and every module that had come in before it."""
+    arg = json.dumps([[package, skip] for package, skip in layers.items()])
     proc = subprocess.run([sys.executable, "-c", _PROBE, arg], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, f"importing {list(layers)} failed:\n{proc.stderr[-3000:]}"
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def judge(out: dict, forbidden: list[str]) -> tuple[dict[str, str], list[str]]:
+    """A layer's probe record against its ``forbidden`` modules (each with its submodules): {forbidden module: the
+    first module of the layer whose import brought it in}, and the forbidden modules already loaded before it."""
+
+    def hits(modules) -> set[str]:
+        return {f for f in forbidden for m in modules if m == f or m.startswith(f + ".")}
+
+    before = hits(out["before"])
+    culprit: dict[str, str] = {}
+    for module, name in out["culprit"].items():  # in import order: the first culprit of each is kept
+        for f in hits([module]) - before:
+            culprit.setdefault(f, name)
+    return culprit, sorted(before)
+
+
 @pytest.fixture(scope="module")
 def probed() -> dict:
-    return probe(RULES)
+    """The probe of every layer of :data:`RULES`, in that order (one interpreter for the rules and their negative
+    control)."""
+    return probe({package: skip for package, (skip, _) in RULES.items()})
 
 
 @pytest.mark.parametrize("layer", list(RULES))
@@ -84,19 +100,23 @@ def test_layer_imports_nothing_forbidden(layer, probed):
     out = probed[layer]
     assert len(out["modules"]) >= 1
     assert not out["errors"], f"modules of {layer} that cannot be imported: {out['errors']}"
-    bad = [f"{f} (first pulled in by importing {m})" for f, m in sorted(out["culprit"].items())]
-    bad += [f"{f} (already loaded by a layer imported before it)" for f in out["before"]]
+    culprit, before = judge(out, RULES[layer][1])
+    bad = [f"{f} (first pulled in by importing {m})" for f, m in sorted(culprit.items())]
+    bad += [f"{f} (already loaded by a layer imported before it)" for f in before]
     assert not bad, f"{layer} must not import: " + "; ".join(bad)
 
 
-def test_the_probe_sees_a_forbidden_import():
+def test_the_probe_sees_a_forbidden_import(probed):
     """Negative control: the probe reports what a layer does import (numpy is everywhere in storage), and a forbidden
-    module an earlier layer loaded against the later layer too, never lost (one probe: one interpreter)."""
-    out = probe({"rigctl.core": ([], ["h5py"]), "rigctl.storage": ([], ["h5py", "serial"]),
-                 "rigctl.encoding": ([], ["h5py"])})
-    assert "h5py" in out["rigctl.storage"]["culprit"] and not out["rigctl.storage"]["before"]
-    assert out["rigctl.storage"]["culprit"]["h5py"].startswith("rigctl.storage")
-    assert out["rigctl.encoding"]["before"] == ["h5py"] and not out["rigctl.encoding"]["culprit"]
+    module an earlier layer loaded against the later layer too, never lost (one probe: one interpreter; the layers
+    core, storage, encoding in that order, as :data:`RULES` imports them)."""
+    assert list(RULES)[:3] == ["rigctl.core", "rigctl.storage", "rigctl.encoding"]
+    assert judge(probed["rigctl.core"], ["h5py"]) == ({}, [])
+    culprit, before = judge(probed["rigctl.storage"], ["h5py", "serial"])
+    assert "h5py" in culprit and not before
+    assert culprit["h5py"].startswith("rigctl.storage")
+    culprit, before = judge(probed["rigctl.encoding"], ["h5py"])
+    assert before == ["h5py"] and not culprit
 
 
 def test_the_contracts_catch_an_import_inside_a_function(tmp_path):
