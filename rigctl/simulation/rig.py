@@ -6,7 +6,9 @@ A client uses exactly the code paths it uses with hardware: :class:`rigctl.devic
 milliseconds to the Mega (which advances :class:`rigctl.simulation.model.RigModel` under its drum and actuator
 commands, then runs its control logic) and the resulting taxel samples and index pulses to the Uno (which frames
 and sends them if streaming). Millisecond k is simulated no earlier than ``t0 + k`` ms, so the stream's long-run
-rate is exactly 1000 frames/s.
+rate is exactly 1000 frames/s. While the Uno does not stream, the thread wakes every :data:`IDLE_TICK_S` instead
+(the same milliseconds in longer steps, as a starved thread takes them; the Mega's control logic still acts at each
+HX711 reading and at least every ``max_step_ms``).
 
 With a replay source (``source=``, e.g. :class:`rigctl.simulation.replay.SessionReplay` of any session file) the
 Uno streams the source's samples at the source's own layout and rate (``source.layout``: the board's banner
@@ -36,6 +38,10 @@ from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
 log = logging.getLogger(__name__)
 
+#: the physics thread's period while the Uno does not stream, s (``tick_s`` while it streams): the Mega's longest
+#: control step (:attr:`rigctl.simulation.controller.MegaController.max_step_ms`); a rig nobody streams from (the
+#: drum controller's conformance suite, a rig between its opening and START) costs a third of the wake-ups
+IDLE_TICK_S = 0.010
 #: the longest physics step between two rows of the truth log (``--truth-log``), ms: >= 100 rows a second
 TRUTH_STEP_MS = 10
 
@@ -59,7 +65,8 @@ class SimulatedRig:
         :class:`rigctl.simulation.pty.PortDirBusy`); a fresh temporary directory if None (the temporary directories of
         simulated rigs that were killed are removed first).
     tick_s : float
-        Period of the physics thread, s (frames go out in batches of about this length).
+        Period of the physics thread while the Uno streams, s (frames go out in batches of about this length);
+        :data:`IDLE_TICK_S` while it does not.
     uno_reset_delay_s : float
         Boot time of the virtual Uno after a client opens its port.
 
@@ -135,9 +142,14 @@ class SimulatedRig:
             self.mega.start(clock=False)
             self._stop.clear()
             self._thread = threading.Thread(target=board_thread(paced_loop), args=(self._stop, self.tick_s, self._step),
+                                            kwargs={"idle": self._idle, "idle_tick_s": max(self.tick_s, IDLE_TICK_S)},
                                             name="sim-physics", daemon=True)
             self._thread.start()
         return self
+
+    def _idle(self) -> bool:
+        """Nothing to send at the next tick: the Uno does not stream."""
+        return not self.uno.streaming
 
     def _step(self, n_ms: int) -> None:
         if self.schedule is not None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -274,16 +275,20 @@ class VirtualUno:
             self.port.close()
 
 
-def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1000.0) -> None:
+def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1000.0,
+               idle: Callable[[], bool] | None = None, idle_tick_s: float | None = None) -> None:
     """Call ``step(n)`` about every ``tick_s`` with the periods of ``rate_hz`` elapsed since the last call (the
     milliseconds at the default 1 kHz). Exact long-run rate: period k is handed out no earlier than
-    ``t0 + k / rate_hz``. Ends within one such wait of ``stop`` being set (a plain sleep: an ``Event.wait`` with a
+    ``t0 + k / rate_hz``. With ``idle`` and ``idle_tick_s``: after a call for which ``idle()`` is True the next comes
+    about ``idle_tick_s`` later instead (a clock with nothing to send wakes less often; the same periods are handed out,
+    in longer steps). Ends within one such wait of ``stop`` being set (a plain sleep: an ``Event.wait`` with a
     timeout costs several times its CPU, hundreds of times a second)."""
     rate = float(rate_hz)
     monotonic, sleep, stopped = time.monotonic, time.sleep, stop.is_set
     t0 = monotonic()
     done = 0
-    ahead = max(1, int(tick_s * rate))
+    busy_ahead = ahead = max(1, int(tick_s * rate))
+    idle_ahead = busy_ahead if idle is None or idle_tick_s is None else max(busy_ahead, int(idle_tick_s * rate))
     while not stopped():
         due = int((monotonic() - t0) * rate)
         n = due - done
@@ -293,6 +298,8 @@ def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1
             except Exception:  # keep the clock alive; the error is logged
                 log.exception("simulation step failed")
             done = due
+            if idle is not None:
+                ahead = idle_ahead if idle() else busy_ahead
         wait = t0 + (done + ahead) / rate - monotonic()
         if wait > 0.0:
             sleep(wait)
