@@ -26,32 +26,56 @@ import numpy as np
 PARTS = ("serial", "parallel")
 
 
+def compile_rig() -> None:
+    """The simulated rig's kernels: the taxel renderer and the mechanics (every simulated rig runs them). Runs on the
+    calling thread alone: neither is a parallel build, so numba's thread pool does not start (tests/launcher.py
+    loads these before it forks its commands; GNU OpenMP's pool must not be running at a fork)."""
+    from rigctl.simulation.model import RigModel, SensorModel
+
+    n = 64
+    force_g = np.full(n, 300.0)
+    force_g.flags.writeable = False  # as the dataset renderer passes it
+    SensorModel().render("A", np.linspace(0.0, 10.0, n), force_g, np.random.default_rng(0))
+    RigModel().advance(3, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
+
+
+def compile_serial() -> None:
+    """The serial builds: :func:`compile_rig`, then the fused encoder's serial build for every input type (one block
+    of trials, or more on threads) and its spike times, and the float64 reference (these start numba's thread pool:
+    their spike times and counts use parallel helpers)."""
+    from rigctl.encoding import izhikevich
+    from rigctl.encoding.fused import run_fused
+
+    compile_rig()
+    n = 64
+    for data_dtype, dtype in ((np.uint16, np.float32), (np.float64, np.float32), (np.float64, np.float64),
+                              (np.uint16, np.float64)):
+        run_fused(np.full((n, 2), 512, dtype=data_dtype), np.array([0, n]), scale=1 / 1023, dtype=dtype)
+    izhikevich.encode(np.full((1, n, 2), 0.5), k=100.0)  # the float64 reference and its spike times
+
+
+def compile_parallel() -> None:
+    """numba's parallel builds: the fused encoder on raw counts (more than a SIMD block of trials), the features'
+    binning."""
+    from rigctl.encoding.fused import BLOCK_TRIALS, run_fused
+    from rigctl.encoding.spikes import SpikeTrains
+
+    n, n_trials_big = 64, BLOCK_TRIALS + 1
+    starts = np.arange(n_trials_big + 1, dtype=np.int64) * n
+    run_fused(np.full((n * n_trials_big, 2), 512, dtype=np.uint16), starts, scale=1 / 1023, want_times=False)
+    SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2).window_counts(0.032, 2)
+
+
 def main(argv: list[str]) -> int:
     parts = argv or list(PARTS)
     if any(p not in PARTS for p in parts):
         print(f"usage: python scripts/compile_kernels.py [{'|'.join(PARTS)}] ...", file=sys.stderr)
         return 2
     t0 = time.monotonic()
-    from rigctl.encoding import izhikevich
-    from rigctl.encoding.fused import BLOCK_TRIALS, run_fused
-    from rigctl.encoding.spikes import SpikeTrains
-    from rigctl.simulation.model import RigModel, SensorModel
-
-    n, n_trials_big = 64, BLOCK_TRIALS + 1
     if "serial" in parts:  # first the taxel renderer and the mechanics every simulated rig runs
-        force_g = np.full(n, 300.0)
-        force_g.flags.writeable = False  # as the dataset renderer passes it
-        SensorModel().render("A", np.linspace(0.0, 10.0, n), force_g, np.random.default_rng(0))
-        RigModel().advance(3, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
-        # the fused encoder's serial build (any input type: one block of trials, or more on threads) and spike times
-        for data_dtype, dtype in ((np.uint16, np.float32), (np.float64, np.float32), (np.float64, np.float64),
-                                  (np.uint16, np.float64)):
-            run_fused(np.full((n, 2), 512, dtype=data_dtype), np.array([0, n]), scale=1 / 1023, dtype=dtype)
-        izhikevich.encode(np.full((1, n, 2), 0.5), k=100.0)  # the float64 reference and its spike times
-    if "parallel" in parts:  # numba's parallel builds: the fused encoder on raw counts, the features' binning
-        starts = np.arange(n_trials_big + 1, dtype=np.int64) * n
-        run_fused(np.full((n * n_trials_big, 2), 512, dtype=np.uint16), starts, scale=1 / 1023, want_times=False)
-        SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2).window_counts(0.032, 2)
+        compile_serial()
+    if "parallel" in parts:
+        compile_parallel()
     print(f"numba kernels ({', '.join(parts)}) compiled into the cache in {time.monotonic() - t0:.0f} s")
     return 0
 
