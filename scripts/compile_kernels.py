@@ -6,8 +6,8 @@ run, and starts pytest when they are done: every pytest-xdist worker, every proc
 (measured: tests/gui/test_gui_analysis.py alone takes 57 CPU-s on a cold cache, 33 on a warm one; compiled in the
 background beside the tests, the cache was ready after 87 s of a loaded run, and the tests that came first compiled
 their own). Calls the public functions with the input types the library and its tests use (uint16 counts and float64
-readings; float32 and float64 state; one trial and more than a SIMD block: numba's serial and parallel builds where a
-kernel has both), so the signatures follow the code; a kernel missed here is still compiled on first use, only slower.
+readings; float32 and float64 state), so the signatures follow the code; a kernel missed here is still compiled on
+first use, only slower.
 
     python scripts/compile_kernels.py [serial|parallel ...]   (no part: both, one after the other)
 """
@@ -20,9 +20,10 @@ import time
 import numpy as np
 
 #: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, so
-#: two processes never write the same kernel's cache index at once: the serial builds (the simulated rig's renderer
-#: and mechanics, the fused encoder for every input type and its spike times, the float64 reference; ~18 s of CPU) and
-#: numba's parallel builds (the fused encoder on raw counts, the spike trains' window counts; ~11 s)
+#: two processes never write the same kernel's cache index at once (one kernel's signatures share one index), of
+#: about the same CPU: ``serial``, the fused encoder's one build for every input type (~4 s of CPU each) and its spike
+#: times (~14 s); ``parallel``, the rest: the simulated rig's kernels, numba's parallel builds (the spike trains' window
+#: counts and row gather) and the float64 reference encoder (~6 s). scripts/test.sh runs the two by name
 PARTS = ("serial", "parallel")
 
 
@@ -40,30 +41,27 @@ def compile_rig() -> None:
 
 
 def compile_serial() -> None:
-    """The serial builds: :func:`compile_rig`, then the fused encoder's serial build for every input type (one block
-    of trials, or more on threads) and its spike times, and the float64 reference (these start numba's thread pool:
-    their spike times and counts use parallel helpers)."""
-    from rigctl.encoding import izhikevich
+    """The fused encoder's build for every input type (one build: one block of trials, or more on threads) and its
+    spike times."""
     from rigctl.encoding.fused import run_fused
 
-    compile_rig()
     n = 64
     for data_dtype, dtype in ((np.uint16, np.float32), (np.float64, np.float32), (np.float64, np.float64),
                               (np.uint16, np.float64)):
         run_fused(np.full((n, 2), 512, dtype=data_dtype), np.array([0, n]), scale=1 / 1023, dtype=dtype)
-    izhikevich.encode(np.full((1, n, 2), 0.5), k=100.0)  # the float64 reference and its spike times
 
 
 def compile_parallel() -> None:
-    """numba's parallel builds: the fused encoder on raw counts (more than a SIMD block of trials), the features'
-    binning."""
-    from rigctl.encoding.fused import BLOCK_TRIALS, run_fused
+    """:func:`compile_rig`, then numba's parallel builds (the features' binning, the spike trains' row gather: these
+    start numba's thread pool) and the float64 reference and its spike times."""
+    from rigctl.encoding import izhikevich
     from rigctl.encoding.spikes import SpikeTrains
 
-    n, n_trials_big = 64, BLOCK_TRIALS + 1
-    starts = np.arange(n_trials_big + 1, dtype=np.int64) * n
-    run_fused(np.full((n * n_trials_big, 2), 512, dtype=np.uint16), starts, scale=1 / 1023, want_times=False)
-    SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2).window_counts(0.032, 2)
+    compile_rig()
+    trains = SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2)
+    trains.window_counts(0.032, 2)
+    trains.select_trials([0])
+    izhikevich.encode(np.full((1, 64, 2), 0.5), k=100.0)
 
 
 def main(argv: list[str]) -> int:
@@ -72,10 +70,10 @@ def main(argv: list[str]) -> int:
         print(f"usage: python scripts/compile_kernels.py [{'|'.join(PARTS)}] ...", file=sys.stderr)
         return 2
     t0 = time.monotonic()
-    if "serial" in parts:  # first the taxel renderer and the mechanics every simulated rig runs
-        compile_serial()
-    if "parallel" in parts:
+    if "parallel" in parts:  # first the taxel renderer and the mechanics every simulated rig runs
         compile_parallel()
+    if "serial" in parts:
+        compile_serial()
     print(f"numba kernels ({', '.join(parts)}) compiled into the cache in {time.monotonic() - t0:.0f} s")
     return 0
 

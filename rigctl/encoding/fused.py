@@ -19,11 +19,10 @@ One numba kernel reads each sample of a trial once and, per taxel, in the same t
 Layout: time is the outer loop, in chunks of at most 32 steps (never across a bitmap word or a trial's end); the
 lanes are ``block`` trials x n_channels (trial-major, channel-minor, contiguous: the SIMD axis). Per chunk a pre-pass
 gathers and normalises the block's readings into a (32, lanes) buffer, then each population steps every lane through
-the chunk in one contiguous loop. Blocks of trials run in parallel: numba's parallel build (``prange``) for the
-pipeline's input, raw uint16 counts in float32 (the benchmarked path: its parallel build ran the SA population ~20 %
-faster than the serial one, 10.0 against 12.2 ms of CPU for 128 trials x 6 s x 18 taxels); any other input type runs
-the serial build, the next block of trials on each of ``numba.get_num_threads()`` threads in turn (it releases the
-GIL): a parallel build takes ~3x the compile time (~8 s of CPU) of a serial one, for each input type. Trials are
+the chunk in one contiguous loop. Blocks of trials run in parallel on threads of ours: the kernel's one (serial)
+build, the next block of trials on each of ``numba.get_num_threads()`` threads in turn (it releases the GIL). No
+``parallel=True`` build: it took ~2.4x the compile time of the serial one (12.2 against 5.1 s of CPU, on the first
+encoding of an installation) and ran 128 trials x 6 s x 18 taxels in the same CPU time (SA: 12-15 against 13-14 ms). Trials are
 sorted by length so a block's trials end together.
 
 **Precision.** The state (v, u, filter) is float32 by default: half the bytes of float64, twice the SIMD lanes. The
@@ -148,7 +147,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     zero = kr[0] - kr[0]
     cr, dr, vpr = izr[2], izr[3], izr[4]
     b0, b1, b2, a1, a2, zi0, zi1 = bq[0], bq[1], bq[2], bq[3], bq[4], bq[5], bq[6]
-    for bi in numba.prange(n_blocks):
+    for bi in range(n_blocks):
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
         n_l = m * n_ch
@@ -268,24 +267,10 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                     counts[p, t, ch] += cnt[p, k * n_ch + ch]
 
 
-def _renamed(fn: Any, name: str) -> Any:
-    """A copy of ``fn`` under another name, so numba caches its serial and parallel builds apart."""
-    import types
-
-    new = types.FunctionType(fn.__code__, fn.__globals__, name, fn.__defaults__, fn.__closure__)
-    new.__qualname__ = name
-    new.__module__ = fn.__module__
-    return new
-
-
-_fused = numba.njit(parallel=True, fastmath=_FASTMATH, cache=True, nogil=True)(_fused_py)
-#: the parallel build's input types (data, SA state, RA state): the pipeline's raw counts
-_PARALLEL_TYPES = (np.dtype(np.uint16), np.dtype(np.float32), np.dtype(np.float64))
-#: without numba's thread pool: small calls (streaming chunks, a few trials: no parallel launch overhead) and the other
-#: input types (on threads of ours, :func:`on_threads`). numpy's error model, as numba's parallel build compiles its
-#: loop body with: no zero-division checks (the kernel divides only by constants), which ran the RA path ~10 % faster
-_fused_serial = numba.njit(parallel=False, fastmath=_FASTMATH, cache=True, nogil=True, error_model="numpy")(
-    _renamed(_fused_py, "_fused_serial_py"))
+#: one build for every input type (no ``parallel=True`` build: see the module docstring); more than a block of trials
+#: runs on threads (:func:`on_threads`). numpy's error model: no zero-division checks (the kernel divides only by
+#: constants), which ran the RA path ~10 % faster
+_fused = numba.njit(fastmath=_FASTMATH, cache=True, nogil=True, error_model="numpy")(_fused_py)
 
 
 def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
@@ -348,9 +333,9 @@ def _times_of(bits, counts, lens, n0, dt, out, ends, i: int, j: int) -> None:
     _times(bits[i * n_ch:j * n_ch], counts[i:j], lens[i:j], n0[i:j], dt, out[ends[i]:ends[j]])
 
 
-def _serial_blocks(x, starts, order, args, i: int, j: int) -> None:
-    """The serial build over trials ``order[i:j]`` (whole blocks: no two calls write the same state or output)."""
-    _fused_serial(x, starts, order[i:j], *args)
+def _blocks(x, starts, order, args, i: int, j: int) -> None:
+    """The kernel over trials ``order[i:j]`` (whole blocks: no two calls write the same state or output)."""
+    _fused(x, starts, order[i:j], *args)
 
 
 @dataclass
@@ -484,10 +469,7 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
     args = (off, scl, gains, bool(ra), off64.astype(rdt), scl64.astype(rdt), rdt.type(k_ra), bq, rdt.type(fs),
             bool(rectify), np.array([a, b, c, d, v_peak], dtype=rdt), state.v, state.u, state.filt, state.fresh, counts,
             bits, int(block), dt.type(a), dt.type(b), dt.type(c), dt.type(d), dt.type(v_peak))
-    if order.size > block and (x.dtype, dt, rdt) == _PARALLEL_TYPES:
-        _fused(x, starts, order, *args)
-    else:
-        on_threads(partial(_serial_blocks, x, starts, order, args), order.size, int(block))
+    on_threads(partial(_blocks, x, starts, order, args), order.size, int(block))
     if not want_times:
         return FusedResult((), None, counts)
     n0a = np.array(np.broadcast_to(np.asarray(n0, np.int64), (n_trials,)))  # a copy: writable, one kernel signature
@@ -507,7 +489,7 @@ def kernels_cached() -> bool:
     import os
 
     try:
-        kernels: tuple[Any, ...] = (_fused, _fused_serial, _times)
+        kernels: tuple[Any, ...] = (_fused, _times)
         return all(os.path.exists(k._cache._cache_file._index_path) for k in kernels)
     except AttributeError:  # another numba: do not claim a compile that may not happen
         return True

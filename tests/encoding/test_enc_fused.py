@@ -78,7 +78,7 @@ def test_float32_kernel_within_the_rounding_band_on_synthetic_counts():
 
 def test_counts_only_equal_spike_times_and_times_are_samples():
     rng = np.random.default_rng(3)
-    raw = rng.integers(300, 700, size=(11, 700, 5)).astype(np.uint16)  # > one block: the parallel kernel
+    raw = rng.integers(300, 700, size=(11, 700, 5)).astype(np.uint16)  # > one block: blocks on threads
     rg = as_ragged(raw)
     kw = dict(offset=300.0, scale=1 / 400, sa_gains=(1.0, rng.uniform(0.5, 2, (11, 5))))
     full = run_fused(rg.data, rg.starts, **kw)
