@@ -62,6 +62,8 @@ class _Views(QtWidgets.QTabWidget):
 class AnalysisTab(QtWidgets.QWidget):
     """The offline analysis tab; ``main`` is the :class:`rigctl_gui.app.MainWindow`."""
 
+    heat_bar: pg.ColorBarItem  # the heat maps' one colour bar (:meth:`_build_trial_view`)
+
     def __init__(self, main, parent=None):
         super().__init__(parent)
         self.main = main
@@ -296,7 +298,16 @@ class AnalysisTab(QtWidgets.QWidget):
     # file and trials
     # ------------------------------------------------------------------------------------------------------
     def _build_trial_view(self, layout: SensorLayout) -> None:
-        """One trace per channel, raster rows per channel and a heat map per layer (rows x cols) of ``layout``."""
+        """One trace per channel, raster rows per channel and a heat map per layer (rows x cols) of ``layout``; the
+        sensor shown already (another file of it): its plots again, emptied."""
+        if layout == self.sensor_layout and self.heat_plots:
+            for c in self.trial_curves:
+                c.setData([], [])
+            for la, (_, img) in zip(layout.layers, self.heat_plots):
+                img.setImage(np.zeros((la.rows, la.cols)))
+            self.heat_bar.setLevels((0, layout.adc_max))
+            self.heat_bar.getAxis("left").setLabel("mean ADC counts")
+            return
         self.sensor_layout = layout
         n = layout.n_channels
         for c in self.trial_curves:

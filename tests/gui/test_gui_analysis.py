@@ -482,8 +482,12 @@ def test_an_encoded_files_trial_shows_the_readings_of_its_session(window, qapp, 
         tab.open(str(dataset))
         tab.encode()
         assert wait_for(qapp, lambda: tab.job is None, 180), tab.status.text()
+    maps = [img for _, img in tab.heat_plots]
     tab.open(encoded)
     assert tab.kind == "encoded"
+    # the same sensor as the session's: its plots are kept (not built again), emptied of the previous trial
+    assert [img for _, img in tab.heat_plots] == maps and not np.any(maps[0].image)
+    assert all(c.getData()[0] is None or len(c.getData()[0]) == 0 for c in tab.trial_curves)
     tab.trials.selectRow(5)
     assert wait_for(qapp, lambda: tab._trial_job is None and tab.shown_tid is not None, 60), tab.status.text()
     x, _ = tab.trial_curves[0].getData()
