@@ -69,6 +69,7 @@
 #include "avr_eeprom.h"
 #include "avr_extint.h"
 #include "avr_ioport.h"
+#include "avr_timer.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
@@ -877,8 +878,29 @@ static void encode_mark_hook(avr_irq_t *irq, uint32_t value, void *param)
     printf("ENCSTART t=%.6f scans=%llu row=%lld\n", sim_s(), done, row);
 }
 
+/* ================================ Uno: Timer2's missing PWM mode ================================
+ * simavr 1.6's ATmega328P timer tables have no entry for waveform mode 1 (phase-correct PWM, TOP 0xFF), the mode the
+ * Arduino core's init() leaves Timer2 in (for analogWrite on D3/D11, which the sketch never uses). simavr then
+ * configures the timer with TOP 0 and "overflows" it every timer clock, 64 cycles: a cycle timer that fired 250,000
+ * times per simulated second, raising flags nothing reads, and that cut every skip of the spinning loop (below) to 64
+ * cycles. The entry is filled in before the firmware runs, as the phase-correct PWM simavr models for other cores
+ * (its "fc_pwm" kind, 8 bits: an overflow every 256 timer clocks). The sketch enables no Timer2 interrupt, connects no
+ * OC2A/OC2B pin and reads or writes no Timer2 register after init() (avr-objdump: no access to 0xB0-0xB6, TIMSK2 or
+ * TIFR2 outside it), so it runs cycle for cycle as before: the ISR, LOAD and MUX lines and the wire bytes of a run are
+ * identical. The Mega is left as it is: its sketch sets Timer2 to CTC for its tick right after init(). */
+static void uno_timer2_setup(void)
+{
+    for (avr_io_t *io = avr->io_port; io; io = io->next) {
+        if (io->irq_ioctl_get != AVR_IOCTL_TIMER_GETIRQ('2')) continue;
+        avr_timer_t *t = (avr_timer_t *)io;
+        if (t->wgm_op[1].kind == avr_timer_wgm_none)
+            t->wgm_op[1] = (avr_timer_wgm_t)AVR_TIMER_WGM_FCPWM8();
+    }
+}
+
 static void uno_setup(void)
 {
+    uno_timer2_setup();
     for (int b = 4; b <= 6; b++)
         avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), b), sel_pin_hook,
                                 (void *)(intptr_t)(b - 4));
