@@ -3,7 +3,8 @@ imported rigctl.
 
 A ``rigctl`` command pays ~3-5 s of CPU to start (numpy, scipy, scikit-learn, h5py, numba and its cached kernels,
 the CLI) before any work, and on the tests' small sizes that start is most of its cost: the suite runs a few hundred
-commands. ``python launcher.py serve SOCKET`` imports all of it once and listens on a Unix socket; a client (the
+commands. ``python launcher.py serve SOCKET`` imports it once (some of it once the first command that needs it comes:
+:data:`ON_DEMAND`) and listens on a Unix socket; a client (the
 ``rigctl`` script :func:`write_client` writes, a few lines of the standard library started with ``python -S``) sends
 its arguments, working folder, environment and its stdin/stdout/stderr (SCM_RIGHTS); the server forks, the child runs
 ``rigctl.cli.main`` exactly as the console script does with them, and its exit status comes back (128 + N when a
@@ -29,9 +30,19 @@ from pathlib import Path
 
 #: what the server imports before it forks (the CLI and what its commands load)
 PRELOAD = ("rigctl.cli", "rigctl.cli.errors", "rigctl.cli.progress", "rigctl.operations", "rigctl.encoding.pipeline",
-           "rigctl.encoding.fused", "rigctl.analysis.tasks", "rigctl.analysis.classify", "rigctl.analysis.report",
-           "rigctl.simulation.dataset", "rigctl.storage.importers", "rigctl.storage.session", "rigctl.storage.encoded",
-           "sklearn.discriminant_analysis", "sklearn.decomposition", "matplotlib.pyplot")
+           "rigctl.encoding.fused", "rigctl.simulation.dataset", "rigctl.storage.importers", "rigctl.storage.session",
+           "rigctl.storage.encoded")
+#: imported by the server before it forks the first command whose arguments hold one of the words (not at its start:
+#: most servers, a test worker's or a guide page's, never run such a command): the analyses (scikit-learn, scipy.stats,
+#: matplotlib; ~1.8 CPU-s) for ``rigctl analyze`` and the handheld's live classifier, and scipy.signal (~0.5 CPU-s)
+#: for the commands that filter or resample readings (the encoder, the dataset renderer, the operator model)
+ANALYSIS = ("rigctl.analysis.tasks", "rigctl.analysis.classify", "rigctl.analysis.report",
+            "rigctl.analysis.realtime_model", "sklearn.discriminant_analysis", "sklearn.decomposition",
+            "matplotlib.pyplot")
+ON_DEMAND: dict[str, tuple[str, ...]] = {
+    **dict.fromkeys(("analyze", "--classify"), ANALYSIS),
+    **dict.fromkeys(("encode", "--encode", "dataset", "operator", "--resample"), ("scipy.signal",)),
+}
 
 _CLIENT = '''#!{python} -S
 import json, os, signal, socket, sys
@@ -169,6 +180,11 @@ def serve(sock: Path) -> None:
         except (ConnectionError, ValueError):
             conn.close()
             continue
+        for name in (n for word in argv for n in ON_DEMAND.get(word, ())):
+            try:  # once: then in sys.modules (a failure is the command's to report)
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001, S110 - ImportError or whatever the module raises
+                pass
         sys.stdout.flush()
         sys.stderr.flush()
         pid = os.fork()
