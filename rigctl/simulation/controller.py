@@ -614,14 +614,13 @@ class MegaController:
             self._loadcell_ok = bool(alive)
             self._loadcell_silent_ms = 0
 
-    def step(self, n_ms: int):
+    def step(self, n_ms: int, *, render: bool = True):
         """Advance the rig by ``n_ms`` ms under the current outputs, then run the controller.
 
-        Returns the model's ``(samples (n, 18) uint16, sync_in (n,) bool)`` for the taxel streamer (``sync_in``:
-        the index output, from the index sensor or the step count,
-        :meth:`rigctl.simulation.drum_index.DrumIndex.step`). The time is cut into control periods of at most
-        :attr:`max_step_ms` ms that end where an HX711 conversion completes, so the force loop acts on each reading
-        within the ms it arrives in, as the firmware does.
+        Returns the model's ``(samples (n, 18) uint16 or None, sync_in (n,) bool)`` for the taxel streamer (samples
+        None: not rendered, ``render=False`` of ``RigModel.advance``; ``sync_in``: the index output, from the index
+        sensor or the step count, ``DrumIndex.step``). The time is cut into control periods of at most
+        :attr:`max_step_ms` ms that end at each HX711 conversion: the force loop acts on a reading in its ms (firmware).
         """
         if n_ms <= 0:
             return self.model.advance(0, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
@@ -635,7 +634,7 @@ class MegaController:
                 rate, vel = self._outputs
             t0 = m.time_s
             travel0, act0 = m.stepper_travel_mm, m.actuator_mm
-            s, y = m.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel)
+            s, y = m.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel, render=render)
             with self._lock:  # the step pulses sent: the stepper's travel at the driver's real setting
                 y = self._index.step(y, (m.last_stepper_mm - travel0) * steps_per_mm, t0, m.last_marks)
                 sent = min(max(vel, -vmax), vmax) * k / 1000.0
@@ -651,7 +650,8 @@ class MegaController:
             left -= k
         if len(samples) == 1:
             return samples[0], sync[0]
-        return np.concatenate(samples), np.concatenate(sync)
+        rendered = [s for s in samples if s is not None]
+        return np.concatenate(rendered) if len(rendered) == len(samples) else None, np.concatenate(sync)
 
     # ------------------------------------------------------------------ HX711 rate and the force loop (spec 2.9)
     def _hx711_rate_ok(self, holding=None) -> bool:

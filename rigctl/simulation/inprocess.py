@@ -86,7 +86,8 @@ class InProcessEngine:
         self.request_ms = int(request_ms)
         self._t_ms = 0
         self._lock = threading.RLock()
-        self._listeners: list[Callable[[np.ndarray, np.ndarray, int], Any]] = []
+        self._listeners: list[Callable[[np.ndarray | None, np.ndarray, int], Any]] = []
+        self._wanted: list[Callable[[], bool]] = []
         #: the injected faults (:meth:`InProcessBackend.inject_faults`) and what applies them
         self.faults = ModelFaults(self.controller, self.model, drum_link=lambda up: None, taxel_link=self._taxel_link)
         self.schedule: FaultSchedule | None = None
@@ -101,9 +102,14 @@ class InProcessEngine:
         with self._lock:
             return self._t_ms / 1000.0
 
-    def listen(self, fn: Callable[[np.ndarray, np.ndarray, int], Any]) -> None:
-        """``fn(samples (n, 18) uint16, sync_in (n,) bool, t0_ms)`` after every advance (the taxel source)."""
+    def listen(self, fn: Callable[[np.ndarray | None, np.ndarray, int], Any],
+               wants_samples: Callable[[], bool] | None = None) -> None:
+        """``fn(samples (n, 18) uint16, sync_in (n,) bool, t0_ms)`` after every advance (the taxel source).
+
+        ``wants_samples()``: whether ``fn`` takes the next advance's samples (asked under the engine's lock, before
+        it); when no listener does, they are not rendered and ``fn`` gets None (None: ``fn`` always takes them)."""
         self._listeners.append(fn)
+        self._wanted.append(wants_samples or (lambda: True))
 
     def advance(self, n_ms: int) -> None:
         """Run the rig ``n_ms`` simulated milliseconds (physics + controller), then feed the listeners."""
@@ -113,7 +119,7 @@ class InProcessEngine:
         with self._lock:
             if self.schedule is not None:
                 self.schedule.due(self._t_ms / 1000.0)  # what is due by now acts from this step on
-            samples, sync = self.controller.step(n_ms)
+            samples, sync = self.controller.step(n_ms, render=any(wants() for wants in self._wanted))
             t0 = self._t_ms
             self._t_ms += n_ms
             if self.faults.host_silent:
@@ -201,12 +207,12 @@ class InProcessTaxels:
         #: the live ring (:class:`rigctl.devices.ring.RingBuffer`) once a live consumer asked for it
         #: (:meth:`enable_ring`); None before: the in-process tests pay nothing for it
         self.ring: RingBuffer | None = None
-        engine.listen(self._feed)
+        engine.listen(self._feed, self._wants_samples)
 
     def enable_ring(self, seconds: float = 30.0) -> RingBuffer:
         """Keep the last ``seconds`` of frames in :attr:`ring` from now on, as a serial stream does (live
         consumers: the LSL outlets, a live view); returns it."""
-        with self._lock:
+        with self.engine._lock, self._lock:
             if self.ring is None:
                 lay = self._layout
                 self.ring = RingBuffer(max(1, int(seconds * lay.sample_rate_hz)), lay.n_channels)
@@ -231,7 +237,7 @@ class InProcessTaxels:
         return self.banner
 
     def start(self) -> None:
-        with self._lock:
+        with self.engine._lock, self._lock:  # (the engine's: not between its question and its samples, _wants_samples)
             self._streaming = True
             self._first = True
             self._seq = 0
@@ -243,16 +249,28 @@ class InProcessTaxels:
     def close(self) -> None:
         self.stop()
 
-    def _feed(self, samples: np.ndarray, sync: np.ndarray, t0_ms: int) -> None:
+    def _wants_samples(self) -> bool:
+        """The model's samples of the engine's next advance are framed and kept (a capture or the live ring); asked
+        under the engine's lock, which :meth:`start`, :meth:`begin_capture` and :meth:`enable_ring` take too."""
+        with self._lock:
+            return self._streaming and self._pacer is None and (self._capture is not None or self.ring is not None)
+
+    def _feed(self, samples: np.ndarray | None, sync: np.ndarray, t0_ms: int) -> None:
         with self._lock:
             if not self._streaming or not self.engine.taxel_link_up:
                 return
-            n_ms = len(samples)
+            n_ms = len(sync)
             unsent = 0
             if self._pacer is not None:  # the source's samples due in these n_ms ms, spread over them
                 samples, pulse, unsent = self._pacer.step(n_ms, sync)
                 sync = np.zeros(len(samples), bool) if pulse is None else pulse
-            n = len(samples)
+            n = n_ms if samples is None else len(samples)
+            if self._capture is None and self.ring is None:  # counted only: what the lines below do to the counters
+                self._seq = (self._seq + n) % 65536
+                self._first = self._first and not n
+                self._frames += n - unsent
+                return
+            assert samples is not None  # a capture or the ring asked for them (_wants_samples)
             seq = ((self._seq + np.arange(n)) % 65536).astype(np.uint16)
             self._seq = (self._seq + n) % 65536
             flags = np.where(sync, int(wire.FrameFlag.SYNC_IN), 0).astype(np.uint8)
@@ -264,8 +282,6 @@ class InProcessTaxels:
                 n -= unsent
                 samples, seq, flags, t = samples[:n], seq[:n], flags[:n], t[:n]
             self._frames += n
-            if self._capture is None and self.ring is None:
-                return
             if self.ring is not None:
                 self.ring.write(samples, seq, flags, t)
             if self._capture is not None:
@@ -273,7 +289,7 @@ class InProcessTaxels:
                 self._capture_count += n
 
     def begin_capture(self) -> None:
-        with self._lock:
+        with self.engine._lock, self._lock:
             self._capture = []
             self._capture_count = 0
 

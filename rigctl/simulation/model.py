@@ -426,6 +426,12 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
                     out[i, ch] = np.uint16(v)
 
 
+def render_seed(rng: np.random.Generator) -> int:
+    """The noise seed :meth:`SensorModel.render` draws from ``rng`` for one call (a step whose samples are not
+    rendered draws it too: the generator's later draws stay the same)."""
+    return int(rng.integers(1, 2**63))
+
+
 def _profile(tex: Texture) -> np.ndarray:
     """Height profile over one period, supersampled (8 x the table size) so rectangular edges are resolved."""
     m = 8
@@ -637,7 +643,7 @@ class SensorModel:
                     float(self.depth_factor(1.02 ** fq)), self.gain * self.plate_pattern(texture))
             self._last = last
         _, _, tables, period, eff, depth, gain = last
-        seed = int(rng.integers(1, 2**63))
+        seed = render_seed(rng)
         _render_kernel(pos, force, tables, period, depth, eff, float(c.pitch_mm), self._row_w, self._p_half,
                        self._layer_gain, float(c.full_scale_counts),
                        gain * float(sensitivity) if isinstance(sensitivity, (int, float)) else
@@ -946,8 +952,8 @@ class RigModel:
             self._hx_next_s += self._hx_period_s
             self._hx_conversions += 1
 
-    def advance(self, n_ms: int, *, drum_step_rate_hz: float, actuator_velocity_mm_s: float
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def advance(self, n_ms: int, *, drum_step_rate_hz: float, actuator_velocity_mm_s: float, render: bool = True
+                ) -> tuple[np.ndarray | None, np.ndarray]:
         """Advance the physics by ``n_ms`` 1 ms steps under constant commands.
 
         Parameters
@@ -959,10 +965,13 @@ class RigModel:
             driver at another microstep setting than the firmware assumes turns the drum at another speed).
         actuator_velocity_mm_s : float
             Commanded actuator velocity, mm/s (positive towards the sensor; clipped to the speed limit).
+        render : bool
+            False: nobody takes this step's taxel samples (a board that does not stream): they are not rendered
+            (the noise generator still draws what a render draws, so every later step is the same either way).
 
         Returns
         -------
-        samples : (n_ms, 18) uint16
+        samples : (n_ms, 18) uint16, or None (``render=False``)
             Taxel ADC counts, one row per ms.
         sync_in : (n_ms,) bool
             True in the ms in which the drum's index mark passed.
@@ -1004,8 +1013,12 @@ class RigModel:
             a = math.exp(-n * dt / 20.0)
             self._sensitivity = 1.0 + a * (self._sensitivity - 1.0) + c.sensitivity_drift * math.sqrt(1 - a * a) * float(
                 self._rng.standard_normal())
-            samples = self.front_end.apply(self.sensor.render(tex, pos, force, self._rng,
-                                                              sensitivity=self._sensitivity, wrap_mm=circ))
+            samples: np.ndarray | None = None
+            if render or self.front_end.carries_state:
+                samples = self.front_end.apply(self.sensor.render(tex, pos, force, self._rng,
+                                                                  sensitivity=self._sensitivity, wrap_mm=circ))
+            else:
+                render_seed(self._rng)
 
             self._speed_mm_s = float(speed)
             self._position_mm = float(pos[-1])

@@ -47,6 +47,12 @@ class MuxFrontEnd:
         self.source_ohm, self.aa_c_nf = float(source_ohm), float(aa_c_nf)
         self._v: np.ndarray | None = None  # each C_aa's voltage after the last frame, in ADC counts
 
+    @property
+    def carries_state(self) -> bool:
+        """True when the next frames' codes depend on this frame's (C_aa's charge is kept between frames): then every
+        frame must pass through :meth:`apply`, also those nobody takes."""
+        return self._v is not None or (self.source_ohm > 0.0 and self.aa_c_nf > 0.0)
+
     def apply(self, counts: np.ndarray) -> np.ndarray:
         """The ADC codes of ``counts`` ((n, n_channels) uint16: the taxels' source values, one row per frame, at the
         centre of their code) read through the front end, (n, n_channels) uint16."""

@@ -154,23 +154,26 @@ class SimulatedRig:
     def _step(self, n_ms: int) -> None:
         if self.schedule is not None:
             self.schedule.due(self.model.time_s)
+        # the model's taxel samples only for a streaming board without a replay source (the Uno reads START
+        # within its tick: a stream it starts there begins with the next tick, VirtualUno.tick)
+        render = self._pacer is None and self.uno.streaming
         if self.truth is None:
-            samples, sync_in = self.mega.step(n_ms)
+            samples, sync_in = self.mega.step(n_ms, render=render)
         else:  # the truth log keeps >= 100 rows a second when a starved physics thread catches up in longer steps
             parts = []
             m = self.model
             for done in range(0, n_ms, TRUTH_STEP_MS):
-                parts.append(self.mega.step(min(TRUTH_STEP_MS, n_ms - done)))
+                parts.append(self.mega.step(min(TRUTH_STEP_MS, n_ms - done), render=render))
                 self.truth.row(m.time_s, m.contact_force_g, m.actuator_mm, m.drum_speed_mm_s)
             if len(parts) == 1:
                 samples, sync_in = parts[0]
             else:
-                samples = np.concatenate([p[0] for p in parts])
+                samples = None if any(p[0] is None for p in parts) else np.concatenate([p[0] for p in parts])
                 sync_in = np.concatenate([p[1] for p in parts])
         unsent = 0
         if self._pacer is not None:
             samples, sync_in, unsent = self._pacer.step(n_ms, sync_in)
-        self.uno.tick(samples, sync_in, unsent)
+        self.uno.tick(n_ms if samples is None else samples, sync_in, unsent)
 
     def truth_start(self) -> None:
         """The run starts now (physics clock): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""

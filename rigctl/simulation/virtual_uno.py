@@ -142,20 +142,27 @@ class VirtualUno:
             self._booting_until = time.monotonic() + self.reset_delay_s
 
     # ------------------------------------------------------------------ the board's loop
-    def tick(self, samples: np.ndarray, sync_in: np.ndarray | None = None, unsent: int = 0) -> None:
+    def tick(self, samples: np.ndarray | int, sync_in: np.ndarray | None = None, unsent: int = 0) -> None:
         """Advance the board by ``len(samples)`` sample periods (ms at 1 kHz).
 
         Parameters
         ----------
-        samples : (n, layout.n_channels) uint16 ADC counts 0..layout.adc_max, one row per elapsed sample period.
+        samples : (n, layout.n_channels) uint16 ADC counts 0..layout.adc_max, one row per elapsed sample period; or
+            the number n of periods elapsed without samples, when the board did not stream as the tick began
+            (:attr:`streaming` False: the caller rendered none): a START read in this tick then takes effect with the
+            next tick's first period (as if its byte had come just after this tick's read).
         sync_in : (n,) bool, the drum index pulse seen in each period (sets the SYNC_IN flag), or None.
         unsent : the last ``unsent`` periods had no sample (a live source behind the board's clock): no frame is
             sent for them, the sequence counter still steps over them (the host counts them as lost; counted in
             :attr:`frames_dropped`).
         """
+        if isinstance(samples, (int, np.integer)):
+            rendered, n = False, int(samples)
+        else:
+            rendered, n = True, len(samples)
         with self._lock:
             base = self.samples_ticked
-            self.samples_ticked += len(samples)
+            self.samples_ticked += n
             port = self.port
             if not port.plugged:
                 return
@@ -176,12 +183,11 @@ class VirtualUno:
                 port.flush()
                 return
             commands = port.read(4096)
-            n = len(samples)
             # commands are applied at the start of this tick (the Uno checks its UART between ticks)
             for byte in commands:
                 c = bytes([byte])
                 if c == wire.UnoCommand.START.value:
-                    self.stream_start_sample = base
+                    self.stream_start_sample = base if rendered else base + n
                     self.streaming = True
                     self.seq = 0
                     self._first = True
@@ -190,7 +196,7 @@ class VirtualUno:
                 elif c == wire.UnoCommand.IDENTIFY.value:
                     self.streaming = False
                     port.write(self.identity)
-            if self.streaming and n:
+            if self.streaming and n and rendered:
                 self._send_frames(samples, sync_in, unsent)
             port.flush()
 

@@ -519,6 +519,33 @@ def test_any_layout_over_a_real_pty(tmp_path, layout):
     assert np.all(np.diff(cap.host_time_s) > 0)
 
 
+def test_a_start_read_in_a_tick_without_samples_streams_from_the_next_tick(tmp_path):
+    """A board that does not stream gets no samples (the simulated rig renders none: ``tick(n)``); a START read in
+    such a tick starts the stream with the next tick's first period: frame 0, STREAMING_START, that period's sample."""
+    uno = VirtualUno(tmp_path / "taxel", reset_delay_s=0.0)
+    try:
+        with serial.Serial(uno.path, wire.TAXEL_BAUD, timeout=0.05) as port:
+            uno.tick(3)  # the DTR reset of the open: the bootloader
+            uno.tick(3)  # the banner
+            assert port.readline().startswith(wire.UNO_BANNER_PREFIX.encode())
+            port.write(wire.UnoCommand.START.value)
+            port.flush()
+            t0 = time.monotonic()
+            while not uno.port.unread_from_client() and time.monotonic() - t0 < 10:  # bound on a hang
+                time.sleep(0.001)
+            uno.tick(5)
+            assert uno.streaming and uno.frames_sent == 0 and uno.stream_start_sample == uno.samples_ticked == 11
+            samples = np.arange(4 * 18, dtype=np.uint16).reshape(4, 18)
+            uno.tick(samples, np.zeros(4, bool))
+            data = port.read(4 * uno.frame_size)
+    finally:
+        uno.close()
+    assert uno.frames_sent == 4 and len(data) == 4 * uno.frame_size
+    frames = np.frombuffer(data, wire.frame_dtype(18))
+    assert frames["seq"].tolist() == [0, 1, 2, 3] and frames["flags"][0] & wire.FrameFlag.STREAMING_START
+    assert np.array_equal(frames["samples"], samples)
+
+
 def test_issue_10_repro_a_lost_start_frame_on_the_simulated_rig():
     """Issue 10's reproduction: SimulatedRig, TaxelStream(port).open(), the board loses the STREAMING_START frame,
     start(): the stream is recorded, and the one lost frame is counted (it used to show 0 frames, 0 dropped)."""

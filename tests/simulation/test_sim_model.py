@@ -131,6 +131,25 @@ def test_drum_acceleration_limit_and_index_pulse():
     assert rig.angle_deg == pytest.approx((rig.position_mm % d.circumference_mm) / d.circumference_mm * 360)
 
 
+def test_steps_whose_samples_nobody_takes_leave_every_later_sample_as_it_was():
+    """``advance(render=False)`` (a board that does not stream) renders nothing but draws what a render draws: the
+    steps rendered around skipped ones are those of a run that rendered every step, bit for bit."""
+    runs = []
+    for render in (lambda i: True, lambda i: i % 3 == 0):
+        rig = RigModel(seed=5)
+        rate = 80 * rig.config.drum.steps_per_mm
+        runs.append([rig.advance(3, drum_step_rate_hz=rate, actuator_velocity_mm_s=1.5, render=render(i))
+                     for i in range(1500)])  # the drum turning, the actuator pressing into contact
+    skipped = 0
+    for (every, sync), (some, sync_some) in zip(*runs):
+        assert np.array_equal(sync, sync_some)
+        if some is None:
+            skipped += 1
+        else:
+            assert np.array_equal(every, some)
+    assert skipped == 1000 and runs[0][-1][0].std() > 0
+
+
 def test_actuator_spring_and_load_cell():
     rig = RigModel(seed=5)
     m = rig.config.mechanics
