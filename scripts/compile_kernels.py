@@ -20,10 +20,10 @@ import time
 import numpy as np
 
 #: the parts that can compile side by side (``python scripts/compile_kernels.py PART``): disjoint sets of kernels, so
-#: two processes never write the same kernel's cache index at once (one kernel's signatures share one index), of
-#: about the same CPU: ``serial``, the fused encoder's one build for every input type (~4 s of CPU each) and its spike
-#: times (~14 s); ``parallel``, the rest: the simulated rig's kernels, numba's parallel builds (the spike trains' window
-#: counts and row gather) and the float64 reference encoder (~6 s). scripts/test.sh runs the two by name
+#: two processes never write the same kernel's cache index at once (one kernel's signatures share one index):
+#: ``serial``, the fused encoder's one build for every input type (~4 s of CPU each) and its spike
+#: times (~14 s); ``parallel`` (the name scripts/test.sh passes), the rest: the simulated rig's kernels, the spike
+#: trains' window counts and row gather and the float64 reference encoder (~5 s)
 PARTS = ("serial", "parallel")
 
 
@@ -52,14 +52,14 @@ def compile_serial() -> None:
 
 
 def compile_parallel() -> None:
-    """:func:`compile_rig`, then numba's parallel builds (the features' binning, the spike trains' row gather: these
-    start numba's thread pool) and the float64 reference and its spike times."""
+    """:func:`compile_rig`, then the features' binning, the spike trains' row gather, and the float64 reference and its
+    spike times."""
     from rigctl.encoding import izhikevich
     from rigctl.encoding.spikes import SpikeTrains
 
     compile_rig()
     trains = SpikeTrains(np.linspace(0.0, 0.06, 8), np.array([4, 8]), 2)
-    trains.window_counts(0.032, 2)
+    trains.window_counts(0.032, 2)  # the features' binning
     trains.select_trials([0])
     izhikevich.encode(np.full((1, 64, 2), 0.5), k=100.0)
 

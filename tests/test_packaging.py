@@ -98,8 +98,9 @@ class ReadmeInstall:
     Offline and without a download: the new environment sees the test environment's packages behind its own (a
     ``sitecustomize`` appends them to ``sys.path``, so pip finds the dependencies installed and uninstalls the
     environment's own rigctl, never the test environment's), and pip builds without an isolated build environment.
-    numba's cache and the firmware build go to the user cache folder, ``$XDG_CACHE_HOME`` (here inside the test's
-    folder)."""
+    pip skips its closing check of every installed distribution's requirements (``--no-warn-conflicts``: it only
+    warns, and here it would read the hundreds of the test environment's, ~0.7 CPU-s an install). numba's cache and
+    the firmware build go to the user cache folder, ``$XDG_CACHE_HOME`` (here inside the test's folder)."""
 
     def __init__(self, root: Path):
         from .guides import run_by, script
@@ -117,7 +118,10 @@ class ReadmeInstall:
         self.env = {k: v for k, v in os.environ.items()
                     if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "RIGCTL_FIRMWARE_BUILD")}
         self.env.update(PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(hook),
-                        PIP_NO_INDEX="1", PIP_NO_BUILD_ISOLATION="0", XDG_CACHE_HOME=str(self.cache),
+                        # --no-build-isolation and --no-warn-conflicts store False: pip takes the variable's value
+                        # as the option's, so "0" turns them on
+                        PIP_NO_INDEX="1", PIP_NO_BUILD_ISOLATION="0", PIP_NO_WARN_CONFLICTS="0",
+                        XDG_CACHE_HOME=str(self.cache),
                         RIGCTL_CONFIG=str(root / "rig.json"), PYTHONUNBUFFERED="1")
         self.readme_output = self.shell(self.blocks[0].text)
         self.venv = self.src / ".venv"
@@ -153,11 +157,16 @@ def venv(tmp_path_factory):
     """The README's install (:class:`ReadmeInstall`), shared by the tests of the installed package below; the last
     test of this file (the docs extra) turns it into an editable install, so it runs last."""
     v = ReadmeInstall(tmp_path_factory.mktemp("readme"))
+    # what the installed package says of itself, asked once: where it is, its firmware sources, its version and their
+    # digest (the firmware's build folder) and where it finds the built-in quick_check
     where = json.loads(v.py("import json, rigctl, rigctl_gui, rigctl.firmware as f; "
-                            "print(json.dumps([rigctl.__file__, rigctl_gui.__file__, str(f.sources())]))"))
-    for path in where:  # the installed package, not the sources it was installed from nor the checkout
+                            "from rigctl.acquisition.builtin import find_protocol; "
+                            "print(json.dumps([rigctl.__file__, rigctl_gui.__file__, str(f.sources()), "
+                            "str(find_protocol('quick_check')), rigctl.__version__, f.source_digest()]))"))
+    for path in where[:4]:  # the installed package, not the sources it was installed from nor the checkout
         assert Path(path).is_relative_to(v.site_packages), where
-    v.sources = Path(where[2])
+    v.sources, v.quick_check = Path(where[2]), Path(where[3])
+    v.version, v.digest = where[4], where[5]
     return v
 
 
@@ -203,15 +212,13 @@ def test_hil_quick_check_from_the_wheel_builds_the_installed_firmware(venv, sim_
     in), and the recorded session looks like the one from the Python simulated rig."""
     from rigctl.storage.session import open_session
 
-    version, digest = venv.py("import rigctl, rigctl.firmware as f; print(rigctl.__version__, f.source_digest())"
-                              ).split()
-    build = venv.cache / "rigctl" / "firmware" / f"{version}-{digest[:16]}"
+    build = venv.cache / "rigctl" / "firmware" / f"{venv.version}-{venv.digest[:16]}"
     printed = venv.rigctl("firmware")
     assert f"build:   {build}" in printed and f"flash:w:{build / 'mega_drum.hex'}" in printed
     # quick_check's plan with one trial a texture (three plates, 2 s each: what the checks below need), from a file
-    shipped = venv.py("from rigctl.acquisition.builtin import find_protocol; print(find_protocol('quick_check'))").strip()
-    one_each = Path(shipped).read_text().replace("trials_per_condition = 2", "trials_per_condition = 1")
-    assert one_each != Path(shipped).read_text()
+    shipped = venv.quick_check.read_text()
+    one_each = shipped.replace("trials_per_condition = 2", "trials_per_condition = 1")
+    assert one_each != shipped
     (venv.work / "one_each.toml").write_text(one_each)
     venv.rigctl("acquire", "one_each.toml", "--hil", "--out", "hil.h5", "--quiet", timeout=600)
     compiled_in = str(venv.sources).encode()

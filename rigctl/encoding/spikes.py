@@ -18,12 +18,15 @@ import numpy as np
 __all__ = ["SpikeTrains"]
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
+#: serial builds (no ``parallel=True`` build: ~2x the compile time, 0.9 against 0.55 s of CPU for the window counts,
+#: 0.46 against 0.14 for the gather, on every installation's first analysis), for the same CPU time (the window counts
+#: of 4.3 million spikes in 21,600 trains: 14 ms either way, on one core instead of all)
+@numba.njit(cache=True, nogil=True)
 def _window_counts(times, ends, window_s, n_windows, out):  # pragma: no cover - compiled by numba
     """out[r, w] += spikes of row r (``times[ends[r-1]:ends[r]]``) in window w = floor(round(t / window_s, 9)),
     numpy's round (x * 1e9, rint, / 1e9) so a time k * window_s lands in window k despite float error (the rounding
     moves the quotient by less than 1e-9, so it is done only within 1e-6 of an edge)."""
-    for r in numba.prange(ends.size):
+    for r in range(ends.size):
         start = ends[r - 1] if r > 0 else 0
         for i in range(start, ends[r]):
             q = times[i] / window_s
@@ -35,10 +38,10 @@ def _window_counts(times, ends, window_s, n_windows, out):  # pragma: no cover -
                 out[r, int(b)] += 1.0
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True)
 def _gather(times, starts, lengths, ends, out):  # pragma: no cover - compiled by numba
     """out[ends[r] - lengths[r]:ends[r]] = times[starts[r]:starts[r] + lengths[r]] for every output row r."""
-    for r in numba.prange(starts.size):
+    for r in range(starts.size):
         o = ends[r] - lengths[r]
         s = starts[r]
         for i in range(lengths[r]):
