@@ -195,8 +195,7 @@ class SessionReader:
         self._flat = session_recording.is_flat(f)
         self._index: dict[int, np.void] | None = None
         self._index_dups: dict[int, int] = {}
-        self._n_rows: int | None = None  # _recorded_rows and _trace_rows, read once
-        self._n_trace_rows: tuple[int, int] | None = None
+        self._rows: tuple[int, tuple[int, int]] | None = None  # _array_rows, read once
         self._tg: Any = None
         self._facts: dict[int, np.void] | None = None
         #: the trial validator's reports (rigctl.storage.validate), computed once per open session
@@ -473,7 +472,7 @@ class SessionReader:
         row = self.recording_index().get(trial_id)
         if trial_id in self._index_dups:
             return f"/recording/index lists it {self._index_dups[trial_id]} times"
-        why = self.index_problem(row, self._recorded_rows(), self._trace_rows())
+        why = self.index_problem(row, *self._array_rows())
         if why is None and row is not None:
             why = self.flat_group_problem(trial_id, row)
         return why
@@ -650,7 +649,7 @@ class SessionReader:
         """The ``/recording/index`` rows of ``ids`` (schema 4), in that order. Raises KeyError for a trial that was
         not recorded, SessionError for one marked complete that has no row or whose rows are outside the arrays."""
         index = self.recording_index()
-        n_rows, trace_rows = self._recorded_rows(), self._trace_rows()
+        n_rows, trace_rows = self._array_rows()
         rows = np.zeros(len(ids), dtype=session_recording.INDEX_DTYPE)
         for i, tid in enumerate(ids):
             r = index.get(int(tid))
@@ -664,24 +663,15 @@ class SessionReader:
             rows[i] = r
         return rows
 
-    def _recorded_rows(self) -> int:
-        """Rows of the per-sample recording arrays (the shortest of them: a row outside one is not recorded), read
-        once (the file is open read-only; :meth:`trial_attrs` asks once per trial)."""
-        if self._n_rows is None:
+    def _array_rows(self) -> tuple[int, tuple[int, int]]:
+        """Rows of the per-sample recording arrays (the shortest of them: a row outside one is not recorded), and of
+        the force and the speed trace arrays (the shorter of each value/times pair); read once (read-only file)."""
+        if self._rows is None:
             with _reading(self.path, "the recording arrays"):
                 rec = self._f[session_recording.GROUP]
-                self._n_rows = min(int(rec[name].shape[0]) for name, _ in session_recording.SAMPLE_ARRAYS)
-        return self._n_rows
-
-    def _trace_rows(self) -> tuple[int, int]:
-        """Rows of the force and the speed trace arrays (the shorter of each value/times pair), read once."""
-        if self._n_trace_rows is None:
-            with _reading(self.path, "the recording arrays"):
-                rec = self._f[session_recording.GROUP]
-                force, speed = ((min(int(rec[v].shape[0]), int(rec[t].shape[0])))
-                                for v, t, _ in session_recording.TRACES)
-                self._n_trace_rows = force, speed
-        return self._n_trace_rows
+                force, speed = (min(int(rec[v].shape[0]), int(rec[t].shape[0])) for v, t, _ in session_recording.TRACES)
+                self._rows = min(int(rec[n].shape[0]) for n, _ in session_recording.SAMPLE_ARRAYS), (force, speed)
+        return self._rows
 
     @staticmethod
     def index_problem(row: np.void | None, n_rows: int, trace_rows: tuple[int, int] | None = None) -> str | None:

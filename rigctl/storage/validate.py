@@ -392,7 +392,7 @@ def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], r
     facts, trusted = aligned(session.trusted_facts(), ids, rows)
     trusted &= have
     dups = session.index_duplicates()
-    n_rows, (force_rows, speed_rows) = session._recorded_rows(), session._trace_rows()
+    n_rows, (force_rows, speed_rows) = session._array_rows()
     taxels_ds = session._f[GROUP]["taxels"]
     duration = np.array([float(plan[t]["duration_s"]) for t in ids], dtype=np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
