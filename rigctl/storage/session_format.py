@@ -24,6 +24,7 @@ from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import TextureSet
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.storage import journal
+from rigctl.storage.h5objects import read_attrs
 
 SCHEMA_VERSION = 4
 SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide", "imported")
@@ -264,14 +265,7 @@ def _attr_value(value: Any) -> Any:
 
 
 def _read_attrs(obj: Any) -> dict[str, Any]:
-    out = {}
-    for k, v in obj.attrs.items():
-        if isinstance(v, bytes):
-            v = v.decode()
-        elif isinstance(v, np.generic):
-            v = v.item()
-        out[k] = v
-    return out
+    return read_attrs(obj)
 
 
 def _open_h5(path: Path, mode: str, *, wait_s: float = 10.0) -> h5py.File:
