@@ -98,6 +98,14 @@ static char pty_name[128];
 static int uart_xon = 1;
 static atomic_int link_down_req; /* 1 = the host's link is cut (USB pulled): host bytes and board bytes are lost */
 static atomic_int rxlog_req; /* 1 = "RX t=..." each time host bytes arrive, "ASTEP t=... dir=..." at each actuator step */
+/* The Uno's stream leaves in USB-sized bursts, as through the board's 16U2 (which sends its 128-byte ring through one
+ * 64-byte endpoint, when 96 bytes are in or every ~4 ms): bytes wait until TX_BATCH_BYTES are pending or the oldest
+ * has waited TX_BATCH_CYCLES (1 ms of simulated time), at most, then go in one write, instead of a write at every
+ * 0.1 ms poll (~5,000 writes a second, each a pty wake-up in the kernel). The host sees the same bytes no later than
+ * 1 ms after the UART sent them (the bench: up to ~4 ms). The Mega's Modbus replies are sent at the next poll. */
+#define TX_BATCH_BYTES 64
+#define TX_BATCH_CYCLES 16000u
+static uint64_t tx_oldest_cycle; /* avr->cycle when the oldest waiting byte was sent by the UART */
 static uint8_t rx_buf[4096];
 static size_t rx_len, rx_pos;
 static avr_irq_t *uart_in_irq;
@@ -111,6 +119,7 @@ static void uart_out_hook(avr_irq_t *irq, uint32_t value, void *param)
         tx_lost++;
         return;
     }
+    if (tx_head == tx_tail) tx_oldest_cycle = avr->cycle;
     tx_ring[tx_head] = (uint8_t)value;
     tx_head = next;
 }
@@ -164,7 +173,9 @@ static void bridge_poll(int readable)
         rx_pos = rx_len = 0;
         return;
     }
-    while (tx_tail != tx_head) {
+    size_t pending = (tx_head - tx_tail) & (TX_RING_SIZE - 1);
+    if (is_uno && pending < TX_BATCH_BYTES && avr->cycle - tx_oldest_cycle < TX_BATCH_CYCLES) pending = 0;
+    while (pending && tx_tail != tx_head) {
         size_t n = tx_head > tx_tail ? tx_head - tx_tail : TX_RING_SIZE - tx_tail;
         ssize_t w = write(pty_master, tx_ring + tx_tail, n);
         if (w <= 0) break; /* EAGAIN: the host is behind; keep the bytes */
