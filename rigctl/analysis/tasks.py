@@ -35,7 +35,7 @@ from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold
 
 from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
-from rigctl.analysis.parallel import connected, map_repeats
+from rigctl.analysis.parallel import connected, map_repeats, one_blas_thread
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
 from rigctl.analysis.splitpca import split_scores
 from rigctl.analysis.stats import Comparison
@@ -574,6 +574,7 @@ def _project(pca, x, centre):
     return (np.asarray(x, np.float64) - centre) @ np.asarray(pca.components_, np.float64).T
 
 
+@one_blas_thread
 def run_realtime(
     fs: FeatureSet,
     params: RealtimeParams | None = None,
