@@ -17,14 +17,17 @@ A block fails the test when a command in it fails (even the first of ``a && b``)
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import resource
+import signal
 import subprocess
 import sys
 import textwrap
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -166,11 +169,14 @@ def _children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True) -> list[BlockRun]:
+def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = True,
+             client: Callable[[], Path] | None = None) -> list[BlockRun]:
     """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
     block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
-    one of tests/launcher.py (the same command lines, without ~5 s of CPU to start each) when the page runs
-    more than two ``rigctl`` commands."""
+    one of tests/launcher.py (the same command lines, without ~3-5 s of CPU to start each) when the page runs
+    more than two ``rigctl`` commands: ``client()``'s (the ``rigctl`` client script of a server already running, the
+    test worker's: each command runs in the page's folder and environment all the same), or a server of the page's
+    own. Whatever the page left running (a ``&`` job) ends with it."""
     runnable = [b for b in blocks(page) if b.runs_here]
     work.mkdir(parents=True, exist_ok=True)
     path = work.parent / f".{Path(page).stem}.sh"
@@ -180,8 +186,10 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
     env = guide_env(work)
     server = None
     if preload and sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines()) > 2:
-        server = launcher.Launcher(work.parent, env=env)
-        env["PATH"] = f"{server.client.parent}{os.pathsep}{env['PATH']}"
+        if client is None:
+            server = launcher.Launcher(work.parent, env=env)
+        rigctl = client() if client is not None else server.client  # type: ignore[union-attr]
+        env["PATH"] = f"{rigctl.parent}{os.pathsep}{env['PATH']}"
     try:
         return _run_script(page, path, work, env, runnable, t0, cpu0, timeout_s)
     finally:
@@ -192,9 +200,27 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
 def _run_script(page: str, path: Path, work: Path, env: dict[str, str], runnable: list[Block], t0: float,
                 cpu0: float, timeout_s: float) -> list[BlockRun]:
     proc = subprocess.Popen(["bash", str(path)], cwd=work, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    killer = threading.Timer(timeout_s, proc.kill)  # a block that hangs without printing ends too
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    # the shell and what it started (its `&` jobs, the preloaded rigctl's clients: their commands go with them)
+    end_all = functools.partial(_kill_group, proc.pid)
+    killer = threading.Timer(timeout_s, end_all)  # a block that hangs without printing ends too
     killer.start()
+    try:
+        return _read_blocks(page, proc, runnable, t0, cpu0)
+    finally:
+        killer.cancel()
+        end_all()
+
+
+def _kill_group(pgid: int) -> None:
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def _read_blocks(page: str, proc: subprocess.Popen, runnable: list[Block], t0: float,
+                 cpu0: float) -> list[BlockRun]:
     runs: list[BlockRun] = []
     current: list[str] = []
     started = t0
@@ -209,7 +235,7 @@ def _run_script(page: str, path: Path, work: Path, env: dict[str, str], runnable
             continue
         current.append(line)
     rc = proc.wait()
-    killer.cancel()
+    # (CPU of the shell and the commands it started itself: a preloaded server's commands count in that server)
     print(f"{page}: {time.monotonic() - t0:.1f} s wall, {_children_cpu_s() - cpu0:.1f} s CPU")
     if index < len(runnable):
         failed = runnable[index] if index >= 0 else None

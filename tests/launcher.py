@@ -96,6 +96,10 @@ def _child(argv: list[str], cwd: str, env: dict[str, str], fds: list[int]) -> in
     for target, fd in enumerate(fds):
         os.dup2(fd, target)
         os.close(fd)
+    # buffered as a fresh interpreter's would be on these descriptors, in this environment (PYTHONUNBUFFERED)
+    unbuffered = bool(env.get("PYTHONUNBUFFERED"))
+    sys.stdout.reconfigure(line_buffering=os.isatty(1), write_through=unbuffered)
+    sys.stderr.reconfigure(line_buffering=True, write_through=unbuffered)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD):
         signal.signal(sig, signal.SIG_DFL)

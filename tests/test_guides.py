@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 import shlex
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -172,6 +173,7 @@ def test_guide_runs_as_written(guide, tmp_path, request):
         require_lsl()
     if guide == "realrig":
         request.getfixturevalue("build_tools")
-    runs = run_page(page, tmp_path / "work")
+    # a page of more than two rigctl commands runs them through this worker's preloaded rigctl (started once)
+    runs = run_page(page, tmp_path / "work", client=lambda: Path(request.getfixturevalue("rigctl_cmd")[-1]))
     print("\n".join(f"{r.seconds:6.1f} s  {r.block.name}" for r in runs))
     check(runs, tmp_path, request)
