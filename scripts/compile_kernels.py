@@ -28,9 +28,13 @@ PARTS = ("serial", "parallel")
 
 
 def compile_rig() -> None:
-    """The simulated rig's kernels: the taxel renderer and the mechanics (every simulated rig runs them). Runs on the
-    calling thread alone: neither is a parallel build, so numba's thread pool does not start (tests/launcher.py
-    loads these before it forks its commands; GNU OpenMP's pool must not be running at a fork)."""
+    """The rig's kernels: the simulated rig's taxel renderer and mechanics, and the taxel link's frame encoders
+    (the simulated Uno's stream), parser and CRC (every rig's host side; ~1.7 CPU-s to compile, which every process
+    that started before the cache held them paid). Runs on the calling thread alone: none is a parallel build, so
+    numba's thread pool does not start (tests/launcher.py loads these before it forks its commands; GNU OpenMP's pool
+    must not be running at a fork)."""
+    from rigctl.devices import wire
+    from rigctl.devices.frames import FrameParser, encode_frames, encode_stream_frames
     from rigctl.simulation.model import RigModel, SensorModel
 
     n = 64
@@ -38,6 +42,10 @@ def compile_rig() -> None:
     force_g.flags.writeable = False  # as the dataset renderer passes it
     SensorModel().render("A", np.linspace(0.0, 10.0, n), force_g, np.random.default_rng(0))
     RigModel().advance(3, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
+    samples = np.zeros((4, wire.N_TAXELS), np.uint16)
+    FrameParser().feed(encode_frames(np.arange(4), 0, samples)
+                       + encode_stream_frames(4, np.zeros(4, bool), True, samples, wire.ADC_MAX))
+    wire.crc16_rows(np.zeros((2, 5), np.uint8))
 
 
 def compile_serial() -> None:
