@@ -312,9 +312,9 @@ class TaxelStream:
         """
         if self._thread is not None:
             return self.banner or {}
-        # compile/load the numba CRC kernel now, not on the reader's first chunk: that first call takes 1-4 s
-        # (longer on a loaded machine, a clean clone compiles) and would hold the stream back behind real time
-        wire.crc16_rows(np.zeros((1, 2), np.uint8))
+        # compile/load the frame parser's numba kernel now, not on the reader's first chunk: that first call takes
+        # 1-4 s (longer on a loaded machine, a clean clone compiles) and would hold the stream back behind real time
+        FrameParser().feed(bytes(wire.frame_size(wire.N_TAXELS)))
         try:
             ser = self._open_serial()
             self.banner = self._wait_banner(ser)

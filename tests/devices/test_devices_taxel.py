@@ -17,6 +17,7 @@ import serial
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout, parse_layout
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
+from rigctl.devices.frames import FrameParser
 from rigctl.devices.taxel_stream import TaxelStream, _read_chunk
 from rigctl.simulation.counting import CountingSource
 from rigctl.simulation.priority import board_thread
@@ -53,8 +54,9 @@ def test_reopen_resets_the_board_and_waits_for_the_banner(uno):
 def test_no_banner_is_a_clear_error(tmp_path):
     silent = PtyEndpoint(tmp_path / "silent")
     try:
-        # open() compiles the numba CRC kernel first (1-4 s on a clean clone): what is timed here is the banner wait
-        wire.crc16_rows(np.zeros((1, 2), np.uint8))
+        # open() compiles the frame parser's numba kernel first (1-4 s on a clean clone): what is timed here is the
+        # banner wait
+        FrameParser().feed(bytes(wire.frame_size(wire.N_TAXELS)))
         t0 = time.monotonic()
         with pytest.raises(TaxelStreamError, match="no ready banner"):
             TaxelStream(silent.path, banner_timeout_s=0.3).open()
