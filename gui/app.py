@@ -37,7 +37,7 @@ from rigctl_gui.colours import on_window
 from rigctl_gui.connect_dialog import source_problem
 from rigctl_gui.dialogs import ask, show_dialog
 from rigctl_gui.frame_clock import FrameClock
-from rigctl_gui.guards import install_guards
+from rigctl_gui.guards import WheelGuard, install_guards
 from rigctl_gui.messages import EventLog, ExceptionGuard
 from rigctl_gui.workers import (
     CommandExecutor,
@@ -51,6 +51,7 @@ from rigctl_gui.workers import (
 
 if TYPE_CHECKING:
     from rigctl.operations import RigMonitor
+    from rigctl_gui.analysis_tab import AnalysisTab
     from rigctl_gui.connect_dialog import ConnectDialog
     from rigctl_gui.rig_events import RigEvents
 
@@ -181,7 +182,6 @@ class MainWindow(QtWidgets.QMainWindow):
     def _build_tabs(self) -> None:
         """The tabs (rig control, live view, protocol, analysis, calibration, real-time classification,
         handheld) and the stale-data marker over the live view."""
-        from rigctl_gui.analysis_tab import AnalysisTab
         from rigctl_gui.calibration_tab import CalibrationTab
         from rigctl_gui.classify_view import ClassifyView
         from rigctl_gui.control_panel import ControlPanel
@@ -197,7 +197,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.control.question.connect(self._ask)
         self.live = LiveView()
         self.protocol = ProtocolTab(self)
-        self.analysis = AnalysisTab(self)
+        self._analysis: AnalysisTab | None = None  # built on first use (:attr:`analysis`)
+        analysis_page = QtWidgets.QWidget()  # its place until then
         self.calibration = CalibrationTab(self)
         self.classify = ClassifyView(self)
         self.handheld = HandheldTab(self)
@@ -205,12 +206,14 @@ class MainWindow(QtWidgets.QMainWindow):
             (self.control, "Rig control"),
             (self.live, "Live view"),
             (self.protocol, "Protocol"),
-            (self.analysis, "Analysis"),
+            (analysis_page, "Analysis"),
             (self.calibration, "Calibration"),
             (self.classify, "Real-time classification"),
             (self.handheld, "Handheld"),
         ):
             self.tabs.add_page(w, name)
+        self._analysis_index = self.tabs.indexOf(analysis_page)
+        self.tabs.currentChanged.connect(self._build_shown_tab)
         self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
         # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
         self.stale_label = QtWidgets.QLabel(self.live)
@@ -218,6 +221,25 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
         self.stale_label.hide()
+
+    @property
+    def analysis(self) -> AnalysisTab:
+        """The Analysis tab (:class:`rigctl_gui.analysis_tab.AnalysisTab`), built the first time it is shown or
+        asked for: its plots were ~40 % of the window's start-up, and most sessions at the rig never open it."""
+        if self._analysis is None:
+            from rigctl_gui.analysis_tab import AnalysisTab
+
+            tab = AnalysisTab(self)
+            self.tabs.replace_page(self._analysis_index, tab)
+            self._analysis = tab
+            self._guard_new_widgets(tab)
+            # laid out now, as the window's other pages were before it was shown (not an event loop pass later)
+            QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
+        return self._analysis
+
+    def _build_shown_tab(self, index: int) -> None:
+        if index == self._analysis_index:
+            self.analysis  # noqa: B018 - built on first show
 
     def _build_top_bar(self) -> None:
         """The top bar's widgets: the rig source, Connect... and the big STOP."""
@@ -413,16 +435,27 @@ class MainWindow(QtWidgets.QMainWindow):
     def _log_user_actions(self) -> None:
         """Every button pressed and menu item chosen is written to the event log (what the operator did, in
         order, beside what the rig did)."""
-        for b in self.findChildren(QtWidgets.QAbstractButton):
-            if b is self.stop_btn or isinstance(b, (QtWidgets.QCheckBox, QtWidgets.QRadioButton)) or not b.text():
-                continue
-            b.clicked.connect(lambda _=False, b=b: self.events.add(
-                logging.INFO, "user", f"pressed {b.text().replace('&', '')!r}"))
+        self._log_buttons(self)
         for menu in self.menuBar().findChildren(QtWidgets.QMenu):
             for a in menu.actions():
                 if a.text() and not a.isSeparator():
                     a.triggered.connect(lambda _=False, a=a, m=menu: self.events.add(
                         logging.INFO, "user", f"menu {m.title().replace('&', '')} > {a.text().replace('&', '')}"))
+
+    def _log_buttons(self, root: QtWidgets.QWidget) -> None:
+        """Every button under ``root`` writes its presses to the event log."""
+        for b in root.findChildren(QtWidgets.QAbstractButton):
+            if b is self.stop_btn or isinstance(b, (QtWidgets.QCheckBox, QtWidgets.QRadioButton)) or not b.text():
+                continue
+            b.clicked.connect(lambda _=False, b=b: self.events.add(
+                logging.INFO, "user", f"pressed {b.text().replace('&', '')!r}"))
+
+    def _guard_new_widgets(self, page: QtWidgets.QWidget) -> None:
+        """A page built after the window (:attr:`analysis`) gets what the window's own widgets got at start: the
+        wheel guard's focus policy on its spin and combo boxes, and its button presses in the event log."""
+        if hasattr(self, "wheel_guard"):  # (asked for while the window is built: the window's own pass covers it)
+            WheelGuard.protect(page)
+            self._log_buttons(page)
 
     def _open_protocol(self) -> None:
         self.tabs.setCurrentWidget(self.protocol)
@@ -719,7 +752,8 @@ class MainWindow(QtWidgets.QMainWindow):
             if current is self.control:
                 self.control.refresh()
             self.protocol.refresh()
-            self.analysis.refresh()
+            if self._analysis is not None:
+                self._analysis.refresh()
             self.calibration.refresh()
             self.classify.refresh()
             self.events.drain()

@@ -125,6 +125,21 @@ class PageTabs(QtWidgets.QTabWidget):
         area.setWidget(holder)
         return self.addTab(area, label)
 
+    def replace_page(self, index: int, page: QtWidgets.QWidget) -> None:
+        """Put ``page`` in place of the page at ``index`` (a page built on first use); the old one is deleted."""
+        area = self.area(index)
+        holder = area.widget() if area is not None else None
+        layout = holder.layout() if holder is not None else None
+        old = self.widget(index)
+        if area is None or layout is None or old is None:
+            raise IndexError(f"no page at {index}")
+        layout.removeWidget(old)
+        old.hide()
+        old.deleteLater()
+        layout.addWidget(page)
+        if area.isVisible():  # its tab is shown: shown now (not by a queued call); else it shows with its tab
+            page.show()
+
     def area(self, index: int) -> QtWidgets.QScrollArea | None:
         """The scroll area of the page at ``index`` (None: no such tab)."""
         area = super().widget(index)

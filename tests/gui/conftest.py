@@ -89,6 +89,10 @@ def _test_deadman_limit():
     yield
 
 
+#: after this long (s) a shown main window has done its delayed fits to the screen (MainWindow.showEvent's timers)
+FITTED_AFTER_SHOW_S = 1.6
+
+
 def _main_window(qapp, kind: str):
     """The main window connected to a fresh rig of ``kind``, shown at 1400x900; closed (rig stopped) afterwards."""
     from rigctl_gui.app import MainWindow, configure_pyqtgraph
@@ -98,8 +102,12 @@ def _main_window(qapp, kind: str):
     w = MainWindow(RigSource(kind))
     w.resize(1400, 900)
     w.show()
+    shown = time.monotonic()
     wait_for(qapp, lambda: w.handle is not None or "not connected" in w.source_label.text(), 30)
     assert w.handle is not None, w.banner.text
+    # the window's own fits to its screen (MainWindow.showEvent: 0.3 and 1.5 s after it is first shown) are over
+    # before a test sizes it (one fired in a test that had just resized it: the window shrank under it)
+    wait_for(qapp, lambda: False, max(0.0, FITTED_AFTER_SHOW_S - (time.monotonic() - shown)))
     yield w
     w.close()
     # delete the Qt objects now, while the QApplication lives (a GC pass at interpreter exit would segfault)

@@ -96,3 +96,25 @@ def test_the_wheel_changes_only_a_focused_setpoint(bare_window, qapp):
     assert box.hasFocus()
     _wheel(box)
     assert box.value() > 80.0  # the wheel events do arrive: only the unfocused box ignored them
+
+
+def test_the_analysis_tab_built_on_first_show_is_guarded_and_logged_like_the_rest(bare_window, qapp):
+    """The Analysis tab is built the first time it is shown (not with the window): then its spin and combo boxes
+    get the wheel guard's focus policy and the wheel leaves its unfocused spin box alone, and its buttons' presses
+    reach the event log, as the window's own widgets do from the start."""
+    w = bare_window
+    assert w._analysis is None  # not built with the window
+    w.tabs.setCurrentIndex(w._analysis_index)  # the operator clicks its tab
+    tab = w._analysis
+    assert tab is not None and w.tabs.currentWidget() is tab and w.analysis is tab
+    boxes = tab.findChildren(QtWidgets.QAbstractSpinBox) + tab.findChildren(QtWidgets.QComboBox)
+    assert len(boxes) > 5 and all(b.focusPolicy() == QtCore.Qt.StrongFocus for b in boxes)
+    wait_for(qapp, lambda: False, 0.05)
+    w.tabs.tabBar().setFocus()
+    qapp.processEvents()
+    before = tab.repeats.value()
+    _wheel(tab.repeats)
+    assert tab.repeats.value() == before
+    tab.encode_btn.setEnabled(True)
+    tab.encode_btn.click()  # (no file open: the tab says so)
+    assert "pressed 'Encode'" in w.events.text()

@@ -221,8 +221,8 @@ def test_the_window_fits_a_1024x700_screen_at_1_5x(inprocess_window, qapp):
         stop = QtCore.QRect(w.stop_btn.mapTo(w, QtCore.QPoint(0, 0)), w.stop_btn.size())
         assert w.rect().contains(stop) and (stop.width(), stop.height()) == (160, 48), stop
         for i in range(w.tabs.count()):
-            page, area = w.tabs.widget(i), w.tabs.area(i)
             w.tabs.setCurrentIndex(i)
+            page, area = w.tabs.widget(i), w.tabs.area(i)  # (shown first: the Analysis tab is built on first show)
             wait_for(qapp, lambda: False, 0.3)
             need = page.minimumSizeHint().expandedTo(page.minimumSize())
             name = w.tabs.tabText(i)
