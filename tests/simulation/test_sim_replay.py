@@ -12,6 +12,7 @@ import pytest
 from rigctl.simulation.replay import FabricSlideReplay
 from rigctl.storage.fabricslide import load_fabricslide, resample_to_1khz, to_adc
 
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 PATTERN = "Canvas_F250_V150mmps_*.csv"  # three short recordings (~4 s each)
 
 
@@ -180,16 +181,14 @@ def test_any_session_replayed_through_the_simulated_board_equals_the_source(nine
 def test_rigctl_sim_replays_a_session_file(nine_channel_session, tmp_path):
     """`rigctl sim --replay SESSION.h5` streams the session at its own layout and rate."""
     import subprocess
-    import sys
 
     from rigctl.cli.sim import PORT_LINE
     from rigctl.devices.taxel_stream import TaxelStream
     from rigctl.simulation.replay import SessionReplay
 
     path, layout, data = nine_channel_session
-    proc = subprocess.Popen([sys.executable, "-c", "from rigctl.cli import main; main()", "sim", "--replay",
-                             str(path), "--port-dir", str(tmp_path / "p")], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([*RIGCTL, "sim", "--replay", str(path), "--port-dir", str(tmp_path / "p")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         ports = {}
         while len(ports) < 2:
