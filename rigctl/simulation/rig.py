@@ -20,6 +20,7 @@ follows plates (``source.mount(label)``) which texture's recordings to stream ne
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections.abc import Sequence
 
@@ -94,6 +95,11 @@ class SimulatedRig:
             raise
         self.tick_s = tick_s
         self._stop = threading.Event()
+        # a write to the Mega wakes the physics thread (paced_loop's wake_fd): its control logic acts on a command at
+        # the next millisecond, also in an idle tick
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
+        self.mega.on_write = self._wake
         self._thread: threading.Thread | None = None
         self.step_errors = 0
 
@@ -142,10 +148,16 @@ class SimulatedRig:
             self.mega.start(clock=False)
             self._stop.clear()
             self._thread = threading.Thread(target=board_thread(paced_loop), args=(self._stop, self.tick_s, self._step),
-                                            kwargs={"idle": self._idle, "idle_tick_s": max(self.tick_s, IDLE_TICK_S)},
-                                            name="sim-physics", daemon=True)
+                                            kwargs={"idle": self._idle, "idle_tick_s": max(self.tick_s, IDLE_TICK_S),
+                                                    "wake_fd": self._wake_r}, name="sim-physics", daemon=True)
             self._thread.start()
         return self
+
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"w")
+        except OSError:  # full: the thread is waking anyway
+            pass
 
     def _idle(self) -> bool:
         """Nothing to send at the next tick: the Uno does not stream."""
@@ -188,11 +200,16 @@ class SimulatedRig:
             self._thread = None
         if self.truth is not None:
             self.truth.close()
+        self.mega.on_write = None
         try:
             self.uno.close()
             self.mega.close()
         finally:
             self._port_dir.release(("drum", "taxel"))
+            for fd in (self._wake_r, self._wake_w):
+                if fd >= 0:
+                    os.close(fd)
+            self._wake_r = self._wake_w = -1  # (a second close() must not close what now has those numbers)
             close = getattr(self.source, "close", None)  # a live source (an LSL inlet) lets go of its stream
             if close is not None:
                 close()

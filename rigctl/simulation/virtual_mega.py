@@ -31,6 +31,7 @@ import asyncio
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
@@ -111,7 +112,10 @@ class _MegaContext(ModbusBaseDeviceContext):
         return self.mega._read(func_code, address, count)
 
     def setValues(self, func_code, address, values):
-        return self.mega._write(func_code, address, values)
+        result = self.mega._write(func_code, address, values)
+        if self.mega.on_write is not None:  # the clock's owner acts on it at its next millisecond
+            self.mega.on_write()
+        return result
 
 
 class VirtualMega(MegaController):
@@ -148,6 +152,9 @@ class VirtualMega(MegaController):
         self._overdue_at_requests: int | None = None
         #: when the Modbus server last received bytes from its port (time.monotonic, its own loop's clock)
         self._received_at = 0.0
+        #: called after every write request (``SimulatedRig``: wakes its physics thread, so the control logic acts on a
+        #: command within a millisecond, as the firmware's loop does, not at the end of an idle tick)
+        self.on_write: Callable[[], None] | None = None
 
     # ------------------------------------------------------------------ lifecycle
     @property

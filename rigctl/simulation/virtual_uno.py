@@ -13,6 +13,8 @@ out no earlier than ``t0 + k / rate`` and the long-run rate is exactly the layou
 from __future__ import annotations
 
 import logging
+import os
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -282,19 +284,22 @@ class VirtualUno:
 
 
 def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1000.0,
-               idle: Callable[[], bool] | None = None, idle_tick_s: float | None = None) -> None:
+               idle: Callable[[], bool] | None = None, idle_tick_s: float | None = None,
+               wake_fd: int | None = None) -> None:
     """Call ``step(n)`` about every ``tick_s`` with the periods of ``rate_hz`` elapsed since the last call (the
     milliseconds at the default 1 kHz). Exact long-run rate: period k is handed out no earlier than
     ``t0 + k / rate_hz``. With ``idle`` and ``idle_tick_s``: after a call for which ``idle()`` is True the next comes
     about ``idle_tick_s`` later instead (a clock with nothing to send wakes less often; the same periods are handed out,
-    in longer steps). Ends within one such wait of ``stop`` being set (a plain sleep: an ``Event.wait`` with a
-    timeout costs several times its CPU, hundreds of times a second)."""
+    in longer steps). ``wake_fd``: the read end of a pipe; a byte written to it ends the wait, and the next call comes
+    at the next period (a command the step must act on now). Ends within one such wait of ``stop`` being set (a plain
+    sleep or select: an ``Event.wait`` with a timeout costs several times its CPU, hundreds of times a second)."""
     rate = float(rate_hz)
     monotonic, sleep, stopped = time.monotonic, time.sleep, stop.is_set
     t0 = monotonic()
     done = 0
     busy_ahead = ahead = max(1, int(tick_s * rate))
     idle_ahead = busy_ahead if idle is None or idle_tick_s is None else max(busy_ahead, int(idle_tick_s * rate))
+    woken = False
     while not stopped():
         due = int((monotonic() - t0) * rate)
         n = due - done
@@ -304,8 +309,13 @@ def paced_loop(stop: threading.Event, tick_s: float, step, *, rate_hz: float = 1
             except Exception:  # keep the clock alive; the error is logged
                 log.exception("simulation step failed")
             done = due
+            woken = False
             if idle is not None:
                 ahead = idle_ahead if idle() else busy_ahead
-        wait = t0 + (done + ahead) / rate - monotonic()
+        wait = t0 + (done + (1 if woken else ahead)) / rate - monotonic()
         if wait > 0.0:
-            sleep(wait)
+            if wake_fd is None:
+                sleep(wait)
+            elif select.select([wake_fd], [], [], wait)[0]:
+                os.read(wake_fd, 4096)
+                woken = True
