@@ -473,7 +473,7 @@ class DrumClient:
             self._unsettled = self._on_link  # an answer may still come (not from an in-process transport)
             return None
         self._unanswered = 0
-        frames = self._frames(self._rx)
+        frames = self._frames(self._rx, response)
         if not frames:
             if self._on_link:  # pymodbus' RTU decoder accepts a CRC match over a longer span than the function's
                 # frame size ("garbage after frame"): with garbage inside an answer that is a wrong value, 1 in
@@ -501,9 +501,10 @@ class DrumClient:
         """Requests go over a serial link (pymodbus' RTU client), where an answer can come late."""
         return isinstance(getattr(self._client, "framer", None), FramerRTU)
 
-    def _frames(self, data: bytes) -> list[Any]:
+    def _frames(self, data: bytes, decoded: Any = None) -> list[Any]:
         """The Modbus RTU responses (pymodbus PDUs) of this device in ``data``, in order; bytes that are not part of
-        a valid frame are skipped. Empty for a transport without pymodbus' RTU framer."""
+        a valid frame are skipped. Empty for a transport without pymodbus' RTU framer. ``decoded``: what pymodbus
+        decoded from ``data``, taken as is when ``data`` is that one frame (its registers are not decoded twice)."""
         if not self._on_link or not data:
             return []
         decoder = self._client.framer.decoder
@@ -518,7 +519,8 @@ class DrumClient:
                     size = 0
             if size and p + size <= n and FramerRTU.check_CRC(
                     data[p:p + size - 2], int.from_bytes(data[p + size - 2:p + size], "big")):
-                pdu = decoder.decode(data[p + 1:p + size - 2])
+                whole = decoded is not None and size == n  # the one frame of data: pymodbus decoded these bytes
+                pdu = decoded if whole else decoder.decode(data[p + 1:p + size - 2])
                 if pdu is not None:
                     pdu.dev_id = data[p]
                     out.append(pdu)
