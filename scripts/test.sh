@@ -114,13 +114,18 @@ t0=$(date +%s)
 phase() { echo "== [$(( $(date +%s) - t0 )) s] $*"; }
 
 export QT_QPA_PLATFORM=offscreen
+# BLAS (OpenBLAS, numpy's and scipy's) on one thread in every process of the run: the test workers keep every core busy
+# already, and a BLAS call's second thread then spins waiting on the first (measured: tests/analysis at -n 2 used 28.9 /
+# 27.8 CPU-s with OpenBLAS's default threads, 25.0 / 23.4 with one; the paper guide's `analyze --table1` 6.3 -> 5.5).
+# No test judges BLAS's threading; the results are the same
+export OPENBLAS_NUM_THREADS=1
 # what the checkout looks like before the checks (untracked and ignored files too, but byte code): no check may
 # change it
 checkout_state() { git status --porcelain --ignored 2>/dev/null | grep -v '__pycache__/$' || true; }
 before="$(checkout_state)"
 
 # numba's kernels compiled once into the cache before the tests start, in two processes side by side while ruff runs and
-# the firmware builds (scripts/compile_kernels.py: ~18 + ~12 s of CPU since the fused encoder keeps one parallel build);
+# the firmware builds (scripts/compile_kernels.py: ~14 + ~8 s of CPU since no kernel has a parallel build);
 # otherwise each test worker, GUI analysis process and CLI subprocess that starts before the cache is ready compiles the
 # ones it needs. (Tried: the parallel part beside the first tests, at nice 5 and at nice 19, with the tests that may
 # encode waiting for it. pytest took as long (260 s against 244-260 with 6 workers; 242 s against 219-231 with 7), and
