@@ -72,6 +72,7 @@
 #include "avr_timer.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
+#include "sim_core.h"
 #include "sim_elf.h"
 #include "sim_irq.h"
 
@@ -1657,6 +1658,44 @@ static void spin_step(uint32_t pc_before, int pure, uint64_t next_check)
     }
 }
 
+/* ================================ one step of the core ================================
+ * What simavr 1.6's avr_run does for a core without gdb (avr_callback_run_raw, sim_avr.c): the instruction
+ * (avr_run_one), the cycle timers that are due (avr_cycle_timer_process, which also notes in run_cycle_count how far
+ * the next one is), the new PC, a sleeping core's skip to the next timer (avr->sleep, then the cycles), pending
+ * interrupts. Most steps find no timer due (the list's first, the earliest, is later): that case runs inline here,
+ * with the same effects (run_cycle_count set as simavr sets it), instead of through three calls into the library
+ * (avr_run, avr->run, avr_cycle_timer_process: ~15 % of the Uno harness's instructions). Every other case is
+ * simavr's own sequence, step for step. Whenever avr->run is not avr_callback_run_raw, simavr's own avr_run runs the
+ * step: its watchdog resets the MCU by swapping avr->run for a callback that resets it on the next step. */
+static int core_step(void)
+{
+    if (avr->run != avr_callback_run_raw) return avr_run(avr);
+    avr_flashaddr_t new_pc = avr->pc;
+    if (avr->state == cpu_Running) new_pc = avr_run_one(avr);
+    avr_cycle_timer_slot_p first = avr->cycle_timers.timer;
+    if (avr->state == cpu_Running && first && avr->cycle < first->when) { /* no timer due */
+        avr_cycle_count_t ahead = first->when - avr->cycle;
+        if (ahead > avr->run_cycle_limit) ahead = avr->run_cycle_limit;
+        avr->run_cycle_count = ahead ? ahead : 1;
+        avr->pc = new_pc;
+        if (avr->interrupt_state) avr_service_interrupts(avr);
+        return avr->state;
+    }
+    avr_cycle_count_t sleep = avr_cycle_timer_process(avr);
+    avr->pc = new_pc;
+    if (avr->state == cpu_Sleeping) {
+        if (!avr->sreg[S_I]) { /* sleeping with interrupts off: simavr stops the core */
+            avr->state = cpu_Done;
+            return avr->state;
+        }
+        avr->sleep(avr, sleep);
+        avr->cycle += 1 + sleep;
+    }
+    if ((avr->state == cpu_Running || avr->state == cpu_Sleeping) && avr->interrupt_state)
+        avr_service_interrupts(avr);
+    return avr->state;
+}
+
 /* ================================ main loop ================================ */
 static void usage(void)
 {
@@ -1799,22 +1838,35 @@ int main(int argc, char **argv)
             if (atomic_load(&quit_requested)) break;
             continue;
         }
-        uint64_t cycle_before = avr->cycle;
-        int busy_before = !avr->sreg[S_I] || probes_high;
-        uint32_t pc_before = avr->pc;
-        int ran = avr->state == cpu_Running;
-        /* an instruction outside the candidate loop's span (an interrupt's, a callee's) ends the pass undecoded */
-        int pure = is_uno && ran && pc_before >= spin_head && pc_before - spin_head <= SPIN_MAX_BACK
-                   && spin_pure(pc_before);
-        int state = avr_run(avr);
-        if (is_uno) busy_account(cycle_before, busy_before || !avr->sreg[S_I]);
-        if (is_uno && ran && state == cpu_Running) spin_step(pc_before, pure, next_check);
+        /* the core runs to the next poll (at least one step), each board's per-step work in its own loop */
+        int state;
+        if (is_uno) {
+            do {
+                uint64_t cycle_before = avr->cycle;
+                int busy_before = !avr->sreg[S_I] || probes_high;
+                uint32_t pc_before = avr->pc;
+                int ran = avr->state == cpu_Running;
+                /* an instruction outside the candidate loop's span (an interrupt's, a callee's) ends the pass
+                 * undecoded */
+                int pure = ran && pc_before >= spin_head && pc_before - spin_head <= SPIN_MAX_BACK
+                           && spin_pure(pc_before);
+                state = core_step();
+                busy_account(cycle_before, busy_before || !avr->sreg[S_I]);
+                if (ran && state == cpu_Running) spin_step(pc_before, pure, next_check);
+                if (state == cpu_Done || state == cpu_Crashed) break;
+                if (avr->pc == avr->reset_pc) mcu_reset_seen = 1;
+            } while (avr->cycle < next_check);
+        } else {
+            do {
+                state = core_step();
+                if (state == cpu_Done || state == cpu_Crashed) break;
+                if (avr->pc == avr->reset_pc) mcu_reset_seen = 1; /* the MCU reset itself (watchdog): its reset vector */
+            } while (avr->cycle < next_check);
+        }
         if (state == cpu_Done || state == cpu_Crashed) {
             fprintf(stderr, "simavr core stopped (state %d)\n", state);
             break;
         }
-        if (avr->pc == avr->reset_pc) mcu_reset_seen = 1; /* the MCU reset itself (watchdog): its reset vector */
-        if (avr->cycle < next_check) continue;
         next_check = avr->cycle + POLL_CYCLES; /* every 0.1 ms of simulated time */
         poll_period_arm();
         extint_poll();
