@@ -265,23 +265,23 @@ class InProcessTaxels:
                 samples, pulse, unsent = self._pacer.step(n_ms, sync)
                 sync = np.zeros(len(samples), bool) if pulse is None else pulse
             n = n_ms if samples is None else len(samples)
-            if self._capture is None and self.ring is None:  # counted only: what the lines below do to the counters
-                self._seq = (self._seq + n) % 65536
-                self._first = self._first and not n
-                self._frames += n - unsent
+            # the counters step whether or not the frames are kept: the periods the source had no sample for
+            # (unsent) are numbered, never sent (the host counts them lost)
+            seq0, starts = self._seq, self._first and n > 0
+            self._seq = (seq0 + n) % 65536
+            self._first = self._first and not n
+            self._frames += n - unsent
+            if self._capture is None and self.ring is None:
                 return
             assert samples is not None  # a capture or the ring asked for them (_wants_samples)
-            seq = ((self._seq + np.arange(n)) % 65536).astype(np.uint16)
-            self._seq = (self._seq + n) % 65536
+            seq = ((seq0 + np.arange(n)) % 65536).astype(np.uint16)
             flags = np.where(sync, int(wire.FrameFlag.SYNC_IN), 0).astype(np.uint8)
-            if self._first and n:
+            if starts:
                 flags[0] |= int(wire.FrameFlag.STREAMING_START)
-                self._first = False
             t = (t0_ms + (1 + np.arange(n)) * (n_ms / n if n else 1.0)) / 1000.0
-            if unsent:  # periods the source had no sample for: numbered, never sent (the host counts them lost)
+            if unsent:
                 n -= unsent
                 samples, seq, flags, t = samples[:n], seq[:n], flags[:n], t[:n]
-            self._frames += n
             if self.ring is not None:
                 self.ring.write(samples, seq, flags, t)
             if self._capture is not None:
