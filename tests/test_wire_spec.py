@@ -156,7 +156,7 @@ def test_uno_commands(tables, h):
 def test_encoder_commands(tables, h):
     rows = tables["encoder-commands"]
     assert {r["command"] for r in rows} == {c.name for c in wire.EncoderCommand}
-    payload = {"CALIBRATE": 2 * (2 * wire.ENC_N_TAXELS + 1), "SPEED": 4, "FINISH": 2}
+    payload = {"CALIBRATE": wire.ENC_CALIBRATE_PAYLOAD, "SPEED": 4, "FINISH": 2}
     for r in rows:
         byte = r["byte"].strip("`")
         assert len(byte) == 1 and wire.EncoderCommand[r["command"]].value == byte.encode()

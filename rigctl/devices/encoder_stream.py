@@ -18,10 +18,16 @@ import numpy as np
 
 from rigctl.devices import wire
 
-__all__ = ["CountsFrame", "EncoderStreamParser", "OnboardEncoder", "OnboardScan", "SpikeFrame", "applied_speeds",
+__all__ = ["STOP_BURST", "STOP_RESEND_S", "CountsFrame", "EncoderStreamParser", "OnboardEncoder", "OnboardScan", "SpikeFrame",
+           "applied_speeds",
            "calibrate_command", "finish_command", "held_windows", "speed_command", "spike_raster"]
 
 _MAX_SPEED_CMM_S = 0xFFFF
+#: s of spike frames after STOP before the host sends :data:`STOP_BURST` (the board stops within a frame: ~10 ms)
+STOP_RESEND_S = 1.0
+#: STOP repeated once more than the most payload and CRC bytes a command of the board waits for (CALIBRATE's): the
+#: first complete a command whose byte was lost (its CRC then fails, and the board drops it), the rest stop the stream
+STOP_BURST = wire.UnoCommand.STOP.value * (wire.ENC_CALIBRATE_PAYLOAD + 3)
 
 
 def _with_crc(cmd: wire.EncoderCommand, payload: bytes) -> bytes:
@@ -258,20 +264,31 @@ class OnboardEncoder:
         read the counts frame. The applied speeds cover every window of the counts frame's samples (a last partial
         frame's window, sent with FINISH, is scaled with the last speed: docs/wire-protocol.md 1.5).
 
+        A board still streaming ``STOP_RESEND_S`` after STOP gets :data:`STOP_BURST` (again each ``STOP_RESEND_S``):
+        its receive ring (63 bytes) loses host bytes when the host sends more than that while the board scales a
+        window (~0.6 ms for each SPEED it takes: a host starved for a second, catching up with ten windows' SPEEDs at
+        once), and the board then reads the STOP as a payload byte of the command whose byte was lost.
+
         Raises
         ------
         TimeoutError
-            No counts frame within ``timeout_s``.
+            Spike frames still coming ``timeout_s`` after STOP, or no counts frame within ``timeout_s`` of FINISH.
         ValueError
             A spike frame was lost (:func:`spike_raster`), or no speed at all.
         """
         self.port.write(wire.UnoCommand.STOP.value)
-        quiet = time.monotonic()
+        quiet = stop_at = sent_at = time.monotonic()
         while time.monotonic() - quiet < quiet_s:
             chunk = self.port.read(4096)
+            now = time.monotonic()
             if chunk:
                 self.parser.feed(chunk)
-                quiet = time.monotonic()
+                quiet = now
+            if now - stop_at > timeout_s:
+                raise TimeoutError(f"the board kept sending spike frames {timeout_s} s after STOP")
+            if now - sent_at > STOP_RESEND_S:  # still streaming: the STOP was taken as a command's payload
+                self.port.write(STOP_BURST)
+                sent_at = now
         pending = list(last_speeds_mm_s)
         while len(self.speeds_sent) < -(-self.samples // 100):  # the windows still without a speed
             if not pending and not self.speeds_sent:

@@ -131,6 +131,8 @@ SPIKE_FRAME_SIZE = 6 + 2 * SPIKE_MASKS + 2  # 28
 COUNTS_SYNC = b"\xa5\xc4"
 ENC_N_TAXELS = 9
 ENC_N_WINDOWS = 20
+#: CALIBRATE's payload (the 9 minima, the 9 maxima and k, uint16 each): the longest a command of the board waits for
+ENC_CALIBRATE_PAYLOAD = 2 * (2 * ENC_N_TAXELS + 1)
 COUNTS_FRAME_SIZE = 11 + 2 * ENC_N_TAXELS * ENC_N_WINDOWS + 2  # 373
 #: the encoder image's banner and identity carry this field
 UNO_ENCODER_FIELD = "encoder=sa_fixed"

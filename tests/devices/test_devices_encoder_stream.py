@@ -10,8 +10,9 @@ import struct
 import numpy as np
 import pytest
 
-from rigctl.devices import wire
+from rigctl.devices import encoder_stream, wire
 from rigctl.devices.encoder_stream import (
+    STOP_BURST,
     EncoderStreamParser,
     OnboardEncoder,
     SpikeFrame,
@@ -140,3 +141,53 @@ def test_the_client_gives_every_window_a_speed_before_finish():
     silent.start(np.zeros(9), np.full(9, 1000))
     with pytest.raises(ValueError, match="no speed"):
         silent.finish([], quiet_s=0.05)
+
+
+class _DesyncedBoard(_FakeBoard):
+    """A board one of whose host bytes was lost (its receive ring overran): it streams a spike frame at every read
+    and takes the next ``need`` host bytes as the payload of the command the lost byte belonged to; only a STOP after
+    them stops it (as the firmware's loop() parses)."""
+
+    def __init__(self, need: int) -> None:
+        super().__init__()
+        self.need = need
+        self.seq = 0
+        self.streaming = True
+
+    def write(self, data: bytes) -> int:
+        self.written += data
+        for b in data:
+            if self.need:
+                self.need -= 1
+            elif bytes([b]) == wire.UnoCommand.STOP.value:
+                self.streaming = False
+        if data[:1] == b"F":
+            super().write(data)
+        return len(data)
+
+    def read(self, size: int = 1) -> bytes:
+        if self.streaming:
+            self.out += _spike(self.seq % 65536, [1] * 10)
+            self.seq += 10
+        return super().read(size)
+
+
+def test_a_stop_taken_as_a_payload_byte_is_sent_again_until_the_board_stops(monkeypatch):
+    monkeypatch.setattr(encoder_stream, "STOP_RESEND_S", 0.05)
+    board = _DesyncedBoard(need=0)
+    enc = OnboardEncoder(board)
+    enc.start(np.zeros(9), np.full(9, 1000))
+    board.streaming, board.need = True, 5  # a SPEED whose command byte arrived and one payload byte did not
+    enc.poll()
+    scan = enc.finish([42.0], quiet_s=0.05, timeout_s=5.0)
+    assert not board.streaming and STOP_BURST in board.written and len(STOP_BURST) > wire.ENC_CALIBRATE_PAYLOAD + 2
+    assert scan.counts.samples == 25  # then FINISH, and its counts frame
+    for need in range(wire.ENC_CALIBRATE_PAYLOAD + 2 + 1):  # any payload left to fill: one burst stops the board
+        lost = _DesyncedBoard(need)
+        lost.write(STOP_BURST)
+        assert not lost.streaming, need
+    endless = OnboardEncoder(_DesyncedBoard(need=0))
+    endless.port.streaming = True
+    endless.port.write = lambda data: len(data)  # a board that never takes a byte
+    with pytest.raises(TimeoutError, match="after STOP"):
+        endless.finish([42.0], quiet_s=0.05, timeout_s=0.3)
