@@ -91,7 +91,10 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
         if n > 2000 and rig.load and (not loads or rig.load is not loads[-1]):
             loads.append(rig.load)
     rest = [float(speeds_mm_s[(len(enc.speeds_sent) + i) % len(speeds_mm_s)]) for i in range(5)]
+    stops0 = len(port.sent(wire.UnoCommand.STOP.value))
     scan = enc.finish(rest, quiet_s=0.5)
+    stops = len(port.sent(wire.UnoCommand.STOP.value)) - stops0
+    print(f"scan of {n_samples} samples: STOP sent {stops} time(s)")  # more than once: the board went on streaming
     speeds = port.sent(wire.EncoderCommand.SPEED.value)[speeds0:]
     return scan, enc.parser, loads[1:], speeds  # the first load may cover the second before ENCODE
 
