@@ -79,11 +79,14 @@ class ScanEncoder:
         """Start a new scan."""
         self._encoder.reset()
         self.n_samples = 0
+        self._pending: list[np.ndarray] = []  # readings fed but not yet run through the encoder (see :meth:`feed`)
         self._real: list[list[np.ndarray]] = [[] for _ in self.taxels]  # real-time spike times per taxel, s
         self._n_scaled = [0] * len(self.taxels)  # of which this many are scaled
         self._scaled: list[list[np.ndarray]] = [[] for _ in self.taxels]  # scaled-time spike times, s
         self._trace_t: list[np.ndarray] = []
         self._trace_v: list[np.ndarray] = []
+        self._n_trace = 0  # velocity samples so far
+        self._trace_end_s = 0.0  # the latest one's time, s (NaN if a time was NaN)
         self._factors: list[float] = []  # v_w / v_ref of each scaled real-time window so far
         self._edges = [0.0]  # scaled time of each real-time window edge
 
@@ -94,44 +97,66 @@ class ScanEncoder:
 
     # ------------------------------------------------------------------------------------------------- feeding
     def feed(self, readings: np.ndarray) -> None:
-        """The next ``(n, n_channels)`` raw readings (ADC counts) of the scan, at ``params.fs_hz``."""
+        """The next ``(n, n_channels)`` raw readings (ADC counts) of the scan, at ``params.fs_hz``.
+
+        The encoder runs on the readings when their spikes are needed (a window to scale, the features): the
+        spikes of a stream do not depend on how it is cut into chunks (:class:`rigctl.encoding.izhikevich.
+        StreamingEncoder`, :class:`rigctl.encoding.fixed_sa.FixedSAEncoder`), so one call per 100 ms window gives
+        those of one call per chunk, without the per-call cost of every 20 ms block."""
         x = np.asarray(readings)[:, self.taxels]
+        self._pending.append(x)
+        self.n_samples += x.shape[0]
+        self._scale_ready()
+
+    def _encode_pending(self) -> None:
+        """Run the encoder on the readings fed since its last run; their spikes join each taxel's real-time train."""
+        if not self._pending:
+            return
+        x = self._pending[0] if len(self._pending) == 1 else np.concatenate(self._pending)
+        self._pending = []
         enc = self._encoder
         sa = enc.process(x) if isinstance(enc, FixedSAEncoder) else enc.process(x).sa
-        self.n_samples += x.shape[0]
         for i in range(len(self.taxels)):
             self._real[i].append(sa.train(0, i))
-        self._scale_ready()
 
     def feed_speed(self, time_s: np.ndarray, speed_mm_s: np.ndarray) -> None:
         """The tracker's velocity samples that arrived: times (s from the scan's first sample, increasing) and
         mm/s."""
-        self._trace_t.append(np.asarray(time_s, np.float64).reshape(-1))
+        t = np.asarray(time_s, np.float64).reshape(-1)
+        self._trace_t.append(t)
         self._trace_v.append(np.asarray(speed_mm_s, np.float64).reshape(-1))
+        if t.size:
+            end = t.max()
+            self._trace_end_s = float(end if self._n_trace == 0 else np.maximum(self._trace_end_s, end))
+            self._n_trace += t.size
         self._scale_ready()
 
     def _trace(self) -> tuple[np.ndarray, np.ndarray]:
-        t = np.concatenate(self._trace_t) if self._trace_t else np.zeros(0)
-        v = np.concatenate(self._trace_v) if self._trace_v else np.zeros(0)
+        """The velocity samples so far, as one (times s, mm/s) pair (the pieces joined once)."""
+        if len(self._trace_t) > 1:
+            self._trace_t, self._trace_v = [np.concatenate(self._trace_t)], [np.concatenate(self._trace_v)]
+        t = self._trace_t[0] if self._trace_t else np.zeros(0)
+        v = self._trace_v[0] if self._trace_v else np.zeros(0)
         return t, v
 
     def _scale_ready(self, final: bool = False) -> None:
         """Scale every window that is complete (its samples in, a velocity sample at or past its end), or, at the
         scan's end (``final``), every window left (the last partial one too; the velocity held past the trace)."""
         p = self.params
-        t, v = self._trace()
-        if t.size == 0:
+        if self._n_trace == 0:
             return
         w_s = p.window_s
         per = max(1, int(round(w_s * p.fs_hz)))
         n_done = len(self._factors)
+        if not final:
+            n_ready = min(self.n_samples // per, int(np.floor(self._trace_end_s / w_s)))
+            if n_ready <= n_done:
+                return
+        t, v = self._trace()
         if final:
             n_ready = max(1, -(-self.n_samples // per))  # ceil: as the offline encoding's windows
             speeds = window_speeds(t, v, self.n_samples / p.fs_hz, w_s)
         else:
-            n_ready = min(self.n_samples // per, int(np.floor(t.max() / w_s)))
-            if n_ready <= n_done:
-                return
             speeds = window_speeds(t, v, n_ready * w_s, w_s)  # window w depends on the samples around it only
         if np.any(speeds[n_done:n_ready] < 0):
             raise ValueError("speeds must be >= 0 (mm/s)")
@@ -139,6 +164,7 @@ class ScanEncoder:
             f = float(speeds[w]) / p.realtime_reference_speed_mm_s
             self._factors.append(f)
             self._edges.append(self._edges[-1] + f * w_s)
+        self._encode_pending()
         self._scale_spikes(final)
 
     def _scale_spikes(self, final: bool) -> None:
@@ -165,11 +191,12 @@ class ScanEncoder:
         float32 spikes/s (the second only with velocity samples). Call once per scan (then :meth:`reset`)."""
         p = self.params
         duration = self.n_samples / p.fs_hz
+        self._encode_pending()
         real = SpikeTrains.from_lists([[np.concatenate(self._real[i] + [np.zeros(0)])
                                          for i in range(len(self.taxels))]])
         out = {"realtime_original": realtime_features_unscaled(real, duration, n_windows=p.n_windows_realtime,
                                                                window_s=p.window_s)[0]}
-        if self._trace_t and self._trace()[0].size:
+        if self._n_trace:
             self._scale_ready(final=True)
             trains = SpikeTrains.from_lists([[np.concatenate(self._scaled[i] + [np.zeros(0)])
                                               for i in range(len(self.taxels))]])
