@@ -155,15 +155,16 @@ class ScanClassifier:
 
     def log_to(self, session: str | os.PathLike[str]) -> int:
         """Write the predictions made so far into the session file's event log (``prediction`` events: trial id,
-        truth, profile, predicted, correct, variant, PCs; after the run, which holds the file while it records).
+        truth, profile, predicted, correct, variant, PCs; after the run, which holds the file while it records; one
+        commit).
         Returns how many. Raises SessionError, OSError."""
         from rigctl.storage.session import SessionWriter
 
         w = SessionWriter.open(session)
-        try:
-            for p in self.predictions:
-                w.log_event("prediction", trial_id=p.trial_id, truth=p.truth, profile=p.profile,
-                            predicted=p.predicted, correct=p.correct, variant=self.variant, n_pcs=self.model.n_pcs)
+        try:  # one commit for all of them (each commit's journal is applied by a helper process)
+            w.log_events([("prediction", {"trial_id": p.trial_id, "truth": p.truth, "profile": p.profile,
+                                          "predicted": p.predicted, "correct": p.correct, "variant": self.variant,
+                                          "n_pcs": self.model.n_pcs}) for p in self.predictions])
         finally:
             w.close()
         return len(self.predictions)

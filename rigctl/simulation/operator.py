@@ -172,23 +172,32 @@ class SimulatedOperator:
         wobble = _ou(rng, max_n, dt, c.speed_wobble_tau_s, c.speed_wobble)
         pause_at = USED_START_MM + USED_LENGTH_MM * rng.uniform(0.2, 0.8)
         pause_s = rng.uniform(*c.pause_s) if rng.uniform() < c.pause_probability else 0.0
-        pos = np.empty(max_n)
+        # the step loop in Python floats and conditional expressions (numpy scalars and min/max calls cost several
+        # times as much per step; the same IEEE double operations and choices as min(max(q, 0.0), 1.0) etc.)
         x, v, n_press = c.start_mm, 0.0, int(c.press_s / dt)
-        pos[:n_press] = x
+        path = [x] * n_press
         k, paused_until = n_press, -1
         a = dt / c.arm_tau_s
-        while x < c.stop_mm - 0.05 and k < max_n:
-            p = min(max((x - USED_START_MM) / USED_LENGTH_MM, 0.0), 1.0)
-            target = (v0 + (v1 - v0) * p) * bias * (1.0 + wobble[k])
-            target *= min(1.0, max(0.08, (c.stop_mm - x) / 20.0))  # slowing down to stop at the end
-            if pause_s and paused_until < 0 and x >= pause_at:
+        wob, stop_mm, pausing = wobble.tolist(), c.stop_mm, bool(pause_s)
+        used_start, used_mm = USED_START_MM, USED_LENGTH_MM
+        while x < stop_mm - 0.05 and k < max_n:
+            q = (x - used_start) / used_mm
+            q = 0.0 if 0.0 > q else q
+            p = 1.0 if 1.0 < q else q
+            target = (v0 + (v1 - v0) * p) * bias * (1.0 + wob[k])
+            slow = (stop_mm - x) / 20.0  # slowing down to stop at the end: min(1.0, max(0.08, slow))
+            slow = slow if slow > 0.08 else 0.08
+            target *= slow if slow < 1.0 else 1.0
+            if pausing and paused_until < 0 and x >= pause_at:
                 paused_until = k + int(pause_s / dt)
             if k < paused_until:
                 target = 0.0
-            v += (max(target, 0.0) - v) * a
+            v += ((0.0 if 0.0 > target else target) - v) * a
             x += v * dt
-            pos[k] = x
+            path.append(x)
             k += 1
+        pos = np.empty(max_n)
+        pos[:k] = path
         n = min(max_n, k + int(c.hold_s / dt))
         pos[k:n] = x
         return pos[:n], {"operator_speed_bias": bias, "operator_pause_s": float(pause_s),

@@ -11,7 +11,7 @@ import json
 import logging
 import os
 import uuid
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -584,14 +584,25 @@ class SessionWriter:
         given) and ``fields`` (JSON-able). One crash-safe commit; returns the entry.
 
         Raises SessionWriteError (disk full, read-only) as every commit does."""
-        entry = {"kind": str(kind), "at_utc": _utc_now(), **fields}
-        with self._commit(f"logging a {kind} event") as f:
+        return self.log_events([(kind, fields)])[0]
+
+    def log_events(self, events: Sequence[tuple[str, Mapping[str, Any]]]) -> list[dict[str, Any]]:
+        """Append several entries to the event log as :meth:`log_event` does each (``(kind, fields)`` pairs, in that
+        order), in one crash-safe commit (all or none of them); returns the entries (none: no commit).
+
+        Raises SessionWriteError (disk full, read-only) as every commit does."""
+        entries = [{"kind": str(kind), "at_utc": _utc_now(), **fields} for kind, fields in events]
+        if not entries:
+            return []
+        kinds = sorted({e["kind"] for e in entries})
+        action = f"logging a {kinds[0]} event" if len(entries) == 1 else f"logging {len(entries)} {'/'.join(kinds)} events"
+        with self._commit(action) as f:
             text = f.attrs.get(EVENTS_ATTR)
-            events = json.loads(_text(text)) if text is not None else []
-            text = json.dumps([*events, entry], default=str, sort_keys=True)
+            logged = json.loads(_text(text)) if text is not None else []
+            text = json.dumps([*logged, *entries], default=str, sort_keys=True)
             f.attrs[EVENTS_ATTR] = text
         self.attrs = {**self.attrs, EVENTS_ATTR: text}
-        return entry
+        return entries
 
     def events(self) -> list[dict[str, Any]]:
         """The session's event log, oldest first (:meth:`log_event`)."""

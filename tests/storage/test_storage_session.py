@@ -184,6 +184,25 @@ def test_file_is_closed_between_writes_and_script_plans_grow(tmp_path):
         assert list(s.plan["force_g"]) == [200, 300, 400] and s.completed_ids() == [0, 1, 2]
 
 
+def test_several_events_are_logged_in_one_commit_after_those_before(tmp_path, monkeypatch):
+    from rigctl.storage import journal
+
+    path = tmp_path / "s.h5"
+    w = SessionWriter.create(path, plan=_plan(2), protocol_source="src")
+    w.log_event("latched", cause="estop")
+    applied = []
+    real_apply = journal.apply_journal
+    monkeypatch.setattr(journal, "apply_journal", lambda *a, **k: (applied.append(1), real_apply(*a, **k)))
+    out = w.log_events([("prediction", {"trial_id": k, "predicted": "AB"[k]}) for k in range(2)])
+    assert len(applied) == 1 and [e["trial_id"] for e in out] == [0, 1]
+    assert w.log_events([]) == [] and len(applied) == 1  # nothing to log: no commit
+    w.close()
+    with open_session(path) as s:
+        assert [(e["kind"], e.get("predicted")) for e in s.events] == [("latched", None), ("prediction", "A"),
+                                                                       ("prediction", "B")]
+        assert all(e["at_utc"] for e in s.events)
+
+
 def test_bad_input_is_refused_clearly(tmp_path):
     with pytest.raises(ValueError, match=r"\(n_samples, 18\)"):
         TrialData(taxels=np.zeros((10, 16)))
