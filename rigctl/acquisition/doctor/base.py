@@ -19,6 +19,7 @@ from typing import Any
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.rigconfig import load_rig_config, save_rig_config
+from rigctl.core.interfaces import TaxelSource
 from rigctl.devices.drum import _WallClock
 
 __all__ = ["CheckResult", "Check", "DoctorContext", "DoctorReport", "Skip", "STATUSES", "run_doctor", "save_report",
@@ -113,6 +114,11 @@ class DoctorContext:
         opened rig's backend.
     config_path : the rig config file (default ``$RIGCTL_CONFIG`` / ``~/.config/rigctl/rig.json``).
     rest_s : duration of the taxel capture at rest, s (noise floor, crosstalk, Uno clock).
+
+    A rig the context opened streams taxel frames only while a check takes them (:meth:`taxel_stream`): its stream
+    is stopped when it has opened and after each check, so the taxel board's UART and the host's frame parser idle
+    through the checks that need no frames (most of them; on the firmware under simavr, ~2.5 of ~17 CPU-s). An open
+    rig given as ``rig`` (the GUI's) keeps streaming as it was.
     """
 
     def __init__(self, mode: str, *, opener: Callable[[], Rig] | None = None, rig: Rig | None = None,
@@ -128,6 +134,7 @@ class DoctorContext:
         self._ports = {k: v for k, v in (("drum", drum_port), ("taxel", taxel_port)) if v}
         self.config_path = config_path
         self.rest_s = float(rest_s)
+        self._stream_paused = False
         self.cache: dict[str, Any] = {}
         #: set it (from any thread) to stop: the running check ends as ``skip: cancelled`` at its next poll, the
         #: rig is stopped safely, the remaining checks are skipped
@@ -152,10 +159,31 @@ class DoctorContext:
             try:
                 self._rig = self._opener()
                 self._owns_rig = True
+                self.pause_stream()
             except Exception as exc:  # noqa: BLE001 - reported by the link check, skipped by the others
                 self.open_error = " ".join(str(exc).split()) or type(exc).__name__
                 raise Skip(f"the rig did not open ({self.open_error})") from exc
         return self._rig
+
+    def taxel_stream(self) -> TaxelSource:
+        """The rig's taxel stream, streaming (a stream :meth:`pause_stream` stopped is started again: its board
+        restarts its sequence at 0, and the frames before the new stream's first are not taken). Raises
+        :class:`Skip` if the rig could not be opened, ``TaxelStreamError`` if the stream cannot be started."""
+        rig = self.rig()
+        if self._stream_paused:
+            self._stream_paused = False
+            rig.stream.start()
+        return rig.stream
+
+    def pause_stream(self) -> None:
+        """Stop the taxel stream of a rig this context opened until a check asks for frames (:meth:`taxel_stream`);
+        nothing for an open rig given to the context, or none open. Never raises (a link error shows in the next
+        check that takes frames)."""
+        if self._rig is None or not self._owns_rig or self._stream_paused:
+            return
+        self._stream_paused = True
+        with contextlib.suppress(Exception):
+            self._rig.stream.stop()
 
     def ports(self) -> dict[str, str]:
         """``{"drum": path, "taxel": path}``: as given, else the opened rig backend's (``{}`` for a backend without
@@ -228,6 +256,7 @@ def _run_one(check: Check, ctx: DoctorContext) -> CheckResult:
     finally:
         if check.moves and ctx._rig is not None:
             _make_safe(ctx)
+        ctx.pause_stream()
     if result.name != check.name:
         result = dataclasses.replace(result, name=check.name)
     return result

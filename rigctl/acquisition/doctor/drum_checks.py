@@ -481,11 +481,12 @@ def check_drum_direction(ctx: DoctorContext) -> CheckResult:
             return failed("drum-direction", f"fault {_fault_names(st.faults)} while the drum turned",
                           fault_advice(st.faults) or "clear the fault's cause, then check again")
     n = int(round(DIRECTION_CAPTURE_S * layout.sample_rate_hz))
-    rig.stream.begin_capture()
+    stream = ctx.taxel_stream()
+    stream.begin_capture()
     try:
-        rig.stream.wait_capture(n, timeout_s=3 * DIRECTION_CAPTURE_S + 5.0)
+        stream.wait_capture(n, timeout_s=3 * DIRECTION_CAPTURE_S + 5.0)
     finally:
-        cap = rig.stream.end_capture()
+        cap = stream.end_capture()
     drum.stop()
     grid = cap.samples[:, : layer.n_channels].reshape(len(cap.samples), layer.rows, layer.cols)
     lag = (layer.rows - 1) * layout.pitch_mm / DIRECTION_SPEED_MM_S * layout.sample_rate_hz

@@ -37,7 +37,7 @@ def _rest_capture(ctx: DoctorContext):
     def capture():
         rig = ctx.rig()
         rig.release()
-        stream = rig.stream
+        stream = ctx.taxel_stream()
         n = int(round(ctx.rest_s * rig.layout.sample_rate_hz))
         stream.begin_capture()
         try:
