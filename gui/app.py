@@ -111,6 +111,8 @@ class MainWindow(QtWidgets.QMainWindow):
     #: how long the GUI thread may not answer while the rig moves before the library stops it, s (the dead man's
     #: switch, :class:`rigctl.operations.RigMonitor`)
     deadman_s: float = DEADMAN_TIMEOUT_S
+    #: emitted once, on the GUI thread, right after the Analysis tab is built (:attr:`analysis`: its first show or use)
+    analysis_built = QtCore.Signal()
 
     def __init__(self, source: RigSource | None = None, *, autoconnect: bool = True, max_fps: float = MAX_FPS):
         super().__init__()
@@ -235,6 +237,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._guard_new_widgets(tab)
             # laid out now, as the window's other pages were before it was shown (not an event loop pass later)
             QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
+            self.analysis_built.emit()
         return self._analysis
 
     def _build_shown_tab(self, index: int) -> None:
@@ -1054,6 +1057,18 @@ def write_stats(window: MainWindow, path: str, state: dict) -> None:
         f.write(json.dumps(line) + "\n")
 
 
+def start_job_server_with_analysis(window: MainWindow) -> None:
+    """Start the analysis jobs' fork server (:func:`rigctl_gui.workers.start_job_server`, in the background) when
+    ``window``'s Analysis tab is built (its first show or use; now, if it is already built), so the first Encode /
+    Run analyses / Train finds the analysis stack loaded: every job starts from that tab, and a session at the rig
+    that never opens it does not pay the server's ~2 CPU-s of imports (at start-up, beside the rig's connect). The
+    GUI thread never waits on it; only the app does this, not each window (tests start their own)."""
+    if window._analysis is not None:
+        start_job_server()
+    else:
+        window.analysis_built.connect(start_job_server)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
@@ -1071,9 +1086,7 @@ def main(argv=None) -> int:
     if args.tab:
         window.tabs.setCurrentIndex(TAB_NAMES.index(args.tab))
     window.show()
-    # the analysis jobs' fork server loads the analysis stack in the background now, so the first Encode / Run
-    # analyses / Train finds it ready (the GUI thread never waits on it; only the app does this, not each window)
-    start_job_server()
+    start_job_server_with_analysis(window)
     if args.run or args.texture:
         def _run_when_ready():
             if window.commands is None:

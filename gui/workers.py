@@ -312,8 +312,9 @@ def job_context():
     server when it starts, so each job is a fork of a process that has the analysis stack loaded rather than a fresh
     interpreter importing it again (``spawn``). The server is a plain process started from a fresh interpreter, not a
     fork of the GUI: no Qt, no threads of the app in the jobs. It lives as long as the app and is stopped with it.
-    Starting it takes seconds (the imports): :func:`start_job_server` starts it in the background at app start, and
-    :class:`ProcessJob` starts its process from a thread of its own, never the GUI thread."""
+    Starting it takes seconds (the imports): :func:`start_job_server` starts it in the background when the app builds
+    its Analysis tab (:func:`rigctl_gui.app.start_job_server_with_analysis`), and :class:`ProcessJob` starts its
+    process from a thread of its own, never the GUI thread."""
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver")

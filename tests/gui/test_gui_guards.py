@@ -98,14 +98,29 @@ def test_the_wheel_changes_only_a_focused_setpoint(bare_window, qapp):
     assert box.value() > 80.0  # the wheel events do arrive: only the unfocused box ignored them
 
 
-def test_the_analysis_tab_built_on_first_show_is_guarded_and_logged_like_the_rest(bare_window, qapp):
+def test_the_analysis_tab_built_on_first_show_is_guarded_and_logged_like_the_rest(bare_window, qapp, monkeypatch):
     """The Analysis tab is built the first time it is shown (not with the window): then its spin and combo boxes
     get the wheel guard's focus policy and the wheel leaves its unfocused spin box alone, and its buttons' presses
-    reach the event log, as the window's own widgets do from the start."""
+    reach the event log, as the window's own widgets do from the start. The app starts the analysis jobs' fork
+    server then (start_job_server_with_analysis, as ``rigctl gui`` wires it), once, not before."""
+    import rigctl_gui.app as app
+
     w = bare_window
-    assert w._analysis is None  # not built with the window
+    started: list[int] = []
+    monkeypatch.setattr(app, "start_job_server", lambda: started.append(1))
+    app.start_job_server_with_analysis(w)
+    w.tabs.setCurrentIndex(0)
+    qapp.processEvents()
+    assert w._analysis is None and not started  # not built with the window, no server for a tab never shown
     w.tabs.setCurrentIndex(w._analysis_index)  # the operator clicks its tab
     tab = w._analysis
+    assert started == [1]
+    w.tabs.setCurrentIndex(0)
+    w.tabs.setCurrentIndex(w._analysis_index)
+    assert started == [1] and w.analysis is tab
+    app.start_job_server_with_analysis(w)  # a window whose tab is built already (``--tab analysis``): at once
+    assert started == [1, 1]
+    w.tabs.setCurrentIndex(w._analysis_index)
     assert tab is not None and w.tabs.currentWidget() is tab and w.analysis is tab
     boxes = tab.findChildren(QtWidgets.QAbstractSpinBox) + tab.findChildren(QtWidgets.QComboBox)
     assert len(boxes) > 5 and all(b.focusPolicy() == QtCore.Qt.StrongFocus for b in boxes)
