@@ -26,7 +26,7 @@ import serial
 
 from rigctl.core.normalisation import TaxelRange
 from rigctl.devices import wire
-from rigctl.devices.encoder_stream import OnboardEncoder
+from rigctl.devices.encoder_stream import STOP_BURST, OnboardEncoder, held_windows, speed_command, spike_raster
 from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.encoding.features import counted_realtime_features
 from rigctl.encoding.fixed_sa import FixedSAEncoder
@@ -230,3 +230,45 @@ def test_the_encoder_image_still_streams_exact_taxel_frames(enc_rig, scans, wait
     assert fits, "the first frames are no rows of the waveform"
     k0 = int(fits[0])
     np.testing.assert_array_equal(cap.samples, wave[(k0 + np.arange(len(cap.seq))) % len(wave)])
+
+
+def test_a_burst_of_speeds_longer_than_the_ring_loses_no_byte_while_the_board_scales_a_window(enc_rig):
+    """A host that stalled catches up with every window's SPEED at once, then STOP, in one write (a 10 s stall: 100
+    SPEEDs, 700 bytes, ~8 ms at the line rate). The first is the speed of the window the board has just completed,
+    which it scales (~0.6 ms in loop()) while the rest arrive; the rest are for windows it held long ago (dropped at
+    once). The board takes every byte: the one STOP at the end stops the stream (a 64-byte receive ring lost the burst's
+    tail and the STOP with it, and the stream never stopped: the CI run that hung in the test above), no sample is
+    dropped and the scaled window is not held."""
+    burst_speeds = 100
+    with serial.Serial(enc_rig.taxel_port, timeout=0.05) as raw:
+        banner = b""
+        t0 = time.monotonic()
+        while b"\n" not in banner:  # the board restarts when a host opens its port
+            banner += raw.read(256)
+            assert time.monotonic() - t0 < 30, "no banner"
+        lo, hi = np.full(N_TAXELS, 300), np.full(N_TAXELS, 900)
+        for _ in range(5):  # tries
+            enc = OnboardEncoder(raw)
+            enc.start(lo, hi, 100)
+            deadline = time.monotonic() + 30.0
+            while enc.poll() < 340:  # window 2 complete, half of window 3: the board waits for window 2's speed
+                assert time.monotonic() < deadline, "the board sent no spike frames"
+            w = enc.samples // WINDOW - 1
+            raw.write(speed_command(w, 50.0) + speed_command(0, 50.0) * burst_speeds + wire.UnoCommand.STOP.value)
+            quiet = sent = time.monotonic()
+            while time.monotonic() - quiet < 0.5 and time.monotonic() - sent < 5.0:
+                chunk = raw.read(4096)
+                if chunk:
+                    enc.parser.feed(chunk)
+                    quiet = time.monotonic()
+            stopped = time.monotonic() - quiet >= 0.5
+            if not stopped:
+                raw.write(STOP_BURST)  # leave the board stopped
+                break
+            if w not in held_windows(enc.parser.spikes):  # else the host stalled here: its SPEED came too late
+                break
+    assert stopped, f"the board kept streaming 5 s after a {burst_speeds}-SPEED burst and one STOP (bytes lost)"
+    assert w not in held_windows(enc.parser.spikes), f"window {w}'s SPEED never reached the board in time (5 tries: a " \
+        "starved host), so the burst never came while the board scaled it"
+    assert not any(f.flags & wire.SpikeFlag.DROPPED for f in enc.parser.spikes)
+    assert spike_raster(enc.parser.spikes).shape[0] >= 340

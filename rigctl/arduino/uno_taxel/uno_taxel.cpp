@@ -71,9 +71,21 @@ static volatile uint8_t tx_overrun_pending;
 static volatile uint8_t sync_latched;
 static volatile uint16_t seq;
 
-/* ---- command receive ring ---- */
-static volatile uint8_t rx_ring[64]; /* the encoder's calibration command is 41 bytes */
+/* ---- command receive ring ----
+ * The RX interrupt drops a byte that finds the ring full. The streamer's loop() takes its one-byte commands at once.
+ * The encoder's loop() is away from the ring for up to ~1.7 ms (a sample whose step holds a window: ~15,000 cycles,
+ * ~26,700 with the interrupts), while the host's bytes keep coming at the line rate (~100 a ms): a 64-byte ring, read
+ * after the whole sample queue, lost the tail of a host's burst of SPEEDs (a host catching up after a stall) and the
+ * STOP after it (or the parser, which counts payload bytes, took the STOP as one), and the stream never stopped. The
+ * encoder's ring holds 255 bytes, 1.5 times what that stretch lets in, and its loop() reads it between every two
+ * samples it encodes (docs/wire-protocol.md 1.5: what a host may send). */
+#ifdef UNO_SA_ENCODER
+static volatile uint8_t rx_ring[256]; /* indices wrap as uint8_t */
+#define RX_MASK 255
+#else
+static volatile uint8_t rx_ring[64];
 #define RX_MASK 63
+#endif
 static volatile uint8_t rx_head, rx_tail;
 
 /* Input selection and conversion start are separate: after the select lines and ADMUX change, the multiplexer's
@@ -412,10 +424,12 @@ static void spike_flush(void)
     spike_flags = 0;
 }
 
-/* encode every queued sample (the probe pin is high while loop() encodes) */
-static void enc_poll(void)
+/* encode the oldest queued sample, if any (the probe pin is high while loop() encodes); returns 1 if there was one.
+ * One at a time: loop() reads the host's bytes between samples (a queue drained in one go kept them waiting for
+ * several samples, more than the receive ring holds at the line rate) */
+static uint8_t enc_poll(void)
 {
-    while (enc_q_tail != enc_q_head) {
+    if (enc_q_tail != enc_q_head) {
         ENC_PROBE_ON();
         uint8_t depth = (uint8_t)((enc_q_head - enc_q_tail) & (ENC_QUEUE - 1));
         if (depth > enc_q_max) enc_q_max = depth;
@@ -428,7 +442,9 @@ static void enc_poll(void)
         enc_seq++;
         if (spike_n == RIGCTL_SPIKE_MASKS) spike_flush();
         ENC_PROBE_OFF();
+        return 1;
     }
+    return 0;
 }
 
 /* ENCODE: a new scan (calibration of the last CALIBRATE) and the stream with it */
@@ -459,7 +475,8 @@ static void enc_finish(uint16_t speed_cmm_s)
     streaming = 0;
     encoding = 0;
     sei();
-    enc_poll();
+    while (enc_poll()) {
+    }
     spike_flush();
     ENC_PROBE_ON();
     sa_finish(&enc, speed_cmm_s);
