@@ -232,6 +232,7 @@ class OnboardEncoder:
         self.port = port
         self.parser = EncoderStreamParser()
         self.speeds_sent: list[float] = []
+        self.speed_windows: list[int] = []
 
     @property
     def samples(self) -> int:
@@ -243,6 +244,7 @@ class OnboardEncoder:
         :func:`calibrate_command`)."""
         self.parser = EncoderStreamParser()
         self.speeds_sent = []
+        self.speed_windows = []
         self.port.write(calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ENCODE.value)
 
     def poll(self) -> int:
@@ -254,8 +256,18 @@ class OnboardEncoder:
 
     def send_speed(self, speed_mm_s: float) -> None:
         """The next window's mean speed (window 0 first; sent once it is known, at the latest 100 ms after the
-        window ended: later, the board holds it). Errors of :func:`speed_command`."""
-        self.port.write(speed_command(len(self.speeds_sent), speed_mm_s))
+        window ended: later, the board holds it). Errors of :func:`speed_command`.
+
+        The SPEED of a window the board has held already is not written (it would drop it): once the host has the
+        board's sample 100 (w + 2), the board began window w + 2 without w's speed and scaled w with the last one. A
+        host catching up after a stall so sends at most two SPEEDs at once, never a burst longer than the board's
+        receive ring (docs/wire-protocol.md 1.5). :attr:`speed_windows` lists the windows written, in order;
+        :attr:`speeds_sent` every window's speed given."""
+        w = len(self.speeds_sent)
+        command = speed_command(w, speed_mm_s)
+        if self.samples <= 100 * (w + 2):
+            self.port.write(command)
+            self.speed_windows.append(w)
         self.speeds_sent.append(round(float(speed_mm_s), 2))
 
     def finish(self, last_speeds_mm_s: list[float], *, quiet_s: float = 0.3, timeout_s: float = 10.0) -> OnboardScan:
@@ -265,9 +277,10 @@ class OnboardEncoder:
         frame's window, sent with FINISH, is scaled with the last speed: docs/wire-protocol.md 1.5).
 
         A board still streaming ``STOP_RESEND_S`` after STOP gets :data:`STOP_BURST` (again each ``STOP_RESEND_S``):
-        its receive ring (63 bytes) loses host bytes when the host sends more than that while the board scales a
-        window (~0.6 ms for each SPEED it takes: a host starved for a second, catching up with ten windows' SPEEDs at
-        once), and the board then reads the STOP as a payload byte of the command whose byte was lost.
+        a host byte lost on the way (a burst beyond the board's receive ring, docs/wire-protocol.md 1.5: the image
+        of before 2026-11-26 held 63 bytes, which a host catching up with ten windows' SPEEDs overran while the board
+        scaled a window; or a byte lost on the line) makes the board read the STOP as a payload byte of the command
+        that byte belonged to.
 
         Raises
         ------

@@ -31,7 +31,14 @@ from rigctl.core.textures import TextureSet
 from rigctl.core.trial import PlannedTrial
 from rigctl.devices import wire
 from rigctl.devices.encoder_stream import OnboardEncoder
-from rigctl.devices.onboard_finger import BoardRange, encode_pass, onboard_encoding, onboard_raw_scan, read_banner
+from rigctl.devices.onboard_finger import (
+    WINDOW_SAMPLES,
+    BoardRange,
+    encode_pass,
+    onboard_encoding,
+    onboard_raw_scan,
+    read_banner,
+)
 from rigctl.simulation.model import RigConfig
 from rigctl.simulation.operator import SimulatedOperator, plate_axis_of
 
@@ -49,7 +56,9 @@ class PlayedScan:
     ``first_row`` the row of the board's first encoded sample, ``samples`` how many it encoded.
 
     And the host's side: ``encode_view_s`` the pass's time (s) the host's view had reached when it sent ENCODE;
-    ``speeds_sent`` (samples the host had received, s since its last read returned) at each SPEED, window 0 first;
+    ``speeds_sent`` (samples the host had received, s since its last read returned) at each window's SPEED, window 0
+    first (a window whose SPEED the host did not send, the board having held it, :meth:`OnboardEncoder.send_speed
+    <rigctl.devices.encoder_stream.OnboardEncoder.send_speed>`: at least the board's sample 100 (w + 2) + 1, nan);
     ``stop_sent`` the same at STOP."""
 
     taxels: np.ndarray
@@ -171,7 +180,8 @@ class HilFingerScans:
         if got is None:
             return None
         t0, scan = got
-        speeds = tuple((n, s) for _, n, s in noted.sent(wire.EncoderCommand.SPEED.value))
+        written = dict(zip(enc.speed_windows, ((n, s) for _, n, s in noted.sent(wire.EncoderCommand.SPEED.value))))
+        speeds = tuple(written.get(w, (WINDOW_SAMPLES * (w + 2) + 1, math.nan)) for w in range(len(enc.speeds_sent)))
         stop_sent = [(n, s) for _, n, s in noted.sent(wire.UnoCommand.STOP.value)][0]
         self.played.append(PlayedScan(wave, first[0], int(scan.counts.samples), view[0], speeds, stop_sent))
         return onboard_raw_scan(t_pass, along, t0, onboard_encoding(scan, self.layout.sample_rate_hz), self.layout,

@@ -191,3 +191,27 @@ def test_a_stop_taken_as_a_payload_byte_is_sent_again_until_the_board_stops(monk
     endless.port.write = lambda data: len(data)  # a board that never takes a byte
     with pytest.raises(TimeoutError, match="after STOP"):
         endless.finish([42.0], quiet_s=0.05, timeout_s=0.3)
+
+
+def test_a_host_catching_up_sends_only_the_speeds_the_board_can_still_use():
+    """A host that stalled (its board encoded 1,000 samples meanwhile, holding windows 0-7) gives every window's speed:
+    only windows 8 and 9 get a SPEED (the board, which began window w + 2 at sample 100 (w + 2) without w's speed, would
+    drop the others), so catching up takes 14 bytes, not 70; the speeds the board applied follow its HELD flags."""
+    board = _FakeBoard()
+    enc = OnboardEncoder(board)
+    enc.start(np.zeros(9), np.full(9, 1000))
+    board.out = b"".join(_spike(s, [1] * 10, wire.SpikeFlag.HELD if s % 100 == 0 and s >= 200 else 0)
+                         for s in range(0, 1000, 10))
+    while enc.poll() < 1000:
+        pass
+    before = len(board.written)
+    for w in range(10):
+        enc.send_speed(10.0 + w)
+    assert board.written[before:] == speed_command(8, 18.0) + speed_command(9, 19.0)
+    assert enc.speed_windows == [8, 9] and len(enc.speeds_sent) == 10
+    assert held_windows(enc.parser.spikes) == list(range(8))
+    assert list(applied_speeds(np.array(enc.speeds_sent), held_windows(enc.parser.spikes))) == [0.0] * 8 + [18.0, 19.0]
+    board.out += _spike(1000, [1])  # sample 1000: the board began window 10
+    enc.poll()
+    enc.send_speed(20.0)  # window 10: due at sample 1050, the board has not held it
+    assert board.written.endswith(speed_command(10, 20.0)) and enc.speed_windows == [8, 9, 10]

@@ -74,7 +74,8 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
     """One scan on the board through the host's client (:class:`OnboardEncoder`): a SPEED per window once half of
     the next window's samples are encoded (window w's speed is ``speeds_mm_s[w % len]``), stop after
     ``n_samples``. Returns (the scan, the spike frames, the harness's LOAD reports of the seconds while the board
-    encoded, after the first 2 s)."""
+    encoded, after the first 2 s, the SPEEDs written: (window, :meth:`NotingPort.sent` of its write), the windows
+    given a speed)."""
     enc = OnboardEncoder(port)
     port.samples = lambda: enc.samples
     speeds0 = len(port.sent(wire.EncoderCommand.SPEED.value))
@@ -95,8 +96,8 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
     scan = enc.finish(rest, quiet_s=0.5)
     stops = len(port.sent(wire.UnoCommand.STOP.value)) - stops0
     print(f"scan of {n_samples} samples: STOP sent {stops} time(s)")  # more than once: the board went on streaming
-    speeds = port.sent(wire.EncoderCommand.SPEED.value)[speeds0:]
-    return scan, enc.parser, loads[1:], speeds  # the first load may cover the second before ENCODE
+    speeds = list(zip(enc.speed_windows, port.sent(wire.EncoderCommand.SPEED.value)[speeds0:], strict=True))
+    return scan, enc.parser, loads[1:], speeds, len(enc.speeds_sent)  # the first load may cover the second before ENCODE
 
 
 def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarray:
@@ -111,13 +112,17 @@ def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarr
     return np.array([chunks[i][0] for i in np.searchsorted(ends, offsets)])
 
 
-def _judge_held(held: list[int], speeds: list[tuple[int, int, float]], arrived_s: np.ndarray, start_s: float,
-                samples: int, queue_max: int) -> None:
+def _judge_held(held: list[int], speeds: list[tuple[int, tuple[int, int, float]]], n_given: int,
+                arrived_s: np.ndarray, start_s: float, samples: int, queue_max: int) -> None:
     """The board held exactly the windows whose SPEED reached it after it needed it (it starts window w + 2: sample
     WINDOW * (w + 2); its main loop encodes a sample and reads a command up to ``queue_max`` ticks after they come,
     so a speed within that many ms of the sample's tick may go either way), and each was the host's lateness: sent
-    measurably late by the host's own count (:data:`LATE_SAMPLES`, :data:`LATE_WRITE_S`)."""
-    for w, ((_, seen, write_s), t) in enumerate(zip(speeds, arrived_s)):
+    measurably late by the host's own count (:data:`LATE_SAMPLES`, :data:`LATE_WRITE_S`), or not sent at all (of the
+    ``n_given`` windows given a speed): the host had the board's sample WINDOW * (w + 2) already, 150 samples past
+    its trigger, and knew the board had held it."""
+    written = [w for w, _ in speeds]
+    assert set(range(n_given)) - set(written) <= set(held), "a window's SPEED was not sent, though not held"
+    for (w, (_, seen, write_s)), t in zip(speeds, arrived_s):
         need = WINDOW * (w + HOLD_AFTER)  # the sample at which the board needs window w's speed
         if need >= samples:
             continue  # stopped before: the board never needed it
@@ -149,18 +154,18 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
         arrivals = []
         for n in (14_000, 3_000):  # a long scan (14 s: ten LOAD reports while encoding), then a handheld scan's length
             results.append(_encode_scan(enc_rig, port, n, lo, hi, speeds))
-            arrivals.append(_arrivals(enc_rig, port, [end for end, _, _ in results[-1][3]]))
+            arrivals.append(_arrivals(enc_rig, port, [end for _, (end, _, _) in results[-1][3]]))
     assert len(enc_rig.encoder_start_rows) == 2
     total_spikes = 0
-    for (scan, parser, _, sent), row0, start_s, arrived_s in zip(results, enc_rig.encoder_start_rows,
-                                                                  enc_rig.encoder_start_times_s, arrivals):
+    for (scan, parser, _, sent, n_given), row0, start_s, arrived_s in zip(results, enc_rig.encoder_start_rows,
+                                                                           enc_rig.encoder_start_times_s, arrivals):
         assert parser.crc_errors == 0 and not parser.seq  # spike frames instead of taxel frames
         counts, raster, held, applied = scan.counts, scan.raster, scan.held, scan.speeds_mm_s
         n = raster.shape[0]
         # every sample of the scan encoded, none dropped; a window whose speed reached the board too late (a starved
         # host: > 150 ms) is scaled with the last speed, flagged, and the host's reference does the same
         assert n >= 3_000 and counts.samples == n and counts.dropped == 0 and counts.held == len(held)
-        _judge_held(held, sent, arrived_s, start_s, n, counts.queue_max)
+        _judge_held(held, sent, n_given, arrived_s, start_s, n, counts.queue_max)
         assert not any(f.flags & ~wire.SpikeFlag.HELD for f in parser.spikes)
         assert row0 >= 0
         x = x_all[(row0 + np.arange(n)) % len(x_all)]  # the harness's rows: what the board's ADC converted
