@@ -522,15 +522,18 @@ def encode_trials(readings, *, normalise: TaxelRange | None = None, coeff=1.0, f
 @dataclass(frozen=True)
 class EncodedChunk:
     """Spikes of one streamed chunk: ``sa`` and ``ra`` are SpikeTrains of shape (1, n_taxels) with times in s
-    since the stream (trial) start; ``n_samples`` the chunk length (readings fed in)."""
+    since the stream (trial) start (``ra`` None from an SA-only encoder, ``StreamingEncoder(ra=False)``);
+    ``n_samples`` the chunk length (readings fed in)."""
 
     sa: SpikeTrains
-    ra: SpikeTrains
+    ra: SpikeTrains | None
     n_samples: int
 
     def events(self, which: str = "sa") -> tuple[np.ndarray, np.ndarray]:
         """``(times_s, taxel)`` flat arrays of one population, for raster plots."""
         st = self.sa if which == "sa" else self.ra
+        if st is None:
+            raise ValueError("this chunk has no RA spikes (an SA-only encoder)")
         return st.spike_times, st.row_ids()
 
 
@@ -552,11 +555,13 @@ class StreamingEncoder:
     coeff : SA force coefficient C (scalar or (n_taxels,)).
     k_sa, k_ra, cutoff_hz, rectify, params : as the batch functions.
     fs : the stream's sample rate, Hz (default 1 kHz, the model's rate: no resampling).
+    ra : run the RA population too (default); False: SA only (the same SA spikes, ``EncodedChunk.ra`` None, no RA
+        filter: what a consumer of SA spikes alone needs, e.g. :class:`rigctl.encoding.realtime.ScanEncoder`).
     """
 
     def __init__(self, n_taxels: int, *, normalise: TaxelRange | None = None, coeff=1.0, k_sa: float = K_SA,
                  k_ra: float = K_RA, cutoff_hz: float = RA_CUTOFF_HZ, rectify: bool = True, fs: float = FS_HZ,
-                 params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32):
+                 params: IzhikevichParams = TONIC_SPIKING, dtype=np.float32, ra: bool = True):
         self.n_taxels = n_taxels
         self.normalise = normalise
         self.offset, self.scale = _norm_args(normalise)
@@ -571,8 +576,9 @@ class StreamingEncoder:
             if conv.resampled:
                 self._resampler = StreamResampler(conv, n_taxels)
         self.k_sa, self.k_ra, self.fs, self.params = float(k_sa), float(k_ra), float(fs), params
-        self.cutoff_hz, self.rectify = float(cutoff_hz), bool(rectify)
-        lowpass_coefficients(self.cutoff_hz, self.fs)  # a bad cutoff fails here, not at the first chunk
+        self.cutoff_hz, self.rectify, self.ra = float(cutoff_hz), bool(rectify), bool(ra)
+        if self.ra:
+            lowpass_coefficients(self.cutoff_hz, self.fs)  # a bad cutoff fails here, not at the first chunk
         self.reset()
 
     def reset(self) -> None:
@@ -599,10 +605,9 @@ class StreamingEncoder:
             x = self._resampler.process(x)
         n = x.shape[0]
         rg = Ragged(np.ascontiguousarray(x), np.array([0, n], dtype=np.int64))
-        res = _fused(rg, normalise=self.normalise, sa_coeffs=(self.coeff,), k_sa=self.k_sa, ra=True, k_ra=self.k_ra,
-                     cutoff_hz=self.cutoff_hz, rectify=self.rectify, fs=self.fs, params=self.params,
+        res = _fused(rg, normalise=self.normalise, sa_coeffs=(self.coeff,), k_sa=self.k_sa, ra=self.ra,
+                     k_ra=self.k_ra, cutoff_hz=self.cutoff_hz, rectify=self.rectify, fs=self.fs, params=self.params,
                      dtype=self.dtype, state=self._state, n0=self.n_samples)
-        assert res.ra is not None
         self.n_samples += n
         return EncodedChunk(res.sa[0], res.ra, n_in)
 

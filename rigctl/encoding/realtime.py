@@ -72,7 +72,7 @@ class ScanEncoder:
             self._encoder = FixedSAEncoder(rng, k_sa=p.k_sa, fs=p.fs_hz)
         else:
             self._encoder = StreamingEncoder(len(self.taxels), normalise=rng, k_sa=p.k_sa, fs=p.fs_hz,
-                                             dtype=np.dtype(p.kernel_dtype))
+                                             dtype=np.dtype(p.kernel_dtype), ra=False)  # SA spikes only
         self.reset()
 
     def reset(self) -> None:

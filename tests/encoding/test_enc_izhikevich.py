@@ -145,6 +145,20 @@ def test_streaming_with_raw_counts_and_coefficients():
     assert times.size == taxel.size and (taxel < 18).all()
 
 
+def test_an_sa_only_stream_gives_the_same_sa_spikes_and_no_ra():
+    rng = np.random.default_rng(8)
+    raw = rng.integers(200, 800, size=(1, 1500, 9)).astype(np.uint16)
+    tr = TaxelRange().update(raw)
+    both, sa_only = StreamingEncoder(9, normalise=tr), StreamingEncoder(9, normalise=tr, ra=False)
+    a = [both.process(c) for c in np.array_split(raw[0], 6)]
+    b = [sa_only.process(c) for c in np.array_split(raw[0], 11)]
+    assert SpikeTrains.concat_time([c.sa for c in b]) == SpikeTrains.concat_time([c.sa for c in a])
+    assert SpikeTrains.concat_time([c.sa for c in b]).counts().sum() > 0
+    assert all(c.ra is None for c in b) and all(c.ra is not None for c in a)
+    with pytest.raises(ValueError, match="no RA spikes"):
+        b[0].events("ra")
+
+
 def test_ra_filter_has_no_startup_transient():
     # a trial starting at a high constant reading: no artificial step, so no RA input and no RA spikes
     x = np.full((1, 1000, 3), 0.8)
