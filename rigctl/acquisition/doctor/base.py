@@ -105,6 +105,11 @@ class DoctorContext:
     path and measurements cached for several checks (e.g. one capture at rest for the noise floor, crosstalk and
     the Uno's clock).
 
+    A rig the context opened streams taxel frames only while a check takes them (:meth:`taxel_stream`): its stream
+    is stopped when it has opened and after each check, so the taxel board's UART and the host's frame parser idle
+    through the checks that need no frames (most of them; on the firmware under simavr, ~2.5 of ~17 CPU-s). An open
+    rig given as ``rig`` (the GUI's) keeps streaming as it was.
+
     Parameters
     ----------
     mode : "sim" | "hil" | "hardware" | "replay" | "inprocess"
@@ -114,11 +119,6 @@ class DoctorContext:
         opened rig's backend.
     config_path : the rig config file (default ``$RIGCTL_CONFIG`` / ``~/.config/rigctl/rig.json``).
     rest_s : duration of the taxel capture at rest, s (noise floor, crosstalk, Uno clock).
-
-    A rig the context opened streams taxel frames only while a check takes them (:meth:`taxel_stream`): its stream
-    is stopped when it has opened and after each check, so the taxel board's UART and the host's frame parser idle
-    through the checks that need no frames (most of them; on the firmware under simavr, ~2.5 of ~17 CPU-s). An open
-    rig given as ``rig`` (the GUI's) keeps streaming as it was.
     """
 
     def __init__(self, mode: str, *, opener: Callable[[], Rig] | None = None, rig: Rig | None = None,
