@@ -1,5 +1,7 @@
 """Live view on the simulated rig: taxel traces scroll, the heat map shows the newest readings, and the SA/RA
-rasters are drawn from the streaming encoder's spikes (one curve per population)."""
+rasters are drawn from the streaming encoder's spikes (one curve per population). What the view draws is logic: the
+in-process rig feeds it (the pty rig's stream reaches the live view in test_gui_x11's stall, test_gui_replay_layout
+and the ``rigctl gui --sim`` run below)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,8 @@ from rigctl_gui.events import wait_for
 pytestmark = pytest.mark.realtime
 
 
-def test_live_traces_heatmap_and_rasters(window, qapp):
+def test_live_traces_heatmap_and_rasters(inprocess_window, qapp):
+    window = inprocess_window
     live = window.live
     window.tabs.setCurrentWidget(live)
     window.control.speed.setValue(100.0)
