@@ -9,8 +9,9 @@ order, so a writer killed while a file is open for writing can leave it unreadab
 2. :meth:`OverlayFile.commit` (after HDF5 has closed the file, so the overlay holds a complete, consistent file):
    pages past the old end of file are written first (nothing on disk refers to them yet); the pages that replace
    existing bytes go to a journal file ``<name>.journal`` (with a checksum and a commit mark; fsynced when durable).
-3. :func:`apply_journal` writes those pages onto the file from a short-lived helper process started in its own
-   session, which inherits the locked file descriptor; the writer waits for it. The helper deletes the journal.
+3. :func:`apply_journal` writes those pages onto the file from a helper process started in its own session (one
+   per writing process, kept from its first commit: :mod:`rigctl.storage.commit_helper`), which is handed the
+   locked file descriptor; the writer waits for it. The helper deletes the journal.
 
 What a plain HDF5 reader (h5py, HDFView, h5dump) sees after a ``kill -9`` of the writing process at any moment:
 
@@ -229,22 +230,27 @@ def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = Tru
     """Apply a committed journal to the open, locked file ``fd``, in a detached helper process.
 
     The in-place writes of a commit are the only moment at which the file on disk is neither the old nor the new
-    version. They are made by a short-lived helper (``python -I -S journal_replay.py --apply FD JOURNAL``,
-    :mod:`rigctl.storage.journal_replay`) that inherits the locked descriptor and runs in its own session: a
-    ``kill -9`` of the writing process (or of its process group, or a Ctrl-C) cannot stop it half way, so plain HDF5
-    readers never see a torn file after such a kill. This process waits for the helper. If the helper cannot be
-    started or fails, the journal is applied here. A Ctrl-C while waiting is held until the journal is applied, then
-    raised as :class:`CommittedInterrupt`. Killing the helper itself (or a power cut) leaves the committed journal,
-    which :func:`recover` replays.
+    version. They are made by this process's commit helper (:mod:`rigctl.storage.commit_helper`: ``python -I -S
+    journal_replay.py --serve``, started at the first commit and kept), which is handed the locked descriptor for
+    the commit and runs in its own session: a ``kill -9`` of the writing process (or of its process group, or a
+    Ctrl-C) cannot stop it half way, so plain HDF5 readers never see a torn file after such a kill. This process
+    waits for its answer. Where that helper cannot serve (no descriptor passing, it cannot be started or died), a
+    helper for this commit alone inherits the descriptor (``journal_replay.py --apply FD JOURNAL``); if that cannot
+    be started or fails too, the journal is applied here. A Ctrl-C while waiting is held until the journal is
+    applied, then raised as :class:`CommittedInterrupt`. Killing the helper itself (or a power cut) leaves the
+    committed journal, which :func:`recover` replays.
     """
     import subprocess  # (here: the helper, which imports none of this module, is the only other user of it)
 
+    from rigctl.storage.commit_helper import serve_commit
+
     jpath = Path(jpath)
+    served, interrupted = serve_commit(fd, jpath, durable, _TEST_WRITE_DELAY_S, _TEST_WRITE_GATE)
     cmd = [sys.executable, "-I", "-S", os.path.abspath(journal_replay.__file__), "--apply", str(fd), str(jpath),
            "1" if durable else "0", repr(float(_TEST_WRITE_DELAY_S)), _TEST_WRITE_GATE]
-    proc = interrupted = None
-    if sys.executable and not getattr(sys, "frozen", False):  # a frozen app's executable is not Python
-        try:
+    proc = None
+    if not served and jpath.exists() and sys.executable and not getattr(sys, "frozen", False):  # (a frozen
+        try:  # app's executable is not Python)
             proc = subprocess.Popen(cmd, pass_fds=(fd,), start_new_session=True, stdin=subprocess.DEVNULL,
                                     stdout=subprocess.DEVNULL, close_fds=True)
         except (OSError, ValueError):  # pragma: no cover - cannot start processes (or pass fds) here
@@ -256,7 +262,7 @@ def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = Tru
                 break
             except KeyboardInterrupt as exc:
                 interrupted = exc
-    if jpath.exists():  # the helper could not start or did not finish: apply it here
+    if jpath.exists():  # no helper could start or finish: apply it here
         _replay(fd, jpath, durable, _TEST_WRITE_DELAY_S, _TEST_WRITE_GATE)
     if interrupted is not None:
         raise CommittedInterrupt("interrupted while committing; the commit was completed first") from interrupted

@@ -89,11 +89,47 @@ def replay(fd: int, jpath: str | os.PathLike[str], durable: bool, delay_s: float
     os.unlink(jpath)
 
 
+def serve(sock_fd: int) -> None:
+    """The commit helper of a writing process (:mod:`rigctl.storage.commit_helper`): on the inherited socket
+    ``sock_fd`` (AF_UNIX, SOCK_SEQPACKET), each message ``SEQ\0JOURNAL\0DURABLE(0|1)\0DELAY_S\0GATE`` with the
+    locked file's descriptor is one commit: :func:`replay` onto it, the descriptor closed, then ``SEQ`` sent back
+    (also when the replay failed: the writer then finds the journal and applies it itself). Returns when the
+    writer's end is closed (its exit or kill)."""
+    import socket  # (only here: a helper per commit, ``--apply``, does not pay for it)
+
+    sock = socket.socket(fileno=sock_fd)
+    while True:
+        try:
+            msg, fds, _, _ = socket.recv_fds(sock, 1 << 16, 1)
+        except OSError:  # pragma: no cover
+            return
+        if not msg:
+            return
+        try:
+            seq, jpath, durable, delay_s, gate = msg.split(b"\0")
+            if fds:
+                replay(fds[0], os.fsdecode(jpath), durable == b"1", float(delay_s), os.fsdecode(gate))
+        except (OSError, ValueError):  # a journal already replayed, a bad message: the writer looks for itself
+            pass
+        finally:
+            for fd in fds:
+                os.close(fd)
+        try:
+            sock.send(seq)
+        except OSError:  # the writer is gone (killed during the commit): the commit is done all the same
+            return
+
+
 def main(argv: list[str]) -> int:
     """``journal_replay.py --apply FD JOURNAL DURABLE(0|1) DELAY_S [GATE]``: :func:`replay` on the inherited, locked
-    descriptor FD. Exit 2 with a usage line for other arguments."""
+    descriptor FD; ``journal_replay.py --serve SOCKET_FD``: :func:`serve`. Exit 2 with a usage line for other
+    arguments."""
+    if len(argv) == 2 and argv[0] == "--serve":
+        serve(int(argv[1]))
+        return 0
     if len(argv) not in (5, 6) or argv[0] != "--apply":
-        print("usage: journal_replay.py --apply FD JOURNAL DURABLE(0|1) DELAY_S [GATE]", file=sys.stderr)
+        print("usage: journal_replay.py --apply FD JOURNAL DURABLE(0|1) DELAY_S [GATE] | --serve SOCKET_FD",
+              file=sys.stderr)
         return 2
     replay(int(argv[1]), argv[2], argv[3] == "1", float(argv[4]), argv[5] if len(argv) == 6 else "")
     return 0

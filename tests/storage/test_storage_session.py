@@ -367,6 +367,49 @@ def test_a_kill_during_a_commits_in_place_writes(tmp_path, writes):
         assert list(_check_plain(path, 500)) == [0, 1]
 
 
+def test_one_commit_helper_serves_a_writers_commits_and_a_dead_one_is_replaced(tmp_path):
+    """The in-place writes of every commit of a process go through one helper (rigctl.storage.commit_helper), in its
+    own session, kept between commits; a helper killed between commits costs nothing: that commit is still applied
+    (no journal left, the trial readable) and the next one starts a new helper."""
+    from rigctl.storage import commit_helper, journal
+
+    def trial(tid):  # what _check_plain reads back
+        return TrialData(taxels=np.full((100, 18), tid), force_g=[tid], force_time_s=[0.0])
+
+    path = tmp_path / "s.h5"
+    w = SessionWriter.create(path, plan=_plan(4), protocol_source="src")
+    w.write_trial(0, trial(0))
+    first = commit_helper._state["proc"]
+    w.write_trial(1, trial(1))
+    w.log_event("x")
+    assert commit_helper._state["proc"] is first and first.poll() is None
+    assert os.getsid(first.pid) == first.pid != os.getsid(0)  # its own session: a kill of ours does not reach it
+    first.kill()
+    first.wait()
+    w.write_trial(2, trial(2))
+    assert not journal.journal_path(path).exists()
+    w.write_trial(3, trial(3))
+    second = commit_helper._state["proc"]
+    assert second is not first and second.poll() is None
+    w.close()
+    assert list(_check_plain(path, 100)) == [0, 1, 2, 3]
+    # a forked child commits through a helper of its own; the parent's goes on serving the parent
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        ok = False
+        try:
+            c = SessionWriter.create(tmp_path / "child.h5", plan=_plan(1), protocol_source="src")
+            c.write_trial(0, trial(0))
+            ok = commit_helper._state["proc"].pid != second.pid and list(_check_plain(tmp_path / "child.h5", 100)) == [0]
+        finally:
+            os._exit(0 if ok else 1)
+    assert os.waitpid(pid, 0)[1] == 0
+    w = SessionWriter.open(path)
+    w.log_event("after the fork")
+    assert commit_helper._state["proc"] is second and second.poll() is None
+    w.close()
+
+
 def test_plan_dtype_is_the_documented_one():
     assert PLAN_DTYPE.names == ("trial_id", "texture", "speed_mm_s", "force_g", "duration_s", "profile",
                                 "ramp_start_mm_s", "ramp_end_mm_s", "repeat", "status")
