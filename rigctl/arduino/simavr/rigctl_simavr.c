@@ -1490,6 +1490,9 @@ static void clock_lock_wait(void)
  * bounds a sleeping core's skips to a poll period, so the models see the same time steps as with an awake core. An
  * avr_reset (the harness's, or the watchdog's inside simavr) clears the cycle timers: each poll re-arms it. */
 #define POLL_CYCLES 1600 /* 0.1 ms at 16 MHz */
+#define POLL_WALL_S 0.0001 /* paced: the pty and the open detector are asked at most this often (wall clock) ... */
+#define PACE_AHEAD_UNO_S 0.001 /* ... and the core sleeps when this far ahead of the wall clock (its bytes' pace) */
+#define PACE_AHEAD_MEGA_S 0.002 /* (a host request wakes the sleeping harness: the Mega's replies are not later) */
 static void sleep_paced_by_harness(avr_t *a, avr_cycle_count_t how_long)
 {
     (void)a;
@@ -1819,6 +1822,7 @@ int main(int argc, char **argv)
     uint64_t cycle0 = avr->cycle;
     double hold_until = 0.0; /* in reset (bootloader wait) until this wall time */
     uint64_t next_check = 0;
+    double last_poll_wall = -1.0; /* wall time of the last poll() of the pty and the open detector */
     int mcu_reset_seen = 0;
     for (;;) {
         if (hold_until > 0.0) {
@@ -1875,8 +1879,16 @@ int main(int argc, char **argv)
         /* one poll() for the pty and the open detector instead of a read() on each (both empty almost always):
          * both are seen at the same instant, so an open and the bytes written after it are found together, and the
          * open is handled first */
+        /* paced, at most one every POLL_WALL_S of wall time: the paced core runs its 0.1 ms polls in bursts ~10x
+         * faster than the wall clock between its sleeps, and the sleep itself (below) wakes on the same two fds */
         struct pollfd pfd[2] = {{.fd = pty_master, .events = POLLIN}, {.fd = ino, .events = POLLIN}};
-        if (poll(pfd, ino >= 0 ? 2 : 1, 0) <= 0) pfd[0].revents = pfd[1].revents = 0;
+        double wall_poll = opt_pace ? now_s() : 0.0;
+        if (opt_pace && wall_poll - last_poll_wall < POLL_WALL_S) {
+            pfd[0].revents = pfd[1].revents = 0;
+        } else {
+            if (poll(pfd, ino >= 0 ? 2 : 1, 0) <= 0) pfd[0].revents = pfd[1].revents = 0;
+            last_poll_wall = wall_poll;
+        }
         if (ino >= 0 && pfd[1].revents) {
             char buf[4096];
             ssize_t n = read(ino, buf, sizeof buf);
@@ -1927,9 +1939,13 @@ int main(int argc, char **argv)
         }
         if (opt_pace) {
             double ahead = (double)(avr->cycle - cycle0) / avr->frequency - (now_s() - wall0);
-            if (ahead > 0.001) {
+            if (ahead > (is_uno ? PACE_AHEAD_UNO_S : PACE_AHEAD_MEGA_S)) {
+                /* sleep until the wall clock has caught up, or until the host writes (when the bridge can take its
+                 * bytes: a chunk still being fed to the UART would wake it at once) or opens the port */
                 struct timespec ts = {0, (long)(ahead * 1e9)};
-                nanosleep(&ts, NULL);
+                struct pollfd wake[2] = {{.fd = rx_pos == rx_len ? pty_master : -1, .events = POLLIN},
+                                         {.fd = ino, .events = POLLIN}};
+                if (ppoll(wake, 2, &ts, NULL) > 0) last_poll_wall = -1.0; /* poll at the next 0.1 ms */
             } else if (ahead < -0.25) { /* fell far behind (slow host): do not try to catch up in a burst */
                 wall0 = now_s();
                 cycle0 = avr->cycle;
