@@ -6,6 +6,13 @@ filter; we use:
 
 - **Low-pass:** a 2nd-order Butterworth (``scipy.signal.butter(2, cutoff_hz, fs=fs)``), applied causally with
   ``scipy.signal.lfilter`` (direct form II transposed), so that batch and streaming give bit-identical output.
+  The encoders (:mod:`rigctl.encoding.fused`, :mod:`rigctl.encoding.izhikevich`) run the same recurrence in their
+  kernel and take only the coefficients: those of the default filter (2nd order, :data:`RA_CUTOFF_HZ` at
+  :data:`MODEL_RATE_HZ`) are a table of scipy's exact float64 values (``tests/encoding/test_enc_filters.py`` checks
+  them against scipy's), so no encoding process imports ``scipy.signal`` (~0.65 CPU-s: it loads ``scipy.stats``
+  too); other parameters ask scipy. :func:`ra_input` and :class:`RAFilter` (the reference, used by tests) call
+  ``lfilter`` itself: a numpy loop in its operation order matches its numbers bit for bit but not the payload of a
+  nan where two nans meet (numpy's ``add`` keeps either operand's, depending on the array's length).
   The filter state is initialised to the steady state of the first sample (``lfilter_zi * x[0]``): a trial that
   starts at a reading of 0.6 starts filtered at 0.6, with no artificial step from 0 (which the derivative would turn
   into a burst of RA spikes at every trial start).
@@ -30,9 +37,23 @@ from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 __all__ = ["lowpass_coefficients", "ra_input", "RAFilter"]
 
 
+#: ``(b, a, lfilter_zi(b, a))`` of ``scipy.signal.butter(2, RA_CUTOFF_HZ, btype="low", fs=MODEL_RATE_HZ)``, as
+#: scipy 1.17 computes them, exact float64 values (``float.hex``; checked against scipy by the tests).
+_DEFAULT_LOWPASS = (
+    (float.fromhex("0x1.dab3775387e7dp-9"), float.fromhex("0x1.dab3775387e7dp-8"), float.fromhex("0x1.dab3775387e7dp-9")),
+    (1.0, float.fromhex("-0x1.d29c22764da5bp+0"), float.fromhex("0x1.aca312c9e96b0p-1")),
+    (float.fromhex("0x1.fe254c88ac789p-1"), float.fromhex("-0x1.aac85f5295e38p-1")),
+)
+
+
 @lru_cache(maxsize=16)
-def lowpass_coefficients(cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE_HZ, order: int = 2):
+def lowpass_coefficients(cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE_HZ,
+                         order: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(b, a, zi_unit)`` of the Butterworth low-pass; ``zi_unit`` is ``lfilter_zi(b, a)`` (steady state for 1).
+
+    ``b``, ``a``: ``(order + 1,)`` float64, ``a[0] == 1``; ``zi_unit``: ``(order,)`` float64. Those of
+    ``scipy.signal.butter(order, cutoff_hz, btype="low", fs=fs)``: the default filter's from a table of scipy's
+    values (no ``scipy.signal`` import), any other's from scipy.
 
     Raises
     ------
@@ -41,7 +62,10 @@ def lowpass_coefficients(cutoff_hz: float = RA_CUTOFF_HZ, fs: float = MODEL_RATE
     """
     if not 0 < cutoff_hz < fs / 2:
         raise ValueError(f"cutoff_hz={cutoff_hz} must be in (0, {fs / 2}) for fs={fs}")
-    # (scipy.signal imported on first use: it takes ~1 s to import, and most commands never filter)
+    if (cutoff_hz, fs, order) == (RA_CUTOFF_HZ, MODEL_RATE_HZ, 2):
+        b, a, zi = (np.array(v, dtype=np.float64) for v in _DEFAULT_LOWPASS)
+        return b, a, zi
+    # (scipy.signal imported on first use: it takes ~0.65 CPU-s to import, and the default filter needs none of it)
     from scipy import signal
 
     b, a = signal.butter(order, cutoff_hz, btype="low", fs=fs)
@@ -102,8 +126,8 @@ class RAFilter:
 
     def reset(self) -> None:
         """Forget the state: the next chunk is treated as a trial start."""
-        self._zi = None
-        self._last = None
+        self._zi: np.ndarray | None = None  # (order, n_taxels) lfilter state
+        self._last: np.ndarray | None = None  # (n_taxels,) last filtered sample
 
     def process(self, chunk: np.ndarray) -> np.ndarray:
         """``(n, n_taxels)`` normalised readings -> ``(n, n_taxels)`` float64 RA input (units/s)."""
