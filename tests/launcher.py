@@ -35,15 +35,14 @@ PRELOAD = ("rigctl.cli", "rigctl.cli.errors", "rigctl.cli.progress", "rigctl.ope
 #: imported by the server before it forks the first command whose arguments hold one of the words (not at its start:
 #: most servers, a test worker's or a guide page's, never run such a command): the analyses (scikit-learn, scipy.stats,
 #: matplotlib; ~1.8 CPU-s) for ``rigctl analyze`` and the handheld's live classifier, and scipy.signal (~0.5 CPU-s)
-#: for the commands that filter or resample readings (the dataset renderer, the operator model, ``--resample``; not
-#: the encoder: its RA low-pass takes its coefficients from a table, and a session at another rate than 1 kHz, the
-#: one it resamples, has its command import scipy.signal itself)
+#: for ``--resample`` (not the encoder, the dataset renderer or the operator model: their filters need no scipy; a
+#: session the encoder resamples, at another rate than 1 kHz, has its command import scipy.signal itself)
 ANALYSIS = ("rigctl.analysis.tasks", "rigctl.analysis.classify", "rigctl.analysis.report",
             "rigctl.analysis.realtime_model", "sklearn.discriminant_analysis", "sklearn.decomposition",
             "matplotlib.pyplot")
 ON_DEMAND: dict[str, tuple[str, ...]] = {
     **dict.fromkeys(("analyze", "--classify"), ANALYSIS),
-    **dict.fromkeys(("dataset", "operator", "--resample"), ("scipy.signal",)),
+    "--resample": ("scipy.signal",),
 }
 
 _CLIENT = '''#!{python} -S

@@ -43,6 +43,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData
 from rigctl.simulation.model import RigConfig, SensorModel
+from rigctl.simulation.noise import one_pole
 from rigctl.simulation.textures import Texture, get_texture
 from rigctl.simulation.trial_slots import TrialSlots, init_worker_slots
 from rigctl.storage.session import SessionWriter
@@ -201,11 +202,9 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
         speed = np.full(n, float(speed_mm_s))
     else:
         speed = prof.speed(t, duration_s)
-    from scipy.signal import lfilter  # (on first use: scipy.signal takes ~1 s to import)
-
     # stepper speed error: static + slow wobble (Ornstein-Uhlenbeck)
     aw = math.exp(-dt / SPEED_WOBBLE_TAU_S)
-    wobble = lfilter([math.sqrt(1 - aw * aw)], [1.0, -aw], rng.standard_normal(n)) * SPEED_WOBBLE
+    wobble = one_pole(math.sqrt(1 - aw * aw), aw, rng.standard_normal(n)) * SPEED_WOBBLE
     speed = speed * (1.0 + SPEED_ERROR * rng.standard_normal() + wobble)
     if drum.start_at_index:
         # start at the index mark: the first frame is the one flagged SYNC_IN, latched up to 1 ms after the mark
@@ -223,7 +222,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     # texture ripple under the contact line
     static = 1.0 + 0.01 * rng.standard_normal()
     a = math.exp(-dt / 0.2)
-    ou = lfilter([math.sqrt(1 - a * a)], [1.0, -a], rng.standard_normal(n)) * 0.005
+    ou = one_pole(math.sqrt(1 - a * a), a, rng.standard_normal(n)) * 0.005
     runout = mech.contact_stiffness_g_per_mm * drum.runout_mm * np.sin(2 * np.pi * pos / circ + RUNOUT_PHASE_RAD)
     force = force_g * (static + ou) + runout
     force *= 1.0 + mech.texture_ripple * sensor.contact_height(tex, np.mod(pos, circ))

@@ -28,7 +28,6 @@ Human variability (:class:`OperatorConfig`, each figure a guess at a careful ope
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -48,6 +47,7 @@ from rigctl.core.sensor import PAPER_FINGER, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import PlannedTrial
 from rigctl.simulation.model import RigConfig, SensorModel
+from rigctl.simulation.noise import one_pole
 from rigctl.simulation.textures import get_texture
 
 __all__ = ["OperatorConfig", "SimulatedOperator", "operator_passes", "plate_axis_of", "profile_speeds", "publish_tracker"]
@@ -99,10 +99,7 @@ def _ou(rng: np.random.Generator, n: int, dt: float, tau_s: float, sd: float) ->
     """(n,) Ornstein-Uhlenbeck noise of standard deviation ``sd`` and time constant ``tau_s`` at step ``dt``."""
     a = math.exp(-dt / tau_s)
     x0 = rng.standard_normal() * sd
-    # the one-pole filter y[k] = b x[k] + a y[k-1] from rest, as scipy.signal.lfilter([b], [1, -a], x) computes it
-    # (the same two roundings per step), without importing scipy.signal (~1 s of CPU) for it
-    bx = (math.sqrt(1 - a * a) * sd) * rng.standard_normal(n)
-    out = np.fromiter(itertools.accumulate(bx.tolist(), lambda y, v: v + a * y), np.float64, n)
+    out = one_pole(math.sqrt(1 - a * a) * sd, a, rng.standard_normal(n))
     return np.asarray(out + x0 * a ** np.arange(1, n + 1), np.float64)
 
 

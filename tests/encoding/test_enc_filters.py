@@ -50,11 +50,15 @@ def test_coefficients_are_scipys(cutoff_hz, fs, order):
         lowpass_coefficients(fs / 2, fs, order)
 
 
-def test_default_coefficients_do_not_import_scipy_signal():
-    code = ("import sys\n"
+def test_encoder_and_renderer_filters_do_not_import_scipy_signal():
+    # the encoders' RA low-pass (the default filter's table) and the dataset renderer's noise (one_pole), in one
+    # fresh interpreter: neither may load scipy.signal (nor scipy.stats, which it loads)
+    code = ("import sys, numpy as np\n"
             "from rigctl.encoding.filters import lowpass_coefficients\n"
+            "from rigctl.simulation.dataset import render_trial\n"
             "lowpass_coefficients(); lowpass_coefficients(20, 1000.0)\n"
-            "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')))\n")
+            "render_trial('A', 80.0, 100.0, rng=np.random.default_rng(0), duration_s=0.3)\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', 'scipy.stats'))))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
