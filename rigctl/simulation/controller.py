@@ -133,6 +133,7 @@ class MegaController:
         self._home_switch_ok = True  # fault-injection hook: False = the home switch never closes (a broken wire)
         self.estop_open = False  # the e-stop input reads open (a pressed contact, a broken wire)
         self.max_step_ms = 10
+        self._drive = (model.config.drum.true_steps_per_mm, model.config.mechanics.actuator_max_speed_mm_s)  # (step)
         self.build_id = installed_build_id()
         # compile the model's kernels now, not in the first control period
         model.advance(1, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
@@ -625,15 +626,14 @@ class MegaController:
         if n_ms <= 0:
             return self.model.advance(0, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
         m = self.model  # the step pulses per mm at the driver's real setting; the actuator's steps sent, moved or not
-        steps_per_mm, vmax = m.config.drum.true_steps_per_mm, m.config.mechanics.actuator_max_speed_mm_s
+        steps_per_mm, vmax = self._drive
         samples, sync = [], []
         left = int(n_ms)
         while left > 0:
-            k = min(left, self.max_step_ms, m.ms_to_next_conversion())
+            to_conversion, t0, travel0, act0 = m.step_start()
+            k = min(left, self.max_step_ms, to_conversion)
             with self._lock:
                 rate, vel = self._outputs
-            t0 = m.time_s
-            travel0, act0 = m.stepper_travel_mm, m.actuator_mm
             s, y = m.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel, render=render)
             with self._lock:  # the step pulses sent: the stepper's travel at the driver's real setting
                 y = self._index.step(y, (m.last_stepper_mm - travel0) * steps_per_mm, t0, m.last_marks)

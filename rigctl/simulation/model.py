@@ -781,6 +781,7 @@ class RigModel:
         #: and whether a speed mark (``drum.marks_per_rev`` per revolution of the real drum) passed in it
         self.last_stepper_mm = np.zeros(0)
         self.last_marks = np.zeros(0, bool)
+        self._step_consts: tuple | None = None  # the config's numbers advance uses (_read_step_consts)
         self._heights: tuple = (None,)  # (texture, its bottom-layer height table, period, mean) for the mechanics
         #: the taxels' analog path into the Uno's ADC (source impedance, anti-alias RC, the mux; ideal until a
         #: source impedance is set: ``--inject taxel-ohm=N``)
@@ -834,6 +835,13 @@ class RigModel:
         """Whole ms until the 1 ms step in which the next HX711 conversion completes (>= 1)."""
         with self._lock:
             return max(1, math.ceil((self._hx_next_s - self._time_s) * 1000.0 - 1e-9))
+
+    def step_start(self) -> tuple[int, float, float, float]:
+        """What a controller reads before each :meth:`advance`, under one lock: (:meth:`ms_to_next_conversion`,
+        :attr:`time_s` s, :attr:`stepper_travel_mm`, :attr:`actuator_mm`)."""
+        with self._lock:
+            return (max(1, math.ceil((self._hx_next_s - self._time_s) * 1000.0 - 1e-9)), self._time_s, self._motor_mm,
+                    self._actuator_mm)
 
     @property
     def contact_force_g(self) -> float:
@@ -952,6 +960,14 @@ class RigModel:
             self._hx_next_s += self._hx_period_s
             self._hx_conversions += 1
 
+    def _read_step_consts(self) -> tuple:
+        """The config's numbers :meth:`advance` uses, in its order (read once per model)."""
+        d, m = self.config.drum, self.config.mechanics
+        circ = d.circumference_mm
+        return (d.true_steps_per_mm, circ, m.actuator_max_speed_mm_s, d.max_accel_mm_s2 * 1e-3, m.actuator_travel_mm,
+                m.contact_gap_mm, d.runout_mm, m.contact_stiffness_g_per_mm, m.texture_ripple,
+                float(self.sensor.config.pitch_mm), d.marks_per_rev / circ)
+
     def advance(self, n_ms: int, *, drum_step_rate_hz: float, actuator_velocity_mm_s: float, render: bool = True
                 ) -> tuple[np.ndarray | None, np.ndarray]:
         """Advance the physics by ``n_ms`` 1 ms steps under constant commands.
@@ -979,15 +995,16 @@ class RigModel:
         n = int(n_ms)
         if n < 0:
             raise ValueError("n_ms must be >= 0")
-        d, m = self.config.drum, self.config.mechanics
         dt = 1e-3
         with self._lock:
             if n == 0:
                 return np.empty((0, N_TAXELS), np.uint16), np.zeros(0, bool)
-            target = float(drum_step_rate_hz) / d.true_steps_per_mm  # the driver's real microstep setting
-            circ = d.circumference_mm
-            va = min(max(self.actuator_sign * float(actuator_velocity_mm_s), -m.actuator_max_speed_mm_s),
-                     m.actuator_max_speed_mm_s)
+            k = self._step_consts
+            if k is None:  # the rig's constants, read once (the config does not change while the model runs)
+                k = self._step_consts = self._read_step_consts()
+            true_steps_per_mm, circ, vmax, accel_step, travel, gap, runout, stiffness, ripple, pitch, marks_per_mm = k
+            target = float(drum_step_rate_hz) / true_steps_per_mm  # the driver's real microstep setting
+            va = min(max(self.actuator_sign * float(actuator_velocity_mm_s), -vmax), vmax)
             # speed ramp, surface travel, index-mark passes, speed marks, actuator travel and contact force with the
             # runout and the texture ripple (SensorModel.contact_height), one ms after another
             # (rigctl.simulation.mechanics)
@@ -996,13 +1013,13 @@ class RigModel:
                 heights, period, mean = self.sensor.height_tables(tex)
                 self._heights = (tex, heights[1], period, float(mean[1]))
             _, h_row, period, h_mean = self._heights
-            pos, sync_in, force, motor, marks = np.empty(n), np.empty(n, bool), np.empty(n), np.empty(n), np.empty(n, bool)
+            pos, force, motor = np.empty((3, n))  # (rows of one buffer: each C-contiguous)
+            sync_in, marks = np.empty((2, n), bool)
             speed, act = step_mechanics(
-                self._speed_mm_s, target, d.max_accel_mm_s2 * dt, self._position_mm, circ, self._actuator_mm, va * dt,
-                m.actuator_travel_mm, m.contact_gap_mm, d.runout_mm, self._runout_phase, m.contact_stiffness_g_per_mm,
-                m.texture_ripple, h_row, period, h_mean, float(self.sensor.config.pitch_mm), pos, sync_in,
+                self._speed_mm_s, target, accel_step, self._position_mm, circ, self._actuator_mm, va * dt,
+                travel, gap, runout, self._runout_phase, stiffness, ripple, h_row, period, h_mean, pitch, pos, sync_in,
                 force, 1.0 - self.drum_sign * (1.0 - self._slip()), motor,  # the kernel's slip: 2 turns it backwards
-                d.marks_per_rev / circ, marks)
+                marks_per_mm, marks)
             motor += self._motor_mm
             self.last_stepper_mm = motor  # the stepper's travel at the end of each ms of the step
             self._motor_mm = float(motor[-1])
