@@ -2,7 +2,8 @@
 while a host streams its taxels at 1 kHz, the drum turns at 40 mm/s pressed at 500 g and the host polls the drum's
 status 10 times a second (as a trial recording does).
 
-Threads: ``sim-physics`` (the model, the virtual Mega's control logic, the virtual Uno's framing, one tick every 3 ms),
+Threads: ``sim-physics`` (the model, the virtual Mega's control logic, the virtual Uno's framing, one tick every 5 ms,
+``rigctl.simulation.rig.STREAM_TICK_S``),
 ``virtual-mega-modbus`` (pymodbus' RTU server and the host-silence watchdog check), ``pty-bridge`` (the copy thread
 between the client's pty and the server's) and, on the host's side, ``taxel-reader``. Every GUI test and most
 acquisition, storage and guide tests run such a rig for as long as they run, so its share of a core is paid many times
@@ -16,7 +17,7 @@ after a 3-10 ms sleep on a loaded machine), so compare runs made side by side.
 
 ``--idle``: a rig nobody streams from (the drum controller's conformance suite, a rig between its opening and the
 host's START): the drum at rest, the status polled 10 times a second. Its physics thread wakes every 10 ms instead of
-every 3 ms (``rigctl.simulation.rig.IDLE_TICK_S``) and renders no taxel samples (nobody takes them). Measured side by
+every 5 ms (``rigctl.simulation.rig.IDLE_TICK_S``) and renders no taxel samples (nobody takes them). Measured side by
 side (10 s, 2 runs each, alternating, other jobs on the machine): the rig's threads 9.6-9.9 % of a core before,
 4.7-5.2 % after (sim-physics 8.8-9.1 -> 3.8-4.3 %). Its target: 60 % of the 9.6 % before.
 
