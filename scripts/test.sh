@@ -200,16 +200,20 @@ workers="${RIGCTL_TEST_WORKERS:-$(( free_cores * 3 + 1 > 8 ? 8 : free_cores * 3 
 echo "== $workers test workers ($cores cores, $others_busy_cores kept busy by other programs at the start; priority: ${RIGCTL_TEST_PRIORITY:-as started})"
 status=0
 export RIGCTL_FAILURES_LOG="$TEST_TMP/failures.log"  # failed tests and their tier (tests/conftest.py)
-python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -o cache_dir="$TEST_TMP/pytest-cache" \
-  "$@" || status=$?
+# A wall-clock test that fails in the parallel run is first run again at once, on its own worker, while the others go
+# on (pytest-rerunfailures; RIGCTL_WALL_RERUNS, tests/conftest.py): most such failures were the saturated CPU's, and
+# pass then, without adding their wall time to the run's end (a serial rerun of one firmware test took ~25 s of the
+# run's ~330). The log lists each as RERUN (-r R); one that fails twice gets its rerun alone below
+RIGCTL_WALL_RERUNS=1 python3 -m pytest -q -n "$workers" --dist loadfile --durations=25 --strict-markers -r fER \
+  -o cache_dir="$TEST_TMP/pytest-cache" "$@" || status=$?
 phase "pytest done (exit $status)"
-# Wall-clock failures get one more chance, alone. The parallel run keeps the CPU saturated (~1,000 CPU-s of tests on a
-# 2-core machine, workers beside the rigs they pace), and a test of a wall-clock tier (realtime, hil, gui, packaging:
-# tests/conftest.py WALL_CLOCK_TIERS) can then fail for want of CPU: each run failed a different handful of 3-7 of
-# ~1,190 (a 0.73 s STOP against 0.5, a simulated board's banner not within 3 s, a frame burst stamped late). Once the
-# parallel run is over, those (at most 25) run again one at a time, with the CPU to themselves; the run fails if any
-# fails again, and on any failure of a logic test (those judge simulated time and never get a second chance). Every
-# rerun is listed in the log: a test that keeps needing one is a test to fix.
+# Wall-clock failures (failed twice in the parallel run) get one more chance, alone. The parallel run keeps the CPU
+# saturated (~1,000 CPU-s of tests on a 2-core machine, workers beside the rigs they pace), and a test of a wall-clock
+# tier (realtime, hil, gui, packaging: tests/conftest.py WALL_CLOCK_TIERS) can then fail for want of CPU: each run
+# failed a different handful of 3-7 of ~1,190 (a 0.73 s STOP against 0.5, a simulated board's banner not within 3 s, a
+# frame burst stamped late). Once the parallel run is over, those (at most 25) run again one at a time, with the CPU to
+# themselves; the run fails if any fails again, and on any failure of a logic test (those judge simulated time and
+# never get a second chance). Every rerun is listed in the log: a test that keeps needing one is a test to fix.
 if [ "$status" = 1 ] && [ -s "$RIGCTL_FAILURES_LOG" ] \
     && awk -F'\t' '$2 != "wall" { logic = 1 } END { exit logic }' "$RIGCTL_FAILURES_LOG"; then
   mapfile -t rerun < <(cut -f1 "$RIGCTL_FAILURES_LOG" | sort -u)

@@ -132,19 +132,39 @@ def pytest_runtest_protocol(item, nextitem):
 WALL_CLOCK_TIERS = ("realtime", "hil", "gui", "packaging")
 
 
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_makereport(item, call):
+def pytest_runtest_logreport(report):
     """With ``$RIGCTL_FAILURES_LOG`` set (a file path), append one line per failed test: its node id and its tier,
-    ``wall`` (one of :data:`WALL_CLOCK_TIERS`) or ``logic``, tab-separated. scripts/test.sh reruns a run's wall-clock
-    failures alone, one at a time, once the parallel run is over (the CPU then free), and fails on any logic failure
-    and any wall-clock test that fails again alone."""
-    outcome = yield
-    report = outcome.get_result()
+    ``wall`` (one of :data:`WALL_CLOCK_TIERS`) or ``logic``, tab-separated. A failed attempt that
+    pytest-rerunfailures runs again (:func:`wall_clock_reruns`) is reported as ``rerun``, not failed: only a test's
+    last verdict is logged. scripts/test.sh reruns a run's wall-clock failures alone, one at a time, once the
+    parallel run is over (the CPU then free), and fails on any logic failure and any wall-clock test that fails again
+    alone. (Both an xdist worker and the controller see each report: the script takes each node id once.)"""
     path = os.environ.get("RIGCTL_FAILURES_LOG")
     if path and report.failed:
-        tier = "wall" if any(item.get_closest_marker(m) for m in WALL_CLOCK_TIERS) else "logic"
+        tier = "wall" if any(m in report.keywords for m in WALL_CLOCK_TIERS) else "logic"
         with open(path, "a") as f:
-            f.write(f"{item.nodeid}\t{tier}\t{report.when}\n")
+            f.write(f"{report.nodeid}\t{tier}\t{report.when}\n")
+
+
+def wall_clock_reruns(items) -> int:
+    """With ``$RIGCTL_WALL_RERUNS`` set to N > 0 (scripts/test.sh's parallel run), mark each test of a
+    :data:`WALL_CLOCK_TIERS` tier ``flaky(reruns=N)``: pytest-rerunfailures runs a failed one again at once, on its
+    own worker, while the other workers go on (the run lists it as ``R``/``RERUN``). A wall-clock judgement that
+    failed for want of CPU on a saturated machine mostly passes then, without the serial rerun at the end of the run
+    (its whole wall time added to the run's: ~25 s for a firmware test). A logic test is never rerun. Returns how
+    many were marked."""
+    try:
+        reruns = int(os.environ.get("RIGCTL_WALL_RERUNS", "0"))
+    except ValueError:
+        reruns = 0
+    if reruns <= 0:
+        return 0
+    marked = 0
+    for item in items:
+        if any(item.get_closest_marker(m) for m in WALL_CLOCK_TIERS):
+            item.add_marker(pytest.mark.flaky(reruns=reruns))
+            marked += 1
+    return marked
 
 
 def pytest_unconfigure(config):
@@ -195,6 +215,7 @@ def pytest_collection_modifyitems(config, items):
         if rel is not None and len(rel.parts) > 1:
             for name in FOLDER_MARKERS.get(rel.parts[0], []):
                 item.add_marker(name)
+    wall_clock_reruns(items)
     # the longest units first (packaging, firmware under simavr, slow, real-time rigs), so that with a few workers
     # none starts a ten-minute module last; within a unit, and between units of one cost, collection order is kept
     units: dict[str, list] = {}

@@ -1,0 +1,106 @@
+"""The test command's second chance for wall-clock tests (scripts/test.sh, tests/conftest.py): in the parallel run a
+failed test of a wall-clock tier runs again at once (pytest-rerunfailures, ``$RIGCTL_WALL_RERUNS``), and only a
+test's last verdict reaches the failures log the script reruns from; a logic test never gets a second run."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+TESTS = Path(__file__).resolve().parent
+
+#: a sandbox suite: one wall-clock test that fails its first run only, one that always fails, one logic test that
+#: fails its first run only (each run counted in a file), and a conftest using the suite's own hooks
+SANDBOX_TESTS = """
+import os
+from pathlib import Path
+
+import pytest
+
+RUNS = Path(os.environ["SANDBOX_RUNS"])
+
+
+def runs(name):
+    f = RUNS / name
+    n = int(f.read_text()) if f.exists() else 0
+    f.write_text(str(n + 1))
+    return n + 1
+
+
+@pytest.mark.realtime
+def test_wall_fails_once():
+    assert runs("wall_once") > 1
+
+
+@pytest.mark.hil
+def test_wall_always_fails():
+    runs("wall_always")
+    assert False
+
+
+def test_logic_fails_once():
+    assert runs("logic_once") > 1
+"""
+
+SANDBOX_CONFTEST = """
+import importlib.util
+
+spec = importlib.util.spec_from_file_location("suite_conftest", {conftest!r})
+suite = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(suite)
+pytest_runtest_logreport = suite.pytest_runtest_logreport
+
+
+def pytest_configure(config):
+    for tier in suite.WALL_CLOCK_TIERS:
+        config.addinivalue_line("markers", tier)
+
+
+def pytest_collection_modifyitems(config, items):
+    suite.wall_clock_reruns(items)
+"""
+
+
+def _run(tmp_path: Path, reruns: str | None) -> tuple[subprocess.CompletedProcess, dict[str, int], list[str]]:
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    (suite / "test_sandbox.py").write_text(textwrap.dedent(SANDBOX_TESTS))
+    (suite / "conftest.py").write_text(SANDBOX_CONFTEST.format(conftest=str(TESTS / "conftest.py")))
+    runs, log = tmp_path / "runs", tmp_path / "failures.log"
+    runs.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("RIGCTL_WALL_RERUNS", "RIGCTL_FAILURES_LOG")}
+    env.update(SANDBOX_RUNS=str(runs), RIGCTL_FAILURES_LOG=str(log), PYTHONDONTWRITEBYTECODE="1")
+    if reruns is not None:
+        env["RIGCTL_WALL_RERUNS"] = reruns
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-r", "fER",
+                        "--rootdir", str(suite), "-c", os.devnull, str(suite)],
+                       capture_output=True, text=True, cwd=suite, env=env, timeout=120)
+    counts = {p.name: int(p.read_text()) for p in runs.iterdir()}
+    lines = sorted(set(log.read_text().splitlines())) if log.exists() else []
+    return r, counts, lines
+
+
+def test_a_wall_clock_failure_runs_again_at_once_and_only_last_verdicts_are_logged(tmp_path):
+    r, counts, logged = _run(tmp_path, "1")
+    assert r.returncode == 1, r.stdout[-2000:]
+    # the wall-clock tests ran twice each, the logic test once
+    assert counts == {"wall_once": 2, "wall_always": 2, "logic_once": 1}, counts
+    assert "RERUN test_sandbox.py::test_wall_fails_once" in r.stdout, r.stdout[-2000:]
+    assert "2 rerun" in r.stdout and "2 failed, 1 passed" in r.stdout, r.stdout[-800:]
+    # the failures log: what failed in the end, with its tier (the one that passed on its second run is not there)
+    assert logged == ["test_sandbox.py::test_logic_fails_once\tlogic\tcall",
+                      "test_sandbox.py::test_wall_always_fails\twall\tcall"], logged
+
+
+def test_without_the_setting_nothing_is_rerun(tmp_path):
+    """A developer's own pytest run (and the script's serial rerun at the end) judges each test once."""
+    r, counts, logged = _run(tmp_path, None)
+    assert r.returncode == 1
+    assert counts == {"wall_once": 1, "wall_always": 1, "logic_once": 1}, counts
+    assert "rerun" not in r.stdout.splitlines()[-1]
+    assert [line.split("\t")[:2] for line in logged] == [
+        ["test_sandbox.py::test_logic_fails_once", "logic"], ["test_sandbox.py::test_wall_always_fails", "wall"],
+        ["test_sandbox.py::test_wall_fails_once", "wall"]]
