@@ -918,7 +918,11 @@ class Rig:
         data.attrs.update(aligned_to_index=bool(align), index_wait_frames=k, index_frame_lost=lost)
         if replay is not None and len(cap) >= n:
             data.attrs.update(replay.source_provenance(int(cap.seq[n - 1]), n))
-        data.attrs.update(trial_clock_attrs(self.clock_fit, counts[:n], cap.host_time_s[:n]))
+        clock_attrs = trial_clock_attrs(self.clock_fit, counts[:n], cap.host_time_s[:n])
+        data.attrs.update(clock_attrs)
+        t_first = clock_attrs["fitted_time_origin_s"]
+        data.attrs.update(recorded_means(statuses, t_first, t_first + float(counts[n - 1] - counts[0]) *
+                                         clock_attrs["clock_period_s"]))
         data.attrs.update(mark_attrs(statuses))
         data.attrs.update(index_speed_attrs(planned, statuses[0], statuses[-1], marks_mm_s=data.attrs[
             "drum_speed_marks_mm_s"]))
@@ -1110,6 +1114,30 @@ def history_rate_hz(seq: np.ndarray, host_time_s: np.ndarray, rate_hz: float, *,
     return lower_envelope_rate_hz(seq[start:], t[start:], rate)
 
 
+def recorded_means(statuses: list[_Status], t_first: float, t_last: float) -> dict[str, float]:
+    """A trial's ``force_mean_g`` (g) and ``speed_mean_mm_s`` (mm/s): the means of the drum status reads
+    (``statuses``, in time order) from ``t_first`` to ``t_last`` (s, on the clock of the status times): when the
+    board recorded the trial's first and last frames (their fitted host times, :mod:`rigctl.acquisition.clock`).
+
+    Not their receive times: a host or simulated rig starved for a second or two delivers that much of the stream
+    within ms (a 2 s trial's 2,000 frames arrived within 0.13 s after a 2 s stall of ``acquire --sim``), and the
+    status read in flight across the stall is stamped (halfway between request and answer) before the burst, so a
+    trial received whole inside one burst held no status read (a loaded CI run: ``force_mean_g`` NaN). When no read
+    lies in the window (the host read no status while the board recorded the trial), the traces are interpolated
+    between the reads just before and after it; NaN without any read.
+    """
+    t = np.array([s.t for s in statuses], dtype=np.float64)
+    out = {"force_mean_g": math.nan, "speed_mean_mm_s": math.nan}
+    if not t.size:
+        return out
+    inside = (t >= t_first) & (t <= t_last)
+    for key, trace in (("force_mean_g", [s.force_g for s in statuses]),
+                       ("speed_mean_mm_s", [s.speed_mm_s for s in statuses])):
+        v = np.asarray(trace, dtype=np.float64)
+        out[key] = float(v[inside].mean()) if inside.any() else float(np.interp(0.5 * (t_first + t_last), t, v))
+    return out
+
+
 def _trial_data(planned: PlannedTrial, cap, n: int, statuses: list[_Status], *, started_utc: str, settle_s: float,
                 spinup_s: float, layout: SensorLayout, host_rate_hz: float = math.nan) -> TrialData:
     if len(cap) < n:
@@ -1125,13 +1153,10 @@ def _trial_data(planned: PlannedTrial, cap, n: int, statuses: list[_Status], *, 
         dropped_frames=count_dropped(seq, flags, host_t, layout.sample_rate_hz), crc_errors=int(cap.crc_errors),
         layout=layout,
     )
-    inside = (force_t >= 0) & (force_t <= host_t[-1])
     data.attrs.update(
         started_utc=started_utc,
         settle_time_s=round(settle_s, 4),
         spinup_time_s=round(spinup_s, 4),
-        force_mean_g=float(force[inside].mean()) if inside.any() else math.nan,
-        speed_mean_mm_s=float(speed[inside].mean()) if inside.any() else math.nan,
         # over the stream's history up to the trial's end when the runner has it (history_rate_hz), else the trial's
         host_rate_hz=data.host_rate_hz() if math.isnan(host_rate_hz) else float(host_rate_hz),
         status_samples=int(len(statuses)),

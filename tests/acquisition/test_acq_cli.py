@@ -63,8 +63,11 @@ def test_quick_check_end_to_end(tmp_path):
         # the device's frame rate measured on the host clock (independent of how many frames were kept)
         # over a 2 s trial, within 1 %: a loaded machine delays the host's reads, not the board (993 Hz at load ~15)
         assert abs(t["host_rate_hz"] - 1000) <= 10, t
-        assert abs(t["force_mean_g"] - t["force_g"]) < 15  # the force loop held the setpoint
-        assert abs(t["speed_mean_mm_s"] - t["speed_mm_s"]) < 2
+        # the force loop held the setpoint (the trial's force and speed from the drum status reads while the board
+        # recorded it; null in the JSON: the rig measured none, rig.recorded_means)
+        assert t["force_mean_g"] is not None and t["speed_mean_mm_s"] is not None, f"no force or speed measured: {t}"
+        assert abs(t["force_mean_g"] - t["force_g"]) < 15, t
+        assert abs(t["speed_mean_mm_s"] - t["speed_mm_s"]) < 2, t
     # the human-readable table prints the same trials
     table = subprocess.run([*RIGCTL, "info", str(out)], capture_output=True, text=True, env=env, timeout=60)
     assert table.returncode == 0

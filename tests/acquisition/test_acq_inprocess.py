@@ -11,6 +11,7 @@ import pytest
 
 from rigctl.acquisition import calibration
 from rigctl.acquisition.protocol import parse_protocol
+from rigctl.acquisition.rig import _Status, recorded_means
 from rigctl.acquisition.runner import run_protocol
 from rigctl.core import PAPER_SENSOR, DrumController, MassPlacer, PlateMounter, RigBackend, TaxelSource
 from rigctl.devices.wire import FrameFlag, HoldingRegister
@@ -59,6 +60,24 @@ def test_a_protocol_recorded_inprocess(rig, tmp_path):
         smooth, wave = s.trial(0).taxels.astype(float), s.trial(4).taxels.astype(float)
     # the wave plate modulates the taxels along the plate; the smooth plate does not
     assert wave[:, :9].std(axis=0).mean() > 3 * smooth[:, :9].std(axis=0).mean()
+
+
+def test_a_trial_delivered_in_one_burst_carries_the_force_it_was_recorded_at():
+    """A host starved for 2.5 s: the board recorded a 2 s trial meanwhile, and its frames arrived within 20 ms after
+    the stall; the status read in flight across the stall is stamped halfway (t = 11.25 s), the next one after the
+    burst. No read lies within the frames' receive times (the CI run's NaN); the reads while the board recorded
+    the trial (its frames' fitted times) give the trial's force and speed, and with no read at all in that window,
+    the reads on either side of it."""
+    reads = [_Status(t, 500.0 + (t > 11.0) * 4.0, 120.0, 2, 0) for t in np.arange(0.0, 10.0, 0.02)]
+    reads += [_Status(11.25, 504.0, 120.0, 2, 0), _Status(12.53, 506.0, 121.0, 2, 0)]
+    frames_received = (12.50, 12.52)
+    assert not any(frames_received[0] <= r.t <= frames_received[1] for r in reads)
+    assert recorded_means(reads, 10.49, 12.49) == {"force_mean_g": 504.0, "speed_mean_mm_s": 120.0}
+    assert recorded_means(reads, 9.0, 9.03) == {"force_mean_g": 500.0, "speed_mean_mm_s": 120.0}  # 9.00, 9.02
+    got = recorded_means(reads, 11.5, 12.5)  # between 11.25 and 12.53: interpolated at 12.0
+    assert got["force_mean_g"] == pytest.approx(504.0 + 2.0 * 0.75 / 1.28)
+    assert got["speed_mean_mm_s"] == pytest.approx(120.0 + 0.75 / 1.28)
+    assert all(np.isnan(v) for v in recorded_means([], 11.5, 12.5).values())
 
 
 def test_loadcell_calibration_inprocess(rig, tmp_path):
