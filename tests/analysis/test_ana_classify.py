@@ -1,11 +1,12 @@
-"""Nested-PC PCA + LDA (rigctl.analysis.classify) against scikit-learn fits, one per PC count."""
+"""Nested-PC PCA + LDA (rigctl.analysis.classify) against scikit-learn fits, one per PC count.
+
+scikit-learn (and rigctl.analysis.classify, built on it) is imported by the tests, not at the module's top: every
+pytest-xdist worker collects every module, and ~2 CPU-s of scikit-learn + scipy.stats + pandas is then paid only by
+the workers that run these tests."""
 
 import numpy as np
 import pytest
-from sklearn.decomposition import PCA
-from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
 
-from rigctl.analysis.classify import NestedLDA, TextureClassifier, fit_pca, nested_pc_predictions
 from rigctl.storage.model_file import ModelFileError, load_model, save_model
 
 
@@ -18,6 +19,10 @@ def _data(n=900, d=60, k=6, seed=0, sep=0.4):
 
 
 def test_nested_lda_equals_sklearn_per_pc():
+    from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+
+    from rigctl.analysis.classify import NestedLDA, fit_pca
+
     x, y = _data()
     xtr, ytr, xte = x[:600], y[:600], x[600:]
     pca = fit_pca(xtr, 25)
@@ -36,6 +41,11 @@ def test_nested_lda_equals_sklearn_per_pc():
 
 
 def test_nested_lda_with_unequal_priors_matches_sklearn():
+    from sklearn.decomposition import PCA
+    from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+
+    from rigctl.analysis.classify import NestedLDA
+
     x, y = _data(seed=3)
     keep = (y != "A") | (np.arange(len(y)) % 4 == 0)  # class A rarer
     x, y = x[keep], y[keep]
@@ -47,6 +57,10 @@ def test_nested_lda_with_unequal_priors_matches_sklearn():
 
 
 def test_pca_components_are_nested():
+    from sklearn.decomposition import PCA
+
+    from rigctl.analysis.classify import fit_pca
+
     x, _ = _data(n=400, d=40)
     big = PCA(20, svd_solver="full").fit(x)
     small = PCA(5, svd_solver="full").fit(x)
@@ -60,6 +74,8 @@ def test_pca_components_are_nested():
 
 
 def test_nested_pc_predictions_accuracy_rises_with_pcs():
+    from rigctl.analysis.classify import nested_pc_predictions
+
     x, y = _data(sep=0.6)
     pred, pca = nested_pc_predictions(x[:600], y[:600], x[600:], 30)
     acc = (pred == y[600:]).mean(axis=1)
@@ -69,6 +85,8 @@ def test_nested_pc_predictions_accuracy_rises_with_pcs():
 
 
 def test_texture_classifier_roundtrip_and_calibration(tmp_path):
+    from rigctl.analysis.classify import TextureClassifier
+
     x, y = _data(sep=0.8)
     clf = TextureClassifier(n_pcs=20).fit(x[:600], y[:600])
     base = clf.score(x[600:], y[600:])
@@ -91,6 +109,8 @@ def test_texture_classifier_roundtrip_and_calibration(tmp_path):
 
 
 def test_texture_classifier_errors(tmp_path):
+    from rigctl.analysis.classify import NestedLDA, TextureClassifier
+
     x, y = _data(n=200, d=20)
     clf = TextureClassifier(n_pcs=5, max_pcs=10).fit(x, y)
     with pytest.raises(ValueError):
