@@ -1,17 +1,20 @@
 """The fidelity report (issue 13): the variance decomposition of the features, and the paper's ordering of the
 variants checked row by row in the Table 1 printout."""
 
+from __future__ import annotations
+
 import json
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rigctl.analysis import report
 from rigctl.analysis.data import FeatureSet
-from rigctl.analysis.tasks import Curve, TaskResults
-from rigctl.analysis.variance import decompose, format_variance
 from rigctl.cli import main
+
+if TYPE_CHECKING:
+    from rigctl.analysis.tasks import TaskResults
 
 
 def _design(n_rep=4, textures=("A", "B", "C"), speeds=(40.0, 80.0), forces=(250.0, 500.0)):
@@ -27,6 +30,8 @@ def _fs(x, tex, spd, frc, variant="original"):
 def test_shares_of_a_constructed_design_are_recovered():
     """Features built from known effects: texture, condition, interaction and noise each in its own orthogonal
     column, so each share is the known sum of squares of its column over the total."""
+    from rigctl.analysis.variance import decompose
+
     rng = np.random.default_rng(1)
     tex, spd, frc = _design(n_rep=6)
     n = tex.size
@@ -53,6 +58,8 @@ def test_shares_of_a_constructed_design_are_recovered():
 
 
 def test_features_that_only_carry_the_condition():
+    from rigctl.analysis.variance import decompose
+
     tex, spd, frc = _design()
     x = np.stack([spd, frc], axis=1)
     r = decompose(_fs(x, tex, spd, frc), "original")
@@ -60,6 +67,8 @@ def test_features_that_only_carry_the_condition():
 
 
 def test_unbalanced_designs_say_so_and_bad_input_is_named():
+    from rigctl.analysis.variance import decompose, format_variance
+
     tex, spd, frc = _design()
     x = np.random.default_rng(2).standard_normal((tex.size - 1, 3))
     r = decompose(_fs(x, tex[1:], spd[1:], frc[1:]), "original")
@@ -73,6 +82,8 @@ def test_unbalanced_designs_say_so_and_bad_input_is_named():
 
 def _results(values: dict) -> TaskResults:
     """TaskResults whose every repetition gives ``values[task][variant]`` % at every PC count."""
+    from rigctl.analysis.tasks import Curve, TaskResults
+
     res = TaskResults()
     for task, by_v in values.items():
         for v, pct in by_v.items():
@@ -82,6 +93,8 @@ def _results(values: dict) -> TaskResults:
 
 
 def test_the_papers_ordering_is_checked_pair_by_pair():
+    from rigctl.analysis import report
+
     # untrained force, paper: Original 57.4, Speed Scaled 64.2, Force Scaled 89.4, Speed and Force Scaled 88.7
     good = {"original": 50.0, "speed_scaled": 60.0, "force_scaled": 80.0, "speed_force_scaled": 70.0}
     bad = dict(good, speed_scaled=45.0)  # Speed Scaled below Original: the row issue 13 measured
@@ -104,6 +117,8 @@ def test_the_papers_ordering_is_checked_pair_by_pair():
 def test_ties_and_identical_variants_are_not_reversals():
     """Force Scaled with every coefficient C = 1 is Original (the same curves): named identical, not 'reversed';
     two variants at the same mean are tied; the rest of the row is still checked."""
+    from rigctl.analysis import report
+
     values = {"original": 100.0, "speed_scaled": 100.0, "force_scaled": 100.0, "speed_force_scaled": 100.0}
     res = _results({"textures": values})
     text = report.format_ordering(res, 5)
@@ -120,6 +135,9 @@ def test_ties_and_identical_variants_are_not_reversals():
 def test_confusion_labels_are_whole(tmp_path):
     """Labels longer than six characters ('Bumps_fine', 'Bumps_coarse', ...) are drawn whole."""
     import matplotlib
+
+    from rigctl.analysis import report
+    from rigctl.analysis.tasks import Curve, TaskResults
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -145,6 +163,7 @@ def test_confusion_labels_are_whole(tmp_path):
 
 def test_analyze_prints_the_variance_and_the_ordering(tmp_path, write_schema1):
     from rigctl.analysis.synthetic import synthetic_features
+    from rigctl.analysis.variance import decompose
 
     fs = synthetic_features(4, n_textures=4, n_channels=4, noise=0.8, seed=3)
     path = write_schema1(fs, tmp_path / "enc.h5", 2)
@@ -166,6 +185,9 @@ def test_prediction_collapse_names_the_class_the_predictions_pile_on():
     """An extrapolation row whose classifier puts most test trials on one texture (what the simulated rig's
     unscaled variants do at untrained speeds, issue 13) is named with that texture and its share; an even spread
     reads as the even share, and rows the paper trains on are not reported."""
+    from rigctl.analysis import report
+    from rigctl.analysis.tasks import Curve, TaskResults
+
     classes = ["A", "B", "C", "D"]
     piled = np.array([[5, 0, 0, 0], [4, 1, 0, 0], [3, 0, 2, 0], [5, 0, 0, 0]])  # truth rows, predicted columns
     even = np.diag([5, 5, 5, 5])

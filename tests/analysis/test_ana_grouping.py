@@ -9,7 +9,6 @@ import pytest
 from rigctl.analysis.data import FeatureSet
 from rigctl.analysis.grouping import check_groups, cv_groups, one_recording_per_texture, parse_cv_groups
 from rigctl.analysis.params import CVParams
-from rigctl.analysis.tasks import cv_split, run_cv
 from rigctl.operations import AnalysisPlan, run_analyses
 
 N_FEATURES = 12
@@ -36,12 +35,16 @@ def drifting(recordings_per_texture: int, *, trials: int = 48, textures=("felt",
 
 
 def accuracy(fs, groups, seed=0):
+    from rigctl.analysis.tasks import run_cv
+
     res = run_cv(fs, ("textures",), CVParams(per_texture=10_000, k=4, groups=groups), repeats=4, n_pcs=8,
                  seed=seed, n_jobs=1)
     return float(res.curves["textures"]["original"].mean[-1]), res
 
 
 def test_recording_grouped_folds_never_share_a_recording_and_score_lower_than_random():
+    from rigctl.analysis.tasks import cv_split
+
     fs = drifting(3)
     groups = cv_groups(fs, "recording")
     for repeat in range(3):
@@ -59,6 +62,8 @@ def test_recording_grouped_folds_never_share_a_recording_and_score_lower_than_ra
 
 
 def test_one_recording_per_texture_time_blocks_and_the_report_beside_random():
+    from rigctl.analysis.tasks import cv_split
+
     fs = drifting(1, trials=120, level_sd=0.5, drift_sd=4.0, texture_sd=0.7)  # the drift dominates the level
     assert one_recording_per_texture(fs) and not one_recording_per_texture(drifting(2))
     with pytest.raises(ValueError, match="all trials in one group"):  # grouping by recording cannot test them

@@ -10,7 +10,6 @@ from click.testing import CliRunner
 
 from rigctl.analysis.data import FeatureSet, GroupsError, load_features, remove_baseline
 from rigctl.analysis.synthetic import synthetic_features
-from rigctl.analysis.tasks import run_cv, run_extrapolation
 from rigctl.cli import main
 from rigctl.core import PAPER_SENSOR, PAPER_TEXTURES, SensorLayout, TextureSet
 from rigctl.storage.encoded import EncodedWriter, open_encoded
@@ -41,6 +40,8 @@ def finger_file(tmp_path_factory):
 
 
 def test_nine_channel_file_carries_its_layout_through_the_analysis(finger_file):
+    from rigctl.analysis.tasks import run_cv
+
     fs = load_features(finger_file)
     assert fs.layout.n_channels == 9 and fs.layout.sample_rate_hz == 100.0
     assert fs.n_spike_trains("original") == 18  # 9 taxels x SA/RA, not the paper's 36
@@ -56,6 +57,8 @@ def test_nine_channel_file_carries_its_layout_through_the_analysis(finger_file):
 
 
 def test_groups_task_refuses_a_texture_set_without_groups(finger_file):
+    from rigctl.analysis.tasks import run_cv
+
     fs = load_features(finger_file)
     assert fs.group is None and fs.textures.name == "lab letters"
     with pytest.raises(GroupsError, match="defines no texture groups"):
@@ -75,6 +78,8 @@ def test_groups_task_refuses_a_texture_set_without_groups(finger_file):
 
 
 def test_groups_task_uses_the_files_own_groups(tmp_path):
+    from rigctl.analysis.tasks import run_cv
+
     fs = synthetic_features(4, n_textures=6, layout=FINGER, speeds=(40.0, 80.0), forces=(500.0,), noise=0.6, seed=4)
     grouped = TextureSet.from_dict({"name": "lab grouped", "textures": list("ABCDEF"),
                                     "groups": {"soft": ["A", "C", "E"], "hard": ["B", "D", "F"]}})
@@ -86,6 +91,8 @@ def test_groups_task_uses_the_files_own_groups(tmp_path):
 
 
 def test_sixteen_channel_speed_extrapolation_with_baseline_removed(tmp_path):
+    from rigctl.analysis.tasks import run_extrapolation
+
     fs = synthetic_features(6, n_textures=4, layout=BOARD16, speeds=(10.0, 20.0, 50.0, 100.0, 150.0),
                             forces=(500.0,), distance_mm=500.0, noise=0.5, seed=6)
     fabrics = TextureSet(["Linen", "Denim", "Felt", "Silk"], name="fabrics")
@@ -131,6 +138,8 @@ def test_paper_defaults_unchanged():
 
 def test_speed_extrapolation_without_force_labels(tmp_path):
     """Imported recordings often have speeds but no force (NaN): the trials of one speed form one cell, not none."""
+    from rigctl.analysis.tasks import run_extrapolation
+
     fs = synthetic_features(6, n_textures=4, layout=FINGER, speeds=(20.0, 40.0, 80.0), forces=(500.0,), seed=7)
     fs = FeatureSet(fs.features, fs.texture, fs.speed_mm_s, np.full(fs.n_trials, np.nan), layout=FINGER)
     res = run_extrapolation(fs, train_speeds=(20, 40), train_forces=None, test_speeds=(80,), n_pcs=5, repeats=1,

@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rigctl.analysis import report
-from rigctl.analysis.tasks import Curve, TaskResults, task_title
-
 
 def _results(n_pcs=6, repeats=5, n_classes=4, tasks=("textures", "baseline_removed:speed_untrained_speed")):
+    from rigctl.analysis.tasks import Curve, TaskResults
+
     rng = np.random.default_rng(0)
     res = TaskResults()
     classes = [f"T{i}" for i in range(n_classes)]
@@ -26,6 +25,8 @@ def _results(n_pcs=6, repeats=5, n_classes=4, tasks=("textures", "baseline_remov
 
 
 def test_row_names_are_human():
+    from rigctl.analysis.tasks import task_title
+
     assert task_title("baseline_removed:speed_untrained_speed") == (
         "Untrained Speed, speed-only extrapolation, baseline removed")
     assert task_title("speed_trained") == "Trained Speed and Force, speed-only extrapolation"
@@ -34,6 +35,8 @@ def test_row_names_are_human():
 
 
 def test_table_marks_say_which_variant_is_higher_and_text_has_no_nan():
+    from rigctl.analysis import report
+
     text = report.format_table1(_results(), 6)
     assert "baseline_removed:" not in text and "speed_untrained_speed" not in text
     assert "Untrained Speed, speed-only extrapolation, baseline removed" in text
@@ -47,6 +50,8 @@ def test_table_marks_say_which_variant_is_higher_and_text_has_no_nan():
 
 
 def test_a_nan_accuracy_reads_as_a_dash():
+    from rigctl.analysis import report
+
     res = _results(tasks=("textures",))
     res.curves["textures"]["force_scaled"].acc[:] = np.nan
     text = report.format_table1(res, 6, stars=False)
@@ -55,6 +60,8 @@ def test_a_nan_accuracy_reads_as_a_dash():
 
 def test_the_figure_names_error_bars_chance_n_and_the_papers_values(tmp_path, monkeypatch):
     import matplotlib.axes
+
+    from rigctl.analysis import report
 
     drawn: dict[str, list] = {"errorbar": [], "axhline": [], "title": [], "suptitle": []}
     orig_eb, orig_hl = matplotlib.axes.Axes.errorbar, matplotlib.axes.Axes.axhline
@@ -76,6 +83,8 @@ def test_the_figure_names_error_bars_chance_n_and_the_papers_values(tmp_path, mo
 
 
 def test_nothing_to_plot_is_refused(tmp_path):
+    from rigctl.analysis import report
+
     res = _results(n_pcs=1, tasks=("textures",))
     assert report.plottable(res) == []
     with pytest.raises(ValueError, match="--pcs 1-N"):

@@ -3,13 +3,9 @@ straightforward scikit-learn PCA(n) + LinearDiscriminantAnalysis refit for every
 
 import numpy as np
 import pytest
-from sklearn.decomposition import PCA
-from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
 from threadpoolctl import threadpool_limits
 
-from rigctl.analysis.splitpca import GramBlocks
 from rigctl.analysis.synthetic import synthetic_features
-from rigctl.analysis.tasks import cv_split, extrapolation_split, run_cv, run_extrapolation, run_table1
 
 N_PCS = 8
 #: test trials whose prediction may differ (on the decision boundary: float32 Gram + 7 subspace iterations vs a
@@ -19,6 +15,9 @@ FLIPS = 2
 
 def _straightforward(x, y, tr, te, n_pcs=N_PCS):
     """Correct test predictions per PC count 1..n_pcs: a PCA and an LDA fitted for every count."""
+    from sklearn.decomposition import PCA
+    from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+
     out = []
     for n in range(1, n_pcs + 1):
         pca = PCA(n, svd_solver="full").fit(x[tr])
@@ -42,6 +41,8 @@ def fs():
 
 
 def test_cv_accuracies_equal_sklearn_refit_per_pc(fs):
+    from rigctl.analysis.tasks import cv_split, run_cv
+
     res = run_cv(fs, ("textures",), n_pcs=N_PCS, repeats=1, per_texture=60, n_jobs=1)
     for v in ("original", "speed_scaled"):
         acc = res.curves["textures"][v].acc
@@ -54,6 +55,8 @@ def test_cv_accuracies_equal_sklearn_refit_per_pc(fs):
 
 
 def test_extrapolation_accuracies_equal_sklearn_refit_per_pc(fs):
+    from rigctl.analysis.tasks import extrapolation_split, run_extrapolation
+
     res = run_extrapolation(fs, n_pcs=N_PCS, repeats=1, n_train=6, n_test=2, n_jobs=1)
     tr, te, cell = extrapolation_split(fs, n_train=6, n_test=2, seed=0, repeat=0)
     rows = np.concatenate([tr, te])
@@ -67,6 +70,10 @@ def test_extrapolation_accuracies_equal_sklearn_refit_per_pc(fs):
 
 
 def test_gram_block_pca_matches_sklearn():
+    from sklearn.decomposition import PCA
+
+    from rigctl.analysis.splitpca import GramBlocks
+
     rng = np.random.default_rng(0)
     scale = np.concatenate([np.geomspace(20, 2, 12), np.full(138, 0.5)])  # 12 distinct leading axes
     x = (rng.standard_normal((600, 150)) * scale + 5).astype(np.float32)
@@ -85,6 +92,8 @@ def test_gram_block_pca_matches_sklearn():
 
 @pytest.mark.filterwarnings("ignore:extrapolation. smallest trained cell")
 def test_repetitions_in_threads_and_on_dask_give_the_same_table(fs):
+    from rigctl.analysis.tasks import run_table1
+
     distributed = pytest.importorskip("dask.distributed")
     kw = {"variants": ["original"], "n_pcs": N_PCS, "repeats": 2, "per_texture": 40}
 

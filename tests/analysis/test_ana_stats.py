@@ -4,12 +4,13 @@ import math
 
 import numpy as np
 import pytest
-from scipy import stats as st
-
-from rigctl.analysis.stats import Comparison, cohens_d, cohens_h, stars_d, stars_h, two_proportion_z, welch_test
 
 
 def test_welch_matches_scipy():
+    from scipy import stats as st
+
+    from rigctl.analysis.stats import welch_test
+
     rng = np.random.default_rng(0)
     a, b = rng.normal(0.9, 0.01, 20), rng.normal(0.95, 0.03, 20)
     t, p = welch_test(a, b)
@@ -21,12 +22,18 @@ def test_welch_matches_scipy():
 
 
 def test_cohens_d_hand_value():
+    from rigctl.analysis.stats import cohens_d
+
     assert cohens_d([1, 2, 3, 4], [2, 3, 4, 5]) == pytest.approx(-1 / math.sqrt(5 / 3))
     assert cohens_d([1, 1, 1], [1, 1, 1]) == 0.0
     assert cohens_d([2, 2], [1, 1]) == math.inf
 
 
 def test_cohens_h_and_z_hand_values():
+    from scipy import stats as st
+
+    from rigctl.analysis.stats import cohens_h, two_proportion_z
+
     assert cohens_h(0.5, 0.25) == pytest.approx(math.pi / 6)
     z, p = two_proportion_z(60, 100, 40, 100)
     assert z == pytest.approx(0.2 / math.sqrt(0.25 * 0.02))
@@ -40,12 +47,16 @@ def test_cohens_h_and_z_hand_values():
 
 
 def test_stars_follow_the_paper_thresholds():
+    from rigctl.analysis.stats import stars_d, stars_h
+
     assert stars_d(0.001, 1.5) == "**" and stars_d(0.001, 0.7) == "*" and stars_d(0.03, 2) == "*"
     assert stars_d(0.2, 3) == "" and stars_d(0.001, 0.3) == ""
     assert stars_h(0.001, 0.6) == "**" and stars_h(0.04, 0.3) == "*" and stars_h(0.04, 0.1) == ""
 
 
 def test_comparison_of_repeated_accuracies():
+    from rigctl.analysis.stats import Comparison, two_proportion_z
+
     a = np.full(20, 0.50) + np.linspace(-0.01, 0.01, 20)
     b = np.full(20, 0.80) + np.linspace(-0.01, 0.01, 20)
     c = Comparison.of("speed_scaled", 50, a, b, 400, 400)

@@ -5,7 +5,6 @@ import pytest
 
 from rigctl.analysis.data import FeatureSet, remove_baseline
 from rigctl.analysis.synthetic import synthetic_features
-from rigctl.analysis.tasks import cv_split, extrapolation_split, run_cv, run_extrapolation, run_realtime
 
 
 def _paper_layout(per_cell=100):
@@ -18,6 +17,8 @@ def _paper_layout(per_cell=100):
 
 
 def test_cv_split_matches_methods_counts():
+    from rigctl.analysis.tasks import cv_split
+
     fs = _paper_layout()
     assert fs.n_trials == 24_000
     idx, folds = cv_split(fs.texture, 500, 4, seed=1, repeat=0)
@@ -35,6 +36,8 @@ def test_cv_split_matches_methods_counts():
 
 
 def test_extrapolation_split_matches_methods_counts():
+    from rigctl.analysis.tasks import extrapolation_split
+
     fs = _paper_layout()
     tr, te, cell = extrapolation_split(fs, seed=0, repeat=0)
     assert len(tr) == 7200  # 16 x 75 x 6
@@ -58,6 +61,8 @@ def small():
 
 
 def test_planted_speed_confound_loses_on_untrained_speed(small):
+    from rigctl.analysis.tasks import run_extrapolation
+
     with pytest.warns(UserWarning, match="extrapolation"):
         res = run_extrapolation(small, n_pcs=15, repeats=3, seed=0)
     assert set(res.curves) == {"untrained_speed_force", "untrained_force", "untrained_speed", "trained"}
@@ -73,6 +78,8 @@ def test_planted_speed_confound_loses_on_untrained_speed(small):
 
 
 def test_cv_tasks_scale_down_and_shapes(small):
+    from rigctl.analysis.tasks import run_cv
+
     with pytest.warns(UserWarning, match=r"fewer than 500 trials for A \(90\), B \(90\).*\(\+2 more\); drawing 90 per texture"):
         res = run_cv(small, ("textures", "groups"), n_pcs=12, repeats=2, per_texture=500)
     assert res.counts["cv"]["per_texture"] == 90
@@ -86,6 +93,8 @@ def test_cv_tasks_scale_down_and_shapes(small):
 
 
 def test_realtime_profiles_and_calibration():
+    from rigctl.analysis.tasks import run_realtime
+
     base = synthetic_features(8, n_textures=5, n_channels=4, speeds=(40.0, 80.0, 120.0), forces=(500.0,), seed=4,
                               noise=0.6)
     names = {40.0: "slow", 80.0: "medium", 120.0: "fast"}

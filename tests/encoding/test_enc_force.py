@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.encoding.estimators import ForceScaler
 from rigctl.encoding.force import fit_force_coefficients
 from rigctl.encoding.izhikevich import encode_sa
 
@@ -57,6 +56,8 @@ def test_each_step_is_one_kernel_call_for_all_coefficients():
 
 
 def test_force_scaler_per_texture_and_label_free():
+    from rigctl.encoding.estimators import ForceScaler
+
     n = 800
     tex, spd, frc, data = [], [], [], []
     for t, gain in (("A", 1.0), ("B", 0.5)):
@@ -83,6 +84,8 @@ def test_force_scaler_per_texture_and_label_free():
 def test_unknown_speed_is_one_condition_and_labels_are_kept_whole():
     """A NaN speed (imported recordings) groups with the other NaN-speed trials of its texture and force and finds
     its 500 g reference among them; long labels survive into the coefficient table."""
+    from rigctl.encoding.estimators import ForceScaler
+
     n = 800
     tex, spd, frc, data = [], [], [], []
     for speed in (np.nan, 50.0):
@@ -103,6 +106,8 @@ def test_unknown_speed_is_one_condition_and_labels_are_kept_whole():
 
 
 def test_missing_reference_force_is_an_error():
+    from rigctl.encoding.estimators import ForceScaler
+
     x = np.full((2, 100, 2), 0.3)
     with pytest.raises(ValueError, match="reference force"):
         ForceScaler().fit_labels(x, ["A", "A"], [80, 80], [250, 1000])

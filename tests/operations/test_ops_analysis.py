@@ -10,7 +10,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from rigctl.analysis import tasks
 from rigctl.analysis.params import CVParams, ExtrapolationParams, Repetitions
 from rigctl.analysis.synthetic import synthetic_features
 from rigctl.operations import AnalysisPlan, BaselineError, run_analyses
@@ -22,6 +21,8 @@ def fs():
 
 
 def test_parameter_objects_and_keywords_run_the_same_analysis(fs):
+    from rigctl.analysis import tasks
+
     by_kw = tasks.run_cv(fs, ("textures",), n_pcs=5, repeats=2, per_texture=20, seed=3, variants=["original"])
     by_obj = tasks.run_cv(fs, ("textures",), CVParams(per_texture=20),
                           reps=Repetitions(n_pcs=5, repeats=2, seed=3, variants=["original"]))
@@ -32,6 +33,8 @@ def test_parameter_objects_and_keywords_run_the_same_analysis(fs):
 
 
 def test_a_plan_runs_its_tasks_with_its_parameters(fs):
+    from rigctl.analysis import tasks
+
     plan = AnalysisPlan.for_task("all", reps=Repetitions(n_pcs=4, repeats=2, seed=1, variants=["original"]),
                                  cv=CVParams(per_texture=20))
     res = run_analyses(fs, plan)
