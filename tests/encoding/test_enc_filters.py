@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
-from scipy import signal
 
 from rigctl.core.encoding_model import MODEL_RATE_HZ, RA_CUTOFF_HZ
 from rigctl.encoding.filters import RAFilter, lowpass_coefficients, ra_input
@@ -31,6 +30,8 @@ def same_bits(x: np.ndarray, y: np.ndarray) -> bool:
 
 def scipy_ra_input(x: np.ndarray, rectify: bool) -> np.ndarray:
     """The RA input with every coefficient from scipy.signal (butter, lfilter_zi), as rigctl had it before the table."""
+    from scipy import signal
+
     x = np.asarray(x, dtype=np.float64)
     b, a = signal.butter(2, RA_CUTOFF_HZ, btype="low", fs=MODEL_RATE_HZ)
     y, _ = signal.lfilter(b, a, x, axis=-2, zi=signal.lfilter_zi(b, a)[:, None] * x[..., :1, :])
@@ -43,6 +44,8 @@ def scipy_ra_input(x: np.ndarray, rectify: bool) -> np.ndarray:
 @pytest.mark.parametrize(("cutoff_hz", "fs", "order"), [(RA_CUTOFF_HZ, MODEL_RATE_HZ, 2), (20, 1000, 2),
                                                        (35.0, 1000.0, 2), (20.0, 2000.0, 2), (20.0, 1000.0, 4)])
 def test_coefficients_are_scipys(cutoff_hz, fs, order):
+    from scipy import signal
+
     b, a, zi = lowpass_coefficients(cutoff_hz, fs, order)
     sb, sa = signal.butter(order, cutoff_hz, btype="low", fs=fs)
     assert same_bits(b, sb) and same_bits(a, sa) and same_bits(zi, signal.lfilter_zi(sb, sa))

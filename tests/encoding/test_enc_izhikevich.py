@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import signal
 
 from rigctl.encoding.filters import RAFilter, ra_input
 from rigctl.encoding.izhikevich import StreamingEncoder, as_ragged, encode_ra, encode_sa, encode_trials, run_izhikevich
@@ -56,6 +55,8 @@ def test_sa_counts_match_reference_loop():
 
 
 def test_ra_counts_match_reference_on_filtered_derivative():
+    from scipy import signal
+
     rng = np.random.default_rng(2)
     x = smooth_signals(rng, 2, 2000, 4)
     trains = encode_ra(x, dtype=np.float64)
@@ -161,6 +162,8 @@ def test_an_sa_only_stream_gives_the_same_sa_spikes_and_no_ra():
 
 def test_ra_filter_has_no_startup_transient():
     # a trial starting at a high constant reading: no artificial step, so no RA input and no RA spikes
+    from scipy import signal
+
     x = np.full((1, 1000, 3), 0.8)
     assert np.abs(ra_input(x)).max() < 1e-9
     assert encode_ra(x).counts().sum() == 0

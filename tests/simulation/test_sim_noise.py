@@ -8,7 +8,6 @@ import math
 import numpy as np
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
-from scipy.signal import lfilter
 
 from rigctl.simulation.noise import one_pole
 
@@ -19,6 +18,8 @@ FINITE = st.one_of(st.floats(1e-300, 1e6), st.floats(-1e6, -1e-300))
 @settings(max_examples=60, deadline=None)
 @given(x=arrays(np.float64, st.integers(0, 300), elements=FINITE), tau_steps=st.floats(1e-3, 1e4), gain=st.floats(1e-3, 1e3))
 def test_one_pole_is_lfilter_bit_for_bit(x, tau_steps, gain):
+    from scipy.signal import lfilter
+
     a = math.exp(-1.0 / tau_steps)
     b = math.sqrt(1 - a * a) * gain
     want = lfilter([b], [1.0, -a], x)

@@ -10,9 +10,7 @@ from datetime import UTC, datetime
 import h5py
 import numpy as np
 import pytest
-import scipy.io
 from click.testing import CliRunner
-from scipy.signal import resample_poly
 
 from rigctl.cli import main
 from rigctl.storage.importers import RecordingImportError, labels_from_name, parse_segment, read_recording_file, segment
@@ -32,6 +30,8 @@ def recording(i: int, n: int = 300, channels: int = 9) -> np.ndarray:
 
 
 def write(path, data, fmt, header=True):
+    import scipy.io
+
     if fmt == "csv":
         head = ",".join(f"taxel{c}" for c in range(data.shape[1])) if header else ""
         np.savetxt(path, data, fmt="%d", delimiter=",", header=head, comments="")
@@ -84,6 +84,8 @@ def test_nine_channels_at_100_hz_kept(tmp_path, fmt):
 
 @pytest.mark.parametrize("fmt", ["csv", "npy", "mat"])
 def test_nine_channels_resampled_to_1_khz(tmp_path, fmt):
+    from scipy.signal import resample_poly
+
     files, truth = make_files(tmp_path, fmt)
     out = tmp_path / "s.h5"
     r = run(*files, "--rate", 100, "--channels", 9, "--label-pattern", PATTERN, "--resample", 1000, "--out", out)
@@ -104,6 +106,8 @@ def test_nine_channels_resampled_to_1_khz(tmp_path, fmt):
 
 
 def test_csv_without_header_and_v73_mat(tmp_path):
+    import scipy.io
+
     data = recording(0)
     p = write(tmp_path / "plain.csv", data, "csv", header=False)
     assert not p.read_text().startswith("taxel")
