@@ -44,7 +44,6 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
 
 from rigctl.storage.recording_files import RecordingImportError
 
@@ -254,6 +253,9 @@ class Activity:
 def activity(counts: np.ndarray, rate_hz: float, smooth_s: float = 0.05) -> Activity:
     """The activity of ``(n, n_channels)`` counts at ``rate_hz`` (module docstring). Raises RecordingImportError
     for fewer than 3 samples."""
+    # here, not at the top: scipy.ndimage costs ~0.15 CPU-s to import, and `rigctl import` segments only when asked
+    from scipy.ndimage import uniform_filter1d
+
     x = np.asarray(counts, dtype=np.float64)
     if x.shape[0] < 3:
         raise RecordingImportError("too few samples to segment")
