@@ -15,7 +15,8 @@ Three parts run side by side for ``--minutes`` (default 60), each on real ptys:
 - **kill -9**: ``rigctl acquire PROTOCOL --sim --resume`` in a subprocess killed at a random moment, again and again;
   after each kill plain h5py opens the file, every finished trial is readable and unchanged since it finished
   (finished trials lost: must be 0), and the last run of each session completes the plan with each trial recorded
-  once (duplicates: must be 0). The temporary port folders of killed runs must be gone at the end.
+  once (duplicates: must be 0). The temporary port folders of killed runs must be gone at the end (the commands
+  make them in a folder of the soak's own, their ``TMPDIR``; the next run's simulated rig removes a killed one's).
 
 Prints the figures (``--json PATH`` writes them too) and exits 1 if any must-be-0 figure is not 0.
 
@@ -37,6 +38,7 @@ import tempfile
 import threading
 import time
 import traceback
+from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
@@ -52,6 +54,7 @@ from rigctl.simulation.model import RigModel
 from rigctl.simulation.pty import TEMP_PREFIX
 from rigctl.simulation.virtual_mega import VirtualMega
 from rigctl.simulation.virtual_uno import VirtualUno
+from rigctl.storage.journal import lock_path
 
 RIGCTL = [sys.executable, "-c", "from rigctl.cli import main; main()"]
 
@@ -267,21 +270,46 @@ def _finished(path: Path) -> dict[int, str]:
         return out
 
 
-def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = KILL_PROTOCOL) -> None:
+def _wait_released(path: Path, timeout_s: float = 30.0) -> bool:
+    """Wait until no process holds the session's writer lock (``<name>.lock``, dropped as the killed writer dies: a
+    command run through a launcher dies just after its client) nor the lock on the file itself (the writer's commit
+    helper outlives it by design until its in-place writes are done). False after ``timeout_s``."""
+    import fcntl
+
+    def free() -> bool:
+        for p in (lock_path(path), path):
+            try:
+                fd = os.open(p, os.O_RDONLY)
+            except FileNotFoundError:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return False
+            finally:
+                os.close(fd)  # drops the shared lock too
+        return True
+
+    return _wait(free, timeout_s)
+
+
+def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = KILL_PROTOCOL,
+              rigctl: Sequence[str] = RIGCTL) -> None:
     rng = random.Random(seed + 2)
     f = out.setdefault("kill", dict(kills=0, sessions_completed=0, trials_finished=0, finished_trials_lost=0,
                                     finished_trials_changed=0, duplicates=0, unreadable_after_kill=0,
-                                    runs_failed=0, tmp_leftovers=0))
+                                    runs_failed=0, tmp_leftovers=0, tmp_left_by_kills=0))
     proto = work / "soak.toml"
     proto.write_text(protocol)
-    env = dict(os.environ, RIGCTL_CONFIG=str(work / "rig.json"))
-    killed_pids = []
+    tmp = work / "tmp"  # the commands' temporary folder: every port folder left in it at the end is a leftover
+    tmp.mkdir()
+    env = dict(os.environ, RIGCTL_CONFIG=str(work / "rig.json"), TMPDIR=str(tmp))
     session = 0
     while time.monotonic() < stop_at:
         path = work / f"kill-{session}.h5"
         finished: dict[int, str] = {}
         while True:
-            cmd = [*RIGCTL, "acquire", str(proto), "--sim", "--out", str(path), "--quiet"]
+            cmd = [*rigctl, "acquire", str(proto), "--sim", "--out", str(path), "--quiet"]
             if path.exists():
                 cmd.append("--resume")
             proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -291,8 +319,13 @@ def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = 
             except subprocess.TimeoutExpired:
                 os.kill(proc.pid, signal.SIGKILL)
                 proc.wait()
-                killed_pids.append(proc.pid)
                 f["kills"] += 1
+                # the port folders the killed run's simulated rig left (for the next run's to remove)
+                f["tmp_left_by_kills"] += sum(1 for _ in tmp.glob(f"{TEMP_PREFIX}*"))
+            if not _wait_released(path):
+                f["runs_failed"] += 1
+                out.setdefault("kill_errors", []).append(f"{path.name}: still locked 30 s after the kill")
+                break
             err = proc.stderr.read().decode(errors="replace")
             if not path.exists():
                 continue  # killed before the file was made
@@ -321,8 +354,7 @@ def kill_soak(stop_at: float, seed: int, work: Path, out: dict, protocol: str = 
         session += 1
         if path.exists():
             path.unlink()
-    tmp = Path(tempfile.gettempdir())
-    f["tmp_leftovers"] = sum(1 for pid in killed_pids for _ in tmp.glob(f"{TEMP_PREFIX}{pid}-*"))
+    f["tmp_leftovers"] = sum(1 for _ in tmp.glob(f"{TEMP_PREFIX}*"))
 
 
 # ------------------------------------------------------------------------------------------------------ main
@@ -331,10 +363,13 @@ MUST_BE_ZERO = [("taxel", "silent_losses"), ("taxel", "bad_frames_recorded"), ("
                 ("kill", "unreadable_after_kill"), ("kill", "runs_failed"), ("kill", "tmp_leftovers")]
 
 
-def run(minutes: float, seed: int, work: Path, *, kill_protocol: str = KILL_PROTOCOL) -> dict:
+def run(minutes: float, seed: int, work: Path, *, kill_protocol: str = KILL_PROTOCOL,
+        rigctl: Sequence[str] = RIGCTL) -> dict:
     """Run the three parts side by side for ``minutes``; returns the figures (``errors``: parts that crashed).
     ``kill_protocol``: the protocol (TOML text) the kill -9 part records again and again; the last session of the
-    soak runs to its end after ``minutes``, so a short soak gives a short one."""
+    soak runs to its end after ``minutes``, so a short soak gives a short one. ``rigctl``: the argv prefix of the
+    ``rigctl`` command the kill -9 part runs and kills (a fresh interpreter; the tests give their preloaded one,
+    tests/launcher.py, whose client's death kills its command with SIGKILL)."""
     stop_at = time.monotonic() + minutes * 60
     out: dict = {"minutes": minutes, "seed": seed, "errors": []}
     t0 = time.time()
@@ -347,7 +382,7 @@ def run(minutes: float, seed: int, work: Path, *, kill_protocol: str = KILL_PROT
             out["errors"].append(f"{fn.__name__}: {traceback.format_exc()}")
 
     threads = [threading.Thread(target=part, args=(fn, fn.__name__, *args), daemon=True)
-               for fn, args in ((taxel_soak, ()), (modbus_soak, ()), (kill_soak, (kill_protocol,)))]
+               for fn, args in ((taxel_soak, ()), (modbus_soak, ()), (kill_soak, (kill_protocol, rigctl)))]
     for t in threads:
         t.start()
     for t in threads:

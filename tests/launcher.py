@@ -25,6 +25,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 from pathlib import Path
 
@@ -92,6 +93,7 @@ def _child(argv: list[str], cwd: str, env: dict[str, str], fds: list[int]) -> in
     os.chdir(cwd)
     os.environ.clear()
     os.environ.update(env)
+    tempfile.tempdir = None  # the command's TMPDIR, as a fresh interpreter takes it (not the server's, cached)
     # the command's PYTHONPATH, as a fresh interpreter would take it (a guide installs a plugin into a folder on it)
     sys.path[:0] = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p and p not in sys.path]
     for target, fd in enumerate(fds):

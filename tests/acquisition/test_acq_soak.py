@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 pytestmark = pytest.mark.realtime
+RIGCTL: list[str] = []  # the command the kill -9 part runs and kills: this worker's preloaded rigctl (tests/conftest.py)
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_soak.py"
 
@@ -18,11 +19,12 @@ def test_a_short_soak_loses_nothing(tmp_path):
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     # the kill -9 part on one texture (4 trials a session, not 12): the session left running at the end is short
-    out = bench.run(0.25, seed=3, work=tmp_path, kill_protocol=bench.KILL_PROTOCOL.replace('["A", "B", "C"]', '["A"]'))
+    out = bench.run(0.25, seed=3, work=tmp_path, kill_protocol=bench.KILL_PROTOCOL.replace('["A", "B", "C"]', '["A"]'),
+                    rigctl=RIGCTL)
     assert out["failures"] == [], out
     taxel, modbus, kill = out["taxel"], out["modbus"], out["kill"]
     # the faults really happened and were survived
     assert taxel["segments"] >= 1 and taxel["frames_sent"] > 5000 and taxel["crc_errors"] > 0
     assert taxel["frames_recorded"] + taxel["frames_counted_lost"] + taxel["stale_frames"] >= taxel["frames_sent"]
     assert modbus["answered"] > 20 and modbus["bytes_mangled"] > 0 and modbus["works_at_the_end"]
-    assert kill["kills"] >= 1 and kill["sessions_completed"] >= 1
+    assert kill["kills"] >= 1 and kill["sessions_completed"] >= 1 and kill["tmp_left_by_kills"] >= 1
