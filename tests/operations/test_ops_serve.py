@@ -22,10 +22,13 @@ from click.testing import CliRunner
 from rigctl.cli import main
 from rigctl.operations import RigSource, RunQueue, open_control
 
+from ..conftest import wait_unlocked
+
 if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
     pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
 
 TOKEN = "test-token-0123456789"
+RIGCTL: list[str] = []  # this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
@@ -178,8 +181,8 @@ def _env(tmp_path):
             "XDG_STATE_HOME": str(tmp_path / "state")}
 
 
-def _server(tmp_path, port):
-    return subprocess.Popen([sys.executable, "-m", "rigctl", "serve", "--rig", "inprocess", "--host", "127.0.0.1",
+def _server(tmp_path, port, rigctl=(sys.executable, "-m", "rigctl")):
+    return subprocess.Popen([*rigctl, "serve", "--rig", "inprocess", "--host", "127.0.0.1",
                              "--port", str(port), "--data-dir", str(tmp_path)], env=_env(tmp_path),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
@@ -216,7 +219,9 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
 
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    proc = _server(tmp_path, port)
+    # the server killed below: this worker's preloaded rigctl (a process of its own, killed with its client; not a
+    # fresh interpreter's start), the one started again is a fresh interpreter (its Ctrl-C exit is the interpreter's)
+    proc = _server(tmp_path, port, RIGCTL)
     try:
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
         # the event feed: progress as it happens, subscribed before the run is queued (the feed sends what comes
@@ -238,6 +243,7 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
         if proc.poll() is None:
             proc.kill()
             proc.wait(30)
+    wait_unlocked(tmp_path / "s.h5")  # the killed command gone (it dies just after its client) and its commit helper
     before, planned = _trials(tmp_path / "s.h5")
     assert 2 <= len(before) < planned == 8
     proc = _server(tmp_path, port)
