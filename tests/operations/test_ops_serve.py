@@ -243,7 +243,12 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
         if proc.poll() is None:
             proc.kill()
             proc.wait(30)
-    wait_unlocked(tmp_path / "s.h5")  # the killed command gone (it dies just after its client) and its commit helper
+    from rigctl.storage.journal import lock_path
+
+    # the killed command gone (it dies just after its client: its writer lock on <name>.lock) and its commit helper
+    for held in (lock_path(tmp_path / "s.h5"), tmp_path / "s.h5"):
+        if held.exists():
+            wait_unlocked(held)
     before, planned = _trials(tmp_path / "s.h5")
     assert 2 <= len(before) < planned == 8
     proc = _server(tmp_path, port)
