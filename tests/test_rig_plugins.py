@@ -27,6 +27,7 @@ from rigctl.core.rig_plugins import BUILTIN_RIGS
 from rigctl.storage.session import open_session
 
 TOKEN = "plugin-test-token-0123456789"
+RIGCTL: list[str] = []  # this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 
 
 def test_the_builtin_rigs_are_entry_points():
@@ -126,7 +127,8 @@ def test_quick_check_through_rigctl_serve(csvboard_plugin, tmp_path):
     url, auth = f"http://127.0.0.1:{port}", {"Authorization": f"Bearer {TOKEN}"}
     env = {**os.environ, "PYTHONPATH": str(csvboard_plugin), "RIGCTL_SERVE_TOKEN": TOKEN,
            "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "XDG_STATE_HOME": str(tmp_path / "state")}
-    proc = subprocess.Popen([sys.executable, "-m", "rigctl", "serve", "--rig", "csvboard", "--rig-option",
+    # this worker's preloaded rigctl: the command takes the plugin from its PYTHONPATH as a fresh interpreter would
+    proc = subprocess.Popen([*RIGCTL, "serve", "--rig", "csvboard", "--rig-option",
                              f"file={board}", "--rig-option", "drum=inprocess", "--host", "127.0.0.1", "--port",
                              str(port), "--data-dir", str(tmp_path / "data")], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
