@@ -173,10 +173,11 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
              client: Callable[[], Path] | None = None) -> list[BlockRun]:
     """Run the blocks of ``page`` that run here, in order, in one shell in ``work``; an AssertionError names the
     block that failed (or printed a traceback) with its output. ``preload``: the shell's ``rigctl`` is the preloaded
-    one of tests/launcher.py (the same command lines, without ~3-5 s of CPU to start each) when the page runs
-    more than two ``rigctl`` commands: ``client()``'s (the ``rigctl`` client script of a server already running, the
-    test worker's: each command runs in the page's folder and environment all the same), or a server of the page's
-    own. Whatever the page left running (a ``&`` job) ends with it."""
+    one of tests/launcher.py (the same command lines, without ~2-5 s of CPU to start each): ``client()``'s (the
+    ``rigctl`` client script of the test worker's server, started once for the worker's tests: each command runs in
+    the page's folder and environment all the same) when the page runs a ``rigctl`` command, else a server of the
+    page's own when it runs more than two (starting one costs about what one command's imports do). Whatever the
+    page left running (a ``&`` job) ends with it."""
     runnable = [b for b in blocks(page) if b.runs_here]
     work.mkdir(parents=True, exist_ok=True)
     path = work.parent / f".{Path(page).stem}.sh"
@@ -185,7 +186,8 @@ def run_page(page: str, work: Path, *, timeout_s: float = 900, preload: bool = T
     cpu0 = _children_cpu_s()
     env = guide_env(work)
     server = None
-    if preload and sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines()) > 2:
+    n_rigctl = sum(line.lstrip().startswith("rigctl ") for b in runnable for line in b.as_run().splitlines())
+    if preload and (n_rigctl > 2 or client is not None and n_rigctl > 0):
         if client is None:
             server = launcher.Launcher(work.parent, env=env)
         rigctl = client() if client is not None else server.client  # type: ignore[union-attr]

@@ -173,7 +173,7 @@ def test_guide_runs_as_written(guide, tmp_path, request):
         require_lsl()
     if guide == "realrig":
         request.getfixturevalue("build_tools")
-    # a page of more than two rigctl commands runs them through this worker's preloaded rigctl (started once)
+    # a page's rigctl commands run through this worker's preloaded rigctl (started once for the worker's tests)
     runs = run_page(page, tmp_path / "work", client=lambda: Path(request.getfixturevalue("rigctl_cmd")[-1]))
     print("\n".join(f"{r.seconds:6.1f} s  {r.block.name}" for r in runs))
     check(runs, tmp_path, request)
