@@ -243,6 +243,12 @@ class MainWindow(QtWidgets.QMainWindow):
     def _build_shown_tab(self, index: int) -> None:
         if index == self._analysis_index:
             self.analysis  # noqa: B018 - built on first show
+        if self.encoder is not None:  # the live encoder runs while its spikes are shown (it catches up on showing)
+            self.encoder.set_active(self._live_shown())
+
+    def _live_shown(self) -> bool:
+        """True when the Live view is the tab shown (its spike rasters are drawn)."""
+        return self.tabs.currentWidget() is self.live
 
     def _build_top_bar(self) -> None:
         """The top bar's widgets: the rig source, Connect... and the big STOP."""
@@ -938,7 +944,8 @@ class MainWindow(QtWidgets.QMainWindow):
         """Build the sensor side for ``layout``: the calibration tab, a started live encoder (with the stored
         normalisation when it fits the layout) and the live view."""
         self.calibration.attach(h, layout)
-        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.control, layout), layout=layout)
+        self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.control, layout), layout=layout,
+                                   active=self._live_shown())
         self.encoder.start()
         self.live.attach(h.taxels, self.encoder, layout)
 

@@ -78,6 +78,11 @@ class SpikeRing:
 
 #: the longest window the live view shows (s); the spike rings hold at least this much at the model's top rate
 LIVE_WINDOW_MAX_S = 10.0
+#: after a pause longer than a live view's longest window, the encoder starts afresh (its neurons at rest) this much
+#: stream before that window, s: by the oldest spike shown its trains fire as the never-paused encoder's (spike counts
+#: within 2 % over the window, test_gui_layouts.py; from 0.5 s before, a train near threshold fired 20 spikes the
+#: never-paused one did not)
+RESUME_WARM_UP_S = 2.0
 
 
 def spike_capacity(layout: SensorLayout, seconds: float = LIVE_WINDOW_MAX_S, max_rate_hz: float = MODEL_RATE_HZ) -> int:
@@ -97,10 +102,16 @@ class LiveEncoder(threading.Thread):
     ``layout`` is the stream's sensor (default ``taxels.layout``, else the paper's 3x3x2 at 1 kHz): one SA and one RA
     train per channel. ``normaliser`` is a :class:`rigctl.core.normalisation.TaxelRange` (per-taxel min/max, from the
     calibration); without one the full ADC range 0-``layout.adc_max`` is used.
+
+    ``active=False`` (or :meth:`set_active`): paused, for a face that shows no spikes now (the GUI's live view
+    hidden): the thread sleeps without reading the stream. On resuming it encodes the frames it missed, as if never
+    paused, when they are at most :data:`LIVE_WINDOW_MAX_S` + :data:`RESUME_WARM_UP_S` of stream (and the ring still
+    holds them); after a longer pause it starts afresh (neurons at rest) that much before the newest frame, so a live
+    view's longest window is filled again (the spikes older than that window are never shown, and are not computed).
     """
 
     def __init__(self, taxels: Any, *, normaliser: TaxelRange | None = None, poll_s: float = 0.04,
-                 layout: SensorLayout | None = None) -> None:
+                 layout: SensorLayout | None = None, active: bool = True) -> None:
         super().__init__(name="live-encoder", daemon=True)
         self.taxels = taxels
         self.layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
@@ -116,6 +127,10 @@ class LiveEncoder(threading.Thread):
         self.ready = False  # the encoder's kernels are compiled and it is keeping up
         self._halt = threading.Event()
         self._reset_request = threading.Event()
+        self._active = threading.Event()
+        self._wake = threading.Event()  # set by set_active(True) and stop(): ends a pause's wait
+        if active:
+            self._active.set()
 
     def full_range(self) -> TaxelRange:
         """The full ADC range of every channel (no calibration yet)."""
@@ -128,6 +143,30 @@ class LiveEncoder(threading.Thread):
 
     def stop(self) -> None:
         self._halt.set()
+        self._wake.set()
+
+    @property
+    def active(self) -> bool:
+        """True while encoding; False while paused (:meth:`set_active`)."""
+        return self._active.is_set()
+
+    def set_active(self, on: bool) -> None:
+        """Encode the stream (True) or pause (False; see the class's docstring). Returns at once."""
+        if on:
+            self._active.set()
+            self._wake.set()
+        else:
+            self._active.clear()
+
+    def _resume_start(self, ring: Any, cursor: int | None) -> int | None:
+        """Where a resumed encoder goes on: None to go on from ``cursor`` with its state (the frames missed are
+        few enough and still in the ring), else the frame to start afresh from."""
+        total = ring.total
+        keep = int(round((LIVE_WINDOW_MAX_S + RESUME_WARM_UP_S) * self.layout.sample_rate_hz))
+        keep = min(keep, int(getattr(ring, "capacity", keep)))
+        if cursor is not None and total - cursor <= keep:
+            return None
+        return max(0, total - keep)
 
     def set_normaliser(self, taxel_range: TaxelRange | None) -> None:
         """Use a new per-taxel range (a calibration) and start the encoder afresh."""
@@ -142,7 +181,17 @@ class LiveEncoder(threading.Thread):
     def run(self) -> None:
         ring = live_ring(self.taxels)
         encoder = None
+        cursor = start = 0
+        resume_from: int | None = None  # after a long pause: the frame a fresh encoder starts from
         while not self._halt.is_set():
+            if not self._active.is_set():
+                self._wake.wait()
+                self._wake.clear()
+                if self._active.is_set() and not self._halt.is_set():
+                    resume_from = self._resume_start(ring, cursor if encoder is not None else None)
+                    if resume_from is not None:
+                        self._reset_request.set()
+                continue
             if encoder is None or self._reset_request.is_set():
                 self._reset_request.clear()
                 try:
@@ -154,7 +203,8 @@ class LiveEncoder(threading.Thread):
                     self._halt.wait(1.0)
                     encoder = None
                     continue
-                cursor = start = ring.total
+                cursor = start = ring.total if resume_from is None else resume_from
+                resume_from = None
                 self.ready = True
             cursor, samples, _seq, _t = ring.read_since(cursor)
             if len(samples):
