@@ -221,10 +221,10 @@ def test_a_labs_38_recordings_in_one_import(tmp_path):
     flagged = {line.split()[1].rstrip(":") for line in r.stderr.splitlines() if " period " in line and "outlier" in line}
     assert flagged == {p.name for p, f in written if f.fault == "doubled"}
     assert "run into the next one" not in r.stderr
-    with open_session(tmp_path / "lab.h5") as s:
+    with open_session(tmp_path / "lab.h5") as s:  # every trial's source file, in one pass (rigctl info's)
         per_file: dict[str, int] = {}
-        for i in s.completed_ids():
-            name = s.trial_attrs(i)["source_file"]
+        for row in s.trial_table(s.completed_ids(), ["source_file"]):
+            name = row["source_file"]
             per_file[name] = per_file.get(name, 0) + 1
     good = {p.name: f for p, f in written if f.fault in ("", "doubled")}
     assert set(per_file) == set(good) and len(good) == 32
