@@ -53,6 +53,7 @@ if TYPE_CHECKING:
     from rigctl.operations import RigMonitor
     from rigctl_gui.analysis_tab import AnalysisTab
     from rigctl_gui.connect_dialog import ConnectDialog
+    from rigctl_gui.live_view import LiveView
     from rigctl_gui.rig_events import RigEvents
 
 #: the frame cap: the app's clock ticks (and the visible live view redraws) at most this often, per s, and this often
@@ -130,6 +131,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._latch_seen: Any = None  # the latch the dialog was last opened for (opened once per latch)
         self.commands: CommandExecutor | None = None
         self.encoder: LiveEncoder | None = None
+        #: what the Live view shows once built (taxels, encoder, layout, the ring's frame count when connected: its
+        #: traces start there, as when it was built at connect)
+        self._live_source: tuple[Any, LiveEncoder, Any, int] | None = None
+        self._live_ring: Any = None  # the taxel stream's ring buffer when the sensor side was built
         self._connect_job: Job | None = None
         self._connect_dialog: ConnectDialog | None = None
         self._close_confirmed = False
@@ -188,7 +193,6 @@ class MainWindow(QtWidgets.QMainWindow):
         from rigctl_gui.classify_view import ClassifyView
         from rigctl_gui.control_panel import ControlPanel
         from rigctl_gui.handheld_tab import HandheldTab
-        from rigctl_gui.live_view import LiveView
         from rigctl_gui.protocol_tab import ProtocolTab
         from rigctl_gui.widgets import PageTabs
 
@@ -197,7 +201,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
         self.control.acted.connect(lambda text: self.notify(text, source="rig control"))
         self.control.question.connect(self._ask)
-        self.live = LiveView()
+        self._live: LiveView | None = None  # built on first use (:attr:`live`)
+        live_page = QtWidgets.QWidget()  # its place until then
         self.protocol = ProtocolTab(self)
         self._analysis: AnalysisTab | None = None  # built on first use (:attr:`analysis`)
         analysis_page = QtWidgets.QWidget()  # its place until then
@@ -206,7 +211,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.handheld = HandheldTab(self)
         for w, name in (
             (self.control, "Rig control"),
-            (self.live, "Live view"),
+            (live_page, "Live view"),
             (self.protocol, "Protocol"),
             (analysis_page, "Analysis"),
             (self.calibration, "Calibration"),
@@ -215,14 +220,31 @@ class MainWindow(QtWidgets.QMainWindow):
         ):
             self.tabs.add_page(w, name)
         self._analysis_index = self.tabs.indexOf(analysis_page)
+        self._live_index = self.tabs.indexOf(live_page)
         self.tabs.currentChanged.connect(self._build_shown_tab)
         self.tabs.setCurrentIndex(int(str(self.settings.value("ui/tab", 0))))
-        # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
-        self.stale_label = QtWidgets.QLabel(self.live)
-        self.stale_label.setObjectName("stale_marker")
-        self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-        self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
-        self.stale_label.hide()
+
+    @property
+    def live(self) -> LiveView:
+        """The Live view (:class:`rigctl_gui.live_view.LiveView`), built the first time it is shown or asked for (its
+        plots were ~40 % of the window's start-up, and a session that never looks at it does not pay for them), with
+        the stale-data marker over it; it shows the connected rig's stream from then on."""
+        if self._live is None:
+            from rigctl_gui.live_view import LiveView
+
+            view = self._live = LiveView()
+            self.tabs.replace_page(self._live_index, view)
+            # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
+            self.stale_label = QtWidgets.QLabel(view)
+            self.stale_label.setObjectName("stale_marker")
+            self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+            self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
+            self.stale_label.hide()
+            if self._live_source is not None:
+                view.attach(*self._live_source)
+            self._guard_new_widgets(view)
+            QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
+        return self._live
 
     @property
     def analysis(self) -> AnalysisTab:
@@ -243,12 +265,14 @@ class MainWindow(QtWidgets.QMainWindow):
     def _build_shown_tab(self, index: int) -> None:
         if index == self._analysis_index:
             self.analysis  # noqa: B018 - built on first show
+        elif index == self._live_index:
+            self.live  # noqa: B018 - built on first show
         if self.encoder is not None:  # the live encoder runs while its spikes are shown (it catches up on showing)
             self.encoder.set_active(self._live_shown())
 
     def _live_shown(self) -> bool:
         """True when the Live view is the tab shown (its spike rasters are drawn)."""
-        return self.tabs.currentWidget() is self.live
+        return self._live is not None and self.tabs.currentWidget() is self._live
 
     def _build_top_bar(self) -> None:
         """The top bar's widgets: the rig source, Connect... and the big STOP."""
@@ -643,7 +667,9 @@ class MainWindow(QtWidgets.QMainWindow):
             self.rig_events.close()
             self.rig_events = None
         self.control.detach()
-        self.live.detach()
+        self._live_source = self._live_ring = None
+        if self._live is not None:
+            self._live.detach()
         self.calibration.detach()
         if self.handle is not None:
             try:
@@ -755,8 +781,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.notify(text, level=logging.INFO if ok else logging.ERROR, source="rig control")
         self._drain_stop_results()
         current = self.tabs.currentWidget()
-        if current is self.live:
-            self.live.refresh()
+        if self._live is not None and current is self._live:
+            self._live.refresh()
         if self._tick % self._slow_every == 0:
             if current is self.control:
                 self.control.refresh()
@@ -903,7 +929,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """Mark the live view stale when its plots stopped moving (no taxel frame for :data:`STALE_AFTER_S`)."""
         taxels = self.handle.taxels if self.handle is not None else None
         stale = None
-        if taxels is not None and current is self.live:
+        if taxels is not None and self._live is not None and current is self._live:
             ring = taxels.ring
             total = ring.total
             now = time.monotonic()
@@ -920,7 +946,7 @@ class MainWindow(QtWidgets.QMainWindow):
                                   max(0, (self.live.height() - self.stale_label.height()) // 2))
             self.stale_label.raise_()
             self.stale_label.show()
-        else:
+        elif self._live is not None:
             self.stale_label.hide()
 
     def follow_sensor(self) -> bool:
@@ -931,8 +957,9 @@ class MainWindow(QtWidgets.QMainWindow):
         if h is None or enc is None:
             return False
         layout = sensor_layout(h)
-        buf = self.live.buffer
-        if layout == enc.layout and (buf is None or buf.ring is h.taxels.ring):
+        buf = self._live.buffer if self._live is not None else None
+        ring = buf.ring if buf is not None else self._live_ring  # what the Live view shows (or will, once built)
+        if layout == enc.layout and (ring is None or ring is h.taxels.ring):
             return False
         enc.stop()  # its thread ends at its next poll; it reads the old ring only
         self._attach_sensor(h, layout)
@@ -947,7 +974,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.encoder = LiveEncoder(h.taxels, normaliser=self.calibration.taxel_range(h.control, layout), layout=layout,
                                    active=self._live_shown())
         self.encoder.start()
-        self.live.attach(h.taxels, self.encoder, layout)
+        self._live_source, self._live_ring = (h.taxels, self.encoder, layout, h.taxels.ring.total), h.taxels.ring
+        if self._live is not None:
+            self._live.attach(*self._live_source)
 
     def closeEvent(self, ev):  # noqa: N802 - Qt override
         if self.handheld.block_running and not self._close_confirmed:

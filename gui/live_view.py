@@ -644,13 +644,14 @@ class LiveView(QtWidgets.QWidget):
             for p in self.trace_plots:
                 p.setYRange(0, self._layout().adc_max, padding=0)
 
-    def attach(self, taxels, encoder, layout: SensorLayout | None = None) -> None:
+    def attach(self, taxels, encoder, layout: SensorLayout | None = None, since: int | None = None) -> None:
         """Show ``taxels`` (a :class:`rigctl.devices.taxel_stream.TaxelStream`) and ``encoder``'s spikes, with the
-        plots built for ``layout`` (default the stream's ``layout``; the paper's sensor for a stream without one)."""
+        plots built for ``layout`` (default the stream's ``layout``; the paper's sensor for a stream without one);
+        ``since``: the stream's frame count the traces start from (default now; :class:`rigctl_gui.workers.TraceBuffer`)."""
         layout = layout or getattr(taxels, "layout", None) or PAPER_SENSOR
         self.set_layout(layout)
         # every frame of the longest window is kept; drawing decimates to the pixel width
-        self.buffer = TraceBuffer(taxels.ring, seconds=WINDOW_RANGE_S[1], decimate=1, layout=layout)
+        self.buffer = TraceBuffer(taxels.ring, seconds=WINDOW_RANGE_S[1], decimate=1, layout=layout, since=since)
         self.encoder = encoder
         self._refresh_n = 0  # the first refresh draws everything
 

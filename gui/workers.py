@@ -141,10 +141,12 @@ class TraceBuffer:
     taxel stream's ring buffer (:meth:`rigctl.devices.ring.RingBuffer.read_since`, cheap copies of a few dozen
     frames) so a frame reaches the screen without waiting for any worker. Times are stream time (frame number in the
     ring / ``layout.sample_rate_hz``, s); readings are ``(n, layout.n_channels)`` (``layout``: the stream's sensor,
-    default the paper's 3x3x2 at 1 kHz).
+    default the paper's 3x3x2 at 1 kHz). ``since``: the ring's frame count to read on from (the first :meth:`pull`
+    takes what the ring still holds of the frames since then); default the ring's count now (live only, no history).
     """
 
-    def __init__(self, ring, *, seconds: float = 10.0, decimate: int = 4, layout: SensorLayout | None = None):
+    def __init__(self, ring, *, seconds: float = 10.0, decimate: int = 4, layout: SensorLayout | None = None,
+                 since: int | None = None):
         self.ring = ring
         self.layout = layout or PAPER_SENSOR
         self.rate_hz = self.layout.sample_rate_hz
@@ -153,7 +155,7 @@ class TraceBuffer:
         self._x = np.zeros((n, self.layout.n_channels), dtype=np.uint16)
         self._t = np.zeros(n)
         self._n = 0
-        self.cursor = ring.total  # live only: no history
+        self.cursor = ring.total if since is None else int(since)
         self.n_samples = 0
         self.current = np.zeros(self.layout.n_channels, dtype=np.uint16)
         self.newest_host_time_s = float("nan")

@@ -15,8 +15,17 @@ pytestmark = pytest.mark.realtime
 
 def test_live_traces_heatmap_and_rasters(inprocess_window, qapp):
     window = inprocess_window
+    # the Live view is built when first shown, and its encoder runs only while it is shown; shown, its traces start
+    # at the connect, as a view built with the window's did
+    assert window._live is None and not window.encoder.active
+    ring = window.handle.taxels.ring
+    assert wait_for(qapp, lambda: ring.total > 0, 10)
+    before = ring.total
+    window.tabs.setCurrentIndex(window._live_index)
     live = window.live
-    window.tabs.setCurrentWidget(live)
+    assert window.tabs.currentWidget() is live and window.encoder.active
+    assert wait_for(qapp, lambda: live.buffer.n_samples > 0, 10)
+    assert live.buffer.n_samples >= before  # its first refresh took every frame since the connect
     window.control.speed.setValue(100.0)
     window.control.force.setValue(500.0)
     window.control.mount_plate("L")  # a wave texture under the sensor: SA and RA both fire
