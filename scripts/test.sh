@@ -140,8 +140,14 @@ done
 # the byte code of everything the test modules import, written once into the byte-code tree by one collection (as
 # the workers collect: same interpreter, same test modules), beside the kernels: the pytest-xdist workers all collect
 # the whole suite at the same moment, and on a cold tree each compiled the same modules from source (measured, one
-# process: 10.4 CPU-s to collect on a cold tree, 3.9 on a warm one; six workers)
-python3 -m pytest --collect-only -q -p no:cacheprovider > "$TEST_TMP/collect.log" 2>&1 &
+# process: 10.4 CPU-s to collect on a cold tree, 3.9 on a warm one; six workers); then that of the analysis stack,
+# which the test modules import inside the tests that use it (a collection that needs none of it: ~2.5 CPU-s less in
+# each worker), but which most workers load some time in the run (an in-process `rigctl analyze`, the GUI's job
+# server): importing it cold took 7.7 CPU-s, warm 2.3, and two workers starting together would each compile it
+python3 -m pytest --collect-only -q -p no:cacheprovider > "$TEST_TMP/collect.log" 2>&1 \
+  && python3 -c 'import rigctl.analysis.tasks, rigctl.analysis.model, rigctl.analysis.report, rigctl.analysis.stats
+import rigctl.encoding.estimators, sklearn.utils.estimator_checks, scipy.signal, scipy.ndimage, scipy.io' \
+  >> "$TEST_TMP/collect.log" 2>&1 &
 collect_pid=$!
 
 phase "ruff check (rules and per-file ignores in pyproject.toml)"
