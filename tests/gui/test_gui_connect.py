@@ -141,6 +141,9 @@ def test_the_app_drives_the_firmware_under_simavr(window, qapp, qtbot, build_too
             window.banner.text
         assert window.handle is not None, window.banner.text
         assert "firmware under simavr" in window.source_label.text()
+        # the Live view shown (it draws the stream while shown: run alone, the window starts on another tab; in the
+        # module, the replay test before it left the Live view shown)
+        window.tabs.setCurrentWidget(window.live)
         assert wait_for(qapp, lambda: window.live.buffer is not None and window.live.buffer.n_samples > 500, 60)
         panel, poller = window.control, window.poller
         window.tabs.setCurrentWidget(panel)
