@@ -636,7 +636,7 @@ class MegaController:
                 rate, vel = self._outputs
             s, y = m.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel, render=render)
             with self._lock:  # the step pulses sent: the stepper's travel at the driver's real setting
-                y = self._index.step(y, (m.last_stepper_mm - travel0) * steps_per_mm, t0, m.last_marks)
+                y = self._index.step(y, m.last_stepper_mm, travel0, steps_per_mm, t0, m.last_marks)
                 sent = min(max(vel, -vmax), vmax) * k / 1000.0
                 act = m.actuator_mm
                 if m.actuator_sign > 0 and self._home_switch_ok and act <= 1e-6 and sent < act - act0:

@@ -61,20 +61,27 @@ class DrumIndex:
         usteps = drum.steps_per_rev * drum.microsteps
         self._slip_steps = usteps / max(1, drum.marks_per_rev) * (1.0 + DRUM_SLIP_TOLERANCE)
 
-    def step(self, sensor: np.ndarray, pulses: np.ndarray, t0: float, marks: np.ndarray | None = None) -> np.ndarray:
+    def step(self, sensor: np.ndarray, stepper_mm: np.ndarray, travel0_mm: float, steps_per_mm: float, t0: float,
+             marks: np.ndarray | None = None) -> np.ndarray:
         """Count the step pulses of a step of ``sensor.size`` ms from ``t0`` (s) and take the sensors' passes.
 
-        ``sensor``: (n,) bool, the model's real index mark passed in that ms (if a sensor is fitted); ``pulses``:
-        (n,) float, the step pulses sent since the step's start at the end of each ms; ``marks``: (n,) bool, a speed
-        mark passed in that ms (None: no disc). Returns the index output per ms, (n,) bool."""
+        ``sensor``: (n,) bool, the model's real index mark passed in that ms (if a sensor is fitted); the step pulses
+        sent since the step's start at the end of each ms are ``(stepper_mm - travel0_mm) * steps_per_mm``
+        (``stepper_mm`` (n,) float: the stepper's travel at the end of each ms, mm; ``travel0_mm`` at the step's
+        start; ``steps_per_mm`` at the driver's real setting), taken per ms only by a step with an edge, a wrap or a
+        speed mark (the common step needs its last: a few ms a step, hundreds of steps a second); ``marks``: (n,)
+        bool, a speed mark passed in that ms (None: no disc). Returns the index output per ms, (n,) bool."""
         d = self.drum
         usteps = d.steps_per_rev * d.microsteps  # what the firmware assumes
         n = sensor.size
         before = self.steps
+        last_pulses = float((stepper_mm[-1] - travel0_mm) * steps_per_mm) if n else 0.0
         if marks is not None and d.marks_per_rev > 0 and n:
-            self._speed_marks(marks, before, pulses, t0)
-        if n and not sensor.any():  # the common step: no index edge, and no wrap of the step count that counts
-            last = before + float(pulses[-1])
+            self._speed_marks(marks, before, last_pulses, stepper_mm, travel0_mm, steps_per_mm, t0)
+        # the common step: no index edge, and no wrap of the step count that counts (count_nonzero: one C call;
+        # ndarray.any() goes through numpy's Python layer)
+        if n and not np.count_nonzero(sensor):
+            last = before + last_pulses
             if self.sensor_live:
                 if last - self.steps_at_sensor <= 1.5 * usteps:  # the sensor stays live: no index output
                     self.steps = last
@@ -82,6 +89,7 @@ class DrumIndex:
             elif math.floor(before / usteps) == math.floor(last / usteps):  # no wrap
                 self.steps = last
                 return np.zeros(n, bool)
+        pulses = (stepper_mm - travel0_mm) * steps_per_mm
         steps = before + pulses
         self.steps = float(steps[-1]) if n else before
         out = np.zeros(n, bool)
@@ -105,12 +113,14 @@ class DrumIndex:
             self.revolutions += int(wraps.sum())
         return out
 
-    def _speed_marks(self, marks: np.ndarray, before: float, pulses: np.ndarray, t0: float) -> None:
+    def _speed_marks(self, marks: np.ndarray, before: float, last_pulses: float, stepper_mm: np.ndarray,
+                     travel0_mm: float, steps_per_mm: float, t0: float) -> None:
         """The speed marks of one step (the firmware's INT2 interrupt and its slip check in the 1 kHz tick): the
-        step count is ``before + pulses`` at the end of each ms."""
-        last = before + float(pulses[-1])
-        if marks.any():  # (most steps of a few ms pass none)
-            steps = before + pulses
+        step count is ``before + (stepper_mm - travel0_mm) * steps_per_mm`` at the end of each ms, ``before +
+        last_pulses`` at its end."""
+        last = before + last_pulses
+        if np.count_nonzero(marks):  # (most steps of a few ms pass none)
+            steps = before + (stepper_mm - travel0_mm) * steps_per_mm
             for j in np.flatnonzero(marks):
                 t = t0 + (j + 1) * 1e-3
                 since = float(steps[j]) - self._steps_at_mark

@@ -630,7 +630,8 @@ class SensorModel:
         elif out.shape != (n, N_TAXELS) or out.dtype != np.uint16:
             raise ValueError(f"out must be ({n}, {N_TAXELS}) uint16")
         c = self.config
-        f_mean = float(force.sum()) / n if n else c.reference_force_g  # (np.mean's sum and division)
+        # (np.mean's sum and division; np.add.reduce: force.sum()'s own reduction without its Python layer)
+        f_mean = float(np.add.reduce(force)) / n if n else c.reference_force_g
         # the contact shape is that of the reference force (force-invariant, FabricSlide); the force sets the
         # level (per sample, saturating), the plate's contact efficiency and the depth (at the chunk's mean force).
         # The live rig renders 1 ms at a time: the last texture and force step's tables are kept at hand.
@@ -933,10 +934,11 @@ class RigModel:
             self._actuator_mm = 0.0
 
     # -- dynamics --------------------------------------------------------------------------------------------------
-    def _hx711_convert(self, cell_g: np.ndarray) -> None:
-        """Feed this step's force on the load cell (one sample per ms) to the HX711 model; every conversion that
-        completes in the step takes the sinc^4-weighted force of the four periods before it (lock held)."""
-        n = cell_g.size
+    def _hx711_convert(self, force_g: np.ndarray, mass_g: float) -> None:
+        """Feed this step's force on the load cell (one sample per ms: the contact force ``force_g`` plus a resting
+        mass ``mass_g``) to the HX711 model; every conversion that completes in the step takes the sinc^4-weighted
+        force of the four periods before it (lock held)."""
+        n = force_g.size
         t0 = self._time_s
         # the history, newest last, is _hx_hist[:_hx_fill]; the newest _HX_HISTORY_MS move to the front when the
         # step does not fit behind them (no copy of the whole history per ms)
@@ -947,7 +949,7 @@ class RigModel:
                 hist = self._hx_hist = np.empty(2 * (_HX_HISTORY_MS + n))
             hist[:_HX_HISTORY_MS] = keep
             fill = _HX_HISTORY_MS
-        hist[fill:fill + n] = cell_g
+        np.add(force_g, mass_g, out=hist[fill:fill + n])  # (the sum written in place: no array between)
         fill = self._hx_fill = fill + n
         w = self._hx_weights
         noise = self.config.mechanics.loadcell_noise_g
@@ -1041,7 +1043,7 @@ class RigModel:
             self._position_mm = float(pos[-1])
             self._actuator_mm = float(act)
             self._force_g = float(force[-1])
-            self._hx711_convert(force + self._mass_on_loadcell_g)
+            self._hx711_convert(force, self._mass_on_loadcell_g)
             self._time_s += n * dt
             return samples, sync_in
 
