@@ -379,7 +379,7 @@ def _irwin_hall(state):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half, layer_gain, full_scale, gain,
+def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half, layer_gain, full_scale, gain, sens,
                    offset, noise_sd, noise_a, seed, wrap, out):  # pragma: no cover - compiled
     n_table = tables.shape[1]
     inv = n_table / period
@@ -417,7 +417,7 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
                     ch = layer * 9 + r * 3 + c
                     state, z = _irwin_hall(state)  # AR(1) low-pass of unit-variance draws
                     noise[ch] = noise_a * noise[ch] + drive * z
-                    v = offset[ch] + gain[ch] * base + noise_sd * noise[ch]
+                    v = offset[ch] + (gain[ch] * sens) * base + noise_sd * noise[ch]  # (gain * sens: numpy's product)
                     v = math.floor(v + 0.5)
                     if v < 0.0:
                         v = 0.0
@@ -426,10 +426,15 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
                     out[i, ch] = np.uint16(v)
 
 
+#: the bounds of :func:`render_seed`'s draw, [1, 2**63), as the 0-d arrays ``Generator.integers`` makes of them (made
+#: once: the same draw, without two conversions a call)
+_SEED_LOW, _SEED_HIGH = np.asarray(1), np.asarray(2**63)
+
+
 def render_seed(rng: np.random.Generator) -> int:
     """The noise seed :meth:`SensorModel.render` draws from ``rng`` for one call (a step whose samples are not
-    rendered draws it too: the generator's later draws stay the same)."""
-    return int(rng.integers(1, 2**63))
+    rendered draws it too: the generator's later draws stay the same): uniform in [1, 2**63)."""
+    return int(rng.integers(_SEED_LOW, _SEED_HIGH))
 
 
 def _profile(tex: Texture) -> np.ndarray:
@@ -645,10 +650,12 @@ class SensorModel:
             self._last = last
         _, _, tables, period, eff, depth, gain = last
         seed = render_seed(rng)
+        if isinstance(sensitivity, (int, float)):  # (the live rig's): the kernel multiplies each gain, no array a call
+            sens = float(sensitivity)
+        else:
+            gain, sens = gain * np.asarray(sensitivity, dtype=np.float64), 1.0
         _render_kernel(pos, force, tables, period, depth, eff, float(c.pitch_mm), self._row_w, self._p_half,
-                       self._layer_gain, float(c.full_scale_counts),
-                       gain * float(sensitivity) if isinstance(sensitivity, (int, float)) else
-                       gain * np.asarray(sensitivity, dtype=np.float64),
+                       self._layer_gain, float(c.full_scale_counts), gain, sens,
                        self.offset, float(c.noise_counts), self._noise_a, seed, float(wrap_mm or 0.0), out)
         return out
 
