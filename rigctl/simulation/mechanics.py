@@ -18,13 +18,15 @@ import numpy as np
 @numba.njit(cache=True, nogil=True)
 def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, travel, gap, runout_mm, runout_phase,
                    stiffness, ripple, h_row, h_period, h_mean, pitch, pos_out, sync_out, force_out, slip,
-                   motor_out, marks_per_mm, marks_out):  # pragma: no cover
+                   motor_out, marks_per_mm, marks_out, motor0):  # pragma: no cover
     """Advance ``pos_out.size`` 1 ms steps; fills ``pos_out`` (surface travel, mm, unwrapped), ``sync_out`` (the
-    index mark passed in that ms) and ``force_out`` (contact force, g); returns ``(speed, actuator_mm)`` after the
-    last step.
+    index mark passed in that ms) and ``force_out`` (contact force, g); returns ``(speed, actuator_mm, pos, force,
+    motor)`` after the last step (the last ms's ``pos_out``, ``force_out`` and ``motor_out``: the caller needs no
+    array access for them).
 
     ``slip``: the fraction of the stepper's travel the drum loses (0: none, 1: a blocked drum); ``motor_out``: the
-    stepper's travel since the step's start per ms, mm of surface (what its step count says, without the slip).
+    stepper's travel per ms, mm of surface (what its step count says, without the slip), from ``motor0`` at the step's
+    start (its travel since then, plus ``motor0``).
     ``marks_out``: a speed mark passed in that ms (the slot ``floor(travel * marks_per_mm)`` changed).
     ``speed0``/``target``: the stepper's surface speed now and commanded, mm/s; ``accel_step``: the speed change allowed per ms,
     mm/s; ``pos0``: travel now, mm; ``circ``: drum circumference, mm; ``act0``, ``act_step``, ``travel``, ``gap``:
@@ -46,7 +48,7 @@ def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, trave
         ramp = accel_step * k
         speed = target if ramp >= abs(dv) else speed0 + sign * ramp
         acc += speed
-        motor_out[i] = acc * 1e-3
+        motor_out[i] = acc * 1e-3 + motor0
         pos = pos0 + (1.0 - slip) * acc * 1e-3
         pos_out[i] = pos
         rev = math.floor(pos / circ)
@@ -62,4 +64,4 @@ def step_mechanics(speed0, target, accel_step, pos0, circ, act0, act_step, trave
         x = ((pos % circ) - pitch) / h_period * n_table
         idx = int(math.floor(x)) % n_table
         force_out[i] = force * (1.0 + ripple * (h_row[idx] - h_mean))
-    return speed, act
+    return speed, act, pos_out[n - 1], force_out[n - 1], motor_out[n - 1]

@@ -1024,14 +1024,13 @@ class RigModel:
             _, h_row, period, h_mean = self._heights
             pos, force, motor = np.empty((3, n))  # (rows of one buffer: each C-contiguous)
             sync_in, marks = np.empty((2, n), bool)
-            speed, act = step_mechanics(
+            speed, act, pos_last, force_last, motor_last = step_mechanics(
                 self._speed_mm_s, target, accel_step, self._position_mm, circ, self._actuator_mm, va * dt,
                 travel, gap, runout, self._runout_phase, stiffness, ripple, h_row, period, h_mean, pitch, pos, sync_in,
                 force, 1.0 - self.drum_sign * (1.0 - self._slip()), motor,  # the kernel's slip: 2 turns it backwards
-                marks_per_mm, marks)
-            motor += self._motor_mm
+                marks_per_mm, marks, self._motor_mm)
             self.last_stepper_mm = motor  # the stepper's travel at the end of each ms of the step
-            self._motor_mm = float(motor[-1])
+            self._motor_mm = motor_last
             self.last_marks = marks
 
             # slow sensitivity drift of the fabric: Ornstein-Uhlenbeck, tau 20 s
@@ -1047,9 +1046,9 @@ class RigModel:
                 render_seed(self._rng)
 
             self._speed_mm_s = float(speed)
-            self._position_mm = float(pos[-1])
+            self._position_mm = pos_last
             self._actuator_mm = float(act)
-            self._force_g = float(force[-1])
+            self._force_g = force_last
             self._hx711_convert(force, self._mass_on_loadcell_g)
             self._time_s += n * dt
             return samples, sync_in
