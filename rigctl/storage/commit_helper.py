@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import atexit
 import os
+import select
 import socket
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 from rigctl.storage import journal_replay
@@ -72,15 +75,36 @@ def _start() -> socket.socket | None:
     return ours
 
 
-def _request(sock: socket.socket, fd: int, message: bytes, seq: int) -> tuple[bool, BaseException | None]:
-    """Send one commit and wait for its answer (a Ctrl-C meanwhile is held and returned). (answered, interrupt)."""
+#: after a Ctrl-C, how long the writer waits in one step for the helper's answer before it looks for the journal, s
+_INTERRUPTED_POLL_S = 0.05
+#: after a Ctrl-C, once the journal is gone (the helper replayed it), how long its answer may still take, s
+_ANSWER_AFTER_REPLAY_S = 0.5
+
+
+def _request(sock: socket.socket, fd: int, message: bytes, seq: int,
+             replayed: Callable[[], bool]) -> tuple[bool, BaseException | None]:
+    """Send one commit and wait for its answer (a Ctrl-C meanwhile is held and returned). (answered, interrupt).
+
+    A Ctrl-C can land after ``recv`` has taken the answer and before it is looked at (a signal that came in just
+    before the call is raised as the call returns): the answer is then gone, and a blocking ``recv`` would wait
+    forever (a loaded CI run: the writer still waiting after 60 s). So after a Ctrl-C the writer waits in short steps
+    and also asks ``replayed()`` (the journal gone: the helper removes it once the in-place writes are made); an
+    answer left unread is skipped by the next commit (its sequence number is not that commit's)."""
     interrupted: BaseException | None = None
     sent = False
+    replayed_at: float | None = None
     while True:
         try:
             if not sent:
                 socket.send_fds(sock, [message], [fd])
                 sent = True
+            if interrupted is not None and not select.select([sock], [], [], _INTERRUPTED_POLL_S)[0]:
+                if replayed_at is None:
+                    if replayed():
+                        replayed_at = time.monotonic()
+                elif time.monotonic() - replayed_at > _ANSWER_AFTER_REPLAY_S:
+                    return True, interrupted  # its answer was taken by the interrupted recv
+                continue
             reply = sock.recv(64)
             if not reply:
                 return False, interrupted  # the helper is gone
@@ -109,7 +133,7 @@ def serve_commit(fd: int, jpath: Path, durable: bool, delay_s: float, gate: str)
         _state["seq"] = seq
         message = b"\0".join([str(seq).encode(), os.fsencode(str(jpath)), b"1" if durable else b"0",
                               repr(float(delay_s)).encode(), os.fsencode(gate)])
-        answered, interrupted = _request(sock, fd, message, seq)
+        answered, interrupted = _request(sock, fd, message, seq, lambda: not jpath.exists())
         if not answered:
             _drop()  # the next commit starts a new helper
         return answered, interrupted

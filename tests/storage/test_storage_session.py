@@ -410,6 +410,54 @@ def test_one_commit_helper_serves_a_writers_commits_and_a_dead_one_is_replaced(t
     w.close()
 
 
+def test_a_ctrl_c_that_lands_as_the_helpers_answer_is_taken_does_not_wait_forever(tmp_path):
+    """A Ctrl-C that came in just before the writer's ``recv`` is raised as that call returns, with the helper's
+    answer taken and lost: the writer must not wait for it forever (a loaded CI run: still waiting after 60 s). It
+    sees the commit done by the journal gone, and holds the Ctrl-C (the caller raises CommittedInterrupt)."""
+    import socket
+    import threading
+
+    from rigctl.storage import commit_helper
+
+    journal_file = tmp_path / "s.h5.journal"
+    journal_file.write_bytes(b"committed")
+    ours, helper = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+
+    class InterruptedAsItReturns:  # the writer's end: the answer is read, then the Ctrl-C is raised
+        def __init__(self, sock):
+            self.sock, self.calls = sock, 0
+
+        def __getattr__(self, name):
+            return getattr(self.sock, name)
+
+        def recv(self, n):
+            self.calls += 1
+            data = self.sock.recv(n)
+            if self.calls == 1:
+                raise KeyboardInterrupt
+            return data
+
+    def serve():  # the helper: takes the commit, makes the in-place writes (the journal removed), answers
+        socket.recv_fds(helper, 1024, 1)
+        journal_file.unlink()
+        helper.send(b"1")
+
+    t = threading.Thread(target=serve)
+    t.start()
+    with open(tmp_path / "s.h5", "wb") as f:
+        result = []
+        waiter = threading.Thread(target=lambda: result.append(commit_helper._request(
+            InterruptedAsItReturns(ours), f.fileno(), b"1\0x", 1, lambda: not journal_file.exists())), daemon=True)
+        waiter.start()
+        waiter.join(10.0)
+    t.join(5.0)
+    assert not waiter.is_alive(), "the writer still waits for an answer it already took"
+    answered, interrupted = result[0]
+    assert answered and isinstance(interrupted, KeyboardInterrupt)
+    ours.close()
+    helper.close()
+
+
 def test_plan_dtype_is_the_documented_one():
     assert PLAN_DTYPE.names == ("trial_id", "texture", "speed_mm_s", "force_g", "duration_s", "profile",
                                 "ramp_start_mm_s", "ramp_end_mm_s", "repeat", "status")
