@@ -291,12 +291,14 @@ class OnboardEncoder:
         """
         self.port.write(wire.UnoCommand.STOP.value)
         quiet = stop_at = sent_at = time.monotonic()
-        while time.monotonic() - quiet < quiet_s:
+        while True:
             chunk = self.port.read(4096)
             now = time.monotonic()
             if chunk:
                 self.parser.feed(chunk)
                 quiet = now
+            elif now - quiet >= quiet_s:  # quiet: a read found nothing, quiet_s after the last bytes (a host
+                break  # stalled for quiet_s while the board streamed finds its bytes at the next read, not quiet)
             if now - stop_at > timeout_s:
                 raise TimeoutError(f"the board kept sending spike frames {timeout_s} s after STOP")
             if now - sent_at > STOP_RESEND_S:  # still streaming: the STOP was taken as a command's payload

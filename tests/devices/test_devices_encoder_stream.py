@@ -6,6 +6,7 @@ simavr in tests/firmware/test_fw_uno_encoder.py."""
 from __future__ import annotations
 
 import struct
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -191,6 +192,15 @@ def test_a_stop_taken_as_a_payload_byte_is_sent_again_until_the_board_stops(monk
     endless.port.write = lambda data: len(data)  # a board that never takes a byte
     with pytest.raises(TimeoutError, match="after STOP"):
         endless.finish([42.0], quiet_s=0.05, timeout_s=0.3)
+    # a host stalled longer than quiet_s between its reads (a loaded machine: each read comes 0.06 s after the last)
+    # finds the board's bytes at its next read: still streaming, not quiet (a CI run beside two CPU hogs took the
+    # stall for quiet, sent FINISH to the board that never stopped and timed out waiting for its counts instead)
+    clock = iter(np.arange(0.0, 100.0, 0.06))
+    monkeypatch.setattr(encoder_stream, "time", SimpleNamespace(monotonic=lambda: float(next(clock))))
+    stalled = OnboardEncoder(_DesyncedBoard(need=0))
+    stalled.port.write = lambda data: len(data)
+    with pytest.raises(TimeoutError, match="after STOP"):
+        stalled.finish([42.0], quiet_s=0.05, timeout_s=0.3)
 
 
 def test_a_host_catching_up_sends_only_the_speeds_the_board_can_still_use():
