@@ -95,6 +95,7 @@ def _check_session(path: Path, *, mode: str) -> np.ndarray:
     return taxels
 
 
+@pytest.mark.realtime  # a board on a pty paced by the wall clock (~400 lines a second from a thread of this process)
 def test_quick_check_from_a_pty_board_through_acquire(installed_plugins, tmp_path, monkeypatch):
     monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
     stop = threading.Event()
