@@ -240,8 +240,9 @@ def pytest_collection_modifyitems(config, items):
     folders: dict[Path, str | None] = {}  # a test file's folder under tests/ (None: a file of tests/ itself, or outside)
     for item in items:
         if item.path not in folders:  # (resolved once a file, not twice an item: ~0.1 CPU-s of each worker's start)
-            rel = item.path.resolve().relative_to(TESTS) if item.path.resolve().is_relative_to(TESTS) else None
-            folders[item.path] = rel.parts[0] if rel is not None and len(rel.parts) > 1 else None
+            resolved = item.path.resolve()
+            rel = resolved.relative_to(TESTS).parts if resolved.is_relative_to(TESTS) else ()
+            folders[item.path] = rel[0] if len(rel) > 1 else None
         folder = folders[item.path]
         if folder is not None:
             for name in FOLDER_MARKERS.get(folder, []):
