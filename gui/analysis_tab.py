@@ -706,9 +706,9 @@ class AnalysisTab(QtWidgets.QWidget):
     # results
     # ------------------------------------------------------------------------------------------------------
     def show_results(self, res) -> None:
-        """Show analysis results (:class:`rigctl.analysis.tasks.TaskResults`); results without a single curve (a
+        """Show analysis results (:class:`rigctl.analysis.results.TaskResults`); results without a single curve (a
         file too small for any task, e.g. one trial) leave the previous results and say why in the status line."""
-        from rigctl.analysis.tasks import task_title
+        from rigctl.analysis.results import task_title
 
         tasks = [t for t, by_v in res.curves.items() if by_v]
         if not tasks:
@@ -748,7 +748,7 @@ class AnalysisTab(QtWidgets.QWidget):
 
     def _draw_curves(self) -> None:
         from rigctl.analysis.data import variant_title
-        from rigctl.analysis.tasks import task_title
+        from rigctl.analysis.results import task_title
 
         self.acc_plot.clear()
         legend = self.acc_plot.plotItem.legend
@@ -777,7 +777,7 @@ class AnalysisTab(QtWidgets.QWidget):
     def _fill_table(self) -> None:
         from rigctl.analysis import report
         from rigctl.analysis.data import variant_title
-        from rigctl.analysis.tasks import task_title
+        from rigctl.analysis.results import task_title
 
         res = self.results
         if res is None:
@@ -803,7 +803,7 @@ class AnalysisTab(QtWidgets.QWidget):
         with a colour bar), each cell's trial count written in it, the paper's names for task and variant."""
         from rigctl.analysis import report
         from rigctl.analysis.data import variant_title
-        from rigctl.analysis.tasks import task_title
+        from rigctl.analysis.results import task_title
 
         for t in self.conf_counts:
             self.conf_plot.removeItem(t)

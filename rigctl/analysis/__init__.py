@@ -25,7 +25,7 @@ _EXPORTS = {
     "ExtrapolationParams": "rigctl.analysis.params",
     "RealtimeParams": "rigctl.analysis.params",
     "Repetitions": "rigctl.analysis.params",
-    "TaskResults": "rigctl.analysis.tasks",
+    "TaskResults": "rigctl.analysis.results",
     "run_cv": "rigctl.analysis.tasks",
     "run_extrapolation": "rigctl.analysis.tasks",
     "run_realtime": "rigctl.analysis.tasks",
@@ -47,8 +47,8 @@ if TYPE_CHECKING:
         RealtimeParams as RealtimeParams,
         Repetitions as Repetitions,
     )
+    from rigctl.analysis.results import TaskResults as TaskResults
     from rigctl.analysis.tasks import (
-        TaskResults as TaskResults,
         run_cv as run_cv,
         run_extrapolation as run_extrapolation,
         run_realtime as run_realtime,

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.analysis.data import VARIANT_TITLES, VARIANTS
-from rigctl.analysis.tasks import BASELINE_PREFIX, TaskResults, task_title
+from rigctl.analysis.results import BASELINE_PREFIX, TaskResults, task_title
 
 __all__ = [
     "PAPER_TABLE1",

@@ -3,7 +3,7 @@
 :class:`AnalysisPlan` says which analyses to run and with what (the parameter objects of
 :mod:`rigctl.analysis.params`); :func:`run_analyses` runs them on a :class:`rigctl.analysis.data.FeatureSet`:
 Table 1's tasks (textures, groups, extrapolation), the speed-only extrapolation and the real-time analyses, with or
-without the per-trial baseline, and merges them into one :class:`rigctl.analysis.tasks.TaskResults`.
+without the per-trial baseline, and merges them into one :class:`rigctl.analysis.results.TaskResults`.
 :func:`load_or_encode` reads an encoded file's features, encoding a session file first where asked;
 :func:`train_model` fits the raw-trials-to-label pipeline on the session an encoded file came from and saves it;
 :func:`force_leak_report` measures how much the paper's label-dependent force coefficients leak into its accuracy.
@@ -91,7 +91,7 @@ def run_analyses(fs: Any, plan: AnalysisPlan, *, progress: Progress = None,
 
     Returns
     -------
-    rigctl.analysis.tasks.TaskResults
+    rigctl.analysis.results.TaskResults
         Every task's curves (keys prefixed ``baseline_removed:`` for the baseline-removed data), counts, settings
         and warnings (the library's warnings of the run are kept there, not shown).
 

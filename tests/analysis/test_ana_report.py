@@ -5,13 +5,17 @@ the PNG ones, ~1 s)."""
 
 from __future__ import annotations
 
+import pickle
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
 
 def _results(n_pcs=6, repeats=5, n_classes=4, tasks=("textures", "baseline_removed:speed_untrained_speed")):
-    from rigctl.analysis.tasks import Curve, TaskResults
+    from rigctl.analysis.results import Curve, TaskResults
 
     rng = np.random.default_rng(0)
     res = TaskResults()
@@ -24,8 +28,32 @@ def _results(n_pcs=6, repeats=5, n_classes=4, tasks=("textures", "baseline_remov
     return res
 
 
+_SHOW = """
+import pickle, sys
+from rigctl.analysis import report
+from rigctl.analysis.data import variant_title
+from rigctl.analysis.results import task_title
+res = pickle.loads(sys.stdin.buffer.read())
+task = next(iter(res.curves))
+report.table1(res, 3), report.chance_pct(res, task), report.n_text(res, task), report.to_csv(res)
+task_title(task), variant_title("original"), res.curves[task]["original"].at(3)
+print(" ".join(m for m in ("sklearn", "scipy.stats", "scipy.linalg", "rigctl.analysis.tasks") if m in sys.modules))
+"""
+
+
+def test_results_reach_a_face_without_the_classifiers():
+    """What the GUI's Analysis tab does on its own thread when a job's results arrive: unpickle the
+    :class:`TaskResults` (its class's module is imported), name the rows and variants, fill Table 1, the chance line,
+    the n text, the CSV export. None of it may import scikit-learn or scipy (seconds of imports on a cold machine, the
+    GUI frozen meanwhile): a fresh interpreter does it and lists what came in."""
+    run = subprocess.run([sys.executable, "-c", _SHOW], input=pickle.dumps(_results()), capture_output=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    assert run.stdout.decode().split() == [], f"showing results imported {run.stdout.decode().strip()}"
+
+
 def test_row_names_are_human():
-    from rigctl.analysis.tasks import task_title
+    from rigctl.analysis.results import task_title
 
     assert task_title("baseline_removed:speed_untrained_speed") == (
         "Untrained Speed, speed-only extrapolation, baseline removed")
