@@ -173,25 +173,21 @@ def pytest_runtest_logreport(report):
             f.write(f"{report.nodeid}\t{tier}\t{report.when}\n")
 
 
-def wall_clock_reruns(items) -> int:
+def wall_clock_reruns(items) -> None:
     """With ``$RIGCTL_WALL_RERUNS`` set to N > 0 (scripts/test.sh's parallel run), mark each test of a
     :data:`WALL_CLOCK_TIERS` tier ``flaky(reruns=N)``: pytest-rerunfailures runs a failed one again at once, on its
     own worker, while the other workers go on (the run lists it as ``R``/``RERUN``). A wall-clock judgement that
     failed for want of CPU on a saturated machine mostly passes then, without the serial rerun at the end of the run
-    (its whole wall time added to the run's: ~25 s for a firmware test). A logic test is never rerun. Returns how
-    many were marked."""
+    (its whole wall time added to the run's: ~25 s for a firmware test). A logic test is never rerun."""
     try:
         reruns = int(os.environ.get("RIGCTL_WALL_RERUNS", "0"))
     except ValueError:
         reruns = 0
     if reruns <= 0:
-        return 0
-    marked = 0
+        return
     for item in items:
         if any(item.get_closest_marker(m) for m in WALL_CLOCK_TIERS):
             item.add_marker(pytest.mark.flaky(reruns=reruns))
-            marked += 1
-    return marked
 
 
 def pytest_unconfigure(config):
