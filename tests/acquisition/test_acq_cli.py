@@ -178,6 +178,7 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     assert info["totals"]["complete"] == n_plan and info["totals"]["dropped_frames"] == 0
 
 
+@pytest.mark.realtime  # two `acquire --replay` runs: the simulated rig on ptys, paced by the wall clock
 def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
     """`rigctl acquire --replay`: a 9-taxel 100 Hz session with its own labels streams through the simulated taxel
     board; the protocol mounts two of its textures and the new session keeps the sensor, the rate and the labels,

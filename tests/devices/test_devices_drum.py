@@ -295,6 +295,7 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     drum.stop()
 
 
+@pytest.mark.realtime  # a VirtualMega on a pty (its control loop paced by the wall clock), 0.5 s answer timeouts
 def test_press_refused_before_home_names_why(tmp_path):
     """After power-up the controller is NOT_HOMED: PRESS and RUN come back as DrumNotHomed, which says why."""
     board = VirtualMega(RigModel(seed=7), tmp_path / "drum").start()
@@ -313,6 +314,7 @@ def test_press_refused_before_home_names_why(tmp_path):
         board.close()
 
 
+@pytest.mark.realtime  # three VirtualMegas on ptys (control loops paced by the wall clock), 0.5 s answer timeouts
 def test_bad_eeprom_checksum_is_reported_and_defaults_used(tmp_path):
     """A calibration record whose checksum fails: the controller boots on the spec's defaults and raises
     CALIBRATION_DEFAULTS (the firmware did so silently before)."""

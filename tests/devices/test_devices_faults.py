@@ -196,6 +196,7 @@ def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_pro
     assert 250 <= cap.dropped <= (t_back - t_cut) * 1000  # the hole is reported (estimated from the time gap)
 
 
+@pytest.mark.realtime  # the VirtualUno streaming 1 kHz on a pty, paced by the wall clock, through the proxy
 def test_a_reader_late_at_the_cut_still_counts_every_frame_lost(uno, taxel_proxy, monkeypatch):
     """The frames lost across a cut are counted from the time gap between the board's last frame received and the
     restarted stream's first: from when the board sent that frame, not from when a reader starved at that moment

@@ -1,7 +1,8 @@
 """The headless run queue and `rigctl serve`'s HTTP API (issue 27 item 3), on the in-process rig: a protocol queued,
 paused, resumed and finished through the API; a second run waits for the first; the token; the server killed
 (SIGKILL) mid-run and started again resumes the run without losing or re-recording a trial; the event feed; STOP
-through the API stops the simulated drum within 0.5 s (the pty rig, paced to the wall clock: `realtime`). Every
+through the API stops the simulated drum within 0.5 s (the pty rig, paced to the wall clock: `realtime`), and Ctrl-C
+with an open event feed ends the restarted server in seconds (measured on the wall clock: `realtime` too). Every
 request goes to 127.0.0.1 or to the app in this process."""
 
 from __future__ import annotations
@@ -214,6 +215,7 @@ def _trials(path):
                 for t in s.completed_ids()}, len(s.plan)
 
 
+@pytest.mark.realtime  # judged on the wall clock too: Ctrl-C with an open event feed says 'stopped' < 2 s, exits < 5 s
 def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_trial(tmp_path):
     import httpx
 
