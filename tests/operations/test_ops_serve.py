@@ -139,9 +139,13 @@ def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
     control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
     q = RunQueue(control, tmp_path / "queue.json")
     assert q.get("cut1").state == "queued" and "interrupted" in q.get("cut1").errors[-1]
+    attempts, attempt = [], q._protocol_run
+    q._protocol_run = lambda *a, **kw: attempts.append(None) or attempt(*a, **kw)  # each try to open the session
     q.start()
     try:
-        time.sleep(1.5)
+        # it found the session locked and tried again, twice, instead of failing (counted, not a span of the wall
+        # clock: a queue thread starved on a loaded machine had not even started the run 1.5 s after start())
+        _wait(lambda: len(attempts) >= 3 or q.get("cut1").state not in ("queued", "running"))
         assert q.get("cut1").state == "running" and q.get("cut1").trials_done == 0  # waiting for the lock
         lock.release()
         run = _wait(lambda: q.get("cut1").state not in ("queued", "running") and q.get("cut1"))
