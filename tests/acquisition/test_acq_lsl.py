@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 import uuid
 
 import numpy as np
@@ -44,8 +45,6 @@ class _Rx:
         return len(ts)
 
     def until(self, done, timeout_s=10.0):
-        import time
-
         deadline = time.monotonic() + timeout_s
         while not done(self):
             if time.monotonic() > deadline:
@@ -53,9 +52,14 @@ class _Rx:
             self.pull(0.05)
         return True
 
-    def drain(self):
-        while self.pull(0.5):
-            pass
+    def drain(self, n, hang_s=60.0):
+        """Everything the outlet pushed: pulled until ``n`` samples have come (``hang_s`` only bounds a hang), then
+        whatever else is already there (a sample too many shows). Not "until nothing came for 0.5 s": liblsl's
+        threads starved on a loaded machine deliver later than that, and the stream looked short."""
+        deadline = time.monotonic() + hang_s
+        while len(self.ts) < n and time.monotonic() < deadline:
+            self.pull(0.2)
+        self.pull(0.0)
         return self.data, np.asarray(self.ts)
 
 
@@ -85,10 +89,10 @@ def test_a_run_is_published_on_lsl_live(lsl, tmp_path):
         summary = run.run()
         n_streamed = stream.ring.total
         pub.live.stop()  # pushes the rest
-        got, ts = rx["taxels"].drain()
-        sp, sts = rx["spikes"].drain()
-        drum, dts = rx["drum"].drain()
-        marks, mts = rx["markers"].drain()
+        got, ts = rx["taxels"].drain(n_streamed)
+        sp, sts = rx["spikes"].drain(pub.live.spikes)
+        drum, dts = rx["drum"].drain(pub.live.drum_samples)
+        marks, mts = rx["markers"].drain(len(pub.markers))
         for r in rx.values():  # before the outlets go
             r.inlet.close_stream()
         pub.close()
