@@ -1,7 +1,9 @@
 """LSL replay (issue 27 item 1's inlet): a lab's own taxel device publishes on LSL (an outlet in this process, paced to
 the wall clock) and the simulated rig's taxel board streams it (`open_rig("replay", source="lsl:NAME")`, i.e.
 `rigctl acquire --replay lsl:NAME`): a recorded trial holds consecutive samples of the stream, none repeated or lost.
-The pty rig (paced to the wall clock, as the device is): `realtime`. Loopback only (LSLAPICFG: tests/conftest.py)."""
+The pty rig (paced to the wall clock, as the device is): `realtime`. The source's own logic (a stream that falls
+behind) is judged on a device that pushes when told, not on the wall clock. Loopback only (LSLAPICFG:
+tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -83,46 +85,85 @@ def test_a_live_lsl_stream_is_recorded_through_the_simulated_board(lsl, tmp_path
     print(f"{device.sent} samples sent; {underruns} periods the board had no sample for while the stream lagged")
 
 
+class Pushed:
+    """An LSL taxel device like :class:`Device` whose samples are pushed when the test says, not as the wall clock
+    goes: what the source has received is then known exactly (:func:`_arrived`), whatever the machine's load."""
+
+    def __init__(self, pylsl, name):
+        info = pylsl.StreamInfo(name, "Tactile", N_CH, RATE_HZ, pylsl.cf_int32, f"{name}-src")
+        info.desc().append_child_value("adc_bits", "10")
+        self.outlet = pylsl.StreamOutlet(info)
+        self.sent = 0
+
+    def push(self, n: int) -> None:
+        self.outlet.push_chunk(_sample(np.arange(self.sent, self.sent + n)))
+        self.sent += n
+
+    def push_once_consumed(self, n: int) -> threading.Thread:
+        """Push ``n`` samples as soon as an inlet has opened the stream (in a thread: the source's constructor waits
+        for its prebuffer meanwhile)."""
+
+        def run():
+            assert self.outlet.wait_for_consumers(HANG_S), "no inlet opened the stream"
+            self.push(n)
+
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        return t
+
+
+#: a bound on a wait for samples already pushed: only a hang reaches it (the machine may be loaded 3x)
+HANG_S = 30.0
+
+
+def _arrived(src, n: int) -> None:
+    """Wait until the source holds ``n`` samples not yet read (everything pushed has arrived)."""
+    deadline = time.monotonic() + HANG_S
+    while src._n_pending < n:
+        assert time.monotonic() < deadline, f"{src._n_pending} of {n} pushed samples arrived in {HANG_S:g} s"
+        time.sleep(0.005)
+    assert src._n_pending == n
+
+
 @pytest.mark.lsl
 def test_a_stream_that_falls_behind_is_never_filled_in(lsl):
     """A stream held up longer than the prebuffer: the board gets fewer samples than are due (it sends no frame for
     the others: the host counts them lost, the trial is recorded again), never a repeated one; then none until the
-    prebuffer is full again (else every later chunk would come just too late); every sample it gets is the stream's
-    next, none lost."""
+    prebuffer is full again (else every later chunk would come just too late), even with some samples in; every
+    sample it gets is the stream's next, none lost. The device pushes when told (the samples in known), not paced by
+    the wall clock: a starved pacing thread once pushed a late backlog into the source mid-test."""
     from rigctl.simulation.lsl_replay import LslReplay
 
     name = f"fingertip-{uuid.uuid4().hex[:8]}"
-    device = Device(lsl, name)
-    device.start()
-    src = LslReplay(name, prebuffer_s=0.25)
+    device = Pushed(lsl, name)
+    first = device.push_once_consumed(300)
+    src = LslReplay(name, prebuffer_s=0.25)  # returns once 250 samples (the prebuffer) are in
     try:
-        device.hold.set()
-        time.sleep(0.1)  # what was pushed has arrived
+        first.join(HANG_S)
+        _arrived(src, 300)
         got, asked = [], 0
-        while not got or len(got[-1]) == 50:
+        while not got or len(got[-1]) == 50:  # the stream stalls: nothing more is pushed
             got.append(src.read(50))
             asked += 50
             assert len(got) < 1000
         short = sum(len(g) for g in got)
-        assert 0 < short < asked and src.underrun_samples == asked - short
-        device.hold.clear()
-        deadline = time.monotonic() + 5
-        while src._n_pending < 400 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        assert short == 300 and asked == 350 and src.underrun_samples == asked - short
+        device.push(100)  # fewer than the prebuffer's 250: held back
+        _arrived(src, 100)
+        assert len(src.read(50)) == 0 and src.underrun_samples == 100
+        device.push(300)
+        _arrived(src, 400)
         got.append(src.read(50))
         assert len(got[-1]) == 50  # buffered again
-        device.hold.set()
-        while len(part := src.read(50)) == 50:
+        while len(part := src.read(50)) == 50:  # the stream stalls again
             got.append(part)
         got.append(part)
         assert len(src.read(50)) == 0  # behind again: nothing until the prebuffer is full
-        assert src.underrun_samples > asked - short
+        assert src.underrun_samples == 100 + 50 + 50
     finally:
-        device.halt.set()
-        device.join(5)
         src.close()
     idx = _index(np.concatenate(got))
-    assert np.array_equal(np.diff(idx), np.ones(len(idx) - 1, dtype=np.int64))  # the stream's own, in order
+    assert np.array_equal(idx, np.arange(device.sent))  # the stream's own, in order, none lost or repeated
 
 
 def test_the_command_takes_lsl_names_and_refuses_a_missing_stream(tmp_path, monkeypatch):
