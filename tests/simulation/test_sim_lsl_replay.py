@@ -36,14 +36,19 @@ def _index(rows: np.ndarray) -> np.ndarray:
     return rows[:, 0].astype(np.int64) + 1000 * rows[:, 1].astype(np.int64)
 
 
+def _outlet(pylsl, name):
+    """The device's outlet: N_CH int32 channels at RATE_HZ, 10-bit readings."""
+    info = pylsl.StreamInfo(name, "Tactile", N_CH, RATE_HZ, pylsl.cf_int32, f"{name}-src")
+    info.desc().append_child_value("adc_bits", "10")
+    return pylsl.StreamOutlet(info)
+
+
 class Device(threading.Thread):
     """An LSL taxel device: N_CH int32 channels at 1 kHz, pushed every 10 ms as the wall clock says."""
 
     def __init__(self, pylsl, name):
         super().__init__(daemon=True)
-        info = pylsl.StreamInfo(name, "Tactile", N_CH, RATE_HZ, pylsl.cf_int32, f"{name}-src")
-        info.desc().append_child_value("adc_bits", "10")
-        self.outlet = pylsl.StreamOutlet(info)
+        self.outlet = _outlet(pylsl, name)
         self.halt = threading.Event()
         self.hold = threading.Event()  # set: nothing is pushed (a starved device), the samples due pile up
         self.sent = 0
@@ -90,9 +95,7 @@ class Pushed:
     goes: what the source has received is then known exactly (:func:`_arrived`), whatever the machine's load."""
 
     def __init__(self, pylsl, name):
-        info = pylsl.StreamInfo(name, "Tactile", N_CH, RATE_HZ, pylsl.cf_int32, f"{name}-src")
-        info.desc().append_child_value("adc_bits", "10")
-        self.outlet = pylsl.StreamOutlet(info)
+        self.outlet = _outlet(pylsl, name)
         self.sent = 0
 
     def push(self, n: int) -> None:
