@@ -76,8 +76,11 @@ class DrumIndex:
         n = sensor.size
         before = self.steps
         last_pulses = float((stepper_mm[-1] - travel0_mm) * steps_per_mm) if n else 0.0
+        pulses: np.ndarray | None = None  # per ms: made only by a step that needs them, once
         if marks is not None and d.marks_per_rev > 0 and n:
-            self._speed_marks(marks, before, last_pulses, stepper_mm, travel0_mm, steps_per_mm, t0)
+            if np.count_nonzero(marks):  # (most steps of a few ms pass none)
+                pulses = (stepper_mm - travel0_mm) * steps_per_mm
+            self._speed_marks(marks, before, last_pulses, pulses, t0)
         # the common step: no index edge, and no wrap of the step count that counts (count_nonzero: one C call;
         # ndarray.any() goes through numpy's Python layer)
         if n and not np.count_nonzero(sensor):
@@ -89,7 +92,8 @@ class DrumIndex:
             elif math.floor(before / usteps) == math.floor(last / usteps):  # no wrap
                 self.steps = last
                 return np.zeros(n, bool)
-        pulses = (stepper_mm - travel0_mm) * steps_per_mm
+        if pulses is None:
+            pulses = (stepper_mm - travel0_mm) * steps_per_mm
         steps = before + pulses
         self.steps = float(steps[-1]) if n else before
         out = np.zeros(n, bool)
@@ -113,14 +117,14 @@ class DrumIndex:
             self.revolutions += int(wraps.sum())
         return out
 
-    def _speed_marks(self, marks: np.ndarray, before: float, last_pulses: float, stepper_mm: np.ndarray,
-                     travel0_mm: float, steps_per_mm: float, t0: float) -> None:
+    def _speed_marks(self, marks: np.ndarray, before: float, last_pulses: float, pulses: np.ndarray | None,
+                     t0: float) -> None:
         """The speed marks of one step (the firmware's INT2 interrupt and its slip check in the 1 kHz tick): the
-        step count is ``before + (stepper_mm - travel0_mm) * steps_per_mm`` at the end of each ms, ``before +
-        last_pulses`` at its end."""
+        step count is ``before + pulses`` at the end of each ms (``pulses`` None: no mark passed in the step),
+        ``before + last_pulses`` at its end."""
         last = before + last_pulses
-        if np.count_nonzero(marks):  # (most steps of a few ms pass none)
-            steps = before + (stepper_mm - travel0_mm) * steps_per_mm
+        if pulses is not None:
+            steps = before + pulses
             for j in np.flatnonzero(marks):
                 t = t0 + (j + 1) * 1e-3
                 since = float(steps[j]) - self._steps_at_mark
