@@ -108,12 +108,16 @@ def _parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[s
     return tuple(out)
 
 
+#: how the help names a fault that takes a value
+_FAULT_FORMS = {"taxel-ohm": "taxel-ohm=N", "contact-stiffness": "contact-stiffness=G_PER_MM"}
+
 #: ``--inject FAULT@T[+D]`` (repeatable): faults injected into a simulated rig (rigctl.core.faults, docs/safety.md)
 inject_option = click.option(
     "--inject", "inject", multiple=True, metavar="FAULT@T[+D]", callback=_parse_injections,
     help="Inject a fault into the simulated rig (repeatable): FAULT starts T s after the rig is open and lasts D s "
-         "(no +D: to the end), on the rig's own clock (simulated time with --inprocess). FAULT is one of "
-         + ", ".join(("taxel-ohm=N" if name == "taxel-ohm" else name) for name in FAULTS)
+         "(no +D: to the end), on the rig's own clock (simulated time with --inprocess); FAULT@0: wired that way "
+         "from power-on (before the HOME at open). FAULT is one of "
+         + ", ".join(_FAULT_FORMS.get(name, name) for name in FAULTS)
          + "; docs/safety.md says what the rig does with each and what clears it.")
 
 

@@ -6,6 +6,10 @@ acquire``'s run starts) and ends ``D`` s later (no ``+D``: it stays to the end; 
 never releases it, ``reset@3`` is an instant). Times are the rig's own clock: simulated time on the in-process rig,
 the physics clock of the simulated rig on ptys, the firmware's clock under simavr.
 
+``FAULT@0`` (:attr:`FaultSpec.at_power_on`) means the rig is wired that way from power-on: the fault is in place
+before the drum controller boots and before the HOME at open (a miswired rig, a corrupt EEPROM found at boot), not
+applied once the rig is open; ``+D`` still ends it ``D`` s after the run starts.
+
 A rig backend that can inject faults implements :class:`FaultInjector` (the model rigs through
 ``rigctl.simulation.faults.ModelFaults``; the firmware under simavr through its harness): ``fault_refusal(spec)``
 says in one line why it cannot model a fault (None when it can), ``inject_faults(specs)`` arms a
@@ -43,15 +47,25 @@ FAULTS: dict[str, str] = {
                    "measures the wrong rate at boot",
     "taxel-ohm": "taxel-ohm=N: every taxel's source impedance is N Ohm from T to T+D (the multiplexer's crosstalk)",
     "taxel-link-drop": "the taxel board's link drops (no frame arrives) from T to T+D",
+    "hx711-sck-broken": "the HX711's SCK wire is broken from T to T+D (never clocked: DOUT stays low after a "
+                        "conversion and every read the controller makes returns 0)",
+    "hx711-frozen": "the HX711's output freezes at its raw value at T (the same 24 bits every conversion, at its "
+                    "rate) until T+D",
+    "contact-stiffness": "contact-stiffness=G_PER_MM: the plate is swapped at T for one whose contact stiffness is "
+                         "G_PER_MM g/mm (the rig's own again at T+D)",
+    "eeprom-corrupt": "the drum controller browns out at T while writing its EEPROM: the stored calibration fails "
+                      "its checksum and the controller resets (with @0: corrupt from power-on); D is not used",
 }
 __doc__ = (__doc__ or "") + "\n".join(f"- ``{name}``: {what}" for name, what in FAULTS.items()) + "\n"
 
 #: faults that happen at one instant (their duration is not used)
-INSTANT_FAULTS = frozenset({"reset", "hx711-10sps"})
+INSTANT_FAULTS = frozenset({"reset", "hx711-10sps", "eeprom-corrupt"})
 #: faults that take a value (``name=value``)
-VALUED_FAULTS = frozenset({"taxel-ohm", "slip"})
+VALUED_FAULTS = frozenset({"taxel-ohm", "slip", "contact-stiffness"})
 #: faults whose value is a percentage (``slip=20%``; the ``%`` may be left out), 0-100
 PERCENT_FAULTS = frozenset({"slip"})
+#: the range of each valued fault's value (the others: 0 to 1e9): a contact stiffness in g/mm must be > 0
+VALUE_RANGES: dict[str, tuple[float, float]] = {"slip": (0.0, 100.0), "contact-stiffness": (1.0, 1e6)}
 
 _SPEC = re.compile(r"^(?P<name>[a-z0-9-]+)(=(?P<value>[^@]+))?@(?P<at>[^+]+)(\+(?P<dur>.+))?$")
 
@@ -70,6 +84,11 @@ class FaultSpec:
     at_s: float
     duration_s: float = math.inf
     value: float | None = None
+
+    @property
+    def at_power_on(self) -> bool:
+        """``FAULT@0``: the rig is wired that way from power-on (in place before the controller boots and homes)."""
+        return self.at_s == 0.0
 
     @property
     def end_s(self) -> float:
@@ -93,7 +112,8 @@ def _seconds(text: str, what: str, spec: str) -> float:
 
 
 def parse_fault(spec: str) -> FaultSpec:
-    """Parse ``FAULT[=VALUE]@T[+D]`` (e.g. ``estop@3+2``, ``taxel-ohm=47000@0``, ``slip=20%@5+2``, ``reset@5``).
+    """Parse ``FAULT[=VALUE]@T[+D]`` (e.g. ``estop@3+2``, ``taxel-ohm=47000@0``, ``slip=20%@5+2``, ``reset@5``,
+    ``contact-stiffness=6000@4``, ``hx711-frozen@2``, ``eeprom-corrupt@0``).
 
     Raises FaultSpecError (a ValueError) naming what is wrong: the form, an unknown fault (with the known ones), a
     missing or unexpected value, a time that is not a number of seconds in 0..1e6."""
@@ -109,13 +129,13 @@ def parse_fault(spec: str) -> FaultSpec:
     if name in VALUED_FAULTS:
         if m["value"] is None:
             raise FaultSpecError(f"--inject {text}: {name} needs a value ({name}=N@T)")
-        top = 100.0 if name in PERCENT_FAULTS else 1e9
+        low, top = VALUE_RANGES.get(name, (0.0, 1e9))
         try:
             value = float(m["value"].removesuffix("%") if name in PERCENT_FAULTS else m["value"])
         except ValueError:
             raise FaultSpecError(f"--inject {text}: {name}'s value {m['value']!r} is not a number") from None
-        if not (math.isfinite(value) and 0 <= value <= top):
-            raise FaultSpecError(f"--inject {text}: {name}'s value must be 0 to {top:g}, got {m['value']}")
+        if not (math.isfinite(value) and low <= value <= top):
+            raise FaultSpecError(f"--inject {text}: {name}'s value must be {low:g} to {top:g}, got {m['value']}")
     elif m["value"] is not None:
         raise FaultSpecError(f"--inject {text}: {name} takes no value")
     at = _seconds(m["at"], "the start", text)
