@@ -28,9 +28,9 @@ from pathlib import Path
 
 from rigctl.core.version import __version__
 
-__all__ = ["BOARDS", "BOOTLOADER_BAUD", "IMAGES", "BUILD_ID_DIGITS", "BUILD_TOOLS", "FirmwareBuildError", "avrdude_command", "build",
-           "build_dir", "build_id", "cache_root", "make", "missing_build_tools", "source_digest", "source_versions",
-           "sources"]
+__all__ = ["BOARDS", "BOOTLOADER_BAUD", "IMAGES", "BUILD_ID_DIGITS", "BUILD_TOOLS", "REQUIRED_BUILD_ID",
+           "FirmwareBuildError", "avrdude_command", "build", "build_dir", "build_id", "build_mismatch", "cache_root",
+           "known_versions", "make", "missing_build_tools", "source_digest", "source_versions", "sources"]
 
 #: the programs a build needs on the PATH (Debian: make, gcc-avr with avr-libc and arduino-core-avr, pkg-config with
 #: libsimavr-dev for the harness)
@@ -76,8 +76,10 @@ def sources() -> Path:
 
 
 def _source_files(src: Path) -> list[Path]:
-    return sorted(p for p in src.rglob("*") if p.is_file() and "build" not in p.relative_to(src).parts
-                  and (p.suffix in _SOURCE_SUFFIXES or p.name in _SOURCE_NAMES))
+    # in the byte order of the relative paths, as the Makefile's `LC_ALL=C sort` orders them (its BUILD_ID)
+    return sorted((p for p in src.rglob("*") if p.is_file() and "build" not in p.relative_to(src).parts
+                   and (p.suffix in _SOURCE_SUFFIXES or p.name in _SOURCE_NAMES)),
+                  key=lambda p: p.relative_to(src).as_posix().encode())
 
 
 def source_digest(src: Path | str | None = None) -> str:
@@ -99,19 +101,43 @@ def source_digest(src: Path | str | None = None) -> str:
     return h.hexdigest()
 
 
-def build_mismatch(builds: dict[str, str | None], src: Path | str | None = None) -> str | None:
+#: the boards that must report a build id: the drum controller, which holds the sensor's protection (an image
+#: without one, from the Arduino IDE or ``make BUILD_ID=``, cannot be told from any other sources). The Uno's missing
+#: ``build=`` is named by the doctor, not refused: taxel sources other than rigctl's Uno report none
+REQUIRED_BUILD_ID = ("mega",)
+
+
+def known_versions(src: Path | str | None = None) -> str:
+    """The firmware this rigctl knows, in words: ``"mega firmware 1.2 build f3310eaea3e2, uno firmware 1.0 build
+    f3310eaea3e2"`` (the installed sources' :func:`source_versions` and :func:`build_id`; their errors)."""
+    versions, bid = source_versions(src), build_id(src)
+    return ", ".join(f"{board} firmware {'.'.join(map(str, v))} build {bid}" for board, v in versions.items())
+
+
+def build_mismatch(builds: dict[str, str | None], src: Path | str | None = None, *,
+                   versions: dict[str, tuple[int, ...] | None] | None = None) -> str | None:
     """One line naming each board whose firmware build (``builds``: board "mega"/"uno" -> the build id it reports,
-    None for none) differs from the installed sources' build id, with the flash command; None when all agree. A board
-    reporting no id (a plain make, the Arduino IDE, a simulated board) is not a mismatch: it cannot be compared.
+    None for none: build 0) differs from the installed sources' build id, the versions this rigctl knows
+    (:func:`known_versions`) and the flash command; None when all agree. A drum controller (:data:`REQUIRED_BUILD_ID`)
+    reporting build 0 (the Arduino IDE, ``make BUILD_ID=``) is refused too; a taxel streamer reporting none is not (a
+    simulated or other taxel source). ``versions``: board -> the firmware version it reports, for the line.
     Errors of :func:`source_digest`."""
     digest = source_digest(src)
-    wrong = {b: str(v).lower() for b, v in builds.items() if v is not None and not digest.startswith(str(v).lower())}
+    versions = versions or {}
+    wrong = {b: None if v is None else str(v).lower() for b, v in builds.items()
+             if (v is None and b in REQUIRED_BUILD_ID) or (v is not None and not digest.startswith(str(v).lower()))}
     if not wrong:
         return None
-    runs = "; ".join(f"the {board.capitalize()} runs firmware build {v}" for board, v in wrong.items())
+
+    def runs(board: str, v: str | None) -> str:
+        version = versions.get(board)
+        what = f"firmware {'.'.join(map(str, version))}" if version else "firmware"
+        return (f"the {board.capitalize()} runs {what} build {v}" if v is not None else
+                f"the {board.capitalize()} runs {what} build 0 (no build id: the Arduino IDE or make BUILD_ID=)")
+
     flash = " and ".join(f"rigctl firmware --flash PORT --board {board}" for board in wrong)
-    return (f"{runs}, the installed sources are build {digest[:BUILD_ID_DIGITS]}: flash them ({flash}), or pass "
-            "--allow-firmware-mismatch to run anyway")
+    return (f"{'; '.join(runs(b, v) for b, v in wrong.items())}; this rigctl knows {known_versions(src)}: flash it "
+            f"({flash}), or pass --allow-firmware-mismatch to run anyway")
 
 
 def build_id(src: Path | str | None = None) -> str:

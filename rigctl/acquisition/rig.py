@@ -118,7 +118,9 @@ class RigError(RuntimeError):
 
 
 class FirmwareMismatch(RigError):
-    """A board runs another firmware build than the installed sources' (one line naming both and the flash command)."""
+    """A board runs another firmware build than the installed sources', or the drum controller reports build 0 (an
+    image without a build id: the Arduino IDE, ``make BUILD_ID=``): one line naming both, the firmware versions this
+    rigctl knows and the flash command (:func:`rigctl.firmware.build_mismatch`)."""
 
 
 class TrialAborted(RigError):
@@ -249,8 +251,9 @@ class Rig:
             :func:`rigctl.acquisition.rigconfig.default_config_path`.
         home : HOME the actuator after opening (clears a latched fault first, e.g. the watchdog of a killed run).
             False: neither; a latched fault stays latched (logged) for the caller to show and the operator to clear.
-        allow_firmware_mismatch : run boards whose firmware build differs from the installed sources' (logged);
-            False (default): :class:`FirmwareMismatch` naming both builds and the flash command.
+        allow_firmware_mismatch : run boards whose firmware build differs from the installed sources' or a drum
+            controller without a build id (logged; for developers); False (default): :class:`FirmwareMismatch`
+            naming both builds, the versions this rigctl knows and the flash command.
 
         Raises
         ------
@@ -299,9 +302,11 @@ class Rig:
         from rigctl import firmware
 
         banner = getattr(self.stream, "banner", None) or {}
-        builds = {"mega": getattr(self.drum.read_status(), "build_id", None), "uno": banner.get("build")}
+        st = self.drum.read_status()
+        builds = {"mega": getattr(st, "build_id", None), "uno": banner.get("build")}
+        versions = {"mega": getattr(st, "firmware", None), "uno": banner.get("firmware")}
         try:
-            line = firmware.build_mismatch(builds)
+            line = firmware.build_mismatch(builds, versions=versions)
         except OSError as exc:  # no firmware sources installed: nothing to compare with
             log.warning("cannot compare the boards' firmware builds with the installed sources: %s", exc)
             return

@@ -163,8 +163,8 @@ def test_the_load_cell_scale_is_compared_with_the_rig_configs_calibration(tmp_pa
 
 def test_firmware_build_against_the_installed_sources():
     """Each board's build id (the Mega's BUILD_ID_0 .. _2 registers, wire-protocol 2.2; the Uno's banner build=, 1.4)
-    against the installed sources' digest: equal -> pass; another -> fail naming the board's flash command; none (a
-    simulated Uno, a plain make, the Arduino IDE) -> named, and a skip when neither board reports one."""
+    against the installed sources' digest: equal -> pass; another -> fail naming the board's flash command; a Uno
+    without one (a simulated Uno) -> named; a Mega without one (build 0: the Arduino IDE, make BUILD_ID=) -> fail."""
     from types import SimpleNamespace
 
     own = firmware.build_id()
@@ -185,13 +185,15 @@ def test_firmware_build_against_the_installed_sources():
         assert f"rigctl firmware --flash PORT --board {board}" in r.fix and f"({board}) runs build {other}" in r.summary
     r = check(other, other)
     assert "--board mega" in r.fix and "--board uno" in r.fix
-    assert check(None, None).status == "skip"
+    for uno in (None, own):
+        r = check(None, uno)
+        assert r.status == "fail" and "(mega) runs build 0" in r.summary and "--board mega" in r.fix, r.line()
 
 
 def test_the_inprocess_mega_flashed_from_other_sources_fails_the_build_check():
     """The virtual Mega reports the installed sources' build id; given another (a board flashed from other sources of
-    the same version), the doctor fails naming the flash command; given none (a plain make), it skips (the virtual
-    Uno reports none either)."""
+    the same version), the doctor fails naming the flash command; given none (build 0: the Arduino IDE, make
+    BUILD_ID=), it fails too."""
     own = firmware.build_id()
     other = "0123456789ab" if own != "0123456789ab" else "ba9876543210"
     with open_rig("inprocess", seed=3) as rig:
@@ -206,7 +208,9 @@ def test_the_inprocess_mega_flashed_from_other_sources_fails_the_build_check():
         assert r.status == "fail" and r.values["mega_build"] == other, r.line()
         assert r.fix == "flash the installed firmware: rigctl firmware --flash PORT --board mega"
         rig.backend.controller.build_id = None
-        assert rig.drum.read_status().build_id is None and check().status == "skip"
+        assert rig.drum.read_status().build_id is None
+        r = check()
+        assert r.status == "fail" and "runs build 0" in r.summary and r.fix.endswith("--board mega"), r.line()
 
 
 def test_a_mega_flashed_before_the_build_id_registers_is_told_to_flash(monkeypatch):
@@ -545,3 +549,32 @@ def test_a_reversed_drum_fails_the_direction_check_with_the_fix(tmp_path, monkey
     assert bad.exit_code == 1 and "FAIL  drum-direction" in bad.output and "swap one coil pair of the drum" in bad.output
     good = CliRunner().invoke(main, args)
     assert good.exit_code == 0 and "PASS  drum-direction" in good.output, good.output
+
+
+def test_a_drum_controller_without_a_build_id_is_refused_at_open_in_one_line(monkeypatch, tmp_path):
+    """Issue 55 item 5: a Mega reporting build 0 (BUILD_ID_0 .. _2 all 0: an image built by the Arduino IDE or
+    ``make BUILD_ID=``) cannot be told from any other sources: every open refuses it with one line naming build 0, the
+    firmware versions this rigctl knows and the flash command (the old code opened it silently); the acquire CLI says
+    that line, no traceback; --allow-firmware-mismatch (developers) opens it with a warning."""
+    from click.testing import CliRunner
+
+    from rigctl.acquisition.rig import FirmwareMismatch
+    from rigctl.cli import main
+    from rigctl.simulation import controller
+
+    monkeypatch.setattr(controller, "installed_build_id", lambda: None)
+    with pytest.raises(FirmwareMismatch) as exc:
+        open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json")
+    line = str(exc.value)
+    versions = firmware.source_versions()
+    assert "\n" not in line and "the Mega runs firmware" in line and "build 0" in line, line
+    assert f"mega firmware {'.'.join(map(str, versions['mega']))} build {firmware.build_id()}" in line, line
+    assert "rigctl firmware --flash PORT --board mega" in line and "--allow-firmware-mismatch" in line
+    with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json", allow_firmware_mismatch=True) as rig:
+        assert any("build 0" in w and "allowed" in w for w in rig.warnings), rig.warnings
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    args = ["acquire", "quick_check", "--inprocess", "--out", str(tmp_path / "a.h5"), "--quiet"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code != 0 and "build 0" in result.output and "Traceback" not in result.output
+    assert len([ln for ln in result.output.splitlines() if "build 0" in ln]) == 1, result.output
+    assert not (tmp_path / "a.h5").exists()

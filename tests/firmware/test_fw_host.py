@@ -45,3 +45,44 @@ def test_image_fits_flash_and_ram_with_margin(fw_build, image):
     assert text > 1000  # a real image
     assert text + data <= flash_share * flash, f"{image}: flash {text + data} B of {flash}"
     assert data + bss <= ram_share * ram, f"{image}: static RAM {data + bss} B of {ram}"
+
+
+def _make_build_id(src, out, *args: str) -> str:
+    proc = subprocess.run(["make", "-s", "-C", str(src), f"BUILD={out}", *args, "build-id"], capture_output=True,
+                          text=True, check=True)
+    return proc.stdout.strip()
+
+
+def test_a_plain_make_gives_every_image_the_sources_build_id(tmp_path):
+    """Issue 55 item 5: the Makefile computes the build id itself (a plain make, make flash-mega), the same
+    rigctl.firmware.build_id gives (the old Makefile left it out: build 0); sources changed by one comment get
+    another id; ``make BUILD_ID=`` (what the Arduino IDE amounts to) none."""
+    import shutil
+
+    src = firmware.sources()
+    assert _make_build_id(src, tmp_path / "b1") == firmware.build_id(src)
+    assert _make_build_id(src, tmp_path / "b1", "BUILD_ID=") == "0"
+    copy = tmp_path / "src"
+    shutil.copytree(src, copy, ignore=shutil.ignore_patterns("build"))
+    assert _make_build_id(copy, tmp_path / "b2") == firmware.build_id(copy) == firmware.build_id(src)
+    with open(copy / "mega_drum" / "controller.c", "a") as f:
+        f.write("/* a local change */\n")
+    assert _make_build_id(copy, tmp_path / "b2") == firmware.build_id(copy) != firmware.build_id(src)
+
+
+def test_the_documented_flash_and_ram_figures_are_a_fresh_builds(fw_build):
+    """docs/firmware.md's size table (flash = .text + .data, static RAM = .data + .bss + .noinit, as avr-size -C
+    counts them) equals avr-size of the images rigctl builds (which carry the build id, as a plain make's do)."""
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "firmware.md").read_text()
+    for image in ("uno_taxel", "mega_drum"):
+        row = re.search(rf"^\| {image} \(\w+\) \| (\d+) B \([\d.]+ %\) \| (\d+) B", doc, re.M)
+        assert row is not None, f"no size row for {image} in docs/firmware.md"
+        out = subprocess.run(["avr-size", "-A", str(fw_build / f"{image}.elf")], capture_output=True, text=True,
+                             check=True).stdout
+        sec = {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\.\w+)\s+(\d+)", out, re.M)}
+        flash = sec.get(".text", 0) + sec.get(".data", 0)
+        ram = sec.get(".data", 0) + sec.get(".bss", 0) + sec.get(".noinit", 0)
+        assert (int(row.group(1)), int(row.group(2))) == (flash, ram), \
+            f"docs/firmware.md says {image} is {row.group(1)} B flash, {row.group(2)} B RAM; a fresh build: {flash}, {ram}"

@@ -194,8 +194,9 @@ _BOARD_WORDS = {"mega": "the drum controller", "uno": "the taxel streamer"}
 def check_firmware_build(ctx: DoctorContext) -> CheckResult:
     """Each board's build id (the sources' digest it was built from: the Mega's BUILD_ID_0 .. _2 input registers,
     docs/wire-protocol.md 2.2; the Uno's banner ``build=``, 1.4) against the installed sources' digest: a board
-    flashed from other sources of the same version fails with the flash command; a board without an id (a plain
-    make, the Arduino IDE, a simulated Uno) is named; neither with one is a skip."""
+    flashed from other sources of the same version fails with the flash command, and so does a drum controller
+    reporting build 0 (an image without an id: the Arduino IDE, ``make BUILD_ID=``; rigctl refuses to open it,
+    :data:`rigctl.firmware.REQUIRED_BUILD_ID`); a taxel streamer without an id (a simulated Uno) is named."""
     from rigctl import firmware
 
     digest = firmware.source_digest()
@@ -204,17 +205,18 @@ def check_firmware_build(ctx: DoctorContext) -> CheckResult:
     builds = {"mega": getattr(rig.drum.read_status(), "build_id", None), "uno": banner.get("build")}
     builds = {board: None if b is None else str(b).lower() for board, b in builds.items()}
     values = {"mega_build": builds["mega"], "uno_build": builds["uno"], "sources_digest": digest}
-    without = [f"{_BOARD_WORDS[board]} ({board}) reports no build id" for board, b in builds.items() if b is None]
-    if len(without) == len(builds):
-        raise Skip(f"{'; '.join(without)} (a simulated board, or firmware built without BUILD_ID: a plain make, the "
-                   f"Arduino IDE) to compare with the installed sources ({digest[:firmware.BUILD_ID_DIGITS]})")
+    without = [f"{_BOARD_WORDS[board]} ({board}) reports no build id" for board, b in builds.items() if b is None
+               and board not in firmware.REQUIRED_BUILD_ID]
     wrong = [board for board, b in builds.items() if b is not None and not digest.startswith(b)]
-    if wrong:
-        return failed("firmware-build", "; ".join(f"{_BOARD_WORDS[board]} ({board}) runs build {builds[board]}, the "
-                                                  f"installed sources are {digest[:len(str(builds[board]))]}"
-                                                  for board in wrong),
+    zero = [board for board, b in builds.items() if b is None and board in firmware.REQUIRED_BUILD_ID]
+    if wrong or zero:
+        said = [f"{_BOARD_WORDS[board]} ({board}) runs build {builds[board]}, the installed sources are "
+                f"{digest[:len(str(builds[board]))]}" for board in wrong]
+        said += [f"{_BOARD_WORDS[board]} ({board}) runs build 0 (an image without a build id: the Arduino IDE or "
+                 f"make BUILD_ID=), the installed sources are {digest[:firmware.BUILD_ID_DIGITS]}" for board in zero]
+        return failed("firmware-build", "; ".join(said),
                       "flash the installed firmware: " + " and ".join(f"rigctl firmware --flash PORT --board {board}"
-                                                                      for board in wrong), **values)
+                                                                      for board in (*wrong, *zero)), **values)
     same = [f"{board} build {b}" for board, b in builds.items() if b is not None]
     return passed("firmware-build", "; ".join([f"{' and '.join(same)} = the installed sources'", *without]), **values)
 
