@@ -1105,6 +1105,18 @@ def start_job_server_with_analysis(window: MainWindow) -> None:
         window.analysis_built.connect(start_job_server)
 
 
+def _save_screenshot(window, path: str) -> None:
+    """The main window as an image at ``path``, marked as rigctl's (:data:`rigctl.storage.outputs.FIGURE_MARK` in
+    its text) and written under the output policy (a later ``--screenshot PATH --overwrite`` replaces only it)."""
+    from rigctl.storage.outputs import FIGURE_MARK, replacing
+
+    image = window.grab().toImage()
+    image.setText("Software", FIGURE_MARK)
+    with replacing(path, kind="figure", option="--screenshot") as tmp:
+        if not image.save(str(tmp)):
+            raise OSError(f"--screenshot {path}: Qt could not write the image")
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
@@ -1142,7 +1154,7 @@ def main(argv=None) -> int:
     if args.quit_after is not None:
         def _finish():
             if args.screenshot:
-                window.grab().save(args.screenshot)
+                _save_screenshot(window, args.screenshot)
             # --quit-after is the answer to "the drum is turning / a protocol is running": stop the rig safely and
             # close (Qt 6's quit() first closes the windows, so a close left waiting for an answer kept the app up)
             window._close_after_abort()

@@ -187,12 +187,21 @@ def test_analyze_checks_its_outputs_before_the_analysis_runs(data, tmp_path, mon
 
 
 def test_analyze_overwrite_replaces_an_output(data, tmp_path):
+    """--overwrite replaces analyze's own CSV (its header known), never a user's file of the same name."""
     csv = tmp_path / "curves.csv"
+    args = ("analyze", data["encoded"], "--task", "textures", "--repeats", 1, "--per-texture", 4, "--pcs", "1-3",
+            "--csv", csv, "--overwrite", "--no-progress")
     csv.write_text("old")
-    rc, out = run("analyze", data["encoded"], "--task", "textures", "--repeats", 1, "--per-texture", 4,
-                  "--pcs", "1-3", "--csv", csv, "--overwrite", "--no-progress")
+    refused(2, *args, words=("--csv", "a file of another program", "rigctl analyze CSV"))
+    assert csv.read_text() == "old"
+    csv.unlink()
+    rc, out = run(*args)
     assert rc == 0, out
-    assert csv.read_text() != "old" and "textures" in csv.read_text()
+    first = csv.read_text()
+    csv.write_text(first.replace("textures", "old-textures"))
+    rc, out = run(*args)
+    assert rc == 0, out
+    assert csv.read_text() == first and "textures" in first
     assert [p.name for p in tmp_path.iterdir()] == ["curves.csv"]  # no temporary file left
 
 

@@ -36,6 +36,7 @@ import datetime as _dt
 import json
 import math
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +48,9 @@ __all__ = ["CalibrationError", "RigConfigError", "SCHEMA", "default_config_path"
 #: the controller's load-cell scale and the rig config's may differ by this fraction before the host warns (the
 #: scale is stored x100 as an integer: 0.5 % is far above its rounding at any plausible cell)
 LOADCELL_SCALE_TOLERANCE = 0.005
+#: the largest rig config read, bytes (a real one is a few KiB; ``--config /dev/zero`` or a wrong large file is
+#: refused after this many bytes instead of being read until memory runs out)
+MAX_CONFIG_BYTES = 1 << 20
 
 
 class CalibrationError(RuntimeError):
@@ -225,9 +229,18 @@ def load_rig_config(path: str | os.PathLike | None = None) -> dict:
     if not p.exists():
         return {}
     try:
-        text = p.read_text(encoding="utf-8")
+        if not stat.S_ISREG(os.stat(p).st_mode):
+            raise RigConfigError(f"{p}: not a regular file (a device, a FIFO or a folder): give the rig config's "
+                                 "JSON file")
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise RigConfigError(f"{p}: larger than {MAX_CONFIG_BYTES // 1024} KiB: not a rig config (a few KiB of "
+                                 "JSON)")
+        text = raw.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise RigConfigError(f"{p}: cannot read the rig config ({exc})") from None
+        why = "not UTF-8 text: not a rig config (JSON)" if isinstance(exc, UnicodeDecodeError) else exc
+        raise RigConfigError(f"{p}: cannot read the rig config ({why})") from None
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -17,6 +17,7 @@ import numpy as np
 
 from rigctl.analysis.data import VARIANT_TITLES, VARIANTS
 from rigctl.analysis.results import BASELINE_PREFIX, TaskResults, task_title
+from rigctl.storage.outputs import CURVES_CSV_HEADER, figure_metadata
 
 __all__ = [
     "PAPER_TABLE1",
@@ -355,7 +356,7 @@ def to_csv(res: TaskResults) -> str:
     """Long-format CSV: task, variant, n_pcs, mean, sd, n_repeats, n_tested (accuracies as fractions)."""
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["task", "variant", "n_pcs", "mean", "sd", "n_repeats", "n_tested"])
+    w.writerow(CURVES_CSV_HEADER)
     for task, by_v in res.curves.items():
         for v, c in by_v.items():
             for n, m, s in zip(c.pcs, c.mean, c.sd):
@@ -444,7 +445,7 @@ def plot_curves(res: TaskResults, path, *, tasks=None, title=None, compare_paper
     axes.ravel()[0].legend(*zip(*keep), fontsize=7, loc="lower right")
     fig.suptitle((f"{title}: " if title else "") + f"mean, {ERROR_BARS}; dotted: chance (1 / classes)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=figure_metadata(path))
     plt.close(fig)
     return path
 
@@ -481,6 +482,6 @@ def plot_confusions(res: TaskResults, path, task, *, normalise=True):
         ax.set_ylabel("true")
     fig.suptitle(task_title(task), fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=figure_metadata(path))
     plt.close(fig)
     return path

@@ -314,7 +314,7 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 
 @click.command()
 @click.argument("protocol", type=PROTOCOL)
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, writable=True, path_type=Path),
               help="Session file to write (HDF5, .h5).")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Use the simulated rig (the default).")
 @click.option("--hil", is_flag=True, default=False, help="Use the real firmware under simavr (hardware in the loop).")

@@ -113,15 +113,21 @@ def _check_pcs(fs, n_pcs, explicit):
                            "features per trial)")
 
 
+#: the kind of rigctl output each of analyze's output options writes (rigctl.storage.outputs.OUTPUT_KINDS): with
+#: --overwrite each replaces only a file of its own kind (never a session, another program's file or a device)
+OUTPUT_OPTION_KINDS = {"--csv": "curves", "--plot": "figure", "--confusion": "figure", "--save-model": "model"}
+
+
 def _check_outputs(file, new_session, overwrite, **outputs):
     """Refuse every output (option -> path) before the analysis runs: existing without --overwrite, an input,
-    two outputs on one file, an image format matplotlib does not write."""
+    two outputs on one file, an image format matplotlib does not write, a file that is not a rigctl output of the
+    option's kind (:data:`OUTPUT_OPTION_KINDS`)."""
     given = {opt: path for opt, path in outputs.items() if path}
     images = image_suffixes() if given.get("--plot") or given.get("--confusion") else None
     seen = []
     for opt, path in given.items():
         check_output(path, option=opt, overwrite=overwrite, inputs=(file, new_session),
-                     suffixes=images if opt in ("--plot", "--confusion") else None)
+                     suffixes=images if opt in ("--plot", "--confusion") else None, kind=OUTPUT_OPTION_KINDS[opt])
         for other_opt, other in seen:
             if same_file(path, other):
                 raise UsageProblem(f"{opt} and {other_opt} both name {path}: give each its own file")
@@ -195,11 +201,11 @@ def _format_leak(leak) -> str:
 @click.option("--compare-paper", is_flag=True,
               help="Show the paper's Table 1 values beside ours (in the table and, with --plot, on the figure).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON on stdout.")
-@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+@click.option("--plot", type=click.Path(dir_okay=False, writable=True), default=None,
               help="Fig. 3-like plot of accuracy vs PCs (format from the extension: .png, .pdf, .svg, ...).")
-@click.option("--confusion", type=click.Path(dir_okay=False), default=None,
+@click.option("--confusion", type=click.Path(dir_okay=False, writable=True), default=None,
               help="PNG of confusion matrices (of the first untrained extrapolation cell, else the first task).")
-@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None, help="Long-format CSV of curves.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False, writable=True), default=None, help="Long-format CSV of curves.")
 @click.option("--overwrite", is_flag=True, help="Replace existing --csv/--plot/--confusion/--save-model files.")
 @click.option("--train-speeds", default=None, help="Trained speeds, mm/s (extrapolation default 40,60,80; "
                                                     "speed-extrapolation: required).")
@@ -218,7 +224,7 @@ def _format_leak(leak) -> str:
 @click.option("--new-session", type=click.Path(exists=True, dir_okay=False), default=None,
               help="realtime: an encoded second session, classified after mean-centering calibration.")
 @click.option("--train-profiles", default="slow,medium", show_default=True, help="realtime: trained profiles.")
-@click.option("--save-model", type=click.Path(dir_okay=False), default=None,
+@click.option("--save-model", type=click.Path(dir_okay=False, writable=True), default=None,
               help="Also fit the raw-trials-to-label pipeline (--model-variant, --model-pcs) on every trial of the "
                    "session and save it (.skops; the GUI's real-time view loads it).")
 @click.option("--force-leak", "force_leak_", default=None, metavar="VARIANT",
@@ -405,18 +411,18 @@ def _write_outputs(opts: AnalyzeOptions, res) -> None:
     from rigctl.analysis import report
 
     if opts.csv_path:
-        with replacing(opts.csv_path) as tmp:
+        with replacing(opts.csv_path, kind="curves", option="--csv") as tmp:
             tmp.write_text(report.to_csv(res))
     if opts.plot:
         if not report.plottable(res):
             raise UsageProblem("--plot: no task has an accuracy curve (fewer than 2 PC counts); pass --pcs 1-N")
-        with replacing(opts.plot) as tmp:
+        with replacing(opts.plot, kind="figure", option="--plot") as tmp:
             report.plot_curves(res, tmp, title=Path(opts.file).name, compare_paper=opts.compare_paper)
     if opts.confusion:
         keys = list(res.curves)
         pick = next((k for k in keys if k.endswith("untrained_speed_force")), None) or next(
             (k for k in keys if "untrained" in k), keys[0])
-        with replacing(opts.confusion) as tmp:
+        with replacing(opts.confusion, kind="figure", option="--confusion") as tmp:
             report.plot_confusions(res, tmp, pick)
 
 

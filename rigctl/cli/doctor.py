@@ -21,6 +21,22 @@ from rigctl.cli.rig_flags import (
 )
 
 
+def _check_config(config_path: Path | None, save: bool) -> None:
+    """The rig config read (and, with --save, checked as the file the report replaces) before the rig starts: a
+    session, another program's file, a device or a file that is not a rig config is refused (exit 2)."""
+    from rigctl.acquisition.rigconfig import CalibrationError, config_path as resolved, load_rig_config
+    from rigctl.cli.outputs import UsageProblem
+    from rigctl.storage.outputs import OutputError, check_replaceable
+
+    path = resolved(config_path)
+    try:
+        if save:
+            check_replaceable(path, option="--config")
+        load_rig_config(path)
+    except (OutputError, CalibrationError) as exc:
+        raise UsageProblem(f"--config: {exc}" if not str(exc).startswith("--config") else str(exc)) from None
+
+
 @click.command("doctor")
 @click.option("--sim", "sim", is_flag=True, default=False, help="Check the simulated rig (the default).")
 @click.option("--hil", is_flag=True, default=False, help="Check the real firmware under simavr.")
@@ -32,7 +48,7 @@ from rigctl.cli.rig_flags import (
               help="Run only this check (repeatable); --list shows the names.")
 @click.option("--list", "list_checks", is_flag=True, default=False, help="List the checks and exit.")
 @click.option("--json", "as_json", is_flag=True, default=False, help="Print the report as JSON.")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
               help="Rig config file (default $RIGCTL_CONFIG or ~/.config/rigctl/rig.json); --save stores the report in it.")
 @click.option("--save/--no-save", default=False, show_default=True,
               help="Store the report, dated, in the rig config (doctor.<rig kind>); without it nothing is written.")
@@ -59,6 +75,8 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
         raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
     check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
     from rigctl.operations import RigSource, doctor as run
+
+    _check_config(config_path, save)
 
     if checks:
         try:

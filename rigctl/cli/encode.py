@@ -55,7 +55,7 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
 
 @click.command("encode")
 @click.argument("session", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--out", "out", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
               help="Encoded file to write (default: SESSION with suffix .enc.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace the output file if it exists.")
 @click.option("--scheduler", default=None, callback=scheduler_address,

@@ -20,7 +20,7 @@ def export():
 @click.option("--variants", default=None,
               help="Comma-separated variants whose spike trains are exported (default: the stored ones in real time, "
                    "not speed-scaled).")
-@click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="The NWB file to write (.nwb).")
+@click.option("--out", "out", type=click.Path(dir_okay=False, writable=True), required=True, help="The NWB file to write (.nwb).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @progress_option
 @click.option("--keep-nonfinite", is_flag=True,

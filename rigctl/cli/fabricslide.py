@@ -18,7 +18,7 @@ ENV_DIR = "RIGCTL_FABRICSLIDE"
 
 @click.command("import-fabricslide")
 @click.argument("directory", required=False, envvar=ENV_DIR, type=click.Path(file_okay=False))
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, writable=True), help="Session file (.h5) to write.")
 @click.option("--include-board/--no-board", default=True, show_default=True,
               help="Also import the Board10mm recordings (20 mm ridges) into the same file.")
 @click.option("--pattern", default="*.csv", show_default=True, help="Glob of file names to import.")

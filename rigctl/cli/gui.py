@@ -39,7 +39,7 @@ def _require_display() -> None:
 @click.option("--replay", type=click.Path(exists=True), default=None,
               help="Stream a recorded session file (or the FabricSlide recordings in a directory) through the "
                    "simulated rig.")
-@click.option("--screenshot", type=click.Path(dir_okay=False), default=None,
+@click.option("--screenshot", type=click.Path(dir_okay=False, writable=True), default=None,
               help="Save a PNG of the main window before quitting (with --quit-after).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --screenshot file.")
 @click.option("--quit-after", type=floats(0, 1e6), default=None, help="Quit after this many seconds.")
@@ -70,7 +70,7 @@ def gui(drum_port, taxel_port, sim, hil, hil_bootloaders, replay, screenshot, ov
         raise click.UsageError("--screenshot needs --quit-after SECONDS")
     if screenshot:
         check_output(screenshot, option="--screenshot", overwrite=overwrite, inputs=(replay,),
-                     suffixes=SCREENSHOT_SUFFIXES)
+                     suffixes=SCREENSHOT_SUFFIXES, kind="figure")
     _require_display()
     try:
         from rigctl_gui.app import main

@@ -36,7 +36,7 @@ def _checked_segment(ctx, param, value):
 
 @click.command("import")
 @click.argument("files", nargs=-1, required=True, type=click.Path())
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, writable=True), help="Session file (.h5) to write.")
 @click.option("--rate", "rate_hz", type=RATE_HZ, default=None,
               help="Sample rate of the recordings, Hz (required unless the mapping or an NWB file gives it).")
 @click.option("--channels", type=click.IntRange(1, 1_000_000), default=None, help="Taxel channels per sample.")

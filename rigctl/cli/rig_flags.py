@@ -130,7 +130,7 @@ allow_firmware_mismatch_option = click.option(
 
 #: ``--truth-log FILE`` (``acquire``, ``doctor``): the simulated rig's ground truth as CSV (rigctl.simulation.truth)
 truth_log_option = click.option(
-    "--truth-log", "truth_log", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="FILE",
+    "--truth-log", "truth_log", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None, metavar="FILE",
     help="With --sim or --hil: write the physical model's ground truth to FILE (CSV: time_s from the run's start, the "
          "clock --inject uses; true_force_g, actuator_mm, drum_speed_mm_s; >= 100 Hz). FILE must not exist.")
 

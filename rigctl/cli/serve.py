@@ -45,7 +45,7 @@ SHUTDOWN_GRACE_S = 1
 @click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="The folder runs write their sessions in (a run's out is a name inside it). Default "
                    "$XDG_DATA_HOME/rigctl/sessions.")
-@click.option("--queue", "queue_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--queue", "queue_file", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
               help="The queue file (runs survive a restart; a run cut by a crash resumes). Default "
                    "$XDG_STATE_HOME/rigctl/queue.json.")
 @click.option("--rig", "kind", type=RIG, default="sim", show_default=True,
@@ -130,6 +130,7 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.core.faults import FaultSpecError
     from rigctl.operations import QueueError, RigError, RigSource, RunQueue, lsl_requested, open_control
+    from rigctl.operations._queue import read_queue_file
 
     try:
         import fastapi  # noqa: F401
@@ -143,6 +144,10 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
         host_config = load_rig_config(config_path)
     except CalibrationError as exc:
         raise UsageProblem(f"--config {exc}") from None
+    try:  # the queue file read before the rig opens: a session, another program's file or a device is refused
+        read_queue_file(queue_file)
+    except QueueError as exc:
+        raise UsageProblem(f"--queue {exc}") from None
     publish = lsl_requested(lsl, host_config)
     if publish:
         try:

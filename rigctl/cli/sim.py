@@ -46,7 +46,7 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
 @click.option("--replay", "replay_dir", type=click.Path(exists=True), default=None,
               help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) or session file "
                    "instead of the model.")
-@click.option("--port-dir", type=click.Path(file_okay=False), default=None,
+@click.option("--port-dir", type=click.Path(file_okay=False, writable=True), default=None,
               help="Directory for the port links 'drum' and 'taxel' (default: a fresh temporary directory); one "
                    "running simulated rig per directory.")
 @click.pass_context

@@ -35,7 +35,7 @@ def dataset_size(protocol, trials_per_condition=None) -> tuple[int | None, float
 
 @click.command("dataset")
 @click.argument("protocol", type=PROTOCOL)
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False), help="Session file (.h5) to write.")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, writable=True), help="Session file (.h5) to write.")
 @click.option("--trials-per-condition", type=click.IntRange(1, MAX_PLAN_TRIALS), default=None,
               help="Override the protocol's trials per condition (e.g. 10 for a reduced paper dataset).")
 @click.option("--seed", type=SEED, default=0, show_default=True,

@@ -40,7 +40,7 @@ from rigctl.operations._run import ProtocolRun
 from rigctl.storage.outputs import OutputError, OutputLocked, check_output, name_in_folder
 from rigctl.storage.session import SessionLocked
 
-__all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES"]
+__all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES", "read_queue_file"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,37 @@ LOCKED_WAIT_S = 60.0
 LOCKED_POLL_S = 0.5
 #: the longest protocol text a run takes, characters (the queue file holds it, rewritten at every change)
 MAX_PROTOCOL_CHARS = 1_000_000
+
+
+#: the largest queue file read, bytes (a queue of thousands of runs is a few MB; --queue /dev/zero is refused)
+MAX_QUEUE_BYTES = 64 << 20
+
+
+def read_queue_file(path: str | os.PathLike[str]) -> list[QueuedRun]:
+    """The runs of the queue file ``path`` ([] if it does not exist), read before the rig opens.
+
+    Raises QueueError (one line) for anything but a regular file (a device, a FIFO: never written over), a file
+    larger than :data:`MAX_QUEUE_BYTES`, or a file that is not a run queue (a session, another program's file)."""
+    p = Path(path)
+    if not os.path.lexists(p):
+        return []
+    try:
+        import stat
+
+        if not stat.S_ISREG(os.stat(p).st_mode):
+            raise QueueError(f"{p} is not a regular file (a device, a FIFO or a folder): give a run queue file "
+                             "(--queue)")
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_QUEUE_BYTES + 1)
+        if len(raw) > MAX_QUEUE_BYTES:
+            raise ValueError(f"larger than {MAX_QUEUE_BYTES >> 20} MB")
+        doc = json.loads(raw.decode("utf-8"))
+        return [QueuedRun(**r) for r in doc["runs"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if isinstance(exc, QueueError):
+            raise
+        why = "not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else exc
+        raise QueueError(f"{p}: not a run queue file ({why}); move it away or give another --queue") from None
 
 
 class QueueError(ValueError):
@@ -160,12 +191,7 @@ class RunQueue:
     def _load(self) -> None:
         if not self.path.exists():
             return
-        try:
-            doc = json.loads(self.path.read_text())
-            runs = [QueuedRun(**r) for r in doc["runs"]]
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise QueueError(f"{self.path}: not a run queue file ({exc}); move it away or give another --queue") \
-                from None
+        runs = read_queue_file(self.path)
         cut = [r for r in runs if r.state in ACTIVE and r.state != "queued"]
         for r in cut:  # cut by a crash: first in line again, resumed from its session file
             r.state = "queued"

@@ -20,6 +20,7 @@ folders (``rigctl-sim-<pid>-*``) of processes that died without cleaning up are 
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import logging
@@ -457,12 +458,16 @@ class PortDir:
         or None: a fresh temporary folder ``rigctl-sim-<pid>-*`` (removed on :meth:`release`). Either way the
         temporary folders of dead simulated rigs are removed first (:func:`remove_stale_port_dirs`).
 
+    links : the names of the port links the rig makes in it: one that exists and is not a symlink (a file of the
+        user's named ``drum``) is refused (FileExistsError), never replaced nor removed.
+
     Raises
     ------
-    PortDirBusy if another live process owns ``path``; OSError if the folder cannot be made or written.
+    PortDirBusy if another live process owns ``path``; FileExistsError if a ``links`` name is taken by a file;
+    OSError if the folder cannot be made or written.
     """
 
-    def __init__(self, path: str | os.PathLike | None = None):
+    def __init__(self, path: str | os.PathLike | None = None, links: tuple[str, ...] = ()):
         self.temporary = path is None
         remove_stale_port_dirs()
         if path is None:
@@ -471,10 +476,19 @@ class PortDir:
             self.path = Path(path)
             self.path.mkdir(parents=True, exist_ok=True)
         lock = self.path / LOCK_NAME
+        lock_was_there = os.path.lexists(lock)
         fd = _try_lock(lock, create=True)
         if fd is None:
             raise PortDirBusy(f"{self.path} holds the ports of another running simulated rig (pid {_owner(lock)}): "
                               "choose another --port-dir, or stop that one")
+        taken = [name for name in links if os.path.lexists(self.path / name) and not (self.path / name).is_symlink()]
+        if taken:
+            if not lock_was_there:
+                with contextlib.suppress(OSError):
+                    lock.unlink()
+            os.close(fd)
+            raise FileExistsError(errno.EEXIST, f"{self.path / taken[0]} is a file, not a port link: rigctl never "
+                                                "replaces it; choose another --port-dir")
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd: int | None = fd

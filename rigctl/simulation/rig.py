@@ -91,7 +91,7 @@ class SimulatedRig:
         #: the ground truth as CSV (``truth_log``: a path; rigctl.simulation.truth), from :meth:`truth_start` on
         self.truth = TruthLog(truth_log) if truth_log is not None else None
         self.seed = seed
-        self._port_dir = PortDir(port_dir)
+        self._port_dir = PortDir(port_dir, links=("drum", "taxel"))
         self.port_dir = self._port_dir.path
         try:
             self._build(source, uno_reset_delay_s)

@@ -16,13 +16,15 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+from rigctl.storage.outputs import MODEL_META_NAME
+
 __all__ = ["ModelFileError", "save_model", "load_model", "model_versions", "read_model_info"]
 
 #: the format tag in the file's metadata
 MODEL_FORMAT = "rigctl.model/1"
 #: modules whose types a model file may hold
 TRUSTED_PREFIXES = ("rigctl.", "sklearn.", "numpy.", "scipy.", "builtins.", "collections.")
-_META = "rigctl_model.json"
+_META = MODEL_META_NAME
 
 
 class ModelFileError(ValueError):
@@ -42,12 +44,14 @@ def model_versions() -> dict[str, str]:
             "scipy": scipy.__version__, "skops": skops.__version__}
 
 
-def save_model(model: Any, path: str | os.PathLike[str], *, info: dict[str, Any] | None = None) -> Path:
+def save_model(model: Any, path: str | os.PathLike[str], *, info: dict[str, Any] | None = None,
+               option: str = "--save-model") -> Path:
     """Write ``model`` (e.g. a fitted :class:`sklearn.pipeline.Pipeline`) to ``path`` with skops, plus a
     ``rigctl_model.json`` entry: format, library versions, ``info`` (JSON-able: variant, PCs, training file...).
 
     Written under the output policy (:func:`rigctl.storage.outputs.replacing`): refused (``OutputLocked``) while
-    another writer holds ``path``, replaced in one rename (a failed write leaves the old file), the umask's mode."""
+    another writer holds ``path``, refused (``OutputError``) when ``path`` is anything but a rigctl model file,
+    replaced in one rename (a failed write leaves the old file), the umask's mode."""
     import skops.io as sio
 
     from rigctl.storage.outputs import replacing
@@ -58,7 +62,7 @@ def save_model(model: Any, path: str | os.PathLike[str], *, info: dict[str, Any]
     buf = io.BytesIO(data)
     with zipfile.ZipFile(buf, "a", compression=zipfile.ZIP_DEFLATED) as z:
         z.writestr(_META, json.dumps(meta, default=str))
-    with replacing(path) as tmp:
+    with replacing(path, kind="model", option=option) as tmp:
         tmp.write_bytes(buf.getvalue())
     return path
 

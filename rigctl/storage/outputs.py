@@ -17,10 +17,11 @@ Rules (``docs/architecture.md``, "Outputs"), for sessions, encoded files, NWB ex
   guard stops sending bytes to the disk at the first refused write, keeps later writes in memory until the writer
   notices (:meth:`GuardedFile.check`, after each batch), so HDF5 closes cleanly and the part file is deleted;
 - **only rigctl's own files are replaced** (:func:`check_replaceable`): ``overwrite`` replaces a regular file that is
-  a rigctl output of the same kind (:func:`existing_kind`: a session, an encoded file, an NWB export) and nothing
-  else: never a device, a FIFO, a folder, a symlink whose target lies outside the output's folder, an empty file or
-  another program's file (for outputs without a kind, CSV, figures, models: any regular file). Client-given names
-  (``rigctl serve``) are names inside a folder (:func:`name_in_folder`);
+  a rigctl output of the same kind (:func:`existing_kind`: a session, an encoded file, an NWB export, a model file,
+  ``rigctl analyze``'s curves CSV, a figure rigctl marked as its own: :func:`figure_metadata`) and nothing else:
+  never a device, a FIFO, a folder, a symlink whose target lies outside the output's folder, an empty file or another
+  program's file (a writer without a kind still never replaces a session, an encoded file, an NWB export or a
+  model). Client-given names (``rigctl serve``) are names inside a folder (:func:`name_in_folder`);
 - **modes honour the umask** (0644 under umask 022, like any file the user makes), including files first made by
   :func:`tempfile.mkstemp` (0600).
 """
@@ -41,11 +42,26 @@ from rigctl.storage import journal
 
 __all__ = ["HDF5_SUFFIXES", "OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
            "check_replaceable", "check_space", "check_writable_folder", "current_umask", "apply_umask",
-           "existing_kind", "free_bytes", "name_in_folder", "output_file", "replacing", "same_file", "size_text",
-           "OUTPUT_KINDS"]
+           "existing_kind", "figure_metadata", "free_bytes", "name_in_folder", "output_file", "replacing", "same_file",
+           "size_text", "CURVES_CSV_HEADER", "FIGURE_MARK", "MODEL_META_NAME", "OUTPUT_KINDS"]
 
 #: the kinds of rigctl output :func:`existing_kind` recognises (``check_output(kind=)``), with their names in messages
-OUTPUT_KINDS = {"session": "rigctl session file", "encoded": "rigctl encoded file", "nwb": "NWB file"}
+OUTPUT_KINDS = {"session": "rigctl session file", "encoded": "rigctl encoded file", "nwb": "NWB file",
+                "model": "rigctl model file", "curves": "rigctl analyze CSV (--csv)",
+                "figure": "figure rigctl made (--plot, --confusion, --screenshot)"}
+#: kinds that hold data (a recording, its spike trains, a fitted model): never replaced by a writer of another kind,
+#: nor by a writer that names no kind
+_DATA_KINDS = ("session", "encoded", "nwb", "model")
+#: the header row of ``rigctl analyze --csv`` (:func:`rigctl.analysis.report.to_csv`): how an existing CSV is known
+#: as rigctl's own
+CURVES_CSV_HEADER = ("task", "variant", "n_pcs", "mean", "sd", "n_repeats", "n_tested")
+#: the mark rigctl writes into its figures' metadata (:func:`figure_metadata`; PNG ``Software``, PDF/SVG/PS
+#: ``Creator``): how an existing figure is known as rigctl's own
+FIGURE_MARK = "rigctl figure"
+#: the metadata entry of a model file (:mod:`rigctl.storage.model_file`): how an existing zip is known as a model
+MODEL_META_NAME = "rigctl_model.json"
+#: bytes read from each end of a file to find :data:`FIGURE_MARK` (PNG/SVG/PS carry it at the start, PDF at the end)
+_MARK_SPAN = 1 << 16
 #: the first bytes of an HDF5 file (at offset 0: rigctl writes no user block)
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 #: the longest client-given name :func:`name_in_folder` takes, bytes (a path component: 255, the file system's)
@@ -157,20 +173,63 @@ def check_writable_folder(folder: Path, *, option: str, target: Path | None = No
         os.unlink(probe)
 
 
+def figure_metadata(path: str | os.PathLike[str]) -> dict[str, str] | None:
+    """The metadata that marks a figure at ``path`` as rigctl's (``savefig(..., metadata=)``; :data:`FIGURE_MARK`),
+    by its extension: ``{"Software": ...}`` for PNG, ``{"Creator": ...}`` for PDF, SVG, EPS and PS; None for formats
+    that carry none (JPEG, TIFF, raw, ...): such a file is never known as rigctl's, so ``--overwrite`` cannot replace
+    it (the refusal says so)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".png":
+        return {"Software": FIGURE_MARK}
+    if suffix in (".pdf", ".svg", ".eps", ".ps"):
+        return {"Creator": FIGURE_MARK}
+    return None
+
+
+def _non_hdf5_kind(path: str | os.PathLike[str], head: bytes) -> str:
+    """``"model"``, ``"curves"``, ``"figure"`` or ``"other"`` for a file that is not HDF5 (bounded reads)."""
+    if head.startswith(b"PK\x03\x04"):
+        import zipfile
+
+        with contextlib.suppress(Exception):
+            with zipfile.ZipFile(path) as z:
+                if MODEL_META_NAME in z.namelist():
+                    return "model"
+        return "other"
+    first = head.split(b"\n", 1)[0].strip().decode("utf-8", "replace")
+    if first == ",".join(CURVES_CSV_HEADER):
+        return "curves"
+    mark = FIGURE_MARK.encode()
+    if mark in head:
+        return "figure"
+    try:
+        with open(path, "rb") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            if size > len(head):
+                fh.seek(max(len(head), size - _MARK_SPAN))
+                if mark in fh.read(_MARK_SPAN):
+                    return "figure"
+    except OSError:
+        pass
+    return "other"
+
+
 def existing_kind(path: str | os.PathLike[str]) -> str:
     """What an existing regular file is: ``"session"`` (a rigctl session: ``/plan`` and ``/protocol``, no
     ``/features``), ``"encoded"`` (``/features``), ``"nwb"`` (an ``nwb_version`` root attribute), ``"hdf5"``
-    (another HDF5 file), ``"empty"``, or ``"other"`` (not HDF5, or unreadable). Reads the signature, then the HDF5
-    top level read-only (file locking off: a probe never waits for a writer)."""
+    (another HDF5 file), ``"model"`` (a zip holding :data:`MODEL_META_NAME`), ``"curves"`` (a CSV whose header is
+    :data:`CURVES_CSV_HEADER`), ``"figure"`` (:data:`FIGURE_MARK` in its first or last 64 KiB), ``"empty"``, or
+    ``"other"`` (another program's file, or unreadable). Reads the signature, then the HDF5 top level read-only
+    (file locking off: a probe never waits for a writer); never more than 128 KiB of any other file."""
     try:
         with open(path, "rb") as fh:
-            head = fh.read(len(_HDF5_SIGNATURE))
+            head = fh.read(_MARK_SPAN)
     except OSError:
         return "other"
     if not head:
         return "empty"
-    if head != _HDF5_SIGNATURE:
-        return "other"
+    if not head.startswith(_HDF5_SIGNATURE):
+        return _non_hdf5_kind(path, head)
     import h5py
 
     try:
@@ -188,14 +247,17 @@ def existing_kind(path: str | os.PathLike[str]) -> str:
 
 _KIND_TEXT = {"hdf5": "an HDF5 file of another program", "empty": "an empty file",
               "other": "a file of another program (not a rigctl output)", "session": "a rigctl session file",
-              "encoded": "a rigctl encoded file", "nwb": "an NWB file"}
+              "encoded": "a rigctl encoded file", "nwb": "an NWB file", "model": "a rigctl model file",
+              "curves": "a rigctl analyze CSV", "figure": "a figure rigctl made"}
 
 
 def check_replaceable(path: str | os.PathLike[str], *, kind: str | None = None, option: str = "--out") -> None:
     """Refuse (:class:`OutputError`, one line) replacing the existing ``path`` with ``overwrite``: anything but a
     regular file (a device such as /dev/null, a FIFO, a socket, a folder), a symlink whose target is outside
     ``path``'s folder, and, when ``kind`` (a key of :data:`OUTPUT_KINDS`) is given, any file that is not a rigctl
-    output of that kind (:func:`existing_kind`). A path that does not exist passes."""
+    output of that kind (:func:`existing_kind`; a figure in a format that carries no mark, :func:`figure_metadata`,
+    is never known as rigctl's). Without ``kind``, a rigctl session, encoded file, NWB export or model is refused
+    (data is never replaced by a writer of another kind). A path that does not exist passes."""
     p = Path(path)
     try:
         st = os.lstat(p)
@@ -217,12 +279,19 @@ def check_replaceable(path: str | os.PathLike[str], *, kind: str | None = None, 
             "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a file"
         raise OutputError(f"{option} {p} is {what}, not a regular file: --overwrite never replaces it; choose "
                           "another output", option)
-    if kind is not None:
-        found = existing_kind(p)
-        if found != kind:
-            raise OutputError(f"{option} {p} is {_KIND_TEXT.get(found, found)}, not a {OUTPUT_KINDS[kind]}: "
-                              f"--overwrite replaces only a {OUTPUT_KINDS[kind]}; choose another output or move it "
-                              "away yourself", option)
+    found = existing_kind(p)
+    if kind is None:
+        if found in _DATA_KINDS:
+            raise OutputError(f"{option} {p} is {_KIND_TEXT[found]}: --overwrite never replaces it with another "
+                              "kind of file; choose another output", option)
+        return
+    if found != kind:
+        unmarked = (" (rigctl cannot mark a " + (p.suffix or "file without extension") + " as its own: use .png, "
+                    ".pdf or .svg to be able to replace it)") if kind == "figure" and figure_metadata(p) is None \
+            else ""
+        raise OutputError(f"{option} {p} is {_KIND_TEXT.get(found, found)}, not a {OUTPUT_KINDS[kind]}{unmarked}: "
+                          f"--overwrite replaces only a {OUTPUT_KINDS[kind]}; choose another output or move it "
+                          "away yourself", option)
 
 
 def name_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "out") -> Path:
@@ -547,15 +616,17 @@ def output_file(path: str | os.PathLike[str], *, overwrite: bool = False, part_s
 
 
 @contextlib.contextmanager
-def replacing(path: str | os.PathLike[str], *, overwrite: bool = True) -> Iterator[Path]:
+def replacing(path: str | os.PathLike[str], *, overwrite: bool = True, kind: str | None = None,
+              option: str = "--out") -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same extension, for writers that choose the format by it: plots,
     CSV, models); renamed over ``path`` when the block completes, with the umask's mode, under ``path``'s writer
-    lock (:func:`output_file`). An exception leaves ``path`` as it was and removes the temporary file."""
+    lock (:func:`output_file`, which refuses what :func:`check_replaceable` refuses for ``kind``). An exception
+    leaves ``path`` as it was and removes the temporary file."""
     p = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}-", suffix=p.suffix, dir=p.parent if str(p.parent) else ".")
     os.close(fd)
     try:
-        with output_file(p, overwrite=overwrite) as target:
+        with output_file(p, overwrite=overwrite, kind=kind, option=option) as target:
             yield Path(tmp)
             os.replace(tmp, target.part)
     finally:
