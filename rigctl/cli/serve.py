@@ -117,7 +117,7 @@ def _bind(host: str, port: int) -> socket.socket:
     except OSError as exc:
         sock.close()
         raise click.ClickException(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
-    sock.listen(128)
+    sock.listen(2048)  # uvicorn's own backlog: a burst of clients connecting at once is queued, not refused
     sock.set_inheritable(True)
     return sock
 
@@ -187,7 +187,7 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
         if generated:  # printed once, as Jupyter does: the API reference with the token
             click.echo(f"rigctl serve: open {url}/docs?token={token}", err=True)
         server = _Server(uvicorn.Config(app, log_level=logging.getLevelName(logging.WARNING).lower(),
-                                        timeout_graceful_shutdown=SHUTDOWN_GRACE_S), run_queue)
+                                        timeout_graceful_shutdown=SHUTDOWN_GRACE_S), app.state.events)
         try:
             server.run(sockets=[sock])
         finally:
@@ -208,9 +208,9 @@ def _server_class() -> Any:
         """uvicorn's server that ends the event streams first when told to exit (uvicorn's graceful shutdown
         otherwise waits for every open response: an /events client kept Ctrl-C waiting ~50 s)."""
 
-        def __init__(self, config: Any, run_queue: Any) -> None:
+        def __init__(self, config: Any, events: Any) -> None:
             super().__init__(config)
-            self.run_queue = run_queue
+            self.events = events  # the app's EventHub
             self.streams_closed = 0
             self._exit_t: float | None = None
 
@@ -237,11 +237,11 @@ def _server_class() -> Any:
                 self._exit_t = time.monotonic()
                 click.echo("rigctl serve: stopping (closing the event streams, the run in progress stopped "
                            "cleanly and kept queued)", err=True)
-            self.streams_closed += self.run_queue.end_streams()
+            self.streams_closed += self.events.end()
             super().handle_exit(sig, frame)
 
     return Server
 
 
-def _Server(config: Any, run_queue: Any) -> Any:  # noqa: N802 - a class made on first use (uvicorn is optional)
-    return _server_class()(config, run_queue)
+def _Server(config: Any, events: Any) -> Any:  # noqa: N802 - a class made on first use (uvicorn is optional)
+    return _server_class()(config, events)

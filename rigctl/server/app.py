@@ -9,25 +9,31 @@
   runs start again after STOP); ``POST /ack`` (``{"reason": text}``: the operator's acknowledgement of a latched
   fault, :meth:`RigControl.acknowledge`);
 - ``GET /events``: server-sent events, one JSON object per progress, trial, run and STOP event (the progress events
-  the CLI and the GUI draw);
+  the CLI and the GUI draw); at most :data:`rigctl.server.events.MAX_EVENT_CLIENTS` streams at once (429 beyond);
 - ``/docs`` (the OpenAPI page), ``/openapi.json``.
 
 Every request passes :mod:`rigctl.server.guard` first: the Host header, a same-origin or absent Origin, the token
 (always required), JSON for state-changing requests, a body size limit. A run's ``out`` is a name inside the data
 folder (:func:`rigctl.storage.outputs.name_in_folder`, checked by the queue).
+
+STOP first, always: the routes written as plain functions run in AnyIO's worker pool (40 threads), which a burst of
+slow requests can fill; ``POST /stop`` is a coroutine that hands :meth:`RunQueue.stop` to a thread of its own
+(:func:`_in_own_thread`), and the event streams hold no thread at all (:mod:`rigctl.server.events`), so STOP never
+waits for a pool thread.
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import enum
 import ipaddress
 import json
 import math
-import queue
+import threading
 import time
-from collections.abc import Iterator, Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 from urllib.parse import quote
 
 from fastapi import FastAPI, Request
@@ -40,6 +46,7 @@ from rigctl.core.drum import DrumError
 from rigctl.core.errors import describe_error
 from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
+from rigctl.server.events import MAX_EVENT_CLIENTS, EventHub
 from rigctl.server.guard import MAX_BODY_BYTES, install_guard
 from rigctl.server.tokens import check_token
 
@@ -47,6 +54,8 @@ from rigctl.server.tokens import check_token
 _FIRST_READ_S = 2.0
 
 __all__ = ["RunRequest", "create_app", "is_loopback"]
+
+_T = TypeVar("_T")
 
 
 def is_loopback(host: str) -> bool:
@@ -96,24 +105,59 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _sse(event: dict[str, Any]) -> str:
+    """One event as its server-sent-events line."""
+    return f"data: {json.dumps(_plain(event))}\n\n"
+
+
+async def _in_own_thread(fn: Callable[[], _T], name: str) -> _T:
+    """``fn()`` in a new thread of its own (never AnyIO's worker pool, which other requests may hold), awaited."""
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[_T] = loop.create_future()
+
+    def settle(value: _T | None, exc: BaseException | None) -> None:
+        if done.cancelled():
+            return
+        if exc is not None:
+            done.set_exception(exc)
+        else:
+            done.set_result(value)  # type: ignore[arg-type]
+
+    def body() -> None:
+        try:
+            value = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the awaiting request
+            loop.call_soon_threadsafe(settle, None, exc)
+        else:
+            loop.call_soon_threadsafe(settle, value, None)
+
+    threading.Thread(target=body, name=name, daemon=True).start()
+    return await done
+
+
 def create_app(run_queue: RunQueue, *, token: str,
-               allowed_hosts: Sequence[str] = ("127.0.0.1", "localhost")) -> FastAPI:
+               allowed_hosts: Sequence[str] = ("127.0.0.1", "localhost"),
+               max_event_clients: int = MAX_EVENT_CLIENTS) -> FastAPI:
     """The API over ``run_queue`` (and its rig control), behind :mod:`rigctl.server.guard`.
 
     ``token``: required on every request (at least 16 characters; :class:`rigctl.server.tokens.TokenError`, a
     ValueError, otherwise); ``allowed_hosts``: the names the Host header may carry (the bound address,
-    ``localhost``, ``--allow-host``)."""
+    ``localhost``, ``--allow-host``); ``max_event_clients``: ``/events`` streams open at once (one more: 429).
+    ``app.state.events`` is the :class:`rigctl.server.events.EventHub` (its ``end()`` closes every stream)."""
     check_token(token)
     app = FastAPI(title="rigctl serve", version=__version__, docs_url=None, redoc_url=None,
                   description="The tactile texture rig's headless run queue (docs/serve.md).")
     install_guard(app, token=token, allowed_hosts=allowed_hosts)
+    app.state.events = EventHub(run_queue, _sse, max_clients=max_event_clients)
 
+    # the handlers are coroutines: Starlette runs a plain function's in the worker pool, which a refusal must not wait
+    # for either
     @app.exception_handler(QueueError)
-    def queue_error(request: Request, exc: QueueError) -> JSONResponse:
+    async def queue_error(request: Request, exc: QueueError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=exc.status)
 
     @app.exception_handler(RequestValidationError)
-    def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         first = exc.errors()[0] if exc.errors() else {}
         where = ".".join(str(p) for p in first.get("loc", ()) if p != "body") or "body"
         status = 413 if first.get("type") == "string_too_long" and where == "toml" else 422
@@ -127,6 +171,7 @@ def create_app(run_queue: RunQueue, *, token: str,
 
     _run_routes(app, run_queue)
     _rig_routes(app, run_queue)
+    _stop_and_events(app, run_queue, app.state.events)
     return app
 
 
@@ -196,12 +241,6 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
                 "current_trial": None if current is None else _plain(run_queue.current_trial),
                 "queued": [r.id for r in run_queue.list() if r.state == "queued"]}
 
-    @app.post("/stop")
-    def stop() -> dict[str, Any]:
-        """STOP, at once (the GUI's STOP): drum to rest, actuator home, the current run aborted, the queue held
-        until ``POST /queue/release``."""
-        return {"acknowledged": run_queue.stop(), "held": True}
-
     @app.post("/queue/release")
     def release() -> dict[str, Any]:
         run_queue.release()
@@ -223,28 +262,25 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
         to_dict = getattr(result, "to_dict", None)
         return {"acknowledged": True, "by": by, "result": _plain(to_dict() if to_dict is not None else result)}
 
-    @app.get("/events")
-    def events() -> StreamingResponse:
+
+
+def _stop_and_events(app: FastAPI, run_queue: RunQueue, hub: EventHub) -> None:
+    """STOP and the event feed: coroutines on the event loop, neither waits for (nor holds) a worker-pool thread."""
+
+    @app.post("/stop")
+    async def stop() -> dict[str, Any]:
+        """STOP, at once (the GUI's STOP): drum to rest, actuator home, the current run aborted, the queue held
+        until ``POST /queue/release``. Served in a thread of its own, whatever else the server is doing."""
+        return {"acknowledged": await _in_own_thread(run_queue.stop, "serve-stop"), "held": True}
+
+    @app.get("/events", response_model=None)
+    async def events() -> StreamingResponse | JSONResponse:
         """Server-sent events: one ``data:`` JSON object per event (``type``: progress, trial, run, stop, plate, rig:
-        the rig monitor's state, faults, link, dead-man and latch events);
-        the stream ends when the server shuts down."""
-        q = run_queue.subscribe()
-
-        def stream() -> Iterator[str]:
-            try:
-                yield ": rigctl events\n\n"
-                while True:
-                    try:
-                        event = q.get(timeout=10.0)
-                    except queue.Empty:
-                        yield ": keep-alive\n\n"
-                        continue
-                    if event is None:  # the server is ending (RunQueue.end_streams)
-                        yield ": the server is shutting down\n\n"
-                        return
-                    yield f"data: {json.dumps(_plain(event))}\n\n"
-            finally:
-                run_queue.unsubscribe(q)
-
-        return StreamingResponse(stream(), media_type="text/event-stream")
-
+        the rig monitor's state, faults, link, dead-man and latch events); a comment line every 10 s of quiet; the
+        stream ends when the server shuts down. At most ``max_event_clients`` streams at once: 429 beyond."""
+        client = hub.open()
+        if client is None:
+            return JSONResponse({"detail": f"{hub.max_clients} event streams are open already (the most this "
+                                           "server serves); close one and try again"}, status_code=429,
+                                headers={"Retry-After": "10"})
+        return StreamingResponse(hub.stream(client), media_type="text/event-stream")
