@@ -309,6 +309,10 @@ class HandheldRig(Rig):
     def recover(self) -> str | None:
         return self.check_links()
 
+    def wait_at_rest(self, timeout_s: float = 20.0) -> None:
+        """Nothing to wait for: no actuator (the operator lifts the finger)."""
+        return None
+
     def check_links(self, *, restart: bool = True, timeout_s: float | None = None) -> str | None:
         problem = getattr(self.source, "link_problem", None)
         return problem() if callable(problem) else None

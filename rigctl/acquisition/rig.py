@@ -67,7 +67,6 @@ from rigctl.core.drum import (
     ForceLoopConfig,
     SpeedProfile,
     StatusFlag,
-    describe_faults,
     fault_advice,
 )
 from rigctl.core.interfaces import DrumController, ReplayProvenance, RigBackend, TaxelSource
@@ -115,6 +114,17 @@ STALL_FRACTION = 0.2
 
 class RigError(RuntimeError):
     """The rig could not be opened or did not do what a trial needs (with the reason in words)."""
+
+
+class FaultAtOpen(RigError):
+    """The drum controller held a latched fault when the rig was opened to move (``home=True``): opening never
+    acknowledges it (docs/safety.md). The fault is named in one line (:attr:`latch`); an operator acknowledges it at
+    open (``rigctl acquire|doctor|serve --ack REASON``, :func:`rigctl.operations.open_control`'s ``acknowledge``)."""
+
+    def __init__(self, latch: Latch) -> None:
+        self.latch = latch
+        super().__init__(f"the drum controller holds a latched fault: {latch.describe()} (opening never acknowledges "
+                         "it)")
 
 
 class FirmwareMismatch(RigError):
@@ -231,10 +241,13 @@ class Rig:
         self.safety = SafetyLatch()
         #: this rig has homed the controller (a NOT_HOMED controller since then was reset: latched)
         self.homed_once = False
-        #: a fault the controller held when this rig opened and that opening cleared (``home=True``: the operator
-        #: who starts a run is present, as with ``--resume``), in words; the run logs it in its session as an
-        #: acknowledgement (:func:`rigctl.acquisition.runner.run_protocol`) and sets this back to None
-        self.cleared_at_open: dict[str, Any] | None = None
+        #: the operator's acknowledgement of a fault the controller held when this rig opened (given at open:
+        #: ``--ack REASON``; opening itself never acknowledges); the run logs it in its session
+        #: (:func:`rigctl.acquisition.runner.run_protocol`) and sets this back to None
+        self.acknowledged_at_open: Acknowledgement | None = None
+        #: the next start (a press, a trial) HOMEs and TAREs first: an acknowledgement cleared the controller
+        #: without moving anything (docs/safety.md: acknowledging is not starting)
+        self.home_pending = False
 
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
@@ -320,21 +333,15 @@ class Rig:
         st = self._booted_status()
         self._check_calibration(st)
         self.drum_boot_count = getattr(st, "boot_count", None)
-        if st.state == DrumState.FAULT:
-            if not home:
-                log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
-                return
-            log.warning("drum controller was in FAULT (%s); clearing it", st.faults)
-            self.drum.stop()
-            try:
-                self.drum.clear_fault()
-            except DrumError:  # refused: the fault's condition persists (e.g. an HX711 at another rate): say which
-                st = self.drum.read_status()
-                raise DrumFault(st.faults, f"the fault persists ({fault_advice(st.faults)})") from None
-            self.cleared_at_open = {"cause": "fault held at open", "fault_bits": int(st.faults),
-                                    "detail": describe_faults(st.faults)}
+        if st.state == DrumState.FAULT:  # shown and kept: opening never acknowledges (docs/safety.md)
+            self.latch_unsafe(st, "held when the rig opened")
+            log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
+            if home and self.safety.latch is not None:
+                raise FaultAtOpen(self.safety.latch)
+            return
         if home:
-            self._home()
+            self.home_pending = True
+            self.home_if_pending()
         elif st.state == DrumState.NOT_HOMED:  # the opener asked not to home (doctor, a connect without HOME): its
             # status shows the state; a warning here read as a fault above a doctor report that passes (issue 38)
             log.info("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
@@ -359,6 +366,18 @@ class Rig:
         self.drum.tare()
         self.homed_once = True
         self.drum_boot_count = getattr(self.drum.read_status(), "boot_count", getattr(st, "boot_count", None))
+
+    def home_if_pending(self) -> None:
+        """The start after an acknowledgement (or an open without HOME): when :attr:`home_pending`, wait for the
+        actuator to back off, HOME and TARE (the first motion of a start: a press, a trial). DrumError / DrumFault
+        (HOME failed: latched by the caller's :meth:`latching`)."""
+        if not self.home_pending:
+            return
+        st = self._booted_status()
+        if st.state == DrumState.IDLE:
+            wait_released(self.drum)  # the actuator backs off to home first (HOME is refused under load)
+        self._home()
+        self.home_pending = False
 
     def _check_calibration(self, st: Any) -> None:
         """Warn (log and :attr:`warnings`) when the controller runs on default calibration (its EEPROM record was
@@ -529,11 +548,30 @@ class Rig:
         try:
             st = self.drum.read_status()
             self.latch_unsafe(st, "after a failed trial")
-            if not self.safety.latched:
-                self.drum.wait_state([DrumState.IDLE], timeout_s=20.0)
+            if not self.safety.latched:  # NOT_HOMED: an acknowledged e-stop or reset, homed at the next start
+                self.drum.wait_state([DrumState.IDLE, DrumState.NOT_HOMED], timeout_s=20.0)
         except DrumError as exc:
             log.warning("recovering the rig: %s", exc)
         return self.check_links(restart=True)
+
+    def wait_at_rest(self, timeout_s: float = 20.0) -> Any:
+        """After a STOP: wait (on the drum client's clock) until the sensor is released (the actuator at home, the
+        drum still) or the actuator cannot back off by itself (not homed: an e-stop or a reset stopped it where it
+        stands, still pressing; the next start's HOME backs it off). Returns the last status (None when the
+        controller does not answer); never raises. A run reports ``paused`` only after this."""
+        clock = self.drum.clock
+        deadline = clock.now() + timeout_s
+        st = None
+        while True:
+            try:
+                st = self.drum.read_status()
+            except DrumError:
+                return st
+            home = st.actuator_mm <= 0.05 or st.home_switch
+            still = st.state in (DrumState.IDLE, DrumState.FAULT, DrumState.NOT_HOMED)
+            if (still and (home or not st.homed)) or clock.now() >= deadline:
+                return st
+            clock.sleep(STATUS_PERIOD_S)
 
     # ------------------------------------------------------------------------------------------------- safety
     @contextlib.contextmanager
@@ -574,8 +612,10 @@ class Rig:
 
     def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
         """An operator acknowledges the latched fault: the condition must be gone (the e-stop released; the
-        controller accepts CLEAR_FAULT), then the rig is made ready (STOP, CLEAR_FAULT, HOME, TARE, the taxel stream
-        checked) and the latch cleared. Nothing turns the drum or presses until the next command.
+        controller accepts CLEAR_FAULT), then the controller is cleared (STOP, CLEAR_FAULT; the taxel stream checked)
+        and the latch released. Nothing moves: acknowledging is not starting (docs/safety.md). The next start (a
+        press, a run's next trial once it is resumed) HOMEs and TAREs first (:attr:`home_pending`); until then an
+        actuator the e-stop stranded stays where it stopped.
 
         Returns the :class:`rigctl.acquisition.safety.Acknowledgement` (which the run engine writes into the session's
         event log). Raises ValueError (nothing latched, no reason), LatchedFault (the condition persists: the latch
@@ -600,13 +640,15 @@ class Rig:
                     st = self.drum.read_status()
                     raise LatchedFault(latch, f"the controller refuses to clear it, the condition persists "
                                               f"({fault_advice(int(st.faults)) or st.faults})") from None
-            try:
-                if self._booted_status().state == DrumState.IDLE:
-                    wait_released(self.drum)  # the actuator backs off to home first (HOME is refused under load)
-                self._home()
-            except DrumError as exc:  # HOME failed: still latched (the first cause stays the one to clear)
-                self.safe_stop()
-                raise LatchedFault(latch, f"HOME after the acknowledgement failed ({exc})") from exc
+            st = self.drum.read_status()
+            if st.state == DrumState.FAULT:  # another fault latched meanwhile: the latch stays
+                raise LatchedFault(latch, f"the controller latched again ({fault_advice(int(st.faults)) or st.faults})")
+            # the controller as it is now is the one this rig knows: not homed after an e-stop or a reset (the start
+            # homes it), its boot count the one a later reset changes
+            self.drum_boot_count = getattr(st, "boot_count", self.drum_boot_count)
+            if st.state == DrumState.NOT_HOMED:
+                self.homed_once = False
+            self.home_pending = True
             ack = self.safety.clear(reason, by)
         self.check_links(restart=True)
         return ack
@@ -699,6 +741,9 @@ class Rig:
         # never press on a position or a zero from before a reset or an e-stop: those latch (safety policy)
         self.latch_unsafe(st, "before pressing")
         self.safety.refuse("PRESS")
+        if self.home_pending:  # the start after an acknowledgement: HOME and TARE first
+            self.home_if_pending()
+            st = self.drum.read_status()
         if st.state == DrumState.NOT_HOMED:  # opened without HOME: home and tare first
             self._home()
             st = self.drum.read_status()

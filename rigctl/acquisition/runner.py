@@ -265,12 +265,19 @@ class _StopFlag:
         return any(e.is_set() for e in self.events)
 
 
-def _wait_while_paused(rig: Rig, pause_event, stop_event, on_trial, index, total, t0) -> None:
+def _wait_while_paused(rig: Rig, pause_event, stop_event, on_trial, index, total, t0,
+                       tick: Callable[[], object] | None = None) -> None:
+    """While ``pause_event`` is set: the rig stopped and the sensor released (``paused`` is reported only then), wait
+    for the start (the event cleared: Resume) or an abort; ``tick()`` runs every 50 ms meanwhile (the run writes the
+    latches and acknowledgements of the wait into its session at once)."""
     if pause_event is None or not pause_event.is_set():
         return
     rig.recover()  # STOP (a latched fault stays latched): no force on the sensor while paused
+    rig.wait_at_rest()
     _emit(on_trial, TrialEvent("paused", None, index, total, elapsed_s=time.monotonic() - t0))
     while pause_event.is_set():
+        if tick is not None:
+            tick()
         if stop_event is not None and stop_event.is_set():
             return
         time.sleep(0.05)
@@ -334,6 +341,9 @@ def run_protocol(
         raise ValueError(f"on_failure must be 'continue' or 'stop', got {on_failure!r}")
     if on_latch not in ON_LATCH:
         raise ValueError(f"on_latch must be one of {', '.join(ON_LATCH)}, got {on_latch!r}")
+    if on_latch == "wait" and pause_event is None:
+        raise ValueError("on_latch='wait' needs a pause_event: after the acknowledgement the run waits for a "
+                         "separate start (the event cleared)")
     out_path = Path(out_path)
     script = isinstance(protocol, ScriptProtocol)
     with _Interrupts() as interrupts:
@@ -359,9 +369,7 @@ def run_protocol(
         run = _Run(protocol, writer, out_path, rig, interrupts=interrupts, progress=progress, stop_event=stop_event,
                    on_trial=on_trial, prompt=prompt, on_failure=on_failure, on_latch=on_latch,
                    halt_event=halt_event)
-        if resume:
-            run.acknowledge_open_latch(*(acknowledge or ("run resumed", operator_name())))
-        run.log_cleared_at_open()
+        run.log_acknowledgements_at_start(resume, acknowledge)
         return run.run(pause_event)
 
 
@@ -428,7 +436,7 @@ class _Run:
                     break
                 paused = pause_event is not None and pause_event.is_set()
                 _wait_while_paused(self.rig, pause_event, self.stop_event, self.on_trial, index, self.total,
-                                   self.t0)
+                                   self.t0, tick=self._flush_safety)
                 if paused and self.halt_event is not None:  # a STOP between trials: no trial to discard
                     self.halt_event.clear()
                 if self._stopping():
@@ -521,32 +529,31 @@ class _Run:
             else:
                 self.writer.log_event("acknowledged", **item.to_dict())
 
-    def acknowledge_open_latch(self, reason: str, by: str) -> None:
-        """On resume: a latch the event log holds without its acknowledgement is acknowledged now (the operator
-        resumes the run), logged with the fault it clears."""
-        events = self.writer.events()
+    def log_acknowledgements_at_start(self, resume: bool, acknowledge: tuple[str, str] | None) -> None:
+        """The acknowledgements this run starts with, into its session's event log: on resume, a latch the event
+        log holds without its acknowledgement is acknowledged now (the operator resumes the run: ``acknowledge``'s
+        reason and who, default "run resumed" and the login name), logged with the fault it clears; and the
+        acknowledgement an operator gave when the rig opened (:attr:`Rig.acknowledged_at_open`: ``--ack``), unless
+        it is that same one. Opening itself never acknowledges (docs/safety.md)."""
+        at_open = getattr(self.rig, "acknowledged_at_open", None)
+        if at_open is not None:
+            self.rig.acknowledged_at_open = None
+        reason, by = acknowledge or ((at_open.reason, at_open.by) if at_open is not None
+                                     else ("run resumed", operator_name()))
+        events = self.writer.events() if resume else []
         kinds = [e.get("kind") for e in events]
-        if "latched" not in kinds:
-            return
-        last = len(kinds) - 1 - kinds[::-1].index("latched")
-        if "acknowledged" in kinds[last:]:
-            return
-        clears = {k: v for k, v in events[last].items() if k != "kind"}
-        self.writer.log_event("acknowledged", clears=clears, reason=reason, by=by)
-        self._report(f"acknowledged by {by} ({reason}): {clears.get('cause', '?')}: {clears.get('detail', '')}")
-
-    def log_cleared_at_open(self) -> None:
-        """A fault the controller held when the rig was opened for this run, cleared by opening it (the operator who
-        started the run is present, as with ``--resume``): logged in the session as that operator's acknowledgement,
-        so no latched fault is ever cleared without a trace (docs/safety.md)."""
-        cleared = getattr(self.rig, "cleared_at_open", None)
-        if not cleared:
-            return
-        self.rig.cleared_at_open = None
-        by = operator_name()
-        self.writer.log_event("acknowledged", clears=cleared, reason="cleared when the rig was opened for this run",
-                              by=by)
-        self._report(f"acknowledged by {by} (cleared when the rig was opened): {cleared['detail']}")
+        if "latched" in kinds:
+            last = len(kinds) - 1 - kinds[::-1].index("latched")
+            if "acknowledged" not in kinds[last:]:
+                clears = {k: v for k, v in events[last].items() if k != "kind"}
+                self.writer.log_event("acknowledged", clears=clears, reason=reason, by=by)
+                self._report(f"acknowledged by {by} ({reason}): {clears.get('cause', '?')}: "
+                             f"{clears.get('detail', '')}")
+                return
+        if at_open is not None:
+            self.writer.log_event("acknowledged", **at_open.to_dict())
+            self._report(f"acknowledged by {at_open.by} ({at_open.reason}) when the rig opened: "
+                         f"{at_open.latch.describe()}")
 
     def _on_latch(self, planned: PlannedTrial, index: int) -> bool:
         """The rig latched a fault: log it; end the run (``on_latch="end"``: False) or wait for an operator's
@@ -555,24 +562,35 @@ class _Run:
         if latch is None:
             return True
         self._flush_safety()
+        self.rig.wait_at_rest()  # the actuator backed off (or stranded where a stop of category 0 left it)
+        latch = self.rig.safety.latch or latch  # a second fault latched meanwhile: both named
         self._event("latched", planned, index, error=latch.describe())
         self._report(f"LATCHED {latch.describe()}")
         if self.on_latch == "end":
             self.summary.stopped = True
             self.summary.latched = latch.describe()
             return False
+        # the run pauses: after the acknowledgement it waits for a separate start (Resume), as after STOP
+        self.pause_event.set()
         clock = self.rig.drum.clock
         while self.rig.safety.latched:
             if self._stopping():
                 self.summary.stopped = True
                 return False
+            self._flush_safety()  # a second fault latched meanwhile: into the session at once
             with contextlib.suppress(Exception):  # a silent controller: keep waiting for the operator
                 self.rig.drum.read_status()
             if not self.rig.safety.wait_cleared(0.02):
                 clock.sleep(LATCH_POLL_S)
         self._flush_safety()
         self._event("acknowledged", planned, index)
-        self._report(f"acknowledged: {latch.label}; recording trial {planned.trial_id} again")
+        self._report(f"acknowledged: {latch.label}; the run stays paused until it is resumed (trial "
+                     f"{planned.trial_id} is recorded again then)")
+        _wait_while_paused(self.rig, self.pause_event, self.stop_event, self.on_trial, index, self.total, self.t0,
+                           tick=self._flush_safety)
+        if self._stopping():
+            self.summary.stopped = True
+            return False
         return True
 
     def _trial(self, index: int, planned: PlannedTrial) -> bool:
@@ -644,7 +662,8 @@ class _Run:
         self.rig.safe_stop()
         self._event("halted", planned, index, error="STOP: the trial was discarded; it is recorded again on resume")
         self._report(f"STOP: trial {planned.trial_id} discarded, the run is paused (resume to record it again)")
-        _wait_while_paused(self.rig, self.pause_event, self.stop_event, self.on_trial, index, self.total, self.t0)
+        _wait_while_paused(self.rig, self.pause_event, self.stop_event, self.on_trial, index, self.total, self.t0,
+                           tick=self._flush_safety)
         return not self._stopping()
 
     def _failed_attempt(self, exc: Exception, planned: PlannedTrial, index: int, attempt: int, where: str,

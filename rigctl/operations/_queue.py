@@ -121,6 +121,12 @@ class QueuedRun:
     #: times the run was started (a crash and a restart make it 2)
     starts: int = 0
     summary: list[str] = dataclasses.field(default_factory=list)
+    #: why the run is paused (or why it ended, resumable), in words: the latched fault that holds it, its
+    #: acknowledgement waiting for the start, a STOP or a pause; "" while it runs
+    cause: str = ""
+    #: the latched fault the run ended or paused on (:meth:`rigctl.acquisition.safety.Latch.to_dict`), until an
+    #: operator acknowledges it: a restarted server holds the queue while one is kept here
+    latch: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -340,18 +346,27 @@ class RunQueue:
             if self.current_id != run_id or self.current is None:
                 raise QueueError(f"run {run_id} is {run.state}: only the running run can be paused", 409)
             self.current.pause()
-            self._set(run, state=self.current.state)
+            state = self.current.state
+            self._set(run, state="paused" if state == "paused" else "pausing", cause=run.cause or "paused on request")
         return run
 
     def resume(self, run_id: str) -> QueuedRun:
-        """Go on after :meth:`pause`; or queue a ``stopped`` or ``failed`` run again: it continues its session file
-        with the session's own resume (the trials finished kept, none recorded twice; it waits while the queue is
-        held after STOP). QueueError (409) for any other state."""
+        """The start: go on after :meth:`pause`, STOP or an acknowledged latch; or queue a ``stopped`` or ``failed``
+        run again: it continues its session file with the session's own resume (the trials finished kept, none
+        recorded twice; it waits while the queue is held after STOP). QueueError (409) for any other state, and
+        while a latched fault holds the rig (naming it: ``POST /ack`` first)."""
         run = self.get(run_id)
+        latch = self.control.latch
         with self._lock:
+            if latch is not None and (run.state in ACTIVE or run.latch is not None):
+                raise QueueError(f"run {run_id} is paused on a latched fault: {latch.describe()} (POST /ack, then "
+                                 "resume)", 409)
             if self.current_id == run_id and self.current is not None:
-                self.current.resume()
-                self._set(run, state="running")
+                try:
+                    self.current.resume()
+                except RuntimeError as exc:  # latched meanwhile
+                    raise QueueError(f"run {run_id}: {exc}", 409) from None
+                self._set(run, state="running", cause="", latch=None)
                 return run
             if run.state not in ("stopped", "failed"):
                 raise QueueError(f"run {run_id} is {run.state}: only a paused, stopped or failed run can be "
@@ -505,8 +520,18 @@ class RunQueue:
                     "total": event.total, "message": event.message})
 
     def _trial(self, run: QueuedRun, event: TrialEvent) -> None:
-        if event.kind in ("paused", "resumed"):
-            self._set(run, state="paused" if event.kind == "paused" else "running")
+        latch = self.control.latch
+        if event.kind == "latched" and latch is not None:  # paused with its cause; kept across a restart
+            self._set(run, state="paused", cause=f"latched: {latch.describe()}", latch=latch.to_dict())
+        elif event.kind == "acknowledged":
+            self._set(run, cause="acknowledged: nothing moves until the run is resumed (POST /runs/{id}/resume)"
+                      .replace("{id}", run.id), latch=None)
+        elif event.kind == "halted":
+            self._set(run, cause="STOP: the trial in progress was discarded; resume records it again")
+        elif event.kind == "paused":  # the rig at rest: the sensor released (or the actuator stranded by a latch)
+            self._set(run, state="paused", cause=run.cause or "paused")
+        elif event.kind == "resumed":
+            self._set(run, state="running", cause="")
         p = event.planned
         if p is not None:
             self.current_trial = {"trial_id": p.trial_id, "texture": p.texture, "speed_mm_s": p.speed_mm_s,

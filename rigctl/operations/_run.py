@@ -21,7 +21,7 @@ from typing import Any
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.runner import RunSummary, TrialEvent, run_protocol
-from rigctl.acquisition.safety import Acknowledgement
+from rigctl.acquisition.safety import Acknowledgement, LatchedFault
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._control import RigControl, rig_of
 from rigctl.operations._lsl import LslPublisher
@@ -47,8 +47,9 @@ class ProtocolRun:
     on_trial : receives :class:`rigctl.acquisition.runner.TrialEvent` s (from the thread the run records in).
     Both also go onto the rig's event stream (:meth:`RigControl.subscribe`: ``progress`` and ``run``
     :class:`rigctl.operations.RigEvent` s), which a face listens to instead (``rigctl acquire``'s bars).
-    on_latch : "wait" (default: the run waits for an operator's :meth:`acknowledge` after a latched fault) or
-        "end" (it ends, resumable: ``rigctl acquire``); see :func:`rigctl.acquisition.runner.run_protocol`.
+    on_latch : "wait" (default: after a latched fault the run pauses; an operator's :meth:`acknowledge` clears it
+        and moves nothing, :meth:`resume` is the start) or "end" (it ends, resumable: ``rigctl acquire``); see
+        :func:`rigctl.acquisition.runner.run_protocol`.
     acknowledge : ``(reason, by)`` of the acknowledgement a resumed session's open latch gets (``resume``).
     lsl : publish the run on Lab Streaming Layer (:class:`rigctl.operations.LslPublisher`: taxels, spikes, drum
         state, one marker per run and trial event); the outlets open here, so a missing pylsl is
@@ -95,8 +96,10 @@ class ProtocolRun:
     # ------------------------------------------------------------------------------------------------- state
     @property
     def state(self) -> str:
-        """"ready" (not started), "running", "pausing" (asked, the trial in progress ends first), "paused" (between
-        trials, the sensor released), "aborting", "done"."""
+        """"ready" (not started), "running", "pausing" (asked, the trial in progress ends first; or the rig still
+        backing off), "paused" (between trials, the sensor released: after :meth:`pause`, :meth:`stop` or an
+        acknowledged latch, until :meth:`resume`), "latched" (a latched fault holds the run: :meth:`acknowledge`,
+        then :meth:`resume`), "aborting", "done"."""
         if self._done.is_set():
             return "done"
         if not self._started:
@@ -129,11 +132,18 @@ class ProtocolRun:
             rig_of(self.control).safe_stop()
 
     def resume(self) -> None:
-        """Go on after :meth:`pause` or :meth:`stop` (a latched fault needs :meth:`acknowledge` first)."""
+        """The start: go on after :meth:`pause`, :meth:`stop` or an acknowledged latch (the trial cut short is
+        recorded again; after an acknowledgement the rig HOMEs and TAREs first). Raises
+        :class:`rigctl.acquisition.safety.LatchedFault` naming the latch while one is held: :meth:`acknowledge`
+        first (docs/safety.md)."""
+        latch = self.control.latch
+        if latch is not None and self.running:
+            raise LatchedFault(latch, "resume refused")
         self.pause_event.clear()
 
     def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
-        """Acknowledge the rig's latched fault (:meth:`RigControl.acknowledge`); the run goes on."""
+        """Acknowledge the rig's latched fault (:meth:`RigControl.acknowledge`): nothing moves, the run stays
+        paused until :meth:`resume` (the start)."""
         return self.control.acknowledge(reason, by=by)
 
     def abort(self) -> None:

@@ -51,8 +51,19 @@ def _estop_held_then_acknowledged(tmp_path: Path, protocol, n_trials: int) -> No
         st = control.drum.read_status()
         assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults and not mega.drivers_enabled
         assert run.state == "latched"
+        with pytest.raises(LatchedFault, match="resume refused: e-stop"):
+            run.resume()  # no start while latched
         ack = control.acknowledge("e-stop released, bench checked", by="pytest")
         assert ack.latch.cause == "estop" and control.latch is None
+        # acknowledging is not starting: the run pauses, and nothing moves for 10 s of simulated time (the
+        # actuator the e-stop stranded stays where it stopped, the drum still)
+        _until(lambda: run.state == "paused", "the pause after the acknowledgement")
+        control.drum.clock.sleep(10.0)  # the paused run reads nothing: the test moves the rig's clock
+        assert model.position_mm == pos and model.actuator_mm == act and model.drum_speed_mm_s == 0.0
+        assert run.state == "paused" and run.summary is None
+        with open_session(tmp_path / "s.h5") as s:  # both in the session at once, while the run is paused
+            assert [e["kind"] for e in s.events] == ["latched", "acknowledged"]
+        run.resume()  # the start: HOME, TARE, and the trial recorded again
         summary = run.wait(120)
     assert summary is not None and summary.ok and summary.complete == n_trials
     with open_session(tmp_path / "s.h5") as s:
@@ -156,40 +167,44 @@ def test_a_stalled_drum_latches(tmp_path):
 
 def test_a_fault_latched_while_idle_is_acknowledged_too():
     """A fault the controller latched while no command asked the rig to move (the GUI's manual drum, a monitor that
-    only reads): the acknowledgement finds it, clears it and homes the rig."""
+    only reads): the acknowledgement finds it and clears the controller without moving anything (NOT_HOMED: the
+    e-stop forgot the position); the next command is the start, which homes and tares first."""
     with open_control(RigSource("inprocess", inject=(parse_fault("estop@0.1+0.1"),))) as control:
+        model = rig_of(control).backend.model
         control.drum.clock.sleep(0.5)
         assert control.drum.read_status().state == DrumState.FAULT and control.latch is None
+        act = model.actuator_mm
         ack = control.acknowledge("released", by="pytest")
         assert ack.latch.cause == "estop" and control.latch is None
-        assert control.drum.read_status().state == DrumState.IDLE
+        control.drum.clock.sleep(5.0)
+        st = control.drum.read_status()
+        assert st.state == DrumState.NOT_HOMED and not int(st.faults) and model.actuator_mm == act
         with pytest.raises(ValueError, match="nothing is latched"):
             control.acknowledge("again", by="pytest")
+        control.press(200.0)  # the start: HOME, TARE, then the press
+        st = control.drum.read_status()
+        assert st.homed and st.state == DrumState.FORCE_SETTLED and abs(model.force_g - 200.0) < 30.0
 
 
-def test_a_fault_cleared_by_opening_the_rig_is_logged_as_the_operators_acknowledgement(tmp_path):
+def test_opening_never_acknowledges_a_fault_the_controller_still_holds():
     """A fault the controller still holds from before (an e-stop pressed and released while no run was going) is
-    cleared when a run opens the rig with HOME (the operator who starts it is present, as with ``--resume``); the
-    session's event log names it as that operator's acknowledgement: no latched fault is cleared without a trace."""
-    from rigctl.acquisition.runner import run_protocol
+    shown and kept when the rig is opened to move (HOME): the opening fails naming it, the rig latched, nothing
+    moved. (The acknowledgement at open, ``--ack``: tests/acquisition/test_acq_ack_open.py.)"""
+    from rigctl.acquisition.rig import FaultAtOpen
     from rigctl.rigs import open_rig
 
     with open_rig("inprocess", home=False) as rig:
-        mega = rig.backend.controller
+        mega, model = rig.backend.controller, rig.backend.model
         mega.set_estop(True)
         rig.drum.read_status()  # the controller runs its ESTOP path on the simulated clock
         mega.set_estop(False)
         st = rig.drum.read_status()
         assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults  # latched, released, not cleared
-        rig._prepare(home=True)  # what opening with HOME does
-        assert rig.drum.read_status().state == DrumState.IDLE
-        summary = run_protocol(load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", rig=rig)
-    assert summary.ok
-    with open_session(tmp_path / "s.h5") as s:
-        events = s.events
-    assert [e["kind"] for e in events] == ["acknowledged"]
-    assert events[0]["clears"]["cause"] == "fault held at open" and "ESTOP" in events[0]["clears"]["detail"]
-    assert events[0]["by"]
+        act = model.actuator_mm
+        with pytest.raises(FaultAtOpen, match="e-stop"):
+            rig._prepare(home=True)  # what opening with HOME does
+        assert rig.safety.latch is not None and rig.safety.latch.cause == "estop"
+        assert rig.drum.read_status().state == DrumState.FAULT and model.actuator_mm == act
 
 
 def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
@@ -206,13 +221,16 @@ def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
         assert "end of travel" in summary.latched
         clock = control.drum.clock
         assert clock.now() < 25.0  # still reversed
+        ack = control.acknowledge("plate mounted", by="pytest")  # clears the controller, moves nothing
+        assert ack.latch.cause == "actuator-travel" and control.latch is None
         with pytest.raises(LatchedFault, match="ACTUATOR_DIRECTION"):
-            control.acknowledge("plate mounted", by="pytest")
+            control.press(200.0)  # the start homes first: HOME's direction proof latches
         st = control.drum.read_status()
         assert control.latch is not None and Fault.ACTUATOR_DIRECTION in st.faults and not st.homed
         clock.sleep(31.0 - clock.now())  # the coil pair mended
         ack = control.acknowledge("coil pair swapped back", by="pytest")
-        assert ack.latch.cause == "actuator-travel" and control.latch is None
-        assert control.drum.read_status().state == DrumState.IDLE
+        assert ack.latch.cause == "actuator-direction" and control.latch is None
+        control.press(200.0)  # the start: HOME proves the direction, TARE, press
+        assert control.drum.read_status().state == DrumState.FORCE_SETTLED
     with open_session(tmp_path / "s.h5") as s:
         assert [e["kind"] for e in s.events] == ["latched"] and s.events[0]["cause"] == "actuator-travel"
