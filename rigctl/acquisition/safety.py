@@ -44,8 +44,10 @@ CAUSES: dict[str, tuple[str, str]] = {
     "reversed-cell": ("load cell reversed", "mount the load cell the right way (or fix the sign of its scale)"),
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
     "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
-    "actuator-direction": ("actuator turning the wrong way",
-                           "swap one coil pair of the actuator motor (rigctl doctor --check actuator-direction)"),
+    "actuator-direction": ("actuator turning the wrong way or load cell reversed",
+                           "press the load cell by hand and read FORCE_G: if it rises, swap one coil pair of the "
+                           "actuator motor; if it falls, the cell is reversed: swap A+/A- at the HX711, not the "
+                           "motor's coils (rigctl doctor --check actuator-direction)"),
     "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor (and that "
                                                   "the actuator turns the right way: a reversed motor drives into its "
                                                   "rear stop while its steps count on)"),

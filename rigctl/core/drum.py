@@ -35,7 +35,8 @@ __all__ = [
     "MAX_SPEED_MM_S", "MAX_FORCE_G", "PROTOCOL_LIMITS",
     "DRUM_DIAMETER_MM", "DRUM_STEPS_PER_REV", "DRUM_MICROSTEPS", "DRUM_CIRCUMFERENCE_MM", "DRUM_SPEED_TOLERANCE",
     "DRUM_MARKS_PER_REV", "DRUM_SLIP_TOLERANCE",
-    "STATE_TEXT", "FAULT_WORDS", "FaultWords", "describe_state", "describe_faults", "fault_advice",
+    "STATE_TEXT", "FAULT_WORDS", "ACTUATOR_DIRECTION_CAUSES", "CRUSH_FAULTS", "CRUSH_NOTE",
+    "FaultWords", "describe_state", "describe_faults", "fault_advice",
     "DrumError", "DrumTimeout", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
 
@@ -117,6 +118,27 @@ class FaultWords(NamedTuple):
     advice: str
 
 
+#: the two wirings behind ACTUATOR_DIRECTION and how to tell them apart before changing either (issue 55): a
+#: reversed load cell reads the force falling as the actuator presses, so after a reset under load, backing off (or
+#: HOME) reads as a rise; swapping the motor's coils then would drive HOME into the sensor
+ACTUATOR_DIRECTION_CAUSES = (
+    "Two wirings do this: the actuator turns the wrong way (a swapped coil pair, DIR inverted) or the load cell reads "
+    "reversed (A+/A- swapped at the HX711). Tell them apart before changing anything: press the load cell by hand "
+    "and read FORCE_G (the status line; rigctl doctor --check actuator-direction does it on a simulated rig). If it "
+    "rises, the cell is right and the actuator is reversed: power off and swap one coil pair of the actuator motor "
+    "(1A/1B). If it falls, the cell is reversed: swap A+ and A- at the HX711 and leave the motor alone (swapping its "
+    "coils would drive HOME into the sensor). Then HOME")
+
+#: the crush class (issue 55): the faults that mean the sensor was, or could have been, pressed past what the rig
+#: allows (too much force, a force path that cannot be believed: the actuator's direction, a reversed cell, a contact
+#: stiffer than the loop holds). Opening the rig never clears one: the operator acknowledges it with a reason once the
+#: cause is fixed (:func:`fault_advice` says so). A fault bit added for a lying reading belongs here too
+CRUSH_FAULTS = Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
+
+#: what :func:`fault_advice` adds to a crush-class fault
+CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge it with a reason once the cause is "
+              "fixed")
+
 #: every fault bit in words (spec table 2.5); a new bit gets its entry here
 FAULT_WORDS: dict[Fault, FaultWords] = {
     Fault.FORCE_LIMIT: FaultWords(
@@ -159,12 +181,11 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "default gains are for 80 SPS). Set the board's RATE pin high (80 SPS), or accept 10 SPS with its slower "
         "gains (DrumClient.set_hx711_rate(10), or a force_loop block in the rig config), then CLEAR_FAULT."),
     Fault.ACTUATOR_DIRECTION: FaultWords(
-        "actuator turns the wrong way",
-        "the actuator moved the wrong way: HOME's switch did not open when leaving home, or the load cell's untared "
-        "force rose while it moved home or backed off",
-        "the actuator moves towards the sensor when the firmware drives it home (a swapped coil pair, or the DIR "
-        "signal inverted): it was stopped where it stood. Power off, swap one coil pair of the actuator motor at its "
-        "driver (1A/1B), then CLEAR_FAULT and HOME; rigctl doctor checks it."),
+        "actuator turns the wrong way or load cell reversed",
+        "the actuator moved the wrong way or the load cell reads reversed: HOME's switch did not open when leaving "
+        "home, or the load cell's untared force rose while it moved home or backed off",
+        "the load cell's reading rose while the firmware drove the actuator home or backed it off (or HOME's switch "
+        "did not open): it was stopped where it stood. " + ACTUATOR_DIRECTION_CAUSES + "; rigctl doctor checks it."),
     Fault.DRUM_SLIP: FaultWords(
         "drum slipped or stalled",
         "the drum turned less than its steps say: more steps than one speed-mark interval allows passed without a "
@@ -207,8 +228,10 @@ def describe_faults(faults: int) -> str:
 
 
 def fault_advice(faults: int) -> str:
-    """Each latched fault bit with its meaning and what to do, one sentence each (``""`` when clear)."""
-    return " ".join(f"{FAULT_WORDS[bit].label.capitalize()}: {FAULT_WORDS[bit].advice}" for bit in _bits(faults)
+    """Each latched fault bit with its meaning and what to do, one sentence each (``""`` when clear); a crush-class
+    bit (:data:`CRUSH_FAULTS`) is named as such (:data:`CRUSH_NOTE`)."""
+    return " ".join(f"{FAULT_WORDS[bit].label.capitalize()}: {FAULT_WORDS[bit].advice}"
+                    + (f" ({CRUSH_NOTE}.)" if bit in CRUSH_FAULTS else "") for bit in _bits(faults)
                     if bit in FAULT_WORDS)
 
 

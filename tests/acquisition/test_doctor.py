@@ -15,6 +15,8 @@ from rigctl import firmware
 from rigctl.acquisition import doctor
 from rigctl.acquisition.doctor.measure import clock_error_ppm, crosstalk, step_response
 from rigctl.acquisition.rigconfig import RigConfigError, load_rig_config, validate_rig_config
+from rigctl.core.drum import DrumState
+from rigctl.core.faults import parse_fault
 from rigctl.rigs import ANSWER_TIMEOUT_S, WATCHDOG_MS, open_rig
 from rigctl.simulation.model import DrumConfig, MechanicsConfig, RigConfig
 
@@ -578,3 +580,74 @@ def test_a_drum_controller_without_a_build_id_is_refused_at_open_in_one_line(mon
     assert result.exit_code != 0 and "build 0" in result.output and "Traceback" not in result.output
     assert len([ln for ln in result.output.splitlines() if "build 0" in ln]) == 1, result.output
     assert not (tmp_path / "a.h5").exists()
+
+
+def test_a_reversed_cell_after_a_reset_under_load_is_named_and_its_advice_never_crushes(tmp_path):
+    """Issue 55 item 4: a load cell reversed (A+/A- swapped) and the controller reset while pressing 1000 g: HOME
+    backs off, the reversed cell reads that as a rise and ACTUATOR_DIRECTION latches. The old advice everywhere was
+    "swap one coil pair of the actuator", which then drove HOME into the sensor (13,304 g on the bench). Now the latch
+    text, the controller's fault advice and the doctor name the load cell as a cause, the doctor presses the cell
+    (a mass on the simulated one) before it advises anything and, the press reading as a fall, advises the cell's
+    wires and not the coils; following that advice HOMEs without pressing past 1.1 x FORCE_LIMIT (true force)."""
+    from rigctl.acquisition.safety import latch_from_faults
+    from rigctl.core.drum import CRUSH_NOTE, Fault, ResetCause, fault_advice
+    from rigctl.core.faults import parse_fault
+
+    with open_rig("inprocess", seed=3, host_config_path=tmp_path / "rig.json") as rig:
+        eng = rig.backend.engine
+        model = eng.model
+        peak = [0.0]
+        step = eng.controller.control_step
+
+        def control_step(n_ms):  # the true contact force after every control period (the truth log's column)
+            step(n_ms)
+            peak[0] = max(peak[0], model.contact_force_g)
+
+        eng.controller.control_step = control_step
+        rig.press(1000)
+        eng.faults.apply_fault(parse_fault("reversed-cell@1"), True)  # swapped and reset in the same instant
+        eng.controller.reset(ResetCause.EXTERNAL)
+        ctx = doctor.DoctorContext("inprocess", rig=rig)
+        r = doctor.run_doctor(doctor.select(["actuator-direction"]), ctx).results[0]
+        st = rig.drum.read_status()
+        assert Fault.ACTUATOR_DIRECTION in st.faults, st.faults
+        for text in (latch_from_faults(int(st.faults)).describe(), fault_advice(int(st.faults))):
+            assert "load cell" in text and "by hand" in text and "FORCE_G" in text, text
+        assert CRUSH_NOTE in fault_advice(int(st.faults))
+        from types import SimpleNamespace
+
+        from rigctl_gui.fault_dialog import latch_of  # the GUI's latched-fault dialog: the same words
+
+        for control in (SimpleNamespace(latch=latch_from_faults(int(st.faults))), SimpleNamespace(latch=None)):
+            title, _detail, todo = latch_of(control, int(st.faults))
+            assert "load cell reversed" in title and "by hand" in todo and "FORCE_G" in todo, (title, todo)
+        assert r.status == "fail" and "load cell is reversed" in r.summary, r.line()
+        assert "A+ and A-" in r.fix and "leave the actuator motor's coils as they are" in r.fix, r.fix
+        assert r.values["hand_press_change_g"] < -100
+        # the advice followed: the cell's wires swapped back, the latch acknowledged, HOME
+        eng.faults.apply_fault(parse_fault("reversed-cell@1"), False)
+        rig.drum.clear_fault()
+        rig.drum.home()
+        st = rig.drum.wait_state([DrumState.IDLE], timeout_s=30.0)
+        assert st.homed and not int(st.faults), st
+        assert peak[0] <= 1.1 * 1500, peak[0]
+
+
+def test_a_reversed_actuator_from_power_on_is_told_from_a_reversed_cell(tmp_path):
+    """The power-on cases still tell the two apart: reversed-actuator@0 fails actuator-direction, and the hand press
+    reading as a rise, the doctor advises the coil swap; reversed-cell@0 passes it (HOME drives the right way) and
+    fails loadcell-polarity."""
+    from rigctl.operations import RigSource, doctor as run
+
+    def checks(fault, names):
+        report = run(RigSource("inprocess", inject=(parse_fault(fault),)), seed=3,
+                     host_config_path=tmp_path / "rig.json", rest_s=3.0, checks=names, save=False)
+        return {r.name: r for r in report.results}
+
+    by = checks("reversed-actuator@0", ["actuator-direction"])
+    r = by["actuator-direction"]
+    assert r.status == "fail" and "the actuator turns the wrong way" in r.summary and "swap one coil pair" in r.fix
+    assert r.values["hand_press_change_g"] > 100, r.line()
+    by = checks("reversed-cell@0", ["actuator-direction", "loadcell-polarity"])
+    assert by["actuator-direction"].status == "pass", by["actuator-direction"].line()
+    assert by["loadcell-polarity"].status == "fail" and "A+/A-" in by["loadcell-polarity"].fix

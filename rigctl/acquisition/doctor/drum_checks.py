@@ -19,6 +19,8 @@ from rigctl.acquisition.doctor.base import Check, CheckResult, DoctorContext, Sk
 from rigctl.acquisition.doctor.measure import row_correlations, step_response
 from rigctl.acquisition.rigconfig import load_rig_config
 from rigctl.core.drum import (
+    ACTUATOR_DIRECTION_CAUSES,
+    CRUSH_NOTE,
     DRUM_CIRCUMFERENCE_MM,
     DRUM_DIAMETER_MM,
     DRUM_MICROSTEPS,
@@ -27,8 +29,10 @@ from rigctl.core.drum import (
     DrumState,
     fault_advice,
 )
+from rigctl.core.interfaces import MassPlacer
 
-__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "DRUM_DIRECTION_FIX", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G",
+__all__ = ["CHECKS", "ACTUATOR_DIRECTION_FIX", "ACTUATOR_REVERSED_FIX", "CELL_REVERSED_FIX", "hand_press_change_g",
+           "DRUM_DIRECTION_FIX", "POLARITY_SETPOINT_G", "STEP_SETPOINT_G",
            "MAX_OVERSHOOT_PCT", "MAX_SETTLING_S"]
 
 #: setpoint of the polarity check's press, g (the smallest of the paper's forces)
@@ -126,16 +130,58 @@ def check_controller_faults(ctx: DoctorContext) -> CheckResult:
                   advice or "clear the fault's cause, then CLEAR_FAULT", faults=[f.name for f in names])
 
 
-#: how to fix an actuator that turns the wrong way (ACTUATOR_DIRECTION; docs/hardware/wiring.md)
-ACTUATOR_DIRECTION_FIX = ("the actuator turns the wrong way: power off and swap one coil pair of the actuator motor at "
-                          "its driver (1A <-> 1B), then CLEAR_FAULT and HOME (docs/hardware/wiring.md, actuator "
-                          "direction)")
+#: what to do about ACTUATOR_DIRECTION before the load cell's polarity is known: both causes and how to tell them
+#: apart (a coil swap is advised only once the cell is known to read right; docs/hardware/wiring.md)
+ACTUATOR_DIRECTION_FIX = ACTUATOR_DIRECTION_CAUSES + f"; {CRUSH_NOTE} (docs/hardware/wiring.md, actuator direction)"
+#: ... once the cell read a hand press as a rise: the actuator is reversed
+ACTUATOR_REVERSED_FIX = ("the load cell reads a press as a rise, so the actuator turns the wrong way: power off and "
+                         "swap one coil pair of the actuator motor at its driver (1A <-> 1B), then HOME; "
+                         f"{CRUSH_NOTE} (docs/hardware/wiring.md, actuator direction)")
+#: ... once it read the press as a fall: the cell is reversed, the motor is right
+CELL_REVERSED_FIX = ("the load cell reads a press as a fall: the cell is reversed, not the actuator. Power off and "
+                     "swap the cell's signal wires A+ and A- at the HX711 (or turn the cell over); leave the actuator "
+                     "motor's coils as they are (swapping them would drive HOME into the sensor); then HOME and "
+                     f"calibrate again; {CRUSH_NOTE}")
+#: the hand press the doctor makes on a simulated rig (a mass rested on the cell), g, and how long it waits for the
+#: HX711 to show it (4 periods of its sinc^4 filter at 10 SPS and the conversion after), s
+HAND_PRESS_G = 200.0
+HAND_PRESS_WAIT_S = 1.0
+
+
+def _mean_force_g(ctx: DoctorContext, n: int = 5) -> float:
+    drum, clock = ctx.rig().drum, ctx.clock
+    forces = []
+    for _ in range(n):
+        forces.append(float(drum.read_status().force_g))
+        clock.sleep(POLL_S)
+    return float(np.mean(forces))
+
+
+def hand_press_change_g(ctx: DoctorContext) -> float | None:
+    """The load cell pressed by hand, as an operator would to tell a reversed cell from a reversed actuator: the
+    change of FORCE_G, g, while :data:`HAND_PRESS_G` rests on the cell (a simulated rig's
+    :class:`rigctl.core.interfaces.MassPlacer`); None on a rig the doctor cannot press (hardware: the operator
+    does, :data:`ACTUATOR_DIRECTION_FIX`)."""
+    backend = ctx.rig().backend
+    if not isinstance(backend, MassPlacer):
+        return None
+    before = _mean_force_g(ctx)
+    backend.place_mass(HAND_PRESS_G)
+    try:
+        ctx.clock.sleep(HAND_PRESS_WAIT_S)
+        pressed = _mean_force_g(ctx)
+    finally:
+        backend.place_mass(0.0)
+    return pressed - before
 
 
 def check_actuator_direction(ctx: DoctorContext) -> CheckResult:
     """HOME proves the actuator's direction (docs/wire-protocol.md 2.5): the home switch opened when HOME left home
     and closed when it came back, and the load cell's untared force did not rise meanwhile. HOMEs again if the
-    controller is not homed (and not faulted)."""
+    controller is not homed (and not faulted). When the proof fails (ACTUATOR_DIRECTION), the cell's polarity is
+    checked before a coil swap is advised: a reversed cell after a reset under load latches it too, and swapping
+    the motor's coils then drives HOME into the sensor (issue 55): a hand press (:func:`hand_press_change_g`) that
+    reads as a rise -> the actuator; as a fall -> the cell; not known (hardware) -> both, and how to tell."""
     drum = ctx.rig().drum
     st = drum.read_status()
     direction = getattr(type(st.faults), "ACTUATOR_DIRECTION", None)
@@ -146,9 +192,21 @@ def check_actuator_direction(ctx: DoctorContext) -> CheckResult:
         drum.home()
         st = poll_until_not_homing(ctx)
     if direction in st.faults:
-        return failed("actuator-direction", "HOME's direction proof failed: the actuator drove towards the sensor "
-                      "(or into its rear stop) when the firmware drove it home (ACTUATOR_DIRECTION)",
-                      ACTUATOR_DIRECTION_FIX)
+        seen = ("HOME's direction proof failed: the load cell's reading rose (or the home switch did not open) while "
+                "the firmware drove the actuator home (ACTUATOR_DIRECTION)")
+        change = hand_press_change_g(ctx)
+        if change is None:
+            return failed("actuator-direction", f"{seen}: the actuator or the load cell is reversed",
+                          ACTUATOR_DIRECTION_FIX)
+        if change > HAND_PRESS_G / 2:
+            return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read "
+                          f"{change:+.0f} g: the cell is right, the actuator turns the wrong way",
+                          ACTUATOR_REVERSED_FIX, hand_press_change_g=change)
+        if change < -HAND_PRESS_G / 2:
+            return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read "
+                          f"{change:+.0f} g: the load cell is reversed", CELL_REVERSED_FIX, hand_press_change_g=change)
+        return failed("actuator-direction", f"{seen}; a {HAND_PRESS_G:g} g press on the load cell read {change:+.0f} "
+                      "g: the cell does not answer", ACTUATOR_DIRECTION_FIX, hand_press_change_g=change)
     if not st.homed:
         raise Skip(f"the controller is not homed (state {st.state.name}): see controller-faults")
     return passed("actuator-direction", "HOME left the home switch (it opened) and came back to it (it closed): the "
