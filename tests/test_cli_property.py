@@ -317,10 +317,55 @@ def test_sim_operator(inputs, tmp_path, lsl, data):
         assert r.exit_code == 0 and "tracker samples published" in r.output, r.output
 
 
+@pytest.fixture(scope="module")
+def sim_in_folder(tmp_path_factory):
+    """A simulated rig's control socket in a port folder (the rig built, its clock not running: faults are armed and
+    stay pending), as ``rigctl sim`` serves it; the folder."""
+    from rigctl.simulation.rig import SimulatedRig
+    from rigctl.simulation.sim_control import ControlServer
+
+    folder = tmp_path_factory.mktemp("sim_inject") / "ports"
+    rig = SimulatedRig(port_dir=folder)
+    server = ControlServer(rig, folder, now_s=lambda: rig.model.time_s, active=lambda: sorted(rig.faults.active))
+    yield folder
+    server.close()
+    rig.close()
+
+
+FAULT_TEXT = st.one_of(
+    st.builds(lambda name, value, at, dur: f"{name}{value}@{at}{dur}",
+              st.sampled_from(["estop", "reset", "stall", "slip", "taxel-ohm", "host-silence", "nope", "", "ESTOP"]),
+              st.sampled_from(["", "=20%", "=47000", "=x", "=-1"]), SMALL, st.one_of(st.just(""), SMALL.map("+{}".format))),
+    st.text(max_size=12))
+
+
+@given(data=st.data())
+@PROPERTY
+def test_sim_inject(inputs, tmp_path, sim_in_folder, data):
+    """``rigctl sim inject``: random fault specs, to a running simulated rig's folder or to one where none runs."""
+    from rigctl.core.faults import FaultSpecError, parse_fault
+
+    specs = data.draw(st.lists(FAULT_TEXT, min_size=1, max_size=3), label="specs")
+    folder = data.draw(st.sampled_from([sim_in_folder, tmp_path / "none"]), label="folder")
+    r = _check(inputs, tmp_path, ["sim", "inject", "--port-dir", str(folder), *specs])
+    try:
+        for spec in specs:
+            parse_fault(spec)
+        valid = True
+    except FaultSpecError:
+        valid = False
+    if not valid:
+        assert r.exit_code == 2, r.output
+    elif folder == sim_in_folder:
+        assert r.exit_code == 0 and r.output.count("armed ") == len(specs), r.output
+    else:
+        assert r.exit_code == 1 and "no simulated rig running in" in r.output, r.output
+
+
 #: the commands the tests above drive (``rigctl`` + these words)
 DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
-          ("sim",), ("serve",), ("sim", "operator"), ("rigs",)}
+          ("sim",), ("serve",), ("sim", "operator"), ("rigs",), ("sim", "inject")}
 
 
 def test_every_command_is_driven(cli_commands):

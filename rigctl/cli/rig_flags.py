@@ -14,8 +14,8 @@ from rigctl.core.rig_plugins import rig_names
 
 __all__ = ["allow_firmware_mismatch_option", "truth_log_option",
            "hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
-           "lsl_wait_option", "check_one_rig", "check_truth_log", "RIG", "rig_option", "rig_options_option",
-           "check_rig_flags"]
+           "lsl_wait_option", "check_one_rig", "check_truth_log", "parse_injections", "FAULT_FORMS", "RIG", "rig_option",
+           "rig_options_option", "check_rig_flags"]
 
 
 class RigName(click.ParamType):
@@ -98,7 +98,8 @@ lsl_wait_option = click.option(
          "whether a consumer is connected, not how many (docs/lsl.md).")
 
 
-def _parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]) -> tuple[FaultSpec, ...]:
+def parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]) -> tuple[FaultSpec, ...]:
+    """The ``FAULT@T[+D]`` specs of a repeatable option or argument parsed (click.BadParameter naming a bad one)."""
     out = []
     for text in value:
         try:
@@ -109,15 +110,15 @@ def _parse_injections(ctx: click.Context, param: click.Parameter, value: tuple[s
 
 
 #: how the help names a fault that takes a value
-_FAULT_FORMS = {"taxel-ohm": "taxel-ohm=N", "contact-stiffness": "contact-stiffness=G_PER_MM"}
+FAULT_FORMS = {"taxel-ohm": "taxel-ohm=N", "contact-stiffness": "contact-stiffness=G_PER_MM"}
 
 #: ``--inject FAULT@T[+D]`` (repeatable): faults injected into a simulated rig (rigctl.core.faults, docs/safety.md)
 inject_option = click.option(
-    "--inject", "inject", multiple=True, metavar="FAULT@T[+D]", callback=_parse_injections,
+    "--inject", "inject", multiple=True, metavar="FAULT@T[+D]", callback=parse_injections,
     help="Inject a fault into the simulated rig (repeatable): FAULT starts T s after the rig is open and lasts D s "
          "(no +D: to the end), on the rig's own clock (simulated time with --inprocess); FAULT@0: wired that way "
          "from power-on (before the HOME at open). FAULT is one of "
-         + ", ".join(_FAULT_FORMS.get(name, name) for name in FAULTS)
+         + ", ".join(FAULT_FORMS.get(name, name) for name in FAULTS)
          + "; docs/safety.md says what the rig does with each and what clears it.")
 
 
@@ -130,9 +131,11 @@ allow_firmware_mismatch_option = click.option(
 
 #: ``--truth-log FILE`` (``acquire``, ``doctor``): the simulated rig's ground truth as CSV (rigctl.simulation.truth)
 truth_log_option = click.option(
-    "--truth-log", "truth_log", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None, metavar="FILE",
-    help="With --sim or --hil: write the physical model's ground truth to FILE (CSV: time_s from the run's start, the "
-         "clock --inject uses; true_force_g, actuator_mm, drum_speed_mm_s; >= 100 Hz). FILE must not exist.")
+    "--truth-log", "truth_log", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
+    metavar="FILE",
+    help="With --sim or --hil: write the physical model's ground truth to FILE (CSV: wall_time_s, Unix time; time_s "
+         "from the run's start, the clock --inject uses; true_force_g, actuator_mm, drum_speed_mm_s; >= 100 Hz). "
+         "FILE must not exist.")
 
 
 def check_truth_log(truth_log: Path | None, kind: str) -> None:

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import math
 import re
 import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import click
 
 from rigctl.cli.ranges import SEED, floats
+from rigctl.cli.rig_flags import FAULT_FORMS, check_truth_log, parse_injections
+from rigctl.core.faults import FAULTS, INSTANT_FAULTS
 
 #: the lines ``rigctl sim`` prints for its two ports
 PORT_LINE = re.compile(r"(drum|taxel) port:\s+(\S+)")
@@ -47,17 +51,26 @@ def start_sim_process(port_dir: str, *, texture: str = "A", seed: int = 0) -> tu
               help="Stream recorded signals from this directory (e.g. ../shared/data/fabricslide) or session file "
                    "instead of the model.")
 @click.option("--port-dir", type=click.Path(file_okay=False, writable=True), default=None,
-              help="Directory for the port links 'drum' and 'taxel' (default: a fresh temporary directory); one "
-                   "running simulated rig per directory.")
+              help="Directory for the port links 'drum' and 'taxel' and the control socket 'control' (default: a "
+                   "fresh temporary directory); one running simulated rig per directory.")
+@click.option("--truth-log", "truth_log", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
+              metavar="FILE",
+              help="Write the physical model's ground truth to FILE while it runs (CSV: wall_time_s, Unix time; time_s "
+                   "from the rig's start, the clock `rigctl sim inject` uses; true_force_g, actuator_mm, "
+                   "drum_speed_mm_s; >= 100 Hz, each row flushed: another process may read it live). FILE must not "
+                   "exist.")
 @click.pass_context
-def sim(ctx, seed, texture, replay_dir, port_dir):
+def sim(ctx, seed, texture, replay_dir, port_dir, truth_log):
     """Start the simulated rig: a virtual drum controller (Modbus RTU) and taxel streamer on two serial ports.
 
     Prints the two port paths, then runs until Ctrl-C. Any client can talk to them, e.g.
-    `mbpoll -m rtu -a 1 -b 500000 -P none -t 3 -r 1 -c 13 -1 DRUM_PORT`.
+    `mbpoll -m rtu -a 1 -b 500000 -P none -t 3 -r 1 -c 13 -1 DRUM_PORT`; the faces drive it as hardware
+    (`--drum-port DIR/drum --taxel-port DIR/taxel`), and `rigctl sim inject --port-dir DIR FAULT@T[+D]` injects faults
+    into it while they do.
     """
     if ctx.invoked_subcommand is not None:
         return
+    check_truth_log(truth_log, "sim")
     from rigctl.core.textures import PAPER_TEXTURES, TextureSetError
     from rigctl.simulation.pty import PortDirBusy
     from rigctl.simulation.rig import SimulatedRig
@@ -86,18 +99,23 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
 
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        rig = SimulatedRig(seed=seed, source=source, port_dir=port_dir)
+        rig = SimulatedRig(seed=seed, source=source, port_dir=port_dir, truth_log=truth_log)
     except PortDirBusy as exc:
         raise click.ClickException(str(exc)) from None
     except OSError as exc:
         raise click.BadParameter(f"cannot use {port_dir} for the port links ({exc.strerror or exc})",
                                  param_hint="--port-dir") from None
     with rig:
+        control = None
         try:  # a Ctrl-C as soon as the ports are printed (before the wait) is a clean stop too
             if texture is not None:
                 rig.set_texture(texture, textures)
+            control = _control(rig)
             click.echo(f"drum port:  {rig.drum_port}   (Modbus RTU, 500000 8N1, device id 1)")
             click.echo(f"taxel port: {rig.taxel_port}   (taxel stream, 1000000 baud)")
+            click.echo(f"faults:     rigctl sim inject --port-dir {rig.port_dir} FAULT@T[+D]")
+            if truth_log is not None:
+                click.echo(f"truth log:  {truth_log}")
             replaying = ", replaying " + replay_dir if replay_dir else ""
             click.echo(f"texture {texture or '(none: plan order)'}, seed {seed}{replaying}. Ctrl-C stops.")
             sys.stdout.flush()
@@ -105,7 +123,48 @@ def sim(ctx, seed, texture, replay_dir, port_dir):
                 pass
         except KeyboardInterrupt:
             pass
+        finally:
+            if control is not None:
+                control.close()
     click.echo("simulated rig stopped.")
+
+
+def _control(rig):
+    """The running rig's truth log started (its time 0: now) and its control socket served (``rigctl sim inject``)."""
+    from rigctl.simulation.sim_control import ControlServer
+
+    t0 = rig.model.time_s
+    if rig.truth is not None:
+        rig.truth.start(t0)
+    return ControlServer(rig, rig.port_dir, now_s=lambda: rig.model.time_s - t0,
+                         active=lambda: sorted(rig.faults.active))
+
+
+@sim.command("inject")
+@click.option("--port-dir", required=True, type=click.Path(file_okay=False),
+              help="The port folder of the running `rigctl sim` (its --port-dir).")
+@click.argument("faults", nargs=-1, required=True, metavar="FAULT@T[+D]...", callback=parse_injections)
+def inject(port_dir, faults):
+    """Inject faults into the simulated rig running in --port-dir (`rigctl sim --port-dir DIR`): each FAULT starts T s
+    from now on the rig's clock and lasts D s (no +D: to the rig's end), whatever face drives it; what each fault
+    does and what clears it: docs/safety.md. FAULT is one of """
+    from rigctl.simulation.sim_control import NoSimRunning, SimControlError, request
+
+    try:
+        answer = request(port_dir, {"inject": [str(f) for f in faults]})
+    except NoSimRunning as exc:
+        raise click.ClickException(str(exc)) from None
+    except SimControlError as exc:
+        if exc.usage:
+            raise click.UsageError(str(exc)) from None
+        raise click.ClickException(str(exc)) from None
+    t0 = float(answer["time_s"])
+    for spec in faults:
+        ends = "" if math.isinf(spec.end_s) or spec.name in INSTANT_FAULTS else f", ends at {t0 + spec.end_s:.3f}"
+        click.echo(f"armed {spec} in {port_dir}: starts at {t0 + spec.at_s:.3f}{ends} (time_s of the rig's clock)")
+
+
+inject.help = (inject.help or "") + ", ".join(FAULT_FORMS.get(n, n) for n in FAULTS) + "."
 
 
 try:  # the SIM-MODEL engineer's dataset generator

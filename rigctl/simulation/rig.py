@@ -120,6 +120,7 @@ class SimulatedRig:
         #: the injected faults (:meth:`inject_faults`) and what applies them, on the physics clock
         self.faults = ModelFaults(self.mega, self.model, drum_link=self._drum_link, taxel_link=self._taxel_link)
         self.schedule: FaultSchedule | None = None
+        self._added: list[FaultSchedule] = []  # add_faults'
 
     def _drum_link(self, up: bool) -> None:
         (self.mega.bridge.replug if up else self.mega.bridge.unplug)()
@@ -132,10 +133,21 @@ class SimulatedRig:
         return self.faults.fault_refusal(spec)
 
     def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
-        """Arm ``specs`` on the physics clock from now; the physics thread applies each as its time comes."""
+        """Arm ``specs`` on the physics clock from now (replacing the schedule armed before by this method); the
+        physics thread applies each as its time comes."""
+        self.schedule = self._arm(specs)
+        return self.schedule
+
+    def add_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+        """Arm ``specs`` on the physics clock from now beside every schedule armed before (``rigctl sim inject``:
+        each call's faults start and end as given, whatever later calls arm)."""
+        schedule = self._arm(specs)
+        self._added = [s for s in self._added if s.pending] + [schedule]
+        return schedule
+
+    def _arm(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
         schedule = FaultSchedule(specs, self.faults.apply_fault)
         schedule.start(self.model.time_s)
-        self.schedule = schedule
         return schedule
 
     @property
@@ -171,6 +183,8 @@ class SimulatedRig:
     def _step(self, n_ms: int) -> None:
         if self.schedule is not None:
             self.schedule.due(self.model.time_s)
+        for schedule in self._added:
+            schedule.due(self.model.time_s)
         # the model's taxel samples only for a streaming board without a replay source (the Uno reads START
         # within its tick: a stream it starts there begins with the next tick, VirtualUno.tick)
         render = self._pacer is None and self.uno.streaming

@@ -1,22 +1,26 @@
 """The simulated rigs' ground truth as CSV (``--truth-log FILE``, issue 39): what the physical model did, to compare
 with what the firmware or the controller believed.
 
-Columns: ``time_s`` (s from the run's start: the moment the rig was open, the clock ``--inject`` times its faults
-on: the physics clock of the simulated rig, the Mega's simulated time under simavr), ``true_force_g`` (the contact
+Columns: ``wall_time_s`` (Unix time, s, at which the row was written: the moment the physics reached ``time_s``, up
+to one physics step later; what another process's actions are compared with), ``time_s`` (s from the run's start:
+the moment the rig was open, the clock ``--inject`` times its faults on: the physics clock of the simulated rig, the
+Mega's simulated time under simavr), ``true_force_g`` (the contact
 force on the load cell, g, not the HX711's delayed reading), ``actuator_mm`` (the actuator's real position from home,
 mm, + towards the sensor), ``drum_speed_mm_s`` (the drum's real surface speed, mm/s). One row per physics step of
-the simulated rig (<= 10 ms) or per report of the HIL harness (every 10 ms of simulated time): >= 100 Hz.
+the simulated rig (<= 10 ms) or per report of the HIL harness (every 10 ms of simulated time): >= 100 Hz. The file is
+flushed after every row: another process may read it while it grows (``rigctl sim --truth-log``), whole lines only.
 """
 
 from __future__ import annotations
 
 import os
 import threading
+import time
 from pathlib import Path
 
 __all__ = ["TruthLog", "TRUTH_COLUMNS"]
 
-TRUTH_COLUMNS = ("time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
+TRUTH_COLUMNS = ("wall_time_s", "time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
 
 
 class TruthLog:
@@ -31,6 +35,7 @@ class TruthLog:
         self.path = Path(path)
         self._file = open(self.path, "x", encoding="ascii", newline="")  # noqa: SIM115 - closed by close()
         self._file.write(",".join(TRUTH_COLUMNS) + "\n")
+        self._file.flush()
         self._lock = threading.Lock()
         self._t0: float | None = None
         self.rows = 0
@@ -46,7 +51,9 @@ class TruthLog:
         with self._lock:
             if self._t0 is None or self._file.closed or t_s < self._t0:
                 return
-            self._file.write(f"{t_s - self._t0:.4f},{true_force_g:.2f},{actuator_mm:.4f},{drum_speed_mm_s:.3f}\n")
+            self._file.write(f"{time.time():.4f},{t_s - self._t0:.4f},{true_force_g:.2f},{actuator_mm:.4f},"
+                             f"{drum_speed_mm_s:.3f}\n")
+            self._file.flush()  # whole rows for a reader in another process (one write each)
             self.rows += 1
 
     def close(self) -> None:

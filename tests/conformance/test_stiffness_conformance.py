@@ -42,8 +42,8 @@ def _rig(backend: str, stiffness_g_per_mm: float, truth):
 
 def _true_peak_g(path) -> float:
     with open(path, newline="") as f:
-        rows = list(csv.reader(f))[1:]
-    return float(np.max(np.array(rows, float)[:, 1]))
+        rows = list(csv.reader(f))
+    return float(np.max(np.array(rows[1:], float)[:, rows[0].index("true_force_g")]))
 
 
 @pytest.mark.parametrize("backend", ["sim", pytest.param("hil", marks=pytest.mark.hil)])

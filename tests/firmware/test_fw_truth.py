@@ -5,6 +5,7 @@ watchdog latched (~10 s); on the simulated rig through ``rigctl doctor --sim --t
 from __future__ import annotations
 
 import csv
+import time
 
 import numpy as np
 import pytest
@@ -22,10 +23,14 @@ from .conftest import home
 
 
 def _read(path) -> np.ndarray:
+    """The rows as (time_s, true_force_g, actuator_mm, drum_speed_mm_s); their wall_time_s checked to be the Unix time
+    of the run (written as the physics went)."""
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
-    assert tuple(rows[0]) == TRUTH_COLUMNS
-    return np.array(rows[1:], float)
+    assert tuple(rows[0]) == TRUTH_COLUMNS and TRUTH_COLUMNS[0] == "wall_time_s"
+    t = np.array(rows[1:], float)
+    assert np.all(np.diff(t[:, 0]) >= 0) and abs(t[-1, 0] - time.time()) < 600, t[-1, 0]
+    return t[:, 1:]
 
 
 @pytest.mark.hil

@@ -1,0 +1,146 @@
+"""``rigctl sim`` as a controller that outlives the face (issue 51 item 7): its ground truth written live
+(``--truth-log``: wall_time_s, time_s, true_force_g, actuator_mm, drum_speed_mm_s at >= 50 Hz, read by another process
+while it grows) and faults armed on it while it runs (``rigctl sim inject``, through its owner-only control socket);
+the faces drive it as hardware (``--drum-port DIR/drum --taxel-port DIR/taxel``)."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import signal
+import stat
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigctl.devices.drum import DrumClient
+from rigctl.devices.wire import DrumState, Fault
+from rigctl.simulation.sim_control import request
+
+from .sim_process import HANG_S, SimProcess
+
+pytestmark = pytest.mark.realtime  # a rig paced to the wall clock in another process, on ptys
+
+RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
+
+
+def _one_error(result: subprocess.CompletedProcess, code: int, *words: str) -> str:
+    assert result.returncode == code, (result.returncode, result.stdout, result.stderr)
+    assert "Traceback" not in result.stderr, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    for w in words:
+        assert w in errors[0], errors[0]
+    return errors[0]
+
+
+def _until(what, timeout_s: float = HANG_S, poll_s: float = 0.05):
+    deadline = time.monotonic() + timeout_s
+    while not (got := what()):
+        assert time.monotonic() < deadline, f"not within {timeout_s} s"
+        time.sleep(poll_s)
+    return got
+
+
+def test_sim_writes_its_truth_live_and_inject_arms_faults_on_it(tmp_path):
+    with SimProcess(RIGCTL, tmp_path, seed=2) as sim:
+        assert f"rigctl sim inject --port-dir {sim.dir}" in sim.banner
+        # read while it grows: whole rows, >= 50 a second on both clocks, the newest a moment old
+        t = sim.wait_truth(1.5)
+        assert time.time() - t["wall_time_s"][-1] < 2.0
+        rows_a_s = (len(t["time_s"]) - 1) / (t["time_s"][-1] - t["time_s"][0])
+        wall_rows_a_s = (len(t["time_s"]) - 1) / (t["wall_time_s"][-1] - t["wall_time_s"][0])
+        assert rows_a_s >= 50 and wall_rows_a_s >= 50 and np.all(np.diff(t["time_s"]) > 0), (rows_a_s, wall_rows_a_s)
+        assert t["time_s"][0] < 0.1 and np.all(t["true_force_g"] == 0) and np.all(t["drum_speed_mm_s"] == 0)
+        # the control socket is the owner's only
+        assert stat.S_IMODE(os.stat(sim.dir / "control").st_mode) == 0o600
+
+        # an e-stop held 3 s, armed from the command line, then a stall armed beside it (it does not cancel the
+        # e-stop's release)
+        first = sim.inject("estop@0.3+3")
+        assert first.returncode == 0 and first.stdout.startswith("armed estop@0.3+3 in "), first
+        starts = float(first.stdout.split("starts at ")[1].split(",")[0])
+        assert "ends at" in first.stdout
+        _until(lambda: "estop" in sim.status()["active"])
+        second = request(sim.dir, {"inject": ["stall@0+0.5"]})
+        assert second["armed"] == ["stall@0+0.5"] and second["time_s"] < starts + 3.0, second
+        assert "estop" in sim.status()["active"]
+        _until(lambda: sim.status()["active"] == [])
+        released = sim.status()["time_s"]
+        assert starts + 3.0 <= released < starts + 3.0 + 30, (starts, released)  # released when asked, not before
+        # the e-stop acted on the controller, as a face reads it on the drum port: latched after the release
+        with DrumClient(sim.drum_port, timeout_s=2.0) as drum:
+            st = drum.read_status()
+        assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults, st
+
+        # refusals: one line each; a fault name it does not know and a malformed spec are usage errors (exit 2)
+        _one_error(sim.inject("nope@1"), 2, "unknown fault 'nope'", "estop")
+        _one_error(sim.inject("estop"), 2, "FAULT@T")
+        assert sim.status()["active"] == []
+        t = sim.truth()
+    # rows all along, the e-stop's press on the rig's clock inside the log
+    assert t["time_s"][-1] > starts + 3.0 and np.all(np.diff(t["time_s"]) <= 0.0105)
+    assert not (sim.dir / "control").exists() and not (sim.dir / "drum").exists()  # Ctrl-C removed them
+
+
+def test_inject_without_a_running_sim_is_one_line(tmp_path):
+    _one_error(subprocess.run([*RIGCTL, "sim", "inject", "--port-dir", str(tmp_path / "none"), "estop@1"],
+                              capture_output=True, text=True, timeout=HANG_S), 1,
+               f"no simulated rig running in {tmp_path / 'none'}")
+    # a killed sim's folder: its socket is there, nobody listens
+    sim = SimProcess(RIGCTL, tmp_path)
+    sim.proc.send_signal(signal.SIGKILL)
+    sim.kill()
+    assert (sim.dir / "control").exists()
+    _one_error(sim.inject("estop@1"), 1, f"no simulated rig running in {sim.dir}")
+    # and a fault it does not know is refused first, as a usage error
+    _one_error(sim.inject("estop@1", "bogus@2"), 2, "unknown fault 'bogus'")
+
+
+def _doc_block() -> list[list[str]]:
+    """docs/safety.md's commands for the controller that outlives the face, as argument lists (``rigctl`` dropped)."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "safety.md").read_text()
+    block = text.split("A controller that outlives the face", 1)[1].split("```sh", 1)[1].split("```", 1)[0]
+    lines = [shlex.split(line) for line in block.strip().splitlines()]
+    assert [line[:2] for line in lines] == [["rigctl", "sim"], ["rigctl", "acquire"], ["rigctl", "sim"]], lines
+    return [line[1:] for line in lines]
+
+
+def test_the_safety_docs_commands_a_run_on_a_running_sim_ends_on_its_estop(tmp_path, monkeypatch):
+    """docs/safety.md as written: `rigctl sim` in its own process, `rigctl acquire` on its ports as hardware, `rigctl
+    sim inject` mid-trial: the run ends on the e-stop (exit 1, naming it), the truth log shows the press, then nothing
+    moves, and the controller keeps the latch for the next face."""
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    sim_args, acquire_args, inject_args = _doc_block()
+    with SimProcess(RIGCTL, tmp_path, args=sim_args) as sim:
+        face = subprocess.Popen([*RIGCTL, *acquire_args], cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, stdin=subprocess.DEVNULL)
+        try:
+            # the face's run under way: the drum turning at the trial's speed on the truth log
+            _until(lambda: face.poll() is None and (t := sim.truth())["drum_speed_mm_s"].size
+                   and t["drum_speed_mm_s"][-1] > 100, poll_s=0.1)
+            injected = subprocess.run([*RIGCTL, *inject_args], cwd=tmp_path, capture_output=True, text=True,
+                                      timeout=HANG_S)
+            assert injected.returncode == 0, injected
+            pressed = float(injected.stdout.split("starts at ")[1].split(",")[0])
+            out, _ = face.communicate(timeout=HANG_S)
+        finally:
+            if face.poll() is None:
+                face.kill()
+                face.communicate()
+        assert face.returncode == 1 and "e-stop" in out, out
+        t = sim.wait_truth(pressed + 4.0)
+        with DrumClient(sim.drum_port, timeout_s=2.0) as drum:
+            st = drum.read_status()
+        assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults, st  # kept for the next face
+    before = t["time_s"] < pressed
+    assert np.max(t["drum_speed_mm_s"][before]) > 100 and np.max(t["true_force_g"][before]) > 400  # pressing, turning
+    after = t["time_s"] >= pressed + 0.02  # (one 10 ms row for the press to land)
+    assert np.all(np.diff(t["drum_speed_mm_s"][after]) <= 1e-6), "the drum sped up after the e-stop"
+    assert np.all(np.diff(t["actuator_mm"][after]) <= 1e-6), "the actuator moved towards the sensor after the e-stop"
+    assert np.all(np.diff(t["true_force_g"][after]) <= 0.5), "the force rose after the e-stop"
+    assert t["drum_speed_mm_s"][-1] == 0
