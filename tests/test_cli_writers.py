@@ -36,6 +36,8 @@ RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/con
 NOT_WRITERS = {
     ("import", "files"): "inputs, checked by the command itself (a missing one named with what was found)",
     ("import-fabricslide", "directory"): "the FabricSlide folder read (optional: $RIGCTL_FABRICSLIDE)",
+    ("sim inject", "port_dir"): "the folder of a running simulated rig, whose control socket it connects to (none "
+                                "there: one line, exit 1; tests/simulation/test_sim_process.py)",
     ("serve", "data_dir"): "the folder of the sessions clients name: every name checked per request "
                            "(rigctl.storage.outputs.name_in_folder, check_output; tests/operations)",
 }
@@ -70,6 +72,7 @@ RUNS = {
                                                          "--overwrite"], "in_folder"),
     (("serve",), "queue_file"): (".json", lambda p: ["serve", "--port", "0", "--queue", p["T"]], "config"),
     (("sim",), "port_dir"): ("", lambda p: ["sim", "--port-dir", p["T_dir"]], None),
+    (("sim",), "truth_log"): (".csv", lambda p: ["sim", "--truth-log", p["T"]], "config"),
     (("sim", "dataset"), "out"): (".h5", lambda p: ["sim", "dataset", p["protocol"], "--out", p["T"],
                                                     "--overwrite"], "protocol"),
 }

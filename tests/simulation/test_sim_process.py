@@ -47,7 +47,7 @@ def _until(what, timeout_s: float = HANG_S, poll_s: float = 0.05):
 
 def test_sim_writes_its_truth_live_and_inject_arms_faults_on_it(tmp_path):
     with SimProcess(RIGCTL, tmp_path, seed=2) as sim:
-        assert f"rigctl sim inject --port-dir {sim.dir}" in sim.banner
+        assert "rigctl sim inject --port-dir ports FAULT@T[+D]" in sim.banner  # (run in tmp_path: --port-dir ports)
         # read while it grows: whole rows, >= 50 a second on both clocks, the newest a moment old
         t = sim.wait_truth(1.5)
         assert time.time() - t["wall_time_s"][-1] < 2.0
