@@ -65,6 +65,20 @@ def _checked_segment(ctx, param, value):
 @click.option("--volts-ref", type=floats(0, MAX_VOLTS, min_open=True), default=None, metavar="V",
               help="The recordings are volts with this ADC reference: one count is V/2^bits volts (5 V, 10 bits: "
                    "5/1024 V), so V itself is past the top count (default: the recordings are counts).")
+@click.option("--scale", type=float, default=None, metavar="S",
+              help="Readings that are not counts: counts = x * S + O, then rounded (recorded). Without it, "
+                   "--offset or --volts-ref, readings that are not whole counts are refused.")
+@click.option("--offset", type=float, default=None, metavar="O", help="See --scale (default 0).")
+@click.option("--columns", default=None, metavar="A,B,...",
+              help="CSV: the channel columns, in channel order (header names or 0-based indices); the other "
+                   "columns are not imported (default: every column but the time column).")
+@click.option("--time-column", default=None, metavar="NAME",
+              help="CSV: the column of sample times, s (a name ending _ms: ms); the readings are resampled onto "
+                   "the --rate grid (linear), the jitter and gaps stated (default: a column named time, timestamp, "
+                   "t, time_s or time_ms).")
+@click.option("--variable", default=None, metavar="NAME",
+              help="NPZ / MAT: the array, NWB: the TimeSeries holding the taxels (a file with several series and "
+                   "none named taxels is refused without it; the one read is always named).")
 @click.option("--nan", "nan", type=click.Choice(["refuse", "hold", "interpolate"]), default=None,
               help="NaN samples: refuse (default; the error names the file, the count and the first samples), hold "
                    "the last good value, or interpolate linearly between good samples.")
@@ -79,13 +93,14 @@ def _checked_segment(ctx, param, value):
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @progress_option
 def import_recordings(files, out, rate_hz, channels, layout, label_pattern, texture, resample_hz, segment_spec,
-                      align, pre_ms, min_swing, mapping, volts_ref, nan, adc_bits, preset, skip_bad, overwrite, as_json,
-                      progress):
+                      align, pre_ms, min_swing, mapping, volts_ref, scale, offset, columns, time_column, variable, nan,
+                      adc_bits, preset, skip_bad, overwrite, as_json, progress):
     """Import FILES (format from the extension: .csv, .npy, .npz, .mat, .nwb) into the session file --out.
 
-    A CSV holds one column per channel (a header row is skipped); arrays are (n_samples, n_channels). Steps run
-    in order: read, resample (--resample), scale to ADC counts (--volts-ref), segment (--segment), label
-    (--label-pattern, --texture, mapping); each is recorded in the session's attributes.
+    A CSV holds one column per channel (a header row is skipped; ``,``, ``;`` with decimal commas, tab or spaces;
+    --columns, --time-column); arrays are (n_samples, n_channels). Steps run in order: read, resample (--resample),
+    scale to ADC counts (--volts-ref, --scale/--offset), segment (--segment), label (--label-pattern, --texture,
+    mapping); each is recorded in the session's attributes and what changed the numbers is printed.
     """
     from rigctl.operations import import_recordings as run
 
@@ -96,7 +111,9 @@ def import_recordings(files, out, rate_hz, channels, layout, label_pattern, text
         rate_hz=rate_hz, channels=channels, layout=layout, label_pattern=label_pattern, texture=texture,
         resample_hz=resample_hz, segment_spec=segment_spec, align=align, pre_ms=pre_ms, min_swing=min_swing,
         mapping=mapping,
-        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad)
+        volts_ref=volts_ref, adc_bits=adc_bits, nan=nan, skip_bad=skip_bad, scale=scale, offset=offset,
+        columns=[c.strip() for c in columns.split(",") if c.strip()] if columns else None,
+        time_column=time_column, variable=variable)
     try:
         with bars(show_bars(progress) and not as_json) as progress:
             report = run(files, out, preset=preset, overwrite=overwrite, progress=progress, **options)

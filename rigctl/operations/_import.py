@@ -15,7 +15,15 @@ from typing import Any
 
 from rigctl.core.progress import ProgressCallback
 
-__all__ = ["ImportReport", "IMPORT_PRESETS", "import_recordings"]
+__all__ = ["ImportReport", "IMPORT_PRESETS", "import_recordings", "label_warnings"]
+
+#: plausible label ranges of a sliding texture rig, outside which an import warns (a unit mistaken, e.g. feed rates
+#: in mm/min read as mm/s): speeds (mm/s) and forces (g)
+PLAUSIBLE_SPEED_MM_S = (1.0, 1000.0)
+PLAUSIBLE_FORCE_G = (10.0, 10_000.0)
+#: the shortest speed-scaled window (eq. 2: 100 ms of scaled time is 100 ms x 120 / speed of the recording) worth
+#: encoding, in model steps of 1 ms: shorter windows hold a spike or two each and Speed Scaled collapses
+MIN_SCALED_WINDOW_STEPS = 5
 
 #: the known datasets ``preset`` may name
 IMPORT_PRESETS = ("fabricslide",)
@@ -72,4 +80,32 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
 
     summary = run(files, out, overwrite=overwrite, progress=progress, **options)
     return ImportReport(summary, segment_table(summary["segments"]) if summary["segments"] else "",
-                        list(summary["warnings"]))
+                        list(summary["warnings"]) + label_warnings(summary["label_ranges"]))
+
+
+def label_warnings(ranges: dict[str, Any]) -> list[str]:
+    """Lines naming labels (``ranges``: :func:`rigctl.storage.importers.label_ranges`) outside a plausible range
+    (:data:`PLAUSIBLE_SPEED_MM_S`, :data:`PLAUSIBLE_FORCE_G`: a unit mistaken) and the speed-scaled windows they give
+    (eq. 2: WINDOW_S x 120 mm/s / speed of the recording) when shorter than :data:`MIN_SCALED_WINDOW_STEPS` model
+    steps of 1 ms."""
+    from rigctl.encoding.speed import REFERENCE_SPEED_MM_S, WINDOW_S
+
+    out = []
+    for name, span, (lo, hi), unit, hint in (
+            ("speeds", ranges.get("speed_mm_s"), PLAUSIBLE_SPEED_MM_S, "mm/s", "feed rates in mm/min? name the field {speed_mm_min} "
+             "(or {speed_m_s}, {speed_cm_s})"),
+            ("forces", ranges.get("force_g"), PLAUSIBLE_FORCE_G, "g", "newtons? name the field {force_N} (or {force_mN}, "
+             "{force_kg})")):
+        if span and (span[0] < lo or span[1] > hi):
+            out.append(f"{name} {span[0]:g}-{span[1]:g} {unit} are outside {lo:g}-{hi:g} {unit}, implausible for a "
+                       f"sliding texture: {hint}")
+    fast = (ranges.get("speed_mm_s") or [0.0, 0.0])[1]
+    if fast > 0:
+        shortest_ms = 1e3 * WINDOW_S * REFERENCE_SPEED_MM_S / fast
+        if shortest_ms < MIN_SCALED_WINDOW_STEPS:
+            out.append(f"at {fast:g} mm/s a speed-scaled window is {shortest_ms:.2f} ms of the recording "
+                       f"(100 ms x {REFERENCE_SPEED_MM_S:g} / speed, eq. 2): under {MIN_SCALED_WINDOW_STEPS} model "
+                       "steps of 1 ms, the Speed Scaled variants would classify from a spike or two per window; "
+                       "check the speeds' unit")
+    return out
+

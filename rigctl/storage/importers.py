@@ -98,6 +98,7 @@ from rigctl.storage.segmentation import Segmentation, SegmentSpec, outlier_warni
 __all__ = [
     "RecordingImportError", "ImportedTrial", "ImportOptions", "FORMATS", "read_recording_file",
     "parse_label_pattern", "labels_from_name", "resample", "to_counts", "volts_step", "fill_nan", "NAN_POLICIES",
+    "onto_grid", "label_ranges", "UNIT_FIELDS",
     "segment", "parse_segment", "SegmentSpec", "Segmentation", "load_mapping", "import_recordings",
     "write_imported_session", "write_session",
 ]
@@ -106,6 +107,15 @@ __all__ = [
 _FIELD_ALIASES = {"texture": "texture", "label": "texture", "speed_mm_s": "speed_mm_s", "speed": "speed_mm_s",
                   "force_g": "force_g", "force": "force_g", "repeat": "repeat", "rep": "repeat"}
 _NUMERIC = {"speed_mm_s", "force_g", "repeat"}
+#: label fields that carry a unit other than the plan's: field -> (plan column, factor to the plan's unit, unit text).
+#: A pattern or a mapping's per-file table may name any of them; the value is converted on import and the value as
+#: given is kept as a trial attribute (``speed_as_labelled``, ``force_as_labelled``)
+UNIT_FIELDS = {"speed_mm_min": ("speed_mm_s", 1 / 60, "mm/min"), "speed_m_s": ("speed_mm_s", 1000.0, "m/s"),
+               "speed_cm_s": ("speed_mm_s", 10.0, "cm/s"), "speed_m_min": ("speed_mm_s", 1000 / 60, "m/min"),
+               "force_N": ("force_g", 1000 / 9.80665, "N"), "force_mN": ("force_g", 1 / 9.80665, "mN"),
+               "force_kg": ("force_g", 1000.0, "kg")}
+_FIELD_ALIASES.update({k: v[0] for k, v in UNIT_FIELDS.items()})
+
 #: a file imported whole (no ``--segment``) this long or longer, s, is named with the hint to segment it: a trial of
 #: the rigs rigctl knows lasts seconds (FabricSlide's longest, 10 mm/s over ~475 mm: 47.5 s)
 LONG_TRIAL_S = 60.0
@@ -160,13 +170,33 @@ def labels_from_name(name: str, pattern: str | re.Pattern[str]) -> dict[str, Any
         raise RecordingImportError(f"file name {base!r} does not match the label pattern {shown!r}")
     out: dict[str, Any] = {}
     for key, value in m.groupdict().items():
-        col = _FIELD_ALIASES.get(key, key)
-        if col == "repeat":
-            out[col] = int(float(value))
-        elif col in _NUMERIC:
-            out[col] = float(value)
-        else:
-            out[col] = value
+        out.update(_label_value(key, value))
+    return out
+
+
+def _label_value(key: str, value: Any) -> dict[str, Any]:
+    """One label field as plan columns: aliases resolved, units converted (:data:`UNIT_FIELDS`; the value as given
+    kept as ``<speed|force>_as_labelled``)."""
+    col = _FIELD_ALIASES.get(key, key)
+    if key in UNIT_FIELDS:
+        _, factor, unit = UNIT_FIELDS[key]
+        return {col: float(value) * factor, col.split("_")[0] + "_as_labelled": f"{float(value):g} {unit}"}
+    if col == "repeat":
+        return {col: int(float(value))}
+    if col in _NUMERIC:
+        return {col: float(value)}
+    return {col: value}
+
+
+def label_ranges(plan_labels: Iterable[Mapping[str, Any]]) -> dict[str, list[float] | None]:
+    """``{"speed_mm_s": [min, max] | None, "force_g": [min, max] | None}`` of the finite labels (in the plan's
+    units, after :data:`UNIT_FIELDS`' conversions)."""
+    rows = list(plan_labels)
+    out: dict[str, list[float] | None] = {}
+    for col in ("speed_mm_s", "force_g"):
+        v = np.array([float(lab.get(col, math.nan)) for lab in rows], np.float64)
+        v = v[np.isfinite(v)]
+        out[col] = [float(v.min()), float(v.max())] if v.size else None
     return out
 
 
@@ -188,6 +218,51 @@ def resample(x: np.ndarray, rate_hz: float, resample_hz: float) -> tuple[np.ndar
         return np.asarray(x, np.float64), step
     y = resample_poly(np.asarray(x, np.float64), up, down, axis=0, padtype="line")
     return y, step
+
+
+def onto_grid(x: np.ndarray, times_s: np.ndarray, rate_hz: float | None, where: str
+              ) -> tuple[np.ndarray, float, dict[str, Any]]:
+    """Readings stamped with their own times (a CSV's time column) onto an even grid at ``rate_hz`` (default: the
+    median spacing's rate), by linear interpolation per channel (``numpy.interp``) from the first stamp to the last.
+
+    Returns ``(readings on the grid, rate_hz, record)``; the record states the jitter (sd and largest deviation of
+    the spacing from 1/rate, ms) and names the gaps (spacings over 1.5 periods plus 6 sd of the jitter: samples
+    missing; start, length). Raises
+    RecordingImportError for times that do not increase (named: the first row) or fewer than two samples."""
+    t = np.asarray(times_s, np.float64)
+    if t.size < 2:
+        raise RecordingImportError(f"{where}: a time column needs two samples or more")
+    dt = np.diff(t)
+    bad = np.flatnonzero(~(dt > 0))
+    if bad.size:
+        raise RecordingImportError(f"{where}: the time column does not increase at row {int(bad[0]) + 1} "
+                                   f"({t[bad[0]]:g} then {t[bad[0] + 1]:g}): fix the file or give --time-column")
+    rate = float(rate_hz) if rate_hz else 1.0 / float(np.median(dt))
+    period = 1.0 / rate
+    n = int(np.floor((t[-1] - t[0]) * rate + 1e-9)) + 1
+    grid = t[0] + np.arange(n) / rate
+    y = np.empty((n, x.shape[1]), np.float64)
+    for c in range(x.shape[1]):
+        y[:, c] = np.interp(grid, t, x[:, c])
+    dev_ms = (dt - period) * 1e3
+    spread = 1.4826 * float(np.median(np.abs(dt - np.median(dt))))  # the jitter's sd, robust to the gaps themselves
+    gap_i = np.flatnonzero(dt > 1.5 * period + 6.0 * spread)
+    gaps = [{"at_s": float(t[i] - t[0]), "length_ms": float(dt[i] * 1e3)} for i in gap_i]
+    record = {"method": "linear interpolation (numpy.interp) onto an even grid", "rate_hz": rate,
+              "rate_from": "--rate" if rate_hz else "the median spacing of the time column",
+              "samples_in": int(t.size), "samples_out": n, "jitter_ms_sd": float(np.std(dev_ms)),
+              "jitter_ms_max": float(np.max(np.abs(dev_ms))), "gaps": gaps}
+    return y, rate, record
+
+
+def grid_text(name: str, record: Mapping[str, Any]) -> str:
+    """One line for the user: what :func:`onto_grid` did to one file."""
+    gaps = record["gaps"]
+    shown = ", ".join(f"{g['length_ms']:.1f} ms at {g['at_s']:.3f} s" for g in gaps[:3]) + (", ..." if len(gaps) > 3
+                                                                                          else "")
+    return (f"{name}: time column resampled onto the {record['rate_hz']:g} Hz grid ({record['rate_from']}; jitter sd "
+            f"{record['jitter_ms_sd']:.3f} ms, max {record['jitter_ms_max']:.3f} ms; "
+            + (f"{len(gaps)} gap(s) interpolated across: {shown})" if gaps else "no gaps)"))
 
 
 def to_counts(x: np.ndarray, adc_bits: int, *, volts_ref: float | None = None, scale: float = 1.0,
@@ -367,6 +442,9 @@ class ImportOptions:
     nan: str = "refuse"
     scale: float = 1.0
     offset: float = 0.0
+    #: the user said how readings map to counts (``scale``/``offset`` given, or ``volts_ref``): fractional readings
+    #: are then rounded after the mapping; otherwise they are refused (rounding volts to counts loses them)
+    mapped: bool = False
     variable: str | None = None
     columns: Sequence[Any] | None = None
     time_column: Any = None
@@ -398,12 +476,14 @@ class ImportOptions:
         segment = parse_segment(segment_spec or m.get("segment"), align=align or m.get("align"),
                                 pre_ms=pre_ms if pre_ms is not None else m.get("pre_ms"),
                                 min_swing=min_swing if min_swing is not None else m.get("min_swing"))
+        scale, offset = pick("scale"), pick("offset")
         return cls(rate_hz=pick("rate_hz"), channels=channels, layout=layout, sensor=m.get("sensor"),
                    label_pattern=pick("label_pattern"), resample_hz=pick("resample_hz"), segment=segment,
                    volts_ref=pick("volts_ref"), adc_bits=int(pick("adc_bits", 10)), nan=pick("nan", "refuse"),
-                   scale=float(m.get("scale", 1.0)), offset=float(m.get("offset", 0.0)), variable=m.get("variable"),
-                   columns=m.get("columns"), time_column=m.get("time_column"), per_file=m.get("files", {}) or {},
-                   defaults=defaults, texture_set=m.get("texture_set"))
+                   scale=float(1.0 if scale is None else scale), offset=float(0.0 if offset is None else offset),
+                   mapped=scale is not None or offset is not None or pick("volts_ref") is not None,
+                   variable=pick("variable"), columns=pick("columns"), time_column=pick("time_column"),
+                   per_file=m.get("files", {}) or {}, defaults=defaults, texture_set=m.get("texture_set"))
 
     def value_scale(self, n_clipped: int) -> dict[str, Any]:
         """The scale step's record."""
@@ -425,8 +505,11 @@ def _file_labels(path: Path, opts: ImportOptions, rx: re.Pattern[str] | None) ->
         extra.update({k: v for k, v in got.items() if k not in ("texture", *_NUMERIC)})
     for key in (path.name, path.stem, str(path)):
         if key in opts.per_file:
-            labels.update({_FIELD_ALIASES.get(k, k): v for k, v in opts.per_file[key].items()})
-    return {_FIELD_ALIASES.get(k, k): v for k, v in labels.items()}, extra
+            for k, v in opts.per_file[key].items():
+                labels.update(_label_value(k, v) if k in UNIT_FIELDS or k in _FIELD_ALIASES else {k: v})
+    moved = {k: v for k, v in labels.items() if k.endswith("_as_labelled")}
+    extra.update(moved)
+    return {_FIELD_ALIASES.get(k, k): v for k, v in labels.items() if k not in moved}, extra
 
 
 @dataclass
@@ -444,14 +527,18 @@ class _Import:
     n_ch: int | None = None
     n_clipped: int = 0
     sensor_from_file: Mapping[str, Any] | None = None  # an NWB file's own sensor description (rigctl exports it)
+    regridded: bool = False  # a time column put a file onto the rate grid (interpolated values: clipped, counted)
 
     def add_file(self, path: Path, rx: re.Pattern[str] | None) -> None:
         """Read, label, resample, scale and segment one file; its trials join :attr:`trials`."""
         o = self.opts
         blocks, file_rate, meta = read_recording_file(path, channels=o.channels, variable=o.variable,
-                                                      columns=o.columns, time_column=o.time_column, nan=o.nan)
+                                                      columns=o.columns, time_column=o.time_column, nan=o.nan,
+                                                      whole_counts=o.volts_ref is None and not o.mapped)
         src_rate = float(o.rate_hz) if o.rate_hz is not None else file_rate
-        if src_rate is None or not src_rate > 0:
+        if src_rate is None and "time_s" in meta:
+            src_rate = 0.0  # from the time column (onto_grid)
+        elif src_rate is None or not src_rate > 0:
             raise RecordingImportError(f"{path}: no sample rate: give --rate HZ (or rate_hz in the mapping)")
         labels, extra = _file_labels(path, o, rx)
         block_labels = meta.pop("block_labels", None)
@@ -463,6 +550,14 @@ class _Import:
         if not labels.get("texture"):
             raise RecordingImportError(f"{path}: no texture label: give --label-pattern, --texture or a mapping")
         labels["texture"] = str(labels["texture"])
+        times = meta.pop("time_s", None)
+        self.regridded = times is not None
+        if times is not None:
+            blocks[0], src_rate, grid = onto_grid(blocks[0], times, o.rate_hz, str(path))
+            meta["time_grid"] = grid
+            self.notes.append(grid_text(path.name, grid))
+            self.regridded = True
+        self._name_choices(path, meta)
         self.steps["read"].append({"file": str(path), **meta, "rate_hz": src_rate, "blocks": len(blocks)})
         attrs = {"source_file": path.name, "source_format": meta["format"], "source_rate_hz": src_rate,
                  **{k: str(v) for k, v in extra.items()}}
@@ -472,6 +567,19 @@ class _Import:
                 lab.update({k: (str(v) if k == "texture" else float(v)) for k, v in block_labels[bi].items()})
             self._add_block(path, bi, len(blocks), self._counts(path, block, src_rate), lab,
                             {**attrs, **({"source_block": bi} if len(blocks) > 1 else {})})
+
+    def _name_choices(self, path: Path, meta: dict[str, Any]) -> None:
+        """Name what was chosen for the user: the series of a file that holds several, a CSV's unusual dialect."""
+        candidates = meta.get("candidates") or []
+        if len(candidates) > 1:
+            self.notes.append(f"{path.name}: read {meta['variable']!r} of {', '.join(candidates)} (choose with "
+                              "--variable)")
+        dialect = meta.get("csv") or {}
+        said = ["decimal comma" if dialect.get("decimal") == "," else "",
+                "a trailing delimiter dropped" if dialect.get("trailing_delimiter") else ""]
+        if any(said):
+            self.notes.append(f"{path.name}: read as {dialect['delimiter']!r}-separated, "
+                              + ", ".join(x for x in said if x))
 
     def _counts(self, path: Path, block: np.ndarray, src_rate: float) -> np.ndarray:
         """Resample and scale steps: one block as uint16 counts at the import's one output rate."""
@@ -489,7 +597,7 @@ class _Import:
         elif not math.isclose(self.out_rate, rate, rel_tol=1e-9):
             raise RecordingImportError(f"{path}: {rate:g} Hz, earlier files are {self.out_rate:g} Hz: give --resample")
         counts, clipped = to_counts(x, o.adc_bits, volts_ref=o.volts_ref, scale=o.scale, offset=o.offset,
-                                    clip=bool(o.resample_hz), where=str(path))
+                                    clip=bool(o.resample_hz) or self.regridded, where=str(path))
         self.n_clipped += clipped
         return counts
 
@@ -623,6 +731,8 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
                                      attrs=run.session_attrs(),
                                      rig_config={"source": "rigctl import", "sensor": layout.to_dict()},
                                      protocol_name="import", overwrite=overwrite, progress=progress)
-    summary.update(steps=run.steps, segments=run.rows, warnings=outlier_warnings(run.rows) + run.notes,
+    summary.update(steps=run.steps, segments=run.rows,
+                   warnings=outlier_warnings(run.rows) + run.notes,
+                   label_ranges=label_ranges(t.labels for t in run.trials),
                    refused=run.steps.get("refused", []))
     return summary

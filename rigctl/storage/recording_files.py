@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["RecordingImportError", "FORMATS", "NAN_POLICIES", "read_recording_file", "fill_nan"]
+__all__ = ["RecordingImportError", "FORMATS", "NAN_POLICIES", "read_recording_file", "fill_nan", "check_whole_counts"]
 
 #: extension -> format name
 FORMATS = {".csv": "csv", ".txt": "csv", ".tsv": "csv", ".npy": "npy", ".npz": "npz", ".mat": "mat",
@@ -57,30 +57,80 @@ def _as_blocks(arr: np.ndarray, channels: int | None, where: str) -> list[np.nda
 
 
 _TIME_NAME = re.compile(r"^(time|timestamp|timestamps|t|time_s|time_ms|seconds)$", re.I)
+#: a number written with a decimal comma (``1,73``): the CSV dialect of ``;``-separated files in much of Europe
+_DECIMAL_COMMA = re.compile(r"^[-+]?\d+,\d+(?:[eE][-+]?\d+)?$")
 
 
-def _sniff_delimiter(line: str) -> str | None:
-    for d in (",", ";", "\t"):
-        if d in line:
-            return d
-    return None
+def _sniff_dialect(line: str) -> tuple[str | None, str]:
+    """(delimiter, decimal mark) of a CSV from its first line: tab, ``;`` (with a decimal comma when its cells are
+    written ``1,5``), ``,``, or None for whitespace."""
+    if "\t" in line:
+        return "\t", "."
+    if ";" in line:
+        cells = [c.strip().strip('"') for c in line.split(";")]
+        return ";", "," if any(_DECIMAL_COMMA.match(c) for c in cells) else "."
+    if "," in line:
+        return ",", "."
+    return None, "."
 
 
-def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, time_column: Any) -> np.ndarray:
-    with open(path, encoding="utf-8-sig") as fh:
-        first = fh.readline()
-    delim = _sniff_delimiter(first)
-    cells = [c.strip().strip('"') for c in (first.split(delim) if delim else first.split())]
+def _csv_rows(path: Path) -> tuple[list[str], str | None, str, dict[str, Any]]:
+    """The CSV's non-empty lines, its delimiter, decimal mark and dialect record (named in the import steps)."""
     try:
-        [float(c) for c in cells]
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise RecordingImportError(f"{path}: not a text CSV (not UTF-8)") from None
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    if not lines:
+        raise RecordingImportError(f"{path}: an empty CSV")
+    delim, decimal = _sniff_dialect(lines[0] if len(lines) == 1 else lines[1])
+    dialect: dict[str, Any] = {"delimiter": {None: "whitespace", "\t": "tab"}.get(delim, delim), "decimal": decimal}
+    if delim is not None:
+        trailing = [ln.rstrip().endswith(delim) for ln in lines]
+        if all(trailing[1:]) and trailing[1:]:  # every data row ends in the delimiter: an empty last column
+            lines = [ln.rstrip()[:-1] if ln.rstrip().endswith(delim) else ln.rstrip() for ln in lines]
+            dialect["trailing_delimiter"] = "dropped (every row ended in it: an empty last column)"
+        elif any(trailing[1:]):
+            n = sum(trailing[1:])
+            raise RecordingImportError(f"{path}: {n} of {len(lines) - 1} rows end in the delimiter "
+                                       f"{dialect['delimiter']!r}, the others do not: ragged rows; fix the file")
+    return lines, delim, decimal, dialect
+
+
+def _cells(line: str, delim: str | None) -> list[str]:
+    return [c.strip().strip('"') for c in (line.split(delim) if delim else line.split())]
+
+
+def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, time_column: Any
+              ) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """(channels (n, c), the time column in seconds or None, the format record: dialect, columns, time column)."""
+    lines, delim, decimal, dialect = _csv_rows(path)
+    first = _cells(lines[0], delim)
+
+    def number(c: str) -> float:
+        return float(c.replace(",", ".") if decimal == "," else c)
+
+    try:
+        [number(c) for c in first]
         header = None
     except ValueError:
-        header = cells
+        header = first
+    rows = lines[1:] if header else lines
+    if not rows:
+        raise RecordingImportError(f"{path}: a header and no rows")
+    widths = {len(_cells(ln, delim)) for ln in (rows[0], rows[-1], rows[len(rows) // 2])}
+    if header is not None:
+        widths.add(len(header))
+    if len(widths) > 1:
+        raise RecordingImportError(f"{path}: rows of {', '.join(map(str, sorted(widths)))} cells (delimiter "
+                                   f"{dialect['delimiter']!r}): ragged rows; fix the file")
+    if decimal == ",":
+        rows = [ln.replace(",", ".") for ln in rows]
     try:
-        data = np.loadtxt(path, delimiter=delim, skiprows=1 if header else 0, ndmin=2, dtype=np.float64,
-                          encoding="utf-8-sig")
+        data = np.loadtxt(rows, delimiter=delim, ndmin=2, dtype=np.float64, quotechar='"')
     except ValueError as exc:
-        raise RecordingImportError(f"{path}: not a numeric CSV ({exc})") from None
+        raise RecordingImportError(f"{path}: not a numeric CSV ({exc}; delimiter {dialect['delimiter']!r}, decimal "
+                                   f"{decimal!r})") from None
 
     def index(col: Any) -> int:
         if isinstance(col, int) or (isinstance(col, str) and col.isdigit() and (header is None or col not in header)):
@@ -92,37 +142,52 @@ def _read_csv(path: Path, channels: int | None, columns: Sequence[Any] | None, t
             raise RecordingImportError(f"{path}: no column {col!r} (header: {header})")
         return header.index(col)
 
+    time_i = index(time_column) if time_column is not None else None
+    if time_i is None and header is not None:  # a time column named as such is not a taxel, and gives the times
+        named = [i for i, name in enumerate(header) if _TIME_NAME.match(name)]
+        time_i = named[0] if named else None
     if columns:
         keep = [index(c) for c in columns]
+        if time_i is not None and time_i in keep:
+            raise RecordingImportError(f"{path}: column {columns[keep.index(time_i)]!r} is both a channel "
+                                       "(--columns) and the time column")
     else:
-        skip = {index(time_column)} if time_column is not None else set()
-        if time_column is None and header is not None:  # a time column named as such is not a taxel
-            skip |= {i for i, name in enumerate(header) if _TIME_NAME.match(name)}
-        keep = [i for i in range(data.shape[1]) if i not in skip]
+        keep = [i for i in range(data.shape[1]) if i != time_i]
     out = data[:, keep]
     if channels is not None and out.shape[1] != channels:
         raise RecordingImportError(f"{path}: {out.shape[1]} channel columns, but --channels {channels} (one column "
-                                   "per channel; pick columns with 'columns' / 'time_column' in the mapping)")
-    return out
+                                   "per channel; pick them with --columns and --time-column)")
+    times = None
+    meta: dict[str, Any] = {"csv": dialect, "columns": [header[i] if header else i for i in keep]}
+    if time_i is not None:
+        name = header[time_i] if header else str(time_i)
+        scale = 1e-3 if name.lower().endswith("_ms") else 1.0
+        times = data[:, time_i] * scale
+        meta["time_column"] = {"column": name, "unit": "ms" if scale != 1.0 else "s"}
+    return out, times, meta
 
 
-def _pick(arrays: Mapping[str, Any], variable: str | None, where: str) -> np.ndarray:
+def _pick(arrays: Mapping[str, Any], variable: str | None, where: str) -> tuple[np.ndarray, str, list[str]]:
+    """(the array, its name, the names of every numeric array): ``variable``'s, else the only one, else one named
+    taxels/data/signals/readings, else the largest (named in the import's notes with the others)."""
     numeric = {k: v for k, v in arrays.items() if not k.startswith("__") and isinstance(v, np.ndarray)
                and v.dtype.kind in "biuf" and v.size > 1}
+    names = sorted(numeric)
     if variable is not None:
         if variable not in arrays:
-            raise RecordingImportError(f"{where}: no variable {variable!r} (has: {', '.join(sorted(numeric))})")
-        return np.asarray(arrays[variable])
+            raise RecordingImportError(f"{where}: no variable {variable!r} (has: {', '.join(names)})")
+        return np.asarray(arrays[variable]), variable, names
     if not numeric:
         raise RecordingImportError(f"{where}: no numeric array in the file")
     if len(numeric) > 1:
         for name in ("taxels", "data", "signals", "readings"):
             if name in numeric:
-                return numeric[name]
-    return max(numeric.values(), key=lambda a: a.size)
+                return numeric[name], name, names
+    name = max(numeric, key=lambda k: numeric[k].size)
+    return numeric[name], name, names
 
 
-def _read_mat(path: Path, variable: str | None) -> np.ndarray:
+def _read_mat(path: Path, variable: str | None) -> tuple[np.ndarray, str, list[str]]:
     import scipy.io
 
     try:
@@ -134,8 +199,8 @@ def _read_mat(path: Path, variable: str | None) -> np.ndarray:
             found: dict[str, Any] = {}
             f.visititems(lambda name, obj: found.__setitem__(name, obj) if isinstance(obj, h5py.Dataset) else None)
             arrays = {k: v[()] for k, v in found.items() if not k.startswith("#")}
-        arr = _pick(arrays, variable, str(path))
-        return np.asarray(arr).T  # MATLAB stores column-major: h5py sees the transpose
+        arr, name, names = _pick(arrays, variable, str(path))
+        return np.asarray(arr).T, name, names  # MATLAB stores column-major: h5py sees the transpose
     except ValueError as exc:
         if isinstance(exc, RecordingImportError):
             raise
@@ -160,15 +225,20 @@ def _read_nwb(path: Path, variable: str | None) -> tuple[np.ndarray, float | Non
             ts = series[variable]
         elif "taxels" in series:  # a file rigctl exported (rigctl.storage.nwb)
             ts = series["taxels"]
+        elif len(series) == 1:
+            ts = next(iter(series.values()))
         elif series:
-            ts = series[sorted(series)[0]]
+            shown = ", ".join(f"{k} {tuple(v.data.shape)}" for k, v in sorted(series.items()))
+            raise RecordingImportError(f"{path}: {len(series)} TimeSeries ({shown}) and none named taxels: choose "
+                                       "the taxels' with --variable NAME")
         else:
             raise RecordingImportError(f"{path}: no TimeSeries in the NWB file's acquisition")
         data = np.asarray(ts.data[()], dtype=np.float64)
         rate = ts.rate
         if rate is None and ts.timestamps is not None and len(ts.timestamps) > 1:
             rate = 1.0 / float(np.median(np.diff(np.asarray(ts.timestamps[()]))))
-        meta = {"timeseries": ts.name, "unit": ts.unit, "conversion": float(ts.conversion)}
+        meta = {"timeseries": ts.name, "variable": ts.name, "candidates": sorted(series), "unit": ts.unit,
+                "conversion": float(ts.conversion)}
         if rate and nwb.trials is not None and ts.name == "taxels":
             meta["trials"] = _nwb_trials(nwb.trials.to_dataframe(), float(ts.starting_time or 0.0), float(rate),
                                          data.shape[0])
@@ -196,8 +266,8 @@ def _nwb_trials(table: Any, start_s: float, rate: float, n: int) -> list[dict[st
 
 
 def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = None, variable: str | None = None,
-                        columns: Sequence[Any] | None = None, time_column: Any = None, nan: str = "refuse"
-                        ) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
+                        columns: Sequence[Any] | None = None, time_column: Any = None, nan: str = "refuse",
+                        whole_counts: bool = False) -> tuple[list[np.ndarray], float | None, dict[str, Any]]:
     """Read one recording file.
 
     Returns
@@ -206,7 +276,8 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     rate_hz : float or None, the rate the file itself states (NWB), else None
     meta : dict, format details for the session's attributes (``nan``: the policy and the values it filled)
 
-    ``nan`` is the NaN policy (:func:`fill_nan`: refuse, hold, interpolate).
+    ``nan`` is the NaN policy (:func:`fill_nan`: refuse, hold, interpolate). ``whole_counts``: readings that are
+    not whole numbers are refused (:func:`check_whole_counts`, before NaN samples are filled).
 
     Raises
     ------
@@ -222,7 +293,10 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     rate = None
     meta: dict[str, Any] = {"format": fmt}
     if fmt == "csv":
-        arr = _read_csv(path, channels, columns, time_column)
+        arr, times, csv_meta = _read_csv(path, channels, columns, time_column)
+        meta.update(csv_meta)
+        if times is not None:
+            meta["time_s"] = times
     elif fmt == "npy":
         try:
             arr = np.load(path, allow_pickle=False)
@@ -231,11 +305,11 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
     elif fmt == "npz":
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-        arr = _pick(arrays, variable, str(path))
+        arr, meta["variable"], meta["candidates"] = _pick(arrays, variable, str(path))
         if "rate_hz" in arrays and np.asarray(arrays["rate_hz"]).size == 1:
             rate = float(arrays["rate_hz"])
     elif fmt == "mat":
-        arr = _read_mat(path, variable)
+        arr, meta["variable"], meta["candidates"] = _read_mat(path, variable)
     elif fmt == "xdf":
         from rigctl.storage.xdf import read_xdf
 
@@ -256,9 +330,25 @@ def read_recording_file(path: str | os.PathLike[str], *, channels: int | None = 
         if np.isinf(b).any():
             raise RecordingImportError(f"{path}: holds infinite values (at samples "
                                        f"{_first_rows(np.isinf(b))}); fix the file")
+    if whole_counts:
+        for b in blocks:
+            check_whole_counts(b, str(path))
     filled = [fill_nan(b, nan, str(path)) for b in blocks]
     meta["nan"] = {"policy": nan, "samples": sum(n for _, n in filled)}
     return [b for b, _ in filled], rate, meta
+
+
+def check_whole_counts(x: np.ndarray, where: str) -> None:
+    """Refuse readings that are not whole ADC counts (volts, values normalised to 0..1) unless the user said how to
+    map them: rounding them to counts would change the data without a word (1.73 V -> 2)."""
+    finite = x[np.isfinite(x)]
+    frac = finite != np.rint(finite)
+    if frac.any():
+        v = float(finite[frac][0])
+        raise RecordingImportError(
+            f"{where}: values are not whole ADC counts ({v:g}; range {finite.min():g}..{finite.max():g}): rigctl "
+            "stores counts and will not round them silently; give --volts-ref V if they are volts, or --scale S "
+            "--offset O to map them to counts (counts = x * S + O, then rounded)")
 
 
 #: what ``--nan`` may say: refuse (default), hold the last good sample, interpolate linearly between good samples

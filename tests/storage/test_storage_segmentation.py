@@ -144,7 +144,7 @@ def test_threshold_at_each_files_own_level(recordings, tmp_path):
 def test_a_file_without_cycles_is_named(tmp_path):
     rng = np.random.default_rng(1)
     p = tmp_path / "flat__R0.npy"
-    np.save(p, 500 + rng.normal(0, 2, (3000, 9)))
+    np.save(p, np.rint(500 + rng.normal(0, 2, (3000, 9))))  # whole counts (fractions are refused)
     r = run_import(p, "--rate", 100, "--label-pattern", PATTERN, "--segment", "cycles", "--out", tmp_path / "s.h5")
     assert r.exit_code == 1 and "Traceback" not in r.output and "flat__R0.npy" in r.output
     assert not (tmp_path / "s.h5").exists()
@@ -166,7 +166,7 @@ def test_skip_bad_names_every_refused_file_and_imports_the_rest(tmp_path):
     option the first bad file stops the import (issue 38). A long file imported whole gets the hint to segment it."""
     truth = write_press_slide_set(tmp_path, DEFAULT_SET_SHORT, nan=False)
     rng = np.random.default_rng(1)
-    np.save(tmp_path / "flat__R7.npy", 500 + rng.normal(0, 2, (3000, 9)))
+    np.save(tmp_path / "flat__R7.npy", np.rint(500 + rng.normal(0, 2, (3000, 9))))  # whole counts (fractions are refused)
     nan = np.load(truth[0].path)
     nan[100:110] = np.nan
     np.save(tmp_path / "felt__R8.npy", nan)
@@ -247,7 +247,7 @@ def test_a_clearly_periodic_file_passes_the_noise_rule_and_min_swing_sets_it(tmp
         assert len(s.completed_ids()) == 40
         assert json.loads(s.attrs["segmentation"])["min_swing"] == 10.0
     rng = np.random.default_rng(2)
-    np.save(tmp_path / "flat__R1.npy", 500 + rng.normal(0, 2, (3000, 9)))
+    np.save(tmp_path / "flat__R1.npy", np.rint(500 + rng.normal(0, 2, (3000, 9))))  # whole counts (fractions are refused)
     r = run_import(tmp_path / "flat__R1.npy", *common, "--out", tmp_path / "b.h5")
     assert r.exit_code == 1 and "--min-swing (now 10)" in r.output
     r = run_import(tmp_path / "faint__R0.npy", *common, "--min-swing", 4, "--out", tmp_path / "c.h5")
