@@ -47,7 +47,9 @@ from pymodbus.pdu import ExceptionResponse
 
 from rigctl.core import drum as core_drum
 from rigctl.core.drum import DrumLimits, ForceLoopConfig, SettleBand
+from rigctl.core.shared_clock import SharedClock, clock_of_port
 from rigctl.devices import wire
+from rigctl.devices.clocked_serial import ClockedSerialClient
 from rigctl.devices.errors import (
     DrumContactTooStiff,
     DrumError,
@@ -283,7 +285,9 @@ class DrumClient:
     clock : object or None
         ``now() -> s`` and ``sleep(s)`` used by the ``wait_*`` polls and the bootloader waits (default:
         ``time.monotonic`` / ``time.sleep``); the in-process backend passes its simulated clock, so a wait advances
-        simulated time, not wall time.
+        simulated time, not wall time. A simulated rig on ports passes its shared clock
+        (:class:`rigctl.core.shared_clock.SharedClock`): then the answer timeout ``timeout_s`` is of that clock too
+        (:mod:`rigctl.devices.clocked_serial`), and every request is a sign of the host's life.
     boot_wait_s : float or None
         Silence after every open of the port, s (module doc): None = :data:`MEGA_BOOT_WAIT_S` if opening the port
         resets the board (:func:`resets_on_open`: a serial device), 0 for a pseudo-terminal.
@@ -332,7 +336,8 @@ class DrumClient:
         self.retries = retries
         self.poll_s = poll_s
         self._lock = threading.RLock()
-        self.clock = clock or _WallClock()
+        # a simulated rig's port in this process is on that rig's clock (rigctl.core.shared_clock)
+        self.clock = clock or (clock_of_port(port) if transport is None else None) or _WallClock()
         self.stale_responses = 0
         self.timeouts = 0
         self.fences = 0
@@ -350,10 +355,13 @@ class DrumClient:
         self._unsettled = False  # answers to earlier requests may still arrive: fence before the next request
         self._fence_used: list[int] = []  # fence counts sent since the link was last settled
         self._rx = b""  # the bytes of the last response pymodbus decoded (its trace_packet hook)
-        self._client = transport if transport is not None else ModbusSerialClient(
+        # on a simulated rig the answer timeout is of the rig's shared clock (rigctl.devices.clocked_serial)
+        serial_options: dict[str, Any] = {"clock": self.clock} if isinstance(self.clock, SharedClock) else {}
+        self._client = transport if transport is not None else (
+            ClockedSerialClient if serial_options else ModbusSerialClient)(
             port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8, parity="N", stopbits=1,
             timeout=timeout_s, retries=0, reconnect_delay=0.1, reconnect_delay_max=1.0,
-            trace_packet=self._trace_packet,
+            trace_packet=self._trace_packet, **serial_options,
         )
 
     # ------------------------------------------------------------------ lifecycle
@@ -585,7 +593,7 @@ class DrumClient:
             return False, None
         frames = self._frames(self._rx)
         echo = None
-        deadline = time.monotonic() + self.timeout_s
+        deadline = self.clock.now() + self.timeout_s
         while True:
             settled, got = self._sort_out(frames, pending, fence)
             echo = got or echo
@@ -594,7 +602,7 @@ class DrumClient:
                 self._fence_used.clear()
                 self._unanswered = 0
                 return True, echo
-            if time.monotonic() >= deadline:
+            if self.clock.now() >= deadline:
                 self.timeouts += 1
                 self._unanswered += 1
                 return False, echo

@@ -35,6 +35,7 @@ import numpy as np
 import serial
 
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
+from rigctl.core.shared_clock import clock_of_port
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
@@ -163,6 +164,9 @@ def layout_from_banner(banner: dict[str, Any]) -> SensorLayout:
 #: its 10 Hz drum poll: 20 ms 2.95-3.03 %, 25 ms 2.72-2.87 %, 30 ms 2.13 % of a core; stamp residual p50 0.22-0.42 ms,
 #: p99 1.2-2.4 ms at every period)
 READ_PERIOD_S = 0.025
+#: the longest wall-clock step of a wait on the stream's clock, s (a simulated rig's clock may move slower than the
+#: wall's, or faster)
+_WAIT_STEP_S = 0.05
 
 
 
@@ -224,13 +228,19 @@ class TaxelStream:
         The reader's period, s (default :data:`READ_PERIOD_S`): frames reach the ring at most this late.
     start_timeout_s : float
         After :meth:`start`, how long to wait for the first frame of the new stream before sending START again, s.
+    clock : object or None
+        The clock of the receive stamps, timeouts and waits (``now() -> s``): the host's monotonic clock (None), or
+        a simulated rig's shared clock (:class:`rigctl.core.shared_clock.SharedClock`: the drum client's, so frames
+        and drum statuses share one time; every read and write is then a sign of the host's life).
     """
 
     def __init__(self, port: str, *, baudrate: int = wire.TAXEL_BAUD, ring_seconds: float = 30.0,
                  banner_timeout_s: float = 3.0, on_error: Any = None, reconnect: bool = True,
                  read_timeout_s: float = READ_PERIOD_S,
-                 start_timeout_s: float = 1.0) -> None:
+                 start_timeout_s: float = 1.0, clock: Any = None) -> None:
         self.port = port
+        # a simulated rig's port in this process is on that rig's clock (rigctl.core.shared_clock)
+        self.clock = clock if clock is not None else clock_of_port(port)
         self._identity = PortIdentity(port)  # reopens go to this board, by USB serial number
         self.baudrate = baudrate
         self.banner_timeout_s = banner_timeout_s
@@ -271,6 +281,16 @@ class TaxelStream:
         #: the stream's chunks of the last ENVELOPE_S: (host time, running frame count) of each chunk's newest frame
         self._envelope: collections.deque[tuple[float, int]] = collections.deque()
         self._envelope_seq = 0  # the sequence number of the newest frame in it
+
+    def _now(self) -> float:
+        """The stream's clock, s: :attr:`clock`'s, else the host's monotonic clock."""
+        return float(self.clock.now()) if self.clock is not None else time.monotonic()
+
+    def _touch(self) -> None:
+        """A read or a write: a sign of the host's life on a shared clock."""
+        touch = getattr(self.clock, "touch", None)
+        if touch is not None:
+            touch()
 
     # ------------------------------------------------------------------ context manager
     def __enter__(self) -> "TaxelStream":
@@ -339,9 +359,9 @@ class TaxelStream:
         return ser
 
     def _wait_banner(self, ser: serial.Serial) -> dict[str, Any]:
-        deadline = time.monotonic() + self.banner_timeout_s
+        deadline = self._now() + self.banner_timeout_s
         buf = b""
-        while time.monotonic() < deadline:
+        while self._now() < deadline:
             buf += ser.read(max(1, ser.in_waiting))
             idx = buf.find(wire.UNO_BANNER_PREFIX.encode())
             if idx >= 0:
@@ -381,6 +401,7 @@ class TaxelStream:
             ser = self._serial
             if ser is None or not self._stats.connected:
                 raise TaxelStreamError(f"taxel streamer on {self.port} is not connected")
+            self._touch()
             ser.write(data)
 
     def identify(self, timeout_s: float = 1.0) -> dict[str, Any]:
@@ -393,9 +414,9 @@ class TaxelStream:
         while not self._lines.empty():
             self._lines.get_nowait()
         self._write(wire.UnoCommand.IDENTIFY.value)
-        deadline = time.monotonic() + timeout_s
+        deadline = self._now() + timeout_s
         while True:
-            left = deadline - time.monotonic()
+            left = deadline - self._now()
             if left <= 0:
                 raise TaxelStreamError(f"no identity reply from the taxel streamer on {self.port} in {timeout_s:g} s")
             try:
@@ -417,7 +438,7 @@ class TaxelStream:
     def _start(self, *, board_reset: bool) -> None:
         """Send START; ``board_reset``: the board has just booted (a reopened port), no earlier frames can follow."""
         with self._lock:
-            now = time.monotonic()
+            now = self._now()
             recent = self._last_frame_time is not None and now - self._last_frame_time < _QUIET_S
             self._stale_possible = not board_reset and (self._streaming or recent)
             self._old_seq, self._old_time = self._tracker.last_seq, self._last_frame_time or now
@@ -431,7 +452,7 @@ class TaxelStream:
         with self._lock:
             if not (self._streaming and self._await_start and self._stats.connected):
                 return
-            self._t_start_sent = time.monotonic()
+            self._t_start_sent = self._now()
             self._stats.start_retries += 1
         log.warning("taxel streamer on %s: no frame of the new stream %.1f s after START; sending START again",
                     self.port, self.start_timeout_s)
@@ -463,13 +484,13 @@ class TaxelStream:
 
     def wait_capture(self, n_frames: int, timeout_s: float) -> bool:
         """Block until the running capture holds at least ``n_frames`` frames; False on timeout."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self._now() + timeout_s
         with self._capture_event:
             while self._capture is not None and self._capture_count < n_frames:
-                left = deadline - time.monotonic()
+                left = deadline - self._now()
                 if left <= 0:
                     return False
-                self._capture_event.wait(left)
+                self._capture_event.wait(min(left, _WAIT_STEP_S))
             return self._capture is not None
 
     def capture_flag_index(self, mask: int) -> int | None:
@@ -493,7 +514,7 @@ class TaxelStream:
             if self._gap_pending and self._loss_in_capture and self._last_frame_time is not None:
                 # the port vanished during the capture and the stream has not come back yet: the frames due
                 # until now are lost
-                dropped += max(0, int((time.monotonic() - self._last_sent_s()) * self._layout.sample_rate_hz))
+                dropped += max(0, int((self._now() - self._last_sent_s()) * self._layout.sample_rate_hz))
             self._loss_in_capture = False
             crc = self._stats.crc_errors - self._capture_crc_base
         if parts:
@@ -511,7 +532,7 @@ class TaxelStream:
             s = StreamStats(**vars(self._stats))
             if len(self._rate) >= 2:
                 (t0, n0), (t1, n1) = self._rate[0], self._rate[-1]
-                now = time.monotonic()
+                now = self._now()
                 # the window reaches back to the last chunk received a second ago or more, so it spans a second or
                 # more: begun at the first chunk inside the last second, a window after a stall of the reader could
                 # hold just two chunks of the backlog read ms apart (15,000 frames/s read from a 1 kHz stream)
@@ -546,9 +567,10 @@ class TaxelStream:
                     break
                 continue
             if data:
-                self._handle(data, time.monotonic())
+                self._touch()
+                self._handle(data, self._now())
             if self._await_start and self._streaming and \
-                    time.monotonic() - self._t_start_sent > self.start_timeout_s:
+                    self._now() - self._t_start_sent > self.start_timeout_s:
                 self._retry_start()
             # a chunk of more than two read periods of frames: the reader is behind (a stall on a loaded host);
             # read on at once, or the backlog drains at one tty buffer (4 KiB) per period, barely faster than the

@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from rigctl.core.faults import FaultSchedule, FaultSpec
+from rigctl.core.shared_clock import SharedClock
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices.backend import PortBackend
 from rigctl.devices.drum import DrumClient
@@ -73,13 +74,23 @@ class PtyRigBackend(PortBackend):
         return self
 
     def drum(self, **options: Any) -> DrumClient:
-        """The drum client; on a simulated board that runs its real bootloader (``HilRig(bootloaders=True)``), one
-        that waits the boot window out after every open (the rig's ``drum_boot_wait_s`` / ``drum_boot_quiet_s``),
-        timed on the board's own simulated clock: a pty gives no sign that the board resets on open."""
+        """The drum client, on the rig's :attr:`shared_clock`; on a simulated board that runs its real bootloader
+        (``HilRig(bootloaders=True)``), one that waits the boot window out after every open (the rig's
+        ``drum_boot_wait_s`` / ``drum_boot_quiet_s``), timed on the board's own simulated clock: a pty gives no sign
+        that the board resets on open."""
         if getattr(self.sim, "drum_boot_wait_s", 0.0):
             options = {"boot_wait_s": self.sim.drum_boot_wait_s, "boot_quiet_s": self.sim.drum_boot_quiet_s,
                        "clock": self.sim.clock, **options}
+        if self.shared_clock is not None:
+            options = {"clock": self.shared_clock, **options}
         return super().drum(**options)
+
+    @property
+    def shared_clock(self) -> SharedClock | None:
+        """The rig's one clock (docs/architecture.md "Time on a simulated rig"), which the drum client and the taxel
+        stream time their waits, timeouts and receive stamps on; None on a rig without one."""
+        clock = getattr(self.sim, "clock", None)
+        return clock if isinstance(clock, SharedClock) else None
 
     def taxels(self, **options: Any) -> TaxelStream:
         """The taxel stream reader, waiting ``sim.taxel_banner_timeout_s`` for the banner where the rig gives one (a
@@ -87,6 +98,8 @@ class PtyRigBackend(PortBackend):
         timeout = getattr(self.sim, "taxel_banner_timeout_s", None)
         if timeout:
             options = {"banner_timeout_s": timeout, **options}
+        if self.shared_clock is not None:
+            options = {"clock": self.shared_clock, **options}
         return super().taxels(**options)
 
     def __exit__(self, *exc) -> None:

@@ -35,6 +35,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +117,17 @@ class MegaController:
         build without one (a plain make, the Arduino IDE); ValueError for anything else.
     """
 
+    #: the clock the host-silence watchdog judges, s: the wall clock, or the simulated rig's shared clock
+    #: (:meth:`use_clock`)
+    _now: Callable[[], float] = staticmethod(time.monotonic)
+
+    def use_clock(self, now: Callable[[], float]) -> None:
+        """Judge the host-silence watchdog on ``now()`` (s; the simulated rig's shared clock, on which a starved host
+        is never silent: docs/architecture.md), from now on."""
+        with self._lock:
+            self._now = now
+            self._last_request = now()
+
     def __init__(self, model: RigModel, *, eeprom_path=None, factory_calibrated: bool = False):
         self.model = model
         self.eeprom_path = Path(eeprom_path) if eeprom_path else None
@@ -172,7 +184,7 @@ class MegaController:
         self.homed, self.tared = False, False
         self._tare_pending, self._tare_raw = True, 0  # taken at the first reading, only with the home switch closed
         self._steps_true_mm = 0.0  # the actuator's step count (in true mm of its lead screw): 0 wherever it stands
-        self._last_request = time.monotonic()
+        self._last_request = self._now()
         self._heartbeat_ms, self._run_t0, self._integ = 0, 0.0, 0.0
         self._pi_out = 0.0  # actuator velocity the force loop set at the last reading, mm/s
         self._on_target_ms = 0
@@ -291,7 +303,7 @@ class MegaController:
         """A valid request to device 1 arrived: count it and feed the host-silence watchdog."""
         with self._lock:
             self.requests += 1
-            self._last_request = time.monotonic()  # any valid request feeds the watchdog
+            self._last_request = self._now()  # any valid request feeds the watchdog
 
     def read_registers(self, func_code: int, address: int, count: int):
         """Function 03 (holding) / 04 (input): a list of ``count`` raw uint16 values, or a pymodbus ``ExcCodes``."""
@@ -311,7 +323,7 @@ class MegaController:
         return self.state != DrumState.FAULT and (self.state in _ENGAGED or turning)
 
     def _watchdog_due(self) -> bool:
-        return self._watchdog_guards() and time.monotonic() - self._last_request > self.holding[HR.WATCHDOG_MS] / 1000.0
+        return self._watchdog_guards() and self._now() - self._last_request > self.holding[HR.WATCHDOG_MS] / 1000.0
 
     def host_silent_for(self, silent_s: float) -> bool:
         """The host watchdog on the caller's clock (in-process injected silence): WATCHDOG after > WATCHDOG_MS."""

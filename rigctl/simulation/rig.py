@@ -28,6 +28,7 @@ import numpy as np
 
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import SensorLayout
+from rigctl.core.shared_clock import SharedClock
 from rigctl.simulation.faults import ModelFaults
 from rigctl.simulation.model import RigConfig, RigModel
 from rigctl.simulation.priority import board_thread
@@ -35,7 +36,8 @@ from rigctl.simulation.pty import PortDir
 from rigctl.simulation.source_pacer import SourcePacer, source_layout
 from rigctl.simulation.truth import TruthLog
 from rigctl.simulation.virtual_mega import VirtualMega
-from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
+from rigctl.simulation.virtual_uno import VirtualUno
+from rigctl.simulation.world_loop import WorldLoop
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +76,10 @@ class SimulatedRig:
         Period of the physics thread while the Uno streams, s (frames go out in batches of about this length;
         :data:`STREAM_TICK_S`); :data:`IDLE_TICK_S` while it does not.
     uno_reset_delay_s : float
-        Boot time of the virtual Uno after a client opens its port.
+        Boot time of the virtual Uno after a client opens its port (simulated s).
+    paced : bool
+        Run the boards no faster than the wall clock (True: a person watching, live views, LSL) or as fast as the
+        CPU and the host allow (False). Either way the host and the boards share :attr:`clock`.
 
     Attributes
     ----------
@@ -83,10 +88,15 @@ class SimulatedRig:
     model : RigModel
     mega : VirtualMega
     uno : VirtualUno
+    clock : SharedClock
+        The rig's one clock (the model's simulated time; docs/architecture.md "Time on a simulated rig"): the host's
+        drum client and taxel stream time their waits and timeouts on it and grant the boards how far they may run;
+        the Mega's watchdog and the Uno's boot judge it. A starved host pauses the whole rig.
     """
 
     def __init__(self, config: RigConfig | None = None, *, seed: int = 0, source=None, port_dir=None,
-                 tick_s: float = STREAM_TICK_S, uno_reset_delay_s: float = 0.25, truth_log=None):
+                 tick_s: float = STREAM_TICK_S, uno_reset_delay_s: float = 0.25, truth_log=None,
+                 paced: bool = True):
         self.config = config or RigConfig()
         #: the ground truth as CSV (``truth_log``: a path; rigctl.simulation.truth), from :meth:`truth_start` on
         self.truth = TruthLog(truth_log) if truth_log is not None else None
@@ -105,6 +115,12 @@ class SimulatedRig:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self.mega.on_write = self._wake
+        self.paced = bool(paced)
+        self.clock = SharedClock(self.model_time_s, on_grant=self._granted, world_notifies=True)
+        self._loop = WorldLoop(self.clock, self._now_ms, self._step, paced=self.paced, tick_s=self.tick_s,
+                               idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r)
+        self.mega.use_clock(self.model_time_s)
+        self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None
         self.step_errors = 0
 
@@ -121,6 +137,13 @@ class SimulatedRig:
         self.faults = ModelFaults(self.mega, self.model, drum_link=self._drum_link, taxel_link=self._taxel_link)
         self.schedule: FaultSchedule | None = None
         self._added: list[FaultSchedule] = []  # add_faults'
+
+    def model_time_s(self) -> float:
+        """The rig's simulated time, s (the model's; :attr:`clock`)."""
+        return self.model.time_s
+
+    def _now_ms(self) -> int:
+        return int(round(self.model.time_s * 1000.0))
 
     def _drum_link(self, up: bool) -> None:
         (self.mega.bridge.replug if up else self.mega.bridge.unplug)()
@@ -164,9 +187,11 @@ class SimulatedRig:
         if self._thread is None:
             self.mega.start(clock=False)
             self._stop.clear()
-            self._thread = threading.Thread(target=board_thread(paced_loop), args=(self._stop, self.tick_s, self._step),
-                                            kwargs={"idle": self._idle, "idle_tick_s": max(self.tick_s, IDLE_TICK_S),
-                                                    "wake_fd": self._wake_r}, name="sim-physics", daemon=True)
+            self.clock.start()
+            self.clock.own_port(self.drum_port)
+            self.clock.own_port(self.taxel_port)
+            self._thread = threading.Thread(target=board_thread(self._loop.run), args=(self._stop,),
+                                            name="sim-physics", daemon=True)
             self._thread.start()
         return self
 
@@ -175,6 +200,12 @@ class SimulatedRig:
             os.write(self._wake_w, b"w")
         except OSError:  # full: the thread is waking anyway
             pass
+
+    def _granted(self, _horizon_s: float) -> None:
+        """The host granted more time: a world held back for it wakes (one that is not costs no wake-up)."""
+        loop = getattr(self, "_loop", None)
+        if loop is not None and loop.held:
+            self._wake()
 
     def _idle(self) -> bool:
         """Nothing to send at the next tick: the Uno does not stream."""
@@ -217,6 +248,8 @@ class SimulatedRig:
         if self._thread is not None:
             self._thread.join(timeout=3)
             self._thread = None
+        self.clock.close()
+        self.clock.release_ports()
         if self.truth is not None:
             self.truth.close()
         self.mega.on_write = None

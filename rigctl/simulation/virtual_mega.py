@@ -268,7 +268,7 @@ class VirtualMega(MegaController):
         with self._lock:
             if self._overdue_at_requests is not None:
                 return WATCHDOG_CHECK_S
-            left_s = self._last_request + self.holding[HR.WATCHDOG_MS] / 1000.0 - time.monotonic()
+            left_s = self._last_request + self.holding[HR.WATCHDOG_MS] / 1000.0 - self._now()
             if left_s <= 0.0 and not self._watchdog_guards():
                 return WATCHDOG_IDLE_CHECK_S
         return min(WATCHDOG_IDLE_CHECK_S, max(WATCHDOG_CHECK_S, left_s))
@@ -296,7 +296,7 @@ class VirtualMega(MegaController):
             overdue = False  # request bytes on their way (also those the kernel has yet to hand to the server)
         if overdue and self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on
             with self._lock:  # it, and its silence starts once the reply is out (the firmware's goes out within ms)
-                self._last_request = time.monotonic()
+                self._last_request = self._now()
             overdue = False
         with self._lock:
             if not (overdue and self._watchdog_due()):

@@ -62,6 +62,10 @@ class VirtualUno:
     :meth:`drop_sync_frames`, :meth:`stall`.
     """
 
+    #: the board's clock for its boot wait and stalls, s: the wall clock, or the simulated rig's shared clock
+    #: (:meth:`use_clock`)
+    _now: Callable[[], float] = staticmethod(time.monotonic)
+
     def __init__(self, link=None, *, reset_delay_s: float = 0.25, seed: int = 0, layout: SensorLayout | None = None):
         self.layout = layout or PAPER_SENSOR
         info = board_info(self.layout)
@@ -79,7 +83,7 @@ class VirtualUno:
         self.streaming = False
         self.seq = 0
         self._first = False
-        self._booting_until: float | None = time.monotonic()  # power-up: banner right away
+        self._booting_until: float | None = self._now()  # power-up: banner right away
         self._garbage = bytearray()
         self._corrupt_left = 0
         self._corrupt_bits = 1
@@ -94,6 +98,14 @@ class VirtualUno:
         self.stream_start_sample: int | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+
+    def use_clock(self, now: Callable[[], float]) -> None:
+        """Time the boot wait and stalls on ``now()`` (s; the simulated rig's shared clock), from now on."""
+        with self._lock:
+            self._now = now
+            if self._booting_until is not None:
+                self._booting_until = now()
+            self._stalled_until = None
 
     @property
     def path(self) -> str:
@@ -127,7 +139,7 @@ class VirtualUno:
         or sent and nothing is read, while the port stays open; then it carries on streaming where it was (its
         sequence numbers continue: the host sees silence, not a sequence gap)."""
         with self._lock:
-            self._stalled_until = time.monotonic() + float(seconds)
+            self._stalled_until = self._now() + float(seconds)
 
     # ------------------------------------------------------------------ unplug / replug
     def unplug(self) -> None:
@@ -141,7 +153,7 @@ class VirtualUno:
         with self._lock:
             self.port.replug()
             self.streaming = False
-            self._booting_until = time.monotonic() + self.reset_delay_s
+            self._booting_until = self._now() + self.reset_delay_s
 
     # ------------------------------------------------------------------ the board's loop
     def tick(self, samples: np.ndarray | int, sync_in: np.ndarray | None = None, unsent: int = 0) -> None:
@@ -168,7 +180,7 @@ class VirtualUno:
             port = self.port
             if not port.plugged:
                 return
-            now = time.monotonic()
+            now = self._now()
             if self._stalled_until is not None:
                 if now < self._stalled_until:
                     return

@@ -1,0 +1,218 @@
+"""One clock for a simulated rig: the host and the simulated boards on the boards' simulated time
+(docs/architecture.md, "Time on a simulated rig").
+
+The simulated world (the model boards' physics thread, or the simavr harnesses) owns the time; the host reads it
+(:meth:`SharedClock.now`) for its timeouts, waits and receive stamps, and *grants* the world how far it may run: the
+world never runs past :attr:`SharedClock.horizon_s`. The host's grant is
+
+- a bounded lead (:data:`LEAD_S`) past the world's time at the host's last sign of life: its last read or write
+  (:meth:`SharedClock.touch`), and a heartbeat thread of the host's process (:data:`HEARTBEAT_S`), at the host's own
+  priority: a host process that gets no CPU grants nothing, and the world pauses :data:`LEAD_S` after it;
+- the waits of the host (:meth:`SharedClock.sleep`, :meth:`SharedClock.wait_for`): a waiting host looks at the
+  world's time at each of its steps, and each look is a sign of life; but the world runs no further than
+  :data:`LEAD_S` past the deadline of a wait that has not yet returned (a waiter whose time has come but who has not
+  run yet holds the world, the way a wire would let a board run only so far ahead of a host that has yet to read).
+
+A grant is never taken back (the world may have used it), so a wait grants nothing in advance: a host blocked for
+the whole of a 2 s answer timeout is a host that keeps looking, and one starved meanwhile grants nothing.
+
+So a starved host pauses the whole simulated world: nothing it does looks late to the boards (the firmware's
+watchdog judges simulated time), and a timeout of the host judges simulated time too, so nothing the boards do looks
+late to the host. The world may be paced to the wall clock besides (a person watching) or run as fast as the CPU
+allows (tests, the fault campaign): that is the world's choice, not the clock's.
+
+No dependency but the standard library (``rigctl.core``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+
+__all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "clock_of_port"]
+
+#: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
+#: returned from, s. Short against every deadline of the host on a simulated rig (the shortest WATCHDOG_MS, 100 ms;
+#: the answer timeouts, >= 0.5 s; a taxel read period, 25 ms, plus this), long against the heartbeat (so a host that
+#: gets its CPU never holds a paced world back) and against a USB-serial link's own buffering latency (the 16 ms
+#: latency timer of an FTDI bridge)
+LEAD_S = 0.05
+#: period of the heartbeat of the host's process, s (wall clock)
+HEARTBEAT_S = 0.005
+#: wall-clock step of a host wait that polls the world's time, s
+WAIT_STEP_S = 0.0005
+#: the longest wall-clock step of a host wait on a world that tells its steps (``world_notifies``), s
+MAX_WAIT_STEP_S = 0.005
+
+
+#: the ports of the simulated rigs of this process and their clocks (:meth:`SharedClock.own_port`)
+_PORTS: dict[str, "SharedClock"] = {}
+_PORTS_LOCK = threading.Lock()
+
+
+def _port_keys(path: str) -> set[str]:
+    keys = {os.fspath(path)}
+    try:
+        keys.add(os.path.realpath(path))
+    except OSError:
+        pass
+    return keys
+
+
+def clock_of_port(path: str | os.PathLike[str]) -> "SharedClock | None":
+    """The shared clock of the simulated rig of this process whose board answers on ``path`` (its link or its
+    device), or None (a real port, or a simulated rig of another process: the wall clock)."""
+    with _PORTS_LOCK:
+        for key in _port_keys(os.fspath(path)):
+            clock = _PORTS.get(key)
+            if clock is not None:
+                return clock
+    return None
+
+
+class SharedClock:
+    """The clock the host and a simulated rig's boards share (module doc). Also a
+    :class:`rigctl.core.drum.Clock` (``now``, ``sleep``).
+
+    Parameters
+    ----------
+    world_now : callable
+        The world's simulated time, s (monotonic; thread-safe to call).
+    lead_s : float
+        :data:`LEAD_S`.
+    heartbeat_s : float or None
+        Period of the host heartbeat, s (None: no heartbeat; only reads, writes and waits grant time).
+    on_grant : callable or None
+        Called with the new horizon (s) each time it moves on (the world's wake-up: a pipe write, a shared-memory
+        store); from the host's threads.
+    world_notifies : bool
+        The world calls :meth:`moved` after each step it takes (a waiting host then wakes on it); else the host's
+        waits poll the world's time every :data:`WAIT_STEP_S`.
+
+    Attributes
+    ----------
+    horizon_s : float
+        How far the world may run, s (never moves back).
+    """
+
+    def __init__(self, world_now: Callable[[], float], *, lead_s: float = LEAD_S,
+                 heartbeat_s: float | None = HEARTBEAT_S, on_grant: Callable[[float], None] | None = None,
+                 world_notifies: bool = False) -> None:
+        self._world_now = world_now
+        self.lead_s = float(lead_s)
+        self.heartbeat_s = heartbeat_s
+        self.on_grant = on_grant
+        self._lock = threading.Lock()
+        self.world_notifies = world_notifies
+        self._moved = threading.Condition(threading.Lock())
+        self._alive_s = -math.inf  # the world's time at the host's last sign of life
+        self._waits: dict[int, float] = {}  # deadlines of the host's waits not yet returned, s
+        self._next_wait = 0
+        self.horizon_s = self.lead_s
+        self._stop = threading.Event()
+        self._heart: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ lifecycle (the heartbeat)
+    def start(self) -> "SharedClock":
+        """Start the heartbeat (idempotent); the host's process is alive from now."""
+        self.touch()
+        if self.heartbeat_s and self._heart is None:
+            self._stop.clear()
+            self._heart = threading.Thread(target=self._beat, name="shared-clock-heartbeat", daemon=True)
+            self._heart.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the heartbeat (the world then runs only on reads, writes and waits)."""
+        self._stop.set()
+        if self._heart is not None:
+            self._heart.join(timeout=2)
+            self._heart = None
+
+    def _beat(self) -> None:
+        period, stop = float(self.heartbeat_s or HEARTBEAT_S), self._stop
+        while not stop.wait(period):
+            self.touch()
+
+    # ------------------------------------------------------------------ the rig's ports
+    def own_port(self, path: str | os.PathLike[str]) -> None:
+        """``path`` (a board's port of the rig) is on this clock: a drum client or taxel stream of this process that
+        opens it without a clock of its own times itself on this one (:func:`clock_of_port`)."""
+        with _PORTS_LOCK:
+            for key in _port_keys(os.fspath(path)):
+                _PORTS[key] = self
+
+    def release_ports(self) -> None:
+        """Forget every port :meth:`own_port` gave this clock (the rig closed: the pty numbers get reused)."""
+        with _PORTS_LOCK:
+            for key in [k for k, c in _PORTS.items() if c is self]:
+                del _PORTS[key]
+
+    # ------------------------------------------------------------------ the host's side
+    def now(self) -> float:
+        """The world's simulated time, s."""
+        return float(self._world_now())
+
+    def touch(self) -> None:
+        """The host is alive now (a read or a write): the world may run :attr:`lead_s` past its time now."""
+        self._alive(self.now())
+
+    def _alive(self, t: float) -> None:
+        with self._lock:
+            if t > self._alive_s:
+                self._alive_s = t
+            self._regrant()
+
+    def sleep(self, s: float) -> None:
+        """Wait ``s`` s of simulated time (the world runs on meanwhile)."""
+        self.wait_for(None, s)
+
+    def wait_for(self, ready: Callable[[], bool] | None, timeout_s: float,
+                 wall_step_s: float = WAIT_STEP_S) -> bool:
+        """Wait until ``ready()`` (asked every ``wall_step_s`` of wall time) or until ``timeout_s`` of simulated
+        time have passed; the world may run to the deadline meanwhile. Returns whether ``ready()`` came true
+        (``ready`` None: waits the whole time, returns False)."""
+        t = self.now()
+        deadline = t + max(0.0, float(timeout_s))
+        with self._lock:
+            key = self._next_wait
+            self._next_wait += 1
+            self._waits[key] = deadline
+        try:
+            while True:
+                self._alive(t)
+                if ready is not None and ready():
+                    return True
+                t = self.now()
+                left = deadline - t
+                if left <= 0.0:
+                    return ready() if ready is not None else False
+                if self.world_notifies:  # woken by the world's next step (at most MAX_WAIT_STEP_S of wall time)
+                    with self._moved:
+                        self._moved.wait(min(MAX_WAIT_STEP_S, max(wall_step_s, left)))
+                else:
+                    time.sleep(wall_step_s)
+        finally:
+            with self._lock:
+                del self._waits[key]
+            self._alive(self.now())
+
+    # ------------------------------------------------------------------ the world's side
+    def moved(self) -> None:
+        """The world took a step (``world_notifies``): the host's waits look at its time again."""
+        if self._waits:
+            with self._moved:
+                self._moved.notify_all()
+
+    def _regrant(self) -> None:
+        """The horizon from the host's signs of life and waits (under the lock); the world told if it moved."""
+        grant = self._alive_s + self.lead_s
+        if self._waits:
+            grant = min(grant, min(self._waits.values()) + self.lead_s)
+        if grant > self.horizon_s:
+            self.horizon_s = grant
+            if self.on_grant is not None:
+                self.on_grant(grant)

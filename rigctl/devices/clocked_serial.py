@@ -1,0 +1,63 @@
+"""pymodbus' serial client with its answer wait timed on a simulated rig's shared clock
+(:class:`rigctl.core.shared_clock.SharedClock`, docs/architecture.md "Time on a simulated rig").
+
+pymodbus waits for an answer on the wall clock (``timeout`` s, then pyserial's blocking read). On a simulated rig the
+boards run on simulated time, which stands still while the host is starved: an answer timeout judged on the wall
+clock then fires although the board has had no time to answer. Here the wait is the same (data that has stopped
+growing is an answer, or ``timeout`` passes) on the shared clock, and each request is a sign of the host's life (the
+boards may run on past it by the clock's lead only).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pymodbus.client import ModbusSerialClient
+
+from rigctl.core.shared_clock import SharedClock
+
+__all__ = ["ClockedSerialClient"]
+
+
+class ClockedSerialClient(ModbusSerialClient):
+    """:class:`pymodbus.client.ModbusSerialClient` whose answer timeout (``timeout``, s) is of ``clock`` time.
+
+    Parameters: pymodbus' own, and ``clock`` (keyword): the simulated rig's shared clock."""
+
+    def __init__(self, *args: Any, clock: SharedClock, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.clock = clock
+
+    def _waiting(self) -> int:
+        """Bytes waiting on the port."""
+        return int(self.socket.in_waiting) if self.socket else 0
+
+    def send(self, request: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        self.clock.touch()
+        return super().send(request, addr)
+
+    def _wait_for_data(self) -> int:
+        """Bytes waiting once they have stopped growing (two looks in a row the same, as pymodbus' wait), or what is
+        there when ``timeout`` s of the shared clock have passed."""
+        seen = [0, False]  # bytes at the last look; whether any came
+
+        def settled() -> bool:
+            available = self._waiting()
+            if seen[1] and available == seen[0]:
+                return True
+            if available and available != seen[0]:
+                seen[0], seen[1] = available, True
+            return False
+
+        self.clock.wait_for(settled, float(self.comm_params.timeout_connect or 0.0))
+        return self._waiting()
+
+    def recv(self, size: int | None) -> bytes:
+        """What has come, up to ``size`` bytes (None: all), after :meth:`_wait_for_data`; never a blocking read
+        (pyserial's would wait on the wall clock)."""
+        if not self.socket:
+            return super().recv(size)  # (raises ConnectionException)
+        available = self._wait_for_data() if size is None or size > self._waiting() else size
+        self.clock.touch()
+        take = available if size is None else min(size, available)
+        return bytes(self.socket.read(take)) if take > 0 else b""

@@ -1,0 +1,118 @@
+"""The model boards' clock on a :class:`rigctl.core.shared_clock.SharedClock`: the simulated rig's physics thread
+advances its milliseconds no further than the host grants (the clock's horizon), and, paced, no faster than the wall
+clock (docs/architecture.md, "Time on a simulated rig").
+
+Paced, millisecond k is simulated no earlier than ``t0 + k`` ms of wall time, as :func:`rigctl.simulation.virtual_uno.
+paced_loop` does, but a world the host held back (a starved host) does not catch up the wall time it lost in a burst
+(the host would see a second of simulated time go by in a few ms of its own): the pacing starts again from where the
+world was let go. Unpaced, the world runs as fast as the CPU and the host's grants allow, in steps of at most
+``tick_s`` of simulated time (the host's reads interleave with the stream as on a wire).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import threading
+import time
+from collections.abc import Callable
+
+from rigctl.core.shared_clock import SharedClock
+
+log = logging.getLogger(__name__)
+
+#: a paced world that fell this far behind the wall clock for want of CPU of its own does not catch up in a burst, s
+MAX_CATCH_UP_S = 0.25
+#: the longest wait of a world held back by the host before it looks at the horizon again, s (a grant wakes it)
+HELD_WAIT_S = 0.005
+
+
+class WorldLoop:
+    """Runs ``step(n_ms)`` on the shared clock (module doc); :meth:`run` is the thread's body.
+
+    Parameters
+    ----------
+    clock : the shared clock (its horizon bounds the world).
+    now_ms : the world's time, ms (the model's; ``step(n)`` moves it on by ``n``).
+    step : advances the world by ``n`` ms.
+    paced : True: no faster than the wall clock; False: as fast as it may.
+    tick_s : period of the steps while busy (``idle()`` False), s of wall time paced, of simulated time unpaced.
+    idle, idle_tick_s : after a step for which ``idle()`` is True, the next comes ``idle_tick_s`` later (paced).
+    wake_fd : read end of a pipe; a byte ends a wait (a command to act on, or a new grant while :attr:`held`).
+    """
+
+    def __init__(self, clock: SharedClock, now_ms: Callable[[], int], step: Callable[[int], object], *,
+                 paced: bool = True, tick_s: float = 0.005, idle: Callable[[], bool] | None = None,
+                 idle_tick_s: float | None = None, wake_fd: int | None = None) -> None:
+        self.clock = clock
+        self.now_ms = now_ms
+        self.step = step
+        self.paced = paced
+        self.tick_ms = max(1, int(round(tick_s * 1000)))
+        self.idle = idle
+        self.idle_tick_ms = max(self.tick_ms, int(round((idle_tick_s or tick_s) * 1000)))
+        self.wake_fd = wake_fd
+        #: the world waits for the host's grant (the host is starved, or the world unpaced is ahead)
+        self.held = False
+        #: wall seconds the world spent held back by the host
+        self.held_s = 0.0
+
+    def _wait(self, seconds: float) -> bool:
+        """Wait up to ``seconds`` of wall time or until woken; True if woken."""
+        if seconds <= 0.0:
+            return False
+        if self.wake_fd is None:
+            time.sleep(seconds)
+            return False
+        if select.select([self.wake_fd], [], [], seconds)[0]:
+            try:
+                os.read(self.wake_fd, 4096)
+            except BlockingIOError:
+                pass
+            return True
+        return False
+
+    def run(self, stop: threading.Event) -> None:
+        monotonic, stopped, clock = time.monotonic, stop.is_set, self.clock
+        done = self.now_ms()
+        wall0, sim0 = monotonic(), done  # paced: ms sim0 + k no earlier than wall0 + k ms
+        ahead = self.tick_ms
+        woken = False
+        while not stopped():
+            limit = int(clock.horizon_s * 1000.0 + 1e-9)
+            if self.paced:
+                due = sim0 + int((monotonic() - wall0) * 1000.0)
+                target = min(due, limit)
+            else:
+                due = done + self.tick_ms
+                target = min(due, limit)
+            n = target - done
+            if n > 0:
+                try:
+                    self.step(n)
+                except Exception:  # keep the clock alive; the error is logged
+                    log.exception("simulation step failed")
+                done = target
+                clock.moved()
+                woken = False
+                if self.idle is not None:
+                    ahead = self.idle_tick_ms if self.idle() else self.tick_ms
+            if target < due:  # held back by the host: wait for its grant
+                self.held = True
+                t0 = monotonic()
+                if int(clock.horizon_s * 1000.0 + 1e-9) <= done:
+                    self._wait(HELD_WAIT_S)
+                self.held = False
+                self.held_s += monotonic() - t0
+                if self.paced:  # the pacing starts again from here: no burst for the time the host lost
+                    wall0, sim0 = monotonic(), done
+                continue
+            if not self.paced:
+                continue
+            behind_s = (due - done) / 1000.0
+            if behind_s > MAX_CATCH_UP_S:  # the world itself starved: no burst either
+                wall0, sim0 = monotonic(), done
+            wait = wall0 + (done - sim0 + (1 if woken else ahead)) / 1000.0 - monotonic()
+            if self._wait(wait):
+                woken = True

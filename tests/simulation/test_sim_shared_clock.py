@@ -1,0 +1,150 @@
+"""One clock for the host and the simulated boards (rigctl.core.shared_clock, docs/architecture.md "Time on a
+simulated rig"): the world runs no further than a bounded lead past the host's last sign of life, a starved host
+pauses it (and so never looks silent to the Mega's watchdog), and the host's timeouts judge the same clock."""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+
+import pytest
+
+from rigctl.core.shared_clock import LEAD_S, SharedClock
+from rigctl.devices.drum import DrumClient
+from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
+from rigctl.simulation.rig import SimulatedRig
+
+RIGCTL: list[str] = []  # filled by tests/conftest.py (the worker's preloaded rigctl)
+
+
+class _World:
+    """A world of its own for the clock alone: ``t`` runs to the horizon when stepped."""
+
+    def __init__(self):
+        self.t_ms = 0
+        self.clock = SharedClock(lambda: self.t_ms / 1000.0, heartbeat_s=None, world_notifies=True)
+
+    @property
+    def t(self) -> float:
+        return self.t_ms / 1000.0
+
+    def run(self, stop: threading.Event):
+        while not stop.is_set():
+            if self.t_ms + 1 <= int(self.clock.horizon_s * 1000.0 + 1e-9):
+                self.t_ms += 1
+                self.clock.moved()
+            else:
+                time.sleep(0.0002)
+
+
+def test_the_world_runs_a_bounded_lead_past_the_hosts_last_sign_of_life_and_waits_on_it():
+    w = _World()
+    stop = threading.Event()
+    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        time.sleep(0.2)  # no sign of life yet: the world runs its first lead only
+        assert w.t == pytest.approx(LEAD_S, abs=0.0015)
+        w.clock.touch()
+        time.sleep(0.2)
+        assert w.t == pytest.approx(2 * LEAD_S, abs=0.0015)
+        t0 = w.t
+        w.clock.sleep(1.0)  # a waiting host lets it run to the end of its wait (and a lead past)
+        assert t0 + 1.0 <= w.t <= t0 + 1.0 + LEAD_S + 0.0015
+    finally:
+        stop.set()
+        th.join()
+
+
+def test_a_waiter_whose_time_has_come_holds_the_world_whoever_else_lives():
+    w = _World()
+    stop = threading.Event()
+    woken = threading.Event()
+    release = threading.Event()
+
+    start = []
+
+    def waiter():
+        start.append(w.clock.now())
+        w.clock.wait_for(lambda: w.t >= start[0] + 0.1 and (woken.set() or release.wait(10) or True), 0.1)
+
+    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
+    wt = threading.Thread(target=waiter, daemon=True)
+    th.start()
+    wt.start()
+    try:
+        assert woken.wait(10)
+        for _ in range(50):  # another thread of the host keeps living, but the waiter has not returned
+            w.clock.touch()
+            time.sleep(0.002)
+        assert w.t <= start[0] + 0.1 + LEAD_S + 0.0015
+        release.set()
+        wt.join(10)
+        for _ in range(100):
+            w.clock.touch()
+            time.sleep(0.002)
+        assert w.t > start[0] + 0.1 + LEAD_S + 0.01  # returned: the world goes on
+    finally:
+        release.set()
+        stop.set()
+        th.join()
+
+
+def test_a_simulated_rig_pauses_while_its_host_gives_no_sign_of_life():
+    with SimulatedRig() as sim:
+        time.sleep(0.3)
+        assert sim.clock.now() > 0.1  # paced, the heartbeat keeps it going
+        sim.clock.close()  # the host's process gets no CPU: no heartbeat, no read, no write
+        t0 = sim.clock.now()
+        time.sleep(0.5)
+        assert sim.clock.now() - t0 <= LEAD_S + 0.011  # (a paced step is up to one idle tick)
+        c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=0.5).open()  # the host speaks: the world runs on
+        try:
+            assert c.read_status().state == DrumState.NOT_HOMED
+            sim.clock.sleep(0.3)
+            assert sim.clock.now() - t0 >= 0.3
+        finally:
+            c.close()
+
+
+def test_a_starved_host_never_trips_the_watchdog_on_a_simulated_rig():
+    """The drum turns under a 200 ms watchdog; the host then gives no sign of life for 1 s of wall time (a starved
+    process). On the wall clock the Mega tripped WATCHDOG; on the shared clock the rig waited for its host."""
+    with SimulatedRig() as sim:
+        c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
+        try:
+            c.write_holding(HR.WATCHDOG_MS, 200)
+            c.home()
+            c.wait_state([DrumState.IDLE], timeout_s=30)
+            c.set_speed(60.0)
+            c.run()
+            c.wait_state([DrumState.RUNNING], timeout_s=5)
+            sim.clock.close()  # starved: no heartbeat, no read
+            time.sleep(1.0)
+            st = c.read_status()
+            assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG
+            # and a host silent on the shared clock itself (it sleeps 0.5 s of simulated time, no request) trips it
+            sim.clock.sleep(0.5)
+            st = c.read_status()
+            assert st.state == DrumState.FAULT and st.faults & Fault.WATCHDOG
+        finally:
+            c.close()
+
+
+@pytest.mark.slow
+def test_the_readmes_first_command_beside_four_cpu_hogs_latches_nothing(tmp_path):
+    """``rigctl acquire quick_check --sim`` beside four CPU hogs on a machine of any size: 6/6 trials, no latch
+    (issue 54: on the wall clock a busy machine latched 'host went silent for longer than WATCHDOG_MS')."""
+    hogs = [subprocess.Popen(["bash", "-c", "while :; do :; done"]) for _ in range(4)]
+    try:
+        out = subprocess.run([*RIGCTL, "acquire", "quick_check", "--sim", "--out", str(tmp_path / "q.h5")],
+                             capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text
+    assert "trials complete: 6/6" in text, text
+    assert "WATCHDOG" not in text and "latched" not in text.lower(), text
