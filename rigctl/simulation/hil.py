@@ -16,8 +16,10 @@ one per board, each raised above the host code (:mod:`rigctl.simulation.priority
   (``live`` mode), or a fixed waveform is played in a loop (:meth:`HilRig.play_waveform`, for exact-value tests).
   Each index pulse of the Mega is forwarded to the Uno's sync-in pin.
 
-Both harnesses run paced to real time, in lock step with each other on simulated time (``--clock-lock``), and exit
-when this object closes their stdin, or when this process dies.
+Both harnesses run in lock step with each other on simulated time (``--clock-lock``), and no further than the host
+grants (:attr:`HilRig.clock`, the rig's one clock: docs/architecture.md "Time on a simulated rig"): paced to real
+time (``paced=True``, the default) or as fast as the CPU allows (``paced=False``: tests, the fault campaign). They
+exit when this object closes their stdin, or when this process dies.
 """
 
 from __future__ import annotations
@@ -38,7 +40,9 @@ import numpy as np
 
 from rigctl import firmware
 from rigctl.core.faults import FaultSchedule, FaultSpec
+from rigctl.core.shared_clock import SharedClock
 from rigctl.devices import wire
+from rigctl.simulation.hil_clock import HilClockFile
 from rigctl.simulation.hil_faults import HilFaults
 from rigctl.simulation.hil_harness import HilError, _Harness
 from rigctl.simulation.mega_eeprom import EepromError, default_record, eeprom_offset
@@ -102,20 +106,6 @@ class LiveSwap:
         return self.delay_rows is None or self.delay_rows >= _BLEND_START
 
 
-class _MegaClock:
-    """:attr:`HilRig.clock`."""
-
-    def __init__(self, rig: "HilRig"):
-        self._rig = rig
-
-    def now(self) -> float:
-        return self._rig.next_telemetry().t_s
-
-    @staticmethod
-    def sleep(s: float) -> None:
-        time.sleep(s)
-
-
 class HilRig:
     """Both boards' firmware under simavr, behind the :class:`~rigctl.simulation.rig.SimulatedRig` interface.
 
@@ -160,11 +150,18 @@ class HilRig:
         encoder, docs/firmware.md "The encoder in the Uno image").
     factory_calibrated : bool
         Start the Mega's EEPROM calibrated (the defaults, as the simulated rigs); False: a freshly flashed board's.
+    paced : bool
+        Run the cores no faster than the wall clock (True) or as fast as the CPU and the host's grants allow
+        (False: simulated seconds per wall second in docs/firmware.md). Either way on :attr:`clock`.
 
     Attributes
     ----------
     drum_port, taxel_port : str
         ``/dev/pts/N`` of the Mega (Modbus RTU 500000 8N1, device 1) and of the Uno (1,000,000 baud).
+    clock : SharedClock
+        The rig's one clock: the boards' simulated time (the slower core's), which the host's waits and timeouts read
+        and whose grants the cores run to (a starved host pauses both; docs/architecture.md "Time on a simulated
+        rig").
     telemetry : Telemetry or None
         Latest report of the Mega harness (every 50 ms of simulated time).
     isr : dict
@@ -185,7 +182,7 @@ class HilRig:
                  uno_boot_ms: float = 250.0, with_uno: bool = True, taxel_ohm: float = 47_000.0,
                  tel_ms: float = 50.0, bootloaders: bool = False, index_bounce: int = 0,
                  mega_image: str = "mega_drum", truth_log=None, factory_calibrated: bool = True,
-                 uno_image: str = "uno_taxel"):
+                 uno_image: str = "uno_taxel", paced: bool = True):
         from rigctl.simulation.model import RigConfig
 
         self.config = config or RigConfig()
@@ -241,6 +238,10 @@ class HilRig:
         self._mega: _Harness | None = None
         self._uno: _Harness | None = None
         self._tmp = Path(tempfile.mkdtemp(prefix="rigctl-hil-"))
+        self.paced = bool(paced)
+        self._clock_file = HilClockFile(self._tmp / "clock")
+        self.clock = SharedClock(self._clock_file.world_now, on_grant=self._clock_file.grant)
+        self._clock_file.grant(self.clock.horizon_s)
         self._stop = threading.Event()
         self._feeder: threading.Thread | None = None
         self._cond = threading.Condition()
@@ -300,13 +301,6 @@ class HilRig:
         return MEGA_BOOT_QUIET_S if self.bootloaders else 0.0
 
     @property
-    def clock(self) -> "_MegaClock":
-        """The Mega's simulated time as a :class:`rigctl.devices.drum.DrumClient` clock (``now()``: s of simulated
-        time from the harness's telemetry; ``sleep(s)``: host time): waits and deadlines in the firmware's own time,
-        which falls behind real time on a starved machine. ``now()`` raises HilError when the harness stops."""
-        return _MegaClock(self)
-
-    @property
     def mm_per_step(self) -> float:
         """Real drum surface travel per STEP pulse, mm (the driver's real microstep setting)."""
         d = self.config.drum
@@ -330,7 +324,9 @@ class HilRig:
         m = self.config.mechanics
         # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
-        lock = ["--clock-lock", str(self._tmp / "clock")] if self.with_uno else []
+        # ... and both within the host's grant (the rig's one clock: a starved host pauses both)
+        lock = ["--clock-lock", str(self._clock_file.path), *([] if self.paced else ["--no-pace"])]
+        self.clock.start()
         calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{default_record().hex()}"] if self.factory_calibrated else []
         mega_boot = (["--reset-on-open", "--bootloader", str(build_dir / "stk500v2_mega.hex")] if self.bootloaders
                      else [])
@@ -339,6 +335,7 @@ class HilRig:
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
             *self._hardware_args(), *lock, *calibrated], self._on_mega_line)
+        self.clock.own_port(self._mega.port)
         if not self.with_uno:
             return self
         try:
@@ -349,6 +346,7 @@ class HilRig:
             self._mega.close()
             self._mega = None
             raise
+        self.clock.own_port(self._uno.port)
         if self.live:
             self._render_and_load()
             self._stop.clear()
@@ -378,6 +376,8 @@ class HilRig:
                 h.close()
         if self.truth is not None:
             self.truth.close()
+        self.clock.close()
+        self.clock.release_ports()
         self._uno = self._mega = None
         for f in self._tmp.glob("*"):
             f.unlink(missing_ok=True)
@@ -559,21 +559,27 @@ class HilRig:
 
     def _wait_telemetry(self, t_min: float | None, timeout_s: float) -> Telemetry:
         """The next report (``t_min`` None) or the first at simulated time ``t_min`` or later; HilError if no report
-        comes for ``timeout_s`` of host time."""
-        deadline = time.monotonic() + timeout_s
+        comes for ``timeout_s`` of the rig's clock, or while the cores stand still for ``timeout_s`` of host time
+        although this host lives (grants them time: a harness that hangs)."""
+        clock = self.clock
+        deadline = clock.now() + timeout_s
+        stuck_since, stuck_at = time.monotonic(), clock.now()
         with self._cond:
             start = seen = self.telemetry
             while True:
                 tel = self.telemetry
                 if tel is not None and ((t_min is None and tel is not start) or (t_min is not None and tel.t_s >= t_min)):
                     return tel
+                now = clock.now()
                 if tel is not seen:  # reports keep coming: the harness runs, however slowly
                     seen = tel
-                    deadline = time.monotonic() + timeout_s
-                left = deadline - time.monotonic()
-                if left <= 0:
+                    deadline = now + timeout_s
+                if now != stuck_at:
+                    stuck_since, stuck_at = time.monotonic(), now
+                if now >= deadline or time.monotonic() - stuck_since > timeout_s:
                     raise HilError("no telemetry from the Mega harness")
-                self._cond.wait(left)
+                clock.touch()  # a waiting host lives: the cores may run on
+                self._cond.wait(0.005)
 
     # ------------------------------------------------------------------ harness output
     def _on_mega_line(self, line: str) -> None:

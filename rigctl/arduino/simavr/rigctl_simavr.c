@@ -4,7 +4,8 @@
  *   rigctl_simavr --board uno|mega [options] FIRMWARE.elf
  *
  * Common: UART0 is bridged to a pty (our own bridge, below); the line "PTY /dev/pts/N" on stdout names it. The core is paced to the wall clock (nanosleep on avr->cycle) unless
- * --no-pace; --clock-lock FILE also keeps it in lock step with the other board's harness (see "clock lock" below).
+ * --no-pace; --clock-lock FILE also keeps it in lock step with the other board's harness and within the host's grant
+ * (see "clock lock" below: one clock for the host and the boards).
  * The harness exits when its stdin closes, on "quit", or when its parent process dies (its parent pid changes; not
  * PR_SET_PDEATHSIG, which fires when the host *thread* that started it ends: the desktop app opens the rig in a
  * worker thread, and the boards vanished as it finished).
@@ -62,6 +63,7 @@
 #include <string.h>
 #include <sys/inotify.h>
 #include <sys/mman.h>
+#include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -1418,15 +1420,21 @@ static void mega_poll(void)
 /* ================================ clock lock ================================ */
 /* --clock-lock FILE: two harnesses (one per board) given the same file run in lock step on simulated time: each
  * publishes its simulated time (its own slot: mega 0, uno 1; ns, monotonic across resets, a hold in reset counts
- * at wall-clock pace) and waits while it is more than LOCK_LEAD_S ahead of the other's. Each is paced to the wall
- * clock, but on a starved host they fall behind it at different rates (the Uno streams and samples more per ms):
- * locked, a ms of the Uno's time is a ms of the Mega's, so what the host renders from the Mega's drum travel plays
- * at the drum's speed. A partner that has not published yet, or whose time has not moved for LOCK_STALE_S of wall
- * time (stopped, exited), is not waited for. */
+ * as simulated time too) and waits while it is more than LOCK_LEAD_S ahead of the other's. Each is paced to the wall
+ * clock (or not: --no-pace), but on a starved host they fall behind it at different rates (the Uno streams and
+ * samples more per ms): locked, a ms of the Uno's time is a ms of the Mega's, so what the host renders from the
+ * Mega's drum travel plays at the drum's speed. A partner that has not published yet, or whose time has not moved for
+ * LOCK_STALE_S of wall time (stopped, exited), is not waited for.
+ * Slot 2 is the host's grant (rigctl.core.shared_clock, docs/architecture.md "Time on a simulated rig"): ns + 1 of
+ * simulated time the boards may run to (0: no grant, as before: not waited for). The host moves it on as it lives
+ * (its reads, writes, waits and a heartbeat), a bounded lead past its last sign of life; a core that reaches it
+ * waits, so a starved host pauses both boards instead of looking silent to them. The grant is never stale: a host
+ * that stopped granting is one the boards wait for (its process gone, the harness exits on its own). */
 #define LOCK_LEAD_S 0.002
 #define LOCK_STALE_S 0.5
 #define LOCK_WAIT_MIN_S 0.0001
 #define LOCK_WAIT_MAX_S 0.002
+#define LOCK_SLOTS 3 /* mega, uno, the host's grant */
 static _Atomic uint64_t *lock_slots;
 static int lock_self;
 static double lock_time_s;       /* this core's simulated time for the lock */
@@ -1437,11 +1445,13 @@ static double lock_other_wall;   /* ... and when it last changed (wall) */
 static void clock_lock_open(const char *path, int slot)
 {
     int fd = open(path, O_RDWR | O_CREAT, 0600);
-    if (fd < 0 || ftruncate(fd, 2 * sizeof(uint64_t)) < 0) {
+    struct stat st;
+    if (fd < 0 || fstat(fd, &st) < 0 || (st.st_size < (off_t)(LOCK_SLOTS * sizeof(uint64_t))
+                                          && ftruncate(fd, LOCK_SLOTS * sizeof(uint64_t)) < 0)) {
         fprintf(stderr, "cannot open the clock-lock file %s: %s\n", path, strerror(errno));
         exit(2);
     }
-    void *m = mmap(NULL, 2 * sizeof(uint64_t), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    void *m = mmap(NULL, LOCK_SLOTS * sizeof(uint64_t), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
     close(fd);
     if (m == MAP_FAILED) {
         fprintf(stderr, "cannot map the clock-lock file %s: %s\n", path, strerror(errno));
@@ -1458,6 +1468,28 @@ static void clock_lock_publish(double extra_s)
     lock_time_s += (c >= lock_cycle ? c - lock_cycle : c) / (double)avr->frequency + extra_s; /* c < last: reset */
     lock_cycle = c;
     atomic_store(&lock_slots[lock_self], (uint64_t)(lock_time_s * 1e9) + 1); /* 0 = not started */
+}
+
+/* how far this core may run past its simulated time before it must wait for the host's grant, s (+inf: no grant) */
+static double host_grant_room_s(void)
+{
+    uint64_t grant = lock_slots ? atomic_load(&lock_slots[2]) : 0;
+    if (grant == 0) return INFINITY;
+    return (double)(grant - 1) * 1e-9 - lock_time_s;
+}
+
+/* wait while the core has reached the host's grant (a starved host: the whole simulated world pauses). Returns the
+ * wall seconds it waited (0: it did not). */
+static double host_grant_wait(void)
+{
+    double t0 = 0.0, waited = 0.0;
+    while (host_grant_room_s() <= 0.0 && !atomic_load(&quit_requested)) {
+        if (t0 == 0.0) t0 = now_s();
+        struct timespec ts = {0, 200000}; /* 0.2 ms: the host's heartbeat grants every few ms */
+        nanosleep(&ts, NULL);
+        waited = now_s() - t0;
+    }
+    return waited;
 }
 
 static void clock_lock_wait(void)
@@ -1820,18 +1852,29 @@ int main(int argc, char **argv)
     }
     double wall0 = now_s();
     uint64_t cycle0 = avr->cycle;
-    double hold_until = 0.0; /* in reset (bootloader wait) until this wall time */
+    double hold_left = 0.0; /* in reset (bootloader wait) for this much more simulated time, s */
     uint64_t next_check = 0;
     double last_poll_wall = -1.0; /* wall time of the last poll() of the pty and the open detector */
     int mcu_reset_seen = 0;
     for (;;) {
-        if (hold_until > 0.0) {
-            struct timespec ts = {0, 1000000};
-            double held = now_s();
-            nanosleep(&ts, NULL);
-            if (lock_slots) clock_lock_publish(now_s() - held); /* the bootloader's wait passes at wall pace */
-            if (now_s() >= hold_until) {
-                hold_until = 0.0;
+        if (hold_left > 0.0) {
+            /* the bootloader's wait passes as simulated time: at wall pace when paced (1 ms steps), at once when not,
+             * and never past the host's grant */
+            double step = 0.001;
+            if (opt_pace) {
+                struct timespec ts = {0, 1000000};
+                double held = now_s();
+                nanosleep(&ts, NULL);
+                step = now_s() - held;
+            }
+            double room = host_grant_room_s();
+            if (step > room) step = room > 0.0 ? room : 0.0;
+            if (step > hold_left) step = hold_left;
+            hold_left -= step;
+            if (lock_slots) clock_lock_publish(step);
+            if (step <= 0.0) host_grant_wait();
+            if (hold_left <= 0.0) {
+                hold_left = 0.0;
                 avr_reset(avr);
                 extint_poll();
                 bridge_reset();
@@ -1899,7 +1942,7 @@ int main(int argc, char **argv)
                 continue;
             }
             if (n > 0) { /* a host opened the port: DTR reset, bootloader wait */
-                hold_until = now_s() + opt_boot_ms * 1e-3;
+                hold_left = opt_boot_ms * 1e-3;
                 printf("RESET t=%.6f\n", sim_s());
                 continue;
             }
@@ -1936,6 +1979,10 @@ int main(int argc, char **argv)
         if (lock_slots) {
             clock_lock_publish(0.0);
             clock_lock_wait();
+            if (host_grant_wait() > 0.0) { /* the world paused for the host: paced, it goes on from here, no burst */
+                wall0 = now_s();
+                cycle0 = avr->cycle;
+            }
         }
         if (opt_pace) {
             double ahead = (double)(avr->cycle - cycle0) / avr->frequency - (now_s() - wall0);
