@@ -35,7 +35,6 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -117,19 +116,8 @@ class MegaController:
         build without one (a plain make, the Arduino IDE); ValueError for anything else.
     """
 
-    #: the clock the host-silence watchdog judges, s: the wall clock, or the simulated rig's shared clock
-    #: (:meth:`use_clock`)
-    _now: Callable[[], float] = staticmethod(time.monotonic)
-
-    def use_clock(self, now: Callable[[], float]) -> None:
-        """Judge the host-silence watchdog on ``now()`` (s; the simulated rig's shared clock, on which a starved host
-        is never silent: docs/architecture.md), from now on."""
-        with self._lock:
-            self._now = now
-            self._last_request = now()
-
     def __init__(self, model: RigModel, *, eeprom_path=None, factory_calibrated: bool = False):
-        self.model = model
+        self.model, self._now = model, time.monotonic  # the watchdog's clock, s (VirtualMega.use_clock)
         self.eeprom_path = Path(eeprom_path) if eeprom_path else None
         self._lock = threading.RLock()
         #: the emulated EEPROM: the calibration record (None = erased) and the boot counter

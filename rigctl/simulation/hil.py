@@ -16,10 +16,8 @@ one per board, each raised above the host code (:mod:`rigctl.simulation.priority
   (``live`` mode), or a fixed waveform is played in a loop (:meth:`HilRig.play_waveform`, for exact-value tests).
   Each index pulse of the Mega is forwarded to the Uno's sync-in pin.
 
-Both harnesses run in lock step with each other on simulated time (``--clock-lock``), and no further than the host
-grants (:attr:`HilRig.clock`, the rig's one clock: docs/architecture.md "Time on a simulated rig"): paced to real
-time (``paced=True``, the default) or as fast as the CPU allows (``paced=False``: tests, the fault campaign). They
-exit when this object closes their stdin, or when this process dies.
+Both harnesses run in lock step on simulated time (``--clock-lock``) within the host's grant (:attr:`HilRig.clock`),
+paced or not (``paced``), and exit when this object closes their stdin, or when this process dies.
 """
 
 from __future__ import annotations
@@ -151,17 +149,14 @@ class HilRig:
     factory_calibrated : bool
         Start the Mega's EEPROM calibrated (the defaults, as the simulated rigs); False: a freshly flashed board's.
     paced : bool
-        Run the cores no faster than the wall clock (True) or as fast as the CPU and the host's grants allow
-        (False: simulated seconds per wall second in docs/firmware.md). Either way on :attr:`clock`.
+        Run the cores no faster than the wall clock (True) or as fast as the CPU and the host allow (False).
 
     Attributes
     ----------
     drum_port, taxel_port : str
         ``/dev/pts/N`` of the Mega (Modbus RTU 500000 8N1, device 1) and of the Uno (1,000,000 baud).
     clock : SharedClock
-        The rig's one clock: the boards' simulated time (the slower core's), which the host's waits and timeouts read
-        and whose grants the cores run to (a starved host pauses both; docs/architecture.md "Time on a simulated
-        rig").
+        The rig's one clock, the slower core's time: a starved host pauses both (docs/architecture.md).
     telemetry : Telemetry or None
         Latest report of the Mega harness (every 50 ms of simulated time).
     isr : dict
@@ -240,8 +235,7 @@ class HilRig:
         self._tmp = Path(tempfile.mkdtemp(prefix="rigctl-hil-"))
         self.paced = bool(paced)
         self._clock_file = HilClockFile(self._tmp / "clock")
-        self.clock = SharedClock(self._clock_file.world_now, on_grant=self._clock_file.grant)
-        self._clock_file.grant(self.clock.horizon_s)
+        self.clock: SharedClock = self._clock_file.shared_clock()
         self._stop = threading.Event()
         self._feeder: threading.Thread | None = None
         self._cond = threading.Condition()
@@ -324,7 +318,6 @@ class HilRig:
         m = self.config.mechanics
         # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
-        # ... and both within the host's grant (the rig's one clock: a starved host pauses both)
         lock = ["--clock-lock", str(self._clock_file.path), *([] if self.paced else ["--no-pace"])]
         self.clock.start()
         calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{default_record().hex()}"] if self.factory_calibrated else []

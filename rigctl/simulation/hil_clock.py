@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigctl.core.shared_clock import SharedClock
+
 __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
 #: the file's slots: the Mega's time, the Uno's, the host's grant (uint64 each)
@@ -34,6 +36,12 @@ class HilClockFile:
         # aligned 8-byte loads and stores (one instruction each on the machines simavr runs on), as the harness's atomics
         self._slots: np.ndarray | None = np.frombuffer(self._map, dtype=np.uint64)
         self._last_s = 0.0
+
+    def shared_clock(self) -> SharedClock:
+        """A :class:`SharedClock` on the boards' time whose grants go to the file (its first one written now)."""
+        clock = SharedClock(self.world_now, on_grant=self.grant)
+        self.grant(clock.horizon_s)
+        return clock
 
     def world_now(self) -> float:
         """The simulated rig's time, s: the slower board's that has published (0 before either has); never moves

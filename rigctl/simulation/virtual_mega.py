@@ -156,6 +156,13 @@ class VirtualMega(MegaController):
         #: command within a millisecond, as the firmware's loop does, not at the end of an idle tick)
         self.on_write: Callable[[], None] | None = None
 
+    def use_clock(self, now: Callable[[], float]) -> None:
+        """Judge the host-silence watchdog on ``now()`` (s; the simulated rig's shared clock, on which a starved host
+        is never silent: docs/architecture.md "Time on a simulated rig"), from now on."""
+        with self._lock:
+            self._now = now
+            self._last_request = now()
+
     # ------------------------------------------------------------------ lifecycle
     @property
     def path(self) -> str:
