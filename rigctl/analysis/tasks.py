@@ -156,9 +156,11 @@ def run_cv(
     if n_draw < per_texture:
         short = [f"{t} ({c})" for t, c in zip(textures, counts, strict=True) if c < per_texture]
         few = ", ".join(short[:6]) + (f" (+{len(short) - 6} more)" if len(short) > 6 else "")
+        setters = [str(t) for t, c in zip(textures, counts, strict=True) if c == counts.min()]
         _warn(res, f"textures/groups: fewer than {per_texture} trials for {few}; drawing {n_draw} per texture "
               f"instead of {per_texture} ({n_draw * len(textures)} trials per repetition instead of "
-              f"{per_texture * len(textures)})")
+              f"{per_texture * len(textures)}): the sample size is set by {_some(setters)} ({counts.min()} trials; "
+              f"median texture {int(np.median(counts))}): check its trials or leave it out with --textures")
     res.counts["cv"] = {"per_texture": n_draw, "n_textures": len(textures), "folds": k, "repeats": repeats,
                         "trials_per_repeat": n_draw * len(textures), "groups": params.groups,
                         "n_groups": None if groups is None else int(np.unique(groups).size)}
@@ -283,8 +285,9 @@ def run_extrapolation(
     cells, trained_cells, cat_of, (a_tr, a_te, u_te), info = _extrapolation_plan(
         fs, train_speeds, train_forces, test_speeds, test_forces, n_train, n_test)
     if (a_tr, a_te, u_te) != (n_train, n_test, n_test):
-        _warn(res, f"{prefix}extrapolation: smallest trained cell has {info['min_trained']} trials and smallest "
-              f"untrained cell {info['min_untrained']}; using {a_tr} train + {a_te} test per texture and trained "
+        _warn(res, f"{prefix}extrapolation: smallest trained cell has {info['min_trained']} trials "
+              f"({_some(info['smallest_trained'])}) and smallest untrained cell {info['min_untrained']} "
+              f"({_some(info['smallest_untrained']) or 'none'}); using {a_tr} train + {a_te} test per texture and trained "
               f"cell and {u_te} test per untrained cell (paper: {n_train} + {n_test}, {n_test})")
     res.counts[prefix + "extrapolation"] = {
         "train_per_cell": a_tr, "test_per_trained_cell": a_te, "test_per_untrained_cell": u_te,
@@ -339,6 +342,12 @@ def _isin(values, wanted):
     return np.isin(values, wanted) | (np.isnan(values) & bool(np.isnan(wanted).any()))
 
 
+def _some(names, k: int = 3) -> str:
+    """The first ``k`` names, and how many more."""
+    names = list(names)
+    return ", ".join(names[:k]) + (f" (+{len(names) - k} more)" if len(names) > k else "")
+
+
 def _fmt_values(values) -> str:
     return ", ".join("none" if np.isnan(v) else f"{float(v):g}" for v in np.asarray(values, float)) or "none"
 
@@ -387,7 +396,10 @@ def _extrapolation_plan(fs, train_speeds, train_forces, test_speeds, test_forces
     min_te = min((len(cells[c]) for c in test_cells), default=a_te)
     u_te = min(a_te, min_te)
     cat_of = {cell: EXTRAPOLATION_CELLS[(bool(s_in[ix[0]]), bool(f_in[ix[0]]))] for cell, ix in cells.items()}
+    smallest_tr = sorted(_cell_text(c) for c in trained_cells if len(cells[c]) == min_tr)
+    smallest_te = sorted(_cell_text(c) for c in test_cells if len(cells[c]) == min_te)
     info = {"min_trained": min_tr, "min_untrained": min_te, "trained_speeds": [float(x) for x in tr_s],
+            "smallest_trained": smallest_tr, "smallest_untrained": smallest_te,
             "trained_forces": [float(x) for x in tr_f]}
     return cells, trained_cells, cat_of, (a_tr, a_te, u_te), info
 

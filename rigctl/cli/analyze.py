@@ -95,6 +95,22 @@ def _load(path, encode, variants, task="table1", progress=False, keep_nonfinite=
         return loaded
 
 
+def _length_warning(path) -> None:
+    """Warn (one line) when the encoded file's trial durations differ by texture (rigctl.encoding.lengths): a
+    classifier can read the label off the padding. A session encoded on the fly is warned about by the encoder."""
+    from rigctl.encoding.lengths import length_imbalance
+    from rigctl.storage.encoded import NotEncodedError, open_encoded
+
+    try:
+        with open_encoded(path) as f:
+            trials = f.trials
+    except (NotEncodedError, OSError, ValueError, KeyError):
+        return
+    line = length_imbalance(trials["texture"], trials["duration_s"])
+    if line:
+        click.echo(f"warning: {path}: {line}", err=True)
+
+
 def _variance(fs, variants):
     from rigctl.analysis.variance import decompose_all
 
@@ -362,6 +378,7 @@ def _run(opts: AnalyzeOptions, execution=None):
 
     _check_variants(opts.file, opts.variants)
     fs = _load(opts.file, opts.encode, opts.variants, opts.task, opts.progress, opts.keep_nonfinite)
+    _length_warning(opts.file)
     if opts.textures:
         try:
             fs = fs.select_textures(opts.textures)

@@ -75,12 +75,16 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
 @click.option("--windows-scaled", default="20", show_default=True, callback=_windows_scaled,
               help="Windows per spike train of the speed-scaled variants (20 = 2 s at the 120 mm/s reference, the "
                    "paper's), or 'longest': enough for the longest trial in scaled time (whole trials).")
+@click.option("--crop-s", type=floats(0, 1e6, min_open=True), default=None, metavar="S",
+              help="Cut every trial to its first S seconds before encoding: a common length when trial durations "
+                   "differ by texture (a label the padding would carry; the command warns and gives S). Recorded "
+                   "in the encoded file's parameters.")
 @click.option("--no-spikes", is_flag=True, help="Do not store spike trains, only features.")
 @progress_option
 @click.option("--keep-nonfinite", is_flag=True,
               help="Use trials whose force or speed readings hold NaN or inf (flagged; default: excluded).")
 def encode(session, out, overwrite, scheduler, workers, batch, variants, window_ms, windows_unscaled,
-           windows_scaled, no_spikes, progress, keep_nonfinite):
+           windows_scaled, crop_s, no_spikes, progress, keep_nonfinite):
     """Encode SESSION: per-taxel normalisation, force coefficients (eq. 1), Izhikevich SA/RA encoding (eqs. 3-5),
     speed scaling (eq. 2) and SR/SC features for the variants original, speed_scaled, force_scaled,
     speed_force_scaled (+ label-free force and real-time variants). The session's sensor layout gives the channel
@@ -100,7 +104,7 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
 
     try:
         params = EncodeParams(window_s=window_ms / 1000.0, n_windows_unscaled=windows_unscaled,
-                              n_windows_scaled=windows_scaled)
+                              n_windows_scaled=windows_scaled, crop_s=crop_s)
         with warnings.catch_warnings(record=True) as caught, bars(show_bars(progress)) as bar:
             warnings.simplefilter("always")
             path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,

@@ -40,6 +40,9 @@ class EncodeParams:
     izhikevich : eqs. (3)-(5) tonic-spiking constants.
     kernel_dtype : the fused kernel's state, "float32" (default: within the model's own rounding sensitivity,
         :mod:`rigctl.encoding.fused`) or "float64".
+    crop_s : every trial cut to its first ``crop_s`` seconds before encoding (a common length: trial lengths that
+        differ by texture are a label, :mod:`rigctl.encoding.lengths`); None = whole trials. A trial shorter than
+        it is refused.
     """
 
     fs_hz: float = MODEL_RATE_HZ
@@ -60,6 +63,7 @@ class EncodeParams:
     realtime_taxels: list[Any] | None = None
     izhikevich: dict[str, Any] = field(default_factory=lambda: {"a": 0.02, "b": 0.2, "c": -65.0, "d": 6.0, "v_peak": 30.0})
     kernel_dtype: str = "float32"
+    crop_s: float | None = None
 
     @classmethod
     def from_dict(cls, d) -> "EncodeParams":

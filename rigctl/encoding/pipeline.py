@@ -54,6 +54,7 @@ The output is written by :class:`rigctl.storage.encoded.EncodedWriter` (layout a
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import time
@@ -74,6 +75,7 @@ from rigctl.encoding.batch_encode import _realtime_taxels, encode_batch, trains_
 from rigctl.encoding.force import ForceCoefficients, fit_scalers
 from rigctl.encoding.fused import kernels_cached
 from rigctl.encoding.izhikevich import Ragged, as_ragged
+from rigctl.encoding.lengths import crop_samples, length_imbalance
 from rigctl.encoding.normalise import TaxelRange
 from rigctl.encoding.params import EncodeParams
 from rigctl.encoding.rate import RateConversion, rate_conversion
@@ -92,6 +94,22 @@ log = logging.getLogger(__name__)
 
 class SpeedMissingError(ValueError):
     """A speed-scaled variant was asked for, but some trials have no speed (NaN or <= 0 mm/s)."""
+
+
+def _cropped(blk, crop_s: float | None, rate_hz: float):
+    """``blk`` (a :class:`rigctl.storage.session.TaxelBlock`) with every trial cut to its first ``crop_s`` seconds
+    (its speed trace too); unchanged when ``crop_s`` is None. A trial shorter than that is refused (ValueError,
+    checked in the range pass)."""
+    n = crop_samples(crop_s, rate_hz)
+    if n is None:
+        return blk
+    lengths = np.diff(blk.starts)
+    keep = np.minimum(lengths, n)
+    data = np.concatenate([blk.data[blk.starts[i]:blk.starts[i] + keep[i]] for i in range(len(lengths))]) \
+        if len(lengths) else blk.data
+    traces = None if blk.speed_traces is None else [(t[t < crop_s], v[t < crop_s]) for t, v in blk.speed_traces]
+    return dataclasses.replace(blk, data=data, starts=np.concatenate([[0], np.cumsum(keep)]).astype(np.int64),
+                               speed_traces=traces)
 
 
 def _model_input(blk, ids, labels_speed, want_window_speed, window_s, conv: RateConversion):
@@ -114,14 +132,16 @@ def _model_input(blk, ids, labels_speed, want_window_speed, window_s, conv: Rate
     return rg, wspeeds
 
 
-def _read_batch(session_path, ids, labels_speed, want_window_speed, window_s, conv: RateConversion):
+def _read_batch(session_path, ids, labels_speed, want_window_speed, window_s, conv: RateConversion,
+                crop_s: float | None = None):
     """Model input of the trials ``ids`` read in one block (:meth:`rigctl.storage.session.Session.read_taxels`)
     and, if asked, their window speeds (:func:`_model_input`)."""
     from rigctl.storage.session import open_session
 
     with open_session(session_path) as s:
         blk = s.read_taxels([int(t) for t in ids], traces=want_window_speed)
-    return _model_input(blk, ids, labels_speed, want_window_speed, window_s, conv)
+    return _model_input(_cropped(blk, crop_s, conv.input_rate_hz), ids, labels_speed, want_window_speed, window_s,
+                        conv)
 
 
 def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params,
@@ -134,7 +154,7 @@ def _batch_task(session_path, ids, speed, coeffs, coeffs_lf, offset, scale, vari
     want_ws = "realtime_speed_scaled" in variants
     conv = rate_conversion(params.input_rate_hz, params.fs_hz) if params.input_rate_hz else \
         RateConversion(params.fs_hz, params.fs_hz)
-    rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s, conv)
+    rg, ws = _read_batch(session_path, ids, speed, want_ws, params.window_s, conv, params.crop_s)
     return _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, store_spikes, params)
 
 
@@ -321,6 +341,9 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     p = replace(params) if params is not None else EncodeParams()
     t_start = time.time()
     read = _range_pass(run, p, progress)  # pass 1: labels, per-taxel range, the model input kept for the fit
+    imbalance = length_imbalance(read.labels["texture"], read.duration_s)
+    if imbalance:  # a label hidden in the trial length (rigctl.encoding.lengths)
+        warnings.warn(f"{run.session_path}: {imbalance}", stacklevel=2)
     variants_, skipped = _check_speeds(run.variants, run.explicit, read.labels, read.has_trace)
     if not variants_:
         raise SpeedMissingError("nothing to encode: " + "; ".join(skipped.values()))
@@ -490,6 +513,8 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
         for b in batches:
             b_ids = [ids[i] for i in b]
             blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
+            _check_crop(p.crop_s, np.diff(blk.starts) / conv.input_rate_hz, b_ids)
+            blk = _cropped(blk, p.crop_s, conv.input_rate_hz)
             read.n_samples[b] = np.diff(blk.starts)
             read.has_trace[b] = blk.has_speed_trace
             read.lossy.update({int(t): int(n) for t, n in zip(b_ids, blk.dropped_frames) if n})
@@ -513,6 +538,16 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
                          f"{_trial_list(np.asarray(ids)[read.n_samples == 0])}")
     read.offset, read.scale = read.rng.offset_scale()
     return read
+
+
+def _check_crop(crop_s: float | None, duration_s: np.ndarray, ids: list[int]) -> None:
+    """Refuse a crop longer than a trial (ValueError naming the trials: cropping cannot lengthen them)."""
+    if crop_s is None:
+        return
+    short = [t for t, d in zip(ids, duration_s) if d + 1e-9 < crop_s]
+    if short:
+        raise ValueError(f"--crop-s {crop_s:g}: trials {_trial_list(np.asarray(short))} are shorter (shortest "
+                         f"{float(np.min(duration_s)):.2f} s): crop to a length every trial has")
 
 
 def _fit_keep(s: Any, ids: list[int], labels: dict[str, Any], conv: RateConversion, budget: float) -> set[int]:
@@ -627,7 +662,7 @@ def _encode_pass(writer: EncodedWriter, run: EncodeRun, p: EncodeParams, read: _
                     rg, ws = read.kept[bi]
                     read.kept[bi] = None  # freed as soon as encoded
                 else:  # read again (the file stays open: one header read for the whole pass)
-                    blk = s.read_taxels(a[1], traces=want_ws)
+                    blk = _cropped(s.read_taxels(a[1], traces=want_ws), p.crop_s, read.conv.input_rate_hz)
                     rg, ws = _model_input(blk, a[1], speed[b], want_ws, p.window_s, read.conv)
                     del blk
                 return _encode_read(rg, ws, *a[2:])

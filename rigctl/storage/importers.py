@@ -517,6 +517,8 @@ class _Import:
     """The state of one import across its files: the trials so far, the steps' records, the per-file table."""
 
     opts: ImportOptions
+    #: --skip-bad: a file whose trials do not follow its presses one by one is refused (left out, named)
+    skip_bad: bool = False
     trials: list[ImportedTrial] = field(default_factory=list)
     steps: dict[str, Any] = field(default_factory=lambda: {"read": [], "resampling": None, "value_scale": None,
                                                            "segmentation": None})
@@ -616,6 +618,8 @@ class _Import:
             self.steps["segmentation"] = spec.record()
             name = path.name if n_blocks == 1 else f"{path.name}[{bi}]"
             self.rows.append(cut.row(name, rate))
+            if self.skip_bad and cut.press_problem:
+                raise RecordingImportError(f"{path}: {cut.press_problem}")
             if not cut.bounds:
                 raise RecordingImportError(
                     f"{path}: no trial found by --segment {spec.method} ({cut.rejected} partial cycles or short runs "
@@ -715,7 +719,7 @@ def import_recordings(files: Sequence[str | os.PathLike[str]], out: str | os.Pat
     out = Path(out)
     _check_paths(paths, out, overwrite)
     rx = parse_label_pattern(opts.label_pattern) if opts.label_pattern else None
-    run = _Import(opts)
+    run = _Import(opts, skip_bad=skip_bad)
     bar = Stage(progress, "reading recordings", len(paths), unit="file")
     for path in paths:
         if skip_bad:

@@ -48,7 +48,7 @@ import numpy as np
 from rigctl.storage.recording_files import RecordingImportError
 
 __all__ = ["SegmentSpec", "Segmentation", "Activity", "ALIGNS", "parse_segment", "activity", "segment",
-           "segment_table", "outlier_warnings"]
+           "segment_table", "outlier_warnings", "press_check"]
 
 #: ``--align``: cut cycles at each press onset, or from sample 0 (the former rule)
 ALIGNS = ("onset", "none")
@@ -59,6 +59,8 @@ QUIET_WINDOW_S = 0.2
 #: a press: activity above this fraction of the swing; its onset: the last sample within ONSET_FRACTION of rest
 PRESS_FRACTION = 0.5
 ONSET_FRACTION = 0.05
+#: the press phase a cut is checked against (:func:`press_check`): presses above this fraction of the swing
+PHASE_FRACTION = 0.25
 #: an interval explains a period P when it lies in [INTERVAL_LO * P, INTERVAL_HI * P]
 INTERVAL_LO, INTERVAL_HI = 0.8, 1.25
 #: a cycle has the shape of the others when its activity correlates at least this much with the median cycle
@@ -128,6 +130,8 @@ class Segmentation:
     period_s : the file's cycle period (cycles), else None
     onsets : every press onset found (cycles with ``align="onset"``), samples
     candidates : the period candidates and the cycles each explained (cycles with ``align="onset"``)
+    presses : the file's press phase checked against the trials (cycles with ``align="onset"``,
+        :func:`press_check`): ``{"presses", "cut", "missed", "off_onset", "wrong_count"}``; None otherwise
     """
 
     bounds: list[tuple[int, int]]
@@ -136,6 +140,20 @@ class Segmentation:
     period_s: float | None = None
     onsets: list[int] = field(default_factory=list)
     candidates: list[dict[str, float]] = field(default_factory=list)
+    presses: dict[str, int] | None = None
+
+    @property
+    def press_problem(self) -> str | None:
+        """One line when the trials do not follow the presses one by one (``"21 of 41 presses cut as trials: 20
+        missed, ..."``), else None."""
+        c = self.presses
+        if not c or (c["cut"] == c["presses"] and not c["off_onset"] and not c["wrong_count"]):
+            return None
+        parts = [f"{c['missed']} missed" if c["missed"] else "",
+                 f"{c['off_onset']} trials start off a press onset" if c["off_onset"] else "",
+                 f"{c['wrong_count']} trials hold another number of presses than asked" if c["wrong_count"] else ""]
+        return (f"{c['cut']} of {c['presses']} presses cut as trials press by press ("
+                + ", ".join(x for x in parts if x) + ")")
 
     def overlaps(self) -> tuple[int, int]:
         """``(trials, samples)``: how many trials run into the next one's start by more than
@@ -150,7 +168,8 @@ class Segmentation:
         first = self.bounds[0][0] / rate_hz if self.bounds else None
         overlapping, shared = self.overlaps()
         return {"file": file, "period_s": self.period_s, "trials": len(self.bounds), "rejected": self.rejected,
-                "first_start_s": first, "overlapping": overlapping, "shared_samples": shared}
+                "first_start_s": first, "overlapping": overlapping, "shared_samples": shared,
+                "presses": None if self.presses is None else dict(self.presses), "press_problem": self.press_problem}
 
 
 def _number(text: str, spec: str) -> float:
@@ -446,8 +465,55 @@ def _cycles(counts: np.ndarray, rate_hz: float, spec: SegmentSpec) -> Segmentati
             bounds.append((start, start + length))
             index.append(i)
     rejected = inside + len(range(0, kept.size, spec.n_cycles)) - len(bounds)
+    # the press phase the trials are checked against: presses found at half the cutting level, so that weaker
+    # presses the cut passed over are counted as missed, not as absent
+    phase = [int(low[k]) + 1 for start, _ in _runs(a, act.level(PHASE_FRACTION), act.level(PHASE_FRACTION / 2))
+             if (k := int(np.searchsorted(low, start)) - 1) >= 0]
+    phase = _merge_presses(np.asarray(sorted(set(phase)), dtype=np.int64), int(0.5 * period)).tolist()
     return Segmentation(bounds, index, rejected=rejected, period_s=period / rate_hz, onsets=kept.tolist(),
-                        candidates=candidates)
+                        candidates=candidates,
+                        presses=press_check(phase, bounds, n, pre=pre, n_cycles=spec.n_cycles))
+
+
+#: a trial starts at a press onset when its start (plus the margin) is within this fraction of the median press
+#: interval of an onset (or 2 samples)
+ONSET_TOLERANCE = 0.05
+
+
+def press_check(onsets: Sequence[int], bounds: Sequence[tuple[int, int]], n: int, *, pre: int, n_cycles: int
+                ) -> dict[str, int]:
+    """The trials checked against the file's press phase, press by press.
+
+    ``onsets``: every press onset found (before any merging), samples; ``bounds``: the trials; ``n``: the file's
+    samples; ``pre``: the margin before each onset; ``n_cycles``: presses a trial should hold. A press can be cut
+    when its whole cycle (the median press interval) lies in the file after the margin. A trial is right when its
+    start plus ``pre`` lies within :data:`ONSET_TOLERANCE` of the median interval of an onset and it holds
+    ``n_cycles`` onsets; the presses it starts are then cut right. Returns ``{"presses": cuttable presses, "cut":
+    presses cut right, "missed": cuttable presses in no right trial, "off_onset": trials starting off every onset,
+    "wrong_count": trials holding another number of presses}``."""
+    on = np.asarray(sorted(onsets), dtype=np.int64)
+    if on.size < 2:
+        return {"presses": int(on.size), "cut": 0, "missed": int(on.size), "off_onset": len(bounds),
+                "wrong_count": 0}
+    interval = float(np.median(np.diff(on)))
+    tol = max(2.0, ONSET_TOLERANCE * interval)
+    cuttable = (on - pre >= 0) & (on + interval <= n)
+    right = np.zeros(on.size, dtype=bool)
+    off_onset = wrong_count = 0
+    for a, b in bounds:
+        start = a + pre
+        k = int(np.argmin(np.abs(on - start)))
+        if abs(on[k] - start) > tol:
+            off_onset += 1
+            continue
+        held = np.flatnonzero((on >= on[k]) & (on < b - tol))
+        if held.size != n_cycles:
+            wrong_count += 1
+            continue
+        right[held] = True
+    cut = int((right & cuttable).sum())
+    return {"presses": int(cuttable.sum()), "cut": cut, "missed": int(cuttable.sum()) - cut, "off_onset": off_onset,
+            "wrong_count": wrong_count}
 
 
 def segment(counts: np.ndarray, rate_hz: float, spec: SegmentSpec | None) -> Segmentation:
@@ -464,22 +530,33 @@ def segment(counts: np.ndarray, rate_hz: float, spec: SegmentSpec | None) -> Seg
 
 
 # ----------------------------------------------------------------------------------------------------- reporting
+def _presses_cell(row: Mapping[str, Any]) -> str:
+    c = row.get("presses")
+    if not c:
+        return "-"
+    return f"{c['cut']}/{c['presses']}" + (" FLAGGED" if row.get("press_problem") else "")
+
+
 def segment_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """The per-file table (file, period, trials, rejected, first trial's start) as aligned text lines."""
-    head = ("file", "period s", "trials", "rejected", "first at s")
+    """The per-file table (file, period, trials, rejected, first trial's start, presses cut press by press of the
+    presses that could be: ``41/41``, or ``21/41 FLAGGED``) as aligned text lines."""
+    head = ("file", "period s", "trials", "rejected", "first at s", "presses cut")
     body = [(str(r["file"]), "-" if r.get("period_s") is None else f"{r['period_s']:.2f}", str(r["trials"]),
-             str(r["rejected"]), "-" if r.get("first_start_s") is None else f"{r['first_start_s']:.2f}")
-            for r in rows]
+             str(r["rejected"]), "-" if r.get("first_start_s") is None else f"{r['first_start_s']:.2f}",
+             _presses_cell(r)) for r in rows]
     widths = [max(len(row[i]) for row in [head, *body]) for i in range(len(head))]
     return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
                      for row in [head, *body])
 
 
 def outlier_warnings(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """One line per file whose trials overlap (any number of files), and per file whose period or trial count is
+    """One line per file whose trials do not follow its presses one by one (:func:`press_check`), per file whose
+    trials overlap (any number of files), and per file whose period or trial count is
     at or under half, or at or over twice, the import's median (three files or more: a period exactly twice the
     median is a cycle counted as two)."""
-    out = [f"{r['file']}: {r['overlapping']} trials run into the next one ({r['shared_samples']} samples in two "
+    out = [f"{r['file']}: {r['press_problem']}: check its trials (rigctl info), give its period with "
+           "cycles:N:MIN_PERIOD_S:MAX_PERIOD_S, or leave it out with --skip-bad" for r in rows if r.get("press_problem")]
+    out += [f"{r['file']}: {r['overlapping']} trials run into the next one ({r['shared_samples']} samples in two "
            "trials): its period is likely wrong; check its trials (rigctl info) or give its period with "
            "cycles:N:MIN_PERIOD_S:MAX_PERIOD_S" for r in rows if r.get("overlapping")]
     if len(rows) < 3:

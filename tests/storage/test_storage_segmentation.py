@@ -254,3 +254,90 @@ def test_a_clearly_periodic_file_passes_the_noise_rule_and_min_swing_sets_it(tmp
     assert r.exit_code == 0, r.output
     with open_session(tmp_path / "c.h5") as s:
         assert json.loads(s.attrs["segmentation"])["min_swing"] == 4.0
+
+
+# ---------------------------------------------------------------------------------------------- issue 52 item 5
+def test_press_check_counts_presses_cut_one_by_one():
+    """Each trial checked against the press phase: a trial per press at its onset passes; every other press cut,
+    trials off the onsets and trials holding two presses are counted."""
+    from rigctl.storage.segmentation import Segmentation, press_check
+
+    onsets = list(range(100, 4200, 100))  # 41 presses, 100 samples apart, in 4300 samples
+    n = 4300
+    every = [(o, o + 100) for o in onsets]
+    assert press_check(onsets, every, n, pre=0, n_cycles=1) == {"presses": 41, "cut": 41, "missed": 0,
+                                                                  "off_onset": 0, "wrong_count": 0}
+    half = every[::2]
+    got = press_check(onsets, half, n, pre=0, n_cycles=1)
+    assert (got["presses"], got["cut"], got["missed"]) == (41, 21, 20)
+    assert Segmentation(half, list(range(len(half))), presses=got).press_problem.startswith(
+        "21 of 41 presses cut as trials press by press (20 missed")
+    late = [(o + 30, o + 130) for o in onsets]
+    assert press_check(onsets, late, n, pre=0, n_cycles=1)["off_onset"] == 41
+    double = [(o, o + 200) for o in onsets[::2]]
+    got = press_check(onsets, double, n, pre=0, n_cycles=1)
+    assert got["wrong_count"] == 20 and got["cut"] == 1
+
+
+def _weak_every_other(seed: int, period: int = 400, n_presses: int = 41, weak: float = 0.35):
+    """A press-and-slide file (100 Hz, 9 channels) whose every other press reaches only ``weak`` of the others'
+    level: under half the swing, so the cut passes over them and takes two presses a trial."""
+    rng = np.random.default_rng(seed)
+    n = 300 + n_presses * period + 200
+    x = 500 + rng.normal(0, 1.5, (n, 9))
+    length, ramp = int(0.55 * period), 15
+    env = np.ones(length)
+    env[:ramp], env[-ramp:] = np.linspace(0, 1, ramp), np.linspace(1, 0, ramp)
+    vib = 1 + 0.1 * np.sin(2 * np.pi * 12 * np.arange(length) / 100)
+    for i in range(n_presses):
+        o = 300 + i * period
+        x[o:o + length] += (120 * (1 if i % 2 == 0 else weak) * env * vib)[:, None]
+    return np.rint(x)
+
+
+def test_a_file_whose_weaker_presses_are_passed_over_is_flagged_and_skip_bad_drops_it(tmp_path):
+    """A file whose weaker presses fall under the cutting level was cut at twice its period, two presses a trial,
+    without a word: now its row reads 'n/41 FLAGGED', a warning gives the counts, and --skip-bad leaves it out with
+    the reason while a clean file beside it is imported."""
+    from rigctl.simulation.press_slide import press_slide_recording
+
+    np.save(tmp_path / "felt__R0.npy", _weak_every_other(5))
+    clean, _ = press_slide_recording(4.4, 90.0, 42, nan=False, seed=6)
+    np.save(tmp_path / "silk__R1.npy", clean)
+    files = (tmp_path / "felt__R0.npy", tmp_path / "silk__R1.npy")
+    common = ["--rate", 100, "--label-pattern", PATTERN, "--segment", "cycles"]
+    r = run_import(*files, *common, "--out", tmp_path / "a.h5")
+    assert r.exit_code == 0, r.output
+    rows = {line.split()[0]: line for line in r.stdout.splitlines() if line.startswith(("felt", "silk"))}
+    assert rows["felt__R0.npy"].endswith("/41 FLAGGED") and "FLAGGED" not in rows["silk__R1.npy"], r.stdout
+    warned = [line for line in r.stderr.splitlines() if "presses cut as trials press by press" in line]
+    assert len(warned) == 1 and "felt__R0.npy: 0 of 41 presses" in warned[0] and "--skip-bad" in warned[0], r.stderr
+    r = run_import(*files, *common, "--skip-bad", "--out", tmp_path / "b.h5")
+    assert r.exit_code == 0 and "refused felt__R0.npy: 0 of 41 presses" in r.stderr, r.output
+    with open_session(tmp_path / "b.h5") as s:
+        assert {row["source_file"] for row in s.trial_table(s.completed_ids(), ["source_file"])} == {"silk__R1.npy"}
+
+
+def test_the_38_generated_recordings_press_by_press():
+    """The suite's 38 press-and-slide recordings (write_lab_set): 32 cut press by press right (every trial at a press
+    onset of the generator's truth, every whole press a trial), none flagged, 6 refused (4 NaN, 2 flat)."""
+    import tempfile
+
+    from rigctl.simulation.press_slide import write_lab_set
+    from rigctl.storage.recording_files import RecordingImportError, read_recording_file
+
+    right = flagged = refused = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for path, truth in write_lab_set(tmp):
+            try:
+                cut = segment(read_recording_file(path, whole_counts=True)[0][0], RATE_HZ, parse_segment("cycles"))
+            except RecordingImportError:
+                refused += 1
+                assert truth.fault in ("nan", "flat")
+                continue
+            if cut.press_problem:
+                flagged += 1
+            else:
+                right += 1
+                assert cut.presses["cut"] >= truth.n_cycles - 2
+    assert (right, flagged, refused) == (32, 0, 6)

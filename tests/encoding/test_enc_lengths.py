@@ -1,0 +1,66 @@
+"""A label hidden in the trial length (issue 52 item 4): encode and analyze warn when trial durations differ by texture
+and give the crop; ``encode --crop-s`` cuts every trial to a common length (a trial shorter than it refused, named);
+analyze names the textures and cells that set its sample size."""
+
+from __future__ import annotations
+
+import numpy as np
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.encoding.lengths import length_imbalance
+from rigctl.storage.encoded import open_encoded
+from rigctl.storage.session import SessionWriter, TrialData
+
+
+def _session(path, lengths: dict[str, tuple[int, int]]):
+    """Trials of each texture: (count, samples at 1 kHz)."""
+    rng = np.random.default_rng(0)
+    plan, data = [], []
+    for tex, (n, samples) in lengths.items():
+        for _ in range(n):
+            plan.append(dict(trial_id=len(plan), texture=tex, speed_mm_s=40.0, force_g=500.0,
+                             duration_s=samples / 1000))
+            data.append(rng.integers(300, 700, (samples, 18)))
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 't'") as w:
+        for i, x in enumerate(data):
+            w.write_trial(i, TrialData(taxels=x, seq=np.arange(len(x)), force_g=[500.0], force_time_s=[0.0],
+                                       speed_mm_s=[40.0], speed_time_s=[0.0]))
+    return path
+
+
+def _run(*args):
+    r = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return r.exit_code, r.stdout + r.stderr
+
+
+def test_length_imbalance_by_texture():
+    tex = np.array(["A"] * 4 + ["B"] * 4)
+    assert length_imbalance(tex, np.r_[[6.0] * 4, [8.0] * 4]).startswith("trial durations differ by texture "
+                                                                         "(median: A 6.00 s, B 8.00 s)")
+    assert "--crop-s 6" in length_imbalance(tex, np.r_[[6.0] * 4, [8.0] * 4])
+    assert length_imbalance(tex, np.r_[[8.0] * 4, [7.9] * 4]) is None  # within 5 %
+
+
+def test_encode_warns_and_crops_and_analyze_names_what_sets_the_sample_size(tmp_path):
+    session = _session(tmp_path / "s.h5", {"A": (6, 600), "B": (10, 800)})
+    rc, out = _run("encode", session, "--out", tmp_path / "e.h5", "--no-progress", "--variant", "original")
+    assert rc == 0, out
+    assert "trial durations differ by texture (median: A 0.60 s, B 0.80 s)" in out and "--crop-s 0.6" in out, out
+    rc, out = _run("analyze", tmp_path / "e.h5", "--task", "textures", "--repeats", 1, "--pcs", "1-2",
+                   "--no-progress")
+    assert rc == 0, out
+    assert "trial durations differ by texture" in out, out
+    assert "the sample size is set by A (6 trials; median texture 8)" in out, out
+    rc, out = _run("encode", session, "--out", tmp_path / "c.h5", "--no-progress", "--variant", "original",
+                   "--crop-s", 0.6)
+    assert rc == 0 and "differ by texture" not in out, out
+    with open_encoded(tmp_path / "c.h5") as f:
+        assert set(f.trials["n_samples"].tolist()) == {600}
+        assert f.parameters["crop_s"] == 0.6
+    rc, out = _run("analyze", tmp_path / "c.h5", "--task", "textures", "--repeats", 1, "--pcs", "1-2",
+                   "--no-progress")
+    assert rc == 0 and "differ by texture" not in out, out
+    rc, out = _run("encode", session, "--out", tmp_path / "x.h5", "--no-progress", "--crop-s", 0.7)
+    assert rc == 1 and "--crop-s 0.7: trials 0, 1, 2, 3, 4, 5 are shorter" in out and "Traceback" not in out, out
+    assert not (tmp_path / "x.h5").exists()
