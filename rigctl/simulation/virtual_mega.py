@@ -38,13 +38,14 @@ from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
 from pymodbus.framer import FramerType
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
+from rigctl.core.shared_clock import SharedClock
 from rigctl.devices import wire
 from rigctl.devices.wire import Fault, HoldingRegister as HR
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.model import RigModel
 from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyBridge
-from rigctl.simulation.virtual_uno import paced_loop
+from rigctl.simulation.world_loop import WorldLoop
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +148,8 @@ class VirtualMega(MegaController):
         self._server = None
         self._server_thread: threading.Thread | None = None
         self._clock_thread: threading.Thread | None = None
+        #: the board's own shared clock when it runs its own control loop (``start(clock=True)``), else None
+        self.clock: SharedClock | None = None
         self._stop = threading.Event()
         #: the request count when a check last found the host overdue with nothing on the way (check_watchdog)
         self._overdue_at_requests: int | None = None
@@ -170,7 +173,9 @@ class VirtualMega(MegaController):
         return self.bridge.client_path
 
     def start(self, *, clock: bool = True, control_period_s: float = 0.005) -> "VirtualMega":
-        """Start the Modbus server thread and, with ``clock=True``, a real-time control loop (200 Hz default)."""
+        """Start the Modbus server thread and, with ``clock=True``, a control loop paced to real time (200 Hz default)
+        on a clock of its own shared with the host (:attr:`clock`: its port's clients in this process time themselves
+        on it, and a starved host pauses the board)."""
         # imported here, not with the module: pymodbus.server imports aiohttp for its HTTP simulator (~0.5 s of CPU)
         from pymodbus.server import ModbusSerialServer
 
@@ -212,10 +217,15 @@ class VirtualMega(MegaController):
         ready.wait(5)
         if errors:
             raise RuntimeError(f"virtual Mega's Modbus server failed to start: {errors[0]}") from errors[0]
-        if clock:
+        if clock:  # a board of its own: on a clock shared with the host of this process (docs/architecture.md)
             self._stop.clear()
+            self.clock = SharedClock(lambda: self.model.time_s, world_notifies=True).start()
+            self.clock.own_port(self.path)
+            self.use_clock(self.clock.now)
+            loop = WorldLoop(self.clock, lambda: int(round(self.model.time_s * 1000.0)), self.step,
+                             tick_s=control_period_s)
             self._clock_thread = threading.Thread(
-                target=board_thread(paced_loop), args=(self._stop, control_period_s, self.step), name="virtual-mega-control",
+                target=board_thread(loop.run), args=(self._stop,), name="virtual-mega-control",
                 daemon=True)
             self._clock_thread.start()
         return self
@@ -226,6 +236,9 @@ class VirtualMega(MegaController):
         if self._clock_thread is not None:
             self._clock_thread.join(timeout=2)
             self._clock_thread = None
+        if self.clock is not None:
+            self.clock.close()
+            self.clock.release_ports()
         if self._server is not None and self._loop is not None:
             try:
                 asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop).result(timeout=3)
