@@ -1,0 +1,299 @@
+"""Fault campaign (issue 55 item 7): random single faults at random moments of a run, on the model rig (the
+controller logic in-process, simulated time) or the real firmware under simavr (``--rig hil``), judged on the truth
+log: the true force stays <= 1.1 x FORCE_LIMIT (1650 g), the actuator takes no step towards the sensor after a
+latch, no trial is recorded without contact (rigctl.simulation.campaign).
+
+Each case (seed S+i for i < N; ``rigctl.simulation.campaign.draw_case``) opens its own rig with the drawn contact
+stiffness and HX711 rate (a 10 SPS rig with the rig config's force_loop for 10 SPS, as a lab sets one up; its
+controller latches HX711_RATE at power-up, which the script acknowledges as the lab must: :func:`accept_rate`), and
+the host (rigctl's own Rig: every check and wait of a real run) runs one script: HOME, a first press (the contact probe)
+to the first force, the force held, a trial, the release, a pause, a second press (the approach) and a second trial,
+the release. The fault is armed when the script reaches the drawn moment (FAULT@0, before the HOME at open, for
+``power-on``). Whatever the host meets (a latch, a timeout, a refusal) ends the script as a run ends: the host then
+stays connected, polling, and asks once more to press (a latched rig refuses); nothing acknowledges. A fault the rig
+cannot model (its fault_refusal) is not drawn: the cases draw from the faults it models, counted in ``faults``.
+
+Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model|hil] [--json] [--jobs J]
+       python benchmarks/bench_fault_campaign.py --replay SEED [--rig model|hil] [--truth-log FILE]
+
+The JSON: ``cases``, ``violations`` (each with its ``seed``: ``--replay SEED`` runs that case again), ``worst_true_
+force_g`` (and ``worst_seed``), ``outcomes`` (how the scripts ended), ``faults`` (cases per fault, with the worst
+true force of each), ``sim_s_per_wall_s`` (simulated seconds per wall second), ``cases_per_minute``, ``cpu_s``.
+Exits 1 if a case broke an invariant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigctl.acquisition.rig import Rig
+from rigctl.acquisition.rigconfig import update_rig_config
+from rigctl.core.drum import Fault
+from rigctl.core.faults import FAULTS, FaultSpec
+from rigctl.core.trial import PlannedTrial
+from rigctl.devices import wire
+from rigctl.devices.drum import default_force_loop
+from rigctl.rigs import make_backend, open_rig
+from rigctl.simulation.campaign import Case, ModelTruth, check_invariants, draw_case
+from rigctl.simulation.model import MechanicsConfig, RigConfig
+
+#: each step's expected length, s: the fault starts at the drawn fraction of it after the step begins
+STEP_S = {"home": 2.0, "settled": 1.0, "running": 1.5, "retract": 1.0, "between": 1.0, "approach": 1.5}
+#: a trial's length, s, and how long the host stays connected after the script ends (polling), s
+TRIAL_S = 0.4
+AFTER_S = 2.0
+
+
+def _probe_s(rate_sps: int) -> float:
+    return wire.probe_time_s(rate_sps)
+
+
+def model_faults() -> list[str]:
+    """The faults the model rig models (its fault_refusal says None)."""
+    from rigctl.simulation.faults import model_fault_refusal
+
+    return [n for n in FAULTS if model_fault_refusal(FaultSpec(n, 1.0, math.inf, 1000.0)) is None]
+
+
+def hil_faults() -> list[str]:
+    """The faults the firmware's harness models."""
+    from rigctl.simulation.hil_faults import HilFaults
+
+    faults = HilFaults(lambda c: None, lambda c: None, 47_000.0)
+    return [n for n in FAULTS if faults.fault_refusal(FaultSpec(n, 1.0, math.inf, 1000.0)) is None]
+
+
+class Script:
+    """The host's run on an open rig, arming the case's fault at its moment; records the trials it recorded and
+    how it ended."""
+
+    def __init__(self, rig: Any, case: Case, clock_t0: float):
+        self.rig, self.case, self.t0 = rig, case, clock_t0
+        self.trials: list[tuple[float, float, float]] = []
+        self.outcome = "completed"
+        self.latched_seen_s: float | None = None
+
+    def now(self) -> float:
+        return float(self.rig.drum.clock.now()) - self.t0
+
+    def arm(self, moment: str, length_s: float) -> None:
+        if self.case.moment == moment:
+            self.rig.backend.inject_faults([self.case.spec(max(1e-3, self.case.moment_fraction * length_s))])
+
+    def hold(self, s: float) -> None:
+        """The host stays connected ``s`` seconds (its status reads feed the controller's watchdog)."""
+        clock, end = self.rig.drum.clock, self.rig.drum.clock.now() + s
+        while clock.now() < end:
+            st = self.rig.drum.read_status()
+            if st.state == wire.DrumState.FAULT and self.latched_seen_s is None:
+                self.latched_seen_s = self.now()
+            clock.sleep(0.05)
+
+    def trial(self, i: int, force_g: float) -> None:
+        start = self.now()
+        self.rig.record_trial(PlannedTrial(i, "A", self.case.speed_mm_s, force_g, TRIAL_S))
+        self.trials.append((start, self.now(), self.case.speed_mm_s))
+
+    def run(self) -> None:
+        c, rig = self.case, self.rig
+        try:
+            self.arm("home", STEP_S["home"])
+            rig.drum.home()
+            rig.drum.wait_state([wire.DrumState.IDLE], timeout_s=30.0)
+            rig.drum.tare()
+            self.arm("probe", _probe_s(c.hx711_rate_sps))
+            rig.press(c.forces_g[0])
+            self.arm("settled", STEP_S["settled"])
+            self.hold(STEP_S["settled"])
+            self.arm("running", STEP_S["running"])
+            self.trial(0, c.forces_g[0])
+            self.arm("retract", STEP_S["retract"])
+            rig.release()
+            self.arm("between", STEP_S["between"])
+            self.hold(STEP_S["between"])
+            self.arm("approach", STEP_S["approach"])
+            rig.press(c.forces_g[1])
+            self.trial(1, c.forces_g[1])
+            rig.release()
+        except Exception as exc:  # noqa: BLE001 - any way a run ends: a latch, a timeout, a refusal
+            self.outcome = type(exc).__name__
+            try:
+                st = rig.drum.read_status()
+                if st.state == wire.DrumState.FAULT:
+                    self.latched_seen_s = self.now()
+            except Exception:  # noqa: BLE001 - a link lost: the truth still tells
+                pass
+        # after the run: the host stays connected and asks once more to press (a latched rig refuses)
+        try:
+            self.hold(AFTER_S / 2)
+            rig.press(c.forces_g[1], timeout_s=5.0)
+        except Exception:  # noqa: BLE001 - refused or failed: what the truth shows is judged
+            pass
+        try:
+            self.hold(AFTER_S / 2)
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _rig_files(case: Case, folder: Path) -> tuple[RigConfig, Path]:
+    cfg = RigConfig(mechanics=MechanicsConfig(contact_stiffness_g_per_mm=case.stiffness_g_per_mm,
+                                              hx711_rate_sps=float(case.hx711_rate_sps)))
+    host = folder / f"rig-{case.seed}.json"
+    if case.hx711_rate_sps != 80:  # the lab's rig config for its 10 SPS board
+        update_rig_config(host, force_loop=default_force_loop(case.hx711_rate_sps).to_dict())
+    return cfg, host
+
+
+def accept_rate(rig: Any, case: Case) -> None:
+    """A 10 SPS board latches HX711_RATE at every power-up (the controller times its HX711 before the host writes
+    the rig config's rate; since issue 51 opening never clears it): the lab acknowledges it, with its reason, and the
+    script's HOME follows. Nothing else is acknowledged."""
+    st = rig.drum.read_status()
+    if case.hx711_rate_sps != 80 and st.state == wire.DrumState.FAULT and int(st.faults) == int(Fault.HX711_RATE):
+        rig.acknowledge("the board's HX711 runs at 10 SPS (RATE pin low); the rig config's force_loop is for it",
+                        by="fault campaign")
+
+
+def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
+    """One case on the in-process model rig; its result (see :func:`result`)."""
+    cfg, host = _rig_files(case, folder)
+    power_on = [case.spec(0.0)] if case.moment == "power-on" else []
+    t_wall = time.perf_counter()
+    backend = make_backend("inprocess", config=cfg, seed=case.seed)
+    truth = ModelTruth(backend.engine)  # type: ignore[attr-defined]
+    if power_on:  # armed before the rig opens: in place before the HOME at open, as a miswired rig is
+        backend.inject_faults(power_on)  # type: ignore[attr-defined]
+    script, open_error = None, None
+    try:
+        rig = Rig.connect(backend, host_config_path=str(host), home=False)
+        accept_rate(rig, case)
+    except Exception as exc:  # noqa: BLE001 - the rig refused to open (a latch at open): judged on its truth
+        open_error = type(exc).__name__
+    else:
+        with rig:
+            script = Script(rig, case, 0.0)  # the engine's clock is the model's: the truth rows' times
+            script.run()
+    return result(case, truth.array(), truth.latch_spans, script, open_error, time.perf_counter() - t_wall)
+
+
+def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None) -> dict[str, Any]:
+    """One case on the firmware under simavr (both boards), its truth log written by the harness."""
+    from rigctl.simulation.truth import TRUTH_COLUMNS
+
+    cfg, host = _rig_files(case, folder)
+    log = truth_log or folder / f"truth-{case.seed}.csv"
+    power_on = [case.spec(0.0)] if case.moment == "power-on" else []
+    t_wall = time.perf_counter()
+    script, open_error = None, None
+    try:
+        rig = open_rig("hil", config=cfg, seed=case.seed, host_config_path=host, inject=power_on, truth_log=log,
+                       home=False)
+        accept_rate(rig, case)
+    except Exception as exc:  # noqa: BLE001
+        open_error = type(exc).__name__
+    else:
+        with rig:
+            script = Script(rig, case, float(rig.drum.clock.now()))
+            script.run()
+    rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.empty((0, len(TRUTH_COLUMNS)))
+    latches = [(script.latched_seen_s, None)] if script is not None and script.latched_seen_s is not None else []
+    return result(case, rows, latches, script, open_error, time.perf_counter() - t_wall)
+
+
+def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | None]], script: Script | None, open_error: str | None,
+           wall_s: float) -> dict[str, Any]:
+    trials = script.trials if script is not None else []
+    violations = check_invariants(truth, latches=latches, trials=trials)
+    return {"seed": case.seed, "case": case.describe(), "fault": case.fault, "moment": case.moment,
+            "outcome": open_error and f"open: {open_error}" or (script.outcome if script else "?"),
+            "trials_recorded": len(trials), "latches": latches,
+            "true_force_max_g": round(float(truth[:, 1].max()), 1) if len(truth) else 0.0,
+            "sim_s": round(float(truth[-1, 0] - truth[0, 0]), 3) if len(truth) else 0.0, "wall_s": round(wall_s, 3),
+            "violations": [{"kind": v.kind, "time_s": round(v.time_s, 3), "detail": v.detail} for v in violations]}
+
+
+def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None) -> dict[str, Any]:
+    faults = model_faults() if rig == "model" else hil_faults()
+    case = draw_case(seed, faults)
+    return run_model_case(case, folder) if rig == "model" else run_hil_case(case, folder, truth_log)
+
+
+def _run_chunk(seeds: list[int], rig: str) -> list[dict[str, Any]]:
+    with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
+        return [run_case(s, rig, Path(tmp)) for s in seeds]
+
+
+def campaign(n: int, seed: int, rig: str, jobs: int = 1) -> dict[str, Any]:
+    seeds = list(range(seed, seed + n))
+    t_wall, cpu0 = time.perf_counter(), os.times()
+    if jobs > 1:
+        chunks = [seeds[i::jobs] for i in range(jobs)]
+        with ProcessPoolExecutor(jobs) as pool:
+            results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs) for r in part]
+    else:
+        results = _run_chunk(seeds, rig)
+    wall = time.perf_counter() - t_wall
+    cpu1 = os.times()
+    results.sort(key=lambda r: r["seed"])
+    worst = max(results, key=lambda r: r["true_force_max_g"]) if results else None
+    per_fault: dict[str, dict[str, float]] = {}
+    outcomes: dict[str, int] = {}
+    for r in results:
+        f = per_fault.setdefault(r["fault"], {"cases": 0, "worst_true_force_g": 0.0})
+        f["cases"] += 1
+        f["worst_true_force_g"] = max(f["worst_true_force_g"], r["true_force_max_g"])
+        outcomes[r["outcome"]] = outcomes.get(r["outcome"], 0) + 1
+    sim = sum(r["sim_s"] for r in results)
+    return {"rig": rig, "seed": seed, "cases": len(results), "jobs": jobs,
+            "violations": [{"seed": r["seed"], "case": r["case"], **v} for r in results for v in r["violations"]],
+            "worst_true_force_g": worst["true_force_max_g"] if worst else 0.0,
+            "worst_seed": worst["seed"] if worst else None, "outcomes": outcomes, "faults": per_fault,
+            "sim_s": round(sim, 1), "wall_s": round(wall, 1),
+            "cpu_s": round((cpu1.user - cpu0.user) + (cpu1.children_user - cpu0.children_user)
+                           + (cpu1.system - cpu0.system) + (cpu1.children_system - cpu0.children_system), 1),
+            "sim_s_per_wall_s": round(sim / wall, 2) if wall > 0 else None,
+            "cases_per_minute": round(60.0 * len(results) / wall, 1) if wall > 0 else None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rig", choices=("model", "hil"), default="model")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run in this many processes side by side")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--replay", type=int, default=None, metavar="SEED", help="run the case of SEED alone")
+    ap.add_argument("--truth-log", type=Path, default=None, help="with --replay --rig hil: keep its truth log here")
+    args = ap.parse_args(argv)
+    if args.cases < 1 or args.jobs < 1 or args.seed < 0:
+        ap.error("--cases and --jobs must be >= 1, --seed >= 0")
+    if args.replay is not None:
+        with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
+            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log)
+        print(json.dumps(out, indent=1))
+        return 1 if out["violations"] else 0
+    out = campaign(args.cases, args.seed, args.rig, args.jobs)
+    if args.json:
+        print(json.dumps(out, indent=1))
+    else:
+        print(f"{out['cases']} cases on the {args.rig} rig (seeds {args.seed}-{args.seed + args.cases - 1}): "
+              f"{len(out['violations'])} violations, worst true force {out['worst_true_force_g']:.0f} g (seed "
+              f"{out['worst_seed']}), {out['cases_per_minute']} cases/min, {out['sim_s_per_wall_s']} sim s per wall s")
+        for v in out["violations"]:
+            print(f"  seed {v['seed']}: {v['kind']} at {v['time_s']:.2f} s: {v['detail']} [{v['case']}]")
+    return 1 if out["violations"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,208 @@
+"""The fault campaign's cases and invariants (issue 55 item 7): random single faults at random moments of a run, and
+what the ground truth must show whatever the fault.
+
+A case (:class:`Case`, :func:`draw_case`) is one seed's draw: one fault of :data:`rigctl.core.faults.FAULTS` (a
+value for the valued ones: a plate swap's stiffness, a slip, a taxel impedance), the moment of the run it starts in
+(:data:`MOMENTS`: wired so from power-on, or during the HOME, the first press's contact probe, a later press's
+approach, the settled force, a running trial, the retract, the pause between trials) and where in that moment
+(``moment_fraction``), how long it lasts, the rig's contact stiffness (0.25-6 kg/mm, log-uniform), its HX711's
+rate (10 or 80 SPS) and the trials' forces (250-1500 g). The same seed draws the same case on every machine
+(numpy's PCG64), so a violation is replayed from its seed.
+
+The invariants (:func:`check_invariants`) are judged on the truth log's columns (:data:`rigctl.simulation.truth.
+TRUTH_COLUMNS`: the physical model's contact force and actuator position, not what the firmware read):
+
+- ``over-force``: the true force stays <= 1.1 x FORCE_LIMIT_G (:data:`FORCE_BOUND_G`, 1650 g);
+- ``step-after-latch``: once the controller latched a fault, the actuator takes no step towards the sensor
+  (:data:`LATCH_STEP_MM` of slack for the step in flight, :data:`LATCH_GRACE_S` after the latch);
+- ``trial-without-contact``: a trial the host recorded had the sensor in contact the whole time the drum ran for
+  it (true force >= :data:`CONTACT_G`).
+
+:class:`ModelTruth` records the truth rows (and the controller's first latch) of an in-process model rig after each
+of its control periods (and each span its controller held a latched fault); the firmware under simavr writes them
+itself (``HilRig(truth_log=...)``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from rigctl.core.faults import FAULTS, INSTANT_FAULTS, FaultSpec
+from rigctl.devices import wire
+
+__all__ = ["Case", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S", "draw_case",
+           "check_invariants", "ModelTruth", "Violation"]
+
+#: the moments a fault can start in, in the order a run passes them (``power-on``: FAULT@0, before the HOME at open)
+MOMENTS = ("power-on", "home", "probe", "settled", "running", "retract", "between", "approach")
+#: the bound on the true force any single fault must keep, g: 1.1 x FORCE_LIMIT_G (docs/safety.md)
+FORCE_BOUND_G = 1.1 * wire.HOLDING_RANGE[wire.HoldingRegister.FORCE_LIMIT_G][2]
+#: a recorded trial's true force below this while its drum runs is no contact, g
+CONTACT_G = 5.0
+#: the actuator's travel towards the sensor after a latch that counts as a step, mm (a microstep is ~0.3 um; the
+#: slack covers the truth log's rounding and the step the driver was making)
+LATCH_STEP_MM = 0.01
+#: the truth rows within this long after the latch are not judged, s (the latch's own control period)
+LATCH_GRACE_S = 0.005
+#: the range of each valued fault's drawn value (contact-stiffness: the plate swapped for one of 0.25-6 kg/mm)
+_VALUE_DRAWS: dict[str, tuple[float, float, bool]] = {  # name -> (low, high, log-uniform)
+    "contact-stiffness": (250.0, 6000.0, True), "slip": (5.0, 60.0, False), "taxel-ohm": (47e3, 2e6, True)}
+
+
+@dataclass(frozen=True)
+class Case:
+    """One drawn case (see the module docstring). ``at_s`` of the fault is set when the run reaches ``moment``:
+    ``moment_fraction`` x that step's expected length after its start (0 for ``power-on``)."""
+
+    seed: int
+    fault: str  #: a name of FAULTS
+    value: float | None  #: the valued fault's value (g/mm, %, Ohm), else None
+    moment: str  #: one of MOMENTS
+    moment_fraction: float  #: where in the moment, 0-1
+    duration_s: float  #: how long the fault lasts (inf: to the end; 0: an instant fault)
+    stiffness_g_per_mm: float  #: the rig's contact stiffness
+    hx711_rate_sps: int  #: 10 or 80
+    forces_g: tuple[float, float]  #: the two trials' force setpoints
+    speed_mm_s: float  #: the trials' drum speed
+
+    def spec(self, at_s: float) -> FaultSpec:
+        """The fault starting ``at_s`` s after its schedule is armed."""
+        return FaultSpec(self.fault, float(at_s), 0.0 if self.fault in INSTANT_FAULTS else self.duration_s,
+                         self.value)
+
+    def describe(self) -> str:
+        value = "" if self.value is None else f"={self.value:g}"
+        dur = "" if self.fault in INSTANT_FAULTS or math.isinf(self.duration_s) else f" for {self.duration_s:.2f} s"
+        return (f"{self.fault}{value} at {self.moment} ({self.moment_fraction:.2f}){dur}; contact "
+                f"{self.stiffness_g_per_mm:.0f} g/mm, HX711 {self.hx711_rate_sps} SPS, forces "
+                f"{self.forces_g[0]:.0f}/{self.forces_g[1]:.0f} g at {self.speed_mm_s:.0f} mm/s")
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["duration_s"] = None if math.isinf(self.duration_s) else self.duration_s
+        out["forces_g"] = list(self.forces_g)
+        return out
+
+
+def draw_case(seed: int, faults: Sequence[str] | None = None) -> Case:
+    """The case of ``seed`` (an int >= 0), its fault drawn from ``faults`` (default every name of FAULTS; a rig
+    passes those it can model). Raises ValueError for an empty ``faults``."""
+    names = sorted(faults if faults is not None else FAULTS)
+    if not names:
+        raise ValueError("no fault to draw from")
+    rng = np.random.default_rng([int(seed), 55])
+    fault = names[int(rng.integers(len(names)))]
+    value = None
+    if fault in _VALUE_DRAWS:
+        low, high, log = _VALUE_DRAWS[fault]
+        value = float(math.exp(rng.uniform(math.log(low), math.log(high))) if log else rng.uniform(low, high))
+        value = float(f"{value:.4g}")
+    moment = MOMENTS[int(rng.integers(len(MOMENTS)))]
+    fraction = float(rng.uniform(0.0, 1.0))
+    duration = math.inf if rng.uniform() < 0.5 else float(rng.uniform(0.2, 4.0))
+    if fault in INSTANT_FAULTS:
+        duration = 0.0
+    stiffness = float(math.exp(rng.uniform(math.log(250.0), math.log(6000.0))))
+    rate = int(rng.choice([10, 80]))
+    forces = (float(rng.uniform(250.0, 1500.0)), float(rng.uniform(250.0, 1500.0)))
+    speed = float(rng.choice([40.0, 80.0, 120.0]))
+    return Case(int(seed), fault, value, moment, fraction, duration, round(stiffness, 1), rate,
+                (round(forces[0], 1), round(forces[1], 1)), speed)
+
+
+@dataclass(frozen=True)
+class Violation:
+    """An invariant the truth broke: ``kind`` (over-force, step-after-latch, trial-without-contact), at ``time_s``
+    (truth log time), in words."""
+
+    kind: str
+    time_s: float
+    detail: str
+
+
+def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float | None]] = (),
+                     trials: Sequence[tuple[float, float, float]] = ()) -> list[Violation]:
+    """The invariants on the truth rows ``truth`` ((n, 4): the TRUTH_COLUMNS, time ascending).
+
+    Parameters
+    ----------
+    latches : each time the controller held a latched fault: ``(start_s, end_s)`` on the truth log's clock (``end_s``
+        None: to the end; it ends when an acknowledgement cleared it).
+    trials : the trials the host recorded: ``(start_s, end_s, speed_mm_s)`` on the truth log's clock (the span of the
+        host's call); the rows in it where the drum turns at more than half the trial's speed are the trial's.
+    """
+    out: list[Violation] = []
+    if len(truth) == 0:
+        return out
+    t, force, act, drum = truth[:, 0], truth[:, 1], truth[:, 2], truth[:, 3]
+    i = int(np.argmax(force))
+    if force[i] > FORCE_BOUND_G:
+        out.append(Violation("over-force", float(t[i]), f"true force {force[i]:.0f} g > {FORCE_BOUND_G:.0f} g"))
+    for latch_s, end_s in latches:
+        before = np.nonzero(t <= latch_s + LATCH_GRACE_S)[0]  # where the latch's own control period left it
+        at_latch = float(act[before[-1]]) if len(before) else float(act[0])
+        after = np.nonzero((t > latch_s + LATCH_GRACE_S) & (t <= (math.inf if end_s is None else end_s)))[0]
+        if len(after):
+            j = after[int(np.argmax(act[after]))]
+            if act[j] > at_latch + LATCH_STEP_MM:
+                out.append(Violation("step-after-latch", float(t[j]), f"the actuator moved {act[j] - at_latch:.3f} mm "
+                                     f"towards the sensor {t[j] - latch_s:.2f} s after the latch at {latch_s:.2f} s"))
+                break
+    for start, end, speed in trials:
+        rows = np.nonzero((t >= start) & (t <= end) & (np.abs(drum) > 0.5 * speed))[0]
+        if len(rows) and float(np.min(force[rows])) < CONTACT_G:
+            k = rows[int(np.argmin(force[rows]))]
+            out.append(Violation("trial-without-contact", float(t[k]), f"a recorded trial's true force fell to "
+                                 f"{force[k]:.0f} g while the drum ran ({start:.2f}-{end:.2f} s)"))
+    return out
+
+
+class ModelTruth:
+    """The truth rows of an in-process model rig (:class:`rigctl.simulation.inprocess.InProcessEngine`): after each
+    control period of its controller (<= its ``max_step_ms``, ending at each HX711 conversion) one row of the model's
+    contact force, actuator position and drum speed, and the first moment its controller was in FAULT.
+
+    Parameters
+    ----------
+    engine : the engine (``engine.model``, ``engine.controller``); its controller's ``control_step`` is wrapped.
+    """
+
+    def __init__(self, engine: Any) -> None:
+        self.engine = engine
+        self.t0_s = 0.0
+        self.rows: list[tuple[float, float, float, float]] = []
+        #: each time the controller was in FAULT: [start_s, end_s or None]
+        self.latches: list[list[float | None]] = []
+        controller, model = engine.controller, engine.model
+        step: Callable[[int], None] = controller.control_step
+        fault_state = int(wire.DrumState.FAULT)
+
+        def control_step(n_ms: int) -> None:
+            step(n_ms)
+            t = model.time_s - self.t0_s
+            self.rows.append((t, model.contact_force_g, model.actuator_mm, model.drum_speed_mm_s))
+            faulted = int(controller.state) == fault_state
+            if faulted and (not self.latches or self.latches[-1][1] is not None):
+                self.latches.append([t, None])
+            elif not faulted and self.latches and self.latches[-1][1] is None:
+                self.latches[-1][1] = t
+
+        controller.control_step = control_step
+
+    @property
+    def latch_spans(self) -> list[tuple[float, float | None]]:
+        """:attr:`latches` as ``(start_s, end_s)`` tuples (for :func:`check_invariants`)."""
+        return [(float(a or 0.0), b) for a, b in self.latches]
+
+    def start(self) -> None:
+        """Time 0 now (the run's start: the fault schedule's); rows before it keep negative times."""
+        self.t0_s = float(self.engine.model.time_s)
+
+    def array(self) -> np.ndarray:
+        """The rows so far, (n, 4) float64 (TRUTH_COLUMNS)."""
+        return np.asarray(self.rows, dtype=float).reshape(-1, 4)
