@@ -34,6 +34,9 @@ NOT_RUN = {
     ("docs/guides/real-rig.md", "rigctl gui --drum-port"): "not-run",
     ("docs/guides/real-rig.md", "rigctl acquire quick_check --drum-port"): "not-run",
     ("docs/my-sensor.md", "rigctl sim --replay"): "not-run",
+    # "Other people's files": tests/storage/test_storage_import_numbers.py runs the section's two blocks
+    ("docs/my-sensor.md", "import numpy as np\nfrom datetime import datetime"): "run-by",
+    ("docs/my-sensor.md", "rigctl import logger__felt.csv"): "run-by",
     ("docs/guides/my-hardware.md", "rigctl acquire quick_check --rig csvboard --rig-option port=/dev/ttyUSB0"):
         "not-run",
 }
