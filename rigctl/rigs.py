@@ -434,7 +434,9 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
         default: :class:`rigctl.acquisition.rig.FirmwareMismatch` (a RigError) naming both builds.
     **options : the rig's options: ``config``, ``seed``, ``textures`` (the rig's default texture set), ``source``
         (replay), ``drum_port``/``taxel_port`` (hardware), ``motion`` (handheld), ``drum`` (a sensor-only plugin's
-        simulated drum), and the rig's own keywords (a plugin's ``--rig-option`` s).
+        simulated drum), ``hx711_rate_sps`` (the simulated rigs: their HX711's rate, 10 or 80 SPS; default the rig
+        config's ``force_loop.hx711_rate_sps`` when no ``config`` is given, else the model's), and the rig's own
+        keywords (a plugin's ``--rig-option`` s).
 
     Returns
     -------
@@ -450,6 +452,7 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     """
     faults = tuple(f if isinstance(f, FaultSpec) else parse_fault(f) for f in inject)
     drum = options.pop("drum", None)
+    _simulated_hx711(kind, options, options.pop("hx711_rate_sps", None), host_config_path)
     request = _request(kind, prompt=prompt, host_config_path=host_config_path, **options)
     made = build_rig(kind, request)
     if isinstance(made, ScanSource) and not isinstance(made, RigBackend):
@@ -468,6 +471,36 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     if faults and isinstance(backend, FaultInjector):
         backend.inject_faults(faults)
     return rig
+
+
+#: the rigs whose HX711 is simulated: their rate is chosen (``hx711_rate_sps``) or the rig config's
+SIMULATED_HX711 = ("sim", "hil", "inprocess", "replay")
+
+
+def _simulated_hx711(kind: str, options: dict[str, Any], rate: int | None, host_config_path: Any) -> None:
+    """The simulated HX711's rate into ``options["config"]`` (docs/config.md, ``--hx711-rate``): ``rate`` (10 or 80)
+    if given, else the rig config's ``force_loop.hx711_rate_sps`` (the board the rig config is for) unless the caller
+    gave a model ``config`` of its own. RigError for a rate on a rig whose HX711 is real, or not 10/80."""
+    if rate is not None and kind not in SIMULATED_HX711:
+        raise RigError(f"hx711_rate_sps chooses a simulated HX711's rate, not the {kind} rig's (its RATE pin)")
+    if kind not in SIMULATED_HX711 or (rate is None and options.get("config") is not None):
+        return
+    if rate is None:
+        from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
+
+        try:  # (an invalid file is refused, naming it, when the rig opens)
+            rate = (load_rig_config(host_config_path).get("force_loop") or {}).get("hx711_rate_sps")
+        except (CalibrationError, OSError):
+            rate = None
+        if rate is None:
+            return
+    if int(rate) not in (10, 80):
+        raise RigError(f"the HX711 runs at 10 or 80 samples/s, got {rate}")
+    from rigctl.simulation.model import RigConfig
+
+    config = options.get("config") or RigConfig()
+    options["config"] = dataclasses.replace(config, mechanics=dataclasses.replace(config.mechanics,
+                                                                                  hx711_rate_sps=float(rate)))
 
 
 def _handheld(source: ScanSource, request: RigRequest) -> Rig:

@@ -26,6 +26,7 @@ from rigctl.cli.rig_flags import (
     check_truth_log,
     drum_port_option,
     hil_bootloaders_option,
+    hx711_rate_option,
     inject_option,
     inprocess_option,
     lsl_wait_option,
@@ -261,13 +262,16 @@ def _prediction_lines(classifier: Any, out: Path, replay: Any) -> list[str]:
     return lines
 
 
-def _rig_source(flags: dict[str, Any], truth_log: Path | None) -> Any:
+def _rig_source(flags: dict[str, Any], truth_log: Path | None, hx711_rate: int | None = None) -> Any:
     """The :class:`rigctl.operations.RigSource` the flags select (:meth:`~rigctl.operations.RigSource.from_flags`),
-    with ``--truth-log``; UsageProblem / click.UsageError (exit 2) for options a rig does not take."""
+    with ``--truth-log`` and ``--hx711-rate``; UsageProblem / click.UsageError (exit 2) for options a rig does not
+    take."""
     from rigctl.operations import RigSource
 
     try:
         source = RigSource.from_flags(**flags)
+        if hx711_rate is not None:
+            source = dataclasses.replace(source, hx711_rate_sps=hx711_rate)
     except ValueError as exc:  # options for one of rigctl's own rigs, a name rigctl keeps
         raise UsageProblem(str(exc)) from None
     check_truth_log(truth_log, source.kind)
@@ -385,6 +389,7 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
                    "default: the rig config's lsl.enabled, else off. Needs pylsl: pip install 'rigctl[lsl]'.")
 @lsl_wait_option
 @inject_option
+@hx711_rate_option
 @allow_firmware_mismatch_option
 @truth_log_option
 @progress_option
@@ -392,7 +397,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
             handheld, motion, classify,
             calibration, classify_variant, onboard_encoder, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
             plates, lsl, lsl_wait_s,
-            inject, allow_firmware_mismatch, truth_log, progress):
+            inject, hx711_rate, allow_firmware_mismatch, truth_log, progress):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
@@ -468,7 +473,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     source = _rig_source(dict(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                               bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
-                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None), truth_log)
+                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None), truth_log,
+                         hx711_rate)
     control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
     with control, bars(show_bars(progress)) as progress:
         _bars_follow_the_rig(control, progress)

@@ -14,6 +14,7 @@ from rigctl.cli.rig_flags import (
     check_truth_log,
     drum_port_option,
     hil_bootloaders_option,
+    hx711_rate_option,
     inject_option,
     inprocess_option,
     taxel_port_option,
@@ -56,9 +57,10 @@ def _check_config(config_path: Path | None, save: bool) -> None:
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
 @inject_option
+@hx711_rate_option
 @truth_log_option
 def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, save,
-           rest_s, seed, inject, truth_log):
+           rest_s, seed, inject, hx711_rate, truth_log):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
     after each. With --save the report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a
@@ -88,6 +90,11 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     check_truth_log(truth_log, source.kind)
     if truth_log is not None:
         source = dataclasses.replace(source, truth_log=str(truth_log))
+    if hx711_rate is not None:
+        try:
+            source = dataclasses.replace(source, hx711_rate_sps=hx711_rate)
+        except ValueError as exc:  # not a simulated HX711
+            raise click.UsageError(str(exc)) from None
     why = source.injection_refusal()
     if why:
         raise click.UsageError(why)

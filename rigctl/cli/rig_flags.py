@@ -12,7 +12,7 @@ from rigctl.cli.ranges import LSL_WAIT_S
 from rigctl.core.faults import FAULTS, FaultSpec, FaultSpecError, parse_fault
 from rigctl.core.rig_plugins import rig_names
 
-__all__ = ["allow_firmware_mismatch_option", "truth_log_option",
+__all__ = ["allow_firmware_mismatch_option", "truth_log_option", "hx711_rate_option",
            "hil_bootloaders_option", "inprocess_option", "drum_port_option", "taxel_port_option", "inject_option",
            "lsl_wait_option", "check_one_rig", "check_truth_log", "parse_injections", "FAULT_FORMS", "RIG", "rig_option",
            "rig_options_option", "check_rig_flags"]
@@ -120,6 +120,15 @@ inject_option = click.option(
          "from power-on (before the HOME at open). FAULT is one of "
          + ", ".join(FAULT_FORMS.get(name, name) for name in FAULTS)
          + "; docs/safety.md says what the rig does with each and what clears it.")
+
+
+#: ``--hx711-rate 10|80`` (``acquire``, ``doctor``, ``serve``): the simulated HX711's rate (docs/config.md)
+hx711_rate_option = click.option(
+    "--hx711-rate", "hx711_rate", type=click.Choice(["10", "80"]), default=None, metavar="10|80",
+    callback=lambda ctx, param, value: None if value is None else int(value),
+    help="With --sim, --hil, --inprocess or --replay: the simulated HX711 converts at 10 or 80 samples/s (its RATE "
+         "pin low or high); default the rig config's force_loop.hx711_rate_sps, else 80. The controller is told the "
+         "rate by the rig config's force_loop block, as on a real rig (docs/config.md).")
 
 
 #: ``--allow-firmware-mismatch``: open boards whose firmware build differs from the installed sources'

@@ -19,7 +19,9 @@ __all__ = ["RigSource", "KINDS", "LEGACY_KINDS", "RESERVED_RIG_OPTIONS"]
 
 #: option names a plugin rig cannot take (they are :func:`rigctl.rigs.open_rig`'s own, or the source's fields)
 RESERVED_RIG_OPTIONS = frozenset({"kind", "prompt", "host_config_path", "home", "inject", "allow_firmware_mismatch",
-                                  "config", "seed", "textures", "truth_log"})
+                                  "config", "seed", "textures", "truth_log", "hx711_rate_sps"})
+#: the rigs whose HX711 is simulated (``hx711_rate_sps``)
+SIMULATED_HX711 = ("sim", "hil", "inprocess", "replay")
 
 #: names earlier versions used for a kind (the GUI's saved settings said "serial" for the hardware rig)
 LEGACY_KINDS = {"serial": "hardware"}
@@ -53,6 +55,8 @@ class RigSource:
         and counts instead of raw taxels (:mod:`rigctl.devices.onboard_finger`)
     hil_finger : "handheld" only, with ``onboard_encoder``: the finger's board is the encoder image under simavr, the
         simulated operator's passes played to it (``--handheld --hil``; :mod:`rigctl.simulation.hil_finger`)
+    hx711_rate_sps : the simulated rigs only (:data:`SIMULATED_HX711`): the simulated HX711's rate, 10 or 80 SPS
+        (``--hx711-rate``; its RATE pin); None: the rig config's ``force_loop.hx711_rate_sps``, else 80
 
     Raises
     ------
@@ -73,6 +77,7 @@ class RigSource:
     options: dict[str, str] = dataclasses.field(default_factory=dict)
     onboard_encoder: str | None = None
     hil_finger: bool = False
+    hx711_rate_sps: int | None = None
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -85,6 +90,11 @@ class RigSource:
         reserved = sorted(RESERVED_RIG_OPTIONS & set(self.options))
         if reserved:
             raise ValueError(f"rig option {', '.join(reserved)}: a name rigctl keeps for itself")
+        if self.hx711_rate_sps is not None and self.kind not in SIMULATED_HX711:
+            raise ValueError(f"--hx711-rate chooses a simulated HX711's rate (--sim, --hil, --inprocess, --replay), not "
+                             f"the {self.kind} rig's (a real board's is its RATE pin)")
+        if self.hx711_rate_sps is not None and int(self.hx711_rate_sps) not in (10, 80):
+            raise ValueError(f"--hx711-rate: the HX711 runs at 10 or 80 samples/s, got {self.hx711_rate_sps}")
         if self.bootloaders and self.kind != "hil":
             raise ValueError(f"bootloaders are the firmware under simavr's (kind 'hil'), not {self.kind!r}'s")
         if self.motion is not None and self.kind != "handheld":
@@ -174,6 +184,8 @@ class RigSource:
             extra["allow_firmware_mismatch"] = True
         if self.truth_log is not None and self.kind in ("sim", "hil"):
             extra["truth_log"] = self.truth_log
+        if self.hx711_rate_sps is not None:
+            extra["hx711_rate_sps"] = int(self.hx711_rate_sps)
         if self.kind == "hardware":
             return {"kind": "hardware", "drum_port": self.drum_port, "taxel_port": self.taxel_port, **extra}
         if self.kind == "replay":
