@@ -306,6 +306,20 @@ def wait_unlocked(path, timeout_s: float = 20.0) -> None:
                 time.sleep(0.01)
 
 
+def wait_for(pred, timeout_s: float = 120.0, every_s: float = 0.02):
+    """``pred()``'s first truthy value, asked every ``every_s``; AssertionError after ``timeout_s`` (a bound on a
+    hang, not a judgement)."""
+    import time
+
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        value = pred()
+        if value:
+            return value
+        time.sleep(every_s)
+    raise AssertionError(f"timed out after {timeout_s} s")
+
+
 def shared_path(*parts: str) -> Path:
     """Path under ``../shared/`` beside the repo. Skips the test if missing, fails it under ``CI=true``."""
     path = SHARED.joinpath(*parts)

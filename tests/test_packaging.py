@@ -80,6 +80,9 @@ def test_the_wheel_holds_every_package_and_the_data(venv):
             "rigctl/arduino/simavr/rigctl_simavr.c"} <= firmware
     assert firmware == {n for n in names if n.startswith("rigctl/arduino/")}
     assert {"rigctl/py.typed", "rigctl_gui/py.typed", "rigctl/__main__.py"} <= set(names)
+    # rigctl serve's /docs page runs from the Swagger UI files shipped with rigctl (rigctl.server.apidocs)
+    assert {f"rigctl/server/static/swagger-ui/{f}" for f in ("swagger-ui-bundle.js", "swagger-ui.css", "LICENSE",
+                                                              "NOTICE")} <= set(names)
     assert any(n.endswith("LICENSE") for n in names)
 
 

@@ -129,8 +129,16 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.core.faults import FaultSpecError
-    from rigctl.operations import QueueError, RigError, RigSource, RunQueue, lsl_requested, open_control
-    from rigctl.operations._queue import read_queue_file
+    from rigctl.operations import (
+        QueueError,
+        RigError,
+        RigSource,
+        RunQueue,
+        lock_queue_file,
+        lsl_requested,
+        open_control,
+        read_queue_file,
+    )
 
     try:
         import fastapi  # noqa: F401
@@ -162,20 +170,32 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
     why = source.injection_refusal()  # known before the rig opens or the port is bound
     if why:
         raise UsageProblem(why)
-    sock = _bind(host, port)
+    try:  # one server per queue file, known before this one opens the rig (opening a board's port resets it)
+        queue_lock = lock_queue_file(queue_file)
+    except QueueError as exc:
+        raise click.ClickException(str(exc)) from None
+    try:
+        sock = _bind(host, port)
+    except BaseException:
+        queue_lock.release()
+        raise
     try:
         control = open_control(source, seed=seed, host_config_path=config_path)
     except FaultSpecError as exc:  # --inject names a fault this rig cannot model
         sock.close()
+        queue_lock.release()
         raise UsageProblem(str(exc)) from None
     except (RigError, OSError, ValueError) as exc:
         sock.close()
+        queue_lock.release()
         raise click.ClickException(" ".join(str(exc).split())) from None
     with control:
         try:
-            run_queue = RunQueue(control, queue_file, lsl=publish, data_dir=data_dir, lsl_wait_s=lsl_wait_s)
+            run_queue = RunQueue(control, queue_file, lsl=publish, data_dir=data_dir, lsl_wait_s=lsl_wait_s,
+                                 file_lock=queue_lock)
         except QueueError as exc:
             sock.close()
+            queue_lock.release()
             raise click.ClickException(str(exc)) from None
         bound = f"[{host}]" if ":" in host else host
         url = f"http://{bound}:{sock.getsockname()[1]}"

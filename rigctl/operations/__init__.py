@@ -19,7 +19,8 @@ One package of small modules, each one job an operator does:
   skip or raise); :func:`load_or_encode`, :func:`train_model`, :func:`force_leak_report`; :func:`trial_spikes`
   (``_trial_spikes``): one trial of a session encoded on the fly, as a trial browser shows it.
 - :class:`RunQueue` (``_queue``): protocol runs one after another on one rig, kept in a file across restarts
-  (``rigctl serve``'s HTTP API is a face on it).
+  (``rigctl serve``'s HTTP API is a face on it); :func:`read_queue_file` (a queue file read before the rig opens),
+  :func:`lock_queue_file` (one queue per queue file).
 - :class:`LslPublisher` (``_lsl``): a run published on Lab Streaming Layer (taxels, SA/RA spikes, drum state,
   markers); :func:`lsl_requested` (the flag, else the rig config's ``lsl.enabled``).
 - :func:`import_recordings` / :class:`ImportReport` (``_import``): other labs' recordings (or a known dataset's
@@ -59,14 +60,15 @@ from rigctl.operations._import import IMPORT_PRESETS, ImportReport, import_recor
 from rigctl.operations._live import LIVE_WINDOW_MAX_S, LiveEncoder, SpikeRing, live_ring, spike_capacity
 from rigctl.operations._lsl import LslPublisher, lsl_requested
 from rigctl.operations._monitor import DEADMAN_TIMEOUT_S, Heartbeat, RigEvent, RigMonitor, StatusHistory
-from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue
+from rigctl.operations._queue import RUN_QUEUE_STATES, QueuedRun, QueueError, RunQueue, lock_queue_file, read_queue_file
 from rigctl.operations._run import RUN_STATES, ProtocolRun
 from rigctl.operations._setpoints import SetpointRefusal, setpoint_refusals
 from rigctl.operations._source import KINDS, RigSource
 from rigctl.operations._trial_spikes import TrialSpikes, session_taxel_range, trial_spikes
 
 __all__ = [
-    "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES",
+    "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES", "lock_queue_file",
+    "read_queue_file",
     "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted", "RigError", "RigOpenError",
     "RigMonitor", "RigEvent", "Heartbeat", "StatusHistory", "DEADMAN_TIMEOUT_S",
     "SetpointRefusal", "setpoint_refusals", "doctor",

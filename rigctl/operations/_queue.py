@@ -37,10 +37,11 @@ from rigctl.core.progress import ProgressEvent
 from rigctl.operations._control import RigControl
 from rigctl.operations._monitor import RigEvent
 from rigctl.operations._run import ProtocolRun
-from rigctl.storage.outputs import OutputError, OutputLocked, check_output, name_in_folder
+from rigctl.storage.journal import WriterLock, WriterLockHeld
+from rigctl.storage.outputs import OutputError, OutputLocked, check_output, place_in_folder
 from rigctl.storage.session import SessionLocked
 
-__all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES", "read_queue_file"]
+__all__ = ["QueueError", "QueuedRun", "RunQueue", "RUN_QUEUE_STATES", "lock_queue_file", "read_queue_file"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,10 @@ LOCKED_WAIT_S = 60.0
 LOCKED_POLL_S = 0.5
 #: the longest protocol text a run takes, characters (the queue file holds it, rewritten at every change)
 MAX_PROTOCOL_CHARS = 1_000_000
+#: ended runs the queue file keeps (the oldest beyond are dropped from it; their session files stay)
+MAX_ENDED_RUNS = 500
+#: a run's progress (trials done) is written to the queue file at most this often; its state changes at once, s
+PROGRESS_SAVE_S = 10.0
 
 
 #: the largest queue file read, bytes (a queue of thousands of runs is a few MB; --queue /dev/zero is refused)
@@ -96,6 +101,22 @@ class QueueError(ValueError):
     def __init__(self, message: str, status: int = 400) -> None:
         super().__init__(message)
         self.status = status
+
+
+def lock_queue_file(queue_file: str | os.PathLike[str]) -> WriterLock:
+    """The lock that makes one server (one :class:`RunQueue`) per queue file: an exclusive lock on the queue file's
+    ``.lock`` sidecar (:class:`rigctl.storage.journal.WriterLock`; the kernel drops it when its holder dies), held
+    until released. Raises QueueError (409) naming the holder's pid when another one holds it."""
+    path = Path(queue_file)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return WriterLock(path)
+    except WriterLockHeld as exc:
+        who = f"pid {exc.pid}" if exc.pid else "another process"
+        raise QueueError(f"the queue {path} is served already ({who}): one server per queue file; stop it, or "
+                         "give this one another --queue", 409) from None
+    except OSError as exc:
+        raise QueueError(f"the queue {path} cannot be locked ({exc.strerror or exc})") from None
 
 
 def _utc_now() -> str:
@@ -151,8 +172,12 @@ class RunQueue:
     protocols : () -> {name: protocol file} of the protocols a run may name (default the built-in ones,
         :func:`rigctl.acquisition.builtin.builtin_protocols`).
     data_dir : when given (``rigctl serve --data-dir``), a run's ``out`` is a relative name inside this folder
-        (:func:`rigctl.storage.outputs.name_in_folder`: absolute paths, ``..``, NUL and names resolving outside it
-        refused, 422); created if missing.
+        (:func:`rigctl.storage.outputs.place_in_folder`: absolute paths, ``..``, NUL, names resolving outside it and
+        subfolders that are symlinks refused, 422; missing subfolders made), checked again as the run starts (a
+        subfolder replaced by a symlink meanwhile fails the run, nothing written); created if missing.
+    file_lock : the queue file's lock (:func:`lock_queue_file`) when the caller took it already (``rigctl serve``
+        takes it before it opens the rig); else taken here (QueueError, 409, when another queue holds it).
+        Released by :meth:`close`.
 
     :meth:`start` starts the worker thread; :meth:`close` ends it (a run in progress is stopped cleanly and stays
     queued to resume at the next start).
@@ -160,7 +185,8 @@ class RunQueue:
 
     def __init__(self, control: RigControl, queue_file: str | os.PathLike[str], *, lsl: bool = False,
                  protocols: Callable[[], dict[str, Any]] | None = None,
-                 data_dir: str | os.PathLike[str] | None = None, lsl_wait_s: float = 0.0) -> None:
+                 data_dir: str | os.PathLike[str] | None = None, lsl_wait_s: float = 0.0,
+                 file_lock: WriterLock | None = None) -> None:
         self.control = control
         self.path = Path(queue_file)
         self.data_dir = None if data_dir is None else Path(data_dir).expanduser().resolve()
@@ -191,7 +217,13 @@ class RunQueue:
         self._subscribers: list[queue.Queue[dict[str, Any] | None]] = []
         self._streams_ended = False
         self._unsubscribe_rig: Callable[[], None] | None = None
-        self._load()
+        self._saved_t = 0.0  # time.monotonic() of the last write of the queue file
+        self._file_lock = file_lock if file_lock is not None else lock_queue_file(self.path)
+        try:
+            self._load()
+        except BaseException:
+            self._file_lock.release()
+            raise
 
     # ----------------------------------------------------------------------------------------------- the file
     def _load(self) -> None:
@@ -206,7 +238,16 @@ class RunQueue:
         self.runs = {r.id: r for r in order}
         self._save()
 
+    def _prune(self) -> None:
+        """Drop the oldest ended runs beyond :data:`MAX_ENDED_RUNS` (a queue file that grows forever is rewritten,
+        whole, at every change)."""
+        ended = [r for r in self.runs.values() if r.state not in ACTIVE]
+        for r in ended[:max(0, len(ended) - MAX_ENDED_RUNS)]:
+            del self.runs[r.id]
+
     def _save(self) -> None:
+        self._prune()
+        self._saved_t = time.monotonic()
         tmp = self.path.with_name(self.path.name + ".tmp")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         doc = {"format": QUEUE_FORMAT, "runs": [r.to_dict() for r in self.runs.values()]}
@@ -289,6 +330,8 @@ class RunQueue:
         proto = self._load_protocol(protocol, toml)
         if not hasattr(proto, "texture_set"):
             raise QueueError("Python-script protocols cannot be queued: give a TOML protocol")
+        if self.data_dir is not None:  # its subfolders made, as asked ("mouse1/s1.h5")
+            out_path = self._out_path(out, create=True)
         with self._lock:
             if any(Path(r.out) == out_path for r in self.runs.values() if r.state in ACTIVE):
                 raise QueueError(f"{out_path} is the output of a run already queued", 409)
@@ -309,11 +352,13 @@ class RunQueue:
         self._emit({"type": "run", "id": run.id, "state": run.state})
         return run
 
-    def _out_path(self, out: str | os.PathLike[str]) -> Path:
-        """``out`` as the absolute session path: a name inside :attr:`data_dir` when there is one."""
+    def _out_path(self, out: str | os.PathLike[str], *, create: bool = False) -> Path:
+        """``out`` as the absolute session path: a name inside :attr:`data_dir` when there is one (its missing
+        subfolders made when ``create``)."""
         try:
             if self.data_dir is not None:
-                return name_in_folder(self.data_dir, os.fspath(out) if isinstance(out, os.PathLike) else out)
+                return place_in_folder(self.data_dir, os.fspath(out) if isinstance(out, os.PathLike) else out,
+                                       create=create)
             return Path(out).expanduser().resolve()
         except OutputError as exc:
             raise QueueError(str(exc), 422) from None
@@ -441,6 +486,7 @@ class RunQueue:
             self._thread.join(timeout_s)
         if self.lsl is not None:
             self.lsl.close()
+        self._file_lock.release()
 
     def _next(self) -> QueuedRun | None:
         with self._lock:
@@ -474,8 +520,26 @@ class RunQueue:
             self._set(run, state="failed", errors=[*run.errors, describe_error(exc)],
                       ended_utc=_utc_now())
 
+    def _run_path(self, run: QueuedRun) -> Path:
+        """The run's session path checked again as it starts: a subfolder replaced by a symlink since the run was
+        queued (or anything else that breaks the folder's rules now) is refused, QueueError."""
+        if self.data_dir is None:
+            return Path(run.out)
+        try:
+            name = Path(run.out).relative_to(self.data_dir).as_posix()
+        except ValueError:
+            raise QueueError(f"{run.out} is not inside the data folder {self.data_dir}", 422) from None
+        out = self._out_path(name, create=True)
+        if str(out) != run.out:
+            raise QueueError(f"out {name}: now resolves to {out}, not {run.out}", 422)
+        return out
+
     def _record(self, run: QueuedRun) -> None:
-        out = Path(run.out)
+        try:
+            out = self._run_path(run)
+        except QueueError as exc:  # refused as it starts: failed, nothing written
+            self._fail(run, exc)
+            return
         resume = run.starts > 0 and out.exists()
         # a session a killed server was writing stays locked while its journal helper finishes the last commit
         # (rigctl.storage.journal): a restart that resumes it at once waits for the lock, up to LOCKED_WAIT_S
@@ -515,7 +579,11 @@ class RunQueue:
 
     def _progress(self, run: QueuedRun, event: ProgressEvent) -> None:
         if event.total is not None and (event.done != run.trials_done or event.total != run.trials_total):
-            self._set(run, trials_done=int(event.done), trials_total=int(event.total))
+            with self._lock:  # written at most every PROGRESS_SAVE_S (a state change writes at once); a restart
+                # resumes from the session file, which holds every finished trial
+                run.trials_done, run.trials_total = int(event.done), int(event.total)
+                if time.monotonic() - self._saved_t >= PROGRESS_SAVE_S:
+                    self._save()
         self._emit({"type": "progress", "id": run.id, "stage": event.stage, "done": event.done,
                     "total": event.total, "message": event.message})
 

@@ -10,11 +10,11 @@
   fault, :meth:`RigControl.acknowledge`);
 - ``GET /events``: server-sent events, one JSON object per progress, trial, run and STOP event (the progress events
   the CLI and the GUI draw); at most :data:`rigctl.server.events.MAX_EVENT_CLIENTS` streams at once (429 beyond);
-- ``/docs`` (the OpenAPI page), ``/openapi.json``.
+- ``/docs`` (the OpenAPI page, :mod:`rigctl.server.apidocs`), ``/openapi.json``.
 
 Every request passes :mod:`rigctl.server.guard` first: the Host header, a same-origin or absent Origin, the token
 (always required), JSON for state-changing requests, a body size limit. A run's ``out`` is a name inside the data
-folder (:func:`rigctl.storage.outputs.name_in_folder`, checked by the queue).
+folder (:func:`rigctl.storage.outputs.place_in_folder`, checked by the queue at submit and as the run starts).
 
 STOP first, always: the routes written as plain functions run in AnyIO's worker pool (40 threads), which a burst of
 slow requests can fill; ``POST /stop`` is a coroutine that hands :meth:`RunQueue.stop` to a thread of its own
@@ -34,18 +34,17 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
-from urllib.parse import quote
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.openapi.docs import get_swagger_ui_html
-from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
+from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 from rigctl.core.drum import DrumError
 from rigctl.core.errors import describe_error
 from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
+from rigctl.server.apidocs import install_docs
 from rigctl.server.events import MAX_EVENT_CLIENTS, EventHub
 from rigctl.server.guard import MAX_BODY_BYTES, install_guard
 from rigctl.server.tokens import check_token
@@ -163,12 +162,7 @@ def create_app(run_queue: RunQueue, *, token: str,
         status = 413 if first.get("type") == "string_too_long" and where == "toml" else 422
         return JSONResponse({"detail": f"{where}: {first.get('msg', 'invalid request')}"}, status_code=status)
 
-    @app.get("/docs", include_in_schema=False)
-    def docs() -> HTMLResponse:
-        """The OpenAPI page (the token already checked: the page fetches the schema with it)."""
-        return get_swagger_ui_html(openapi_url=f"/openapi.json?token={quote(token, safe='')}",
-                                   title="rigctl serve API")
-
+    install_docs(app)  # the OpenAPI page, from the Swagger UI files rigctl ships (no CDN, no token in it)
     _run_routes(app, run_queue)
     _rig_routes(app, run_queue)
     _stop_and_events(app, run_queue, app.state.events)

@@ -42,7 +42,7 @@ from rigctl.storage import journal
 
 __all__ = ["HDF5_SUFFIXES", "OutputError", "OutputLocked", "OutputWriteError", "GuardedFile", "OutputTarget", "check_output",
            "check_replaceable", "check_space", "check_writable_folder", "current_umask", "apply_umask",
-           "existing_kind", "figure_metadata", "free_bytes", "name_in_folder", "output_file", "replacing", "same_file",
+           "existing_kind", "figure_metadata", "free_bytes", "name_in_folder", "output_file", "place_in_folder", "replacing", "same_file",
            "size_text", "CURVES_CSV_HEADER", "FIGURE_MARK", "MODEL_META_NAME", "OUTPUT_KINDS"]
 
 #: the kinds of rigctl output :func:`existing_kind` recognises (``check_output(kind=)``), with their names in messages
@@ -326,6 +326,58 @@ def name_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "
         raise OutputError(f"{option} {name}: the name resolves outside the data folder (a symlink leading out?)",
                           option)
     return full
+
+
+def place_in_folder(folder: str | os.PathLike[str], name: str, *, option: str = "out", create: bool = False) -> Path:
+    """The file ``name`` inside ``folder`` as :func:`name_in_folder` gives it, checked again on the disk as it is now,
+    without following a link: each subfolder of ``name`` is opened with ``O_NOFOLLOW`` from the one before it
+    (``openat``), so a subfolder that is a symlink, even one leading back inside, is refused, as is a ``name`` that
+    is itself a symlink; ``create``: missing subfolders are made (``mkdir`` in the folder opened, mode 0777 less the
+    umask). The path returned holds no link and reaches the folders that were opened (compared by inode).
+
+    For a name given earlier and used later (``rigctl serve``'s queued runs: checked at submit and again as the run
+    starts). Raises OutputError naming the rule broken or the subfolder at fault."""
+    full = name_in_folder(folder, name, option=option)
+    base = Path(folder).resolve()
+    parts = [part for part in Path(name).parts if part not in ("", ".")]
+    nofollow = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(base, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0))
+    try:
+        walked: list[str] = []
+        for part in parts[:-1]:
+            here = "/".join([*walked, part])
+            try:
+                try:
+                    sub = os.open(part, nofollow, dir_fd=fd)
+                except FileNotFoundError:
+                    if not create:
+                        return full  # nothing further exists: no link to follow (made when the run starts)
+                    with contextlib.suppress(FileExistsError):
+                        os.mkdir(part, 0o777, dir_fd=fd)
+                    sub = os.open(part, nofollow, dir_fd=fd)
+            except OSError as exc:  # ELOOP: a symlink; ENOTDIR: a file; EACCES, ...
+                why = ("is a symlink: subfolders are opened without following links" if exc.errno == errno.ELOOP
+                       else "is not a folder" if exc.errno == errno.ENOTDIR else exc.strerror or str(exc))
+                raise OutputError(f"{option} {name}: {here} in the data folder {why}", option) from None
+            os.close(fd)
+            fd, walked = sub, [*walked, part]
+        try:
+            st = os.stat(parts[-1], dir_fd=fd, follow_symlinks=False)
+        except FileNotFoundError:
+            st = None
+        if st is not None and stat.S_ISLNK(st.st_mode):
+            raise OutputError(f"{option} {name}: it is a symlink: a session is written only as a file of its own",
+                              option)
+        parent = base.joinpath(*walked)
+        try:
+            same = os.path.samestat(os.stat(parent), os.fstat(fd))
+        except OSError:
+            same = False
+        if not same:
+            raise OutputError(f"{option} {name}: the folder {parent} changed while it was checked", option)
+    finally:
+        os.close(fd)
+    return base.joinpath(*parts)
 
 
 def _check_unlocked(p: Path, option: str) -> None:

@@ -23,7 +23,7 @@ from click.testing import CliRunner
 from rigctl.cli import main
 from rigctl.operations import RigSource, RunQueue, open_control
 
-from ..conftest import wait_unlocked
+from ..conftest import wait_for as _wait, wait_unlocked
 
 if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
     pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
@@ -44,16 +44,6 @@ def api(q, token=TOKEN, **kw):
 
 PROTOCOL = ('name = "serve_test"\ntextures = ["A", "L"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
             'trials_per_condition = {n}\nduration_s = 0.4\n[settle]\nsettle_time_ms = 50\n')
-
-
-def _wait(pred, timeout_s=120.0, every_s=0.02):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        value = pred()
-        if value:
-            return value
-        time.sleep(every_s)
-    raise AssertionError("timed out")
 
 
 @pytest.fixture

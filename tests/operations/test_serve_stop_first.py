@@ -22,6 +22,8 @@ import pytest
 
 from rigctl.operations import RigSource, RunQueue, open_control
 
+from ..conftest import wait_for
+
 if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
     pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
 
@@ -42,14 +44,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait(pred, timeout_s=120.0, every_s=0.05):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        value = pred()
-        if value:
-            return value
-        time.sleep(every_s)
-    raise AssertionError("timed out")
 
 
 def _status(url):
@@ -122,15 +116,15 @@ def test_stop_is_answered_within_half_a_second_beside_200_idle_event_streams(tmp
                             stderr=subprocess.PIPE, text=True)
     feeds = None
     try:
-        _wait(lambda: _status(url), timeout_s=120, every_s=0.2)
+        wait_for(lambda: _status(url), timeout_s=120, every_s=0.2)
         r = httpx.post(f"{url}/runs", json={"toml": TURNING, "out": "s.h5"}, headers=AUTH, timeout=30)
         assert r.status_code == 201, r.text
         rid = r.json()["id"]
         # the drum turning under the run (the monitor's read of the simulated controller)
-        _wait(lambda: ((_status(url) or {}).get("rig", {}).get("drum") or {}).get("speed_mm_s", 0) > 100,
+        wait_for(lambda: ((_status(url) or {}).get("rig", {}).get("drum") or {}).get("speed_mm_s", 0) > 100,
               timeout_s=120, every_s=0.1)
         feeds = _Feeds(url, N_STREAMS)
-        _wait(lambda: all(s is not None for s in feeds.statuses), timeout_s=120, every_s=0.05)
+        wait_for(lambda: all(s is not None for s in feeds.statuses), timeout_s=120, every_s=0.05)
         assert feeds.statuses == [200] * N_STREAMS, set(feeds.statuses)
         time.sleep(0.5)  # every stream idle, waiting on the server
         assert not feeds.ended.is_set()
@@ -143,9 +137,9 @@ def test_stop_is_answered_within_half_a_second_beside_200_idle_event_streams(tmp
         assert stop_s < 0.5, f"STOP took {stop_s:.2f} s to answer beside {N_STREAMS} event streams"
         # the rig really stopped: the drum at rest (the monitor reads the controller at 10 Hz), the run stopped and
         # the queue held
-        _wait(lambda: abs((_status(url) or {}).get("rig", {}).get("drum", {}).get("speed_mm_s", 99)) < 1.0,
+        wait_for(lambda: abs((_status(url) or {}).get("rig", {}).get("drum", {}).get("speed_mm_s", 99)) < 1.0,
               timeout_s=10, every_s=0.05)
-        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=10).json())["state"]
+        run = wait_for(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=10).json())["state"]
                     in ("stopped", "failed") and r, timeout_s=60)
         assert run["state"] == "stopped" and (_status(url) or {}).get("held") is True, run
         # and every stream delivered STOP
@@ -176,7 +170,7 @@ class _InThread:
 
     def __enter__(self) -> "_InThread":
         self.thread.start()
-        _wait(lambda: self.server.started, timeout_s=60, every_s=0.02)
+        wait_for(lambda: self.server.started, timeout_s=60, every_s=0.02)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -196,7 +190,7 @@ def test_event_streams_beyond_the_cap_are_429_and_the_open_ones_deliver_events(t
     try:
         with _InThread(app) as srv:
             feeds = _Feeds(srv.url, 3)
-            _wait(lambda: all(s is not None for s in feeds.statuses), timeout_s=60, every_s=0.02)
+            wait_for(lambda: all(s is not None for s in feeds.statuses), timeout_s=60, every_s=0.02)
             assert feeds.statuses == [200, 200, 200]
             with httpx.Client(base_url=srv.url, headers=AUTH, timeout=30) as client:
                 r = client.get("/events")  # a fourth: refused at once, never a stream
@@ -204,8 +198,8 @@ def test_event_streams_beyond_the_cap_are_429_and_the_open_ones_deliver_events(t
                 assert r.headers["retry-after"] == "10"
                 # the open streams deliver the run's events as it records, every one to each
                 rid = client.post("/runs", json={"toml": SHORT, "out": "s.h5"}).json()["id"]
-                _wait(lambda: client.get(f"/runs/{rid}").json()["state"] == "done", timeout_s=120)
-                _wait(lambda: all(any(e.get("state") == "done" for e in got) for got in feeds.events),
+                wait_for(lambda: client.get(f"/runs/{rid}").json()["state"] == "done", timeout_s=120)
+                wait_for(lambda: all(any(e.get("state") == "done" for e in got) for got in feeds.events),
                       timeout_s=30, every_s=0.02)
                 for got in feeds.events:
                     kinds = [(e["type"], e.get("kind") or e.get("state")) for e in got if e.get("id") == rid]
@@ -214,7 +208,7 @@ def test_event_streams_beyond_the_cap_are_429_and_the_open_ones_deliver_events(t
                 assert feeds.events[0] == feeds.events[1] == feeds.events[2]
                 assert client.post("/stop", json={}).json()["held"] is True
                 assert feeds.ended.wait(30)  # each stream got STOP and its client closed it: their places free
-                _wait(lambda: app.state.events.clients == 0, timeout_s=30, every_s=0.02)
+                wait_for(lambda: app.state.events.clients == 0, timeout_s=30, every_s=0.02)
                 with client.stream("GET", "/events") as again:
                     assert again.status_code == 200
                     assert next(again.iter_lines()) == ": rigctl events"
