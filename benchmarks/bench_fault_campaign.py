@@ -13,7 +13,10 @@ the release. The fault is armed when the script reaches the drawn moment (FAULT@
 stays connected, polling, and asks once more to press (a latched rig refuses); nothing acknowledges. A fault the rig
 cannot model (its fault_refusal) is not drawn: the cases draw from the faults it models, counted in ``faults``.
 
-Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model|hil] [--json] [--jobs J]
+Under simavr the cores run as fast as the CPU and the host allow (HilRig(paced=False): the rig's one clock,
+rigctl.core.shared_clock), unless ``--paced``.
+
+Usage: python benchmarks/bench_fault_campaign.py --cases N --seed S [--rig model|hil] [--paced] [--json] [--jobs J]
        python benchmarks/bench_fault_campaign.py --replay SEED [--rig model|hil] [--truth-log FILE]
 
 The JSON: ``cases``, ``violations`` (each with its ``seed``: ``--replay SEED`` runs that case again), ``worst_true_
@@ -45,7 +48,7 @@ from rigctl.core.trial import PlannedTrial
 from rigctl.devices import wire
 from rigctl.devices.drum import default_force_loop
 from rigctl.rigs import make_backend, open_rig
-from rigctl.simulation.campaign import Case, ModelTruth, check_invariants, draw_case
+from rigctl.simulation.campaign import COLUMNS, Case, ModelTruth, check_invariants, draw_case, read_truth_log
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 
 #: each step's expected length, s: the fault starts at the drawn fraction of it after the step begins
@@ -187,10 +190,9 @@ def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
     return result(case, truth.array(), truth.latch_spans, script, open_error, time.perf_counter() - t_wall)
 
 
-def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None) -> dict[str, Any]:
-    """One case on the firmware under simavr (both boards), its truth log written by the harness."""
-    from rigctl.simulation.truth import TRUTH_COLUMNS
-
+def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced: bool = False) -> dict[str, Any]:
+    """One case on the firmware under simavr (both boards), its truth log written by the harness; the cores run as
+    fast as the CPU and the host allow (the rig's one clock, HilRig(paced=False)) unless ``paced``."""
     cfg, host = _rig_files(case, folder)
     log = truth_log or folder / f"truth-{case.seed}.csv"
     power_on = [case.spec(0.0)] if case.moment == "power-on" else []
@@ -198,7 +200,7 @@ def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None) -> dic
     script, open_error = None, None
     try:
         rig = open_rig("hil", config=cfg, seed=case.seed, host_config_path=host, inject=power_on, truth_log=log,
-                       home=False)
+                       home=False, paced=paced)
         accept_rate(rig, case)
     except Exception as exc:  # noqa: BLE001
         open_error = type(exc).__name__
@@ -206,7 +208,7 @@ def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None) -> dic
         with rig:
             script = Script(rig, case, float(rig.drum.clock.now()))
             script.run()
-    rows = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2) if log.exists() else np.empty((0, len(TRUTH_COLUMNS)))
+    rows = read_truth_log(log) if log.exists() else np.empty((0, len(COLUMNS)))
     latches = [(script.latched_seen_s, None)] if script is not None and script.latched_seen_s is not None else []
     return result(case, rows, latches, script, open_error, time.perf_counter() - t_wall)
 
@@ -223,26 +225,26 @@ def result(case: Case, truth: np.ndarray, latches: list[tuple[float, float | Non
             "violations": [{"kind": v.kind, "time_s": round(v.time_s, 3), "detail": v.detail} for v in violations]}
 
 
-def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None) -> dict[str, Any]:
+def run_case(seed: int, rig: str, folder: Path, truth_log: Path | None = None, paced: bool = False) -> dict[str, Any]:
     faults = model_faults() if rig == "model" else hil_faults()
     case = draw_case(seed, faults)
-    return run_model_case(case, folder) if rig == "model" else run_hil_case(case, folder, truth_log)
+    return run_model_case(case, folder) if rig == "model" else run_hil_case(case, folder, truth_log, paced)
 
 
-def _run_chunk(seeds: list[int], rig: str) -> list[dict[str, Any]]:
+def _run_chunk(seeds: list[int], rig: str, paced: bool = False) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-        return [run_case(s, rig, Path(tmp)) for s in seeds]
+        return [run_case(s, rig, Path(tmp), paced=paced) for s in seeds]
 
 
-def campaign(n: int, seed: int, rig: str, jobs: int = 1) -> dict[str, Any]:
+def campaign(n: int, seed: int, rig: str, jobs: int = 1, paced: bool = False) -> dict[str, Any]:
     seeds = list(range(seed, seed + n))
     t_wall, cpu0 = time.perf_counter(), os.times()
     if jobs > 1:
         chunks = [seeds[i::jobs] for i in range(jobs)]
         with ProcessPoolExecutor(jobs) as pool:
-            results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs) for r in part]
+            results = [r for part in pool.map(_run_chunk, chunks, [rig] * jobs, [paced] * jobs) for r in part]
     else:
-        results = _run_chunk(seeds, rig)
+        results = _run_chunk(seeds, rig, paced)
     wall = time.perf_counter() - t_wall
     cpu1 = os.times()
     results.sort(key=lambda r: r["seed"])
@@ -255,7 +257,7 @@ def campaign(n: int, seed: int, rig: str, jobs: int = 1) -> dict[str, Any]:
         f["worst_true_force_g"] = max(f["worst_true_force_g"], r["true_force_max_g"])
         outcomes[r["outcome"]] = outcomes.get(r["outcome"], 0) + 1
     sim = sum(r["sim_s"] for r in results)
-    return {"rig": rig, "seed": seed, "cases": len(results), "jobs": jobs,
+    return {"rig": rig, "seed": seed, "cases": len(results), "jobs": jobs, "paced": paced if rig == "hil" else None,
             "violations": [{"seed": r["seed"], "case": r["case"], **v} for r in results for v in r["violations"]],
             "worst_true_force_g": worst["true_force_max_g"] if worst else 0.0,
             "worst_seed": worst["seed"] if worst else None, "outcomes": outcomes, "faults": per_fault,
@@ -272,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rig", choices=("model", "hil"), default="model")
     ap.add_argument("--jobs", type=int, default=1, help="cases run in this many processes side by side")
+    ap.add_argument("--paced", action="store_true", help="--rig hil: the cores no faster than the wall clock")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--replay", type=int, default=None, metavar="SEED", help="run the case of SEED alone")
     ap.add_argument("--truth-log", type=Path, default=None, help="with --replay --rig hil: keep its truth log here")
@@ -280,10 +283,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--cases and --jobs must be >= 1, --seed >= 0")
     if args.replay is not None:
         with tempfile.TemporaryDirectory(prefix="rigctl-campaign-") as tmp:
-            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log)
+            out = run_case(args.replay, args.rig, Path(tmp), args.truth_log, args.paced)
         print(json.dumps(out, indent=1))
         return 1 if out["violations"] else 0
-    out = campaign(args.cases, args.seed, args.rig, args.jobs)
+    out = campaign(args.cases, args.seed, args.rig, args.jobs, args.paced)
     if args.json:
         print(json.dumps(out, indent=1))
     else:

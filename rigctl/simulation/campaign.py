@@ -9,8 +9,9 @@ approach, the settled force, a running trial, the retract, the pause between tri
 rate (10 or 80 SPS) and the trials' forces (250-1500 g). The same seed draws the same case on every machine
 (numpy's PCG64), so a violation is replayed from its seed.
 
-The invariants (:func:`check_invariants`) are judged on the truth log's columns (:data:`rigctl.simulation.truth.
-TRUTH_COLUMNS`: the physical model's contact force and actuator position, not what the firmware read):
+The invariants (:func:`check_invariants`) are judged on the truth log's columns :data:`COLUMNS` (of
+:data:`rigctl.simulation.truth.TRUTH_COLUMNS`: the physical model's contact force and actuator position, not what
+the firmware read; :func:`read_truth_log` takes them from a truth log file):
 
 - ``over-force``: the true force stays <= 1.1 x FORCE_LIMIT_G (:data:`FORCE_BOUND_G`, 1650 g);
 - ``step-after-latch``: once the controller latched a fault, the actuator takes no step towards the sensor
@@ -26,6 +27,7 @@ itself (``HilRig(truth_log=...)``).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -35,9 +37,11 @@ import numpy as np
 from rigctl.core.faults import FAULTS, INSTANT_FAULTS, FaultSpec
 from rigctl.devices import wire
 
-__all__ = ["Case", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S", "draw_case",
+__all__ = ["Case", "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CONTACT_G", "LATCH_STEP_MM", "LATCH_GRACE_S", "draw_case",
            "check_invariants", "ModelTruth", "Violation"]
 
+#: the truth log's columns the invariants judge, in this order
+COLUMNS = ("time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
 #: the moments a fault can start in, in the order a run passes them (``power-on``: FAULT@0, before the HOME at open)
 MOMENTS = ("power-on", "home", "probe", "settled", "running", "retract", "between", "approach")
 #: the bound on the true force any single fault must keep, g: 1.1 x FORCE_LIMIT_G (docs/safety.md)
@@ -127,7 +131,7 @@ class Violation:
 
 def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float | None]] = (),
                      trials: Sequence[tuple[float, float, float]] = ()) -> list[Violation]:
-    """The invariants on the truth rows ``truth`` ((n, 4): the TRUTH_COLUMNS, time ascending).
+    """The invariants on the truth rows ``truth`` ((n, 4): :data:`COLUMNS`, time ascending).
 
     Parameters
     ----------
@@ -160,6 +164,18 @@ def check_invariants(truth: np.ndarray, *, latches: Sequence[tuple[float, float 
             out.append(Violation("trial-without-contact", float(t[k]), f"a recorded trial's true force fell to "
                                  f"{force[k]:.0f} g while the drum ran ({start:.2f}-{end:.2f} s)"))
     return out
+
+
+def read_truth_log(path: str | os.PathLike[str]) -> np.ndarray:
+    """The :data:`COLUMNS` of a truth log CSV (:class:`rigctl.simulation.truth.TruthLog`), (n, 4) float64, picked by
+    the header's names. Raises ValueError for a file without them."""
+    with open(path, encoding="ascii") as f:
+        header = f.readline().strip().split(",")
+    missing = [c for c in COLUMNS if c not in header]
+    if missing:
+        raise ValueError(f"{path} is no truth log: no column {', '.join(missing)}")
+    rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, usecols=[header.index(c) for c in COLUMNS])
+    return rows.reshape(-1, len(COLUMNS))
 
 
 class ModelTruth:
@@ -204,5 +220,5 @@ class ModelTruth:
         self.t0_s = float(self.engine.model.time_s)
 
     def array(self) -> np.ndarray:
-        """The rows so far, (n, 4) float64 (TRUTH_COLUMNS)."""
+        """The rows so far, (n, 4) float64 (:data:`COLUMNS`)."""
         return np.asarray(self.rows, dtype=float).reshape(-1, 4)

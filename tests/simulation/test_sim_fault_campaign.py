@@ -104,3 +104,22 @@ def test_a_violation_the_campaign_found_holds_now(seed):
     out = json.loads(proc.stdout)
     assert out["violations"] == [], f"{FOUND[seed]}: {out['violations']}"
 
+
+
+def test_the_truth_log_columns_are_read_by_name(tmp_path):
+    """read_truth_log takes the judged columns from a TruthLog file by the header's names (a column added before
+    them, as wall_time_s was, moves nothing), and refuses a file that is no truth log."""
+    from rigctl.simulation.campaign import read_truth_log
+    from rigctl.simulation.truth import TruthLog
+
+    log = TruthLog(tmp_path / "t.csv")
+    log.start(10.0)
+    log.row(10.5, 812.0, 3.25, 80.0)
+    log.row(11.0, 1650.5, 3.5, 0.0)
+    log.close()
+    rows = read_truth_log(tmp_path / "t.csv")
+    assert rows.tolist() == [[0.5, 812.0, 3.25, 80.0], [1.0, 1650.5, 3.5, 0.0]]
+    assert check_invariants(rows)[0].kind == "over-force"
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ValueError, match="no truth log"):
+        read_truth_log(tmp_path / "x.csv")
