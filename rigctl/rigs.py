@@ -52,11 +52,12 @@ from rigctl.core.rig_plugins import (
     RigRequest,
     SampleSource,
     load_rig_factory,
+    rig_entries,
 )
 from rigctl.core.textures import TextureSet
 
 __all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
-           "make_backend", "build_rig", "replay_source", "sim_rig", "replay_rig", "hil_rig", "hardware_rig",
+           "make_backend", "build_rig", "plugin_identity", "replay_source", "sim_rig", "replay_rig", "hil_rig", "hardware_rig",
            "inprocess_rig", "handheld_rig"]
 
 #: rigctl's own rigs (:data:`rigctl.core.interfaces.RIG_KINDS`); every installed one, plugins included:
@@ -388,18 +389,46 @@ def _as_backend(made: RigParts, request: RigRequest, drum: str | None) -> RigBac
     if isinstance(made, RigBackend):
         if drum is not None:
             raise RigError(f"the {request.name} rig has its own drum: drum= is for sensor-only rigs")
-        return made
+        return _identified(made, request.name, made)
     if isinstance(made, SampleSource):
-        return _sensor_backend(request, made, drum or "sim")
+        return _identified(_sensor_backend(request, made, drum or "sim"), request.name, made)
     made.close()
     raise RigError(f"the {request.name} rig is a handheld rig (no drum): open it with open_rig({request.name!r})")
+
+
+def plugin_identity(kind: str, made: object) -> dict[str, Any] | None:
+    """What a session records of a plugin's rig (``rig_config["plugin"]`` and the provenance's ``rig.plugin``): the
+    rig's name, entry point, distribution and version, and what its backend or sample source's ``describe()`` says
+    (``{"error": ...}`` when it raises); None for rigctl's own rigs."""
+    entry = rig_entries().get(kind)
+    if entry is None or entry.builtin:
+        return None
+    described: Any = None
+    describe = getattr(made, "describe", None)
+    if callable(describe):
+        try:
+            described = describe()
+        except Exception as exc:  # noqa: BLE001 - a plugin's describe() failing is recorded, never fatal
+            described = {"error": f"{type(exc).__name__}: {exc}"}
+    return {"name": entry.name, "target": entry.target, "distribution": entry.distribution,
+            "version": entry.version, "describe": described}
+
+
+def _identified(backend: RigBackend, kind: str, made: object) -> RigBackend:
+    """``backend`` with a plugin's identity (:func:`plugin_identity`) as its ``plugin`` attribute, which
+    :meth:`rigctl.acquisition.rig.Rig.describe` stores (the session's rig_config and provenance)."""
+    identity = plugin_identity(kind, made)
+    if identity is not None:
+        backend.plugin = identity  # type: ignore[attr-defined]  # a plain attribute any backend may carry
+    return backend
 
 
 def make_backend(kind: str = "sim", *, drum: str | None = None, **options: Any) -> RigBackend:
     """The backend of rig ``kind`` (not started): the entry point of that name in the group ``rigctl.rigs``
     (:mod:`rigctl.core.rig_plugins`) called with the options (``config``, ``seed``, ``prompt``, ``textures``,
     ``host_config_path`` and the rig's own); a sensor-only plugin's samples on the simulated ``drum`` ("sim",
-    default, or "inprocess"). Raises RigError for an unknown rig, a plugin that does not load or missing options."""
+    default, or "inprocess"). A plugin's identity (:func:`plugin_identity`) is kept as the backend's ``plugin``.
+    Raises RigError for an unknown rig, a plugin that does not load or missing options."""
     request = _request(kind, **options)
     return _as_backend(build_rig(kind, request), request, drum)
 

@@ -65,18 +65,22 @@ def test_rigctl_rigs_lists_a_plugin_and_a_broken_one(installed_plugins):
 
 
 def _board(stop: threading.Event) -> str:
-    """A simulated CSV board on a pty: 4 counts a line (``i % 900 + 10 * channel``), ~400 lines a second until
-    ``stop``; returns the port."""
+    """A simulated CSV board on a pty: 4 counts a line (``i % 900 + 10 * channel``), 200 lines a second (its rate:
+    10 every 50 ms on its own clock; a board sending faster than its rate overflows the plugin's buffer, which then
+    drops its oldest lines) until ``stop``; returns the port."""
     board, port_fd = os.openpty()
     tty.setraw(port_fd)
 
     def send() -> None:
-        for start in itertools.count(0, 20):
+        t0 = time.monotonic()
+        for k, start in enumerate(itertools.count(0, 10)):
             if stop.is_set():
                 break
-            lines = "".join(",".join(str(i % 900 + 10 * c) for c in range(4)) + "\n" for i in range(start, start + 20))
-            os.write(board, lines.encode())
-            time.sleep(0.05)
+            data = "".join(",".join(str(i % 900 + 10 * c) for c in range(4)) + "\n" for i in range(start, start + 10))
+            out = data.encode()
+            while out:  # a pty takes what its buffer holds: the rest written after (a real board's UART waits too)
+                out = out[os.write(board, out):]
+            time.sleep(max(0.0, t0 + 0.05 * (k + 1) - time.monotonic()))
         os.close(board)
 
     threading.Thread(target=send, daemon=True).start()
@@ -105,12 +109,69 @@ def test_quick_check_from_a_pty_board_through_acquire(installed_plugins, tmp_pat
                                          "--out", str(tmp_path / "t.h5")])
         assert typo.exit_code == 1 and "has no option prot" in typo.output, typo.output
         r = CliRunner().invoke(main, ["acquire", "quick_check", "--rig", "csvboard", "--rig-option", f"port={port}",
-                                      "--rig-option", "drum=inprocess", "--out", str(tmp_path / "s.h5"), "--quiet"])
+                                      "--out", str(tmp_path / "s.h5"), "--quiet"])
     finally:
         stop.set()
     assert r.exit_code == 0 and "trials complete: 6/6" in r.output, r.output
-    taxels = _check_session(tmp_path / "s.h5", mode="csvboard")
-    assert len(np.unique(taxels[:, 0])) > 50  # the board's lines as they came, not one repeated
+    _check_session(tmp_path / "s.h5", mode="csvboard")
+    with open_session(tmp_path / "s.h5") as s:  # the board's lines as they came, each once (it counts up by one)
+        for t in s.completed_ids():
+            x = np.asarray(s.trial(t).taxels, dtype=np.int64)[:, 0]
+            assert (np.diff(x) % 900 == 1).all(), (t, np.flatnonzero(np.diff(x) % 900 != 1)[:5])
+
+
+#: a protocol that keeps trials with dropped frames (the late plugin's test counts them)
+LOSSY_PROTOCOL = """name = "lossy"
+textures = ["A", "B"]
+speeds_mm_s = [120]
+forces_g = [500]
+trials_per_condition = 1
+duration_s = 1.0
+max_dropped_frames = 100000
+"""
+
+
+def test_a_late_plugin_source_is_stored_as_dropped_frames_and_named_in_the_provenance(installed_plugins, tmp_path,
+                                                                                    monkeypatch):
+    """A SampleSource that has no sample yet returns fewer rows (issue 52: the guide's plugin repeated its last one,
+    96 % of a recording, with 0 dropped frames shown): every period without a sample is a dropped frame, exactly the
+    lines missing from the stored readings, shown by rigctl info; the plugin's distribution, version and describe()
+    are in the session's rig_config and provenance."""
+    import rigctl_csvboard
+
+    from rigctl.storage.provenance import read_provenance
+
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    board = tmp_path / "board.csv"
+    board.write_text("\n".join(",".join(str((i * 7) % 900 + 10 * c) for c in range(4)) for i in range(900)) + "\n")
+    read, calls = rigctl_csvboard.CsvBoard.read, [0]
+
+    def late(self, n):  # every 7th call the board is late: none of its samples (they are lost, a gap)
+        calls[0] += 1
+        rows = read(self, n)
+        return rows[:0] if calls[0] % 7 == 0 else rows
+
+    monkeypatch.setattr(rigctl_csvboard.CsvBoard, "read", late)
+    proto = tmp_path / "lossy.toml"
+    proto.write_text(LOSSY_PROTOCOL)
+    r = CliRunner().invoke(main, ["acquire", str(proto), "--rig", "csvboard", "--rig-option", f"file={board}",
+                                  "--rig-option", "drum=inprocess", "--out", str(tmp_path / "s.h5"), "--quiet"])
+    assert r.exit_code == 0 and "trials complete: 2/2" in r.output, r.output
+    total = 0
+    with open_session(tmp_path / "s.h5") as s:
+        counts = dict(zip(s.completed_ids(), s.trial_counts(s.completed_ids())))
+        for t in s.completed_ids():
+            x = np.asarray(s.trial(t).taxels, dtype=np.int64)[:, 0]
+            lines = (np.diff(x) * 643) % 900  # 643 = 1/7 mod 900: the lines from one stored sample to the next
+            assert (lines >= 1).all()  # never a repeated sample
+            assert int((lines - 1).sum()) == counts[t]["dropped_frames"] > 0, (t, counts[t])
+            total += counts[t]["dropped_frames"]
+        plugin = s.rig_config["plugin"]
+    assert plugin["distribution"] == "rigctl-csvboard" and plugin["version"] == "0.1.0"
+    assert plugin["describe"] == {"board": "csvboard", "port": None, "lines": 900}
+    assert read_provenance(tmp_path / "s.h5")["rig"]["plugin"] == plugin
+    info = CliRunner().invoke(main, ["info", str(tmp_path / "s.h5")])
+    assert f"{total} dropped frames" in info.output, info.output
 
 
 #: seconds an HTTP request to `rigctl serve` may take before the test calls it hung (not a judgement of speed)

@@ -70,7 +70,8 @@ def session_provenance(rig_config: Mapping[str, Any], *, protocol: Any = None, *
     ``protocol`` (a loaded protocol: its name, format, resolved text and seed).
 
     Keys: those of :func:`software_provenance`, ``firmware`` (:func:`firmware_identity`), ``protocol`` (name,
-    seed, source: the resolved text), ``rig`` (mode, ports, the simulated rig's seed), ``rig_config_path``,
+    seed, source: the resolved text), ``rig`` (mode, ports, the simulated rig's seed, a plugin's distribution,
+    version and ``describe()``), ``rig_config_path``,
     ``rig_config`` (the rig config file's content: calibration, normalisation, doctor reports) and
     ``rig_config_dates`` (each block's date), then ``extra``."""
     host_config = dict(rig_config.get("host_config") or {})
@@ -81,7 +82,7 @@ def session_provenance(rig_config: Mapping[str, Any], *, protocol: Any = None, *
     return software_provenance(
         firmware=firmware_identity(rig_config),
         protocol=proto,
-        rig={k: rig_config.get(k) for k in ("mode", "drum_port", "taxel_port", "seed")},
+        rig={k: rig_config.get(k) for k in ("mode", "drum_port", "taxel_port", "seed", "plugin")},
         rig_config_path=rig_config.get("host_config_path"),
         rig_config=host_config,
         rig_config_dates=_dates(host_config),

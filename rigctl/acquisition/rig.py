@@ -458,12 +458,16 @@ class Rig:
     def describe(self) -> dict:
         """The rig's configuration as a JSON-able dict (stored as a session's ``rig_config`` attribute).
 
-        Keys: the backend's (mode, drum_port, taxel_port, seed, model: the simulated rig's RigConfig, ...),
+        Keys: the backend's (mode, drum_port, taxel_port, seed, model: the simulated rig's RigConfig, ...), plugin
+        (a plugin's rig: :func:`rigctl.rigs.plugin_identity`),
         sensor_layout (the taxel source's layout), texture_set (the rig's), taxel_streamer (banner), drum_firmware,
         drum_registers (every holding register by name), host_config (the rig config file: calibration).
         """
         out: dict[str, Any] = {"mode": self.mode, "drum_port": None, "taxel_port": None, "seed": None}
         out.update(self.backend.describe())
+        plugin = getattr(self.backend, "plugin", None)  # a plugin's rig: its distribution, version, describe()
+        if plugin is not None:
+            out["plugin"] = plugin
         out.update({
             "sensor_layout": self.layout.to_dict(),
             "texture_set": self.textures.to_dict(),

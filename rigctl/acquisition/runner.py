@@ -199,6 +199,17 @@ def _emit(cb, event: TrialEvent) -> None:
         cb(event)
 
 
+def _check_replay_plan(rig: Any, protocol: Any) -> None:
+    """Before anything is recorded: a replayed recording (a source with ``check_plan``, rigctl.simulation.replay)
+    must give each planned trial a source trial of its own, of its texture; it raises naming the shortfall."""
+    backend = getattr(rig, "backend", None)
+    source = getattr(getattr(backend, "sim", None), "source", None) or getattr(backend, "source", None)
+    check = getattr(source, "check_plan", None)
+    plan = getattr(protocol, "plan", None)
+    if check is not None and callable(plan) and not getattr(rig, "replay_continuous", False):
+        check([str(p.texture) for p in plan()])
+
+
 class _Interrupts:
     """Ctrl-C (SIGINT) and SIGTERM during a run raise KeyboardInterrupt (a clean stop); held while the session file
     is written (:meth:`held`: the first signal then waits for :meth:`raise_pending`, a second one raises at once).
@@ -351,6 +362,8 @@ def run_protocol(
             rig.apply_settle(protocol.settle)
             rig.textures = protocol.texture_set
         textures = rig.textures
+        if not resume:
+            _check_replay_plan(rig, protocol)
         if resume:
             writer = SessionWriter.open(out_path, protocol_source=protocol.source)
             # the trials from here on are this run's: its software, firmware and rig, beside the creating run's

@@ -87,9 +87,15 @@ def _load(path, encode, variants, task="table1", progress=False, keep_nonfinite=
 
         with warnings.catch_warnings(record=True) as caught, bars(progress) as bar:
             warnings.simplefilter("always")
-            loaded = load_or_encode(path, variants, task=task,
-                                    encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"), progress=bar,
-                                    keep_nonfinite=keep_nonfinite)[0]
+            try:
+                loaded = load_or_encode(path, variants, task=task,
+                                        encode_to=Path(tmp) / (Path(path).stem + ".encoded.h5"), progress=bar,
+                                        keep_nonfinite=keep_nonfinite)[0]
+            except (ValueError, KeyError) as exc:  # no usable trial, a variant the trials cannot give: one line
+                for w in caught:
+                    click.echo(f"warning: {w.message}", err=True)
+                msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+                raise click.ClickException(" ".join(msg.split())) from None
         for w in caught:  # one line each (excluded trials, skipped variants), as rigctl encode shows them
             click.echo(f"warning: {w.message}", err=True)
         return loaded

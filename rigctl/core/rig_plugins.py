@@ -74,12 +74,17 @@ class RigOptionError(ValueError):
 class SampleSource(Protocol):
     """A sensor without a drum: its samples, read as the simulated taxel board sends them.
 
-    ``layout`` is the sensor (channels, rate, ADC bits); ``read(n)`` returns its next ``n`` samples as an
-    ``(n, layout.n_channels)`` array of ADC counts (uint16, 0 to 2**adc_bits - 1), called from the board's thread
-    every millisecond or so with the samples due by then at ``layout.sample_rate_hz``. A live device keeps its own
-    reader and returns what it has (repeating its last sample when it is late: the frames are sent on time, as the
-    real board's are); a recording returns its next samples. Optional: ``close()`` (called once when the rig
-    closes), ``textures`` (a :class:`rigctl.core.textures.TextureSet` the rig takes as its own), ``describe()``.
+    ``layout`` is the sensor (channels, rate, ADC bits); ``read(n)`` is asked for the next ``n`` samples, called from
+    the board's thread every millisecond or so with the samples due by then at ``layout.sample_rate_hz``, and returns
+    an ``(m, layout.n_channels)`` array of ADC counts (uint16, 0 to 2**adc_bits - 1) with ``m <= n``: the samples it
+    has, each once. **Fewer rows than asked is how a source says "no sample yet"** (a live device late) **or "these
+    samples are lost"** (a gap the device reported): the board sends no frame for the periods left, its sequence
+    number steps over them, and the session stores them as dropped frames (``rigctl info`` shows them; a protocol's
+    ``max_dropped_frames`` judges the trial). A source never repeats a sample to fill a period: a held sample would be
+    stored as a new reading (issue 52: a plugin's late samples counted as good ones). A recording returns its next
+    samples. Optional: ``close()`` (called once when the rig closes), ``textures`` (a
+    :class:`rigctl.core.textures.TextureSet` the rig takes as its own), ``describe()`` (a JSON-able dict stored, with
+    the plugin's distribution and version, in the session's ``rig_config`` and provenance: ``plugin``).
     """
 
     @property
@@ -88,7 +93,8 @@ class SampleSource(Protocol):
         ...
 
     def read(self, n: int) -> npt.NDArray[np.uint16]:
-        """The next ``n`` samples, ``(n, layout.n_channels)`` uint16 ADC counts."""
+        """At most the next ``n`` samples, ``(m, layout.n_channels)`` uint16 ADC counts, ``m <= n`` (fewer: no
+        sample yet, or lost; never a repeated one)."""
         ...
 
 

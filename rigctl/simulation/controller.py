@@ -513,7 +513,9 @@ class MegaController:
     def _fault(self, bits: Fault) -> None:
         self.faults |= bits
         self._release(DrumState.FAULT)
-        log.warning("virtual Mega fault: %s", bits)
+        from rigctl.core.drum import describe_faults
+
+        log.warning("virtual Mega fault: %s", describe_faults(int(bits)))  # by name and meaning, not a bare number
 
     def _direction_fault(self) -> None:
         """The actuator moved the wrong way (the firmware's direction_fault): not homed, stopped where it stands."""

@@ -49,7 +49,13 @@ from rigctl.storage.fabricslide import (
     recording_adc,
 )
 
-__all__ = ["SessionReplay", "FabricSlideReplay"]
+__all__ = ["SessionReplay", "FabricSlideReplay", "ReplayShortfall"]
+
+
+class ReplayShortfall(ValueError):
+    """A replayed recording cannot give each planned trial a source trial of its own (too few trials of a texture,
+    or none): the run is refused before it starts, or a retry past the source's trials stops (never a source trial
+    recorded twice, never another texture's)."""
 
 
 class _BlockReplay:
@@ -67,6 +73,10 @@ class _BlockReplay:
     def __init__(self, loop: bool, continuous: bool = False):
         self.loop = bool(loop)
         self.continuous = bool(continuous)
+        #: the source trials (recordings) given to a recorded trial (:meth:`begin_trial`): each is given once
+        self._claimed: set[Any] = set()
+        #: the texture last mounted when the source has nothing of it (:meth:`mount`), else None
+        self.missing: str | None = None
         self._lock = threading.Lock()
         self._restart()
         #: samples handed out by :meth:`read` since construction / :meth:`rewind`
@@ -78,16 +88,96 @@ class _BlockReplay:
         """The source labels of the block just taken from the iterator (file, trial, texture, speed, force)."""
         raise NotImplementedError
 
+    # -- one source trial per recorded trial (subclasses: the keys of their trials / recordings) ------------------
+    def _keys(self, texture: str | None) -> list[Any]:  # pragma: no cover - abstract
+        """The source's trials (or recordings) of ``texture`` (None: every one), in stream order."""
+        raise NotImplementedError
+
+    def _current_key(self) -> Any:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _take(self, key: Any) -> np.ndarray:  # pragma: no cover - abstract
+        """Make ``key`` the current trial (its labels for :meth:`_block_labels`) and return its samples."""
+        raise NotImplementedError
+
+    def _what(self) -> str:
+        return "trials"
+
+    def check_plan(self, textures: list[str]) -> None:
+        """Refuse (:class:`ReplayShortfall`, one line naming every shortfall) a plan whose trials this source cannot
+        give a source trial each: a texture it has nothing of, or more planned trials of a texture than it has
+        (``textures``: the plan's texture per trial). Continuous play (no trial mapping) passes."""
+        if self.continuous:
+            return
+        planned: dict[str, int] = {}
+        missing = []
+        for texture in textures:
+            label = self._label_of(texture)
+            if label is None:
+                missing.append(texture)
+            else:
+                planned[label] = planned.get(label, 0) + 1
+        short = [f"{label}: {n} planned, {len(self._keys(label))} in the source" for label, n in planned.items()
+                 if n > len(self._keys(label))]
+        problems = ([self._no_texture(sorted(set(missing))[0]) + (f" (nor of {', '.join(sorted(set(missing))[1:])})"
+                                                                   if len(set(missing)) > 1 else "")]
+                    if missing else [])
+        if short:
+            problems.append(f"each planned trial needs {self._what()[:-1]} of its own and the source has too few "
+                            f"({'; '.join(short)}): plan fewer trials or replay a larger recording")
+        if problems:
+            raise ReplayShortfall(f"{self._source_name()}: " + "; ".join(problems))
+
+    def _source_name(self) -> str:
+        return str(getattr(self, "path", getattr(self, "directory", "the replay source")))
+
+    def _label_of(self, texture: str) -> str | None:
+        if texture in self.by_texture:
+            return texture
+        try:
+            label = self.textures.resolve(texture)
+        except TextureSetError:
+            return None
+        return label if label in self.by_texture else None
+
     def begin_trial(self) -> int | None:
-        """A recorded trial starts: the stream goes on at the first sample of the source's next trial (of the
-        mounted plate), unless ``continuous``. Returns the stream position of that sample (None: continuous)."""
+        """A recorded trial starts: the stream goes on at the first sample of a source trial of the mounted plate
+        that no recorded trial has had yet, the one streaming now if so (from its first sample), else the next;
+        unless ``continuous``. Returns the stream position of that sample (None: continuous).
+
+        Raises :class:`ReplayShortfall` when every source trial of the plate was recorded once already (a retry past
+        the source's trials): a trial is never recorded twice from one source trial."""
         if self.continuous:
             return None
+        if self.missing is not None:
+            raise ReplayShortfall(f"{self._source_name()}: {self._no_texture(self.missing)}: a trial of "
+                                  f"{self.missing} would record another texture's samples")
         with self._lock:
-            if self._pos > 0:
-                self._block = self._block[:0]
-                self._pos = 0
+            keys = self._keys(self.mounted)
+            cur = self._current_key()
+            at = keys.index(cur) if cur in keys else -1
+            order = ([cur] if at >= 0 else []) + keys[at + 1:] + keys[:max(at, 0)]
+            pick = next((k for k in order if k not in self._claimed), None)
+            if pick is None:
+                what = f"of {self.mounted}" if self.mounted is not None else ""
+                raise ReplayShortfall(f"{self._source_name()}: every source {self._what()[:-1]} {what} was recorded "
+                                      "once already; another trial would repeat one (a retry?): replay a larger "
+                                      "recording")
+            self._claimed.add(pick)
+            self._block = self._take(pick)
+            self._pos = 0
+            self.served_blocks.append((self.samples_served, self._block_labels()))
+            self._blocks = self._after(pick, keys)
             return self.samples_served
+
+    def _after(self, pick: Any, keys: list[Any]) -> Iterator[np.ndarray]:
+        """The stream after trial ``pick``: ``keys`` from the one after it on, looping (the stream between trials)."""
+        i = keys.index(pick)
+        while True:
+            for key in keys[i + 1:] + (keys[:i + 1] if self.loop else []):
+                yield self._take(key)
+            if not self.loop:
+                return
 
     def provenance(self, first: int, n: int) -> list[dict[str, Any]]:
         """Which source samples stream positions ``first`` .. ``first + n - 1`` held: one dict per source block
@@ -130,8 +220,10 @@ class _BlockReplay:
             except TextureSetError:
                 pass
         if label not in self.by_texture:
+            self.missing = texture  # a trial recorded now would hold another texture's samples: begin_trial refuses
             raise KeyError(self._no_texture(texture))
         with self._lock:
+            self.missing = None
             self.mounted = label
             self.mounts.append((self.samples_served, label))
             self._restart(self._iter_texture(label))
@@ -177,11 +269,12 @@ class _BlockReplay:
         return self.read(n)
 
     def rewind(self) -> None:
-        """Start the stream again at its first sample (the unmounted order)."""
+        """Start the stream again at its first sample (the unmounted order), every source trial unrecorded."""
         with self._lock:
             self._restart()
             self.samples_served = 0
             self.served_blocks = []
+            self._claimed = set()
 
     def _restart(self, blocks: Iterator[np.ndarray] | None = None) -> None:
         """Stream ``blocks`` (default the unmounted order) from their first sample on."""
@@ -314,6 +407,16 @@ class SessionReplay(_BlockReplay):
     def _no_texture(self, texture: str) -> str:
         return f"{self.path.name} has no trial of texture '{texture}' (it has: {', '.join(self.by_texture)})"
 
+    def _keys(self, texture: str | None) -> list[Any]:
+        return list(self.trial_ids if texture is None else self.by_texture[texture])
+
+    def _current_key(self) -> Any:
+        return self.current_trial
+
+    def _take(self, key: Any) -> np.ndarray:
+        self.current_trial = int(key)
+        return self.trial_samples(int(key))
+
     def texture_samples(self, texture: str, n: int, *, first: int = 0) -> np.ndarray:
         """``n`` samples of texture ``texture``'s trials concatenated in plan order, looping, from its trial index
         ``first``: what the stream holds after a mount (computed afresh). ``(n, ch) uint16``."""
@@ -403,6 +506,19 @@ class FabricSlideReplay(_BlockReplay):
 
     def _no_texture(self, texture: str) -> str:
         return f"no FabricSlide recording of texture '{texture}' here (there are: {', '.join(self.by_texture)})"
+
+    def _what(self) -> str:
+        return "recordings"
+
+    def _keys(self, texture: str | None) -> list[Any]:
+        return list(self.files if texture is None else self.by_texture[texture])
+
+    def _current_key(self) -> Any:
+        return self.current_file
+
+    def _take(self, key: Any) -> np.ndarray:
+        self.current_file = key
+        return self._adc(key)
 
     def _adc(self, path: Path) -> np.ndarray:
         return recording_adc(read_recording(path), scale=self.scale, offset=self.offset)

@@ -303,13 +303,23 @@ def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
     """Read a TOML mapping (see the module docstring). Raises RecordingImportError on a missing or bad file."""
     if path is None:
         return {}
+    import stat
     import tomllib
 
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise RecordingImportError(f"mapping {path}: not a regular file (a device, a FIFO or a folder): give the "
+                                       "mapping's TOML file")
         with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
+            raw = fh.read(MAX_MAPPING_BYTES + 1)  # bounded: --mapping /dev/zero (or a wrong big file) is refused
+        if len(raw) > MAX_MAPPING_BYTES:
+            raise RecordingImportError(f"mapping {path}: larger than {MAX_MAPPING_BYTES >> 20} MB: not a mapping "
+                                       "(a TOML file of a few KiB)")
+        doc = tomllib.loads(raw.decode("utf-8"))
     except FileNotFoundError:
         raise RecordingImportError(f"mapping {path}: no such file") from None
+    except UnicodeDecodeError:
+        raise RecordingImportError(f"mapping {path}: not UTF-8 text (not a TOML mapping)") from None
     except tomllib.TOMLDecodeError as exc:
         raise RecordingImportError(f"mapping {path}: not valid TOML ({exc})") from None
     unknown = sorted(set(doc) - set(MAPPING_KEYS))
@@ -318,6 +328,9 @@ def load_mapping(path: str | os.PathLike[str] | None) -> dict[str, Any]:
                                    f"{', '.join(MAPPING_KEYS)}")
     return doc
 
+
+#: the largest mapping read, bytes (per-file labels of thousands of files fit easily)
+MAX_MAPPING_BYTES = 16 << 20
 
 #: keys a TOML mapping may hold (module docstring)
 MAPPING_KEYS = ("rate_hz", "channels", "layout", "sensor", "adc_bits", "volts_ref", "scale", "offset",

@@ -66,7 +66,6 @@ from rigctl.storage.session_reader import (
 )
 from rigctl.storage.session_recording import TRACES as _TRACES, read_rows
 from rigctl.storage.trial_facts import (
-    NONFINITE_FIELDS,
     TRACE_NAMES as _TRACE_NAMES,
     aligned,
     facts_nonfinite_text,
@@ -445,11 +444,12 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     todo, facts, trusted = _precheck_recorded(session, ids, plan, rate, report,
                                               Stage(stage.callback, "checking trial groups", len(ids)))
     stage.advance(len(ids) - len(todo))
-    known = trusted & (facts["taxels_min"] >= 0) & (facts["taxels_max"] <= session.layout.adc_max)
-    nonfinite = np.zeros(len(todo), dtype=bool)
-    for _, name in NONFINITE_FIELDS:
-        nonfinite |= facts[name] != 0
-    entries = [(tid, r, facts[i] if known[i] else None, bool(nonfinite[i])) for i, (tid, r) in enumerate(todo)]
+    # integrity from the content (issue 52): every trial's samples are read and, where the seal holds facts of it,
+    # its taxels compared with the checksum stored with them; a trial edited since (its modification time put back)
+    # or whose stored chunk cannot be read is excluded by itself, named
+    known = np.zeros(len(todo), dtype=bool)
+    entries: list[tuple[int, np.void, np.void | None, bool, np.void | None]] = [
+        (tid, r, None, False, facts[i] if trusted[i] else None) for i, (tid, r) in enumerate(todo)]
     k = 0
     while k < len(todo):
         j, rows = k, 0
@@ -464,28 +464,58 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     report.excluded = dict(sorted(report.excluded.items(), key=lambda kv: order[kv[0]]))
 
 
-def _check_block(session: Session, block: list[tuple[int, np.void, np.void | None, bool]], plan: dict[int, Any],
-                 rate: float, report: TrialReport, copies: "_Copies") -> None:
+def _read_block(rec: Any, read: list[np.void], n_ch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                   list[str | None], dict[int, str]]:
+    """(seq, taxels, row offsets, non-finite texts, {i: why} of the trials whose stored data cannot be read) of the
+    trials ``read`` back to back: read together, or, when a damaged chunk stops that, trial by trial."""
+    starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
+    lengths = np.array([int(r["n_samples"]) for r in read], dtype=np.int64)
+    pos = np.concatenate([[0], np.cumsum(lengths)])
+    seq = np.zeros(int(pos[-1]), dtype=np.uint16)
+    tax = np.zeros((int(pos[-1]), n_ch), dtype=np.uint16)
+    try:
+        read_rows(rec["seq"], starts, lengths, seq)
+        read_rows(rec["taxels"], starts, lengths, tax)
+        return seq, tax, pos, _block_nonfinite(rec, read), {}
+    except _READ_ERRORS:
+        pass
+    failed: dict[int, str] = {}
+    bad: list[str | None] = []
+    for i, r in enumerate(read):
+        a, b = int(pos[i]), int(pos[i + 1])
+        try:
+            read_rows(rec["seq"], starts[i:i + 1], lengths[i:i + 1], seq[a:b])
+            read_rows(rec["taxels"], starts[i:i + 1], lengths[i:i + 1], tax[a:b])
+            bad += _block_nonfinite(rec, [r])
+        except _READ_ERRORS as exc:
+            failed[i] = (f"its stored data cannot be read (a damaged chunk: {' '.join(str(exc).split())[:120]}); "
+                         "the other trials are read as usual")
+            bad.append(None)
+    return seq, tax, pos, bad, failed
+
+
+#: what h5py raises for a chunk that does not decompress or a read the file cannot give
+_READ_ERRORS = (OSError, RuntimeError, ValueError)
+
+
+def _check_block(session: Session, block: list[tuple[int, np.void, np.void | None, bool, np.void | None]],
+                 plan: dict[int, Any], rate: float, report: TrialReport, copies: "_Copies") -> None:
     """:func:`_check_data` of a block of trials in order, each ``(trial id, index row, facts row or None, whether
-    the facts count non-finite readings)``: those with facts on them, the others on their samples, read together."""
+    the facts count non-finite readings, the sealed facts row its taxels are checked against or None)``: those with
+    facts on them, the others on their samples, read together."""
     from rigctl.storage.session_recording import GROUP
+    from rigctl.storage.trial_facts import sha256
 
     rec = session._f[GROUP]
     taxels_ds = rec["taxels"]
     n_ch = int(taxels_ds.shape[1])
-    read = [r for _, r, q, _ in block if q is None]
+    read = [r for _, r, q, _, _ in block if q is None]
+    seq, tax, pos, bad, failed = _read_block(rec, read, n_ch)
     starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
-    lengths = np.array([int(r["n_samples"]) for r in read], dtype=np.int64)
-    pos = np.concatenate([[0], np.cumsum(lengths)])
-    seq = np.empty(int(pos[-1]), dtype=np.uint16)
-    tax = np.empty((int(pos[-1]), n_ch), dtype=np.uint16)
-    read_rows(rec["seq"], starts, lengths, seq)
-    read_rows(taxels_ds, starts, lengths, tax)
     gaps = block_seq_gaps(seq, pos)
-    bad = _block_nonfinite(rec, read)
     in_range = bool(tax.size == 0 or int(tax.max()) <= session.layout.adc_max)  # uint16: never below 0
     i = 0  # the next trial read
-    for tid, r, q, nonfinite in block:
+    for tid, r, q, nonfinite, sealed in block:
         duration, said, crc = float(plan[tid]["duration_s"]), int(r["dropped_frames"]), int(r["crc_errors"])
         if q is not None:
             n, why = _encoded_samples(session, tid, int(r["n_samples"]))
@@ -495,6 +525,11 @@ def _check_block(session: Session, block: list[tuple[int, np.void, np.void | Non
             _record(report, tid, why, dropped, facts_nonfinite_text(q) if nonfinite else None)
             continue
         a, b = int(pos[i]), int(pos[i + 1])
+        if i in failed or (sealed is not None and b > a and sha256(tax[a:b]) != bytes(sealed["taxels_sha256"])):
+            _record(report, tid, failed.get(i) or "its stored taxels differ from the checksum sealed with them when "
+                                                  "they were recorded (changed since)", 0)
+            i += 1
+            continue
         data, load = tax[a:b], functools.partial(_read_trial, taxels_ds, int(starts[i]), b - a)
         n, why = _encoded_samples(session, tid, b - a)
         why, dropped = (why, 0) if why else _check_data(duration, rate, n, int(gaps[i]), said, crc,

@@ -29,6 +29,9 @@ __all__ = ["CsvBoard", "open_board", "parse_line"]
 BUFFER_S = 10.0
 #: how long opening the port waits for the board's first sample, s
 FIRST_SAMPLE_S = 5.0
+#: the samples held back before the first is handed on, s: the board's lines come in bursts (a USB serial chip sends
+#: every few ms), so rigctl's clock asks for a sample a little before its line is there
+LATENCY_S = 0.25
 
 
 def parse_line(line: str, channels: int) -> list[int] | None:
@@ -46,14 +49,16 @@ class CsvBoard:
     """The board's samples (:class:`rigctl.core.rig_plugins.SampleSource`): ``layout``, ``read(n)``, ``close()``.
 
     From a serial port a reader thread keeps the samples as they come (opening waits for the first); ``read(n)``
-    takes the oldest ``n`` and repeats the last one for those not there yet (the simulated taxel board sends its
-    frames on time). From a file ``read(n)`` reads the next ``n`` lines, from the start again at the end.
+    hands on the oldest, at most ``n``, each once: fewer when the board is late (rigctl stores the periods without a
+    sample as dropped frames; a repeated sample would be stored as a reading the board never sent). The first ones
+    wait until :data:`LATENCY_S` of them are there. From a file ``read(n)`` reads the next ``n`` lines, from the start
+    again at the end.
     """
 
     def __init__(self, layout: SensorLayout, *, port: str | None = None, file: Path | None = None,
                  baud: int = 115200) -> None:
         self.layout = layout
-        self._last = [0] * layout.n_channels
+        self._primed = False
         self._buffer: collections.deque[list[int]] = collections.deque(
             maxlen=int(BUFFER_S * layout.sample_rate_hz))
         self._stop = threading.Event()
@@ -88,7 +93,7 @@ class CsvBoard:
         while not self._stop.is_set() and self._serial is not None:
             try:
                 pending += self._serial.read(max(1, self._serial.in_waiting))
-            except Exception:  # noqa: BLE001 - the port is gone: the samples stop (the last one repeats)
+            except Exception:  # noqa: BLE001 - the port is gone: the samples stop (rigctl counts them dropped)
                 return
             *lines, pending = pending.split(b"\n")
             for line in lines:
@@ -97,17 +102,19 @@ class CsvBoard:
                     self._buffer.append(row)
 
     def read(self, n: int) -> npt.NDArray[np.uint16]:
-        """The next ``n`` samples, ``(n, channels)`` uint16."""
+        """At most the next ``n`` samples, ``(m, channels)`` uint16, ``m <= n`` (fewer: the board is late)."""
         out = []
-        for _ in range(n):
-            if self._lines:
-                self._last = self._lines[self._next]
+        if self._lines:
+            for _ in range(n):
+                out.append(self._lines[self._next])
                 self._next = (self._next + 1) % len(self._lines)
-            elif self._buffer:
-                self._last = self._buffer.popleft()
-            out.append(self._last)
+        elif self._primed or len(self._buffer) >= LATENCY_S * self.layout.sample_rate_hz:
+            self._primed = True
+            while self._buffer and len(out) < n:
+                out.append(self._buffer.popleft())
         top = self.layout.adc_max
-        return np.clip(np.asarray(out, dtype=np.int64), 0, top).astype(np.uint16).reshape(n, self.layout.n_channels)
+        rows = np.asarray(out, dtype=np.int64).reshape(len(out), self.layout.n_channels)
+        return np.clip(rows, 0, top).astype(np.uint16)
 
     def describe(self) -> dict[str, object]:
         return {"board": "csvboard", "port": None if self._serial is None else self._serial.port,

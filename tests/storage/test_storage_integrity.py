@@ -1,0 +1,89 @@
+"""Integrity from the content (issue 52 item 8): a sealed session was trusted on its modification time; NaN written
+into a trial with the time put back passed as 6/6 complete (the NWB export held the NaN), a taxel edited the same way
+passed unseen, and one flipped bit in a compressed taxel chunk took the whole file down in every command. Now every
+trial's samples are read and checked against the checksum sealed with them, and a trial whose content changed or
+whose chunk cannot be read is excluded by itself, named; the rest of the file stays usable."""
+
+from __future__ import annotations
+
+import os
+
+import h5py
+import numpy as np
+from click.testing import CliRunner
+
+from rigctl.cli import main
+from rigctl.storage.session import SessionWriter, TrialData, open_session
+from rigctl.storage.validate import usable_trials
+
+N = 8192  # samples a trial: two taxel chunks of 4096 rows each
+
+
+def _session(path):
+    rng = np.random.default_rng(4)
+    plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=80.0, force_g=500.0, duration_s=N / 1000.0)
+            for i in range(6)]
+    with SessionWriter.create(path, plan=plan, protocol_source="name = 't'") as w:
+        for i in range(6):
+            w.write_trial(i, TrialData(taxels=rng.integers(100, 900, (N, 18)), seq=np.arange(N) % 65536,
+                                       force_g=np.full(50, 500.0), force_time_s=np.arange(50) / 10,
+                                       speed_mm_s=np.full(50, 80.0), speed_time_s=np.arange(50) / 10))
+    return path
+
+
+def _edit_keeping_mtime(path, edit):
+    st = os.stat(path)
+    with h5py.File(path, "r+") as f:
+        edit(f)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert os.stat(path).st_mtime_ns == st.st_mtime_ns
+
+
+def _rows(f, tid):
+    idx = f["recording/index"][()]
+    return next(r for r in idx if int(r["trial_id"]) == tid)
+
+
+def test_nan_and_an_edited_taxel_with_the_time_put_back_are_excluded_by_themselves(tmp_path):
+    path = _session(tmp_path / "s.h5")
+
+    def edit(f):
+        r2, r4 = _rows(f, 2), _rows(f, 4)
+        f["recording/force_g"][int(r2["force_start"]) + 3] = np.nan
+        t = int(r4["sample_start"]) + 100
+        f["recording/taxels"][t, 5] = 901 if f["recording/taxels"][t, 5] != 901 else 902
+
+    _edit_keeping_mtime(path, edit)
+    with open_session(path) as s:
+        report = usable_trials(s)
+        assert report.ids == [0, 1, 3, 5], report.excluded
+        assert "NaN in force_g" in report.excluded[2]
+        assert "differ from the checksum sealed with them" in report.excluded[4]
+    r = CliRunner().invoke(main, ["info", str(path)])
+    assert r.exit_code == 0 and "4/6" in r.output, r.output
+
+
+def test_a_flipped_bit_in_a_compressed_chunk_excludes_its_trial_only(tmp_path):
+    path = _session(tmp_path / "s.h5")
+    with h5py.File(path, "r") as f:
+        ds = f["recording/taxels"]
+        r3 = _rows(f, 3)
+        chunk = int(r3["sample_start"]) // ds.chunks[0] + 1  # a chunk of trial 3's alone (4096-row chunks)
+        info = ds.id.get_chunk_info(chunk)
+        offset, size = int(info.byte_offset), int(info.size)
+    st = os.stat(path)
+    with open(path, "r+b") as fh:
+        fh.seek(offset + size // 2)
+        byte = fh.read(1)[0]
+        fh.seek(offset + size // 2)
+        fh.write(bytes([byte ^ 0x10]))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    with open_session(path) as s:
+        report = usable_trials(s)
+        assert report.ids == [0, 1, 2, 4, 5], report.excluded
+        assert "cannot be read (a damaged chunk" in report.excluded[3] or "differ from the checksum" in report.excluded[3]
+    r = CliRunner().invoke(main, ["info", str(path)])
+    assert r.exit_code == 0 and "5/6" in r.output and "damaged chunk" in r.output, r.output
+    r = CliRunner().invoke(main, ["encode", str(path), "--out", str(tmp_path / "e.h5"), "--no-progress",
+                                  "--variant", "original"])
+    assert r.exit_code == 0 and "trial 3" in r.output, r.output

@@ -1,0 +1,62 @@
+"""Issue 52 item 10, the smaller ones: --config /dev/zero and import --mapping /dev/zero read until memory ran out
+(an "internal error"); analyze on a file with no usable trial said "internal error (a bug in rigctl)"; the
+simulated controller logged "virtual Mega fault: 2". Each is one line now, read bounded."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+from click.testing import CliRunner
+
+from rigctl.cli import main
+
+
+def _run(*args):
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    return r.exit_code, r.output
+
+
+def _one_error_line(out: str) -> str:
+    errors = [line for line in out.splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and "Traceback" not in out and "internal error" not in out, out
+    return errors[0]
+
+
+def test_dev_zero_as_a_config_or_a_mapping_is_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
+    t0 = os.times()
+    for args in (("acquire", "quick_check", "--config", "/dev/zero", "--out", tmp_path / "x.h5"),
+                 ("doctor", "--config", "/dev/zero"), ("serve", "--config", "/dev/zero")):
+        rc, out = _run(*args)
+        assert rc == 2 and "not a regular file" in _one_error_line(out), (args, out)
+    (tmp_path / "a.csv").write_text("1,2\n3,4\n")
+    rc, out = _run("import", tmp_path / "a.csv", "--rate", 100, "--texture", "A", "--mapping", "/dev/zero",
+                   "--out", tmp_path / "y.h5")
+    assert rc == 1 and "mapping /dev/zero: not a regular file" in _one_error_line(out), out
+    cpu = os.times()
+    assert (cpu.user + cpu.system) - (t0.user + t0.system) < 30  # bounded, not read until memory runs out
+    assert not (tmp_path / "x.h5").exists() and not (tmp_path / "y.h5").exists()
+
+
+def test_analyze_a_file_without_a_usable_trial_is_one_line(tmp_path):
+    from rigctl.storage.session import SessionWriter
+
+    plan = [dict(trial_id=i, texture="AB"[i % 2], speed_mm_s=40.0, force_g=500.0, duration_s=0.1) for i in range(4)]
+    SessionWriter.create(tmp_path / "s.h5", plan=plan, protocol_source="x").close()  # planned, nothing recorded
+    rc, out = _run("analyze", tmp_path / "s.h5", "--encode", "--no-progress")
+    assert rc == 1 and "no usable complete trials" in _one_error_line(out), out
+
+
+def test_a_virtual_mega_fault_is_named(caplog):
+    from rigctl.devices.wire import Fault
+    from rigctl.simulation.controller import MegaController
+    from rigctl.simulation.model import RigModel
+
+    ctl = MegaController(RigModel(seed=1))
+    with caplog.at_level(logging.WARNING, logger="rigctl.simulation.controller"):
+        ctl._fault(Fault.WATCHDOG)
+    text = " ".join(r.getMessage() for r in caplog.records)
+    assert "virtual Mega fault: WATCHDOG (host went silent" in text and "fault: 2" not in text, text
+    assert np.isfinite(ctl.faults)
