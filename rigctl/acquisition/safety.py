@@ -30,24 +30,27 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from rigctl.core.drum import FAULT_WORDS, DrumError, DrumFault, DrumReset, Fault, describe_faults
+from rigctl.core.drum import CRUSH_NOTE, FAULT_WORDS, DrumError, DrumFault, DrumReset, Fault, describe_faults
 
 __all__ = ["Latch", "Acknowledgement", "LatchedFault", "DrumStall", "SafetyLatch", "latch_for", "latch_from_faults",
            "CAUSES", "operator_name"]
 
 log = logging.getLogger(__name__)
 
+#: what a crush-class cause's remedy adds (rigctl.core.drum.CRUSH_FAULTS)
+_CRUSH = f" ({CRUSH_NOTE})"
+
 #: every latch cause: (label, what the operator does before acknowledging)
 CAUSES: dict[str, tuple[str, str]] = {
     "estop": ("e-stop", "release the e-stop"),
-    "force-limit": ("force limit exceeded", "check the plate and the sensor, lower the force setpoint"),
-    "reversed-cell": ("load cell reversed", "mount the load cell the right way (or fix the sign of its scale)"),
+    "force-limit": ("force limit exceeded", "check the plate and the sensor, lower the force setpoint" + _CRUSH),
+    "reversed-cell": ("load cell reversed", "mount the load cell the right way (or fix the sign of its scale)" + _CRUSH),
     "watchdog": ("host watchdog expired", "make sure the host program and its USB link are alive"),
     "loadcell-timeout": ("load cell not responding", "check the HX711's wiring"),
     "actuator-direction": ("actuator turning the wrong way or load cell reversed",
                            "press the load cell by hand and read FORCE_G: if it rises, swap one coil pair of the "
                            "actuator motor; if it falls, the cell is reversed: swap A+/A- at the HX711, not the "
-                           "motor's coils (rigctl doctor --check actuator-direction)"),
+                           "motor's coils (rigctl doctor --check actuator-direction)" + _CRUSH),
     "actuator-travel": ("actuator end of travel", "mount a plate, check the gap between drum and sensor (and that "
                                                   "the actuator turns the right way: a reversed motor drives into its "
                                                   "rear stop while its steps count on)"),
@@ -56,6 +59,8 @@ CAUSES: dict[str, tuple[str, str]] = {
     "reset": ("unexpected controller reset", "check the controller's power and reset line"),
     "stall": ("drum stalled or slipping", "free the drum (nothing may block it), check its coupling, the stepper and "
               "its driver's current"),
+    "contact-stiffness": ("contact too stiff", "use a softer sensor mount or pad, or store slower force-loop gains (the "
+                          "rig config's force_loop)" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -64,7 +69,7 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.WATCHDOG, "watchdog"), (Fault.LOADCELL_TIMEOUT, "loadcell-timeout"),
     (Fault.ACTUATOR_DIRECTION, "actuator-direction"), (Fault.ACTUATOR_TRAVEL, "actuator-travel"),
     (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
-    (Fault.DRUM_SLIP, "stall"),
+    (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"),
 )
 
 
