@@ -25,7 +25,7 @@ import logging
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import shiboken6
@@ -106,6 +106,22 @@ def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = No
     return open_rig(source, host_config_path=host_config_path, home=Home.UNLESS_FAULTED)
 
 
+#: the rigs a STOP reaches, by name (the window's own, and the attached ``rigctl serve``'s)
+LOCAL_RIG = "this PC's rig"
+SERVER_RIG = "the server's rig"
+#: how long STOP is sent again to an attached server that has not answered, s (each try waits the client's timeout)
+SERVER_STOP_WAIT_S = 30.0
+
+
+class StopOutcome(NamedTuple):
+    """What one STOP did on one rig: ``rig`` (:data:`LOCAL_RIG`, :data:`SERVER_RIG`), ``outcome`` ("stopped",
+    "waiting": no answer yet, "no answer", "failed") and ``detail`` (words)."""
+
+    rig: str
+    outcome: str
+    detail: str = ""
+
+
 class MainWindow(QtWidgets.QMainWindow):
     """The rigctl main window. ``source=None`` reads the last source from QSettings (simulated rig by default)."""
 
@@ -141,7 +157,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._run_lock: str | None = None
         self._faults = 0
         self._server_dialog: Any = None  # the window attached to a rigctl serve, once opened
-        self._stop_results: list[Any] = []  # what each STOP's safe_stop returned (the worker thread appends)
+        self._stop_results: list[StopOutcome] = []  # each STOP's outcome per rig (the worker threads append)
+        self._banner_holds: tuple[str, Any] | None = None  # the app banner's text and the condition it holds while
         self.setWindowTitle("rigctl - tactile texture rig")
 
         # --- messages first: everything below may report into them ---
@@ -201,6 +218,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.control.refused.connect(lambda text: self.notify(text, level=logging.WARNING, source="rig control"))
         self.control.acted.connect(lambda text: self.notify(text, source="rig control"))
         self.control.question.connect(self._ask)
+        self.control.acknowledge_wanted.connect(self.open_fault_dialog)
         self._live: LiveView | None = None  # built on first use (:attr:`live`)
         live_page = QtWidgets.QWidget()  # its place until then
         self.protocol = ProtocolTab(self)
@@ -313,7 +331,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.handle is not None and not self.handle.control.has_drum:
             text, colour = "Drum: none (handheld rig)", "#555"
         else:
-            text, colour = drum_summary(self.poller)
+            latch = self.handle.control.latch if self.handle is not None else None
+            text, colour = drum_summary(self.poller, latch.label if latch is not None else None)
         colour = on_window(colour, self)  # the state's colour, readable on this window's palette
         pal = self.drum_state.palette()
         if pal.color(QtGui.QPalette.ColorRole.WindowText).name() != colour or self.drum_state.text() != text:
@@ -431,8 +450,7 @@ class MainWindow(QtWidgets.QMainWindow):
         act(m, "Stop &drum", lambda: self.control.command("stop_drum"), "Ctrl+.", b["stop_drum"])
         act(m, "&Tare", lambda: self.control.command("tare"), None, b["tare"])
         act(m, "&Home", lambda: self.control.command("home"), None, b["home"])
-        act(m, "Clear &fault", lambda: self.control.command("clear_fault"), None, b["clear_fault"])
-        act(m, "Ac&knowledge fault...", self.open_fault_dialog,
+        act(m, "Clear &fault / acknowledge...", self.open_fault_dialog,
             tip="name the latched fault and acknowledge it with a reason (written into the session's event log)")
         act(m, "&Mount plate", self.control.mount_plate, "Ctrl+M", self.control.mount_btn)
         m.addSeparator()
@@ -557,7 +575,29 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_problem(self, level: int, source: str, text: str) -> None:
         """Errors (the library's included) go to the error banner, seen from every tab."""
         if level >= logging.ERROR and source not in self.OWN_BANNER and not text.startswith("unexpected error"):
-            self.banner.show_message(f"{source}: {text}" if source not in ("app",) else text, error=True)
+            shown = f"{source}: {text}" if source not in ("app",) else text
+            self.banner.show_message(shown, error=True)
+            if source == "protocol" and "waits on a latched fault" in text:  # until acknowledged, or the run ends
+                self._banner_while(shown, lambda: self.protocol.running and self.protocol.latched is not None)
+
+    def _banner_while(self, text: str, holds: Any) -> None:
+        """The app banner now shows ``text``, true while ``holds()`` is: it goes by itself once its condition has
+        (checked every slow tick: :meth:`_clear_stale_banner`), unless another message replaced it."""
+        self._banner_holds = (text, holds)
+
+    def _clear_stale_banner(self) -> None:
+        """Hide the app banner whose condition is over ("STOPPED by the library" once the rig moves again, "waits
+        on a latched fault" once acknowledged or the run ended)."""
+        held = self._banner_holds
+        if held is None:
+            return
+        text, holds = held
+        if not self.banner.isVisible() or self.banner.text != text:  # closed, or another message took its place
+            self._banner_holds = None
+            return
+        if not holds():
+            self.banner.hide()
+            self._banner_holds = None
 
     def _on_health(self, board: str, event) -> None:
         """A board's link health changed: the event log says so (the banner and the status bar show it), the
@@ -709,8 +749,10 @@ class MainWindow(QtWidgets.QMainWindow):
     def emergency_stop(self) -> None:
         """STOP: the library's STOP (:meth:`rigctl.operations.RigControl.stop`: a protocol run hears it first and
         stops, resumable; then drum to rest, actuator backed off, three tries) at once on a fresh thread (never
-        queued behind other commands). It never aborts a run (Abort asks). Its outcome is shown in the window: a STOP
-        that cannot reach the controller raises the error banner."""
+        queued behind other commands), and the attached server's ``POST /stop`` on another. It never aborts a run
+        (Abort asks). Its outcome is shown per rig, named ("this PC's rig", "the server's rig"): stopped, no answer
+        yet (a slow reply is not a failure: STOP is sent again until it is answered), or failed (the error banner:
+        stop the rig by hand)."""
         reason = "the operator pressed STOP"
         self.protocol.request_stop(reason)
         if self._doctor is not None and self._doctor.running:
@@ -718,7 +760,7 @@ class MainWindow(QtWidgets.QMainWindow):
         server = self._server_dialog.client if self._server_dialog is not None else None
         if server is not None:  # attached to a rigctl serve: it owns its rig, STOP goes there too, at once
             threading.Thread(target=lambda: self._server_stop(server), name="server-stop", daemon=True).start()
-            self.notify(f"STOP sent to the server {server.url}", level=logging.WARNING, source="STOP")
+            self.notify(f"STOP sent to {SERVER_RIG} ({server.url})", level=logging.WARNING, source="STOP")
         h = self.handle
         if h is None and server is not None:
             return
@@ -728,7 +770,13 @@ class MainWindow(QtWidgets.QMainWindow):
         results = self._stop_results
 
         def work():
-            results.append(h.control.stop(reason))
+            try:
+                ok = bool(h.control.stop(reason))
+            except Exception as exc:  # noqa: BLE001 - said in the window
+                results.append(StopOutcome(LOCAL_RIG, "failed", str(exc)))
+            else:
+                results.append(StopOutcome(LOCAL_RIG, "stopped" if ok else "failed",
+                                           "" if ok else "could not send STOP to its drum controller"))
 
         threading.Thread(target=work, name="drum-stop", daemon=True).start()
         if not h.control.has_drum:  # the handheld rig: nothing moves by itself, the operator lifts the finger
@@ -736,16 +784,42 @@ class MainWindow(QtWidgets.QMainWindow):
                         if self.handheld.block_running else "nothing was running (the handheld rig has no drum)",
                         level=logging.WARNING, source="STOP")
             return
-        self.notify("STOP sent: drum to rest, actuator backing off" + (", the run stopped (Resume continues it)"
-                    if self.protocol.running else ""), level=logging.WARNING, source="STOP")
+        self.notify(f"STOP sent to {LOCAL_RIG}: drum to rest, actuator backing off" + (
+            ", the run stopped (Resume continues it)" if self.protocol.running else ""),
+            level=logging.WARNING, source="STOP")
 
     def _server_stop(self, server) -> None:
+        """``POST /stop`` to the attached server until it answers (worker thread): a reply slower than the
+        client's timeout is "no answer yet" and STOP is sent again (it is idempotent) for up to
+        :data:`SERVER_STOP_WAIT_S`; a refusal or an unreachable server is a failure."""
+        import httpx
+
         from rigctl.server.client import ServerError
 
-        try:
-            self._stop_results.append(bool(server.stop().get("acknowledged")))
-        except ServerError:
-            self._stop_results.append(False)
+        t0 = time.monotonic()
+        told = False
+        while True:
+            try:
+                reply = server.stop()
+            except ServerError as exc:
+                waited = time.monotonic() - t0
+                timed_out = exc.status == 0 and isinstance(exc.__context__, httpx.TimeoutException)
+                if not timed_out:
+                    self._stop_results.append(StopOutcome(SERVER_RIG, "failed", str(exc)))
+                    return
+                if waited >= SERVER_STOP_WAIT_S:
+                    self._stop_results.append(StopOutcome(SERVER_RIG, "no answer", f"after {waited:.0f} s"))
+                    return
+                if not told:
+                    told = True
+                    self._stop_results.append(StopOutcome(SERVER_RIG, "waiting", f"after {waited:.1f} s"))
+                continue
+            ok = bool(reply.get("acknowledged"))
+            self._stop_results.append(StopOutcome(
+                SERVER_RIG, "stopped" if ok else "failed",
+                f"after {time.monotonic() - t0:.1f} s" if ok else "the server could not send STOP to its drum "
+                "controller"))
+            return
 
     def open_server(self) -> None:
         """The window attaching to a running ``rigctl serve`` (:class:`rigctl_gui.server_dialog.ServerDialog`)."""
@@ -761,13 +835,28 @@ class MainWindow(QtWidgets.QMainWindow):
         self._server_dialog.raise_()
 
     def _drain_stop_results(self) -> None:
+        """Each STOP outcome into the window, per rig: stopped (status bar, event log), no answer yet (a warning:
+        not a failure), no answer at all or failed (the error banner: stop the rig by hand)."""
         while self._stop_results:
-            if self._stop_results.pop(0):
-                self.statusBar().showMessage("STOP acknowledged by the drum controller", 5000)
-            else:
-                text = "could not send STOP to the drum controller: stop the rig by hand"
+            r = self._stop_results.pop(0)
+            if r.outcome == "stopped":
+                text = f"STOP: {r.rig} stopped (its drum controller acknowledged STOP{', ' + r.detail if r.detail else ''})"
+                self.events.add(logging.INFO, "STOP", text)
+                self.statusBar().showMessage(text, 5000)
+            elif r.outcome == "waiting":
+                text = (f"STOP: {r.rig}: no answer yet ({r.detail}; STOP sent again until it answers, for up to "
+                        f"{SERVER_STOP_WAIT_S:.0f} s)")
+                self.events.add(logging.WARNING, "STOP", text)
+                self.statusBar().showMessage(text, 8000)
+            elif r.outcome == "no answer":
+                text = (f"STOP: {r.rig} has not answered ({r.detail}): it may still move. Look at it and stop it by "
+                        "hand if it does")
                 self.events.add(logging.CRITICAL, "STOP", text)
-                self.banner.show_message(f"STOP FAILED: {text}.", error=True)
+                self.banner.show_message(text + ".", error=True)
+            else:
+                text = f"STOP FAILED on {r.rig}: {r.detail}: stop the rig by hand"
+                self.events.add(logging.CRITICAL, "STOP", text)
+                self.banner.show_message(text + ".", error=True)
 
     def refresh(self) -> None:
         """One tick of the GUI's own clock: pull from the workers, redraw what is visible."""
@@ -797,6 +886,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._sync_actions()
             self._check_latch()
             self._show_drum_state()
+            self._clear_stale_banner()
         if self._tick % self._health_every == 0:  # link health every 0.3 s: a stalled board is shown within ~1.3 s
             self._judge_dropped_frames()
             self.links.update_from(*self._links())
@@ -823,6 +913,15 @@ class MainWindow(QtWidgets.QMainWindow):
             return None, None
         return (self.poller if h.control.has_drum else None,
                 h.taxels if getattr(h.taxels, "stats", None) is not None else None)
+
+    def _rig_moving(self) -> bool:
+        """True when the drum controller last reported the force loop engaged or the drum turning (the rig was
+        started again)."""
+        from rigctl.core.drum import DrumState
+
+        st = self.poller.latest if self.poller is not None and self.poller.ok else None
+        return st is not None and (int(st.state) in (DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED,
+                                                     DrumState.RUNNING) or abs(st.speed_mm_s) > 0.5)
 
     def drum_turning(self) -> bool:
         """True when the drum controller last reported the drum running or moving (> 0.5 mm/s)."""
@@ -864,6 +963,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 return
             text = f"STOPPED by the library: {ev.message}. Resume the run (or command the rig) when ready."
             self.banner.show_message(text, error=True)
+            self._banner_while(text, lambda: not self._rig_moving())  # until the rig presses or turns again
             self.events.add(logging.ERROR, "dead man's switch", ev.message)
             self.statusBar().showMessage(text, 15000)
 
@@ -918,7 +1018,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._faults = faults
         if faults:
             text = (f"Drum controller FAULT (latched). {fault_meaning(faults)} The drum is stopped. Fix the cause, "
-                    "then press Clear fault on the Rig control tab.")
+                    "then press Clear fault on the Rig control tab (the fault dialog: give a reason).")
             self.banners["fault"].show_message(text, error=True)
             self.events.add(logging.ERROR, "drum controller", text)
         else:

@@ -19,6 +19,7 @@ from rigctl.core.drum import (
     DrumLimits,
     DrumState,
     fault_advice as fault_meaning,
+    status_line,
 )
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet, TextureSetError
 from rigctl.operations import RigControl, setpoint_refusals
@@ -46,10 +47,11 @@ STATE_COLOURS = {
 }
 
 
-def drum_summary(poller) -> tuple[str, str]:
+def drum_summary(poller, latch: str | None = None) -> tuple[str, str]:
     """The drum in one short line and its colour, for the top strip seen from every tab: ``("Drum: Running 80 mm/s,
-    498 g", "#080")``, ``("Drum: FAULT", "#c00")``, not responding or not connected. ``poller``: the rig's monitor
-    (its latest status and link) or None."""
+    498 g", "#080")``, ``("Drum: FAULT, drivers off, pressing 508 g", "#c00")``, not responding or not connected
+    (the library's words: :func:`rigctl.core.drum.status_line`, short). ``poller``: the rig's monitor (its latest
+    status and link) or None; ``latch``: the library's latch label, if one is held."""
     if poller is None:
         return "Drum: not connected", "#555"
     if not poller.ok:
@@ -58,9 +60,7 @@ def drum_summary(poller) -> tuple[str, str]:
     if st is None:
         return "Drum: -", "#555"
     state = DrumState(int(st.state))
-    word = STATE_WORDS.get(state, state.name).split(" - ")[0]
-    if state in (DrumState.RUNNING, DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED):
-        word += f" {st.speed_mm_s:.0f} mm/s, {st.force_g:.0f} g"
+    word = status_line(st, latch, short=True)
     if int(st.faults) and state != DrumState.FAULT:
         word += " (fault latched)"
     return f"Drum: {word}", STATE_COLOURS.get(state, "#c00" if int(st.faults) else "#555")
@@ -75,6 +75,9 @@ class ControlPanel(QtWidgets.QWidget):
     acted = QtCore.Signal(str)
     #: a question for the operator: (title, text, yes, no, on_yes); the main window shows it non-modal
     question = QtCore.Signal(str, str, str, str, object)
+    #: Clear fault was pressed: the main window opens the fault dialog (the one acknowledgement path: the fault
+    #: named, a reason required, logged with the login name); nothing is cleared by the click itself
+    acknowledge_wanted = QtCore.Signal()
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -154,7 +157,8 @@ class ControlPanel(QtWidgets.QWidget):
                 ("stop_drum", "Stop drum", "Decelerate the drum, keep holding the force"),
                 ("tare", "Tare", "Zero the load cell (actuator released)"),
                 ("home", "Home", "Drive the actuator to its home switch"),
-                ("clear_fault", "Clear fault", "Clear latched faults and return to Idle"),
+                ("clear_fault", "Clear fault...", "Name the latched fault and acknowledge it with a reason (the fault "
+                 "dialog); nothing moves until a separate start"),
             ]
         ):
             b = QtWidgets.QPushButton(label)
@@ -372,9 +376,8 @@ class ControlPanel(QtWidgets.QWidget):
             else:
                 self.commands.submit(f"run at {speed:g} mm/s, {force:g} g", self.ops.run_at, speed, force)
             return
-        if name == "clear_fault" and self.ops is not None:  # the library's: an acknowledgement when it holds a latch
-            self.commands.submit("clear fault", self.ops.clear_fault)
-            self.acted.emit("clear fault sent")
+        if name == "clear_fault":  # one acknowledgement path: the fault dialog (fault named, a reason required)
+            self.acknowledge_wanted.emit()
             return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
         self.acted.emit(f"{name.replace('_', ' ')} sent")
@@ -477,7 +480,8 @@ class ControlPanel(QtWidgets.QWidget):
         if st is None:
             return
         state = DrumState(int(st.state))
-        self.state_label.setText(STATE_WORDS.get(state, state.name))
+        latch = self.ops.latch if self.ops is not None else None
+        self.state_label.setText(status_line(st, latch.label if latch is not None else None))
         restyle(self.state_label,
                 f"font-size: 15px; font-weight: bold; color: {on_window(STATE_COLOURS.get(state, '#000'), self)};")
         faults = int(st.faults)

@@ -9,6 +9,12 @@ reason, and OK calls :meth:`rigctl.operations.RigControl.acknowledge` (``reason`
 thread; the library writes the acknowledgement into the session's event log. A refusal (the condition persists) is
 shown in the dialog, which stays open. A controller fault the library holds no latch for is cleared with the
 controller's Clear fault (the window's event log keeps the reason). Non-modal: STOP stays one click away.
+
+It is the GUI's one acknowledgement path: a new latch opens it, and so do the Rig control tab's Clear fault button
+and Rig > Clear fault / acknowledge (no click clears anything by itself). Every fault latched at once is named (the
+library's latch and any other controller fault bit), the rig's state beside it in the library's words
+(:func:`rigctl.core.drum.status_line`: after an e-stop "drivers off, actuator where it stopped, pressing 508 g"); a
+dialog whose latch is gone says so and offers nothing to acknowledge.
 """
 
 from __future__ import annotations
@@ -23,26 +29,44 @@ from PySide6 import QtCore, QtWidgets
 
 from rigctl_gui.colours import on_window
 
-__all__ = ["FaultDialog", "latch_of"]
+__all__ = ["FaultDialog", "latch_of", "latches_of"]
 
 
-def latch_of(control: Any, faults: int) -> tuple[str, str, str]:
-    """What is latched on ``control`` (a :class:`rigctl.operations.RigControl`), as ``(title, detail, what to do)``:
-    the library's latch (:attr:`rigctl.operations.RigControl.latch`) when it holds one, else the controller's fault
-    bits ``faults``."""
+def latches_of(control: Any, faults: int) -> list[tuple[str, str, str]]:
+    """Everything latched on ``control`` (a :class:`rigctl.operations.RigControl`), each as ``(label, detail, what to
+    do)``: the library's latch (:attr:`rigctl.operations.RigControl.latch`) when it holds one, then every controller
+    fault bit of ``faults`` it does not already name (two faults at once are both shown); ``[]`` when nothing is
+    latched."""
     from rigctl.core.drum import FAULT_WORDS, Fault
 
+    out: list[tuple[str, str, str]] = []
+    named = 0
     latch = getattr(control, "latch", None)
     if latch is not None:
         from rigctl.acquisition.safety import CAUSES
 
         label, todo = CAUSES.get(latch.cause, (latch.cause, ""))
-        return str(label), str(latch.detail), str(todo)
-    words = [FAULT_WORDS[b] for b in Fault if int(faults) & int(b) and b in FAULT_WORDS]
-    if not words:
+        out.append((str(label), str(latch.detail), str(todo)))
+        named = int(getattr(latch, "faults", 0) or 0)
+    for bit in Fault:
+        if int(faults) & int(bit) and not named & int(bit) and bit in FAULT_WORDS:
+            w = FAULT_WORDS[bit]
+            if latch is not None and w.label == out[0][0]:
+                continue
+            out.append((w.label, w.meaning[:1].upper() + w.meaning[1:] + ".", w.advice))
+    return out
+
+
+def latch_of(control: Any, faults: int) -> tuple[str, str, str]:
+    """What is latched on ``control``, as one ``(title, detail, what to do)``: every latch of :func:`latches_of`
+    joined (``"e-stop + force limit exceeded"``); ``("no fault", "", "")`` when nothing is."""
+    items = latches_of(control, faults)
+    if not items:
         return "no fault", "", ""
-    return (", ".join(w.label for w in words), " ".join(w.meaning[:1].upper() + w.meaning[1:] + "." for w in words),
-            " ".join(w.advice for w in words))
+    if len(items) == 1:
+        return items[0]
+    return (" + ".join(i[0] for i in items), " ".join(f"{i[0]}: {i[1]}" for i in items),
+            " ".join(f"{i[0]}: {i[2]}" for i in items if i[2]))
 
 
 def _operator() -> str:
@@ -69,6 +93,7 @@ class FaultDialog(QtWidgets.QDialog):
         self.control, self.faults = control, int(faults)
         self._log_ref = weakref.WeakMethod(log) if log is not None else None
         self.busy = False
+        self.cleared = False  # the latch is gone: nothing to acknowledge (said in the dialog)
         self.title = QtWidgets.QLabel()
         self.title.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.title.setStyleSheet(f"font-size: 16px; font-weight: bold; color: {on_window('#c00', self)};")
@@ -78,6 +103,10 @@ class FaultDialog(QtWidgets.QDialog):
         self.todo = QtWidgets.QLabel()
         self.todo.setTextFormat(QtCore.Qt.TextFormat.PlainText)
         self.todo.setWordWrap(True)
+        self.rig_now = QtWidgets.QLabel()
+        self.rig_now.setObjectName("rig_now")
+        self.rig_now.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+        self.rig_now.setWordWrap(True)
         self.estop = QtWidgets.QLabel()
         self.estop.setObjectName("estop_state")
         self.estop.setTextFormat(QtCore.Qt.TextFormat.PlainText)
@@ -93,6 +122,7 @@ class FaultDialog(QtWidgets.QDialog):
         self.ok_btn.clicked.connect(self.acknowledge)
         self.later_btn.clicked.connect(self.reject)
         form = QtWidgets.QFormLayout()
+        form.addRow("Rig now:", self.rig_now)
         form.addRow("E-stop:", self.estop)
         form.addRow("Reason:", self.reason)
         buttons = QtWidgets.QHBoxLayout()
@@ -113,22 +143,41 @@ class FaultDialog(QtWidgets.QDialog):
         self.update_from(None)
 
     def update_from(self, status: Any) -> None:
-        """Refresh from the newest controller status (None: keep the last): the fault's words and the e-stop."""
+        """Refresh from the newest controller status (None: keep the last): every latched fault's words, the rig's
+        state in the library's words (:func:`rigctl.core.drum.status_line`: drivers off, pressing N g...) and the
+        e-stop. A latch that is gone (acknowledged elsewhere, or the rig closed) is said so: nothing to acknowledge."""
+        from rigctl.core.drum import status_line
+
         if status is not None:
             self.faults = int(status.faults)
             self._estop_open = bool(getattr(status, "estop_open", False))
-        title, detail, todo = latch_of(self.control, self.faults)
-        self.title.setText(f"Latched: {title}")
-        self.detail.setText(detail)
-        self.todo.setText(f"What to do: {todo}" if todo else "")
+            latch = getattr(self.control, "latch", None)
+            try:
+                self.rig_now.setText(status_line(status, latch.label if latch is not None else None))
+            except (AttributeError, TypeError, ValueError):  # a status without the fields (a stand-in)
+                self.rig_now.setText("")
+        items = latches_of(self.control, self.faults)
+        self.cleared = not items and not self.busy
+        if self.cleared:
+            self.title.setText("Cleared: nothing is latched now")
+            self.detail.setText("The latch this dialog was opened for is gone (acknowledged, or the controller "
+                                "cleared it): there is nothing to acknowledge. Motion still needs a separate start.")
+            self.todo.setText("")
+            self.later_btn.setText("Close")
+        else:
+            title, detail, todo = latch_of(self.control, self.faults)
+            self.title.setText(f"Latched: {title}" if len(items) == 1 else f"Latched ({len(items)} at once): {title}")
+            self.detail.setText(detail)
+            self.todo.setText(f"What to do: {todo}" if todo else "")
+            self.later_btn.setText("Later")
         pressed = getattr(self, "_estop_open", False)
         self.estop.setText("PRESSED (contact open): release it before acknowledging" if pressed else "released")
         self.estop.setStyleSheet(f"color: {on_window('#c00', self)}; font-weight: bold;" if pressed
                                  else f"color: {on_window('#070', self)};")
-        ready = not pressed and bool(self.reason.text().strip()) and not self.busy
+        ready = not pressed and bool(self.reason.text().strip()) and not self.busy and not self.cleared
         self.ok_btn.setEnabled(ready)
-        self.ok_btn.setToolTip("" if ready else "release the e-stop and give a reason first" if pressed
-                               else "give a reason first")
+        self.ok_btn.setToolTip("" if ready else "nothing is latched" if self.cleared else
+                               "release the e-stop and give a reason first" if pressed else "give a reason first")
 
     def acknowledge(self) -> None:
         """OK: the library's acknowledgement with the reason, in a worker thread (it homes the actuator)."""
@@ -138,7 +187,7 @@ class FaultDialog(QtWidgets.QDialog):
         self.busy = True
         self.update_from(None)
         self.message.setStyleSheet("")  # the palette's text colour
-        self.message.setText("acknowledging: the rig is made ready (STOP, CLEAR_FAULT, HOME)...")
+        self.message.setText("acknowledging: the library clears the latch and the controller's fault...")
         threading.Thread(target=self._work, args=(reason,), name="acknowledge", daemon=True).start()
 
     def _work(self, reason: str) -> None:
@@ -159,7 +208,7 @@ class FaultDialog(QtWidgets.QDialog):
 
     def _done(self, reason: str) -> None:
         self.busy = False
-        self._log(logging.WARNING, f"fault acknowledged by the operator: {reason}")
+        self._log(logging.WARNING, f"fault acknowledged by {_operator()}: {reason}")
         self.accept()
 
     def _refused(self, why: str) -> None:

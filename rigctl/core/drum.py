@@ -37,6 +37,7 @@ __all__ = [
     "DRUM_MARKS_PER_REV", "DRUM_SLIP_TOLERANCE",
     "STATE_TEXT", "FAULT_WORDS", "ACTUATOR_DIRECTION_CAUSES", "CRUSH_FAULTS", "CRUSH_NOTE",
     "FaultWords", "describe_state", "describe_faults", "fault_advice",
+    "PRESSING_G", "HOME_TOLERANCE_MM", "actuator_words", "status_line",
     "DrumError", "DrumTimeout", "DrumFault", "DrumReset", "SetpointRangeError", "Clock",
 ]
 
@@ -106,7 +107,7 @@ STATE_TEXT: dict[DrumState, str] = {
     DrumState.SEEKING_FORCE: "Seeking force - pressing towards the setpoint",
     DrumState.FORCE_SETTLED: "Force settled - on target, drum at rest",
     DrumState.RUNNING: "Running - drum turning, force loop holding",
-    DrumState.FAULT: "FAULT - drum stopped, actuator backed off",
+    DrumState.FAULT: "FAULT - drum stopped, motion refused until CLEAR_FAULT",
     DrumState.NOT_HOMED: "Not homed - reset, e-stopped or homing failed: HOME before pressing",
 }
 class FaultWords(NamedTuple):
@@ -235,6 +236,78 @@ def fault_advice(faults: int) -> str:
                     if bit in FAULT_WORDS)
 
 
+#: a tared load-cell reading at or above this is force on the sensor (the actuator presses it), g: above the HX711's
+#: noise and a plate's drag at rest (FORCE_TOLERANCE_G's default is 15 g)
+PRESSING_G = 20.0
+#: the actuator is back at home (the sensor released) within this much of it, mm (as ``wait_released``'s default)
+HOME_TOLERANCE_MM = 0.05
+
+#: the states in which the controller itself holds force on the sensor (the force loop runs)
+_ENGAGED_STATES = frozenset({DrumState.SEEKING_FORCE, DrumState.FORCE_SETTLED, DrumState.RUNNING})
+
+
+def actuator_words(st: "DrumStatus") -> str:
+    """Where the actuator is and what it does, in words, from one status (not its state's name): the truth after a
+    stop, whatever the state says.
+
+    - drivers off (an e-stop, a stop category 0: they stop where they stand) away from home or under load:
+      ``"drivers off, actuator where it stopped, pressing 508 g"`` (or ``"..., 2.4 mm out, sensor free"``);
+    - drivers on, on the way home: ``"actuator backing off, pressing 120 g"`` (or ``"actuator backing off"``);
+    - home and no force: ``"actuator released"``.
+
+    Force ``st.force_g`` counts as pressing from :data:`PRESSING_G`; home is within :data:`HOME_TOLERANCE_MM`."""
+    pressing = float(st.force_g) >= PRESSING_G
+    away = float(st.actuator_mm) > HOME_TOLERANCE_MM and not st.home_switch
+    if not (pressing or away):
+        return "actuator released"
+    load = f"pressing {float(st.force_g):.0f} g" if pressing else "sensor free"
+    if not st.drivers_enabled:
+        where = "actuator where it stopped" + ("" if pressing else f", {float(st.actuator_mm):.1f} mm out")
+        return f"drivers off, {where}, {load}"
+    return "actuator backing off" + (f", {load}" if pressing else "")
+
+
+def status_line(st: "DrumStatus", latch: str | None = None, *, short: bool = False) -> str:
+    """The controller's status in one line for the operator, every face's words (the GUI's state line and top strip,
+    ``rigctl serve``'s ``/status``): its state, the drum, the actuator's truth (:func:`actuator_words`) and, with
+    ``latch`` (the host's latch label, e.g. ``"e-stop"``), what holds the rig.
+
+    E.g. ``"FAULT (e-stop) - drum stopped, drivers off, actuator where it stopped, pressing 508 g"``, ``"Running -
+    drum 80 mm/s, force loop holding 498 g"``, ``"Idle - drum at rest, actuator released"``. ``short``: the state and
+    the numbers only, for a narrow strip (``"FAULT, pressing 508 g"``, ``"Running 80 mm/s, 498 g"``)."""
+    try:
+        state: DrumState | None = DrumState(int(st.state))
+    except ValueError:
+        state = None
+    name = describe_state(int(st.state)).split(" - ")[0]
+    if latch and state == DrumState.FAULT:
+        name = f"{name} ({latch})"
+    engaged = int(st.state) in _ENGAGED_STATES
+    if short:
+        if engaged:
+            return f"{name} {float(st.speed_mm_s):.0f} mm/s, {float(st.force_g):.0f} g"
+        if float(st.force_g) >= PRESSING_G:
+            return f"{name}, {'drivers off, ' if not st.drivers_enabled else ''}pressing {float(st.force_g):.0f} g"
+        return name
+    if engaged:
+        if state == DrumState.RUNNING:
+            drum = f"drum {float(st.speed_mm_s):.0f} mm/s"
+        else:
+            drum = "drum at rest" if abs(float(st.speed_mm_s)) < 0.5 else f"drum {float(st.speed_mm_s):.0f} mm/s"
+        verb = "holding" if state != DrumState.SEEKING_FORCE else "pressing towards the setpoint at"
+        return f"{name} - {drum}, force loop {verb} {float(st.force_g):.0f} g"
+    if state == DrumState.HOMING:
+        return f"{name} - actuator moving to its home switch" + (
+            f", pressing {float(st.force_g):.0f} g" if float(st.force_g) >= PRESSING_G else "")
+    moving = abs(float(st.speed_mm_s)) >= 0.5
+    drum = f"drum slowing ({float(st.speed_mm_s):.0f} mm/s)" if moving else (
+        "drum stopped" if state in (DrumState.FAULT, DrumState.NOT_HOMED) else "drum at rest")
+    text = f"{name} - {drum}, {actuator_words(st)}"
+    if state == DrumState.NOT_HOMED:
+        text += "; HOME before pressing"
+    return text
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # status
 # ----------------------------------------------------------------------------------------------------------------
@@ -313,12 +386,14 @@ class DrumStatus:
 
     @property
     def faulted(self) -> bool:
-        """The controller is in FAULT (a fault latched; drum stopped, actuator backed off)."""
+        """The controller is in FAULT (a fault latched; drum stopped; the actuator backs off, or stays where it stopped
+        when the drivers are off: :func:`status_line`)."""
         return self.state == DrumState.FAULT
 
     def describe(self) -> str:
-        """The state in words, and the latched faults if any (one line)."""
-        text = describe_state(self.state)
+        """The state in words with the actuator's truth (:func:`status_line`), and the latched faults if any (one
+        line)."""
+        text = status_line(self)
         return f"{text}; faults: {describe_faults(self.faults)}" if int(self.faults) else text
 
 

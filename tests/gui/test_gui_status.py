@@ -169,16 +169,21 @@ def test_banners_wrap_the_whole_text_and_keep_the_strips_height(qapp):
 
 def test_the_drums_state_in_one_line_for_every_tab():
     """Issue 38 part 8: the top strip (on every tab) says whether the drum turns, presses or is in fault."""
-    from rigctl.core.drum import DrumState
+    from rigctl.core.drum import DrumState, DrumStatus, Fault, StatusFlag
     from rigctl_gui.control_panel import drum_summary
 
-    def status(state, faults=0):
-        return SimpleNamespace(ok=True, latest=SimpleNamespace(state=int(state), faults=faults, speed_mm_s=80.2,
-                                                               force_g=498.4))
+    def status(state, faults=0, force_g=498.4, flags=StatusFlag.DRIVERS_ENABLED):
+        return SimpleNamespace(ok=True, latest=DrumStatus(
+            force_g=force_g, speed_mm_s=80.2, speed_target_mm_s=80.0, angle_deg=0.0, revolutions=0, actuator_mm=2.0,
+            state=DrumState(int(state)), faults=Fault(faults), firmware=(1, 0), heartbeat=0, loadcell_raw=0,
+            force_setpoint_active_g=0.0, flags=flags))
 
     assert drum_summary(None) == ("Drum: not connected", "#555")
     assert drum_summary(SimpleNamespace(ok=False, latest=None))[0] == "Drum: NOT RESPONDING"
     assert drum_summary(status(DrumState.RUNNING)) == ("Drum: Running 80 mm/s, 498 g", "#080")
     assert drum_summary(status(DrumState.SEEKING_FORCE))[0] == "Drum: Seeking force 80 mm/s, 498 g"
-    assert drum_summary(status(DrumState.FAULT, 4)) == ("Drum: FAULT", "#c00")
-    assert drum_summary(status(DrumState.IDLE, 4))[0] == "Drum: Idle (fault latched)"
+    assert drum_summary(status(DrumState.FAULT, 4, force_g=1.0)) == ("Drum: FAULT", "#c00")
+    assert drum_summary(status(DrumState.IDLE, 4, force_g=1.0))[0] == "Drum: Idle (fault latched)"
+    # issue 51: after an e-stop the drivers are off where they stand and the sensor stays pressed
+    assert drum_summary(status(DrumState.FAULT, 16, flags=StatusFlag.ESTOP_OPEN), "e-stop") == (
+        "Drum: FAULT (e-stop), drivers off, pressing 498 g", "#c00")
