@@ -91,9 +91,16 @@ def test_after_an_e_stop_the_screen_says_the_sensor_is_pressed(inprocess_window,
     dlg = window.fault_dialog  # the dialog the latch opened says the same
     assert dlg is not None and "pressing" in dlg.rig_now.text() and "drivers off" in dlg.rig_now.text()
     _acknowledge(window, qapp, qtbot, "a test pressed the e-stop")
-    # acknowledged: the actuator backs off (the library's acknowledgement) and the words follow the truth
-    assert wait_for(qapp, lambda: window.poller.latest.force_g < 20, 30), window.poller.latest
-    assert wait_for(qapp, lambda: "pressing" not in window.control.state_label.text(), 5)
+    # acknowledged: nothing moved (acknowledging is not starting), and the words still say so
+    wait_for(qapp, lambda: False, 0.5)
+    assert window.poller.latest.force_g > 400, window.poller.latest
+    assert wait_for(qapp, lambda: "pressing" in window.control.state_label.text(), 5)
+    assert "backed off" not in window.control.state_label.text() and "released" not in window.control.state_label.text()
+    window.control.command("home")  # a start: the actuator goes home, and the words follow the truth
+    assert wait_for(qapp, lambda: window.poller.latest.force_g < 20 and _state(window) == DrumState.IDLE, 120), \
+        window.poller.latest
+    assert wait_for(qapp, lambda: "actuator released" in window.control.state_label.text(), 10), \
+        window.control.state_label.text()
 
 
 def test_clear_fault_opens_the_dialog_and_one_click_clears_nothing(inprocess_window, qapp, qtbot):
@@ -119,8 +126,11 @@ def test_clear_fault_opens_the_dialog_and_one_click_clears_nothing(inprocess_win
     log = window.events.text()
     assert f"fault acknowledged by {operator_name()}: checked the plate" in log
     # with nothing latched, Clear fault says so and opens nothing
+    assert wait_for(qapp, lambda: window.fault_dialog is None or not window.fault_dialog.isVisible(), 5), (
+        window.fault_dialog.title.text(), window.handle.control.latch, window.poller.latest)
     qtbot.mouseClick(window.control.buttons["clear_fault"], QtCore.Qt.LeftButton)
-    assert window.fault_dialog is None or not window.fault_dialog.isVisible()
+    assert window.fault_dialog is None or not window.fault_dialog.isVisible(), (
+        window.fault_dialog.title.text(), window.poller.latest)
     assert "no latched fault to acknowledge" in window.events.text()
 
 
