@@ -20,6 +20,7 @@ SLICE_SEED = 5500
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_fault_campaign.py"
 
 
+@pytest.mark.timeout(1200)  # ~40 CPU-s; 2 min of wall time at load 20
 def test_a_fixed_seed_slice_of_the_campaign_under_simavr(fw_build):
     """HIL_SLICE cases on the real firmware under simavr (both boards; the truth log the harness's): no violation."""
     proc = subprocess.run([sys.executable, str(BENCH), "--cases", str(HIL_SLICE), "--seed", str(SLICE_SEED), "--rig",

@@ -83,6 +83,7 @@ FOUND = {
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # ~45 CPU-s; a starved machine (load 20) took 5 min of wall time
 def test_a_fixed_seed_slice_of_the_campaign_on_the_model_rig():
     """MODEL_SLICE cases (seeds 5500..) on the in-process model rig, the host being rigctl's own Rig: no violation
     but those of FOUND (each its own regression test), every case ran (a 10 SPS rig acknowledged at power-up)."""
