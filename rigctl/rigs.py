@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.acquisition.rig import Rig, RigError
+from rigctl.core.errors import describe_error
 from rigctl.core.faults import FaultInjector, FaultSpec, check_faults, parse_fault
 from rigctl.core.handheld import ScanSource
 from rigctl.core.interfaces import RIG_KINDS, RigBackend
@@ -409,7 +410,7 @@ def plugin_identity(kind: str, made: object) -> dict[str, Any] | None:
         try:
             described = describe()
         except Exception as exc:  # noqa: BLE001 - a plugin's describe() failing is recorded, never fatal
-            described = {"error": f"{type(exc).__name__}: {exc}"}
+            described = {"error": describe_error(exc)}
     return {"name": entry.name, "target": entry.target, "distribution": entry.distribution,
             "version": entry.version, "describe": described}
 

@@ -77,8 +77,9 @@ def test_import_on_a_full_disk_does_not_suggest_resume(tmp_path, monkeypatch):
                                                          duration_s=0.1)], [], layout=_layout(),
                                 textures=_textures())
     text = str(err.value)
-    assert "--resume" not in text and "run the import again with --overwrite" in text, text
-    assert text.startswith("no space left on device") and err.value.intact == [0, 1]
+    assert "--resume" not in text and "partial output was removed" in text and "run the import again" in text, text
+    assert text.startswith("no space left on device") and err.value.intact == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no empty import output left (issue 52)
 
 
 def _layout():

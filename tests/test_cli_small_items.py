@@ -58,5 +58,44 @@ def test_a_virtual_mega_fault_is_named(caplog):
     with caplog.at_level(logging.WARNING, logger="rigctl.simulation.controller"):
         ctl._fault(Fault.WATCHDOG)
     text = " ".join(r.getMessage() for r in caplog.records)
-    assert "virtual Mega fault: WATCHDOG (host went silent" in text and "fault: 2" not in text, text
+    assert "virtual Mega fault: WATCHDOG" in text and "fault: 2" not in text, text
     assert np.isfinite(ctl.faults)
+
+
+def test_an_import_on_a_full_disk_leaves_no_output(tmp_path):
+    """A full disk left an empty (or partial) session where the import was going: now nothing (one line)."""
+    from .storage.test_storage_faults import _fill, _tmpfs
+
+    rec = tmp_path / "rec.csv"
+    rng = np.random.default_rng(0)
+    np.savetxt(rec, rng.integers(0, 1024, (20000, 18)), fmt="%d", delimiter=",")
+    with _tmpfs(tmp_path, 1024) as d:
+        _fill(d, 200)
+        rc, out = _run("import", rec, "--rate", 1000, "--texture", "A", "--out", d / "s.h5", "--no-progress")
+        assert rc == 1 and "no space left on device" in _one_error_line(out), out
+        assert sorted(p.name for p in d.iterdir()) == ["filler"], out
+
+
+def test_library_logs_go_to_the_log_not_the_terminal_unless_verbose(tmp_path, monkeypatch, capsys):
+    """pymodbus' "No response received after 0 retries" (and its hex dumps) reached the operator's terminal through
+    Python's last-resort handler: every rigctl command now routes them to the log file, --verbose to the terminal."""
+    import logging
+
+    monkeypatch.setenv("RIGCTL_LOG", str(tmp_path / "logs" / "rigctl.log"))
+    lib = logging.getLogger("pymodbus.logging")
+    try:
+        r = CliRunner().invoke(main, ["rigs"])
+        assert r.exit_code == 0, r.output
+        capsys.readouterr()
+        lib.error("No response received after 0 retries, continue with next request")
+        assert "No response received" not in capsys.readouterr().err
+        assert "No response received after 0 retries" in (tmp_path / "logs" / "rigctl.log").read_text()
+        r = CliRunner().invoke(main, ["--verbose", "rigs"])
+        assert r.exit_code == 0, r.output
+        lib.error("No response received after 1 retries")
+        assert "No response received after 1 retries" in capsys.readouterr().err
+        assert "after 1 retries" not in (tmp_path / "logs" / "rigctl.log").read_text()
+    finally:
+        from rigctl.cli.logs import route_library_logs
+
+        route_library_logs(False)

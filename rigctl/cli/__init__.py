@@ -117,7 +117,10 @@ class LazyGroup(click.Group):
 @click.version_option(__version__, prog_name="rigctl")
 @click.option("--debug", is_flag=True, default=False, envvar="RIGCTL_DEBUG",
               help="Show the full traceback of an error (also RIGCTL_DEBUG=1).")
-def main(debug):
+@click.option("--verbose", is_flag=True, default=False, envvar="RIGCTL_VERBOSE",
+              help="Show the libraries' log records (pymodbus' retries and frames) on the terminal; without it they "
+                   "go to the log file ($XDG_STATE_HOME/rigctl/rigctl.log, or $RIGCTL_LOG).")
+def main(debug, verbose):
     """rigctl: run the tactile texture rig, record sessions, and reproduce the paper's analyses.
 
     The simulated rig is the default wherever a rig is needed (--sim). An error is reported as one line; --debug
@@ -126,3 +129,6 @@ def main(debug):
     Exit status: 0 done; 1 an error (a file, the rig, a failed check, Ctrl-C during work), nothing partial left; 2 a
     usage error (an option or argument refused before any work, named in the message).
     """
+    from rigctl.cli.logs import route_library_logs
+
+    route_library_logs(verbose)

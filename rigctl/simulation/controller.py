@@ -513,9 +513,7 @@ class MegaController:
     def _fault(self, bits: Fault) -> None:
         self.faults |= bits
         self._release(DrumState.FAULT)
-        from rigctl.core.drum import describe_faults
-
-        log.warning("virtual Mega fault: %s", describe_faults(int(bits)))  # by name and meaning, not a bare number
+        log.warning("virtual Mega fault: %s", Fault(bits).name or f"0x{int(bits):x}")  # named, not a bare number
 
     def _direction_fault(self) -> None:
         """The actuator moved the wrong way (the firmware's direction_fault): not homed, stopped where it stands."""

@@ -425,14 +425,29 @@ def write_session(out: str | os.PathLike[str], plan: Sequence[Mapping[str, Any]]
     writer = SessionWriter.create(out, plan=plan, layout=layout, textures=textures, protocol_name=protocol_name,
                                   protocol_format="none", rig_config=dict(rig_config or {}), kind=kind,
                                   overwrite=overwrite, attrs=dict(attrs or {}))
+    done = False
     try:
         writer.write_trials(items)
+        done = True
     except SessionWriteError as exc:  # the writer's hint is acquisition's (--resume), which an import has not
-        text = str(exc).rsplit("; ", 1)[0]
-        raise SessionWriteError(f"{text}; free space and run the import again with --overwrite (the file holds "
-                                "only the trials written before)", exc.errno, exc.intact) from None
+        text = str(exc).split("; ", 1)[0]
+        raise SessionWriteError(f"{text}; the partial output was removed (an import is written whole or not at "
+                                "all): free space and run the import again", exc.errno, []) from None
     finally:
         writer.close()
+        if not done:  # a full disk, Ctrl-C, a file refused mid-way: no partial or empty session left behind
+            _remove_partial(Path(out))
+
+
+def _remove_partial(path: Path) -> None:
+    """Remove an import's unfinished output and its writer's side files (the lock, a journal)."""
+    import contextlib
+
+    from rigctl.storage import journal
+
+    for p in (path, journal.journal_path(path), journal.lock_path(path)):
+        with contextlib.suppress(OSError):
+            p.unlink()
 
 
 @dataclass(frozen=True)
