@@ -8,6 +8,7 @@ import logging
 import os
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from rigctl.cli import main
@@ -99,3 +100,29 @@ def test_library_logs_go_to_the_log_not_the_terminal_unless_verbose(tmp_path, mo
         from rigctl.cli.logs import route_library_logs
 
         route_library_logs(False)
+
+
+@pytest.mark.realtime  # a Ctrl-C at wall-clock moments of a real interpreter's start
+def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
+    """`rigctl sim dataset` interrupted in its first seconds printed a traceback of the module being imported: the
+    console script's entry (rigctl_launch) now ends it in one line, and later Ctrl-Cs as before."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "PYTHONPATH": str(repo)}
+    for k, delay in enumerate((0.2, 0.6, 1.2)):
+        out = tmp_path / f"d{k}.h5"
+        p = subprocess.Popen([sys.executable, "-c", "import rigctl_launch; rigctl_launch.main()", "sim", "dataset",
+                              "quick_check", "--out", str(out), "--no-progress"], stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+        time.sleep(delay)
+        p.send_signal(signal.SIGINT)
+        text, _ = p.communicate(timeout=300)
+        assert "Traceback" not in text and "KeyboardInterrupt" not in text, (delay, text)
+        if p.returncode != 0:  # interrupted (or it had finished: the dataset is small)
+            assert p.returncode == 1 and text.strip().splitlines()[-1].startswith("Error: interrupted"), text
+            assert not out.exists()
