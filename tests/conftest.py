@@ -55,6 +55,9 @@ def pytest_configure(config):
         digest = firmware.source_digest()[:16]
         os.environ["RIGCTL_FIRMWARE_BUILD"] = str(scratch / f"firmware-{digest}")
     set_hypothesis_home_dir(os.environ.get("HYPOTHESIS_STORAGE_DIRECTORY") or scratch / "hypothesis")
+    # the rig's own safety log and the server's queue ($XDG_STATE_HOME/rigctl) never in the user's home; a test that
+    # reads them sets its own (monkeypatch.setenv), which CLI subprocesses inherit
+    os.environ["XDG_STATE_HOME"] = str(scratch / "state")
     # LSL on this machine alone (liblsl reads LSLAPICFG when it first resolves or opens a stream; CLI subprocesses
     # inherit it): discovery only to 127.0.0.1, never a multicast or broadcast address, no IPv6; never $HOME's file
     cfg_dir = Path(tempfile.mkdtemp(prefix="rigctl-lsl-"))

@@ -32,7 +32,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -48,6 +48,7 @@ from rigctl.acquisition.safety import (
     Latch,
     LatchedFault,
     SafetyLatch,
+    SafetyLog,
     latch_for,
     latch_from_faults,
 )
@@ -239,6 +240,12 @@ class Rig:
         self.clock_fit: DeviceClockFit | None = None
         #: the safety latch (rigctl.acquisition.safety): a latched fault refuses motion until acknowledged
         self.safety = SafetyLatch()
+        #: every latch and acknowledgement also goes into the rig's own log at once ($XDG_STATE_HOME/rigctl)
+        self.safety.listeners.append(SafetyLog({"mode": self.mode, **_ports(backend)}))
+        #: the last acknowledgement no run's session has logged yet (a run that resumes the session it concerns logs
+        #: it: a served run acknowledged while no run was going, e.g. after a restart)
+        self.unlogged_acknowledgement: Acknowledgement | None = None
+        self.safety.listeners.append(self._remember_acknowledgement)  # before any run's listener
         #: this rig has homed the controller (a NOT_HOMED controller since then was reset: latched)
         self.homed_once = False
         #: the operator's acknowledgement of a fault the controller held when this rig opened (given at open:
@@ -503,10 +510,14 @@ class Rig:
     def release(self, timeout_s: float = 20.0) -> None:
         """STOP and wait until IDLE with the actuator back home (drum at rest, sensor free): the state for changing
         a plate. A fault the controller latched (the watchdog too) latches the rig (:attr:`safety`): LatchedFault.
-        Raises DrumTimeout, LatchedFault.
+        Raises DrumTimeout, LatchedFault. After an acknowledgement (or an open without HOME) this is a start: the
+        actuator HOMEs (:meth:`home_if_pending`), which ends with the sensor free.
         """
         with self.latching("release"):
-            wait_released(self.drum, timeout_s=timeout_s)
+            if self.home_pending:
+                self.home_if_pending()
+            else:
+                wait_released(self.drum, timeout_s=timeout_s)
 
     def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
         """Mount texture plate ``label`` (any label of :attr:`textures`): release the sensor, then the backend's
@@ -558,6 +569,10 @@ class Rig:
             log.warning("recovering the rig: %s", exc)
         return self.check_links(restart=True)
 
+    def _remember_acknowledgement(self, item: Latch | Acknowledgement) -> None:
+        if isinstance(item, Acknowledgement):
+            self.unlogged_acknowledgement = item
+
     def wait_at_rest(self, timeout_s: float = 20.0) -> Any:
         """After a STOP: wait (on the drum client's clock) until the sensor is released (the actuator at home, the
         drum still) or the actuator cannot back off by itself (not homed: an e-stop or a reset stopped it where it
@@ -603,7 +618,7 @@ class Rig:
         since this rig homed it (BOOT_COUNT changed, or NOT_HOMED unasked). Nothing is cleared."""
         if st.state == DrumState.FAULT:
             latch = latch_from_faults(int(st.faults))
-            self.safety.trip(Latch(latch.cause, f"{what}: {latch.detail}", latch.faults))
+            self.safety.trip(replace(latch, detail=f"{what}: {latch.detail}"))
             return
         boot = getattr(st, "boot_count", None)
         if boot is not None and self.drum_boot_count is not None and boot != self.drum_boot_count:

@@ -531,6 +531,8 @@ class _Run:
     def _note_safety(self, item: Latch | Acknowledgement) -> None:
         with self._safety_lock:  # from any thread (an acknowledgement comes from a face); written by the run's
             self._safety_log.append(item)
+        if isinstance(item, Acknowledgement) and getattr(self.rig, "unlogged_acknowledgement", None) is item:
+            self.rig.unlogged_acknowledgement = None  # this run's session logs it
 
     def _flush_safety(self) -> None:
         """Write the latches and acknowledgements seen since the last call into the session's event log."""
@@ -549,9 +551,13 @@ class _Run:
         acknowledgement an operator gave when the rig opened (:attr:`Rig.acknowledged_at_open`: ``--ack``), unless
         it is that same one. Opening itself never acknowledges (docs/safety.md)."""
         at_open = getattr(self.rig, "acknowledged_at_open", None)
+        last = getattr(self.rig, "unlogged_acknowledgement", None)  # e.g. POST /ack while no run was going
         if at_open is not None:
             self.rig.acknowledged_at_open = None
-        reason, by = acknowledge or ((at_open.reason, at_open.by) if at_open is not None
+        if last is not None:
+            self.rig.unlogged_acknowledgement = None
+        given = at_open or last
+        reason, by = acknowledge or ((given.reason, given.by) if given is not None
                                      else ("run resumed", operator_name()))
         events = self.writer.events() if resume else []
         kinds = [e.get("kind") for e in events]

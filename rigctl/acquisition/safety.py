@@ -24,16 +24,19 @@ from __future__ import annotations
 
 import datetime as _dt
 import getpass
+import json
 import logging
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 from rigctl.core.drum import CRUSH_NOTE, FAULT_WORDS, DrumError, DrumFault, DrumReset, Fault, describe_faults
 
-__all__ = ["Latch", "Acknowledgement", "LatchedFault", "DrumStall", "SafetyLatch", "latch_for", "latch_from_faults",
-           "CAUSES", "operator_name"]
+__all__ = ["Latch", "Acknowledgement", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
+           "latch_from_faults", "CAUSES", "operator_name", "safety_log_path"]
 
 log = logging.getLogger(__name__)
 
@@ -88,28 +91,49 @@ def operator_name() -> str:
 @dataclass(frozen=True)
 class Latch:
     """A latched condition: ``cause`` (a key of :data:`CAUSES`), ``detail`` (what was seen, in words), ``faults``
-    (the controller's fault bits, 0 for host-detected causes), ``at_utc`` (ISO 8601 UTC)."""
+    (the controller's fault bits, 0 for host-detected causes), ``at_utc`` (ISO 8601 UTC), ``also`` (the other causes
+    latched with it or while it was held: two faults at once are both named, logged and cleared together)."""
 
     cause: str
     detail: str
     faults: int = 0
     at_utc: str = field(default_factory=_utc_now)
+    also: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "also", tuple(c for c in dict.fromkeys(self.also) if c != self.cause))
+
+    @property
+    def causes(self) -> tuple[str, ...]:
+        """Every cause this latch holds, the first one first."""
+        return (self.cause, *self.also)
 
     @property
     def label(self) -> str:
-        return CAUSES.get(self.cause, (self.cause, ""))[0]
+        return " and ".join(CAUSES.get(c, (c, ""))[0] for c in self.causes)
 
     @property
     def remedy(self) -> str:
         """What the operator does before acknowledging."""
-        return CAUSES.get(self.cause, ("", "remove the cause"))[1]
+        return "; ".join(dict.fromkeys(CAUSES.get(c, ("", "remove the cause"))[1] for c in self.causes))
+
+    def with_(self, other: "Latch") -> "Latch":
+        """This latch and ``other`` (seen while this one was held) as one: both causes, both details, every fault bit."""
+        return Latch(self.cause, f"{self.detail}; and {other.label}: {other.detail}", int(self.faults) | int(other.faults),
+                     self.at_utc, (*self.also, *other.causes))
+
+    def adds_to(self, held: "Latch") -> bool:
+        """Whether this latch names something ``held`` does not (another cause, another fault bit)."""
+        return bool(set(self.causes) - set(held.causes)) or bool(int(self.faults) & ~int(held.faults))
 
     def describe(self) -> str:
         """One line: the cause, what was seen, what to do."""
         return f"{self.label}: {self.detail}; {self.remedy}, then acknowledge"
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        d["also"] = list(self.also)
+        return d
 
 
 @dataclass(frozen=True)
@@ -140,9 +164,9 @@ class DrumStall(DrumError):
 def latch_from_faults(faults: int, detail: str = "") -> Latch:
     """The latch of the controller's fault bits ``faults`` (its cause: the first set bit of :data:`_FAULT_CAUSES`)."""
     bits = Fault(int(faults))
-    cause = next((c for bit, c in _FAULT_CAUSES if bit in bits), "reset")
+    causes = [c for bit, c in _FAULT_CAUSES if bit in bits] or ["reset"]
     words = detail or (FAULT_WORDS[bits].meaning if bits in FAULT_WORDS else describe_faults(int(bits)))
-    return Latch(cause, words, int(bits))
+    return Latch(causes[0], words, int(bits), also=tuple(causes[1:]))
 
 
 def latch_for(exc: BaseException) -> Latch | None:
@@ -181,10 +205,15 @@ class SafetyLatch:
         return self.latch is not None
 
     def trip(self, latch: Latch) -> Latch:
-        """Latch ``latch`` (a latch already held stays: the first cause is the one to clear); returns the one held."""
+        """Latch ``latch``; returns the one held. A latch already held stays the first cause; a second fault (another
+        cause or fault bit) joins it (:meth:`Latch.with_`): both are named, shown and logged, and one acknowledgement
+        clears both once neither persists."""
         with self._lock:
-            if self.latch is not None:
-                return self.latch
+            held = self.latch
+            if held is not None:
+                if not latch.adds_to(held):
+                    return held
+                latch = held.with_(latch)
             self.latch = latch
             self.history.append(latch)
         log.error("LATCHED: %s", latch.describe())
@@ -225,3 +254,42 @@ class SafetyLatch:
                 fn(item)
             except Exception:  # noqa: BLE001 - a face's listener never breaks the latch
                 log.exception("safety listener failed")
+
+
+def safety_log_path() -> Path:
+    """The rig's own safety log: ``$XDG_STATE_HOME/rigctl/safety.jsonl`` (``~/.local/state/rigctl/safety.jsonl``)."""
+    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(state) / "rigctl" / "safety.jsonl"
+
+
+class SafetyLog:
+    """A listener of a :class:`SafetyLatch` that writes every latch and acknowledgement at once (flushed and synced)
+    into the rig's own log, one JSON object a line: ``kind`` ("latched" | "acknowledged"), ``rig`` (what names the
+    rig: its kind and ports), then :meth:`Latch.to_dict` or :meth:`Acknowledgement.to_dict`. Whatever face acted,
+    with or without a run: the run's session gets the same through the run engine. A log that cannot be written is
+    a warning, never a broken latch.
+
+    Parameters
+    ----------
+    rig : what names the rig in each line (e.g. ``{"mode": "hardware", "drum": "/dev/ttyACM0"}``).
+    path : the log file (default :func:`safety_log_path`, read when each line is written).
+    """
+
+    def __init__(self, rig: dict[str, Any], path: str | os.PathLike[str] | None = None) -> None:
+        self.rig = dict(rig)
+        self.path = None if path is None else Path(path)
+        self._lock = threading.Lock()
+
+    def __call__(self, item: Latch | Acknowledgement) -> None:
+        kind = "acknowledged" if isinstance(item, Acknowledgement) else "latched"
+        line = json.dumps({"kind": kind, "rig": self.rig, **item.to_dict()}, default=str)
+        path = self.path or safety_log_path()
+        try:
+            with self._lock:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with open(path, "a", encoding="utf-8") as f:
+                    f.write(line + "\n")
+                    f.flush()
+                    os.fsync(f.fileno())
+        except OSError as exc:
+            log.warning("the rig's safety log %s cannot be written (%s): %s", path, exc.strerror or exc, line)

@@ -280,18 +280,24 @@ def _rig_source(flags: dict[str, Any], truth_log: Path | None, hx711_rate: int |
     return source
 
 
-def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | None, drum_port: str | None) -> Any:
+def _open_control(source: Any, *, prompt: Any, seed: int, config_path: Path | None, drum_port: str | None,
+                  acknowledge: tuple[str, str] | None = None) -> Any:
     """Open the rig ``source`` names (:func:`rigctl.operations.open_control`), every failure as one line: a fault
-    ``--inject`` cannot model is a usage error (exit 2), the rest a ClickException; what the opening logged is shown
-    once it succeeded."""
+    ``--inject`` cannot model is a usage error (exit 2), the rest a ClickException (a fault the controller still
+    latches included, unless ``acknowledge``: the operator's ``--ack`` / ``--resume``); what the opening logged is
+    shown once it succeeded."""
     from rigctl.acquisition.lsl import LslUnavailable
     from rigctl.core.faults import FaultSpecError
     from rigctl.devices.errors import DrumError, TaxelStreamError
-    from rigctl.operations import RigError, RigOpenError, open_control
+    from rigctl.operations import FaultAtOpen, RigError, RigOpenError, open_control
 
     with _held_rig_warnings() as held:
         try:
-            control = open_control(source, prompt=prompt, seed=seed, host_config_path=config_path)
+            control = open_control(source, prompt=prompt, seed=seed, host_config_path=config_path,
+                                   acknowledge=acknowledge)
+        except FaultAtOpen as exc:  # shown and kept: opening never acknowledges
+            raise click.ClickException(f"{exc}; nothing moved. Acknowledge it with --ack \"REASON\" (logged with "
+                                       "your login name) once its cause is gone") from None
         except RigOpenError as exc:  # the port opened but the drum controller failed there
             stop = ("" if exc.stop_acknowledged
                     else "; STOP was not acknowledged either: if the drum may be moving, stop it by hand")
@@ -366,7 +372,13 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @click.option("--pcs", "pcs", type=click.IntRange(1, 1000), default=25, show_default=True,
               help="With --classify: principal components of the classifier (the paper: 25).")
 @click.option("--resume", is_flag=True, default=False,
-              help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice).")
+              help="Continue an interrupted session file from its plan (same protocol; no trial recorded twice). "
+                   "A latched fault that ended it is acknowledged by this command (logged with your login name), "
+                   "and the run goes on.")
+@click.option("--ack", "ack", metavar="REASON", default=None,
+              help="Acknowledge a fault the drum controller still latches when the rig opens (its cause gone: the "
+                   "e-stop released), logged with your login name and REASON in the rig's log and the session; "
+                   "without it such a fault ends the command (exit 1) before anything moves.")
 @click.option("--overwrite", is_flag=True, default=False, help="Replace an existing --out file.")
 @click.option("--seed", type=SEED, default=None,
               help="Seed of the simulated rig, and of a protocol's random trial order.")
@@ -395,16 +407,18 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @progress_option
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, rig, rig_options, replay,
             handheld, motion, classify,
-            calibration, classify_variant, onboard_encoder, pcs, resume, overwrite, seed, trials_per_condition, on_failure, config_path,
+            calibration, classify_variant, onboard_encoder, pcs, resume, ack, overwrite, seed, trials_per_condition,
+            on_failure, config_path,
             plates, lsl, lsl_wait_s,
             inject, hx711_rate, allow_firmware_mismatch, truth_log, progress):
     """Run PROTOCOL (a .toml protocol file or a .py script) and record every trial into --out.
 
     On the simulated rig by default. Ctrl-C stops cleanly (the rig is left safe, finished trials are kept);
     continue later with --resume. A latched fault (e-stop, over-force, reset, ...: docs/safety.md) stops the rig and
-    ends the run, resumable; --resume is the operator's acknowledgement (logged in the session with the fault it
-    clears). Exit status: 0 when every planned trial is complete, 1 otherwise; 2 for a usage
-    error (refused before the rig moves).
+    ends the run, resumable; --resume is the operator's acknowledgement and the start (logged in the session with
+    the fault it clears). A fault the controller still latches when the rig opens ends the command naming it (exit
+    1), unless --ack REASON acknowledges it. Exit status: 0 when every planned trial is complete, 1 otherwise; 2 for
+    a usage error (refused before the rig moves).
     """
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
@@ -424,6 +438,9 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
         raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
     if resume and overwrite:
         raise click.UsageError("--resume and --overwrite exclude each other")
+    if ack is not None and not ack.strip():
+        raise click.UsageError("--ack takes the reason the fault may be cleared (logged), e.g. --ack \"e-stop "
+                               "released, bench checked\"")
     if resume and not out.exists():
         raise UsageProblem(f"--resume: {out} does not exist: nothing to resume")
     check_output(out, overwrite=overwrite or resume,
@@ -475,7 +492,11 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
                               options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None), truth_log,
                          hx711_rate)
-    control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port)
+    # the operator at this terminal acknowledges at open: --ack REASON, or --resume (acknowledge and go on)
+    acknowledge = ((ack.strip(), operator_name()) if ack is not None
+                   else ("rigctl acquire --resume", operator_name()) if resume else None)
+    control = _open_control(source, prompt=prompt, seed=rig_seed, config_path=config_path, drum_port=drum_port,
+                            acknowledge=acknowledge)
     with control, bars(show_bars(progress)) as progress:
         _bars_follow_the_rig(control, progress)
         _cues_on_the_terminal(control, source)
@@ -483,7 +504,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
             # a latched fault ends the run (nobody here can acknowledge it mid-run); --resume is the acknowledgement
             run = ProtocolRun(control, proto, out, resume=resume, on_failure=on_failure,
                               overwrite=overwrite, lsl=publish, on_trial=None if classifier is None else classifier.on_trial,
-                              on_latch="end", acknowledge=("rigctl acquire --resume", operator_name()))
+                              on_latch="end", acknowledge=acknowledge or ("rigctl acquire --resume",
+                                                                           operator_name()))
             if run.lsl is not None:
                 run.lsl.wait_s = lsl_wait_s  # --lsl-wait: run_start waits for a recorder
             if classifier is not None:

@@ -56,15 +56,19 @@ def _check_config(config_path: Path | None, save: bool) -> None:
 @click.option("--rest-s", type=floats(2.0, 120.0), default=10.0, show_default=True,
               help="Length of the taxel capture at rest (noise floor, crosstalk, Uno clock), s.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the simulated rig.")
+@click.option("--ack", "ack", metavar="REASON", default=None,
+              help="Acknowledge a fault the drum controller still latches when the rig opens (its cause gone), "
+                   "logged with your login name and REASON; without it the fault is kept and reported "
+                   "(controller-faults fails, the checks that move skip).")
 @inject_option
 @hx711_rate_option
 @truth_log_option
 def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, list_checks, as_json, config_path, save,
-           rest_s, seed, inject, hx711_rate, truth_log):
+           rest_s, seed, ack, inject, hx711_rate, truth_log):
     """Bring-up checks on the rig, one line each: PASS, FAIL with the fix, or SKIP with why its data is not
     available. Checks that move the rig (load-cell polarity, force step, drum speed) run last; the rig is stopped
-    after each. With --save the report is stored, dated, in the rig config (doctor.<rig kind>). Exit status 1 if a
-    check failed.
+    after each. With --save the report is stored, dated, in the rig config (doctor.<rig kind>). Opening never
+    acknowledges a latched fault: it is reported (--ack REASON acknowledges it). Exit status 1 if a check failed.
     """
     from rigctl.acquisition import doctor as doc
 
@@ -73,6 +77,8 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
             click.echo(f"{c.name:18} {c.title}{' (moves the rig)' if c.moves else ''}")
         return
     hil = hil or hil_bootloaders
+    if ack is not None and not ack.strip():
+        raise click.UsageError("--ack takes the reason the fault may be cleared (logged)")
     if (drum_port is None) != (taxel_port is None):
         raise click.UsageError("the hardware rig needs both --drum-port and --taxel-port")
     check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
@@ -98,8 +104,11 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     why = source.injection_refusal()
     if why:
         raise click.UsageError(why)
+    from rigctl.acquisition.safety import operator_name
+
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
-                 save=save, on_result=None if as_json else lambda r: click.echo(r.line()))
+                 save=save, on_result=None if as_json else lambda r: click.echo(r.line()),
+                 acknowledge=None if ack is None else (ack.strip(), operator_name()))
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:

@@ -64,9 +64,14 @@ SHUTDOWN_GRACE_S = 1
 @click.option("--lsl/--no-lsl", "lsl", default=None,
               help="Publish every run on Lab Streaming Layer; default the rig config's lsl.enabled.")
 @lsl_wait_option
+@click.option("--ack", "ack", metavar="REASON", default=None,
+              help="Acknowledge a fault the drum controller still latches when the server starts (its cause gone), "
+                   "logged with your login name and REASON. Without it the fault is kept and shown (GET /status), "
+                   "the queue held until POST /ack and POST /queue/release: a server never acknowledges in its own "
+                   "name, and a restarted one never moves by itself.")
 @inject_option
 def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, rig_options, drum_port, taxel_port, replay,
-          config_path, seed, lsl, lsl_wait_s, inject):
+          config_path, seed, lsl, lsl_wait_s, ack, inject):
     """Open the rig and serve its run queue over HTTP until Ctrl-C / SIGTERM.
 
     POST /runs queues a protocol (by name or TOML text) into a session inside --data-dir; one run owns the rig at
@@ -92,13 +97,15 @@ def serve(host, port, token, allow_hosts, data_dir, queue_file, kind, rig_option
         raise UsageProblem("--rig hardware takes both --drum-port and --taxel-port (and only it does)")
     if (kind == "replay") != (replay is not None):
         raise UsageProblem("--rig replay takes --replay RECORDING (and only it does)")
+    if ack is not None and not ack.strip():
+        raise UsageProblem("--ack takes the reason the fault may be cleared (logged)")
     if kind == "handheld":
         raise UsageProblem("--rig handheld: the run queue serves a drum rig (the handheld rig records with rigctl "
                            "acquire --handheld)")
     _serve(host=host, port=port, token=token, generated=not _given(), allow_hosts=allow_hosts,
            data_dir=data_dir or default_data_dir(), queue_file=queue_file or default_queue_file(), kind=kind,
            drum_port=drum_port, taxel_port=taxel_port, replay=replay, config_path=config_path, seed=seed, lsl=lsl,
-           inject=inject, lsl_wait_s=lsl_wait_s, rig_options=rig_options)
+           inject=inject, lsl_wait_s=lsl_wait_s, rig_options=rig_options, ack=ack)
 
 
 def _given() -> bool:
@@ -125,11 +132,13 @@ def _bind(host: str, port: int) -> socket.socket:
 def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tuple[str, ...], data_dir: Path,
            queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
            config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...],
-           lsl_wait_s: float, rig_options: dict[str, str]) -> None:
+           lsl_wait_s: float, rig_options: dict[str, str], ack: str | None = None) -> None:
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
+    from rigctl.acquisition.safety import operator_name
     from rigctl.core.faults import FaultSpecError
     from rigctl.operations import (
+        Home,
         QueueError,
         RigError,
         RigSource,
@@ -180,7 +189,10 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
         queue_lock.release()
         raise
     try:
-        control = open_control(source, seed=seed, host_config_path=config_path)
+        # nothing moves at open (the first run's start HOMEs): a restarted server never moves by itself; a fault the
+        # controller latches is kept (the queue held) unless the operator acknowledges it here (--ack)
+        control = open_control(source, seed=seed, host_config_path=config_path, home=Home.AT_START,
+                               acknowledge=None if ack is None else (ack.strip(), operator_name()))
     except FaultSpecError as exc:  # --inject names a fault this rig cannot model
         sock.close()
         queue_lock.release()
@@ -206,6 +218,9 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
                    f"{run_queue.path}; token in {token_file})", err=True)
         if generated:  # printed once, as Jupyter does: the API reference with the token
             click.echo(f"rigctl serve: open {url}/docs?token={token}", err=True)
+        if control.latch is not None:  # shown and kept: the server never acknowledges in its own name
+            click.echo(f"rigctl serve: LATCHED {control.latch.describe()}; the queue is held: POST /ack (the "
+                       "operator's reason), then POST /queue/release", err=True)
         server = _Server(uvicorn.Config(app, log_level=logging.getLevelName(logging.WARNING).lower(),
                                         timeout_graceful_shutdown=SHUTDOWN_GRACE_S), app.state.events)
         try:

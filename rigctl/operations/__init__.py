@@ -35,7 +35,7 @@ faults, errors) are :mod:`rigctl.core.drum`'s, shared by every layer.
 """
 
 # the errors of opening and holding a rig, for the faces (which never import the acquisition layer's rig module)
-from rigctl.acquisition.rig import RigError, RigOpenError
+from rigctl.acquisition.rig import FaultAtOpen, RigError, RigOpenError
 from rigctl.operations._analysis import (
     ANALYSIS_TASKS,
     AnalysisPlan,
@@ -69,7 +69,7 @@ from rigctl.operations._trial_spikes import TrialSpikes, session_taxel_range, tr
 __all__ = [
     "LslPublisher", "lsl_requested", "RunQueue", "QueuedRun", "QueueError", "RUN_QUEUE_STATES", "lock_queue_file",
     "read_queue_file",
-    "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted", "RigError", "RigOpenError",
+    "RigSource", "KINDS", "open_control", "RigControl", "Home", "RunStarted", "RigError", "RigOpenError", "FaultAtOpen",
     "RigMonitor", "RigEvent", "Heartbeat", "StatusHistory", "DEADMAN_TIMEOUT_S",
     "SetpointRefusal", "setpoint_refusals", "doctor",
     "LiveEncoder", "SpikeRing", "spike_capacity", "LIVE_WINDOW_MAX_S", "live_ring",

@@ -42,11 +42,15 @@ HOME_TIMEOUT_S = 30.0
 
 
 class Home(enum.Enum):
-    """What :func:`open_control` does with the actuator once the rig is open."""
+    """What :func:`open_control` does with the actuator once the rig is open. Opening never acknowledges a fault the
+    controller holds (docs/safety.md): only ``acknowledge`` does, the operator's."""
 
-    ALWAYS = "always"  #: clear a latched fault (e.g. the watchdog of a killed run), then HOME
-    UNLESS_FAULTED = "unless_faulted"  #: HOME, unless a fault is latched: that one is left for the operator to see
-    NEVER = "never"  #: leave the controller as it is
+    ALWAYS = "always"  #: HOME now; a latched fault fails the opening (:class:`rigctl.acquisition.rig.FaultAtOpen`)
+    UNLESS_FAULTED = "unless_faulted"  #: HOME, unless a fault is latched: that one is kept for the operator to see
+    NEVER = "never"  #: leave the controller as it is (a latched fault kept)
+    #: move nothing now (a latched fault kept): the first start (a press, a run's first trial) HOMEs and TAREs
+    #: (``rigctl serve``: a restarted server never moves by itself)
+    AT_START = "at_start"
 
 
 @dataclass(frozen=True)
@@ -62,14 +66,18 @@ class RunStarted:
 def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALWAYS, config: RigConfig | None = None,
                  seed: int = 0, host_config_path: str | os.PathLike[str] | None = None,
                  prompt: Callable[[str], object] | None = None,
-                 textures: TextureSet | None = None) -> "RigControl":
+                 textures: TextureSet | None = None,
+                 acknowledge: tuple[str, str] | None = None) -> "RigControl":
     """Open the rig ``source`` names (default: the simulated rig) and start its taxel stream.
 
     Parameters
     ----------
     source : the rig (:class:`RigSource`: kind, ports or recording).
-    home : :class:`Home` (or its value): HOME always (clearing a latched fault first), unless a fault is latched
-        (the GUI: a fault is never cleared behind the operator's back), or never.
+    home : :class:`Home` (or its value): HOME now (a latched fault fails the opening), unless a fault is latched
+        (kept for the operator: the GUI), never, or at the first start (``rigctl serve``).
+    acknowledge : ``(reason, by)``: an operator acknowledges at open a fault the controller holds (``--ack
+        REASON``): cleared without moving (:meth:`RigControl.acknowledge`, logged), kept in
+        ``Rig.acknowledged_at_open`` for the run's session; nothing latched: nothing to do.
     config, seed : the simulated rig's model configuration (:class:`rigctl.simulation.model.RigConfig`) and seed
         (simulated kinds; ignored on hardware).
     host_config_path : the rig config file (calibration); None: the library's default.
@@ -96,14 +104,25 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
         opts.update(config=config, seed=seed)
     if textures is not None:
         opts["textures"] = textures
-    rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path, home=home is Home.ALWAYS, **opts)
+    rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path,
+                   home=home is Home.ALWAYS and acknowledge is None, **opts)
     control = RigControl(rig, source)
-    if home is Home.UNLESS_FAULTED and control.has_drum:  # the handheld rig has no actuator to home
-        try:
+    if not control.has_drum:  # the handheld rig: no actuator, no latch of a controller
+        return control
+    try:
+        if acknowledge is not None:
+            if control.latch is not None:  # found at open: the operator's acknowledgement, given with the command
+                rig.acknowledged_at_open = control.acknowledge(acknowledge[0], by=acknowledge[1])
+            if home is Home.ALWAYS:
+                rig.home_pending = True
+                rig.home_if_pending()
+        if home is Home.UNLESS_FAULTED:
             control.home_unless_faulted()
-        except BaseException:
-            control.close()
-            raise
+        elif home is Home.AT_START:
+            rig.home_pending = True
+    except BaseException:
+        control.close()
+        raise
     return control
 
 
@@ -280,11 +299,11 @@ class RigControl:
         self.close()
 
     def home_unless_faulted(self) -> DrumStatus:
-        """HOME and wait for IDLE, unless the controller reports a latched fault: that one, or one HOME itself latches
-        (e.g. ACTUATOR_DIRECTION: HOME's direction proof failed), is left latched (logged) for the operator to see
-        and clear. Returns the status. DrumError / DrumTimeout."""
+        """HOME and wait for IDLE, unless the rig is latched or the controller reports a latched fault: that one, or
+        one HOME itself latches (e.g. ACTUATOR_DIRECTION: HOME's direction proof failed), is left latched (logged) for
+        the operator to see and clear. Returns the status. DrumError / DrumTimeout."""
         st = self.drum.read_status()
-        if st.faulted:
+        if st.faulted or self.latch is not None:
             log.warning("drum controller is in FAULT (%s): left latched for the operator", st.describe())
             return st
         self.drum.home()
@@ -342,10 +361,11 @@ class RigControl:
         return self._rig.safety.latch
 
     def acknowledge(self, reason: str, *, by: str) -> Acknowledgement:
-        """An operator acknowledges the latched fault (the GUI's dialog, ``POST /ack``, ``rigctl acquire --resume``):
-        the condition must be gone (the e-stop released), then the controller is cleared, homed and tared, and the
-        latch released; a run waiting on it goes on (the acknowledgement goes into its session's event log). Nothing
-        turns or presses until the next command or the run's next trial.
+        """An operator acknowledges the latched fault (the GUI's dialog, ``POST /ack``, ``rigctl acquire --resume``
+        or ``--ack``): the condition must be gone (the e-stop released), then the controller is cleared and the latch
+        released. Nothing moves: acknowledging is not starting (docs/safety.md). A run waiting on it stays paused
+        until its :meth:`rigctl.operations.ProtocolRun.resume` (the acknowledgement goes into its session's event log
+        at once, and into the rig's own log); the start (that resume, or the next press) HOMEs and TAREs first.
 
         Returns the :class:`rigctl.acquisition.safety.Acknowledgement`. Raises ValueError (nothing latched, an empty
         reason), :class:`rigctl.acquisition.safety.LatchedFault` (the condition persists: e.g. the e-stop is still
@@ -382,9 +402,14 @@ class RigControl:
 
     def home(self) -> None:
         """Drive the actuator to its home switch. Refused while a fault is latched
-        (:class:`rigctl.acquisition.safety.LatchedFault`: :meth:`acknowledge` homes the rig)."""
+        (:class:`rigctl.acquisition.safety.LatchedFault`: :meth:`acknowledge` it first)."""
         self._rig.safety.refuse("HOME")
         self.drum.home()
+
+    def keep_latch(self, latch: Latch) -> Latch:
+        """Hold ``latch``, a latched fault a face remembered across its own restart (the run queue's file): nothing
+        moves until an operator acknowledges it, whatever the controller says now. Returns the latch held."""
+        return self._rig.safety.trip(latch)
 
     def clear_fault(self, *, by: str = "operator") -> None:
         """Clear the latched faults: an operator's acknowledgement (:meth:`acknowledge`, reason "clear fault") when

@@ -21,7 +21,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
            checks: Iterable[str] | None = None, host_config_path: str | os.PathLike | None = None,
            seed: int = 0, config: Any = None, rest_s: float = 10.0, save: bool = True,
            on_result: Callable[[_doctor.CheckResult], Any] | None = None,
-           cancel: threading.Event | None = None) -> _doctor.DoctorReport:
+           cancel: threading.Event | None = None,
+           acknowledge: tuple[str, str] | None = None) -> _doctor.DoctorReport:
     """Run the doctor's checks (all, or those named in ``checks``) and store the dated report.
 
     Parameters
@@ -39,6 +40,8 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
     on_result : called with each :class:`rigctl.acquisition.doctor.CheckResult` as it is known.
     cancel : set it (from any thread) to end the run early: the running check stops at its next poll (the rig is
         stopped safely), the rest are reported as ``skip: cancelled``.
+    acknowledge : ``(reason, by)``: the operator acknowledges at open a fault the controller latches (``rigctl
+        doctor --ack``; :func:`rigctl.operations.open_control`); without it such a fault is kept and reported.
 
     Returns
     -------
@@ -58,7 +61,7 @@ def doctor(source: RigSource | None = None, *, control: RigControl | None = None
 
         def opener():
             control = open_control(source, home=Home.UNLESS_FAULTED, config=config, seed=seed,
-                                   host_config_path=host_config_path)
+                                   host_config_path=host_config_path, acknowledge=acknowledge)
             return rig_of(control)
 
         ctx = _doctor.DoctorContext(source.kind, opener=opener, drum_port=source.drum_port,

@@ -32,6 +32,7 @@ from typing import Any
 
 from rigctl.acquisition.protocol import ProtocolError, parse_protocol
 from rigctl.acquisition.runner import TrialEvent
+from rigctl.acquisition.safety import Acknowledgement, Latch
 from rigctl.core.errors import describe_error
 from rigctl.core.progress import ProgressEvent
 from rigctl.operations._control import RigControl
@@ -236,6 +237,16 @@ class RunQueue:
             r.errors.append(f"interrupted (the server ended while it ran); resumed at {_utc_now()}")
         order = cut + [r for r in runs if r not in cut]
         self.runs = {r.id: r for r in order}
+        for r in order:  # a run that paused or ended on a latch nobody acknowledged: the latch and the queue held
+            if r.latch is not None and r.state in ACTIVE + ("stopped",):
+                try:
+                    latch = Latch(**r.latch)
+                except TypeError:
+                    continue
+                self.control.keep_latch(latch)
+                self.held = True
+                r.cause = (f"latched before the server restarted: {latch.describe()} (POST /ack, then POST "
+                           "/queue/release)")
         self._save()
 
     def _prune(self) -> None:
@@ -449,8 +460,23 @@ class RunQueue:
         self._emit({"type": "stop", "acknowledged": acknowledged})
         return acknowledged
 
+    def start_needed(self) -> str:
+        """What start the rig waits for now, in words (the answer to an acknowledgement: it never starts anything)."""
+        with self._lock:
+            current_id, held = self.current_id, self.held
+            queued = any(r.state == "queued" for r in self.runs.values())
+        if current_id is not None:
+            return f"nothing moves until the run is resumed: POST /runs/{current_id}/resume"
+        if held and queued:
+            return "nothing moves until the queue is released: POST /queue/release"
+        return "nothing moves until a run starts (its start homes the rig)"
+
     def release(self) -> None:
-        """Let queued runs start again after STOP."""
+        """Let queued runs start again after STOP, or after a latch found at open has been acknowledged. QueueError
+        (409) naming it while the rig holds a latched fault."""
+        latch = self.control.latch
+        if latch is not None:
+            raise QueueError(f"the rig holds a latched fault: {latch.describe()} (POST /ack first)", 409)
         with self._lock:
             self.held = False
             self._wake.notify_all()
@@ -461,6 +487,8 @@ class RunQueue:
         fault, link and latch events go into the event feed as ``{"type": "rig", "kind", "message"}``). Returns
         self."""
         self._unsubscribe_rig = self.control.subscribe(self._rig_event)
+        if self.control.latch is not None:  # found at open (or kept from before a restart): shown, the queue held
+            self.held = True
         self.control.monitor  # noqa: B018 - starts the library's poll: the server reads nothing from the rig itself
         self._thread = threading.Thread(target=self._work, name="run-queue", daemon=True)
         self._thread.start()
@@ -469,6 +497,15 @@ class RunQueue:
     def _rig_event(self, event: RigEvent) -> None:
         if event.kind in ("state", "faults", "link", "deadman", "latch"):
             self._emit({"type": "rig", "kind": event.kind, "message": event.message})
+        if event.kind == "latch" and isinstance(event.latch, Acknowledgement):  # acknowledged: no run keeps it
+            with self._lock:
+                kept = [r for r in self.runs.values() if r.latch is not None and r.id != self.current_id]
+                for r in kept:
+                    r.latch = None
+                    r.cause = "acknowledged: it starts once the queue is released (POST /queue/release)" \
+                        if r.state == "queued" else "acknowledged"
+                if kept:
+                    self._save()
 
     def close(self, timeout_s: float = 60.0) -> None:
         """End the worker; a run in progress stops cleanly and stays queued (it resumes at the next start)."""

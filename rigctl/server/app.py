@@ -242,8 +242,9 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
 
     @app.post("/ack")
     def ack(body: AckRequest, request: Request) -> dict[str, Any]:
-        """The operator's acknowledgement of a latched fault (e-stop, over-force, ...), logged in the session with
-        ``by`` and ``reason``; it clears the latch, never starts motion (docs/safety.md)."""
+        """The operator's acknowledgement of a latched fault (e-stop, over-force, ...), logged in the rig's log and the
+        session with ``by`` and ``reason``; it clears the latch and never moves anything (docs/safety.md): ``start``
+        says which start the rig waits for (a paused run's resume, the queue's release)."""
         acknowledge = getattr(run_queue.control, "acknowledge", None)
         if acknowledge is None:
             raise QueueError("this rigctl has no fault acknowledgement (RigControl.acknowledge)", 501)
@@ -254,7 +255,8 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
         except (ValueError, RuntimeError, DrumError) as exc:  # nothing latched; the condition persists; no answer
             raise QueueError(f"acknowledgement refused: {describe_error(exc)}", 409) from None
         to_dict = getattr(result, "to_dict", None)
-        return {"acknowledged": True, "by": by, "result": _plain(to_dict() if to_dict is not None else result)}
+        return {"acknowledged": True, "by": by, "result": _plain(to_dict() if to_dict is not None else result),
+                "start": run_queue.start_needed()}
 
 
 
