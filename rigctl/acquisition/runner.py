@@ -23,11 +23,12 @@ Run control, for the CLI and the GUI alike:
   again. Abort (``stop_event``) is the separate action that ends the run;
 - the safety latch (:mod:`rigctl.acquisition.safety`, docs/safety.md): a latched fault (e-stop, over-force, reversed
   cell, watchdog, unexpected reset, HOME failure, stall, drum link lost mid-press) is never cleared here and never
-  retried: the rig is stopped and, with ``on_latch="wait"`` (the GUI, the server), the run waits until an operator
-  acknowledges it (:meth:`rigctl.acquisition.rig.Rig.acknowledge`), then records the trial again; with ``"end"``
+  retried: the rig is stopped and, with ``on_latch="wait"`` (the GUI, the server), the run pauses (``pause_event``
+  set) until an operator acknowledges it (:meth:`rigctl.acquisition.rig.Rig.acknowledge`, which moves nothing) and
+  then starts it (``pause_event`` cleared: Resume), as after STOP; it then records the trial again. With ``"end"``
   (``rigctl acquire``) it ends, resumable (``RunSummary.latched`` says why), and resuming is the acknowledgement
-  (``acknowledge``). Every latch and acknowledgement is written into the session's event log
-  (:meth:`rigctl.storage.session.SessionWriter.log_event`);
+  (``acknowledge``) and the start. Every latch and acknowledgement is written into the session's event log
+  (:meth:`rigctl.storage.session.SessionWriter.log_event`), within 50 ms also while the run is paused;
 - ``resume=True``: continue an interrupted session file from its ``/plan`` (refused if the protocol source differs);
   complete trials are never recorded again, failed and pending ones are.
 
@@ -112,8 +113,9 @@ class TrialEvent:
     kind : "start" | "complete" | "failed" | "retry" (an attempt failed, the trial is recorded again) | "link_down"
         (a failed attempt left a link down; the runner waits for it) | "waiting" (the session file is held by another
         process; the trial is kept until written) | "texture" (a plate is being mounted) | "paused" | "resumed" |
-        "halted" (STOP: the trial in progress discarded, the run paused) | "latched" (a latched fault: ``error``
-        says which and what clears it) | "acknowledged" (an operator cleared it; the trial is recorded again)
+        "halted" (STOP: the trial in progress discarded, the run paused) | "latched" (a latched fault, the rig at rest:
+        ``error`` says which and what clears it) | "acknowledged" (an operator cleared it; the run stays paused until
+        its start, then records the trial again)
     planned : the trial (None for "paused"/"resumed")
     index : 0-based position among the trials this run records
     total : how many trials this run records
@@ -331,7 +333,8 @@ def run_protocol(
     on_failure : "continue" or "stop" after a trial failed (its retries used up).
     overwrite : replace an existing ``out_path`` (not with ``resume``).
     session_attrs : more root attributes of a new session file (e.g. the LSL streams and clock offset).
-    on_latch : "end" (the run ends, resumable) or "wait" (until an operator acknowledges) on a latched fault.
+    on_latch : "end" (the run ends, resumable) or "wait" (it pauses: an acknowledgement, then a start, the
+        ``pause_event`` cleared) on a latched fault.
     halt_event : STOP (module docstring): set it (with ``pause_event``) to cut the trial short and pause.
     acknowledge : ``(reason, by)``: with ``resume``, a latched fault the session's event log holds unacknowledged
         is acknowledged by this run (``rigctl acquire --resume``: the operator is present); default ("run resumed",

@@ -10,14 +10,16 @@ Every face (CLI, GUI, server, Python protocols) reaches the rig through :class:`
   controller (seen when the link is back; meanwhile the run ends after a bounded wait, resumable). The rig stops motion
   (STOP), the latch holds (:attr:`SafetyLatch.latch`) and every motion the host asks for (press, run, home) is
   refused with :class:`LatchedFault` until an operator acknowledges it (:meth:`rigctl.acquisition.rig.Rig.acknowledge`:
-  the condition must be gone: the e-stop released; then CLEAR_FAULT, HOME and TARE). Releasing the e-stop never
-  restarts anything. A run pauses (``on_latch="wait"``: GUI, server) or ends resumably (``"end"``: ``rigctl
-  acquire``, whose ``--resume`` is the acknowledgement); the latch and its acknowledgement go into the session's event
-  log.
+  the condition must be gone: the e-stop released; then CLEAR_FAULT). Releasing the e-stop never restarts anything,
+  and neither does the acknowledgement: it moves nothing; the separate start (a run's resume, the next press) HOMEs
+  and TAREs first. A run pauses (``on_latch="wait"``: GUI, server) until the acknowledgement and then the start, or
+  ends resumably (``"end"``: ``rigctl acquire``, whose ``--resume`` is the acknowledgement and the start); opening a
+  rig never acknowledges. Every latch and acknowledgement goes at once into the rig's own log (:class:`SafetyLog`)
+  and the session's event log.
 - **Recoverable** (everything else: a dropped frame, a CRC error, a late or lost Modbus answer, a trial that lost
   frames, a force that did not settle): the trial is recorded again (the protocol's ``retries``).
 
-docs/safety.md holds the table: fault -> what the rig does -> what clears it.
+docs/safety.md holds the table: fault -> what the rig does -> what clears it -> what starts again.
 """
 
 from __future__ import annotations

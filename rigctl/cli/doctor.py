@@ -104,11 +104,13 @@ def doctor(sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, checks, 
     why = source.injection_refusal()
     if why:
         raise click.UsageError(why)
-    from rigctl.acquisition.safety import operator_name
+    acknowledge = None
+    if ack is not None:  # imported only then: a doctor run as another user may not read more of the sources
+        from rigctl.acquisition.safety import operator_name
 
+        acknowledge = (ack.strip(), operator_name())
     report = run(source, checks=checks or None, host_config_path=config_path, seed=seed, rest_s=rest_s,
-                 save=save, on_result=None if as_json else lambda r: click.echo(r.line()),
-                 acknowledge=None if ack is None else (ack.strip(), operator_name()))
+                 save=save, on_result=None if as_json else lambda r: click.echo(r.line()), acknowledge=acknowledge)
     if as_json:
         click.echo(json.dumps(report.to_dict(), indent=2))
     else:

@@ -234,3 +234,32 @@ def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
         assert control.drum.read_status().state == DrumState.FORCE_SETTLED
     with open_session(tmp_path / "s.h5") as s:
         assert [e["kind"] for e in s.events] == ["latched"] and s.events[0]["cause"] == "actuator-travel"
+
+
+def test_paused_is_reported_only_once_the_sensor_is_released(tmp_path):
+    """STOP mid-trial: the run's ``paused`` comes once the actuator is back home and the sensor free (the model's
+    true actuator position and force when the event is emitted), not while it still retracts (the old code reported
+    it at IDLE, which STOP sets at once while the actuator backs off)."""
+    import threading
+
+    seen: dict[str, float] = {}
+    started = threading.Event()
+
+    with open_control(RigSource("inprocess")) as control:
+        model = rig_of(control).backend.model
+
+        def on_trial(ev):
+            if ev.kind == "start" and ev.planned.trial_id == 1:
+                started.set()
+            if ev.kind == "paused" and not seen:
+                seen.update(actuator_mm=model.actuator_mm, force_g=model.force_g)
+
+        run = ProtocolRun(control, load_protocol(find_protocol("quick_check")), tmp_path / "s.h5",
+                          on_trial=on_trial).start()
+        assert started.wait(120)
+        _until(lambda: model.force_g > 100.0, "the press of trial 1")
+        control.stop("pytest STOP")
+        _until(lambda: run.state == "paused", "the pause after STOP")
+        run.abort()
+        run.wait(120)
+    assert seen["actuator_mm"] <= 0.05 and abs(seen["force_g"]) < 5.0, seen
