@@ -114,11 +114,15 @@ def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
 
     repo = Path(__file__).resolve().parents[1]
     env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "PYTHONPATH": str(repo)}
-    for k, delay in enumerate((0.2, 0.6, 1.2)):
+    # the console script's lines, with a mark once Python and the script's own first line have run (a Ctrl-C before
+    # that is Python's own start failing, before any of rigctl is imported)
+    script = "import sys; from rigctl_launch import main; print('started', flush=True); sys.exit(main())"
+    for k, delay in enumerate((0.0, 0.3, 0.8)):
         out = tmp_path / f"d{k}.h5"
-        p = subprocess.Popen([sys.executable, "-c", "import rigctl_launch; rigctl_launch.main()", "sim", "dataset",
-                              "quick_check", "--out", str(out), "--no-progress"], stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+        p = subprocess.Popen([sys.executable, "-c", script, "sim", "dataset", "quick_check", "--out", str(out),
+                              "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                             cwd=tmp_path)
+        assert p.stdout is not None and p.stdout.readline().strip() == "started"
         time.sleep(delay)
         p.send_signal(signal.SIGINT)
         text, _ = p.communicate(timeout=300)
@@ -126,3 +130,31 @@ def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
         if p.returncode != 0:  # interrupted (or it had finished: the dataset is small)
             assert p.returncode == 1 and text.strip().splitlines()[-1].startswith("Error: interrupted"), text
             assert not out.exists()
+
+
+_LSL_OUTLET = """
+import sys
+from rigctl.cli.logs import route_library_logs
+route_library_logs(sys.argv[1] == "verbose")
+from rigctl.core.lsl import require_pylsl
+pylsl = require_pylsl()
+outlet = pylsl.StreamOutlet(pylsl.StreamInfo("rigctl-test-log", "EEG", 1, 100, "float32", "rigctl-test-log"))
+print("found", len(pylsl.resolve_byprop("name", "rigctl-test-log", timeout=2.0)))
+"""
+
+
+@pytest.mark.lsl
+def test_liblsl_keeps_off_the_terminal_unless_verbose(lsl, tmp_path):
+    """liblsl's INFO lines ("Configuration loaded from ...", its git build) reached the operator's terminal: kept to
+    its errors unless --verbose, the machine's LSL configuration (LSLAPICFG: discovery on this machine) still used."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "RIGCTL_LOG": str(tmp_path / "rigctl.log")}
+    quiet = subprocess.run([sys.executable, "-c", _LSL_OUTLET, "quiet"], capture_output=True, text=True, env=env,
+                           timeout=120)
+    assert quiet.returncode == 0 and "found 1" in quiet.stdout, quiet.stderr
+    assert "INFO|" not in quiet.stderr, quiet.stderr
+    loud = subprocess.run([sys.executable, "-c", _LSL_OUTLET, "verbose"], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert loud.returncode == 0 and "found 1" in loud.stdout and "INFO|" in loud.stderr, loud.stderr

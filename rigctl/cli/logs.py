@@ -2,9 +2,11 @@
 
 pymodbus logs every retry, timeout and (at debug level) every frame as a hex dump; with no handler of its own its
 warnings and errors reached the terminal through Python's last-resort handler ("No response received after 0
-retries" beside rigctl's own one-line error). :func:`route_library_logs` gives each library logger of
-:data:`LIBRARY_LOGGERS` one handler: the log file :func:`log_path` (opened on the first record, appended), or with
-``verbose`` the terminal (stderr, as it is when the record comes). rigctl's own warnings are not touched.
+retries" beside rigctl's own one-line error), and liblsl (C, under pylsl) printed its INFO lines. :func:`route_library_logs`
+gives each library logger of :data:`LIBRARY_LOGGERS` one handler: the log file :func:`log_path` (opened on the first
+record, appended), or with ``verbose`` the terminal (stderr, as it is when the record comes); and, unless
+``verbose``, has liblsl keep its terminal output to its errors (:func:`rigctl.core.lsl.require_pylsl`). rigctl's own
+warnings are not touched.
 """
 
 from __future__ import annotations
@@ -72,3 +74,9 @@ def route_library_logs(verbose: bool = False) -> None:
         setattr(handler, _TAG, True)
         logger.addHandler(handler)
         logger.propagate = False
+    from rigctl.core.lsl import LIBRARY_LOG_ENV  # liblsl (C) takes its log level from its configuration
+
+    if verbose:
+        os.environ.pop(LIBRARY_LOG_ENV, None)
+    else:
+        os.environ[LIBRARY_LOG_ENV] = str(log_path())

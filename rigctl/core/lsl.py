@@ -4,9 +4,15 @@ outlets (:mod:`rigctl.acquisition.lsl`) and the LSL replay source (:mod:`rigctl.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
-__all__ = ["LslUnavailable", "require_pylsl"]
+__all__ = ["LslUnavailable", "require_pylsl", "LIBRARY_LOG_ENV"]
+
+#: set by the command line unless --verbose (rigctl.cli.logs: the log file's path): liblsl's terminal output is then
+#: kept to its errors; unset, liblsl logs as its own configuration says (INFO lines on the terminal by default)
+LIBRARY_LOG_ENV = "RIGCTL_LIBRARY_LOG"
+_routed = False
 
 
 class LslUnavailable(RuntimeError):
@@ -19,4 +25,50 @@ def require_pylsl() -> Any:
         import pylsl
     except (ImportError, RuntimeError, OSError) as exc:
         raise LslUnavailable(f"LSL streaming needs pylsl with its liblsl: pip install 'rigctl[lsl]' ({exc})") from None
+    _route_liblsl_log(pylsl)
     return pylsl
+
+
+def _liblsl_config_text() -> str:
+    """The configuration liblsl would read: ``$LSLAPICFG``, else ``~/lsl_api/lsl_api.cfg``, else
+    ``/etc/lsl_api/lsl_api.cfg`` (liblsl's own order), "" when none can be read (at most 1 MiB)."""
+    candidates = [os.environ.get("LSLAPICFG"), os.path.expanduser("~/lsl_api/lsl_api.cfg"), "/etc/lsl_api/lsl_api.cfg"]
+    for name in candidates:
+        if name and os.path.isfile(name):
+            try:
+                with open(name, encoding="utf-8", errors="replace") as fh:
+                    return fh.read(1 << 20)
+            except OSError:
+                return ""
+    return ""
+
+
+def _route_liblsl_log(pylsl: Any) -> None:
+    """Once, before liblsl is first used: liblsl's terminal output (its INFO lines by default) kept to its errors,
+    the rest of its configuration as liblsl would read it (``pylsl.set_config_content`` replaces every
+    configuration file). liblsl cannot be given a log file without announcing it on the terminal (loguru's "Logging
+    to ..." line, whatever the level), so its records below error level are not kept. Nothing when
+    ``$RIGCTL_LIBRARY_LOG`` is unset (``rigctl --verbose``, or rigctl used as a library) or pylsl cannot set it."""
+    global _routed
+    log = os.environ.get(LIBRARY_LOG_ENV)
+    if _routed or not log:
+        return
+    _routed = True
+    import configparser
+    import io
+
+    parser = configparser.ConfigParser(interpolation=None, strict=False)
+    parser.optionxform = str  # type: ignore[assignment,method-assign]  # liblsl's keys keep their case
+    try:
+        parser.read_string(_liblsl_config_text())
+    except configparser.Error:
+        return  # a configuration liblsl may read its own way: left alone
+    if not parser.has_section("log"):
+        parser.add_section("log")
+    parser.set("log", "level", "-2")
+    text = io.StringIO()
+    parser.write(text)
+    try:
+        pylsl.set_config_content(text.getvalue())
+    except (AttributeError, NotImplementedError, OSError):
+        pass
