@@ -79,6 +79,9 @@ FOUND = {
           "drives 2 mm towards the sensor",
     5588: "reversed-actuator while a 1070 g trial runs (80 SPS, 876 g/mm): true 1817 g, 0.375 mm towards the sensor "
           "after the latch",
+    20030: "reversed-actuator as 551 g settles (80 SPS, 1094 g/mm): true 1876 g, 0.350 mm towards the sensor after "
+           "the latch",
+    20140: "reversed-actuator while a 1141 g trial runs (10 SPS, 380 g/mm): true 1817 g",
 }
 
 
