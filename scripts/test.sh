@@ -227,7 +227,8 @@ RIGCTL_WALL_RERUNS=1 python3 -m pytest -q -n "$workers" --dist loadfile --durati
 phase "pytest done (exit $status)"
 # Wall-clock failures (failed twice in the parallel run) get one more chance, alone. The parallel run keeps the CPU
 # saturated (~1,000 CPU-s of tests on a 2-core machine, workers beside the rigs they pace), and a test of a wall-clock
-# tier (realtime, hil, gui, packaging: tests/conftest.py WALL_CLOCK_TIERS) can then fail for want of CPU: each run
+# tier (realtime, gui: tests/conftest.py WALL_CLOCK_TIERS; the simulated rigs' tests, firmware and conformance among
+# them, share one clock with their host and get no second run: docs/architecture.md) can then fail for want of CPU: each run
 # failed a different handful of 3-7 of ~1,190 (a 0.73 s STOP against 0.5, a simulated board's banner not within 3 s, a
 # frame burst stamped late). Once the parallel run is over, those (at most 25) run again one at a time, with the CPU to
 # themselves; the run fails if any fails again, and on any failure of a logic test (those judge simulated time and

@@ -1,6 +1,7 @@
 """The test command's second chance for wall-clock tests (scripts/test.sh, tests/conftest.py): in the parallel run a
 failed test of a wall-clock tier runs again at once (pytest-rerunfailures, ``$RIGCTL_WALL_RERUNS``), and only a
-test's last verdict reaches the failures log the script reruns from; a logic test never gets a second run."""
+test's last verdict reaches the failures log the script reruns from; a logic test never gets a second run, nor does
+a firmware test under simavr (its boards share the host's clock: docs/architecture.md "Time on a simulated rig")."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent
 
-#: a sandbox suite: one wall-clock test that fails its first run only, one that always fails, one logic test that
-#: fails its first run only (each run counted in a file), and a conftest using the suite's own hooks
+#: a sandbox suite: one wall-clock test that fails its first run only, one that always fails, one logic test and one
+#: firmware test that fail their first run only (each run counted in a file), and a conftest using the suite's own hooks
 SANDBOX_TESTS = """
 import os
 from pathlib import Path
@@ -35,7 +36,7 @@ def test_wall_fails_once():
     assert runs("wall_once") > 1
 
 
-@pytest.mark.hil
+@pytest.mark.gui
 def test_wall_always_fails():
     runs("wall_always")
     assert False
@@ -43,6 +44,11 @@ def test_wall_always_fails():
 
 def test_logic_fails_once():
     assert runs("logic_once") > 1
+
+
+@pytest.mark.hil
+def test_firmware_fails_once():
+    assert runs("firmware_once") > 1
 """
 
 SANDBOX_CONFTEST = """
@@ -55,7 +61,7 @@ pytest_runtest_logreport = suite.pytest_runtest_logreport
 
 
 def pytest_configure(config):
-    for tier in suite.WALL_CLOCK_TIERS:
+    for tier in (*suite.WALL_CLOCK_TIERS, "hil"):
         config.addinivalue_line("markers", tier)
 
 
@@ -86,12 +92,13 @@ def _run(tmp_path: Path, reruns: str | None) -> tuple[subprocess.CompletedProces
 def test_a_wall_clock_failure_runs_again_at_once_and_only_last_verdicts_are_logged(tmp_path):
     r, counts, logged = _run(tmp_path, "1")
     assert r.returncode == 1, r.stdout[-2000:]
-    # the wall-clock tests ran twice each, the logic test once
-    assert counts == {"wall_once": 2, "wall_always": 2, "logic_once": 1}, counts
+    # the wall-clock tests ran twice each, the logic and the firmware test once
+    assert counts == {"wall_once": 2, "wall_always": 2, "logic_once": 1, "firmware_once": 1}, counts
     assert "RERUN test_sandbox.py::test_wall_fails_once" in r.stdout, r.stdout[-2000:]
-    assert "2 rerun" in r.stdout and "2 failed, 1 passed" in r.stdout, r.stdout[-800:]
+    assert "2 rerun" in r.stdout and "3 failed, 1 passed" in r.stdout, r.stdout[-800:]
     # the failures log: what failed in the end, with its tier (the one that passed on its second run is not there)
-    assert logged == ["test_sandbox.py::test_logic_fails_once\tlogic\tcall",
+    assert logged == ["test_sandbox.py::test_firmware_fails_once\tlogic\tcall",
+                      "test_sandbox.py::test_logic_fails_once\tlogic\tcall",
                       "test_sandbox.py::test_wall_always_fails\twall\tcall"], logged
 
 
@@ -99,8 +106,8 @@ def test_without_the_setting_nothing_is_rerun(tmp_path):
     """A developer's own pytest run (and the script's serial rerun at the end) judges each test once."""
     r, counts, logged = _run(tmp_path, None)
     assert r.returncode == 1
-    assert counts == {"wall_once": 1, "wall_always": 1, "logic_once": 1}, counts
+    assert counts == {"wall_once": 1, "wall_always": 1, "logic_once": 1, "firmware_once": 1}, counts
     assert "rerun" not in r.stdout.splitlines()[-1]
     assert [line.split("\t")[:2] for line in logged] == [
-        ["test_sandbox.py::test_logic_fails_once", "logic"], ["test_sandbox.py::test_wall_always_fails", "wall"],
-        ["test_sandbox.py::test_wall_fails_once", "wall"]]
+        ["test_sandbox.py::test_firmware_fails_once", "logic"], ["test_sandbox.py::test_logic_fails_once", "logic"],
+        ["test_sandbox.py::test_wall_always_fails", "wall"], ["test_sandbox.py::test_wall_fails_once", "wall"]]
