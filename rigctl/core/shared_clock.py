@@ -42,9 +42,10 @@ __all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "clock_of_port"]
 LEAD_S = 0.05
 #: period of the heartbeat of the host's process, s (wall clock)
 HEARTBEAT_S = 0.005
-#: wall-clock step of a host wait that polls the world's time, s
+#: the shortest wall-clock step of a host wait that looks at the world's time, s
 WAIT_STEP_S = 0.0005
-#: the longest wall-clock step of a host wait on a world that tells its steps (``world_notifies``), s
+#: the longest wall-clock step of a host wait, s (each look grants the world LEAD_S more: an unpaced world is held
+#: back by a waiting host only beyond LEAD_S / MAX_WAIT_STEP_S = 10x real time)
 MAX_WAIT_STEP_S = 0.005
 
 
@@ -171,9 +172,11 @@ class SharedClock:
         self.wait_for(None, s)
 
     def wait_for(self, ready: Callable[[], bool] | None, timeout_s: float,
-                 wall_step_s: float = WAIT_STEP_S) -> bool:
-        """Wait until ``ready()`` (asked every ``wall_step_s`` of wall time) or until ``timeout_s`` of simulated
-        time have passed; the world may run to the deadline meanwhile. Returns whether ``ready()`` came true
+                 max_step_s: float = MAX_WAIT_STEP_S) -> bool:
+        """Wait until ``ready()`` or until ``timeout_s`` of simulated time have passed; the world may run on
+        meanwhile. ``ready()`` and the clock are looked at after each step of the world (``world_notifies``) and at
+        least every ``max_step_s`` of wall time (at most every :data:`WAIT_STEP_S`, and no later than the time left
+        on the deadline, of which a paced world spends no less wall time). Returns whether ``ready()`` came true
         (``ready`` None: waits the whole time, returns False)."""
         t = self.now()
         deadline = t + max(0.0, float(timeout_s))
@@ -190,11 +193,12 @@ class SharedClock:
                 left = deadline - t
                 if left <= 0.0:
                     return ready() if ready is not None else False
-                if self.world_notifies:  # woken by the world's next step (at most MAX_WAIT_STEP_S of wall time)
+                step = min(max_step_s, max(WAIT_STEP_S, left))
+                if self.world_notifies:  # woken by the world's next step
                     with self._moved:
-                        self._moved.wait(min(MAX_WAIT_STEP_S, max(wall_step_s, left)))
+                        self._moved.wait(step)
                 else:
-                    time.sleep(wall_step_s)
+                    time.sleep(step)
         finally:
             with self._lock:
                 del self._waits[key]

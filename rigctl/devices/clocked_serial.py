@@ -49,7 +49,8 @@ class ClockedSerialClient(ModbusSerialClient):
                 seen[0], seen[1] = available, True
             return False
 
-        self.clock.wait_for(settled, float(self.comm_params.timeout_connect or 0.0))
+        # looked at as often as pymodbus' own wait looks (its receive interval: 4 character times, at least 1 ms)
+        self.clock.wait_for(settled, float(self.comm_params.timeout_connect or 0.0), max_step_s=self._recv_interval)
         return self._waiting()
 
     def recv(self, size: int | None) -> bytes:
