@@ -42,9 +42,9 @@ class Controller:
     actuator_mm : ``() -> mm``, where the actuator physically is (the physics model, or the harness's step count)
     load_g : ``() -> g``, the force physically on the load cell (the model's reading, or the harness's spring)
     drum_travel_mm : ``() -> mm``, the drum's surface travel so far (the model, or the STEP pulses on the pin)
-    clock_s : ``() -> s``, the controller's own clock, read without a request (the host's monotonic clock that the
-        virtual Mega's watchdog and physics follow, or simavr's simulated time, which falls behind real time on a
-        starved machine)
+    clock_s : ``() -> s``, the controller's own clock, read without a request: the rig's one clock, which the host
+        shares with the boards (the model's or simavr's simulated time: docs/architecture.md "Time on a simulated
+        rig"; a starved host pauses it)
     power_up_holding, power_up_inputs : the holding and input registers read right after power-up, before any
         test wrote anything
     reset : ``cause -> None``, reset the MCU while the mechanics stay as they are (a reset under load): "external"
@@ -82,25 +82,10 @@ class Controller:
     rig: Any = None
 
 
-class ControllerClock:
-    """A DrumClient clock (``now()``, ``sleep(s)``) whose ``now`` is the controller's own clock
-    (:attr:`Controller.clock_s`): the suite's waits and deadlines are in the controller's time, so a starved
-    simavr (slower than real time) slows a test down but cannot fail it. A controller that stops altogether is
-    caught by its clock (the HIL harness's telemetry raises after 5 s without a report)."""
-
-    def __init__(self, now: Callable[[], float]):
-        self.now = now
-
-    @staticmethod
-    def sleep(s: float) -> None:
-        time.sleep(s)
-
-
-def _open_client(ctl: Controller, clock: ControllerClock | None = None) -> DrumClient:
-    """The host's DrumClient on ``ctl``, with the answer timeout ``open_rig`` gives a rig of its kind (simavr and the
-    virtual Mega share a loaded 2-core machine with other jobs)."""
-    return DrumClient(ctl.port, timeout_s=drum_answer_timeout_s(ctl.name), retries=2, poll_s=0.02,
-                      clock=clock).open()
+def _open_client(ctl: Controller) -> DrumClient:
+    """The host's DrumClient on ``ctl``, with the answer timeout ``open_rig`` gives a rig of its kind, on the rig's
+    clock (found by the port: its waits, deadlines and answer timeout in the controller's time)."""
+    return DrumClient(ctl.port, timeout_s=drum_answer_timeout_s(ctl.name), retries=2, poll_s=0.02).open()
 
 
 def _read_power_up(ctl: Controller) -> None:
@@ -140,7 +125,8 @@ def _start_sim(config=None, image: str = ""):
                            set_polarity=set_polarity, break_home_switch=mega.break_home_switch,
                            corrupt_eeprom=mega.corrupt_eeprom, hang=mega.hang_loop,
                            reverse_actuator=lambda r: setattr(model, "actuator_sign", -1 if r else 1),
-                           drivers_enabled=lambda: mega.drivers_enabled, mechanics_s=lambda: model.time_s, rig=rig)
+                           drivers_enabled=lambda: mega.drivers_enabled, mechanics_s=lambda: model.time_s,
+                           clock_s=rig.clock.now, rig=rig)
 
 
 def _start_hil(config=None, image: str = "mega_drum"):
@@ -155,7 +141,7 @@ def _start_hil(config=None, image: str = "mega_drum"):
     return rig, Controller("hil", rig.drum_port, rig.bump, actuator_mm=lambda: rig.next_telemetry().act_mm,
                            load_g=lambda: rig.next_telemetry().force_g,
                            drum_travel_mm=lambda: rig.next_telemetry().drum_steps * rig.mm_per_step,
-                           clock_s=lambda: rig.next_telemetry().t_s, reset=rig.reset_mega, set_estop=rig.set_estop,
+                           clock_s=rig.clock.now, reset=rig.reset_mega, set_estop=rig.set_estop,
                            set_polarity=rig.set_loadcell_polarity, break_home_switch=rig.break_home_switch,
                            corrupt_eeprom=rig.corrupt_eeprom, hang=rig.hang_loop,
                            reverse_actuator=rig.reverse_actuator, drivers_enabled=lambda: rig.next_telemetry().drivers_enabled,
@@ -223,7 +209,7 @@ QUIET_WATCHDOG_MS = wire.HOLDING_RANGE[HR.WATCHDOG_MS][1]
 def drum(controller) -> DrumClient:
     """The host's DrumClient on ``controller``, homed (WATCHDOG_MS at :data:`QUIET_WATCHDOG_MS`), which is left homed
     and IDLE with default registers afterwards."""
-    client = _open_client(controller, ControllerClock(controller.clock_s))
+    client = _open_client(controller)
     try:
         home(client)
         client.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)

@@ -15,7 +15,7 @@ from rigctl.devices.errors import ModbusExceptionError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
 from rigctl.simulation.model import DrumConfig, MechanicsConfig, RigConfig
 
-from .conftest import QUIET_WATCHDOG_MS, ControllerClock, _open_client, _start_hil, _start_sim, home
+from .conftest import QUIET_WATCHDOG_MS, _open_client, _start_hil, _start_sim, home
 
 TOL_G = 15  # FORCE_TOLERANCE_G default
 
@@ -28,7 +28,7 @@ def make_rig(request):
     def make(config: RigConfig):
         rig, ctl = (_start_sim if request.param == "sim" else _start_hil)(config)
         opened.append(rig)
-        drum = _open_client(ctl, ControllerClock(ctl.clock_s))
+        drum = _open_client(ctl)
         opened.append(drum)
         drum.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)  # a host starved on a loaded machine: not a fault here
         home(drum)  # powered up NOT_HOMED: a rig homes when it opens (a controller in FAULT stays so)

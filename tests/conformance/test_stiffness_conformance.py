@@ -16,7 +16,7 @@ from rigctl.devices.errors import DrumContactTooStiff
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 
-from .conftest import QUIET_WATCHDOG_MS, ControllerClock, home
+from .conftest import QUIET_WATCHDOG_MS, home
 
 
 def _rig(backend: str, stiffness_g_per_mm: float, truth):
@@ -26,14 +26,13 @@ def _rig(backend: str, stiffness_g_per_mm: float, truth):
         from rigctl.simulation.rig import SimulatedRig
 
         rig = SimulatedRig(config, seed=3, truth_log=truth).start()
-        clock = ControllerClock(lambda: rig.model.time_s)
     else:
         from rigctl import firmware
         from rigctl.simulation import hil
 
         firmware.build()
         rig = hil.HilRig(config, live=False, with_uno=False, tel_ms=5.0, truth_log=truth).start()
-        clock = ControllerClock(lambda: rig.next_telemetry().t_s)
+    clock = rig.clock  # the rig's one clock (the controller's time)
     drum = DrumClient(rig.drum_port, timeout_s=2.0, clock=clock).open()
     drum.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)
     home(drum)
