@@ -1,12 +1,15 @@
-"""The simulated rig: physical model + virtual Mega + virtual Uno on real ptys, on one real-time physics clock.
+"""The simulated rig: physical model + virtual Mega + virtual Uno on real ptys, on one physics clock shared with the
+host (:attr:`SimulatedRig.clock`, docs/architecture.md "Time on a simulated rig").
 
 A client uses exactly the code paths it uses with hardware: :class:`rigctl.devices.drum.DrumClient` on
 :attr:`SimulatedRig.drum_port` (Modbus RTU via pymodbus) and :class:`rigctl.devices.taxel_stream.TaxelStream` on
 :attr:`SimulatedRig.taxel_port` (pyserial). One thread owns the clock: every few ms it hands the elapsed
 milliseconds to the Mega (which advances :class:`rigctl.simulation.model.RigModel` under its drum and actuator
 commands, then runs its control logic) and the resulting taxel samples and index pulses to the Uno (which frames
-and sends them if streaming). Millisecond k is simulated no earlier than ``t0 + k`` ms, so the stream's long-run
-rate is exactly 1000 frames/s. While the Uno does not stream, the thread wakes every :data:`IDLE_TICK_S` instead
+and sends them if streaming). Paced, millisecond k is simulated no earlier than ``t0 + k`` ms, so the stream's
+long-run rate is 1000 frames/s of wall time while the host keeps up; no millisecond is simulated more than 50 ms
+past the host's last sign of life (a starved host pauses the rig, which then goes on without a burst). While the
+Uno does not stream, the thread wakes every :data:`IDLE_TICK_S` instead
 (the same milliseconds in longer steps, as a starved thread takes them; the Mega's control logic still acts at each
 HX711 reading and at least every ``max_step_ms``).
 
