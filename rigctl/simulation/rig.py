@@ -121,7 +121,8 @@ class SimulatedRig:
         self.paced = bool(paced)
         self.clock = SharedClock(self.model_time_s, on_grant=self._granted, world_notifies=True)
         self._loop = WorldLoop(self.clock, self._now_ms, self._step, paced=self.paced, tick_s=self.tick_s,
-                               idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r)
+                               idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r,
+                               board_busy=self.mega.at_request)
         self.mega.use_clock(self.model_time_s)
         self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None

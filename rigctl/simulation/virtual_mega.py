@@ -166,6 +166,13 @@ class VirtualMega(MegaController):
             self._now = now
             self._last_request = now()
 
+    def at_request(self) -> bool:
+        """A request of the host is on its way in or its answer on its way out, between the host's port and the
+        Modbus server (its threads are the board's, outside the physics clock: a world on the shared clock waits for
+        them, as the firmware answers within a millisecond of its own time). Lock-free."""
+        bridge = self.bridge
+        return bool(bridge.bytes_to_board() or bridge.bytes_from_board())
+
     # ------------------------------------------------------------------ lifecycle
     @property
     def path(self) -> str:
@@ -223,7 +230,7 @@ class VirtualMega(MegaController):
             self.clock.own_port(self.path)
             self.use_clock(self.clock.now)
             loop = WorldLoop(self.clock, lambda: int(round(self.model.time_s * 1000.0)), self.step,
-                             tick_s=control_period_s)
+                             tick_s=control_period_s, board_busy=self.at_request)
             self._clock_thread = threading.Thread(
                 target=board_thread(loop.run), args=(self._stop,), name="virtual-mega-control",
                 daemon=True)

@@ -26,6 +26,11 @@ log = logging.getLogger(__name__)
 MAX_CATCH_UP_S = 0.25
 #: the longest wait of a world held back by the host before it looks at the horizon again, s (a grant wakes it)
 HELD_WAIT_S = 0.005
+#: the wait of a world whose board is still taking in or answering a request (``board_busy``), s
+BUSY_WAIT_S = 0.0005
+#: the longest a board's request handling holds the world, s of wall time (a thread of the board that never gets
+#: to it: the world goes on, and the host may see a late answer, as before the shared clock)
+BUSY_MAX_S = 2.0
 
 
 class WorldLoop:
@@ -40,11 +45,17 @@ class WorldLoop:
     tick_s : period of the steps while busy (``idle()`` False), s of wall time paced, of simulated time unpaced.
     idle, idle_tick_s : after a step for which ``idle()`` is True, the next comes ``idle_tick_s`` later (paced).
     wake_fd : read end of a pipe; a byte ends a wait (a command to act on, or a new grant while :attr:`held`).
+    board_busy : whether a board's own threads outside this loop are still taking in or answering a request of the
+        host (the virtual Mega's Modbus server and pty bridge: :meth:`rigctl.simulation.pty.PtyBridge.bytes_to_board`,
+        ``bytes_from_board``). The firmware does that within about a millisecond of its own time, so the world does
+        not move on meanwhile (at most :data:`BUSY_MAX_S` of wall time): a starved server thread is a paused board,
+        not a late one.
     """
 
     def __init__(self, clock: SharedClock, now_ms: Callable[[], int], step: Callable[[int], object], *,
                  paced: bool = True, tick_s: float = 0.005, idle: Callable[[], bool] | None = None,
-                 idle_tick_s: float | None = None, wake_fd: int | None = None) -> None:
+                 idle_tick_s: float | None = None, wake_fd: int | None = None,
+                 board_busy: Callable[[], bool] | None = None) -> None:
         self.clock = clock
         self.now_ms = now_ms
         self.step = step
@@ -53,6 +64,7 @@ class WorldLoop:
         self.idle = idle
         self.idle_tick_ms = max(self.tick_ms, int(round((idle_tick_s or tick_s) * 1000)))
         self.wake_fd = wake_fd
+        self.board_busy = board_busy
         #: the world waits for the host's grant (the host is starved, or the world unpaced is ahead)
         self.held = False
         #: wall seconds the world spent held back by the host
@@ -79,8 +91,16 @@ class WorldLoop:
         wall0, sim0 = monotonic(), done  # paced: ms sim0 + k no earlier than wall0 + k ms
         ahead = self.tick_ms
         woken = False
+        busy, busy_since = self.board_busy, None
         while not stopped():
             limit = int(clock.horizon_s * 1000.0 + 1e-9)
+            if busy is not None and busy():  # the board is at a request: its time stands still meanwhile
+                now = monotonic()
+                busy_since = now if busy_since is None else busy_since
+                if now - busy_since < BUSY_MAX_S:
+                    limit = done
+            else:
+                busy_since = None
             if self.paced:
                 due = sim0 + int((monotonic() - wall0) * 1000.0)
                 target = min(due, limit)
@@ -101,7 +121,9 @@ class WorldLoop:
             if target < due:  # held back by the host: wait for its grant
                 self.held = True
                 t0 = monotonic()
-                if int(clock.horizon_s * 1000.0 + 1e-9) <= done:
+                if busy_since is not None:
+                    time.sleep(BUSY_WAIT_S)
+                elif int(clock.horizon_s * 1000.0 + 1e-9) <= done:
                     self._wait(HELD_WAIT_S)
                 self.held = False
                 self.held_s += monotonic() - t0
