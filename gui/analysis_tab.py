@@ -8,6 +8,7 @@ texture classifier used by the real-time classification view."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 
 import numpy as np
 import pyqtgraph as pg
@@ -64,9 +65,13 @@ class AnalysisTab(QtWidgets.QWidget):
 
     heat_bar: pg.ColorBarItem  # the heat maps' one colour bar (:meth:`_build_trial_view`)
 
-    def __init__(self, main, parent=None):
+    #: a staged build (``staged=True``) has finished: every view exists (GUI thread)
+    built = QtCore.Signal()
+
+    def __init__(self, main, parent=None, *, staged: bool = False):
         super().__init__(parent)
         self.main = main
+        self._steps: Iterator[None] | None = None  # a staged build under way: its remaining steps
         self.path: str | None = None
         self.kind: str | None = None
         self.encoded_path: str | None = None
@@ -79,16 +84,57 @@ class AnalysisTab(QtWidgets.QWidget):
         self._session_range = None
         self.sensor_layout: SensorLayout = PAPER_SENSOR  # the open file's sensor (shapes the trial view)
 
-        leftw = self._build_controls()
         self.views = _Views()
-        self._build_trial_tab()
-        self._build_accuracy_tab()
-        self._build_table1_tab()
-        self._build_confusion_tab()
-        lay = QtWidgets.QHBoxLayout(self)
-        lay.addWidget(leftw)
+        self._lay = lay = QtWidgets.QHBoxLayout(self)
         lay.addWidget(self.views, 1)
+        if staged:  # one plot per pass of the event loop (the whole tab held the GUI thread ~0.7-1.6 s: issue 51)
+            self._steps = self._view_steps()
+            self._step_timer = QtCore.QTimer(self, singleShot=True, interval=0)
+            self._step_timer.timeout.connect(self._build_step)
+            self._step_timer.start()
+        else:
+            for _ in self._view_steps():
+                pass
+
+    def _view_steps(self) -> Iterator[None]:
+        """The controls, then the result views, built in steps (a yield after each plot); the controls stay disabled
+        until every view exists."""
+        self._leftw = leftw = self._build_controls()
+        self._lay.insertWidget(0, leftw)
+        leftw.setEnabled(False)
+        yield
+        yield from self._build_trial_tab()
+        self._build_accuracy_tab()
+        yield
+        self._build_table1_tab()
+        yield
+        self._build_confusion_tab()
+        self._leftw.setEnabled(True)
         self._update_buttons()
+
+    @property
+    def building(self) -> bool:
+        """A staged build (``AnalysisTab(main, staged=True)``) is under way."""
+        return self._steps is not None
+
+    def _build_step(self) -> None:
+        if self._steps is None:
+            return
+        try:
+            next(self._steps)
+        except StopIteration:
+            self._steps = None
+            self.built.emit()
+        else:
+            self._step_timer.start()
+
+    def finish_build(self) -> None:
+        """Finish a staged build now."""
+        steps, self._steps = self._steps, None
+        if steps is not None:
+            for _ in steps:
+                pass
+            self.built.emit()
 
     def _build_controls(self) -> QtWidgets.QWidget:
         """The left panel: file, trials, the analyses' options and buttons, the model trainer, the exports."""
@@ -176,8 +222,8 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trials.setMinimumHeight(170)  # several rows even in a short window (the panel scrolls instead)
         return side_panel(left, 400)
 
-    def _build_trial_tab(self) -> None:
-        """The trial view: raw traces and SA/RA rasters (left), one heat map per taxel layer (right)."""
+    def _build_trial_tab(self) -> Iterator[None]:
+        """The trial view: raw traces and SA/RA rasters (left), one heat map per taxel layer (right); in steps."""
         # trial view: raw traces and SA/RA rasters (left), one heat map per taxel layer (right)
         trialw = QtWidgets.QWidget()
         tlay = QtWidgets.QHBoxLayout(trialw)
@@ -197,6 +243,7 @@ class AnalysisTab(QtWidgets.QWidget):
         self.trial_plot.getAxis("left").setWidth(TRIAL_AXIS_PX)
         self.trial_curves: list = []
         self.trial_rasters = {}
+        yield
         for row, (key, title, colour) in enumerate([("sa", "SA spikes", "#1f77b4"), ("ra", "RA spikes", "#d62728")],
                                                    start=1):
             p = self.trial_gl.addPlot(row=row, col=0, title=title)
@@ -205,6 +252,7 @@ class AnalysisTab(QtWidgets.QWidget):
             c = pg.PlotCurveItem(pen=pg.mkPen(colour, width=1), connect="pairs")
             p.addItem(c)
             self.trial_rasters[key] = (p, c)
+            yield
         self.trial_rasters["ra"][0].setLabel("bottom", "time in trial (s)")
         self.heat_gl = pg.GraphicsLayoutWidget()
         self.heat_gl.setFixedWidth(230)
@@ -219,7 +267,7 @@ class AnalysisTab(QtWidgets.QWidget):
         tlay.addWidget(self.heat_gl)
         self._set_trial_busy(None)
         self.views.addTab(trialw, "Trial")
-        self._build_trial_view(PAPER_SENSOR)
+        yield from self._trial_view_steps(PAPER_SENSOR)
 
     def _build_accuracy_tab(self) -> None:
         """Accuracy vs number of PCs (Fig. 3), one curve per variant of the chosen task."""
@@ -300,6 +348,11 @@ class AnalysisTab(QtWidgets.QWidget):
     def _build_trial_view(self, layout: SensorLayout) -> None:
         """One trace per channel, raster rows per channel and a heat map per layer (rows x cols) of ``layout``; the
         sensor shown already (another file of it): its plots again, emptied."""
+        for _ in self._trial_view_steps(layout):
+            pass
+
+    def _trial_view_steps(self, layout: SensorLayout) -> Iterator[None]:
+        """:meth:`_build_trial_view` in steps (a yield after each heat map)."""
         if layout == self.sensor_layout and self.heat_plots:
             for c in self.trial_curves:
                 c.setData([], [])
@@ -336,6 +389,7 @@ class AnalysisTab(QtWidgets.QWidget):
             if la.n_channels <= 64:  # each taxel's number in its cell
                 add_taxel_numbers(p, la.rows, la.cols, layout.layer_channels(i).start)
             self.heat_plots.append((p, img))
+            yield
         # one colour bar for every map: mean ADC counts of the trial (an encoded file without its session: SA
         # spike counts)
         self.heat_bar = pg.ColorBarItem(values=(0, layout.adc_max), colorMap=cmap, interactive=False,
@@ -626,6 +680,8 @@ class AnalysisTab(QtWidgets.QWidget):
         """Pull the trial job and the background job (the main window's timer calls this). Whatever a finished job
         brings, the outcome is shown in the tab and the panel is never left busy: an error while showing a result
         is reported in the status line, not raised into the event loop."""
+        if self._steps is not None:  # (a staged build: nothing to pull yet)
+            return
         tj = self._trial_job
         if tj is not None and tj.done:
             try:
@@ -839,7 +895,7 @@ class AnalysisTab(QtWidgets.QWidget):
         """Size the confusion counts to their cells (three-digit counts spilled into the next cell): the largest
         font, up to 10 px, whose widest count takes at most 85 % of a cell's width on screen and whose line fits its
         height; the counts are hidden when a cell is too small for 5 px."""
-        if not self.conf_counts:
+        if not getattr(self, "conf_counts", None):  # (a staged build: not there yet)
             return
         n = max(1, self.conf_img.image.shape[0] if self.conf_img.image is not None else 1)
         vb = self.conf_plot.plotItem.vb

@@ -250,45 +250,81 @@ class MainWindow(QtWidgets.QMainWindow):
     def live(self) -> LiveView:
         """The Live view (:class:`rigctl_gui.live_view.LiveView`), built the first time it is shown or asked for (its
         plots were ~40 % of the window's start-up, and a session that never looks at it does not pay for them), with
-        the stale-data marker over it; it shows the connected rig's stream from then on."""
+        the stale-data marker over it; it shows the connected rig's stream from then on. Asked for, it is built (or
+        its staged build finished) at once; shown, it is built one plot per pass of the event loop (:meth:`_build_live`)."""
         if self._live is None:
-            from rigctl_gui.live_view import LiveView
-
-            view = self._live = LiveView()
-            self.tabs.replace_page(self._live_index, view)
-            # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
-            self.stale_label = QtWidgets.QLabel(view)
-            self.stale_label.setObjectName("stale_marker")
-            self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
-            self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
-            self.stale_label.hide()
-            if self._live_source is not None:
-                view.attach(*self._live_source)
-            self._guard_new_widgets(view)
-            QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
+            self._build_live(staged=False)
+        elif self._live.building:
+            self._live.finish_build()
+        assert self._live is not None
         return self._live
+
+    def _build_live(self, *, staged: bool) -> None:
+        """Make the Live view; ``staged``: its plots one per pass of the event loop (the first showing while the
+        drum turns held the GUI thread 0.5-1.2 s beside two CPU hogs: issue 51), shown once built."""
+        from rigctl_gui.live_view import LiveView
+
+        view = self._live = LiveView(staged=staged)
+        self.tabs.replace_page(self._live_index, view)
+        # a marker over the live view when its plots stop moving (no taxel frame for STALE_AFTER_S)
+        self.stale_label = QtWidgets.QLabel(view)
+        self.stale_label.setObjectName("stale_marker")
+        self.stale_label.setTextFormat(QtCore.Qt.TextFormat.PlainText)
+        self.stale_label.setStyleSheet("background: #c00; color: white; font-weight: bold; padding: 4px 10px;")
+        self.stale_label.hide()
+        if staged:
+            view.built.connect(self._live_built)
+        else:
+            self._live_built()
+
+    def _live_built(self) -> None:
+        """The Live view's plots exist: it shows the connected rig's stream (unless attached meanwhile)."""
+        view = self._live
+        if view is None:
+            return
+        if self._live_source is not None and view.buffer is None:
+            view.attach(*self._live_source)
+        self._guard_new_widgets(view)
+        QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
 
     @property
     def analysis(self) -> AnalysisTab:
         """The Analysis tab (:class:`rigctl_gui.analysis_tab.AnalysisTab`), built the first time it is shown or
-        asked for: its plots were ~40 % of the window's start-up, and most sessions at the rig never open it."""
+        asked for: its plots were ~40 % of the window's start-up, and most sessions at the rig never open it. Asked
+        for, it is built (or its staged build finished) at once; shown, one plot per pass of the event loop."""
         if self._analysis is None:
-            from rigctl_gui.analysis_tab import AnalysisTab
-
-            tab = AnalysisTab(self)
-            self.tabs.replace_page(self._analysis_index, tab)
-            self._analysis = tab
-            self._guard_new_widgets(tab)
-            # laid out now, as the window's other pages were before it was shown (not an event loop pass later)
-            QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
-            self.analysis_built.emit()
+            self._build_analysis(staged=False)
+        elif self._analysis.building:
+            self._analysis.finish_build()
+        assert self._analysis is not None
         return self._analysis
 
+    def _build_analysis(self, *, staged: bool) -> None:
+        from rigctl_gui.analysis_tab import AnalysisTab
+
+        tab = AnalysisTab(self, staged=staged)
+        self.tabs.replace_page(self._analysis_index, tab)
+        self._analysis = tab
+        if staged:
+            tab.built.connect(self._analysis_done)
+        else:
+            self._analysis_done()
+
+    def _analysis_done(self) -> None:
+        """The Analysis tab's views exist: the window's guards on them, laid out, :attr:`analysis_built`."""
+        tab = self._analysis
+        if tab is None:
+            return
+        self._guard_new_widgets(tab)
+        # laid out now, as the window's other pages were before it was shown (not an event loop pass later)
+        QtWidgets.QApplication.sendPostedEvents(None, QtCore.QEvent.Type.LayoutRequest)
+        self.analysis_built.emit()
+
     def _build_shown_tab(self, index: int) -> None:
-        if index == self._analysis_index:
-            self.analysis  # noqa: B018 - built on first show
-        elif index == self._live_index:
-            self.live  # noqa: B018 - built on first show
+        if index == self._analysis_index and self._analysis is None:
+            self._build_analysis(staged=True)  # built on first show, a plot at a time
+        elif index == self._live_index and self._live is None:
+            self._build_live(staged=True)  # built on first show, a plot at a time
         if self.encoder is not None:  # the live encoder runs while its spikes are shown (it catches up on showing)
             self.encoder.set_active(self._live_shown())
 

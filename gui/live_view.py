@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pyqtgraph as pg
@@ -339,9 +340,14 @@ class LiveView(QtWidgets.QWidget):
     ``window_s``: the time window of the traces and the rasters (s); ``auto_range``: y axes of the traces follow the
     data (else 0-``adc_max``)."""
 
+    #: a staged build (``staged=True``) has finished: every plot exists (GUI thread)
+    built = QtCore.Signal()
+
     def __init__(self, parent=None, *, window_s: float = 2.0, auto_range: bool = True,
-                 layout: SensorLayout = PAPER_SENSOR):
+                 layout: SensorLayout = PAPER_SENSOR, staged: bool = False):
         super().__init__(parent)
+        self._steps: Iterator[None] | None = None  # a staged build under way: its remaining steps
+        self._complete = False  # every plot of the layout exists (fit_plots has something to fit)
         self.encoder = None
         self.buffer: TraceBuffer | None = None
         self.sensor_layout: SensorLayout | None = None
@@ -401,7 +407,13 @@ class LiveView(QtWidgets.QWidget):
         self._fit_timer.timeout.connect(self.fit_plots)
         self.gl.resized.connect(self._fit_timer.start)
         self.gl.ci.layout.setSpacing(4)
-        self.set_layout(layout)
+        if staged:  # one plot per pass of the event loop (each ~20-60 ms), never the whole ~0.5 s at once
+            self._steps = self._layout_steps(layout)
+            self._step_timer = QtCore.QTimer(self, singleShot=True, interval=0)
+            self._step_timer.timeout.connect(self._build_step)
+            self._step_timer.start()
+        else:
+            self.set_layout(layout)
 
         # the plots keep readable heights (MIN_TRACE_PX, MIN_RASTER_PX): a shorter tab scrolls them
         self.plot_scroll = QtWidgets.QScrollArea(widgetResizable=True)
@@ -412,6 +424,21 @@ class LiveView(QtWidgets.QWidget):
         lay.addLayout(bar)
         lay.addLayout(self._bar2)
         lay.addWidget(self.plot_scroll, 1)
+        if staged:  # shown whole once built: no paint of a half-built grid between the steps
+            self.plot_scroll.hide()
+            self._building_label = QtWidgets.QLabel("building the live plots...")
+            self._building_label.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+            lay.addWidget(self._building_label, 1)
+            self.built.connect(self._show_built)
+
+    def _show_built(self) -> None:
+        label = getattr(self, "_building_label", None)
+        if label is not None:
+            label.hide()
+            label.deleteLater()
+            self._building_label = None
+        self.plot_scroll.show()
+        self._arrange_bar()  # (the bar's rows for the tab's width: no resize may come once it is built)
 
     def _bar_widths(self) -> tuple[int, int]:
         """The width (px) the bar needs on one row, and on two rows (the rates and the sensor on the second)."""
@@ -458,12 +485,46 @@ class LiveView(QtWidgets.QWidget):
         """Every plot on the shared time axis: the trace plots, then the SA and RA rasters."""
         return [*self.trace_plots, *self.raster_plots.values()]
 
+    @property
+    def building(self) -> bool:
+        """A staged build (``LiveView(staged=True)``) is under way: the plots are not all there yet."""
+        return self._steps is not None
+
+    def _build_step(self) -> None:
+        """One step of the staged build (a plot, a heat map, the colour bar); the next at the next pass of the event
+        loop, so the GUI thread answers in between (the dead man's switch: 0.5 s)."""
+        if self._steps is None:
+            return
+        try:
+            next(self._steps)
+        except StopIteration:
+            self._steps = None
+            self.built.emit()
+        else:
+            self._step_timer.start()
+
+    def finish_build(self) -> None:
+        """Finish a staged build now (what needs every plot: attach, a window change, a caller)."""
+        steps, self._steps = self._steps, None
+        if steps is not None:
+            for _ in steps:
+                pass
+            self.built.emit()
+
     def set_layout(self, layout: SensorLayout) -> None:
         """Build the plots for ``layout``: per layer a trace plot (one curve per taxel, a colour legend) and a rows
         x cols heat map (taxel numbers, one colour bar), and an SA and an RA raster of ``layout.n_channels`` rows.
         Nothing is rebuilt when the layout is unchanged."""
+        self.finish_build()
+        for _ in self._layout_steps(layout):
+            pass
+
+    def _layout_steps(self, layout: SensorLayout) -> Iterator[None]:
+        """:meth:`set_layout` in steps: it yields after each plot (the staged build runs one step per pass of the
+        event loop)."""
         if layout == self.sensor_layout:
             return
+        self._complete = False
         self.sensor_layout = layout
         self.gl.clear()
         self.sensor_label.setText(f"  sensor {layout.shape_text}, {layout.n_channels} taxels, "
@@ -512,6 +573,7 @@ class LiveView(QtWidgets.QWidget):
             self.trace_items.append(item)
             self.curves.extend(item.curves)
             self.trace_plots.append(p)
+            yield
 
         # rasters: one row per taxel, one image per population, on the traces' time axis
         n = layout.n_channels
@@ -532,6 +594,7 @@ class LiveView(QtWidgets.QWidget):
             self.raster_plots[key] = p
             self.raster_images[key] = img
             self.drawn[key] = (np.zeros(0), np.zeros(0, np.int16))
+            yield
         self.raster_plots["ra"].setLabel("bottom", "time before now (s)")
         for p in self.time_plots[:-1]:  # one time axis: its values under the lowest plot only (the others' ticks stay)
             p.getAxis("bottom").setStyle(showValues=False)
@@ -562,6 +625,7 @@ class LiveView(QtWidgets.QWidget):
             if la.n_channels <= 64:  # the taxel numbers, top left in each cell, on a pale box (any colour under it)
                 self.taxel_labels.extend(add_taxel_numbers(vb, la.rows, la.cols, ch0))
             self.images.append(img)
+            yield
         bar = pg.ColorBarItem(values=(0, adc_max), colorMap=cmap, interactive=False, colorMapMenu=False, width=12,
                               label="ADC counts")
         self.gl.addItem(bar, row=0, col=2, rowspan=n_layers)
@@ -575,6 +639,7 @@ class LiveView(QtWidgets.QWidget):
         mark_containers(self.gl.ci)
         for vb in [p.vb for p in self.time_plots] + [img.getViewBox() for img in self.images]:
             vb.sigResized.connect(self._fit_timer.start)
+        self._complete = True
         self.fit_plots()
         self._fit_timer.start()
 
@@ -583,6 +648,8 @@ class LiveView(QtWidgets.QWidget):
         fits its width (else its shorter text; a title never widens the column, so the heat maps and the colour bar
         keep their room), its title row as tall as that text, as many raster ticks as fit without overlapping, the
         plots' minimum height (the tab scrolls below it), and the taxel numbers (:meth:`fit_taxel_labels`)."""
+        if not self._complete:  # (a staged build: fitted once its last plot exists)
+            return
         for p, texts in self._titles.items():
             label, width = p.titleLabel, p.vb.width() or self.gl.width()  # the title spans the data area
             for text, size in [(t, s) for t in texts for s in TITLE_SIZES_PT]:
@@ -627,6 +694,7 @@ class LiveView(QtWidgets.QWidget):
 
     def set_window(self, seconds: float) -> None:
         """Show the last ``seconds`` (0.5-10 s) in the traces and the rasters alike (one time axis)."""
+        self.finish_build()
         self.window_s = float(np.clip(seconds, *WINDOW_RANGE_S))
         for p in self.time_plots:
             p.setXRange(-self.window_s, 0, padding=0)
@@ -637,6 +705,7 @@ class LiveView(QtWidgets.QWidget):
 
     def set_auto_range(self, on: bool) -> None:
         """Trace y axes follow the data in the window (``on``) or show the full ADC range."""
+        self.finish_build()
         if self.auto_box.isChecked() != bool(on):
             self.auto_box.setChecked(bool(on))
         self._y_ranges = [None] * len(self.trace_plots)
@@ -666,7 +735,7 @@ class LiveView(QtWidgets.QWidget):
     def refresh(self) -> bool:
         """Redraw from the encoder's buffers; returns True when new data was drawn."""
         enc, buf = self.encoder, self.buffer
-        if buf is None or not self.isVisible():
+        if buf is None or not self.isVisible() or self._steps is not None:
             return False
         if buf.pull() == 0:
             return False

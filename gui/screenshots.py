@@ -5,7 +5,8 @@ It opens the main window on the simulated rig and drives each tab the way an exp
 run the drum, record a short protocol, analyse a small generated dataset, calibrate the load cell, classify trials
 with the trained model), saving one PNG per tab: control.png, live.png, protocol.png, analysis.png,
 analysis_table1.png, analysis_confusion.png, calibration.png, classify.png; then stopped.png (a run stopped by STOP,
-resumable), fault.png (the latched-fault dialog after the e-stop, the whole screen) and handheld.png (the handheld
+resumable), pressed.png (the Rig control tab after an e-stop while pressing 500 g: the drivers off, the sensor still
+pressed), fault.png (the latched-fault dialog over it, the whole screen) and handheld.png (the handheld
 tab in a real-time block, stopped by STOP; ``python -m rigctl_gui.screenshots OUT_DIR handheld`` takes it alone, without the drum rig).
 ``--scale 1.5`` takes them at Qt's scale factor 1.5 (``QT_SCALE_FACTOR``; each ``--size`` is then the screen's pixels,
 the window 1/1.5 of it in Qt's), ``--palette dark`` with a dark desktop palette
@@ -227,7 +228,7 @@ def handheld_shots(w, app, shot, tmp: str) -> None:
 
 
 #: the shots of :func:`safety_shots`
-SAFETY_SHOTS = ("stopped", "fault")
+SAFETY_SHOTS = ("stopped", "fault", "pressed")
 
 
 def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) -> None:
@@ -269,9 +270,21 @@ def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) 
     bench = w.handle.control.bench  # the simulated bench's hand: the e-stop pressed for 2 s of the rig's clock
     assert bench is not None, "the screenshots need a simulated rig"
     w.fit_to_screen()  # the screen is grabbed: the whole window on it, its title bar too (as a desktop places it)
+    # the sensor pressed (500 g) when the e-stop is pressed: the drivers go off where they stand, the sensor stays
+    # pressed, and the window says so (pressed.png: the Rig control tab; fault.png: the dialog over it)
+    w.tabs.setCurrentWidget(w.control)
+    w.control.force.setValue(500.0)
+    w.control.command("press")
+    wait(lambda: w.poller.latest is not None and int(w.poller.latest.state) == 3, 60)  # FORCE_SETTLED
     bench.inject_faults([parse_fault("estop@0+2")])
     wait(lambda: w.fault_dialog is not None, 10)
     dlg = w.fault_dialog
+    if dlg is not None:
+        dlg.later_btn.click()  # Later: the window itself first
+    wait(lambda: "pressing" in w.control.state_label.text(), 10)
+    wait(lambda: False, 1.0)
+    save("pressed", w.grab())
+    dlg = w.open_fault_dialog()
     wait(lambda: dlg is not None and dlg.estop.text() == "released", 10)
     if dlg is not None:
         dlg.reason.setText("pressed to check a loose plate; plate G fastened again")
@@ -281,6 +294,8 @@ def safety_shots(w, app, out_dir: str, tmp: str, only: list[str] | None = None) 
     if dlg is not None:  # acknowledged, as the operator would: the shots after it show no latched fault
         dlg.acknowledge()
         wait(lambda: w.fault_dialog is None and not w.banners["fault"].isVisible(), 20)
+    w.control.command("home")  # acknowledging is not starting: the sensor is released by a start (HOME)
+    wait(lambda: w.poller.latest is not None and w.poller.latest.force_g < 20, 60)
 
 
 def _logical(size: tuple[int, int], scale: float) -> tuple[int, int]:

@@ -112,8 +112,9 @@ def test_the_analysis_tab_built_on_first_show_is_guarded_and_logged_like_the_res
     w.tabs.setCurrentIndex(0)
     qapp.processEvents()
     assert w._analysis is None and not started  # not built with the window, no server for a tab never shown
-    w.tabs.setCurrentIndex(w._analysis_index)  # the operator clicks its tab
+    w.tabs.setCurrentIndex(w._analysis_index)  # the operator clicks its tab: built a plot per event-loop pass
     tab = w._analysis
+    assert tab is not None and wait_for(qapp, lambda: not tab.building, 10)
     assert started == [1]
     w.tabs.setCurrentIndex(0)
     w.tabs.setCurrentIndex(w._analysis_index)
