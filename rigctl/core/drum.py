@@ -274,21 +274,21 @@ def status_line(st: "DrumStatus", latch: str | None = None, *, short: bool = Fal
 
     E.g. ``"FAULT (e-stop) - drum stopped, drivers off, actuator where it stopped, pressing 508 g"``, ``"Running -
     drum 80 mm/s, force loop holding 498 g"``, ``"Idle - drum at rest, actuator released"``. ``short``: the state and
-    the numbers only, for a narrow strip (``"FAULT, pressing 508 g"``, ``"Running 80 mm/s, 498 g"``)."""
+    the numbers only, for a narrow strip (``"FAULT, pressing 508 g"``, ``"Running 80 mm/s, 498 g"``; no latch label)."""
     try:
         state: DrumState | None = DrumState(int(st.state))
     except ValueError:
         state = None
     name = describe_state(int(st.state)).split(" - ")[0]
-    if latch and state == DrumState.FAULT:
-        name = f"{name} ({latch})"
     engaged = int(st.state) in _ENGAGED_STATES
-    if short:
+    if short:  # (the top strip's room: "Drum: Seeking force 120 mm/s, 1000 g")
         if engaged:
             return f"{name} {float(st.speed_mm_s):.0f} mm/s, {float(st.force_g):.0f} g"
         if float(st.force_g) >= PRESSING_G:
-            return f"{name}, {'drivers off, ' if not st.drivers_enabled else ''}pressing {float(st.force_g):.0f} g"
+            return f"{name}, pressing {float(st.force_g):.0f} g"
         return name
+    if latch and state == DrumState.FAULT:
+        name = f"{name} ({latch})"
     if engaged:
         if state == DrumState.RUNNING:
             drum = f"drum {float(st.speed_mm_s):.0f} mm/s"

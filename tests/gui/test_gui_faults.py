@@ -174,7 +174,7 @@ def test_the_status_line_tells_where_the_actuator_is():
                       actuator_mm=3.0, state=DrumState.FAULT, faults=Fault.ESTOP, firmware=(1, 0), heartbeat=0,
                       loadcell_raw=0, force_setpoint_active_g=0.0, flags=StatusFlag.ESTOP_OPEN)
     assert status_line(base) == "FAULT - drum stopped, drivers off, actuator where it stopped, pressing 508 g"
-    assert status_line(base, short=True) == "FAULT, drivers off, pressing 508 g"
+    assert status_line(base, "e-stop", short=True) == "FAULT, pressing 508 g"  # (the top strip's room)
     backing = dataclasses.replace(base, force_g=150.0, faults=Fault.FORCE_LIMIT, flags=StatusFlag.DRIVERS_ENABLED)
     assert status_line(backing, "force limit exceeded") == \
         "FAULT (force limit exceeded) - drum stopped, actuator backing off, pressing 150 g"

