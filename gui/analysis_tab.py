@@ -68,7 +68,7 @@ class AnalysisTab(QtWidgets.QWidget):
     #: a staged build (``staged=True``) has finished: every view exists (GUI thread)
     built = QtCore.Signal()
 
-    def __init__(self, main, parent=None, *, staged: bool = False):
+    def __init__(self, main, parent=None, *, staged=False):  # (staged: bool; the body is left unchecked, as before)
         super().__init__(parent)
         self.main = main
         self._steps: Iterator[None] | None = None  # a staged build under way: its remaining steps

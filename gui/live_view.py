@@ -426,7 +426,7 @@ class LiveView(QtWidgets.QWidget):
         lay.addWidget(self.plot_scroll, 1)
         if staged:  # shown whole once built: no paint of a half-built grid between the steps
             self.plot_scroll.hide()
-            self._building_label = QtWidgets.QLabel("building the live plots...")
+            self._building_label: QtWidgets.QLabel | None = QtWidgets.QLabel("building the live plots...")
             self._building_label.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
             lay.addWidget(self._building_label, 1)
             self.built.connect(self._show_built)
