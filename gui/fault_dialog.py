@@ -45,13 +45,15 @@ def latches_of(control: Any, faults: int) -> list[tuple[str, str, str]]:
     if latch is not None:
         from rigctl.acquisition.safety import CAUSES
 
-        label, todo = CAUSES.get(latch.cause, (latch.cause, ""))
-        out.append((str(label), str(latch.detail), str(todo)))
+        causes = tuple(getattr(latch, "causes", (latch.cause,)))  # (two faults at once: the library names both)
+        for i, cause in enumerate(causes):
+            label, todo = CAUSES.get(cause, (cause, ""))
+            out.append((str(label), str(latch.detail) if i == 0 else "", str(todo)))
         named = int(getattr(latch, "faults", 0) or 0)
     for bit in Fault:
         if int(faults) & int(bit) and not named & int(bit) and bit in FAULT_WORDS:
             w = FAULT_WORDS[bit]
-            if latch is not None and w.label == out[0][0]:
+            if latch is not None and any(w.label == o[0] for o in out):
                 continue
             out.append((w.label, w.meaning[:1].upper() + w.meaning[1:] + ".", w.advice))
     return out
@@ -65,7 +67,7 @@ def latch_of(control: Any, faults: int) -> tuple[str, str, str]:
         return "no fault", "", ""
     if len(items) == 1:
         return items[0]
-    return (" + ".join(i[0] for i in items), " ".join(f"{i[0]}: {i[1]}" for i in items),
+    return (" + ".join(i[0] for i in items), " ".join(f"{i[0]}: {i[1]}" for i in items if i[1]),
             " ".join(f"{i[0]}: {i[2]}" for i in items if i[2]))
 
 

@@ -162,6 +162,12 @@ def test_two_faults_latched_at_once_are_both_named(qapp):
         assert "FORCE_LIMIT" in dlg.detail.text() and "e-stop" in dlg.detail.text()
         assert dlg.rig_now.text() == ("FAULT (e-stop) - drum stopped, drivers off, actuator where it stopped, "
                                       "pressing 512 g")
+        # the library's own latch of two causes (Latch.also) names both, each with what to do
+        both = Latch("estop", "the e-stop input opened", int(Fault.ESTOP), also=("stall",))
+        dlg2 = FaultDialog(SimpleNamespace(latch=both), int(Fault.ESTOP))
+        assert "2 at once" in dlg2.title.text() and "stalled" in dlg2.title.text(), dlg2.title.text()
+        assert "free the drum" in dlg2.todo.text() and "release the e-stop" in dlg2.todo.text()
+        dlg2.deleteLater()
     finally:
         dlg.deleteLater()
 
