@@ -10,10 +10,13 @@ handheld protocol exactly as a drum protocol: mount (here: ask for) the plate, r
 
 Each trial keeps, beside its taxels:
 
-- the tracker's velocity along the plate as the trial's speed trace (``speed_mm_s``, ``speed_time_s``: the velocity
-  of each tracker sample, the mean over the :data:`VELOCITY_WINDOW_S` around it, as the paper averages the
-  tracker's velocity over 100 ms), which the encoder's incremental speed scaling reads
-  (:func:`rigctl.encoding.speed.window_speeds`);
+- the finger's speed of each 100 ms real-time window as the trial's speed trace (``speed_mm_s``, ``speed_time_s``):
+  the paper's window speed, the position's change over the window (:func:`rigctl.core.handheld.
+  position_window_speeds`, the windows counted from the trial's first sample as the encoder counts them, the speed
+  the host sends the on-board encoder too), floored at :data:`rigctl.core.handheld.SPEED_FLOOR_MM_S` (a window in
+  which the hand stood still or slipped back is scaled with 0 mm/s; ``floored_windows`` counts them), written as a
+  step trace (two samples a window, 0.25 ms inside its edges) so that :func:`rigctl.encoding.speed.window_speeds`
+  reads each window's speed back;
 - the tracker's position along the plate (``position_mm``, ``position_time_s``, mm from the plate's start);
 - the two boundaries (``scan_enter_s``, ``scan_leave_s``: host clock; ``boundary = "position"``), the tracker's
   measured rate and dropouts, the taxel board's clock fit (:mod:`rigctl.acquisition.clock`).
@@ -40,7 +43,18 @@ from rigctl.acquisition.rig import Rig, RigError, StopFlag
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
 from rigctl.acquisition.safety import SafetyLatch
 from rigctl.core.clocksync import DeviceClockFit
-from rigctl.core.handheld import PLATE_LENGTH_MM, USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError, ScanSource
+from rigctl.core.handheld import (
+    PLATE_LENGTH_MM,
+    SPEED_FLOOR_MM_S,
+    USED_END_MM,
+    USED_START_MM,
+    WINDOW_S,
+    PlateAxis,
+    RawScan,
+    ScanError,
+    ScanSource,
+    position_window_speeds,
+)
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData
@@ -79,6 +93,21 @@ def velocity_from_position(time_s: np.ndarray, along_mm: np.ndarray, at_s: np.nd
     at = t if at_s is None else np.asarray(at_s, np.float64)
     h = window_s / 2.0
     return (np.interp(at + h, t, x) - np.interp(at - h, t, x)) / window_s
+
+
+def window_speed_trace(t: np.ndarray, along_mm: np.ndarray, origin_s: float, duration_s: float,
+                       window_s: float = WINDOW_S) -> tuple[np.ndarray, np.ndarray, int]:
+    """A trial's speed trace: each real-time window of ``[origin, origin + duration_s)`` (s, the tracker's clock), its
+    :func:`rigctl.core.handheld.position_window_speeds` as a step trace on the trial's axis (0 at ``origin``): times
+    (2 n,) s, two per window ``window_s / 400`` inside its edges, and speeds (2 n,) mm/s; and how many windows were
+    floored (the finger still or going back)."""
+    n = max(1, int(np.ceil(round(duration_s / window_s, 9))))
+    raw = np.diff(np.interp(origin_s + window_s * np.arange(n + 1), t, along_mm))
+    v = position_window_speeds(t, along_mm, origin_s, n, window_s)
+    lo = window_s * np.arange(n) + window_s / 400
+    hi = window_s * np.arange(1, n + 1) - window_s / 400
+    return (np.column_stack([lo, hi]).reshape(-1), np.repeat(v, 2),
+            int(np.sum(raw <= SPEED_FLOOR_MM_S * window_s)))
 
 
 def _crossing(t: np.ndarray, x: np.ndarray, level: float, after: int = 0) -> tuple[int, float] | None:
@@ -138,15 +167,13 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
         raise ScanError(f"the finger never left the used part of the plate (past {used_mm[1]:g} mm)")
     t_in, t_out = enter[1], leave[1]
     near = (t >= t_in - TRACE_MARGIN_S) & (t <= t_out + TRACE_MARGIN_S)
-    if raw.velocity_mm_s is not None:
-        vel = np.asarray(raw.velocity_mm_s, np.float64)[ok][order][near]
-    else:
-        vel = velocity_from_position(t, along, t[near], velocity_window_s)
     if raw.onboard is not None:  # encoded on the board: its record, no taxel frames; times from its first sample
         origin = float(raw.onboard_start_s)
-        return TrialData(taxels=np.zeros((0, layout.n_channels), np.uint16), speed_mm_s=vel,
-                         speed_time_s=t[near] - origin, position_mm=along[near], position_time_s=t[near] - origin,
-                         attrs={**_tracker_attrs(raw, t, t_in, t_out, near, used_mm),
+        st, sv, floored = window_speed_trace(t, along, origin, raw.onboard.samples / layout.sample_rate_hz
+                                             if raw.onboard.samples else t_out - origin)
+        return TrialData(taxels=np.zeros((0, layout.n_channels), np.uint16), speed_mm_s=sv,
+                         speed_time_s=st, position_mm=along[near], position_time_s=t[near] - origin,
+                         attrs={**_tracker_attrs(raw, t, t_in, t_out, near, used_mm), "floored_windows": floored,
                                 "trial_time_origin_s": raw.time_origin_s + origin, **dict(raw.attrs)},
                          layout=layout, onboard=raw.onboard)
     fit = raw.clock_fit or DeviceClockFit(layout.sample_rate_hz)
@@ -164,12 +191,13 @@ def cut_scan(raw: RawScan, layout: SensorLayout, axis: PlateAxis | None = None, 
     origin = float(frame_t[keep[0]])  # the first kept frame's time on the board's clock, not its (late) receipt
     seq = np.asarray(raw.seq, np.uint16)[keep]
     steps = np.bitwise_and(np.diff(seq.astype(np.int64)), 0xFFFF)
-    attrs: dict[str, Any] = {**_tracker_attrs(raw, t, t_in, t_out, near, used_mm),
+    st, sv, floored = window_speed_trace(t, along, origin, keep.size / layout.sample_rate_hz)
+    attrs: dict[str, Any] = {**_tracker_attrs(raw, t, t_in, t_out, near, used_mm), "floored_windows": floored,
                              **trial_clock_attrs(fit, counts[keep], host),
                              "trial_time_origin_s": raw.time_origin_s + origin,  # the host-clock time of time 0
                              **dict(raw.attrs)}
     return TrialData(taxels=np.asarray(raw.taxels)[keep], seq=seq, flags=np.zeros(keep.size, np.uint8),
-                     host_time_s=host - origin, speed_mm_s=vel, speed_time_s=t[near] - origin,
+                     host_time_s=host - origin, speed_mm_s=sv, speed_time_s=st,
                      position_mm=along[near], position_time_s=t[near] - origin,
                      dropped_frames=int(np.sum(steps - 1)) if steps.size else 0, attrs=attrs, layout=layout)
 

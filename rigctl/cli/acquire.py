@@ -349,8 +349,9 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
                    "--motion says otherwise (docs/guides/handheld.md).")
 @click.option("--motion", type=MOTION, default=None,
               help="The handheld rig's motion source: sim (the simulated operator, default), lsl:NAME (a tracker "
-                   "stream: its position or velocity) or serial:PORT (a motion board's CRC-checked frames: an encoder "
-                   "or an IMU; docs/guides/handheld.md).")
+                   "stream's position channels, mm: x, y, z or one along the plate; velocity channels are not read) "
+                   "or serial:PORT (a motion board's CRC-checked frames: an encoder or an IMU; "
+                   "docs/guides/handheld.md).")
 @click.option("--classify", "classify", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Handheld rig: predict each scan's texture at its end with the classifier trained on this encoded "
                    "training block (rigctl encode of a handheld_training session; LDA on --pcs PCs of its real-time "

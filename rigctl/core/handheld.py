@@ -28,7 +28,7 @@ from rigctl.core.trial import PlannedTrial
 
 __all__ = ["PLATE_LENGTH_MM", "PLATE_WIDTH_MM", "USED_LENGTH_MM", "USED_START_MM", "USED_END_MM",
            "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError", "Tracker", "wait_for_pass",
-           "PAST_END_MM", "MARGIN_S"]
+           "PAST_END_MM", "MARGIN_S", "SPEED_FLOOR_MM_S", "WINDOW_S", "position_window_speed", "position_window_speeds"]
 
 #: a texture plate's length and width, mm (Methods)
 PLATE_LENGTH_MM = 300.0
@@ -44,6 +44,31 @@ HANDHELD_TEXTURES = ("A", "B", "D", "L", "N")
 PAST_END_MM = 10.0
 #: tracker time a live scan keeps before the cue and waits after the exit, s
 MARGIN_S = 0.3
+#: the real-time window the finger's speed is measured over, s (Methods: "averaged every 100 ms")
+WINDOW_S = 0.1
+#: the slowest speed a window is scaled with, mm/s. A window in which the finger stood still or slid back (a hand
+#: hesitates, slips back a few mm) has a position change <= 0; eq. 2 has no meaning for it, so it is scaled with
+#: 0 mm/s (its spikes land on one instant of scaled time, it adds no scaled time), on the host as on the on-board
+#: encoder (which takes speeds 0-655.35 mm/s), and the trial counts such windows (``floored_windows``)
+SPEED_FLOOR_MM_S = 0.0
+
+
+def position_window_speed(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float) -> float:
+    """The finger's speed over ``[t0, t1)`` (s) as the paper measures it: the position's change over the span divided
+    by its length, mm/s (the position linearly interpolated between tracker samples ``t`` (k,) s increasing,
+    ``along_mm`` (k,) mm; held at the ends); negative when the finger went back. Not floored."""
+    x0, x1 = np.interp([t0, t1], t, along_mm)
+    return float(x1 - x0) / (t1 - t0)
+
+
+def position_window_speeds(t: np.ndarray, along_mm: np.ndarray, origin_s: float, n_windows: int,
+                           window_s: float = WINDOW_S) -> np.ndarray:
+    """(n_windows,) mm/s, each window ``[origin + w window_s, origin + (w + 1) window_s)``'s
+    :func:`position_window_speed` floored at :data:`SPEED_FLOOR_MM_S` (the host's speeds, equal to those the host
+    sends the on-board encoder: :func:`rigctl.devices.onboard_finger.window_speed_mm_s`)."""
+    edges = origin_s + window_s * np.arange(n_windows + 1)
+    x = np.interp(edges, np.asarray(t, np.float64), np.asarray(along_mm, np.float64))
+    return np.maximum((x[1:] - x[:-1]) / (edges[1:] - edges[:-1]), SPEED_FLOOR_MM_S)
 
 
 class ScanError(RuntimeError):

@@ -25,7 +25,17 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.core.handheld import MARGIN_S, USED_END_MM, USED_START_MM, PlateAxis, RawScan, ScanError, Tracker
+from rigctl.core.handheld import (
+    MARGIN_S,
+    SPEED_FLOOR_MM_S,
+    USED_END_MM,
+    USED_START_MM,
+    PlateAxis,
+    RawScan,
+    ScanError,
+    Tracker,
+    position_window_speed,
+)
 from rigctl.core.onboard import OnboardEncoding
 from rigctl.core.sensor import PAPER_FINGER, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
@@ -70,7 +80,8 @@ class BoardRange:
 
 def window_speed_mm_s(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float, last: float = 0.0) -> float:
     """The finger's mean speed along the plate over ``[t0, t1)`` (s), mm/s >= 0: the position's change over the span
-    (linearly interpolated between tracker samples), as the paper's tracker velocity per 100 ms; over the part the
+    (:func:`rigctl.core.handheld.position_window_speed`, floored at :data:`rigctl.core.handheld.SPEED_FLOOR_MM_S`:
+    a still or backward window is scaled with 0 mm/s), as the paper's tracker velocity per 100 ms; over the part the
     tracker covers when its samples end before ``t1`` (a dropout: the speed is due before the next sample comes).
     ``last`` (the speed before) with fewer than two samples or less than 10 ms of the window covered."""
     if t.size < 2:
@@ -78,8 +89,7 @@ def window_speed_mm_s(t: np.ndarray, along_mm: np.ndarray, t0: float, t1: float,
     t1 = min(t1, float(t[-1]))
     if t1 - t0 < 0.01:
         return last
-    x0, x1 = np.interp([t0, t1], t, along_mm)
-    return max(0.0, float(x1 - x0) / (t1 - t0))
+    return max(SPEED_FLOOR_MM_S, position_window_speed(t, along_mm, t0, t1))
 
 
 def _entered(t: np.ndarray, along: np.ndarray) -> float | None:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.encoding.speed import REALTIME_REFERENCE_SPEED_MM_S, WINDOW_S, scaled_edges
+from rigctl.encoding.speed import REALTIME_REFERENCE_SPEED_MM_S, WINDOW_S, floor_speeds, scaled_edges
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["N_WINDOWS_SCALED", "N_WINDOWS_UNSCALED", "N_WINDOWS_REALTIME", "spike_features", "realtime_features",
@@ -93,7 +93,7 @@ def counted_realtime_features(counts: np.ndarray, speeds_mm_s: np.ndarray, *,
     Parameters
     ----------
     counts : (n_trains, n_windows) spikes per train and scaled window ``[k w, (k+1) w)``.
-    speeds_mm_s : (n_real_windows,) mm/s, >= 0.
+    speeds_mm_s : (n_real_windows,) mm/s (floored at 0: :func:`rigctl.encoding.speed.floor_speeds`).
 
     Returns
     -------
@@ -102,14 +102,12 @@ def counted_realtime_features(counts: np.ndarray, speeds_mm_s: np.ndarray, *,
     Raises
     ------
     ValueError
-        ``counts`` not 2-D, or no speeds, or a negative one.
+        ``counts`` not 2-D, or no speeds, or a non-finite one.
     """
     counts = np.asarray(counts)
-    v = np.asarray(speeds_mm_s, dtype=np.float64)
     if counts.ndim != 2:
         raise ValueError(f"counts must be (n_trains, n_windows), got shape {counts.shape}")
-    if v.size == 0 or np.any(v < 0):
-        raise ValueError("speeds must be non-empty and >= 0")
+    v = floor_speeds(speeds_mm_s)
     return realtime_rates(counts[None], [scaled_edges(v, reference_mm_s, window_s)], window_s=window_s)[0]
 
 

@@ -25,7 +25,7 @@ from rigctl.encoding.features import realtime_features, realtime_features_unscal
 from rigctl.encoding.fixed_sa import FixedSAEncoder
 from rigctl.encoding.izhikevich import StreamingEncoder
 from rigctl.encoding.params import EncodeParams
-from rigctl.encoding.speed import window_speeds
+from rigctl.encoding.speed import floor_speeds, window_speeds
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = ["KERNELS", "ScanEncoder"]
@@ -158,8 +158,7 @@ class ScanEncoder:
             speeds = window_speeds(t, v, self.n_samples / p.fs_hz, w_s)
         else:
             speeds = window_speeds(t, v, n_ready * w_s, w_s)  # window w depends on the samples around it only
-        if np.any(speeds[n_done:n_ready] < 0):
-            raise ValueError("speeds must be >= 0 (mm/s)")
+        speeds = floor_speeds(speeds)  # a window the hand stood still or slipped back in: 0 mm/s, as the board
         for w in range(n_done, n_ready):
             f = float(speeds[w]) / p.realtime_reference_speed_mm_s
             self._factors.append(f)

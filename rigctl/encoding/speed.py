@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rigctl.core.handheld import SPEED_FLOOR_MM_S
 from rigctl.encoding.spikes import SpikeTrains
 
 __all__ = [
@@ -28,11 +29,27 @@ __all__ = [
     "window_speeds",
     "incremental_scale",
     "scaled_edges",
+    "floor_speeds",
 ]
 
 REFERENCE_SPEED_MM_S = 120.0  #: eq. (2) reference, drum dataset
 REALTIME_REFERENCE_SPEED_MM_S = 100.0  #: reference of the real-time experiment
 WINDOW_S = 0.1  #: 100 ms batches / feature windows
+
+
+def floor_speeds(speeds_mm_s) -> np.ndarray:
+    """Window speeds as eq. 2 scales with them: floored at :data:`rigctl.core.handheld.SPEED_FLOOR_MM_S` (0 mm/s: a
+    window in which the hand stood still or slipped back adds no scaled time, as on the on-board encoder), float64.
+
+    Raises
+    ------
+    ValueError
+        if there are none, or one is not finite.
+    """
+    v = np.asarray(speeds_mm_s, dtype=np.float64)
+    if v.size == 0 or not np.all(np.isfinite(v)):
+        raise ValueError("speeds must be non-empty and finite (mm/s)")
+    return np.maximum(v, SPEED_FLOOR_MM_S)
 
 
 def speed_coefficient(speed_mm_s, reference_mm_s: float = REFERENCE_SPEED_MM_S) -> np.ndarray:
@@ -107,8 +124,8 @@ def incremental_scale(trains: SpikeTrains, speeds: list[np.ndarray],
     Parameters
     ----------
     trains : SpikeTrains (n_trials, n_trains), real time in s.
-    speeds : per trial, (n_windows_t,) mm/s of each real-time window (see :func:`window_speeds`). Spikes after the
-        last window are scaled with the last window's speed.
+    speeds : per trial, (n_windows_t,) mm/s of each real-time window (see :func:`window_speeds`), floored at 0
+        (:func:`floor_speeds`). Spikes after the last window are scaled with the last window's speed.
     reference_mm_s : 100 mm/s in the paper's real-time experiment.
 
     Returns
@@ -121,7 +138,7 @@ def incremental_scale(trains: SpikeTrains, speeds: list[np.ndarray],
     Raises
     ------
     ValueError
-        if the number of speed traces differs from the number of trials, or a speed is negative.
+        if the number of speed traces differs from the number of trials, or a trial has none or a non-finite one.
     """
     if len(speeds) != trains.n_trials:
         raise ValueError(f"{len(speeds)} speed traces for {trains.n_trials} trials")
@@ -130,9 +147,10 @@ def incremental_scale(trains: SpikeTrains, speeds: list[np.ndarray],
     ends = trains.spike_times_index.reshape(trains.shape)
     edges_out = []
     for t in range(trains.n_trials):
-        v = np.asarray(speeds[t], dtype=np.float64)
-        if np.any(v < 0) or v.size == 0:
-            raise ValueError(f"trial {t}: speeds must be non-empty and >= 0")
+        try:
+            v = floor_speeds(speeds[t])
+        except ValueError as exc:
+            raise ValueError(f"trial {t}: {exc}") from None
         factor = v / reference_mm_s
         edges = scaled_edges(v, reference_mm_s, window_s)
         edges_out.append(edges)

@@ -19,7 +19,10 @@ Human variability (:class:`OperatorConfig`, each figure a guess at a careful ope
 
 - speed: a per-scan bias (lognormal, 12 %) and a slow wobble (Ornstein-Uhlenbeck, 10 %, 0.25 s), smoothed by the
   arm's response (80 ms);
-- pauses: in 20 % of the scans the finger stops for 80-250 ms somewhere in the used part;
+- pauses: in 20 % of the scans the finger stops for 80-250 ms somewhere in the used part (hesitation);
+- back-slips: half of those pauses (10 % of the scans) end with the finger sliding back 1-3 mm over 60-120 ms
+  before it goes on (a hand resettling its grip): one or two 100 ms windows still or backward, which the rig
+  scales with 0 mm/s (:data:`rigctl.core.handheld.SPEED_FLOOR_MM_S`) and counts (``floored_windows``);
 - pressure: a per-scan level (500 g nominal, 15 %) and a drift within the scan (8 %, 0.8 s), which scales the
   readings through the model's force response;
 - path: the finger wanders sideways (1.5 mm, 0.5 s), seen by the tracker and rolling the contact a little
@@ -64,6 +67,9 @@ class OperatorConfig:
     arm_tau_s: float = 0.08
     pause_probability: float = 0.2
     pause_s: tuple[float, float] = (0.08, 0.25)
+    slip_probability: float = 0.5  # of a pause ending in a slide back
+    slip_mm: tuple[float, float] = (1.0, 3.0)
+    slip_s: tuple[float, float] = (0.06, 0.12)
     pressure_g: float = 500.0
     pressure_spread: float = 0.15
     pressure_drift: float = 0.08
@@ -171,6 +177,12 @@ class SimulatedOperator:
         wobble = _ou(rng, max_n, dt, c.speed_wobble_tau_s, c.speed_wobble)
         pause_at = USED_START_MM + USED_LENGTH_MM * rng.uniform(0.2, 0.8)
         pause_s = rng.uniform(*c.pause_s) if rng.uniform() < c.pause_probability else 0.0
+        # the slide back from a generator of its own (a child of the scan's seed): the other draws stay as they were
+        srng = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])  # type: ignore[attr-defined]
+        slip = srng.uniform() < c.slip_probability and pause_s > 0
+        slip_mm = float(srng.uniform(*c.slip_mm)) if slip else 0.0
+        slip_n = max(1, int(srng.uniform(*c.slip_s) / dt)) if slip else 0
+        slip_step, slipped = slip_mm / max(slip_n, 1), 0
         # the step loop in Python floats and conditional expressions (numpy scalars and min/max calls cost several
         # times as much per step; the same IEEE double operations and choices as min(max(q, 0.0), 1.0) etc.)
         x, v, n_press = c.start_mm, 0.0, int(c.press_s / dt)
@@ -191,6 +203,13 @@ class SimulatedOperator:
                 paused_until = k + int(pause_s / dt)
             if k < paused_until:
                 target = 0.0
+            if paused_until >= 0 and k >= paused_until and slipped < slip_n:  # the slide back, then on again
+                x -= slip_step
+                v = 0.0
+                slipped += 1
+                path.append(x)
+                k += 1
+                continue
             v += ((0.0 if 0.0 > target else target) - v) * a
             x += v * dt
             path.append(x)
@@ -200,7 +219,8 @@ class SimulatedOperator:
         n = min(max_n, k + int(c.hold_s / dt))
         pos[k:n] = x
         return pos[:n], {"operator_speed_bias": bias, "operator_pause_s": float(pause_s),
-                         "operator_pause_at_mm": float(pause_at) if pause_s else math.nan}
+                         "operator_pause_at_mm": float(pause_at) if pause_s else math.nan,
+                         "operator_slip_mm": slip_mm}
 
     def scan(self, planned: PlannedTrial, *, stop: Callable[[], bool] | None = None) -> RawScan | None:
         """One pass along the plate ``planned.texture`` with the profile of ``planned`` (what the rig's cue asked
