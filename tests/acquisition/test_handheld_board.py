@@ -244,8 +244,9 @@ def test_handheld_training_from_a_tracker_stream_and_the_fingers_board(lsl, tmp_
             clock = {k: a[k] for k in a if k.startswith(("clock_", "taxel_")) or k == "attempts"}
             # 1 kHz between the boundaries
             assert d.n_samples == pytest.approx(1000 * a["scan_duration_s"], abs=3), (tid, d.dropped_frames, clock)
-            # the tracker's velocity beside the taxels, at the tracker's rate (>= 10 Hz)
-            rate = (len(d.speed_time_s) - 1) / (d.speed_time_s[-1] - d.speed_time_s[0])
+            # the tracker's position beside the taxels at the tracker's rate, and each 100 ms window's speed
+            rate = (len(d.position_time_s) - 1) / (d.position_time_s[-1] - d.position_time_s[0])
             assert rate >= 85 and 20.0 < np.mean(d.speed_mm_s) < 250.0
+            assert d.speed_mm_s.size == 2 * int(np.ceil(round(d.duration_s / 0.1, 9)))
             assert_cut_at_the_crossings(d)
             assert a["clock_residual_s"] < 0.002
