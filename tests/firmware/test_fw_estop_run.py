@@ -1,7 +1,8 @@
 """The safety policy on the real firmware under simavr (issue 35's done-when): an e-stop held mid-run (``--inject
 estop@T+D`` through the harness's e-stop contact) latches the run; after its release nothing moves for 10 s of the
 Mega's simulated time (the harness's reports: actuator steps, drum steps, the spring's force); the operator's
-acknowledgement resumes the run and the plan completes. The in-process twin: tests/acquisition/test_acq_safety.py."""
+acknowledgement moves nothing for 10 s more (the run paused), and only Resume (the start) goes on: the plan
+completes. The in-process twin: tests/acquisition/test_acq_safety.py."""
 
 from __future__ import annotations
 
@@ -52,6 +53,13 @@ def test_estop_held_mid_run_on_the_firmware_pauses_until_acknowledged(fw_build, 
         assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults and run.state == "latched"
         ack = control.acknowledge("e-stop released, bench checked", by="pytest")
         assert ack.latch.cause == "estop" and control.latch is None
+        # acknowledging is not starting: the run pauses and nothing moves for 10 s more of the Mega's time
+        _until(lambda: run.state == "paused", "the pause after the acknowledgement")
+        acked = hil.next_telemetry()
+        later = hil._wait_telemetry(acked.t_s + 10.0, timeout_s=60.0)
+        assert (later.act_steps, later.drum_steps) == (acked.act_steps, acked.drum_steps)
+        assert run.state == "paused" and run.summary is None
+        run.resume()  # the start: HOME, TARE, the trial recorded again
         summary = run.wait(300)
     assert summary is not None and summary.ok and summary.complete == 2
     with open_session(tmp_path / "s.h5") as s:
