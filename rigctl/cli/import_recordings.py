@@ -65,10 +65,10 @@ def _checked_segment(ctx, param, value):
 @click.option("--volts-ref", type=floats(0, MAX_VOLTS, min_open=True), default=None, metavar="V",
               help="The recordings are volts with this ADC reference: one count is V/2^bits volts (5 V, 10 bits: "
                    "5/1024 V), so V itself is past the top count (default: the recordings are counts).")
-@click.option("--scale", type=float, default=None, metavar="S",
+@click.option("--scale", type=floats(-1e12, 1e12), default=None, metavar="S",
               help="Readings that are not counts: counts = x * S + O, then rounded (recorded). Without it, "
                    "--offset or --volts-ref, readings that are not whole counts are refused.")
-@click.option("--offset", type=float, default=None, metavar="O", help="See --scale (default 0).")
+@click.option("--offset", type=floats(-1e12, 1e12), default=None, metavar="O", help="See --scale (default 0).")
 @click.option("--columns", default=None, metavar="A,B,...",
               help="CSV: the channel columns, in channel order (header names or 0-based indices); the other "
                    "columns are not imported (default: every column but the time column).")
