@@ -147,14 +147,10 @@ class Heartbeat:
 
 
 def spin(qapp, cond, timeout_s: float) -> bool:
-    """Run the event loop until ``cond()`` or ``timeout_s``."""
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        qapp.processEvents()
-        if cond():
-            return True
-        time.sleep(0.002)
-    return bool(cond())
+    """Run the event loop until ``cond()`` or ``timeout_s`` (the GUI tests' :func:`rigctl_gui.events.wait_for`)."""
+    from rigctl_gui.events import wait_for
+
+    return wait_for(qapp, cond, timeout_s)
 
 
 def raise_priority(pid: int, nice: int = -10) -> None:

@@ -18,6 +18,7 @@ from rigctl.core import PAPER_SENSOR, SensorLayout
 from rigctl.core.errors import describe_error
 from rigctl_gui.colours import ERROR, on_window
 from rigctl_gui.messages import escaped as _html  # a '<' in an error would cut a rich-text label short
+from rigctl_gui.staged import StagedBuild
 from rigctl_gui.widgets import add_taxel_numbers, side_panel
 from rigctl_gui.workers import Job, ProcessJob
 
@@ -71,7 +72,7 @@ class AnalysisTab(QtWidgets.QWidget):
     def __init__(self, main, parent=None, *, staged=False):  # (staged: bool; the body is left unchecked, as before)
         super().__init__(parent)
         self.main = main
-        self._steps: Iterator[None] | None = None  # a staged build under way: its remaining steps
+        self._staged: StagedBuild | None = None  # the staged build (``staged=True``)
         self.path: str | None = None
         self.kind: str | None = None
         self.encoded_path: str | None = None
@@ -88,10 +89,8 @@ class AnalysisTab(QtWidgets.QWidget):
         self._lay = lay = QtWidgets.QHBoxLayout(self)
         lay.addWidget(self.views, 1)
         if staged:  # one plot per pass of the event loop (the whole tab held the GUI thread ~0.7-1.6 s: issue 51)
-            self._steps = self._view_steps()
-            self._step_timer = QtCore.QTimer(self, singleShot=True, interval=0)
-            self._step_timer.timeout.connect(self._build_step)
-            self._step_timer.start()
+            self._staged = StagedBuild(self._view_steps(), self)
+            self._staged.done.connect(self.built)
         else:
             for _ in self._view_steps():
                 pass
@@ -115,26 +114,12 @@ class AnalysisTab(QtWidgets.QWidget):
     @property
     def building(self) -> bool:
         """A staged build (``AnalysisTab(main, staged=True)``) is under way."""
-        return self._steps is not None
-
-    def _build_step(self) -> None:
-        if self._steps is None:
-            return
-        try:
-            next(self._steps)
-        except StopIteration:
-            self._steps = None
-            self.built.emit()
-        else:
-            self._step_timer.start()
+        return self._staged is not None and self._staged.running
 
     def finish_build(self) -> None:
-        """Finish a staged build now."""
-        steps, self._steps = self._steps, None
-        if steps is not None:
-            for _ in steps:
-                pass
-            self.built.emit()
+        """Finish a staged build now (what needs the whole view: attach, a window change, a caller)."""
+        if self._staged is not None:
+            self._staged.finish()
 
     def _build_controls(self) -> QtWidgets.QWidget:
         """The left panel: file, trials, the analyses' options and buttons, the model trainer, the exports."""
@@ -680,7 +665,7 @@ class AnalysisTab(QtWidgets.QWidget):
         """Pull the trial job and the background job (the main window's timer calls this). Whatever a finished job
         brings, the outcome is shown in the tab and the panel is never left busy: an error while showing a result
         is reported in the status line, not raised into the event loop."""
-        if self._steps is not None:  # (a staged build: nothing to pull yet)
+        if self.building:  # (a staged build: nothing to pull yet)
             return
         tj = self._trial_job
         if tj is not None and tj.done:

@@ -39,6 +39,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl_gui import live_kernels
 from rigctl_gui.live_items import TimedGraphicsLayout, TracesItem, cache_axes_and_title, mark_containers
 from rigctl_gui.live_kernels import fill_raster
+from rigctl_gui.staged import StagedBuild
 from rigctl_gui.widgets import StatusText, add_taxel_numbers
 from rigctl_gui.workers import LIVE_WINDOW_MAX_S, TraceBuffer
 
@@ -346,7 +347,7 @@ class LiveView(QtWidgets.QWidget):
     def __init__(self, parent=None, *, window_s: float = 2.0, auto_range: bool = True,
                  layout: SensorLayout = PAPER_SENSOR, staged: bool = False):
         super().__init__(parent)
-        self._steps: Iterator[None] | None = None  # a staged build under way: its remaining steps
+        self._staged: StagedBuild | None = None  # the staged build (``staged=True``)
         self._complete = False  # every plot of the layout exists (fit_plots has something to fit)
         self.encoder = None
         self.buffer: TraceBuffer | None = None
@@ -408,10 +409,8 @@ class LiveView(QtWidgets.QWidget):
         self.gl.resized.connect(self._fit_timer.start)
         self.gl.ci.layout.setSpacing(4)
         if staged:  # one plot per pass of the event loop (each ~20-60 ms), never the whole ~0.5 s at once
-            self._steps = self._layout_steps(layout)
-            self._step_timer = QtCore.QTimer(self, singleShot=True, interval=0)
-            self._step_timer.timeout.connect(self._build_step)
-            self._step_timer.start()
+            self._staged = StagedBuild(self._layout_steps(layout), self)
+            self._staged.done.connect(self.built)
         else:
             self.set_layout(layout)
 
@@ -488,28 +487,12 @@ class LiveView(QtWidgets.QWidget):
     @property
     def building(self) -> bool:
         """A staged build (``LiveView(staged=True)``) is under way: the plots are not all there yet."""
-        return self._steps is not None
-
-    def _build_step(self) -> None:
-        """One step of the staged build (a plot, a heat map, the colour bar); the next at the next pass of the event
-        loop, so the GUI thread answers in between (the dead man's switch: 0.5 s)."""
-        if self._steps is None:
-            return
-        try:
-            next(self._steps)
-        except StopIteration:
-            self._steps = None
-            self.built.emit()
-        else:
-            self._step_timer.start()
+        return self._staged is not None and self._staged.running
 
     def finish_build(self) -> None:
-        """Finish a staged build now (what needs every plot: attach, a window change, a caller)."""
-        steps, self._steps = self._steps, None
-        if steps is not None:
-            for _ in steps:
-                pass
-            self.built.emit()
+        """Finish a staged build now (what needs the whole view: attach, a window change, a caller)."""
+        if self._staged is not None:
+            self._staged.finish()
 
     def set_layout(self, layout: SensorLayout) -> None:
         """Build the plots for ``layout``: per layer a trace plot (one curve per taxel, a colour legend) and a rows
@@ -735,7 +718,7 @@ class LiveView(QtWidgets.QWidget):
     def refresh(self) -> bool:
         """Redraw from the encoder's buffers; returns True when new data was drawn."""
         enc, buf = self.encoder, self.buffer
-        if buf is None or not self.isVisible() or self._steps is not None:
+        if buf is None or not self.isVisible() or self.building:
             return False
         if buf.pull() == 0:
             return False
