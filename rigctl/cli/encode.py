@@ -53,6 +53,22 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
                            + (" or --windows-unscaled" if windows_unscaled else ""))
 
 
+def _range_of(path: Path | None):
+    """The per-taxel range of an encoded file (``--range-from``), None without one. Raises ValueError, OSError."""
+    if path is None:
+        return None
+    import numpy as np
+
+    from rigctl.encoding.normalise import TaxelRange
+    from rigctl.storage.encoded import open_encoded
+
+    with open_encoded(path) as f:
+        n = f.normalisation
+    return TaxelRange(np.asarray(n["taxel_min"], np.float64), np.asarray(n["taxel_max"], np.float64),
+                      source=str(path))
+
+
+
 @click.command("encode")
 @click.argument("session", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, writable=True, path_type=Path), default=None,
@@ -79,12 +95,17 @@ def _check_sizes(session, out, *, variants, batch, window_s, windows_unscaled, w
               help="Cut every trial to its first S seconds before encoding: a common length when trial durations "
                    "differ by texture (a label the padding would carry; the command warns and gives S). Recorded "
                    "in the encoded file's parameters.")
+@click.option("--range-from", "range_from", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              metavar="ENCODED",
+              help="Normalise with this encoded file's per-taxel range instead of the session's own (the paper's one "
+                   "initial range: a handheld calibration or real-time block with its training block's, "
+                   "TRAINING.enc.h5, as the live classifier encodes them).")
 @click.option("--no-spikes", is_flag=True, help="Do not store spike trains, only features.")
 @progress_option
 @click.option("--keep-nonfinite", is_flag=True,
               help="Use trials whose force or speed readings hold NaN or inf (flagged; default: excluded).")
 def encode(session, out, overwrite, scheduler, workers, batch, variants, window_ms, windows_unscaled,
-           windows_scaled, crop_s, no_spikes, progress, keep_nonfinite):
+           windows_scaled, crop_s, no_spikes, progress, keep_nonfinite, range_from):
     """Encode SESSION: per-taxel normalisation, force coefficients (eq. 1), Izhikevich SA/RA encoding (eqs. 3-5),
     speed scaling (eq. 2) and SR/SC features for the variants original, speed_scaled, force_scaled,
     speed_force_scaled (+ label-free force and real-time variants). The session's sensor layout gives the channel
@@ -110,7 +131,8 @@ def encode(session, out, overwrite, scheduler, workers, batch, variants, window_
             path = encode_session(session, out, variants=list(variants) or None, batch_trials=batch,
                                   scheduler=scheduler, workers=workers, progress=bar,
                                   store_spikes=() if no_spikes else MAIN_VARIANTS, params=params,
-                                  overwrite=overwrite, keep_nonfinite=keep_nonfinite)
+                                  overwrite=overwrite, keep_nonfinite=keep_nonfinite,
+                                  taxel_range=_range_of(range_from))
         for w in caught:  # one line each, not Python's file:line form
             click.echo(f"warning: {w.message}", err=True)
     except OutputError:  # another writer took the output meanwhile: refused like any output (exit 2, as export)

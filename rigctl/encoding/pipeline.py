@@ -299,7 +299,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                    progress: ProgressCallback | None = None,
                    trial_ids=None, store_spikes=MAIN_VARIANTS, fit_memory_bytes: float = 1e9,
                    params: EncodeParams | None = None, overwrite: bool = False,
-                   keep_nonfinite: bool = False) -> Path:
+                   keep_nonfinite: bool = False, taxel_range: TaxelRange | None = None) -> Path:
     """Encode a session file (``rigctl.storage.session``) into an encoded file (:mod:`rigctl.storage.encoded`).
 
     Parameters
@@ -323,6 +323,10 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     overwrite : replace an existing ``out_path`` (False: FileExistsError).
     keep_nonfinite : encode trials whose force or speed traces hold NaN/inf (the validator's ``keep_nonfinite``;
         default: excluded like damaged trials).
+    taxel_range : normalise with this per-taxel range (ADC counts of the model input) instead of the session's own:
+        the paper's one initial range (another block's, e.g. a handheld training block's
+        ``EncodedFile.normalisation``: ``rigctl encode --range-from TRAINING.enc.h5``); its taxel count must be the
+        session's (ValueError). Recorded as the file's ``range_from`` attribute (its ``source``).
 
     Returns
     -------
@@ -337,7 +341,8 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
     """
     run = EncodeRun.of(session_path, out_path, variants=variants, batch_trials=batch_trials, scheduler=scheduler,
                        workers=workers, trial_ids=trial_ids, store_spikes=store_spikes,
-                       fit_memory_bytes=fit_memory_bytes, overwrite=overwrite, keep_nonfinite=keep_nonfinite)
+                       fit_memory_bytes=fit_memory_bytes, overwrite=overwrite, keep_nonfinite=keep_nonfinite,
+                       taxel_range=taxel_range)
     p = replace(params) if params is not None else EncodeParams()
     t_start = time.time()
     read = _range_pass(run, p, progress)  # pass 1: labels, per-taxel range, the model input kept for the fit
@@ -357,6 +362,7 @@ def encode_session(session_path, out_path, *, variants=None, batch_trials: int =
                                "resampled": read.conv.resampled, "resampling": read.conv.describe(),
                                "windows_note": windows_note, "skipped_variants": skipped,
                                "source_session": str(run.session_path), "variants": list(run.variants),
+                               "range_from": "" if run.taxel_range is None else str(run.taxel_range.source),
                                "excluded_trials": {str(k): v for k, v in read.excluded.items()},
                                "lossy_trials": sorted(read.lossy), "lost_frames": int(sum(read.lossy.values())),
                                PROVENANCE_ATTR: provenance_json(_provenance(run, p))})
@@ -394,6 +400,7 @@ class EncodeRun:
     fit_memory_bytes: float = 1e9
     overwrite: bool = False
     keep_nonfinite: bool = False
+    taxel_range: TaxelRange | None = None  # the range to normalise with (None: the session's own)
 
     @classmethod
     def of(cls, session_path: Any, out_path: Any, *, variants: Any, trial_ids: Any, store_spikes: Any,
@@ -536,6 +543,13 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
     if np.any(read.n_samples == 0):
         raise ValueError("a complete trial has no samples: trials "
                          f"{_trial_list(np.asarray(ids)[read.n_samples == 0])}")
+    if run.taxel_range is not None:  # one normalisation for several blocks (the paper's initial range)
+        given, n_own = run.taxel_range, 0 if read.rng.minimum is None else read.rng.minimum.size
+        n_given = 0 if given.minimum is None else given.minimum.size
+        if n_given != n_own:
+            raise ValueError(f"the range given ({given.source or 'range_from'}) has {n_given} taxels, the session "
+                             f"{n_own}")
+        read.rng = given
     read.offset, read.scale = read.rng.offset_scale()
     return read
 

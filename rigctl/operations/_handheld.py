@@ -11,6 +11,7 @@ and, with an LSL publisher, out as a ``prediction`` marker.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -26,6 +27,8 @@ from rigctl.operations._control import RigControl
 from rigctl.operations._monitor import RigEvent
 
 __all__ = ["Prediction", "ScanClassifier", "recorded_predictions"]
+
+log = logging.getLogger(__name__)
 
 #: how many readings the live encoder takes at a time (the taxel board's 1 kHz in 20 ms blocks)
 CHUNK_SAMPLES = 20
@@ -90,11 +93,20 @@ class ScanClassifier:
             self.params = EncodeParams.from_dict(f.parameters)
         self.variant = variant
         self.model = RealtimeClassifier(x, labels, n_pcs=n_pcs)
+        #: why the calibration block's features are not on the live scans' scale ("" when they are)
+        self.calibration_note = ""
         if calibration is not None:
             with open_encoded(calibration) as c:
                 if variant not in c.variants:
                     raise ValueError(f"{calibration} holds no {variant} features")
                 self.model.calibrate(c.features(variant))
+                cn = c.normalisation
+            same = all(np.shape(cn[k]) == np.shape(norm[k]) and np.array_equal(cn[k], norm[k])
+                       for k in ("taxel_min", "taxel_max"))
+            if not same:  # the live scans are encoded with the training block's range: the paper's one range
+                self.calibration_note = (f"{calibration} was normalised with its own range, the live scans with "
+                                         f"{training}'s: encode it with rigctl encode --range-from {training}")
+                log.warning("%s", self.calibration_note)
         self.encoder = ScanEncoder(TaxelRange(norm["taxel_min"], norm["taxel_max"]), self.params)
         self.on_prediction, self.lsl, self.control = on_prediction, lsl, control
         self.predictions: list[Prediction] = []
