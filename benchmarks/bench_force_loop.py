@@ -33,6 +33,7 @@ import json
 import sys
 import time
 
+from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.wire import DrumState, HoldingRegister as HR
 from rigctl.simulation.hil import HilRig
@@ -139,8 +140,8 @@ def run(rate_sps: int, stiffness_g_per_mm: float, setpoints=SETPOINTS_G, quick: 
                 rows.append({"setpoint_g": setpoints[0], "overshoot_g": probe["bring_up_peak_g"] - setpoints[0],
                              "settle_s": None, "residual_pp_g": 0.0, "oscillating": False, **base})
                 return rows
-            for sp in setpoints:
-                r = step_response(rig, drum, sp, tol, window_s)
+            for sp in setpoints:  # every press from home probes the contact first (firmware 1.2, spec 2.11)
+                r = step_response(rig, drum, sp, tol, window_s + wire.probe_time_s(rate_sps))
                 r.update(oscillating=r["residual_pp_g"] > 2 * tol, **base)
                 rows.append(r)
                 print(f"  {rate_sps:>3} SPS  k {stiffness_g_per_mm / 1000:4.2f} kg/mm  {sp:>5} g: overshoot "

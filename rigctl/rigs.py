@@ -493,12 +493,17 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
         return _handheld(made, request)
     backend = _as_backend(made, request, drum)
     check_faults(backend, faults, kind=kind)
+    # FAULT@0 is wired that way from power-on: armed before the HOME at open, the controller powered on with it (all
+    # the run's fault times then count from that power-on)
+    power_on = bool(faults) and any(f.at_power_on for f in faults) and isinstance(backend, FaultInjector)
+    if power_on and isinstance(backend, FaultInjector):
+        backend.inject_faults(faults, power_on=True)
     rig = Rig.connect(backend, prompt=prompt, host_config_path=request.host_config_path, home=home,
                       allow_firmware_mismatch=allow_firmware_mismatch)
     truth_start = getattr(getattr(backend, "sim", None), "truth_start", None)
     if truth_start is not None:  # the truth log's time 0: the run's start, as the faults'
         truth_start()
-    if faults and isinstance(backend, FaultInjector):
+    if faults and not power_on and isinstance(backend, FaultInjector):
         backend.inject_faults(faults)
     return rig
 

@@ -66,6 +66,14 @@ CAUSES: dict[str, tuple[str, str]] = {
               "its driver's current"),
     "contact-stiffness": ("contact too stiff", "use a softer sensor mount or pad, or store slower force-loop gains (the "
                           "rig config's force_loop)" + _CRUSH),
+    "position-limit": ("pressed past the contact's limit", "check the load cell, its HX711 and their wires (rigctl "
+                                                           "doctor): the reading disagreed with the position" + _CRUSH),
+    "hx711-stuck": ("load-cell reading frozen", "power-cycle the rig, check the HX711 and its wires" + _CRUSH),
+    "hx711-line": ("load-cell line fault", "check the load cell's and the HX711's wires (E+, E-, A+, A-, SCK, DOUT)"
+                   + _CRUSH),
+    "hx711-cadence": ("load-cell readings too fast", "check the HX711's SCK and DOUT wires" + _CRUSH),
+    "contact-lost": ("contact lost while the force held", "check the load cell and the HX711: the reading did not "
+                                                          "follow the contact" + _CRUSH),
 }
 
 #: the cause of each controller fault bit (the first that is set names the latch)
@@ -74,7 +82,9 @@ _FAULT_CAUSES: tuple[tuple[Fault, str], ...] = (
     (Fault.WATCHDOG, "watchdog"), (Fault.LOADCELL_TIMEOUT, "loadcell-timeout"),
     (Fault.ACTUATOR_DIRECTION, "actuator-direction"), (Fault.ACTUATOR_TRAVEL, "actuator-travel"),
     (Fault.HOME_NOT_FOUND, "home-failed"), (Fault.HX711_RATE, "hx711-rate"),
-    (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"),
+    (Fault.DRUM_SLIP, "stall"), (Fault.CONTACT_STIFFNESS, "contact-stiffness"), (Fault.HX711_LINE, "hx711-line"),
+    (Fault.HX711_CADENCE, "hx711-cadence"), (Fault.HX711_STUCK, "hx711-stuck"), (Fault.POSITION_LIMIT, "position-limit"),
+    (Fault.CONTACT_LOST, "contact-lost"),
 )
 
 

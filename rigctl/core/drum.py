@@ -67,10 +67,15 @@ class Fault(enum.IntFlag):
     ESTOP = 1 << 4
     LOADCELL_REVERSED = 1 << 5
     HOME_NOT_FOUND = 1 << 6
+    POSITION_LIMIT = 1 << 7
     HX711_RATE = 1 << 8
     ACTUATOR_DIRECTION = 1 << 9
     DRUM_SLIP = 1 << 10
     CONTACT_STIFFNESS = 1 << 11
+    HX711_STUCK = 1 << 12
+    HX711_LINE = 1 << 13
+    HX711_CADENCE = 1 << 14
+    CONTACT_LOST = 1 << 15
 
 
 class ResetCause(enum.IntFlag):
@@ -134,7 +139,8 @@ ACTUATOR_DIRECTION_CAUSES = (
 #: allows (too much force, a force path that cannot be believed: the actuator's direction, a reversed cell, a contact
 #: stiffer than the loop holds). Opening the rig never clears one: the operator acknowledges it with a reason once the
 #: cause is fixed (:func:`fault_advice` says so). A fault bit added for a lying reading belongs here too
-CRUSH_FAULTS = Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
+CRUSH_FAULTS = (Fault.FORCE_LIMIT | Fault.LOADCELL_REVERSED | Fault.ACTUATOR_DIRECTION | Fault.CONTACT_STIFFNESS
+                | Fault.POSITION_LIMIT | Fault.HX711_STUCK | Fault.HX711_LINE | Fault.HX711_CADENCE | Fault.CONTACT_LOST)
 
 #: what :func:`fault_advice` adds to a crush-class fault
 CRUSH_NOTE = ("a crush-class fault: opening the rig never clears it; acknowledge it with a reason once the cause is "
@@ -184,7 +190,7 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
     Fault.ACTUATOR_DIRECTION: FaultWords(
         "actuator turns the wrong way or load cell reversed",
         "the actuator moved the wrong way or the load cell reads reversed: HOME's switch did not open when leaving "
-        "home, or the load cell's untared force rose while it moved home or backed off",
+        "home, or the load on the cell (|raw - zero|, sign-free) grew while it moved home or backed off",
         "the load cell's reading rose while the firmware drove the actuator home or backed it off (or HOME's switch "
         "did not open): it was stopped where it stood. " + ACTUATOR_DIRECTION_CAUSES + "; rigctl doctor checks it."),
     Fault.DRUM_SLIP: FaultWords(
@@ -201,6 +207,42 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "above what the force loop holds with its gains and the HX711's delay (STIFFNESS_MAX_G_PER_MM): it backed "
         "off, and PRESS and RUN are refused. Use a softer sensor mount or pad, or store slower gains (the rig "
         "config's force_loop block: the limit grows as Kp falls), then CLEAR_FAULT."),
+    Fault.POSITION_LIMIT: FaultWords(
+        "pressed past the contact's limit",
+        "the actuator went further past the probed contact than FORCE_LIMIT_G allows at the measured stiffness, "
+        "whatever the force read",
+        "the actuator's position says the contact is pressed to the force limit (the travel past the contact the "
+        "press probed, times its stiffness) while the load cell read less: the reading is lying (a frozen or "
+        "disconnected HX711, a wrong scale) or the contact changed. It backed off. Check the load cell, its HX711 "
+        "and their wires (rigctl doctor), then CLEAR_FAULT."),
+    Fault.HX711_STUCK: FaultWords(
+        "load-cell reading frozen",
+        "the HX711 returned the same raw value too many times in a row (a real one at gain 128 never does: ~20-40 "
+        "counts of noise)",
+        "the HX711 gave the same 24 bits several readings in a row, which a working amplifier at gain 128 never "
+        "does (its noise is 20-40 counts rms): the reading is frozen (a chip hung, a stuck data line). It backed "
+        "off. Power-cycle the rig and check the HX711 and its wires, then CLEAR_FAULT."),
+    Fault.HX711_LINE: FaultWords(
+        "load-cell line fault",
+        "the HX711 returned a saturation code (0x7FFFFF, 0x800000) or an all-zero / all-one word twice (a broken "
+        "SCK or DOUT wire)",
+        "the HX711 returned a code no working load cell gives: its output saturated (0x7FFFFF or 0x800000: an input "
+        "beyond range, a broken bridge wire) or a clock or data line is broken (0x000000 or 0xFFFFFF read twice). "
+        "It backed off. Check the load cell's and the HX711's wires (E+, E-, A+, A-, SCK, DOUT), then CLEAR_FAULT."),
+    Fault.HX711_CADENCE: FaultWords(
+        "load-cell readings too fast",
+        "the HX711's DOUT said 'ready' sooner than its measured rate allows (a clock wire that never clocks holds "
+        "DOUT low)",
+        "the HX711's data-ready came faster than its measured rate: its SCK wire is broken (DOUT stays low and "
+        "every read returns the same bits) or DOUT is shorted low. It backed off. Check SCK and DOUT, then "
+        "CLEAR_FAULT."),
+    Fault.CONTACT_LOST: FaultWords(
+        "contact lost while the force held",
+        "the force loop held its force while the actuator's position left the probed contact (a reading that does "
+        "not follow the contact)",
+        "the load cell kept reading the force while the actuator moved back off the contact the press probed: the "
+        "reading is not the contact's (frozen, or the load cell is loaded by something else). The trial is not "
+        "recorded; it backed off. Check the load cell and the HX711, then CLEAR_FAULT."),
 }
 
 

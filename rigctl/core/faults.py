@@ -6,9 +6,10 @@ acquire``'s run starts) and ends ``D`` s later (no ``+D``: it stays to the end; 
 never releases it, ``reset@3`` is an instant). Times are the rig's own clock: simulated time on the in-process rig,
 the physics clock of the simulated rig on ptys, the firmware's clock under simavr.
 
-``FAULT@0`` (:attr:`FaultSpec.at_power_on`) means the rig is wired that way from power-on: the fault is in place
-before the drum controller boots and before the HOME at open (a miswired rig, a corrupt EEPROM found at boot), not
-applied once the rig is open; ``+D`` still ends it ``D`` s after the run starts.
+``FAULT@0`` (:attr:`FaultSpec.at_power_on`) means the rig is wired that way from power-on: :func:`rigctl.rigs.open_rig`
+arms the schedule before the HOME at open with ``inject_faults(specs, power_on=True)``, which applies the ``@0`` ones
+at once and powers the drum controller on again with them (a miswired rig, a corrupt EEPROM found at boot); every
+fault time of that run then counts from the power-on.
 
 A rig backend that can inject faults implements :class:`FaultInjector` (the model rigs through
 ``rigctl.simulation.faults.ModelFaults``; the firmware under simavr through its harness): ``fault_refusal(spec)``
@@ -65,7 +66,7 @@ VALUED_FAULTS = frozenset({"taxel-ohm", "slip", "contact-stiffness"})
 #: faults whose value is a percentage (``slip=20%``; the ``%`` may be left out), 0-100
 PERCENT_FAULTS = frozenset({"slip"})
 #: the range of each valued fault's value (the others: 0 to 1e9): a contact stiffness in g/mm must be > 0
-VALUE_RANGES: dict[str, tuple[float, float]] = {"slip": (0.0, 100.0), "contact-stiffness": (1.0, 1e6)}
+VALUE_RANGES: dict[str, tuple[float, float]] = {"slip": (0.0, 100.0), "contact-stiffness": (1.0, 1e5)}
 
 _SPEC = re.compile(r"^(?P<name>[a-z0-9-]+)(=(?P<value>[^@]+))?@(?P<at>[^+]+)(\+(?P<dur>.+))?$")
 
@@ -162,9 +163,11 @@ class FaultInjector(Protocol):
         """Why this rig cannot model ``spec`` (one line), or None when it can."""
         ...
 
-    def inject_faults(self, specs: Sequence[FaultSpec]) -> "FaultSchedule":
+    def inject_faults(self, specs: Sequence[FaultSpec], *, power_on: bool = False) -> "FaultSchedule":
         """Arm ``specs`` on the rig's own clock from now (its time 0); the rig applies each start and end as its
-        clock passes them (:meth:`FaultSchedule.due`). Returns the schedule."""
+        clock passes them (:meth:`FaultSchedule.due`). ``power_on``: the ``FAULT@0`` specs are applied now and the
+        drum controller is powered on again (it boots wired that way: :func:`rigctl.rigs.open_rig` arms such a
+        schedule before the HOME at open). Returns the schedule."""
         ...
 
 

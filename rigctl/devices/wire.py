@@ -146,7 +146,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 1)
+MEGA_FIRMWARE_VERSION = (1, 2)
 
 
 class HoldingRegister(enum.IntEnum):
@@ -365,6 +365,24 @@ def probe_time_s(hx711_rate_sps: float, travel_mm: float = PROBE_ALLOWANCE_TRAVE
     speed_mm_s = PROBE_TRAVEL_UM * 1e-3 / (FORCE_LEAD_PERIODS * period)
     return travel_mm / speed_mm_s + 2 * (HX711_RATE_PERIODS + 1) * period
 
+
+#: spec 2.11 (firmware 1.2): travel past the probed contact's zero-force point is bounded by (FORCE_LIMIT_G +
+#: POSITION_MARGIN_G) / k (POSITION_LIMIT); the probe's second step presses PROBE_REFINE_G more to measure k; this many
+#: identical raw readings in a row latch HX711_STUCK; a DOUT-ready edge sooner than HX711_CADENCE_PCT % of the
+#: measured period latches HX711_CADENCE; HOME from an unknown position creeps HOME_CREEP_UM per HX711 period until
+#: |raw - zero| fell by HOME_PROOF_FALL_G (the direction proven by the force), and a rise of HOME_RISE_G of it stops
+#: HOME (ACTUATOR_DIRECTION)
+POSITION_MARGIN_G = 100
+PROBE_REFINE_G = 100
+HX711_STUCK_READINGS = 6
+HX711_CADENCE_PCT = 50
+HOME_CREEP_UM = 12
+HOME_PROOF_FALL_G = 50
+HOME_RISE_G = 30
+#: the HX711's line codes (spec 2.11): the saturation codes latch HX711_LINE at once, the all-zero and all-one
+#: words (a clock line that never clocks, a data line stuck) when read twice in a row
+HX711_SATURATION_CODES = (0x7FFFFF, -0x800000)
+HX711_LINE_CODES = (0x000000, -1)
 
 #: the stiffest contact accepted: LOOP_PHASE_RAD / (Kp x HX711_DELAY_PERIODS x the HX711 period)
 LOOP_PHASE_RAD = 0.75

@@ -131,9 +131,10 @@ class PtyRigBackend(PortBackend):
             return f"the {self.mode} rig's harness injects no faults yet"
         return refusal(spec)
 
-    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
-        """Arm ``specs`` on the simulated rig's clock from now (see :meth:`fault_refusal`)."""
-        schedule: FaultSchedule = self.sim.inject_faults(specs)
+    def inject_faults(self, specs: Sequence[FaultSpec], *, power_on: bool = False) -> FaultSchedule:
+        """Arm ``specs`` on the simulated rig's clock from now (see :meth:`fault_refusal`); ``power_on``: the
+        ``FAULT@0`` ones wired from power-on (:class:`rigctl.core.faults.FaultInjector`)."""
+        schedule: FaultSchedule = self.sim.inject_faults(specs, power_on=power_on)
         return schedule
 
     def describe(self) -> dict:

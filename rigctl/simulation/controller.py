@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import collections
 import functools
-import json
 import logging
 import threading
 import time
@@ -51,13 +50,15 @@ from rigctl.devices.wire import (
     ResetCause,
     StatusFlag,
 )
+from rigctl.simulation.controller_eeprom import EmulatedEeprom
+from rigctl.simulation.controller_home import HOME_SPEED_MM_S, HomeAndDirection
 from rigctl.simulation.drum_index import DrumIndex
 from rigctl.simulation.force_loop import ContactProbe, force_pi_update, stiffness_max_g_per_mm
 from rigctl.simulation.model import FORCE_PI_INTEGRATE_BAND_G, RigModel
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MegaController", "LOADCELL_TIMEOUT_MS"]
+__all__ = ["MegaController", "LOADCELL_TIMEOUT_MS", "HOME_SPEED_MM_S"]
 
 #: actuator calibration the simulated mechanics are built with (ACTUATOR_STEPS_PER_MM default)
 _TRUE_ACTUATOR_STEPS_PER_MM = wire.HOLDING_RANGE[HR.ACTUATOR_STEPS_PER_MM][2]
@@ -68,10 +69,6 @@ LOADCELL_TIMEOUT_MS = 200
 FORCE_LOOP_MAX_SPEED_MM_S = 5.0
 #: the AVR watchdog's timeout (firmware: WDTO_120MS, interrupt first, reset at the second timeout), ms
 AVR_WATCHDOG_MS = 120
-#: actuator speed while seeking home, commanded mm/s (firmware: ACT_HOME_SPEED_MM_S; equal by tests/test_wire_spec.py)
-HOME_SPEED_MM_S = 3.0
-_DEFAULT_SCALE_X100 = wire.join_s32(wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_HI][2],
-                                    wire.HOLDING_RANGE[HR.LOADCELL_SCALE_X100_LO][2])
 
 
 def _u16(x: float) -> int:
@@ -89,7 +86,7 @@ def installed_build_id() -> str | None:
         return None
 
 
-class MegaController:
+class MegaController(HomeAndDirection, EmulatedEeprom):
     """The drum controller's registers, commands and control loop on a :class:`RigModel` (no port, no thread).
 
     Parameters
@@ -131,6 +128,7 @@ class MegaController:
         self._loadcell_silent_ms = 0
         self._warm_boots: int = 0  # warm resets since the last cold boot (BOOT_COUNT's low byte: RAM, spec 2.7)
         self._home_switch_ok = True  # fault-injection hook: False = the home switch never closes (a broken wire)
+        self._hx_sck_broken = False  # fault-injection hook: SCK never clocks, DOUT held low, every read 0
         self.estop_open = False  # the e-stop input reads open (a pressed contact, a broken wire)
         self.max_step_ms = 10
         self._drive = (model.config.drum.true_steps_per_mm, model.config.mechanics.actuator_max_speed_mm_s)  # (step)
@@ -159,9 +157,12 @@ class MegaController:
         self.holding = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
         calib = self._valid_calibration()
         self.calibration_defaults = calib is None
+        #: the tare's raw zero stored with the calibration (spec 2.11: HOME's sign-free direction check), or None
+        self._zero_raw: int | None = None
         if calib is not None:
             self._set_scale(self.holding, calib["scale_x100"])
             self.holding[HR.ACTUATOR_STEPS_PER_MM] = calib["actuator_steps_per_mm"]
+            self._zero_raw = calib.get("zero_raw")
         if cold := bool(ResetCause(cause) & wire.COLD_RESETS):  # BOOT_COUNT: EEPROM at a cold boot only (spec 2.7)
             self.eeprom["boot_count"] = (self.eeprom["boot_count"] + 1) & 0xFFFF
             self._write_eeprom_file()
@@ -181,9 +182,17 @@ class MegaController:
         self._home_phase = 0  # the firmware's HOME_SEEK, HOME_LEAVE, HOME_RETURN
         self._home_phase_mm = 0.0  # commanded travel in this phase (the step count), + towards the sensor
         self._home_leave_mm = 0.0
-        self._move_ref_raw: int | None = None  # lowest untared reading since HOME or a back-off began
+        self._move_ref_raw: int | None = None  # lowest untared reading since HOME or a back-off began (no zero known)
+        self._move_d_min: float | None = None  # the lowest |raw - zero| since HOME or a back-off began, g (spec 2.11)
+        self._home_d_start: float | None = None  # |raw - zero| when HOME began, g
+        self._home_creep = False  # HOME from an unknown position creeps until the force proves the way (2.11)
         self._move_skip = 0  # readings a back-off skips (the firmware's move_skip: the HX711's settling)
+        # the reading's plausibility (spec 2.11): the last raw value, how many in a row, line codes in a row
+        self._prev_raw: int | None = None
+        self._same_raw = 0
+        self._line_codes = 0
         self._hung_ms: int | None = None
+        self._last_raw = model.loadcell_raw  # the raw value of the last reading taken (the HX711's latest at boot)
         self._speed_target = 0.0  # mm/s
         self._outputs = (0.0, 0.0)  # drum step rate (microsteps/s), actuator velocity (mm/s)
         self.drivers_enabled = False
@@ -216,59 +225,6 @@ class MegaController:
         with self._lock:
             self._power_up(ResetCause(cause))
         log.warning("virtual Mega reset (%s)", ResetCause(cause))
-
-    # ------------------------------------------------------------------ EEPROM
-    @staticmethod
-    def _record_crc(rec: dict) -> int:
-        return wire.crc16(int(rec["scale_x100"]).to_bytes(4, "little", signed=True)
-                          + int(rec["actuator_steps_per_mm"]).to_bytes(2, "little"))
-
-    def _valid_calibration(self) -> dict | None:
-        rec = self.eeprom["calibration"]
-        if not isinstance(rec, dict):
-            return None
-        try:
-            ok = rec["crc"] == self._record_crc(rec) and rec["scale_x100"] != 0 and rec["actuator_steps_per_mm"] > 0
-        except (KeyError, TypeError, ValueError, OverflowError):
-            return None
-        return rec if ok else None
-
-    def _read_eeprom_file(self) -> None:
-        if not (self.eeprom_path and self.eeprom_path.exists()):
-            return
-        try:
-            data = json.loads(self.eeprom_path.read_text())
-        except (OSError, ValueError):
-            return  # unreadable: an erased EEPROM
-        if "calibration" in data:
-            self.eeprom["calibration"] = data["calibration"]
-        elif HR.LOADCELL_SCALE_X100.name in data:  # firmware 1.0's record (no checksum in the file)
-            rec = {"scale_x100": int(data[HR.LOADCELL_SCALE_X100.name]),
-                   "actuator_steps_per_mm": int(data.get(HR.ACTUATOR_STEPS_PER_MM.name, 400))}
-            rec["crc"] = self._record_crc(rec)
-            self.eeprom["calibration"] = rec
-        self.eeprom["boot_count"] = int(data.get("boot_count", 0xFFFF)) & 0xFFFF
-
-    def _write_eeprom_file(self) -> None:
-        if self.eeprom_path:
-            self.eeprom_path.write_text(json.dumps(self.eeprom))
-
-    def _save_eeprom(self) -> None:
-        rec = {"scale_x100": self.scale_x100, "actuator_steps_per_mm": self.holding[HR.ACTUATOR_STEPS_PER_MM]}
-        rec["crc"] = self._record_crc(rec)
-        self.eeprom["calibration"] = rec
-        self.calibration_defaults = False
-        self._write_eeprom_file()
-
-    def corrupt_eeprom(self) -> None:
-        """Fault-injection hook: flip a bit of the stored calibration (its checksum fails at the next boot)."""
-        with self._lock:
-            rec = self._valid_calibration() or {"scale_x100": _DEFAULT_SCALE_X100,
-                                                "actuator_steps_per_mm": self.holding[HR.ACTUATOR_STEPS_PER_MM],
-                                                "crc": 0}
-            rec = dict(rec, scale_x100=rec["scale_x100"] ^ 0x10)
-            self.eeprom["calibration"] = rec
-            self._write_eeprom_file()
 
     # ------------------------------------------------------------------ the load-cell scale (32-bit, signed)
     @property
@@ -326,6 +282,10 @@ class MegaController:
         as the firmware counts them; wrong after a miscalibration, a reset away from home, a reversed motor."""
         return self._steps_true_mm * _TRUE_ACTUATOR_STEPS_PER_MM / self.holding[HR.ACTUATOR_STEPS_PER_MM]
 
+    def _actuator_steps(self) -> float:
+        """The firmware's step count (ACTUATOR_POSITION in steps): a calibration change does not move it."""
+        return self._steps_true_mm * _TRUE_ACTUATOR_STEPS_PER_MM
+
     def _home_switch(self) -> bool:
         return self._home_switch_ok and self.model.actuator_mm <= 1e-6
 
@@ -356,7 +316,7 @@ class MegaController:
 
     def _input_registers(self) -> list[int]:
         m = self.model
-        raw = m.loadcell_raw & 0xFFFFFFFF
+        raw = self._last_raw & 0xFFFFFFFF
         act_mm = self._actuator_position_mm()
         regs = [0] * wire.N_INPUT
         regs[IR.FORCE_G] = _u16(max(-32768, min(32767, self._force_g)))
@@ -446,12 +406,15 @@ class MegaController:
             return True
         if cmd in (Command.RUN, Command.PRESS):  # never after a reset, e-stop or failed HOME until HOME succeeds
             return s not in (DrumState.FAULT, DrumState.HOMING, DrumState.NOT_HOMED) and \
-                self._hx711_rate_ok(holding) and self._probe.ok(holding, self._hx_period_s)
+                self._hx711_rate_ok(holding) and self._probe.ok(holding, self._hx_period_s) and \
+                not self.calibration_defaults  # no pressing on a guess (spec 2.11)
         if cmd == Command.STOP_DRUM:
             return s in _ENGAGED
         if cmd == Command.TARE:  # only at home (switch closed), with no load on the cell once a tare is known
             return s in (DrumState.IDLE, DrumState.NOT_HOMED) and self._home_switch() and (not self.tared or unloaded)
-        if cmd == Command.HOME:  # from IDLE only released; from NOT_HOMED always
+        if cmd == Command.HOME:  # from IDLE only released; from NOT_HOMED unless loaded past the limit (spec 2.11)
+            if self._home_overloaded(holding):
+                return False
             return s == DrumState.NOT_HOMED or (s == DrumState.IDLE and unloaded)
         if cmd == Command.CLEAR_FAULT:
             return ((not self.tared or self._force_g <= holding[HR.FORCE_LIMIT_G]) and self._loadcell_ok
@@ -476,7 +439,9 @@ class MegaController:
             self._home_travel_mm = 0.0
             self._home_ms = 0
             self._home_phase = 0
-            self._move_ref_raw, self._move_skip = self.model.loadcell_raw, 0
+            self._home_creep = not self.homed  # from an unknown position: creep (spec 2.11)
+            self._probe.release()
+            self._move_watch_start(0)
         elif cmd == Command.CLEAR_FAULT:
             self.faults = Fault(0)
             if self.state == DrumState.FAULT:
@@ -504,8 +469,9 @@ class MegaController:
     def _release(self, state: DrumState) -> None:
         """Stop pressing: back off to home if the position is known (homed), else stop where it stands."""
         self.state = state
+        self._probe.release()  # the next press probes the contact again (spec 2.11)
         if self.homed and not self._retracting:
-            self._move_ref_raw, self._move_skip = self.model.loadcell_raw, wire.HX711_RATE_PERIODS
+            self._move_watch_start(wire.HX711_RATE_PERIODS)
         self._retracting = self.homed
         self._homing = False
         self._integ = 0.0
@@ -514,62 +480,6 @@ class MegaController:
         self.faults |= bits
         self._release(DrumState.FAULT)
         log.warning("virtual Mega fault: %s", Fault(bits).name or f"0x{int(bits):x}")  # named, not a bare number
-
-    def _direction_fault(self) -> None:
-        """The actuator moved the wrong way (the firmware's direction_fault): not homed, stopped where it stands."""
-        self.homed = False
-        self._fault(Fault.ACTUATOR_DIRECTION)
-        self._retracting = False
-
-    def _watch_direction(self) -> None:
-        """A new reading while moving home or backing off: an untared rise above the lowest reading since the move
-        began (raw counts in the scale's sign) is a reversed actuator (firmware: ctl_loadcell)."""
-        raw, self._move_skip = self.model.loadcell_raw, max(0, self._move_skip - 1)
-        rise = 0.0 if self._move_ref_raw is None or self._move_skip else (raw - self._move_ref_raw) * 100 / self.scale_x100
-        if (self._homing or self._retracting) and rise > wire.DIRECTION_RISE_G:
-            self._direction_fault()
-        elif rise <= 0:
-            self._move_ref_raw = raw
-
-    def _home_velocity(self, n_ms: int, cal: float) -> float:
-        """HOME's actuator velocity this step (the firmware's home_step): back to the switch, leave it (it must open
-        within HOME_PROOF_MM: the direction is right), back again; zero there. Travel is the step count (commanded
-        mm, moving or not)."""
-        m, dt = self.model, n_ms / 1000.0
-        self._home_ms += n_ms
-        late = self._home_ms >= wire.HOME_TIMEOUT_MS
-        if self._home_phase == 0:  # seek
-            if self._home_switch():
-                self._home_phase, self._home_phase_mm = 1, 0.0
-            elif self._home_travel_mm >= wire.HOME_MAX_TRAVEL_MM or late:
-                return self._home_not_found()
-            else:
-                self._home_travel_mm += HOME_SPEED_MM_S * dt
-                return -HOME_SPEED_MM_S * cal
-        if self._home_phase == 1:  # leave
-            if not self._home_switch():
-                self._home_phase, self._home_leave_mm, self._home_phase_mm = 2, self._home_phase_mm, 0.0
-            elif self._home_phase_mm >= wire.HOME_PROOF_MM:
-                self._direction_fault()
-                return 0.0
-            else:
-                self._home_phase_mm += HOME_SPEED_MM_S * dt
-                return HOME_SPEED_MM_S * cal
-        if self._home_switch():  # return: home, the direction proven
-            m.home_actuator()
-            self._steps_true_mm = 0.0
-            self._homing = False
-            self._tare_pending = True  # HOMING ends when the tare at the switch is taken
-            return 0.0
-        if self._home_phase_mm >= self._home_leave_mm + wire.HOME_PROOF_MM or late:
-            return self._home_not_found()
-        self._home_phase_mm += HOME_SPEED_MM_S * dt
-        return -HOME_SPEED_MM_S * cal
-
-    def _home_not_found(self) -> float:
-        self.homed = False
-        self._fault(Fault.HOME_NOT_FOUND)
-        return 0.0
 
     def _estop(self) -> None:
         """The e-stop ISR: drivers disabled and motion stopped at once, ESTOP latched, the position no longer known."""
@@ -580,14 +490,14 @@ class MegaController:
         self.drivers_enabled = False
 
     def _tare(self) -> None:
-        self._tare_raw, self._tare_pending, self.tared = self.model.loadcell_raw, False, True
+        self._tare_raw, self._tare_pending, self.tared = self._last_raw, False, True
         self._update_force()
         self._probe.forget_reading()
 
     # ------------------------------------------------------------------ control loop
     def _update_force(self) -> None:
         scale = self.scale_x100 / 100.0
-        self._force_g = (self.model.loadcell_raw - self._tare_raw) / scale
+        self._force_g = (self._last_raw - self._tare_raw) / scale
 
     def set_estop(self, opened: bool) -> None:
         """The e-stop input: ``True`` = open (contact pressed, or a broken wire), which trips ESTOP at once (the
@@ -608,6 +518,12 @@ class MegaController:
         again (:meth:`reset` with WATCHDOG)."""
         with self._lock:
             self._hung_ms = 0
+
+    def break_hx711_sck(self, broken: bool = True) -> None:
+        """Fault-injection hook: the HX711's SCK wire is broken (``hx711-sck-broken``): it is never clocked, DOUT
+        stays low after its conversion, and every read the firmware makes returns 0, as fast as it polls."""
+        with self._lock:
+            self._hx_sck_broken = bool(broken)
 
     def set_loadcell_alive(self, alive: bool) -> None:
         """Fault-injection hook: ``False`` makes the simulated HX711 stop answering (LOADCELL_TIMEOUT after 200 ms)."""
@@ -631,7 +547,7 @@ class MegaController:
         left = int(n_ms)
         while left > 0:
             to_conversion, t0, travel0, act0 = m.step_start()
-            k = min(left, self.max_step_ms, to_conversion)
+            k = 1 if self._hx_sck_broken else min(left, self.max_step_ms, to_conversion)  # (SCK broken: every ms)
             with self._lock:
                 rate, vel = self._outputs
             s, y = m.advance(k, drum_step_rate_hz=rate, actuator_velocity_mm_s=vel, render=render)
@@ -658,9 +574,24 @@ class MegaController:
         expected = (holding or self.holding)[HR.HX711_RATE_SPS]
         return bool(self._hx_rate_sps) and abs(self._hx_rate_sps - expected) <= wire.HX711_RATE_TOLERANCE * expected
 
+    def _check_reading(self, raw: int) -> None:
+        """A reading that can be lying is a fault (the firmware's ctl_loadcell, spec 2.11): a saturation code, an
+        all-zero or all-one word twice in a row (HX711_LINE); HX711_STUCK_READINGS identical raw values in a row."""
+        self._same_raw = self._same_raw + 1 if raw == self._prev_raw else 1
+        self._prev_raw = raw
+        self._line_codes = self._line_codes + 1 if raw in wire.HX711_LINE_CODES else 0
+        if (raw in wire.HX711_SATURATION_CODES or self._line_codes >= 2) and Fault.HX711_LINE not in self.faults:
+            self._fault(Fault.HX711_LINE)
+        if self._same_raw >= wire.HX711_STUCK_READINGS and Fault.HX711_STUCK not in self.faults:
+            self._fault(Fault.HX711_STUCK)
+
     def _hx711_ready(self, t_s: float) -> None:
         """A DOUT-ready edge at ``t_s``: the boot measurement of the rate (the firmware's ctl_hx711_ready: the periods
-        are timed from the second edge; the first reading may have waited since before the sketch started)."""
+        are timed from the second edge; the first reading may have waited since before the sketch started); once the
+        rate is known, an edge sooner than HX711_CADENCE_PCT % of the period after the last latches HX711_CADENCE."""
+        if self._hx_rate_sps and self._hx_period_s > 0 and Fault.HX711_CADENCE not in self.faults and \
+                (t_s - self._hx_last_s) * 100.0 < self._hx_period_s * wire.HX711_CADENCE_PCT:
+            self._fault(Fault.HX711_CADENCE)
         if 2 <= self._hx_edges <= wire.HX711_RATE_PERIODS + 1:
             self._hx_sum_s += t_s - self._hx_last_s
         self._hx_last_s = t_s
@@ -697,6 +628,36 @@ class MegaController:
             target = h[HR.SPEED_SETPOINT_0P1MMS] / 10.0
         return min(target, h[HR.SPEED_LIMIT_0P1MMS] / 10.0)
 
+    def _take_reading(self, n_ms: int) -> bool:
+        """The HX711's reading, when a new one is ready (the firmware's ctl_hx711_ready and ctl_loadcell up to the
+        force): its timing, its plausibility, the tare at home, the force, the direction watch, the trip's
+        prediction. A broken SCK holds DOUT low: the firmware "reads" 0 at every pass of loop(). True when read."""
+        m = self.model
+        conversions, sck_broken = m.hx711_conversions, self._hx_sck_broken
+        new_reading = (conversions != self._hx_seen or sck_broken) and self._loadcell_ok
+        if new_reading:
+            if sck_broken:
+                self._hx711_ready(self._t_s)
+            else:
+                period = m.config.mechanics.hx711_period_s
+                for i in range(min(conversions - self._hx_seen, wire.HX711_RATE_PERIODS + 1), 0, -1):
+                    self._hx711_ready(m.hx711_last_conversion_s - (i - 1) * period)
+            self._loadcell_silent_ms = 0
+            raw = self._last_raw = 0 if sck_broken else m.loadcell_raw
+            self._check_reading(raw)
+            if self._tare_pending and self._home_switch():
+                self._tare()
+                if self.state == DrumState.HOMING and not self._homing:  # HOME done: at the switch, tared
+                    self.homed = True
+                    self.state = DrumState.IDLE
+            self._update_force()
+            self._watch_direction(raw)
+            self._predicted_g = self._probe.predicted_g(self._force_g, self.state in _ENGAGED)
+        else:
+            self._loadcell_silent_ms += n_ms
+        self._hx_seen = conversions
+        return new_reading
+
     def control_step(self, n_ms: int) -> None:
         """One pass of the Mega's control logic after ``n_ms`` ms of physics (reads the model, sets outputs)."""
         if n_ms <= 0:
@@ -717,24 +678,7 @@ class MegaController:
                 return
             self._heartbeat_ms += n_ms
             h = self.holding
-            conversions = m.hx711_conversions
-            new_reading = conversions != self._hx_seen and self._loadcell_ok
-            if new_reading:
-                period = m.config.mechanics.hx711_period_s
-                for i in range(min(conversions - self._hx_seen, wire.HX711_RATE_PERIODS + 1), 0, -1):
-                    self._hx711_ready(m.hx711_last_conversion_s - (i - 1) * period)
-                self._loadcell_silent_ms = 0
-                if self._tare_pending and self._home_switch():
-                    self._tare()
-                    if self.state == DrumState.HOMING and not self._homing:  # HOME done: at the switch, tared
-                        self.homed = True
-                        self.state = DrumState.IDLE
-                self._update_force()
-                self._watch_direction()
-                self._predicted_g = self._probe.predicted_g(self._force_g, self.state in _ENGAGED)
-            else:
-                self._loadcell_silent_ms += n_ms
-            self._hx_seen = conversions
+            new_reading = self._take_reading(n_ms)
             f = self._force_g
             engaged = self.state in _ENGAGED
             # --- faults (the host watchdog: check_watchdog, in the Modbus server's loop)
@@ -745,9 +689,15 @@ class MegaController:
                 self._fault(Fault.LOADCELL_TIMEOUT)
             elif engaged and f < -2 * h[HR.FORCE_TOLERANCE_G]:
                 self._fault(Fault.LOADCELL_REVERSED)  # pressing reads negative: a reversed cell (or scale)
+            elif engaged and new_reading and self._probe.contact_lost(f, self._actuator_steps(),
+                                                                       h[HR.FORCE_TOLERANCE_G]):
+                self._fault(Fault.CONTACT_LOST)  # a held force the position says the contact does not carry (2.11)
             elif engaged and self._actuator_position_mm() >= mech.actuator_travel_mm - 1e-3 and \
                     f < h[HR.FORCE_SETPOINT_G] - h[HR.FORCE_TOLERANCE_G]:
                 self._fault(Fault.ACTUATOR_TRAVEL)
+            limit = self._probe.position_limit_steps(h[HR.FORCE_LIMIT_G]) if self.state in _ENGAGED else None
+            if limit is not None and self._actuator_steps() > limit:
+                self._fault(Fault.POSITION_LIMIT)  # past the probed contact's limit, whatever the reading (2.11)
             if self._index.take_slip() and Fault.DRUM_SLIP not in self.faults:
                 self._fault(Fault.DRUM_SLIP)  # the drum's speed marks came late or stopped (spec 2.5)
             if probed := engaged and new_reading and self._probe.active and self.state in _ENGAGED:  # spec 2.10

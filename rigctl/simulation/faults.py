@@ -8,6 +8,10 @@ and the controller make of it is theirs: the controller latches its faults, the 
 (:mod:`rigctl.acquisition.safety`) pauses the run. The firmware under simavr (``--hil``) implements the same
 hook with its harness.
 
+``hx711-sck-broken`` and ``hx711-frozen`` act on the HX711 (the controller's reads, the model's conversions),
+``contact-stiffness`` swaps the plate (the model's spring), ``eeprom-corrupt`` flips a bit of the controller's stored
+calibration and browns it out.
+
 ``taxel-ohm`` sets the source impedance of the taxel board's analog front end
 (:class:`rigctl.simulation.mux_rc.MuxFrontEnd`: the anti-alias RC and the mux the firmware discharges before each
 input; the firmware's own ADC under simavr with ``--hil``).
@@ -28,14 +32,9 @@ __all__ = ["ModelFaults", "model_fault_refusal"]
 log = logging.getLogger(__name__)
 
 
-#: faults the model rigs do not model yet, and why
-_NOT_YET: dict[str, str] = {name: "not modelled on this rig yet (issue 55)"
-                            for name in ("hx711-sck-broken", "hx711-frozen", "contact-stiffness", "eeprom-corrupt")}
-
-
 def model_fault_refusal(spec: FaultSpec) -> str | None:
     """Why no model rig can inject ``spec`` (None: they can)."""
-    return _NOT_YET.get(spec.name)
+    return None
 
 
 class ModelFaults:
@@ -61,6 +60,7 @@ class ModelFaults:
         self.drum_link, self.taxel_link = drum_link, taxel_link
         self.host_silent = False
         self.active: set[str] = set()
+        self._stiffness_g_per_mm = model.config.mechanics.contact_stiffness_g_per_mm  # the rig's own plate
 
     def fault_refusal(self, spec: FaultSpec) -> str | None:
         """Why this rig cannot model ``spec`` (None when it can)."""
@@ -104,6 +104,15 @@ class ModelFaults:
             self.drum_link(not active)
         elif name == "taxel-ohm":  # the taxel board's front end (rigctl.simulation.mux_rc); ideal again at the end
             m.front_end.source_ohm = float(spec.value or 0.0) if active else 0.0
+        elif name == "hx711-sck-broken":  # DOUT held low: every read 0, as fast as the firmware polls
+            c.break_hx711_sck(active)
+        elif name == "hx711-frozen":
+            m.freeze_hx711(active)
+        elif name == "contact-stiffness":  # a plate swap (the rig's own plate again at the end)
+            m.set_contact_stiffness(spec.value if active and spec.value else self._stiffness_g_per_mm)
+        elif name == "eeprom-corrupt":  # a brown-out while the EEPROM is written: the record fails its checksum
+            c.corrupt_eeprom()
+            c.reset(ResetCause.BROWN_OUT)
         elif name == "taxel-link-drop" and self.taxel_link is not None:
             self.taxel_link(not active)
         else:  # refused before the schedule was armed (fault_refusal)

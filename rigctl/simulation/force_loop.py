@@ -8,6 +8,11 @@ the setpoint), stops until the reading has averaged only the new position (the 5
 step's travel. A stiffness above LOOP_PHASE_RAD / (Kp x HX711_DELAY_PERIODS x period) is more than the force loop
 holds: CONTACT_STIFFNESS, and PRESS and RUN are refused while it stays above that limit (slower gains raise it).
 While the loop drives, the force-limit trip extrapolates the last period's rise over FORCE_LEAD_PERIODS.
+
+Firmware 1.2 (spec 2.11): every press from rest probes (the contact is forgotten at each release, HOME and reset);
+a first step that pressed less than half of PROBE_REFINE_G is followed by a second sized from it to press
+PROBE_REFINE_G more (at most 0.5 mm), and the stiffness is taken over both; the contact's zero-force point is the
+first settle's position less its force over the stiffness (:attr:`ContactProbe.x0_mm`).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from rigctl.devices.wire import HoldingRegister as HR
 
 __all__ = ["ContactProbe", "force_pi_update", "stiffness_max_g_per_mm"]
 
-_NONE, _APPROACH, _SETTLE1, _STEP, _SETTLE2 = range(5)
+_NONE, _APPROACH, _SETTLE1, _STEP, _SETTLE2, _STEP2, _SETTLE3 = range(7)
 
 
 def force_pi_update(integ: float, kp: float, ki: float, out_max: float, band_g: float, setpoint_g: float,
@@ -61,6 +66,10 @@ class ContactProbe:
         self._x1_mm = 0.0
         self._target_mm = 0.0
         self._prev_g: float | None = None
+        #: the contact this press probed (spec 2.11): valid until the actuator is released
+        self.contact_valid = False
+        self.k_g_per_step = 0.0  #: its stiffness, g per actuator step (the firmware's: a calibration change keeps it)
+        self.x0_steps = 0.0  #: its zero-force point, actuator steps
 
     @property
     def active(self) -> bool:
@@ -72,9 +81,25 @@ class ContactProbe:
         return not self.stiffness_g_per_mm or self.stiffness_g_per_mm <= stiffness_max_g_per_mm(holding, period_s)
 
     def engage(self) -> None:
-        """The force loop engages: probe the contact unless its stiffness is known."""
-        self._phase = _NONE if self.stiffness_g_per_mm else _APPROACH
+        """The force loop engages: probe the contact unless this press has probed it (every press from rest)."""
+        self._phase = _NONE if self.contact_valid else _APPROACH
         self._prev_g = None
+
+    def release(self) -> None:
+        """The actuator is released (STOP, a fault's back-off, HOME): the next press probes again."""
+        self.contact_valid = False
+
+    def position_limit_steps(self, force_limit_g: float) -> float | None:
+        """The step count past which POSITION_LIMIT latches (spec 2.11), or None (no contact probed)."""
+        if not self.contact_valid or self.active:
+            return None
+        return self.x0_steps + (force_limit_g + wire.POSITION_MARGIN_G) / self.k_g_per_step
+
+    def contact_lost(self, force_g: float, pos_steps: float, tolerance_g: float) -> bool:
+        """The reading holds a force the position (the step count) says the contact does not carry (CONTACT_LOST,
+        spec 2.11)."""
+        return (self.contact_valid and not self.active and force_g > 2.0 * tolerance_g
+                and (pos_steps - self.x0_steps) * self.k_g_per_step < 0.5 * force_g)
 
     def forget_reading(self) -> None:
         """A tare: the next reading is not comparable with the last."""
@@ -102,7 +127,7 @@ class ContactProbe:
                 return v, False
             self._phase, self._readings = _SETTLE1, 0
             return 0.0, False
-        if self._phase == _STEP:
+        if self._phase in (_STEP, _STEP2):
             return v, False
         self._readings += 1
         if self._readings <= wire.HX711_RATE_PERIODS:
@@ -114,13 +139,26 @@ class ContactProbe:
             return v, False
         dx = pos_mm - self._x1_mm
         k = (force_g - self._f1_g) / dx if dx > 0 else 0.0
+        refine = min(float(wire.PROBE_REFINE_G), 0.5 * holding[HR.FORCE_SETPOINT_G])
         self.stiffness_g_per_mm = int(min(0xFFFF, max(1.0, k)))
+        if not self.ok(holding, period_s):
+            self._phase = _NONE
+            return 0.0, True
+        if self._phase == _SETTLE2 and force_g - self._f1_g < 0.5 * refine:  # a soft contact: a second step
+            dx2 = min(0.5, (refine - (force_g - self._f1_g)) / max(k, 200.0))
+            self._target_mm = pos_mm + dx2
+            self._phase = _STEP2
+            return v, False
         self._phase = _NONE
-        return 0.0, not self.ok(holding, period_s)
+        spmm = holding[HR.ACTUATOR_STEPS_PER_MM]
+        self.k_g_per_step = max(k, 1.0) / spmm
+        self.x0_steps = self._x1_mm * spmm - self._f1_g / self.k_g_per_step
+        self.contact_valid = True
+        return 0.0, False
 
     def step_done(self, pos_mm: float) -> bool:
         """The 1 kHz tick: the measuring step has reached its travel (the actuator stops; settle)."""
-        if self._phase == _STEP and pos_mm >= self._target_mm - 1e-9:
-            self._phase, self._readings = _SETTLE2, 0
+        if self._phase in (_STEP, _STEP2) and pos_mm >= self._target_mm - 1e-9:
+            self._phase, self._readings = (_SETTLE2 if self._phase == _STEP else _SETTLE3), 0
             return True
         return False

@@ -203,7 +203,8 @@ class HilRig:
         self._actuator_acks = 0
         self.schedule: FaultSchedule | None = None  #: the injected faults (:meth:`inject_faults`)
         self.faults = HilFaults(lambda c: self._running(self._mega, "Mega").send(c),
-                                None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm)
+                                None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm,
+                                calibration_offset=self._calibration_offset)
         self.telemetry: Telemetry | None = None
         self.telemetry_history: collections.deque[Telemetry] = collections.deque(maxlen=400)
         #: the actuator's reversals as the motor turned (``AREV``): (t_s of the new direction's first step, dir 1 =
@@ -320,7 +321,8 @@ class HilRig:
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
         lock = ["--clock-lock", str(self._clock_file.path), *([] if self.paced else ["--no-pace"])]
         self.clock.start()
-        calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{default_record().hex()}"] if self.factory_calibrated else []
+        record = default_record(int(m.loadcell_offset_counts))  # calibrated and tared on the unloaded cell
+        calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{record.hex()}"] if self.factory_calibrated else []
         mega_boot = (["--reset-on-open", "--bootloader", str(build_dir / "stk500v2_mega.hex")] if self.bootloaders
                      else [])
         uno_boot = ["--bootloader", str(build_dir / "optiboot_uno.hex")] if self.bootloaders else []
@@ -475,12 +477,10 @@ class HilRig:
         """Why the harness cannot model ``spec`` (None when it can; :mod:`rigctl.core.faults`)."""
         return self.faults.fault_refusal(spec)
 
-    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
-        """Arm ``specs`` on the Mega's simulated time from now; each applies as the harness's reports pass it."""
-        schedule = FaultSchedule(specs, self.faults.apply_fault)
-        schedule.start(self.next_telemetry().t_s)
-        self.schedule = schedule
-        return schedule
+    def inject_faults(self, specs: Sequence[FaultSpec], *, power_on: bool = False) -> FaultSchedule:
+        """Arm ``specs`` on the Mega's simulated time from now (:meth:`HilFaults.arm`; ``power_on``: FAULT@0)."""
+        self.schedule = self.faults.arm(specs, self.next_telemetry().t_s, power_on=power_on)
+        return self.schedule
 
     def truth_start(self) -> None:
         """The run starts now (the Mega's simulated time): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""

@@ -3,16 +3,17 @@
 
 Each fault acts where the real one would, through the harness's stdin commands (arduino/simavr/rigctl_simavr.c): the
 e-stop contact, the reset pin, the load cell's sign, the actuator motor's coil pair, the host's USB link to the Mega,
-the taxels' source impedance. The schedule runs on the Mega's simulated time (its ``TEL`` reports). Commands are sent
+the taxels' source impedance, the HX711's SCK wire and its output (frozen), the contact's stiffness (a plate swap),
+the EEPROM (a brown-out while writing it). The schedule runs on the Mega's simulated time (its ``TEL`` reports). Commands are sent
 without waiting for the harness's acknowledgement: they are applied from the thread that reads the harness's reports.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
-from rigctl.core.faults import FaultSpec
+from rigctl.core.faults import FaultSchedule, FaultSpec
 
 __all__ = ["HilFaults"]
 
@@ -26,6 +27,8 @@ _MEGA_COMMANDS: dict[str, tuple[str, str]] = {
     "reversed-actuator": ("actuator reversed", "actuator ok"),
     "host-silence": ("link down", "link up"),
     "stall": ("drum slip 1", "drum ok"),
+    "hx711-sck-broken": ("hx711 sck-broken", "hx711 ok"),
+    "hx711-frozen": ("hx711 frozen", "hx711 ok"),
 }
 
 #: faults the harness does not model, and why
@@ -35,8 +38,6 @@ _REFUSED: dict[str, str] = {
     "taxel-link-drop": "the Uno's link cannot be cut in the harness (use --sim)",
     "reversed-drum": "the taxels rendered for the Uno follow the Mega's drum steps, not a drum turning backwards "
                      "(use --sim)",
-    **{name: "not modelled by the harness yet (issue 55)"
-       for name in ("hx711-sck-broken", "hx711-frozen", "contact-stiffness", "eeprom-corrupt")},
 }
 
 
@@ -48,6 +49,8 @@ class HilFaults:
     send_mega : ``send_mega(command)`` writes one stdin command to the Mega's harness.
     send_uno : the same for the Uno's (None when the rig runs the Mega alone: ``taxel-ohm`` refused).
     taxel_ohm : the taxels' source impedance to restore when ``taxel-ohm`` ends, Ohm.
+    calibration_offset : ``calibration_offset()`` is the calibration record's EEPROM address (``eeprom-corrupt``
+        flips a byte of its scale; None: refused).
 
     Attributes
     ----------
@@ -55,9 +58,20 @@ class HilFaults:
     """
 
     def __init__(self, send_mega: Callable[[str], None], send_uno: Callable[[str], None] | None,
-                 taxel_ohm: float) -> None:
+                 taxel_ohm: float, *, calibration_offset: Callable[[], int] | None = None) -> None:
         self.send_mega, self.send_uno, self.taxel_ohm = send_mega, send_uno, float(taxel_ohm)
+        self.calibration_offset = calibration_offset
         self.active: set[str] = set()
+
+    def arm(self, specs: Sequence[FaultSpec], t0_s: float, *, power_on: bool = False) -> FaultSchedule:
+        """A schedule of ``specs`` from the Mega's simulated ``t0_s``; ``power_on``: the ``FAULT@0`` ones applied now
+        and the Mega powered on again with them (:class:`rigctl.core.faults.FaultInjector`)."""
+        schedule = FaultSchedule(specs, self.apply_fault)
+        schedule.start(t0_s)
+        if power_on:
+            schedule.due(t0_s)
+            self.send_mega("poweron")
+        return schedule
 
     def fault_refusal(self, spec: FaultSpec) -> str | None:
         """Why the harness cannot model ``spec`` (None when it can)."""
@@ -65,6 +79,8 @@ class HilFaults:
             return _REFUSED[spec.name]
         if spec.name == "taxel-ohm" and self.send_uno is None:
             return "this HIL rig runs the Mega alone (no taxels)"
+        if spec.name == "eeprom-corrupt" and self.calibration_offset is None:
+            return "this HIL rig does not know where its Mega keeps the calibration"
         return None
 
     def apply_fault(self, spec: FaultSpec, active: bool) -> None:
@@ -76,6 +92,11 @@ class HilFaults:
             command = _MEGA_COMMANDS[name][0 if active else 1]
             if command:
                 self.send_mega(command)
+        elif name == "contact-stiffness":  # the plate swapped for one of this stiffness (the rig's own at the end)
+            self.send_mega(f"spring-k {float(spec.value or 0):g}" if active else "spring-k default")
+        elif name == "eeprom-corrupt" and self.calibration_offset is not None:
+            # a byte of the scale (past the magic word) flipped and a brown-out reset in the same step
+            self.send_mega(f"eeprom-corrupt {self.calibration_offset() + 2}")
         elif name == "slip":
             self.send_mega(f"drum slip {(spec.value or 0.0) / 100.0:g}" if active else "drum ok")
         elif name == "taxel-ohm" and self.send_uno is not None:

@@ -30,6 +30,7 @@ import numpy as np
 from pymodbus.exceptions import ModbusIOException
 from pymodbus.pdu import ExceptionResponse
 
+from rigctl.core.drum import ResetCause
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
@@ -378,11 +379,16 @@ class InProcessBackend:
         """Why the in-process rig cannot model ``spec`` (None when it can)."""
         return self.engine.faults.fault_refusal(spec)
 
-    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
-        """Arm ``specs`` on the simulated clock from now; returns the schedule."""
+    def inject_faults(self, specs: Sequence[FaultSpec], *, power_on: bool = False) -> FaultSchedule:
+        """Arm ``specs`` on the simulated clock from now; returns the schedule. ``power_on``: the ``FAULT@0`` ones
+        are applied now and the drum controller powers on again with them (it boots wired that way)."""
         schedule = FaultSchedule(specs, self.engine.faults.apply_fault)
-        schedule.start(self.engine.time_s)
-        self.engine.schedule = schedule
+        with self.engine._lock:
+            schedule.start(self.engine.time_s)
+            if power_on:
+                schedule.due(self.engine.time_s)
+                self.engine.controller.reset(ResetCause.POWER_ON)
+            self.engine.schedule = schedule
         return schedule
 
     def describe(self) -> dict:

@@ -13,9 +13,9 @@ from rigctl.devices.wire import HoldingRegister as HR, crc16
 
 __all__ = ["CALIBRATION_SYMBOL", "EepromError", "calibration_record", "default_record", "eeprom_offset"]
 
-#: the firmware 1.1 calibration record's EEMEM variable
-CALIBRATION_SYMBOL = "ee_calib2"
-_CALIB_MAGIC = 0x5253  # "RS"
+#: the firmware 1.2 calibration record's EEMEM variable (with the tare's raw zero, spec 2.11)
+CALIBRATION_SYMBOL = "ee_calib3"
+_CALIB_MAGIC = 0x525A  # "RZ"
 _EEPROM_BASE = 0x810000  # avr-gcc places .eeprom there
 
 
@@ -36,16 +36,18 @@ def eeprom_offset(elf: Path | str, symbol: str = CALIBRATION_SYMBOL) -> int:
     return int(m.group(1), 16) - _EEPROM_BASE
 
 
-def calibration_record(scale_x100: int, actuator_steps_per_mm: int) -> bytes:
-    """The calibration record as SAVE_CALIBRATION writes it (little-endian, 10 bytes): magic 0x5253, the signed
-    load-cell scale (counts per g x 100), ACTUATOR_STEPS_PER_MM, CRC-16/MODBUS of the 8 bytes before it."""
+def calibration_record(scale_x100: int, actuator_steps_per_mm: int, zero_raw: int) -> bytes:
+    """The calibration record as SAVE_CALIBRATION writes it (little-endian, 14 bytes): magic 0x525A, the signed
+    load-cell scale (counts per g x 100), ACTUATOR_STEPS_PER_MM, the tare's raw zero (signed 32-bit; spec 2.11),
+    CRC-16/MODBUS of the 12 bytes before it."""
     body = _CALIB_MAGIC.to_bytes(2, "little") + int(scale_x100).to_bytes(4, "little", signed=True) + \
-        int(actuator_steps_per_mm).to_bytes(2, "little")
+        int(actuator_steps_per_mm).to_bytes(2, "little") + int(zero_raw).to_bytes(4, "little", signed=True)
     return body + crc16(body).to_bytes(2, "little")
 
 
-def default_record() -> bytes:
-    """The record of a board calibrated with the registers' defaults (the simulated rigs' true scale and steps/mm),
+def default_record(zero_raw: int) -> bytes:
+    """The record of a board calibrated with the registers' defaults (the simulated rigs' true scale and steps/mm,
+    tared on an unloaded cell whose raw reading is ``zero_raw``: the rig config's loadcell_offset_counts),
     what a simulated board's EEPROM holds from its first start (the virtual Mega's ``factory_calibrated``)."""
     scale = wire.join_s32(*(wire.holding_range(r)[2] for r in (HR.LOADCELL_SCALE_X100_HI, HR.LOADCELL_SCALE_X100_LO)))
-    return calibration_record(scale, wire.holding_range(HR.ACTUATOR_STEPS_PER_MM)[2])
+    return calibration_record(scale, wire.holding_range(HR.ACTUATOR_STEPS_PER_MM)[2], zero_raw)

@@ -779,6 +779,7 @@ class RigModel:
         #: motor wired reversed (-1), the drum blocked (True: it turns no further whatever the stepper is told), the
         #: drum slipping (the fraction of the stepper's travel it loses: a loose coupling, 0.2 = 20 %)
         self.loadcell_sign = 1
+        self._hx_frozen_raw: int | None = None  # the HX711's output frozen at this raw value (fault injection)
         self.actuator_sign = -1 if self.config.mechanics.actuator_reversed else 1
         self.drum_blocked = False
         self.drum_slip = 0.0
@@ -859,11 +860,35 @@ class RigModel:
 
     @property
     def loadcell_raw(self) -> int:
-        """Raw HX711-like counts: ``loadcell_offset_counts + round(force_g * loadcell_counts_per_g)`` (signed 24-bit)."""
+        """Raw HX711-like counts: ``loadcell_offset_counts + round(force_g * loadcell_counts_per_g)`` (signed 24-bit);
+        while frozen (:meth:`freeze_hx711`), the value it froze at."""
         m = self.config.mechanics
         with self._lock:
+            if self._hx_frozen_raw is not None:
+                return self._hx_frozen_raw
             raw = m.loadcell_offset_counts + self.loadcell_sign * int(round(self._loadcell_g * m.loadcell_counts_per_g))
         return max(-(1 << 23), min((1 << 23) - 1, raw))
+
+    def freeze_hx711(self, frozen: bool) -> None:
+        """Fault injection (``hx711-frozen``): the HX711's output freezes at its latest conversion's raw value (the
+        conversions go on at their rate, the same 24 bits each), or thaws."""
+        raw = None
+        if frozen:
+            self._hx_frozen_raw = None
+            raw = self.loadcell_raw
+        with self._lock:
+            self._hx_frozen_raw = raw
+
+    def set_contact_stiffness(self, g_per_mm: float) -> None:
+        """Fault injection (``contact-stiffness=G_PER_MM``): the plate swapped for one whose contact stiffness is
+        ``g_per_mm`` g/mm (> 0), from the next step. ValueError."""
+        k = float(g_per_mm)
+        if not 0 < k <= 1e6:
+            raise ValueError(f"contact stiffness must be > 0 g/mm, got {g_per_mm}")
+        with self._lock:
+            self.config = dataclasses.replace(
+                self.config, mechanics=dataclasses.replace(self.config.mechanics, contact_stiffness_g_per_mm=k))
+            self._step_consts = None  # read again at the next step
 
     def _slip(self) -> float:
         return 1.0 if self.drum_blocked else min(1.0, max(0.0, float(self.drum_slip)))

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from rigctl.core.drum import ResetCause
 from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.shared_clock import SharedClock
@@ -159,10 +160,14 @@ class SimulatedRig:
         """Why this rig cannot model ``spec`` (None when it can; :mod:`rigctl.core.faults`)."""
         return self.faults.fault_refusal(spec)
 
-    def inject_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:
+    def inject_faults(self, specs: Sequence[FaultSpec], *, power_on: bool = False) -> FaultSchedule:
         """Arm ``specs`` on the physics clock from now (replacing the schedule armed before by this method); the
-        physics thread applies each as its time comes."""
+        physics thread applies each as its time comes. ``power_on``: the ``FAULT@0`` ones are applied now and the
+        drum controller powers on again with them."""
         self.schedule = self._arm(specs)
+        if power_on:
+            self.schedule.due(self.model.time_s)
+            self.mega.reset(ResetCause.POWER_ON)
         return self.schedule
 
     def add_faults(self, specs: Sequence[FaultSpec]) -> FaultSchedule:

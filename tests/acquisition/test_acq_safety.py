@@ -213,7 +213,8 @@ def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
     actuator into its rear stop while its step count reaches the end of travel, ACTUATOR_TRAVEL latches and the run
     ends at once (no trial recorded again); acknowledged with the coil pair still swapped, HOME's direction proof
     latches ACTUATOR_DIRECTION and the latch holds; mended, the acknowledgement homes the rig."""
-    with open_control(RigSource("inprocess", inject=(parse_fault("reversed-actuator@0+30"),))) as control:
+    # (@0.01: swapped once the rig is open; @0 is from power-on, which HOME's direction proof refuses at open)
+    with open_control(RigSource("inprocess", inject=(parse_fault("reversed-actuator@0.01+30"),))) as control:
         run = ProtocolRun(control, load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", on_latch="end")
         summary = run.run()
         assert summary.stopped and summary.complete == 0 and summary.retried == 0 and summary.failed == 0

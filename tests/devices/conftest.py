@@ -14,8 +14,10 @@ from rigctl.simulation.virtual_uno import VirtualUno
 
 @pytest.fixture
 def mega(tmp_path):
-    """A VirtualMega on its own real-time control loop (200 Hz), Modbus port at ``mega.path``."""
-    board = VirtualMega(RigModel(seed=7), tmp_path / "drum", eeprom_path=tmp_path / "eeprom.json").start()
+    """A VirtualMega on its own real-time control loop (200 Hz), Modbus port at ``mega.path``; calibrated (a default
+    calibration refuses PRESS and RUN, docs/wire-protocol.md 2.11)."""
+    board = VirtualMega(RigModel(seed=7), tmp_path / "drum", eeprom_path=tmp_path / "eeprom.json",
+                        factory_calibrated=True).start()
     yield board
     board.close()
 

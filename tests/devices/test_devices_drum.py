@@ -25,12 +25,11 @@ from .conftest import home
 def test_every_input_register_read(drum, mega):
     regs = drum.read_inputs(0, wire.N_INPUT)
     assert [drum.read_input(reg) for reg in wire.RESERVED_INPUT] == [0] * len(wire.RESERVED_INPUT)
-    assert regs[IR.FIRMWARE_VERSION] == 257
+    assert regs[IR.FIRMWARE_VERSION] == 258  # 1.2
     assert regs[IR.STATE] == DrumState.IDLE  # homed by the fixture
     assert regs[IR.RESET_CAUSE] == wire.ResetCause.POWER_ON and regs[IR.BOOT_COUNT] == 0  # first boot of its EEPROM
-    # homed and tared; a fresh EEPROM holds no calibration: the defaults are in use, and say so
-    assert regs[IR.STATUS_FLAGS] == wire.StatusFlag.HOMED | wire.StatusFlag.TARED | wire.StatusFlag.HOME_SWITCH | \
-        wire.StatusFlag.CALIBRATION_DEFAULTS
+    # homed and tared; the fixture's board is calibrated (a default calibration refuses PRESS, spec 2.11)
+    assert regs[IR.STATUS_FLAGS] == wire.StatusFlag.HOMED | wire.StatusFlag.TARED | wire.StatusFlag.HOME_SWITCH
     assert regs[IR.FAULT_BITS] == 0
     assert regs[IR.FORCE_SETPOINT_ACTIVE_G] == 0
     assert 0 <= regs[IR.DRUM_ANGLE_0P01DEG] < 36000
@@ -279,7 +278,7 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     assert drum.wait_state(DrumState.IDLE, timeout_s=2).actuator_mm == 0
     drum.tare()
     assert abs(drum.read_status().force_g) <= 5
-    assert drum.read_status().calibration_defaults  # nothing saved yet
+    assert not drum.read_status().calibration_defaults  # the factory calibration (the fixture's board)
     drum.set_loadcell_scale(400.0)  # a different calibration scales the measured force
     assert drum.loadcell_scale() == 400.0 and drum.read_holding(HR.LOADCELL_SCALE_X100) == 40000
     drum.write_holding(HR.ACTUATOR_STEPS_PER_MM, 500)
@@ -298,7 +297,7 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
 @pytest.mark.realtime  # a VirtualMega on a pty (its control loop paced by the wall clock), 0.5 s answer timeouts
 def test_press_refused_before_home_names_why(tmp_path):
     """After power-up the controller is NOT_HOMED: PRESS and RUN come back as DrumNotHomed, which says why."""
-    board = VirtualMega(RigModel(seed=7), tmp_path / "drum").start()
+    board = VirtualMega(RigModel(seed=7), tmp_path / "drum", factory_calibrated=True).start()
     try:
         with DrumClient(board.path, timeout_s=0.5, retries=2, poll_s=0.02) as drum:
             assert drum.read_status().state == DrumState.NOT_HOMED

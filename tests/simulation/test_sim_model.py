@@ -200,7 +200,7 @@ def test_pi_force_loop_settles_in_a_realistic_time(setpoint):
     from rigctl.devices.wire import Command, HoldingRegister as HR
     from rigctl.simulation.controller import MegaController
 
-    ctl = MegaController(RigModel(seed=1))
+    ctl = MegaController(RigModel(seed=1), factory_calibrated=True)  # calibrated: defaults refuse PRESS (spec 2.11)
     # a controller out of reset is NOT_HOMED and refuses PRESS until HOME succeeds (docs/wire-protocol.md 2.6)
     assert ctl.write_registers(6, HR.COMMAND, [int(Command.PRESS)]) is not None
     assert ctl.write_registers(6, HR.COMMAND, [int(Command.HOME)]) is None

@@ -102,7 +102,7 @@
 #define RIGCTL_DRUM_BAUD             500000UL
 #define RIGCTL_DRUM_DEVICE_ID        1
 #define RIGCTL_MEGA_FW_MAJOR         1
-#define RIGCTL_MEGA_FW_MINOR         1
+#define RIGCTL_MEGA_FW_MINOR         2
 #define RIGCTL_MEGA_FIRMWARE_VERSION ((RIGCTL_MEGA_FW_MAJOR << 8) | RIGCTL_MEGA_FW_MINOR)
 
 /* Modbus function codes and exception codes used by the spec */
@@ -287,6 +287,17 @@
 #define RIGCTL_FAULT_DRUM_SLIP             (1u << RIGCTL_FAULT_DRUM_SLIP_BIT)
 #define RIGCTL_FAULT_CONTACT_STIFFNESS_BIT 11
 #define RIGCTL_FAULT_CONTACT_STIFFNESS     (1u << RIGCTL_FAULT_CONTACT_STIFFNESS_BIT)
+/* 2.11 the force path's second channel and the reading's plausibility (firmware 1.2) */
+#define RIGCTL_FAULT_POSITION_LIMIT_BIT    7
+#define RIGCTL_FAULT_POSITION_LIMIT        (1u << RIGCTL_FAULT_POSITION_LIMIT_BIT)
+#define RIGCTL_FAULT_HX711_STUCK_BIT       12
+#define RIGCTL_FAULT_HX711_STUCK           (1u << RIGCTL_FAULT_HX711_STUCK_BIT)
+#define RIGCTL_FAULT_HX711_LINE_BIT        13
+#define RIGCTL_FAULT_HX711_LINE            (1u << RIGCTL_FAULT_HX711_LINE_BIT)
+#define RIGCTL_FAULT_HX711_CADENCE_BIT     14
+#define RIGCTL_FAULT_HX711_CADENCE         (1u << RIGCTL_FAULT_HX711_CADENCE_BIT)
+#define RIGCTL_FAULT_CONTACT_LOST_BIT      15
+#define RIGCTL_FAULT_CONTACT_LOST          (1u << RIGCTL_FAULT_CONTACT_LOST_BIT)
 #define RIGCTL_LOADCELL_TIMEOUT_MS         200
 #define RIGCTL_HOME_MAX_TRAVEL_MM          25
 #define RIGCTL_HOME_TIMEOUT_MS             10000
@@ -342,6 +353,19 @@
 #define RIGCTL_PROBE_STEP_UM               20
 #define RIGCTL_LOOP_PHASE_MRAD             750
 #define RIGCTL_HX711_DELAY_PERIODS_X10     25
+/* 2.11 the force path's second channel (the actuator's position past the probed contact) and the reading's
+ * plausibility: travel past the contact's zero-force point is bounded by (FORCE_LIMIT_G + POSITION_MARGIN_G) / k;
+ * the probe's second step presses PROBE_REFINE_G more for k; HX711_STUCK after this many identical raw readings;
+ * HX711_CADENCE for a DOUT-ready edge sooner than this percentage of the measured period; HOME from an unknown
+ * position moves HOME_CREEP_UM per HX711 period until the untared force fell by HOME_PROOF_FALL_G, and a rise of
+ * HOME_RISE_G of |raw - zero| stops it (ACTUATOR_DIRECTION) */
+#define RIGCTL_POSITION_MARGIN_G           100
+#define RIGCTL_PROBE_REFINE_G              100
+#define RIGCTL_HX711_STUCK_READINGS        6
+#define RIGCTL_HX711_CADENCE_PCT           50
+#define RIGCTL_HOME_CREEP_UM               12
+#define RIGCTL_HOME_PROOF_FALL_G           50
+#define RIGCTL_HOME_RISE_G                 30
 #define RIGCTL_INDEX_SOURCE_STEPS          0
 #define RIGCTL_INDEX_SOURCE_SENSOR         1
 

@@ -197,7 +197,19 @@ struct Plant {
         }
         return sum / wsum;
     }
-    int32_t raw() const { return (int32_t)std::lround(offset + read_g() * counts_per_g); }
+    // the HX711's input noise at gain 128 (Avia HX711 datasheet: 50-90 nV rms, 20-40 counts): the firmware takes 6
+    // identical readings in a row for a frozen one (spec 2.11); an Irwin-Hall(4) draw of ~30 counts sd
+    mutable uint32_t rng = 12345u;
+    double noise_counts = 30.0;
+    int32_t raw() const
+    {
+        double u = 0;
+        for (int i = 0; i < 4; i++) {
+            rng = rng * 1664525u + 1013904223u;
+            u += (rng >> 8) / 16777216.0;
+        }
+        return (int32_t)std::lround(offset + read_g() * counts_per_g + (u - 2.0) * 1.732 * noise_counts);
+    }
 };
 
 static void run_ms(ctl_t &c, Plant &p, uint32_t &now, int ms, bool feed = true, bool loadcell = true)
@@ -445,22 +457,26 @@ static void test_safety()
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
         p.rear_mm = -100.0; // the step count goes on (the firmware counts steps, not motion)
         int ms = 0;
-        for (; ms < 20000 && c.state == RIGCTL_STATE_HOMING; ms += 10) run_ms(c, p, now, 10);
-        std::printf("safety: HOME_NOT_FOUND after %d ms\n", ms);
+        // from an unknown position HOME creeps (spec 2.11: no stored zero here, so the force never proves the way)
+        double period_s = c.hx_period_s > 0 ? c.hx_period_s : 1.0 / c.hreg[RIGCTL_HREG_HX711_RATE_SPS];
+        double creep_mm_s = RIGCTL_HOME_CREEP_UM * 1e-3 / period_s;
+        for (; ms < 60000 && c.state == RIGCTL_STATE_HOMING; ms += 10) run_ms(c, p, now, 10);
+        std::printf("safety: HOME_NOT_FOUND after %d ms (creeping at %.2f mm/s)\n", ms, creep_mm_s);
         CHECK(c.state == RIGCTL_STATE_FAULT && c.faults == RIGCTL_FAULT_HOME_NOT_FOUND);
-        CHECK(ms <= (int)(1000.0 * RIGCTL_HOME_MAX_TRAVEL_MM / ACT_HOME_SPEED_MM_S) + 50 && c.act_vel_mm_s == 0.0f);
+        CHECK(ms <= (int)(1000.0 * RIGCTL_HOME_MAX_TRAVEL_MM / creep_mm_s) + 50 && c.act_vel_mm_s == 0.0f);
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_NOT_HOMED);
         // a stalled actuator (no steps at all): the timeout
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_HOME));
         uint32_t t0 = now;
-        while (c.state == RIGCTL_STATE_HOMING && now - t0 < 20000) {
+        while (c.state == RIGCTL_STATE_HOMING && now - t0 < 60000) {
             now++;
             ctl_feed_watchdog(&c);
             ctl_tick(&c, now);
             if (now % 12 == 0) ctl_loadcell(&c, p.raw());
         }
-        CHECK(c.faults == RIGCTL_FAULT_HOME_NOT_FOUND && now - t0 >= RIGCTL_HOME_TIMEOUT_MS &&
-              now - t0 <= RIGCTL_HOME_TIMEOUT_MS + 2);
+        double creep_ms = RIGCTL_HOME_TIMEOUT_MS + 1000.0 * RIGCTL_HOME_MAX_TRAVEL_MM * c.hx_period_s /
+                          (RIGCTL_HOME_CREEP_UM * 1e-3); // creeping: the timeout plus the travel limit's time
+        CHECK(c.faults == RIGCTL_FAULT_HOME_NOT_FOUND && now - t0 >= creep_ms - 2 && now - t0 <= creep_ms + 2);
     }
     {   // a reversed actuator (issue 39): HOME from home drives into the rear stop, the switch stays closed
         ctl_t c;
@@ -629,11 +645,12 @@ static void test_stiffness()
         run_ms(c, p, now, 2000);
         CHECK(write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_CLEAR_FAULT) && c.state == RIGCTL_STATE_IDLE);
         CHECK(!write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS)); // refused: the loop cannot hold it
-        // slower gains hold it: accepted without a new probe; the trip's prediction keeps a press to 1400 g below 1.1 x
+        // slower gains hold it: accepted, and probed again (every press from rest, spec 2.11); the trip's prediction
+        // keeps a press to 1450 g below 1.1 x
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_KP_80SPS_NMS_G, 2000) && ctl_stiffness_max(&c) > 6000);
         p.peak_g = 0;
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1450) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
-        CHECK(c.probe_phase == PROBE_NONE);
+        CHECK(c.probe_phase == PROBE_APPROACH);
         run_ms(c, p, now, 3000);
         std::printf("stiffness: %.0f g/mm with Kp 0.002: 1450 g, state %u faults %u, peak %.0f g\n", k, c.state, c.faults,
                     p.peak_g);
@@ -648,11 +665,15 @@ static void test_stiffness()
         ctl_init(&c, 0, 0);
         run_ms(c, p, now, 100);
         home(c, p, now);
-        c.stiffness_g_mm = 500;
+        c.stiffness_g_mm = 500; // a stale contact (as before every press probed, spec 2.11): 500 g/mm at the gap
+        c.contact_valid = 1;
+        c.contact_k_g_per_step = 500.0f / c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+        c.contact_x0_steps = (float)(p.gap * c.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM]);
         CHECK(write_reg(c, RIGCTL_HREG_FORCE_SETPOINT_G, 1000) && write_reg(c, RIGCTL_HREG_COMMAND, RIGCTL_CMD_PRESS));
         run_ms(c, p, now, 3000);
         std::printf("stiffness: predicted trip at 6 kg/mm: faults %u, peak %.0f g\n", c.faults, p.peak_g);
-        CHECK(c.faults == RIGCTL_FAULT_FORCE_LIMIT && p.peak_g < 1650.0);
+        // the trip's prediction, or the second channel first: the stale contact's position disagrees with the reading
+        CHECK((c.faults == RIGCTL_FAULT_FORCE_LIMIT || c.faults == RIGCTL_FAULT_CONTACT_LOST) && p.peak_g < 1650.0);
     }
     std::printf("stiffness: ok\n");
 }

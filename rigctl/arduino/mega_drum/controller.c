@@ -76,19 +76,55 @@ float ctl_force_from_raw(const ctl_t *c, int32_t raw)
     return (float)(raw - c->tare_offset) * 100.0f / (float)scale_of(c->hreg);
 }
 
-/* a move that must only take force off the cell begins: its untared readings are compared with the lowest since.
- * A back-off skips the HX711's settling (4 periods): a force that tripped FORCE_LIMIT on its way up (a push on the
- * cell) is still rising in the readings then; HOME starts unloaded or from a reset and checks from the first. */
+/* the raw zero the direction checks measure the load from, sign-free (spec 2.11): the tare, else the one stored with
+ * the calibration; 0 when neither is known (the signed check of spec 2.5 is used then) */
+static uint8_t direction_zero(const ctl_t *c, int32_t *zero)
+{
+    if (c->tared) *zero = c->tare_offset;
+    else if (c->zero_valid) *zero = c->zero_raw;
+    else return 0;
+    return 1;
+}
+
+/* the load on the cell, g, whatever the sign of the scale or of the cell's wiring: |raw - zero| */
+static float load_g(const ctl_t *c, int32_t raw, int32_t zero)
+{
+    float g = (float)(raw - zero) * 100.0f / (float)scale_of(c->hreg);
+    return g < 0.0f ? -g : g;
+}
+
+/* a move that must only take force off the cell begins: its readings' load (sign-free) is compared with the lowest
+ * since. A back-off skips the HX711's settling (4 periods): a force that tripped FORCE_LIMIT on its way up (a push on
+ * the cell) is still rising in the readings then; HOME starts unloaded or from a reset and checks from the first. */
 static void move_watch_start(ctl_t *c, uint8_t skip)
 {
+    int32_t zero;
+    uint8_t known = direction_zero(c, &zero);
     c->move_ref_raw = c->loadcell_raw;
     c->move_ref_valid = c->have_reading;
+    c->move_d_min_g = known && c->have_reading ? load_g(c, c->loadcell_raw, zero) : 0.0f;
+    c->home_d_start_g = known && c->have_reading ? c->move_d_min_g : -1.0f;
     c->move_skip = skip;
+}
+
+/* HOME from an unknown position must not find the cell loaded past the limit, nor load it so (spec 2.11): FORCE_LIMIT_G
+ * plus 2 x FORCE_TOLERANCE_G of |raw - zero| (repeated HOMEs of a reversed motor cannot add up past it) */
+static float home_load_cap_g(const ctl_t *c)
+{
+    return (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G] + 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G];
+}
+
+static uint8_t home_overloaded(const ctl_t *c)
+{
+    int32_t zero;
+    return !c->homed && c->have_reading && direction_zero(c, &zero) &&
+           load_g(c, c->loadcell_raw, zero) > home_load_cap_g(c);
 }
 
 /* the actuator stops where it is (position unknown) or, homed, backs off to home */
 static void release_actuator(ctl_t *c)
 {
+    c->contact_valid = 0; /* released: the next press probes the contact again (spec 2.11) */
     if (c->homed) {
         if (c->act_mode != ACT_MODE_RETRACT) move_watch_start(c, RIGCTL_HX711_RATE_PERIODS);
         c->act_mode = ACT_MODE_RETRACT;
@@ -150,6 +186,11 @@ static void force_loop_gains(ctl_t *c)
  * periods are timed from the second edge. */
 void ctl_hx711_ready(ctl_t *c, uint32_t t_us)
 {
+    /* once the rate is known, every reading is timed (spec 2.11): DOUT low sooner than HX711_CADENCE_PCT of the
+     * period after the last reading is not a conversion (a broken SCK holds DOUT low: every read returns 0) */
+    if (c->hx_rate_0p01 && c->hx_period_s > 0.0f && !(c->faults & RIGCTL_FAULT_HX711_CADENCE) &&
+        (float)(uint32_t)(t_us - c->hx_last_us) * 100.0f < c->hx_period_s * 1e6f * (float)RIGCTL_HX711_CADENCE_PCT)
+        fault(c, RIGCTL_FAULT_HX711_CADENCE);
     if (c->hx_edges >= 2 && c->hx_edges <= RIGCTL_HX711_RATE_PERIODS + 1) c->hx_sum_us += t_us - c->hx_last_us;
     c->hx_last_us = t_us;
     if (c->hx_edges <= RIGCTL_HX711_RATE_PERIODS + 1) c->hx_edges++;
@@ -211,6 +252,7 @@ static void probe_reading(ctl_t *c, float f)
         else c->probe_phase = PROBE_SETTLE1, c->probe_readings = 0;
         return;
     case PROBE_STEP: /* ctl_tick stops it at the target */
+    case PROBE_STEP2:
         c->act_vel_mm_s = probe_speed(c);
         return;
     default: /* settling: the reading at the 5th edge after the stop averages only the new position (4 periods) */
@@ -224,10 +266,31 @@ static void probe_reading(ctl_t *c, float f)
         } else {
             float dx = (float)(c->act_pos_steps - c->probe_x1_steps) / spmm;
             float k = dx > 0.0f ? (f - c->probe_f1_gf) / dx : 0.0f;
+            float refine = (float)RIGCTL_PROBE_REFINE_G;
+            if (refine > half) refine = half;
             c->stiffness_g_mm = k >= 65535.0f ? 65535u : (k < 1.0f ? 1u : (uint16_t)k);
+            if (!stiffness_ok(c)) { /* backs off: the loop cannot hold it */
+                c->probe_phase = PROBE_NONE;
+                force_pi_reset(&c->pi);
+                fault(c, RIGCTL_FAULT_CONTACT_STIFFNESS);
+                return;
+            }
+            if (c->probe_phase == PROBE_SETTLE2 && f - c->probe_f1_gf < 0.5f * refine) {
+                /* a step too short for the stiffness to be known well (a soft contact): a second one sized from
+                 * the first to press PROBE_REFINE_G more (at most 0.5 mm), then k over both (spec 2.11) */
+                float k1 = k < 200.0f ? 200.0f : k, dx2 = (refine - (f - c->probe_f1_gf)) / k1;
+                if (dx2 > 0.5f) dx2 = 0.5f;
+                c->probe_x_target = c->act_pos_steps + (int32_t)(dx2 * spmm + 0.5f);
+                c->probe_phase = PROBE_STEP2;
+                c->act_vel_mm_s = probe_speed(c);
+                return;
+            }
             c->probe_phase = PROBE_NONE;
             force_pi_reset(&c->pi);
-            if (!stiffness_ok(c)) fault(c, RIGCTL_FAULT_CONTACT_STIFFNESS); /* backs off: the loop cannot hold it */
+            if (k < 1.0f) k = 1.0f;
+            c->contact_k_g_per_step = k / spmm;
+            c->contact_x0_steps = (float)c->probe_x1_steps - c->probe_f1_gf / c->contact_k_g_per_step;
+            c->contact_valid = 1;
         }
         return;
     }
@@ -236,7 +299,7 @@ static void probe_reading(ctl_t *c, float f)
 static void engage(ctl_t *c)
 {
     force_pi_reset(&c->pi);
-    c->probe_phase = c->stiffness_g_mm ? PROBE_NONE : PROBE_APPROACH;
+    c->probe_phase = c->contact_valid ? PROBE_NONE : PROBE_APPROACH; /* every press from rest probes (2.11) */
     c->force_prev_valid = 0;
     c->act_mode = ACT_MODE_FORCE;
     c->state = RIGCTL_STATE_SEEKING_FORCE;
@@ -262,13 +325,15 @@ static uint8_t command_allowed(const ctl_t *c, uint16_t cmd)
     case RIGCTL_CMD_RUN:
     case RIGCTL_CMD_PRESS: /* never after a reset, e-stop or failed HOME until HOME has succeeded */
         return s != RIGCTL_STATE_FAULT && s != RIGCTL_STATE_HOMING && s != RIGCTL_STATE_NOT_HOMED &&
-               hx711_rate_ok(c) && stiffness_ok(c);
+               hx711_rate_ok(c) && stiffness_ok(c) && !c->calib_defaults; /* no pressing on a guess (2.11) */
     case RIGCTL_CMD_STOP_DRUM:
         return force_engaged(c);
     case RIGCTL_CMD_TARE: /* only at home (switch closed), with no load on the cell once a tare is known */
         return (s == RIGCTL_STATE_IDLE || s == RIGCTL_STATE_NOT_HOMED) && c->home_switch &&
                (!c->tared || c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
-    case RIGCTL_CMD_HOME: /* from IDLE only with the actuator released (no load on the cell); NOT_HOMED: always */
+    case RIGCTL_CMD_HOME: /* from IDLE only with the actuator released (no load on the cell); NOT_HOMED: unless the
+                           * cell is loaded past the limit (a direction unknown could only press it further, 2.11) */
+        if (home_overloaded(c)) return 0;
         return s == RIGCTL_STATE_NOT_HOMED ||
                (s == RIGCTL_STATE_IDLE && c->force_gf < 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]);
     case RIGCTL_CMD_CLEAR_FAULT:
@@ -300,6 +365,8 @@ static void run_command(ctl_t *c, uint16_t cmd)
         c->home_start_ms = c->now_ms;
         c->home_start_steps = c->act_pos_steps;
         c->home_phase = HOME_SEEK;
+        c->home_creep = !c->homed; /* from an unknown position: creep until the force proves the way (2.11) */
+        c->contact_valid = 0;
         move_watch_start(c, 0);
         break;
     case RIGCTL_CMD_CLEAR_FAULT:
@@ -477,6 +544,12 @@ static float profile_target_mm_s(ctl_t *c)
     return (float)target * 0.1f;
 }
 
+/* the longest a creeping HOME may take beyond HOME_TIMEOUT_MS: its whole travel limit at the creep speed, s */
+static float home_creep_s(const ctl_t *c)
+{
+    return ACT_HOME_MAX_TRAVEL_MM * hx_period(c) / ((float)RIGCTL_HOME_CREEP_UM * 1e-3f);
+}
+
 /* HOME (spec 2.5): back until the switch closes (25 mm / 10 s budget: HOME_NOT_FOUND), then prove the direction:
  * leave home until the switch opens (within HOME_PROOF_MM, else ACTUATOR_DIRECTION: a reversed motor drives into the
  * rear stop and the switch stays closed) and come back until it closes again; only then zero and tare. */
@@ -488,13 +561,19 @@ static void home_step(ctl_t *c, uint32_t now_ms)
     switch (c->home_phase) {
     case HOME_SEEK:
         if (c->home_switch) {
+            c->home_creep = 0;
             c->home_phase = HOME_LEAVE;
             c->home_phase_steps = c->act_pos_steps;
             c->act_vel_mm_s = ACT_HOME_SPEED_MM_S;
             return;
         }
-        if ((float)(c->home_start_steps - c->act_pos_steps) >= ACT_HOME_MAX_TRAVEL_MM * spmm || late) break;
-        c->act_vel_mm_s = -ACT_HOME_SPEED_MM_S;
+        if ((float)(c->home_start_steps - c->act_pos_steps) >= ACT_HOME_MAX_TRAVEL_MM * spmm ||
+            (late && !c->home_creep) ||
+            (float)(uint32_t)(now_ms - c->home_start_ms) >= (float)ACT_HOME_TIMEOUT_MS + 1000.0f * home_creep_s(c))
+            break;
+        /* creeping: HOME_CREEP_UM per HX711 period, so a load growing the wrong way is read before it is large
+         * (the timeout runs from the end of the creep; the travel limit bounds it) */
+        c->act_vel_mm_s = c->home_creep ? -(float)RIGCTL_HOME_CREEP_UM * 1e-3f / hx_period(c) : -ACT_HOME_SPEED_MM_S;
         return;
     case HOME_LEAVE:
         if (!c->home_switch) {
@@ -562,10 +641,20 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         home_step(c, now_ms);
         break;
     case ACT_MODE_FORCE:
-        if (c->probe_phase == PROBE_STEP && c->act_pos_steps >= c->probe_x_target) {
+        if ((c->probe_phase == PROBE_STEP || c->probe_phase == PROBE_STEP2) &&
+            c->act_pos_steps >= c->probe_x_target) {
             c->act_vel_mm_s = 0.0f;
-            c->probe_phase = PROBE_SETTLE2;
+            c->probe_phase = c->probe_phase == PROBE_STEP ? PROBE_SETTLE2 : PROBE_SETTLE3;
             c->probe_readings = 0;
+        }
+        /* the second channel (2.11): past the probed contact no further than the force limit at its stiffness
+         * (plus POSITION_MARGIN_G), whatever the reading says */
+        if (c->contact_valid && c->probe_phase == PROBE_NONE &&
+            (float)c->act_pos_steps > c->contact_x0_steps + ((float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G] +
+                                                              (float)RIGCTL_POSITION_MARGIN_G) /
+                                                                 c->contact_k_g_per_step) {
+            fault(c, RIGCTL_FAULT_POSITION_LIMIT);
+            break;
         }
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
             c->act_vel_mm_s = 0.0f;
@@ -599,19 +688,50 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     float f, rise;
     uint16_t sp = c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
     uint8_t on;
+    int32_t zero;
     c->last_loadcell_ms = c->now_ms;
+    /* a reading that can be lying is a fault (spec 2.11): the same 24 bits again and again (a working HX711 at gain
+     * 128 has 20-40 counts of noise), a saturation code, an all-zero or all-one word twice (a broken line) */
+    c->same_raw = c->have_reading && raw == c->prev_raw ? (uint8_t)(c->same_raw < 255 ? c->same_raw + 1 : 255) : 1;
+    c->prev_raw = raw;
+    c->line_codes = raw == 0 || raw == -1 ? (uint8_t)(c->line_codes < 255 ? c->line_codes + 1 : 255) : 0;
+    if ((raw == 0x7FFFFFL || raw == -0x800000L || c->line_codes >= 2) && !(c->faults & RIGCTL_FAULT_HX711_LINE))
+        fault(c, RIGCTL_FAULT_HX711_LINE);
+    if (c->same_raw >= RIGCTL_HX711_STUCK_READINGS && !(c->faults & RIGCTL_FAULT_HX711_STUCK))
+        fault(c, RIGCTL_FAULT_HX711_STUCK);
     c->loadcell_raw = raw;
     c->have_reading = 1;
     if (c->act_mode == ACT_MODE_HOMING || c->act_mode == ACT_MODE_RETRACT) {
-        /* moving home or backing off only takes force off the cell: an untared rise (raw counts in the scale's sign,
-         * no tare needed) above the lowest reading since the move began means it drives towards the sensor */
-        float rise = (float)(raw - c->move_ref_raw) * 100.0f / (float)scale_of(c->hreg);
+        /* moving home or backing off only takes force off the cell: a load (|raw - zero|, sign-free: a reversed
+         * motor and a reversed cell alike) grown above the lowest since the move began means it drives towards the
+         * sensor (spec 2.11); without a known zero, an untared rise in the scale's sign (spec 2.5) */
+        /* from an unknown position HOME creeps and stops at a small rise; from home's known position (and backing
+         * off) the readings still carry the press's last rise: the larger threshold */
+        float thr = c->act_mode == ACT_MODE_HOMING && !c->homed ? (float)RIGCTL_HOME_RISE_G
+                                                                : (float)RIGCTL_DIRECTION_RISE_G;
         if (c->move_skip) c->move_skip--;
-        if (!c->move_ref_valid || rise < 0.0f || c->move_skip) {
-            c->move_ref_raw = raw;
-            c->move_ref_valid = 1;
-        } else if (rise > (float)RIGCTL_DIRECTION_RISE_G) {
-            direction_fault(c);
+        if (direction_zero(c, &zero)) {
+            float d = load_g(c, raw, zero);
+            if (c->home_d_start_g < 0.0f) c->home_d_start_g = d;
+            if (!c->move_ref_valid || d < c->move_d_min_g || c->move_skip) {
+                c->move_d_min_g = d;
+                c->move_ref_valid = 1;
+            } else if (d - c->move_d_min_g > thr) {
+                direction_fault(c);
+            }
+            if (c->act_mode == ACT_MODE_HOMING && !c->homed && d > home_load_cap_g(c)) direction_fault(c);
+            if (c->home_creep && c->act_mode == ACT_MODE_HOMING && d <= c->home_d_start_g - RIGCTL_HOME_PROOF_FALL_G) {
+                c->home_creep = 0; /* the load fell: the direction is right, HOME goes on at its speed */
+                c->home_start_ms = c->now_ms;
+            }
+        } else {
+            float rise = (float)(raw - c->move_ref_raw) * 100.0f / (float)scale_of(c->hreg);
+            if (!c->move_ref_valid || rise < 0.0f || c->move_skip) {
+                c->move_ref_raw = raw;
+                c->move_ref_valid = 1;
+            } else if (rise > thr) {
+                direction_fault(c);
+            }
         }
     }
     if (c->tare_pending && c->home_switch) { /* never under load: only at home */
@@ -642,6 +762,13 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     if (!force_engaged(c)) return;
     if (f < -2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) {
         fault(c, RIGCTL_FAULT_LOADCELL_REVERSED); /* pressing makes it read negative: reversed cell or scale */
+        return;
+    }
+    /* a held force must stay on the contact (2.11): the position says what the contact carries */
+    if (c->contact_valid && c->probe_phase == PROBE_NONE &&
+        f > 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G] &&
+        ((float)c->act_pos_steps - c->contact_x0_steps) * c->contact_k_g_per_step < 0.5f * f) {
+        fault(c, RIGCTL_FAULT_CONTACT_LOST);
         return;
     }
     on = c->probe_phase == PROBE_NONE && (f >= (float)sp - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) &&

@@ -28,6 +28,8 @@ extern "C" {
 #define PROBE_SETTLE1  2
 #define PROBE_STEP     3
 #define PROBE_SETTLE2  4
+#define PROBE_STEP2    5 /* the second measuring step, sized to press PROBE_REFINE_G more (spec 2.11) */
+#define PROBE_SETTLE3  6
 
 typedef struct {
     uint16_t hreg[RIGCTL_N_HOLDING]; /* hreg[LOADCELL_SCALE_X100] is the view of the 32-bit scale in HI/LO */
@@ -61,6 +63,21 @@ typedef struct {
     float probe_f1_gf;
     int32_t probe_x1_steps;
     int32_t probe_x_target;
+    /* the second channel (spec 2.11): the contact the press probed, valid until the actuator is released */
+    uint8_t contact_valid;     /* probed since the last release, HOME or reset */
+    float contact_k_g_per_step; /* its stiffness, g per actuator step */
+    float contact_x0_steps;    /* its zero-force point, actuator steps */
+    /* the reading's plausibility (spec 2.11) */
+    int32_t prev_raw;
+    uint8_t same_raw;          /* readings in a row with the same raw value */
+    uint8_t line_codes;        /* 0x000000 / 0xFFFFFF readings in a row */
+    /* the tare's raw zero stored with the calibration (spec 2.11; glue, at boot) */
+    int32_t zero_raw;
+    uint8_t zero_valid;
+    /* HOME from an unknown position (spec 2.11): creep until the force proves the direction */
+    uint8_t home_creep;
+    float home_d_start_g;      /* |raw - zero| in g when HOME began (-1: no reading yet) */
+    float move_d_min_g;        /* the lowest |raw - zero| since HOME or a back-off began, g */
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;

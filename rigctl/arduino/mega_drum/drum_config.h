@@ -51,6 +51,7 @@
 #define PIN_HOME_BIT        4
 /* HX711: DOUT D3 = PE5 (input), SCK D4 = PG5 (output) */
 #define PIN_HX_DOUT_PIN     PINE
+#define PIN_HX_DOUT_PORT    PORTE
 #define PIN_HX_DOUT_BIT     5
 #define PIN_HX_SCK_PORT     PORTG
 #define PIN_HX_SCK_DDR      DDRG

@@ -354,6 +354,17 @@ struct calib_t {
 };
 #define CALIB_MAGIC 0x5253 /* "RS" */
 static calib_t EEMEM ee_calib2;
+/* firmware 1.2: the tare's raw zero too (spec 2.11: HOME's sign-free direction check after a reset) */
+struct calib3_t {
+    uint16_t magic;
+    int32_t loadcell_scale_x100;
+    uint16_t actuator_steps_per_mm;
+    int32_t zero_raw;
+    uint16_t crc;
+};
+#define CALIB3_MAGIC 0x525A /* "RZ" */
+#define CALIB_NO_ZERO INT32_MIN
+static calib3_t EEMEM ee_calib3;
 static uint16_t EEMEM ee_boot_count;
 
 /* BOOT_COUNT (spec 2.7): EEPROM is written only at a cold boot (power-on or brown-out, or RAM lost); a warm reset
@@ -380,11 +391,22 @@ static uint16_t boot_count(void)
     return (uint16_t)((warm_boot.cold << 8) | (warm_boot.warm & 0xFF));
 }
 
-/* returns 1 if a valid record was found; else scale and steps are 0 (the controller's defaults) */
-static uint8_t calib_load(int32_t *scale, uint16_t *steps)
+/* returns 1 if a valid record was found; else scale and steps are 0 (the controller's defaults); *zero is the stored
+ * tare zero (CALIB_NO_ZERO: none, an older record) */
+static uint8_t calib_load(int32_t *scale, uint16_t *steps, int32_t *zero)
 {
+    calib3_t c3;
     calib_t c;
     calib_v1_t v1;
+    *zero = CALIB_NO_ZERO;
+    eeprom_read_block(&c3, &ee_calib3, sizeof(c3));
+    if (c3.magic == CALIB3_MAGIC && c3.crc == rigctl_crc16((const uint8_t *)&c3, sizeof(c3) - 2) &&
+        c3.loadcell_scale_x100 && c3.actuator_steps_per_mm) {
+        *scale = c3.loadcell_scale_x100;
+        *steps = c3.actuator_steps_per_mm;
+        *zero = c3.zero_raw;
+        return 1;
+    }
     eeprom_read_block(&c, &ee_calib2, sizeof(c));
     if (c.magic == CALIB_MAGIC && c.crc == rigctl_crc16((const uint8_t *)&c, sizeof(c) - 2) &&
         c.loadcell_scale_x100 && c.actuator_steps_per_mm) {
@@ -404,14 +426,18 @@ static uint8_t calib_load(int32_t *scale, uint16_t *steps)
     return 0;
 }
 
+/* the record with the tare in force (or the zero stored before, if no tare was taken since the reset) */
 static void calib_save(void)
 {
-    calib_t c;
-    c.magic = CALIB_MAGIC;
+    calib3_t c;
+    c.magic = CALIB3_MAGIC;
     c.loadcell_scale_x100 = ctl_scale_x100(&ctl);
     c.actuator_steps_per_mm = ctl.hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    c.zero_raw = ctl.tared ? ctl.tare_offset : ctl.zero_valid ? ctl.zero_raw : CALIB_NO_ZERO;
     c.crc = rigctl_crc16((const uint8_t *)&c, sizeof(c) - 2);
-    eeprom_update_block(&c, &ee_calib2, sizeof(c));
+    eeprom_update_block(&c, &ee_calib3, sizeof(c));
+    ctl.zero_raw = c.zero_raw;
+    ctl.zero_valid = c.zero_raw != CALIB_NO_ZERO;
     ctl.calib_defaults = 0;
 }
 
@@ -574,12 +600,14 @@ static uint16_t reset_cause(void)
 
 void setup(void)
 {
-    int32_t scale;
+    int32_t scale, zero;
     uint16_t steps;
     cli();
-    uint8_t calib_ok = calib_load(&scale, &steps);
+    uint8_t calib_ok = calib_load(&scale, &steps, &zero);
     ctl_init(&ctl, scale, steps);
     ctl.calib_defaults = !calib_ok;
+    ctl.zero_raw = zero;
+    ctl.zero_valid = calib_ok && zero != CALIB_NO_ZERO;
     ctl.reset_cause = reset_cause();
     ctl.boot_count = boot_count();
     ctl_bind_modbus(&ctl, &mb);
@@ -591,6 +619,7 @@ void setup(void)
     PIN_ACT_DIR_DDR |= (1 << PIN_ACT_DIR_BIT);
     PIN_HOME_PORT |= (1 << PIN_HOME_BIT); /* pull-up */
     PIN_HX_SCK_DDR |= (1 << PIN_HX_SCK_BIT);
+    PIN_HX_DOUT_PORT |= (1 << PIN_HX_DOUT_BIT); /* pull-up: a broken DOUT wire reads "not ready" (LOADCELL_TIMEOUT) */
     PIN_INDEX_DDR |= (1 << PIN_INDEX_BIT);
     /* e-stop: pull-up, INT4 on any edge; an input already open at boot latches at once */
     PIN_ESTOP_PORT |= (1 << PIN_ESTOP_BIT);

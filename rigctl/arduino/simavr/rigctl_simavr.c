@@ -38,7 +38,14 @@
  * (a reset under load); "hang" holds PA0 (D22) high until the next reset: the test image (mega_drum_test.elf, built
  * with RIGCTL_TEST_HOOKS) then hangs in loop(), for the watchdog test; "homeswitch broken|ok" breaks the home
  * switch's wire (it never closes) or mends it; "eeprom-flip OFFSET" flips bit 4 of one EEPROM byte (a corrupted
- * calibration record). A reset by the MCU itself (the watchdog) is reported as "RESET t=... cause=mcu".
+ * calibration record); "eeprom-corrupt OFFSET" flips it and browns the MCU out at once (a brown-out while writing
+ * the EEPROM). A reset by the MCU itself (the watchdog) is reported as "RESET t=... cause=mcu".
+ * Force-path faults (issue 55): "hx711 sck-broken" breaks the HX711's SCK wire (it is never clocked: DOUT stays low
+ * after its next conversion and every bit the firmware reads is 0), "hx711 frozen" freezes its output at the value of
+ * its last conversion (conversions go on at their rate, the same 24 bits each), "hx711 ok" mends both; "spring-k G"
+ * swaps the plate for one of contact stiffness G g/mm (a plate swap), "spring-k default" puts the rig's own back. The HX711's input noise is modelled (Avia
+ * HX711 datasheet: 50 nV rms at 10 SPS, 90 nV at 80 SPS at gain 128, one count = 40 mV / 2^24 = 2.38 nV: 21 and
+ * 38 counts rms, Gaussian, a fixed seed).
  * Actuator direction: --actuator-reversed or "actuator reversed|ok" swaps the motor's coil pair (DIR high then moves it away from the
  * sensor) or mends it; each reversal of the steps that really move it is reported as "AREV t=<first step of the new
  * direction> dir=1|0 (1 = towards the sensor) last_t=<the last step of the old one>". "rxlog 1|0": an "RX t=..." line
@@ -303,7 +310,8 @@ static int opt_pace = 1;
 static int opt_reset_on_open = 0;
 static const char *opt_bootloader = NULL;
 static double opt_boot_ms = 200.0;
-static double opt_spring_k = 250.0; /* contact stiffness, g per mm: the documented default (MechanicsConfig); 250-2000 */
+static _Atomic double opt_spring_k = 250.0; /* contact stiffness, g per mm (MechanicsConfig's default); "spring-k G" */
+static double opt_spring_k0 = 250.0;        /* the rig's own (--spring-k): "spring-k default" */
 static double opt_contact_mm = 5.0;
 static double opt_act_steps_per_mm = 400.0;
 static double opt_rear_stop_mm = 1.0;      /* the actuator's mechanical rear stop, mm behind the home switch */
@@ -324,6 +332,9 @@ static atomic_int hang_req;          /* 1 = PA0 high until the next reset */
 static atomic_int polarity_req = 1;  /* +1 or -1: the load cell's sign */
 static atomic_int home_broken_req;   /* 1 = the home switch never closes */
 static atomic_int eeprom_flip_req = -1; /* EEPROM offset to corrupt, -1 = none */
+static atomic_int eeprom_corrupt_req = -1; /* the same, then a brown-out reset in the same step */
+static atomic_int hx_sck_broken_req;  /* 1 = the HX711's SCK wire is broken */
+static atomic_int hx_frozen_req;      /* 1 = the HX711's output frozen */
 static atomic_int act_reversed_req;  /* 1 = the actuator motor's coil pair swapped: DIR high moves it away */
 static _Atomic double opt_aa_c_nf; /* Uno: the anti-alias C_aa at each mux input, nF (--aa-c-nf, "taxel_aa NF") */
 static _Atomic double drum_slip_req; /* "drum slip F": the real drum turns F less than its steps say (1: stalled) */
@@ -450,6 +461,20 @@ static void *stdin_thread(void *arg)
             printf("OK homeswitch\n");
         } else if (!strncmp(line, "eeprom-flip ", 12)) {
             atomic_store(&eeprom_flip_req, atoi(line + 12));
+        } else if (!strncmp(line, "eeprom-corrupt ", 15)) {
+            atomic_store(&eeprom_corrupt_req, atoi(line + 15));
+        } else if (!strcmp(line, "hx711 sck-broken") || !strcmp(line, "hx711 frozen") || !strcmp(line, "hx711 ok")) {
+            atomic_store(&hx_sck_broken_req, line[6] == 's');
+            atomic_store(&hx_frozen_req, line[6] == 'f');
+            printf("OK hx711\n");
+        } else if (!strncmp(line, "spring-k ", 9)) {
+            double k = strcmp(line + 9, "default") ? atof(line + 9) : opt_spring_k0;
+            if (k > 0.0 && k <= 1e6) {
+                atomic_store(&opt_spring_k, k);
+                printf("OK spring-k\n");
+            } else {
+                printf("ERR spring-k\n");
+            }
         } else if (!strcmp(line, "actuator reversed") || !strcmp(line, "actuator ok")) {
             atomic_store(&act_reversed_req, line[9] == 'r');
             printf("OK actuator\n");
@@ -1033,6 +1058,22 @@ static double bspline4(double u) /* cubic B-spline on [0, 4], integral 1 */
     return (1.0 + 3.0 * v + 3.0 * v * v - 3.0 * v * v * v) / 6.0;
 }
 
+/* the HX711's input noise, counts (Avia HX711 datasheet, gain 128, AVDD 5 V: 50 nV rms at 10 SPS, 90 nV at 80 SPS;
+ * one count is 40 mV / 2^24 = 2.38 nV): Gaussian (Box-Muller) from a fixed-seed xorshift, so runs repeat */
+static double hx711_noise(void)
+{
+    static uint64_t state = 0x9E3779B97F4A7C15ull;
+    double u[2];
+    for (int i = 0; i < 2; i++) {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        u[i] = ((double)(state >> 11) + 0.5) / 9007199254740992.0;
+    }
+    double rms_counts = (opt_hx711_sps < 40.0 ? 50.0 : 90.0) / (40e6 / 16777216.0);
+    return rms_counts * sqrt(-2.0 * log(u[0])) * cos(2.0 * M_PI * u[1]);
+}
+
 /* the reading of the conversion that ends now: the sinc^4-weighted force of the last four periods */
 static double hx711_filtered_g(void)
 {
@@ -1163,10 +1204,16 @@ static int drivers_enabled(void)
  * irq for an immediate edge (the pin-change interrupt) */
 static void drive_pin(avr_irq_t *irq, char port, int bit, int level, int *last)
 {
+    /* simavr keeps one external mask and value per port: the pins of a port driven here (PE4 the e-stop, PE5 the
+     * HX711's DOUT) are set together, each keeping the others' levels */
+    static uint8_t ext_mask[26], ext_value[26];
     avr_ioport_state_t st;
     if (*last == level && avr_ioctl(avr, AVR_IOCTL_IOPORT_GETSTATE(port), &st) == 0 && ((st.pin >> bit) & 1) == level)
         return;
-    avr_ioport_external_t ext = {.name = (unsigned long)port, .mask = 1u << bit, .value = (unsigned)level << bit};
+    int p = port - 'A';
+    ext_mask[p] |= (uint8_t)(1u << bit);
+    ext_value[p] = (uint8_t)((ext_value[p] & ~(1u << bit)) | ((unsigned)level << bit));
+    avr_ioport_external_t ext = {.name = (unsigned long)port, .mask = ext_mask[p], .value = ext_value[p]};
     avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL(port), &ext);
     avr_raise_irq(irq, !level);
     avr_raise_irq(irq, level);
@@ -1175,7 +1222,8 @@ static void drive_pin(avr_irq_t *irq, char port, int bit, int level, int *last)
 
 static void safety_poll(void)
 {
-    int off = atomic_exchange(&eeprom_flip_req, -1);
+    int off = atomic_exchange(&eeprom_flip_req, -1), brownout = 0;
+    if (off < 0 && (off = atomic_exchange(&eeprom_corrupt_req, -1)) >= 0) brownout = 1;
     if (off >= 0) { /* from the simulation thread: simavr's EEPROM is not shared with the stdin thread */
         uint8_t b = 0;
         avr_eeprom_desc_t d = {.ee = &b, .offset = (uint16_t)off, .size = 1};
@@ -1186,6 +1234,10 @@ static void safety_poll(void)
             printf("OK eeprom-flip %d\n", off);
         } else {
             printf("ERR eeprom-flip %d\n", off);
+        }
+        if (brownout) { /* the reset comes later in this same step of the main loop, after the flip */
+            atomic_store(&reset_cause_req, 4);
+            atomic_store(&reset_requested, 1);
         }
     }
     drive_pin(estop_pin, 'E', 4, atomic_load(&estop_open_req) ? 1 : 0, &estop_level);
@@ -1231,7 +1283,7 @@ static void safety_after_reset(void)
 static double mega_force_g(void)
 {
     double x = (double)act_steps / opt_act_steps_per_mm;
-    double f = x > opt_contact_mm ? opt_spring_k * (x - opt_contact_mm) : 0.0;
+    double f = x > opt_contact_mm ? atomic_load(&opt_spring_k) * (x - opt_contact_mm) : 0.0;
     return f + atomic_load(&bump_g_x1000) / 1000.0;
 }
 
@@ -1309,16 +1361,28 @@ static void index_hook(avr_irq_t *irq, uint32_t value, void *param)
     }
 }
 
+/* DOUT driven as the port's external level (drive_pin): the firmware's pull-up on PE5 (issue 55) and its writes to
+ * PORTE (the actuator's STEP on PE3, the e-stop's pull-up on PE4) would otherwise pull it high until the next edge */
+static int hx_dout_level = -1;
+static void hx_dout_set(int level)
+{
+    drive_pin(hx_dout, 'E', 5, level, &hx_dout_level);
+}
+
 static void hx_sck_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     (void)param;
+    if (atomic_load(&hx_sck_broken_req)) { /* the wire is broken: the HX711 sees no clock, DOUT stays low */
+        if (hx_ready) hx_dout_set(0);
+        return;
+    }
     if (!(value & 1) || !hx_ready) return; /* shift on rising edges while a reading is out */
     if (hx_bit < 24) {
-        avr_raise_irq(hx_dout, (hx_value >> (23 - hx_bit)) & 1);
+        hx_dout_set((hx_value >> (23 - hx_bit)) & 1);
         hx_bit++;
     } else { /* 25th clock: gain 128, DOUT high until the next conversion */
-        avr_raise_irq(hx_dout, 1);
+        hx_dout_set(1);
         hx_ready = 0;
         hx_bit = 0;
     }
@@ -1335,18 +1399,16 @@ static int hx_power_cycle; /* the next mega_after_reset is a power-on */
 static void mega_after_reset(void)
 {
     if (!hx_dout) return;
+    hx_dout_level = -1; /* driven again for the reset port */
     if (hx_power_cycle || hx_bit > 0) {
         hx_ready = 0;
         hx_bit = 0;
-        avr_raise_irq(hx_dout, 0); /* the irq keeps its last value across avr_reset: toggle so the port sees it */
-        avr_raise_irq(hx_dout, 1);
+        hx_dout_set(1);
         if (hx_power_cycle) hx_next_cycle = avr->cycle + hx711_period_cycles();
-    } else if (hx_ready) { /* a finished reading waits: DOUT low, re-driven for the reset port */
-        avr_raise_irq(hx_dout, 1);
-        avr_raise_irq(hx_dout, 0);
+    } else if (hx_ready) { /* a finished reading waits: DOUT low */
+        hx_dout_set(0);
     } else {
-        avr_raise_irq(hx_dout, 0);
-        avr_raise_irq(hx_dout, 1);
+        hx_dout_set(1);
     }
     hx_power_cycle = 0;
     update_home();
@@ -1372,7 +1434,7 @@ static void mega_setup(void)
 {
     hx_dout = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 5);
     home_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('H'), 4);
-    avr_raise_irq(hx_dout, 1);
+    hx_dout_set(1);
     update_home();
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('G'), 5), hx_sck_hook, NULL);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 3), act_step_hook, NULL);
@@ -1397,13 +1459,13 @@ static void mega_poll(void)
         hx_next_cycle += hx711_period_cycles();
         if (!hx_ready) {
             double f = hx711_filtered_g();
-            long raw = opt_loadcell_offset + lround(f * opt_counts_per_g * atomic_load(&polarity_req));
+            long raw = opt_loadcell_offset + lround(f * opt_counts_per_g * atomic_load(&polarity_req) + hx711_noise());
             if (raw > 0x7FFFFF) raw = 0x7FFFFF;
             if (raw < -0x800000) raw = -0x800000;
-            hx_value = (uint32_t)raw & 0xFFFFFFu;
+            if (!atomic_load(&hx_frozen_req)) hx_value = (uint32_t)raw & 0xFFFFFFu; /* frozen: the last value again */
             hx_ready = 1;
             hx_bit = 0;
-            avr_raise_irq(hx_dout, 0);
+            hx_dout_set(0);
         }
     }
     if (avr->cycle >= next_tel) {
@@ -1756,7 +1818,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--bootloader")) opt_bootloader = NEXT();
         else if (!strcmp(a, "--boot-ms")) opt_boot_ms = atof(NEXT());
         else if (!strcmp(a, "--wave")) wave_path = NEXT();
-        else if (!strcmp(a, "--spring-k")) opt_spring_k = atof(NEXT());
+        else if (!strcmp(a, "--spring-k")) opt_spring_k = opt_spring_k0 = atof(NEXT());
         else if (!strcmp(a, "--contact-mm")) opt_contact_mm = atof(NEXT());
         else if (!strcmp(a, "--act-steps-per-mm")) opt_act_steps_per_mm = atof(NEXT());
         else if (!strcmp(a, "--rear-stop-mm")) opt_rear_stop_mm = atof(NEXT());
