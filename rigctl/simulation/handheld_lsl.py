@@ -3,7 +3,8 @@
 :class:`LslTracker` reads a tracker's stream (Vive, OptiTrack, Qualisys bridges publish their positions on LSL): the
 channels chosen on the command line, either three (x, y, z in the tracker's frame, mm; the plate's axis calibrated in
 the rig config's ``handheld`` block) or one (the position along the plate, mm). Its samples are put on the host clock
-with the host <-> LSL offset (:func:`rigctl.core.clocksync.measure_clock_offset`).
+with liblsl's clock sync (the inlet's ``time_correction()``, applied to every sample: a tracker on another PC) and the
+host <-> LSL offset (:func:`rigctl.core.clocksync.measure_clock_offset`).
 
 :class:`TrackedFingerScans` is a :class:`rigctl.core.handheld.ScanSource` on it (or on any :class:`Tracker`: a
 serial motion board, :class:`rigctl.devices.motion.SerialMotion`, ``--motion serial:PORT``): after the cue it waits for the
@@ -45,7 +46,9 @@ class LslTracker:
                  or pylsl.resolve_byprop("source_id", self.name, minimum=1, timeout=resolve_s))
         if not found:
             raise ScanError(f"no LSL stream named {self.name!r} (by name or source id) within {resolve_s:g} s")
-        self.inlet = pylsl.StreamInlet(found[0], max_buflen=60, recover=True)
+        # liblsl's clock sync: each sample's time stamp (the publisher's clock, another PC's or another namespace's)
+        # plus the inlet's time_correction(), re-measured as the stream goes: the stamps on this machine's LSL clock
+        self.inlet = pylsl.StreamInlet(found[0], max_buflen=60, recover=True, processing_flags=pylsl.proc_clocksync)
         n = int(self.inlet.info(timeout=resolve_s).channel_count())
         if len(channels) not in (1, 3) or any(not 0 <= c < n for c in channels):
             raise ScanError(f"LSL stream {self.name!r} has {n} channels: choose 3 (x, y, z, mm) or 1 (along the "
@@ -85,7 +88,12 @@ class LslTracker:
         return t[sel], x[sel]
 
     def describe(self) -> dict[str, Any]:
-        return {"lsl_stream": self.name, "channels": list(self.channels), "lsl_offset_s": self.offset_s}
+        try:  # the publisher's clock minus this machine's, as liblsl measures it (0 on the same machine)
+            correction = float(self.inlet.time_correction(timeout=2.0))
+        except Exception:  # noqa: BLE001 - a lost stream: not measured
+            correction = float("nan")
+        return {"lsl_stream": self.name, "channels": list(self.channels), "lsl_offset_s": self.offset_s,
+                "lsl_time_correction_s": correction}
 
     def close(self) -> None:
         self._halt.set()
