@@ -4,8 +4,8 @@ log: the true force stays <= 1.1 x FORCE_LIMIT (1650 g), the actuator takes no s
 latch, no trial is recorded without contact (rigctl.simulation.campaign).
 
 Each case (seed S+i for i < N; ``rigctl.simulation.campaign.draw_case``) opens its own rig with the drawn contact
-stiffness and HX711 rate (a 10 SPS rig with the rig config's force_loop for 10 SPS, as a lab sets one up; its
-controller latches HX711_RATE at power-up, which the script acknowledges as the lab must: :func:`accept_rate`), and
+stiffness and HX711 rate (a 10 SPS rig with the rig config's force_loop for 10 SPS, as a lab sets one up; the
+HX711_RATE its controller latches at power-up is cleared at open by that config: Rig._resolve_by_config), and
 the host (rigctl's own Rig: every check and wait of a real run) runs one script: HOME, a first press (the contact probe)
 to the first force, the force held, a trial, the release, a pause, a second press (the approach) and a second trial,
 the release. The fault is armed when the script reaches the drawn moment (FAULT@0, before the HOME at open, for
@@ -42,7 +42,6 @@ import numpy as np
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.rigconfig import update_rig_config
-from rigctl.core.drum import Fault
 from rigctl.core.faults import FAULTS, FaultSpec
 from rigctl.core.trial import PlannedTrial
 from rigctl.devices import wire
@@ -158,16 +157,6 @@ def _rig_files(case: Case, folder: Path) -> tuple[RigConfig, Path]:
     return cfg, host
 
 
-def accept_rate(rig: Any, case: Case) -> None:
-    """A 10 SPS board latches HX711_RATE at every power-up (the controller times its HX711 before the host writes
-    the rig config's rate; since issue 51 opening never clears it): the lab acknowledges it, with its reason, and the
-    script's HOME follows. Nothing else is acknowledged."""
-    st = rig.drum.read_status()
-    if case.hx711_rate_sps != 80 and st.state == wire.DrumState.FAULT and int(st.faults) == int(Fault.HX711_RATE):
-        rig.acknowledge("the board's HX711 runs at 10 SPS (RATE pin low); the rig config's force_loop is for it",
-                        by="fault campaign")
-
-
 def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
     """One case on the in-process model rig; its result (see :func:`result`)."""
     cfg, host = _rig_files(case, folder)
@@ -180,7 +169,6 @@ def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
     script, open_error = None, None
     try:
         rig = Rig.connect(backend, host_config_path=str(host), home=False)
-        accept_rate(rig, case)
     except Exception as exc:  # noqa: BLE001 - the rig refused to open (a latch at open): judged on its truth
         open_error = type(exc).__name__
     else:
@@ -201,7 +189,6 @@ def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced:
     try:
         rig = open_rig("hil", config=cfg, seed=case.seed, host_config_path=host, inject=power_on, truth_log=log,
                        home=False, paced=paced)
-        accept_rate(rig, case)
     except Exception as exc:  # noqa: BLE001
         open_error = type(exc).__name__
     else:

@@ -44,6 +44,7 @@ from rigctl.acquisition.protocol import PlannedTrial, Settle
 from rigctl.acquisition.rigconfig import config_path, load_rig_config
 from rigctl.acquisition.safety import (
     Acknowledgement,
+    ConfigResolution,
     DrumStall,
     Latch,
     LatchedFault,
@@ -104,6 +105,8 @@ INDEX_PREDICTION_TOLERANCE_REVS = 0.1
 #: state: the firmware under simavr answered 0.1 s after boot, HOME passed, and HX711_RATE latched during the wait for
 #: IDLE ("cannot open the rig")
 HX711_BOOT_WAIT_S = 5.0
+#: the measured HX711 rate matches the configured one within this fraction (spec 2.9: RIGCTL_HX711_RATE_TOLERANCE_PCT)
+HX711_RATE_TOLERANCE = 0.2
 #: :meth:`Rig.press` waits for the settled force in steps of this long, checking for an abort in between, s
 SETTLE_POLL_S = 0.25
 #: :meth:`Rig.check_links` waits this long for a taxel frame, s
@@ -241,7 +244,8 @@ class Rig:
         #: the safety latch (rigctl.acquisition.safety): a latched fault refuses motion until acknowledged
         self.safety = SafetyLatch()
         #: every latch and acknowledgement also goes into the rig's own log at once ($XDG_STATE_HOME/rigctl)
-        self.safety.listeners.append(SafetyLog({"mode": self.mode, **_ports(backend)}))
+        self.safety_log = SafetyLog({"mode": self.mode, **_ports(backend)})
+        self.safety.listeners.append(self.safety_log)
         #: the last acknowledgement no run's session has logged yet (a run that resumes the session it concerns logs
         #: it: a served run acknowledged while no run was going, e.g. after a restart)
         self.unlogged_acknowledgement: Acknowledgement | None = None
@@ -252,6 +256,9 @@ class Rig:
         #: ``--ack REASON``; opening itself never acknowledges); the run logs it in its session
         #: (:func:`rigctl.acquisition.runner.run_protocol`) and sets this back to None
         self.acknowledged_at_open: Acknowledgement | None = None
+        #: configuration mismatches (HX711_RATE) the rig config resolved when this rig opened (not acknowledgements:
+        #: :meth:`_resolve_by_config`); the run logs them in its session and empties this
+        self.resolved_at_open: list[ConfigResolution] = []
         #: the next start (a press, a trial) HOMEs and TAREs first: an acknowledgement cleared the controller
         #: without moving anything (docs/safety.md: acknowledging is not starting)
         self.home_pending = False
@@ -337,11 +344,15 @@ class Rig:
 
     def _prepare(self, *, home: bool) -> None:
         self._apply_force_loop()
-        st = self._booted_status()
+        st = self._resolve_by_config(self._booted_status())
         self._check_calibration(st)
         self.drum_boot_count = getattr(st, "boot_count", None)
         if st.state == DrumState.FAULT:  # shown and kept: opening never acknowledges (docs/safety.md)
-            self.latch_unsafe(st, "held when the rig opened")
+            what = "held when the rig opened"
+            if Fault.HX711_RATE in Fault(int(st.faults)):  # the rates that do not match, by name
+                what += (f" (HX711_RATE: measured {float(getattr(st, 'hx711_rate_sps', 0.0)):.0f} SPS, the force "
+                         f"loop set for {self.drum.force_loop().hx711_rate_sps} SPS)")
+            self.latch_unsafe(st, what)
             log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
             if home and self.safety.latch is not None:
                 raise FaultAtOpen(self.safety.latch)
@@ -353,6 +364,36 @@ class Rig:
             # status shows the state; a warning here read as a fault above a doctor report that passes (issue 38)
             log.info("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
                      getattr(st, "reset_cause", "?"))
+
+    def _resolve_by_config(self, st: Any) -> Any:
+        """A configuration mismatch, not a hazard: an HX711_RATE latch alone (the controller timed its HX711 at boot,
+        before the host wrote the rig config's rate) is cleared as part of configuring the rig when the rig config's
+        force_loop is applied (the controller's HX711_RATE_SPS reads back as the config's) and the measured rate
+        matches it (:data:`HX711_RATE_TOLERANCE`). Logged as a :class:`ConfigResolution` (the rig's log,
+        :attr:`resolved_at_open` for the run's session): no acknowledgement, nothing moves. Any other fault, or a
+        rate that does not match, is left latched. Returns the status after."""
+        block = self.host_config.get("force_loop")
+        if not block or st.state != DrumState.FAULT or int(st.faults) != int(Fault.HX711_RATE):
+            return st
+        configured = int(self.drum.force_loop().hx711_rate_sps)
+        measured = float(getattr(st, "hx711_rate_sps", 0.0))
+        if configured != int(block["hx711_rate_sps"]) or abs(measured / configured - 1) > HX711_RATE_TOLERANCE:
+            return st
+        try:
+            self.drum.clear_fault()
+        except DrumError as exc:  # the controller disagrees: left latched, refused as any fault at open
+            log.warning("the drum controller refused to clear HX711_RATE after the rig config's rate: %s", exc)
+            return self.drum.read_status()
+        after = self.drum.read_status()
+        if after.state == DrumState.FAULT:
+            return after
+        res = ConfigResolution("hx711-rate", int(Fault.HX711_RATE), "rig config", str(self.host_config_path or ""),
+                               f"hx711 rate {configured} SPS configured, measured {measured:.0f} SPS")
+        self.resolved_at_open.append(res)
+        self.safety_log(res)
+        log.info("HX711_RATE cleared by the rig config %s: %s (a configuration, not an acknowledgement; nothing "
+                 "moved)", res.source, res.reason)
+        return after
 
     def _booted_status(self) -> Any:
         """The drum controller's status once it has timed its HX711's rate (or faulted, or after

@@ -553,6 +553,11 @@ class _Run:
         reason and who, default "run resumed" and the login name), logged with the fault it clears; and the
         acknowledgement an operator gave when the rig opened (:attr:`Rig.acknowledged_at_open`: ``--ack``), unless
         it is that same one. Opening itself never acknowledges (docs/safety.md)."""
+        resolved = getattr(self.rig, "resolved_at_open", None)
+        if resolved:  # configured at open, not acknowledged (Rig._resolve_by_config)
+            for res in resolved:
+                self.writer.log_event("resolved", **res.to_dict())
+            self.rig.resolved_at_open = []
         at_open = getattr(self.rig, "acknowledged_at_open", None)
         last = getattr(self.rig, "unlogged_acknowledgement", None)  # e.g. POST /ack while no run was going
         if at_open is not None:

@@ -37,7 +37,7 @@ from typing import Any
 
 from rigctl.core.drum import CRUSH_NOTE, FAULT_WORDS, DrumError, DrumFault, DrumReset, Fault, describe_faults
 
-__all__ = ["Latch", "Acknowledgement", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
+__all__ = ["Latch", "Acknowledgement", "ConfigResolution", "LatchedFault", "DrumStall", "SafetyLatch", "SafetyLog", "latch_for",
            "latch_from_faults", "CAUSES", "operator_name", "safety_log_path"]
 
 log = logging.getLogger(__name__)
@@ -161,6 +161,25 @@ class Acknowledgement:
         return {"clears": self.latch.to_dict(), "reason": self.reason, "by": self.by, "at_utc": self.at_utc}
 
 
+@dataclass(frozen=True)
+class ConfigResolution:
+    """A configuration mismatch the controller latched (not a hazard: HX711_RATE, not :data:`rigctl.core.drum.
+    CRUSH_FAULTS`) that the rig's configuration resolved when the rig opened: ``cause`` (a key of :data:`CAUSES`),
+    ``faults`` (the bits cleared), ``by`` (what resolved it: ``"rig config"``), ``source`` (its file), ``reason`` (in
+    words, e.g. ``"hx711 rate 10 SPS configured, measured 10 SPS"``), ``at_utc``. No operator acknowledgement; it
+    moves nothing. Logged as ``kind: "resolved"`` (:class:`SafetyLog`, the run's session)."""
+
+    cause: str
+    faults: int
+    by: str
+    source: str
+    reason: str
+    at_utc: str = field(default_factory=_utc_now)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
 class LatchedFault(RuntimeError):
     """The rig holds a latched fault (:attr:`latch`): motion is refused until an operator acknowledges it."""
 
@@ -276,7 +295,8 @@ def safety_log_path() -> Path:
 
 class SafetyLog:
     """A listener of a :class:`SafetyLatch` that writes every latch and acknowledgement at once (flushed and synced)
-    into the rig's own log, one JSON object a line: ``kind`` ("latched" | "acknowledged"), ``rig`` (what names the
+    into the rig's own log, one JSON object a line: ``kind`` ("latched" | "acknowledged" | "resolved": a
+    :class:`ConfigResolution` the rig writes at open), ``rig`` (what names the
     rig: its kind and ports), then :meth:`Latch.to_dict` or :meth:`Acknowledgement.to_dict`. Whatever face acted,
     with or without a run: the run's session gets the same through the run engine. A log that cannot be written is
     a warning, never a broken latch.
@@ -292,8 +312,9 @@ class SafetyLog:
         self.path = None if path is None else Path(path)
         self._lock = threading.Lock()
 
-    def __call__(self, item: Latch | Acknowledgement) -> None:
-        kind = "acknowledged" if isinstance(item, Acknowledgement) else "latched"
+    def __call__(self, item: Latch | Acknowledgement | ConfigResolution) -> None:
+        kind = ("acknowledged" if isinstance(item, Acknowledgement) else
+                "resolved" if isinstance(item, ConfigResolution) else "latched")
         line = json.dumps({"kind": kind, "rig": self.rig, **item.to_dict()}, default=str)
         path = self.path or safety_log_path()
         try:

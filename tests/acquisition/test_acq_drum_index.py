@@ -61,20 +61,24 @@ def test_without_an_index_sensor_the_step_count_is_the_source(tmp_path):
     assert all(math.isnan(a["drum_speed_index_mm_s"]) and a["drum_mark_intervals"] == 0 for a in attrs)
 
 
-def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path):
+def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path, monkeypatch):
     """The rig config's force_loop block (this rig's HX711 rate and gains) reaches the controller when the rig opens;
-    without it a 10 SPS board is refused, by name."""
+    without it a 10 SPS board is refused, by name. With it, the HX711_RATE the controller latched at boot (before the
+    host wrote the rate) is cleared as part of configuring the rig: logged as resolved by the rig config, not as an
+    operator's acknowledgement, and nothing moves until the first press."""
     import json
 
-    from rigctl.acquisition.rig import RigError
+    from rigctl.acquisition.rig import FaultAtOpen
     from rigctl.acquisition.rigconfig import update_rig_config
+    from rigctl.acquisition.safety import Acknowledgement, safety_log_path
     from rigctl.core.drum import DrumState, Fault
     from rigctl.devices.drum import default_force_loop
     from rigctl.simulation.model import MechanicsConfig
 
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))  # this test's own rig log
     cfg = RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=10.0, contact_stiffness_g_per_mm=1000.0))
     host = tmp_path / "rig.json"
-    with pytest.raises(RigError, match="HX711_RATE.*Set the board.s RATE pin high"):
+    with pytest.raises(FaultAtOpen, match="HX711_RATE: measured 10 SPS, the force loop set for 80 SPS.*RATE pin"):
         open_rig("inprocess", config=cfg, seed=2, host_config_path=host)
     loop = default_force_loop(10)
     update_rig_config(host, force_loop=loop.to_dict())
@@ -83,10 +87,41 @@ def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path):
         assert rig.drum.force_loop() == loop
         st = rig.drum.read_status()
         assert st.faults == Fault(0) and st.hx711_rate_sps == pytest.approx(10, rel=0.02)
+        (res,) = rig.resolved_at_open
+        assert (res.cause, res.by, res.source) == ("hx711-rate", "rig config", str(host))
+        assert res.reason == "hx711 rate 10 SPS configured, measured 10 SPS"
+        assert rig.safety.latch is None and not any(isinstance(i, Acknowledgement) for i in rig.safety.history)
+        logged = [json.loads(line) for line in safety_log_path().read_text().splitlines()]
+        assert logged[-1]["kind"] == "resolved" and logged[-1]["by"] == "rig config"
+        assert not any(e["kind"] == "acknowledged" for e in logged)
         assert not st.contact_stiffness_g_per_mm  # the first press probes the contact: ~10 s at 10 SPS (spec 2.10)
         rig.press(500, timeout_s=10)  # 12.8 s of which ~10.5 s probe: in time with the allowance (wire.probe_time_s)
         st = rig.drum.read_status()
         assert st.state == DrumState.FORCE_SETTLED and st.contact_stiffness_g_per_mm == pytest.approx(1000, rel=0.1)
+
+
+def test_a_rig_config_rate_the_board_does_not_have_still_refuses_at_open(tmp_path, monkeypatch):
+    """A force_loop for 10 SPS on a board that runs at 80 SPS: the controller latches HX711_RATE when the host writes
+    the rate, the measured rate does not match the config, so nothing clears it: the open is refused in one line naming
+    both rates, and nothing is logged as resolved."""
+    import json
+
+    from rigctl.acquisition.rig import FaultAtOpen
+    from rigctl.acquisition.rigconfig import update_rig_config
+    from rigctl.acquisition.safety import safety_log_path
+    from rigctl.devices.drum import default_force_loop
+    from rigctl.simulation.model import MechanicsConfig
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))  # this test's own rig log
+    host = tmp_path / "rig.json"
+    update_rig_config(host, force_loop=default_force_loop(10).to_dict())
+    cfg = RigConfig(mechanics=MechanicsConfig(hx711_rate_sps=80.0))
+    with pytest.raises(FaultAtOpen, match="HX711_RATE: measured 80 SPS, the force loop set for 10 SPS") as err:
+        open_rig("inprocess", config=cfg, seed=2, host_config_path=host)
+    assert "\n" not in str(err.value) and err.value.latch.cause == "hx711-rate"
+    path = safety_log_path()
+    kinds = [json.loads(line)["kind"] for line in path.read_text().splitlines()] if path.exists() else []
+    assert "resolved" not in kinds and "latched" in kinds
 
 
 @pytest.mark.hil

@@ -90,7 +90,8 @@ FOUND = {
 def test_a_fixed_seed_slice_of_the_campaign_on_the_model_rig():
     """MODEL_SLICE cases (seeds 5500..) on the in-process model rig, the host being rigctl's own Rig: no violation
     but those of FOUND (each its own regression test); no rig refused to open for the HX711_RATE a 10 SPS board
-    latches at power-up (acknowledged: a power-on host silence may keep one from opening); some ran to the end."""
+    latches at power-up (its rig config clears it at open: a power-on host silence may keep one from opening); some
+    ran to the end."""
     out = bench("--cases", str(MODEL_SLICE), "--seed", str(SLICE_SEED), timeout_s=1200)
     assert out["cases"] == MODEL_SLICE
     new = [v for v in out["violations"] if v["seed"] not in FOUND]
