@@ -62,6 +62,11 @@ RUNS = {
     (("doctor",), "truth_log"): (".csv", lambda p: ["doctor", "--sim", "--config", p["config"], "--truth-log",
                                                     p["T"]], "config"),
     (("encode",), "out"): (".h5", lambda p: ["encode", p["session"], "--out", p["T"], "--overwrite"], "session"),
+    # folder outputs (rigctl.storage.export_folder): a file at --out is never replaced by a folder
+    (("export", "events"), "out"): ("", lambda p: ["export", "events", p["session"], "--out", p["T"], "--overwrite"],
+                                    "session"),
+    (("export", "trials"), "out"): ("", lambda p: ["export", "trials", p["session"], "--layout", "per-trial-csv",
+                                                   "--out", p["T"], "--overwrite"], "session"),
     (("export", "nwb"), "out"): (".nwb", lambda p: ["export", "nwb", p["session"], "--out", p["T"], "--overwrite"],
                                  "session"),
     (("gui",), "screenshot"): (".png", lambda p: ["gui", "--replay", p["session"], "--screenshot", p["T"],

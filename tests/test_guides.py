@@ -37,6 +37,7 @@ NOT_RUN = {
     # "Other people's files": tests/storage/test_storage_import_numbers.py runs the section's two blocks
     ("docs/my-sensor.md", "import numpy as np\nfrom datetime import datetime"): "run-by",
     ("docs/my-sensor.md", "rigctl import logger__felt.csv"): "run-by",
+    ("docs/guides/spiking-networks.md", "import snntorch"): "not-run",
     ("docs/guides/my-hardware.md", "rigctl acquire quick_check --rig csvboard --rig-option port=/dev/ttyUSB0"):
         "not-run",
 }
@@ -132,6 +133,22 @@ def _handheld(runs, tmp_path, request) -> None:
         onboard
 
 
+def _spiking_networks(runs, tmp_path, request) -> None:
+    """Events exported with the paper's splits, a rate-coded classifier above chance on untrained speed, and the
+    per-trial layout imported back."""
+    import json
+
+    work = tmp_path / "work"
+    splits = json.loads((work / "events" / "splits.json").read_text())
+    assert {"cv", "untrained_speed", "trained"} <= set(splits["tasks"])
+    out = next(r for r in runs if "train_rate_code.py" in r.block.text and r.block.lang == "sh").output
+    accuracy = {line.split(":")[0]: float(line.split(": ")[1].split("%")[0]) for line in out.splitlines()
+                if line.startswith(("trained:", "untrained_speed:"))}
+    assert set(accuracy) == {"trained", "untrained_speed"}, out
+    assert accuracy["trained"] > 3 * 100 / 16, out  # the trained cells' held-out trials: far above chance (16)
+    assert (work / "back.enc.h5").is_file()
+
+
 def _nothing(runs, tmp_path, request) -> None:
     pass
 
@@ -147,6 +164,7 @@ GUIDES: dict[str, tuple[str, Callable]] = {
     "handheld": ("docs/guides/handheld.md", _handheld),
     "config": ("docs/config.md", _nothing),
     "myhardware": ("docs/guides/my-hardware.md", _my_hardware),
+    "spikingnetworks": ("docs/guides/spiking-networks.md", _spiking_networks),
 }
 
 

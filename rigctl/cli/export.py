@@ -10,7 +10,7 @@ from rigctl.cli.progress import bars, progress_option, show_bars
 
 @click.group("export")
 def export():
-    """Write a session in a format other tools read (NWB)."""
+    """Write a session in a format other tools read: NWB, spike events (Tonic's layout), a per-trial layout."""
 
 
 @export.command("nwb")
@@ -60,3 +60,133 @@ def nwb(session, encoded, variants, out, overwrite, progress, keep_nonfinite):
     units = ", ".join(f"{v}: {n} units, {summary.spikes[v]} spikes" for v, n in summary.units.items())
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_samples} samples x {summary.n_channels} taxels "
                f"at {summary.rate_hz:g} Hz" + (f"; {units}" if units else ""))
+
+
+def _splits_writer(encoded: str | None, session: str | None, seed: int):
+    """``{"splits.json": write}``: the paper's splits of the exported trials (rigctl.analysis.splits)."""
+    from rigctl.analysis.splits import paper_splits
+    from rigctl.storage.spike_export import SPLITS_NAME, write_splits
+
+    if encoded is not None:
+        from rigctl.storage.encoded import open_encoded
+
+        with open_encoded(encoded) as enc:
+            t = enc.trials
+            cols: tuple = (t["texture"], t["speed_mm_s"], t["force_g"], t["trial_id"])
+        source = encoded
+    else:
+        from rigctl.storage.session import open_session
+        from rigctl.storage.validate import usable_trials
+
+        assert session is not None
+        with open_session(session) as s:
+            ids = usable_trials(s).ids
+            plan = {int(r["trial_id"]): r for r in s.plan}
+            cols = ([plan[i]["texture"] for i in ids], [plan[i]["speed_mm_s"] for i in ids],
+                    [plan[i]["force_g"] for i in ids], ids)
+        source = session
+    splits = paper_splits(*cols, seed=seed)
+    notes = splits["notes"]
+    for note in notes if isinstance(notes, list) else []:
+        click.echo(f"note: splits: {note}", err=True)
+    return {SPLITS_NAME: lambda path: write_splits(path, splits, source=str(source))}
+
+
+_splits_options = [
+    click.option("--splits/--no-splits", default=True, show_default=True,
+                 help="Write splits.json beside the files: the paper's tasks (4-fold CV; untrained speed, force, and "
+                      "both) as trial ids, drawn as rigctl analyze draws them."),
+    click.option("--seed", type=int, default=0, show_default=True,
+                 help="Seed of the splits' draws (rigctl analyze --seed: its first repetition's split)."),
+]
+
+
+def _with_splits(f):
+    for opt in reversed(_splits_options):
+        f = opt(f)
+    return f
+
+
+def _folder_errors():
+    from rigctl.storage.encoded import NotEncodedError
+    from rigctl.storage.outputs import OutputError
+    from rigctl.storage.session import SessionError
+
+    return NotEncodedError, SessionError, OutputError
+
+
+@export.command("events")
+@click.argument("encoded", type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out", type=click.Path(writable=True), required=True,
+              help="The folder to write (new; --overwrite replaces only an events export of rigctl's).")
+@click.option("--variant", default=None, help="The variant whose spike trains become events (default: original).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing events export folder.")
+@_with_splits
+@progress_option
+def events(encoded, out, variant, overwrite, splits, seed, progress):
+    """Every trial's SA/RA spike trains of ENCODED as events in Tonic's layout: one trial_<id>.npz per trial (a
+    structured array x, y, t (us), p (SA 0, RA 1), sensor_size, the labels), with splits.json (docs/guides/spiking-networks.md)."""
+    from rigctl.storage.export_folder import check_folder_output
+    from rigctl.storage.outputs import OutputError
+    from rigctl.storage.spike_export import EVENTS_KIND, export_events
+
+    NotEncodedError, SessionError, _ = _folder_errors()
+    try:
+        check_folder_output(out, kind=EVENTS_KIND, overwrite=overwrite)
+    except OutputError as exc:
+        raise UsageProblem(str(exc)) from None
+    try:
+        extra = _splits_writer(encoded, None, seed) if splits else None
+        with bars(show_bars(progress), leave=False) as on_event:
+            summary = export_events(encoded, out, variant=variant, overwrite=overwrite, extra_files=extra,
+                                    progress=on_event)
+    except KeyError as exc:
+        raise UsageProblem(f"--variant: {exc.args[0]}") from None
+    except (NotEncodedError, SessionError, OutputError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {out}: {summary.n_trials} trials of {summary.variant}, {summary.n_spikes} events"
+               + (", splits.json" if splits else ""))
+
+
+@export.command("trials")
+@click.argument("session", type=click.Path(exists=True, dir_okay=False), required=False)
+@click.option("--encoded", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="The session's encoded file: its spike trains for --layout per-trial-npz.")
+@click.option("--layout", "layouts", type=click.Choice(["per-trial-csv", "per-trial-npz"]), multiple=True,
+              required=True, help="per-trial-csv: Data[...].csv taxel readings (needs SESSION); per-trial-npz: "
+                                  "SpikeTrains[...].npz spike counts (needs --encoded). Repeatable.")
+@click.option("--variant", default=None, help="The variant of the SpikeTrains files (default: original).")
+@click.option("--out", "out", type=click.Path(writable=True), required=True,
+              help="The folder to write (new; --overwrite replaces only a per-trial export of rigctl's).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing per-trial export folder.")
+@_with_splits
+@progress_option
+def trials(session, encoded, layouts, variant, out, overwrite, splits, seed, progress):
+    """A peer lab's per-trial layout: Data[Texture(NNN)][Speed(S)][Force(F)][Trial(k)].csv per trial (and
+    SpikeTrains[...].npz), with rigctl_import.toml to import the CSVs back and splits.json (docs/guides/spiking-networks.md)."""
+    from rigctl.storage.export_folder import check_folder_output
+    from rigctl.storage.outputs import OutputError
+    from rigctl.storage.spike_export import TRIALS_KIND, export_trials
+
+    NotEncodedError, SessionError, _ = _folder_errors()
+    if "per-trial-csv" in layouts and session is None:
+        raise UsageProblem("--layout per-trial-csv writes the session's readings: give SESSION")
+    if "per-trial-npz" in layouts and encoded is None:
+        raise UsageProblem("--layout per-trial-npz writes spike trains: give --encoded ENC.h5")
+    if variant is not None and encoded is None:
+        raise UsageProblem("--variant chooses among the spike trains of --encoded FILE: give the encoded file too")
+    try:
+        check_folder_output(out, kind=TRIALS_KIND, overwrite=overwrite)
+    except OutputError as exc:
+        raise UsageProblem(str(exc)) from None
+    try:
+        extra = _splits_writer(encoded, session, seed) if splits else None
+        with bars(show_bars(progress), leave=False) as on_event:
+            summary = export_trials(out, layouts=layouts, session_path=session, encoded_path=encoded,
+                                    variant=variant, overwrite=overwrite, extra_files=extra, progress=on_event)
+    except KeyError as exc:
+        raise UsageProblem(f"--variant: {exc.args[0]}") from None
+    except (ValueError, NotEncodedError, SessionError, OutputError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_files} files"
+               + (", splits.json" if splits else ""))
