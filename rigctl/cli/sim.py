@@ -137,7 +137,7 @@ def _control(rig):
     if rig.truth is not None:
         rig.truth.start(t0)
     return ControlServer(rig, rig.port_dir, now_s=lambda: rig.model.time_s - t0,
-                         active=lambda: sorted(rig.faults.active))
+                         active=lambda: sorted(rig.faults.active - INSTANT_FAULTS))  # (an instant is never active)
 
 
 @sim.command("inject")
