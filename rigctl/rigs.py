@@ -297,7 +297,7 @@ def _tracked_scans(motion: str, request: RigRequest, options: dict[str, Any]) ->
     from rigctl.simulation.handheld_lsl import TrackedFingerScans
 
     lsl = motion.startswith("lsl:")
-    known = {"timeout_s", "taxel_port", "onboard_encoder", "resolve_s" if lsl else "open_timeout_s"}
+    known = {"timeout_s", "taxel_port", "onboard_encoder", *(("resolve_s", "motion_units") if lsl else ("open_timeout_s",))}
     unknown = set(options) - known
     if unknown:
         raise RigError(f"{'a tracker stream' if lsl else 'a serial motion board'} takes no option "
@@ -311,7 +311,8 @@ def _tracked_scans(motion: str, request: RigRequest, options: dict[str, Any]) ->
 
             axis = plate_axis_from_config(load_rig_config(request.host_config_path))
             name, channels = parse_motion(motion)
-            tracker = LslTracker(name, channels, resolve_s=float(options.get("resolve_s", 5.0)))
+            tracker = LslTracker(name, channels, resolve_s=float(options.get("resolve_s", 5.0)),
+                                 units=options.get("motion_units"))
         else:
             from rigctl.devices.motion import SerialMotion
 

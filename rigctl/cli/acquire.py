@@ -352,6 +352,9 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
                    "stream's position channels, mm: x, y, z or one along the plate; velocity channels are not read) "
                    "or serial:PORT (a motion board's CRC-checked frames: an encoder or an IMU; "
                    "docs/guides/handheld.md).")
+@click.option("--motion-units", "motion_units", type=click.Choice(["m", "mm"]), default=None,
+              help="With --motion lsl:NAME: the unit of the stream's positions (Motive and Vicon bridges publish "
+                   "metres). Default: the stream's own channel metadata (unit), else mm.")
 @click.option("--classify", "classify", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="Handheld rig: predict each scan's texture at its end with the classifier trained on this encoded "
                    "training block (rigctl encode of a handheld_training session; LDA on --pcs PCs of its real-time "
@@ -407,7 +410,7 @@ def _bars_follow_the_rig(control: Any, progress: Any) -> None:
 @truth_log_option
 @progress_option
 def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxel_port, rig, rig_options, replay,
-            handheld, motion, classify,
+            handheld, motion, motion_units, classify,
             calibration, classify_variant, onboard_encoder, pcs, resume, ack, overwrite, seed, trials_per_condition,
             on_failure, config_path,
             plates, lsl, lsl_wait_s,
@@ -491,7 +494,8 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     source = _rig_source(dict(hil=hil, drum_port=drum_port, taxel_port=taxel_port, replay=replay,
                               bootloaders=hil_bootloaders, inprocess=inprocess, inject=inject, handheld=handheld,
                               motion=motion, allow_firmware_mismatch=allow_firmware_mismatch, rig=rig,
-                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None), truth_log,
+                              options=rig_options, onboard_encoder=str(classify) if onboard_encoder else None,
+                              motion_units=motion_units), truth_log,
                          hx711_rate)
     # the operator at this terminal acknowledges at open: --ack REASON, or --resume (acknowledge and go on)
     acknowledge = ((ack.strip(), operator_name()) if ack is not None

@@ -78,6 +78,7 @@ class RigSource:
     onboard_encoder: str | None = None
     hil_finger: bool = False
     hx711_rate_sps: int | None = None
+    motion_units: str | None = None  # "handheld" with an LSL tracker: "m" or "mm" (None: the stream's metadata)
 
     def __post_init__(self) -> None:
         self.kind = LEGACY_KINDS.get(self.kind, self.kind)
@@ -101,6 +102,8 @@ class RigSource:
             raise ValueError(f"a motion source is the handheld rig's (kind 'handheld'), not {self.kind!r}'s")
         if self.kind == "handheld" and self.drum_port is not None:
             raise ValueError("the handheld rig has no drum: no drum port")
+        if self.motion_units is not None and not str(self.motion).startswith("lsl:"):
+            raise ValueError("--motion-units is the unit of a tracker stream's positions: give --motion lsl:NAME")
         if (self.onboard_encoder is not None or self.hil_finger) and self.kind != "handheld":
             raise ValueError(f"the on-board encoder is the handheld rig's finger board, not {self.kind!r}'s")
         if self.hil_finger and (self.onboard_encoder is None or (self.motion or "sim") != "sim"):
@@ -115,7 +118,8 @@ class RigSource:
                    replay: str | Path | None = None, bootloaders: bool = False,
                    inprocess: bool = False, inject: tuple[FaultSpec, ...] = (), handheld: bool = False,
                    motion: str | None = None, allow_firmware_mismatch: bool = False, rig: str | None = None,
-                   options: dict[str, str] | None = None, onboard_encoder: str | None = None) -> "RigSource":
+                   options: dict[str, str] | None = None, onboard_encoder: str | None = None,
+                   motion_units: str | None = None) -> "RigSource":
         """The source the CLI's flags select: ``rig`` -> that rig (with its ``options``), ports -> "hardware", a
         recording -> "replay", ``hil`` or ``bootloaders`` -> "hil" (with its bootloaders if asked), ``inprocess`` ->
         "inprocess", ``handheld`` or a ``motion`` -> "handheld" (with ``replay``: that recording's scans; with
@@ -127,7 +131,8 @@ class RigSource:
         if handheld or motion is not None:  # a recording replayed on the handheld rig: its scans
             replayed = None if replay is None else f"replay:{replay}"
             return cls("handheld", motion=motion or replayed or "sim", taxel_port=taxel_port, inject=inject,
-                       onboard_encoder=onboard_encoder, hil_finger=bool(hil and onboard_encoder is not None))
+                       onboard_encoder=onboard_encoder, hil_finger=bool(hil and onboard_encoder is not None),
+                       motion_units=motion_units)
         allow = allow_firmware_mismatch
         if drum_port is not None or taxel_port is not None:
             return cls("hardware", drum_port=drum_port, taxel_port=taxel_port, inject=inject,
@@ -198,5 +203,7 @@ class RigSource:
                 board["onboard_encoder"] = self.onboard_encoder
             if self.hil_finger:
                 board["hil_finger"] = True
+            if self.motion_units is not None:
+                board["motion_units"] = self.motion_units
             return {"kind": "handheld", "motion": self.motion or "sim", **board, **extra}
         return {"kind": self.kind, **self.options, **extra}

@@ -33,13 +33,35 @@ from rigctl.simulation.textures import get_texture
 
 __all__ = ["LslTracker", "Tracker", "TrackedFingerScans", "parse_motion"]
 
+#: the position units a tracker stream may carry, and mm per unit (Motive and Vicon bridges publish metres)
+UNITS = {"m": 1000.0, "mm": 1.0}
+_UNIT_NAMES = {"m": "m", "meter": "m", "meters": "m", "metre": "m", "metres": "m",
+               "mm": "mm", "millimeter": "mm", "millimeters": "mm", "millimetre": "mm", "millimetres": "mm"}
+
+
+def _declared_units(info: Any, channels: tuple[int, ...]) -> str | None:
+    """The unit the stream's channel metadata declares for ``channels`` (XDF's ``desc/channels/channel/unit``): "m",
+    "mm", or None (none, another, or the channels disagree)."""
+    try:
+        ch = info.desc().child("channels").child("channel")
+        found = []
+        while not ch.empty():
+            found.append(_UNIT_NAMES.get(ch.child_value("unit").strip().lower()))
+            ch = ch.next_sibling()
+    except Exception:  # noqa: BLE001 - metadata a bridge wrote otherwise: not declared
+        return None
+    units = {found[c] for c in channels if c < len(found)}
+    return units.pop() if len(units) == 1 and None not in units and len(found) > max(channels) else None
+
+
 class LslTracker:
     """The samples of the LSL tracker stream ``name`` (name or source id), channels ``channels``, on the host clock.
 
     Raises ScanError (no such stream, a channel it does not have), LslUnavailable (no pylsl).
     """
 
-    def __init__(self, name: str, channels: tuple[int, ...] = (0, 1, 2), *, resolve_s: float = 5.0) -> None:
+    def __init__(self, name: str, channels: tuple[int, ...] = (0, 1, 2), *, resolve_s: float = 5.0,
+                 units: str | None = None) -> None:
         pylsl = require_pylsl()
         self.name = name.removeprefix("lsl:")
         found = (pylsl.resolve_byprop("name", self.name, minimum=1, timeout=resolve_s)
@@ -54,6 +76,13 @@ class LslTracker:
             raise ScanError(f"LSL stream {self.name!r} has {n} channels: choose 3 (x, y, z, mm) or 1 (along the "
                             f"plate, mm) of 0..{n - 1}, not {list(channels)}")
         self.channels = tuple(channels)
+        declared = _declared_units(self.inlet.info(timeout=resolve_s), self.channels)
+        if units is not None and units not in UNITS:
+            raise ScanError(f"--motion-units must be one of {', '.join(UNITS)}, not {units!r}")
+        #: the positions' unit: given (``--motion-units``), else the stream's own channel metadata, else mm
+        self.units = units or declared or "mm"
+        self.units_from = "given" if units else "stream metadata" if declared else "assumed"
+        self._to_mm = UNITS[self.units]
         self.offset_s, _ = measure_clock_offset(pylsl.local_clock, time.monotonic)  # LSL minus host
         self._t: list[np.ndarray] = []
         self._x: list[np.ndarray] = []
@@ -71,7 +100,7 @@ class LslTracker:
                 self._halt.wait(0.2)
                 continue
             if stamps:
-                x = np.asarray(chunk, np.float64)[:, list(self.channels)]
+                x = np.asarray(chunk, np.float64)[:, list(self.channels)] * self._to_mm
                 t = np.asarray(stamps, np.float64) - self.offset_s
                 with self._lock:
                     self._t.append(t)
@@ -93,6 +122,7 @@ class LslTracker:
         except Exception:  # noqa: BLE001 - a lost stream: not measured
             correction = float("nan")
         return {"lsl_stream": self.name, "channels": list(self.channels), "lsl_offset_s": self.offset_s,
+                "motion_units": self.units, "motion_units_from": self.units_from,
                 "lsl_time_correction_s": correction}
 
     def close(self) -> None:

@@ -80,8 +80,11 @@ class _HandOnLsl:
     """A tracker on LSL (one channel: the position along the plate, mm, 120 Hz) whose hand passes again and again:
     each pass hesitates 150 ms mid-plate and slips back 2 mm (:func:`_hand_path`), returns to the start, rests."""
 
-    def __init__(self, pylsl, name: str) -> None:
+    def __init__(self, pylsl, name: str, *, mm_per_unit: float = 1.0, unit: str | None = None) -> None:
         info = pylsl.StreamInfo(name, "Position", 1, 120.0, pylsl.cf_float32, f"hand-{name}")
+        if unit is not None:
+            info.desc().append_child("channels").append_child("channel").append_child_value("unit", unit)
+        self.mm_per_unit = mm_per_unit
         self.outlet = pylsl.StreamOutlet(info)
         self.pylsl, self.halt = pylsl, threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -96,7 +99,7 @@ class _HandOnLsl:
             while t0 + k / 120 <= now:
                 phase = (k / 120) % (pass_s + 0.5)
                 x = _hand_path(np.array([phase]))[0] if phase < pass_s else 15.0
-                self.outlet.push_sample([float(x)], t0 + k / 120)
+                self.outlet.push_sample([float(x) / self.mm_per_unit], t0 + k / 120)
                 k += 1
             time.sleep(0.005)
 
@@ -153,3 +156,34 @@ def test_a_hand_that_hesitates_and_slips_back_completes_the_block_and_encodes(ls
     res = CliRunner().invoke(main, ["encode", str(tmp / "rt.h5"), "--out", str(tmp / "rt.enc.h5"), "--variant",
                                     "realtime_original", "--variant", "realtime_speed_scaled"])
     assert res.exit_code == 0, res.output
+
+
+@pytest.mark.realtime
+def test_a_tracker_in_metres_given_or_declared(lsl, tmp_path):
+    """A tracker publishing metres (Motive and Vicon bridges): --motion-units m, or the stream's own channel unit,
+    gives the positions in mm (old main: no such option; 0.015-0.285 'mm' never crossed the plate's used part)."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.acquisition.runner import run_protocol
+    from rigctl.operations import RigSource
+    from rigctl.rigs import open_rig
+    from rigctl.storage.session import open_session
+
+    proto = parse_protocol(small_handheld_protocol("L"))
+    for case, unit, given in (("given", None, "m"), ("declared", "meters", None)):
+        name = f"hand-m-{uuid.uuid4().hex[:8]}"
+        hand = _HandOnLsl(lsl, name, mm_per_unit=1000.0, unit=unit)
+        try:
+            opts = {} if given is None else {"motion_units": given}
+            with open_rig("handheld", motion=f"lsl:{name}@0", host_config_path=tmp_path / "rig.json",
+                          resolve_s=30.0, timeout_s=30.0, **opts) as rig:
+                assert run_protocol(proto, tmp_path / f"{case}.h5", rig=rig).ok
+        finally:
+            hand.close()
+        with open_session(tmp_path / f"{case}.h5") as s:
+            src = s.rig_config["scan_source"]
+            assert src["motion_units"] == "m" and src["motion_units_from"] == ("given" if given else "stream metadata")
+            for tid in s.completed_ids():
+                d = s.trial(tid)
+                assert d.position_mm.max() > 250.0 and 1.5 < d.attrs["scan_duration_s"] < 3.5
+    with pytest.raises(ValueError, match="--motion lsl"):
+        RigSource.from_flags(handheld=True, motion_units="m")
