@@ -71,6 +71,42 @@ MOTION = MotionSource()
 PLATE_POLICIES = ("prompt", "auto", "skip")
 
 
+def _check_flags(f: dict[str, Any]) -> None:
+    """The command line's combinations that are usage errors (exit 2), before anything opens."""
+    _check_ports(f["drum_port"], f["taxel_port"], handheld=f["handheld"], motion=f["motion"])
+    check_one_rig(sim=f["sim"], hil=f["hil"], inprocess=f["inprocess"], drum_port=f["drum_port"])
+    check_rig_flags(f["rig"], f["rig_options"], others=bool(f["sim"] or f["hil"] or f["inprocess"] or f["drum_port"]
+                                                            or f["replay"] or f["handheld"] or f["motion"]))
+    replay, out = f["replay"], f["out"]
+    if replay is not None and (f["hil"] or f["inprocess"] or f["drum_port"] is not None):
+        raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--inprocess/"
+                               "--drum-port")
+    if isinstance(replay, Path) and Path(out).resolve() == replay.resolve():
+        raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
+    if f["resume"] and f["overwrite"]:
+        raise click.UsageError("--resume and --overwrite exclude each other")
+    if f["ack"] is not None and not f["ack"].strip():
+        raise click.UsageError("--ack takes the reason the fault may be cleared (logged), e.g. --ack \"e-stop "
+                               "released, bench checked\"")
+
+
+def _load_protocol(protocol: Any, seed: int | None, trials_per_condition: int | None) -> Any:
+    """The protocol (TOML or Python plan) with --seed and --trials-per-condition applied; UsageProblem (exit 2)."""
+    from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
+
+    try:
+        proto = load_protocol(protocol)
+    except ProtocolError as exc:  # the command's argument: a usage error
+        raise UsageProblem(str(exc)) from None
+    if seed is not None and isinstance(proto, Protocol):
+        proto = proto.with_seed(seed)
+    if trials_per_condition is not None:
+        if not isinstance(proto, Protocol):
+            raise UsageProblem(f"--trials-per-condition: {protocol} is a Python plan; set its size in the script")
+        proto = dataclasses.replace(proto, trials_per_condition=trials_per_condition)
+    return proto
+
+
 def _sigterm_as_interrupt(signum, frame):
     raise KeyboardInterrupt
 
@@ -425,26 +461,15 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
     a usage error (refused before the rig moves).
     """
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
-    from rigctl.acquisition.protocol import Protocol, ProtocolError, load_protocol
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
     from rigctl.acquisition.safety import operator_name
     from rigctl.operations import ProtocolRun, lsl_requested
     from rigctl.storage.session import SessionError
 
     hil = hil or hil_bootloaders
-    _check_ports(drum_port, taxel_port, handheld=handheld, motion=motion)
-    check_one_rig(sim=sim, hil=hil, inprocess=inprocess, drum_port=drum_port)
-    check_rig_flags(rig, rig_options, others=bool(sim or hil or inprocess or drum_port or replay or handheld or motion))
-    if replay is not None and (hil or inprocess or drum_port is not None):
-        raise click.UsageError("--replay streams a recording through the simulated rig: drop --hil/--inprocess/"
-                               "--drum-port")
-    if isinstance(replay, Path) and Path(out).resolve() == replay.resolve():
-        raise click.UsageError(f"--out {out} is the recording being replayed: choose another output file")
-    if resume and overwrite:
-        raise click.UsageError("--resume and --overwrite exclude each other")
-    if ack is not None and not ack.strip():
-        raise click.UsageError("--ack takes the reason the fault may be cleared (logged), e.g. --ack \"e-stop "
-                               "released, bench checked\"")
+    _check_flags(dict(drum_port=drum_port, taxel_port=taxel_port, handheld=handheld, motion=motion, sim=sim, hil=hil,
+                      inprocess=inprocess, rig=rig, rig_options=rig_options, replay=replay, out=out, resume=resume,
+                      overwrite=overwrite, ack=ack))
     if resume and not out.exists():
         raise UsageProblem(f"--resume: {out} does not exist: nothing to resume")
     check_output(out, overwrite=overwrite or resume,
@@ -466,16 +491,7 @@ def acquire(protocol, out, sim, hil, hil_bootloaders, inprocess, drum_port, taxe
             require_pylsl()
         except LslUnavailable as exc:
             raise click.ClickException(f"{exc}{'' if lsl else ' (asked for by the rig config: lsl.enabled)'}") from None
-    try:
-        proto = load_protocol(protocol)
-    except ProtocolError as exc:  # the command's argument: a usage error
-        raise UsageProblem(str(exc)) from None
-    if seed is not None and isinstance(proto, Protocol):
-        proto = proto.with_seed(seed)
-    if trials_per_condition is not None:
-        if not isinstance(proto, Protocol):
-            raise UsageProblem(f"--trials-per-condition: {protocol} is a Python plan; set its size in the script")
-        proto = dataclasses.replace(proto, trials_per_condition=trials_per_condition)
+    proto = _load_protocol(protocol, seed, trials_per_condition)
     handheld = _handheld_rig(proto, handheld=handheld, motion=motion, hil=hil, inprocess=inprocess, hardware=hardware,
                              replay=replay, onboard=dict(onboard=onboard_encoder, classify=classify,
                                                          variant=classify_variant, taxel_port=taxel_port))

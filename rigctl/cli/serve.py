@@ -129,34 +129,22 @@ def _bind(host: str, port: int) -> socket.socket:
     return sock
 
 
-def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tuple[str, ...], data_dir: Path,
-           queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
-           config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...],
-           lsl_wait_s: float, rig_options: dict[str, str], ack: str | None = None) -> None:
+def _checked_before_open(*, kind: str, queue_file: Path, drum_port: str | None, taxel_port: str | None,
+                         replay: Path | None, config_path: Path | None, lsl: bool | None, inject: tuple[Any, ...],
+                         rig_options: dict[str, str]) -> tuple[bool, Any]:
+    """What serve checks before it locks the queue, binds the port or opens the rig: FastAPI and uvicorn, the rig
+    config, the queue file, LSL, the rig source and its injections. Returns ``(publish, source)``; UsageProblem
+    (exit 2) or ClickException (exit 1), one line."""
     from rigctl.acquisition.lsl import LslUnavailable, require_pylsl
     from rigctl.acquisition.rigconfig import CalibrationError, load_rig_config
-    from rigctl.acquisition.safety import operator_name
-    from rigctl.core.faults import FaultSpecError
-    from rigctl.operations import (
-        Home,
-        QueueError,
-        RigError,
-        RigSource,
-        RunQueue,
-        lock_queue_file,
-        lsl_requested,
-        open_control,
-        read_queue_file,
-    )
+    from rigctl.operations import QueueError, RigSource, lsl_requested, read_queue_file
 
     try:
         import fastapi  # noqa: F401
-        import uvicorn
+        import uvicorn  # noqa: F401
     except ImportError as exc:
         raise click.ClickException(f"rigctl serve needs FastAPI and uvicorn: pip install 'rigctl[serve]' ({exc})") \
             from None
-    from rigctl.server.app import create_app
-
     try:
         host_config = load_rig_config(config_path)
     except CalibrationError as exc:
@@ -179,6 +167,23 @@ def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tu
     why = source.injection_refusal()  # known before the rig opens or the port is bound
     if why:
         raise UsageProblem(why)
+    return publish, source
+
+
+def _serve(*, host: str, port: int, token: str, generated: bool, allow_hosts: tuple[str, ...], data_dir: Path,
+           queue_file: Path, kind: str, drum_port: str | None, taxel_port: str | None, replay: Path | None,
+           config_path: Path | None, seed: int, lsl: bool | None, inject: tuple[Any, ...],
+           lsl_wait_s: float, rig_options: dict[str, str], ack: str | None = None) -> None:
+    import uvicorn
+
+    from rigctl.acquisition.safety import operator_name
+    from rigctl.core.faults import FaultSpecError
+    from rigctl.operations import Home, QueueError, RigError, RunQueue, lock_queue_file, open_control
+    from rigctl.server.app import create_app
+
+    publish, source = _checked_before_open(kind=kind, queue_file=queue_file, drum_port=drum_port,
+                                           taxel_port=taxel_port, replay=replay, config_path=config_path, lsl=lsl,
+                                           inject=inject, rig_options=rig_options)
     try:  # one server per queue file, known before this one opens the rig (opening a board's port resets it)
         queue_lock = lock_queue_file(queue_file)
     except QueueError as exc:
