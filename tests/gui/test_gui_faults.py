@@ -17,6 +17,7 @@ import time
 from types import SimpleNamespace
 
 import pytest
+import shiboken6
 from PySide6 import QtCore, QtWidgets
 
 from rigctl.acquisition.safety import Latch, operator_name
@@ -67,8 +68,9 @@ def _acknowledge(window, qapp, qtbot, reason: str) -> None:
     dlg.reason.setText(reason)
     assert wait_for(qapp, lambda: dlg.ok_btn.isEnabled(), 10), dlg.estop.text()
     qtbot.mouseClick(dlg.ok_btn, QtCore.Qt.LeftButton)
-    assert wait_for(qapp, lambda: window.handle.control.latch is None and not dlg.isVisible(), 30), \
-        dlg.message.text()
+    gone = lambda: not shiboken6.isValid(dlg) or not dlg.isVisible()  # noqa: E731 - (closed: deleted on close)
+    assert wait_for(qapp, lambda: window.handle.control.latch is None and gone(), 30), \
+        dlg.message.text() if shiboken6.isValid(dlg) else "deleted"
     assert wait_for(qapp, lambda: not int(window.poller.latest.faults), 10)
 
 
