@@ -187,3 +187,21 @@ def test_a_tracker_in_metres_given_or_declared(lsl, tmp_path):
                 assert d.position_mm.max() > 250.0 and 1.5 < d.attrs["scan_duration_s"] < 3.5
     with pytest.raises(ValueError, match="--motion lsl"):
         RigSource.from_flags(handheld=True, motion_units="m")
+
+
+def test_info_of_a_handheld_session_shows_the_measured_scans(tmp_path):
+    """rigctl info divides a scan's samples by its measured length (old main: the plan's, 728-1,429 samp/s of a 1 kHz
+    stream) and shows the tracker's rate, dropouts and the floored windows."""
+    from rigctl.acquisition.protocol import parse_protocol
+    from rigctl.acquisition.runner import run_protocol
+    from rigctl.cli.info import session_summary
+    from rigctl.rigs import open_rig
+
+    with open_rig("handheld", seed=3, host_config_path=tmp_path / "rig.json") as rig:
+        assert run_protocol(parse_protocol(small_handheld_protocol("B", "L")), tmp_path / "s.h5", rig=rig).ok
+    trials = session_summary(tmp_path / "s.h5")["trials"]
+    assert len(trials) == 4
+    for t in trials:
+        assert t["samples_per_s"] == pytest.approx(1000.0, rel=0.002)
+        assert t["duration_s"] != t["planned_duration_s"] and 85 <= t["tracker_rate_hz"] <= 125
+        assert isinstance(t["tracker_dropouts"], int) and isinstance(t["floored_windows"], int)
