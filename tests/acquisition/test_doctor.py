@@ -274,9 +274,19 @@ def _as_unprivileged_user(args: list[str]) -> tuple[int, str]:
     may be unreadable for nobody, so the child runs the already imported CLI instead of a new interpreter."""
     from click.testing import CliRunner
 
+    import tempfile
+
     import rigctl.cli.doctor  # noqa: F401 - imported before the fork: nobody may not read the sources' folders
     from rigctl.cli import main
 
+    # the user's folders (config, state, cache) in a folder nobody may use, as a real user's own would be; and the
+    # command run once before the fork, as root, to import every module its path loads (the interpreter's library
+    # may be unreadable for nobody: 'No module named queue'); its result is not judged
+    home = tempfile.mkdtemp(prefix="rigctl-nobody-")
+    os.chmod(home, 0o777)
+    env = {"HOME": home, "XDG_CONFIG_HOME": home, "XDG_STATE_HOME": home, "XDG_CACHE_HOME": home,
+           "RIGCTL_CONFIG": os.path.join(home, "rig.json")}
+    CliRunner().invoke(main, args, env=env)
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child
@@ -286,7 +296,7 @@ def _as_unprivileged_user(args: list[str]) -> tuple[int, str]:
             os.setgroups([])
             os.setgid(65534)
             os.setuid(65534)
-            res = CliRunner().invoke(main, args)
+            res = CliRunner().invoke(main, args, env=env)
             os.write(w, res.output.encode())
             code = res.exit_code
         finally:
