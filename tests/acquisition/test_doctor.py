@@ -272,9 +272,9 @@ def test_cli_usage_errors_exit_2():
 def _as_unprivileged_user(args: list[str]) -> tuple[int, str]:
     """``rigctl ARGS`` in a forked child that dropped root for the user nobody (65534): the interpreter's own files
     may be unreadable for nobody, so the child runs the already imported CLI instead of a new interpreter."""
-    from click.testing import CliRunner
-
     import tempfile
+
+    from click.testing import CliRunner
 
     import rigctl.cli.doctor  # noqa: F401 - imported before the fork: nobody may not read the sources' folders
     from rigctl.cli import main
