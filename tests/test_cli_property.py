@@ -169,6 +169,17 @@ def test_info_export_and_protocols(inputs, tmp_path, data):
     _check(inputs, tmp_path, ["export", "nwb", str(inputs["session"]), "--encoded", str(inputs["encoded"]),
                               "--out", str(tmp_path / "x.nwb"), "--no-progress",
                               *(["--variants", variants] if variants is not None else [])])
+    variant = data.draw(_maybe(st.sampled_from(["original", "nope", "realtime_original", "", "speed_scaled"])),
+                        label="export --variant")
+    seed = data.draw(_maybe(st.sampled_from(["0", "-1", "nan", "1e30", "x"])), label="export --seed")
+    _check(inputs, tmp_path, ["export", "events", str(inputs["encoded"]), "--out", str(tmp_path / "ev"),
+                              "--no-progress", *(["--variant", variant] if variant is not None else []),
+                              *(["--seed", seed] if seed is not None else [])])
+    layouts = data.draw(st.lists(st.sampled_from(["per-trial-csv", "per-trial-npz", "bogus"]), max_size=2),
+                        label="export trials --layout")
+    encoded = ["--encoded", str(inputs["encoded"])] if data.draw(st.booleans(), label="--encoded") else []
+    _check(inputs, tmp_path, ["export", "trials", str(inputs["session"]), *encoded, "--out", str(tmp_path / "tr"),
+                              "--no-progress", *[a for lay in layouts for a in ("--layout", lay)]])
     _check(inputs, tmp_path, ["info", str(inputs["session"]), *(["--json"] if data.draw(st.booleans()) else [])])
     _check(inputs, tmp_path, ["protocols"])
     r = _check(inputs, tmp_path, ["rigs", *(["--json"] if data.draw(st.booleans(), label="rigs --json") else [])])
@@ -363,7 +374,8 @@ def test_sim_inject(inputs, tmp_path, sim_in_folder, data):
 
 
 #: the commands the tests above drive (``rigctl`` + these words)
-DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("info",), ("protocols",),
+DRIVEN = {("encode",), ("sim", "dataset"), ("analyze",), ("import",), ("export", "nwb"), ("export", "events"),
+          ("export", "trials"), ("info",), ("protocols",),
           ("acquire",), ("doctor",), ("gui",), ("firmware",), ("ports",), ("udev-rules",), ("import-fabricslide",),
           ("sim",), ("serve",), ("sim", "operator"), ("rigs",), ("sim", "inject")}
 
