@@ -6,6 +6,7 @@ import click
 
 from rigctl.cli.outputs import UsageProblem, check_output
 from rigctl.cli.progress import bars, progress_option, show_bars
+from rigctl.cli.ranges import SEED
 
 
 @click.group("export")
@@ -96,7 +97,7 @@ _splits_options = [
     click.option("--splits/--no-splits", default=True, show_default=True,
                  help="Write splits.json beside the files: the paper's tasks (4-fold CV; untrained speed, force, and "
                       "both) as trial ids, drawn as rigctl analyze draws them."),
-    click.option("--seed", type=int, default=0, show_default=True,
+    click.option("--seed", type=SEED, default=0, show_default=True,
                  help="Seed of the splits' draws (rigctl analyze --seed: its first repetition's split)."),
 ]
 
