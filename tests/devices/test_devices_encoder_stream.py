@@ -100,8 +100,10 @@ def test_counted_features_are_the_features_of_the_same_spikes():
     counts = scaled.window_counts(0.1, wire.ENC_N_WINDOWS)[0]
     expect = realtime_features(scaled, edges, n_windows=wire.ENC_N_WINDOWS)[0]
     assert np.array_equal(counted_realtime_features(counts, speeds), expect) and expect.sum() > 0
-    for bad in (lambda: counted_realtime_features(counts[0], speeds), lambda: counted_realtime_features(counts, []),
-                lambda: counted_realtime_features(counts, -speeds)):
+    # a window the hand stood still in or slid back through is scaled at the floor, as the board does (issue 56)
+    assert np.array_equal(counted_realtime_features(counts, -speeds),
+                          counted_realtime_features(counts, np.zeros_like(speeds)))
+    for bad in (lambda: counted_realtime_features(counts[0], speeds), lambda: counted_realtime_features(counts, [])):
         with pytest.raises(ValueError):
             bad()
 
