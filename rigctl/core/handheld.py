@@ -28,7 +28,8 @@ from rigctl.core.trial import PlannedTrial
 
 __all__ = ["PLATE_LENGTH_MM", "PLATE_WIDTH_MM", "USED_LENGTH_MM", "USED_START_MM", "USED_END_MM",
            "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError", "Tracker", "wait_for_pass",
-           "PAST_END_MM", "MARGIN_S", "SPEED_FLOOR_MM_S", "WINDOW_S", "position_window_speed", "position_window_speeds"]
+           "refuse_older_than_cue",
+           "PAST_END_MM", "MARGIN_S", "STAMP_AHEAD_S", "SPEED_FLOOR_MM_S", "WINDOW_S", "position_window_speed", "position_window_speeds"]
 
 #: a texture plate's length and width, mm (Methods)
 PLATE_LENGTH_MM = 300.0
@@ -44,6 +45,10 @@ HANDHELD_TEXTURES = ("A", "B", "D", "L", "N")
 PAST_END_MM = 10.0
 #: tracker time a live scan keeps before the cue and waits after the exit, s
 MARGIN_S = 0.3
+#: how far a tracker sample's time on the host clock may lie after its arrival, s: no sample is stamped after it
+#: arrived (liblsl's time correction between two PCs is good to about a millisecond; the rest is margin). Beyond it
+#: the tracker's stamps are on another clock than the one they are read on, and its scans are refused
+STAMP_AHEAD_S = 0.1
 #: the real-time window the finger's speed is measured over, s (Methods: "averaged every 100 ms")
 WINDOW_S = 0.1
 #: the slowest speed a window is scaled with, mm/s. A window in which the finger stood still or slid back (a hand
@@ -196,7 +201,8 @@ class Tracker(Protocol):
     (:class:`rigctl.devices.motion.SerialMotion`). ``since(t0)`` gives the samples with host time >= ``t0``
     (``time.monotonic`` s): times (k,) s and positions (k, 3) x, y, z in the tracker's frame, (k, 1) along the
     plate, or (k, 2) along the plate and the velocity along it (mm/s, NaN where not measured); ``channels`` has 3
-    entries for x, y, z."""
+    entries for x, y, z. A tracker that also has ``since_received(t0)`` (the same and each sample's arrival on the
+    host clock, (k,) s) lets :func:`wait_for_pass` refuse a scan older than its cue."""
 
     name: str
     channels: tuple[int, ...]
@@ -208,17 +214,52 @@ class Tracker(Protocol):
     def close(self) -> None: ...
 
 
+def _samples(tracker: Tracker, t0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The tracker's samples from ``t0`` (:meth:`Tracker.since`) and their arrival times when it knows them."""
+    received = getattr(tracker, "since_received", None)
+    if callable(received):
+        t, x, arrived = received(t0)
+        return t, x, arrived
+    t, x = tracker.since(t0)
+    return t, x, None
+
+
+def _refuse_stamped_ahead(t: np.ndarray, arrived: np.ndarray) -> None:
+    ahead = float(np.max(t - arrived)) if t.size else 0.0
+    if ahead > STAMP_AHEAD_S:
+        raise ScanError(f"the tracker's samples are stamped {ahead:.3f} s after they arrived: its clock is not this "
+                        "machine's and liblsl's time correction does not see it (a bridge stamping another clock "
+                        "than LSL's local_clock?): the scan is refused, not recorded")
+
+
+def refuse_older_than_cue(t: np.ndarray, arrived: np.ndarray, entry: int, t_cue: float) -> None:
+    """Raise ScanError when a pass (tracker times ``t`` (k,) s on the host clock, their arrivals ``arrived`` (k,) s,
+    the finger inside the plate's used part from sample ``entry`` on) is older than its cue at ``t_cue``: a sample
+    stamped more than :data:`STAMP_AHEAD_S` after it arrived (the stamps on another clock: every pass would look newer
+    than every cue), or the finger's entry arrived more than :data:`MARGIN_S` before the cue (a pass the operator made
+    before being told). Such a scan is refused, never recorded; its trial is cued again."""
+    _refuse_stamped_ahead(t, arrived)
+    early = t_cue - float(arrived[entry])
+    if early > MARGIN_S:
+        raise ScanError(f"a scan older than its cue: the finger entered the plate's used part {early:.3f} s before "
+                        f"the cue (by the samples' arrival, stamped {float(t[entry]) - t_cue:+.3f} s from it): "
+                        "refused, not recorded")
+
+
 def wait_for_pass(tracker: Tracker, along: Callable[[np.ndarray], np.ndarray], t_cue: float, *,
                   stop: Callable[[], bool] | None = None, timeout_s: float = 60.0,
                   poll_s: float = 0.02) -> tuple[np.ndarray, np.ndarray] | None:
     """After a cue at ``t_cue`` (``time.monotonic`` s): wait until the tracked finger has been before the plate's used
     part and then :data:`PAST_END_MM` past its end, then :data:`MARGIN_S` / 2 more; returns the tracker's samples from
     ``t_cue - MARGIN_S`` (times (k,) s, positions (k, channels)), or None when ``stop()`` turned true. ``along(x)``
-    turns the positions into mm along the plate. Raises ScanError when no pass comes within ``timeout_s``."""
+    turns the positions into mm along the plate. Raises ScanError when no pass comes within ``timeout_s``, or when
+    the pass is older than its cue (:func:`refuse_older_than_cue`, a tracker that knows its samples' arrival)."""
     while True:
         if stop is not None and stop():
             return None
-        t, x = tracker.since(t_cue - MARGIN_S)
+        t, x, arrived = _samples(tracker, t_cue - MARGIN_S)
+        if arrived is not None:  # refused as soon as one sample shows it, not after a whole pass
+            _refuse_stamped_ahead(t, arrived)
         pos = along(x) if t.size else np.zeros(0)
         entered = np.flatnonzero(pos < USED_START_MM)
         if entered.size and np.any(pos[entered[0]:] > USED_END_MM + PAST_END_MM):
@@ -227,5 +268,8 @@ def wait_for_pass(tracker: Tracker, along: Callable[[np.ndarray], np.ndarray], t
             raise ScanError(f"no pass of the finger through the plate within {timeout_s:g} s (the tracker sent "
                             f"{t.size} samples)")
         time.sleep(poll_s)
+    if arrived is not None:
+        inside = np.flatnonzero(pos[entered[0]:] >= USED_START_MM)
+        refuse_older_than_cue(t, arrived, entered[0] + int(inside[0]), t_cue)
     time.sleep(MARGIN_S / 2)
     return tracker.since(t_cue - MARGIN_S)

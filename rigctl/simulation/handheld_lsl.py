@@ -86,6 +86,7 @@ class LslTracker:
         self.offset_s, _ = measure_clock_offset(pylsl.local_clock, time.monotonic)  # LSL minus host
         self._t: list[np.ndarray] = []
         self._x: list[np.ndarray] = []
+        self._arrived: list[np.ndarray] = []  # each sample's arrival on the host clock (its pull), s
         self._lock = threading.Lock()
         self._halt = threading.Event()
         self.inlet.open_stream(timeout=resolve_s)
@@ -100,21 +101,31 @@ class LslTracker:
                 self._halt.wait(0.2)
                 continue
             if stamps:
+                arrived = time.monotonic()
                 x = np.asarray(chunk, np.float64)[:, list(self.channels)] * self._to_mm
                 t = np.asarray(stamps, np.float64) - self.offset_s
                 with self._lock:
                     self._t.append(t)
                     self._x.append(x)
+                    self._arrived.append(np.full(t.size, arrived))
 
     def since(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
         """Samples received with host time >= ``t0``: times (k,) s and positions (k, n_channels) mm."""
+        t, x, _ = self.since_received(t0)
+        return t, x
+
+    def since_received(self, t0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`since` and each sample's arrival (its pull from the inlet, ``time.monotonic`` s): a sample stamped
+        after it arrived, or a pass that arrived before its cue, is refused
+        (:func:`rigctl.core.handheld.refuse_older_than_cue`)."""
         with self._lock:
             t = np.concatenate(self._t) if self._t else np.zeros(0)
             x = np.concatenate(self._x) if self._x else np.zeros((0, len(self.channels)))
-            keep = t >= t0 - 60.0  # the last minute is enough for any scan
-            self._t, self._x = [t[keep]], [x[keep]]
+            a = np.concatenate(self._arrived) if self._arrived else np.zeros(0)
+            keep = a >= time.monotonic() - 60.0  # the last minute of arrivals is enough for any scan
+            self._t, self._x, self._arrived = [t[keep]], [x[keep]], [a[keep]]
         sel = t >= t0
-        return t[sel], x[sel]
+        return t[sel], x[sel], a[sel]
 
     def describe(self) -> dict[str, Any]:
         try:  # the publisher's clock minus this machine's, as liblsl measures it (0 on the same machine)
