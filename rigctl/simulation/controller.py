@@ -645,6 +645,10 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
             self._loadcell_silent_ms = 0
             raw = self._last_raw = 0 if sck_broken else m.loadcell_raw
             self._check_reading(raw)
+            if self._line_codes == 1:  # one all-zero or all-one word is doubtful, not a force (the firmware's
+                self._pi_out = 0.0  # ctl_loadcell): the actuator holds for that period, nothing is judged on it
+                self._hx_seen = conversions
+                return False
             if self._tare_pending and self._home_switch():
                 self._tare()
                 if self.state == DrumState.HOMING and not self._homing:  # HOME done: at the switch, tared

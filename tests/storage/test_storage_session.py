@@ -251,6 +251,7 @@ _WRITER_CHILD = textwrap.dedent(
         n = 3000
         taxels = np.full((n, 18), tid % 1024) + rng.integers(0, 2, (n, 18))
         w.write_trial(tid, TrialData(taxels=taxels, force_g=[tid], force_time_s=[0.0]))
+        print("wrote", tid, flush=True)
     """
 )
 
@@ -286,6 +287,8 @@ def test_kill_9_of_a_writer_leaves_every_finished_trial_readable(tmp_path):
     for round_ in range(12):
         proc = PythonC(_WRITER_CHILD, str(path), str(round_), stdout=True, new_session=True)
         assert proc.stdout.readline().strip() == "ready"
+        if round_ % 2:  # every other kill lands after a finished trial (on a busy machine a fixed wait may end
+            assert proc.stdout.readline().startswith("wrote")  # before the first one does: nothing to judge)
         time.sleep(rng.uniform(0.05, 0.4))
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

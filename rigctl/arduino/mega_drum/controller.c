@@ -699,6 +699,13 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
         fault(c, RIGCTL_FAULT_HX711_LINE);
     if (c->same_raw >= RIGCTL_HX711_STUCK_READINGS && !(c->faults & RIGCTL_FAULT_HX711_STUCK))
         fault(c, RIGCTL_FAULT_HX711_STUCK);
+    if (c->line_codes == 1) {
+        /* one all-zero or all-one word is doubtful, not a force: a line may just have broken (the next reading says:
+         * HX711_LINE) or a real reading sat on the code. The actuator holds where it is for that period and nothing is
+         * judged on it (a broken SCK's first 0 read as -tare otherwise latched LOADCELL_REVERSED, a wrong cause) */
+        if (c->act_mode == ACT_MODE_FORCE) c->act_vel_mm_s = 0.0f;
+        return;
+    }
     c->loadcell_raw = raw;
     c->have_reading = 1;
     if (c->act_mode == ACT_MODE_HOMING || c->act_mode == ACT_MODE_RETRACT) {
