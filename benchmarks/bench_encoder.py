@@ -19,7 +19,9 @@ Agreement: per train with >= 20 reference spikes, |count - reference| / referenc
 model's own sensitivity: the float64 reference against itself on the input nudged by 1 ulp.
 
 Targets (issue 12): fused SA spike times from raw uint16 >= 2e9 neuron-steps/s; >= 100x Brian2's default target;
->= 10x Brian2 cpp_standalone. On a shared machine the wall figures fall with other load (the load average is
+>= 10x Brian2 cpp_standalone. Issue 57: the public ``encode_sa`` (raw counts in, SpikeTrains out) >= 1.0x a plain
+branch-free float32 kernel over the same counts (``plain_sa_counts``: one lane per taxel, trials on all cores, counts
+only), in the same run, wall and per CPU-second. On a shared machine the wall figures fall with other load (the load average is
 printed); per CPU-second figures do not (much).
 
 Usage: python benchmarks/bench_encoder.py [--trials 128] [--seconds 6] [--repeats 5] [--no-brian2]
@@ -37,13 +39,47 @@ import tempfile
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from rigctl.encoding.fused import run_fused  # noqa: E402
-from rigctl.encoding.izhikevich import as_ragged, run_izhikevich  # noqa: E402
+from rigctl.encoding.izhikevich import as_ragged, encode_sa, run_izhikevich  # noqa: E402
+from rigctl.encoding.normalise import TaxelRange  # noqa: E402
+
+
+@numba.njit(parallel=True, fastmath={"nnan", "ninf", "nsz"}, cache=True)
+def plain_sa_counts(raw, offset, scale, k, counts, folded):  # pragma: no cover - compiled by numba
+    """The floor the public SA encoder is held to (issue 57): a plain branch-free float32 kernel over the same raw
+    (n_trials, n_samples, n_taxels) counts, one lane per taxel, trials in parallel (``prange``), spike counts only
+    (no spike times). ``folded``: the fused kernel's float32 arithmetic (11 operations a step, the half-step
+    constants folded); else the paper's expressions as written (21)."""
+    n_trials, n_samples, n_ch = raw.shape
+    f = np.float32
+    for t in numba.prange(n_trials):
+        v = np.full(n_ch, f(-65.0))
+        u = np.full(n_ch, f(-13.0))
+        cnt = np.zeros(n_ch, np.int32)
+        for n in range(n_samples):
+            for ch in range(n_ch):
+                i_in = ((f(raw[t, n, ch]) - offset[ch]) * scale[ch]) * k
+                v0, u0 = v[ch], u[ch]
+                if folded:
+                    w = f(70.0) + f(0.5) * (i_in - u0)
+                    v1 = v0 * (f(0.02) * v0 + f(3.5)) + w
+                    v2 = v1 * (f(0.02) * v1 + f(3.5)) + w
+                    u1 = f(0.98) * u0 + f(0.004) * v2
+                else:
+                    v1 = v0 + f(0.5) * (f(0.04) * v0 * v0 + f(5.0) * v0 + f(140.0) - u0 + i_in)
+                    v2 = v1 + f(0.5) * (f(0.04) * v1 * v1 + f(5.0) * v1 + f(140.0) - u0 + i_in)
+                    u1 = u0 + f(0.02) * (f(0.2) * v2 - u0)
+                s = v2 >= f(30.0)
+                v[ch] = f(-65.0) if s else v2
+                u[ch] = u1 + f(6.0) if s else u1
+                cnt[ch] += np.int32(s)
+        counts[t] = cnt
 
 
 def make_raw(n_trials: int, n_samples: int, n_ch: int = 18, seed: int = 0) -> np.ndarray:
@@ -145,7 +181,19 @@ def main(argv=None) -> int:
     res: dict = {"trials": args.trials, "samples": n_samples, "taxels": 18, "neuron_steps_sa": steps,
                  "cores": os.cpu_count(), "load_avg_start": os.getloadavg()}
     fused = dict(offset=off, scale=scl)
+    tr = TaxelRange()
+    tr.update(raw.reshape(-1, 18))
+    off32, scl32 = (np.asarray(a, np.float32) for a in tr.offset_scale())
+    plain_counts = np.zeros((args.trials, 18), np.int32)
     rows = {
+        "public encode_sa (raw uint16, spike times)":
+            timed(lambda: encode_sa(raw, normalise=tr).counts(), steps, args.repeats),
+        "plain float32 kernel, folded (counts only)":
+            timed(lambda: plain_sa_counts(raw, off32, scl32, np.float32(100.0), plain_counts, True) or
+                  plain_counts.copy(), steps, args.repeats),
+        "plain float32 kernel, paper's expressions (counts)":
+            timed(lambda: plain_sa_counts(raw, off32, scl32, np.float32(100.0), plain_counts, False) or
+                  plain_counts.copy(), steps, args.repeats),
         "fused float32, SA counts (raw uint16)":
             timed(lambda: run_fused(rg.data, rg.starts, ra=False, want_times=False, **fused).counts[0], steps,
                   args.repeats),
@@ -197,6 +245,11 @@ def main(argv=None) -> int:
             targets[">= 100x Brian2 default target"] = (ours / r["best"] / 100, ours >= 100 * r["best"])
         if name.startswith("Brian2") and name.endswith("cpp_standalone"):
             targets[">= 10x Brian2 cpp_standalone"] = (ours / r["best"] / 10, ours >= 10 * r["best"])
+    pub, plain = rows["public encode_sa (raw uint16, spike times)"], rows["plain float32 kernel, folded (counts only)"]
+    targets["public encode_sa >= 1.0x the plain float32 kernel (issue 57), wall"] = (pub["best"] / plain["best"],
+                                                                                   pub["best"] >= plain["best"])
+    targets["public encode_sa >= 1.0x the plain float32 kernel, per CPU-s"] = (pub["per_cpu_s"] / plain["per_cpu_s"],
+                                                                             pub["per_cpu_s"] >= plain["per_cpu_s"])
     res["targets"] = {k: {"ratio_to_target": v[0], "met": v[1]} for k, v in targets.items()}
     if args.json:
         print(json.dumps(res, indent=2, default=float))

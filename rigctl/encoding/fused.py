@@ -40,6 +40,7 @@ state carried over) give bit-identical spikes.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -273,14 +274,32 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
 _fused = numba.njit(fastmath=_FASTMATH, cache=True, nogil=True, error_model="numpy")(_fused_py)
 
 
+#: the encoder's worker threads, started once per process and reused by every call (a pool started per call cost
+#: two thread starts a call: the force fit's 100-odd kernel calls paid ~0.2 s of it on a 960-trial session); made
+#: again in a forked child (threads do not survive a fork)
+_POOL: dict[str, Any] = {"pool": None, "size": 0, "pid": 0}
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(n_workers: int) -> ThreadPoolExecutor:
+    """The process's encoder pool with at least ``n_workers`` threads (grown, never shrunk: idle threads cost
+    nothing)."""
+    with _POOL_LOCK:
+        if _POOL["pool"] is None or _POOL["pid"] != os.getpid() or _POOL["size"] < n_workers:
+            _POOL.update(pool=ThreadPoolExecutor(n_workers, thread_name_prefix="rigctl-encode-pool"), size=n_workers,
+                         pid=os.getpid())  # (a smaller one left behind finishes its queue and idles)
+        return _POOL["pool"]
+
+
 def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
     """``run(i, j)`` over the ranges ``[i, j)`` of ``step`` items that cover ``range(n)``: in this thread when one
-    range covers it, else on ``numba.get_num_threads()`` threads (at most one a range), each taking the next range
-    when its last is done. ``run`` calls a ``nogil`` kernel on disjoint parts of the output."""
+    range covers it, else on ``numba.get_num_threads()`` threads (this one and the process's encoder pool's, at
+    most one a range), each taking the next range when its last is done. ``run`` calls a ``nogil`` kernel on
+    disjoint parts of the output. An exception in ``run`` is raised here once every thread has stopped."""
     todo = iter(range(0, n, step))
     n_threads = min(-(-n // step), numba.get_num_threads())
-    if n_threads <= 1:
-        run(0, n)
+    if n_threads <= 1 or threading.current_thread().name.startswith("rigctl-encode-pool"):
+        run(0, n)  # (a range run from the pool itself runs inline: a nested call never waits on its own pool)
         return
     lock = threading.Lock()
 
@@ -292,8 +311,11 @@ def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
                 return
             run(i, min(i + step, n))
 
-    with ThreadPoolExecutor(n_threads, thread_name_prefix="rigctl-encode") as pool:
-        for f in [pool.submit(worker) for _ in range(n_threads)]:
+    futures = [_pool(n_threads - 1).submit(worker) for _ in range(n_threads - 1)]
+    try:
+        worker()
+    finally:
+        for f in futures:
             f.result()
 
 
@@ -486,8 +508,6 @@ def run_fused(data: np.ndarray, starts: np.ndarray, *, offset: Any = 0.0, scale:
 def kernels_cached() -> bool:
     """True when numba's on-disk cache holds the fused kernels (encoding starts at once); False when the first
     encoding of this installation must compile them first (seconds). Best effort: True when it cannot tell."""
-    import os
-
     try:
         kernels: tuple[Any, ...] = (_fused, _times)
         return all(os.path.exists(k._cache._cache_file._index_path) for k in kernels)
