@@ -164,11 +164,11 @@ def run_model_case(case: Case, folder: Path) -> dict[str, Any]:
     t_wall = time.perf_counter()
     backend = make_backend("inprocess", config=cfg, seed=case.seed)
     truth = ModelTruth(backend.engine)  # type: ignore[attr-defined]
-    if power_on:  # armed before the rig opens: in place before the HOME at open, as a miswired rig is
+    if power_on:  # armed before the rig opens: in place before the rig opens, as a miswired rig is
         backend.inject_faults(power_on)  # type: ignore[attr-defined]
     script, open_error = None, None
     try:
-        rig = Rig.connect(backend, host_config_path=str(host), home=False)
+        rig = Rig.connect(backend, host_config_path=str(host), refuse_fault=False)
     except Exception as exc:  # noqa: BLE001 - the rig refused to open (a latch at open): judged on its truth
         open_error = type(exc).__name__
     else:
@@ -188,7 +188,7 @@ def run_hil_case(case: Case, folder: Path, truth_log: Path | None = None, paced:
     script, open_error = None, None
     try:
         rig = open_rig("hil", config=cfg, seed=case.seed, host_config_path=host, inject=power_on, truth_log=log,
-                       home=False, paced=paced)
+                       refuse_fault=False, paced=paced)
     except Exception as exc:  # noqa: BLE001
         open_error = type(exc).__name__
     else:

@@ -98,8 +98,8 @@ def sensor_layout(handle):
 
 
 def open_rig_keeping_faults(source: RigSource, host_config_path: str | None = None):
-    """Open ``source`` and home the actuator, unless the drum controller reports a latched fault: that one is left
-    latched for the operator to see and clear (:data:`rigctl.operations.Home.UNLESS_FAULTED`). Returns the
+    """Open ``source``, moving nothing (the Home action is the start); a fault the drum controller latches is left
+    latched for the operator to see and acknowledge (:data:`rigctl.operations.Home.UNLESS_FAULTED`). Returns the
     :class:`rigctl_gui.workers.RigHandle`; raises what :func:`rigctl_gui.workers.open_rig` raises."""
     from rigctl.operations import Home
 

@@ -379,6 +379,10 @@ class ControlPanel(QtWidgets.QWidget):
         if name == "clear_fault":  # one acknowledgement path: the fault dialog (fault named, a reason required)
             self.acknowledge_wanted.emit()
             return
+        if name == "home" and self.ops is not None:  # the start: HOME and TARE (opening and acknowledging move nothing)
+            self.commands.submit("home", self.ops.home)
+            self.acted.emit("home sent")
+            return
         self.commands.submit(name.replace("_", " "), getattr(self.drum, name))
         self.acted.emit(f"{name.replace('_', ' ')} sent")
 

@@ -67,8 +67,9 @@ class RigHandle:
 
 def open_rig(source: RigSource, *, config=None, host_config_path=None, prompt=None, seed: int = 0,
              home=True) -> RigHandle:
-    """Open the rig described by ``source`` (:func:`rigctl.operations.open_control`). ``home``: a
-    :class:`rigctl.operations.Home` (or True: always, clearing a latched fault; False: never, a latched fault stays).
+    """Open the rig described by ``source`` (:func:`rigctl.operations.open_control`); nothing moves (the Home action
+    is the start). ``home``: a :class:`rigctl.operations.Home` (or True: a latched fault fails the opening; False:
+    it stays latched for the operator).
 
     ``host_config_path`` is the rig config file (calibration; None = the library's default path); ``prompt`` the
     operator prompt for plate changes on hardware. Raises :class:`rigctl.acquisition.rig.RigError` (the library's

@@ -28,8 +28,8 @@ rigctl's own rigs (their factories below, each imports its backend only when cal
 
 A plugin's rig is opened the same way; a sensor-only plugin (a :class:`rigctl.core.rig_plugins.SampleSource`) is
 streamed through the simulated rig's taxel board, the drum simulated (option ``drum``: "sim" or "inprocess").
-Common options: ``prompt`` (operator prompt), ``host_config_path`` (the rig config file), ``home`` (HOME the
-actuator after opening), ``textures`` (the rig's default texture set).
+Common options: ``prompt`` (operator prompt), ``host_config_path`` (the rig config file), ``refuse_fault`` (a
+fault latched at open fails it; opening never moves anything), ``textures`` (the rig's default texture set).
 """
 
 from __future__ import annotations
@@ -448,7 +448,7 @@ def fault_refusal(kind: str, spec: FaultSpec) -> str | None:
 
 
 def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
-             host_config_path: str | os.PathLike | None = None, home: bool = True,
+             host_config_path: str | os.PathLike | None = None, refuse_fault: bool = True,
              inject: Sequence[FaultSpec | str] = (), allow_firmware_mismatch: bool = False, **options: Any) -> Rig:
     """Open rig ``kind`` (an installed rig's name: "sim" | "hil" | "hardware" | "replay" | "inprocess" | "handheld"
     or a plugin's, :func:`rigctl.core.rig_plugins.rig_names`) and start its taxel stream.
@@ -458,7 +458,9 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
     kind : the rig (see the module docstring).
     prompt : operator prompt for plate changes on hardware (default: a terminal prompt).
     host_config_path : the rig config file (calibration; default ``$RIGCTL_CONFIG`` or ``~/.config/rigctl/rig.json``).
-    home : HOME the actuator after opening (clearing a latched fault first); False leaves a fault latched.
+    refuse_fault : a fault the controller latches at open fails it (:class:`rigctl.acquisition.rig.FaultAtOpen`);
+        False keeps it latched for the operator to acknowledge. Opening never moves anything and never acknowledges
+        (docs/safety.md): the first start (a press, a run's first trial) HOMEs and TAREs.
     inject : faults to inject (:mod:`rigctl.core.faults`: :class:`FaultSpec` s or ``"estop@3+2"`` texts), timed on
         the rig's clock from the moment it is open; every one is checked against the backend before it starts.
     allow_firmware_mismatch : open boards whose firmware build differs from the installed sources' (a warning);
@@ -494,12 +496,12 @@ def open_rig(kind: str = "sim", *, prompt: Callable[[str], Any] | None = None,
         return _handheld(made, request)
     backend = _as_backend(made, request, drum)
     check_faults(backend, faults, kind=kind)
-    # FAULT@0 is wired that way from power-on: armed before the HOME at open, the controller powered on with it (all
+    # FAULT@0 is wired that way from power-on: armed before the rig opens, the controller powered on with it (all
     # the run's fault times then count from that power-on)
     power_on = bool(faults) and any(f.at_power_on for f in faults) and isinstance(backend, FaultInjector)
     if power_on and isinstance(backend, FaultInjector):
         backend.inject_faults(faults, power_on=True)
-    rig = Rig.connect(backend, prompt=prompt, host_config_path=request.host_config_path, home=home,
+    rig = Rig.connect(backend, prompt=prompt, host_config_path=request.host_config_path, refuse_fault=refuse_fault,
                       allow_firmware_mismatch=allow_firmware_mismatch)
     truth_start = getattr(getattr(backend, "sim", None), "truth_start", None)
     if truth_start is not None:  # the truth log's time 0: the run's start, as the faults'

@@ -121,7 +121,8 @@ class RigError(RuntimeError):
 
 
 class FaultAtOpen(RigError):
-    """The drum controller held a latched fault when the rig was opened to move (``home=True``): opening never
+    """The drum controller held a latched fault when the rig was opened with ``refuse_fault`` (a face that opens to
+    record: ``rigctl acquire``): opening never
     acknowledges it (docs/safety.md). The fault is named in one line (:attr:`latch`); an operator acknowledges it at
     open (``rigctl acquire|doctor|serve --ack REASON``, :func:`rigctl.operations.open_control`'s ``acknowledge``)."""
 
@@ -266,9 +267,11 @@ class Rig:
     # ------------------------------------------------------------------------------------------------- opening
     @classmethod
     def connect(cls, backend: RigBackend, *, prompt: Callable[[str], Any] | None = None,
-                host_config_path: str | None = None, home: bool = True,
+                host_config_path: str | None = None, refuse_fault: bool = True,
                 allow_firmware_mismatch: bool = False) -> "Rig":
-        """Start ``backend``, open its drum controller and taxel source, start streaming, home the actuator.
+        """Start ``backend``, open its drum controller and taxel source, start streaming. Nothing moves: opening is
+        not starting (docs/safety.md); the first start (a press, a run's first trial, :meth:`home_if_pending`) HOMEs
+        and TAREs first (:attr:`home_pending`).
 
         Parameters
         ----------
@@ -276,8 +279,9 @@ class Rig:
         prompt : ``prompt(message)`` that blocks until the operator has done what it asks (hardware plate changes).
         host_config_path : the rig config JSON file (calibration); default
             :func:`rigctl.acquisition.rigconfig.default_config_path`.
-        home : HOME the actuator after opening (clears a latched fault first, e.g. the watchdog of a killed run).
-            False: neither; a latched fault stays latched (logged) for the caller to show and the operator to clear.
+        refuse_fault : a fault the controller latches when the rig opens fails the opening (:class:`FaultAtOpen`,
+            the rig closed; opening never acknowledges). False: it stays latched (logged, :attr:`safety`) for the
+            caller to show and the operator to acknowledge.
         allow_firmware_mismatch : run boards whose firmware build differs from the installed sources' or a drum
             controller without a build id (logged; for developers); False (default): :class:`FirmwareMismatch`
             naming both builds, the versions this rigctl knows and the flash command.
@@ -315,7 +319,7 @@ class Rig:
                   host_config_path=str(config_path(host_config_path)))
         try:
             rig._check_firmware_build(allow_firmware_mismatch)
-            rig._prepare(home=home)
+            rig._prepare(refuse_fault=refuse_fault)
         except BaseException as exc:
             rig.close()
             if isinstance(exc, DrumError):
@@ -342,7 +346,10 @@ class Rig:
         elif line:
             raise FirmwareMismatch(line)
 
-    def _prepare(self, *, home: bool) -> None:
+    def _prepare(self, *, refuse_fault: bool) -> None:
+        """Configure the opened controller and read its state; nothing moves (opening is not starting,
+        docs/safety.md): a latched fault is latched here (and refused when ``refuse_fault``), else the first start
+        HOMEs and TAREs (:attr:`home_pending`)."""
         self._apply_force_loop()
         st = self._resolve_by_config(self._booted_status())
         self._check_calibration(st)
@@ -354,15 +361,13 @@ class Rig:
                          f"loop set for {self.drum.force_loop().hx711_rate_sps} SPS)")
             self.latch_unsafe(st, what)
             log.warning("drum controller is in FAULT (fault bits %s): left latched", st.faults)
-            if home and self.safety.latch is not None:
+            if refuse_fault and self.safety.latch is not None:
                 raise FaultAtOpen(self.safety.latch)
             return
-        if home:
-            self.home_pending = True
-            self.home_if_pending()
-        elif st.state == DrumState.NOT_HOMED:  # the opener asked not to home (doctor, a connect without HOME): its
-            # status shows the state; a warning here read as a fault above a doctor report that passes (issue 38)
-            log.info("drum controller is NOT_HOMED (reset cause %s): it refuses PRESS and RUN until HOME",
+        self.home_pending = True  # the first start HOMEs and TAREs: opening moves nothing
+        if st.state == DrumState.NOT_HOMED:  # its status shows the state; a warning here read as a fault above a
+            # doctor report that passes (issue 38)
+            log.info("drum controller is NOT_HOMED (reset cause %s): the first start HOMEs",
                      getattr(st, "reset_cause", "?"))
 
     def _resolve_by_config(self, st: Any) -> Any:
@@ -421,8 +426,7 @@ class Rig:
         (HOME failed: latched by the caller's :meth:`latching`)."""
         if not self.home_pending:
             return
-        st = self._booted_status()
-        if st.state == DrumState.IDLE:
+        if self._booted_status().state != DrumState.NOT_HOMED:  # (not homed: nothing to back off to)
             wait_released(self.drum)  # the actuator backs off to home first (HOME is refused under load)
         self._home()
         self.home_pending = False

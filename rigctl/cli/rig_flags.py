@@ -117,7 +117,7 @@ inject_option = click.option(
     "--inject", "inject", multiple=True, metavar="FAULT@T[+D]", callback=parse_injections,
     help="Inject a fault into the simulated rig (repeatable): FAULT starts T s after the rig is open and lasts D s "
          "(no +D: to the end), on the rig's own clock (simulated time with --inprocess); FAULT@0: wired that way "
-         "from power-on (before the HOME at open). FAULT is one of "
+         "from power-on (before the rig opens). FAULT is one of "
          + ", ".join(FAULT_FORMS.get(name, name) for name in FAULTS)
          + "; docs/safety.md says what the rig does with each and what clears it.")
 

@@ -7,7 +7,7 @@ never releases it, ``reset@3`` is an instant). Times are the rig's own clock: si
 the physics clock of the simulated rig on ptys, the firmware's clock under simavr.
 
 ``FAULT@0`` (:attr:`FaultSpec.at_power_on`) means the rig is wired that way from power-on: :func:`rigctl.rigs.open_rig`
-arms the schedule before the HOME at open with ``inject_faults(specs, power_on=True)``, which applies the ``@0`` ones
+arms the schedule before the rig opens with ``inject_faults(specs, power_on=True)``, which applies the ``@0`` ones
 at once and powers the drum controller on again with them (a miswired rig, a corrupt EEPROM found at boot); every
 fault time of that run then counts from the power-on.
 
@@ -167,7 +167,7 @@ class FaultInjector(Protocol):
         """Arm ``specs`` on the rig's own clock from now (its time 0); the rig applies each start and end as its
         clock passes them (:meth:`FaultSchedule.due`). ``power_on``: the ``FAULT@0`` specs are applied now and the
         drum controller is powered on again (it boots wired that way: :func:`rigctl.rigs.open_rig` arms such a
-        schedule before the HOME at open). Returns the schedule."""
+        schedule before the rig opens). Returns the schedule."""
         ...
 
 

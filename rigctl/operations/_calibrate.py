@@ -32,8 +32,12 @@ def calibrate_loadcell(control: RigControl, mass_g: float, *, place_mass: Callab
     config (:func:`rigctl.acquisition.calibration.calibrate_loadcell`); the rig takes the new config up at once.
 
     ``place_mass`` / ``remove_mass`` return once the operator has put the mass on / taken it off; without them, a
-    simulated rig rests the mass itself (CalibrationError on hardware). Raises ValueError, CalibrationError,
-    DrumError."""
+    simulated rig rests the mass itself (CalibrationError on hardware). A start: a rig not homed since it opened (or
+    was acknowledged) HOMEs and TAREs first (opening moves nothing). Raises ValueError, CalibrationError,
+    LatchedFault, DrumError."""
+    rig = rig_of(control)
+    with rig.latching("calibration"):
+        rig.home_if_pending()
     if place_mass is None:
         place_mass, remove_mass = cal.simulated_mass(rig_of(control))
     result = cal.calibrate_loadcell(control.drum, mass_g, place_mass=place_mass, remove_mass=remove_mass,

@@ -1,8 +1,9 @@
 """An open rig as the operator drives it: :class:`RigControl` and :func:`open_control`.
 
-What the CLI and the GUI both do with a rig, once: open it (homing it, or leaving a latched fault for the operator
-to see), check manual setpoints against the controller's limits, run the drum at a speed and force (press, wait for
-the force to settle, then run, so the drum never turns before the sensor is loaded), stop, tare, home, clear a
+What the CLI and the GUI both do with a rig, once: open it (moving nothing: a latched fault refused or left for the
+operator to see; the first start HOMEs), check manual setpoints against the controller's limits, run the drum at a
+speed and force (press, wait for the force to settle, then run, so the drum never turns before the sensor is
+loaded), stop, tare, home (a start), clear a
 fault, mount a plate, read the status. Every call blocks until the controller has done it (the GUI runs them in its
 command thread); errors are the library's (:mod:`rigctl.core.drum`: ``SetpointRangeError`` before anything is
 sent, ``DrumError`` / ``DrumTimeout`` / ``DrumFault`` from the controller).
@@ -20,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.safety import Acknowledgement, Latch
-from rigctl.core.drum import DrumFault, DrumLimits, DrumState, DrumStatus, SetpointRangeError
+from rigctl.core.drum import DrumLimits, DrumStatus, SetpointRangeError
 from rigctl.core.faults import FaultInjector
 from rigctl.core.interfaces import DrumController, MassPlacer, TaxelSource
 from rigctl.core.sensor import SensorLayout
@@ -37,19 +38,20 @@ __all__ = ["Home", "RigControl", "RunStarted", "open_control", "rig_of"]
 
 log = logging.getLogger(__name__)
 
-#: how long HOME may take when a rig is opened, s
-HOME_TIMEOUT_S = 30.0
-
 
 class Home(enum.Enum):
-    """What :func:`open_control` does with the actuator once the rig is open. Opening never acknowledges a fault the
-    controller holds (docs/safety.md): only ``acknowledge`` does, the operator's."""
+    """What :func:`open_control` does with a fault the controller latches when the rig opens. Whatever the policy,
+    opening moves nothing and never acknowledges (docs/safety.md, hazard table 'opening a face'): the rig is left as
+    the controller holds it and the first start (a press, a run's first trial, :meth:`RigControl.home`) HOMEs and
+    TAREs. The values name where that HOME happens: at the start."""
 
-    ALWAYS = "always"  #: HOME now; a latched fault fails the opening (:class:`rigctl.acquisition.rig.FaultAtOpen`)
-    UNLESS_FAULTED = "unless_faulted"  #: HOME, unless a fault is latched: that one is kept for the operator to see
-    NEVER = "never"  #: leave the controller as it is (a latched fault kept)
-    #: move nothing now (a latched fault kept): the first start (a press, a run's first trial) HOMEs and TAREs
-    #: (``rigctl serve``: a restarted server never moves by itself)
+    #: a latched fault fails the opening (:class:`rigctl.acquisition.rig.FaultAtOpen`): ``rigctl acquire``
+    ALWAYS = "always"
+    #: a latched fault is kept for the operator to see and acknowledge (the GUI, ``rigctl doctor``)
+    UNLESS_FAULTED = "unless_faulted"
+    #: as UNLESS_FAULTED (kept for callers that said "never")
+    NEVER = "never"
+    #: as UNLESS_FAULTED (``rigctl serve``: a restarted server never moves by itself)
     AT_START = "at_start"
 
 
@@ -73,8 +75,8 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     Parameters
     ----------
     source : the rig (:class:`RigSource`: kind, ports or recording).
-    home : :class:`Home` (or its value): HOME now (a latched fault fails the opening), unless a fault is latched
-        (kept for the operator: the GUI), never, or at the first start (``rigctl serve``).
+    home : :class:`Home` (or its value): a latched fault fails the opening (``ALWAYS``) or is kept for the
+        operator (the others). Opening moves nothing: the first start HOMEs and TAREs (docs/safety.md).
     acknowledge : ``(reason, by)``: an operator acknowledges at open a fault the controller holds (``--ack
         REASON``): cleared without moving (:meth:`RigControl.acknowledge`, logged), kept in
         ``Rig.acknowledged_at_open`` for the run's session; nothing latched: nothing to do.
@@ -93,8 +95,8 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     rigctl.acquisition.rig.RigError
         The backend cannot start or the boards do not answer (:class:`rigctl.acquisition.rig.RigOpenError`, also a
         ``DrumError``, when the controller failed while the rig was prepared; it says whether STOP was acknowledged).
-    rigctl.core.drum.DrumError
-        HOME failed or timed out (the rig is closed).
+    rigctl.acquisition.rig.FaultAtOpen
+        ``home=ALWAYS`` and the controller latches a fault (the rig is closed).
     """
     source = source or RigSource()
     home = Home(home)
@@ -105,21 +107,14 @@ def open_control(source: RigSource | None = None, *, home: Home | str = Home.ALW
     if textures is not None:
         opts["textures"] = textures
     rig = open_rig(kind, prompt=prompt, host_config_path=host_config_path,
-                   home=home is Home.ALWAYS and acknowledge is None, **opts)
+                   refuse_fault=home is Home.ALWAYS and acknowledge is None, **opts)
     control = RigControl(rig, source)
     if not control.has_drum:  # the handheld rig: no actuator, no latch of a controller
         return control
     try:
-        if acknowledge is not None:
-            if control.latch is not None:  # found at open: the operator's acknowledgement, given with the command
-                rig.acknowledged_at_open = control.acknowledge(acknowledge[0], by=acknowledge[1])
-            if home is Home.ALWAYS:
-                rig.home_pending = True
-                rig.home_if_pending()
-        if home is Home.UNLESS_FAULTED:
-            control.home_unless_faulted()
-        elif home is Home.AT_START:
-            rig.home_pending = True
+        if acknowledge is not None and control.latch is not None:  # found at open: the operator's acknowledgement,
+            # given with the command; it moves nothing either (the first start HOMEs)
+            rig.acknowledged_at_open = control.acknowledge(acknowledge[0], by=acknowledge[1])
     except BaseException:
         control.close()
         raise
@@ -298,22 +293,6 @@ class RigControl:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def home_unless_faulted(self) -> DrumStatus:
-        """HOME and wait for IDLE, unless the rig is latched or the controller reports a latched fault: that one, or
-        one HOME itself latches (e.g. ACTUATOR_DIRECTION: HOME's direction proof failed), is left latched (logged) for
-        the operator to see and clear. Returns the status. DrumError / DrumTimeout."""
-        st = self.drum.read_status()
-        if st.faulted or self.latch is not None:
-            log.warning("drum controller is in FAULT (%s): left latched for the operator", st.describe())
-            return st
-        self.drum.home()
-        try:
-            return self.drum.wait_state([DrumState.IDLE], timeout_s=HOME_TIMEOUT_S)
-        except DrumFault:
-            st = self.drum.read_status()
-            log.warning("HOME latched a fault (%s): left latched for the operator", st.describe())
-            return st
-
     # ------------------------------------------------------------------------------------------------- setpoints
     def limits(self) -> DrumLimits:
         """The controller's hard limits (read from it). DrumError."""
@@ -401,10 +380,13 @@ class RigControl:
         self.drum.tare()
 
     def home(self) -> None:
-        """Drive the actuator to its home switch. Refused while a fault is latched
-        (:class:`rigctl.acquisition.safety.LatchedFault`: :meth:`acknowledge` it first)."""
+        """The start (the GUI's Home): wait for the actuator to back off, drive it to its home switch and TARE there;
+        blocks until IDLE. Refused while a fault is latched (:class:`rigctl.acquisition.safety.LatchedFault`:
+        :meth:`acknowledge` it first). DrumError / DrumTimeout / DrumFault (HOME failed: latched)."""
         self._rig.safety.refuse("HOME")
-        self.drum.home()
+        with self._rig.latching("HOME"):
+            self._rig.home_pending = True
+            self._rig.home_if_pending()
 
     def keep_latch(self, latch: Latch) -> Latch:
         """Hold ``latch``, a latched fault a face remembered across its own restart (the run queue's file): nothing

@@ -40,7 +40,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
-from rigctl.core.drum import DrumError
+from rigctl.core.drum import DrumError, status_line
 from rigctl.core.errors import describe_error
 from rigctl.core.version import __version__
 from rigctl.operations import QueueError, RunQueue
@@ -210,7 +210,8 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
     @app.get("/status")
     def status() -> dict[str, Any]:
         """Rig state (the drum controller's status as the rig's monitor last read it, ``drum_age_s`` ago; a drum
-        controller that does not answer: ``drum_error``), board health (the taxel stream's frames, drops, CRC
+        controller that does not answer: ``drum_error``; ``text``: that status in the words every face shows,
+        :func:`rigctl.core.drum.status_line`), board health (the taxel stream's frames, drops, CRC
         errors, connection and reconnects), the queue, the current run and its current trial (id, texture, speed,
         force, attempt, last event). A request reads nothing from the rig: a client polling ``/status`` never feeds
         the controller's watchdog."""
@@ -224,6 +225,8 @@ def _rig_routes(app: FastAPI, run_queue: RunQueue) -> None:
             time.sleep(0.02)  # a server just started: its monitor's first read
         if monitor.ok and monitor.latest is not None:
             rig["drum"] = _plain(monitor.latest)
+            # the words every face shows (one home: rigctl.core.drum.status_line), the latch's label in a FAULT
+            rig["text"] = status_line(monitor.latest, None if latch is None else latch.label)
             rig["drum_age_s"] = round(monitor.age_s(), 3)
         else:
             rig["drum_error"] = monitor.error or "no status read yet"

@@ -42,7 +42,7 @@ __all__ = ["Case", "COLUMNS", "read_truth_log", "MOMENTS", "FORCE_BOUND_G", "CON
 
 #: the truth log's columns the invariants judge, in this order
 COLUMNS = ("time_s", "true_force_g", "actuator_mm", "drum_speed_mm_s")
-#: the moments a fault can start in, in the order a run passes them (``power-on``: FAULT@0, before the HOME at open)
+#: the moments a fault can start in, in the order a run passes them (``power-on``: FAULT@0, before the rig opens)
 MOMENTS = ("power-on", "home", "probe", "settled", "running", "retract", "between", "approach")
 #: the bound on the true force any single fault must keep, g: 1.1 x FORCE_LIMIT_G (docs/safety.md)
 FORCE_BOUND_G = 1.1 * wire.HOLDING_RANGE[wire.HoldingRegister.FORCE_LIMIT_G][2]

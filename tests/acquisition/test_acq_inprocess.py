@@ -83,6 +83,7 @@ def test_a_trial_delivered_in_one_burst_carries_the_force_it_was_recorded_at():
 def test_loadcell_calibration_inprocess(rig, tmp_path):
     cfg = tmp_path / "rig.json"
     place, remove = calibration.simulated_mass(rig)
+    rig.home_if_pending()  # the start: opening moved nothing, the calibration needs the actuator at home
     rig.drum.set_loadcell_scale(400.0)
     result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
                                             n_readings=10, interval_s=0.0, settle_s=0.1, config_file=cfg)
@@ -106,6 +107,7 @@ def test_large_and_small_cells_calibrate(tmp_path, counts_per_g):
     cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=counts_per_g))
     with open_rig("inprocess", config=cfg, seed=5, host_config_path=tmp_path / "rig.json") as rig:
         place, remove = calibration.simulated_mass(rig)
+        rig.home_if_pending()  # the start (opening moved nothing)
         result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
                                                 n_readings=10, interval_s=0.0, settle_s=0.1,
                                                 config_file=tmp_path / "rig.json")
@@ -121,6 +123,7 @@ def test_a_reversed_cell_is_reported_as_reversed_and_calibrates_negative_on_requ
     cfg = RigConfig(mechanics=MechanicsConfig(loadcell_counts_per_g=-TRUE_COUNTS_PER_G))
     with open_rig("inprocess", config=cfg, seed=5, host_config_path=tmp_path / "rig.json") as rig:
         place, remove = calibration.simulated_mass(rig)
+        rig.home_if_pending()  # the start (opening moved nothing)
         kw = dict(place_mass=place, remove_mass=remove, n_readings=10, interval_s=0.0, settle_s=0.1,
                   config_file=tmp_path / "rig.json")
         with pytest.raises(calibration.CalibrationError, match="reads negative.*other way round"):

@@ -231,6 +231,7 @@ def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_pat
 def test_loadcell_calibration_against_the_virtual_mega(pty_rig, tmp_path):
     rig, config_file = pty_rig, tmp_path / "rig.json"
     place, remove = calibration.simulated_mass(rig)
+    rig.home_if_pending()  # the start: opening moved nothing, the calibration needs the actuator at home
     rig.drum.set_loadcell_scale(400.0)  # a wrong scale to start from
     result = calibration.calibrate_loadcell(rig.drum, 500.0, place_mass=place, remove_mass=remove,
                                             config_file=config_file)

@@ -193,7 +193,7 @@ def test_opening_never_acknowledges_a_fault_the_controller_still_holds():
     from rigctl.acquisition.rig import FaultAtOpen
     from rigctl.rigs import open_rig
 
-    with open_rig("inprocess", home=False) as rig:
+    with open_rig("inprocess", refuse_fault=False) as rig:
         mega, model = rig.backend.controller, rig.backend.model
         mega.set_estop(True)
         rig.drum.read_status()  # the controller runs its ESTOP path on the simulated clock
@@ -202,7 +202,7 @@ def test_opening_never_acknowledges_a_fault_the_controller_still_holds():
         assert st.state == DrumState.FAULT and Fault.ESTOP in st.faults  # latched, released, not cleared
         act = model.actuator_mm
         with pytest.raises(FaultAtOpen, match="e-stop"):
-            rig._prepare(home=True)  # what opening with HOME does
+            rig._prepare(refuse_fault=True)  # what opening to record does
         assert rig.safety.latch is not None and rig.safety.latch.cause == "estop"
         assert rig.drum.read_status().state == DrumState.FAULT and model.actuator_mm == act
 
@@ -213,22 +213,25 @@ def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
     actuator into its rear stop while its step count reaches the end of travel, ACTUATOR_TRAVEL latches and the run
     ends at once (no trial recorded again); acknowledged with the coil pair still swapped, HOME's direction proof
     latches ACTUATOR_DIRECTION and the latch holds; mended, the acknowledgement homes the rig."""
-    # (@0.01: swapped once the rig is open; @0 is from power-on, which HOME's direction proof refuses at open)
-    with open_control(RigSource("inprocess", inject=(parse_fault("reversed-actuator@0.01+30"),))) as control:
+    # (swapped once the rig has homed: a coil pair swapped from power-on is HOME's direction proof's, at the start)
+    with open_control(RigSource("inprocess")) as control:
+        control.home()  # the start: HOME proves the direction
+        clock = control.drum.clock
+        t0 = clock.now()
+        control.bench.inject_faults([parse_fault("reversed-actuator@0.01+30")])
         run = ProtocolRun(control, load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", on_latch="end")
         summary = run.run()
         assert summary.stopped and summary.complete == 0 and summary.retried == 0 and summary.failed == 0
         assert control.latch is not None and control.latch.cause == "actuator-travel", control.latch
         assert "end of travel" in summary.latched
-        clock = control.drum.clock
-        assert clock.now() < 25.0  # still reversed
+        assert clock.now() < t0 + 25.0  # still reversed
         ack = control.acknowledge("plate mounted", by="pytest")  # clears the controller, moves nothing
         assert ack.latch.cause == "actuator-travel" and control.latch is None
         with pytest.raises(LatchedFault, match="ACTUATOR_DIRECTION"):
             control.press(200.0)  # the start homes first: HOME's direction proof latches
         st = control.drum.read_status()
         assert control.latch is not None and Fault.ACTUATOR_DIRECTION in st.faults and not st.homed
-        clock.sleep(31.0 - clock.now())  # the coil pair mended
+        clock.sleep(t0 + 31.0 - clock.now())  # the coil pair mended
         ack = control.acknowledge("coil pair swapped back", by="pytest")
         assert ack.latch.cause == "actuator-direction" and control.latch is None
         control.press(200.0)  # the start: HOME proves the direction, TARE, press

@@ -1,6 +1,7 @@
 """The operator layer (rigctl.operations) on the in-process rig (controller logic + physical model in this process,
-simulated clock): opening with each home policy, the setpoint policy against the controller's own limits, run at a
-speed and force (the drum never turns before the force has settled), stop, plates, and the typed status."""
+simulated clock): opening moves nothing whatever the policy (the first start HOMEs), the setpoint policy against the
+controller's own limits, run at a speed and force (the drum never turns before the force has settled), stop, plates,
+and the typed status."""
 
 from __future__ import annotations
 
@@ -50,7 +51,7 @@ def test_refusals_name_the_binding_limit():
 
 
 def test_run_at_presses_to_a_settled_force_before_the_drum_turns(control):
-    assert isinstance(control.status().state, DrumState) and control.status().state == DrumState.IDLE
+    assert isinstance(control.status().state, DrumState) and control.status().state == DrumState.NOT_HOMED
     started = control.run_at(70.0, 300.0)
     assert started.settle_s > 0
     st = control.drum.wait_speed_steady(timeout_s=20.0, tol_mm_s=1.0)
@@ -71,7 +72,7 @@ def test_setpoints_outside_the_controllers_limits_send_nothing(control):
     with pytest.raises(SetpointRangeError):
         control.apply_setpoints(50.0, 0.0)
     assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == before
-    assert control.status().state == DrumState.IDLE  # nothing pressed, nothing turned
+    assert control.status().state == DrumState.NOT_HOMED  # nothing homed, pressed or turned
     control.apply_setpoints(80.0, 400.0)
     assert drum.read_holding(HoldingRegister.SPEED_SETPOINT_0P1MMS) == 800
     assert drum.read_holding(HoldingRegister.FORCE_SETPOINT_G) == 400
@@ -92,21 +93,41 @@ def _fault(control) -> None:
     control.drum.set_limits(force_g=1500.0)
 
 
-def test_home_unless_faulted_leaves_a_latched_fault_for_the_operator(control):
+def test_home_is_refused_while_latched_and_is_the_start_after_the_acknowledgement(control):
+    from rigctl.acquisition.safety import LatchedFault
+
     _fault(control)
-    st = control.home_unless_faulted()
-    assert st.faulted and st.faults & Fault.FORCE_LIMIT and "FORCE_LIMIT" in st.describe()
-    assert control.status().state == DrumState.FAULT  # not cleared behind the operator's back
+    with pytest.raises(LatchedFault):
+        control.home()
+    st = control.status()
+    assert st.state == DrumState.FAULT and st.faults & Fault.FORCE_LIMIT  # not cleared behind the operator's back
     control.clear_fault()
-    control.drum.wait_released(timeout_s=10.0)  # HOME is refused until the actuator has backed off
-    st = control.home_unless_faulted()
-    assert st.state == DrumState.IDLE and not st.faulted
+    assert control.status().state != DrumState.HOMING  # the acknowledgement moved nothing
+    control.home()  # the start: backs off, HOMEs, TAREs
+    st = control.status()
+    assert st.state == DrumState.IDLE and st.homed and not st.faulted
 
 
-def test_open_with_each_home_policy(tmp_path):
-    with open_control(RigSource("inprocess"), home=Home.NEVER, host_config_path=tmp_path / "r.json") as c:
-        assert c.mode == "inprocess" and c.places_mass and c.bench is not None  # the simulated bench's hand
-        assert c.bench.fault_refusal(parse_fault("taxel-ohm=100@1")) is None  # the model's taxel front end
-        assert c.layout.n_channels == 18
+def _at_rest(c, seconds: float = 3.0) -> tuple[float, float]:
+    """The model's actuator position and drum speed after ``seconds`` of the rig's clock with nobody asking."""
+    from rigctl.operations._control import rig_of
+
+    rig = rig_of(c)
+    rig.drum.clock.sleep(seconds)
+    rig.drum.read_status()
+    model = rig.backend.model
+    return float(model.actuator_mm), float(getattr(model, "drum_speed_mm_s", 0.0))
+
+
+def test_open_with_each_home_policy_moves_nothing(tmp_path):
+    for policy in Home:
+        with open_control(RigSource("inprocess"), home=policy, host_config_path=tmp_path / "r.json") as c:
+            assert c.mode == "inprocess" and c.places_mass and c.bench is not None  # the simulated bench's hand
+            assert c.bench.fault_refusal(parse_fault("taxel-ohm=100@1")) is None  # the model's taxel front end
+            assert c.layout.n_channels == 18
+            st = c.status()
+            assert st.state == DrumState.NOT_HOMED and not st.homed, policy  # opening is not starting
+            assert _at_rest(c) == (0.0, 0.0), policy
     with open_control(RigSource("inprocess"), home="unless_faulted", host_config_path=tmp_path / "r.json") as c:
+        c.home()  # the start
         assert c.status().state == DrumState.IDLE

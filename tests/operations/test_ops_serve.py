@@ -441,3 +441,17 @@ def test_status_reads_the_monitor_not_the_controller_and_the_feed_carries_rig_ev
     _wait(latched, 60)
     assert any(e["type"] == "rig" and e["kind"] == "faults" and "ESTOP" in e["message"].upper() for e in seen), seen
     assert client.get("/status").json()["rig"]["latch"]["cause"] == "estop"
+
+
+def test_status_says_the_rig_in_the_words_every_face_shows(served):
+    """``/status``'s ``rig.text`` is :func:`rigctl.core.drum.status_line` of the status it serves (the GUI's words,
+    one home): a rig just opened moved nothing, so the controller is not homed and the actuator released."""
+    from rigctl.core.drum import DrumState, describe_state, status_line
+
+    client, q = served
+    body = _wait(lambda: (b := client.get("/status").json())["rig"].get("text") and b)
+    drum = body["rig"]["drum"]
+    assert drum["state"] == DrumState.NOT_HOMED.name, drum  # opening is not starting
+    assert body["rig"]["text"] == status_line(q.control.monitor.latest) or body["rig"]["text"].startswith(
+        describe_state(int(DrumState.NOT_HOMED)).split(" - ")[0])
+    assert "actuator released" in body["rig"]["text"], body["rig"]["text"]

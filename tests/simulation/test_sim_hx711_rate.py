@@ -37,12 +37,12 @@ def test_hx711_rate_from_the_rig_config(tmp_path):
 
     host = tmp_path / "rig.json"
     update_rig_config(host, force_loop=default_force_loop(10).to_dict())
-    with open_rig("inprocess", seed=1, host_config_path=host, home=False) as rig:
+    with open_rig("inprocess", seed=1, host_config_path=host, refuse_fault=False) as rig:
         assert rig.backend.engine.config.mechanics.hx711_rate_sps == 10.0
         assert rig.drum.read_status().hx711_rate_sps == pytest.approx(10, rel=0.02)
-    with open_rig("inprocess", seed=1, host_config_path=host, home=False, hx711_rate_sps=80) as rig:
+    with open_rig("inprocess", seed=1, host_config_path=host, refuse_fault=False, hx711_rate_sps=80) as rig:
         assert rig.backend.engine.config.mechanics.hx711_rate_sps == 80.0
-    with open_rig("inprocess", seed=1, host_config_path=host, home=False, config=RigConfig()) as rig:
+    with open_rig("inprocess", seed=1, host_config_path=host, refuse_fault=False, config=RigConfig()) as rig:
         assert rig.backend.engine.config.mechanics.hx711_rate_sps == 80.0
 
 

@@ -81,7 +81,9 @@ def test_inprocess_estop_latches_and_release_does_not_clear_it():
 
 
 def test_inprocess_reversed_cell_and_taxel_link_drop():
-    with open_rig("inprocess", inject=["reversed-cell@0.01+30", "taxel-link-drop@0.5+0.5"]) as rig:  # (@0: power-on)
+    with open_rig("inprocess") as rig:
+        rig.home_if_pending()  # the start (opening moves nothing): HOME and TARE before the faults
+        rig.backend.inject_faults([parse_fault("reversed-cell@0.01+30"), parse_fault("taxel-link-drop@0.5+0.5")])
         rig.drum.set_force(300.0)
         rig.drum.press()
         _wait(rig, 0.7)
@@ -97,15 +99,18 @@ def test_inprocess_reversed_cell_and_taxel_link_drop():
 def test_inprocess_host_silence_trips_the_watchdog_in_simulated_time():
     from rigctl.devices.errors import DrumError
 
-    with open_rig("inprocess", inject=["host-silence@1+3"]) as rig:
+    with open_rig("inprocess") as rig:
+        rig.home_if_pending()  # the start (opening moves nothing): HOME and TARE before the silence
+        engine = rig.backend.engine
+        t0 = engine.time_s
+        rig.backend.inject_faults([parse_fault("host-silence@1+3")])
         rig.drum.set_speed(50.0)
         rig.drum.set_force(300.0)
         rig.drum.press()
-        engine = rig.backend.engine
-        engine.advance(int((1.05 - engine.time_s) * 1000))
+        engine.advance(int((t0 + 1.05 - engine.time_s) * 1000))
         with pytest.raises(DrumError):
             rig.drum.read_status()  # nothing reaches the controller
-        while engine.time_s < 4.2:  # the silence lasts 3 s, WATCHDOG_MS is 1 s
+        while engine.time_s < t0 + 4.2:  # the silence lasts 3 s, WATCHDOG_MS is 1 s
             engine.advance(100)
         st = rig.drum.read_status()
         assert st.state == DrumState.FAULT and Fault.WATCHDOG in st.faults

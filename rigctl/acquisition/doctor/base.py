@@ -19,6 +19,7 @@ from typing import Any
 
 from rigctl.acquisition.rig import Rig
 from rigctl.acquisition.rigconfig import load_rig_config, save_rig_config
+from rigctl.core.drum import DrumError, DrumState
 from rigctl.core.interfaces import TaxelSource
 from rigctl.devices.drum import _WallClock
 
@@ -247,6 +248,8 @@ class DoctorReport:
 
 def _run_one(check: Check, ctx: DoctorContext) -> CheckResult:
     try:
+        if check.moves:
+            _start(ctx)
         result = check.fn(ctx)
     except Skip as why:
         return CheckResult(check.name, "skip", str(why))
@@ -260,6 +263,19 @@ def _run_one(check: Check, ctx: DoctorContext) -> CheckResult:
     if result.name != check.name:
         result = dataclasses.replace(result, name=check.name)
     return result
+
+
+def _start(ctx: DoctorContext) -> None:
+    """A check that moves the rig is a start (opening moved nothing: docs/safety.md): HOME and TARE first when the
+    rig has not homed since it opened or was acknowledged (:meth:`rigctl.acquisition.rig.Rig.home_if_pending`),
+    unless a fault is latched. A HOME that fails (e.g. ACTUATOR_DIRECTION: its direction proof) is left for the
+    check to report from the controller's state."""
+    rig = ctx.rig()
+    if not rig.home_pending or rig.safety.latch is not None:
+        return
+    with contextlib.suppress(DrumError):
+        if rig.drum.read_status().state != DrumState.FAULT:
+            rig.home_if_pending()
 
 
 def _make_safe(ctx: DoctorContext) -> None:

@@ -609,9 +609,10 @@ CHECKS = (
     Check("reset-cause", check_reset_cause, title="reset cause and boot count"),
     Check("e-stop", check_estop, title="the e-stop input reads closed"),
     Check("hx711-rate", check_hx711_rate, title="HX711 rate (80 SPS)"),
-    Check("loadcell-zero", check_loadcell_zero, title="load cell reads zero at home"),
     Check("loadcell-scale", check_loadcell_scale, title="load-cell scale = the rig config's calibration"),
     Check("actuator-direction", check_actuator_direction, moves=True, title="actuator turns the way HOME drives it"),
+    # (needs the actuator homed, which opening never does: the doctor's start HOMEs it, as for the checks that move)
+    Check("loadcell-zero", check_loadcell_zero, moves=True, title="load cell reads zero at home"),
     Check("loadcell-polarity", check_loadcell_polarity, moves=True, title="load cell polarity"),
     Check("force-step", check_force_step, moves=True, title="force step response"),
     Check("drum-speed", check_drum_speed, moves=True, title="drum speed from the index at 40 and 120 mm/s"),
