@@ -143,6 +143,7 @@ def test_under_simavr_a_driver_at_8_microsteps_flags_the_trial(tmp_path):
     with open_rig("hil", config=RigConfig(drum=DrumConfig(driver_microsteps=8)),
                   host_config_path=tmp_path / "rig.json") as rig:
         # two sensor edges first, so the steps per revolution are known (1.3 s per revolution at 240 mm/s real)
+        rig.home_if_pending()  # the start (opening moved nothing): RUN is refused until HOME
         rig.drum.set_force(300)
         rig.drum.set_speed(120)
         rig.drum.run()

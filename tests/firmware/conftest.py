@@ -80,8 +80,8 @@ def wait_frames():
 
 
 def home(drum) -> None:
-    """HOME the Mega if it is NOT_HOMED (after power-up or a reset it refuses RUN and PRESS until then), as a rig does
-    when it opens (:meth:`rigctl.acquisition.rig.Rig.connect`)."""
+    """HOME the Mega if it is NOT_HOMED (after power-up or a reset it refuses RUN and PRESS until then), as a rig's
+    first start does (:meth:`rigctl.acquisition.rig.Rig.home_if_pending`)."""
     # first the HX711 rate the controller times at boot (spec 2.9: PRESS and RUN wait for it; a wrong rate faults)
     if drum.wait_hx711_rate(timeout_s=10).state == wire.DrumState.NOT_HOMED:
         drum.home()
