@@ -289,13 +289,19 @@ class EncodedFile:
             times *= _per_spike(scale, index, n_trains)
         return SpikeArrays(times, index, n_trains)
 
-    def spikes_stored(self, variant: str, trials: slice | None = None
+    def spike_index(self, variant: str) -> tuple[np.ndarray, int]:
+        """``(spike_times_index, n_trains)`` of a variant (every trial), without reading or decoding its spike times
+        (a paper-size variant holds ~10^8 spikes: 0.9 GB as float64 seconds). Errors as :meth:`spikes`."""
+        _, _, _, index, n_trains = self.spikes_stored(variant, times=False)
+        return index, n_trains
+
+    def spikes_stored(self, variant: str, trials: slice | None = None, *, times: bool = True
                       ) -> tuple[np.ndarray, float | None, np.ndarray | None, np.ndarray, int]:
         """A variant's spike trains as stored, not yet decoded to seconds (what :meth:`spikes` decodes; a tick grid
         holds them in 4 bytes a spike instead of 8): ``(raw, tick_s, time_scale, index, n_trains)``. Schema 3 ticks:
         ``raw`` uint32 ticks, the time of a spike of trial ``t`` is ``raw * tick_s * time_scale[t]`` (``time_scale``
         (n_trials,) float64 or None: 1); float times (``tick_s`` None): ``raw`` s. ``index`` int64 row ends into
-        ``raw``. ``trials`` and the errors as :meth:`spikes`."""
+        ``raw``. ``trials`` and the errors as :meth:`spikes`. ``times`` False: ``raw`` is empty (the index only)."""
         if variant not in self.spike_variants:
             raise KeyError(f"no spike trains of {variant!r} in {self.path} "
                            f"(stored: {', '.join(self.spike_variants) or 'none'})")
@@ -332,7 +338,7 @@ class EncodedFile:
             if s0 < 0 or (index.size and (index[0] < s0 or np.any(np.diff(index) < 0))) or s1 > n_stored:
                 raise _damaged(self.path, f"/spikes/{variant}: spike_times_index is not row ends into spike_times "
                                           f"({n_stored} spikes)")
-            raw = times_ds[s0:s1]
+            raw = times_ds[s0:s1] if times else times_ds[s0:s0]
             scale = None
             if scale_ds is not None:
                 if scale_ds.shape[0] != self.n_trials:

@@ -519,7 +519,7 @@ def _add_units(nwb: Any, encoded_path: Any, ids: Any, starts: Any, layout: Any, 
         columns: dict[str, list[Any]] = {name: [] for name, _ in _UNIT_COLUMNS}
         ends, n_units = [], []
         for v in chosen:
-            _, index, n_trains = enc.spikes(v)  # the row ends (the times are read again, a variant at a time, below)
+            index, n_trains = enc.spike_index(v)  # the row ends only (the times: a variant at a time, below)
             lens = _unit_lengths(index, rows, n_trains)
             ends.append(lens.sum(axis=1))
             n_units.append(n_trains)

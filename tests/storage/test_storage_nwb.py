@@ -135,6 +135,33 @@ def test_an_encoded_dataset_exports_its_spike_trains_as_units(dataset, tmp_path)
     assert set(units.loc[units["variant"] == "speed_scaled", "time_base"]) == {"speed-scaled"}
 
 
+def test_the_units_are_written_without_decoding_a_whole_variant(dataset, tmp_path, monkeypatch):
+    """Issue 57: the export's peak memory was a whole variant's spike times decoded to float64 seconds (at paper
+    size ~10^8 spikes, 0.9 GB, beside their ticks) just for the row ends: the Units table now takes the row ends
+    from EncodedFile.spike_index and the times unit by unit, so EncodedFile.spikes (the whole decode) is never called;
+    the file still holds every spike of every unit."""
+    from rigctl.storage.encoded import EncodedFile
+
+    session, encoded = dataset
+    variants = ["original", "speed_scaled"]
+    with open_encoded(encoded) as e:
+        want = {v: e.spikes(v) for v in variants}
+        for v in variants:
+            index, n_trains = e.spike_index(v)
+            assert np.array_equal(index, want[v].spike_times_index) and n_trains == want[v].n_trains
+
+    def whole_decode(self, variant, trials=None):
+        raise AssertionError(f"the export decoded every spike of {variant} at once")
+
+    monkeypatch.setattr(EncodedFile, "spikes", whole_decode)
+    out = tmp_path / "units.nwb"
+    summary = export_nwb(session, out, encoded_path=encoded, variants=variants)
+    monkeypatch.undo()
+    back, _ = read_nwb_summary(out)
+    for v in variants:
+        assert back.spikes[v] == summary.spikes[v] == want[v].spike_times.size
+
+
 def _reference_units(encoded, ids, starts, layout, variants, path):
     """The Units table as the export wrote it before it was written in blocks: pynwb's add_unit per unit, each
     unit's spike times gathered trial by trial (the oracle of the block export)."""
