@@ -567,11 +567,16 @@ def _unit_lengths(index: np.ndarray, rows: np.ndarray, n_trains: int) -> np.ndar
     return np.asarray((ends[rows] - begins[rows]).T, np.int64)
 
 
+#: spikes of one unit decoded at a time (its trials in blocks): ~8 MB for each temporary array
+_UNIT_BLOCK_SPIKES = 1 << 20
+
+
 def _unit_spikes(encoded_path: Any, variants: Sequence[str], rows: np.ndarray, starts: np.ndarray
                  ) -> Iterator[tuple[np.ndarray, int]]:
     """Each unit's spike times on session time (its train in each exported trial, shifted by the trial's start),
-    unit after unit, variant after variant; one unit per block. Memory: one variant's spikes as stored (4-byte ticks
-    for schema 3) plus one unit's; each unit's times are decoded as :meth:`rigctl.storage.encoded.EncodedFile.spikes`
+    unit after unit, variant after variant, each unit in blocks of at most :data:`_UNIT_BLOCK_SPIKES` spikes
+    (``n_done`` 1 on a unit's last block). Memory: one variant's spikes as stored (4-byte ticks for schema 3) plus a
+    block's; each unit's times are decoded as :meth:`rigctl.storage.encoded.EncodedFile.spikes`
     decodes them (the same operations, so the same numbers)."""
     with _encoded.open_encoded(encoded_path) as enc:
         for v in variants:
@@ -580,15 +585,19 @@ def _unit_spikes(encoded_path: Any, variants: Sequence[str], rows: np.ndarray, s
             begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)[rows]  # (n_trials, n_trains)
             lens = _unit_lengths(index, rows, n_trains)  # (n_trains, n_trials)
             for j in range(n_trains):
-                n = lens[j]
-                first = np.concatenate([[0], np.cumsum(n)[:-1]])
-                gather = np.repeat(begins[:, j] - first, n) + np.arange(int(n.sum()))
-                times = raw[gather].astype(np.float64)
-                if tick_s is not None:
-                    times *= tick_s
-                if scale is not None:
-                    times *= np.repeat(scale, n)
-                yield np.repeat(starts, n) + times, 1
+                blocks = _blocks(lens[j], _UNIT_BLOCK_SPIKES) or [(0, 0)]
+                for b, (i0, i1) in enumerate(blocks):  # the unit's trials in blocks: bounded temporaries
+                    n = lens[j][i0:i1]
+                    first = np.concatenate([[0], np.cumsum(n)[:-1]])
+                    gather = np.repeat(begins[i0:i1, j] - first, n) + np.arange(int(n.sum()))
+                    times = raw[gather].astype(np.float64)
+                    del gather
+                    if tick_s is not None:
+                        times *= tick_s
+                    if scale is not None:
+                        times *= np.repeat(scale[i0:i1], n)
+                    times += np.repeat(starts[i0:i1], n)  # (the same sum as starts + times: addition commutes)
+                    yield times, int(b == len(blocks) - 1)
             del raw, index
 
 

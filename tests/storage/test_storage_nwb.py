@@ -160,6 +160,16 @@ def test_the_units_are_written_without_decoding_a_whole_variant(dataset, tmp_pat
     back, _ = read_nwb_summary(out)
     for v in variants:
         assert back.spikes[v] == summary.spikes[v] == want[v].spike_times.size
+    # each unit decoded in blocks of its trials (bounded temporaries): the same spike times, bit for bit
+    import h5py
+
+    from rigctl.storage import nwb
+
+    monkeypatch.setattr(nwb, "_UNIT_BLOCK_SPIKES", 7)
+    export_nwb(session, tmp_path / "small_blocks.nwb", encoded_path=encoded, variants=variants)
+    with h5py.File(out, "r") as a, h5py.File(tmp_path / "small_blocks.nwb", "r") as b:
+        for name in ("spike_times", "spike_times_index"):
+            assert np.array_equal(a["units"][name][()], b["units"][name][()])
 
 
 def _reference_units(encoded, ids, starts, layout, variants, path):
