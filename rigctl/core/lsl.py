@@ -1,13 +1,19 @@
 """pylsl, loaded only when Lab Streaming Layer is asked for (the optional extra ``rigctl[lsl]``; its wheel ships
 liblsl): :func:`require_pylsl` returns the module or raises :class:`LslUnavailable` naming the fix. Shared by the
-outlets (:mod:`rigctl.acquisition.lsl`) and the LSL replay source (:mod:`rigctl.simulation.lsl_replay`)."""
+outlets (:mod:`rigctl.acquisition.lsl`), the LSL replay source (:mod:`rigctl.simulation.lsl_replay`) and the handheld
+rig's tracker inlet (:mod:`rigctl.simulation.handheld_lsl`).
+
+Every inlet rigctl opens is :func:`open_inlet`'s: liblsl's clock sync on (``proc_clocksync``: each sample's stamp plus
+the inlet's ``time_correction()``, re-measured as the stream goes), so a stream published from another PC's clock
+(or another time namespace's) is read on this machine's LSL clock; :func:`time_correction_s` is the correction it
+applies, recorded beside what the stream fed."""
 
 from __future__ import annotations
 
 import os
 from typing import Any
 
-__all__ = ["LslUnavailable", "require_pylsl", "LIBRARY_LOG_ENV"]
+__all__ = ["LslUnavailable", "require_pylsl", "LIBRARY_LOG_ENV", "open_inlet", "time_correction_s"]
 
 #: set by the command line unless --verbose (rigctl.cli.logs: the log file's path): liblsl's terminal output is then
 #: kept to its errors; unset, liblsl logs as its own configuration says (INFO lines on the terminal by default)
@@ -27,6 +33,23 @@ def require_pylsl() -> Any:
         raise LslUnavailable(f"LSL streaming needs pylsl with its liblsl: pip install 'rigctl[lsl]' ({exc})") from None
     _route_liblsl_log(pylsl)
     return pylsl
+
+
+def open_inlet(pylsl: Any, info: Any, *, max_buflen: int = 60) -> Any:
+    """A ``pylsl.StreamInlet`` on the stream ``info`` (a resolved ``StreamInfo``) whose samples' stamps are on this
+    machine's LSL clock: liblsl's clock sync (``processing_flags=proc_clocksync``; module docstring), recovering a
+    lost stream, buffering ``max_buflen`` s."""
+    return pylsl.StreamInlet(info, max_buflen=max_buflen, recover=True, processing_flags=pylsl.proc_clocksync)
+
+
+def time_correction_s(inlet: Any, timeout_s: float = 2.0) -> float:
+    """The inlet's clock correction, s: the publisher's LSL clock minus this machine's as liblsl measures it (about 0
+    on one machine; -3600 for a publisher whose clock runs an hour ahead), the amount the clock sync adds to every
+    stamp; NaN when it cannot be measured within ``timeout_s`` (a lost stream)."""
+    try:
+        return float(inlet.time_correction(timeout=timeout_s))
+    except Exception:  # noqa: BLE001 - liblsl's timeout or lost stream: not measured
+        return float("nan")
 
 
 def _liblsl_config_text() -> str:

@@ -24,7 +24,7 @@ import numpy as np
 
 from rigctl.core.clocksync import measure_clock_offset
 from rigctl.core.handheld import PlateAxis, RawScan, ScanError, Tracker, wait_for_pass
-from rigctl.core.lsl import require_pylsl
+from rigctl.core.lsl import open_inlet, require_pylsl, time_correction_s
 from rigctl.core.sensor import PAPER_FINGER, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import PlannedTrial
@@ -70,7 +70,7 @@ class LslTracker:
             raise ScanError(f"no LSL stream named {self.name!r} (by name or source id) within {resolve_s:g} s")
         # liblsl's clock sync: each sample's time stamp (the publisher's clock, another PC's or another namespace's)
         # plus the inlet's time_correction(), re-measured as the stream goes: the stamps on this machine's LSL clock
-        self.inlet = pylsl.StreamInlet(found[0], max_buflen=60, recover=True, processing_flags=pylsl.proc_clocksync)
+        self.inlet = open_inlet(pylsl, found[0])
         n = int(self.inlet.info(timeout=resolve_s).channel_count())
         if len(channels) not in (1, 3) or any(not 0 <= c < n for c in channels):
             raise ScanError(f"LSL stream {self.name!r} has {n} channels: choose 3 (x, y, z, mm) or 1 (along the "
@@ -128,10 +128,7 @@ class LslTracker:
         return t[sel], x[sel], a[sel]
 
     def describe(self) -> dict[str, Any]:
-        try:  # the publisher's clock minus this machine's, as liblsl measures it (0 on the same machine)
-            correction = float(self.inlet.time_correction(timeout=2.0))
-        except Exception:  # noqa: BLE001 - a lost stream: not measured
-            correction = float("nan")
+        correction = time_correction_s(self.inlet)  # the publisher's clock minus this one's (0 on one machine)
         return {"lsl_stream": self.name, "channels": list(self.channels), "lsl_offset_s": self.offset_s,
                 "motion_units": self.units, "motion_units_from": self.units_from,
                 "lsl_time_correction_s": correction}

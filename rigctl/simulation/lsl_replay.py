@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from typing import Any
 
 import numpy as np
 
-from rigctl.core.lsl import require_pylsl
+from rigctl.core.lsl import open_inlet, require_pylsl, time_correction_s
 from rigctl.core.sensor import SensorLayout
 
 __all__ = ["LSL_PREFIX", "LslReplay", "LslReplayError"]
@@ -61,7 +62,7 @@ class LslReplay:
                  or pylsl.resolve_byprop("source_id", self.name, minimum=1, timeout=resolve_s))
         if not found:
             raise LslReplayError(f"no LSL stream named {self.name!r} (by name or source id) within {resolve_s:g} s")
-        self.inlet = pylsl.StreamInlet(found[0], max_buflen=60, recover=True)
+        self.inlet = open_inlet(pylsl, found[0])  # liblsl's clock sync: the stamps on this machine's LSL clock
         info = self.inlet.info(timeout=resolve_s)
         rate = float(info.nominal_srate())
         if not rate > 0:
@@ -78,6 +79,8 @@ class LslReplay:
             self.layout = SensorLayout.for_channels(n - int(self.drop_seq), sample_rate_hz=rate, adc_bits=bits)
         self.underrun_samples = 0
         self.samples_read = 0
+        #: the first and the last sample's stamps received, on this machine's LSL clock (the clock sync's), s
+        self.first_stamp_s = self.last_stamp_s = float("nan")
         self._prebuffer = max(1, int(prebuffer_s * rate))
         self._refilling = False  # after an underrun: nothing is given until the prebuffer is full again
         self._pending: list[np.ndarray] = []
@@ -105,6 +108,9 @@ class LslReplay:
                 self._halt.wait(0.5)
                 continue
             if stamps:
+                if math.isnan(self.first_stamp_s):  # the first chunk
+                    self.first_stamp_s = float(stamps[0])
+                self.last_stamp_s = float(stamps[-1])
                 x = np.asarray(chunk, dtype=np.float64)
                 if self.drop_seq:
                     x = x[:, :-1]
@@ -141,7 +147,8 @@ class LslReplay:
 
     def describe(self) -> dict[str, Any]:
         return {"lsl_stream": self.name, "samples_read": self.samples_read, "underrun_samples": self.underrun_samples,
-                "layout": json.loads(self.layout.to_json())}
+                "layout": json.loads(self.layout.to_json()), "lsl_time_correction_s": time_correction_s(self.inlet),
+                "lsl_first_stamp_s": self.first_stamp_s, "lsl_last_stamp_s": self.last_stamp_s}
 
     def close(self) -> None:
         self._halt.set()
