@@ -418,7 +418,7 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
             inside = (d.position_time_s >= 0) & (d.position_time_s <= tl.stops[k] - tl.starts[k])
             pos_t.append(tl.starts[k] + d.position_time_s[inside])
             pos.append(d.position_mm[inside])
-        series = [("tracker_velocity", "mm/s", speed_t, speed, "the tracker's velocity along the plate (100 ms mean)"),
+        series = [("tracker_velocity", "mm/s", speed_t, speed, "the finger's speed of each 100 ms window (position change, floored at 0)"),
                   ("tracker_position", "mm", pos_t, pos, "the tracker's position along the plate, from its start")]
     for name, unit, t_parts, v_parts, what in series:
         ts = np.concatenate(t_parts) if t_parts else np.zeros(0)
