@@ -249,7 +249,8 @@ def _serial_operator(fields: str, seconds: float, seed: int) -> None:
 
     board = VirtualMotionBoard(seed=seed, fields=fields)
     click.echo(f"motion board (the simulated operator, {fields}) on {board.path} for {seconds:g} s: record with "
-               f"--motion serial:{board.path}. Ctrl-C stops.")
+               f"--motion serial:{board.path} (it starts its stream when the port is opened, as DTR resets an "
+               "Arduino). Ctrl-C stops.")
     sys.stdout.flush()
     try:
         time.sleep(seconds)

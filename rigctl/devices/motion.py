@@ -11,7 +11,10 @@ guide's table: ``tests/acquisition/test_handheld_serial.py``).
 fit of the taxel board (:class:`rigctl.core.clocksync.DeviceClockFit`: the lower envelope of the receive times
 against the board's own timestamps in 1 ms ticks, each frame's microseconds kept; :class:`MotionTrack`), so the
 motion and the taxel frames share one clock. A board that sends velocity only (an IMU) gets its position integrated
-from the last valid position (0 at the first frame: the finger at the plate's start when the board starts).
+from the last valid position, 0 at the board's stream start (its frame seq 0: the finger at the plate's start when the
+board starts; a board reset by the port's opening, as DTR resets an Arduino, starts there). A velocity-only board
+whose first frame rigctl receives is not its stream start (it was streaming before rigctl opened its port: the
+finger may be anywhere) is refused at open, the user told to start rigctl first (:data:`STREAM_START_SEQ`).
 """
 
 from __future__ import annotations
@@ -27,13 +30,16 @@ from rigctl.core.clocksync import DeviceClockFit
 from rigctl.devices.wire import crc16
 
 __all__ = ["MOTION_SYNC", "MOTION_FRAME_SIZE", "MOTION_BAUD", "POSITION_VALID", "VELOCITY_VALID", "MotionFrame",
-           "MotionParser", "MotionTrack", "SerialMotion", "pack_motion_frame"]
+           "MotionParser", "MotionTrack", "SerialMotion", "STREAM_START_SEQ", "pack_motion_frame"]
 
 MOTION_SYNC = b"\xa5\x4d"
 MOTION_FRAME_SIZE = 18
 MOTION_BAUD = 115_200
 POSITION_VALID = 0x01
 VELOCITY_VALID = 0x02
+#: the seq of a board's first frame after it starts (or is reset): a velocity-only board's position is integrated
+#: from that frame, so rigctl must receive it
+STREAM_START_SEQ = 0
 _BODY = struct.Struct("<BBIii")  # seq, flags, t_us, position_um, velocity_um_s
 #: the clock fit's tick: the board's clock in milliseconds (its 16-bit count wraps every 65 s: a reader held up for
 #: less than half that keeps the count), each frame's fraction of a tick kept beside it
@@ -118,8 +124,10 @@ class MotionTrack:
             return
         rows = np.empty((len(frames), 4))
         for k, (_, _, t_us, pos, vel) in enumerate(frames):
-            if self._running_us is None:
+            if self._running_us is None:  # the first frame: a velocity-only board's position starts at 0 here
                 self._running_us = 0
+                if np.isnan(pos) and not np.isnan(vel):
+                    pos = self._pos
             else:
                 dt_us = (t_us - self._last_t_us) & 0xFFFFFFFF
                 self._running_us += dt_us
@@ -192,6 +200,8 @@ class SerialMotion:
         self._halt = threading.Event()
         self._got = threading.Event()
         self.error: str | None = None
+        #: the first valid frame received (its seq: the board's stream start or not)
+        self.first_frame: MotionFrame | None = None
         self._thread = threading.Thread(target=self._read, name="motion-board", daemon=True)
         self._thread.start()
         if not self._got.wait(open_timeout_s):
@@ -199,6 +209,13 @@ class SerialMotion:
             raise ScanError(f"no valid frame from the motion board on {self.name} within {open_timeout_s:g} s "
                             f"({self.parser.crc_errors} CRC errors): check the port and the baud rate "
                             f"({baudrate})")
+        first = self.first_frame
+        if first is not None and not first.flags & POSITION_VALID and first.seq != STREAM_START_SEQ:
+            self.close()
+            raise ScanError(f"the motion board on {self.name} sends velocity only (an IMU) and was streaming before "
+                            f"rigctl opened its port (its first frame here is seq {first.seq}, not its stream start "
+                            f"{STREAM_START_SEQ}): its position is integrated from the stream's start, which rigctl "
+                            "missed; start rigctl first, then (re)start the board with the finger at the plate's start")
 
     def _read(self) -> None:
         while not self._halt.is_set():
@@ -210,6 +227,8 @@ class SerialMotion:
             t = time.monotonic()
             frames = self.parser.feed(data) if data else []
             if frames:
+                if self.first_frame is None:
+                    self.first_frame = frames[0]
                 self.track.add(frames, t)
                 self._got.set()
 
