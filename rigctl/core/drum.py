@@ -213,7 +213,9 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "whatever the force read",
         "the actuator's position says the contact is pressed to the force limit (the travel past the contact the "
         "press probed, times its stiffness) while the load cell read less: the reading is lying (a frozen or "
-        "disconnected HX711, a wrong scale) or the contact changed. It backed off. Check the load cell, its HX711 "
+        "disconnected HX711, a wrong scale), the contact changed, or the actuator does not go where its steps say "
+        "(a reversed motor). It stopped where it stood (a back-off's direction is unproven; the start's HOME "
+        "creeps and proves it). Check the load cell, its HX711 "
         "and their wires (rigctl doctor), then CLEAR_FAULT."),
     Fault.HX711_STUCK: FaultWords(
         "load-cell reading frozen",
@@ -242,7 +244,8 @@ FAULT_WORDS: dict[Fault, FaultWords] = {
         "not follow the contact)",
         "the load cell kept reading the force while the actuator moved back off the contact the press probed: the "
         "reading is not the contact's (frozen, or the load cell is loaded by something else). The trial is not "
-        "recorded; it backed off. Check the load cell and the HX711, then CLEAR_FAULT."),
+        "recorded; it stopped where it stood (the channels disagree: a back-off's direction is unproven; the start's "
+        "HOME creeps and proves it). Check the load cell and the HX711, then CLEAR_FAULT."),
 }
 
 

@@ -695,13 +695,13 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
                 self._fault(Fault.LOADCELL_REVERSED)  # pressing reads negative: a reversed cell (or scale)
             elif engaged and new_reading and self._probe.contact_lost(f, self._actuator_steps(),
                                                                        h[HR.FORCE_TOLERANCE_G]):
-                self._fault(Fault.CONTACT_LOST)  # a held force the position says the contact does not carry (2.11)
+                self._stop_unproven(Fault.CONTACT_LOST)  # a held force the position says the contact does not carry
             elif engaged and self._actuator_position_mm() >= mech.actuator_travel_mm - 1e-3 and \
                     f < h[HR.FORCE_SETPOINT_G] - h[HR.FORCE_TOLERANCE_G]:
                 self._fault(Fault.ACTUATOR_TRAVEL)
             limit = self._probe.position_limit_steps(h[HR.FORCE_LIMIT_G]) if self.state in _ENGAGED else None
             if limit is not None and self._actuator_steps() > limit:
-                self._fault(Fault.POSITION_LIMIT)  # past the probed contact's limit, whatever the reading (2.11)
+                self._stop_unproven(Fault.POSITION_LIMIT)  # past the probed contact's limit, whatever the reading
             if self._index.take_slip() and Fault.DRUM_SLIP not in self.faults:
                 self._fault(Fault.DRUM_SLIP)  # the drum's speed marks came late or stopped (spec 2.5)
             if probed := engaged and new_reading and self._probe.active and self.state in _ENGAGED:  # spec 2.10

@@ -85,11 +85,18 @@ class HomeAndDirection:
         self._move_d_min = None if zero is None or raw is None else self._load_g(raw, zero)
         self._home_d_start = self._move_d_min
 
-    def _direction_fault(self) -> None:
-        """The actuator moved the wrong way (the firmware's direction_fault): not homed, stopped where it stands."""
+    def _stop_unproven(self, bits: Fault) -> None:
+        """A fault after which the actuator may not go where its steps say (the firmware's stop_unproven): a reversed
+        motor (ACTUATOR_DIRECTION), or the two channels disagreeing (POSITION_LIMIT, CONTACT_LOST: the reading lies,
+        and the position bounds the force where it stands, or the motor runs backwards, and a back-off would press).
+        Not homed, stopped where it stands: the start's HOME creeps and proves the way (spec 2.11)."""
         self.homed = False
-        self._fault(Fault.ACTUATOR_DIRECTION)
+        self._fault(bits)
         self._retracting = False
+
+    def _direction_fault(self) -> None:
+        """The actuator moved the wrong way (the firmware's direction_fault): :meth:`_stop_unproven`."""
+        self._stop_unproven(Fault.ACTUATOR_DIRECTION)
 
     def _watch_direction(self, raw: int) -> None:
         """A new reading while moving home or backing off (firmware: ctl_loadcell): a load (|raw - zero|, sign-free:

@@ -761,6 +761,7 @@ class RigModel:
         self._start_rev = math.floor(self._position_mm / circ)
         self._speed_mm_s = 0.0
         self._actuator_mm = 0.0
+        self._plate_gap_mm = self.config.mechanics.contact_gap_mm  # where the rig's plates' surface is (a swap's)
         self._force_g = 0.0
         self._runout_phase = float(self._rng.uniform(0.0, 2 * np.pi))
         self._sensitivity = 1.0
@@ -880,14 +881,22 @@ class RigModel:
             self._hx_frozen_raw = raw
 
     def set_contact_stiffness(self, g_per_mm: float) -> None:
-        """Fault injection (``contact-stiffness=G_PER_MM``): the plate swapped for one whose contact stiffness is
-        ``g_per_mm`` g/mm (> 0), from the next step. ValueError."""
+        """Fault injection (``contact-stiffness=G_PER_MM``): the contact's stiffness becomes ``g_per_mm`` g/mm (> 0)
+        from the next step. Off the contact it is a plate swap: the new plate's surface where the rig's own plate's
+        is (``contact_gap_mm`` as configured). Under load the force is continuous: a plate cannot be swapped while
+        pressed, and what changes a contact's stiffness under load (a soft layer bottoming out, a mount settling)
+        changes how the force grows with further travel, not the force where the actuator stands; the spring's
+        zero-force point moves so the force there is the same. ValueError."""
         k = float(g_per_mm)
         if not 0 < k <= 1e6:
             raise ValueError(f"contact stiffness must be > 0 g/mm, got {g_per_mm}")
         with self._lock:
+            m = self.config.mechanics
+            own_gap = self._plate_gap_mm
+            pressed = self._actuator_mm - m.contact_gap_mm
+            gap = self._actuator_mm - pressed * m.contact_stiffness_g_per_mm / k if pressed > 0 else own_gap
             self.config = dataclasses.replace(
-                self.config, mechanics=dataclasses.replace(self.config.mechanics, contact_stiffness_g_per_mm=k))
+                self.config, mechanics=dataclasses.replace(m, contact_stiffness_g_per_mm=k, contact_gap_mm=gap))
             self._step_consts = None  # read again at the next step
 
     def _slip(self) -> float:

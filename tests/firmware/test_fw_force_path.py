@@ -160,6 +160,46 @@ def test_plate_swapped_for_a_stiffer_one_is_probed_again(bench, sps):
     assert b.peak_g() <= BOUND_G, b.peak_g()
 
 
+def test_reversed_actuator_while_pressing_stops_where_it_stands(bench):
+    """The campaign's seed 5516 under simavr: the actuator's coil pair swapped while the loop presses towards 958 g
+    (443 g/mm, 80 SPS). The loop's forward steps move it away, the step count passes the probed contact's limit with
+    little force read: POSITION_LIMIT (or CONTACT_LOST). The channels disagree, so the actuator stops where it stands
+    (not homed): firmware 1.2's back-off drove the reversed motor towards the sensor (0.5 mm in 0.1 s on the model
+    rig) before the direction watch stopped it."""
+    b = bench(sps=80, k=443.0)
+    home(b.drum)
+    b.drum.set_force(958)
+    b.drum.press()
+    b.wait_true_force(400.0)
+    b.inject("reversed-actuator@0")
+    st = b.wait(lambda s: s.state == State.FAULT, 10)
+    assert st.faults & (Fault.POSITION_LIMIT | Fault.CONTACT_LOST), st
+    at_latch = b.rig.next_telemetry()
+    end, furthest = at_latch.t_s + 1.0, at_latch.act_mm
+    while (tel := b.rig.next_telemetry()).t_s < end:
+        furthest = max(furthest, tel.act_mm)
+        b.drum.read_status()
+    assert furthest <= at_latch.act_mm + 0.01, (at_latch.act_mm, furthest)
+    assert b.drum.read_status().faults & Fault.ACTUATOR_DIRECTION == 0
+    assert b.peak_g() <= BOUND_G
+
+
+def test_a_stiffness_change_under_load_keeps_the_force_continuous(bench):
+    """The campaign's seed 5507 under simavr: the contact's stiffness steps from 781 to 2723 g/mm while 910 g is
+    held (80 SPS). A plate cannot be swapped under load: the harness's force stays continuous (its spring's zero
+    moves), and what the firmware does with the stiffer contact keeps the true force below 1650 g (the harness
+    stepped it at a fixed position before: 910 x 2723 / 781 = 3173 g at once)."""
+    b = bench(sps=80, k=781.0)
+    home(b.drum)
+    b.press_settled(910)
+    before = b.true_force_g()
+    b.inject("contact-stiffness=2723@0")
+    b.sim_wait(0.02)
+    assert abs(b.true_force_g() - before) < 100.0, (before, b.true_force_g())
+    b.sim_wait(1.0)
+    assert b.peak_g() <= BOUND_G, b.peak_g()
+
+
 @pytest.mark.parametrize("sps", [10, 80])
 @pytest.mark.parametrize("fault,at_g,causes", [
     ("hx711-sck-broken", 200.0, Fault.HX711_LINE | Fault.HX711_CADENCE),

@@ -81,14 +81,16 @@ FIXED = {
     20030: "reversed-actuator as 551 g settles (80 SPS, 1094 g/mm): true 1876 g, 0.350 mm towards the sensor after "
            "the latch",
     20140: "reversed-actuator while a 1141 g trial runs (10 SPS, 380 g/mm): true 1817 g",
+    # two more, found once the model rigs modelled contact-stiffness and the probe at every press
+    5507: "contact-stiffness=2723 while running (781 g/mm, 80 SPS, 910 g): the model stepped the spring's stiffness "
+          "at a fixed position, true 2804 g before any reading (a plate cannot be swapped under load: a stiffness "
+          "change under load now keeps the force continuous, on both rigs)",
+    5516: "reversed-actuator during the probe (443 g/mm, 80 SPS): POSITION_LIMIT's back-off drove the reversed motor "
+          "0.5 mm towards the sensor 0.10 s after the latch (the channels disagreeing now stop the actuator where it "
+          "stands, not homed)",
 }
-#: found once the model rigs model contact-stiffness (a plate swap) and the probe at every press: open (strict: a fixed
-#: one must move to FIXED)
-FOUND = {
-    5507: "contact-stiffness=2723 while running (781 g/mm, 80 SPS, 910 g): the stiffness steps under load, true 2804 g "
-          "(a plate swapped while pressed: the force jumps with k before any reading)",
-    5516: "reversed-actuator during the probe (443 g/mm, 80 SPS): 0.5 mm towards the sensor 0.10 s after the latch",
-}
+#: open cases of the campaign (strict xfail: a fixed one must move to FIXED)
+FOUND: dict[int, str] = {}
 
 
 @pytest.mark.slow
@@ -118,7 +120,7 @@ def test_a_violation_the_campaign_found_holds_now(seed):
     assert _replay(seed) == [], FIXED[seed]
 
 
-@pytest.mark.parametrize("seed", sorted(FOUND))
+@pytest.mark.parametrize("seed", sorted(FOUND) or [pytest.param(None, marks=pytest.mark.skip(reason="none open"))])
 @pytest.mark.xfail(strict=True, reason="issue 55: open cases of the campaign (FOUND)")
 def test_an_open_violation_the_campaign_found(seed):
     """The case of ``seed`` breaks no invariant (FOUND says what it did; still open)."""

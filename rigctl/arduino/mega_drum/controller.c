@@ -144,13 +144,20 @@ static void fault(ctl_t *c, uint16_t bits)
     force_pi_reset(&c->pi);
 }
 
-/* the actuator moved the wrong way: its position means nothing, it stops where it stands (a back-off would press) */
-static void direction_fault(ctl_t *c)
+/* the actuator may not go where its steps say: its position means nothing, it stops where it stands (a back-off
+ * would press if it runs backwards); the start's HOME creeps from an unknown position and proves the way (2.11) */
+static void stop_unproven(ctl_t *c, uint16_t bits)
 {
     c->homed = 0;
-    fault(c, RIGCTL_FAULT_ACTUATOR_DIRECTION);
+    fault(c, bits);
     c->act_mode = ACT_MODE_HOLD;
     c->act_vel_mm_s = 0.0f;
+}
+
+/* the actuator moved the wrong way */
+static void direction_fault(ctl_t *c)
+{
+    stop_unproven(c, RIGCTL_FAULT_ACTUATOR_DIRECTION);
 }
 
 void ctl_estop(ctl_t *c)
@@ -653,7 +660,9 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
             (float)c->act_pos_steps > c->contact_x0_steps + ((float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G] +
                                                               (float)RIGCTL_POSITION_MARGIN_G) /
                                                                  c->contact_k_g_per_step) {
-            fault(c, RIGCTL_FAULT_POSITION_LIMIT);
+            /* the two channels disagree: the reading lies (the position bounds the force where it stands) or
+             * the actuator does not go where its steps say (a reversed motor: a back-off would press) */
+            stop_unproven(c, RIGCTL_FAULT_POSITION_LIMIT);
             break;
         }
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
@@ -775,7 +784,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     if (c->contact_valid && c->probe_phase == PROBE_NONE &&
         f > 2.0f * (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G] &&
         ((float)c->act_pos_steps - c->contact_x0_steps) * c->contact_k_g_per_step < 0.5f * f) {
-        fault(c, RIGCTL_FAULT_CONTACT_LOST);
+        stop_unproven(c, RIGCTL_FAULT_CONTACT_LOST); /* the channels disagree: as POSITION_LIMIT */
         return;
     }
     on = c->probe_phase == PROBE_NONE && (f >= (float)sp - (float)c->hreg[RIGCTL_HREG_FORCE_TOLERANCE_G]) &&

@@ -43,7 +43,8 @@
  * Force-path faults (issue 55): "hx711 sck-broken" breaks the HX711's SCK wire (it is never clocked: DOUT stays low
  * after its next conversion and every bit the firmware reads is 0), "hx711 frozen" freezes its output at the value of
  * its last conversion (conversions go on at their rate, the same 24 bits each), "hx711 ok" mends both; "spring-k G"
- * swaps the plate for one of contact stiffness G g/mm (a plate swap), "spring-k default" puts the rig's own back. The HX711's input noise is modelled (Avia
+ * gives the contact a stiffness of G g/mm (off the contact a plate swap; under load the force stays continuous, as
+ * mega_force_g says), "spring-k default" puts the rig's own back. The HX711's input noise is modelled (Avia
  * HX711 datasheet: 50 nV rms at 10 SPS, 90 nV at 80 SPS at gain 128, one count = 40 mV / 2^24 = 2.38 nV: 21 and
  * 38 counts rms, Gaussian, a fixed seed).
  * Actuator direction: --actuator-reversed or "actuator reversed|ok" swaps the motor's coil pair (DIR high then moves it away from the
@@ -313,6 +314,8 @@ static double opt_boot_ms = 200.0;
 static _Atomic double opt_spring_k = 250.0; /* contact stiffness, g per mm (MechanicsConfig's default); "spring-k G" */
 static double opt_spring_k0 = 250.0;        /* the rig's own (--spring-k): "spring-k default" */
 static double opt_contact_mm = 5.0;
+static double opt_contact_mm0 = 5.0;          /* the rig's plates' surface (--contact-mm): a swap off the contact's */
+static _Atomic double spring_k_req = 0.0;     /* "spring-k G" asked, not yet applied (0: none) */
 static double opt_act_steps_per_mm = 400.0;
 static double opt_rear_stop_mm = 1.0;      /* the actuator's mechanical rear stop, mm behind the home switch */
 static double opt_counts_per_g = 420.0;    /* LOADCELL_SCALE_X100 default / 100 */
@@ -470,7 +473,7 @@ static void *stdin_thread(void *arg)
         } else if (!strncmp(line, "spring-k ", 9)) {
             double k = strcmp(line + 9, "default") ? atof(line + 9) : opt_spring_k0;
             if (k > 0.0 && k <= 1e6) {
-                atomic_store(&opt_spring_k, k);
+                atomic_store(&spring_k_req, k); /* applied by the core's thread (mega_force_g): force continuous */
                 printf("OK spring-k\n");
             } else {
                 printf("ERR spring-k\n");
@@ -1283,7 +1286,16 @@ static void safety_after_reset(void)
 static double mega_force_g(void)
 {
     double x = (double)act_steps / opt_act_steps_per_mm;
-    double f = x > opt_contact_mm ? atomic_load(&opt_spring_k) * (x - opt_contact_mm) : 0.0;
+    double k_req = atomic_exchange(&spring_k_req, 0.0), f;
+    if (k_req > 0.0) {
+        /* the stiffness changes: off the contact a plate swap (the new plate's surface where the rig's is); under
+         * load the force is continuous (a plate cannot be swapped while pressed; a soft layer bottoming out, a mount
+         * settling change how the force grows with further travel): the spring's zero moves so the force stays */
+        double k_old = atomic_load(&opt_spring_k);
+        opt_contact_mm = x > opt_contact_mm ? x - (x - opt_contact_mm) * k_old / k_req : opt_contact_mm0;
+        atomic_store(&opt_spring_k, k_req);
+    }
+    f = x > opt_contact_mm ? atomic_load(&opt_spring_k) * (x - opt_contact_mm) : 0.0;
     return f + atomic_load(&bump_g_x1000) / 1000.0;
 }
 
@@ -1819,7 +1831,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--boot-ms")) opt_boot_ms = atof(NEXT());
         else if (!strcmp(a, "--wave")) wave_path = NEXT();
         else if (!strcmp(a, "--spring-k")) opt_spring_k = opt_spring_k0 = atof(NEXT());
-        else if (!strcmp(a, "--contact-mm")) opt_contact_mm = atof(NEXT());
+        else if (!strcmp(a, "--contact-mm")) opt_contact_mm = opt_contact_mm0 = atof(NEXT());
         else if (!strcmp(a, "--act-steps-per-mm")) opt_act_steps_per_mm = atof(NEXT());
         else if (!strcmp(a, "--rear-stop-mm")) opt_rear_stop_mm = atof(NEXT());
         else if (!strcmp(a, "--counts-per-g")) opt_counts_per_g = atof(NEXT());
