@@ -76,6 +76,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData, lower_envelope_rate_hz
 from rigctl.devices import wire
+from rigctl.devices.drum import default_force_loop
 
 log = logging.getLogger(__name__)
 
@@ -227,6 +228,8 @@ class Rig:
         self.replay_continuous = False
         self.host_config = dict(host_config or {})
         self.host_config_path = host_config_path
+        #: the simulated board's HX711 rate chosen at open (``--hx711-rate``), which the force loop is configured for
+        self.chosen_hx711_rate_sps: int | None = None
         self._textures: TextureSet = backend.textures or PAPER_TEXTURES
         self._closed = False
         self._lock = threading.RLock()
@@ -268,7 +271,7 @@ class Rig:
     @classmethod
     def connect(cls, backend: RigBackend, *, prompt: Callable[[str], Any] | None = None,
                 host_config_path: str | None = None, refuse_fault: bool = True,
-                allow_firmware_mismatch: bool = False) -> "Rig":
+                allow_firmware_mismatch: bool = False, hx711_rate_sps: int | None = None) -> "Rig":
         """Start ``backend``, open its drum controller and taxel source, start streaming. Nothing moves: opening is
         not starting (docs/safety.md); the first start (a press, a run's first trial, :meth:`home_if_pending`) HOMEs
         and TAREs first (:attr:`home_pending`).
@@ -285,6 +288,9 @@ class Rig:
         allow_firmware_mismatch : run boards whose firmware build differs from the installed sources' or a drum
             controller without a build id (logged; for developers); False (default): :class:`FirmwareMismatch`
             naming both builds, the versions this rigctl knows and the flash command.
+        hx711_rate_sps : the HX711 rate chosen for a simulated rig's board (``--hx711-rate``, 10 or 80), or None: the
+            force loop the rig is configured with takes it (the rig config's ``force_loop`` with that rate, or the
+            controller's defaults for it), as the lab's rig config for that board would say.
 
         Raises
         ------
@@ -317,6 +323,7 @@ class Rig:
             raise
         rig = cls(backend, drum, stream, prompt=prompt, host_config=host_config,
                   host_config_path=str(config_path(host_config_path)))
+        rig.chosen_hx711_rate_sps = None if hx711_rate_sps is None else int(hx711_rate_sps)
         try:
             rig._check_firmware_build(allow_firmware_mismatch)
             rig._prepare(refuse_fault=refuse_fault)
@@ -377,7 +384,7 @@ class Rig:
         matches it (:data:`HX711_RATE_TOLERANCE`). Logged as a :class:`ConfigResolution` (the rig's log,
         :attr:`resolved_at_open` for the run's session): no acknowledgement, nothing moves. Any other fault, or a
         rate that does not match, is left latched. Returns the status after."""
-        block = self.host_config.get("force_loop")
+        block = self._force_loop_block()
         if not block or st.state != DrumState.FAULT or int(st.faults) != int(Fault.HX711_RATE):
             return st
         configured = int(self.drum.force_loop().hx711_rate_sps)
@@ -392,7 +399,9 @@ class Rig:
         after = self.drum.read_status()
         if after.state == DrumState.FAULT:
             return after
-        res = ConfigResolution("hx711-rate", int(Fault.HX711_RATE), "rig config", str(self.host_config_path or ""),
+        chosen = self.chosen_hx711_rate_sps is not None
+        res = ConfigResolution("hx711-rate", int(Fault.HX711_RATE), "--hx711-rate" if chosen else "rig config",
+                               "" if chosen else str(self.host_config_path or ""),
                                f"hx711 rate {configured} SPS configured, measured {measured:.0f} SPS")
         self.resolved_at_open.append(res)
         self.safety_log(res)
@@ -461,12 +470,24 @@ class Rig:
         self.latch_unsafe(st, "status check")
         return self.safety.latch is not None and self.safety.latch is not before and self.safety.latch.cause == "reset"
 
-    def _apply_force_loop(self) -> None:
-        """The rig config's ``force_loop`` block (this rig's HX711 rate and gains), if any, to the controller."""
+    def _force_loop_block(self) -> dict[str, Any] | None:
+        """The force loop the rig is configured with: the rig config's ``force_loop`` block, with the HX711 rate chosen
+        at open (:attr:`chosen_hx711_rate_sps`: its gains for that rate; the controller's defaults without a block),
+        or None (neither: the controller keeps its own)."""
         block = self.host_config.get("force_loop")
+        rate = self.chosen_hx711_rate_sps
+        if rate is None:
+            return dict(block) if block else None
+        return {**(block or default_force_loop(rate).to_dict()), "hx711_rate_sps": rate}
+
+    def _apply_force_loop(self) -> None:
+        """The force loop the rig is configured with (:meth:`_force_loop_block`: this rig's HX711 rate and gains), if
+        any, to the controller."""
+        block = self._force_loop_block()
         if block:
             self.drum.set_force_loop(ForceLoopConfig(**block))
-            log.info("force loop from the rig config: %s", block)
+            log.info("force loop from the %s: %s",
+                     "rig config" if self.chosen_hx711_rate_sps is None else "rig config and --hx711-rate", block)
 
     # ------------------------------------------------------------------------------------------------- sensor, textures
     @property

@@ -128,7 +128,8 @@ hx711_rate_option = click.option(
     callback=lambda ctx, param, value: None if value is None else int(value),
     help="With --sim, --hil, --inprocess or --replay: the simulated HX711 converts at 10 or 80 samples/s (its RATE "
          "pin low or high); default the rig config's force_loop.hx711_rate_sps, else 80. The controller is told the "
-         "rate by the rig config's force_loop block, as on a real rig (docs/config.md).")
+         "rate at open by the force loop written, as on a real rig: the rig config's force_loop block with this rate "
+         "(docs/config.md; the file is not changed).")
 
 
 #: ``--allow-firmware-mismatch``: open boards whose firmware build differs from the installed sources'

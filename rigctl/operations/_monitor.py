@@ -37,6 +37,7 @@ from rigctl.core.drum import DrumState, DrumStatus, describe_faults
 from rigctl.core.errors import describe_error
 from rigctl.core.interfaces import DrumMonitor
 from rigctl.core.progress import ProgressEvent
+from rigctl.core.shared_clock import SharedClock
 
 if TYPE_CHECKING:
     from rigctl.acquisition.runner import TrialEvent
@@ -268,7 +269,20 @@ class RigMonitor:
                     self._emit("deadman", "the face answers again; the rig stays stopped until it is commanded")
                 self._poll(now)
             due = max(due + self.period_s, time.monotonic())
-            self._halt.wait(max(0.0, due - time.monotonic()) if self.ok else _RETRY_S)
+            self._wait(max(0.0, due - time.monotonic()) if self.ok else _RETRY_S)
+            due = min(due, time.monotonic())  # (a wait the rig's clock ended early: the next period from now)
+
+    def _wait(self, wait_s: float) -> None:
+        """Until the next poll: ``wait_s`` of wall time, and on a simulated rig's shared clock no longer than
+        ``wait_s`` of the rig's time either (a world run faster than real time, up to 10x, is polled every period of its
+        own time: the controller's 1 s watchdog fed well within it; a world slower than real time is polled every
+        period of wall time, for the dead man's switch)."""
+        clock = getattr(self.drum, "clock", None)
+        if not isinstance(clock, SharedClock):
+            self._halt.wait(wait_s)
+            return
+        wall_end = time.monotonic() + wait_s
+        clock.wait_for(lambda: self._halt.is_set() or time.monotonic() >= wall_end, wait_s)
 
     def _dead_faces(self, silent: list[tuple[Heartbeat, float]], now: float) -> None:
         """A face is silent: see what the rig does (one read) and STOP it when it moves under a command (again every

@@ -100,6 +100,33 @@ def test_a_10sps_rig_opens_with_the_force_loop_of_its_rig_config(tmp_path, monke
         assert st.state == DrumState.FORCE_SETTLED and st.contact_stiffness_g_per_mm == pytest.approx(1000, rel=0.1)
 
 
+def test_a_rate_chosen_with_hx711_rate_survives_open_and_the_rig_config(tmp_path, monkeypatch):
+    """``--hx711-rate 10`` (open_rig's hx711_rate_sps) builds the simulated board at 10 SPS; the force loop the rig is
+    configured with at open takes that rate, with no rig config and over a rig config's force_loop for 80 SPS (its
+    gains kept): the HX711_RATE the board latched at boot is resolved by ``--hx711-rate``, the controller runs its
+    10 SPS gains, the rig config file is left as it was. The old code pushed the config's (or the default's) 80 SPS
+    and refused the open: 'HX711_RATE: measured 10 SPS, the force loop set for 80 SPS'."""
+    from rigctl.acquisition.rigconfig import update_rig_config
+    from rigctl.core.drum import Fault
+    from rigctl.devices.drum import default_force_loop
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    host = tmp_path / "rig.json"
+    for with_config in (False, True):
+        if with_config:
+            update_rig_config(host, force_loop={**default_force_loop(80).to_dict(), "kp_10sps_mm_s_per_g": 0.001})
+        before = host.read_text() if host.exists() else None
+        with open_rig("inprocess", seed=3, host_config_path=host, hx711_rate_sps=10, home=False) as rig:
+            loop = rig.drum.force_loop()
+            assert loop.hx711_rate_sps == 10, with_config
+            assert loop.kp_10sps_mm_s_per_g == pytest.approx(0.001 if with_config else 0.0012)
+            st = rig.drum.read_status()
+            assert st.faults == Fault(0) and st.hx711_rate_sps == pytest.approx(10, rel=0.02)
+            (res,) = rig.resolved_at_open
+            assert (res.by, res.reason) == ("--hx711-rate", "hx711 rate 10 SPS configured, measured 10 SPS")
+        assert (host.read_text() if host.exists() else None) == before
+
+
 def test_a_rig_config_rate_the_board_does_not_have_still_refuses_at_open(tmp_path, monkeypatch):
     """A force_loop for 10 SPS on a board that runs at 80 SPS: the controller latches HX711_RATE when the host writes
     the rate, the measured rate does not match the config, so nothing clears it: the open is refused in one line naming

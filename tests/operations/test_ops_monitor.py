@@ -89,6 +89,34 @@ def test_the_monitor_publishes_state_faults_and_link_changes():
     assert not mon.running
 
 
+def test_on_a_simulated_rigs_clock_the_poll_feeds_the_watchdog_in_the_rigs_time():
+    """Issue 55 item 6: the simulated rigs keep the controller's 1 s watchdog. On a rig's shared clock a world may run
+    up to 10x faster than real time (rigctl.core.shared_clock); the monitor polls every 0.1 s of the rig's time too,
+    not only of the wall's: the longest gap between two polls in the world's time stays well inside 1 s (the old
+    wall-clock wait let a 20x world run ~0.8 s of its time between polls). A fake world: as far as the clock grants,
+    at 20x the wall."""
+    from rigctl.core.shared_clock import SharedClock
+
+    t0 = time.monotonic()
+    clock = SharedClock(lambda: min(clock.horizon_s, 20.0 * (time.monotonic() - t0)))
+    clock.start()
+    drum = FakeDrum(state=DrumState.FORCE_SETTLED)
+    drum.clock = clock
+    polled: list[float] = []
+    read = drum.read_status
+    drum.read_status = lambda: (polled.append(clock.now()), read())[1]
+    mon = RigMonitor(drum, lambda reason: True, period_s=0.1).start()
+    try:
+        deadline = time.monotonic() + HANG_S
+        while clock.now() < 5.0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        mon.close()
+        clock.close()
+    gaps = [b - a for a, b in zip(polled, polled[1:])]
+    assert len(gaps) >= 20 and max(gaps) < 0.25, (len(gaps), max(gaps, default=None))
+
+
 def test_a_silent_heartbeat_stops_a_moving_rig_and_says_why():
     drum = FakeDrum(DrumState.RUNNING, speed=80.0, target=80.0)
     stops: list[str] = []
