@@ -116,7 +116,7 @@ def test_a_rate_chosen_with_hx711_rate_survives_open_and_the_rig_config(tmp_path
         if with_config:
             update_rig_config(host, force_loop={**default_force_loop(80).to_dict(), "kp_10sps_mm_s_per_g": 0.001})
         before = host.read_text() if host.exists() else None
-        with open_rig("inprocess", seed=3, host_config_path=host, hx711_rate_sps=10, home=False) as rig:
+        with open_rig("inprocess", seed=3, host_config_path=host, hx711_rate_sps=10) as rig:
             loop = rig.drum.force_loop()
             assert loop.hx711_rate_sps == 10, with_config
             assert loop.kp_10sps_mm_s_per_g == pytest.approx(0.001 if with_config else 0.0012)
