@@ -205,3 +205,27 @@ def test_info_of_a_handheld_session_shows_the_measured_scans(tmp_path):
         assert t["samples_per_s"] == pytest.approx(1000.0, rel=0.002)
         assert t["duration_s"] != t["planned_duration_s"] and 85 <= t["tracker_rate_hz"] <= 125
         assert isinstance(t["tracker_dropouts"], int) and isinstance(t["floored_windows"], int)
+
+
+def test_the_wrist_trackers_velocity_error_is_a_stated_parameter():
+    """OperatorConfig.tracker_speed_error (the tracker on the wrist, docs/results.md 3b's sweep): the tracked
+    displacement over a pass is the fingertip's times 1 + e, e of about the stated size, the finger's readings
+    unchanged; at 0 (the default) every scan is bit for bit the fingertip's tracker, as before the parameter."""
+    from rigctl.core.handheld import PlateAxis
+    from rigctl.core.trial import PlannedTrial
+    from rigctl.simulation.operator import OperatorConfig, SimulatedOperator
+
+    planned = PlannedTrial(0, "L", 80.0, 500.0, 2.5, "medium")
+    base = SimulatedOperator(seed=3).scan(planned)
+    same = SimulatedOperator(OperatorConfig(tracker_speed_error=0.0), seed=3).scan(planned)
+    wrist = SimulatedOperator(OperatorConfig(tracker_speed_error=0.10), seed=3).scan(planned)
+    assert np.array_equal(base.tracker_xyz, same.tracker_xyz) and np.array_equal(base.taxels, same.taxels)
+    assert np.array_equal(base.taxels, wrist.taxels) and not np.array_equal(base.tracker_xyz, wrist.tracker_xyz)
+    ratios = []
+    for seed in range(12):
+        true, tracked = SimulatedOperator(seed=seed), SimulatedOperator(OperatorConfig(tracker_speed_error=0.10),
+                                                                         seed=seed)
+        ax = PlateAxis.from_touches(*true.touch_ends())
+        (_, a), (_, b) = true.tracker_pass(planned), tracked.tracker_pass(planned)
+        ratios.append(np.ptp(ax.along_mm(b)) / np.ptp(ax.along_mm(a)) - 1.0)
+    assert 0.04 < np.std(ratios) < 0.2 and np.max(np.abs(ratios)) > 0.05
