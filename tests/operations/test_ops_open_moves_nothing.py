@@ -2,7 +2,8 @@
 opens a rig (a Python protocol's context, ``rigctl.open_rig``; the GUI's connect; ``rigctl doctor``'s checks that do
 not move; ``rigctl acquire`` of a plan that asks for no trial; ``rigctl serve`` at start) leaves the actuator and
 the drum where they are, judged on the ground truth of a ``rigctl sim`` that outlives the faces (its truth log: true
-actuator position and drum speed); the separate start (``RigControl.home``: the GUI's Home) then moves it."""
+actuator position and drum speed), with the actuator stranded away from home by an acknowledged e-stop (where a HOME
+at open would move it back); the separate start (a press: HOME, TARE, press) then moves it."""
 
 from __future__ import annotations
 
@@ -75,6 +76,28 @@ def _serve_opens(env: dict[str, str], hardware: list[str], folder) -> None:
         proc.communicate(timeout=HANG_S)
 
 
+def _strand_the_actuator(sim: SimProcess, source) -> None:
+    """A press, an e-stop (drivers off where they stand), its release and the operator's acknowledgement (nothing
+    moves): the controller NOT_HOMED and unlatched with the actuator away from home, where a HOME (at an opening)
+    would visibly move it back."""
+    from rigctl.operations import open_control
+
+    with open_control(source) as control:
+        control.press(300.0)
+        r = sim.inject("estop@0+0.5")
+        assert r.returncode == 0, r
+        deadline = time.monotonic() + HANG_S
+        while control.latch is None or "estop" in sim.status()["active"]:
+            control.status()  # the owner's read latches it
+            assert time.monotonic() < deadline, "the e-stop never latched and released"
+            time.sleep(0.2)
+        control.acknowledge("e-stop released, bench checked", by="pytest")
+        st = control.status()
+        assert st.state == DrumState.NOT_HOMED, st.describe()
+    t = sim.wait_truth(sim.status()["time_s"])
+    assert t["actuator_mm"][-1] > 0.1, t["actuator_mm"][-1]  # away from home: a HOME would move it back
+
+
 def test_opening_any_face_moves_nothing_until_the_start(tmp_path, monkeypatch):
     from rigctl.operations import RigSource, open_control
     from rigctl.rigs import open_rig
@@ -88,9 +111,11 @@ def test_opening_any_face_moves_nothing_until_the_start(tmp_path, monkeypatch):
     with SimProcess(RIGCTL, tmp_path, seed=6) as sim:
         hardware = ["--drum-port", sim.drum_port, "--taxel-port", sim.taxel_port]
         source = RigSource("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port)
+        _strand_the_actuator(sim, source)
         w0 = time.time()
         with open_rig("hardware", drum_port=sim.drum_port, taxel_port=sim.taxel_port) as rig:  # a Python protocol
-            assert rig.drum.read_status().state == DrumState.NOT_HOMED and rig.home_pending
+            st = rig.drum.read_status()
+            assert st.state == DrumState.NOT_HOMED and rig.home_pending
         handle = open_rig_keeping_faults(source)  # the GUI's connect
         try:
             assert handle.control.status().state == DrumState.NOT_HOMED
