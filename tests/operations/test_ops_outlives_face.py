@@ -3,14 +3,17 @@ machine drives one ``rigctl sim`` process (its own process, as a real drum contr
 faults (``rigctl sim inject``: e-stop press and release, reset), acknowledgements, starts, STOPs, face restarts and
 ``kill -9`` of the face, the faces driving it as hardware (``--drum-port DIR/drum --taxel-port DIR/taxel``): the CLI
 (``rigctl acquire`` of a TOML plan and of a Python plan, ``--resume`` for "acknowledge and go on") and ``rigctl serve``
-(HTTP over loopback with its token: ``POST /ack``, ``/runs/{id}/resume``, ``/queue/release``, ``/stop``). It judges on
-the rig's ground truth (its truth log: true force, actuator position, drum speed) that after a latch nothing moves
-(actuator towards the sensor, force rising, drum turning) until an acknowledgement and a separate start were both
-given, and so also that nothing moves within 10 s of an e-stop's release without both.
+(HTTP over loopback with its token: ``POST /ack``, ``/runs/{id}/resume``, ``/queue/release``, ``/stop``), and faces
+that open the rig and do not start it (``rigctl doctor`` of checks that do not move; ``rigctl serve`` until its first
+start). It judges on the rig's ground truth (its truth log: true force, actuator position, drum speed) that after a
+latch nothing moves (actuator towards the sensor, force rising, drum turning) until an acknowledgement and a separate
+start were both given, and so also that nothing moves within 10 s of an e-stop's release without both; and that an
+opening moves nothing (the actuator within 0.005 mm either way: a HOME at open backs a stranded actuator off; no
+force rise, no drum turning) until a start.
 
 The latches the machine knows it made: an e-stop press (at its time on the rig's clock, from ``sim inject``'s
-answer); a reset while a face is open (the host's latch: a face that opens later homes and tares, the remedy, so that
-face's opening ends it); a ``kill -9`` that left the controller in FAULT (its watchdog: read on the drum port once the
+answer); a reset while a face is open (the host's latch: a later face's start homes and tares, the remedy, so that
+start ends it); a ``kill -9`` that left the controller in FAULT (its watchdog: read on the drum port once the
 face is gone). A latch the machine did not make (a face starved past the watchdog on a loaded machine) only leaves
 motion it allows unjudged, never fails the test.
 
@@ -60,10 +63,13 @@ TOKEN = "outlives-face-token"
 
 #: after a latch, how long the rig may take to come to rest (the drum's stop ramp, the actuator backing off), s; after
 #: a kill -9 the controller's watchdog (1 s on hardware) comes first
-SETTLE_S = {"estop": 0.5, "reset": 0.5, "watchdog": 2.0}
+SETTLE_S = {"estop": 0.5, "reset": 0.5, "watchdog": 2.0, "open": 2.0}
 #: what counts as motion on the truth log: the actuator towards the sensor by more than this (mm), the force rising by
 #: more than this (g) over the rest of the window, the drum turning faster than this (mm/s)
 ADVANCE_MM, RISE_G, TURNING_MM_S = 0.02, 10.0, 1.0
+#: an opening moves nothing: the actuator's excursion either way within this (mm; a HOME at open backs a stranded
+#: actuator off; the window begins SETTLE_S["open"] after the face is started, an earlier face's back-off done)
+OPEN_MOVED_MM = 0.005
 
 TOML = """name = "outlives"
 description = "3 short trials"
@@ -93,6 +99,7 @@ class Latch:
     acked: bool = False
     end_wall_s: float | None = None  # the start (after an acknowledgement) that ended it
     how: list[str] = field(default_factory=list)
+    face: object = None  # the face that was open when it began
 
 
 def _free_port() -> int:
@@ -148,6 +155,7 @@ class OutlivesFace(RuleBasedStateMachine):
         self.serve_port = _free_port()
         self.releases: list[float] = []  # wall times of e-stop releases
         self.steps: list[str] = []
+        self.doctored = False
         self.files: list = []  # the faces' stderr logs
         self.t0 = time.time()
 
@@ -162,11 +170,20 @@ class OutlivesFace(RuleBasedStateMachine):
                 latch.how.append(f"ack:{how}")
 
     def _start(self, how: str, wall_s: float) -> None:
-        """A start: it ends every latch acknowledged before it."""
+        """A start: it ends every latch acknowledged before it, an opening's window, and a reset's host-side latch
+        of an earlier face (the start HOMEs and TAREs: its remedy)."""
         for latch in self.latches:
-            if latch.end_wall_s is None and latch.acked:
+            if latch.end_wall_s is None and (latch.acked or latch.kind == "open"
+                                             or (latch.kind == "reset" and latch.face is not self.face)):
                 latch.end_wall_s = wall_s
                 latch.how.append(f"start:{how}")
+
+    def _face_gone(self) -> None:
+        """The face went (killed, stopped, restarted, or found gone): its opening's window ends."""
+        for latch in self.latches:
+            if latch.kind == "open" and latch.end_wall_s is None:
+                latch.end_wall_s = time.time()
+                latch.how.append("the face went")
 
     def _wall_of(self, time_s: float) -> float:
         """The wall time the rig's clock reached ``time_s`` (from the truth log's rows)."""
@@ -189,9 +206,9 @@ class OutlivesFace(RuleBasedStateMachine):
                                 stdout=subprocess.DEVNULL, stderr=self._err(kind))
         if resume or ack:
             self._ack(f"{kind} {'--resume' if resume else '--ack'}")
-            self._start(f"{kind} {'--resume' if resume else '--ack'}", wall)
-        self._face_opens(wall)
-        return Face(kind, proc)
+        self.face = Face(kind, proc)
+        self._start(f"{kind}'s run", wall)  # acquire's run is its start
+        return self.face
 
     def _err(self, kind: str):
         f = open(self.folder / f"{kind}.err", "a")  # noqa: SIM115 - closed with the machine
@@ -209,8 +226,8 @@ class OutlivesFace(RuleBasedStateMachine):
                                 stdout=subprocess.DEVNULL, stderr=self._err("serve"))
         if ack:
             self._ack("serve --ack")
-        self._face_opens(wall)
-        face = Face("serve", proc, f"http://127.0.0.1:{self.serve_port}")
+        face = self.face = Face("serve", proc, f"http://127.0.0.1:{self.serve_port}")
+        self.latches.append(Latch("open", wall, face=face))  # nothing moves until its first start
         deadline = time.monotonic() + HANG_S
         while face.alive():
             try:
@@ -236,13 +253,6 @@ class OutlivesFace(RuleBasedStateMachine):
                     self._start("serve: POST /runs", wall)
         return face
 
-    def _face_opens(self, wall: float) -> None:
-        """A face opening homes and tares: the remedy of a reset's host-side latch (the controller itself holds none)."""
-        for latch in self.latches:
-            if latch.kind == "reset" and latch.end_wall_s is None:
-                latch.end_wall_s = wall
-                latch.how.append("a face opened (HOME and TARE)")
-
     @initialize(kind=st.sampled_from(["serve", "cli", "plan"]), seconds=st.sampled_from([3.0, 6.0]))
     def first_face(self, kind, seconds):
         """Every sequence begins with a face running its plan for a while (homing, pressing or turning)."""
@@ -252,13 +262,32 @@ class OutlivesFace(RuleBasedStateMachine):
     @precondition(lambda self: self.face is None or not self.face.alive())
     @rule(kind=st.sampled_from(["serve", "cli", "plan"]), ack=st.sampled_from(ACK_AT_OPEN))
     def open_face(self, kind, ack):
+        self._face_gone()
         self._note(f"open {kind}{' --ack' if ack else ''}")
         self.face = self._serve(ack) if kind == "serve" else self._acquire(kind, ack)
+
+    @precondition(lambda self: (self.face is None or not self.face.alive()) and not self.doctored)
+    @rule()
+    def open_without_a_start(self):
+        """``rigctl doctor`` of checks that do not move: it opens the rig and closes it; nothing may move."""
+        self._face_gone()
+        self.doctored = True  # once a sequence: the other acts keep their share of the steps
+        self._note("open doctor (no check that moves)")
+        wall = time.time()
+        latch = Latch("open", wall, how=["rigctl doctor"])
+        self.latches.append(latch)
+        r = subprocess.run([*RIGCTL, "doctor", "--drum-port", self.sim.drum_port, "--taxel-port",
+                            self.sim.taxel_port, "--check", "controller-faults", "--check", "e-stop"],
+                           cwd=self.folder, env=self.env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                           timeout=HANG_S)
+        self._note(f"  doctor exit {r.returncode}")
+        latch.end_wall_s = time.time()
 
     @precondition(lambda self: self.face is not None and self.face.alive())
     @rule()
     def kill_9_the_face(self):
         self._note(f"kill -9 {self.face.kind}")
+        self._face_gone()
         wall = time.time()
         self.face.proc.kill()
         self.face.proc.wait(timeout=HANG_S)
@@ -281,6 +310,7 @@ class OutlivesFace(RuleBasedStateMachine):
             self._note(f"POST /stop -> {r and r.status_code}")
         else:
             self._note(f"Ctrl-C {self.face.kind}")
+            self._face_gone()
             self.face.proc.send_signal(signal.SIGINT)
             self.face.proc.wait(timeout=HANG_S)
 
@@ -288,6 +318,7 @@ class OutlivesFace(RuleBasedStateMachine):
     @rule()
     def restart_serve(self):
         self._note("restart serve (SIGTERM, the same command)")
+        self._face_gone()
         self.face.proc.terminate()
         self.face.proc.wait(timeout=HANG_S)
         self.face = self._serve()
@@ -332,7 +363,7 @@ class OutlivesFace(RuleBasedStateMachine):
         assert r.returncode == 0, r
         at = float(r.stdout.split("starts at ")[1].split(" ")[0])
         self._note(f"controller reset (rig time {at:.2f})")
-        self.latches.append(Latch("reset", self._wall_of(at)))
+        self.latches.append(Latch("reset", self._wall_of(at), face=self.face))
 
     @rule(seconds=st.sampled_from([1.0, 4.0]))
     def wait(self, seconds):
@@ -362,6 +393,9 @@ class OutlivesFace(RuleBasedStateMachine):
             act, force, speed = t["actuator_mm"][inside], t["true_force_g"][inside], t["drum_speed_mm_s"][inside]
             where = f"{latch.kind} latch at {latch.wall_s - self.t0:.2f} s ({latch.how}); steps:\n" + \
                 "\n".join(self.steps)
+            if latch.kind == "open":  # either way: a HOME at open backs a stranded actuator off
+                moved = float(np.ptp(act))
+                assert moved <= OPEN_MOVED_MM, f"the actuator moved {moved:.3f} mm after the opening {where}"
             advance = float(np.max(act - np.minimum.accumulate(act)))
             rise = float(np.max(force - np.minimum.accumulate(force)))
             assert advance <= ADVANCE_MM, f"the actuator moved {advance:.3f} mm towards the sensor after the {where}"
