@@ -28,7 +28,7 @@ import numpy as np
 
 from rigctl.acquisition.builtin import find_protocol
 from rigctl.acquisition.handheld import HandheldRig
-from rigctl.acquisition.protocol import load_protocol
+from rigctl.acquisition.protocol import Protocol, load_protocol
 from rigctl.acquisition.runner import run_protocol
 from rigctl.analysis.realtime_model import RealtimeClassifier
 from rigctl.core.handheld import PlateAxis
@@ -49,6 +49,7 @@ def record(folder: Path, error: float, scale: float) -> dict[str, Path]:
     taxel_range = None
     for name, protocol, seed in BLOCKS:
         proto = load_protocol(find_protocol(protocol))
+        assert isinstance(proto, Protocol)  # the built-in TOML protocols
         proto = replace(proto, trials_per_condition=max(1, round(proto.trials_per_condition * scale)))
         session = folder / f"{name}.h5"
         if not session.exists():
