@@ -367,6 +367,9 @@ def test_force_trip_and_contact_probe(spec_text, h):
                                        h["RIGCTL_PROBE_STEP_UM"]) == (wire.PROBE_TRAVEL_UM, wire.PROBE_CONTACT_G,
                                                                       wire.PROBE_STEP_UM)
     assert phase == h["RIGCTL_LOOP_PHASE_MRAD"] / 1000 == wire.LOOP_PHASE_RAD
+    margin = int(re.search(r"up to (\d+) um before that zero-force\s+point \(PROBE_LOCATED_MARGIN_UM\)",
+                           spec_text).group(1))
+    assert margin == h["RIGCTL_PROBE_LOCATED_MARGIN_UM"] == wire.PROBE_LOCATED_MARGIN_UM
     assert delay == h["RIGCTL_HX711_DELAY_PERIODS_X10"] / 10 == wire.HX711_DELAY_PERIODS
     from rigctl.simulation.force_loop import stiffness_max_g_per_mm
 

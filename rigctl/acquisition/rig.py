@@ -598,6 +598,8 @@ class Rig:
         label = self.textures.resolve(str(label))
         self.release()
         self.backend.mounter.mount(label, self.textures, prompt=prompt or self.prompt)
+        if label != self.texture:  # another plate: the next press HOMEs first, and the controller then locates its
+            self.home_pending = True  # contact from scratch (it keeps the last one's across a release, spec 2.11)
         self.texture = label
 
     def safe_stop(self) -> bool:

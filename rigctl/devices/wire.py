@@ -373,6 +373,10 @@ def probe_time_s(hx711_rate_sps: float, travel_mm: float = PROBE_ALLOWANCE_TRAVE
 #: |raw - zero| fell by HOME_PROOF_FALL_G (the direction proven by the force), and a rise of HOME_RISE_G of it stops
 #: HOME (ACTUATOR_DIRECTION)
 POSITION_MARGIN_G = 100
+#: a press to a contact an earlier probe located (kept across a release until HOME, a fault or a reset) approaches at
+#: the loop's clamp speed up to this far before its zero-force point, um, then probes from there (the stiffness and
+#: the zero-force point measured again at every press)
+PROBE_LOCATED_MARGIN_UM = 300
 PROBE_REFINE_G = 100
 HX711_STUCK_READINGS = 6
 HX711_CADENCE_PCT = 50

@@ -441,6 +441,7 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
             self._home_phase = 0
             self._home_creep = not self.homed  # from an unknown position: creep (spec 2.11)
             self._probe.release()
+            self._probe.forget()  # (the host's HOME after a plate change too)
             self._move_watch_start(0)
         elif cmd == Command.CLEAR_FAULT:
             self.faults = Fault(0)
@@ -478,6 +479,7 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
 
     def _fault(self, bits: Fault) -> None:
         self.faults |= bits
+        self._probe.forget()  # after any fault the next press locates the contact from scratch (spec 2.11)
         self._release(DrumState.FAULT)
         log.warning("virtual Mega fault: %s", Fault(bits).name or f"0x{int(bits):x}")  # named, not a bare number
 
@@ -721,6 +723,9 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
                     self._pi_out = self._force_pi(sp, f)
                 if self._probe.step_done(self._actuator_position_mm()):
                     self._pi_out = 0.0
+                elif self._pi_out > self._probe.speed_mm_s(self._hx_period_s, FORCE_LOOP_MAX_SPEED_MM_S) and \
+                        self._probe.approach_cut(self._actuator_position_mm(), h):
+                    self._pi_out = self._probe.speed_mm_s(self._hx_period_s, FORCE_LOOP_MAX_SPEED_MM_S)
                 vel = self._pi_out * cal
                 if abs(e) <= h[HR.FORCE_TOLERANCE_G] and not self._probe.active:
                     self._on_target_ms += n_ms

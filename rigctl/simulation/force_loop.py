@@ -12,7 +12,10 @@ While the loop drives, the force-limit trip extrapolates the last period's rise 
 Firmware 1.2 (spec 2.11): every press from rest probes (the contact is forgotten at each release, HOME and reset);
 a first step that pressed less than half of PROBE_REFINE_G is followed by a second sized from it to press
 PROBE_REFINE_G more (at most 0.5 mm), and the stiffness is taken over both; the contact's zero-force point is the
-first settle's position less its force over the stiffness (:attr:`ContactProbe.x0_mm`).
+first settle's position less its force over the stiffness (:attr:`ContactProbe.x0_mm`). Where the contact is stays
+known across a release until HOME, a fault or a reset (:attr:`ContactProbe.located_x0_steps`): the next press
+approaches it at the loop's clamp speed up to PROBE_LOCATED_MARGIN_UM before it, then probes from there (the
+stiffness and the zero-force point measured again at every press).
 """
 
 from __future__ import annotations
@@ -70,6 +73,9 @@ class ContactProbe:
         self.contact_valid = False
         self.k_g_per_step = 0.0  #: its stiffness, g per actuator step (the firmware's: a calibration change keeps it)
         self.x0_steps = 0.0  #: its zero-force point, actuator steps
+        #: where the last probe found the contact's zero-force point, actuator steps, kept across a release until HOME,
+        #: a fault or a reset (:meth:`forget`): the next press approaches fast up to PROBE_LOCATED_MARGIN_UM before it
+        self.located_x0_steps: float | None = None
 
     @property
     def active(self) -> bool:
@@ -88,6 +94,20 @@ class ContactProbe:
     def release(self) -> None:
         """The actuator is released (STOP, a fault's back-off, HOME): the next press probes again."""
         self.contact_valid = False
+
+    def forget(self) -> None:
+        """HOME or a fault: the next press locates the contact from scratch (its whole approach at the probe's speed)."""
+        self.located_x0_steps = None
+
+    def _fast(self, pos_mm: float, holding: Mapping[int, int]) -> bool:
+        spmm = holding[HR.ACTUATOR_STEPS_PER_MM]
+        return self.located_x0_steps is not None and \
+            pos_mm * spmm < self.located_x0_steps - wire.PROBE_LOCATED_MARGIN_UM * 1e-3 * spmm
+
+    def approach_cut(self, pos_mm: float, holding: Mapping[int, int]) -> bool:
+        """The 1 kHz tick: a fast approach has reached PROBE_LOCATED_MARGIN_UM before the located contact (the
+        actuator goes on at the probe's speed)."""
+        return self._phase == _APPROACH and self.located_x0_steps is not None and not self._fast(pos_mm, holding)
 
     def position_limit_steps(self, force_limit_g: float) -> float | None:
         """The step count past which POSITION_LIMIT latches (spec 2.11), or None (no contact probed)."""
@@ -124,7 +144,7 @@ class ContactProbe:
         contact = min(float(wire.PROBE_CONTACT_G), 0.5 * holding[HR.FORCE_SETPOINT_G])
         if self._phase == _APPROACH:
             if force_g < contact:
-                return v, False
+                return (max_mm_s if self._fast(pos_mm, holding) else v), False
             self._phase, self._readings = _SETTLE1, 0
             return 0.0, False
         if self._phase in (_STEP, _STEP2):
@@ -154,6 +174,7 @@ class ContactProbe:
         self.k_g_per_step = max(k, 1.0) / spmm
         self.x0_steps = self._x1_mm * spmm - self._f1_g / self.k_g_per_step
         self.contact_valid = True
+        self.located_x0_steps = self.x0_steps
         return 0.0, False
 
     def step_done(self, pos_mm: float) -> bool:

@@ -360,6 +360,9 @@
  * position moves HOME_CREEP_UM per HX711 period until the untared force fell by HOME_PROOF_FALL_G, and a rise of
  * HOME_RISE_G of |raw - zero| stops it (ACTUATOR_DIRECTION) */
 #define RIGCTL_POSITION_MARGIN_G           100
+/* a press to a contact an earlier probe located (kept across a release until HOME, a fault or a reset) approaches at
+ * the loop's clamp speed up to this far before its zero-force point, then probes from there */
+#define RIGCTL_PROBE_LOCATED_MARGIN_UM     300
 #define RIGCTL_PROBE_REFINE_G              100
 #define RIGCTL_HX711_STUCK_READINGS        6
 #define RIGCTL_HX711_CADENCE_PCT           50

@@ -138,6 +138,7 @@ static void release_actuator(ctl_t *c)
 static void fault(ctl_t *c, uint16_t bits)
 {
     c->faults |= bits;
+    c->contact_located = 0; /* after any fault the next press locates the contact from scratch (2.11) */
     c->state = RIGCTL_STATE_FAULT;
     c->drum_on = 0;
     release_actuator(c);
@@ -246,6 +247,14 @@ static float probe_speed(const ctl_t *c)
     return v < ACT_MAX_SPEED_MM_S ? v : ACT_MAX_SPEED_MM_S;
 }
 
+/* the approach of a press to a contact located by an earlier probe (kept across a release): at the loop's clamp speed
+ * up to PROBE_LOCATED_MARGIN_UM before its zero-force point, at the probe's speed from there (2.11) */
+static uint8_t approach_fast(const ctl_t *c)
+{
+    float margin = (float)RIGCTL_PROBE_LOCATED_MARGIN_UM * 1e-3f * (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
+    return c->contact_located && (float)c->act_pos_steps < c->located_x0_steps - margin;
+}
+
 /* one reading while the probe runs: approach until contact, settle, step PROBE_STEP_UM, settle, k = dF / dx */
 static void probe_reading(ctl_t *c, float f)
 {
@@ -255,7 +264,7 @@ static void probe_reading(ctl_t *c, float f)
     c->act_vel_mm_s = 0.0f;
     switch (c->probe_phase) {
     case PROBE_APPROACH:
-        if (f < contact) c->act_vel_mm_s = probe_speed(c);
+        if (f < contact) c->act_vel_mm_s = approach_fast(c) ? ACT_MAX_SPEED_MM_S : probe_speed(c);
         else c->probe_phase = PROBE_SETTLE1, c->probe_readings = 0;
         return;
     case PROBE_STEP: /* ctl_tick stops it at the target */
@@ -298,6 +307,8 @@ static void probe_reading(ctl_t *c, float f)
             c->contact_k_g_per_step = k / spmm;
             c->contact_x0_steps = (float)c->probe_x1_steps - c->probe_f1_gf / c->contact_k_g_per_step;
             c->contact_valid = 1;
+            c->contact_located = 1;
+            c->located_x0_steps = c->contact_x0_steps;
         }
         return;
     }
@@ -374,6 +385,7 @@ static void run_command(ctl_t *c, uint16_t cmd)
         c->home_phase = HOME_SEEK;
         c->home_creep = !c->homed; /* from an unknown position: creep until the force proves the way (2.11) */
         c->contact_valid = 0;
+        c->contact_located = 0; /* HOME (the host's after a plate change too): the next press locates it again */
         move_watch_start(c, 0);
         break;
     case RIGCTL_CMD_CLEAR_FAULT:
@@ -648,6 +660,8 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
         home_step(c, now_ms);
         break;
     case ACT_MODE_FORCE:
+        if (c->probe_phase == PROBE_APPROACH && c->act_vel_mm_s > probe_speed(c) && !approach_fast(c))
+            c->act_vel_mm_s = probe_speed(c); /* the fast approach ends PROBE_LOCATED_MARGIN_UM before the contact */
         if ((c->probe_phase == PROBE_STEP || c->probe_phase == PROBE_STEP2) &&
             c->act_pos_steps >= c->probe_x_target) {
             c->act_vel_mm_s = 0.0f;

@@ -67,6 +67,10 @@ typedef struct {
     uint8_t contact_valid;     /* probed since the last release, HOME or reset */
     float contact_k_g_per_step; /* its stiffness, g per actuator step */
     float contact_x0_steps;    /* its zero-force point, actuator steps */
+    /* where the last probe found the contact (its zero-force point, steps), kept across a release (STOP) until HOME,
+     * a fault or a reset: the next press approaches it fast up to PROBE_LOCATED_MARGIN_UM before it, then probes */
+    uint8_t contact_located;
+    float located_x0_steps;
     /* the reading's plausibility (spec 2.11) */
     int32_t prev_raw;
     uint8_t same_raw;          /* readings in a row with the same raw value */
