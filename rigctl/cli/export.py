@@ -108,12 +108,29 @@ def _with_splits(f):
     return f
 
 
-def _folder_errors():
+def _folder_export(out: str, kind: str, overwrite: bool, progress, write, *, value_errors: bool = False):
+    """The one shape of a folder export (events, trials): ``out`` checked before any work (an existing folder is
+    replaced only when it is rigctl's export of ``kind`` and ``--overwrite`` says so: a usage error otherwise), then
+    ``write(on_event)`` under progress bars; a bad --variant is a usage error, a file the export cannot read (or, with
+    ``value_errors``, a ValueError of the exporter) one clear line. Returns what ``write`` returns."""
     from rigctl.storage.encoded import NotEncodedError
+    from rigctl.storage.export_folder import check_folder_output
     from rigctl.storage.outputs import OutputError
     from rigctl.storage.session import SessionError
 
-    return NotEncodedError, SessionError, OutputError
+    try:
+        check_folder_output(out, kind=kind, overwrite=overwrite)
+    except OutputError as exc:
+        raise UsageProblem(str(exc)) from None
+    refused: tuple[type[Exception], ...] = (NotEncodedError, SessionError, OutputError) + \
+        ((ValueError,) if value_errors else ())
+    try:
+        with bars(show_bars(progress), leave=False) as on_event:
+            return write(on_event)
+    except KeyError as exc:
+        raise UsageProblem(f"--variant: {exc.args[0]}") from None
+    except refused as exc:
+        raise click.ClickException(str(exc)) from None
 
 
 @export.command("events")
@@ -127,24 +144,11 @@ def _folder_errors():
 def events(encoded, out, variant, overwrite, splits, seed, progress):
     """Every trial's SA/RA spike trains of ENCODED as events in Tonic's layout: one trial_<id>.npz per trial (a
     structured array x, y, t (us), p (SA 0, RA 1), sensor_size, the labels), with splits.json (docs/guides/spiking-networks.md)."""
-    from rigctl.storage.export_folder import check_folder_output
-    from rigctl.storage.outputs import OutputError
     from rigctl.storage.spike_export import EVENTS_KIND, export_events
 
-    NotEncodedError, SessionError, _ = _folder_errors()
-    try:
-        check_folder_output(out, kind=EVENTS_KIND, overwrite=overwrite)
-    except OutputError as exc:
-        raise UsageProblem(str(exc)) from None
-    try:
-        extra = _splits_writer(encoded, None, seed) if splits else None
-        with bars(show_bars(progress), leave=False) as on_event:
-            summary = export_events(encoded, out, variant=variant, overwrite=overwrite, extra_files=extra,
-                                    progress=on_event)
-    except KeyError as exc:
-        raise UsageProblem(f"--variant: {exc.args[0]}") from None
-    except (NotEncodedError, SessionError, OutputError) as exc:
-        raise click.ClickException(str(exc)) from None
+    summary = _folder_export(out, EVENTS_KIND, overwrite, progress, lambda on_event: export_events(
+        encoded, out, variant=variant, overwrite=overwrite,
+        extra_files=_splits_writer(encoded, None, seed) if splits else None, progress=on_event))
     click.echo(f"wrote {out}: {summary.n_trials} trials of {summary.variant}, {summary.n_spikes} events"
                + (", splits.json" if splits else ""))
 
@@ -165,29 +169,16 @@ def events(encoded, out, variant, overwrite, splits, seed, progress):
 def trials(session, encoded, layouts, variant, out, overwrite, splits, seed, progress):
     """A peer lab's per-trial layout: Data[Texture(NNN)][Speed(S)][Force(F)][Trial(k)].csv per trial (and
     SpikeTrains[...].npz), with rigctl_import.toml to import the CSVs back and splits.json (docs/guides/spiking-networks.md)."""
-    from rigctl.storage.export_folder import check_folder_output
-    from rigctl.storage.outputs import OutputError
     from rigctl.storage.spike_export import TRIALS_KIND, export_trials
 
-    NotEncodedError, SessionError, _ = _folder_errors()
     if "per-trial-csv" in layouts and session is None:
         raise UsageProblem("--layout per-trial-csv writes the session's readings: give SESSION")
     if "per-trial-npz" in layouts and encoded is None:
         raise UsageProblem("--layout per-trial-npz writes spike trains: give --encoded ENC.h5")
     if variant is not None and encoded is None:
         raise UsageProblem("--variant chooses among the spike trains of --encoded FILE: give the encoded file too")
-    try:
-        check_folder_output(out, kind=TRIALS_KIND, overwrite=overwrite)
-    except OutputError as exc:
-        raise UsageProblem(str(exc)) from None
-    try:
-        extra = _splits_writer(encoded, session, seed) if splits else None
-        with bars(show_bars(progress), leave=False) as on_event:
-            summary = export_trials(out, layouts=layouts, session_path=session, encoded_path=encoded,
-                                    variant=variant, overwrite=overwrite, extra_files=extra, progress=on_event)
-    except KeyError as exc:
-        raise UsageProblem(f"--variant: {exc.args[0]}") from None
-    except (ValueError, NotEncodedError, SessionError, OutputError) as exc:
-        raise click.ClickException(str(exc)) from None
+    summary = _folder_export(out, TRIALS_KIND, overwrite, progress, lambda on_event: export_trials(
+        out, layouts=layouts, session_path=session, encoded_path=encoded, variant=variant, overwrite=overwrite,
+        extra_files=_splits_writer(encoded, session, seed) if splits else None, progress=on_event), value_errors=True)
     click.echo(f"wrote {out}: {summary.n_trials} trials, {summary.n_files} files"
                + (", splits.json" if splits else ""))
