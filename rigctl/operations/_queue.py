@@ -237,6 +237,12 @@ class RunQueue:
             r.errors.append(f"interrupted (the server ended while it ran); resumed at {_utc_now()}")
         order = cut + [r for r in runs if r not in cut]
         self.runs = {r.id: r for r in order}
+        if any(r.state in ACTIVE for r in order):  # a restart of the server is no start (docs/safety.md): a run it
+            # finds to do, cut by the restart or queued before it, waits for POST /queue/release
+            self.held = True
+            for r in order:
+                if r.state in ACTIVE and r.latch is None:
+                    r.cause = "the server restarted: nothing moves until POST /queue/release"
         for r in order:  # a run that paused or ended on a latch nobody acknowledged: the latch and the queue held
             if r.latch is not None and r.state in ACTIVE + ("stopped",):
                 try:

@@ -129,6 +129,8 @@ def test_a_run_cut_by_a_crash_waits_for_its_session_lock_then_resumes(tmp_path):
     control = open_control(RigSource("inprocess"), seed=1, host_config_path=tmp_path / "rig.json")
     q = RunQueue(control, tmp_path / "queue.json")
     assert q.get("cut1").state == "queued" and "interrupted" in q.get("cut1").errors[-1]
+    assert q.held and "POST /queue/release" in q.get("cut1").cause  # a restart is no start
+    q.release()  # the operator's start
     attempts, attempt = [], q._protocol_run
     q._protocol_run = lambda *a, **kw: attempts.append(None) or attempt(*a, **kw)  # each try to open the session
     q.start()
@@ -250,6 +252,10 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
     proc = _server(tmp_path, port)
     try:
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
+        # a restart is no start: the cut run waits, the queue held, until the operator releases it
+        status = httpx.get(f"{url}/status", headers=AUTH).json()
+        assert status["held"] is True and httpx.get(f"{url}/runs/{rid}", headers=AUTH).json()["state"] == "queued"
+        assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH).status_code == 200
         run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH).json())["state"] in
                     ("done", "failed", "stopped") and r, timeout_s=240, every_s=0.2)
         curl = _curl_examples(tmp_path, url)
