@@ -28,7 +28,7 @@ from rigctl.core.trial import PlannedTrial
 
 __all__ = ["PLATE_LENGTH_MM", "PLATE_WIDTH_MM", "USED_LENGTH_MM", "USED_START_MM", "USED_END_MM",
            "HANDHELD_TEXTURES", "PlateAxis", "RawScan", "ScanSource", "ScanError", "Tracker", "wait_for_pass",
-           "refuse_older_than_cue",
+           "refuse_older_than_cue", "checked_since",
            "PAST_END_MM", "MARGIN_S", "STAMP_AHEAD_S", "SPEED_FLOOR_MM_S", "WINDOW_S", "position_window_speed", "position_window_speeds"]
 
 #: a texture plate's length and width, mm (Methods)
@@ -230,6 +230,15 @@ def _refuse_stamped_ahead(t: np.ndarray, arrived: np.ndarray) -> None:
         raise ScanError(f"the tracker's samples are stamped {ahead:.3f} s after they arrived: its clock is not this "
                         "machine's and liblsl's time correction does not see it (a bridge stamping another clock "
                         "than LSL's local_clock?): the scan is refused, not recorded")
+
+
+def checked_since(tracker: Tracker, t0: float) -> tuple[np.ndarray, np.ndarray]:
+    """``tracker.since(t0)``, refused (ScanError) when a sample is stamped more than :data:`STAMP_AHEAD_S` after it
+    arrived (a tracker that knows its samples' arrival): the scan would take a pass older than its cue."""
+    t, x, arrived = _samples(tracker, t0)
+    if arrived is not None:
+        _refuse_stamped_ahead(t, arrived)
+    return t, x
 
 
 def refuse_older_than_cue(t: np.ndarray, arrived: np.ndarray, entry: int, t_cue: float) -> None:

@@ -34,6 +34,7 @@ from rigctl.core.handheld import (
     RawScan,
     ScanError,
     Tracker,
+    checked_since,
     position_window_speed,
 )
 from rigctl.core.onboard import OnboardEncoding
@@ -149,7 +150,12 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
             if not math.isnan(t_enc):
                 enc.port.write(wire.UnoCommand.STOP.value)
             raise ScanError(f"no pass of the finger through the plate within {timeout_s:g} s")
-        t, along = motion()
+        try:
+            t, along = motion()
+        except ScanError:  # the motion refused (a tracker stamped ahead): the board stopped if it was encoding
+            if not math.isnan(t_enc):
+                enc.port.write(wire.UnoCommand.STOP.value)
+            raise
         if math.isnan(t_enc):
             if t.size >= 2 and _entered(t, along) is not None:
                 enc.start(board.taxel_min, board.taxel_max, board.k)
@@ -204,8 +210,8 @@ class OnboardFingerScans:
         Raises ScanError."""
         t_cue = time.monotonic()
 
-        def motion() -> tuple[np.ndarray, np.ndarray]:
-            t, x = self.tracker.since(t_cue - MARGIN_S)
+        def motion() -> tuple[np.ndarray, np.ndarray]:  # refused before the board starts when stamped ahead
+            t, x = checked_since(self.tracker, t_cue - MARGIN_S)
             return t, self._along(x) if t.size else np.zeros(0)
 
         enc = OnboardEncoder(self.port)

@@ -124,3 +124,29 @@ def test_a_tracker_stamping_another_clock_records_nothing(lsl, tmp_path):
         summary.failures
     with open_session(tmp_path / "s.h5") as s:
         assert s.completed_ids() == []
+
+
+def test_the_boards_encoder_path_refuses_a_tracker_stamped_ahead_before_the_board_starts():
+    """--onboard-encoder: the host refuses the pass before it sends the board ENCODE (nothing written to the port)."""
+    from rigctl.core.trial import PlannedTrial
+    from rigctl.devices.onboard_finger import BoardRange, OnboardFingerScans
+
+    class Port:
+        written = b""
+
+        def write(self, data: bytes) -> None:
+            self.written += bytes(data)
+
+        def read(self, n: int = 1) -> bytes:
+            return b""
+
+        in_waiting = 0
+
+    now = time.monotonic()
+    tracker = _Recorded(now - 4.5 + np.arange(0, 4.0, 1 / 120), 3600.0)
+    port = Port()
+    board = BoardRange.of(np.full(9, 100.0), np.full(9, 900.0), 100)
+    scans = OnboardFingerScans(port, "fake", tracker, None, board, timeout_s=2.0)
+    with pytest.raises(ScanError, match="stamped 3600.0.. s after they arrived"):
+        scans.scan(PlannedTrial(0, "L", 100.0, 500.0, 2.0, "medium"))
+    assert port.written == b""
