@@ -215,11 +215,13 @@ def test_a_reversed_actuator_latches_instead_of_retrying(tmp_path):
     latches ACTUATOR_DIRECTION and the latch holds; mended, the acknowledgement homes the rig."""
     # (swapped once the rig has homed: a coil pair swapped from power-on is HOME's direction proof's, at the start)
     with open_control(RigSource("inprocess")) as control:
+        protocol = load_protocol(find_protocol("quick_check"))
+        control.mount_plate(protocol.plan()[0].texture)  # the run's first plate, so its first trial presses at once
         control.home()  # the start: HOME proves the direction
         clock = control.drum.clock
         t0 = clock.now()
         control.bench.inject_faults([parse_fault("reversed-actuator@0.01+30")])
-        run = ProtocolRun(control, load_protocol(find_protocol("quick_check")), tmp_path / "s.h5", on_latch="end")
+        run = ProtocolRun(control, protocol, tmp_path / "s.h5", on_latch="end")
         summary = run.run()
         assert summary.stopped and summary.complete == 0 and summary.retried == 0 and summary.failed == 0
         assert control.latch is not None and control.latch.cause == "actuator-travel", control.latch
