@@ -31,8 +31,12 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
-__all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "clock_of_port"]
+from rigctl.core.port_clock import HostSide, open_beside
+
+__all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "clock_of_port", "attach_port_clock", "release_port_clock",
+           "is_port_clock"]
 
 #: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
 #: returned from, s. Short against every deadline of the host on a simulated rig (the shortest WATCHDOG_MS, 100 ms;
@@ -64,14 +68,15 @@ def _port_keys(path: str) -> set[str]:
 
 
 def clock_of_port(path: str | os.PathLike[str]) -> "SharedClock | None":
-    """The shared clock of the simulated rig of this process whose board answers on ``path`` (its link or its
-    device), or None (a real port, or a simulated rig of another process: the wall clock)."""
+    """The shared clock of the simulated rig whose board answers on ``path``: of this process (its link or its
+    device), or of another process through the clock file beside its link (:func:`attach_port_clock`:
+    give it back with :func:`release_port_clock` when done), or None (a real port: the wall clock)."""
     with _PORTS_LOCK:
         for key in _port_keys(os.fspath(path)):
             clock = _PORTS.get(key)
             if clock is not None:
                 return clock
-    return None
+    return attach_port_clock(path)
 
 
 class SharedClock:
@@ -220,3 +225,59 @@ class SharedClock:
             self.horizon_s = grant
             if self.on_grant is not None:
                 self.on_grant(grant)
+
+
+# ---------------------------------------------------------------------- a simulated rig of another process
+@dataclass
+class _Attached:
+    clock: SharedClock
+    side: HostSide
+    users: int
+
+
+_ATTACHED: dict[str, _Attached] = {}  # clock file (real path) -> its clock, its file, the users now
+_ATTACHED_LOCK = threading.Lock()
+
+
+def attach_port_clock(port: str | os.PathLike[str]) -> SharedClock | None:
+    """The :class:`SharedClock` of the simulated rig of another process whose port link is ``port``, through the
+    clock file beside it (:mod:`rigctl.core.port_clock`), held until every user has called
+    :func:`release_port_clock` (one per rig and process: the drum port and the taxel port share it; a clock given
+    out once keeps reading the rig's time after its release); None for anything else (a real port: the wall clock)."""
+    side = open_beside(port)
+    if side is None:
+        return None
+    key = os.path.realpath(side.path)
+    with _ATTACHED_LOCK:
+        entry = _ATTACHED.get(key)
+        if entry is not None:
+            side.close()
+            if entry.users == 0:
+                entry.side.hold(True)
+                entry.clock.start()
+            entry.users += 1
+            return entry.clock
+        side.hold(True)
+        clock = SharedClock(side.world_now, on_grant=side.grant)
+        clock.start()
+        _ATTACHED[key] = _Attached(clock, side, 1)
+        return clock
+
+
+def release_port_clock(clock: object) -> None:
+    """A user of a clock :func:`attach_port_clock` gave is done with it; the last one lets the rig go (the heartbeat
+    stops, the shared lock goes: the rig runs on by itself). Anything else: nothing."""
+    with _ATTACHED_LOCK:
+        for entry in _ATTACHED.values():
+            if entry.clock is clock and entry.users > 0:
+                entry.users -= 1
+                if entry.users == 0:
+                    entry.clock.close()
+                    entry.side.hold(False)
+                return
+
+
+def is_port_clock(clock: object) -> bool:
+    """Whether ``clock`` is one :func:`attach_port_clock` gave (a rig of another process), held or not."""
+    with _ATTACHED_LOCK:
+        return any(entry.clock is clock for entry in _ATTACHED.values())

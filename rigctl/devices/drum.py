@@ -47,7 +47,7 @@ from pymodbus.pdu import ExceptionResponse
 
 from rigctl.core import drum as core_drum
 from rigctl.core.drum import DrumLimits, ForceLoopConfig, SettleBand
-from rigctl.core.shared_clock import SharedClock, clock_of_port
+from rigctl.core.shared_clock import SharedClock, attach_port_clock, clock_of_port, is_port_clock, release_port_clock
 from rigctl.devices import wire
 from rigctl.devices.clocked_serial import ClockedSerialClient
 from rigctl.devices.errors import (
@@ -338,6 +338,8 @@ class DrumClient:
         self._lock = threading.RLock()
         # a simulated rig's port in this process is on that rig's clock (rigctl.core.shared_clock)
         self.clock = clock or (clock_of_port(port) if transport is None else None) or _WallClock()
+        # a simulated rig of another process: this client holds its clock file while open (rigctl.core.shared_clock.attach_port_clock)
+        self._holds_port_clock = clock is None and is_port_clock(self.clock)
         self.stale_responses = 0
         self.timeouts = 0
         self.fences = 0
@@ -369,6 +371,8 @@ class DrumClient:
         """Open the port and wait out the board's bootloader (``boot_wait_s``, module doc); write ``watchdog_ms`` if
         given. Raises :class:`DrumError` if it cannot be opened (or the controller does not take ``watchdog_ms``)."""
         with self._lock:
+            if not self._holds_port_clock and is_port_clock(self.clock):  # reopened after close()
+                self._holds_port_clock = attach_port_clock(self.port) is self.clock
             try:
                 opened = self._connect()
             except OSError as exc:
@@ -407,6 +411,9 @@ class DrumClient:
     def close(self) -> None:
         with self._lock:
             self._client.close()
+            if self._holds_port_clock:
+                self._holds_port_clock = False
+                release_port_clock(self.clock)
 
     def __enter__(self) -> "DrumClient":
         return self.open()

@@ -35,7 +35,7 @@ import numpy as np
 import serial
 
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
-from rigctl.core.shared_clock import clock_of_port
+from rigctl.core.shared_clock import attach_port_clock, clock_of_port, is_port_clock, release_port_clock
 from rigctl.devices import wire
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
@@ -241,6 +241,8 @@ class TaxelStream:
         self.port = port
         # a simulated rig's port in this process is on that rig's clock (rigctl.core.shared_clock)
         self.clock = clock if clock is not None else clock_of_port(port)
+        # a simulated rig of another process: this stream holds its clock file while open (rigctl.core.shared_clock.attach_port_clock)
+        self._holds_port_clock = clock is None and is_port_clock(self.clock)
         self._identity = PortIdentity(port)  # reopens go to this board, by USB serial number
         self.baudrate = baudrate
         self.banner_timeout_s = banner_timeout_s
@@ -332,6 +334,8 @@ class TaxelStream:
         """
         if self._thread is not None:
             return self.banner or {}
+        if not self._holds_port_clock and is_port_clock(self.clock):  # reopened after close()
+            self._holds_port_clock = attach_port_clock(self.port) is self.clock
         # compile/load the frame parser's numba kernel now, not on the reader's first chunk: that first call takes
         # 1-4 s (longer on a loaded machine, a clean clone compiles) and would hold the stream back behind real time
         FrameParser().feed(bytes(wire.frame_size(wire.N_TAXELS)))
@@ -394,6 +398,9 @@ class TaxelStream:
                 pass
             self._serial = None
         self._stats.connected = False
+        if self._holds_port_clock:
+            self._holds_port_clock = False
+            release_port_clock(self.clock)
 
     # ------------------------------------------------------------------ commands
     def _write(self, data: bytes) -> None:

@@ -31,6 +31,7 @@ import numpy as np
 
 from rigctl.core.drum import ResetCause
 from rigctl.core.faults import FaultSchedule, FaultSpec
+from rigctl.core.port_clock import ClockFile
 from rigctl.core.sensor import SensorLayout
 from rigctl.core.shared_clock import SharedClock
 from rigctl.simulation.faults import ModelFaults
@@ -108,7 +109,13 @@ class SimulatedRig:
         self._port_dir = PortDir(port_dir, links=("drum", "taxel"))
         self.port_dir = self._port_dir.path
         try:
-            self._build(source, uno_reset_delay_s)
+            # a face of another process on these ports shares the rig's time through this file (its grants)
+            self._clock_file = ClockFile(self.port_dir)
+            try:
+                self._build(source, uno_reset_delay_s)
+            except BaseException:
+                self._clock_file.close()
+                raise
         except BaseException:
             self._port_dir.release(("drum", "taxel"))
             raise
@@ -123,7 +130,7 @@ class SimulatedRig:
         self.clock = SharedClock(self.model_time_s, on_grant=self._granted, world_notifies=True)
         self._loop = WorldLoop(self.clock, self._now_ms, self._step, paced=self.paced, tick_s=self.tick_s,
                                idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r,
-                               board_busy=self.mega.at_request)
+                               board_busy=self.mega.at_request, horizon=self._horizon_s)
         self.mega.use_clock(self.model_time_s)
         self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None
@@ -220,6 +227,14 @@ class SimulatedRig:
         """Nothing to send at the next tick: the Uno does not stream."""
         return not self.uno.streaming
 
+    def _horizon_s(self) -> float:
+        """How far the world may run, s: the grant of the hosts of this process (:attr:`clock`) and, while a face of
+        another process holds the rig's clock file, the lower of that and its grant (rigctl.core.port_clock)."""
+        own = self.clock.horizon_s
+        if self._clock_file.host_attached():
+            return min(own, self._clock_file.grant_s())
+        return own
+
     def _step(self, n_ms: int) -> None:
         if self.schedule is not None:
             self.schedule.due(self.model.time_s)
@@ -245,6 +260,7 @@ class SimulatedRig:
         if self._pacer is not None:
             samples, sync_in, unsent = self._pacer.step(n_ms, sync_in)
         self.uno.tick(n_ms if samples is None else samples, sync_in, unsent)
+        self._clock_file.publish(self.model_time_s())
 
     def truth_start(self) -> None:
         """The run starts now (physics clock): the truth log's time 0 (:mod:`rigctl.simulation.truth`)."""
@@ -266,6 +282,7 @@ class SimulatedRig:
             self.uno.close()
             self.mega.close()
         finally:
+            self._clock_file.close()
             self._port_dir.release(("drum", "taxel"))
             for fd in (self._wake_r, self._wake_w):
                 if fd >= 0:

@@ -53,13 +53,16 @@ class WorldLoop:
         ``bytes_from_board``). The firmware does that within about a millisecond of its own time, so the world does
         not move on meanwhile (at most :data:`BUSY_MAX_S` of wall time): a starved server thread is a paused board,
         not a late one.
+    horizon : how far the world may run, s (default the clock's :attr:`SharedClock.horizon_s`; a rig whose host
+        may be another process: the lower of that and the other process's grant, :mod:`rigctl.core.port_clock`).
     """
 
     def __init__(self, clock: SharedClock, now_ms: Callable[[], int], step: Callable[[int], object], *,
                  paced: bool = True, tick_s: float = 0.005, idle: Callable[[], bool] | None = None,
                  idle_tick_s: float | None = None, wake_fd: int | None = None,
-                 board_busy: Callable[[], bool] | None = None) -> None:
+                 board_busy: Callable[[], bool] | None = None, horizon: Callable[[], float] | None = None) -> None:
         self.clock = clock
+        self._horizon_s = horizon if horizon is not None else (lambda: clock.horizon_s)
         self.now_ms = now_ms
         self.step = step
         self.paced = paced
@@ -96,7 +99,7 @@ class WorldLoop:
         woken = False
         busy, busy_since = self.board_busy, None
         while not stopped():
-            limit = int(clock.horizon_s * 1000.0 + 1e-9)
+            limit = int(self._horizon_s() * 1000.0 + 1e-9)
             if busy is not None and busy():  # the board is at a request: its time stands still meanwhile
                 now = monotonic()
                 busy_since = now if busy_since is None else busy_since
@@ -126,7 +129,7 @@ class WorldLoop:
                 t0 = monotonic()
                 if busy_since is not None:
                     time.sleep(BUSY_WAIT_S)
-                elif int(clock.horizon_s * 1000.0 + 1e-9) <= done:
+                elif int(self._horizon_s() * 1000.0 + 1e-9) <= done:
                     self._wait(HELD_WAIT_S)
                 self.held = False
                 self.held_s += monotonic() - t0

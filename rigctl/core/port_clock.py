@@ -1,0 +1,168 @@
+"""One clock for a simulated rig and a host in another process: the clock file beside the rig's port links
+(docs/architecture.md, "Time on a simulated rig").
+
+A simulated rig (``rigctl sim``, or a test's :class:`rigctl.simulation.rig.SimulatedRig`) publishes its simulated
+time in ``DIR/.clock`` beside its port links ``DIR/drum`` and ``DIR/taxel``. A face in another process that opens
+those links as hardware (``--drum-port DIR/drum``) attaches to the file
+(:func:`rigctl.core.shared_clock.attach_port_clock`, on :func:`open_beside`): its drum client and taxel
+stream then time their waits and timeouts on the rig's time, and grant the rig how far it may run, exactly as a host
+in the rig's own process does (:class:`rigctl.core.shared_clock.SharedClock`). A starved face then pauses the
+simulated world instead of looking silent to the controller's 1 s watchdog.
+
+A face holds a shared ``flock`` on the file while its process lives; the rig sees that (:meth:`ClockFile.host_attached`)
+and obeys the face's grants only then. A face that exits or is killed releases the lock with its process, and the
+rig runs on by itself, paced to the wall clock: its controller's watchdog then acts on the silence, as on a bench.
+
+The file: four little-endian uint64 slots, a magic number, the rig's time (ns + 1; 0: not yet), the hosts' grant
+(ns + 1; never moves back), a spare. Standard library only (``rigctl.core``).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import mmap
+import os
+import struct
+import threading
+import time
+from pathlib import Path
+
+__all__ = ["CLOCK_NAME", "ClockFile", "HostSide", "open_beside"]
+
+#: the clock file's name in a simulated rig's port folder
+CLOCK_NAME = ".clock"
+_MAGIC = 0x52494743544C434B  # "RIGCTLCK"
+_SIZE = 32
+#: how often the rig looks whether a face holds the file, s (a flock attempt; between looks the last answer holds)
+ATTACH_LOOK_S = 0.02
+
+
+def _map(fd: int) -> mmap.mmap:
+    return mmap.mmap(fd, _SIZE)
+
+
+class ClockFile:
+    """The rig's side: ``DIR/.clock`` created (a leftover one of rigctl's is reused; any other file of that name is
+    refused: FileExistsError), mapped, holding ``time 0`` and no grant. :meth:`close` removes it."""
+
+    def __init__(self, folder: str | os.PathLike[str]) -> None:
+        self.path = Path(folder) / CLOCK_NAME
+        if os.path.lexists(self.path) and not _is_clock_file(self.path):
+            raise FileExistsError(f"{self.path} is not a rigctl clock file: rigctl never replaces it; choose another "
+                                  "--port-dir")
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.ftruncate(fd, _SIZE)
+            self._map: mmap.mmap | None = _map(fd)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd: int | None = fd
+        struct.pack_into("<Q", self._map, 0, _MAGIC)
+        self._attached = False
+        self._looked = -1.0
+
+    def publish(self, world_s: float) -> None:
+        """The rig's time is now ``world_s`` (s)."""
+        if self._map is not None:
+            struct.pack_into("<Q", self._map, 8, int(world_s * 1e9) + 1)
+
+    def grant_s(self) -> float:
+        """How far the faces have let the rig run, s (0 before any grant)."""
+        if self._map is None:
+            return 0.0
+        (v,) = struct.unpack_from("<Q", self._map, 16)
+        return (v - 1) * 1e-9 if v else 0.0
+
+    def host_attached(self) -> bool:
+        """Whether a face of another process holds the file now (looked at most every :data:`ATTACH_LOOK_S`)."""
+        now = time.monotonic()
+        if self._fd is None:
+            return False
+        if now - self._looked >= ATTACH_LOOK_S:
+            self._looked = now
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                self._attached = True
+            else:
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+                self._attached = False
+        return self._attached
+
+    def close(self) -> None:
+        """Unmap and remove the file (idempotent)."""
+        if self._map is not None:
+            self._map.close()
+            self._map = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+            try:
+                self.path.unlink()
+            except FileNotFoundError:
+                pass
+
+
+def _is_clock_file(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return False
+    return len(head) == 8 and struct.unpack("<Q", head)[0] == _MAGIC
+
+
+class HostSide:
+    """A face's view of the clock file at ``path`` (opened on ``fd``, which it owns): the rig's time, the face's
+    grants, the shared lock that says a face is there (:meth:`hold`). Raises OSError/ValueError if it cannot map it."""
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path = path
+        self._fd = fd
+        self._map = _map(fd)
+        self._last_s = 0.0
+        self._lock = threading.Lock()
+
+    def world_now(self) -> float:
+        (v,) = struct.unpack_from("<Q", self._map, 8)
+        t = (v - 1) * 1e-9 if v else 0.0
+        if t > self._last_s:
+            self._last_s = t
+        return self._last_s
+
+    def grant(self, horizon_s: float) -> None:
+        ns = int(horizon_s * 1e9) + 1
+        with self._lock:
+            (old,) = struct.unpack_from("<Q", self._map, 16)
+            if ns > old:
+                struct.pack_into("<Q", self._map, 16, ns)
+
+    def hold(self, on: bool) -> None:
+        """Take (``on``) or give back the shared lock that tells the rig a face of this process is there."""
+        fcntl.flock(self._fd, fcntl.LOCK_SH if on else fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        """Unmap and close (the lock, if held, goes with it)."""
+        self._map.close()
+        os.close(self._fd)
+
+
+def open_beside(port: str | os.PathLike[str]) -> HostSide | None:
+    """The clock file beside the port link ``port`` (a simulated rig of any process), opened for a face, not yet
+    held; None when ``port`` is no link or has no rigctl clock file beside it (a real serial port)."""
+    link = Path(os.fspath(port))
+    if not link.is_symlink():
+        return None
+    path = link.absolute().parent / CLOCK_NAME
+    if not _is_clock_file(path):
+        return None
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except OSError:
+        return None
+    try:
+        return HostSide(path, fd)
+    except (OSError, ValueError):
+        os.close(fd)
+        return None

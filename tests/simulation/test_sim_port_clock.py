@@ -1,0 +1,59 @@
+"""One clock for a simulated rig and a face in another process (issue 54; rigctl.core.port_clock): the face holds
+the rig's clock file while its drum client is open, a stopped face pauses the rig's world, and a face that is gone
+lets it run on by itself (its controller's watchdog then judges the silence, as on a bench)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from rigctl.core.port_clock import CLOCK_NAME
+from rigctl.core.shared_clock import is_port_clock
+from rigctl.devices.drum import DrumClient
+from rigctl.simulation.rig import SimulatedRig
+
+#: the face: opens the rig's drum port as hardware, says whether it found the rig's clock, then polls the status
+FACE = """
+import sys, time
+from rigctl.core.shared_clock import is_port_clock
+from rigctl.devices.drum import DrumClient
+with DrumClient(sys.argv[1], timeout_s=2.0) as drum:
+    print("attached" if is_port_clock(drum.clock) else "wall", flush=True)
+    while True:
+        drum.read_status()
+        time.sleep(0.05)
+"""
+
+
+def _advance(sim: SimulatedRig, wall_s: float) -> float:
+    t0 = sim.model_time_s()
+    time.sleep(wall_s)
+    return sim.model_time_s() - t0
+
+
+def test_a_stopped_face_of_another_process_pauses_the_world_and_a_killed_one_lets_it_run(tmp_path):
+    with SimulatedRig(port_dir=tmp_path / "ports") as sim:
+        assert (sim.port_dir / CLOCK_NAME).is_file()
+        assert _advance(sim, 0.5) > 0.2  # no face: the world runs by itself
+        face = subprocess.Popen([sys.executable, "-c", FACE, sim.drum_port], stdout=subprocess.PIPE, text=True)
+        try:
+            assert face.stdout is not None and face.stdout.readline().strip() == "attached"
+            assert _advance(sim, 0.5) > 0.2  # a face that runs grants time
+            os.kill(face.pid, signal.SIGSTOP)  # a starved face: it grants nothing
+            time.sleep(0.3)
+            assert _advance(sim, 1.5) < 0.15  # the world waits for it
+            os.kill(face.pid, signal.SIGCONT)
+            assert _advance(sim, 0.5) > 0.2
+            face.kill()  # the face is gone: its lock with it
+            face.wait(30)
+            assert _advance(sim, 0.5) > 0.2  # the world runs on by itself
+        finally:
+            if face.poll() is None:
+                face.kill()
+                face.wait(30)
+        with DrumClient(sim.drum_port, timeout_s=2.0) as drum:  # this process's own rig: its in-process clock
+            assert drum.clock is sim.clock and not is_port_clock(drum.clock)
+    assert not (tmp_path / "ports" / CLOCK_NAME).exists()  # removed with the rig
