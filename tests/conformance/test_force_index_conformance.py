@@ -89,11 +89,13 @@ def test_a_10sps_hx711_is_refused_with_a_fault_then_runs_with_its_own_gains(make
 
 
 def test_an_hx711_with_a_slow_oscillator_is_measured_as_such(make_rig):
-    """The rate is measured, not assumed: a 10 % slow on-chip oscillator reads ~72.7 SPS (within the 20 % that
-    HX711_RATE_SPS = 80 accepts)."""
+    """The rate is measured, not assumed: a 10 % slow on-chip oscillator reads ~72 SPS (within the 20 % that
+    HX711_RATE_SPS = 80 accepts). The firmware times the first HX711_RATE_PERIODS = 4 periods (~56 ms) by micros() at
+    the loop() pass that sees DOUT low: a pass busy with a Modbus request at either end adds up to ~1 ms (a CI run
+    under load read 71.25 SPS: 0.6 ms late), so the tolerance is 1.5 SPS, still 6.5 SPS short of an assumed 80."""
     _, drum = make_rig(RigConfig(mechanics=MechanicsConfig(hx711_clock_error=-0.1)))
     st = drum.read_status()
-    assert st.hx711_rate_sps == pytest.approx(72.0, abs=0.6) and st.faults == Fault(0)
+    assert st.hx711_rate_sps == pytest.approx(72.0, abs=1.5) and st.faults == Fault(0)
 
 
 def test_index_sensor_measures_the_real_drum_speed_with_a_wrong_microstep_setting(make_rig):
