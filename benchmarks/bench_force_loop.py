@@ -36,6 +36,7 @@ import time
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.wire import DrumState, HoldingRegister as HR
+from rigctl.rigs import WATCHDOG_MS
 from rigctl.simulation.hil import HilRig
 from rigctl.simulation.model import MechanicsConfig, RigConfig
 
@@ -116,7 +117,9 @@ def run(rate_sps: int, stiffness_g_per_mm: float, setpoints=SETPOINTS_G, quick: 
     window_s = (5.0 if quick else 12.0) if rate_sps == 80 else (13.0 if quick else 45.0)
     rows = []
     with HilRig(cfg, live=False, with_uno=False, tel_ms=5.0) as rig:
-        drum = DrumClient(rig.drum_port, timeout_s=1.0, clock=rig.clock).open()
+        # the host watchdog every face writes on a simavr rig (rigctl.rigs.WATCHDOG_MS): this bench measures the force
+        # loop, and its analysis between polls on a loaded CI machine latched the firmware's 1 s default once
+        drum = DrumClient(rig.drum_port, timeout_s=1.0, clock=rig.clock, watchdog_ms=WATCHDOG_MS["hil"]).open()
         try:
             deadline = time.monotonic() + 15
             while drum.read_status().hx711_rate_sps == 0:
