@@ -308,6 +308,18 @@ def test_faults(tables, spec_text, h):
         (wire.HOME_PROOF_MM, wire.DIRECTION_RISE_G)
 
 
+def test_the_press_direction_watch_constants(spec_text, h):
+    """Spec 2.11's press direction watch: the same readings, lag, steps, force and proof in the text, the header and
+    wire.py (the model controller and the firmware use them)."""
+    m = re.search(r"the step count commanded\s+over (\d+) readings \(PRESS_DIR_READINGS\).*?as many readings (\d+) "
+                  r"readings\s+later \(PRESS_DIR_LAG_READINGS.*?(\d+) steps or more \(PRESS_DIR_STEPS.*?by (\d+) g "
+                  r"\(PRESS_DIR_G.*?at most (\d+) readings\s+ago \(PRESS_DIR_PROOF_READINGS\)", spec_text, re.S)
+    assert m is not None
+    names = ("READINGS", "LAG_READINGS", "STEPS", "G", "PROOF_READINGS")
+    for name, value in zip(names, map(int, m.groups())):
+        assert h[f"RIGCTL_PRESS_DIR_{name}"] == getattr(wire, f"PRESS_DIR_{name}") == value, name
+
+
 @pytest.mark.parametrize("table,flags,prefix", [
     ("reset-cause", wire.ResetCause, "RIGCTL_RESET_"),
     ("status-flags", wire.StatusFlag, "RIGCTL_STATUS_"),

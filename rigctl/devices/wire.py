@@ -379,6 +379,18 @@ POSITION_MARGIN_G = 100
 PROBE_LOCATED_MARGIN_UM = 300
 PROBE_REFINE_G = 100
 HX711_STUCK_READINGS = 6
+#: the press's direction watch (spec 2.11, the firmware's RIGCTL_PRESS_DIR_*): while the force loop drives, the step
+#: count commanded over PRESS_DIR_READINGS readings (monotone, at least PRESS_DIR_STEPS) and the force read over the
+#: same span PRESS_DIR_LAG_READINGS later (the HX711's sinc filter and the reading's age lag the motion by ~2 periods)
+#: moving apart by PRESS_DIR_G is ACTUATOR_DIRECTION; moving together by PRESS_DIR_G proves the way a back-off takes.
+#: 8 steps = 20 um of the lead screw (400 steps/mm): at the softest contact accepted (250 g/mm) 5 g, 50 x the HX711's
+#: noise (20-40 counts at 420 counts/g: ~0.1 g); PRESS_DIR_G = 3 g is 30 x that noise and under the 5 g the softest
+#: contact gives for the smallest decisive move
+PRESS_DIR_READINGS = 4
+PRESS_DIR_LAG_READINGS = 2
+PRESS_DIR_STEPS = 16
+PRESS_DIR_PROOF_READINGS = 2
+PRESS_DIR_G = 8
 HX711_CADENCE_PCT = 50
 HOME_CREEP_UM = 12
 HOME_PROOF_FALL_G = 50

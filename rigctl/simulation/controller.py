@@ -187,6 +187,10 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
         self._home_d_start: float | None = None  # |raw - zero| when HOME began, g
         self._home_creep = False  # HOME from an unknown position creeps until the force proves the way (2.11)
         self._move_skip = 0  # readings a back-off skips (the firmware's move_skip: the HX711's settling)
+        self._press_dir_hist: collections.deque[tuple[float, float]] = collections.deque(
+            maxlen=wire.PRESS_DIR_READINGS + wire.PRESS_DIR_LAG_READINGS + 1)  # (steps, force_g) per reading
+        self._press_dir_age: int | None = None  # readings since the force loop's own motion proved the way (2.11)
+        self._press_dir_held = False  # proven since the probe was done, nothing against it since
         # the reading's plausibility (spec 2.11): the last raw value, how many in a row, line codes in a row
         self._prev_raw: int | None = None
         self._same_raw = 0
@@ -457,6 +461,8 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
 
     def _engage(self) -> None:
         self.state = DrumState.SEEKING_FORCE
+        self._press_dir_hist.clear()
+        self._press_dir_age, self._press_dir_held = None, False
         self._probe.engage()
         self._integ = 0.0
         self._pi_out = 0.0
@@ -478,6 +484,10 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
         self._integ = 0.0
 
     def _fault(self, bits: Fault) -> None:
+        if self.state in _ENGAGED and not self._press_dir_proven:
+            self.homed = False  # a latch while pressing backs off only the way the loop's motion proved (spec 2.11)
+        self._press_dir_hist.clear()
+        self._press_dir_age, self._press_dir_held = None, False
         self.faults |= bits
         self._probe.forget()  # after any fault the next press locates the contact from scratch (spec 2.11)
         self._release(DrumState.FAULT)
@@ -658,11 +668,52 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
                     self.state = DrumState.IDLE
             self._update_force()
             self._watch_direction(raw)
+            if self.state in _ENGAGED:
+                self._watch_press_direction()
             self._predicted_g = self._probe.predicted_g(self._force_g, self.state in _ENGAGED)
         else:
             self._loadcell_silent_ms += n_ms
         self._hx_seen = conversions
         return new_reading
+
+    def _watch_press_direction(self) -> None:
+        """A new reading while the force loop drives (the firmware's press_dir_watch, spec 2.11): the step count
+        commanded over PRESS_DIR_READINGS readings (monotone) against the load read (|force|, sign-free: a reversed
+        cell presses as a load too) over as many readings PRESS_DIR_LAG_READINGS later. At least PRESS_DIR_STEPS with
+        the load against it by PRESS_DIR_G: ACTUATOR_DIRECTION, stopped where it stands; with it by
+        PRESS_DIR_G: the way proven, for PRESS_DIR_PROOF_READINGS readings while the probe runs, and from then on
+        once it is done (the loop holds: a reversed motor would drive the force off and be seen); half of both
+        against it: the proof is void."""
+        hist = self._press_dir_hist
+        hist.append((self._actuator_steps(), abs(self._force_g)))  # the load, sign-free: the motor's way, not the cell's
+        if self._press_dir_age is not None:
+            self._press_dir_age += 1
+        if self._probe.active:
+            self._press_dir_held = False
+        if len(hist) <= wire.PRESS_DIR_READINGS + wire.PRESS_DIR_LAG_READINGS:
+            return
+        n = wire.PRESS_DIR_READINGS
+        steps = [s for s, _ in hist][: n + 1]
+        moves = [b - a for a, b in zip(steps, steps[1:])]
+        ds = steps[-1] - steps[0]
+        if 2 * abs(ds) < wire.PRESS_DIR_STEPS or not (all(d >= 0 for d in moves) or all(d <= 0 for d in moves)):
+            return
+        df = (hist[-1][1] - hist[-1 - n][1]) * (1.0 if ds > 0 else -1.0)  # + : the force follows the count
+        if 2 * df <= -wire.PRESS_DIR_G:
+            self._press_dir_age, self._press_dir_held = None, False
+            if abs(ds) >= wire.PRESS_DIR_STEPS and df <= -wire.PRESS_DIR_G:
+                self._direction_fault()
+        elif abs(ds) >= wire.PRESS_DIR_STEPS and df >= wire.PRESS_DIR_G:
+            self._press_dir_age = 0
+            self._press_dir_held = not self._probe.active
+
+    @property
+    def _press_dir_proven(self) -> bool:
+        """The way a back-off takes is proven by the force loop's own motion (spec 2.11): the count and the force
+        moved together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or since the probe
+        was done, and nothing moved them apart since."""
+        return self._press_dir_held or (
+            self._press_dir_age is not None and self._press_dir_age <= wire.PRESS_DIR_PROOF_READINGS)
 
     def control_step(self, n_ms: int) -> None:
         """One pass of the Mega's control logic after ``n_ms`` ms of physics (reads the model, sets outputs)."""

@@ -369,6 +369,15 @@
 #define RIGCTL_HOME_CREEP_UM               12
 #define RIGCTL_HOME_PROOF_FALL_G           50
 #define RIGCTL_HOME_RISE_G                 30
+/* 2.11 the press's direction watch: while the force loop drives, the step count commanded over PRESS_DIR_READINGS
+ * readings (monotone, at least PRESS_DIR_STEPS) and the force read over as many readings PRESS_DIR_LAG_READINGS later
+ * moving apart by PRESS_DIR_G latch ACTUATOR_DIRECTION; moving together, they prove the way for a back-off that
+ * begins within PRESS_DIR_PROOF_READINGS readings (a latch without that proof stops the actuator where it stands) */
+#define RIGCTL_PRESS_DIR_READINGS          4
+#define RIGCTL_PRESS_DIR_LAG_READINGS      2
+#define RIGCTL_PRESS_DIR_STEPS             16
+#define RIGCTL_PRESS_DIR_G                 8
+#define RIGCTL_PRESS_DIR_PROOF_READINGS    2
 #define RIGCTL_INDEX_SOURCE_STEPS          0
 #define RIGCTL_INDEX_SOURCE_SENSOR         1
 

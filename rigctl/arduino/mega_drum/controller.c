@@ -57,6 +57,7 @@ void ctl_init(ctl_t *c, int32_t loadcell_scale_x100, uint16_t actuator_steps_per
      * until HOME, and the power-up tare is taken only if the home switch is closed at the first reading */
     c->state = RIGCTL_STATE_NOT_HOMED;
     c->tare_pending = 1;
+    c->press_dir_age = 255; /* no proof of the way yet (spec 2.11) */
     force_pi_init(&c->pi, 0.0f, 0.0f, ACT_MAX_SPEED_MM_S, FORCE_INTEGRATE_BAND_G); /* gains: force_loop_gains */
 }
 
@@ -135,8 +136,28 @@ static void release_actuator(ctl_t *c)
     }
 }
 
+/* the way a back-off takes is proven by the force loop's own motion (spec 2.11): the count and the force moved
+ * together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or since the probe was done, and
+ * nothing moved them apart since (an older proof from the probe would miss a motor swapped while the probe held
+ * still; once the loop holds, a reversed motor drives the force off and is seen) */
+static uint8_t press_dir_proven(const ctl_t *c)
+{
+    return c->press_dir_held || c->press_dir_age <= RIGCTL_PRESS_DIR_PROOF_READINGS;
+}
+
+static void press_dir_forget(ctl_t *c)
+{
+    c->press_dir_n = 0;
+    c->press_dir_age = 255;
+    c->press_dir_held = 0;
+}
+
 static void fault(ctl_t *c, uint16_t bits)
 {
+    /* a latch while pressing backs off only the way the loop's motion proved; else it stops where it stands, not
+     * homed (the start's HOME creeps and proves the way) */
+    if (force_engaged(c) && !press_dir_proven(c)) c->homed = 0;
+    press_dir_forget(c);
     c->faults |= bits;
     c->contact_located = 0; /* after any fault the next press locates the contact from scratch (2.11) */
     c->state = RIGCTL_STATE_FAULT;
@@ -317,6 +338,7 @@ static void probe_reading(ctl_t *c, float f)
 static void engage(ctl_t *c)
 {
     force_pi_reset(&c->pi);
+    press_dir_forget(c);
     c->probe_phase = c->contact_valid ? PROBE_NONE : PROBE_APPROACH; /* every press from rest probes (2.11) */
     c->force_prev_valid = 0;
     c->act_mode = ACT_MODE_FORCE;
@@ -706,6 +728,55 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
     }
 }
 
+/* a new reading while the force loop drives (spec 2.11): the step count commanded over PRESS_DIR_READINGS readings
+ * (monotone) against the load read (|force|, sign-free: a reversed cell presses as a load too) over as many
+ * readings PRESS_DIR_LAG_READINGS later (the HX711's sinc^4 filter and the reading's age). At least PRESS_DIR_STEPS
+ * with the load against it by PRESS_DIR_G: ACTUATOR_DIRECTION, stopped where it stands; with it by PRESS_DIR_G: the
+ * way proven, for PRESS_DIR_PROOF_READINGS
+ * readings while the probe runs, and from then on once it is done (the loop holds: a reversed motor would drive the
+ * force off and be seen); half of both against it: the proof is void. Returns 1 if it latched. */
+static uint8_t press_dir_watch(ctl_t *c, float f)
+{
+    enum { N = RIGCTL_PRESS_DIR_READINGS, LEN = RIGCTL_PRESS_DIR_READINGS + RIGCTL_PRESS_DIR_LAG_READINGS + 1 };
+    uint8_t i, up = 1, down = 1;
+    int32_t ds, ads;
+    float df;
+    if (c->press_dir_age < 255) c->press_dir_age++;
+    if (c->probe_phase != PROBE_NONE) c->press_dir_held = 0;
+    if (c->press_dir_n == LEN) {
+        for (i = 1; i < LEN; i++) {
+            c->press_dir_steps[i - 1] = c->press_dir_steps[i];
+            c->press_dir_gf[i - 1] = c->press_dir_gf[i];
+        }
+        c->press_dir_n = LEN - 1;
+    }
+    c->press_dir_steps[c->press_dir_n] = c->act_pos_steps;
+    c->press_dir_gf[c->press_dir_n] = f < 0.0f ? -f : f; /* the load, sign-free: the motor's way, not the cell's */
+    c->press_dir_n++;
+    if (c->press_dir_n < LEN) return 0;
+    for (i = 1; i <= N; i++) { /* the count over the oldest N readings: the motion the newest force answers */
+        if (c->press_dir_steps[i] < c->press_dir_steps[i - 1]) up = 0;
+        if (c->press_dir_steps[i] > c->press_dir_steps[i - 1]) down = 0;
+    }
+    ds = c->press_dir_steps[N] - c->press_dir_steps[0];
+    ads = ds < 0 ? -ds : ds;
+    if (2 * ads < RIGCTL_PRESS_DIR_STEPS || !(up || down)) return 0;
+    df = c->press_dir_gf[LEN - 1] - c->press_dir_gf[LEN - 1 - N];
+    if (ds < 0) df = -df; /* + : the force follows the count */
+    if (2.0f * df <= -(float)RIGCTL_PRESS_DIR_G) {
+        c->press_dir_age = 255;
+        c->press_dir_held = 0;
+        if (ads >= RIGCTL_PRESS_DIR_STEPS && df <= -(float)RIGCTL_PRESS_DIR_G) {
+            direction_fault(c);
+            return 1;
+        }
+    } else if (ads >= RIGCTL_PRESS_DIR_STEPS && df >= (float)RIGCTL_PRESS_DIR_G) {
+        c->press_dir_age = 0;
+        c->press_dir_held = c->probe_phase == PROBE_NONE;
+    }
+    return 0;
+}
+
 void ctl_loadcell(ctl_t *c, int32_t raw)
 {
     float f, rise;
@@ -783,6 +854,7 @@ void ctl_loadcell(ctl_t *c, int32_t raw)
     rise = c->act_mode == ACT_MODE_FORCE && c->force_prev_valid && f > c->force_prev_gf ? f - c->force_prev_gf : 0.0f;
     c->force_prev_gf = f;
     c->force_prev_valid = 1;
+    if (force_engaged(c) && press_dir_watch(c, f)) return;
     if (c->tared && f + rise * (float)RIGCTL_FORCE_LEAD_PERIODS > (float)c->hreg[RIGCTL_HREG_FORCE_LIMIT_G]) {
         if (c->state != RIGCTL_STATE_FAULT || !(c->faults & RIGCTL_FAULT_FORCE_LIMIT)) {
             fault(c, RIGCTL_FAULT_FORCE_LIMIT); /* backs the actuator off at once */

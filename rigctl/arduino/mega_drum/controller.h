@@ -82,6 +82,12 @@ typedef struct {
     uint8_t home_creep;
     float home_d_start_g;      /* |raw - zero| in g when HOME began (-1: no reading yet) */
     float move_d_min_g;        /* the lowest |raw - zero| since HOME or a back-off began, g */
+    /* the press's direction watch (spec 2.11): (step count, force) at the last readings while the force loop drove */
+    int32_t press_dir_steps[RIGCTL_PRESS_DIR_READINGS + RIGCTL_PRESS_DIR_LAG_READINGS + 1];
+    float press_dir_gf[RIGCTL_PRESS_DIR_READINGS + RIGCTL_PRESS_DIR_LAG_READINGS + 1];
+    uint8_t press_dir_n;       /* readings held (up to the ring's length); the newest is at [n - 1] */
+    uint8_t press_dir_age;     /* readings since the count and the force last moved together (255: not proven) */
+    uint8_t press_dir_held;    /* proven since the probe was done, nothing against it since */
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;
