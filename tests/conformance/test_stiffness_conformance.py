@@ -57,14 +57,25 @@ def test_a_6kg_per_mm_contact_is_refused_at_the_first_press_below_1_1x_the_limit
             clock.sleep(0.02)
         st = drum.read_status()
         assert st.state == DrumState.FAULT and st.faults == Fault.CONTACT_STIFFNESS, st
-        end = clock.now() + 5.0  # it backs off home
-        while drum.read_status().actuator_mm > 0.05 and clock.now() < end:
-            clock.sleep(0.02)
+        # a latch during the probe has no proven direction (issue 55, seed 6391: the motor swapped after the probe's
+        # last move): the actuator stops where it stands, not homed; the start's HOME proves the way back
+        at_mm = st.actuator_mm
+        clock.sleep(1.0)
+        assert abs(drum.read_status().actuator_mm - at_mm) < 0.01
         assert st.contact_stiffness_g_per_mm == pytest.approx(6000, rel=0.1)
         assert 2000 < st.stiffness_max_g_per_mm < 3000  # 0.75 / (0.01 (mm/s)/g x 2.5 x 12.5 ms) = 2400
         drum.clear_fault()
-        with pytest.raises(DrumContactTooStiff, match="too stiff"):
+        home(drum)
+        drum.set_force(1000)
+        try:  # pressed again: refused as too stiff, at once or by its probe (a fresh HOME may forget the contact)
             drum.press()
+        except DrumContactTooStiff:
+            pass
+        else:
+            end = clock.now() + 6.0
+            while (st := drum.read_status()).state != DrumState.FAULT and clock.now() < end:
+                clock.sleep(0.02)
+            assert st.state == DrumState.FAULT and st.faults == Fault.CONTACT_STIFFNESS, st
     finally:
         drum.close()
         rig.close()
