@@ -190,7 +190,8 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
         self._press_dir_hist: collections.deque[tuple[float, float]] = collections.deque(
             maxlen=wire.PRESS_DIR_READINGS + wire.PRESS_DIR_LAG_READINGS + 1)  # (steps, force_g) per reading
         self._press_dir_age: int | None = None  # readings since the force loop's own motion proved the way (2.11)
-        self._press_dir_held = False  # proven since the probe was done, nothing against it since
+        self._press_dir_held = False  # proven by the probe's step or since it was done, nothing against it since
+        self._press_dir_leave = False  # the press left the closed home switch homed and has not reached the contact
         # the reading's plausibility (spec 2.11): the last raw value, how many in a row, line codes in a row
         self._prev_raw: int | None = None
         self._same_raw = 0
@@ -463,6 +464,7 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
         self.state = DrumState.SEEKING_FORCE
         self._press_dir_hist.clear()
         self._press_dir_age, self._press_dir_held = None, False
+        self._press_dir_leave = self.homed and self._home_switch()  # HOME's switch proof stands until the contact
         self._probe.engage()
         self._integ = 0.0
         self._pi_out = 0.0
@@ -487,7 +489,7 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
         if self.state in _ENGAGED and not self._press_dir_proven:
             self.homed = False  # a latch while pressing backs off only the way the loop's motion proved (spec 2.11)
         self._press_dir_hist.clear()
-        self._press_dir_age, self._press_dir_held = None, False
+        self._press_dir_age, self._press_dir_held, self._press_dir_leave = None, False, False
         self.faults |= bits
         self._probe.forget()  # after any fault the next press locates the contact from scratch (spec 2.11)
         self._release(DrumState.FAULT)
@@ -690,6 +692,8 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
             self._press_dir_age += 1
         if self._probe.active:
             self._press_dir_held = False
+        if abs(self._force_g) >= min(float(wire.PROBE_CONTACT_G), 0.5 * self.holding[HR.FORCE_SETPOINT_G]):
+            self._press_dir_leave = False  # the contact: the force proves the way from here
         if len(hist) <= wire.PRESS_DIR_READINGS + wire.PRESS_DIR_LAG_READINGS:
             return
         n = wire.PRESS_DIR_READINGS
@@ -709,10 +713,12 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
 
     @property
     def _press_dir_proven(self) -> bool:
-        """The way a back-off takes is proven by the force loop's own motion (spec 2.11): the count and the force
-        moved together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or since the probe
-        was done, and nothing moved them apart since."""
-        return self._press_dir_held or (
+        """The way a back-off takes is proven by this press's own motion (spec 2.11): the count and the force
+        moved together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or the probe's measuring
+        step(s) raised the settled load by PRESS_DIR_G (or the loop's motion did since the probe was done), and
+        nothing moved them apart since. Before the contact HOME's switch proof stands: the press left the closed
+        switch, and the switch reading closed more than HOME_PROOF_MM out voids it."""
+        return self._press_dir_held or self._press_dir_leave or (
             self._press_dir_age is not None and self._press_dir_age <= wire.PRESS_DIR_PROOF_READINGS)
 
     def control_step(self, n_ms: int) -> None:
@@ -755,6 +761,8 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
             limit = self._probe.position_limit_steps(h[HR.FORCE_LIMIT_G]) if self.state in _ENGAGED else None
             if limit is not None and self._actuator_steps() > limit:
                 self._stop_unproven(Fault.POSITION_LIMIT)  # past the probed contact's limit, whatever the reading
+            elif self.state in _ENGAGED and self._home_switch() and self._actuator_position_mm() > wire.HOME_PROOF_MM:
+                self._press_dir_leave = False  # at home with the count out: the motor runs back, HOME's proof is void
             if self._index.take_slip() and Fault.DRUM_SLIP not in self.faults:
                 self._fault(Fault.DRUM_SLIP)  # the drum's speed marks came late or stopped (spec 2.5)
             if probed := engaged and new_reading and self._probe.active and self.state in _ENGAGED:  # spec 2.10
@@ -762,6 +770,8 @@ class MegaController(HomeAndDirection, EmulatedEeprom):
                                                               FORCE_LOOP_MAX_SPEED_MM_S)
                 if too_stiff:
                     self._fault(Fault.CONTACT_STIFFNESS)
+                elif not self._probe.active:  # the probe's measuring step(s) raised the settled load: the way proven
+                    self._press_dir_held = self._probe.step_rise_g >= wire.PRESS_DIR_G  # for the press (spec 2.11)
             engaged = self.state in _ENGAGED
             self._speed_target = target = self._profile_target_mm_s()
             rate = target * m.config.drum.steps_per_mm

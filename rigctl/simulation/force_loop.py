@@ -76,6 +76,9 @@ class ContactProbe:
         #: where the last probe found the contact's zero-force point, actuator steps, kept across a release until HOME,
         #: a fault or a reset (:meth:`forget`): the next press approaches fast up to PROBE_LOCATED_MARGIN_UM before it
         self.located_x0_steps: float | None = None
+        #: the settled load's rise over the last completed probe's measuring step(s), g (forward steps: it proves the
+        #: actuator's way for the rest of the press when at least PRESS_DIR_G, spec 2.11)
+        self.step_rise_g = 0.0
 
     @property
     def active(self) -> bool:
@@ -175,6 +178,7 @@ class ContactProbe:
         self.x0_steps = self._x1_mm * spmm - self._f1_g / self.k_g_per_step
         self.contact_valid = True
         self.located_x0_steps = self.x0_steps
+        self.step_rise_g = force_g - self._f1_g
         return 0.0, False
 
     def step_done(self, pos_mm: float) -> bool:

@@ -136,13 +136,16 @@ static void release_actuator(ctl_t *c)
     }
 }
 
-/* the way a back-off takes is proven by the force loop's own motion (spec 2.11): the count and the force moved
- * together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or since the probe was done, and
- * nothing moved them apart since (an older proof from the probe would miss a motor swapped while the probe held
- * still; once the loop holds, a reversed motor drives the force off and is seen) */
+/* the way a back-off takes is proven by this press's own motion (spec 2.11): the count and the force moved
+ * together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or the probe's measuring step(s)
+ * raised the settled load (or the loop's motion proved it since the probe was done), and nothing moved them apart
+ * since (an older proof from the probe's approach would miss a motor swapped while the probe held still; once the
+ * loop holds, a reversed motor drives the force off and is seen). Before the contact, HOME's switch proof stands
+ * (press_dir_leave): the press left the closed switch, and the switch reading closed more than HOME_PROOF_MM out
+ * voids it (a motor reversed since drives the actuator back home) */
 static uint8_t press_dir_proven(const ctl_t *c)
 {
-    return c->press_dir_held || c->press_dir_age <= RIGCTL_PRESS_DIR_PROOF_READINGS;
+    return c->press_dir_held || c->press_dir_leave || c->press_dir_age <= RIGCTL_PRESS_DIR_PROOF_READINGS;
 }
 
 static void press_dir_forget(ctl_t *c)
@@ -150,6 +153,7 @@ static void press_dir_forget(ctl_t *c)
     c->press_dir_n = 0;
     c->press_dir_age = 255;
     c->press_dir_held = 0;
+    c->press_dir_leave = 0;
 }
 
 static void fault(ctl_t *c, uint16_t bits)
@@ -277,11 +281,17 @@ static uint8_t approach_fast(const ctl_t *c)
 }
 
 /* one reading while the probe runs: approach until contact, settle, step PROBE_STEP_UM, settle, k = dF / dx */
-static void probe_reading(ctl_t *c, float f)
+/* the load at which the probe's approach has found the contact: PROBE_CONTACT_G, or half the setpoint if less */
+static float contact_g(const ctl_t *c)
 {
     float contact = (float)RIGCTL_PROBE_CONTACT_G, half = 0.5f * (float)c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
+    return half < contact ? half : contact;
+}
+
+static void probe_reading(ctl_t *c, float f)
+{
+    float contact = contact_g(c), half = 0.5f * (float)c->hreg[RIGCTL_HREG_FORCE_SETPOINT_G];
     float spmm = (float)c->hreg[RIGCTL_HREG_ACTUATOR_STEPS_PER_MM];
-    if (half < contact) contact = half;
     c->act_vel_mm_s = 0.0f;
     switch (c->probe_phase) {
     case PROBE_APPROACH:
@@ -330,6 +340,9 @@ static void probe_reading(ctl_t *c, float f)
             c->contact_valid = 1;
             c->contact_located = 1;
             c->located_x0_steps = c->contact_x0_steps;
+            /* the probe's measuring step(s) went forward and the settled load rose with them: the way is proven for
+             * the rest of this press (spec 2.11), until the release, HOME, a fault or the watch's evidence against */
+            c->press_dir_held = f - c->probe_f1_gf >= (float)RIGCTL_PRESS_DIR_G;
         }
         return;
     }
@@ -339,6 +352,7 @@ static void engage(ctl_t *c)
 {
     force_pi_reset(&c->pi);
     press_dir_forget(c);
+    c->press_dir_leave = c->homed && c->home_switch; /* HOME's switch proof stands until the contact (2.11) */
     c->probe_phase = c->contact_valid ? PROBE_NONE : PROBE_APPROACH; /* every press from rest probes (2.11) */
     c->force_prev_valid = 0;
     c->act_mode = ACT_MODE_FORCE;
@@ -701,6 +715,9 @@ void ctl_tick(ctl_t *c, uint32_t now_ms)
             stop_unproven(c, RIGCTL_FAULT_POSITION_LIMIT);
             break;
         }
+        /* HOME's switch proof is void once the switch reads closed with the count HOME_PROOF_MM out (2.11): the
+         * motor runs backwards (a reversed one sits in its rear stop until ACTUATOR_TRAVEL, which then stops it) */
+        if (c->home_switch && act_pos_mm(c) > (float)RIGCTL_HOME_PROOF_MM) c->press_dir_leave = 0;
         if (act_pos_mm(c) >= ACT_MAX_TRAVEL_MM && c->act_vel_mm_s > 0.0f) {
             c->act_vel_mm_s = 0.0f;
             fault(c, RIGCTL_FAULT_ACTUATOR_TRAVEL);
@@ -743,6 +760,7 @@ static uint8_t press_dir_watch(ctl_t *c, float f)
     float df;
     if (c->press_dir_age < 255) c->press_dir_age++;
     if (c->probe_phase != PROBE_NONE) c->press_dir_held = 0;
+    if ((f < 0.0f ? -f : f) >= contact_g(c)) c->press_dir_leave = 0; /* the contact: the force proves from here */
     if (c->press_dir_n == LEN) {
         for (i = 1; i < LEN; i++) {
             c->press_dir_steps[i - 1] = c->press_dir_steps[i];

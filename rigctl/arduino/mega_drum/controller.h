@@ -87,7 +87,8 @@ typedef struct {
     float press_dir_gf[RIGCTL_PRESS_DIR_READINGS + RIGCTL_PRESS_DIR_LAG_READINGS + 1];
     uint8_t press_dir_n;       /* readings held (up to the ring's length); the newest is at [n - 1] */
     uint8_t press_dir_age;     /* readings since the count and the force last moved together (255: not proven) */
-    uint8_t press_dir_held;    /* proven since the probe was done, nothing against it since */
+    uint8_t press_dir_held;    /* proven by the probe's step or since it was done, nothing against it since */
+    uint8_t press_dir_leave;   /* the press left the closed home switch homed and has not reached the contact */
     /* time */
     uint32_t now_ms;
     uint32_t last_request_ms;
