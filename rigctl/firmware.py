@@ -108,7 +108,7 @@ REQUIRED_BUILD_ID = ("mega",)
 
 
 def known_versions(src: Path | str | None = None) -> str:
-    """The firmware this rigctl knows, in words: ``"mega firmware 1.2 build f3310eaea3e2, uno firmware 1.0 build
+    """The firmware this rigctl knows, in words: ``"mega firmware 1.3 build f3310eaea3e2, uno firmware 1.0 build
     f3310eaea3e2"`` (the installed sources' :func:`source_versions` and :func:`build_id`; their errors)."""
     versions, bid = source_versions(src), build_id(src)
     return ", ".join(f"{board} firmware {'.'.join(map(str, v))} build {bid}" for board, v in versions.items())

@@ -146,7 +146,7 @@ UNO_FIRMWARE_VERSION = (1, 0)
 # --------------------------------------------------------------------------------------------------------------
 DRUM_BAUD = 500_000
 DRUM_DEVICE_ID = 1
-MEGA_FIRMWARE_VERSION = (1, 2)
+MEGA_FIRMWARE_VERSION = (1, 3)
 
 
 class HoldingRegister(enum.IntEnum):
