@@ -351,13 +351,15 @@ class HilRig:
 
     def _hardware_args(self) -> list[str]:
         """The harness options of the telemetry period (``tel_ms``), the HX711 (rate, oscillator error), the drum
-        driver's microstep setting and the index sensor, from the rig config (``MechanicsConfig.hx711_*``,
-        ``DrumConfig.driver_microsteps``, ``DrumConfig.index_sensor``)."""
+        driver's microstep setting, the index sensor and the actuator driver's stall (off unless set), from the rig
+        config (``MechanicsConfig.hx711_*``, ``.actuator_stall_g``, ``DrumConfig.driver_microsteps``,
+        ``DrumConfig.index_sensor``)."""
         m, d = self.config.mechanics, self.config.drum
         args = ["--tel-ms", str(self.tel_ms), "--hx711-sps", str(int(m.hx711_rate_sps)),
                 "--hx711-clock-error", str(m.hx711_clock_error),
                 "--drum-driver-microsteps", str(d.true_microsteps), "--index-bounce", str(self.index_bounce)]
         args += ["--actuator-reversed"] if m.actuator_reversed else []
+        args += ["--actuator-stall-g", str(m.actuator_stall_g)] if m.actuator_stall_g > 0 else []
         return args if d.index_sensor else [*args, "--no-index-sensor"]
 
     def close(self) -> None:

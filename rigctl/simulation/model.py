@@ -287,6 +287,14 @@ class MechanicsConfig:
     actuator_reversed : bool
         The actuator motor's coil pair is swapped (a bench fault): a velocity towards the sensor moves it away and
         back again (:attr:`RigModel.actuator_sign` starts from it; the simavr harness's ``--actuator-reversed``).
+    actuator_stall_g : float
+        The contact force at which the actuator's motor stalls (skips its steps), g; 0 = never (the default, and in
+        every safety test: the firmware's protection must not rely on it). A bench sets the driver's current so the
+        motor stalls near 1.5 x the largest force (docs/hardware/wiring.md, "Driver current": I = Vref / (8 R_sense),
+        Allegro A4988 datasheet, "Current Regulation"; DRV8825: I = Vref / (5 R_sense), TI DRV8825 datasheet 7.3.4;
+        the screw's force F = 2 pi eta T / lead, torque about proportional to current). Modelled coarsely: the actuator
+        does not advance past where the contact's spring carries this force (its runout and texture ripple aside);
+        the step count the controller keeps goes on. The simavr harness's ``--actuator-stall-g``.
     """
 
     contact_gap_mm: float = 3.0
@@ -300,6 +308,7 @@ class MechanicsConfig:
     hx711_rate_sps: float = 80.0
     hx711_clock_error: float = 0.0
     actuator_reversed: bool = False
+    actuator_stall_g: float = 0.0
 
     def __post_init__(self):
         if self.hx711_rate_sps not in (10.0, 80.0):
@@ -308,6 +317,8 @@ class MechanicsConfig:
             raise ValueError(f"hx711_clock_error must be within +-0.2, got {self.hx711_clock_error}")
         if not 0 < self.contact_stiffness_g_per_mm <= 1e5:
             raise ValueError(f"contact_stiffness_g_per_mm must be > 0, got {self.contact_stiffness_g_per_mm}")
+        if self.actuator_stall_g < 0:
+            raise ValueError(f"actuator_stall_g must be >= 0 (0: no stall), got {self.actuator_stall_g}")
 
     @property
     def hx711_period_s(self) -> float:
@@ -1048,6 +1059,9 @@ class RigModel:
             true_steps_per_mm, circ, vmax, accel_step, travel, gap, runout, stiffness, ripple, pitch, marks_per_mm = k
             target = float(drum_step_rate_hz) / true_steps_per_mm  # the driver's real microstep setting
             va = min(max(self.actuator_sign * float(actuator_velocity_mm_s), -vmax), vmax)
+            stall_g = self.config.mechanics.actuator_stall_g
+            if stall_g > 0 and va > 0:  # the driver's stall current: no further than where the spring carries stall_g
+                va = min(va, max(0.0, gap + stall_g / stiffness - self._actuator_mm) / (n * dt))
             # speed ramp, surface travel, index-mark passes, speed marks, actuator travel and contact force with the
             # runout and the texture ripple (SensorModel.contact_height), one ms after another
             # (rigctl.simulation.mechanics)

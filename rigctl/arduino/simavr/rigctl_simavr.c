@@ -318,6 +318,11 @@ static double opt_contact_mm0 = 5.0;          /* the rig's plates' surface (--co
 static _Atomic double spring_k_req = 0.0;     /* "spring-k G" asked, not yet applied (0: none) */
 static double opt_act_steps_per_mm = 400.0;
 static double opt_rear_stop_mm = 1.0;      /* the actuator's mechanical rear stop, mm behind the home switch */
+/* the actuator driver's stall current (--actuator-stall-g G, 0 = none, the default): a step towards the sensor that
+ * would make the spring's force exceed G is lost, as a driver whose Vref is set for a stall near 1.5 x the largest
+ * force skips (docs/hardware/wiring.md "Driver current": A4988 I = Vref / (8 R_sense), Allegro datasheet "Current
+ * Regulation"; torque about proportional to current, F = 2 pi eta T / lead). Off in every safety test */
+static double opt_stall_g = 0.0;
 static double opt_counts_per_g = 420.0;    /* LOADCELL_SCALE_X100 default / 100 */
 static long opt_loadcell_offset = 8000;
 static double opt_tel_ms = 50.0;
@@ -1331,6 +1336,12 @@ static void act_step_hook(avr_irq_t *irq, uint32_t value, void *param)
         act_last_t = t;
         if (!fwd && act_steps <= -(int64_t)llround(opt_rear_stop_mm * opt_act_steps_per_mm))
             return; /* against the rear stop: the motor stalls, the firmware's step count goes on */
+        if (fwd && opt_stall_g > 0.0) { /* the stall: the spring's force one step further (as mega_force_g) */
+            double x = (double)(act_steps + 1) / opt_act_steps_per_mm;
+            if (x > opt_contact_mm && atomic_load(&opt_spring_k) * (x - opt_contact_mm) > opt_stall_g) {
+                return; /* lost: the firmware's step count goes on */
+            }
+        }
         act_steps += fwd ? 1 : -1;
         update_home();
     }
@@ -1813,7 +1824,7 @@ static void usage(void)
                     "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] [--aa-c-nf NF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
-                    "[--index-bounce N] [--eeprom-write OFFSET:HEX] "
+                    "[--index-bounce N] [--eeprom-write OFFSET:HEX] [--actuator-stall-g G] "
                     "FIRMWARE.elf\n");
     exit(2);
 }
@@ -1834,6 +1845,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--contact-mm")) opt_contact_mm = opt_contact_mm0 = atof(NEXT());
         else if (!strcmp(a, "--act-steps-per-mm")) opt_act_steps_per_mm = atof(NEXT());
         else if (!strcmp(a, "--rear-stop-mm")) opt_rear_stop_mm = atof(NEXT());
+        else if (!strcmp(a, "--actuator-stall-g")) opt_stall_g = atof(NEXT());
         else if (!strcmp(a, "--counts-per-g")) opt_counts_per_g = atof(NEXT());
         else if (!strcmp(a, "--loadcell-offset")) opt_loadcell_offset = atol(NEXT());
         else if (!strcmp(a, "--tel-ms")) opt_tel_ms = atof(NEXT());
