@@ -18,9 +18,10 @@ accuracies against a scikit-learn ``PCA(n)`` + ``LinearDiscriminantAnalysis`` re
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import eigh
+from scipy.linalg import eigh, solve_triangular
+from scipy.linalg.lapack import dpotrf
 
-__all__ = ["GramBlocks", "SplitPCA", "split_scores"]
+__all__ = ["GramBlocks", "SplitPCA", "split_scores", "zero_padding"]
 
 
 class SplitPCA:
@@ -58,19 +59,30 @@ class SplitPCA:
 class GramBlocks:
     """Gram matrices of row blocks of one feature matrix, for PCAs of any union of the blocks.
 
+    The unscaled variants' trials are zero-padded to the longest trial's windows (a 2 s trial fills 20 of 60), so
+    their rows are zero in whole runs of columns: the columns are ordered by how many rows use them, the rows grouped
+    by the last column they use in that order (:func:`zero_padding`), and each group's Gram matrix is formed on its
+    own leading columns only, centred on the group's mean (the zeros stay zeros), with the groups' means put back as a
+    rank-``n_groups`` float64 term. The same sums as the dense ``X_b' X_b``; at the paper's size (speeds 40-120 mm/s:
+    2-6 s trials) ~0.4 of its multiply-adds in the folds, ~0.6 in the extrapolation's training set. The PC scores
+    (:meth:`scores`) use the groups too. A matrix without padding is one group of every column (the dense path).
+
     Parameters
     ----------
     x : array_like, shape (n_rows, n_features)
         Feature matrix (float32 or float64; the Gram matrices are float32, as scikit-learn keeps float32 input).
     blocks : sequence of int index arrays
         Disjoint row blocks of ``x`` (e.g. the test sets of the k folds; one block = one training set).
+    padding : (order, extent), optional
+        :func:`zero_padding` of ``x`` (or of a matrix ``x`` is a row subset of: its order and these rows' extents).
 
     Attributes
     ----------
     centre : ndarray (n_features,) float64
         Mean of the rows in the blocks.
     xc : ndarray (n_rows, n_features) float32
-        ``x - centre`` (rows outside every block are centred too, for :meth:`SplitPCA.transform_centred`).
+        ``x - centre`` (rows outside every block are centred too, for :meth:`SplitPCA.transform_centred`); made on
+        first use (the fast path does not need it: :meth:`scores`).
 
     Raises
     ------
@@ -78,24 +90,83 @@ class GramBlocks:
         ``x`` not 2-D, an empty block.
     """
 
-    def __init__(self, x, blocks):
+    def __init__(self, x, blocks, *, padding=None):
         x = np.asarray(x)
         if x.ndim != 2:
             raise ValueError(f"features must be 2-D (n_trials, n_features), got shape {x.shape}")
         self.blocks = [np.asarray(b) for b in blocks]
         if any(b.size == 0 for b in self.blocks):
             raise ValueError("empty row block")
+        self._x = x
+        self._xc = None
         rows = np.concatenate(self.blocks)
         self.centre = (x if rows.size == x.shape[0] else x[rows]).mean(axis=0, dtype=np.float64)
-        self.xc = x.astype(np.float32, copy=True)  # (no float64 temporary of the whole matrix)
-        self.xc -= self.centre.astype(np.float32)
+        self.n_features = d = x.shape[1]
+        self._order, extent = zero_padding(x) if padding is None else padding
+        groups = _groups(np.asarray(extent))
+        self._inverse = np.argsort(self._order)
+        centre_p = self.centre[self._order]
+        # per group: its rows, its leading columns k, its mean over them (float64) and its rows centred on it (f32)
+        self._groups = []
+        group_of = np.empty(x.shape[0], np.intp)
+        slot_of = np.empty(x.shape[0], np.intp)
+        for g, (rows_g, k) in enumerate(groups):
+            xg = x[np.ix_(rows_g, self._order[:k])].astype(np.float32, copy=False)
+            m = xg.mean(axis=0, dtype=np.float64)
+            xg = xg - m.astype(np.float32)  # (a new array: x's rows stay as they were)
+            self._groups.append((rows_g, k, m, xg))
+            group_of[rows_g] = g
+            slot_of[rows_g] = np.arange(rows_g.size)
         self._grams = []
+        self._means = []
         self._sums = []
         for b in self.blocks:
-            xb = self.xc[b]
-            self._grams.append(xb.T @ xb)  # numpy calls BLAS syrk for a matrix times its own transpose
-            self._sums.append(xb.sum(axis=0, dtype=np.float64))
-        self.n_features = x.shape[1]
+            gram = None
+            means = []  # (n rows, their mean - centre over every column, permuted) per group in the block
+            gb = group_of[b]
+            for g in reversed(range(len(self._groups))):  # the widest first: it writes the whole matrix
+                _, k, m, xg = self._groups[g]
+                sel = slot_of[b[gb == g]]
+                if sel.size == 0:
+                    continue
+                y = xg[sel]
+                mu = y.mean(axis=0, dtype=np.float64)
+                y -= mu.astype(np.float32)
+                if gram is None and k == d:
+                    gram = y.T @ y  # numpy calls BLAS syrk for a matrix times its own transpose
+                else:
+                    if gram is None:
+                        gram = np.zeros((d, d), np.float32)
+                    gram[:k, :k] += y.T @ y
+                v = -centre_p.copy()
+                v[:k] += m + mu
+                means.append((sel.size, v))
+            n = np.array([c for c, _ in means], np.float64)
+            v = np.stack([v for _, v in means], axis=1)  # (d, groups in the block)
+            self._grams.append(gram)
+            self._means.append((v, n))  # the groups' means about the centre: added in pca (parallel axes)
+            self._sums.append(v @ n)  # sum of the block's rows - centre (permuted)
+        self._total = None  # the sum of every block's Gram matrix, made when a PCA first uses most blocks
+
+    @property
+    def xc(self):
+        """``x - centre`` as float32, ``(n_rows, n_features)`` (made on first use)."""
+        if self._xc is None:
+            self._xc = self._x.astype(np.float32, copy=True)
+            self._xc -= self.centre.astype(np.float32)
+        return self._xc
+
+    def scores(self, pca):
+        """PC scores of every row of ``x`` under ``pca`` (one of :meth:`pca`'s), by groups: ``(n_rows,
+        pca.n_components_)`` float64, equal to ``pca.transform_centred(self.xc)`` up to float32 rounding."""
+        wp = pca.components_[:, self._order]  # (n_pcs, d) permuted
+        c_p = self.centre[self._order]
+        z = np.empty((self._x.shape[0], wp.shape[0]), np.float64)
+        for rows_g, k, m, xg in self._groups:
+            v = -c_p.copy()
+            v[:k] += m
+            z[rows_g] = (xg @ wp[:, :k].T).astype(np.float64) + (v @ wp.T.astype(np.float64) - pca._offset)
+        return z
 
     def pca(self, use, n_components, *, random_state=0, n_iter=7, n_oversamples=10):
         """PCA of the rows of the blocks ``use``.
@@ -129,37 +200,115 @@ class GramBlocks:
         k = int(min(n_components, n - 1, self.n_features))
         if k < 1:
             raise ValueError("need at least one principal component")
-        cov = self._grams[use[0]].copy()
-        for i in use[1:]:
-            cov += self._grams[i]
+        # (in the columns' order of the groups, zero_padding; the result in the features' own order)
+        rest = [i for i in range(len(self.blocks)) if i not in set(use)]
+        if len(use) > 1 and len(rest) < len(use) - 1:  # (k-fold: the total less the held-out blocks)
+            if self._total is None:
+                self._total = self._grams[0].copy()
+                for g in self._grams[1:]:
+                    self._total += g
+            cov = np.subtract(self._total, self._grams[rest[0]]) if rest else self._total.copy()
+            for i in rest[1:]:
+                cov -= self._grams[i]
+        else:
+            cov = self._grams[use[0]].copy()
+            for i in use[1:]:
+                cov += self._grams[i]
         s = np.sum([self._sums[i] for i in use], axis=0)
         shift = s / n  # training mean - centre (small: the centre is the mean of all blocks)
-        cov -= np.outer(s.astype(np.float32), shift.astype(np.float32))
+        # the groups' means about the centre, less the training mean's shift: one low-rank update
+        # sum_g n_g v_g v_g' - s s' / n
+        v = np.concatenate([self._means[i][0] for i in use] + [s[:, None]], axis=1)
+        w = np.concatenate([self._means[i][1] for i in use] + [[-1.0 / n]])
+        cov += ((v * w).astype(np.float32)) @ v.T.astype(np.float32)
         cov *= np.float32(1.0 / (n - 1))
-        vals, vecs = _top_eigen(cov, k, n_iter, n_oversamples, random_state)
-        comps = np.ascontiguousarray(vecs.T, dtype=np.float32)
+        vals, vecs = _top_eigen(cov, k, n_iter, n_oversamples, random_state, self._order)
+        comps = np.ascontiguousarray(vecs.T[:, self._inverse], dtype=np.float32)
+        shift = shift[self._inverse]
         offset = shift @ comps.T.astype(np.float64)
         return SplitPCA(self.centre + shift, comps, vals, self.centre, offset)
 
 
-def _top_eigen(cov, k, n_iter, n_oversamples, random_state):
+def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None):
     """Leading ``k`` eigenpairs of a symmetric PSD matrix: exact for small matrices, else a randomized subspace
-    iteration with a Rayleigh-Ritz step (Halko, Martinsson & Tropp 2011, Alg. 4.4 on ``cov``)."""
+    iteration with a Rayleigh-Ritz step (Halko, Martinsson & Tropp 2011, Alg. 4.4 on ``cov``). ``order``: ``cov``'s
+    rows and columns are the features in this order (the random start is drawn in the features' own order and
+    permuted with them, so the iteration does not depend on the order)."""
     d = cov.shape[0]
     p = min(d, k + n_oversamples)
     if d <= 4 * p:  # small: LAPACK's exact solver is as cheap
         vals, vecs = eigh(cov.astype(np.float64), subset_by_index=[d - k, d - 1])
         return vals[::-1], vecs[:, ::-1]
     q = np.random.default_rng(random_state).standard_normal((d, p)).astype(cov.dtype)
+    if order is not None:
+        q = q[order]
     for _ in range(n_iter + 1):
-        q, _ = np.linalg.qr(cov @ q)  # (numpy's QR is 10x faster than scipy's on tall float32 blocks)
+        q = _orthonormal(cov @ q)
     small = (q.T @ (cov @ q)).astype(np.float64)
     vals, u = eigh((small + small.T) / 2)
     top = np.argsort(vals)[::-1][:k]
     return vals[top], q @ u[:, top].astype(q.dtype)
 
 
-def split_scores(x, splits, n_components, *, random_states, kfold=False):
+def zero_padding(x, *, steps=32, chunk=4096):
+    """The zero padding of a feature matrix: a column order, and each row's extent in it.
+
+    Columns are ordered by how many rows are non-zero in them (most first; stable); a row's extent is one past the
+    last column, in that order, where it is non-zero, rounded up to a multiple of ``n_features / steps`` (at least
+    1). Every row is zero beyond its extent (exactly). Computed once per feature matrix and passed to
+    :class:`GramBlocks` for its subsets (``padding=(order, extent[rows])``).
+
+    Returns
+    -------
+    order : ndarray (n_features,) intp
+    extent : ndarray (n_rows,) intp
+    """
+    x = np.asarray(x)
+    n, d = x.shape
+    count = np.zeros(d, np.int64)
+    for s in range(0, n, chunk):
+        count += np.count_nonzero(x[s:s + chunk], axis=0)
+    if n == 0 or count.min() == n:
+        return np.arange(d), np.full(n, d, np.intp)
+    order = np.argsort(-count, kind="stable")
+    rank = np.empty(d, np.int32)
+    rank[order] = np.arange(1, d + 1)
+    extent = np.empty(n, np.intp)
+    for s in range(0, n, chunk):
+        extent[s:s + chunk] = ((x[s:s + chunk] != 0) * rank).max(axis=1)
+    step = max(1, -(-d // steps))
+    return order, np.clip(-(-extent // step) * step, 1, d)
+
+
+def _groups(extent, min_rows=64):
+    """Rows of one extent as groups ``(rows, k)`` by increasing ``k``; a group of fewer than ``min_rows`` rows joins
+    the next wider one."""
+    levels = np.unique(extent)
+    groups, pending = [], None
+    for level in levels:
+        rows = np.flatnonzero(extent == level)
+        pending = rows if pending is None else np.concatenate([pending, rows])
+        if pending.size >= min_rows or level == levels[-1]:
+            groups.append((np.sort(pending), int(level)))
+            pending = None
+    return groups
+
+
+def _orthonormal(y):
+    """An orthonormal basis of the columns of ``y`` (d, p) float32, as float32: Cholesky QR in float64 (``y' y =
+    R' R``, ``Q = y R^-1``: two small products, where LAPACK's Householder QR of the tall block took ~40 % of an
+    iteration); the float64 Gram keeps it exact to float32 for condition numbers up to ~1e7, and a second pass
+    restores the orthogonality lost beyond. Householder QR if the Gram is not positive definite (rank-deficient)."""
+    y64 = y.astype(np.float64)
+    for _ in range(2):
+        r, info = dpotrf(y64.T @ y64, lower=0, clean=1)
+        if info != 0:
+            return np.linalg.qr(y)[0]
+        y64 = y64 @ solve_triangular(r, np.eye(r.shape[0]), lower=False, check_finite=False)
+    return y64.astype(np.float32)
+
+
+def split_scores(x, splits, n_components, *, random_states, kfold=False, padding=None):
     """PC scores of each split's training and test rows, with the PCA fitted on its training rows.
 
     Parameters
@@ -174,6 +323,8 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False):
     kfold : bool
         The splits are k-fold cross-validation (the test sets partition the rows and each training set is the union
         of the other test sets): the test sets' Gram blocks are shared by the folds.
+    padding : (order, extent), optional
+        :func:`zero_padding` of ``x`` (computed here when not given).
 
     Yields
     ------
@@ -196,14 +347,14 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False):
             yield pca.transform(x[tr]), pca.transform(x[te])
         return
     if kfold:
-        gb = GramBlocks(x, [te for _, te in splits])
+        gb = GramBlocks(x, [te for _, te in splits], padding=padding)
         for f, ((tr, te), rs) in enumerate(zip(splits, random_states)):
             pca = gb.pca([g for g in range(len(splits)) if g != f], n_components, random_state=rs)
-            z = pca.transform_centred(gb.xc)  # every row once (no copies of the training rows)
+            z = gb.scores(pca)  # every row once (no copies of the training rows)
             yield z[tr], z[te]
         return
     for (tr, te), rs in zip(splits, random_states):
-        gb = GramBlocks(x, [tr])
+        gb = GramBlocks(x, [tr], padding=padding)
         pca = gb.pca([0], n_components, random_state=rs)
-        z = pca.transform_centred(gb.xc)
+        z = gb.scores(pca)
         yield z[tr], z[te]

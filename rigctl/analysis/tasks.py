@@ -37,7 +37,7 @@ from rigctl.analysis.data import FeatureSet, default_variants
 from rigctl.analysis.parallel import connected, map_repeats, one_blas_thread
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
 from rigctl.analysis.results import TASK_TITLES, Curve, TaskResults, task_title
-from rigctl.analysis.splitpca import split_scores
+from rigctl.analysis.splitpca import split_scores, zero_padding
 from rigctl.core.progress import Stage
 
 __all__ = [
@@ -166,7 +166,7 @@ def run_cv(
                         "n_groups": None if groups is None else int(np.unique(groups).size)}
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
-    shared = {"features": {v: fs.features[v] for v in vs}, "texture": fs.texture,
+    shared = {"features": {v: fs.features[v] for v in vs}, "padding": _paddings(fs, vs), "texture": fs.texture,
               "labels": {t: (fs.texture if t == "textures" else fs.group) for t in tasks}, "classes": classes,
               "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
               "groups": groups}
@@ -185,12 +185,20 @@ def run_cv(
     return res
 
 
-def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs, groups=None):
+def _paddings(fs: FeatureSet, vs) -> dict:
+    """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features, once for every repetition."""
+    return {v: zero_padding(fs.features[v]) for v in vs}
+
+
+def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs, groups=None,
+               padding=None):
     """Repetition ``r`` of :func:`run_cv`: ``{(task, variant): ([correct per PC count, per fold], confusion)}``."""
     idx, folds = cv_split(texture, n_draw, k, seed=seed, repeat=r, groups=groups)
     correct, cms = {}, {}
     for v, x in features.items():
-        scores = split_scores(x[idx], folds, n_pcs, random_states=[r * k + f for f in range(k)], kfold=True)
+        pad = None if padding is None else (padding[v][0], padding[v][1][idx])
+        scores = split_scores(x[idx], folds, n_pcs, random_states=[r * k + f for f in range(k)], kfold=True,
+                              padding=pad)
         for (tr, te), (z_tr, z_te) in zip(folds, scores):
             for t, y_all in labels.items():
                 y = y_all[idx]
@@ -298,8 +306,8 @@ def run_extrapolation(
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = fs.texture_classes  # the texture set's order (stable codes)
     cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
-    shared = {"features": {v: fs.features[v] for v in vs}, "texture": fs.texture, "classes": classes,
-              "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
+    shared = {"features": {v: fs.features[v] for v in vs}, "padding": _paddings(fs, vs), "texture": fs.texture,
+              "classes": classes, "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
               "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs}
     bar = Stage(progress, prefix + "extrapolation", repeats * len(vs), unit="fit")
     per_repeat = map_repeats(_extrapolation_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler,
@@ -317,7 +325,7 @@ def run_extrapolation(
 
 
 def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells, cat_of, counts, cats, n_pcs, seed,
-                          confusion_pcs):
+                          confusion_pcs, padding=None):
     """Repetition ``r`` of :func:`run_extrapolation`: ``{(cell, variant): (accuracy per PC count, confusion,
     test trials)}``."""
     train_idx, test_idx, test_cat = _extrapolation_draw(cells, trained_cells, cat_of, *counts,
@@ -327,7 +335,8 @@ def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells
     split = [(np.arange(len(train_idx)), np.arange(len(train_idx), len(rows)))]
     out = {}
     for v, x in features.items():
-        (z_tr, z_te), = split_scores(x[rows], split, n_pcs, random_states=[r])
+        pad = None if padding is None else (padding[v][0], padding[v][1][rows])
+        (z_tr, z_te), = split_scores(x[rows], split, n_pcs, random_states=[r], padding=pad)
         pred = NestedLDA().fit(z_tr, y_tr).predict_all(z_te)
         for c in cats:
             m = test_cat == c

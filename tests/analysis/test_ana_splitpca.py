@@ -112,3 +112,42 @@ def test_repetitions_in_threads_and_on_dask_give_the_same_table(fs):
     for t in one:
         np.testing.assert_array_equal(threads[t], one[t])
         np.testing.assert_array_equal(on_dask[t], one[t])
+
+
+def test_zero_padded_rows_give_the_dense_pca_and_scores():
+    """The unscaled variants' trials are zero-padded to the longest (a 2 s trial fills 20 of 60 windows): the Gram
+    blocks are formed per padding group on its leading columns only, and the PCA and the scores are the dense ones."""
+    from sklearn.decomposition import PCA
+
+    from rigctl.analysis.splitpca import GramBlocks, zero_padding
+
+    rng = np.random.default_rng(1)
+    n, trains, windows = 900, 4, 30
+    x = rng.gamma(2.0, 5.0, (n, trains, windows)) * np.linspace(3, 1, windows)
+    filled = rng.choice([30, 20, 15, 10], n)  # windows each trial fills (speeds)
+    for i, w in enumerate(filled):
+        x[i, :, w:] = 0
+    x[rng.random(x.shape) < 0.03] = 0  # silent windows inside a trial too
+    x = x.reshape(n, -1).astype(np.float32)
+    order, extent = zero_padding(x)
+    assert len(np.unique(extent)) >= 4  # the four trial lengths are found
+    assert np.all(np.flatnonzero(x[np.argmin(extent)] != 0) < x.shape[1])
+    for i in range(n):  # every row is zero beyond its extent, in the order
+        assert not x[i, order[extent[i]:]].any()
+    blocks = np.array_split(rng.permutation(n), 3)
+    gb = GramBlocks(x, blocks)
+    assert len(gb._groups) >= 4  # (the grouped path: not one dense group)
+    dense = GramBlocks(x, blocks, padding=(np.arange(x.shape[1]), np.full(n, x.shape[1])))  # one group: every column
+    assert len(dense._groups) == 1
+    for use in ([1, 2], [0]):
+        p, q = gb.pca(use, 10), dense.pca(use, 10)  # the same random start: equal up to float32 rounding
+        np.testing.assert_allclose(p.mean_, q.mean_, rtol=1e-6, atol=1e-4)
+        np.testing.assert_allclose(p.explained_variance_, q.explained_variance_, rtol=1e-4)
+        assert np.abs(np.sum(p.components_ * q.components_, axis=1)).min() > 0.9999
+        z, want = gb.scores(p), q.transform_centred(dense.xc)
+        assert (np.abs(np.abs(z) - np.abs(want)).max(axis=0) < 2e-3 * want.std(axis=0)).all()
+    rows = np.concatenate(blocks[1:])
+    ref = PCA(3, svd_solver="full").fit(x[rows])  # the leading axes, well separated: as scikit-learn's exact PCA
+    p = gb.pca([1, 2], 3)
+    np.testing.assert_allclose(p.explained_variance_[:2], ref.explained_variance_[:2], rtol=1e-3)
+    assert np.abs(np.sum(p.components_[:2] * ref.components_[:2], axis=1)).min() > 0.999
