@@ -1,8 +1,14 @@
 """Benchmark: the whole Table 1 (6 tasks x 4 variants x 50 PCs x 20 repetitions) on paper-sized feature matrices.
 
 Input: random float32 matrices of the paper's size (24,000 x 2160 for Original / Force Scaled, 24,000 x 720 for the
-speed-scaled variants) with the paper's label layout; tasks A/B draw 8000-trial subsamples with 4-fold CV, the
-extrapolation task trains on 7200 trials. Target (issue 12): under 3 minutes on 2 cores (was 7.8 min with one
+speed-scaled variants) with the paper's label layout, the unscaled variants zero-padded as the encoder pads them (a
+trial at v mm/s fills 2400 / v of its 60 windows; ``--no-padding``: dense, as before issue 57), or an encoded file's
+features (``--features FILE``); tasks A/B draw 8000-trial subsamples with 4-fold CV, the extrapolation task trains on
+7200 trials.
+
+Side by side in the same run (issue 57): one repetition on one core with every column in one Gram block (the dense
+path) and with the zero padding's groups (:func:`rigctl.analysis.splitpca.zero_padding`), alternated, best of 2, with
+the largest accuracy difference. Target (issue 12): under 3 minutes on 2 cores (was 7.8 min with one
 scikit-learn randomized PCA per split).
 
 Side by side in the same run: one repetition of the previous path (a scikit-learn randomized PCA per fold and split,
@@ -16,6 +22,7 @@ reported side by side as a ratio, with a check that both give the same accuracie
     python benchmarks/bench_table1.py                 # full Table 1, paper-sized
     python benchmarks/bench_table1.py --repeats 2     # quicker
     python benchmarks/bench_table1.py --jobs 1        # repetitions one at a time (BLAS threads on every core)
+    python benchmarks/bench_table1.py --features paper.encoded.h5 --skip-naive   # the simulated paper's features
 """
 
 from __future__ import annotations
@@ -90,6 +97,40 @@ def one_repetition_side_by_side(fs, n_pcs, r=0):
     return cpu, diff
 
 
+def dense_vs_grouped(fs, n_pcs, r=0):
+    """CPU seconds of repetition ``r`` (CV folds + extrapolation split, every variant) with every column in one Gram
+    block (the dense path, as before issue 57) and with the zero padding's groups
+    (:func:`rigctl.analysis.splitpca.zero_padding`), alternated, best of 2; and the largest accuracy difference."""
+    from rigctl.analysis.classify import NestedLDA
+    from rigctl.analysis.splitpca import split_scores, zero_padding
+    from rigctl.analysis.tasks import cv_split, extrapolation_split
+
+    idx, folds = cv_split(fs.texture, 500, 4, seed=0, repeat=r)
+    tr_x, te_x, _ = extrapolation_split(fs, seed=0, repeat=r)
+    rows = np.concatenate([tr_x, te_x])
+    ext = [(np.arange(len(tr_x)), np.arange(len(tr_x), len(rows)))]
+    pads = {v: zero_padding(x) for v, x in fs.features.items()}
+    acc = {"dense": [], "grouped": []}
+    cpu = {"dense": np.inf, "grouped": np.inf}
+    for turn in range(2):
+        for name in acc:
+            c0 = time.process_time()
+            for v, x in fs.features.items():
+                for sub, splits, kfold in ((idx, folds, True), (rows, ext, False)):
+                    xs, y = x[sub], fs.texture[sub]
+                    pad = ((np.arange(x.shape[1]), np.full(len(sub), x.shape[1])) if name == "dense"
+                           else (pads[v][0], pads[v][1][sub]))
+                    scores = split_scores(xs, splits, n_pcs, random_states=[r] * len(splits), kfold=kfold,
+                                          padding=pad)
+                    for (tr, te), (z_tr, z_te) in zip(splits, scores):
+                        pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te)
+                        if turn == 0:
+                            acc[name].append((pred == y[te]).mean(axis=1))
+            cpu[name] = min(cpu[name], time.process_time() - c0)
+    diff = max(float(np.abs(a - b).max()) for a, b in zip(acc["dense"], acc["grouped"]))
+    return cpu, diff
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=24_000)
@@ -99,6 +140,9 @@ def main():
     ap.add_argument("--jobs", type=int, default=None, help="repetitions side by side (default: one per core)")
     ap.add_argument("--skip-full", action="store_true")
     ap.add_argument("--skip-naive", action="store_true", help="skip the naive per-PC-count refit comparison")
+    ap.add_argument("--features", help="an encoded file (rigctl encode): its features instead of random ones")
+    ap.add_argument("--no-padding", action="store_true",
+                    help="random features without the unscaled variants' zero padding (as before issue 57)")
     args = ap.parse_args()
 
     from threadpoolctl import threadpool_info, threadpool_limits
@@ -119,10 +163,23 @@ def main():
     if args.skip_full:
         return
     t0 = time.perf_counter()
-    fs = random_features(args.trials, seed=1)
+    if args.features:
+        from rigctl.analysis.data import load_features
+
+        fs = load_features(args.features)
+    else:
+        fs = random_features(args.trials, seed=1, zero_pad=not args.no_padding)
     t_gen = time.perf_counter() - t0
-    print(f"features: {', '.join(f'{k} {v.shape}' for k, v in fs.features.items())} (made in {t_gen:.1f} s)")
+    print(f"features: {', '.join(f'{k} {v.shape}' for k, v in fs.features.items())} "
+          f"({'read' if args.features else 'made'} in {t_gen:.1f} s; non-zero: "
+          f"{', '.join(f'{k} {np.count_nonzero(v) / v.size:.2f}' for k, v in fs.features.items())})")
     with threadpool_limits(1):  # CPU seconds of one core each (a spinning second BLAS thread would count too)
+        cpu_g, diff_g = dense_vs_grouped(fs, args.pcs)
+    print(f"one repetition on one core, dense Gram blocks {cpu_g['dense']:.2f} CPU-s, zero padding's groups "
+          f"{cpu_g['grouped']:.2f} CPU-s: ratio {cpu_g['dense'] / cpu_g['grouped']:.2f}x (best of 2, alternated); "
+          f"largest accuracy difference {100 * diff_g:.2f} points (load average {os.getloadavg()[0]:.2f})",
+          flush=True)
+    with threadpool_limits(1):
         cpu1, diff = one_repetition_side_by_side(fs, args.pcs)
     print(f"one repetition on one core (4 CV folds + 1 extrapolation split x {len(fs.features)} variants): per-split "
           f"scikit-learn "

@@ -74,7 +74,11 @@ class GramBlocks:
     blocks : sequence of int index arrays
         Disjoint row blocks of ``x`` (e.g. the test sets of the k folds; one block = one training set).
     padding : (order, extent), optional
-        :func:`zero_padding` of ``x`` (or of a matrix ``x`` is a row subset of: its order and these rows' extents).
+        :func:`zero_padding` of the rows covered (or of a matrix they are a subset of: its order and these rows'
+        extents).
+    rows : int index array, optional
+        The rows of ``x`` this object covers (default: all): ``blocks`` and :meth:`scores` index ``x[rows]``, which
+        is never copied whole.
 
     Attributes
     ----------
@@ -90,7 +94,7 @@ class GramBlocks:
         ``x`` not 2-D, an empty block.
     """
 
-    def __init__(self, x, blocks, *, padding=None):
+    def __init__(self, x, blocks, *, padding=None, rows=None):
         x = np.asarray(x)
         if x.ndim != 2:
             raise ValueError(f"features must be 2-D (n_trials, n_features), got shape {x.shape}")
@@ -98,31 +102,30 @@ class GramBlocks:
         if any(b.size == 0 for b in self.blocks):
             raise ValueError("empty row block")
         self._x = x
+        self._rows = None if rows is None else np.asarray(rows)
+        n_rows = x.shape[0] if rows is None else self._rows.size
         self._xc = None
-        rows = np.concatenate(self.blocks)
-        self.centre = (x if rows.size == x.shape[0] else x[rows]).mean(axis=0, dtype=np.float64)
         self.n_features = d = x.shape[1]
-        self._order, extent = zero_padding(x) if padding is None else padding
+        self._order, extent = zero_padding(self._covered()) if padding is None else padding
         groups = _groups(np.asarray(extent))
         self._inverse = np.argsort(self._order)
-        centre_p = self.centre[self._order]
         # per group: its rows, its leading columns k, its mean over them (float64) and its rows centred on it (f32)
         self._groups = []
-        group_of = np.empty(x.shape[0], np.intp)
-        slot_of = np.empty(x.shape[0], np.intp)
+        group_of = np.empty(n_rows, np.intp)
+        slot_of = np.empty(n_rows, np.intp)
         for g, (rows_g, k) in enumerate(groups):
-            xg = x[np.ix_(rows_g, self._order[:k])].astype(np.float32, copy=False)
+            src = rows_g if rows is None else self._rows[rows_g]  # (gathered from x itself: no copy of x[rows])
+            xg = x[np.ix_(src, self._order[:k])].astype(np.float32, copy=False)
             m = xg.mean(axis=0, dtype=np.float64)
-            xg = xg - m.astype(np.float32)  # (a new array: x's rows stay as they were)
+            xg -= m.astype(np.float32)
             self._groups.append((rows_g, k, m, xg))
             group_of[rows_g] = g
             slot_of[rows_g] = np.arange(rows_g.size)
         self._grams = []
-        self._means = []
-        self._sums = []
+        stats = []  # per block: (n rows, their mean, padded, permuted) per group in the block
         for b in self.blocks:
             gram = None
-            means = []  # (n rows, their mean - centre over every column, permuted) per group in the block
+            means = []
             gb = group_of[b]
             for g in reversed(range(len(self._groups))):  # the widest first: it writes the whole matrix
                 _, k, m, xg = self._groups[g]
@@ -138,21 +141,27 @@ class GramBlocks:
                     if gram is None:
                         gram = np.zeros((d, d), np.float32)
                     gram[:k, :k] += y.T @ y
-                v = -centre_p.copy()
-                v[:k] += m + mu
+                v = np.zeros(d)
+                v[:k] = m + mu
                 means.append((sel.size, v))
-            n = np.array([c for c, _ in means], np.float64)
-            v = np.stack([v for _, v in means], axis=1)  # (d, groups in the block)
+            stats.append((np.array([c for c, _ in means], np.float64), np.stack([v for _, v in means], axis=1)))
             self._grams.append(gram)
-            self._means.append((v, n))  # the groups' means about the centre: added in pca (parallel axes)
-            self._sums.append(v @ n)  # sum of the block's rows - centre (permuted)
+        # the centre: the mean of the blocks' rows
+        centre_p = sum(v @ n for n, v in stats) / sum(n.sum() for n, _ in stats)
+        self.centre = centre_p[self._inverse]
+        # the groups' means about the centre: added in pca (parallel axes), and the blocks' sums about it
+        self._means = [(v - centre_p[:, None], n) for n, v in stats]
+        self._sums = [v @ n for v, n in self._means]
         self._total = None  # the sum of every block's Gram matrix, made when a PCA first uses most blocks
+
+    def _covered(self):
+        return self._x if self._rows is None else self._x[self._rows]
 
     @property
     def xc(self):
         """``x - centre`` as float32, ``(n_rows, n_features)`` (made on first use)."""
         if self._xc is None:
-            self._xc = self._x.astype(np.float32, copy=True)
+            self._xc = self._covered().astype(np.float32, copy=True)
             self._xc -= self.centre.astype(np.float32)
         return self._xc
 
@@ -308,7 +317,7 @@ def _orthonormal(y):
     return y64.astype(np.float32)
 
 
-def split_scores(x, splits, n_components, *, random_states, kfold=False, padding=None):
+def split_scores(x, splits, n_components, *, random_states, kfold=False, padding=None, rows=None):
     """PC scores of each split's training and test rows, with the PCA fitted on its training rows.
 
     Parameters
@@ -325,6 +334,8 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False, padding
         of the other test sets): the test sets' Gram blocks are shared by the folds.
     padding : (order, extent), optional
         :func:`zero_padding` of ``x`` (computed here when not given).
+    rows : int index array, optional
+        The splits index ``x[rows]`` (not copied whole: the groups are gathered from ``x``).
 
     Yields
     ------
@@ -342,19 +353,20 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False, padding
 
     x = np.asarray(x)
     if x.shape[1] > min(len(tr) for tr, _ in splits):
+        x = x if rows is None else x[rows]
         for (tr, te), rs in zip(splits, random_states):
             pca = fit_pca(x[tr], n_components, random_state=rs)
             yield pca.transform(x[tr]), pca.transform(x[te])
         return
     if kfold:
-        gb = GramBlocks(x, [te for _, te in splits], padding=padding)
+        gb = GramBlocks(x, [te for _, te in splits], padding=padding, rows=rows)
         for f, ((tr, te), rs) in enumerate(zip(splits, random_states)):
             pca = gb.pca([g for g in range(len(splits)) if g != f], n_components, random_state=rs)
             z = gb.scores(pca)  # every row once (no copies of the training rows)
             yield z[tr], z[te]
         return
     for (tr, te), rs in zip(splits, random_states):
-        gb = GramBlocks(x, [tr], padding=padding)
+        gb = GramBlocks(x, [tr], padding=padding, rows=rows)
         pca = gb.pca([0], n_components, random_state=rs)
         z = gb.scores(pca)
         yield z[tr], z[te]

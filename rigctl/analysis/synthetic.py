@@ -126,7 +126,8 @@ def synthetic_features(
                       attrs={"trials_per_condition": trials_per_condition}, layout=layout)
 
 
-def random_features(n_trials=24_000, n_features=(2160, 720, 2160, 720), *, n_textures=16, seed=0) -> FeatureSet:
+def random_features(n_trials=24_000, n_features=(2160, 720, 2160, 720), *, n_textures=16, seed=0,
+                    zero_pad=False) -> FeatureSet:
     """Paper-sized random feature matrices with the paper's label layout (benchmarks).
 
     Parameters
@@ -135,6 +136,10 @@ def random_features(n_trials=24_000, n_features=(2160, 720, 2160, 720), *, n_tex
         Multiple of ``n_textures * 15`` (the paper: 24,000 = 16 x 15 x 100).
     n_features : tuple of 4 int
         Columns of original, speed_scaled, force_scaled, speed_force_scaled.
+    zero_pad : bool
+        Pad the unscaled variants (original, force_scaled) as the encoder does: a trial at speed ``v`` lasts
+        ``240 mm / v`` (6-2 s), so its 36 trains fill ``2400 / v`` of their 60 windows (columns train-major)
+        and the rest are zero.
 
     Returns
     -------
@@ -152,6 +157,9 @@ def random_features(n_trials=24_000, n_features=(2160, 720, 2160, 720), *, n_tex
         centres = rng.standard_normal((n_textures, min(d, 200)), dtype=np.float32) * 0.3
         x[:, : centres.shape[1]] += centres[tex]
         x *= np.linspace(3, 0.3, d, dtype=np.float32)
+        if zero_pad and name in ("original", "force_scaled") and d % 60 == 0:
+            filled = np.ceil(2400.0 / np.repeat(spd.ravel(), per)).astype(int)  # 100 ms windows of 240 mm / v
+            x.reshape(len(tex), d // 60, 60)[...] *= (np.arange(60)[None, :] < filled[:, None])[:, None, :]
         feats[name] = x
     letters = np.array([chr(ord("A") + i) for i in range(n_textures)])
     return FeatureSet(feats, letters[tex], np.repeat(spd.ravel(), per), np.repeat(frc.ravel(), per),

@@ -151,3 +151,18 @@ def test_zero_padded_rows_give_the_dense_pca_and_scores():
     p = gb.pca([1, 2], 3)
     np.testing.assert_allclose(p.explained_variance_[:2], ref.explained_variance_[:2], rtol=1e-3)
     assert np.abs(np.sum(p.components_[:2] * ref.components_[:2], axis=1)).min() > 0.999
+
+
+def test_the_confusion_matrix_is_scikit_learns():
+    from sklearn.metrics import confusion_matrix
+
+    from rigctl.analysis.tasks import _confusion
+
+    rng = np.random.default_rng(2)
+    classes = ["P", "B", "A", "Board10mm", "C"]  # not sorted: the matrix is in this order
+    truth = rng.choice(classes + ["Z"], 500)  # a label outside the classes is left out, as scikit-learn does
+    pred = rng.choice(classes, 500)
+    np.testing.assert_array_equal(_confusion(truth, pred, classes), confusion_matrix(truth, pred, labels=classes))
+    ints = rng.integers(0, 7, 300)
+    np.testing.assert_array_equal(_confusion(ints, ints[::-1], [3, 1, 0, 2]),
+                                  confusion_matrix(ints, ints[::-1], labels=[3, 1, 0, 2]))
