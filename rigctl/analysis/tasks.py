@@ -25,7 +25,9 @@ classifying it with the model trained on the first; LDA on 25 PCs is the headlin
 
 from __future__ import annotations
 
+import functools
 import warnings
+import weakref
 from typing import Any
 
 import numpy as np
@@ -203,9 +205,28 @@ def run_cv(
     return res
 
 
+#: zero_padding of the feature matrices in use, by id (with a weak reference that drops the entry with the matrix):
+#: Table 1's two tasks share them
+_PADDINGS: dict[int, tuple[weakref.ref, tuple]] = {}
+
+
+def _forget_padding(key: int, _ref: weakref.ref) -> None:
+    _PADDINGS.pop(key, None)
+
+
 def _paddings(fs: FeatureSet, vs) -> dict:
-    """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features, once for every repetition."""
-    return {v: zero_padding(fs.features[v]) for v in vs}
+    """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features, once for every repetition (and
+    for both tasks of :func:`run_table1`)."""
+    out = {}
+    for v in vs:
+        x = fs.features[v]
+        key = id(x)
+        hit = _PADDINGS.get(key)
+        if hit is None or hit[0]() is not x:
+            hit = (weakref.ref(x, functools.partial(_forget_padding, key)), zero_padding(x))
+            _PADDINGS[key] = hit
+        out[v] = hit[1]
+    return out
 
 
 def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs, groups=None,
