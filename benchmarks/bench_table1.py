@@ -109,7 +109,9 @@ def dense_vs_grouped(fs, n_pcs, r=0):
     tr_x, te_x, _ = extrapolation_split(fs, seed=0, repeat=r)
     rows = np.concatenate([tr_x, te_x])
     ext = [(np.arange(len(tr_x)), np.arange(len(tr_x), len(rows)))]
-    pads = {v: zero_padding(x) for v, x in fs.features.items()}
+    from rigctl.analysis.tasks import _padding_labels
+
+    pads = {v: zero_padding(x, _padding_labels(fs)) for v, x in fs.features.items()}
     acc = {"dense": [], "grouped": []}
     cpu = {"dense": np.inf, "grouped": np.inf}
     for turn in range(2):
@@ -138,7 +140,8 @@ def main():
     ap.add_argument("--pcs", type=int, default=50)
     ap.add_argument("--threads", type=int, default=None, help="BLAS threads (default: library default)")
     ap.add_argument("--jobs", type=int, default=None, help="repetitions side by side (default: one per core)")
-    ap.add_argument("--skip-full", action="store_true")
+    ap.add_argument("--skip-full", action="store_true",
+                    help="only the dense vs grouped repetition (no scikit-learn repetition, no whole Table 1)")
     ap.add_argument("--skip-naive", action="store_true", help="skip the naive per-PC-count refit comparison")
     ap.add_argument("--features", help="an encoded file (rigctl encode): its features instead of random ones")
     ap.add_argument("--no-padding", action="store_true",
@@ -160,13 +163,11 @@ def main():
         print(f"one split, 1800 train / 600 test x 720 features, PCs 1..{args.pcs}: nested {t_nested:.2f} s, "
               f"naive per-PC refit {t_naive:.2f} s, ratio naive/nested = {t_naive / t_nested:.1f}x, "
               f"max accuracy difference {dmax:.4f}", flush=True)
-    if args.skip_full:
-        return
     t0 = time.perf_counter()
     if args.features:
-        from rigctl.analysis.data import load_features
+        from rigctl.analysis.data import default_variants, list_variants, load_features
 
-        fs = load_features(args.features)
+        fs = load_features(args.features, default_variants(list_variants(args.features)))  # Table 1's variants
     else:
         fs = random_features(args.trials, seed=1, zero_pad=not args.no_padding)
     t_gen = time.perf_counter() - t0
@@ -179,6 +180,8 @@ def main():
           f"{cpu_g['grouped']:.2f} CPU-s: ratio {cpu_g['dense'] / cpu_g['grouped']:.2f}x (best of 2, alternated); "
           f"largest accuracy difference {100 * diff_g:.2f} points (load average {os.getloadavg()[0]:.2f})",
           flush=True)
+    if args.skip_full:
+        return
     with threadpool_limits(1):
         cpu1, diff = one_repetition_side_by_side(fs, args.pcs)
     print(f"one repetition on one core (4 CV folds + 1 extrapolation split x {len(fs.features)} variants): per-split "

@@ -214,6 +214,12 @@ def _forget_padding(key: int, _ref: weakref.ref) -> None:
     _PADDINGS.pop(key, None)
 
 
+def _padding_labels(fs: FeatureSet) -> np.ndarray:
+    """What pads a trial's unscaled windows alike: its speed (a trial covers a fixed travel) and its profile."""
+    speed = np.char.mod("%.6g", np.round(np.abs(fs.speed_mm_s), 6))
+    return speed if fs.profile is None else np.char.add(np.char.add(speed, "|"), fs.profile.astype(str))
+
+
 def _paddings(fs: FeatureSet, vs) -> dict:
     """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features, once for every repetition (and
     for both tasks of :func:`run_table1`)."""
@@ -223,7 +229,7 @@ def _paddings(fs: FeatureSet, vs) -> dict:
         key = id(x)
         hit = _PADDINGS.get(key)
         if hit is None or hit[0]() is not x:
-            hit = (weakref.ref(x, functools.partial(_forget_padding, key)), zero_padding(x))
+            hit = (weakref.ref(x, functools.partial(_forget_padding, key)), zero_padding(x, _padding_labels(fs)))
             _PADDINGS[key] = hit
         out[v] = hit[1]
     return out

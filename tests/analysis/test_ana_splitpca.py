@@ -134,6 +134,10 @@ def test_zero_padded_rows_give_the_dense_pca_and_scores():
     assert np.all(np.flatnonzero(x[np.argmin(extent)] != 0) < x.shape[1])
     for i in range(n):  # every row is zero beyond its extent, in the order
         assert not x[i, order[extent[i]:]].any()
+    order, extent = zero_padding(x, filled)  # by the trials' lengths (their speeds): one extent each
+    assert sorted(np.unique(extent)) == [40, 60, 80, 120]  # (4 trains x 10, 15, 20, 30 windows)
+    for i in range(n):
+        assert not x[i, order[extent[i]:]].any()
     blocks = np.array_split(rng.permutation(n), 3)
     gb = GramBlocks(x, blocks)
     assert len(gb._groups) >= 4  # (the grouped path: not one dense group)
