@@ -57,7 +57,8 @@ from rigctl.core.rig_plugins import (
 )
 from rigctl.core.textures import TextureSet
 
-__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
+__all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "SIM_PACE_ENV", "sim_paced",
+            "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
            "make_backend", "build_rig", "plugin_identity", "replay_source", "sim_rig", "replay_rig", "hil_rig", "hardware_rig",
            "inprocess_rig", "handheld_rig"]
 
@@ -82,6 +83,26 @@ ANSWER_TIMEOUT_S = {"hardware": 0.5, "sim": 2.0, "replay": 2.0, "hil": 2.0}
 #: trial: the capture's failure and the recovery before STOP; issue 55 item 6, open). A test that trips the watchdog
 #: on purpose writes the register itself.
 WATCHDOG_MS = {"sim": 5000, "replay": 5000, "hil": 5000}
+
+
+#: the environment variable that chooses how a simulated rig a command opens for itself (``--sim``, ``--replay``,
+#: ``--hil``) keeps time: ``wall`` (the default: paced to the wall clock, for a person watching a live view, an LSL
+#: consumer) or ``none`` (as fast as the CPU and the host's grants on the shared clock allow: tests, batch runs; every
+#: timeout and the controller's watchdog judge the shared clock either way, docs/architecture.md "Time on a
+#: simulated rig"). ``rigctl sim``, the rig other programs drive as hardware, is always paced
+SIM_PACE_ENV = "RIGCTL_SIM_PACE"
+SIM_PACES = {"wall": True, "none": False}
+
+
+def sim_paced() -> bool:
+    """Whether a simulated rig a command opens for itself runs paced to the wall clock (:data:`SIM_PACE_ENV`).
+
+    Raises RigError (one line) for a value other than ``wall`` or ``none``."""
+    value = os.environ.get(SIM_PACE_ENV, "").strip().lower() or "wall"
+    if value not in SIM_PACES:
+        raise RigError(f"{SIM_PACE_ENV}={value!r}: use wall (paced to the wall clock, the default) or none (as fast "
+                       "as the CPU allows)")
+    return SIM_PACES[value]
 
 
 def drum_answer_timeout_s(kind: str) -> float:
@@ -149,6 +170,7 @@ def sim_rig(request: RigRequest) -> RigBackend:
     options = _request_options(request)
     if options.pop("source", None) is not None:
         raise RigError("a replay source selects kind='replay'")
+    options.setdefault("paced", sim_paced())
     return _pty_backend(request, SimulatedRig(_config(request), seed=request.seed, **options))
 
 
@@ -164,6 +186,7 @@ def replay_rig(request: RigRequest) -> RigBackend:
     if source is None:
         raise RigError("the replay rig needs a source (a session file, a FabricSlide directory, or a source)")
     src = replay_source(source)
+    options.setdefault("paced", True if str(source).startswith("lsl:") else sim_paced())  # a live stream paces itself
     textures = request.textures or getattr(src, "textures", None)  # a session replays with its own texture set
     sim = SimulatedRig(_config(request), seed=request.seed, source=src, **options)
     return _pty_backend(dataclasses.replace(request, textures=textures), sim)
@@ -178,6 +201,7 @@ def hil_rig(request: RigRequest) -> RigBackend:
         from rigctl.simulation.hil import HilRig
     except ImportError as exc:
         raise RigError(f"the HIL rig needs rigctl.simulation.hil (the firmware under simavr): {exc}") from exc
+    options.setdefault("paced", sim_paced())
     return _pty_backend(request, HilRig(_config(request), seed=request.seed, **options))
 
 
@@ -349,7 +373,7 @@ def _sensor_backend(request: RigRequest, source: SampleSource, drum: str) -> Rig
         from rigctl.simulation.backend import PtyRigBackend
         from rigctl.simulation.rig import SimulatedRig
 
-        sim = SimulatedRig(_config(request), seed=request.seed, source=source)
+        sim = SimulatedRig(_config(request), seed=request.seed, source=source, paced=sim_paced())
         backend = PtyRigBackend(sim, mode="sim", seed=request.seed, textures=textures,
                                 drum_timeout_s=ANSWER_TIMEOUT_S["sim"], drum_watchdog_ms=WATCHDOG_MS["sim"])
     backend.mode = request.name
