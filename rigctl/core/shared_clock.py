@@ -13,6 +13,13 @@ world never runs past :attr:`SharedClock.horizon_s`. The host's grant is
   :data:`LEAD_S` past the deadline of a wait that has not yet returned (a waiter whose time has come but who has not
   run yet holds the world, the way a wire would let a board run only so far ahead of a host that has yet to read).
 
+A sign of life that is not a wait (a read, a write, the heartbeat) moves the grant on no faster than the wall clock
+(:meth:`SharedClock.touch`): only a waiting host lets the world run ahead of real time. A host thread that
+computes between two feeds of the controller's watchdog (a trial written, an analysis, a GIL it waits for) while
+another thread of its process keeps reading (a taxel stream) or beating then sees at most its own wall time go by
+in the world, as on a bench, not ten times that (an unpaced world run on the heartbeat's grants latched WATCHDOG in
+``rigctl acquire quick_check`` beside four CPU hogs at its second trial).
+
 A grant is never taken back (the world may have used it), so a wait grants nothing in advance: a host blocked for
 the whole of a 2 s answer timeout is a host that keeps looking, and one starved meanwhile grants nothing.
 
@@ -115,6 +122,7 @@ class SharedClock:
         self.world_notifies = world_notifies
         self._moved = threading.Condition(threading.Lock())
         self._alive_s = -math.inf  # the world's time at the host's last sign of life
+        self._alive_wall = time.monotonic()  # when a sign of life that is not a wait last moved it on (wall clock)
         self._waits: dict[int, float] = {}  # deadlines of the host's waits not yet returned, s
         self._next_wait = 0
         self.horizon_s = self.lead_s
@@ -163,11 +171,17 @@ class SharedClock:
         return float(self._world_now())
 
     def touch(self) -> None:
-        """The host is alive now (a read or a write): the world may run :attr:`lead_s` past its time now."""
-        self._alive(self.now())
+        """The host is alive now (a read, a write, the heartbeat): the world may run :attr:`lead_s` past its time
+        now, but the host's last sign of life moves on no faster than the wall clock (module doc)."""
+        self._alive(self.now(), waiting=False)
 
-    def _alive(self, t: float) -> None:
+    def _alive(self, t: float, *, waiting: bool = True) -> None:
         with self._lock:
+            if not waiting:
+                wall = time.monotonic()
+                if self._alive_s > -math.inf:
+                    t = min(t, self._alive_s + max(0.0, wall - self._alive_wall))
+                self._alive_wall = wall
             if t > self._alive_s:
                 self._alive_s = t
             self._regrant()
@@ -177,12 +191,16 @@ class SharedClock:
         self.wait_for(None, s)
 
     def wait_for(self, ready: Callable[[], bool] | None, timeout_s: float,
-                 max_step_s: float = MAX_WAIT_STEP_S) -> bool:
+                 max_step_s: float = MAX_WAIT_STEP_S, min_wall_s: float = 0.0) -> bool:
         """Wait until ``ready()`` or until ``timeout_s`` of simulated time have passed; the world may run on
         meanwhile. ``ready()`` and the clock are looked at after each step of the world (``world_notifies``) and at
         least every ``max_step_s`` of wall time (at most every :data:`WAIT_STEP_S`, and no later than the time left
         on the deadline, of which a paced world spends no less wall time). Returns whether ``ready()`` came true
-        (``ready`` None: waits the whole time, returns False)."""
+        (``ready`` None: waits the whole time, returns False). ``min_wall_s``: a wait for something another thread
+        of this process brings (an answer a simulated board's server thread writes) ends unready no earlier than
+        that much wall time either: meanwhile the world stands at the deadline (plus :attr:`lead_s`), and a
+        starved thread of the board gets the CPU to answer instead of the world running past its answer."""
+        wall_end = time.monotonic() + max(0.0, float(min_wall_s))
         t = self.now()
         deadline = t + max(0.0, float(timeout_s))
         with self._lock:
@@ -197,7 +215,9 @@ class SharedClock:
                 t = self.now()
                 left = deadline - t
                 if left <= 0.0:
-                    return ready() if ready is not None else False
+                    if ready is None or time.monotonic() >= wall_end:
+                        return ready() if ready is not None else False
+                    left = WAIT_STEP_S
                 step = min(max_step_s, max(WAIT_STEP_S, left))
                 if self.world_notifies:  # woken by the world's next step
                     with self._moved:

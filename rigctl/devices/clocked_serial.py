@@ -5,7 +5,11 @@ pymodbus waits for an answer on the wall clock (``timeout`` s, then pyserial's b
 boards run on simulated time, which stands still while the host is starved: an answer timeout judged on the wall
 clock then fires although the board has had no time to answer. Here the wait is the same (data that has stopped
 growing is an answer, or ``timeout`` passes) on the shared clock, and each request is a sign of the host's life (the
-boards may run on past it by the clock's lead only).
+boards may run on past it by the clock's lead only). An answer's wait also lasts at least :data:`ANSWER_MIN_WALL_S`
+of wall time: the board's server is a thread of a simulator (or a simavr process) that a loaded machine can starve
+while the world, run faster than real time, would pass the whole timeout in a fraction of that (beside four CPU hogs
+an unpaced rig timed out three answers in a row and its controller latched WATCHDOG); meanwhile the world stands at
+the deadline.
 """
 
 from __future__ import annotations
@@ -16,7 +20,11 @@ from pymodbus.client import ModbusSerialClient
 
 from rigctl.core.shared_clock import SharedClock
 
-__all__ = ["ClockedSerialClient"]
+__all__ = ["ClockedSerialClient", "ANSWER_MIN_WALL_S"]
+
+#: the least wall time an answer's wait takes before it gives up, s (a timeout on the shared clock that a paced rig
+#: spends anyway; an unpaced one no longer gives up on a board its machine has not let run)
+ANSWER_MIN_WALL_S = 0.5
 
 
 class ClockedSerialClient(ModbusSerialClient):
@@ -50,7 +58,8 @@ class ClockedSerialClient(ModbusSerialClient):
             return False
 
         # looked at as often as pymodbus' own wait looks (its receive interval: 4 character times, at least 1 ms)
-        self.clock.wait_for(settled, float(self.comm_params.timeout_connect or 0.0), max_step_s=self._recv_interval)
+        self.clock.wait_for(settled, float(self.comm_params.timeout_connect or 0.0), max_step_s=self._recv_interval,
+                            min_wall_s=ANSWER_MIN_WALL_S)
         return self._waiting()
 
     def recv(self, size: int | None) -> bytes:

@@ -4,6 +4,7 @@ pauses it (and so never looks silent to the Mega's watchdog), and the host's tim
 
 from __future__ import annotations
 
+import os
 import subprocess
 import threading
 import time
@@ -137,9 +138,10 @@ def test_the_readmes_first_command_beside_four_cpu_hogs_latches_nothing(tmp_path
     """``rigctl acquire quick_check --sim`` beside four CPU hogs on a machine of any size: 6/6 trials, no latch
     (issue 54: on the wall clock a busy machine latched 'host went silent for longer than WATCHDOG_MS')."""
     hogs = [subprocess.Popen(["bash", "-c", "while :; do :; done"]) for _ in range(4)]
-    try:
+    try:  # as a person runs it: paced to the wall clock (the suite runs its other rigs unpaced, tests/conftest.py)
         out = subprocess.run([*RIGCTL, "acquire", "quick_check", "--sim", "--out", str(tmp_path / "q.h5")],
-                             capture_output=True, text=True, timeout=900, cwd=tmp_path)
+                             capture_output=True, text=True, timeout=900, cwd=tmp_path,
+                             env={**os.environ, "RIGCTL_SIM_PACE": "wall"})
     finally:
         for h in hogs:
             h.kill()
@@ -148,3 +150,70 @@ def test_the_readmes_first_command_beside_four_cpu_hogs_latches_nothing(tmp_path
     assert out.returncode == 0, text
     assert "trials complete: 6/6" in text, text
     assert "WATCHDOG" not in text and "latched" not in text.lower(), text
+
+
+def test_signs_of_life_that_are_not_waits_run_the_world_no_faster_than_the_wall_clock():
+    """A read, a write or the heartbeat (``touch``) moves the grant on at most as fast as the wall clock: a reader or a
+    heartbeat thread cannot run the world ahead while the thread that feeds the controller's watchdog computes (an
+    unpaced rig beside four CPU hogs latched WATCHDOG when each 5 ms beat granted 50 ms: ten times real time)."""
+    w = _World()
+    stop = threading.Event()
+    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        w.clock.touch()
+        wall0 = time.monotonic()
+        for _ in range(100):  # each touch used to grant a lead: 100 touches, 5 s of the world
+            time.sleep(0.002)
+            w.clock.touch()
+        wall = time.monotonic() - wall0
+        assert w.t <= LEAD_S + wall + LEAD_S + 0.0015, (w.t, wall)
+        t0 = w.t
+        w.clock.sleep(2.0)  # a waiting host still lets it run as fast as it may
+        assert w.t >= t0 + 2.0
+    finally:
+        stop.set()
+        th.join()
+
+
+def test_an_answer_outlasts_its_timeout_on_the_wall_while_the_world_waits_at_the_deadline():
+    """``wait_for(min_wall_s=)`` (a drum client's answer, rigctl.devices.clocked_serial.ANSWER_MIN_WALL_S): a board's
+    thread starved for 0.3 s of wall time answers after the world's deadline, and the wait still takes the answer, the
+    world standing at the deadline meanwhile; without it the wait gives up on the world's time."""
+    w = _World()
+    stop = threading.Event()
+    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        answered = threading.Event()
+        threading.Timer(0.3, answered.set).start()
+        t0 = w.clock.now()
+        assert w.clock.wait_for(answered.is_set, 0.05, min_wall_s=2.0)
+        assert w.t <= t0 + 0.05 + LEAD_S + 0.0015
+        late = threading.Event()
+        threading.Timer(0.3, late.set).start()
+        assert not w.clock.wait_for(late.is_set, 0.05)
+    finally:
+        stop.set()
+        th.join()
+
+
+def test_rigctl_sim_pace_chooses_how_a_commands_simulated_rig_keeps_time(monkeypatch, tmp_path):
+    """``$RIGCTL_SIM_PACE`` (docs/config.md): ``wall`` (a person's default) or ``none`` (tests, batch runs) for the rigs
+    a command opens for itself; anything else is refused in one line before anything opens."""
+    from rigctl import rigs
+
+    for value, paced in (("none", False), ("wall", True), ("", True), (" NONE ", False)):
+        monkeypatch.setenv("RIGCTL_SIM_PACE", value)
+        assert rigs.sim_paced() is paced
+        if value in ("none", "wall"):
+            with rigs.open_rig("sim", host_config_path=tmp_path / f"rig-{value}.json") as rig:
+                assert rig.backend.sim.paced is paced
+    monkeypatch.delenv("RIGCTL_SIM_PACE")
+    assert rigs.sim_paced() is True
+    monkeypatch.setenv("RIGCTL_SIM_PACE", "fast")
+    out = subprocess.run([*RIGCTL, "acquire", "quick_check", "--sim", "--out", str(tmp_path / "q.h5")],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
+    assert "RIGCTL_SIM_PACE='fast'" in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert not (tmp_path / "q.h5").exists()
