@@ -7,15 +7,19 @@ unknown position (not homed) its seek creeps at HOME_CREEP_UM per HX711 period u
 zero| from the tare (or the zero stored with the calibration), has fallen by HOME_PROOF_FALL_G. Moving home or backing
 off only takes force off the cell: that load grown above its lowest since the move began (HOME_RISE_G from an unknown
 position, DIRECTION_RISE_G otherwise), or past FORCE_LIMIT_G + 2 x FORCE_TOLERANCE_G while homing from an unknown
-position, is ACTUATOR_DIRECTION, sign-free: a reversed motor and a reversed cell alike.
+position, is ACTUATOR_DIRECTION, sign-free: a reversed motor and a reversed cell alike. While the force loop drives,
+the press's direction watch (:meth:`HomeAndDirection._watch_press_direction`) holds the step count against the load
+read, and says whether a back-off may take the way this press proved (:attr:`HomeAndDirection._press_dir_proven`).
 """
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Mapping
 
 from rigctl.devices import wire
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
+from rigctl.simulation.force_loop import ContactProbe
 from rigctl.simulation.model import RigModel
 
 __all__ = ["HOME_SPEED_MM_S", "HomeAndDirection"]
@@ -48,6 +52,12 @@ class HomeAndDirection:
     _home_leave_mm: float
     _home_travel_mm: float
     _steps_true_mm: float
+    _force_g: float
+    _press_dir_hist: collections.deque[tuple[float, float]]
+    _press_dir_age: int | None
+    _press_dir_held: bool
+    _press_dir_leave: bool
+    _probe: ContactProbe
     model: RigModel
 
     @property
@@ -55,6 +65,9 @@ class HomeAndDirection:
         raise NotImplementedError
 
     def _fault(self, bits: Fault) -> None:  # (MegaController's)
+        raise NotImplementedError
+
+    def _actuator_steps(self) -> float:  # (MegaController's)
         raise NotImplementedError
 
     def _home_switch(self) -> bool:  # (MegaController's)
@@ -178,3 +191,45 @@ class HomeAndDirection:
         self._fault(Fault.HOME_NOT_FOUND)
         return 0.0
 
+    def _watch_press_direction(self) -> None:
+        """A new reading while the force loop drives (the firmware's press_dir_watch, spec 2.11): the step count
+        commanded over PRESS_DIR_READINGS readings (monotone) against the load read (|force|, sign-free: a reversed
+        cell presses as a load too) over as many readings PRESS_DIR_LAG_READINGS later. At least PRESS_DIR_STEPS with
+        the load against it by PRESS_DIR_G: ACTUATOR_DIRECTION, stopped where it stands; with it by
+        PRESS_DIR_G: the way proven, for PRESS_DIR_PROOF_READINGS readings while the probe runs, and from then on
+        once it is done (the loop holds: a reversed motor would drive the force off and be seen); half of both
+        against it: the proof is void."""
+        hist = self._press_dir_hist
+        hist.append((self._actuator_steps(), abs(self._force_g)))  # the load, sign-free: the motor's way, not the cell's
+        if self._press_dir_age is not None:
+            self._press_dir_age += 1
+        if self._probe.active:
+            self._press_dir_held = False
+        if abs(self._force_g) >= min(float(wire.PROBE_CONTACT_G), 0.5 * self.holding[HR.FORCE_SETPOINT_G]):
+            self._press_dir_leave = False  # the contact: the force proves the way from here
+        if len(hist) <= wire.PRESS_DIR_READINGS + wire.PRESS_DIR_LAG_READINGS:
+            return
+        n = wire.PRESS_DIR_READINGS
+        steps = [s for s, _ in hist][: n + 1]
+        moves = [b - a for a, b in zip(steps, steps[1:])]
+        ds = steps[-1] - steps[0]
+        if 2 * abs(ds) < wire.PRESS_DIR_STEPS or not (all(d >= 0 for d in moves) or all(d <= 0 for d in moves)):
+            return
+        df = (hist[-1][1] - hist[-1 - n][1]) * (1.0 if ds > 0 else -1.0)  # + : the force follows the count
+        if 2 * df <= -wire.PRESS_DIR_G:
+            self._press_dir_age, self._press_dir_held = None, False
+            if abs(ds) >= wire.PRESS_DIR_STEPS and df <= -wire.PRESS_DIR_G:
+                self._direction_fault()
+        elif abs(ds) >= wire.PRESS_DIR_STEPS and df >= wire.PRESS_DIR_G:
+            self._press_dir_age = 0
+            self._press_dir_held = not self._probe.active
+
+    @property
+    def _press_dir_proven(self) -> bool:
+        """The way a back-off takes is proven by this press's own motion (spec 2.11): the count and the force
+        moved together in a window that ended at most PRESS_DIR_PROOF_READINGS readings ago, or the probe's measuring
+        step(s) raised the settled load by PRESS_DIR_G (or the loop's motion did since the probe was done), and
+        nothing moved them apart since. Before the contact HOME's switch proof stands: the press left the closed
+        switch, and the switch reading closed more than HOME_PROOF_MM out voids it."""
+        return self._press_dir_held or self._press_dir_leave or (
+            self._press_dir_age is not None and self._press_dir_age <= wire.PRESS_DIR_PROOF_READINGS)
