@@ -64,12 +64,6 @@ def pytest_configure(config):
     (cfg_dir / "lsl_api.cfg").write_text(LSL_API_CFG)
     os.environ["LSLAPICFG"] = str(cfg_dir / "lsl_api.cfg")
     config._rigctl_lsl_cfg_dir = cfg_dir
-    # the simulated rigs the tests' commands open run as fast as the CPU and their host's grants allow (rigctl.rigs.
-    # SIM_PACE_ENV; CLI subprocesses inherit it): their controller's watchdog and every timeout judge the clock the rig
-    # and its host share, so pacing them to the wall clock only made each test wait (`rigctl acquire quick_check
-    # --sim`: 36 s paced, 10 s not; 10.7 against 9.0 CPU-s). The tiers judged on the wall clock keep the person's
-    # default (:func:`pytest_runtest_setup`)
-    os.environ["RIGCTL_SIM_PACE"] = "none"
 
 
 @pytest.hookimpl(trylast=True, specname="pytest_configure")
@@ -97,23 +91,6 @@ def pytest_configure_pyside_source_check(config):
             return slow(module)
 
     feature._mod_uses_pyside = mod_uses_pyside
-
-
-_WALL_PACED_MODULES: dict[str, bool] = {}
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_runtest_setup(item):
-    """A test module with a test of a tier judged on the wall clock (:data:`WALL_CLOCK_TIERS`: a live view, LSL
-    timing, a real window) opens its simulated rigs paced to the wall clock, as a person's ``--sim`` is; every other
-    module's run unpaced (pytest_configure). By module, not by test: a module-scoped rig is opened in the setup of
-    the first test that uses it."""
-    module = item.nodeid.split("::", 1)[0]
-    if module not in _WALL_PACED_MODULES:
-        _WALL_PACED_MODULES[module] = any(
-            other.nodeid.split("::", 1)[0] == module and any(other.get_closest_marker(m) for m in WALL_CLOCK_TIERS)
-            for other in item.session.items)
-    os.environ["RIGCTL_SIM_PACE"] = "wall" if _WALL_PACED_MODULES[module] else "none"
 
 
 @pytest.fixture(autouse=True)
