@@ -58,7 +58,7 @@ from rigctl.core.rig_plugins import (
 from rigctl.core.textures import TextureSet
 
 __all__ = ["KINDS", "ANSWER_TIMEOUT_S", "WATCHDOG_MS", "SIM_PACE_ENV", "sim_paced",
-            "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
+           "drum_answer_timeout_s", "fault_refusal", "open_rig", "open_handheld",
            "make_backend", "build_rig", "plugin_identity", "replay_source", "sim_rig", "replay_rig", "hil_rig", "hardware_rig",
            "inprocess_rig", "handheld_rig"]
 
