@@ -113,7 +113,29 @@ def _constants_py(dtype_of, a, b):  # pragma: no cover - compiled by numba
     return kc
 
 
-_constants = numba.njit(inline="always", cache=True)(_constants_py)
+_constants_arr = numba.njit(inline="always", cache=True)(_constants_py)
+
+
+@numba.njit(inline="always", cache=True)
+def _constants(dtype_of, a, b):  # pragma: no cover - compiled by numba
+    """:func:`_constants_py`'s kc as a tuple: values, not an array the kernel's stores might alias (LLVM reloaded
+    an array's constants inside the step loop)."""
+    k = _constants_arr(dtype_of, a, b)
+    return (k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], k[8], k[9], k[10])
+
+
+def _cast(v, like):  # pragma: no cover - replaced by the overload below inside numba
+    """``v`` converted to the dtype of the array ``like``."""
+    raise NotImplementedError
+
+
+@overload(_cast, inline="always")
+def _cast_impl(v, like):  # pragma: no cover - compiled by numba
+    to = numba.np.numpy_support.as_dtype(like.dtype).type
+
+    def cast(v, like):
+        return to(v)
+    return cast
 
 #: steps per chunk: one bit each in a lane's uint32 spike mask
 _WORD = 32
@@ -146,6 +168,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     kc = _constants(off, a, b)
     kr = _constants(filt, izr[0], izr[1])
     zero = kr[0] - kr[0]
+    zero32 = np.uint32(0)
     cr, dr, vpr = izr[2], izr[3], izr[4]
     b0, b1, b2, a1, a2, zi0, zi1 = bq[0], bq[1], bq[2], bq[3], bq[4], bq[5], bq[6]
     for bi in range(n_blocks):
@@ -200,25 +223,23 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                 for i in range(mc):
                     row = starts[t] + n + i if n + i < lens[k] else starts[t]
                     q = i * n_l + k * n_ch  # xb, xr: (chunk step, lane) flat
-                    for ch in range(n_ch):
-                        xb[q + ch] = x[row, ch]  # (converted to the SA dtype)
-                        xb[q + ch] = (xb[q + ch] - off[ch]) * scl[ch]
+                    for ch in range(n_ch):  # (converted to the SA dtype first; one store)
+                        xb[q + ch] = (_cast(x[row, ch], off) - off[ch]) * scl[ch]
                     if ra:
                         for ch in range(n_ch):
-                            xr[q + ch] = x[row, ch]
-                            xr[q + ch] = (xr[q + ch] - off_r[ch]) * scl_r[ch]
+                            xr[q + ch] = (_cast(x[row, ch], filt) - off_r[ch]) * scl_r[ch]
             for p in range(n_sa):
                 for i in range(mc):
-                    sh = np.uint32(sh0 + i)
+                    bit = np.uint32(1 << (sh0 + i))  # (a uint32 select and or: a shift by a variable widened to 64 bits)
                     for j in range(n_l):
                         v2, u1 = _sa_step(vv[p, j], uu[p, j], xb[i * n_l + j] * gg[p, j], kc)
                         s = v2 >= v_peak
                         vv[p, j] = c if s else v2
                         uu[p, j] = u1 + d if s else u1
-                        msk[p, j] = msk[p, j] | (np.uint32(s) << sh)
+                        msk[p, j] = msk[p, j] | (bit if s else zero32)
             if ra:
                 for i in range(mc):
-                    sh = np.uint32(sh0 + i)
+                    bit = np.uint32(1 << (sh0 + i))
                     for j in range(n_l):
                         xn = xr[i * n_l + j]
                         y = b0 * xn + z1[j]
@@ -232,7 +253,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                         s = v2 >= vpr
                         vr[j] = cr if s else v2
                         ur[j] = u1 + dr if s else u1
-                        msk[n_sa, j] = msk[n_sa, j] | (np.uint32(s) << sh)
+                        msk[n_sa, j] = msk[n_sa, j] | (bit if s else zero32)
             n += mc
             for k in range(kk, m):  # trials ending here: their final state
                 if lens[k] == n:
@@ -321,8 +342,14 @@ def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
 
 def _times_py(bits, counts, lens, n0, dt, out):  # pragma: no cover - compiled by numba
     """Flat spike times, trial-major then train, from the spike bitmaps: row r = t * C + ch of ``bits`` holds the
-    words of a trial of ``lens[t]`` samples; time = (sample + n0[t]) * dt."""
+    words of a trial of ``lens[t]`` samples; time = (sample + n0[t]) * dt.
+
+    A word's first four set bits are written without a branch on how many there are (a tonic train has ~3 spikes a
+    32 ms word: a loop that ends at the last one mispredicted about once a word): the slots past the word's own
+    spikes take values the next words overwrite, so this runs where four slots of ``out`` are left after ``pos``,
+    the loop bit by bit elsewhere (nothing is written past ``out``, which is a thread's own part)."""
     n_trials, n_ch = counts.shape
+    end = out.shape[0]
     starts = np.empty(n_trials + 1, dtype=np.int64)
     starts[0] = 0
     for t in range(n_trials):
@@ -340,10 +367,28 @@ def _times_py(bits, counts, lens, n0, dt, out):  # pragma: no cover - compiled b
             for w in range(n_words):
                 mm = bits[r, w]
                 base = np.int64(w * _WORD) + n0[t]
-                while mm:
+                if pos + 4 <= end:
+                    nb = _popcount(mm)
                     out[pos] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
-                    pos += 1
                     mm = mm & (mm - np.uint32(1))
+                    out[pos + 1] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
+                    mm = mm & (mm - np.uint32(1))
+                    out[pos + 2] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
+                    mm = mm & (mm - np.uint32(1))
+                    out[pos + 3] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
+                    mm = mm & (mm - np.uint32(1))
+                    if nb > 4:
+                        q = pos + 4
+                        while mm:
+                            out[q] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
+                            q += 1
+                            mm = mm & (mm - np.uint32(1))
+                    pos += nb
+                else:
+                    while mm:
+                        out[pos] = (base + trailing_zeros(mm)) * dt  # type: ignore[call-arg]
+                        pos += 1
+                        mm = mm & (mm - np.uint32(1))
 
 
 _times = numba.njit(cache=True, nogil=True)(_times_py)
