@@ -28,7 +28,7 @@ PARTS = ("serial", "parallel")
 
 
 def compile_rig() -> None:
-    """The rig's kernels: the simulated rig's taxel renderer and mechanics, and the taxel link's frame encoders
+    """The rig's kernels: the simulated rig's taxel renderer, slow noise and mechanics, and the taxel link's frame encoders
     (the simulated Uno's stream), parser and CRC (every rig's host side; ~1.7 CPU-s to compile, which every process
     that started before the cache held them paid). Runs on the calling thread alone: none is a parallel build, so
     numba's thread pool does not start (tests/launcher.py loads these before it forks its commands; GNU OpenMP's pool
@@ -36,12 +36,14 @@ def compile_rig() -> None:
     from rigctl.devices import wire
     from rigctl.devices.frames import FrameParser, encode_frames, encode_stream_frames
     from rigctl.simulation.model import RigModel, SensorModel
+    from rigctl.simulation.noise import one_pole
 
     n = 64
     force_g = np.full(n, 300.0)
     force_g.flags.writeable = False  # as the dataset renderer passes it
     SensorModel().render("A", np.linspace(0.0, 10.0, n), force_g, np.random.default_rng(0))
     RigModel().advance(3, drum_step_rate_hz=0.0, actuator_velocity_mm_s=0.0)
+    one_pole(0.5, 0.5, np.zeros(n))  # the dataset renderer's and the simulated operator's slow noise
     samples = np.zeros((4, wire.N_TAXELS), np.uint16)
     FrameParser().feed(encode_frames(np.arange(4), 0, samples)
                        + encode_stream_frames(4, np.zeros(4, bool), True, samples, wire.ADC_MAX))
