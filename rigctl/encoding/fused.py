@@ -148,6 +148,79 @@ def _cast_impl(v, like):  # pragma: no cover - compiled by numba
 #: steps per chunk: one bit each in a lane's uint32 spike mask
 _WORD = 32
 
+#: bytes of one SIMD register (AVX2): the pre-pass's explicit vectors (:func:`_norm_vec`)
+_VEC_BYTES = 32
+
+
+@intrinsic
+def _norm_vec(typingctx, src, i_src, off, scl, i_ch, dst, i_dst):  # pragma: no cover - compiled by numba
+    """``dst[i_dst + c] = (dst.dtype(src[i_src + c]) - off[i_ch + c]) * scl[i_ch + c]`` for the c of one SIMD
+    register (``_VEC_BYTES`` of ``dst``'s dtype), as explicit LLVM vector operations, no overlap checks: the same
+    IEEE conversion (integer to float: exact), difference and product as the scalar expression, bit for bit.
+    ``src`` an integer array, the others of one float dtype, all 1-d C-contiguous; the caller keeps every index in
+    bounds."""
+    width = _VEC_BYTES * 8 // dst.dtype.bitwidth
+    sig = types.void(src, types.intp, off, scl, types.intp, dst, types.intp)
+
+    def codegen(context, builder, signature, args):
+        a_src, a_is, a_off, a_scl, a_ic, a_dst, a_id = args
+        t_src, _, t_off, t_scl, _, t_dst, _ = signature.args
+        vf = ir.VectorType(context.get_value_type(t_dst.dtype), width)
+        vi = ir.VectorType(context.get_value_type(t_src.dtype), width)
+
+        def ptr(aty, aval, idx, vty):
+            data = context.make_array(aty)(context, builder, aval).data
+            return builder.bitcast(builder.gep(data, [idx]), vty.as_pointer())
+
+        raw = builder.load(ptr(t_src, a_src, a_is, vi), align=t_src.dtype.bitwidth // 8)
+        x = builder.sitofp(raw, vf) if t_src.dtype.signed else builder.uitofp(raw, vf)
+        al = t_dst.dtype.bitwidth // 8
+        o = builder.load(ptr(t_off, a_off, a_ic, vf), align=al)
+        sc = builder.load(ptr(t_scl, a_scl, a_ic, vf), align=al)
+        builder.store(builder.fmul(builder.fsub(x, o), sc), ptr(t_dst, a_dst, a_id, vf), align=al)
+        return context.get_dummy_value()
+    return sig, codegen
+
+
+def _norm_row(xf, i_src, off, scl, dst, i_dst, n_ch):  # pragma: no cover - replaced by the overload below
+    """``dst[i_dst + c] = (dst.dtype(xf[i_src + c]) - off[c]) * scl[c]`` for c < n_ch: one row of readings,
+    normalised into the lanes' buffer. With integer readings whole SIMD registers up to ``off.size`` (n_ch rounded
+    up to a register; the values past n_ch land on the lanes the next row's call writes, or on the buffer's
+    padding), where the row has that many readings after it in ``xf``."""
+    raise NotImplementedError
+
+
+@overload(_norm_row, inline="always", jit_options={"fastmath": _FASTMATH})
+def _norm_row_impl(xf, i_src, off, scl, dst, i_dst, n_ch):  # pragma: no cover - compiled by numba
+    width = _VEC_BYTES * 8 // dst.dtype.bitwidth
+
+    def loop(xf, i_src, off, scl, dst, i_dst, n_ch):
+        for c in range(n_ch):
+            dst[i_dst + c] = (_cast(xf[i_src + c], dst) - off[c]) * scl[c]
+
+    if not isinstance(xf.dtype, types.Integer):
+        return loop
+
+    def vec(xf, i_src, off, scl, dst, i_dst, n_ch):
+        n_pad = off.size
+        if i_src + n_pad <= xf.size:
+            for c in range(0, n_pad, width):
+                _norm_vec(xf, i_src + c, off, scl, c, dst, i_dst + c)  # type: ignore[call-arg]
+        else:
+            for c in range(n_ch):
+                dst[i_dst + c] = (_cast(xf[i_src + c], dst) - off[c]) * scl[c]
+    return vec
+
+
+def _padded_py(a, width):  # pragma: no cover - compiled by numba
+    """``a`` (n,) with zeros after it up to a multiple of ``width``."""
+    out = np.zeros((a.size + width - 1) // width * width, dtype=a.dtype)
+    out[:a.size] = a
+    return out
+
+
+_padded = numba.njit(inline="always", cache=True)(_padded_py)
+
 
 def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_ra, rectify, izr, v, u, filt, fresh,
               counts, bits, block, a, b, c, d, v_peak):  # pragma: no cover - compiled by numba
@@ -168,6 +241,9 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     (contiguous SIMD loops, spikes as mask bits); at a word's end the masks give the counts (popcount) and the
     bitmap words; at a trial's end its state is saved."""
     n_ch = x.shape[1]
+    xf = x.reshape(x.size)  # (a view: x is C-contiguous)
+    offp, sclp = _padded(off, _VEC_BYTES // off.itemsize), _padded(scl, _VEC_BYTES // off.itemsize)
+    offp_r, sclp_r = _padded(off_r, _VEC_BYTES // off_r.itemsize), _padded(scl_r, _VEC_BYTES // off_r.itemsize)
     n_sa = gains.shape[0]
     n_pop = n_sa + (1 if ra else 0)
     n_run = order.shape[0]
@@ -183,8 +259,8 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         i0 = bi * block
         m = min(n_run, i0 + block) - i0
         n_l = m * n_ch
-        xb = np.empty(_WORD * n_l, dtype=off.dtype)
-        xr = np.empty(_WORD * n_l if ra else 1, dtype=filt.dtype)
+        xb = np.empty(_WORD * n_l + offp.size, dtype=off.dtype)  # (+ the last row's padding)
+        xr = np.empty(_WORD * n_l + offp_r.size if ra else 1, dtype=filt.dtype)
         vv = np.empty((n_sa, n_l), dtype=off.dtype)
         uu = np.empty((n_sa, n_l), dtype=off.dtype)
         gg = np.empty((n_sa, n_l), dtype=off.dtype)
@@ -196,9 +272,11 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         cnt = np.zeros((n_pop, n_l), dtype=np.int32)
         msk = np.zeros((n_pop, n_l), dtype=np.uint32)
         lens = np.empty(m, dtype=np.int64)
+        rs = np.empty(m, dtype=np.int64)
         for k in range(m):
             t = order[i0 + k]
             lens[k] = starts[t + 1] - starts[t]
+            rs[k] = starts[t]
             for ch in range(n_ch):
                 j = k * n_ch + ch
                 for p in range(n_sa):
@@ -226,16 +304,13 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                 kk += 1
             sh0 = n & (_WORD - 1)
             mc = min(_WORD - sh0, lens[kk] - n)
-            for k in range(m):  # pre-pass: the chunk's normalised readings (an ended trial's lanes: its first row)
-                t = order[i0 + k]
-                for i in range(mc):
-                    row = starts[t] + n + i if n + i < lens[k] else starts[t]
+            for i in range(mc):  # pre-pass: the chunk's normalised readings (an ended trial's lanes: its first row)
+                for k in range(m):  # (in lane order: a row's padding lands on the next row's lanes, written next)
+                    row = rs[k] + n + i if n + i < lens[k] else rs[k]
                     q = i * n_l + k * n_ch  # xb, xr: (chunk step, lane) flat
-                    for ch in range(n_ch):  # (converted to the SA dtype first; one store)
-                        xb[q + ch] = (_cast(x[row, ch], off) - off[ch]) * scl[ch]
+                    _norm_row(xf, row * n_ch, offp, sclp, xb, q, n_ch)
                     if ra:
-                        for ch in range(n_ch):
-                            xr[q + ch] = (_cast(x[row, ch], filt) - off_r[ch]) * scl_r[ch]
+                        _norm_row(xf, row * n_ch, offp_r, sclp_r, xr, q, n_ch)
             for p in range(n_sa):
                 for i in range(mc):
                     bit = np.uint32(1 << (sh0 + i))  # (a uint32 select and or: a shift by a variable widened to 64 bits)
