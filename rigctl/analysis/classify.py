@@ -140,8 +140,8 @@ class NestedLDA:
             raise ValueError(f"need >= 2 classes and more trials than classes (got {k} classes, {n} trials)")
         counts = np.bincount(yi, minlength=k).astype(np.float64)
         self.priors_ = counts / n if self.priors is None else np.asarray(self.priors, dtype=np.float64)
-        means = np.zeros((k, z.shape[1]))
-        np.add.at(means, yi, z)
+        # the class sums as one product with the indicator matrix (np.add.at took ~60 % of a fit)
+        means = (yi[None, :] == np.arange(k)[:, None]).astype(np.float64) @ z
         means /= counts[:, None]
         self.means_ = means
         centred = z - means[yi]
@@ -198,26 +198,26 @@ class NestedLDA:
         scores : array_like, shape (n_trials, >= n_max)
         n_max : int, optional
         chunk : int
-            Trials per block (bounds the temporary ``(n_max, chunk, n_classes)`` array).
+            Trials per block (bounds the whitened block).
 
         Returns
         -------
         ndarray, shape (min(n_max, n_features_in_), n_trials), dtype of ``classes_``
+
+        Notes
+        -----
+        :meth:`decision_all`'s sums in the same order, in one compiled pass (:mod:`rigctl.analysis.lda_kernel`):
+        the same predictions, ties to the first class as ``argmax``, without the ``(n_max, n_trials, n_classes)``
+        array (~10x faster on a Table 1 split).
         """
+        from rigctl.analysis.lda_kernel import nested_argmax
+
         n_max = self.n_features_in_ if n_max is None else min(int(n_max), self.n_features_in_)
         z = np.asarray(scores, dtype=np.float64)[:, : self.n_features_in_]
         idx = np.empty((n_max, z.shape[0]), dtype=np.intp)
-        mw = self._means_w[:, :n_max].T[None, :, :]  # (1, n_max, k)
-        offset = self._half_norm[:, :n_max].T[None, :, :]
         for s in range(0, z.shape[0], chunk):
-            # decision_all's sums in the same order, laid out (trials, inputs, classes): no transposed copy, the
-            # argmax over contiguous classes (the same predictions; ~20 % less time a Table 1 split)
-            zw = solve_triangular(self.chol_, z[s : s + chunk].T, lower=True).T
-            d = zw[:, :n_max, None] * mw
-            np.cumsum(d, axis=1, out=d)
-            d -= offset
-            d += self._log_prior[None, None, :]
-            idx[:, s : s + chunk] = d.argmax(axis=2).T
+            zw = solve_triangular(self.chol_, z[s : s + chunk].T, lower=True).T  # (trials, inputs) whitened
+            idx[:, s : s + chunk] = nested_argmax(zw[:, :n_max], self._means_w, self._half_norm, self._log_prior)
         return self.classes_[idx]
 
 

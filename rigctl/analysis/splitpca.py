@@ -21,7 +21,10 @@ import numpy as np
 from scipy.linalg import eigh, solve_triangular
 from scipy.linalg.lapack import dpotrf
 
-__all__ = ["GramBlocks", "SplitPCA", "split_scores", "zero_padding"]
+__all__ = ["GramBase", "GramBlocks", "SplitPCA", "WARM_ITER", "split_scores", "zero_padding"]
+
+#: subspace iterations of a warm-started PCA (:meth:`GramBlocks.pca`, ``warm_start``); from a random start: 7
+WARM_ITER = 4
 
 
 class SplitPCA:
@@ -38,13 +41,16 @@ class SplitPCA:
     n_components_ : int
     """
 
-    def __init__(self, mean, components, explained_variance, centre, offset):
+    def __init__(self, mean, components, explained_variance, centre, offset, subspace=None):
         self.mean_ = mean
         self.components_ = components
         self.explained_variance_ = explained_variance
         self.n_components_ = components.shape[0]
         self._centre = centre  # the GramBlocks' centre; offset = (mean_ - centre) @ components_.T
         self._offset = offset
+        # (n_features, p) float32, the features' own order: the iteration's whole Ritz basis (components_ and the
+        # oversampling columns), the start of a warm-started iteration on a nearby covariance (None: exact solver)
+        self._subspace = subspace
 
     def transform(self, x):
         """PC scores ``(x - mean_) @ components_.T``: shape ``(n_trials, n_components_)`` float64."""
@@ -94,19 +100,27 @@ class GramBlocks:
         ``x`` not 2-D, an empty block.
     """
 
-    def __init__(self, x, blocks, *, padding=None, rows=None):
+    def __init__(self, x, blocks, *, padding=None, rows=None, base=None):
         x = np.asarray(x)
         if x.ndim != 2:
             raise ValueError(f"features must be 2-D (n_trials, n_features), got shape {x.shape}")
         self.blocks = [np.asarray(b) for b in blocks]
         if any(b.size == 0 for b in self.blocks):
             raise ValueError("empty row block")
+        if not self.blocks and base is None:
+            raise ValueError("no row blocks")
         self._x = x
         self._rows = None if rows is None else np.asarray(rows)
         n_rows = x.shape[0] if rows is None else self._rows.size
         self._xc = None
         self.n_features = d = x.shape[1]
-        self._order, extent = zero_padding(self._covered()) if padding is None else padding
+        if padding is None:
+            padding = zero_padding(self._covered()) if base is None else (base.order,
+                                                                          _extents(self._covered(), base.order))
+        self._order, extent = padding
+        if base is not None and (base.n_features != d or not np.array_equal(base.order, self._order)):
+            raise ValueError("the base's Gram matrix is of other columns, or of another column order (padding)")
+        self._base = base
         groups = _groups(np.asarray(extent))
         self._inverse = np.argsort(self._order)
         # per group: its rows, its leading columns k, its mean over them (float64) and its rows centred on it (f32)
@@ -122,7 +136,8 @@ class GramBlocks:
             group_of[rows_g] = g
             slot_of[rows_g] = np.arange(rows_g.size)
         self._grams = []
-        stats = []  # per block: (n rows, their mean, padded, permuted) per group in the block
+        # per block: (rows per group in the block, their means, padded, in the columns' order: (d, groups) float64)
+        self._stats = []
         for b in self.blocks:
             gram = None
             means = []
@@ -144,14 +159,18 @@ class GramBlocks:
                 v = np.zeros(d)
                 v[:k] = m + mu
                 means.append((sel.size, v))
-            stats.append((np.array([c for c, _ in means], np.float64), np.stack([v for _, v in means], axis=1)))
+            self._stats.append((np.array([c for c, _ in means], np.float64), np.stack([v for _, v in means], axis=1)))
             self._grams.append(gram)
-        # the centre: the mean of the blocks' rows
+        # the centre: the mean of the blocks' rows (of the base's, when there is one)
+        stats = self._stats if base is None else [(base.counts, base.means)]
         centre_p = sum(v @ n for n, v in stats) / sum(n.sum() for n, _ in stats)
         self.centre = centre_p[self._inverse]
         # the groups' means about the centre: added in pca (parallel axes), and the blocks' sums about it
-        self._means = [(v - centre_p[:, None], n) for n, v in stats]
+        self._means = [(v - centre_p[:, None], n) for n, v in self._stats]
         self._sums = [v @ n for v, n in self._means]
+        if base is not None:
+            self._base_means = base.means - centre_p[:, None]
+            self._base_sum = self._base_means @ base.counts
         self._total = None  # the sum of every block's Gram matrix, made when a PCA first uses most blocks
 
     def _covered(self):
@@ -170,14 +189,14 @@ class GramBlocks:
         pca.n_components_)`` float64, equal to ``pca.transform_centred(self.xc)`` up to float32 rounding."""
         wp = pca.components_[:, self._order]  # (n_pcs, d) permuted
         c_p = self.centre[self._order]
-        z = np.empty((self._x.shape[0], wp.shape[0]), np.float64)
+        z = np.empty((self._x.shape[0] if self._rows is None else self._rows.size, wp.shape[0]), np.float64)
         for rows_g, k, m, xg in self._groups:
             v = -c_p.copy()
             v[:k] += m
             z[rows_g] = (xg @ wp[:, :k].T).astype(np.float64) + (v @ wp.T.astype(np.float64) - pca._offset)
         return z
 
-    def pca(self, use, n_components, *, random_state=0, n_iter=7, n_oversamples=10):
+    def pca(self, use, n_components, *, random_state=0, n_iter=None, n_oversamples=10, warm_start=None):
         """PCA of the rows of the blocks ``use``.
 
         Parameters
@@ -188,10 +207,15 @@ class GramBlocks:
             PCs wanted; clipped to ``min(n_train - 1, n_features)``.
         random_state : int
             Seed of the random starting subspace.
-        n_iter : int
-            Subspace iterations (scikit-learn's randomized PCA: 7 for 50 PCs of 2160 features).
+        n_iter : int, optional
+            Subspace iterations: default 7 from a random start (scikit-learn's randomized PCA for 50 PCs of 2160
+            features), :data:`WARM_ITER` from ``warm_start``.
         n_oversamples : int
             Extra columns of the subspace (scikit-learn: 10).
+        warm_start : SplitPCA, optional
+            A PCA of a nearby covariance (e.g. the first fold's, with which a fold shares two thirds of its rows):
+            the iteration starts from its subspace instead of a random one (ignored when it has none: the exact
+            solver, or fewer columns).
 
         Returns
         -------
@@ -206,9 +230,6 @@ class GramBlocks:
         n = int(sum(self.blocks[i].size for i in use))
         if n < 2:
             raise ValueError(f"need at least 2 training rows, got {n}")
-        k = int(min(n_components, n - 1, self.n_features))
-        if k < 1:
-            raise ValueError("need at least one principal component")
         # (in the columns' order of the groups, zero_padding; the result in the features' own order)
         rest = [i for i in range(len(self.blocks)) if i not in set(use)]
         if len(use) > 1 and len(rest) < len(use) - 1:  # (k-fold: the total less the held-out blocks)
@@ -224,39 +245,135 @@ class GramBlocks:
             for i in use[1:]:
                 cov += self._grams[i]
         s = np.sum([self._sums[i] for i in use], axis=0)
+        v = [self._means[i][0] for i in use]
+        w = [self._means[i][1] for i in use]
+        return self._fit(cov, v, w, s, n, n_components, random_state, n_iter, n_oversamples, warm_start)
+
+    def pca_base_less(self, held_out, n_components, *, random_state=0, n_iter=None, n_oversamples=10,
+                      warm_start=None):
+        """PCA of the base's rows less those of the blocks ``held_out`` (each block's rows among the base's).
+
+        The training covariance is the base's Gram matrix less the held-out blocks' (:class:`GramBase`): where the
+        training split is most of a fixed set of rows (the extrapolation task trains on 75 of each trained cell's
+        100 trials), a repetition forms the Gram matrix of the quarter it leaves out instead of the three quarters
+        it trains on. Parameters (``warm_start``: e.g. the base's own PCA, :attr:`GramBase.pca`), returns and errors
+        as :meth:`pca`; ValueError also when this object has no base.
+        """
+        base = self._base
+        if base is None:
+            raise ValueError("no base Gram matrix (GramBlocks(..., base=GramBase(...)))")
+        held_out = list(held_out)
+        n = int(base.counts.sum() - sum(self.blocks[i].size for i in held_out))
+        if n < 2:
+            raise ValueError(f"need at least 2 training rows, got {n}")
+        cov = base.gram.copy()
+        for i in held_out:
+            cov -= self._grams[i]
+        s = self._base_sum - np.sum([self._sums[i] for i in held_out] + [np.zeros(self.n_features)], axis=0)
+        v = [self._base_means] + [self._means[i][0] for i in held_out]
+        w = [base.counts] + [-self._means[i][1] for i in held_out]
+        return self._fit(cov, v, w, s, n, n_components, random_state, n_iter, n_oversamples, warm_start)
+
+    def _fit(self, cov, v, w, s, n, n_components, random_state, n_iter, n_oversamples, warm_start):
+        """The PCA from the training rows' Gram matrix ``cov`` (float32, about their groups' means, modified in
+        place), those means about the centre (``v``: (d, groups) arrays, ``w``: their row counts, negative for rows
+        taken out), the rows' sum ``s`` about the centre and their number ``n``."""
+        k = int(min(n_components, n - 1, self.n_features))
+        if k < 1:
+            raise ValueError("need at least one principal component")
         shift = s / n  # training mean - centre (small: the centre is the mean of all blocks)
         # the groups' means about the centre, less the training mean's shift: one low-rank update
         # sum_g n_g v_g v_g' - s s' / n
-        v = np.concatenate([self._means[i][0] for i in use] + [s[:, None]], axis=1)
-        w = np.concatenate([self._means[i][1] for i in use] + [[-1.0 / n]])
+        v = np.concatenate(v + [s[:, None]], axis=1)
+        w = np.concatenate(w + [[-1.0 / n]])
         cov += ((v * w).astype(np.float32)) @ v.T.astype(np.float32)
         cov *= np.float32(1.0 / (n - 1))
-        vals, vecs = _top_eigen(cov, k, n_iter, n_oversamples, random_state, self._order)
+        start = None
+        sub = None if warm_start is None else warm_start._subspace
+        if sub is not None and sub.shape == (self.n_features, min(self.n_features, k + n_oversamples)):
+            start = sub[self._order]
+        if n_iter is None:
+            n_iter = 7 if start is None else WARM_ITER
+        vals, vecs, basis = _top_eigen(cov, k, n_iter, n_oversamples, random_state, self._order, start=start)
         comps = np.ascontiguousarray(vecs.T[:, self._inverse], dtype=np.float32)
         shift = shift[self._inverse]
         offset = shift @ comps.T.astype(np.float64)
-        return SplitPCA(self.centre + shift, comps, vals, self.centre, offset)
+        return SplitPCA(self.centre + shift, comps, vals, self.centre, offset,
+                        None if basis is None else basis[self._inverse])
 
 
-def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None):
+class GramBase:
+    """The Gram matrix of a fixed set of rows, formed once, from which training splits that are most of those rows
+    take theirs by subtraction (:meth:`GramBlocks.pca_base_less`), and its PCA, their iterations' warm start.
+
+    The extrapolation task (Fig. 3C-F) trains every repetition on 75 of the 100 trials of each trained
+    speed-force cell: the Gram matrix of all of the trained cells' trials is formed once per variant and each
+    repetition forms only its 25 held-out trials' (a third of the work). Pass it to :class:`GramBlocks` (``base=``),
+    with the same column order (``padding``).
+
+    Parameters
+    ----------
+    x : array_like, shape (n_rows, n_features)
+    rows : int index array
+        Rows of ``x`` (distinct).
+    padding : (order, extent), optional
+        :func:`zero_padding` of ``x[rows]`` (or the order of a matrix they are a subset of and these rows' extents).
+    n_components : int, optional
+        Fit the base's own PCA too (:attr:`pca`), the start of the splits' iterations.
+    random_state : int
+        Seed of that PCA's random start.
+
+    Attributes
+    ----------
+    rows : ndarray (n,) intp
+    order : ndarray (n_features,) intp
+        The columns' order of :attr:`gram`.
+    n_features : int
+    gram : ndarray (n_features, n_features) float32
+        Sum over the rows' padding groups of each group's Gram matrix about its own mean, columns in ``order``.
+    counts : ndarray (n_groups,) float64
+        Rows per group.
+    means : ndarray (n_features, n_groups) float64
+        The groups' means (zero beyond their columns), in ``order``.
+    pca : SplitPCA or None
+    """
+
+    def __init__(self, x, rows, *, padding=None, n_components=None, random_state=0):
+        rows = np.asarray(rows)
+        gb = GramBlocks(x, [np.arange(rows.size)], padding=padding, rows=rows)
+        self.rows = rows
+        self.order = gb._order
+        self.n_features = gb.n_features
+        self.gram = gb._grams[0]
+        self.counts, self.means = gb._stats[0]
+        self.pca = None if n_components is None else gb.pca([0], n_components, random_state=random_state)
+
+
+def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None, start=None):
     """Leading ``k`` eigenpairs of a symmetric PSD matrix: exact for small matrices, else a randomized subspace
     iteration with a Rayleigh-Ritz step (Halko, Martinsson & Tropp 2011, Alg. 4.4 on ``cov``). ``order``: ``cov``'s
     rows and columns are the features in this order (the random start is drawn in the features' own order and
-    permuted with them, so the iteration does not depend on the order)."""
+    permuted with them, so the iteration does not depend on the order). ``start``: (d, k + n_oversamples), the
+    starting subspace instead of a random one (warm start). Returns the values, the vectors and the whole Ritz basis
+    ``(d, k + n_oversamples)`` by decreasing value (None from the exact solver)."""
     d = cov.shape[0]
     p = min(d, k + n_oversamples)
     if d <= 4 * p:  # small: LAPACK's exact solver is as cheap
         vals, vecs = eigh(cov.astype(np.float64), subset_by_index=[d - k, d - 1])
-        return vals[::-1], vecs[:, ::-1]
-    q = np.random.default_rng(random_state).standard_normal((d, p)).astype(cov.dtype)
-    if order is not None:
-        q = q[order]
+        return vals[::-1], vecs[:, ::-1], None
+    if start is not None:
+        q = _orthonormal(np.asarray(start, cov.dtype))
+    else:
+        q = np.random.default_rng(random_state).standard_normal((d, p)).astype(cov.dtype)
+        if order is not None:
+            q = q[order]
     for _ in range(n_iter + 1):
         q = _orthonormal(cov @ q)
     small = (q.T @ (cov @ q)).astype(np.float64)
     vals, u = eigh((small + small.T) / 2)
-    top = np.argsort(vals)[::-1][:k]
-    return vals[top], q @ u[:, top].astype(q.dtype)
+    top = np.argsort(vals)[::-1]
+    basis = q @ u[:, top].astype(q.dtype)
+    return vals[top[:k]], basis[:, :k], basis
 
 
 def zero_padding(x, labels=None, *, steps=32, chunk=4096):
@@ -300,13 +417,22 @@ def zero_padding(x, labels=None, *, steps=32, chunk=4096):
         if n == 0 or count.min() == n:
             return np.arange(d), np.full(n, d, np.intp)
         order = np.argsort(-count, kind="stable")
-        rank = np.empty(d, np.int32)
-        rank[order] = np.arange(1, d + 1)
-        extent = np.empty(n, np.intp)
-        for s in range(0, n, chunk):
-            extent[s:s + chunk] = ((x[s:s + chunk] != 0) * rank).max(axis=1)
+        return order, _extents(x, order, steps=steps, chunk=chunk)
     step = max(1, -(-d // steps))
     return order, np.clip(-(-extent // step) * step, 1, d)
+
+
+def _extents(x, order, *, steps=32, chunk=4096):
+    """Each row's extent in the column order ``order``: one past its last non-zero column, rounded up as
+    :func:`zero_padding` rounds."""
+    n, d = x.shape
+    rank = np.empty(d, np.int32)
+    rank[order] = np.arange(1, d + 1)
+    extent = np.empty(n, np.intp)
+    for s in range(0, n, chunk):
+        extent[s:s + chunk] = ((x[s:s + chunk] != 0) * rank).max(axis=1, initial=0)
+    step = max(1, -(-d // steps))
+    return np.clip(-(-extent // step) * step, 1, d)
 
 
 def _groups(extent, min_rows=64):
@@ -337,7 +463,8 @@ def _orthonormal(y):
     return y64.astype(np.float32)
 
 
-def split_scores(x, splits, n_components, *, random_states, kfold=False, padding=None, rows=None):
+def split_scores(x, splits, n_components, *, random_states, kfold=False, padding=None, rows=None, base=None,
+                 warm_start=True):
     """PC scores of each split's training and test rows, with the PCA fitted on its training rows.
 
     Parameters
@@ -356,6 +483,16 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False, padding
         :func:`zero_padding` of ``x`` (computed here when not given).
     rows : int index array, optional
         The splits index ``x[rows]`` (not copied whole: the groups are gathered from ``x``).
+    base : GramBase, optional
+        The Gram matrix of a set of rows of ``x`` (indices into ``x`` itself) that holds a split's training rows:
+        its covariance is then the base's less the base's other rows (:meth:`GramBlocks.pca_base_less`), when they
+        are fewer than the training rows and all among ``rows``; else formed from the training rows. Its padding
+        order is the one used (``padding``'s order must be the same).
+    warm_start : bool
+        k-fold: the later folds' iterations start from the first fold's subspace (the folds share two thirds of
+        their rows), with a base from the base's PCA: :data:`WARM_ITER` iterations instead of 7 from a random start
+        (as good a subspace, measured on the paper's features: docs/results.md 5i). False: every split from a random
+        start.
 
     Yields
     ------
@@ -380,13 +517,41 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False, padding
         return
     if kfold:
         gb = GramBlocks(x, [te for _, te in splits], padding=padding, rows=rows)
+        first = None
         for f, ((tr, te), rs) in enumerate(zip(splits, random_states)):
-            pca = gb.pca([g for g in range(len(splits)) if g != f], n_components, random_state=rs)
+            pca = gb.pca([g for g in range(len(splits)) if g != f], n_components, random_state=rs,
+                         warm_start=first if warm_start else None)
+            first = pca if first is None else first
             z = gb.scores(pca)  # every row once (no copies of the training rows)
             yield z[tr], z[te]
         return
+    covered = np.arange(x.shape[0]) if rows is None else np.asarray(rows)
     for (tr, te), rs in zip(splits, random_states):
-        gb = GramBlocks(x, [tr], padding=padding, rows=rows)
-        pca = gb.pca([0], n_components, random_state=rs)
+        held = None if base is None else _held_out(base, covered, np.asarray(tr), x.shape[0])
+        if held is not None:
+            gb = GramBlocks(x, [held] if held.size else [], padding=padding, rows=rows, base=base)
+            pca = gb.pca_base_less([0] if held.size else [], n_components, random_state=rs,
+                                   warm_start=base.pca if warm_start else None)
+        else:
+            gb = GramBlocks(x, [tr], padding=padding, rows=rows)
+            pca = gb.pca([0], n_components, random_state=rs)
         z = gb.scores(pca)
         yield z[tr], z[te]
+
+
+
+def _held_out(base, covered, tr, n_x):
+    """Positions in ``covered`` of the base's rows that the split does not train on, or None when the base does not
+    serve (a training row outside it, one of its other rows outside ``covered``, or as many of them as training
+    rows: forming the training rows' Gram matrix is then as cheap)."""
+    in_base = np.zeros(n_x, bool)
+    in_base[base.rows] = True
+    rows_tr = covered[tr]
+    if not in_base[rows_tr].all():
+        return None
+    trained = np.zeros(n_x, bool)
+    trained[rows_tr] = True
+    held = np.flatnonzero(in_base[covered] & ~trained[covered])
+    if held.size != base.rows.size - np.unique(rows_tr).size or held.size >= rows_tr.size:
+        return None
+    return held
