@@ -123,3 +123,21 @@ def test_texture_classifier_errors(tmp_path):
         load_model(bad)
     with pytest.raises(ValueError):
         NestedLDA().fit(np.zeros((5, 2)), np.zeros(5))  # one class
+
+
+@pytest.mark.parametrize("k", [2, 4, 16])
+def test_predict_all_is_the_argmax_of_decision_all(k):
+    """NestedLDA.predict_all's compiled pass (rigctl.analysis.lda_kernel) gives exactly the class of the largest
+    discriminant of decision_all for every PC count, ties to the first class."""
+    from rigctl.analysis.classify import NestedLDA
+
+    rng = np.random.default_rng(k)
+    y = rng.integers(0, k, 3000)
+    z = rng.standard_normal((k, 30))[y] * 0.3 + rng.standard_normal((3000, 30)) * np.linspace(3, 0.5, 30)
+    lda = NestedLDA().fit(z[:2000], np.array(list("PONMLKJIHGFEDCBA"))[y[:2000]])
+    np.testing.assert_array_equal(lda.predict_all(z[2000:]), lda.classes_[lda.decision_all(z[2000:]).argmax(axis=2)])
+    np.testing.assert_array_equal(lda.predict_all(z[2000:], 7, chunk=300),
+                                  lda.classes_[lda.decision_all(z[2000:], 7).argmax(axis=2)])
+    tie = np.zeros((5, 30))  # equal discriminants (equal priors, means symmetric about 0): the first class
+    lda = NestedLDA().fit(np.vstack([np.eye(30), -np.eye(30)] * 3), np.repeat([0, 1], 30)[None].repeat(3, 0).ravel())
+    assert (lda.predict_all(tie) == lda.classes_[lda.decision_all(tie).argmax(axis=2)]).all()

@@ -170,3 +170,70 @@ def test_the_confusion_matrix_is_scikit_learns():
     ints = rng.integers(0, 7, 300)
     np.testing.assert_array_equal(_confusion(ints, ints[::-1], [3, 1, 0, 2]),
                                   confusion_matrix(ints, ints[::-1], labels=[3, 1, 0, 2]))
+
+
+def test_the_base_less_the_held_out_rows_is_the_training_rows_pca():
+    """The extrapolation's fast path (issue 57): the Gram matrix of a fixed set of zero-padded rows formed once
+    (GramBase), a split's covariance as it less the rows it does not train on; the same PCA and scores as the
+    training rows' own, warm-started from the base's PCA as close to scikit-learn's exact axes."""
+    from sklearn.decomposition import PCA
+
+    from rigctl.analysis.splitpca import GramBase, GramBlocks, split_scores, zero_padding
+
+    rng = np.random.default_rng(4)
+    n, trains, windows = 1500, 4, 30
+    scale = np.concatenate([np.geomspace(12, 2, 8), np.full(windows - 8, 0.7)])
+    x = rng.gamma(2.0, 1.0, (n, trains, windows)) * scale + 3
+    filled = rng.choice([30, 20, 15, 10], n)
+    for i, w in enumerate(filled):
+        x[i, :, w:] = 0
+    x = x.reshape(n, -1).astype(np.float32)
+    order, extent = zero_padding(x, filled)
+    base_rows = np.sort(rng.choice(n, 1000, replace=False))
+    base = GramBase(x, base_rows, padding=(order, extent[base_rows]), n_components=10)
+    train = np.sort(rng.choice(base_rows, 750, replace=False))
+    held = np.setdiff1d(base_rows, train)
+    rows = np.concatenate([train, held, np.setdiff1d(np.arange(n), base_rows)])  # train, held-out, others
+    pos_held = np.arange(len(train), len(train) + len(held))
+    gb = GramBlocks(x, [pos_held], padding=(order, extent[rows]), rows=rows, base=base)
+    direct = GramBlocks(x, [np.arange(len(train))], padding=(order, extent[rows]), rows=rows)
+    p, q = gb.pca_base_less([0], 10), direct.pca([0], 10)  # (cold, the same random start)
+    np.testing.assert_allclose(p.mean_, x[train].mean(axis=0, dtype=np.float64), rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(p.explained_variance_, q.explained_variance_, rtol=1e-4)
+    assert np.abs(np.sum(p.components_ * q.components_, axis=1)).min() > 0.9999
+    z, want = gb.scores(p), direct.scores(q)
+    assert (np.abs(np.abs(z) - np.abs(want)).max(axis=0) < 1e-3 * want.std(axis=0)).all()
+    ref = PCA(10, svd_solver="full").fit(x[train])
+    warm = gb.pca_base_less([0], 10, warm_start=base.pca)
+    for pca in (p, warm):
+        np.testing.assert_allclose(pca.explained_variance_[:8], ref.explained_variance_[:8], rtol=1e-3)
+        assert np.abs(np.sum(pca.components_[:8] * ref.components_[:8], axis=1)).min() > 0.999
+    # split_scores takes the base where it saves work: the held-out rows are covered and fewer than the trained
+    (z_tr, z_te), = split_scores(x, [(np.arange(len(train)), pos_held)], 10, random_states=[0], rows=rows,
+                                 padding=(order, extent[rows]), base=base)
+    np.testing.assert_allclose(np.abs(z_tr), np.abs(warm.transform(x[train])), rtol=1e-3, atol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore:extrapolation. smallest trained cell")
+def test_extrapolation_from_the_trained_cells_base_equals_sklearn_refit_per_pc(fs, monkeypatch):
+    """With enough repetitions the extrapolation's PCAs come from the trained cells' Gram matrix less each
+    repetition's held-out trials, warm-started: every repetition's accuracies are the straightforward refit's."""
+    from rigctl.analysis import splitpca
+    from rigctl.analysis.tasks import extrapolation_split, run_extrapolation
+
+    used = []
+    real = splitpca.GramBlocks.pca_base_less
+    monkeypatch.setattr(splitpca.GramBlocks, "pca_base_less", lambda self, *a, **kw: used.append(1) or
+                        real(self, *a, **kw))
+    repeats = 3
+    res = run_extrapolation(fs, n_pcs=N_PCS, repeats=repeats, n_train=6, n_test=2, n_jobs=1,
+                            variants=["original"])
+    assert len(used) == repeats  # (the base path was taken)
+    for r in range(repeats):
+        tr, te, cell = extrapolation_split(fs, n_train=6, n_test=2, seed=0, repeat=r)
+        rows = np.concatenate([tr, te])
+        x, y = fs.features["original"][rows], fs.texture[rows]
+        for c in np.unique(cell):
+            m = np.flatnonzero(cell == c) + len(tr)
+            want = _straightforward(x, y, np.arange(len(tr)), m) / len(m)
+            assert np.abs(res.curves[c]["original"].acc[r] - want).max() <= FLIPS / len(m) + 1e-12, (r, c)
