@@ -46,7 +46,7 @@ from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.noise import one_pole
 from rigctl.simulation.textures import Texture, get_texture
 from rigctl.simulation.trial_slots import TrialSlots, init_worker_slots
-from rigctl.storage.session import SessionWriter
+from rigctl.storage.session import SCHEMA_VERSION, SessionWriter
 
 #: travel of the drum surface in one trial of the paper's dataset, mm (6/4/3/2.4/2 s at 40-120 mm/s)
 TRIAL_TRAVEL_MM = 240.0
@@ -308,7 +308,8 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         A loaded TOML protocol (:func:`rigctl.acquisition.protocol.load_protocol` of e.g.
         ``protocols/paper_dataset.toml``; the simulator sits below the acquisition layer and never loads one).
     out_path : path
-        Session file to write (layout: ``docs/session-format.md``; kind ``"simulated-dataset"``), with the
+        Session file to write (layout: ``docs/session-format.md``; kind ``"simulated-dataset"``, schema 5: the
+        trials' groups hold no views of their rows, read through :class:`rigctl.storage.session.Session`), with the
         model's sensor (:func:`model_layout`) and the protocol's texture set (``protocol.texture_set``; the
         plan's labels when the protocol has none).
     trials_per_condition : int, optional
@@ -391,7 +392,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             kind="simulated-dataset",
             attrs={"dataset_seed": int(seed), "generator": "rigctl.simulation.dataset.generate_dataset",
                    "trials_per_condition": int(protocol.trials_per_condition)},
-            overwrite=overwrite, compression=compression, durable=durable)
+            overwrite=overwrite, compression=compression, durable=durable, schema_version=SCHEMA_VERSION)
         done = set()
     textures_arg = writer.textures.to_dict()  # what the workers render (the session's set)
     rows = [r for r in _plan_rows(plan) if r[0] not in done]

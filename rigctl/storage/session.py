@@ -36,6 +36,7 @@ from pathlib import Path
 
 from rigctl.core.trial import TrialData
 from rigctl.storage.session_format import (
+    DEFAULT_SCHEMA_VERSION,
     EVENTS_ATTR,
     PLAN_CHUNK_ROWS,
     PLAN_DTYPE,
@@ -63,7 +64,7 @@ from rigctl.storage.session_writer import (
 from rigctl.storage.validate import usable_trials
 
 __all__ = [
-    "EVENTS_ATTR",
+    "DEFAULT_SCHEMA_VERSION", "EVENTS_ATTR",
     "PLAN_CHUNK_ROWS", "PLAN_DTYPE", "PLAN_FIELDS", "SCHEMA_VERSION", "SESSION_KINDS", "STATUS_ENUM", "Session",
     "SessionError", "SessionLocked", "SessionReader", "SessionWriteError", "SessionWriter", "TAXEL_CHUNK_BYTES",
     "TaxelBlock", "TrialData", "TrialStatus", "VLEN_UTF8", "open_session", "plan_array", "taxels_description",

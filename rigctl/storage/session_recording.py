@@ -8,10 +8,11 @@ order, and ``/recording/index``, one row per recorded trial (:data:`INDEX_DTYPE`
 - the load-cell trace, rows ``force_start .. + n_force``: ``force_g``, ``force_time_s`` float64;
 - the speed trace, rows ``speed_start .. + n_speed``: ``speed_mm_s``, ``speed_time_s`` float64.
 
-Each trial's group ``/trials/<id>`` keeps its attributes and the same eight names as schema 3, as HDF5 *virtual
-datasets* mapping its rows of these arrays (an empty trace is a plain empty dataset): a plain ``h5py`` reader reads
-``f["trials/000001/taxels"]`` as before, and the encoder reads many trials in one hyperslab
-(:func:`read_rows`) without opening a group per trial. The arrays are written inside the same journaled commit as
+Each trial's group ``/trials/<id>`` keeps its attributes and, in schema 4, the same eight names as schema 3, as HDF5
+*virtual datasets* mapping its rows of these arrays (an empty trace is a plain empty dataset): a plain ``h5py`` reader
+reads ``f["trials/000001/taxels"]`` as before. Schema 5 (the dataset generator's) makes no views: a trial's rows are
+found by its index row only. The encoder reads many trials in one hyperslab (:func:`read_rows`) without opening a
+group per trial. The arrays are written inside the same journaled commit as
 the trial's group and its ``/plan`` status (:mod:`rigctl.storage.journal`), so a killed writer leaves every
 finished trial readable and nothing of an unfinished one (``docs/session-format.md``, "Crash safety").
 """
@@ -105,10 +106,12 @@ def _stack(name: str, arrays: list[Any], n_channels: int) -> np.ndarray:
     return np.concatenate([stored(name, a, n_channels) for a in arrays])
 
 
-def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]]) -> tuple[list[Any], np.ndarray]:
-    """Append trials to ``/recording`` (each array once for the whole batch) and their index rows, and make each
-    trial's views in its new, empty group. ``items``: (group low-level id, trial id, data). Returns the low-level
-    ids of the ``taxels`` views, in ``items`` order (for their attributes), and the new index rows."""
+def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]], *, views: bool = True
+                  ) -> tuple[list[Any], np.ndarray]:
+    """Append trials to ``/recording`` (each array once for the whole batch) and their index rows, and (``views``:
+    schema 4) make each trial's views in its new, empty group. ``items``: (group low-level id, trial id, data).
+    Returns the low-level ids of the ``taxels`` views, in ``items`` order (for their attributes; none without
+    ``views``), and the new index rows."""
     rec = f[GROUP]
     rows = np.zeros(len(items), dtype=INDEX_DTYPE)
     rows["trial_id"] = [int(t) for _, t, _ in items]
@@ -126,6 +129,8 @@ def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]]) -> tupl
     rows["dropped_frames"] = [d.dropped_frames for d in data]
     rows["crc_errors"] = [d.crc_errors for d in data]
     _append(rec["index"], rows)
+    if not views:  # schema 5: the index is where a trial's rows are (8 views cost ~1 ms a trial to make)
+        return [], rows
     sources = {name: _Source(rec[name]) for name, _ in SAMPLE_ARRAYS}
     sources.update({name: _Source(rec[name]) for value, times, _ in TRACES for name in (value, times)})
     out = []

@@ -27,6 +27,7 @@ from rigctl.storage import h5objects, journal, journal_replay, session_recording
 from rigctl.storage.onboard_group import ONBOARD_ATTR, write_onboard
 from rigctl.storage.outputs import check_replaceable
 from rigctl.storage.session_format import (
+    DEFAULT_SCHEMA_VERSION,
     EVENTS_ATTR,
     PLAN_CHUNK_ROWS,
     PLAN_DTYPE,
@@ -35,6 +36,7 @@ from rigctl.storage.session_format import (
     SESSION_KINDS,
     STATUS_ENUM,
     TAXEL_CHUNK_BYTES,
+    VIEW_SCHEMAS,
     SessionError,
     SessionLocked,
     SessionWriteError,
@@ -50,6 +52,7 @@ from rigctl.storage.session_format import (
     _plan_to_str,
     _reading,
     _row_value,
+    _schema_of,
     _text,
     _utc_now,
     decode_events,
@@ -106,10 +109,10 @@ def _writer_lock(path: Path) -> journal.WriterLock:
 def _new_file_image(plan_arr: np.ndarray, *, layout: SensorLayout, textures: TextureSet, protocol_source: str,
                     protocol_name: str, protocol_format: str, rig_config: Mapping[str, Any] | None, kind: str,
                     calibration: Mapping[str, Any] | None, attrs: Mapping[str, Any] | None,
-                    schema_version: int = SCHEMA_VERSION, compression: str | None = "gzip") -> bytes:
+                    schema_version: int = DEFAULT_SCHEMA_VERSION, compression: str | None = "gzip") -> bytes:
     """The bytes of a new session file (root attributes, ``/protocol``, ``/plan``, ``/trials``, ``/calibration``,
-    and for schema 4 the empty ``/recording`` arrays), built by HDF5 in memory: HDF5 never writes to a disk that may
-    be full (at a few KiB free it can crash there)."""
+    and for schema 4 and 5 the empty ``/recording`` arrays), built by HDF5 in memory: HDF5 never writes to a disk that
+    may be full (at a few KiB free it can crash there)."""
     buf = io.BytesIO()
     with h5py.File(buf, "w") as f:
         f.attrs["schema_version"] = schema_version
@@ -217,6 +220,8 @@ class SessionWriter:
                 self.protocol_source = contents.protocol_source
                 self._plan = contents.raw_plan
                 self._flat = session_recording.is_flat(f)
+                #: schema 4: each trial's group gets views of its rows (schema 5: none, the index says where they are)
+                self._views = self._flat and _schema_of(contents.attrs) in VIEW_SCHEMAS
                 self.layout, present, self.textures = contents.layout, contents.present, contents.textures
                 if present is not None:
                     raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with "
@@ -295,7 +300,7 @@ class SessionWriter:
         overwrite: bool = False,
         compression: str | None = "gzip",
         durable: bool = True,
-        schema_version: int = SCHEMA_VERSION,
+        schema_version: int = DEFAULT_SCHEMA_VERSION,
     ) -> "SessionWriter":
         """Create a new session file with its root attributes, ``/protocol`` and ``/plan``; return its writer.
 
@@ -319,9 +324,12 @@ class SessionWriter:
         attrs : extra root attributes; without a ``provenance`` one, the writing process's
             (:func:`rigctl.core.provenance.software_provenance`: versions, git state, host, command line) is stored.
         overwrite : replace an existing file (otherwise :class:`FileExistsError`).
-        schema_version : :data:`SCHEMA_VERSION` (4: the trials' data back to back in ``/recording``, read in large
-            blocks), or 3 (one group of datasets per trial, as rigctl wrote before; for tools that need it and for
-            tests of old files). A file keeps its layout: a resume writes what it holds.
+        schema_version : 4 (:data:`DEFAULT_SCHEMA_VERSION`: the trials' data back to back in ``/recording``, read in
+            large blocks, each trial's group holding views of its rows for plain h5py), 5 (:data:`SCHEMA_VERSION`:
+            the same without the views, which cost ~1 ms a trial to make: the dataset generator's, read through
+            :class:`Session` or ``/recording/index``), or 3 (one group of datasets per trial, as rigctl wrote before;
+            for tools that need it and for tests of old files). A file keeps its layout: a resume writes what it
+            holds.
 
         Raises
         ------
@@ -331,8 +339,8 @@ class SessionWriter:
         path = Path(path)
         if kind not in SESSION_KINDS:
             raise ValueError(f"kind must be one of {SESSION_KINDS}, got {kind!r}")
-        if schema_version not in (3, SCHEMA_VERSION):
-            raise ValueError(f"schema_version must be 3 or {SCHEMA_VERSION}, got {schema_version!r}")
+        if schema_version not in (3, 4, SCHEMA_VERSION):
+            raise ValueError(f"schema_version must be 3, 4 or {SCHEMA_VERSION}, got {schema_version!r}")
         if protocol_format not in ("toml", "python", "none"):
             raise ValueError(f"protocol_format must be 'toml', 'python' or 'none', got {protocol_format!r}")
         if not isinstance(layout, SensorLayout):
@@ -496,7 +504,7 @@ class SessionWriter:
                 for i in relabelled:  # the recorded condition in the plan row (before its status, below)
                     f["plan"][i] = self._plan[i]
                 if views:
-                    taxels, rows = session_recording.append_trials(f, views)
+                    taxels, rows = session_recording.append_trials(f, views, views=self._views)
                     trial_facts.append(f, rows, [d for _, _, d in views])
                     for tax, (_, _, data) in zip(taxels, views):
                         self._taxels_attrs(tax, data)

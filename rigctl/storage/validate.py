@@ -11,9 +11,9 @@ first problem found is the reason):
 - **declared sizes**, against the file's real size before anything is read: a trial declaring more samples than
   the file can hold (a dataset declared (2**34, 18) with nothing written) is excluded, never allocated;
 - **its group**: it must open; ``n_samples``, ``dropped_frames``, ``crc_errors`` must be counts agreeing with the
-  data (schema 4: with the index); ``taxels`` must be ``(n, channels)`` integers (schema 4: the view, the one the
-  documented plain-h5py reading uses; the other views are not opened: rigctl reads the recording arrays). Schema
-  1-3: every dataset's shape and type (:meth:`Session.trial_attrs`);
+  data (schema 4, 5: with the index); ``taxels`` must be ``(n, channels)`` integers (schema 4: the view, the one
+  the documented plain-h5py reading uses; the other views are not opened: rigctl reads the recording arrays; schema
+  5 has no views). Schema 1-3: every dataset's shape and type (:meth:`Session.trial_attrs`);
 - **counters**: ``dropped_frames``, ``crc_errors`` above :func:`max_count` (16 per frame slot of the trial + 1024:
   more frames than the link could have carried);
 - **sequence gaps** are counted from the ``seq`` column (uint16 frame counter, wrapping at 65,536: wire spec

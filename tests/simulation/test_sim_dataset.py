@@ -222,6 +222,15 @@ def test_resume_renders_only_missing_trials_and_matches_a_fresh_run(protocol_pat
     (resumed,) = read_provenance(part)["resumed"]  # the run that rendered trials 5-23 is named in the file
     assert resumed["complete_trials_before"] == 5 and resumed["provenance"]["kind"] == "simulated-dataset"
     assert "resumed" not in read_provenance(fresh)
+    # a file keeps its layout: the generator's own is schema 5 (no views in the trials' groups), the interrupted run's
+    # schema 4 (SessionWriter.create's default), whose resumed trials got their views as the first five did
+    import h5py
+
+    with h5py.File(fresh, "r") as a, h5py.File(part, "r") as b:
+        assert a.attrs["schema_version"] == 5 and b.attrs["schema_version"] == 4
+        for tid in range(24):
+            assert "taxels" not in a[f"trials/{tid:06d}"]
+            assert b[f"trials/{tid:06d}/taxels"].is_virtual and b[f"trials/{tid:06d}/taxels"].shape[1] == 18
 
 
 def test_cli_start_at_any_angle_and_a_resume_keeps_the_stored_model(protocol_path, tmp_path):

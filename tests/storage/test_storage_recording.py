@@ -1,15 +1,18 @@
 """Schema 4's recording arrays (rigctl.storage.session_recording): trials back to back in ``/recording``, views in
-each trial's group for plain h5py, block reads for the encoder; old (schema 3) files read and encode identically;
-the validator's checks on the arrays. (Crash safety of schema 4: the kill -9 tests of test_storage_session.py and
+each trial's group for plain h5py (schema 5, the dataset generator's: none, the index says where), block reads for
+the encoder; old (schema 3) and view-less (schema 5) files read and encode identically; the validator's checks on
+the arrays. (Crash safety of schema 4: the kill -9 tests of test_storage_session.py and
 the full-disk test of test_storage_faults.py write it, the default.)"""
 
 from __future__ import annotations
+
+import json
 
 import h5py
 import numpy as np
 import pytest
 
-from rigctl.storage.session import SCHEMA_VERSION, SessionWriter, TrialData, open_session
+from rigctl.storage.session import DEFAULT_SCHEMA_VERSION, SCHEMA_VERSION, SessionWriter, TrialData, open_session
 from rigctl.storage.validate import usable_trials
 
 N = 300
@@ -30,7 +33,7 @@ def _trial(rng, n=N, **kw):
                      speed_mm_s=rng.normal(120, 1, 6 - k), speed_time_s=np.linspace(0, 0.3, 6 - k), **kw)
 
 
-def _write(path, trials, n_plan, schema_version=SCHEMA_VERSION, **kw):
+def _write(path, trials, n_plan, schema_version=DEFAULT_SCHEMA_VERSION, **kw):
     with SessionWriter.create(path, plan=_plan(n_plan), protocol_source="src", schema_version=schema_version,
                               **kw) as w:
         for tid, data in trials.items():
@@ -41,22 +44,31 @@ def _write(path, trials, n_plan, schema_version=SCHEMA_VERSION, **kw):
 ARRAYS = ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s")
 
 
-@pytest.mark.parametrize("compression", [None, "gzip"])
-def test_trials_back_to_back_with_views_for_plain_h5py(tmp_path, compression):
+@pytest.mark.parametrize("compression, schema", [(None, 4), ("gzip", 4), (None, 5), ("gzip", 5)])
+def test_trials_back_to_back_with_views_for_plain_h5py(tmp_path, compression, schema):
     rng = np.random.default_rng(1)
     trials = {3: _trial(rng), 0: _trial(rng, 250, dropped_frames=0), 5: _trial(rng, 280)}  # written out of order
-    path = _write(tmp_path / "s.h5", trials, 8, compression=compression)
+    path = _write(tmp_path / "s.h5", trials, 8, compression=compression, schema_version=schema)
     with h5py.File(path, "r") as f:  # plain h5py: the schema-3 names read as before, the arrays hold every trial
-        assert f.attrs["schema_version"] == 4
+        assert f.attrs["schema_version"] == schema
         rec = f["recording"]
         assert rec["taxels"].shape == (830, 18) and rec["taxels"].compression == compression
         idx = rec["index"][()]
         assert idx["trial_id"].tolist() == [3, 0, 5] and idx["sample_start"].tolist() == [0, 300, 550]
         for tid, data in trials.items():
             g = f[f"trials/{tid:06d}"]
+            row = idx[idx["trial_id"] == tid][0]
             for name in ARRAYS:
-                np.testing.assert_array_equal(g[name][()], getattr(data, name), err_msg=name)
-            assert g["taxels"].is_virtual and g["taxels"].attrs["unit"] == "ADC counts"
+                if schema == 4:  # the group's views
+                    np.testing.assert_array_equal(g[name][()], getattr(data, name), err_msg=name)
+                else:  # schema 5: no views, the index row says where the trial's rows are (docs/session-format.md)
+                    assert name not in g
+                prefix = {"force_g": "force", "force_time_s": "force", "speed_mm_s": "speed",
+                          "speed_time_s": "speed"}.get(name, "sample")
+                start, n = int(row[f"{prefix}_start"]), int(row["n_samples" if prefix == "sample" else f"n_{prefix}"])
+                np.testing.assert_array_equal(rec[name][start:start + n], getattr(data, name), err_msg=name)
+            if schema == 4:
+                assert g["taxels"].is_virtual and g["taxels"].attrs["unit"] == "ADC counts"
             assert g.attrs["n_samples"] == data.n_samples and g.attrs["status"] == "complete"
     with open_session(path) as s:
         for tid, data in trials.items():
@@ -119,21 +131,23 @@ def test_a_batch_from_one_reused_buffer_keeps_every_trial(tmp_path, schema_versi
             np.testing.assert_array_equal(s.trial(tid).force_g, x[:3, 0])
 
 
-def _copy_as_schema_3(src, dst):
-    """The same trials, plan and attributes in a schema-3 file (one group of datasets per trial)."""
+def _copy_as_schema(src, dst, schema_version=3):
+    """The same trials, plan and attributes in a file of ``schema_version`` (3: one group of datasets per trial)."""
     with open_session(src) as s:
         plan = s.plan.copy()
         plan["status"] = 0
         with SessionWriter.create(dst, plan=plan, layout=s.layout, textures=s.textures, protocol_source=s.protocol_source,
-                                  kind=s.kind, schema_version=3, compression=None) as w:
+                                  kind=s.kind, schema_version=schema_version, compression=None) as w:
             ids = s.completed_ids()
             w.write_trials(zip(ids, s.iter_trials(ids)))
     return dst
 
 
-def test_old_files_read_validate_and_encode_to_identical_features(tmp_path):
-    """A schema-3 file and a schema-4 file of the same trials: the same block reads, the same validator report,
-    and ``encode_session`` writes identical features, spike trains, normalisation and force coefficients."""
+@pytest.mark.parametrize("schema", [3, 4])
+def test_old_files_read_validate_and_encode_to_identical_features(tmp_path, schema):
+    """A schema-3 (or 4) file and the generator's schema-5 file of the same trials: the same block reads, trials,
+    trial attributes, validator report, and ``encode_session`` writes identical features, spike trains,
+    normalisation and force coefficients."""
     from rigctl.acquisition.protocol import load_protocol
     from rigctl.encoding.pipeline import encode_session
     from rigctl.simulation.dataset import generate_dataset
@@ -144,11 +158,18 @@ def test_old_files_read_validate_and_encode_to_identical_features(tmp_path):
                      'trials_per_condition = 2\ntravel_mm = 30\norder = "blocked"\n')
     new = tmp_path / "new.h5"
     generate_dataset(load_protocol(proto), new, seed=4, workers=0, progress=False)
-    old = _copy_as_schema_3(new, tmp_path / "old.h5")
+    old = _copy_as_schema(new, tmp_path / "old.h5", schema)
     with open_session(old) as so, open_session(new) as sn:
-        assert so.attrs["schema_version"] == 3 and sn.attrs["schema_version"] == 4
+        assert so.attrs["schema_version"] == schema and sn.attrs["schema_version"] == SCHEMA_VERSION == 5
         ids = sn.completed_ids()
         assert so.completed_ids() == ids and len(ids) == 16
+        for tid in ids:
+            to, tn = so.trial(tid), sn.trial(tid)
+            for name in ARRAYS:
+                np.testing.assert_array_equal(getattr(to, name), getattr(tn, name), err_msg=name)
+            same = {json.dumps(a, sort_keys=True, default=repr)  # NaN (a constant-speed trial's ramp) equals itself
+                    for a in (to.attrs, tn.attrs, so.trial_attrs(tid), sn.trial_attrs(tid))}
+            assert len(same) == 1
         a, b = so.read_taxels(ids, traces=True), sn.read_taxels(ids, traces=True)
         for name in ("data", "starts", "dropped_frames", "has_speed_trace"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
@@ -204,9 +225,11 @@ def _set_index(rec, tid, **values):
     (lambda rec: _set_index(rec, 2, sample_start=10 ** 6), "/recording/index puts its samples at rows 1000000+300"),
     (lambda rec: _set_index(rec, 2, trial_id=99), "it is marked complete but /recording/index has no row for it"),
 ])
-def test_damage_in_the_recording_arrays_is_excluded_with_its_reason(tmp_path, damage, reason):
+@pytest.mark.parametrize("schema", [4, 5])
+def test_damage_in_the_recording_arrays_is_excluded_with_its_reason(tmp_path, damage, reason, schema):
     rng = np.random.default_rng(3)
-    path = _edit(_write(tmp_path / "d.h5", {t: _trial(rng, dropped_frames=0) for t in range(4)}, 4), damage)
+    path = _edit(_write(tmp_path / "d.h5", {t: _trial(rng, dropped_frames=0) for t in range(4)}, 4,
+                        schema_version=schema), damage)
     with open_session(path) as s:
         report = usable_trials(s)
         assert report.ids == [0, 1, 3] and list(report.excluded) == [2]

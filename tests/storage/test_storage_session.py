@@ -15,8 +15,8 @@ import pytest
 
 from rigctl.core import PAPER_SENSOR, PAPER_TEXTURES, SensorLayout, TextureSet
 from rigctl.storage.session import (
+    DEFAULT_SCHEMA_VERSION,
     PLAN_DTYPE,
-    SCHEMA_VERSION,
     SessionError,
     SessionLocked,
     SessionWriter,
@@ -61,7 +61,7 @@ def test_round_trip_every_array_and_attribute(tmp_path):
     for tid, data in trials.items():
         w.write_trial(tid, data)
     with open_session(path) as s:
-        assert s.attrs["schema_version"] == SCHEMA_VERSION and s.attrs["kind"] == "recorded"
+        assert s.attrs["schema_version"] == DEFAULT_SCHEMA_VERSION == 4 and s.attrs["kind"] == "recorded"
         assert len(s.attrs["session_id"]) == 36
         assert s.rig_config == {"mode": "sim", "seed": 3}
         assert s.protocol_source == "name = 'x'\n" and s.protocol_name == "x" and s.protocol_format == "toml"

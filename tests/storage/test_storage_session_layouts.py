@@ -20,7 +20,14 @@ from rigctl.core import (
     TrialData,
     texture_set_from_labels,
 )
-from rigctl.storage.session import SCHEMA_VERSION, SessionError, SessionWriter, TrialStatus, open_session
+from rigctl.storage.session import (
+    DEFAULT_SCHEMA_VERSION,
+    SCHEMA_VERSION,
+    SessionError,
+    SessionWriter,
+    TrialStatus,
+    open_session,
+)
 
 NINE_100 = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, adc_bits=12, pitch_mm=4.0, name="finger 3x3 @ 100 Hz")
 #: 26 labels of one to 40 characters, ASCII and not
@@ -47,7 +54,7 @@ def test_nine_channels_at_100_hz_round_trip_with_layout_rate_and_calibration(tmp
     written = {0: _trial(rng, NINE_100, 200), 3: _trial(rng, NINE_100, 150)}
     w.write_trials(written.items())
     with open_session(path) as s:
-        assert s.attrs["schema_version"] == SCHEMA_VERSION == 4
+        assert s.attrs["schema_version"] == DEFAULT_SCHEMA_VERSION == 4
         assert s.layout == NINE_100 and s.layout.n_channels == 9 and s.layout.sample_rate_hz == 100.0
         assert s.completed_ids() == [0, 3]
         for tid, data in written.items():
