@@ -233,8 +233,8 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     rectify; v, u (P_sa, T, C) SA neuron state (in/out); filt (5, T, C) the RA path's z1, z2, last filtered value, v,
     u (in/out); fresh (T,) uint8: start the filter at this trial's first sample (cleared); counts (P, T, C) int64
     (added to); bits (P, T * C, W) uint32 spike bitmaps (row t * C + ch; bit i of word w = a spike at sample
-    32 w + i of this call; words past a trial's end are not written), or (P, 0, 1) for counts only; block trials
-    per SIMD block. The SA arrays share the SA dtype (``off``'s), the RA ones the RA dtype (``filt``'s).
+    32 w + i of this call; a word past a trial's end holds 0 or is not written), or (P, 0, 1) for counts
+    only; block trials per SIMD block. The SA arrays share the SA dtype (``off``'s), the RA ones the RA dtype (``filt``'s).
 
     Per block, time runs in chunks of at most 32 steps that never cross a 32-step word or a trial's end: a pre-pass
     normalises the chunk's readings into (32, lanes) buffers, then each population steps all lanes for the chunk
@@ -273,10 +273,15 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         msk = np.zeros((n_pop, n_l), dtype=np.uint32)
         lens = np.empty(m, dtype=np.int64)
         rs = np.empty(m, dtype=np.int64)
+        vl = np.empty(n_l, dtype=np.uint32)
+        msk2 = np.empty(n_l, dtype=np.uint32)
+        row_of = np.empty(n_l, dtype=np.int64)
         for k in range(m):
             t = order[i0 + k]
             lens[k] = starts[t + 1] - starts[t]
             rs[k] = starts[t]
+            for ch in range(n_ch):
+                row_of[k * n_ch + ch] = t * n_ch + ch
             for ch in range(n_ch):
                 j = k * n_ch + ch
                 for p in range(n_sa):
@@ -353,18 +358,20 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                         filt[4, t, ch] = ur[j]
             if (n & (_WORD - 1)) == 0 or n == n_max:  # a word is complete: counts and bitmap words
                 w = (n - 1) // _WORD
-                for k in range(m):
-                    t = order[i0 + k]
-                    left = lens[k] - w * _WORD  # this trial's samples in the word (<= 0: ended before it)
+                for k in range(m):  # each lane's samples in the word (none: its trial ended before it)
+                    left = lens[k] - w * _WORD
                     valid = np.uint32(0) if left <= 0 else np.uint32(0xFFFFFFFF) >> np.uint32(_WORD - min(left, _WORD))
-                    for p in range(n_pop):
-                        for ch in range(n_ch):
-                            j = k * n_ch + ch
-                            mm = msk[p, j] & valid
-                            cnt[p, j] += _popcount(mm)
-                            if want_bits and left > 0:
-                                bits[p, t * n_ch + ch, w] = mm
-                            msk[p, j] = 0
+                    for ch in range(n_ch):
+                        vl[k * n_ch + ch] = valid
+                for p in range(n_pop):  # (one loop over the block's lanes: SIMD, no tail per trial)
+                    for j in range(n_l):
+                        mm = msk[p, j] & vl[j]
+                        cnt[p, j] += _popcount(mm)
+                        msk[p, j] = 0
+                        msk2[j] = mm
+                    if want_bits:  # (a word past a trial's end: zeros, never read)
+                        for j in range(n_l):
+                            bits[p, row_of[j], w] = msk2[j]
         for k in range(m):
             t = order[i0 + k]
             for ch in range(n_ch):
