@@ -18,8 +18,11 @@ One numba kernel reads each sample of a trial once and, per taxel, in the same t
 
 Layout: time is the outer loop, in chunks of at most 32 steps (never across a bitmap word or a trial's end); the
 lanes are ``block`` trials x n_channels (trial-major, channel-minor, contiguous: the SIMD axis). Per chunk a pre-pass
-gathers and normalises the block's readings into a (32, lanes) buffer, then each population steps every lane through
-the chunk in one contiguous loop. Blocks of trials run in parallel on threads of ours: the kernel's one (serial)
+gathers and normalises the block's readings into a (32, lanes) buffer (integer readings by explicit SIMD vectors, a
+row rounded up to whole registers: a loop over a row's 18 channels ran behind LLVM's run-time overlap checks with a
+scalar tail, about as long as the SA steps), then each population steps every lane through the chunk in one
+contiguous loop. The spike times are decoded from the bitmaps a byte at a time from a table (no branch on how many
+spikes a word holds). Blocks of trials run in parallel on threads of ours: the kernel's one (serial)
 build, the next block of trials on each of ``numba.get_num_threads()`` threads in turn (it releases the GIL). No
 ``parallel=True`` build: it took ~2.4x the compile time of the serial one (12.2 against 5.1 s of CPU, on the first
 encoding of an installation) and ran 128 trials x 6 s x 18 taxels in the same CPU time (SA: 12-15 against 13-14 ms). Trials are
