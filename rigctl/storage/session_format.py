@@ -32,13 +32,6 @@ SCHEMA_VERSION = 5
 #: the schema :meth:`SessionWriter.create` writes unless asked for another: 4, whose trial groups hold views of their
 #: rows (plain h5py reads ``/trials/<id>/taxels``); a recorded session gains nothing from the faster schema 5
 DEFAULT_SCHEMA_VERSION = 4
-#: the schemas whose trial groups hold views of their rows of ``/recording`` (HDF5 virtual datasets)
-VIEW_SCHEMAS = (4,)
-
-
-def _schema_of(attrs: Mapping[str, Any]) -> int:
-    """The ``schema_version`` root attribute of a session whose header was read and checked (0 when absent)."""
-    return int(np.asarray(attrs.get("schema_version", 0)).reshape(-1)[0])
 SESSION_KINDS = ("recorded", "simulated-dataset", "fabricslide", "imported")
 #: variable-length UTF-8 string (h5py's ``string_dtype``): ``/plan`` texture labels of any length
 VLEN_UTF8 = h5py.string_dtype("utf-8")

@@ -20,7 +20,6 @@ from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
 from rigctl.storage import onboard_group, session_recording, trial_facts
 from rigctl.storage.session_format import (
-    VIEW_SCHEMAS,
     SessionError,
     TrialStatus,
     _decode_rig_config,
@@ -29,7 +28,6 @@ from rigctl.storage.session_format import (
     _plan_to_str,
     _read_attrs,
     _reading,
-    _schema_of,
     decode_events,
     trial_group_name,
 )
@@ -195,8 +193,7 @@ class SessionReader:
         self.protocol_format = str(pattrs.get("format", ""))
         self.calibration = self._read_calibration()
         self._flat = session_recording.is_flat(f)
-        #: schema 4: each trial's group holds views of its rows (its taxels view is checked); schema 5: none
-        self._views = self._flat and _schema_of(self.attrs) in VIEW_SCHEMAS
+        self._views = self._flat and session_recording.has_views(self.attrs)  # schema 4's (5 has none)
         self._index: dict[int, np.void] | None = None
         self._index_dups: dict[int, int] = {}
         self._rows: tuple[int, tuple[int, int]] | None = None  # _array_rows, read once
@@ -366,11 +363,11 @@ class SessionReader:
         return self._tg
 
     def flat_group_problem(self, trial_id: int, row: np.void) -> str | None:
-        """Schema 4 and 5: what is wrong with a complete trial's group against its ``/recording/index`` row ``row``,
-        or None. Read: the group (it must open), its ``n_samples``, ``dropped_frames`` and ``crc_errors`` attributes
-        (counts agreeing with the index) and (schema 4) its ``taxels`` view ((n, channels) integers, n = the
-        index's; schema 5 has no views). The other views are not opened (every rigctl reader takes the data from
-        the recording arrays; one view costs ~0.1 ms to open). Costs one group open, three attribute reads and one dataset open."""
+        """Schema 4, 5: what is wrong with a complete trial's group against its ``/recording/index`` row ``row``, or
+        None. Read: the group (it must open), its ``n_samples``, ``dropped_frames`` and ``crc_errors`` attributes
+        (counts agreeing with the index) and (schema 4: 5 has none) its ``taxels`` view ((n, channels) integers, n =
+        the index's). The other views are not opened (every rigctl reader takes the data from the recording arrays;
+        one view costs ~0.1 ms to open). Costs one group open, three attribute reads and one dataset open."""
         name = trial_group_name(trial_id).rpartition("/")[2].encode()
         tg = self._trials_gid()
         try:

@@ -19,6 +19,7 @@ finished trial readable and nothing of an unfinished one (``docs/session-format.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import h5py
@@ -73,6 +74,15 @@ def create(f: h5py.File, n_channels: int, *, compression: str | None) -> None:
             g.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(TRACE_CHUNK_ROWS,), dtype="<f8", **comp)
     g.create_dataset("index", shape=(0,), maxshape=(None,), chunks=(INDEX_CHUNK_ROWS,), dtype=INDEX_DTYPE)
     g["taxels"].attrs.update(unit="ADC counts")
+
+
+#: the session schemas whose trial groups hold views of their rows (HDF5 virtual datasets); schema 5 has none
+VIEW_SCHEMAS = (4,)
+
+
+def has_views(attrs: Mapping[str, Any]) -> bool:
+    """True for a session (its checked root attributes) whose trial groups hold views of their rows: schema 4."""
+    return int(np.asarray(attrs.get("schema_version", 0)).reshape(-1)[0]) in VIEW_SCHEMAS
 
 
 def is_flat(f: h5py.File) -> bool:

@@ -36,7 +36,6 @@ from rigctl.storage.session_format import (
     SESSION_KINDS,
     STATUS_ENUM,
     TAXEL_CHUNK_BYTES,
-    VIEW_SCHEMAS,
     SessionError,
     SessionLocked,
     SessionWriteError,
@@ -52,7 +51,6 @@ from rigctl.storage.session_format import (
     _plan_to_str,
     _reading,
     _row_value,
-    _schema_of,
     _text,
     _utc_now,
     decode_events,
@@ -221,7 +219,7 @@ class SessionWriter:
                 self._plan = contents.raw_plan
                 self._flat = session_recording.is_flat(f)
                 #: schema 4: each trial's group gets views of its rows (schema 5: none, the index says where they are)
-                self._views = self._flat and _schema_of(contents.attrs) in VIEW_SCHEMAS
+                self._views = self._flat and session_recording.has_views(contents.attrs)
                 self.layout, present, self.textures = contents.layout, contents.present, contents.textures
                 if present is not None:
                     raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with "
