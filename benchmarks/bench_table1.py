@@ -23,6 +23,12 @@ reported side by side as a ratio, with a check that both give the same accuracie
     python benchmarks/bench_table1.py --repeats 2     # quicker
     python benchmarks/bench_table1.py --jobs 1        # repetitions one at a time (BLAS threads on every core)
     python benchmarks/bench_table1.py --features paper.encoded.h5 --skip-naive   # the simulated paper's features
+    python benchmarks/bench_table1.py --features paper.encoded.h5 --skip-naive --skip-full --against /tmp/prev
+        # and the whole Table 1 against another commit's rigctl (git archive COMMIT rigctl | tar -x -C /tmp/prev)
+
+Side by side in the same run (issue 57, second step): one repetition with every subspace iteration from a random
+start and the extrapolation's Gram matrix from its training trials, against the later folds warm-started and the
+extrapolation's Gram matrix as the trained cells' (formed once) less the held-out trials'.
 """
 
 from __future__ import annotations
@@ -133,6 +139,102 @@ def dense_vs_grouped(fs, n_pcs, r=0):
     return cpu, diff
 
 
+def cold_vs_warm(fs, n_pcs, r=0):
+    """CPU seconds of repetition ``r`` (CV folds + extrapolation split, every variant) by the path before issue 57's
+    second step (every subspace iteration from a random start, the extrapolation's Gram matrix from its 7,200
+    training trials) and the fast path (the later folds warm-started from the first, the extrapolation from the
+    trained cells' Gram matrix, formed once, less the held-out trials': :class:`rigctl.analysis.splitpca.GramBase`),
+    alternated, best of 2; the bases' one-off CPU seconds (per variant, for all 20 repetitions); the largest
+    accuracy difference. Both with the same NestedLDA."""
+    from rigctl.analysis.classify import NestedLDA
+    from rigctl.analysis.splitpca import split_scores
+    from rigctl.analysis.tasks import _extrapolation_plan, _paddings, _trained_bases, cv_split, extrapolation_split
+
+    idx, folds = cv_split(fs.texture, 500, 4, seed=0, repeat=r)
+    tr_x, te_x, _ = extrapolation_split(fs, seed=0, repeat=r)
+    pads = _paddings(fs, list(fs.features))
+    cells, trained_cells, *_ = _extrapolation_plan(fs, (40, 60, 80), (250, 500), None, None, 75, 25)
+    c0 = time.process_time()
+    bases = _trained_bases(fs, list(fs.features), pads, cells, trained_cells, 75, 20, n_pcs, 0)
+    cpu_bases = time.process_time() - c0
+    rows = np.concatenate([tr_x, te_x])
+    if bases:
+        rows = np.concatenate([rows, np.setdiff1d(next(iter(bases.values())).rows, rows)])
+    ext = [(np.arange(len(tr_x)), np.arange(len(tr_x), len(tr_x) + len(te_x)))]
+    acc = {"previous": [], "fast": []}
+    cpu = {"previous": np.inf, "fast": np.inf}
+    for turn in range(2):
+        for name in acc:
+            fast = name == "fast"
+            c0 = time.process_time()
+            for v, x in fs.features.items():
+                for sub, splits, kfold in ((idx, folds, True), (rows, ext, False)):
+                    y = fs.texture[sub]
+                    scores = split_scores(x, splits, n_pcs, random_states=[r] * len(splits), kfold=kfold,
+                                          padding=(pads[v][0], pads[v][1][sub]), rows=sub, warm_start=fast,
+                                          base=bases.get(v) if fast else None)
+                    for (tr, te), (z_tr, z_te) in zip(splits, scores):
+                        pred = NestedLDA().fit(z_tr, y[tr]).predict_all(z_te)
+                        if turn == 0:
+                            acc[name].append((pred == y[te]).mean(axis=1))
+            cpu[name] = min(cpu[name], time.process_time() - c0)
+    diff = max(float(np.abs(a - b).max()) for a, b in zip(acc["previous"], acc["fast"]))
+    return cpu, cpu_bases, diff
+
+
+def whole_table_against(features, checkout, rounds):
+    """The whole Table 1 (``rigctl analyze FEATURES --table1 --json``, one process each, as a user runs it) by this
+    checkout's rigctl and by ``checkout``'s (a directory holding another commit's ``rigctl`` package: put first on
+    PYTHONPATH), alternated ``rounds`` times: wall, CPU seconds of the process, its peak RSS, the load average, and
+    how far the accuracy curves (mean over the repetitions at PCs 1..50, every task and variant) moved, in units of
+    their repetition SD."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    runs = {"previous": [], "this": []}
+    curves = {}
+    envs = {}
+    cache = tempfile.mkdtemp(prefix="bench_table1_pycache_")  # byte code written and reused, as an installed package's
+    for name in runs:
+        env = dict(os.environ, PYTHONPYCACHEPREFIX=cache)
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        if name == "previous":
+            env["PYTHONPATH"] = os.pathsep.join([os.path.abspath(checkout)] + env.get("PYTHONPATH", "").split(
+                os.pathsep)).rstrip(os.pathsep)
+        subprocess.run([sys.executable, "-c", "import rigctl.cli, rigctl.analysis.tasks, rigctl.operations"], env=env,
+                       check=True, cwd=tempfile.gettempdir())  # (compiled once, not timed)
+        envs[name] = env
+    for _ in range(rounds):
+        for name in runs:
+            env = envs[name]
+            load0 = os.getloadavg()[0]
+            with tempfile.TemporaryFile("w+") as out:
+                t0 = time.perf_counter()
+                proc = subprocess.Popen([sys.executable, "-m", "rigctl", "analyze", features, "--table1", "--json"],
+                                        stdout=out, stderr=subprocess.DEVNULL, env=env, cwd=tempfile.gettempdir())
+                _, status, ru = os.wait4(proc.pid, 0)
+                wall = time.perf_counter() - t0
+                out.seek(0)
+                if status != 0:
+                    raise SystemExit(f"{name}: rigctl analyze failed (status {status})")
+                curves[name] = json.load(out)["tasks"]
+            runs[name].append((wall, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 1e6, load0, os.getloadavg()[0]))
+            print(f"  {name}: {wall:.1f} s wall, {runs[name][-1][1]:.1f} CPU-s, peak RSS {runs[name][-1][2]:.2f} GB, "
+                  f"load {load0:.1f} -> {runs[name][-1][4]:.1f}", flush=True)
+    worst, worst_at = 0.0, None
+    for task, t in curves["this"].items():
+        for v, c in t["variants"].items():
+            p = curves["previous"][task]["variants"][v]
+            m, mp, sd = np.array(c["mean"]), np.array(p["mean"]), np.array(p["sd"])
+            z = np.abs(m - mp) / np.maximum(sd, 1e-12)
+            if z.max() > worst:
+                worst, worst_at = float(z.max()), (task, v, int(z.argmax()) + 1, 100 * mp[z.argmax()],
+                                                   100 * m[z.argmax()], 100 * sd[z.argmax()])
+    return runs, worst, worst_at
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=24_000)
@@ -144,6 +246,10 @@ def main():
                     help="only the dense vs grouped repetition (no scikit-learn repetition, no whole Table 1)")
     ap.add_argument("--skip-naive", action="store_true", help="skip the naive per-PC-count refit comparison")
     ap.add_argument("--features", help="an encoded file (rigctl encode): its features instead of random ones")
+    ap.add_argument("--against", metavar="DIR",
+                    help="with --features: the whole Table 1 by this checkout and by DIR's rigctl package (another "
+                         "commit's, e.g. `git archive COMMIT rigctl | tar -x -C DIR`), alternated, one process each")
+    ap.add_argument("--rounds", type=int, default=1, help="alternations of --against")
     ap.add_argument("--no-padding", action="store_true",
                     help="random features without the unscaled variants' zero padding (as before issue 57)")
     args = ap.parse_args()
@@ -180,6 +286,24 @@ def main():
           f"{cpu_g['grouped']:.2f} CPU-s: ratio {cpu_g['dense'] / cpu_g['grouped']:.2f}x (best of 2, alternated); "
           f"largest accuracy difference {100 * diff_g:.2f} points (load average {os.getloadavg()[0]:.2f})",
           flush=True)
+    with threadpool_limits(1):
+        cpu_w, cpu_b, diff_w = cold_vs_warm(fs, args.pcs)
+    print(f"one repetition on one core, random starts and the extrapolation's own Gram matrix {cpu_w['previous']:.2f} "
+          f"CPU-s, warm starts and the trained cells' base {cpu_w['fast']:.2f} CPU-s (+ {cpu_b:.2f} CPU-s once for the "
+          f"bases, {cpu_b / 20:.2f} a repetition of 20): ratio {cpu_w['previous'] / (cpu_w['fast'] + cpu_b / 20):.2f}x "
+          f"(best of 2, alternated); largest accuracy difference {100 * diff_w:.2f} points "
+          f"(load average {os.getloadavg()[0]:.2f})", flush=True)
+    if args.against:
+        if not args.features:
+            raise SystemExit("--against needs --features FILE")
+        runs, worst, at = whole_table_against(args.features, args.against, args.rounds)
+        best = {k: min(r, key=lambda t: t[1]) for k, r in runs.items()}
+        print(f"whole Table 1, `rigctl analyze --table1` (best of {args.rounds}): previous {best['previous'][0]:.1f} s "
+              f"wall, {best['previous'][1]:.1f} CPU-s, {best['previous'][2]:.2f} GB; this {best['this'][0]:.1f} s, "
+              f"{best['this'][1]:.1f} CPU-s, {best['this'][2]:.2f} GB: CPU ratio "
+              f"{best['previous'][1] / best['this'][1]:.2f}x, wall ratio {best['previous'][0] / best['this'][0]:.2f}x; "
+              f"largest accuracy change {worst:.3f} repetition SD"
+              + (f" ({at[0]} / {at[1]} at {at[2]} PCs: {at[3]:.2f} -> {at[4]:.2f} %, SD {at[5]:.2f})" if at else ""))
     if args.skip_full:
         return
     with threadpool_limits(1):
