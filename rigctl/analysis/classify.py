@@ -36,7 +36,11 @@ from sklearn.decomposition import PCA
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-__all__ = ["fit_pca", "NestedLDA", "nested_pc_predictions", "TextureClassifier"]
+__all__ = ["COMPILED_MIN", "fit_pca", "NestedLDA", "nested_pc_predictions", "TextureClassifier"]
+
+#: NestedLDA.predict_all's size (trials x inputs x classes) from which it loads numba for its compiled pass (a Table 1
+#: split: 2000 x 50 x 16 = 1.6e6; NumPy takes ~10 ms for 1e6)
+COMPILED_MIN = 1_000_000
 
 
 def fit_pca(features, n_components, *, random_state=0, svd_solver="auto"):
@@ -206,18 +210,25 @@ class NestedLDA:
 
         Notes
         -----
-        :meth:`decision_all`'s sums in the same order, in one compiled pass (:mod:`rigctl.analysis.lda_kernel`):
-        the same predictions, ties to the first class as ``argmax``, without the ``(n_max, n_trials, n_classes)``
-        array (~10x faster on a Table 1 split).
+        :meth:`decision_all`'s sums in the same order, so the same predictions (ties to the first class, as
+        ``argmax``), without its ``(n_max, n_trials, n_classes)`` array: in one compiled pass
+        (:func:`rigctl.analysis.lda_kernel.nested_argmax`, ~7x faster on a Table 1 split) when the call is large
+        (``n_trials * n_max * n_classes`` >= :data:`COMPILED_MIN`) or numba is loaded already; else by NumPy
+        (:func:`~rigctl.analysis.lda_kernel.nested_argmax_numpy`), so that a small analysis does not pay numba's
+        first-use cost (~1-2 CPU-s).
         """
-        from rigctl.analysis.lda_kernel import nested_argmax
+        import sys
+
+        from rigctl.analysis import lda_kernel
 
         n_max = self.n_features_in_ if n_max is None else min(int(n_max), self.n_features_in_)
         z = np.asarray(scores, dtype=np.float64)[:, : self.n_features_in_]
         idx = np.empty((n_max, z.shape[0]), dtype=np.intp)
+        compiled = "numba" in sys.modules or z.shape[0] * n_max * len(self.classes_) >= COMPILED_MIN
+        argmax = lda_kernel.nested_argmax if compiled else lda_kernel.nested_argmax_numpy
         for s in range(0, z.shape[0], chunk):
             zw = solve_triangular(self.chol_, z[s : s + chunk].T, lower=True).T  # (trials, inputs) whitened
-            idx[:, s : s + chunk] = nested_argmax(zw[:, :n_max], self._means_w, self._half_norm, self._log_prior)
+            idx[:, s : s + chunk] = argmax(zw[:, :n_max], self._means_w, self._half_norm, self._log_prior)
         return self.classes_[idx]
 
 

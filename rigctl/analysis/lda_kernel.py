@@ -11,13 +11,24 @@ same predictions; ties go to the first class, as ``argmax``.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
-__all__ = ["nested_argmax"]
+__all__ = ["nested_argmax", "nested_argmax_numpy"]
 
 
-@numba.njit(cache=True, nogil=True)
+def _compiled():
+    """The compiled loop (numba imported on first use: ~1-2 CPU-s with its first dispatch)."""
+    global _KERNEL
+    if _KERNEL is None:
+        import numba
+
+        _KERNEL = numba.njit(cache=True, nogil=True)(_nested_argmax)
+    return _KERNEL
+
+
+_KERNEL = None
+
+
 def _nested_argmax(zw, mw, half_norm, log_prior, out):  # pragma: no cover - compiled by numba
     n_trials, n_max = zw.shape
     k = mw.shape[0]
@@ -58,7 +69,18 @@ def nested_argmax(zw, means_w, half_norm, log_prior):
     """
     zw = np.ascontiguousarray(zw, dtype=np.float64)
     out = np.empty((zw.shape[1], zw.shape[0]), np.intp)
-    _nested_argmax(zw, np.ascontiguousarray(means_w, dtype=np.float64),
+    _compiled()(zw, np.ascontiguousarray(means_w, dtype=np.float64),
                    np.ascontiguousarray(half_norm, dtype=np.float64),
                    np.ascontiguousarray(log_prior, dtype=np.float64), out)
     return out
+
+
+def nested_argmax_numpy(zw, means_w, half_norm, log_prior):
+    """:func:`nested_argmax` by NumPy (the same sums in the same order, the same result): a ``(n_trials, n_max,
+    n_classes)`` temporary, for calls too small to be worth loading numba."""
+    n_max = zw.shape[1]
+    d = zw[:, :, None] * means_w[:, :n_max].T[None, :, :]
+    np.cumsum(d, axis=1, out=d)
+    d -= half_norm[:, :n_max].T[None, :, :]
+    d += log_prior[None, None, :]
+    return d.argmax(axis=2).T

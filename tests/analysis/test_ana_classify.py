@@ -127,8 +127,8 @@ def test_texture_classifier_errors(tmp_path):
 
 @pytest.mark.parametrize("k", [2, 4, 16])
 def test_predict_all_is_the_argmax_of_decision_all(k):
-    """NestedLDA.predict_all's compiled pass (rigctl.analysis.lda_kernel) gives exactly the class of the largest
-    discriminant of decision_all for every PC count, ties to the first class."""
+    """NestedLDA.predict_all (rigctl.analysis.lda_kernel: compiled, or NumPy for small calls) gives exactly the class
+    of the largest discriminant of decision_all for every PC count, ties to the first class."""
     from rigctl.analysis.classify import NestedLDA
 
     rng = np.random.default_rng(k)
@@ -136,6 +136,14 @@ def test_predict_all_is_the_argmax_of_decision_all(k):
     z = rng.standard_normal((k, 30))[y] * 0.3 + rng.standard_normal((3000, 30)) * np.linspace(3, 0.5, 30)
     lda = NestedLDA().fit(z[:2000], np.array(list("PONMLKJIHGFEDCBA"))[y[:2000]])
     np.testing.assert_array_equal(lda.predict_all(z[2000:]), lda.classes_[lda.decision_all(z[2000:]).argmax(axis=2)])
+    from scipy.linalg import solve_triangular
+
+    from rigctl.analysis.lda_kernel import nested_argmax, nested_argmax_numpy
+
+    zw = solve_triangular(lda.chol_, z[2000:].T, lower=True).T
+    want = lda.decision_all(z[2000:]).argmax(axis=2)
+    for argmax in (nested_argmax, nested_argmax_numpy):  # (predict_all takes either by the call's size)
+        np.testing.assert_array_equal(argmax(zw, lda._means_w, lda._half_norm, lda._log_prior), want)
     np.testing.assert_array_equal(lda.predict_all(z[2000:], 7, chunk=300),
                                   lda.classes_[lda.decision_all(z[2000:], 7).argmax(axis=2)])
     tie = np.zeros((5, 30))  # equal discriminants (equal priors, means symmetric about 0): the first class
