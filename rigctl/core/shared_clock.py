@@ -128,6 +128,8 @@ class SharedClock:
         self.horizon_s = self.lead_s
         self._stop = threading.Event()
         self._heart: threading.Thread | None = None
+        self._written: dict[str, float] = {}  # a port's path -> when the host last began to write to it (wall)
+        self._read: dict[str, float] = {}  # a port's path -> when the host last found bytes to read on it (wall)
 
     # ------------------------------------------------------------------ lifecycle (the heartbeat)
     def start(self) -> "SharedClock":
@@ -228,6 +230,33 @@ class SharedClock:
             with self._lock:
                 del self._waits[key]
             self._alive(self.now())
+
+    def note_write(self, path: str | os.PathLike[str]) -> None:
+        """The host is about to write to the board's port ``path`` (call it before the write): a board of this
+        process then knows its bytes are on the way while the kernel still holds them, where no count sees them
+        (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine holds back
+        for hundreds of ms). Also a sign of life (:meth:`touch`)."""
+        wall = time.monotonic()
+        for key in _port_keys(os.fspath(path)):
+            self._written[key] = wall
+        self.touch()
+
+    def written_at(self, path: str | os.PathLike[str]) -> float:
+        """When the host last began to write to ``path`` (:meth:`note_write`; ``time.monotonic``, 0.0 if never).
+        Lock-free."""
+        return self._written.get(os.fspath(path), 0.0)
+
+    def note_read(self, path: str | os.PathLike[str]) -> None:
+        """The host found bytes waiting on the board's port ``path`` and is about to read them (:meth:`read_at`: a
+        board of this process knows what it handed on after this is still in the kernel's hands)."""
+        wall = time.monotonic()
+        for key in _port_keys(os.fspath(path)):
+            self._read[key] = wall
+
+    def read_at(self, path: str | os.PathLike[str]) -> float:
+        """When the host last found bytes to read on ``path`` (:meth:`note_read`; ``time.monotonic``, 0.0 if never:
+        no host of this process reads it). Lock-free."""
+        return self._read.get(os.fspath(path), 0.0)
 
     # ------------------------------------------------------------------ the world's side
     def moved(self) -> None:

@@ -41,7 +41,9 @@ class ClockedSerialClient(ModbusSerialClient):
         return int(self.socket.in_waiting) if self.socket else 0
 
     def send(self, request: bytes, addr: tuple[Any, ...] | None = None) -> int:
-        self.clock.touch()
+        self.clock.note_write(self.comm_params.host)  # before the write: the board's side knows it is on the way
+        if self._waiting():  # pymodbus drops what waits before it sends
+            self.note_taken()
         return super().send(request, addr)
 
     def _wait_for_data(self) -> int:
@@ -62,12 +64,19 @@ class ClockedSerialClient(ModbusSerialClient):
                             min_wall_s=ANSWER_MIN_WALL_S)
         return self._waiting()
 
+    def note_taken(self) -> None:
+        """The host is about to take or drop what waits on the port (a flush of its input): as a read, for the board's
+        side (:meth:`rigctl.core.shared_clock.SharedClock.note_read`)."""
+        self.clock.note_read(self.comm_params.host)
+
     def recv(self, size: int | None) -> bytes:
         """What has come, up to ``size`` bytes (None: all), after :meth:`_wait_for_data`; never a blocking read
         (pyserial's would wait on the wall clock)."""
         if not self.socket:
             return super().recv(size)  # (raises ConnectionException)
         available = self._wait_for_data() if size is None or size > self._waiting() else size
+        if available:  # before the read: the board's side knows the reply reached us
+            self.note_taken()
         self.clock.touch()
         take = available if size is None else min(size, available)
         return bytes(self.socket.read(take)) if take > 0 else b""

@@ -399,8 +399,16 @@ class DrumClient:
             self._silence(self.boot_wait_s)
             sock = getattr(self._client, "socket", None)
             if sock is not None:
+                self._note_taken()
                 sock.reset_input_buffer()
         return True
+
+    def _note_taken(self) -> None:
+        """What waits on the port is about to be taken or dropped: a simulated board of this process is told
+        (:meth:`rigctl.devices.clocked_serial.ClockedSerialClient.note_taken`; a real port: nothing)."""
+        note = getattr(self._client, "note_taken", None)
+        if note is not None:
+            note()
 
     def _silence(self, seconds: float) -> None:
         """Send nothing for ``seconds`` of :attr:`clock` time."""
@@ -551,6 +559,7 @@ class DrumClient:
         waiting = sock.in_waiting if sock is not None else 0
         if not waiting:
             return None
+        self._note_taken()
         frames = self._frames(sock.read(waiting))  # type: ignore[union-attr]  # waiting > 0: a socket
         _, echo = self._sort_out(frames, pending)
         return echo

@@ -261,6 +261,14 @@ class PtyBridge:
         #: pty's writer has handed over reach its reader through a kernel worker, which a loaded machine can hold
         #: back for hundreds of ms, and no byte count (TIOCINQ) sees them meanwhile
         self.to_board_at = 0.0
+        #: when the copy thread last took bytes from the client's pty (time.monotonic): a client's write after it is
+        #: still in the kernel's hands on the client side (:meth:`rigctl.core.shared_clock.SharedClock.note_write`)
+        self.from_client_at = 0.0
+        #: when the copy thread last took bytes from the board's pty (time.monotonic): a reply the board's server wrote
+        #: after it is still in the kernel's hands on the board side
+        self.from_board_at = 0.0
+        #: when the copy thread last began to hand the board's bytes to the client's pty (time.monotonic)
+        self.to_client_at = 0.0
         self._stop = threading.Event()
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=board_thread(self._run), name="pty-bridge", daemon=True)
@@ -298,7 +306,9 @@ class PtyBridge:
                     data = end.read(65536)
                     if data:
                         if other is self.board:  # stamped before the write: whatever the server reads of them is later
-                            self.to_board_at = time.monotonic()
+                            self.to_board_at = self.from_client_at = time.monotonic()
+                        else:
+                            self.from_board_at = self.to_client_at = time.monotonic()
                         other.write(data)
                 finally:
                     self._copying = self._copying_from_board = False
@@ -333,6 +343,7 @@ class PtyBridge:
 
     def replug(self) -> None:
         self.client.replug()
+        self.from_client_at = time.monotonic()  # what the client wrote into the old pty is gone with it
         self._wake()
 
     def close(self) -> None:

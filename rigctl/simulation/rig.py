@@ -132,6 +132,7 @@ class SimulatedRig:
                                idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r,
                                board_busy=self.mega.at_request, horizon=self._horizon_s)
         self.mega.use_clock(self.model_time_s)
+        self.mega.host_clock = self.clock  # the host's writes to the drum port are stamped on it (on their way)
         self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None
         self.step_errors = 0

@@ -155,6 +155,11 @@ class VirtualMega(MegaController):
         self._overdue_at_requests: int | None = None
         #: when the Modbus server last received bytes from its port (time.monotonic, its own loop's clock)
         self._received_at = 0.0
+        #: when the Modbus server last began to write a reply to its port (time.monotonic)
+        self._sent_at = 0.0
+        #: the shared clock of the host that talks to this board in this process (its writes' stamps:
+        #: :meth:`request_on_its_way`), or None
+        self.host_clock: SharedClock | None = None
         #: called after every write request (``SimulatedRig``: wakes its physics thread, so the control logic acts on a
         #: command within a millisecond, as the firmware's loop does, not at the end of an idle tick)
         self.on_write: Callable[[], None] | None = None
@@ -170,8 +175,37 @@ class VirtualMega(MegaController):
         """A request of the host is on its way in or its answer on its way out, between the host's port and the
         Modbus server (its threads are the board's, outside the physics clock: a world on the shared clock waits for
         them, as the firmware answers within a millisecond of its own time). Lock-free."""
+        return self.request_on_its_way() or self.reply_on_its_way()
+
+    def request_on_its_way(self) -> bool:
+        """Bytes the host wrote to the board's port that the Modbus server has not received yet, wherever they are:
+        counted in the ptys (:meth:`rigctl.simulation.pty.PtyBridge.bytes_to_board`), or in the kernel's hands,
+        where no count sees them (a pty's writer hands its bytes to the reader's side through a kernel worker, which a
+        loaded machine holds back for up to hundreds of ms: a request held there for 0.76 s while the world ran on
+        tripped the watchdog of a host that had spoken): written by the host (:attr:`host_clock`'s
+        :meth:`~rigctl.core.shared_clock.SharedClock.written_at`) after the bridge last took any from the client's
+        pty, or handed to the board's pty after the server last received any. Lock-free."""
         bridge = self.bridge
-        return bool(bridge.bytes_to_board() or bridge.bytes_from_board())
+        if bridge.bytes_to_board() or bridge.to_board_at > self._received_at:
+            return True
+        clock = self.host_clock
+        return (clock is not None and bridge.client.plugged
+                and clock.written_at(self.path) > bridge.from_client_at)
+
+    def reply_on_its_way(self) -> bool:
+        """Bytes of a reply the Modbus server wrote that have not reached the host's side of the port yet: counted
+        (:meth:`rigctl.simulation.pty.PtyBridge.bytes_from_board`), or in the kernel's hands: on the board's side
+        (written after the bridge last took any from it), or on the host's (handed to the client's pty after a host of
+        this process last found bytes there (:attr:`host_clock`'s
+        :meth:`~rigctl.core.shared_clock.SharedClock.read_at`), and none there now). Lock-free."""
+        bridge = self.bridge
+        if bridge.bytes_from_board() or self._sent_at > bridge.from_board_at:
+            return True
+        clock = self.host_clock
+        if clock is None:
+            return False
+        read_at = clock.read_at(self.path)  # 0.0: no host of this process reads the port (a face of another)
+        return 0.0 < read_at < bridge.to_client_at and not bridge.client.unread_by_board()
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -226,7 +260,7 @@ class VirtualMega(MegaController):
             raise RuntimeError(f"virtual Mega's Modbus server failed to start: {errors[0]}") from errors[0]
         if clock:  # a board of its own: on a clock shared with the host of this process (docs/architecture.md)
             self._stop.clear()
-            self.clock = SharedClock(lambda: self.model.time_s, world_notifies=True).start()
+            self.clock = self.host_clock = SharedClock(lambda: self.model.time_s, world_notifies=True).start()
             self.clock.own_port(self.path)
             self.use_clock(self.clock.now)
             loop = WorldLoop(self.clock, lambda: int(round(self.model.time_s * 1000.0)), self.step,
@@ -269,7 +303,9 @@ class VirtualMega(MegaController):
         return pdu
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
-        if not sending:
+        if sending:  # stamped before the server writes it: the bridge's take of it is later
+            self._sent_at = time.monotonic()
+        else:
             self._received_at = time.monotonic()
         return data
 
@@ -304,24 +340,21 @@ class VirtualMega(MegaController):
         """Trip the host-silence watchdog (spec 2.5) if it is due; returns True if it tripped.
 
         Called from the Modbus server's loop (every :data:`WATCHDOG_CHECK_S` once the host may be overdue:
-        :meth:`_next_check_s`), so a request the server has read is
-        always handled (and has fed the watchdog) before the check. Not due while request bytes that the server has
-        not read yet are on their way (the host spoke; the firmware would have handled them by now): counted in the
-        ptys, or handed to the board's pty by the bridge after the server last received any (the kernel hands a pty's
-        bytes to its reader from a worker thread, which a loaded machine holds back for up to hundreds of ms, and no
-        count sees them meanwhile: a request copied after a stall of the bridge's thread tripped it so), and restarted
-        while a reply is still on its way to the host (:meth:`rigctl.simulation.pty.PtyBridge.bytes_from_board`: the
-        host waits on the simulator, and the firmware's reply would have reached it by now). And it trips only when two
-        checks in a row find the host overdue with nothing on the way and no request handled between them: the loop
-        runs between two checks, so bytes the server had already taken from its port (a frame still being decoded or
-        handled, which no count above sees) have fed the watchdog by the second (the firmware handles a frame within
-        about a millisecond; this costs a silent host one check period, 10 ms, on top of WATCHDOG_MS).
+        :meth:`_next_check_s`), so a request the server has read is always handled (and has fed the watchdog) before
+        the check. Not due while request bytes that the server has not read yet are on their way (the host spoke; the
+        firmware would have handled them by now: :meth:`request_on_its_way`, also those in the kernel's hands), and
+        restarted while a reply is still on its way to the host (:meth:`reply_on_its_way`: the host waits on the
+        simulator, and the firmware's reply would have reached it by now). And it trips only when two checks in a row
+        find the host overdue with nothing on the way and no request handled between them: the loop runs between two
+        checks, so bytes the server had already taken from its port (a frame still being decoded or handled, which no
+        count above sees) have fed the watchdog by the second (the firmware handles a frame within about a
+        millisecond; this costs a silent host one check period, 10 ms, on top of WATCHDOG_MS).
         """
         with self._lock:
             overdue = self._watchdog_due()
-        if overdue and (self.bridge.bytes_to_board() or self.bridge.to_board_at > self._received_at):
-            overdue = False  # request bytes on their way (also those the kernel has yet to hand to the server)
-        if overdue and self.bridge.bytes_from_board():  # a reply the simulator still holds: the host is waiting on
+        if overdue and self.request_on_its_way():
+            overdue = False  # request bytes on their way (also those the kernel has yet to hand on)
+        if overdue and self.reply_on_its_way():  # a reply the simulator still holds: the host is waiting on
             with self._lock:  # it, and its silence starts once the reply is out (the firmware's goes out within ms)
                 self._last_request = self._now()
             overdue = False

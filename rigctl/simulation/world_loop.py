@@ -26,8 +26,13 @@ log = logging.getLogger(__name__)
 MAX_CATCH_UP_S = 0.25
 #: the longest wait of a world held back by the host before it looks at the horizon again, s (a grant wakes it)
 HELD_WAIT_S = 0.005
-#: the wait of a world whose board is still taking in or answering a request (``board_busy``), s
+#: the first wait of a world whose board is still taking in or answering a request (``board_busy``), s; each further
+#: one twice the last, up to :data:`BUSY_WAIT_MAX_S`
 BUSY_WAIT_S = 0.0005
+#: the longest such wait, s: the world stands meanwhile, so a longer wait costs no simulated time, only wall time;
+#: and a world that looks every 0.5 ms burns CPU the bytes' own way needs (a pty hands them on through a kernel worker
+#: of ordinary priority, which the boards' raised threads, polling, kept from the CPU for seconds beside CPU hogs)
+BUSY_WAIT_MAX_S = 0.005
 #: the longest a board's request handling holds the world, s of wall time (a thread of the board that never gets
 #: to it: the world goes on, and the host may see a late answer, as before the shared clock). 10 s: on a loaded
 #: 2-core machine (a CI run at load 15-20) the virtual Mega's server thread went without CPU for more than the 2 s this
@@ -97,7 +102,7 @@ class WorldLoop:
         wall0, sim0 = monotonic(), done  # paced: ms sim0 + k no earlier than wall0 + k ms
         ahead = self.tick_ms
         woken = False
-        busy, busy_since = self.board_busy, None
+        busy, busy_since, busy_waits = self.board_busy, None, 0
         while not stopped():
             limit = int(self._horizon_s() * 1000.0 + 1e-9)
             if busy is not None and busy():  # the board is at a request: its time stands still meanwhile
@@ -106,7 +111,7 @@ class WorldLoop:
                 if now - busy_since < BUSY_MAX_S:
                     limit = done
             else:
-                busy_since = None
+                busy_since, busy_waits = None, 0
             if self.paced:
                 due = sim0 + int((monotonic() - wall0) * 1000.0)
                 target = min(due, limit)
@@ -128,7 +133,8 @@ class WorldLoop:
                 self.held = True
                 t0 = monotonic()
                 if busy_since is not None:
-                    time.sleep(BUSY_WAIT_S)
+                    time.sleep(min(BUSY_WAIT_MAX_S, BUSY_WAIT_S * 2.0 ** min(16, busy_waits)))
+                    busy_waits += 1
                 elif int(self._horizon_s() * 1000.0 + 1e-9) <= done:
                     self._wait(HELD_WAIT_S)
                 self.held = False

@@ -124,11 +124,42 @@ def test_a_starved_host_never_trips_the_watchdog_on_a_simulated_rig():
             sim.clock.close()  # starved: no heartbeat, no read
             time.sleep(1.0)
             st = c.read_status()
-            assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG
+            assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG, (
+                st.state.name, repr(Fault(st.faults)), sim.model.time_s)
             # and a host silent on the shared clock itself (it sleeps 0.5 s of simulated time, no request) trips it
             sim.clock.sleep(0.5)
             st = c.read_status()
             assert st.state == DrumState.FAULT and st.faults & Fault.WATCHDOG
+        finally:
+            c.close()
+
+
+def test_a_request_or_a_reply_the_kernel_still_holds_keeps_the_world_standing():
+    """A pty hands a writer's bytes to its reader through a kernel worker that a loaded machine holds back for
+    hundreds of ms, where no byte count sees them (a request held so for 0.76 s while the world ran on tripped the
+    watchdog of a host that had spoken). The world stands while the host's write has not been taken by the bridge, and
+    while a reply handed to the host's pty has not been found there; the next exchange lets it go."""
+    with SimulatedRig() as sim:
+        c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
+        try:
+            c.read_status()  # a host of this process talks to the board
+
+            def world_runs_for(wall_s: float) -> float:
+                t0 = sim.clock.now()
+                time.sleep(wall_s)  # the heartbeat grants the world the wall time meanwhile
+                return sim.clock.now() - t0
+
+            assert world_runs_for(0.3) > 0.1  # a paced world with nothing on the way
+            sim.clock.note_write(sim.drum_port)  # a write the kernel holds: stamped, its bytes not yet taken
+            assert world_runs_for(0.3) <= 0.02
+            assert sim.mega.at_request()
+            c.read_status()  # the next request is taken (and so everything before it)
+            assert world_runs_for(0.3) > 0.1
+            sim.mega.bridge.to_client_at = time.monotonic()  # a reply handed on that the host's pty has not got
+            assert world_runs_for(0.3) <= 0.02
+            c.read_status()  # the host finds the next reply
+            assert not sim.mega.at_request()
+            assert world_runs_for(0.3) > 0.1
         finally:
             c.close()
 
