@@ -151,6 +151,17 @@ def _cast_impl(v, like):  # pragma: no cover - compiled by numba
 #: steps per chunk: one bit each in a lane's uint32 spike mask
 _WORD = 32
 
+
+@numba.njit(inline="always", fastmath=_FASTMATH, cache=True)
+def _sa_lane(vv, uu, msk, p, j, i_in, kc, c, d, v_peak, bit, zero32):  # pragma: no cover - compiled by numba
+    """One SA lane's step: v, u advanced by input ``i_in``, reset on a spike (selects, no branch), the spike as
+    ``bit`` of its mask."""
+    v2, u1 = _sa_step(vv[p, j], uu[p, j], i_in, kc)
+    s = v2 >= v_peak
+    vv[p, j] = c if s else v2
+    uu[p, j] = u1 + d if s else u1
+    msk[p, j] = msk[p, j] | (bit if s else zero32)
+
 #: bytes of one SIMD register (AVX2): the pre-pass's explicit vectors (:func:`_norm_vec`)
 _VEC_BYTES = 32
 
@@ -256,6 +267,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
     kr = _constants(filt, izr[0], izr[1])
     zero = kr[0] - kr[0]
     zero32 = np.uint32(0)
+    zero_sa = kc[0] - kc[0]
     cr, dr, vpr = izr[2], izr[3], izr[4]
     b0, b1, b2, a1, a2, zi0, zi1 = bq[0], bq[1], bq[2], bq[3], bq[4], bq[5], bq[6]
     for bi in range(n_blocks):
@@ -267,6 +279,7 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
         vv = np.empty((n_sa, n_l), dtype=off.dtype)
         uu = np.empty((n_sa, n_l), dtype=off.dtype)
         gg = np.empty((n_sa, n_l), dtype=off.dtype)
+        gg_one = np.empty(n_sa, dtype=off.dtype)
         vr = np.empty(n_l, dtype=filt.dtype)
         ur = np.empty(n_l, dtype=filt.dtype)
         z1 = np.empty(n_l, dtype=filt.dtype)
@@ -304,6 +317,11 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                     z2[j] = filt[1, t, ch]
                     yl[j] = filt[2, t, ch]
             fresh[t] = 0
+        for p in range(n_sa):  # the block's one gain of population p, or 0 when its lanes' gains differ (or are 0)
+            gg_one[p] = gg[p, 0]
+            for j in range(n_l):
+                if gg[p, j] != gg_one[p]:
+                    gg_one[p] = zero_sa
         n_max = lens[m - 1]
         kk = 0  # the shortest trial still running
         n = 0
@@ -320,14 +338,15 @@ def _fused_py(x, starts, order, off, scl, gains, ra, off_r, scl_r, k_ra, bq, fs_
                     if ra:
                         _norm_row(xf, row * n_ch, offp_r, sclp_r, xr, q, n_ch)
             for p in range(n_sa):
+                g0 = gg_one[p]
                 for i in range(mc):
                     bit = np.uint32(1 << (sh0 + i))  # (a uint32 select and or: a shift by a variable widened to 64 bits)
-                    for j in range(n_l):
-                        v2, u1 = _sa_step(vv[p, j], uu[p, j], xb[i * n_l + j] * gg[p, j], kc)
-                        s = v2 >= v_peak
-                        vv[p, j] = c if s else v2
-                        uu[p, j] = u1 + d if s else u1
-                        msk[p, j] = msk[p, j] | (bit if s else zero32)
+                    if g0 != zero_sa:  # one gain for every lane (e.g. C = 1): a constant, not a load a lane
+                        for j in range(n_l):
+                            _sa_lane(vv, uu, msk, p, j, xb[i * n_l + j] * g0, kc, c, d, v_peak, bit, zero32)
+                    else:
+                        for j in range(n_l):
+                            _sa_lane(vv, uu, msk, p, j, xb[i * n_l + j] * gg[p, j], kc, c, d, v_peak, bit, zero32)
             if ra:
                 for i in range(mc):
                     bit = np.uint32(1 << (sh0 + i))
@@ -434,8 +453,8 @@ def on_threads(run: Callable[[int, int], object], n: int, step: int) -> None:
 
 
 def _bit_positions() -> np.ndarray:
-    """For every byte value: the positions of its set bits, ascending, padded with 0 to 8 (int32)."""
-    pos = np.zeros((256, 8), np.int32)
+    """For every byte value: the positions of its set bits, ascending, padded with 0 to 8 (float64: exact)."""
+    pos = np.zeros((256, 8), np.float64)
     for v in range(256):
         bits = [i for i in range(8) if v >> i & 1]
         pos[v, :len(bits)] = bits
@@ -447,26 +466,25 @@ _BYTE_POS = _bit_positions()
 
 @intrinsic
 def _byte_times(typingctx, out, pos, lut, byte, base, dt):  # pragma: no cover - compiled by numba
-    """``out[pos + k] = (base + lut[byte, k]) * dt`` for k < 8, as explicit vector operations (int32 to float64,
-    a sum and a product; all exact integer values below 2^53, so the same numbers as ``(sample) * dt`` of the
-    integer sample). ``out`` float64 with at least 8 slots from ``pos``; ``lut`` (256, 8) int32."""
+    """``out[pos + k] = (base + lut[byte, k]) * dt`` for k < 8, as explicit vector operations (a sum and a product;
+    the sum of integer values below 2^53 is exact, so the same numbers as ``(sample) * dt`` of the integer
+    sample). ``out`` float64 with at least 8 slots from ``pos``; ``lut`` (256, 8) float64."""
     sig = types.void(out, types.intp, lut, types.intp, types.float64, types.float64)
 
     def codegen(context, builder, signature, args):
         a_out, a_pos, a_lut, a_byte, a_base, a_dt = args
         t_out, _, t_lut = signature.args[:3]
-        vi = ir.VectorType(ir.IntType(32), 8)
         vd = ir.VectorType(ir.DoubleType(), 8)
         lut_p = builder.gep(context.make_array(t_lut)(context, builder, a_lut).data,
                             [builder.mul(a_byte, ir.Constant(a_byte.type, 8))])
-        k = builder.load(builder.bitcast(lut_p, vi.as_pointer()), align=4)
+        k = builder.load(builder.bitcast(lut_p, vd.as_pointer()), align=8)
 
         def splat(x):
             v = ir.Constant(vd, ir.Undefined)
             for i in range(8):
                 v = builder.insert_element(v, x, ir.Constant(ir.IntType(32), i))
             return v
-        t = builder.fmul(builder.fadd(splat(a_base), builder.sitofp(k, vd)), splat(a_dt))
+        t = builder.fmul(builder.fadd(splat(a_base), k), splat(a_dt))
         out_p = builder.gep(context.make_array(t_out)(context, builder, a_out).data, [a_pos])
         builder.store(t, builder.bitcast(out_p, vd.as_pointer()), align=8)
         return context.get_dummy_value()
