@@ -119,6 +119,11 @@ class _MegaContext(ModbusBaseDeviceContext):
         return result
 
 
+#: the longest the kernel is taken to hold a hop's bytes, s of wall time (a stamp older than that is not a frame on its
+#: way: a host whose write failed, or that dropped a reply unseen, and then went silent is silent to the watchdog)
+KERNEL_HOP_MAX_S = 2.0
+
+
 class VirtualMega(MegaController):
     """Virtual drum controller: the :class:`MegaController` logic served as Modbus RTU on a pty.
 
@@ -172,10 +177,14 @@ class VirtualMega(MegaController):
             self._last_request = now()
 
     def at_request(self) -> bool:
-        """A request of the host is on its way in or its answer on its way out, between the host's port and the
-        Modbus server (its threads are the board's, outside the physics clock: a world on the shared clock waits for
-        them, as the firmware answers within a millisecond of its own time). Lock-free."""
-        return self.request_on_its_way() or self.reply_on_its_way()
+        """A request of the host is on its way in or its answer on its way out, counted between the host's port and the
+        Modbus server (in the ptys or the bridge's hands: its threads are the board's, outside the physics clock; a
+        world on the shared clock waits for them, as the firmware answers within a millisecond of its own time).
+        Not the bytes the kernel holds (:meth:`request_on_its_way`): on a loaded machine that took up to seconds, and a
+        held world lags a live sample source for good (a paced world let go does not catch up: a wall-paced CSV board
+        beside the CI's load overflowed its 10 s buffer); the watchdog judges those instead. Lock-free."""
+        bridge = self.bridge
+        return bool(bridge.bytes_to_board() or bridge.bytes_from_board())
 
     def request_on_its_way(self) -> bool:
         """Bytes the host wrote to the board's port that the Modbus server has not received yet, wherever they are:
@@ -189,8 +198,10 @@ class VirtualMega(MegaController):
         if bridge.bytes_to_board() or bridge.to_board_at > self._received_at:
             return True
         clock = self.host_clock
-        return (clock is not None and bridge.client.plugged
-                and clock.written_at(self.path) > bridge.from_client_at)
+        if clock is None or not bridge.client.plugged:
+            return False
+        written_at = clock.written_at(self.path)
+        return written_at > bridge.from_client_at and time.monotonic() - written_at < KERNEL_HOP_MAX_S
 
     def reply_on_its_way(self) -> bool:
         """Bytes of a reply the Modbus server wrote that have not reached the host's side of the port yet: counted
@@ -199,13 +210,17 @@ class VirtualMega(MegaController):
         this process last found bytes there (:attr:`host_clock`'s
         :meth:`~rigctl.core.shared_clock.SharedClock.read_at`), and none there now). Lock-free."""
         bridge = self.bridge
-        if bridge.bytes_from_board() or self._sent_at > bridge.from_board_at:
+        if bridge.bytes_from_board():
+            return True
+        recent = time.monotonic() - KERNEL_HOP_MAX_S
+        if bridge.from_board_at < self._sent_at > recent:
             return True
         clock = self.host_clock
         if clock is None:
             return False
         read_at = clock.read_at(self.path)  # 0.0: no host of this process reads the port (a face of another)
-        return 0.0 < read_at < bridge.to_client_at and not bridge.client.unread_by_board()
+        return (0.0 < read_at < bridge.to_client_at and bridge.to_client_at > recent
+                and not bridge.client.unread_by_board())
 
     # ------------------------------------------------------------------ lifecycle
     @property

@@ -134,32 +134,40 @@ def test_a_starved_host_never_trips_the_watchdog_on_a_simulated_rig():
             c.close()
 
 
-def test_a_request_or_a_reply_the_kernel_still_holds_keeps_the_world_standing():
+def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchdog():
     """A pty hands a writer's bytes to its reader through a kernel worker that a loaded machine holds back for
     hundreds of ms, where no byte count sees them (a request held so for 0.76 s while the world ran on tripped the
-    watchdog of a host that had spoken). The world stands while the host's write has not been taken by the bridge, and
-    while a reply handed to the host's pty has not been found there; the next exchange lets it go."""
+    watchdog of a host that had spoken). The host stamps its writes and its finds on the shared clock: while its write
+    has not been taken by the bridge, or a reply handed to its pty has not been found there, the host is not silent
+    to the watchdog; the world runs on meanwhile (a held world would lag a live sample source for good)."""
     with SimulatedRig() as sim:
         c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
         try:
-            c.read_status()  # a host of this process talks to the board
+            c.write_holding(HR.WATCHDOG_MS, 200)
+            c.home()
+            c.wait_state([DrumState.IDLE], timeout_s=30)
+            c.set_speed(60.0)
+            c.run()
+            c.wait_state([DrumState.RUNNING], timeout_s=5)
 
-            def world_runs_for(wall_s: float) -> float:
+            def silent_for(wall_s: float) -> float:
                 t0 = sim.clock.now()
                 time.sleep(wall_s)  # the heartbeat grants the world the wall time meanwhile
                 return sim.clock.now() - t0
 
-            assert world_runs_for(0.3) > 0.1  # a paced world with nothing on the way
             sim.clock.note_write(sim.drum_port)  # a write the kernel holds: stamped, its bytes not yet taken
-            assert world_runs_for(0.3) <= 0.02
-            assert sim.mega.at_request()
-            c.read_status()  # the next request is taken (and so everything before it)
-            assert world_runs_for(0.3) > 0.1
+            assert sim.mega.request_on_its_way() and not sim.mega.at_request()
+            assert silent_for(0.6) > 0.3  # the world ran on past WATCHDOG_MS
+            st = c.read_status()  # the request is taken (and so everything before it)
+            assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG, (st.state.name, repr(st.faults))
             sim.mega.bridge.to_client_at = time.monotonic()  # a reply handed on that the host's pty has not got
-            assert world_runs_for(0.3) <= 0.02
-            c.read_status()  # the host finds the next reply
-            assert not sim.mega.at_request()
-            assert world_runs_for(0.3) > 0.1
+            assert sim.mega.reply_on_its_way()
+            assert silent_for(0.6) > 0.3
+            st = c.read_status()  # the host finds the next reply
+            assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG, (st.state.name, repr(st.faults))
+            assert not sim.mega.request_on_its_way() and not sim.mega.reply_on_its_way()
+            assert silent_for(0.6) > 0.3  # nothing on the way: the silence trips it
+            assert c.read_status().faults & Fault.WATCHDOG
         finally:
             c.close()
 
