@@ -86,6 +86,13 @@ def clock_of_port(path: str | os.PathLike[str]) -> "SharedClock | None":
     return attach_port_clock(path)
 
 
+def _stamp(stamps: dict[str, float], path: str | os.PathLike[str]) -> None:
+    """``stamps[key] = time.monotonic()`` for each of ``path``'s keys (:func:`_port_keys`)."""
+    wall = time.monotonic()
+    for key in _port_keys(os.fspath(path)):
+        stamps[key] = wall
+
+
 class SharedClock:
     """The clock the host and a simulated rig's boards share (module doc). Also a
     :class:`rigctl.core.drum.Clock` (``now``, ``sleep``).
@@ -236,9 +243,7 @@ class SharedClock:
         process then knows its bytes are on the way while the kernel still holds them, where no count sees them
         (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine holds back
         for hundreds of ms). Also a sign of life (:meth:`touch`)."""
-        wall = time.monotonic()
-        for key in _port_keys(os.fspath(path)):
-            self._written[key] = wall
+        _stamp(self._written, path)
         self.touch()
 
     def written_at(self, path: str | os.PathLike[str]) -> float:
@@ -249,9 +254,7 @@ class SharedClock:
     def note_read(self, path: str | os.PathLike[str]) -> None:
         """The host found bytes waiting on the board's port ``path`` and is about to read them (:meth:`read_at`: a
         board of this process knows what it handed on after this is still in the kernel's hands)."""
-        wall = time.monotonic()
-        for key in _port_keys(os.fspath(path)):
-            self._read[key] = wall
+        _stamp(self._read, path)
 
     def read_at(self, path: str | os.PathLike[str]) -> float:
         """When the host last found bytes to read on ``path`` (:meth:`note_read`; ``time.monotonic``, 0.0 if never:

@@ -200,8 +200,7 @@ class VirtualMega(MegaController):
         clock = self.host_clock
         if clock is None or not bridge.client.plugged:
             return False
-        written_at = clock.written_at(self.path)
-        return written_at > bridge.from_client_at and time.monotonic() - written_at < KERNEL_HOP_MAX_S
+        return clock.written_at(self.path) > max(bridge.from_client_at, time.monotonic() - KERNEL_HOP_MAX_S)
 
     def reply_on_its_way(self) -> bool:
         """Bytes of a reply the Modbus server wrote that have not reached the host's side of the port yet: counted
@@ -213,14 +212,13 @@ class VirtualMega(MegaController):
         if bridge.bytes_from_board():
             return True
         recent = time.monotonic() - KERNEL_HOP_MAX_S
-        if bridge.from_board_at < self._sent_at > recent:
+        if self._sent_at > max(bridge.from_board_at, recent):
             return True
         clock = self.host_clock
         if clock is None:
             return False
         read_at = clock.read_at(self.path)  # 0.0: no host of this process reads the port (a face of another)
-        return (0.0 < read_at < bridge.to_client_at and bridge.to_client_at > recent
-                and not bridge.client.unread_by_board())
+        return read_at > 0.0 and bridge.to_client_at > max(read_at, recent) and not bridge.client.unread_by_board()
 
     # ------------------------------------------------------------------ lifecycle
     @property

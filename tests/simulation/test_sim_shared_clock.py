@@ -109,18 +109,23 @@ def test_a_simulated_rig_pauses_while_its_host_gives_no_sign_of_life():
             c.close()
 
 
+def _turn_under_a_200_ms_watchdog(c: DrumClient) -> None:
+    """WATCHDOG_MS 200, HOME, then the drum turning at 60 mm/s."""
+    c.write_holding(HR.WATCHDOG_MS, 200)
+    c.home()
+    c.wait_state([DrumState.IDLE], timeout_s=30)
+    c.set_speed(60.0)
+    c.run()
+    c.wait_state([DrumState.RUNNING], timeout_s=5)
+
+
 def test_a_starved_host_never_trips_the_watchdog_on_a_simulated_rig():
     """The drum turns under a 200 ms watchdog; the host then gives no sign of life for 1 s of wall time (a starved
     process). On the wall clock the Mega tripped WATCHDOG; on the shared clock the rig waited for its host."""
     with SimulatedRig() as sim:
         c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
         try:
-            c.write_holding(HR.WATCHDOG_MS, 200)
-            c.home()
-            c.wait_state([DrumState.IDLE], timeout_s=30)
-            c.set_speed(60.0)
-            c.run()
-            c.wait_state([DrumState.RUNNING], timeout_s=5)
+            _turn_under_a_200_ms_watchdog(c)
             sim.clock.close()  # starved: no heartbeat, no read
             time.sleep(1.0)
             st = c.read_status()
@@ -143,12 +148,7 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
     with SimulatedRig() as sim:
         c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
         try:
-            c.write_holding(HR.WATCHDOG_MS, 200)
-            c.home()
-            c.wait_state([DrumState.IDLE], timeout_s=30)
-            c.set_speed(60.0)
-            c.run()
-            c.wait_state([DrumState.RUNNING], timeout_s=5)
+            _turn_under_a_200_ms_watchdog(c)
 
             def silent_for(wall_s: float) -> float:
                 t0 = sim.clock.now()
