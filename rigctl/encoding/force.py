@@ -162,18 +162,22 @@ def fit_force_groupings(readings, groupings, *, offset=0.0, scale=1.0, eps: floa
         raise ValueError("empty trial")
     izh = (params.a, params.b, params.c, params.d, params.v_peak)
 
-    def rates_at(coeff_groups: list[np.ndarray], masks: list[np.ndarray], groups: list[Any]) -> list[np.ndarray]:
+    def rates_at(coeff_groups: list[np.ndarray], masks: list[np.ndarray], groups: list[Any],
+                 one_gain: bool = False) -> list[np.ndarray]:
+        """The groups' rates at these coefficients; ``one_gain``: every grouping's gains are the same (the
+        targets: C = 1), so one SA population serves them all (the same counts, half the kernel's work)."""
         active = np.logical_or.reduce(masks)
-        gains = [cg[g] for cg, (g, _) in zip(coeff_groups, groups)]  # (n_trials, n_ch) each
+        gains = [cg[g] for cg, (g, _) in zip(coeff_groups, groups)][:1 if one_gain else None]  # (n_trials, n_ch)
         counts = np.concatenate([
             run_fused(b.data, b.starts, offset=offset, scale=scale, sa_gains=[g[t0:t1] for g in gains], k_sa=k,
                       ra=False, fs=fs, izhikevich=izh, dtype=dtype, want_times=False, active=active[t0:t1]).counts
             for b, t0, t1 in zip(blocks, bounds[:-1], bounds[1:])], axis=1)
-        return [_group_rates(counts[i], durations, g, r.size, m) for i, ((g, r), m) in enumerate(zip(groups, masks))]
+        return [_group_rates(counts[0 if one_gain else i], durations, g, r.size, m)
+                for i, ((g, r), m) in enumerate(zip(groups, masks))]
 
     is_ref = [r == np.arange(r.size) for _, r in groups]
     targets = rates_at([np.ones((r.size, n_ch)) for _, r in groups], [ir[g] for ir, (g, _) in zip(is_ref, groups)],
-                       groups)
+                       groups, one_gain=True)
     state = []
     for (g, r), ir, tr in zip(groups, is_ref, targets):
         n_per_group = np.bincount(g, minlength=r.size)
