@@ -13,8 +13,15 @@ A face holds a shared ``flock`` on the file while its process lives; the rig see
 and obeys the face's grants only then. A face that exits or is killed releases the lock with its process, and the
 rig runs on by itself, paced to the wall clock: its controller's watchdog then acts on the silence, as on a bench.
 
-The file: four little-endian uint64 slots, a magic number, the rig's time (ns + 1; 0: not yet), the hosts' grant
-(ns + 1; never moves back), a spare. Standard library only (``rigctl.core``).
+A face also stamps, for each port link of the rig, when it last began to write to it and when it last found bytes
+there to read (:meth:`HostSide.stamp`, ``time.monotonic``, one clock for every process of the machine): bytes a pty
+holds in the kernel's hands on their way are seen by no byte count, and the rig's controller judges its watchdog by
+these stamps as by those of a host of its own process (:meth:`ClockFile.stamp_s`; docs/architecture.md, "Bytes on
+their way").
+
+The file: eight little-endian uint64 slots, a magic number, the rig's time (ns + 1; 0: not yet), the hosts' grant
+(ns + 1; never moves back), a spare, then the faces' stamps (monotonic ns + 1; 0: never) of the drum link, written
+and read, and of the taxel link, written and read. Standard library only (``rigctl.core``).
 """
 
 from __future__ import annotations
@@ -32,7 +39,9 @@ __all__ = ["CLOCK_NAME", "ClockFile", "HostSide", "open_beside"]
 #: the clock file's name in a simulated rig's port folder
 CLOCK_NAME = ".clock"
 _MAGIC = 0x52494743544C434B  # "RIGCTLCK"
-_SIZE = 32
+_SIZE = 64
+#: the slots of the faces' stamps by port link name: (written, read) byte offsets
+_STAMP_SLOTS = {"drum": (32, 40), "taxel": (48, 56)}
 #: how often the rig looks whether a face holds the file, s (a flock attempt; between looks the last answer holds)
 ATTACH_LOOK_S = 0.02
 
@@ -72,6 +81,15 @@ class ClockFile:
         if self._map is None:
             return 0.0
         (v,) = struct.unpack_from("<Q", self._map, 16)
+        return (v - 1) * 1e-9 if v else 0.0
+
+    def stamp_s(self, link: str, written: bool) -> float:
+        """When a face of another process last began to write to the port link ``link`` (``written``) or last found
+        bytes there to read (``time.monotonic``, s; 0.0: never, or a link without stamps). Lock-free."""
+        slots = _STAMP_SLOTS.get(link)
+        if self._map is None or slots is None:
+            return 0.0
+        (v,) = struct.unpack_from("<Q", self._map, slots[0] if written else slots[1])
         return (v - 1) * 1e-9 if v else 0.0
 
     def host_attached(self) -> bool:
@@ -137,6 +155,14 @@ class HostSide:
             (old,) = struct.unpack_from("<Q", self._map, 16)
             if ns > old:
                 struct.pack_into("<Q", self._map, 16, ns)
+
+    def stamp(self, port: str, written: bool) -> None:
+        """This face is about to write to (``written``) or has found bytes to read on the port ``port`` (a path whose
+        name is a link of the rig: ``DIR/drum``): stamped now (``time.monotonic``) for the rig's side
+        (:meth:`ClockFile.stamp_s`); a port of another name: nothing."""
+        slots = _STAMP_SLOTS.get(os.path.basename(port))
+        if slots is not None:
+            struct.pack_into("<Q", self._map, slots[0] if written else slots[1], time.monotonic_ns() + 1)
 
     def hold(self, on: bool) -> None:
         """Take (``on``) or give back the shared lock that tells the rig a face of this process is there."""

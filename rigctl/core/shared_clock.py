@@ -87,10 +87,15 @@ def clock_of_port(path: str | os.PathLike[str]) -> "SharedClock | None":
 
 
 def _stamp(stamps: dict[str, float], path: str | os.PathLike[str]) -> None:
-    """``stamps[key] = time.monotonic()`` for each of ``path``'s keys (:func:`_port_keys`)."""
-    wall = time.monotonic()
-    for key in _port_keys(os.fspath(path)):
-        stamps[key] = wall
+    """``stamps[path] = time.monotonic()`` (the path as the host opened it: a board looks it up by each of its own
+    names, :func:`_stamp_at`)."""
+    stamps[os.fspath(path)] = time.monotonic()
+
+
+def _stamp_at(stamps: dict[str, float], path: str | os.PathLike[str]) -> float:
+    """The latest of ``stamps`` under any of ``path``'s keys (:func:`_port_keys`: its link and the device behind it),
+    0.0 if none."""
+    return max((stamps.get(key, 0.0) for key in _port_keys(os.fspath(path))), default=0.0)
 
 
 class SharedClock:
@@ -108,6 +113,9 @@ class SharedClock:
     on_grant : callable or None
         Called with the new horizon (s) each time it moves on (the world's wake-up: a pipe write, a shared-memory
         store); from the host's threads.
+    on_stamp : callable or None
+        Called with ``(path, written)`` at each :meth:`note_write` (``written`` True) and :meth:`note_read` (False):
+        a rig of another process is told through its clock file (:meth:`rigctl.core.port_clock.HostSide.stamp`).
     world_notifies : bool
         The world calls :meth:`moved` after each step it takes (a waiting host then wakes on it); else the host's
         waits poll the world's time every :data:`WAIT_STEP_S`.
@@ -120,11 +128,12 @@ class SharedClock:
 
     def __init__(self, world_now: Callable[[], float], *, lead_s: float = LEAD_S,
                  heartbeat_s: float | None = HEARTBEAT_S, on_grant: Callable[[float], None] | None = None,
-                 world_notifies: bool = False) -> None:
+                 world_notifies: bool = False, on_stamp: Callable[[str, bool], None] | None = None) -> None:
         self._world_now = world_now
         self.lead_s = float(lead_s)
         self.heartbeat_s = heartbeat_s
         self.on_grant = on_grant
+        self.on_stamp = on_stamp
         self._lock = threading.Lock()
         self.world_notifies = world_notifies
         self._moved = threading.Condition(threading.Lock())
@@ -140,8 +149,12 @@ class SharedClock:
 
     # ------------------------------------------------------------------ lifecycle (the heartbeat)
     def start(self) -> "SharedClock":
-        """Start the heartbeat (idempotent); the host's process is alive from now."""
+        """Start the heartbeat (idempotent); the host's process is alive from now, and ``on_grant`` is told the
+        horizon (the first :attr:`horizon_s` is :attr:`lead_s` before any grant moved it: a world at time 0 was never
+        told it, and waited on a host that waited on it)."""
         self.touch()
+        if self.on_grant is not None:
+            self.on_grant(self.horizon_s)
         if self.heartbeat_s and self._heart is None:
             self._stop.clear()
             self._heart = threading.Thread(target=self._beat, name="shared-clock-heartbeat", daemon=True)
@@ -244,22 +257,26 @@ class SharedClock:
         (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine holds back
         for hundreds of ms). Also a sign of life (:meth:`touch`)."""
         _stamp(self._written, path)
+        if self.on_stamp is not None:
+            self.on_stamp(os.fspath(path), True)
         self.touch()
 
     def written_at(self, path: str | os.PathLike[str]) -> float:
         """When the host last began to write to ``path`` (:meth:`note_write`; ``time.monotonic``, 0.0 if never).
         Lock-free."""
-        return self._written.get(os.fspath(path), 0.0)
+        return _stamp_at(self._written, path)
 
     def note_read(self, path: str | os.PathLike[str]) -> None:
         """The host found bytes waiting on the board's port ``path`` and is about to read them (:meth:`read_at`: a
         board of this process knows what it handed on after this is still in the kernel's hands)."""
         _stamp(self._read, path)
+        if self.on_stamp is not None:
+            self.on_stamp(os.fspath(path), False)
 
     def read_at(self, path: str | os.PathLike[str]) -> float:
         """When the host last found bytes to read on ``path`` (:meth:`note_read`; ``time.monotonic``, 0.0 if never:
         no host of this process reads it). Lock-free."""
-        return self._read.get(os.fspath(path), 0.0)
+        return _stamp_at(self._read, path)
 
     # ------------------------------------------------------------------ the world's side
     def moved(self) -> None:
@@ -310,7 +327,7 @@ def attach_port_clock(port: str | os.PathLike[str]) -> SharedClock | None:
             entry.users += 1
             return entry.clock
         side.hold(True)
-        clock = SharedClock(side.world_now, on_grant=side.grant)
+        clock = SharedClock(side.world_now, on_grant=side.grant, on_stamp=side.stamp)
         clock.start()
         _ATTACHED[key] = _Attached(clock, side, 1)
         return clock

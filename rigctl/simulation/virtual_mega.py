@@ -165,6 +165,9 @@ class VirtualMega(MegaController):
         #: the shared clock of the host that talks to this board in this process (its writes' stamps:
         #: :meth:`request_on_its_way`), or None
         self.host_clock: SharedClock | None = None
+        #: a face of another process's stamps of this port, ``remote_stamp(written)`` (``time.monotonic``, 0.0: none;
+        #: ``SimulatedRig``: its clock file's, :meth:`rigctl.core.port_clock.ClockFile.stamp_s`), or None
+        self.remote_stamp: Callable[[bool], float] | None = None
         #: called after every write request (``SimulatedRig``: wakes its physics thread, so the control logic acts on a
         #: command within a millisecond, as the firmware's loop does, not at the end of an idle tick)
         self.on_write: Callable[[], None] | None = None
@@ -197,10 +200,9 @@ class VirtualMega(MegaController):
         bridge = self.bridge
         if bridge.bytes_to_board() or bridge.to_board_at > self._received_at:
             return True
-        clock = self.host_clock
-        if clock is None or not bridge.client.plugged:
+        if not bridge.client.plugged:
             return False
-        return clock.written_at(self.path) > max(bridge.from_client_at, time.monotonic() - KERNEL_HOP_MAX_S)
+        return self._host_stamp(True) > max(bridge.from_client_at, time.monotonic() - KERNEL_HOP_MAX_S)
 
     def reply_on_its_way(self) -> bool:
         """Bytes of a reply the Modbus server wrote that have not reached the host's side of the port yet: counted
@@ -214,11 +216,16 @@ class VirtualMega(MegaController):
         recent = time.monotonic() - KERNEL_HOP_MAX_S
         if self._sent_at > max(bridge.from_board_at, recent):
             return True
-        clock = self.host_clock
-        if clock is None:
-            return False
-        read_at = clock.read_at(self.path)  # 0.0: no host of this process reads the port (a face of another)
+        read_at = self._host_stamp(False)  # 0.0: no host that stamps reads the port
         return read_at > 0.0 and bridge.to_client_at > max(read_at, recent) and not bridge.client.unread_by_board()
+
+    def _host_stamp(self, written: bool) -> float:
+        """When a host last began to write to this port (``written``) or last found bytes there to read
+        (``time.monotonic``, 0.0: never): of this process (:attr:`host_clock`) or of another (:attr:`remote_stamp`),
+        the later."""
+        clock, remote = self.host_clock, self.remote_stamp
+        own = 0.0 if clock is None else (clock.written_at(self.path) if written else clock.read_at(self.path))
+        return own if remote is None else max(own, remote(written))
 
     # ------------------------------------------------------------------ lifecycle
     @property

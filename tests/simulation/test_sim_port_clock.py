@@ -57,3 +57,30 @@ def test_a_stopped_face_of_another_process_pauses_the_world_and_a_killed_one_let
         with DrumClient(sim.drum_port, timeout_s=2.0) as drum:  # this process's own rig: its in-process clock
             assert drum.clock is sim.clock and not is_port_clock(drum.clock)
     assert not (tmp_path / "ports" / CLOCK_NAME).exists()  # removed with the rig
+
+
+def test_a_face_that_attaches_before_the_worlds_first_step_runs_it():
+    """A face of another process may attach to the clock file the moment the ports appear, before the world's first
+    step: the rig publishes its time from the start (the model's is 75 ms) and the face's first grant reaches the file.
+    Before, the file said time 0 and no grant: the face granted up to 50 ms, short of the world, and each waited on the
+    other forever (3 processes side by side hung 3 times in 45 attaches)."""
+    import threading
+
+    from rigctl.core.shared_clock import attach_port_clock, release_port_clock
+
+    sim = SimulatedRig()
+    try:
+        clock = attach_port_clock(sim.drum_port)  # as another process would (the file: not this process's clock)
+        try:
+            assert clock is not None and clock is not sim.clock
+            assert clock.now() == sim.model.time_s > 0.0  # the world's time, before any step
+            sim.start()
+            slept = threading.Thread(target=clock.sleep, args=(0.5,), daemon=True)
+            slept.start()
+            slept.join(timeout=60.0)  # (a hang guard: 0.5 s of an unpaced world takes far less)
+            assert not slept.is_alive(), (sim.model.time_s, clock.now(), clock.horizon_s)
+            assert sim.model.time_s >= 0.5
+        finally:
+            release_port_clock(clock)
+    finally:
+        sim.close()

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from rigctl.core.shared_clock import LEAD_S, SharedClock
+from rigctl.core.shared_clock import LEAD_S, SharedClock, attach_port_clock, release_port_clock
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
 from rigctl.simulation.rig import SimulatedRig
@@ -139,23 +139,29 @@ def test_a_starved_host_never_trips_the_watchdog_on_a_simulated_rig():
             c.close()
 
 
-def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchdog():
+@pytest.mark.parametrize("face", ["this process", "another process"])
+def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchdog(face):
     """A pty hands a writer's bytes to its reader through a kernel worker that a loaded machine holds back for
     hundreds of ms, where no byte count sees them (a request held so for 0.76 s while the world ran on tripped the
-    watchdog of a host that had spoken). The host stamps its writes and its finds on the shared clock: while its write
-    has not been taken by the bridge, or a reply handed to its pty has not been found there, the host is not silent
-    to the watchdog; the world runs on meanwhile (a held world would lag a live sample source for good)."""
+    watchdog of a host that had spoken). The host stamps its writes and its finds: while its write has not been taken
+    by the bridge, or a reply handed to its pty has not been found there, the host is not silent to the watchdog; the
+    world runs on meanwhile (a held world would lag a live sample source for good). A face of this process stamps on
+    the rig's shared clock; a face of another process (``rigctl sim`` driven by `rigctl acquire --drum-port`: a CI run
+    latched WATCHDOG there) on the clock file beside the ports (its clock here, as that process would attach it)."""
     with SimulatedRig() as sim:
-        c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
+        clock = sim.clock if face == "this process" else attach_port_clock(sim.drum_port)
+        c = DrumClient(sim.drum_port, clock=clock, timeout_s=2.0).open()
         try:
             _turn_under_a_200_ms_watchdog(c)
+            if face == "another process":  # nothing stamped on the rig's own clock: the file's stamps are judged
+                assert sim.clock.written_at(sim.drum_port) == 0.0 and sim.clock.read_at(sim.drum_port) == 0.0
 
             def silent_for(wall_s: float) -> float:
-                t0 = sim.clock.now()
+                t0 = clock.now()
                 time.sleep(wall_s)  # the heartbeat grants the world the wall time meanwhile
-                return sim.clock.now() - t0
+                return clock.now() - t0
 
-            sim.clock.note_write(sim.drum_port)  # a write the kernel holds: stamped, its bytes not yet taken
+            clock.note_write(sim.drum_port)  # a write the kernel holds: stamped, its bytes not yet taken
             assert sim.mega.request_on_its_way() and not sim.mega.at_request()
             assert silent_for(0.6) > 0.3  # the world ran on past WATCHDOG_MS
             st = c.read_status()  # the request is taken (and so everything before it)
@@ -170,6 +176,8 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
             assert c.read_status().faults & Fault.WATCHDOG
         finally:
             c.close()
+            if clock is not sim.clock:
+                release_port_clock(clock)
 
 
 @pytest.mark.slow
