@@ -394,21 +394,28 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
     from pynwb import TimeSeries
 
     handheld = (s.rig_config or {}).get("mode") == "handheld"
-    force_t, force, speed_t, speed = [], [], [], []
+    # one array per series and block of trials (a trial's few hundred samples each in an array of its own, 4 x 24,000
+    # of them at paper size, fragmented the heap: 0.36 GB kept for 0.13 GB of traces)
+    force_t: list[np.ndarray] = []
+    force: list[np.ndarray] = []
+    speed_t: list[np.ndarray] = []
+    speed: list[np.ndarray] = []
     k = 0
     for i0, i1 in _blocks([1] * len(tl.ids), 4096):
+        block: tuple[list[np.ndarray], ...] = ([], [], [], [])
         for ft, fv, vt, vv in s.read_traces(tl.ids[i0:i1]):
             if handheld:  # the tracker's samples kept around a scan: only those inside it (trials abut here)
                 inside = (vt >= 0) & (vt <= tl.stops[k] - tl.starts[k])
                 vt, vv = vt[inside], vv[inside]
-            force_t.append(tl.starts[k] + ft)
-            force.append(fv)
-            speed_t.append(tl.starts[k] + vt)
-            speed.append(vv)
+            for parts, x in zip(block, (tl.starts[k] + ft, fv, tl.starts[k] + vt, vv)):
+                parts.append(x)
             tl.attrs[k]["_force_mean_g"] = float(np.mean(fv)) if fv.size else np.nan
             tl.attrs[k]["_speed_mean_mm_s"] = float(np.mean(vv)) if vv.size else np.nan
             bar.advance(1)
             k += 1
+        for joined, parts in zip((force_t, force, speed_t, speed), block):
+            joined.append(np.concatenate(parts) if parts else np.zeros(0))
+        del block
     series = [("load_cell_force", "g", force_t, force, "load-cell force"),
               ("drum_speed", "mm/s", speed_t, speed, "measured drum surface speed")]
     if handheld:  # no drum, no load cell: the tracker's velocity and position
@@ -423,8 +430,12 @@ def _add_traces(nwb: Any, s: Any, tl: _Timeline, bar: Stage) -> None:
     for name, unit, t_parts, v_parts, what in series:
         ts = np.concatenate(t_parts) if t_parts else np.zeros(0)
         vs = np.concatenate(v_parts) if v_parts else np.zeros(0)
-        order = np.argsort(ts, kind="stable")
-        nwb.add_acquisition(TimeSeries(name=name, data=vs[order], timestamps=ts[order], unit=unit,
+        t_parts.clear()
+        v_parts.clear()
+        if not np.all(ts[1:] >= ts[:-1]):  # trials' traces that overlap (sorted already: the stable order is theirs)
+            order = np.argsort(ts, kind="stable")
+            ts, vs = ts[order], vs[order]
+        nwb.add_acquisition(TimeSeries(name=name, data=vs, timestamps=ts, unit=unit,
                                        description=f"{what} of each trial, on the taxels' session time"))
 
 
@@ -569,36 +580,64 @@ def _unit_lengths(index: np.ndarray, rows: np.ndarray, n_trains: int) -> np.ndar
 
 #: spikes of one unit decoded at a time (its trials in blocks): ~8 MB for each temporary array
 _UNIT_BLOCK_SPIKES = 1 << 20
+#: stored spikes of a group of units held at once (4-byte ticks: 128 MB): a variant is read once per group of its
+#: units (a paper-size variant, ~10^8 spikes: 4 groups)
+_UNIT_GROUP_SPIKES = 1 << 25
+#: stored spikes read at once while a group's are gathered (a block of trials: 32 MB of ticks)
+_UNIT_READ_SPIKES = 1 << 23
+
+
+def _unit_groups(lens: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Consecutive units ``(j0, j1)`` whose stored spikes (``lens`` (n_trials, n_trains) counts of every encoded
+    trial) sum to at most ``limit`` (at least one unit each)."""
+    return _blocks(lens.sum(axis=0), limit)
+
+
+def _group_raw(enc: Any, variant: str, lens: np.ndarray, j0: int, j1: int) -> np.ndarray:
+    """The stored spikes of trains ``j0 .. j1 - 1`` of every encoded trial, trial after trial (the stored order
+    without the other trains' spikes), read in blocks of trials of at most :data:`_UNIT_READ_SPIKES` spikes."""
+    parts = []
+    for t0, t1 in _blocks(lens.sum(axis=1), _UNIT_READ_SPIKES):
+        raw = enc.spikes_stored(variant, slice(t0, t1))[0]
+        keep = np.zeros(lens.shape[1], bool)
+        keep[j0:j1] = True
+        parts.append(raw[np.repeat(np.tile(keep, t1 - t0), lens[t0:t1].reshape(-1))])
+        del raw
+    return np.concatenate(parts) if parts else np.zeros(0, np.uint32)
 
 
 def _unit_spikes(encoded_path: Any, variants: Sequence[str], rows: np.ndarray, starts: np.ndarray
                  ) -> Iterator[tuple[np.ndarray, int]]:
     """Each unit's spike times on session time (its train in each exported trial, shifted by the trial's start),
     unit after unit, variant after variant, each unit in blocks of at most :data:`_UNIT_BLOCK_SPIKES` spikes
-    (``n_done`` 1 on a unit's last block). Memory: one variant's spikes as stored (4-byte ticks for schema 3) plus a
-    block's; each unit's times are decoded as :meth:`rigctl.storage.encoded.EncodedFile.spikes`
-    decodes them (the same operations, so the same numbers)."""
+    (``n_done`` 1 on a unit's last block). Memory: the stored spikes of a group of units (at most
+    :data:`_UNIT_GROUP_SPIKES`, or one unit's) plus a block's; each unit's times are decoded as
+    :meth:`rigctl.storage.encoded.EncodedFile.spikes` decodes them (the same operations, so the same numbers)."""
     with _encoded.open_encoded(encoded_path) as enc:
         for v in variants:
-            raw, tick_s, scale, index, n_trains = enc.spikes_stored(v)
+            _, tick_s, scale, index, n_trains = enc.spikes_stored(v, times=False)
             scale = scale[rows] if scale is not None and np.any(scale != 1.0) else None
-            begins = np.concatenate([[0], index[:-1]]).reshape(-1, n_trains)[rows]  # (n_trials, n_trains)
-            lens = _unit_lengths(index, rows, n_trains)  # (n_trains, n_trials)
-            for j in range(n_trains):
-                blocks = _blocks(lens[j], _UNIT_BLOCK_SPIKES) or [(0, 0)]
-                for b, (i0, i1) in enumerate(blocks):  # the unit's trials in blocks: bounded temporaries
-                    n = lens[j][i0:i1]
-                    first = np.concatenate([[0], np.cumsum(n)[:-1]])
-                    gather = np.repeat(begins[i0:i1, j] - first, n) + np.arange(int(n.sum()))
-                    times = raw[gather].astype(np.float64)
-                    del gather
-                    if tick_s is not None:
-                        times *= tick_s
-                    if scale is not None:
-                        times *= np.repeat(scale[i0:i1], n)
-                    times += np.repeat(starts[i0:i1], n)  # (the same sum as starts + times: addition commutes)
-                    yield times, int(b == len(blocks) - 1)
-            del raw, index
+            lens_all = np.diff(np.concatenate([[0], index])).reshape(-1, n_trains)  # (encoded trials, trains)
+            for j0, j1 in _unit_groups(lens_all[rows], _UNIT_GROUP_SPIKES):
+                raw = _group_raw(enc, v, lens_all, j0, j1)
+                glens = lens_all[:, j0:j1]  # the group's rows, in the order they are in ``raw``
+                begins = (np.cumsum(glens.reshape(-1)) - glens.reshape(-1)).reshape(glens.shape)[rows]
+                lens = np.asarray(glens[rows].T, np.int64)  # (group's trains, exported trials)
+                for j in range(j1 - j0):
+                    blocks = _blocks(lens[j], _UNIT_BLOCK_SPIKES) or [(0, 0)]
+                    for b, (i0, i1) in enumerate(blocks):  # the unit's trials in blocks: bounded temporaries
+                        n = lens[j][i0:i1]
+                        first = np.concatenate([[0], np.cumsum(n)[:-1]])
+                        gather = np.repeat(begins[i0:i1, j] - first, n) + np.arange(int(n.sum()))
+                        times = raw[gather].astype(np.float64)
+                        del gather
+                        if tick_s is not None:
+                            times *= tick_s
+                        if scale is not None:
+                            times *= np.repeat(scale[i0:i1], n)
+                        times += np.repeat(starts[i0:i1], n)  # (the same sum as starts + times: addition commutes)
+                        yield times, int(b == len(blocks) - 1)
+                del raw
 
 
 def read_nwb_summary(path: str | os.PathLike[str]) -> tuple[NwbSummary, dict[str, np.ndarray]]:

@@ -18,7 +18,7 @@ from h5py import h5a, h5d, h5g, h5s, h5t
 
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import kept_rows, onboard_group, session_recording, trial_facts
+from rigctl.storage import h5objects, kept_rows, onboard_group, session_recording, trial_facts
 from rigctl.storage.session_format import (
     SessionError,
     TrialStatus,
@@ -727,7 +727,7 @@ class SessionReader:
                                                  ("started_utc", ""))} for a in map(self.trial_attrs, ids)]
         rows = self._index_rows(ids)
         out = []
-        with _reading(self.path, "trials' started_utc"):
+        with _reading(self.path, "trials' started_utc"), h5objects.bounded_metadata_cache(self._f):
             tg = h5g.open(self._f.id, b"/trials")
             for tid, r in zip(ids, rows):
                 gid = h5g.open(tg, trial_group_name(int(tid)).rpartition("/")[2].encode())

@@ -102,3 +102,28 @@ def test_datasets_hold_the_data_with_the_asked_filters(tmp_path, compression):
     with h5py.File(tmp_path / "e.h5", "w") as f:
         with pytest.raises(ValueError, match="compression"):
             h5objects.create_dataset(f, "x", np.arange(3), chunks=(3,), compression="zstd")
+
+
+def _visit(f, names):
+    for name in names:
+        h5py.h5a.exists(h5py.h5g.open(f.id, name.encode()), b"status")
+
+
+def test_a_bounded_metadata_cache_keeps_no_more_than_its_size_and_is_restored(tmp_path):
+    """Issue 57 item 5: a cached object header keeps its decoded attributes (~20 kB for a generated trial group,
+    the cache counting ~0.6 kB): visiting 24,000 trial groups kept 0.48 GB. Inside the context the cache holds at
+    most its size; the file's own configuration comes back on exit."""
+    names = [f"g{i}" for i in range(400)]
+    with h5py.File(tmp_path / "many.h5", "w") as f:
+        for name in names:
+            h5objects.set_attrs(f.create_group(name), {k: v for k, v in VALUES.items() if k != "array"} |
+                                {"status": "complete"})
+    with h5py.File(tmp_path / "many.h5", "r") as f:
+        before = f.id.get_mdc_config().max_size
+        _visit(f, names)
+        assert f.id.get_mdc_size()[2] > 64 * 1024  # unbounded, every header visited stays
+    with h5py.File(tmp_path / "many.h5", "r") as f:
+        with h5objects.bounded_metadata_cache(f, 64 * 1024):
+            _visit(f, names)
+            assert f.id.get_mdc_size()[2] <= 64 * 1024
+        assert f.id.get_mdc_config().max_size == before

@@ -167,9 +167,45 @@ def test_the_units_are_written_without_decoding_a_whole_variant(dataset, tmp_pat
 
     monkeypatch.setattr(nwb, "_UNIT_BLOCK_SPIKES", 7)
     export_nwb(session, tmp_path / "small_blocks.nwb", encoded_path=encoded, variants=variants)
-    with h5py.File(out, "r") as a, h5py.File(tmp_path / "small_blocks.nwb", "r") as b:
-        for name in ("spike_times", "spike_times_index"):
-            assert np.array_equal(a["units"][name][()], b["units"][name][()])
+    # nor are a variant's stored ticks read whole (at paper size 0.43 GB a variant): a group of units at a time,
+    # gathered from blocks of trials
+    monkeypatch.setattr(nwb, "_UNIT_GROUP_SPIKES", 50)
+    monkeypatch.setattr(nwb, "_UNIT_READ_SPIKES", 30)
+    read = []
+    stored = EncodedFile.spikes_stored
+
+    def spy(self, variant, trials=None, *, times=True):
+        got = stored(self, variant, trials, times=times)
+        read.append(got[0].size)
+        return got
+
+    monkeypatch.setattr(EncodedFile, "spikes_stored", spy)
+    export_nwb(session, tmp_path / "small_groups.nwb", encoded_path=encoded, variants=variants)
+    monkeypatch.undo()
+    with open_encoded(encoded) as e:
+        largest_trial = max(int(np.diff(e.spike_index(v)[0].reshape(-1, want[v].n_trains)[:, -1], prepend=0).max())
+                            for v in variants)
+    assert 0 < max(read) <= max(30, largest_trial) < min(want[v].spike_times.size for v in variants)
+    for other in ("small_blocks.nwb", "small_groups.nwb"):
+        with h5py.File(out, "r") as a, h5py.File(tmp_path / other, "r") as b:
+            for name in ("spike_times", "spike_times_index"):
+                assert np.array_equal(a["units"][name][()], b["units"][name][()])
+
+
+def test_the_trials_attributes_are_read_through_a_bounded_metadata_cache(dataset, monkeypatch):
+    """Issue 57 item 5: Session.trial_counts (the export's trials table) reads an attribute of every trial group; a
+    cached group header keeps its decoded attributes (~20 kB a generated trial), so at paper size the unbounded
+    cache kept 0.48 GB. It reads them with the cache held at h5objects.VISIT_CACHE_BYTES (here 4 KiB)."""
+    from rigctl.storage import h5objects
+
+    monkeypatch.setattr(h5objects, "VISIT_CACHE_BYTES", 4096)
+    with open_session(dataset[0]) as s:
+        ids = s.completed_ids()
+        max_size = s._f.id.get_mdc_config().max_size
+        counts = s.trial_counts(ids)
+        assert s._f.id.get_mdc_size()[2] <= 2 * 4096  # (an open group's header may stay: 59 kB unbounded)
+        assert s._f.id.get_mdc_config().max_size == max_size
+        assert [c["n_samples"] for c in counts] == [s.trial(t).n_samples for t in ids]
 
 
 def _reference_units(encoded, ids, starts, layout, variants, path):
