@@ -38,7 +38,7 @@ from rigctl.analysis.data import FeatureSet, default_variants
 from rigctl.analysis.parallel import connected, map_repeats, one_blas_thread
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
 from rigctl.analysis.results import TASK_TITLES, Curve, TaskResults, task_title
-from rigctl.analysis.splitpca import split_scores, zero_padding
+from rigctl.analysis.splitpca import ordered_columns, split_scores, zero_padding
 from rigctl.core.progress import Stage
 
 __all__ = [
@@ -221,15 +221,17 @@ def _padding_labels(fs: FeatureSet) -> np.ndarray:
 
 
 def _paddings(fs: FeatureSet, vs) -> dict:
-    """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features, once for every repetition (and
-    for both tasks of :func:`run_table1`)."""
+    """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features and the features in its column
+    order (:func:`~rigctl.analysis.splitpca.ordered_columns`, None where the order is the columns' own):
+    ``{variant: (order, extent, ordered)}``, once for every repetition (and for both tasks of :func:`run_table1`)."""
     out = {}
     for v in vs:
         x = fs.features[v]
         key = id(x)
         hit = _PADDINGS.get(key)
         if hit is None or hit[0]() is not x:
-            hit = (weakref.ref(x, functools.partial(_forget_padding, key)), zero_padding(x, _padding_labels(fs)))
+            order, extent = zero_padding(x, _padding_labels(fs))
+            hit = (weakref.ref(x, functools.partial(_forget_padding, key)), (order, extent, ordered_columns(x, order)))
             _PADDINGS[key] = hit
         out[v] = hit[1]
     return out
@@ -243,7 +245,7 @@ def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed,
     for v, x in features.items():
         pad = None if padding is None else (padding[v][0], padding[v][1][idx])
         scores = split_scores(x, folds, n_pcs, random_states=[r * k + f for f in range(k)], kfold=True,
-                              padding=pad, rows=idx)
+                              padding=pad, rows=idx, ordered=None if padding is None else padding[v][2])
         for (tr, te), (z_tr, z_te) in zip(folds, scores):
             for t, y_all in labels.items():
                 y = y_all[idx]
@@ -383,7 +385,7 @@ def _trained_bases(fs, vs, padding, cells, trained_cells, n_train, repeats, n_pc
     if repeats * (n_tr - (rows.size - n_tr)) <= rows.size:  # the base costs one pass over all of them
         return {}
     return {v: GramBase(fs.features[v], rows, padding=(padding[v][0], padding[v][1][rows]), n_components=n_pcs,
-                        random_state=seed)
+                        random_state=seed, ordered=padding[v][2])
             for v in vs if fs.features[v].shape[1] <= n_tr}
 
 
@@ -402,7 +404,7 @@ def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells
     for v, x in features.items():
         pad = None if padding is None else (padding[v][0], padding[v][1][rows])
         (z_tr, z_te), = split_scores(x, split, n_pcs, random_states=[r], padding=pad, rows=rows,
-                                     base=(bases or {}).get(v))
+                                     base=(bases or {}).get(v), ordered=None if padding is None else padding[v][2])
         pred = NestedLDA().fit(z_tr, y_tr).predict_all(z_te)
         for c in cats:
             m = test_cat == c

@@ -157,6 +157,47 @@ def test_zero_padded_rows_give_the_dense_pca_and_scores():
     assert np.abs(np.sum(p.components_[:2] * ref.components_[:2], axis=1)).min() > 0.999
 
 
+def test_the_groups_gathered_from_the_ordered_copy_are_the_same_numbers():
+    """GramBlocks / GramBase / split_scores given the features in the padding's column order (ordered_columns, made
+    once per matrix: the groups are then contiguous row copies) form the same Gram matrices, PCAs and scores, bit
+    for bit; a copy of another shape is refused; an order that is the columns' own needs no copy."""
+    from rigctl.analysis.splitpca import GramBase, GramBlocks, ordered_columns, split_scores, zero_padding
+
+    rng = np.random.default_rng(4)
+    n, trains, windows = 600, 3, 20
+    x = rng.gamma(2.0, 5.0, (n, trains, windows))
+    filled = rng.choice([20, 10, 5], n)
+    for i, w in enumerate(filled):
+        x[i, :, w:] = 0
+    x = x.reshape(n, -1).astype(np.float32)
+    order, extent = zero_padding(x, filled)
+    xo = ordered_columns(x, order)
+    np.testing.assert_array_equal(xo, x[:, order])
+    assert ordered_columns(x, np.arange(x.shape[1])) is None
+    rows = rng.permutation(n)[:450]
+    blocks = np.array_split(np.arange(rows.size), 3)
+    a = GramBlocks(x, blocks, padding=(order, extent[rows]), rows=rows)
+    b = GramBlocks(x, blocks, padding=(order, extent[rows]), rows=rows, ordered=xo)
+    for ga, gb_ in zip(a._grams, b._grams, strict=True):
+        np.testing.assert_array_equal(ga, gb_)
+    pa, pb = a.pca([0, 1], 8), b.pca([0, 1], 8)
+    np.testing.assert_array_equal(pa.components_, pb.components_)
+    np.testing.assert_array_equal(a.scores(pa), b.scores(pb))
+    base_rows = rows[:300]
+    ba = GramBase(x, base_rows, padding=(order, extent[base_rows]))
+    bb = GramBase(x, base_rows, padding=(order, extent[base_rows]), ordered=xo)
+    np.testing.assert_array_equal(ba.gram, bb.gram)
+    folds = [(np.concatenate([blocks[j] for j in range(3) if j != f]), blocks[f]) for f in range(3)]
+    za = list(split_scores(x, folds, 8, random_states=[0, 1, 2], kfold=True, padding=(order, extent[rows]), rows=rows))
+    zb = list(split_scores(x, folds, 8, random_states=[0, 1, 2], kfold=True, padding=(order, extent[rows]), rows=rows,
+                           ordered=xo))
+    for (ta, ea), (tb, eb) in zip(za, zb, strict=True):
+        np.testing.assert_array_equal(ta, tb)
+        np.testing.assert_array_equal(ea, eb)
+    with pytest.raises(ValueError, match="ordered"):
+        GramBlocks(x, blocks, padding=(order, extent[rows]), rows=rows, ordered=xo[:10])
+
+
 def test_the_confusion_matrix_is_scikit_learns():
     from sklearn.metrics import confusion_matrix
 
