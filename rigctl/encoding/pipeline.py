@@ -497,7 +497,6 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
     from rigctl.storage.session import open_session
 
     with open_session(run.session_path) as s:
-        s.kept_taxels.keep(int(run.fit_memory_bytes))  # the validator's read of the taxels is this pass's, when they fit
         ids, excluded = _usable_ids(s, run)
         labels = _labels(s, ids)
         conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
@@ -539,7 +538,6 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
                     read.fit_blocks.append(rg.select(sel))
                     fit_idx.extend(b[sel].tolist())
             bar.advance(len(b))
-        s.kept_taxels.keep(0)  # (the rows of trials not encoded)
     read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
     _note_lossy(read, progress)
     if np.any(read.n_samples == 0):

@@ -18,7 +18,7 @@ from h5py import h5a, h5d, h5g, h5s, h5t
 
 from rigctl.core.sensor import PAPER_SENSOR
 from rigctl.core.trial import TrialData  # noqa: F401 (re-exported: the trial record lives in rigctl.core)
-from rigctl.storage import h5objects, kept_rows, onboard_group, session_recording, trial_facts
+from rigctl.storage import h5objects, onboard_group, session_recording, trial_facts
 from rigctl.storage.session_format import (
     SessionError,
     TrialStatus,
@@ -161,7 +161,6 @@ class SessionReader:
         self._mtime_ns = trial_facts.mtime_ns(self.path)  # under the HDF5 lock: the seal of the trial facts
         self.problems: list[str] = []
         self._checked: dict[int, int] = {}  # trial id -> its sample count, for trials whose recording passed
-        self.kept_taxels = kept_rows.KeptRows()  # the validator's reads kept for read_taxels (the encoder asks)
         try:
             with _reading(self.path, "the session header"):  # what the checks below did not foresee
                 self._read_header()
@@ -701,7 +700,7 @@ class SessionReader:
         rec = self._f[session_recording.GROUP]
         with _reading(self.path, "trials' taxels"):
             data = np.empty((int(starts[-1]), self.layout.n_channels), dtype=np.uint16)
-            self.kept_taxels.read(rec["taxels"], rows["sample_start"], lengths, data)
+            session_recording.read_rows(rec["taxels"], rows["sample_start"], lengths, data)
             speed_traces = None
             if traces:
                 speed_traces = []

@@ -444,9 +444,6 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     todo, facts, trusted = _precheck_recorded(session, ids, plan, rate, report,
                                               Stage(stage.callback, "checking trial groups", len(ids)))
     stage.advance(len(ids) - len(todo))
-    # every row read below is offered to the encoder's read that may follow (Session.kept_taxels: kept if asked for
-    # and all of them fit its budget)
-    session.kept_taxels.expect(sum(int(r["n_samples"]) for _, r in todo) * session.layout.n_channels * 2)
     # integrity from the content (issue 52): every trial's samples are read and, where the seal holds facts of it,
     # its taxels compared with the checksum stored with them; a trial edited since (its modification time put back)
     # or whose stored chunk cannot be read is excluded by itself, named
@@ -515,8 +512,6 @@ def _check_block(session: Session, block: list[tuple[int, np.void, np.void | Non
     read = [r for _, r, q, _, _ in block if q is None]
     seq, tax, pos, bad, failed = _read_block(rec, read, n_ch)
     starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
-    if not failed:
-        session.kept_taxels.offer(starts, np.diff(pos), tax)
     gaps = block_seq_gaps(seq, pos)
     in_range = bool(tax.size == 0 or int(tax.max()) <= session.layout.adc_max)  # uint16: never below 0
     i = 0  # the next trial read

@@ -196,39 +196,3 @@ def test_cli_encode(session, tmp_path):
     assert bad.exit_code != 0 and "many" in bad.output
     bad = CliRunner().invoke(main, ["encode", str(session), "--variant", "nope"])
     assert bad.exit_code != 0 and "nope" in bad.output
-
-
-def test_the_encoder_reads_each_trials_taxels_once(session, tmp_path, monkeypatch):
-    """The validator's read of the taxels is the encoder's (Session.kept_taxels): every sample of /recording/taxels
-    is read from the file once, not once to check it and once to encode it; the file is the one two reads give."""
-    import h5py
-
-    from rigctl.storage.kept_rows import KeptRows
-    from rigctl.storage.session import open_session
-
-    with open_session(session) as s:
-        n_samples = int(sum(s.index_rows(s.completed_ids())[0]["n_samples"]))
-    rows_read = []
-    read_direct = h5py.Dataset.read_direct
-
-    def counting(ds, dest, source_sel=None, dest_sel=None):
-        if ds.name == "/recording/taxels":
-            rows_read.append(source_sel.stop - source_sel.start)  # (read_rows: one slice of rows)
-        return read_direct(ds, dest, source_sel, dest_sel)
-
-    monkeypatch.setattr(h5py.Dataset, "read_direct", counting)
-    once = tmp_path / "once.h5"
-    encode_session(session, once, batch_trials=5, progress=False)
-    assert sum(rows_read) == n_samples
-    rows_read.clear()
-    monkeypatch.setattr(KeptRows, "keep", lambda self, budget: None)  # nothing kept: read twice, as before
-    twice = tmp_path / "twice.h5"
-    encode_session(session, twice, batch_trials=5, progress=False)
-    assert sum(rows_read) == 2 * n_samples
-    with open_encoded(once) as a, open_encoded(twice) as b:
-        assert a.variants == b.variants
-        for v in b.variants:
-            np.testing.assert_array_equal(a.features(v), b.features(v))
-        for v in MAIN_VARIANTS:
-            assert SpikeTrains(*a.spikes(v)) == SpikeTrains(*b.spikes(v))
-        np.testing.assert_array_equal(a.force_coefficients()["coeff"], b.force_coefficients()["coeff"])
