@@ -142,24 +142,22 @@ def incremental_scale(trains: SpikeTrains, speeds: list[np.ndarray],
     """
     if len(speeds) != trains.n_trials:
         raise ValueError(f"{len(speeds)} speed traces for {trains.n_trials} trials")
-    floored, edges_out = [], []
+    times = trains.spike_times.copy()
+    starts = trains.row_starts.reshape(trains.shape)
+    ends = trains.spike_times_index.reshape(trains.shape)
+    edges_out = []
     for t in range(trains.n_trials):
         try:
             v = floor_speeds(speeds[t])
         except ValueError as exc:
             raise ValueError(f"trial {t}: {exc}") from None
-        floored.append(v)
-        edges_out.append(scaled_edges(v, reference_mm_s, window_s))
-    if not floored or not trains.spike_times.size:
-        return trains.with_times(trains.spike_times.copy()), edges_out
-    # every spike at once (trial t's are contiguous, rows being trial-major), each with its trial's windows: the
-    # same operations on each spike as trial by trial, w = its window, clipped to the trial's windows
-    n_win = np.array([v.size for v in floored], dtype=np.int64)
-    win0 = np.concatenate([[0], np.cumsum(n_win)[:-1]])  # each trial's first window in the flat arrays
-    per_trial = trains.counts().sum(axis=1)
-    first = np.repeat(win0, per_trial)
-    x = trains.spike_times
-    w = np.clip(np.floor(x / window_s).astype(np.int64), 0, np.repeat(n_win - 1, per_trial))
-    factor = np.concatenate(floored) / reference_mm_s
-    edges = np.concatenate([e[:-1] for e in edges_out])  # (a window's lower edge; the last edge is no window's)
-    return trains.with_times(edges[first + w] + (x - w * window_s) * factor[first + w]), edges_out
+        factor = v / reference_mm_s
+        edges = scaled_edges(v, reference_mm_s, window_s)
+        edges_out.append(edges)
+        s0, s1 = starts[t, 0], ends[t, -1]
+        if s1 == s0:
+            continue
+        x = times[s0:s1]
+        w = np.clip(np.floor(x / window_s).astype(np.int64), 0, v.size - 1)
+        times[s0:s1] = edges[w] + (x - w * window_s) * factor[w]
+    return trains.with_times(times), edges_out

@@ -148,26 +148,3 @@ def test_window_counts_bin_each_spike_by_its_window():
                     want[i, j, w] += 1
     np.testing.assert_array_equal(got, want)
     assert got[:, :, 3].sum() >= sum(1 for row in lists for times in row if times.size)  # 0.3 s: window 3, not 2
-
-
-def test_incremental_scale_is_the_trial_by_trial_computation_bit_for_bit():
-    """All spikes at once give the numbers of the trial-by-trial loop it replaced: ragged trials, some without
-    spikes, speeds changing window by window (negative ones floored), spikes past the last window."""
-    rng = np.random.default_rng(7)
-    trains = [[np.sort(rng.uniform(0, rng.uniform(0.05, 3.0), rng.integers(0, 40))) for _ in range(3)]
-              for _ in range(25)]
-    trains[4] = [np.zeros(0)] * 3
-    st = SpikeTrains.from_lists(trains)
-    speeds = [rng.uniform(-20, 150, rng.integers(1, 25)) for _ in range(25)]
-    got, edges = incremental_scale(st, speeds, reference_mm_s=100.0)
-    want = st.spike_times.copy()
-    starts, ends = st.row_starts.reshape(st.shape), st.spike_times_index.reshape(st.shape)
-    for t in range(st.n_trials):  # the loop of before
-        v = np.maximum(speeds[t], 0.0)
-        e = np.concatenate([[0.0], np.cumsum(v / 100.0 * 0.1)])
-        np.testing.assert_array_equal(edges[t], e)
-        x = want[starts[t, 0]:ends[t, -1]]
-        w = np.clip(np.floor(x / 0.1).astype(np.int64), 0, v.size - 1)
-        want[starts[t, 0]:ends[t, -1]] = e[w] + (x - w * 0.1) * (v / 100.0)[w]
-    assert got.spike_times.tobytes() == want.tobytes()
-    assert np.array_equal(got.spike_times_index, st.spike_times_index)
