@@ -17,7 +17,7 @@ from typing import ParamSpec, TypeVar
 
 from rigctl.core.cluster import connected, dask_client
 
-__all__ = ["dask_client", "connected", "map_repeats", "one_blas_thread"]
+__all__ = ["dask_client", "connected", "map_repeats", "map_threads", "one_blas_thread"]
 
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
@@ -92,6 +92,23 @@ def map_repeats(fn, repeats, shared, *, n_jobs=None, scheduler=None, workers=Non
             out.append(res)
             tick()
     return out
+
+
+def map_threads(fn, items, *, n_jobs=None):
+    """``[fn(item) for item in items]`` on ``n_jobs`` threads of this process (default one per core), each with one
+    BLAS thread, in order: the once-per-run steps of Table 1 (each variant's zero padding and trained cells' Gram
+    matrix), which ran one at a time between the repetitions with BLAS on both cores (OpenBLAS's second thread spins
+    more than it works on these sizes). ``n_jobs=1``: one at a time, BLAS as configured."""
+    items = list(items)
+    n_jobs = min(len(items), n_jobs or os.cpu_count() or 1)
+    if n_jobs <= 1:
+        return [fn(item) for item in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1), ThreadPoolExecutor(n_jobs) as pool:
+        return list(pool.map(fn, items))
 
 
 def _call(fn, r, shared):

@@ -35,7 +35,7 @@ from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold
 
 from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
-from rigctl.analysis.parallel import connected, map_repeats, one_blas_thread
+from rigctl.analysis.parallel import connected, map_repeats, map_threads, one_blas_thread
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
 from rigctl.analysis.results import TASK_TITLES, Curve, TaskResults, task_title
 from rigctl.analysis.splitpca import ordered_columns, split_scores, zero_padding
@@ -186,7 +186,8 @@ def run_cv(
                         "n_groups": None if groups is None else int(np.unique(groups).size)}
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
-    shared = {"features": {v: fs.features[v] for v in vs}, "padding": _paddings(fs, vs), "texture": fs.texture,
+    padding = _paddings(fs, vs, None if scheduler is not None else n_jobs)
+    shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding, "texture": fs.texture,
               "labels": {t: (fs.texture if t == "textures" else fs.group) for t in tasks}, "classes": classes,
               "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
               "groups": groups}
@@ -220,21 +221,27 @@ def _padding_labels(fs: FeatureSet) -> np.ndarray:
     return speed if fs.profile is None else np.char.add(np.char.add(speed, "|"), fs.profile.astype(str))
 
 
-def _paddings(fs: FeatureSet, vs) -> dict:
+def _paddings(fs: FeatureSet, vs, n_jobs=None) -> dict:
     """:func:`~rigctl.analysis.splitpca.zero_padding` of each variant's features and the features in its column
     order (:func:`~rigctl.analysis.splitpca.ordered_columns`, None where the order is the columns' own):
-    ``{variant: (order, extent, ordered)}``, once for every repetition (and for both tasks of :func:`run_table1`)."""
-    out = {}
-    for v in vs:
+    ``{variant: (order, extent, ordered)}``, once for every repetition (and for both tasks of :func:`run_table1`);
+    the variants not yet known side by side (``n_jobs`` threads, :func:`~rigctl.analysis.parallel.map_threads`)."""
+    def known(v):
+        hit = _PADDINGS.get(id(fs.features[v]))
+        return hit is not None and hit[0]() is fs.features[v]
+
+    def pad(v):
         x = fs.features[v]
-        key = id(x)
-        hit = _PADDINGS.get(key)
-        if hit is None or hit[0]() is not x:
-            order, extent = zero_padding(x, _padding_labels(fs))
-            hit = (weakref.ref(x, functools.partial(_forget_padding, key)), (order, extent, ordered_columns(x, order)))
-            _PADDINGS[key] = hit
-        out[v] = hit[1]
-    return out
+        order, extent = zero_padding(x, labels)
+        return order, extent, ordered_columns(x, order)
+
+    missing = sorted((v for v in dict.fromkeys(vs) if not known(v)), key=lambda v: -fs.features[v].size)
+    if missing:
+        labels = _padding_labels(fs)
+        for v, got in zip(missing, map_threads(pad, missing, n_jobs=n_jobs), strict=True):
+            key = id(fs.features[v])
+            _PADDINGS[key] = (weakref.ref(fs.features[v], functools.partial(_forget_padding, key)), got)
+    return {v: _PADDINGS[id(fs.features[v])][1] for v in vs}
 
 
 def _cv_repeat(r, *, features, texture, labels, classes, n_draw, k, n_pcs, seed, confusion_pcs, groups=None,
@@ -353,11 +360,12 @@ def run_extrapolation(
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = fs.texture_classes  # the texture set's order (stable codes)
     cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
-    padding = _paddings(fs, vs)
+    padding = _paddings(fs, vs, None if scheduler is not None else n_jobs)
     shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding, "texture": fs.texture,
               "classes": classes, "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
               "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
-              "bases": _trained_bases(fs, vs, padding, cells, trained_cells, a_tr, repeats, n_pcs, seed)}
+              "bases": _trained_bases(fs, vs, padding, cells, trained_cells, a_tr, repeats, n_pcs, seed,
+                                      n_jobs=None if scheduler is not None else n_jobs)}
     bar = Stage(progress, prefix + "extrapolation", repeats * len(vs), unit="fit")
     per_repeat = map_repeats(_extrapolation_repeat, repeats, shared, n_jobs=n_jobs, scheduler=scheduler,
                        workers=workers, on_done=lambda: bar.advance(len(vs)))
@@ -373,7 +381,7 @@ def run_extrapolation(
     return res
 
 
-def _trained_bases(fs, vs, padding, cells, trained_cells, n_train, repeats, n_pcs, seed):
+def _trained_bases(fs, vs, padding, cells, trained_cells, n_train, repeats, n_pcs, seed, n_jobs=None):
     """Per variant, the Gram matrix of every trial of the trained cells and its PCA
     (:class:`~rigctl.analysis.splitpca.GramBase`), formed once: each repetition trains on ``n_train`` of each
     cell's trials and forms only the others' Gram matrix (the paper's 25 of 100). ``{}`` where that saves nothing
@@ -384,9 +392,11 @@ def _trained_bases(fs, vs, padding, cells, trained_cells, n_train, repeats, n_pc
     n_tr = n_train * len(trained_cells)
     if repeats * (n_tr - (rows.size - n_tr)) <= rows.size:  # the base costs one pass over all of them
         return {}
-    return {v: GramBase(fs.features[v], rows, padding=(padding[v][0], padding[v][1][rows]), n_components=n_pcs,
-                        random_state=seed, ordered=padding[v][2])
-            for v in vs if fs.features[v].shape[1] <= n_tr}
+    wanted = sorted((v for v in vs if fs.features[v].shape[1] <= n_tr), key=lambda v: -fs.features[v].shape[1])
+    bases = map_threads(lambda v: GramBase(fs.features[v], rows, padding=(padding[v][0], padding[v][1][rows]),
+                                           n_components=n_pcs, random_state=seed, ordered=padding[v][2]),
+                        wanted, n_jobs=n_jobs)  # (the widest first: the threads finish together)
+    return {v: bases[wanted.index(v)] for v in vs if v in wanted}
 
 
 def _extrapolation_repeat(r, *, features, texture, classes, cells, trained_cells, cat_of, counts, cats, n_pcs, seed,

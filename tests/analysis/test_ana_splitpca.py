@@ -278,3 +278,32 @@ def test_extrapolation_from_the_trained_cells_base_equals_sklearn_refit_per_pc(f
             m = np.flatnonzero(cell == c) + len(tr)
             want = _straightforward(x, y, np.arange(len(tr)), m) / len(m)
             assert np.abs(res.curves[c]["original"].acc[r] - want).max() <= FLIPS / len(m) + 1e-12, (r, c)
+
+
+def test_map_threads_keeps_the_order_and_gives_each_thread_one_blas_thread():
+    """Table 1's once-per-run steps (each variant's padding and trained cells' Gram matrix) run side by side:
+    results in the items' order, BLAS at one thread inside the workers and as configured again after; one job runs
+    them in the caller's thread, BLAS untouched."""
+    import threading
+
+    from threadpoolctl import threadpool_info
+
+    from rigctl.analysis.parallel import map_threads
+
+    def blas_threads():
+        return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    seen = []
+
+    def work(i):
+        seen.append((threading.get_ident(), blas_threads()))
+        return i * i
+
+    with threadpool_limits(2):
+        assert map_threads(work, range(7), n_jobs=2) == [i * i for i in range(7)]
+        assert {n for _, n in seen} == {1}
+        assert threading.get_ident() not in {t for t, _ in seen}
+        assert blas_threads() == 2
+        seen.clear()
+        assert map_threads(work, [3, 1], n_jobs=1) == [9, 1]
+        assert seen == [(threading.get_ident(), 2), (threading.get_ident(), 2)]
