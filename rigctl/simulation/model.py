@@ -389,6 +389,19 @@ def _irwin_hall(state):  # pragma: no cover - compiled
     return state, (acc * (1.0 / 65536.0) - 2.0) * math.sqrt(3.0)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _plate_x(x, wrap):  # pragma: no cover - compiled
+    """``x % wrap`` (Python's float modulo, ``wrap`` > 0), bit for bit: the remainder is exact, so on the first turn
+    it is ``x`` and on the second ``x - wrap`` (exact for wrap <= x < 2 wrap: Sterbenz's lemma); only other values
+    (the live rig's later turns, negative or zero ones, NaN) take the division-based modulo, which cost ~30 % of
+    :func:`_render_kernel` for every sample of every row."""
+    if 0.0 < x < wrap:
+        return x
+    if wrap <= x < 2.0 * wrap:
+        return x - wrap
+    return x % wrap
+
+
 @numba.njit(cache=True, nogil=True)
 def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half, layer_gain, full_scale, gain, sens,
                    offset, noise_sd, noise_a, seed, wrap, out):  # pragma: no cover - compiled
@@ -406,7 +419,7 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
             for r in range(3):
                 xr = pos[i] - r * pitch
                 if wrap > 0.0:
-                    xr = xr % wrap  # plate coordinate: the plate is fixed on the drum, its pattern repeats per turn
+                    xr = _plate_x(xr, wrap)  # the plate is fixed on the drum, its pattern repeats per turn
                 u = xr * inv
                 k = math.floor(u)
                 frac = u - k

@@ -364,3 +364,19 @@ def test_a_starved_clock_keeps_the_actuator_count_on_the_true_position():
         run(3000)
     assert model.actuator_mm <= 1e-6 and abs(ctl._actuator_position_mm()) <= 1e-3, (model.actuator_mm,
                                                                                    ctl._actuator_position_mm())
+
+
+def test_the_kernels_plate_coordinate_is_pythons_modulo_bit_for_bit():
+    """Issue 57 item 6: the render kernel takes the plate coordinate without a division on the first two turns
+    (model._plate_x); every value must be the bits of Python's float ``%`` (the dataset's numbers unchanged): the
+    turns' edges and their neighbours, zeros, negatives, NaN, far turns, other circumferences."""
+    from rigctl.simulation.model import _plate_x
+
+    rng = np.random.default_rng(5)
+    for wrap in (math.pi * 100.0, 3.0, 50.0, 0.1, 1e-300):
+        edges = [0.0, -0.0, wrap, 2 * wrap, 3 * wrap, -wrap, wrap / 2, float("nan"), float("inf"), -1e-320, 1e300]
+        near = [np.nextafter(e, d) for e in (0.0, wrap, 2 * wrap) for d in (-np.inf, np.inf)]
+        xs = np.concatenate([edges, near, rng.uniform(-3 * wrap, 5 * wrap, 2000)])
+        got = np.array([_plate_x(float(x), wrap) for x in xs])
+        want = np.array([float(x) % wrap for x in xs])
+        assert np.array_equal(got.view(np.uint64), want.view(np.uint64)), (wrap, xs[got.view(np.uint64) != want.view(np.uint64)])
