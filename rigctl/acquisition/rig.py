@@ -92,6 +92,9 @@ INDEX_TIMEOUT_REVS = 1.25
 INDEX_MARGIN_FRAMES = 150
 #: extra frames a replayed trial captures: the frames sent before the source's next trial began (in flight)
 REPLAY_MARGIN_S = 0.25
+#: and at most this many, s: the frames a simulated taxel board sent before the source's next trial began that may
+#: still be on their way as its capture begins (an unpaced rig runs ahead of a slow reader by up to seconds)
+REPLAY_IN_FLIGHT_MAX_S = 10.0
 #: a lost index frame is placed in a sequence gap of at most this many frames (the trial then starts at most this
 #: many frames after the index mark) ...
 INDEX_GAP_MAX_FRAMES = 5
@@ -961,13 +964,18 @@ class Rig:
         clock = self.drum.clock
         replay = self.backend if self.mode == "replay" and isinstance(self.backend, ReplayProvenance) else None
         # a replayed trial follows the source's next trial (from the frame that carries its first sample), not the
-        # drum's index
-        cue = replay.begin_source_trial() if replay is not None and not self.replay_continuous else None
+        # drum's index; the capture starts first, so that frame is always in it (the frames before it: in flight).
+        # Switched first, the rig sent that frame and more before the capture began whenever the host thread lost
+        # the CPU between the two (a trial then started 10 to 3,336 samples into its source trial)
         self.stream.begin_capture()
+        cue = replay.begin_source_trial() if replay is not None and not self.replay_continuous else None
         t_start = clock.now()
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
         align = not planned.is_ramp and replay is None
-        n_capture = n_limit = n if cue is None else n + int(math.ceil(REPLAY_MARGIN_S * rate)) + 8
+        n_capture = n_limit = n
+        if cue is not None:
+            n_capture = n + int(math.ceil(REPLAY_MARGIN_S * rate)) + 8
+            n_limit = n + int(math.ceil(REPLAY_IN_FLIGHT_MAX_S * rate))
         t_index = math.nan  # when the index pulse is predicted, on the clock of the frames' host times
         tolerance_s = INDEX_PREDICTION_TOLERANCE_S
         if align:
@@ -991,6 +999,13 @@ class Rig:
             while True:
                 now = clock.now()
                 if self.stream.wait_capture(n_capture, timeout_s=max(0.0, next_poll - now)):
+                    if cue is not None:  # the source trial's frames from its first one on; more frames in flight
+                        k_cue = self.stream.capture_seq_index(cue)  # before it than the margin: a longer capture
+                        want = k_cue + n if k_cue is not None else n_capture + int(math.ceil(REPLAY_MARGIN_S * rate))
+                        if want <= n_capture or n_capture >= n_limit:
+                            break
+                        n_capture = min(want, n_limit)
+                        continue
                     if not align:
                         break
                     # the index pulse came later in the capture than the drum angle predicted (the boards' clocks
@@ -1039,7 +1054,10 @@ class Rig:
                             "drum angle predicts the index", planned.trial_id, lost)
         elif cue is not None:  # start at the frame of the source trial's first sample (the frames before: in flight)
             hits = np.flatnonzero((cap.seq.astype(np.int64) & 0xFFFF) == int(cue) & 0xFFFF)
-            k = int(hits[0]) if hits.size else 0
+            if not hits.size:  # never a trial started elsewhere in the source, silently
+                raise CaptureError(f"trial {planned.trial_id}: the replayed source trial's first frame (sequence "
+                                   f"number {int(cue)}) is not among the {len(cap)} frames captured")
+            k = int(hits[0])
         if k:
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)

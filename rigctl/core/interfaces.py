@@ -246,6 +246,11 @@ class TaxelSource(Protocol):
         index pulse); None if none yet or no capture runs."""
         ...
 
+    def capture_seq_index(self, seq: int) -> int | None:
+        """Position in the running capture of the first frame of wire sequence number ``seq`` (mod 65536; a replayed
+        source trial's first frame); None if none yet or no capture runs."""
+        ...
+
     def end_capture(self) -> Any:
         """End the capture; every frame since :meth:`begin_capture`: ``samples (n, n_channels)`` uint16 ADC counts,
         ``seq (n,)``, ``flags (n,)``, ``host_time_s (n,)`` s on the drum client's clock, ``dropped``,

@@ -82,6 +82,18 @@ def first_flagged(parts: Any, mask: int) -> int | None:
     return None
 
 
+def first_with_seq(parts: Any, seq: int) -> int | None:
+    """Position of the first frame whose wire sequence number is ``seq`` (mod 65536), over capture parts ``(samples,
+    seq, flags, host_time_s)`` in order; None if there is none."""
+    at, want = 0, int(seq) & 0xFFFF
+    for part in parts:
+        hit = np.flatnonzero((part[1].astype(np.int64) & 0xFFFF) == want)
+        if hit.size:
+            return at + int(hit[0])
+        at += len(part[1])
+    return None
+
+
 @dataclass
 class Capture:
     """Every frame received between :meth:`TaxelStream.begin_capture` and :meth:`TaxelStream.end_capture`.
@@ -506,6 +518,13 @@ class TaxelStream:
         with self._lock:
             parts = list(self._capture or ())
         return first_flagged(parts, mask)
+
+    def capture_seq_index(self, seq: int) -> int | None:
+        """Position, in the running capture, of the first frame of wire sequence number ``seq`` (mod 65536); None if
+        it has not arrived yet or no capture runs."""
+        with self._lock:
+            parts = list(self._capture or ())
+        return first_with_seq(parts, seq)
 
     def end_capture(self) -> Capture:
         """Stop the capture; return every frame received since :meth:`begin_capture` (a :class:`Capture`).

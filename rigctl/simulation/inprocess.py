@@ -37,7 +37,7 @@ from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices import wire
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.ring import RingBuffer
-from rigctl.devices.taxel_stream import Capture, StreamStats, first_flagged
+from rigctl.devices.taxel_stream import Capture, StreamStats, first_flagged, first_with_seq
 from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.faults import ModelFaults
@@ -317,6 +317,12 @@ class InProcessTaxels:
         with self._lock:
             parts = list(self._capture or ())
         return first_flagged(parts, mask)
+
+    def capture_seq_index(self, seq: int) -> int | None:
+        """Position of the first frame of the running capture of wire sequence number ``seq`` (None: none yet)."""
+        with self._lock:
+            parts = list(self._capture or ())
+        return first_with_seq(parts, seq)
 
     def end_capture(self) -> Capture:
         with self._lock:
