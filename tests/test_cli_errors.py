@@ -380,6 +380,8 @@ def _start_sim(port_dir=None, env=None, command=OWN_PROCESS):
     return proc, ports
 
 
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware),
+#   and SIGINT
 @pytest.mark.realtime
 def test_a_second_sim_does_not_take_over_a_running_ones_port_folder(tmp_path):
     d = tmp_path / "ports"
@@ -400,6 +402,8 @@ def test_a_second_sim_does_not_take_over_a_running_ones_port_folder(tmp_path):
     third.wait(timeout=300)
 
 
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware),
+#   killed
 @pytest.mark.realtime
 def test_a_killed_sims_temporary_folder_is_removed_by_the_next_one(tmp_path, monkeypatch):
     from rigctl.simulation.pty import PortDir
@@ -439,6 +443,7 @@ def _hardware(args, *, drum_port=None, timeout=180):
                               stdin=subprocess.DEVNULL)
 
 
+# wall: a pty nobody serves: the answer timeouts are the wall clock's
 @pytest.mark.realtime
 def test_a_wrong_drum_port_is_one_line(data, tmp_path, monkeypatch):
     """A port that exists but answers nothing (a pty nobody serves): DrumTimeout traceback after three 'STOP attempt
@@ -457,7 +462,6 @@ def test_a_wrong_drum_port_is_one_line(data, tmp_path, monkeypatch):
     assert not (tmp_path / "o.h5").exists()
 
 
-@pytest.mark.realtime
 def test_plate_policy_unattended_hardware_run(data, tmp_path, monkeypatch):
     """Without a terminal the plate prompt made every trial fail with EOFError: now refused up front, and
     --plates auto runs the protocol, announcing each plate."""

@@ -102,7 +102,8 @@ def test_library_logs_go_to_the_log_not_the_terminal_unless_verbose(tmp_path, mo
         route_library_logs(False)
 
 
-@pytest.mark.realtime  # a Ctrl-C at wall-clock moments of a real interpreter's start
+# wall: a Ctrl-C at wall-clock moments of a real interpreter's start
+@pytest.mark.realtime
 def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
     """`rigctl sim dataset` interrupted in its first seconds printed a traceback of the module being imported: the
     console script's entry (rigctl_launch) now ends it in one line, and later Ctrl-Cs as before."""

@@ -183,7 +183,8 @@ def test_the_config_reference_lists_every_rig_config_key():
 
 
 @pytest.mark.slow
-@pytest.mark.realtime  # the pages record on `--sim` rigs, paced to the wall clock
+# wall: pages that stream LSL (lab recorder, handheld) and drive `rigctl sim` processes (always paced)
+@pytest.mark.realtime
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("guide", list(GUIDES))
 def test_guide_runs_as_written(guide, tmp_path, request):

@@ -99,7 +99,8 @@ def _check_session(path: Path, *, mode: str) -> np.ndarray:
     return taxels
 
 
-@pytest.mark.realtime  # a board on a pty paced by the wall clock (~400 lines a second from a thread of this process)
+# wall: a plugin board on a pty paced by the wall clock (~400 lines a second from a thread of this process)
+@pytest.mark.realtime
 def test_quick_check_from_a_pty_board_through_acquire(installed_plugins, tmp_path, monkeypatch):
     monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
     stop = threading.Event()
@@ -226,6 +227,7 @@ def test_quick_check_through_rigctl_serve(csvboard_plugin, tmp_path):
     _check_session(tmp_path / "data" / "s.h5", mode="csvboard")
 
 
+# wall: a sensor plugin's CSV board paced by the wall clock (a live sample source)
 @pytest.mark.realtime
 def test_a_sensor_plugin_on_the_simulated_drum_in_real_time(installed_plugins, tmp_path):
     """The default drum of a sensor-only plugin: the simulated rig on ptys, in real time (one 0.5 s trial)."""

@@ -31,6 +31,7 @@ def runs(name):
     return n + 1
 
 
+# wall: the sandbox's wall-clock test
 @pytest.mark.realtime
 def test_wall_fails_once():
     assert runs("wall_once") > 1
@@ -111,3 +112,41 @@ def test_without_the_setting_nothing_is_rerun(tmp_path):
     assert [line.split("\t")[:2] for line in logged] == [
         ["test_sandbox.py::test_firmware_fails_once", "logic"], ["test_sandbox.py::test_logic_fails_once", "logic"],
         ["test_sandbox.py::test_wall_always_fails", "wall"], ["test_sandbox.py::test_wall_fails_once", "wall"]]
+
+
+#: the folders whose tests run on the clock their simulated boards share with the host: never the real-time tier
+SHARED_CLOCK_FOLDERS = ("conformance", "firmware")
+
+
+def realtime_marks() -> list[tuple[str, int, str]]:
+    """Every ``pytest.mark.realtime`` of the suite's files (a test's or a module's): (file, line, the first line of the
+    comment block right above it, '' if none)."""
+    import re
+
+    tests = Path(__file__).resolve().parent
+    marks = []
+    for path in sorted(tests.rglob("*.py")):
+        lines = path.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if not re.match(r"\s*(@pytest\.mark\.realtime\b|pytestmark\s*=.*\bpytest\.mark\.realtime\b)", line):
+                continue
+            j = i
+            while j > 0 and re.match(r"\s*#", lines[j - 1]):
+                j -= 1
+            head = lines[j].strip() if j < i else ""
+            marks.append((path.relative_to(tests).as_posix(), i + 1, head))
+    return marks
+
+
+def test_every_realtime_mark_says_why_and_none_is_in_a_shared_clock_folder():
+    """Issue 54 item 3: the real-time tier (the one with a second run) is small and says why. Each mark has a comment
+    right above it: ``# wall: WHY`` (the wall clock is the point: a real window, LSL, a `rigctl sim` process, the fault
+    proxy, a Ctrl-C, a deadline of wall time) or ``# wall (not yet moved): WHY`` (a test still waiting on the wall
+    clock, or on a board paced to it, where the rig's clock would do: the list of what is left to move). No test of a
+    folder that runs on the shared clock (the conformance and firmware tests) is in the tier."""
+    marks = realtime_marks()
+    assert len(marks) > 10  # (the scan finds them)
+    unexplained = [f"{f}:{n}" for f, n, head in marks if not head.startswith(("# wall: ", "# wall (not yet moved): "))]
+    assert not unexplained, unexplained
+    shared = [f"{f}:{n}" for f, n, _ in marks if f.split("/")[0] in SHARED_CLOCK_FOLDERS]
+    assert not shared, shared

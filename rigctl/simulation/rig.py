@@ -56,6 +56,12 @@ STREAM_TICK_S = 0.005
 #: control step (:attr:`rigctl.simulation.controller.MegaController.max_step_ms`); a rig nobody streams from (the
 #: drum controller's conformance suite, a rig between its opening and START) costs a third of the wake-ups
 IDLE_TICK_S = 0.010
+#: how far an unpaced world may run ahead of its host's taxel reader, s of frames written and not read: a wire at
+#: 1 kHz holds about this much in its USB-serial chip and the host's tty buffer (an FTDI bridge's 16 ms latency
+#: timer); further, the world waits for the reader, a part of the host (unpaced, an `acquire --replay` whose reader
+#: fell 3.3 s behind started a trial 3,336 samples late, and a trial's frames came in seconds after the drum angle
+#: predicted their index). Paced, the world keeps to the wall clock instead (a held paced world lags a live source)
+READER_LEAD_S = 0.05
 #: the longest physics step between two rows of the truth log (``--truth-log``), ms: >= 100 rows a second
 TRUTH_STEP_MS = 10
 
@@ -134,7 +140,7 @@ class SimulatedRig:
         self.clock = SharedClock(self.model_time_s, on_grant=self._granted, world_notifies=True)
         self._loop = WorldLoop(self.clock, self._now_ms, self._step, paced=self.paced, tick_s=self.tick_s,
                                idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r,
-                               board_busy=self.mega.at_request, horizon=self._horizon_s)
+                               board_busy=self._board_busy, horizon=self._horizon_s)
         self.mega.use_clock(self.model_time_s)
         self.mega.host_clock = self.clock  # the host's writes to the drum port are stamped on it (on their way)
         self.mega.remote_stamp = partial(self._clock_file.stamp_s, "drum")  # and those of a face of another process
@@ -228,6 +234,24 @@ class SimulatedRig:
         loop = getattr(self, "_loop", None)
         if loop is not None and loop.held:
             self._wake()
+
+    def _board_busy(self) -> bool:
+        """The world stands still (:class:`rigctl.simulation.world_loop.WorldLoop`'s ``board_busy``): the drum
+        controller is at a request of the host (bytes counted on the way). Unpaced also while a request or its reply
+        is in the kernel's hands (``request_on_its_way``, ``reply_on_its_way``: an unpaced world ran the 2 s answer
+        timeout out in the 0.5 s of wall time a starved server thread took, and a rig did not open: "no answer from
+        the drum controller"), and while the host's taxel reader is more than :data:`READER_LEAD_S` of frames behind
+        the stream (a starved reader is a starved host). Paced, those are judged by the watchdog, not waited for: a
+        held paced world lags a live sample source for good."""
+        mega = self.mega
+        if mega.at_request():
+            return True
+        if self.paced:
+            return False
+        if mega.request_on_its_way() or mega.reply_on_its_way():
+            return True
+        uno = self.uno
+        return uno.streaming and uno.frames_unread() > READER_LEAD_S * self.layout.sample_rate_hz
 
     def _idle(self) -> bool:
         """Nothing to send at the next tick: the Uno does not stream."""

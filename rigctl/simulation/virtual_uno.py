@@ -112,6 +112,11 @@ class VirtualUno:
         """The path a client opens with pyserial."""
         return self.port.path
 
+    def frames_unread(self) -> float:
+        """How many frames' worth of bytes the board has written that its host has not read yet (queued by the board
+        or in the pty). Lock-free."""
+        return self.port.unread_by_board() / self.frame_size
+
     # ------------------------------------------------------------------ fault injection
     def inject_garbage(self, data: bytes) -> None:
         """Send ``data`` between the next two frames (while streaming)."""

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import time
 
-import pytest
 from click.testing import CliRunner
 
 from rigctl.acquisition.safety import operator_name, safety_log_path
@@ -38,7 +37,6 @@ def _log_lines() -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
 
-@pytest.mark.realtime
 def test_plain_acquire_on_a_latched_controller_exits_1_naming_it_and_ack_runs(tmp_path, monkeypatch):
     from rigctl.simulation.rig import SimulatedRig
 

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-import pytest
 
 from ..conftest import wait_unlocked
 
@@ -37,7 +36,6 @@ def _info(path, env) -> dict:
     return json.loads(out.stdout)
 
 
-@pytest.mark.realtime
 def test_quick_check_end_to_end(tmp_path):
     env = _env(tmp_path)
     out = tmp_path / "quick.h5"
@@ -178,7 +176,6 @@ def test_kill_9_mid_session_then_resume(tmp_path):
     assert info["totals"]["complete"] == n_plan and info["totals"]["dropped_frames"] == 0
 
 
-@pytest.mark.realtime  # two `acquire --replay` runs: the simulated rig on ptys, paced by the wall clock
 def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
     """`rigctl acquire --replay`: a 9-taxel 100 Hz session with its own labels streams through the simulated taxel
     board; the protocol mounts two of its textures and the new session keeps the sensor, the rate and the labels,
@@ -253,7 +250,6 @@ def test_acquire_replays_a_recording_of_another_sensor(tmp_path):
             np.testing.assert_array_equal(s.trial(tid).taxels, rebuilt)
 
 
-@pytest.mark.realtime
 def test_acquire_replays_a_fabricslide_folder_following_the_mounted_plate(tmp_path, fabricslide_dir):
     """`rigctl acquire --replay FOLDER`: each trial holds the mounted fabric's recording (a trial labelled Canvas
     holds Canvas samples, not the next file in name order), with the file, its setpoints and the sample range."""

@@ -227,6 +227,7 @@ def test_a_reader_holding_the_file_delays_a_write_but_loses_nothing(rig, tmp_pat
         assert [s.trial(i).n_samples for i in s.completed_ids()] == [300, 300, 300]
 
 
+# wall (not yet moved): the calibration's checks wait in time.sleep / time.monotonic loops
 @pytest.mark.realtime
 def test_loadcell_calibration_against_the_virtual_mega(pty_rig, tmp_path):
     rig, config_file = pty_rig, tmp_path / "rig.json"
@@ -270,6 +271,7 @@ def test_a_watchdog_trip_before_the_next_press_latches_until_acknowledged(rig, t
     assert summary.complete == 2 and summary.failed == 0, summary.failures
 
 
+# wall: a trial callback busy for 1.5 s of wall time (the heartbeat grants the rig that time, as on a bench)
 @pytest.mark.realtime
 def test_a_watchdog_trip_before_a_plate_change_latches_until_acknowledged(pty_rig, tmp_path):
     # the host silent in real time after trial 0: the release before mounting B finds the latched WATCHDOG (the

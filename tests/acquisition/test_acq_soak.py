@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+# wall: the soak's link faults and kill -9 cycles are timed on the wall clock (benchmarks/bench_soak.py)
 pytestmark = pytest.mark.realtime
 RIGCTL: list[str] = []  # the command the kill -9 part runs and kills: this worker's preloaded rigctl (tests/conftest.py)
 

@@ -33,6 +33,8 @@ from rigctl.storage.session import open_session
 
 from ..conftest import small_handheld_protocol
 
+# wall: the finger board's frames put on the host clock by a fit against time.monotonic, beside an LSL stream
+#   (timestamps of LSL's local_clock, the wall)
 pytestmark = pytest.mark.realtime
 RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 

@@ -100,6 +100,7 @@ class _BridgeOnAnotherClock:
         self.thread.join(2)
 
 
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_a_tracker_stamping_another_clock_records_nothing(lsl, tmp_path):
     """Each cue's pass is refused (stamped an hour after it arrived) and the trial fails with that reason after its

@@ -28,6 +28,7 @@ speeds_mm_s = [150]
 """
 
 
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_scans_from_a_tracker_stream_of_another_process(lsl, tmp_path):
     """`rigctl sim operator --lsl NAME` publishes the simulated operator's wrist tracker in real time; the handheld

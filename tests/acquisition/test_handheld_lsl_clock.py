@@ -61,6 +61,7 @@ def _namespace_available() -> str | None:
     return None if r.returncode == 0 else f"unshare --time failed: {r.stderr.strip()}"
 
 
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_a_tracker_on_a_clock_an_hour_ahead_records_each_scan_from_the_pass_after_its_cue(lsl, tmp_path):
     why = _namespace_available()

@@ -126,6 +126,7 @@ def trained(tmp_path_factory):
     return tmp, enc
 
 
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_a_hand_that_hesitates_and_slips_back_completes_the_block_and_encodes(lsl, trained, monkeypatch):
     """`rigctl acquire --handheld --motion lsl:NAME@0 --classify` with a hand that pauses and slides back 2 mm in
@@ -158,6 +159,7 @@ def test_a_hand_that_hesitates_and_slips_back_completes_the_block_and_encodes(ls
     assert res.exit_code == 0, res.output
 
 
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_a_tracker_in_metres_given_or_declared(lsl, tmp_path):
     """A tracker publishing metres (Motive and Vicon bridges): --motion-units m, or the stream's own channel unit,

@@ -75,6 +75,7 @@ def test_velocity_only_frames_are_integrated_into_a_position():
     assert x[-1, 0] == pytest.approx(100.0) and np.all(x[:, 1] == 100.0)
 
 
+# wall (not yet moved): the simulated motion board streams on a pty paced to the wall clock
 @pytest.mark.realtime
 def test_a_handheld_run_recorded_from_the_simulated_motion_board(tmp_path, monkeypatch):
     from rigctl.cli import main

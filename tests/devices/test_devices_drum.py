@@ -21,6 +21,7 @@ from rigctl.simulation.virtual_mega import VirtualMega
 from .conftest import home
 
 
+# wall: the HEARTBEAT register's count judged against time.monotonic around two reads
 @pytest.mark.realtime
 def test_every_input_register_read(drum, mega):
     regs = drum.read_inputs(0, wire.N_INPUT)
@@ -73,7 +74,6 @@ def test_status_decodes_signed_registers():
     assert s.calibration_defaults and s.homed and s.estop_open and not s.drivers_enabled
 
 
-@pytest.mark.realtime
 def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
     drum.set_limits(speed_mm_s=100, force_g=800)
     writes = mega.write_requests
@@ -103,7 +103,6 @@ def test_out_of_range_setpoints_refused_before_anything_is_sent(drum, mega):
     assert drum.read_holding(HR.SPEED_SETPOINT_0P1MMS) == 1000
 
 
-@pytest.mark.realtime
 def test_modbus_exceptions_become_named_errors(drum, mega):
     with pytest.raises(ModbusExceptionError) as info:
         drum.read_holdings(wire.N_HOLDING - 2, 5)  # runs off the table
@@ -128,6 +127,7 @@ def test_modbus_exceptions_become_named_errors(drum, mega):
     drum.stop()
 
 
+# wall: the host's silence is a time.sleep, which the heartbeat grants the board
 @pytest.mark.realtime
 def test_watchdog_trips_when_host_goes_silent(drum, mega):
     # 2 s, not the firmware's 1 s default: on a starved machine one lost answer and its retry (the virtual Mega's
@@ -209,6 +209,7 @@ def _longest_host_silence_s(sends: list[float], replies: list[float], now: float
     return max(gaps)
 
 
+# wall: a board thread stalled for 1.6 s of wall time while the host polls
 @pytest.mark.realtime
 @pytest.mark.parametrize("where", ["server", "bridge", "reply"])
 def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
@@ -272,7 +273,6 @@ def test_a_starved_simulator_does_not_call_a_punctual_host_silent(mega, where):
         drum.clear_fault()
 
 
-@pytest.mark.realtime
 def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     drum.home()
     assert drum.wait_state(DrumState.IDLE, timeout_s=2).actuator_mm == 0
@@ -294,7 +294,6 @@ def test_home_tare_and_calibration_eeprom(drum, mega, tmp_path):
     drum.stop()
 
 
-@pytest.mark.realtime  # a VirtualMega on a pty (its control loop paced by the wall clock), 0.5 s answer timeouts
 def test_press_refused_before_home_names_why(tmp_path):
     """After power-up the controller is NOT_HOMED: PRESS and RUN come back as DrumNotHomed, which says why."""
     board = VirtualMega(RigModel(seed=7), tmp_path / "drum", factory_calibrated=True).start()
@@ -313,7 +312,6 @@ def test_press_refused_before_home_names_why(tmp_path):
         board.close()
 
 
-@pytest.mark.realtime  # three VirtualMegas on ptys (control loops paced by the wall clock), 0.5 s answer timeouts
 def test_bad_eeprom_checksum_is_reported_and_defaults_used(tmp_path):
     """A calibration record whose checksum fails: the controller boots on the spec's defaults and raises
     CALIBRATION_DEFAULTS (the firmware did so silently before)."""
@@ -345,6 +343,7 @@ def test_bad_eeprom_checksum_is_reported_and_defaults_used(tmp_path):
         board.close()
 
 
+# wall: a pty nobody serves: the answer timeout is the wall clock's
 @pytest.mark.realtime
 def test_timeout_when_nobody_answers(tmp_path):
     from rigctl.simulation.pty import PtyEndpoint

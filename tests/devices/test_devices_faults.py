@@ -79,6 +79,7 @@ def _unplugged_a_while(stream, proxy):
     _wait(lambda: stream.stats.frames >= n + 300, what="the stream to continue")
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_garbage_bit_flips_and_lost_bytes_are_counted_never_recorded(uno, taxel_proxy):
     proxy = taxel_proxy
@@ -106,6 +107,7 @@ def test_garbage_bit_flips_and_lost_bytes_are_counted_never_recorded(uno, taxel_
     np.testing.assert_array_equal(cap.samples, _expected_samples(uno, cap.seq))
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 @pytest.mark.parametrize("where", ["board", "wire"])
 def test_a_lost_start_frame_costs_only_that_frame(uno, taxel_proxy, where):
@@ -133,6 +135,7 @@ def test_a_lost_start_frame_costs_only_that_frame(uno, taxel_proxy, where):
     np.testing.assert_array_equal(cap.samples, _expected_samples(uno, cap.seq))
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_restart_counts_the_earlier_streams_frames_as_stale(uno, taxel_proxy):
     """START while streaming: the frames of the earlier stream still on their way are counted (``stale_frames``),
@@ -159,6 +162,7 @@ def test_a_restart_counts_the_earlier_streams_frames_as_stale(uno, taxel_proxy):
     np.testing.assert_array_equal(cap.samples, _expected_samples(uno, cap.seq))
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_lost_start_command_is_sent_again(uno, taxel_proxy):
     proxy = taxel_proxy
@@ -174,6 +178,7 @@ def test_a_lost_start_command_is_sent_again(uno, taxel_proxy):
     assert cap.flags[0] & wire.FrameFlag.STREAMING_START
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_proxy):
     proxy = taxel_proxy
@@ -196,7 +201,8 @@ def test_a_cut_link_is_reported_reopened_and_the_stream_continues(uno, taxel_pro
     assert 250 <= cap.dropped <= (t_back - t_cut) * 1000  # the hole is reported (estimated from the time gap)
 
 
-@pytest.mark.realtime  # the VirtualUno streaming 1 kHz on a pty, paced by the wall clock, through the proxy
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
+@pytest.mark.realtime
 def test_a_reader_late_at_the_cut_still_counts_every_frame_lost(uno, taxel_proxy, monkeypatch):
     """The frames lost across a cut are counted from the time gap between the board's last frame received and the
     restarted stream's first: from when the board sent that frame, not from when a reader starved at that moment
@@ -245,6 +251,7 @@ def _late_answer_then_a_lost_request(drum, proxy):
     proxy.after_bytes(TO_BOARD, 8, proxy.release, TO_HOST)
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_late_response_is_not_the_answer_to_the_next_request(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
@@ -254,6 +261,7 @@ def test_a_late_response_is_not_the_answer_to_the_next_request(drum_via_proxy, d
     assert drum.read_holding(HR.SETTLE_TIME_MS) == 777  # the write itself was carried out
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_stop_is_not_acknowledged_by_the_echo_of_another_write(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
@@ -264,6 +272,7 @@ def test_stop_is_not_acknowledged_by_the_echo_of_another_write(drum_via_proxy, d
     assert drum.stale_responses >= 1
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_read_status_gets_its_own_answer(drum_via_proxy, drum_proxy, mega):
     drum = drum_via_proxy
@@ -273,6 +282,7 @@ def test_read_status_gets_its_own_answer(drum_via_proxy, drum_proxy, mega):
     assert drum.stale_responses >= 1
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_dropped_response_is_retried(drum_proxy):
     """A lost answer costs exactly one answer timeout and one retry. The answer timeout is 2 s, not the other proxy
@@ -289,6 +299,7 @@ def test_a_dropped_response_is_retried(drum_proxy):
         assert drum.read_holding(HR.SETTLE_TIME_MS) == 450
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_crc_match_over_garbage_is_not_an_answer(drum_via_proxy, drum_proxy):
     """Found by the soak benchmark (seed 4): a garbage burst inside an answer, and pymodbus' RTU decoder accepts a
@@ -306,6 +317,7 @@ def test_a_crc_match_over_garbage_is_not_an_answer(drum_via_proxy, drum_proxy):
     assert drum.stale_responses >= 1
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_no_wrong_value_on_a_noisy_link(drum_via_proxy, drum_proxy):
     """Random bit flips, lost and inserted bytes in both directions and answers held back past the timeout now and
@@ -341,6 +353,7 @@ def test_no_wrong_value_on_a_noisy_link(drum_via_proxy, drum_proxy):
     assert drum.read_status().state == DrumState.IDLE  # the link settles again
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_a_cut_modbus_link_is_a_clear_error_and_the_client_reopens_it(drum_via_proxy, drum_proxy):
     drum = drum_via_proxy
@@ -377,6 +390,7 @@ def _read_all(host, board, n=None, idle_reads=3):
     return out
 
 
+# wall: through the fault proxy, which copies, delays and cuts the bytes on the wall clock, outside the rig's clock
 @pytest.mark.realtime
 def test_the_proxy_forwards_both_ways_and_counts_exactly_what_it_did(tmp_path):
     import serial

@@ -49,7 +49,9 @@ def parse_registers(text: str) -> dict[int, int]:
     return {int(r): int(v) for r, v in re.findall(r"^\[(\d+)\]:\s+(-?\d+)", text, re.M)}
 
 
-@pytest.mark.realtime  # a `rigctl sim` paced to the wall clock, mbpoll with its own answer timeout
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware),
+#   mbpoll with its own answer timeout
+@pytest.mark.realtime
 def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", "1", "-c", str(wire.N_HOLDING), "-1", port)
@@ -65,7 +67,9 @@ def test_sim_prints_ports_and_mbpoll_reads_the_register_map(sim_process):
     assert inputs[IR.STATE + 1] == wire.DrumState.NOT_HOMED  # powered up, nobody homed it
 
 
-@pytest.mark.realtime  # a `rigctl sim` paced to the wall clock, mbpoll with its own answer timeout
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware),
+#   mbpoll with its own answer timeout
+@pytest.mark.realtime
 def test_mbpoll_writes_what_drumclient_reads_and_vice_versa(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "800")
@@ -80,7 +84,9 @@ def test_mbpoll_writes_what_drumclient_reads_and_vice_versa(sim_process):
     assert parse_registers(res.stdout) == {HR.FORCE_SETPOINT_G + 1: 321}
 
 
-@pytest.mark.realtime  # a `rigctl sim` paced to the wall clock, mbpoll with its own answer timeout
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware),
+#   mbpoll with its own answer timeout
+@pytest.mark.realtime
 def test_mbpoll_sees_the_spec_exceptions(sim_process):
     port = sim_process["drum"]
     res = mbpoll("-t", "4", "-r", str(HR.SPEED_SETPOINT_0P1MMS + 1), port, "2001")

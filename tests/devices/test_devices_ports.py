@@ -30,7 +30,8 @@ def enumerated(monkeypatch):
     return listed
 
 
-@pytest.mark.realtime  # virtual boards on ptys (the devices' conftest: mega, uno), paced by the wall clock
+# wall (not yet moved): the devices' conftest boards (mega, uno) run their own loops paced to the wall clock
+@pytest.mark.realtime
 def test_a_board_named_by_serial_number_is_found_wherever_it_enumerates(enumerated, mega, tmp_path):
     link = tmp_path / "ttyACM7"
     os.symlink(mega.path, link)
@@ -51,7 +52,8 @@ def test_a_board_named_by_serial_number_is_found_wherever_it_enumerates(enumerat
         assert drum._client.comm_params.host == str(moved)
 
 
-@pytest.mark.realtime  # virtual boards on ptys (the devices' conftest: mega, uno), paced by the wall clock
+# wall (not yet moved): the devices' conftest boards (mega, uno) run their own loops paced to the wall clock
+@pytest.mark.realtime
 def test_a_board_opened_by_path_is_reopened_by_its_serial_number_so_boards_cannot_swap(enumerated, mega, uno, tmp_path):
     acm0, acm1 = tmp_path / "ttyACM0", tmp_path / "ttyACM1"
     os.symlink(mega.path, acm0)
@@ -85,7 +87,8 @@ def test_a_board_that_is_not_connected_is_a_clear_error(enumerated):
         TaxelStream("serial:X1", banner_timeout_s=0.2).open()
 
 
-@pytest.mark.realtime  # virtual boards on ptys (the devices' conftest: mega, uno), paced by the wall clock
+# wall (not yet moved): the devices' conftest boards (mega, uno) run their own loops paced to the wall clock
+@pytest.mark.realtime
 def test_the_taxel_stream_holds_its_port_exclusively(uno):
     with TaxelStream(uno.path) as stream:
         assert ports.is_exclusive(stream._serial)

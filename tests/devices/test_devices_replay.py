@@ -10,6 +10,7 @@ from rigctl.devices.taxel_stream import TaxelStream
 from rigctl.simulation.replay import FabricSlideReplay
 from rigctl.simulation.rig import SimulatedRig
 
+# wall (not yet moved): in-process SimulatedRigs paced to the wall clock (its default), frames awaited on time.monotonic
 pytestmark = pytest.mark.realtime
 
 

@@ -16,6 +16,7 @@ from rigctl.simulation.rig import SimulatedRig
 
 from .conftest import home
 
+# wall (not yet moved): in-process SimulatedRigs paced to the wall clock (its default)
 pytestmark = pytest.mark.realtime
 
 

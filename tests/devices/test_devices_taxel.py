@@ -24,6 +24,7 @@ from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyEndpoint
 from rigctl.simulation.virtual_uno import VirtualUno, paced_loop
 
+# wall (not yet moved): the VirtualUno streams on its own loop paced to the wall clock
 pytestmark = pytest.mark.realtime
 
 

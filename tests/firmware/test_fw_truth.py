@@ -54,7 +54,6 @@ def test_truth_log_under_simavr_shows_the_back_off_after_host_silence(fw_build, 
     assert late.size and late[0, 1] < 100, f"true force {late[0, 1]:.0f} g 1 s after the watchdog"
 
 
-@pytest.mark.realtime  # doctor --sim: the boards on ptys, the physics paced by the wall clock (>= 100 rows a second)
 def test_truth_log_of_the_simulated_rig_from_the_cli(tmp_path, monkeypatch):
     monkeypatch.setenv("RIGCTL_CONFIG", str(tmp_path / "rig.json"))
     path = tmp_path / "t.csv"

@@ -7,6 +7,7 @@ import pytest
 
 from rigctl_gui.events import wait_for
 
+# wall: a real window's live view, a FabricSlide replay streaming into it
 pytestmark = pytest.mark.realtime
 
 

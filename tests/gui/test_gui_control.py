@@ -20,6 +20,7 @@ from rigctl.operations._control import rig_of
 from rigctl_gui.dialogs import open_dialogs
 from rigctl_gui.events import wait_for
 
+# wall: a real window driving the rig on ptys: reconnects, stale markers and banners timed on the wall clock
 pytestmark = pytest.mark.realtime
 
 

@@ -10,6 +10,7 @@ import pytest
 from rigctl.core.sensor import SensorLayout
 from rigctl_gui.events import wait_for
 
+# wall: a VirtualUno streaming 100 Hz on a pty into a real window's live view
 pytestmark = pytest.mark.realtime
 
 FINGER_100HZ = SensorLayout.grid(3, 3, 1, sample_rate_hz=100.0, name="finger 3x3")

@@ -397,6 +397,7 @@ def test_channel_names_label_the_rasters_and_heat_maps(live_view, qapp):
     assert [t for t, _ in view.raster_plots["sa"].getAxis("left")._tickLevels[0]] == [0, 2, 4, 6, 8]
 
 
+# wall: a real window's live view following a taxel board streaming on a pty
 @pytest.mark.realtime
 def test_main_window_follows_a_new_sensor_on_the_taxel_link(qapp, gui_home, tmp_path):
     """Another taxel board on the link (the stream's layout and ring change): the live view, its encoder and the

@@ -10,6 +10,7 @@ import pytest
 
 from rigctl_gui.events import wait_for
 
+# wall: a real window's live view, and `rigctl gui --sim` run to its screenshot
 pytestmark = pytest.mark.realtime
 
 

@@ -16,6 +16,7 @@ from rigctl_gui.events import wait_for
 
 from .conftest import gui_protocol
 
+# wall: the app's STOP and calibration against the rig on ptys, in a real window's event loop
 pytestmark = pytest.mark.realtime
 
 def test_stop_button_stops_a_run_resumably(window, qapp, qtbot, tmp_path):

@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from rigctl.cli import main
 from rigctl_gui.events import wait_for
 
+# wall: the whole app streaming a replay through the taxel board into a real window
 pytestmark = pytest.mark.realtime
 
 RATE_HZ = 100

@@ -25,6 +25,7 @@ from .conftest import x_server
 DRIVER = Path(__file__).with_name("x11_driver.py")
 SIZES = [(1024, 700), (1280, 800)]
 
+# wall: a real X server, window manager and xdotool's clicks
 pytestmark = [pytest.mark.gui, pytest.mark.realtime, pytest.mark.slow]
 
 

@@ -19,6 +19,8 @@ from rigctl.core.drum import DrumState
 
 from ..simulation.sim_process import HANG_S, SimProcess
 
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware) and
+#   faces of other processes
 pytestmark = [pytest.mark.realtime]
 
 RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)

@@ -37,6 +37,8 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, precondition,
 
 from ..simulation.sim_process import HANG_S, SimProcess
 
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware) and
+#   faces of other processes, killed and restarted
 pytestmark = [pytest.mark.realtime, pytest.mark.slow]
 
 

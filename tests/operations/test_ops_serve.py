@@ -211,7 +211,8 @@ def _trials(path):
                 for t in s.completed_ids()}, len(s.plan)
 
 
-@pytest.mark.realtime  # judged on the wall clock too: Ctrl-C with an open event feed says 'stopped' < 2 s, exits < 5 s
+# wall: Ctrl-C with an open event feed says 'stopped' within 2 s of wall time
+@pytest.mark.realtime
 def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_trial(tmp_path):
     import httpx
 
@@ -317,6 +318,7 @@ def _get(url):
         return False
 
 
+# wall: STOP through the API judged within 0.5 s of wall time
 @pytest.mark.realtime
 def test_stop_through_the_api_stops_the_drum_within_half_a_second(tmp_path):
     control = open_control(RigSource("sim"), seed=1, host_config_path=tmp_path / "rig.json")

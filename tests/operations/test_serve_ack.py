@@ -79,6 +79,8 @@ def _still(model, seconds: float) -> tuple[float, float, float]:
     return d_act, d_force, speed
 
 
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware)
+#   outliving restarted `rigctl serve` processes
 @pytest.mark.realtime
 def test_a_restarted_server_holds_the_latch_and_only_ack_then_release_moves(tmp_path):
     import httpx

@@ -12,6 +12,7 @@ from rigctl.rigs import open_rig
 from rigctl.simulation.dataset import render_trial
 from rigctl.simulation.model import RigConfig
 
+# wall (not yet moved): recordings through in-process SimulatedRigs paced to the wall clock (its default)
 pytestmark = pytest.mark.realtime
 
 

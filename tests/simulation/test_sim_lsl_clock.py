@@ -30,6 +30,7 @@ while k < 200 * 20:
 """
 
 
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_the_replay_inlet_reads_a_stream_from_a_clock_an_hour_ahead_on_this_machines_clock(lsl):
     """The replay source's samples are stamped on this machine's LSL clock (within 1 s of now) and it records the

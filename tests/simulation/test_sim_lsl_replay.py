@@ -64,6 +64,7 @@ class Device(threading.Thread):
 
 
 @pytest.mark.lsl
+# wall: an LSL stream (timestamps of LSL's local_clock, the wall)
 @pytest.mark.realtime
 def test_a_live_lsl_stream_is_recorded_through_the_simulated_board(lsl, tmp_path):
     name = f"fingertip-{uuid.uuid4().hex[:8]}"

@@ -22,7 +22,9 @@ from rigctl.simulation.sim_control import request
 
 from .sim_process import HANG_S, SimProcess
 
-pytestmark = pytest.mark.realtime  # a rig paced to the wall clock in another process, on ptys
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware) and
+#   faces of other processes
+pytestmark = pytest.mark.realtime
 
 RIGCTL: list[str] = []  # the command: this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 

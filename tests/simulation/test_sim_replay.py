@@ -56,6 +56,7 @@ def test_replay_without_loop_ends(fabricslide_dir):
         FabricSlideReplay(fabricslide_dir, pattern="Nothing_*.csv")
 
 
+# wall (not yet moved): frames awaited on time.monotonic deadlines from an in-process rig paced to the wall clock
 @pytest.mark.realtime
 def test_recorded_through_the_simulated_rig_equals_the_source(fabricslide_dir, tmp_path):
     from rigctl.devices.taxel_stream import TaxelStream
@@ -137,6 +138,7 @@ def _capture(stream, n, timeout=20):
     return stream.end_capture()
 
 
+# wall (not yet moved): frames awaited on time.sleep from an in-process rig paced to the wall clock
 @pytest.mark.realtime
 def test_any_session_replayed_through_the_simulated_board_equals_the_source(nine_channel_session, tmp_path):
     """A 9-channel 100 Hz session through SimulatedRig + VirtualUno + a real pty + TaxelStream: the board announces
@@ -177,6 +179,7 @@ def test_any_session_replayed_through_the_simulated_board_equals_the_source(nine
     np.testing.assert_array_equal(silk[:data[2].shape[0]], data[2])
 
 
+# wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware)
 @pytest.mark.realtime
 def test_rigctl_sim_replays_a_session_file(nine_channel_session, tmp_path):
     """`rigctl sim --replay SESSION.h5` streams the session at its own layout and rate."""

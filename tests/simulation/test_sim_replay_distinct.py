@@ -62,7 +62,6 @@ def test_a_plan_the_source_cannot_serve_is_refused_naming_the_shortfall(tmp_path
         replay.begin_trial()
 
 
-@pytest.mark.realtime  # the replay rig on ptys opens (wall clock) before the refusal
 def test_acquire_refuses_a_missing_texture_before_recording(tmp_path):
     """`acquire --replay` with a protocol mounting a texture the recording lacks: refused before the first trial,
     naming it (it rewrote the plan's textures with one stderr line, exit 0); nothing written."""

@@ -264,3 +264,29 @@ def test_rigctl_sim_pace_chooses_how_a_commands_simulated_rig_keeps_time(monkeyp
     assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
     assert "RIGCTL_SIM_PACE='fast'" in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert not (tmp_path / "q.h5").exists()
+
+
+def test_an_unpaced_world_waits_for_a_taxel_reader_that_fell_behind():
+    """Unpaced, the world runs as fast as the host's grants allow; its taxel stream may run only
+    READER_LEAD_S of frames ahead of the host's reader (a wire holds about that much), then it waits for the reader,
+    a part of the host: a reader that fell seconds behind had the trial's frames arrive seconds after the drum angle
+    predicted their index, and a replayed trial start thousands of samples late. Paced, the wall clock rules."""
+    import serial
+
+    from rigctl.devices import wire
+    from rigctl.simulation.rig import READER_LEAD_S
+
+    with SimulatedRig(paced=False, uno_reset_delay_s=0.0) as sim:
+        with serial.Serial(sim.taxel_port, timeout=0) as port:
+            sim.clock.sleep(0.3)  # the board's boot
+            port.reset_input_buffer()
+            port.write(wire.UnoCommand.START)
+            t0 = sim.model.time_s
+            time.sleep(1.0)  # a reader that reads nothing: the heartbeat grants the world 1 s meanwhile
+            behind = sim.model.time_s - t0
+            assert sim.uno.streaming and behind < 0.5, behind  # held once the reader is READER_LEAD_S behind
+            assert sim.uno.frames_unread() > READER_LEAD_S * sim.layout.sample_rate_hz
+            got, t1 = 0, time.monotonic()
+            while sim.model.time_s - t0 < 1.5 and time.monotonic() - t1 < 30:  # reading, the world goes on
+                got += len(port.read(65536))
+            assert sim.model.time_s - t0 >= 1.5 and got > 0

@@ -88,7 +88,8 @@ _SLOW_INFO = textwrap.dedent("""
 """)
 
 
-@pytest.mark.realtime  # judged on the wall clock
+# wall: Ctrl-C stops `rigctl info` within a second of wall time
+@pytest.mark.realtime
 def test_ctrl_c_stops_info_within_a_second(many, tmp_path):
     """On a file whose trial facts cannot be trusted (a plain copy: its modification time is not its seal), where
     the validator opens every trial's group and reads every sample: the slow case, where Ctrl-C matters."""
