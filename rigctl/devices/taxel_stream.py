@@ -37,6 +37,7 @@ import serial
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
 from rigctl.core.shared_clock import attach_port_clock, clock_of_port, is_port_clock, release_port_clock
 from rigctl.devices import wire
+from rigctl.devices.capture_parts import first_flagged, first_with_seq
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
 from rigctl.devices.frames import FrameParser, SequenceTracker
 from rigctl.devices.ports import PortIdentity, lock_exclusive
@@ -68,30 +69,6 @@ class StreamStats:
     reconnects: int = 0
     stale_frames: int = 0  #: valid frames of an earlier stream received after START was sent (discarded)
     start_retries: int = 0  #: START sent again because the new stream did not begin within ``start_timeout_s``
-
-
-def first_flagged(parts: Any, mask: int) -> int | None:
-    """Position of the first frame with a bit of ``mask`` in its flags, over capture parts ``(samples, seq, flags,
-    host_time_s)`` in order; None if there is none."""
-    at = 0
-    for part in parts:
-        hit = np.flatnonzero(part[2] & mask)
-        if hit.size:
-            return at + int(hit[0])
-        at += len(part[2])
-    return None
-
-
-def first_with_seq(parts: Any, seq: int) -> int | None:
-    """Position of the first frame whose wire sequence number is ``seq`` (mod 65536), over capture parts ``(samples,
-    seq, flags, host_time_s)`` in order; None if there is none."""
-    at, want = 0, int(seq) & 0xFFFF
-    for part in parts:
-        hit = np.flatnonzero((part[1].astype(np.int64) & 0xFFFF) == want)
-        if hit.size:
-            return at + int(hit[0])
-        at += len(part[1])
-    return None
 
 
 @dataclass

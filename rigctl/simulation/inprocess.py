@@ -35,9 +35,10 @@ from rigctl.core.faults import FaultSchedule, FaultSpec
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.devices import wire
+from rigctl.devices.capture_parts import first_flagged, first_with_seq
 from rigctl.devices.drum import DrumClient
 from rigctl.devices.ring import RingBuffer
-from rigctl.devices.taxel_stream import Capture, StreamStats, first_flagged, first_with_seq
+from rigctl.devices.taxel_stream import Capture, StreamStats
 from rigctl.simulation.backend import SimMounter
 from rigctl.simulation.controller import MegaController
 from rigctl.simulation.faults import ModelFaults

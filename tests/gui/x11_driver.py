@@ -50,6 +50,9 @@ STALL_S = 3.0
 def main(out_path: str, fit_only: bool = False) -> int:
     tmp = tempfile.mkdtemp(prefix="rigctl-x11-")
     os.environ["RIGCTL_CONFIG"] = os.path.join(tmp, "rig.json")
+    # the rig paced to the wall clock, as for a person at the window (the suite's default is unpaced): the stall's
+    # banner, log line and gap are judged on the wall clock the person sees
+    os.environ["RIGCTL_SIM_PACE"] = "wall"
     from PySide6 import QtCore, QtWidgets
 
     QtCore.QSettings.setPath(QtCore.QSettings.IniFormat, QtCore.QSettings.UserScope, os.path.join(tmp, "settings"))
