@@ -373,7 +373,10 @@ def _sensor_backend(request: RigRequest, source: SampleSource, drum: str) -> Rig
         from rigctl.simulation.backend import PtyRigBackend
         from rigctl.simulation.rig import SimulatedRig
 
-        sim = SimulatedRig(_config(request), seed=request.seed, source=source, paced=sim_paced())
+        # paced whatever RIGCTL_SIM_PACE says: a plugin's source may be a live device, which keeps the wall clock's
+        # time (an unpaced world asked a 200-lines-a-second pty board for its samples faster than it had them, and
+        # every trial of the my-hardware guide's quick check failed, the stream stalled), as an lsl: replay does
+        sim = SimulatedRig(_config(request), seed=request.seed, source=source, paced=True)
         backend = PtyRigBackend(sim, mode="sim", seed=request.seed, textures=textures,
                                 drum_timeout_s=ANSWER_TIMEOUT_S["sim"], drum_watchdog_ms=WATCHDOG_MS["sim"])
     backend.mode = request.name
