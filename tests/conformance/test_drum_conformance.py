@@ -370,8 +370,8 @@ def test_tare_and_the_load_cell_scale(drum, controller):
     """TARE with the actuator released zeroes FORCE_G at the present load; FORCE_G = (raw - tare) * 100 /
     LOADCELL_SCALE_X100 (HX711 counts per g x 100) from the raw reading in LOADCELL_RAW_HI/LO."""
 
-    def force_near(target: float) -> DrumStatus:
-        return poll(drum, lambda s: abs(s.force_g - target) <= 3, 5, f"FORCE_G near {target} g")
+    def force_near(target: float, tol_g: float = 3.0) -> DrumStatus:
+        return poll(drum, lambda s: abs(s.force_g - target) <= tol_g, 5, f"FORCE_G near {target} g")
 
     # TARE is taken only at rest at home: the previous test's release may still be backing off on a loaded machine
     poll(drum, lambda s: s.state in (S.IDLE, S.NOT_HOMED) and s.home_switch, 10, "at rest at home")
@@ -387,7 +387,9 @@ def test_tare_and_the_load_cell_scale(drum, controller):
     controller.place_mass(300)
     for scale in (DEFAULT[HR.LOADCELL_SCALE_X100], DEFAULT[HR.LOADCELL_SCALE_X100] // 2):
         drum.write_holding(HR.LOADCELL_SCALE_X100, scale)
-        st = force_near(300 * DEFAULT[HR.LOADCELL_SCALE_X100] / scale)
+        # within 3 g at the default scale: the tare's own error and the noise are counts, so grams scale with 1 / scale
+        # (a clean-clone CI read 594.0 g for 600 at half the scale: a tare 3 g off at the default, as accepted above)
+        st = force_near(300 * DEFAULT[HR.LOADCELL_SCALE_X100] / scale, 3.0 * DEFAULT[HR.LOADCELL_SCALE_X100] / scale)
         # within 2 % + 3 g: the reading noise of the load cell (the simulated one has some)
         assert abs(st.force_g - (st.loadcell_raw - zero.loadcell_raw) * 100 / scale) <= 0.02 * st.force_g + 3
     assert drum.read_status().state == S.IDLE
