@@ -76,6 +76,7 @@ from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
 from rigctl.core.textures import PAPER_TEXTURES, TextureSet
 from rigctl.core.trial import TrialData, lower_envelope_rate_hz
 from rigctl.devices import wire
+from rigctl.devices.capture_parts import first_with_seq
 from rigctl.devices.drum import default_force_loop
 
 log = logging.getLogger(__name__)
@@ -973,8 +974,9 @@ class Rig:
         deadline = t_start + 3 * planned.duration_s + CAPTURE_MARGIN_S
         align = not planned.is_ramp and replay is None
         n_capture = n_limit = n
+        replay_margin = int(math.ceil(REPLAY_MARGIN_S * rate))
         if cue is not None:
-            n_capture = n + int(math.ceil(REPLAY_MARGIN_S * rate)) + 8
+            n_capture = n + replay_margin + 8
             n_limit = n + int(math.ceil(REPLAY_IN_FLIGHT_MAX_S * rate))
         t_index = math.nan  # when the index pulse is predicted, on the clock of the frames' host times
         tolerance_s = INDEX_PREDICTION_TOLERANCE_S
@@ -1001,7 +1003,7 @@ class Rig:
                 if self.stream.wait_capture(n_capture, timeout_s=max(0.0, next_poll - now)):
                     if cue is not None:  # the source trial's frames from its first one on; more frames in flight
                         k_cue = self.stream.capture_seq_index(cue)  # before it than the margin: a longer capture
-                        want = k_cue + n if k_cue is not None else n_capture + int(math.ceil(REPLAY_MARGIN_S * rate))
+                        want = k_cue + n if k_cue is not None else n_capture + replay_margin
                         if want <= n_capture or n_capture >= n_limit:
                             break
                         n_capture = min(want, n_limit)
@@ -1053,11 +1055,11 @@ class Rig:
                 log.warning("trial %d: the index frame was lost; the trial starts after the %d-frame gap where the "
                             "drum angle predicts the index", planned.trial_id, lost)
         elif cue is not None:  # start at the frame of the source trial's first sample (the frames before: in flight)
-            hits = np.flatnonzero((cap.seq.astype(np.int64) & 0xFFFF) == int(cue) & 0xFFFF)
-            if not hits.size:  # never a trial started elsewhere in the source, silently
+            k_cue = first_with_seq([(cap.samples, cap.seq, cap.flags, cap.host_time_s)], cue)
+            if k_cue is None:  # never a trial started elsewhere in the source, silently
                 raise CaptureError(f"trial {planned.trial_id}: the replayed source trial's first frame (sequence "
                                    f"number {int(cue)}) is not among the {len(cap)} frames captured")
-            k = int(hits[0])
+            k = k_cue
         if k:
             cap = type(cap)(cap.samples[k:], cap.seq[k:], cap.flags[k:], cap.host_time_s[k:],
                             dropped=cap.dropped, crc_errors=cap.crc_errors)

@@ -50,6 +50,12 @@ def _map(fd: int) -> mmap.mmap:
     return mmap.mmap(fd, _SIZE)
 
 
+def _slot_s(m: mmap.mmap, offset: int) -> float:
+    """The time in the slot at ``offset`` of the mapped file ``m``, s (stored as ns + 1; 0.0 when the slot is 0)."""
+    (v,) = struct.unpack_from("<Q", m, offset)
+    return (v - 1) * 1e-9 if v else 0.0
+
+
 class ClockFile:
     """The rig's side: ``DIR/.clock`` created (a leftover one of rigctl's is reused; any other file of that name is
     refused: FileExistsError), mapped, holding ``time 0`` and no grant. :meth:`close` removes it."""
@@ -80,8 +86,7 @@ class ClockFile:
         """How far the faces have let the rig run, s (0 before any grant)."""
         if self._map is None:
             return 0.0
-        (v,) = struct.unpack_from("<Q", self._map, 16)
-        return (v - 1) * 1e-9 if v else 0.0
+        return _slot_s(self._map, 16)
 
     def stamp_s(self, link: str, written: bool) -> float:
         """When a face of another process last began to write to the port link ``link`` (``written``) or last found
@@ -89,8 +94,7 @@ class ClockFile:
         slots = _STAMP_SLOTS.get(link)
         if self._map is None or slots is None:
             return 0.0
-        (v,) = struct.unpack_from("<Q", self._map, slots[0] if written else slots[1])
-        return (v - 1) * 1e-9 if v else 0.0
+        return _slot_s(self._map, slots[0] if written else slots[1])
 
     def host_attached(self) -> bool:
         """Whether a face of another process holds the file now (looked at most every :data:`ATTACH_LOOK_S`)."""
@@ -143,8 +147,7 @@ class HostSide:
         self._lock = threading.Lock()
 
     def world_now(self) -> float:
-        (v,) = struct.unpack_from("<Q", self._map, 8)
-        t = (v - 1) * 1e-9 if v else 0.0
+        t = _slot_s(self._map, 8)
         if t > self._last_s:
             self._last_s = t
         return self._last_s

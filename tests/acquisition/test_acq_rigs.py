@@ -34,13 +34,19 @@ def test_every_kind_builds_a_backend(tmp_path):
     assert set(KINDS) == {"sim", "hil", "hardware", "replay", "inprocess", "handheld"}
 
 
-def test_replay_rig_on_a_session_file(tmp_path):
-    proto = parse_protocol('name = "src"\ntextures = ["Linen-1", "Tweed-22"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
-                           'duration_s = 0.3\n[settle]\nsettle_time_ms = 50\n'
-                           '[texture_set]\ntextures = ["Linen-1", "Tweed-22"]\n')
+def _source_session(tmp_path, lines: str):
+    """``tmp_path/src.h5``: a session recorded on the in-process rig (120 mm/s, 300 g, 0.3 s trials, the texture set
+    Linen-1 and Tweed-22) with the protocol ``lines`` (its textures, its trials per condition)."""
+    proto = parse_protocol(f'name = "src"\n{lines}\nspeeds_mm_s = [120]\nforces_g = [300]\nduration_s = 0.3\n'
+                           '[settle]\nsettle_time_ms = 50\n[texture_set]\ntextures = ["Linen-1", "Tweed-22"]\n')
     src = tmp_path / "src.h5"
     with open_rig("inprocess", seed=1, host_config_path=tmp_path / "rig.json") as rig:
         assert run_protocol(proto, src, rig=rig, progress=False).ok
+    return src
+
+
+def test_replay_rig_on_a_session_file(tmp_path):
+    src = _source_session(tmp_path, 'textures = ["Linen-1", "Tweed-22"]')
     with open_session(src) as s:
         layout, textures = s.layout, s.textures
     with open_rig("replay", source=src, host_config_path=tmp_path / "rig.json") as rig:
@@ -56,12 +62,7 @@ def test_a_replayed_trial_starts_at_its_source_trials_first_sample_however_late_
     before the switch, so the trial still starts at the source trial's first sample. Before, the switch came first:
     those frames arrived before the capture began, the trial started wherever the capture did (10 to 3,336 samples
     into its source trial in 5 of 12 unpaced `acquire --replay` runs), and only the provenance said so."""
-    proto = parse_protocol('name = "src"\ntextures = ["Tweed-22"]\nspeeds_mm_s = [120]\nforces_g = [300]\n'
-                           'duration_s = 0.3\ntrials_per_condition = 2\n[settle]\nsettle_time_ms = 50\n'
-                           '[texture_set]\ntextures = ["Linen-1", "Tweed-22"]\n')
-    src = tmp_path / "src.h5"
-    with open_rig("inprocess", seed=1, host_config_path=tmp_path / "rig.json") as rig:
-        assert run_protocol(proto, src, rig=rig, progress=False).ok
+    src = _source_session(tmp_path, 'textures = ["Tweed-22"]\ntrials_per_condition = 2')
     with open_session(src) as s:
         sources = {int(t): s.trial(t).taxels for t in s.completed_ids()}
     with open_rig("replay", source=src, host_config_path=tmp_path / "rig.json") as rig:
