@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 from rigctl.core.port_clock import HostSide, open_beside
 
-__all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "clock_of_port", "attach_port_clock", "release_port_clock",
+__all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "KERNEL_HOP_MAX_S", "clock_of_port", "attach_port_clock", "release_port_clock",
            "is_port_clock"]
 
 #: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
@@ -51,6 +51,12 @@ __all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "clock_of_port", "attach_port
 #: gets its CPU never holds a paced world back) and against a USB-serial link's own buffering latency (the 16 ms
 #: latency timer of an FTDI bridge)
 LEAD_S = 0.05
+#: the longest the kernel is taken to hold a hop's bytes between a host and a simulated board (a pty hands them on
+#: through a kernel worker), s of wall time: a board waits for a write the host stamped (:meth:`SharedClock.note_write`)
+#: at most this long, and a stamp older than that is not a frame on its way (a host whose write failed, or that
+#: dropped a reply unseen, and then went silent is silent to the watchdog): the virtual Mega
+#: (rigctl.simulation.virtual_mega) and the simavr harnesses (rigctl.simulation.hil_clock)
+KERNEL_HOP_MAX_S = 2.0
 #: period of the heartbeat of the host's process, s (wall clock)
 HEARTBEAT_S = 0.005
 #: the shortest wall-clock step of a host wait that looks at the world's time, s

@@ -16,6 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
+from rigctl.core.shared_clock import clock_of_port
 from rigctl.devices import wire
 
 __all__ = ["STOP_BURST", "STOP_RESEND_S", "CountsFrame", "EncoderStreamParser", "OnboardEncoder", "OnboardScan", "SpikeFrame",
@@ -230,9 +231,19 @@ class OnboardEncoder:
 
     def __init__(self, port: _Port) -> None:
         self.port = port
+        # a board of a simulated rig (the port's ``name`` one of its ports): each write stamped on its clock before
+        # it is made, so the board waits for bytes the kernel still holds (SharedClock.note_write)
+        name = getattr(port, "name", None)
+        self._name = name if isinstance(name, str) else ""
+        self._clock = clock_of_port(self._name) if self._name else None
         self.parser = EncoderStreamParser()
         self.speeds_sent: list[float] = []
         self.speed_windows: list[int] = []
+
+    def _write(self, data: bytes) -> None:
+        if self._clock is not None:
+            self._clock.note_write(self._name)
+        self.port.write(data)
 
     @property
     def samples(self) -> int:
@@ -245,7 +256,7 @@ class OnboardEncoder:
         self.parser = EncoderStreamParser()
         self.speeds_sent = []
         self.speed_windows = []
-        self.port.write(calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ENCODE.value)
+        self._write(calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ENCODE.value)
 
     def poll(self) -> int:
         """Read once from the port (its timeout); returns :attr:`samples`."""
@@ -266,7 +277,7 @@ class OnboardEncoder:
         w = len(self.speeds_sent)
         command = speed_command(w, speed_mm_s)
         if self.samples <= 100 * (w + 2):
-            self.port.write(command)
+            self._write(command)
             self.speed_windows.append(w)
         self.speeds_sent.append(round(float(speed_mm_s), 2))
 
@@ -289,7 +300,7 @@ class OnboardEncoder:
         ValueError
             A spike frame was lost (:func:`spike_raster`), or no speed at all.
         """
-        self.port.write(wire.UnoCommand.STOP.value)
+        self._write(wire.UnoCommand.STOP.value)
         quiet = stop_at = sent_at = time.monotonic()
         while True:
             chunk = self.port.read(4096)
@@ -302,7 +313,7 @@ class OnboardEncoder:
             if now - stop_at > timeout_s:
                 raise TimeoutError(f"the board kept sending spike frames {timeout_s} s after STOP")
             if now - sent_at > STOP_RESEND_S:  # still streaming: the STOP was taken as a command's payload
-                self.port.write(STOP_BURST)
+                self._write(STOP_BURST)
                 sent_at = now
         pending = list(last_speeds_mm_s)
         while len(self.speeds_sent) < -(-self.samples // 100):  # the windows still without a speed
@@ -311,7 +322,7 @@ class OnboardEncoder:
             self.send_speed(pending.pop(0) if pending else self.speeds_sent[-1])
         if not self.speeds_sent:
             raise ValueError("no speed for the scan's windows")
-        self.port.write(finish_command(self.speeds_sent[-1]))
+        self._write(finish_command(self.speeds_sent[-1]))
         deadline = time.monotonic() + timeout_s
         while not self.parser.counts:
             if time.monotonic() > deadline:

@@ -398,6 +398,9 @@ class TaxelStream:
             if ser is None or not self._stats.connected:
                 raise TaxelStreamError(f"taxel streamer on {self.port} is not connected")
             self._touch()
+            note = getattr(self.clock, "note_write", None)
+            if note is not None:  # a simulated rig's board waits for bytes the kernel still holds
+                note(self.port)
             ser.write(data)
 
     def identify(self, timeout_s: float = 1.0) -> dict[str, Any]:

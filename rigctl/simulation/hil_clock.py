@@ -1,15 +1,20 @@
 """The host's side of the simavr harnesses' clock-lock file (``arduino/simavr/rigctl_simavr.c``, "clock lock"): the
 boards' simulated times (slot 0 the Mega's, slot 1 the Uno's) and the host's grant (slot 2), each ns + 1 (0: not
-yet), shared memory between the harness processes and the host (docs/architecture.md "Time on a simulated rig").
+yet), and when the host began its last write to each board's port (slots 3 and 4: ``CLOCK_MONOTONIC`` ns + 1),
+shared memory between the harness processes and the host (docs/architecture.md "Time on a simulated rig").
 
 :class:`HilClockFile` gives a :class:`rigctl.core.shared_clock.SharedClock` the world's time (the slower board's:
-the two run in lock step within 2 ms) and publishes its grants; the harnesses run no further than the grant.
+the two run in lock step within 2 ms), publishes its grants and stamps its writes; the harnesses run no further than
+the grant, and a harness whose host wrote after it last read its pty waits for those bytes (at most
+:data:`rigctl.core.shared_clock.KERNEL_HOP_MAX_S` of wall time): a pty hands a writer's bytes on through a kernel
+worker, which a loaded machine holds back, and a request on its way is not a silent host.
 """
 
 from __future__ import annotations
 
 import mmap
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +23,11 @@ from rigctl.core.shared_clock import SharedClock
 
 __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
-#: the file's slots: the Mega's time, the Uno's, the host's grant (uint64 each)
-LOCK_SLOTS = 3
+#: the file's slots: the Mega's time, the Uno's, the host's grant, the host's last write to the Mega's port, to the
+#: Uno's (uint64 each)
+LOCK_SLOTS = 5
+#: the slot of the host's last write to each board's port
+WRITE_SLOTS = {"mega": 3, "uno": 4}
 
 
 class HilClockFile:
@@ -36,10 +44,12 @@ class HilClockFile:
         # aligned 8-byte loads and stores (one instruction each on the machines simavr runs on), as the harness's atomics
         self._slots: np.ndarray | None = np.frombuffer(self._map, dtype=np.uint64)
         self._last_s = 0.0
+        self._write_slots: dict[str, int] = {}
 
     def shared_clock(self) -> SharedClock:
-        """A :class:`SharedClock` on the boards' time whose grants go to the file (its first one written now)."""
-        clock = SharedClock(self.world_now, on_grant=self.grant)
+        """A :class:`SharedClock` on the boards' time whose grants go to the file (its first one written now) and
+        whose hosts' writes to a board's port (:meth:`board_port`) are stamped in it (:meth:`stamp`)."""
+        clock = SharedClock(self.world_now, on_grant=self.grant, on_stamp=self.stamp)
         self.grant(clock.horizon_s)
         return clock
 
@@ -62,6 +72,22 @@ class HilClockFile:
         slots = self._slots
         if slots is not None:
             slots[2] = np.uint64(int(horizon_s * 1e9) + 1)
+
+    def board_port(self, board: str, path: str | os.PathLike[str]) -> None:
+        """``path`` is the port of ``board`` (``"mega"`` or ``"uno"``: a key of :data:`WRITE_SLOTS`): a host's
+        writes to it are stamped in that board's slot."""
+        slot = WRITE_SLOTS[board]
+        for key in {os.fspath(path), os.path.realpath(path)}:
+            self._write_slots[key] = slot
+
+    def stamp(self, path: str, written: bool) -> None:
+        """The clock's ``on_stamp``: a host of this process is about to write to the port ``path`` (``written``
+        True; reads are not stamped): the moment, ``time.monotonic_ns`` (the harness's ``CLOCK_MONOTONIC``) + 1,
+        in its board's slot. A port of no board of this file is ignored."""
+        slot = self._write_slots.get(path) if written else None
+        slots = self._slots
+        if slot is not None and slots is not None:
+            slots[slot] = np.uint64(time.monotonic_ns() + 1)
 
     def board_times_s(self) -> tuple[float | None, float | None]:
         """The Mega's and the Uno's published times, s (None: not yet)."""

@@ -86,6 +86,13 @@ class NotingPort:
         self.writes: list[tuple[bytes, int, int, float]] = []
         self._read_at = time.monotonic()
 
+    @property
+    def name(self) -> str | None:
+        """The port's device name (pyserial's ``name``): an :class:`OnboardEncoder` finds a simulated rig's clock
+        by it."""
+        name = getattr(self.port, "name", None)
+        return name if isinstance(name, str) else None
+
     def read(self, size: int = 1) -> bytes:
         out = self.port.read(size)
         self._read_at = time.monotonic()

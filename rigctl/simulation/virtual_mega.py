@@ -38,7 +38,7 @@ from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
 from pymodbus.framer import FramerType
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
-from rigctl.core.shared_clock import SharedClock
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
 from rigctl.devices import wire
 from rigctl.devices.wire import Fault, HoldingRegister as HR
 from rigctl.simulation.controller import MegaController
@@ -117,11 +117,6 @@ class _MegaContext(ModbusBaseDeviceContext):
         if self.mega.on_write is not None:  # the clock's owner acts on it at its next millisecond
             self.mega.on_write()
         return result
-
-
-#: the longest the kernel is taken to hold a hop's bytes, s of wall time (a stamp older than that is not a frame on its
-#: way: a host whose write failed, or that dropped a reply unseen, and then went silent is silent to the watchdog)
-KERNEL_HOP_MAX_S = 2.0
 
 
 class VirtualMega(MegaController):

@@ -105,6 +105,7 @@ static uint8_t *tx_ring;
 static size_t tx_head, tx_tail; /* bytes [tx_tail, tx_head) wait for the host */
 static uint64_t tx_lost;
 static int pty_master = -1, pty_slave = -1;
+static uint64_t rx_last_mono_ns; /* CLOCK_MONOTONIC ns of the bridge's last read of host bytes from the pty */
 static char pty_name[128];
 static int uart_xon = 1;
 static atomic_int link_down_req; /* 1 = the host's link is cut (USB pulled): host bytes and board bytes are lost */
@@ -196,6 +197,11 @@ static void bridge_poll(int readable)
         ssize_t r = read(pty_master, rx_buf, sizeof rx_buf);
         rx_pos = 0;
         rx_len = r > 0 ? (size_t)r : 0;
+        if (r > 0) {
+            struct timespec ts;
+            clock_gettime(CLOCK_MONOTONIC, &ts);
+            rx_last_mono_ns = (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
+        }
         if (r > 0 && atomic_load(&rxlog_req)) printf("RX t=%.6f n=%zd\n", sim_s(), r); /* a request's arrival */
     }
     while (uart_xon && rx_pos < rx_len) avr_raise_irq(uart_in_irq, rx_buf[rx_pos++]);
@@ -1514,18 +1520,26 @@ static void mega_poll(void)
  * simulated time the boards may run to (0: no grant, as before: not waited for). The host moves it on as it lives
  * (its reads, writes, waits and a heartbeat), a bounded lead past its last sign of life; a core that reaches it
  * waits, so a starved host pauses both boards instead of looking silent to them. The grant is never stale: a host
- * that stopped granting is one the boards wait for (its process gone, the harness exits on its own). */
+ * that stopped granting is one the boards wait for (its process gone, the harness exits on its own).
+ * Slots 3 and 4 are the host's writes to the Mega's and the Uno's port: CLOCK_MONOTONIC ns + 1 of the moment it began
+ * its last one (rigctl.simulation.hil_clock, stamped before the write). A pty hands a writer's bytes on through a
+ * kernel worker, which a loaded machine holds back for up to ~1 s; a board whose host wrote after this harness last
+ * read its pty, with nothing of the host's left in the bridge, waits for those bytes (--host-write-hold-s bounds the
+ * wait, wall clock: a write that failed is no write), as it waits for the grant: a request on its way is not a silent
+ * host (the firmware's watchdog), and a window's speed on its way is not late (the Uno encoder). The virtual Mega
+ * does the same (rigctl.simulation.virtual_mega: request_on_its_way). */
 #define LOCK_LEAD_S 0.002
 #define LOCK_STALE_S 0.5
 #define LOCK_WAIT_MIN_S 0.0001
 #define LOCK_WAIT_MAX_S 0.002
-#define LOCK_SLOTS 3 /* mega, uno, the host's grant */
+#define LOCK_SLOTS 5 /* mega, uno, the host's grant, the host's last write to the Mega's port, to the Uno's */
 static _Atomic uint64_t *lock_slots;
 static int lock_self;
 static double lock_time_s;       /* this core's simulated time for the lock */
 static uint64_t lock_cycle;      /* avr->cycle at the last update */
 static uint64_t lock_other_ns;   /* the partner's last published time ... */
 static double lock_other_wall;   /* ... and when it last changed (wall) */
+static double opt_host_write_hold_s = 2.0; /* --host-write-hold-s: longest wait for a stamped write's bytes, s (wall) */
 
 static void clock_lock_open(const char *path, int slot)
 {
@@ -1572,6 +1586,27 @@ static double host_grant_wait(void)
         if (t0 == 0.0) t0 = now_s();
         struct timespec ts = {0, 200000}; /* 0.2 ms: the host's heartbeat grants every few ms */
         nanosleep(&ts, NULL);
+        waited = now_s() - t0;
+    }
+    return waited;
+}
+
+/* wait while the host's last write to this board's port is on its way (slot 3 + is_uno after the last read, nothing of
+ * the host's left in the bridge, the link up): the pty is polled meanwhile and the bridge takes the bytes at once.
+ * Returns the wall seconds it waited (0: it did not). */
+static double host_write_wait(void)
+{
+    if (!lock_slots || atomic_load(&link_down_req)) return 0.0;
+    double t0 = 0.0, waited = 0.0;
+    for (;;) {
+        uint64_t stamp = atomic_load(&lock_slots[3 + (is_uno ? 1 : 0)]);
+        if (stamp == 0 || stamp - 1 <= rx_last_mono_ns || rx_pos != rx_len || atomic_load(&quit_requested)) break;
+        double t = now_s();
+        if (t - (double)(stamp - 1) * 1e-9 > opt_host_write_hold_s) break; /* a write that failed: no write */
+        if (t0 == 0.0) t0 = t;
+        struct pollfd pfd = {.fd = pty_master, .events = POLLIN};
+        int ready = poll(&pfd, 1, 1) > 0 && (pfd.revents & POLLIN);
+        if (ready) bridge_poll(1);
         waited = now_s() - t0;
     }
     return waited;
@@ -1821,7 +1856,7 @@ static void usage(void)
 {
     fprintf(stderr, "usage: rigctl_simavr --board uno|mega [--no-pace] [--reset-on-open] [--boot-ms MS] [--bootloader HEX] "
                     "[--wave FILE] [--spring-k G_PER_MM] [--contact-mm MM] [--act-steps-per-mm N] "
-                    "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] "
+                    "[--counts-per-g N] [--loadcell-offset N] [--rear-stop-mm MM] [--tel-ms MS] [--max-seconds S] [--clock-lock FILE] [--host-write-hold-s S] "
                     "[--taxel-ohm OHM] [--mux-ron-ohm OHM] [--mux-c-pf PF] [--sh-c-pf PF] [--aa-c-nf NF] "
                     "[--hx711-sps 10|80] [--hx711-clock-error REL] [--drum-driver-microsteps N] [--no-index-sensor] "
                     "[--index-bounce N] [--eeprom-write OFFSET:HEX] [--actuator-stall-g G] "
@@ -1851,6 +1886,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--tel-ms")) opt_tel_ms = atof(NEXT());
         else if (!strcmp(a, "--max-seconds")) opt_max_seconds = atof(NEXT());
         else if (!strcmp(a, "--clock-lock")) opt_clock_lock = NEXT();
+        else if (!strcmp(a, "--host-write-hold-s")) opt_host_write_hold_s = atof(NEXT());
         else if (!strcmp(a, "--taxel-ohm")) opt_taxel_ohm = atof(NEXT());
         else if (!strcmp(a, "--mux-ron-ohm")) opt_mux_ron_ohm = atof(NEXT());
         else if (!strcmp(a, "--mux-c-pf")) opt_mux_c_pf = atof(NEXT());
@@ -2065,7 +2101,9 @@ int main(int argc, char **argv)
         if (lock_slots) {
             clock_lock_publish(0.0);
             clock_lock_wait();
-            if (host_grant_wait() > 0.0) { /* the world paused for the host: paced, it goes on from here, no burst */
+            double paused = host_grant_wait();
+            paused += host_write_wait();
+            if (paused > 0.0) { /* the world paused for the host: paced, it goes on from here, no burst */
                 wall0 = now_s();
                 cycle0 = avr->cycle;
             }
