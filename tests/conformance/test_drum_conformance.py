@@ -623,10 +623,30 @@ def test_force_limit_latches_during_another_fault(drum, controller):
     """FAULT_BITS are latched faults: a force over FORCE_LIMIT_G while the rig is already in FAULT (watchdog) adds
     FORCE_LIMIT to the bits."""
     bring_to(drum, controller, S.FAULT)
+    released(drum, controller)  # the back-off over: a push while it runs is ACTUATOR_DIRECTION (the test below)
     controller.place_mass(DEFAULT[HR.FORCE_LIMIT_G] + 100)
     poll(drum, lambda s: s.force_g > DEFAULT[HR.FORCE_LIMIT_G], 5, "the force over the limit")
     st = poll(drum, lambda s: Fault.FORCE_LIMIT in s.faults, 5, "FORCE_LIMIT latched")
     assert st.state == S.FAULT and st.faults == Fault.WATCHDOG | Fault.FORCE_LIMIT
+
+
+def test_a_push_on_the_cell_while_the_actuator_backs_off_is_a_direction_fault(drum, controller):
+    """A load that rises while the actuator backs off (the watchdog's latch, the actuator well out) is what a reversed
+    motor would show (spec 2.11, sign-free): ACTUATOR_DIRECTION beside the latch, the actuator stopped where it
+    stands, not driven on. (A CI run met this in the test above, whose host, starved, let the press go further out
+    before the latch, so that the back-off still ran when its mass landed.)"""
+    bring_to(drum, controller, S.RUNNING)
+    poll(drum, lambda s: s.actuator_mm > 2.5, 5, "the actuator well out")
+    drum.write_holding(HR.WATCHDOG_MS, 100)
+    silent(controller, 150)
+    st = poll(drum, lambda s: s.state == S.FAULT, 2, "FAULT")
+    assert st.faults == Fault.WATCHDOG and st.actuator_mm > 0.5, (repr(st.faults), st.actuator_mm)  # backing off
+    controller.place_mass(DEFAULT[HR.FORCE_LIMIT_G] + 100)
+    st = poll(drum, lambda s: Fault.ACTUATOR_DIRECTION in s.faults, 5, "ACTUATOR_DIRECTION latched")
+    stopped_mm = controller.actuator_mm()
+    silent(controller, 300)
+    assert abs(controller.actuator_mm() - stopped_mm) < 0.05, "the actuator moved on after the direction fault"
+    assert Fault.WATCHDOG in st.faults and st.state == S.FAULT
 
 
 def test_actuator_travel_faults_at_the_end_of_travel(drum, controller):
