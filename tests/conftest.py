@@ -58,6 +58,11 @@ def pytest_configure(config):
     # the rig's own safety log and the server's queue ($XDG_STATE_HOME/rigctl) never in the user's home; a test that
     # reads them sets its own (monkeypatch.setenv), which CLI subprocesses inherit
     os.environ["XDG_STATE_HOME"] = str(scratch / "state")
+    # the simulated rigs a command opens for itself (`--sim`, `--replay`, `--hil`; CLI subprocesses inherit it) run
+    # unpaced on the clock they share with their host (docs/architecture.md "Time on a simulated rig"): as fast as the
+    # CPU and the host's grants allow, a starved host pausing them; a person's default is the wall clock. A test of the
+    # wall itself sets RIGCTL_SIM_PACE=wall (the README's first command beside four CPU hogs)
+    os.environ.setdefault("RIGCTL_SIM_PACE", "none")
     # LSL on this machine alone (liblsl reads LSLAPICFG when it first resolves or opens a stream; CLI subprocesses
     # inherit it): discovery only to 127.0.0.1, never a multicast or broadcast address, no IPv6; never $HOME's file
     cfg_dir = Path(tempfile.mkdtemp(prefix="rigctl-lsl-"))
