@@ -56,21 +56,17 @@ def test_replay_without_loop_ends(fabricslide_dir):
         FabricSlideReplay(fabricslide_dir, pattern="Nothing_*.csv")
 
 
-# wall (not yet moved): frames awaited on time.monotonic deadlines from an in-process rig paced to the wall clock
-@pytest.mark.realtime
 def test_recorded_through_the_simulated_rig_equals_the_source(fabricslide_dir, tmp_path):
     from rigctl.devices.taxel_stream import TaxelStream
     from rigctl.simulation.rig import SimulatedRig
 
     replay = FabricSlideReplay(fabricslide_dir, pattern=PATTERN)
-    with SimulatedRig(seed=1, source=replay, port_dir=tmp_path) as rig:
+    # unpaced, on the rig's one clock (the stream finds it by its port): frames awaited on it
+    with SimulatedRig(seed=1, source=replay, port_dir=tmp_path, paced=False) as rig:
         with TaxelStream(rig.taxel_port) as stream:
+            assert stream.clock is rig.clock
             stream.start()
-            stream.begin_capture()
-            deadline = time.monotonic() + 10
-            while not stream.wait_capture(1500, timeout_s=0.1):
-                assert time.monotonic() < deadline
-            cap = stream.end_capture()
+            cap = _capture(stream, 1500, rig.clock.now, timeout=10)
     assert cap.dropped == 0 and cap.crc_errors == 0 and len(cap.samples) >= 1500
     served = replay.samples_served
     truth = replay.expected_samples(served)
@@ -130,16 +126,15 @@ def test_session_replay_stream_and_mounts(nine_channel_session):
         replay.mount("velvet")
 
 
-def _capture(stream, n, timeout=20):
+def _capture(stream, n, now, timeout=20):
+    """``n`` frames captured within ``timeout`` s of ``now()`` (a simulated rig's clock, or the wall's)."""
     stream.begin_capture()
-    deadline = time.monotonic() + timeout
+    deadline = now() + timeout
     while not stream.wait_capture(n, timeout_s=0.1):
-        assert time.monotonic() < deadline, "no frames"
+        assert now() < deadline, "no frames"
     return stream.end_capture()
 
 
-# wall (not yet moved): frames awaited on time.sleep from an in-process rig paced to the wall clock
-@pytest.mark.realtime
 def test_any_session_replayed_through_the_simulated_board_equals_the_source(nine_channel_session, tmp_path):
     """A 9-channel 100 Hz session through SimulatedRig + VirtualUno + a real pty + TaxelStream: the board announces
     9 channels at 100 Hz and the host's captured samples equal the session's trials exactly, before and after a
@@ -150,21 +145,23 @@ def test_any_session_replayed_through_the_simulated_board_equals_the_source(nine
 
     path, layout, data = nine_channel_session
     replay = SessionReplay(path)
-    with SimulatedRig(seed=1, source=replay, port_dir=tmp_path / "ports") as rig:
+    # unpaced, on the rig's one clock (the stream finds it by its port): frames awaited and waits on it
+    with SimulatedRig(seed=1, source=replay, port_dir=tmp_path / "ports", paced=False) as rig:
         assert rig.layout == layout
         with TaxelStream(rig.taxel_port) as stream:
+            assert stream.clock is rig.clock
             assert stream.layout.n_channels == 9 and stream.layout.sample_rate_hz == 100.0
             assert stream.layout.shape_text == "3x3x1" and stream.banner["layout"] == "3x3x1"
             stream.start()
-            cap = _capture(stream, 150)
+            cap = _capture(stream, 150, rig.clock.now)
             start = rig.uno.stream_start_sample
             rig.set_texture("silk_fine")  # the protocol mounts a plate
             mount_at, label = replay.mounts[-1]
             assert label == "silk_fine"
             stream.stop()
-            time.sleep(0.1)
+            rig.clock.sleep(0.1)
             stream.start()
-            cap2 = _capture(stream, 120)
+            cap2 = _capture(stream, 120, rig.clock.now)
             start2 = rig.uno.stream_start_sample
     assert cap.samples.shape[1] == 9 and cap.dropped == 0 and cap.crc_errors == 0
     assert np.all(np.diff(cap.seq.astype(np.int64)) == 1)
@@ -203,7 +200,7 @@ def test_rigctl_sim_replays_a_session_file(nine_channel_session, tmp_path):
         with TaxelStream(ports["taxel"]) as stream:
             assert (stream.layout.n_channels, stream.layout.sample_rate_hz) == (9, 100.0)
             stream.start()
-            cap = _capture(stream, 100)
+            cap = _capture(stream, 100, time.monotonic)
     finally:
         proc.terminate()
         proc.wait(timeout=60)  # a bound on a hang only: a loaded machine stretches the rig's shutdown
