@@ -12,9 +12,6 @@ from rigctl.rigs import open_rig
 from rigctl.simulation.dataset import render_trial
 from rigctl.simulation.model import RigConfig
 
-# wall (not yet moved): recordings through in-process SimulatedRigs paced to the wall clock (its default)
-pytestmark = pytest.mark.realtime
-
 
 def _windows(taxels, taxel=4, window=100):
     x = taxels[:, taxel].astype(float)
@@ -24,7 +21,8 @@ def _windows(taxels, taxel=4, window=100):
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     cfg_path = tmp_path_factory.mktemp("cfg") / "rig.json"
-    with open_rig("sim", config=RigConfig(), seed=11, host_config_path=cfg_path) as rig:
+    # unpaced: the rig runs as far as the host's waits grant on its one clock (every wait of the recording is of it)
+    with open_rig("sim", config=RigConfig(), seed=11, host_config_path=cfg_path, paced=False) as rig:
         rig.mount_texture("L")
         trials = [rig.record_trial(PlannedTrial(i, "L", 120.0, 500.0, 1.0)) for i in range(2)]
     return trials
