@@ -65,6 +65,33 @@ SPEED_WOBBLE_TAU_S = 0.3
 RUNOUT_PHASE_RAD = 1.0
 
 
+#: rows of a trial's taxels laid side by side for its per-taxel extremes (:func:`taxel_extrema`)
+EXTREMA_FOLD = 64
+
+
+def taxel_extrema(taxels: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-channel minimum and maximum of ``(n, channels)`` counts, ``(channels,)`` each in the counts' type (None
+    for no samples): ``taxels.min(axis=0)`` and ``max(axis=0)`` exactly, computed over :data:`EXTREMA_FOLD` rows laid
+    side by side (numpy's column reduction walks 18-wide rows: ~0.25 ms a 6,000-sample trial each, this ~11 us;
+    the dataset generator's writer did both for every trial)."""
+    n, ch = taxels.shape
+    if n == 0:
+        return None
+    cut = n - n % EXTREMA_FOLD
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
+    if cut:
+        head = taxels[:cut].reshape(-1, EXTREMA_FOLD * ch)
+        lo = head.min(axis=0).reshape(EXTREMA_FOLD, ch).min(axis=0)
+        hi = head.max(axis=0).reshape(EXTREMA_FOLD, ch).max(axis=0)
+    if cut < n:
+        tail = taxels[cut:]
+        lo = tail.min(axis=0) if lo is None else np.minimum(lo, tail.min(axis=0))
+        hi = tail.max(axis=0) if hi is None else np.maximum(hi, tail.max(axis=0))
+    assert lo is not None and hi is not None  # (n > 0: the head or the tail has rows)
+    return lo, hi
+
+
 def model_layout(config: RigConfig | None = None, sensor: SensorModel | None = None) -> SensorLayout:
     """The sensor the model renders: the model's own ``layout`` when it declares one (``sensor.layout`` or
     ``config.sensor.layout``), else the paper's 3x3x2 at 1 kHz, 10-bit (:data:`rigctl.core.sensor.PAPER_SENSOR`)."""
@@ -417,8 +444,10 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
             nonlocal exhausted
             t0 = time.monotonic()
             for count, (tid, data) in enumerate(it, 1):
-                np.minimum(lo, data.taxels.min(axis=0), out=lo)
-                np.maximum(hi, data.taxels.max(axis=0), out=hi)
+                extrema = taxel_extrema(data.taxels)
+                if extrema is not None:
+                    np.minimum(lo, extrema[0], out=lo)
+                    np.maximum(hi, extrema[1], out=hi)
                 stats["n_trials"] += 1
                 stats["samples"] += data.n_samples
                 bar.advance(1)
@@ -451,9 +480,10 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
 
             with open_session(out_path) as s:
                 for tid in done:
-                    x = s.trial(tid).taxels
-                    np.minimum(lo, x.min(axis=0), out=lo)
-                    np.maximum(hi, x.max(axis=0), out=hi)
+                    extrema = taxel_extrema(s.trial(tid).taxels)
+                    if extrema is not None:
+                        np.minimum(lo, extrema[0], out=lo)
+                        np.maximum(hi, extrema[1], out=hi)
         writer.set_calibration({"taxel_min": lo, "taxel_max": hi, "source": "min/max over all trials",
                                 "unit": "ADC counts"})
     wall = time.perf_counter() - t_start
