@@ -268,6 +268,13 @@ def apply_journal(fd: int, jpath: str | os.PathLike[str], *, durable: bool = Tru
         raise CommittedInterrupt("interrupted while committing; the commit was completed first") from interrupted
 
 
+#: the largest buffer of new bytes an :class:`OverlayFile` hands on to the next one (:data:`_SPARE_TAILS`)
+SPARE_TAIL_MAX_BYTES = 128 << 20
+#: buffers of new bytes kept from a closed :class:`OverlayFile` for the next: a fresh buffer grown to a dataset
+#: generator's batch (~55 MB) by HDF5's chunk-sized writes cost ~0.2 ms a trial in new pages and regrowth copies
+_SPARE_TAILS: list[bytearray] = []
+
+
 class OverlayFile(io.RawIOBase):
     """A file object for h5py (``h5py.File(OverlayFile(path), "r+")``) that keeps every write in memory until
     :meth:`commit`. Takes an exclusive ``flock`` on the file for its lifetime (other rigctl writers wait, HDF5
@@ -287,7 +294,13 @@ class OverlayFile(io.RawIOBase):
         self._base_size = os.fstat(self._fd).st_size
         self._size = self._base_size
         self._pages: dict[int, bytearray] = {}  # pages of the bytes below _base_size (what is on disk)
-        self._tail = bytearray()  # the bytes from _base_size on (all new): one buffer, no per-page work
+        # the bytes from _base_size on (all new): one buffer, no per-page work; its first _tail_len bytes are the
+        # file's, the rest room to grow (a buffer an earlier overlay used: its old bytes are never read)
+        try:
+            self._tail = _SPARE_TAILS.pop()
+        except IndexError:
+            self._tail = bytearray()
+        self._tail_len = 0
         self._zero_from = self._base_size  # after a truncation below _base_size: disk bytes from here read as 0
         self._pos = 0
 
@@ -334,7 +347,7 @@ class OverlayFile(io.RawIOBase):
         if end > base:  # the new part
             lo = max(start, base)
             t0, t1 = lo - base, end - base
-            have = max(0, min(t1, len(self._tail)) - t0)
+            have = max(0, min(t1, self._tail_len) - t0)
             out[lo - start:lo - start + have] = self._tail[t0:t0 + have]
             if have < t1 - t0:
                 out[lo - start + have:n] = bytes(t1 - t0 - have)
@@ -363,9 +376,13 @@ class OverlayFile(io.RawIOBase):
             done += k
         if done < n:  # new bytes: into the tail buffer
             t0 = pos + done - base
-            if t0 > len(self._tail):
-                self._tail.extend(bytes(t0 - len(self._tail)))
-            self._tail[t0:t0 + n - done] = data[done:]
+            end = t0 + n - done
+            if end > len(self._tail):  # room for twice the bytes (CPython grows a bytearray by an eighth)
+                self._tail.extend(bytes(max(end, 2 * len(self._tail)) - len(self._tail)))
+            if t0 > self._tail_len:  # a gap reads as zeros
+                self._tail[self._tail_len:t0] = bytes(t0 - self._tail_len)
+            self._tail[t0:end] = data[done:]
+            self._tail_len = max(self._tail_len, end)
         self._pos += n
         self._size = max(self._size, self._pos)
         return n
@@ -374,15 +391,15 @@ class OverlayFile(io.RawIOBase):
         size = self._pos if size is None else int(size)
         base = self._base_size
         if size < base:
-            self._tail.clear()
+            self._tail_len = 0
             for i in [i for i in self._pages if i * PAGE >= size]:
                 del self._pages[i]
             if size % PAGE:
                 page = self._page(size // PAGE)
                 page[size % PAGE:] = bytes(PAGE - size % PAGE)
             self._zero_from = min(self._zero_from, size)
-        elif size - base < len(self._tail):
-            del self._tail[size - base:]
+        elif size - base < self._tail_len:
+            self._tail_len = size - base
         self._size = size
         return size
 
@@ -405,10 +422,11 @@ class OverlayFile(io.RawIOBase):
         jpath = journal_path(self.path)
         try:
             if size > base:  # new bytes first: nothing on disk refers to them yet
-                tail = memoryview(self._tail)
-                _pwrite(self._fd, tail[: size - base], base)
-                if len(tail) < size - base:
-                    _pwrite(self._fd, bytes(size - base - len(tail)), base + len(tail))
+                with memoryview(self._tail) as tail:
+                    have = min(self._tail_len, size - base)
+                    _pwrite(self._fd, tail[:have], base)
+                if have < size - base:
+                    _pwrite(self._fd, bytes(size - base - have), base + have)
             if inplace or size < base:
                 body = bytearray(_MAGIC + struct.pack("<QI", size, len(inplace)))
                 for start, data in inplace:
@@ -435,7 +453,7 @@ class OverlayFile(io.RawIOBase):
             if self.durable:
                 os.fsync(self._fd)
         self._pages.clear()
-        self._tail = bytearray()
+        self._tail_len = 0
         self._base_size = self._zero_from = size
 
     def _undo_partial_commit(self, jpath: Path, base: int) -> None:
@@ -455,3 +473,6 @@ class OverlayFile(io.RawIOBase):
                 os.close(self._fd)  # releases the flock
             finally:
                 super().close()
+                tail, self._tail, self._tail_len = self._tail, bytearray(), 0
+                if 0 < len(tail) <= SPARE_TAIL_MAX_BYTES and not _SPARE_TAILS:
+                    _SPARE_TAILS.append(tail)  # (list.append and pop: atomic, overlays in several threads)
