@@ -189,7 +189,7 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
         except ModbusExceptionError:
             if clock.now() > deadline:
                 raise
-            time.sleep(0.05)
+            drum.clock.sleep(0.05)
     defaults = [wire.holding_range(a)[2] for a in range(wire.N_HOLDING)]  # reserved addresses: 0
     drum.write_holdings(0, defaults)
     home(drum)
@@ -197,7 +197,7 @@ def restore(drum: DrumClient, ctl: Controller) -> None:
     deadline = clock.now() + 10.0
     while abs(drum.read_status().speed_mm_s) > 0:  # the drum decelerates to rest
         assert clock.now() < deadline, "the drum does not come to rest"
-        time.sleep(0.02)
+        drum.clock.sleep(0.02)
 
 
 #: WATCHDOG_MS during the tests of other behaviour (the register's maximum): a test host starved for a second on a

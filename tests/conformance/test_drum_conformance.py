@@ -25,7 +25,7 @@ from rigctl.devices.drum import DrumClient, DrumStatus
 from rigctl.devices.errors import ModbusExceptionError
 from rigctl.devices.wire import Command, DrumState as S, Fault, HoldingRegister as HR, InputRegister as IR
 
-from .conftest import QUIET_WATCHDOG_MS
+from .conftest import QUIET_WATCHDOG_MS, home
 
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 1, 2, 3
 DEFAULT = {a: wire.holding_range(a)[2] for a in range(wire.N_HOLDING)}  # reserved addresses: 0
@@ -77,7 +77,7 @@ def poll(drum: DrumClient, done, timeout_s: float, what: str) -> DrumStatus:
         if done(st):
             return st
         assert drum.clock.now() < deadline, f"no {what} within {timeout_s} s: {st}"
-        time.sleep(0.02)
+        drum.clock.sleep(0.02)
 
 
 def released(drum: DrumClient, ctl, timeout_s: float = 10.0) -> DrumStatus:
@@ -88,8 +88,24 @@ def released(drum: DrumClient, ctl, timeout_s: float = 10.0) -> DrumStatus:
     deadline = ctl.clock_s() + timeout_s
     while ctl.actuator_mm() > HOME_MM:
         assert ctl.clock_s() < deadline, f"the actuator is physically at {ctl.actuator_mm():.2f} mm"
-        time.sleep(0.05)
+        drum.clock.sleep(0.05)
     return st
+
+
+def settled_after_latch(drum: DrumClient, ctl, timeout_s: float = 10.0) -> DrumStatus:
+    """Wait until a latch's back-off is over: the drum at rest and the actuator standing still (home, or where the
+    latch stopped it: a latch while pressing backs off only the way the press proved, spec 2.11); returns the status
+    (``timeout_s`` of the controller's time)."""
+    deadline = ctl.clock_s() + timeout_s
+    last_mm = None
+    while True:
+        st = drum.read_status()
+        mm = ctl.actuator_mm()
+        if abs(st.speed_mm_s) < AT_REST_MM_S and last_mm is not None and abs(mm - last_mm) < 0.005:
+            return st
+        assert ctl.clock_s() < deadline, f"the actuator still moves ({mm:.2f} mm): {st}"
+        last_mm = mm
+        drum.clock.sleep(0.05)  # 0.25 mm of a back-off at the clamp speed
 
 
 def silent(ctl, ms: float) -> None:
@@ -97,7 +113,7 @@ def silent(ctl, ms: float) -> None:
     falls behind real time on a starved machine, so host time would not do)."""
     until = ctl.clock_s() + ms / 1000.0
     while ctl.clock_s() < until:
-        time.sleep(0.01)
+        ctl.rig.clock.sleep(0.01)  # a wait on the rig's clock: no request, so the firmware's watchdog sees silence
 
 
 def holding(drum: DrumClient) -> list[int]:
@@ -353,7 +369,7 @@ def test_ramp_profile_is_linear_in_controller_time(drum):
         seen.append(drum.read_status())
         assert seen[-1].state == S.RUNNING
         assert len(seen) < 500
-        time.sleep(0.03)
+        drum.clock.sleep(0.03)
     assert len({s.speed_target_mm_s for s in seen}) >= 4  # we saw the ramp, not just its end
     for s in seen:
         # RUN took effect between the two heartbeats read around it; each heartbeat is 10 ms of controller time
@@ -470,7 +486,7 @@ def test_stop_backs_the_actuator_off_at_the_clamp_speed(drum, controller):
         track.append((t, mm))
         if mm <= HOME_MM:
             break
-        time.sleep(0.01)
+        drum.clock.sleep(0.01)
     mid = [(t, mm) for t, mm in track if 0.3 < mm < start_mm - 0.3]
     assert len(mid) >= 3, track
     (t0, x0), (t1, x1) = mid[0], mid[-1]
@@ -531,7 +547,7 @@ def _fed_for(drum: DrumClient, ctl, wd_ms: int, request, since_s: float) -> tupl
         if after > t_end:
             st = drum.read_status()  # a request too: the silence before it counts
             return st, max(longest, ctl.clock_s() - before)
-        time.sleep(0.05)
+        drum.clock.sleep(0.05)
 
 
 def test_watchdog_a_polling_host_keeps_it_fed(drum, controller):
@@ -553,8 +569,9 @@ def test_watchdog_a_polling_host_keeps_it_fed(drum, controller):
         gaps = []
         for _try in range(FED_TRIES):
             if drum.read_status().state == S.FAULT:  # the last try's host was silent: start again
-                released(drum, controller)
+                settled_after_latch(drum, controller)
                 drum.clear_fault()
+                home(drum)  # a latch whose back-off the press had not proven leaves the position unknown
             drum.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)
             bring_to(drum, controller, S.RUNNING)
             since_s = controller.clock_s()  # the silences count from the request that sets WATCHDOG_MS
@@ -608,7 +625,7 @@ def test_force_limit_faults_backs_off_and_clears_only_when_gone(drum, controller
     deadline = controller.clock_s() + 5
     while controller.actuator_mm() > x0 - 0.5:  # backing off
         assert controller.clock_s() < deadline, "the actuator does not back off"
-        time.sleep(0.02)
+        drum.clock.sleep(0.02)
     with refused():
         drum.clear_fault()
     assert drum.read_status().state == S.FAULT
@@ -623,7 +640,7 @@ def test_force_limit_latches_during_another_fault(drum, controller):
     """FAULT_BITS are latched faults: a force over FORCE_LIMIT_G while the rig is already in FAULT (watchdog) adds
     FORCE_LIMIT to the bits."""
     bring_to(drum, controller, S.FAULT)
-    released(drum, controller)  # the back-off over: a push while it runs is ACTUATOR_DIRECTION (the test below)
+    settled_after_latch(drum, controller)  # a push while the actuator backs off is ACTUATOR_DIRECTION (below)
     controller.place_mass(DEFAULT[HR.FORCE_LIMIT_G] + 100)
     poll(drum, lambda s: s.force_g > DEFAULT[HR.FORCE_LIMIT_G], 5, "the force over the limit")
     st = poll(drum, lambda s: Fault.FORCE_LIMIT in s.faults, 5, "FORCE_LIMIT latched")
@@ -666,7 +683,7 @@ def test_actuator_travel_faults_at_the_end_of_travel(drum, controller):
     seen = [drum.read_status()]
     while seen[-1].state != S.FAULT:
         assert seen[-1].state == S.SEEKING_FORCE and len(seen) < 2000, seen[-1]
-        time.sleep(0.02)
+        drum.clock.sleep(0.02)
         seen.append(drum.read_status())
     st = seen[-1]
     assert st.faults == Fault.ACTUATOR_TRAVEL and st.force_setpoint_active_g == 0

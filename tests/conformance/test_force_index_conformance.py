@@ -6,8 +6,6 @@ physics: rigctl.simulation.model, arduino/simavr/rigctl_simavr.c)."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from rigctl.devices.drum import DrumClient, default_force_loop
@@ -46,7 +44,7 @@ def _forces(ctl, drum: DrumClient, seconds: float) -> list[float]:
     while ctl.clock_s() < end:
         drum.read_status()
         out.append(ctl.load_g())
-        time.sleep(0.02)
+        drum.clock.sleep(0.02)
     return out
 
 
@@ -110,7 +108,7 @@ def test_index_sensor_measures_the_real_drum_speed_with_a_wrong_microstep_settin
     st = drum.read_status()
     while st.index_count < 3:
         assert ctl.clock_s() < deadline, st
-        time.sleep(0.1)
+        drum.clock.sleep(0.1)
         st = drum.read_status()
     d = DrumConfig()
     assert st.index_source == "sensor"
@@ -130,7 +128,7 @@ def test_without_an_index_sensor_the_step_count_marks_the_index(make_rig):
     deadline = drum.clock.now() + 30  # the controller's own time: simavr falls behind real time on a loaded host
     while (st.revolutions - rev0) % 65536 < 2:
         assert drum.clock.now() < deadline
-        time.sleep(0.1)
+        drum.clock.sleep(0.1)
         st = drum.read_status()
     assert st.index_source == "steps" and st.index_count == 0 and st.index_period_s == 0
     drum.stop()

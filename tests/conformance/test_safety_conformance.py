@@ -10,8 +10,6 @@ travel limit) and a corrupted EEPROM calibration.
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from rigctl.devices import wire
@@ -46,7 +44,7 @@ def after_reset(drum, ctl, boot0: int, cause: ResetCause, timeout_s: float = 10.
         except Exception:  # noqa: BLE001 - a request in the reset window may go unanswered
             pass
         assert ctl.clock_s() < deadline, "the controller did not come back after the reset"
-        time.sleep(0.05)
+        drum.clock.sleep(0.05)
     assert st.boot_count == wire.boot_count_after(boot0, cause)  # warm +1, cold: the high byte +1 (spec 2.7)
     assert st.reset_cause == cause and st.state == S.NOT_HOMED and not st.homed
     drum.write_holding(HR.WATCHDOG_MS, QUIET_WATCHDOG_MS)
@@ -114,7 +112,7 @@ def test_reversed_load_cell_faults_at_once_and_calibrates_negative(drum, control
         if st.state == S.FAULT:
             break
         assert st.state == S.SEEKING_FORCE, st
-        time.sleep(0.02)
+        drum.clock.sleep(0.02)
     assert st.faults == Fault.LOADCELL_REVERSED
     assert peak <= 2 * TOL + 60  # a reading or two past -2 x tolerance, never the 500 g setpoint
     st = released(drum, controller)
@@ -205,7 +203,7 @@ def test_estop_open_at_boot_latches_at_once(drum, controller):
         except Exception:  # noqa: BLE001 - the reset window
             pass
         assert controller.clock_s() < deadline
-        time.sleep(0.05)
+        drum.clock.sleep(0.05)
     assert (st.state, st.faults, st.reset_cause) == (S.FAULT, Fault.ESTOP, ResetCause.POWER_ON)
     assert st.estop_open and not st.drivers_enabled
 
