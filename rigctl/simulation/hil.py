@@ -38,7 +38,7 @@ import numpy as np
 
 from rigctl import firmware
 from rigctl.core.faults import FaultSchedule, FaultSpec
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
+from rigctl.core.shared_clock import SharedClock
 from rigctl.devices import wire
 from rigctl.simulation.hil_clock import HilClockFile
 from rigctl.simulation.hil_faults import HilFaults
@@ -319,8 +319,7 @@ class HilRig:
         m = self.config.mechanics
         # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
-        lock = ["--clock-lock", str(self._clock_file.path), "--host-write-hold-s", str(KERNEL_HOP_MAX_S),
-                *([] if self.paced else ["--no-pace"])]
+        lock = self._clock_file.harness_args(paced=self.paced)
         self.clock.start()
         record = default_record(int(m.loadcell_offset_counts))  # calibrated and tared on the unloaded cell
         calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{record.hex()}"] if self.factory_calibrated else []
@@ -331,8 +330,7 @@ class HilRig:
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
             *self._hardware_args(), *lock, *calibrated], self._on_mega_line)
-        self.clock.own_port(self._mega.port)
-        self._clock_file.board_port("mega", self._mega.port)
+        self._clock_file.board_port("mega", self._mega.port)  # on self.clock, its writes stamped
         if not self.with_uno:
             return self
         try:
@@ -343,7 +341,6 @@ class HilRig:
             self._mega.close()
             self._mega = None
             raise
-        self.clock.own_port(self._uno.port)
         self._clock_file.board_port("uno", self._uno.port)
         if self.live:
             self._render_and_load()

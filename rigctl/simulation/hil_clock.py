@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.core.shared_clock import SharedClock
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
 
 __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
@@ -45,11 +45,12 @@ class HilClockFile:
         self._slots: np.ndarray | None = np.frombuffer(self._map, dtype=np.uint64)
         self._last_s = 0.0
         self._write_slots: dict[str, int] = {}
+        self._clock: SharedClock | None = None
 
     def shared_clock(self) -> SharedClock:
         """A :class:`SharedClock` on the boards' time whose grants go to the file (its first one written now) and
         whose hosts' writes to a board's port (:meth:`board_port`) are stamped in it (:meth:`stamp`)."""
-        clock = SharedClock(self.world_now, on_grant=self.grant, on_stamp=self.stamp)
+        clock = self._clock = SharedClock(self.world_now, on_grant=self.grant, on_stamp=self.stamp)
         self.grant(clock.horizon_s)
         return clock
 
@@ -73,9 +74,18 @@ class HilClockFile:
         if slots is not None:
             slots[2] = np.uint64(int(horizon_s * 1e9) + 1)
 
+    def harness_args(self, *, paced: bool) -> list[str]:
+        """The command-line options that put a harness on this file: its clock lock, the longest it waits for a
+        stamped write's bytes (:data:`KERNEL_HOP_MAX_S`), ``--no-pace`` unless ``paced``."""
+        return ["--clock-lock", str(self.path), "--host-write-hold-s", str(KERNEL_HOP_MAX_S),
+                *([] if paced else ["--no-pace"])]
+
     def board_port(self, board: str, path: str | os.PathLike[str]) -> None:
         """``path`` is the port of ``board`` (``"mega"`` or ``"uno"``: a key of :data:`WRITE_SLOTS`): a host's
-        writes to it are stamped in that board's slot."""
+        writes to it are stamped in that board's slot, and a client of this process that opens it finds the clock of
+        :meth:`shared_clock` by it (:meth:`SharedClock.own_port`)."""
+        if self._clock is not None:
+            self._clock.own_port(path)
         slot = WRITE_SLOTS[board]
         for key in {os.fspath(path), os.path.realpath(path)}:
             self._write_slots[key] = slot
