@@ -405,11 +405,15 @@ def _add_low_rank(cov, a, b, scale):
 
 def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None, start=None):
     """Leading ``k`` eigenpairs of a symmetric PSD matrix: exact for small matrices, else a randomized subspace
-    iteration with a Rayleigh-Ritz step (Halko, Martinsson & Tropp 2011, Alg. 4.4 on ``cov``). ``order``: ``cov``'s
-    rows and columns are the features in this order (the random start is drawn in the features' own order and
-    permuted with them, so the iteration does not depend on the order). ``start``: (d, k + n_oversamples), the
-    starting subspace instead of a random one (warm start). Returns the values, the vectors and the whole Ritz basis
-    ``(d, k + n_oversamples)`` by decreasing value (None from the exact solver)."""
+    iteration (Halko, Martinsson & Tropp 2011, Alg. 4.4 on ``cov``) whose last product gives the eigenpairs by the
+    Nystrom approximation ``Y (Q' Y)^-1 Y'`` of ``cov`` (``Y = cov Q``; Tropp, Yurtsever, Udell & Cevher 2017, Alg. 3,
+    with their stabilising shift): as accurate as a Rayleigh-Ritz step on the span of ``Y`` (measured on the paper's
+    features: docs/results.md 5o) without the Rayleigh-Ritz step's own product ``cov Q`` (``n_iter + 1`` products in
+    all; Rayleigh-Ritz, one more, if the Nystrom core is not positive definite). ``order``: ``cov``'s rows and columns
+    are the features in this order (the random start is drawn in the features' own order and permuted with them, so
+    the iteration does not depend on the order). ``start``: (d, k + n_oversamples), the starting subspace instead of
+    a random one (warm start). Returns the values, the vectors and the whole basis ``(d, k + n_oversamples)`` by
+    decreasing value (None from the exact solver)."""
     d = cov.shape[0]
     p = min(d, k + n_oversamples)
     if d <= 4 * p:  # small: LAPACK's exact solver is as cheap
@@ -421,13 +425,39 @@ def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None, start=No
         q = np.random.default_rng(random_state).standard_normal((d, p)).astype(cov.dtype)
         if order is not None:
             q = q[order]
-    for i in range(n_iter + 1):  # (one Cholesky QR pass before the last: the span is the same, the last restores
-        q = _orthonormal(cov @ q, passes=2 if i == n_iter else 1)  # the orthogonality to float32)
-    small = (q.T @ (cov @ q)).astype(np.float64)
-    vals, u = eigh((small + small.T) / 2)
-    top = np.argsort(vals)[::-1]
-    basis = q @ u[:, top].astype(q.dtype)
-    return vals[top[:k]], basis[:, :k], basis
+        q = _orthonormal(q)
+    for i in range(n_iter):  # (one Cholesky QR pass before the last: the span is the same, the last restores
+        q = _orthonormal(cov @ q, passes=2 if i == n_iter - 1 else 1)  # the orthogonality to float32)
+    y = cov @ q
+    got = _nystrom(q, y)
+    if got is None:  # (Rayleigh-Ritz on the span of y)
+        q = _orthonormal(y)
+        small = (q.T @ (cov @ q)).astype(np.float64)
+        vals, u = eigh((small + small.T) / 2)
+        top = np.argsort(vals)[::-1]
+        vals, basis = vals[top], q @ u[:, top].astype(q.dtype)
+    else:
+        vals, basis = got
+        basis = basis.astype(q.dtype)
+    return vals[:k], basis[:, :k], basis
+
+
+def _nystrom(q, y):
+    """Eigenpairs (values decreasing, float64; vectors ``(d, p)``) of the Nystrom approximation ``Y (Q' Y)^-1 Y'`` of
+    a PSD matrix ``A`` from an orthonormal ``Q`` (d, p) and ``Y = A Q``, with the shift ``nu`` of float32's
+    precision (``A + nu I`` approximated, ``nu`` taken off the values); None if the core ``Q' Y`` is not positive
+    definite."""
+    q64 = q.astype(np.float64)
+    y64 = y.astype(np.float64)
+    nu = float(np.finfo(np.float32).eps * np.linalg.norm(y64))
+    y64 += nu * q64
+    core = q64.T @ y64
+    c, info = dpotrf((core + core.T) / 2, lower=0, clean=1)
+    if info != 0:
+        return None
+    f = solve_triangular(c, y64.T, trans="T", lower=False, check_finite=False).T  # Y C^-1
+    u, sv, _ = np.linalg.svd(f, full_matrices=False)
+    return np.maximum(sv**2 - nu, 0.0), u
 
 
 def zero_padding(x, labels=None, *, steps=32, chunk=4096):
