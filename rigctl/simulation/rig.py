@@ -42,7 +42,7 @@ from rigctl.simulation.pty import PortDir
 from rigctl.simulation.source_pacer import SourcePacer, source_layout
 from rigctl.simulation.truth import TruthLog
 from rigctl.simulation.virtual_mega import VirtualMega
-from rigctl.simulation.virtual_uno import VirtualUno
+from rigctl.simulation.virtual_uno import READER_LEAD_S, VirtualUno
 from rigctl.simulation.world_loop import WorldLoop
 
 log = logging.getLogger(__name__)
@@ -56,12 +56,6 @@ STREAM_TICK_S = 0.005
 #: control step (:attr:`rigctl.simulation.controller.MegaController.max_step_ms`); a rig nobody streams from (the
 #: drum controller's conformance suite, a rig between its opening and START) costs a third of the wake-ups
 IDLE_TICK_S = 0.010
-#: how far an unpaced world may run ahead of its host's taxel reader, s of frames written and not read: a wire at
-#: 1 kHz holds about this much in its USB-serial chip and the host's tty buffer (an FTDI bridge's 16 ms latency
-#: timer); further, the world waits for the reader, a part of the host (unpaced, an `acquire --replay` whose reader
-#: fell 3.3 s behind started a trial 3,336 samples late, and a trial's frames came in seconds after the drum angle
-#: predicted their index). Paced, the world keeps to the wall clock instead (a held paced world lags a live source)
-READER_LEAD_S = 0.05
 #: the longest physics step between two rows of the truth log (``--truth-log``), ms: >= 100 rows a second
 TRUTH_STEP_MS = 10
 

@@ -4,10 +4,10 @@ Implements ``docs/wire-protocol.md`` section 1 from the board's side, for any se
 announces the layout's channel count, rate and bits in its banner and identify reply (``ch=``, ``rate_hz=``,
 ``bits=``, ``layout=RxCxL``) and sends frames of ``7 + 2 * ch`` bytes; the default is the Uno firmware's 18 channels
 at 1 kHz, 10 bits, with the firmware's exact banner. The board is passive: whoever owns the simulation clock
-(:class:`rigctl.simulation.rig.SimulatedRig`'s physics thread, or :meth:`VirtualUno.run_paced` for a standalone
-board) calls :meth:`VirtualUno.tick` with the samples of every elapsed sample period, so frame k of a stream goes
-out no earlier than ``t0 + k / rate`` and the long-run rate is exactly the layout's rate. Framing reuses
-:func:`rigctl.devices.frames.encode_frames`.
+(:class:`rigctl.simulation.rig.SimulatedRig`'s physics thread, or :meth:`VirtualUno.run_paced` /
+:meth:`VirtualUno.run_on_clock` for a standalone board) calls :meth:`VirtualUno.tick` with the samples of every
+elapsed sample period, so frame k of a stream goes out no earlier than ``t0 + k / rate`` (of the clock's time) and the
+long-run rate is exactly the layout's rate. Framing reuses :func:`rigctl.devices.frames.encode_frames`.
 """
 
 from __future__ import annotations
@@ -22,12 +22,21 @@ from collections.abc import Callable
 import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
+from rigctl.core.shared_clock import SharedClock
 from rigctl.devices import wire
 from rigctl.devices.frames import encode_frames, encode_stream_frames
 from rigctl.simulation.priority import board_thread
 from rigctl.simulation.pty import PtyEndpoint
+from rigctl.simulation.world_loop import WorldLoop
 
 log = logging.getLogger(__name__)
+
+#: how far an unpaced world may run ahead of its host's taxel reader, s of frames written and not read: a wire at
+#: 1 kHz holds about this much in its USB-serial chip and the host's tty buffer (an FTDI bridge's 16 ms latency
+#: timer); further, the world waits for the reader, a part of the host (unpaced, an `acquire --replay` whose reader
+#: fell 3.3 s behind started a trial 3,336 samples late, and a trial's frames came in seconds after the drum angle
+#: predicted their index). Paced, the world keeps to the wall clock instead (a held paced world lags a live source)
+READER_LEAD_S = 0.05
 
 
 def board_info(layout: SensorLayout = PAPER_SENSOR) -> str:
@@ -98,6 +107,8 @@ class VirtualUno:
         self.stream_start_sample: int | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        #: the board's own shared clock when it runs on one (:meth:`run_on_clock`), else None
+        self.clock: SharedClock | None = None
 
     def use_clock(self, now: Callable[[], float]) -> None:
         """Time the boot wait and stalls on ``now()`` (s; the simulated rig's shared clock), from now on."""
@@ -290,12 +301,49 @@ class VirtualUno:
                                         daemon=True)
         self._thread.start()
 
+    def run_on_clock(self, source, *, paced: bool = False, tick_s: float = 0.003) -> SharedClock:
+        """Run the board in a thread on a clock of its own shared with the host of this process, as a simulated
+        rig's physics thread runs it (docs/architecture.md "Time on a simulated rig"): a :class:`TaxelStream` of
+        this process that opens :attr:`path` finds the clock by the port and times its banner wait, receive stamps
+        and waits on it; the board's boot wait and stalls judge it too; a starved host pauses the board. Unpaced
+        (the default), the board runs as fast as the host's grants allow and no further than
+        :data:`READER_LEAD_S` of frames ahead of the host's reader; paced, no faster than the wall clock either.
+        ``source(n) -> (samples (n, ch), sync_in (n,) or None)`` as for :meth:`run_paced`; ``tick_s``: the
+        steps, s (of simulated time unpaced). For a board at 1 kHz (the clock counts the board's milliseconds).
+        Returns the clock (:attr:`clock`); stop with :meth:`close`.
+
+        Raises ValueError for a layout not at 1 kHz, RuntimeError if the board already runs."""
+        if self.layout.sample_rate_hz != 1000.0:
+            raise ValueError(f"run_on_clock steps a 1 kHz board, not {self.layout.sample_rate_hz:g} Hz")
+        if self._thread is not None:
+            raise RuntimeError("already running")
+        ticks = [0]  # the board's milliseconds
+
+        def step(n: int) -> None:
+            self.tick(*source(n))
+            ticks[0] += n
+
+        self.clock = SharedClock(lambda: ticks[0] / 1000.0, world_notifies=True).start()
+        self.clock.own_port(self.path)
+        self.use_clock(self.clock.now)
+        lead = READER_LEAD_S * self.layout.sample_rate_hz
+        loop = WorldLoop(self.clock, lambda: ticks[0], step, paced=paced, tick_s=tick_s,
+                         board_busy=None if paced else lambda: self.streaming and self.frames_unread() > lead)
+        self._stop.clear()
+        self._thread = threading.Thread(target=board_thread(loop.run), args=(self._stop,), name="virtual-uno",
+                                        daemon=True)
+        self._thread.start()
+        return self.clock
+
     def close(self) -> None:
-        """Stop the board's thread (if any) and close the pty."""
+        """Stop the board's thread (if any), its clock (:meth:`run_on_clock`) and close the pty."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2)
             self._thread = None
+        if self.clock is not None:
+            self.clock.close()
+            self.clock.release_ports()
         with self._lock:
             self.port.close()
 

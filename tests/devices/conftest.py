@@ -44,3 +44,14 @@ def uno(tmp_path):
     board.run_paced(CountingSource())
     yield board
     board.close()
+
+
+@pytest.fixture
+def clocked_uno(tmp_path):
+    """A VirtualUno on a clock of its own shared with the host, unpaced (``uno.clock``: a TaxelStream opening
+    ``uno.path`` finds it, and its banner wait, stamps and waits judge it; a starved host pauses the board), fed by
+    :class:`CountingSource`; port at ``uno.path``."""
+    board = VirtualUno(tmp_path / "taxel", reset_delay_s=0.1)
+    board.run_on_clock(CountingSource())
+    yield board
+    board.close()
