@@ -38,7 +38,11 @@ def test_an_imu_streaming_before_rigctl_opened_it_is_refused():
         board.close()
 
 
-# wall (not yet moved): the simulated motion board streams on a pty paced to the wall clock
+# wall (not yet moved): the simulated motion board streams on a pty paced to the wall clock, and it has no
+# shared-clock mode to take cheaply: a live motion source's samples are on time.monotonic by contract
+# (rigctl.core.handheld.MotionSource; SerialMotion stamps its reads so), and the handheld rig's cue and scan waits
+# (rigctl.core.handheld) are time.monotonic / time.sleep loops: the board, SerialMotion and those waits would all
+# need the rig's clock
 @pytest.mark.realtime
 def test_an_imu_reset_by_the_ports_opening_is_integrated_from_its_stream_start(tmp_path):
     """The board starts at the open (seq 0, the finger at the plate's start): the scan's integrated position runs

@@ -75,7 +75,11 @@ def test_velocity_only_frames_are_integrated_into_a_position():
     assert x[-1, 0] == pytest.approx(100.0) and np.all(x[:, 1] == 100.0)
 
 
-# wall (not yet moved): the simulated motion board streams on a pty paced to the wall clock
+# wall (not yet moved): the simulated motion board streams on a pty paced to the wall clock, and it has no
+# shared-clock mode to take cheaply: a live motion source's samples are on time.monotonic by contract
+# (rigctl.core.handheld.MotionSource; SerialMotion stamps its reads so), and the handheld rig's cue and scan waits
+# (rigctl.core.handheld) are time.monotonic / time.sleep loops: the board, SerialMotion and those waits would all
+# need the rig's clock
 @pytest.mark.realtime
 def test_a_handheld_run_recorded_from_the_simulated_motion_board(tmp_path, monkeypatch):
     from rigctl.cli import main
