@@ -278,8 +278,12 @@ class VirtualMega(MegaController):
             self.clock = self.host_clock = SharedClock(lambda: self.model.time_s, world_notifies=True).start()
             self.clock.own_port(self.path)
             self.use_clock(self.clock.now)
+            # the board stands while a request or its reply is on its way, counted or in the kernel's hands, as a
+            # SimulatedRig's world does (a reply the pty's kernel worker held past the host's answer timeout while
+            # the board ran on: DrumTimeout, 'stale responses discarded', beside two CPU hogs)
             loop = WorldLoop(self.clock, lambda: int(round(self.model.time_s * 1000.0)), self.step,
-                             tick_s=control_period_s, board_busy=self.at_request)
+                             tick_s=control_period_s,
+                             board_busy=lambda: self.at_request() or self.request_on_its_way() or self.reply_on_its_way())
             self._clock_thread = threading.Thread(
                 target=board_thread(loop.run), args=(self._stop,), name="virtual-mega-control",
                 daemon=True)
