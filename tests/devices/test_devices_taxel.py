@@ -315,32 +315,39 @@ def test_faults_are_counted_and_skipped(clocked_uno):
         assert np.all((row.astype(np.int64) - row[0]) % 1024 == np.arange(18))
 
 
-def test_unplug_is_reported_and_recovered(clocked_uno):
-    uno, errors = clocked_uno, []
-    clock = uno.clock
+# wall (not yet moved): on the board's clock (clocked_uno) beside two CPU hogs this failed twice: frames
+# the pty's kernel worker held while the board ran on are counted nowhere (the TaxelStream stamps no reads on the clock,
+# SharedClock.note_read, so the board cannot tell them on their way), and the reconnected stream's rate read 823/s;
+# here on the wall-paced board, as before
+@pytest.mark.realtime
+def test_unplug_is_reported_and_recovered(uno):
+    errors = []
     with TaxelStream(uno.path, on_error=errors.append) as stream:
         stream.start()
-        clock.sleep(0.3)
+        time.sleep(0.3)
         before = stream.stats.frames
-        t_unplug = clock.now()
+        t_unplug = time.monotonic()
         uno.unplug()
-        _wait(lambda: not stream.stats.connected and errors, 2, clock)  # the report follows the flag
+        t0 = time.monotonic()
+        while (stream.stats.connected or not errors) and time.monotonic() - t0 < 2:  # the report follows the flag
+            time.sleep(0.01)
         assert not stream.stats.connected
         # one report, of one type, whichever error the OS gave (pyserial's 'returned no data' or EIO on the pty)
         assert len(errors) == 1 and isinstance(errors[0], TaxelLinkLost)
         assert isinstance(errors[0].__cause__, (serial.SerialException, OSError)) and uno.path in str(errors[0])
-        clock.sleep(0.3)
+        time.sleep(0.3)
         uno.replug()
-        t_replug = clock.now()
-        _wait(lambda: stream.stats.frames >= before + 300, 5, clock)
+        t_replug = t0 = time.monotonic()
+        while stream.stats.frames < before + 300 and time.monotonic() - t0 < 5:
+            time.sleep(0.05)
         stats = stream.stats
         assert stats.connected and stats.reconnects == 1
         assert stats.frames >= before + 300  # streaming again without being asked
         assert stats.frames_per_s > 900
         # the frames lost while unplugged are accounted for (estimated from the time gap of the receive times)
-        assert (t_replug - t_unplug) * 1000 - 50 <= stats.dropped <= (clock.now() - t_unplug) * 1000
+        assert (t_replug - t_unplug) * 1000 - 50 <= stats.dropped <= (time.monotonic() - t_unplug) * 1000
         stream.stop()
-        clock.sleep(0.1)
+        time.sleep(0.1)
         assert stream.identify()["channels"] == 18
 
 
@@ -435,19 +442,21 @@ def test_capture_across_an_unplug_reports_the_frames_lost(clocked_uno):
     assert 300 <= cap.dropped <= (t_back - t_begin) * 1000
 
 
-def test_capture_ended_while_unplugged_reports_the_frames_due(clocked_uno):
-    uno = clocked_uno
-    clock = uno.clock
+# wall (not yet moved): on the board's clock beside two CPU hogs the capture once held no frame: 0.27 s of the
+# board's frames in the pty's kernel worker's hands, uncounted while the board ran on (the TaxelStream stamps no
+# reads on the clock, SharedClock.note_read); here on the wall-paced board, as before
+@pytest.mark.realtime
+def test_capture_ended_while_unplugged_reports_the_frames_due(uno):
     with TaxelStream(uno.path) as stream:
         stream.start()
-        clock.sleep(0.2)
+        time.sleep(0.2)
         stream.begin_capture()
-        clock.sleep(0.1)
-        t_unplug = clock.now()
+        time.sleep(0.1)
+        t_unplug = time.monotonic()
         _unplug(stream, uno)
-        clock.sleep(0.2)
+        time.sleep(0.2)
         cap = stream.end_capture()
-        t_end = clock.now()
+        t_end = time.monotonic()
         uno.replug()
     # the last frame was received at most a few reads before the unplug (a loaded host reads late)
     assert (0.2 - 0.05) * 1000 <= cap.dropped <= (t_end - t_unplug) * 1000 + 250
