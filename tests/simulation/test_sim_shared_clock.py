@@ -199,6 +199,10 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
 
 
 @pytest.mark.slow
+# wall: a person's paced run beside four CPU hogs is the point; the suite's other workers beside it are not (a CI run
+# with the suite unpaced beside it, its rigs flat out, and two other sessions' work latched WATCHDOG at trial 3, and so
+# did the code before 8b0d2b4 there): a failure in the parallel run gets its rerun alone
+@pytest.mark.realtime
 def test_the_readmes_first_command_beside_four_cpu_hogs_latches_nothing(tmp_path):
     """``rigctl acquire quick_check --sim`` beside four CPU hogs on a machine of any size: 6/6 trials, no latch
     (issue 54: on the wall clock a busy machine latched 'host went silent for longer than WATCHDOG_MS')."""
