@@ -258,6 +258,10 @@ class OnboardEncoder:
         self.speed_windows = []
         self._write(calibrate_command(taxel_min, taxel_max, k) + wire.EncoderCommand.ENCODE.value)
 
+    def abandon(self) -> None:
+        """STOP the board's scan without finishing it (no counts frame is read): the host gives the pass up."""
+        self._write(wire.UnoCommand.STOP.value)
+
     def poll(self) -> int:
         """Read once from the port (its timeout); returns :attr:`samples`."""
         chunk = self.port.read(4096)

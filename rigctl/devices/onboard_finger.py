@@ -144,17 +144,17 @@ def encode_pass(enc: OnboardEncoder, board: BoardRange, motion: Callable[[], tup
     while True:
         if stop is not None and stop():
             if not math.isnan(t_enc):
-                enc.port.write(wire.UnoCommand.STOP.value)
+                enc.abandon()
             return None
         if time.monotonic() - t_begin > timeout_s:
             if not math.isnan(t_enc):
-                enc.port.write(wire.UnoCommand.STOP.value)
+                enc.abandon()
             raise ScanError(f"no pass of the finger through the plate within {timeout_s:g} s")
         try:
             t, along = motion()
         except ScanError:  # the motion refused (a tracker stamped ahead): the board stopped if it was encoding
             if not math.isnan(t_enc):
-                enc.port.write(wire.UnoCommand.STOP.value)
+                enc.abandon()
             raise
         if math.isnan(t_enc):
             if t.size >= 2 and _entered(t, along) is not None:
