@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from rigctl.core.port_clock import HostSide, open_beside
 
 __all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "KERNEL_HOP_MAX_S", "clock_of_port", "attach_port_clock", "release_port_clock",
-           "is_port_clock"]
+           "is_port_clock", "port_keys"]
 
 #: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
 #: returned from, s. Short against every deadline of the host on a simulated rig (the shortest WATCHDOG_MS, 100 ms;
@@ -71,13 +71,35 @@ _PORTS: dict[str, "SharedClock"] = {}
 _PORTS_LOCK = threading.Lock()
 
 
-def _port_keys(path: str) -> set[str]:
-    keys = {os.fspath(path)}
+#: each path :func:`port_keys` resolved -> (what the path's link pointed at then, None: not a link; its keys)
+_KEYS: dict[str, tuple[str | None, frozenset[str]]] = {}
+
+
+def _link_target(path: str) -> str | None:
     try:
-        keys.add(os.path.realpath(path))
+        return os.readlink(path)
+    except OSError:  # not a link (or gone)
+        return None
+
+
+def port_keys(path: str | os.PathLike[str]) -> frozenset[str]:
+    """The names a port goes by: ``path`` as given and the device behind it (``os.path.realpath``). Looked at on every
+    step of a simulated world (a board asks whether the host's bytes are on their way), so remembered per path and
+    checked with one ``readlink``: a link moved to another device (a board unplugged and plugged back in on a new
+    pty) is resolved again. Thread-safe (a lost race resolves twice)."""
+    name = os.fspath(path)
+    target = _link_target(name)
+    known = _KEYS.get(name)
+    if known is not None and known[0] == target:
+        return known[1]
+    keys = {name}
+    try:
+        keys.add(os.path.realpath(name))
     except OSError:
         pass
-    return keys
+    frozen = frozenset(keys)
+    _KEYS[name] = (target, frozen)
+    return frozen
 
 
 def clock_of_port(path: str | os.PathLike[str]) -> "SharedClock | None":
@@ -85,7 +107,7 @@ def clock_of_port(path: str | os.PathLike[str]) -> "SharedClock | None":
     device), or of another process through the clock file beside its link (:func:`attach_port_clock`:
     give it back with :func:`release_port_clock` when done), or None (a real port: the wall clock)."""
     with _PORTS_LOCK:
-        for key in _port_keys(os.fspath(path)):
+        for key in port_keys(path):
             clock = _PORTS.get(key)
             if clock is not None:
                 return clock
@@ -99,9 +121,9 @@ def _stamp(stamps: dict[str, float], path: str | os.PathLike[str]) -> None:
 
 
 def _stamp_at(stamps: dict[str, float], path: str | os.PathLike[str]) -> float:
-    """The latest of ``stamps`` under any of ``path``'s keys (:func:`_port_keys`: its link and the device behind it),
+    """The latest of ``stamps`` under any of ``path``'s keys (:func:`port_keys`: its link and the device behind it),
     0.0 if none."""
-    return max((stamps.get(key, 0.0) for key in _port_keys(os.fspath(path))), default=0.0)
+    return max((stamps.get(key, 0.0) for key in port_keys(path)), default=0.0)
 
 
 class SharedClock:
@@ -184,7 +206,7 @@ class SharedClock:
         """``path`` (a board's port of the rig) is on this clock: a drum client or taxel stream of this process that
         opens it without a clock of its own times itself on this one (:func:`clock_of_port`)."""
         with _PORTS_LOCK:
-            for key in _port_keys(os.fspath(path)):
+            for key in port_keys(path):
                 _PORTS[key] = self
 
     def release_ports(self) -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
 
 __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
@@ -87,7 +87,7 @@ class HilClockFile:
         if self._clock is not None:
             self._clock.own_port(path)
         slot = WRITE_SLOTS[board]
-        for key in {os.fspath(path), os.path.realpath(path)}:
+        for key in port_keys(path):
             self._write_slots[key] = slot
 
     def stamp(self, path: str, written: bool) -> None:

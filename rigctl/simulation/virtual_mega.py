@@ -157,6 +157,9 @@ class VirtualMega(MegaController):
         self._received_at = 0.0
         #: when the Modbus server last began to write a reply to its port (time.monotonic)
         self._sent_at = 0.0
+        #: when the Modbus server last decoded a request to its device (time.monotonic): until it begins to write the
+        #: answer, the board is at the request (:meth:`at_request`)
+        self._request_at = 0.0
         #: the shared clock of the host that talks to this board in this process (its writes' stamps:
         #: :meth:`request_on_its_way`), or None
         self.host_clock: SharedClock | None = None
@@ -180,9 +183,14 @@ class VirtualMega(MegaController):
         world on the shared clock waits for them, as the firmware answers within a millisecond of its own time).
         Not the bytes the kernel holds (:meth:`request_on_its_way`): on a loaded machine that took up to seconds, and a
         held world lags a live sample source for good (a paced world let go does not catch up: a wall-paced CSV board
-        beside the CI's load overflowed its 10 s buffer); the watchdog judges those instead. Lock-free."""
+        beside the CI's load overflowed its 10 s buffer); the watchdog judges those instead. Also while the server has
+        decoded a request and not yet begun its answer: its thread takes the bytes in, then decodes, executes and
+        answers when the GIL and the CPU let it, and a world that ran on meanwhile (unpaced, 2 s of simulated time in
+        a fraction of that) ran the host's answer timeout out: DrumTimeout "no answer", "stale responses discarded",
+        in four conformance modules of a CI run beside two CPU hogs. (An answer never begun, a server that failed:
+        the world loop's ``BUSY_MAX_S`` bounds the wait, and the next request's answer ends it.) Lock-free."""
         bridge = self.bridge
-        return bool(bridge.bytes_to_board() or bridge.bytes_from_board())
+        return bool(bridge.bytes_to_board() or bridge.bytes_from_board() or self._request_at > self._sent_at)
 
     def request_on_its_way(self) -> bool:
         """Bytes the host wrote to the board's port that the Modbus server has not received yet, wherever they are:
@@ -318,6 +326,7 @@ class VirtualMega(MegaController):
     # ------------------------------------------------------------------ Modbus server and the watchdog
     def _trace_pdu(self, sending: bool, pdu):
         if not sending and pdu is not None and getattr(pdu, "dev_id", None) == wire.DRUM_DEVICE_ID:
+            self._request_at = time.monotonic()  # answered (or refused) next: the board is at it (at_request)
             self.note_request()
         return pdu
 

@@ -294,3 +294,56 @@ def test_an_unpaced_world_waits_for_a_taxel_reader_that_fell_behind():
             while sim.model.time_s - t0 < 1.5 and time.monotonic() - t1 < 30:  # reading, the world goes on
                 got += len(port.read(65536))
             assert sim.model.time_s - t0 >= 1.5 and got > 0
+
+
+def test_a_request_the_board_has_taken_in_but_not_answered_holds_the_world():
+    """The virtual Mega's server thread takes a request's bytes in, then decodes, executes and answers when its
+    thread gets the GIL and the CPU: a server starved in between (here held on purpose inside the register read) is
+    a board still at the request, and an unpaced world stands meanwhile. Before, the world ran the host's 2 s answer
+    timeout out in a fraction of a second of wall time: DrumTimeout "no answer" beside two CPU hogs."""
+    with SimulatedRig(paced=False) as sim:
+        c = DrumClient(sim.drum_port, clock=sim.clock, timeout_s=2.0).open()
+        try:
+            c.read_status()
+            held, release = threading.Event(), threading.Event()
+            read = sim.mega._read
+
+            def starved_read(func_code, address, count):
+                held.set()
+                release.wait(10)
+                return read(func_code, address, count)
+
+            sim.mega._read = starved_read
+            answer: list[object] = []
+            host = threading.Thread(target=lambda: answer.append(c.read_status()), daemon=True)
+            host.start()
+            assert held.wait(10)
+            t0 = sim.model.time_s
+            time.sleep(1.5)  # the host waits (and looks) all along: only the board's request holds the world
+            stood_s = sim.model.time_s - t0
+            sim.mega._read = read
+            release.set()
+            host.join(10)
+            assert stood_s < 0.05, f"the world ran {stood_s:.3f} s while the board was at the request"
+            assert answer and c.timeouts == 0
+        finally:
+            c.close()
+
+
+def test_a_ports_keys_follow_its_link_to_a_new_device(tmp_path):
+    """A port's names (its link and the device behind it) are remembered, and resolved again once the link points
+    elsewhere (a board unplugged and plugged back in on a new pty): a stamp under the new device's name is found."""
+    from rigctl.core.shared_clock import port_keys
+
+    a, b = tmp_path / "pts-a", tmp_path / "pts-b"
+    a.touch()
+    b.touch()
+    link = tmp_path / "drum"
+    link.symlink_to(a)
+    assert port_keys(link) == {str(link), str(a)}
+    assert port_keys(link) is port_keys(link)  # remembered
+    link.unlink()
+    link.symlink_to(b)
+    assert port_keys(link) == {str(link), str(b)}
+    link.unlink()
+    assert port_keys(link) == {str(link)}
