@@ -55,8 +55,15 @@ LEAD_S = 0.05
 #: through a kernel worker), s of wall time: a board waits for a write the host stamped (:meth:`SharedClock.note_write`)
 #: at most this long, and a stamp older than that is not a frame on its way (a host whose write failed, or that
 #: dropped a reply unseen, and then went silent is silent to the watchdog): the virtual Mega
-#: (rigctl.simulation.virtual_mega) and the simavr harnesses (rigctl.simulation.hil_clock)
-KERNEL_HOP_MAX_S = 2.0
+#: (rigctl.simulation.virtual_mega) and the simavr harnesses (rigctl.simulation.hil_clock). 10 s: on this 2-core
+#: machine (Linux 6.18) beside two CPU hogs and four test processes with simulated rigs, all at nice 0, a plain
+#: 8-byte pty hop took a median of 0.1 ms and at most 4.1-5.0 s (300 hops twice); at 2 s, requests and answers held
+#: longer ran the host's answer timeouts out (DrumTimeout "no answer") and a speed the host had sent reached the Uno's
+#: encoder 4.4 s late
+KERNEL_HOP_MAX_S = 10.0
+#: the longest a host's wait for an answer goes on past its deadline while the answer is known to be on its way,
+#: s of wall time (:meth:`SharedClock.wait_for`'s ``in_flight``): the kernel's longest hop
+IN_FLIGHT_MAX_S = KERNEL_HOP_MAX_S
 #: period of the heartbeat of the host's process, s (wall clock)
 HEARTBEAT_S = 0.005
 #: the shortest wall-clock step of a host wait that looks at the world's time, s
@@ -172,6 +179,10 @@ class SharedClock:
         self.horizon_s = self.lead_s
         self._stop = threading.Event()
         self._heart: threading.Thread | None = None
+        #: ``in_flight(path)``: whether a request the host wrote to the board's port ``path`` or its answer is on
+        #: its way (set by the simulated rig whose board answers there: rigctl.simulation.virtual_mega); None: never
+        #: known (:meth:`wait_for`'s ``in_flight``)
+        self.in_flight: Callable[[str], bool] | None = None
         self._written: dict[str, float] = {}  # a port's path -> when the host last began to write to it (wall)
         self._read: dict[str, float] = {}  # a port's path -> when the host last found bytes to read on it (wall)
 
@@ -241,7 +252,8 @@ class SharedClock:
         self.wait_for(None, s)
 
     def wait_for(self, ready: Callable[[], bool] | None, timeout_s: float,
-                 max_step_s: float = MAX_WAIT_STEP_S, min_wall_s: float = 0.0) -> bool:
+                 max_step_s: float = MAX_WAIT_STEP_S, min_wall_s: float = 0.0,
+                 in_flight: Callable[[], bool] | None = None) -> bool:
         """Wait until ``ready()`` or until ``timeout_s`` of simulated time have passed; the world may run on
         meanwhile. ``ready()`` and the clock are looked at after each step of the world (``world_notifies``) and at
         least every ``max_step_s`` of wall time (at most every :data:`WAIT_STEP_S`, and no later than the time left
@@ -249,8 +261,14 @@ class SharedClock:
         (``ready`` None: waits the whole time, returns False). ``min_wall_s``: a wait for something another thread
         of this process brings (an answer a simulated board's server thread writes) ends unready no earlier than
         that much wall time either: meanwhile the world stands at the deadline (plus :attr:`lead_s`), and a
-        starved thread of the board gets the CPU to answer instead of the world running past its answer."""
+        starved thread of the board gets the CPU to answer instead of the world running past its answer.
+        ``in_flight``: a wait for an answer that ends unready no earlier than ``in_flight()`` is False (what the host
+        waits for is known to be on its way: rigctl.simulation.virtual_mega), and at most :data:`IN_FLIGHT_MAX_S` of
+        wall time past the deadline; meanwhile the world runs on (a deadline moved on as the world moves: the
+        watchdog judges a request or answer on its way as a host that spoke, and a live sample source beside a world
+        that stood would lag it for good)."""
         wall_end = time.monotonic() + max(0.0, float(min_wall_s))
+        flight_end: float | None = None
         t = self.now()
         deadline = t + max(0.0, float(timeout_s))
         with self._lock:
@@ -265,9 +283,17 @@ class SharedClock:
                 t = self.now()
                 left = deadline - t
                 if left <= 0.0:
-                    if ready is None or time.monotonic() >= wall_end:
+                    wall = time.monotonic()
+                    if in_flight is not None and (flight_end is None or wall < flight_end) and in_flight():
+                        flight_end = wall + IN_FLIGHT_MAX_S if flight_end is None else flight_end
+                        deadline = t + MAX_WAIT_STEP_S  # the world runs on while the answer is on its way
+                        with self._lock:
+                            self._waits[key] = deadline
+                        left = MAX_WAIT_STEP_S
+                    elif ready is None or wall >= wall_end:
                         return ready() if ready is not None else False
-                    left = WAIT_STEP_S
+                    else:
+                        left = WAIT_STEP_S
                 step = min(max_step_s, max(WAIT_STEP_S, left))
                 if self.world_notifies:  # woken by the world's next step
                     with self._moved:

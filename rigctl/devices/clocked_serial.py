@@ -60,8 +60,10 @@ class ClockedSerialClient(ModbusSerialClient):
             return False
 
         # looked at as often as pymodbus' own wait looks (its receive interval: 4 character times, at least 1 ms)
+        port, in_flight = self.comm_params.host, self.clock.in_flight
         self.clock.wait_for(settled, float(self.comm_params.timeout_connect or 0.0), max_step_s=self._recv_interval,
-                            min_wall_s=ANSWER_MIN_WALL_S)
+                            min_wall_s=ANSWER_MIN_WALL_S,
+                            in_flight=None if in_flight is None else (lambda: in_flight(port)))
         return self._waiting()
 
     def note_taken(self) -> None:

@@ -137,6 +137,7 @@ class SimulatedRig:
                                board_busy=self._board_busy, horizon=self._horizon_s)
         self.mega.use_clock(self.model_time_s)
         self.mega.host_clock = self.clock  # the host's writes to the drum port are stamped on it (on their way)
+        self.clock.in_flight = self.mega.answer_in_flight  # and its answer waits go on while one is
         self.mega.remote_stamp = partial(self._clock_file.stamp_s, "drum")  # and those of a face of another process
         self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None

@@ -38,7 +38,7 @@ from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
 from pymodbus.framer import FramerType
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
 from rigctl.devices import wire
 from rigctl.devices.wire import Fault, HoldingRegister as HR
 from rigctl.simulation.controller import MegaController
@@ -178,19 +178,24 @@ class VirtualMega(MegaController):
             self._last_request = now()
 
     def at_request(self) -> bool:
-        """A request of the host is on its way in or its answer on its way out, counted between the host's port and the
-        Modbus server (in the ptys or the bridge's hands: its threads are the board's, outside the physics clock; a
-        world on the shared clock waits for them, as the firmware answers within a millisecond of its own time).
-        Not the bytes the kernel holds (:meth:`request_on_its_way`): on a loaded machine that took up to seconds, and a
-        held world lags a live sample source for good (a paced world let go does not catch up: a wall-paced CSV board
-        beside the CI's load overflowed its 10 s buffer); the watchdog judges those instead. Also while the server has
-        decoded a request and not yet begun its answer: its thread takes the bytes in, then decodes, executes and
-        answers when the GIL and the CPU let it, and a world that ran on meanwhile (unpaced, 2 s of simulated time in
-        a fraction of that) ran the host's answer timeout out: DrumTimeout "no answer", "stale responses discarded",
-        in four conformance modules of a CI run beside two CPU hogs. (An answer never begun, a server that failed:
-        the world loop's ``BUSY_MAX_S`` bounds the wait, and the next request's answer ends it.) Lock-free."""
+        """A request of the host or its answer is in the board's own hands, anywhere between the bridge and the Modbus
+        server: counted in the ptys or the bridge (:meth:`rigctl.simulation.pty.PtyBridge.bytes_to_board`,
+        ``bytes_from_board``), handed to the server's pty and not received yet, received and decoded but its answer
+        not begun, or its answer begun and not yet taken by the bridge. The bridge's and the server's threads are
+        the board's, outside the physics clock: a world on the shared clock, paced or not, waits for them, as the
+        firmware answers within a millisecond of its own time. Beside two CPU hogs those threads went without the
+        CPU or the GIL for up to 1.7 s between their stamps while the world ran on, and the host's 2 s answer timeout
+        ran out on a board that had not had the time to answer: DrumTimeout "no answer" (0 or more "stale responses")
+        in test_drum_conformance and test_force_index_conformance [sim], three loaded CI runs in a row. Not the
+        kernel's hops between the host and the bridge (:meth:`request_on_its_way`, :meth:`reply_on_its_way`): those
+        depend on the host's own reads, and a paced world held on them lags a live sample source for good; the
+        watchdog judges them instead. (A server that never answers: the world loop's ``BUSY_MAX_S`` bounds the
+        wait, and the next request's answer ends it.) Lock-free."""
         bridge = self.bridge
-        return bool(bridge.bytes_to_board() or bridge.bytes_from_board() or self._request_at > self._sent_at)
+        return bool(bridge.bytes_to_board() or bridge.bytes_from_board()
+                    or bridge.to_board_at > self._received_at  # in the server's pty, not received yet
+                    or self._request_at > self._sent_at  # decoded, its answer not begun
+                    or self._sent_at > bridge.from_board_at)  # its answer begun, not taken by the bridge yet
 
     def request_on_its_way(self) -> bool:
         """Bytes the host wrote to the board's port that the Modbus server has not received yet, wherever they are:
@@ -201,7 +206,7 @@ class VirtualMega(MegaController):
         :meth:`~rigctl.core.shared_clock.SharedClock.written_at`) after the bridge last took any from the client's
         pty, or handed to the board's pty after the server last received any. Lock-free."""
         bridge = self.bridge
-        if bridge.bytes_to_board() or bridge.to_board_at > self._received_at:
+        if self.at_request():
             return True
         if not bridge.client.plugged:
             return False
@@ -214,13 +219,18 @@ class VirtualMega(MegaController):
         this process last found bytes there (:attr:`host_clock`'s
         :meth:`~rigctl.core.shared_clock.SharedClock.read_at`), and none there now). Lock-free."""
         bridge = self.bridge
-        if bridge.bytes_from_board():
+        if self.at_request():
             return True
         recent = time.monotonic() - KERNEL_HOP_MAX_S
-        if self._sent_at > max(bridge.from_board_at, recent):
-            return True
         read_at = self._host_stamp(False)  # 0.0: no host that stamps reads the port
         return read_at > 0.0 and bridge.to_client_at > max(read_at, recent) and not bridge.client.unread_by_board()
+
+    def answer_in_flight(self, path: str) -> bool:
+        """Whether ``path`` is this board's port and a request the host wrote there or its answer is on its way
+        (:meth:`request_on_its_way`, :meth:`reply_on_its_way`): the host clock's ``in_flight``
+        (:meth:`rigctl.core.shared_clock.SharedClock.wait_for`), so a host's answer wait does not give up on an answer
+        the board or the kernel still holds. Lock-free."""
+        return bool(port_keys(path) & port_keys(self.path)) and (self.request_on_its_way() or self.reply_on_its_way())
 
     def _host_stamp(self, written: bool) -> float:
         """When a host last began to write to this port (``written``) or last found bytes there to read
@@ -284,6 +294,7 @@ class VirtualMega(MegaController):
         if clock:  # a board of its own: on a clock shared with the host of this process (docs/architecture.md)
             self._stop.clear()
             self.clock = self.host_clock = SharedClock(lambda: self.model.time_s, world_notifies=True).start()
+            self.clock.in_flight = self.answer_in_flight
             self.clock.own_port(self.path)
             self.use_clock(self.clock.now)
             # the board stands while a request or its reply is on its way, counted or in the kernel's hands, as a

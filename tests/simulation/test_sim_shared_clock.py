@@ -347,3 +347,33 @@ def test_a_ports_keys_follow_its_link_to_a_new_device(tmp_path):
     assert port_keys(link) == {str(link), str(b)}
     link.unlink()
     assert port_keys(link) == {str(link)}
+
+
+def test_an_answer_wait_goes_on_while_its_answer_is_on_its_way_and_the_world_runs_meanwhile():
+    """``wait_for(..., in_flight=...)``: past its deadline, a wait for an answer the board says is on its way (a pty's
+    kernel hop took up to 5 s beside two CPU hogs) does not give up; the world runs on meanwhile (its deadline moves
+    on with it); once nothing is on its way, it ends as before."""
+    w = _World()
+    stop = threading.Event()
+    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        flying = threading.Event()
+        flying.set()
+        result: list[bool] = []
+        waiter = threading.Thread(target=lambda: result.append(
+            w.clock.wait_for(lambda: False, 0.1, in_flight=flying.is_set)), daemon=True)
+        t0 = w.t
+        waiter.start()
+        time.sleep(0.6)
+        assert waiter.is_alive() and w.t - t0 > 0.2  # past its 0.1 s deadline, waiting, the world running
+        flying.clear()
+        waiter.join(5)
+        assert result == [False]
+        # nothing on its way: the deadline ends it
+        t1 = w.t
+        assert w.clock.wait_for(lambda: False, 0.1, in_flight=lambda: False) is False
+        assert w.t - t1 < 0.1 + LEAD_S + 0.05
+    finally:
+        stop.set()
+        th.join()
