@@ -178,24 +178,19 @@ class VirtualMega(MegaController):
             self._last_request = now()
 
     def at_request(self) -> bool:
-        """A request of the host or its answer is in the board's own hands, anywhere between the bridge and the Modbus
-        server: counted in the ptys or the bridge (:meth:`rigctl.simulation.pty.PtyBridge.bytes_to_board`,
-        ``bytes_from_board``), handed to the server's pty and not received yet, received and decoded but its answer
-        not begun, or its answer begun and not yet taken by the bridge. The bridge's and the server's threads are
-        the board's, outside the physics clock: a world on the shared clock, paced or not, waits for them, as the
-        firmware answers within a millisecond of its own time. Beside two CPU hogs those threads went without the
-        CPU or the GIL for up to 1.7 s between their stamps while the world ran on, and the host's 2 s answer timeout
-        ran out on a board that had not had the time to answer: DrumTimeout "no answer" (0 or more "stale responses")
-        in test_drum_conformance and test_force_index_conformance [sim], three loaded CI runs in a row. Not the
-        kernel's hops between the host and the bridge (:meth:`request_on_its_way`, :meth:`reply_on_its_way`): those
-        depend on the host's own reads, and a paced world held on them lags a live sample source for good; the
-        watchdog judges them instead. (A server that never answers: the world loop's ``BUSY_MAX_S`` bounds the
-        wait, and the next request's answer ends it.) Lock-free."""
+        """A request of the host is on its way in or its answer on its way out, counted between the host's port and the
+        Modbus server (in the ptys or the bridge's hands: its threads are the board's, outside the physics clock; a
+        world on the shared clock waits for them, as the firmware answers within a millisecond of its own time), or
+        the server has decoded a request and not yet begun its answer (its thread decodes, executes and answers two
+        event-loop hops after it takes the bytes in, when the GIL and the CPU let it: a world that ran on meanwhile
+        ran the host's 2 s answer timeout out, DrumTimeout "no answer" in four conformance modules of a CI run beside
+        two CPU hogs). Not the bytes the kernel holds (:meth:`request_on_its_way`, :meth:`reply_on_its_way`): on a
+        loaded machine that took up to seconds, and a held paced world lags a live sample source for good (a
+        wall-paced CSV board beside the CI's load: samples repeated or skipped); the watchdog and the host's answer
+        wait (:meth:`answer_in_flight`) judge those instead. (An answer never begun: the world loop's ``BUSY_MAX_S``
+        bounds the wait, and the next request's answer ends it.) Lock-free."""
         bridge = self.bridge
-        return bool(bridge.bytes_to_board() or bridge.bytes_from_board()
-                    or bridge.to_board_at > self._received_at  # in the server's pty, not received yet
-                    or self._request_at > self._sent_at  # decoded, its answer not begun
-                    or self._sent_at > bridge.from_board_at)  # its answer begun, not taken by the bridge yet
+        return bool(bridge.bytes_to_board() or bridge.bytes_from_board() or self._request_at > self._sent_at)
 
     def request_on_its_way(self) -> bool:
         """Bytes the host wrote to the board's port that the Modbus server has not received yet, wherever they are:
@@ -206,7 +201,7 @@ class VirtualMega(MegaController):
         :meth:`~rigctl.core.shared_clock.SharedClock.written_at`) after the bridge last took any from the client's
         pty, or handed to the board's pty after the server last received any. Lock-free."""
         bridge = self.bridge
-        if self.at_request():
+        if bridge.bytes_to_board() or bridge.to_board_at > self._received_at:
             return True
         if not bridge.client.plugged:
             return False
@@ -219,9 +214,11 @@ class VirtualMega(MegaController):
         this process last found bytes there (:attr:`host_clock`'s
         :meth:`~rigctl.core.shared_clock.SharedClock.read_at`), and none there now). Lock-free."""
         bridge = self.bridge
-        if self.at_request():
+        if bridge.bytes_from_board() or self._request_at > self._sent_at:
             return True
         recent = time.monotonic() - KERNEL_HOP_MAX_S
+        if self._sent_at > max(bridge.from_board_at, recent):
+            return True
         read_at = self._host_stamp(False)  # 0.0: no host that stamps reads the port
         return read_at > 0.0 and bridge.to_client_at > max(read_at, recent) and not bridge.client.unread_by_board()
 
