@@ -8,6 +8,8 @@ import os
 import subprocess
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 
@@ -39,12 +41,22 @@ class _World:
                 time.sleep(0.0002)
 
 
-def test_the_world_runs_a_bounded_lead_past_the_hosts_last_sign_of_life_and_waits_on_it():
+@contextmanager
+def _running_world() -> Iterator[_World]:
+    """A :class:`_World` run by a thread of its own for the ``with`` block."""
     w = _World()
     stop = threading.Event()
     th = threading.Thread(target=w.run, args=(stop,), daemon=True)
     th.start()
     try:
+        yield w
+    finally:
+        stop.set()
+        th.join()
+
+
+def test_the_world_runs_a_bounded_lead_past_the_hosts_last_sign_of_life_and_waits_on_it():
+    with _running_world() as w:
         time.sleep(0.2)  # no sign of life yet: the world runs its first lead only
         assert w.t == pytest.approx(LEAD_S, abs=0.0015)
         w.clock.touch()
@@ -53,9 +65,6 @@ def test_the_world_runs_a_bounded_lead_past_the_hosts_last_sign_of_life_and_wait
         t0 = w.t
         w.clock.sleep(1.0)  # a waiting host lets it run to the end of its wait (and a lead past)
         assert t0 + 1.0 <= w.t <= t0 + 1.0 + LEAD_S + 0.0015
-    finally:
-        stop.set()
-        th.join()
 
 
 def test_a_waiter_whose_time_has_come_holds_the_world_whoever_else_lives():
@@ -207,11 +216,7 @@ def test_signs_of_life_that_are_not_waits_run_the_world_no_faster_than_the_wall_
     """A read, a write or the heartbeat (``touch``) moves the grant on at most as fast as the wall clock: a reader or a
     heartbeat thread cannot run the world ahead while the thread that feeds the controller's watchdog computes (an
     unpaced rig beside four CPU hogs latched WATCHDOG when each 5 ms beat granted 50 ms: ten times real time)."""
-    w = _World()
-    stop = threading.Event()
-    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
-    th.start()
-    try:
+    with _running_world() as w:
         w.clock.touch()
         wall0 = time.monotonic()
         for _ in range(100):  # each touch used to grant a lead: 100 touches, 5 s of the world
@@ -222,20 +227,13 @@ def test_signs_of_life_that_are_not_waits_run_the_world_no_faster_than_the_wall_
         t0 = w.t
         w.clock.sleep(2.0)  # a waiting host still lets it run as fast as it may
         assert w.t >= t0 + 2.0
-    finally:
-        stop.set()
-        th.join()
 
 
 def test_an_answer_outlasts_its_timeout_on_the_wall_while_the_world_waits_at_the_deadline():
     """``wait_for(min_wall_s=)`` (a drum client's answer, rigctl.devices.clocked_serial.ANSWER_MIN_WALL_S): a board's
     thread starved for 0.3 s of wall time answers after the world's deadline, and the wait still takes the answer, the
     world standing at the deadline meanwhile; without it the wait gives up on the world's time."""
-    w = _World()
-    stop = threading.Event()
-    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
-    th.start()
-    try:
+    with _running_world() as w:
         answered = threading.Event()
         threading.Timer(0.3, answered.set).start()
         t0 = w.clock.now()
@@ -244,9 +242,6 @@ def test_an_answer_outlasts_its_timeout_on_the_wall_while_the_world_waits_at_the
         late = threading.Event()
         threading.Timer(0.3, late.set).start()
         assert not w.clock.wait_for(late.is_set, 0.05)
-    finally:
-        stop.set()
-        th.join()
 
 
 def test_rigctl_sim_pace_chooses_how_a_commands_simulated_rig_keeps_time(monkeypatch, tmp_path):
@@ -353,11 +348,7 @@ def test_an_answer_wait_goes_on_while_its_answer_is_on_its_way_and_the_world_run
     """``wait_for(..., in_flight=...)``: past its deadline, a wait for an answer the board says is on its way (a pty's
     kernel hop took up to 5 s beside two CPU hogs) does not give up; the world runs on meanwhile (its deadline moves
     on with it); once nothing is on its way, it ends as before."""
-    w = _World()
-    stop = threading.Event()
-    th = threading.Thread(target=w.run, args=(stop,), daemon=True)
-    th.start()
-    try:
+    with _running_world() as w:
         flying = threading.Event()
         flying.set()
         result: list[bool] = []
@@ -374,6 +365,3 @@ def test_an_answer_wait_goes_on_while_its_answer_is_on_its_way_and_the_world_run
         t1 = w.t
         assert w.clock.wait_for(lambda: False, 0.1, in_flight=lambda: False) is False
         assert w.t - t1 < 0.1 + LEAD_S + 0.05
-    finally:
-        stop.set()
-        th.join()
