@@ -149,8 +149,10 @@ class SharedClock:
         Called with the new horizon (s) each time it moves on (the world's wake-up: a pipe write, a shared-memory
         store); from the host's threads.
     on_stamp : callable or None
-        Called with ``(path, written)`` at each :meth:`note_write` (``written`` True) and :meth:`note_read` (False):
-        a rig of another process is told through its clock file (:meth:`rigctl.core.port_clock.HostSide.stamp`).
+        Called with ``(path, written, n_bytes)`` at each :meth:`note_write` (``written`` True, ``n_bytes`` the
+        write's length) and :meth:`note_read` (False, 0): a rig of another process is told through its clock file
+        (:meth:`rigctl.core.port_clock.HostSide.stamp`), the simavr harnesses through theirs
+        (:meth:`rigctl.simulation.hil_clock.HilClockFile.stamp`: they count the bytes).
     world_notifies : bool
         The world calls :meth:`moved` after each step it takes (a waiting host then wakes on it); else the host's
         waits poll the world's time every :data:`WAIT_STEP_S`.
@@ -163,7 +165,7 @@ class SharedClock:
 
     def __init__(self, world_now: Callable[[], float], *, lead_s: float = LEAD_S,
                  heartbeat_s: float | None = HEARTBEAT_S, on_grant: Callable[[float], None] | None = None,
-                 world_notifies: bool = False, on_stamp: Callable[[str, bool], None] | None = None) -> None:
+                 world_notifies: bool = False, on_stamp: Callable[[str, bool, int], None] | None = None) -> None:
         self._world_now = world_now
         self.lead_s = float(lead_s)
         self.heartbeat_s = heartbeat_s
@@ -305,14 +307,15 @@ class SharedClock:
                 del self._waits[key]
             self._alive(self.now())
 
-    def note_write(self, path: str | os.PathLike[str]) -> None:
-        """The host is about to write to the board's port ``path`` (call it before the write): a board of this
-        process then knows its bytes are on the way while the kernel still holds them, where no count sees them
-        (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine holds back
-        for hundreds of ms). Also a sign of life (:meth:`touch`)."""
+    def note_write(self, path: str | os.PathLike[str], n_bytes: int = 0) -> None:
+        """The host is about to write ``n_bytes`` bytes to the board's port ``path`` (call it before the write): a
+        board of this process then knows its bytes are on the way while the kernel still holds them, where no count
+        sees them (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine
+        holds back for hundreds of ms), and a simavr harness waits until it has read that many more bytes
+        (``on_stamp``). Also a sign of life (:meth:`touch`)."""
         _stamp(self._written, path)
         if self.on_stamp is not None:
-            self.on_stamp(os.fspath(path), True)
+            self.on_stamp(os.fspath(path), True, int(n_bytes))
         self.touch()
 
     def written_at(self, path: str | os.PathLike[str]) -> float:
@@ -325,7 +328,7 @@ class SharedClock:
         board of this process knows what it handed on after this is still in the kernel's hands)."""
         _stamp(self._read, path)
         if self.on_stamp is not None:
-            self.on_stamp(os.fspath(path), False)
+            self.on_stamp(os.fspath(path), False, 0)
 
     def read_at(self, path: str | os.PathLike[str]) -> float:
         """When the host last found bytes to read on ``path`` (:meth:`note_read`; ``time.monotonic``, 0.0 if never:

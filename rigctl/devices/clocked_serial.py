@@ -41,7 +41,7 @@ class ClockedSerialClient(ModbusSerialClient):
         return int(self.socket.in_waiting) if self.socket else 0
 
     def send(self, request: bytes, addr: tuple[Any, ...] | None = None) -> int:
-        self.clock.note_write(self.comm_params.host)  # before the write: the board's side knows it is on the way
+        self.clock.note_write(self.comm_params.host, len(request))  # before the write: the board's side knows it is on the way
         if self._waiting():  # pymodbus drops what waits before it sends
             self.note_taken()
         return super().send(request, addr)

@@ -242,7 +242,7 @@ class OnboardEncoder:
 
     def _write(self, data: bytes) -> None:
         if self._clock is not None:
-            self._clock.note_write(self._name)
+            self._clock.note_write(self._name, len(data))
         self.port.write(data)
 
     @property

@@ -155,8 +155,8 @@ class HilRig:
     ----------
     drum_port, taxel_port : str
         ``/dev/pts/N`` of the Mega (Modbus RTU 500000 8N1, device 1) and of the Uno (1,000,000 baud).
-    clock : SharedClock
-        The rig's one clock, the slower core's time: a starved host pauses both (docs/architecture.md).
+    clock, clock_file : SharedClock, HilClockFile
+        The rig's one clock, the slower core's time: a starved host pauses both (docs/architecture.md); its file.
     telemetry : Telemetry or None
         Latest report of the Mega harness (every 50 ms of simulated time).
     isr : dict
@@ -235,8 +235,8 @@ class HilRig:
         self._uno: _Harness | None = None
         self._tmp = Path(tempfile.mkdtemp(prefix="rigctl-hil-"))
         self.paced = bool(paced)
-        self._clock_file = HilClockFile(self._tmp / "clock")
-        self.clock: SharedClock = self._clock_file.shared_clock()
+        self.clock_file = HilClockFile(self._tmp / "clock")
+        self.clock: SharedClock = self.clock_file.shared_clock()
         self._stop = threading.Event()
         self._feeder: threading.Thread | None = None
         self._cond = threading.Condition()
@@ -319,7 +319,7 @@ class HilRig:
         m = self.config.mechanics
         # both cores in lock step on simulated time (on a starved host each falls behind the wall clock at its own
         # rate: the drum travel rendered for the Uno would play too fast or too slow)
-        lock = self._clock_file.harness_args(paced=self.paced)
+        lock = self.clock_file.harness_args(paced=self.paced)
         self.clock.start()
         record = default_record(int(m.loadcell_offset_counts))  # calibrated and tared on the unloaded cell
         calibrated = ["--eeprom-write", f"{self._calibration_offset()}:{record.hex()}"] if self.factory_calibrated else []
@@ -330,7 +330,7 @@ class HilRig:
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
             *self._hardware_args(), *lock, *calibrated], self._on_mega_line)
-        self._clock_file.board_port("mega", self._mega.port)  # on self.clock, its writes stamped
+        self.clock_file.board_port("mega", self._mega.port)  # on self.clock, its writes stamped
         if not self.with_uno:
             return self
         try:
@@ -341,7 +341,7 @@ class HilRig:
             self._mega.close()
             self._mega = None
             raise
-        self._clock_file.board_port("uno", self._uno.port)
+        self.clock_file.board_port("uno", self._uno.port)
         if self.live:
             self._render_and_load()
             self._stop.clear()

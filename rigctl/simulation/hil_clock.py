@@ -1,19 +1,24 @@
 """The host's side of the simavr harnesses' clock-lock file (``arduino/simavr/rigctl_simavr.c``, "clock lock"): the
 boards' simulated times (slot 0 the Mega's, slot 1 the Uno's) and the host's grant (slot 2), each ns + 1 (0: not
-yet), and when the host began its last write to each board's port (slots 3 and 4: ``CLOCK_MONOTONIC`` ns + 1),
-shared memory between the harness processes and the host (docs/architecture.md "Time on a simulated rig").
+yet), when the host began its last write to each board's port (slots 3 and 4: ``CLOCK_MONOTONIC`` ns + 1), the
+bytes each harness has read from its port (slots 5 and 6, the harnesses') and the bytes the host's stamped writes to
+each port bring (slots 7 and 8, the host's), shared memory between the harness processes and the host
+(docs/architecture.md "Time on a simulated rig").
 
 :class:`HilClockFile` gives a :class:`rigctl.core.shared_clock.SharedClock` the world's time (the slower board's:
-the two run in lock step within 2 ms), publishes its grants and stamps its writes; the harnesses run no further than
-the grant, and a harness whose host wrote after it last read its pty waits for those bytes (at most
-:data:`rigctl.core.shared_clock.KERNEL_HOP_MAX_S` of wall time): a pty hands a writer's bytes on through a kernel
-worker, which a loaded machine holds back, and a request on its way is not a silent host.
+the two run in lock step within 2 ms), publishes its grants and stamps and counts its writes; the harnesses run no
+further than the grant, and a harness that has read fewer bytes than its host's stamped writes bring waits for the
+rest (at most :data:`rigctl.core.shared_clock.KERNEL_HOP_MAX_S` of wall time after the last stamp): a pty hands a
+writer's bytes on through a kernel worker, which a loaded machine holds back (two writes made one after the other
+can arrive a second apart), and a request on its way is not a silent host. Counted, not timed: a harness that reads
+an earlier write's bytes after a stamp has not read the stamped write's.
 """
 
 from __future__ import annotations
 
 import mmap
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -24,10 +29,12 @@ from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
 __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
 #: the file's slots: the Mega's time, the Uno's, the host's grant, the host's last write to the Mega's port, to the
-#: Uno's (uint64 each)
-LOCK_SLOTS = 5
-#: the slot of the host's last write to each board's port
-WRITE_SLOTS = {"mega": 3, "uno": 4}
+#: Uno's, the bytes the Mega's harness has read from its port, the Uno's, the bytes the host's stamped writes bring to
+#: the Mega's port, to the Uno's (uint64 each)
+LOCK_SLOTS = 9
+#: each board's index in the slots: its last write's slot is 3 + it, its harness's bytes read 5 + it, the host's
+#: stamped bytes 7 + it
+WRITE_SLOTS = {"mega": 0, "uno": 1}
 
 
 class HilClockFile:
@@ -45,6 +52,7 @@ class HilClockFile:
         self._slots: np.ndarray | None = np.frombuffer(self._map, dtype=np.uint64)
         self._last_s = 0.0
         self._write_slots: dict[str, int] = {}
+        self._stamp_lock = threading.Lock()
         self._clock: SharedClock | None = None
 
     def shared_clock(self) -> SharedClock:
@@ -86,18 +94,32 @@ class HilClockFile:
         :meth:`shared_clock` by it (:meth:`SharedClock.own_port`)."""
         if self._clock is not None:
             self._clock.own_port(path)
-        slot = WRITE_SLOTS[board]
+        index = WRITE_SLOTS[board]
         for key in port_keys(path):
-            self._write_slots[key] = slot
+            self._write_slots[key] = index
 
-    def stamp(self, path: str, written: bool) -> None:
-        """The clock's ``on_stamp``: a host of this process is about to write to the port ``path`` (``written``
-        True; reads are not stamped): the moment, ``time.monotonic_ns`` (the harness's ``CLOCK_MONOTONIC``) + 1,
-        in its board's slot. A port of no board of this file is ignored."""
-        slot = self._write_slots.get(path) if written else None
+    def stamp(self, path: str, written: bool, n_bytes: int = 0) -> None:
+        """The clock's ``on_stamp``: a host of this process is about to write ``n_bytes`` bytes to the port ``path``
+        (``written`` True; reads are not stamped): the bytes its stamped writes bring to the board, the bytes the
+        harness has read or those the stamps before brought, whichever is more, plus ``n_bytes`` (the stamps before
+        count only while the last is less than :data:`KERNEL_HOP_MAX_S` old: a write that failed brings nothing),
+        then the moment, ``time.monotonic_ns`` (the harness's ``CLOCK_MONOTONIC``) + 1, in its board's slots. A
+        port of no board of this file is ignored."""
+        board = self._write_slots.get(path) if written else None
         slots = self._slots
-        if slot is not None and slots is not None:
-            slots[slot] = np.uint64(time.monotonic_ns() + 1)
+        if board is None or slots is None:
+            return
+        with self._stamp_lock:
+            now_ns = time.monotonic_ns()
+            last = int(slots[3 + board])
+            brought = int(slots[7 + board]) if last and now_ns - (last - 1) < KERNEL_HOP_MAX_S * 1e9 else 0
+            slots[7 + board] = np.uint64(max(brought, int(slots[5 + board])) + max(0, int(n_bytes)))
+            slots[3 + board] = np.uint64(now_ns + 1)
+
+    def bytes_read(self, board: str) -> int:
+        """The bytes ``board``'s harness has read from its port (``"mega"`` or ``"uno"``)."""
+        slots = self._slots
+        return int(slots[5 + WRITE_SLOTS[board]]) if slots is not None else 0
 
     def board_times_s(self) -> tuple[float | None, float | None]:
         """The Mega's and the Uno's published times, s (None: not yet)."""

@@ -105,7 +105,8 @@ static uint8_t *tx_ring;
 static size_t tx_head, tx_tail; /* bytes [tx_tail, tx_head) wait for the host */
 static uint64_t tx_lost;
 static int pty_master = -1, pty_slave = -1;
-static uint64_t rx_last_mono_ns; /* CLOCK_MONOTONIC ns of the bridge's last read of host bytes from the pty */
+static uint64_t rx_total; /* bytes the bridge has read from the pty (the host's, and junk while the link is cut) */
+static void rx_count(ssize_t r); /* counts them and publishes the count (clock lock) */
 static char pty_name[128];
 static int uart_xon = 1;
 static atomic_int link_down_req; /* 1 = the host's link is cut (USB pulled): host bytes and board bytes are lost */
@@ -179,8 +180,8 @@ static void bridge_poll(int readable)
 {
     if (atomic_load(&link_down_req)) { /* USB pulled: nothing reaches the board, nothing it sends reaches the host */
         uint8_t junk[512];
-        while (read(pty_master, junk, sizeof junk) > 0) {
-        }
+        ssize_t r;
+        while ((r = read(pty_master, junk, sizeof junk)) > 0) rx_count(r);
         tx_tail = tx_head;
         rx_pos = rx_len = 0;
         return;
@@ -197,11 +198,7 @@ static void bridge_poll(int readable)
         ssize_t r = read(pty_master, rx_buf, sizeof rx_buf);
         rx_pos = 0;
         rx_len = r > 0 ? (size_t)r : 0;
-        if (r > 0) {
-            struct timespec ts;
-            clock_gettime(CLOCK_MONOTONIC, &ts);
-            rx_last_mono_ns = (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
-        }
+        if (r > 0) rx_count(r);
         if (r > 0 && atomic_load(&rxlog_req)) printf("RX t=%.6f n=%zd\n", sim_s(), r); /* a request's arrival */
     }
     while (uart_xon && rx_pos < rx_len) avr_raise_irq(uart_in_irq, rx_buf[rx_pos++]);
@@ -1522,17 +1519,24 @@ static void mega_poll(void)
  * waits, so a starved host pauses both boards instead of looking silent to them. The grant is never stale: a host
  * that stopped granting is one the boards wait for (its process gone, the harness exits on its own).
  * Slots 3 and 4 are the host's writes to the Mega's and the Uno's port: CLOCK_MONOTONIC ns + 1 of the moment it began
- * its last one (rigctl.simulation.hil_clock, stamped before the write). A pty hands a writer's bytes on through a
- * kernel worker, which a loaded machine holds back for up to ~1 s; a board whose host wrote after this harness last
- * read its pty, with nothing of the host's left in the bridge, waits for those bytes (--host-write-hold-s bounds the
- * wait, wall clock: a write that failed is no write), as it waits for the grant: a request on its way is not a silent
- * host (the firmware's watchdog), and a window's speed on its way is not late (the Uno encoder). The virtual Mega
+ * its last one (rigctl.simulation.hil_clock, stamped before the write). Slots 5 and 6 count the bytes each harness has
+ * read from its pty (this harness writes its own), slots 7 and 8 the bytes the host's stamped writes to each port
+ * will have brought once they are all read (the host writes them, before the stamp). A pty hands a writer's bytes on
+ * through a kernel worker, which a loaded machine holds back for up to ~1 s, and may hand on two writes made one
+ * after the other in two pushes a second apart; a board that has read fewer bytes than its host's stamped writes
+ * bring, with nothing of the host's left in the bridge, waits for the rest (--host-write-hold-s bounds the wait from
+ * the last stamp, wall clock: a write that failed is no write), as it waits for the grant: a request on its way is
+ * not a silent host (the firmware's watchdog), and a window's speed on its way is not late (the Uno encoder). Counted,
+ * not timed: a read of an earlier write's bytes after the stamp is not the stamped write's arrival. The virtual Mega
  * does the same (rigctl.simulation.virtual_mega: request_on_its_way). */
 #define LOCK_LEAD_S 0.002
 #define LOCK_STALE_S 0.5
 #define LOCK_WAIT_MIN_S 0.0001
 #define LOCK_WAIT_MAX_S 0.002
-#define LOCK_SLOTS 5 /* mega, uno, the host's grant, the host's last write to the Mega's port, to the Uno's */
+#define LOCK_SLOTS 9 /* mega, uno, the host's grant, its last write to the Mega's port and the Uno's, the bytes
+                       * read from each port, the bytes the host's stamped writes bring to each */
+#define RX_SLOT(uno) (5 + (uno))
+#define TARGET_SLOT(uno) (7 + (uno))
 static _Atomic uint64_t *lock_slots;
 static int lock_self;
 static double lock_time_s;       /* this core's simulated time for the lock */
@@ -1559,6 +1563,14 @@ static void clock_lock_open(const char *path, int slot)
     lock_slots = m;
     lock_self = slot;
     lock_other_wall = now_s();
+    rx_total += atomic_load(&lock_slots[RX_SLOT(slot)]); /* a harness started again on the same file counts on */
+    atomic_store(&lock_slots[RX_SLOT(slot)], rx_total);
+}
+
+static void rx_count(ssize_t r)
+{
+    rx_total += (uint64_t)r;
+    if (lock_slots) atomic_store(&lock_slots[RX_SLOT(is_uno ? 1 : 0)], rx_total);
 }
 
 static void clock_lock_publish(double extra_s)
@@ -1591,8 +1603,9 @@ static double host_grant_wait(void)
     return waited;
 }
 
-/* wait while the host's last write to this board's port is on its way (slot 3 + is_uno after the last read, nothing of
- * the host's left in the bridge, the link up): the pty is polled meanwhile and the bridge takes the bytes at once.
+/* wait while the host's stamped writes to this board's port are on their way (fewer bytes read than slot 7 + is_uno
+ * says they bring, nothing of the host's left in the bridge, the link up, the last stamp, slot 3 + is_uno, no more
+ * than --host-write-hold-s ago): the pty is polled meanwhile and the bridge takes the bytes at once.
  * Returns the wall seconds it waited (0: it did not). */
 static double host_write_wait(void)
 {
@@ -1600,7 +1613,8 @@ static double host_write_wait(void)
     double t0 = 0.0, waited = 0.0;
     for (;;) {
         uint64_t stamp = atomic_load(&lock_slots[3 + (is_uno ? 1 : 0)]);
-        if (stamp == 0 || stamp - 1 <= rx_last_mono_ns || rx_pos != rx_len || atomic_load(&quit_requested)) break;
+        uint64_t target = atomic_load(&lock_slots[TARGET_SLOT(is_uno ? 1 : 0)]);
+        if (stamp == 0 || target <= rx_total || rx_pos != rx_len || atomic_load(&quit_requested)) break;
         double t = now_s();
         if (t - (double)(stamp - 1) * 1e-9 > opt_host_write_hold_s) break; /* a write that failed: no write */
         if (t0 == 0.0) t0 = t;
