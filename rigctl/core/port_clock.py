@@ -159,7 +159,7 @@ class HostSide:
             if ns > old:
                 struct.pack_into("<Q", self._map, 16, ns)
 
-    def stamp(self, port: str, written: bool, n_bytes: int = 0) -> None:
+    def stamp(self, port: str, written: bool, n_bytes: int) -> None:
         """This face is about to write (``written``, ``n_bytes`` of them: the model rig's boards count their own) or
         has found bytes to read on the port ``port`` (a path whose name is a link of the rig: ``DIR/drum``): stamped
         now (``time.monotonic``) for the rig's side (:meth:`ClockFile.stamp_s`); a port of another name: nothing."""

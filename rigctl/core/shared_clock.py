@@ -307,7 +307,7 @@ class SharedClock:
                 del self._waits[key]
             self._alive(self.now())
 
-    def note_write(self, path: str | os.PathLike[str], n_bytes: int = 0) -> None:
+    def note_write(self, path: str | os.PathLike[str], n_bytes: int) -> None:
         """The host is about to write ``n_bytes`` bytes to the board's port ``path`` (call it before the write): a
         board of this process then knows its bytes are on the way while the kernel still holds them, where no count
         sees them (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine

@@ -400,7 +400,7 @@ class TaxelStream:
             self._touch()
             note = getattr(self.clock, "note_write", None)
             if note is not None:  # a simulated rig's board waits for bytes the kernel still holds
-                note(self.port)
+                note(self.port, len(data))
             ser.write(data)
 
     def identify(self, timeout_s: float = 1.0) -> dict[str, Any]:

@@ -98,7 +98,7 @@ class HilClockFile:
         for key in port_keys(path):
             self._write_slots[key] = index
 
-    def stamp(self, path: str, written: bool, n_bytes: int = 0) -> None:
+    def stamp(self, path: str, written: bool, n_bytes: int) -> None:
         """The clock's ``on_stamp``: a host of this process is about to write ``n_bytes`` bytes to the port ``path``
         (``written`` True; reads are not stamped): the bytes its stamped writes bring to the board, the bytes the
         harness has read or those the stamps before brought, whichever is more, plus ``n_bytes`` (the stamps before

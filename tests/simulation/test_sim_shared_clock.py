@@ -170,7 +170,7 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
                 time.sleep(wall_s)  # the heartbeat grants the world the wall time meanwhile
                 return clock.now() - t0
 
-            clock.note_write(sim.drum_port)  # a write the kernel holds: stamped, its bytes not yet taken
+            clock.note_write(sim.drum_port, 8)  # a write the kernel holds: stamped, its bytes not yet taken
             assert sim.mega.request_on_its_way() and not sim.mega.at_request()
             assert silent_for(0.6) > 0.3  # the world ran on past WATCHDOG_MS
             st = c.read_status()  # the request is taken (and so everything before it)
