@@ -77,13 +77,18 @@ class NotingPort:
     """The encoder board's serial port (``read(size)``, ``write(data)``: a pyserial ``Serial``) for an
     :class:`~rigctl.devices.encoder_stream.OnboardEncoder`, noting when the host writes each command, to judge a
     starved host by its own measure: :attr:`writes` holds per write (its first byte: the command, the count of bytes
-    written so far with it, the samples the host had received then: ``samples()``, s since the last read returned)."""
+    written so far with it, the samples the host had received then: ``samples()``, s since the last read returned),
+    and, given ``board_s`` (the simulated rig's clock: ``now() -> s``), :attr:`board_times_s`: the board's time as the
+    host began each write, to judge a host's lateness on the board's clock (whatever made it late: its own threads, or
+    the kernel holding the board's bytes on their way to it)."""
 
-    def __init__(self, port: Any) -> None:
+    def __init__(self, port: Any, board_s: Callable[[], float] | None = None) -> None:
         self.port = port
         self.samples: Callable[[], int] = lambda: 0
         self.written = 0
         self.writes: list[tuple[bytes, int, int, float]] = []
+        self.board_s = board_s
+        self.board_times_s: list[float] = []
         self._read_at = time.monotonic()
 
     @property
@@ -99,6 +104,7 @@ class NotingPort:
         return out
 
     def write(self, data: bytes) -> int:
+        self.board_times_s.append(self.board_s() if self.board_s is not None else math.nan)
         self.port.write(data)
         self.written += len(data)
         self.writes.append((bytes(data[:1]), self.written, self.samples(), time.monotonic() - self._read_at))
@@ -107,6 +113,10 @@ class NotingPort:
     def sent(self, command: bytes) -> list[tuple[int, int, float]]:
         """(bytes written up to it, samples received, s since the read) of each write of ``command``, in order."""
         return [(end, n, s) for c, end, n, s in self.writes if c == command]
+
+    def sent_board_s(self, command: bytes) -> list[float]:
+        """The board's time (s; NaN without ``board_s``) as the host began each write of ``command``, in order."""
+        return [t for (c, *_), t in zip(self.writes, self.board_times_s, strict=True) if c == command]
 
 
 class HilFingerScans:

@@ -49,6 +49,8 @@ HOLD_AFTER = 2
 #: window: twice its 50 ms read timeout), or it wrote the SPEED this long (s) after the read that triggered it returned
 LATE_SAMPLES = WINDOW
 LATE_WRITE_S = 0.05
+#: the two harnesses' clock lock: one runs at most this far ahead of the other (rigctl_simavr.c LOCK_LEAD_S), ms
+LOCK_LEAD_MS = 2.0
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +77,7 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
     the next window's samples are encoded (window w's speed is ``speeds_mm_s[w % len]``), stop after
     ``n_samples``. Returns (the scan, the spike frames, the harness's LOAD reports of the seconds while the board
     encoded, after the first 2 s, the SPEEDs written: (window, :meth:`NotingPort.sent` of its write), the windows
-    given a speed)."""
+    given a speed, the board's time as the host began each SPEED write)."""
     enc = OnboardEncoder(port)
     port.samples = lambda: enc.samples
     speeds0 = len(port.sent(wire.EncoderCommand.SPEED.value))
@@ -97,7 +99,8 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
     stops = len(port.sent(wire.UnoCommand.STOP.value)) - stops0
     print(f"scan of {n_samples} samples: STOP sent {stops} time(s)")  # more than once: the board went on streaming
     speeds = list(zip(enc.speed_windows, port.sent(wire.EncoderCommand.SPEED.value)[speeds0:], strict=True))
-    return scan, enc.parser, loads[1:], speeds, len(enc.speeds_sent)  # the first load may cover the second before ENCODE
+    written_s = port.sent_board_s(wire.EncoderCommand.SPEED.value)[speeds0:]
+    return scan, enc.parser, loads[1:], speeds, len(enc.speeds_sent), written_s  # the first load may cover the second before ENCODE
 
 
 def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarray:
@@ -113,26 +116,33 @@ def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarr
 
 
 def _judge_held(held: list[int], speeds: list[tuple[int, tuple[int, int, float]]], n_given: int,
-                arrived_s: np.ndarray, start_s: float, samples: int, queue_max: int) -> None:
+                arrived_s: np.ndarray, start_s: float, samples: int, queue_max: int, written_s: list[float]) -> None:
     """The board held exactly the windows whose SPEED reached it after it needed it (it starts window w + 2: sample
     WINDOW * (w + 2); its main loop encodes a sample and reads a command up to ``queue_max`` ticks after they come,
     so a speed within that many ms of the sample's tick may go either way), and each was the host's lateness: sent
-    measurably late by the host's own count (:data:`LATE_SAMPLES`, :data:`LATE_WRITE_S`), or not sent at all (of the
-    ``n_given`` windows given a speed): the host had the board's sample WINDOW * (w + 2) already, 150 samples past
-    its trigger, and knew the board had held it."""
+    measurably late by the host's own count (:data:`LATE_SAMPLES`, :data:`LATE_WRITE_S`), or on the board's clock
+    (``written_s``: the rig's time as the host began the write, already past the need: the host had the board's
+    samples late, its own threads or the kernel holding them on the way), or not sent at all (of the ``n_given``
+    windows given a speed): the host had the board's sample WINDOW * (w + 2) already, 150 samples past its trigger,
+    and knew the board had held it. A speed written in time that reached the board late was held on its way: the
+    clock lock's failure (test_fw_clock_lock)."""
     written = [w for w, _ in speeds]
     assert set(range(n_given)) - set(written) <= set(held), "a window's SPEED was not sent, though not held"
-    for (w, (_, seen, write_s)), t in zip(speeds, arrived_s):
+    for (w, (_, seen, write_s)), t, t_write in zip(speeds, arrived_s, written_s, strict=True):
         need = WINDOW * (w + HOLD_AFTER)  # the sample at which the board needs window w's speed
         if need >= samples:
             continue  # stopped before: the board never needed it
         due_ms = (t - start_s) * 1000.0 - need  # arrival after the tick of that sample, ms of the board's clock
+        # the host's write after the need, ms of the board's clock: the rig's clock is the slower board's, at most
+        # LOCK_LEAD_MS behind the Uno's
+        write_due_ms = (t_write - start_s) * 1000.0 - need + LOCK_LEAD_MS
         late = f"window {w}: speed arrived {due_ms:+.1f} ms after the board needed it, host sent it with {seen} " \
-               f"samples received (trigger {WINDOW * w + SEND_AFTER}), {1e3 * write_s:.0f} ms after its read"
+               f"samples received (trigger {WINDOW * w + SEND_AFTER}), {1e3 * write_s:.0f} ms after its read, " \
+               f"{write_due_ms:+.1f} ms after the need on the board's clock"
         if w in held:
             assert due_ms > -(queue_max + 1.0), "held, though its speed arrived in time: " + late
-            assert seen - (WINDOW * w + SEND_AFTER) >= LATE_SAMPLES or write_s >= LATE_WRITE_S, \
-                "held, though the host sent its speed in time: " + late
+            assert (seen - (WINDOW * w + SEND_AFTER) >= LATE_SAMPLES or write_s >= LATE_WRITE_S
+                    or write_due_ms > -(queue_max + 1.0)), "held, though the host sent its speed in time: " + late
         else:
             assert due_ms < queue_max + 1.0, "not held, though its speed arrived after it was needed: " + late
 
@@ -144,7 +154,7 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
     rng = TaxelRange(lo.astype(np.float64), hi.astype(np.float64))
     results = []
     with serial.Serial(enc_rig.taxel_port, timeout=0.05) as raw:
-        port = NotingPort(raw)
+        port = NotingPort(raw, board_s=enc_rig.clock.now)
         banner = b""
         t0 = time.monotonic()
         while b"\n" not in banner:
@@ -157,15 +167,15 @@ def test_the_board_encodes_every_sample_as_the_host_does(enc_rig, scans, fw_buil
             arrivals.append(_arrivals(enc_rig, port, [end for _, (end, _, _) in results[-1][3]]))
     assert len(enc_rig.encoder_start_rows) == 2
     total_spikes = 0
-    for (scan, parser, _, sent, n_given), row0, start_s, arrived_s in zip(results, enc_rig.encoder_start_rows,
-                                                                           enc_rig.encoder_start_times_s, arrivals):
+    for (scan, parser, _, sent, n_given, written_s), row0, start_s, arrived_s in zip(
+            results, enc_rig.encoder_start_rows, enc_rig.encoder_start_times_s, arrivals):
         assert parser.crc_errors == 0 and not parser.seq  # spike frames instead of taxel frames
         counts, raster, held, applied = scan.counts, scan.raster, scan.held, scan.speeds_mm_s
         n = raster.shape[0]
         # every sample of the scan encoded, none dropped; a window whose speed reached the board too late (a starved
         # host: > 150 ms) is scaled with the last speed, flagged, and the host's reference does the same
         assert n >= 3_000 and counts.samples == n and counts.dropped == 0 and counts.held == len(held)
-        _judge_held(held, sent, n_given, arrived_s, start_s, n, counts.queue_max)
+        _judge_held(held, sent, n_given, arrived_s, start_s, n, counts.queue_max, written_s)
         assert not any(f.flags & ~wire.SpikeFlag.HELD for f in parser.spikes)
         assert row0 >= 0
         x = x_all[(row0 + np.arange(n)) % len(x_all)]  # the harness's rows: what the board's ADC converted
