@@ -610,10 +610,10 @@ def split_scores(x, splits, n_components, *, random_states, kfold=False, padding
     Notes
     -----
     The covariance path is taken when the training split has at least as many rows as features (the paper's
-    6000 x 2160 folds); a wider matrix (few trials, many windows) goes through :func:`~rigctl.analysis.classify.fit_pca`
+    6000 x 2160 folds); a wider matrix (few trials, many windows) goes through :func:`~rigctl.analysis.nested_lda.fit_pca`
     on the rows themselves, which is cheaper there and keeps memory at the data's size.
     """
-    from rigctl.analysis.classify import fit_pca
+    from rigctl.analysis.nested_lda import fit_pca
 
     x = np.asarray(x)
     if x.shape[1] > min(len(tr) for tr, _ in splits):

@@ -31,10 +31,10 @@ import weakref
 from typing import Any
 
 import numpy as np
-from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold
 
-from rigctl.analysis.classify import NestedLDA, fit_pca
 from rigctl.analysis.data import FeatureSet, default_variants
+from rigctl.analysis.folds import stratified_kfold
+from rigctl.analysis.nested_lda import NestedLDA, fit_pca
 from rigctl.analysis.parallel import connected, map_repeats, map_threads, one_blas_thread
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
 from rigctl.analysis.results import TASK_TITLES, Curve, TaskResults, task_title
@@ -277,7 +277,8 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
         ``numpy.random.default_rng([seed, repeat])``.
     groups : ndarray (n_trials,) str, optional
         What a fold must not cut (:func:`rigctl.analysis.grouping.cv_groups`): folds by
-        ``sklearn.model_selection.StratifiedGroupKFold``, so train and test never share a group.
+        ``sklearn.model_selection.StratifiedGroupKFold``, so train and test never share a group; without groups,
+        ``StratifiedKFold(k, shuffle=True)``'s folds (:func:`rigctl.analysis.folds.stratified_kfold`).
 
     Returns
     -------
@@ -290,10 +291,11 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
                           for t in np.unique(texture)])
     state = int(rng.integers(2**31))
     if groups is not None:
+        from sklearn.model_selection import StratifiedGroupKFold
+
         sgk = StratifiedGroupKFold(k, shuffle=True, random_state=state)
         return idx, list(sgk.split(idx, texture[idx], np.asarray(groups)[idx]))
-    skf = StratifiedKFold(k, shuffle=True, random_state=state)
-    return idx, list(skf.split(idx, texture[idx]))
+    return idx, stratified_kfold(texture[idx], k, state)  # StratifiedKFold(k, shuffle=True)'s folds
 
 
 def _cells(fs: FeatureSet):
@@ -618,8 +620,7 @@ def run_realtime(
     bar = Stage(progress, "realtime", repeats * len(vs), unit="fit")
     for r in range(repeats):
         rng = np.random.default_rng([seed, 20_000 + r])
-        folds = list(StratifiedKFold(k, shuffle=True, random_state=int(rng.integers(2**31))).split(fs.texture,
-                                                                                                    fs.texture))
+        folds = stratified_kfold(fs.texture, k, int(rng.integers(2**31)))
         tr_idx = _stratified_fraction(np.flatnonzero(in_tr), fs.texture, train_fraction, rng)
         held = np.setdiff1d(np.flatnonzero(in_tr), tr_idx)
         untr = np.flatnonzero(~in_tr)

@@ -64,3 +64,22 @@ def test_comparison_of_repeated_accuracies():
     assert c.t > 0 and c.p_t < 1e-10 and c.stars_d == "**" and c.stars_h == "**"
     k_a, k_b = round(a.sum() * 400), round(b.sum() * 400)
     assert (c.z, c.p_z) == pytest.approx(two_proportion_z(k_b, 8000, k_a, 8000))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_welch_and_z_equal_scipy_stats_on_many_samples(seed):
+    """Computed without scipy.stats (its import is ~1.5 CPU-s of every ``rigctl analyze``): the same t, p and z."""
+    from scipy import stats as st
+
+    from rigctl.analysis.stats import two_proportion_z, welch_test
+
+    rng = np.random.default_rng(seed)
+    na, nb = (int(n) for n in rng.integers(2, 40, 2))
+    a, b = rng.normal(0.8, rng.uniform(1e-4, 0.1), na), rng.normal(0.8 + rng.normal(0, 0.02), 0.05, nb)
+    for x, y in ((a, b), (b, a), (a, a + 1e-3), (a, np.full(nb, 0.8))):
+        ref = st.ttest_ind(x, y, equal_var=False)
+        t, p = welch_test(x, y)
+        assert t == pytest.approx(ref.statistic, rel=1e-12) and p == pytest.approx(ref.pvalue, rel=1e-9, abs=1e-300)
+    k1, k2 = (int(k) for k in rng.integers(0, 100, 2))
+    z, p = two_proportion_z(k1, 100, k2, 120)
+    assert p == pytest.approx(2 * st.norm.sf(abs(z)), rel=1e-12, abs=1e-300)
