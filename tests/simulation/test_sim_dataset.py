@@ -358,3 +358,55 @@ def test_the_per_taxel_extremes_are_numpys_column_min_and_max_and_make_the_calib
         every = np.concatenate([s.trial(t).taxels for t in s.completed_ids()])
         np.testing.assert_array_equal(s.calibration["taxel_min"], every.min(axis=0))
         np.testing.assert_array_equal(s.calibration["taxel_max"], every.max(axis=0))
+
+
+def test_the_render_workers_fork_from_a_one_thread_process_and_spawn_beside_threads(monkeypatch):
+    """Issue 57 item 6: a worker forked from the generating process starts from its imports (numpy, numba, the
+    model) instead of importing them again; beside other threads (a GUI, tqdm's monitor) it is spawned, since a fork
+    can leave the child waiting on a lock another thread held."""
+    import multiprocessing as mp
+    import threading
+
+    from rigctl.simulation import dataset
+
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    monkeypatch.setattr(threading, "active_count", lambda: 1)
+    assert dataset._pool_context().get_start_method() == "fork"
+    monkeypatch.setattr(threading, "active_count", lambda: 2)
+    assert dataset._pool_context().get_start_method() == "spawn"
+
+
+def test_a_forked_worker_with_a_commits_worth_of_slots_writes_the_in_process_file(protocol_path, tmp_path,
+                                                                                  monkeypatch):
+    """Issue 57 item 6: the worker renders on while the writer appends and commits a batch (the slots hold a whole
+    commit's trials, not 24), and a forked worker renders the very file this process renders alone."""
+    import multiprocessing as mp
+
+    from rigctl.simulation import dataset
+
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    made = []
+    real = dataset.TrialSlots
+
+    def slots(*args, **kwargs):
+        made.append(kwargs["n_blocks"] * kwargs["block"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dataset, "TrialSlots", slots)
+    monkeypatch.setattr(dataset, "_pool_context", lambda: mp.get_context("fork"), raising=False)
+    proto = load_protocol(protocol_path)
+    generate_dataset(proto, tmp_path / "w0.h5", seed=5, workers=0, progress=False)
+    generate_dataset(proto, tmp_path / "w1.h5", seed=5, workers=1, progress=False)
+    assert made and made[0] >= dataset.COMMIT_TRIALS
+    with open_session(tmp_path / "w0.h5") as a, open_session(tmp_path / "w1.h5") as b:
+        assert a.completed_ids() == b.completed_ids() == list(range(24))
+        for tid in a.completed_ids():
+            ta, tb = a.trial(tid), b.trial(tid)
+            for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s",
+                         "speed_time_s"):
+                np.testing.assert_array_equal(getattr(ta, name), getattr(tb, name))
+            assert {k: repr(v) for k, v in ta.attrs.items()} == {k: repr(v) for k, v in tb.attrs.items()}  # (NaN)
+        np.testing.assert_array_equal(a.calibration["taxel_min"], b.calibration["taxel_min"])
+        np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
