@@ -116,12 +116,60 @@ def _stack(name: str, arrays: list[Any], n_channels: int) -> np.ndarray:
     return np.concatenate([stored(name, a, n_channels) for a in arrays])
 
 
-def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]], *, views: bool = True
-                  ) -> tuple[list[Any], np.ndarray]:
+class BatchArrays:
+    """The per-sample arrays of a batch of trials, each trial copied once, in its stored type, into buffers kept from
+    batch to batch (grown by doubling): what :func:`append_trials` writes without concatenating the trials again
+    (the dataset generator's writer copied each trial out of its shared-memory slot, then the batch into one array).
+
+    ``n_channels``: the session's taxel count."""
+
+    def __init__(self, n_channels: int) -> None:
+        self.n_channels = int(n_channels)
+        self._bufs: dict[str, np.ndarray] = {}
+        self._used = 0
+
+    def clear(self) -> None:
+        """Start a new batch (the buffers are kept; views handed out before now are overwritten by later takes)."""
+        self._used = 0
+
+    def take(self, data: TrialData) -> dict[str, np.ndarray]:
+        """Copy ``data``'s per-sample arrays (:data:`SAMPLE_ARRAYS`, as :func:`stored`) after the batch's earlier
+        trials; returns them as views of the buffers (valid until :meth:`clear`)."""
+        arrays = {name: stored(name, getattr(data, name), self.n_channels) for name, _ in SAMPLE_ARRAYS}
+        start = self._used
+        end = start + len(arrays["taxels"])
+        if any(len(a) != end - start for a in arrays.values()):
+            raise ValueError(f"a trial's per-sample arrays differ in length: "
+                             f"{ {k: len(a) for k, a in arrays.items()} }")
+        out = {}
+        for name, dtype in SAMPLE_ARRAYS:
+            buf = self._bufs.get(name)
+            if buf is None or len(buf) < end:  # grown: the earlier trials' rows come along (their views stay valid)
+                cap = max(end, 2 * (0 if buf is None else len(buf)), 1024)
+                new = np.empty((cap, self.n_channels) if name == "taxels" else (cap,), dtype)
+                if buf is not None:
+                    new[:start] = buf[:start]
+                self._bufs[name] = buf = new
+            dst = buf[start:end]
+            dst[...] = arrays[name]
+            out[name] = dst
+        self._used = end
+        return out
+
+    def stacked(self) -> dict[str, np.ndarray]:
+        """The batch's per-sample arrays so far, trial after trial (what :func:`append_trials` appends)."""
+        return {name: (self._bufs[name][:self._used] if name in self._bufs else
+                       np.zeros((0, self.n_channels) if name == "taxels" else (0,), dtype))
+                for name, dtype in SAMPLE_ARRAYS}
+
+
+def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]], *, views: bool = True,
+                  stacked: dict[str, np.ndarray] | None = None) -> tuple[list[Any], np.ndarray]:
     """Append trials to ``/recording`` (each array once for the whole batch) and their index rows, and (``views``:
     schema 4) make each trial's views in its new, empty group. ``items``: (group low-level id, trial id, data).
-    Returns the low-level ids of the ``taxels`` views, in ``items`` order (for their attributes; none without
-    ``views``), and the new index rows."""
+    ``stacked``: the items' per-sample arrays already back to back (:meth:`BatchArrays.stacked`, taken in ``items``
+    order), written as they are. Returns the low-level ids of the ``taxels`` views, in ``items`` order (for their
+    attributes; none without ``views``), and the new index rows."""
     rec = f[GROUP]
     rows = np.zeros(len(items), dtype=INDEX_DTYPE)
     rows["trial_id"] = [int(t) for _, t, _ in items]
@@ -129,7 +177,8 @@ def append_trials(f: h5py.File, items: list[tuple[Any, int, TrialData]], *, view
     rows["n_samples"] = [d.n_samples for d in data]
     n_ch = rec["taxels"].shape[1]
     for name, _ in SAMPLE_ARRAYS:
-        first = _append(rec[name], _stack(name, [getattr(d, name) for d in data], n_ch))
+        whole = stacked[name] if stacked is not None else _stack(name, [getattr(d, name) for d in data], n_ch)
+        first = _append(rec[name], whole)
     rows["sample_start"] = first + np.concatenate([[0], np.cumsum(rows["n_samples"])[:-1]])
     for value, times, prefix in TRACES:
         rows[f"n_{prefix}"] = [np.size(getattr(d, value)) for d in data]

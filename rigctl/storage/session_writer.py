@@ -220,6 +220,8 @@ class SessionWriter:
                 self._flat = session_recording.is_flat(f)
                 #: schema 4: each trial's group gets views of its rows (schema 5: none, the index says where they are)
                 self._views = self._flat and session_recording.has_views(contents.attrs)
+                #: a batch's per-sample arrays, each trial copied once (schema 4 and 5)
+                self._batch = session_recording.BatchArrays(contents.layout.n_channels)
                 self.layout, present, self.textures = contents.layout, contents.present, contents.textures
                 if present is not None:
                     raise SessionError(f"{self.path} is a schema-{self.attrs.get('schema_version')} import with "
@@ -494,6 +496,7 @@ class SessionWriter:
                 before = self._plan.copy()
                 views: list[tuple[Any, int, TrialData]] = []  # schema 4: written to /recording after the groups
                 trials = f["trials"].id  # (looked up once a batch: ~50 us a lookup)
+                self._batch.clear()
                 for trial_id, data in items:
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
@@ -512,7 +515,8 @@ class SessionWriter:
                 for i in relabelled:  # the recorded condition in the plan row (before its status, below)
                     f["plan"][i] = self._plan[i]
                 if views:
-                    taxels, rows = session_recording.append_trials(f, views, views=self._views)
+                    taxels, rows = session_recording.append_trials(f, views, views=self._views,
+                                                                   stacked=self._batch.stacked())
                     trial_facts.append(f, rows, [d for _, _, d in views])
                     for tax, (_, _, data) in zip(taxels, views):
                         self._taxels_attrs(tax, data)
@@ -682,7 +686,7 @@ class SessionWriter:
         layout = self.layout
         n_ch = layout.n_channels
         if self._flat:  # schema 4: the data go to /recording, the group holds views of them
-            views.append((g, int(row["trial_id"]), _snapshot(data)))
+            views.append((g, int(row["trial_id"]), _snapshot(data, self._batch)))
         else:
             chunk_rows = max(1, min(n, session_recording.sample_chunk_rows(n_ch, TAXEL_CHUNK_BYTES)))
             comp = self.compression if n else None
@@ -730,12 +734,14 @@ def _plan_value(v: Any) -> Any:
     return _text(v) if isinstance(v, (bytes, str)) else v.item()
 
 
-def _snapshot(data: TrialData) -> TrialData:
+def _snapshot(data: TrialData, batch: session_recording.BatchArrays) -> TrialData:
     """A copy of ``data`` whose arrays are its own: a batch's recording arrays are written after its last trial is
-    taken, and a caller may reuse a trial's buffers for the next one (the dataset generator's shared-memory slots)."""
+    taken, and a caller may reuse a trial's buffers for the next one (the dataset generator's shared-memory slots).
+    The per-sample arrays are copied once, into ``batch`` (their views; the batch is written from there)."""
     snap = copy.copy(data)  # no __post_init__: the arrays were checked when ``data`` was made
-    for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s",
-                 "position_mm", "position_time_s"):
+    for name, array in batch.take(data).items():
+        setattr(snap, name, array)
+    for name in ("force_g", "force_time_s", "speed_mm_s", "speed_time_s", "position_mm", "position_time_s"):
         setattr(snap, name, np.array(getattr(data, name), copy=True))
     snap.attrs = dict(data.attrs)
     return snap

@@ -131,6 +131,49 @@ def test_a_batch_from_one_reused_buffer_keeps_every_trial(tmp_path, schema_versi
             np.testing.assert_array_equal(s.trial(tid).force_g, x[:3, 0])
 
 
+def test_a_batchs_per_sample_arrays_are_copied_once_into_buffers_kept_from_batch_to_batch():
+    """Issue 57 item 6: each trial's per-sample arrays are copied once, in their stored types, into buffers that grow
+    by doubling and serve the next batch; the batch is appended from there (no second concatenation). A trial's
+    views stay its own data when the buffers grow under them."""
+    from rigctl.storage.session_recording import SAMPLE_ARRAYS, BatchArrays, stored
+
+    rng = np.random.default_rng(3)
+    trials = [_trial(rng, n=n) for n in (300, 900, 2500, 0, 40)]  # (past the first 1024 rows, then 4096)
+    batch = BatchArrays(18)
+    views = [batch.take(t) for t in trials]
+    for t, v in zip(trials, views):
+        for name, dtype in SAMPLE_ARRAYS:
+            assert v[name].dtype == dtype
+            np.testing.assert_array_equal(v[name], stored(name, getattr(t, name), 18))
+    whole = batch.stacked()
+    for name, _ in SAMPLE_ARRAYS:
+        np.testing.assert_array_equal(whole[name], np.concatenate([stored(name, getattr(t, name), 18) for t in trials]))
+    batch.clear()
+    again = batch.take(trials[1])
+    assert np.shares_memory(again["taxels"], whole["taxels"])  # the same buffer, no fresh pages
+    assert len(batch.stacked()["taxels"]) == 900
+
+
+@pytest.mark.parametrize("schema_version", [4, SCHEMA_VERSION])
+def test_two_batches_of_trials_of_several_lengths_read_back_as_written(tmp_path, schema_version):
+    """write_trials from the reused batch buffers: every array of every trial as written, over two batches."""
+    rng = np.random.default_rng(5)
+    lengths = [300, 2000, 10, 1200, 300, 5000, 0, 700]
+    trials = {i: _trial(rng, n=n) for i, n in enumerate(lengths)}
+    path = tmp_path / "two.h5"
+    with SessionWriter.create(path, plan=_plan(len(lengths)), protocol_source="src",
+                              schema_version=schema_version) as w:
+        assert w.write_trials((i, trials[i]) for i in range(4)) == 4
+        assert w.write_trials((i, trials[i]) for i in range(4, 8)) == 4
+    with open_session(path) as s:
+        assert s.completed_ids() == list(range(8))  # (the validator: only the 300-sample ones match the plan)
+        for i, t in trials.items():
+            got = s.trial(i)
+            for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s",
+                         "speed_time_s"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(t, name))
+
+
 def _copy_as_schema(src, dst, schema_version=3):
     """The same trials, plan and attributes in a file of ``schema_version`` (3: one group of datasets per trial)."""
     with open_session(src) as s:
