@@ -182,12 +182,13 @@ def cold_vs_warm(fs, n_pcs, r=0):
     return cpu, cpu_bases, diff
 
 
-def whole_table_against(features, checkout, rounds):
+def whole_table_against(features, checkout, rounds, args=()):
     """The whole Table 1 (``rigctl analyze FEATURES --table1 --json``, one process each, as a user runs it) by this
     checkout's rigctl and by ``checkout``'s (a directory holding another commit's ``rigctl`` package: put first on
     PYTHONPATH), alternated ``rounds`` times: wall, CPU seconds of the process, its peak RSS, the load average, and
     how far the accuracy curves (mean over the repetitions at PCs 1..50, every task and variant) moved, in units of
-    their repetition SD."""
+    their repetition SD. ``args``: more options of ``rigctl analyze`` (e.g. ``--repeats 2 --pcs 5`` on a small file:
+    the start alone, docs/results.md 5q)."""
     import json
     import subprocess
     import sys
@@ -212,8 +213,8 @@ def whole_table_against(features, checkout, rounds):
             load0 = os.getloadavg()[0]
             with tempfile.TemporaryFile("w+") as out:
                 t0 = time.perf_counter()
-                proc = subprocess.Popen([sys.executable, "-m", "rigctl", "analyze", features, "--table1", "--json"],
-                                        stdout=out, stderr=subprocess.DEVNULL, env=env, cwd=tempfile.gettempdir())
+                proc = subprocess.Popen([sys.executable, "-m", "rigctl", "analyze", features, "--table1", "--json",
+                                         *args], stdout=out, stderr=subprocess.DEVNULL, env=env, cwd=tempfile.gettempdir())
                 _, status, ru = os.wait4(proc.pid, 0)
                 wall = time.perf_counter() - t0
                 out.seek(0)
@@ -250,6 +251,8 @@ def main():
                     help="with --features: the whole Table 1 by this checkout and by DIR's rigctl package (another "
                          "commit's, e.g. `git archive COMMIT rigctl | tar -x -C DIR`), alternated, one process each")
     ap.add_argument("--rounds", type=int, default=1, help="alternations of --against")
+    ap.add_argument("--analyze-args", default="", help="more options of the --against runs' `rigctl analyze`, e.g. "
+                    "'--repeats 2 --pcs 5' (with a small --features file: the start alone)")
     ap.add_argument("--no-padding", action="store_true",
                     help="random features without the unscaled variants' zero padding (as before issue 57)")
     args = ap.parse_args()
@@ -296,7 +299,7 @@ def main():
     if args.against:
         if not args.features:
             raise SystemExit("--against needs --features FILE")
-        runs, worst, at = whole_table_against(args.features, args.against, args.rounds)
+        runs, worst, at = whole_table_against(args.features, args.against, args.rounds, args.analyze_args.split())
         best = {k: min(r, key=lambda t: t[1]) for k, r in runs.items()}
         print(f"whole Table 1, `rigctl analyze --table1` (best of {args.rounds}): previous {best['previous'][0]:.1f} s "
               f"wall, {best['previous'][1]:.1f} CPU-s, {best['previous'][2]:.2f} GB; this {best['this'][0]:.1f} s, "
