@@ -547,10 +547,9 @@ class HilRig:
         return (last.drum_steps - first.drum_steps) / ((last.cycle - first.cycle) / 16e6)
 
     def next_telemetry(self, timeout_s: float = 5.0) -> Telemetry:
-        """The Mega harness's next report after the call (pins and spring now, not up to 50 ms ago).
-
-        Raises HilError if none comes within ``timeout_s``."""
-        return self._wait_telemetry(None, timeout_s)
+        """The Mega harness's first report at the rig's time now or later (pins and spring now, not up to 50 ms ago):
+        every line the harness printed before it has been read (a boot's ``APP``, a reset). HilError: none in ``timeout_s``."""
+        return self._wait_telemetry(self.clock.now(), timeout_s)
 
     def _wait_telemetry(self, t_min: float | None, timeout_s: float) -> Telemetry:
         """The next report (``t_min`` None) or the first at simulated time ``t_min`` or later; HilError if no report
