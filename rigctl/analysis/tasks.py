@@ -33,7 +33,6 @@ from typing import Any
 import numpy as np
 
 from rigctl.analysis.data import FeatureSet, default_variants
-from rigctl.analysis.folds import stratified_kfold
 from rigctl.analysis.nested_lda import NestedLDA, fit_pca
 from rigctl.analysis.parallel import connected, map_repeats, map_threads, one_blas_thread
 from rigctl.analysis.params import CVParams, Execution, ExtrapolationParams, RealtimeParams, Repetitions, resolve
@@ -278,7 +277,7 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
     groups : ndarray (n_trials,) str, optional
         What a fold must not cut (:func:`rigctl.analysis.grouping.cv_groups`): folds by
         ``sklearn.model_selection.StratifiedGroupKFold``, so train and test never share a group; without groups,
-        ``StratifiedKFold(k, shuffle=True)``'s folds (:func:`rigctl.analysis.folds.stratified_kfold`).
+        ``StratifiedKFold(k, shuffle=True)``'s folds.
 
     Returns
     -------
@@ -295,7 +294,14 @@ def cv_split(texture, per_texture, k, *, seed=0, repeat=0, groups=None):
 
         sgk = StratifiedGroupKFold(k, shuffle=True, random_state=state)
         return idx, list(sgk.split(idx, texture[idx], np.asarray(groups)[idx]))
-    return idx, stratified_kfold(texture[idx], k, state)  # StratifiedKFold(k, shuffle=True)'s folds
+    return idx, _stratified_folds(texture[idx], k, state)
+
+
+def _stratified_folds(labels, k: int, state: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``StratifiedKFold(k, shuffle=True, random_state=state)``'s folds of ``labels`` (scikit-learn imported here)."""
+    from sklearn.model_selection import StratifiedKFold
+
+    return list(StratifiedKFold(k, shuffle=True, random_state=state).split(labels, labels))
 
 
 def _cells(fs: FeatureSet):
@@ -620,7 +626,7 @@ def run_realtime(
     bar = Stage(progress, "realtime", repeats * len(vs), unit="fit")
     for r in range(repeats):
         rng = np.random.default_rng([seed, 20_000 + r])
-        folds = stratified_kfold(fs.texture, k, int(rng.integers(2**31)))
+        folds = _stratified_folds(fs.texture, k, int(rng.integers(2**31)))
         tr_idx = _stratified_fraction(np.flatnonzero(in_tr), fs.texture, train_fraction, rng)
         held = np.setdiff1d(np.flatnonzero(in_tr), tr_idx)
         untr = np.flatnonzero(~in_tr)
