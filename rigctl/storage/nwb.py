@@ -85,8 +85,20 @@ TAXEL_CHUNK_ROWS = 10_000
 SPIKE_CHUNK = 65_536
 
 
-def _blocks(lengths: Sequence[int], limit: int) -> list[tuple[int, int]]:
-    """Consecutive ranges ``(i0, i1)`` of items whose lengths sum to at most ``limit`` (at least one item each)."""
+def _blocks(lengths: Sequence[int] | np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Consecutive ranges ``(i0, i1)`` of items whose lengths sum to at most ``limit`` (at least one item each), taken
+    greedily from the first. Non-negative integer lengths: one search of their running sum per block (the export
+    asks this of every unit's 24,000 trials at paper size: ~0.3 CPU-s a variant item by item); others item by item."""
+    arr = np.asarray(lengths)
+    if arr.ndim == 1 and arr.dtype.kind in "iub" and (arr.size == 0 or int(arr.min()) >= 0):
+        ends = np.cumsum(arr, dtype=np.int64)  # ends[i]: the lengths of items 0..i summed
+        blocks, i0, n = [], 0, int(arr.size)
+        while i0 < n:
+            base = int(ends[i0 - 1]) if i0 else 0  # item i joins the block of i0 while ends[i] - base <= limit
+            i1 = max(i0 + 1, int(np.searchsorted(ends, base + limit, side="right")))
+            blocks.append((i0, i1))
+            i0 = i1
+        return blocks
     out, i0, acc = [], 0, 0
     for i, n in enumerate(lengths):
         if i > i0 and acc + int(n) > limit:

@@ -326,3 +326,27 @@ def test_unknown_variants_are_refused_before_the_export_runs(dataset, tmp_path, 
                                       str(tmp_path / "v.nwb"), "--no-progress"])
         assert r.exit_code == 2 and "--variants" in r.output, (extra, r.output)
     assert ran == [] and list(tmp_path.iterdir()) == []
+
+
+def test_the_blocks_by_running_sum_are_the_greedy_item_by_item_blocks():
+    """nwb._blocks' search of the running sum (non-negative integer lengths) gives exactly the ranges of the
+    item-by-item greedy loop it replaced: zeros, items longer than the limit, a limit of 0, empty input."""
+    from rigctl.storage.nwb import _blocks
+
+    def greedy(lengths, limit):
+        out, i0, acc = [], 0, 0
+        for i, n in enumerate(lengths):
+            if i > i0 and acc + int(n) > limit:
+                out.append((i0, i))
+                i0, acc = i, 0
+            acc += int(n)
+        return out + ([(i0, len(lengths))] if i0 < len(lengths) else [])
+
+    rng = np.random.default_rng(57)
+    for case in range(300):
+        n = int(rng.integers(0, 40))
+        lengths = rng.integers(0, 12, n) * (rng.random(n) < 0.8)  # some zeros
+        for limit in (0, 1, 5, 11, 30, 1000):
+            for given in (lengths, list(map(int, lengths)), lengths.astype(np.uint32)):
+                assert _blocks(given, limit) == greedy(lengths, limit), (case, limit)
+    assert _blocks([], 4) == [] and _blocks([1] * 10, 4) == [(0, 4), (4, 8), (8, 10)]
