@@ -103,16 +103,16 @@ TARGETS = (("encode / floor, wall", "encode_floor_wall", 2.0, "<="),
            ("the whole paper, s wall", "total_s", 120.0, "<"))
 
 
-def run_stage(args: list[str], python: bool = False) -> dict:
-    """Run ``python -m rigctl ARGS`` (``python``: ``python ARGS``); wall, CPU (process + children), peak tree
-    RSS."""
+def run_stage(args: list[str], python: bool = False, env: dict[str, str] | None = None) -> dict:
+    """Run ``python -m rigctl ARGS`` (``python``: ``python ARGS``) in ``env`` (default :data:`CHILD_ENV`); wall, CPU
+    (process + children), peak tree RSS."""
     import psutil
 
     before = os.times()
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, *([] if python else ["-m", "rigctl"]), *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=CHILD_ENV)
+                            stderr=subprocess.PIPE, text=True, env=CHILD_ENV if env is None else env)
     peak = [0]
     ps = psutil.Process(proc.pid)
 
