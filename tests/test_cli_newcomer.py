@@ -79,20 +79,23 @@ def test_a_broken_pipe_is_quiet(session):
 
 def test_ctrl_c_during_sim_dataset_says_how_to_resume(tmp_path):
     out = tmp_path / "d.h5"
+    # 1,200 trials: a few seconds at the generator's quiet rate (~430 trials/s at paper size; its workers fork and
+    # render from the start), so the Ctrl-C lands while they render (240 trials were done within the second this
+    # test then waited)
     p = subprocess.Popen([*RIGCTL, "sim", "dataset", "quick_check", "--out", str(out),
-                          "--trials-per-condition", "40", "--workers", "2", "--quiet"],
+                          "--trials-per-condition", "200", "--workers", "2", "--quiet"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 300
     while not out.exists() and p.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    time.sleep(1.0)  # the workers are rendering
+        time.sleep(0.05)
+    time.sleep(0.3)  # the workers are rendering
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=300)
-    assert p.returncode == 1, err
+    assert p.returncode == 1, f"the run ended {p.returncode} before the Ctrl-C, or ignored it: {err}"
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert "--resume" in err and err.strip().count("\n") == 0, err
-    r = CliRunner().invoke(main, ["sim", "dataset", "quick_check", "--out", str(out), "--trials-per-condition", "40",
+    r = CliRunner().invoke(main, ["sim", "dataset", "quick_check", "--out", str(out), "--trials-per-condition", "200",
                                   "--resume", "--quiet", "--workers", "0"])
     assert r.exit_code == 0, r.output
 

@@ -59,6 +59,8 @@ class Controller:
         Mega's output)
     mechanics_s : ``() -> s``, the time of the mechanics that :attr:`actuator_mm` reports (the physics model's, which
         falls behind the host's clock when its thread is starved; the harness's simulated time), to time motion on
+    actuator_at : ``() -> (s, mm)``, :attr:`mechanics_s` and :attr:`actuator_mm` of one state of the mechanics (two
+        calls may see two: a harness report between them, a physics step), to time motion by
     """
 
     name: str
@@ -77,6 +79,7 @@ class Controller:
     hang: Callable[[], None] = lambda: None
     drivers_enabled: Callable[[], bool] = lambda: True
     mechanics_s: Callable[[], float] = time.monotonic
+    actuator_at: Callable[[], tuple[float, float]] = lambda: (time.monotonic(), 0.0)
     power_up_holding: list[int] = field(default_factory=list)
     power_up_inputs: list[int] = field(default_factory=list)
     rig: Any = None
@@ -126,7 +129,16 @@ def _start_sim(config=None, image: str = ""):
                            corrupt_eeprom=mega.corrupt_eeprom, hang=mega.hang_loop,
                            reverse_actuator=lambda r: setattr(model, "actuator_sign", -1 if r else 1),
                            drivers_enabled=lambda: mega.drivers_enabled, mechanics_s=lambda: model.time_s,
-                           clock_s=rig.clock.now, rig=rig)
+                           actuator_at=lambda: _model_actuator_at(model), clock_s=rig.clock.now, rig=rig)
+
+
+def _model_actuator_at(model) -> tuple[float, float]:
+    """The physics model's time and actuator position of one state: read again while a step came between (each
+    property takes the model's lock, which a step holds throughout)."""
+    while True:
+        t, mm = model.time_s, model.actuator_mm
+        if model.time_s == t:
+            return t, mm
 
 
 def _start_hil(config=None, image: str = "mega_drum"):
@@ -145,7 +157,14 @@ def _start_hil(config=None, image: str = "mega_drum"):
                            set_polarity=rig.set_loadcell_polarity, break_home_switch=rig.break_home_switch,
                            corrupt_eeprom=rig.corrupt_eeprom, hang=rig.hang_loop,
                            reverse_actuator=rig.reverse_actuator, drivers_enabled=lambda: rig.next_telemetry().drivers_enabled,
-                           mechanics_s=lambda: rig.next_telemetry().t_s, rig=rig)
+                           mechanics_s=lambda: rig.next_telemetry().t_s, actuator_at=lambda: _report_actuator_at(rig),
+                           rig=rig)
+
+
+def _report_actuator_at(rig) -> tuple[float, float]:
+    """The time and actuator position of one report of the Mega's harness (now or later)."""
+    tel = rig.next_telemetry()
+    return tel.t_s, tel.act_mm
 
 
 @pytest.fixture(scope="module", params=["sim", pytest.param("hil", marks=pytest.mark.hil)])

@@ -482,7 +482,7 @@ def test_stop_backs_the_actuator_off_at_the_clamp_speed(drum, controller):
     track = []  # (mechanics' time, actuator mm) while it retracts
     deadline = controller.mechanics_s() + 5.0
     while controller.mechanics_s() < deadline:
-        t, mm = controller.mechanics_s(), controller.actuator_mm()
+        t, mm = controller.actuator_at()  # one state: two calls may straddle a report or a step
         track.append((t, mm))
         if mm <= HOME_MM:
             break
