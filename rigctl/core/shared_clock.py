@@ -385,6 +385,7 @@ def attach_port_clock(port: str | os.PathLike[str]) -> SharedClock | None:
             return entry.clock
         side.hold(True)
         clock = SharedClock(side.world_now, on_grant=side.grant, on_stamp=side.stamp)
+        clock.in_flight = side.in_flight  # an answer the rig says is on its way is waited for (rigctl.core.port_clock)
         clock.start()
         _ATTACHED[key] = _Attached(clock, side, 1)
         return clock

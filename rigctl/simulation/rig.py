@@ -255,9 +255,13 @@ class SimulatedRig:
 
     def _horizon_s(self) -> float:
         """How far the world may run, s: the grant of the hosts of this process (:attr:`clock`) and, while a face of
-        another process holds the rig's clock file, the lower of that and its grant (rigctl.core.port_clock)."""
+        another process holds the rig's clock file, the lower of that and its grant (rigctl.core.port_clock); the
+        world loop asks at each step and look, and the face is told then whether its answer is on its way."""
         own = self.clock.horizon_s
         if self._clock_file.host_attached():
+            # the face's answer waits go on while its request or the answer is on its way (HostSide.in_flight)
+            mega = self.mega
+            self._clock_file.publish_in_flight(mega.request_on_its_way() or mega.reply_on_its_way())
             return min(own, self._clock_file.grant_s())
         return own
 

@@ -84,3 +84,48 @@ def test_a_face_that_attaches_before_the_worlds_first_step_runs_it():
             release_port_clock(clock)
     finally:
         sim.close()
+
+
+def test_a_face_of_another_process_waits_for_an_answer_the_rig_says_is_on_its_way():
+    """A face's answer wait does not give up on an answer the rig knows is on its way (a reply handed to the face's
+    pty that the kernel still holds: a CI run beside two CPU hogs failed a `rigctl acquire --drum-port` against
+    `rigctl sim` with DrumTimeout and "stale response" while the answers were late). The rig looks at each step of its
+    world and writes what it saw into the clock file; the face's clock reads it (``HostSide.in_flight``), as a host of
+    the rig's own process asks the board (``VirtualMega.answer_in_flight``). The face here is this process's attached
+    clock, as that process would attach it; the wait is the drum client's (``wait_for(in_flight=)``)."""
+    import threading
+
+    from rigctl.core.shared_clock import attach_port_clock, release_port_clock
+
+    with SimulatedRig() as sim:
+        clock = attach_port_clock(sim.drum_port)
+        assert clock is not None and clock is not sim.clock and clock.in_flight is not None
+        try:
+            with DrumClient(sim.drum_port, clock=clock, timeout_s=2.0) as drum:
+                drum.read_status()  # the face has found a reply there (its read stamped in the file)
+
+                def flying() -> bool:
+                    assert clock.in_flight is not None
+                    return clock.in_flight(sim.drum_port)
+
+                assert not flying() and not clock.in_flight(sim.taxel_port)
+                sim.mega.bridge.to_client_at = time.monotonic()  # a reply handed on that the face has not found
+                assert sim.mega.reply_on_its_way()
+                t_end = time.monotonic() + 5.0
+                while not flying() and time.monotonic() < t_end:  # the rig's next look
+                    time.sleep(0.005)
+                assert flying() and not clock.in_flight(sim.taxel_port)
+                t0 = clock.now()
+                result: list[bool] = []
+                waiter = threading.Thread(target=lambda: result.append(
+                    clock.wait_for(lambda: False, 0.1, in_flight=flying)), daemon=True)
+                waiter.start()
+                waiter.join(1.0)
+                assert waiter.is_alive()  # 1 s of wall time past a 0.1 s deadline: still waiting
+                assert clock.now() - t0 > 0.3  # and the world ran on meanwhile
+                clock.note_read(sim.drum_port)  # the face finds the reply: nothing on its way any more
+                waiter.join(10.0)
+                assert result == [False]
+                assert not flying()
+        finally:
+            release_port_clock(clock)
