@@ -19,15 +19,15 @@ holds in the kernel's hands on their way are seen by no byte count, and the rig'
 these stamps as by those of a host of its own process (:meth:`ClockFile.stamp_s`; docs/architecture.md, "Bytes on
 their way").
 
-The rig in turn says whether a request a face wrote to the drum link or its answer is on its way (in the kernel's or
-the board's hands: :meth:`ClockFile.publish_in_flight`, :meth:`HostSide.in_flight`), and the face's answer waits do
-not give up on an answer the rig knows is coming, as a host's of the rig's own process do
-(:meth:`rigctl.core.shared_clock.SharedClock.wait_for`'s ``in_flight``).
+The rig in turn says whether a request a face wrote to the drum link or its answer, or the taxel board's banner or
+reply, is on its way (in the kernel's or the board's hands: :meth:`ClockFile.publish_in_flight`,
+:meth:`HostSide.in_flight`), and the face's waits do not give up on an answer the rig knows is coming, as a host's
+of the rig's own process do (:meth:`rigctl.core.shared_clock.SharedClock.wait_for`'s ``in_flight``).
 
 The file: eight little-endian uint64 slots, a magic number, the rig's time (ns + 1; 0: not yet), the hosts' grant
-(ns + 1; never moves back), the rig's last look at the drum link's answer (``(monotonic ns << 1 | on its way) + 1``;
-0: never), then the faces' stamps (monotonic ns + 1; 0: never) of the drum link, written and read, and of the taxel
-link, written and read. Standard library only (``rigctl.core``).
+(ns + 1; never moves back), the rig's last look at the bytes on their way (``(monotonic ns << 2 | taxel << 1 |
+drum) + 1``; 0: never), then the faces' stamps (monotonic ns + 1; 0: never) of the drum link, written and read, and
+of the taxel link, written and read. Standard library only (``rigctl.core``).
 """
 
 from __future__ import annotations
@@ -50,8 +50,9 @@ _SIZE = 64
 _STAMP_SLOTS = {"drum": (32, 40), "taxel": (48, 56)}
 #: how often the rig looks whether a face holds the file, s (a flock attempt; between looks the last answer holds)
 ATTACH_LOOK_S = 0.02
-#: the slot of the rig's last look at the drum link's answer (:meth:`ClockFile.publish_in_flight`)
+#: the slot of the rig's last look at the bytes on their way (:meth:`ClockFile.publish_in_flight`), and its flag bits
 _IN_FLIGHT_SLOT = 24
+_IN_FLIGHT_BITS = {"drum": 1, "taxel": 2}
 #: a look of the rig at the drum link's answer older than this is no answer, s of wall time: the face takes the answer
 #: as on its way (the rig's world loop looks at each step and at least every 5 ms while held; a rig thread the machine
 #: starves longer than this says nothing, and the face's wait goes on, for at most ``IN_FLIGHT_MAX_S``)
@@ -100,11 +101,12 @@ class ClockFile:
             return 0.0
         return _slot_s(self._map, 16)
 
-    def publish_in_flight(self, on_its_way: bool) -> None:
-        """Whether a request a face wrote to the drum link or its answer is on its way now (the rig's look, stamped
-        ``time.monotonic``; :meth:`HostSide.in_flight`)."""
+    def publish_in_flight(self, drum: bool, taxel: bool) -> None:
+        """Whether a request a face wrote to the drum link or its answer (``drum``), and the taxel board's banner or
+        reply (``taxel``), are on their way now (the rig's look, stamped ``time.monotonic``; :meth:`HostSide.in_flight`)."""
         if self._map is not None:
-            struct.pack_into("<Q", self._map, _IN_FLIGHT_SLOT, (time.monotonic_ns() << 1 | bool(on_its_way)) + 1)
+            flags = _IN_FLIGHT_BITS["drum"] * bool(drum) | _IN_FLIGHT_BITS["taxel"] * bool(taxel)
+            struct.pack_into("<Q", self._map, _IN_FLIGHT_SLOT, (time.monotonic_ns() << 2 | flags) + 1)
 
     def stamp_s(self, link: str, written: bool) -> float:
         """When a face of another process last began to write to the port link ``link`` (``written``) or last found
@@ -186,19 +188,19 @@ class HostSide:
             struct.pack_into("<Q", self._map, slots[0] if written else slots[1], time.monotonic_ns() + 1)
 
     def in_flight(self, port: str) -> bool:
-        """Whether a request this face wrote to the drum link ``port`` (a path named ``drum``) or its answer is on its
-        way, by the rig's last look (:meth:`ClockFile.publish_in_flight`); a look older than
-        :data:`IN_FLIGHT_LOOK_MAX_S`, the rig's thread starved: True (the rig cannot say; the face's wait goes on,
-        bounded by the clock); never looked, or another port: False. The attached clock's ``in_flight``."""
-        if os.path.basename(port) != "drum":
-            return False
+        """Whether a request this face wrote to the drum link ``port`` (a path named ``drum``) or its answer, or the
+        taxel board's banner or reply (``taxel``), is on its way, by the rig's last look
+        (:meth:`ClockFile.publish_in_flight`); a look older than :data:`IN_FLIGHT_LOOK_MAX_S`, the rig's thread
+        starved: True (the rig cannot say; the face's wait goes on, bounded by the clock); never looked, or another
+        port: False. The attached clock's ``in_flight``."""
+        bit = _IN_FLIGHT_BITS.get(os.path.basename(port))
         (v,) = struct.unpack_from("<Q", self._map, _IN_FLIGHT_SLOT)
-        if not v:
+        if bit is None or not v:
             return False
         v -= 1
-        if time.monotonic_ns() - (v >> 1) > IN_FLIGHT_LOOK_MAX_S * 1e9:
+        if time.monotonic_ns() - (v >> 2) > IN_FLIGHT_LOOK_MAX_S * 1e9:
             return True
-        return bool(v & 1)
+        return bool(v & bit)
 
     def hold(self, on: bool) -> None:
         """Take (``on``) or give back the shared lock that tells the rig a face of this process is there."""

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from rigctl.core.port_clock import HostSide, open_beside
 
 __all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "KERNEL_HOP_MAX_S", "clock_of_port", "attach_port_clock", "release_port_clock",
-           "is_port_clock", "port_keys"]
+           "is_port_clock", "note_found", "on_its_way_until", "port_keys"]
 
 #: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
 #: returned from, s. Short against every deadline of the host on a simulated rig (the shortest WATCHDOG_MS, 100 ms;
@@ -324,8 +324,9 @@ class SharedClock:
         return _stamp_at(self._written, path)
 
     def note_read(self, path: str | os.PathLike[str]) -> None:
-        """The host found bytes waiting on the board's port ``path`` and is about to read them (:meth:`read_at`: a
-        board of this process knows what it handed on after this is still in the kernel's hands)."""
+        """The host found bytes waiting on the board's port ``path`` and is about to read them, or opened the port
+        (:meth:`read_at`: a board of this process knows what it handed on after this, none of it waiting on the host's
+        side, is still in the kernel's hands: ``VirtualMega.reply_on_its_way``, ``VirtualUno.output_on_its_way``)."""
         _stamp(self._read, path)
         if self.on_stamp is not None:
             self.on_stamp(os.fspath(path), False, 0)
@@ -351,6 +352,27 @@ class SharedClock:
             self.horizon_s = grant
             if self.on_grant is not None:
                 self.on_grant(grant)
+
+
+def on_its_way_until(clock: object, port: str | os.PathLike[str], flight_end: float | None) -> float | None:
+    """For a wait on ``clock`` that has passed its deadline for bytes a simulated board sends to ``port`` (a banner, a
+    reply): the wall time (``time.monotonic``) until which it goes on, because the board says they are on their way
+    (``clock.in_flight(port)``: a pty's kernel hop, which a loaded machine holds for seconds), at most
+    :data:`IN_FLIGHT_MAX_S` after it first said so (``flight_end``: the last call's answer, None at first); None:
+    give up (nothing on its way, the bound passed, or a clock that cannot tell: the wall clock of a real port)."""
+    in_flight = getattr(clock, "in_flight", None)
+    wall = time.monotonic()
+    if in_flight is None or (flight_end is not None and wall >= flight_end) or not in_flight(os.fspath(port)):
+        return None
+    return wall + IN_FLIGHT_MAX_S if flight_end is None else flight_end
+
+
+def note_found(clock: object, port: str | os.PathLike[str]) -> None:
+    """A host found bytes on the board's port ``port``, or opened it (a board's output from then on is new to it):
+    stamped on ``clock`` where it is a :class:`SharedClock` (:meth:`SharedClock.note_read`), else nothing."""
+    note = getattr(clock, "note_read", None)
+    if note is not None:
+        note(port)
 
 
 # ---------------------------------------------------------------------- a simulated rig of another process

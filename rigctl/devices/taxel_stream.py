@@ -35,7 +35,14 @@ import numpy as np
 import serial
 
 from rigctl.core.sensor import PAPER_SENSOR, LayoutError, SensorLayout
-from rigctl.core.shared_clock import attach_port_clock, clock_of_port, is_port_clock, release_port_clock
+from rigctl.core.shared_clock import (
+    attach_port_clock,
+    clock_of_port,
+    is_port_clock,
+    note_found,
+    on_its_way_until,
+    release_port_clock,
+)
 from rigctl.devices import wire
 from rigctl.devices.capture_parts import first_flagged, first_with_seq
 from rigctl.devices.errors import TaxelLinkLost, TaxelStreamError
@@ -352,10 +359,14 @@ class TaxelStream:
         return ser
 
     def _wait_banner(self, ser: serial.Serial) -> dict[str, Any]:
-        deadline = self._now() + self.banner_timeout_s
-        buf = b""
-        while self._now() < deadline:
-            buf += ser.read(max(1, ser.in_waiting))
+        deadline, flight_end, buf, last = self._now() + self.banner_timeout_s, None, b"", False
+        note_found(self.clock, self.port)  # the port opened: what the board sends from now on is new to this host
+        while not last:  # past the deadline: on while a simulated board says its banner is in the kernel's hands
+            last = self._now() >= deadline and not (flight_end := on_its_way_until(self.clock, self.port, flight_end))
+            chunk = ser.read(ser.in_waiting if last else max(1, ser.in_waiting))  # (last: what is there now)
+            if chunk:
+                note_found(self.clock, self.port)
+            buf += chunk
             idx = buf.find(wire.UNO_BANNER_PREFIX.encode())
             if idx >= 0:
                 end = buf.find(b"\n", idx)
@@ -413,11 +424,13 @@ class TaxelStream:
         while not self._lines.empty():
             self._lines.get_nowait()
         self._write(wire.UnoCommand.IDENTIFY.value)
-        deadline = self._now() + timeout_s
+        deadline, flight_end = self._now() + timeout_s, None
         while True:
             left = deadline - self._now()
             if left <= 0:
-                raise TaxelStreamError(f"no identity reply from the taxel streamer on {self.port} in {timeout_s:g} s")
+                if not (flight_end := on_its_way_until(self.clock, self.port, flight_end)):
+                    raise TaxelStreamError(f"no identity reply from the taxel streamer on {self.port} in {timeout_s:g} s")
+                left = 0.005  # (the reply is on its way)
             try:
                 line = self._lines.get(timeout=left)
             except queue.Empty:
@@ -574,6 +587,7 @@ class TaxelStream:
                 continue
             if data:
                 self._touch()
+                note_found(self.clock, self.port)
                 self._handle(data, self._now())
             if self._await_start and self._streaming and \
                     self._now() - self._t_start_sent > self.start_timeout_s:

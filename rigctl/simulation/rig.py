@@ -137,8 +137,10 @@ class SimulatedRig:
                                board_busy=self._board_busy, horizon=self._horizon_s)
         self.mega.use_clock(self.model_time_s)
         self.mega.host_clock = self.clock  # the host's writes to the drum port are stamped on it (on their way)
-        self.clock.in_flight = self.mega.answer_in_flight  # and its answer waits go on while one is
+        self.clock.in_flight = self._in_flight  # and its answer waits go on while one is
         self.mega.remote_stamp = partial(self._clock_file.stamp_s, "drum")  # and those of a face of another process
+        self.uno.host_clock = self.clock  # the taxel reader's finds (a banner on its way: its wait goes on)
+        self.uno.remote_read_at = partial(self._clock_file.stamp_s, "taxel", False)
         self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None
         self.step_errors = 0
@@ -224,6 +226,11 @@ class SimulatedRig:
         except OSError:  # full: the thread is waking anyway
             pass
 
+    def _in_flight(self, path: str) -> bool:
+        """The host clock's ``in_flight``: a request to the drum port or its answer, or the taxel board's banner or
+        reply, on its way (``VirtualMega.answer_in_flight``, ``VirtualUno.answer_in_flight``)."""
+        return self.mega.answer_in_flight(path) or self.uno.answer_in_flight(path)
+
     def _granted(self, _horizon_s: float) -> None:
         """The host granted more time: a world held back for it wakes (one that is not costs no wake-up)."""
         loop = getattr(self, "_loop", None)
@@ -261,7 +268,8 @@ class SimulatedRig:
         if self._clock_file.host_attached():
             # the face's answer waits go on while its request or the answer is on its way (HostSide.in_flight)
             mega = self.mega
-            self._clock_file.publish_in_flight(mega.request_on_its_way() or mega.reply_on_its_way())
+            self._clock_file.publish_in_flight(mega.request_on_its_way() or mega.reply_on_its_way(),
+                                               self.uno.output_on_its_way())
             return min(own, self._clock_file.grant_s())
         return own
 

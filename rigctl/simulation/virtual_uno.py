@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
 from rigctl.devices import wire
 from rigctl.devices.frames import encode_frames, encode_stream_frames
 from rigctl.simulation.priority import board_thread
@@ -111,6 +111,12 @@ class VirtualUno:
         self.clock: SharedClock | None = None
         #: when a tick last began the read that took the host's bytes from the port (time.monotonic)
         self._taken_at = 0.0
+        #: when the board last wrote to its port (time.monotonic): :meth:`output_on_its_way`
+        self._wrote_at = 0.0
+        #: the clock a host of this process stamps its finds on (SharedClock.note_read: the rig's, or
+        #: :meth:`run_on_clock`'s own), and when a host of another process last found bytes here (the rig's clock file)
+        self.host_clock: SharedClock | None = None
+        self.remote_read_at: Callable[[], float] | None = None
 
     def use_clock(self, now: Callable[[], float]) -> None:
         """Time the boot wait and stalls on ``now()`` (s; the simulated rig's shared clock), from now on."""
@@ -213,7 +219,7 @@ class VirtualUno:
                     self._taken_at = taken_at
                 if now >= self._booting_until:
                     self._booting_until = None
-                    port.write(self.banner)
+                    self._write(self.banner)
                 port.flush()
                 return
             commands = port.read(4096)
@@ -231,10 +237,32 @@ class VirtualUno:
                     self.streaming = False
                 elif c == wire.UnoCommand.IDENTIFY.value:
                     self.streaming = False
-                    port.write(self.identity)
+                    self._write(self.identity)
             if self.streaming and n and rendered:
                 self._send_frames(samples, sync_in, unsent)
             port.flush()
+
+    def _write(self, data: bytes) -> None:
+        self._wrote_at = time.monotonic()
+        self.port.write(data)
+
+    def output_on_its_way(self) -> bool:
+        """Bytes the board wrote after the host last found bytes on the port (or opened it: ``note_read`` on
+        :attr:`host_clock`, or :attr:`remote_read_at`), none waiting on the host's side now: in the kernel's hands
+        (a pty hands them to the reader through a kernel worker, which a loaded machine holds for seconds; a banner
+        held so failed a 3 s banner wait beside two CPU hogs), for at most ``KERNEL_HOP_MAX_S``. False while no host
+        stamps its finds. Lock-free."""
+        clock, remote = self.host_clock, self.remote_read_at
+        read_at = max(0.0 if clock is None else clock.read_at(self.path), 0.0 if remote is None else remote())
+        if read_at <= 0.0 or self._wrote_at <= max(read_at, time.monotonic() - KERNEL_HOP_MAX_S):
+            return False
+        return not self.port.unread_by_board()
+
+    def answer_in_flight(self, path: str) -> bool:
+        """Whether ``path`` is this board's port and its output is on its way to the host
+        (:meth:`output_on_its_way`): a host clock's ``in_flight`` (the banner and identify waits,
+        :func:`rigctl.core.shared_clock.on_its_way_until`). Lock-free."""
+        return bool(port_keys(path) & port_keys(self.path)) and self.output_on_its_way()
 
     def _send_frames(self, samples, sync_in, unsent: int = 0) -> None:
         n = len(samples)
@@ -244,7 +272,7 @@ class VirtualUno:
             self._first = False
             self.seq = (seq0 + n) & 0xFFFF
             sync = np.zeros(n, bool) if sync_in is None else np.ascontiguousarray(sync_in, dtype=bool)
-            self.port.write(encode_stream_frames(seq0, sync, first, np.ascontiguousarray(samples), self.layout.adc_max))
+            self._write(encode_stream_frames(seq0, sync, first, np.ascontiguousarray(samples), self.layout.adc_max))
             self.frames_sent += n
             return
         seq = (self.seq + np.arange(n)) & 0xFFFF
@@ -289,7 +317,7 @@ class VirtualUno:
         if self._garbage:
             data = bytes(self._garbage) + data
             self._garbage.clear()
-        self.port.write(data)
+        self._write(data)
         self.frames_sent += len(samples)
 
     # ------------------------------------------------------------------ standalone pacing
@@ -330,7 +358,8 @@ class VirtualUno:
             self.tick(*source(n))
             ticks[0] += n
 
-        self.clock = SharedClock(lambda: ticks[0] / 1000.0, world_notifies=True).start()
+        self.clock = self.host_clock = SharedClock(lambda: ticks[0] / 1000.0, world_notifies=True).start()
+        self.clock.in_flight = self.answer_in_flight  # a banner or reply the kernel holds is waited for
         self.clock.own_port(self.path)
         self.use_clock(self.clock.now)
         lead = READER_LEAD_S * self.layout.sample_rate_hz

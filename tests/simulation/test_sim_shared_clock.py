@@ -4,6 +4,7 @@ pauses it (and so never looks silent to the Mega's watchdog), and the host's tim
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import threading
@@ -365,3 +366,54 @@ def test_an_answer_wait_goes_on_while_its_answer_is_on_its_way_and_the_world_run
         t1 = w.t
         assert w.clock.wait_for(lambda: False, 0.1, in_flight=lambda: False) is False
         assert w.t - t1 < 0.1 + LEAD_S + 0.05
+
+
+@pytest.mark.parametrize("host", ["the board's own clock", "a rig of this process", "a rig of another process"])
+def test_a_banner_the_kernel_still_holds_is_waited_for(tmp_path, host):
+    """The reverse hop: a pty hands the board's bytes to the host through a kernel worker that a loaded machine holds
+    for seconds, while the world runs on (a virtual Uno's banner did not come within 3 s in a CI run beside two CPU
+    hogs: test_the_taxel_stream_holds_its_port_exclusively). The host stamps what it finds (and the port's opening);
+    the board knows what it wrote since, and while none of that waits on the host's side it is on its way: the
+    banner wait goes on past its deadline (``on_its_way_until``), and gives up once nothing is (the world ran on
+    meanwhile). The held banner here: the board's write handed to the pty 1.5 s of wall time late."""
+    from rigctl.devices.errors import TaxelStreamError
+    from rigctl.devices.taxel_stream import TaxelStream
+    from rigctl.simulation.counting import CountingSource
+    from rigctl.simulation.virtual_uno import VirtualUno
+
+    def hold_the_banner(uno) -> None:
+        real_write = uno.port.write
+
+        def write(data: bytes) -> int:
+            if bytes(data).startswith(uno.banner):
+                threading.Timer(1.5, real_write, [bytes(data)]).start()
+                return len(data)
+            return real_write(data)
+        uno.port.write = write
+
+    with contextlib.ExitStack() as stack:
+        if host == "the board's own clock":
+            uno = VirtualUno(tmp_path / "taxel", reset_delay_s=0.1)
+            stack.callback(uno.close)
+            uno.run_on_clock(CountingSource())
+            port, clock = uno.path, uno.clock
+        else:
+            sim = stack.enter_context(SimulatedRig())
+            uno, port = sim.uno, sim.taxel_port
+            clock = sim.clock if host == "a rig of this process" else attach_port_clock(port)
+            if clock is not sim.clock:
+                stack.callback(release_port_clock, clock)
+        assert clock is not None
+        t_end = time.monotonic() + 30.0
+        while uno._booting_until is not None and time.monotonic() < t_end:  # its power-up banner sent
+            time.sleep(0.01)
+        hold_the_banner(uno)
+        t0, wall0 = clock.now(), time.monotonic()
+        with TaxelStream(port, clock=clock, banner_timeout_s=0.3) as stream:
+            assert stream.banner["line"].startswith("#RIGCTL-UNO READY")
+        assert time.monotonic() - wall0 >= 1.4 and clock.now() - t0 > 0.6  # waited; the world ran on meanwhile
+        uno.reset_delay_s = 1e9  # a board that never boots again: nothing on its way
+        wall0 = time.monotonic()
+        with pytest.raises(TaxelStreamError, match="no ready banner"):
+            TaxelStream(port, clock=clock, banner_timeout_s=0.3).open()
+        assert time.monotonic() - wall0 < 8.0  # (not the 10 s bound of a banner on its way)
