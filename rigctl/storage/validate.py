@@ -50,6 +50,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -438,8 +439,9 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
                     report: TrialReport, stage: Stage) -> None:
     """The checks of :func:`_check_trial` for a schema-4 file, from ``/recording/index``, each trial's group
     (:meth:`Session.flat_group_problem`) and the recording arrays read in blocks of about :data:`_BLOCK_ROWS` rows
-    (memory bounded by the block). A trial with trusted facts (:meth:`Session.trusted_facts`) is judged on them
-    instead of its samples, unless they show counts outside the ADC range (read then, for the reason's sample)."""
+    (memory bounded by two blocks: one hashed while the next is read). A trial with trusted facts
+    (:meth:`Session.trusted_facts`) is judged on them instead of its samples, unless they show counts outside the ADC
+    range (read then, for the reason's sample)."""
     copies = _Copies()
     todo, facts, trusted = _precheck_recorded(session, ids, plan, rate, report,
                                               Stage(stage.callback, "checking trial groups", len(ids)))
@@ -448,17 +450,31 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     # its taxels compared with the checksum stored with them; a trial edited since (its modification time put back)
     # or whose stored chunk cannot be read is excluded by itself, named
     known = np.zeros(len(todo), dtype=bool)
-    entries: list[tuple[int, np.void, np.void | None, bool, np.void | None]] = [
-        (tid, r, None, False, facts[i] if trusted[i] else None) for i, (tid, r) in enumerate(todo)]
+    entries: list[_Entry] = [(tid, r, None, False, facts[i] if trusted[i] else None) for i, (tid, r) in enumerate(todo)]
+    spans: list[tuple[int, int]] = []
     k = 0
     while k < len(todo):
         j, rows = k, 0
         while j < len(todo) and (j == k or known[j] or rows + int(todo[j][1]["n_samples"]) <= _BLOCK_ROWS):
             rows += 0 if known[j] else int(todo[j][1]["n_samples"])
             j += 1
-        _check_block(session, entries[k:j], plan, rate, report, copies)
-        stage.advance(j - k)
+        spans.append((k, j))
         k = j
+    # two blocks in flight: a worker thread hashes block k (SHA-256 against the seal, the seq gaps, the ADC maximum:
+    # hashlib and numpy release the GIL) while this thread reads block k + 1 and judges block k - 1, in order
+    adc_max = session.layout.adc_max
+    with ThreadPoolExecutor(1, thread_name_prefix="rigctl-validate") as pool:
+        pending: tuple[_Block, Future[_Sums], int] | None = None
+        for k, j in spans:
+            blk = _read_entries(session, entries[k:j])
+            sums = pool.submit(_block_sums, blk, adc_max)
+            if pending is not None:
+                _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies)
+                stage.advance(pending[2])
+            pending = (blk, sums, j - k)
+        if pending is not None:
+            _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies)
+            stage.advance(pending[2])
     order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
     report.ids.sort(key=order.__getitem__)
     report.excluded = dict(sorted(report.excluded.items(), key=lambda kv: order[kv[0]]))
@@ -498,24 +514,70 @@ def _read_block(rec: Any, read: list[np.void], n_ch: int) -> tuple[np.ndarray, n
 _READ_ERRORS = (OSError, RuntimeError, ValueError)
 
 
-def _check_block(session: Session, block: list[tuple[int, np.void, np.void | None, bool, np.void | None]],
-                 plan: dict[int, Any], rate: float, report: TrialReport, copies: "_Copies") -> None:
-    """:func:`_check_data` of a block of trials in order, each ``(trial id, index row, facts row or None, whether
-    the facts count non-finite readings, the sealed facts row its taxels are checked against or None)``: those with
-    facts on them, the others on their samples, read together."""
+#: a trial of a block: (trial id, index row, facts row or None, whether the facts count non-finite readings, the
+#: sealed facts row its taxels are checked against or None)
+_Entry = tuple[int, np.void, np.void | None, bool, np.void | None]
+
+
+@dataclass
+class _Block:
+    """A block of trials as read (:func:`_read_entries`): the entries, and of the trials read (those without facts
+    used instead of their samples), their seq and taxels back to back, row offsets, first rows in the file,
+    non-finite texts and the trials whose stored data cannot be read (:func:`_read_block`)."""
+
+    entries: list[_Entry]
+    seq: np.ndarray
+    tax: np.ndarray
+    pos: np.ndarray
+    starts: np.ndarray
+    bad: list[str | None]
+    failed: dict[int, str]
+
+
+#: (seq gaps per trial read, counts all inside the ADC range, SHA-256 of each read trial's taxels that has a sealed
+#: checksum to meet, else None)
+_Sums = tuple[np.ndarray, bool, list[bytes | None]]
+
+
+def _read_entries(session: Session, block: list[_Entry]) -> _Block:
+    """Read a block's trials (those without facts used instead of their samples) together (:func:`_read_block`)."""
     from rigctl.storage.session_recording import GROUP
-    from rigctl.storage.trial_facts import sha256
 
     rec = session._f[GROUP]
-    taxels_ds = rec["taxels"]
-    n_ch = int(taxels_ds.shape[1])
     read = [r for _, r, q, _, _ in block if q is None]
-    seq, tax, pos, bad, failed = _read_block(rec, read, n_ch)
+    seq, tax, pos, bad, failed = _read_block(rec, read, int(rec["taxels"].shape[1]))
     starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
-    gaps = block_seq_gaps(seq, pos)
-    in_range = bool(tax.size == 0 or int(tax.max()) <= session.layout.adc_max)  # uint16: never below 0
+    return _Block(block, seq, tax, pos, starts, bad, failed)
+
+
+def _block_sums(blk: _Block, adc_max: int) -> _Sums:
+    """What a block's samples say, computed apart from the judging (on the validator's worker thread): the seq
+    gaps, whether every count is inside ``0 .. adc_max`` and the SHA-256 of each read trial's taxels that has a
+    sealed checksum (not for a trial whose data cannot be read, nor an empty one)."""
+    from rigctl.storage.trial_facts import sha256
+
+    gaps = block_seq_gaps(blk.seq, blk.pos)
+    in_range = bool(blk.tax.size == 0 or int(blk.tax.max()) <= adc_max)  # uint16: never below 0
+    digests: list[bytes | None] = []
+    for sealed in (e[4] for e in blk.entries if e[2] is None):
+        i = len(digests)
+        a, b = int(blk.pos[i]), int(blk.pos[i + 1])
+        digests.append(sha256(blk.tax[a:b]) if sealed is not None and b > a and i not in blk.failed else None)
+    return gaps, in_range, digests
+
+
+def _judge_block(session: Session, blk: _Block, sums: _Sums, plan: dict[int, Any], rate: float,
+                 report: TrialReport, copies: "_Copies") -> None:
+    """:func:`_check_data` of a block's trials in order: those with facts on them, the others on their samples
+    (read in :func:`_read_entries`, summed in :func:`_block_sums`)."""
+    from rigctl.storage.session_recording import GROUP
+
+    taxels_ds = session._f[GROUP]["taxels"]
+    n_ch = int(taxels_ds.shape[1])
+    gaps, in_range, digests = sums
+    tax, pos, failed = blk.tax, blk.pos, blk.failed
     i = 0  # the next trial read
-    for tid, r, q, nonfinite, sealed in block:
+    for tid, r, q, nonfinite, sealed in blk.entries:
         duration, said, crc = float(plan[tid]["duration_s"]), int(r["dropped_frames"]), int(r["crc_errors"])
         if q is not None:
             n, why = _encoded_samples(session, tid, int(r["n_samples"]))
@@ -525,17 +587,18 @@ def _check_block(session: Session, block: list[tuple[int, np.void, np.void | Non
             _record(report, tid, why, dropped, facts_nonfinite_text(q) if nonfinite else None)
             continue
         a, b = int(pos[i]), int(pos[i + 1])
-        if i in failed or (sealed is not None and b > a and sha256(tax[a:b]) != bytes(sealed["taxels_sha256"])):
+        if i in failed or (sealed is not None and digests[i] is not None
+                           and digests[i] != bytes(sealed["taxels_sha256"])):
             _record(report, tid, failed.get(i) or "its stored taxels differ from the checksum sealed with them when "
                                                   "they were recorded (changed since)", 0)
             i += 1
             continue
-        data, load = tax[a:b], functools.partial(_read_trial, taxels_ds, int(starts[i]), b - a)
+        data, load = tax[a:b], functools.partial(_read_trial, taxels_ds, int(blk.starts[i]), b - a)
         n, why = _encoded_samples(session, tid, b - a)
         why, dropped = (why, 0) if why else _check_data(duration, rate, n, int(gaps[i]), said, crc,
                                                         functools.partial(_check_counts, session, data, tid, copies,
                                                                           load, in_range))
-        _record(report, tid, why, dropped, bad[i])
+        _record(report, tid, why, dropped, blk.bad[i])
         i += 1
 
 

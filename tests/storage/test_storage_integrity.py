@@ -87,3 +87,34 @@ def test_a_flipped_bit_in_a_compressed_chunk_excludes_its_trial_only(tmp_path):
     r = CliRunner().invoke(main, ["encode", str(path), "--out", str(tmp_path / "e.h5"), "--no-progress",
                                   "--variant", "original"])
     assert r.exit_code == 0 and "trial 3" in r.output, r.output
+
+
+def test_blocks_hashed_while_the_next_is_read_keep_each_trials_reason(tmp_path, monkeypatch):
+    """The validator hashes a block on its worker thread while it reads the next: with one trial a block (six
+    blocks in flight in turn) each damaged trial keeps its own reason and the report is the one-block report."""
+    import rigctl.storage.validate as validate
+
+    path = _session(tmp_path / "s.h5")
+
+    def edit(f):
+        r1, r3, r4 = _rows(f, 1), _rows(f, 3), _rows(f, 4)
+        t = int(r1["sample_start"]) + 7
+        f["recording/taxels"][t, 0] = 901 if f["recording/taxels"][t, 0] != 901 else 902
+        f["recording/speed_mm_s"][int(r3["speed_start"]) + 1] = np.inf
+        t = int(r4["sample_start"]) + N - 1
+        f["recording/taxels"][t, 17] = 4000  # outside the 10-bit range, and not the sealed checksum
+
+    _edit_keeping_mtime(path, edit)
+    reports = []
+    for rows in (N, 1 << 20):  # a block a trial, then one block for all
+        monkeypatch.setattr(validate, "_BLOCK_ROWS", rows)
+        with open_session(path) as s:
+            reports.append(usable_trials(s))
+    one_a_block, one_block = reports
+    assert one_a_block.ids == [0, 2, 5], one_a_block.excluded
+    assert "differ from the checksum sealed with them" in one_a_block.excluded[1]
+    assert "inf in speed_mm_s" in one_a_block.excluded[3]
+    assert "differ from the checksum sealed with them" in one_a_block.excluded[4]
+    assert list(one_a_block.excluded) == [1, 3, 4]
+    assert (one_a_block.ids, one_a_block.excluded, one_a_block.dropped_frames) == \
+        (one_block.ids, one_block.excluded, one_block.dropped_frames)
