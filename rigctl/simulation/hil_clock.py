@@ -2,7 +2,8 @@
 boards' simulated times (slot 0 the Mega's, slot 1 the Uno's) and the host's grant (slot 2), each ns + 1 (0: not
 yet), when the host began its last write to each board's port (slots 3 and 4: ``CLOCK_MONOTONIC`` ns + 1), the
 bytes each harness has read from its port (slots 5 and 6, the harnesses') and the bytes the host's stamped writes to
-each port bring (slots 7 and 8, the host's), shared memory between the harness processes and the host
+each port bring (slots 7 and 8, the host's), and when each harness last handed bytes to its port (slots 9 and 10,
+``CLOCK_MONOTONIC`` ns + 1: :meth:`HilClockFile.in_flight`), shared memory between the harness processes and the host
 (docs/architecture.md "Time on a simulated rig").
 
 :class:`HilClockFile` gives a :class:`rigctl.core.shared_clock.SharedClock` the world's time (the slower board's:
@@ -30,10 +31,10 @@ __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
 #: the file's slots: the Mega's time, the Uno's, the host's grant, the host's last write to the Mega's port, to the
 #: Uno's, the bytes the Mega's harness has read from its port, the Uno's, the bytes the host's stamped writes bring to
-#: the Mega's port, to the Uno's (uint64 each)
-LOCK_SLOTS = 9
+#: the Mega's port, to the Uno's, when the Mega's harness last wrote to its port, the Uno's (uint64 each)
+LOCK_SLOTS = 11
 #: each board's index in the slots: its last write's slot is 3 + it, its harness's bytes read 5 + it, the host's
-#: stamped bytes 7 + it
+#: stamped bytes 7 + it, its harness's last write 9 + it
 WRITE_SLOTS = {"mega": 0, "uno": 1}
 
 
@@ -59,8 +60,24 @@ class HilClockFile:
         """A :class:`SharedClock` on the boards' time whose grants go to the file (its first one written now) and
         whose hosts' writes to a board's port (:meth:`board_port`) are stamped in it (:meth:`stamp`)."""
         clock = self._clock = SharedClock(self.world_now, on_grant=self.grant, on_stamp=self.stamp)
+        clock.in_flight = self.in_flight  # and its waits go on while a board's bytes are on their way
         self.grant(clock.horizon_s)
         return clock
+
+    def in_flight(self, path: str) -> bool:
+        """Whether bytes the harness of the board whose port is ``path`` (:meth:`board_port`) handed to the pty are
+        on their way to the host: written (slot 9 + the board, ``CLOCK_MONOTONIC``) after a host of this process
+        last found bytes there or opened it (:meth:`SharedClock.read_at`), less than :data:`KERNEL_HOP_MAX_S` ago
+        (a pty hands them on through a kernel worker, which a loaded machine holds for seconds); never found or
+        opened, or another port: False. The clock's ``in_flight`` (a drum client's answer wait, the taxel stream's
+        banner and identify waits)."""
+        slots, clock = self._slots, self._clock
+        board = next((self._write_slots[k] for k in port_keys(path) if k in self._write_slots), None)
+        if slots is None or clock is None or board is None or not int(slots[9 + board]):
+            return False
+        read_at = clock.read_at(path)
+        wrote_s = (int(slots[9 + board]) - 1) * 1e-9
+        return read_at > 0.0 and wrote_s > max(read_at, time.monotonic() - KERNEL_HOP_MAX_S)
 
     def world_now(self) -> float:
         """The simulated rig's time, s: the slower board's that has published (0 before either has); never moves

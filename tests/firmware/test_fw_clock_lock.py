@@ -19,6 +19,7 @@ import serial
 from rigctl.core.shared_clock import KERNEL_HOP_MAX_S
 from rigctl.devices import wire
 from rigctl.simulation import hil
+from rigctl.simulation.hil_clock import LOCK_SLOTS
 
 pytestmark = pytest.mark.hil
 
@@ -84,3 +85,48 @@ def _assert_goes_on(rig: hil.HilRig) -> None:
     resumed = _wall_to_go_on(rig, 0.2, within_s=KERNEL_HOP_MAX_S / 2)
     assert resumed is not None, (f"the world did not go on in {KERNEL_HOP_MAX_S / 2:.0f} s once the bytes had come "
                                  f"(the hold ends after {KERNEL_HOP_MAX_S:.0f} s on its own)")
+
+
+@pytest.mark.parametrize("board", ["mega", "uno"])
+def test_what_a_harness_hands_the_host_is_on_its_way_until_the_host_finds_it(fw_build, board):
+    """The reverse hop: each harness stamps when it hands bytes to its pty (slots 9 and 10), and the rig's clock takes
+    them as on their way until the host finds bytes there after that (``HilClockFile.in_flight``, the clock's
+    ``in_flight``): a drum client's answer wait and the taxel stream's banner wait go on past their deadline while
+    the kernel holds what the board sent, as on the model rig. The Uno's identify reply, the Mega's answer to a Modbus
+    read here; the host's finds stamped by hand (the clients stamp their own)."""
+    assert LOCK_SLOTS == 11
+    with hil.HilRig(live=False, with_uno=board == "uno") as rig:
+        port = rig.drum_port if board == "mega" else rig.taxel_port
+        assert rig.clock.in_flight is not None
+        with serial.Serial(port, timeout=0.05) as raw:
+            t0 = time.monotonic()
+            while rig.clock.now() < 1.0:  # booted (the Uno's reset on open passes meanwhile)
+                assert time.monotonic() - t0 < 30, "the boards did not start"
+                time.sleep(0.02)
+            raw.read(raw.in_waiting)
+            rig.clock.note_read(port)  # what the board sends from here is new to this host
+            if board == "uno":
+                raw.write(wire.UnoCommand.IDENTIFY.value)
+            else:  # read holding register 0 of unit 1
+                request = bytes([1, 3, 0, 0, 0, 1])
+                crc = 0xFFFF
+                for b in request:
+                    crc ^= b
+                    for _ in range(8):
+                        crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+                request += bytes([crc & 0xFF, crc >> 8])
+                rig.clock.note_write(port, len(request))
+                raw.write(request)
+            t0 = time.monotonic()
+            while not rig.clock.in_flight(port):  # the board answers: handed to the pty, not yet found
+                assert time.monotonic() - t0 < 30, f"the {board}'s harness never handed the host a byte"
+                time.sleep(0.005)
+            assert not rig.clock.in_flight(port + "-not-a-board")
+            t0 = time.monotonic()
+            while not raw.in_waiting:
+                assert time.monotonic() - t0 < KERNEL_HOP_MAX_S, "the bytes never came"
+                time.sleep(0.005)
+            time.sleep(0.2)  # (the rest of the banner or answer)
+            rig.clock.note_read(port)  # found
+            raw.read(raw.in_waiting)
+            assert not rig.clock.in_flight(port)

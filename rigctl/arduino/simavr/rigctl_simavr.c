@@ -107,6 +107,7 @@ static uint64_t tx_lost;
 static int pty_master = -1, pty_slave = -1;
 static uint64_t rx_total; /* bytes the bridge has read from the pty (the host's, and junk while the link is cut) */
 static void rx_count(ssize_t r); /* counts them and publishes the count (clock lock) */
+static void tx_stamp(void); /* the bridge's last write to the pty, published (clock lock) */
 static char pty_name[128];
 static int uart_xon = 1;
 static atomic_int link_down_req; /* 1 = the host's link is cut (USB pulled): host bytes and board bytes are lost */
@@ -193,6 +194,7 @@ static void bridge_poll(int readable)
         ssize_t w = write(pty_master, tx_ring + tx_tail, n);
         if (w <= 0) break; /* EAGAIN: the host is behind; keep the bytes */
         tx_tail = (tx_tail + (size_t)w) & (TX_RING_SIZE - 1);
+        tx_stamp();
     }
     if (rx_pos == rx_len && readable) {
         ssize_t r = read(pty_master, rx_buf, sizeof rx_buf);
@@ -1533,10 +1535,12 @@ static void mega_poll(void)
 #define LOCK_STALE_S 0.5
 #define LOCK_WAIT_MIN_S 0.0001
 #define LOCK_WAIT_MAX_S 0.002
-#define LOCK_SLOTS 9 /* mega, uno, the host's grant, its last write to the Mega's port and the Uno's, the bytes
-                       * read from each port, the bytes the host's stamped writes bring to each */
+#define LOCK_SLOTS 11 /* mega, uno, the host's grant, its last write to the Mega's port and the Uno's, the bytes
+                        * read from each port, the bytes the host's stamped writes bring to each, when each harness
+                        * last wrote to its port (CLOCK_MONOTONIC ns + 1: the host judges its bytes on their way) */
 #define RX_SLOT(uno) (5 + (uno))
 #define TARGET_SLOT(uno) (7 + (uno))
+#define TX_SLOT(uno) (9 + (uno))
 static _Atomic uint64_t *lock_slots;
 static int lock_self;
 static double lock_time_s;       /* this core's simulated time for the lock */
@@ -1565,6 +1569,16 @@ static void clock_lock_open(const char *path, int slot)
     lock_other_wall = now_s();
     rx_total += atomic_load(&lock_slots[RX_SLOT(slot)]); /* a harness started again on the same file counts on */
     atomic_store(&lock_slots[RX_SLOT(slot)], rx_total);
+}
+
+/* the bridge handed bytes of the board to the pty now: the host's waits take them as on their way until it finds
+ * bytes there after this (rigctl.simulation.hil_clock: in_flight) */
+static void tx_stamp(void)
+{
+    struct timespec ts;
+    if (!lock_slots) return;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    atomic_store(&lock_slots[TX_SLOT(is_uno ? 1 : 0)], (uint64_t)ts.tv_sec * 1000000000u + (uint64_t)ts.tv_nsec + 1);
 }
 
 static void rx_count(ssize_t r)
