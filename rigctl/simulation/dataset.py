@@ -47,6 +47,7 @@ from rigctl.simulation.model import RigConfig, SensorModel
 from rigctl.simulation.noise import one_pole
 from rigctl.simulation.textures import Texture, get_texture
 from rigctl.simulation.trial_slots import TrialSlots, init_worker_slots
+from rigctl.storage import trial_facts
 from rigctl.storage.session import SCHEMA_VERSION, SessionWriter
 
 #: travel of the drum surface in one trial of the paper's dataset, mm (6/4/3/2.4/2 s at 40-120 mm/s)
@@ -313,6 +314,19 @@ def _render_planned(row: tuple) -> tuple[int, TrialData]:
     return int(trial_id), data
 
 
+def _prepare(data: TrialData) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """What the writer needs of a trial that needs no file, computed where the trial was rendered (the render worker,
+    from its slot's bytes): its trial facts (storage's :func:`rigctl.storage.trial_facts.sample_facts`: SHA-256,
+    extremes, fingerprint, seq gaps, non-finite counts) and its per-taxel extremes (:func:`taxel_extrema`)."""
+    return trial_facts.sample_facts(data, data.layout.n_channels), taxel_extrema(data.taxels)
+
+
+def _render_prepared(row: tuple) -> tuple[int, TrialData, Any]:
+    """:func:`_render_planned` and :func:`_prepare` of the trial in this process (0 workers)."""
+    trial_id, data = _render_planned(row)
+    return trial_id, data, _prepare(data)
+
+
 def _pool_context() -> Any:
     """The render workers' start: ``fork`` where the platform has it and this process runs one thread (the worker
     inherits numpy, numba and the model already imported: ~1.2-1.5 CPU-s and 2-3 s less before its first trial
@@ -450,7 +464,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     hi = np.full(layout.n_channels, -np.inf)
     stats = {"n_trials": 0, "samples": 0}
 
-    def consume(results: Iterator[tuple[int, TrialData]], bar) -> None:
+    def consume(results: Iterator[tuple[int, TrialData, Any]], bar) -> None:
         """Write the trials as they come, committing every 256 trials or 2 s (a crash loses one batch). The
         trials stream through write_trials one at a time: a worker's slot is reused once its trial is written."""
         it = iter(results)
@@ -459,15 +473,14 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
         def batch():
             nonlocal exhausted
             t0 = time.monotonic()
-            for count, (tid, data) in enumerate(it, 1):
-                extrema = taxel_extrema(data.taxels)
+            for count, (tid, data, (facts, extrema)) in enumerate(it, 1):
                 if extrema is not None:
                     np.minimum(lo, extrema[0], out=lo)
                     np.maximum(hi, extrema[1], out=hi)
                 stats["n_trials"] += 1
                 stats["samples"] += data.n_samples
                 bar.advance(1)
-                yield tid, data
+                yield tid, data, facts
                 if count >= COMMIT_TRIALS or time.monotonic() - t0 > 2.0:
                     return
             exhausted = True
@@ -478,7 +491,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
     if n_workers == 0:
         bar = Stage(progress, f"dataset {out_path.name}", len(rows))
         _init_worker(cfg.to_dict(), seed, textures_arg)
-        consume(map(_render_planned, rows), bar)
+        consume(map(_render_prepared, rows), bar)
     else:
         # the workers render (the model) into shared-memory slots, this process writes: both run at once
         max_samples = max(int(round(r[4] * rate_hz)) for r in rows) + 2
@@ -487,7 +500,7 @@ def generate_dataset(protocol: Any, out_path: str | os.PathLike, *, trials_per_c
                         layout=layout) as slots, \
                 ctx.Pool(n_workers, initializer=init_worker_slots,
                          initargs=(*slots.initargs, _render_planned, _init_worker,
-                                   (cfg.to_dict(), seed, textures_arg))) as pool:
+                                   (cfg.to_dict(), seed, textures_arg), _prepare)) as pool:
             bar = Stage(progress, f"dataset {out_path.name}", len(rows))
             consume(slots.results(pool, rows), bar)
 

@@ -3,23 +3,27 @@
 The dataset generator's writer is its slower half, and receiving a pickled trial through a ``multiprocessing``
 pipe (about 180 kB: taxels, sequence numbers, flags, host times) cost it about a third of its time. Here the
 workers write the per-sample arrays into slots of one memory-mapped file (in ``/dev/shm`` where it exists) and send
-only the slot number and the small parts (force and speed traces, attributes). The writer reads the arrays in
-place and hands the slot back once the trial is written.
+only the slot number and the small parts (force and speed traces, attributes, and what an optional ``prepare``
+function computed from the trial in the worker: the dataset generator's trial facts and per-taxel extremes, work
+the writer need not do). The writer reads the arrays in place and hands the slot back once the trial is written.
 
 A slot's size follows the sensor: ``slot_samples x`` :func:`sample_bytes` ``(layout.n_channels)``.
 
 Flow: :class:`TrialSlots` owns the file; :func:`init_worker_slots` (a pool initializer) maps it in a worker;
 :func:`render_into_slots` (the worker task) renders a block of plan rows into a block of slots;
-:meth:`TrialSlots.results` keeps the workers busy with blocks and yields ``(trial_id, TrialData)`` in plan order.
+:meth:`TrialSlots.results` keeps the workers busy with blocks and yields ``(trial_id, TrialData, prepared)`` in plan
+order.
 """
 
 from __future__ import annotations
 
 import collections
+import copy
 import glob
 import os
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -48,9 +52,11 @@ def _views(mm: np.ndarray, slot: int, slot_samples: int, n: int, n_channels: int
 
 
 def init_worker_slots(path: str, n_slots: int, slot_samples: int, n_channels: int, render: Callable,
-                      init: Callable, init_args: tuple) -> None:
+                      init: Callable, init_args: tuple, prepare: Callable[[TrialData], Any] | None = None) -> None:
     """Pool initializer: map the slot file, remember the render function, run the model's own initializer.
-    ``path, n_slots, slot_samples, n_channels`` are :attr:`TrialSlots.initargs`."""
+    ``path, n_slots, slot_samples, n_channels`` are :attr:`TrialSlots.initargs`. ``prepare``: called in the worker
+    with each rendered trial as the writer will see it (its per-sample arrays the slot's), its result handed over
+    with the trial (picklable; None without ``prepare``)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the pool, no worker traceback
@@ -58,19 +64,21 @@ def init_worker_slots(path: str, n_slots: int, slot_samples: int, n_channels: in
     # a plain ndarray over the map (its views then skip np.memmap's Python __array_finalize__: ~24 us a trial)
     _STATE.update(mm=np.memmap(path, dtype=np.uint8, mode="r+", shape=(size,)).view(np.ndarray),
                   slot_samples=slot_samples,
-                  n_channels=int(n_channels), render=render)
+                  n_channels=int(n_channels), render=render, prepare=prepare)
     init(*init_args)
 
 
 def render_into_slots(task: tuple[Sequence[int], Sequence[tuple]]) -> list[tuple]:
-    """Worker task: render plan rows into slots; returns per trial ``(trial_id, slot, n, small)``, where
-    ``small`` holds the traces and attributes, or ``(trial_id, None, 0, data)`` for a trial too long for a slot.
+    """Worker task: render plan rows into slots; returns per trial ``(trial_id, slot, n, small, prepared)``, where
+    ``small`` holds the traces and attributes, or ``(trial_id, None, 0, data, prepared)`` for a trial too long for a
+    slot; ``prepared`` is what the initializer's ``prepare`` returned for the trial (None without one).
 
     Raises ValueError if a rendered trial's channel count is not the slots' (the sensor of :class:`TrialSlots`).
     """
     slots, rows = task
     out: list[tuple] = []
     n_ch = _STATE["n_channels"]
+    prepare = _STATE.get("prepare")
     for slot, row in zip(slots, rows):
         trial_id, data = _STATE["render"](row)
         if data.layout.n_channels != n_ch:
@@ -78,17 +86,22 @@ def render_into_slots(task: tuple[Sequence[int], Sequence[tuple]]) -> list[tuple
                              f"{n_ch} (TrialSlots(layout=...) must be the model's sensor)")
         n = data.n_samples
         if n > _STATE["slot_samples"]:
-            out.append((trial_id, None, 0, data))
+            out.append((trial_id, None, 0, data, None if prepare is None else prepare(data)))
             continue
         taxels, seq, flags, host = _views(_STATE["mm"], slot, _STATE["slot_samples"], n, n_ch)
         taxels[...] = data.taxels
         seq[...] = data.seq
         flags[...] = data.flags
         host[...] = data.host_time_s
+        prepared = None
+        if prepare is not None:  # from the slot's bytes, which the writer reads (no __post_init__: checked above)
+            seen = copy.copy(data)
+            seen.taxels, seen.seq, seen.flags, seen.host_time_s = taxels, seq, flags, host
+            prepared = prepare(seen)
         small = dict(force_g=data.force_g, force_time_s=data.force_time_s, speed_mm_s=data.speed_mm_s,
                      speed_time_s=data.speed_time_s, dropped_frames=data.dropped_frames,
                      crc_errors=data.crc_errors, attrs=data.attrs)
-        out.append((trial_id, slot, n, small))
+        out.append((trial_id, slot, n, small, prepared))
     return out
 
 
@@ -143,10 +156,11 @@ class TrialSlots:
         self._mm: np.memmap | None = np.memmap(self.path, dtype=np.uint8, mode="r+")
         self.initargs = (self.path, n_slots, self.slot_samples, self.n_channels)
 
-    def results(self, pool, rows: Sequence[tuple]) -> Iterator[tuple[int, TrialData]]:
-        """Render ``rows`` on ``pool`` (initialised with :func:`init_worker_slots`); yield ``(trial_id, TrialData)``
-        in plan order. A trial's arrays live in its slot until the caller asks for the next trial: write it (or
-        copy it) before that. Raises ValueError once closed."""
+    def results(self, pool, rows: Sequence[tuple]) -> Iterator[tuple[int, TrialData, Any]]:
+        """Render ``rows`` on ``pool`` (initialised with :func:`init_worker_slots`); yield ``(trial_id, TrialData,
+        prepared)`` in plan order (``prepared``: the initializer's ``prepare`` of the trial, None without one). A
+        trial's arrays live in its slot until the caller asks for the next trial: write it (or copy it) before that.
+        Raises ValueError once closed."""
         if self._mm is None:
             raise ValueError(f"the trial slots {self.path} are closed")
         mm = self._mm.view(np.ndarray)  # (a plain ndarray over the map: its views skip np.memmap's Python hooks)
@@ -168,13 +182,13 @@ class TrialSlots:
             pass
         while pending:
             b, result = pending.popleft()
-            for trial_id, slot, n, small in result.get():
+            for trial_id, slot, n, small, prepared in result.get():
                 if slot is None:
-                    yield trial_id, small
+                    yield trial_id, small, prepared
                     continue
                 taxels, seq, flags, host = _views(mm, slot, self.slot_samples, n, self.n_channels)
                 yield trial_id, TrialData(taxels=taxels, seq=seq, flags=flags, host_time_s=host, layout=self.layout,
-                                          **small)
+                                          **small), prepared
             free.append(b)  # the caller has written every trial of the block
             submit()
 

@@ -473,7 +473,7 @@ class SessionWriter:
             raise SessionError(f"trial {trial_id} is already complete in {self.path}")
         self.write_trials([(trial_id, data)], labels={trial_id: labels} if labels else None)
 
-    def write_trials(self, items: Iterable[tuple[int, TrialData]], *,
+    def write_trials(self, items: Iterable[tuple[int, TrialData] | tuple[int, TrialData, np.ndarray | None]], *,
                      labels: Mapping[int, Mapping[str, Any]] | None = None) -> int:
         """Write several trials during one opening of the file; returns how many.
 
@@ -481,7 +481,10 @@ class SessionWriter:
         :meth:`write_trial`. The batch reaches the disk in one journaled commit when the last trial is written: a
         crash before that loses the whole batch (the file stays as it was), never part of a trial. Each trial is
         taken whole as ``items`` yields it (its arrays copied): a caller may reuse them for the next trial.
-        ``labels``: trial id -> its recorded condition, as :meth:`write_trial`'s.
+        ``labels``: trial id -> its recorded condition, as :meth:`write_trial`'s. An item may carry a third
+        element, the trial's :func:`rigctl.storage.trial_facts.sample_facts` computed from these very arrays by the
+        process that made them (the dataset generator's render workers): its facts row is taken from it instead of
+        computed here (its fingerprint checked: ValueError, nothing of the batch written, if it is another trial's).
         """
         for tid, asked in (labels or {}).items():
             unknown = set(asked) - set(RELABEL_FIELDS)
@@ -495,9 +498,11 @@ class SessionWriter:
                 self._adopt_file_status(f)
                 before = self._plan.copy()
                 views: list[tuple[Any, int, TrialData]] = []  # schema 4: written to /recording after the groups
+                known: list[np.ndarray | None] = []  # the views' sample facts handed over with them (or None)
                 trials = f["trials"].id  # (looked up once a batch: ~50 us a lookup)
                 self._batch.clear()
-                for trial_id, data in items:
+                for item in items:
+                    trial_id, data = item[0], item[1]
                     i = self._row_index(trial_id)
                     if self._plan["status"][i] == TrialStatus.COMPLETE:
                         raise SessionError(f"trial {trial_id} is already complete in {self.path}")
@@ -510,6 +515,8 @@ class SessionWriter:
                             self._plan[i][k] = v
                         relabelled.append(i)
                     self._write_group(f, self._plan[i], data, views, trials)
+                    if self._flat:
+                        known.append(item[2] if len(item) > 2 else None)
                     self._plan["status"][i] = TrialStatus.COMPLETE
                     written.append(i)
                 for i in relabelled:  # the recorded condition in the plan row (before its status, below)
@@ -517,7 +524,7 @@ class SessionWriter:
                 if views:
                     taxels, rows = session_recording.append_trials(f, views, views=self._views,
                                                                    stacked=self._batch.stacked())
-                    trial_facts.append(f, rows, [d for _, _, d in views])
+                    trial_facts.append(f, rows, [d for _, _, d in views], known)
                     for tax, (_, _, data) in zip(taxels, views):
                         self._taxels_attrs(tax, data)
                 if written:  # the plan's statuses last, in one write of the span they cover (only the status

@@ -88,34 +88,60 @@ def nonfinite_text(counts: dict[str, int]) -> str | None:
     return ", ".join(parts) or None
 
 
-def facts_of(rows: np.ndarray, data: Sequence[TrialData], n_channels: int) -> np.ndarray:
-    """The facts rows of trials just appended: ``rows`` their ``/recording/index`` rows, ``data`` the trials, each
-    array converted as :func:`rigctl.storage.session_recording.stored` converts it (the bytes on disk)."""
-    out = np.zeros(len(data), dtype=FACTS_DTYPE)
-    for name in ("trial_id", *EXTENTS):
-        out[name] = rows[name]
-    # a trace finite in every trial of the batch (a simulated one: always) has no NaN or inf to count per trial
-    counted = [name for name in TRACE_NAMES if data and not np.isfinite(np.concatenate(
-        [session_recording.stored(name, getattr(d, name), n_channels) for d in data])).all()]
-    for i, d in enumerate(data):
-        tax = session_recording.stored("taxels", d.taxels, n_channels)
-        if tax.size:
-            out["taxels_min"][i], out["taxels_max"][i] = int(tax.min()), int(tax.max())
-            out["taxels_print"][i] = taxels_print(tax)
-            out["taxels_sha256"][i] = np.frombuffer(sha256(tax), dtype=np.uint8)
-        out["seq_gaps"][i] = seq_gaps(session_recording.stored("seq", d.seq, n_channels))
-        for name in counted:
-            values = session_recording.stored(name, getattr(d, name), n_channels)
-            out[f"{name}_nan"][i] = int(np.count_nonzero(np.isnan(values)))
-            out[f"{name}_inf"][i] = int(np.count_nonzero(np.isinf(values)))
+def sample_facts(data: TrialData, n_channels: int) -> np.ndarray:
+    """What a trial's samples hold, as one :data:`FACTS_DTYPE` row (shape ``(1,)``) whose trial id and extents are
+    0 (:func:`facts_of` fills them in once the trial is appended): its ``seq`` gaps, the minimum, maximum,
+    fingerprint and SHA-256 of its taxel counts (zeros without samples), the NaN and inf counts of its traces; each
+    array converted as :func:`rigctl.storage.session_recording.stored` converts it (the bytes on disk). Needs no
+    file: a process that made the trial can compute it (the dataset generator's render workers) and hand it to
+    :meth:`rigctl.storage.session_writer.SessionWriter.write_trials` with the trial."""
+    out = np.zeros(1, dtype=FACTS_DTYPE)
+    tax = session_recording.stored("taxels", data.taxels, n_channels)
+    if tax.size:
+        out["taxels_min"], out["taxels_max"] = int(tax.min()), int(tax.max())
+        out["taxels_print"] = taxels_print(tax)
+        out["taxels_sha256"][0] = np.frombuffer(sha256(tax), dtype=np.uint8)
+    out["seq_gaps"] = seq_gaps(session_recording.stored("seq", data.seq, n_channels))
+    for name in TRACE_NAMES:
+        values = session_recording.stored(name, getattr(data, name), n_channels)
+        if not np.isfinite(values).all():  # (a simulated trace is always finite: nothing to count)
+            out[f"{name}_nan"] = int(np.count_nonzero(np.isnan(values)))
+            out[f"{name}_inf"] = int(np.count_nonzero(np.isinf(values)))
     return out
 
 
-def append(f: h5py.File, rows: np.ndarray, data: Sequence[TrialData]) -> None:
-    """Append the facts of trials just appended to ``/recording`` (``rows`` their index rows), making
-    ``/recording/facts`` in a file that has none (an older schema-4 file: its earlier trials stay without)."""
+def facts_of(rows: np.ndarray, data: Sequence[TrialData], n_channels: int,
+             known: Sequence[np.ndarray | None] | None = None) -> np.ndarray:
+    """The facts rows of trials just appended: ``rows`` their ``/recording/index`` rows, ``data`` the trials, each
+    array converted as :func:`rigctl.storage.session_recording.stored` converts it (the bytes on disk).
+
+    ``known``: per trial, its :func:`sample_facts` computed elsewhere from these very arrays, or None to compute them
+    here. Raises ValueError when a known row's taxel fingerprint (:func:`taxels_print`, checked here: ~10 us) is not
+    the trial's (facts of other samples)."""
+    out = np.zeros(len(data), dtype=FACTS_DTYPE)
+    for i, d in enumerate(data):
+        given = known[i] if known is not None else None
+        if given is None:
+            out[i] = sample_facts(d, n_channels)[0]
+            continue
+        given = np.asarray(given, dtype=FACTS_DTYPE).reshape(-1)
+        tax = session_recording.stored("taxels", d.taxels, n_channels)
+        if len(given) != 1 or int(given["taxels_print"][0]) != (taxels_print(tax) if tax.size else 0):
+            raise ValueError(f"the facts handed over for trial {int(rows['trial_id'][i])} are not its samples' "
+                             "(trial_facts.sample_facts of the arrays written)")
+        out[i] = given[0]
+    for name in ("trial_id", *EXTENTS):
+        out[name] = rows[name]
+    return out
+
+
+def append(f: h5py.File, rows: np.ndarray, data: Sequence[TrialData],
+           known: Sequence[np.ndarray | None] | None = None) -> None:
+    """Append the facts of trials just appended to ``/recording`` (``rows`` their index rows; ``known`` as
+    :func:`facts_of`'s), making ``/recording/facts`` in a file that has none (an older schema-4 file: its earlier
+    trials stay without)."""
     rec = f[GROUP]
-    new = facts_of(rows, data, int(rec["taxels"].shape[1]))
+    new = facts_of(rows, data, int(rec["taxels"].shape[1]), known)
     ds = rec.get(FACTS)
     if ds is None:
         ds = rec.create_dataset(FACTS, shape=(0,), maxshape=(None,), chunks=(session_recording.INDEX_CHUNK_ROWS,),

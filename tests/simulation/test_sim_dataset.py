@@ -3,6 +3,7 @@ any number of workers); the `rigctl sim dataset` command."""
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -410,3 +411,39 @@ def test_a_forked_worker_with_a_commits_worth_of_slots_writes_the_in_process_fil
             assert {k: repr(v) for k, v in ta.attrs.items()} == {k: repr(v) for k, v in tb.attrs.items()}  # (NaN)
         np.testing.assert_array_equal(a.calibration["taxel_min"], b.calibration["taxel_min"])
         np.testing.assert_array_equal(a.calibration["taxel_max"], b.calibration["taxel_max"])
+
+
+def test_the_render_worker_hands_the_trial_facts_and_extremes_to_the_writer(protocol_path, tmp_path, monkeypatch):
+    """Issue 57 item 6: the writing process (the bound at 1 worker) no longer computes a trial's facts (storage's
+    ``trial_facts.sample_facts``: SHA-256, extremes, fingerprint) nor its per-taxel extremes: the render worker
+    does, from its slot's bytes, and hands them over with the trial. The file is the in-process one (every trial's
+    facts row and the calibration equal)."""
+    import multiprocessing as mp
+
+    from rigctl.simulation import dataset
+    from rigctl.storage import trial_facts
+
+    proto = load_protocol(protocol_path)
+    generate_dataset(proto, tmp_path / "w0.h5", seed=5, workers=0, progress=False)
+    calls = {"sha256": 0, "extrema": 0}
+    sha256, extrema = trial_facts.sha256, dataset.taxel_extrema
+
+    def counted_sha256(data):
+        calls["sha256"] += 1
+        return sha256(data)
+
+    def counted_extrema(taxels):
+        calls["extrema"] += 1
+        return extrema(taxels)
+
+    # a spawned worker imports the real functions: only this (the writing) process counts its own calls
+    monkeypatch.setattr(trial_facts, "sha256", counted_sha256)
+    monkeypatch.setattr(dataset, "taxel_extrema", counted_extrema)
+    monkeypatch.setattr(dataset, "_pool_context", lambda: mp.get_context("spawn"))
+    generate_dataset(proto, tmp_path / "w1.h5", seed=5, workers=1, progress=False)
+    assert calls == {"sha256": 0, "extrema": 0}
+    with h5py.File(tmp_path / "w0.h5", "r") as a, h5py.File(tmp_path / "w1.h5", "r") as b:
+        assert len(a["recording/facts"]) == 24
+        assert a["recording/facts"][()].tobytes() == b["recording/facts"][()].tobytes()
+        for name in ("taxel_min", "taxel_max"):
+            np.testing.assert_array_equal(a["calibration"][name][()], b["calibration"][name][()])

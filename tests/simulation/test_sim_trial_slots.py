@@ -29,7 +29,7 @@ def test_worker_trials_arrive_unchanged_in_plan_order(tmp_path):
         with ctx.Pool(2, initializer=init_worker_slots,
                       initargs=(*slots.initargs, dataset._render_planned, dataset._init_worker, (cfg, 7))) as pool:
             got = []
-            for tid, data in slots.results(pool, rows):
+            for tid, data, _ in slots.results(pool, rows):
                 want = expected[tid]
                 for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s",
                              "speed_time_s"):
@@ -92,7 +92,7 @@ def test_slots_follow_the_layout_nine_channels_at_100_hz(tmp_path):
         assert sample_bytes(9) == 29 and os.path.getsize(slots.path) == 2 * 2 * 80 * 29
         init_worker_slots(*slots.initargs, render, lambda: None, ())
         got = []
-        for tid, data in slots.results(_InlinePool(), rows):
+        for tid, data, _ in slots.results(_InlinePool(), rows):
             assert data.layout == layout and data.rate_hz == 100.0 and data.taxels.shape == (40 + 7 * tid, 9)
             np.testing.assert_array_equal(data.taxels, made[tid].taxels)
             np.testing.assert_array_equal(data.host_time_s, np.arange(data.n_samples) / 100.0)

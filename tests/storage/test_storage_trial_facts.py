@@ -287,3 +287,36 @@ def test_the_seal_is_the_files_modification_time(clean, tmp_path):
         with open_session(p) as s:
             assert bool(s.trusted_facts()) == sealed, p
     assert _judged(kept) == _judged(plain)
+
+
+def test_facts_handed_over_with_the_trials_are_the_writers_own_and_others_are_refused(tmp_path):
+    """Issue 57 item 6: a trial's sample facts computed where it was made (``trial_facts.sample_facts``: the dataset
+    generator's render workers) and handed to ``write_trials`` with it are stored as the facts the writer computes
+    itself (every field, mixed with trials handed over without); facts of another trial's samples are refused and
+    nothing of the batch is written."""
+    rng = np.random.default_rng(23)
+    trials = [_clean_trial(rng) for _ in range(6)]
+    trials[2].force_g[1] = np.nan  # a trace to count in one trial
+    trials.append(TrialData(taxels=np.zeros((0, 18))))  # an empty one
+    plan = [dict(trial_id=i, texture="A", speed_mm_s=80.0, force_g=500.0, duration_s=N / 1000.0)
+            for i in range(len(trials))]
+    facts = {}
+    for name, handed in (("own", False), ("handed", True)):
+        path = tmp_path / f"{name}.h5"
+        with SessionWriter.create(path, plan=plan, protocol_source="facts", compression=None, durable=False) as w:
+            items = [(i, d, trial_facts.sample_facts(d, 18)) if handed and i % 3 else (i, d)
+                     for i, d in enumerate(trials)]
+            assert w.write_trials(items) == len(trials)
+        with h5py.File(path, "r") as f:
+            facts[name] = f["recording/facts"][()]
+    assert facts["own"].tobytes() == facts["handed"].tobytes()
+    assert facts["own"]["force_g_nan"].tolist() == [0, 0, 1, 0, 0, 0, 0]
+
+    path = tmp_path / "refused.h5"
+    with SessionWriter.create(path, plan=plan, protocol_source="facts", compression=None, durable=False) as w:
+        w.write_trials([(0, trials[0], trial_facts.sample_facts(trials[0], 18))])
+        with pytest.raises(ValueError, match="trial 3"):
+            w.write_trials([(1, trials[1]), (3, trials[3], trial_facts.sample_facts(trials[4], 18))])
+        assert w.completed_ids() == [0]
+    with open_session(path) as s:
+        assert s.completed_ids() == [0] and sorted(s.trusted_facts()) == [0] and not usable_trials(s).excluded
