@@ -78,6 +78,16 @@ def _variants(fs: FeatureSet, variants, task="table1"):
     return vs
 
 
+def _label_codes(labels, classes):
+    """Labels and classes as integer codes that sort as they do (their places in the sorted union): the repetitions
+    fit, predict and count on these (NestedLDA's ``np.unique``, its predictions and the comparisons with the truth
+    were string operations, ~8 of a CV repetition's ~14 ms per fold and label set), with the same class order, so
+    the same predictions, counts and confusion matrices (in ``classes``' order)."""
+    labels, classes = np.asarray(labels), np.asarray(classes)
+    universe = np.unique(np.concatenate([labels.ravel(), classes.ravel()]))
+    return np.searchsorted(universe, labels), np.searchsorted(universe, classes)
+
+
 def _accumulate(pred, truth, classes, confusion_pcs):
     """pred (n_pcs, n_test) -> correct counts per PC and the confusion matrix at confusion_pcs."""
     correct = (pred == truth[None, :]).sum(axis=1)
@@ -186,8 +196,10 @@ def run_cv(
     confusion_pcs = n_pcs if confusion_pcs is None else confusion_pcs
     classes = {t: (fs.texture_classes if t == "textures" else fs.group_classes) for t in tasks}
     padding = _paddings(fs, vs, None if scheduler is not None else n_jobs)
-    shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding, "texture": fs.texture,
-              "labels": {t: (fs.texture if t == "textures" else fs.group) for t in tasks}, "classes": classes,
+    codes = {t: _label_codes(fs.texture if t == "textures" else fs.group, classes[t]) for t in tasks}
+    shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding,
+              "texture": _label_codes(fs.texture, textures)[0],  # (the same draws and folds: the same order)
+              "labels": {t: c for t, (c, _) in codes.items()}, "classes": {t: c for t, (_, c) in codes.items()},
               "n_draw": n_draw, "k": k, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
               "groups": groups}
     bar = Stage(progress, "textures/groups", repeats * k * len(vs), unit="fit")
@@ -369,8 +381,9 @@ def run_extrapolation(
     classes = fs.texture_classes  # the texture set's order (stable codes)
     cats = [c for c in EXTRAPOLATION_CELLS.values() if c in set(cat_of.values())]
     padding = _paddings(fs, vs, None if scheduler is not None else n_jobs)
-    shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding, "texture": fs.texture,
-              "classes": classes, "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
+    texture_codes, class_codes = _label_codes(fs.texture, classes)
+    shared = {"features": {v: fs.features[v] for v in vs}, "padding": padding, "texture": texture_codes,
+              "classes": class_codes, "cells": cells, "trained_cells": trained_cells, "cat_of": cat_of, "counts": (a_tr, a_te, u_te),
               "cats": cats, "n_pcs": n_pcs, "seed": seed, "confusion_pcs": confusion_pcs,
               "bases": _trained_bases(fs, vs, padding, cells, trained_cells, a_tr, repeats, n_pcs, seed,
                                       n_jobs=None if scheduler is not None else n_jobs)}

@@ -129,3 +129,29 @@ def test_remove_baseline_keeps_padding_and_modulation():
     np.testing.assert_allclose(out[:, :, :4], mod[:, :, :4] - mod[:, :, :4].mean(axis=2, keepdims=True), atol=1e-5)
     with pytest.raises(ValueError):
         remove_baseline(x.reshape(3, -1), 3)
+
+
+def test_the_repetitions_count_on_label_codes_what_they_count_on_the_labels(small):
+    """The CV repetition on integer label codes (what run_cv passes it since they sort as the labels do) predicts and
+    counts exactly as on the texture / group names: the same correct counts per PC and the same confusion matrices,
+    in the classes' order (codes by first appearance would reorder the classes and break the ties otherwise)."""
+    from rigctl.analysis.tasks import _cv_repeat, _label_codes
+
+    names = np.array(["zeta", "alpha", "mu", "beta"])
+    classes = ["mu", "zeta", "alpha", "beta", "omega"]  # not sorted; one class no trial has
+    codes, class_codes = _label_codes(names, classes)
+    assert list(np.argsort(codes, kind="stable")) == list(np.argsort(names, kind="stable"))
+    assert list(codes[[1, 0]]) == list(class_codes[[2, 1]])  # alpha, zeta
+    tex_classes = list(np.unique(small.texture))[::-1]
+    common = {"features": {"original": small.features["original"]}, "n_draw": 20, "k": 4, "n_pcs": 10, "seed": 3,
+              "confusion_pcs": 10}
+    by_name = _cv_repeat(1, texture=small.texture, labels={"textures": small.texture},
+                         classes={"textures": tex_classes}, **common)
+    tex_codes, tex_class_codes = _label_codes(small.texture, tex_classes)
+    by_code = _cv_repeat(1, texture=tex_codes, labels={"textures": tex_codes}, classes={"textures": tex_class_codes},
+                         **common)
+    assert by_name.keys() == by_code.keys()
+    for key, (correct, confusion) in by_name.items():
+        np.testing.assert_array_equal(np.array(correct), np.array(by_code[key][0]))
+        np.testing.assert_array_equal(confusion, by_code[key][1])
+        assert confusion.sum() == 20 * len(tex_classes) * 1  # every drawn trial tested once
