@@ -15,8 +15,9 @@ __all__ = ["main"]
 def main() -> None:
     """Run ``rigctl`` (:func:`rigctl.cli.main`); a Ctrl-C while it is imported is one line, exit status 1."""
     try:
-        from rigctl.cli import main as cli
+        from rigctl.cli import main as cli, skip_exit_collections
     except KeyboardInterrupt:
         sys.stderr.write("Error: interrupted (Ctrl-C) while rigctl was starting: nothing was done\n")
         raise SystemExit(1) from None
+    skip_exit_collections()
     cli(prog_name="rigctl")

@@ -161,3 +161,25 @@ def test_liblsl_keeps_off_the_terminal_unless_verbose(lsl, tmp_path):
     loud = subprocess.run([sys.executable, "-c", _LSL_OUTLET, "verbose"], capture_output=True, text=True, env=env,
                           timeout=120)
     assert loud.returncode == 0 and "found 1" in loud.stdout and "INFO|" in loud.stderr, loud.stderr
+
+
+@pytest.mark.parametrize("entry", ["console script", "python -m rigctl"])
+def test_both_entries_freeze_the_objects_before_the_exits_collections(tmp_path, entry):
+    """The exit's cyclic collections walked every imported object (~0.7 CPU-s of each command: docs/results.md 5 on
+    issue 57 item 4): the entries freeze them (gc.freeze) once the command is done; an exit handler registered before
+    rigctl's (so run after it) sees them frozen, and the command's output as usual."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "PYTHONPATH": str(repo)}
+    run = ("from rigctl_launch import main; sys.exit(main())" if entry == "console script" else
+           "import runpy; runpy.run_module('rigctl', run_name='__main__')")
+    script = ("import atexit, gc, sys; atexit.register(lambda: print('frozen at exit:', gc.get_freeze_count() > 0)); "
+              "sys.argv[0] = 'rigctl'; " + run)
+    p = subprocess.run([sys.executable, "-c", script, "--version"], capture_output=True, text=True, env=env,
+                       cwd=tmp_path, timeout=300)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.strip().splitlines()
+    assert lines[-1] == "frozen at exit: True" and "rigctl" in lines[0], p.stdout
