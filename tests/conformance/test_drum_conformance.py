@@ -132,6 +132,9 @@ def bring_to(drum: DrumClient, ctl, state: S) -> DrumStatus:
         drum.press()
         poll(drum, lambda s: s.actuator_mm > 4.5, 10, "the actuator pressing")
         drum.stop()
+        # the back-off unloads the cell below 2 x 500 g first (a reply the kernel held lets the press run on towards
+        # its 1000 g: HOME was refused with exception 03, beside two CPU hogs and three other sessions' work)
+        poll(drum, lambda s: s.force_g < 900, 2, "the cell unloaded below 2 x FORCE_TOLERANCE_G")
         drum.home()
         return poll(drum, lambda s: s.state == S.HOMING, 2, "HOMING")
     if state == S.SEEKING_FORCE:
