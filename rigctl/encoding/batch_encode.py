@@ -140,16 +140,25 @@ def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm
         if n_scaled is None:
             n_scaled = windows_for(float(np.max(lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
     feats, spikes = {}, {}
+    ra_counts: dict[bool, np.ndarray] = {}  # the RA trains' window counts, unscaled and speed-scaled: one each
+
+    def counts_of(ra_v: SpikeTrains, scaled: bool, n_windows: int) -> np.ndarray:
+        if scaled not in ra_counts:
+            ra_counts[scaled] = ra_v.window_counts(p.window_s, n_windows)
+        return ra_counts[scaled]
+
     for v, i in zip(variants, info):
         if not i.realtime:
             sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
             if i.speed_scaled:
                 sa_v, ra_v = sa.scale_times(coef), ra_scaled
                 feats[v] = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled
-                                          window_s=p.window_s, sr_factor=coef)
+                                          window_s=p.window_s, sr_factor=coef,
+                                          ra_counts=counts_of(ra_v, True, n_scaled))  # type: ignore[arg-type]
             else:
                 sa_v, ra_v = sa, ra
-                feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s)
+                feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s,
+                                          ra_counts=counts_of(ra_v, False, n_unscaled))
             if v in store_spikes:
                 spikes[v] = SpikeTrains.hstack([sa_v, ra_v])  # type: ignore[list-item]  # both set for a stored variant
         else:

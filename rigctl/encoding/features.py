@@ -33,7 +33,7 @@ N_WINDOWS_REALTIME = 20
 
 
 def spike_features(sa: SpikeTrains, ra: SpikeTrains | None, *, n_windows: int, window_s: float = WINDOW_S,
-                   sr_factor=None) -> np.ndarray:
+                   sr_factor=None, ra_counts: np.ndarray | None = None) -> np.ndarray:
     """SR of the SA trains and SC of the RA trains per window, flattened per trial.
 
     Parameters
@@ -44,6 +44,8 @@ def spike_features(sa: SpikeTrains, ra: SpikeTrains | None, *, n_windows: int, w
         past the trial's end are 0 (zero padding).
     sr_factor : scalar or (n_trials,) multiplier of the SA spike rate (the speed coefficient ``j / 120`` for
         speed-scaled variants; 1 otherwise).
+    ra_counts : ``ra.window_counts(window_s, n_windows)`` when already counted ((n_trials, n_ra, n_windows); the
+        encoder's variants share one RA train, unscaled or speed-scaled), else None (counted here).
 
     Returns
     -------
@@ -61,7 +63,8 @@ def spike_features(sa: SpikeTrains, ra: SpikeTrains | None, *, n_windows: int, w
     if ra is not None:
         if ra.n_trials != sa.n_trials:
             raise ValueError("sa and ra must have the same number of trials")
-        parts.append(ra.window_counts(window_s, n_windows).reshape(ra.n_trials, -1))
+        counts = ra.window_counts(window_s, n_windows) if ra_counts is None else ra_counts
+        parts.append(counts.reshape(ra.n_trials, -1))
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
