@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from rigctl.core.port_clock import HostSide, open_beside
 
 __all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "KERNEL_HOP_MAX_S", "clock_of_port", "attach_port_clock", "release_port_clock",
-           "is_port_clock", "note_found", "on_its_way_until", "port_keys"]
+           "is_port_clock", "note_found", "on_its_way_until", "port_keys", "on_a_kernel_hop", "host_stamp"]
 
 #: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
 #: returned from, s. Short against every deadline of the host on a simulated rig (the shortest WATCHDOG_MS, 100 ms;
@@ -285,14 +285,14 @@ class SharedClock:
                 t = self.now()
                 left = deadline - t
                 if left <= 0.0:
-                    wall = time.monotonic()
-                    if in_flight is not None and (flight_end is None or wall < flight_end) and in_flight():
-                        flight_end = wall + IN_FLIGHT_MAX_S if flight_end is None else flight_end
+                    going_on = _flight_goes_on(in_flight, flight_end)
+                    if going_on is not None:
+                        flight_end = going_on
                         deadline = t + MAX_WAIT_STEP_S  # the world runs on while the answer is on its way
                         with self._lock:
                             self._waits[key] = deadline
                         left = MAX_WAIT_STEP_S
-                    elif ready is None or wall >= wall_end:
+                    elif ready is None or time.monotonic() >= wall_end:
                         return ready() if ready is not None else False
                     else:
                         left = WAIT_STEP_S
@@ -361,10 +361,35 @@ def on_its_way_until(clock: object, port: str | os.PathLike[str], flight_end: fl
     :data:`IN_FLIGHT_MAX_S` after it first said so (``flight_end``: the last call's answer, None at first); None:
     give up (nothing on its way, the bound passed, or a clock that cannot tell: the wall clock of a real port)."""
     in_flight = getattr(clock, "in_flight", None)
+    return _flight_goes_on(None if in_flight is None else (lambda: bool(in_flight(os.fspath(port)))), flight_end)
+
+
+def _flight_goes_on(in_flight: Callable[[], bool] | None, flight_end: float | None) -> float | None:
+    """The one rule of a wait past its deadline for bytes on their way (:meth:`SharedClock.wait_for`'s
+    ``in_flight``, :func:`on_its_way_until`): the wall time (``time.monotonic``) until which it goes on, at most
+    :data:`IN_FLIGHT_MAX_S` after ``in_flight()`` first said so (``flight_end``: the last answer, None at first);
+    None: give up (no ``in_flight``, the bound passed, or nothing on its way now)."""
     wall = time.monotonic()
-    if in_flight is None or (flight_end is not None and wall >= flight_end) or not in_flight(os.fspath(port)):
+    if in_flight is None or (flight_end is not None and wall >= flight_end) or not in_flight():
         return None
     return wall + IN_FLIGHT_MAX_S if flight_end is None else flight_end
+
+
+def on_a_kernel_hop(written_at: float, found_at: float) -> bool:
+    """Whether bytes written to a pty at ``written_at`` are still in the kernel's hands: written after their reader
+    last took or found bytes there (``found_at``), and less than :data:`KERNEL_HOP_MAX_S` ago (a stamp older than
+    that is a write that brought nothing). Both ``time.monotonic`` s, 0.0: never. The one rule of the simulated
+    boards' "on its way" (rigctl.simulation.virtual_mega, virtual_uno, hil_clock)."""
+    return written_at > max(found_at, time.monotonic() - KERNEL_HOP_MAX_S)
+
+
+def host_stamp(clock: "SharedClock | None", path: str, remote: Callable[[bool], float] | None, written: bool) -> float:
+    """When a host last began to write to the board's port ``path`` (``written``) or last found bytes there
+    (``time.monotonic`` s, 0.0: never): a host of this process (its ``clock``'s :meth:`SharedClock.written_at` /
+    :meth:`SharedClock.read_at`) or of another (``remote(written)``: the rig's clock file,
+    :meth:`rigctl.core.port_clock.ClockFile.stamp_s`), the later."""
+    own = 0.0 if clock is None else (clock.written_at(path) if written else clock.read_at(path))
+    return own if remote is None else max(own, remote(written))
 
 
 def note_found(clock: object, port: str | os.PathLike[str]) -> None:

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, on_a_kernel_hop, port_keys
 
 __all__ = ["HilClockFile", "LOCK_SLOTS"]
 
@@ -77,7 +77,7 @@ class HilClockFile:
             return False
         read_at = clock.read_at(path)
         wrote_s = (int(slots[9 + board]) - 1) * 1e-9
-        return read_at > 0.0 and wrote_s > max(read_at, time.monotonic() - KERNEL_HOP_MAX_S)
+        return read_at > 0.0 and on_a_kernel_hop(wrote_s, read_at)
 
     def world_now(self) -> float:
         """The simulated rig's time, s: the slower board's that has published (0 before either has); never moves

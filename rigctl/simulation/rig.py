@@ -140,7 +140,7 @@ class SimulatedRig:
         self.clock.in_flight = self._in_flight  # and its answer waits go on while one is
         self.mega.remote_stamp = partial(self._clock_file.stamp_s, "drum")  # and those of a face of another process
         self.uno.host_clock = self.clock  # the taxel reader's finds (a banner on its way: its wait goes on)
-        self.uno.remote_read_at = partial(self._clock_file.stamp_s, "taxel", False)
+        self.uno.remote_stamp = partial(self._clock_file.stamp_s, "taxel")
         self.uno.use_clock(self.model_time_s)
         self._thread: threading.Thread | None = None
         self.step_errors = 0

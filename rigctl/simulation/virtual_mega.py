@@ -38,7 +38,7 @@ from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext
 from pymodbus.framer import FramerType
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
+from rigctl.core.shared_clock import SharedClock, host_stamp, on_a_kernel_hop, port_keys
 from rigctl.devices import wire
 from rigctl.devices.wire import Fault, HoldingRegister as HR
 from rigctl.simulation.controller import MegaController
@@ -205,7 +205,7 @@ class VirtualMega(MegaController):
             return True
         if not bridge.client.plugged:
             return False
-        return self._host_stamp(True) > max(bridge.from_client_at, time.monotonic() - KERNEL_HOP_MAX_S)
+        return on_a_kernel_hop(self._host_stamp(True), bridge.from_client_at)
 
     def reply_on_its_way(self) -> bool:
         """Bytes of a reply the Modbus server wrote that have not reached the host's side of the port yet: counted
@@ -216,11 +216,10 @@ class VirtualMega(MegaController):
         bridge = self.bridge
         if bridge.bytes_from_board() or self._request_at > self._sent_at:
             return True
-        recent = time.monotonic() - KERNEL_HOP_MAX_S
-        if self._sent_at > max(bridge.from_board_at, recent):
+        if on_a_kernel_hop(self._sent_at, bridge.from_board_at):
             return True
         read_at = self._host_stamp(False)  # 0.0: no host that stamps reads the port
-        return read_at > 0.0 and bridge.to_client_at > max(read_at, recent) and not bridge.client.unread_by_board()
+        return read_at > 0.0 and on_a_kernel_hop(bridge.to_client_at, read_at) and not bridge.client.unread_by_board()
 
     def answer_in_flight(self, path: str) -> bool:
         """Whether ``path`` is this board's port and a request the host wrote there or its answer is on its way
@@ -233,9 +232,7 @@ class VirtualMega(MegaController):
         """When a host last began to write to this port (``written``) or last found bytes there to read
         (``time.monotonic``, 0.0: never): of this process (:attr:`host_clock`) or of another (:attr:`remote_stamp`),
         the later."""
-        clock, remote = self.host_clock, self.remote_stamp
-        own = 0.0 if clock is None else (clock.written_at(self.path) if written else clock.read_at(self.path))
-        return own if remote is None else max(own, remote(written))
+        return host_stamp(self.host_clock, self.path, self.remote_stamp, written)
 
     # ------------------------------------------------------------------ lifecycle
     @property

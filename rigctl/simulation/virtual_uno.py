@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 
 from rigctl.core.sensor import PAPER_SENSOR, SensorLayout
-from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock, port_keys
+from rigctl.core.shared_clock import SharedClock, host_stamp, on_a_kernel_hop, port_keys
 from rigctl.devices import wire
 from rigctl.devices.frames import encode_frames, encode_stream_frames
 from rigctl.simulation.priority import board_thread
@@ -116,7 +116,7 @@ class VirtualUno:
         #: the clock a host of this process stamps its finds on (SharedClock.note_read: the rig's, or
         #: :meth:`run_on_clock`'s own), and when a host of another process last found bytes here (the rig's clock file)
         self.host_clock: SharedClock | None = None
-        self.remote_read_at: Callable[[], float] | None = None
+        self.remote_stamp: Callable[[bool], float] | None = None
 
     def use_clock(self, now: Callable[[], float]) -> None:
         """Time the boot wait and stalls on ``now()`` (s; the simulated rig's shared clock), from now on."""
@@ -248,13 +248,12 @@ class VirtualUno:
 
     def output_on_its_way(self) -> bool:
         """Bytes the board wrote after the host last found bytes on the port (or opened it: ``note_read`` on
-        :attr:`host_clock`, or :attr:`remote_read_at`), none waiting on the host's side now: in the kernel's hands
+        :attr:`host_clock`, or :attr:`remote_stamp`), none waiting on the host's side now: in the kernel's hands
         (a pty hands them to the reader through a kernel worker, which a loaded machine holds for seconds; a banner
         held so failed a 3 s banner wait beside two CPU hogs), for at most ``KERNEL_HOP_MAX_S``. False while no host
         stamps its finds. Lock-free."""
-        clock, remote = self.host_clock, self.remote_read_at
-        read_at = max(0.0 if clock is None else clock.read_at(self.path), 0.0 if remote is None else remote())
-        if read_at <= 0.0 or self._wrote_at <= max(read_at, time.monotonic() - KERNEL_HOP_MAX_S):
+        read_at = host_stamp(self.host_clock, self.path, self.remote_stamp, False)
+        if read_at <= 0.0 or not on_a_kernel_hop(self._wrote_at, read_at):
             return False
         return not self.port.unread_by_board()
 
@@ -383,7 +382,7 @@ class VirtualUno:
         clock = self.clock
         if clock is None or not self.port.plugged:
             return False
-        return clock.written_at(self.path) > max(self._taken_at, time.monotonic() - KERNEL_HOP_MAX_S)
+        return on_a_kernel_hop(clock.written_at(self.path), self._taken_at)
 
     def close(self) -> None:
         """Stop the board's thread (if any), its clock (:meth:`run_on_clock`) and close the pty."""
