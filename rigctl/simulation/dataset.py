@@ -259,7 +259,7 @@ def render_trial(texture: Texture | str, speed_mm_s: float, force_g: float, *, c
     ou = one_pole(math.sqrt(1 - a * a), a, rng.standard_normal(n)) * 0.005
     runout = mech.contact_stiffness_g_per_mm * drum.runout_mm * np.sin(2 * np.pi * pos / circ + RUNOUT_PHASE_RAD)
     force = force_g * (static + ou) + runout
-    force *= 1.0 + mech.texture_ripple * sensor.contact_height(tex, np.mod(pos, circ))
+    force *= 1.0 + mech.texture_ripple * sensor.contact_height(tex, pos, wrap_mm=circ)
     np.maximum(force, 0.0, out=force)
 
     sensitivity = 1.0 + cfg.sensor.sensitivity_drift * rng.standard_normal()
@@ -317,8 +317,10 @@ def _render_planned(row: tuple) -> tuple[int, TrialData]:
 def _prepare(data: TrialData) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
     """What the writer needs of a trial that needs no file, computed where the trial was rendered (the render worker,
     from its slot's bytes): its trial facts (storage's :func:`rigctl.storage.trial_facts.sample_facts`: SHA-256,
-    extremes, fingerprint, seq gaps, non-finite counts) and its per-taxel extremes (:func:`taxel_extrema`)."""
-    return trial_facts.sample_facts(data, data.layout.n_channels), taxel_extrema(data.taxels)
+    extremes (from the per-taxel ones), fingerprint, seq gaps, non-finite counts) and its per-taxel extremes
+    (:func:`taxel_extrema`)."""
+    extrema = taxel_extrema(data.taxels)
+    return trial_facts.sample_facts(data, data.layout.n_channels, extrema), extrema
 
 
 def _render_prepared(row: tuple) -> tuple[int, TrialData, Any]:

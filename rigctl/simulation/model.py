@@ -413,35 +413,56 @@ def _render_kernel(pos, force, tables, period, depth, eff, pitch, row_w, p_half,
     # start the low-pass noise in its stationary state
     for ch in range(out.shape[1]):
         state, noise[ch] = _irwin_hall(state)
+    # what does not change from sample to sample, each the very product the loop computed (no fastmath: the same
+    # roundings in the same order): a channel's gain times the sensitivity, a layer and row's scale up to the
+    # pressure (``full_scale * layer_gain * eff``, left to right)
+    gs = np.empty(out.shape[1])
+    for ch in range(out.shape[1]):
+        gs[ch] = gain[ch] * sens
+    scale = np.empty((2, 3))
+    for layer in range(2):
+        for r in range(3):
+            scale[layer, r] = full_scale * layer_gain[layer] * eff[layer, r]
+    k0s = np.empty(3, np.int64)
+    k1s = np.empty(3, np.int64)
+    fracs = np.empty(3)
+    ps = np.empty(3)
     for i in range(pos.shape[0]):
         f9 = force[i] / 9.0
+        # each row's plate coordinate, table cell and pressure (the same for both layers: computed once a sample)
+        for r in range(3):
+            xr = pos[i] - r * pitch
+            if wrap > 0.0:
+                xr = _plate_x(xr, wrap)  # the plate is fixed on the drum, its pattern repeats per turn
+            u = xr * inv
+            k = math.floor(u)
+            fracs[r] = u - k
+            k0 = int(k) % n_table
+            k1 = k0 + 1
+            if k1 == n_table:
+                k1 = 0
+            k0s[r] = k0
+            k1s[r] = k1
+            p = f9 * row_w[r]
+            if p < 0.0:
+                p = 0.0
+            ps[r] = p
         for layer in range(2):
             for r in range(3):
-                xr = pos[i] - r * pitch
-                if wrap > 0.0:
-                    xr = _plate_x(xr, wrap)  # the plate is fixed on the drum, its pattern repeats per turn
-                u = xr * inv
-                k = math.floor(u)
-                frac = u - k
-                k0 = int(k) % n_table
-                k1 = k0 + 1
-                if k1 == n_table:
-                    k1 = 0
-                hs = tables[layer, k0] * (1.0 - frac) + tables[layer, k1] * frac
+                frac = fracs[r]
+                hs = tables[layer, k0s[r]] * (1.0 - frac) + tables[layer, k1s[r]] * frac
                 rel = 1.0 + depth * (hs - 1.0)
                 if rel < 0.0:
                     rel = 0.0
-                p = f9 * row_w[r]
-                if p < 0.0:
-                    p = 0.0
+                p = ps[r]
                 # level: saturating response to the mean taxel pressure, times the plate's contact efficiency;
                 # modulation: the force-invariant contact shape (FabricSlide: depth proportional to the level)
-                base = full_scale * layer_gain[layer] * eff[layer, r] * p / (p + p_half[layer]) * rel
+                base = scale[layer, r] * p / (p + p_half[layer]) * rel
                 for c in range(3):
                     ch = layer * 9 + r * 3 + c
                     state, z = _irwin_hall(state)  # AR(1) low-pass of unit-variance draws
                     noise[ch] = noise_a * noise[ch] + drive * z
-                    v = offset[ch] + (gain[ch] * sens) * base + noise_sd * noise[ch]  # (gain * sens: numpy's product)
+                    v = offset[ch] + gs[ch] * base + noise_sd * noise[ch]  # (gain * sens: numpy's product)
                     v = math.floor(v + 0.5)
                     if v < 0.0:
                         v = 0.0
@@ -737,12 +758,35 @@ class SensorModel:
 
         return self._cached(("eff", tex, fq), build)
 
-    def contact_height(self, texture: Texture | str, position_mm) -> np.ndarray:
-        """Smoothed (bottom-layer) texture height under the centre row minus its mean, mm: drives the load-cell ripple."""
+    def contact_height(self, texture: Texture | str, position_mm, wrap_mm: float | None = None) -> np.ndarray:
+        """Smoothed (bottom-layer) texture height under the centre row minus its mean, mm: drives the load-cell ripple.
+
+        ``position_mm``: (n,) plate coordinates, or with ``wrap_mm`` (> 0, the drum's circumference) drum travel,
+        taken modulo ``wrap_mm`` first (numpy's ``np.mod``, bit for bit); the wrapped positions must be finite. The
+        wrapped case runs in one compiled loop (:func:`_contact_height_kernel`: the dataset renderer's, ~0.12 ms a
+        6,000-sample trial in numpy's passes), the same numbers as ``contact_height(texture, np.mod(position_mm,
+        wrap_mm))``. Returns (n,) float64."""
         tables, period, hmean = self.height_tables(texture)
+        if wrap_mm is not None:
+            pos = np.ascontiguousarray(position_mm, dtype=np.float64).reshape(-1)
+            out = np.empty_like(pos)
+            _contact_height_kernel(pos, float(wrap_mm), float(self.config.pitch_mm), float(period), tables[1],
+                                   float(hmean[1]), out)
+            return out
         x = (np.asarray(position_mm, dtype=np.float64) - self.config.pitch_mm) / period * tables.shape[1]
         idx = np.floor(x).astype(np.int64) % tables.shape[1]
         return tables[1, idx] - hmean[1]
+
+
+@numba.njit(cache=True, nogil=True)
+def _contact_height_kernel(pos, wrap, pitch, period, table, mean, out):  # pragma: no cover - compiled
+    """:meth:`SensorModel.contact_height` of finite drum travel ``pos`` wrapped at ``wrap`` > 0, into ``out``: each
+    step numpy's of the same value in the same order (Python's float modulo is numpy's ``np.mod``; the table cell
+    ``floor(x)`` as an integer modulo the table's length, as ``astype(np.int64) % n``)."""
+    n_table = table.shape[0]
+    for i in range(pos.shape[0]):
+        x = (pos[i] % wrap - pitch) / period * n_table
+        out[i] = table[int(math.floor(x)) % n_table] - mean
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -380,3 +380,44 @@ def test_the_kernels_plate_coordinate_is_pythons_modulo_bit_for_bit():
         got = np.array([_plate_x(float(x), wrap) for x in xs])
         want = np.array([float(x) % wrap for x in xs])
         assert np.array_equal(got.view(np.uint64), want.view(np.uint64)), (wrap, xs[got.view(np.uint64) != want.view(np.uint64)])
+
+
+def test_the_render_kernels_numbers_are_those_before_its_per_sample_work_was_hoisted():
+    """Issue 57 item 6: the render kernel takes each row's plate cell and pressure once a sample (not once per layer)
+    and each channel's gain times the sensitivity once a call; the same roundings in the same order, so every
+    rendered trial keeps its bits. The SHA-256 of five trials (every array and attribute of render_trial: three
+    constant speeds, a ramp, a start at any drum angle) as main rendered them before (d6da9ac)."""
+    import hashlib
+
+    from rigctl.simulation.dataset import RampProfile, render_trial
+    from rigctl.simulation.model import RigConfig as Config
+
+    def digest(t):
+        h = hashlib.sha256()
+        for name in ("taxels", "seq", "flags", "host_time_s", "force_g", "force_time_s", "speed_mm_s", "speed_time_s"):
+            h.update(np.ascontiguousarray(getattr(t, name)).tobytes())
+        h.update(repr(sorted(t.attrs.items())).encode())
+        return h.hexdigest()[:16]
+
+    any_angle = Config()
+    any_angle.drum.start_at_index = False
+    cases = [("A", 40, 250, None, None, 1), ("L", 120, 1000, None, None, 2), ("P", 80, 500, None, None, 3),
+             ("G", 60, 500, RampProfile(40.0, 120.0), None, 4), ("D", 100, 750, None, any_angle, 5)]
+    got = [digest(render_trial(tex, v, f, rng=np.random.default_rng(s), profile=prof, config=cfg))
+           for tex, v, f, prof, cfg, s in cases]
+    assert got == ["bc65dff87175a3f2", "2c81f51ec336a81f", "1c622c066fb67e50", "76320e0ab12afb4b", "7b8c6225c4999026"]
+
+
+def test_the_wrapped_contact_height_is_numpys_modulo_then_lookup_bit_for_bit():
+    """Issue 57 item 6: contact_height(..., wrap_mm=c) in one compiled loop gives the bits of contact_height(...,
+    np.mod(pos, c)) (numpy's passes): drum travel over several turns, the turns' edges, negatives, every texture."""
+    model = SensorModel(RigConfig().sensor)
+    rng = np.random.default_rng(11)
+    for wrap in (RigConfig().drum.circumference_mm, 3.0, 77.7):
+        edges = np.array([0.0, -0.0, wrap, 2 * wrap, -wrap, wrap / 2, 1e-300, -1e-300])
+        near = np.array([np.nextafter(e, d) for e in (0.0, wrap, 2 * wrap) for d in (-np.inf, np.inf)])
+        pos = np.concatenate([edges, near, rng.uniform(-3 * wrap, 6 * wrap, 5000), np.cumsum(rng.uniform(0, 0.2, 3000))])
+        for label in TEXTURES:
+            got = model.contact_height(label, pos, wrap_mm=wrap)
+            want = model.contact_height(label, np.mod(pos, wrap))
+            assert np.array_equal(got.view(np.uint64), want.view(np.uint64)), (wrap, label)

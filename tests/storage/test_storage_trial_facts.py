@@ -320,3 +320,53 @@ def test_facts_handed_over_with_the_trials_are_the_writers_own_and_others_are_re
         assert w.completed_ids() == [0]
     with open_session(path) as s:
         assert s.completed_ids() == [0] and sorted(s.trusted_facts()) == [0] and not usable_trials(s).excluded
+
+
+def _reference_seq_gaps(seq):
+    """seq_gaps as it was before its uint16 path (int64 steps modulo 65,536)."""
+    if seq.size < 2:
+        return 0
+    d = np.mod(np.diff(seq.astype(np.int64)), 65536)
+    return int(np.sum(d[d > 1] - 1))
+
+
+def _reference_nonfinite(values):
+    return int(np.count_nonzero(np.isnan(values))), int(np.count_nonzero(np.isinf(values)))
+
+
+def test_the_facts_quicker_paths_give_the_reference_counts():
+    """Issue 57 item 6: seq_gaps of a uint16 column in uint16 arithmetic, the counts' extremes from the per-taxel
+    ones handed in, and one finiteness look over all traces first give every facts field as the full passes do:
+    seq columns with wraps, gaps, repeats and backward jumps; traces with NaN, +-inf, both, and huge finite values."""
+    rng = np.random.default_rng(31)
+    for _ in range(300):
+        n = int(rng.integers(0, 400))
+        start = int(rng.integers(0, 65536))
+        steps = rng.choice([1, 1, 1, 1, 2, 5, 0, 65535, 300], size=max(n - 1, 0))
+        seq = ((start + np.concatenate([[0], np.cumsum(steps)])) % 65536).astype(np.uint16)[:n]
+        assert trial_facts.seq_gaps(seq) == _reference_seq_gaps(seq)
+        assert trial_facts.seq_gaps(seq.astype(np.int64)) == _reference_seq_gaps(seq)
+        taxels = rng.integers(0, 1024, size=(n, 18)).astype(np.uint16)
+        m = int(rng.integers(0, 40))
+        traces = [rng.normal(0, 1, m) for _ in range(2)] + [rng.normal(0, 1, m) for _ in range(2)]
+        for values in traces:
+            kind = rng.integers(0, 6)
+            if m and kind == 1:
+                values[rng.integers(0, m)] = np.nan
+            elif m and kind == 2:
+                values[rng.integers(0, m)] = rng.choice([np.inf, -np.inf])
+            elif m > 1 and kind == 3:
+                values[0], values[1] = np.inf, -np.inf
+            elif m and kind == 4:
+                values[:] = 1.7e308  # finite, but their sum is not
+        data = TrialData(taxels=taxels, seq=seq, force_g=traces[0], force_time_s=traces[1], speed_mm_s=traces[2],
+                         speed_time_s=traces[3])
+        row = trial_facts.sample_facts(data, 18)[0]
+        extremes = (taxels.min(axis=0), taxels.max(axis=0)) if n else None
+        assert trial_facts.sample_facts(data, 18, extremes).tobytes() == row.tobytes()
+        assert int(row["seq_gaps"]) == _reference_seq_gaps(seq)
+        if n:
+            assert (int(row["taxels_min"]), int(row["taxels_max"])) == (int(taxels.min()), int(taxels.max()))
+        for name in trial_facts.TRACE_NAMES:
+            want = _reference_nonfinite(getattr(data, name))
+            assert (int(row[f"{name}_nan"]), int(row[f"{name}_inf"])) == want, name
