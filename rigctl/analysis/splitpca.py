@@ -151,28 +151,29 @@ class GramBlocks:
         # per block: (rows per group in the block, their means, padded, in the columns' order: (d, groups) float64)
         self._stats = []
         for b in self.blocks:
-            gram = None
-            means = []
+            # the block's rows in one buffer, by decreasing extent (the widest group first), each centred on its
+            # group's mean in the block over its leading columns; beyond a row's extent the buffer is never read
             gb = group_of[b]
-            for g in reversed(range(len(self._groups))):  # the widest first: it writes the whole matrix
+            parts = [(g, slot_of[b[gb == g]]) for g in reversed(range(len(self._groups)))]
+            parts = [(g, sel) for g, sel in parts if sel.size]
+            buf = np.empty((b.size, d), np.float32)
+            spans, means, r0 = [], [], 0
+            for g, sel in parts:
                 _, k, m, xg = self._groups[g]
-                sel = slot_of[b[gb == g]]
-                if sel.size == 0:
-                    continue
-                y = xg[sel]
+                y = buf[r0:r0 + sel.size, :k]
+                if k == d:
+                    np.take(xg, sel, axis=0, out=y, mode="clip")  # (valid indices: no buffered copy)
+                else:
+                    y[...] = xg[sel]
                 mu = y.mean(axis=0, dtype=np.float64)
                 y -= mu.astype(np.float32)
-                if gram is None and k == d:
-                    gram = y.T @ y  # numpy calls BLAS syrk for a matrix times its own transpose
-                else:
-                    if gram is None:
-                        gram = np.zeros((d, d), np.float32)
-                    gram[:k, :k] += y.T @ y
+                r0 += sel.size
+                spans.append((r0, k))
                 v = np.zeros(d)
                 v[:k] = m + mu
                 means.append((sel.size, v))
             self._stats.append((np.array([c for c, _ in means], np.float64), np.stack([v for _, v in means], axis=1)))
-            self._grams.append(gram)
+            self._grams.append(_panel_gram(buf, spans))
         # the centre: the mean of the blocks' rows (of the base's, when there is one)
         stats = self._stats if base is None else [(base.counts, base.means)]
         centre_p = sum(v @ n for n, v in stats) / sum(n.sum() for n, _ in stats)
@@ -324,7 +325,9 @@ class GramBlocks:
         # sum_g n_g v_g v_g' - s s' / n
         v = np.concatenate(v + [s[:, None]], axis=1)
         w = np.concatenate(w + [[-1.0 / n]])
-        _add_low_rank(cov, (v * w).astype(np.float32), v.astype(np.float32), 1.0 / (n - 1))
+        # (the scatter matrix, not divided by n - 1: the iteration's subspace does not depend on the scale, the
+        # values are divided instead; the low-rank sgemm then skips its pass scaling the (d, d) matrix)
+        _add_low_rank(cov, (v * w).astype(np.float32), v.astype(np.float32), 1.0)
         start = None
         sub = None if warm_start is None else warm_start._subspace
         if sub is not None and sub.shape == (self.n_features, min(self.n_features, k + n_oversamples)):
@@ -332,6 +335,7 @@ class GramBlocks:
         if n_iter is None:
             n_iter = 7 if start is None else WARM_ITER
         vals, vecs, basis = _top_eigen(cov, k, n_iter, n_oversamples, random_state, self._order, start=start)
+        vals = vals / (n - 1)
         comps = np.ascontiguousarray(vecs.T[:, self._inverse], dtype=np.float32)
         shift = shift[self._inverse]
         offset = shift @ comps.T.astype(np.float64)
@@ -388,6 +392,36 @@ class GramBase:
         self.pca = None if n_components is None else gb.pca([0], n_components, random_state=random_state)
 
 
+def _panel_gram(buf, spans, width=256):
+    """``sum_g Y_g' Y_g`` over the row groups of ``buf`` (n, d) float32: ``spans`` = [(end row, extent k), ...] by
+    decreasing ``k``, the rows before ``end`` being the groups of extent >= ``k`` (each row read only up to its
+    extent). One BLAS product per column panel of ``width`` columns (upper part and diagonal block, from the rows
+    that reach it), written in place into the result (``np.matmul`` with ``out=`` a view: no zeroed temporary, no
+    per-group triangle copy, no add pass), the panel's lower part then copied from its transpose. The same sums as
+    the groups' ``syrk`` up to float32 rounding (other blocking; ~0.85x their time with their gathers, one thread).
+    Returns ``(d, d)`` float32, symmetric; zero beyond the widest extent."""
+    d = buf.shape[1]
+    gram = np.empty((d, d), np.float32)
+    k0 = spans[0][1]
+    if k0 < d:
+        gram[k0:] = 0
+        gram[:k0, k0:] = 0
+    tiles = []
+    for i, (end, k) in enumerate(spans):
+        lo = spans[i + 1][1] if i + 1 < len(spans) else 0
+        rows = buf[:end]
+        for c0 in range(lo, k, width):
+            c1 = min(c0 + width, k)
+            np.matmul(rows[:, :c1].T, rows[:, c0:c1], out=gram[:c1, c0:c1])
+            tiles.append((c0, c1))
+    for c0, c1 in tiles:  # the lower part, the transpose of the upper (exactly symmetric, as syrk's)
+        gram[c1:k0, c0:c1] = gram[c0:c1, c1:k0].T
+        below = np.tril_indices(c1 - c0, -1)
+        tile = gram[c0:c1, c0:c1]
+        tile[below] = tile.T[below]
+    return gram
+
+
 def _add_low_rank(cov, a, b, scale):
     """``cov = scale * (cov + a @ b.T)`` in place, by one BLAS ``sgemm`` into ``cov`` (C-contiguous float32, symmetric,
     as is ``a @ b.T``: its Fortran-ordered view, the transpose, is updated), not a ``(d, d)`` temporary and two more
@@ -427,12 +461,12 @@ def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None, start=No
             q = q[order]
         q = _orthonormal(q)
     for i in range(n_iter):  # (one Cholesky QR pass before the last: the span is the same, the last restores
-        q = _orthonormal(cov @ q, passes=2 if i == n_iter - 1 else 1)  # the orthogonality to float32)
-    y = cov @ q
+        q = _orthonormal(_times(cov, q), passes=2 if i == n_iter - 1 else 1)  # the orthogonality to float32)
+    y = _times(cov, q)
     got = _nystrom(q, y)
     if got is None:  # (Rayleigh-Ritz on the span of y)
         q = _orthonormal(y)
-        small = (q.T @ (cov @ q)).astype(np.float64)
+        small = (q.T @ _times(cov, q)).astype(np.float64)
         vals, u = eigh((small + small.T) / 2)
         top = np.argsort(vals)[::-1]
         vals, basis = vals[top], q @ u[:, top].astype(q.dtype)
@@ -440,6 +474,13 @@ def _top_eigen(cov, k, n_iter, n_oversamples, random_state, order=None, start=No
         vals, basis = got
         basis = basis.astype(q.dtype)
     return vals[:k], basis[:, :k], basis
+
+
+def _times(cov, q):
+    """``cov @ q`` for a symmetric ``cov`` (d, d) and a thin ``q`` (d, p), as ``(q' cov)'`` (a (d, p) Fortran-ordered
+    view): OpenBLAS's ``sgemm`` takes ~15 % less time with the thin factor on the left (one thread, 2160 x 2160 by 60:
+    7.7 against 9.0 ms); the same product up to float32 rounding."""
+    return (q.T @ cov).T
 
 
 def _nystrom(q, y):

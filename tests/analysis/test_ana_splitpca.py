@@ -325,6 +325,10 @@ def test_the_subspace_iteration_takes_its_eigenpairs_from_its_last_product():
             Counted.products += 1
             return np.asarray(self) @ np.asarray(other)
 
+        def __rmatmul__(self, other):  # (q' cov: the thin factor on the left, splitpca._times)
+            Counted.products += 1
+            return np.asarray(other) @ np.asarray(self)
+
     rng = np.random.default_rng(6)
     d, k = 400, 20
     basis = np.linalg.qr(rng.standard_normal((d, d)))[0]
@@ -341,3 +345,46 @@ def test_the_subspace_iteration_takes_its_eigenpairs_from_its_last_product():
         assert np.sin(subspace_angles(vecs.astype(np.float64), vecs_x).max()) < 1e-3
         np.testing.assert_allclose(vals, vals_x, rtol=1e-4)
         warm = sub + np.float32(0.01) * rng.standard_normal(sub.shape).astype(np.float32)
+
+
+def test_the_panel_gram_is_the_sum_of_the_groups_gram_matrices():
+    """The Gram blocks' one-buffer form (splitpca._panel_gram: rows by decreasing extent, one BLAS product per column
+    panel written in place, the lower part copied from the upper) gives the groups' sum of Y_g' Y_g on their leading
+    columns (a float64 reference, to float32 rounding), exactly symmetric, zero beyond the widest extent, and never
+    reads a row beyond its extent (NaN there)."""
+    from rigctl.analysis.splitpca import GramBlocks, _panel_gram, zero_padding
+
+    rng = np.random.default_rng(9)
+    d = 700
+    for ks, width in (([700, 500, 333, 100], 256), ([600, 599, 64], 64), ([300], 1000)):
+        ns = rng.integers(20, 90, len(ks))
+        buf = np.full((ns.sum(), d), np.nan, np.float32)
+        ref = np.zeros((d, d))
+        start = 0
+        for n, k in zip(ns, ks, strict=True):
+            y = rng.standard_normal((n, k)).astype(np.float32)
+            buf[start:start + n, :k] = y
+            ref[:k, :k] += y.T.astype(np.float64) @ y
+            start += n
+        gram = _panel_gram(buf, list(zip(np.cumsum(ns), ks, strict=True)), width)
+        assert gram.dtype == np.float32 and np.isfinite(gram).all()
+        np.testing.assert_array_equal(gram, gram.T)
+        np.testing.assert_allclose(gram, ref, rtol=1e-4, atol=1e-3 * np.sqrt(ns.sum()))
+        assert not gram[ks[0]:].any() and not gram[:, ks[0]:].any()
+    # and GramBlocks' matrices are the blocks' rows' groups' Gram matrices about their means in the block
+    n, trains, windows = 500, 3, 20
+    x = rng.gamma(2.0, 5.0, (n, trains, windows))
+    filled = rng.choice([20, 10, 5], n)
+    for i, w in enumerate(filled):
+        x[i, :, w:] = 0
+    x = x.reshape(n, -1).astype(np.float32)
+    order, extent = zero_padding(x, filled)
+    blocks = np.array_split(rng.permutation(n), 3)
+    gb = GramBlocks(x, blocks, padding=(order, extent))
+    for b, gram in zip(blocks, gb._grams, strict=True):
+        want = np.zeros((x.shape[1],) * 2)
+        for k in np.unique(extent[b]):
+            y = x[np.ix_(b[extent[b] == k], order[:k])].astype(np.float64)
+            y -= y.mean(axis=0)
+            want[:k, :k] += y.T @ y
+        np.testing.assert_allclose(gram, want, rtol=1e-4, atol=1e-3 * np.abs(want).max())
