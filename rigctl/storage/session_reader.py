@@ -728,14 +728,11 @@ class SessionReader:
         out = []
         with _reading(self.path, "trials' started_utc"), h5objects.bounded_metadata_cache(self._f):
             tg = h5g.open(self._f.id, b"/trials")
-            for tid, r in zip(ids, rows):
-                gid = h5g.open(tg, trial_group_name(int(tid)).rpartition("/")[2].encode())
-                started = ""
-                if h5a.exists(gid, b"started_utc"):
-                    started = h5py.AttributeManager(_HasId(gid))["started_utc"]
+            for tid, r in zip(ids, rows):  # (by name through /trials: no id made for each group)
+                started = h5objects.member_attr(tg, trial_group_name(int(tid)).rpartition("/")[2].encode(),
+                                                b"started_utc")
                 out.append({"n_samples": int(r["n_samples"]), "dropped_frames": int(r["dropped_frames"]),
-                            "crc_errors": int(r["crc_errors"]),
-                            "started_utc": started.decode() if isinstance(started, bytes) else str(started)})
+                            "crc_errors": int(r["crc_errors"]), "started_utc": "" if started is None else str(started)})
         return out
 
     def read_traces(self, ids: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:

@@ -68,6 +68,29 @@ def test_read_attrs_gives_what_h5py_gives(tmp_path):
                 assert repr(got[k]) == repr(want[k]), (obj.name, k)
 
 
+def test_a_members_attribute_read_through_its_group_is_read_attrs_value(tmp_path):
+    """member_attr (an attribute opened by the member's name through its group, as Session.trial_counts reads
+    each trial's started_utc) gives read_attrs's value and type for every kind of attribute, fast or h5py's, of a
+    group and a dataset member; None for an attribute the member does not have; h5py's error for a member that is
+    not there (what Session's readers turn into SessionError)."""
+    with h5py.File(tmp_path / "a.h5", "w") as f:
+        for obj in (f.create_group("t/trial_00001"), f.create_dataset("t/d", data=np.zeros(2))):
+            h5objects.set_attrs(obj, VALUES)
+            obj.attrs.create("ascii", np.array(b"plain", dtype=h5py.string_dtype("ascii")))
+            obj.attrs.create("fixed", np.array(b"fixed", dtype="S8"))
+            obj.attrs["nothing"] = h5py.Empty("f8")
+    with h5py.File(tmp_path / "a.h5", "r") as f:
+        group = f["t"].id
+        for member in ("trial_00001", "d"):
+            want = h5objects.read_attrs(f["t"][member])
+            for k in want:
+                got = h5objects.member_attr(group, member.encode(), k.encode())
+                assert type(got) is type(want[k]) and repr(got) == repr(want[k]), (member, k)
+            assert h5objects.member_attr(group, member.encode(), b"started_utc") is None
+        with pytest.raises((KeyError, RuntimeError)):
+            h5objects.member_attr(group, b"trial_00002", b"text")
+
+
 def test_an_existing_attribute_is_not_overwritten(tmp_path):
     with h5py.File(tmp_path / "a.h5", "w") as f:
         g = f.create_group("g")
