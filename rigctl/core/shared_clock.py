@@ -64,6 +64,9 @@ KERNEL_HOP_MAX_S = 10.0
 #: the longest a host's wait for an answer goes on past its deadline while the answer is known to be on its way,
 #: s of wall time (:meth:`SharedClock.wait_for`'s ``in_flight``): the kernel's longest hop
 IN_FLIGHT_MAX_S = KERNEL_HOP_MAX_S
+#: how often a wait whose world stands for an answer on its way (:attr:`SharedClock.stands_while_in_flight`)
+#: looks for it, s of wall time
+FLIGHT_LOOK_S = 0.002
 #: period of the heartbeat of the host's process, s (wall clock)
 HEARTBEAT_S = 0.005
 #: the shortest wall-clock step of a host wait that looks at the world's time, s
@@ -185,6 +188,12 @@ class SharedClock:
         #: its way (set by the simulated rig whose board answers there: rigctl.simulation.virtual_mega); None: never
         #: known (:meth:`wait_for`'s ``in_flight``)
         self.in_flight: Callable[[str], bool] | None = None
+        #: whether the world stands while an answer a wait has passed its deadline for is on its way (``in_flight``),
+        #: rather than running on: True where the boards cannot judge bytes on their way (firmware under simavr, whose
+        #: watchdog counts its own time: a reply the kernel held for seconds while the world ran on latched WATCHDOG
+        #: in a host that polled all along, rigctl.simulation.hil_clock); False where they can (the virtual Mega's
+        #: watchdog: a world that stood would lag a live sample source for good)
+        self.stands_while_in_flight = False
         self._written: dict[str, float] = {}  # a port's path -> when the host last began to write to it (wall)
         self._read: dict[str, float] = {}  # a port's path -> when the host last found bytes to read on it (wall)
 
@@ -268,7 +277,8 @@ class SharedClock:
         waits for is known to be on its way: rigctl.simulation.virtual_mega), and at most :data:`IN_FLIGHT_MAX_S` of
         wall time past the deadline; meanwhile the world runs on (a deadline moved on as the world moves: the
         watchdog judges a request or answer on its way as a host that spoke, and a live sample source beside a world
-        that stood would lag it for good)."""
+        that stood would lag it for good), or, where :attr:`stands_while_in_flight`, stands at the deadline (plus
+        :attr:`lead_s`)."""
         wall_end = time.monotonic() + max(0.0, float(min_wall_s))
         flight_end: float | None = None
         t = self.now()
@@ -286,7 +296,10 @@ class SharedClock:
                 left = deadline - t
                 if left <= 0.0:
                     going_on = _flight_goes_on(in_flight, flight_end)
-                    if going_on is not None:
+                    if going_on is not None and self.stands_while_in_flight:
+                        flight_end = going_on
+                        left = FLIGHT_LOOK_S  # the world stands at the deadline while the answer is on its way
+                    elif going_on is not None:
                         flight_end = going_on
                         deadline = t + MAX_WAIT_STEP_S  # the world runs on while the answer is on its way
                         with self._lock:

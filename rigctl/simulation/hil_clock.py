@@ -60,7 +60,8 @@ class HilClockFile:
         """A :class:`SharedClock` on the boards' time whose grants go to the file (its first one written now) and
         whose hosts' writes to a board's port (:meth:`board_port`) are stamped in it (:meth:`stamp`)."""
         clock = self._clock = SharedClock(self.world_now, on_grant=self.grant, on_stamp=self.stamp)
-        clock.in_flight = self.in_flight  # and its waits go on while a board's bytes are on their way
+        clock.in_flight = self.in_flight  # and its waits go on while a board's bytes are on their way,
+        clock.stands_while_in_flight = True  # the world standing: the firmware's watchdog cannot judge them
         self.grant(clock.horizon_s)
         return clock
 

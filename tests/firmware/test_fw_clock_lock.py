@@ -98,6 +98,7 @@ def test_what_a_harness_hands_the_host_is_on_its_way_until_the_host_finds_it(fw_
     with hil.HilRig(live=False, with_uno=board == "uno") as rig:
         port = rig.drum_port if board == "mega" else rig.taxel_port
         assert rig.clock.in_flight is not None
+        assert rig.clock.stands_while_in_flight  # the firmware's watchdog cannot judge bytes on their way
         with serial.Serial(port, timeout=0.05) as raw:
             t0 = time.monotonic()
             while rig.clock.now() < 1.0:  # booted (the Uno's reset on open passes meanwhile)

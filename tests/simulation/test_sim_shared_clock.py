@@ -257,6 +257,40 @@ def test_an_answer_outlasts_its_timeout_on_the_wall_while_the_world_waits_at_the
         assert not w.clock.wait_for(late.is_set, 0.05)
 
 
+@pytest.mark.parametrize("stands", [True, False])
+def test_a_world_that_cannot_judge_bytes_on_their_way_stands_while_an_answer_is_in_flight(stands):
+    """``stands_while_in_flight`` (the simavr harnesses' clock: firmware's watchdog counts its own time and cannot
+    know a reply sits in the kernel): a wait past its deadline for an answer on its way holds the world at the deadline
+    (plus the lead) until the answer is found, however long the kernel holds it, while the host's heartbeat beats on;
+    without it (the model rig, whose watchdog judges bytes on their way) the world runs on meanwhile. A CI run at load
+    15 latched WATCHDOG (10 s) under simavr in a host that polled the status all along."""
+    with _running_world() as w:
+        w.clock.stands_while_in_flight = stands
+        flying, stop = threading.Event(), threading.Event()
+        flying.set()
+
+        def heartbeat() -> None:  # the host's process lives (SharedClock's heartbeat thread)
+            while not stop.wait(0.005):
+                w.clock.touch()
+
+        beat = threading.Thread(target=heartbeat, daemon=True)
+        beat.start()
+        threading.Timer(0.4, flying.clear).start()  # found after 0.4 s of wall time
+        try:
+            t0 = w.clock.now()
+            wall0 = time.monotonic()
+            assert not w.clock.wait_for(lambda: False, 0.05, in_flight=flying.is_set)
+            assert time.monotonic() - wall0 >= 0.35  # it waited for the answer on its way
+            deadline = t0 + 0.05
+        finally:
+            stop.set()
+            beat.join()
+        if stands:
+            assert w.t <= deadline + LEAD_S + 0.0015, (w.t, deadline)
+        else:
+            assert w.t > deadline + LEAD_S + 0.1, (w.t, deadline)
+
+
 def test_rigctl_sim_pace_chooses_how_a_commands_simulated_rig_keeps_time(monkeypatch, tmp_path):
     """``$RIGCTL_SIM_PACE`` (docs/config.md): ``wall`` (a person's default) or ``none`` (tests, batch runs) for the rigs
     a command opens for itself; anything else is refused in one line before anything opens."""
