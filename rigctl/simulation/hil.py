@@ -329,14 +329,14 @@ class HilRig:
         self._mega = _Harness(exe, "mega", build_dir / f"{self.mega_image}.elf", [*mega_boot,
             "--spring-k", str(m.contact_stiffness_g_per_mm), "--contact-mm", str(m.contact_gap_mm),
             "--counts-per-g", str(m.loadcell_counts_per_g), "--loadcell-offset", str(int(m.loadcell_offset_counts)),
-            *self._hardware_args(), *lock, *calibrated], self._on_mega_line)
+            *self._hardware_args(), *lock, *calibrated], self._on_mega_line, self.clock)
         self.clock_file.board_port("mega", self._mega.port)  # on self.clock, its writes stamped
         if not self.with_uno:
             return self
         try:
             self._uno = _Harness(exe, "uno", build_dir / f"{self.uno_image}.elf",
                                  ["--reset-on-open", "--boot-ms", str(self.uno_boot_ms), *uno_boot,
-                                  "--taxel-ohm", str(self.taxel_ohm), *lock], self._on_uno_line)
+                                  "--taxel-ohm", str(self.taxel_ohm), *lock], self._on_uno_line, self.clock)
         except BaseException:
             self._mega.close()
             self._mega = None

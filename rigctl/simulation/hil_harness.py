@@ -1,6 +1,14 @@
 """One simavr harness process of :class:`rigctl.simulation.hil.HilRig` (``arduino/simavr/rigctl_simavr.c``, one per
 board): started with its image and options, its stdout lines handed to a callback from a reader thread, stdin
-commands sent; and :class:`HilError`."""
+commands sent; and :class:`HilError`.
+
+A bench action sent as a command (a mass on the load cell, the e-stop, a wire broken: :data:`ACKNOWLEDGED`) reaches
+the firmware's world when the host sends it, not when the pipe hands it on: on the rig's shared clock the host waits
+for the harness's ``OK``/``ERR`` line with the world standing (at most :data:`rigctl.core.shared_clock.LEAD_S` past
+the host's time), as a person's hand acts at once. The command pipe is a kernel hop like a pty's: a CI run at load 11
+placed a mass while the world ran on, after the actuator's back-off had ended that the test meant it to land in
+(test_drum_conformance's push during a back-off, hil).
+"""
 
 from __future__ import annotations
 
@@ -10,11 +18,17 @@ import threading
 import time
 from pathlib import Path
 
+from rigctl.core.shared_clock import KERNEL_HOP_MAX_S, SharedClock
 from rigctl.simulation.priority import board_thread, raise_board_process
 
 __all__ = ["HilError"]
 
 log = logging.getLogger(__name__)
+
+#: the harness's commands it answers with ``OK <word>`` or ``ERR <word>`` (rigctl_simavr.c's stdin thread), by their
+#: first word
+ACKNOWLEDGED = frozenset({"bump", "estop", "hang", "homeswitch", "hx711", "spring-k", "actuator", "drum", "link",
+                          "polarity", "rxlog", "taxel_ohm", "taxel_aa", "wave"})
 
 
 class HilError(RuntimeError):
@@ -24,8 +38,10 @@ class HilError(RuntimeError):
 class _Harness:
     """One rigctl_simavr process: start, read its stdout in a thread, send stdin commands."""
 
-    def __init__(self, exe: Path, board: str, elf: Path, args: list[str], on_line):
+    def __init__(self, exe: Path, board: str, elf: Path, args: list[str], on_line, clock: SharedClock | None = None):
         self.board = board
+        self.clock = clock
+        self._acks: dict[str, int] = {}  # OK/ERR lines read, by their command's word
         self._lock = threading.Lock()
         self.proc = subprocess.Popen([str(exe), "--board", board, *args, str(elf)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
@@ -51,6 +67,9 @@ class _Harness:
     def _read(self) -> None:
         try:
             for line in self._stdout:
+                words = line.split(maxsplit=2)
+                if len(words) > 1 and words[0] in ("OK", "ERR"):
+                    self._acks[words[1]] = self._acks.get(words[1], 0) + 1
                 try:
                     self._on_line(line.rstrip("\n"))
                 except Exception:  # a bad line must not kill the reader (the pipe would fill and stall the sim)
@@ -59,13 +78,23 @@ class _Harness:
             pass
 
     def send(self, text: str) -> None:
+        """Send a stdin command; one the harness acknowledges (:data:`ACKNOWLEDGED`), sent on the rig's clock from
+        any thread but the reader's, returns once the harness has it, the world standing meanwhile (module doc; at
+        most ``KERNEL_HOP_MAX_S`` of wall time: a harness that never answers)."""
+        word = text.split(maxsplit=1)[0] if text.strip() else ""
+        wait = self.clock is not None and word in ACKNOWLEDGED and threading.current_thread() is not self._thread
         with self._lock:
+            acks = self._acks.get(word, 0)
             if self.proc.poll() is None:
                 try:
                     self._stdin.write(text + "\n")
                     self._stdin.flush()
                 except (BrokenPipeError, ValueError):
-                    pass
+                    return
+            else:
+                return
+        if wait and self.clock is not None:
+            self.clock.wait_for(lambda: self._acks.get(word, 0) > acks, 0.0, min_wall_s=KERNEL_HOP_MAX_S)
 
     def close(self) -> None:
         try:

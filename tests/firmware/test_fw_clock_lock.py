@@ -131,3 +131,48 @@ def test_what_a_harness_hands_the_host_is_on_its_way_until_the_host_finds_it(fw_
             rig.clock.note_read(port)  # found
             raw.read(raw.in_waiting)
             assert not rig.clock.in_flight(port)
+
+
+class _HeldPipe:
+    """A harness's stdin whose writes the kernel hands on only ``hold_s`` of wall time later (a loaded machine's
+    pipe hop), in order."""
+
+    def __init__(self, pipe, hold_s: float):
+        self.pipe, self.hold_s, self._text = pipe, hold_s, ""
+
+    def write(self, text: str) -> None:
+        self._text += text
+
+    def flush(self) -> None:
+        import threading
+
+        text, self._text = self._text, ""
+
+        def hand_on() -> None:
+            self.pipe.write(text)
+            self.pipe.flush()
+
+        threading.Timer(self.hold_s, hand_on).start()
+
+    def close(self) -> None:
+        self.pipe.close()
+
+
+def test_a_bench_action_reaches_the_world_when_the_host_sends_it_however_long_the_pipe_holds_it(fw_build):
+    """A mass placed on the load cell (``bump``: a command on the harness's stdin, a kernel hop like a pty's) lands
+    in the firmware's world at the host's time (within LEAD_S and a report), though the pipe holds the command 0.4 s
+    of wall time: the host waits for the harness's OK with the world standing (rigctl.simulation.hil_harness). Without
+    that the world ran on meanwhile, and a CI run's mass landed after the back-off it was meant to meet."""
+    from rigctl.core.shared_clock import LEAD_S
+
+    with hil.HilRig(live=False, with_uno=False, tel_ms=5.0) as rig:
+        rig.clock.sleep(0.5)  # booted and tared
+        mega = rig._mega
+        assert mega is not None
+        mega._stdin = _HeldPipe(mega._stdin, 0.4)
+        t_sent = rig.clock.now()
+        rig.bump(800.0)
+        rig.clock.sleep(0.6)
+        landed = [t.t_s for t in rig.telemetry_history if t.t_s >= t_sent - 0.01 and t.force_g > 400.0]
+        assert landed, "the mass never showed on the cell"
+        assert landed[0] - t_sent <= LEAD_S + 0.01, (t_sent, landed[0])  # (a report every 5 ms)

@@ -281,7 +281,9 @@ def test_a_world_that_cannot_judge_bytes_on_their_way_stands_while_an_answer_is_
             wall0 = time.monotonic()
             assert not w.clock.wait_for(lambda: False, 0.05, in_flight=flying.is_set)
             assert time.monotonic() - wall0 >= 0.35  # it waited for the answer on its way
-            deadline = t0 + 0.05
+            # the wait's own deadline: 0.05 s past the world's time when it began, which the heartbeat's grant may
+            # already have moved up to LEAD_S past t0 (an idle CI run: 0.25 against t0 + 0.05 = 0.15)
+            deadline = t0 + LEAD_S + 0.05
         finally:
             stop.set()
             beat.join()
