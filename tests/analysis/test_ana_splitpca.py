@@ -26,6 +26,16 @@ def _straightforward(x, y, tr, te, n_pcs=N_PCS):
     return np.array(out)
 
 
+def _padded_features(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` trials' features of 3 spike trains x 20 windows (float32, n x 60), each trial filling 20, 10 or 5
+    windows (zero beyond: a speed's padding), and the windows each fills."""
+    x = rng.gamma(2.0, 5.0, (n, 3, 20))
+    filled = rng.choice([20, 10, 5], n)
+    for i, w in enumerate(filled):
+        x[i, :, w:] = 0
+    return x.reshape(n, -1).astype(np.float32), filled
+
+
 @pytest.fixture(autouse=True)
 def _one_blas_thread():
     """Tiny matrices: a threaded BLAS only waits for its other threads on a busy machine (10x slower)."""
@@ -164,12 +174,8 @@ def test_the_groups_gathered_from_the_ordered_copy_are_the_same_numbers():
     from rigctl.analysis.splitpca import GramBase, GramBlocks, ordered_columns, split_scores, zero_padding
 
     rng = np.random.default_rng(4)
-    n, trains, windows = 600, 3, 20
-    x = rng.gamma(2.0, 5.0, (n, trains, windows))
-    filled = rng.choice([20, 10, 5], n)
-    for i, w in enumerate(filled):
-        x[i, :, w:] = 0
-    x = x.reshape(n, -1).astype(np.float32)
+    n = 600
+    x, filled = _padded_features(rng, n)
     order, extent = zero_padding(x, filled)
     xo = ordered_columns(x, order)
     np.testing.assert_array_equal(xo, x[:, order])
@@ -372,12 +378,8 @@ def test_the_panel_gram_is_the_sum_of_the_groups_gram_matrices():
         np.testing.assert_allclose(gram, ref, rtol=1e-4, atol=1e-3 * np.sqrt(ns.sum()))
         assert not gram[ks[0]:].any() and not gram[:, ks[0]:].any()
     # and GramBlocks' matrices are the blocks' rows' groups' Gram matrices about their means in the block
-    n, trains, windows = 500, 3, 20
-    x = rng.gamma(2.0, 5.0, (n, trains, windows))
-    filled = rng.choice([20, 10, 5], n)
-    for i, w in enumerate(filled):
-        x[i, :, w:] = 0
-    x = x.reshape(n, -1).astype(np.float32)
+    n = 500
+    x, filled = _padded_features(rng, n)
     order, extent = zero_padding(x, filled)
     blocks = np.array_split(rng.permutation(n), 3)
     gb = GramBlocks(x, blocks, padding=(order, extent))
