@@ -296,15 +296,15 @@ class SharedClock:
                 left = deadline - t
                 if left <= 0.0:
                     going_on = _flight_goes_on(in_flight, flight_end)
-                    if going_on is not None and self.stands_while_in_flight:
+                    if going_on is not None:  # the answer is on its way
                         flight_end = going_on
-                        left = FLIGHT_LOOK_S  # the world stands at the deadline while the answer is on its way
-                    elif going_on is not None:
-                        flight_end = going_on
-                        deadline = t + MAX_WAIT_STEP_S  # the world runs on while the answer is on its way
-                        with self._lock:
-                            self._waits[key] = deadline
-                        left = MAX_WAIT_STEP_S
+                        if self.stands_while_in_flight:  # the world stands at the deadline meanwhile
+                            left = FLIGHT_LOOK_S
+                        else:  # the world runs on meanwhile
+                            deadline = t + MAX_WAIT_STEP_S
+                            with self._lock:
+                                self._waits[key] = deadline
+                            left = MAX_WAIT_STEP_S
                     elif ready is None or time.monotonic() >= wall_end:
                         return ready() if ready is not None else False
                     else:

@@ -200,7 +200,6 @@ class HilRig:
         #: resets of the Mega the harness reported (the reset commands and the MCU's own, e.g. its watchdog)
         self.mega_resets = 0
         self._eeprom_ack: bool | None = None
-        self._actuator_acks = 0
         self.schedule: FaultSchedule | None = None  #: the injected faults (:meth:`inject_faults`)
         self.faults = HilFaults(lambda c: self._running(self._mega, "Mega").send(c),
                                 None if not with_uno else lambda c: self._running(self._uno, "Uno").send(c), taxel_ohm,
@@ -465,15 +464,12 @@ class HilRig:
         """Open (``True``: pressed, or a broken wire) or close the normally-closed e-stop contact on the Mega's D2."""
         self._running(self._mega, "Mega").send("estop open" if opened else "estop close")
 
-    def reverse_actuator(self, reversed_: bool = True, timeout_s: float = 5.0) -> None:
+    def reverse_actuator(self, reversed_: bool = True) -> None:
         """Swap the actuator motor's coil pair (``True``: the firmware's "towards the sensor" moves it away and back
-        again) or mend it; returns once the harness has it (a request sent after sees it). HilError if it does not
-        confirm."""
-        with self._cond:
-            acks = self._actuator_acks
-            self._running(self._mega, "Mega").send("actuator reversed" if reversed_ else "actuator ok")
-            if not self._cond.wait_for(lambda: self._actuator_acks != acks, timeout_s):
-                raise HilError("the Mega harness did not confirm the actuator's wiring")
+        again) or mend it; returns once the harness has it (a request sent after sees it: a bench action on the rig's
+        clock, rigctl.simulation.hil_harness). HilError if it does not confirm."""
+        if not self._running(self._mega, "Mega").send("actuator reversed" if reversed_ else "actuator ok"):
+            raise HilError("the Mega harness did not confirm the actuator's wiring")
 
     def fault_refusal(self, spec: FaultSpec) -> str | None:
         """Why the harness cannot model ``spec`` (None when it can; :mod:`rigctl.core.faults`)."""
@@ -592,10 +588,6 @@ class HilRig:
                 prev = self.telemetry_history[-2]
                 dt = max((tel.cycle - prev.cycle) / 16e6, 1e-6)
                 self.truth.row(tel.t_s, tel.force_g, tel.act_mm, (tel.drum_steps - prev.drum_steps) * self.mm_per_step / dt)
-        elif line == "OK actuator":
-            with self._cond:
-                self._actuator_acks += 1
-                self._cond.notify_all()
         elif line.startswith("RX "):
             self.request_times.append(_parse_kv(line)["t"])
         elif line.startswith("ASTEP "):

@@ -57,7 +57,7 @@ class HilFaults:
     active : the names of the faults active now.
     """
 
-    def __init__(self, send_mega: Callable[[str], None], send_uno: Callable[[str], None] | None,
+    def __init__(self, send_mega: Callable[[str], object], send_uno: Callable[[str], object] | None,
                  taxel_ohm: float, *, calibration_offset: Callable[[], int] | None = None) -> None:
         self.send_mega, self.send_uno, self.taxel_ohm = send_mega, send_uno, float(taxel_ohm)
         self.calibration_offset = calibration_offset

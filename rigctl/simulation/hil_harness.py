@@ -77,10 +77,11 @@ class _Harness:
         except (ValueError, OSError):  # stdout closed by close()
             pass
 
-    def send(self, text: str) -> None:
+    def send(self, text: str) -> bool:
         """Send a stdin command; one the harness acknowledges (:data:`ACKNOWLEDGED`), sent on the rig's clock from
         any thread but the reader's, returns once the harness has it, the world standing meanwhile (module doc; at
-        most ``KERNEL_HOP_MAX_S`` of wall time: a harness that never answers)."""
+        most ``KERNEL_HOP_MAX_S`` of wall time: a harness that never answers). Returns False when the harness is
+        gone, its stdin closed, or an acknowledged command it was waited for did not come back in that time."""
         word = text.split(maxsplit=1)[0] if text.strip() else ""
         wait = self.clock is not None and word in ACKNOWLEDGED and threading.current_thread() is not self._thread
         with self._lock:
@@ -90,11 +91,12 @@ class _Harness:
                     self._stdin.write(text + "\n")
                     self._stdin.flush()
                 except (BrokenPipeError, ValueError):
-                    return
+                    return False
             else:
-                return
+                return False
         if wait and self.clock is not None:
-            self.clock.wait_for(lambda: self._acks.get(word, 0) > acks, 0.0, min_wall_s=KERNEL_HOP_MAX_S)
+            return self.clock.wait_for(lambda: self._acks.get(word, 0) > acks, 0.0, min_wall_s=KERNEL_HOP_MAX_S)
+        return True
 
     def close(self) -> None:
         try:
