@@ -207,11 +207,17 @@ def member_attr(group: h5g.GroupID, member: bytes, name: bytes) -> Any:
         return None
     value = _fast_value(group, name, member)
     if value is _OTHER:
-        value = h5py.AttributeManager(_HasId(h5o.open(group, member)))[name.decode()]
-        if isinstance(value, bytes):
-            value = value.decode()
-        elif isinstance(value, np.generic):
-            value = value.item()
+        value = _plain(h5py.AttributeManager(_HasId(h5o.open(group, member)))[name.decode()])
+    return value
+
+
+def _plain(value: Any) -> Any:
+    """An attribute's value as h5py read it, with bytes decoded and numpy scalars made Python ones (arrays as
+    they are): what :func:`read_attrs` and :func:`member_attr` give where :func:`_fast_value` cannot."""
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.generic):
+        return value.item()
     return value
 
 
@@ -232,11 +238,7 @@ def read_attrs(obj: h5py.HLObject) -> dict[str, Any]:
         except Exception:  # noqa: BLE001 - anything unusual: h5py's own reading below says what
             value = _OTHER
         if value is _OTHER:
-            value = mgr[name]
-            if isinstance(value, bytes):
-                value = value.decode()
-            elif isinstance(value, np.generic):
-                value = value.item()
+            value = _plain(mgr[name])
         out[name] = value
     return out
 
