@@ -60,16 +60,14 @@ PRINT_ROWS = 256
 
 def seq_gaps(seq: np.ndarray) -> int:
     """Frames missing inside a trial by its uint16 ``seq`` column (wrapping at 65,536): the sum of the jumps beyond
-    one. A uint16 column's steps are taken in uint16 arithmetic, which wraps at 65,536 itself (~3 us for 6,000
-    frames where the int64 steps and their modulo took ~30)."""
+    one. The steps are taken in uint16 arithmetic, which wraps at 65,536 itself (a uint16 column as it is, other
+    integers cast, which keeps them modulo 65,536: ~3 us for 6,000 frames where int64 steps and their modulo took
+    ~30)."""
     if seq.size < 2:
         return 0
-    if isinstance(seq, np.ndarray) and seq.dtype == np.uint16:
-        d = np.diff(seq)
-        jumps = d[d > 1]
-        return int(jumps.sum(dtype=np.int64)) - int(jumps.size)
-    d = np.mod(np.diff(seq.astype(np.int64)), 65536)
-    return int(np.sum(d[d > 1] - 1))
+    d = np.diff(np.asarray(seq).astype(np.uint16, copy=False))
+    jumps = d[d > 1]
+    return int(jumps.sum(dtype=np.int64)) - int(jumps.size)
 
 
 def taxels_print(data: np.ndarray) -> int:
