@@ -115,9 +115,14 @@ def test_ctrl_c_while_rigctl_starts_is_one_line(tmp_path):
 
     repo = Path(__file__).resolve().parents[1]
     env = {**os.environ, "RIGCTL_CONFIG": str(tmp_path / "rig.json"), "PYTHONPATH": str(repo)}
-    # the console script's lines, with a mark once Python and the script's own first line have run (a Ctrl-C before
-    # that is Python's own start failing, before any of rigctl is imported)
-    script = "import sys; from rigctl_launch import main; print('started', flush=True); sys.exit(main())"
+    # the console script's lines, with a mark once main() has begun to import rigctl (an audit hook on that import: a
+    # mark printed before main() let a Ctrl-C that came at once land as print returned, in the script's own line, which
+    # is Python's start, before any of rigctl; the console script pip writes has that window too)
+    script = ("import sys; from rigctl_launch import main\n"
+              "def mark(event, args, done=[]):\n"
+              "    if event == 'import' and args[0] == 'rigctl' and not done:\n"
+              "        done.append(1); print('started', flush=True)\n"
+              "sys.addaudithook(mark); sys.exit(main())")
     for k, delay in enumerate((0.0, 0.3, 0.8)):
         out = tmp_path / f"d{k}.h5"
         p = subprocess.Popen([sys.executable, "-c", script, "sim", "dataset", "quick_check", "--out", str(out),
