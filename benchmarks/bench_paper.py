@@ -8,7 +8,8 @@ process and its children), peak resident memory of the process tree, trials/s, M
 reads for the analysis), neuron-steps/s for the encoder (samples x taxels x SA/RA, the paper's 3e9), and the
 machine's load average; then issue 57's targets as ratios (encode <= 2x its floor in wall and CPU time, peak RSS
 < 1.5 GB; Table 1 <= 30 s; the export's peak RSS < 1 GB; sim dataset >= 500 trials/s; the whole paper < 120 s). The
-stages run with their byte code kept (``CHILD_ENV``), compiled before the first stage (``WARM``). With a fraction,
+stages run with their byte code kept (``CHILD_ENV``), compiled before the first stage (``WARM``), and numba's kernels
+in its cache (``scripts/compile_kernels.py``, as the test command does). With a fraction,
 the linear extrapolation of the trial-bound stages (simulation, encoding) to 24,000 trials is printed beside the
 total (the analysis is full size from 1/3 on: its textures/groups draws are 500 per texture).
 
@@ -171,6 +172,10 @@ def main() -> None:
     stages = []
     floor = None
     subprocess.run([sys.executable, "-c", WARM], env=CHILD_ENV, check=True, capture_output=True)
+    # numba's kernels compiled into its cache as the test command does (a fresh cache made the first stage that ran
+    # a kernel, the floor, compile it: 17.8 s against 8.9 s warm, 2026-11-28, docs/results.md 5z)
+    subprocess.run([sys.executable, str(REPO / "scripts" / "compile_kernels.py")], env=CHILD_ENV, check=True,
+                   capture_output=True)
     try:
         if "sim" in stages_wanted:
             st = run_stage(["sim", "dataset", str(REPO / "protocols" / "paper_dataset.toml"), "--out", str(session),
