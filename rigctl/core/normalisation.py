@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TaxelRange"]
+__all__ = ["TaxelRange", "column_extremes"]
 
 
 @dataclass
@@ -79,7 +79,20 @@ class TaxelRange:
         if x.size == 0:
             return self
         x = x.reshape(-1, x.shape[-1])
-        lo, hi = _column_extremes(x)
+        lo, hi = column_extremes(x)
+        return self.fold(lo, hi, x.shape[0])
+
+    def fold(self, minimum: np.ndarray, maximum: np.ndarray, n_samples: int) -> "TaxelRange":
+        """Fold the per-taxel extremes of ``n_samples`` readings seen elsewhere (``(n_taxels,)`` each, in the
+        readings' units; e.g. a trial's, from the session validator's read) into the range, as :meth:`update` of
+        those readings would; returns self.
+
+        Raises
+        ------
+        ValueError
+            if the taxel count differs from earlier updates.
+        """
+        lo, hi = np.asarray(minimum, dtype=np.float64), np.asarray(maximum, dtype=np.float64)
         if self.minimum is None or self.maximum is None:
             self.minimum, self.maximum = lo, hi
         else:
@@ -87,7 +100,7 @@ class TaxelRange:
                 raise ValueError(f"{lo.size} taxels, expected {self.minimum.size}")
             self.minimum = np.minimum(self.minimum, lo)
             self.maximum = np.maximum(self.maximum, hi)
-        self.n_samples += x.shape[0]
+        self.n_samples += int(n_samples)
         return self
 
     def offset_scale(self) -> tuple[np.ndarray, np.ndarray]:
@@ -131,13 +144,14 @@ class TaxelRange:
                    str(d.get("calibrated_utc", "")), int(d.get("n_samples", 0)))
 
 
-#: rows folded side by side in :func:`_column_extremes` (numpy reduces wide rows far faster than 18-column ones)
+#: rows folded side by side in :func:`column_extremes` (numpy reduces wide rows far faster than 18-column ones)
 _FOLD_ROWS = 64
 
 
-def _column_extremes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) of each column of the 2-d ``x`` as float64: the rows reduced ``_FOLD_ROWS`` at a time side by
-    side (the same extremes as ``x.min(axis=0)``, several times faster for few columns)."""
+def column_extremes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of each column of the 2-d ``(n_rows, n_columns)`` ``x`` (n_rows >= 1), each ``(n_columns,)``
+    float64 in ``x``'s units: the rows reduced ``_FOLD_ROWS`` at a time side by side (the same extremes as
+    ``x.min(axis=0)``, several times faster for few columns). IndexError for no rows."""
     n_ch = x.shape[1]
     n = x.shape[0] // _FOLD_ROWS * _FOLD_ROWS
     lo_parts, hi_parts = [], []

@@ -517,7 +517,8 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
                                                       "caches them) ...")
         fit_idx: list[int] = []
         bar = Stage(progress, "reading trials", len(ids))
-        for b in batches:
+        known = None if keep_all or conv.resampled or p.crop_s is not None else _extremes_known(s, ids, run)
+        for b in batches if known is None else ():
             b_ids = [ids[i] for i in b]
             blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
             _check_crop(p.crop_s, np.diff(blk.starts) / conv.input_rate_hz, b_ids)
@@ -538,6 +539,8 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
                     read.fit_blocks.append(rg.select(sel))
                     fit_idx.extend(b[sel].tolist())
             bar.advance(len(b))
+        if known is not None:
+            _range_from_extremes(s, read, known, keep, fit_idx, bar)
     read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
     _note_lossy(read, progress)
     if np.any(read.n_samples == 0):
@@ -552,6 +555,39 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
         read.rng = given
     read.offset, read.scale = read.rng.offset_scale()
     return read
+
+
+def _extremes_known(s: Any, ids: list[int], run: EncodeRun) -> dict[int, np.ndarray] | None:
+    """Each trial's per-taxel extremes as the session's validator read them (``TrialReport.taxel_extremes``), when
+    it has them for every trial of ``ids`` (schema 4), else None."""
+    from rigctl.storage.validate import usable_trials
+
+    known = usable_trials(s, keep_nonfinite=run.keep_nonfinite).taxel_extremes
+    return known if known and all(t in known for t in ids) else None
+
+
+def _range_from_extremes(s: Any, read: _Read, known: dict[int, np.ndarray], keep: set[int], fit_idx: list[int],
+                         bar: Stage) -> None:
+    """Pass 1 without reading every sample (a session whose batches are read again by the encode pass, neither
+    resampled nor cropped): the per-taxel range folded from each trial's extremes the validator found in the same
+    counts (the range over the raw counts is the same, exactly), the lengths, traces and lost frames from
+    ``/recording/index``, and only the force fit's subsample read, in the batches' order (the same blocks as
+    ``Ragged.select`` of the full read)."""
+    index = s.recording_index()
+    for b in read.batches:
+        b_ids = [read.ids[i] for i in b]
+        rows = [index[t] for t in b_ids]
+        read.n_samples[b] = [int(r["n_samples"]) for r in rows]
+        read.has_trace[b] = [int(r["n_speed"]) > 0 for r in rows]
+        read.lossy.update({int(t): int(r["dropped_frames"]) for t, r in zip(b_ids, rows) if int(r["dropped_frames"])})
+        ext = np.stack([known[t] for t in b_ids])  # (trials, 2, taxels)
+        read.rng.fold(ext[:, 0].min(axis=0), ext[:, 1].max(axis=0), int(read.n_samples[b].sum()))
+        sel = [j for j, i in enumerate(b) if i in keep]
+        if sel:
+            blk = s.read_taxels([b_ids[j] for j in sel])
+            read.fit_blocks.append(Ragged(blk.data, blk.starts))
+            fit_idx.extend(b[sel].tolist())
+        bar.advance(len(b))
 
 
 def _check_crop(crop_s: float | None, duration_s: np.ndarray, ids: list[int]) -> None:

@@ -57,6 +57,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from rigctl.core.normalisation import column_extremes
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage.onboard_group import onboard_samples
 from rigctl.storage.outputs import size_text
@@ -121,12 +122,17 @@ class TrialReport:
     dropped_frames : usable trial id -> frames missing by its ``seq`` column (or its attribute, if larger).
     nonfinite : trial id -> its non-finite readings in words (NaN / inf in a force or speed trace or their times):
         excluded trials unless ``keep_nonfinite``, then usable and listed here.
+    taxel_extremes : trial id -> ``(2, n_channels)`` uint16: each taxel's minimum (row 0) and maximum (row 1) ADC
+        count over the trial's samples, as the check read them (schema 4, a trial with samples: computed beside the
+        checksums from the same read, so a command that needs the session's per-taxel range - the encoder's
+        normalisation - need not read every sample again); absent for older files' trials.
     """
 
     ids: list[int] = field(default_factory=list)
     excluded: dict[int, str] = field(default_factory=dict)
     dropped_frames: dict[int, int] = field(default_factory=dict)
     nonfinite: dict[int, str] = field(default_factory=dict)
+    taxel_extremes: dict[int, np.ndarray] = field(default_factory=dict)
 
     def summary(self) -> str:
         """One line: how many complete trials are usable and which were excluded (first three reasons)."""
@@ -171,7 +177,7 @@ def usable_trials(session: Session, *, keep_nonfinite: bool = False,
                              excluded=dict(sorted(excluded.items(), key=lambda kv: order.get(kv[0], 0))),
                              dropped_frames={t: d for t, d in full.dropped_frames.items()
                                              if t not in full.nonfinite},
-                             nonfinite=dict(full.nonfinite))
+                             nonfinite=dict(full.nonfinite), taxel_extremes=full.taxel_extremes)
     session.trial_reports[key] = report
     for tid, why in report.excluded.items():  # one line per trial, each command the same
         session._problem(f"{session.path}: trial {tid} is damaged: {why}; its data are not used (excluded)")
@@ -535,8 +541,8 @@ class _Block:
 
 
 #: (seq gaps per trial read, counts all inside the ADC range, SHA-256 of each read trial's taxels that has a sealed
-#: checksum to meet, else None)
-_Sums = tuple[np.ndarray, bool, list[bytes | None]]
+#: checksum to meet, else None, each read trial's per-taxel (minimum, maximum) or None: empty or unreadable)
+_Sums = tuple[np.ndarray, bool, list[bytes | None], list[np.ndarray | None]]
 
 
 def _read_entries(session: Session, block: list[_Entry]) -> _Block:
@@ -552,18 +558,22 @@ def _read_entries(session: Session, block: list[_Entry]) -> _Block:
 
 def _block_sums(blk: _Block, adc_max: int) -> _Sums:
     """What a block's samples say, computed apart from the judging (on the validator's worker thread): the seq
-    gaps, whether every count is inside ``0 .. adc_max`` and the SHA-256 of each read trial's taxels that has a
-    sealed checksum (not for a trial whose data cannot be read, nor an empty one)."""
+    gaps, whether every count is inside ``0 .. adc_max``, the SHA-256 of each read trial's taxels that has a
+    sealed checksum and each read trial's per-taxel extremes (:attr:`TrialReport.taxel_extremes`; neither for a
+    trial whose data cannot be read, nor an empty one)."""
     from rigctl.storage.trial_facts import sha256
 
     gaps = block_seq_gaps(blk.seq, blk.pos)
     in_range = bool(blk.tax.size == 0 or int(blk.tax.max()) <= adc_max)  # uint16: never below 0
     digests: list[bytes | None] = []
+    extremes: list[np.ndarray | None] = []
     for sealed in (e[4] for e in blk.entries if e[2] is None):
         i = len(digests)
         a, b = int(blk.pos[i]), int(blk.pos[i + 1])
-        digests.append(sha256(blk.tax[a:b]) if sealed is not None and b > a and i not in blk.failed else None)
-    return gaps, in_range, digests
+        readable = b > a and i not in blk.failed
+        digests.append(sha256(blk.tax[a:b]) if sealed is not None and readable else None)
+        extremes.append(np.stack(column_extremes(blk.tax[a:b])).astype(blk.tax.dtype) if readable else None)
+    return gaps, in_range, digests, extremes
 
 
 def _judge_block(session: Session, blk: _Block, sums: _Sums, plan: dict[int, Any], rate: float,
@@ -574,7 +584,7 @@ def _judge_block(session: Session, blk: _Block, sums: _Sums, plan: dict[int, Any
 
     taxels_ds = session._f[GROUP]["taxels"]
     n_ch = int(taxels_ds.shape[1])
-    gaps, in_range, digests = sums
+    gaps, in_range, digests, extremes = sums
     tax, pos, failed = blk.tax, blk.pos, blk.failed
     i = 0  # the next trial read
     for tid, r, q, nonfinite, sealed in blk.entries:
@@ -599,6 +609,9 @@ def _judge_block(session: Session, blk: _Block, sums: _Sums, plan: dict[int, Any
                                                         functools.partial(_check_counts, session, data, tid, copies,
                                                                           load, in_range))
         _record(report, tid, why, dropped, blk.bad[i])
+        ext = extremes[i]
+        if ext is not None:
+            report.taxel_extremes[tid] = ext
         i += 1
 
 

@@ -196,3 +196,51 @@ def test_cli_encode(session, tmp_path):
     assert bad.exit_code != 0 and "many" in bad.output
     bad = CliRunner().invoke(main, ["encode", str(session), "--variant", "nope"])
     assert bad.exit_code != 0 and "nope" in bad.output
+
+
+def _datasets(path) -> dict[str, np.ndarray]:
+    import h5py
+
+    out: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def test_the_range_from_the_validators_extremes_gives_the_file_a_full_read_gives(session, tmp_path, monkeypatch):
+    """A session whose batches the encode pass reads again takes its per-taxel range from the extremes the validator
+    found in the same counts (no second read of every sample in pass 1; only the force fit's subsample): every dataset
+    of the encoded file (features, spike trains, the normalisation, the force coefficients) is the full read's, bit
+    for bit; and the shortcut was taken."""
+    import rigctl.encoding.pipeline as pipeline
+
+    taken = []
+    shortcut = pipeline._range_from_extremes
+    monkeypatch.setattr(pipeline, "_range_from_extremes", lambda *a: taken.append(1) or shortcut(*a))
+    kw = dict(fit_memory_bytes=20_000, batch_trials=7, store_spikes=("original", "force_scaled"), progress=False)
+    encode_session(session, tmp_path / "short.h5", **kw)
+    assert taken, "the range was read again from every sample"
+    monkeypatch.setattr(pipeline, "_extremes_known", lambda *a: None)  # the full read of pass 1
+    encode_session(session, tmp_path / "full.h5", **kw)
+    assert len(taken) == 1
+    a, b = _datasets(tmp_path / "short.h5"), _datasets(tmp_path / "full.h5")
+    assert a.keys() == b.keys() and any(k.startswith("features/") for k in a)
+    with open_encoded(tmp_path / "short.h5") as f:
+        assert 0 < f.force_fit_stats()["n_fit_trials"] < 24  # a subsample: the encode pass read the batches again
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_the_validators_taxel_extremes_are_each_trials_counts_extremes(session):
+    """TrialReport.taxel_extremes: each usable trial's per-taxel minimum and maximum count, as its taxels read."""
+    from rigctl.storage.session import open_session
+    from rigctl.storage.validate import usable_trials
+
+    with open_session(session) as s:
+        report = usable_trials(s)
+        assert set(report.taxel_extremes) >= set(report.ids) and report.ids
+        for t in report.ids:
+            counts = s.read_taxels([t]).data
+            ext = report.taxel_extremes[t]
+            assert ext.dtype == np.uint16 and ext.shape == (2, counts.shape[1])
+            np.testing.assert_array_equal(ext, np.stack([counts.min(axis=0), counts.max(axis=0)]))
