@@ -92,15 +92,23 @@ def _check_backoff(rig, t_from: float, t_to: float) -> tuple[float, list[tuple[f
 
 
 def test_stop_mid_press_backs_off_within_10_ms(rig, drum):
+    """A STOP while the force loop creeps towards the sensor or rests (a new setpoint 50 g up: at most a slow step
+    pending in the old direction, the case the retimed step timer is for). Settled at the old setpoint, the loop
+    crept either way, and a loaded CI run's STOP met a step away the loop made on its own 0.3 ms before the firmware
+    could act, which the from-rest timing of the back-off (``_check_backoff``) read as a back-off begun too early."""
     _press_and_settle(rig, drum)
     rig.log_requests(True)
     time.sleep(0.3)
+    drum.write_holding(HR.FORCE_SETPOINT_G, 1050)
+    _wait_sim(rig, rig.next_telemetry().t_s + 0.05)
     rig.request_times.clear()
     rig.actuator_steps.clear()
     drum.stop()  # one request: its arrival is the first RX after the clear
     _wait_sim(rig, rig.next_telemetry().t_s + 0.05)
     t_req = rig.request_times[0]
     t_acted, steps = _check_backoff(rig, t_req + FRAME_S, t_req + FRAME_S + 2 * TICK_S)
+    before = [(round(1e3 * (t - t_req), 3), d) for t, d in steps if t < t_req + FRAME_S]
+    assert all(d == 1 for _, d in before), ("the loop stepped away before the STOP", before)  # creeping in, or at rest
     print(f"STOP: the back-off began {1e3 * (t_acted - t_req):.3f} ms after the request's arrival; steps (ms, 1 = "
           f"towards the sensor): {[(round(1e3 * (t - t_req), 3), d) for t, d in steps[:6]]}")
 
