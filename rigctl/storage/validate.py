@@ -564,7 +564,6 @@ def _block_sums(blk: _Block, adc_max: int) -> _Sums:
     from rigctl.storage.trial_facts import sha256
 
     gaps = block_seq_gaps(blk.seq, blk.pos)
-    in_range = bool(blk.tax.size == 0 or int(blk.tax.max()) <= adc_max)  # uint16: never below 0
     digests: list[bytes | None] = []
     extremes: list[np.ndarray | None] = []
     for sealed in (e[4] for e in blk.entries if e[2] is None):
@@ -573,6 +572,8 @@ def _block_sums(blk: _Block, adc_max: int) -> _Sums:
         readable = b > a and i not in blk.failed
         digests.append(sha256(blk.tax[a:b]) if sealed is not None and readable else None)
         extremes.append(np.stack(column_extremes(blk.tax[a:b])).astype(blk.tax.dtype) if readable else None)
+    # every count read is inside the range (uint16: never below 0), from the trials' maxima: no pass of its own
+    in_range = all(int(x[1].max()) <= adc_max for x in extremes if x is not None)
     return gaps, in_range, digests, extremes
 
 
