@@ -85,7 +85,9 @@ class SimulatedRig:
         Boot time of the virtual Uno after a client opens its port (simulated s).
     paced : bool
         Run the boards no faster than the wall clock (True: a person watching, live views, LSL) or as fast as the
-        CPU and the host allow (False). Either way the host and the boards share :attr:`clock`.
+        CPU and the host allow (False). Either way the host and the boards share :attr:`clock`. Paced with a
+        ``source``, the world catches up the wall time a starved host lost (a live source's samples come on the wall
+        clock: :class:`rigctl.simulation.world_loop.WorldLoop`'s ``keep_wall``).
 
     Attributes
     ----------
@@ -134,7 +136,8 @@ class SimulatedRig:
         self.clock = SharedClock(self.model_time_s, on_grant=self._granted, world_notifies=True)
         self._loop = WorldLoop(self.clock, self._now_ms, self._step, paced=self.paced, tick_s=self.tick_s,
                                idle=self._idle, idle_tick_s=max(self.tick_s, IDLE_TICK_S), wake_fd=self._wake_r,
-                               board_busy=self._board_busy, horizon=self._horizon_s)
+                               board_busy=self._board_busy, horizon=self._horizon_s,
+                               keep_wall=self.source is not None)  # a source's samples come on the wall clock
         self.mega.use_clock(self.model_time_s)
         self.mega.host_clock = self.clock  # the host's writes to the drum port are stamped on it (on their way)
         self.clock.in_flight = self._in_flight  # and its answer waits go on while one is
@@ -244,8 +247,9 @@ class SimulatedRig:
         timeout out in the 0.5 s of wall time a starved server thread took, and a rig did not open: "no answer from
         the drum controller"), and while the host's taxel reader is more than :data:`READER_LEAD_S` of frames behind
         the stream (a starved reader is a starved host). Paced, those are judged by the watchdog, not waited for: a
-        held paced world lags a live sample source for good, and a reply handed on in two chunks after the host's
-        last find held a paced world whose face of another process polled every 50 ms nearly for good (a CI run)."""
+        paced world held back lags a live sample source until it catches up (WorldLoop's ``keep_wall``), and a reply
+        handed on in two chunks after the host's last find held a paced world whose face of another process polled
+        every 50 ms nearly for good (a CI run)."""
         mega = self.mega
         if mega.at_request():
             return True

@@ -7,6 +7,12 @@ paced_loop` does, but a world the host held back (a starved host) does not catch
 (the host would see a second of simulated time go by in a few ms of its own): the pacing starts again from where the
 world was let go. Unpaced, the world runs as fast as the CPU and the host's grants allow, in steps of at most
 ``tick_s`` of simulated time (the host's reads interleave with the stream as on a wire).
+
+A paced world that streams a live sample source (``keep_wall``: a plugin's serial board, an LSL stream) keeps the wall
+clock's time in the long run instead: the source's samples come on the wall clock, and a world that did not catch up
+the time its host lost asked for them ever later (the my-hardware guide's board, beside two CPU hogs: its reader's 10 s
+buffer ran full and dropped samples without a gap). It catches up in steps of at most :data:`CATCH_UP_STEP_MS`, as
+fast as the host's grants allow (a host that still gets no CPU still holds it).
 """
 
 from __future__ import annotations
@@ -39,6 +45,9 @@ BUSY_WAIT_MAX_S = 0.005
 #: was, the world moved on under the waiting host, and its answer timeout (judged on the shared clock) ran out three
 #: times: a DrumTimeout of a starved board, not of a silent one (test_drum_conformance[sim])
 BUSY_MAX_S = 10.0
+#: the longest step of a world catching up the wall clock (``keep_wall``), ms: the host's reads interleave with the
+#: burst as on a wire
+CATCH_UP_STEP_MS = 20
 
 
 class WorldLoop:
@@ -60,13 +69,16 @@ class WorldLoop:
         not a late one.
     horizon : how far the world may run, s (default the clock's :attr:`SharedClock.horizon_s`; a rig whose host
         may be another process: the lower of that and the other process's grant, :mod:`rigctl.core.port_clock`).
+    keep_wall : paced, catch up the wall time the host or the world itself lost (module doc: a live sample source).
     """
 
     def __init__(self, clock: SharedClock, now_ms: Callable[[], int], step: Callable[[int], object], *,
                  paced: bool = True, tick_s: float = 0.005, idle: Callable[[], bool] | None = None,
                  idle_tick_s: float | None = None, wake_fd: int | None = None,
-                 board_busy: Callable[[], bool] | None = None, horizon: Callable[[], float] | None = None) -> None:
+                 board_busy: Callable[[], bool] | None = None, horizon: Callable[[], float] | None = None,
+                 keep_wall: bool = False) -> None:
         self.clock = clock
+        self.keep_wall = bool(keep_wall) and paced
         self._horizon_s = horizon if horizon is not None else (lambda: clock.horizon_s)
         self.now_ms = now_ms
         self.step = step
@@ -114,10 +126,12 @@ class WorldLoop:
                 busy_since, busy_waits = None, 0
             if self.paced:
                 due = sim0 + int((monotonic() - wall0) * 1000.0)
-                target = min(due, limit)
             else:
                 due = done + self.tick_ms
-                target = min(due, limit)
+            target = min(due, limit)
+            held = limit < due  # the host's grant (or a board at a request) holds the world short of its due time
+            if self.keep_wall and target - done > CATCH_UP_STEP_MS:  # catching up the wall: a step at a time
+                target, held = done + CATCH_UP_STEP_MS, False
             n = target - done
             if n > 0:
                 try:
@@ -129,7 +143,7 @@ class WorldLoop:
                 woken = False
                 if self.idle is not None:
                     ahead = self.idle_tick_ms if self.idle() else self.tick_ms
-            if target < due:  # held back by the host: wait for its grant
+            if held:  # held back by the host: wait for its grant
                 self.held = True
                 t0 = monotonic()
                 if busy_since is not None:
@@ -139,13 +153,13 @@ class WorldLoop:
                     self._wait(HELD_WAIT_S)
                 self.held = False
                 self.held_s += monotonic() - t0
-                if self.paced:  # the pacing starts again from here: no burst for the time the host lost
-                    wall0, sim0 = monotonic(), done
+                if self.paced and not self.keep_wall:  # the pacing starts again from here: no burst for the time
+                    wall0, sim0 = monotonic(), done  # the host lost
                 continue
             if not self.paced:
                 continue
             behind_s = (due - done) / 1000.0
-            if behind_s > MAX_CATCH_UP_S:  # the world itself starved: no burst either
+            if behind_s > MAX_CATCH_UP_S and not self.keep_wall:  # the world itself starved: no burst either
                 wall0, sim0 = monotonic(), done
             wait = wall0 + (done - sim0 + (1 if woken else ahead)) / 1000.0 - monotonic()
             if self._wait(wait):

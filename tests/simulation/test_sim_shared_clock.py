@@ -69,6 +69,42 @@ def test_the_world_runs_a_bounded_lead_past_the_hosts_last_sign_of_life_and_wait
         assert t0 + 1.0 <= w.t <= t0 + 1.0 + LEAD_S + 0.0015
 
 
+@pytest.mark.parametrize("keep_wall", [True, False], ids=["streaming a source", "no source"])
+def test_a_paced_world_streaming_a_source_catches_up_the_time_its_host_lost(keep_wall):
+    """Paced, a world held back by a silent host starts its pacing again from where it was let go, unless it streams
+    a sample source (``keep_wall``): a live source's samples come on the wall clock, and a world that kept the lost
+    time asked for them ever later (the my-hardware guide's CSV board, beside two CPU hogs, ran its 10 s buffer
+    full). Caught up, it runs no faster than the wall clock again."""
+    from rigctl.simulation.world_loop import WorldLoop
+
+    t_ms = [0]
+    clock = SharedClock(lambda: t_ms[0] / 1000.0, heartbeat_s=None, world_notifies=True)
+    loop = WorldLoop(clock, lambda: t_ms[0], lambda n: t_ms.__setitem__(0, t_ms[0] + n), paced=True,
+                     tick_s=0.005, keep_wall=keep_wall)
+    stop = threading.Event()
+    th = threading.Thread(target=loop.run, args=(stop,), daemon=True)
+    wall0 = time.monotonic()
+    th.start()
+    try:
+        time.sleep(0.6)  # the host gives no sign of life: the world stands at its first lead
+        assert t_ms[0] <= LEAD_S * 1000 + 1
+        deadline = time.monotonic() + 5.0  # (a hang, not a judgement of speed)
+        while True:  # the host lives again: it waits on the clock (a reader waiting for frames, a run's pause)
+            clock.sleep(0.01)
+            lag_s = time.monotonic() - wall0 - t_ms[0] / 1000.0
+            if lag_s < 0.1 or time.monotonic() > deadline:
+                break
+        if keep_wall:
+            assert lag_s < 0.1, lag_s  # caught up the 0.55 s it stood
+            wall_s, world_s = time.monotonic() - wall0, t_ms[0] / 1000.0
+            assert world_s <= wall_s + 0.001  # and no further than the wall
+        else:
+            assert lag_s >= 0.5, lag_s  # the pacing began again where the host let it go
+    finally:
+        stop.set()
+        th.join()
+
+
 def test_a_waiter_whose_time_has_come_holds_the_world_whoever_else_lives():
     w = _World()
     stop = threading.Event()

@@ -25,7 +25,8 @@ from rigctl.core.sensor import SensorLayout
 
 __all__ = ["CsvBoard", "open_board", "parse_line"]
 
-#: how many samples the serial reader keeps while rigctl has not taken them, s of samples
+#: how many samples the serial reader keeps while rigctl has not taken them, s of samples (more: the oldest go, and
+#: rigctl is told: a gap of dropped frames)
 BUFFER_S = 10.0
 #: how long opening the port waits for the board's first sample, s
 FIRST_SAMPLE_S = 5.0
@@ -51,7 +52,9 @@ class CsvBoard:
     From a serial port a reader thread keeps the samples as they come (opening waits for the first); ``read(n)``
     hands on the oldest, at most ``n``, each once: fewer when the board is late (rigctl stores the periods without a
     sample as dropped frames; a repeated sample would be stored as a reading the board never sent). The first ones
-    wait until :data:`LATENCY_S` of them are there. From a file ``read(n)`` reads the next ``n`` lines, from the start
+    wait until :data:`LATENCY_S` of them are there. When rigctl falls more than :data:`BUFFER_S` behind the board,
+    the oldest samples go, and the next reads hand on none for at least as many periods: a gap where they were lost,
+    never a silent jump in the counts. From a file ``read(n)`` reads the next ``n`` lines, from the start
     again at the end.
     """
 
@@ -61,6 +64,8 @@ class CsvBoard:
         self._primed = False
         self._buffer: collections.deque[list[int]] = collections.deque(
             maxlen=int(BUFFER_S * layout.sample_rate_hz))
+        self._lost = 0  # samples the full buffer let go that rigctl has not yet been told of
+        self._lock = threading.Lock()
         self._stop = threading.Event()
         self._serial = None
         self._thread: threading.Thread | None = None
@@ -99,7 +104,10 @@ class CsvBoard:
             for line in lines:
                 row = parse_line(line.decode("ascii", "replace"), self.layout.n_channels)
                 if row is not None:
-                    self._buffer.append(row)
+                    with self._lock:
+                        if len(self._buffer) == self._buffer.maxlen:  # full: the oldest goes, told at the next read
+                            self._lost += 1
+                        self._buffer.append(row)
 
     def read(self, n: int) -> npt.NDArray[np.uint16]:
         """At most the next ``n`` samples, ``(m, channels)`` uint16, ``m <= n`` (fewer: the board is late)."""
@@ -110,8 +118,12 @@ class CsvBoard:
                 self._next = (self._next + 1) % len(self._lines)
         elif self._primed or len(self._buffer) >= LATENCY_S * self.layout.sample_rate_hz:
             self._primed = True
-            while self._buffer and len(out) < n:
-                out.append(self._buffer.popleft())
+            with self._lock:
+                if self._lost:  # no sample for these periods: a gap before the samples after the loss
+                    self._lost = max(0, self._lost - n)
+                else:
+                    while self._buffer and len(out) < n:
+                        out.append(self._buffer.popleft())
         top = self.layout.adc_max
         rows = np.asarray(out, dtype=np.int64).reshape(len(out), self.layout.n_channels)
         return np.clip(rows, 0, top).astype(np.uint16)
