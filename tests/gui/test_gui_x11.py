@@ -111,9 +111,11 @@ def test_a_stalled_taxel_stream_is_shown_everywhere_and_moves_nothing(measured):
     assert r["log_s"] is not None and r["log_s"] <= 2.0 and "stalled" in r["log_line"], r
     assert "STALLED" in r["status_text"], r
     assert r["n_widgets"] > 5 and r["moved"] == {}, r["moved"]
-    assert r["resumed"] and r["gaps"], r
+    assert r["stall_wall_s"] is not None and r["resumed"] and r["gaps"], r
     (where, length), *_ = r["gaps"]
-    assert r["stall_s"] - 1.0 <= length <= r["stall_s"] + 2.0, r["gaps"]  # the outage, as seen by the host
+    # the outage, as seen by the host on the wall clock: the stall's STALL_S of the rig's time, which a world its
+    # host held back (a starved GUI process) spent more wall time on (loaded CI runs: 6.4-8.2 s for 3 s)
+    assert r["stall_s"] - 1.0 <= length <= r["stall_wall_s"] + 2.0, (r["gaps"], r["stall_wall_s"])
     # nothing is drawn across the outage: each trace plot breaks its lines at the gap, or (the outage takes its real
     # width on the time axis, issue 38, and the stall is wider than the 2 s window) starts after it
     assert all(n >= 2 or first >= where - 1e-6 for n, first in zip(r["segments"], r["first_t"])), r

@@ -30,6 +30,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 PROTOCOL = """
@@ -210,7 +211,17 @@ def main(out_path: str, fit_only: bool = False) -> int:
            "stall_s": STALL_S}
     n_log = len(w.events.entries)
     t0, wall0 = time.monotonic(), time.time()
+    sim_end = sim.clock.now() + STALL_S
     sim.uno.stall(STALL_S)
+    stall_end: list[float] = []  # the wall time at which the rig's clock passed the stall's end
+
+    def watch_stall_end():  # (the stall lasts STALL_S of the rig's time: longer on the wall if the world was held)
+        while sim.clock.now() < sim_end and time.monotonic() < t0 + 120.0:
+            time.sleep(0.01)
+        stall_end.append(time.monotonic())
+
+    watcher = threading.Thread(target=watch_stall_end, daemon=True)
+    watcher.start()
     res["banner_shown"] = wait(lambda: banner.isVisible() and "stalled" in banner.text, STALL_S)
     res["banner_s"] = time.monotonic() - t0
     res["log_s"] = None
@@ -236,6 +247,8 @@ def main(out_path: str, fit_only: bool = False) -> int:
         shown["first_t"] = [float(it.t[0]) if len(it.t) else 0.0 for it in w.live.trace_items]  # oldest, s before now
         return w.live.shown_gaps[0][0] <= -0.2
 
+    wait(lambda: bool(stall_end), 125.0)  # (the GUI's events go on meanwhile)
+    res["stall_wall_s"] = stall_end[0] - t0 if stall_end else None
     res["resumed"] = wait(drawn_after_gap, 20)
     res.update({"gaps": [], "segments": [], "first_t": []}, **shown)
     out["stall"] = res
