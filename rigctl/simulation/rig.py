@@ -42,7 +42,7 @@ from rigctl.simulation.pty import PortDir
 from rigctl.simulation.source_pacer import SourcePacer, source_layout
 from rigctl.simulation.truth import TruthLog
 from rigctl.simulation.virtual_mega import VirtualMega
-from rigctl.simulation.virtual_uno import READER_LEAD_S, VirtualUno
+from rigctl.simulation.virtual_uno import READER_LEAD_PACED_S, READER_LEAD_S, VirtualUno
 from rigctl.simulation.world_loop import WorldLoop
 
 log = logging.getLogger(__name__)
@@ -246,19 +246,21 @@ class SimulatedRig:
         is in the kernel's hands (``request_on_its_way``, ``reply_on_its_way``: an unpaced world ran the 2 s answer
         timeout out in the 0.5 s of wall time a starved server thread took, and a rig did not open: "no answer from
         the drum controller"), and while the host's taxel reader is more than :data:`READER_LEAD_S` of frames behind
-        the stream (a starved reader is a starved host). Paced, those are judged by the watchdog, not waited for: a
-        paced world held back lags a live sample source until it catches up (WorldLoop's ``keep_wall``), and a reply
-        handed on in two chunks after the host's last find held a paced world whose face of another process polled
-        every 50 ms nearly for good (a CI run)."""
+        the stream (a starved reader is a starved host); paced, while it is more than :data:`READER_LEAD_PACED_S`
+        behind (a reader starved while the heartbeat of its process ran the world on: the board's output queue ran
+        over). Paced, bytes in the kernel's hands are judged by the watchdog, not waited for: a reply handed on in two
+        chunks after the host's last find held a paced world whose face of another process polled every 50 ms nearly
+        for good (a CI run)."""
         mega = self.mega
         if mega.at_request():
             return True
+        uno = self.uno
+        lead_s = READER_LEAD_PACED_S if self.paced else READER_LEAD_S
+        if uno.streaming and uno.frames_unread() > lead_s * self.layout.sample_rate_hz:
+            return True
         if self.paced:
             return False
-        if mega.request_on_its_way() or mega.reply_on_its_way():
-            return True
-        uno = self.uno
-        return uno.streaming and uno.frames_unread() > READER_LEAD_S * self.layout.sample_rate_hz
+        return mega.request_on_its_way() or mega.reply_on_its_way()
 
     def _idle(self) -> bool:
         """Nothing to send at the next tick: the Uno does not stream."""

@@ -35,8 +35,15 @@ log = logging.getLogger(__name__)
 #: 1 kHz holds about this much in its USB-serial chip and the host's tty buffer (an FTDI bridge's 16 ms latency
 #: timer); further, the world waits for the reader, a part of the host (unpaced, an `acquire --replay` whose reader
 #: fell 3.3 s behind started a trial 3,336 samples late, and a trial's frames came in seconds after the drum angle
-#: predicted their index). Paced, the world keeps to the wall clock instead (a held paced world lags a live source)
+#: predicted their index). Paced, the world keeps to the wall clock up to :data:`READER_LEAD_PACED_S`
 READER_LEAD_S = 0.05
+#: how far a paced world may run ahead of its host's taxel reader, s of frames written and not read: a reader that
+#: gets no CPU while its process's heartbeat still grants the world the wall's time (one thread of a host starved,
+#: another not) would otherwise see the board's output queue run over and lose bytes in the middle of a frame (beside
+#: two CPU hogs the README's quick check recorded a CRC error); a reader never falls this far behind on a machine that
+#: lets it run, and a world held so catches up a live source once it reads again (WorldLoop's ``keep_wall``). At most
+#: the world loop's BUSY_MAX_S of wall time: a reader gone for good (a face killed) lets the world run on
+READER_LEAD_PACED_S = 1.0
 
 
 def board_info(layout: SensorLayout = PAPER_SENSOR) -> str:
