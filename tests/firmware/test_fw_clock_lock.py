@@ -69,8 +69,10 @@ def test_a_host_write_the_kernel_still_holds_keeps_the_boards_standing(fw_build,
             raw.write(stop)
             raw.flush()
             t0 = time.monotonic()
+            # the kernel's hop: up to 4.1-5.0 s measured beside two CPU hogs (5 s here failed a loaded CI run); the
+            # second write's hold ends on its own KERNEL_HOP_MAX_S after its stamp, so the check below needs 2 s of it
             while rig.clock_file.bytes_read(board) < read0 + len(stop):
-                assert time.monotonic() - t0 < KERNEL_HOP_MAX_S / 2, "the first write's bytes never reached the harness"
+                assert time.monotonic() - t0 < KERNEL_HOP_MAX_S - 2.0, "the first write's bytes never reached the harness"
                 time.sleep(0.01)
             held = _world_over(rig, 0.6)
             assert held < 0.02, f"the {board} ran {held * 1e3:.0f} ms while the second write was on its way"
