@@ -31,6 +31,8 @@ if importlib.util.find_spec("fastapi") is None:  # (not imported here: the colle
 TOKEN = "test-token-0123456789"
 RIGCTL: list[str] = []  # this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+#: how long a request may take before the test calls it hung, s (httpx's default 5 s is no bound on a loaded machine)
+HTTP_S = 60.0
 
 
 def api(q, token=TOKEN, **kw):
@@ -226,8 +228,8 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
         # the event feed: progress as it happens, subscribed before the run is queued (the feed sends what comes
         # after it subscribes: a run posted first can emit its first events before the feed is there)
         with httpx.stream("GET", f"{url}/events", timeout=60, headers=AUTH) as feed:
-            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=4), "out": "s.h5"}, headers=AUTH
-                             ).json()["id"]
+            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=4), "out": "s.h5"}, headers=AUTH,
+                             timeout=HTTP_S).json()["id"]
             events = []
             for line in feed.iter_lines():
                 if line.startswith("data: "):
@@ -235,7 +237,7 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
                     if events[-1]["type"] == "trial" and events[-1]["kind"] == "complete":
                         break
         assert any(e["type"] == "progress" and e["id"] == rid for e in events)
-        _wait(lambda: httpx.get(f"{url}/runs/{rid}", headers=AUTH).json()["trials_done"] >= 2, every_s=0.01)
+        _wait(lambda: httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()["trials_done"] >= 2, every_s=0.01)
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     finally:
@@ -254,10 +256,10 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
     try:
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
         # a restart is no start: the cut run waits, the queue held, until the operator releases it
-        status = httpx.get(f"{url}/status", headers=AUTH).json()
-        assert status["held"] is True and httpx.get(f"{url}/runs/{rid}", headers=AUTH).json()["state"] == "queued"
-        assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH).status_code == 200
-        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH).json())["state"] in
+        status = httpx.get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()
+        assert status["held"] is True and httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()["state"] == "queued"
+        assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S).status_code == 200
+        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())["state"] in
                     ("done", "failed", "stopped") and r, timeout_s=240, every_s=0.2)
         curl = _curl_examples(tmp_path, url)
         assert json.loads(curl["status"])["rig"]["mode"] and json.loads(curl["runs"])["state"] == "queued"

@@ -27,6 +27,9 @@ if importlib.util.find_spec("fastapi") is None:
 
 TOKEN = "test-token-0123456789-ack"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+#: how long a request to the server may take before the test calls it hung, s (not a judgement of speed: httpx's
+#: default 5 s timed out a POST /ack, which clears the latch over Modbus, beside two CPU hogs)
+HTTP_S = 60.0
 PROTOCOL = ('name = "serve_ack"\ntextures = ["A"]\nspeeds_mm_s = [80]\nforces_g = [250]\n'
             'trials_per_condition = 3\nduration_s = 3\n[settle]\nsettle_time_ms = 50\n')
 
@@ -95,13 +98,13 @@ def test_a_restarted_server_holds_the_latch_and_only_ack_then_release_moves(tmp_
         proc = _serve(tmp_path, sim, port)
         try:
             _wait(lambda: _up(url), "the server", 180, 0.2)
-            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL, "out": "s.h5"}, headers=AUTH).json()["id"]
+            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL, "out": "s.h5"}, headers=AUTH, timeout=HTTP_S).json()["id"]
             _wait(lambda: model.drum_speed_mm_s > 50, "the drum turning", 180)
             mega.set_estop(True)  # mid-trial
-            run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH).json())["state"] == "paused"
+            run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())["state"] == "paused"
                         and r, "the run paused on the latch")
             assert run["cause"].startswith("latched: e-stop") and run["latch"]["cause"] == "estop", run
-            r = httpx.post(f"{url}/runs/{rid}/resume", json={}, headers=AUTH)
+            r = httpx.post(f"{url}/runs/{rid}/resume", json={}, headers=AUTH, timeout=HTTP_S)
             assert r.status_code == 409 and "e-stop" in r.json()["detail"], r.text
             proc.send_signal(signal.SIGTERM)
             proc.wait(120)
@@ -117,21 +120,21 @@ def test_a_restarted_server_holds_the_latch_and_only_ack_then_release_moves(tmp_
             _wait(lambda: _up(url), "the restarted server", 180, 0.2)
             d_act, d_force, speed = _still(model, 10.0)
             assert (d_act, speed) == (0.0, 0.0) and d_force < 5.0, (d_act, d_force, speed)
-            status = httpx.get(f"{url}/status", headers=AUTH).json()
+            status = httpx.get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()
             assert status["held"] is True and status["rig"]["latch"]["cause"] == "estop", status
-            run = httpx.get(f"{url}/runs/{rid}", headers=AUTH).json()
+            run = httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()
             assert run["state"] == "queued" and "POST /ack" in run["cause"], run
-            r = httpx.post(f"{url}/queue/release", json={}, headers=AUTH)
+            r = httpx.post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S)
             assert r.status_code == 409 and "e-stop" in r.json()["detail"], r.text
             r = httpx.post(f"{url}/ack", json={"reason": "e-stop released, bench checked", "by": "ana"},
-                           headers=AUTH)
+                           headers=AUTH, timeout=HTTP_S)
             assert r.status_code == 200 and "/queue/release" in r.json()["start"], r.text
             d_act, d_force, speed = _still(model, 10.0)
             assert (d_act, speed) == (0.0, 0.0) and d_force < 5.0, (d_act, d_force, speed)
-            assert httpx.get(f"{url}/status", headers=AUTH).json()["rig"]["latch"] is None
-            assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH).status_code == 200  # the start
+            assert httpx.get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()["rig"]["latch"] is None
+            assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S).status_code == 200  # the start
             _wait(lambda: abs(model.actuator_mm) > 0.5 or model.drum_speed_mm_s > 1.0, "the start's motion", 60)
-            run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH).json())["state"]
+            run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())["state"]
                         in ("done", "failed", "stopped") and r, "the run's end", 300)
             assert run["state"] == "done" and run["trials_done"] == 3, run
         finally:
