@@ -392,7 +392,10 @@ def test_both_boards_pulled_and_plugged_back_in_turn(window, qapp, qtbot, monkey
         assert wait_for(qapp, lambda: "NO RESPONSE" in window.links.drum.text(), 10), window.links.drum.text()
         assert wait_for(qapp, lambda: drum_banner.isVisible(), 2)
         assert "Drum controller (Mega) not responding" in drum_banner.text, drum_banner.text
-        assert "drum controller not responding" in window.source_label.text(), window.source_label.text()
+        # (the taxel board may be named beside it: a GUI process starved on a loaded machine sees its stream stall
+        # too, rightly, "drum controller and taxel board not responding")
+        source = window.source_label.text()
+        assert "connected, drum controller" in source and "not responding" in source, source
         assert wait_for(qapp, lambda: "STALE" in window.control.force_plot.titleLabel.text, 2), \
             window.control.force_plot.titleLabel.text
         # a STOP that cannot reach the controller says so in the window, on any tab
