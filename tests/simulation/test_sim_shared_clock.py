@@ -196,6 +196,15 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
     world runs on meanwhile (a held world would lag a live sample source for good). A face of this process stamps on
     the rig's shared clock; a face of another process (``rigctl sim`` driven by `rigctl acquire --drum-port`: a CI run
     latched WATCHDOG there) on the clock file beside the ports (its clock here, as that process would attach it)."""
+    for _ in range(3):  # (this thread got no CPU for 200 ms of wall between its last read and the stamp while
+        # the heartbeat ran the world on: the watchdog then latched before the case began; a loaded CI run)
+        if _on_its_way_to_the_watchdog(face):
+            return
+    pytest.fail("three times the watchdog latched before the write was stamped")
+
+
+def _on_its_way_to_the_watchdog(face: str) -> bool:
+    """The case of the test above on a rig of its own; False if the watchdog latched before it began."""
     with SimulatedRig() as sim:
         clock = sim.clock if face == "this process" else attach_port_clock(sim.drum_port)
         c = DrumClient(sim.drum_port, clock=clock, timeout_s=2.0).open()
@@ -210,6 +219,8 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
                 return clock.now() - t0
 
             clock.note_write(sim.drum_port, 8)  # a write the kernel holds: stamped, its bytes not yet taken
+            if sim.mega.faults & Fault.WATCHDOG:  # latched before the stamp: not the case this test is about
+                return False
             assert sim.mega.request_on_its_way() and not sim.mega.at_request()
             assert silent_for(0.6) > 0.3  # the world ran on past WATCHDOG_MS
             st = c.read_status()  # the request is taken (and so everything before it)
@@ -226,6 +237,7 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
             c.close()
             if clock is not sim.clock:
                 release_port_clock(clock)
+    return True
 
 
 @pytest.mark.slow
