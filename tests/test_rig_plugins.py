@@ -26,6 +26,8 @@ from rigctl.cli import main
 from rigctl.core.rig_plugins import BUILTIN_RIGS
 from rigctl.storage.session import open_session
 
+from . import loopback
+
 TOKEN = "plugin-test-token-0123456789"
 RIGCTL: list[str] = []  # this worker's preloaded rigctl (tests/conftest.py _preloaded_rigctl)
 
@@ -255,18 +257,18 @@ def test_quick_check_through_rigctl_serve(csvboard_plugin, tmp_path):
         while True:
             assert proc.poll() is None, proc.communicate()[1]
             try:
-                status = httpx.get(f"{url}/status", headers=auth, timeout=2)
+                status = loopback.client().get(f"{url}/status", headers=auth, timeout=2)
                 break
             except httpx.HTTPError:
                 assert time.monotonic() < deadline, "rigctl serve did not answer"
                 time.sleep(0.2)
         # HANG_S only bounds a hang: a server recording on a loaded machine may take seconds to answer
-        assert status.status_code == 200 and httpx.get(f"{url}/status", timeout=HANG_S).status_code == 401
-        run = httpx.post(f"{url}/runs", json={"protocol": "quick_check", "out": "s.h5"}, headers=auth,
+        assert status.status_code == 200 and loopback.client().get(f"{url}/status", timeout=HANG_S).status_code == 401
+        run = loopback.client().post(f"{url}/runs", json={"protocol": "quick_check", "out": "s.h5"}, headers=auth,
                          timeout=HANG_S)
         assert run.status_code == 201, run.text
         rid = run.json()["id"]
-        while (state := httpx.get(f"{url}/runs/{rid}", headers=auth, timeout=HANG_S).json()["state"]) in (
+        while (state := loopback.client().get(f"{url}/runs/{rid}", headers=auth, timeout=HANG_S).json()["state"]) in (
                 "queued", "running"):
             assert time.monotonic() < deadline + 120, state
             time.sleep(0.2)

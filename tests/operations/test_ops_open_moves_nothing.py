@@ -17,6 +17,7 @@ import pytest
 
 from rigctl.core.drum import DrumState
 
+from .. import loopback
 from ..simulation.sim_process import HANG_S, SimProcess
 
 # wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware) and
@@ -62,8 +63,7 @@ def _serve_opens(env: dict[str, str], hardware: list[str], folder) -> None:
         while proc.poll() is None:
             try:
                 auth = {"Authorization": f"Bearer {env['RIGCTL_SERVE_TOKEN']}"}
-                r = httpx.get(f"http://127.0.0.1:{port}/status", headers=auth,
-                              timeout=5)
+                r = loopback.client().get(f"http://127.0.0.1:{port}/status", headers=auth, timeout=5)
                 if r.status_code == 200:
                     assert "NOT_HOMED" in r.text or "not homed" in r.text.lower(), r.text
                     break

@@ -35,6 +35,7 @@ import pytest
 from hypothesis import HealthCheck, Phase, settings, strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, precondition, rule, run_state_machine_as_test
 
+from .. import loopback
 from ..simulation.sim_process import HANG_S, SimProcess
 
 # wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware) and
@@ -128,8 +129,8 @@ class Face:
         if method == "POST" and "json" not in kw:
             kw["json"] = {}  # the server takes state-changing requests as JSON only
         try:
-            return httpx.request(method, f"{self.url}{path}", headers={"Authorization": f"Bearer {TOKEN}"},
-                                 timeout=60.0, **kw)
+            return loopback.client().request(method, f"{self.url}{path}",
+                                             headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60.0, **kw)
         except httpx.HTTPError:
             if self.alive():
                 raise

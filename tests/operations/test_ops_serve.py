@@ -23,6 +23,7 @@ from click.testing import CliRunner
 from rigctl.cli import main
 from rigctl.operations import RigSource, RunQueue, open_control
 
+from .. import loopback
 from ..conftest import wait_for as _wait, wait_unlocked
 
 if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
@@ -216,8 +217,6 @@ def _trials(path):
 # wall: Ctrl-C with an open event feed says 'stopped' within 2 s of wall time
 @pytest.mark.realtime
 def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_trial(tmp_path):
-    import httpx
-
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     # the server killed below: this worker's preloaded rigctl (a process of its own, killed with its client; not a
@@ -227,9 +226,9 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
         # the event feed: progress as it happens, subscribed before the run is queued (the feed sends what comes
         # after it subscribes: a run posted first can emit its first events before the feed is there)
-        with httpx.stream("GET", f"{url}/events", timeout=60, headers=AUTH) as feed:
-            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL.format(n=4), "out": "s.h5"}, headers=AUTH,
-                             timeout=HTTP_S).json()["id"]
+        with loopback.client().stream("GET", f"{url}/events", timeout=60, headers=AUTH) as feed:
+            rid = loopback.client().post(f"{url}/runs", json={"toml": PROTOCOL.format(n=4), "out": "s.h5"},
+                                         headers=AUTH, timeout=HTTP_S).json()["id"]
             events = []
             for line in feed.iter_lines():
                 if line.startswith("data: "):
@@ -237,7 +236,8 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
                     if events[-1]["type"] == "trial" and events[-1]["kind"] == "complete":
                         break
         assert any(e["type"] == "progress" and e["id"] == rid for e in events)
-        _wait(lambda: httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()["trials_done"] >= 2, every_s=0.01)
+        _wait(lambda: loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()["trials_done"]
+              >= 2, every_s=0.01)
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     finally:
@@ -256,11 +256,12 @@ def test_killed_mid_run_and_restarted_resumes_without_losing_or_repeating_a_tria
     try:
         _wait(lambda: _get(f"{url}/status"), timeout_s=120, every_s=0.2)
         # a restart is no start: the cut run waits, the queue held, until the operator releases it
-        status = httpx.get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()
-        assert status["held"] is True and httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()["state"] == "queued"
-        assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S).status_code == 200
-        run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())["state"] in
-                    ("done", "failed", "stopped") and r, timeout_s=240, every_s=0.2)
+        status = loopback.client().get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()
+        assert status["held"] is True
+        assert loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()["state"] == "queued"
+        assert loopback.client().post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S).status_code == 200
+        run = _wait(lambda: (r := loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())
+                    ["state"] in ("done", "failed", "stopped") and r, timeout_s=240, every_s=0.2)
         curl = _curl_examples(tmp_path, url)
         assert json.loads(curl["status"])["rig"]["mode"] and json.loads(curl["runs"])["state"] == "queued"
         assert ": rigctl events" in curl["events"] and json.loads(curl["stop"])["held"] is True
@@ -286,12 +287,10 @@ def _ctrl_c_with_an_open_feed(proc, url):
     what it said)."""
     import threading
 
-    import httpx
-
     opened = threading.Event()
 
     def feed():
-        with httpx.stream("GET", f"{url}/events", timeout=30, headers=AUTH) as r:
+        with loopback.client().stream("GET", f"{url}/events", timeout=30, headers=AUTH) as r:
             for _ in r.iter_lines():
                 opened.set()
 
@@ -315,7 +314,7 @@ def _get(url):
     import httpx
 
     try:
-        return httpx.get(url, timeout=2, headers=AUTH).status_code == 200
+        return loopback.client().get(url, timeout=2, headers=AUTH).status_code == 200
     except httpx.HTTPError:
         return False
 

@@ -22,6 +22,8 @@ import time
 
 import pytest
 
+from .. import loopback
+
 if importlib.util.find_spec("fastapi") is None:
     pytest.skip("fastapi (the serve extra) is not installed", allow_module_level=True)
 
@@ -63,7 +65,7 @@ def _up(url):
     import httpx
 
     try:
-        return httpx.get(f"{url}/status", timeout=5, headers=AUTH).status_code == 200
+        return loopback.client().get(f"{url}/status", timeout=5, headers=AUTH).status_code == 200
     except httpx.HTTPError:
         return False
 
@@ -86,8 +88,6 @@ def _still(model, seconds: float) -> tuple[float, float, float]:
 #   outliving restarted `rigctl serve` processes
 @pytest.mark.realtime
 def test_a_restarted_server_holds_the_latch_and_only_ack_then_release_moves(tmp_path):
-    import httpx
-
     from rigctl.simulation.rig import SimulatedRig
     from rigctl.storage.session import open_session
 
@@ -98,13 +98,14 @@ def test_a_restarted_server_holds_the_latch_and_only_ack_then_release_moves(tmp_
         proc = _serve(tmp_path, sim, port)
         try:
             _wait(lambda: _up(url), "the server", 180, 0.2)
-            rid = httpx.post(f"{url}/runs", json={"toml": PROTOCOL, "out": "s.h5"}, headers=AUTH, timeout=HTTP_S).json()["id"]
+            rid = loopback.client().post(f"{url}/runs", json={"toml": PROTOCOL, "out": "s.h5"}, headers=AUTH,
+                                         timeout=HTTP_S).json()["id"]
             _wait(lambda: model.drum_speed_mm_s > 50, "the drum turning", 180)
             mega.set_estop(True)  # mid-trial
-            run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())["state"] == "paused"
-                        and r, "the run paused on the latch")
+            run = _wait(lambda: (r := loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())
+                        ["state"] == "paused" and r, "the run paused on the latch")
             assert run["cause"].startswith("latched: e-stop") and run["latch"]["cause"] == "estop", run
-            r = httpx.post(f"{url}/runs/{rid}/resume", json={}, headers=AUTH, timeout=HTTP_S)
+            r = loopback.client().post(f"{url}/runs/{rid}/resume", json={}, headers=AUTH, timeout=HTTP_S)
             assert r.status_code == 409 and "e-stop" in r.json()["detail"], r.text
             proc.send_signal(signal.SIGTERM)
             proc.wait(120)
@@ -120,22 +121,23 @@ def test_a_restarted_server_holds_the_latch_and_only_ack_then_release_moves(tmp_
             _wait(lambda: _up(url), "the restarted server", 180, 0.2)
             d_act, d_force, speed = _still(model, 10.0)
             assert (d_act, speed) == (0.0, 0.0) and d_force < 5.0, (d_act, d_force, speed)
-            status = httpx.get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()
+            status = loopback.client().get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()
             assert status["held"] is True and status["rig"]["latch"]["cause"] == "estop", status
-            run = httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()
+            run = loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json()
             assert run["state"] == "queued" and "POST /ack" in run["cause"], run
-            r = httpx.post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S)
+            r = loopback.client().post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S)
             assert r.status_code == 409 and "e-stop" in r.json()["detail"], r.text
-            r = httpx.post(f"{url}/ack", json={"reason": "e-stop released, bench checked", "by": "ana"},
-                           headers=AUTH, timeout=HTTP_S)
+            r = loopback.client().post(f"{url}/ack", json={"reason": "e-stop released, bench checked", "by": "ana"},
+                                       headers=AUTH, timeout=HTTP_S)
             assert r.status_code == 200 and "/queue/release" in r.json()["start"], r.text
             d_act, d_force, speed = _still(model, 10.0)
             assert (d_act, speed) == (0.0, 0.0) and d_force < 5.0, (d_act, d_force, speed)
-            assert httpx.get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()["rig"]["latch"] is None
-            assert httpx.post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S).status_code == 200  # the start
+            assert loopback.client().get(f"{url}/status", headers=AUTH, timeout=HTTP_S).json()["rig"]["latch"] is None
+            # the start
+            assert loopback.client().post(f"{url}/queue/release", json={}, headers=AUTH, timeout=HTTP_S).status_code == 200
             _wait(lambda: abs(model.actuator_mm) > 0.5 or model.drum_speed_mm_s > 1.0, "the start's motion", 60)
-            run = _wait(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())["state"]
-                        in ("done", "failed", "stopped") and r, "the run's end", 300)
+            run = _wait(lambda: (r := loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=HTTP_S).json())
+                        ["state"] in ("done", "failed", "stopped") and r, "the run's end", 300)
             assert run["state"] == "done" and run["trials_done"] == 3, run
         finally:
             if proc.poll() is None:

@@ -22,6 +22,7 @@ import pytest
 
 from rigctl.operations import QueueError, RigSource, RunQueue, _queue, open_control
 
+from .. import loopback
 from ..conftest import wait_for
 
 if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
@@ -132,7 +133,7 @@ def test_one_server_per_queue_file(rig, tmp_path):
 
         def up():
             try:
-                return httpx.get(f"{url}/status", headers=AUTH, timeout=5).status_code == 200
+                return loopback.client().get(f"{url}/status", headers=AUTH, timeout=5).status_code == 200
             except httpx.HTTPError:
                 return False
 

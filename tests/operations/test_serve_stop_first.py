@@ -22,6 +22,7 @@ import pytest
 
 from rigctl.operations import RigSource, RunQueue, open_control
 
+from .. import loopback
 from ..conftest import wait_for
 
 if importlib.util.find_spec("fastapi") is None:  # (not imported here: the collection of every test worker skips it)
@@ -50,7 +51,7 @@ def _status(url):
     import httpx
 
     try:
-        r = httpx.get(f"{url}/status", headers=AUTH, timeout=5)
+        r = loopback.client().get(f"{url}/status", headers=AUTH, timeout=5)
     except httpx.HTTPError:
         return None
     return r.json() if r.status_code == 200 else None
@@ -118,7 +119,7 @@ def test_stop_is_answered_within_half_a_second_beside_200_idle_event_streams(tmp
     feeds = None
     try:
         wait_for(lambda: _status(url), timeout_s=120, every_s=0.2)
-        r = httpx.post(f"{url}/runs", json={"toml": TURNING, "out": "s.h5"}, headers=AUTH, timeout=30)
+        r = loopback.client().post(f"{url}/runs", json={"toml": TURNING, "out": "s.h5"}, headers=AUTH, timeout=30)
         assert r.status_code == 201, r.text
         rid = r.json()["id"]
         # the drum turning under the run (the monitor's read of the simulated controller)
@@ -140,8 +141,8 @@ def test_stop_is_answered_within_half_a_second_beside_200_idle_event_streams(tmp
         # the queue held
         wait_for(lambda: abs((_status(url) or {}).get("rig", {}).get("drum", {}).get("speed_mm_s", 99)) < 1.0,
               timeout_s=10, every_s=0.05)
-        run = wait_for(lambda: (r := httpx.get(f"{url}/runs/{rid}", headers=AUTH, timeout=10).json())["state"]
-                    in ("stopped", "failed") and r, timeout_s=60)
+        run = wait_for(lambda: (r := loopback.client().get(f"{url}/runs/{rid}", headers=AUTH, timeout=10).json())
+                       ["state"] in ("stopped", "failed") and r, timeout_s=60)
         assert run["state"] == "stopped" and (_status(url) or {}).get("held") is True, run
         # and every stream delivered STOP
         assert feeds.ended.wait(30), sum(1 for e in feeds.events if e and e[-1]["type"] == "stop")

@@ -20,6 +20,7 @@ from rigctl.devices.drum import DrumClient
 from rigctl.devices.wire import DrumState, Fault
 from rigctl.simulation.sim_control import request
 
+from .. import loopback
 from .sim_process import HANG_S, SimProcess
 
 # wall: a `rigctl sim` of its own process (always paced to the wall clock: the rig other programs drive as hardware) and
@@ -164,7 +165,6 @@ def test_acquire_a_python_plan_and_serve_drive_a_running_sim_as_hardware(tmp_pat
     while the force loop held after the last trial, on a loaded machine) would refuse the next face's open (opening
     never acknowledges); it is cleared on the drum port between faces (a maintenance step, printed), since this test
     is of the faces driving the rig, not of that latch."""
-    import httpx
 
     from rigctl.storage.session import open_session
 
@@ -193,10 +193,12 @@ def test_acquire_a_python_plan_and_serve_drive_a_running_sim_as_hardware(tmp_pat
             url, auth = f"http://127.0.0.1:{port}", {"Authorization": f"Bearer {token}"}
             _until(lambda: serve.poll() is not None or _answers(f"{url}/status", auth), poll_s=0.3)
             assert serve.poll() is None, serve.communicate()[1]
-            run = httpx.post(f"{url}/runs", json={"toml": ONE_TRIAL, "out": "s.h5"}, headers=auth, timeout=HANG_S)
+            run = loopback.client().post(f"{url}/runs", json={"toml": ONE_TRIAL, "out": "s.h5"}, headers=auth,
+                                         timeout=HANG_S)
             assert run.status_code == 201, run.text
             rid = run.json()["id"]
-            state = _until(lambda: (s := httpx.get(f"{url}/runs/{rid}", headers=auth, timeout=HANG_S).json()["state"])
+            state = _until(lambda: (s := loopback.client().get(f"{url}/runs/{rid}", headers=auth,
+                                                              timeout=HANG_S).json()["state"])
                            not in ("queued", "running") and s)
             assert state == "done", state
             spans["serve"] = (w0, time.time())
@@ -233,6 +235,6 @@ def _answers(url: str, headers: dict) -> bool:
     import httpx
 
     try:
-        return httpx.get(url, headers=headers, timeout=5).status_code == 200
+        return loopback.client().get(url, headers=headers, timeout=5).status_code == 200
     except httpx.HTTPError:
         return False
