@@ -46,6 +46,7 @@ from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage import encoded as _encoded
 from rigctl.storage.outputs import OutputTarget, output_file
 from rigctl.storage.session import TrialStatus, open_session
+from rigctl.storage.validate import check_beside
 
 __all__ = ["NwbExportError", "NwbExportParams", "NwbSummary", "export_nwb", "read_nwb_summary",
            "default_spike_variants", "check_spike_variants", "estimate_nwb_bytes"]
@@ -295,35 +296,83 @@ def export_nwb(session_path: str | os.PathLike[str], out_path: str | os.PathLike
     chosen = check_spike_variants(params.encoded_path, params.variants) if params.encoded_path is not None else []
     out_path = Path(out_path)
     with open_session(session_path) as s:
-        timeline = _timeline(s, session_path, params.keep_nonfinite)
-        nwb = _new_nwbfile(s, out_path)
-        summary = NwbSummary(out_path, n_trials=len(timeline.ids), n_samples=int(sum(timeline.n)),
-                             n_channels=s.layout.n_channels, rate_hz=float(s.layout.sample_rate_hz))
-        with output_file(out_path, overwrite=params.overwrite, kind="nwb") as target:
-            _add_taxels(nwb, s, timeline, progress, target)
-            _add_traces(nwb, s, timeline, Stage(progress, "reading traces", len(timeline.ids)))
-            _add_trials_table(nwb, s, timeline)
-            _add_plan(nwb, s)
-            _add_provenance(nwb, session_path, params.encoded_path)
-            if params.encoded_path is not None:
-                _add_units(nwb, params.encoded_path, timeline.ids, timeline.starts, s.layout, chosen, summary,
-                           progress, target)
-            _write(nwb, target)
+        # a large session's trials are checked by the validator in a process of its own while this one exports the
+        # trials that pass its checks made without reading data (usable unless the data exclude some: then, and
+        # only then, the export is made again with the validator's trials before anything is renamed into place)
+        beside = check_beside(s, session_path)
+        try:
+            ids = None if beside is None else beside.guess
+            while True:
+                try:
+                    timeline = _timeline(s, session_path, params.keep_nonfinite, ids)
+                    return _export(s, session_path, out_path, params, chosen, timeline, progress, beside)
+                except _Guessed as exc:
+                    ids, beside = exc.ids, None
+                except Exception:
+                    if beside is None:
+                        raise
+                    beside.adopt(s)  # an error of the guessed trials (then export the usable ones), or the file's?
+                    usable = _usable(s, session_path, params.keep_nonfinite)
+                    if usable == ids:
+                        raise
+                    ids, beside = usable, None
+        finally:
+            if beside is not None:
+                beside.close()
+
+
+class _Guessed(Exception):
+    """The trials exported were not the validator's (:class:`rigctl.storage.validate.Beside`): ``ids`` are."""
+
+    def __init__(self, ids: list[int]) -> None:
+        super().__init__(ids)
+        self.ids = ids
+
+
+def _export(s: Any, session_path: Any, out_path: Path, params: NwbExportParams, chosen: list[str],
+            timeline: _Timeline, progress: ProgressCallback | None, beside: Any) -> NwbSummary:
+    """The NWB file of ``timeline``'s trials; with ``beside``, renamed into place only if they are the validator's
+    (else :class:`_Guessed`, the part file removed)."""
+    nwb = _new_nwbfile(s, out_path)
+    summary = NwbSummary(out_path, n_trials=len(timeline.ids), n_samples=int(sum(timeline.n)),
+                         n_channels=s.layout.n_channels, rate_hz=float(s.layout.sample_rate_hz))
+    with output_file(out_path, overwrite=params.overwrite, kind="nwb") as target:
+        _add_taxels(nwb, s, timeline, progress, target)
+        _add_traces(nwb, s, timeline, Stage(progress, "reading traces", len(timeline.ids)))
+        _add_trials_table(nwb, s, timeline)
+        _add_plan(nwb, s)
+        _add_provenance(nwb, session_path, params.encoded_path)
+        if params.encoded_path is not None:
+            _add_units(nwb, params.encoded_path, timeline.ids, timeline.starts, s.layout, chosen, summary,
+                       progress, target)
+        _write(nwb, target)
+        if beside is not None:
+            beside.adopt(s)
+            usable = _usable(s, session_path, params.keep_nonfinite)
+            if usable != timeline.ids:
+                raise _Guessed(usable)
     return summary
 
 
-def _timeline(s: Any, session_path: Any, keep_nonfinite: bool = False) -> _Timeline:
-    """The usable trials (:func:`rigctl.storage.validate.usable_trials`) back to back on session time."""
+def _usable(s: Any, session_path: Any, keep_nonfinite: bool) -> list[int]:
+    """The usable trials (:func:`rigctl.storage.validate.usable_trials`), the excluded ones warned of; none is an
+    :class:`NwbExportError`."""
     from rigctl.storage.validate import TrialsExcluded, usable_trials
 
     # the one trial validator: excluded trials said, as by info and encode
     report = usable_trials(s, keep_nonfinite=keep_nonfinite)
-    ids = report.ids
-    if not ids:
+    if not report.ids:
         raise NwbExportError(f"{session_path} has no usable recorded trial to export"
                              + (f" ({report.summary()})" if report.excluded else ""))
     if report.excluded:
-        warnings.warn(f"{session_path}: {report.summary()}", TrialsExcluded, stacklevel=3)
+        warnings.warn(f"{session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)
+    return list(report.ids)
+
+
+def _timeline(s: Any, session_path: Any, keep_nonfinite: bool = False, ids: list[int] | None = None) -> _Timeline:
+    """The usable trials (:func:`_usable`; or ``ids``) back to back on session time."""
+    if ids is None:
+        ids = _usable(s, session_path, keep_nonfinite)
     rate = float(s.layout.sample_rate_hz)
     attrs = s.trial_counts(ids)
     n = [int(a.get("n_samples", 0)) for a in attrs]

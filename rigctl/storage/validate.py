@@ -49,6 +49,10 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+import pickle
+import subprocess
+import sys
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -77,8 +81,8 @@ from rigctl.storage.trial_facts import (
     taxels_print,
 )
 
-__all__ = ["KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "TrialReport", "TrialsExcluded", "block_seq_gaps", "max_count",
-           "precheck", "seq_gaps", "usable_trials"]
+__all__ = ["BESIDE_BYTES", "KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "Beside", "TrialReport", "TrialsExcluded",
+           "block_seq_gaps", "check_beside", "max_count", "precheck", "seq_gaps", "usable_trials"]
 
 #: no taxel sensor samples faster (1 MHz; the paper's runs at 1 kHz): a faster rate is a damaged header
 MAX_RATE_HZ = 1e6
@@ -199,6 +203,74 @@ def precheck(session: Session) -> list[int]:
         return []
     plan = {int(r["trial_id"]): r for r in session.plan}
     return [t for t, _ in _precheck_recorded(session, ids, plan, rate, TrialReport(), Stage(None, "", len(ids)))[0]]
+
+
+#: a schema-4 session whose trials that pass :func:`precheck` hold more taxel bytes than this is checked by
+#: :func:`check_beside` in a process of its own (starting one costs ~0.3-0.5 CPU-s of imports on the other core)
+BESIDE_BYTES = 256 << 20
+
+
+class Beside:
+    """:func:`usable_trials`' full report of a session computed in a process of its own while the caller works on
+    the trials that pass :func:`precheck` (``guess``: the usable ones unless reading the data excludes some, which
+    the caller finds out after :meth:`adopt` and then redoes its work with the report's trials). The report is the
+    one this process would compute (the same function on the same file, this interpreter, rigctl and ``sys.path``;
+    a plain ``python -c``, not multiprocessing, which would run the caller's main script again in the child); should
+    the process fail, :func:`usable_trials` computes it here as usual (and says the error)."""
+
+    def __init__(self, path: str | os.PathLike[str], guess: list[int]) -> None:
+        self.guess = guess
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+        self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
+            [sys.executable, "-c", "import sys; from rigctl.storage.validate import _report_main; "
+                                   "_report_main(sys.argv[1])", os.fspath(path)],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
+
+    def adopt(self, session: Session) -> None:
+        """Wait for the report and cache it on ``session`` (:func:`usable_trials` then returns it, its lines said
+        as when computed here); idempotent."""
+        proc = self._proc
+        if proc is None:
+            return
+        try:
+            assert proc.stdout is not None
+            data = proc.stdout.read()
+            full = pickle.loads(data) if proc.wait() == 0 and data else None
+        finally:
+            self.close()
+        if isinstance(full, TrialReport):
+            session.trial_reports.setdefault("kept", full)
+
+    def close(self) -> None:
+        """End the checking process (also for a caller that fails or is interrupted before :meth:`adopt`)."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            if proc.stdout is not None:
+                proc.stdout.close()
+
+
+def _report_main(path: str) -> None:
+    """The checking process (:class:`Beside`): the report pickled to stdout."""
+    with Session(path) as s:  # the reader open_session's Session is (this module is below the facade)
+        report = _check_session(s, None)
+    sys.stdout.buffer.write(pickle.dumps(report, protocol=pickle.HIGHEST_PROTOCOL))
+    sys.stdout.flush()
+
+
+def check_beside(session: Session, path: str | os.PathLike[str]) -> Beside | None:
+    """:class:`Beside` for a large schema-4 session (the trials passing :func:`precheck` hold more than
+    :data:`BESIDE_BYTES` of taxels) not yet checked in this process; None otherwise (the caller then calls
+    :func:`usable_trials` as usual: a small session is checked sooner here than a process starts)."""
+    if not session._flat or session.trial_reports.get("kept") is not None:
+        return None
+    guess = precheck(session)
+    rows, _ = session.index_rows(guess)
+    if int(rows["n_samples"].sum()) * session.layout.n_channels * 2 <= BESIDE_BYTES:
+        return None
+    return Beside(path, guess)
 
 
 def _check_session(session: Session, progress: ProgressCallback | None) -> TrialReport:

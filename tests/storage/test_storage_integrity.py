@@ -118,3 +118,79 @@ def test_blocks_hashed_while_the_next_is_read_keep_each_trials_reason(tmp_path, 
     assert list(one_a_block.excluded) == [1, 3, 4]
     assert (one_a_block.ids, one_a_block.excluded, one_a_block.dropped_frames) == \
         (one_block.ids, one_block.excluded, one_block.dropped_frames)
+
+
+def _datasets(path, skip=()) -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()])
+                     if isinstance(obj, h5py.Dataset) and not name.startswith(skip) else None)
+    return out
+
+
+def test_a_session_checked_beside_the_work_gives_what_checking_it_first_gives(tmp_path, monkeypatch):
+    """A large session is checked by the validator in a process of its own while the export and the encoder's range
+    pass work on the trials that pass the checks that read no data (`validate.check_beside`). Those are not the
+    usable ones when reading the data excludes some (a NaN and a taxel edited with the time put back): the work is
+    then made again with the validator's trials. Either way the encoded file is the one of checking first, every
+    dataset bit for bit, the NWB file holds the same trials and data, and the excluded trials are warned of once."""
+    import warnings
+
+    import rigctl.storage.validate as validate
+    from rigctl.encoding.pipeline import encode_session
+    from rigctl.storage.encoded import open_encoded
+    from rigctl.storage.nwb import export_nwb, read_nwb_summary
+
+    clean = _session(tmp_path / "clean.h5")
+    edited = _session(tmp_path / "edited.h5")
+
+    def edit(f):
+        r2, r4 = _rows(f, 2), _rows(f, 4)
+        f["recording/force_g"][int(r2["force_start"]) + 3] = np.nan
+        t = int(r4["sample_start"]) + 100
+        f["recording/taxels"][t, 5] = 901 if f["recording/taxels"][t, 5] != 901 else 902
+
+    _edit_keeping_mtime(edited, edit)
+    started = []
+    beside = validate.Beside
+
+    class Spy(beside):
+        def __init__(self, *a, **k):
+            started.append(a[1])
+            super().__init__(*a, **k)
+
+    kw = dict(fit_memory_bytes=400_000, batch_trials=2, store_spikes=("original",), progress=False)
+    for path, usable in ((clean, [0, 1, 2, 3, 4, 5]), (edited, [0, 1, 3, 5])):
+        out = {}
+        for mode in ("first", "beside"):
+            here = []
+            if mode == "beside":
+                monkeypatch.setattr(validate, "BESIDE_BYTES", 0)
+                monkeypatch.setattr(validate, "Beside", Spy)
+                check = validate._check_session
+                monkeypatch.setattr(validate, "_check_session",
+                                    lambda *a, here=here, check=check: here.append(1) or check(*a))
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                encode_session(path, tmp_path / f"{path.stem}.{mode}.enc.h5", **kw)
+                export_nwb(path, tmp_path / f"{path.stem}.{mode}.nwb", encoded_path=tmp_path / f"{path.stem}.{mode}"
+                                                                                                ".enc.h5")
+            assert not here  # the reports came from the checking processes
+            said = [str(w.message) for w in caught if issubclass(w.category, validate.TrialsExcluded)]
+            assert len(said) == (2 if path == edited else 0), said  # once by each command
+            out[mode] = (_datasets(tmp_path / f"{path.stem}.{mode}.enc.h5"),
+                         read_nwb_summary(tmp_path / f"{path.stem}.{mode}.nwb"))
+            monkeypatch.undo()
+        assert started == [[0, 1, 2, 3, 4, 5]] * 2, started  # both commands guessed every trial usable
+        started.clear()
+        (enc_a, (nwb_a, arr_a)), (enc_b, (nwb_b, arr_b)) = out["first"], out["beside"]
+        assert enc_a.keys() == enc_b.keys() and any(k.startswith("features/") for k in enc_a)
+        with open_encoded(tmp_path / f"{path.stem}.beside.enc.h5") as f:  # a subsample: the range from extremes
+            assert 0 < f.force_fit_stats()["n_fit_trials"] < len(usable)
+        for k in enc_a:
+            np.testing.assert_array_equal(enc_a[k], enc_b[k], err_msg=k)
+        assert list(arr_b["trial_id"]) == usable
+        assert (nwb_a.n_trials, nwb_a.n_samples, nwb_a.units, nwb_a.spikes) == \
+            (nwb_b.n_trials, nwb_b.n_samples, nwb_b.units, nwb_b.spikes)
+        for k in arr_a:
+            np.testing.assert_array_equal(arr_a[k], arr_b[k], err_msg=k)
