@@ -215,12 +215,16 @@ class SessionReader:
                     if idx.dtype != session_recording.INDEX_DTYPE:
                         raise SessionError(f"{self.path}: /recording/index is {idx.dtype}, not the documented "
                                            "table; the file is damaged")
-                self._index = {}
+                # built aside and set whole: threads reading one open session at once may both build it, and
+                # neither sees the other's half-built table (trials listed "twice": a damaged index)
+                index: dict[int, np.void] = {}
+                dups: dict[int, int] = {}
                 for r in idx:
                     tid = int(r["trial_id"])
-                    if tid in self._index:
-                        self._index_dups[tid] = self._index_dups.get(tid, 1) + 1
-                    self._index[tid] = r
+                    if tid in index:
+                        dups[tid] = dups.get(tid, 1) + 1
+                    index[tid] = r
+                self._index_dups, self._index = dups, index
         return self._index
 
     def trusted_facts(self) -> dict[int, np.void]:

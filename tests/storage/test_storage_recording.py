@@ -278,3 +278,39 @@ def test_damage_in_the_recording_arrays_is_excluded_with_its_reason(tmp_path, da
         assert report.ids == [0, 1, 3] and list(report.excluded) == [2]
         assert reason in report.excluded[2], report.excluded[2]
         np.testing.assert_array_equal(s.read_taxels([0, 1, 3]).data[:N], s.trial(0).taxels)
+
+
+def test_threads_reading_one_session_at_once_never_see_a_trial_listed_twice(tmp_path):
+    """Two threads reading batches of one open session at once build its ``/recording/index`` table together on
+    their first reads. Built in place, a thread could see the other's half-built table, or fill it as well, and
+    read a trial as "listed 2 times" (a damaged index). Each thread here is switched out after every few bytecodes
+    while both build it."""
+    import sys
+    import threading
+
+    rng = np.random.default_rng(5)
+    path = _write(tmp_path / "s.h5", {i: _trial(rng, 40) for i in range(400)}, 400)
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        for _ in range(10):
+            with open_session(path) as s:
+                errors: list[BaseException] = []
+                go = threading.Barrier(2)
+
+                def read(ids, s=s, errors=errors, go=go):
+                    try:
+                        go.wait()
+                        s.read_taxels(ids)
+                    except BaseException as exc:  # noqa: BLE001 - said below
+                        errors.append(exc)
+
+                threads = [threading.Thread(target=read, args=(list(range(k, 400, 2)),)) for k in (0, 1)]
+                for t in threads:
+                    t.start()
+                for t in threads:
+                    t.join()
+                assert not errors, errors
+                assert s.index_duplicates() == {}
+    finally:
+        sys.setswitchinterval(old)
