@@ -83,6 +83,9 @@ log = logging.getLogger(__name__)
 
 #: force/speed trace sampling period during a trial, s (~50 Hz)
 STATUS_PERIOD_S = 0.02
+#: how often the drum controller's watchdog is fed while a session file is written (:meth:`Rig.while_fed`), s of
+#: the rig's clock: well inside the shortest WATCHDOG_MS (100 ms)
+WRITE_FEED_S = 0.05
 #: a capture fails when no taxel frame has arrived for this long (a stalled or unplugged stream), s
 CAPTURE_STALL_S = 2.0
 #: and in any case when it takes longer than 3 x the trial's duration + this margin, s
@@ -588,6 +591,45 @@ class Rig:
                 self.home_if_pending()
             else:
                 wait_released(self.drum, timeout_s=timeout_s)
+
+    def while_fed(self, work: Callable[[], Any]) -> Any:
+        """``work()`` in a thread of its own while this thread keeps the drum controller's watchdog fed (a status
+        read every :data:`WRITE_FEED_S` of the rig's clock); returns what it returns and raises what it raises.
+
+        For a session file's write between two trials, while the drum turns and the force loop holds: it took ~0.6
+        CPU-s at the first trial (and seconds of wall on a slow disk), on the thread that feeds the watchdog; beside
+        four CPU hogs the README's quick check latched WATCHDOG so (5 s of the simulated rig's time; a bench's
+        controller has 1 s). On a simulated rig the feeding thread's waits hold the world, so a starved host pauses it
+        (docs/architecture.md "Time on a simulated rig"); an in-process rig's clock (``stands_between_sleeps``) runs
+        ``work()`` here. A status read that fails (the link) is left to the run's next exchange, which reports it."""
+        if not self.has_drum:  # (the handheld rig: no watchdog to feed)
+            return work()
+        clock = self.drum.clock
+        if getattr(clock, "stands_between_sleeps", False):  # an in-process rig: nothing moves while the host works
+            return work()
+        done = threading.Event()
+        box: dict[str, Any] = {}
+
+        def run() -> None:
+            try:
+                box["value"] = work()
+            except BaseException as exc:  # noqa: BLE001 - raised again in the caller's thread
+                box["error"] = exc
+            finally:
+                done.set()
+
+        worker = threading.Thread(target=run, name="rig-while-fed", daemon=True)
+        worker.start()
+        wait_for = getattr(clock, "wait_for", None)  # a simulated rig's shared clock; else the wall's
+        while not (wait_for(done.is_set, WRITE_FEED_S) if wait_for is not None else done.wait(WRITE_FEED_S)):
+            try:
+                self.drum.read_status()
+            except DrumError as exc:
+                log.debug("while writing: the drum controller's status not read: %s", exc)
+        worker.join()
+        if "error" in box:
+            raise box["error"]
+        return box.get("value")
 
     def mount_texture(self, label: str, prompt: Callable[[str], Any] | None = None) -> None:
         """Mount texture plate ``label`` (any label of :attr:`textures`): release the sensor, then the backend's

@@ -769,7 +769,11 @@ class _Run:
             while True:
                 try:
                     with self.interrupts.held():
-                        write()
+                        fed = getattr(self.rig, "while_fed", None)  # the watchdog fed meanwhile (Rig.while_fed)
+                        if fed is not None:
+                            fed(write)
+                        else:
+                            write()
                     return
                 except FileBusy as exc:
                     if t_busy is None:

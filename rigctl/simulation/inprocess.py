@@ -55,6 +55,9 @@ __all__ = ["InProcessEngine", "InProcessTaxels", "InProcessBackend", "SimulatedC
 class SimulatedClock:
     """The engine's clock for :class:`DrumClient`: ``now()`` is simulated time (s), ``sleep(s)`` advances it."""
 
+    #: nothing moves while the host does not sleep (rigctl.acquisition.rig.Rig.while_fed)
+    stands_between_sleeps = True
+
     def __init__(self, engine: "InProcessEngine"):
         self.engine = engine
 
