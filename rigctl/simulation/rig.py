@@ -248,11 +248,14 @@ class SimulatedRig:
         the drum controller"), and while the host's taxel reader is more than :data:`READER_LEAD_S` of frames behind
         the stream (a starved reader is a starved host); paced, while it is more than :data:`READER_LEAD_PACED_S`
         behind (a reader starved while the heartbeat of its process ran the world on: the board's output queue ran
-        over). Paced, bytes in the kernel's hands are judged by the watchdog, not waited for: a reply handed on in two
+        over). Paced too while a request of the host is on its way (``request_on_its_way``: beside two CPU hogs a
+        HOME the kernel or a starved server thread held let a paced world run 2 s on, and the conformance test saw no
+        HOMING; once a paced world that stood lagged a live sample source for good, which it now catches up). A reply
+        on its way is judged by the watchdog and the host's answer wait, not waited for, paced: a reply handed on in two
         chunks after the host's last find held a paced world whose face of another process polled every 50 ms nearly
         for good (a CI run)."""
         mega = self.mega
-        if mega.at_request():
+        if mega.at_request() or mega.request_on_its_way():
             return True
         uno = self.uno
         lead_s = READER_LEAD_PACED_S if self.paced else READER_LEAD_S
@@ -260,7 +263,7 @@ class SimulatedRig:
             return True
         if self.paced:
             return False
-        return mega.request_on_its_way() or mega.reply_on_its_way()
+        return mega.reply_on_its_way()
 
     def _idle(self) -> bool:
         """Nothing to send at the next tick: the Uno does not stream."""

@@ -192,8 +192,8 @@ def test_a_request_or_a_reply_the_kernel_still_holds_is_on_its_way_to_the_watchd
     """A pty hands a writer's bytes to its reader through a kernel worker that a loaded machine holds back for
     hundreds of ms, where no byte count sees them (a request held so for 0.76 s while the world ran on tripped the
     watchdog of a host that had spoken). The host stamps its writes and its finds: while its write has not been taken
-    by the bridge, or a reply handed to its pty has not been found there, the host is not silent to the watchdog; the
-    world runs on meanwhile (a held world would lag a live sample source for good). A face of this process stamps on
+    by the bridge the world stands, paced too; while a reply handed to its pty has not been found there, the host is
+    not silent to the watchdog, and a paced world runs on meanwhile. A face of this process stamps on
     the rig's shared clock; a face of another process (``rigctl sim`` driven by `rigctl acquire --drum-port`: a CI run
     latched WATCHDOG there) on the clock file beside the ports (its clock here, as that process would attach it)."""
     for _ in range(3):  # (this thread got no CPU for 200 ms of wall between its last read and the stamp while
@@ -222,7 +222,9 @@ def _on_its_way_to_the_watchdog(face: str) -> bool:
             if sim.mega.faults & Fault.WATCHDOG:  # latched before the stamp: not the case this test is about
                 return False
             assert sim.mega.request_on_its_way() and not sim.mega.at_request()
-            assert silent_for(0.6) > 0.3  # the world ran on past WATCHDOG_MS
+            # the world stands while the host's request is on its way, paced too (a HOME the kernel held let a paced
+            # world run 2 s on beside two CPU hogs: the conformance test saw no HOMING)
+            assert silent_for(0.6) <= LEAD_S + 0.011
             st = c.read_status()  # the request is taken (and so everything before it)
             assert st.state == DrumState.RUNNING and not st.faults & Fault.WATCHDOG, (st.state.name, repr(st.faults))
             sim.mega.bridge.to_client_at = time.monotonic()  # a reply handed on that the host's pty has not got
