@@ -475,7 +475,7 @@ class _Force:
     n_fit_trials: int = 0
 
 
-def _usable_ids(s: Any, run: EncodeRun, stacklevel: int = 4) -> tuple[list[int], dict[int, str]]:
+def _usable_ids(s: Any, run: EncodeRun) -> tuple[list[int], dict[int, str]]:
     """The trials to encode (the validator's usable ones, or the asked ones that are usable) and the excluded."""
     from rigctl.storage.validate import TrialsExcluded, usable_trials
 
@@ -483,7 +483,7 @@ def _usable_ids(s: Any, run: EncodeRun, stacklevel: int = 4) -> tuple[list[int],
     report = usable_trials(s, keep_nonfinite=run.keep_nonfinite)
     ids = report.ids if run.trial_ids is None else [t for t in run.trial_ids if t not in report.excluded]
     if report.excluded:
-        warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=stacklevel)
+        warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)
     if not ids:
         raise ValueError(f"{run.session_path} has no usable complete trials"
                          + (f" ({report.summary()})" if report.excluded else ""))
@@ -493,29 +493,59 @@ def _usable_ids(s: Any, run: EncodeRun, stacklevel: int = 4) -> tuple[list[int],
 def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | None) -> _Read:
     """Pass 1: read the trials once, in blocks of ``batch_trials`` (the encode pass's batches): per-taxel range,
     lengths, lost frames; the blocks are kept for the force fit and the encode pass when they fit
-    ``fit_memory_bytes``, else the fit keeps an even subsample and the encode pass reads each batch again.
-
-    A large session (:func:`rigctl.storage.validate.check_beside`) is checked by the validator in a process of its
-    own while this one reads the force fit's subsample of the trials passing the checks that read no data; the
-    read is kept when those are the validator's usable trials (else made again with them)."""
+    ``fit_memory_bytes``, else the fit keeps an even subsample and the encode pass reads each batch again."""
     from rigctl.storage.session import open_session
-    from rigctl.storage.validate import check_beside
 
     with open_session(run.session_path) as s:
-        beside = check_beside(s, run.session_path) if run.trial_ids is None else None
-        try:
-            read = None if beside is None else _range_guessed(s, run, p, progress, beside)
-            if read is None:
-                ids, excluded = _usable_ids(s, run)
-                read, keep = _start_read(s, run, p, ids, excluded, progress)
-                _read_range(s, run, p, read, keep, progress)
-        finally:
-            if beside is not None:
-                beside.close()
+        ids, excluded = _usable_ids(s, run)
+        labels = _labels(s, ids)
+        conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
+        p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
+        log.info("rate: %s", conv.describe())
+        if conv.resampled:
+            progress_note(progress, "reading trials", f"resampling: {conv.describe()}")
+        keep = _fit_keep(s, ids, labels, conv, run.fit_memory_bytes)
+        keep_all = len(keep) == len(ids)
+        want_ws = "realtime_speed_scaled" in run.variants
+        bt = run.batch_trials
+        batches = [np.arange(i, min(i + bt, len(ids))) for i in range(0, len(ids), bt)]
+        read = _Read(s.layout, s.textures, ids, labels, conv, batches, keep_all, [], [], np.zeros(0, np.int64),
+                     np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool), {}, excluded,
+                     np.zeros(0), np.zeros(0), TaxelRange())
+        if not kernels_cached():
+            progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
+                                                      "caches them) ...")
+        fit_idx: list[int] = []
+        bar = Stage(progress, "reading trials", len(ids))
+        known = None if keep_all or conv.resampled or p.crop_s is not None else _extremes_known(s, ids, run)
+        for b in batches if known is None else ():
+            b_ids = [ids[i] for i in b]
+            blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
+            _check_crop(p.crop_s, np.diff(blk.starts) / conv.input_rate_hz, b_ids)
+            blk = _cropped(blk, p.crop_s, conv.input_rate_hz)
+            read.n_samples[b] = np.diff(blk.starts)
+            read.has_trace[b] = blk.has_speed_trace
+            read.lossy.update({int(t): int(n) for t, n in zip(b_ids, blk.dropped_frames) if n})
+            rg, ws = _model_input(blk, b_ids, labels["speed_mm_s"][b], want_ws and keep_all, p.window_s, conv)
+            del blk
+            read.rng.update(rg.data)
+            if keep_all:
+                read.kept.append((rg, ws))
+                read.fit_blocks.append(rg)
+                fit_idx.extend(b.tolist())
+            else:
+                sel = [j for j, i in enumerate(b) if i in keep]
+                if sel:
+                    read.fit_blocks.append(rg.select(sel))
+                    fit_idx.extend(b[sel].tolist())
+            bar.advance(len(b))
+        if known is not None:
+            _range_from_extremes(s, read, known, keep, fit_idx, bar)
+    read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
     _note_lossy(read, progress)
     if np.any(read.n_samples == 0):
         raise ValueError("a complete trial has no samples: trials "
-                         f"{_trial_list(np.asarray(read.ids)[read.n_samples == 0])}")
+                         f"{_trial_list(np.asarray(ids)[read.n_samples == 0])}")
     if run.taxel_range is not None:  # one normalisation for several blocks (the paper's initial range)
         given, n_own = run.taxel_range, 0 if read.rng.minimum is None else read.rng.minimum.size
         n_given = 0 if given.minimum is None else given.minimum.size
@@ -525,108 +555,6 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
         read.rng = given
     read.offset, read.scale = read.rng.offset_scale()
     return read
-
-
-def _start_read(s: Any, run: EncodeRun, p: EncodeParams, ids: list[int], excluded: dict[int, str],
-                progress: ProgressCallback | None) -> tuple[_Read, set[int]]:
-    """The range pass's :class:`_Read` of trials ``ids`` before any sample is read (labels, rate, batches), and
-    the indices of the trials kept for the force fit."""
-    labels = _labels(s, ids)
-    conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
-    p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
-    keep = _fit_keep(s, ids, labels, conv, run.fit_memory_bytes)
-    bt = run.batch_trials
-    batches = [np.arange(i, min(i + bt, len(ids))) for i in range(0, len(ids), bt)]
-    read = _Read(s.layout, s.textures, ids, labels, conv, batches, len(keep) == len(ids), [], [],
-                 np.zeros(0, np.int64), np.zeros(len(ids), dtype=np.int64), np.zeros(len(ids), dtype=bool), {},
-                 excluded, np.zeros(0), np.zeros(0), TaxelRange())
-    return read, keep
-
-
-def _read_range(s: Any, run: EncodeRun, p: EncodeParams, read: _Read, keep: set[int],
-                progress: ProgressCallback | None) -> None:
-    """The range pass's reads: every batch (the range, lengths, lost frames; the fit's readings kept), or the
-    validator's extremes and the fit's subsample (:func:`_range_from_extremes`)."""
-    conv, ids, labels = read.conv, read.ids, read.labels
-    log.info("rate: %s", conv.describe())
-    if conv.resampled:
-        progress_note(progress, "reading trials", f"resampling: {conv.describe()}")
-    keep_all = read.keep_all
-    want_ws = "realtime_speed_scaled" in run.variants
-    if not kernels_cached():
-        progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
-                                                  "caches them) ...")
-    fit_idx: list[int] = []
-    bar = Stage(progress, "reading trials", len(ids))
-    known = None if keep_all or conv.resampled or p.crop_s is not None else _extremes_known(s, ids, run)
-    for b in read.batches if known is None else ():
-        b_ids = [ids[i] for i in b]
-        blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
-        _check_crop(p.crop_s, np.diff(blk.starts) / conv.input_rate_hz, b_ids)
-        blk = _cropped(blk, p.crop_s, conv.input_rate_hz)
-        read.n_samples[b] = np.diff(blk.starts)
-        read.has_trace[b] = blk.has_speed_trace
-        read.lossy.update({int(t): int(n) for t, n in zip(b_ids, blk.dropped_frames) if n})
-        rg, ws = _model_input(blk, b_ids, labels["speed_mm_s"][b], want_ws and keep_all, p.window_s, conv)
-        del blk
-        read.rng.update(rg.data)
-        if keep_all:
-            read.kept.append((rg, ws))
-            read.fit_blocks.append(rg)
-            fit_idx.extend(b.tolist())
-        else:
-            sel = [j for j, i in enumerate(b) if i in keep]
-            if sel:
-                read.fit_blocks.append(rg.select(sel))
-                fit_idx.extend(b[sel].tolist())
-        bar.advance(len(b))
-    if known is not None:
-        _range_from_extremes(s, read, known, keep, fit_idx, bar)
-    read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
-
-
-def _range_guessed(s: Any, run: EncodeRun, p: EncodeParams, progress: ProgressCallback | None,
-                   beside: Any) -> _Read | None:
-    """The range pass on the trials passing the checks that read no data (``beside.guess``) while the validator
-    checks the session in its own process: the force fit's subsample read meanwhile; the range folded from the
-    validator's extremes once its report is here. None (nothing kept, the report cached on ``s``) when its usable
-    trials are not those, or the pass must read every sample (kept in memory, resampled, cropped)."""
-    from rigctl.storage.validate import usable_trials
-
-    read, keep = _start_read(s, run, p, beside.guess, {}, progress)
-    if read.keep_all or read.conv.resampled or p.crop_s is not None:
-        beside.adopt(s)
-        return None
-    log.info("rate: %s", read.conv.describe())
-    if not kernels_cached():
-        progress_note(progress, "reading trials", "compiling the encoding kernels (first run only: numba "
-                                                  "caches them) ...")
-    fit_blocks, fit_idx = _fit_reads(s, read, keep)
-    beside.adopt(s)
-    report = usable_trials(s, keep_nonfinite=run.keep_nonfinite)
-    known = report.taxel_extremes
-    if report.ids != read.ids or not all(t in known for t in read.ids):
-        return None
-    read.ids, read.excluded = _usable_ids(s, run, stacklevel=5)
-    bar = Stage(progress, "reading trials", len(read.ids))
-    read.fit_blocks = fit_blocks  # read already: none left to read
-    _range_from_extremes(s, read, known, set(), fit_idx, bar)
-    read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
-    return read
-
-
-def _fit_reads(s: Any, read: _Read, keep: set[int]) -> tuple[list[Ragged], list[int]]:
-    """The force fit's subsample (``keep``) read in the batches' order (the same blocks as ``Ragged.select`` of
-    the full read) and its indices."""
-    blocks: list[Ragged] = []
-    idx: list[int] = []
-    for b in read.batches:
-        sel = [j for j, i in enumerate(b) if i in keep]
-        if sel:
-            blk = s.read_taxels([read.ids[b[j]] for j in sel])
-            blocks.append(Ragged(blk.data, blk.starts))
-            idx.extend(b[sel].tolist())
-    return blocks, idx
 
 
 def _extremes_known(s: Any, ids: list[int], run: EncodeRun) -> dict[int, np.ndarray] | None:
