@@ -205,8 +205,7 @@ def precheck(session: Session) -> list[int]:
     return [t for t, _ in _precheck_recorded(session, ids, plan, rate, TrialReport(), Stage(None, "", len(ids)))[0]]
 
 
-#: a schema-4 session whose trials that pass :func:`precheck` hold more taxel bytes than this is checked by
-#: :func:`check_beside` in a process of its own (starting one costs ~0.3-0.5 CPU-s of imports on the other core)
+#: taxel bytes of the trials passing :func:`precheck` above which :func:`check_beside` checks in a process of its own
 BESIDE_BYTES = 256 << 20
 
 
@@ -227,8 +226,7 @@ class Beside:
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
 
     def adopt(self, session: Session) -> None:
-        """Wait for the report and cache it on ``session`` (:func:`usable_trials` then returns it, its lines said
-        as when computed here); idempotent."""
+        """Wait for the report and cache it on ``session`` (:func:`usable_trials` returns it); idempotent."""
         proc = self._proc
         if proc is None:
             return
