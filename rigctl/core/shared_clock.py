@@ -43,7 +43,8 @@ from dataclasses import dataclass
 from rigctl.core.port_clock import HostSide, open_beside
 
 __all__ = ["SharedClock", "LEAD_S", "HEARTBEAT_S", "KERNEL_HOP_MAX_S", "clock_of_port", "attach_port_clock", "release_port_clock",
-           "is_port_clock", "note_found", "on_its_way_until", "port_keys", "on_a_kernel_hop", "host_stamp"]
+           "is_port_clock", "note_found", "on_its_way_until", "port_keys", "on_a_kernel_hop", "host_stamp",
+           "pause_on"]
 
 #: how far the simulated world may run past the host's last sign of life or the deadline of a wait it has not yet
 #: returned from, s. Short against every deadline of the host on a simulated rig (the shortest WATCHDOG_MS, 100 ms;
@@ -468,3 +469,16 @@ def is_port_clock(clock: object) -> bool:
     """Whether ``clock`` is one :func:`attach_port_clock` gave (a rig of another process), held or not."""
     with _ATTACHED_LOCK:
         return any(entry.clock is clock for entry in _ATTACHED.values())
+
+
+def pause_on(clock: object, stop: threading.Event, s: float, *, wall_factor: float = 1.0) -> bool:
+    """Wait ``s`` s on ``clock`` (a :class:`SharedClock`: of the simulated rig's time, and no longer than
+    ``wall_factor * s`` of wall time either; anything else: of wall time) or until ``stop`` is set; returns whether
+    it is. A backoff or a poll of a thread of the host on the rig's own time: beside an unpaced world a taxel
+    stream's reopen backoff on the wall let a host's 20 s wait for the link, on the rig's time, end before the
+    replugged port was tried again."""
+    if not isinstance(clock, SharedClock):
+        return stop.wait(s)
+    wall_end = time.monotonic() + wall_factor * s
+    clock.wait_for(lambda: stop.is_set() or time.monotonic() >= wall_end, s)
+    return stop.is_set()

@@ -41,6 +41,7 @@ from rigctl.core.shared_clock import (
     is_port_clock,
     note_found,
     on_its_way_until,
+    pause_on,
     release_port_clock,
 )
 from rigctl.devices import wire
@@ -163,7 +164,7 @@ READ_PERIOD_S = 0.025
 #: the longest wall-clock step of a wait on the stream's clock, s (a simulated rig's clock may move slower than the
 #: wall's, or faster)
 _WAIT_STEP_S = 0.05
-#: a pause on a shared clock (:meth:`TaxelStream._pause`) lasts at most this many times its length of wall time
+#: a reopen's backoff on a simulated rig's clock lasts at most this many times its length of wall time (pause_on)
 PAUSE_WALL_FACTOR = 10.0
 
 
@@ -285,19 +286,6 @@ class TaxelStream:
     def _now(self) -> float:
         """The stream's clock, s: :attr:`clock`'s, else the host's monotonic clock."""
         return float(self.clock.now()) if self.clock is not None else time.monotonic()
-
-    def _pause(self, s: float) -> bool:
-        """Wait ``s`` s of the stream's clock (a simulated rig's shared clock, else the wall's); True once
-        :meth:`close` was called. On a shared clock at most :data:`PAUSE_WALL_FACTOR` times ``s`` of wall time (a world
-        that stands, a rig gone: look again): a reopen's backoff on the wall beside an unpaced world let a host's 20 s
-        wait for the link (``Rig.check_links``, on the rig's clock) end in ~2 s of wall before the port was tried
-        again (test_acq_faults: 3 of 4 runs alone)."""
-        wait_for = getattr(self.clock, "wait_for", None)
-        if wait_for is None:
-            return self._stop.wait(s)
-        wall_end = time.monotonic() + PAUSE_WALL_FACTOR * s
-        wait_for(lambda: self._stop.is_set() or time.monotonic() >= wall_end, s)
-        return self._stop.is_set()
 
     def _touch(self) -> None:
         """A read or a write: a sign of the host's life on a shared clock."""
@@ -771,7 +759,7 @@ class TaxelStream:
         if not self.reconnect:
             return False
         delay = 0.1
-        while not self._pause(delay):
+        while not pause_on(self.clock, self._stop, delay, wall_factor=PAUSE_WALL_FACTOR):  # on the rig's time
             delay = min(delay * 2, 2.0)
             try:
                 ser = self._open_serial()

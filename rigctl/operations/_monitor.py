@@ -37,7 +37,7 @@ from rigctl.core.drum import DrumState, DrumStatus, describe_faults
 from rigctl.core.errors import describe_error
 from rigctl.core.interfaces import DrumMonitor
 from rigctl.core.progress import ProgressEvent
-from rigctl.core.shared_clock import SharedClock
+from rigctl.core.shared_clock import pause_on
 
 if TYPE_CHECKING:
     from rigctl.acquisition.runner import TrialEvent
@@ -277,12 +277,7 @@ class RigMonitor:
         ``wait_s`` of the rig's time either (a world run faster than real time, up to 10x, is polled every period of its
         own time: the controller's 1 s watchdog fed well within it; a world slower than real time is polled every
         period of wall time, for the dead man's switch)."""
-        clock = getattr(self.drum, "clock", None)
-        if not isinstance(clock, SharedClock):
-            self._halt.wait(wait_s)
-            return
-        wall_end = time.monotonic() + wait_s
-        clock.wait_for(lambda: self._halt.is_set() or time.monotonic() >= wall_end, wait_s)
+        pause_on(getattr(self.drum, "clock", None), self._halt, wait_s)
 
     def _dead_faces(self, silent: list[tuple[Heartbeat, float]], now: float) -> None:
         """A face is silent: see what the rig does (one read) and STOP it when it moves under a command (again every
