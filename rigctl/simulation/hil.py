@@ -220,6 +220,8 @@ class HilRig:
         #: with interrupts off (an ISR, entry and exit included) or the encoder's probe (D10) high;
         #: ``encoder_cycles_per_tick`` / ``encoder_max_per_tick``: that probe alone (since start)
         self.load: dict[str, float] = {}
+        #: every ``LOAD`` report, in order (a reader that looks now and then misses none)
+        self.loads: list[dict[str, float]] = []
         #: the encoder image's scans: the waveform row of each one's first sample (the harness's ``ENCSTART``, from
         #: the image's marker pin D11; -1 before a waveform plays), in order
         self.encoder_start_rows: list[int] = []
@@ -614,6 +616,7 @@ class HilRig:
             self.isr = _parse_kv(line)
         elif line.startswith("LOAD "):
             self.load = _parse_kv(line)
+            self.loads.append(self.load)
         elif line.startswith("ENCSTART "):
             kv = _parse_kv(line)
             with self._cond:

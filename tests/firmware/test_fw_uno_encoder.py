@@ -82,7 +82,7 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
     port.samples = lambda: enc.samples
     speeds0 = len(port.sent(wire.EncoderCommand.SPEED.value))
     enc.start(lo, hi, 100)
-    loads: list[dict[str, float]] = []
+    loads0 = len(rig.loads)
     last = time.monotonic()
     while enc.samples < n_samples:
         n = enc.poll()
@@ -91,8 +91,6 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
         assert time.monotonic() - last < 10.0, "the board stopped sending"
         while len(enc.speeds_sent) * WINDOW + SEND_AFTER <= n:
             enc.send_speed(float(speeds_mm_s[len(enc.speeds_sent) % len(speeds_mm_s)]))
-        if n > 2000 and rig.load and (not loads or rig.load is not loads[-1]):
-            loads.append(rig.load)
     rest = [float(speeds_mm_s[(len(enc.speeds_sent) + i) % len(speeds_mm_s)]) for i in range(5)]
     stops0 = len(port.sent(wire.UnoCommand.STOP.value))
     scan = enc.finish(rest, quiet_s=0.5)
@@ -100,7 +98,12 @@ def _encode_scan(rig: hil.HilRig, port: NotingPort, n_samples: int, lo: np.ndarr
     print(f"scan of {n_samples} samples: STOP sent {stops} time(s)")  # more than once: the board went on streaming
     speeds = list(zip(enc.speed_windows, port.sent(wire.EncoderCommand.SPEED.value)[speeds0:], strict=True))
     written_s = port.sent_board_s(wire.EncoderCommand.SPEED.value)[speeds0:]
-    return scan, enc.parser, loads[1:], speeds, len(enc.speeds_sent), written_s  # the first load may cover the second before ENCODE
+    # the reports of the seconds while it encoded, after its first 2 s (every one: a loop starved beside CPU hogs that
+    # looked at the latest only saw fewer than ten of a 14 s scan's); the first may cover the second before ENCODE
+    loads = rig.loads[loads0:]
+    t_first = loads[0]["t"] if loads else 0.0
+    loads = [r for r in loads if r["t"] >= t_first + 2.0]
+    return scan, enc.parser, loads[1:], speeds, len(enc.speeds_sent), written_s
 
 
 def _arrivals(rig: hil.HilRig, port: NotingPort, offsets: list[int]) -> np.ndarray:
