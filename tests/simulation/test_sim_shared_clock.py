@@ -370,25 +370,33 @@ def test_an_unpaced_world_waits_for_a_taxel_reader_that_fell_behind():
     READER_LEAD_S of frames ahead of the host's reader (a wire holds about that much), then it waits for the reader,
     a part of the host: a reader that fell seconds behind had the trial's frames arrive seconds after the drum angle
     predicted their index, and a replayed trial start thousands of samples late. Paced, the wall clock rules."""
+    from rigctl.simulation.rig import READER_LEAD_S
+
+    with _a_reader_that_reads_nothing(paced=False, wall_s=1.0) as (sim, port, t0, behind):
+        assert sim.uno.streaming and behind < 0.5, behind  # held once the reader is READER_LEAD_S behind
+        assert sim.uno.frames_unread() > READER_LEAD_S * sim.layout.sample_rate_hz
+        got, t1 = 0, time.monotonic()
+        while sim.model.time_s - t0 < 1.5 and time.monotonic() - t1 < 30:  # reading, the world goes on
+            got += len(port.read(65536))
+        assert sim.model.time_s - t0 >= 1.5 and got > 0
+
+
+@contextmanager
+def _a_reader_that_reads_nothing(*, paced: bool, wall_s: float) -> Iterator[tuple]:
+    """A simulated rig streaming to a raw port that reads nothing for ``wall_s`` of wall time (its heartbeat grants
+    the world that much meanwhile): ``(sim, port, t0, behind)``: the world's time at START and how far it ran."""
     import serial
 
     from rigctl.devices import wire
-    from rigctl.simulation.rig import READER_LEAD_S
 
-    with SimulatedRig(paced=False, uno_reset_delay_s=0.0) as sim:
+    with SimulatedRig(paced=paced, uno_reset_delay_s=0.0) as sim:
         with serial.Serial(sim.taxel_port, timeout=0) as port:
             sim.clock.sleep(0.3)  # the board's boot
             port.reset_input_buffer()
             port.write(wire.UnoCommand.START)
             t0 = sim.model.time_s
-            time.sleep(1.0)  # a reader that reads nothing: the heartbeat grants the world 1 s meanwhile
-            behind = sim.model.time_s - t0
-            assert sim.uno.streaming and behind < 0.5, behind  # held once the reader is READER_LEAD_S behind
-            assert sim.uno.frames_unread() > READER_LEAD_S * sim.layout.sample_rate_hz
-            got, t1 = 0, time.monotonic()
-            while sim.model.time_s - t0 < 1.5 and time.monotonic() - t1 < 30:  # reading, the world goes on
-                got += len(port.read(65536))
-            assert sim.model.time_s - t0 >= 1.5 and got > 0
+            time.sleep(wall_s)
+            yield sim, port, t0, sim.model.time_s - t0
 
 
 def test_a_paced_world_waits_for_a_taxel_reader_a_second_behind_and_loses_no_byte():
@@ -396,29 +404,19 @@ def test_a_paced_world_waits_for_a_taxel_reader_a_second_behind_and_loses_no_byt
     reader: a reader that got no CPU while its process's heartbeat granted the world the wall's time saw the board's
     output queue run over (a CRC error in the README's quick check beside two CPU hogs). Reading again, it gets every
     frame, in sequence."""
-    import serial
-
-    from rigctl.devices import wire
     from rigctl.devices.frames import FrameParser
     from rigctl.simulation.virtual_uno import READER_LEAD_PACED_S
 
-    with SimulatedRig(paced=True, uno_reset_delay_s=0.0) as sim:
-        with serial.Serial(sim.taxel_port, timeout=0) as port:
-            sim.clock.sleep(0.3)  # the board's boot
-            port.reset_input_buffer()
-            port.write(wire.UnoCommand.START)
-            t0 = sim.model.time_s
-            time.sleep(2.5)  # a reader that reads nothing: the heartbeat grants the world 2.5 s meanwhile
-            behind = sim.model.time_s - t0
-            # held a second behind (and what the pty's kernel buffers hold, which no count of unread bytes sees)
-            assert sim.uno.streaming and behind < READER_LEAD_PACED_S + 0.6, behind
-            assert sim.uno.frames_unread() > READER_LEAD_PACED_S * sim.layout.sample_rate_hz
-            parser, seqs, t1 = FrameParser(n_channels=sim.layout.n_channels), [], time.monotonic()
-            while sim.model.time_s - t0 < behind + 1.0 and time.monotonic() - t1 < 30:  # reading, it goes on
-                frames = parser.feed(port.read(65536))
-                seqs.extend(int(q) for q in frames.seq)
-                time.sleep(0.005)
-            assert sim.model.time_s - t0 >= behind + 1.0
+    with _a_reader_that_reads_nothing(paced=True, wall_s=2.5) as (sim, port, t0, behind):
+        # held a second behind (and what the pty's kernel buffers hold, which no count of unread bytes sees)
+        assert sim.uno.streaming and behind < READER_LEAD_PACED_S + 0.6, behind
+        assert sim.uno.frames_unread() > READER_LEAD_PACED_S * sim.layout.sample_rate_hz
+        parser, seqs, t1 = FrameParser(n_channels=sim.layout.n_channels), [], time.monotonic()
+        while sim.model.time_s - t0 < behind + 1.0 and time.monotonic() - t1 < 30:  # reading, it goes on
+            frames = parser.feed(port.read(65536))
+            seqs.extend(int(q) for q in frames.seq)
+            time.sleep(0.005)
+        assert sim.model.time_s - t0 >= behind + 1.0
     assert len(seqs) > 1000 and parser.stats.crc_errors == 0 and parser.stats.bytes_skipped == 0, parser.stats
     assert (np.diff(np.asarray(seqs)) % 65536 == 1).all()  # every frame, in sequence
     assert sim.uno.port.dropped_bytes == 0
