@@ -17,7 +17,7 @@ from rigctl.encoding.features import (
     realtime_features_unscaled,
     spike_features,
 )
-from rigctl.encoding.fused import run_fused
+from rigctl.encoding.fused import on_threads, run_fused
 from rigctl.encoding.izhikevich import Ragged, _at_model_rate, as_ragged
 from rigctl.encoding.params import EncodeParams
 from rigctl.encoding.sizing import windows_for
@@ -139,40 +139,49 @@ def trains_to_features(sa_by: dict[str, Any], ra: SpikeTrains, lengths, speed_mm
         ra_scaled = ra.scale_times(coef)
         if n_scaled is None:
             n_scaled = windows_for(float(np.max(lengths / p.fs_hz * coef, initial=0.0)), p.window_s)
-    feats, spikes = {}, {}
-    ra_counts: dict[bool, np.ndarray] = {}  # the RA trains' window counts, unscaled and speed-scaled: one each
+    # the RA trains' window counts, unscaled and speed-scaled: counted once each, before the variants share them
+    ra_counts: dict[bool, np.ndarray] = {}
+    if any(not i.realtime and not i.speed_scaled for i in info):
+        ra_counts[False] = ra.window_counts(p.window_s, n_unscaled)
+    if any(not i.realtime and i.speed_scaled for i in info):
+        ra_counts[True] = ra_scaled.window_counts(p.window_s, n_scaled)  # type: ignore[union-attr,arg-type]  # set above
+    done: dict[str, tuple[np.ndarray, Any]] = {}
 
-    def counts_of(ra_v: SpikeTrains, scaled: bool, n_windows: int) -> np.ndarray:
-        if scaled not in ra_counts:
-            ra_counts[scaled] = ra_v.window_counts(p.window_s, n_windows)
-        return ra_counts[scaled]
-
-    for v, i in zip(variants, info):
+    def one(v: str, i: Any) -> tuple[np.ndarray, Any]:
+        """Variant ``v``'s features and, if stored, its spike trains (None otherwise)."""
         if not i.realtime:
             sa = sa_by["lf" if i.label_free else "force" if i.force_scaled else "none"]
             if i.speed_scaled:
                 sa_v, ra_v = sa.scale_times(coef), ra_scaled
-                feats[v] = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled
-                                          window_s=p.window_s, sr_factor=coef,
-                                          ra_counts=counts_of(ra_v, True, n_scaled))  # type: ignore[arg-type]
+                f = spike_features(sa_v, ra_v, n_windows=n_scaled,  # type: ignore[arg-type]  # set with scaled
+                                   window_s=p.window_s, sr_factor=coef, ra_counts=ra_counts[True])
             else:
                 sa_v, ra_v = sa, ra
-                feats[v] = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s,
-                                          ra_counts=counts_of(ra_v, False, n_unscaled))
-            if v in store_spikes:
-                spikes[v] = SpikeTrains.hstack([sa_v, ra_v])  # type: ignore[list-item]  # both set for a stored variant
+                f = spike_features(sa_v, ra_v, n_windows=n_unscaled, window_s=p.window_s, ra_counts=ra_counts[False])
+            # both set for a stored variant
+            return f, SpikeTrains.hstack([sa_v, ra_v]) if v in store_spikes else None  # type: ignore[list-item]
+        sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
+        if not i.speed_scaled:
+            f = realtime_features_unscaled(sa_rt, lengths / p.fs_hz, n_windows=p.n_windows_realtime,
+                                           window_s=p.window_s)
         else:
-            sa_rt = sa_by["none"].select_trains(_realtime_taxels(p, n_ch))
-            if not i.speed_scaled:
-                feats[v] = realtime_features_unscaled(sa_rt, lengths / p.fs_hz, n_windows=p.n_windows_realtime,
-                                                      window_s=p.window_s)
-            else:
-                ws = window_speed
-                if ws is None:
-                    speed_coefficient(speed)  # the same check (positive, finite) as the other speed variants
-                    ws = [np.full(windows_for(L / p.fs_hz, p.window_s), s) for L, s in zip(lengths, speed)]
-                scaled, edges = incremental_scale(sa_rt, ws, p.realtime_reference_speed_mm_s, p.window_s)
-                feats[v] = realtime_features(scaled, edges, n_windows=p.n_windows_realtime, window_s=p.window_s)
-            if v in store_spikes:
-                spikes[v] = sa_rt
+            ws = window_speed
+            if ws is None:
+                speed_coefficient(speed)  # the same check (positive, finite) as the other speed variants
+                ws = [np.full(windows_for(L / p.fs_hz, p.window_s), s) for L, s in zip(lengths, speed)]
+            scaled, edges = incremental_scale(sa_rt, ws, p.realtime_reference_speed_mm_s, p.window_s)
+            f = realtime_features(scaled, edges, n_windows=p.n_windows_realtime, window_s=p.window_s)
+        return f, sa_rt if v in store_spikes else None
+
+    def run(a: int, b: int) -> None:
+        for v, i in jobs[a:b]:
+            done[v] = one(v, i)
+
+    # the variants side by side on the encoder's threads (numba's count, the calling thread among them: the window
+    # counts and gathers are nogil kernels, the rest numpy), the largest first; each variant's work is its own, so
+    # the features are those of one after the other, bit for bit
+    jobs = sorted(zip(variants, info), key=lambda vi: (vi[1].realtime, vi[1].speed_scaled))
+    on_threads(run, len(jobs), 1)
+    feats = {v: done[v][0] for v in variants}
+    spikes = {v: done[v][1] for v in variants if done[v][1] is not None}
     return feats, spikes
