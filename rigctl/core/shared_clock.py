@@ -185,6 +185,7 @@ class SharedClock:
         self._alive_s = -math.inf  # the world's time at the host's last sign of life
         self._alive_wall = time.monotonic()  # when a sign of life that is not a wait last moved it on (wall clock)
         self._waits: dict[int, float] = {}  # deadlines of the host's waits not yet returned, s
+        self._looking = 0  # how many of them look at something besides the time (a ``ready``) after each step
         self._next_wait = 0
         self.horizon_s = self.lead_s
         self._stop = threading.Event()
@@ -292,6 +293,8 @@ class SharedClock:
             key = self._next_wait
             self._next_wait += 1
             self._waits[key] = deadline
+            if ready is not None:
+                self._looking += 1
         try:
             while True:
                 self._alive(t)
@@ -323,6 +326,8 @@ class SharedClock:
         finally:
             with self._lock:
                 del self._waits[key]
+                if ready is not None:
+                    self._looking -= 1
             self._alive(self.now())
 
     def note_write(self, path: str | os.PathLike[str], n_bytes: int) -> None:
@@ -356,10 +361,23 @@ class SharedClock:
 
     # ------------------------------------------------------------------ the world's side
     def moved(self) -> None:
-        """The world took a step (``world_notifies``): the host's waits look at its time again."""
-        if self._waits:
-            with self._moved:
-                self._moved.notify_all()
+        """The world took a step (``world_notifies``): the host's waits look at its time again - at once where one
+        looks for something besides the time (a ``ready``), else once the world has reached the earliest deadline
+        or come within a fifth of the lead of the horizon (the sleeping host then grants it more). A sleep
+        is not woken at each of the world's steps: an unpaced world steps thousands of times a second, and threads
+        that wake that often hold back the kernel's pty hops by seconds (``KERNEL_HOP_MAX_S``)."""
+        waits = self._waits
+        if not waits:
+            return
+        if not self._looking:
+            try:
+                now = self.now()
+                if now < min(waits.values()) and now + 0.2 * self.lead_s < self.horizon_s:
+                    return
+            except (ValueError, RuntimeError):  # a wait returned or began meanwhile: look again at once
+                pass
+        with self._moved:
+            self._moved.notify_all()
 
     def _regrant(self) -> None:
         """The horizon from the host's signs of life and waits (under the lock); the world told if it moved."""
