@@ -78,7 +78,15 @@ def test_sync_in_pulse_sets_the_flag_once(hil_rig, wait_frames):
     assert cap.seq[0] != 0 or cap.flags[0] & wire.FrameFlag.STREAMING_START
 
 
-def test_sampler_isr_fits_the_tick(hil_rig):
+def test_sampler_isr_fits_the_tick(hil_rig, wait_frames):
+    # the sampler runs while the stream does (stopped, the board scans nothing): a simulated second of streaming,
+    # then the harness's report of it (its largest tick since the start)
+    with TaxelStream(hil_rig.taxel_port) as stream:
+        stream.start()
+        stream.begin_capture()
+        assert wait_frames(stream, 1500)
+        stream.end_capture()
+        stream.stop()
     deadline = time.monotonic() + 5
     while "sampler_max_per_tick" not in hil_rig.isr and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -88,3 +96,34 @@ def test_sampler_isr_fits_the_tick(hil_rig):
     # the sampler (tick ISR + 18 ADC ISRs) leaves most of the tick's 16000 cycles free
     assert 18 * 20 < isr["sampler_max_per_tick"] < 0.5 * 16000
 
+
+
+def test_a_stopped_uno_sleeps_with_its_adc_off_and_starts_on_a_fresh_scan(hil_rig, wait_frames):
+    """Stopped, the board scans nothing (nothing reads a scan then), its ADC is off and loop() sleeps between the
+    tick and Timer0 (docs/firmware.md "Timing"): the harness's LOAD (cycles with interrupts off or a probe high, per
+    1 ms tick) is a few hundred of 16 000, where the scan alone took ~3 800 (24 %). START switches the ADC on at the
+    next tick, whose scan the first frame (seq 0, STREAMING_START) carries one tick later: no ADC_OVERRUN, and the
+    frames carry the waveform's rows in order from the first (the rows are ms of the board's time, scanned or not)."""
+    wave = np.arange(500 * wire.N_TAXELS, dtype=np.uint16).reshape(500, wire.N_TAXELS) % (wire.ADC_MAX + 1)
+    hil_rig.play_waveform(wave)
+    with TaxelStream(hil_rig.taxel_port) as stream:  # the open resets the Uno: it boots stopped
+        n0 = len(hil_rig.loads)
+        t0 = time.monotonic()
+        while len(hil_rig.loads) < n0 + 3:  # two whole simulated seconds after the partial first one
+            assert time.monotonic() - t0 < 60, "the Uno harness reports no load"
+            time.sleep(0.1)
+        stopped = hil_rig.loads[n0 + 1:]
+        busy = max(r["busy_cycles_per_tick"] for r in stopped)
+        print(f"stopped Uno: {busy:.0f} busy cycles per 1 ms tick of 16000 (largest tick "
+              f"{max(r['busy_max_per_tick'] for r in stopped):.0f})")
+        assert 0 < busy < 800
+        stream.start()
+        stream.begin_capture()
+        assert wait_frames(stream, 1200)
+        cap = stream.end_capture()
+        stream.stop()
+    assert cap.seq[0] == 0 and cap.flags[0] & wire.FrameFlag.STREAMING_START
+    assert not np.any(cap.flags & (wire.FrameFlag.ADC_OVERRUN | wire.FrameFlag.TX_OVERRUN))
+    assert np.all(np.diff(cap.seq.astype(np.int64)) == 1)
+    k0 = int(np.flatnonzero((wave == cap.samples[0]).all(axis=1))[0])
+    np.testing.assert_array_equal(cap.samples, wave[(k0 + np.arange(len(cap.seq))) % len(wave)])

@@ -754,8 +754,8 @@ void loop(void)
      * Checked with interrupts off and SLEEP right after SEI (the instruction after SEI runs before any interrupt), so
      * an interrupt that comes after the check wakes the CPU at once instead of being slept past. The watchdog is fed
      * at the top of every pass: at least once a tick. (Idle mode also starts a conversion of the ADC the Arduino core
-     * enables, 11.2: this sketch reads no analog input and takes no ADC interrupt. The Uno, whose sampler does, does
-     * not sleep.) */
+     * enables, 11.2: this sketch reads no analog input and takes no ADC interrupt. The Uno, whose sampler does,
+     * sleeps only with its ADC off, its stream stopped.) */
     cli();
     if (tick_ms == done_ms && !frame_ready && ((PIN_HX_DOUT_PIN >> PIN_HX_DOUT_BIT) & 1)) {
         sleep_enable();

@@ -357,10 +357,11 @@ static size_t wave_rows;
 static uint16_t *wave_pending; /* loaded by the stdin thread, swapped in at the start of the next scan */
 static size_t wave_pending_rows;
 static long long wave_pending_base = -1; /* scan number of the pending waveform's row 0 (-1: the scan it starts at) */
-static uint64_t scan_count;       /* Uno: ADC scans so far (one per 1 ms tick) */
+static uint64_t scan_count;       /* Uno: ADC scans so far (one per 1 ms tick; a tick without one counts too) */
 static uint64_t scan_base;        /* scan_count when the playing waveform started (row 0) */
-static int scans_running;         /* the Uno has started a conversion since its last reset (written by the simulation
-                                   * thread under wave_lock; a waveform loaded before then plays from the first scan) */
+static int scans_running;         /* the Uno has started a conversion (or ticked with its ADC off) since its last reset
+                                   * (written by the simulation thread under wave_lock; a waveform loaded before then
+                                   * plays from the first scan) */
 
 static int mux_set_taxel_ohm(const char *args);
 
@@ -601,7 +602,8 @@ static uint16_t taxel_value(size_t row, int taxel)
  * simavr's ADC converts. Source voltages are the waveform's counts at the centre of their code ((c + 0.5) LSB), so an
  * injected value comes back exact exactly when the error stays below 0.5 LSB; voltages go to simavr in units of
  * 0.1 mV (AVCC given as 50000). The taxels' source values change once per scan, when its last conversion has been
- * started (the row swap below). "MUX ..." lines report the largest error (sampled voltage minus the taxel's filtered
+ * started (the row swap below), and, while the board does not scan (its ADC off: the stream stopped), once per tick,
+ * at the tick interrupt (uno_tick_row): a row is a ms of the board's time either way. "MUX ..." lines report the largest error (sampled voltage minus the taxel's filtered
  * signal: its source through its RC alone, with nothing switching at it; in LSB) per second of simulated time, and the longest scan (the first conversion's
  * ADSC, i.e. the tick, to the end of the last conversion, us: it must end inside the 1 ms tick). */
 #define MUX_N 3
@@ -768,6 +770,17 @@ static void mux_before_select(void)
     sel_pending_cycle = avr->cycle;
 }
 
+/* ADCSRA written (after simavr's own hook, which stores it): ADEN 0 switches the ADC off, and the next conversion is
+ * a first one again (25 ADC clocks, sampled at 13.5: ATmega328P datasheet, "Starting a Conversion"; simavr times it
+ * so too) */
+static void adcsra_write_hook(struct avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    (void)addr;
+    (void)param;
+    if (!(v & (1 << 7))) adc_first_conv = 1; /* ADEN */
+}
+
 static void admux_write_hook(struct avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
 {
     (void)param;
@@ -826,6 +839,7 @@ static void mux_setup(void)
     for (int m = 0; m < MUX_N; m++) node_taxel[m] = m * 6; /* select 0 at power-up */
     avr->avcc = (uint32_t)(5000 * ADC_UNITS_PER_MV); /* simavr: counts = value * 1023 / avcc */
     avr_register_io_write(avr, M328_ADMUX, admux_write_hook, NULL);
+    avr_register_io_write(avr, M328_ADCSRA, adcsra_write_hook, NULL); /* beside simavr's ADC (its dispatcher) */
 }
 
 static void mux_report(void)
@@ -895,10 +909,25 @@ static void adc_trigger_hook(avr_irq_t *irq, uint32_t value, void *param)
     if (src == 2 && mux_sel == 5) uno_next_row(); /* the scan's last conversion: the taxels move on to the next row */
 }
 
+/* the sampler probe rose with the ADC off: the tick interrupt of a board that does not scan (the stream stopped; an
+ * ADC interrupt runs only with the ADC on). The taxels move on to the next row as a scan's last conversion would
+ * have moved them (~0.9 ms later in the tick): the rows, the waveforms' bases and the "scans" count stay ms of the
+ * board's time, as the host's renderer (rigctl.simulation.hil) takes them, whether or not the board samples. */
+static void uno_tick_row(void)
+{
+    if (!scans_running) {
+        pthread_mutex_lock(&wave_lock);
+        scans_running = 1;
+        pthread_mutex_unlock(&wave_lock);
+    }
+    uno_next_row();
+}
+
 static void probe_hook(avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     int p = (int)(intptr_t)param;
+    if (p == 0 && (value & 1) && !(probes_high & 1) && !(avr->data[M328_ADCSRA] & (1 << 7))) uno_tick_row();
     probes_high = (value & 1) ? (probes_high | (1 << p)) : (probes_high & ~(1 << p));
     if (value & 1) {
         probe_rise[p] = avr->cycle;

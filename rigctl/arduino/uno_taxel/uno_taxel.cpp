@@ -1,7 +1,7 @@
 /*
  * uno_taxel.cpp - Arduino Uno (ATmega328P, 16 MHz) taxel streamer, docs/wire-protocol.md section 1.
  *
- * Timer1 (CTC, /8, OCR1A = 1999) interrupts at exactly 1 kHz. Each tick:
+ * Timer1 (CTC, /8, OCR1A = 1999) interrupts at exactly 1 kHz. Each tick while streaming:
  *   - takes the previous tick's completed scan (or flags ADC_OVERRUN and repeats it if the scan is unfinished),
  *   - starts the next scan: 18 conversions walking the three 74HC4051 multiplexers (select lines D4-D6, outputs
  *     on A0-A2, taxel_frame.h has the order); each ADC-complete interrupt stores its result and selects the next
@@ -10,9 +10,12 @@
  *     queues it; the UART data-register-empty interrupt sends the bytes at 1,000,000 baud (U2X), so nothing
  *     ever busy-waits on the UART while sampling. A tick that finds both buffers taken drops its frame and
  *     sets TX_OVERRUN in the next one (the host sees the seq gap too).
- * Host commands (S, P, I) arrive through the UART receive interrupt and are handled in loop(); text replies are
- * sent only while the stream is stopped and the transmitter is idle. The Arduino core supplies main(), init()
- * and Timer0 (millis); HardwareSerial is not linked, the UART is driven here.
+ * While the stream is stopped nothing reads a scan: the tick starts none and switches the ADC off once the last one is
+ * over, and loop() sleeps (idle mode) between interrupts; START switches the ADC on again at the next tick, whose
+ * scan the first frame carries one tick later (adc_primed). Host commands (S, P, I) arrive through the UART receive
+ * interrupt and are handled in loop(); text replies are sent only while the stream is stopped and the transmitter is
+ * idle. The Arduino core supplies main(), init() and Timer0 (millis); HardwareSerial is not linked, the UART is
+ * driven here.
  *
  * Built with -DUNO_SA_ENCODER (the uno_encoder image, docs/firmware.md "The encoder in the Uno image"), the sketch
  * also runs the SA encoder (common/sa_encoder.c, integer kernel) on the 9 top-layer taxels of every sample while
@@ -24,6 +27,7 @@
 #include <avr/interrupt.h>
 #include <avr/io.h>
 #include <avr/pgmspace.h>
+#include <avr/sleep.h>
 #include <util/delay.h>
 
 #include "../common/crc16.h"
@@ -42,6 +46,7 @@ static volatile uint8_t adc_k;                          /* next conversion of th
 static volatile uint8_t adc_in, adc_sel; /* its analog input and select value: TAXEL_SCAN_ADC/SEL(adc_k), counted
                                           * (a division by 3 costs ~80 cycles per conversion on the AVR) */
 static volatile uint8_t adc_busy;                       /* a scan is running */
+static volatile uint8_t adc_primed; /* a scan has completed since the ADC was switched on: adc_ready_bank holds one */
 
 /* ---- stream state ----
  * The UDRE interrupt sends tx_left bytes from tx_ptr, then the next block of its queue (TX_QUEUE deep), if any.
@@ -218,6 +223,7 @@ ISR(ADC_vect)
         adc_ready_bank = w;
         adc_write_bank = (uint8_t)(w ^ 1);
         adc_busy = 0;
+        adc_primed = 1;
         adc_in = adc_sel = 0;
     }
     SAMPLER_PROBE_LEAVE();
@@ -251,51 +257,67 @@ ISR(TIMER1_COMPA_vect)
 {
     UNO_PROBE_PORT |= (1 << UNO_PROBE_SAMPLER);
     uint8_t flags = 0;
+    if (!streaming) {
+        /* stopped: no frame and no sample to queue, so no scan. Once the last one is over the ADC goes off (ADEN
+         * 0, ADIE 0): loop() then sleeps, and idle mode starts a conversion of an enabled ADC (ATmega328P datasheet,
+         * "Idle Mode"), which would come between the timed ones. ADMUX and the select lines keep input 0 */
+        if (!adc_busy) {
+            ADCSRA = UNO_ADC_PRESCALER_BITS;
+            adc_primed = 0;
+        }
+        UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+        return;
+    }
     if (adc_busy) {
         flags |= RIGCTL_FLAG_ADC_OVERRUN; /* the running scan keeps going; this frame repeats the last one */
     } else {
         adc_busy = 1;
         adc_k = 0;
-        adc_convert(); /* input 0 was selected when the last scan ended */
+        adc_convert(); /* input 0 was selected when the last scan ended; switches the ADC on if it was off (its
+                        * first conversion then takes 25 ADC clocks instead of 13: the scan ~24 us longer) */
     }
-    if (streaming) {
-        if (sync_latched) {
-            sync_latched = 0;
-            flags |= RIGCTL_FLAG_SYNC_IN;
-        }
-        if (start_pending) {
-            start_pending = 0;
-            flags |= RIGCTL_FLAG_STREAMING_START;
-        }
-        uint16_t s = seq++;
-        const uint16_t *ready = (const uint16_t *)adc_bank[adc_ready_bank]; /* the running scan writes the other */
+    if (!adc_primed) {
+        /* the first scan since the ADC went on is running: the first frame (seq 0, STREAMING_START) carries it at
+         * the next tick */
+        UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+        return;
+    }
+    if (sync_latched) {
+        sync_latched = 0;
+        flags |= RIGCTL_FLAG_SYNC_IN;
+    }
+    if (start_pending) {
+        start_pending = 0;
+        flags |= RIGCTL_FLAG_STREAMING_START;
+    }
+    uint16_t s = seq++;
+    const uint16_t *ready = (const uint16_t *)adc_bank[adc_ready_bank]; /* the running scan writes the other */
 #ifdef UNO_SA_ENCODER
-        if (encoding) { /* the encoder's sample instead of a taxel frame: loop() sends spike frames */
-            enc_enqueue(ready, flags);
-            UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
-            return;
-        }
-#endif
-        uint8_t owned = tx_owned; /* the transmitter only frees buffers: a free one stays free */
-        /* the frame is built with interrupts enabled, so that the scan's ADC and compare-B interrupts run on time
-         * (the first conversion ends 26 us after the tick, the frame and its CRC take ~75 us); the tick cannot
-         * come again before it is done (a ms) */
-        sei();
-        if ((owned & (TX_RAW0 | TX_RAW1)) == (TX_RAW0 | TX_RAW1)) {
-            tx_overrun_pending = 1; /* both buffers taken: drop this frame */
-        } else {
-            if (tx_overrun_pending) {
-                tx_overrun_pending = 0;
-                flags |= RIGCTL_FLAG_TX_OVERRUN;
-            }
-            uint8_t b = (owned & TX_RAW0) ? 1 : 0;
-            taxel_frame_build(tx_buf[b], s, flags, ready);
-            cli();
-            tx_push_locked(tx_buf[b], RIGCTL_FRAME_SIZE, b ? TX_RAW1 : TX_RAW0);
-            sei();
-        }
-        cli();
+    if (encoding) { /* the encoder's sample instead of a taxel frame: loop() sends spike frames */
+        enc_enqueue(ready, flags);
+        UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
+        return;
     }
+#endif
+    uint8_t owned = tx_owned; /* the transmitter only frees buffers: a free one stays free */
+    /* the frame is built with interrupts enabled, so that the scan's ADC and compare-B interrupts run on time
+     * (the first conversion ends 26 us after the tick, the frame and its CRC take ~75 us); the tick cannot
+     * come again before it is done (a ms) */
+    sei();
+    if ((owned & (TX_RAW0 | TX_RAW1)) == (TX_RAW0 | TX_RAW1)) {
+        tx_overrun_pending = 1; /* both buffers taken: drop this frame */
+    } else {
+        if (tx_overrun_pending) {
+            tx_overrun_pending = 0;
+            flags |= RIGCTL_FLAG_TX_OVERRUN;
+        }
+        uint8_t b = (owned & TX_RAW0) ? 1 : 0;
+        taxel_frame_build(tx_buf[b], s, flags, ready);
+        cli();
+        tx_push_locked(tx_buf[b], RIGCTL_FRAME_SIZE, b ? TX_RAW1 : TX_RAW0);
+        sei();
+    }
+    cli();
     UNO_PROBE_PORT &= (uint8_t)~(1 << UNO_PROBE_SAMPLER);
 }
 
@@ -539,8 +561,9 @@ void setup(void)
     UNO_PROBE_DDR |= (1 << UNO_PROBE_SAMPLER) | (1 << UNO_PROBE_TX) | (1 << UNO_PROBE_ENCODER) | (1 << UNO_PROBE_MARK);
     /* analog inputs A0-A2: digital input buffers off */
     DIDR0 = (1 << ADC0D) | (1 << ADC1D) | (1 << ADC2D);
-    ADCSRA = (uint8_t)((1 << ADEN) | UNO_ADC_PRESCALER_BITS);
+    ADCSRA = UNO_ADC_PRESCALER_BITS; /* off until the stream starts (the tick switches it on) */
     adc_select(0, 0);
+    set_sleep_mode(SLEEP_MODE_IDLE);
     /* sync-in D2 (INT0): input, rising edge */
     DDRD &= (uint8_t)~(1 << PD2);
     EICRA = (1 << ISC01) | (1 << ISC00);
@@ -603,4 +626,26 @@ void loop(void)
             send_line_P(identity_P);
         }
     }
+
+    /* nothing left to do until an interrupt: idle sleep (ATmega328P datasheet, "Idle Mode": the CPU stops, Timer0,
+     * Timer1, the UART and INT0 run on, and any enabled interrupt wakes it), only with the ADC off (the stream
+     * stopped and its last scan over: the tick switched it off) and no byte or sample waiting. Checked with interrupts
+     * off, SLEEP right after SEI (the instruction after SEI runs before any interrupt), so an interrupt after the
+     * check wakes the CPU at once instead of being slept past; nothing but loop() starts the stream, so the ADC
+     * cannot come on in between. The wake-ups are the tick, Timer0's millis, a host byte, the transmitter. While
+     * streaming, a pass only reads (no CLI/SEI): the harness skips the repeats of such a polling pass (docs/firmware.md,
+     * "A spinning core"). */
+    if (streaming || (ADCSRA & (1 << ADEN))) return;
+    cli();
+    if (rx_tail == rx_head
+#ifdef UNO_SA_ENCODER
+        && enc_q_tail == enc_q_head
+#endif
+    ) {
+        sleep_enable();
+        sei();
+        sleep_cpu();
+        sleep_disable();
+    }
+    sei();
 }
