@@ -3,11 +3,11 @@
 
 The host waits on the rig's clock (``rig.clock.sleep``: it grants the cores time as it goes, docs/architecture.md
 "Time on a simulated rig") for ``--seconds`` of simulated time; each run is idle firmware after boot (the Mega's
-loop and its HX711 at 80 SPS; the Uno sampling its 18 taxels every 1 ms), then the same with the drum turning at
-60 mm/s and the Uno streaming 1000 frames/s to a TaxelStream reader. Reported: simulated s / wall s, and the CPU
-seconds of the harness processes per simulated second (both, and each board's). The fault campaign drives the firmware this way:
-``with HilRig(paced=False, ...) as rig``, its clients on ``rig.clock`` (found by the port), its waits
-``rig.clock.sleep`` / ``rig.clock.wait_for``.
+loop and its HX711 at 80 SPS; the Uno stopped: since 2026-11-28 it scans nothing then and sleeps with its ADC off),
+then the same with the drum turning at 60 mm/s and the Uno streaming 1000 frames/s to a TaxelStream reader.
+Reported: simulated s / wall s, and the CPU seconds of the harness processes per simulated second (both, and each
+board's). The fault campaign drives the firmware this way: ``with HilRig(paced=False, ...) as rig``, its clients on
+``rig.clock`` (found by the port), its waits ``rig.clock.sleep`` / ``rig.clock.wait_for``.
 
 Usage: python benchmarks/bench_simavr_rate.py [--seconds 10] [--json]
 """
