@@ -70,6 +70,28 @@ def test_the_world_runs_a_bounded_lead_past_the_hosts_last_sign_of_life_and_wait
         assert t0 + 1.0 <= w.t <= t0 + 1.0 + LEAD_S + 0.0015
 
 
+def test_a_sleeping_host_is_not_woken_at_every_step_a_looking_one_is():
+    """A sleep wakes when the world reaches its deadline or nears the horizon its own wakes grant, not at each of the
+    world's 1 ms steps (threads that wake every few ms hold the kernel's pty hops back by seconds:
+    benchmarks/bench_pty_hop.py); a wait that looks for something besides the time is told of every step."""
+    with _running_world() as w:
+        told = [0]
+        notify_all = w.clock._moved.notify_all
+
+        def counted() -> None:
+            told[0] += 1
+            notify_all()
+
+        w.clock._moved.notify_all = counted
+        t0 = w.t
+        w.clock.sleep(1.0)  # 1,000 steps of the world
+        assert t0 + 1.0 <= w.t <= t0 + 1.0 + LEAD_S + 0.0015
+        assert told[0] <= 300, f"a 1 s sleep was told of {told[0]} of the world's 1,000 steps"
+        told[0], t0 = 0, w.t
+        assert not w.clock.wait_for(lambda: False, 0.2)  # looks after each step
+        assert told[0] >= 0.9 * (w.t - t0) * 1000, f"a looking wait was told of {told[0]} steps"
+
+
 @pytest.mark.parametrize("keep_wall", [True, False], ids=["streaming a source", "no source"])
 def test_a_paced_world_streaming_a_source_catches_up_the_time_its_host_lost(keep_wall):
     """Paced, a world held back by a silent host starts its pacing again from where it was let go, unless it streams
