@@ -21,6 +21,8 @@ from rigctl.devices import wire
 from rigctl.simulation import hil
 from rigctl.simulation.hil_clock import LOCK_SLOTS
 
+from ..sim_time import wall_to_run_on
+
 pytestmark = pytest.mark.hil
 
 
@@ -34,12 +36,7 @@ def _world_over(rig: hil.HilRig, wall_s: float) -> float:
 
 def _wall_to_go_on(rig: hil.HilRig, sim_s: float, within_s: float) -> float | None:
     """The wall time the boards take to run ``sim_s`` of simulated time, s; None if not within ``within_s``."""
-    t0, w0 = rig.clock.now(), time.monotonic()
-    while time.monotonic() - w0 < within_s:
-        if rig.clock.now() - t0 > sim_s:
-            return time.monotonic() - w0
-        time.sleep(0.01)
-    return None
+    return wall_to_run_on(rig.clock.now, sim_s, within_s)
 
 
 @pytest.mark.parametrize("board", ["mega", "uno"])

@@ -15,6 +15,8 @@ from rigctl.core.shared_clock import is_port_clock
 from rigctl.devices.drum import DrumClient
 from rigctl.simulation.rig import SimulatedRig
 
+from ..sim_time import wall_to_run_on
+
 #: the face: opens the rig's drum port as hardware, says whether it found the rig's clock, then polls the status
 FACE = """
 import sys, time
@@ -38,12 +40,7 @@ def _runs_on(sim: SimulatedRig, sim_s: float = 0.2, within_s: float = 60.0) -> b
     """Whether the world runs ``sim_s`` s on within ``within_s`` s of wall time (a bound on a hang, not a judgement of
     speed: beside two CPU hogs a face's first request sat in the kernel's pty hop longer than 0.5 s, and the world
     rightly stood for it meanwhile)."""
-    t0, w0 = sim.model_time_s(), time.monotonic()
-    while time.monotonic() - w0 < within_s:
-        if sim.model_time_s() - t0 > sim_s:
-            return True
-        time.sleep(0.05)
-    return False
+    return wall_to_run_on(sim.model_time_s, sim_s, within_s) is not None
 
 
 def test_a_stopped_face_of_another_process_pauses_the_world_and_a_killed_one_lets_it_run(tmp_path):
