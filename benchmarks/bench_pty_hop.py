@@ -22,6 +22,7 @@ hogs and 4 x 10 threads sleeping 1 ms, max 16.4 s; the same threads at nice 5, m
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import pty
 import select
@@ -79,14 +80,16 @@ def pollers(threads: int, step_s: float, seconds: float) -> None:
         t.join()
 
 
-def condition(hogs: int, procs: int, threads: int, step_s: float, seconds: float) -> list[float]:
-    """The probe's hops beside ``hogs`` CPU hogs and ``procs`` x ``threads`` short-sleeping threads."""
-    beside = [subprocess.Popen(["bash", "-c", "while :; do :; done"]) for _ in range(hogs)]
-    beside += [subprocess.Popen([sys.executable, __file__, POLLERS, str(threads), str(step_s), str(seconds + 2)])
-               for _ in range(procs)]
+def condition(hogs: int, procs: int, threads: int, step_s: float, seconds: float, own: bool) -> list[float]:
+    """The probe's hops beside ``hogs`` CPU hogs and ``procs`` x ``threads`` short-sleeping threads; ``own``: the
+    probe, each hog and each pollers' process in a session of its own (``setsid``: with Linux's autogroups, a
+    scheduling group of its own), else all in this one's."""
+    beside = [subprocess.Popen(["bash", "-c", "while :; do :; done"], start_new_session=own) for _ in range(hogs)]
+    beside += [subprocess.Popen([sys.executable, __file__, POLLERS, str(threads), str(step_s), str(seconds + 2)],
+                                start_new_session=own) for _ in range(procs)]
     try:
         out = subprocess.run([sys.executable, __file__, PROBE, str(seconds)], capture_output=True, text=True,
-                             check=True).stdout
+                             check=True, start_new_session=own).stdout
         return [float(v) for v in out.split()]
     finally:
         for p in beside:
@@ -107,18 +110,19 @@ def main() -> None:
     ap.add_argument("--procs", type=int, default=4)
     ap.add_argument("--threads", type=int, default=10)
     ap.add_argument("--steps", default="0.001,0.005,0.02", help="the threads' sleeps, s, comma-separated")
+    ap.add_argument("--sessions", default="one,own",
+                    help="one: everything in this session; own: each process in a session of its own; comma-separated")
     a = ap.parse_args()
     conditions = [(a.hogs, 0, 0.0)] + [(a.hogs, a.procs, float(s)) for s in a.steps.split(",")]
     conditions.append((0, a.procs, float(a.steps.split(",")[0])))
-    print(f"{'hogs':>4} {'threads':>8} {'sleep ms':>8} {'hops':>5} {'median ms':>9} {'p99 ms':>8} {'max ms':>8} "
-          f"{'> 1 s':>5}  load")
-    for hogs, procs, step in conditions:
-        hops = sorted(condition(hogs, procs, a.threads, step, a.seconds))
+    print(f"{'session':>7} {'hogs':>4} {'threads':>8} {'sleep ms':>8} {'hops':>5} {'median ms':>9} {'p99 ms':>8} "
+          f"{'max ms':>8} {'> 1 s':>5}  load")
+    for (hogs, procs, step), sessions in itertools.product(conditions, a.sessions.split(",")):
+        hops = sorted(condition(hogs, procs, a.threads, step, a.seconds, sessions == "own"))
         p99 = hops[min(len(hops) - 1, int(0.99 * len(hops)))]
-        print(f"{hogs:>4} {procs * a.threads:>8} {step * 1e3:>8.0f} {len(hops):>5} "
+        print(f"{sessions:>7} {hogs:>4} {procs * a.threads:>8} {step * 1e3:>8.0f} {len(hops):>5} "
               f"{statistics.median(hops) * 1e3:>9.2f} {p99 * 1e3:>8.1f} {hops[-1] * 1e3:>8.1f} "
               f"{sum(h > 1.0 for h in hops):>5}  {os.getloadavg()[0]:.1f}")
-
 
 if __name__ == "__main__":
     main()

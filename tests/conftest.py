@@ -69,6 +69,26 @@ def pytest_configure(config):
     (cfg_dir / "lsl_api.cfg").write_text(LSL_API_CFG)
     os.environ["LSLAPICFG"] = str(cfg_dir / "lsl_api.cfg")
     config._rigctl_lsl_cfg_dir = cfg_dir
+    own_session_per_worker()
+
+
+def own_session_per_worker() -> None:
+    """A pytest-xdist worker leads a session of its own (``setsid``), and so, with Linux's autogroups
+    (``/proc/sys/kernel/sched_autogroup_enabled``, on by default), a scheduling group of its own, with the simulated
+    rigs, simavr harnesses and CLI subprocesses it starts. In one session, the whole suite and the CPU hogs started
+    beside it (a shell's ``.ci/run`` and its ``while :; do :; done`` loops) shared one group, and the kernel worker
+    that hands a pty's bytes from writer to reader (``flush_to_ldisc`` on the unbound workqueue, outside every
+    session's group) sat runnable for seconds while that group's threads ran: traced (ftrace, Linux 6.18), a
+    kworker woken at once ran 2.3 s later; a plain 8-byte pty hop beside 40 threads waking every 1-5 ms and two hogs,
+    all in one session, took up to 7.4-26.6 s, each in a session of its own at most 3 ms
+    (benchmarks/bench_pty_hop.py). Those hops were the loaded runs' DrumTimeouts, stalled guides and slow STOPs
+    (issue 54). Nothing else changes: a worker has no terminal of its own to lose, and the tests that press Ctrl-C
+    send it to the process they started. The controller (not a worker) stays in the caller's session."""
+    if os.environ.get("PYTEST_XDIST_WORKER") and os.getsid(0) != os.getpid():
+        try:
+            os.setsid()
+        except OSError:  # already a process group's leader: stays where it is
+            pass
 
 
 @pytest.hookimpl(trylast=True, specname="pytest_configure")

@@ -150,3 +150,48 @@ def test_every_realtime_mark_says_why_and_none_is_in_a_shared_clock_folder():
     assert not unexplained, unexplained
     shared = [f"{f}:{n}" for f, n, _ in marks if f.split("/")[0] in SHARED_CLOCK_FOLDERS]
     assert not shared, shared
+
+
+#: a sandbox suite of two modules, each writing its worker's pid and session id
+SESSION_TESTS = """
+import os
+from pathlib import Path
+
+
+def test_where_i_run():
+    Path(os.environ["SANDBOX_RUNS"], os.environ["PYTEST_XDIST_WORKER"]).write_text(f"{os.getpid()} {os.getsid(0)}")
+"""
+
+
+def test_each_worker_leads_a_session_of_its_own(tmp_path):
+    """tests/conftest.py's :func:`own_session_per_worker`: every pytest-xdist worker of a parallel run leads its own
+    session (its own scheduling group under Linux's autogroups: the kernel's pty worker is not held back behind one
+    group holding the whole suite and the CPU hogs beside it), and the controller stays in the caller's session."""
+    suite, runs = tmp_path / "suite", tmp_path / "runs"
+    suite.mkdir()
+    runs.mkdir()
+    for name in ("test_a.py", "test_b.py"):
+        (suite / name).write_text(textwrap.dedent(SESSION_TESTS))
+    (suite / "conftest.py").write_text(textwrap.dedent(f"""
+        import importlib.util
+
+        spec = importlib.util.spec_from_file_location("suite_conftest", {str(TESTS / "conftest.py")!r})
+        suite = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(suite)
+
+
+        def pytest_configure(config):
+            suite.own_session_per_worker()
+        """))
+    env = {**os.environ, "SANDBOX_RUNS": str(runs), "PYTHONDONTWRITEBYTECODE": "1"}
+    p = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2",
+                          "--dist", "loadfile", "--rootdir", str(suite), "-c", os.devnull, str(suite)],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=suite, env=env)
+    controller_sid = os.getsid(p.pid)
+    out, _ = p.communicate(timeout=120)
+    assert p.returncode == 0, out[-2000:]
+    assert controller_sid == os.getsid(0)  # the controller: the caller's session
+    workers = {f.name: tuple(int(x) for x in f.read_text().split()) for f in runs.iterdir()}
+    assert sorted(workers) == ["gw0", "gw1"], (workers, out[-800:])
+    for name, (pid, sid) in workers.items():
+        assert sid == pid != controller_sid, (name, pid, sid, controller_sid)

@@ -57,14 +57,18 @@ LEAD_S = 0.05
 #: at most this long, and a stamp older than that is not a frame on its way (a host whose write failed, or that
 #: dropped a reply unseen, and then went silent is silent to the watchdog): the virtual Mega
 #: (rigctl.simulation.virtual_mega) and the simavr harnesses (rigctl.simulation.hil_clock). 30 s: on this 2-core
-#: machine (Linux 6.18) a pty hop's tail is set by the threads that wake often, not by the CPU hogs: beside two hogs
-#: alone a plain 8-byte hop took at most 0.15 s, beside 40 Python threads that sleep 1-5 ms at a time (what the
-#: simulated rigs of four test processes do) at most 4.7-16.4 s, with or without hogs and with those threads at nice
-#: 5 (27.8 s once), and beside threads that sleep 20 ms at most 1.0 s (benchmarks/bench_pty_hop.py); inside the
-#: conformance tests beside two hogs and a neighbour's load a Modbus reply sat 29.5 s in the kernel (the server had
-#: written it, its event loop idle, no byte at the bridge's end), and at 10 s the host's answer wait gave up on it
-#: (DrumTimeout "3 timeouts, 1 stale responses", three of six loaded CI runs); at 2 s, requests and answers held
-#: longer ran the host's answer timeouts out and a speed the host had sent reached the Uno's encoder 4.4 s late
+#: machine (Linux 6.18) a pty hop's tail is set by the scheduling group its processes share: with autogroups (on by
+#: default) a session is one group, and the kernel worker that hands a pty's bytes on (outside every group) sat
+#: runnable for seconds while one busy group's threads ran (traced: woken at once, run 2.3 s later). A plain 8-byte
+#: hop beside two CPU hogs and 40 Python threads that sleep 1-5 ms at a time, all in one session, took up to
+#: 7.4-26.6 s; each process in a session of its own, at most 3 ms (benchmarks/bench_pty_hop.py). The test suite
+#: gives each of its workers a session of its own (tests/conftest.py); a person runs rigctl in a session shared
+#: with whatever else they started there, and a bench's USB-serial driver hands its bytes on through the same kernel
+#: worker. Inside the conformance tests, all in one session beside two hogs, a Modbus reply sat 29.5 s in the kernel
+#: (the server had written it, its event loop idle, no byte at the bridge's end), and at 10 s the host's answer wait
+#: gave up on it (DrumTimeout "3 timeouts, 1 stale responses", three of six loaded CI runs); at 2 s, requests and
+#: answers held longer ran the host's answer timeouts out and a speed the host had sent reached the Uno's encoder
+#: 4.4 s late
 KERNEL_HOP_MAX_S = 30.0
 #: the longest a host's wait for an answer goes on past its deadline while the answer is known to be on its way,
 #: s of wall time (:meth:`SharedClock.wait_for`'s ``in_flight``): the kernel's longest hop
