@@ -205,6 +205,7 @@ class SharedClock:
         #: watchdog: a world that stood would lag a live sample source for good)
         self.stands_while_in_flight = False
         self._written: dict[str, float] = {}  # a port's path -> when the host last began to write to it (wall)
+        self._written_before: dict[str, float] = {}  # and the stamp the last write's replaced (write_failed)
         self._read: dict[str, float] = {}  # a port's path -> when the host last found bytes to read on it (wall)
 
     # ------------------------------------------------------------------ lifecycle (the heartbeat)
@@ -340,10 +341,27 @@ class SharedClock:
         sees them (:meth:`written_at`; a pty hands a writer's bytes on through a kernel worker, which a loaded machine
         holds back for hundreds of ms), and a simavr harness waits until it has read that many more bytes
         (``on_stamp``). Also a sign of life (:meth:`touch`)."""
+        name = os.fspath(path)
+        self._written_before[name] = self._written.get(name, 0.0)
         _stamp(self._written, path)
         if self.on_stamp is not None:
-            self.on_stamp(os.fspath(path), True, int(n_bytes))
+            self.on_stamp(name, True, int(n_bytes))
         self.touch()
+
+    def write_failed(self, path: str | os.PathLike[str], n_bytes: int) -> None:
+        """The write of ``n_bytes`` bytes to ``path`` that :meth:`note_write` last stamped raised (a port gone, an I/O
+        error): none of its bytes is on its way. Its stamp is taken back, the one before it stands
+        (:meth:`written_at`), and ``on_stamp`` is told with ``-n_bytes`` (a simavr harness then waits for none of
+        them): a board would otherwise take the host for one that spoke, and wait for its bytes, for up to
+        :data:`KERNEL_HOP_MAX_S` of wall time (a watchdog that latches that much later than on a bench). A stamp a
+        later :meth:`note_write` made stays."""
+        name = os.fspath(path)
+        before = self._written_before.pop(name, None)
+        if before is None:
+            return
+        self._written[name] = before
+        if self.on_stamp is not None:
+            self.on_stamp(name, True, -int(n_bytes))
 
     def written_at(self, path: str | os.PathLike[str]) -> float:
         """When the host last began to write to ``path`` (:meth:`note_write`; ``time.monotonic``, 0.0 if never).

@@ -241,9 +241,15 @@ class OnboardEncoder:
         self.speed_windows: list[int] = []
 
     def _write(self, data: bytes) -> None:
-        if self._clock is not None:
-            self._clock.note_write(self._name, len(data))
-        self.port.write(data)
+        if self._clock is None:
+            self.port.write(data)
+            return
+        self._clock.note_write(self._name, len(data))
+        try:
+            self.port.write(data)
+        except BaseException:  # nothing is on its way: the stamp is taken back
+            self._clock.write_failed(self._name, len(data))
+            raise
 
     @property
     def samples(self) -> int:

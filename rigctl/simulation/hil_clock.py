@@ -121,11 +121,17 @@ class HilClockFile:
         (``written`` True; reads are not stamped): the bytes its stamped writes bring to the board, the bytes the
         harness has read or those the stamps before brought, whichever is more, plus ``n_bytes`` (the stamps before
         count only while the last is less than :data:`KERNEL_HOP_MAX_S` old: a write that failed brings nothing),
-        then the moment, ``time.monotonic_ns`` (the harness's ``CLOCK_MONOTONIC``) + 1, in its board's slots. A
-        port of no board of this file is ignored."""
+        then the moment, ``time.monotonic_ns`` (the harness's ``CLOCK_MONOTONIC``) + 1, in its board's slots.
+        ``n_bytes`` negative: a stamped write that failed (:meth:`SharedClock.write_failed`), whose bytes the harness
+        no longer waits for. A port of no board of this file is ignored."""
         board = self._write_slots.get(path) if written else None
         slots = self._slots
         if board is None or slots is None:
+            return
+        if n_bytes < 0:  # a stamped write that failed (SharedClock.write_failed): its bytes are not on their way
+            with self._stamp_lock:
+                read = int(slots[5 + board])
+                slots[7 + board] = np.uint64(max(read, int(slots[7 + board]) + int(n_bytes)))
             return
         with self._stamp_lock:
             now_ns = time.monotonic_ns()

@@ -78,6 +78,22 @@ def test_a_host_write_the_kernel_still_holds_keeps_the_boards_standing(fw_build,
             _assert_goes_on(rig)
 
 
+def test_a_host_write_that_failed_holds_the_boards_no_longer(fw_build):
+    """A stamped write that raised (``SharedClock.write_failed``: a port gone, an I/O error) brought the harness no
+    bytes to wait for: the boards go on at once, not after the stamp's KERNEL_HOP_MAX_S (30 s)."""
+    with hil.HilRig(live=False, with_uno=False) as rig:
+        with serial.Serial(rig.drum_port, timeout=0.05):
+            t0 = time.monotonic()
+            while rig.clock.now() < 1.0:
+                assert time.monotonic() - t0 < 30, "the boards did not start"
+                time.sleep(0.02)
+            rig.clock.note_write(rig.drum_port, 8)
+            held = _world_over(rig, 0.6)
+            assert held < 0.02, f"the mega ran {held * 1e3:.0f} ms while the host's bytes were on their way"
+            rig.clock.write_failed(rig.drum_port, 8)  # the write raised: nothing is on its way
+            _assert_goes_on(rig)
+
+
 def _assert_goes_on(rig: hil.HilRig) -> None:
     """The world goes on when the harness has read the bytes, long before the hold's own end would free it; how soon
     is the kernel's and the machine's (a CI run with seven workers took more than 0.4 s of wall to go 0.2 s)."""

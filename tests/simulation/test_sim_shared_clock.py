@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from rigctl.core.shared_clock import LEAD_S, SharedClock, attach_port_clock, release_port_clock
-from rigctl.devices.drum import DrumClient
+from rigctl.devices.drum import DrumClient, DrumError
 from rigctl.devices.wire import DrumState, Fault, HoldingRegister as HR
 from rigctl.simulation.rig import SimulatedRig
 
@@ -262,6 +262,38 @@ def _on_its_way_to_the_watchdog(face: str) -> bool:
             if clock is not sim.clock:
                 release_port_clock(clock)
     return True
+
+
+@pytest.mark.parametrize("face", ["this process", "another process"])
+def test_a_write_that_failed_is_not_on_its_way(face):
+    """A host's write stamped before it went out (``note_write``) that then raised brought nothing: its stamp is
+    taken back (``SharedClock.write_failed``), and the board neither stands for it nor takes the host for one that
+    spoke; before, the stamp stood for up to KERNEL_HOP_MAX_S (30 s) of wall time, and a silent host's watchdog
+    latched that much later than on a bench."""
+    import serial
+
+    with SimulatedRig() as sim:
+        clock = sim.clock if face == "this process" else attach_port_clock(sim.drum_port)
+        c = DrumClient(sim.drum_port, clock=clock, timeout_s=2.0, retries=0).open()  # no retry: it would reopen
+        try:
+            c.read_status()
+            assert not sim.mega.request_on_its_way()
+            port = c._client.socket
+
+            def broken(data: bytes) -> int:
+                raise serial.SerialException("write failed: [Errno 5] Input/output error")
+
+            port.write = broken
+            with pytest.raises(DrumError, match="write failed"):
+                c.read_status()
+            assert not sim.mega.request_on_its_way()
+            assert c.read_status().state is not None  # the port opened afresh
+            clock.note_write(sim.drum_port, 8)  # a stamped write with no failure: on its way, as before
+            assert sim.mega.request_on_its_way()
+        finally:
+            c.close()
+            if clock is not sim.clock:
+                release_port_clock(clock)
 
 
 @pytest.mark.slow
