@@ -61,7 +61,6 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigctl.core.normalisation import column_extremes
 from rigctl.core.progress import ProgressCallback, Stage
 from rigctl.storage.onboard_group import onboard_samples
 from rigctl.storage.outputs import size_text
@@ -70,7 +69,8 @@ from rigctl.storage.session_reader import (
     SessionReader as Session,  # checked here; session.Session calls us
     as_count,
 )
-from rigctl.storage.session_recording import TRACES as _TRACES, read_rows
+from rigctl.storage.session_recording import GROUP
+from rigctl.storage.trial_blocks import Block, Entry, Sums, block_seq_gaps, block_sums, read_entries
 from rigctl.storage.trial_facts import (
     TRACE_NAMES as _TRACE_NAMES,
     aligned,
@@ -98,24 +98,6 @@ class TrialsExcluded(UserWarning):
 def max_count(slots: int) -> int:
     """The largest plausible ``dropped_frames`` / ``crc_errors`` of a trial of ``slots`` frame slots."""
     return 16 * max(0, int(slots)) + 1024
-
-
-def block_seq_gaps(seq: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """:func:`seq_gaps` of every trial of a block stored back to back: trial ``i`` is ``seq[pos[i]:pos[i + 1]]``
-    (``pos`` (n_trials + 1,) non-decreasing, from 0 to ``seq.size``); (n_trials,) int64. Only the jumps are
-    gathered (a recording has few): a block of a million rows costs one difference and one comparison."""
-    pos = np.asarray(pos, dtype=np.int64)
-    gaps = np.zeros(max(pos.size - 1, 0), dtype=np.int64)
-    # uint16 differences wrap at 65,536 by themselves
-    d = np.diff(seq) if seq.dtype == np.uint16 else np.mod(np.diff(seq.astype(np.int64)), 65536)
-    k = np.flatnonzero(d > 1)  # a jump between samples k and k + 1
-    if k.size == 0 or gaps.size == 0:
-        return gaps
-    trial = np.searchsorted(pos, k, side="right") - 1  # the trial holding sample k ...
-    inside = (trial >= 0) & (trial < gaps.size)
-    inside[inside] &= k[inside] + 1 < pos[trial[inside] + 1]  # ... and sample k + 1 (not the next trial's first)
-    np.add.at(gaps, trial[inside], d[k[inside]].astype(np.int64) - 1)
-    return gaps
 
 
 @dataclass
@@ -304,7 +286,7 @@ def _check_session(session: Session, progress: ProgressCallback | None) -> Trial
 def _recording_problem(session: Session) -> str | None:
     """Schema 4: what makes every trial unusable in the recording arrays themselves (a type or shape other than
     the documented one), or None."""
-    from rigctl.storage.session_recording import GROUP, STORED_DTYPES
+    from rigctl.storage.session_recording import STORED_DTYPES
 
     rec = session._f[GROUP]
     for name, dt in STORED_DTYPES.items():
@@ -462,8 +444,6 @@ def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], r
     trials at once; only a trial one of them refuses is looked at alone (for its reason). A trial with trusted facts
     (:meth:`Session.trusted_facts`: the file is as rigctl's writer left it, which made its group from the index row)
     has its group as written: not opened."""
-    from rigctl.storage.session_recording import GROUP
-
     rows, have = session.index_rows(ids)
     facts, trusted = aligned(session.trusted_facts(), ids, rows)
     trusted &= have
@@ -526,7 +506,7 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     # its taxels compared with the checksum stored with them; a trial edited since (its modification time put back)
     # or whose stored chunk cannot be read is excluded by itself, named
     known = np.zeros(len(todo), dtype=bool)
-    entries: list[_Entry] = [(tid, r, None, False, facts[i] if trusted[i] else None) for i, (tid, r) in enumerate(todo)]
+    entries: list[Entry] = [(tid, r, None, False, facts[i] if trusted[i] else None) for i, (tid, r) in enumerate(todo)]
     spans: list[tuple[int, int]] = []
     k = 0
     while k < len(todo):
@@ -540,10 +520,10 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     # hashlib and numpy release the GIL) while this thread reads block k + 1 and judges block k - 1, in order
     adc_max = session.layout.adc_max
     with ThreadPoolExecutor(1, thread_name_prefix="rigctl-validate") as pool:
-        pending: tuple[_Block, Future[_Sums], int] | None = None
+        pending: tuple[Block, Future[Sums], int] | None = None
         for k, j in spans:
-            blk = _read_entries(session, entries[k:j])
-            sums = pool.submit(_block_sums, blk, adc_max)
+            blk = read_entries(session._f[GROUP], entries[k:j])
+            sums = pool.submit(block_sums, blk, adc_max)
             if pending is not None:
                 _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies)
                 stage.advance(pending[2])
@@ -556,103 +536,10 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
     report.excluded = dict(sorted(report.excluded.items(), key=lambda kv: order[kv[0]]))
 
 
-def _read_block(rec: Any, read: list[np.void], n_ch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                   list[str | None], dict[int, str]]:
-    """(seq, taxels, row offsets, non-finite texts, {i: why} of the trials whose stored data cannot be read) of the
-    trials ``read`` back to back: read together, or, when a damaged chunk stops that, trial by trial."""
-    starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
-    lengths = np.array([int(r["n_samples"]) for r in read], dtype=np.int64)
-    pos = np.concatenate([[0], np.cumsum(lengths)])
-    seq = np.zeros(int(pos[-1]), dtype=np.uint16)
-    tax = np.zeros((int(pos[-1]), n_ch), dtype=np.uint16)
-    try:
-        read_rows(rec["seq"], starts, lengths, seq)
-        read_rows(rec["taxels"], starts, lengths, tax)
-        return seq, tax, pos, _block_nonfinite(rec, read), {}
-    except _READ_ERRORS:
-        pass
-    failed: dict[int, str] = {}
-    bad: list[str | None] = []
-    for i, r in enumerate(read):
-        a, b = int(pos[i]), int(pos[i + 1])
-        try:
-            read_rows(rec["seq"], starts[i:i + 1], lengths[i:i + 1], seq[a:b])
-            read_rows(rec["taxels"], starts[i:i + 1], lengths[i:i + 1], tax[a:b])
-            bad += _block_nonfinite(rec, [r])
-        except _READ_ERRORS as exc:
-            failed[i] = (f"its stored data cannot be read (a damaged chunk: {' '.join(str(exc).split())[:120]}); "
-                         "the other trials are read as usual")
-            bad.append(None)
-    return seq, tax, pos, bad, failed
-
-
-#: what h5py raises for a chunk that does not decompress or a read the file cannot give
-_READ_ERRORS = (OSError, RuntimeError, ValueError)
-
-
-#: a trial of a block: (trial id, index row, facts row or None, whether the facts count non-finite readings, the
-#: sealed facts row its taxels are checked against or None)
-_Entry = tuple[int, np.void, np.void | None, bool, np.void | None]
-
-
-@dataclass
-class _Block:
-    """A block of trials as read (:func:`_read_entries`): the entries, and of the trials read (those without facts
-    used instead of their samples), their seq and taxels back to back, row offsets, first rows in the file,
-    non-finite texts and the trials whose stored data cannot be read (:func:`_read_block`)."""
-
-    entries: list[_Entry]
-    seq: np.ndarray
-    tax: np.ndarray
-    pos: np.ndarray
-    starts: np.ndarray
-    bad: list[str | None]
-    failed: dict[int, str]
-
-
-#: (seq gaps per trial read, counts all inside the ADC range, SHA-256 of each read trial's taxels that has a sealed
-#: checksum to meet, else None, each read trial's per-taxel (minimum, maximum) or None: empty or unreadable)
-_Sums = tuple[np.ndarray, bool, list[bytes | None], list[np.ndarray | None]]
-
-
-def _read_entries(session: Session, block: list[_Entry]) -> _Block:
-    """Read a block's trials (those without facts used instead of their samples) together (:func:`_read_block`)."""
-    from rigctl.storage.session_recording import GROUP
-
-    rec = session._f[GROUP]
-    read = [r for _, r, q, _, _ in block if q is None]
-    seq, tax, pos, bad, failed = _read_block(rec, read, int(rec["taxels"].shape[1]))
-    starts = np.array([int(r["sample_start"]) for r in read], dtype=np.int64)
-    return _Block(block, seq, tax, pos, starts, bad, failed)
-
-
-def _block_sums(blk: _Block, adc_max: int) -> _Sums:
-    """What a block's samples say, computed apart from the judging (on the validator's worker thread): the seq
-    gaps, whether every count is inside ``0 .. adc_max``, the SHA-256 of each read trial's taxels that has a
-    sealed checksum and each read trial's per-taxel extremes (:attr:`TrialReport.taxel_extremes`; neither for a
-    trial whose data cannot be read, nor an empty one)."""
-    from rigctl.storage.trial_facts import sha256
-
-    gaps = block_seq_gaps(blk.seq, blk.pos)
-    digests: list[bytes | None] = []
-    extremes: list[np.ndarray | None] = []
-    for sealed in (e[4] for e in blk.entries if e[2] is None):
-        i = len(digests)
-        a, b = int(blk.pos[i]), int(blk.pos[i + 1])
-        readable = b > a and i not in blk.failed
-        digests.append(sha256(blk.tax[a:b]) if sealed is not None and readable else None)
-        extremes.append(np.stack(column_extremes(blk.tax[a:b])).astype(blk.tax.dtype) if readable else None)
-    # every count read is inside the range (uint16: never below 0), from the trials' maxima: no pass of its own
-    in_range = all(int(x[1].max()) <= adc_max for x in extremes if x is not None)
-    return gaps, in_range, digests, extremes
-
-
-def _judge_block(session: Session, blk: _Block, sums: _Sums, plan: dict[int, Any], rate: float,
+def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any], rate: float,
                  report: TrialReport, copies: "_Copies") -> None:
     """:func:`_check_data` of a block's trials in order: those with facts on them, the others on their samples
-    (read in :func:`_read_entries`, summed in :func:`_block_sums`)."""
-    from rigctl.storage.session_recording import GROUP
-
+    (read in :func:`read_entries`, summed in :func:`block_sums`)."""
     taxels_ds = session._f[GROUP]["taxels"]
     n_ch = int(taxels_ds.shape[1])
     gaps, in_range, digests, extremes = sums
@@ -685,21 +572,6 @@ def _judge_block(session: Session, blk: _Block, sums: _Sums, plan: dict[int, Any
             report.taxel_extremes[tid] = ext
         i += 1
 
-
-def _block_nonfinite(rec: Any, rows: list[np.void]) -> list[str | None]:
-    """:func:`_nonfinite_text` of each trial of a block, from the trace arrays (one read per run of trials)."""
-    counts: dict[str, list[np.ndarray]] = {}
-    for value, times, prefix in ((v, t, p) for v, t, p in _TRACES):
-        starts = np.array([int(r[f"{prefix}_start"]) for r in rows], dtype=np.int64)
-        lengths = np.array([int(r[f"n_{prefix}"]) for r in rows], dtype=np.int64)
-        pos = np.concatenate([[0], np.cumsum(lengths)])
-        for name in (value, times):
-            buf = np.empty(int(pos[-1]), dtype=np.float64)
-            read_rows(rec[name], starts, lengths, buf)
-            for what, test in (("NaN", np.isnan), ("inf", np.isinf)):
-                c = np.concatenate([[0], np.cumsum(test(buf))])
-                counts[f"{what} in {name}"] = c[pos[1:]] - c[pos[:-1]]
-    return [nonfinite_text({key: int(c[i]) for key, c in counts.items()}) for i in range(len(rows))]
 
 
 def _read_trial(ds: Any, start: int, n: int) -> np.ndarray:

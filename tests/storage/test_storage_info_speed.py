@@ -18,7 +18,7 @@ import pytest
 from click.testing import CliRunner
 
 from rigctl.cli import main
-from rigctl.storage import validate
+from rigctl.storage import trial_blocks
 from rigctl.storage.session import SessionWriter, TrialData
 from rigctl.storage.session_reader import SessionReader
 from rigctl.storage.session_recording import read_rows
@@ -63,7 +63,7 @@ def test_info_reads_no_trial_one_by_one(many, monkeypatch):
     monkeypatch.setattr(SessionReader, "trial", refused)
     # the file as its writer left it: the validator opens no group and reads the samples in blocks
     monkeypatch.setattr(SessionReader, "flat_group_problem", no_group)
-    monkeypatch.setattr(validate, "read_rows", no_samples)
+    monkeypatch.setattr(trial_blocks, "read_rows", no_samples)
     r = CliRunner().invoke(main, ["info", str(many), "--json"])
     assert r.exit_code == 0, r.output
     trials = json.loads(r.stdout)["trials"]

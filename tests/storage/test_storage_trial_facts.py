@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rigctl.core.sensor import PAPER_SENSOR
-from rigctl.storage import trial_facts, validate
+from rigctl.storage import trial_blocks, trial_facts
 from rigctl.storage.session import SessionError, SessionWriter, TrialData, open_session
 from rigctl.storage.session_reader import SessionReader
 from rigctl.storage.validate import precheck, usable_trials
@@ -136,14 +136,14 @@ def _judged(path: Path) -> tuple:
 def _taxel_reads():
     """The trials' taxel rows the validator reads (``read_rows`` of ``/recording/taxels``), as a list of counts."""
     rows: list[int] = []
-    real = validate.read_rows
+    real = trial_blocks.read_rows
 
     def counting(ds, starts, lengths, out):
         if ds.name == "/recording/taxels":
             rows.extend(int(n) for n in lengths)
         return real(ds, starts, lengths, out)
 
-    with mock.patch.object(validate, "read_rows", counting):
+    with mock.patch.object(trial_blocks, "read_rows", counting):
         yield rows
 
 
