@@ -37,7 +37,9 @@ is 3 GB as uint16 and 12 GB as float64, so nothing float64 is held for more than
    attributes), and the encode pass reads each batch again. Peak memory is therefore independent of the dataset's
    size: ``fit_memory_bytes`` plus one batch's readings and spike trains plus the libraries (about 1.6 GB at the
    defaults; measured in ``benchmarks/bench_paper.py``). The kernel normalises ``uint16`` counts on the fly, so the fit never makes a float
-   copy of 1 kHz sessions.
+   copy of 1 kHz sessions. The counts kept (the fit's subsample, or every trial) are those the trial validator
+   read for its check, handed over as it passes them (:class:`rigctl.storage.validate.KeptTaxels`), not read again;
+   where the batches are read again, the range is folded from the per-taxel extremes the validator found in them.
 2. **Force fit** (once, all coefficients together): per (texture, taxel, speed, force) and label-free per
    (taxel, speed, force). A session without a 500 g reference for some (texture, speed) gets coefficients 1 and
    an attribute saying so.
@@ -167,6 +169,11 @@ def _encode_read(rg, ws, speed, coeffs, coeffs_lf, offset, scale, variants, stor
 
 # ---------------------------------------------------------------------------------------------------------- session
 def _labels(session, ids):
+    return {**_plan_labels(session, ids), **_recordings(session, ids)}
+
+
+def _plan_labels(session, ids):
+    """The plan's labels of ``ids``: trial id, texture, speed, force, profile."""
     plan = session.plan
     row_of = {int(t): i for i, t in enumerate(plan["trial_id"])}
     rows = plan[[row_of[t] for t in ids]]
@@ -185,7 +192,6 @@ def _labels(session, ids):
         "speed_mm_s": np.asarray(col("speed_mm_s", np.nan), dtype=np.float64),
         "force_g": np.asarray(col("force_g", np.nan), dtype=np.float64),
         "profile": text(col("profile", "constant")),
-        **_recordings(session, ids),
     }
 
 
@@ -475,12 +481,13 @@ class _Force:
     n_fit_trials: int = 0
 
 
-def _usable_ids(s: Any, run: EncodeRun) -> tuple[list[int], dict[int, str]]:
-    """The trials to encode (the validator's usable ones, or the asked ones that are usable) and the excluded."""
+def _usable_ids(s: Any, run: EncodeRun, kept: Any = None) -> tuple[list[int], dict[int, str]]:
+    """The trials to encode (the validator's usable ones, or the asked ones that are usable) and the excluded;
+    ``kept``: the validator's :class:`~rigctl.storage.validate.KeptTaxels`."""
     from rigctl.storage.validate import TrialsExcluded, usable_trials
 
     # the one trial validator: damaged trials excluded, with their reasons
-    report = usable_trials(s, keep_nonfinite=run.keep_nonfinite)
+    report = usable_trials(s, keep_nonfinite=run.keep_nonfinite, kept=kept)
     ids = report.ids if run.trial_ids is None else [t for t in run.trial_ids if t not in report.excluded]
     if report.excluded:
         warnings.warn(f"{run.session_path}: {report.summary()}", TrialsExcluded, stacklevel=4)
@@ -497,7 +504,8 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
     from rigctl.storage.session import open_session
 
     with open_session(run.session_path) as s:
-        ids, excluded = _usable_ids(s, run)
+        kept = _kept_for_fit(s, run, p)
+        ids, excluded = _usable_ids(s, run, kept)
         labels = _labels(s, ids)
         conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
         p.input_rate_hz, p.fs_hz = conv.input_rate_hz, conv.model_rate_hz
@@ -520,7 +528,8 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
         known = None if keep_all or conv.resampled or p.crop_s is not None else _extremes_known(s, ids, run)
         for b in batches if known is None else ():
             b_ids = [ids[i] for i in b]
-            blk = s.read_taxels(b_ids, traces=want_ws and keep_all)
+            blk = kept.block(s, b_ids, traces=want_ws) if keep_all else None
+            blk = s.read_taxels(b_ids, traces=want_ws and keep_all) if blk is None else blk
             _check_crop(p.crop_s, np.diff(blk.starts) / conv.input_rate_hz, b_ids)
             blk = _cropped(blk, p.crop_s, conv.input_rate_hz)
             read.n_samples[b] = np.diff(blk.starts)
@@ -540,7 +549,7 @@ def _range_pass(run: EncodeRun, p: EncodeParams, progress: ProgressCallback | No
                     fit_idx.extend(b[sel].tolist())
             bar.advance(len(b))
         if known is not None:
-            _range_from_extremes(s, read, known, keep, fit_idx, bar)
+            _range_from_extremes(s, read, known, keep, fit_idx, bar, kept)
     read.fit_idx = np.asarray(fit_idx, dtype=np.int64)
     _note_lossy(read, progress)
     if np.any(read.n_samples == 0):
@@ -567,12 +576,12 @@ def _extremes_known(s: Any, ids: list[int], run: EncodeRun) -> dict[int, np.ndar
 
 
 def _range_from_extremes(s: Any, read: _Read, known: dict[int, np.ndarray], keep: set[int], fit_idx: list[int],
-                         bar: Stage) -> None:
+                         bar: Stage, kept: Any = None) -> None:
     """Pass 1 without reading every sample (a session whose batches are read again by the encode pass, neither
     resampled nor cropped): the per-taxel range folded from each trial's extremes the validator found in the same
     counts (the range over the raw counts is the same, exactly), the lengths, traces and lost frames from
     ``/recording/index``, and only the force fit's subsample read, in the batches' order (the same blocks as
-    ``Ragged.select`` of the full read)."""
+    ``Ragged.select`` of the full read), or taken from the validator's read (``kept``) where it kept them."""
     index = s.recording_index()
     for b in read.batches:
         b_ids = [read.ids[i] for i in b]
@@ -584,10 +593,31 @@ def _range_from_extremes(s: Any, read: _Read, known: dict[int, np.ndarray], keep
         read.rng.fold(ext[:, 0].min(axis=0), ext[:, 1].max(axis=0), int(read.n_samples[b].sum()))
         sel = [j for j, i in enumerate(b) if i in keep]
         if sel:
-            blk = s.read_taxels([b_ids[j] for j in sel])
+            blk = None if kept is None else kept.block(s, [b_ids[j] for j in sel])
+            blk = s.read_taxels([b_ids[j] for j in sel]) if blk is None else blk
             read.fit_blocks.append(Ragged(blk.data, blk.starts))
             fit_idx.extend(b[sel].tolist())
         bar.advance(len(b))
+
+
+def _kept_for_fit(s: Any, run: EncodeRun, p: EncodeParams) -> Any:
+    """What the validator's read keeps for pass 1 (:class:`~rigctl.storage.validate.KeptTaxels`): the force fit's
+    subsample (every trial when they all fit ``fit_memory_bytes``) as chosen among the trials asked for, or all
+    complete ones: the validator's usable trials unless it excludes some, when pass 1 reads what the subsample of the
+    usable ones then lacks. So the fit's counts are read once, by the check. Nothing is kept for a rate the model
+    cannot take (the encode then says so, after the check)."""
+    from rigctl.storage.validate import KeptTaxels
+
+    try:
+        conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
+    except ValueError:
+        return KeptTaxels(())
+    ids = s.completed_ids()
+    if run.trial_ids is not None:
+        complete = set(ids)
+        ids = [t for t in run.trial_ids if t in complete]
+    keep = _fit_keep(s, ids, _plan_labels(s, ids), conv, run.fit_memory_bytes) if ids else set()
+    return KeptTaxels(ids[i] for i in keep)
 
 
 def _check_crop(crop_s: float | None, duration_s: np.ndarray, ids: list[int]) -> None:

@@ -53,7 +53,7 @@ import os
 import pickle
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -67,6 +67,7 @@ from rigctl.storage.outputs import size_text
 from rigctl.storage.session_format import SessionError, TrialStatus, trial_group_name
 from rigctl.storage.session_reader import (
     SessionReader as Session,  # checked here; session.Session calls us
+    TaxelBlock,
     as_count,
 )
 from rigctl.storage.session_recording import GROUP
@@ -81,7 +82,7 @@ from rigctl.storage.trial_facts import (
     taxels_print,
 )
 
-__all__ = ["BESIDE_BYTES", "KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "Beside", "TrialReport", "TrialsExcluded",
+__all__ = ["BESIDE_BYTES", "KEEP_HINT", "MAX_RATE_HZ", "MAX_TRIAL_S", "Beside", "KeptTaxels", "TrialReport", "TrialsExcluded",
            "block_seq_gaps", "check_beside", "max_count", "precheck", "seq_gaps", "usable_trials"]
 
 #: no taxel sensor samples faster (1 MHz; the paper's runs at 1 kHz): a faster rate is a damaged header
@@ -133,18 +134,54 @@ class TrialReport:
                 f"{kept}")
 
 
+class KeptTaxels:
+    """The taxels of chosen trials as :func:`usable_trials`' check read them, kept for the caller (``wanted``: the
+    trial ids; a trial is kept only once its checks pass, its counts met the checksum sealed with them where the
+    file holds one). Memory: the wanted trials' counts, until :meth:`block` hands them over."""
+
+    def __init__(self, wanted: Iterable[int]) -> None:
+        self.wanted = {int(t) for t in wanted}
+        self._taxels: dict[int, np.ndarray] = {}
+
+    def take(self, tid: int, taxels: np.ndarray) -> None:
+        """Keep a copy of trial ``tid``'s ``(n, n_channels)`` counts if it is wanted (called by the check)."""
+        if tid in self.wanted:
+            self._taxels[tid] = np.array(taxels, copy=True)
+
+    def __len__(self) -> int:
+        return len(self._taxels)
+
+    def block(self, session: Session, ids: Sequence[int], *, traces: bool = False) -> TaxelBlock | None:
+        """The :meth:`SessionReader.read_taxels` block of ``ids`` (schema 4) from the kept counts, which it hands
+        over (frees), its lengths, lost frames and speed traces (``traces``: read here) from the index; None when
+        one of ``ids`` is not kept (the caller reads them)."""
+        if not all(int(t) in self._taxels for t in ids):
+            return None
+        rows, _ = session.index_rows([int(t) for t in ids])
+        parts = [self._taxels.pop(int(t)) for t in ids]
+        n_ch = session.layout.n_channels
+        starts = np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
+        data = np.concatenate(parts) if parts else np.zeros((0, n_ch), dtype=np.uint16)
+        speed = [(t[2], t[3]) for t in session.read_traces(ids)] if traces else None
+        return TaxelBlock(data, starts, rows["dropped_frames"].astype(np.int64), rows["n_speed"] > 0, speed)
+
+
 #: how an excluded trial's non-finite readings end their reason (the option that keeps them)
 KEEP_HINT = " (--keep-nonfinite keeps it)"
 
 
 def usable_trials(session: Session, *, keep_nonfinite: bool = False,
-                  progress: ProgressCallback | None = None) -> TrialReport:
+                  progress: ProgressCallback | None = None, kept: KeptTaxels | None = None) -> TrialReport:
     """Check every complete trial of ``session`` (module docstring); computed once per open session (the report
     for either ``keep_nonfinite`` is derived from one pass) and cached on it.
 
     keep_nonfinite : trials whose force or speed traces hold NaN or inf are usable (listed in
         :attr:`TrialReport.nonfinite`) instead of excluded.
     progress : ``rigctl.core.progress`` callback: stage ``"checking trials"`` (trials).
+    kept : where this check's read hands the taxels of the trials it wants once they pass (:class:`KeptTaxels`: a
+        caller that uses those counts next, e.g. the encoder's force fit, need not read them again). Only a check
+        that reads them hands any: a schema-4 session not yet checked on this open file (a report already cached,
+        or an older schema, hands none; the caller then reads them itself).
     """
     key = "kept" if keep_nonfinite else "default"
     cached = session.trial_reports.get(key)
@@ -152,7 +189,7 @@ def usable_trials(session: Session, *, keep_nonfinite: bool = False,
         return cached
     full = session.trial_reports.get("kept")
     if not isinstance(full, TrialReport):
-        full = _check_session(session, progress)
+        full = _check_session(session, progress, kept)
         session.trial_reports["kept"] = full
     report = full
     if not keep_nonfinite and full.nonfinite:
@@ -253,8 +290,9 @@ def check_beside(session: Session, path: str | os.PathLike[str]) -> Beside | Non
     return Beside(path, guess)
 
 
-def _check_session(session: Session, progress: ProgressCallback | None) -> TrialReport:
-    """The report with trials of non-finite readings usable (and listed)."""
+def _check_session(session: Session, progress: ProgressCallback | None, kept: KeptTaxels | None = None
+                   ) -> TrialReport:
+    """The report with trials of non-finite readings usable (and listed); ``kept`` as :func:`usable_trials`'."""
     report = TrialReport()
     rate = float(session.layout.sample_rate_hz)
     plan = {int(r["trial_id"]): r for r in session.plan}
@@ -268,7 +306,7 @@ def _check_session(session: Session, progress: ProgressCallback | None) -> Trial
     if session_problem is not None:
         report.excluded = dict.fromkeys(ids, session_problem)
     elif session._flat:  # schema 4: the recording arrays, in blocks
-        _check_recorded(session, ids, plan, rate, report, stage)
+        _check_recorded(session, ids, plan, rate, report, stage, kept)
     else:
         copies = _Copies()
         for k, tid in enumerate(ids):
@@ -492,12 +530,12 @@ def _precheck_recorded(session: Session, ids: list[int], plan: dict[int, Any], r
 
 
 def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate: float,
-                    report: TrialReport, stage: Stage) -> None:
+                    report: TrialReport, stage: Stage, kept: KeptTaxels | None = None) -> None:
     """The checks of :func:`_check_trial` for a schema-4 file, from ``/recording/index``, each trial's group
     (:meth:`Session.flat_group_problem`) and the recording arrays read in blocks of about :data:`_BLOCK_ROWS` rows
     (memory bounded by two blocks: one hashed while the next is read). A trial with trusted facts
     (:meth:`Session.trusted_facts`) is judged on them instead of its samples, unless they show counts outside the ADC
-    range (read then, for the reason's sample)."""
+    range (read then, for the reason's sample). ``kept``: as :func:`usable_trials`'."""
     copies = _Copies()
     todo, facts, trusted = _precheck_recorded(session, ids, plan, rate, report,
                                               Stage(stage.callback, "checking trial groups", len(ids)))
@@ -525,11 +563,11 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
             blk = read_entries(session._f[GROUP], entries[k:j])
             sums = pool.submit(block_sums, blk, adc_max)
             if pending is not None:
-                _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies)
+                _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies, kept)
                 stage.advance(pending[2])
             pending = (blk, sums, j - k)
         if pending is not None:
-            _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies)
+            _judge_block(session, pending[0], pending[1].result(), plan, rate, report, copies, kept)
             stage.advance(pending[2])
     order = {t: i for i, t in enumerate(ids)}  # the report in plan order, as for older files
     report.ids.sort(key=order.__getitem__)
@@ -537,9 +575,9 @@ def _check_recorded(session: Session, ids: list[int], plan: dict[int, Any], rate
 
 
 def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any], rate: float,
-                 report: TrialReport, copies: "_Copies") -> None:
+                 report: TrialReport, copies: "_Copies", kept: KeptTaxels | None = None) -> None:
     """:func:`_check_data` of a block's trials in order: those with facts on them, the others on their samples
-    (read in :func:`read_entries`, summed in :func:`block_sums`)."""
+    (read in :func:`read_entries`, summed in :func:`block_sums`); each usable trial's taxels handed to ``kept``."""
     taxels_ds = session._f[GROUP]["taxels"]
     n_ch = int(taxels_ds.shape[1])
     gaps, in_range, digests, extremes = sums
@@ -567,6 +605,8 @@ def _judge_block(session: Session, blk: Block, sums: Sums, plan: dict[int, Any],
                                                         functools.partial(_check_counts, session, data, tid, copies,
                                                                           load, in_range))
         _record(report, tid, why, dropped, blk.bad[i])
+        if kept is not None and why is None:
+            kept.take(tid, data)
         ext = extremes[i]
         if ext is not None:
             report.taxel_extremes[tid] = ext

@@ -231,6 +231,38 @@ def test_the_range_from_the_validators_extremes_gives_the_file_a_full_read_gives
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+@pytest.mark.parametrize("fit_memory_bytes", [20_000, 1e9])  # a subsample (the encode pass reads again); every trial
+def test_pass_1_takes_the_counts_the_validator_read(session, tmp_path, monkeypatch, fit_memory_bytes):
+    """The force fit's counts (every trial's when they all fit ``fit_memory_bytes``, which the encode pass then uses
+    too) are the ones the validator read, handed over as it passed them (``KeptTaxels``): pass 1 reads no taxels of
+    its own (before, it read the fit's subsample again, or every trial), and every dataset of the encoded file is
+    the one reading them again gives, bit for bit."""
+    import rigctl.encoding.pipeline as pipeline
+    from rigctl.storage.session_reader import SessionReader
+    from rigctl.storage.validate import KeptTaxels
+
+    reads: list[int] = []
+    real = SessionReader.read_taxels
+    monkeypatch.setattr(SessionReader, "read_taxels",
+                        lambda self, ids, **kw: reads.append(len(ids)) or real(self, ids, **kw))
+    kw = dict(fit_memory_bytes=fit_memory_bytes, batch_trials=7, store_spikes=("original", "force_scaled"),
+              progress=False)
+    encode_session(session, tmp_path / "handed.h5", **kw)
+    handed = list(reads)
+    monkeypatch.setattr(pipeline, "_kept_for_fit", lambda *a: KeptTaxels(()))  # nothing kept: pass 1 reads
+    reads.clear()
+    encode_session(session, tmp_path / "read.h5", **kw)
+    batches = [7, 7, 7, 3]
+    if fit_memory_bytes < 1e6:  # only the encode pass's batches; before, the subsample's reads in pass 1 too
+        assert handed == batches and len(reads) > len(batches), (handed, reads)
+    else:  # every batch from the validator's read; before, pass 1 read them
+        assert handed == [] and reads == batches, (handed, reads)
+    a, b = _datasets(tmp_path / "handed.h5"), _datasets(tmp_path / "read.h5")
+    assert a.keys() == b.keys() and any(k.startswith("spikes/") for k in a)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
 def test_the_validators_taxel_extremes_are_each_trials_counts_extremes(session):
     """TrialReport.taxel_extremes: each usable trial's per-taxel minimum and maximum count, as its taxels read."""
     from rigctl.storage.session import open_session

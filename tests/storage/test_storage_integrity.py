@@ -190,3 +190,35 @@ def test_a_session_checked_beside_the_work_gives_what_checking_it_first_gives(tm
             (nwb_b.n_trials, nwb_b.n_samples, nwb_b.units, nwb_b.spikes)
         for k in arr_a:
             np.testing.assert_array_equal(arr_a[k], arr_b[k], err_msg=k)
+
+
+def test_the_validator_hands_over_only_the_taxels_of_trials_that_pass(tmp_path):
+    """``usable_trials(kept=KeptTaxels(ids))``: the counts of the wanted trials that pass, as read (what the encoder's
+    force fit then uses without reading them again); a trial whose taxels no longer meet the checksum sealed with
+    them (edited, the time put back) is never handed over."""
+    from rigctl.storage.validate import KeptTaxels
+
+    path = _session(tmp_path / "s.h5")
+
+    def edit(f):
+        t = int(_rows(f, 4)["sample_start"]) + 100
+        f["recording/taxels"][t, 5] = 901 if f["recording/taxels"][t, 5] != 901 else 902
+
+    _edit_keeping_mtime(path, edit)
+    with open_session(path) as s:
+        kept = KeptTaxels([1, 3, 4])
+        report = usable_trials(s, kept=kept)
+        assert 4 in report.excluded and len(kept) == 2
+        assert kept.block(s, [1, 4]) is None  # not every one kept: the caller reads them
+        got = kept.block(s, [3, 1], traces=True)
+        want = s.read_taxels([3, 1], traces=True)
+        assert got is not None and want.speed_traces is not None and got.speed_traces is not None
+        for name in ("data", "starts", "dropped_frames", "has_speed_trace"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+        for (t1, v1), (t2, v2) in zip(got.speed_traces, want.speed_traces):
+            np.testing.assert_array_equal(t1, t2)
+            np.testing.assert_array_equal(v1, v2)
+        assert len(kept) == 0  # handed over: freed
+        again = KeptTaxels([1])
+        usable_trials(s, kept=again)  # the report is cached on the open file: no read, nothing handed over
+        assert len(again) == 0
