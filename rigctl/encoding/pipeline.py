@@ -611,13 +611,15 @@ def _kept_for_fit(s: Any, run: EncodeRun, p: EncodeParams) -> Any:
     try:
         conv = rate_conversion(s.layout.sample_rate_hz, p.fs_hz)
     except ValueError:
-        return KeptTaxels(())
+        return KeptTaxels(s, ())
     ids = s.completed_ids()
     if run.trial_ids is not None:
         complete = set(ids)
         ids = [t for t in run.trial_ids if t in complete]
     keep = _fit_keep(s, ids, _plan_labels(s, ids), conv, run.fit_memory_bytes) if ids else set()
-    return KeptTaxels(ids[i] for i in keep)
+    bt = run.batch_trials  # each batch's share of the subsample: the blocks pass 1 takes (as _range_pass's batches)
+    return KeptTaxels(s, ([ids[i] for i in range(k, min(k + bt, len(ids))) if i in keep]
+                          for k in range(0, len(ids), bt)))
 
 
 def _check_crop(crop_s: float | None, duration_s: np.ndarray, ids: list[int]) -> None:

@@ -135,34 +135,51 @@ class TrialReport:
 
 
 class KeptTaxels:
-    """The taxels of chosen trials as :func:`usable_trials`' check read them, kept for the caller (``wanted``: the
-    trial ids; a trial is kept only once its checks pass, its counts met the checksum sealed with them where the
-    file holds one). Memory: the wanted trials' counts, until :meth:`block` hands them over."""
+    """The taxels of chosen trials as :func:`usable_trials`' check read them, kept for the caller in the blocks it
+    will use them in (``groups``: lists of trial ids, each a block as :meth:`SessionReader.read_taxels` of that list
+    returns it). A trial is kept only once its checks pass (its counts met the checksum sealed with them, where the
+    file holds one); each is copied once, from the check's block into its group's rows (one array a group, made up
+    front and filled as the check goes: no copy per trial that a block would copy again). Schema 4 only (an older
+    file's trials are never kept). Memory: the groups' counts, until :meth:`block` hands them over."""
 
-    def __init__(self, wanted: Iterable[int]) -> None:
-        self.wanted = {int(t) for t in wanted}
-        self._taxels: dict[int, np.ndarray] = {}
+    def __init__(self, session: Session, groups: Iterable[Sequence[int]]) -> None:
+        self._groups: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, list[bool]]] = {}
+        self._where: dict[int, tuple[tuple[int, ...], int]] = {}
+        index = session.recording_index()
+        n_ch = session.layout.n_channels
+        for group in (tuple(int(t) for t in g) for g in groups):
+            if not group or group in self._groups or not all(t in index and t not in self._where for t in group):
+                continue
+            starts = np.concatenate([[0], np.cumsum([int(index[t]["n_samples"]) for t in group])]).astype(np.int64)
+            self._groups[group] = (np.empty((int(starts[-1]), n_ch), dtype=np.uint16), starts, [False] * len(group))
+            self._where.update((t, (group, i)) for i, t in enumerate(group))
 
     def take(self, tid: int, taxels: np.ndarray) -> None:
-        """Keep a copy of trial ``tid``'s ``(n, n_channels)`` counts if it is wanted (called by the check)."""
-        if tid in self.wanted:
-            self._taxels[tid] = np.array(taxels, copy=True)
+        """Keep trial ``tid``'s ``(n, n_channels)`` counts if it is wanted (called by the check as it passes it)."""
+        where = self._where.get(int(tid))
+        if where is None:
+            return
+        data, starts, have = self._groups[where[0]]
+        a, b = int(starts[where[1]]), int(starts[where[1] + 1])
+        if taxels.shape == (b - a, data.shape[1]):
+            data[a:b] = taxels
+            have[where[1]] = True
 
     def __len__(self) -> int:
-        return len(self._taxels)
+        """Trials kept so far."""
+        return sum(sum(have) for _, _, have in self._groups.values())
 
     def block(self, session: Session, ids: Sequence[int], *, traces: bool = False) -> TaxelBlock | None:
-        """The :meth:`SessionReader.read_taxels` block of ``ids`` (schema 4) from the kept counts, which it hands
-        over (frees), its lengths, lost frames and speed traces (``traces``: read here) from the index; None when
-        one of ``ids`` is not kept (the caller reads them)."""
-        if not all(int(t) in self._taxels for t in ids):
+        """:meth:`SessionReader.read_taxels` of ``ids`` (a group given, every trial of it kept) from the kept counts,
+        which it hands over (frees), the lost frames and speed traces (``traces``: read here) from the file; None
+        otherwise (the caller reads them)."""
+        group = tuple(int(t) for t in ids)
+        kept = self._groups.get(group)
+        if kept is None or not all(kept[2]):
             return None
-        rows, _ = session.index_rows([int(t) for t in ids])
-        parts = [self._taxels.pop(int(t)) for t in ids]
-        n_ch = session.layout.n_channels
-        starts = np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
-        data = np.concatenate(parts) if parts else np.zeros((0, n_ch), dtype=np.uint16)
-        speed = [(t[2], t[3]) for t in session.read_traces(ids)] if traces else None
+        data, starts, _ = self._groups.pop(group)
+        rows, _ = session.index_rows(group)
+        speed = [(t[2], t[3]) for t in session.read_traces(group)] if traces else None
         return TaxelBlock(data, starts, rows["dropped_frames"].astype(np.int64), rows["n_speed"] > 0, speed)
 
 

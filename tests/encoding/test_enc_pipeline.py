@@ -249,7 +249,7 @@ def test_pass_1_takes_the_counts_the_validator_read(session, tmp_path, monkeypat
               progress=False)
     encode_session(session, tmp_path / "handed.h5", **kw)
     handed = list(reads)
-    monkeypatch.setattr(pipeline, "_kept_for_fit", lambda *a: KeptTaxels(()))  # nothing kept: pass 1 reads
+    monkeypatch.setattr(pipeline, "_kept_for_fit", lambda s, *a: KeptTaxels(s, ()))  # nothing kept: pass 1 reads
     reads.clear()
     encode_session(session, tmp_path / "read.h5", **kw)
     batches = [7, 7, 7, 3]

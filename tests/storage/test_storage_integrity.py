@@ -193,9 +193,9 @@ def test_a_session_checked_beside_the_work_gives_what_checking_it_first_gives(tm
 
 
 def test_the_validator_hands_over_only_the_taxels_of_trials_that_pass(tmp_path):
-    """``usable_trials(kept=KeptTaxels(ids))``: the counts of the wanted trials that pass, as read (what the encoder's
-    force fit then uses without reading them again); a trial whose taxels no longer meet the checksum sealed with
-    them (edited, the time put back) is never handed over."""
+    """``usable_trials(kept=KeptTaxels(session, groups))``: the counts of the wanted trials that pass, as read, in
+    the blocks asked for (what the encoder's force fit then uses without reading them again); a trial whose taxels no
+    longer meet the checksum sealed with them (edited, the time put back) is never handed over, nor its block."""
     from rigctl.storage.validate import KeptTaxels
 
     path = _session(tmp_path / "s.h5")
@@ -206,10 +206,11 @@ def test_the_validator_hands_over_only_the_taxels_of_trials_that_pass(tmp_path):
 
     _edit_keeping_mtime(path, edit)
     with open_session(path) as s:
-        kept = KeptTaxels([1, 3, 4])
+        kept = KeptTaxels(s, [[3, 1], [4, 5]])
         report = usable_trials(s, kept=kept)
-        assert 4 in report.excluded and len(kept) == 2
-        assert kept.block(s, [1, 4]) is None  # not every one kept: the caller reads them
+        assert 4 in report.excluded and len(kept) == 3
+        assert kept.block(s, [4, 5]) is None  # not every one kept: the caller reads them
+        assert kept.block(s, [1, 3]) is None  # not a block asked for
         got = kept.block(s, [3, 1], traces=True)
         want = s.read_taxels([3, 1], traces=True)
         assert got is not None and want.speed_traces is not None and got.speed_traces is not None
@@ -218,7 +219,7 @@ def test_the_validator_hands_over_only_the_taxels_of_trials_that_pass(tmp_path):
         for (t1, v1), (t2, v2) in zip(got.speed_traces, want.speed_traces):
             np.testing.assert_array_equal(t1, t2)
             np.testing.assert_array_equal(v1, v2)
-        assert len(kept) == 0  # handed over: freed
-        again = KeptTaxels([1])
+        assert kept.block(s, [3, 1]) is None and len(kept) == 1  # handed over: freed
+        again = KeptTaxels(s, [[1]])
         usable_trials(s, kept=again)  # the report is cached on the open file: no read, nothing handed over
         assert len(again) == 0
